@@ -1,0 +1,1 @@
+//! WGSL sources of the renderer, embedded at build time.

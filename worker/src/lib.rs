@@ -1,0 +1,7 @@
+//! pointfarm's worker library: reads LAS/LAZ into a recentred [`cloud::PointCloud`] and
+//! renders it with a wgpu compute-shader rasterizer.
+//!
+//! This crate knows nothing of gRPC, the daemon or the CLI: it takes files, clouds, cameras
+//! and render settings, and returns images with their stage timings.
+
+pub mod cloud;
