@@ -122,7 +122,10 @@ pub fn bounds_of(points: impl IntoIterator<Item = DVec3>) -> WorldBounds {
         max = max.max(p);
     }
     if min.x > max.x {
-        return WorldBounds { min: DVec3::ZERO, max: DVec3::ZERO };
+        return WorldBounds {
+            min: DVec3::ZERO,
+            max: DVec3::ZERO,
+        };
     }
     WorldBounds { min, max }
 }

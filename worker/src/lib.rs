@@ -4,4 +4,11 @@
 //! This crate knows nothing of gRPC, the daemon or the CLI: it takes files, clouds, cameras
 //! and render settings, and returns images with their stage timings.
 
+pub mod camera;
 pub mod cloud;
+pub mod gpu;
+pub mod raster;
+pub mod reference;
+
+#[cfg(test)]
+mod testing;

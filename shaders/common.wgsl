@@ -1,0 +1,113 @@
+// Shared by every point pass: the frame's camera, the point layout and the projection.
+// Prepended to each pass's source by `pointfarm_shaders::compose` (WGSL has no includes).
+
+struct FrameUniforms {
+    // Clip-space transform of positions relative to the dataset origin.
+    view_proj: mat4x4<f32>,
+    // Linear view depth of a point p: dot(depth_row, vec4(p, 1)). Positive in front.
+    depth_row: vec4<f32>,
+    // Points are culled unless near <= depth <= far.
+    near: f32,
+    far: f32,
+    width: u32,
+    height: u32,
+    // Side of the square each point covers, in pixels.
+    point_size: u32,
+    // RGBA8 written where no point landed.
+    background: u32,
+    _pad0: u32,
+    _pad1: u32,
+}
+
+// Points are grouped in batches of nearby points (Morton order), each with its bounding box,
+// so that a whole batch outside the view is skipped before any per-point work.
+struct Batch {
+    min: vec3<f32>,
+    first: u32,
+    max: vec3<f32>,
+    count: u32,
+}
+
+// One point as uploaded: position relative to the dataset origin, and its RGBA8 colour.
+struct GpuPoint {
+    position: vec3<f32>,
+    colour: u32,
+}
+
+// A point that survived the frustum test: its pixel square and its depth.
+struct Splat {
+    // Top-left pixel of the square (may be partly off-screen).
+    x0: i32,
+    y0: i32,
+    depth: f32,
+    visible: bool,
+}
+
+fn project_point(frame: FrameUniforms, p: vec3<f32>) -> Splat {
+    var s: Splat;
+    s.visible = false;
+    let depth = dot(frame.depth_row, vec4<f32>(p, 1.0));
+    // Also rejects NaN: comparisons with NaN are false.
+    if !(depth >= frame.near && depth <= frame.far) {
+        return s;
+    }
+    let clip = frame.view_proj * vec4<f32>(p, 1.0);
+    let ndc = clip.xy / clip.w;
+    let px = (ndc.x * 0.5 + 0.5) * f32(frame.width);
+    let py = (0.5 - ndc.y * 0.5) * f32(frame.height);
+    // Far outside the image: reject before the float-to-int conversion can saturate.
+    let margin = f32(frame.point_size);
+    if !(px >= -margin && px < f32(frame.width) + margin && py >= -margin && py < f32(frame.height) + margin) {
+        return s;
+    }
+    let half = i32((frame.point_size - 1u) / 2u);
+    s.x0 = i32(floor(px)) - half;
+    s.y0 = i32(floor(py)) - half;
+    s.depth = depth;
+    s.visible = true;
+    return s;
+}
+
+// True when no part of the batch's box can be in view: all eight corners lie outside the
+// same frustum plane (clip-space side planes widened by the point size, and near/far).
+fn batch_outside_view(frame: FrameUniforms, batch: Batch) -> bool {
+    let widen = vec2<f32>(
+        1.0 + 2.0 * f32(frame.point_size) / f32(frame.width),
+        1.0 + 2.0 * f32(frame.point_size) / f32(frame.height),
+    );
+    var out_left = true;
+    var out_right = true;
+    var out_bottom = true;
+    var out_top = true;
+    var out_near = true;
+    var out_far = true;
+    for (var corner = 0u; corner < 8u; corner++) {
+        let p = vec3<f32>(
+            select(batch.min.x, batch.max.x, (corner & 1u) != 0u),
+            select(batch.min.y, batch.max.y, (corner & 2u) != 0u),
+            select(batch.min.z, batch.max.z, (corner & 4u) != 0u),
+        );
+        let clip = frame.view_proj * vec4<f32>(p, 1.0);
+        let depth = dot(frame.depth_row, vec4<f32>(p, 1.0));
+        let w = clip.w;
+        out_left = out_left && clip.x < -w * widen.x;
+        out_right = out_right && clip.x > w * widen.x;
+        out_bottom = out_bottom && clip.y < -w * widen.y;
+        out_top = out_top && clip.y > w * widen.y;
+        out_near = out_near && depth < frame.near;
+        out_far = out_far && depth > frame.far;
+    }
+    return out_left || out_right || out_bottom || out_top || out_near || out_far;
+}
+
+fn pixel_index(frame: FrameUniforms, x: i32, y: i32) -> i32 {
+    if x < 0 || y < 0 || x >= i32(frame.width) || y >= i32(frame.height) {
+        return -1;
+    }
+    return y * i32(frame.width) + x;
+}
+
+// Batches are dispatched on a 2D grid because one dimension holds at most 65535 workgroups.
+fn batch_index(workgroup: vec3<u32>, groups: vec3<u32>) -> u32 {
+    return workgroup.y * groups.x + workgroup.x;
+}

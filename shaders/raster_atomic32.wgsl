@@ -1,0 +1,94 @@
+// Basic-mode rasterizer for adapters without 64-bit atomics: the same image as
+// raster_atomic64.wgsl in two passes over the points.
+//
+// The framebuffer has the same memory layout as the 64-bit one, as pairs of u32 words:
+// [2i] = colour, [2i + 1] = depth bits. `rasterize_depth` keeps the nearest depth per pixel;
+// `rasterize_colour` then lets every point whose depth equals the stored one atomicMin its
+// colour, which picks the same winner as the 64-bit (depth << 32 | colour) minimum. Both
+// passes compute depths with the same code from the same inputs, so equality is exact.
+
+override WORKGROUP_SIZE: u32 = 128u;
+
+@group(0) @binding(0) var<uniform> frame: FrameUniforms;
+@group(0) @binding(1) var<storage, read> points: array<GpuPoint>;
+@group(0) @binding(2) var<storage, read> batches: array<Batch>;
+@group(0) @binding(3) var<storage, read_write> framebuffer: array<atomic<u32>>;
+
+fn depth_word(pixel: i32) -> i32 {
+    return 2 * pixel + 1;
+}
+
+fn colour_word(pixel: i32) -> i32 {
+    return 2 * pixel;
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn rasterize_depth(
+    @builtin(workgroup_id) workgroup: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lane: u32,
+) {
+    let b = batch_index(workgroup, groups);
+    if b >= arrayLength(&batches) {
+        return;
+    }
+    let batch = batches[b];
+    if batch_outside_view(frame, batch) {
+        return;
+    }
+    for (var i = lane; i < batch.count; i += WORKGROUP_SIZE) {
+        let splat = project_point(frame, points[batch.first + i].position);
+        if !splat.visible {
+            continue;
+        }
+        let depth_bits = bitcast<u32>(splat.depth);
+        for (var dy = 0u; dy < frame.point_size; dy++) {
+            for (var dx = 0u; dx < frame.point_size; dx++) {
+                let pixel = pixel_index(frame, splat.x0 + i32(dx), splat.y0 + i32(dy));
+                if pixel < 0 {
+                    continue;
+                }
+                // Early depth test, as in the 64-bit pass.
+                if atomicLoad(&framebuffer[depth_word(pixel)]) < depth_bits {
+                    continue;
+                }
+                atomicMin(&framebuffer[depth_word(pixel)], depth_bits);
+            }
+        }
+    }
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn rasterize_colour(
+    @builtin(workgroup_id) workgroup: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lane: u32,
+) {
+    let b = batch_index(workgroup, groups);
+    if b >= arrayLength(&batches) {
+        return;
+    }
+    let batch = batches[b];
+    if batch_outside_view(frame, batch) {
+        return;
+    }
+    for (var i = lane; i < batch.count; i += WORKGROUP_SIZE) {
+        let point = points[batch.first + i];
+        let splat = project_point(frame, point.position);
+        if !splat.visible {
+            continue;
+        }
+        let depth_bits = bitcast<u32>(splat.depth);
+        for (var dy = 0u; dy < frame.point_size; dy++) {
+            for (var dx = 0u; dx < frame.point_size; dx++) {
+                let pixel = pixel_index(frame, splat.x0 + i32(dx), splat.y0 + i32(dy));
+                if pixel < 0 {
+                    continue;
+                }
+                if atomicLoad(&framebuffer[depth_word(pixel)]) == depth_bits {
+                    atomicMin(&framebuffer[colour_word(pixel)], point.colour);
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,56 @@
+// Basic-mode rasterizer with 64-bit atomics (Schütz & Wimmer 2021).
+//
+// Each framebuffer word holds (depth bits << 32 | RGBA8). Depths are positive f32, whose bit
+// patterns order like the values, so one atomicMin keeps the nearest point, and among points
+// at exactly the same depth the smallest colour word: the image does not depend on the order
+// in which points arrive.
+//
+// One workgroup per batch. Needs SHADER_INT64 and SHADER_INT64_ATOMIC_MIN_MAX.
+
+override WORKGROUP_SIZE: u32 = 128u;
+
+@group(0) @binding(0) var<uniform> frame: FrameUniforms;
+@group(0) @binding(1) var<storage, read> points: array<GpuPoint>;
+@group(0) @binding(2) var<storage, read> batches: array<Batch>;
+@group(0) @binding(3) var<storage, read_write> framebuffer: array<atomic<u64>>;
+// The same buffer as `framebuffer`, read without atomics for the early depth test: a stale
+// read only costs an unneeded atomicMin, never a wrong pixel. y is the depth word.
+@group(0) @binding(4) var<storage, read_write> framebuffer_words: array<vec2<u32>>;
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn rasterize(
+    @builtin(workgroup_id) workgroup: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lane: u32,
+) {
+    let b = batch_index(workgroup, groups);
+    if b >= arrayLength(&batches) {
+        return;
+    }
+    let batch = batches[b];
+    if batch_outside_view(frame, batch) {
+        return;
+    }
+    for (var i = lane; i < batch.count; i += WORKGROUP_SIZE) {
+        let point = points[batch.first + i];
+        let splat = project_point(frame, point.position);
+        if !splat.visible {
+            continue;
+        }
+        let depth_bits = bitcast<u32>(splat.depth);
+        let value = (u64(depth_bits) << 32u) | u64(point.colour);
+        for (var dy = 0u; dy < frame.point_size; dy++) {
+            for (var dx = 0u; dx < frame.point_size; dx++) {
+                let pixel = pixel_index(frame, splat.x0 + i32(dx), splat.y0 + i32(dy));
+                if pixel < 0 {
+                    continue;
+                }
+                // Early depth test: skip the atomic when a nearer point is already stored.
+                if framebuffer_words[pixel].y < depth_bits {
+                    continue;
+                }
+                atomicMin(&framebuffer[pixel], value);
+            }
+        }
+    }
+}

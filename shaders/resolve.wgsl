@@ -1,0 +1,39 @@
+// Clears the point framebuffer before a frame and resolves it afterwards into an RGBA8 image
+// and a linear depth image. Works on both rasterizer variants: each framebuffer entry is a
+// pair of u32 words, x = colour, y = depth bits (the little-endian halves of the 64-bit
+// word), and 0xffffffff in both means "no point".
+
+const EMPTY: u32 = 0xffffffffu;
+
+@group(0) @binding(0) var<uniform> frame: FrameUniforms;
+@group(0) @binding(1) var<storage, read_write> framebuffer: array<vec2<u32>>;
+@group(0) @binding(2) var<storage, read_write> colour_out: array<u32>;
+@group(0) @binding(3) var<storage, read_write> depth_out: array<f32>;
+
+fn pixel_of(id: vec3<u32>, groups: vec3<u32>) -> u32 {
+    return id.y * groups.x * 256u + id.x;
+}
+
+@compute @workgroup_size(256)
+fn clear(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let pixel = pixel_of(id, groups);
+    if pixel < arrayLength(&framebuffer) {
+        framebuffer[pixel] = vec2<u32>(EMPTY, EMPTY);
+    }
+}
+
+@compute @workgroup_size(256)
+fn resolve(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let pixel = pixel_of(id, groups);
+    if pixel >= frame.width * frame.height {
+        return;
+    }
+    let entry = framebuffer[pixel];
+    if entry.y == EMPTY {
+        colour_out[pixel] = frame.background;
+        depth_out[pixel] = bitcast<f32>(0x7f800000u); // +infinity: no surface
+    } else {
+        colour_out[pixel] = entry.x;
+        depth_out[pixel] = bitcast<f32>(entry.y);
+    }
+}

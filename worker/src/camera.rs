@@ -1,0 +1,337 @@
+//! Cameras in world coordinates, turned into f64 transforms relative to a dataset origin.
+//!
+//! Convention (shared by the GPU passes and the CPU reference): right-handed, Z up, the camera
+//! looks from `position` towards `target`; pixel (0, 0) is the top-left corner; a point covers
+//! the pixel that contains its projection, pixel centres at half-integers. Depth is the linear
+//! distance along the viewing direction, and a point is drawn when `near <= depth <= far`.
+
+use glam::dcamera::rh::{proj::directx, view};
+use glam::{DMat4, DVec3, DVec4};
+use thiserror::Error;
+
+use crate::cloud::WorldBounds;
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Projection {
+    /// Vertical field of view in degrees.
+    Perspective { fov_y_deg: f64 },
+    /// Height of the view volume in world units.
+    Orthographic { height: f64 },
+}
+
+/// A camera in world coordinates (the same coordinates as the LAS file).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Camera {
+    pub position: DVec3,
+    pub target: DVec3,
+    pub up: DVec3,
+    pub projection: Projection,
+    pub near: f64,
+    pub far: f64,
+}
+
+#[derive(Debug, Error, PartialEq)]
+pub enum CameraError {
+    #[error("camera {field} is not finite")]
+    NotFinite { field: &'static str },
+    #[error("camera position and target are the same point")]
+    NoViewDirection,
+    #[error("camera up vector is zero or parallel to the view direction")]
+    DegenerateUp,
+    #[error("camera needs 0 < near < far (near {near}, far {far})")]
+    DepthRange { near: f64, far: f64 },
+    #[error("perspective field of view must lie in (0, 180) degrees, got {0}")]
+    FieldOfView(f64),
+    #[error("orthographic view height must be positive, got {0}")]
+    OrthographicHeight(f64),
+}
+
+/// Default viewing direction of the automatic camera: from the south-east, looking down.
+pub const AUTO_AZIMUTH_DEG: f64 = -60.0;
+pub const AUTO_ELEVATION_DEG: f64 = 30.0;
+pub const DEFAULT_FOV_Y_DEG: f64 = 50.0;
+
+impl Camera {
+    /// Checks the camera for values that would give a meaningless or undefined transform.
+    pub fn validate(&self) -> Result<(), CameraError> {
+        let vectors = [
+            ("position", self.position),
+            ("target", self.target),
+            ("up", self.up),
+        ];
+        for (field, v) in vectors {
+            if !v.is_finite() {
+                return Err(CameraError::NotFinite { field });
+            }
+        }
+        for (field, v) in [("near", self.near), ("far", self.far)] {
+            if !v.is_finite() {
+                return Err(CameraError::NotFinite { field });
+            }
+        }
+        let forward = self.target - self.position;
+        if forward.length_squared() == 0.0 {
+            return Err(CameraError::NoViewDirection);
+        }
+        if forward.normalize().cross(self.up).length_squared() < 1e-12 {
+            return Err(CameraError::DegenerateUp);
+        }
+        if !(self.near > 0.0 && self.far > self.near) {
+            return Err(CameraError::DepthRange {
+                near: self.near,
+                far: self.far,
+            });
+        }
+        match self.projection {
+            Projection::Perspective { fov_y_deg } => {
+                if !(fov_y_deg.is_finite() && fov_y_deg > 0.0 && fov_y_deg < 180.0) {
+                    return Err(CameraError::FieldOfView(fov_y_deg));
+                }
+            }
+            Projection::Orthographic { height } => {
+                if !(height.is_finite() && height > 0.0) {
+                    return Err(CameraError::OrthographicHeight(height));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// A camera that sees all of `bounds`, looking at its centre from the given azimuth
+    /// (degrees counter-clockwise from +X) and elevation (degrees above the horizon).
+    pub fn framing(
+        bounds: &WorldBounds,
+        aspect: f64,
+        azimuth_deg: f64,
+        elevation_deg: f64,
+        projection: Projection,
+    ) -> Camera {
+        let center = bounds.center();
+        // Never zero, so a single point or a flat cloud still gives a valid camera.
+        let radius = bounds.radius().max(1e-3);
+        let (az, el) = (azimuth_deg.to_radians(), elevation_deg.to_radians());
+        let direction = DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
+        match projection {
+            Projection::Perspective { fov_y_deg } => {
+                // The bounding sphere must fit in the narrower of the two fields of view.
+                let half_fov_y = (fov_y_deg.to_radians() * 0.5).min(1.5);
+                let half_fov_x = (half_fov_y.tan() * aspect).atan();
+                let half_fov = half_fov_y.min(half_fov_x);
+                let distance = radius / half_fov.sin() * 1.02;
+                Camera {
+                    position: center + direction * distance,
+                    target: center,
+                    up: DVec3::Z,
+                    projection,
+                    near: (distance - radius * 1.05).max(distance * 1e-3),
+                    far: distance + radius * 1.05,
+                }
+            }
+            Projection::Orthographic { .. } => {
+                let distance = radius * 2.0;
+                Camera {
+                    position: center + direction * distance,
+                    target: center,
+                    up: DVec3::Z,
+                    projection: Projection::Orthographic {
+                        height: 2.0 * radius * 1.02 / aspect.min(1.0),
+                    },
+                    near: distance - radius * 1.05,
+                    far: distance + radius * 1.05,
+                }
+            }
+        }
+    }
+
+    /// The automatic camera: frames the whole cloud from a pleasant oblique view.
+    pub fn auto(bounds: &WorldBounds, aspect: f64) -> Camera {
+        Camera::framing(
+            bounds,
+            aspect,
+            AUTO_AZIMUTH_DEG,
+            AUTO_ELEVATION_DEG,
+            Projection::Perspective {
+                fov_y_deg: DEFAULT_FOV_Y_DEG,
+            },
+        )
+    }
+
+    /// Frame `index` of `frames` around the vertical axis through the cloud's centre, starting
+    /// at the automatic camera's azimuth and keeping its distance and elevation.
+    pub fn turntable(bounds: &WorldBounds, aspect: f64, index: usize, frames: usize) -> Camera {
+        let step = 360.0 / frames.max(1) as f64;
+        Camera::framing(
+            bounds,
+            aspect,
+            AUTO_AZIMUTH_DEG + step * index as f64,
+            AUTO_ELEVATION_DEG,
+            Projection::Perspective {
+                fov_y_deg: DEFAULT_FOV_Y_DEG,
+            },
+        )
+    }
+
+    /// The camera's transform for points stored relative to `origin`. Built entirely in f64:
+    /// the camera position is recentred before the view matrix exists, so nothing large ever
+    /// meets an f32.
+    pub fn transform(&self, origin: DVec3, width: u32, height: u32) -> CameraTransform {
+        let aspect = width as f64 / height as f64;
+        let eye = self.position - origin;
+        let view_matrix = view::look_at_mat4(eye, self.target - origin, self.up);
+        let projection = match self.projection {
+            Projection::Perspective { fov_y_deg } => {
+                directx::perspective(fov_y_deg.to_radians(), aspect, self.near, self.far)
+            }
+            Projection::Orthographic { height } => {
+                let half_h = height * 0.5;
+                let half_w = half_h * aspect;
+                directx::orthographic(-half_w, half_w, -half_h, half_h, self.near, self.far)
+            }
+        };
+        // View space looks down -Z, so the linear depth is minus the view-space z.
+        let depth_row = -view_matrix.row(2);
+        CameraTransform {
+            view_proj: projection * view_matrix,
+            depth_row,
+            near: self.near,
+            far: self.far,
+            width,
+            height,
+        }
+    }
+}
+
+/// What a rasterizer needs of a camera, relative to the dataset origin, in f64.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraTransform {
+    pub view_proj: DMat4,
+    /// Linear depth of a point p is `depth_row · (p, 1)`.
+    pub depth_row: DVec4,
+    pub near: f64,
+    pub far: f64,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl CameraTransform {
+    /// Projects a point (relative to the origin) to continuous pixel coordinates and depth.
+    /// `None` when the point is outside `near..=far`.
+    pub fn project(&self, p: DVec3) -> Option<(f64, f64, f64)> {
+        let depth = self.depth_row.dot(p.extend(1.0));
+        if !(depth >= self.near && depth <= self.far) {
+            return None;
+        }
+        let clip = self.view_proj * p.extend(1.0);
+        let (ndc_x, ndc_y) = (clip.x / clip.w, clip.y / clip.w);
+        let px = (ndc_x * 0.5 + 0.5) * self.width as f64;
+        let py = (0.5 - ndc_y * 0.5) * self.height as f64;
+        Some((px, py, depth))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn bounds() -> WorldBounds {
+        WorldBounds {
+            min: DVec3::new(515_000.0, 4_918_000.0, 2_000.0),
+            max: DVec3::new(515_100.0, 4_918_050.0, 2_030.0),
+        }
+    }
+
+    #[test]
+    fn auto_camera_sees_every_corner_of_the_bounds() {
+        let b = bounds();
+        for (w, h) in [(1280, 720), (720, 1280), (512, 512)] {
+            let camera = Camera::auto(&b, w as f64 / h as f64);
+            camera.validate().expect("auto camera is valid");
+            let transform = camera.transform(b.center(), w, h);
+            for i in 0..8 {
+                let corner = DVec3::new(
+                    if i & 1 == 0 { b.min.x } else { b.max.x },
+                    if i & 2 == 0 { b.min.y } else { b.max.y },
+                    if i & 4 == 0 { b.min.z } else { b.max.z },
+                );
+                let (px, py, _) = transform
+                    .project(corner - b.center())
+                    .expect("inside near/far");
+                assert!(
+                    (0.0..w as f64).contains(&px) && (0.0..h as f64).contains(&py),
+                    "{w}x{h}: corner {i} at ({px}, {py})"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn target_projects_to_the_image_centre_with_its_distance_as_depth() {
+        let b = bounds();
+        for projection in [
+            Projection::Perspective { fov_y_deg: 40.0 },
+            Projection::Orthographic { height: 10.0 },
+        ] {
+            let camera = Camera::framing(&b, 2.0, 10.0, 20.0, projection);
+            let t = camera.transform(b.min, 200, 100);
+            let (px, py, depth) = t.project(camera.target - b.min).expect("target is in view");
+            assert!(
+                (px - 100.0).abs() < 1e-6 && (py - 50.0).abs() < 1e-6,
+                "({px}, {py})"
+            );
+            assert!((depth - camera.position.distance(camera.target)).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn up_is_up_in_the_image() {
+        let b = bounds();
+        let camera = Camera::auto(&b, 1.0);
+        let t = camera.transform(b.center(), 100, 100);
+        let (_, low_y, _) = t.project(DVec3::ZERO).expect("centre");
+        let (_, high_y, _) = t.project(DVec3::new(0.0, 0.0, 5.0)).expect("above centre");
+        assert!(high_y < low_y, "higher points must be nearer the top row");
+    }
+
+    #[test]
+    fn invalid_cameras_are_rejected_with_the_reason() {
+        let good = Camera::auto(&bounds(), 1.0);
+        let mut nan = good;
+        nan.position.y = f64::NAN;
+        assert_eq!(
+            nan.validate(),
+            Err(CameraError::NotFinite { field: "position" })
+        );
+        let mut same = good;
+        same.target = same.position;
+        assert_eq!(same.validate(), Err(CameraError::NoViewDirection));
+        let mut up = good;
+        up.up = good.target - good.position;
+        assert_eq!(up.validate(), Err(CameraError::DegenerateUp));
+        let mut depth = good;
+        depth.near = 0.0;
+        assert!(matches!(
+            depth.validate(),
+            Err(CameraError::DepthRange { .. })
+        ));
+        let mut fov = good;
+        fov.projection = Projection::Perspective { fov_y_deg: 180.0 };
+        assert_eq!(fov.validate(), Err(CameraError::FieldOfView(180.0)));
+    }
+
+    #[test]
+    fn turntable_keeps_distance_and_goes_all_the_way_round() {
+        let b = bounds();
+        let frames = 8;
+        let cams: Vec<Camera> = (0..frames)
+            .map(|i| Camera::turntable(&b, 1.5, i, frames))
+            .collect();
+        let d0 = cams[0].position.distance(b.center());
+        for c in &cams {
+            assert!((c.position.distance(b.center()) - d0).abs() < 1e-6);
+            assert_eq!(c.target, b.center());
+        }
+        let opposite = cams[frames / 2].position - b.center();
+        let first = cams[0].position - b.center();
+        assert!((opposite.x + first.x).abs() < 1e-6 && (opposite.y + first.y).abs() < 1e-6);
+    }
+}

@@ -1,0 +1,144 @@
+//! The basic-mode point pass: every point is projected, culled and written to the point
+//! framebuffer with an atomic minimum of (depth, colour).
+//!
+//! Two variants render the same image: one 64-bit `atomicMin` per pixel where the adapter has
+//! 64-bit atomics (`shaders/raster_atomic64.wgsl`), and a depth pass followed by a colour pass
+//! with 32-bit atomics where it has not (`shaders/raster_atomic32.wgsl`).
+
+use pointfarm_shaders::Shader;
+
+use super::points::{GpuPointCloud, PointChunk, BATCH_POINTS};
+use super::targets::FrameTargets;
+
+/// Threads per workgroup; each thread walks the batch with this stride.
+pub(crate) const WORKGROUP_SIZE: u32 = 128;
+const _: () = assert!(BATCH_POINTS % WORKGROUP_SIZE as usize == 0);
+
+/// Which atomics the point pass uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AtomicsPath {
+    /// One pass, one 64-bit atomicMin of (depth << 32 | colour).
+    Atomic64,
+    /// Two passes with 32-bit atomics: depth, then colour of the points at that depth.
+    Atomic32,
+}
+
+pub(crate) struct BasicPass {
+    /// Present when the device has 64-bit atomics.
+    atomic64: Option<wgpu::ComputePipeline>,
+    atomic32_depth: wgpu::ComputePipeline,
+    atomic32_colour: wgpu::ComputePipeline,
+}
+
+fn pipeline(
+    device: &wgpu::Device,
+    module: &wgpu::ShaderModule,
+    entry_point: &str,
+) -> wgpu::ComputePipeline {
+    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some(entry_point),
+        layout: None,
+        module,
+        entry_point: Some(entry_point),
+        compilation_options: wgpu::PipelineCompilationOptions {
+            constants: &[("WORKGROUP_SIZE", WORKGROUP_SIZE as f64)],
+            ..Default::default()
+        },
+        cache: None,
+    })
+}
+
+fn module(device: &wgpu::Device, shader: Shader) -> wgpu::ShaderModule {
+    device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(shader.label()),
+        source: wgpu::ShaderSource::Wgsl(shader.source().into()),
+    })
+}
+
+impl BasicPass {
+    pub fn new(device: &wgpu::Device, int64_atomics: bool) -> Self {
+        let atomic64 = int64_atomics
+            .then(|| pipeline(device, &module(device, Shader::RasterAtomic64), "rasterize"));
+        let m32 = module(device, Shader::RasterAtomic32);
+        Self {
+            atomic64,
+            atomic32_depth: pipeline(device, &m32, "rasterize_depth"),
+            atomic32_colour: pipeline(device, &m32, "rasterize_colour"),
+        }
+    }
+
+    /// `Atomic64` when the device can and the caller allows it.
+    pub fn path(&self, allow_64: bool) -> AtomicsPath {
+        if allow_64 && self.atomic64.is_some() {
+            AtomicsPath::Atomic64
+        } else {
+            AtomicsPath::Atomic32
+        }
+    }
+
+    /// Records the point dispatches for every chunk of `cloud` into `pass`.
+    pub fn record(
+        &self,
+        device: &wgpu::Device,
+        pass: &mut wgpu::ComputePass<'_>,
+        path: AtomicsPath,
+        uniforms: &wgpu::Buffer,
+        cloud: &GpuPointCloud,
+        targets: &FrameTargets,
+    ) {
+        let stages: Vec<&wgpu::ComputePipeline> = match (path, &self.atomic64) {
+            (AtomicsPath::Atomic64, Some(p)) => vec![p],
+            _ => vec![&self.atomic32_depth, &self.atomic32_colour],
+        };
+        // The 32-bit colour pass needs every chunk's depths, so stages run outermost.
+        for pipeline in stages {
+            pass.set_pipeline(pipeline);
+            for chunk in &cloud.chunks {
+                let bind_group = bind_group(device, pipeline, path, uniforms, chunk, targets);
+                pass.set_bind_group(0, &bind_group, &[]);
+                let (x, y) = super::dispatch_grid(chunk.batch_count);
+                pass.dispatch_workgroups(x, y, 1);
+            }
+        }
+    }
+}
+
+fn bind_group(
+    device: &wgpu::Device,
+    pipeline: &wgpu::ComputePipeline,
+    path: AtomicsPath,
+    uniforms: &wgpu::Buffer,
+    chunk: &PointChunk,
+    targets: &FrameTargets,
+) -> wgpu::BindGroup {
+    let mut entries = vec![
+        wgpu::BindGroupEntry {
+            binding: 0,
+            resource: uniforms.as_entire_binding(),
+        },
+        wgpu::BindGroupEntry {
+            binding: 1,
+            resource: chunk.points.as_entire_binding(),
+        },
+        wgpu::BindGroupEntry {
+            binding: 2,
+            resource: chunk.batches.as_entire_binding(),
+        },
+        wgpu::BindGroupEntry {
+            binding: 3,
+            resource: targets.framebuffer.as_entire_binding(),
+        },
+    ];
+    if path == AtomicsPath::Atomic64 {
+        // The non-atomic view of the same framebuffer, for the early depth test.
+        entries.push(wgpu::BindGroupEntry {
+            binding: 4,
+            resource: targets.framebuffer.as_entire_binding(),
+        });
+    }
+    device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("point pass"),
+        layout: &pipeline.get_bind_group_layout(0),
+        entries: &entries,
+    })
+}

@@ -1,0 +1,372 @@
+//! The compute-shader rasterizer (Schütz & Wimmer; Günther et al.).
+//!
+//! A frame is: write the frame uniforms; clear the point framebuffer; run the point pass over
+//! every chunk of the resident cloud (batch frustum culling, per-point projection, early depth
+//! test, atomic minimum of depth and colour); resolve the framebuffer into an RGBA8 image and
+//! a depth image; read both back. Each stage is timed.
+//!
+//! [`Renderer`] owns the pipelines and the per-size frame buffers; [`GpuPointCloud`] owns a
+//! cloud's GPU buffers and outlives any number of frames.
+
+mod basic_pass;
+mod gpu_data;
+mod points;
+mod resolve_pass;
+mod targets;
+mod timing;
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use image::RgbaImage;
+use thiserror::Error;
+
+pub use basic_pass::AtomicsPath;
+pub use points::{GpuPointCloud, BATCH_POINTS};
+pub use timing::{Clock, Stage, StageTiming, StageTimings};
+
+use crate::camera::{Camera, CameraError};
+use crate::cloud::PointCloud;
+use crate::gpu::{read_buffer, GpuContext, GpuError};
+use basic_pass::BasicPass;
+use gpu_data::FrameUniforms;
+use resolve_pass::ResolvePass;
+use targets::FrameTargets;
+use timing::GpuTimer;
+
+/// Largest image side accepted, in pixels.
+pub const MAX_IMAGE_SIDE: u32 = 16384;
+/// Largest point size accepted, in pixels.
+pub const MAX_POINT_SIZE: u32 = 64;
+
+#[derive(Debug, Error)]
+pub enum RenderError {
+    #[error(
+        "image size {width}x{height} is invalid: each side must be 1 to {MAX_IMAGE_SIDE} pixels"
+    )]
+    ImageSize { width: u32, height: u32 },
+    #[error(
+        "image size {width}x{height} needs a {needed_mib} MiB framebuffer, more than this \
+         adapter's {limit_mib} MiB storage binding limit"
+    )]
+    ImageTooLarge {
+        width: u32,
+        height: u32,
+        needed_mib: u64,
+        limit_mib: u64,
+    },
+    #[error("point size {0} is invalid: it must be 1 to {MAX_POINT_SIZE} pixels")]
+    PointSize(u32),
+    #[error(transparent)]
+    Camera(#[from] CameraError),
+    #[error("the point cloud is empty")]
+    EmptyCloud,
+    #[error("GPU error: {0}")]
+    Gpu(String),
+}
+
+impl From<GpuError> for RenderError {
+    fn from(e: GpuError) -> Self {
+        RenderError::Gpu(e.to_string())
+    }
+}
+
+/// Which atomics the point pass may use.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum AtomicsMode {
+    /// 64-bit where the device has them, else 32-bit.
+    #[default]
+    Auto,
+    /// Always the 32-bit path (for adapters without 64-bit atomics, and to test it).
+    Force32,
+}
+
+/// Everything that decides the pixels of one frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameSettings {
+    pub width: u32,
+    pub height: u32,
+    pub camera: Camera,
+    /// Side of the square each point covers, in pixels.
+    pub point_size: u32,
+    /// RGBA written where no point landed.
+    pub background: [u8; 4],
+    pub atomics: AtomicsMode,
+    /// Also read back the linear depth image.
+    pub read_depth: bool,
+}
+
+impl FrameSettings {
+    /// Defaults: one-pixel points on a dark grey background, automatic atomics.
+    pub fn new(width: u32, height: u32, camera: Camera) -> Self {
+        Self {
+            width,
+            height,
+            camera,
+            point_size: 1,
+            background: [24, 24, 28, 255],
+            atomics: AtomicsMode::Auto,
+            read_depth: false,
+        }
+    }
+}
+
+/// A rendered frame.
+#[derive(Debug, Clone)]
+pub struct Frame {
+    pub image: RgbaImage,
+    /// Linear depth per pixel, row-major; +infinity where no point landed. Present when
+    /// [`FrameSettings::read_depth`] was set.
+    pub depth: Option<Vec<f32>>,
+    pub timings: StageTimings,
+    pub atomics: AtomicsPath,
+}
+
+impl Frame {
+    /// Writes the image as PNG and records the time in the frame's "encode" stage.
+    pub fn save_png(&mut self, path: &std::path::Path) -> Result<(), image::ImageError> {
+        let started = Instant::now();
+        self.image.save_with_format(path, image::ImageFormat::Png)?;
+        self.timings.push(
+            Stage::Encode,
+            started.elapsed().as_secs_f64() * 1e3,
+            Clock::Host,
+        );
+        Ok(())
+    }
+}
+
+/// Renders frames of resident point clouds on one GPU.
+pub struct Renderer {
+    gpu: Arc<GpuContext>,
+    basic: BasicPass,
+    resolve: ResolvePass,
+    uniforms: wgpu::Buffer,
+    timer: Option<GpuTimer>,
+    targets: Option<FrameTargets>,
+    max_chunk_points: usize,
+}
+
+impl Renderer {
+    pub fn new(gpu: Arc<GpuContext>) -> Self {
+        let device = &gpu.device;
+        let caps = gpu.capabilities;
+        let max_chunk_points = (caps.max_storage_binding_bytes.min(caps.max_buffer_bytes)
+            / std::mem::size_of::<gpu_data::GpuPoint>() as u64)
+            as usize;
+        Self {
+            basic: BasicPass::new(device, caps.int64_atomics),
+            resolve: ResolvePass::new(device),
+            uniforms: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("frame uniforms"),
+                size: std::mem::size_of::<FrameUniforms>() as u64,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            timer: caps.timestamps.then(|| GpuTimer::new(device, &gpu.queue)),
+            targets: None,
+            max_chunk_points,
+            gpu,
+        }
+    }
+
+    pub fn gpu(&self) -> &GpuContext {
+        &self.gpu
+    }
+
+    /// Lowers the number of points per chunk below what the binding limit allows, so that
+    /// tests can exercise many chunks with small clouds. Affects later uploads only.
+    pub fn set_max_chunk_points(&mut self, points: usize) {
+        self.max_chunk_points = self.max_chunk_points.min(points.max(1));
+    }
+
+    /// Uploads a cloud; its buffers stay resident for as many frames as needed.
+    pub fn upload(&self, cloud: &PointCloud) -> Result<GpuPointCloud, RenderError> {
+        GpuPointCloud::upload(&self.gpu, cloud, self.max_chunk_points)
+    }
+
+    /// Checks settings before any GPU work, so bad requests fail with a clear reason.
+    pub fn validate(&self, settings: &FrameSettings) -> Result<(), RenderError> {
+        let (width, height) = (settings.width, settings.height);
+        if width == 0 || height == 0 || width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE {
+            return Err(RenderError::ImageSize { width, height });
+        }
+        let needed = width as u64 * height as u64 * 8;
+        let limit = self.gpu.capabilities.max_storage_binding_bytes;
+        if needed > limit {
+            return Err(RenderError::ImageTooLarge {
+                width,
+                height,
+                needed_mib: needed.div_ceil(1 << 20),
+                limit_mib: limit >> 20,
+            });
+        }
+        if settings.point_size == 0 || settings.point_size > MAX_POINT_SIZE {
+            return Err(RenderError::PointSize(settings.point_size));
+        }
+        settings.camera.validate()?;
+        Ok(())
+    }
+
+    /// Renders one frame of `cloud`.
+    pub fn render(
+        &mut self,
+        cloud: &GpuPointCloud,
+        settings: &FrameSettings,
+    ) -> Result<Frame, RenderError> {
+        self.validate(settings)?;
+        let _span = tracing::debug_span!("frame", width = settings.width, height = settings.height)
+            .entered();
+        let mut timings = StageTimings::default();
+
+        let started = Instant::now();
+        let uniforms = frame_uniforms(cloud, settings);
+        self.gpu
+            .queue
+            .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));
+        if !self
+            .targets
+            .as_ref()
+            .is_some_and(|t| t.width == settings.width && t.height == settings.height)
+        {
+            self.targets = Some(FrameTargets::new(
+                &self.gpu.device,
+                settings.width,
+                settings.height,
+            ));
+        }
+        let upload_ms = started.elapsed().as_secs_f64() * 1e3 + cloud.take_upload_ms();
+        timings.push(Stage::Upload, upload_ms, Clock::Host);
+
+        let path = self.basic.path(settings.atomics == AtomicsMode::Auto);
+        self.run_passes(cloud, path, &mut timings)?;
+
+        let started = Instant::now();
+        let Some(targets) = self.targets.as_ref() else {
+            return Err(RenderError::Gpu("frame targets missing".into()));
+        };
+        let pixels = targets.pixels();
+        let colour = read_buffer(&self.gpu, &targets.colour, pixels * 4)?;
+        let depth = if settings.read_depth {
+            let bytes = read_buffer(&self.gpu, &targets.depth, pixels * 4)?;
+            Some(bytemuck::pod_collect_to_vec::<u8, f32>(&bytes))
+        } else {
+            None
+        };
+        let image = RgbaImage::from_raw(settings.width, settings.height, colour)
+            .ok_or_else(|| RenderError::Gpu("colour readback has the wrong size".into()))?;
+        timings.push(
+            Stage::Readback,
+            started.elapsed().as_secs_f64() * 1e3,
+            Clock::Host,
+        );
+
+        tracing::debug!(%timings, ?path, "frame rendered");
+        Ok(Frame {
+            image,
+            depth,
+            timings,
+            atomics: path,
+        })
+    }
+
+    /// Clears, rasterizes and resolves. With timestamp queries everything goes in one
+    /// submission and the GPU times each pass; without, each pass is submitted and waited
+    /// for on its own and timed by the host clock.
+    fn run_passes(
+        &self,
+        cloud: &GpuPointCloud,
+        path: AtomicsPath,
+        timings: &mut StageTimings,
+    ) -> Result<(), RenderError> {
+        let device = &self.gpu.device;
+        let Some(targets) = self.targets.as_ref() else {
+            return Err(RenderError::Gpu("frame targets missing".into()));
+        };
+        let rasterize = |encoder: &mut wgpu::CommandEncoder| {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("rasterize"),
+                timestamp_writes: self.timer.as_ref().map(|t| t.writes(0)),
+            });
+            self.resolve.record_clear(device, &mut pass, targets);
+            self.basic
+                .record(device, &mut pass, path, &self.uniforms, cloud, targets);
+        };
+        let resolve = |encoder: &mut wgpu::CommandEncoder| {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("resolve"),
+                timestamp_writes: self.timer.as_ref().map(|t| t.writes(1)),
+            });
+            self.resolve
+                .record_resolve(device, &mut pass, &self.uniforms, targets);
+        };
+
+        match &self.timer {
+            Some(timer) => {
+                let mut encoder = device.create_command_encoder(&Default::default());
+                rasterize(&mut encoder);
+                resolve(&mut encoder);
+                encoder.resolve_query_set(
+                    &timer.query_set,
+                    0..timing::QUERY_COUNT,
+                    &timer.resolved,
+                    0,
+                );
+                self.gpu.queue.submit([encoder.finish()]);
+                let raw = read_buffer(&self.gpu, &timer.resolved, timing::QUERY_COUNT as u64 * 8)?;
+                let raw: Vec<u64> = bytemuck::pod_collect_to_vec(&raw);
+                timings.push(Stage::Rasterize, timer.pass_ms(&raw, 0), Clock::Gpu);
+                timings.push(Stage::Resolve, timer.pass_ms(&raw, 1), Clock::Gpu);
+            }
+            None => {
+                for (stage, record) in [
+                    (
+                        Stage::Rasterize,
+                        &rasterize as &dyn Fn(&mut wgpu::CommandEncoder),
+                    ),
+                    (Stage::Resolve, &resolve),
+                ] {
+                    let started = Instant::now();
+                    let mut encoder = device.create_command_encoder(&Default::default());
+                    record(&mut encoder);
+                    self.gpu.queue.submit([encoder.finish()]);
+                    device
+                        .poll(wgpu::PollType::wait_indefinitely())
+                        .map_err(|e| RenderError::Gpu(e.to_string()))?;
+                    timings.push(stage, started.elapsed().as_secs_f64() * 1e3, Clock::Host);
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+fn frame_uniforms(cloud: &GpuPointCloud, settings: &FrameSettings) -> FrameUniforms {
+    let t = settings
+        .camera
+        .transform(cloud.origin(), settings.width, settings.height);
+    FrameUniforms {
+        view_proj: t.view_proj.as_mat4().to_cols_array_2d(),
+        depth_row: t.depth_row.as_vec4().to_array(),
+        near: t.near as f32,
+        far: t.far as f32,
+        width: settings.width,
+        height: settings.height,
+        point_size: settings.point_size,
+        background: u32::from_le_bytes(settings.background),
+        _pad: [0; 2],
+    }
+}
+
+/// Splits a workgroup count over two dimensions: one dimension holds at most 65535.
+pub(crate) fn dispatch_grid(groups: u32) -> (u32, u32) {
+    const MAX: u32 = 65535;
+    if groups <= MAX {
+        (groups, 1)
+    } else {
+        (MAX, groups.div_ceil(MAX))
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,359 @@
+//! The rasterizer against the CPU reference on synthetic scenes, where the basic mode must
+//! match it pixel for pixel. (Real scans are compared in `crate::ingest`'s neighbours:
+//! see `real_scan_tests` below.)
+
+use glam::{DVec3, DVec4};
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::*;
+use crate::camera::Projection;
+use crate::cloud::pack_rgba8;
+use crate::reference;
+use crate::testing::{compare_images, gpu};
+
+/// Survey-like coordinates, far from zero, so that the recentring path is always exercised.
+const SURVEY_ORIGIN: DVec3 = DVec3::new(515_370.0, 4_918_340.0, 2_200.0);
+
+fn camera(projection: Projection) -> Camera {
+    Camera {
+        position: SURVEY_ORIGIN + DVec3::new(-40.0, -30.0, 25.0),
+        target: SURVEY_ORIGIN,
+        up: DVec3::Z,
+        projection,
+        near: 5.0,
+        far: 150.0,
+    }
+}
+
+/// Points placed exactly on pixel centres (so no rounding can move them to another pixel),
+/// `layers` per covered pixel at well-separated depths, in shuffled order, plus points that
+/// must be culled: behind the camera, beyond `far`, before `near` and beside the image.
+fn pixel_centre_scene(settings: &FrameSettings, layers: usize, seed: u64) -> PointCloud {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let cam = settings.camera;
+    let (w, h) = (settings.width, settings.height);
+    let t = cam.transform(SURVEY_ORIGIN, w, h);
+    let inverse = t.view_proj.inverse();
+    let depth_of = |p: DVec3| t.depth_row.dot(p.extend(1.0));
+    // The point on the ray through NDC (x, y) at linear depth `depth`, relative to the origin.
+    let at_depth = |ndc_x: f64, ndc_y: f64, depth: f64| {
+        let unproject = |z: f64| {
+            let p: DVec4 = inverse * DVec4::new(ndc_x, ndc_y, z, 1.0);
+            p.truncate() / p.w
+        };
+        let (a, b) = (unproject(0.0), unproject(1.0));
+        a + (b - a) * ((depth - depth_of(a)) / (depth_of(b) - depth_of(a)))
+    };
+    let mut points = Vec::new();
+    let mut colours = Vec::new();
+    let random_colour = |rng: &mut ChaCha8Rng| pack_rgba8(rng.random(), rng.random(), rng.random());
+    for y in 0..h {
+        for x in 0..w {
+            if rng.random_bool(0.25) {
+                continue; // leave holes so the background shows
+            }
+            let ndc_x = (x as f64 + 0.5) / w as f64 * 2.0 - 1.0;
+            let ndc_y = 1.0 - (y as f64 + 0.5) / h as f64 * 2.0;
+            for layer in 0..layers {
+                // Depth slots are 10% of the range apart: no f32 rounding can reorder them.
+                let slot = (layer as f64 + rng.random_range(0.2..0.8)) / layers as f64;
+                let depth = cam.near + (cam.far - cam.near) * (0.02 + 0.96 * slot);
+                points.push(SURVEY_ORIGIN + at_depth(ndc_x, ndc_y, depth));
+                colours.push(random_colour(&mut rng));
+            }
+        }
+    }
+    // Points that must not appear.
+    let centre_ray = |depth: f64| SURVEY_ORIGIN + at_depth(0.1, -0.2, depth);
+    for depth in [-10.0, -1.0, 0.5 * cam.near, cam.far * 1.01, cam.far * 3.0] {
+        points.push(centre_ray(depth));
+        colours.push(pack_rgba8(255, 0, 0));
+    }
+    for ndc in [(-1.3, 0.0), (1.3, 0.2), (0.0, 1.4), (0.3, -1.5)] {
+        points.push(SURVEY_ORIGIN + at_depth(ndc.0, ndc.1, 40.0));
+        colours.push(pack_rgba8(255, 0, 0));
+    }
+    let mut order: Vec<usize> = (0..points.len()).collect();
+    order.shuffle(&mut rng);
+    let points: Vec<DVec3> = order.iter().map(|&i| points[i]).collect();
+    let colours: Vec<u32> = order.iter().map(|&i| colours[i]).collect();
+    PointCloud::from_world_points(&points, colours)
+}
+
+fn render_gpu(cloud: &PointCloud, settings: &FrameSettings) -> Frame {
+    let mut renderer = Renderer::new(gpu());
+    let resident = renderer.upload(cloud).expect("upload");
+    renderer.render(&resident, settings).expect("render")
+}
+
+fn assert_matches_reference(name: &str, cloud: &PointCloud, settings: &FrameSettings) -> Frame {
+    let frame = render_gpu(cloud, settings);
+    let expected = reference::render_basic(cloud, settings);
+    let diff = compare_images(name, &frame.image, &expected.image);
+    assert_eq!(
+        diff.differing, 0,
+        "{name}: GPU and reference differ in {} pixels",
+        diff.differing
+    );
+    frame
+}
+
+#[test]
+fn basic_mode_equals_the_reference_pixel_for_pixel() {
+    let settings = FrameSettings::new(
+        160,
+        120,
+        camera(Projection::Perspective { fov_y_deg: 50.0 }),
+    );
+    let cloud = pixel_centre_scene(&settings, 3, 1);
+    let frame = assert_matches_reference("basic-perspective", &cloud, &settings);
+    // The scene really exercises the depth test and the background.
+    let background = frame
+        .image
+        .pixels()
+        .filter(|p| p.0 == settings.background)
+        .count();
+    assert!(
+        background > 1000 && background < 160 * 120 / 2,
+        "{background} background pixels"
+    );
+}
+
+#[test]
+fn orthographic_camera_equals_the_reference() {
+    let settings = FrameSettings::new(128, 96, camera(Projection::Orthographic { height: 30.0 }));
+    let cloud = pixel_centre_scene(&settings, 2, 2);
+    assert_matches_reference("basic-orthographic", &cloud, &settings);
+}
+
+#[test]
+fn large_points_cover_squares_like_the_reference() {
+    for point_size in [2, 3, 6] {
+        let mut settings =
+            FrameSettings::new(96, 64, camera(Projection::Perspective { fov_y_deg: 40.0 }));
+        settings.point_size = point_size;
+        settings.background = [0, 0, 0, 0];
+        let cloud = pixel_centre_scene(&settings, 1, 3);
+        // Thin the cloud so the squares overlap partly and leave gaps.
+        let sparse: Vec<usize> = (0..cloud.len()).step_by(7).collect();
+        assert_matches_reference(
+            &format!("point-size-{point_size}"),
+            &cloud.select(&sparse),
+            &settings,
+        );
+    }
+}
+
+#[test]
+fn fallback_32_bit_path_renders_the_same_image_as_the_64_bit_path() {
+    let gpu = gpu();
+    assert!(
+        gpu.capabilities.int64_atomics,
+        "this adapter lacks 64-bit atomics; the comparison needs both paths"
+    );
+    let mut settings = FrameSettings::new(
+        160,
+        120,
+        camera(Projection::Perspective { fov_y_deg: 50.0 }),
+    );
+    settings.read_depth = true;
+    // Many points per pixel, including exact depth ties broken by colour.
+    let mut cloud = pixel_centre_scene(&settings, 4, 4);
+    let duplicates: Vec<usize> = (0..cloud.len())
+        .chain((0..cloud.len()).step_by(3))
+        .collect();
+    cloud = cloud.select(&duplicates);
+    for (i, c) in cloud
+        .colors
+        .iter_mut()
+        .enumerate()
+        .skip(cloud.positions.len() * 3 / 4)
+    {
+        *c = pack_rgba8(i as u8, 0, 255 - i as u8);
+    }
+    let mut renderer = Renderer::new(gpu);
+    let resident = renderer.upload(&cloud).expect("upload");
+    let wide = renderer.render(&resident, &settings).expect("64-bit");
+    settings.atomics = AtomicsMode::Force32;
+    let narrow = renderer.render(&resident, &settings).expect("32-bit");
+    assert_eq!(wide.atomics, AtomicsPath::Atomic64);
+    assert_eq!(narrow.atomics, AtomicsPath::Atomic32);
+    let diff = compare_images("fallback-vs-64", &narrow.image, &wide.image);
+    assert_eq!(diff.differing, 0);
+    assert_eq!(narrow.depth, wide.depth);
+    let expected = reference::render_basic(&cloud, &settings);
+    assert_eq!(
+        compare_images("fallback-vs-reference", &narrow.image, &expected.image).differing,
+        0
+    );
+}
+
+#[test]
+fn a_cloud_larger_than_one_binding_renders_in_chunks() {
+    let settings = FrameSettings::new(
+        160,
+        120,
+        camera(Projection::Perspective { fov_y_deg: 50.0 }),
+    );
+    let cloud = pixel_centre_scene(&settings, 3, 5);
+    let mut renderer = Renderer::new(gpu());
+    // Lower the binding limit to two batches per chunk.
+    renderer.set_max_chunk_points(2 * BATCH_POINTS);
+    let resident = renderer.upload(&cloud).expect("upload");
+    assert!(
+        resident.chunk_count() >= 4,
+        "only {} chunks",
+        resident.chunk_count()
+    );
+    for atomics in [AtomicsMode::Auto, AtomicsMode::Force32] {
+        let frame = renderer
+            .render(
+                &resident,
+                &FrameSettings {
+                    atomics,
+                    ..settings
+                },
+            )
+            .expect("render");
+        let expected = reference::render_basic(&cloud, &settings);
+        assert_eq!(
+            compare_images("chunked", &frame.image, &expected.image).differing,
+            0
+        );
+    }
+}
+
+#[test]
+fn batch_culling_keeps_every_point_that_is_in_view() {
+    // A wide field of scattered clusters, seen through a narrow camera: most batches are
+    // culled, and the image must still equal the reference.
+    let mut rng = ChaCha8Rng::seed_from_u64(6);
+    let mut points = Vec::new();
+    for _ in 0..40_000 {
+        points.push(
+            SURVEY_ORIGIN
+                + DVec3::new(
+                    rng.random_range(-500.0..500.0),
+                    rng.random_range(-500.0..500.0),
+                    rng.random_range(-5.0..5.0),
+                ),
+        );
+    }
+    let colours = (0..points.len())
+        .map(|i| pack_rgba8(i as u8, (i >> 8) as u8, 200))
+        .collect();
+    let cloud = PointCloud::from_world_points(&points, colours);
+    let cam = Camera {
+        position: SURVEY_ORIGIN + DVec3::new(0.0, -120.0, 60.0),
+        target: SURVEY_ORIGIN,
+        up: DVec3::Z,
+        projection: Projection::Perspective { fov_y_deg: 30.0 },
+        near: 1.0,
+        far: 400.0,
+    };
+    let mut settings = FrameSettings::new(200, 150, cam);
+    settings.point_size = 2;
+    let frame = assert_matches_reference("culling", &cloud, &settings);
+    assert!(
+        frame.image.pixels().any(|p| p.0 != settings.background),
+        "something is in view"
+    );
+}
+
+#[test]
+fn depth_image_holds_linear_depth() {
+    let mut settings =
+        FrameSettings::new(64, 48, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    settings.read_depth = true;
+    let cloud = pixel_centre_scene(&settings, 2, 7);
+    let frame = render_gpu(&cloud, &settings);
+    let expected = reference::render_basic(&cloud, &settings);
+    let depth = frame.depth.expect("depth was requested");
+    for (gpu_depth, reference_depth) in depth.iter().zip(&expected.depth) {
+        if reference_depth.is_infinite() {
+            assert!(gpu_depth.is_infinite());
+        } else {
+            assert!(
+                (gpu_depth - reference_depth).abs() <= reference_depth * 1e-5,
+                "{gpu_depth} vs {reference_depth}"
+            );
+        }
+    }
+}
+
+#[test]
+fn every_frame_reports_its_stage_timings() {
+    let settings = FrameSettings::new(64, 48, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    let cloud = pixel_centre_scene(&settings, 1, 8);
+    let mut renderer = Renderer::new(gpu());
+    let resident = renderer.upload(&cloud).expect("upload");
+    let mut first = renderer.render(&resident, &settings).expect("render");
+    let second = renderer.render(&resident, &settings).expect("render");
+    for frame in [&first, &second] {
+        for stage in [
+            Stage::Upload,
+            Stage::Rasterize,
+            Stage::Resolve,
+            Stage::Readback,
+        ] {
+            let ms = frame.timings.get(stage).expect("stage timed");
+            assert!(ms.is_finite() && ms >= 0.0, "{stage:?}: {ms}");
+        }
+    }
+    // The point upload is reported once, by the first frame; later frames reuse the buffers.
+    assert!(first.timings.get(Stage::Upload) > second.timings.get(Stage::Upload));
+    let dir = tempfile::tempdir().expect("tempdir");
+    first.save_png(&dir.path().join("frame.png")).expect("png");
+    assert!(first.timings.get(Stage::Encode).is_some());
+    let line = first.timings.to_string();
+    assert!(
+        line.contains("rasterize") && line.contains("encode"),
+        "{line}"
+    );
+}
+
+#[test]
+fn invalid_settings_are_refused_before_any_gpu_work() {
+    let renderer = Renderer::new(gpu());
+    let good = FrameSettings::new(64, 48, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    renderer.validate(&good).expect("good settings");
+    let huge = FrameSettings {
+        width: 100_000,
+        height: 100_000,
+        ..good
+    };
+    assert!(matches!(
+        renderer.validate(&huge),
+        Err(RenderError::ImageSize { .. })
+    ));
+    let too_many_pixels = FrameSettings {
+        width: 16_000,
+        height: 16_000,
+        ..good
+    };
+    let err = renderer
+        .validate(&too_many_pixels)
+        .expect_err("over the binding limit");
+    if gpu().capabilities.max_storage_binding_bytes < 16_000 * 16_000 * 8 {
+        assert!(matches!(err, RenderError::ImageTooLarge { .. }), "{err}");
+    }
+    let zero = FrameSettings { width: 0, ..good };
+    assert!(renderer.validate(&zero).is_err());
+    let mut nan = good;
+    nan.camera.position.x = f64::NAN;
+    let err = renderer.validate(&nan).expect_err("NaN camera");
+    assert!(err.to_string().contains("position"), "{err}");
+    assert!(matches!(
+        renderer.validate(&FrameSettings {
+            point_size: 0,
+            ..good
+        }),
+        Err(RenderError::PointSize(0))
+    ));
+    assert!(matches!(
+        renderer.upload(&PointCloud::from_world_points(&[], vec![])),
+        Err(RenderError::EmptyCloud)
+    ));
+}

@@ -1,0 +1,131 @@
+//! Per-frame stage timings, from GPU timestamp queries where the adapter has them and from
+//! host clocks otherwise.
+
+use std::fmt;
+
+/// A stage of producing a frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Stage {
+    /// Host-to-GPU transfers: per-frame uniforms, and the points on the first frame of a cloud.
+    Upload,
+    /// Framebuffer clear and the point pass(es).
+    Rasterize,
+    /// Framebuffer to RGBA8 and depth images.
+    Resolve,
+    /// GPU-to-host copy of the images.
+    Readback,
+    /// Image file encoding (PNG).
+    Encode,
+}
+
+impl Stage {
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::Upload => "upload",
+            Stage::Rasterize => "rasterize",
+            Stage::Resolve => "resolve",
+            Stage::Readback => "readback",
+            Stage::Encode => "encode",
+        }
+    }
+}
+
+/// How a stage was timed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Clock {
+    /// GPU timestamp queries around the pass.
+    Gpu,
+    /// Host wall clock around the work and a wait for its completion.
+    Host,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StageTiming {
+    pub stage: Stage,
+    pub ms: f64,
+    pub clock: Clock,
+}
+
+/// The timings of one frame, in the order the stages ran.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct StageTimings {
+    pub stages: Vec<StageTiming>,
+}
+
+impl StageTimings {
+    pub fn push(&mut self, stage: Stage, ms: f64, clock: Clock) {
+        self.stages.push(StageTiming { stage, ms, clock });
+    }
+
+    /// Milliseconds spent in `stage` (summed if it ran more than once), if it ran.
+    pub fn get(&self, stage: Stage) -> Option<f64> {
+        let mut found = None;
+        for t in self.stages.iter().filter(|t| t.stage == stage) {
+            *found.get_or_insert(0.0) += t.ms;
+        }
+        found
+    }
+
+    pub fn total_ms(&self) -> f64 {
+        self.stages.iter().map(|t| t.ms).sum()
+    }
+}
+
+impl fmt::Display for StageTimings {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for (i, t) in self.stages.iter().enumerate() {
+            if i > 0 {
+                f.write_str("  ")?;
+            }
+            let clock = match t.clock {
+                Clock::Gpu => " (gpu)",
+                Clock::Host => "",
+            };
+            write!(f, "{} {:.2} ms{}", t.stage.name(), t.ms, clock)?;
+        }
+        write!(f, "  | total {:.2} ms", self.total_ms())
+    }
+}
+
+/// Timestamp queries around the compute passes of a frame.
+pub(crate) struct GpuTimer {
+    pub query_set: wgpu::QuerySet,
+    pub resolved: wgpu::Buffer,
+    period_ns: f32,
+}
+
+/// Query slots: begin and end of the rasterize and the resolve passes.
+pub(crate) const QUERY_COUNT: u32 = 4;
+
+impl GpuTimer {
+    pub fn new(device: &wgpu::Device, queue: &wgpu::Queue) -> Self {
+        Self {
+            query_set: device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("frame timestamps"),
+                ty: wgpu::QueryType::Timestamp,
+                count: QUERY_COUNT,
+            }),
+            resolved: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("frame timestamps resolved"),
+                size: QUERY_COUNT as u64 * 8,
+                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            }),
+            period_ns: queue.get_timestamp_period(),
+        }
+    }
+
+    pub fn writes(&self, pass: u32) -> wgpu::ComputePassTimestampWrites<'_> {
+        wgpu::ComputePassTimestampWrites {
+            query_set: &self.query_set,
+            beginning_of_pass_write_index: Some(2 * pass),
+            end_of_pass_write_index: Some(2 * pass + 1),
+        }
+    }
+
+    /// Milliseconds of pass `pass` from the resolved raw timestamps.
+    pub fn pass_ms(&self, raw: &[u64], pass: u32) -> f64 {
+        let (begin, end) = (raw[2 * pass as usize], raw[2 * pass as usize + 1]);
+        end.saturating_sub(begin) as f64 * self.period_ns as f64 / 1e6
+    }
+}

@@ -1,0 +1,95 @@
+//! Helpers for the crate's own tests: one shared GPU, image comparison with diff output, and
+//! the location of the real scans.
+
+use std::path::PathBuf;
+use std::sync::{Arc, OnceLock};
+
+use image::RgbaImage;
+
+use crate::gpu::{AdapterChoice, GpuContext};
+
+/// One GPU context for all tests of the process (device creation is slow on lavapipe).
+/// Fails loudly when there is no adapter: the renderer's tests must not pass by skipping.
+pub fn gpu() -> Arc<GpuContext> {
+    static GPU: OnceLock<Arc<GpuContext>> = OnceLock::new();
+    GPU.get_or_init(|| {
+        let choice = AdapterChoice::from_env().expect("valid POINTFARM_ADAPTER");
+        let gpu = GpuContext::new(choice).unwrap_or_else(|e| {
+            panic!("GPU tests need an adapter (run deploy/setup.sh for lavapipe): {e}")
+        });
+        eprintln!("testing on {}", gpu.describe());
+        Arc::new(gpu)
+    })
+    .clone()
+}
+
+/// `../shared/data` next to the repository, or None (with a message) when it is absent.
+pub fn shared_data(file: &str) -> Option<PathBuf> {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/data")
+        .join(file);
+    if path.is_file() {
+        Some(path)
+    } else {
+        eprintln!(
+            "skipped: {} not found (the real scans live in ../shared/data)",
+            path.display()
+        );
+        None
+    }
+}
+
+/// How two images differ.
+#[derive(Debug, Clone, Copy)]
+pub struct ImageDiff {
+    pub pixels: usize,
+    pub differing: usize,
+}
+
+impl ImageDiff {
+    pub fn equal_fraction(&self) -> f64 {
+        1.0 - self.differing as f64 / self.pixels as f64
+    }
+}
+
+/// Compares two images pixel by pixel. When they differ, writes `<name>-actual.png`,
+/// `<name>-expected.png` and `<name>-diff.png` (differing pixels in magenta) to
+/// `target/test-output/` so a failure can be looked at.
+pub fn compare_images(name: &str, actual: &RgbaImage, expected: &RgbaImage) -> ImageDiff {
+    assert_eq!(
+        actual.dimensions(),
+        expected.dimensions(),
+        "{name}: image sizes differ"
+    );
+    let mut diff = RgbaImage::new(actual.width(), actual.height());
+    let mut differing = 0;
+    for ((a, e), d) in actual
+        .pixels()
+        .zip(expected.pixels())
+        .zip(diff.pixels_mut())
+    {
+        if a != e {
+            differing += 1;
+            d.0 = [255, 0, 255, 255];
+        } else {
+            let grey = (e.0[0] as u16 + e.0[1] as u16 + e.0[2] as u16) / 6;
+            d.0 = [grey as u8, grey as u8, grey as u8, 255];
+        }
+    }
+    if differing > 0 {
+        let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../target/test-output");
+        if std::fs::create_dir_all(&dir).is_ok() {
+            let _ = actual.save(dir.join(format!("{name}-actual.png")));
+            let _ = expected.save(dir.join(format!("{name}-expected.png")));
+            let _ = diff.save(dir.join(format!("{name}-diff.png")));
+            eprintln!(
+                "{name}: {differing} pixels differ; images in {}",
+                dir.display()
+            );
+        }
+    }
+    ImageDiff {
+        pixels: (actual.width() * actual.height()) as usize,
+        differing,
+    }
+}
