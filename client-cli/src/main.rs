@@ -1,1 +1,56 @@
-fn main() {}
+//! `pointfarm`: render point clouds from a terminal or a script.
+
+mod parse;
+mod render;
+mod sample;
+
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+use tracing_subscriber::EnvFilter;
+
+#[derive(Parser)]
+#[command(name = "pointfarm", version, about = "A headless render farm for point clouds")]
+struct Cli {
+    /// Log more (-v: info, -vv: debug). RUST_LOG overrides this.
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    verbose: u8,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render frames of a LAS/LAZ file on this machine's GPU (or lavapipe).
+    Render(render::RenderArgs),
+    /// Write a generated sample scene (survey-like coordinates, RGB) as LAS or LAZ.
+    Sample(sample::SampleArgs),
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let default_level = match cli.verbose {
+        0 => "warn",
+        1 => "warn,pointfarm_worker=info,pointfarm=info",
+        _ => "info,pointfarm_worker=debug,pointfarm=debug",
+    };
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default_level)),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+
+    let result = match cli.command {
+        Command::Render(args) => render::run(args),
+        Command::Sample(args) => sample::run(args),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            // One line: the context chain joined, as scripts expect.
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

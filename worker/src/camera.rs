@@ -143,6 +143,27 @@ impl Camera {
         }
     }
 
+    /// A camera at `position` looking at `target`, with near and far planes that enclose
+    /// `bounds` as seen from there.
+    pub fn looking_at(
+        position: DVec3,
+        target: DVec3,
+        bounds: &WorldBounds,
+        projection: Projection,
+    ) -> Camera {
+        let radius = bounds.radius().max(1e-3);
+        let distance = position.distance(bounds.center());
+        Camera {
+            position,
+            target,
+            up: DVec3::Z,
+            projection,
+            // Inside the cloud the near plane must still be positive: keep it small.
+            near: (distance - radius * 1.05).max(radius * 1e-4),
+            far: distance + radius * 1.05,
+        }
+    }
+
     /// The automatic camera: frames the whole cloud from a pleasant oblique view.
     pub fn auto(bounds: &WorldBounds, aspect: f64) -> Camera {
         Camera::framing(
@@ -156,19 +177,19 @@ impl Camera {
         )
     }
 
-    /// Frame `index` of `frames` around the vertical axis through the cloud's centre, starting
-    /// at the automatic camera's azimuth and keeping its distance and elevation.
+    /// This camera moved `degrees` around the vertical axis through its target (a turntable
+    /// step): distance, height and target stay as they are.
+    pub fn orbit(&self, degrees: f64) -> Camera {
+        let (sin, cos) = degrees.to_radians().sin_cos();
+        let offset = self.position - self.target;
+        let rotated = DVec3::new(offset.x * cos - offset.y * sin, offset.x * sin + offset.y * cos, offset.z);
+        Camera { position: self.target + rotated, ..*self }
+    }
+
+    /// Frame `index` of `frames` of a turntable around the cloud, starting at the automatic
+    /// camera.
     pub fn turntable(bounds: &WorldBounds, aspect: f64, index: usize, frames: usize) -> Camera {
-        let step = 360.0 / frames.max(1) as f64;
-        Camera::framing(
-            bounds,
-            aspect,
-            AUTO_AZIMUTH_DEG + step * index as f64,
-            AUTO_ELEVATION_DEG,
-            Projection::Perspective {
-                fov_y_deg: DEFAULT_FOV_Y_DEG,
-            },
-        )
+        Camera::auto(bounds, aspect).orbit(360.0 * index as f64 / frames.max(1) as f64)
     }
 
     /// The camera's transform for points stored relative to `origin`. Built entirely in f64:

@@ -1,0 +1,72 @@
+//! Parsers for command-line values.
+
+use glam::DVec3;
+
+/// `1280x720`.
+pub fn size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("'{s}' is not a size like 1280x720"))?;
+    let side = |v: &str| v.trim().parse::<u32>().map_err(|_| format!("'{s}' is not a size like 1280x720"));
+    Ok((side(w)?, side(h)?))
+}
+
+/// `x,y,z` with finite numbers.
+pub fn vec3(s: &str) -> Result<DVec3, String> {
+    let parts: Vec<&str> = s.split(',').collect();
+    if parts.len() != 3 {
+        return Err(format!("'{s}' is not a point like x,y,z"));
+    }
+    let mut v = [0.0; 3];
+    for (slot, part) in v.iter_mut().zip(parts) {
+        *slot = part.trim().parse::<f64>().map_err(|_| format!("'{part}' is not a number"))?;
+        if !slot.is_finite() {
+            return Err(format!("'{part}' is not a finite number"));
+        }
+    }
+    Ok(DVec3::from_array(v))
+}
+
+/// `#rrggbb`, `#rrggbbaa` (the `#` optional) or `transparent`.
+pub fn colour(s: &str) -> Result<[u8; 4], String> {
+    if s.eq_ignore_ascii_case("transparent") {
+        return Ok([0, 0, 0, 0]);
+    }
+    let hex = s.trim_start_matches('#');
+    let bad = || format!("'{s}' is not a colour like #1e1e24, #1e1e2480 or transparent");
+    if !(hex.len() == 6 || hex.len() == 8) || !hex.is_ascii() {
+        return Err(bad());
+    }
+    let byte = |i: usize| u8::from_str_radix(&hex[i..i + 2], 16).map_err(|_| bad());
+    let alpha = if hex.len() == 8 { byte(6)? } else { 255 };
+    Ok([byte(0)?, byte(2)?, byte(4)?, alpha])
+}
+
+/// A finite positive number.
+pub fn positive(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        _ => Err(format!("'{s}' is not a positive number")),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_sizes_points_and_colours() {
+        assert_eq!(size("1280x720"), Ok((1280, 720)));
+        assert!(size("1280").is_err());
+        assert!(size("ax3").is_err());
+        assert_eq!(vec3("1, 2.5,-3"), Ok(DVec3::new(1.0, 2.5, -3.0)));
+        assert!(vec3("1,NaN,3").is_err());
+        assert!(vec3("1,2").is_err());
+        assert_eq!(colour("#ff8000"), Ok([255, 128, 0, 255]));
+        assert_eq!(colour("ff800080"), Ok([255, 128, 0, 128]));
+        assert_eq!(colour("transparent"), Ok([0, 0, 0, 0]));
+        assert!(colour("#ff80").is_err());
+        assert!(positive("0").is_err());
+        assert!(positive("inf").is_err());
+    }
+}

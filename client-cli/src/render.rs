@@ -1,0 +1,197 @@
+//! `pointfarm render`: one frame or a turntable of a LAS/LAZ file, rendered locally.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, ValueEnum};
+use glam::DVec3;
+use indicatif::{ProgressBar, ProgressStyle};
+use pointfarm_worker::camera::{Camera, Projection, DEFAULT_FOV_Y_DEG};
+use pointfarm_worker::cloud::PointCloud;
+use pointfarm_worker::gpu::{AdapterChoice, GpuContext};
+use pointfarm_worker::ingest::load_point_cloud;
+use pointfarm_worker::raster::{AtomicsMode, FrameSettings, Renderer, Stage, StageTimings};
+
+use crate::parse;
+
+#[derive(Args)]
+pub struct RenderArgs {
+    /// LAS or LAZ file to render.
+    input: PathBuf,
+    /// Output PNG file; with --turntable, a directory for frame_0000.png, frame_0001.png, ...
+    #[arg(short, long)]
+    out: PathBuf,
+    /// Image size in pixels.
+    #[arg(long, default_value = "1280x720", value_parser = parse::size)]
+    size: (u32, u32),
+    /// Render N frames orbiting the cloud (around the vertical axis through the target).
+    #[arg(long, value_name = "N")]
+    turntable: Option<usize>,
+    /// Camera position in the file's coordinates (default: an oblique view of the whole cloud).
+    #[arg(long, value_parser = parse::vec3, value_name = "X,Y,Z")]
+    camera_pos: Option<DVec3>,
+    /// Point the camera looks at, in the file's coordinates (default: the cloud's centre).
+    #[arg(long, value_parser = parse::vec3, value_name = "X,Y,Z")]
+    camera_target: Option<DVec3>,
+    /// Camera up direction.
+    #[arg(long, value_parser = parse::vec3, value_name = "X,Y,Z", default_value = "0,0,1")]
+    camera_up: DVec3,
+    /// Vertical field of view in degrees (perspective).
+    #[arg(long, default_value_t = DEFAULT_FOV_Y_DEG, value_parser = parse::positive)]
+    fov: f64,
+    /// Orthographic projection; the view height fits the cloud unless --ortho-height is given.
+    #[arg(long)]
+    ortho: bool,
+    /// Height of the orthographic view in the file's units.
+    #[arg(long, value_parser = parse::positive, requires = "ortho")]
+    ortho_height: Option<f64>,
+    /// Near clipping distance (default: fitted to the cloud).
+    #[arg(long, value_parser = parse::positive)]
+    near: Option<f64>,
+    /// Far clipping distance (default: fitted to the cloud).
+    #[arg(long, value_parser = parse::positive)]
+    far: Option<f64>,
+    /// Side of the square drawn for each point, in pixels.
+    #[arg(long, default_value_t = 1)]
+    point_size: u32,
+    /// Background colour: #rrggbb, #rrggbbaa or transparent.
+    #[arg(long, default_value = "#18181c", value_parser = parse::colour)]
+    background: [u8; 4],
+    /// Adapter: auto (hardware GPU if present, else lavapipe), hardware or software.
+    #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
+    adapter: AdapterChoice,
+    /// Atomics of the point pass: auto (64-bit where available) or 32 (the fallback path).
+    #[arg(long, value_enum, default_value = "auto")]
+    atomics: AtomicsArg,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum AtomicsArg {
+    Auto,
+    #[value(name = "32")]
+    Force32,
+}
+
+pub fn run(args: RenderArgs) -> Result<()> {
+    let (width, height) = args.size;
+    if args.turntable == Some(0) {
+        bail!("--turntable needs at least one frame");
+    }
+
+    let started = Instant::now();
+    let spinner = spinner(format!("reading {}", args.input.display()));
+    let cloud = load_point_cloud(&args.input);
+    spinner.finish_and_clear();
+    let cloud = cloud?;
+    println!(
+        "{}: {} points, colour from {:?}, read in {:.0} ms",
+        args.input.display(),
+        cloud.len(),
+        cloud.color_source,
+        started.elapsed().as_secs_f64() * 1e3
+    );
+
+    let gpu = Arc::new(GpuContext::new(args.adapter)?);
+    println!("adapter: {}", gpu.describe());
+    let mut renderer = Renderer::new(gpu);
+    let base = FrameSettings {
+        point_size: args.point_size,
+        background: args.background,
+        atomics: match args.atomics {
+            AtomicsArg::Auto => AtomicsMode::Auto,
+            AtomicsArg::Force32 => AtomicsMode::Force32,
+        },
+        ..FrameSettings::new(width, height, base_camera(&args, &cloud))
+    };
+    // Refuse bad sizes or cameras before the upload, with the reason.
+    renderer.validate(&base)?;
+    let resident = renderer.upload(&cloud)?;
+
+    match args.turntable {
+        None => {
+            if args.out.is_dir() {
+                bail!("{} is a directory; give a .png file (or use --turntable N)", args.out.display());
+            }
+            let mut frame = renderer.render(&resident, &base)?;
+            frame
+                .save_png(&args.out)
+                .with_context(|| format!("writing {}", args.out.display()))?;
+            println!("{}  {}", args.out.display(), frame.timings);
+        }
+        Some(frames) => {
+            std::fs::create_dir_all(&args.out)
+                .with_context(|| format!("creating {}", args.out.display()))?;
+            let progress = ProgressBar::new(frames as u64).with_style(
+                ProgressStyle::with_template("{bar:40} {pos}/{len} frames, {eta} left")
+                    .unwrap_or_else(|_| ProgressStyle::default_bar()),
+            );
+            let mut all = Vec::with_capacity(frames);
+            for i in 0..frames {
+                let camera = base.camera.orbit(360.0 * i as f64 / frames as f64);
+                let mut frame = renderer.render(&resident, &FrameSettings { camera, ..base })?;
+                let path = args.out.join(format!("frame_{i:04}.png"));
+                frame.save_png(&path).with_context(|| format!("writing {}", path.display()))?;
+                progress.println(format!("{}  {}", path.display(), frame.timings));
+                all.push(frame.timings);
+                progress.inc(1);
+            }
+            progress.finish_and_clear();
+            print_summary(&args.out, &all);
+        }
+    }
+    Ok(())
+}
+
+/// The camera of the first frame: the user's position/target where given, the automatic
+/// framing elsewhere.
+fn base_camera(args: &RenderArgs, cloud: &PointCloud) -> Camera {
+    let bounds = &cloud.bounds;
+    let aspect = args.size.0 as f64 / args.size.1.max(1) as f64;
+    let projection = if args.ortho {
+        // `framing` fits the view height to the cloud.
+        Projection::Orthographic { height: 1.0 }
+    } else {
+        Projection::Perspective { fov_y_deg: args.fov }
+    };
+    let auto = Camera::framing(
+        bounds,
+        aspect,
+        pointfarm_worker::camera::AUTO_AZIMUTH_DEG,
+        pointfarm_worker::camera::AUTO_ELEVATION_DEG,
+        projection,
+    );
+    let target = args.camera_target.unwrap_or(auto.target);
+    let position = args.camera_pos.unwrap_or(target + (auto.position - auto.target));
+    let mut camera = Camera::looking_at(position, target, bounds, auto.projection);
+    camera.up = args.camera_up;
+    if let Some(height) = args.ortho_height {
+        camera.projection = Projection::Orthographic { height };
+    }
+    if let Some(near) = args.near {
+        camera.near = near;
+    }
+    if let Some(far) = args.far {
+        camera.far = far;
+    }
+    camera
+}
+
+fn print_summary(dir: &Path, frames: &[StageTimings]) {
+    println!("{} frames in {}; median per stage:", frames.len(), dir.display());
+    for stage in [Stage::Upload, Stage::Rasterize, Stage::Resolve, Stage::Readback, Stage::Encode] {
+        let mut ms: Vec<f64> = frames.iter().filter_map(|t| t.get(stage)).collect();
+        if ms.is_empty() {
+            continue;
+        }
+        ms.sort_by(f64::total_cmp);
+        println!("  {:<10} {:>9.2} ms", stage.name(), ms[ms.len() / 2]);
+    }
+}
+
+fn spinner(message: String) -> ProgressBar {
+    let spinner = ProgressBar::new_spinner().with_message(message);
+    spinner.enable_steady_tick(std::time::Duration::from_millis(100));
+    spinner
+}
