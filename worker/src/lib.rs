@@ -5,3 +5,5 @@
 //! and render settings, and returns images with their stage timings.
 
 pub mod cloud;
+pub mod ingest;
+pub mod sample;
