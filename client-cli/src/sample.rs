@@ -4,15 +4,15 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use pointfarm_worker::ingest::write_las;
-use pointfarm_worker::sample::sample_scene;
+use pointfarm_worker::ingest::{write_las, LasWriteOptions};
+use pointfarm_worker::sample::{sample_scene, DEFAULT_SAMPLE_POINTS};
 
 #[derive(Args)]
 pub struct SampleArgs {
     /// Output file; .laz is compressed, .las is not.
     out: PathBuf,
     /// Number of points.
-    #[arg(long, default_value_t = 300_000)]
+    #[arg(long, default_value_t = DEFAULT_SAMPLE_POINTS)]
     points: usize,
     /// Seed of the generator (the same seed gives the same file).
     #[arg(long, default_value_t = 1)]
@@ -24,7 +24,7 @@ pub fn run(args: SampleArgs) -> Result<()> {
     if let Some(parent) = args.out.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
     }
-    write_las(&args.out, &cloud)?;
+    write_las(&args.out, &cloud, &LasWriteOptions::default())?;
     println!("{}: {} points", args.out.display(), cloud.len());
     Ok(())
 }

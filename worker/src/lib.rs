@@ -7,8 +7,10 @@
 pub mod camera;
 pub mod cloud;
 pub mod gpu;
+pub mod ingest;
 pub mod raster;
 pub mod reference;
+pub mod sample;
 
 #[cfg(test)]
 mod testing;
