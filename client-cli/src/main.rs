@@ -10,7 +10,11 @@ use clap::{Parser, Subcommand};
 use tracing_subscriber::EnvFilter;
 
 #[derive(Parser)]
-#[command(name = "pointfarm", version, about = "A headless render farm for point clouds")]
+#[command(
+    name = "pointfarm",
+    version,
+    about = "A headless render farm for point clouds"
+)]
 struct Cli {
     /// Log more (-v: info, -vv: debug). RUST_LOG overrides this.
     #[arg(short, long, action = clap::ArgAction::Count, global = true)]

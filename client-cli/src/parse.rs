@@ -7,7 +7,11 @@ pub fn size(s: &str) -> Result<(u32, u32), String> {
     let (w, h) = s
         .split_once(['x', 'X'])
         .ok_or_else(|| format!("'{s}' is not a size like 1280x720"))?;
-    let side = |v: &str| v.trim().parse::<u32>().map_err(|_| format!("'{s}' is not a size like 1280x720"));
+    let side = |v: &str| {
+        v.trim()
+            .parse::<u32>()
+            .map_err(|_| format!("'{s}' is not a size like 1280x720"))
+    };
     Ok((side(w)?, side(h)?))
 }
 
@@ -19,7 +23,10 @@ pub fn vec3(s: &str) -> Result<DVec3, String> {
     }
     let mut v = [0.0; 3];
     for (slot, part) in v.iter_mut().zip(parts) {
-        *slot = part.trim().parse::<f64>().map_err(|_| format!("'{part}' is not a number"))?;
+        *slot = part
+            .trim()
+            .parse::<f64>()
+            .map_err(|_| format!("'{part}' is not a number"))?;
         if !slot.is_finite() {
             return Err(format!("'{part}' is not a finite number"));
         }

@@ -112,7 +112,10 @@ pub fn run(args: RenderArgs) -> Result<()> {
     match args.turntable {
         None => {
             if args.out.is_dir() {
-                bail!("{} is a directory; give a .png file (or use --turntable N)", args.out.display());
+                bail!(
+                    "{} is a directory; give a .png file (or use --turntable N)",
+                    args.out.display()
+                );
             }
             let mut frame = renderer.render(&resident, &base)?;
             frame
@@ -132,8 +135,15 @@ pub fn run(args: RenderArgs) -> Result<()> {
                 let camera = base.camera.orbit(360.0 * i as f64 / frames as f64);
                 let mut frame = renderer.render(&resident, &FrameSettings { camera, ..base })?;
                 let path = args.out.join(format!("frame_{i:04}.png"));
-                frame.save_png(&path).with_context(|| format!("writing {}", path.display()))?;
-                progress.println(format!("{}  {}", path.display(), frame.timings));
+                frame
+                    .save_png(&path)
+                    .with_context(|| format!("writing {}", path.display()))?;
+                let line = format!("{}  {}", path.display(), frame.timings);
+                if progress.is_hidden() {
+                    println!("{line}"); // not a terminal: plain lines for logs and scripts
+                } else {
+                    progress.println(line);
+                }
                 all.push(frame.timings);
                 progress.inc(1);
             }
@@ -153,7 +163,9 @@ fn base_camera(args: &RenderArgs, cloud: &PointCloud) -> Camera {
         // `framing` fits the view height to the cloud.
         Projection::Orthographic { height: 1.0 }
     } else {
-        Projection::Perspective { fov_y_deg: args.fov }
+        Projection::Perspective {
+            fov_y_deg: args.fov,
+        }
     };
     let auto = Camera::framing(
         bounds,
@@ -163,7 +175,9 @@ fn base_camera(args: &RenderArgs, cloud: &PointCloud) -> Camera {
         projection,
     );
     let target = args.camera_target.unwrap_or(auto.target);
-    let position = args.camera_pos.unwrap_or(target + (auto.position - auto.target));
+    let position = args
+        .camera_pos
+        .unwrap_or(target + (auto.position - auto.target));
     let mut camera = Camera::looking_at(position, target, bounds, auto.projection);
     camera.up = args.camera_up;
     if let Some(height) = args.ortho_height {
@@ -179,8 +193,18 @@ fn base_camera(args: &RenderArgs, cloud: &PointCloud) -> Camera {
 }
 
 fn print_summary(dir: &Path, frames: &[StageTimings]) {
-    println!("{} frames in {}; median per stage:", frames.len(), dir.display());
-    for stage in [Stage::Upload, Stage::Rasterize, Stage::Resolve, Stage::Readback, Stage::Encode] {
+    println!(
+        "{} frames in {}; median per stage:",
+        frames.len(),
+        dir.display()
+    );
+    for stage in [
+        Stage::Upload,
+        Stage::Rasterize,
+        Stage::Resolve,
+        Stage::Readback,
+        Stage::Encode,
+    ] {
         let mut ms: Vec<f64> = frames.iter().filter_map(|t| t.get(stage)).collect();
         if ms.is_empty() {
             continue;

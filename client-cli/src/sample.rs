@@ -22,7 +22,8 @@ pub struct SampleArgs {
 pub fn run(args: SampleArgs) -> Result<()> {
     let cloud = sample_scene(args.points, args.seed);
     if let Some(parent) = args.out.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
+        std::fs::create_dir_all(parent)
+            .with_context(|| format!("creating {}", parent.display()))?;
     }
     write_las(&args.out, &cloud, &LasWriteOptions::default())?;
     println!("{}: {} points", args.out.display(), cloud.len());

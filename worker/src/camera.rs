@@ -182,8 +182,15 @@ impl Camera {
     pub fn orbit(&self, degrees: f64) -> Camera {
         let (sin, cos) = degrees.to_radians().sin_cos();
         let offset = self.position - self.target;
-        let rotated = DVec3::new(offset.x * cos - offset.y * sin, offset.x * sin + offset.y * cos, offset.z);
-        Camera { position: self.target + rotated, ..*self }
+        let rotated = DVec3::new(
+            offset.x * cos - offset.y * sin,
+            offset.x * sin + offset.y * cos,
+            offset.z,
+        );
+        Camera {
+            position: self.target + rotated,
+            ..*self
+        }
     }
 
     /// Frame `index` of `frames` of a turntable around the cloud, starting at the automatic

@@ -12,7 +12,7 @@ use super::targets::FrameTargets;
 
 /// Threads per workgroup; each thread walks the batch with this stride.
 pub(crate) const WORKGROUP_SIZE: u32 = 128;
-const _: () = assert!(BATCH_POINTS % WORKGROUP_SIZE as usize == 0);
+const _: () = assert!(BATCH_POINTS.is_multiple_of(WORKGROUP_SIZE as usize));
 
 /// Which atomics the point pass uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -369,4 +369,6 @@ pub(crate) fn dispatch_grid(groups: u32) -> (u32, u32) {
 }
 
 #[cfg(test)]
+mod real_scan_tests;
+#[cfg(test)]
 mod tests;

@@ -1,0 +1,189 @@
+//! The rasterizer on the real scans in `../shared/data/` (skipped with a message when absent):
+//! agreement with the CPU reference, and sub-pixel accuracy at survey coordinates.
+
+use glam::DVec3;
+
+use super::*;
+use crate::camera::Projection;
+use crate::cloud::pack_rgba8;
+use crate::ingest::load_point_cloud;
+use crate::reference;
+use crate::testing::{compare_images, gpu, shared_data};
+
+fn load(file: &str) -> Option<PointCloud> {
+    let path = shared_data(file)?;
+    Some(load_point_cloud(&path).unwrap_or_else(|e| panic!("{e}")))
+}
+
+/// Share of equal pixels overall and among pixels that the reference covers.
+fn agreement(
+    name: &str,
+    cloud: &PointCloud,
+    settings: &FrameSettings,
+    frame: &Frame,
+) -> (f64, f64) {
+    let expected = reference::render_basic(cloud, settings);
+    let diff = compare_images(name, &frame.image, &expected.image);
+    let covered = expected.depth.iter().filter(|d| d.is_finite()).count();
+    let covered_equal = covered - diff.differing.min(covered);
+    let covered_fraction = covered_equal as f64 / covered.max(1) as f64;
+    eprintln!(
+        "{name}: {} of {} pixels differ ({:.4}% equal; {:.4}% of the {covered} covered pixels)",
+        diff.differing,
+        diff.pixels,
+        diff.equal_fraction() * 100.0,
+        covered_fraction * 100.0
+    );
+    (diff.equal_fraction(), covered_fraction)
+}
+
+#[test]
+fn real_scans_agree_with_the_reference() {
+    let mut renderer = Renderer::new(gpu());
+    for file in ["autzen_trim.las", "autzen_trim.laz", "lone-star.laz"] {
+        let Some(cloud) = load(file) else { continue };
+        let resident = renderer.upload(&cloud).expect("upload");
+        let (w, h) = (800, 600);
+        let overview = FrameSettings::new(w, h, Camera::auto(&cloud.bounds, w as f64 / h as f64));
+        // A closer oblique view with larger points, where many points compete per pixel.
+        let near_view = FrameSettings {
+            camera: Camera::auto(&cloud.bounds, w as f64 / h as f64).orbit(100.0),
+            point_size: 3,
+            ..overview
+        };
+        let mut near_view = near_view;
+        near_view.camera.position =
+            near_view.camera.target + (near_view.camera.position - near_view.camera.target) * 0.35;
+        near_view.camera.near *= 0.1;
+        for (view, settings) in [("overview", overview), ("close", near_view)] {
+            for atomics in [AtomicsMode::Auto, AtomicsMode::Force32] {
+                let settings = FrameSettings {
+                    atomics,
+                    ..settings
+                };
+                let frame = renderer.render(&resident, &settings).expect("render");
+                let name = format!("{file}-{view}-{atomics:?}");
+                let (all, covered) = agreement(&name, &cloud, &settings, &frame);
+                assert!(
+                    all >= 0.995,
+                    "{name}: only {:.3}% of pixels equal",
+                    all * 100.0
+                );
+                assert!(
+                    covered >= 0.99,
+                    "{name}: only {:.3}% of covered pixels equal",
+                    covered * 100.0
+                );
+            }
+        }
+    }
+}
+
+/// lone-star is in UTM at 0.25 mm resolution: in f32 world coordinates a position would be
+/// off by up to 3 cm, several pixels in a close-up. Points are rendered one per 8x8-pixel
+/// cell with unique colours; each one's pixel must contain its f64 projection computed from the
+/// file's own coordinates (the las crate, not our ingest), i.e. an error of at most 0.5 px.
+#[test]
+fn survey_coordinates_render_with_sub_pixel_accuracy_in_a_close_up() {
+    let Some(path) = shared_data("lone-star.laz") else {
+        return;
+    };
+    let cloud = load_point_cloud(&path).expect("load");
+    let mut reader = las::Reader::from_path(&path).expect("las reader");
+    let file_points = reader.read_all().expect("read");
+    let world: Vec<DVec3> = file_points
+        .x()
+        .zip(file_points.y())
+        .zip(file_points.z())
+        .map(|((x, y), z)| DVec3::new(x, y, z))
+        .collect();
+    assert_eq!(world.len(), cloud.len());
+
+    // A close-up: 3 m from a point in the middle of the scan.
+    let focus = world[world.len() / 2];
+    let (w, h) = (1024u32, 768u32);
+    let camera = Camera {
+        position: focus + DVec3::new(1.8, -2.0, 1.2),
+        target: focus,
+        up: DVec3::Z,
+        projection: Projection::Perspective { fov_y_deg: 45.0 },
+        near: 0.05,
+        far: 50.0,
+    };
+    // The independent projection: f64 throughout, from absolute file coordinates.
+    let absolute = camera.transform(DVec3::ZERO, w, h);
+    let mut cell_taken = vec![false; (w as usize / 8 + 1) * (h as usize / 8 + 1)];
+    let mut chosen = Vec::new();
+    let mut projected = Vec::new();
+    for (i, p) in world.iter().enumerate() {
+        let Some((px, py, _)) = absolute.project(*p) else {
+            continue;
+        };
+        if !(0.0..w as f64).contains(&px) || !(0.0..h as f64).contains(&py) {
+            continue;
+        }
+        let cell = (py as usize / 8) * (w as usize / 8 + 1) + px as usize / 8;
+        if !std::mem::replace(&mut cell_taken[cell], true) {
+            chosen.push(i);
+            projected.push((px, py));
+        }
+    }
+    assert!(chosen.len() > 2000, "only {} points in view", chosen.len());
+
+    let mut subset = cloud.select(&chosen);
+    for (k, c) in subset.colors.iter_mut().enumerate() {
+        let id = k as u32 + 1;
+        *c = pack_rgba8(id as u8, (id >> 8) as u8, (id >> 16) as u8);
+    }
+    let mut settings = FrameSettings::new(w, h, camera);
+    settings.background = [0, 0, 0, 0];
+    let frame = render_gpu_once(&subset, &settings);
+
+    let mut found = 0;
+    let mut max_error: f64 = 0.0;
+    for (x, y, pixel) in frame.image.enumerate_pixels() {
+        let [r, g, b, a] = pixel.0;
+        if a == 0 {
+            continue;
+        }
+        let id = r as usize | (g as usize) << 8 | (b as usize) << 16;
+        let (px, py) = projected[id - 1];
+        let error = (x as f64 + 0.5 - px).abs().max((y as f64 + 0.5 - py).abs());
+        max_error = max_error.max(error);
+        found += 1;
+    }
+    // Naive f32 world coordinates, for scale: how far the same points would land.
+    let naive_max_error = chosen
+        .iter()
+        .zip(&projected)
+        .map(|(&i, &(px, py))| {
+            let rounded = world[i].as_vec3().as_dvec3();
+            let (qx, qy, _) =
+                absolute
+                    .project(rounded)
+                    .unwrap_or((f64::INFINITY, f64::INFINITY, 0.0));
+            (qx - px).abs().max((qy - py).abs())
+        })
+        .fold(0.0, f64::max);
+    eprintln!(
+        "lone-star close-up: {found} of {} points found, max error {max_error:.4} px \
+         (f32 world coordinates would be off by up to {naive_max_error:.1} px)",
+        chosen.len()
+    );
+    assert!(
+        found as f64 >= chosen.len() as f64 * 0.99,
+        "points lost: {found} of {}",
+        chosen.len()
+    );
+    assert!(max_error <= 0.5 + 1e-3, "max error {max_error} px");
+    assert!(
+        naive_max_error > 2.0,
+        "the close-up must be sensitive to f32 rounding"
+    );
+}
+
+fn render_gpu_once(cloud: &PointCloud, settings: &FrameSettings) -> Frame {
+    let mut renderer = Renderer::new(gpu());
+    let resident = renderer.upload(cloud).expect("upload");
+    renderer.render(&resident, settings).expect("render")
+}
