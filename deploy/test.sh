@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
-# The README's second command: install what the tests need, then run every test and the lints.
+# The README's second command: install what the tests need, check the lints, run every test.
 # GPU tests run on whatever adapter pointfarm picks (lavapipe on machines without a GPU).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 bash deploy/setup.sh
-cargo test --workspace --locked
+
 # Lints, where the toolchain has them (rustup's default profile does).
 if cargo fmt --version >/dev/null 2>&1; then
     cargo fmt --all -- --check
@@ -13,3 +13,13 @@ fi
 if cargo clippy --version >/dev/null 2>&1; then
     cargo clippy --workspace --all-targets --locked -- -D warnings
 fi
+
+log=$(mktemp)
+trap 'rm -f "$log"' EXIT
+status=0
+cargo test --workspace --locked 2>&1 | tee "$log" || status=$?
+# One closing line over all test binaries (cargo prints one per binary, the last often a
+# doc-test run with nothing in it).
+awk '/^test result:/ { for (i = 1; i <= NF; i++) { if ($(i) ~ /^passed;?$/) p += $(i-1); if ($(i) ~ /^failed;?$/) f += $(i-1) } }
+     END { printf "tests: %d passed, %d failed\n", p, f }' "$log"
+exit "$status"
