@@ -98,7 +98,8 @@ impl Camera {
     }
 
     /// A camera that sees all of `bounds`, looking at its centre from the given azimuth
-    /// (degrees counter-clockwise from +X) and elevation (degrees above the horizon).
+    /// (degrees counter-clockwise from +X) and elevation (degrees above the horizon), as close
+    /// as it can while every corner of the box stays in the image, with a 5% margin.
     pub fn framing(
         bounds: &WorldBounds,
         aspect: f64,
@@ -106,40 +107,57 @@ impl Camera {
         elevation_deg: f64,
         projection: Projection,
     ) -> Camera {
+        const MARGIN: f64 = 1.05;
         let center = bounds.center();
         // Never zero, so a single point or a flat cloud still gives a valid camera.
         let radius = bounds.radius().max(1e-3);
         let (az, el) = (azimuth_deg.to_radians(), elevation_deg.to_radians());
-        let direction = DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
-        match projection {
+        let to_camera = DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
+        let forward = -to_camera;
+        let right = forward.cross(DVec3::Z).normalize();
+        let up = right.cross(forward);
+        let corners = (0..8).map(|i| {
+            let pick = |bit: usize, lo: f64, hi: f64| if i & bit == 0 { lo } else { hi };
+            DVec3::new(
+                pick(1, bounds.min.x, bounds.max.x),
+                pick(2, bounds.min.y, bounds.max.y),
+                pick(4, bounds.min.z, bounds.max.z),
+            ) - center
+        });
+        let (distance, projection) = match projection {
             Projection::Perspective { fov_y_deg } => {
-                // The bounding sphere must fit in the narrower of the two fields of view.
-                let half_fov_y = (fov_y_deg.to_radians() * 0.5).min(1.5);
-                let half_fov_x = (half_fov_y.tan() * aspect).atan();
-                let half_fov = half_fov_y.min(half_fov_x);
-                let distance = radius / half_fov.sin() * 1.02;
-                Camera {
-                    position: center + direction * distance,
-                    target: center,
-                    up: DVec3::Z,
-                    projection,
-                    near: (distance - radius * 1.05).max(distance * 1e-3),
-                    far: distance + radius * 1.05,
-                }
+                let tan_y = (fov_y_deg.to_radians() * 0.5).tan();
+                let tan_x = tan_y * aspect;
+                // A corner c is in view when its lateral offsets fit the field of view at
+                // its depth, distance + c·forward.
+                let distance = corners
+                    .map(|c| {
+                        let fit_x = c.dot(right).abs() * MARGIN / tan_x;
+                        let fit_y = c.dot(up).abs() * MARGIN / tan_y;
+                        fit_x.max(fit_y) - c.dot(forward)
+                    })
+                    .fold(radius * 0.01, f64::max);
+                (distance, projection)
             }
             Projection::Orthographic { .. } => {
-                let distance = radius * 2.0;
-                Camera {
-                    position: center + direction * distance,
-                    target: center,
-                    up: DVec3::Z,
-                    projection: Projection::Orthographic {
-                        height: 2.0 * radius * 1.02 / aspect.min(1.0),
+                let half_height = corners
+                    .map(|c| c.dot(up).abs().max(c.dot(right).abs() / aspect))
+                    .fold(radius * 0.01, f64::max);
+                (
+                    radius * 2.0,
+                    Projection::Orthographic {
+                        height: 2.0 * half_height * MARGIN,
                     },
-                    near: distance - radius * 1.05,
-                    far: distance + radius * 1.05,
-                }
+                )
             }
+        };
+        Camera {
+            position: center + to_camera * distance,
+            target: center,
+            up: DVec3::Z,
+            projection,
+            near: (distance - radius * MARGIN).max(distance * 1e-3),
+            far: distance + radius * MARGIN,
         }
     }
 
