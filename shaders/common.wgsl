@@ -100,7 +100,15 @@ fn batch_outside_view(frame: FrameUniforms, batch: Batch) -> bool {
     return out_left || out_right || out_bottom || out_top || out_near || out_far;
 }
 
-fn pixel_index(frame: FrameUniforms, x: i32, y: i32) -> i32 {
+// Number of pixels a splat covers (before clipping to the image).
+fn splat_pixel_count(frame: FrameUniforms) -> u32 {
+    return frame.point_size * frame.point_size;
+}
+
+// Framebuffer index of the k-th pixel of the splat's square, or -1 when it is off-screen.
+fn splat_pixel(frame: FrameUniforms, splat: Splat, k: u32) -> i32 {
+    let x = splat.x0 + i32(k % frame.point_size);
+    let y = splat.y0 + i32(k / frame.point_size);
     if x < 0 || y < 0 || x >= i32(frame.width) || y >= i32(frame.height) {
         return -1;
     }

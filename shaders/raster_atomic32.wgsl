@@ -42,18 +42,16 @@ fn rasterize_depth(
             continue;
         }
         let depth_bits = bitcast<u32>(splat.depth);
-        for (var dy = 0u; dy < frame.point_size; dy++) {
-            for (var dx = 0u; dx < frame.point_size; dx++) {
-                let pixel = pixel_index(frame, splat.x0 + i32(dx), splat.y0 + i32(dy));
-                if pixel < 0 {
-                    continue;
-                }
-                // Early depth test, as in the 64-bit pass.
-                if atomicLoad(&framebuffer[depth_word(pixel)]) < depth_bits {
-                    continue;
-                }
-                atomicMin(&framebuffer[depth_word(pixel)], depth_bits);
+        for (var k = 0u; k < splat_pixel_count(frame); k++) {
+            let pixel = splat_pixel(frame, splat, k);
+            if pixel < 0 {
+                continue;
             }
+            // Early depth test, as in the 64-bit pass.
+            if atomicLoad(&framebuffer[depth_word(pixel)]) < depth_bits {
+                continue;
+            }
+            atomicMin(&framebuffer[depth_word(pixel)], depth_bits);
         }
     }
 }
@@ -79,15 +77,13 @@ fn rasterize_colour(
             continue;
         }
         let depth_bits = bitcast<u32>(splat.depth);
-        for (var dy = 0u; dy < frame.point_size; dy++) {
-            for (var dx = 0u; dx < frame.point_size; dx++) {
-                let pixel = pixel_index(frame, splat.x0 + i32(dx), splat.y0 + i32(dy));
-                if pixel < 0 {
-                    continue;
-                }
-                if atomicLoad(&framebuffer[depth_word(pixel)]) == depth_bits {
-                    atomicMin(&framebuffer[colour_word(pixel)], point.colour);
-                }
+        for (var k = 0u; k < splat_pixel_count(frame); k++) {
+            let pixel = splat_pixel(frame, splat, k);
+            if pixel < 0 {
+                continue;
+            }
+            if atomicLoad(&framebuffer[depth_word(pixel)]) == depth_bits {
+                atomicMin(&framebuffer[colour_word(pixel)], point.colour);
             }
         }
     }

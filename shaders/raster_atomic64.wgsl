@@ -39,18 +39,16 @@ fn rasterize(
         }
         let depth_bits = bitcast<u32>(splat.depth);
         let value = (u64(depth_bits) << 32u) | u64(point.colour);
-        for (var dy = 0u; dy < frame.point_size; dy++) {
-            for (var dx = 0u; dx < frame.point_size; dx++) {
-                let pixel = pixel_index(frame, splat.x0 + i32(dx), splat.y0 + i32(dy));
-                if pixel < 0 {
-                    continue;
-                }
-                // Early depth test: skip the atomic when a nearer point is already stored.
-                if framebuffer_words[pixel].y < depth_bits {
-                    continue;
-                }
-                atomicMin(&framebuffer[pixel], value);
+        for (var k = 0u; k < splat_pixel_count(frame); k++) {
+            let pixel = splat_pixel(frame, splat, k);
+            if pixel < 0 {
+                continue;
             }
+            // Early depth test: skip the atomic when a nearer point is already stored.
+            if framebuffer_words[pixel].y < depth_bits {
+                continue;
+            }
+            atomicMin(&framebuffer[pixel], value);
         }
     }
 }

@@ -3,6 +3,7 @@
 
 use glam::DVec3;
 
+use super::tests::render_gpu;
 use super::*;
 use crate::camera::Projection;
 use crate::cloud::pack_rgba8;
@@ -137,7 +138,7 @@ fn survey_coordinates_render_with_sub_pixel_accuracy_in_a_close_up() {
     }
     let mut settings = FrameSettings::new(w, h, camera);
     settings.background = [0, 0, 0, 0];
-    let frame = render_gpu_once(&subset, &settings);
+    let frame = render_gpu(&subset, &settings);
 
     let mut found = 0;
     let mut max_error: f64 = 0.0;
@@ -180,10 +181,4 @@ fn survey_coordinates_render_with_sub_pixel_accuracy_in_a_close_up() {
         naive_max_error > 2.0,
         "the close-up must be sensitive to f32 rounding"
     );
-}
-
-fn render_gpu_once(cloud: &PointCloud, settings: &FrameSettings) -> Frame {
-    let mut renderer = Renderer::new(gpu());
-    let resident = renderer.upload(cloud).expect("upload");
-    renderer.render(&resident, settings).expect("render")
 }

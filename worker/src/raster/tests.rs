@@ -82,7 +82,7 @@ fn pixel_centre_scene(settings: &FrameSettings, layers: usize, seed: u64) -> Poi
     PointCloud::from_world_points(&points, colours)
 }
 
-fn render_gpu(cloud: &PointCloud, settings: &FrameSettings) -> Frame {
+pub(super) fn render_gpu(cloud: &PointCloud, settings: &FrameSettings) -> Frame {
     let mut renderer = Renderer::new(gpu());
     let resident = renderer.upload(cloud).expect("upload");
     renderer.render(&resident, settings).expect("render")
