@@ -180,6 +180,12 @@ impl Renderer {
         self.max_chunk_points = self.max_chunk_points.min(points.max(1));
     }
 
+    /// Times passes with host clocks even where the adapter has timestamp queries (for
+    /// adapters whose timestamps are unreliable, and to test that path).
+    pub fn use_host_clocks(&mut self) {
+        self.timer = None;
+    }
+
     /// Uploads a cloud; its buffers stay resident for as many frames as needed.
     pub fn upload(&self, cloud: &PointCloud) -> Result<GpuPointCloud, RenderError> {
         GpuPointCloud::upload(&self.gpu, cloud, self.max_chunk_points)

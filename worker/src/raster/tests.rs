@@ -302,6 +302,17 @@ fn every_frame_reports_its_stage_timings() {
             assert!(ms.is_finite() && ms >= 0.0, "{stage:?}: {ms}");
         }
     }
+    let expected_clock = if gpu().capabilities.timestamps {
+        Clock::Gpu
+    } else {
+        Clock::Host
+    };
+    let rasterize = first
+        .timings
+        .stages
+        .iter()
+        .find(|t| t.stage == Stage::Rasterize);
+    assert_eq!(rasterize.map(|t| t.clock), Some(expected_clock));
     // The point upload is reported once, by the first frame; later frames reuse the buffers.
     assert!(first.timings.get(Stage::Upload) > second.timings.get(Stage::Upload));
     let dir = tempfile::tempdir().expect("tempdir");
@@ -311,6 +322,31 @@ fn every_frame_reports_its_stage_timings() {
     assert!(
         line.contains("rasterize") && line.contains("encode"),
         "{line}"
+    );
+}
+
+#[test]
+fn host_clocks_time_the_passes_without_timestamp_queries() {
+    let settings = FrameSettings::new(64, 48, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    let cloud = pixel_centre_scene(&settings, 1, 9);
+    let mut renderer = Renderer::new(gpu());
+    renderer.use_host_clocks();
+    let resident = renderer.upload(&cloud).expect("upload");
+    let frame = renderer.render(&resident, &settings).expect("render");
+    for stage in [Stage::Rasterize, Stage::Resolve] {
+        let timing = frame
+            .timings
+            .stages
+            .iter()
+            .find(|t| t.stage == stage)
+            .expect("timed");
+        assert_eq!(timing.clock, Clock::Host);
+        assert!(timing.ms > 0.0);
+    }
+    let expected = reference::render_basic(&cloud, &settings);
+    assert_eq!(
+        compare_images("host-clocks", &frame.image, &expected.image).differing,
+        0
     );
 }
 
