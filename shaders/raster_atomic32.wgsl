@@ -22,46 +22,8 @@ fn colour_word(pixel: i32) -> i32 {
     return 2 * pixel;
 }
 
-@compute @workgroup_size(WORKGROUP_SIZE)
-fn rasterize_depth(
-    @builtin(workgroup_id) workgroup: vec3<u32>,
-    @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_index) lane: u32,
-) {
-    let b = batch_index(workgroup, groups);
-    if b >= arrayLength(&batches) {
-        return;
-    }
-    let batch = batches[b];
-    if batch_outside_view(frame, batch) {
-        return;
-    }
-    for (var i = lane; i < batch.count; i += WORKGROUP_SIZE) {
-        let splat = project_point(frame, points[batch.first + i].position);
-        if !splat.visible {
-            continue;
-        }
-        let depth_bits = bitcast<u32>(splat.depth);
-        for (var k = 0u; k < splat_pixel_count(frame); k++) {
-            let pixel = splat_pixel(frame, splat, k);
-            if pixel < 0 {
-                continue;
-            }
-            // Early depth test, as in the 64-bit pass.
-            if atomicLoad(&framebuffer[depth_word(pixel)]) < depth_bits {
-                continue;
-            }
-            atomicMin(&framebuffer[depth_word(pixel)], depth_bits);
-        }
-    }
-}
-
-@compute @workgroup_size(WORKGROUP_SIZE)
-fn rasterize_colour(
-    @builtin(workgroup_id) workgroup: vec3<u32>,
-    @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_index) lane: u32,
-) {
+// The two passes walk the same points in the same way; `colour_pass` picks what they write.
+fn rasterize_batch(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32, colour_pass: bool) {
     let b = batch_index(workgroup, groups);
     if b >= arrayLength(&batches) {
         return;
@@ -82,9 +44,33 @@ fn rasterize_colour(
             if pixel < 0 {
                 continue;
             }
-            if atomicLoad(&framebuffer[depth_word(pixel)]) == depth_bits {
-                atomicMin(&framebuffer[colour_word(pixel)], point.colour);
+            let stored_depth = atomicLoad(&framebuffer[depth_word(pixel)]);
+            if colour_pass {
+                if stored_depth == depth_bits {
+                    atomicMin(&framebuffer[colour_word(pixel)], point.colour);
+                }
+            } else if stored_depth >= depth_bits {
+                // Early depth test as in the 64-bit pass: only nearer or equal points try.
+                atomicMin(&framebuffer[depth_word(pixel)], depth_bits);
             }
         }
     }
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn rasterize_depth(
+    @builtin(workgroup_id) workgroup: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lane: u32,
+) {
+    rasterize_batch(workgroup, groups, lane, false);
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn rasterize_colour(
+    @builtin(workgroup_id) workgroup: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lane: u32,
+) {
+    rasterize_batch(workgroup, groups, lane, true);
 }

@@ -1,20 +1,37 @@
 //! `pointfarm render` and `pointfarm sample`, run as a user would.
 
 use std::path::Path;
+use std::process::Output;
 
 use pointfarm_tests::{own_stderr_lines, pointfarm, shared_data};
 
-fn stdout(output: &std::process::Output) -> String {
+fn stdout(output: &Output) -> String {
     String::from_utf8_lossy(&output.stdout).into_owned()
 }
 
-fn assert_ok(output: &std::process::Output) {
+fn assert_ok(output: &Output) {
     assert!(
         output.status.success(),
         "pointfarm failed:\n{}\n{}",
         stdout(output),
         String::from_utf8_lossy(&output.stderr)
     );
+}
+
+fn path_arg(path: &Path) -> String {
+    path.to_str().expect("temporary paths are UTF-8").to_owned()
+}
+
+/// Writes a generated sample cloud of `points` points to `dir/name` and returns its path.
+fn sample(dir: &Path, name: &str, points: usize) -> String {
+    let path = path_arg(&dir.join(name));
+    assert_ok(&pointfarm(&[
+        "sample",
+        &path,
+        "--points",
+        &points.to_string(),
+    ]));
+    path
 }
 
 /// Fails unless the PNG has the size and shows something other than its background.
@@ -35,19 +52,13 @@ fn assert_rendered(path: &Path, width: u32, height: u32) {
 #[test]
 fn renders_a_sample_cloud_to_a_png_and_prints_the_stage_timings() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let laz = dir.path().join("sample.laz");
-    assert_ok(&pointfarm(&[
-        "sample",
-        laz.to_str().expect("utf-8"),
-        "--points",
-        "50000",
-    ]));
+    let laz = sample(dir.path(), "sample.laz", 50_000);
     let png = dir.path().join("frame.png");
     let output = pointfarm(&[
         "render",
-        laz.to_str().expect("utf-8"),
+        &laz,
         "--out",
-        png.to_str().expect("utf-8"),
+        &path_arg(&png),
         "--size",
         "320x200",
         "--point-size",
@@ -64,17 +75,11 @@ fn renders_a_sample_cloud_to_a_png_and_prints_the_stage_timings() {
 #[test]
 fn renders_a_turntable_into_a_directory() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let laz = dir.path().join("sample.las");
-    assert_ok(&pointfarm(&[
-        "sample",
-        laz.to_str().expect("utf-8"),
-        "--points",
-        "20000",
-    ]));
+    let las = sample(dir.path(), "sample.las", 20_000);
     let frames = dir.path().join("frames");
     let output = pointfarm(&[
         "render",
-        laz.to_str().expect("utf-8"),
+        &las,
         "--turntable",
         "3",
         "--size",
@@ -82,7 +87,7 @@ fn renders_a_turntable_into_a_directory() {
         "--atomics",
         "32",
         "--out",
-        frames.to_str().expect("utf-8"),
+        &path_arg(&frames),
     ]);
     assert_ok(&output);
     for i in 0..3 {
@@ -106,9 +111,9 @@ fn renders_a_real_scan_from_a_given_camera() {
     let png = dir.path().join("autzen.png");
     let output = pointfarm(&[
         "render",
-        laz.to_str().expect("utf-8"),
+        &path_arg(&laz),
         "--out",
-        png.to_str().expect("utf-8"),
+        &path_arg(&png),
         "--size",
         "400x300",
         "--camera-pos",
@@ -127,75 +132,54 @@ fn bad_input_fails_with_one_line_that_names_the_problem() {
     let dir = tempfile::tempdir().expect("tempdir");
     let not_las = dir.path().join("notes.las");
     std::fs::write(&not_las, "these are not points").expect("write");
-    let out = dir.path().join("x.png");
-    let out = out.to_str().expect("utf-8");
-    let sample = dir.path().join("s.laz");
-    assert_ok(&pointfarm(&[
-        "sample",
-        sample.to_str().expect("utf-8"),
-        "--points",
-        "1000",
-    ]));
-    let sample = sample.to_str().expect("utf-8");
+    let not_las = path_arg(&not_las);
+    let out = path_arg(&dir.path().join("x.png"));
+    let sample = sample(dir.path(), "s.laz", 1000);
+    let render = |extra: &[&str]| {
+        let mut args = vec!["render", sample.as_str(), "--out", out.as_str()];
+        args.extend_from_slice(extra);
+        pointfarm(&args)
+    };
 
-    let cases: Vec<(Vec<&str>, &str)> = vec![
+    let cases: Vec<(Output, &str)> = vec![
+        (pointfarm(&["render", &not_las, "--out", &out]), "notes.las"),
         (
-            vec!["render", not_las.to_str().expect("utf-8"), "--out", out],
-            "notes.las",
-        ),
-        (
-            vec!["render", "/nonexistent/scan.laz", "--out", out],
+            pointfarm(&["render", "/nonexistent/scan.laz", "--out", &out]),
             "scan.laz",
         ),
+        (render(&["--size", "100000x100000"]), "100000x100000"),
+        (render(&["--point-size", "0"]), "point size"),
         (
-            vec!["render", sample, "--out", out, "--size", "100000x100000"],
-            "100000x100000",
-        ),
-        (
-            vec!["render", sample, "--out", out, "--point-size", "0"],
-            "point size",
-        ),
-        (
-            vec![
-                "render",
-                sample,
-                "--out",
-                out,
-                "--camera-pos",
-                "1,2,3",
-                "--camera-target",
-                "1,2,3",
-            ],
+            render(&["--camera-pos", "1,2,3", "--camera-target", "1,2,3"]),
             "same point",
         ),
-        (
-            vec!["render", sample, "--out", out, "--turntable", "0"],
-            "turntable",
-        ),
+        (render(&["--turntable", "0"]), "turntable"),
     ];
-    for (args, needle) in cases {
-        let output = pointfarm(&args);
-        assert!(!output.status.success(), "{args:?} succeeded");
+    for (output, needle) in cases {
+        assert!(
+            !output.status.success(),
+            "expected a failure mentioning {needle}"
+        );
         let lines = own_stderr_lines(&output);
         let errors: Vec<&String> = lines.iter().filter(|l| l.starts_with("error:")).collect();
         assert_eq!(
             errors.len(),
             1,
-            "{args:?}: expected one error line, got {lines:?}"
+            "{needle}: expected one error line, got {lines:?}"
         );
         assert!(
             errors[0].contains(needle),
-            "{args:?}: '{}' does not mention {needle}",
+            "'{}' does not mention {needle}",
             errors[0]
         );
         assert!(
             !lines.iter().any(|l| l.contains("panicked")),
-            "{args:?} panicked: {lines:?}"
+            "panicked: {lines:?}"
         );
     }
 
     // A NaN in a camera is refused by the argument parser, also with a clear message.
-    let output = pointfarm(&["render", sample, "--out", out, "--camera-pos", "1,NaN,3"]);
+    let output = render(&["--camera-pos", "1,NaN,3"]);
     assert!(!output.status.success());
     assert!(String::from_utf8_lossy(&output.stderr).contains("not a finite number"));
 }

@@ -4,4 +4,4 @@ mod context;
 mod readback;
 
 pub use context::{AdapterChoice, GpuCapabilities, GpuContext, GpuError, ADAPTER_ENV};
-pub(crate) use readback::read_buffer;
+pub(crate) use readback::{read_buffer, staging_buffer};

@@ -2,21 +2,27 @@
 
 use super::{GpuContext, GpuError};
 
-/// Copies `bytes` bytes from the start of `source` (which needs `COPY_SRC`) to the host.
-/// Blocks until the GPU has finished all work submitted so far.
-pub(crate) fn read_buffer(
-    gpu: &GpuContext,
-    source: &wgpu::Buffer,
-    bytes: u64,
-) -> Result<Vec<u8>, GpuError> {
-    let staging = gpu.device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("readback staging"),
+/// A host-mappable buffer to copy GPU results into; create it once and reuse it.
+pub(crate) fn staging_buffer(device: &wgpu::Device, label: &str, bytes: u64) -> wgpu::Buffer {
+    device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
         size: bytes,
         usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
-    });
+    })
+}
+
+/// Copies `bytes` bytes from the start of `source` (which needs `COPY_SRC`) through `staging`
+/// (from [`staging_buffer`], at least `bytes` long) to the host. Blocks until the GPU has
+/// finished all work submitted so far.
+pub(crate) fn read_buffer(
+    gpu: &GpuContext,
+    source: &wgpu::Buffer,
+    staging: &wgpu::Buffer,
+    bytes: u64,
+) -> Result<Vec<u8>, GpuError> {
     let mut encoder = gpu.device.create_command_encoder(&Default::default());
-    encoder.copy_buffer_to_buffer(source, 0, &staging, 0, bytes);
+    encoder.copy_buffer_to_buffer(source, 0, staging, 0, bytes);
     gpu.queue.submit([encoder.finish()]);
 
     let (sender, receiver) = std::sync::mpsc::channel();

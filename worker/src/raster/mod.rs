@@ -252,9 +252,19 @@ impl Renderer {
             return Err(RenderError::Gpu("frame targets missing".into()));
         };
         let pixels = targets.pixels();
-        let colour = read_buffer(&self.gpu, &targets.colour, pixels * 4)?;
+        let colour = read_buffer(
+            &self.gpu,
+            &targets.colour,
+            &targets.colour_staging,
+            pixels * 4,
+        )?;
         let depth = if settings.read_depth {
-            let bytes = read_buffer(&self.gpu, &targets.depth, pixels * 4)?;
+            let bytes = read_buffer(
+                &self.gpu,
+                &targets.depth,
+                &targets.depth_staging,
+                pixels * 4,
+            )?;
             Some(bytemuck::pod_collect_to_vec::<u8, f32>(&bytes))
         } else {
             None
@@ -319,7 +329,12 @@ impl Renderer {
                     0,
                 );
                 self.gpu.queue.submit([encoder.finish()]);
-                let raw = read_buffer(&self.gpu, &timer.resolved, timing::QUERY_COUNT as u64 * 8)?;
+                let raw = read_buffer(
+                    &self.gpu,
+                    &timer.resolved,
+                    &timer.staging,
+                    timing::QUERY_COUNT as u64 * 8,
+                )?;
                 let raw: Vec<u64> = bytemuck::pod_collect_to_vec(&raw);
                 timings.push(Stage::Rasterize, timer.pass_ms(&raw, 0), Clock::Gpu);
                 timings.push(Stage::Resolve, timer.pass_ms(&raw, 1), Clock::Gpu);

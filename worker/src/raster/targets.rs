@@ -1,6 +1,8 @@
 //! Per-size GPU buffers of a frame: the point framebuffer and the resolved images.
 //! Reused from frame to frame while the size stays the same.
 
+use crate::gpu::staging_buffer;
+
 pub(crate) struct FrameTargets {
     pub width: u32,
     pub height: u32,
@@ -10,6 +12,9 @@ pub(crate) struct FrameTargets {
     pub colour: wgpu::Buffer,
     /// Linear depth per pixel as f32, +infinity where no point landed.
     pub depth: wgpu::Buffer,
+    /// Host-mappable copies of `colour` and `depth`, for readback.
+    pub colour_staging: wgpu::Buffer,
+    pub depth_staging: wgpu::Buffer,
 }
 
 impl FrameTargets {
@@ -29,6 +34,8 @@ impl FrameTargets {
             framebuffer: storage("point framebuffer", pixels * 8),
             colour: storage("colour image", pixels * 4),
             depth: storage("depth image", pixels * 4),
+            colour_staging: staging_buffer(device, "colour image readback", pixels * 4),
+            depth_staging: staging_buffer(device, "depth image readback", pixels * 4),
         }
     }
 

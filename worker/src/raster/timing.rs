@@ -91,6 +91,7 @@ impl fmt::Display for StageTimings {
 pub(crate) struct GpuTimer {
     pub query_set: wgpu::QuerySet,
     pub resolved: wgpu::Buffer,
+    pub staging: wgpu::Buffer,
     period_ns: f32,
 }
 
@@ -111,6 +112,11 @@ impl GpuTimer {
                 usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
                 mapped_at_creation: false,
             }),
+            staging: crate::gpu::staging_buffer(
+                device,
+                "frame timestamps readback",
+                QUERY_COUNT as u64 * 8,
+            ),
             period_ns: queue.get_timestamp_period(),
         }
     }
