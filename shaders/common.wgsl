@@ -15,8 +15,10 @@ struct FrameUniforms {
     point_size: u32,
     // RGBA8 written where no point landed.
     background: u32,
-    _pad0: u32,
-    _pad1: u32,
+    // High-quality mode: points whose depth is at most (1 + depth_band) times the nearest
+    // depth of their pixel are averaged.
+    depth_band: f32,
+    _pad: u32,
 }
 
 // Points are grouped in batches of nearby points (Morton order), each with its bounding box,

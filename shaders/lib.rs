@@ -11,16 +11,19 @@ pub enum Shader {
     RasterAtomic64,
     /// Basic mode with 32-bit atomics: entry points `rasterize_depth`, `rasterize_colour`.
     RasterAtomic32,
-    /// Framebuffer clear and resolve: entry points `clear`, `resolve`.
+    /// High-quality mode's colour accumulation: entry point `accumulate`.
+    HqAccumulate,
+    /// Framebuffer clear and resolve: entry points `clear`, `resolve`, `resolve_average`.
     Resolve,
 }
 
 const COMMON: &str = include_str!("common.wgsl");
 
 impl Shader {
-    pub const ALL: [Shader; 3] = [
+    pub const ALL: [Shader; 4] = [
         Shader::RasterAtomic64,
         Shader::RasterAtomic32,
+        Shader::HqAccumulate,
         Shader::Resolve,
     ];
 
@@ -29,6 +32,7 @@ impl Shader {
         match self {
             Shader::RasterAtomic64 => "raster_atomic64",
             Shader::RasterAtomic32 => "raster_atomic32",
+            Shader::HqAccumulate => "hq_accumulate",
             Shader::Resolve => "resolve",
         }
     }
@@ -38,6 +42,7 @@ impl Shader {
         let own = match self {
             Shader::RasterAtomic64 => include_str!("raster_atomic64.wgsl"),
             Shader::RasterAtomic32 => include_str!("raster_atomic32.wgsl"),
+            Shader::HqAccumulate => include_str!("hq_accumulate.wgsl"),
             Shader::Resolve => include_str!("resolve.wgsl"),
         };
         format!("{COMMON}\n{own}")

@@ -9,6 +9,8 @@ const EMPTY: u32 = 0xffffffffu;
 @group(0) @binding(1) var<storage, read_write> framebuffer: array<vec2<u32>>;
 @group(0) @binding(2) var<storage, read_write> colour_out: array<u32>;
 @group(0) @binding(3) var<storage, read_write> depth_out: array<f32>;
+// High-quality mode only: per pixel the sums of red, green, blue and the count of points.
+@group(0) @binding(4) var<storage, read> accumulator: array<vec4<u32>>;
 
 fn pixel_of(id: vec3<u32>, groups: vec3<u32>) -> u32 {
     return id.y * groups.x * 256u + id.x;
@@ -36,4 +38,24 @@ fn resolve(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups
         colour_out[pixel] = entry.x;
         depth_out[pixel] = bitcast<f32>(entry.y);
     }
+}
+
+// High-quality mode: the rounded average of the colours accumulated per pixel.
+@compute @workgroup_size(256)
+fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let pixel = pixel_of(id, groups);
+    if pixel >= frame.width * frame.height {
+        return;
+    }
+    let sums = accumulator[pixel];
+    let count = sums.w;
+    if count == 0u {
+        colour_out[pixel] = frame.background;
+        depth_out[pixel] = bitcast<f32>(0x7f800000u);
+        return;
+    }
+    // Round half up, in integers: (sum + count / 2) / count.
+    let average = (sums.xyz + vec3<u32>(count / 2u)) / count;
+    colour_out[pixel] = average.x | (average.y << 8u) | (average.z << 16u) | (255u << 24u);
+    depth_out[pixel] = bitcast<f32>(framebuffer[pixel].y);
 }

@@ -30,7 +30,7 @@ pub(crate) struct BasicPass {
     atomic32_colour: wgpu::ComputePipeline,
 }
 
-fn pipeline(
+pub(crate) fn pipeline(
     device: &wgpu::Device,
     module: &wgpu::ShaderModule,
     entry_point: &str,
@@ -48,7 +48,7 @@ fn pipeline(
     })
 }
 
-fn module(device: &wgpu::Device, shader: Shader) -> wgpu::ShaderModule {
+pub(crate) fn module(device: &wgpu::Device, shader: Shader) -> wgpu::ShaderModule {
     device.create_shader_module(wgpu::ShaderModuleDescriptor {
         label: Some(shader.label()),
         source: wgpu::ShaderSource::Wgsl(shader.source().into()),
@@ -92,14 +92,47 @@ impl BasicPass {
         };
         // The 32-bit colour pass needs every chunk's depths, so stages run outermost.
         for pipeline in stages {
-            pass.set_pipeline(pipeline);
-            for chunk in &cloud.chunks {
-                let bind_group = bind_group(device, pipeline, path, uniforms, chunk, targets);
-                pass.set_bind_group(0, &bind_group, &[]);
-                let (x, y) = super::dispatch_grid(chunk.batch_count);
-                pass.dispatch_workgroups(x, y, 1);
-            }
+            dispatch_chunks(device, pass, pipeline, path, uniforms, cloud, targets);
         }
+    }
+
+    /// Records only the nearest-depth pass (the first pass of the high-quality mode).
+    pub fn record_depth(
+        &self,
+        device: &wgpu::Device,
+        pass: &mut wgpu::ComputePass<'_>,
+        uniforms: &wgpu::Buffer,
+        cloud: &GpuPointCloud,
+        targets: &FrameTargets,
+    ) {
+        let pipeline = &self.atomic32_depth;
+        dispatch_chunks(
+            device,
+            pass,
+            pipeline,
+            AtomicsPath::Atomic32,
+            uniforms,
+            cloud,
+            targets,
+        );
+    }
+}
+
+fn dispatch_chunks(
+    device: &wgpu::Device,
+    pass: &mut wgpu::ComputePass<'_>,
+    pipeline: &wgpu::ComputePipeline,
+    path: AtomicsPath,
+    uniforms: &wgpu::Buffer,
+    cloud: &GpuPointCloud,
+    targets: &FrameTargets,
+) {
+    pass.set_pipeline(pipeline);
+    for chunk in &cloud.chunks {
+        let bind_group = bind_group(device, pipeline, path, uniforms, chunk, targets);
+        pass.set_bind_group(0, &bind_group, &[]);
+        let (x, y) = super::dispatch_grid(chunk.batch_count);
+        pass.dispatch_workgroups(x, y, 1);
     }
 }
 

@@ -17,7 +17,8 @@ pub struct FrameUniforms {
     pub height: u32,
     pub point_size: u32,
     pub background: u32,
-    pub _pad: [u32; 2],
+    pub depth_band: f32,
+    pub _pad: u32,
 }
 
 /// `GpuPoint` in common.wgsl: position relative to the dataset origin, RGBA8 colour.

@@ -10,6 +10,7 @@
 
 mod basic_pass;
 mod gpu_data;
+mod hq_pass;
 mod points;
 mod resolve_pass;
 mod targets;
@@ -30,6 +31,7 @@ use crate::cloud::PointCloud;
 use crate::gpu::{read_buffer, GpuContext, GpuError};
 use basic_pass::BasicPass;
 use gpu_data::FrameUniforms;
+use hq_pass::HqAccumulatePass;
 use resolve_pass::ResolvePass;
 use targets::FrameTargets;
 use timing::GpuTimer;
@@ -55,6 +57,8 @@ pub enum RenderError {
         needed_mib: u64,
         limit_mib: u64,
     },
+    #[error("depth band {0} is invalid: it must be a finite number from 0 to 1")]
+    DepthBand(f32),
     #[error("point size {0} is invalid: it must be 1 to {MAX_POINT_SIZE} pixels")]
     PointSize(u32),
     #[error(transparent)]
@@ -81,6 +85,21 @@ pub enum AtomicsMode {
     Force32,
 }
 
+/// How the colour of a pixel is chosen.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Quality {
+    /// The nearest point's colour (one atomic minimum per pixel).
+    Basic,
+    /// The average colour of all points whose depth is at most `(1 + depth_band)` times the
+    /// nearest depth of the pixel (Schütz & Wimmer's high-quality mode).
+    High { depth_band: f32 },
+}
+
+impl Quality {
+    /// High quality with the papers' default band of 1%.
+    pub const HIGH: Quality = Quality::High { depth_band: 0.01 };
+}
+
 /// Everything that decides the pixels of one frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FrameSettings {
@@ -92,6 +111,7 @@ pub struct FrameSettings {
     /// RGBA written where no point landed.
     pub background: [u8; 4],
     pub atomics: AtomicsMode,
+    pub quality: Quality,
     /// Also read back the linear depth image.
     pub read_depth: bool,
 }
@@ -106,6 +126,7 @@ impl FrameSettings {
             point_size: 1,
             background: [24, 24, 28, 255],
             atomics: AtomicsMode::Auto,
+            quality: Quality::Basic,
             read_depth: false,
         }
     }
@@ -140,6 +161,7 @@ impl Frame {
 pub struct Renderer {
     gpu: Arc<GpuContext>,
     basic: BasicPass,
+    hq: HqAccumulatePass,
     resolve: ResolvePass,
     uniforms: wgpu::Buffer,
     timer: Option<GpuTimer>,
@@ -156,6 +178,7 @@ impl Renderer {
             as usize;
         Self {
             basic: BasicPass::new(device, caps.int64_atomics),
+            hq: HqAccumulatePass::new(device),
             resolve: ResolvePass::new(device),
             uniforms: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("frame uniforms"),
@@ -197,7 +220,13 @@ impl Renderer {
         if width == 0 || height == 0 || width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE {
             return Err(RenderError::ImageSize { width, height });
         }
-        let needed = width as u64 * height as u64 * 8;
+        // The largest per-pixel binding: the high-quality accumulator (4 words), else the point
+        // framebuffer (2 words).
+        let bytes_per_pixel = match settings.quality {
+            Quality::Basic => 8,
+            Quality::High { .. } => 16,
+        };
+        let needed = width as u64 * height as u64 * bytes_per_pixel;
         let limit = self.gpu.capabilities.max_storage_binding_bytes;
         if needed > limit {
             return Err(RenderError::ImageTooLarge {
@@ -209,6 +238,11 @@ impl Renderer {
         }
         if settings.point_size == 0 || settings.point_size > MAX_POINT_SIZE {
             return Err(RenderError::PointSize(settings.point_size));
+        }
+        if let Quality::High { depth_band } = settings.quality {
+            if !(depth_band.is_finite() && (0.0..=1.0).contains(&depth_band)) {
+                return Err(RenderError::DepthBand(depth_band));
+            }
         }
         settings.camera.validate()?;
         Ok(())
@@ -241,11 +275,14 @@ impl Renderer {
                 settings.height,
             ));
         }
+        if let (Quality::High { .. }, Some(targets)) = (settings.quality, self.targets.as_mut()) {
+            targets.ensure_accumulator(&self.gpu.device);
+        }
         let upload_ms = started.elapsed().as_secs_f64() * 1e3 + cloud.take_upload_ms();
         timings.push(Stage::Upload, upload_ms, Clock::Host);
 
         let path = self.basic.path(settings.atomics == AtomicsMode::Auto);
-        self.run_passes(cloud, path, &mut timings)?;
+        self.run_passes(cloud, settings, path, &mut timings)?;
 
         let started = Instant::now();
         let Some(targets) = self.targets.as_ref() else {
@@ -286,12 +323,13 @@ impl Renderer {
         })
     }
 
-    /// Clears, rasterizes and resolves. With timestamp queries everything goes in one
-    /// submission and the GPU times each pass; without, each pass is submitted and waited
+    /// Records and runs the frame's compute passes. With timestamp queries everything goes in
+    /// one submission and the GPU times each pass; without, each pass is submitted and waited
     /// for on its own and timed by the host clock.
     fn run_passes(
         &self,
         cloud: &GpuPointCloud,
+        settings: &FrameSettings,
         path: AtomicsPath,
         timings: &mut StageTimings,
     ) -> Result<(), RenderError> {
@@ -299,62 +337,97 @@ impl Renderer {
         let Some(targets) = self.targets.as_ref() else {
             return Err(RenderError::Gpu("frame targets missing".into()));
         };
-        let rasterize = |encoder: &mut wgpu::CommandEncoder| {
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("rasterize"),
-                timestamp_writes: self.timer.as_ref().map(|t| t.writes(0)),
-            });
-            self.resolve.record_clear(device, &mut pass, targets);
-            self.basic
-                .record(device, &mut pass, path, &self.uniforms, cloud, targets);
+        let uniforms = &self.uniforms;
+        type Record<'a> = Box<dyn Fn(&mut wgpu::ComputePass<'_>) + 'a>;
+        let passes: Vec<(Stage, Record<'_>)> = match settings.quality {
+            Quality::Basic => vec![
+                (
+                    Stage::Rasterize,
+                    Box::new(|pass| {
+                        self.resolve.record_clear(device, pass, targets);
+                        self.basic
+                            .record(device, pass, path, uniforms, cloud, targets);
+                    }),
+                ),
+                (
+                    Stage::Resolve,
+                    Box::new(|pass| self.resolve.record_resolve(device, pass, uniforms, targets)),
+                ),
+            ],
+            Quality::High { .. } => vec![
+                (
+                    Stage::Rasterize,
+                    Box::new(|pass| {
+                        self.resolve.record_clear(device, pass, targets);
+                        self.basic
+                            .record_depth(device, pass, uniforms, cloud, targets);
+                    }),
+                ),
+                (
+                    Stage::Accumulate,
+                    Box::new(|pass| self.hq.record(device, pass, uniforms, cloud, targets)),
+                ),
+                (
+                    Stage::Resolve,
+                    Box::new(|pass| {
+                        self.resolve
+                            .record_resolve_average(device, pass, uniforms, targets)
+                    }),
+                ),
+            ],
         };
-        let resolve = |encoder: &mut wgpu::CommandEncoder| {
+        let begin_frame = |encoder: &mut wgpu::CommandEncoder| {
+            if let (Quality::High { .. }, Some(accumulator)) =
+                (settings.quality, targets.accumulator.as_ref())
+            {
+                encoder.clear_buffer(accumulator, 0, None);
+            }
+        };
+        let run = |encoder: &mut wgpu::CommandEncoder,
+                   index: usize,
+                   (stage, record): &(Stage, Record<'_>)| {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("resolve"),
-                timestamp_writes: self.timer.as_ref().map(|t| t.writes(1)),
+                label: Some(stage.name()),
+                timestamp_writes: self.timer.as_ref().map(|t| t.writes(index as u32)),
             });
-            self.resolve
-                .record_resolve(device, &mut pass, &self.uniforms, targets);
+            record(&mut pass);
         };
 
         match &self.timer {
             Some(timer) => {
+                let queries = 2 * passes.len() as u32;
                 let mut encoder = device.create_command_encoder(&Default::default());
-                rasterize(&mut encoder);
-                resolve(&mut encoder);
-                encoder.resolve_query_set(
-                    &timer.query_set,
-                    0..timing::QUERY_COUNT,
-                    &timer.resolved,
-                    0,
-                );
+                begin_frame(&mut encoder);
+                for (index, plan) in passes.iter().enumerate() {
+                    run(&mut encoder, index, plan);
+                }
+                encoder.resolve_query_set(&timer.query_set, 0..queries, &timer.resolved, 0);
                 self.gpu.queue.submit([encoder.finish()]);
                 let raw = read_buffer(
                     &self.gpu,
                     &timer.resolved,
                     &timer.staging,
-                    timing::QUERY_COUNT as u64 * 8,
+                    queries as u64 * 8,
                 )?;
                 let raw: Vec<u64> = bytemuck::pod_collect_to_vec(&raw);
-                timings.push(Stage::Rasterize, timer.pass_ms(&raw, 0), Clock::Gpu);
-                timings.push(Stage::Resolve, timer.pass_ms(&raw, 1), Clock::Gpu);
+                for (index, (stage, _)) in passes.iter().enumerate() {
+                    timings.push(*stage, timer.pass_ms(&raw, index as u32), Clock::Gpu);
+                }
             }
             None => {
-                for (stage, record) in [
-                    (
-                        Stage::Rasterize,
-                        &rasterize as &dyn Fn(&mut wgpu::CommandEncoder),
-                    ),
-                    (Stage::Resolve, &resolve),
-                ] {
+                for (index, plan) in passes.iter().enumerate() {
                     let started = Instant::now();
                     let mut encoder = device.create_command_encoder(&Default::default());
-                    record(&mut encoder);
+                    if index == 0 {
+                        begin_frame(&mut encoder);
+                    }
+                    run(&mut encoder, index, plan);
                     self.gpu.queue.submit([encoder.finish()]);
                     device
                         .poll(wgpu::PollType::wait_indefinitely())
                         .map_err(|e| RenderError::Gpu(e.to_string()))?;
-                    timings.push(stage, started.elapsed().as_secs_f64() * 1e3, Clock::Host);
+                    let ms = started.elapsed().as_secs_f64() * 1e3;
+                    timings.push(plan.0, ms, Clock::Host);
                 }
             }
         }
@@ -369,13 +442,17 @@ fn frame_uniforms(cloud: &GpuPointCloud, settings: &FrameSettings) -> FrameUnifo
     FrameUniforms {
         view_proj: t.view_proj.as_mat4().to_cols_array_2d(),
         depth_row: t.depth_row.as_vec4().to_array(),
+        depth_band: match settings.quality {
+            Quality::High { depth_band } => depth_band,
+            Quality::Basic => 0.0,
+        },
         near: t.near as f32,
         far: t.far as f32,
         width: settings.width,
         height: settings.height,
         point_size: settings.point_size,
         background: u32::from_le_bytes(settings.background),
-        _pad: [0; 2],
+        _pad: 0,
     }
 }
 

@@ -182,3 +182,34 @@ fn survey_coordinates_render_with_sub_pixel_accuracy_in_a_close_up() {
         "the close-up must be sensitive to f32 rounding"
     );
 }
+
+/// High-quality mode on the real scans: each pixel's average within 1/255 per channel of the
+/// reference's, on at least 99.5% of pixels (a point right at the band's edge may fall on
+/// either side of it in f32).
+#[test]
+fn real_scans_high_quality_agrees_with_the_reference() {
+    let mut renderer = Renderer::new(gpu());
+    for file in ["autzen_trim.laz", "lone-star.laz"] {
+        let Some(cloud) = load(file) else { continue };
+        let resident = renderer.upload(&cloud).expect("upload");
+        let (w, h) = (800, 600);
+        let mut settings =
+            FrameSettings::new(w, h, Camera::auto(&cloud.bounds, w as f64 / h as f64));
+        settings.quality = Quality::HIGH;
+        settings.point_size = 2;
+        let frame = renderer.render(&resident, &settings).expect("render");
+        let expected = reference::render(&cloud, &settings);
+        let within = frame
+            .image
+            .pixels()
+            .zip(expected.image.pixels())
+            .filter(|(a, e)| a.0.iter().zip(e.0).all(|(x, y)| x.abs_diff(y) <= 1))
+            .count();
+        let fraction = within as f64 / (w * h) as f64;
+        eprintln!(
+            "{file} high quality: {:.4}% of pixels within 1/255",
+            fraction * 100.0
+        );
+        assert!(fraction >= 0.995, "{file}: {:.3}%", fraction * 100.0);
+    }
+}

@@ -12,6 +12,7 @@ const WORKGROUP_SIZE: u32 = 256;
 pub(crate) struct ResolvePass {
     clear: wgpu::ComputePipeline,
     resolve: wgpu::ComputePipeline,
+    resolve_average: wgpu::ComputePipeline,
 }
 
 impl ResolvePass {
@@ -33,6 +34,7 @@ impl ResolvePass {
         Self {
             clear: pipeline("clear"),
             resolve: pipeline("resolve"),
+            resolve_average: pipeline("resolve_average"),
         }
     }
 
@@ -83,6 +85,46 @@ impl ResolvePass {
             ],
         });
         self.dispatch(pass, &self.resolve, &bind_group, targets);
+    }
+
+    /// High-quality mode: the average of the accumulated colours per pixel.
+    pub fn record_resolve_average(
+        &self,
+        device: &wgpu::Device,
+        pass: &mut wgpu::ComputePass<'_>,
+        uniforms: &wgpu::Buffer,
+        targets: &FrameTargets,
+    ) {
+        let Some(accumulator) = targets.accumulator.as_ref() else {
+            return;
+        };
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("resolve average"),
+            layout: &self.resolve_average.get_bind_group_layout(0),
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: uniforms.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: targets.framebuffer.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: targets.colour.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 3,
+                    resource: targets.depth.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 4,
+                    resource: accumulator.as_entire_binding(),
+                },
+            ],
+        });
+        self.dispatch(pass, &self.resolve_average, &bind_group, targets);
     }
 
     fn dispatch(

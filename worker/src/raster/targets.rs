@@ -15,6 +15,9 @@ pub(crate) struct FrameTargets {
     /// Host-mappable copies of `colour` and `depth`, for readback.
     pub colour_staging: wgpu::Buffer,
     pub depth_staging: wgpu::Buffer,
+    /// High-quality mode: per pixel the sums of red, green, blue and a count (4 x u32).
+    /// Created on the first high-quality frame of this size.
+    pub accumulator: Option<wgpu::Buffer>,
 }
 
 impl FrameTargets {
@@ -36,7 +39,20 @@ impl FrameTargets {
             depth: storage("depth image", pixels * 4),
             colour_staging: staging_buffer(device, "colour image readback", pixels * 4),
             depth_staging: staging_buffer(device, "depth image readback", pixels * 4),
+            accumulator: None,
         }
+    }
+
+    pub fn ensure_accumulator(&mut self, device: &wgpu::Device) {
+        let pixels = self.pixels();
+        self.accumulator.get_or_insert_with(|| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("colour accumulator"),
+                size: pixels * 16,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        });
     }
 
     pub fn pixels(&self) -> u64 {

@@ -31,6 +31,25 @@ fn camera(projection: Projection) -> Camera {
 /// `layers` per covered pixel at well-separated depths, in shuffled order, plus points that
 /// must be culled: behind the camera, beyond `far`, before `near` and beside the image.
 fn pixel_centre_scene(settings: &FrameSettings, layers: usize, seed: u64) -> PointCloud {
+    let (near, far) = (settings.camera.near, settings.camera.far);
+    pixel_centre_scene_with(settings, seed, |rng| {
+        (0..layers)
+            .map(|layer| {
+                // Depth slots are 10% of the range apart: no f32 rounding can reorder them.
+                let slot = (layer as f64 + rng.random_range(0.2..0.8)) / layers as f64;
+                near + (far - near) * (0.02 + 0.96 * slot)
+            })
+            .collect()
+    })
+}
+
+/// Like [`pixel_centre_scene`], with the depths of each covered pixel's points chosen by
+/// `depths`.
+fn pixel_centre_scene_with(
+    settings: &FrameSettings,
+    seed: u64,
+    mut depths: impl FnMut(&mut ChaCha8Rng) -> Vec<f64>,
+) -> PointCloud {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let cam = settings.camera;
     let (w, h) = (settings.width, settings.height);
@@ -56,10 +75,7 @@ fn pixel_centre_scene(settings: &FrameSettings, layers: usize, seed: u64) -> Poi
             }
             let ndc_x = (x as f64 + 0.5) / w as f64 * 2.0 - 1.0;
             let ndc_y = 1.0 - (y as f64 + 0.5) / h as f64 * 2.0;
-            for layer in 0..layers {
-                // Depth slots are 10% of the range apart: no f32 rounding can reorder them.
-                let slot = (layer as f64 + rng.random_range(0.2..0.8)) / layers as f64;
-                let depth = cam.near + (cam.far - cam.near) * (0.02 + 0.96 * slot);
+            for depth in depths(&mut rng) {
                 points.push(SURVEY_ORIGIN + at_depth(ndc_x, ndc_y, depth));
                 colours.push(random_colour(&mut rng));
             }
@@ -348,6 +364,115 @@ fn host_clocks_time_the_passes_without_timestamp_queries() {
         compare_images("host-clocks", &frame.image, &expected.image).differing,
         0
     );
+}
+
+/// Per pixel: a front surface of several points spread over 0.5% of depth (inside the default
+/// 1% band) and points clearly behind it (2% to 30%), which the average must leave out.
+fn surface_with_depth_noise(settings: &FrameSettings, seed: u64) -> PointCloud {
+    let (near, far) = (settings.camera.near, settings.camera.far);
+    pixel_centre_scene_with(settings, seed, |rng| {
+        let front = near + (far - near) * rng.random_range(0.1..0.6);
+        let mut depths = vec![front];
+        depths.extend((0..rng.random_range(1..8)).map(|_| front * rng.random_range(1.0005..1.005)));
+        depths.extend((0..rng.random_range(0..4)).map(|_| front * rng.random_range(1.02..1.3)));
+        depths
+    })
+}
+
+/// Largest difference of any channel of any pixel.
+fn max_channel_difference(a: &image::RgbaImage, b: &image::RgbaImage) -> u8 {
+    a.as_raw()
+        .iter()
+        .zip(b.as_raw())
+        .map(|(x, y)| x.abs_diff(*y))
+        .max()
+        .unwrap_or(0)
+}
+
+#[test]
+fn high_quality_mode_averages_the_front_surface_like_the_reference() {
+    let mut settings = FrameSettings::new(
+        160,
+        120,
+        camera(Projection::Perspective { fov_y_deg: 50.0 }),
+    );
+    settings.quality = Quality::HIGH;
+    settings.read_depth = true;
+    let cloud = surface_with_depth_noise(&settings, 10);
+    let mut renderer = Renderer::new(gpu());
+    let resident = renderer.upload(&cloud).expect("upload");
+    let frame = renderer.render(&resident, &settings).expect("render");
+    let expected = reference::render(&cloud, &settings);
+    let difference = max_channel_difference(&frame.image, &expected.image);
+    let diff = compare_images("hq-average", &frame.image, &expected.image);
+    eprintln!(
+        "high quality: {} pixels differ, by at most {difference}/255",
+        diff.differing
+    );
+    assert!(difference <= 1, "a channel differs by {difference}/255");
+    let depth = frame.depth.as_deref().expect("depth was requested");
+    for (gpu_depth, reference_depth) in depth.iter().zip(&expected.depth) {
+        assert!(
+            gpu_depth == reference_depth
+                || (gpu_depth - reference_depth).abs() <= reference_depth * 1e-5
+        );
+    }
+    assert!(
+        frame.timings.get(Stage::Accumulate).is_some(),
+        "{}",
+        frame.timings
+    );
+
+    // The average really is not the nearest point's colour.
+    let basic = renderer
+        .render(
+            &resident,
+            &FrameSettings {
+                quality: Quality::Basic,
+                ..settings
+            },
+        )
+        .expect("basic");
+    let changed = compare_images("hq-vs-basic", &frame.image, &basic.image).differing;
+    assert!(
+        changed > 160 * 120 / 4,
+        "only {changed} pixels differ from the basic mode"
+    );
+}
+
+#[test]
+fn high_quality_band_is_configurable() {
+    let mut settings =
+        FrameSettings::new(96, 64, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    let cloud = surface_with_depth_noise(&settings, 11);
+    let mut renderer = Renderer::new(gpu());
+    let resident = renderer.upload(&cloud).expect("upload");
+    // A zero band averages only points at exactly the nearest depth: the basic image, up to
+    // ties; a 50% band takes in the points behind the surface as well.
+    for depth_band in [0.0, 0.5] {
+        settings.quality = Quality::High { depth_band };
+        let frame = renderer.render(&resident, &settings).expect("render");
+        let expected = reference::render(&cloud, &settings);
+        assert!(
+            max_channel_difference(&frame.image, &expected.image) <= 1,
+            "band {depth_band}"
+        );
+    }
+    settings.quality = Quality::High { depth_band: 0.0 };
+    let zero_band = renderer.render(&resident, &settings).expect("render");
+    settings.quality = Quality::Basic;
+    let basic = renderer.render(&resident, &settings).expect("render");
+    assert_eq!(
+        compare_images("hq-zero-band", &zero_band.image, &basic.image).differing,
+        0
+    );
+    for bad in [f32::NAN, -0.1, 2.0] {
+        settings.quality = Quality::High { depth_band: bad };
+        assert!(matches!(
+            renderer.validate(&settings),
+            Err(RenderError::DepthBand(_))
+        ));
+    }
 }
 
 #[test]

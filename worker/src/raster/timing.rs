@@ -8,8 +8,10 @@ use std::fmt;
 pub enum Stage {
     /// Host-to-GPU transfers: per-frame uniforms, and the points on the first frame of a cloud.
     Upload,
-    /// Framebuffer clear and the point pass(es).
+    /// Framebuffer clear and the point pass(es): in high-quality mode, the depth pass.
     Rasterize,
+    /// High-quality mode: colours of the points near the front surface summed per pixel.
+    Accumulate,
     /// Framebuffer to RGBA8 and depth images.
     Resolve,
     /// GPU-to-host copy of the images.
@@ -23,6 +25,7 @@ impl Stage {
         match self {
             Stage::Upload => "upload",
             Stage::Rasterize => "rasterize",
+            Stage::Accumulate => "accumulate",
             Stage::Resolve => "resolve",
             Stage::Readback => "readback",
             Stage::Encode => "encode",
@@ -95,8 +98,10 @@ pub(crate) struct GpuTimer {
     period_ns: f32,
 }
 
-/// Query slots: begin and end of the rasterize and the resolve passes.
-pub(crate) const QUERY_COUNT: u32 = 4;
+/// Most compute passes in one frame.
+const MAX_PASSES: u32 = 4;
+/// Query slots: begin and end of each pass.
+const QUERY_COUNT: u32 = 2 * MAX_PASSES;
 
 impl GpuTimer {
     pub fn new(device: &wgpu::Device, queue: &wgpu::Queue) -> Self {
