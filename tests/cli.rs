@@ -183,3 +183,50 @@ fn bad_input_fails_with_one_line_that_names_the_problem() {
     assert!(!output.status.success());
     assert!(String::from_utf8_lossy(&output.stderr).contains("not a finite number"));
 }
+
+#[test]
+fn colour_modes_and_high_quality_are_options_of_render() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let laz = sample(dir.path(), "sample.laz", 30_000);
+    let mut images = Vec::new();
+    for (name, extra) in [
+        ("rgb", vec!["--color", "rgb"]),
+        (
+            "elevation",
+            vec!["--color", "elevation", "--quality", "high"],
+        ),
+        ("classes", vec!["--color", "classification"]),
+        (
+            "fixed",
+            vec!["--colour", "#ff8000", "--background", "transparent"],
+        ),
+    ] {
+        let png = dir.path().join(format!("{name}.png"));
+        let mut args = vec!["render", laz.as_str(), "--out"];
+        let png_arg = path_arg(&png);
+        args.push(&png_arg);
+        args.extend(["--size", "200x150", "--point-size", "2"]);
+        args.extend(extra.iter().copied());
+        let output = pointfarm(&args);
+        assert_ok(&output);
+        if name == "elevation" {
+            assert!(
+                stdout(&output).contains("accumulate"),
+                "high quality has its own stage"
+            );
+        }
+        images.push(image::open(&png).expect("png").to_rgba8());
+    }
+    for pair in images.windows(2) {
+        assert_ne!(pair[0], pair[1], "every mode gives a different picture");
+    }
+    let fixed = &images[3];
+    assert!(fixed.pixels().any(|p| p.0 == [255, 128, 0, 255]));
+    assert!(
+        fixed.pixels().any(|p| p.0[3] == 0),
+        "transparent background"
+    );
+    let bad = pointfarm(&["render", &laz, "--out", "x.png", "--color", "rainbow"]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("not a colour mode"));
+}

@@ -1,6 +1,7 @@
 //! Parsers for command-line values.
 
 use glam::DVec3;
+use pointfarm_worker::color::ColorMode;
 
 /// `1280x720`.
 pub fn size(s: &str) -> Result<(u32, u32), String> {
@@ -49,6 +50,24 @@ pub fn colour(s: &str) -> Result<[u8; 4], String> {
     Ok([byte(0)?, byte(2)?, byte(4)?, alpha])
 }
 
+/// `rgb`, `intensity`, `elevation`, `classification`, `return`, or a colour like `#ff8000`.
+pub fn colour_mode(s: &str) -> Result<ColorMode, String> {
+    match s.to_ascii_lowercase().as_str() {
+        "rgb" => Ok(ColorMode::Rgb),
+        "intensity" => Ok(ColorMode::Intensity),
+        "elevation" | "height" => Ok(ColorMode::Elevation),
+        "classification" | "class" => Ok(ColorMode::Classification),
+        "return" | "return-number" => Ok(ColorMode::ReturnNumber),
+        _ => match colour(s) {
+            Ok([r, g, b, _]) => Ok(ColorMode::Fixed([r, g, b])),
+            Err(_) => Err(format!(
+                "'{s}' is not a colour mode (rgb, intensity, elevation, classification, return, \
+                 or a colour like #ff8000)"
+            )),
+        },
+    }
+}
+
 /// A finite positive number.
 pub fn positive(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
@@ -73,6 +92,9 @@ mod tests {
         assert_eq!(colour("ff800080"), Ok([255, 128, 0, 128]));
         assert_eq!(colour("transparent"), Ok([0, 0, 0, 0]));
         assert!(colour("#ff80").is_err());
+        assert_eq!(colour_mode("Elevation"), Ok(ColorMode::Elevation));
+        assert_eq!(colour_mode("#010203"), Ok(ColorMode::Fixed([1, 2, 3])));
+        assert!(colour_mode("rainbow").is_err());
         assert!(positive("0").is_err());
         assert!(positive("inf").is_err());
     }

@@ -10,6 +10,7 @@ use glam::DVec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_worker::camera::{Camera, Projection, DEFAULT_FOV_Y_DEG};
 use pointfarm_worker::cloud::PointCloud;
+use pointfarm_worker::color::{point_colours, ColorMode};
 use pointfarm_worker::gpu::{AdapterChoice, GpuContext};
 use pointfarm_worker::ingest::load_point_cloud;
 use pointfarm_worker::raster::{
@@ -61,6 +62,10 @@ pub struct RenderArgs {
     /// Background colour: #rrggbb, #rrggbbaa or transparent.
     #[arg(long, default_value = "#18181c", value_parser = parse::colour)]
     background: [u8; 4],
+    /// Colour points by: rgb (the file's colours, or intensity without them), intensity,
+    /// elevation, classification, return, or one colour like #ff8000.
+    #[arg(long = "color", visible_alias = "colour", default_value = "rgb", value_parser = parse::colour_mode)]
+    color: ColorMode,
     /// basic: the nearest point's colour; high: the average colour of the points near the
     /// front surface (less aliasing, smoother turntables; about two passes more).
     #[arg(long, value_enum, default_value = "basic")]
@@ -99,7 +104,8 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let spinner = spinner(format!("reading {}", args.input.display()));
     let cloud = load_point_cloud(&args.input);
     spinner.finish_and_clear();
-    let cloud = cloud?;
+    let mut cloud = cloud?;
+    cloud.colors = point_colours(&cloud, args.color);
     println!(
         "{}: {} points, colour from {:?}, read in {:.0} ms",
         args.input.display(),

@@ -18,6 +18,7 @@ use glam::{DVec3, Vec3};
 use las::{point::Classification, Color, Point, PointData, PointDataBuilder, Reader};
 
 use crate::cloud::{bounds_of, pack_rgba8, ColorSource, PointCloud, WorldBounds};
+use crate::color::{intensity_grey, CONSTANT_GREY_RGBA};
 
 /// Why a file could not be loaded. Every variant names the file, and every message is complete
 /// on its own (the underlying cause is part of it), so it reads well in logs and the CLI.
@@ -87,15 +88,6 @@ pub enum IngestError {
 /// Points decoded per batch. Bounds the scratch buffer, and for LAZ spans ~20 chunks of the
 /// usual 50,000 points, enough for the parallel decompressor to keep every core busy.
 const POINTS_PER_BATCH: u64 = 1 << 20;
-
-/// Intensity percentiles that map to the ends of the grey ramp: robust against the few
-/// saturated or zero returns that would otherwise flatten the stretch.
-const INTENSITY_LOW_PERCENTILE: f64 = 0.02;
-const INTENSITY_HIGH_PERCENTILE: f64 = 0.98;
-/// Darkest grey for intensity colouring: weak returns stay visible against a black background.
-const INTENSITY_GREY_MIN: u8 = 40;
-/// Colour of every point when the file has neither RGB nor intensity.
-const CONSTANT_GREY: u8 = 200;
 
 /// Loads a LAS or LAZ file (LAS 1.0–1.4, point formats 0–10) into a recentred cloud.
 ///
@@ -458,7 +450,13 @@ impl DecodedPoints {
     fn into_cloud(self, origin: DVec3) -> PointCloud {
         let (colors, color_source) = match &self.rgb {
             Some(rgb) => colors_from_rgb(rgb),
-            None => colors_from_intensity(&self.intensity),
+            None => match intensity_grey(&self.intensity) {
+                Some(colors) => (colors, ColorSource::IntensityGrey),
+                None => (
+                    vec![CONSTANT_GREY_RGBA; self.intensity.len()],
+                    ColorSource::Constant,
+                ),
+            },
         };
         let bounds = if self.positions.is_empty() {
             bounds_of([])
@@ -499,51 +497,6 @@ fn colors_from_rgb(rgb: &[[u16; 3]]) -> (Vec<u32>, ColorSource) {
             .collect();
         (colors, ColorSource::Rgb16)
     }
-}
-
-/// Grey from intensity, stretched between robust percentiles onto
-/// `INTENSITY_GREY_MIN..=255`; one light grey if every intensity is zero.
-fn colors_from_intensity(intensity: &[u16]) -> (Vec<u32>, ColorSource) {
-    if intensity.iter().all(|&i| i == 0) {
-        let grey = pack_rgba8(CONSTANT_GREY, CONSTANT_GREY, CONSTANT_GREY);
-        return (vec![grey; intensity.len()], ColorSource::Constant);
-    }
-    let (low, high) = intensity_percentiles(intensity);
-    let span = f32::from(high.saturating_sub(low).max(1));
-    let grey_span = f32::from(u8::MAX - INTENSITY_GREY_MIN);
-    let colors = intensity
-        .iter()
-        .map(|&i| {
-            let t = ((f32::from(i) - f32::from(low)) / span).clamp(0.0, 1.0);
-            let grey = INTENSITY_GREY_MIN + (t * grey_span).round() as u8;
-            pack_rgba8(grey, grey, grey)
-        })
-        .collect();
-    (colors, ColorSource::IntensityGrey)
-}
-
-/// The low and high stretch percentiles, from a full 16-bit histogram (linear time, exact).
-fn intensity_percentiles(intensity: &[u16]) -> (u16, u16) {
-    let mut histogram = vec![0u64; usize::from(u16::MAX) + 1];
-    for &i in intensity {
-        histogram[usize::from(i)] += 1;
-    }
-    let count = intensity.len() as f64;
-    let rank = |fraction: f64| ((count - 1.0) * fraction).round() as u64;
-    let value_at_rank = |rank: u64| {
-        let mut seen = 0;
-        for (value, &n) in histogram.iter().enumerate() {
-            seen += n;
-            if seen > rank {
-                return value as u16;
-            }
-        }
-        u16::MAX
-    };
-    (
-        value_at_rank(rank(INTENSITY_LOW_PERCENTILE)),
-        value_at_rank(rank(INTENSITY_HIGH_PERCENTILE)),
-    )
 }
 
 /// How [`write_las`] lays out the file.
@@ -639,6 +592,7 @@ fn write_las_inner(path: &Path, cloud: &PointCloud, options: &LasWriteOptions) -
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::color::INTENSITY_GREY_MIN;
     use std::fs;
 
     /// A small cloud in survey-like coordinates with varied attributes; its coordinates are on
@@ -871,7 +825,7 @@ mod tests {
         let path = write(dir.path(), "plain.laz", &cloud, &options);
         let loaded = load_point_cloud(&path).expect("load");
         assert_eq!(loaded.color_source, ColorSource::Constant);
-        let grey = pack_rgba8(CONSTANT_GREY, CONSTANT_GREY, CONSTANT_GREY);
+        let grey = CONSTANT_GREY_RGBA;
         assert!(loaded.colors.iter().all(|&color| color == grey));
     }
 

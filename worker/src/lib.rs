@@ -6,6 +6,7 @@
 
 pub mod camera;
 pub mod cloud;
+pub mod color;
 pub mod gpu;
 pub mod ingest;
 pub mod raster;
