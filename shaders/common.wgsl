@@ -18,7 +18,12 @@ struct FrameUniforms {
     // High-quality mode: points whose depth is at most (1 + depth_band) times the nearest
     // depth of their pixel are averaged.
     depth_band: f32,
-    _pad: u32,
+    // Eye-Dome Lighting: 0 strength turns it off.
+    edl_strength: f32,
+    edl_radius: f32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 
 // Points are grouped in batches of nearby points (Morton order), each with its bounding box,

@@ -13,6 +13,8 @@ pub enum Shader {
     RasterAtomic32,
     /// High-quality mode's colour accumulation: entry point `accumulate`.
     HqAccumulate,
+    /// Eye-Dome Lighting on the resolved images: entry point `shade`.
+    Edl,
     /// Framebuffer clear and resolve: entry points `clear`, `resolve`, `resolve_average`.
     Resolve,
 }
@@ -20,10 +22,11 @@ pub enum Shader {
 const COMMON: &str = include_str!("common.wgsl");
 
 impl Shader {
-    pub const ALL: [Shader; 4] = [
+    pub const ALL: [Shader; 5] = [
         Shader::RasterAtomic64,
         Shader::RasterAtomic32,
         Shader::HqAccumulate,
+        Shader::Edl,
         Shader::Resolve,
     ];
 
@@ -33,6 +36,7 @@ impl Shader {
             Shader::RasterAtomic64 => "raster_atomic64",
             Shader::RasterAtomic32 => "raster_atomic32",
             Shader::HqAccumulate => "hq_accumulate",
+            Shader::Edl => "edl",
             Shader::Resolve => "resolve",
         }
     }
@@ -43,6 +47,7 @@ impl Shader {
             Shader::RasterAtomic64 => include_str!("raster_atomic64.wgsl"),
             Shader::RasterAtomic32 => include_str!("raster_atomic32.wgsl"),
             Shader::HqAccumulate => include_str!("hq_accumulate.wgsl"),
+            Shader::Edl => include_str!("edl.wgsl"),
             Shader::Resolve => include_str!("resolve.wgsl"),
         };
         format!("{COMMON}\n{own}")

@@ -26,7 +26,7 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Render frames of a LAS/LAZ file on this machine's GPU (or lavapipe).
-    Render(render::RenderArgs),
+    Render(Box<render::RenderArgs>),
     /// Write a generated sample scene (survey-like coordinates, RGB) as LAS or LAZ.
     Sample(sample::SampleArgs),
 }
@@ -46,7 +46,7 @@ fn main() -> ExitCode {
         .init();
 
     let result = match cli.command {
-        Command::Render(args) => render::run(args),
+        Command::Render(args) => render::run(*args),
         Command::Sample(args) => sample::run(args),
     };
     match result {

@@ -14,7 +14,7 @@ use pointfarm_worker::color::{point_colours, ColorMode};
 use pointfarm_worker::gpu::{AdapterChoice, GpuContext};
 use pointfarm_worker::ingest::load_point_cloud;
 use pointfarm_worker::raster::{
-    AtomicsMode, FrameSettings, Quality, Renderer, Stage, StageTimings,
+    AtomicsMode, FrameSettings, Quality, Renderer, Shading, Stage, StageTimings,
 };
 
 use crate::parse;
@@ -73,12 +73,28 @@ pub struct RenderArgs {
     /// High quality: points up to this fraction behind the nearest depth are averaged.
     #[arg(long, default_value_t = 0.01)]
     depth_band: f32,
+    /// Screen-space shading: edl (Eye-Dome Lighting, shapes read without colour or normals)
+    /// or none.
+    #[arg(long, value_enum, default_value = "none")]
+    shading: ShadingArg,
+    /// Eye-Dome Lighting: how strongly depth steps darken.
+    #[arg(long, default_value_t = 1.0)]
+    edl_strength: f32,
+    /// Eye-Dome Lighting: distance of the depth samples in pixels.
+    #[arg(long, default_value_t = 1.4)]
+    edl_radius: f32,
     /// Adapter: auto (hardware GPU if present, else lavapipe), hardware or software.
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
     adapter: AdapterChoice,
     /// Atomics of the point pass: auto (64-bit where available) or 32 (the fallback path).
     #[arg(long, value_enum, default_value = "auto")]
     atomics: AtomicsArg,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum ShadingArg {
+    None,
+    Edl,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -128,6 +144,13 @@ pub fn run(args: RenderArgs) -> Result<()> {
             QualityArg::Basic => Quality::Basic,
             QualityArg::High => Quality::High {
                 depth_band: args.depth_band,
+            },
+        },
+        shading: match args.shading {
+            ShadingArg::None => Shading::None,
+            ShadingArg::Edl => Shading::Edl {
+                strength: args.edl_strength,
+                radius: args.edl_radius,
             },
         },
         ..FrameSettings::new(width, height, base_camera(&args, &cloud))
@@ -229,6 +252,7 @@ fn print_summary(dir: &Path, frames: &[StageTimings]) {
         Stage::Upload,
         Stage::Rasterize,
         Stage::Resolve,
+        Stage::Shade,
         Stage::Readback,
         Stage::Encode,
     ] {

@@ -13,7 +13,7 @@
 use image::RgbaImage;
 
 use crate::cloud::PointCloud;
-use crate::raster::{FrameSettings, Quality};
+use crate::raster::{FrameSettings, Quality, Shading};
 
 /// The reference's output: an image and the depth of the nearest point of each pixel.
 #[derive(Debug, Clone)]
@@ -23,12 +23,70 @@ pub struct ReferenceFrame {
     pub depth: Vec<f32>,
 }
 
-/// Renders `cloud` as `settings.quality` defines it.
+/// Renders `cloud` as `settings` define it: quality mode, then shading.
 pub fn render(cloud: &PointCloud, settings: &FrameSettings) -> ReferenceFrame {
-    match settings.quality {
+    let mut frame = match settings.quality {
         Quality::Basic => render_basic(cloud, settings),
         Quality::High { depth_band } => render_high_quality(cloud, settings, depth_band),
+    };
+    if let Shading::Edl { strength, radius } = settings.shading {
+        shade_edl(&mut frame, strength, radius);
     }
+    frame
+}
+
+/// Eye-Dome Lighting as Potree does it: for each pixel, over 8 neighbours on a circle of
+/// `radius` pixels, response = (1/8) sum max(0, log2 d - log2 d_neighbour), or 100 per
+/// surface neighbour for a background pixel (the outline); colour *= exp(-300 strength
+/// response). Computed in f32 like the GPU.
+pub fn shade_edl(frame: &mut ReferenceFrame, strength: f32, radius: f32) {
+    let (width, height) = (frame.image.width() as i64, frame.image.height() as i64);
+    let depth_at = |x: i64, y: i64| {
+        if (0..width).contains(&x) && (0..height).contains(&y) {
+            frame.depth[(y * width + x) as usize]
+        } else {
+            f32::INFINITY
+        }
+    };
+    let offsets: Vec<(i64, i64)> = (0..8)
+        .map(|i| {
+            let angle = std::f32::consts::TAU * i as f32 / 8.0;
+            (
+                (angle.cos() * radius).round() as i64,
+                (angle.sin() * radius).round() as i64,
+            )
+        })
+        .collect();
+    let mut shaded = frame.image.clone();
+    for (x, y, pixel) in shaded.enumerate_pixels_mut() {
+        let here = depth_at(x as i64, y as i64);
+        let mut sum = 0.0f32;
+        for &(dx, dy) in &offsets {
+            let there = depth_at(x as i64 + dx, y as i64 + dy);
+            if there.is_infinite() {
+                continue;
+            }
+            sum += if here.is_infinite() {
+                100.0
+            } else {
+                (here.log2() - there.log2()).max(0.0)
+            };
+        }
+        let shade = (-300.0 * strength * sum / 8.0).exp();
+        if shade >= 1.0 {
+            continue;
+        }
+        let [r, g, b, a] = pixel.0;
+        let scale = |c: u8| (c as f32 * shade).round() as u8;
+        let alpha = if here.is_infinite() {
+            let a = a as f32 / 255.0;
+            ((1.0 + (a - 1.0) * shade) * 255.0).round() as u8
+        } else {
+            a
+        };
+        pixel.0 = [scale(r), scale(g), scale(b), alpha];
+    }
+    frame.image = shaded;
 }
 
 /// Calls `visit(pixel index, depth, colour)` for every pixel that every visible point covers.

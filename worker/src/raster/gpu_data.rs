@@ -18,7 +18,9 @@ pub struct FrameUniforms {
     pub point_size: u32,
     pub background: u32,
     pub depth_band: f32,
-    pub _pad: u32,
+    pub edl_strength: f32,
+    pub edl_radius: f32,
+    pub _pad: [u32; 3],
 }
 
 /// `GpuPoint` in common.wgsl: position relative to the dataset origin, RGBA8 colour.
@@ -40,6 +42,6 @@ pub struct GpuBatch {
     pub count: u32,
 }
 
-const _: () = assert!(std::mem::size_of::<FrameUniforms>() == 112);
+const _: () = assert!(std::mem::size_of::<FrameUniforms>() == 128);
 const _: () = assert!(std::mem::size_of::<GpuPoint>() == 16);
 const _: () = assert!(std::mem::size_of::<GpuBatch>() == 32);

@@ -9,6 +9,7 @@
 //! cloud's GPU buffers and outlives any number of frames.
 
 mod basic_pass;
+mod edl_pass;
 mod gpu_data;
 mod hq_pass;
 mod points;
@@ -30,6 +31,7 @@ use crate::camera::{Camera, CameraError};
 use crate::cloud::PointCloud;
 use crate::gpu::{read_buffer, GpuContext, GpuError};
 use basic_pass::BasicPass;
+use edl_pass::EdlPass;
 use gpu_data::FrameUniforms;
 use hq_pass::HqAccumulatePass;
 use resolve_pass::ResolvePass;
@@ -59,6 +61,8 @@ pub enum RenderError {
     },
     #[error("depth band {0} is invalid: it must be a finite number from 0 to 1")]
     DepthBand(f32),
+    #[error("Eye-Dome Lighting strength {strength} and radius {radius} are invalid: the strength must be 0 to 100, the radius 0.5 to 16 pixels")]
+    Edl { strength: f32, radius: f32 },
     #[error("point size {0} is invalid: it must be 1 to {MAX_POINT_SIZE} pixels")]
     PointSize(u32),
     #[error(transparent)]
@@ -100,6 +104,26 @@ impl Quality {
     pub const HIGH: Quality = Quality::High { depth_band: 0.01 };
 }
 
+/// Screen-space shading applied after the resolve.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Shading {
+    None,
+    /// Eye-Dome Lighting as in Potree: `strength` scales the darkening, `radius` is the
+    /// distance in pixels of the eight depth samples.
+    Edl {
+        strength: f32,
+        radius: f32,
+    },
+}
+
+impl Shading {
+    /// Potree's defaults.
+    pub const EDL: Shading = Shading::Edl {
+        strength: 1.0,
+        radius: 1.4,
+    };
+}
+
 /// Everything that decides the pixels of one frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FrameSettings {
@@ -112,6 +136,7 @@ pub struct FrameSettings {
     pub background: [u8; 4],
     pub atomics: AtomicsMode,
     pub quality: Quality,
+    pub shading: Shading,
     /// Also read back the linear depth image.
     pub read_depth: bool,
 }
@@ -127,6 +152,7 @@ impl FrameSettings {
             background: [24, 24, 28, 255],
             atomics: AtomicsMode::Auto,
             quality: Quality::Basic,
+            shading: Shading::None,
             read_depth: false,
         }
     }
@@ -162,6 +188,7 @@ pub struct Renderer {
     gpu: Arc<GpuContext>,
     basic: BasicPass,
     hq: HqAccumulatePass,
+    edl: EdlPass,
     resolve: ResolvePass,
     uniforms: wgpu::Buffer,
     timer: Option<GpuTimer>,
@@ -179,6 +206,7 @@ impl Renderer {
         Self {
             basic: BasicPass::new(device, caps.int64_atomics),
             hq: HqAccumulatePass::new(device),
+            edl: EdlPass::new(device),
             resolve: ResolvePass::new(device),
             uniforms: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("frame uniforms"),
@@ -242,6 +270,11 @@ impl Renderer {
         if let Quality::High { depth_band } = settings.quality {
             if !(depth_band.is_finite() && (0.0..=1.0).contains(&depth_band)) {
                 return Err(RenderError::DepthBand(depth_band));
+            }
+        }
+        if let Shading::Edl { strength, radius } = settings.shading {
+            if !((0.0..=100.0).contains(&strength) && (0.5..=16.0).contains(&radius)) {
+                return Err(RenderError::Edl { strength, radius });
             }
         }
         settings.camera.validate()?;
@@ -339,7 +372,7 @@ impl Renderer {
         };
         let uniforms = &self.uniforms;
         type Record<'a> = Box<dyn Fn(&mut wgpu::ComputePass<'_>) + 'a>;
-        let passes: Vec<(Stage, Record<'_>)> = match settings.quality {
+        let mut passes: Vec<(Stage, Record<'_>)> = match settings.quality {
             Quality::Basic => vec![
                 (
                     Stage::Rasterize,
@@ -376,6 +409,12 @@ impl Renderer {
                 ),
             ],
         };
+        if let Shading::Edl { .. } = settings.shading {
+            passes.push((
+                Stage::Shade,
+                Box::new(|pass| self.edl.record(device, pass, uniforms, targets)),
+            ));
+        }
         let begin_frame = |encoder: &mut wgpu::CommandEncoder| {
             if let (Quality::High { .. }, Some(accumulator)) =
                 (settings.quality, targets.accumulator.as_ref())
@@ -452,7 +491,15 @@ fn frame_uniforms(cloud: &GpuPointCloud, settings: &FrameSettings) -> FrameUnifo
         height: settings.height,
         point_size: settings.point_size,
         background: u32::from_le_bytes(settings.background),
-        _pad: 0,
+        edl_strength: match settings.shading {
+            Shading::Edl { strength, .. } => strength,
+            Shading::None => 0.0,
+        },
+        edl_radius: match settings.shading {
+            Shading::Edl { radius, .. } => radius,
+            Shading::None => 0.0,
+        },
+        _pad: [0; 3],
     }
 }
 

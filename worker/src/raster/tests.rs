@@ -476,6 +476,56 @@ fn high_quality_band_is_configurable() {
 }
 
 #[test]
+fn eye_dome_lighting_matches_the_reference_and_outlines_silhouettes() {
+    let mut settings = FrameSettings::new(
+        160,
+        120,
+        camera(Projection::Perspective { fov_y_deg: 50.0 }),
+    );
+    let cloud = pixel_centre_scene(&settings, 2, 12);
+    let mut renderer = Renderer::new(gpu());
+    let resident = renderer.upload(&cloud).expect("upload");
+    let plain = renderer.render(&resident, &settings).expect("plain");
+    for (quality, shading) in [
+        (Quality::Basic, Shading::EDL),
+        (
+            Quality::Basic,
+            Shading::Edl {
+                strength: 0.3,
+                radius: 3.0,
+            },
+        ),
+        (Quality::HIGH, Shading::EDL),
+    ] {
+        settings.quality = quality;
+        settings.shading = shading;
+        let frame = renderer.render(&resident, &settings).expect("render");
+        let expected = reference::render(&cloud, &settings);
+        let difference = max_channel_difference(&frame.image, &expected.image);
+        assert!(
+            difference <= 1,
+            "{shading:?}: a channel differs by {difference}/255"
+        );
+        assert!(frame.timings.get(Stage::Shade).is_some());
+        if quality == Quality::Basic {
+            let darkened = compare_images("edl-vs-plain", &frame.image, &plain.image).differing;
+            assert!(
+                darkened > 160 * 120 / 10,
+                "{shading:?}: only {darkened} pixels shaded"
+            );
+        }
+    }
+    settings.shading = Shading::Edl {
+        strength: f32::NAN,
+        radius: 1.0,
+    };
+    assert!(matches!(
+        renderer.validate(&settings),
+        Err(RenderError::Edl { .. })
+    ));
+}
+
+#[test]
 fn invalid_settings_are_refused_before_any_gpu_work() {
     let renderer = Renderer::new(gpu());
     let good = FrameSettings::new(64, 48, camera(Projection::Perspective { fov_y_deg: 50.0 }));

@@ -14,6 +14,8 @@ pub enum Stage {
     Accumulate,
     /// Framebuffer to RGBA8 and depth images.
     Resolve,
+    /// Screen-space shading of the resolved image (Eye-Dome Lighting).
+    Shade,
     /// GPU-to-host copy of the images.
     Readback,
     /// Image file encoding (PNG).
@@ -27,6 +29,7 @@ impl Stage {
             Stage::Rasterize => "rasterize",
             Stage::Accumulate => "accumulate",
             Stage::Resolve => "resolve",
+            Stage::Shade => "shade",
             Stage::Readback => "readback",
             Stage::Encode => "encode",
         }
