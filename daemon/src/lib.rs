@@ -1,3 +1,15 @@
-//! The pointfarm daemon. It will own datasets, jobs and their state (sled) and hand frame
-//! tasks to workers; it arrives with the render service. Rendering itself lives in
-//! `pointfarm-worker` and never depends on this crate.
+//! The pointfarm daemon: datasets, jobs and their durable state (sled), frame tasks handed to
+//! an embedded worker, and the `pointfarm.v1` gRPC API over all of it.
+//!
+//! Layers: `model` (domain types), `store` (sled), `service` (the domain operations),
+//! `worker` (renders frame tasks with `pointfarm-worker`), `grpc` (converts and delegates;
+//! the only module that knows protobuf), `server` (sockets, health, reflection, shutdown).
+
+pub mod camera_path;
+pub mod error;
+pub mod grpc;
+pub mod model;
+pub mod server;
+pub mod service;
+pub mod store;
+pub mod worker;

@@ -1,0 +1,41 @@
+//! The daemon's errors, by what the caller should do about them. The gRPC layer maps each
+//! kind to one status code.
+
+use thiserror::Error;
+
+use crate::store::StoreError;
+
+#[derive(Debug, Error)]
+pub enum DaemonError {
+    /// A request field is invalid; `field` names it (e.g. `camera_path.turntable.frames`).
+    #[error("{field}: {message}")]
+    InvalidArgument { field: String, message: String },
+    #[error("{0} not found")]
+    NotFound(String),
+    /// The request is valid but the state of things does not allow it.
+    #[error("{0}")]
+    FailedPrecondition(String),
+    /// A size limit was exceeded.
+    #[error("{0}")]
+    ResourceExhausted(String),
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+impl DaemonError {
+    pub fn invalid(field: impl Into<String>, message: impl Into<String>) -> Self {
+        DaemonError::InvalidArgument { field: field.into(), message: message.into() }
+    }
+}
+
+impl From<StoreError> for DaemonError {
+    fn from(e: StoreError) -> Self {
+        DaemonError::Internal(e.to_string())
+    }
+}
+
+impl From<std::io::Error> for DaemonError {
+    fn from(e: std::io::Error) -> Self {
+        DaemonError::Internal(e.to_string())
+    }
+}

@@ -1,0 +1,273 @@
+//! The daemon's domain layer: datasets and jobs, validated and stored, with events for
+//! watchers. The gRPC layer only converts and calls these methods.
+
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Condvar, Mutex};
+
+use sha2::{Digest, Sha256};
+use tokio::sync::broadcast;
+
+use crate::error::DaemonError;
+use crate::model::{now_unix_ms, Dataset, Job, JobEvent, JobSpec, JobState};
+use crate::store::{Page, Store};
+
+/// Limits and locations of a daemon.
+#[derive(Debug, Clone)]
+pub struct DaemonConfig {
+    /// State database, uploaded datasets and rendered frames live here.
+    pub data_dir: PathBuf,
+    /// Server-side files may only be registered from below these folders.
+    pub data_roots: Vec<PathBuf>,
+    /// Largest image side accepted, in pixels.
+    pub max_image_side: u32,
+    /// Most frames in one job.
+    pub max_frames: u32,
+    /// Largest upload, in bytes.
+    pub max_upload_bytes: u64,
+    /// Attempts per frame before its job fails.
+    pub max_frame_attempts: u32,
+}
+
+impl DaemonConfig {
+    pub fn new(data_dir: PathBuf) -> Self {
+        Self {
+            data_roots: Vec::new(),
+            max_image_side: 8192,
+            max_frames: 100_000,
+            max_upload_bytes: 16 << 30,
+            max_frame_attempts: 3,
+            data_dir,
+        }
+    }
+
+    pub fn frames_dir(&self, job_id: &str) -> PathBuf {
+        self.data_dir.join("jobs").join(job_id)
+    }
+
+    pub fn frame_path(&self, job_id: &str, index: u32) -> PathBuf {
+        self.frames_dir(job_id).join(format!("frame_{index:05}.png"))
+    }
+
+    fn uploads_dir(&self) -> PathBuf {
+        self.data_dir.join("datasets")
+    }
+}
+
+/// Wakes the workers when there may be new work.
+#[derive(Default)]
+pub struct WorkSignal {
+    pending: Mutex<bool>,
+    condvar: Condvar,
+}
+
+impl WorkSignal {
+    pub fn notify(&self) {
+        if let Ok(mut pending) = self.pending.lock() {
+            *pending = true;
+            self.condvar.notify_all();
+        }
+    }
+
+    /// Waits until notified or `timeout` passes.
+    pub fn wait(&self, timeout: std::time::Duration) {
+        if let Ok(mut pending) = self.pending.lock() {
+            if !*pending {
+                if let Ok((guard, _)) = self.condvar.wait_timeout(pending, timeout) {
+                    pending = guard;
+                } else {
+                    return;
+                }
+            }
+            *pending = false;
+        }
+    }
+}
+
+/// The state and behaviour of one daemon, shared by the gRPC handlers and the workers.
+pub struct Daemon {
+    pub config: DaemonConfig,
+    pub store: Store,
+    events: broadcast::Sender<JobEvent>,
+    pub work: WorkSignal,
+}
+
+impl Daemon {
+    /// Opens (or creates) the state in `config.data_dir`; jobs that were running when the
+    /// daemon stopped go back to the queue.
+    pub fn open(config: DaemonConfig) -> Result<Arc<Self>, DaemonError> {
+        std::fs::create_dir_all(config.uploads_dir())?;
+        std::fs::create_dir_all(config.data_dir.join("jobs"))?;
+        let store = Store::open(&config.data_dir.join("state.sled"))?;
+        let requeued = store.requeue_running()?;
+        if requeued > 0 {
+            tracing::info!(requeued, "resuming jobs that were running");
+        }
+        let (events, _) = broadcast::channel(1024);
+        Ok(Arc::new(Self { config, store, events, work: WorkSignal::default() }))
+    }
+
+    pub fn subscribe(&self) -> broadcast::Receiver<JobEvent> {
+        self.events.subscribe()
+    }
+
+    pub fn publish(&self, job: &Job, frame: Option<(u32, Vec<crate::model::StageTiming>)>) {
+        // No watcher is not an error.
+        let _ = self.events.send(JobEvent { job: job.clone(), frame });
+    }
+
+    // ------------------------------------------------------------------ datasets
+
+    /// Registers a file already on the server, under a configured data root.
+    pub fn register_dataset(&self, path: &str, name: &str) -> Result<Dataset, DaemonError> {
+        if path.is_empty() {
+            return Err(DaemonError::invalid("path", "is empty"));
+        }
+        let Some(first_root) = self.config.data_roots.first() else {
+            return Err(DaemonError::FailedPrecondition(
+                "this server has no data roots configured; upload the file instead".into(),
+            ));
+        };
+        let requested = Path::new(path);
+        let requested = if requested.is_absolute() { requested.to_path_buf() } else { first_root.join(requested) };
+        let resolved = requested
+            .canonicalize()
+            .map_err(|_| DaemonError::NotFound(format!("file {path}")))?;
+        let allowed = self
+            .config
+            .data_roots
+            .iter()
+            .filter_map(|root| root.canonicalize().ok())
+            .any(|root| resolved.starts_with(root));
+        if !allowed {
+            return Err(DaemonError::invalid("path", format!("{path} is outside the server's data roots")));
+        }
+        if !resolved.is_file() {
+            return Err(DaemonError::invalid("path", format!("{path} is not a file")));
+        }
+        let (sha256, size_bytes) = hash_file(&resolved)?;
+        let name = if name.is_empty() { file_name(&resolved) } else { name.to_string() };
+        self.add_dataset(resolved, name, sha256, size_bytes)
+    }
+
+    /// Where an upload is written while it arrives.
+    pub fn upload_path(&self) -> PathBuf {
+        self.config.uploads_dir().join(format!("upload-{}.part", self.store_id()))
+    }
+
+    fn store_id(&self) -> u64 {
+        // Unique per process and time; only names temporary files.
+        static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        now_unix_ms() as u64 * 1000 + COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed) % 1000
+    }
+
+    /// Takes a completely received upload at `temp` into the store.
+    pub fn finish_upload(&self, temp: &Path, name: &str, sha256: String, size_bytes: u64) -> Result<Dataset, DaemonError> {
+        let extension = Path::new(name)
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase)
+            .filter(|e| e == "las" || e == "laz")
+            .ok_or_else(|| DaemonError::invalid("header.name", "must end in .las or .laz"))?;
+        let id = dataset_id(&sha256);
+        let path = self.config.uploads_dir().join(format!("{id}.{extension}"));
+        std::fs::rename(temp, &path)?;
+        self.add_dataset(path, name.to_string(), sha256, size_bytes)
+    }
+
+    fn add_dataset(&self, path: PathBuf, name: String, sha256: String, size_bytes: u64) -> Result<Dataset, DaemonError> {
+        let id = dataset_id(&sha256);
+        if let Some(existing) = self.store.dataset(&id)? {
+            return Ok(existing);
+        }
+        let dataset = Dataset { id, name, size_bytes, sha256, path, created_unix_ms: now_unix_ms() };
+        self.store.put_dataset(&dataset)?;
+        tracing::info!(dataset = %dataset.id, path = %dataset.path.display(), "dataset added");
+        Ok(dataset)
+    }
+
+    pub fn dataset(&self, id: &str) -> Result<Dataset, DaemonError> {
+        self.store.dataset(id)?.ok_or_else(|| DaemonError::NotFound(format!("dataset {id}")))
+    }
+
+    pub fn list_datasets(&self, page_size: u32, token: &str) -> Result<Page<Dataset>, DaemonError> {
+        Ok(self.store.list_datasets(page_size as usize, token)?)
+    }
+
+    /// Deletes a dataset (and the file, if it was uploaded). Refused while unfinished jobs use it.
+    pub fn delete_dataset(&self, id: &str) -> Result<(), DaemonError> {
+        let dataset = self.dataset(id)?;
+        let in_use = self.store.list_jobs(None, 1000, "")?.items.into_iter().any(|j| j.spec.dataset_id == id && !j.state.is_terminal());
+        if in_use {
+            return Err(DaemonError::FailedPrecondition(format!("dataset {id} is used by unfinished jobs")));
+        }
+        self.store.delete_dataset(id)?;
+        if dataset.path.starts_with(self.config.uploads_dir()) {
+            let _ = std::fs::remove_file(&dataset.path);
+        }
+        Ok(())
+    }
+
+    // ------------------------------------------------------------------ jobs
+
+    /// Validates limits that depend on this server, stores the job and wakes a worker.
+    pub fn submit_job(&self, spec: JobSpec) -> Result<Job, DaemonError> {
+        let side = self.config.max_image_side;
+        if spec.width > side || spec.height > side {
+            return Err(DaemonError::invalid(
+                if spec.width > side { "width" } else { "height" },
+                format!("{}x{} exceeds this server's maximum of {side} pixels per side", spec.width, spec.height),
+            ));
+        }
+        if spec.camera_path.frames() > self.config.max_frames {
+            return Err(DaemonError::invalid("camera_path", format!("more than {} frames", self.config.max_frames)));
+        }
+        self.dataset(&spec.dataset_id)?;
+        let (job, created) = self.store.submit_job(spec)?;
+        if created {
+            tracing::info!(job = %job.id, frames = job.frames_total, "job submitted");
+            self.publish(&job, None);
+            self.work.notify();
+        }
+        Ok(job)
+    }
+
+    pub fn job(&self, id: &str) -> Result<Job, DaemonError> {
+        self.store.job(id)?.ok_or_else(|| DaemonError::NotFound(format!("job {id}")))
+    }
+
+    pub fn list_jobs(&self, state: Option<JobState>, page_size: u32, token: &str) -> Result<Page<Job>, DaemonError> {
+        Ok(self.store.list_jobs(state, page_size as usize, token)?)
+    }
+
+    pub fn cancel_job(&self, id: &str) -> Result<Job, DaemonError> {
+        let job = self.job(id)?;
+        if job.state.is_terminal() {
+            return Err(DaemonError::FailedPrecondition(format!("job {id} has already ended ({:?})", job.state)));
+        }
+        let job = self.store.update_job(id, |j| j.state = JobState::Cancelled)?.ok_or_else(|| DaemonError::NotFound(format!("job {id}")))?;
+        self.store.flush()?;
+        tracing::info!(job = %id, "job cancelled");
+        self.publish(&job, None);
+        Ok(job)
+    }
+}
+
+/// Dataset ids are derived from the content, so the same file always has the same id.
+pub fn dataset_id(sha256: &str) -> String {
+    format!("ds-{}", &sha256[..sha256.len().min(16)])
+}
+
+fn file_name(path: &Path) -> String {
+    path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default()
+}
+
+fn hash_file(path: &Path) -> Result<(String, u64), DaemonError> {
+    let mut file = std::fs::File::open(path)?;
+    let mut hasher = Sha256::new();
+    let size = std::io::copy(&mut file, &mut hasher)?;
+    Ok((hex(&hasher.finalize()), size))
+}
+
+pub fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
