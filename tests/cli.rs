@@ -91,10 +91,10 @@ fn renders_a_turntable_into_a_directory() {
     ]);
     assert_ok(&output);
     for i in 0..3 {
-        assert_rendered(&frames.join(format!("frame_{i:04}.png")), 160, 120);
+        assert_rendered(&frames.join(format!("frame_{i:05}.png")), 160, 120);
     }
-    let first = std::fs::read(frames.join("frame_0000.png")).expect("frame 0");
-    let second = std::fs::read(frames.join("frame_0001.png")).expect("frame 1");
+    let first = std::fs::read(frames.join("frame_00000.png")).expect("frame 0");
+    let second = std::fs::read(frames.join("frame_00001.png")).expect("frame 1");
     assert_ne!(
         first, second,
         "the camera must move between turntable frames"

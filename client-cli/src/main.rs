@@ -1,8 +1,12 @@
 //! `pointfarm`: render point clouds from a terminal or a script.
 
+mod admin;
 mod parse;
+mod remote;
+mod remote_render;
 mod render;
 mod sample;
+mod serve;
 
 use std::process::ExitCode;
 
@@ -29,6 +33,29 @@ enum Command {
     Render(Box<render::RenderArgs>),
     /// Write a generated sample scene (survey-like coordinates, RGB) as LAS or LAZ.
     Sample(sample::SampleArgs),
+    /// Run the render service: the daemon with an embedded worker.
+    Serve(Box<serve::ServeArgs>),
+    /// Datasets on a server.
+    Dataset {
+        #[command(flatten)]
+        server: admin::ServerArgs,
+        #[command(subcommand)]
+        command: admin::DatasetCommand,
+    },
+    /// Jobs on a server.
+    Jobs {
+        #[command(flatten)]
+        server: admin::ServerArgs,
+        #[command(subcommand)]
+        command: admin::JobsCommand,
+    },
+    /// Frames of a job on a server.
+    Frames {
+        #[command(flatten)]
+        server: admin::ServerArgs,
+        #[command(subcommand)]
+        command: admin::FramesCommand,
+    },
 }
 
 fn main() -> ExitCode {
@@ -48,6 +75,10 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Render(args) => render::run(*args),
         Command::Sample(args) => sample::run(args),
+        Command::Serve(args) => serve::run(*args),
+        Command::Dataset { server, command } => admin::dataset(&server, command),
+        Command::Jobs { server, command } => admin::jobs(&server, command),
+        Command::Frames { server, command } => admin::frames(&server, command),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

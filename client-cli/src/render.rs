@@ -22,83 +22,92 @@ use crate::parse;
 #[derive(Args)]
 pub struct RenderArgs {
     /// LAS or LAZ file to render.
-    input: PathBuf,
-    /// Output PNG file; with --turntable, a directory for frame_0000.png, frame_0001.png, ...
+    pub(crate) input: PathBuf,
+    /// Render on this pointfarm server instead of here (uploading the file if needed).
+    #[arg(long, env = "POINTFARM_SERVER")]
+    pub(crate) server: Option<String>,
+    /// Bearer token for the server.
+    #[arg(long, env = "POINTFARM_TOKEN", hide_env_values = true)]
+    pub(crate) token: Option<String>,
+    /// Server jobs: higher runs first.
+    #[arg(long, default_value_t = 0)]
+    pub(crate) priority: i32,
+    /// Output PNG file; with --turntable, a directory for frame_00000.png, frame_00001.png, ...
     #[arg(short, long)]
-    out: PathBuf,
+    pub(crate) out: PathBuf,
     /// Image size in pixels.
     #[arg(long, default_value = "1280x720", value_parser = parse::size)]
-    size: (u32, u32),
+    pub(crate) size: (u32, u32),
     /// Render N frames orbiting the cloud (around the vertical axis through the target).
     #[arg(long, value_name = "N")]
-    turntable: Option<usize>,
+    pub(crate) turntable: Option<usize>,
     /// Camera position in the file's coordinates (default: an oblique view of the whole cloud).
     #[arg(long, value_parser = parse::vec3, value_name = "X,Y,Z")]
-    camera_pos: Option<DVec3>,
+    pub(crate) camera_pos: Option<DVec3>,
     /// Point the camera looks at, in the file's coordinates (default: the cloud's centre).
     #[arg(long, value_parser = parse::vec3, value_name = "X,Y,Z")]
-    camera_target: Option<DVec3>,
+    pub(crate) camera_target: Option<DVec3>,
     /// Camera up direction.
     #[arg(long, value_parser = parse::vec3, value_name = "X,Y,Z", default_value = "0,0,1")]
-    camera_up: DVec3,
+    pub(crate) camera_up: DVec3,
     /// Vertical field of view in degrees (perspective).
     #[arg(long, default_value_t = DEFAULT_FOV_Y_DEG, value_parser = parse::positive)]
-    fov: f64,
+    pub(crate) fov: f64,
     /// Orthographic projection; the view height fits the cloud unless --ortho-height is given.
     #[arg(long)]
-    ortho: bool,
+    pub(crate) ortho: bool,
     /// Height of the orthographic view in the file's units.
     #[arg(long, value_parser = parse::positive, requires = "ortho")]
-    ortho_height: Option<f64>,
+    pub(crate) ortho_height: Option<f64>,
     /// Near clipping distance (default: fitted to the cloud).
     #[arg(long, value_parser = parse::positive)]
-    near: Option<f64>,
+    pub(crate) near: Option<f64>,
     /// Far clipping distance (default: fitted to the cloud).
     #[arg(long, value_parser = parse::positive)]
-    far: Option<f64>,
+    pub(crate) far: Option<f64>,
     /// Side of the square drawn for each point, in pixels.
     #[arg(long, default_value_t = 1)]
-    point_size: u32,
+    pub(crate) point_size: u32,
     /// Background colour: #rrggbb, #rrggbbaa or transparent.
     #[arg(long, default_value = "#18181c", value_parser = parse::colour)]
-    background: [u8; 4],
+    pub(crate) background: [u8; 4],
     /// Colour points by: rgb (the file's colours, or intensity without them), intensity,
     /// elevation, classification, return, or one colour like #ff8000.
     #[arg(long = "color", visible_alias = "colour", default_value = "rgb", value_parser = parse::colour_mode)]
-    color: ColorMode,
+    pub(crate) color: ColorMode,
     /// basic: the nearest point's colour; high: the average colour of the points near the
     /// front surface (less aliasing, smoother turntables; about two passes more).
     #[arg(long, value_enum, default_value = "basic")]
-    quality: QualityArg,
+    pub(crate) quality: QualityArg,
     /// High quality: points up to this fraction behind the nearest depth are averaged.
     #[arg(long, default_value_t = 0.01)]
-    depth_band: f32,
+    pub(crate) depth_band: f32,
     /// Screen-space shading: edl (Eye-Dome Lighting, shapes read without colour or normals)
     /// or none.
     #[arg(long, value_enum, default_value = "none")]
-    shading: ShadingArg,
+    pub(crate) shading: ShadingArg,
     /// Eye-Dome Lighting: how strongly depth steps darken.
     #[arg(long, default_value_t = 1.0)]
-    edl_strength: f32,
+    pub(crate) edl_strength: f32,
     /// Eye-Dome Lighting: distance of the depth samples in pixels.
     #[arg(long, default_value_t = 1.4)]
-    edl_radius: f32,
+    pub(crate) edl_radius: f32,
     /// Adapter: auto (hardware GPU if present, else lavapipe), hardware or software.
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
-    adapter: AdapterChoice,
+    pub(crate) adapter: AdapterChoice,
     /// Atomics of the point pass: auto (64-bit where available) or 32 (the fallback path).
     #[arg(long, value_enum, default_value = "auto")]
     atomics: AtomicsArg,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
-enum ShadingArg {
+pub(crate) enum ShadingArg {
     None,
     Edl,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
-enum QualityArg {
+pub(crate) enum QualityArg {
     Basic,
     High,
 }
@@ -114,6 +123,9 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let (width, height) = args.size;
     if args.turntable == Some(0) {
         bail!("--turntable needs at least one frame");
+    }
+    if let Some(server) = args.server.clone() {
+        return crate::remote_render::run(&server, &args);
     }
 
     let started = Instant::now();
@@ -184,7 +196,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
             for i in 0..frames {
                 let camera = base.camera.orbit(360.0 * i as f64 / frames as f64);
                 let mut frame = renderer.render(&resident, &FrameSettings { camera, ..base })?;
-                let path = args.out.join(format!("frame_{i:04}.png"));
+                let path = args.out.join(format!("frame_{i:05}.png"));
                 frame
                     .save_png(&path)
                     .with_context(|| format!("writing {}", path.display()))?;

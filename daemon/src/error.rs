@@ -24,7 +24,10 @@ pub enum DaemonError {
 
 impl DaemonError {
     pub fn invalid(field: impl Into<String>, message: impl Into<String>) -> Self {
-        DaemonError::InvalidArgument { field: field.into(), message: message.into() }
+        DaemonError::InvalidArgument {
+            field: field.into(),
+            message: message.into(),
+        }
     }
 }
 

@@ -15,8 +15,8 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::error::DaemonError;
 use crate::model::{
-    CameraPath, ColorMode, Dataset, FrameState, Interpolation, Job, JobSpec, JobState, Keyframe, Point3,
-    Quality, RenderOptions, Shading, StageTiming, Turntable,
+    CameraPath, ColorMode, Dataset, FrameState, Interpolation, Job, JobSpec, JobState, Keyframe,
+    Point3, Quality, RenderOptions, Shading, StageTiming, Turntable,
 };
 use crate::service::{hex, Daemon};
 
@@ -62,10 +62,19 @@ fn point(field: &str, v: Option<&pb::Vec3>) -> Result<Point3, DaemonError> {
     if !(v.x.is_finite() && v.y.is_finite() && v.z.is_finite()) {
         return Err(invalid(field, "must be finite (no NaN or infinity)"));
     }
-    Ok(Point3 { x: v.x, y: v.y, z: v.z })
+    Ok(Point3 {
+        x: v.x,
+        y: v.y,
+        z: v.z,
+    })
 }
 
-fn finite_in(field: &str, value: f64, range: std::ops::RangeInclusive<f64>, what: &str) -> Result<f64, DaemonError> {
+fn finite_in(
+    field: &str,
+    value: f64,
+    range: std::ops::RangeInclusive<f64>,
+    what: &str,
+) -> Result<f64, DaemonError> {
     if value.is_finite() && range.contains(&value) {
         Ok(value)
     } else {
@@ -77,38 +86,69 @@ fn fov(field: &str, value: f64) -> Result<f64, DaemonError> {
     if value.is_finite() && value > 0.0 && value < 180.0 {
         Ok(value)
     } else {
-        Err(invalid(field, format!("must lie in (0, 180) degrees, got {value}")))
+        Err(invalid(
+            field,
+            format!("must lie in (0, 180) degrees, got {value}"),
+        ))
     }
 }
 
 fn camera_path(path: Option<&pb::CameraPath>) -> Result<CameraPath, DaemonError> {
-    let path = path.and_then(|p| p.path.as_ref()).ok_or_else(|| invalid("camera_path", "is required (turntable or keyframes)"))?;
+    let path = path
+        .and_then(|p| p.path.as_ref())
+        .ok_or_else(|| invalid("camera_path", "is required (turntable or keyframes)"))?;
     match path {
         pb::camera_path::Path::Turntable(t) => {
             let f = |name: &str| format!("camera_path.turntable.{name}");
             if t.frames == 0 {
                 return Err(invalid(&f("frames"), "must be at least 1"));
             }
-            let center = t.center.as_ref().map(|c| point(&f("center"), Some(c))).transpose()?;
+            let center = t
+                .center
+                .as_ref()
+                .map(|c| point(&f("center"), Some(c)))
+                .transpose()?;
             let radius = t
                 .radius
-                .map(|r| if r.is_finite() && r > 0.0 { Ok(r) } else { Err(invalid(&f("radius"), format!("must be positive, got {r}"))) })
+                .map(|r| {
+                    if r.is_finite() && r > 0.0 {
+                        Ok(r)
+                    } else {
+                        Err(invalid(&f("radius"), format!("must be positive, got {r}")))
+                    }
+                })
                 .transpose()?;
             Ok(CameraPath::Turntable(Turntable {
                 frames: t.frames,
                 center,
                 radius,
-                elevation_deg: finite_in(&f("elevation_deg"), t.elevation_deg.unwrap_or(30.0), -89.0..=89.0, "between -89 and 89 degrees")?,
-                degrees: finite_in(&f("degrees"), t.degrees.unwrap_or(360.0), -36000.0..=36000.0, "a finite angle")?,
+                elevation_deg: finite_in(
+                    &f("elevation_deg"),
+                    t.elevation_deg.unwrap_or(30.0),
+                    -89.0..=89.0,
+                    "between -89 and 89 degrees",
+                )?,
+                degrees: finite_in(
+                    &f("degrees"),
+                    t.degrees.unwrap_or(360.0),
+                    -36000.0..=36000.0,
+                    "a finite angle",
+                )?,
                 fov_y_deg: fov(&f("fov_y_deg"), t.fov_y_deg.unwrap_or(50.0))?,
             }))
         }
         pb::camera_path::Path::Keyframes(k) => {
             if k.frames == 0 {
-                return Err(invalid("camera_path.keyframes.frames", "must be at least 1"));
+                return Err(invalid(
+                    "camera_path.keyframes.frames",
+                    "must be at least 1",
+                ));
             }
             if k.keyframes.len() < 2 {
-                return Err(invalid("camera_path.keyframes.keyframes", "needs at least 2 keyframes"));
+                return Err(invalid(
+                    "camera_path.keyframes.keyframes",
+                    "needs at least 2 keyframes",
+                ));
             }
             let keyframes = k
                 .keyframes
@@ -123,17 +163,37 @@ fn camera_path(path: Option<&pb::CameraPath>) -> Result<CameraPath, DaemonError>
                     }
                     let up = match key.up.as_ref() {
                         Some(up) => point(&f("up"), Some(up))?,
-                        None => Point3 { x: 0.0, y: 0.0, z: 1.0 },
+                        None => Point3 {
+                            x: 0.0,
+                            y: 0.0,
+                            z: 1.0,
+                        },
                     };
-                    Ok(Keyframe { position, target, up, fov_y_deg: fov(&f("fov_y_deg"), key.fov_y_deg)? })
+                    Ok(Keyframe {
+                        position,
+                        target,
+                        up,
+                        fov_y_deg: fov(&f("fov_y_deg"), key.fov_y_deg)?,
+                    })
                 })
                 .collect::<Result<Vec<_>, _>>()?;
             let interpolation = match pb::Interpolation::try_from(k.interpolation) {
                 Ok(pb::Interpolation::Spline) => Interpolation::Spline,
-                Ok(pb::Interpolation::Linear | pb::Interpolation::Unspecified) => Interpolation::Linear,
-                Err(_) => return Err(invalid("camera_path.keyframes.interpolation", format!("unknown value {}", k.interpolation))),
+                Ok(pb::Interpolation::Linear | pb::Interpolation::Unspecified) => {
+                    Interpolation::Linear
+                }
+                Err(_) => {
+                    return Err(invalid(
+                        "camera_path.keyframes.interpolation",
+                        format!("unknown value {}", k.interpolation),
+                    ))
+                }
             };
-            Ok(CameraPath::Keyframes { keyframes, frames: k.frames, interpolation })
+            Ok(CameraPath::Keyframes {
+                keyframes,
+                frames: k.frames,
+                interpolation,
+            })
         }
     }
 }
@@ -147,33 +207,55 @@ fn render_options(options: Option<&pb::RenderOptions>) -> Result<RenderOptions, 
     let o = options.unwrap_or(&default);
     let point_size = if o.point_size == 0 { 1 } else { o.point_size };
     if point_size > MAX_POINT_SIZE {
-        return Err(invalid("render.point_size", format!("must be 1 to {MAX_POINT_SIZE}")));
+        return Err(invalid(
+            "render.point_size",
+            format!("must be 1 to {MAX_POINT_SIZE}"),
+        ));
     }
     let quality = match pb::Quality::try_from(o.quality) {
         Ok(pb::Quality::High) => {
             let band = o.depth_band.unwrap_or(0.01);
             if !(band.is_finite() && (0.0..=1.0).contains(&band)) {
-                return Err(invalid("render.depth_band", format!("must be 0 to 1, got {band}")));
+                return Err(invalid(
+                    "render.depth_band",
+                    format!("must be 0 to 1, got {band}"),
+                ));
             }
             Quality::High { depth_band: band }
         }
         Ok(_) => Quality::Basic,
-        Err(_) => return Err(invalid("render.quality", format!("unknown value {}", o.quality))),
+        Err(_) => {
+            return Err(invalid(
+                "render.quality",
+                format!("unknown value {}", o.quality),
+            ))
+        }
     };
     let shading = match pb::Shading::try_from(o.shading) {
         Ok(pb::Shading::Edl) => {
             let strength = o.edl_strength.unwrap_or(1.0);
             let radius = o.edl_radius.unwrap_or(1.4);
             if !(strength.is_finite() && (0.0..=100.0).contains(&strength)) {
-                return Err(invalid("render.edl_strength", format!("must be 0 to 100, got {strength}")));
+                return Err(invalid(
+                    "render.edl_strength",
+                    format!("must be 0 to 100, got {strength}"),
+                ));
             }
             if !(radius.is_finite() && (0.5..=16.0).contains(&radius)) {
-                return Err(invalid("render.edl_radius", format!("must be 0.5 to 16 pixels, got {radius}")));
+                return Err(invalid(
+                    "render.edl_radius",
+                    format!("must be 0.5 to 16 pixels, got {radius}"),
+                ));
             }
             Shading::Edl { strength, radius }
         }
         Ok(_) => Shading::None,
-        Err(_) => return Err(invalid("render.shading", format!("unknown value {}", o.shading))),
+        Err(_) => {
+            return Err(invalid(
+                "render.shading",
+                format!("unknown value {}", o.shading),
+            ))
+        }
     };
     let color_mode = match pb::ColorMode::try_from(o.color_mode) {
         Ok(pb::ColorMode::Unspecified | pb::ColorMode::Rgb) => ColorMode::Rgb,
@@ -182,13 +264,26 @@ fn render_options(options: Option<&pb::RenderOptions>) -> Result<RenderOptions, 
         Ok(pb::ColorMode::Classification) => ColorMode::Classification,
         Ok(pb::ColorMode::ReturnNumber) => ColorMode::ReturnNumber,
         Ok(pb::ColorMode::Fixed) => {
-            let [r, g, b, _] = o.fixed_color.as_ref().map(rgba).ok_or_else(|| invalid("render.fixed_color", "is required with COLOR_MODE_FIXED"))?;
+            let [r, g, b, _] = o.fixed_color.as_ref().map(rgba).ok_or_else(|| {
+                invalid("render.fixed_color", "is required with COLOR_MODE_FIXED")
+            })?;
             ColorMode::Fixed([r, g, b])
         }
-        Err(_) => return Err(invalid("render.color_mode", format!("unknown value {}", o.color_mode))),
+        Err(_) => {
+            return Err(invalid(
+                "render.color_mode",
+                format!("unknown value {}", o.color_mode),
+            ))
+        }
     };
     let background = o.background.as_ref().map(rgba).unwrap_or([24, 24, 28, 255]);
-    Ok(RenderOptions { point_size, quality, shading, color_mode, background })
+    Ok(RenderOptions {
+        point_size,
+        quality,
+        shading,
+        color_mode,
+        background,
+    })
 }
 
 /// Validates a submission; limits that depend on the server are checked by the daemon.
@@ -248,6 +343,7 @@ fn job_message(job: &Job, original: Option<pb::SubmitJobRequest>) -> pb::Job {
         created_unix_ms: job.created_unix_ms,
         updated_unix_ms: job.updated_unix_ms,
         spec: original,
+        frames: Vec::new(),
     }
 }
 
@@ -263,34 +359,60 @@ fn dataset_message(d: &Dataset) -> pb::Dataset {
 }
 
 fn timings_message(timings: &[StageTiming]) -> Vec<pb::StageTiming> {
-    timings.iter().map(|t| pb::StageTiming { stage: t.stage.clone(), ms: t.ms, gpu_clock: t.gpu_clock }).collect()
+    timings
+        .iter()
+        .map(|t| pb::StageTiming {
+            stage: t.stage.clone(),
+            ms: t.ms,
+            gpu_clock: t.gpu_clock,
+        })
+        .collect()
 }
 
 /// Runs blocking store work off the async executor.
-async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, DaemonError> + Send + 'static) -> Result<T, Status> {
-    tokio::task::spawn_blocking(f).await.map_err(|e| Status::internal(e.to_string()))?.map_err(Status::from)
+async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> Result<T, DaemonError> + Send + 'static,
+) -> Result<T, Status> {
+    tokio::task::spawn_blocking(f)
+        .await
+        .map_err(|e| Status::internal(e.to_string()))?
+        .map_err(Status::from)
 }
 
 // ---------------------------------------------------------------------------- datasets
 
 #[tonic::async_trait]
 impl DatasetService for Api {
-    async fn register_dataset(&self, request: Request<pb::RegisterDatasetRequest>) -> Result<Response<pb::Dataset>, Status> {
+    async fn register_dataset(
+        &self,
+        request: Request<pb::RegisterDatasetRequest>,
+    ) -> Result<Response<pb::Dataset>, Status> {
         let r = request.into_inner();
         let daemon = self.daemon.clone();
         let dataset = blocking(move || daemon.register_dataset(&r.path, &r.name)).await?;
         Ok(Response::new(dataset_message(&dataset)))
     }
 
-    async fn upload_dataset(&self, request: Request<Streaming<pb::UploadDatasetRequest>>) -> Result<Response<pb::Dataset>, Status> {
+    async fn upload_dataset(
+        &self,
+        request: Request<Streaming<pb::UploadDatasetRequest>>,
+    ) -> Result<Response<pb::Dataset>, Status> {
         let mut stream = request.into_inner();
         let header = match stream.message().await? {
-            Some(pb::UploadDatasetRequest { part: Some(pb::upload_dataset_request::Part::Header(h)) }) => h,
-            _ => return Err(invalid("header", "the first message must be the upload header").into()),
+            Some(pb::UploadDatasetRequest {
+                part: Some(pb::upload_dataset_request::Part::Header(h)),
+            }) => h,
+            _ => {
+                return Err(invalid("header", "the first message must be the upload header").into())
+            }
         };
         let limit = self.daemon.config.max_upload_bytes;
         if header.size_bytes > limit {
-            return Err(DaemonError::ResourceExhausted(format!("upload of {} bytes exceeds the limit of {limit} bytes", header.size_bytes)).into());
+            return Err(DaemonError::ResourceExhausted(format!(
+                "upload of {} bytes exceeds the limit of {limit} bytes",
+                header.size_bytes
+            ))
+            .into());
         }
         if header.sha256.len() != 64 || !header.sha256.bytes().all(|b| b.is_ascii_hexdigit()) {
             return Err(invalid("header.sha256", "must be 64 hex digits").into());
@@ -298,7 +420,9 @@ impl DatasetService for Api {
         // Already known content: no need to keep the bytes.
         let known_id = crate::service::dataset_id(&header.sha256.to_ascii_lowercase());
         let temp = self.daemon.upload_path();
-        let mut file = tokio::fs::File::create(&temp).await.map_err(|e| Status::internal(e.to_string()))?;
+        let mut file = tokio::fs::File::create(&temp)
+            .await
+            .map_err(|e| Status::internal(e.to_string()))?;
         let mut hasher = Sha256::new();
         let mut received: u64 = 0;
         let result: Result<(), Status> = async {
@@ -308,18 +432,34 @@ impl DatasetService for Api {
                 };
                 received += data.len() as u64;
                 if received > limit.min(header.size_bytes) {
-                    return Err(DaemonError::ResourceExhausted(format!("upload exceeds its declared size of {} bytes", header.size_bytes)).into());
+                    return Err(DaemonError::ResourceExhausted(format!(
+                        "upload exceeds its declared size of {} bytes",
+                        header.size_bytes
+                    ))
+                    .into());
                 }
                 hasher.update(&data);
-                file.write_all(&data).await.map_err(|e| Status::internal(e.to_string()))?;
+                file.write_all(&data)
+                    .await
+                    .map_err(|e| Status::internal(e.to_string()))?;
             }
-            file.flush().await.map_err(|e| Status::internal(e.to_string()))?;
+            file.flush()
+                .await
+                .map_err(|e| Status::internal(e.to_string()))?;
             let sha = hex(&hasher.finalize());
             if received != header.size_bytes {
-                return Err(invalid("header.size_bytes", format!("declared {} bytes, received {received}", header.size_bytes)).into());
+                return Err(invalid(
+                    "header.size_bytes",
+                    format!("declared {} bytes, received {received}", header.size_bytes),
+                )
+                .into());
             }
             if sha != header.sha256.to_ascii_lowercase() {
-                return Err(invalid("header.sha256", format!("does not match the data (got {sha})")).into());
+                return Err(invalid(
+                    "header.sha256",
+                    format!("does not match the data (got {sha})"),
+                )
+                .into());
             }
             Ok(())
         }
@@ -334,15 +474,24 @@ impl DatasetService for Api {
             return Ok(Response::new(dataset_message(&existing)));
         }
         let sha = header.sha256.to_ascii_lowercase();
-        let dataset = blocking(move || daemon.finish_upload(&temp, &header.name, sha, received)).await?;
+        let dataset =
+            blocking(move || daemon.finish_upload(&temp, &header.name, sha, received)).await?;
         Ok(Response::new(dataset_message(&dataset)))
     }
 
-    async fn get_dataset(&self, request: Request<pb::GetDatasetRequest>) -> Result<Response<pb::Dataset>, Status> {
-        Ok(Response::new(dataset_message(&self.daemon.dataset(&request.into_inner().id)?)))
+    async fn get_dataset(
+        &self,
+        request: Request<pb::GetDatasetRequest>,
+    ) -> Result<Response<pb::Dataset>, Status> {
+        Ok(Response::new(dataset_message(
+            &self.daemon.dataset(&request.into_inner().id)?,
+        )))
     }
 
-    async fn list_datasets(&self, request: Request<pb::ListDatasetsRequest>) -> Result<Response<pb::ListDatasetsResponse>, Status> {
+    async fn list_datasets(
+        &self,
+        request: Request<pb::ListDatasetsRequest>,
+    ) -> Result<Response<pb::ListDatasetsResponse>, Status> {
         let r = request.into_inner();
         let page = self.daemon.list_datasets(r.page_size, &r.page_token)?;
         Ok(Response::new(pb::ListDatasetsResponse {
@@ -351,7 +500,10 @@ impl DatasetService for Api {
         }))
     }
 
-    async fn delete_dataset(&self, request: Request<pb::DeleteDatasetRequest>) -> Result<Response<pb::DeleteDatasetResponse>, Status> {
+    async fn delete_dataset(
+        &self,
+        request: Request<pb::DeleteDatasetRequest>,
+    ) -> Result<Response<pb::DeleteDatasetResponse>, Status> {
         self.daemon.delete_dataset(&request.into_inner().id)?;
         Ok(Response::new(pb::DeleteDatasetResponse {}))
     }
@@ -361,7 +513,10 @@ impl DatasetService for Api {
 
 #[tonic::async_trait]
 impl JobService for Api {
-    async fn submit_job(&self, request: Request<pb::SubmitJobRequest>) -> Result<Response<pb::Job>, Status> {
+    async fn submit_job(
+        &self,
+        request: Request<pb::SubmitJobRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
         let r = request.into_inner();
         let spec = job_spec(&r)?;
         let daemon = self.daemon.clone();
@@ -369,20 +524,47 @@ impl JobService for Api {
         Ok(Response::new(job_message(&job, Some(r))))
     }
 
-    async fn get_job(&self, request: Request<pb::GetJobRequest>) -> Result<Response<pb::Job>, Status> {
-        Ok(Response::new(job_message(&self.daemon.job(&request.into_inner().id)?, None)))
+    async fn get_job(
+        &self,
+        request: Request<pb::GetJobRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
+        let id = request.into_inner().id;
+        let daemon = self.daemon.clone();
+        let (job, frames) = blocking(move || {
+            let job = daemon.job(&id)?;
+            let frames = daemon.store.frame_timings(&id)?;
+            Ok((job, frames))
+        })
+        .await?;
+        let mut message = job_message(&job, None);
+        message.frames = frames
+            .iter()
+            .map(|(index, timings)| pb::FrameFinished {
+                index: *index,
+                timings: timings_message(timings),
+            })
+            .collect();
+        Ok(Response::new(message))
     }
 
-    async fn list_jobs(&self, request: Request<pb::ListJobsRequest>) -> Result<Response<pb::ListJobsResponse>, Status> {
+    async fn list_jobs(
+        &self,
+        request: Request<pb::ListJobsRequest>,
+    ) -> Result<Response<pb::ListJobsResponse>, Status> {
         let r = request.into_inner();
-        let page = self.daemon.list_jobs(state_filter(r.state)?, r.page_size, &r.page_token)?;
+        let page = self
+            .daemon
+            .list_jobs(state_filter(r.state)?, r.page_size, &r.page_token)?;
         Ok(Response::new(pb::ListJobsResponse {
             jobs: page.items.iter().map(|j| job_message(j, None)).collect(),
             next_page_token: page.next_token,
         }))
     }
 
-    async fn cancel_job(&self, request: Request<pb::CancelJobRequest>) -> Result<Response<pb::Job>, Status> {
+    async fn cancel_job(
+        &self,
+        request: Request<pb::CancelJobRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
         let daemon = self.daemon.clone();
         let id = request.into_inner().id;
         let job = blocking(move || daemon.cancel_job(&id)).await?;
@@ -391,7 +573,10 @@ impl JobService for Api {
 
     type WatchJobStream = Stream_<pb::JobEvent>;
 
-    async fn watch_job(&self, request: Request<pb::WatchJobRequest>) -> Result<Response<Self::WatchJobStream>, Status> {
+    async fn watch_job(
+        &self,
+        request: Request<pb::WatchJobRequest>,
+    ) -> Result<Response<Self::WatchJobStream>, Status> {
         let id = request.into_inner().id;
         // Subscribe before reading the state, so no event falls between the two.
         let mut events = self.daemon.subscribe();
@@ -399,15 +584,34 @@ impl JobService for Api {
         let (sender, receiver) = tokio::sync::mpsc::channel(64);
         tokio::spawn(async move {
             let ended = job.state.is_terminal();
-            if sender.send(Ok(pb::JobEvent { job: Some(job_message(&job, None)), frame: None })).await.is_err() || ended {
+            if sender
+                .send(Ok(pb::JobEvent {
+                    job: Some(job_message(&job, None)),
+                    frame: None,
+                }))
+                .await
+                .is_err()
+                || ended
+            {
                 return;
             }
             loop {
                 match events.recv().await {
                     Ok(event) if event.job.id == id => {
                         let ended = event.job.state.is_terminal();
-                        let frame = event.frame.map(|(index, timings)| pb::FrameFinished { index, timings: timings_message(&timings) });
-                        if sender.send(Ok(pb::JobEvent { job: Some(job_message(&event.job, None)), frame })).await.is_err() || ended {
+                        let frame = event.frame.map(|(index, timings)| pb::FrameFinished {
+                            index,
+                            timings: timings_message(&timings),
+                        });
+                        if sender
+                            .send(Ok(pb::JobEvent {
+                                job: Some(job_message(&event.job, None)),
+                                frame,
+                            }))
+                            .await
+                            .is_err()
+                            || ended
+                        {
                             return;
                         }
                     }
@@ -424,30 +628,46 @@ impl JobService for Api {
 
     type FetchFramesStream = Stream_<pb::FrameChunk>;
 
-    async fn fetch_frames(&self, request: Request<pb::FetchFramesRequest>) -> Result<Response<Self::FetchFramesStream>, Status> {
+    async fn fetch_frames(
+        &self,
+        request: Request<pb::FetchFramesRequest>,
+    ) -> Result<Response<Self::FetchFramesStream>, Status> {
         let r = request.into_inner();
         let job = self.daemon.job(&r.job_id)?;
         if r.from_index > job.frames_total {
-            return Err(invalid("from_index", format!("job {} has {} frames", job.id, job.frames_total)).into());
+            return Err(invalid(
+                "from_index",
+                format!("job {} has {} frames", job.id, job.frames_total),
+            )
+            .into());
         }
         let daemon = self.daemon.clone();
         let (sender, receiver) = tokio::sync::mpsc::channel(4);
         tokio::spawn(async move {
             for index in r.from_index..job.frames_total {
-                let done = matches!(daemon.store.frame(&job.id, index), Ok(Some(FrameState::Done { .. })));
+                let done = matches!(
+                    daemon.store.frame(&job.id, index),
+                    Ok(Some(FrameState::Done { .. }))
+                );
                 if !done {
                     continue;
                 }
                 let bytes = match tokio::fs::read(daemon.config.frame_path(&job.id, index)).await {
                     Ok(bytes) => bytes,
                     Err(e) => {
-                        let _ = sender.send(Err(Status::internal(format!("frame {index}: {e}")))).await;
+                        let _ = sender
+                            .send(Err(Status::internal(format!("frame {index}: {e}"))))
+                            .await;
                         return;
                     }
                 };
                 let chunks: Vec<&[u8]> = bytes.chunks(FRAME_CHUNK_BYTES).collect();
                 for (i, chunk) in chunks.iter().enumerate() {
-                    let message = pb::FrameChunk { index, png: chunk.to_vec(), last: i + 1 == chunks.len() };
+                    let message = pb::FrameChunk {
+                        index,
+                        png: chunk.to_vec(),
+                        last: i + 1 == chunks.len(),
+                    };
                     if sender.send(Ok(message)).await.is_err() {
                         return;
                     }
@@ -467,7 +687,10 @@ mod tests {
             request_id: "r1".into(),
             dataset_id: "ds-1".into(),
             camera_path: Some(pb::CameraPath {
-                path: Some(pb::camera_path::Path::Turntable(pb::Turntable { frames: 4, ..Default::default() })),
+                path: Some(pb::camera_path::Path::Turntable(pb::Turntable {
+                    frames: 4,
+                    ..Default::default()
+                })),
             }),
             width: 64,
             height: 48,
@@ -487,22 +710,43 @@ mod tests {
     fn invalid_submissions_name_the_field() {
         assert!(job_spec(&valid()).is_ok());
         let mut r = valid();
-        r.camera_path = Some(pb::CameraPath { path: Some(pb::camera_path::Path::Turntable(pb::Turntable { frames: 0, ..Default::default() })) });
+        r.camera_path = Some(pb::CameraPath {
+            path: Some(pb::camera_path::Path::Turntable(pb::Turntable {
+                frames: 0,
+                ..Default::default()
+            })),
+        });
         assert_eq!(field_of(&r), "camera_path.turntable.frames");
         let mut r = valid();
         r.camera_path = Some(pb::CameraPath {
-            path: Some(pb::camera_path::Path::Turntable(pb::Turntable { frames: 2, center: Some(pb::Vec3 { x: f64::NAN, y: 0.0, z: 0.0 }), ..Default::default() })),
+            path: Some(pb::camera_path::Path::Turntable(pb::Turntable {
+                frames: 2,
+                center: Some(pb::Vec3 {
+                    x: f64::NAN,
+                    y: 0.0,
+                    z: 0.0,
+                }),
+                ..Default::default()
+            })),
         });
         assert_eq!(field_of(&r), "camera_path.turntable.center");
         let mut r = valid();
         let key = |x: f64| pb::Keyframe {
             position: Some(pb::Vec3 { x, y: 0.0, z: 10.0 }),
-            target: Some(pb::Vec3 { x: 0.0, y: 0.0, z: 0.0 }),
+            target: Some(pb::Vec3 {
+                x: 0.0,
+                y: 0.0,
+                z: 0.0,
+            }),
             up: None,
             fov_y_deg: 50.0,
         };
         r.camera_path = Some(pb::CameraPath {
-            path: Some(pb::camera_path::Path::Keyframes(pb::KeyframePath { keyframes: vec![key(1.0), key(f64::NAN)], frames: 3, interpolation: 0 })),
+            path: Some(pb::camera_path::Path::Keyframes(pb::KeyframePath {
+                keyframes: vec![key(1.0), key(f64::NAN)],
+                frames: 3,
+                interpolation: 0,
+            })),
         });
         assert_eq!(field_of(&r), "camera_path.keyframes.keyframes[1].position");
         let mut r = valid();
@@ -512,10 +756,17 @@ mod tests {
         r.camera_path = None;
         assert_eq!(field_of(&r), "camera_path");
         let mut r = valid();
-        r.render = Some(pb::RenderOptions { point_size: 1000, ..Default::default() });
+        r.render = Some(pb::RenderOptions {
+            point_size: 1000,
+            ..Default::default()
+        });
         assert_eq!(field_of(&r), "render.point_size");
         let mut r = valid();
-        r.render = Some(pb::RenderOptions { quality: pb::Quality::High as i32, depth_band: Some(f32::NAN), ..Default::default() });
+        r.render = Some(pb::RenderOptions {
+            quality: pb::Quality::High as i32,
+            depth_band: Some(f32::NAN),
+            ..Default::default()
+        });
         assert_eq!(field_of(&r), "render.depth_band");
     }
 
@@ -525,8 +776,14 @@ mod tests {
         let cases = [
             (DaemonError::invalid("f", "m"), Code::InvalidArgument),
             (DaemonError::NotFound("x".into()), Code::NotFound),
-            (DaemonError::FailedPrecondition("x".into()), Code::FailedPrecondition),
-            (DaemonError::ResourceExhausted("x".into()), Code::ResourceExhausted),
+            (
+                DaemonError::FailedPrecondition("x".into()),
+                Code::FailedPrecondition,
+            ),
+            (
+                DaemonError::ResourceExhausted("x".into()),
+                Code::ResourceExhausted,
+            ),
             (DaemonError::Internal("x".into()), Code::Internal),
         ];
         for (error, code) in cases {

@@ -56,7 +56,11 @@ pub enum Interpolation {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum CameraPath {
     Turntable(Turntable),
-    Keyframes { keyframes: Vec<Keyframe>, frames: u32, interpolation: Interpolation },
+    Keyframes {
+        keyframes: Vec<Keyframe>,
+        frames: u32,
+        interpolation: Interpolation,
+    },
 }
 
 impl CameraPath {
@@ -122,7 +126,10 @@ pub enum JobState {
 
 impl JobState {
     pub fn is_terminal(self) -> bool {
-        matches!(self, JobState::Succeeded | JobState::Failed | JobState::Cancelled)
+        matches!(
+            self,
+            JobState::Succeeded | JobState::Failed | JobState::Cancelled
+        )
     }
 }
 

@@ -28,11 +28,16 @@ impl tonic::service::Interceptor for BearerAuth {
         let Some(expected) = &self.expected else {
             return Ok(request);
         };
-        let given = request.metadata().get("authorization").and_then(|v| v.to_str().ok());
+        let given = request
+            .metadata()
+            .get("authorization")
+            .and_then(|v| v.to_str().ok());
         match given.and_then(|v| v.strip_prefix("Bearer ")) {
             Some(token) if token == &**expected => Ok(request),
             Some(_) => Err(Status::unauthenticated("invalid bearer token")),
-            None => Err(Status::unauthenticated("missing 'authorization: Bearer <token>' header")),
+            None => Err(Status::unauthenticated(
+                "missing 'authorization: Bearer <token>' header",
+            )),
         }
     }
 }
@@ -64,13 +69,18 @@ pub async fn serve(
         .context("building the reflection service")?;
 
     let api = Api::new(daemon.clone());
-    let auth = BearerAuth { expected: auth_token.map(Arc::from) };
+    let auth = BearerAuth {
+        expected: auth_token.map(Arc::from),
+    };
     let address = listener.local_addr()?;
     tracing::info!(%address, "serving pointfarm.v1");
     tonic::transport::Server::builder()
         .add_service(health_service)
         .add_service(reflection)
-        .add_service(DatasetServiceServer::with_interceptor(api.clone(), auth.clone()))
+        .add_service(DatasetServiceServer::with_interceptor(
+            api.clone(),
+            auth.clone(),
+        ))
         .add_service(JobServiceServer::with_interceptor(api, auth))
         .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
         .await

@@ -45,7 +45,8 @@ impl DaemonConfig {
     }
 
     pub fn frame_path(&self, job_id: &str, index: u32) -> PathBuf {
-        self.frames_dir(job_id).join(format!("frame_{index:05}.png"))
+        self.frames_dir(job_id)
+            .join(format!("frame_{index:05}.png"))
     }
 
     fn uploads_dir(&self) -> PathBuf {
@@ -103,7 +104,12 @@ impl Daemon {
             tracing::info!(requeued, "resuming jobs that were running");
         }
         let (events, _) = broadcast::channel(1024);
-        Ok(Arc::new(Self { config, store, events, work: WorkSignal::default() }))
+        Ok(Arc::new(Self {
+            config,
+            store,
+            events,
+            work: WorkSignal::default(),
+        }))
     }
 
     pub fn subscribe(&self) -> broadcast::Receiver<JobEvent> {
@@ -112,7 +118,10 @@ impl Daemon {
 
     pub fn publish(&self, job: &Job, frame: Option<(u32, Vec<crate::model::StageTiming>)>) {
         // No watcher is not an error.
-        let _ = self.events.send(JobEvent { job: job.clone(), frame });
+        let _ = self.events.send(JobEvent {
+            job: job.clone(),
+            frame,
+        });
     }
 
     // ------------------------------------------------------------------ datasets
@@ -128,7 +137,11 @@ impl Daemon {
             ));
         };
         let requested = Path::new(path);
-        let requested = if requested.is_absolute() { requested.to_path_buf() } else { first_root.join(requested) };
+        let requested = if requested.is_absolute() {
+            requested.to_path_buf()
+        } else {
+            first_root.join(requested)
+        };
         let resolved = requested
             .canonicalize()
             .map_err(|_| DaemonError::NotFound(format!("file {path}")))?;
@@ -139,29 +152,48 @@ impl Daemon {
             .filter_map(|root| root.canonicalize().ok())
             .any(|root| resolved.starts_with(root));
         if !allowed {
-            return Err(DaemonError::invalid("path", format!("{path} is outside the server's data roots")));
+            return Err(DaemonError::invalid(
+                "path",
+                format!("{path} is outside the server's data roots"),
+            ));
         }
         if !resolved.is_file() {
-            return Err(DaemonError::invalid("path", format!("{path} is not a file")));
+            return Err(DaemonError::invalid(
+                "path",
+                format!("{path} is not a file"),
+            ));
         }
         let (sha256, size_bytes) = hash_file(&resolved)?;
-        let name = if name.is_empty() { file_name(&resolved) } else { name.to_string() };
+        let name = if name.is_empty() {
+            file_name(&resolved)
+        } else {
+            name.to_string()
+        };
         self.add_dataset(resolved, name, sha256, size_bytes)
     }
 
     /// Where an upload is written while it arrives.
     pub fn upload_path(&self) -> PathBuf {
-        self.config.uploads_dir().join(format!("upload-{}.part", self.store_id()))
+        self.config
+            .uploads_dir()
+            .join(format!("upload-{}.part", self.store_id()))
     }
 
     fn store_id(&self) -> u64 {
         // Unique per process and time; only names temporary files.
         static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-        now_unix_ms() as u64 * 1000 + COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed) % 1000
+        now_unix_ms() as u64 * 1000
+            + COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed) % 1000
     }
 
     /// Takes a completely received upload at `temp` into the store.
-    pub fn finish_upload(&self, temp: &Path, name: &str, sha256: String, size_bytes: u64) -> Result<Dataset, DaemonError> {
+    pub fn finish_upload(
+        &self,
+        temp: &Path,
+        name: &str,
+        sha256: String,
+        size_bytes: u64,
+    ) -> Result<Dataset, DaemonError> {
         let extension = Path::new(name)
             .extension()
             .and_then(|e| e.to_str())
@@ -174,19 +206,34 @@ impl Daemon {
         self.add_dataset(path, name.to_string(), sha256, size_bytes)
     }
 
-    fn add_dataset(&self, path: PathBuf, name: String, sha256: String, size_bytes: u64) -> Result<Dataset, DaemonError> {
+    fn add_dataset(
+        &self,
+        path: PathBuf,
+        name: String,
+        sha256: String,
+        size_bytes: u64,
+    ) -> Result<Dataset, DaemonError> {
         let id = dataset_id(&sha256);
         if let Some(existing) = self.store.dataset(&id)? {
             return Ok(existing);
         }
-        let dataset = Dataset { id, name, size_bytes, sha256, path, created_unix_ms: now_unix_ms() };
+        let dataset = Dataset {
+            id,
+            name,
+            size_bytes,
+            sha256,
+            path,
+            created_unix_ms: now_unix_ms(),
+        };
         self.store.put_dataset(&dataset)?;
         tracing::info!(dataset = %dataset.id, path = %dataset.path.display(), "dataset added");
         Ok(dataset)
     }
 
     pub fn dataset(&self, id: &str) -> Result<Dataset, DaemonError> {
-        self.store.dataset(id)?.ok_or_else(|| DaemonError::NotFound(format!("dataset {id}")))
+        self.store
+            .dataset(id)?
+            .ok_or_else(|| DaemonError::NotFound(format!("dataset {id}")))
     }
 
     pub fn list_datasets(&self, page_size: u32, token: &str) -> Result<Page<Dataset>, DaemonError> {
@@ -196,9 +243,16 @@ impl Daemon {
     /// Deletes a dataset (and the file, if it was uploaded). Refused while unfinished jobs use it.
     pub fn delete_dataset(&self, id: &str) -> Result<(), DaemonError> {
         let dataset = self.dataset(id)?;
-        let in_use = self.store.list_jobs(None, 1000, "")?.items.into_iter().any(|j| j.spec.dataset_id == id && !j.state.is_terminal());
+        let in_use = self
+            .store
+            .list_jobs(None, 1000, "")?
+            .items
+            .into_iter()
+            .any(|j| j.spec.dataset_id == id && !j.state.is_terminal());
         if in_use {
-            return Err(DaemonError::FailedPrecondition(format!("dataset {id} is used by unfinished jobs")));
+            return Err(DaemonError::FailedPrecondition(format!(
+                "dataset {id} is used by unfinished jobs"
+            )));
         }
         self.store.delete_dataset(id)?;
         if dataset.path.starts_with(self.config.uploads_dir()) {
@@ -215,11 +269,17 @@ impl Daemon {
         if spec.width > side || spec.height > side {
             return Err(DaemonError::invalid(
                 if spec.width > side { "width" } else { "height" },
-                format!("{}x{} exceeds this server's maximum of {side} pixels per side", spec.width, spec.height),
+                format!(
+                    "{}x{} exceeds this server's maximum of {side} pixels per side",
+                    spec.width, spec.height
+                ),
             ));
         }
         if spec.camera_path.frames() > self.config.max_frames {
-            return Err(DaemonError::invalid("camera_path", format!("more than {} frames", self.config.max_frames)));
+            return Err(DaemonError::invalid(
+                "camera_path",
+                format!("more than {} frames", self.config.max_frames),
+            ));
         }
         self.dataset(&spec.dataset_id)?;
         let (job, created) = self.store.submit_job(spec)?;
@@ -232,19 +292,32 @@ impl Daemon {
     }
 
     pub fn job(&self, id: &str) -> Result<Job, DaemonError> {
-        self.store.job(id)?.ok_or_else(|| DaemonError::NotFound(format!("job {id}")))
+        self.store
+            .job(id)?
+            .ok_or_else(|| DaemonError::NotFound(format!("job {id}")))
     }
 
-    pub fn list_jobs(&self, state: Option<JobState>, page_size: u32, token: &str) -> Result<Page<Job>, DaemonError> {
+    pub fn list_jobs(
+        &self,
+        state: Option<JobState>,
+        page_size: u32,
+        token: &str,
+    ) -> Result<Page<Job>, DaemonError> {
         Ok(self.store.list_jobs(state, page_size as usize, token)?)
     }
 
     pub fn cancel_job(&self, id: &str) -> Result<Job, DaemonError> {
         let job = self.job(id)?;
         if job.state.is_terminal() {
-            return Err(DaemonError::FailedPrecondition(format!("job {id} has already ended ({:?})", job.state)));
+            return Err(DaemonError::FailedPrecondition(format!(
+                "job {id} has already ended ({:?})",
+                job.state
+            )));
         }
-        let job = self.store.update_job(id, |j| j.state = JobState::Cancelled)?.ok_or_else(|| DaemonError::NotFound(format!("job {id}")))?;
+        let job = self
+            .store
+            .update_job(id, |j| j.state = JobState::Cancelled)?
+            .ok_or_else(|| DaemonError::NotFound(format!("job {id}")))?;
         self.store.flush()?;
         tracing::info!(job = %id, "job cancelled");
         self.publish(&job, None);
@@ -258,7 +331,9 @@ pub fn dataset_id(sha256: &str) -> String {
 }
 
 fn file_name(path: &Path) -> String {
-    path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default()
+    path.file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default()
 }
 
 fn hash_file(path: &Path) -> Result<(String, u64), DaemonError> {

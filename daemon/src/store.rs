@@ -69,20 +69,37 @@ impl Store {
     // ------------------------------------------------------------------ datasets
 
     pub fn put_dataset(&self, dataset: &Dataset) -> Result<(), StoreError> {
-        self.datasets.insert(dataset.id.as_bytes(), encode(dataset)?)?;
+        self.datasets
+            .insert(dataset.id.as_bytes(), encode(dataset)?)?;
         Ok(())
     }
 
     pub fn dataset(&self, id: &str) -> Result<Option<Dataset>, StoreError> {
-        self.datasets.get(id.as_bytes())?.map(|v| decode(&v)).transpose()
+        self.datasets
+            .get(id.as_bytes())?
+            .map(|v| decode(&v))
+            .transpose()
     }
 
     pub fn delete_dataset(&self, id: &str) -> Result<Option<Dataset>, StoreError> {
-        self.datasets.remove(id.as_bytes())?.map(|v| decode(&v)).transpose()
+        self.datasets
+            .remove(id.as_bytes())?
+            .map(|v| decode(&v))
+            .transpose()
     }
 
-    pub fn list_datasets(&self, page_size: usize, token: &str) -> Result<Page<Dataset>, StoreError> {
-        page(&self.datasets, page_size, token, |_: &Dataset| true, |d| d.id.clone())
+    pub fn list_datasets(
+        &self,
+        page_size: usize,
+        token: &str,
+    ) -> Result<Page<Dataset>, StoreError> {
+        page(
+            &self.datasets,
+            page_size,
+            token,
+            |_: &Dataset| true,
+            |d| d.id.clone(),
+        )
     }
 
     // ------------------------------------------------------------------ jobs
@@ -120,14 +137,18 @@ impl Store {
         self.frames.apply_batch(batch)?;
         self.jobs.insert(id.as_bytes(), encode(&job)?)?;
         if !job.spec.request_id.is_empty() {
-            self.requests.insert(job.spec.request_id.as_bytes(), id.as_bytes())?;
+            self.requests
+                .insert(job.spec.request_id.as_bytes(), id.as_bytes())?;
         }
         self.db.flush()?;
         Ok((job, true))
     }
 
     pub fn job(&self, id: &str) -> Result<Option<Job>, StoreError> {
-        self.jobs.get(id.as_bytes())?.map(|v| decode(&v)).transpose()
+        self.jobs
+            .get(id.as_bytes())?
+            .map(|v| decode(&v))
+            .transpose()
     }
 
     pub fn put_job(&self, job: &Job) -> Result<(), StoreError> {
@@ -137,7 +158,11 @@ impl Store {
 
     /// Applies `change` to the stored job and returns the result (None if there is no such
     /// job). Bumps the update time.
-    pub fn update_job(&self, id: &str, change: impl FnOnce(&mut Job)) -> Result<Option<Job>, StoreError> {
+    pub fn update_job(
+        &self,
+        id: &str,
+        change: impl FnOnce(&mut Job),
+    ) -> Result<Option<Job>, StoreError> {
         let Some(mut job) = self.job(id)? else {
             return Ok(None);
         };
@@ -153,15 +178,30 @@ impl Store {
         page_size: usize,
         token: &str,
     ) -> Result<Page<Job>, StoreError> {
-        page(&self.jobs, page_size, token, |j: &Job| state.is_none_or(|s| j.state == s), |j| j.id.clone())
+        page(
+            &self.jobs,
+            page_size,
+            token,
+            |j: &Job| state.is_none_or(|s| j.state == s),
+            |j| j.id.clone(),
+        )
     }
 
     pub fn frame(&self, job_id: &str, index: u32) -> Result<Option<FrameState>, StoreError> {
-        self.frames.get(frame_key(job_id, index))?.map(|v| decode(&v)).transpose()
+        self.frames
+            .get(frame_key(job_id, index))?
+            .map(|v| decode(&v))
+            .transpose()
     }
 
-    pub fn set_frame(&self, job_id: &str, index: u32, state: &FrameState) -> Result<(), StoreError> {
-        self.frames.insert(frame_key(job_id, index), encode(state)?)?;
+    pub fn set_frame(
+        &self,
+        job_id: &str,
+        index: u32,
+        state: &FrameState,
+    ) -> Result<(), StoreError> {
+        self.frames
+            .insert(frame_key(job_id, index), encode(state)?)?;
         Ok(())
     }
 
@@ -231,7 +271,11 @@ fn page<T: DeserializeOwned>(
     keep: impl Fn(&T) -> bool,
     key_of: impl Fn(&T) -> String,
 ) -> Result<Page<T>, StoreError> {
-    let page_size = if page_size == 0 { 100 } else { page_size.min(1000) };
+    let page_size = if page_size == 0 {
+        100
+    } else {
+        page_size.min(1000)
+    };
     let mut items = Vec::new();
     let start = std::ops::Bound::Excluded(token.as_bytes().to_vec());
     let range = if token.is_empty() {

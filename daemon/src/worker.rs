@@ -12,7 +12,8 @@ use pointfarm_worker::color::{point_colours, ColorMode as WorkerColorMode};
 use pointfarm_worker::gpu::GpuContext;
 use pointfarm_worker::ingest::load_point_cloud;
 use pointfarm_worker::raster::{
-    Clock, FrameSettings, GpuPointCloud, Quality as WorkerQuality, Renderer, Shading as WorkerShading,
+    Clock, FrameSettings, GpuPointCloud, Quality as WorkerQuality, Renderer,
+    Shading as WorkerShading,
 };
 
 use crate::camera_path::camera_for_frame;
@@ -60,7 +61,10 @@ fn render_task(
     index: u32,
 ) -> Result<(), crate::error::DaemonError> {
     let job = if job.state == JobState::Queued {
-        let job = daemon.store.update_job(&job.id, |j| j.state = JobState::Running)?.unwrap_or(job);
+        let job = daemon
+            .store
+            .update_job(&job.id, |j| j.state = JobState::Running)?
+            .unwrap_or(job);
         daemon.publish(&job, None);
         job
     } else {
@@ -73,7 +77,12 @@ fn render_task(
         .is_some_and(|r| r.dataset_id == spec.dataset_id && r.color_mode == spec.render.color_mode);
     if !is_current {
         *resident = None; // free the old cloud's GPU memory first
-        match load_resident(daemon, renderer, spec.dataset_id.as_str(), spec.render.color_mode) {
+        match load_resident(
+            daemon,
+            renderer,
+            spec.dataset_id.as_str(),
+            spec.render.color_mode,
+        ) {
             Ok(loaded) => *resident = Some(loaded),
             Err(reason) => return fail_job(daemon, &job, reason),
         }
@@ -97,15 +106,19 @@ fn render_task(
         },
         ..FrameSettings::new(spec.width, spec.height, camera)
     };
-    let rendered = renderer.render(&current.cloud, &settings).map_err(|e| e.to_string()).and_then(|mut frame| {
-        let path = daemon.config.frame_path(&job.id, index);
-        let partial = path.with_extension("png.part");
-        std::fs::create_dir_all(daemon.config.frames_dir(&job.id)).map_err(|e| e.to_string())?;
-        frame.save_png(&partial).map_err(|e| e.to_string())?;
-        // The rename makes the frame appear whole or not at all.
-        std::fs::rename(&partial, &path).map_err(|e| e.to_string())?;
-        Ok(frame)
-    });
+    let rendered = renderer
+        .render(&current.cloud, &settings)
+        .map_err(|e| e.to_string())
+        .and_then(|mut frame| {
+            let path = daemon.config.frame_path(&job.id, index);
+            let partial = path.with_extension("png.part");
+            std::fs::create_dir_all(daemon.config.frames_dir(&job.id))
+                .map_err(|e| e.to_string())?;
+            frame.save_png(&partial).map_err(|e| e.to_string())?;
+            // The rename makes the frame appear whole or not at all.
+            std::fs::rename(&partial, &path).map_err(|e| e.to_string())?;
+            Ok(frame)
+        });
 
     // The job may have been cancelled while the frame rendered.
     let current_job = daemon.job(&job.id)?;
@@ -118,9 +131,19 @@ fn render_task(
                 .timings
                 .stages
                 .iter()
-                .map(|t| StageTiming { stage: t.stage.name().to_string(), ms: t.ms, gpu_clock: t.clock == Clock::Gpu })
+                .map(|t| StageTiming {
+                    stage: t.stage.name().to_string(),
+                    ms: t.ms,
+                    gpu_clock: t.clock == Clock::Gpu,
+                })
                 .collect();
-            daemon.store.set_frame(&job.id, index, &FrameState::Done { timings: timings.clone() })?;
+            daemon.store.set_frame(
+                &job.id,
+                index,
+                &FrameState::Done {
+                    timings: timings.clone(),
+                },
+            )?;
             let updated = daemon
                 .store
                 .update_job(&job.id, |j| {
@@ -141,9 +164,15 @@ fn render_task(
             };
             tracing::warn!(attempts, %reason, "frame failed");
             if attempts >= daemon.config.max_frame_attempts {
-                return fail_job(daemon, &job, format!("frame {index} failed {attempts} times: {reason}"));
+                return fail_job(
+                    daemon,
+                    &job,
+                    format!("frame {index} failed {attempts} times: {reason}"),
+                );
             }
-            daemon.store.set_frame(&job.id, index, &FrameState::Pending { attempts })?;
+            daemon
+                .store
+                .set_frame(&job.id, index, &FrameState::Pending { attempts })?;
         }
     }
     Ok(())
@@ -156,10 +185,18 @@ fn load_resident(
     color_mode: ColorMode,
 ) -> Result<Resident, String> {
     let dataset = daemon.dataset(dataset_id).map_err(|e| e.to_string())?;
-    let mut cloud: PointCloud = load_point_cloud(&dataset.path).map_err(|e| format!("dataset {dataset_id}: {e}"))?;
+    let mut cloud: PointCloud =
+        load_point_cloud(&dataset.path).map_err(|e| format!("dataset {dataset_id}: {e}"))?;
     cloud.colors = point_colours(&cloud, worker_color_mode(color_mode));
-    let gpu_cloud = renderer.upload(&cloud).map_err(|e| format!("dataset {dataset_id}: {e}"))?;
-    Ok(Resident { dataset_id: dataset_id.to_string(), color_mode, bounds: cloud.bounds, cloud: gpu_cloud })
+    let gpu_cloud = renderer
+        .upload(&cloud)
+        .map_err(|e| format!("dataset {dataset_id}: {e}"))?;
+    Ok(Resident {
+        dataset_id: dataset_id.to_string(),
+        color_mode,
+        bounds: cloud.bounds,
+        cloud: gpu_cloud,
+    })
 }
 
 fn worker_color_mode(mode: ColorMode) -> WorkerColorMode {

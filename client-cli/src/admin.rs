@@ -1,0 +1,308 @@
+//! `pointfarm dataset|jobs|frames`: managing a server's datasets and jobs. Human-readable
+//! tables by default, `--json` for scripts.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use clap::{Args, Subcommand};
+use pointfarm_proto::v1 as pb;
+use serde_json::json;
+
+use crate::remote::{state_name, status_error, Client};
+
+#[derive(Args, Clone)]
+pub struct ServerArgs {
+    /// The pointfarm server.
+    #[arg(
+        long,
+        env = "POINTFARM_SERVER",
+        default_value = "http://127.0.0.1:50051",
+        global = true
+    )]
+    pub server: String,
+    /// Bearer token for the server.
+    #[arg(long, env = "POINTFARM_TOKEN", hide_env_values = true, global = true)]
+    pub token: Option<String>,
+    /// Print JSON instead of tables.
+    #[arg(long, global = true)]
+    pub json: bool,
+}
+
+#[derive(Subcommand)]
+pub enum DatasetCommand {
+    /// Upload a LAS/LAZ file (nothing is sent if the server already has the same content).
+    Add {
+        file: PathBuf,
+    },
+    /// Register a file that is already on the server, under one of its data roots.
+    Register {
+        path: String,
+    },
+    List,
+    Rm {
+        id: String,
+    },
+}
+
+#[derive(Subcommand)]
+pub enum JobsCommand {
+    List {
+        /// Only jobs in this state: queued, running, succeeded, failed, cancelled.
+        #[arg(long)]
+        state: Option<String>,
+    },
+    /// A job with per-stage timing statistics (median and p95) over its frames.
+    Show {
+        id: String,
+    },
+    Cancel {
+        id: String,
+    },
+    /// Follow a job until it ends.
+    Watch {
+        id: String,
+    },
+}
+
+#[derive(Subcommand)]
+pub enum FramesCommand {
+    /// Download a job's finished frames.
+    Fetch {
+        job: String,
+        #[arg(long, short)]
+        out: PathBuf,
+        /// First frame index to fetch (to resume a download).
+        #[arg(long, default_value_t = 0)]
+        from: u32,
+    },
+}
+
+fn runtime() -> Result<tokio::runtime::Runtime> {
+    tokio::runtime::Runtime::new().context("starting the async runtime")
+}
+
+fn dataset_json(d: &pb::Dataset) -> serde_json::Value {
+    json!({ "id": d.id, "name": d.name, "size_bytes": d.size_bytes, "sha256": d.sha256, "path": d.path })
+}
+
+fn job_json(j: &pb::Job) -> serde_json::Value {
+    json!({
+        "id": j.id, "dataset_id": j.dataset_id, "state": state_name(j.state),
+        "frames_total": j.frames_total, "frames_done": j.frames_done, "priority": j.priority,
+        "error": j.error, "created_unix_ms": j.created_unix_ms, "updated_unix_ms": j.updated_unix_ms,
+    })
+}
+
+pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
+    runtime()?.block_on(async {
+        let mut client = Client::connect(&server.server, server.token.as_deref()).await?;
+        match command {
+            DatasetCommand::Add { file } => {
+                print_dataset(server, &client.ensure_dataset(&file).await?)
+            }
+            DatasetCommand::Register { path } => {
+                let request = pb::RegisterDatasetRequest {
+                    path,
+                    name: String::new(),
+                };
+                let dataset = client
+                    .datasets
+                    .register_dataset(request)
+                    .await
+                    .map_err(status_error)?
+                    .into_inner();
+                print_dataset(server, &dataset)
+            }
+            DatasetCommand::List => {
+                let mut all = Vec::new();
+                let mut page_token = String::new();
+                loop {
+                    let request = pb::ListDatasetsRequest {
+                        page_size: 100,
+                        page_token,
+                    };
+                    let page = client
+                        .datasets
+                        .list_datasets(request)
+                        .await
+                        .map_err(status_error)?
+                        .into_inner();
+                    all.extend(page.datasets);
+                    if page.next_page_token.is_empty() {
+                        break;
+                    }
+                    page_token = page.next_page_token;
+                }
+                if server.json {
+                    println!(
+                        "{}",
+                        serde_json::Value::from(all.iter().map(dataset_json).collect::<Vec<_>>())
+                    );
+                } else {
+                    println!("{:<20} {:>12}  name", "id", "bytes");
+                    for d in &all {
+                        println!("{:<20} {:>12}  {}", d.id, d.size_bytes, d.name);
+                    }
+                }
+            }
+            DatasetCommand::Rm { id } => {
+                client
+                    .datasets
+                    .delete_dataset(pb::DeleteDatasetRequest { id: id.clone() })
+                    .await
+                    .map_err(status_error)?;
+                println!("deleted {id}");
+            }
+        }
+        Ok(())
+    })
+}
+
+fn print_dataset(server: &ServerArgs, d: &pb::Dataset) {
+    if server.json {
+        println!("{}", dataset_json(d));
+    } else {
+        println!("{}  {} ({} bytes)", d.id, d.name, d.size_bytes);
+    }
+}
+
+fn parse_state(state: &str) -> Result<pb::JobState> {
+    Ok(match state.to_ascii_lowercase().as_str() {
+        "queued" => pb::JobState::Queued,
+        "running" => pb::JobState::Running,
+        "succeeded" => pb::JobState::Succeeded,
+        "failed" => pb::JobState::Failed,
+        "cancelled" | "canceled" => pb::JobState::Cancelled,
+        other => anyhow::bail!(
+            "'{other}' is not a job state (queued, running, succeeded, failed, cancelled)"
+        ),
+    })
+}
+
+/// Median and 95th percentile of each stage over a job's frames, in stage order.
+pub fn stage_statistics(frames: &[pb::FrameFinished]) -> Vec<(String, f64, f64)> {
+    let mut stages: Vec<(String, Vec<f64>)> = Vec::new();
+    for timing in frames.iter().flat_map(|f| &f.timings) {
+        match stages.iter_mut().find(|(name, _)| *name == timing.stage) {
+            Some((_, values)) => values.push(timing.ms),
+            None => stages.push((timing.stage.clone(), vec![timing.ms])),
+        }
+    }
+    stages
+        .into_iter()
+        .map(|(name, mut values)| {
+            values.sort_by(f64::total_cmp);
+            let at = |q: f64| values[((values.len() - 1) as f64 * q).round() as usize];
+            (name, at(0.5), at(0.95))
+        })
+        .collect()
+}
+
+pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
+    runtime()?.block_on(async {
+        let mut client = Client::connect(&server.server, server.token.as_deref()).await?;
+        match command {
+            JobsCommand::List { state } => {
+                let state = state.as_deref().map(parse_state).transpose()?.unwrap_or(pb::JobState::Unspecified);
+                let mut all = Vec::new();
+                let mut page_token = String::new();
+                loop {
+                    let request = pb::ListJobsRequest { state: state as i32, page_size: 100, page_token };
+                    let page = client.jobs.list_jobs(request).await.map_err(status_error)?.into_inner();
+                    all.extend(page.jobs);
+                    if page.next_page_token.is_empty() {
+                        break;
+                    }
+                    page_token = page.next_page_token;
+                }
+                if server.json {
+                    println!("{}", serde_json::Value::from(all.iter().map(job_json).collect::<Vec<_>>()));
+                } else {
+                    println!("{:<18} {:<10} {:>9} {:>8}  dataset", "id", "state", "frames", "priority");
+                    for j in &all {
+                        let frames = format!("{}/{}", j.frames_done, j.frames_total);
+                        println!("{:<18} {:<10} {:>9} {:>8}  {}", j.id, state_name(j.state), frames, j.priority, j.dataset_id);
+                    }
+                }
+            }
+            JobsCommand::Show { id } => {
+                let job = client.jobs.get_job(pb::GetJobRequest { id }).await.map_err(status_error)?.into_inner();
+                let stats = stage_statistics(&job.frames);
+                if server.json {
+                    let mut value = job_json(&job);
+                    value["stages"] = stats.iter().map(|(s, median, p95)| json!({"stage": s, "median_ms": median, "p95_ms": p95})).collect();
+                    println!("{value}");
+                } else {
+                    println!("job {}  {}  {}/{} frames  dataset {}", job.id, state_name(job.state), job.frames_done, job.frames_total, job.dataset_id);
+                    if !job.error.is_empty() {
+                        println!("error: {}", job.error);
+                    }
+                    if !stats.is_empty() {
+                        println!("{:<12} {:>10} {:>10}", "stage", "median ms", "p95 ms");
+                        for (stage, median, p95) in &stats {
+                            println!("{stage:<12} {median:>10.2} {p95:>10.2}");
+                        }
+                    }
+                }
+            }
+            JobsCommand::Cancel { id } => {
+                let job = client.jobs.cancel_job(pb::CancelJobRequest { id }).await.map_err(status_error)?.into_inner();
+                println!("job {} {}", job.id, state_name(job.state));
+            }
+            JobsCommand::Watch { id } => {
+                let job = client.follow(&id, server.json).await?;
+                if server.json {
+                    println!("{}", job_json(&job));
+                } else {
+                    println!("job {} {} ({}/{} frames){}", job.id, state_name(job.state), job.frames_done, job.frames_total,
+                        if job.error.is_empty() { String::new() } else { format!(": {}", job.error) });
+                }
+            }
+        }
+        Ok(())
+    })
+}
+
+pub fn frames(server: &ServerArgs, command: FramesCommand) -> Result<()> {
+    runtime()?.block_on(async {
+        let mut client = Client::connect(&server.server, server.token.as_deref()).await?;
+        match command {
+            FramesCommand::Fetch { job, out, from } => {
+                let written = client.fetch_frames(&job, from, &out).await?;
+                println!("{} frames in {}", written.len(), out.display());
+            }
+        }
+        Ok(())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stage_statistics_give_median_and_p95_per_stage() {
+        let frames: Vec<pb::FrameFinished> = (0..20)
+            .map(|i| pb::FrameFinished {
+                index: i,
+                timings: vec![
+                    pb::StageTiming {
+                        stage: "rasterize".into(),
+                        ms: i as f64,
+                        gpu_clock: true,
+                    },
+                    pb::StageTiming {
+                        stage: "encode".into(),
+                        ms: 1.0,
+                        gpu_clock: false,
+                    },
+                ],
+            })
+            .collect();
+        let stats = stage_statistics(&frames);
+        assert_eq!(stats[0].0, "rasterize");
+        assert_eq!(stats[0].1, 10.0);
+        assert_eq!(stats[0].2, 18.0);
+        assert_eq!(stats[1], ("encode".to_string(), 1.0, 1.0));
+    }
+}

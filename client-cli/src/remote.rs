@@ -1,0 +1,226 @@
+//! The client side of the render service: connecting, uploading, submitting, following and
+//! downloading. Used by `render --server`, `dataset`, `jobs` and `frames`.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use pointfarm_proto::v1 as pb;
+use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
+use pointfarm_proto::v1::job_service_client::JobServiceClient;
+use sha2::{Digest, Sha256};
+use tonic::metadata::MetadataValue;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::Channel;
+use tonic::{Code, Request, Status};
+
+/// Upload chunk size: well under gRPC's default 4 MiB message limit.
+const UPLOAD_CHUNK_BYTES: usize = 1 << 20;
+
+/// Adds the bearer token, when there is one, to every call.
+#[derive(Clone)]
+pub struct Auth(Option<MetadataValue<tonic::metadata::Ascii>>);
+
+impl tonic::service::Interceptor for Auth {
+    fn call(&mut self, mut request: Request<()>) -> Result<Request<()>, Status> {
+        if let Some(value) = &self.0 {
+            request
+                .metadata_mut()
+                .insert("authorization", value.clone());
+        }
+        Ok(request)
+    }
+}
+
+type Authed = InterceptedService<Channel, Auth>;
+
+pub struct Client {
+    pub datasets: DatasetServiceClient<Authed>,
+    pub jobs: JobServiceClient<Authed>,
+}
+
+impl Client {
+    pub async fn connect(server: &str, token: Option<&str>) -> Result<Self> {
+        let url = if server.contains("://") {
+            server.to_string()
+        } else {
+            format!("http://{server}")
+        };
+        let channel = Channel::from_shared(url.clone())
+            .with_context(|| format!("'{server}' is not a server address"))?
+            .connect()
+            .await
+            .with_context(|| format!("cannot connect to {url}"))?;
+        let auth = Auth(
+            token
+                .map(|t| format!("Bearer {t}").parse())
+                .transpose()
+                .context("the token has characters that cannot be sent")?,
+        );
+        Ok(Self {
+            datasets: DatasetServiceClient::with_interceptor(channel.clone(), auth.clone()),
+            jobs: JobServiceClient::with_interceptor(channel, auth),
+        })
+    }
+
+    /// The dataset with the content of `file`, uploaded first if the server does not have it.
+    pub async fn ensure_dataset(&mut self, file: &Path) -> Result<pb::Dataset> {
+        let bytes = tokio::fs::read(file)
+            .await
+            .with_context(|| format!("reading {}", file.display()))?;
+        let sha256: String = Sha256::digest(&bytes)
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect();
+        let id = format!("ds-{}", &sha256[..16]);
+        match self
+            .datasets
+            .get_dataset(pb::GetDatasetRequest { id })
+            .await
+        {
+            Ok(found) => return Ok(found.into_inner()),
+            Err(status) if status.code() == Code::NotFound => {}
+            Err(status) => return Err(status_error(status)),
+        }
+        let name = file
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let header = pb::UploadDatasetRequest {
+            part: Some(pb::upload_dataset_request::Part::Header(pb::UploadHeader {
+                name,
+                size_bytes: bytes.len() as u64,
+                sha256,
+            })),
+        };
+        let chunks: Vec<pb::UploadDatasetRequest> = bytes
+            .chunks(UPLOAD_CHUNK_BYTES)
+            .map(|c| pb::UploadDatasetRequest {
+                part: Some(pb::upload_dataset_request::Part::Data(c.to_vec())),
+            })
+            .collect();
+        let messages = tokio_stream::iter(std::iter::once(header).chain(chunks));
+        let dataset = self
+            .datasets
+            .upload_dataset(messages)
+            .await
+            .map_err(status_error)?;
+        Ok(dataset.into_inner())
+    }
+
+    /// Follows a job with a progress bar until it ends; returns the final job.
+    pub async fn follow(&mut self, job_id: &str, quiet: bool) -> Result<pb::Job> {
+        let mut events = self
+            .jobs
+            .watch_job(pb::WatchJobRequest {
+                id: job_id.to_string(),
+            })
+            .await
+            .map_err(status_error)?
+            .into_inner();
+        let bar = if quiet {
+            ProgressBar::hidden()
+        } else {
+            ProgressBar::new(0)
+        };
+        bar.set_style(
+            ProgressStyle::with_template("{bar:40} {pos}/{len} frames {msg}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        let mut last = None;
+        while let Some(event) = events.message().await.map_err(status_error)? {
+            let Some(job) = event.job else { continue };
+            bar.set_length(job.frames_total as u64);
+            bar.set_position(job.frames_done as u64);
+            bar.set_message(state_name(job.state).to_string());
+            if let Some(frame) = &event.frame {
+                let line = format!("frame {:>5}  {}", frame.index, timings_line(&frame.timings));
+                if bar.is_hidden() && !quiet {
+                    println!("{line}");
+                } else {
+                    bar.println(line);
+                }
+            }
+            last = Some(job);
+        }
+        bar.finish_and_clear();
+        last.context("the server ended the watch without any event")
+    }
+
+    /// Downloads the finished frames of a job into `out` (frame_00000.png, ...).
+    pub async fn fetch_frames(
+        &mut self,
+        job_id: &str,
+        from_index: u32,
+        out: &Path,
+    ) -> Result<Vec<PathBuf>> {
+        tokio::fs::create_dir_all(out)
+            .await
+            .with_context(|| format!("creating {}", out.display()))?;
+        let mut stream = self
+            .jobs
+            .fetch_frames(pb::FetchFramesRequest {
+                job_id: job_id.to_string(),
+                from_index,
+            })
+            .await
+            .map_err(status_error)?
+            .into_inner();
+        let mut written = Vec::new();
+        let mut buffer = Vec::new();
+        while let Some(chunk) = stream.message().await.map_err(status_error)? {
+            buffer.extend_from_slice(&chunk.png);
+            if chunk.last {
+                let path = out.join(format!("frame_{:05}.png", chunk.index));
+                tokio::fs::write(&path, &buffer)
+                    .await
+                    .with_context(|| format!("writing {}", path.display()))?;
+                buffer.clear();
+                written.push(path);
+            }
+        }
+        Ok(written)
+    }
+}
+
+/// A gRPC error as one readable line.
+pub fn status_error(status: Status) -> anyhow::Error {
+    anyhow::anyhow!("{:?}: {}", status.code(), status.message())
+}
+
+pub fn state_name(state: i32) -> &'static str {
+    match pb::JobState::try_from(state) {
+        Ok(pb::JobState::Queued) => "queued",
+        Ok(pb::JobState::Running) => "running",
+        Ok(pb::JobState::Succeeded) => "succeeded",
+        Ok(pb::JobState::Failed) => "failed",
+        Ok(pb::JobState::Cancelled) => "cancelled",
+        _ => "unknown",
+    }
+}
+
+pub fn timings_line(timings: &[pb::StageTiming]) -> String {
+    timings
+        .iter()
+        .map(|t| {
+            format!(
+                "{} {:.2} ms{}",
+                t.stage,
+                t.ms,
+                if t.gpu_clock { " (gpu)" } else { "" }
+            )
+        })
+        .collect::<Vec<_>>()
+        .join("  ")
+}
+
+/// Fails with the job's reason unless it succeeded.
+pub fn require_success(job: &pb::Job) -> Result<()> {
+    match pb::JobState::try_from(job.state) {
+        Ok(pb::JobState::Succeeded) => Ok(()),
+        _ if !job.error.is_empty() => {
+            bail!("job {} {}: {}", job.id, state_name(job.state), job.error)
+        }
+        _ => bail!("job {} {}", job.id, state_name(job.state)),
+    }
+}

@@ -1,0 +1,86 @@
+//! `pointfarm serve`: the daemon with its embedded worker, in one process.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use pointfarm_daemon::server::serve;
+use pointfarm_daemon::service::{Daemon, DaemonConfig};
+use pointfarm_worker::gpu::{AdapterChoice, GpuContext};
+
+#[derive(Args)]
+pub struct ServeArgs {
+    /// Address to listen on.
+    #[arg(long, default_value = "127.0.0.1:50051")]
+    listen: String,
+    /// Folder for the state database, uploaded datasets and rendered frames.
+    #[arg(long, default_value = "pointfarm-data")]
+    data_dir: PathBuf,
+    /// Folder whose files clients may register by path (repeatable).
+    #[arg(long = "data-root")]
+    data_roots: Vec<PathBuf>,
+    /// Require this bearer token on every call.
+    #[arg(long, env = "POINTFARM_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// Largest image side accepted.
+    #[arg(long, default_value_t = 8192)]
+    max_image_side: u32,
+    /// Do not render here (only queue work).
+    #[arg(long)]
+    no_worker: bool,
+    #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
+    adapter: AdapterChoice,
+}
+
+pub fn run(args: ServeArgs) -> Result<()> {
+    let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
+    runtime.block_on(async move {
+        let mut config = DaemonConfig::new(args.data_dir.clone());
+        config.data_roots = args.data_roots.clone();
+        config.max_image_side = args.max_image_side;
+        let daemon =
+            Daemon::open(config).with_context(|| format!("opening {}", args.data_dir.display()))?;
+        let gpu = if args.no_worker {
+            None
+        } else {
+            Some(Arc::new(GpuContext::new(args.adapter)?))
+        };
+        if let Some(gpu) = &gpu {
+            println!("worker on {}", gpu.describe());
+        }
+        let listener = tokio::net::TcpListener::bind(&args.listen)
+            .await
+            .with_context(|| format!("listening on {}", args.listen))?;
+        println!(
+            "pointfarm serving on {} (data in {})",
+            listener.local_addr()?,
+            args.data_dir.display()
+        );
+        serve(daemon, gpu, listener, args.token, shutdown_signal()).await
+    })
+}
+
+/// Completes on SIGTERM or Ctrl-C.
+async fn shutdown_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut term =
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(term) => term,
+                Err(_) => {
+                    let _ = ctrl_c.await;
+                    return;
+                }
+            };
+        tokio::select! {
+            _ = ctrl_c => {}
+            _ = term.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = ctrl_c.await;
+    }
+}
