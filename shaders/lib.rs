@@ -13,15 +13,19 @@ pub enum Shader {
     RasterAtomic32,
     /// Framebuffer clear and resolve: entry points `clear`, `resolve`.
     Resolve,
+    /// The benchmark's fixed-function baseline, a `PointList` render pipeline: entry points
+    /// `vertex_main`, `fragment_main`.
+    PointListBaseline,
 }
 
 const COMMON: &str = include_str!("common.wgsl");
 
 impl Shader {
-    pub const ALL: [Shader; 3] = [
+    pub const ALL: [Shader; 4] = [
         Shader::RasterAtomic64,
         Shader::RasterAtomic32,
         Shader::Resolve,
+        Shader::PointListBaseline,
     ];
 
     /// A label for debuggers and logs.
@@ -30,6 +34,7 @@ impl Shader {
             Shader::RasterAtomic64 => "raster_atomic64",
             Shader::RasterAtomic32 => "raster_atomic32",
             Shader::Resolve => "resolve",
+            Shader::PointListBaseline => "pointlist_baseline",
         }
     }
 
@@ -39,6 +44,7 @@ impl Shader {
             Shader::RasterAtomic64 => include_str!("raster_atomic64.wgsl"),
             Shader::RasterAtomic32 => include_str!("raster_atomic32.wgsl"),
             Shader::Resolve => include_str!("resolve.wgsl"),
+            Shader::PointListBaseline => include_str!("pointlist_baseline.wgsl"),
         };
         format!("{COMMON}\n{own}")
     }

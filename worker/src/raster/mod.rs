@@ -10,6 +10,7 @@
 
 mod basic_pass;
 mod gpu_data;
+mod pointlist_baseline;
 mod points;
 mod resolve_pass;
 mod targets;
@@ -22,6 +23,7 @@ use image::RgbaImage;
 use thiserror::Error;
 
 pub use basic_pass::AtomicsPath;
+pub use pointlist_baseline::{PointListBaseline, PointListFrame};
 pub use points::{GpuPointCloud, BATCH_POINTS};
 pub use timing::{Clock, Stage, StageTiming, StageTimings};
 
@@ -57,6 +59,8 @@ pub enum RenderError {
     },
     #[error("point size {0} is invalid: it must be 1 to {MAX_POINT_SIZE} pixels")]
     PointSize(u32),
+    #[error("point size {0} is not supported by the PointList baseline: it draws 1-pixel points")]
+    PointListPointSize(u32),
     #[error(transparent)]
     Camera(#[from] CameraError),
     #[error("the point cloud is empty")]
