@@ -1,5 +1,6 @@
 //! `pointfarm`: render point clouds from a terminal or a script.
 
+mod bench;
 mod parse;
 mod render;
 mod sample;
@@ -25,6 +26,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Benchmark the compute rasterizer against a PointList render pipeline on this GPU.
+    Bench(bench::BenchArgs),
     /// Render frames of a LAS/LAZ file on this machine's GPU (or lavapipe).
     Render(render::RenderArgs),
     /// Write a generated sample scene (survey-like coordinates, RGB) as LAS or LAZ.
@@ -46,6 +49,7 @@ fn main() -> ExitCode {
         .init();
 
     let result = match cli.command {
+        Command::Bench(args) => bench::run(args),
         Command::Render(args) => render::run(args),
         Command::Sample(args) => sample::run(args),
     };

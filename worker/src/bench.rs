@@ -9,6 +9,7 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use std::time::Instant;
 
 use glam::DVec3;
 use rand::seq::SliceRandom;
@@ -46,26 +47,29 @@ pub struct BenchOptions {
     pub cuboid_side: usize,
     /// Where the real scans are looked for.
     pub data_dir: PathBuf,
+    /// Time stages with host clocks even where the adapter has timestamp queries.
+    pub host_clocks: bool,
 }
 
 impl BenchOptions {
-    /// The full run: 1024x1024-point cuboid planes (up to 64 Mi points), 3 + 10 frames.
+    /// The full run: 1024x1024-point cuboid planes (up to 64 Mi points), 3 + 15 frames.
     pub fn full(width: u32, height: u32, data_dir: PathBuf) -> Self {
         Self {
             width,
             height,
             warmup_frames: 3,
-            frames: 10,
+            frames: 15,
             cuboid_side: 1024,
             data_dir,
+            host_clocks: false,
         }
     }
 
-    /// A few minutes on a 2-core software adapter: 512x512-point planes, 1 + 5 frames.
+    /// About two minutes on a 2-core software adapter: 512x512-point planes, 2 + 9 frames.
     pub fn quick(width: u32, height: u32, data_dir: PathBuf) -> Self {
         Self {
-            warmup_frames: 1,
-            frames: 5,
+            warmup_frames: 2,
+            frames: 9,
             cuboid_side: 512,
             ..Self::full(width, height, data_dir)
         }
@@ -124,8 +128,12 @@ pub struct MethodResult {
     /// `pointlist` or `compute-basic` (with the atomics path in `variant`).
     pub method: &'static str,
     pub variant: String,
-    /// Median over frames of the GPU time that produces the image.
+    /// Median over frames of the time that produces the image: the stages rasterize (with
+    /// the clear) and resolve, on the GPU clock where the adapter has timestamps.
     pub frame_ms: f64,
+    /// Median host wall-clock time of a whole frame as a caller sees it, readback included: a
+    /// cross-check of `frame_ms` that does not trust the adapter's timestamps.
+    pub wall_ms: f64,
     /// Points of the cloud (in view or not) divided by `frame_ms`.
     pub mpoints_per_s: f64,
     pub stages: Vec<StageMedian>,
@@ -157,6 +165,8 @@ pub struct SkippedWorkload {
 #[derive(Debug, Clone, Serialize)]
 pub struct BenchReport {
     pub adapter: AdapterReport,
+    /// Whether stages were timed by host clocks although the adapter has timestamps.
+    pub host_clocks: bool,
     pub width: u32,
     pub height: u32,
     pub warmup_frames: usize,
@@ -227,6 +237,10 @@ pub fn run(
     }
     let mut renderer = Renderer::new(gpu.clone());
     let mut baseline = PointListBaseline::new(gpu.clone());
+    if options.host_clocks {
+        renderer.use_host_clocks();
+        baseline.use_host_clocks();
+    }
     let mut workloads = Vec::new();
     let mut skipped = Vec::new();
 
@@ -282,6 +296,7 @@ pub fn run(
         .map(|w| w.speedup_vs_pointlist);
     Ok(BenchReport {
         adapter: AdapterReport::of(&gpu),
+        host_clocks: options.host_clocks,
         width: options.width,
         height: options.height,
         warmup_frames: options.warmup_frames,
@@ -305,21 +320,27 @@ fn measure(
     let rounds = options.warmup_frames + options.frames;
 
     let mut pointlist_timings = Vec::with_capacity(options.frames);
+    let mut pointlist_wall_ms = Vec::with_capacity(options.frames);
     let mut pointlist_image = None;
     for round in 0..rounds {
+        let started = Instant::now();
         let frame = baseline.render(resident, settings)?;
         if round >= options.warmup_frames {
+            pointlist_wall_ms.push(started.elapsed().as_secs_f64() * 1e3);
             pointlist_timings.push(frame.timings);
         }
         pointlist_image = Some(frame.image);
     }
 
     let mut compute_timings = Vec::with_capacity(options.frames);
+    let mut compute_wall_ms = Vec::with_capacity(options.frames);
     let mut compute_image = None;
     let mut path = None;
     for round in 0..rounds {
+        let started = Instant::now();
         let frame = renderer.render(resident, settings)?;
         if round >= options.warmup_frames {
+            compute_wall_ms.push(started.elapsed().as_secs_f64() * 1e3);
             compute_timings.push(frame.timings);
         }
         compute_image = Some(frame.image);
@@ -335,12 +356,14 @@ fn measure(
         "pointlist",
         "render pipeline".into(),
         &pointlist_timings,
+        pointlist_wall_ms,
         points,
     );
     let compute = method_result(
         "compute-basic",
         format!("{:?}", path.unwrap_or(crate::raster::AtomicsPath::Atomic32)),
         &compute_timings,
+        compute_wall_ms,
         points,
     );
     Ok(WorkloadResult {
@@ -361,6 +384,7 @@ fn method_result(
     method: &'static str,
     variant: String,
     frames: &[StageTimings],
+    wall_ms: Vec<f64>,
     points: usize,
 ) -> MethodResult {
     let frame_ms = median(
@@ -397,6 +421,7 @@ fn method_result(
         method,
         variant,
         frame_ms,
+        wall_ms: median(wall_ms),
         mpoints_per_s: points as f64 / (frame_ms * 1e3),
         stages,
     }
@@ -647,7 +672,10 @@ mod tests {
         )
         .expect("measure");
         assert_eq!(result.methods.len(), 2);
-        assert!(result.methods.iter().all(|m| m.frame_ms > 0.0));
+        assert!(result
+            .methods
+            .iter()
+            .all(|m| m.frame_ms > 0.0 && m.wall_ms > 0.0));
         // The front plane covers the same pixels with one colour in both methods.
         assert!(result.image_agreement > 0.99, "{}", result.image_agreement);
     }
