@@ -242,6 +242,19 @@ pub fn run(
         renderer.use_host_clocks();
         baseline.use_host_clocks();
     }
+    // Refuse a bad image size before spending time on a 10M-point cloud.
+    let unit_box = crate::cloud::WorldBounds {
+        min: DVec3::ZERO,
+        max: DVec3::ONE,
+    };
+    let aspect = options.width as f64 / options.height.max(1) as f64;
+    let probe = FrameSettings::new(
+        options.width,
+        options.height,
+        Camera::auto(&unit_box, aspect),
+    );
+    renderer.validate(&probe)?;
+    baseline.validate(&probe)?;
     let mut workloads = Vec::new();
     let mut skipped = Vec::new();
 
