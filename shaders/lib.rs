@@ -17,17 +17,21 @@ pub enum Shader {
     Edl,
     /// Framebuffer clear and resolve: entry points `clear`, `resolve`, `resolve_average`.
     Resolve,
+    /// The benchmark's fixed-function baseline, a `PointList` render pipeline: entry points
+    /// `vertex_main`, `fragment_main`.
+    PointListBaseline,
 }
 
 const COMMON: &str = include_str!("common.wgsl");
 
 impl Shader {
-    pub const ALL: [Shader; 5] = [
+    pub const ALL: [Shader; 6] = [
         Shader::RasterAtomic64,
         Shader::RasterAtomic32,
         Shader::HqAccumulate,
         Shader::Edl,
         Shader::Resolve,
+        Shader::PointListBaseline,
     ];
 
     /// A label for debuggers and logs.
@@ -38,6 +42,7 @@ impl Shader {
             Shader::HqAccumulate => "hq_accumulate",
             Shader::Edl => "edl",
             Shader::Resolve => "resolve",
+            Shader::PointListBaseline => "pointlist_baseline",
         }
     }
 
@@ -49,6 +54,7 @@ impl Shader {
             Shader::HqAccumulate => include_str!("hq_accumulate.wgsl"),
             Shader::Edl => include_str!("edl.wgsl"),
             Shader::Resolve => include_str!("resolve.wgsl"),
+            Shader::PointListBaseline => include_str!("pointlist_baseline.wgsl"),
         };
         format!("{COMMON}\n{own}")
     }

@@ -1,6 +1,7 @@
 //! `pointfarm`: render point clouds from a terminal or a script.
 
 mod admin;
+mod bench;
 mod parse;
 mod remote;
 mod remote_render;
@@ -29,6 +30,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Benchmark the compute rasterizer against a PointList render pipeline on this GPU.
+    Bench(bench::BenchArgs),
     /// Render frames of a LAS/LAZ file on this machine's GPU (or lavapipe).
     Render(Box<render::RenderArgs>),
     /// Write a generated sample scene (survey-like coordinates, RGB) as LAS or LAZ.
@@ -74,6 +77,7 @@ fn main() -> ExitCode {
 
     let result = match cli.command {
         Command::Render(args) => render::run(*args),
+        Command::Bench(args) => bench::run(args),
         Command::Sample(args) => sample::run(args),
         Command::Serve(args) => serve::run(*args),
         Command::Dataset { server, command } => admin::dataset(&server, command),

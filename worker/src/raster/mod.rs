@@ -12,6 +12,7 @@ mod basic_pass;
 mod edl_pass;
 mod gpu_data;
 mod hq_pass;
+mod pointlist_baseline;
 mod points;
 mod resolve_pass;
 mod targets;
@@ -24,6 +25,7 @@ use image::RgbaImage;
 use thiserror::Error;
 
 pub use basic_pass::AtomicsPath;
+pub use pointlist_baseline::{PointListBaseline, PointListFrame};
 pub use points::{GpuPointCloud, BATCH_POINTS};
 pub use timing::{Clock, Stage, StageTiming, StageTimings};
 
@@ -65,6 +67,8 @@ pub enum RenderError {
     Edl { strength: f32, radius: f32 },
     #[error("point size {0} is invalid: it must be 1 to {MAX_POINT_SIZE} pixels")]
     PointSize(u32),
+    #[error("point size {0} is not supported by the PointList baseline: it draws 1-pixel points")]
+    PointListPointSize(u32),
     #[error(transparent)]
     Camera(#[from] CameraError),
     #[error("the point cloud is empty")]

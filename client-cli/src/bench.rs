@@ -1,0 +1,245 @@
+//! `pointfarm bench`: the PointList baseline and the compute rasterizer on the same workloads,
+//! in one run on one adapter; prints a table and writes JSON and markdown.
+
+use std::fmt::Write as _;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use pointfarm_worker::bench::{self, BenchOptions, BenchReport, MethodResult, HEADLINE_WORKLOAD};
+use pointfarm_worker::gpu::{AdapterChoice, GpuContext};
+use serde::Serialize;
+
+use crate::parse;
+
+#[derive(Args)]
+pub struct BenchArgs {
+    /// A run of a few minutes on a 2-core software adapter: fewer frames, smaller cuboid planes.
+    #[arg(long)]
+    quick: bool,
+    /// Write the figures as JSON to FILE.
+    #[arg(long, value_name = "FILE")]
+    json: Option<PathBuf>,
+    /// Write the tables as markdown to FILE.
+    #[arg(long, value_name = "FILE")]
+    markdown: Option<PathBuf>,
+    /// Image size in pixels.
+    #[arg(long, default_value = "1920x1080", value_parser = parse::size)]
+    size: (u32, u32),
+    /// Directory of the real scans (lone-star.laz, autzen_trim.laz); missing ones are skipped.
+    #[arg(long, default_value = "../shared/data")]
+    data: PathBuf,
+    /// Time every stage with host clocks, even where the adapter has GPU timestamps.
+    #[arg(long)]
+    host_clocks: bool,
+    /// Adapter: auto (hardware GPU if present, else lavapipe), hardware or software.
+    #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
+    adapter: AdapterChoice,
+}
+
+/// The JSON file: the run's context and the report.
+#[derive(Serialize)]
+struct BenchFile<'a> {
+    command: String,
+    quick: bool,
+    /// Seconds since the Unix epoch when the run ended.
+    finished_unix_s: u64,
+    wall_s: f64,
+    machine: Machine,
+    #[serde(flatten)]
+    report: &'a BenchReport,
+}
+
+#[derive(Serialize)]
+struct Machine {
+    cores: usize,
+    cpu: Option<String>,
+    os: &'static str,
+    arch: &'static str,
+}
+
+impl Machine {
+    fn this() -> Self {
+        let cpu = std::fs::read_to_string("/proc/cpuinfo")
+            .ok()
+            .and_then(|info| {
+                info.lines()
+                    .find(|l| l.starts_with("model name"))
+                    .and_then(|l| l.split_once(':'))
+                    .map(|(_, name)| name.trim().to_string())
+            });
+        Self {
+            cores: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            cpu,
+            os: std::env::consts::OS,
+            arch: std::env::consts::ARCH,
+        }
+    }
+}
+
+pub fn run(args: BenchArgs) -> Result<()> {
+    let started = Instant::now();
+    let (width, height) = args.size;
+    let options = BenchOptions {
+        host_clocks: args.host_clocks,
+        ..if args.quick {
+            BenchOptions::quick(width, height, args.data.clone())
+        } else {
+            BenchOptions::full(width, height, args.data.clone())
+        }
+    };
+    let gpu = Arc::new(GpuContext::new(args.adapter)?);
+    println!("adapter: {}", gpu.describe());
+    println!(
+        "{width}x{height}, {} warm-up + {} measured frames per method and workload",
+        options.warmup_frames, options.frames
+    );
+    let report = bench::run(gpu, &options, &mut |line| eprintln!("  {line}"))?;
+
+    let markdown = markdown_tables(&report);
+    println!("\n{markdown}");
+    if let Some(speedup) = report.speedup_vs_pointlist {
+        println!("speedup_vs_pointlist ({HEADLINE_WORKLOAD}): {speedup:.2}x");
+    }
+    warn_about_timestamps(&report);
+
+    if let Some(path) = &args.markdown {
+        std::fs::write(path, &markdown).with_context(|| format!("writing {}", path.display()))?;
+    }
+    if let Some(path) = &args.json {
+        let file = BenchFile {
+            command: std::env::args().collect::<Vec<_>>().join(" "),
+            quick: args.quick,
+            finished_unix_s: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_secs()),
+            wall_s: started.elapsed().as_secs_f64(),
+            machine: Machine::this(),
+            report: &report,
+        };
+        let json = serde_json::to_string_pretty(&file)?;
+        std::fs::write(path, json + "\n").with_context(|| format!("writing {}", path.display()))?;
+    }
+    println!("done in {:.0} s", started.elapsed().as_secs_f64());
+    Ok(())
+}
+
+/// The summary table (frame time, throughput, speed-up) and the per-stage table.
+fn markdown_tables(report: &BenchReport) -> String {
+    let mut md = String::new();
+    // Writing to a String cannot fail.
+    let _ = writeln!(
+        md,
+        "| workload | points | in view | PointList ms | PointList Mpts/s | compute ms | \
+         compute Mpts/s | speed-up | wall ms PointList / compute | same colour |\n\
+         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+    );
+    for w in &report.workloads {
+        let (pointlist, compute) = (&w.pointlist, &w.compute);
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.1} | {:.2}x | {:.1} / {:.1} | {:.1}% |",
+            w.workload,
+            thousands(w.points),
+            thousands(w.points_in_view),
+            pointlist.frame_ms,
+            pointlist.mpoints_per_s,
+            compute.frame_ms,
+            compute.mpoints_per_s,
+            w.speedup_vs_pointlist,
+            pointlist.wall_ms,
+            compute.wall_ms,
+            w.image_agreement * 100.0,
+        );
+    }
+    let _ = writeln!(
+        md,
+        "\nMedian per stage (ms; clock in brackets):\n\n\
+         | workload | method | upload | rasterize (incl. clear) | resolve | readback |\n\
+         |---|---|---:|---:|---:|---:|"
+    );
+    for w in &report.workloads {
+        for m in [&w.pointlist, &w.compute] {
+            let _ = writeln!(
+                md,
+                "| {} | {} ({}) | {} | {} | {} | {} |",
+                w.workload,
+                m.method,
+                m.variant,
+                stage(m, "upload"),
+                stage(m, "rasterize"),
+                stage(m, "resolve"),
+                stage(m, "readback"),
+            );
+        }
+    }
+    for s in &report.skipped {
+        let _ = writeln!(md, "\nSkipped {}: {}.", s.workload, s.reason);
+    }
+    md
+}
+
+/// Frames whose wall-clock time exceeds their stages by much mean the GPU timestamps missed
+/// work (lavapipe under-reports the resolve pass): say so, and how to get honest figures.
+fn warn_about_timestamps(report: &BenchReport) {
+    if report.host_clocks {
+        return;
+    }
+    let suspect: Vec<String> = report
+        .workloads
+        .iter()
+        .flat_map(|w| [(&w.workload, &w.pointlist), (&w.workload, &w.compute)])
+        .filter(|(_, m)| m.unaccounted_ms() > 2.0_f64.max(0.2 * m.wall_ms))
+        .map(|(workload, m)| {
+            format!(
+                "{workload} {}: {:.1} of {:.1} ms",
+                m.method,
+                m.unaccounted_ms(),
+                m.wall_ms
+            )
+        })
+        .collect();
+    if !suspect.is_empty() {
+        eprintln!(
+            "warning: wall-clock time that no stage accounts for ({}); this adapter's GPU \
+             timestamps may under-report; rerun with --host-clocks",
+            suspect.join(", ")
+        );
+    }
+}
+
+fn stage(method: &MethodResult, name: &str) -> String {
+    method
+        .stages
+        .iter()
+        .find(|s| s.stage == name)
+        .map_or("–".into(), |s| format!("{:.2} ({})", s.ms, s.clock))
+}
+
+/// 10000000 as 10,000,000.
+fn thousands(n: usize) -> String {
+    let digits = n.to_string();
+    let mut out = String::new();
+    for (i, c) in digits.chars().enumerate() {
+        if i > 0 && (digits.len() - i).is_multiple_of(3) {
+            out.push(',');
+        }
+        out.push(c);
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::thousands;
+
+    #[test]
+    fn thousands_separators() {
+        assert_eq!(thousands(0), "0");
+        assert_eq!(thousands(999), "999");
+        assert_eq!(thousands(1000), "1,000");
+        assert_eq!(thousands(10_000_000), "10,000,000");
+    }
+}

@@ -1,0 +1,29 @@
+// The fixed-function baseline of the benchmark (what the papers call GL_POINTS): the same
+// points, read from the same storage buffers as the compute passes, drawn as a PointList with
+// a hardware depth test. One-pixel points only: WebGPU has no point size.
+//
+// The vertex index is the point's index within its chunk. Points outside near..far are
+// clipped by the hardware against clip-space z in [0, 1] (the DirectX-style projection of
+// `camera.rs`), which matches `project_point`'s depth test up to rounding.
+
+@group(0) @binding(0) var<uniform> frame: FrameUniforms;
+@group(0) @binding(1) var<storage, read> points: array<GpuPoint>;
+
+struct VertexOutput {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) @interpolate(flat) colour: vec4<f32>,
+}
+
+@vertex
+fn vertex_main(@builtin(vertex_index) index: u32) -> VertexOutput {
+    let point = points[index];
+    var out: VertexOutput;
+    out.clip = frame.view_proj * vec4<f32>(point.position, 1.0);
+    out.colour = unpack4x8unorm(point.colour);
+    return out;
+}
+
+@fragment
+fn fragment_main(in: VertexOutput) -> @location(0) vec4<f32> {
+    return in.colour;
+}
