@@ -71,3 +71,5 @@ pub fn own_stderr_lines(output: &Output) -> Vec<String> {
         .map(str::to_owned)
         .collect()
 }
+
+pub mod service;

@@ -1,0 +1,459 @@
+//! The render service end to end: real gRPC over loopback sockets, a real sled store on disk,
+//! the embedded worker rendering on lavapipe.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use pointfarm_daemon::camera_path::camera_for_frame;
+use pointfarm_daemon::model::{CameraPath, Turntable};
+use pointfarm_proto::v1 as pb;
+use pointfarm_tests::service::{
+    fetch_images, gpu, turntable_job, upload, upload_messages, watch_to_end, TestDaemon,
+};
+use pointfarm_tests::{pointfarm_bin, shared_data};
+use pointfarm_worker::ingest::{load_point_cloud, write_las, LasWriteOptions};
+use pointfarm_worker::raster::{FrameSettings, Renderer};
+use tonic::Code;
+
+/// autzen_trim.laz when the real scans are present, else a generated sample.
+fn scan(dir: &std::path::Path) -> PathBuf {
+    if let Some(path) = shared_data("autzen_trim.laz") {
+        return path;
+    }
+    let path = dir.join("sample.laz");
+    let cloud = pointfarm_worker::sample::sample_scene(60_000, 3);
+    write_las(&path, &cloud, &LasWriteOptions::default()).expect("write sample");
+    path
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_turntable_job_renders_the_same_frames_as_the_renderer() {
+    let daemon = TestDaemon::start(|_| {}, None).await;
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let file = scan(scratch.path());
+    let bytes = std::fs::read(&file).expect("read scan");
+    let mut datasets = daemon.datasets().await;
+    let dataset = upload(&mut datasets, "scan.laz", &bytes).await;
+    // The same content gives the same id, and is not stored twice.
+    assert_eq!(
+        upload(&mut datasets, "again.laz", &bytes).await.id,
+        dataset.id
+    );
+
+    let mut jobs = daemon.jobs().await;
+    let request = turntable_job("turntable-1", &dataset.id, 3, 160, 120);
+    let job = jobs
+        .submit_job(request.clone())
+        .await
+        .expect("submit")
+        .into_inner();
+    let again = jobs
+        .submit_job(request)
+        .await
+        .expect("resubmit")
+        .into_inner();
+    assert_eq!(
+        again.id, job.id,
+        "a repeated request id returns the same job"
+    );
+
+    let (finished, frames) = watch_to_end(&mut jobs, &job.id).await;
+    assert_eq!(
+        finished.state,
+        pb::JobState::Succeeded as i32,
+        "{}",
+        finished.error
+    );
+    assert_eq!(frames.len(), 3);
+    for frame in &frames {
+        let stages: Vec<&str> = frame.timings.iter().map(|t| t.stage.as_str()).collect();
+        assert!(
+            stages.contains(&"rasterize") && stages.contains(&"encode"),
+            "{stages:?}"
+        );
+    }
+
+    // The frames equal what the renderer draws directly with the same cameras.
+    let fetched = fetch_images(&mut jobs, &job.id, 0).await;
+    assert_eq!(
+        fetched.iter().map(|(i, _)| *i).collect::<Vec<_>>(),
+        vec![0, 1, 2]
+    );
+    let cloud = load_point_cloud(&file).expect("load");
+    let mut renderer = Renderer::new(gpu());
+    let resident = renderer.upload(&cloud).expect("upload");
+    let path = CameraPath::Turntable(Turntable {
+        frames: 3,
+        center: None,
+        radius: None,
+        elevation_deg: 30.0,
+        degrees: 360.0,
+        fov_y_deg: 50.0,
+    });
+    for (index, image) in &fetched {
+        let camera = camera_for_frame(&path, *index, &cloud.bounds, 160.0 / 120.0);
+        let direct = renderer
+            .render(&resident, &FrameSettings::new(160, 120, camera))
+            .expect("render");
+        assert!(
+            direct.image == *image,
+            "frame {index} differs from the direct rendering"
+        );
+    }
+    // Resuming a download from a frame index.
+    assert_eq!(fetch_images(&mut jobs, &job.id, 2).await.len(), 1);
+
+    let shown = jobs
+        .get_job(pb::GetJobRequest { id: job.id.clone() })
+        .await
+        .expect("get")
+        .into_inner();
+    assert_eq!(
+        shown.frames.len(),
+        3,
+        "GetJob lists the finished frames with timings"
+    );
+    daemon.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn invalid_requests_get_their_status_codes() {
+    let roots = tempfile::tempdir().expect("tempdir");
+    std::fs::write(roots.path().join("inside.las"), b"LASF").expect("write");
+    let root = roots.path().to_path_buf();
+    let daemon = TestDaemon::start(
+        move |c| {
+            c.max_image_side = 1024;
+            c.max_upload_bytes = 4096;
+            c.data_roots = vec![root];
+        },
+        None,
+    )
+    .await;
+    let mut jobs = daemon.jobs().await;
+    let mut datasets = daemon.datasets().await;
+
+    let code_and_message = |result: Result<tonic::Response<pb::Job>, tonic::Status>| match result {
+        Ok(_) => panic!("the request was accepted"),
+        Err(status) => (status.code(), status.message().to_string()),
+    };
+
+    // Unknown dataset.
+    let (code, message) = code_and_message(
+        jobs.submit_job(turntable_job("a", "ds-unknown", 2, 64, 64))
+            .await,
+    );
+    assert_eq!(code, Code::NotFound, "{message}");
+
+    // A real dataset for the rest.
+    let sample = pointfarm_worker::sample::sample_scene(2_000, 1);
+    let file = roots.path().join("tiny.las");
+    write_las(&file, &sample, &LasWriteOptions::default()).expect("write");
+    let registered = datasets
+        .register_dataset(pb::RegisterDatasetRequest {
+            path: "tiny.las".into(),
+            name: String::new(),
+        })
+        .await
+        .expect("register under the data root")
+        .into_inner();
+
+    let (code, message) = code_and_message(
+        jobs.submit_job(turntable_job("b", &registered.id, 0, 64, 64))
+            .await,
+    );
+    assert_eq!(code, Code::InvalidArgument);
+    assert!(
+        message.contains("camera_path.turntable.frames"),
+        "{message}"
+    );
+
+    let mut nan = turntable_job("c", &registered.id, 2, 64, 64);
+    nan.camera_path = Some(pb::CameraPath {
+        path: Some(pb::camera_path::Path::Turntable(pb::Turntable {
+            frames: 2,
+            center: Some(pb::Vec3 {
+                x: 1.0,
+                y: f64::NAN,
+                z: 0.0,
+            }),
+            ..Default::default()
+        })),
+    });
+    let (code, message) = code_and_message(jobs.submit_job(nan).await);
+    assert_eq!(code, Code::InvalidArgument);
+    assert!(
+        message.contains("camera_path.turntable.center"),
+        "{message}"
+    );
+
+    let (code, message) = code_and_message(
+        jobs.submit_job(turntable_job("d", &registered.id, 2, 100_000, 100_000))
+            .await,
+    );
+    assert_eq!(code, Code::InvalidArgument);
+    assert!(
+        message.contains("width") && message.contains("1024"),
+        "{message}"
+    );
+
+    // Finished jobs cannot be cancelled.
+    let job = jobs
+        .submit_job(turntable_job("e", &registered.id, 1, 32, 32))
+        .await
+        .expect("submit")
+        .into_inner();
+    let (finished, _) = watch_to_end(&mut jobs, &job.id).await;
+    assert_eq!(
+        finished.state,
+        pb::JobState::Succeeded as i32,
+        "{}",
+        finished.error
+    );
+    let (code, _) = code_and_message(jobs.cancel_job(pb::CancelJobRequest { id: job.id }).await);
+    assert_eq!(code, Code::FailedPrecondition);
+
+    // Uploads over the size limit.
+    let big = vec![7u8; 10_000];
+    let status = datasets
+        .upload_dataset(tokio_stream::iter(upload_messages("big.las", &big)))
+        .await
+        .expect_err("too big");
+    assert_eq!(
+        status.code(),
+        Code::ResourceExhausted,
+        "{}",
+        status.message()
+    );
+
+    // Paths outside the data roots, and traversal out of them.
+    for path in ["/etc/passwd", "../../../../etc/passwd"] {
+        let status = datasets
+            .register_dataset(pb::RegisterDatasetRequest {
+                path: path.into(),
+                name: String::new(),
+            })
+            .await
+            .expect_err("outside the roots");
+        assert_eq!(
+            status.code(),
+            Code::InvalidArgument,
+            "{path}: {}",
+            status.message()
+        );
+    }
+    daemon.stop().await;
+
+    // A server with a token refuses calls without it.
+    let guarded = TestDaemon::start(|_| {}, Some("s3cret")).await;
+    let status = guarded
+        .jobs()
+        .await
+        .get_job(pb::GetJobRequest { id: "x".into() })
+        .await
+        .expect_err("no token");
+    assert_eq!(status.code(), Code::Unauthenticated);
+    let mut request = tonic::Request::new(pb::GetJobRequest { id: "x".into() });
+    request
+        .metadata_mut()
+        .insert("authorization", "Bearer s3cret".parse().expect("header"));
+    let status = guarded
+        .jobs()
+        .await
+        .get_job(request)
+        .await
+        .expect_err("no such job");
+    assert_eq!(status.code(), Code::NotFound, "the token is accepted");
+    guarded.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_corrupt_dataset_fails_its_job_while_another_completes() {
+    let daemon = TestDaemon::start(|_| {}, None).await;
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let good_file = scratch.path().join("good.las");
+    write_las(
+        &good_file,
+        &pointfarm_worker::sample::sample_scene(5_000, 2),
+        &LasWriteOptions::default(),
+    )
+    .expect("write");
+    let good_bytes = std::fs::read(&good_file).expect("read");
+    // The same file cut short: its header promises more points than it holds.
+    let corrupt_bytes = good_bytes[..good_bytes.len() / 2].to_vec();
+
+    let mut datasets = daemon.datasets().await;
+    let corrupt = upload(&mut datasets, "corrupt.las", &corrupt_bytes).await;
+    let good = upload(&mut datasets, "good.las", &good_bytes).await;
+    let mut jobs = daemon.jobs().await;
+    let bad_job = jobs
+        .submit_job(turntable_job("bad", &corrupt.id, 2, 64, 48))
+        .await
+        .expect("submit")
+        .into_inner();
+    let good_job = jobs
+        .submit_job(turntable_job("good", &good.id, 2, 64, 48))
+        .await
+        .expect("submit")
+        .into_inner();
+
+    let (bad_end, _) = watch_to_end(&mut jobs, &bad_job.id).await;
+    assert_eq!(bad_end.state, pb::JobState::Failed as i32);
+    assert!(
+        bad_end.error.contains("truncated"),
+        "reason: {}",
+        bad_end.error
+    );
+    let (good_end, frames) = watch_to_end(&mut jobs, &good_job.id).await;
+    assert_eq!(
+        good_end.state,
+        pb::JobState::Succeeded as i32,
+        "{}",
+        good_end.error
+    );
+    assert_eq!(
+        frames.len() as u32 + good_end.frames_done - frames.len() as u32,
+        2
+    );
+
+    // Health checking answers for the services.
+    let mut health = tonic_health::pb::health_client::HealthClient::new(daemon.channel().await);
+    let serving = health
+        .check(tonic_health::pb::HealthCheckRequest {
+            service: "pointfarm.v1.JobService".into(),
+        })
+        .await
+        .expect("health")
+        .into_inner();
+    assert_eq!(
+        serving.status,
+        tonic_health::pb::health_check_response::ServingStatus::Serving as i32
+    );
+    daemon.stop().await;
+}
+
+/// `kill -9` in the middle of a job: after a restart the job completes and the frames that
+/// were finished before are not rendered again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_killed_daemon_resumes_its_jobs_without_rerendering_finished_frames() {
+    let data = tempfile::tempdir().expect("tempdir");
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let file = scratch.path().join("sample.laz");
+    write_las(
+        &file,
+        &pointfarm_worker::sample::sample_scene(100_000, 4),
+        &LasWriteOptions::default(),
+    )
+    .expect("write");
+    let port = {
+        let probe = std::net::TcpListener::bind("127.0.0.1:0").expect("probe port");
+        probe.local_addr().expect("address").port()
+    };
+    let address = format!("127.0.0.1:{port}");
+    let start = || {
+        std::process::Command::new(pointfarm_bin())
+            .args(["serve", "--listen", &address, "--data-dir"])
+            .arg(data.path())
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .expect("start pointfarm serve")
+    };
+    let connect = || async {
+        for _ in 0..200 {
+            if let Ok(channel) = tonic::transport::Channel::from_shared(format!("http://{address}"))
+                .expect("url")
+                .connect()
+                .await
+            {
+                return channel;
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        panic!("the daemon did not come up");
+    };
+
+    let mut server = start();
+    let channel = connect().await;
+    let mut datasets =
+        pointfarm_proto::v1::dataset_service_client::DatasetServiceClient::new(channel.clone());
+    let mut jobs = pointfarm_proto::v1::job_service_client::JobServiceClient::new(channel);
+    let dataset = upload(
+        &mut datasets,
+        "sample.laz",
+        &std::fs::read(&file).expect("read"),
+    )
+    .await;
+    // Slow frames (large, high quality, shaded) so the kill lands mid-job.
+    let mut request = turntable_job("resume", &dataset.id, 24, 1024, 768);
+    request.render = Some(pb::RenderOptions {
+        quality: pb::Quality::High as i32,
+        shading: pb::Shading::Edl as i32,
+        point_size: 2,
+        ..Default::default()
+    });
+    let job = jobs.submit_job(request).await.expect("submit").into_inner();
+
+    let frames_dir = data.path().join("jobs").join(&job.id);
+    let mut before = Vec::new();
+    for _ in 0..600 {
+        let current = jobs
+            .get_job(pb::GetJobRequest { id: job.id.clone() })
+            .await
+            .expect("get")
+            .into_inner();
+        if current.frames_done >= 3 {
+            before = current.frames.iter().map(|f| f.index).collect();
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert!(before.len() >= 3, "frames were rendered before the kill");
+    server.kill().expect("kill -9");
+    let _ = server.wait();
+    let modified: Vec<(u32, std::time::SystemTime)> = before
+        .iter()
+        .map(|&i| {
+            let path = frames_dir.join(format!("frame_{i:05}.png"));
+            (
+                i,
+                std::fs::metadata(&path)
+                    .and_then(|m| m.modified())
+                    .expect("finished frame on disk"),
+            )
+        })
+        .collect();
+
+    let mut server = start();
+    let channel = connect().await;
+    let mut jobs = pointfarm_proto::v1::job_service_client::JobServiceClient::new(channel);
+    let (finished, _) = watch_to_end(&mut jobs, &job.id).await;
+    assert_eq!(
+        finished.state,
+        pb::JobState::Succeeded as i32,
+        "{}",
+        finished.error
+    );
+    assert_eq!(finished.frames_done, 24);
+    for (index, time) in modified {
+        let path = frames_dir.join(format!("frame_{index:05}.png"));
+        let now = std::fs::metadata(&path)
+            .and_then(|m| m.modified())
+            .expect("frame");
+        assert_eq!(
+            now, time,
+            "frame {index} was rendered again after the restart"
+        );
+    }
+    assert_eq!(
+        std::fs::read_dir(&frames_dir)
+            .expect("frames")
+            .filter(|e| e
+                .as_ref()
+                .is_ok_and(|e| e.path().extension().is_some_and(|x| x == "png")))
+            .count(),
+        24
+    );
+    let _ = server.kill();
+    let _ = server.wait();
+}
