@@ -1,13 +1,11 @@
 #!/usr/bin/env bash
-# The README's first command: from a fresh clone, render a turntable of a generated sample
-# cloud to PNG frames in ./frames/.
+# The README's first command: from a fresh clone, run the render service end to end in one
+# process (daemon and embedded worker on a loopback port) on a generated sample cloud, and
+# write a 12-frame turntable to ./frames/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 bash deploy/setup.sh
 cargo build --release --locked --bin pointfarm
-pointfarm=target/release/pointfarm
-mkdir -p frames
-"$pointfarm" sample frames/sample.laz
-"$pointfarm" render frames/sample.laz --turntable 12 --size 1280x720 --point-size 2 --out frames/
+target/release/pointfarm demo --out frames --frames 12 --size 1280x720
 echo "frames written to $(pwd)/frames/"

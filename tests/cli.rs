@@ -230,3 +230,89 @@ fn colour_modes_and_high_quality_are_options_of_render() {
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("not a colour mode"));
 }
+
+#[test]
+fn demo_runs_the_service_end_to_end_in_one_process() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let laz = sample(dir.path(), "sample.laz", 20_000);
+    let out = dir.path().join("frames");
+    let output = pointfarm(&[
+        "demo",
+        &laz,
+        "--out",
+        &path_arg(&out),
+        "--frames",
+        "2",
+        "--size",
+        "160x120",
+    ]);
+    assert_ok(&output);
+    for i in 0..2 {
+        assert_rendered(&out.join(format!("frame_{i:05}.png")), 160, 120);
+    }
+    assert!(
+        stdout(&output).contains("2 frames in"),
+        "{}",
+        stdout(&output)
+    );
+}
+
+#[test]
+fn remote_render_uploads_submits_follows_and_downloads() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let laz = sample(dir.path(), "sample.laz", 20_000);
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .expect("port")
+        .local_addr()
+        .expect("addr")
+        .port();
+    let address = format!("127.0.0.1:{port}");
+    let data = path_arg(&dir.path().join("data"));
+    let mut server = std::process::Command::new(pointfarm_tests::pointfarm_bin())
+        .args(["serve", "--listen", &address, "--data-dir", &data])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("serve");
+    let frames = dir.path().join("remote");
+    let mut output = None;
+    // The server needs a moment to listen.
+    for _ in 0..100 {
+        let attempt = pointfarm(&[
+            "render",
+            &laz,
+            "--server",
+            &address,
+            "--turntable",
+            "2",
+            "--size",
+            "160x120",
+            "--out",
+            &path_arg(&frames),
+        ]);
+        if attempt.status.success()
+            || !String::from_utf8_lossy(&attempt.stderr).contains("cannot connect")
+        {
+            output = Some(attempt);
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    let output = output.expect("the server came up");
+    assert_ok(&output);
+    for i in 0..2 {
+        assert_rendered(&frames.join(format!("frame_{i:05}.png")), 160, 120);
+    }
+    let listed = pointfarm(&["jobs", "list", "--server", &address, "--json"]);
+    assert_ok(&listed);
+    assert!(
+        stdout(&listed).contains("\"succeeded\""),
+        "{}",
+        stdout(&listed)
+    );
+    let unknown = pointfarm(&["jobs", "show", "job-missing", "--server", &address]);
+    assert!(!unknown.status.success());
+    assert!(String::from_utf8_lossy(&unknown.stderr).contains("NotFound"));
+    let _ = server.kill();
+    let _ = server.wait();
+}

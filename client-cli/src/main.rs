@@ -2,6 +2,7 @@
 
 mod admin;
 mod bench;
+mod demo;
 mod parse;
 mod remote;
 mod remote_render;
@@ -36,6 +37,8 @@ enum Command {
     Render(Box<render::RenderArgs>),
     /// Write a generated sample scene (survey-like coordinates, RGB) as LAS or LAZ.
     Sample(sample::SampleArgs),
+    /// The service end to end in one process: daemon, worker, upload, turntable, frames.
+    Demo(Box<demo::DemoArgs>),
     /// Run the render service: the daemon with an embedded worker.
     Serve(Box<serve::ServeArgs>),
     /// Datasets on a server.
@@ -80,6 +83,7 @@ fn main() -> ExitCode {
         Command::Bench(args) => bench::run(args),
         Command::Sample(args) => sample::run(args),
         Command::Serve(args) => serve::run(*args),
+        Command::Demo(args) => demo::run(*args),
         Command::Dataset { server, command } => admin::dataset(&server, command),
         Command::Jobs { server, command } => admin::jobs(&server, command),
         Command::Frames { server, command } => admin::frames(&server, command),

@@ -1,0 +1,123 @@
+//! `pointfarm demo`: the whole service in one process. Starts a daemon with its embedded
+//! worker on a loopback port, uploads a cloud (a generated sample unless a file is given),
+//! submits a turntable over gRPC, follows it and downloads the frames.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use pointfarm_daemon::server::serve;
+use pointfarm_daemon::service::{Daemon, DaemonConfig};
+use pointfarm_proto::v1 as pb;
+use pointfarm_worker::gpu::{AdapterChoice, GpuContext};
+use pointfarm_worker::ingest::{write_las, LasWriteOptions};
+use pointfarm_worker::sample::{sample_scene, DEFAULT_SAMPLE_POINTS};
+
+use crate::remote::{require_success, status_error, timings_line, Client};
+
+#[derive(Args)]
+pub struct DemoArgs {
+    /// LAS/LAZ file to render (default: a generated sample scene).
+    input: Option<PathBuf>,
+    /// Folder for the frames (and the service's data, in `.pointfarm-data`).
+    #[arg(long, short, default_value = "frames")]
+    out: PathBuf,
+    /// Turntable frames.
+    #[arg(long, default_value_t = 12)]
+    frames: u32,
+    #[arg(long, default_value = "1280x720", value_parser = crate::parse::size)]
+    size: (u32, u32),
+    #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
+    adapter: AdapterChoice,
+}
+
+pub fn run(args: DemoArgs) -> Result<()> {
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let input = match &args.input {
+        Some(file) => file.clone(),
+        None => {
+            let file = args.out.join("sample.laz");
+            write_las(
+                &file,
+                &sample_scene(DEFAULT_SAMPLE_POINTS, 1),
+                &LasWriteOptions::default(),
+            )?;
+            println!(
+                "generated {} ({DEFAULT_SAMPLE_POINTS} points)",
+                file.display()
+            );
+            file
+        }
+    };
+    let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
+    runtime.block_on(async move {
+        let daemon = Daemon::open(DaemonConfig::new(args.out.join(".pointfarm-data")))?;
+        let gpu = Arc::new(GpuContext::new(args.adapter)?);
+        println!("worker on {}", gpu.describe());
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+            .await
+            .context("binding a loopback port")?;
+        let address = listener.local_addr()?;
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let server = tokio::spawn(serve(daemon, Some(gpu), listener, None, async {
+            let _ = stopped.await;
+        }));
+        println!("daemon on {address}");
+
+        let result = async {
+            let mut client = Client::connect(&address.to_string(), None).await?;
+            let dataset = client.ensure_dataset(&input).await?;
+            let request = pb::SubmitJobRequest {
+                request_id: format!(
+                    "demo-{}-{}-{}x{}",
+                    dataset.id, args.frames, args.size.0, args.size.1
+                ),
+                dataset_id: dataset.id.clone(),
+                camera_path: Some(pb::CameraPath {
+                    path: Some(pb::camera_path::Path::Turntable(pb::Turntable {
+                        frames: args.frames,
+                        ..Default::default()
+                    })),
+                }),
+                width: args.size.0,
+                height: args.size.1,
+                render: Some(pb::RenderOptions {
+                    point_size: 2,
+                    quality: pb::Quality::High as i32,
+                    ..Default::default()
+                }),
+                priority: 0,
+            };
+            let job = client
+                .jobs
+                .submit_job(request)
+                .await
+                .map_err(status_error)?
+                .into_inner();
+            println!(
+                "job {} on dataset {}: {} frames",
+                job.id, dataset.id, job.frames_total
+            );
+            let finished = client.follow(&job.id, false).await?;
+            require_success(&finished)?;
+            let written = client.fetch_frames(&job.id, 0, &args.out).await?;
+            let details = client
+                .jobs
+                .get_job(pb::GetJobRequest { id: job.id })
+                .await
+                .map_err(status_error)?
+                .into_inner();
+            if let Some(frame) = details.frames.last() {
+                println!("last frame: {}", timings_line(&frame.timings));
+            }
+            println!("{} frames in {}", written.len(), args.out.display());
+            anyhow::Ok(())
+        }
+        .await;
+        let _ = stop.send(());
+        server.await.context("daemon task")??;
+        result
+    })
+}
