@@ -113,6 +113,45 @@ async fn a_turntable_job_renders_the_same_frames_as_the_renderer() {
         3,
         "GetJob lists the finished frames with timings"
     );
+
+    // The first job decoded the file; a second job that needs the points again (another
+    // colour mode) gets them from the worker's cache, without decoding.
+    let load_ms = |frame: &pb::FrameFinished| {
+        frame
+            .timings
+            .iter()
+            .find(|t| t.stage == "load")
+            .map(|t| t.ms)
+    };
+    let first_frame = frames
+        .iter()
+        .find(|f| f.dataset_cache_hit.is_some())
+        .expect("a frame reports the load");
+    assert_eq!(first_frame.dataset_cache_hit, Some(false));
+    let mut second = turntable_job("turntable-2", &dataset.id, 1, 160, 120);
+    second.render = Some(pb::RenderOptions {
+        color_mode: pb::ColorMode::Elevation as i32,
+        ..Default::default()
+    });
+    let second = jobs.submit_job(second).await.expect("submit").into_inner();
+    let (second_end, second_frames) = watch_to_end(&mut jobs, &second.id).await;
+    assert_eq!(
+        second_end.state,
+        pb::JobState::Succeeded as i32,
+        "{}",
+        second_end.error
+    );
+    assert_eq!(
+        second_frames[0].dataset_cache_hit,
+        Some(true),
+        "the second job hits the worker cache"
+    );
+    eprintln!(
+        "{}: load {:.1} ms decoding, {:.1} ms from the worker cache",
+        file.display(),
+        load_ms(first_frame).unwrap_or(f64::NAN),
+        load_ms(&second_frames[0]).unwrap_or(f64::NAN)
+    );
     daemon.stop().await;
 }
 

@@ -285,6 +285,7 @@ mod tests {
         let frames: Vec<pb::FrameFinished> = (0..20)
             .map(|i| pb::FrameFinished {
                 index: i,
+                dataset_cache_hit: None,
                 timings: vec![
                     pb::StageTiming {
                         stage: "rasterize".into(),

@@ -15,8 +15,8 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::error::DaemonError;
 use crate::model::{
-    CameraPath, ColorMode, Dataset, FrameState, Interpolation, Job, JobSpec, JobState, Keyframe,
-    Point3, Quality, RenderOptions, Shading, StageTiming, Turntable,
+    CameraPath, ColorMode, Dataset, FrameReport, FrameState, Interpolation, Job, JobSpec, JobState,
+    Keyframe, Point3, Quality, RenderOptions, Shading, StageTiming, Turntable,
 };
 use crate::service::{hex, Daemon};
 
@@ -369,6 +369,14 @@ fn timings_message(timings: &[StageTiming]) -> Vec<pb::StageTiming> {
         .collect()
 }
 
+fn frame_message(report: &FrameReport) -> pb::FrameFinished {
+    pb::FrameFinished {
+        index: report.index,
+        timings: timings_message(&report.timings),
+        dataset_cache_hit: report.dataset_cache_hit,
+    }
+}
+
 /// Runs blocking store work off the async executor.
 async fn blocking<T: Send + 'static>(
     f: impl FnOnce() -> Result<T, DaemonError> + Send + 'static,
@@ -532,18 +540,12 @@ impl JobService for Api {
         let daemon = self.daemon.clone();
         let (job, frames) = blocking(move || {
             let job = daemon.job(&id)?;
-            let frames = daemon.store.frame_timings(&id)?;
+            let frames = daemon.store.frame_reports(&id)?;
             Ok((job, frames))
         })
         .await?;
         let mut message = job_message(&job, None);
-        message.frames = frames
-            .iter()
-            .map(|(index, timings)| pb::FrameFinished {
-                index: *index,
-                timings: timings_message(timings),
-            })
-            .collect();
+        message.frames = frames.iter().map(frame_message).collect();
         Ok(Response::new(message))
     }
 
@@ -599,10 +601,7 @@ impl JobService for Api {
                 match events.recv().await {
                     Ok(event) if event.job.id == id => {
                         let ended = event.job.state.is_terminal();
-                        let frame = event.frame.map(|(index, timings)| pb::FrameFinished {
-                            index,
-                            timings: timings_message(&timings),
-                        });
+                        let frame = event.frame.as_ref().map(frame_message);
                         if sender
                             .send(Ok(pb::JobEvent {
                                 job: Some(job_message(&event.job, None)),

@@ -152,19 +152,28 @@ pub struct StageTiming {
     pub gpu_clock: bool,
 }
 
+/// What the worker reports of a finished frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameReport {
+    pub index: u32,
+    pub timings: Vec<StageTiming>,
+    /// Set when the worker loaded the dataset for this frame: from its cache or not.
+    pub dataset_cache_hit: Option<bool>,
+}
+
 /// One frame of a job.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum FrameState {
     Pending { attempts: u32 },
-    Done { timings: Vec<StageTiming> },
+    Done(FrameReport),
 }
 
 /// Something that happened to a job, for watchers.
 #[derive(Debug, Clone, PartialEq)]
 pub struct JobEvent {
     pub job: Job,
-    /// Set when a frame finished: its index and timings.
-    pub frame: Option<(u32, Vec<StageTiming>)>,
+    /// Set when a frame finished.
+    pub frame: Option<FrameReport>,
 }
 
 pub fn now_unix_ms() -> i64 {

@@ -26,6 +26,8 @@ pub struct DaemonConfig {
     pub max_upload_bytes: u64,
     /// Attempts per frame before its job fails.
     pub max_frame_attempts: u32,
+    /// Size bound of the worker's processed-dataset cache.
+    pub worker_cache_bytes: u64,
 }
 
 impl DaemonConfig {
@@ -36,6 +38,7 @@ impl DaemonConfig {
             max_frames: 100_000,
             max_upload_bytes: 16 << 30,
             max_frame_attempts: 3,
+            worker_cache_bytes: 8 << 30,
             data_dir,
         }
     }
@@ -47,6 +50,10 @@ impl DaemonConfig {
     pub fn frame_path(&self, job_id: &str, index: u32) -> PathBuf {
         self.frames_dir(job_id)
             .join(format!("frame_{index:05}.png"))
+    }
+
+    pub fn worker_cache_dir(&self) -> PathBuf {
+        self.data_dir.join("worker-cache.sled")
     }
 
     fn uploads_dir(&self) -> PathBuf {
@@ -116,7 +123,7 @@ impl Daemon {
         self.events.subscribe()
     }
 
-    pub fn publish(&self, job: &Job, frame: Option<(u32, Vec<crate::model::StageTiming>)>) {
+    pub fn publish(&self, job: &Job, frame: Option<crate::model::FrameReport>) {
         // No watcher is not an error.
         let _ = self.events.send(JobEvent {
             job: job.clone(),

@@ -8,7 +8,7 @@ use serde::de::DeserializeOwned;
 use serde::Serialize;
 use thiserror::Error;
 
-use crate::model::{now_unix_ms, Dataset, FrameState, Job, JobSpec, JobState, StageTiming};
+use crate::model::{now_unix_ms, Dataset, FrameReport, FrameState, Job, JobSpec, JobState};
 
 #[derive(Debug, Error)]
 pub enum StoreError {
@@ -247,16 +247,15 @@ impl Store {
         Ok(requeued)
     }
 
-    /// Timings of the finished frames of a job, by frame index.
-    pub fn frame_timings(&self, job_id: &str) -> Result<Vec<(u32, Vec<StageTiming>)>, StoreError> {
+    /// The reports of the finished frames of a job, by frame index.
+    pub fn frame_reports(&self, job_id: &str) -> Result<Vec<FrameReport>, StoreError> {
         let mut prefix = job_id.as_bytes().to_vec();
         prefix.push(b'/');
         let mut out = Vec::new();
         for entry in self.frames.scan_prefix(&prefix) {
-            let (key, value) = entry?;
-            if let FrameState::Done { timings } = decode::<FrameState>(&value)? {
-                let index_bytes: [u8; 4] = key[prefix.len()..].try_into().unwrap_or([0; 4]);
-                out.push((u32::from_be_bytes(index_bytes), timings));
+            let (_, value) = entry?;
+            if let FrameState::Done(report) = decode::<FrameState>(&value)? {
+                out.push(report);
             }
         }
         Ok(out)

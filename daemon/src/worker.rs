@@ -7,17 +7,19 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use pointfarm_worker::cloud::{PointCloud, WorldBounds};
+use pointfarm_worker::cache::{CacheOutcome, DatasetCache};
+use pointfarm_worker::cloud::WorldBounds;
 use pointfarm_worker::color::{point_colours, ColorMode as WorkerColorMode};
 use pointfarm_worker::gpu::GpuContext;
-use pointfarm_worker::ingest::load_point_cloud;
 use pointfarm_worker::raster::{
     Clock, FrameSettings, GpuPointCloud, Quality as WorkerQuality, Renderer,
     Shading as WorkerShading,
 };
 
 use crate::camera_path::camera_for_frame;
-use crate::model::{ColorMode, FrameState, Job, JobState, Quality, Shading, StageTiming};
+use crate::model::{
+    ColorMode, FrameReport, FrameState, Job, JobState, Quality, Shading, StageTiming,
+};
 use crate::service::Daemon;
 
 /// The cloud currently on the GPU.
@@ -26,11 +28,23 @@ struct Resident {
     color_mode: ColorMode,
     bounds: WorldBounds,
     cloud: GpuPointCloud,
+    /// How the cloud was loaded, until the next finished frame reports it.
+    unreported_load: Option<(f64, CacheOutcome)>,
 }
 
 /// Runs the worker until `stop` is set. Returns when the current frame is finished.
 pub fn run(daemon: Arc<Daemon>, gpu: Arc<GpuContext>, stop: Arc<AtomicBool>) {
     let mut renderer = Renderer::new(gpu);
+    let cache = match DatasetCache::open(
+        &daemon.config.worker_cache_dir(),
+        daemon.config.worker_cache_bytes,
+    ) {
+        Ok(cache) => Some(cache),
+        Err(e) => {
+            tracing::error!(error = %e, "the dataset cache is unavailable; decoding every time");
+            None
+        }
+    };
     let mut resident: Option<Resident> = None;
     while !stop.load(Ordering::SeqCst) {
         let task = match daemon.store.next_task() {
@@ -47,7 +61,14 @@ pub fn run(daemon: Arc<Daemon>, gpu: Arc<GpuContext>, stop: Arc<AtomicBool>) {
         };
         let span = tracing::info_span!("frame", job = %job.id, frame = index);
         let _entered = span.enter();
-        if let Err(e) = render_task(&daemon, &mut renderer, &mut resident, job, index) {
+        if let Err(e) = render_task(
+            &daemon,
+            cache.as_ref(),
+            &mut renderer,
+            &mut resident,
+            job,
+            index,
+        ) {
             tracing::error!(error = %e, "frame task failed");
         }
     }
@@ -55,6 +76,7 @@ pub fn run(daemon: Arc<Daemon>, gpu: Arc<GpuContext>, stop: Arc<AtomicBool>) {
 
 fn render_task(
     daemon: &Daemon,
+    cache: Option<&DatasetCache>,
     renderer: &mut Renderer,
     resident: &mut Option<Resident>,
     job: Job,
@@ -79,6 +101,7 @@ fn render_task(
         *resident = None; // free the old cloud's GPU memory first
         match load_resident(
             daemon,
+            cache,
             renderer,
             spec.dataset_id.as_str(),
             spec.render.color_mode,
@@ -87,7 +110,7 @@ fn render_task(
             Err(reason) => return fail_job(daemon, &job, reason),
         }
     }
-    let Some(current) = resident.as_ref() else {
+    let Some(current) = resident.as_mut() else {
         return Ok(());
     };
 
@@ -127,23 +150,28 @@ fn render_task(
     }
     match rendered {
         Ok(frame) => {
-            let timings: Vec<StageTiming> = frame
-                .timings
-                .stages
-                .iter()
-                .map(|t| StageTiming {
-                    stage: t.stage.name().to_string(),
-                    ms: t.ms,
-                    gpu_clock: t.clock == Clock::Gpu,
-                })
-                .collect();
-            daemon.store.set_frame(
-                &job.id,
+            let mut timings: Vec<StageTiming> = Vec::new();
+            let load = current.unreported_load.take();
+            if let Some((ms, _)) = load {
+                timings.push(StageTiming {
+                    stage: "load".into(),
+                    ms,
+                    gpu_clock: false,
+                });
+            }
+            timings.extend(frame.timings.stages.iter().map(|t| StageTiming {
+                stage: t.stage.name().to_string(),
+                ms: t.ms,
+                gpu_clock: t.clock == Clock::Gpu,
+            }));
+            let report = FrameReport {
                 index,
-                &FrameState::Done {
-                    timings: timings.clone(),
-                },
-            )?;
+                timings,
+                dataset_cache_hit: load.map(|(_, outcome)| outcome == CacheOutcome::Hit),
+            };
+            daemon
+                .store
+                .set_frame(&job.id, index, &FrameState::Done(report.clone()))?;
             let updated = daemon
                 .store
                 .update_job(&job.id, |j| {
@@ -155,7 +183,7 @@ fn render_task(
                 .unwrap_or(current_job);
             daemon.store.flush()?;
             tracing::info!(%frame.timings, "frame done");
-            daemon.publish(&updated, Some((index, timings)));
+            daemon.publish(&updated, Some(report));
         }
         Err(reason) => {
             let attempts = match daemon.store.frame(&job.id, index)? {
@@ -178,15 +206,26 @@ fn render_task(
     Ok(())
 }
 
+/// Loads a dataset (from the cache when it has it), colours it and uploads it.
 fn load_resident(
     daemon: &Daemon,
+    cache: Option<&DatasetCache>,
     renderer: &Renderer,
     dataset_id: &str,
     color_mode: ColorMode,
 ) -> Result<Resident, String> {
+    let started = std::time::Instant::now();
     let dataset = daemon.dataset(dataset_id).map_err(|e| e.to_string())?;
-    let mut cloud: PointCloud =
-        load_point_cloud(&dataset.path).map_err(|e| format!("dataset {dataset_id}: {e}"))?;
+    let loaded = match cache {
+        Some(cache) => cache
+            .load(&dataset.sha256, &dataset.path)
+            .map_err(|e| e.to_string()),
+        None => pointfarm_worker::ingest::load_point_cloud(&dataset.path)
+            .map(|cloud| (cloud, CacheOutcome::Miss))
+            .map_err(|e| e.to_string()),
+    };
+    let (mut cloud, outcome) = loaded.map_err(|e| format!("dataset {dataset_id}: {e}"))?;
+    let load_ms = started.elapsed().as_secs_f64() * 1e3;
     cloud.colors = point_colours(&cloud, worker_color_mode(color_mode));
     let gpu_cloud = renderer
         .upload(&cloud)
@@ -196,6 +235,7 @@ fn load_resident(
         color_mode,
         bounds: cloud.bounds,
         cloud: gpu_cloud,
+        unreported_load: Some((load_ms, outcome)),
     })
 }
 

@@ -5,6 +5,7 @@
 //! and render settings, and returns images with their stage timings.
 
 pub mod bench;
+pub mod cache;
 pub mod camera;
 pub mod cloud;
 pub mod color;

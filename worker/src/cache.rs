@@ -1,0 +1,337 @@
+//! The worker's cache of processed datasets, in sled: a cloud that was decoded once (LAS/LAZ
+//! parsing, recentring, colour detection) loads again as plain columns, without decoding.
+//!
+//! Entries are keyed by the file's content hash and [`FORMAT_VERSION`], so a changed file or a
+//! changed layout never returns stale points. Columns are stored in chunks of
+//! [`CHUNK_POINTS`] points (sled prefers moderate values). The cache holds at most
+//! `max_bytes`; the least recently used entries are evicted to make room.
+
+use std::path::Path;
+use std::time::Instant;
+
+use glam::{DVec3, Vec3};
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::cloud::{ColorSource, PointCloud, WorldBounds};
+use crate::ingest::{load_point_cloud, IngestError};
+
+/// Bump when the stored layout or the meaning of ingest's output changes.
+pub const FORMAT_VERSION: u32 = 1;
+const CHUNK_POINTS: usize = 1 << 20;
+/// Bytes per point in the cache: position, colour, intensity, classification, return.
+const BYTES_PER_POINT: u64 = 12 + 4 + 2 + 1 + 1;
+
+#[derive(Debug, Error)]
+pub enum CacheError {
+    #[error("dataset cache: {0}")]
+    Db(#[from] sled::Error),
+    #[error("dataset cache entry is unreadable: {0}")]
+    Corrupt(String),
+    #[error(transparent)]
+    Ingest(#[from] IngestError),
+}
+
+/// Whether a load came from the cache.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CacheOutcome {
+    Hit,
+    /// Decoded from the file (and stored, if it fits).
+    Miss,
+}
+
+#[derive(Serialize, Deserialize)]
+struct EntryMeta {
+    points: usize,
+    origin: [f64; 3],
+    bounds_min: [f64; 3],
+    bounds_max: [f64; 3],
+    color_source: String,
+    bytes: u64,
+    last_used_unix_ms: u128,
+}
+
+pub struct DatasetCache {
+    entries: sled::Tree,
+    chunks: sled::Tree,
+    max_bytes: u64,
+}
+
+fn now_ms() -> u128 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_millis())
+        .unwrap_or(0)
+}
+
+fn chunk_key(key: &str, chunk: usize) -> Vec<u8> {
+    let mut k = key.as_bytes().to_vec();
+    k.push(b'/');
+    k.extend_from_slice(&(chunk as u32).to_be_bytes());
+    k
+}
+
+fn source_name(source: ColorSource) -> &'static str {
+    match source {
+        ColorSource::Rgb16 => "rgb16",
+        ColorSource::Rgb8In16Bit => "rgb8in16",
+        ColorSource::IntensityGrey => "intensity",
+        ColorSource::Constant => "constant",
+    }
+}
+
+fn source_from(name: &str) -> Option<ColorSource> {
+    Some(match name {
+        "rgb16" => ColorSource::Rgb16,
+        "rgb8in16" => ColorSource::Rgb8In16Bit,
+        "intensity" => ColorSource::IntensityGrey,
+        "constant" => ColorSource::Constant,
+        _ => return None,
+    })
+}
+
+impl DatasetCache {
+    pub fn open(path: &Path, max_bytes: u64) -> Result<Self, CacheError> {
+        let db = sled::open(path)?;
+        Ok(Self {
+            entries: db.open_tree("entries")?,
+            chunks: db.open_tree("chunks")?,
+            max_bytes,
+        })
+    }
+
+    /// The cloud of the file with content hash `sha256` at `path`: from the cache, or decoded
+    /// and then cached.
+    pub fn load(
+        &self,
+        sha256: &str,
+        path: &Path,
+    ) -> Result<(PointCloud, CacheOutcome), CacheError> {
+        let key = format!("{sha256}-v{FORMAT_VERSION}");
+        let started = Instant::now();
+        if let Some(cloud) = self.get(&key)? {
+            tracing::info!(
+                dataset = sha256,
+                points = cloud.len(),
+                ms = started.elapsed().as_millis() as u64,
+                "dataset cache hit"
+            );
+            return Ok((cloud, CacheOutcome::Hit));
+        }
+        let cloud = load_point_cloud(path)?;
+        tracing::info!(
+            dataset = sha256,
+            points = cloud.len(),
+            ms = started.elapsed().as_millis() as u64,
+            "dataset cache miss: decoded"
+        );
+        self.put(&key, &cloud)?;
+        Ok((cloud, CacheOutcome::Miss))
+    }
+
+    fn get(&self, key: &str) -> Result<Option<PointCloud>, CacheError> {
+        let Some(raw) = self.entries.get(key.as_bytes())? else {
+            return Ok(None);
+        };
+        let mut meta: EntryMeta =
+            serde_json::from_slice(&raw).map_err(|e| CacheError::Corrupt(e.to_string()))?;
+        let n = meta.points;
+        let mut cloud = PointCloud {
+            origin: DVec3::from_array(meta.origin),
+            positions: Vec::with_capacity(n),
+            colors: Vec::with_capacity(n),
+            intensity: Vec::with_capacity(n),
+            classification: Vec::with_capacity(n),
+            return_number: Vec::with_capacity(n),
+            bounds: WorldBounds {
+                min: DVec3::from_array(meta.bounds_min),
+                max: DVec3::from_array(meta.bounds_max),
+            },
+            color_source: source_from(&meta.color_source)
+                .ok_or_else(|| CacheError::Corrupt(meta.color_source.clone()))?,
+        };
+        for chunk in 0..n.div_ceil(CHUNK_POINTS) {
+            let bytes = self
+                .chunks
+                .get(chunk_key(key, chunk))?
+                .ok_or_else(|| CacheError::Corrupt(format!("{key}: chunk {chunk} missing")))?;
+            let count = (n - chunk * CHUNK_POINTS).min(CHUNK_POINTS);
+            decode_chunk(&bytes, count, &mut cloud).ok_or_else(|| {
+                CacheError::Corrupt(format!("{key}: chunk {chunk} has the wrong size"))
+            })?;
+        }
+        meta.last_used_unix_ms = now_ms();
+        if let Ok(raw) = serde_json::to_vec(&meta) {
+            self.entries.insert(key.as_bytes(), raw)?;
+        }
+        Ok(Some(cloud))
+    }
+
+    fn put(&self, key: &str, cloud: &PointCloud) -> Result<(), CacheError> {
+        let bytes = cloud.len() as u64 * BYTES_PER_POINT;
+        if bytes > self.max_bytes {
+            tracing::info!(
+                key,
+                bytes,
+                max = self.max_bytes,
+                "dataset too large for the cache"
+            );
+            return Ok(());
+        }
+        self.evict_until_free(bytes)?;
+        for (chunk, start) in (0..cloud.len()).step_by(CHUNK_POINTS).enumerate() {
+            let end = (start + CHUNK_POINTS).min(cloud.len());
+            self.chunks
+                .insert(chunk_key(key, chunk), encode_chunk(cloud, start..end))?;
+        }
+        let meta = EntryMeta {
+            points: cloud.len(),
+            origin: cloud.origin.to_array(),
+            bounds_min: cloud.bounds.min.to_array(),
+            bounds_max: cloud.bounds.max.to_array(),
+            color_source: source_name(cloud.color_source).into(),
+            bytes,
+            last_used_unix_ms: now_ms(),
+        };
+        let raw = serde_json::to_vec(&meta).map_err(|e| CacheError::Corrupt(e.to_string()))?;
+        // The entry goes in last: a crash before it leaves only unreachable chunks.
+        self.entries.insert(key.as_bytes(), raw)?;
+        self.entries.flush()?;
+        Ok(())
+    }
+
+    /// Removes least recently used entries until `needed` more bytes fit.
+    fn evict_until_free(&self, needed: u64) -> Result<(), CacheError> {
+        let mut entries: Vec<(String, EntryMeta)> = Vec::new();
+        for item in self.entries.iter() {
+            let (key, raw) = item?;
+            if let Ok(meta) = serde_json::from_slice::<EntryMeta>(&raw) {
+                entries.push((String::from_utf8_lossy(&key).into_owned(), meta));
+            }
+        }
+        let mut used: u64 = entries.iter().map(|(_, m)| m.bytes).sum();
+        entries.sort_by_key(|(_, m)| m.last_used_unix_ms);
+        for (key, meta) in entries {
+            if used + needed <= self.max_bytes {
+                break;
+            }
+            self.remove(&key, meta.points)?;
+            used -= meta.bytes;
+            tracing::info!(key, "evicted from the dataset cache");
+        }
+        Ok(())
+    }
+
+    fn remove(&self, key: &str, points: usize) -> Result<(), CacheError> {
+        self.entries.remove(key.as_bytes())?;
+        for chunk in 0..points.div_ceil(CHUNK_POINTS) {
+            self.chunks.remove(chunk_key(key, chunk))?;
+        }
+        Ok(())
+    }
+
+    /// Keys of the cached entries, for inspection.
+    pub fn keys(&self) -> Vec<String> {
+        self.entries
+            .iter()
+            .keys()
+            .filter_map(Result::ok)
+            .map(|k| String::from_utf8_lossy(&k).into_owned())
+            .collect()
+    }
+}
+
+fn encode_chunk(cloud: &PointCloud, range: std::ops::Range<usize>) -> Vec<u8> {
+    let mut bytes = Vec::with_capacity(range.len() * BYTES_PER_POINT as usize);
+    for p in &cloud.positions[range.clone()] {
+        for c in p.to_array() {
+            bytes.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    for c in &cloud.colors[range.clone()] {
+        bytes.extend_from_slice(&c.to_le_bytes());
+    }
+    for i in &cloud.intensity[range.clone()] {
+        bytes.extend_from_slice(&i.to_le_bytes());
+    }
+    bytes.extend_from_slice(&cloud.classification[range.clone()]);
+    bytes.extend_from_slice(&cloud.return_number[range]);
+    bytes
+}
+
+fn decode_chunk(bytes: &[u8], count: usize, cloud: &mut PointCloud) -> Option<()> {
+    if bytes.len() != count * BYTES_PER_POINT as usize {
+        return None;
+    }
+    let (positions, rest) = bytes.split_at(count * 12);
+    let (colors, rest) = rest.split_at(count * 4);
+    let (intensity, rest) = rest.split_at(count * 2);
+    let (classification, return_number) = rest.split_at(count);
+    let f32_at = |b: &[u8]| f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+    cloud.positions.extend(
+        positions
+            .chunks_exact(12)
+            .map(|p| Vec3::new(f32_at(&p[0..4]), f32_at(&p[4..8]), f32_at(&p[8..12]))),
+    );
+    cloud.colors.extend(
+        colors
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])),
+    );
+    cloud.intensity.extend(
+        intensity
+            .chunks_exact(2)
+            .map(|c| u16::from_le_bytes([c[0], c[1]])),
+    );
+    cloud.classification.extend_from_slice(classification);
+    cloud.return_number.extend_from_slice(return_number);
+    Some(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ingest::{write_las, LasWriteOptions};
+    use crate::sample::sample_scene;
+
+    #[test]
+    fn a_cached_cloud_equals_the_decoded_one_and_the_cache_evicts_the_least_recent() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let files: Vec<std::path::PathBuf> = (0..3)
+            .map(|seed| {
+                let path = dir.path().join(format!("s{seed}.laz"));
+                write_las(
+                    &path,
+                    &sample_scene(3_000, seed),
+                    &LasWriteOptions::default(),
+                )
+                .expect("write");
+                path
+            })
+            .collect();
+        // Room for two of the three clouds.
+        let cache = DatasetCache::open(&dir.path().join("cache"), 2 * 3_000 * BYTES_PER_POINT + 10)
+            .expect("open");
+        let (first, outcome) = cache.load("aaa", &files[0]).expect("load");
+        assert_eq!(outcome, CacheOutcome::Miss);
+        let (again, outcome) = cache.load("aaa", &files[0]).expect("load");
+        assert_eq!(outcome, CacheOutcome::Hit);
+        assert_eq!(again, first, "the cache returns exactly the decoded cloud");
+        assert_eq!(again, load_point_cloud(&files[0]).expect("decode"));
+
+        cache.load("bbb", &files[1]).expect("load");
+        std::thread::sleep(std::time::Duration::from_millis(5));
+        cache.load("aaa", &files[0]).expect("touch aaa"); // bbb is now the least recent
+        std::thread::sleep(std::time::Duration::from_millis(5));
+        cache.load("ccc", &files[2]).expect("load");
+        let mut keys = cache.keys();
+        keys.sort();
+        assert_eq!(
+            keys,
+            vec![
+                format!("aaa-v{FORMAT_VERSION}"),
+                format!("ccc-v{FORMAT_VERSION}")
+            ]
+        );
+    }
+}
