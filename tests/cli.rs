@@ -316,3 +316,39 @@ fn remote_render_uploads_submits_follows_and_downloads() {
     let _ = server.kill();
     let _ = server.wait();
 }
+
+#[test]
+fn turntable_video_needs_ffmpeg_and_says_so_when_it_is_missing() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let laz = sample(dir.path(), "sample.laz", 10_000);
+    let frames = dir.path().join("frames");
+    let video = dir.path().join("turn.mp4");
+    let output = pointfarm(&[
+        "render",
+        &laz,
+        "--turntable",
+        "2",
+        "--size",
+        "96x64",
+        "--out",
+        &path_arg(&frames),
+        "--video",
+        &path_arg(&video),
+    ]);
+    let has_ffmpeg = std::process::Command::new("ffmpeg")
+        .arg("-version")
+        .output()
+        .is_ok();
+    if has_ffmpeg {
+        assert_ok(&output);
+        assert!(std::fs::metadata(&video).expect("video written").len() > 0);
+    } else {
+        assert!(!output.status.success());
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(stderr.contains("ffmpeg is not installed"), "{stderr}");
+        assert!(
+            frames.join("frame_00001.png").is_file(),
+            "the frames are still there"
+        );
+    }
+}

@@ -496,3 +496,93 @@ async fn a_killed_daemon_resumes_its_jobs_without_rerendering_finished_frames() 
     let _ = server.kill();
     let _ = server.wait();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn higher_priority_jobs_run_first() {
+    let daemon = TestDaemon::start(|_| {}, None).await;
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let file = scratch.path().join("s.laz");
+    write_las(
+        &file,
+        &pointfarm_worker::sample::sample_scene(50_000, 5),
+        &LasWriteOptions::default(),
+    )
+    .expect("write");
+    let mut datasets = daemon.datasets().await;
+    let dataset = upload(&mut datasets, "s.laz", &std::fs::read(&file).expect("read")).await;
+    let mut jobs = daemon.jobs().await;
+    let mut low = turntable_job("low", &dataset.id, 20, 640, 480);
+    low.render = Some(pb::RenderOptions {
+        quality: pb::Quality::High as i32,
+        ..Default::default()
+    });
+    let low = jobs.submit_job(low).await.expect("submit").into_inner();
+    let mut high = turntable_job("high", &dataset.id, 1, 64, 48);
+    high.priority = 10;
+    let high = jobs.submit_job(high).await.expect("submit").into_inner();
+    let (high_end, _) = watch_to_end(&mut jobs, &high.id).await;
+    assert_eq!(high_end.state, pb::JobState::Succeeded as i32);
+    let low_now = jobs
+        .get_job(pb::GetJobRequest { id: low.id.clone() })
+        .await
+        .expect("get")
+        .into_inner();
+    assert!(
+        low_now.frames_done < 20,
+        "the high-priority job waited for the whole low-priority job"
+    );
+    // Cancelling stops the rest promptly.
+    jobs.cancel_job(pb::CancelJobRequest { id: low.id.clone() })
+        .await
+        .expect("cancel");
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let cancelled = jobs
+        .get_job(pb::GetJobRequest { id: low.id })
+        .await
+        .expect("get")
+        .into_inner();
+    assert_eq!(cancelled.state, pb::JobState::Cancelled as i32);
+    assert!(cancelled.frames_done < 20);
+    daemon.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_shuts_the_daemon_down_cleanly() {
+    let data = tempfile::tempdir().expect("tempdir");
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .expect("port")
+        .local_addr()
+        .expect("addr")
+        .port();
+    let address = format!("127.0.0.1:{port}");
+    let mut server = std::process::Command::new(pointfarm_bin())
+        .args(["serve", "--listen", &address, "--data-dir"])
+        .arg(data.path())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("serve");
+    let mut up = false;
+    for _ in 0..200 {
+        if tokio::net::TcpStream::connect(&address).await.is_ok() {
+            up = true;
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    assert!(up, "the daemon came up");
+    let killed = std::process::Command::new("kill")
+        .args(["-TERM", &server.id().to_string()])
+        .status()
+        .expect("kill -TERM");
+    assert!(killed.success());
+    for _ in 0..100 {
+        if let Some(status) = server.try_wait().expect("wait") {
+            assert!(status.success(), "exit status {status}");
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let _ = server.kill();
+    panic!("the daemon did not stop within 10 s of SIGTERM");
+}

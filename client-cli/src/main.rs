@@ -9,6 +9,7 @@ mod remote_render;
 mod render;
 mod sample;
 mod serve;
+mod video;
 
 use std::process::ExitCode;
 

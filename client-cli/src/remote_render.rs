@@ -136,6 +136,9 @@ pub fn run(server: &str, args: &RenderArgs) -> Result<()> {
         if args.turntable.is_some() {
             let written = client.fetch_frames(&job.id, 0, &args.out).await?;
             println!("{} frames in {}", written.len(), args.out.display());
+            if let Some(video) = &args.video {
+                crate::video::assemble(&args.out, video, args.fps)?;
+            }
         } else {
             let temp = tempdir_beside(&args.out)?;
             let written = client.fetch_frames(&job.id, 0, &temp).await?;

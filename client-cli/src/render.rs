@@ -29,6 +29,12 @@ pub struct RenderArgs {
     /// Bearer token for the server.
     #[arg(long, env = "POINTFARM_TOKEN", hide_env_values = true)]
     pub(crate) token: Option<String>,
+    /// With --turntable: also assemble the frames into this video (needs ffmpeg).
+    #[arg(long, requires = "turntable")]
+    pub(crate) video: Option<PathBuf>,
+    /// Frames per second of --video.
+    #[arg(long, default_value_t = 30)]
+    pub(crate) fps: u32,
     /// Server jobs: higher runs first.
     #[arg(long, default_value_t = 0)]
     pub(crate) priority: i32,
@@ -211,6 +217,9 @@ pub fn run(args: RenderArgs) -> Result<()> {
             }
             progress.finish_and_clear();
             print_summary(&args.out, &all);
+            if let Some(video) = &args.video {
+                crate::video::assemble(&args.out, video, args.fps)?;
+            }
         }
     }
     Ok(())
