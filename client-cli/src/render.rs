@@ -29,6 +29,13 @@ pub struct RenderArgs {
     /// Bearer token for the server.
     #[arg(long, env = "POINTFARM_TOKEN", hide_env_values = true)]
     pub(crate) token: Option<String>,
+    /// Supersampling anti-aliasing: render at K times the size and average (1 = off).
+    #[arg(long, default_value_t = 1, value_name = "K")]
+    pub(crate) supersample: u32,
+    /// Also write each frame's linear depth as a 16-bit PNG (0 = no point, 1..65535 from
+    /// near to far): FRAME.depth.png, or depth_00000.png, ... with --turntable.
+    #[arg(long)]
+    pub(crate) depth: bool,
     /// With --turntable: also assemble the frames into this video (needs ffmpeg).
     #[arg(long, requires = "turntable")]
     pub(crate) video: Option<PathBuf>,
@@ -164,6 +171,8 @@ pub fn run(args: RenderArgs) -> Result<()> {
                 depth_band: args.depth_band,
             },
         },
+        supersample: args.supersample,
+        read_depth: args.depth,
         shading: match args.shading {
             ShadingArg::None => Shading::None,
             ShadingArg::Edl => Shading::Edl {
@@ -189,6 +198,9 @@ pub fn run(args: RenderArgs) -> Result<()> {
             frame
                 .save_png(&args.out)
                 .with_context(|| format!("writing {}", args.out.display()))?;
+            if args.depth {
+                save_depth(&frame, &args.out.with_extension("depth.png"), &base)?;
+            }
             println!("{}  {}", args.out.display(), frame.timings);
         }
         Some(frames) => {
@@ -206,6 +218,9 @@ pub fn run(args: RenderArgs) -> Result<()> {
                 frame
                     .save_png(&path)
                     .with_context(|| format!("writing {}", path.display()))?;
+                if args.depth {
+                    save_depth(&frame, &args.out.join(format!("depth_{i:05}.png")), &base)?;
+                }
                 let line = format!("{}  {}", path.display(), frame.timings);
                 if progress.is_hidden() {
                     println!("{line}"); // not a terminal: plain lines for logs and scripts
@@ -263,6 +278,16 @@ fn base_camera(args: &RenderArgs, cloud: &PointCloud) -> Camera {
     camera
 }
 
+fn save_depth(
+    frame: &pointfarm_worker::raster::Frame,
+    path: &Path,
+    settings: &FrameSettings,
+) -> Result<()> {
+    frame
+        .save_depth_png16(path, settings.camera.near, settings.camera.far)
+        .with_context(|| format!("writing {}", path.display()))
+}
+
 fn print_summary(dir: &Path, frames: &[StageTimings]) {
     println!(
         "{} frames in {}; median per stage:",
@@ -274,6 +299,7 @@ fn print_summary(dir: &Path, frames: &[StageTimings]) {
         Stage::Rasterize,
         Stage::Resolve,
         Stage::Shade,
+        Stage::Downsample,
         Stage::Readback,
         Stage::Encode,
     ] {

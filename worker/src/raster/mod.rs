@@ -42,6 +42,8 @@ use timing::GpuTimer;
 
 /// Largest image side accepted, in pixels.
 pub const MAX_IMAGE_SIDE: u32 = 16384;
+/// Largest supersampling factor.
+pub const MAX_SUPERSAMPLE: u32 = 4;
 /// Largest point size accepted, in pixels.
 pub const MAX_POINT_SIZE: u32 = 64;
 
@@ -65,6 +67,8 @@ pub enum RenderError {
     DepthBand(f32),
     #[error("Eye-Dome Lighting strength {strength} and radius {radius} are invalid: the strength must be 0 to 100, the radius 0.5 to 16 pixels")]
     Edl { strength: f32, radius: f32 },
+    #[error("supersampling factor {0} is invalid: it must be 1 to {MAX_SUPERSAMPLE}")]
+    Supersample(u32),
     #[error("point size {0} is invalid: it must be 1 to {MAX_POINT_SIZE} pixels")]
     PointSize(u32),
     #[error("point size {0} is not supported by the PointList baseline: it draws 1-pixel points")]
@@ -141,6 +145,9 @@ pub struct FrameSettings {
     pub atomics: AtomicsMode,
     pub quality: Quality,
     pub shading: Shading,
+    /// Supersampling anti-aliasing: render at this many times the size in each direction
+    /// (points and shading radius scaled with it) and average k x k blocks. 1 turns it off.
+    pub supersample: u32,
     /// Also read back the linear depth image.
     pub read_depth: bool,
 }
@@ -157,8 +164,70 @@ impl FrameSettings {
             atomics: AtomicsMode::Auto,
             quality: Quality::Basic,
             shading: Shading::None,
+            supersample: 1,
             read_depth: false,
         }
+    }
+}
+
+impl FrameSettings {
+    /// The settings at which a supersampled frame is rendered before it is downsampled.
+    pub fn scaled_for_supersampling(&self) -> FrameSettings {
+        let k = self.supersample.max(1);
+        FrameSettings {
+            width: self.width.saturating_mul(k),
+            height: self.height.saturating_mul(k),
+            point_size: self.point_size.saturating_mul(k),
+            shading: match self.shading {
+                Shading::Edl { strength, radius } => Shading::Edl {
+                    strength,
+                    radius: radius * k as f32,
+                },
+                Shading::None => Shading::None,
+            },
+            supersample: 1,
+            ..*self
+        }
+    }
+}
+
+/// Averages `k` x `k` blocks of the colour image (and keeps the nearest depth of each block).
+pub fn downsample(frame: Frame, k: u32) -> Frame {
+    let (width, height) = (frame.image.width() / k, frame.image.height() / k);
+    let big_width = frame.image.width() as usize;
+    let image = RgbaImage::from_fn(width, height, |x, y| {
+        let mut sum = [0u32; 4];
+        for dy in 0..k {
+            for dx in 0..k {
+                let p = frame.image.get_pixel(x * k + dx, y * k + dy).0;
+                for c in 0..4 {
+                    sum[c] += p[c] as u32;
+                }
+            }
+        }
+        let n = k * k;
+        image::Rgba(sum.map(|s| ((s + n / 2) / n) as u8))
+    });
+    let depth = frame.depth.map(|depth| {
+        let mut out = Vec::with_capacity((width * height) as usize);
+        for y in 0..height as usize {
+            for x in 0..width as usize {
+                let mut nearest = f32::INFINITY;
+                for dy in 0..k as usize {
+                    for dx in 0..k as usize {
+                        nearest = nearest
+                            .min(depth[(y * k as usize + dy) * big_width + x * k as usize + dx]);
+                    }
+                }
+                out.push(nearest);
+            }
+        }
+        out
+    });
+    Frame {
+        image,
+        depth,
+        ..frame
     }
 }
 
@@ -174,6 +243,45 @@ pub struct Frame {
 }
 
 impl Frame {
+    /// Writes the depth image as a 16-bit grey PNG: linear depth from `near` (1) to `far`
+    /// (65535); 0 where no point landed. Needs [`FrameSettings::read_depth`].
+    pub fn save_depth_png16(
+        &self,
+        path: &std::path::Path,
+        near: f64,
+        far: f64,
+    ) -> Result<(), image::ImageError> {
+        let Some(depth) = &self.depth else {
+            return Err(image::ImageError::Parameter(
+                image::error::ParameterError::from_kind(image::error::ParameterErrorKind::Generic(
+                    "the frame was rendered without its depth image".into(),
+                )),
+            ));
+        };
+        let span = (far - near).max(f64::MIN_POSITIVE);
+        let pixels: Vec<u16> = depth
+            .iter()
+            .map(|&d| {
+                if d.is_finite() {
+                    1 + (((d as f64 - near) / span).clamp(0.0, 1.0) * 65534.0).round() as u16
+                } else {
+                    0
+                }
+            })
+            .collect();
+        let image = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_raw(
+            self.image.width(),
+            self.image.height(),
+            pixels,
+        )
+        .ok_or_else(|| {
+            image::ImageError::Parameter(image::error::ParameterError::from_kind(
+                image::error::ParameterErrorKind::DimensionMismatch,
+            ))
+        })?;
+        image.save_with_format(path, image::ImageFormat::Png)
+    }
+
     /// Writes the image as PNG and records the time in the frame's "encode" stage.
     pub fn save_png(&mut self, path: &std::path::Path) -> Result<(), image::ImageError> {
         let started = Instant::now();
@@ -248,6 +356,10 @@ impl Renderer {
 
     /// Checks settings before any GPU work, so bad requests fail with a clear reason.
     pub fn validate(&self, settings: &FrameSettings) -> Result<(), RenderError> {
+        if !(1..=MAX_SUPERSAMPLE).contains(&settings.supersample) {
+            return Err(RenderError::Supersample(settings.supersample));
+        }
+        let settings = &settings.scaled_for_supersampling();
         let (width, height) = (settings.width, settings.height);
         if width == 0 || height == 0 || width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE {
             return Err(RenderError::ImageSize { width, height });
@@ -292,6 +404,23 @@ impl Renderer {
         settings: &FrameSettings,
     ) -> Result<Frame, RenderError> {
         self.validate(settings)?;
+        if settings.supersample > 1 {
+            let mut frame = self.render_once(cloud, &settings.scaled_for_supersampling())?;
+            let started = Instant::now();
+            frame = downsample(frame, settings.supersample);
+            let ms = started.elapsed().as_secs_f64() * 1e3;
+            frame.timings.push(Stage::Downsample, ms, Clock::Host);
+            return Ok(frame);
+        }
+        self.render_once(cloud, settings)
+    }
+
+    /// Renders at the settings' own size.
+    fn render_once(
+        &mut self,
+        cloud: &GpuPointCloud,
+        settings: &FrameSettings,
+    ) -> Result<Frame, RenderError> {
         let _span = tracing::debug_span!("frame", width = settings.width, height = settings.height)
             .entered();
         let mut timings = StageTimings::default();

@@ -526,6 +526,81 @@ fn eye_dome_lighting_matches_the_reference_and_outlines_silhouettes() {
 }
 
 #[test]
+fn supersampling_renders_larger_and_averages_blocks() {
+    let mut settings =
+        FrameSettings::new(80, 60, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    settings.supersample = 2;
+    settings.read_depth = true;
+    let big = settings.scaled_for_supersampling();
+    assert_eq!((big.width, big.height, big.point_size), (160, 120, 2));
+    let cloud = pixel_centre_scene(&big, 2, 13);
+    let frame = render_gpu(&cloud, &settings);
+    assert_eq!(frame.image.dimensions(), (80, 60));
+    assert!(frame.timings.get(Stage::Downsample).is_some());
+    let reference = reference::render(&cloud, &big);
+    let expected = downsample(
+        Frame {
+            image: reference.image,
+            depth: Some(reference.depth),
+            timings: StageTimings::default(),
+            atomics: AtomicsPath::Atomic32,
+        },
+        2,
+    );
+    assert_eq!(
+        compare_images("ssaa", &frame.image, &expected.image).differing,
+        0
+    );
+    // Edges are blended: some pixels hold colours no single point has.
+    let blended = frame
+        .image
+        .pixels()
+        .filter(|p| p.0[3] != 255 || p.0 == [0, 0, 0, 0])
+        .count();
+    assert!(
+        frame.image.pixels().any(|p| p.0 != settings.background),
+        "{blended}"
+    );
+    let mut invalid = settings;
+    invalid.supersample = 9;
+    assert!(matches!(
+        Renderer::new(gpu()).validate(&invalid),
+        Err(RenderError::Supersample(9))
+    ));
+}
+
+#[test]
+fn depth_image_is_written_as_16_bit_png() {
+    let mut settings =
+        FrameSettings::new(64, 48, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    settings.read_depth = true;
+    let cloud = pixel_centre_scene(&settings, 1, 14);
+    let frame = render_gpu(&cloud, &settings);
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("depth.png");
+    frame
+        .save_depth_png16(&path, settings.camera.near, settings.camera.far)
+        .expect("write");
+    let read = image::open(&path).expect("read").into_luma16();
+    let depth = frame.depth.as_ref().expect("depth");
+    for (i, value) in read.pixels().enumerate() {
+        let d = depth[i];
+        if d.is_finite() {
+            let expected = 1.0
+                + (d as f64 - settings.camera.near) / (settings.camera.far - settings.camera.near)
+                    * 65534.0;
+            assert!(
+                (value.0[0] as f64 - expected).abs() <= 1.0,
+                "{} vs {expected}",
+                value.0[0]
+            );
+        } else {
+            assert_eq!(value.0[0], 0, "background is 0");
+        }
+    }
+}
+
+#[test]
 fn invalid_settings_are_refused_before_any_gpu_work() {
     let renderer = Renderer::new(gpu());
     let good = FrameSettings::new(64, 48, camera(Projection::Perspective { fov_y_deg: 50.0 }));

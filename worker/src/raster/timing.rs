@@ -16,6 +16,8 @@ pub enum Stage {
     Resolve,
     /// Screen-space shading of the resolved image (Eye-Dome Lighting).
     Shade,
+    /// Supersampling: averaging blocks of the larger image.
+    Downsample,
     /// GPU-to-host copy of the images.
     Readback,
     /// Image file encoding (PNG).
@@ -30,6 +32,7 @@ impl Stage {
             Stage::Accumulate => "accumulate",
             Stage::Resolve => "resolve",
             Stage::Shade => "shade",
+            Stage::Downsample => "downsample",
             Stage::Readback => "readback",
             Stage::Encode => "encode",
         }
