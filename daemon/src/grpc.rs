@@ -37,7 +37,7 @@ impl From<DaemonError> for Status {
     }
 }
 
-type Stream_<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
+type ResponseStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
 
 /// Both services over one daemon.
 #[derive(Clone)]
@@ -573,7 +573,7 @@ impl JobService for Api {
         Ok(Response::new(job_message(&job, None)))
     }
 
-    type WatchJobStream = Stream_<pb::JobEvent>;
+    type WatchJobStream = ResponseStream<pb::JobEvent>;
 
     async fn watch_job(
         &self,
@@ -625,7 +625,7 @@ impl JobService for Api {
         Ok(Response::new(Box::pin(ReceiverStream::new(receiver))))
     }
 
-    type FetchFramesStream = Stream_<pb::FrameChunk>;
+    type FetchFramesStream = ResponseStream<pb::FrameChunk>;
 
     async fn fetch_frames(
         &self,

@@ -183,14 +183,7 @@ impl Daemon {
     pub fn upload_path(&self) -> PathBuf {
         self.config
             .uploads_dir()
-            .join(format!("upload-{}.part", self.store_id()))
-    }
-
-    fn store_id(&self) -> u64 {
-        // Unique per process and time; only names temporary files.
-        static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-        now_unix_ms() as u64 * 1000
-            + COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed) % 1000
+            .join(format!("upload-{}.part", unique_suffix()))
     }
 
     /// Takes a completely received upload at `temp` into the store.
@@ -330,6 +323,13 @@ impl Daemon {
         self.publish(&job, None);
         Ok(job)
     }
+}
+
+/// A suffix for temporary file names: unique within the process, and across restarts.
+fn unique_suffix() -> String {
+    static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    format!("{}-{}-{n}", now_unix_ms(), std::process::id())
 }
 
 /// Dataset ids are derived from the content, so the same file always has the same id.
