@@ -3,7 +3,7 @@
 use std::path::Path;
 use std::process::Output;
 
-use pointfarm_tests::{own_stderr_lines, pointfarm, shared_data};
+use pointfarm_tests::{own_stderr_lines, pointfarm, shared_data, ServeProcess};
 
 fn stdout(output: &Output) -> String {
     String::from_utf8_lossy(&output.stdout).into_owned()
@@ -261,44 +261,21 @@ fn demo_runs_the_service_end_to_end_in_one_process() {
 fn remote_render_uploads_submits_follows_and_downloads() {
     let dir = tempfile::tempdir().expect("tempdir");
     let laz = sample(dir.path(), "sample.laz", 20_000);
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .expect("port")
-        .local_addr()
-        .expect("addr")
-        .port();
-    let address = format!("127.0.0.1:{port}");
-    let data = path_arg(&dir.path().join("data"));
-    let mut server = std::process::Command::new(pointfarm_tests::pointfarm_bin())
-        .args(["serve", "--listen", &address, "--data-dir", &data])
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .expect("serve");
+    let server = ServeProcess::start(&dir.path().join("data"));
+    let address = server.address.clone();
     let frames = dir.path().join("remote");
-    let mut output = None;
-    // The server needs a moment to listen.
-    for _ in 0..100 {
-        let attempt = pointfarm(&[
-            "render",
-            &laz,
-            "--server",
-            &address,
-            "--turntable",
-            "2",
-            "--size",
-            "160x120",
-            "--out",
-            &path_arg(&frames),
-        ]);
-        if attempt.status.success()
-            || !String::from_utf8_lossy(&attempt.stderr).contains("cannot connect")
-        {
-            output = Some(attempt);
-            break;
-        }
-        std::thread::sleep(std::time::Duration::from_millis(100));
-    }
-    let output = output.expect("the server came up");
+    let output = pointfarm(&[
+        "render",
+        &laz,
+        "--server",
+        &address,
+        "--turntable",
+        "2",
+        "--size",
+        "160x120",
+        "--out",
+        &path_arg(&frames),
+    ]);
     assert_ok(&output);
     for i in 0..2 {
         assert_rendered(&frames.join(format!("frame_{i:05}.png")), 160, 120);
@@ -313,8 +290,6 @@ fn remote_render_uploads_submits_follows_and_downloads() {
     let unknown = pointfarm(&["jobs", "show", "job-missing", "--server", &address]);
     assert!(!unknown.status.success());
     assert!(String::from_utf8_lossy(&unknown.stderr).contains("NotFound"));
-    let _ = server.kill();
-    let _ = server.wait();
 }
 
 #[test]

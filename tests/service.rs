@@ -10,7 +10,7 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_tests::service::{
     fetch_images, gpu, turntable_job, upload, upload_messages, watch_to_end, TestDaemon,
 };
-use pointfarm_tests::{pointfarm_bin, shared_data};
+use pointfarm_tests::{shared_data, ServeProcess};
 use pointfarm_worker::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_worker::raster::{FrameSettings, Renderer};
 use tonic::Code;
@@ -384,36 +384,16 @@ async fn a_killed_daemon_resumes_its_jobs_without_rerendering_finished_frames() 
         &LasWriteOptions::default(),
     )
     .expect("write");
-    let port = {
-        let probe = std::net::TcpListener::bind("127.0.0.1:0").expect("probe port");
-        probe.local_addr().expect("address").port()
+    let connect = |address: String| async move {
+        tonic::transport::Channel::from_shared(format!("http://{address}"))
+            .expect("url")
+            .connect()
+            .await
+            .expect("connect")
     };
-    let address = format!("127.0.0.1:{port}");
-    let start = || {
-        std::process::Command::new(pointfarm_bin())
-            .args(["serve", "--listen", &address, "--data-dir"])
-            .arg(data.path())
-            .stdout(std::process::Stdio::null())
-            .stderr(std::process::Stdio::null())
-            .spawn()
-            .expect("start pointfarm serve")
-    };
-    let connect = || async {
-        for _ in 0..200 {
-            if let Ok(channel) = tonic::transport::Channel::from_shared(format!("http://{address}"))
-                .expect("url")
-                .connect()
-                .await
-            {
-                return channel;
-            }
-            tokio::time::sleep(Duration::from_millis(100)).await;
-        }
-        panic!("the daemon did not come up");
-    };
-
-    let mut server = start();
-    let channel = connect().await;
+    let mut server = ServeProcess::start(data.path());
+    let address = server.address.clone();
+    let channel = connect(address.clone()).await;
     let mut datasets =
         pointfarm_proto::v1::dataset_service_client::DatasetServiceClient::new(channel.clone());
     let mut jobs = pointfarm_proto::v1::job_service_client::JobServiceClient::new(channel);
@@ -448,8 +428,7 @@ async fn a_killed_daemon_resumes_its_jobs_without_rerendering_finished_frames() 
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     assert!(before.len() >= 3, "frames were rendered before the kill");
-    server.kill().expect("kill -9");
-    let _ = server.wait();
+    server.kill();
     let modified: Vec<(u32, std::time::SystemTime)> = before
         .iter()
         .map(|&i| {
@@ -463,8 +442,8 @@ async fn a_killed_daemon_resumes_its_jobs_without_rerendering_finished_frames() 
         })
         .collect();
 
-    let mut server = start();
-    let channel = connect().await;
+    let _server = ServeProcess::start_at(&address, data.path());
+    let channel = connect(address.clone()).await;
     let mut jobs = pointfarm_proto::v1::job_service_client::JobServiceClient::new(channel);
     let (finished, _) = watch_to_end(&mut jobs, &job.id).await;
     assert_eq!(
@@ -493,8 +472,6 @@ async fn a_killed_daemon_resumes_its_jobs_without_rerendering_finished_frames() 
             .count(),
         24
     );
-    let _ = server.kill();
-    let _ = server.wait();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -549,40 +526,14 @@ async fn higher_priority_jobs_run_first() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sigterm_shuts_the_daemon_down_cleanly() {
     let data = tempfile::tempdir().expect("tempdir");
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .expect("port")
-        .local_addr()
-        .expect("addr")
-        .port();
-    let address = format!("127.0.0.1:{port}");
-    let mut server = std::process::Command::new(pointfarm_bin())
-        .args(["serve", "--listen", &address, "--data-dir"])
-        .arg(data.path())
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .expect("serve");
-    let mut up = false;
-    for _ in 0..200 {
-        if tokio::net::TcpStream::connect(&address).await.is_ok() {
-            up = true;
-            break;
-        }
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-    assert!(up, "the daemon came up");
+    let mut server = ServeProcess::start(data.path());
     let killed = std::process::Command::new("kill")
-        .args(["-TERM", &server.id().to_string()])
+        .args(["-TERM", &server.pid().to_string()])
         .status()
         .expect("kill -TERM");
     assert!(killed.success());
-    for _ in 0..100 {
-        if let Some(status) = server.try_wait().expect("wait") {
-            assert!(status.success(), "exit status {status}");
-            return;
-        }
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-    let _ = server.kill();
-    panic!("the daemon did not stop within 10 s of SIGTERM");
+    let status = server
+        .wait_for_exit(Duration::from_secs(10))
+        .expect("the daemon stops within 10 s of SIGTERM");
+    assert!(status.success(), "exit status {status}");
 }

@@ -72,4 +72,74 @@ pub fn own_stderr_lines(output: &Output) -> Vec<String> {
         .collect()
 }
 
+/// `pointfarm serve` as a child process on a loopback port; killed when dropped.
+pub struct ServeProcess {
+    pub address: String,
+    child: std::process::Child,
+}
+
+impl ServeProcess {
+    /// Starts a daemon on a free port with its data in `data_dir`, and waits until it listens.
+    pub fn start(data_dir: &Path) -> Self {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|probe| probe.local_addr())
+            .expect("a free loopback port")
+            .port();
+        Self::start_at(&format!("127.0.0.1:{port}"), data_dir)
+    }
+
+    /// Starts a daemon on `address` (e.g. again after a kill) and waits until it listens.
+    pub fn start_at(address: &str, data_dir: &Path) -> Self {
+        let child = Command::new(pointfarm_bin())
+            .args(["serve", "--listen", address, "--data-dir"])
+            .arg(data_dir)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .expect("start pointfarm serve");
+        let server = Self {
+            address: address.to_string(),
+            child,
+        };
+        for _ in 0..300 {
+            if std::net::TcpStream::connect(address).is_ok() {
+                return server;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(100));
+        }
+        panic!("pointfarm serve did not listen on {address} within 30 s");
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// `kill -9`, and reap it.
+    pub fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
+    /// Waits up to `timeout` for the process to exit by itself.
+    pub fn wait_for_exit(
+        &mut self,
+        timeout: std::time::Duration,
+    ) -> Option<std::process::ExitStatus> {
+        let deadline = std::time::Instant::now() + timeout;
+        while std::time::Instant::now() < deadline {
+            if let Ok(Some(status)) = self.child.try_wait() {
+                return Some(status);
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        None
+    }
+}
+
+impl Drop for ServeProcess {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
 pub mod service;

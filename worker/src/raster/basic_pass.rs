@@ -7,6 +7,7 @@
 
 use pointfarm_shaders::Shader;
 
+use super::binding::bind_buffers;
 use super::points::{GpuPointCloud, PointChunk, BATCH_POINTS};
 use super::targets::FrameTargets;
 
@@ -144,34 +145,15 @@ fn bind_group(
     chunk: &PointChunk,
     targets: &FrameTargets,
 ) -> wgpu::BindGroup {
-    let mut entries = vec![
-        wgpu::BindGroupEntry {
-            binding: 0,
-            resource: uniforms.as_entire_binding(),
-        },
-        wgpu::BindGroupEntry {
-            binding: 1,
-            resource: chunk.points.as_entire_binding(),
-        },
-        wgpu::BindGroupEntry {
-            binding: 2,
-            resource: chunk.batches.as_entire_binding(),
-        },
-        wgpu::BindGroupEntry {
-            binding: 3,
-            resource: targets.framebuffer.as_entire_binding(),
-        },
+    let mut buffers = vec![
+        (0, uniforms),
+        (1, &chunk.points),
+        (2, &chunk.batches),
+        (3, &targets.framebuffer),
     ];
     if path == AtomicsPath::Atomic64 {
         // The non-atomic view of the same framebuffer, for the early depth test.
-        entries.push(wgpu::BindGroupEntry {
-            binding: 4,
-            resource: targets.framebuffer.as_entire_binding(),
-        });
+        buffers.push((4, &targets.framebuffer));
     }
-    device.create_bind_group(&wgpu::BindGroupDescriptor {
-        label: Some("point pass"),
-        layout: &pipeline.get_bind_group_layout(0),
-        entries: &entries,
-    })
+    bind_buffers(device, pipeline, "point pass", &buffers)
 }

@@ -3,6 +3,7 @@
 use pointfarm_shaders::Shader;
 
 use super::basic_pass::module;
+use super::binding::bind_buffers;
 use super::targets::FrameTargets;
 
 /// Must match `@workgroup_size` in edl.wgsl.
@@ -33,24 +34,12 @@ impl EdlPass {
         uniforms: &wgpu::Buffer,
         targets: &FrameTargets,
     ) {
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("edl"),
-            layout: &self.shade.get_bind_group_layout(0),
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: uniforms.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: targets.colour.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: targets.depth.as_entire_binding(),
-                },
-            ],
-        });
+        let bind_group = bind_buffers(
+            device,
+            &self.shade,
+            "edl",
+            &[(0, uniforms), (1, &targets.colour), (2, &targets.depth)],
+        );
         pass.set_pipeline(&self.shade);
         pass.set_bind_group(0, &bind_group, &[]);
         pass.dispatch_workgroups(

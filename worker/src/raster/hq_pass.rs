@@ -5,6 +5,7 @@
 use pointfarm_shaders::Shader;
 
 use super::basic_pass::{module, pipeline};
+use super::binding::bind_buffers;
 use super::points::GpuPointCloud;
 use super::targets::FrameTargets;
 
@@ -35,32 +36,18 @@ impl HqAccumulatePass {
         };
         pass.set_pipeline(&self.accumulate);
         for chunk in &cloud.chunks {
-            let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("accumulate"),
-                layout: &self.accumulate.get_bind_group_layout(0),
-                entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: uniforms.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 1,
-                        resource: chunk.points.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 2,
-                        resource: chunk.batches.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 3,
-                        resource: targets.framebuffer.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 4,
-                        resource: accumulator.as_entire_binding(),
-                    },
+            let bind_group = bind_buffers(
+                device,
+                &self.accumulate,
+                "accumulate",
+                &[
+                    (0, uniforms),
+                    (1, &chunk.points),
+                    (2, &chunk.batches),
+                    (3, &targets.framebuffer),
+                    (4, accumulator),
                 ],
-            });
+            );
             pass.set_bind_group(0, &bind_group, &[]);
             let (x, y) = super::dispatch_grid(chunk.batch_count);
             pass.dispatch_workgroups(x, y, 1);

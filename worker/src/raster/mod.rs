@@ -9,6 +9,7 @@
 //! cloud's GPU buffers and outlives any number of frames.
 
 mod basic_pass;
+mod binding;
 mod edl_pass;
 mod gpu_data;
 mod hq_pass;

@@ -4,6 +4,7 @@
 
 use pointfarm_shaders::Shader;
 
+use super::binding::bind_buffers;
 use super::targets::FrameTargets;
 
 /// Must match `@workgroup_size` in resolve.wgsl.
@@ -44,14 +45,7 @@ impl ResolvePass {
         pass: &mut wgpu::ComputePass<'_>,
         targets: &FrameTargets,
     ) {
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("clear"),
-            layout: &self.clear.get_bind_group_layout(0),
-            entries: &[wgpu::BindGroupEntry {
-                binding: 1,
-                resource: targets.framebuffer.as_entire_binding(),
-            }],
-        });
+        let bind_group = bind_buffers(device, &self.clear, "clear", &[(1, &targets.framebuffer)]);
         self.dispatch(pass, &self.clear, &bind_group, targets);
     }
 
@@ -62,28 +56,17 @@ impl ResolvePass {
         uniforms: &wgpu::Buffer,
         targets: &FrameTargets,
     ) {
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("resolve"),
-            layout: &self.resolve.get_bind_group_layout(0),
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: uniforms.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: targets.framebuffer.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: targets.colour.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 3,
-                    resource: targets.depth.as_entire_binding(),
-                },
+        let bind_group = bind_buffers(
+            device,
+            &self.resolve,
+            "resolve",
+            &[
+                (0, uniforms),
+                (1, &targets.framebuffer),
+                (2, &targets.colour),
+                (3, &targets.depth),
             ],
-        });
+        );
         self.dispatch(pass, &self.resolve, &bind_group, targets);
     }
 
@@ -98,32 +81,18 @@ impl ResolvePass {
         let Some(accumulator) = targets.accumulator.as_ref() else {
             return;
         };
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("resolve average"),
-            layout: &self.resolve_average.get_bind_group_layout(0),
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: uniforms.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: targets.framebuffer.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: targets.colour.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 3,
-                    resource: targets.depth.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 4,
-                    resource: accumulator.as_entire_binding(),
-                },
+        let bind_group = bind_buffers(
+            device,
+            &self.resolve_average,
+            "resolve average",
+            &[
+                (0, uniforms),
+                (1, &targets.framebuffer),
+                (2, &targets.colour),
+                (3, &targets.depth),
+                (4, accumulator),
             ],
-        });
+        );
         self.dispatch(pass, &self.resolve_average, &bind_group, targets);
     }
 
