@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# Renders the gallery in docs/gallery/: the same real scan in every mode, so anyone can
+# compare them and rerun this after a change. Needs the real scans in ../shared/data/.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+data=${POINTFARM_DATA:-../shared/data}
+scan="$data/autzen_trim.laz"
+tls="$data/lone-star.laz"
+for f in "$scan" "$tls"; do
+    [ -f "$f" ] || { echo "gallery: $f not found (set POINTFARM_DATA)" >&2; exit 1; }
+done
+
+bash deploy/setup.sh
+cargo build --release --locked --bin pointfarm
+pf=target/release/pointfarm
+out=docs/gallery
+mkdir -p "$out"
+common=(--size 640x360 --point-size 2)
+
+render() { # name, file, options...
+    local name=$1 file=$2
+    shift 2
+    "$pf" render "$file" --out "$out/$name.png" "${common[@]}" "$@" >/dev/null
+    echo "$out/$name.png"
+}
+
+render autzen-basic "$scan"
+render autzen-high "$scan" --quality high
+render autzen-high-edl "$scan" --quality high --shading edl
+render autzen-ssaa "$scan" --quality high --supersample 2
+render autzen-intensity "$scan" --color intensity --quality high
+render autzen-elevation "$scan" --color elevation --quality high
+render autzen-classification "$scan" --color classification --quality high
+render autzen-return "$scan" --color return --quality high
+render lone-star-intensity "$tls" --quality high
+render lone-star-edl "$tls" --quality high --shading edl --color "#d8d2c4"
