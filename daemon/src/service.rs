@@ -105,6 +105,7 @@ impl Daemon {
     pub fn open(config: DaemonConfig) -> Result<Arc<Self>, DaemonError> {
         std::fs::create_dir_all(config.uploads_dir())?;
         std::fs::create_dir_all(config.data_dir.join("jobs"))?;
+        remove_unfinished_uploads(&config.uploads_dir());
         let store = Store::open(&config.data_dir.join("state.sled"))?;
         let requeued = store.requeue_running()?;
         if requeued > 0 {
@@ -322,6 +323,20 @@ impl Daemon {
         tracing::info!(job = %id, "job cancelled");
         self.publish(&job, None);
         Ok(job)
+    }
+}
+
+/// Uploads that were still arriving when the daemon stopped can never complete: remove them.
+fn remove_unfinished_uploads(dir: &Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let path = entry.path();
+        if path.extension().is_some_and(|e| e == "part") {
+            tracing::info!(file = %path.display(), "removing an unfinished upload");
+            let _ = std::fs::remove_file(path);
+        }
     }
 }
 
