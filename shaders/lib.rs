@@ -17,20 +17,31 @@ pub enum Shader {
     Edl,
     /// Framebuffer clear and resolve: entry points `clear`, `resolve`, `resolve_average`.
     Resolve,
+    /// Pintus et al.'s screen-space visibility on the resolved images: entry point `classify`.
+    Visibility,
+    /// Pintus et al.'s anisotropic filling: entry points `fill_step`, `finish`.
+    Fill,
+    /// Pintus et al.'s multi-level shape-depicting shading: entry points `level`, `apply`.
+    PintusShading,
     /// The benchmark's fixed-function baseline, a `PointList` render pipeline: entry points
     /// `vertex_main`, `fragment_main`.
     PointListBaseline,
 }
 
 const COMMON: &str = include_str!("common.wgsl");
+/// Parameters and helpers of the passes on the resolved images, after `common.wgsl`.
+const SCREEN_COMMON: &str = include_str!("screen_common.wgsl");
 
 impl Shader {
-    pub const ALL: [Shader; 6] = [
+    pub const ALL: [Shader; 9] = [
         Shader::RasterAtomic64,
         Shader::RasterAtomic32,
         Shader::HqAccumulate,
         Shader::Edl,
         Shader::Resolve,
+        Shader::Visibility,
+        Shader::Fill,
+        Shader::PintusShading,
         Shader::PointListBaseline,
     ];
 
@@ -42,6 +53,9 @@ impl Shader {
             Shader::HqAccumulate => "hq_accumulate",
             Shader::Edl => "edl",
             Shader::Resolve => "resolve",
+            Shader::Visibility => "visibility",
+            Shader::Fill => "fill",
+            Shader::PintusShading => "pintus",
             Shader::PointListBaseline => "pointlist_baseline",
         }
     }
@@ -54,9 +68,17 @@ impl Shader {
             Shader::HqAccumulate => include_str!("hq_accumulate.wgsl"),
             Shader::Edl => include_str!("edl.wgsl"),
             Shader::Resolve => include_str!("resolve.wgsl"),
+            Shader::Visibility => include_str!("visibility.wgsl"),
+            Shader::Fill => include_str!("fill.wgsl"),
+            Shader::PintusShading => include_str!("pintus.wgsl"),
             Shader::PointListBaseline => include_str!("pointlist_baseline.wgsl"),
         };
-        format!("{COMMON}\n{own}")
+        match self {
+            Shader::Visibility | Shader::Fill | Shader::PintusShading => {
+                format!("{COMMON}\n{SCREEN_COMMON}\n{own}")
+            }
+            _ => format!("{COMMON}\n{own}"),
+        }
     }
 }
 

@@ -9,11 +9,17 @@
 //!   must agree exactly.
 //! - High-quality mode: per pixel, the rounded average colour of every point whose depth is
 //!   at most `(1 + depth_band)` times the nearest depth.
+//! - Visibility, filling and Pintus shading (Pintus et al. 2011): written from the paper in
+//!   f64, reconstructing points through the inverse view-projection matrix.
 
+use glam::{DMat4, DVec3, DVec4};
 use image::RgbaImage;
 
+use crate::camera::Projection;
 use crate::cloud::PointCloud;
-use crate::raster::{FrameSettings, Quality, Shading};
+use crate::raster::{
+    FrameSettings, Quality, Shading, FILL_DEPTH_TOLERANCE, VISIBILITY_MIN_SOLID_ANGLE,
+};
 
 /// The reference's output: an image and the depth of the nearest point of each pixel.
 #[derive(Debug, Clone)]
@@ -29,10 +35,252 @@ pub fn render(cloud: &PointCloud, settings: &FrameSettings) -> ReferenceFrame {
         Quality::Basic => render_basic(cloud, settings),
         Quality::High { depth_band } => render_high_quality(cloud, settings, depth_band),
     };
-    if let Shading::Edl { strength, radius } = settings.shading {
-        shade_edl(&mut frame, strength, radius);
+    if let Some(fill) = settings.fill {
+        let mutable = remove_hidden(&mut frame, settings, fill.kernel);
+        fill_holes(&mut frame, &mutable, fill.iterations());
+    }
+    match settings.shading {
+        Shading::None => {}
+        Shading::Edl { strength, radius } => shade_edl(&mut frame, strength, radius),
+        Shading::Pintus { levels, exponent } => {
+            shade_pintus(&mut frame, settings, levels, exponent)
+        }
     }
     frame
+}
+
+/// Turns pixels and linear depths back into points (relative to the camera target) through
+/// the inverse of the camera's view-projection matrix.
+struct Unprojector {
+    inverse: DMat4,
+    depth_row: DVec4,
+    eye: DVec3,
+    perspective: bool,
+    width: f64,
+    height: f64,
+}
+
+impl Unprojector {
+    fn new(settings: &FrameSettings) -> Self {
+        let camera = &settings.camera;
+        let transform = camera.transform(camera.target, settings.width, settings.height);
+        Self {
+            inverse: transform.view_proj.inverse(),
+            depth_row: transform.depth_row,
+            eye: camera.position - camera.target,
+            perspective: matches!(camera.projection, Projection::Perspective { .. }),
+            width: settings.width as f64,
+            height: settings.height as f64,
+        }
+    }
+
+    /// The point on the ray through the centre of pixel (x, y) at linear depth `depth`.
+    fn point(&self, x: i64, y: i64, depth: f64) -> DVec3 {
+        let ndc_x = (x as f64 + 0.5) / self.width * 2.0 - 1.0;
+        let ndc_y = 1.0 - (y as f64 + 0.5) / self.height * 2.0;
+        let at = |z: f64| {
+            let p = self.inverse * DVec4::new(ndc_x, ndc_y, z, 1.0);
+            p.truncate() / p.w
+        };
+        let (a, b) = (at(0.0), at(1.0));
+        let depth_of = |p: DVec3| self.depth_row.dot(p.extend(1.0));
+        a + (b - a) * ((depth - depth_of(a)) / (depth_of(b) - depth_of(a)))
+    }
+
+    /// Unit vector from `p` towards the camera.
+    fn to_camera(&self, p: DVec3) -> DVec3 {
+        if self.perspective {
+            (self.eye - p).normalize()
+        } else {
+            -self.depth_row.truncate().normalize()
+        }
+    }
+}
+
+/// Pintus et al.'s visibility: for each pixel, the kernel (side `kernel`) around it is cut
+/// into 8 sectors centred on the axes and diagonals; in each, the horizon is the neighbour
+/// whose direction from the pixel's point is closest to the direction to the camera, and the
+/// open cone sector spans (2 pi / 8)(1 - cos(angle to the horizon)) steradians, or
+/// (2 pi / 8) 2 with no neighbour. Pixels with less than [`VISIBILITY_MIN_SOLID_ANGLE`] in
+/// all are emptied (depth +infinity, background colour) and returned as mutable. A background
+/// pixel is infinitely far: any neighbour closes its sector.
+pub fn remove_hidden(
+    frame: &mut ReferenceFrame,
+    settings: &FrameSettings,
+    kernel: u32,
+) -> Vec<bool> {
+    let unproject = Unprojector::new(settings);
+    let (width, height) = (settings.width as i64, settings.height as i64);
+    let radius = (kernel / 2) as i64;
+    let depth = frame.depth.clone();
+    let background = settings.background;
+    let mut mutable = vec![false; depth.len()];
+    for y in 0..height {
+        for x in 0..width {
+            let here = depth[(y * width + x) as usize];
+            let centre = here.is_finite().then(|| unproject.point(x, y, here as f64));
+            let mut horizon: [Option<f64>; 8] = [None; 8];
+            for ny in (y - radius..=y + radius).filter(|ny| (0..height).contains(ny)) {
+                for nx in (x - radius..=x + radius).filter(|nx| (0..width).contains(nx)) {
+                    let there = depth[(ny * width + nx) as usize];
+                    if (nx, ny) == (x, y) || there.is_infinite() {
+                        continue;
+                    }
+                    let cosine = match centre {
+                        Some(p0) => {
+                            let towards = (unproject.point(nx, ny, there as f64) - p0).normalize();
+                            unproject.to_camera(p0).dot(towards)
+                        }
+                        None => 1.0,
+                    };
+                    let angle = ((ny - y) as f64).atan2((nx - x) as f64);
+                    let sector = ((angle / std::f64::consts::FRAC_PI_4).round() as i64)
+                        .rem_euclid(8) as usize;
+                    let h = horizon[sector].get_or_insert(cosine);
+                    *h = h.max(cosine);
+                }
+            }
+            let open: f64 = horizon
+                .iter()
+                .map(|h| std::f64::consts::TAU / 8.0 * h.map_or(2.0, |cosine| 1.0 - cosine))
+                .sum();
+            if open < VISIBILITY_MIN_SOLID_ANGLE as f64 {
+                let pixel = (y * width + x) as usize;
+                mutable[pixel] = true;
+                frame.depth[pixel] = f32::INFINITY;
+                frame.image.get_pixel_mut(x as u32, y as u32).0 = background;
+            }
+        }
+    }
+    mutable
+}
+
+/// Pintus et al.'s anisotropic filling: `iterations` synchronous 3x3 steps over the mutable
+/// pixels. An empty one takes the median depth of its valid neighbours (the lower middle one
+/// when even; equal depths in row-major order) with that neighbour's colour; a filled one
+/// becomes the average of its valid neighbours and itself weighted by equation 1,
+/// (1 - r/2)(1 - min(1, |z - z0| / delta)), delta = [`FILL_DEPTH_TOLERANCE`] z0.
+pub fn fill_holes(frame: &mut ReferenceFrame, mutable: &[bool], iterations: u32) {
+    let (width, height) = (frame.image.width() as i64, frame.image.height() as i64);
+    for _ in 0..iterations {
+        let depth = frame.depth.clone();
+        let image = frame.image.clone();
+        for y in 0..height {
+            for x in 0..width {
+                let pixel = (y * width + x) as usize;
+                if !mutable[pixel] {
+                    continue;
+                }
+                let mut neighbours = Vec::new();
+                for ny in (y - 1..=y + 1).filter(|ny| (0..height).contains(ny)) {
+                    for nx in (x - 1..=x + 1).filter(|nx| (0..width).contains(nx)) {
+                        let z = depth[(ny * width + nx) as usize];
+                        if z.is_finite() {
+                            let r = (((nx - x).pow(2) + (ny - y).pow(2)) as f64).sqrt();
+                            let colour = image.get_pixel(nx as u32, ny as u32).0;
+                            neighbours.push((z, colour, r));
+                        }
+                    }
+                }
+                if neighbours.is_empty() {
+                    continue;
+                }
+                let z0 = depth[pixel];
+                let (z, colour) = if z0.is_infinite() {
+                    neighbours.sort_by(|a, b| a.0.total_cmp(&b.0));
+                    let (z, colour, _) = neighbours[(neighbours.len() - 1) / 2];
+                    (z, colour)
+                } else {
+                    let delta = FILL_DEPTH_TOLERANCE as f64 * z0 as f64;
+                    let mut total = 0.0;
+                    let mut z_sum = 0.0;
+                    let mut colour_sum = [0.0f64; 4];
+                    for &(z, colour, r) in &neighbours {
+                        let w = (1.0 - r / 2.0)
+                            * (1.0 - ((z as f64 - z0 as f64).abs() / delta).min(1.0));
+                        total += w;
+                        z_sum += w * z as f64;
+                        for c in 0..4 {
+                            colour_sum[c] += w * colour[c] as f64 / 255.0;
+                        }
+                    }
+                    (
+                        (z_sum / total) as f32,
+                        colour_sum.map(|c| unorm8(c / total)),
+                    )
+                };
+                frame.depth[pixel] = z;
+                frame.image.get_pixel_mut(x as u32, y as u32).0 = colour;
+            }
+        }
+    }
+}
+
+/// A colour channel from 0..1 to 0..255 as WGSL's `pack4x8unorm` does it.
+fn unorm8(value: f64) -> u8 {
+    (value.clamp(0.0, 1.0) * 255.0 + 0.5).floor() as u8
+}
+
+/// Pintus et al.'s shape-depicting shading, equations 2 and 3: on each level k, over the
+/// valid 3x3 neighbourhood of the depth D^k, mean mu and standard deviation sigma;
+/// w^k = clamp(1 - |d - (mu - sigma)| / (2 sigma + eps)); D^(k+1) = mu - sigma / 2. eps is the
+/// pixel's footprint at its depth (see shaders/pintus.wgsl for why). Colour times
+/// sum_k w^k / (k+1)^exponent over the sum of the weights. Background pixels are unchanged.
+pub fn shade_pintus(
+    frame: &mut ReferenceFrame,
+    settings: &FrameSettings,
+    levels: u32,
+    exponent: f32,
+) {
+    let (width, height) = (settings.width as i64, settings.height as i64);
+    let footprint = |d: f64| match settings.camera.projection {
+        Projection::Perspective { fov_y_deg } => {
+            2.0 * (fov_y_deg.to_radians() / 2.0).tan() * d / height as f64
+        }
+        Projection::Orthographic { height: view } => view / height as f64,
+    };
+    let mut depth: Vec<f64> = frame.depth.iter().map(|&d| d as f64).collect();
+    let mut shade = vec![0.0f64; depth.len()];
+    let mut total_weight = 0.0;
+    for k in 0..levels {
+        let weight = 1.0 / ((k + 1) as f64).powf(exponent as f64);
+        total_weight += weight;
+        let mut next = depth.clone();
+        for y in 0..height {
+            for x in 0..width {
+                let pixel = (y * width + x) as usize;
+                let d = depth[pixel];
+                if d.is_infinite() {
+                    continue;
+                }
+                let mut window = Vec::with_capacity(9);
+                for ny in (y - 1..=y + 1).filter(|ny| (0..height).contains(ny)) {
+                    for nx in (x - 1..=x + 1).filter(|nx| (0..width).contains(nx)) {
+                        let z = depth[(ny * width + nx) as usize];
+                        if z.is_finite() {
+                            window.push(z);
+                        }
+                    }
+                }
+                let n = window.len() as f64;
+                let mean = window.iter().sum::<f64>() / n;
+                let sigma = (window.iter().map(|z| (z - mean).powi(2)).sum::<f64>() / n).sqrt();
+                let (low, high) = (mean - sigma, mean + sigma);
+                let w = (1.0 - (d - low).abs() / (high - low + footprint(d))).clamp(0.0, 1.0);
+                shade[pixel] += weight * w;
+                next[pixel] = (mean + low) / 2.0;
+            }
+        }
+        depth = next;
+    }
+    for (pixel, colour) in frame.image.pixels_mut().enumerate() {
+        if frame.depth[pixel].is_finite() {
+            let s = shade[pixel] / total_weight;
+            for c in 0..3 {
+                colour.0[c] = unorm8(colour.0[c] as f64 / 255.0 * s);
+            }
+        }
+    }
 }
 
 /// Eye-Dome Lighting as Potree does it: for each pixel, over 8 neighbours on a circle of

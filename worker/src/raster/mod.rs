@@ -3,7 +3,9 @@
 //! A frame is: write the frame uniforms; clear the point framebuffer; run the point pass over
 //! every chunk of the resident cloud (batch frustum culling, per-point projection, early depth
 //! test, atomic minimum of depth and colour); resolve the framebuffer into an RGBA8 image and
-//! a depth image; read both back. Each stage is timed.
+//! a depth image; optionally remove the points seen through holes and fill the holes
+//! (visibility and filling, Pintus et al.); optionally shade (Eye-Dome Lighting or Pintus's
+//! shape depiction); read both images back. Each stage is timed.
 //!
 //! [`Renderer`] owns the pipelines and the per-size frame buffers; [`GpuPointCloud`] owns a
 //! cloud's GPU buffers and outlives any number of frames.
@@ -11,13 +13,17 @@
 mod basic_pass;
 mod binding;
 mod edl_pass;
+mod fill_pass;
 mod gpu_data;
 mod hq_pass;
+mod pintus_pass;
 mod pointlist_baseline;
 mod points;
 mod resolve_pass;
+mod screen_params;
 mod targets;
 mod timing;
+mod visibility_pass;
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -35,11 +41,15 @@ use crate::cloud::PointCloud;
 use crate::gpu::{read_buffer, GpuContext, GpuError};
 use basic_pass::BasicPass;
 use edl_pass::EdlPass;
+use fill_pass::FillPass;
 use gpu_data::FrameUniforms;
 use hq_pass::HqAccumulatePass;
+use pintus_pass::PintusPass;
 use resolve_pass::ResolvePass;
+use screen_params::ScreenUniforms;
 use targets::FrameTargets;
 use timing::GpuTimer;
+use visibility_pass::VisibilityPass;
 
 /// Largest image side accepted, in pixels.
 pub const MAX_IMAGE_SIDE: u32 = 16384;
@@ -47,6 +57,23 @@ pub const MAX_IMAGE_SIDE: u32 = 16384;
 pub const MAX_SUPERSAMPLE: u32 = 4;
 /// Largest point size accepted, in pixels.
 pub const MAX_POINT_SIZE: u32 = 64;
+/// Smallest and largest visibility kernel side, in pixels (odd).
+pub const MIN_FILL_KERNEL: u32 = 3;
+pub const MAX_FILL_KERNEL: u32 = 9;
+/// Most smoothing levels of the Pintus shading.
+pub const MAX_PINTUS_LEVELS: u32 = 32;
+/// Visibility: a pixel is visible when the solid angle left open around its ray to the camera
+/// is at least 0.8 pi steradians, 40% of a hemisphere. A point on any plane, at any tilt, has
+/// about a hemisphere (2 pi); a point beside the edge of a nearer surface about half that
+/// (pi); a point seen through a hole that closes 6 of the 8 sectors at most pi / 2. Background
+/// pixels count 4 pi / 8 per sector without points: one beside a silhouette (3 or more open
+/// sectors, 1.5 pi) stays background, one enclosed by points (at most 1 open, pi / 2) is filled.
+pub const VISIBILITY_MIN_SOLID_ANGLE: f32 = 0.8 * std::f32::consts::PI;
+/// Filling: the paper's delta, as a fraction of the pixel's depth. A neighbour whose depth
+/// differs by 5% or more gets no weight, so the filling does not blur across depth edges;
+/// the depth step between neighbouring pixels of a plane seen at 10 degrees is about 2%
+/// (50 degree view, 240 pixels high).
+pub const FILL_DEPTH_TOLERANCE: f32 = 0.05;
 
 #[derive(Debug, Error)]
 pub enum RenderError {
@@ -68,6 +95,12 @@ pub enum RenderError {
     DepthBand(f32),
     #[error("Eye-Dome Lighting strength {strength} and radius {radius} are invalid: the strength must be 0 to 100, the radius 0.5 to 16 pixels")]
     Edl { strength: f32, radius: f32 },
+    #[error(
+        "fill kernel {0} is invalid: it must be an odd number of pixels from {MIN_FILL_KERNEL} to {MAX_FILL_KERNEL}"
+    )]
+    FillKernel(u32),
+    #[error("Pintus shading with {levels} levels and exponent {exponent} is invalid: levels must be 1 to {MAX_PINTUS_LEVELS}, the exponent 0 to 4")]
+    Pintus { levels: u32, exponent: f32 },
     #[error("supersampling factor {0} is invalid: it must be 1 to {MAX_SUPERSAMPLE}")]
     Supersample(u32),
     #[error("point size {0} is invalid: it must be 1 to {MAX_POINT_SIZE} pixels")]
@@ -123,6 +156,13 @@ pub enum Shading {
         strength: f32,
         radius: f32,
     },
+    /// Pintus et al.'s shape-depicting shading: a directional-light, ambient-occlusion and
+    /// line-drawing term from the depth alone, summed over `levels` smoothing levels with
+    /// weights 1 / (k + 1)^`exponent` (the paper's xi).
+    Pintus {
+        levels: u32,
+        exponent: f32,
+    },
 }
 
 impl Shading {
@@ -131,6 +171,35 @@ impl Shading {
         strength: 1.0,
         radius: 1.4,
     };
+    /// The paper's exponent 3/2, over 8 levels.
+    pub const PINTUS: Shading = Shading::Pintus {
+        levels: 8,
+        exponent: 1.5,
+    };
+}
+
+/// Pintus et al.'s visibility and anisotropic filling, run after the resolve: points seen
+/// through holes of a nearer surface are removed, then the holes (and background pixels
+/// enclosed by points) get the depth and colour of the surface around them. Pixels outside
+/// silhouettes stay background.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FillSettings {
+    /// Side of the visibility kernel in pixels: odd, 3 to 9. Holes up to about a third of it
+    /// are closed; the filling runs twice this many 3x3 steps.
+    pub kernel: u32,
+}
+
+impl Default for FillSettings {
+    fn default() -> Self {
+        Self { kernel: 7 }
+    }
+}
+
+impl FillSettings {
+    /// The paper's iteration count: twice the kernel size.
+    pub fn iterations(&self) -> u32 {
+        2 * self.kernel
+    }
 }
 
 /// Everything that decides the pixels of one frame.
@@ -145,6 +214,8 @@ pub struct FrameSettings {
     pub background: [u8; 4],
     pub atomics: AtomicsMode,
     pub quality: Quality,
+    /// Visibility and filling; `None` turns both off.
+    pub fill: Option<FillSettings>,
     pub shading: Shading,
     /// Supersampling anti-aliasing: render at this many times the size in each direction
     /// (points and shading radius scaled with it) and average k x k blocks. 1 turns it off.
@@ -164,6 +235,7 @@ impl FrameSettings {
             background: [24, 24, 28, 255],
             atomics: AtomicsMode::Auto,
             quality: Quality::Basic,
+            fill: None,
             shading: Shading::None,
             supersample: 1,
             read_depth: false,
@@ -184,8 +256,13 @@ impl FrameSettings {
                     strength,
                     radius: radius * k as f32,
                 },
-                Shading::None => Shading::None,
+                other => other,
             },
+            // The same holes are k times wider: the kernel radius grows with them (the kernel
+            // may then exceed MAX_FILL_KERNEL, which bounds what a user asks for).
+            fill: self.fill.map(|fill| FillSettings {
+                kernel: (fill.kernel / 2) * k * 2 + 1,
+            }),
             supersample: 1,
             ..*self
         }
@@ -302,8 +379,12 @@ pub struct Renderer {
     basic: BasicPass,
     hq: HqAccumulatePass,
     edl: EdlPass,
+    visibility: VisibilityPass,
+    fill: FillPass,
+    pintus: PintusPass,
     resolve: ResolvePass,
     uniforms: wgpu::Buffer,
+    screen_uniforms: ScreenUniforms,
     timer: Option<GpuTimer>,
     targets: Option<FrameTargets>,
     max_chunk_points: usize,
@@ -320,7 +401,11 @@ impl Renderer {
             basic: BasicPass::new(device, caps.int64_atomics),
             hq: HqAccumulatePass::new(device),
             edl: EdlPass::new(device),
+            visibility: VisibilityPass::new(device),
+            fill: FillPass::new(device),
+            pintus: PintusPass::new(device),
             resolve: ResolvePass::new(device),
+            screen_uniforms: ScreenUniforms::new(device),
             uniforms: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("frame uniforms"),
                 size: std::mem::size_of::<FrameUniforms>() as u64,
@@ -359,6 +444,16 @@ impl Renderer {
     pub fn validate(&self, settings: &FrameSettings) -> Result<(), RenderError> {
         if !(1..=MAX_SUPERSAMPLE).contains(&settings.supersample) {
             return Err(RenderError::Supersample(settings.supersample));
+        }
+        if let Some(FillSettings { kernel }) = settings.fill {
+            if !(MIN_FILL_KERNEL..=MAX_FILL_KERNEL).contains(&kernel) || kernel.is_multiple_of(2) {
+                return Err(RenderError::FillKernel(kernel));
+            }
+        }
+        if let Shading::Pintus { levels, exponent } = settings.shading {
+            if !((1..=MAX_PINTUS_LEVELS).contains(&levels) && (0.0..=4.0).contains(&exponent)) {
+                return Err(RenderError::Pintus { levels, exponent });
+            }
         }
         let settings = &settings.scaled_for_supersampling();
         let (width, height) = (settings.width, settings.height);
@@ -444,6 +539,17 @@ impl Renderer {
         }
         if let (Quality::High { .. }, Some(targets)) = (settings.quality, self.targets.as_mut()) {
             targets.ensure_accumulator(&self.gpu.device);
+        }
+        if let Some(targets) = self.targets.as_mut() {
+            if settings.fill.is_some() {
+                targets.ensure_fill(&self.gpu.device);
+            }
+            if let Shading::Pintus { .. } = settings.shading {
+                targets.ensure_shading(&self.gpu.device);
+            }
+        }
+        if settings.fill.is_some() || matches!(settings.shading, Shading::Pintus { .. }) {
+            self.screen_uniforms.write(&self.gpu.queue, settings);
         }
         let upload_ms = started.elapsed().as_secs_f64() * 1e3 + cloud.take_upload_ms();
         timings.push(Stage::Upload, upload_ms, Clock::Host);
@@ -543,11 +649,30 @@ impl Renderer {
                 ),
             ],
         };
-        if let Shading::Edl { .. } = settings.shading {
+        let screen = &self.screen_uniforms;
+        if let Some(fill) = settings.fill {
             passes.push((
+                Stage::Visibility,
+                Box::new(|pass| self.visibility.record(device, pass, screen, targets)),
+            ));
+            passes.push((
+                Stage::Fill,
+                Box::new(move |pass| {
+                    self.fill
+                        .record(device, pass, screen, targets, fill.iterations())
+                }),
+            ));
+        }
+        match settings.shading {
+            Shading::None => {}
+            Shading::Edl { .. } => passes.push((
                 Stage::Shade,
                 Box::new(|pass| self.edl.record(device, pass, uniforms, targets)),
-            ));
+            )),
+            Shading::Pintus { levels, .. } => passes.push((
+                Stage::Shade,
+                Box::new(move |pass| self.pintus.record(device, pass, screen, targets, levels)),
+            )),
         }
         let begin_frame = |encoder: &mut wgpu::CommandEncoder| {
             if let (Quality::High { .. }, Some(accumulator)) =
@@ -627,11 +752,11 @@ fn frame_uniforms(cloud: &GpuPointCloud, settings: &FrameSettings) -> FrameUnifo
         background: u32::from_le_bytes(settings.background),
         edl_strength: match settings.shading {
             Shading::Edl { strength, .. } => strength,
-            Shading::None => 0.0,
+            _ => 0.0,
         },
         edl_radius: match settings.shading {
             Shading::Edl { radius, .. } => radius,
-            Shading::None => 0.0,
+            _ => 0.0,
         },
         _pad: [0; 3],
     }
@@ -647,6 +772,8 @@ pub(crate) fn dispatch_grid(groups: u32) -> (u32, u32) {
     }
 }
 
+#[cfg(test)]
+mod fill_tests;
 #[cfg(test)]
 mod real_scan_tests;
 #[cfg(test)]

@@ -18,6 +18,24 @@ pub(crate) struct FrameTargets {
     /// High-quality mode: per pixel the sums of red, green, blue and a count (4 x u32).
     /// Created on the first high-quality frame of this size.
     pub accumulator: Option<wgpu::Buffer>,
+    /// Filling: created on the first filled frame of this size.
+    pub fill: Option<FillTargets>,
+    /// Pintus shading: created on the first such frame of this size.
+    pub shading: Option<ShadingTargets>,
+}
+
+/// The visibility pass's output and the other half of the filling's ping-pong.
+pub(crate) struct FillTargets {
+    pub depth: wgpu::Buffer,
+    pub colour: wgpu::Buffer,
+    /// 1 where the filling may change the pixel, 0 where it is fixed.
+    pub mutable: wgpu::Buffer,
+}
+
+/// Pintus shading's smoothed depth levels (ping-pong) and per-pixel weighted sum.
+pub(crate) struct ShadingTargets {
+    pub depth: [wgpu::Buffer; 2],
+    pub sum: wgpu::Buffer,
 }
 
 impl FrameTargets {
@@ -40,7 +58,29 @@ impl FrameTargets {
             colour_staging: staging_buffer(device, "colour image readback", pixels * 4),
             depth_staging: staging_buffer(device, "depth image readback", pixels * 4),
             accumulator: None,
+            fill: None,
+            shading: None,
         }
+    }
+
+    pub fn ensure_fill(&mut self, device: &wgpu::Device) {
+        let bytes = self.pixels() * 4;
+        self.fill.get_or_insert_with(|| FillTargets {
+            depth: scratch(device, "fill depth", bytes),
+            colour: scratch(device, "fill colour", bytes),
+            mutable: scratch(device, "fill mutable pixels", bytes),
+        });
+    }
+
+    pub fn ensure_shading(&mut self, device: &wgpu::Device) {
+        let bytes = self.pixels() * 4;
+        self.shading.get_or_insert_with(|| ShadingTargets {
+            depth: [
+                scratch(device, "shading depth level a", bytes),
+                scratch(device, "shading depth level b", bytes),
+            ],
+            sum: scratch(device, "shading sum", bytes),
+        });
     }
 
     pub fn ensure_accumulator(&mut self, device: &wgpu::Device) {
@@ -58,4 +98,14 @@ impl FrameTargets {
     pub fn pixels(&self) -> u64 {
         self.width as u64 * self.height as u64
     }
+}
+
+/// A storage buffer only the GPU reads and writes.
+fn scratch(device: &wgpu::Device, label: &str, size: u64) -> wgpu::Buffer {
+    device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size,
+        usage: wgpu::BufferUsages::STORAGE,
+        mapped_at_creation: false,
+    })
 }

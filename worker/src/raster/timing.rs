@@ -14,7 +14,11 @@ pub enum Stage {
     Accumulate,
     /// Framebuffer to RGBA8 and depth images.
     Resolve,
-    /// Screen-space shading of the resolved image (Eye-Dome Lighting).
+    /// Screen-space visibility: points seen through holes of nearer surfaces removed.
+    Visibility,
+    /// Anisotropic filling of the holes' depth and colour.
+    Fill,
+    /// Screen-space shading of the resolved image (Eye-Dome Lighting, Pintus).
     Shade,
     /// Supersampling: averaging blocks of the larger image.
     Downsample,
@@ -31,6 +35,8 @@ impl Stage {
             Stage::Rasterize => "rasterize",
             Stage::Accumulate => "accumulate",
             Stage::Resolve => "resolve",
+            Stage::Visibility => "visibility",
+            Stage::Fill => "fill",
             Stage::Shade => "shade",
             Stage::Downsample => "downsample",
             Stage::Readback => "readback",
@@ -105,7 +111,7 @@ pub(crate) struct GpuTimer {
 }
 
 /// Most compute passes in one frame.
-const MAX_PASSES: u32 = 4;
+const MAX_PASSES: u32 = 6;
 /// Query slots: begin and end of each pass.
 const QUERY_COUNT: u32 = 2 * MAX_PASSES;
 

@@ -1,0 +1,99 @@
+// Pintus et al. 2011, section 5: anisotropic filling of the pixels the visibility pass left
+// mutable, one 3x3 step per dispatch (ping-pong buffers). A mutable pixel without a depth
+// takes the median depth of its valid neighbours, and that neighbour's colour; one with a
+// depth becomes the weighted mean of its valid 3x3 neighbourhood (itself included), with the
+// paper's equation 1: w = (1 - r / 2) (1 - min(1, |z - z0| / delta)), r the distance in
+// pixels, delta = depth_tolerance * z0. Fixed pixels never change.
+
+@group(0) @binding(0) var<uniform> params: ScreenParams;
+@group(0) @binding(1) var<storage, read> depth_in: array<f32>;
+@group(0) @binding(2) var<storage, read> colour_in: array<u32>;
+@group(0) @binding(3) var<storage, read> mutable_pixels: array<u32>;
+@group(0) @binding(4) var<storage, read_write> depth_out: array<f32>;
+@group(0) @binding(5) var<storage, read_write> colour_out: array<u32>;
+
+@compute @workgroup_size(16, 16)
+fn fill_step(@builtin(global_invocation_id) id: vec3<u32>) {
+    if id.x >= params.width || id.y >= params.height {
+        return;
+    }
+    let x = i32(id.x);
+    let y = i32(id.y);
+    let pixel = id.y * params.width + id.x;
+    let z0 = depth_in[pixel];
+    depth_out[pixel] = z0;
+    colour_out[pixel] = colour_in[pixel];
+    if mutable_pixels[pixel] == 0u {
+        return;
+    }
+
+    // The valid neighbours, in row-major order.
+    var depths: array<f32, 9>;
+    var colours: array<u32, 9>;
+    var weights: array<f32, 9>;
+    var count = 0u;
+    for (var dy = -1; dy <= 1; dy++) {
+        for (var dx = -1; dx <= 1; dx++) {
+            let nx = x + dx;
+            let ny = y + dy;
+            if nx < 0 || ny < 0 || nx >= i32(params.width) || ny >= i32(params.height) {
+                continue;
+            }
+            let n = u32(ny) * params.width + u32(nx);
+            let z = depth_in[n];
+            if !is_surface_depth(z) {
+                continue;
+            }
+            depths[count] = z;
+            colours[count] = colour_in[n];
+            weights[count] = 1.0 - length(vec2<f32>(f32(dx), f32(dy))) / 2.0;
+            count++;
+        }
+    }
+    if count == 0u {
+        return;
+    }
+
+    if !is_surface_depth(z0) {
+        // Median: the neighbour with (count - 1) / 2 others before it in (depth, order).
+        let wanted = (count - 1u) / 2u;
+        for (var i = 0u; i < count; i++) {
+            var rank = 0u;
+            for (var j = 0u; j < count; j++) {
+                if depths[j] < depths[i] || (depths[j] == depths[i] && j < i) {
+                    rank++;
+                }
+            }
+            if rank == wanted {
+                depth_out[pixel] = depths[i];
+                colour_out[pixel] = colours[i];
+            }
+        }
+        return;
+    }
+
+    let delta = params.depth_tolerance * z0;
+    var weight_sum = 0.0;
+    var depth_sum = 0.0;
+    var colour_sum = vec4<f32>(0.0);
+    for (var i = 0u; i < count; i++) {
+        let w = weights[i] * (1.0 - min(1.0, abs(depths[i] - z0) / delta));
+        weight_sum += w;
+        depth_sum += w * depths[i];
+        colour_sum += w * unpack4x8unorm(colours[i]);
+    }
+    // The pixel itself always has weight 1, so the sum is never 0.
+    depth_out[pixel] = depth_sum / weight_sum;
+    colour_out[pixel] = pack4x8unorm(colour_sum / weight_sum);
+}
+
+// Copies the filled images back into the frame's own buffers.
+@compute @workgroup_size(16, 16)
+fn finish(@builtin(global_invocation_id) id: vec3<u32>) {
+    if id.x >= params.width || id.y >= params.height {
+        return;
+    }
+    let pixel = id.y * params.width + id.x;
+    depth_out[pixel] = depth_in[pixel];
+    colour_out[pixel] = colour_in[pixel];
+}

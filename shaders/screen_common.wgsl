@@ -1,0 +1,48 @@
+// Shared by the screen-space passes that run on the resolved images (visibility, filling,
+// Pintus shading): their parameters and how a pixel and its depth become a view-space point.
+
+struct ScreenParams {
+    width: u32,
+    height: u32,
+    // Visibility kernel: (2 kernel_radius + 1)^2 pixels around each pixel.
+    kernel_radius: u32,
+    // 1 for a perspective camera, 0 for an orthographic one.
+    perspective: u32,
+    // View-space x and y of a pixel: ndc * unproject, times the depth in perspective.
+    unproject: vec2<f32>,
+    // Visibility: a pixel is visible when the solid angle left open around its
+    // point-to-camera ray is at least this (steradians).
+    min_solid_angle: f32,
+    // Filling: a neighbour whose depth differs from the pixel's by depth_tolerance times the
+    // pixel's depth (the paper's delta, relative) has no weight.
+    depth_tolerance: f32,
+    // RGBA8 of pixels that stay empty.
+    background: u32,
+    // Pintus shading, per level: 1 on the first level (the sum starts there).
+    first_level: u32,
+    // Pintus shading: this level's weight 1 / (k + 1)^xi ...
+    level_weight: f32,
+    // ... and one over the sum of all levels' weights (a flat, facing surface keeps its colour).
+    inverse_total_weight: f32,
+}
+
+const INFINITE_DEPTH_BITS: u32 = 0x7f800000u;
+
+fn is_surface_depth(d: f32) -> bool {
+    return bitcast<u32>(d) != INFINITE_DEPTH_BITS;
+}
+
+fn infinite_depth() -> f32 {
+    return bitcast<f32>(INFINITE_DEPTH_BITS);
+}
+
+// The view-space point of pixel (x, y) at linear depth d: camera at the origin, looking
+// along +z, x right and y up.
+fn view_point(params: ScreenParams, x: i32, y: i32, d: f32) -> vec3<f32> {
+    let ndc = vec2<f32>(
+        (f32(x) + 0.5) / f32(params.width) * 2.0 - 1.0,
+        1.0 - (f32(y) + 0.5) / f32(params.height) * 2.0,
+    );
+    let scale = select(1.0, d, params.perspective == 1u);
+    return vec3<f32>(ndc * params.unproject * scale, d);
+}

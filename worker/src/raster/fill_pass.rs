@@ -1,0 +1,81 @@
+//! Anisotropic filling (Pintus et al., section 5; `shaders/fill.wgsl`): `iterations` 3x3
+//! steps over the mutable pixels, ping-ponging between the fill buffers and the frame's own
+//! colour and depth buffers, then the result copied back into the frame's buffers.
+
+use pointfarm_shaders::Shader;
+
+use super::basic_pass::module;
+use super::binding::{bind_resources, dispatch_tiles};
+use super::screen_params::ScreenUniforms;
+use super::targets::FrameTargets;
+
+pub(crate) struct FillPass {
+    step: wgpu::ComputePipeline,
+    finish: wgpu::ComputePipeline,
+}
+
+impl FillPass {
+    pub fn new(device: &wgpu::Device) -> Self {
+        let module = module(device, Shader::Fill);
+        let pipeline = |entry_point: &str| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry_point),
+                layout: None,
+                module: &module,
+                entry_point: Some(entry_point),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        };
+        Self {
+            step: pipeline("fill_step"),
+            finish: pipeline("finish"),
+        }
+    }
+
+    /// Expects the visibility pass's output in the fill buffers; leaves the filled images in
+    /// the frame's colour and depth buffers.
+    pub fn record(
+        &self,
+        device: &wgpu::Device,
+        pass: &mut wgpu::ComputePass<'_>,
+        params: &ScreenUniforms,
+        targets: &FrameTargets,
+        iterations: u32,
+    ) {
+        let Some(fill) = targets.fill.as_ref() else {
+            return;
+        };
+        // Each step reads one pair of buffers and writes the other; wgpu synchronises
+        // successive dispatches of a pass.
+        let pairs = [
+            (&fill.depth, &fill.colour),
+            (&targets.depth, &targets.colour),
+        ];
+        let bind = |pipeline: &wgpu::ComputePipeline, from: usize| {
+            let ((depth_in, colour_in), (depth_out, colour_out)) = (pairs[from], pairs[1 - from]);
+            let mut resources = vec![
+                (0, params.fill()),
+                (1, depth_in.as_entire_binding()),
+                (2, colour_in.as_entire_binding()),
+                (4, depth_out.as_entire_binding()),
+                (5, colour_out.as_entire_binding()),
+            ];
+            if std::ptr::eq(pipeline, &self.step) {
+                resources.push((3, fill.mutable.as_entire_binding()));
+            }
+            bind_resources(device, pipeline, "fill", resources)
+        };
+        let steps = [bind(&self.step, 0), bind(&self.step, 1)];
+        pass.set_pipeline(&self.step);
+        for i in 0..iterations as usize {
+            pass.set_bind_group(0, &steps[i % 2], &[]);
+            dispatch_tiles(pass, targets.width, targets.height);
+        }
+        if iterations.is_multiple_of(2) {
+            pass.set_pipeline(&self.finish);
+            pass.set_bind_group(0, &bind(&self.finish, 0), &[]);
+            dispatch_tiles(pass, targets.width, targets.height);
+        }
+    }
+}

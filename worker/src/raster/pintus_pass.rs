@@ -1,0 +1,83 @@
+//! Shape-depicting shading (Pintus et al., section 6; `shaders/pintus.wgsl`): one dispatch
+//! per smoothing level, each adding its weighted term to a per-pixel sum, then the colour
+//! multiplied by the normalised sum. The frame's depth image is only read.
+
+use pointfarm_shaders::Shader;
+
+use super::basic_pass::module;
+use super::binding::{bind_resources, dispatch_tiles};
+use super::screen_params::ScreenUniforms;
+use super::targets::FrameTargets;
+
+pub(crate) struct PintusPass {
+    level: wgpu::ComputePipeline,
+    apply: wgpu::ComputePipeline,
+}
+
+impl PintusPass {
+    pub fn new(device: &wgpu::Device) -> Self {
+        let module = module(device, Shader::PintusShading);
+        let pipeline = |entry_point: &str| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry_point),
+                layout: None,
+                module: &module,
+                entry_point: Some(entry_point),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        };
+        Self {
+            level: pipeline("level"),
+            apply: pipeline("apply"),
+        }
+    }
+
+    pub fn record(
+        &self,
+        device: &wgpu::Device,
+        pass: &mut wgpu::ComputePass<'_>,
+        params: &ScreenUniforms,
+        targets: &FrameTargets,
+        levels: u32,
+    ) {
+        let Some(shading) = targets.shading.as_ref() else {
+            return;
+        };
+        pass.set_pipeline(&self.level);
+        for k in 0..levels {
+            // Level 0 reads the frame's depth; later levels the smoothed depth of the previous.
+            let depth_in = match k {
+                0 => &targets.depth,
+                _ => &shading.depth[(k as usize + 1) % 2],
+            };
+            let bind_group = bind_resources(
+                device,
+                &self.level,
+                "pintus level",
+                vec![
+                    (0, params.pintus_level(k)),
+                    (1, depth_in.as_entire_binding()),
+                    (2, shading.depth[k as usize % 2].as_entire_binding()),
+                    (3, shading.sum.as_entire_binding()),
+                ],
+            );
+            pass.set_bind_group(0, &bind_group, &[]);
+            dispatch_tiles(pass, targets.width, targets.height);
+        }
+        let bind_group = bind_resources(
+            device,
+            &self.apply,
+            "pintus apply",
+            vec![
+                (0, params.pintus_level(0)),
+                (1, targets.depth.as_entire_binding()),
+                (3, shading.sum.as_entire_binding()),
+                (4, targets.colour.as_entire_binding()),
+            ],
+        );
+        pass.set_pipeline(&self.apply);
+        pass.set_bind_group(0, &bind_group, &[]);
+        dispatch_tiles(pass, targets.width, targets.height);
+    }
+}
