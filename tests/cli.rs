@@ -154,6 +154,11 @@ fn bad_input_fails_with_one_line_that_names_the_problem() {
             "same point",
         ),
         (render(&["--turntable", "0"]), "turntable"),
+        (render(&["--fill-kernel", "4"]), "fill kernel 4"),
+        (
+            render(&["--shading", "pintus", "--pintus-levels", "0"]),
+            "Pintus shading",
+        ),
     ];
     for (output, needle) in cases {
         assert!(
@@ -290,6 +295,68 @@ fn remote_render_uploads_submits_follows_and_downloads() {
     let unknown = pointfarm(&["jobs", "show", "job-missing", "--server", &address]);
     assert!(!unknown.status.success());
     assert!(String::from_utf8_lossy(&unknown.stderr).contains("NotFound"));
+}
+
+#[test]
+fn fill_and_pintus_shading_render_the_same_locally_and_through_the_service() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let laz = sample(dir.path(), "sample.laz", 20_000);
+    let server = ServeProcess::start(&dir.path().join("data"));
+    let options = [
+        "--turntable",
+        "1",
+        "--size",
+        "160x120",
+        "--fill",
+        "--fill-kernel",
+        "5",
+        "--shading",
+        "pintus",
+        "--pintus-levels",
+        "4",
+    ];
+    let local = dir.path().join("local");
+    let mut args = vec!["render", laz.as_str(), "--out"];
+    let local_arg = path_arg(&local);
+    args.push(&local_arg);
+    args.extend(options);
+    let output = pointfarm(&args);
+    assert_ok(&output);
+    for stage in ["visibility", "fill", "shade"] {
+        assert!(stdout(&output).contains(stage), "no {stage} stage");
+    }
+    let remote = dir.path().join("remote");
+    let remote_arg = path_arg(&remote);
+    let mut args = vec!["render", laz.as_str(), "--server", &server.address, "--out"];
+    args.push(&remote_arg);
+    args.extend(options);
+    assert_ok(&pointfarm(&args));
+    let frame = |dir: &Path| {
+        image::open(dir.join("frame_00000.png"))
+            .expect("frame")
+            .to_rgba8()
+    };
+    assert_rendered(&local.join("frame_00000.png"), 160, 120);
+    assert_eq!(
+        frame(&local),
+        frame(&remote),
+        "the service rendered another picture"
+    );
+    // Filling changes the picture.
+    let plain = dir.path().join("plain");
+    let plain_arg = path_arg(&plain);
+    let args = [
+        "render",
+        &laz,
+        "--out",
+        &plain_arg,
+        "--turntable",
+        "1",
+        "--size",
+        "160x120",
+    ];
+    assert_ok(&pointfarm(&args));
+    assert_ne!(frame(&local), frame(&plain));
 }
 
 #[test]

@@ -92,7 +92,13 @@ fn submission(args: &RenderArgs, dataset_id: String) -> Result<pb::SubmitJobRequ
         shading: match args.shading {
             ShadingArg::None => pb::Shading::None,
             ShadingArg::Edl => pb::Shading::Edl,
+            ShadingArg::Pintus => pb::Shading::Pintus,
         } as i32,
+        fill: args
+            .fill_settings()
+            .map(|f| pb::FillOptions { kernel: f.kernel }),
+        pintus_levels: Some(args.pintus_levels),
+        pintus_exponent: Some(args.pintus_exponent),
         edl_strength: Some(args.edl_strength),
         edl_radius: Some(args.edl_radius),
         color_mode: color_mode as i32,

@@ -14,7 +14,7 @@ use pointfarm_worker::color::{point_colours, ColorMode};
 use pointfarm_worker::gpu::{AdapterChoice, GpuContext};
 use pointfarm_worker::ingest::load_point_cloud;
 use pointfarm_worker::raster::{
-    AtomicsMode, FrameSettings, Quality, Renderer, Shading, Stage, StageTimings,
+    AtomicsMode, FillSettings, FrameSettings, Quality, Renderer, Shading, Stage, StageTimings,
 };
 
 use crate::parse;
@@ -95,10 +95,27 @@ pub struct RenderArgs {
     /// High quality: points up to this fraction behind the nearest depth are averaged.
     #[arg(long, default_value_t = 0.01)]
     pub(crate) depth_band: f32,
-    /// Screen-space shading: edl (Eye-Dome Lighting, shapes read without colour or normals)
-    /// or none.
+    /// Close the holes between points (Pintus et al.): points seen through gaps of a nearer
+    /// surface are removed, then holes take the depth and colour of the surface around them.
+    /// Silhouettes stay sharp.
+    #[arg(long)]
+    pub(crate) fill: bool,
+    /// Filling: visibility kernel side in pixels, odd, 3 to 9 (implies --fill). Holes up to
+    /// about a third of it close; raise it for sparse scans.
+    #[arg(long, value_name = "N")]
+    pub(crate) fill_kernel: Option<u32>,
+    /// Screen-space shading: edl (Eye-Dome Lighting, shapes read without colour or normals),
+    /// pintus (Pintus et al.'s shape depiction: directional light, ambient occlusion and
+    /// lines from depth alone; best with --fill) or none.
     #[arg(long, value_enum, default_value = "none")]
     pub(crate) shading: ShadingArg,
+    /// Pintus shading: number of smoothing levels (1 to 32); more adds broader, softer
+    /// ambient shading.
+    #[arg(long, default_value_t = 8)]
+    pub(crate) pintus_levels: u32,
+    /// Pintus shading: level k weighs 1 / (k + 1)^exponent (0 to 4); higher is sharper.
+    #[arg(long, default_value_t = 1.5)]
+    pub(crate) pintus_exponent: f32,
     /// Eye-Dome Lighting: how strongly depth steps darken.
     #[arg(long, default_value_t = 1.0)]
     pub(crate) edl_strength: f32,
@@ -117,6 +134,19 @@ pub struct RenderArgs {
 pub(crate) enum ShadingArg {
     None,
     Edl,
+    Pintus,
+}
+
+/// The kernel used when only --fill is given.
+pub(crate) const DEFAULT_FILL_KERNEL: u32 = 7;
+
+impl RenderArgs {
+    /// Filling as asked for: --fill, or --fill-kernel alone.
+    pub(crate) fn fill_settings(&self) -> Option<FillSettings> {
+        (self.fill || self.fill_kernel.is_some()).then(|| FillSettings {
+            kernel: self.fill_kernel.unwrap_or(DEFAULT_FILL_KERNEL),
+        })
+    }
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -173,11 +203,16 @@ pub fn run(args: RenderArgs) -> Result<()> {
         },
         supersample: args.supersample,
         read_depth: args.depth,
+        fill: args.fill_settings(),
         shading: match args.shading {
             ShadingArg::None => Shading::None,
             ShadingArg::Edl => Shading::Edl {
                 strength: args.edl_strength,
                 radius: args.edl_radius,
+            },
+            ShadingArg::Pintus => Shading::Pintus {
+                levels: args.pintus_levels,
+                exponent: args.pintus_exponent,
             },
         },
         ..FrameSettings::new(width, height, base_camera(&args, &cloud))

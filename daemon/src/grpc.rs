@@ -7,6 +7,7 @@ use std::sync::Arc;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_server::DatasetService;
 use pointfarm_proto::v1::job_service_server::JobService;
+use pointfarm_worker::raster::{MAX_FILL_KERNEL, MAX_PINTUS_LEVELS, MIN_FILL_KERNEL};
 use sha2::{Digest, Sha256};
 use tokio::io::AsyncWriteExt;
 use tokio_stream::wrappers::ReceiverStream;
@@ -15,8 +16,8 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::error::DaemonError;
 use crate::model::{
-    CameraPath, ColorMode, Dataset, FrameReport, FrameState, Interpolation, Job, JobSpec, JobState,
-    Keyframe, Point3, Quality, RenderOptions, Shading, StageTiming, Turntable,
+    CameraPath, ColorMode, Dataset, Fill, FrameReport, FrameState, Interpolation, Job, JobSpec,
+    JobState, Keyframe, Point3, Quality, RenderOptions, Shading, StageTiming, Turntable,
 };
 use crate::service::{hex, Daemon};
 
@@ -249,6 +250,23 @@ fn render_options(options: Option<&pb::RenderOptions>) -> Result<RenderOptions, 
             }
             Shading::Edl { strength, radius }
         }
+        Ok(pb::Shading::Pintus) => {
+            let levels = o.pintus_levels.unwrap_or(8);
+            let exponent = o.pintus_exponent.unwrap_or(1.5);
+            if !(1..=MAX_PINTUS_LEVELS).contains(&levels) {
+                return Err(invalid(
+                    "render.pintus_levels",
+                    format!("must be 1 to {MAX_PINTUS_LEVELS}, got {levels}"),
+                ));
+            }
+            if !(exponent.is_finite() && (0.0..=4.0).contains(&exponent)) {
+                return Err(invalid(
+                    "render.pintus_exponent",
+                    format!("must be 0 to 4, got {exponent}"),
+                ));
+            }
+            Shading::Pintus { levels, exponent }
+        }
         Ok(_) => Shading::None,
         Err(_) => {
             return Err(invalid(
@@ -277,12 +295,29 @@ fn render_options(options: Option<&pb::RenderOptions>) -> Result<RenderOptions, 
         }
     };
     let background = o.background.as_ref().map(rgba).unwrap_or([24, 24, 28, 255]);
+    let fill = match &o.fill {
+        None => None,
+        Some(f) => {
+            let kernel = if f.kernel == 0 { 7 } else { f.kernel };
+            if !(MIN_FILL_KERNEL..=MAX_FILL_KERNEL).contains(&kernel) || kernel.is_multiple_of(2) {
+                return Err(invalid(
+                    "render.fill.kernel",
+                    format!(
+                        "must be an odd number of pixels from {MIN_FILL_KERNEL} to \
+                         {MAX_FILL_KERNEL}, got {kernel}"
+                    ),
+                ));
+            }
+            Some(Fill { kernel })
+        }
+    };
     Ok(RenderOptions {
         point_size,
         quality,
         shading,
         color_mode,
         background,
+        fill,
     })
 }
 
@@ -767,6 +802,48 @@ mod tests {
             ..Default::default()
         });
         assert_eq!(field_of(&r), "render.depth_band");
+        for kernel in [1, 4, 11] {
+            let mut r = valid();
+            r.render = Some(pb::RenderOptions {
+                fill: Some(pb::FillOptions { kernel }),
+                ..Default::default()
+            });
+            assert_eq!(field_of(&r), "render.fill.kernel");
+        }
+        let mut r = valid();
+        r.render = Some(pb::RenderOptions {
+            shading: pb::Shading::Pintus as i32,
+            pintus_levels: Some(0),
+            ..Default::default()
+        });
+        assert_eq!(field_of(&r), "render.pintus_levels");
+        let mut r = valid();
+        r.render = Some(pb::RenderOptions {
+            shading: pb::Shading::Pintus as i32,
+            pintus_exponent: Some(f32::NAN),
+            ..Default::default()
+        });
+        assert_eq!(field_of(&r), "render.pintus_exponent");
+    }
+
+    #[test]
+    fn fill_and_pintus_shading_convert_with_defaults() {
+        let mut r = valid();
+        r.render = Some(pb::RenderOptions {
+            shading: pb::Shading::Pintus as i32,
+            fill: Some(pb::FillOptions { kernel: 0 }),
+            ..Default::default()
+        });
+        let render = job_spec(&r).expect("valid").render;
+        assert_eq!(render.fill, Some(Fill { kernel: 7 }));
+        assert_eq!(
+            render.shading,
+            Shading::Pintus {
+                levels: 8,
+                exponent: 1.5
+            }
+        );
+        assert_eq!(job_spec(&valid()).expect("valid").render.fill, None);
     }
 
     #[test]

@@ -82,6 +82,14 @@ pub enum Quality {
 pub enum Shading {
     None,
     Edl { strength: f32, radius: f32 },
+    Pintus { levels: u32, exponent: f32 },
+}
+
+/// Pintus et al.'s visibility and hole filling.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Fill {
+    /// Visibility kernel side in pixels (odd, 3 to 9).
+    pub kernel: u32,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -101,6 +109,9 @@ pub struct RenderOptions {
     pub shading: Shading,
     pub color_mode: ColorMode,
     pub background: [u8; 4],
+    /// Absent in jobs stored before filling existed.
+    #[serde(default)]
+    pub fill: Option<Fill>,
 }
 
 /// What a client asked for, validated.

@@ -12,7 +12,7 @@ use pointfarm_worker::cloud::WorldBounds;
 use pointfarm_worker::color::{point_colours, ColorMode as WorkerColorMode};
 use pointfarm_worker::gpu::GpuContext;
 use pointfarm_worker::raster::{
-    Clock, FrameSettings, GpuPointCloud, Quality as WorkerQuality, Renderer,
+    Clock, FillSettings, FrameSettings, GpuPointCloud, Quality as WorkerQuality, Renderer,
     Shading as WorkerShading,
 };
 
@@ -126,7 +126,9 @@ fn render_task(
         shading: match spec.render.shading {
             Shading::None => WorkerShading::None,
             Shading::Edl { strength, radius } => WorkerShading::Edl { strength, radius },
+            Shading::Pintus { levels, exponent } => WorkerShading::Pintus { levels, exponent },
         },
+        fill: spec.render.fill.map(|f| FillSettings { kernel: f.kernel }),
         ..FrameSettings::new(spec.width, spec.height, camera)
     };
     let rendered = renderer
