@@ -56,6 +56,17 @@ impl ImageDiff {
 /// `<name>-expected.png` and `<name>-diff.png` (differing pixels in magenta) to
 /// `target/test-output/` so a failure can be looked at.
 pub fn compare_images(name: &str, actual: &RgbaImage, expected: &RgbaImage) -> ImageDiff {
+    compare_images_within(name, actual, expected, 0)
+}
+
+/// Like [`compare_images`], counting only pixels where some channel differs by more than
+/// `tolerance` levels (magenta in the diff image; smaller differences in yellow).
+pub fn compare_images_within(
+    name: &str,
+    actual: &RgbaImage,
+    expected: &RgbaImage,
+    tolerance: u8,
+) -> ImageDiff {
     assert_eq!(
         actual.dimensions(),
         expected.dimensions(),
@@ -68,22 +79,25 @@ pub fn compare_images(name: &str, actual: &RgbaImage, expected: &RgbaImage) -> I
         .zip(expected.pixels())
         .zip(diff.pixels_mut())
     {
-        if a != e {
+        let largest = (0..4).map(|c| a.0[c].abs_diff(e.0[c])).max().unwrap_or(0);
+        if largest > tolerance {
             differing += 1;
             d.0 = [255, 0, 255, 255];
+        } else if largest > 0 {
+            d.0 = [255, 255, 0, 255];
         } else {
             let grey = (e.0[0] as u16 + e.0[1] as u16 + e.0[2] as u16) / 6;
             d.0 = [grey as u8, grey as u8, grey as u8, 255];
         }
     }
     if differing > 0 {
-        let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../target/test-output");
+        let dir = test_output_dir();
         if std::fs::create_dir_all(&dir).is_ok() {
             let _ = actual.save(dir.join(format!("{name}-actual.png")));
             let _ = expected.save(dir.join(format!("{name}-expected.png")));
             let _ = diff.save(dir.join(format!("{name}-diff.png")));
             eprintln!(
-                "{name}: {differing} pixels differ; images in {}",
+                "{name}: {differing} pixels differ by more than {tolerance}; images in {}",
                 dir.display()
             );
         }
@@ -92,4 +106,9 @@ pub fn compare_images(name: &str, actual: &RgbaImage, expected: &RgbaImage) -> I
         pixels: (actual.width() * actual.height()) as usize,
         differing,
     }
+}
+
+/// Where failing image comparisons leave their images.
+pub fn test_output_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../target/test-output")
 }

@@ -16,6 +16,16 @@ const ORIGIN: DVec3 = DVec3::new(515_370.0, 4_918_340.0, 2_200.0);
 const WIDTH: u32 = 160;
 const HEIGHT: u32 = 120;
 
+/// The sphere scene's camera at another size (the golden images).
+pub(super) fn sphere_settings(width: u32, height: u32) -> FrameSettings {
+    FrameSettings {
+        width,
+        height,
+        read_depth: false,
+        ..settings(Projection::Perspective { fov_y_deg: 50.0 })
+    }
+}
+
 fn settings(projection: Projection) -> FrameSettings {
     let camera = Camera {
         position: ORIGIN + DVec3::new(0.0, -10.0, 0.0),
@@ -118,7 +128,7 @@ const SPHERE_RADIUS: f64 = 3.0;
 
 /// Points uniformly at random over a whole sphere (front and back), about one per pixel of
 /// its image: holes of a few pixels, and back points behind them.
-fn holey_sphere(settings: &FrameSettings) -> PointCloud {
+pub(super) fn holey_sphere(settings: &FrameSettings) -> PointCloud {
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     let (mut points, mut colours) = (Vec::new(), Vec::new());
     for _ in 0..48_000 {
@@ -127,7 +137,9 @@ fn holey_sphere(settings: &FrameSettings) -> PointCloud {
         let s = (1.0 - z * z).sqrt();
         let unit = DVec3::new(s * phi.cos(), s * phi.sin(), z);
         points.push(ORIGIN + unit * SPHERE_RADIUS);
-        colours.push(random_colour(&mut rng));
+        // Smooth bands with some noise, like a scanned surface's colour.
+        let mut band = |v: f64| (150.0 + 60.0 * v + rng.random_range(-12.0..12.0)) as u8;
+        colours.push(pack_rgba8(band(unit.z), band(unit.x), band(-unit.z)));
     }
     let _ = settings;
     PointCloud::from_world_points(&points, colours)

@@ -775,6 +775,8 @@ pub(crate) fn dispatch_grid(groups: u32) -> (u32, u32) {
 #[cfg(test)]
 mod fill_tests;
 #[cfg(test)]
+mod golden_tests;
+#[cfg(test)]
 mod real_scan_tests;
 #[cfg(test)]
 mod tests;
