@@ -35,3 +35,6 @@ render autzen-classification "$scan" --color classification --quality high
 render autzen-return "$scan" --color return --quality high
 render lone-star-intensity "$tls" --quality high
 render lone-star-edl "$tls" --quality high --shading edl --color "#d8d2c4"
+render autzen-fill-edl "$scan" --fill --shading edl
+render autzen-fill-pintus "$scan" --fill --shading pintus
+render lone-star-fill-pintus "$tls" --fill --shading pintus --color "#d8d2c4"
