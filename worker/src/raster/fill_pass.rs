@@ -52,7 +52,8 @@ impl FillPass {
             (&fill.depth, &fill.colour),
             (&targets.depth, &targets.colour),
         ];
-        let bind = |pipeline: &wgpu::ComputePipeline, from: usize| {
+        // `finish` copies without looking at the mask, so its layout has no binding 3.
+        let bind = |pipeline: &wgpu::ComputePipeline, from: usize, with_mask: bool| {
             let ((depth_in, colour_in), (depth_out, colour_out)) = (pairs[from], pairs[1 - from]);
             let mut resources = vec![
                 (0, params.fill()),
@@ -61,12 +62,12 @@ impl FillPass {
                 (4, depth_out.as_entire_binding()),
                 (5, colour_out.as_entire_binding()),
             ];
-            if std::ptr::eq(pipeline, &self.step) {
+            if with_mask {
                 resources.push((3, fill.mutable.as_entire_binding()));
             }
             bind_resources(device, pipeline, "fill", resources)
         };
-        let steps = [bind(&self.step, 0), bind(&self.step, 1)];
+        let steps = [bind(&self.step, 0, true), bind(&self.step, 1, true)];
         pass.set_pipeline(&self.step);
         for i in 0..iterations as usize {
             pass.set_bind_group(0, &steps[i % 2], &[]);
@@ -74,7 +75,7 @@ impl FillPass {
         }
         if iterations.is_multiple_of(2) {
             pass.set_pipeline(&self.finish);
-            pass.set_bind_group(0, &bind(&self.finish, 0), &[]);
+            pass.set_bind_group(0, &bind(&self.finish, 0, false), &[]);
             dispatch_tiles(pass, targets.width, targets.height);
         }
     }
