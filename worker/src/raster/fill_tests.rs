@@ -447,3 +447,18 @@ fn fill_settings_are_validated() {
     renderer.validate(&big).expect("supersampled fill");
     let _ = &mut renderer;
 }
+
+#[test]
+fn supersampled_filling_closes_the_same_holes() {
+    let mut settings = with_fill(settings(Projection::Perspective { fov_y_deg: 50.0 }), 5);
+    let cloud = holey_sphere(&settings);
+    let single = render_gpu(&cloud, &settings);
+    settings.supersample = 2;
+    let double = render_gpu(&cloud, &settings);
+    assert!(double.timings.get(Stage::Fill).is_some());
+    assert!(double.timings.get(Stage::Downsample).is_some());
+    let covered = |frame: &Frame| depth_of(frame).iter().filter(|d| d.is_finite()).count();
+    let (a, b) = (covered(&single), covered(&double));
+    // Points are twice as large at twice the size, so coverage is the same within the rim.
+    assert!(a.abs_diff(b) * 50 < a, "{a} vs {b} covered pixels");
+}
