@@ -7,8 +7,11 @@
 
 pub mod camera_path;
 pub mod error;
+pub mod frame_render;
 pub mod grpc;
+pub mod lease;
 pub mod model;
+pub mod remote_worker;
 pub mod server;
 pub mod service;
 pub mod store;

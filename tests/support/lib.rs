@@ -142,4 +142,68 @@ impl Drop for ServeProcess {
     }
 }
 
+/// `pointfarm worker` as a child process rendering for `server`; killed when dropped. Its
+/// log (at info level) goes to a file, shown by [`WorkerProcess::log`].
+pub struct WorkerProcess {
+    child: std::process::Child,
+    log: PathBuf,
+}
+
+impl WorkerProcess {
+    /// Starts a worker named `name` with its dataset cache in `cache_dir`.
+    pub fn start(server: &str, cache_dir: &Path, name: &str) -> Self {
+        let log = cache_dir.with_extension("log");
+        let log_file = std::fs::File::create(&log).expect("worker log file");
+        let child = Command::new(pointfarm_bin())
+            .args([
+                "-v",
+                "worker",
+                "--server",
+                server,
+                "--name",
+                name,
+                "--cache-dir",
+            ])
+            .arg(cache_dir)
+            .stdout(std::process::Stdio::null())
+            .stderr(log_file)
+            .spawn()
+            .expect("start pointfarm worker");
+        Self { child, log }
+    }
+
+    pub fn log(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// `kill -9`, and reap it.
+    pub fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
+    /// Sends SIGTERM and waits up to `timeout` for the exit.
+    pub fn terminate(&mut self, timeout: std::time::Duration) -> Option<std::process::ExitStatus> {
+        let sent = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status()
+            .expect("kill -TERM");
+        assert!(sent.success());
+        let deadline = std::time::Instant::now() + timeout;
+        while std::time::Instant::now() < deadline {
+            if let Ok(Some(status)) = self.child.try_wait() {
+                return Some(status);
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        None
+    }
+}
+
+impl Drop for WorkerProcess {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
 pub mod service;
