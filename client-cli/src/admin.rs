@@ -286,6 +286,7 @@ mod tests {
             .map(|i| pb::FrameFinished {
                 index: i,
                 dataset_cache_hit: None,
+                failed_attempts: 0,
                 timings: vec![
                     pb::StageTiming {
                         stage: "rasterize".into(),
