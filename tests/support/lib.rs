@@ -90,9 +90,23 @@ impl ServeProcess {
 
     /// Starts a daemon on `address` (e.g. again after a kill) and waits until it listens.
     pub fn start_at(address: &str, data_dir: &Path) -> Self {
+        Self::start_with_args(address, data_dir, &[])
+    }
+
+    /// Starts a daemon on a free port with more `serve` arguments.
+    pub fn start_with(data_dir: &Path, args: &[&str]) -> Self {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|probe| probe.local_addr())
+            .expect("a free loopback port")
+            .port();
+        Self::start_with_args(&format!("127.0.0.1:{port}"), data_dir, args)
+    }
+
+    fn start_with_args(address: &str, data_dir: &Path, args: &[&str]) -> Self {
         let child = Command::new(pointfarm_bin())
             .args(["serve", "--listen", address, "--data-dir"])
             .arg(data_dir)
+            .args(args)
             .stdout(std::process::Stdio::null())
             .stderr(std::process::Stdio::null())
             .spawn()
@@ -152,6 +166,11 @@ pub struct WorkerProcess {
 impl WorkerProcess {
     /// Starts a worker named `name` with its dataset cache in `cache_dir`.
     pub fn start(server: &str, cache_dir: &Path, name: &str) -> Self {
+        Self::start_with(server, cache_dir, name, &[])
+    }
+
+    /// Starts a worker with more `worker` arguments (e.g. `--token`).
+    pub fn start_with(server: &str, cache_dir: &Path, name: &str, args: &[&str]) -> Self {
         let log = cache_dir.with_extension("log");
         let log_file = std::fs::File::create(&log).expect("worker log file");
         let child = Command::new(pointfarm_bin())
@@ -165,6 +184,7 @@ impl WorkerProcess {
                 "--cache-dir",
             ])
             .arg(cache_dir)
+            .args(args)
             .stdout(std::process::Stdio::null())
             .stderr(log_file)
             .spawn()
