@@ -179,16 +179,7 @@ async fn a_worker_killed_mid_frame_loses_nothing() {
     let mut first = WorkerProcess::start(&daemon.url(), &scratch.path().join("cache-1"), "first");
     // The first lease of a fresh worker covers downloading and decoding the dataset: the
     // worker is killed while it holds that lease.
-    let mut held = None;
-    for _ in 0..6000 {
-        let leases = list_leases(&mut workers).await;
-        if let Some(lease) = leases.into_iter().find(|l| l.job_id == job.id) {
-            held = Some(lease);
-            break;
-        }
-        tokio::time::sleep(Duration::from_millis(5)).await;
-    }
-    let held = held.unwrap_or_else(|| panic!("no lease within 30 s\n{}", first.log()));
+    let held = wait_for_lease(&mut workers, &job.id, || first.log()).await;
     first.kill();
     assert_eq!(held.worker_name, "first");
     assert!(
@@ -489,4 +480,124 @@ async fn stale_and_cancelled_leases_are_refused() {
     );
     assert!(lease(&mut workers).await.is_none());
     daemon.stop().await;
+}
+
+/// Waits until a worker holds a lease on a frame of `job_id`, and returns it.
+async fn wait_for_lease(
+    workers: &mut Workers,
+    job_id: &str,
+    log: impl Fn() -> String,
+) -> pb::Lease {
+    for _ in 0..6000 {
+        let leases = list_leases(workers).await;
+        if let Some(lease) = leases.into_iter().find(|l| l.job_id == job_id) {
+            return lease;
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    panic!("no lease within 30 s\n{}", log());
+}
+
+/// SIGTERM while a frame is in flight: the worker finishes it, hands it in, and exits.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_lets_a_worker_hand_in_its_frame_before_it_exits() {
+    let daemon = TestDaemon::start_without_worker(|_| {}, None).await;
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let file = scan(scratch.path());
+    let mut datasets = daemon.datasets().await;
+    let dataset = upload(
+        &mut datasets,
+        "scan.laz",
+        &std::fs::read(&file).expect("read scan"),
+    )
+    .await;
+    let mut jobs = daemon.jobs().await;
+    let mut workers =
+        WorkerServiceClient::with_interceptor(daemon.channel().await, Token::new(None));
+    let job = jobs
+        .submit_job(turntable_job("sigterm", &dataset.id, 3, 160, 120))
+        .await
+        .expect("submit")
+        .into_inner();
+    let mut worker = WorkerProcess::start(&daemon.url(), &scratch.path().join("cache"), "w");
+    let held = wait_for_lease(&mut workers, &job.id, || worker.log()).await;
+    let status = worker
+        .terminate(Duration::from_secs(30))
+        .expect("the worker stops after its frame");
+    assert!(status.success(), "exit status {status}\n{}", worker.log());
+    let shown = jobs
+        .get_job(pb::GetJobRequest { id: job.id.clone() })
+        .await
+        .expect("get")
+        .into_inner();
+    assert!(
+        shown
+            .frames
+            .iter()
+            .any(|f| f.index == held.frame_index && f.failed_attempts == 0),
+        "the frame in flight was handed in: {:?}\n{}",
+        shown.frames,
+        worker.log()
+    );
+    assert!(
+        list_leases(&mut workers).await.is_empty(),
+        "no frame left leased"
+    );
+    assert!(
+        shown.frames_done < 3,
+        "the worker took no new frame after SIGTERM"
+    );
+    daemon.stop().await;
+}
+
+/// A daemon that restarts (here: `kill -9`) while a worker waits for work: the worker
+/// reconnects by itself and renders the next job.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_worker_reconnects_after_the_daemon_restarts() {
+    let data = tempfile::tempdir().expect("tempdir");
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let file = scratch.path().join("s.laz");
+    write_las(
+        &file,
+        &pointfarm_worker::sample::sample_scene(20_000, 9),
+        &LasWriteOptions::default(),
+    )
+    .expect("write");
+    let mut server =
+        pointfarm_tests::ServeProcess::start_with(data.path(), &["--no-embedded-worker"]);
+    let address = server.address.clone();
+    let worker = WorkerProcess::start(
+        &format!("http://{address}"),
+        &scratch.path().join("cache"),
+        "steady",
+    );
+    // The worker is connected and long-polling.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    server.kill();
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let _server = pointfarm_tests::ServeProcess::start_at(&address, data.path());
+    let channel = Channel::from_shared(format!("http://{address}"))
+        .expect("url")
+        .connect()
+        .await
+        .expect("connect");
+    let mut datasets =
+        pointfarm_proto::v1::dataset_service_client::DatasetServiceClient::new(channel.clone());
+    let mut jobs = pointfarm_proto::v1::job_service_client::JobServiceClient::new(channel);
+    let dataset = upload(&mut datasets, "s.laz", &std::fs::read(&file).expect("read")).await;
+    let job = jobs
+        .submit_job(turntable_job("after-restart", &dataset.id, 2, 64, 48))
+        .await
+        .expect("submit")
+        .into_inner();
+    let (finished, frames) = watch_to_end(&mut jobs, &job.id).await;
+    assert_eq!(
+        finished.state,
+        pb::JobState::Succeeded as i32,
+        "{}\n{}",
+        finished.error,
+        worker.log()
+    );
+    assert_eq!(frames.len(), 2);
+    assert!(worker.log().contains("unreachable"), "{}", worker.log());
 }
