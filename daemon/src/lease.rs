@@ -420,3 +420,98 @@ pub(crate) fn remove_partial_frames(dir: &Path) {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use pointfarm_proto::v1 as pb;
+
+    use super::*;
+    use crate::service::DaemonConfig;
+
+    fn open(dir: &Path) -> Arc<Daemon> {
+        let mut config = DaemonConfig::new(dir.join("data"));
+        config.data_roots = vec![dir.join("roots")];
+        config.lease_timeout = Duration::from_secs(60);
+        Daemon::open(config).expect("open")
+    }
+
+    fn png(width: u32, height: u32) -> Vec<u8> {
+        let mut bytes = Vec::new();
+        image::RgbaImage::new(width, height)
+            .write_to(
+                &mut std::io::Cursor::new(&mut bytes),
+                image::ImageFormat::Png,
+            )
+            .expect("encode");
+        bytes
+    }
+
+    fn outcome() -> FrameOutcome {
+        FrameOutcome {
+            timings: Vec::new(),
+            dataset_cache_hit: None,
+        }
+    }
+
+    #[test]
+    fn remote_leases_survive_a_restart_and_embedded_ones_are_dropped() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        std::fs::create_dir_all(dir.path().join("roots")).expect("roots");
+        // Registering hashes the file; it is not decoded here.
+        std::fs::write(dir.path().join("roots/a.las"), b"points").expect("file");
+        let daemon = open(dir.path());
+        let dataset = daemon.register_dataset("a.las", "").expect("register");
+        let request = pb::SubmitJobRequest {
+            dataset_id: dataset.id.clone(),
+            camera_path: Some(pb::CameraPath {
+                path: Some(pb::camera_path::Path::Turntable(pb::Turntable {
+                    frames: 3,
+                    ..Default::default()
+                })),
+            }),
+            width: 8,
+            height: 6,
+            ..Default::default()
+        };
+        let job = daemon
+            .submit_job(crate::grpc::job_spec(&request).expect("spec"))
+            .expect("submit");
+        let remote = daemon
+            .lease_frame("remote", false)
+            .expect("lease")
+            .expect("task");
+        let embedded = daemon
+            .lease_frame("embedded", true)
+            .expect("lease")
+            .expect("task");
+        assert_eq!((remote.lease.index, embedded.lease.index), (0, 1));
+        drop(daemon);
+
+        let daemon = open(dir.path());
+        let leases = daemon.leases().expect("leases");
+        assert_eq!(
+            leases,
+            vec![remote.lease.clone()],
+            "only the remote lease is left"
+        );
+        let again = daemon
+            .lease_frame("embedded", true)
+            .expect("lease")
+            .expect("task");
+        assert_eq!(
+            (again.lease.index, again.failed_attempts),
+            (1, 0),
+            "the embedded frame is back, without a failed attempt"
+        );
+        // The remote worker that rendered through the restart hands its frame in.
+        let after = daemon
+            .complete_frame(&remote.lease.id, &png(8, 6), outcome())
+            .expect("complete");
+        assert_eq!(after.frames_done, 1);
+        assert!(daemon.config.frame_path(&job.id, 0).is_file());
+        let refused = daemon.complete_frame(&remote.lease.id, &png(8, 6), outcome());
+        assert!(matches!(refused, Err(DaemonError::FailedPrecondition(_))));
+    }
+}

@@ -4,8 +4,9 @@
 //! - The dataset's points come from the worker's own `DatasetCache`; a dataset it has never
 //!   seen is downloaded once (`FetchDataset`, SHA-256 checked) and decoded into the cache.
 //!   The cloud stays resident on the GPU across frames of the same dataset.
-//! - While a frame renders, heartbeats renew the lease every third of the lease timeout; when
-//!   the daemon answers "stop" (job cancelled, lease lost) the frame is dropped.
+//! - While a frame renders, heartbeats renew the lease every third of the lease timeout (at
+//!   most 5 s apart); when the daemon answers "stop" (job cancelled, lease lost) the frame is
+//!   dropped.
 //! - Lost connections are retried with exponential backoff, so a daemon restart is ridden out;
 //!   a finished frame is handed in again until its lease would have expired.
 //! - Stopping (SIGTERM) lets the current frame finish and hands it in; a stop while waiting for
@@ -215,7 +216,7 @@ async fn run_task(
     let heartbeats = tokio::spawn(keep_lease(
         client.clone(),
         task.lease.id.clone(),
-        task.lease_timeout / 3,
+        heartbeat_interval(task.lease_timeout),
         abandoned.clone(),
     ));
     let result = download_and_render(client, frames, downloads, &task).await;
@@ -277,6 +278,12 @@ async fn download_and_render(
     Ok(rendered)
 }
 
+/// A third of the lease timeout keeps the lease through a lost heartbeat; at most 5 s apart,
+/// so that a cancel reaches the worker soon.
+fn heartbeat_interval(lease_timeout: Duration) -> Duration {
+    (lease_timeout / 3).clamp(Duration::from_millis(50), Duration::from_secs(5))
+}
+
 /// Renews the lease until aborted; sets `abandoned` and returns when the daemon says stop.
 async fn keep_lease(
     mut client: Client,
@@ -284,7 +291,6 @@ async fn keep_lease(
     interval: Duration,
     abandoned: Arc<AtomicBool>,
 ) {
-    let interval = interval.max(Duration::from_millis(50));
     loop {
         tokio::time::sleep(interval).await;
         let request = pb::HeartbeatRequest {
