@@ -863,6 +863,68 @@ fn max_png_bytes(width: u32, height: u32) -> u64 {
     width as u64 * height as u64 * 5 + (1 << 20)
 }
 
+/// Where a lease request keeps the lease it is about to answer with, so that a request
+/// abandoned meanwhile (the worker hung up or stopped while long-polling) gives the frame back
+/// instead of leaving it leased until the lease expires and counting a failed attempt.
+#[derive(Default)]
+struct LeaseSlot(std::sync::Mutex<(bool, Option<String>)>);
+
+impl LeaseSlot {
+    /// Keeps `task`'s lease for the answer, or releases it at once if the request is gone.
+    fn keep(&self, daemon: &Daemon, task: FrameTask) -> Option<FrameTask> {
+        let Ok(mut slot) = self.0.lock() else {
+            return Some(task);
+        };
+        if slot.0 {
+            drop(slot);
+            let _ = daemon.release_frame(&task.lease.id);
+            return None;
+        }
+        slot.1 = Some(task.lease.id.clone());
+        Some(task)
+    }
+}
+
+/// Releases the slot's lease when the request future is dropped before answering.
+struct LeaseGuard {
+    daemon: Arc<Daemon>,
+    slot: Arc<LeaseSlot>,
+    armed: bool,
+}
+
+impl LeaseGuard {
+    fn new(daemon: Arc<Daemon>) -> Self {
+        Self {
+            daemon,
+            slot: Arc::default(),
+            armed: true,
+        }
+    }
+
+    fn disarm(mut self) {
+        self.armed = false;
+    }
+}
+
+impl Drop for LeaseGuard {
+    fn drop(&mut self) {
+        if !self.armed {
+            return;
+        }
+        let lease = match self.slot.0.lock() {
+            Ok(mut slot) => {
+                slot.0 = true;
+                slot.1.take()
+            }
+            Err(_) => None,
+        };
+        if let Some(lease_id) = lease {
+            tracing::info!(lease = %lease_id, "the lease request was abandoned; frame given back");
+            let _ = self.daemon.release_frame(&lease_id);
+        }
+    }
+}
+
 #[tonic::async_trait]
 impl WorkerService for Api {
     async fn lease_frame(
@@ -884,8 +946,15 @@ impl WorkerService for Api {
             if self.daemon.is_stopping() {
                 return Ok(Response::new(pb::LeaseFrameResponse { task: None }));
             }
-            let (daemon, worker) = (self.daemon.clone(), name.clone());
-            if let Some(task) = blocking(move || daemon.lease_frame(&worker, false)).await? {
+            let guard = LeaseGuard::new(self.daemon.clone());
+            let (daemon, worker, slot) = (self.daemon.clone(), name.clone(), guard.slot.clone());
+            let leased = blocking(move || {
+                let task = daemon.lease_frame(&worker, false)?;
+                Ok(task.and_then(|task| slot.keep(&daemon, task)))
+            })
+            .await?;
+            if let Some(task) = leased {
+                guard.disarm();
                 return Ok(Response::new(pb::LeaseFrameResponse {
                     task: Some(frame_task_message(&task)),
                 }));
