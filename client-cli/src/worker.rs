@@ -29,6 +29,7 @@ pub struct WorkerArgs {
     /// Name shown in the daemon's leases and logs (default: host name and process id).
     #[arg(long)]
     name: Option<String>,
+    /// GPU to render on: auto, hardware or software (lavapipe).
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
     adapter: AdapterChoice,
 }
