@@ -515,12 +515,20 @@ async fn sigterm_lets_a_worker_hand_in_its_frame_before_it_exits() {
     let mut workers =
         WorkerServiceClient::with_interceptor(daemon.channel().await, Token::new(None));
     let job = jobs
-        .submit_job(turntable_job("sigterm", &dataset.id, 3, 160, 120))
+        .submit_job(turntable_job("sigterm", &dataset.id, 8, 160, 120))
         .await
         .expect("submit")
         .into_inner();
     let mut worker = WorkerProcess::start(&daemon.url(), &scratch.path().join("cache"), "w");
     let held = wait_for_lease(&mut workers, &job.id, || worker.log()).await;
+    // The worker has the lease in hand (not merely on its way) before the signal.
+    for _ in 0..3000 {
+        if worker.log().contains("frame leased") {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    assert!(worker.log().contains("frame leased"), "{}", worker.log());
     let status = worker
         .terminate(Duration::from_secs(30))
         .expect("the worker stops after its frame");

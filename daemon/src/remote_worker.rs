@@ -155,9 +155,21 @@ pub async fn run(
             worker_name: config.name.clone(),
             wait_ms: LEASE_WAIT_MS,
         };
+        let mut lease_client = client.clone();
+        let lease_call = lease_client.lease_frame(request);
+        tokio::pin!(lease_call);
         let leased = tokio::select! {
-            _ = stop.changed() => break,
-            leased = client.lease_frame(request) => leased,
+            leased = &mut lease_call => leased,
+            _ = stop.changed() => {
+                // A lease may be on its way: take it and give it back. A request still
+                // waiting for work is dropped (the daemon then gives back what it leased).
+                if let Ok(Ok(response)) = tokio::time::timeout(Duration::from_secs(1), &mut lease_call).await {
+                    if let Some(task) = response.into_inner().task {
+                        release_frame(&mut client, &task.lease_id).await;
+                    }
+                }
+                break;
+            }
         };
         let message = match leased {
             Ok(response) => {
@@ -212,6 +224,12 @@ async fn run_task(
     downloads: &Path,
     task: FrameTask,
 ) -> anyhow::Result<()> {
+    tracing::info!(
+        dataset = %task.dataset.id,
+        size = %format!("{}x{}", task.width, task.height),
+        failed_attempts = task.failed_attempts,
+        "frame leased"
+    );
     let abandoned = Arc::new(AtomicBool::new(false));
     let heartbeats = tokio::spawn(keep_lease(
         client.clone(),
@@ -406,6 +424,18 @@ async fn complete_frame(client: &mut Client, task: &FrameTask, frame: RenderedFr
                 );
                 return;
             }
+        }
+    }
+}
+
+async fn release_frame(client: &mut Client, lease_id: &str) {
+    let request = pb::ReleaseFrameRequest {
+        lease_id: lease_id.to_string(),
+    };
+    match client.release_frame(request).await {
+        Ok(_) => tracing::info!(lease = lease_id, "frame handed back unrendered"),
+        Err(status) => {
+            tracing::warn!(code = ?status.code(), message = status.message(), "handing the frame back failed; the lease will expire")
         }
     }
 }
