@@ -3,7 +3,7 @@
 use std::path::Path;
 use std::process::Output;
 
-use pointfarm_tests::{own_stderr_lines, pointfarm, shared_data, ServeProcess};
+use pointfarm_tests::{own_stderr_lines, pointfarm, shared_data, ServeProcess, WorkerProcess};
 
 fn stdout(output: &Output) -> String {
     String::from_utf8_lossy(&output.stdout).into_owned()
@@ -357,6 +357,78 @@ fn fill_and_pintus_shading_render_the_same_locally_and_through_the_service() {
     ];
     assert_ok(&pointfarm(&args));
     assert_ne!(frame(&local), frame(&plain));
+}
+
+#[test]
+fn serve_without_an_embedded_worker_renders_through_a_worker_process() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let laz = sample(dir.path(), "sample.laz", 20_000);
+    let server = ServeProcess::start_with(
+        &dir.path().join("data"),
+        &[
+            "--no-embedded-worker",
+            "--lease-timeout",
+            "5",
+            "--token",
+            "t0k",
+        ],
+    );
+    let address = server.address.clone();
+    let url = format!("http://{address}");
+    // Without the token the worker is refused and says so.
+    let refused = pointfarm(&[
+        "worker",
+        "--server",
+        &url,
+        "--cache-dir",
+        &path_arg(&dir.path().join("c0")),
+    ]);
+    assert!(!refused.status.success());
+    assert!(
+        String::from_utf8_lossy(&refused.stderr).contains("Unauthenticated"),
+        "{}",
+        String::from_utf8_lossy(&refused.stderr)
+    );
+    let worker = WorkerProcess::start_with(
+        &url,
+        &dir.path().join("cache"),
+        "cli-worker",
+        &["--token", "t0k"],
+    );
+    let frames = dir.path().join("remote");
+    let output = pointfarm(&[
+        "render",
+        &laz,
+        "--server",
+        &address,
+        "--token",
+        "t0k",
+        "--turntable",
+        "2",
+        "--size",
+        "96x64",
+        "--out",
+        &path_arg(&frames),
+    ]);
+    assert!(
+        output.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&output.stderr),
+        worker.log()
+    );
+    for i in 0..2 {
+        assert_rendered(&frames.join(format!("frame_{i:05}.png")), 96, 64);
+    }
+    assert!(worker.log().contains("frame handed in"), "{}", worker.log());
+    let leases = pointfarm(&[
+        "jobs", "leases", "--server", &address, "--token", "t0k", "--json",
+    ]);
+    assert_ok(&leases);
+    assert_eq!(
+        stdout(&leases).trim(),
+        "[]",
+        "no frame is in flight after the job"
+    );
 }
 
 #[test]

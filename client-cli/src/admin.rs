@@ -62,6 +62,8 @@ pub enum JobsCommand {
     Watch {
         id: String,
     },
+    /// Frames being rendered now: which worker holds each, and until when.
+    Leases,
 }
 
 #[derive(Subcommand)]
@@ -237,6 +239,11 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                     if !job.error.is_empty() {
                         println!("error: {}", job.error);
                     }
+                    let retried: Vec<String> = job.frames.iter().filter(|f| f.failed_attempts > 0)
+                        .map(|f| format!("{} ({} failed)", f.index, f.failed_attempts)).collect();
+                    if !retried.is_empty() {
+                        println!("frames that needed more than one attempt: {}", retried.join(", "));
+                    }
                     if !stats.is_empty() {
                         println!("{:<12} {:>10} {:>10}", "stage", "median ms", "p95 ms");
                         for (stage, median, p95) in &stats {
@@ -256,6 +263,23 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                 } else {
                     println!("job {} {} ({}/{} frames){}", job.id, state_name(job.state), job.frames_done, job.frames_total,
                         if job.error.is_empty() { String::new() } else { format!(": {}", job.error) });
+                }
+            }
+            JobsCommand::Leases => {
+                let leases = client.workers.list_leases(pb::ListLeasesRequest {}).await.map_err(status_error)?.into_inner().leases;
+                let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis() as i64).unwrap_or(0);
+                if server.json {
+                    let values: Vec<serde_json::Value> = leases.iter().map(|l| json!({
+                        "lease_id": l.lease_id, "job_id": l.job_id, "frame": l.frame_index,
+                        "worker": l.worker_name, "embedded": l.embedded, "expires_unix_ms": l.expires_unix_ms,
+                    })).collect();
+                    println!("{}", serde_json::Value::from(values));
+                } else {
+                    println!("{:<20} {:<18} {:>6}  {:<24} expires", "lease", "job", "frame", "worker");
+                    for l in &leases {
+                        let expires = if l.embedded { "with the daemon".to_string() } else { format!("in {:.1} s", (l.expires_unix_ms - now) as f64 / 1e3) };
+                        println!("{:<20} {:<18} {:>6}  {:<24} {expires}", l.lease_id, l.job_id, l.frame_index, l.worker_name);
+                    }
                 }
             }
         }
@@ -286,6 +310,7 @@ mod tests {
             .map(|i| pb::FrameFinished {
                 index: i,
                 dataset_cache_hit: None,
+                failed_attempts: 0,
                 timings: vec![
                     pb::StageTiming {
                         stage: "rasterize".into(),

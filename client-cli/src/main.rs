@@ -10,6 +10,7 @@ mod render;
 mod sample;
 mod serve;
 mod video;
+mod worker;
 
 use std::process::ExitCode;
 
@@ -40,8 +41,10 @@ enum Command {
     Sample(sample::SampleArgs),
     /// The service end to end in one process: daemon, worker, upload, turntable, frames.
     Demo(Box<demo::DemoArgs>),
-    /// Run the render service: the daemon with an embedded worker.
+    /// Run the render service: the daemon, with an embedded worker unless told otherwise.
     Serve(Box<serve::ServeArgs>),
+    /// Render for a daemon in this process: lease frames over gRPC, hand back the PNGs.
+    Worker(Box<worker::WorkerArgs>),
     /// Datasets on a server.
     Dataset {
         #[command(flatten)]
@@ -84,6 +87,7 @@ fn main() -> ExitCode {
         Command::Bench(args) => bench::run(args),
         Command::Sample(args) => sample::run(args),
         Command::Serve(args) => serve::run(*args),
+        Command::Worker(args) => worker::run(*args),
         Command::Demo(args) => demo::run(*args),
         Command::Dataset { server, command } => admin::dataset(&server, command),
         Command::Jobs { server, command } => admin::jobs(&server, command),

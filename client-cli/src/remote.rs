@@ -1,5 +1,6 @@
 //! The client side of the render service: connecting, uploading, submitting, following and
-//! downloading. Used by `render --server`, `dataset`, `jobs` and `frames`.
+//! downloading. Used by `render --server`, `dataset`, `jobs` (`jobs leases` lists the frames
+//! workers hold) and `frames`.
 
 use std::path::{Path, PathBuf};
 
@@ -8,6 +9,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
+use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use sha2::{Digest, Sha256};
 use tonic::metadata::MetadataValue;
 use tonic::service::interceptor::InterceptedService;
@@ -37,6 +39,7 @@ type Authed = InterceptedService<Channel, Auth>;
 pub struct Client {
     pub datasets: DatasetServiceClient<Authed>,
     pub jobs: JobServiceClient<Authed>,
+    pub workers: WorkerServiceClient<Authed>,
 }
 
 impl Client {
@@ -59,7 +62,8 @@ impl Client {
         );
         Ok(Self {
             datasets: DatasetServiceClient::with_interceptor(channel.clone(), auth.clone()),
-            jobs: JobServiceClient::with_interceptor(channel, auth),
+            jobs: JobServiceClient::with_interceptor(channel.clone(), auth.clone()),
+            workers: WorkerServiceClient::with_interceptor(channel, auth),
         })
     }
 

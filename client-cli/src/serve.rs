@@ -1,4 +1,5 @@
-//! `pointfarm serve`: the daemon with its embedded worker, in one process.
+//! `pointfarm serve`: the daemon, by default with an embedded worker in the same process;
+//! separate `pointfarm worker` processes can render for it as well or instead.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -26,9 +27,13 @@ pub struct ServeArgs {
     /// Largest image side accepted.
     #[arg(long, default_value_t = 8192)]
     max_image_side: u32,
-    /// Do not render here (only queue work).
-    #[arg(long)]
-    no_worker: bool,
+    /// Run no embedded worker: only `pointfarm worker` processes render.
+    #[arg(long, alias = "no-worker")]
+    no_embedded_worker: bool,
+    /// Seconds a worker's lease on a frame lasts without a heartbeat; when it runs out (the
+    /// worker died or was cut off) the frame goes back to the queue.
+    #[arg(long, default_value_t = 30.0, value_parser = parse_lease_timeout)]
+    lease_timeout: f64,
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
     adapter: AdapterChoice,
 }
@@ -39,15 +44,17 @@ pub fn run(args: ServeArgs) -> Result<()> {
         let mut config = DaemonConfig::new(args.data_dir.clone());
         config.data_roots = args.data_roots.clone();
         config.max_image_side = args.max_image_side;
+        config.lease_timeout = std::time::Duration::from_secs_f64(args.lease_timeout);
         let daemon =
             Daemon::open(config).with_context(|| format!("opening {}", args.data_dir.display()))?;
-        let gpu = if args.no_worker {
+        let gpu = if args.no_embedded_worker {
             None
         } else {
             Some(Arc::new(GpuContext::new(args.adapter)?))
         };
-        if let Some(gpu) = &gpu {
-            println!("worker on {}", gpu.describe());
+        match &gpu {
+            Some(gpu) => println!("embedded worker on {}", gpu.describe()),
+            None => println!("no embedded worker: start `pointfarm worker --server ...` to render"),
         }
         let listener = tokio::net::TcpListener::bind(&args.listen)
             .await
@@ -61,8 +68,17 @@ pub fn run(args: ServeArgs) -> Result<()> {
     })
 }
 
+fn parse_lease_timeout(value: &str) -> Result<f64, String> {
+    match value.parse::<f64>() {
+        Ok(seconds) if seconds.is_finite() && (0.1..=3600.0).contains(&seconds) => Ok(seconds),
+        _ => Err(format!(
+            "'{value}' is not a number of seconds from 0.1 to 3600"
+        )),
+    }
+}
+
 /// Completes on SIGTERM or Ctrl-C.
-async fn shutdown_signal() {
+pub(crate) async fn shutdown_signal() {
     let ctrl_c = tokio::signal::ctrl_c();
     #[cfg(unix)]
     {

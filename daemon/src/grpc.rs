@@ -1,5 +1,6 @@
 //! The `pointfarm.v1` gRPC services: validate and convert requests, call [`Daemon`], convert
-//! results. No domain logic lives here.
+//! results. No domain logic lives here. The conversions of frame tasks are public: the remote
+//! worker (`remote_worker`) uses them on its side of the wire.
 
 use std::pin::Pin;
 use std::sync::Arc;
@@ -7,6 +8,7 @@ use std::sync::Arc;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_server::DatasetService;
 use pointfarm_proto::v1::job_service_server::JobService;
+use pointfarm_proto::v1::worker_service_server::WorkerService;
 use pointfarm_worker::raster::{MAX_FILL_KERNEL, MAX_PINTUS_LEVELS, MIN_FILL_KERNEL};
 use sha2::{Digest, Sha256};
 use tokio::io::AsyncWriteExt;
@@ -15,6 +17,7 @@ use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::error::DaemonError;
+use crate::lease::{FrameOutcome, FrameTask, HeartbeatAnswer, Lease, TaskDataset};
 use crate::model::{
     CameraPath, ColorMode, Dataset, Fill, FrameReport, FrameState, Interpolation, Job, JobSpec,
     JobState, Keyframe, Point3, Quality, RenderOptions, Shading, StageTiming, Turntable,
@@ -94,7 +97,7 @@ fn fov(field: &str, value: f64) -> Result<f64, DaemonError> {
     }
 }
 
-fn camera_path(path: Option<&pb::CameraPath>) -> Result<CameraPath, DaemonError> {
+pub fn camera_path(path: Option<&pb::CameraPath>) -> Result<CameraPath, DaemonError> {
     let path = path
         .and_then(|p| p.path.as_ref())
         .ok_or_else(|| invalid("camera_path", "is required (turntable or keyframes)"))?;
@@ -203,7 +206,7 @@ fn rgba(color: &pb::Color) -> [u8; 4] {
     color.rgba.to_be_bytes()
 }
 
-fn render_options(options: Option<&pb::RenderOptions>) -> Result<RenderOptions, DaemonError> {
+pub fn render_options(options: Option<&pb::RenderOptions>) -> Result<RenderOptions, DaemonError> {
     let default = pb::RenderOptions::default();
     let o = options.unwrap_or(&default);
     let point_size = if o.point_size == 0 { 1 } else { o.point_size };
@@ -393,7 +396,7 @@ fn dataset_message(d: &Dataset) -> pb::Dataset {
     }
 }
 
-fn timings_message(timings: &[StageTiming]) -> Vec<pb::StageTiming> {
+pub fn timings_message(timings: &[StageTiming]) -> Vec<pb::StageTiming> {
     timings
         .iter()
         .map(|t| pb::StageTiming {
@@ -409,6 +412,7 @@ fn frame_message(report: &FrameReport) -> pb::FrameFinished {
         index: report.index,
         timings: timings_message(&report.timings),
         dataset_cache_hit: report.dataset_cache_hit,
+        failed_attempts: report.failed_attempts,
     }
 }
 
@@ -712,6 +716,448 @@ impl JobService for Api {
     }
 }
 
+// ---------------------------------------------------------------------------- workers
+
+/// Longest wait of a `LeaseFrame` long poll.
+const MAX_LEASE_WAIT_MS: u32 = 30_000;
+/// Longest worker name kept.
+const MAX_WORKER_NAME: usize = 128;
+
+fn vec3(p: &Point3) -> pb::Vec3 {
+    pb::Vec3 {
+        x: p.x,
+        y: p.y,
+        z: p.z,
+    }
+}
+
+fn color(rgba: [u8; 4]) -> pb::Color {
+    pb::Color {
+        rgba: u32::from_be_bytes(rgba),
+    }
+}
+
+/// The inverse of [`camera_path`].
+pub fn camera_path_message(path: &CameraPath) -> pb::CameraPath {
+    let path = match path {
+        CameraPath::Turntable(t) => pb::camera_path::Path::Turntable(pb::Turntable {
+            frames: t.frames,
+            center: t.center.as_ref().map(vec3),
+            radius: t.radius,
+            elevation_deg: Some(t.elevation_deg),
+            degrees: Some(t.degrees),
+            fov_y_deg: Some(t.fov_y_deg),
+        }),
+        CameraPath::Keyframes {
+            keyframes,
+            frames,
+            interpolation,
+        } => pb::camera_path::Path::Keyframes(pb::KeyframePath {
+            keyframes: keyframes
+                .iter()
+                .map(|k| pb::Keyframe {
+                    position: Some(vec3(&k.position)),
+                    target: Some(vec3(&k.target)),
+                    up: Some(vec3(&k.up)),
+                    fov_y_deg: k.fov_y_deg,
+                })
+                .collect(),
+            frames: *frames,
+            interpolation: match interpolation {
+                Interpolation::Linear => pb::Interpolation::Linear,
+                Interpolation::Spline => pb::Interpolation::Spline,
+            } as i32,
+        }),
+    };
+    pb::CameraPath { path: Some(path) }
+}
+
+/// The inverse of [`render_options`].
+pub fn render_options_message(options: &RenderOptions) -> pb::RenderOptions {
+    // Destructured so that a new option cannot be forgotten here.
+    let RenderOptions {
+        point_size,
+        quality,
+        shading,
+        color_mode,
+        background,
+        fill,
+    } = options;
+    let mut message = pb::RenderOptions {
+        point_size: *point_size,
+        background: Some(color(*background)),
+        fill: fill.map(|Fill { kernel }| pb::FillOptions { kernel }),
+        ..Default::default()
+    };
+    match *quality {
+        Quality::Basic => message.quality = pb::Quality::Basic as i32,
+        Quality::High { depth_band } => {
+            message.quality = pb::Quality::High as i32;
+            message.depth_band = Some(depth_band);
+        }
+    }
+    match *shading {
+        Shading::None => message.shading = pb::Shading::None as i32,
+        Shading::Edl { strength, radius } => {
+            message.shading = pb::Shading::Edl as i32;
+            message.edl_strength = Some(strength);
+            message.edl_radius = Some(radius);
+        }
+        Shading::Pintus { levels, exponent } => {
+            message.shading = pb::Shading::Pintus as i32;
+            message.pintus_levels = Some(levels);
+            message.pintus_exponent = Some(exponent);
+        }
+    }
+    message.color_mode = match *color_mode {
+        ColorMode::Rgb => pb::ColorMode::Rgb,
+        ColorMode::Intensity => pb::ColorMode::Intensity,
+        ColorMode::Elevation => pb::ColorMode::Elevation,
+        ColorMode::Classification => pb::ColorMode::Classification,
+        ColorMode::ReturnNumber => pb::ColorMode::ReturnNumber,
+        ColorMode::Fixed([r, g, b]) => {
+            message.fixed_color = Some(color([r, g, b, 255]));
+            pb::ColorMode::Fixed
+        }
+    } as i32;
+    message
+}
+
+pub fn frame_task_message(task: &FrameTask) -> pb::FrameTask {
+    pb::FrameTask {
+        lease_id: task.lease.id.clone(),
+        lease_expires_unix_ms: task.lease.expires_unix_ms,
+        lease_timeout_ms: task.lease_timeout.as_millis().min(u32::MAX as u128) as u32,
+        job_id: task.lease.job_id.clone(),
+        frame_index: task.lease.index,
+        dataset: Some(pb::TaskDataset {
+            id: task.dataset.id.clone(),
+            sha256: task.dataset.sha256.clone(),
+            size_bytes: task.dataset.size_bytes,
+        }),
+        camera_path: Some(camera_path_message(&task.camera_path)),
+        width: task.width,
+        height: task.height,
+        render: Some(render_options_message(&task.render)),
+        failed_attempts: task.failed_attempts,
+    }
+}
+
+/// A task as the worker receives it, validated like a submission.
+pub fn frame_task(message: &pb::FrameTask, worker: &str) -> Result<FrameTask, DaemonError> {
+    let dataset = message
+        .dataset
+        .as_ref()
+        .ok_or_else(|| invalid("dataset", "is required"))?;
+    if message.width == 0 || message.height == 0 {
+        return Err(invalid("width", "the frame size must be at least 1x1"));
+    }
+    if message.lease_timeout_ms == 0 {
+        return Err(invalid("lease_timeout_ms", "must be positive"));
+    }
+    Ok(FrameTask {
+        lease: Lease {
+            id: message.lease_id.clone(),
+            job_id: message.job_id.clone(),
+            index: message.frame_index,
+            worker: worker.to_string(),
+            embedded: false,
+            expires_unix_ms: message.lease_expires_unix_ms,
+        },
+        lease_timeout: std::time::Duration::from_millis(message.lease_timeout_ms as u64),
+        dataset: TaskDataset {
+            id: dataset.id.clone(),
+            sha256: dataset.sha256.clone(),
+            size_bytes: dataset.size_bytes,
+        },
+        camera_path: camera_path(message.camera_path.as_ref())?,
+        width: message.width,
+        height: message.height,
+        render: render_options(message.render.as_ref())?,
+        failed_attempts: message.failed_attempts,
+    })
+}
+
+pub fn stage_timings(timings: &[pb::StageTiming]) -> Vec<StageTiming> {
+    timings
+        .iter()
+        .map(|t| StageTiming {
+            stage: t.stage.clone(),
+            ms: t.ms,
+            gpu_clock: t.gpu_clock,
+        })
+        .collect()
+}
+
+fn lease_message(lease: &Lease) -> pb::Lease {
+    pb::Lease {
+        lease_id: lease.id.clone(),
+        job_id: lease.job_id.clone(),
+        frame_index: lease.index,
+        worker_name: lease.worker.clone(),
+        expires_unix_ms: lease.expires_unix_ms,
+        embedded: lease.embedded,
+    }
+}
+
+/// Largest PNG accepted for a frame: the raw RGBA size and room for PNG's overhead.
+fn max_png_bytes(width: u32, height: u32) -> u64 {
+    width as u64 * height as u64 * 5 + (1 << 20)
+}
+
+/// Where a lease request keeps the lease it is about to answer with, so that a request
+/// abandoned meanwhile (the worker hung up or stopped while long-polling) gives the frame back
+/// instead of leaving it leased until the lease expires and counting a failed attempt.
+#[derive(Default)]
+struct LeaseSlot(std::sync::Mutex<(bool, Option<String>)>);
+
+impl LeaseSlot {
+    /// Keeps `task`'s lease for the answer, or releases it at once if the request is gone.
+    fn keep(&self, daemon: &Daemon, task: FrameTask) -> Option<FrameTask> {
+        let Ok(mut slot) = self.0.lock() else {
+            return Some(task);
+        };
+        if slot.0 {
+            drop(slot);
+            let _ = daemon.release_frame(&task.lease.id);
+            return None;
+        }
+        slot.1 = Some(task.lease.id.clone());
+        Some(task)
+    }
+}
+
+/// Releases the slot's lease when the request future is dropped before answering.
+struct LeaseGuard {
+    daemon: Arc<Daemon>,
+    slot: Arc<LeaseSlot>,
+    armed: bool,
+}
+
+impl LeaseGuard {
+    fn new(daemon: Arc<Daemon>) -> Self {
+        Self {
+            daemon,
+            slot: Arc::default(),
+            armed: true,
+        }
+    }
+
+    fn disarm(mut self) {
+        self.armed = false;
+    }
+}
+
+impl Drop for LeaseGuard {
+    fn drop(&mut self) {
+        if !self.armed {
+            return;
+        }
+        let lease = match self.slot.0.lock() {
+            Ok(mut slot) => {
+                slot.0 = true;
+                slot.1.take()
+            }
+            Err(_) => None,
+        };
+        if let Some(lease_id) = lease {
+            tracing::info!(lease = %lease_id, "the lease request was abandoned; frame given back");
+            let _ = self.daemon.release_frame(&lease_id);
+        }
+    }
+}
+
+#[tonic::async_trait]
+impl WorkerService for Api {
+    async fn lease_frame(
+        &self,
+        request: Request<pb::LeaseFrameRequest>,
+    ) -> Result<Response<pb::LeaseFrameResponse>, Status> {
+        let peer = request.remote_addr();
+        let r = request.into_inner();
+        let mut name: String = r.worker_name.chars().take(MAX_WORKER_NAME).collect();
+        if name.is_empty() {
+            name = peer.map_or_else(|| "unnamed".into(), |a| a.to_string());
+        }
+        let wait = std::time::Duration::from_millis(r.wait_ms.min(MAX_LEASE_WAIT_MS) as u64);
+        let deadline = tokio::time::Instant::now() + wait;
+        // Subscribed before looking, so work that arrives in between is not missed.
+        let mut work = self.daemon.work.subscribe();
+        loop {
+            work.borrow_and_update();
+            if self.daemon.is_stopping() {
+                return Ok(Response::new(pb::LeaseFrameResponse { task: None }));
+            }
+            let guard = LeaseGuard::new(self.daemon.clone());
+            let (daemon, worker, slot) = (self.daemon.clone(), name.clone(), guard.slot.clone());
+            let leased = blocking(move || {
+                let task = daemon.lease_frame(&worker, false)?;
+                Ok(task.and_then(|task| slot.keep(&daemon, task)))
+            })
+            .await?;
+            if let Some(task) = leased {
+                guard.disarm();
+                return Ok(Response::new(pb::LeaseFrameResponse {
+                    task: Some(frame_task_message(&task)),
+                }));
+            }
+            match tokio::time::timeout_at(deadline, work.changed()).await {
+                Ok(Ok(())) => {}
+                Ok(Err(_)) | Err(_) => {
+                    return Ok(Response::new(pb::LeaseFrameResponse { task: None }))
+                }
+            }
+        }
+    }
+
+    async fn heartbeat(
+        &self,
+        request: Request<pb::HeartbeatRequest>,
+    ) -> Result<Response<pb::HeartbeatResponse>, Status> {
+        let lease_id = request.into_inner().lease_id;
+        let daemon = self.daemon.clone();
+        let answer = blocking(move || daemon.heartbeat(&lease_id)).await?;
+        Ok(Response::new(match answer {
+            HeartbeatAnswer::Continue { expires_unix_ms } => pb::HeartbeatResponse {
+                action: pb::LeaseAction::Continue as i32,
+                reason: String::new(),
+                lease_expires_unix_ms: expires_unix_ms,
+            },
+            HeartbeatAnswer::Stop(reason) => pb::HeartbeatResponse {
+                action: pb::LeaseAction::Stop as i32,
+                reason,
+                lease_expires_unix_ms: 0,
+            },
+        }))
+    }
+
+    async fn complete_frame(
+        &self,
+        request: Request<Streaming<pb::CompleteFrameRequest>>,
+    ) -> Result<Response<pb::CompleteFrameResponse>, Status> {
+        let mut stream = request.into_inner();
+        let result = match stream.message().await? {
+            Some(pb::CompleteFrameRequest {
+                part: Some(pb::complete_frame_request::Part::Result(result)),
+            }) => result,
+            _ => {
+                return Err(invalid("result", "the first message must be the frame result").into())
+            }
+        };
+        // A stale lease is refused before the image is received.
+        let (daemon, lease_id) = (self.daemon.clone(), result.lease_id.clone());
+        let (_, width, height) = blocking(move || daemon.held_lease(&lease_id)).await?;
+        let limit = max_png_bytes(width, height);
+        if result.png_size_bytes > limit {
+            return Err(DaemonError::ResourceExhausted(format!(
+                "a {width}x{height} frame's PNG may have at most {limit} bytes, got {}",
+                result.png_size_bytes
+            ))
+            .into());
+        }
+        let mut png = Vec::with_capacity(result.png_size_bytes as usize);
+        while let Some(message) = stream.message().await? {
+            let Some(pb::complete_frame_request::Part::Png(chunk)) = message.part else {
+                return Err(invalid("png", "only the first message may be the result").into());
+            };
+            if png.len() as u64 + chunk.len() as u64 > result.png_size_bytes {
+                return Err(invalid(
+                    "result.png_size_bytes",
+                    format!("more than the declared {} bytes", result.png_size_bytes),
+                )
+                .into());
+            }
+            png.extend_from_slice(&chunk);
+        }
+        if png.len() as u64 != result.png_size_bytes {
+            return Err(invalid(
+                "result.png_size_bytes",
+                format!(
+                    "declared {} bytes, received {}",
+                    result.png_size_bytes,
+                    png.len()
+                ),
+            )
+            .into());
+        }
+        let outcome = FrameOutcome {
+            timings: stage_timings(&result.timings),
+            dataset_cache_hit: result.dataset_cache_hit,
+        };
+        let daemon = self.daemon.clone();
+        blocking(move || daemon.complete_frame(&result.lease_id, &png, outcome)).await?;
+        Ok(Response::new(pb::CompleteFrameResponse {}))
+    }
+
+    async fn fail_frame(
+        &self,
+        request: Request<pb::FailFrameRequest>,
+    ) -> Result<Response<pb::FailFrameResponse>, Status> {
+        let r = request.into_inner();
+        let reason = if r.reason.is_empty() {
+            "the worker gave no reason".to_string()
+        } else {
+            r.reason
+        };
+        let daemon = self.daemon.clone();
+        blocking(move || daemon.fail_frame(&r.lease_id, &reason)).await?;
+        Ok(Response::new(pb::FailFrameResponse {}))
+    }
+
+    async fn release_frame(
+        &self,
+        request: Request<pb::ReleaseFrameRequest>,
+    ) -> Result<Response<pb::ReleaseFrameResponse>, Status> {
+        let lease_id = request.into_inner().lease_id;
+        let daemon = self.daemon.clone();
+        blocking(move || daemon.release_frame(&lease_id)).await?;
+        Ok(Response::new(pb::ReleaseFrameResponse {}))
+    }
+
+    type FetchDatasetStream = ResponseStream<pb::DatasetChunk>;
+
+    async fn fetch_dataset(
+        &self,
+        request: Request<pb::FetchDatasetRequest>,
+    ) -> Result<Response<Self::FetchDatasetStream>, Status> {
+        use tokio::io::AsyncReadExt;
+        let dataset = self.daemon.dataset(&request.into_inner().dataset_id)?;
+        let mut file = tokio::fs::File::open(&dataset.path)
+            .await
+            .map_err(|e| Status::internal(format!("dataset {}: {e}", dataset.id)))?;
+        let (sender, receiver) = tokio::sync::mpsc::channel(4);
+        tokio::spawn(async move {
+            loop {
+                let mut buffer = vec![0u8; FRAME_CHUNK_BYTES];
+                let message = match file.read(&mut buffer).await {
+                    Ok(0) => return,
+                    Ok(n) => {
+                        buffer.truncate(n);
+                        Ok(pb::DatasetChunk { data: buffer })
+                    }
+                    Err(e) => Err(Status::internal(format!("dataset {}: {e}", dataset.id))),
+                };
+                let failed = message.is_err();
+                if sender.send(message).await.is_err() || failed {
+                    return;
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(receiver))))
+    }
+
+    async fn list_leases(
+        &self,
+        _request: Request<pb::ListLeasesRequest>,
+    ) -> Result<Response<pb::ListLeasesResponse>, Status> {
+        let daemon = self.daemon.clone();
+        let leases = blocking(move || daemon.leases()).await?;
+        Ok(Response::new(pb::ListLeasesResponse {
+            leases: leases.iter().map(lease_message).collect(),
+        }))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -844,6 +1290,80 @@ mod tests {
             }
         );
         assert_eq!(job_spec(&valid()).expect("valid").render.fill, None);
+    }
+
+    #[test]
+    fn tasks_carry_the_job_spec_unchanged_across_the_wire() {
+        let mut r = valid();
+        r.render = Some(pb::RenderOptions {
+            point_size: 3,
+            quality: pb::Quality::High as i32,
+            depth_band: Some(0.02),
+            shading: pb::Shading::Edl as i32,
+            edl_strength: Some(2.0),
+            edl_radius: Some(2.5),
+            color_mode: pb::ColorMode::Fixed as i32,
+            fixed_color: Some(pb::Color { rgba: 0x10203040 }),
+            background: Some(pb::Color { rgba: 0x01020304 }),
+            fill: Some(pb::FillOptions { kernel: 5 }),
+            ..Default::default()
+        });
+        let key = |x: f64| pb::Keyframe {
+            position: Some(pb::Vec3 { x, y: 0.0, z: 10.0 }),
+            target: Some(pb::Vec3 {
+                x: 0.0,
+                y: 1.0,
+                z: 0.0,
+            }),
+            up: None,
+            fov_y_deg: 40.0,
+        };
+        let keyframes = pb::CameraPath {
+            path: Some(pb::camera_path::Path::Keyframes(pb::KeyframePath {
+                keyframes: vec![key(1.0), key(5.0), key(9.0)],
+                frames: 7,
+                interpolation: pb::Interpolation::Spline as i32,
+            })),
+        };
+        let turntable = pb::CameraPath {
+            path: Some(pb::camera_path::Path::Turntable(pb::Turntable {
+                frames: 5,
+                center: Some(pb::Vec3 {
+                    x: 1e6,
+                    y: 2e6,
+                    z: 3.0,
+                }),
+                radius: Some(12.5),
+                ..Default::default()
+            })),
+        };
+        for path in [keyframes, turntable] {
+            r.camera_path = Some(path);
+            let spec = job_spec(&r).expect("valid");
+            let task = FrameTask {
+                lease: Lease {
+                    id: "lease-1".into(),
+                    job_id: "job-1".into(),
+                    index: 4,
+                    worker: "w".into(),
+                    embedded: false,
+                    expires_unix_ms: 1234,
+                },
+                lease_timeout: std::time::Duration::from_secs(30),
+                dataset: TaskDataset {
+                    id: "ds-1".into(),
+                    sha256: "ab".repeat(32),
+                    size_bytes: 99,
+                },
+                camera_path: spec.camera_path,
+                width: spec.width,
+                height: spec.height,
+                render: spec.render,
+                failed_attempts: 2,
+            };
+            let received = frame_task(&frame_task_message(&task), "w").expect("valid task");
+            assert_eq!(received, task);
+        }
     }
 
     #[test]

@@ -1,14 +1,21 @@
-//! The pointfarm daemon: datasets, jobs and their durable state (sled), frame tasks handed to
-//! an embedded worker, and the `pointfarm.v1` gRPC API over all of it.
+//! The pointfarm daemon: datasets, jobs and their durable state (sled), frame tasks leased to
+//! workers (embedded threads and `pointfarm worker` processes), and the `pointfarm.v1` gRPC API
+//! over all of it.
 //!
-//! Layers: `model` (domain types), `store` (sled), `service` (the domain operations),
-//! `worker` (renders frame tasks with `pointfarm-worker`), `grpc` (converts and delegates;
-//! the only module that knows protobuf), `server` (sockets, health, reflection, shutdown).
+//! Layers: `model` (domain types), `store` (sled), `service` (the domain operations), `lease`
+//! (frame leases: the one scheduling path), `frame_render` (renders one task with
+//! `pointfarm-worker`, shared by both kinds of worker), `worker` (the embedded worker thread),
+//! `remote_worker` (the worker process, a gRPC client), `grpc` (converts and delegates; with
+//! `remote_worker` the only modules that know protobuf), `server` (sockets, health,
+//! reflection, the lease sweep, shutdown).
 
 pub mod camera_path;
 pub mod error;
+pub mod frame_render;
 pub mod grpc;
+pub mod lease;
 pub mod model;
+pub mod remote_worker;
 pub mod server;
 pub mod service;
 pub mod store;

@@ -170,6 +170,9 @@ pub struct FrameReport {
     pub timings: Vec<StageTiming>,
     /// Set when the worker loaded the dataset for this frame: from its cache or not.
     pub dataset_cache_hit: Option<bool>,
+    /// Attempts that ended without a result before this one (failed, or the worker was lost).
+    #[serde(default)]
+    pub failed_attempts: u32,
 }
 
 /// One frame of a job.

@@ -26,6 +26,8 @@ pub struct DaemonConfig {
     pub max_upload_bytes: u64,
     /// Attempts per frame before its job fails.
     pub max_frame_attempts: u32,
+    /// A remote worker's lease on a frame ends unless renewed within this time.
+    pub lease_timeout: std::time::Duration,
     /// Size bound of the worker's processed-dataset cache.
     pub worker_cache_bytes: u64,
 }
@@ -38,6 +40,7 @@ impl DaemonConfig {
             max_frames: 100_000,
             max_upload_bytes: 16 << 30,
             max_frame_attempts: 3,
+            lease_timeout: std::time::Duration::from_secs(30),
             worker_cache_bytes: 8 << 30,
             data_dir,
         }
@@ -61,15 +64,27 @@ impl DaemonConfig {
     }
 }
 
-/// Wakes the workers when there may be new work.
-#[derive(Default)]
+/// Wakes the workers when there may be new work: embedded threads wait on the condition
+/// variable, long-polling lease requests on the watch channel.
 pub struct WorkSignal {
     pending: Mutex<bool>,
     condvar: Condvar,
+    generation: tokio::sync::watch::Sender<u64>,
+}
+
+impl Default for WorkSignal {
+    fn default() -> Self {
+        Self {
+            pending: Mutex::new(false),
+            condvar: Condvar::new(),
+            generation: tokio::sync::watch::Sender::new(0),
+        }
+    }
 }
 
 impl WorkSignal {
     pub fn notify(&self) {
+        self.generation.send_modify(|g| *g = g.wrapping_add(1));
         if let Ok(mut pending) = self.pending.lock() {
             *pending = true;
             self.condvar.notify_all();
@@ -89,6 +104,11 @@ impl WorkSignal {
             *pending = false;
         }
     }
+
+    /// Changes on every notification, for async waiters.
+    pub fn subscribe(&self) -> tokio::sync::watch::Receiver<u64> {
+        self.generation.subscribe()
+    }
 }
 
 /// The state and behaviour of one daemon, shared by the gRPC handlers and the workers.
@@ -97,6 +117,9 @@ pub struct Daemon {
     pub store: Store,
     events: broadcast::Sender<JobEvent>,
     pub work: WorkSignal,
+    /// Held while leases, frame states and job states change together (see `lease`).
+    pub(crate) scheduling: Mutex<()>,
+    stopping: std::sync::atomic::AtomicBool,
 }
 
 impl Daemon {
@@ -111,13 +134,34 @@ impl Daemon {
         if requeued > 0 {
             tracing::info!(requeued, "resuming jobs that were running");
         }
+        let dropped = crate::lease::drop_embedded_leases(&store)?;
+        if dropped > 0 {
+            tracing::info!(
+                dropped,
+                "frames of the previous process's worker threads go back to the queue"
+            );
+        }
+        crate::lease::remove_partial_frames(&config.data_dir.join("jobs"));
         let (events, _) = broadcast::channel(1024);
         Ok(Arc::new(Self {
             config,
             store,
             events,
             work: WorkSignal::default(),
+            scheduling: Mutex::new(()),
+            stopping: std::sync::atomic::AtomicBool::new(false),
         }))
+    }
+
+    /// The server is stopping: waiting lease requests answer without work.
+    pub fn begin_shutdown(&self) {
+        self.stopping
+            .store(true, std::sync::atomic::Ordering::SeqCst);
+        self.work.notify();
+    }
+
+    pub fn is_stopping(&self) -> bool {
+        self.stopping.load(std::sync::atomic::Ordering::SeqCst)
     }
 
     pub fn subscribe(&self) -> broadcast::Receiver<JobEvent> {
@@ -308,6 +352,8 @@ impl Daemon {
     }
 
     pub fn cancel_job(&self, id: &str) -> Result<Job, DaemonError> {
+        // Under the scheduling lock, so no frame completes after the cancel.
+        let _scheduling = self.scheduling()?;
         let job = self.job(id)?;
         if job.state.is_terminal() {
             return Err(DaemonError::FailedPrecondition(format!(

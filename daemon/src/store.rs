@@ -1,5 +1,6 @@
 //! The durable state of the daemon, in sled: datasets, jobs, the frames of each job, and the
-//! request ids that make submission idempotent. One `Store` owns the database.
+//! request ids that make submission idempotent, and the leases of frames being rendered. One
+//! `Store` owns the database.
 //!
 //! A frame is marked done only after its PNG is on disk, so after a crash (even `kill -9`)
 //! every frame is either done and written, or pending and rendered again.
@@ -8,6 +9,7 @@ use serde::de::DeserializeOwned;
 use serde::Serialize;
 use thiserror::Error;
 
+use crate::lease::Lease;
 use crate::model::{now_unix_ms, Dataset, FrameReport, FrameState, Job, JobSpec, JobState};
 
 #[derive(Debug, Error)]
@@ -24,6 +26,7 @@ pub struct Store {
     jobs: sled::Tree,
     requests: sled::Tree,
     frames: sled::Tree,
+    leases: sled::Tree,
 }
 
 /// A page of a listing and the token of the next one (empty at the end).
@@ -56,6 +59,7 @@ impl Store {
             jobs: db.open_tree("jobs")?,
             requests: db.open_tree("requests")?,
             frames: db.open_tree("frames")?,
+            leases: db.open_tree("leases")?,
             db,
         })
     }
@@ -205,9 +209,12 @@ impl Store {
         Ok(())
     }
 
-    /// The next frame to render: the first pending frame of the unfinished job with the
-    /// highest priority, the oldest first among equals.
-    pub fn next_task(&self) -> Result<Option<(Job, u32)>, StoreError> {
+    /// The next frame to render: the first pending frame that is not `leased`, of the
+    /// unfinished job with the highest priority, the oldest first among equals.
+    pub fn next_task(
+        &self,
+        leased: &std::collections::HashSet<(String, u32)>,
+    ) -> Result<Option<(Job, u32)>, StoreError> {
         let mut candidates: Vec<Job> = Vec::new();
         for entry in self.jobs.iter() {
             let (_, value) = entry?;
@@ -224,7 +231,10 @@ impl Store {
                 let (key, value) = entry?;
                 if let FrameState::Pending { .. } = decode::<FrameState>(&value)? {
                     let index_bytes: [u8; 4] = key[prefix.len()..].try_into().unwrap_or([0; 4]);
-                    return Ok(Some((job, u32::from_be_bytes(index_bytes))));
+                    let index = u32::from_be_bytes(index_bytes);
+                    if !leased.contains(&(job.id.clone(), index)) {
+                        return Ok(Some((job, index)));
+                    }
                 }
             }
         }
@@ -245,6 +255,34 @@ impl Store {
             }
         }
         Ok(requeued)
+    }
+
+    // ------------------------------------------------------------------ leases
+
+    pub fn put_lease(&self, lease: &Lease) -> Result<(), StoreError> {
+        self.leases.insert(lease.id.as_bytes(), encode(lease)?)?;
+        Ok(())
+    }
+
+    pub fn lease(&self, id: &str) -> Result<Option<Lease>, StoreError> {
+        self.leases
+            .get(id.as_bytes())?
+            .map(|v| decode(&v))
+            .transpose()
+    }
+
+    pub fn remove_lease(&self, id: &str) -> Result<(), StoreError> {
+        self.leases.remove(id.as_bytes())?;
+        Ok(())
+    }
+
+    pub fn leases(&self) -> Result<Vec<Lease>, StoreError> {
+        self.leases.iter().map(|entry| decode(&entry?.1)).collect()
+    }
+
+    /// A new id, unique in this database (also across restarts).
+    pub fn generate_id(&self) -> Result<u64, StoreError> {
+        Ok(self.db.generate_id()?)
     }
 
     /// The reports of the finished frames of a job, by frame index.

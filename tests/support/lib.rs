@@ -90,9 +90,23 @@ impl ServeProcess {
 
     /// Starts a daemon on `address` (e.g. again after a kill) and waits until it listens.
     pub fn start_at(address: &str, data_dir: &Path) -> Self {
+        Self::start_with_args(address, data_dir, &[])
+    }
+
+    /// Starts a daemon on a free port with more `serve` arguments.
+    pub fn start_with(data_dir: &Path, args: &[&str]) -> Self {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|probe| probe.local_addr())
+            .expect("a free loopback port")
+            .port();
+        Self::start_with_args(&format!("127.0.0.1:{port}"), data_dir, args)
+    }
+
+    fn start_with_args(address: &str, data_dir: &Path, args: &[&str]) -> Self {
         let child = Command::new(pointfarm_bin())
             .args(["serve", "--listen", address, "--data-dir"])
             .arg(data_dir)
+            .args(args)
             .stdout(std::process::Stdio::null())
             .stderr(std::process::Stdio::null())
             .spawn()
@@ -137,6 +151,76 @@ impl ServeProcess {
 }
 
 impl Drop for ServeProcess {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+/// `pointfarm worker` as a child process rendering for `server`; killed when dropped. Its
+/// log (at info level) goes to a file, shown by [`WorkerProcess::log`].
+pub struct WorkerProcess {
+    child: std::process::Child,
+    log: PathBuf,
+}
+
+impl WorkerProcess {
+    /// Starts a worker named `name` with its dataset cache in `cache_dir`.
+    pub fn start(server: &str, cache_dir: &Path, name: &str) -> Self {
+        Self::start_with(server, cache_dir, name, &[])
+    }
+
+    /// Starts a worker with more `worker` arguments (e.g. `--token`).
+    pub fn start_with(server: &str, cache_dir: &Path, name: &str, args: &[&str]) -> Self {
+        let log = cache_dir.with_extension("log");
+        let log_file = std::fs::File::create(&log).expect("worker log file");
+        let child = Command::new(pointfarm_bin())
+            .args([
+                "-v",
+                "worker",
+                "--server",
+                server,
+                "--name",
+                name,
+                "--cache-dir",
+            ])
+            .arg(cache_dir)
+            .args(args)
+            .stdout(std::process::Stdio::null())
+            .stderr(log_file)
+            .spawn()
+            .expect("start pointfarm worker");
+        Self { child, log }
+    }
+
+    pub fn log(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// `kill -9`, and reap it.
+    pub fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
+    /// Sends SIGTERM and waits up to `timeout` for the exit.
+    pub fn terminate(&mut self, timeout: std::time::Duration) -> Option<std::process::ExitStatus> {
+        let sent = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status()
+            .expect("kill -TERM");
+        assert!(sent.success());
+        let deadline = std::time::Instant::now() + timeout;
+        while std::time::Instant::now() < deadline {
+            if let Ok(Some(status)) = self.child.try_wait() {
+                return Some(status);
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        None
+    }
+}
+
+impl Drop for WorkerProcess {
     fn drop(&mut self) {
         self.kill();
     }

@@ -1,4 +1,4 @@
-//! A daemon with an embedded worker on a loopback port, and clients for it.
+//! A daemon (with or without an embedded worker) on a loopback port, and clients for it.
 
 use std::net::SocketAddr;
 use std::sync::{Arc, OnceLock};
@@ -7,6 +7,7 @@ use pointfarm_daemon::service::{Daemon, DaemonConfig};
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
+use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_worker::gpu::{AdapterChoice, GpuContext};
 use sha2::{Digest, Sha256};
 use tonic::transport::Channel;
@@ -32,8 +33,25 @@ pub struct TestDaemon {
 }
 
 impl TestDaemon {
-    /// Starts a daemon; `configure` may change the defaults (limits, data roots).
+    /// Starts a daemon with an embedded worker; `configure` may change the defaults (limits,
+    /// data roots).
     pub async fn start(configure: impl FnOnce(&mut DaemonConfig), token: Option<&str>) -> Self {
+        Self::start_with(configure, token, true).await
+    }
+
+    /// Starts a daemon without an embedded worker: only worker processes render for it.
+    pub async fn start_without_worker(
+        configure: impl FnOnce(&mut DaemonConfig),
+        token: Option<&str>,
+    ) -> Self {
+        Self::start_with(configure, token, false).await
+    }
+
+    async fn start_with(
+        configure: impl FnOnce(&mut DaemonConfig),
+        token: Option<&str>,
+        embedded_worker: bool,
+    ) -> Self {
         let data_dir = tempfile::tempdir().expect("tempdir");
         let mut config = DaemonConfig::new(data_dir.path().to_path_buf());
         configure(&mut config);
@@ -48,7 +66,8 @@ impl TestDaemon {
             let stop = async {
                 let _ = signal.await;
             };
-            pointfarm_daemon::server::serve(daemon, Some(gpu()), listener, token, stop)
+            let gpu = embedded_worker.then(gpu);
+            pointfarm_daemon::server::serve(daemon, gpu, listener, token, stop)
                 .await
                 .expect("serve");
         });
@@ -70,6 +89,15 @@ impl TestDaemon {
 
     pub async fn jobs(&self) -> JobServiceClient<Channel> {
         JobServiceClient::new(self.channel().await)
+    }
+
+    pub async fn workers(&self) -> WorkerServiceClient<Channel> {
+        WorkerServiceClient::new(self.channel().await)
+    }
+
+    /// The address as `pointfarm worker --server` takes it.
+    pub fn url(&self) -> String {
+        format!("http://{}", self.address)
     }
 
     pub async fn datasets(&self) -> DatasetServiceClient<Channel> {

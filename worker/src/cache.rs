@@ -100,6 +100,13 @@ impl DatasetCache {
         })
     }
 
+    /// Whether the cache holds the points of the file with content hash `sha256` (so loading
+    /// it will not read the file).
+    pub fn contains(&self, sha256: &str) -> bool {
+        let key = format!("{sha256}-v{FORMAT_VERSION}");
+        self.entries.contains_key(key.as_bytes()).unwrap_or(false)
+    }
+
     /// The cloud of the file with content hash `sha256` at `path`: from the cache, or decoded
     /// and then cached.
     pub fn load(
@@ -312,8 +319,10 @@ mod tests {
         // Room for two of the three clouds.
         let cache = DatasetCache::open(&dir.path().join("cache"), 2 * 3_000 * BYTES_PER_POINT + 10)
             .expect("open");
+        assert!(!cache.contains("aaa"));
         let (first, outcome) = cache.load("aaa", &files[0]).expect("load");
         assert_eq!(outcome, CacheOutcome::Miss);
+        assert!(cache.contains("aaa"));
         let (again, outcome) = cache.load("aaa", &files[0]).expect("load");
         assert_eq!(outcome, CacheOutcome::Hit);
         assert_eq!(again, first, "the cache returns exactly the decoded cloud");
@@ -332,6 +341,10 @@ mod tests {
                 format!("aaa-v{FORMAT_VERSION}"),
                 format!("ccc-v{FORMAT_VERSION}")
             ]
+        );
+        assert!(
+            !cache.contains("bbb"),
+            "an evicted cloud is no longer contained"
         );
     }
 }

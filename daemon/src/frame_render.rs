@@ -1,0 +1,188 @@
+//! Rendering one leased frame, shared by the embedded worker threads and the remote worker
+//! process: load the dataset (through the worker's `DatasetCache`), colour it, keep it
+//! resident on the GPU across frames, render with the job's settings and encode the PNG,
+//! with the stage timings of every step.
+
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Instant;
+
+use pointfarm_worker::cache::{CacheOutcome, DatasetCache};
+use pointfarm_worker::cloud::WorldBounds;
+use pointfarm_worker::color::{point_colours, ColorMode as WorkerColorMode};
+use pointfarm_worker::gpu::GpuContext;
+use pointfarm_worker::raster::{
+    Clock, FillSettings, FrameSettings, GpuPointCloud, Quality as WorkerQuality, Renderer,
+    Shading as WorkerShading, Stage,
+};
+
+use crate::camera_path::camera_for_frame;
+use crate::lease::{FrameOutcome, FrameTask};
+use crate::model::{ColorMode, Quality, RenderOptions, Shading, StageTiming};
+
+/// The cloud currently on the GPU.
+struct Resident {
+    sha256: String,
+    color_mode: ColorMode,
+    bounds: WorldBounds,
+    cloud: GpuPointCloud,
+    /// How the cloud was loaded, until the next finished frame reports it.
+    unreported_load: Option<(f64, CacheOutcome)>,
+}
+
+/// A finished frame: the PNG and what to report with it.
+pub struct RenderedFrame {
+    pub png: Vec<u8>,
+    pub outcome: FrameOutcome,
+}
+
+/// One worker's renderer, dataset cache and resident cloud.
+pub struct FrameRenderer {
+    renderer: Renderer,
+    cache: Option<Arc<DatasetCache>>,
+    resident: Option<Resident>,
+}
+
+impl FrameRenderer {
+    /// Without a cache every new dataset is decoded from its file.
+    pub fn new(gpu: Arc<GpuContext>, cache: Option<Arc<DatasetCache>>) -> Self {
+        Self {
+            renderer: Renderer::new(gpu),
+            cache,
+            resident: None,
+        }
+    }
+
+    fn is_resident(&self, task: &FrameTask) -> bool {
+        self.resident.as_ref().is_some_and(|r| {
+            r.sha256 == task.dataset.sha256 && r.color_mode == task.render.color_mode
+        })
+    }
+
+    /// Whether rendering `task` reads the dataset's file: its points are neither on the GPU
+    /// nor in the cache.
+    pub fn needs_file(&self, task: &FrameTask) -> bool {
+        !self.is_resident(task)
+            && !self
+                .cache
+                .as_ref()
+                .is_some_and(|c| c.contains(&task.dataset.sha256))
+    }
+
+    /// Renders the frame of `task`; `file` is the dataset's file, read only when
+    /// [`needs_file`](Self::needs_file) says so. Errors are reasons to report.
+    pub fn render(&mut self, task: &FrameTask, file: &Path) -> Result<RenderedFrame, String> {
+        if !self.is_resident(task) {
+            self.resident = None; // free the old cloud's GPU memory first
+            self.resident = Some(self.load(task, file)?);
+        }
+        let Some(current) = self.resident.as_mut() else {
+            return Err("no resident cloud".into());
+        };
+        let aspect = task.width as f64 / task.height as f64;
+        let camera = camera_for_frame(&task.camera_path, task.lease.index, &current.bounds, aspect);
+        let settings = frame_settings(&task.render, task.width, task.height, camera);
+        let frame = self
+            .renderer
+            .render(&current.cloud, &settings)
+            .map_err(|e| e.to_string())?;
+
+        let mut timings: Vec<StageTiming> = Vec::new();
+        let load = current.unreported_load.take();
+        if let Some((ms, _)) = load {
+            timings.push(StageTiming {
+                stage: "load".into(),
+                ms,
+                gpu_clock: false,
+            });
+        }
+        timings.extend(frame.timings.stages.iter().map(|t| StageTiming {
+            stage: t.stage.name().to_string(),
+            ms: t.ms,
+            gpu_clock: t.clock == Clock::Gpu,
+        }));
+        let started = Instant::now();
+        let mut png = Vec::new();
+        frame
+            .image
+            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+            .map_err(|e| format!("encoding the PNG: {e}"))?;
+        timings.push(StageTiming {
+            stage: Stage::Encode.name().to_string(),
+            ms: started.elapsed().as_secs_f64() * 1e3,
+            gpu_clock: false,
+        });
+        tracing::info!(
+            total_ms = timings.iter().map(|t| t.ms).sum::<f64>(),
+            "frame rendered"
+        );
+        Ok(RenderedFrame {
+            png,
+            outcome: FrameOutcome {
+                timings,
+                dataset_cache_hit: load.map(|(_, outcome)| outcome == CacheOutcome::Hit),
+            },
+        })
+    }
+
+    /// Loads a dataset (from the cache when it has it), colours it and uploads it.
+    fn load(&self, task: &FrameTask, file: &Path) -> Result<Resident, String> {
+        let dataset = &task.dataset;
+        let started = Instant::now();
+        let loaded = match &self.cache {
+            Some(cache) => cache.load(&dataset.sha256, file).map_err(|e| e.to_string()),
+            None => pointfarm_worker::ingest::load_point_cloud(file)
+                .map(|cloud| (cloud, CacheOutcome::Miss))
+                .map_err(|e| e.to_string()),
+        };
+        let (mut cloud, outcome) = loaded.map_err(|e| format!("dataset {}: {e}", dataset.id))?;
+        let load_ms = started.elapsed().as_secs_f64() * 1e3;
+        cloud.colors = point_colours(&cloud, worker_color_mode(task.render.color_mode));
+        let gpu_cloud = self
+            .renderer
+            .upload(&cloud)
+            .map_err(|e| format!("dataset {}: {e}", dataset.id))?;
+        tracing::info!(dataset = %dataset.id, points = cloud.len(), load_ms, ?outcome, "cloud resident");
+        Ok(Resident {
+            sha256: dataset.sha256.clone(),
+            color_mode: task.render.color_mode,
+            bounds: cloud.bounds,
+            cloud: gpu_cloud,
+            unreported_load: Some((load_ms, outcome)),
+        })
+    }
+}
+
+fn frame_settings(
+    render: &RenderOptions,
+    width: u32,
+    height: u32,
+    camera: pointfarm_worker::camera::Camera,
+) -> FrameSettings {
+    FrameSettings {
+        point_size: render.point_size,
+        background: render.background,
+        quality: match render.quality {
+            Quality::Basic => WorkerQuality::Basic,
+            Quality::High { depth_band } => WorkerQuality::High { depth_band },
+        },
+        shading: match render.shading {
+            Shading::None => WorkerShading::None,
+            Shading::Edl { strength, radius } => WorkerShading::Edl { strength, radius },
+            Shading::Pintus { levels, exponent } => WorkerShading::Pintus { levels, exponent },
+        },
+        fill: render.fill.map(|f| FillSettings { kernel: f.kernel }),
+        ..FrameSettings::new(width, height, camera)
+    }
+}
+
+fn worker_color_mode(mode: ColorMode) -> WorkerColorMode {
+    match mode {
+        ColorMode::Rgb => WorkerColorMode::Rgb,
+        ColorMode::Intensity => WorkerColorMode::Intensity,
+        ColorMode::Elevation => WorkerColorMode::Elevation,
+        ColorMode::Classification => WorkerColorMode::Classification,
+        ColorMode::ReturnNumber => WorkerColorMode::ReturnNumber,
+        ColorMode::Fixed(rgb) => WorkerColorMode::Fixed(rgb),
+    }
+}

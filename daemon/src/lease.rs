@@ -1,0 +1,517 @@
+//! Frame leases: the one way frames reach workers, the embedded threads and remote worker
+//! processes alike. A worker leases a pending frame, renders it, and hands the PNG in under
+//! its lease; only the holder of a live lease can complete a frame, so a frame is never
+//! stored twice.
+//!
+//! Leases live in sled with their expiry in wall-clock time, so a remote worker that is
+//! rendering while the daemon restarts can still hand its frame in afterwards. A remote lease
+//! that is not renewed by heartbeats expires: the frame goes back to the queue and the attempt
+//! counts toward `max_frame_attempts`, so a frame that kills every worker fails its job
+//! instead of looping. Embedded leases never expire (their thread cannot die without the
+//! daemon); those found at start-up belonged to the previous process and are dropped without
+//! counting.
+//!
+//! Every change to leases, frames and job states made here happens under one scheduling lock,
+//! so two workers never get the same frame and a cancel never races a completion.
+
+use std::collections::HashSet;
+use std::path::Path;
+use std::sync::MutexGuard;
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::DaemonError;
+use crate::model::{
+    now_unix_ms, CameraPath, FrameReport, FrameState, Job, JobId, JobState, RenderOptions,
+    StageTiming,
+};
+use crate::service::Daemon;
+use crate::store::{Store, StoreError};
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Lease {
+    pub id: String,
+    pub job_id: JobId,
+    pub index: u32,
+    pub worker: String,
+    /// Held by a worker thread of the daemon itself.
+    pub embedded: bool,
+    pub expires_unix_ms: i64,
+}
+
+/// The dataset of a task, as a worker's cache knows it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TaskDataset {
+    pub id: String,
+    pub sha256: String,
+    pub size_bytes: u64,
+}
+
+/// One leased frame with everything needed to render it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameTask {
+    pub lease: Lease,
+    pub lease_timeout: Duration,
+    pub dataset: TaskDataset,
+    pub camera_path: CameraPath,
+    pub width: u32,
+    pub height: u32,
+    pub render: RenderOptions,
+    /// Attempts at this frame that ended without a result.
+    pub failed_attempts: u32,
+}
+
+/// What a worker reports with a finished frame's PNG.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameOutcome {
+    pub timings: Vec<StageTiming>,
+    pub dataset_cache_hit: Option<bool>,
+}
+
+/// The answer to a heartbeat.
+#[derive(Debug, Clone, PartialEq)]
+pub enum HeartbeatAnswer {
+    Continue {
+        expires_unix_ms: i64,
+    },
+    /// Drop the frame, for this reason.
+    Stop(String),
+}
+
+/// Leases found at start-up that belonged to the embedded workers of the previous process.
+pub(crate) fn drop_embedded_leases(store: &Store) -> Result<usize, StoreError> {
+    let mut dropped = 0;
+    for lease in store.leases()? {
+        if lease.embedded {
+            store.remove_lease(&lease.id)?;
+            dropped += 1;
+        }
+    }
+    Ok(dropped)
+}
+
+impl Daemon {
+    pub(crate) fn scheduling(&self) -> Result<MutexGuard<'_, ()>, DaemonError> {
+        self.scheduling
+            .lock()
+            .map_err(|_| DaemonError::Internal("the scheduling lock is poisoned".into()))
+    }
+
+    fn lease_timeout_ms(&self) -> i64 {
+        self.config.lease_timeout.as_millis() as i64
+    }
+
+    /// Leases the next frame (highest priority, oldest job, lowest index) to `worker`, or
+    /// None when there is nothing to render.
+    pub fn lease_frame(
+        &self,
+        worker: &str,
+        embedded: bool,
+    ) -> Result<Option<FrameTask>, DaemonError> {
+        let _scheduling = self.scheduling()?;
+        self.expire_leases_locked()?;
+        let leased: HashSet<(String, u32)> = self
+            .store
+            .leases()?
+            .into_iter()
+            .map(|l| (l.job_id, l.index))
+            .collect();
+        loop {
+            let Some((job, index)) = self.store.next_task(&leased)? else {
+                return Ok(None);
+            };
+            let Some(dataset) = self.store.dataset(&job.spec.dataset_id)? else {
+                self.fail_job_locked(
+                    &job.id,
+                    format!("dataset {} no longer exists", job.spec.dataset_id),
+                )?;
+                continue;
+            };
+            let failed_attempts = match self.store.frame(&job.id, index)? {
+                Some(FrameState::Pending { attempts }) => attempts,
+                _ => 0,
+            };
+            let job = if job.state == JobState::Queued {
+                let running = self
+                    .store
+                    .update_job(&job.id, |j| j.state = JobState::Running)?
+                    .unwrap_or(job);
+                self.publish(&running, None);
+                running
+            } else {
+                job
+            };
+            let lease = Lease {
+                id: format!("lease-{:012}", self.store.generate_id()?),
+                job_id: job.id.clone(),
+                index,
+                worker: worker.to_string(),
+                embedded,
+                expires_unix_ms: now_unix_ms() + self.lease_timeout_ms(),
+            };
+            self.store.put_lease(&lease)?;
+            tracing::debug!(job = %job.id, frame = index, lease = %lease.id, worker, "frame leased");
+            return Ok(Some(FrameTask {
+                lease,
+                lease_timeout: self.config.lease_timeout,
+                dataset: crate::lease::TaskDataset {
+                    id: dataset.id,
+                    sha256: dataset.sha256,
+                    size_bytes: dataset.size_bytes,
+                },
+                camera_path: job.spec.camera_path.clone(),
+                width: job.spec.width,
+                height: job.spec.height,
+                render: job.spec.render.clone(),
+                failed_attempts,
+            }));
+        }
+    }
+
+    /// The lease `lease_id` and its job, if the lease is still held and the job still wants
+    /// the frame; FailedPrecondition otherwise (a lease of an ended job is dropped).
+    fn held_lease_locked(&self, lease_id: &str) -> Result<(Lease, Job), DaemonError> {
+        let lease = self.store.lease(lease_id)?.ok_or_else(|| {
+            DaemonError::FailedPrecondition(format!(
+                "lease {lease_id} is not held (it expired, or its frame was given to another worker)"
+            ))
+        })?;
+        let job = self.store.job(&lease.job_id)?;
+        match job {
+            Some(job) if !job.state.is_terminal() => Ok((lease, job)),
+            other => {
+                self.store.remove_lease(lease_id)?;
+                let state = other.map(|j| format!("{:?}", j.state).to_lowercase());
+                Err(DaemonError::FailedPrecondition(format!(
+                    "job {} has ended ({}); frame {} is no longer wanted",
+                    lease.job_id,
+                    state.as_deref().unwrap_or("deleted"),
+                    lease.index
+                )))
+            }
+        }
+    }
+
+    /// Checks that `lease_id` is held, and returns it with the frame size its job expects.
+    pub fn held_lease(&self, lease_id: &str) -> Result<(Lease, u32, u32), DaemonError> {
+        let _scheduling = self.scheduling()?;
+        self.expire_leases_locked()?;
+        let (lease, job) = self.held_lease_locked(lease_id)?;
+        Ok((lease, job.spec.width, job.spec.height))
+    }
+
+    /// Extends a lease, or says why the worker should drop its frame.
+    pub fn heartbeat(&self, lease_id: &str) -> Result<HeartbeatAnswer, DaemonError> {
+        let _scheduling = self.scheduling()?;
+        self.expire_leases_locked()?;
+        match self.held_lease_locked(lease_id) {
+            Ok((mut lease, _)) => {
+                lease.expires_unix_ms = now_unix_ms() + self.lease_timeout_ms();
+                self.store.put_lease(&lease)?;
+                Ok(HeartbeatAnswer::Continue {
+                    expires_unix_ms: lease.expires_unix_ms,
+                })
+            }
+            Err(DaemonError::FailedPrecondition(reason)) => Ok(HeartbeatAnswer::Stop(reason)),
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Stores the PNG of a leased frame and marks the frame done. Refused (FailedPrecondition)
+    /// when the lease is no longer held; then nothing is written over.
+    pub fn complete_frame(
+        &self,
+        lease_id: &str,
+        png: &[u8],
+        outcome: FrameOutcome,
+    ) -> Result<Job, DaemonError> {
+        let (lease, width, height) = self.held_lease(lease_id)?;
+        check_png(png, width, height)?;
+        // Written outside the lock under a name of this lease; renamed into place only if the
+        // lease is still held then.
+        let path = self.config.frame_path(&lease.job_id, lease.index);
+        let partial = path.with_extension(format!("{lease_id}.part"));
+        std::fs::create_dir_all(self.config.frames_dir(&lease.job_id))?;
+        std::fs::write(&partial, png)?;
+
+        let _scheduling = self.scheduling()?;
+        let checked = (|| {
+            self.expire_leases_locked()?;
+            self.held_lease_locked(lease_id)?;
+            match self.store.frame(&lease.job_id, lease.index)? {
+                Some(FrameState::Pending { attempts }) => Ok(attempts),
+                _ => Err(DaemonError::FailedPrecondition(format!(
+                    "frame {} of job {} is already done",
+                    lease.index, lease.job_id
+                ))),
+            }
+        })();
+        let failed_attempts = match checked {
+            Ok(attempts) => attempts,
+            Err(e) => {
+                let _ = std::fs::remove_file(&partial);
+                return Err(e);
+            }
+        };
+        // The rename makes the frame appear whole or not at all; it is marked done only after.
+        std::fs::rename(&partial, &path)?;
+        let report = FrameReport {
+            index: lease.index,
+            timings: outcome.timings,
+            dataset_cache_hit: outcome.dataset_cache_hit,
+            failed_attempts,
+        };
+        self.store.set_frame(
+            &lease.job_id,
+            lease.index,
+            &FrameState::Done(report.clone()),
+        )?;
+        self.store.remove_lease(lease_id)?;
+        let job = self
+            .store
+            .update_job(&lease.job_id, |j| {
+                j.frames_done += 1;
+                if j.frames_done >= j.frames_total {
+                    j.state = JobState::Succeeded;
+                }
+            })?
+            .ok_or_else(|| DaemonError::NotFound(format!("job {}", lease.job_id)))?;
+        self.store.flush()?;
+        self.publish(&job, Some(report));
+        Ok(job)
+    }
+
+    /// The holder of `lease_id` could not render its frame: the attempt counts; the job fails
+    /// when the frame has used up its attempts.
+    pub fn fail_frame(&self, lease_id: &str, reason: &str) -> Result<(), DaemonError> {
+        let _scheduling = self.scheduling()?;
+        let (lease, _) = self.held_lease_locked(lease_id)?;
+        self.store.remove_lease(lease_id)?;
+        tracing::warn!(job = %lease.job_id, frame = lease.index, worker = %lease.worker, %reason, "frame failed");
+        self.count_failed_attempt_locked(&lease, reason)
+    }
+
+    /// Gives a lease back without a result and without counting an attempt. Releasing a lease
+    /// that is no longer held does nothing.
+    pub fn release_frame(&self, lease_id: &str) -> Result<(), DaemonError> {
+        let _scheduling = self.scheduling()?;
+        if let Some(lease) = self.store.lease(lease_id)? {
+            self.store.remove_lease(lease_id)?;
+            tracing::info!(job = %lease.job_id, frame = lease.index, worker = %lease.worker, "frame handed back");
+            self.work.notify();
+        }
+        Ok(())
+    }
+
+    pub fn leases(&self) -> Result<Vec<Lease>, DaemonError> {
+        Ok(self.store.leases()?)
+    }
+
+    /// Puts the frames of expired leases back in the queue, counting the attempts. Returns how
+    /// many leases expired.
+    pub fn expire_leases(&self) -> Result<usize, DaemonError> {
+        let _scheduling = self.scheduling()?;
+        self.expire_leases_locked()
+    }
+
+    fn expire_leases_locked(&self) -> Result<usize, DaemonError> {
+        let now = now_unix_ms();
+        let mut expired = 0;
+        for lease in self.store.leases()? {
+            if lease.embedded || lease.expires_unix_ms >= now {
+                continue;
+            }
+            self.store.remove_lease(&lease.id)?;
+            // A lease of an ended job is kept until it runs out, so that its holder's
+            // heartbeat learns why to stop; its expiry counts nothing.
+            let wanted = self
+                .store
+                .job(&lease.job_id)?
+                .is_some_and(|j| !j.state.is_terminal());
+            if wanted {
+                tracing::warn!(
+                    job = %lease.job_id,
+                    frame = lease.index,
+                    worker = %lease.worker,
+                    "lease expired: the worker was lost; the frame goes back to the queue"
+                );
+                self.count_failed_attempt_locked(
+                    &lease,
+                    &format!(
+                        "worker {} stopped renewing its lease (no heartbeat for {:?})",
+                        lease.worker, self.config.lease_timeout
+                    ),
+                )?;
+                expired += 1;
+            }
+        }
+        Ok(expired)
+    }
+
+    fn count_failed_attempt_locked(&self, lease: &Lease, reason: &str) -> Result<(), DaemonError> {
+        let attempts = match self.store.frame(&lease.job_id, lease.index)? {
+            Some(FrameState::Pending { attempts }) => attempts + 1,
+            Some(FrameState::Done(_)) => return Ok(()),
+            None => 1,
+        };
+        if attempts >= self.config.max_frame_attempts {
+            return self.fail_job_locked(
+                &lease.job_id,
+                format!(
+                    "frame {} failed {attempts} times; last: {reason}",
+                    lease.index
+                ),
+            );
+        }
+        self.store.set_frame(
+            &lease.job_id,
+            lease.index,
+            &FrameState::Pending { attempts },
+        )?;
+        self.store.flush()?;
+        self.work.notify();
+        Ok(())
+    }
+
+    fn fail_job_locked(&self, job_id: &str, reason: String) -> Result<(), DaemonError> {
+        tracing::warn!(job = %job_id, %reason, "job failed");
+        if let Some(failed) = self.store.update_job(job_id, |j| {
+            j.state = JobState::Failed;
+            j.error = Some(reason);
+        })? {
+            self.store.flush()?;
+            self.publish(&failed, None);
+        }
+        Ok(())
+    }
+}
+
+/// A handed-in frame must be a PNG of the job's size.
+fn check_png(png: &[u8], width: u32, height: u32) -> Result<(), DaemonError> {
+    let reader =
+        image::ImageReader::with_format(std::io::Cursor::new(png), image::ImageFormat::Png);
+    let (w, h) = reader
+        .into_dimensions()
+        .map_err(|e| DaemonError::invalid("png", format!("is not a readable PNG: {e}")))?;
+    if (w, h) != (width, height) {
+        return Err(DaemonError::invalid(
+            "png",
+            format!("is {w}x{h}, the job renders {width}x{height}"),
+        ));
+    }
+    Ok(())
+}
+
+/// Removes the partial frames of leases that can never complete (after a restart).
+pub(crate) fn remove_partial_frames(dir: &Path) {
+    let Ok(jobs) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for job in jobs.flatten() {
+        let Ok(frames) = std::fs::read_dir(job.path()) else {
+            continue;
+        };
+        for frame in frames.flatten() {
+            let path = frame.path();
+            if path.extension().is_some_and(|e| e == "part") {
+                let _ = std::fs::remove_file(path);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use pointfarm_proto::v1 as pb;
+
+    use super::*;
+    use crate::service::DaemonConfig;
+
+    fn open(dir: &Path) -> Arc<Daemon> {
+        let mut config = DaemonConfig::new(dir.join("data"));
+        config.data_roots = vec![dir.join("roots")];
+        config.lease_timeout = Duration::from_secs(60);
+        Daemon::open(config).expect("open")
+    }
+
+    fn png(width: u32, height: u32) -> Vec<u8> {
+        let mut bytes = Vec::new();
+        image::RgbaImage::new(width, height)
+            .write_to(
+                &mut std::io::Cursor::new(&mut bytes),
+                image::ImageFormat::Png,
+            )
+            .expect("encode");
+        bytes
+    }
+
+    fn outcome() -> FrameOutcome {
+        FrameOutcome {
+            timings: Vec::new(),
+            dataset_cache_hit: None,
+        }
+    }
+
+    #[test]
+    fn remote_leases_survive_a_restart_and_embedded_ones_are_dropped() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        std::fs::create_dir_all(dir.path().join("roots")).expect("roots");
+        // Registering hashes the file; it is not decoded here.
+        std::fs::write(dir.path().join("roots/a.las"), b"points").expect("file");
+        let daemon = open(dir.path());
+        let dataset = daemon.register_dataset("a.las", "").expect("register");
+        let request = pb::SubmitJobRequest {
+            dataset_id: dataset.id.clone(),
+            camera_path: Some(pb::CameraPath {
+                path: Some(pb::camera_path::Path::Turntable(pb::Turntable {
+                    frames: 3,
+                    ..Default::default()
+                })),
+            }),
+            width: 8,
+            height: 6,
+            ..Default::default()
+        };
+        let job = daemon
+            .submit_job(crate::grpc::job_spec(&request).expect("spec"))
+            .expect("submit");
+        let remote = daemon
+            .lease_frame("remote", false)
+            .expect("lease")
+            .expect("task");
+        let embedded = daemon
+            .lease_frame("embedded", true)
+            .expect("lease")
+            .expect("task");
+        assert_eq!((remote.lease.index, embedded.lease.index), (0, 1));
+        drop(daemon);
+
+        let daemon = open(dir.path());
+        let leases = daemon.leases().expect("leases");
+        assert_eq!(
+            leases,
+            vec![remote.lease.clone()],
+            "only the remote lease is left"
+        );
+        let again = daemon
+            .lease_frame("embedded", true)
+            .expect("lease")
+            .expect("task");
+        assert_eq!(
+            (again.lease.index, again.failed_attempts),
+            (1, 0),
+            "the embedded frame is back, without a failed attempt"
+        );
+        // The remote worker that rendered through the restart hands its frame in.
+        let after = daemon
+            .complete_frame(&remote.lease.id, &png(8, 6), outcome())
+            .expect("complete");
+        assert_eq!(after.frames_done, 1);
+        assert!(daemon.config.frame_path(&job.id, 0).is_file());
+        let refused = daemon.complete_frame(&remote.lease.id, &png(8, 6), outcome());
+        assert!(matches!(refused, Err(DaemonError::FailedPrecondition(_))));
+    }
+}

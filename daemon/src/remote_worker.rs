@@ -1,0 +1,451 @@
+//! A worker in its own process (`pointfarm worker`): leases frames from a daemon over gRPC,
+//! renders them with [`FrameRenderer`] on its own GPU and hands the PNGs back.
+//!
+//! - The dataset's points come from the worker's own `DatasetCache`; a dataset it has never
+//!   seen is downloaded once (`FetchDataset`, SHA-256 checked) and decoded into the cache.
+//!   The cloud stays resident on the GPU across frames of the same dataset.
+//! - While a frame renders, heartbeats renew the lease every third of the lease timeout (at
+//!   most 5 s apart); when the daemon answers "stop" (job cancelled, lease lost) the frame is
+//!   dropped.
+//! - Lost connections are retried with exponential backoff, so a daemon restart is ridden out;
+//!   a finished frame is handed in again until its lease would have expired.
+//! - Stopping (SIGTERM) lets the current frame finish and hands it in; a stop while waiting for
+//!   work exits at once.
+
+use std::future::Future;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::{bail, Context};
+use pointfarm_proto::v1 as pb;
+use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
+use pointfarm_worker::cache::DatasetCache;
+use pointfarm_worker::gpu::GpuContext;
+use sha2::{Digest, Sha256};
+use tokio::io::AsyncWriteExt;
+use tokio::sync::watch;
+use tonic::metadata::{Ascii, MetadataValue};
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::{Channel, Endpoint};
+use tonic::{Code, Request, Status};
+use tracing::Instrument;
+
+use crate::frame_render::{FrameRenderer, RenderedFrame};
+use crate::grpc::{frame_task, timings_message};
+use crate::lease::FrameTask;
+use crate::service::hex;
+
+/// PNG bytes per `CompleteFrame` message: well under gRPC's default 4 MiB limit.
+const PNG_CHUNK_BYTES: usize = 1 << 20;
+/// How long one lease request waits for work on the daemon.
+const LEASE_WAIT_MS: u32 = 10_000;
+
+#[derive(Debug, Clone)]
+pub struct RemoteWorkerConfig {
+    /// The daemon, e.g. `http://127.0.0.1:50051`.
+    pub server: String,
+    pub token: Option<String>,
+    /// Shown in the daemon's leases and logs.
+    pub name: String,
+    /// The worker's dataset cache and downloads live here.
+    pub cache_dir: PathBuf,
+    pub cache_bytes: u64,
+}
+
+/// Adds the bearer token, when there is one, to every call.
+#[derive(Clone)]
+struct BearerToken(Option<MetadataValue<Ascii>>);
+
+impl tonic::service::Interceptor for BearerToken {
+    fn call(&mut self, mut request: Request<()>) -> Result<Request<()>, Status> {
+        if let Some(value) = &self.0 {
+            request
+                .metadata_mut()
+                .insert("authorization", value.clone());
+        }
+        Ok(request)
+    }
+}
+
+type Client = WorkerServiceClient<InterceptedService<Channel, BearerToken>>;
+
+/// Exponential backoff between failed calls: 250 ms doubling to 5 s.
+struct Backoff(Duration);
+
+impl Backoff {
+    const FIRST: Duration = Duration::from_millis(250);
+    const MAX: Duration = Duration::from_secs(5);
+
+    fn new() -> Self {
+        Self(Self::FIRST)
+    }
+
+    fn next(&mut self) -> Duration {
+        let wait = self.0;
+        self.0 = (self.0 * 2).min(Self::MAX);
+        wait
+    }
+
+    fn reset(&mut self) {
+        self.0 = Self::FIRST;
+    }
+}
+
+/// Whether a failed call may succeed when tried again (the daemon restarting, a network cut).
+fn is_transient(status: &Status) -> bool {
+    matches!(
+        status.code(),
+        Code::Unavailable
+            | Code::Unknown
+            | Code::DeadlineExceeded
+            | Code::Aborted
+            | Code::Cancelled
+    )
+}
+
+/// Runs the worker until `shutdown` completes (and the current frame is handed in).
+pub async fn run(
+    config: RemoteWorkerConfig,
+    gpu: Arc<GpuContext>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> anyhow::Result<()> {
+    std::fs::create_dir_all(&config.cache_dir)
+        .with_context(|| format!("creating {}", config.cache_dir.display()))?;
+    let cache_path = config.cache_dir.join("datasets.sled");
+    let cache = DatasetCache::open(&cache_path, config.cache_bytes)
+        .with_context(|| format!("opening the dataset cache {}", cache_path.display()))?;
+    let downloads = config.cache_dir.join("downloads");
+    // Downloads are removed once decoded; what is left was interrupted.
+    let _ = std::fs::remove_dir_all(&downloads);
+    std::fs::create_dir_all(&downloads)
+        .with_context(|| format!("creating {}", downloads.display()))?;
+
+    let url = if config.server.contains("://") {
+        config.server.clone()
+    } else {
+        format!("http://{}", config.server)
+    };
+    let channel = Endpoint::from_shared(url.clone())
+        .with_context(|| format!("'{}' is not a server address", config.server))?
+        .connect_timeout(Duration::from_secs(5))
+        .connect_lazy();
+    let token = config
+        .token
+        .as_deref()
+        .map(|t| format!("Bearer {t}").parse())
+        .transpose()
+        .context("the token has characters that cannot be sent")?;
+    let mut client = WorkerServiceClient::with_interceptor(channel, BearerToken(token))
+        .max_decoding_message_size(8 << 20);
+
+    let (stop_sender, mut stop) = watch::channel(false);
+    tokio::spawn(async move {
+        shutdown.await;
+        tracing::info!("stopping: the current frame is finished first");
+        let _ = stop_sender.send(true);
+    });
+
+    let mut frames = Some(FrameRenderer::new(gpu, Some(Arc::new(cache))));
+    let mut backoff = Backoff::new();
+    tracing::info!(server = %url, worker = %config.name, "worker started");
+    while !*stop.borrow() {
+        let request = pb::LeaseFrameRequest {
+            worker_name: config.name.clone(),
+            wait_ms: LEASE_WAIT_MS,
+        };
+        let mut lease_client = client.clone();
+        let lease_call = lease_client.lease_frame(request);
+        tokio::pin!(lease_call);
+        let leased = tokio::select! {
+            leased = &mut lease_call => leased,
+            _ = stop.changed() => {
+                // A lease may be on its way: take it and give it back. A request still
+                // waiting for work is dropped (the daemon then gives back what it leased).
+                if let Ok(Ok(response)) = tokio::time::timeout(Duration::from_secs(1), &mut lease_call).await {
+                    if let Some(task) = response.into_inner().task {
+                        release_frame(&mut client, &task.lease_id).await;
+                    }
+                }
+                break;
+            }
+        };
+        let message = match leased {
+            Ok(response) => {
+                backoff.reset();
+                match response.into_inner().task {
+                    Some(task) => task,
+                    None => continue,
+                }
+            }
+            Err(status) if is_transient(&status) => {
+                let wait = backoff.next();
+                tracing::warn!(code = ?status.code(), message = status.message(), ?wait, "the daemon is unreachable; retrying");
+                tokio::select! {
+                    _ = stop.changed() => break,
+                    _ = tokio::time::sleep(wait) => continue,
+                }
+            }
+            Err(status) => bail!(
+                "the daemon refused to lease frames: {:?}: {}",
+                status.code(),
+                status.message()
+            ),
+        };
+        let task = match frame_task(&message, &config.name) {
+            Ok(task) => task,
+            Err(e) => {
+                let reason = format!("the task is invalid: {e}");
+                tracing::error!(%reason);
+                fail_frame(&mut client, &message.lease_id, &reason).await;
+                continue;
+            }
+        };
+        let span = tracing::info_span!(
+            "frame",
+            job = %task.lease.job_id,
+            frame = task.lease.index,
+            lease = %task.lease.id
+        );
+        run_task(&mut client, &mut frames, &downloads, task)
+            .instrument(span)
+            .await?;
+    }
+    tracing::info!("worker stopped");
+    Ok(())
+}
+
+/// Renders one leased frame and hands it in (or reports the failure). Errors only when the
+/// worker cannot go on.
+async fn run_task(
+    client: &mut Client,
+    frames: &mut Option<FrameRenderer>,
+    downloads: &Path,
+    task: FrameTask,
+) -> anyhow::Result<()> {
+    tracing::info!(
+        dataset = %task.dataset.id,
+        size = %format!("{}x{}", task.width, task.height),
+        failed_attempts = task.failed_attempts,
+        "frame leased"
+    );
+    let abandoned = Arc::new(AtomicBool::new(false));
+    let heartbeats = tokio::spawn(keep_lease(
+        client.clone(),
+        task.lease.id.clone(),
+        heartbeat_interval(task.lease_timeout),
+        abandoned.clone(),
+    ));
+    let result = download_and_render(client, frames, downloads, &task).await;
+    heartbeats.abort();
+    if abandoned.load(Ordering::SeqCst) {
+        tracing::info!("frame dropped on the daemon's word");
+        return Ok(());
+    }
+    match result? {
+        Ok(frame) => complete_frame(client, &task, frame).await,
+        Err(reason) => {
+            tracing::warn!(%reason, "frame failed");
+            fail_frame(client, &task.lease.id, &reason).await;
+        }
+    }
+    Ok(())
+}
+
+/// The rendered frame, or the reason it could not be rendered. The outer error means the
+/// renderer itself was lost.
+async fn download_and_render(
+    client: &mut Client,
+    frames: &mut Option<FrameRenderer>,
+    downloads: &Path,
+    task: &FrameTask,
+) -> anyhow::Result<Result<RenderedFrame, String>> {
+    let renderer = frames.take().context("the renderer was lost")?;
+    let file = if renderer.needs_file(task) {
+        match download(client, task, downloads).await {
+            Ok(file) => Some(file),
+            Err(e) => {
+                *frames = Some(renderer);
+                return Ok(Err(format!(
+                    "downloading dataset {}: {e:#}",
+                    task.dataset.id
+                )));
+            }
+        }
+    } else {
+        None
+    };
+    // Rendering blocks on the GPU: off the async threads, so heartbeats go on meanwhile.
+    let blocking_task = task.clone();
+    let span = tracing::Span::current();
+    let path = file.clone().unwrap_or_default();
+    let (renderer, rendered) = tokio::task::spawn_blocking(move || {
+        let _entered = span.enter();
+        let mut renderer = renderer;
+        let rendered = renderer.render(&blocking_task, &path);
+        (renderer, rendered)
+    })
+    .await
+    .context("the render thread panicked")?;
+    *frames = Some(renderer);
+    if let Some(file) = file {
+        // The points are in the cache now.
+        let _ = tokio::fs::remove_file(file).await;
+    }
+    Ok(rendered)
+}
+
+/// A third of the lease timeout keeps the lease through a lost heartbeat; at most 5 s apart,
+/// so that a cancel reaches the worker soon.
+fn heartbeat_interval(lease_timeout: Duration) -> Duration {
+    (lease_timeout / 3).clamp(Duration::from_millis(50), Duration::from_secs(5))
+}
+
+/// Renews the lease until aborted; sets `abandoned` and returns when the daemon says stop.
+async fn keep_lease(
+    mut client: Client,
+    lease_id: String,
+    interval: Duration,
+    abandoned: Arc<AtomicBool>,
+) {
+    loop {
+        tokio::time::sleep(interval).await;
+        let request = pb::HeartbeatRequest {
+            lease_id: lease_id.clone(),
+        };
+        match client.heartbeat(request).await {
+            Ok(response) => {
+                let answer = response.into_inner();
+                if answer.action == pb::LeaseAction::Stop as i32 {
+                    tracing::info!(reason = %answer.reason, "the daemon says to drop the frame");
+                    abandoned.store(true, Ordering::SeqCst);
+                    return;
+                }
+            }
+            Err(status) => tracing::warn!(
+                code = ?status.code(),
+                message = status.message(),
+                "heartbeat failed; the lease runs out unless the next one succeeds"
+            ),
+        }
+    }
+}
+
+/// Downloads the dataset's file into `dir`, checking its SHA-256.
+async fn download(client: &mut Client, task: &FrameTask, dir: &Path) -> anyhow::Result<PathBuf> {
+    let dataset = &task.dataset;
+    let started = std::time::Instant::now();
+    let path = dir.join(&dataset.sha256);
+    let partial = dir.join(format!("{}.part", dataset.sha256));
+    let result = async {
+        let mut stream = client
+            .fetch_dataset(pb::FetchDatasetRequest {
+                dataset_id: dataset.id.clone(),
+            })
+            .await
+            .map_err(|s| anyhow::anyhow!("{:?}: {}", s.code(), s.message()))?
+            .into_inner();
+        let mut file = tokio::fs::File::create(&partial).await?;
+        let mut hasher = Sha256::new();
+        let mut received: u64 = 0;
+        while let Some(chunk) = stream
+            .message()
+            .await
+            .map_err(|s| anyhow::anyhow!("{:?}: {}", s.code(), s.message()))?
+        {
+            received += chunk.data.len() as u64;
+            if received > dataset.size_bytes {
+                bail!("more than the {} bytes announced", dataset.size_bytes);
+            }
+            hasher.update(&chunk.data);
+            file.write_all(&chunk.data).await?;
+        }
+        file.flush().await?;
+        let sha256 = hex(&hasher.finalize());
+        if sha256 != dataset.sha256 {
+            bail!(
+                "the download's SHA-256 is {sha256}, expected {}",
+                dataset.sha256
+            );
+        }
+        tokio::fs::rename(&partial, &path).await?;
+        Ok(received)
+    }
+    .await;
+    match result {
+        Ok(bytes) => {
+            tracing::info!(dataset = %dataset.id, bytes, ms = started.elapsed().as_millis() as u64, "dataset downloaded");
+            Ok(path)
+        }
+        Err(e) => {
+            let _ = tokio::fs::remove_file(&partial).await;
+            Err(e)
+        }
+    }
+}
+
+/// Hands the frame in, retrying through connection losses until its lease would have expired.
+async fn complete_frame(client: &mut Client, task: &FrameTask, frame: RenderedFrame) {
+    let give_up = tokio::time::Instant::now() + task.lease_timeout;
+    let mut backoff = Backoff::new();
+    loop {
+        let result = pb::CompleteFrameRequest {
+            part: Some(pb::complete_frame_request::Part::Result(pb::FrameResult {
+                lease_id: task.lease.id.clone(),
+                png_size_bytes: frame.png.len() as u64,
+                timings: timings_message(&frame.outcome.timings),
+                dataset_cache_hit: frame.outcome.dataset_cache_hit,
+            })),
+        };
+        let chunks: Vec<pb::CompleteFrameRequest> = frame
+            .png
+            .chunks(PNG_CHUNK_BYTES)
+            .map(|c| pb::CompleteFrameRequest {
+                part: Some(pb::complete_frame_request::Part::Png(c.to_vec())),
+            })
+            .collect();
+        let messages = tokio_stream::iter(std::iter::once(result).chain(chunks));
+        match client.complete_frame(messages).await {
+            Ok(_) => {
+                tracing::info!(bytes = frame.png.len(), "frame handed in");
+                return;
+            }
+            Err(status) if is_transient(&status) && tokio::time::Instant::now() < give_up => {
+                let wait = backoff.next();
+                tracing::warn!(code = ?status.code(), message = status.message(), ?wait, "handing the frame in failed; retrying");
+                tokio::time::sleep(wait).await;
+            }
+            Err(status) => {
+                tracing::warn!(
+                    code = ?status.code(),
+                    message = status.message(),
+                    "the daemon did not take the frame; it is dropped"
+                );
+                return;
+            }
+        }
+    }
+}
+
+async fn release_frame(client: &mut Client, lease_id: &str) {
+    let request = pb::ReleaseFrameRequest {
+        lease_id: lease_id.to_string(),
+    };
+    match client.release_frame(request).await {
+        Ok(_) => tracing::info!(lease = lease_id, "frame handed back unrendered"),
+        Err(status) => {
+            tracing::warn!(code = ?status.code(), message = status.message(), "handing the frame back failed; the lease will expire")
+        }
+    }
+}
+
+async fn fail_frame(client: &mut Client, lease_id: &str, reason: &str) {
+    let request = pb::FailFrameRequest {
+        lease_id: lease_id.to_string(),
+        reason: reason.to_string(),
+    };
+    if let Err(status) = client.fail_frame(request).await {
+        tracing::warn!(code = ?status.code(), message = status.message(), "reporting the failure failed; the lease will expire");
+    }
+}
