@@ -147,9 +147,10 @@ fn bind_group(
 ) -> wgpu::BindGroup {
     let mut buffers = vec![
         (0, uniforms),
-        (1, &chunk.points),
+        (1, &chunk.positions),
         (2, &chunk.batches),
         (3, &targets.framebuffer),
+        (5, &chunk.colours),
     ];
     if path == AtomicsPath::Atomic64 {
         // The non-atomic view of the same framebuffer, for the early depth test.

@@ -42,10 +42,11 @@ impl HqAccumulatePass {
                 "accumulate",
                 &[
                     (0, uniforms),
-                    (1, &chunk.points),
+                    (1, &chunk.positions),
                     (2, &chunk.batches),
                     (3, &targets.framebuffer),
                     (4, accumulator),
+                    (5, &chunk.colours),
                 ],
             );
             pass.set_bind_group(0, &bind_group, &[]);

@@ -27,7 +27,7 @@ use thiserror::Error;
 
 pub use basic_pass::AtomicsPath;
 pub use pointlist_baseline::{PointListBaseline, PointListFrame};
-pub use points::{GpuPointCloud, BATCH_POINTS};
+pub use points::{GpuPointCloud, BATCH_POINTS, POINT_BYTES};
 pub use timing::{Clock, Stage, StageTiming, StageTimings};
 
 use crate::camera::{Camera, CameraError};
@@ -313,8 +313,9 @@ impl Renderer {
     pub fn new(gpu: Arc<GpuContext>) -> Self {
         let device = &gpu.device;
         let caps = gpu.capabilities;
+        // The largest per-point binding is the positions buffer.
         let max_chunk_points = (caps.max_storage_binding_bytes.min(caps.max_buffer_bytes)
-            / std::mem::size_of::<gpu_data::GpuPoint>() as u64)
+            / std::mem::size_of::<gpu_data::QuantisedPosition>() as u64)
             as usize;
         Self {
             basic: BasicPass::new(device, caps.int64_atomics),
@@ -353,6 +354,18 @@ impl Renderer {
     /// Uploads a cloud; its buffers stay resident for as many frames as needed.
     pub fn upload(&self, cloud: &PointCloud) -> Result<GpuPointCloud, RenderError> {
         GpuPointCloud::upload(&self.gpu, cloud, self.max_chunk_points)
+    }
+
+    /// Uploads a cloud that arrives chunk by chunk, already in a spatially coherent order (a
+    /// generator or a streaming reader), holding at most one chunk on the host at a time.
+    /// `next_chunk(n)` returns up to `n` points (positions relative to `origin`, RGBA8
+    /// colours) or `None` at the end.
+    pub fn upload_chunks(
+        &self,
+        origin: glam::DVec3,
+        next_chunk: &mut dyn FnMut(usize) -> Option<(Vec<glam::Vec3>, Vec<u32>)>,
+    ) -> Result<GpuPointCloud, RenderError> {
+        GpuPointCloud::upload_chunks(&self.gpu, origin, self.max_chunk_points, next_chunk)
     }
 
     /// Checks settings before any GPU work, so bad requests fail with a clear reason.
