@@ -14,10 +14,10 @@ pub(crate) struct HqAccumulatePass {
 }
 
 impl HqAccumulatePass {
-    pub fn new(device: &wgpu::Device) -> Self {
+    pub fn new(device: &wgpu::Device, workgroup_size: u32) -> Self {
         let module = module(device, Shader::HqAccumulate);
         Self {
-            accumulate: pipeline(device, &module, "accumulate"),
+            accumulate: pipeline(device, &module, "accumulate", workgroup_size),
         }
     }
 

@@ -25,7 +25,7 @@ use std::time::Instant;
 use image::RgbaImage;
 use thiserror::Error;
 
-pub use basic_pass::AtomicsPath;
+pub use basic_pass::{AtomicsPath, WORKGROUP_SIZE_ENV};
 pub use pointlist_baseline::{PointListBaseline, PointListFrame};
 pub use points::{GpuPointCloud, BATCH_POINTS, POINT_BYTES};
 pub use timing::{Clock, Stage, StageTiming, StageTimings};
@@ -317,9 +317,14 @@ impl Renderer {
         let max_chunk_points = (caps.max_storage_binding_bytes.min(caps.max_buffer_bytes)
             / std::mem::size_of::<gpu_data::QuantisedPosition>() as u64)
             as usize;
+        let workgroup_size = basic_pass::point_workgroup_size(
+            &gpu.adapter_info,
+            device.limits().max_compute_invocations_per_workgroup,
+        );
+        tracing::debug!(workgroup_size, "point pass workgroups");
         Self {
-            basic: BasicPass::new(device, caps.int64_atomics),
-            hq: HqAccumulatePass::new(device),
+            basic: BasicPass::new(device, caps.int64_atomics, workgroup_size),
+            hq: HqAccumulatePass::new(device, workgroup_size),
             edl: EdlPass::new(device),
             resolve: ResolvePass::new(device),
             uniforms: device.create_buffer(&wgpu::BufferDescriptor {
@@ -463,6 +468,9 @@ impl Renderer {
 
         let path = self.basic.path(settings.atomics == AtomicsMode::Auto);
         self.run_passes(cloud, settings, path, &mut timings)?;
+        if let Some(targets) = self.targets.as_mut() {
+            targets.needs_clear = false;
+        }
 
         let started = Instant::now();
         let Some(targets) = self.targets.as_ref() else {
@@ -520,11 +528,15 @@ impl Renderer {
         let uniforms = &self.uniforms;
         type Record<'a> = Box<dyn Fn(&mut wgpu::ComputePass<'_>) + 'a>;
         let mut passes: Vec<(Stage, Record<'_>)> = match settings.quality {
+            // The resolve empties the framebuffer for the next frame: only a new one is
+            // cleared here.
             Quality::Basic => vec![
                 (
                     Stage::Rasterize,
                     Box::new(|pass| {
-                        self.resolve.record_clear(device, pass, targets);
+                        if targets.needs_clear {
+                            self.resolve.record_clear(device, pass, targets);
+                        }
                         self.basic
                             .record(device, pass, path, uniforms, cloud, targets);
                     }),
@@ -538,7 +550,9 @@ impl Renderer {
                 (
                     Stage::Rasterize,
                     Box::new(|pass| {
-                        self.resolve.record_clear(device, pass, targets);
+                        if targets.needs_clear {
+                            self.resolve.record_clear(device, pass, targets);
+                        }
                         self.basic
                             .record_depth(device, pass, uniforms, cloud, targets);
                     }),
@@ -562,13 +576,6 @@ impl Renderer {
                 Box::new(|pass| self.edl.record(device, pass, uniforms, targets)),
             ));
         }
-        let begin_frame = |encoder: &mut wgpu::CommandEncoder| {
-            if let (Quality::High { .. }, Some(accumulator)) =
-                (settings.quality, targets.accumulator.as_ref())
-            {
-                encoder.clear_buffer(accumulator, 0, None);
-            }
-        };
         let run = |encoder: &mut wgpu::CommandEncoder,
                    index: usize,
                    (stage, record): &(Stage, Record<'_>)| {
@@ -583,7 +590,6 @@ impl Renderer {
             Some(timer) => {
                 let queries = 2 * passes.len() as u32;
                 let mut encoder = device.create_command_encoder(&Default::default());
-                begin_frame(&mut encoder);
                 for (index, plan) in passes.iter().enumerate() {
                     run(&mut encoder, index, plan);
                 }
@@ -604,9 +610,6 @@ impl Renderer {
                 for (index, plan) in passes.iter().enumerate() {
                     let started = Instant::now();
                     let mut encoder = device.create_command_encoder(&Default::default());
-                    if index == 0 {
-                        begin_frame(&mut encoder);
-                    }
                     run(&mut encoder, index, plan);
                     self.gpu.queue.submit([encoder.finish()]);
                     device
