@@ -11,38 +11,31 @@ use super::binding::bind_buffers;
 use super::points::{GpuPointCloud, PointChunk, BATCH_POINTS};
 use super::targets::FrameTargets;
 
-/// Threads per workgroup of the point passes where nothing else is known; each thread walks
-/// its batch with this stride.
+/// Threads per workgroup of the point passes; each thread walks its batch with this stride.
+/// On lavapipe (2 cores) 32, 64, 128, 256 and 512 measured the same within the noise of a
+/// shared machine (BENCHMARKS.md); 128 suits discrete GPUs' 32- and 64-wide waves.
 const DEFAULT_WORKGROUP_SIZE: u32 = 128;
 
 /// Environment variable that overrides the point passes' workgroup size (for tuning runs).
 pub const WORKGROUP_SIZE_ENV: &str = "POINTFARM_POINT_WORKGROUP";
 
-/// Threads per workgroup of the point passes on `adapter`: `POINTFARM_POINT_WORKGROUP` when it
-/// is a power of two from 32 to the device's limit, else the size measured best for the kind
-/// of adapter (BENCHMARKS.md). It must divide `BATCH_POINTS`.
-pub(crate) fn point_workgroup_size(adapter: &wgpu::AdapterInfo, limit: u32) -> u32 {
+/// Threads per workgroup of the point passes: `POINTFARM_POINT_WORKGROUP` when it is a power
+/// of two from 32 to the device's limit (and so divides `BATCH_POINTS`), else the default.
+pub(crate) fn point_workgroup_size(limit: u32) -> u32 {
     let valid = |n: u32| n.is_power_of_two() && (32..=limit.min(1024)).contains(&n);
-    if let Some(n) = std::env::var(WORKGROUP_SIZE_ENV)
+    let requested = std::env::var(WORKGROUP_SIZE_ENV)
         .ok()
-        .and_then(|v| v.trim().parse::<u32>().ok())
-    {
-        if valid(n) {
-            return n;
+        .and_then(|v| v.trim().parse::<u32>().ok());
+    match requested {
+        Some(n) if valid(n) => n,
+        Some(n) => {
+            tracing::warn!(
+                value = n,
+                "ignoring {WORKGROUP_SIZE_ENV}: not a power of two from 32 to {limit}"
+            );
+            DEFAULT_WORKGROUP_SIZE
         }
-        tracing::warn!(
-            value = n,
-            "ignoring {WORKGROUP_SIZE_ENV}: not a power of two from 32 to {limit}"
-        );
-    }
-    let size = match adapter.device_type {
-        wgpu::DeviceType::Cpu => DEFAULT_WORKGROUP_SIZE,
-        _ => DEFAULT_WORKGROUP_SIZE,
-    };
-    if valid(size) {
-        size
-    } else {
-        32
+        None => DEFAULT_WORKGROUP_SIZE,
     }
 }
 const _: () = assert!(BATCH_POINTS.is_multiple_of(1024));

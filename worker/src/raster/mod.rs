@@ -1,9 +1,10 @@
 //! The compute-shader rasterizer (Schütz & Wimmer; Günther et al.).
 //!
-//! A frame is: write the frame uniforms; clear the point framebuffer; run the point pass over
-//! every chunk of the resident cloud (batch frustum culling, per-point projection, early depth
-//! test, atomic minimum of depth and colour); resolve the framebuffer into an RGBA8 image and
-//! a depth image; read both back. Each stage is timed.
+//! A frame is: write the frame uniforms; run the point pass over every chunk of the resident
+//! cloud (batch frustum culling, dequantisation, per-point projection, early depth test,
+//! atomic minimum of depth and colour); resolve the framebuffer into an RGBA8 image and a
+//! depth image, emptying it for the next frame (only a new framebuffer is cleared first); read
+//! both back. Each stage is timed.
 //!
 //! [`Renderer`] owns the pipelines and the per-size frame buffers; [`GpuPointCloud`] owns a
 //! cloud's GPU buffers and outlives any number of frames.
@@ -317,10 +318,8 @@ impl Renderer {
         let max_chunk_points = (caps.max_storage_binding_bytes.min(caps.max_buffer_bytes)
             / std::mem::size_of::<gpu_data::QuantisedPosition>() as u64)
             as usize;
-        let workgroup_size = basic_pass::point_workgroup_size(
-            &gpu.adapter_info,
-            device.limits().max_compute_invocations_per_workgroup,
-        );
+        let workgroup_size =
+            basic_pass::point_workgroup_size(device.limits().max_compute_invocations_per_workgroup);
         tracing::debug!(workgroup_size, "point pass workgroups");
         Self {
             basic: BasicPass::new(device, caps.int64_atomics, workgroup_size),
