@@ -38,7 +38,7 @@ pub struct BenchArgs {
     /// host's memory peak during its ingest (needs about 4 GiB on a software adapter).
     #[arg(long)]
     huge: bool,
-    /// Measure the basic mode only (not the high-quality mode).
+    /// Measure the basic mode only (not the high-quality mode nor the 32-bit atomics path).
     #[arg(long)]
     basic_only: bool,
     /// Image size in pixels.
@@ -224,6 +224,18 @@ fn markdown_tables(report: &BenchReport) -> String {
             }
         }
     }
+    // In the order a frame runs them.
+    const ORDER: [&str; 8] = [
+        "upload",
+        "rasterize",
+        "accumulate",
+        "resolve",
+        "shade",
+        "downsample",
+        "readback",
+        "encode",
+    ];
+    stage_names.sort_by_key(|name| ORDER.iter().position(|o| o == name).unwrap_or(ORDER.len()));
     let _ = writeln!(
         md,
         "\nMedian per stage (ms; clock in brackets):\n\n| workload | method | {} |\n|---|---|{}",

@@ -27,8 +27,8 @@ use crate::cloud::{pack_rgba8, PointCloud};
 use crate::gpu::GpuContext;
 use crate::ingest::{load_point_cloud, IngestError};
 use crate::raster::{
-    FrameSettings, GpuPointCloud, PointListBaseline, Quality, RenderError, Renderer, Stage,
-    StageTimings, BATCH_POINTS,
+    AtomicsMode, FrameSettings, GpuPointCloud, PointListBaseline, Quality, RenderError, Renderer,
+    Stage, StageTimings, BATCH_POINTS,
 };
 
 /// Points of the uniform cloud that the targets are stated for.
@@ -74,14 +74,18 @@ pub struct BenchOptions {
 pub enum ComputeMode {
     /// Schütz & Wimmer's high-quality mode with its default 1% depth band.
     HighQuality,
+    /// The basic mode on the 32-bit atomics path (depth pass, then colour pass), the fallback
+    /// for adapters without 64-bit atomics: the same image by another route.
+    BasicAtomic32,
 }
 
 impl ComputeMode {
-    pub const ALL: [ComputeMode; 1] = [ComputeMode::HighQuality];
+    pub const ALL: [ComputeMode; 2] = [ComputeMode::HighQuality, ComputeMode::BasicAtomic32];
 
     pub fn name(self) -> &'static str {
         match self {
             ComputeMode::HighQuality => "compute-hq",
+            ComputeMode::BasicAtomic32 => "compute-basic-32",
         }
     }
 
@@ -90,6 +94,10 @@ impl ComputeMode {
         match self {
             ComputeMode::HighQuality => FrameSettings {
                 quality: Quality::HIGH,
+                ..*basic
+            },
+            ComputeMode::BasicAtomic32 => FrameSettings {
+                atomics: AtomicsMode::Force32,
                 ..*basic
             },
         }
@@ -1163,6 +1171,7 @@ mod tests {
             assert!(method.frame_ms > 0.0 && method.wall_ms > 0.0, "{method:?}");
         }
         let hq = &result.modes[0].result;
+        assert_eq!(result.modes[1].result.variant, "Atomic32");
         assert!(hq.stages.iter().any(|s| s.stage == "accumulate"), "{hq:?}");
         assert!(result.gpu_bytes_per_point <= 12.0);
         // The front plane covers the same pixels with one colour in both methods.
