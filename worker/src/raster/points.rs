@@ -137,8 +137,9 @@ impl GpuPointCloud {
             let data = ChunkData::new(&positions, colours.into_iter());
             drop(positions);
             chunks.push(data.upload(gpu, chunks.len()));
-            // Let the copy happen before the next chunk is generated, so that at most one
-            // chunk's staging memory is alive at a time.
+            // Submit the chunk's pending copy and wait for it before the next chunk is
+            // generated, so that at most one chunk's staging memory is alive at a time.
+            gpu.queue.submit([]);
             gpu.device
                 .poll(wgpu::PollType::wait_indefinitely())
                 .map_err(|e| RenderError::Gpu(e.to_string()))?;
