@@ -35,10 +35,46 @@ struct Batch {
     count: u32,
 }
 
-// One point as uploaded: position relative to the dataset origin, and its RGBA8 colour.
-struct GpuPoint {
-    position: vec3<f32>,
-    colour: u32,
+// Points are stored quantised (Kanzok et al.), 11 bytes each, in two arrays per chunk:
+// - positions: array<vec2<u32>>, 21/21/22 bits of x/y/z as a fraction of the batch's box
+//   (bit layout in `dequantise`);
+// - colours: array<u32> holding 3 RGB bytes per point back to back, plus one spare word.
+// The colour lives apart so that a pass reads it only for points that pass the depth test.
+
+// One quantisation step per axis: extent / (2^bits - 1). The reciprocals are exact f32
+// roundings, the same as the host's (`points::quantisation_step`).
+const INV_QUANT_MAX: vec3<f32> = vec3<f32>(1.0 / 2097151.0, 1.0 / 2097151.0, 1.0 / 4194303.0);
+
+fn quantisation_step(batch: Batch) -> vec3<f32> {
+    return (batch.max - batch.min) * INV_QUANT_MAX;
+}
+
+// Position relative to the dataset origin of a quantised point of a batch with box minimum
+// `origin` and steps `step`.
+fn dequantise(word: vec2<u32>, origin: vec3<f32>, step: vec3<f32>) -> vec3<f32> {
+    let q = vec3<u32>(
+        word.x & 0x1fffffu,
+        (word.x >> 21u) | ((word.y & 0x3ffu) << 11u),
+        word.y >> 10u,
+    );
+    return origin + vec3<f32>(q) * step;
+}
+
+// Index of the first of the two colour words that hold point `i`'s RGB bytes.
+fn colour_word_index(i: u32) -> u32 {
+    return (3u * i) >> 2u;
+}
+
+// The RGBA8 colour of point `i` from the two words at `colour_word_index(i)`: alpha is 255,
+// points are opaque.
+fn unpack_colour(first: u32, second: u32, i: u32) -> u32 {
+    let shift = ((3u * i) & 3u) * 8u;
+    // A shift by 32 is undefined in WGSL: only bytes that spill over come from `second`.
+    var rgb = first >> shift;
+    if shift > 8u {
+        rgb |= second << (32u - shift);
+    }
+    return (rgb & 0xffffffu) | 0xff000000u;
 }
 
 // A point that survived the frustum test: its pixel square and its depth.

@@ -10,12 +10,13 @@
 override WORKGROUP_SIZE: u32 = 128u;
 
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
-@group(0) @binding(1) var<storage, read> points: array<GpuPoint>;
+@group(0) @binding(1) var<storage, read> positions: array<vec2<u32>>;
 @group(0) @binding(2) var<storage, read> batches: array<Batch>;
 // The point framebuffer after the depth pass: y is the nearest depth's bits.
 @group(0) @binding(3) var<storage, read> framebuffer: array<vec2<u32>>;
 // Per pixel: sum of red, green, blue, and the number of points added.
 @group(0) @binding(4) var<storage, read_write> accumulator: array<atomic<u32>>;
+@group(0) @binding(5) var<storage, read> colours: array<u32>;
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn accumulate(
@@ -32,9 +33,9 @@ fn accumulate(
         return;
     }
     let band = 1.0 + frame.depth_band;
-    for (var i = lane; i < batch.count; i += WORKGROUP_SIZE) {
-        let point = points[batch.first + i];
-        let splat = project_point(frame, point.position);
+    let step = quantisation_step(batch);
+    for (var i = batch.first + lane; i < batch.first + batch.count; i += WORKGROUP_SIZE) {
+        let splat = project_point(frame, dequantise(positions[i], batch.min, step));
         if !splat.visible {
             continue;
         }
@@ -48,9 +49,11 @@ fn accumulate(
                 continue;
             }
             let base = 4 * pixel;
-            atomicAdd(&accumulator[base], point.colour & 0xffu);
-            atomicAdd(&accumulator[base + 1], (point.colour >> 8u) & 0xffu);
-            atomicAdd(&accumulator[base + 2], (point.colour >> 16u) & 0xffu);
+            let w = colour_word_index(i);
+            let colour = unpack_colour(colours[w], colours[w + 1u], i);
+            atomicAdd(&accumulator[base], colour & 0xffu);
+            atomicAdd(&accumulator[base + 1], (colour >> 8u) & 0xffu);
+            atomicAdd(&accumulator[base + 2], (colour >> 16u) & 0xffu);
             atomicAdd(&accumulator[base + 3], 1u);
         }
     }

@@ -6,8 +6,13 @@
 // clipped by the hardware against clip-space z in [0, 1] (the DirectX-style projection of
 // `camera.rs`), which matches `project_point`'s depth test up to rounding.
 
+// Points per batch (`points::BATCH_POINTS`): the batch of point i is i / BATCH_POINTS.
+override BATCH_POINTS: u32 = 4096u;
+
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
-@group(0) @binding(1) var<storage, read> points: array<GpuPoint>;
+@group(0) @binding(1) var<storage, read> positions: array<vec2<u32>>;
+@group(0) @binding(2) var<storage, read> batches: array<Batch>;
+@group(0) @binding(5) var<storage, read> colours: array<u32>;
 
 struct VertexOutput {
     @builtin(position) clip: vec4<f32>,
@@ -16,10 +21,13 @@ struct VertexOutput {
 
 @vertex
 fn vertex_main(@builtin(vertex_index) index: u32) -> VertexOutput {
-    let point = points[index];
+    // The same quantised points as the compute passes; dequantising is a few ALU operations.
+    let batch = batches[index / BATCH_POINTS];
+    let position = dequantise(positions[index], batch.min, quantisation_step(batch));
+    let w = colour_word_index(index);
     var out: VertexOutput;
-    out.clip = frame.view_proj * vec4<f32>(point.position, 1.0);
-    out.colour = unpack4x8unorm(point.colour);
+    out.clip = frame.view_proj * vec4<f32>(position, 1.0);
+    out.colour = unpack4x8unorm(unpack_colour(colours[w], colours[w + 1u], index));
     return out;
 }
 

@@ -10,9 +10,15 @@
 override WORKGROUP_SIZE: u32 = 128u;
 
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
-@group(0) @binding(1) var<storage, read> points: array<GpuPoint>;
+@group(0) @binding(1) var<storage, read> positions: array<vec2<u32>>;
 @group(0) @binding(2) var<storage, read> batches: array<Batch>;
 @group(0) @binding(3) var<storage, read_write> framebuffer: array<atomic<u32>>;
+@group(0) @binding(5) var<storage, read> colours: array<u32>;
+
+fn colour_of(i: u32) -> u32 {
+    let w = colour_word_index(i);
+    return unpack_colour(colours[w], colours[w + 1u], i);
+}
 
 fn depth_word(pixel: i32) -> i32 {
     return 2 * pixel + 1;
@@ -32,9 +38,9 @@ fn rasterize_batch(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32, colour_pa
     if batch_outside_view(frame, batch) {
         return;
     }
-    for (var i = lane; i < batch.count; i += WORKGROUP_SIZE) {
-        let point = points[batch.first + i];
-        let splat = project_point(frame, point.position);
+    let step = quantisation_step(batch);
+    for (var i = batch.first + lane; i < batch.first + batch.count; i += WORKGROUP_SIZE) {
+        let splat = project_point(frame, dequantise(positions[i], batch.min, step));
         if !splat.visible {
             continue;
         }
@@ -47,7 +53,7 @@ fn rasterize_batch(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32, colour_pa
             let stored_depth = atomicLoad(&framebuffer[depth_word(pixel)]);
             if colour_pass {
                 if stored_depth == depth_bits {
-                    atomicMin(&framebuffer[colour_word(pixel)], point.colour);
+                    atomicMin(&framebuffer[colour_word(pixel)], colour_of(i));
                 }
             } else if stored_depth >= depth_bits {
                 // Early depth test as in the 64-bit pass: only nearer or equal points try.

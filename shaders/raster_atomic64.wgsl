@@ -10,12 +10,18 @@
 override WORKGROUP_SIZE: u32 = 128u;
 
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
-@group(0) @binding(1) var<storage, read> points: array<GpuPoint>;
+@group(0) @binding(1) var<storage, read> positions: array<vec2<u32>>;
 @group(0) @binding(2) var<storage, read> batches: array<Batch>;
 @group(0) @binding(3) var<storage, read_write> framebuffer: array<atomic<u64>>;
 // The same buffer as `framebuffer`, read without atomics for the early depth test: a stale
 // read only costs an unneeded atomicMin, never a wrong pixel. y is the depth word.
 @group(0) @binding(4) var<storage, read_write> framebuffer_words: array<vec2<u32>>;
+@group(0) @binding(5) var<storage, read> colours: array<u32>;
+
+fn colour_of(i: u32) -> u32 {
+    let w = colour_word_index(i);
+    return unpack_colour(colours[w], colours[w + 1u], i);
+}
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn rasterize(
@@ -31,14 +37,16 @@ fn rasterize(
     if batch_outside_view(frame, batch) {
         return;
     }
-    for (var i = lane; i < batch.count; i += WORKGROUP_SIZE) {
-        let point = points[batch.first + i];
-        let splat = project_point(frame, point.position);
+    let step = quantisation_step(batch);
+    for (var i = batch.first + lane; i < batch.first + batch.count; i += WORKGROUP_SIZE) {
+        let splat = project_point(frame, dequantise(positions[i], batch.min, step));
         if !splat.visible {
             continue;
         }
         let depth_bits = bitcast<u32>(splat.depth);
-        let value = (u64(depth_bits) << 32u) | u64(point.colour);
+        // Read only once a pixel passed the early depth test.
+        var colour = 0u;
+        var have_colour = false;
         for (var k = 0u; k < splat_pixel_count(frame); k++) {
             let pixel = splat_pixel(frame, splat, k);
             if pixel < 0 {
@@ -48,7 +56,11 @@ fn rasterize(
             if framebuffer_words[pixel].y < depth_bits {
                 continue;
             }
-            atomicMin(&framebuffer[pixel], value);
+            if !have_colour {
+                colour = colour_of(i);
+                have_colour = true;
+            }
+            atomicMin(&framebuffer[pixel], (u64(depth_bits) << 32u) | u64(colour));
         }
     }
 }

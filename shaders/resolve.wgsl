@@ -1,5 +1,6 @@
-// Clears the point framebuffer before a frame and resolves it afterwards into an RGBA8 image
-// and a linear depth image. Works on both rasterizer variants: each framebuffer entry is a
+// Resolves the point framebuffer into an RGBA8 image and a linear depth image, and clears each
+// entry as it reads it, so the next frame starts from an empty framebuffer without a pass of
+// its own (`clear` is only needed for a framebuffer that was never resolved). Works on both rasterizer variants: each framebuffer entry is a
 // pair of u32 words, x = colour, y = depth bits (the little-endian halves of the 64-bit
 // word), and 0xffffffff in both means "no point".
 
@@ -9,8 +10,9 @@ const EMPTY: u32 = 0xffffffffu;
 @group(0) @binding(1) var<storage, read_write> framebuffer: array<vec2<u32>>;
 @group(0) @binding(2) var<storage, read_write> colour_out: array<u32>;
 @group(0) @binding(3) var<storage, read_write> depth_out: array<f32>;
-// High-quality mode only: per pixel the sums of red, green, blue and the count of points.
-@group(0) @binding(4) var<storage, read> accumulator: array<vec4<u32>>;
+// High-quality mode only: per pixel the sums of red, green, blue and the count of points;
+// zeroed as they are read, like the framebuffer (buffers start zeroed).
+@group(0) @binding(4) var<storage, read_write> accumulator: array<vec4<u32>>;
 
 fn pixel_of(id: vec3<u32>, groups: vec3<u32>) -> u32 {
     return id.y * groups.x * 256u + id.x;
@@ -31,6 +33,7 @@ fn resolve(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups
         return;
     }
     let entry = framebuffer[pixel];
+    framebuffer[pixel] = vec2<u32>(EMPTY, EMPTY);
     if entry.y == EMPTY {
         colour_out[pixel] = frame.background;
         depth_out[pixel] = bitcast<f32>(0x7f800000u); // +infinity: no surface
@@ -48,7 +51,10 @@ fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_wo
         return;
     }
     let sums = accumulator[pixel];
+    accumulator[pixel] = vec4<u32>(0u);
     let count = sums.w;
+    let depth_bits = framebuffer[pixel].y;
+    framebuffer[pixel] = vec2<u32>(EMPTY, EMPTY);
     if count == 0u {
         colour_out[pixel] = frame.background;
         depth_out[pixel] = bitcast<f32>(0x7f800000u);
@@ -57,5 +63,5 @@ fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_wo
     // Round half up, in integers: (sum + count / 2) / count.
     let average = (sums.xyz + vec3<u32>(count / 2u)) / count;
     colour_out[pixel] = average.x | (average.y << 8u) | (average.z << 16u) | (255u << 24u);
-    depth_out[pixel] = bitcast<f32>(framebuffer[pixel].y);
+    depth_out[pixel] = bitcast<f32>(depth_bits);
 }

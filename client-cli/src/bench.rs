@@ -1,5 +1,5 @@
-//! `pointfarm bench`: the PointList baseline and the compute rasterizer on the same workloads,
-//! in one run on one adapter; prints a table and writes JSON and markdown.
+//! `pointfarm bench`: the PointList baseline and the compute rasterizer's modes on the same
+//! workloads, in one run on one adapter; prints tables and writes JSON, markdown and a plot.
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -8,7 +8,9 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use pointfarm_worker::bench::{self, BenchOptions, BenchReport, MethodResult, HEADLINE_WORKLOAD};
+use pointfarm_worker::bench::{
+    self, BenchOptions, BenchReport, ComputeMode, MethodResult, HEADLINE_WORKLOAD,
+};
 use pointfarm_worker::gpu::{AdapterChoice, GpuContext};
 use serde::Serialize;
 
@@ -25,13 +27,28 @@ pub struct BenchArgs {
     /// Write the tables as markdown to FILE.
     #[arg(long, value_name = "FILE")]
     markdown: Option<PathBuf>,
+    /// Write a PNG plot of frame time against points in view and against overdraw to FILE.
+    #[arg(long, value_name = "FILE")]
+    plot: Option<PathBuf>,
+    /// Only these workloads (comma-separated), e.g. `uniform-10m,cuboid-k64`; a name also
+    /// selects its other views (`uniform-10m` selects `uniform-10m-partial`).
+    #[arg(long, value_delimiter = ',', value_name = "NAMES")]
+    only: Vec<String>,
+    /// Also render a 100M-point cube, generated and uploaded chunk by chunk, and report the
+    /// host's memory peak during its ingest (needs about 4 GiB on a software adapter).
+    #[arg(long)]
+    huge: bool,
+    /// Measure the basic mode only (not the high-quality mode nor the 32-bit atomics path).
+    #[arg(long)]
+    basic_only: bool,
     /// Image size in pixels.
     #[arg(long, default_value = "1920x1080", value_parser = parse::size)]
     size: (u32, u32),
     /// Directory of the real scans (lone-star.laz, autzen_trim.laz); missing ones are skipped.
     #[arg(long, default_value = "../shared/data")]
     data: PathBuf,
-    /// Time every stage with host clocks, even where the adapter has GPU timestamps.
+    /// Time every stage with host clocks, even where the adapter has GPU timestamps (always so
+    /// on a software adapter, whose timestamps under-report compute passes).
     #[arg(long)]
     host_clocks: bool,
     /// Adapter: auto (hardware GPU if present, else lavapipe), hardware or software.
@@ -84,6 +101,13 @@ pub fn run(args: BenchArgs) -> Result<()> {
     let (width, height) = args.size;
     let options = BenchOptions {
         host_clocks: args.host_clocks,
+        modes: if args.basic_only {
+            Vec::new()
+        } else {
+            ComputeMode::ALL.to_vec()
+        },
+        only: args.only.clone(),
+        huge: args.huge,
         ..if args.quick {
             BenchOptions::quick(width, height, args.data.clone())
         } else {
@@ -122,25 +146,42 @@ pub fn run(args: BenchArgs) -> Result<()> {
         let json = serde_json::to_string_pretty(&file)?;
         std::fs::write(path, json + "\n").with_context(|| format!("writing {}", path.display()))?;
     }
+    if let Some(path) = &args.plot {
+        crate::bench_plot::write(&report, path)?;
+    }
     println!("done in {:.0} s", started.elapsed().as_secs_f64());
     Ok(())
 }
 
-/// The summary table (frame time, throughput, speed-up) and the per-stage table.
+/// The summary table (frame time, throughput, speed-up, other modes' cost), the per-stage
+/// table, the scaling fits and the huge workload's memory.
 fn markdown_tables(report: &BenchReport) -> String {
     let mut md = String::new();
+    let modes: Vec<&'static str> = report
+        .workloads
+        .first()
+        .map(|w| w.modes.iter().map(|m| m.result.method).collect())
+        .unwrap_or_default();
     // Writing to a String cannot fail.
-    let _ = writeln!(
+    let _ = write!(
         md,
         "| workload | points | in view | PointList ms | PointList Mpts/s | compute ms | \
-         compute Mpts/s | speed-up | wall ms PointList / compute | same colour |\n\
-         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+         compute Mpts/s | speed-up |"
+    );
+    for mode in &modes {
+        let _ = write!(md, " {mode} ms | {mode} / basic |");
+    }
+    let _ = writeln!(
+        md,
+        " wall ms PointList / compute | same colour | GPU B/point |\n\
+         |---|---:|---:|---:|---:|---:|---:|---:|{}---:|---:|---:|",
+        "---:|---:|".repeat(modes.len())
     );
     for w in &report.workloads {
         let (pointlist, compute) = (&w.pointlist, &w.compute);
-        let _ = writeln!(
+        let _ = write!(
             md,
-            "| {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.1} | {:.2}x | {:.1} / {:.1} | {:.1}% |",
+            "| {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.1} | {:.2}x |",
             w.workload,
             thousands(w.points),
             thousands(w.points_in_view),
@@ -149,29 +190,99 @@ fn markdown_tables(report: &BenchReport) -> String {
             compute.frame_ms,
             compute.mpoints_per_s,
             w.speedup_vs_pointlist,
+        );
+        for mode in &w.modes {
+            let _ = write!(
+                md,
+                " {:.1} | {:.2}x |",
+                mode.result.frame_ms, mode.cost_vs_basic
+            );
+        }
+        let _ = writeln!(
+            md,
+            " {:.1} / {:.1} | {:.1}% | {:.2} |",
             pointlist.wall_ms,
             compute.wall_ms,
             w.image_agreement * 100.0,
+            w.gpu_bytes_per_point,
         );
     }
+
+    // Every stage that any method reported, in order of first appearance.
+    let methods = |w: &'_ bench::WorkloadResult| -> Vec<MethodResult> {
+        let mut all = vec![w.pointlist.clone(), w.compute.clone()];
+        all.extend(w.modes.iter().map(|m| m.result.clone()));
+        all
+    };
+    let mut stage_names: Vec<&'static str> = Vec::new();
+    for w in &report.workloads {
+        for m in methods(w) {
+            for s in &m.stages {
+                if !stage_names.contains(&s.stage) {
+                    stage_names.push(s.stage);
+                }
+            }
+        }
+    }
+    // In the order a frame runs them.
+    const ORDER: [&str; 8] = [
+        "upload",
+        "rasterize",
+        "accumulate",
+        "resolve",
+        "shade",
+        "downsample",
+        "readback",
+        "encode",
+    ];
+    stage_names.sort_by_key(|name| ORDER.iter().position(|o| o == name).unwrap_or(ORDER.len()));
     let _ = writeln!(
         md,
-        "\nMedian per stage (ms; clock in brackets):\n\n\
-         | workload | method | upload | rasterize (incl. clear) | resolve | readback |\n\
-         |---|---|---:|---:|---:|---:|"
+        "\nMedian per stage (ms; clock in brackets):\n\n| workload | method | {} |\n|---|---|{}",
+        stage_names.join(" | "),
+        "---:|".repeat(stage_names.len())
     );
     for w in &report.workloads {
-        for m in [&w.pointlist, &w.compute] {
+        for m in methods(w) {
+            let cells: Vec<String> = stage_names.iter().map(|name| stage(&m, name)).collect();
             let _ = writeln!(
                 md,
-                "| {} | {} ({}) | {} | {} | {} | {} |",
+                "| {} | {} ({}) | {} |",
                 w.workload,
                 m.method,
                 m.variant,
-                stage(m, "upload"),
-                stage(m, "rasterize"),
-                stage(m, "resolve"),
-                stage(m, "readback"),
+                cells.join(" | ")
+            );
+        }
+    }
+
+    if !report.scaling.is_empty() {
+        let _ = writeln!(
+            md,
+            "\nFrame time against points in view ({}), least-squares line:\n\n\
+             | method | ns per point | intercept ms | R² |\n|---|---:|---:|---:|",
+            report.scaling[0].workloads.join(", ")
+        );
+        for fit in &report.scaling {
+            let _ = writeln!(
+                md,
+                "| {} | {:.2} | {:.1} | {:.4} |",
+                fit.method, fit.ns_per_point, fit.intercept_ms, fit.r_squared
+            );
+        }
+    }
+    for w in &report.workloads {
+        if let Some(memory) = &w.ingest_memory {
+            let mib = |b: u64| b as f64 / (1u64 << 20) as f64;
+            let _ = writeln!(
+                md,
+                "\n{}: host memory peak during ingest {:.0} MiB ({:.0} MiB before it), GPU \
+                 data {:.0} MiB: peak / GPU data = {:.2}.",
+                w.workload,
+                mib(memory.peak_host_bytes),
+                mib(memory.before_host_bytes),
+                mib(memory.gpu_bytes),
+                memory.peak_over_gpu
             );
         }
     }
@@ -190,7 +301,11 @@ fn warn_about_timestamps(report: &BenchReport) {
     let suspect: Vec<String> = report
         .workloads
         .iter()
-        .flat_map(|w| [(&w.workload, &w.pointlist), (&w.workload, &w.compute)])
+        .flat_map(|w| {
+            [(&w.workload, &w.pointlist), (&w.workload, &w.compute)]
+                .into_iter()
+                .chain(w.modes.iter().map(move |m| (&w.workload, &m.result)))
+        })
         .filter(|(_, m)| m.unaccounted_ms() > 2.0_f64.max(0.2 * m.wall_ms))
         .map(|(workload, m)| {
             format!(

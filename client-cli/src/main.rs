@@ -2,6 +2,7 @@
 
 mod admin;
 mod bench;
+mod bench_plot;
 mod demo;
 mod parse;
 mod remote;

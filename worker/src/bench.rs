@@ -1,17 +1,22 @@
 //! The benchmark harness behind `pointfarm bench`: workloads, and a runner that renders each
 //! with every method on the same resident buffers, the same camera and the same image size.
 //!
-//! Methods: the fixed-function `PointList` baseline ([`PointListBaseline`]) and the compute
-//! rasterizer's basic mode ([`Renderer`]). A frame's time is the GPU work that produces its
-//! image: the point pass with its clear, plus the resolve for the compute path. Readback and
-//! host-side stages are reported per stage but left out of the frame time, since they do not
-//! depend on the method. Every figure is the median over measured frames, after warm-up frames.
+//! Methods: the fixed-function `PointList` baseline ([`PointListBaseline`]), the compute
+//! rasterizer's basic mode ([`Renderer`]) and its other modes ([`ComputeMode`]: high quality).
+//! A frame's time is the GPU work that produces its image: every pass of the frame (clear,
+//! point passes, resolve, shading). Upload, readback and other host-side stages are reported
+//! per stage but left out of the frame time, since they do not depend on the method. Every
+//! figure is the median over measured frames, after warm-up frames.
+//!
+//! Series: uniform cubes of 1M to 30M points (frame time against points in view, with a
+//! least-squares line per method) and the k-plane cuboid (against overdraw); `huge` adds a
+//! 100M-point cube generated and uploaded chunk by chunk, with the host's peak memory.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
-use glam::DVec3;
+use glam::{DVec3, Vec3};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -22,11 +27,16 @@ use crate::cloud::{pack_rgba8, PointCloud};
 use crate::gpu::GpuContext;
 use crate::ingest::{load_point_cloud, IngestError};
 use crate::raster::{
-    FrameSettings, GpuPointCloud, PointListBaseline, RenderError, Renderer, Stage, StageTimings,
+    AtomicsMode, FrameSettings, GpuPointCloud, PointListBaseline, Quality, RenderError, Renderer,
+    Stage, StageTimings, BATCH_POINTS,
 };
 
 /// Points of the uniform cloud that the issue's targets are stated for.
 pub const UNIFORM_POINTS: usize = 10_000_000;
+/// The uniform clouds of the scaling series (all in view); the headline cloud is one of them.
+pub const UNIFORM_SERIES: [usize; 4] = [1_000_000, 3_000_000, UNIFORM_POINTS, 30_000_000];
+/// Points of the opt-in huge workload.
+pub const HUGE_POINTS: usize = 100_000_000;
 /// Plane counts of the overdraw cuboid.
 pub const CUBOID_PLANES: [usize; 4] = [1, 4, 16, 64];
 /// The real scans measured when present in the data directory.
@@ -49,6 +59,49 @@ pub struct BenchOptions {
     pub data_dir: PathBuf,
     /// Time stages with host clocks even where the adapter has timestamp queries.
     pub host_clocks: bool,
+    /// Compute modes measured besides the basic mode.
+    pub modes: Vec<ComputeMode>,
+    /// Only these workloads (all when empty); a name also selects its other views
+    /// (`uniform-10m` selects `uniform-10m-partial`).
+    pub only: Vec<String>,
+    /// Also render the 100M-point cube ([`HUGE_POINTS`]), with its host memory peak.
+    pub huge: bool,
+}
+
+/// A mode of the compute rasterizer measured besides the basic mode, as a change to the
+/// basic mode's settings. Modes that later passes add (fill, shading) go here.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ComputeMode {
+    /// Schütz & Wimmer's high-quality mode with its default 1% depth band.
+    HighQuality,
+    /// The basic mode on the 32-bit atomics path (depth pass, then colour pass), the fallback
+    /// for adapters without 64-bit atomics: the same image by another route.
+    BasicAtomic32,
+}
+
+impl ComputeMode {
+    pub const ALL: [ComputeMode; 2] = [ComputeMode::HighQuality, ComputeMode::BasicAtomic32];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            ComputeMode::HighQuality => "compute-hq",
+            ComputeMode::BasicAtomic32 => "compute-basic-32",
+        }
+    }
+
+    /// The settings of this mode, from the basic mode's.
+    pub fn settings(self, basic: &FrameSettings) -> FrameSettings {
+        match self {
+            ComputeMode::HighQuality => FrameSettings {
+                quality: Quality::HIGH,
+                ..*basic
+            },
+            ComputeMode::BasicAtomic32 => FrameSettings {
+                atomics: AtomicsMode::Force32,
+                ..*basic
+            },
+        }
+    }
 }
 
 impl BenchOptions {
@@ -62,6 +115,9 @@ impl BenchOptions {
             cuboid_side: 1024,
             data_dir,
             host_clocks: false,
+            modes: ComputeMode::ALL.to_vec(),
+            only: Vec::new(),
+            huge: false,
         }
     }
 
@@ -84,6 +140,8 @@ pub enum BenchError {
     Ingest(#[from] IngestError),
     #[error("the benchmark needs at least one measured frame")]
     NoFrames,
+    #[error("no workload matches --only {0}")]
+    NothingSelected(String),
 }
 
 /// The adapter the figures were measured on.
@@ -125,11 +183,13 @@ pub struct StageMedian {
 /// One method on one workload.
 #[derive(Debug, Clone, Serialize)]
 pub struct MethodResult {
-    /// `pointlist` or `compute-basic` (with the atomics path in `variant`).
+    /// `pointlist`, `compute-basic` (with the atomics path in `variant`) or another compute
+    /// mode's name ([`ComputeMode::name`]).
     pub method: &'static str,
     pub variant: String,
-    /// Median over frames of the time that produces the image: the stages rasterize (with
-    /// the clear) and resolve, on the GPU clock where the adapter has timestamps.
+    /// Median over frames of the time that produces the image: every GPU pass of the frame
+    /// (rasterize, accumulate, resolve, shade), on the GPU clock where the adapter has
+    /// timestamps.
     pub frame_ms: f64,
     /// Median host wall-clock time of a whole frame as a caller sees it, readback included: a
     /// cross-check of `frame_ms` that does not trust the adapter's timestamps.
@@ -148,12 +208,53 @@ pub struct WorkloadResult {
     /// Points that project into the image (CPU count with the frame's camera).
     pub points_in_view: usize,
     pub pointlist: MethodResult,
+    /// The basic mode.
     pub compute: MethodResult,
-    /// PointList frame time over compute frame time.
+    /// PointList frame time over compute (basic mode) frame time.
     pub speedup_vs_pointlist: f64,
+    /// The other compute modes, with their cost relative to the basic mode.
+    pub modes: Vec<ModeResult>,
+    /// Bytes of GPU buffers per point that hold the cloud.
+    pub gpu_bytes_per_point: f64,
+    /// The huge workload: the host's memory peak while the cloud was generated and uploaded.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ingest_memory: Option<IngestMemory>,
     /// Of the pixels covered by either method, the fraction with the same colour in both:
     /// a check that both drew the same thing.
     pub image_agreement: f64,
+}
+
+/// A compute mode other than basic on one workload.
+#[derive(Debug, Clone, Serialize)]
+pub struct ModeResult {
+    #[serde(flatten)]
+    pub result: MethodResult,
+    /// Frame time over the basic mode's.
+    pub cost_vs_basic: f64,
+}
+
+/// Host memory while a cloud is generated and uploaded, against the size of its GPU buffers.
+#[derive(Debug, Clone, Serialize)]
+pub struct IngestMemory {
+    /// Peak resident set size of the process during ingest (`VmHWM`, reset before).
+    pub peak_host_bytes: u64,
+    /// Resident set size just before ingest started.
+    pub before_host_bytes: u64,
+    pub gpu_bytes: u64,
+    /// `peak_host_bytes / gpu_bytes`.
+    pub peak_over_gpu: f64,
+}
+
+/// A least-squares line through frame times of one method against points in view.
+#[derive(Debug, Clone, Serialize)]
+pub struct ScalingFit {
+    pub method: String,
+    /// The workloads of the series, in order.
+    pub workloads: Vec<String>,
+    pub ns_per_point: f64,
+    pub intercept_ms: f64,
+    /// Coefficient of determination: 1 for perfectly linear growth.
+    pub r_squared: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -166,7 +267,7 @@ pub struct SkippedWorkload {
 #[derive(Debug, Clone, Serialize)]
 pub struct BenchReport {
     pub adapter: AdapterReport,
-    /// Whether stages were timed by host clocks although the adapter has timestamps.
+    /// Whether stages were timed by host clocks (asked for, or a software adapter).
     pub host_clocks: bool,
     pub width: u32,
     pub height: u32,
@@ -175,20 +276,31 @@ pub struct BenchReport {
     /// Speed-up of the compute path over PointList on [`HEADLINE_WORKLOAD`].
     pub speedup_vs_pointlist: Option<f64>,
     pub workloads: Vec<WorkloadResult>,
+    /// Frame time against points in view over the uniform series, per method.
+    pub scaling: Vec<ScalingFit>,
     pub skipped: Vec<SkippedWorkload>,
 }
 
 /// The scenes of a run, built one at a time.
 enum SceneSpec {
-    Uniform,
+    Uniform(usize),
     Cuboid(usize),
     RealScan(PathBuf),
+}
+
+/// Name of the uniform workload of `points` points: `uniform-10m`.
+pub fn uniform_workload(points: usize) -> String {
+    if points.is_multiple_of(1_000_000) {
+        format!("uniform-{}m", points / 1_000_000)
+    } else {
+        format!("uniform-{points}")
+    }
 }
 
 impl SceneSpec {
     fn name(&self) -> String {
         match self {
-            SceneSpec::Uniform => HEADLINE_WORKLOAD.into(),
+            SceneSpec::Uniform(points) => uniform_workload(*points),
             SceneSpec::Cuboid(planes) => format!("cuboid-k{planes}"),
             SceneSpec::RealScan(path) => path
                 .file_name()
@@ -201,7 +313,7 @@ impl SceneSpec {
     fn build(&self, options: &BenchOptions) -> Result<Option<Scene>, BenchError> {
         let aspect = options.width as f64 / options.height as f64;
         Ok(Some(match self {
-            SceneSpec::Uniform => uniform_scene(UNIFORM_POINTS, aspect, 1),
+            SceneSpec::Uniform(points) => uniform_scene(*points, aspect, 1),
             SceneSpec::Cuboid(planes) => cuboid_scene(
                 *planes,
                 options.cuboid_side,
@@ -238,7 +350,10 @@ pub fn run(
     }
     let mut renderer = Renderer::new(gpu.clone());
     let mut baseline = PointListBaseline::new(gpu.clone());
-    if options.host_clocks {
+    // A software adapter's timestamps under-report compute passes (lavapipe: BENCHMARKS.md),
+    // so it is always timed by host clocks.
+    let host_clocks = options.host_clocks || gpu.adapter_info.device_type == wgpu::DeviceType::Cpu;
+    if host_clocks {
         renderer.use_host_clocks();
         baseline.use_host_clocks();
     }
@@ -257,11 +372,39 @@ pub fn run(
     baseline.validate(&probe)?;
     let mut workloads = Vec::new();
     let mut skipped = Vec::new();
+    // A name selects itself and the views named after it ("uniform-10m" and its "-partial").
+    let selected = |name: &str| {
+        options.only.is_empty()
+            || options.only.iter().any(|o| {
+                name == o
+                    || name
+                        .strip_prefix(o.as_str())
+                        .is_some_and(|rest| rest.starts_with('-'))
+            })
+    };
+
+    // The huge cloud first, while the process is small, so that its memory peak is its own.
+    if options.huge && selected("uniform-100m") {
+        workloads.push(measure_huge(
+            &mut renderer,
+            &mut baseline,
+            options,
+            progress,
+        )?);
+    }
 
     // Scenes are built one at a time so that only one large cloud is in memory.
-    let mut specs = vec![SceneSpec::Uniform];
+    let mut specs: Vec<SceneSpec> = UNIFORM_SERIES.map(SceneSpec::Uniform).into();
     specs.extend(CUBOID_PLANES.map(SceneSpec::Cuboid));
     specs.extend(REAL_SCANS.map(|file| SceneSpec::RealScan(options.data_dir.join(file))));
+    specs.retain(|spec| {
+        let name = spec.name();
+        // The partial view of the headline cloud selects that cloud too.
+        selected(&name) || (name == HEADLINE_WORKLOAD && selected("uniform-10m-partial"))
+    });
+    if specs.is_empty() && workloads.is_empty() {
+        return Err(BenchError::NothingSelected(options.only.join(",")));
+    }
 
     for spec in specs {
         let name = spec.name();
@@ -276,29 +419,23 @@ pub fn run(
             continue;
         };
         let resident = renderer.upload(&scene.cloud)?;
-        for view in &scene.views {
+        for view in scene.views.iter().filter(|v| selected(&v.workload)) {
             progress(&format!(
                 "{}: {} points, measuring",
                 view.workload,
                 scene.cloud.len()
             ));
             let settings = FrameSettings::new(options.width, options.height, view.camera);
+            let in_view = points_in_view(&scene.cloud, &settings);
             let result = measure(
                 &mut renderer,
                 &mut baseline,
-                &scene.cloud,
                 &resident,
-                view,
+                (view, in_view),
                 &settings,
                 options,
             )?;
-            progress(&format!(
-                "{}: pointlist {:.1} ms, compute {:.1} ms, speed-up {:.2}x",
-                result.workload,
-                result.pointlist.frame_ms,
-                result.compute.frame_ms,
-                result.speedup_vs_pointlist
-            ));
+            progress(&summary_line(&result));
             workloads.push(result);
         }
         tracing::debug!(scene = %scene.name, "scene done");
@@ -310,28 +447,113 @@ pub fn run(
         .map(|w| w.speedup_vs_pointlist);
     Ok(BenchReport {
         adapter: AdapterReport::of(&gpu),
-        host_clocks: options.host_clocks,
+        host_clocks,
         width: options.width,
         height: options.height,
         warmup_frames: options.warmup_frames,
         frames: options.frames,
         speedup_vs_pointlist,
+        scaling: scaling_fits(&workloads),
         workloads,
         skipped,
     })
 }
 
-/// Warms up and measures both methods on one view.
+fn summary_line(result: &WorkloadResult) -> String {
+    let mut line = format!(
+        "{}: pointlist {:.1} ms, compute {:.1} ms, speed-up {:.2}x",
+        result.workload,
+        result.pointlist.frame_ms,
+        result.compute.frame_ms,
+        result.speedup_vs_pointlist
+    );
+    for mode in &result.modes {
+        line += &format!(
+            ", {} {:.1} ms ({:.2}x basic)",
+            mode.result.method, mode.result.frame_ms, mode.cost_vs_basic
+        );
+    }
+    line
+}
+
+/// The 100M-point cube, generated in Morton-ordered cells and uploaded chunk by chunk: the
+/// host never holds the whole cloud. Measured with one warm-up and three frames.
+fn measure_huge(
+    renderer: &mut Renderer,
+    baseline: &mut PointListBaseline,
+    options: &BenchOptions,
+    progress: &mut dyn FnMut(&str),
+) -> Result<WorkloadResult, BenchError> {
+    let name = uniform_workload(HUGE_POINTS);
+    progress(&format!("{name}: generating and uploading chunk by chunk"));
+    let aspect = options.width as f64 / options.height as f64;
+    let (origin, bounds) = cube_bounds();
+    let camera = Camera::auto(&bounds, aspect);
+    let settings = FrameSettings::new(options.width, options.height, camera);
+    let transform = camera.transform(origin, options.width, options.height);
+    let (w, h) = (options.width as f64, options.height as f64);
+
+    let before_host_bytes = memory::resident_bytes();
+    memory::reset_peak();
+    let mut generator = CellCubeGenerator::new(HUGE_POINTS, 7);
+    let mut in_view = 0usize;
+    let resident = renderer.upload_chunks(origin, &mut |n| {
+        let chunk = generator.next_chunk(n)?;
+        in_view += chunk
+            .0
+            .iter()
+            .filter(|p| {
+                transform
+                    .project(p.as_dvec3())
+                    .is_some_and(|(x, y, _)| x >= 0.0 && y >= 0.0 && x < w && y < h)
+            })
+            .count();
+        Some(chunk)
+    })?;
+    let peak_host_bytes = memory::peak_resident_bytes();
+    let gpu_bytes = resident.gpu_bytes();
+    let view = View {
+        workload: name,
+        description: format!(
+            "{HUGE_POINTS} uniform random points in a cube, all in view, generated and \
+             uploaded chunk by chunk"
+        ),
+        camera,
+    };
+    let huge_options = BenchOptions {
+        warmup_frames: 1,
+        frames: 3,
+        ..options.clone()
+    };
+    let mut result = measure(
+        renderer,
+        baseline,
+        &resident,
+        (&view, in_view),
+        &settings,
+        &huge_options,
+    )?;
+    result.ingest_memory = Some(IngestMemory {
+        peak_host_bytes,
+        before_host_bytes,
+        gpu_bytes,
+        peak_over_gpu: peak_host_bytes as f64 / gpu_bytes.max(1) as f64,
+    });
+    progress(&summary_line(&result));
+    Ok(result)
+}
+
+/// Warms up and measures every method on one view of a resident cloud.
 fn measure(
     renderer: &mut Renderer,
     baseline: &mut PointListBaseline,
-    cloud: &PointCloud,
     resident: &GpuPointCloud,
-    view: &View,
+    (view, points_in_view): (&View, usize),
     settings: &FrameSettings,
     options: &BenchOptions,
 ) -> Result<WorkloadResult, BenchError> {
     let rounds = options.warmup_frames + options.frames;
+    let points = resident.len();
 
     let mut pointlist_timings = Vec::with_capacity(options.frames);
     let mut pointlist_wall_ms = Vec::with_capacity(options.frames);
@@ -346,26 +568,27 @@ fn measure(
         pointlist_image = Some(frame.image);
     }
 
-    let mut compute_timings = Vec::with_capacity(options.frames);
-    let mut compute_wall_ms = Vec::with_capacity(options.frames);
-    let mut compute_image = None;
-    let mut path = None;
-    for round in 0..rounds {
-        let started = Instant::now();
-        let frame = renderer.render(resident, settings)?;
-        if round >= options.warmup_frames {
-            compute_wall_ms.push(started.elapsed().as_secs_f64() * 1e3);
-            compute_timings.push(frame.timings);
+    let mut measure_compute = |settings: &FrameSettings| {
+        let mut timings = Vec::with_capacity(options.frames);
+        let mut wall_ms = Vec::with_capacity(options.frames);
+        let mut last = None;
+        for round in 0..rounds {
+            let started = Instant::now();
+            let frame = renderer.render(resident, settings)?;
+            if round >= options.warmup_frames {
+                wall_ms.push(started.elapsed().as_secs_f64() * 1e3);
+                timings.push(frame.timings.clone());
+            }
+            last = Some(frame);
         }
-        compute_image = Some(frame.image);
-        path = Some(frame.atomics);
-    }
+        Ok::<_, BenchError>((timings, wall_ms, last))
+    };
 
-    let image_agreement = match (&pointlist_image, &compute_image) {
-        (Some(a), Some(b)) => image_agreement(a, b, settings.background),
+    let (compute_timings, compute_wall_ms, compute_frame) = measure_compute(settings)?;
+    let image_agreement = match (&pointlist_image, &compute_frame) {
+        (Some(a), Some(b)) => image_agreement(a, &b.image, settings.background),
         _ => 0.0,
     };
-    let points = cloud.len();
     let pointlist = method_result(
         "pointlist",
         "render pipeline".into(),
@@ -375,25 +598,118 @@ fn measure(
     );
     let compute = method_result(
         "compute-basic",
-        path.map_or_else(String::new, |p| format!("{p:?}")),
+        compute_frame
+            .as_ref()
+            .map_or_else(String::new, |f| format!("{:?}", f.atomics)),
         &compute_timings,
         compute_wall_ms,
         points,
     );
+    let mut modes = Vec::new();
+    for mode in &options.modes {
+        let (timings, wall_ms, frame) = measure_compute(&mode.settings(settings))?;
+        let result = method_result(
+            mode.name(),
+            frame.map_or_else(String::new, |f| format!("{:?}", f.atomics)),
+            &timings,
+            wall_ms,
+            points,
+        );
+        modes.push(ModeResult {
+            cost_vs_basic: result.frame_ms / compute.frame_ms,
+            result,
+        });
+    }
     Ok(WorkloadResult {
         workload: view.workload.clone(),
         description: view.description.clone(),
         points,
-        points_in_view: points_in_view(cloud, settings),
+        points_in_view,
         speedup_vs_pointlist: pointlist.frame_ms / compute.frame_ms,
         pointlist,
         compute,
+        modes,
         image_agreement,
+        gpu_bytes_per_point: resident.gpu_bytes_per_point(),
+        ingest_memory: None,
     })
 }
 
-/// Stages whose sum is the time to produce the image on the GPU.
-const FRAME_STAGES: [Stage; 2] = [Stage::Rasterize, Stage::Resolve];
+/// Stages that are not GPU work producing the image, left out of the frame time.
+fn is_frame_stage(stage: Stage) -> bool {
+    !matches!(
+        stage,
+        Stage::Upload | Stage::Readback | Stage::Encode | Stage::Downsample
+    )
+}
+
+/// Least-squares lines of frame time against points in view over the uniform series (all in
+/// view), one per method.
+fn scaling_fits(workloads: &[WorkloadResult]) -> Vec<ScalingFit> {
+    let series: Vec<&WorkloadResult> = UNIFORM_SERIES
+        .iter()
+        .chain(std::iter::once(&HUGE_POINTS))
+        .filter_map(|&n| workloads.iter().find(|w| w.workload == uniform_workload(n)))
+        .collect();
+    if series.len() < 2 {
+        return Vec::new();
+    }
+    let mut methods: Vec<(String, Vec<f64>)> = vec![
+        (
+            "pointlist".into(),
+            series.iter().map(|w| w.pointlist.frame_ms).collect(),
+        ),
+        (
+            "compute-basic".into(),
+            series.iter().map(|w| w.compute.frame_ms).collect(),
+        ),
+    ];
+    for (i, mode) in series[0].modes.iter().enumerate() {
+        let times: Option<Vec<f64>> = series
+            .iter()
+            .map(|w| w.modes.get(i).map(|m| m.result.frame_ms))
+            .collect();
+        if let Some(times) = times {
+            methods.push((mode.result.method.to_string(), times));
+        }
+    }
+    let xs: Vec<f64> = series.iter().map(|w| w.points_in_view as f64).collect();
+    methods
+        .into_iter()
+        .map(|(method, ys)| {
+            let (slope, intercept, r_squared) = least_squares(&xs, &ys);
+            ScalingFit {
+                method,
+                workloads: series.iter().map(|w| w.workload.clone()).collect(),
+                ns_per_point: slope * 1e6,
+                intercept_ms: intercept,
+                r_squared,
+            }
+        })
+        .collect()
+}
+
+/// Slope, intercept and coefficient of determination of the line through (xs, ys).
+fn least_squares(xs: &[f64], ys: &[f64]) -> (f64, f64, f64) {
+    let n = xs.len() as f64;
+    let (mx, my) = (xs.iter().sum::<f64>() / n, ys.iter().sum::<f64>() / n);
+    let sxy: f64 = xs.iter().zip(ys).map(|(x, y)| (x - mx) * (y - my)).sum();
+    let sxx: f64 = xs.iter().map(|x| (x - mx).powi(2)).sum();
+    let slope = if sxx > 0.0 { sxy / sxx } else { 0.0 };
+    let intercept = my - slope * mx;
+    let total: f64 = ys.iter().map(|y| (y - my).powi(2)).sum();
+    let residual: f64 = xs
+        .iter()
+        .zip(ys)
+        .map(|(x, y)| (y - (intercept + slope * x)).powi(2))
+        .sum();
+    let r_squared = if total > 0.0 {
+        1.0 - residual / total
+    } else {
+        1.0
+    };
+    (slope, intercept, r_squared)
+}
 
 fn method_result(
     method: &'static str,
@@ -405,32 +721,33 @@ fn method_result(
     let frame_ms = median(
         frames
             .iter()
-            .map(|t| FRAME_STAGES.iter().filter_map(|&s| t.get(s)).sum())
+            .map(|t| {
+                t.stages
+                    .iter()
+                    .filter(|s| is_frame_stage(s.stage))
+                    .map(|s| s.ms)
+                    .sum()
+            })
             .collect(),
     );
+    // Every stage that ran, in the order of the first frame.
     let mut stages = Vec::new();
-    for stage in [
-        Stage::Upload,
-        Stage::Rasterize,
-        Stage::Resolve,
-        Stage::Readback,
-    ] {
-        let ms: Vec<f64> = frames.iter().filter_map(|t| t.get(stage)).collect();
-        let clock = frames
+    for timing in frames.first().map_or(&[][..], |t| &t.stages[..]) {
+        if stages
             .iter()
-            .flat_map(|t| &t.stages)
-            .find(|t| t.stage == stage)
-            .map(|t| t.clock);
-        if let Some(clock) = clock {
-            stages.push(StageMedian {
-                stage: stage.name(),
-                ms: median(ms),
-                clock: match clock {
-                    crate::raster::Clock::Gpu => "gpu",
-                    crate::raster::Clock::Host => "host",
-                },
-            });
+            .any(|s: &StageMedian| s.stage == timing.stage.name())
+        {
+            continue;
         }
+        let ms: Vec<f64> = frames.iter().filter_map(|t| t.get(timing.stage)).collect();
+        stages.push(StageMedian {
+            stage: timing.stage.name(),
+            ms: median(ms),
+            clock: match timing.clock {
+                crate::raster::Clock::Gpu => "gpu",
+                crate::raster::Clock::Host => "host",
+            },
+        });
     }
     MethodResult {
         method,
@@ -500,56 +817,181 @@ fn points_in_view(cloud: &PointCloud, settings: &FrameSettings) -> usize {
 const CUBE_SIDE: f64 = 100.0;
 
 /// `points` uniform random points in a cube, coloured by position; viewed whole by the
-/// automatic camera, and from above with ~10% of the points in view.
+/// automatic camera of the cube's box (the same for every cloud of the series), and, for the
+/// headline cloud, from above with ~10% of the points in view.
 fn uniform_scene(points: usize, aspect: f64, seed: u64) -> Scene {
-    let cloud = uniform_cube(points, seed);
-    let bounds = cloud.bounds;
-    let centre = bounds.center();
-    // Orthographic, straight down: the view rectangle covers 10% of the cube's top face, so
-    // 10% of the points (at every depth) are in view and 90% are culled.
-    let view_height = CUBE_SIDE * (0.1 / aspect).sqrt();
-    let top = centre + DVec3::Z * CUBE_SIDE;
-    let partial = Camera {
-        position: top,
-        target: centre,
-        up: DVec3::Y,
-        projection: Projection::Orthographic {
-            height: view_height,
-        },
-        near: CUBE_SIDE * 0.25,
-        far: CUBE_SIDE * 1.75,
-    };
-    Scene {
-        name: HEADLINE_WORKLOAD.into(),
-        views: vec![
-            View {
-                workload: HEADLINE_WORKLOAD.into(),
-                description: format!("{points} uniform random points in a cube, all in view"),
-                camera: Camera::auto(&bounds, aspect),
-            },
-            View {
-                workload: "uniform-10m-partial".into(),
-                description: "the same cloud, orthographic from above, ~10% of it in view".into(),
-                camera: partial,
-            },
-        ],
-        cloud,
-    }
+    uniform_scene_with(points, aspect, seed, points == UNIFORM_POINTS)
 }
 
-/// Uniform random points in a `CUBE_SIDE` cube at survey-like coordinates.
+fn uniform_scene_with(points: usize, aspect: f64, seed: u64, with_partial: bool) -> Scene {
+    let cloud = uniform_cube(points, seed);
+    let (_, bounds) = cube_bounds();
+    let centre = bounds.center();
+    let name = uniform_workload(points);
+    let mut views = vec![View {
+        workload: name.clone(),
+        description: format!("{points} uniform random points in a cube, all in view"),
+        camera: Camera::auto(&bounds, aspect),
+    }];
+    if with_partial {
+        // Orthographic, straight down: the view rectangle covers 10% of the cube's top face,
+        // so 10% of the points (at every depth) are in view and 90% are culled.
+        let view_height = CUBE_SIDE * (0.1 / aspect).sqrt();
+        views.push(View {
+            workload: format!("{name}-partial"),
+            description: "the same cloud, orthographic from above, ~10% of it in view".into(),
+            camera: Camera {
+                position: centre + DVec3::Z * CUBE_SIDE,
+                target: centre,
+                up: DVec3::Y,
+                projection: Projection::Orthographic {
+                    height: view_height,
+                },
+                near: CUBE_SIDE * 0.25,
+                far: CUBE_SIDE * 1.75,
+            },
+        });
+    }
+    Scene { name, views, cloud }
+}
+
+/// The generated cube: its centre (the clouds' origin) and its box, at survey-like coordinates.
+fn cube_bounds() -> (DVec3, crate::cloud::WorldBounds) {
+    let min = DVec3::new(515_000.0, 4_918_000.0, 2_000.0);
+    let bounds = crate::cloud::WorldBounds {
+        min,
+        max: min + DVec3::splat(CUBE_SIDE),
+    };
+    (bounds.center(), bounds)
+}
+
+/// The colour of a point at `unit` (0..1 per axis) in the cube.
+fn cube_colour(unit: Vec3) -> u32 {
+    let [r, g, b] = (unit * 255.0).as_uvec3().to_array().map(|c| c as u8);
+    pack_rgba8(r, g, b)
+}
+
+/// Uniform random points in a `CUBE_SIDE` cube at survey-like coordinates, generated relative
+/// to the cube's centre (no f64 copy of the cloud).
 pub fn uniform_cube(points: usize, seed: u64) -> PointCloud {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let origin = DVec3::new(515_000.0, 4_918_000.0, 2_000.0);
+    let (origin, bounds) = cube_bounds();
     let mut positions = Vec::with_capacity(points);
     let mut colours = Vec::with_capacity(points);
     for _ in 0..points {
-        let unit = DVec3::new(rng.random(), rng.random(), rng.random());
-        positions.push(origin + unit * CUBE_SIDE);
-        let [r, g, b] = (unit * 255.0).as_uvec3().to_array().map(|c| c as u8);
-        colours.push(pack_rgba8(r, g, b));
+        let unit = Vec3::new(rng.random(), rng.random(), rng.random());
+        positions.push((unit - 0.5) * CUBE_SIDE as f32);
+        colours.push(cube_colour(unit));
     }
-    PointCloud::from_world_points(&positions, colours)
+    PointCloud {
+        origin,
+        positions,
+        colors: colours,
+        intensity: vec![0; points],
+        classification: vec![0; points],
+        return_number: vec![0; points],
+        bounds,
+        color_source: crate::cloud::ColorSource::Rgb16,
+    }
+}
+
+/// The uniform cube generated cell by cell: the cube is split into 2^(3 levels) cells visited
+/// in Morton order, each filled with its share of uniform random points, so that consecutive
+/// points are close together without a sort and the cloud never exists whole on the host.
+struct CellCubeGenerator {
+    rng: ChaCha8Rng,
+    levels: u32,
+    next_cell: u64,
+    cells: u64,
+    points: usize,
+}
+
+impl CellCubeGenerator {
+    fn new(points: usize, seed: u64) -> Self {
+        // Cells of at most one batch each.
+        let mut levels = 0;
+        while (points as u64).div_ceil(1 << (3 * levels)) > BATCH_POINTS as u64 {
+            levels += 1;
+        }
+        Self {
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            levels,
+            next_cell: 0,
+            cells: 1 << (3 * levels),
+            points,
+        }
+    }
+
+    /// Points of cell `cell`: an even share, the first cells taking the remainder.
+    fn cell_points(&self, cell: u64) -> usize {
+        let base = self.points as u64 / self.cells;
+        (base + u64::from(cell < self.points as u64 % self.cells)) as usize
+    }
+
+    /// Whole cells of at most `max_points` points (at least one cell), or `None` when done.
+    fn next_chunk(&mut self, max_points: usize) -> Option<(Vec<Vec3>, Vec<u32>)> {
+        if self.next_cell >= self.cells {
+            return None;
+        }
+        let side = (1u32 << self.levels) as f32;
+        let (mut positions, mut colours) = (Vec::new(), Vec::new());
+        while self.next_cell < self.cells {
+            let n = self.cell_points(self.next_cell);
+            if !positions.is_empty() && positions.len() + n > max_points {
+                break;
+            }
+            let corner = Vec3::from_array(demorton3(self.next_cell).map(|c| c as f32));
+            for _ in 0..n {
+                let jitter = Vec3::new(self.rng.random(), self.rng.random(), self.rng.random());
+                let unit = (corner + jitter) / side;
+                positions.push((unit - 0.5) * CUBE_SIDE as f32);
+                colours.push(cube_colour(unit));
+            }
+            self.next_cell += 1;
+        }
+        Some((positions, colours))
+    }
+}
+
+/// The x, y, z cell coordinates interleaved in a Morton code (x in the lowest bit).
+fn demorton3(code: u64) -> [u32; 3] {
+    let mut xyz = [0u32; 3];
+    for bit in 0..21 {
+        for (axis, c) in xyz.iter_mut().enumerate() {
+            *c |= (((code >> (3 * bit + axis)) & 1) as u32) << bit;
+        }
+    }
+    xyz
+}
+
+/// The process's resident memory, from `/proc/self/status` (Linux; 0 elsewhere).
+mod memory {
+    fn status_kib(field: &str) -> u64 {
+        std::fs::read_to_string("/proc/self/status")
+            .ok()
+            .and_then(|status| {
+                status
+                    .lines()
+                    .find(|l| l.starts_with(field))
+                    .and_then(|l| l.split_whitespace().nth(1))
+                    .and_then(|kib| kib.parse().ok())
+            })
+            .unwrap_or(0)
+    }
+
+    pub fn resident_bytes() -> u64 {
+        status_kib("VmRSS:") * 1024
+    }
+
+    /// The peak resident set size since the last [`reset_peak`] (or the start).
+    pub fn peak_resident_bytes() -> u64 {
+        status_kib("VmHWM:") * 1024
+    }
+
+    /// Resets the peak to the current size (Linux 4.0 and later; ignored where refused).
+    pub fn reset_peak() {
+        let _ = std::fs::write("/proc/self/clear_refs", "5");
+    }
 }
 
 /// `planes` planes of `side` x `side` points, one unit apart in every direction, in shuffled
@@ -633,6 +1075,32 @@ mod tests {
     use crate::testing::gpu;
 
     #[test]
+    fn least_squares_recovers_a_line() {
+        let xs = [1e6, 3e6, 1e7, 3e7];
+        let ys: Vec<f64> = xs.iter().map(|x| 2.0 + 5e-6 * x).collect();
+        let (slope, intercept, r2) = least_squares(&xs, &ys);
+        assert!((slope - 5e-6).abs() < 1e-12 && (intercept - 2.0).abs() < 1e-6);
+        assert!((r2 - 1.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn cell_generator_yields_every_point_once_in_compact_cells() {
+        let mut generator = CellCubeGenerator::new(100_000, 3);
+        let (mut total, mut chunks) = (0, 0);
+        while let Some((positions, colours)) = generator.next_chunk(3 * BATCH_POINTS) {
+            assert!(positions.len() <= 3 * BATCH_POINTS && positions.len() == colours.len());
+            let half = CUBE_SIDE as f32 / 2.0;
+            assert!(positions.iter().all(|p| p.abs().max_element() <= half));
+            total += positions.len();
+            chunks += 1;
+        }
+        assert_eq!(total, 100_000);
+        assert!(chunks >= 100_000 / (3 * BATCH_POINTS));
+        assert_eq!(demorton3(0b111_000), [2, 2, 2]);
+        assert_eq!(demorton3(0b100), [0, 0, 1]);
+    }
+
+    #[test]
     fn median_of_odd_and_even_counts() {
         assert_eq!(median(vec![3.0, 1.0, 2.0]), 2.0);
         assert_eq!(median(vec![4.0, 1.0, 2.0, 3.0]), 2.5);
@@ -666,7 +1134,7 @@ mod tests {
 
     #[test]
     fn partial_view_sees_about_a_tenth_of_the_uniform_cloud() {
-        let scene = uniform_scene(50_000, 16.0 / 9.0, 4);
+        let scene = uniform_scene_with(50_000, 16.0 / 9.0, 4, true);
         let settings = FrameSettings::new(160, 90, scene.views[1].camera);
         let fraction = points_in_view(&scene.cloud, &settings) as f64 / 50_000.0;
         assert!((0.09..0.11).contains(&fraction), "{fraction}");
@@ -685,19 +1153,27 @@ mod tests {
         };
         let settings = FrameSettings::new(64, 48, scene.views[0].camera);
         let resident = renderer.upload(&scene.cloud).expect("upload");
+        let in_view = points_in_view(&scene.cloud, &settings);
         let result = measure(
             &mut renderer,
             &mut baseline,
-            &scene.cloud,
             &resident,
-            &scene.views[0],
+            (&scene.views[0], in_view),
             &settings,
             &options,
         )
         .expect("measure");
-        for method in [&result.pointlist, &result.compute] {
+        assert_eq!(result.modes.len(), ComputeMode::ALL.len());
+        for method in [&result.pointlist, &result.compute]
+            .into_iter()
+            .chain(result.modes.iter().map(|m| &m.result))
+        {
             assert!(method.frame_ms > 0.0 && method.wall_ms > 0.0, "{method:?}");
         }
+        let hq = &result.modes[0].result;
+        assert_eq!(result.modes[1].result.variant, "Atomic32");
+        assert!(hq.stages.iter().any(|s| s.stage == "accumulate"), "{hq:?}");
+        assert!(result.gpu_bytes_per_point <= 12.0);
         // The front plane covers the same pixels with one colour in both methods.
         assert!(result.image_agreement > 0.99, "{}", result.image_agreement);
     }

@@ -11,9 +11,34 @@ use super::binding::bind_buffers;
 use super::points::{GpuPointCloud, PointChunk, BATCH_POINTS};
 use super::targets::FrameTargets;
 
-/// Threads per workgroup; each thread walks the batch with this stride.
-pub(crate) const WORKGROUP_SIZE: u32 = 128;
-const _: () = assert!(BATCH_POINTS.is_multiple_of(WORKGROUP_SIZE as usize));
+/// Threads per workgroup of the point passes; each thread walks its batch with this stride.
+/// On lavapipe (2 cores) 32, 64, 128, 256 and 512 measured the same within the noise of a
+/// shared machine (BENCHMARKS.md); 128 suits discrete GPUs' 32- and 64-wide waves.
+const DEFAULT_WORKGROUP_SIZE: u32 = 128;
+
+/// Environment variable that overrides the point passes' workgroup size (for tuning runs).
+pub const WORKGROUP_SIZE_ENV: &str = "POINTFARM_POINT_WORKGROUP";
+
+/// Threads per workgroup of the point passes: `POINTFARM_POINT_WORKGROUP` when it is a power
+/// of two from 32 to the device's limit (and so divides `BATCH_POINTS`), else the default.
+pub(crate) fn point_workgroup_size(limit: u32) -> u32 {
+    let valid = |n: u32| n.is_power_of_two() && (32..=limit.min(1024)).contains(&n);
+    let requested = std::env::var(WORKGROUP_SIZE_ENV)
+        .ok()
+        .and_then(|v| v.trim().parse::<u32>().ok());
+    match requested {
+        Some(n) if valid(n) => n,
+        Some(n) => {
+            tracing::warn!(
+                value = n,
+                "ignoring {WORKGROUP_SIZE_ENV}: not a power of two from 32 to {limit}"
+            );
+            DEFAULT_WORKGROUP_SIZE
+        }
+        None => DEFAULT_WORKGROUP_SIZE,
+    }
+}
+const _: () = assert!(BATCH_POINTS.is_multiple_of(1024));
 
 /// Which atomics the point pass uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -35,6 +60,7 @@ pub(crate) fn pipeline(
     device: &wgpu::Device,
     module: &wgpu::ShaderModule,
     entry_point: &str,
+    workgroup_size: u32,
 ) -> wgpu::ComputePipeline {
     device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
         label: Some(entry_point),
@@ -42,7 +68,7 @@ pub(crate) fn pipeline(
         module,
         entry_point: Some(entry_point),
         compilation_options: wgpu::PipelineCompilationOptions {
-            constants: &[("WORKGROUP_SIZE", WORKGROUP_SIZE as f64)],
+            constants: &[("WORKGROUP_SIZE", workgroup_size as f64)],
             ..Default::default()
         },
         cache: None,
@@ -57,14 +83,16 @@ pub(crate) fn module(device: &wgpu::Device, shader: Shader) -> wgpu::ShaderModul
 }
 
 impl BasicPass {
-    pub fn new(device: &wgpu::Device, int64_atomics: bool) -> Self {
-        let atomic64 = int64_atomics
-            .then(|| pipeline(device, &module(device, Shader::RasterAtomic64), "rasterize"));
+    pub fn new(device: &wgpu::Device, int64_atomics: bool, workgroup_size: u32) -> Self {
+        let atomic64 = int64_atomics.then(|| {
+            let module = module(device, Shader::RasterAtomic64);
+            pipeline(device, &module, "rasterize", workgroup_size)
+        });
         let m32 = module(device, Shader::RasterAtomic32);
         Self {
             atomic64,
-            atomic32_depth: pipeline(device, &m32, "rasterize_depth"),
-            atomic32_colour: pipeline(device, &m32, "rasterize_colour"),
+            atomic32_depth: pipeline(device, &m32, "rasterize_depth", workgroup_size),
+            atomic32_colour: pipeline(device, &m32, "rasterize_colour", workgroup_size),
         }
     }
 
@@ -147,9 +175,10 @@ fn bind_group(
 ) -> wgpu::BindGroup {
     let mut buffers = vec![
         (0, uniforms),
-        (1, &chunk.points),
+        (1, &chunk.positions),
         (2, &chunk.batches),
         (3, &targets.framebuffer),
+        (5, &chunk.colours),
     ];
     if path == AtomicsPath::Atomic64 {
         // The non-atomic view of the same framebuffer, for the early depth test.

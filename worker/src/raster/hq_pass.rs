@@ -14,10 +14,10 @@ pub(crate) struct HqAccumulatePass {
 }
 
 impl HqAccumulatePass {
-    pub fn new(device: &wgpu::Device) -> Self {
+    pub fn new(device: &wgpu::Device, workgroup_size: u32) -> Self {
         let module = module(device, Shader::HqAccumulate);
         Self {
-            accumulate: pipeline(device, &module, "accumulate"),
+            accumulate: pipeline(device, &module, "accumulate", workgroup_size),
         }
     }
 
@@ -42,10 +42,11 @@ impl HqAccumulatePass {
                 "accumulate",
                 &[
                     (0, uniforms),
-                    (1, &chunk.points),
+                    (1, &chunk.positions),
                     (2, &chunk.batches),
                     (3, &targets.framebuffer),
                     (4, accumulator),
+                    (5, &chunk.colours),
                 ],
             );
             pass.set_bind_group(0, &bind_group, &[]);

@@ -1,11 +1,12 @@
 //! The compute-shader rasterizer (Schütz & Wimmer; Günther et al.).
 //!
-//! A frame is: write the frame uniforms; clear the point framebuffer; run the point pass over
-//! every chunk of the resident cloud (batch frustum culling, per-point projection, early depth
-//! test, atomic minimum of depth and colour); resolve the framebuffer into an RGBA8 image and
-//! a depth image; optionally remove the points seen through holes and fill the holes
-//! (visibility and filling, Pintus et al.); optionally shade (Eye-Dome Lighting or Pintus's
-//! shape depiction); read both images back. Each stage is timed.
+//! A frame is: write the frame uniforms; run the point pass over every chunk of the resident
+//! cloud (batch frustum culling, dequantisation, per-point projection, early depth test,
+//! atomic minimum of depth and colour); resolve the framebuffer into an RGBA8 image and a
+//! depth image, emptying it for the next frame (only a new framebuffer is cleared first);
+//! optionally remove the points seen through holes and fill the holes (visibility and
+//! filling, Pintus et al.); optionally shade (Eye-Dome Lighting or Pintus's shape depiction);
+//! read both images back. Each stage is timed.
 //!
 //! [`Renderer`] owns the pipelines and the per-size frame buffers; [`GpuPointCloud`] owns a
 //! cloud's GPU buffers and outlives any number of frames.
@@ -31,9 +32,9 @@ use std::time::Instant;
 use image::RgbaImage;
 use thiserror::Error;
 
-pub use basic_pass::AtomicsPath;
+pub use basic_pass::{AtomicsPath, WORKGROUP_SIZE_ENV};
 pub use pointlist_baseline::{PointListBaseline, PointListFrame};
-pub use points::{GpuPointCloud, BATCH_POINTS};
+pub use points::{GpuPointCloud, BATCH_POINTS, POINT_BYTES};
 pub use timing::{Clock, Stage, StageTiming, StageTimings};
 
 use crate::camera::{Camera, CameraError};
@@ -394,12 +395,16 @@ impl Renderer {
     pub fn new(gpu: Arc<GpuContext>) -> Self {
         let device = &gpu.device;
         let caps = gpu.capabilities;
+        // The largest per-point binding is the positions buffer.
         let max_chunk_points = (caps.max_storage_binding_bytes.min(caps.max_buffer_bytes)
-            / std::mem::size_of::<gpu_data::GpuPoint>() as u64)
+            / std::mem::size_of::<gpu_data::QuantisedPosition>() as u64)
             as usize;
+        let workgroup_size =
+            basic_pass::point_workgroup_size(device.limits().max_compute_invocations_per_workgroup);
+        tracing::debug!(workgroup_size, "point pass workgroups");
         Self {
-            basic: BasicPass::new(device, caps.int64_atomics),
-            hq: HqAccumulatePass::new(device),
+            basic: BasicPass::new(device, caps.int64_atomics, workgroup_size),
+            hq: HqAccumulatePass::new(device, workgroup_size),
             edl: EdlPass::new(device),
             visibility: VisibilityPass::new(device),
             fill: FillPass::new(device),
@@ -438,6 +443,18 @@ impl Renderer {
     /// Uploads a cloud; its buffers stay resident for as many frames as needed.
     pub fn upload(&self, cloud: &PointCloud) -> Result<GpuPointCloud, RenderError> {
         GpuPointCloud::upload(&self.gpu, cloud, self.max_chunk_points)
+    }
+
+    /// Uploads a cloud that arrives chunk by chunk, already in a spatially coherent order (a
+    /// generator or a streaming reader), holding at most one chunk on the host at a time.
+    /// `next_chunk(n)` returns up to `n` points (positions relative to `origin`, RGBA8
+    /// colours) or `None` at the end.
+    pub fn upload_chunks(
+        &self,
+        origin: glam::DVec3,
+        next_chunk: &mut dyn FnMut(usize) -> Option<(Vec<glam::Vec3>, Vec<u32>)>,
+    ) -> Result<GpuPointCloud, RenderError> {
+        GpuPointCloud::upload_chunks(&self.gpu, origin, self.max_chunk_points, next_chunk)
     }
 
     /// Checks settings before any GPU work, so bad requests fail with a clear reason.
@@ -556,6 +573,9 @@ impl Renderer {
 
         let path = self.basic.path(settings.atomics == AtomicsMode::Auto);
         self.run_passes(cloud, settings, path, &mut timings)?;
+        if let Some(targets) = self.targets.as_mut() {
+            targets.needs_clear = false;
+        }
 
         let started = Instant::now();
         let Some(targets) = self.targets.as_ref() else {
@@ -613,11 +633,15 @@ impl Renderer {
         let uniforms = &self.uniforms;
         type Record<'a> = Box<dyn Fn(&mut wgpu::ComputePass<'_>) + 'a>;
         let mut passes: Vec<(Stage, Record<'_>)> = match settings.quality {
+            // The resolve empties the framebuffer for the next frame: only a new one is
+            // cleared here.
             Quality::Basic => vec![
                 (
                     Stage::Rasterize,
                     Box::new(|pass| {
-                        self.resolve.record_clear(device, pass, targets);
+                        if targets.needs_clear {
+                            self.resolve.record_clear(device, pass, targets);
+                        }
                         self.basic
                             .record(device, pass, path, uniforms, cloud, targets);
                     }),
@@ -631,7 +655,9 @@ impl Renderer {
                 (
                     Stage::Rasterize,
                     Box::new(|pass| {
-                        self.resolve.record_clear(device, pass, targets);
+                        if targets.needs_clear {
+                            self.resolve.record_clear(device, pass, targets);
+                        }
                         self.basic
                             .record_depth(device, pass, uniforms, cloud, targets);
                     }),
@@ -674,13 +700,6 @@ impl Renderer {
                 Box::new(move |pass| self.pintus.record(device, pass, screen, targets, levels)),
             )),
         }
-        let begin_frame = |encoder: &mut wgpu::CommandEncoder| {
-            if let (Quality::High { .. }, Some(accumulator)) =
-                (settings.quality, targets.accumulator.as_ref())
-            {
-                encoder.clear_buffer(accumulator, 0, None);
-            }
-        };
         let run = |encoder: &mut wgpu::CommandEncoder,
                    index: usize,
                    (stage, record): &(Stage, Record<'_>)| {
@@ -695,7 +714,6 @@ impl Renderer {
             Some(timer) => {
                 let queries = 2 * passes.len() as u32;
                 let mut encoder = device.create_command_encoder(&Default::default());
-                begin_frame(&mut encoder);
                 for (index, plan) in passes.iter().enumerate() {
                     run(&mut encoder, index, plan);
                 }
@@ -716,9 +734,6 @@ impl Renderer {
                 for (index, plan) in passes.iter().enumerate() {
                     let started = Instant::now();
                     let mut encoder = device.create_command_encoder(&Default::default());
-                    if index == 0 {
-                        begin_frame(&mut encoder);
-                    }
                     run(&mut encoder, index, plan);
                     self.gpu.queue.submit([encoder.finish()]);
                     device

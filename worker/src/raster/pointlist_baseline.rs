@@ -13,7 +13,7 @@ use image::RgbaImage;
 use pointfarm_shaders::Shader;
 
 use super::gpu_data::FrameUniforms;
-use super::points::{GpuPointCloud, PointChunk};
+use super::points::{GpuPointCloud, PointChunk, BATCH_POINTS};
 use super::timing::GpuTimer;
 use super::{Clock, FrameSettings, RenderError, Stage, StageTimings, MAX_IMAGE_SIDE};
 use crate::gpu::{read_buffer, GpuContext};
@@ -112,7 +112,10 @@ impl PointListBaseline {
             vertex: wgpu::VertexState {
                 module: &module,
                 entry_point: Some("vertex_main"),
-                compilation_options: Default::default(),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants: &[("BATCH_POINTS", BATCH_POINTS as f64)],
+                    ..Default::default()
+                },
                 // The points come from a storage buffer, indexed by the vertex index.
                 buffers: &[],
             },
@@ -232,7 +235,7 @@ impl PointListBaseline {
         let bind_groups: Vec<(wgpu::BindGroup, u32)> = cloud
             .chunks
             .iter()
-            .map(|chunk| (self.bind_group(chunk), chunk_points(chunk)))
+            .map(|chunk| (self.bind_group(chunk), chunk.point_count))
             .collect();
         let colour_view = targets.colour.create_view(&Default::default());
         let depth_view = targets.depth.create_view(&Default::default());
@@ -313,7 +316,15 @@ impl PointListBaseline {
                     },
                     wgpu::BindGroupEntry {
                         binding: 1,
-                        resource: chunk.points.as_entire_binding(),
+                        resource: chunk.positions.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 2,
+                        resource: chunk.batches.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 5,
+                        resource: chunk.colours.as_entire_binding(),
                     },
                 ],
             })
@@ -350,11 +361,6 @@ impl PointListBaseline {
         RgbaImage::from_raw(targets.width, targets.height, pixels)
             .ok_or_else(|| RenderError::Gpu("colour readback has the wrong size".into()))
     }
-}
-
-/// Points in a chunk's buffer (the buffer holds exactly its points).
-fn chunk_points(chunk: &PointChunk) -> u32 {
-    (chunk.points.size() / std::mem::size_of::<super::gpu_data::GpuPoint>() as u64) as u32
 }
 
 #[cfg(test)]

@@ -6,8 +6,11 @@ use crate::gpu::staging_buffer;
 pub(crate) struct FrameTargets {
     pub width: u32,
     pub height: u32,
-    /// One (colour, depth-bits) pair of u32 words per pixel; a u64 to the 64-bit pass.
+    /// One (colour, depth-bits) pair of u32 words per pixel; a u64 to the 64-bit pass. The
+    /// resolve pass empties it as it reads it.
     pub framebuffer: wgpu::Buffer,
+    /// True until the framebuffer was first cleared (a new buffer holds zeros, not "empty").
+    pub needs_clear: bool,
     /// RGBA8 per pixel.
     pub colour: wgpu::Buffer,
     /// Linear depth per pixel as f32, +infinity where no point landed.
@@ -16,7 +19,8 @@ pub(crate) struct FrameTargets {
     pub colour_staging: wgpu::Buffer,
     pub depth_staging: wgpu::Buffer,
     /// High-quality mode: per pixel the sums of red, green, blue and a count (4 x u32).
-    /// Created on the first high-quality frame of this size.
+    /// Created (zeroed) on the first high-quality frame of this size; `resolve_average`
+    /// zeroes it again as it reads it.
     pub accumulator: Option<wgpu::Buffer>,
     /// Filling: created on the first filled frame of this size.
     pub fill: Option<FillTargets>,
@@ -53,6 +57,7 @@ impl FrameTargets {
             width,
             height,
             framebuffer: storage("point framebuffer", pixels * 8),
+            needs_clear: true,
             colour: storage("colour image", pixels * 4),
             depth: storage("depth image", pixels * 4),
             colour_staging: staging_buffer(device, "colour image readback", pixels * 4),

@@ -8,11 +8,12 @@ use std::fmt;
 pub enum Stage {
     /// Host-to-GPU transfers: per-frame uniforms, and the points on the first frame of a cloud.
     Upload,
-    /// Framebuffer clear and the point pass(es): in high-quality mode, the depth pass.
+    /// The point pass(es), in high-quality mode the depth pass (and the clear of a new
+    /// framebuffer).
     Rasterize,
     /// High-quality mode: colours of the points near the front surface summed per pixel.
     Accumulate,
-    /// Framebuffer to RGBA8 and depth images.
+    /// Framebuffer to RGBA8 and depth images (emptying the framebuffer for the next frame).
     Resolve,
     /// Screen-space visibility: points seen through holes of nearer surfaces removed.
     Visibility,

@@ -1,0 +1,169 @@
+//! The benchmark's PNG plot: frame time against points in view (the uniform series) and
+//! against overdraw (the k-plane cuboid), one line per method, drawn with plotters' bitmap
+//! backend and a TrueType font from the system (pure Rust; no system libraries).
+
+use std::path::Path;
+use std::sync::OnceLock;
+
+use anyhow::{anyhow, Context, Result};
+use plotters::prelude::*;
+use pointfarm_worker::bench::{uniform_workload, BenchReport, CUBOID_PLANES, UNIFORM_SERIES};
+
+/// Where the label font is looked for, in order.
+const FONT_PATHS: [&str; 4] = [
+    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
+    "/usr/share/fonts/TTF/DejaVuSans.ttf",
+    "/usr/share/fonts/dejavu/DejaVuSans.ttf",
+    "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf",
+];
+
+/// One line of a panel: a method and its (x, frame ms) points.
+type Line = (String, Vec<(f64, f64)>);
+
+/// Writes the two panels side by side to `path` (PNG).
+pub fn write(report: &BenchReport, path: &Path) -> Result<()> {
+    register_font()?;
+    let uniform = lines(report, |workload| {
+        UNIFORM_SERIES
+            .iter()
+            .chain(std::iter::once(&pointfarm_worker::bench::HUGE_POINTS))
+            .any(|&n| workload == uniform_workload(n))
+    });
+    let cuboid = lines(report, |workload| {
+        CUBOID_PLANES
+            .iter()
+            .any(|k| workload == format!("cuboid-k{k}"))
+    });
+    const SIZE: (u32, u32) = (1600, 640);
+    // Drawn into memory and encoded with the `image` crate the workspace already uses, so
+    // plotters needs no image encoder of its own.
+    let mut pixels = vec![0u8; SIZE.0 as usize * SIZE.1 as usize * 3];
+    {
+        let root = BitMapBackend::with_buffer(&mut pixels, SIZE).into_drawing_area();
+        root.fill(&WHITE).map_err(plot_error)?;
+        let (left, right) = root.split_horizontally(800);
+        let size = format!("{}x{}", report.width, report.height);
+        panel(
+            &left,
+            &format!("Uniform cube, all in view, {size}"),
+            "points in view (millions)",
+            uniform
+                .into_iter()
+                .map(|(m, pts)| (m, pts.into_iter().map(|(x, y)| (x / 1e6, y)).collect()))
+                .collect(),
+        )?;
+        panel(
+            &right,
+            &format!("Overdraw: k-plane cuboid, {size}"),
+            "planes k (each covered pixel drawn k times)",
+            cuboid,
+        )?;
+        root.present().map_err(plot_error)?;
+    }
+    image::RgbImage::from_raw(SIZE.0, SIZE.1, pixels)
+        .context("plot buffer has the wrong size")?
+        .save(path)
+        .with_context(|| format!("writing {}", path.display()))?;
+    Ok(())
+}
+
+/// For the workloads that `select` picks: one line per method, x = points in view for the
+/// uniform series and planes for the cuboid, y = median frame time.
+fn lines(report: &BenchReport, select: impl Fn(&str) -> bool) -> Vec<Line> {
+    let mut lines: Vec<Line> = Vec::new();
+    let mut add = |method: &str, x: f64, ms: f64| match lines.iter_mut().find(|l| l.0 == method) {
+        Some(line) => line.1.push((x, ms)),
+        None => lines.push((method.to_string(), vec![(x, ms)])),
+    };
+    for w in report.workloads.iter().filter(|w| select(&w.workload)) {
+        let x = match w.workload.strip_prefix("cuboid-k") {
+            Some(k) => k.parse().unwrap_or(0.0),
+            None => w.points_in_view as f64,
+        };
+        add(w.pointlist.method, x, w.pointlist.frame_ms);
+        add(w.compute.method, x, w.compute.frame_ms);
+        for mode in &w.modes {
+            add(mode.result.method, x, mode.result.frame_ms);
+        }
+    }
+    for line in &mut lines {
+        line.1.sort_by(|a, b| a.0.total_cmp(&b.0));
+    }
+    lines
+}
+
+fn panel(
+    area: &DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>,
+    title: &str,
+    x_label: &str,
+    lines: Vec<Line>,
+) -> Result<()> {
+    let points = lines.iter().flat_map(|l| &l.1);
+    let x_max = points.clone().map(|p| p.0).fold(1.0, f64::max);
+    let y_max = points.map(|p| p.1).fold(1.0, f64::max);
+    let mut chart = ChartBuilder::on(area)
+        .caption(title, ("sans-serif", 24))
+        .margin(16)
+        .x_label_area_size(48)
+        .y_label_area_size(72)
+        .build_cartesian_2d(0.0..x_max * 1.05, 0.0..y_max * 1.1)
+        .map_err(plot_error)?;
+    chart
+        .configure_mesh()
+        .x_desc(x_label)
+        .y_desc("frame time (ms, median)")
+        .label_style(("sans-serif", 16))
+        .draw()
+        .map_err(plot_error)?;
+    for (i, (method, pts)) in lines.into_iter().enumerate() {
+        let colour = Palette99::pick(i).to_rgba();
+        chart
+            .draw_series(LineSeries::new(pts.clone(), colour.stroke_width(2)))
+            .map_err(plot_error)?
+            .label(method)
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 24, y)], colour.stroke_width(3))
+            });
+        chart
+            .draw_series(pts.into_iter().map(|p| Circle::new(p, 4, colour.filled())))
+            .map_err(plot_error)?;
+    }
+    chart
+        .configure_series_labels()
+        .label_font(("sans-serif", 18))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .position(SeriesLabelPosition::UpperLeft)
+        .draw()
+        .map_err(plot_error)?;
+    Ok(())
+}
+
+fn plot_error(e: impl std::fmt::Display) -> anyhow::Error {
+    anyhow!("drawing the plot: {e}")
+}
+
+/// Registers the first font of `FONT_PATHS` found as plotters' "sans-serif", once.
+fn register_font() -> Result<()> {
+    static REGISTERED: OnceLock<Result<(), String>> = OnceLock::new();
+    REGISTERED
+        .get_or_init(|| {
+            let (path, bytes) = FONT_PATHS
+                .iter()
+                .find_map(|p| std::fs::read(p).ok().map(|b| (p, b)))
+                .ok_or_else(|| {
+                    format!(
+                        "no font for the plot's labels: looked for {} (Debian: apt-get install \
+                         fonts-dejavu-core)",
+                        FONT_PATHS.join(", ")
+                    )
+                })?;
+            // plotters keeps fonts for the life of the process.
+            let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
+            plotters::style::register_font("sans-serif", FontStyle::Normal, bytes)
+                .map_err(|_| format!("{path} is not a usable TrueType font"))
+        })
+        .clone()
+        .map_err(|e| anyhow!(e))
+        .context("writing the benchmark plot")
+}
