@@ -38,7 +38,8 @@ pub struct BenchArgs {
     /// host's memory peak during its ingest (needs about 4 GiB on a software adapter).
     #[arg(long)]
     huge: bool,
-    /// Measure the basic mode only (not the high-quality mode nor the 32-bit atomics path).
+    /// Measure the basic mode only (not high quality, the 32-bit atomics path, nor fill with
+    /// EDL or Pintus shading).
     #[arg(long)]
     basic_only: bool,
     /// Image size in pixels.

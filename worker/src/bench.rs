@@ -2,7 +2,8 @@
 //! with every method on the same resident buffers, the same camera and the same image size.
 //!
 //! Methods: the fixed-function `PointList` baseline ([`PointListBaseline`]), the compute
-//! rasterizer's basic mode ([`Renderer`]) and its other modes ([`ComputeMode`]: high quality).
+//! rasterizer's basic mode ([`Renderer`]) and its other modes ([`ComputeMode`]: high quality,
+//! the 32-bit path, fill with EDL or Pintus shading).
 //! A frame's time is the GPU work that produces its image: every pass of the frame (clear,
 //! point passes, resolve, shading). Upload, readback and other host-side stages are reported
 //! per stage but left out of the frame time, since they do not depend on the method. Every
@@ -27,8 +28,8 @@ use crate::cloud::{pack_rgba8, PointCloud};
 use crate::gpu::GpuContext;
 use crate::ingest::{load_point_cloud, IngestError};
 use crate::raster::{
-    AtomicsMode, FrameSettings, GpuPointCloud, PointListBaseline, Quality, RenderError, Renderer,
-    Stage, StageTimings, BATCH_POINTS,
+    AtomicsMode, FillSettings, FrameSettings, GpuPointCloud, PointListBaseline, Quality,
+    RenderError, Renderer, Shading, Stage, StageTimings, BATCH_POINTS,
 };
 
 /// Points of the uniform cloud that the targets are stated for.
@@ -69,7 +70,7 @@ pub struct BenchOptions {
 }
 
 /// A mode of the compute rasterizer measured besides the basic mode, as a change to the
-/// basic mode's settings. Modes that later passes add (fill, shading) go here.
+/// basic mode's settings.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ComputeMode {
     /// Schütz & Wimmer's high-quality mode with its default 1% depth band.
@@ -77,15 +78,27 @@ pub enum ComputeMode {
     /// The basic mode on the 32-bit atomics path (depth pass, then colour pass), the fallback
     /// for adapters without 64-bit atomics: the same image by another route.
     BasicAtomic32,
+    /// The basic mode, then Pintus et al.'s visibility and filling (default kernel) and
+    /// Eye-Dome Lighting (default strength and radius).
+    FillEdl,
+    /// The basic mode, then visibility, filling and Pintus et al.'s multi-level shading.
+    FillPintus,
 }
 
 impl ComputeMode {
-    pub const ALL: [ComputeMode; 2] = [ComputeMode::HighQuality, ComputeMode::BasicAtomic32];
+    pub const ALL: [ComputeMode; 4] = [
+        ComputeMode::HighQuality,
+        ComputeMode::BasicAtomic32,
+        ComputeMode::FillEdl,
+        ComputeMode::FillPintus,
+    ];
 
     pub fn name(self) -> &'static str {
         match self {
             ComputeMode::HighQuality => "compute-hq",
             ComputeMode::BasicAtomic32 => "compute-basic-32",
+            ComputeMode::FillEdl => "compute-fill-edl",
+            ComputeMode::FillPintus => "compute-fill-pintus",
         }
     }
 
@@ -98,6 +111,16 @@ impl ComputeMode {
             },
             ComputeMode::BasicAtomic32 => FrameSettings {
                 atomics: AtomicsMode::Force32,
+                ..*basic
+            },
+            ComputeMode::FillEdl => FrameSettings {
+                fill: Some(FillSettings::default()),
+                shading: Shading::EDL,
+                ..*basic
+            },
+            ComputeMode::FillPintus => FrameSettings {
+                fill: Some(FillSettings::default()),
+                shading: Shading::PINTUS,
                 ..*basic
             },
         }
