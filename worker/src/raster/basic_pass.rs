@@ -7,7 +7,7 @@
 
 use pointfarm_shaders::Shader;
 
-use super::binding::bind_buffers;
+use super::pipeline::{bind_buffers, compute_pipeline, shader_module};
 use super::points::{GpuPointCloud, PointChunk, BATCH_POINTS};
 use super::targets::FrameTargets;
 
@@ -56,39 +56,28 @@ pub(crate) struct BasicPass {
     atomic32_colour: wgpu::ComputePipeline,
 }
 
+/// A point-pass pipeline: one point per invocation, `workgroup_size` invocations a group.
 pub(crate) fn pipeline(
     device: &wgpu::Device,
     module: &wgpu::ShaderModule,
     entry_point: &str,
     workgroup_size: u32,
 ) -> wgpu::ComputePipeline {
-    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-        label: Some(entry_point),
-        layout: None,
+    compute_pipeline(
+        device,
         module,
-        entry_point: Some(entry_point),
-        compilation_options: wgpu::PipelineCompilationOptions {
-            constants: &[("WORKGROUP_SIZE", workgroup_size as f64)],
-            ..Default::default()
-        },
-        cache: None,
-    })
-}
-
-pub(crate) fn module(device: &wgpu::Device, shader: Shader) -> wgpu::ShaderModule {
-    device.create_shader_module(wgpu::ShaderModuleDescriptor {
-        label: Some(shader.label()),
-        source: wgpu::ShaderSource::Wgsl(shader.source().into()),
-    })
+        entry_point,
+        &[("WORKGROUP_SIZE", workgroup_size as f64)],
+    )
 }
 
 impl BasicPass {
     pub fn new(device: &wgpu::Device, int64_atomics: bool, workgroup_size: u32) -> Self {
         let atomic64 = int64_atomics.then(|| {
-            let module = module(device, Shader::RasterAtomic64);
+            let module = shader_module(device, Shader::RasterAtomic64);
             pipeline(device, &module, "rasterize", workgroup_size)
         });
-        let m32 = module(device, Shader::RasterAtomic32);
+        let m32 = shader_module(device, Shader::RasterAtomic32);
         Self {
             atomic64,
             atomic32_depth: pipeline(device, &m32, "rasterize_depth", workgroup_size),

@@ -2,8 +2,7 @@
 
 use pointfarm_shaders::Shader;
 
-use super::basic_pass::module;
-use super::binding::bind_buffers;
+use super::pipeline::{bind_buffers, compute_pipeline, shader_module};
 use super::targets::FrameTargets;
 
 /// Must match `@workgroup_size` in edl.wgsl.
@@ -15,15 +14,8 @@ pub(crate) struct EdlPass {
 
 impl EdlPass {
     pub fn new(device: &wgpu::Device) -> Self {
-        let module = module(device, Shader::Edl);
-        let shade = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("edl"),
-            layout: None,
-            module: &module,
-            entry_point: Some("shade"),
-            compilation_options: Default::default(),
-            cache: None,
-        });
+        let module = shader_module(device, Shader::Edl);
+        let shade = compute_pipeline(device, &module, "shade", &[]);
         Self { shade }
     }
 

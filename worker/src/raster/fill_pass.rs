@@ -4,8 +4,7 @@
 
 use pointfarm_shaders::Shader;
 
-use super::basic_pass::module;
-use super::binding::{bind_resources, dispatch_tiles};
+use super::pipeline::{bind_resources, compute_pipeline, dispatch_tiles, shader_module};
 use super::screen_params::ScreenUniforms;
 use super::targets::FrameTargets;
 
@@ -16,17 +15,8 @@ pub(crate) struct FillPass {
 
 impl FillPass {
     pub fn new(device: &wgpu::Device) -> Self {
-        let module = module(device, Shader::Fill);
-        let pipeline = |entry_point: &str| {
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(entry_point),
-                layout: None,
-                module: &module,
-                entry_point: Some(entry_point),
-                compilation_options: Default::default(),
-                cache: None,
-            })
-        };
+        let module = shader_module(device, Shader::Fill);
+        let pipeline = |entry_point: &str| compute_pipeline(device, &module, entry_point, &[]);
         Self {
             step: pipeline("fill_step"),
             finish: pipeline("finish"),

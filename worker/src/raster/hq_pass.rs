@@ -4,8 +4,8 @@
 
 use pointfarm_shaders::Shader;
 
-use super::basic_pass::{module, pipeline};
-use super::binding::bind_buffers;
+use super::basic_pass::pipeline;
+use super::pipeline::{bind_buffers, shader_module};
 use super::points::GpuPointCloud;
 use super::targets::FrameTargets;
 
@@ -15,7 +15,7 @@ pub(crate) struct HqAccumulatePass {
 
 impl HqAccumulatePass {
     pub fn new(device: &wgpu::Device, workgroup_size: u32) -> Self {
-        let module = module(device, Shader::HqAccumulate);
+        let module = shader_module(device, Shader::HqAccumulate);
         Self {
             accumulate: pipeline(device, &module, "accumulate", workgroup_size),
         }

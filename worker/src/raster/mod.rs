@@ -12,12 +12,12 @@
 //! cloud's GPU buffers and outlives any number of frames.
 
 mod basic_pass;
-mod binding;
 mod edl_pass;
 mod fill_pass;
 mod gpu_data;
 mod hq_pass;
 mod pintus_pass;
+mod pipeline;
 mod pointlist_baseline;
 mod points;
 mod resolve_pass;

@@ -13,6 +13,7 @@ use image::RgbaImage;
 use pointfarm_shaders::Shader;
 
 use super::gpu_data::FrameUniforms;
+use super::pipeline::shader_module;
 use super::points::{GpuPointCloud, PointChunk, BATCH_POINTS};
 use super::timing::GpuTimer;
 use super::{Clock, FrameSettings, RenderError, Stage, StageTimings, MAX_IMAGE_SIDE};
@@ -101,11 +102,7 @@ impl RenderTargets {
 impl PointListBaseline {
     pub fn new(gpu: Arc<GpuContext>) -> Self {
         let device = &gpu.device;
-        let shader = Shader::PointListBaseline;
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some(shader.label()),
-            source: wgpu::ShaderSource::Wgsl(shader.source().into()),
-        });
+        let module = shader_module(device, Shader::PointListBaseline);
         let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("pointlist baseline"),
             layout: None,

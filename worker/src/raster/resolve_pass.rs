@@ -4,7 +4,7 @@
 
 use pointfarm_shaders::Shader;
 
-use super::binding::bind_buffers;
+use super::pipeline::{bind_buffers, compute_pipeline, shader_module};
 use super::targets::FrameTargets;
 
 /// Must match `@workgroup_size` in resolve.wgsl.
@@ -18,20 +18,8 @@ pub(crate) struct ResolvePass {
 
 impl ResolvePass {
     pub fn new(device: &wgpu::Device) -> Self {
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some(Shader::Resolve.label()),
-            source: wgpu::ShaderSource::Wgsl(Shader::Resolve.source().into()),
-        });
-        let pipeline = |entry_point: &str| {
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(entry_point),
-                layout: None,
-                module: &module,
-                entry_point: Some(entry_point),
-                compilation_options: Default::default(),
-                cache: None,
-            })
-        };
+        let module = shader_module(device, Shader::Resolve);
+        let pipeline = |entry_point: &str| compute_pipeline(device, &module, entry_point, &[]);
         Self {
             clear: pipeline("clear"),
             resolve: pipeline("resolve"),

@@ -4,8 +4,7 @@
 
 use pointfarm_shaders::Shader;
 
-use super::basic_pass::module;
-use super::binding::{bind_resources, dispatch_tiles};
+use super::pipeline::{bind_resources, compute_pipeline, dispatch_tiles, shader_module};
 use super::screen_params::ScreenUniforms;
 use super::targets::FrameTargets;
 
@@ -15,15 +14,8 @@ pub(crate) struct VisibilityPass {
 
 impl VisibilityPass {
     pub fn new(device: &wgpu::Device) -> Self {
-        let module = module(device, Shader::Visibility);
-        let classify = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("visibility"),
-            layout: None,
-            module: &module,
-            entry_point: Some("classify"),
-            compilation_options: Default::default(),
-            cache: None,
-        });
+        let module = shader_module(device, Shader::Visibility);
+        let classify = compute_pipeline(device, &module, "classify", &[]);
         Self { classify }
     }
 

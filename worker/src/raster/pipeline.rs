@@ -1,5 +1,36 @@
-//! Bind groups of the compute passes: every pass binds whole buffers to group 0 of a pipeline
-//! whose layout wgpu derived from the shader.
+//! What every compute pass builds the same way: its shader module, its pipelines (layouts
+//! derived by wgpu from the shader) and bind groups for group 0.
+
+use pointfarm_shaders::Shader;
+
+/// The compiled module of one of our shaders.
+pub(crate) fn shader_module(device: &wgpu::Device, shader: Shader) -> wgpu::ShaderModule {
+    device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(shader.label()),
+        source: wgpu::ShaderSource::Wgsl(shader.source().into()),
+    })
+}
+
+/// A compute pipeline for `entry_point` of `module`, with its layout derived from the shader
+/// and `constants` overriding the shader's pipeline-overridable constants.
+pub(crate) fn compute_pipeline(
+    device: &wgpu::Device,
+    module: &wgpu::ShaderModule,
+    entry_point: &str,
+    constants: &[(&str, f64)],
+) -> wgpu::ComputePipeline {
+    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some(entry_point),
+        layout: None,
+        module,
+        entry_point: Some(entry_point),
+        compilation_options: wgpu::PipelineCompilationOptions {
+            constants,
+            ..Default::default()
+        },
+        cache: None,
+    })
+}
 
 /// A bind group for group 0 of `pipeline`, with each buffer bound whole at its binding index.
 pub(crate) fn bind_buffers(
