@@ -111,16 +111,16 @@ pub struct RenderArgs {
     pub(crate) shading: ShadingArg,
     /// Pintus shading: number of smoothing levels (1 to 32); more adds broader, softer
     /// ambient shading.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = Shading::DEFAULT_PINTUS_LEVELS)]
     pub(crate) pintus_levels: u32,
     /// Pintus shading: level k weighs 1 / (k + 1)^exponent (0 to 4); higher is sharper.
-    #[arg(long, default_value_t = 1.5)]
+    #[arg(long, default_value_t = Shading::DEFAULT_PINTUS_EXPONENT)]
     pub(crate) pintus_exponent: f32,
     /// Eye-Dome Lighting: how strongly depth steps darken.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = Shading::DEFAULT_EDL_STRENGTH)]
     pub(crate) edl_strength: f32,
     /// Eye-Dome Lighting: distance of the depth samples in pixels.
-    #[arg(long, default_value_t = 1.4)]
+    #[arg(long, default_value_t = Shading::DEFAULT_EDL_RADIUS)]
     pub(crate) edl_radius: f32,
     /// Adapter: auto (hardware GPU if present, else lavapipe), hardware or software.
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
@@ -137,14 +137,11 @@ pub(crate) enum ShadingArg {
     Pintus,
 }
 
-/// The kernel used when only --fill is given.
-pub(crate) const DEFAULT_FILL_KERNEL: u32 = 7;
-
 impl RenderArgs {
     /// Filling as asked for: --fill, or --fill-kernel alone.
     pub(crate) fn fill_settings(&self) -> Option<FillSettings> {
         (self.fill || self.fill_kernel.is_some()).then(|| FillSettings {
-            kernel: self.fill_kernel.unwrap_or(DEFAULT_FILL_KERNEL),
+            kernel: self.fill_kernel.unwrap_or(FillSettings::DEFAULT_KERNEL),
         })
     }
 }

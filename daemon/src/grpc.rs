@@ -9,7 +9,9 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_server::DatasetService;
 use pointfarm_proto::v1::job_service_server::JobService;
 use pointfarm_proto::v1::worker_service_server::WorkerService;
-use pointfarm_worker::raster::{MAX_FILL_KERNEL, MAX_PINTUS_LEVELS, MIN_FILL_KERNEL};
+use pointfarm_worker::raster::{
+    FillSettings, Shading as RendererShading, MAX_FILL_KERNEL, MAX_PINTUS_LEVELS, MIN_FILL_KERNEL,
+};
 use sha2::{Digest, Sha256};
 use tokio::io::AsyncWriteExt;
 use tokio_stream::wrappers::ReceiverStream;
@@ -237,8 +239,10 @@ pub fn render_options(options: Option<&pb::RenderOptions>) -> Result<RenderOptio
     };
     let shading = match pb::Shading::try_from(o.shading) {
         Ok(pb::Shading::Edl) => {
-            let strength = o.edl_strength.unwrap_or(1.0);
-            let radius = o.edl_radius.unwrap_or(1.4);
+            let strength = o
+                .edl_strength
+                .unwrap_or(RendererShading::DEFAULT_EDL_STRENGTH);
+            let radius = o.edl_radius.unwrap_or(RendererShading::DEFAULT_EDL_RADIUS);
             if !(strength.is_finite() && (0.0..=100.0).contains(&strength)) {
                 return Err(invalid(
                     "render.edl_strength",
@@ -254,8 +258,12 @@ pub fn render_options(options: Option<&pb::RenderOptions>) -> Result<RenderOptio
             Shading::Edl { strength, radius }
         }
         Ok(pb::Shading::Pintus) => {
-            let levels = o.pintus_levels.unwrap_or(8);
-            let exponent = o.pintus_exponent.unwrap_or(1.5);
+            let levels = o
+                .pintus_levels
+                .unwrap_or(RendererShading::DEFAULT_PINTUS_LEVELS);
+            let exponent = o
+                .pintus_exponent
+                .unwrap_or(RendererShading::DEFAULT_PINTUS_EXPONENT);
             if !(1..=MAX_PINTUS_LEVELS).contains(&levels) {
                 return Err(invalid(
                     "render.pintus_levels",
@@ -301,7 +309,11 @@ pub fn render_options(options: Option<&pb::RenderOptions>) -> Result<RenderOptio
     let fill = match &o.fill {
         None => None,
         Some(f) => {
-            let kernel = if f.kernel == 0 { 7 } else { f.kernel };
+            let kernel = if f.kernel == 0 {
+                FillSettings::DEFAULT_KERNEL
+            } else {
+                f.kernel
+            };
             if !(MIN_FILL_KERNEL..=MAX_FILL_KERNEL).contains(&kernel) || kernel.is_multiple_of(2) {
                 return Err(invalid(
                     "render.fill.kernel",

@@ -167,15 +167,22 @@ pub enum Shading {
 }
 
 impl Shading {
-    /// Potree's defaults.
+    /// Potree's default EDL strength.
+    pub const DEFAULT_EDL_STRENGTH: f32 = 1.0;
+    /// Potree's default EDL radius, in pixels.
+    pub const DEFAULT_EDL_RADIUS: f32 = 1.4;
+    /// Smoothing levels of the Pintus term.
+    pub const DEFAULT_PINTUS_LEVELS: u32 = 8;
+    /// The paper's weight exponent, 3/2.
+    pub const DEFAULT_PINTUS_EXPONENT: f32 = 1.5;
+
     pub const EDL: Shading = Shading::Edl {
-        strength: 1.0,
-        radius: 1.4,
+        strength: Self::DEFAULT_EDL_STRENGTH,
+        radius: Self::DEFAULT_EDL_RADIUS,
     };
-    /// The paper's exponent 3/2, over 8 levels.
     pub const PINTUS: Shading = Shading::Pintus {
-        levels: 8,
-        exponent: 1.5,
+        levels: Self::DEFAULT_PINTUS_LEVELS,
+        exponent: Self::DEFAULT_PINTUS_EXPONENT,
     };
 }
 
@@ -192,11 +199,15 @@ pub struct FillSettings {
 
 impl Default for FillSettings {
     fn default() -> Self {
-        Self { kernel: 7 }
+        Self {
+            kernel: Self::DEFAULT_KERNEL,
+        }
     }
 }
 
 impl FillSettings {
+    pub const DEFAULT_KERNEL: u32 = 7;
+
     /// The paper's iteration count: twice the kernel size.
     pub fn iterations(&self) -> u32 {
         2 * self.kernel
