@@ -7,6 +7,7 @@ use std::time::Duration;
 
 use pointfarm_daemon::camera_path::camera_for_frame;
 use pointfarm_daemon::model::{CameraPath, Turntable};
+use pointfarm_daemon::service::DaemonConfig;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_tests::service::{
@@ -57,6 +58,41 @@ fn scan(dir: &Path) -> PathBuf {
     path
 }
 
+/// A daemon without an embedded worker, with `scan` uploaded to it.
+struct DaemonWithScan {
+    daemon: TestDaemon,
+    /// Holds the scan when it was generated, and the workers' caches.
+    scratch: tempfile::TempDir,
+    file: PathBuf,
+    dataset: pb::Dataset,
+}
+
+impl DaemonWithScan {
+    async fn start(configure: impl FnOnce(&mut DaemonConfig)) -> Self {
+        let daemon = TestDaemon::start_without_worker(configure, None).await;
+        let scratch = tempfile::tempdir().expect("tempdir");
+        let file = scan(scratch.path());
+        let mut datasets = daemon.datasets().await;
+        let dataset = upload(
+            &mut datasets,
+            "scan.laz",
+            &std::fs::read(&file).expect("read scan"),
+        )
+        .await;
+        Self {
+            daemon,
+            scratch,
+            file,
+            dataset,
+        }
+    }
+}
+
+/// A WorkerService client without a token.
+async fn workers_client(daemon: &TestDaemon) -> Workers {
+    WorkerServiceClient::with_interceptor(daemon.channel().await, Token::new(None))
+}
+
 /// Asserts that each fetched frame equals the renderer's direct rendering of that turntable
 /// frame of `file`.
 fn assert_equal_to_direct_renders(
@@ -90,16 +126,12 @@ fn assert_equal_to_direct_renders(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_worker_process_renders_a_turntable_like_the_renderer() {
-    let daemon = TestDaemon::start_without_worker(|_| {}, None).await;
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let file = scan(scratch.path());
-    let mut datasets = daemon.datasets().await;
-    let dataset = upload(
-        &mut datasets,
-        "scan.laz",
-        &std::fs::read(&file).expect("read scan"),
-    )
-    .await;
+    let DaemonWithScan {
+        daemon,
+        scratch,
+        file,
+        dataset,
+    } = DaemonWithScan::start(|_| {}).await;
     let mut jobs = daemon.jobs().await;
     let job = jobs
         .submit_job(turntable_job("remote", &dataset.id, 4, 160, 120))
@@ -153,23 +185,14 @@ async fn a_worker_process_renders_a_turntable_like_the_renderer() {
 /// when the lease expires, and a second worker finishes the job with every frame exactly once.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_worker_killed_mid_frame_loses_nothing() {
-    let daemon = TestDaemon::start_without_worker(
-        |config| config.lease_timeout = Duration::from_secs(2),
-        None,
-    )
-    .await;
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let file = scan(scratch.path());
-    let mut datasets = daemon.datasets().await;
-    let dataset = upload(
-        &mut datasets,
-        "scan.laz",
-        &std::fs::read(&file).expect("read scan"),
-    )
-    .await;
+    let DaemonWithScan {
+        daemon,
+        scratch,
+        file,
+        dataset,
+    } = DaemonWithScan::start(|config| config.lease_timeout = Duration::from_secs(2)).await;
     let mut jobs = daemon.jobs().await;
-    let mut workers =
-        WorkerServiceClient::with_interceptor(daemon.channel().await, Token::new(None));
+    let mut workers = workers_client(&daemon).await;
     let job = jobs
         .submit_job(turntable_job("killed", &dataset.id, 4, 160, 120))
         .await
@@ -501,19 +524,14 @@ async fn wait_for_lease(
 /// SIGTERM while a frame is in flight: the worker finishes it, hands it in, and exits.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sigterm_lets_a_worker_hand_in_its_frame_before_it_exits() {
-    let daemon = TestDaemon::start_without_worker(|_| {}, None).await;
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let file = scan(scratch.path());
-    let mut datasets = daemon.datasets().await;
-    let dataset = upload(
-        &mut datasets,
-        "scan.laz",
-        &std::fs::read(&file).expect("read scan"),
-    )
-    .await;
+    let DaemonWithScan {
+        daemon,
+        scratch,
+        file: _,
+        dataset,
+    } = DaemonWithScan::start(|_| {}).await;
     let mut jobs = daemon.jobs().await;
-    let mut workers =
-        WorkerServiceClient::with_interceptor(daemon.channel().await, Token::new(None));
+    let mut workers = workers_client(&daemon).await;
     let job = jobs
         .submit_job(turntable_job("sigterm", &dataset.id, 8, 160, 120))
         .await
