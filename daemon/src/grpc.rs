@@ -75,13 +75,14 @@ fn point(field: &str, v: Option<&pb::Vec3>) -> Result<Point3, DaemonError> {
     })
 }
 
-fn finite_in(
+fn finite_in<T: Into<f64> + Copy + std::fmt::Display>(
     field: &str,
-    value: f64,
+    value: T,
     range: std::ops::RangeInclusive<f64>,
     what: &str,
-) -> Result<f64, DaemonError> {
-    if value.is_finite() && range.contains(&value) {
+) -> Result<T, DaemonError> {
+    let wide: f64 = value.into();
+    if wide.is_finite() && range.contains(&wide) {
         Ok(value)
     } else {
         Err(invalid(field, format!("must be {what}, got {value}")))
@@ -220,13 +221,12 @@ pub fn render_options(options: Option<&pb::RenderOptions>) -> Result<RenderOptio
     }
     let quality = match pb::Quality::try_from(o.quality) {
         Ok(pb::Quality::High) => {
-            let band = o.depth_band.unwrap_or(0.01);
-            if !(band.is_finite() && (0.0..=1.0).contains(&band)) {
-                return Err(invalid(
-                    "render.depth_band",
-                    format!("must be 0 to 1, got {band}"),
-                ));
-            }
+            let band = finite_in(
+                "render.depth_band",
+                o.depth_band.unwrap_or(0.01),
+                0.0..=1.0,
+                "0 to 1",
+            )?;
             Quality::High { depth_band: band }
         }
         Ok(_) => Quality::Basic,
@@ -243,18 +243,8 @@ pub fn render_options(options: Option<&pb::RenderOptions>) -> Result<RenderOptio
                 .edl_strength
                 .unwrap_or(RendererShading::DEFAULT_EDL_STRENGTH);
             let radius = o.edl_radius.unwrap_or(RendererShading::DEFAULT_EDL_RADIUS);
-            if !(strength.is_finite() && (0.0..=100.0).contains(&strength)) {
-                return Err(invalid(
-                    "render.edl_strength",
-                    format!("must be 0 to 100, got {strength}"),
-                ));
-            }
-            if !(radius.is_finite() && (0.5..=16.0).contains(&radius)) {
-                return Err(invalid(
-                    "render.edl_radius",
-                    format!("must be 0.5 to 16 pixels, got {radius}"),
-                ));
-            }
+            let strength = finite_in("render.edl_strength", strength, 0.0..=100.0, "0 to 100")?;
+            let radius = finite_in("render.edl_radius", radius, 0.5..=16.0, "0.5 to 16 pixels")?;
             Shading::Edl { strength, radius }
         }
         Ok(pb::Shading::Pintus) => {
@@ -270,12 +260,7 @@ pub fn render_options(options: Option<&pb::RenderOptions>) -> Result<RenderOptio
                     format!("must be 1 to {MAX_PINTUS_LEVELS}, got {levels}"),
                 ));
             }
-            if !(exponent.is_finite() && (0.0..=4.0).contains(&exponent)) {
-                return Err(invalid(
-                    "render.pintus_exponent",
-                    format!("must be 0 to 4, got {exponent}"),
-                ));
-            }
+            let exponent = finite_in("render.pintus_exponent", exponent, 0.0..=4.0, "0 to 4")?;
             Shading::Pintus { levels, exponent }
         }
         Ok(_) => Shading::None,
