@@ -1,30 +1,19 @@
 //! The render service end to end: real gRPC over loopback sockets, a real sled store on disk,
 //! the embedded worker rendering on lavapipe.
 
-use std::path::PathBuf;
 use std::time::Duration;
 
 use pointfarm_daemon::camera_path::camera_for_frame;
 use pointfarm_daemon::model::{CameraPath, Turntable};
 use pointfarm_proto::v1 as pb;
 use pointfarm_tests::service::{
-    fetch_images, gpu, turntable_job, upload, upload_messages, watch_to_end, TestDaemon,
+    fetch_images, gpu, scan, turntable_job, upload, upload_messages, watch_to_end, write_sample,
+    TestDaemon,
 };
-use pointfarm_tests::{shared_data, ServeProcess};
-use pointfarm_worker::ingest::{load_point_cloud, write_las, LasWriteOptions};
+use pointfarm_tests::ServeProcess;
+use pointfarm_worker::ingest::load_point_cloud;
 use pointfarm_worker::raster::{FrameSettings, Renderer};
 use tonic::Code;
-
-/// autzen_trim.laz when the real scans are present, else a generated sample.
-fn scan(dir: &std::path::Path) -> PathBuf {
-    if let Some(path) = shared_data("autzen_trim.laz") {
-        return path;
-    }
-    let path = dir.join("sample.laz");
-    let cloud = pointfarm_worker::sample::sample_scene(60_000, 3);
-    write_las(&path, &cloud, &LasWriteOptions::default()).expect("write sample");
-    path
-}
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_turntable_job_renders_the_same_frames_as_the_renderer() {
@@ -185,9 +174,8 @@ async fn invalid_requests_get_their_status_codes() {
     assert_eq!(code, Code::NotFound, "{message}");
 
     // A real dataset for the rest.
-    let sample = pointfarm_worker::sample::sample_scene(2_000, 1);
     let file = roots.path().join("tiny.las");
-    write_las(&file, &sample, &LasWriteOptions::default()).expect("write");
+    write_sample(&file, 2_000, 1);
     let registered = datasets
         .register_dataset(pb::RegisterDatasetRequest {
             path: "tiny.las".into(),
@@ -311,12 +299,7 @@ async fn a_corrupt_dataset_fails_its_job_while_another_completes() {
     let daemon = TestDaemon::start(|_| {}, None).await;
     let scratch = tempfile::tempdir().expect("tempdir");
     let good_file = scratch.path().join("good.las");
-    write_las(
-        &good_file,
-        &pointfarm_worker::sample::sample_scene(5_000, 2),
-        &LasWriteOptions::default(),
-    )
-    .expect("write");
+    write_sample(&good_file, 5_000, 2);
     let good_bytes = std::fs::read(&good_file).expect("read");
     // The same file cut short: its header promises more points than it holds.
     let corrupt_bytes = good_bytes[..good_bytes.len() / 2].to_vec();
@@ -378,12 +361,7 @@ async fn a_killed_daemon_resumes_its_jobs_without_rerendering_finished_frames() 
     let data = tempfile::tempdir().expect("tempdir");
     let scratch = tempfile::tempdir().expect("tempdir");
     let file = scratch.path().join("sample.laz");
-    write_las(
-        &file,
-        &pointfarm_worker::sample::sample_scene(100_000, 4),
-        &LasWriteOptions::default(),
-    )
-    .expect("write");
+    write_sample(&file, 100_000, 4);
     let connect = |address: String| async move {
         tonic::transport::Channel::from_shared(format!("http://{address}"))
             .expect("url")
@@ -479,12 +457,7 @@ async fn higher_priority_jobs_run_first() {
     let daemon = TestDaemon::start(|_| {}, None).await;
     let scratch = tempfile::tempdir().expect("tempdir");
     let file = scratch.path().join("s.laz");
-    write_las(
-        &file,
-        &pointfarm_worker::sample::sample_scene(50_000, 5),
-        &LasWriteOptions::default(),
-    )
-    .expect("write");
+    write_sample(&file, 50_000, 5);
     let mut datasets = daemon.datasets().await;
     let dataset = upload(&mut datasets, "s.laz", &std::fs::read(&file).expect("read")).await;
     let mut jobs = daemon.jobs().await;

@@ -11,10 +11,10 @@ use pointfarm_daemon::service::DaemonConfig;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_tests::service::{
-    fetch_images, gpu, turntable_job, upload, watch_to_end, TestDaemon,
+    fetch_images, gpu, scan, turntable_job, upload, watch_to_end, write_sample, TestDaemon,
 };
-use pointfarm_tests::{shared_data, WorkerProcess};
-use pointfarm_worker::ingest::{load_point_cloud, write_las, LasWriteOptions};
+use pointfarm_tests::WorkerProcess;
+use pointfarm_worker::ingest::load_point_cloud;
 use pointfarm_worker::raster::{FrameSettings, Renderer};
 use tonic::metadata::{Ascii, MetadataValue};
 use tonic::service::interceptor::InterceptedService;
@@ -46,17 +46,6 @@ impl Token {
 }
 
 type Workers = WorkerServiceClient<InterceptedService<Channel, Token>>;
-
-/// autzen_trim.laz when the real scans are present, else a generated sample.
-fn scan(dir: &Path) -> PathBuf {
-    if let Some(path) = shared_data("autzen_trim.laz") {
-        return path;
-    }
-    let path = dir.join("sample.laz");
-    let cloud = pointfarm_worker::sample::sample_scene(60_000, 3);
-    write_las(&path, &cloud, &LasWriteOptions::default()).expect("write sample");
-    path
-}
 
 /// A daemon without an embedded worker, with `scan` uploaded to it.
 struct DaemonWithScan {
@@ -358,12 +347,7 @@ async fn stale_and_cancelled_leases_are_refused() {
 
     let scratch = tempfile::tempdir().expect("tempdir");
     let file = scratch.path().join("s.laz");
-    write_las(
-        &file,
-        &pointfarm_worker::sample::sample_scene(2_000, 7),
-        &LasWriteOptions::default(),
-    )
-    .expect("write");
+    write_sample(&file, 2_000, 7);
     let bytes = std::fs::read(&file).expect("read");
     let dataset = datasets
         .upload_dataset(tokio_stream::iter(
@@ -583,12 +567,7 @@ async fn a_worker_reconnects_after_the_daemon_restarts() {
     let data = tempfile::tempdir().expect("tempdir");
     let scratch = tempfile::tempdir().expect("tempdir");
     let file = scratch.path().join("s.laz");
-    write_las(
-        &file,
-        &pointfarm_worker::sample::sample_scene(20_000, 9),
-        &LasWriteOptions::default(),
-    )
-    .expect("write");
+    write_sample(&file, 20_000, 9);
     let mut server =
         pointfarm_tests::ServeProcess::start_with(data.path(), &["--no-embedded-worker"]);
     let address = server.address.clone();

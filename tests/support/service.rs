@@ -1,6 +1,7 @@
 //! A daemon (with or without an embedded worker) on a loopback port, and clients for it.
 
 use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
 
 use pointfarm_daemon::service::{Daemon, DaemonConfig};
@@ -9,6 +10,7 @@ use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_worker::gpu::{AdapterChoice, GpuContext};
+use pointfarm_worker::ingest::{write_las, LasWriteOptions};
 use sha2::{Digest, Sha256};
 use tonic::transport::Channel;
 
@@ -228,4 +230,20 @@ pub async fn fetch_images(
         }
     }
     images
+}
+
+/// Writes the generated sample scene (`points` of them, from `seed`) to `path` as LAS.
+pub fn write_sample(path: &Path, points: usize, seed: u64) {
+    let cloud = pointfarm_worker::sample::sample_scene(points, seed);
+    write_las(path, &cloud, &LasWriteOptions::default()).expect("write sample");
+}
+
+/// autzen_trim.laz when the real scans are present, else a generated sample in `dir`.
+pub fn scan(dir: &Path) -> PathBuf {
+    if let Some(path) = crate::shared_data("autzen_trim.laz") {
+        return path;
+    }
+    let path = dir.join("sample.laz");
+    write_sample(&path, 60_000, 3);
+    path
 }
