@@ -11,8 +11,6 @@ struct FrameUniforms {
     far: f32,
     width: u32,
     height: u32,
-    // Side of the square each point covers, in pixels.
-    point_size: u32,
     // RGBA8 written where no point landed.
     background: u32,
     // High-quality mode: points whose depth is at most (1 + depth_band) times the nearest
@@ -24,7 +22,13 @@ struct FrameUniforms {
     _pad0: u32,
     _pad1: u32,
     _pad2: u32,
+    _pad3: u32,
 }
+
+// Side of the square each point covers, in pixels. A pipeline constant, not a uniform: with a
+// constant trip count the compiler unrolls the per-pixel loop, and on lavapipe that loop made
+// the 1-pixel point pass half as fast again (BENCHMARKS.md). One pipeline per size.
+override POINT_SIZE: u32 = 1u;
 
 // Points are grouped in batches of nearby points (Morton order), each with its bounding box,
 // so that a whole batch outside the view is skipped before any per-point work.
@@ -99,11 +103,11 @@ fn project_point(frame: FrameUniforms, p: vec3<f32>) -> Splat {
     let px = (ndc.x * 0.5 + 0.5) * f32(frame.width);
     let py = (0.5 - ndc.y * 0.5) * f32(frame.height);
     // Far outside the image: reject before the float-to-int conversion can saturate.
-    let margin = f32(frame.point_size);
+    let margin = f32(POINT_SIZE);
     if !(px >= -margin && px < f32(frame.width) + margin && py >= -margin && py < f32(frame.height) + margin) {
         return s;
     }
-    let half = i32((frame.point_size - 1u) / 2u);
+    let half = i32((POINT_SIZE - 1u) / 2u);
     s.x0 = i32(floor(px)) - half;
     s.y0 = i32(floor(py)) - half;
     s.depth = depth;
@@ -115,8 +119,8 @@ fn project_point(frame: FrameUniforms, p: vec3<f32>) -> Splat {
 // same frustum plane (clip-space side planes widened by the point size, and near/far).
 fn batch_outside_view(frame: FrameUniforms, batch: Batch) -> bool {
     let widen = vec2<f32>(
-        1.0 + 2.0 * f32(frame.point_size) / f32(frame.width),
-        1.0 + 2.0 * f32(frame.point_size) / f32(frame.height),
+        1.0 + 2.0 * f32(POINT_SIZE) / f32(frame.width),
+        1.0 + 2.0 * f32(POINT_SIZE) / f32(frame.height),
     );
     var out_left = true;
     var out_right = true;
@@ -144,14 +148,12 @@ fn batch_outside_view(frame: FrameUniforms, batch: Batch) -> bool {
 }
 
 // Number of pixels a splat covers (before clipping to the image).
-fn splat_pixel_count(frame: FrameUniforms) -> u32 {
-    return frame.point_size * frame.point_size;
-}
+override SPLAT_PIXELS: u32 = POINT_SIZE * POINT_SIZE;
 
 // Framebuffer index of the k-th pixel of the splat's square, or -1 when it is off-screen.
 fn splat_pixel(frame: FrameUniforms, splat: Splat, k: u32) -> i32 {
-    let x = splat.x0 + i32(k % frame.point_size);
-    let y = splat.y0 + i32(k / frame.point_size);
+    let x = splat.x0 + i32(k % POINT_SIZE);
+    let y = splat.y0 + i32(k / POINT_SIZE);
     if x < 0 || y < 0 || x >= i32(frame.width) || y >= i32(frame.height) {
         return -1;
     }

@@ -39,7 +39,7 @@ fn accumulate(
         if !splat.visible {
             continue;
         }
-        for (var k = 0u; k < splat_pixel_count(frame); k++) {
+        for (var k = 0u; k < SPLAT_PIXELS; k++) {
             let pixel = splat_pixel(frame, splat, k);
             if pixel < 0 {
                 continue;

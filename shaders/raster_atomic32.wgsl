@@ -45,7 +45,7 @@ fn rasterize_batch(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32, colour_pa
             continue;
         }
         let depth_bits = bitcast<u32>(splat.depth);
-        for (var k = 0u; k < splat_pixel_count(frame); k++) {
+        for (var k = 0u; k < SPLAT_PIXELS; k++) {
             let pixel = splat_pixel(frame, splat, k);
             if pixel < 0 {
                 continue;

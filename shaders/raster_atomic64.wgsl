@@ -47,7 +47,7 @@ fn rasterize(
         // Read only once a pixel passed the early depth test.
         var colour = 0u;
         var have_colour = false;
-        for (var k = 0u; k < splat_pixel_count(frame); k++) {
+        for (var k = 0u; k < SPLAT_PIXELS; k++) {
             let pixel = splat_pixel(frame, splat, k);
             if pixel < 0 {
                 continue;

@@ -7,7 +7,8 @@
 
 use pointfarm_shaders::Shader;
 
-use super::pipeline::{bind_buffers, compute_pipeline, shader_module};
+use super::pipeline::{bind_buffers, shader_module};
+use super::point_pipelines::PointPipelines;
 use super::points::{GpuPointCloud, PointChunk, BATCH_POINTS};
 use super::targets::FrameTargets;
 
@@ -51,37 +52,22 @@ pub enum AtomicsPath {
 
 pub(crate) struct BasicPass {
     /// Present when the device has 64-bit atomics.
-    atomic64: Option<wgpu::ComputePipeline>,
-    atomic32_depth: wgpu::ComputePipeline,
-    atomic32_colour: wgpu::ComputePipeline,
-}
-
-/// A point-pass pipeline: one point per invocation, `workgroup_size` invocations a group.
-pub(crate) fn pipeline(
-    device: &wgpu::Device,
-    module: &wgpu::ShaderModule,
-    entry_point: &str,
-    workgroup_size: u32,
-) -> wgpu::ComputePipeline {
-    compute_pipeline(
-        device,
-        module,
-        entry_point,
-        &[("WORKGROUP_SIZE", workgroup_size as f64)],
-    )
+    atomic64: Option<PointPipelines>,
+    atomic32_depth: PointPipelines,
+    atomic32_colour: PointPipelines,
 }
 
 impl BasicPass {
     pub fn new(device: &wgpu::Device, int64_atomics: bool, workgroup_size: u32) -> Self {
         let atomic64 = int64_atomics.then(|| {
             let module = shader_module(device, Shader::RasterAtomic64);
-            pipeline(device, &module, "rasterize", workgroup_size)
+            PointPipelines::new(device, &module, "rasterize", workgroup_size)
         });
         let m32 = shader_module(device, Shader::RasterAtomic32);
         Self {
             atomic64,
-            atomic32_depth: pipeline(device, &m32, "rasterize_depth", workgroup_size),
-            atomic32_colour: pipeline(device, &m32, "rasterize_colour", workgroup_size),
+            atomic32_depth: PointPipelines::new(device, &m32, "rasterize_depth", workgroup_size),
+            atomic32_colour: PointPipelines::new(device, &m32, "rasterize_colour", workgroup_size),
         }
     }
 
@@ -94,23 +80,27 @@ impl BasicPass {
         }
     }
 
-    /// Records the point dispatches for every chunk of `cloud` into `pass`.
+    /// Records the point dispatches for every chunk of `cloud` into `pass`, for points of
+    /// `point_size` pixels.
+    #[allow(clippy::too_many_arguments)]
     pub fn record(
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
         path: AtomicsPath,
+        point_size: u32,
         uniforms: &wgpu::Buffer,
         cloud: &GpuPointCloud,
         targets: &FrameTargets,
     ) {
-        let stages: Vec<&wgpu::ComputePipeline> = match (path, &self.atomic64) {
+        let stages: Vec<&PointPipelines> = match (path, &self.atomic64) {
             (AtomicsPath::Atomic64, Some(p)) => vec![p],
             _ => vec![&self.atomic32_depth, &self.atomic32_colour],
         };
         // The 32-bit colour pass needs every chunk's depths, so stages run outermost.
-        for pipeline in stages {
-            dispatch_chunks(device, pass, pipeline, path, uniforms, cloud, targets);
+        for pipelines in stages {
+            let pipeline = pipelines.get(device, point_size);
+            dispatch_chunks(device, pass, &pipeline, path, uniforms, cloud, targets);
         }
     }
 
@@ -119,15 +109,16 @@ impl BasicPass {
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
+        point_size: u32,
         uniforms: &wgpu::Buffer,
         cloud: &GpuPointCloud,
         targets: &FrameTargets,
     ) {
-        let pipeline = &self.atomic32_depth;
+        let pipeline = self.atomic32_depth.get(device, point_size);
         dispatch_chunks(
             device,
             pass,
-            pipeline,
+            &pipeline,
             AtomicsPath::Atomic32,
             uniforms,
             cloud,

@@ -15,12 +15,11 @@ pub struct FrameUniforms {
     pub far: f32,
     pub width: u32,
     pub height: u32,
-    pub point_size: u32,
     pub background: u32,
     pub depth_band: f32,
     pub edl_strength: f32,
     pub edl_radius: f32,
-    pub _pad: [u32; 3],
+    pub _pad: [u32; 4],
 }
 
 /// Bits of the quantised position per axis (x, y, z), relative to the batch's bounding box:

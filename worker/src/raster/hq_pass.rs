@@ -4,20 +4,20 @@
 
 use pointfarm_shaders::Shader;
 
-use super::basic_pass::pipeline;
 use super::pipeline::{bind_buffers, shader_module};
+use super::point_pipelines::PointPipelines;
 use super::points::GpuPointCloud;
 use super::targets::FrameTargets;
 
 pub(crate) struct HqAccumulatePass {
-    accumulate: wgpu::ComputePipeline,
+    accumulate: PointPipelines,
 }
 
 impl HqAccumulatePass {
     pub fn new(device: &wgpu::Device, workgroup_size: u32) -> Self {
         let module = shader_module(device, Shader::HqAccumulate);
         Self {
-            accumulate: pipeline(device, &module, "accumulate", workgroup_size),
+            accumulate: PointPipelines::new(device, &module, "accumulate", workgroup_size),
         }
     }
 
@@ -27,6 +27,7 @@ impl HqAccumulatePass {
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
+        point_size: u32,
         uniforms: &wgpu::Buffer,
         cloud: &GpuPointCloud,
         targets: &FrameTargets,
@@ -34,11 +35,12 @@ impl HqAccumulatePass {
         let Some(accumulator) = targets.accumulator.as_ref() else {
             return;
         };
-        pass.set_pipeline(&self.accumulate);
+        let pipeline = self.accumulate.get(device, point_size);
+        pass.set_pipeline(&pipeline);
         for chunk in &cloud.chunks {
             let bind_group = bind_buffers(
                 device,
-                &self.accumulate,
+                &pipeline,
                 "accumulate",
                 &[
                     (0, uniforms),

@@ -18,6 +18,7 @@ mod gpu_data;
 mod hq_pass;
 mod pintus_pass;
 mod pipeline;
+mod point_pipelines;
 mod pointlist_baseline;
 mod points;
 mod resolve_pass;
@@ -653,8 +654,15 @@ impl Renderer {
                         if targets.needs_clear {
                             self.resolve.record_clear(device, pass, targets);
                         }
-                        self.basic
-                            .record(device, pass, path, uniforms, cloud, targets);
+                        self.basic.record(
+                            device,
+                            pass,
+                            path,
+                            settings.point_size,
+                            uniforms,
+                            cloud,
+                            targets,
+                        );
                     }),
                 ),
                 (
@@ -669,13 +677,22 @@ impl Renderer {
                         if targets.needs_clear {
                             self.resolve.record_clear(device, pass, targets);
                         }
-                        self.basic
-                            .record_depth(device, pass, uniforms, cloud, targets);
+                        self.basic.record_depth(
+                            device,
+                            pass,
+                            settings.point_size,
+                            uniforms,
+                            cloud,
+                            targets,
+                        );
                     }),
                 ),
                 (
                     Stage::Accumulate,
-                    Box::new(|pass| self.hq.record(device, pass, uniforms, cloud, targets)),
+                    Box::new(|pass| {
+                        self.hq
+                            .record(device, pass, settings.point_size, uniforms, cloud, targets)
+                    }),
                 ),
                 (
                     Stage::Resolve,
@@ -774,7 +791,6 @@ fn frame_uniforms(cloud: &GpuPointCloud, settings: &FrameSettings) -> FrameUnifo
         far: t.far as f32,
         width: settings.width,
         height: settings.height,
-        point_size: settings.point_size,
         background: u32::from_le_bytes(settings.background),
         edl_strength: match settings.shading {
             Shading::Edl { strength, .. } => strength,
@@ -784,7 +800,7 @@ fn frame_uniforms(cloud: &GpuPointCloud, settings: &FrameSettings) -> FrameUnifo
             Shading::Edl { radius, .. } => radius,
             _ => 0.0,
         },
-        _pad: [0; 3],
+        _pad: [0; 4],
     }
 }
 
