@@ -5,6 +5,8 @@
 // word), and 0xffffffff in both means "no point".
 
 const EMPTY: u32 = 0xffffffffu;
+// Depth where no point landed: the bits of +infinity.
+const NO_SURFACE_BITS: u32 = 0x7f800000u;
 
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
 @group(0) @binding(1) var<storage, read_write> framebuffer: array<vec2<u32>>;
@@ -34,13 +36,11 @@ fn resolve(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups
     }
     let entry = framebuffer[pixel];
     framebuffer[pixel] = vec2<u32>(EMPTY, EMPTY);
-    if entry.y == EMPTY {
-        colour_out[pixel] = frame.background;
-        depth_out[pixel] = bitcast<f32>(0x7f800000u); // +infinity: no surface
-    } else {
-        colour_out[pixel] = entry.x;
-        depth_out[pixel] = bitcast<f32>(entry.y);
-    }
+    // Selects, not branches: in a CPU's SIMD lanes (lavapipe) both sides of a branch run
+    // wherever covered and empty pixels mix, and each side has its own stores.
+    let empty = entry.y == EMPTY;
+    colour_out[pixel] = select(entry.x, frame.background, empty);
+    depth_out[pixel] = bitcast<f32>(select(entry.y, NO_SURFACE_BITS, empty));
 }
 
 // High-quality mode: the rounded average of the colours accumulated per pixel.
@@ -55,13 +55,11 @@ fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_wo
     let count = sums.w;
     let depth_bits = framebuffer[pixel].y;
     framebuffer[pixel] = vec2<u32>(EMPTY, EMPTY);
-    if count == 0u {
-        colour_out[pixel] = frame.background;
-        depth_out[pixel] = bitcast<f32>(0x7f800000u);
-        return;
-    }
-    // Round half up, in integers: (sum + count / 2) / count.
-    let average = (sums.xyz + vec3<u32>(count / 2u)) / count;
-    colour_out[pixel] = average.x | (average.y << 8u) | (average.z << 16u) | (255u << 24u);
-    depth_out[pixel] = bitcast<f32>(depth_bits);
+    // Round half up, in integers: (sum + count / 2) / count. Selects, not branches (see
+    // `resolve`).
+    let divisor = max(count, 1u);
+    let average = (sums.xyz + vec3<u32>(count / 2u)) / divisor;
+    let rgba = average.x | (average.y << 8u) | (average.z << 16u) | (255u << 24u);
+    colour_out[pixel] = select(rgba, frame.background, count == 0u);
+    depth_out[pixel] = bitcast<f32>(select(depth_bits, NO_SURFACE_BITS, count == 0u));
 }
