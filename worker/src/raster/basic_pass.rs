@@ -7,7 +7,8 @@
 
 use pointfarm_shaders::Shader;
 
-use super::pipeline::{bind_buffers, shader_module};
+use super::culling::FrameBatches;
+use super::pipeline::{bind_resources, shader_module};
 use super::point_pipelines::PointPipelines;
 use super::points::{GpuPointCloud, PointChunk, BATCH_POINTS};
 use super::targets::FrameTargets;
@@ -90,7 +91,7 @@ impl BasicPass {
         path: AtomicsPath,
         point_size: u32,
         uniforms: &wgpu::Buffer,
-        cloud: &GpuPointCloud,
+        (cloud, batches): (&GpuPointCloud, &FrameBatches),
         targets: &FrameTargets,
     ) {
         let stages: Vec<&PointPipelines> = match (path, &self.atomic64) {
@@ -100,7 +101,15 @@ impl BasicPass {
         // The 32-bit colour pass needs every chunk's depths, so stages run outermost.
         for pipelines in stages {
             let pipeline = pipelines.get(device, point_size);
-            dispatch_chunks(device, pass, &pipeline, path, uniforms, cloud, targets);
+            dispatch_chunks(
+                device,
+                pass,
+                &pipeline,
+                path,
+                uniforms,
+                (cloud, batches),
+                targets,
+            );
         }
     }
 
@@ -111,7 +120,7 @@ impl BasicPass {
         pass: &mut wgpu::ComputePass<'_>,
         point_size: u32,
         uniforms: &wgpu::Buffer,
-        cloud: &GpuPointCloud,
+        (cloud, batches): (&GpuPointCloud, &FrameBatches),
         targets: &FrameTargets,
     ) {
         let pipeline = self.atomic32_depth.get(device, point_size);
@@ -121,7 +130,7 @@ impl BasicPass {
             &pipeline,
             AtomicsPath::Atomic32,
             uniforms,
-            cloud,
+            (cloud, batches),
             targets,
         );
     }
@@ -133,14 +142,18 @@ fn dispatch_chunks(
     pipeline: &wgpu::ComputePipeline,
     path: AtomicsPath,
     uniforms: &wgpu::Buffer,
-    cloud: &GpuPointCloud,
+    (cloud, batches): (&GpuPointCloud, &FrameBatches),
     targets: &FrameTargets,
 ) {
     pass.set_pipeline(pipeline);
-    for chunk in &cloud.chunks {
-        let bind_group = bind_group(device, pipeline, path, uniforms, chunk, targets);
+    for (index, chunk) in cloud.chunks.iter().enumerate() {
+        // A chunk with no batch in view is skipped.
+        let Some(table) = batches.binding(index) else {
+            continue;
+        };
+        let bind_group = bind_group(device, pipeline, path, uniforms, (chunk, table), targets);
         pass.set_bind_group(0, &bind_group, &[]);
-        let (x, y) = super::dispatch_grid(chunk.batch_count);
+        let (x, y) = super::dispatch_grid(batches.count(index));
         pass.dispatch_workgroups(x, y, 1);
     }
 }
@@ -150,19 +163,19 @@ fn bind_group(
     pipeline: &wgpu::ComputePipeline,
     path: AtomicsPath,
     uniforms: &wgpu::Buffer,
-    chunk: &PointChunk,
+    (chunk, batch_table): (&PointChunk, wgpu::BufferBinding<'_>),
     targets: &FrameTargets,
 ) -> wgpu::BindGroup {
-    let mut buffers = vec![
-        (0, uniforms),
-        (1, &chunk.positions),
-        (2, &chunk.batches),
-        (3, &targets.framebuffer),
-        (5, &chunk.colours),
+    let mut resources = vec![
+        (0, uniforms.as_entire_binding()),
+        (1, chunk.positions.as_entire_binding()),
+        (2, wgpu::BindingResource::Buffer(batch_table)),
+        (3, targets.framebuffer.as_entire_binding()),
+        (5, chunk.colours.as_entire_binding()),
     ];
     if path == AtomicsPath::Atomic64 {
         // The non-atomic view of the same framebuffer, for the early depth test.
-        buffers.push((4, &targets.framebuffer));
+        resources.push((4, targets.framebuffer.as_entire_binding()));
     }
-    bind_buffers(device, pipeline, "point pass", &buffers)
+    bind_resources(device, pipeline, "point pass", resources)
 }

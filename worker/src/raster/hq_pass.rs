@@ -4,7 +4,8 @@
 
 use pointfarm_shaders::Shader;
 
-use super::pipeline::{bind_buffers, shader_module};
+use super::culling::FrameBatches;
+use super::pipeline::{bind_resources, shader_module};
 use super::point_pipelines::PointPipelines;
 use super::points::GpuPointCloud;
 use super::targets::FrameTargets;
@@ -29,7 +30,7 @@ impl HqAccumulatePass {
         pass: &mut wgpu::ComputePass<'_>,
         point_size: u32,
         uniforms: &wgpu::Buffer,
-        cloud: &GpuPointCloud,
+        (cloud, batches): (&GpuPointCloud, &FrameBatches),
         targets: &FrameTargets,
     ) {
         let Some(accumulator) = targets.accumulator.as_ref() else {
@@ -37,22 +38,25 @@ impl HqAccumulatePass {
         };
         let pipeline = self.accumulate.get(device, point_size);
         pass.set_pipeline(&pipeline);
-        for chunk in &cloud.chunks {
-            let bind_group = bind_buffers(
+        for (index, chunk) in cloud.chunks.iter().enumerate() {
+            let Some(table) = batches.binding(index) else {
+                continue;
+            };
+            let bind_group = bind_resources(
                 device,
                 &pipeline,
                 "accumulate",
-                &[
-                    (0, uniforms),
-                    (1, &chunk.positions),
-                    (2, &chunk.batches),
-                    (3, &targets.framebuffer),
-                    (4, accumulator),
-                    (5, &chunk.colours),
+                vec![
+                    (0, uniforms.as_entire_binding()),
+                    (1, chunk.positions.as_entire_binding()),
+                    (2, wgpu::BindingResource::Buffer(table)),
+                    (3, targets.framebuffer.as_entire_binding()),
+                    (4, accumulator.as_entire_binding()),
+                    (5, chunk.colours.as_entire_binding()),
                 ],
             );
             pass.set_bind_group(0, &bind_group, &[]);
-            let (x, y) = super::dispatch_grid(chunk.batch_count);
+            let (x, y) = super::dispatch_grid(batches.count(index));
             pass.dispatch_workgroups(x, y, 1);
         }
     }

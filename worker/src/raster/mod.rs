@@ -12,6 +12,7 @@
 //! cloud's GPU buffers and outlives any number of frames.
 
 mod basic_pass;
+mod culling;
 mod edl_pass;
 mod fill_pass;
 mod gpu_data;
@@ -38,10 +39,11 @@ pub use pointlist_baseline::{PointListBaseline, PointListFrame};
 pub use points::{GpuPointCloud, BATCH_POINTS, POINT_BYTES};
 pub use timing::{Clock, Stage, StageTiming, StageTimings};
 
-use crate::camera::{Camera, CameraError};
+use crate::camera::{Camera, CameraError, CameraTransform};
 use crate::cloud::PointCloud;
 use crate::gpu::{read_buffer, GpuContext, GpuError};
 use basic_pass::BasicPass;
+use culling::FrameBatches;
 use edl_pass::EdlPass;
 use fill_pass::FillPass;
 use gpu_data::FrameUniforms;
@@ -396,6 +398,8 @@ pub struct Renderer {
     fill: FillPass,
     pintus: PintusPass,
     resolve: ResolvePass,
+    /// This frame's batches in view, nearest first.
+    batches: FrameBatches,
     uniforms: wgpu::Buffer,
     screen_uniforms: ScreenUniforms,
     timer: Option<GpuTimer>,
@@ -422,6 +426,7 @@ impl Renderer {
             fill: FillPass::new(device),
             pintus: PintusPass::new(device),
             resolve: ResolvePass::new(device),
+            batches: FrameBatches::new(),
             screen_uniforms: ScreenUniforms::new(device),
             uniforms: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("frame uniforms"),
@@ -551,10 +556,23 @@ impl Renderer {
         let mut timings = StageTimings::default();
 
         let started = Instant::now();
-        let uniforms = frame_uniforms(cloud, settings);
+        let transform = settings
+            .camera
+            .transform(cloud.origin(), settings.width, settings.height);
+        let uniforms = frame_uniforms(&transform, settings);
         self.gpu
             .queue
             .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));
+        self.batches.update(
+            &self.gpu.device,
+            &self.gpu.queue,
+            cloud
+                .chunks
+                .iter()
+                .map(|chunk| chunk.batch_table.as_slice()),
+            &transform,
+            settings.point_size,
+        );
         if !self
             .targets
             .as_ref()
@@ -660,7 +678,7 @@ impl Renderer {
                             path,
                             settings.point_size,
                             uniforms,
-                            cloud,
+                            (cloud, &self.batches),
                             targets,
                         );
                     }),
@@ -682,7 +700,7 @@ impl Renderer {
                             pass,
                             settings.point_size,
                             uniforms,
-                            cloud,
+                            (cloud, &self.batches),
                             targets,
                         );
                     }),
@@ -690,8 +708,14 @@ impl Renderer {
                 (
                     Stage::Accumulate,
                     Box::new(|pass| {
-                        self.hq
-                            .record(device, pass, settings.point_size, uniforms, cloud, targets)
+                        self.hq.record(
+                            device,
+                            pass,
+                            settings.point_size,
+                            uniforms,
+                            (cloud, &self.batches),
+                            targets,
+                        )
                     }),
                 ),
                 (
@@ -776,10 +800,7 @@ impl Renderer {
     }
 }
 
-fn frame_uniforms(cloud: &GpuPointCloud, settings: &FrameSettings) -> FrameUniforms {
-    let t = settings
-        .camera
-        .transform(cloud.origin(), settings.width, settings.height);
+fn frame_uniforms(t: &CameraTransform, settings: &FrameSettings) -> FrameUniforms {
     FrameUniforms {
         view_proj: t.view_proj.as_mat4().to_cols_array_2d(),
         depth_row: t.depth_row.as_vec4().to_array(),

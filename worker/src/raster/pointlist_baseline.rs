@@ -183,7 +183,10 @@ impl PointListBaseline {
         let mut timings = StageTimings::default();
 
         let started = Instant::now();
-        let uniforms = super::frame_uniforms(cloud, settings);
+        let transform = settings
+            .camera
+            .transform(cloud.origin(), settings.width, settings.height);
+        let uniforms = super::frame_uniforms(&transform, settings);
         self.gpu
             .queue
             .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));

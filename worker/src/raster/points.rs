@@ -38,7 +38,9 @@ pub(crate) struct PointChunk {
     /// always read the two words that hold a point's colour.
     pub colours: wgpu::Buffer,
     pub batches: wgpu::Buffer,
-    pub batch_count: u32,
+    /// The same batch table on the host, from which each frame's table is built
+    /// (`culling.rs`).
+    pub batch_table: Vec<GpuBatch>,
     pub point_count: u32,
 }
 
@@ -228,8 +230,8 @@ impl ChunkData {
             positions: buffer("positions", bytemuck::cast_slice(&self.positions)),
             colours: buffer("colours", &self.colours),
             batches: buffer("batches", bytemuck::cast_slice(&self.batches)),
-            batch_count: self.batches.len() as u32,
             point_count: self.positions.len() as u32,
+            batch_table: self.batches,
         }
     }
 }
