@@ -40,8 +40,11 @@ pub struct BenchArgs {
     huge: bool,
     /// Measure the basic mode only (not high quality, the 32-bit atomics path, nor fill with
     /// EDL or Pintus shading).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "modes")]
     basic_only: bool,
+    /// The compute modes measured besides the basic mode (comma-separated); all by default.
+    #[arg(long, value_delimiter = ',', value_name = "MODES")]
+    modes: Vec<BenchMode>,
     /// Image size in pixels.
     #[arg(long, default_value = "1920x1080", value_parser = parse::size)]
     size: (u32, u32),
@@ -55,6 +58,31 @@ pub struct BenchArgs {
     /// Adapter: auto (hardware GPU if present, else lavapipe), hardware or software.
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
     adapter: AdapterChoice,
+}
+
+/// A compute mode besides the basic one, as `--modes` names it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum BenchMode {
+    /// High quality (Schütz & Wimmer's averaging).
+    Hq,
+    /// The basic mode on the 32-bit atomics path.
+    #[value(name = "basic-32")]
+    Basic32,
+    /// Fill (Pintus et al.) and Eye-Dome Lighting.
+    FillEdl,
+    /// Fill and Pintus et al.'s shading.
+    FillPintus,
+}
+
+impl From<BenchMode> for ComputeMode {
+    fn from(mode: BenchMode) -> Self {
+        match mode {
+            BenchMode::Hq => ComputeMode::HighQuality,
+            BenchMode::Basic32 => ComputeMode::BasicAtomic32,
+            BenchMode::FillEdl => ComputeMode::FillEdl,
+            BenchMode::FillPintus => ComputeMode::FillPintus,
+        }
+    }
 }
 
 /// The JSON file: the run's context and the report.
@@ -104,8 +132,10 @@ pub fn run(args: BenchArgs) -> Result<()> {
         host_clocks: args.host_clocks,
         modes: if args.basic_only {
             Vec::new()
-        } else {
+        } else if args.modes.is_empty() {
             ComputeMode::ALL.to_vec()
+        } else {
+            args.modes.iter().map(|&mode| mode.into()).collect()
         },
         only: args.only.clone(),
         huge: args.huge,

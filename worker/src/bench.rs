@@ -7,7 +7,9 @@
 //! A frame's time is the GPU work that produces its image: every pass of the frame (clear,
 //! point passes, resolve, shading). Upload, readback and other host-side stages are reported
 //! per stage but left out of the frame time, since they do not depend on the method. Every
-//! figure is the median over measured frames, after warm-up frames.
+//! figure is the median over measured frames, after warm-up frames; each round renders one
+//! frame with every method in turn, so that slow drifts of the machine's speed reach every
+//! method alike.
 //!
 //! Series: uniform cubes of 1M to 30M points (frame time against points in view, with a
 //! least-squares line per method) and the k-plane cuboid (against overdraw); `huge` adds a
@@ -578,36 +580,45 @@ fn measure(
     let rounds = options.warmup_frames + options.frames;
     let points = resident.len();
 
+    // Every round renders one frame with each method in turn, so that every method sees the
+    // same machine: on a shared or throttled CPU speed drifts over seconds, and measuring the
+    // methods one after another turned that drift into their ratios.
+    let mut settings_of: Vec<FrameSettings> = vec![*settings];
+    settings_of.extend(options.modes.iter().map(|mode| mode.settings(settings)));
     let mut pointlist_timings = Vec::with_capacity(options.frames);
     let mut pointlist_wall_ms = Vec::with_capacity(options.frames);
     let mut pointlist_image = None;
+    let mut compute_timings = vec![Vec::with_capacity(options.frames); settings_of.len()];
+    let mut compute_wall_ms = vec![Vec::with_capacity(options.frames); settings_of.len()];
+    let mut compute_frames = vec![None; settings_of.len()];
     for round in 0..rounds {
+        let measured = round >= options.warmup_frames;
         let started = Instant::now();
         let frame = baseline.render(resident, settings)?;
-        if round >= options.warmup_frames {
+        if measured {
             pointlist_wall_ms.push(started.elapsed().as_secs_f64() * 1e3);
             pointlist_timings.push(frame.timings);
         }
         pointlist_image = Some(frame.image);
-    }
-
-    let mut measure_compute = |settings: &FrameSettings| {
-        let mut timings = Vec::with_capacity(options.frames);
-        let mut wall_ms = Vec::with_capacity(options.frames);
-        let mut last = None;
-        for round in 0..rounds {
+        for (method, settings) in settings_of.iter().enumerate() {
             let started = Instant::now();
             let frame = renderer.render(resident, settings)?;
-            if round >= options.warmup_frames {
-                wall_ms.push(started.elapsed().as_secs_f64() * 1e3);
-                timings.push(frame.timings.clone());
+            if measured {
+                compute_wall_ms[method].push(started.elapsed().as_secs_f64() * 1e3);
+                compute_timings[method].push(frame.timings.clone());
             }
-            last = Some(frame);
+            compute_frames[method] = Some(frame);
         }
-        Ok::<_, BenchError>((timings, wall_ms, last))
+    }
+    let mut results = compute_timings
+        .into_iter()
+        .zip(compute_wall_ms)
+        .zip(compute_frames)
+        .map(|((timings, wall_ms), frame)| (timings, wall_ms, frame));
+    let Some((compute_timings, compute_wall_ms, compute_frame)) = results.next() else {
+        return Err(BenchError::NoFrames);
     };
 
-    let (compute_timings, compute_wall_ms, compute_frame) = measure_compute(settings)?;
     let image_agreement = match (&pointlist_image, &compute_frame) {
         (Some(a), Some(b)) => image_agreement(a, &b.image, settings.background),
         _ => 0.0,
@@ -629,8 +640,7 @@ fn measure(
         points,
     );
     let mut modes = Vec::new();
-    for mode in &options.modes {
-        let (timings, wall_ms, frame) = measure_compute(&mode.settings(settings))?;
+    for (mode, (timings, wall_ms, frame)) in options.modes.iter().zip(results) {
         let result = method_result(
             mode.name(),
             frame.map_or_else(String::new, |f| format!("{:?}", f.atomics)),
