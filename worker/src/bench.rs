@@ -414,6 +414,7 @@ pub fn run(
             &mut renderer,
             &mut baseline,
             options,
+            HUGE_POINTS,
             progress,
         )?);
     }
@@ -501,15 +502,17 @@ fn summary_line(result: &WorkloadResult) -> String {
     line
 }
 
-/// The 100M-point cube, generated in Morton-ordered cells and uploaded chunk by chunk: the
-/// host never holds the whole cloud. Measured with one warm-up and three frames.
+/// A cube of `points` (the run's is [`HUGE_POINTS`]), generated in Morton-ordered cells and
+/// uploaded chunk by chunk: the host never holds the whole cloud. Measured with one warm-up
+/// and three frames.
 fn measure_huge(
     renderer: &mut Renderer,
     baseline: &mut PointListBaseline,
     options: &BenchOptions,
+    points: usize,
     progress: &mut dyn FnMut(&str),
 ) -> Result<WorkloadResult, BenchError> {
-    let name = uniform_workload(HUGE_POINTS);
+    let name = uniform_workload(points);
     progress(&format!("{name}: generating and uploading chunk by chunk"));
     let aspect = options.width as f64 / options.height as f64;
     let (origin, bounds) = cube_bounds();
@@ -520,7 +523,7 @@ fn measure_huge(
 
     let before_host_bytes = memory::resident_bytes();
     memory::reset_peak();
-    let mut generator = CellCubeGenerator::new(HUGE_POINTS, 7);
+    let mut generator = CellCubeGenerator::new(points, 7);
     let mut in_view = 0usize;
     let resident = renderer.upload_chunks(origin, &mut |n| {
         let chunk = generator.next_chunk(n)?;
@@ -540,8 +543,8 @@ fn measure_huge(
     let view = View {
         workload: name,
         description: format!(
-            "{HUGE_POINTS} uniform random points in a cube, all in view, generated and \
-             uploaded chunk by chunk"
+            "{points} uniform random points in a cube, all in view, generated and uploaded \
+             chunk by chunk"
         ),
         camera,
     };
@@ -1209,5 +1212,28 @@ mod tests {
         assert!(result.gpu_bytes_per_point <= 12.0);
         // The front plane covers the same pixels with one colour in both methods.
         assert!(result.image_agreement > 0.99, "{}", result.image_agreement);
+    }
+
+    #[test]
+    fn huge_workload_streams_many_chunks_and_reports_its_memory_peak() {
+        let gpu = gpu();
+        let mut renderer = Renderer::new(gpu.clone());
+        // Chunks of 8 batches, so that 300,000 points arrive in ten chunks.
+        renderer.set_max_chunk_points(8 * BATCH_POINTS);
+        let mut baseline = PointListBaseline::new(gpu);
+        let options = BenchOptions {
+            modes: vec![ComputeMode::HighQuality],
+            ..BenchOptions::quick(96, 54, PathBuf::new())
+        };
+        let result = measure_huge(&mut renderer, &mut baseline, &options, 300_000, &mut |_| {})
+            .expect("measure");
+        assert_eq!(result.workload, "uniform-300000");
+        assert_eq!(result.points, 300_000);
+        assert!(result.points_in_view > 290_000, "{}", result.points_in_view);
+        let memory = result.ingest_memory.expect("memory peak");
+        assert!(memory.peak_host_bytes >= memory.before_host_bytes);
+        assert!(memory.gpu_bytes as f64 >= 300_000.0 * 11.0);
+        assert!(result.compute.frame_ms > 0.0 && result.modes[0].result.frame_ms > 0.0);
+        assert!(result.image_agreement > 0.95, "{}", result.image_agreement);
     }
 }
