@@ -1,4 +1,4 @@
-//! `pointfarm render` and `pointfarm sample`, run as a user would.
+//! The `pointfarm` commands (render, sample, demo, serve, worker, bench), run as a user would.
 
 use std::path::Path;
 use std::process::Output;
@@ -465,4 +465,53 @@ fn turntable_video_needs_ffmpeg_and_says_so_when_it_is_missing() {
             "the frames are still there"
         );
     }
+}
+
+#[test]
+fn bench_writes_its_figures_as_json_and_markdown() {
+    let Some(autzen) = shared_data("autzen_trim.laz") else {
+        return;
+    };
+    let data = autzen.parent().expect("the scan's directory");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (json, markdown) = (dir.path().join("bench.json"), dir.path().join("bench.md"));
+    let output = pointfarm(&[
+        "bench",
+        "--quick",
+        "--only",
+        "autzen_trim.laz",
+        "--modes",
+        "hq,basic-32",
+        "--size",
+        "160x120",
+        "--data",
+        &path_arg(data),
+        "--json",
+        &path_arg(&json),
+        "--markdown",
+        &path_arg(&markdown),
+    ]);
+    assert_ok(&output);
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&json).expect("json written")).expect("valid json");
+    let workload = &report["workloads"][0];
+    assert_eq!(workload["workload"], "autzen_trim.laz");
+    assert_eq!(workload["points"], 110_000);
+    for method in [&workload["pointlist"], &workload["compute"]] {
+        assert!(
+            method["frame_ms"].as_f64().is_some_and(|ms| ms > 0.0),
+            "{method}"
+        );
+    }
+    let modes: Vec<&str> = workload["modes"]
+        .as_array()
+        .expect("modes")
+        .iter()
+        .filter_map(|m| m["method"].as_str())
+        .collect();
+    assert_eq!(modes, ["compute-hq", "compute-basic-32"]);
+    // The headline figure belongs to the 10M cloud, which this run left out.
+    assert!(report["speedup_vs_pointlist"].is_null(), "{report}");
+    let table = std::fs::read_to_string(&markdown).expect("markdown written");
+    assert!(table.contains("| autzen_trim.laz |"), "{table}");
 }
