@@ -81,18 +81,13 @@ impl BasicPass {
         }
     }
 
-    /// Records the point dispatches for every chunk of `cloud` into `pass`, for points of
-    /// `point_size` pixels.
-    #[allow(clippy::too_many_arguments)]
+    /// Records the point dispatches for every chunk of the frame's cloud into `pass`.
     pub fn record(
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
         path: AtomicsPath,
-        point_size: u32,
-        uniforms: &wgpu::Buffer,
-        (cloud, batches): (&GpuPointCloud, &FrameBatches),
-        targets: &FrameTargets,
+        frame: PointFrame<'_>,
     ) {
         let stages: Vec<&PointPipelines> = match (path, &self.atomic64) {
             (AtomicsPath::Atomic64, Some(p)) => vec![p],
@@ -100,16 +95,8 @@ impl BasicPass {
         };
         // The 32-bit colour pass needs every chunk's depths, so stages run outermost.
         for pipelines in stages {
-            let pipeline = pipelines.get(device, point_size);
-            dispatch_chunks(
-                device,
-                pass,
-                &pipeline,
-                path,
-                uniforms,
-                (cloud, batches),
-                targets,
-            );
+            let pipeline = pipelines.get(device, frame.point_size);
+            dispatch_chunks(device, pass, &pipeline, path, frame);
         }
     }
 
@@ -118,22 +105,22 @@ impl BasicPass {
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
-        point_size: u32,
-        uniforms: &wgpu::Buffer,
-        (cloud, batches): (&GpuPointCloud, &FrameBatches),
-        targets: &FrameTargets,
+        frame: PointFrame<'_>,
     ) {
-        let pipeline = self.atomic32_depth.get(device, point_size);
-        dispatch_chunks(
-            device,
-            pass,
-            &pipeline,
-            AtomicsPath::Atomic32,
-            uniforms,
-            (cloud, batches),
-            targets,
-        );
+        let pipeline = self.atomic32_depth.get(device, frame.point_size);
+        dispatch_chunks(device, pass, &pipeline, AtomicsPath::Atomic32, frame);
     }
+}
+
+/// What every point pass of a frame reads and writes: the frame's uniforms and point size,
+/// the resident cloud with this frame's batch tables, and the frame's targets.
+#[derive(Clone, Copy)]
+pub(crate) struct PointFrame<'a> {
+    pub uniforms: &'a wgpu::Buffer,
+    pub point_size: u32,
+    pub cloud: &'a GpuPointCloud,
+    pub batches: &'a FrameBatches,
+    pub targets: &'a FrameTargets,
 }
 
 fn dispatch_chunks(
@@ -141,19 +128,17 @@ fn dispatch_chunks(
     pass: &mut wgpu::ComputePass<'_>,
     pipeline: &wgpu::ComputePipeline,
     path: AtomicsPath,
-    uniforms: &wgpu::Buffer,
-    (cloud, batches): (&GpuPointCloud, &FrameBatches),
-    targets: &FrameTargets,
+    frame: PointFrame<'_>,
 ) {
     pass.set_pipeline(pipeline);
-    for (index, chunk) in cloud.chunks.iter().enumerate() {
+    for (index, chunk) in frame.cloud.chunks.iter().enumerate() {
         // A chunk with no batch in view is skipped.
-        let Some(table) = batches.binding(index) else {
+        let Some(table) = frame.batches.binding(index) else {
             continue;
         };
-        let bind_group = bind_group(device, pipeline, path, uniforms, (chunk, table), targets);
+        let bind_group = bind_group(device, pipeline, path, frame, (chunk, table));
         pass.set_bind_group(0, &bind_group, &[]);
-        let (x, y) = super::dispatch_grid(batches.count(index));
+        let (x, y) = super::dispatch_grid(frame.batches.count(index));
         pass.dispatch_workgroups(x, y, 1);
     }
 }
@@ -162,20 +147,20 @@ fn bind_group(
     device: &wgpu::Device,
     pipeline: &wgpu::ComputePipeline,
     path: AtomicsPath,
-    uniforms: &wgpu::Buffer,
+    frame: PointFrame<'_>,
     (chunk, batch_table): (&PointChunk, wgpu::BufferBinding<'_>),
-    targets: &FrameTargets,
 ) -> wgpu::BindGroup {
+    let framebuffer = &frame.targets.framebuffer;
     let mut resources = vec![
-        (0, uniforms.as_entire_binding()),
+        (0, frame.uniforms.as_entire_binding()),
         (1, chunk.positions.as_entire_binding()),
         (2, wgpu::BindingResource::Buffer(batch_table)),
-        (3, targets.framebuffer.as_entire_binding()),
+        (3, framebuffer.as_entire_binding()),
         (5, chunk.colours.as_entire_binding()),
     ];
     if path == AtomicsPath::Atomic64 {
         // The non-atomic view of the same framebuffer, for the early depth test.
-        resources.push((4, targets.framebuffer.as_entire_binding()));
+        resources.push((4, framebuffer.as_entire_binding()));
     }
     bind_resources(device, pipeline, "point pass", resources)
 }

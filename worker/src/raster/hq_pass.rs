@@ -4,11 +4,9 @@
 
 use pointfarm_shaders::Shader;
 
-use super::culling::FrameBatches;
+use super::basic_pass::PointFrame;
 use super::pipeline::{bind_resources, shader_module};
 use super::point_pipelines::PointPipelines;
-use super::points::GpuPointCloud;
-use super::targets::FrameTargets;
 
 pub(crate) struct HqAccumulatePass {
     accumulate: PointPipelines,
@@ -28,18 +26,15 @@ impl HqAccumulatePass {
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
-        point_size: u32,
-        uniforms: &wgpu::Buffer,
-        (cloud, batches): (&GpuPointCloud, &FrameBatches),
-        targets: &FrameTargets,
+        frame: PointFrame<'_>,
     ) {
-        let Some(accumulator) = targets.accumulator.as_ref() else {
+        let Some(accumulator) = frame.targets.accumulator.as_ref() else {
             return;
         };
-        let pipeline = self.accumulate.get(device, point_size);
+        let pipeline = self.accumulate.get(device, frame.point_size);
         pass.set_pipeline(&pipeline);
-        for (index, chunk) in cloud.chunks.iter().enumerate() {
-            let Some(table) = batches.binding(index) else {
+        for (index, chunk) in frame.cloud.chunks.iter().enumerate() {
+            let Some(table) = frame.batches.binding(index) else {
                 continue;
             };
             let bind_group = bind_resources(
@@ -47,16 +42,16 @@ impl HqAccumulatePass {
                 &pipeline,
                 "accumulate",
                 vec![
-                    (0, uniforms.as_entire_binding()),
+                    (0, frame.uniforms.as_entire_binding()),
                     (1, chunk.positions.as_entire_binding()),
                     (2, wgpu::BindingResource::Buffer(table)),
-                    (3, targets.framebuffer.as_entire_binding()),
+                    (3, frame.targets.framebuffer.as_entire_binding()),
                     (4, accumulator.as_entire_binding()),
                     (5, chunk.colours.as_entire_binding()),
                 ],
             );
             pass.set_bind_group(0, &bind_group, &[]);
-            let (x, y) = super::dispatch_grid(batches.count(index));
+            let (x, y) = super::dispatch_grid(frame.batches.count(index));
             pass.dispatch_workgroups(x, y, 1);
         }
     }

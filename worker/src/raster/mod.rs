@@ -42,7 +42,7 @@ pub use timing::{Clock, Stage, StageTiming, StageTimings};
 use crate::camera::{Camera, CameraError, CameraTransform};
 use crate::cloud::PointCloud;
 use crate::gpu::{read_buffer, GpuContext, GpuError};
-use basic_pass::BasicPass;
+use basic_pass::{BasicPass, PointFrame};
 use culling::FrameBatches;
 use edl_pass::EdlPass;
 use fill_pass::FillPass;
@@ -661,6 +661,13 @@ impl Renderer {
             return Err(RenderError::Gpu("frame targets missing".into()));
         };
         let uniforms = &self.uniforms;
+        let points = PointFrame {
+            uniforms,
+            point_size: settings.point_size,
+            cloud,
+            batches: &self.batches,
+            targets,
+        };
         type Record<'a> = Box<dyn Fn(&mut wgpu::ComputePass<'_>) + 'a>;
         let mut passes: Vec<(Stage, Record<'_>)> = match settings.quality {
             // The resolve empties the framebuffer for the next frame: only a new one is
@@ -668,19 +675,11 @@ impl Renderer {
             Quality::Basic => vec![
                 (
                     Stage::Rasterize,
-                    Box::new(|pass| {
+                    Box::new(move |pass| {
                         if targets.needs_clear {
                             self.resolve.record_clear(device, pass, targets);
                         }
-                        self.basic.record(
-                            device,
-                            pass,
-                            path,
-                            settings.point_size,
-                            uniforms,
-                            (cloud, &self.batches),
-                            targets,
-                        );
+                        self.basic.record(device, pass, path, points);
                     }),
                 ),
                 (
@@ -691,32 +690,16 @@ impl Renderer {
             Quality::High { .. } => vec![
                 (
                     Stage::Rasterize,
-                    Box::new(|pass| {
+                    Box::new(move |pass| {
                         if targets.needs_clear {
                             self.resolve.record_clear(device, pass, targets);
                         }
-                        self.basic.record_depth(
-                            device,
-                            pass,
-                            settings.point_size,
-                            uniforms,
-                            (cloud, &self.batches),
-                            targets,
-                        );
+                        self.basic.record_depth(device, pass, points);
                     }),
                 ),
                 (
                     Stage::Accumulate,
-                    Box::new(|pass| {
-                        self.hq.record(
-                            device,
-                            pass,
-                            settings.point_size,
-                            uniforms,
-                            (cloud, &self.batches),
-                            targets,
-                        )
-                    }),
+                    Box::new(move |pass| self.hq.record(device, pass, points)),
                 ),
                 (
                     Stage::Resolve,
