@@ -398,7 +398,7 @@ pub struct Renderer {
     fill: FillPass,
     pintus: PintusPass,
     resolve: ResolvePass,
-    /// This frame's batches in view, nearest first.
+    /// This frame's batch tables: the batches that can be in view, per chunk.
     batches: FrameBatches,
     uniforms: wgpu::Buffer,
     screen_uniforms: ScreenUniforms,
