@@ -10,31 +10,16 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
+use pointfarm_proto::BearerToken;
 use sha2::{Digest, Sha256};
-use tonic::metadata::MetadataValue;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
-use tonic::{Code, Request, Status};
+use tonic::{Code, Status};
 
 /// Upload chunk size: well under gRPC's default 4 MiB message limit.
 const UPLOAD_CHUNK_BYTES: usize = 1 << 20;
 
-/// Adds the bearer token, when there is one, to every call.
-#[derive(Clone)]
-pub struct Auth(Option<MetadataValue<tonic::metadata::Ascii>>);
-
-impl tonic::service::Interceptor for Auth {
-    fn call(&mut self, mut request: Request<()>) -> Result<Request<()>, Status> {
-        if let Some(value) = &self.0 {
-            request
-                .metadata_mut()
-                .insert("authorization", value.clone());
-        }
-        Ok(request)
-    }
-}
-
-type Authed = InterceptedService<Channel, Auth>;
+type Authed = InterceptedService<Channel, BearerToken>;
 
 pub struct Client {
     pub datasets: DatasetServiceClient<Authed>,
@@ -54,12 +39,7 @@ impl Client {
             .connect()
             .await
             .with_context(|| format!("cannot connect to {url}"))?;
-        let auth = Auth(
-            token
-                .map(|t| format!("Bearer {t}").parse())
-                .transpose()
-                .context("the token has characters that cannot be sent")?,
-        );
+        let auth = BearerToken::new(token)?;
         Ok(Self {
             datasets: DatasetServiceClient::with_interceptor(channel.clone(), auth.clone()),
             jobs: JobServiceClient::with_interceptor(channel.clone(), auth.clone()),

@@ -21,15 +21,15 @@ use std::time::Duration;
 use anyhow::{bail, Context};
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
+use pointfarm_proto::BearerToken;
 use pointfarm_worker::cache::DatasetCache;
 use pointfarm_worker::gpu::GpuContext;
 use sha2::{Digest, Sha256};
 use tokio::io::AsyncWriteExt;
 use tokio::sync::watch;
-use tonic::metadata::{Ascii, MetadataValue};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Channel, Endpoint};
-use tonic::{Code, Request, Status};
+use tonic::{Code, Status};
 use tracing::Instrument;
 
 use crate::frame_render::{FrameRenderer, RenderedFrame};
@@ -52,21 +52,6 @@ pub struct RemoteWorkerConfig {
     /// The worker's dataset cache and downloads live here.
     pub cache_dir: PathBuf,
     pub cache_bytes: u64,
-}
-
-/// Adds the bearer token, when there is one, to every call.
-#[derive(Clone)]
-struct BearerToken(Option<MetadataValue<Ascii>>);
-
-impl tonic::service::Interceptor for BearerToken {
-    fn call(&mut self, mut request: Request<()>) -> Result<Request<()>, Status> {
-        if let Some(value) = &self.0 {
-            request
-                .metadata_mut()
-                .insert("authorization", value.clone());
-        }
-        Ok(request)
-    }
 }
 
 type Client = WorkerServiceClient<InterceptedService<Channel, BearerToken>>;
@@ -131,14 +116,9 @@ pub async fn run(
         .with_context(|| format!("'{}' is not a server address", config.server))?
         .connect_timeout(Duration::from_secs(5))
         .connect_lazy();
-    let token = config
-        .token
-        .as_deref()
-        .map(|t| format!("Bearer {t}").parse())
-        .transpose()
-        .context("the token has characters that cannot be sent")?;
-    let mut client = WorkerServiceClient::with_interceptor(channel, BearerToken(token))
-        .max_decoding_message_size(8 << 20);
+    let token = BearerToken::new(config.token.as_deref())?;
+    let mut client =
+        WorkerServiceClient::with_interceptor(channel, token).max_decoding_message_size(8 << 20);
 
     let (stop_sender, mut stop) = watch::channel(false);
     tokio::spawn(async move {
