@@ -139,14 +139,7 @@ impl ServeProcess {
         &mut self,
         timeout: std::time::Duration,
     ) -> Option<std::process::ExitStatus> {
-        let deadline = std::time::Instant::now() + timeout;
-        while std::time::Instant::now() < deadline {
-            if let Ok(Some(status)) = self.child.try_wait() {
-                return Some(status);
-            }
-            std::thread::sleep(std::time::Duration::from_millis(50));
-        }
-        None
+        exit_within(&mut self.child, timeout)
     }
 }
 
@@ -209,14 +202,7 @@ impl WorkerProcess {
             .status()
             .expect("kill -TERM");
         assert!(sent.success());
-        let deadline = std::time::Instant::now() + timeout;
-        while std::time::Instant::now() < deadline {
-            if let Ok(Some(status)) = self.child.try_wait() {
-                return Some(status);
-            }
-            std::thread::sleep(std::time::Duration::from_millis(50));
-        }
-        None
+        exit_within(&mut self.child, timeout)
     }
 }
 
@@ -227,3 +213,18 @@ impl Drop for WorkerProcess {
 }
 
 pub mod service;
+
+/// The child's exit status once it has exited, waiting at most `timeout`.
+fn exit_within(
+    child: &mut std::process::Child,
+    timeout: std::time::Duration,
+) -> Option<std::process::ExitStatus> {
+    let deadline = std::time::Instant::now() + timeout;
+    while std::time::Instant::now() < deadline {
+        if let Ok(Some(status)) = child.try_wait() {
+            return Some(status);
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    None
+}
