@@ -7,6 +7,9 @@
 const EMPTY: u32 = 0xffffffffu;
 // Depth where no point landed: the bits of +infinity.
 const NO_SURFACE_BITS: u32 = 0x7f800000u;
+// False where no later pass reads the depth image and it is not read back: the resolves then
+// skip its store, one of the four memory accesses per pixel.
+override WRITE_DEPTH: bool = true;
 
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
 @group(0) @binding(1) var<storage, read_write> framebuffer: array<vec2<u32>>;
@@ -40,7 +43,9 @@ fn resolve(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups
     // wherever covered and empty pixels mix, and each side has its own stores.
     let empty = entry.y == EMPTY;
     colour_out[pixel] = select(entry.x, frame.background, empty);
-    depth_out[pixel] = bitcast<f32>(select(entry.y, NO_SURFACE_BITS, empty));
+    if WRITE_DEPTH {
+        depth_out[pixel] = bitcast<f32>(select(entry.y, NO_SURFACE_BITS, empty));
+    }
 }
 
 // High-quality mode: the rounded average of the colours accumulated per pixel.
@@ -61,5 +66,7 @@ fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_wo
     let average = (sums.xyz + vec3<u32>(count / 2u)) / divisor;
     let rgba = average.x | (average.y << 8u) | (average.z << 16u) | (255u << 24u);
     colour_out[pixel] = select(rgba, frame.background, count == 0u);
-    depth_out[pixel] = bitcast<f32>(select(depth_bits, NO_SURFACE_BITS, count == 0u));
+    if WRITE_DEPTH {
+        depth_out[pixel] = bitcast<f32>(select(depth_bits, NO_SURFACE_BITS, count == 0u));
+    }
 }

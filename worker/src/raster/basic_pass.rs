@@ -10,37 +10,8 @@ use pointfarm_shaders::Shader;
 use super::culling::FrameBatches;
 use super::pipeline::{bind_resources, shader_module};
 use super::point_pipelines::PointPipelines;
-use super::points::{GpuPointCloud, PointChunk, BATCH_POINTS};
+use super::points::{GpuPointCloud, PointChunk};
 use super::targets::FrameTargets;
-
-/// Threads per workgroup of the point passes; each thread walks its batch with this stride.
-/// On lavapipe (2 cores) 32, 64, 128, 256 and 512 measured the same within the noise of a
-/// shared machine (BENCHMARKS.md); 128 suits discrete GPUs' 32- and 64-wide waves.
-const DEFAULT_WORKGROUP_SIZE: u32 = 128;
-
-/// Environment variable that overrides the point passes' workgroup size (for tuning runs).
-pub const WORKGROUP_SIZE_ENV: &str = "POINTFARM_POINT_WORKGROUP";
-
-/// Threads per workgroup of the point passes: `POINTFARM_POINT_WORKGROUP` when it is a power
-/// of two from 32 to the device's limit (and so divides `BATCH_POINTS`), else the default.
-pub(crate) fn point_workgroup_size(limit: u32) -> u32 {
-    let valid = |n: u32| n.is_power_of_two() && (32..=limit.min(1024)).contains(&n);
-    let requested = std::env::var(WORKGROUP_SIZE_ENV)
-        .ok()
-        .and_then(|v| v.trim().parse::<u32>().ok());
-    match requested {
-        Some(n) if valid(n) => n,
-        Some(n) => {
-            tracing::warn!(
-                value = n,
-                "ignoring {WORKGROUP_SIZE_ENV}: not a power of two from 32 to {limit}"
-            );
-            DEFAULT_WORKGROUP_SIZE
-        }
-        None => DEFAULT_WORKGROUP_SIZE,
-    }
-}
-const _: () = assert!(BATCH_POINTS.is_multiple_of(1024));
 
 /// Which atomics the point pass uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

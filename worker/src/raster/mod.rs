@@ -20,6 +20,7 @@ mod hq_pass;
 mod pintus_pass;
 mod pipeline;
 mod point_pipelines;
+mod point_workgroup;
 mod pointlist_baseline;
 mod points;
 mod resolve_pass;
@@ -34,7 +35,8 @@ use std::time::Instant;
 use image::RgbaImage;
 use thiserror::Error;
 
-pub use basic_pass::{AtomicsPath, WORKGROUP_SIZE_ENV};
+pub use basic_pass::AtomicsPath;
+pub use point_workgroup::WORKGROUP_SIZE_ENV;
 pub use pointlist_baseline::{PointListBaseline, PointListFrame};
 pub use points::{GpuPointCloud, BATCH_POINTS, POINT_BYTES};
 pub use timing::{Clock, Stage, StageTiming, StageTimings};
@@ -259,6 +261,12 @@ impl FrameSettings {
 }
 
 impl FrameSettings {
+    /// Whether the frame needs the resolved depth image: to read it back, or for filling or
+    /// shading, which work on it. Otherwise the resolve does not write it.
+    pub fn needs_depth_image(&self) -> bool {
+        self.read_depth || self.fill.is_some() || self.shading != Shading::None
+    }
+
     /// The settings at which a supersampled frame is rendered before it is downsampled.
     pub fn scaled_for_supersampling(&self) -> FrameSettings {
         let k = self.supersample.max(1);
@@ -409,14 +417,22 @@ pub struct Renderer {
 
 impl Renderer {
     pub fn new(gpu: Arc<GpuContext>) -> Self {
+        let workgroup_size = point_workgroup::point_workgroup_size(
+            &gpu.adapter_info,
+            gpu.device.limits().max_compute_invocations_per_workgroup,
+        );
+        Self::with_point_workgroup_size(gpu, workgroup_size)
+    }
+
+    /// A renderer whose point passes run `workgroup_size` invocations per workgroup, whatever
+    /// the adapter (tests run the GPUs' size on lavapipe with this).
+    pub(crate) fn with_point_workgroup_size(gpu: Arc<GpuContext>, workgroup_size: u32) -> Self {
         let device = &gpu.device;
         let caps = gpu.capabilities;
         // The largest per-point binding is the positions buffer.
         let max_chunk_points = (caps.max_storage_binding_bytes.min(caps.max_buffer_bytes)
             / std::mem::size_of::<gpu_data::QuantisedPosition>() as u64)
             as usize;
-        let workgroup_size =
-            basic_pass::point_workgroup_size(device.limits().max_compute_invocations_per_workgroup);
         tracing::debug!(workgroup_size, "point pass workgroups");
         Self {
             basic: BasicPass::new(device, caps.int64_atomics, workgroup_size),
@@ -668,6 +684,7 @@ impl Renderer {
             batches: &self.batches,
             targets,
         };
+        let write_depth = settings.needs_depth_image();
         type Record<'a> = Box<dyn Fn(&mut wgpu::ComputePass<'_>) + 'a>;
         let mut passes: Vec<(Stage, Record<'_>)> = match settings.quality {
             // The resolve empties the framebuffer for the next frame: only a new one is
@@ -684,7 +701,10 @@ impl Renderer {
                 ),
                 (
                     Stage::Resolve,
-                    Box::new(|pass| self.resolve.record_resolve(device, pass, uniforms, targets)),
+                    Box::new(move |pass| {
+                        self.resolve
+                            .record_resolve(device, pass, uniforms, targets, write_depth)
+                    }),
                 ),
             ],
             Quality::High { .. } => vec![
@@ -704,8 +724,13 @@ impl Renderer {
                 (
                     Stage::Resolve,
                     Box::new(|pass| {
-                        self.resolve
-                            .record_resolve_average(device, pass, uniforms, targets)
+                        self.resolve.record_resolve_average(
+                            device,
+                            pass,
+                            uniforms,
+                            targets,
+                            write_depth,
+                        )
                     }),
                 ),
             ],

@@ -12,18 +12,45 @@ const WORKGROUP_SIZE: u32 = 256;
 
 pub(crate) struct ResolvePass {
     clear: wgpu::ComputePipeline,
-    resolve: wgpu::ComputePipeline,
-    resolve_average: wgpu::ComputePipeline,
+    resolve: ByDepthOutput,
+    resolve_average: ByDepthOutput,
+}
+
+/// One resolve entry point built twice: with and without the store of the depth image
+/// (the shader's `WRITE_DEPTH`), which only some frames need.
+struct ByDepthOutput {
+    with_depth: wgpu::ComputePipeline,
+    colour_only: wgpu::ComputePipeline,
+}
+
+impl ByDepthOutput {
+    fn new(device: &wgpu::Device, module: &wgpu::ShaderModule, entry_point: &str) -> Self {
+        let build = |write_depth: bool| {
+            let constants = [("WRITE_DEPTH", f64::from(u8::from(write_depth)))];
+            compute_pipeline(device, module, entry_point, &constants)
+        };
+        Self {
+            with_depth: build(true),
+            colour_only: build(false),
+        }
+    }
+
+    fn get(&self, write_depth: bool) -> &wgpu::ComputePipeline {
+        if write_depth {
+            &self.with_depth
+        } else {
+            &self.colour_only
+        }
+    }
 }
 
 impl ResolvePass {
     pub fn new(device: &wgpu::Device) -> Self {
         let module = shader_module(device, Shader::Resolve);
-        let pipeline = |entry_point: &str| compute_pipeline(device, &module, entry_point, &[]);
         Self {
-            clear: pipeline("clear"),
-            resolve: pipeline("resolve"),
-            resolve_average: pipeline("resolve_average"),
+            clear: compute_pipeline(device, &module, "clear", &[]),
+            resolve: ByDepthOutput::new(device, &module, "resolve"),
+            resolve_average: ByDepthOutput::new(device, &module, "resolve_average"),
         }
     }
 
@@ -37,16 +64,19 @@ impl ResolvePass {
         self.dispatch(pass, &self.clear, &bind_group, targets);
     }
 
+    /// The nearest point's colour per pixel, and its depth where `write_depth`.
     pub fn record_resolve(
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
         uniforms: &wgpu::Buffer,
         targets: &FrameTargets,
+        write_depth: bool,
     ) {
+        let pipeline = self.resolve.get(write_depth);
         let bind_group = bind_buffers(
             device,
-            &self.resolve,
+            pipeline,
             "resolve",
             &[
                 (0, uniforms),
@@ -55,23 +85,26 @@ impl ResolvePass {
                 (3, &targets.depth),
             ],
         );
-        self.dispatch(pass, &self.resolve, &bind_group, targets);
+        self.dispatch(pass, pipeline, &bind_group, targets);
     }
 
-    /// High-quality mode: the average of the accumulated colours per pixel.
+    /// High-quality mode: the average of the accumulated colours per pixel, and the nearest
+    /// depth where `write_depth`.
     pub fn record_resolve_average(
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
         uniforms: &wgpu::Buffer,
         targets: &FrameTargets,
+        write_depth: bool,
     ) {
         let Some(accumulator) = targets.accumulator.as_ref() else {
             return;
         };
+        let pipeline = self.resolve_average.get(write_depth);
         let bind_group = bind_buffers(
             device,
-            &self.resolve_average,
+            pipeline,
             "resolve average",
             &[
                 (0, uniforms),
@@ -81,7 +114,7 @@ impl ResolvePass {
                 (4, accumulator),
             ],
         );
-        self.dispatch(pass, &self.resolve_average, &bind_group, targets);
+        self.dispatch(pass, pipeline, &bind_group, targets);
     }
 
     fn dispatch(

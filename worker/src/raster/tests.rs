@@ -251,6 +251,56 @@ fn fallback_32_bit_path_renders_the_same_image_as_the_64_bit_path() {
     );
 }
 
+/// The point passes' workgroup size depends on the adapter (one subgroup on lavapipe, 128 on
+/// GPUs: `point_workgroup.rs`). Every size renders the same image, in both modes and on both
+/// atomics paths, with several chunks and point sizes.
+#[test]
+fn every_point_workgroup_size_renders_the_same_image() {
+    let gpu = gpu();
+    let mut settings = FrameSettings::new(
+        160,
+        120,
+        camera(Projection::Perspective { fov_y_deg: 50.0 }),
+    );
+    settings.read_depth = true;
+    let cloud = surface_with_depth_noise(&settings, 11);
+    let sizes = [4, 8, 32, 128, 256];
+    let mut renderers: Vec<_> = sizes
+        .iter()
+        .map(|&size| {
+            let mut renderer = Renderer::with_point_workgroup_size(gpu.clone(), size);
+            renderer.set_max_chunk_points(2 * BATCH_POINTS);
+            let resident = renderer.upload(&cloud).expect("upload");
+            (renderer, resident)
+        })
+        .collect();
+    assert!(renderers[0].1.chunk_count() > 1);
+    for quality in [Quality::Basic, Quality::HIGH] {
+        for atomics in [AtomicsMode::Auto, AtomicsMode::Force32] {
+            for point_size in [1, 2] {
+                let settings = FrameSettings {
+                    quality,
+                    atomics,
+                    point_size,
+                    ..settings
+                };
+                let frames: Vec<Frame> = renderers
+                    .iter_mut()
+                    .map(|(renderer, resident)| {
+                        renderer.render(resident, &settings).expect("render")
+                    })
+                    .collect();
+                for (size, frame) in sizes.iter().zip(&frames).skip(1) {
+                    let name = format!("workgroup-{size}-{quality:?}-{atomics:?}-{point_size}");
+                    let diff = compare_images(&name, &frame.image, &frames[0].image);
+                    assert_eq!(diff.differing, 0, "{name}");
+                    assert_eq!(frame.depth, frames[0].depth, "{name}");
+                }
+            }
+        }
+    }
+}
+
 #[test]
 fn a_cloud_larger_than_one_binding_renders_in_chunks() {
     let settings = FrameSettings::new(
