@@ -31,7 +31,7 @@ pub struct BenchArgs {
     #[arg(long, value_name = "FILE")]
     plot: Option<PathBuf>,
     /// Only these workloads (comma-separated), e.g. `uniform-10m,cuboid-k64`; a name also
-    /// selects its other views (`uniform-10m` selects `uniform-10m-partial`).
+    /// selects its other views (`uniform-10m` selects `uniform-10m-corner` and `uniform-10m-partial`).
     #[arg(long, value_delimiter = ',', value_name = "NAMES")]
     only: Vec<String>,
     /// Also render a 100M-point cube, generated and uploaded chunk by chunk, and report the

@@ -65,7 +65,7 @@ pub struct BenchOptions {
     /// Compute modes measured besides the basic mode.
     pub modes: Vec<ComputeMode>,
     /// Only these workloads (all when empty); a name also selects its other views
-    /// (`uniform-10m` selects `uniform-10m-partial`).
+    /// (`uniform-10m` selects `uniform-10m-corner` and `uniform-10m-partial`).
     pub only: Vec<String>,
     /// Also render the 100M-point cube ([`HUGE_POINTS`]), with its host memory peak.
     pub huge: bool,
@@ -425,8 +425,12 @@ pub fn run(
     specs.extend(REAL_SCANS.map(|file| SceneSpec::RealScan(options.data_dir.join(file))));
     specs.retain(|spec| {
         let name = spec.name();
-        // The partial view of the headline cloud selects that cloud too.
-        selected(&name) || (name == HEADLINE_WORKLOAD && selected("uniform-10m-partial"))
+        // The partial views of the headline cloud select that cloud too.
+        selected(&name)
+            || (name == HEADLINE_WORKLOAD
+                && ["corner", "partial"]
+                    .iter()
+                    .any(|view| selected(&format!("{HEADLINE_WORKLOAD}-{view}"))))
     });
     if specs.is_empty() && workloads.is_empty() {
         return Err(BenchError::NothingSelected(options.only.join(",")));
@@ -870,8 +874,17 @@ fn uniform_scene_with(points: usize, aspect: f64, seed: u64, with_partial: bool)
         camera: Camera::auto(&bounds, aspect),
     }];
     if with_partial {
+        // The automatic camera moved sideways, seeing a corner of the cube: points fall as
+        // densely per pixel as in the full view, so this view measures the culling alone.
+        views.push(View {
+            workload: format!("{name}-corner"),
+            description:
+                "the same cloud and camera distance, panned to a corner, ~10% of it in view".into(),
+            camera: panned_to_fraction(&cloud, views[0].camera, aspect, 0.1),
+        });
         // Orthographic, straight down: the view rectangle covers 10% of the cube's top face,
-        // so 10% of the points (at every depth) are in view and 90% are culled.
+        // so 10% of the points (at every depth) are in view and 90% are culled. They spread
+        // over the whole image, ~0.5 per pixel: nearly every one passes the depth test.
         let view_height = CUBE_SIDE * (0.1 / aspect).sqrt();
         views.push(View {
             workload: format!("{name}-partial"),
@@ -889,6 +902,40 @@ fn uniform_scene_with(points: usize, aspect: f64, seed: u64, with_partial: bool)
         });
     }
     Scene { name, views, cloud }
+}
+
+/// `camera` moved without turning, along the diagonal of its image, until about `fraction` of
+/// the points of `cloud` are in view (bisection on a sample of the points).
+fn panned_to_fraction(cloud: &PointCloud, camera: Camera, aspect: f64, fraction: f64) -> Camera {
+    let sample: Vec<usize> = (0..cloud.len())
+        .step_by(cloud.len().div_ceil(20_000))
+        .collect();
+    let sample = cloud.select(&sample);
+    let forward = (camera.target - camera.position).normalize();
+    let right = forward.cross(camera.up).normalize();
+    let diagonal = (right + forward.cross(right).normalize()).normalize();
+    let panned = |distance: f64| Camera {
+        position: camera.position + diagonal * distance,
+        target: camera.target + diagonal * distance,
+        ..camera
+    };
+    let height = 1000;
+    let width = (f64::from(height) * aspect).round() as u32;
+    let seen = |distance: f64| {
+        let settings = FrameSettings::new(width, height, panned(distance));
+        points_in_view(&sample, &settings) as f64 / sample.len().max(1) as f64
+    };
+    // Far enough that nothing is in view: the camera's distance to the cloud's far side.
+    let (mut near, mut far) = (0.0, (camera.target - camera.position).length() * 4.0);
+    for _ in 0..40 {
+        let middle = 0.5 * (near + far);
+        if seen(middle) > fraction {
+            near = middle;
+        } else {
+            far = middle;
+        }
+    }
+    panned(0.5 * (near + far))
 }
 
 /// The generated cube: its centre (the clouds' origin) and its box, at survey-like coordinates.
@@ -1169,11 +1216,32 @@ mod tests {
     }
 
     #[test]
-    fn partial_view_sees_about_a_tenth_of_the_uniform_cloud() {
+    fn partial_views_see_about_a_tenth_of_the_uniform_cloud() {
         let scene = uniform_scene_with(50_000, 16.0 / 9.0, 4, true);
-        let settings = FrameSettings::new(160, 90, scene.views[1].camera);
-        let fraction = points_in_view(&scene.cloud, &settings) as f64 / 50_000.0;
-        assert!((0.09..0.11).contains(&fraction), "{fraction}");
+        let full = FrameSettings::new(160, 90, scene.views[0].camera);
+        assert_eq!(points_in_view(&scene.cloud, &full), 50_000);
+        let names: Vec<&str> = scene.views.iter().map(|v| v.workload.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "uniform-50000",
+                "uniform-50000-corner",
+                "uniform-50000-partial"
+            ]
+        );
+        for view in &scene.views[1..] {
+            let settings = FrameSettings::new(160, 90, view.camera);
+            let fraction = points_in_view(&scene.cloud, &settings) as f64 / 50_000.0;
+            assert!(
+                (0.09..0.11).contains(&fraction),
+                "{}: {fraction}",
+                view.workload
+            );
+        }
+        // The corner view keeps the full view's distance and direction: the same density of
+        // points per pixel.
+        let (full, corner) = (scene.views[0].camera, scene.views[1].camera);
+        assert!((full.position - full.target).abs_diff_eq(corner.position - corner.target, 1e-9));
     }
 
     #[test]

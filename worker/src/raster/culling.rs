@@ -8,12 +8,15 @@
 //! costs the GPU nothing (on lavapipe, a view that sees none of a 10M-point cloud went from
 //! 3.7 ms to 0.1 ms). Points of listed batches are still culled one by one.
 //!
+//! The same pass over the boxes bounds the frame's footprint: the pixels any listed point can
+//! touch. The resolve skips the rest of the image when it is known to be empty (`targets.rs`).
+//!
 //! The table is a copy of the entries (32 bytes per 4096 points), in the cloud's Morton order.
 //! Sorting it front to back, for the early depth test, made lavapipe's 10M-point frame 20%
 //! slower: consecutive workgroups no longer write nearby pixels (BENCHMARKS.md).
 
 use bytemuck::Zeroable;
-use glam::{DVec3, DVec4, Vec3};
+use glam::{DVec2, DVec3, DVec4, Vec3};
 
 use super::gpu_data::GpuBatch;
 use crate::camera::CameraTransform;
@@ -27,6 +30,73 @@ pub(crate) struct FrameBatches {
     ranges: Vec<(u64, u32)>,
     /// Host copy reused from frame to frame.
     staging: Vec<GpuBatch>,
+    /// The pixels that points of the listed batches can touch this frame.
+    footprint: PixelRect,
+}
+
+/// A rectangle of pixels: columns `x0..x1`, rows `y0..y1`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub(crate) struct PixelRect {
+    pub x0: u32,
+    pub y0: u32,
+    pub x1: u32,
+    pub y1: u32,
+}
+
+impl PixelRect {
+    pub const EMPTY: PixelRect = PixelRect {
+        x0: 0,
+        y0: 0,
+        x1: 0,
+        y1: 0,
+    };
+
+    /// The whole of a `width` x `height` image.
+    pub fn full(width: u32, height: u32) -> Self {
+        PixelRect {
+            x0: 0,
+            y0: 0,
+            x1: width,
+            y1: height,
+        }
+    }
+
+    pub fn width(&self) -> u32 {
+        self.x1.saturating_sub(self.x0)
+    }
+
+    pub fn height(&self) -> u32 {
+        self.y1.saturating_sub(self.y0)
+    }
+
+    pub fn pixels(&self) -> u64 {
+        u64::from(self.width()) * u64::from(self.height())
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.pixels() == 0
+    }
+
+    /// The smallest rectangle that holds both.
+    pub fn union(self, other: PixelRect) -> PixelRect {
+        if self.is_empty() {
+            return other;
+        }
+        if other.is_empty() {
+            return self;
+        }
+        PixelRect {
+            x0: self.x0.min(other.x0),
+            y0: self.y0.min(other.y0),
+            x1: self.x1.max(other.x1),
+            y1: self.y1.max(other.y1),
+        }
+    }
+
+    #[cfg(test)]
+    pub fn contains(&self, x: u32, y: u32) -> bool {
+        (self.x0..self.x1).contains(&x) && (self.y0..self.y1).contains(&y)
+    }
 }
 
 impl FrameBatches {
@@ -35,6 +105,7 @@ impl FrameBatches {
             buffer: None,
             ranges: Vec::new(),
             staging: Vec::new(),
+            footprint: PixelRect::EMPTY,
         }
     }
 
@@ -54,17 +125,18 @@ impl FrameBatches {
             (device.limits().min_storage_buffer_offset_alignment as usize).div_ceil(entry_bytes);
         self.staging.clear();
         self.ranges.clear();
+        self.footprint = PixelRect::EMPTY;
         for batches in chunks {
             let padding = self.staging.len().next_multiple_of(alignment) - self.staging.len();
             self.staging
                 .extend(std::iter::repeat_n(GpuBatch::zeroed(), padding));
             let start = self.staging.len();
-            self.staging.extend(
-                batches
-                    .iter()
-                    .filter(|batch| frustum.may_see(batch))
-                    .copied(),
-            );
+            for batch in batches {
+                if let Some(footprint) = frustum.footprint(batch) {
+                    self.footprint = self.footprint.union(footprint);
+                    self.staging.push(*batch);
+                }
+            }
             self.ranges.push((
                 (start * entry_bytes) as u64,
                 (self.staging.len() - start) as u32,
@@ -88,6 +160,12 @@ impl FrameBatches {
         }
     }
 
+    /// The pixels that points of this frame's listed batches can touch (empty when none is
+    /// listed).
+    pub fn footprint(&self) -> PixelRect {
+        self.footprint
+    }
+
     /// Number of batches of chunk `chunk` in this frame's table.
     pub fn count(&self, chunk: usize) -> u32 {
         self.ranges.get(chunk).map_or(0, |&(_, count)| count)
@@ -108,6 +186,8 @@ impl FrameBatches {
 /// The frustum planes of one frame in homogeneous clip space, widened for the point size.
 struct Frustum {
     transform: CameraTransform,
+    /// Pixels a splat reaches beyond its centre's pixel, plus one for the shaders' f32.
+    margin: f64,
     widen_x: f64,
     widen_y: f64,
     near: f64,
@@ -123,6 +203,7 @@ impl Frustum {
         let depth_margin = 1e-5 * transform.far.abs().max(1.0);
         Self {
             transform: *transform,
+            margin,
             widen_x: 1.0 + 2.0 * margin / f64::from(transform.width),
             widen_y: 1.0 + 2.0 * margin / f64::from(transform.height),
             near: transform.near - depth_margin,
@@ -130,14 +211,16 @@ impl Frustum {
         }
     }
 
-    /// False when no point in `batch`'s box can show in the image: all its corners lie beyond
-    /// one plane.
-    fn may_see(&self, batch: &GpuBatch) -> bool {
+    /// `None` when no point in `batch`'s box can show in the image (all its corners lie
+    /// beyond one plane); else the pixels its points can touch.
+    fn footprint(&self, batch: &GpuBatch) -> Option<PixelRect> {
         let (min, max) = (
             Vec3::from_array(batch.min).as_dvec3(),
             Vec3::from_array(batch.max).as_dvec3(),
         );
         let mut outside = [true; 6];
+        let mut all_in_front = true;
+        let (mut low, mut high) = (DVec2::splat(f64::INFINITY), DVec2::splat(f64::NEG_INFINITY));
         for corner in 0..8 {
             let p = DVec3::new(
                 if corner & 1 == 0 { min.x } else { max.x },
@@ -153,8 +236,30 @@ impl Frustum {
             outside[3] &= clip.y > w * self.widen_y;
             outside[4] &= depth < self.near;
             outside[5] &= depth > self.far;
+            // Points nearer than `near` are culled, so when every corner is beyond it the box's
+            // image is the hull of its corners' images, far from the singular w = 0.
+            all_in_front &= depth >= self.near && w > 0.0;
+            let pixel = DVec2::new(
+                (clip.x / w * 0.5 + 0.5) * f64::from(self.transform.width),
+                (0.5 - clip.y / w * 0.5) * f64::from(self.transform.height),
+            );
+            low = low.min(pixel);
+            high = high.max(pixel);
         }
-        !outside.iter().any(|&o| o)
+        if outside.iter().any(|&o| o) {
+            return None;
+        }
+        let (width, height) = (self.transform.width, self.transform.height);
+        if !all_in_front {
+            return Some(PixelRect::full(width, height));
+        }
+        let clamp = |v: f64, limit: u32| v.clamp(0.0, f64::from(limit)) as u32;
+        Some(PixelRect {
+            x0: clamp((low.x - self.margin).floor(), width),
+            y0: clamp((low.y - self.margin).floor(), height),
+            x1: clamp((high.x + self.margin).ceil(), width),
+            y1: clamp((high.y + self.margin).ceil(), height),
+        })
     }
 }
 
@@ -176,19 +281,26 @@ mod tests {
         }
     }
 
-    /// Whether any of `samples` points of the box projects to a pixel of the image (the test a
-    /// culled batch must fail).
-    fn box_shows(transform: &CameraTransform, min: Vec3, max: Vec3, rng: &mut ChaCha8Rng) -> bool {
-        (0..400).any(|_| {
-            let t = Vec3::new(rng.random(), rng.random(), rng.random());
-            let p = (min + (max - min) * t).as_dvec3();
-            transform.project(p).is_some_and(|(x, y, _)| {
-                x >= 0.0
+    /// The pixels that random points of the box project to, within the image (a culled batch
+    /// must have none, and a footprint must hold them all).
+    fn pixels_in_view(
+        transform: &CameraTransform,
+        min: Vec3,
+        max: Vec3,
+        rng: &mut ChaCha8Rng,
+    ) -> Vec<(u32, u32)> {
+        (0..400)
+            .filter_map(|_| {
+                let t = Vec3::new(rng.random(), rng.random(), rng.random());
+                let p = (min + (max - min) * t).as_dvec3();
+                let (x, y, _) = transform.project(p)?;
+                let inside = x >= 0.0
                     && y >= 0.0
                     && x < f64::from(transform.width)
-                    && y < f64::from(transform.height)
+                    && y < f64::from(transform.height);
+                inside.then_some((x as u32, y as u32))
             })
-        })
+            .collect()
     }
 
     #[test]
@@ -216,6 +328,7 @@ mod tests {
             let transform = camera.transform(DVec3::ZERO, 320, 200);
             let frustum = Frustum::new(&transform, 1);
             let (mut culled, mut outside) = (0, 0);
+            let (mut footprints, mut tight) = (0, 0);
             for _ in 0..2000 {
                 let centre = Vec3::new(
                     rng.random_range(-40.0..40.0),
@@ -224,12 +337,26 @@ mod tests {
                 );
                 let half = Vec3::splat(rng.random_range(0.05..4.0));
                 let (min, max) = (centre - half, centre + half);
-                let shows = box_shows(&transform, min, max, &mut rng);
-                let kept = frustum.may_see(&batch(min, max));
+                let pixels = pixels_in_view(&transform, min, max, &mut rng);
+                let shows = !pixels.is_empty();
+                let footprint = frustum.footprint(&batch(min, max));
+                let kept = footprint.is_some();
                 assert!(
                     kept || !shows,
                     "{camera:?}: culled a box in view: {min} {max}"
                 );
+                if let Some(footprint) = footprint {
+                    for &(x, y) in &pixels {
+                        assert!(
+                            footprint.contains(x, y),
+                            "{camera:?}: pixel {x},{y} of {min} {max} outside {footprint:?}"
+                        );
+                    }
+                    if shows {
+                        footprints += 1;
+                        tight += usize::from(footprint.pixels() < 320 * 200 / 2);
+                    }
+                }
                 if !shows {
                     outside += 1;
                     culled += usize::from(!kept);
@@ -239,6 +366,12 @@ mod tests {
             assert!(
                 culled * 10 >= outside * 7,
                 "{camera:?}: culled only {culled} of {outside} boxes out of view"
+            );
+            // Small boxes get small footprints (those that straddle the near plane get the
+            // whole image).
+            assert!(
+                tight * 10 >= footprints * 7,
+                "{camera:?}: only {tight} of {footprints} footprints are tight"
             );
         }
     }
@@ -269,6 +402,14 @@ mod tests {
             (2, 0, 1)
         );
         assert!(tables.binding(1).is_none());
+        // Both listed boxes project to the middle of the image, 0.2 of its 2 units wide
+        // (6.4 pixels), widened by the 1-pixel points and a pixel of margin.
+        let footprint = tables.footprint();
+        assert!(footprint.contains(32, 32), "{footprint:?}");
+        assert!(
+            footprint.width() <= 12 && footprint.height() <= 12,
+            "{footprint:?}"
+        );
         let (offset, _) = tables.ranges[0];
         let first = offset as usize / std::mem::size_of::<GpuBatch>();
         assert_eq!(

@@ -45,7 +45,7 @@ use crate::camera::{Camera, CameraError, CameraTransform};
 use crate::cloud::PointCloud;
 use crate::gpu::{read_buffer, GpuContext, GpuError};
 use basic_pass::{BasicPass, PointFrame};
-use culling::FrameBatches;
+use culling::{FrameBatches, PixelRect};
 use edl_pass::EdlPass;
 use fill_pass::FillPass;
 use gpu_data::FrameUniforms;
@@ -264,7 +264,12 @@ impl FrameSettings {
     /// Whether the frame needs the resolved depth image: to read it back, or for filling or
     /// shading, which work on it. Otherwise the resolve does not write it.
     pub fn needs_depth_image(&self) -> bool {
-        self.read_depth || self.fill.is_some() || self.shading != Shading::None
+        self.read_depth || self.rewrites_resolved_images()
+    }
+
+    /// Whether passes after the resolve rewrite its images (filling, shading).
+    pub fn rewrites_resolved_images(&self) -> bool {
+        self.fill.is_some() || self.shading != Shading::None
     }
 
     /// The settings at which a supersampled frame is rendered before it is downsampled.
@@ -575,10 +580,6 @@ impl Renderer {
         let transform = settings
             .camera
             .transform(cloud.origin(), settings.width, settings.height);
-        let uniforms = frame_uniforms(&transform, settings);
-        self.gpu
-            .queue
-            .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));
         self.batches.update(
             &self.gpu.device,
             &self.gpu.queue,
@@ -614,13 +615,26 @@ impl Renderer {
         if settings.fill.is_some() || matches!(settings.shading, Shading::Pintus { .. }) {
             self.screen_uniforms.write(&self.gpu.queue, settings);
         }
+        let footprint = self.batches.footprint();
+        let Some(resolve_area) = self
+            .targets
+            .as_mut()
+            .map(|targets| targets.begin_resolve(footprint, settings))
+        else {
+            return Err(RenderError::Gpu("frame targets missing".into()));
+        };
+        let uniforms = frame_uniforms(&transform, settings, resolve_area);
+        self.gpu
+            .queue
+            .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));
         let upload_ms = started.elapsed().as_secs_f64() * 1e3 + cloud.take_upload_ms();
         timings.push(Stage::Upload, upload_ms, Clock::Host);
 
         let path = self.basic.path(settings.atomics == AtomicsMode::Auto);
-        self.run_passes(cloud, settings, path, &mut timings)?;
+        self.run_passes(cloud, settings, path, resolve_area, &mut timings)?;
         if let Some(targets) = self.targets.as_mut() {
             targets.needs_clear = false;
+            targets.record_resolved(footprint, settings);
         }
 
         let started = Instant::now();
@@ -670,6 +684,7 @@ impl Renderer {
         cloud: &GpuPointCloud,
         settings: &FrameSettings,
         path: AtomicsPath,
+        resolve_rect: PixelRect,
         timings: &mut StageTimings,
     ) -> Result<(), RenderError> {
         let device = &self.gpu.device;
@@ -702,8 +717,14 @@ impl Renderer {
                 (
                     Stage::Resolve,
                     Box::new(move |pass| {
-                        self.resolve
-                            .record_resolve(device, pass, uniforms, targets, write_depth)
+                        self.resolve.record_resolve(
+                            device,
+                            pass,
+                            uniforms,
+                            targets,
+                            resolve_rect,
+                            write_depth,
+                        )
                     }),
                 ),
             ],
@@ -729,6 +750,7 @@ impl Renderer {
                             pass,
                             uniforms,
                             targets,
+                            resolve_rect,
                             write_depth,
                         )
                     }),
@@ -808,7 +830,11 @@ impl Renderer {
     }
 }
 
-fn frame_uniforms(t: &CameraTransform, settings: &FrameSettings) -> FrameUniforms {
+fn frame_uniforms(
+    t: &CameraTransform,
+    settings: &FrameSettings,
+    resolve_rect: PixelRect,
+) -> FrameUniforms {
     FrameUniforms {
         view_proj: t.view_proj.as_mat4().to_cols_array_2d(),
         depth_row: t.depth_row.as_vec4().to_array(),
@@ -829,7 +855,8 @@ fn frame_uniforms(t: &CameraTransform, settings: &FrameSettings) -> FrameUniform
             Shading::Edl { radius, .. } => radius,
             _ => 0.0,
         },
-        _pad: [0; 4],
+        resolve_origin: [resolve_rect.x0, resolve_rect.y0],
+        resolve_size: [resolve_rect.width(), resolve_rect.height()],
     }
 }
 

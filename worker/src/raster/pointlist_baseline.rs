@@ -186,7 +186,7 @@ impl PointListBaseline {
         let transform = settings
             .camera
             .transform(cloud.origin(), settings.width, settings.height);
-        let uniforms = super::frame_uniforms(&transform, settings);
+        let uniforms = super::frame_uniforms(&transform, settings, super::PixelRect::EMPTY);
         self.gpu
             .queue
             .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));

@@ -4,6 +4,7 @@
 
 use pointfarm_shaders::Shader;
 
+use super::culling::PixelRect;
 use super::pipeline::{bind_buffers, compute_pipeline, shader_module};
 use super::targets::FrameTargets;
 
@@ -61,18 +62,22 @@ impl ResolvePass {
         targets: &FrameTargets,
     ) {
         let bind_group = bind_buffers(device, &self.clear, "clear", &[(1, &targets.framebuffer)]);
-        self.dispatch(pass, &self.clear, &bind_group, targets);
+        self.dispatch(pass, &self.clear, &bind_group, targets.pixels());
     }
 
-    /// The nearest point's colour per pixel, and its depth where `write_depth`.
+    /// The nearest point's colour per pixel of `rect`, and its depth where `write_depth`.
     pub fn record_resolve(
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
         uniforms: &wgpu::Buffer,
         targets: &FrameTargets,
+        rect: PixelRect,
         write_depth: bool,
     ) {
+        if rect.is_empty() {
+            return;
+        }
         let pipeline = self.resolve.get(write_depth);
         let bind_group = bind_buffers(
             device,
@@ -85,22 +90,26 @@ impl ResolvePass {
                 (3, &targets.depth),
             ],
         );
-        self.dispatch(pass, pipeline, &bind_group, targets);
+        self.dispatch(pass, pipeline, &bind_group, rect.pixels());
     }
 
-    /// High-quality mode: the average of the accumulated colours per pixel, and the nearest
-    /// depth where `write_depth`.
+    /// High-quality mode: the average of the accumulated colours per pixel of `rect`, and the
+    /// nearest depth where `write_depth`.
     pub fn record_resolve_average(
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
         uniforms: &wgpu::Buffer,
         targets: &FrameTargets,
+        rect: PixelRect,
         write_depth: bool,
     ) {
         let Some(accumulator) = targets.accumulator.as_ref() else {
             return;
         };
+        if rect.is_empty() {
+            return;
+        }
         let pipeline = self.resolve_average.get(write_depth);
         let bind_group = bind_buffers(
             device,
@@ -114,7 +123,7 @@ impl ResolvePass {
                 (4, accumulator),
             ],
         );
-        self.dispatch(pass, pipeline, &bind_group, targets);
+        self.dispatch(pass, pipeline, &bind_group, rect.pixels());
     }
 
     fn dispatch(
@@ -122,11 +131,11 @@ impl ResolvePass {
         pass: &mut wgpu::ComputePass<'_>,
         pipeline: &wgpu::ComputePipeline,
         bind_group: &wgpu::BindGroup,
-        targets: &FrameTargets,
+        pixels: u64,
     ) {
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, bind_group, &[]);
-        let groups = targets.pixels().div_ceil(WORKGROUP_SIZE as u64) as u32;
+        let groups = pixels.div_ceil(WORKGROUP_SIZE as u64) as u32;
         let (x, y) = super::dispatch_grid(groups);
         pass.dispatch_workgroups(x, y, 1);
     }

@@ -1,6 +1,12 @@
 //! Per-size GPU buffers of a frame: the point framebuffer and the resolved images.
 //! Reused from frame to frame while the size stays the same.
+//!
+//! They also remember where the last frame's points could have landed, so that the next
+//! resolve visits only that and its own footprint: a cloud that covers a corner of the image
+//! does not pay for resolving the rest of it every frame.
 
+use super::culling::PixelRect;
+use super::FrameSettings;
 use crate::gpu::staging_buffer;
 
 pub(crate) struct FrameTargets {
@@ -26,6 +32,18 @@ pub(crate) struct FrameTargets {
     pub fill: Option<FillTargets>,
     /// Pintus shading: created on the first such frame of this size.
     pub shading: Option<ShadingTargets>,
+    /// What the images hold outside the last frame's footprint, when that is known.
+    clean_outside: Option<CleanOutside>,
+}
+
+/// Outside `footprint` the colour image holds `background`, the depth image (where `depth`)
+/// "no surface", and the framebuffer and accumulator are empty: no point landed there since
+/// a resolve that covered those pixels.
+#[derive(Debug, Clone, Copy)]
+struct CleanOutside {
+    footprint: PixelRect,
+    background: [u8; 4],
+    depth: bool,
 }
 
 /// The visibility pass's output and the other half of the filling's ping-pong.
@@ -65,7 +83,40 @@ impl FrameTargets {
             accumulator: None,
             fill: None,
             shading: None,
+            clean_outside: None,
         }
+    }
+
+    /// The pixels the resolve of a frame with `settings`, whose points can land in
+    /// `footprint`, must visit: this footprint and the last one (to erase the last frame's
+    /// points), or the whole image unless the rest is known to be clean for this frame.
+    /// Forgets what it knew until [`FrameTargets::record_resolved`], in case the frame fails.
+    pub fn begin_resolve(&mut self, footprint: PixelRect, settings: &FrameSettings) -> PixelRect {
+        let known = self.clean_outside.take().filter(|clean| {
+            !settings.rewrites_resolved_images()
+                && clean.background == settings.background
+                && (clean.depth || !settings.needs_depth_image())
+        });
+        match known {
+            Some(clean) => footprint.union(clean.footprint),
+            None => PixelRect::full(self.width, self.height),
+        }
+    }
+
+    /// Records what the images hold after a frame with `settings`, whose points could land in
+    /// `footprint`, was resolved over the area [`FrameTargets::begin_resolve`] gave.
+    pub fn record_resolved(&mut self, footprint: PixelRect, settings: &FrameSettings) {
+        // Filling and shading write pixels anywhere in the images.
+        if settings.rewrites_resolved_images() {
+            return;
+        }
+        self.clean_outside = Some(CleanOutside {
+            footprint,
+            background: settings.background,
+            // A frame that writes depth had it clean outside its area (`begin_resolve`), and
+            // wrote "no surface" inside it wherever no point landed.
+            depth: settings.needs_depth_image(),
+        });
     }
 
     pub fn ensure_fill(&mut self, device: &wgpu::Device) {
@@ -113,4 +164,77 @@ fn scratch(device: &wgpu::Device, label: &str, size: u64) -> wgpu::Buffer {
         usage: wgpu::BufferUsages::STORAGE,
         mapped_at_creation: false,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Camera;
+    use crate::cloud::WorldBounds;
+    use crate::raster::{FillSettings, Shading};
+    use glam::DVec3;
+
+    fn rect(x0: u32, y0: u32, x1: u32, y1: u32) -> PixelRect {
+        PixelRect { x0, y0, x1, y1 }
+    }
+
+    #[test]
+    fn the_resolve_visits_the_last_and_this_footprint_once_the_rest_is_known_clean() {
+        let gpu = crate::testing::gpu();
+        let bounds = WorldBounds {
+            min: DVec3::ZERO,
+            max: DVec3::ONE,
+        };
+        let basic = FrameSettings::new(64, 48, Camera::auto(&bounds, 4.0 / 3.0));
+        let full = PixelRect::full(64, 48);
+        let mut targets = FrameTargets::new(&gpu.device, 64, 48);
+        let (a, b) = (rect(0, 0, 10, 10), rect(30, 20, 40, 48));
+
+        // One frame: the area its resolve visits.
+        let mut frame = |footprint: PixelRect, settings: &FrameSettings| {
+            let area = targets.begin_resolve(footprint, settings);
+            targets.record_resolved(footprint, settings);
+            area
+        };
+
+        // Nothing is known of new images.
+        assert_eq!(frame(a, &basic), full);
+        // The last frame's points and this frame's.
+        assert_eq!(frame(b, &basic), rect(0, 0, 40, 48));
+        // A frame with no point in view erases the last one's; the next has nothing to do.
+        assert_eq!(frame(PixelRect::EMPTY, &basic), b);
+        assert!(frame(PixelRect::EMPTY, &basic).is_empty());
+
+        // A new background repaints everything.
+        let grey = FrameSettings {
+            background: [90, 90, 90, 255],
+            ..basic
+        };
+        assert_eq!(frame(a, &grey), full);
+        assert_eq!(frame(a, &basic), full);
+
+        // The depth image was not written outside the footprints of colour-only frames.
+        let depth = FrameSettings {
+            read_depth: true,
+            ..basic
+        };
+        assert_eq!(frame(a, &depth), full);
+        assert_eq!(frame(b, &depth), a.union(b));
+        assert_eq!(frame(a, &basic), a.union(b));
+
+        // Filling and shading write anywhere: the frame after them starts over too.
+        for rewrites in [
+            FrameSettings {
+                fill: Some(FillSettings::default()),
+                ..basic
+            },
+            FrameSettings {
+                shading: Shading::EDL,
+                ..basic
+            },
+        ] {
+            assert_eq!(frame(a, &rewrites), full);
+            assert_eq!(frame(a, &basic), full);
+        }
+    }
 }

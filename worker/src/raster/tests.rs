@@ -301,6 +301,111 @@ fn every_point_workgroup_size_renders_the_same_image() {
     }
 }
 
+/// The resolve visits only the pixels this frame's or the last frame's points can touch
+/// (`targets.rs`). Frames rendered one after another on one renderer, with the cloud moving
+/// across the image and out of it, and the background, mode, depth read-back, point size,
+/// filling and shading changing, equal the same frames rendered on fresh renderers.
+#[test]
+fn consecutive_frames_equal_fresh_ones_while_the_resolve_skips_clean_pixels() {
+    let gpu = gpu();
+    let centre = FrameSettings::new(
+        160,
+        120,
+        camera(Projection::Perspective { fov_y_deg: 50.0 }),
+    );
+    // A noisy surface near the target's depth, without the points placed to be culled, which
+    // would stretch their batches' boxes over the whole image.
+    let surface = pixel_centre_scene_with(&centre, 13, |rng| {
+        let front = rng.random_range(50.0..54.0);
+        let mut depths = vec![front];
+        depths.extend((0..rng.random_range(1..6)).map(|_| front * rng.random_range(1.0005..1.005)));
+        depths.extend((0..rng.random_range(0..3)).map(|_| front * rng.random_range(1.02..1.1)));
+        depths
+    });
+    let kept: Vec<usize> = (0..surface.len())
+        .filter(|&i| surface.colors[i] != pack_rgba8(255, 0, 0))
+        .collect();
+    let cloud = surface.select(&kept);
+    // The camera slid sideways by `right` and `up` (in units of the view's width at the
+    // target): the cloud moves towards a corner of the image, or out of it.
+    let slid = |right: f64, up: f64, settings: FrameSettings| {
+        let c = settings.camera;
+        let forward = (c.target - c.position).normalize();
+        let side = forward.cross(c.up).normalize();
+        let above = side.cross(forward);
+        let width = 2.0 * (c.target - c.position).length() * (25f64.to_radians()).tan() * 4.0 / 3.0;
+        let offset = (side * right + above * up) * width;
+        FrameSettings {
+            camera: Camera {
+                position: c.position + offset,
+                target: c.target + offset,
+                ..c
+            },
+            ..settings
+        }
+    };
+    let sequence = [
+        centre,
+        slid(0.4, 0.3, centre),
+        slid(-0.5, -0.2, centre),
+        slid(3.0, 0.0, centre),
+        slid(0.3, 0.0, centre),
+        FrameSettings {
+            background: [200, 210, 220, 255],
+            ..slid(0.3, 0.0, centre)
+        },
+        FrameSettings {
+            quality: Quality::HIGH,
+            read_depth: true,
+            ..slid(-0.4, 0.2, centre)
+        },
+        FrameSettings {
+            read_depth: true,
+            ..slid(0.4, -0.3, centre)
+        },
+        FrameSettings {
+            shading: Shading::EDL,
+            ..slid(0.2, 0.2, centre)
+        },
+        slid(-0.3, -0.3, centre),
+        FrameSettings {
+            fill: Some(FillSettings::default()),
+            read_depth: true,
+            ..slid(0.3, 0.1, centre)
+        },
+        FrameSettings {
+            point_size: 3,
+            ..slid(-0.2, 0.4, centre)
+        },
+        FrameSettings {
+            quality: Quality::HIGH,
+            ..slid(0.5, 0.4, centre)
+        },
+        centre,
+    ];
+    let mut renderer = Renderer::new(gpu);
+    let resident = renderer.upload(&cloud).expect("upload");
+    let mut partly_covered = 0;
+    for (step, settings) in sequence.iter().enumerate() {
+        let frame = renderer.render(&resident, settings).expect("render");
+        let fresh = render_gpu(&cloud, settings);
+        let name = format!("sequence-{step}");
+        let diff = compare_images(&name, &frame.image, &fresh.image);
+        assert_eq!(diff.differing, 0, "{name}: {settings:?}");
+        assert_eq!(frame.depth, fresh.depth, "{name}");
+        let covered = frame
+            .image
+            .pixels()
+            .filter(|p| p.0 != settings.background)
+            .count();
+        partly_covered += usize::from(covered > 0 && covered < 160 * 120 / 2);
+    }
+    assert!(
+        partly_covered >= 6,
+        "only {partly_covered} frames cover part of the image"
+    );
+}
+
 #[test]
 fn a_cloud_larger_than_one_binding_renders_in_chunks() {
     let settings = FrameSettings::new(
