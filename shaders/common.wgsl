@@ -19,10 +19,11 @@ struct FrameUniforms {
     // Eye-Dome Lighting: 0 strength turns it off.
     edl_strength: f32,
     edl_radius: f32,
-    // The resolve visits the pixels of this rectangle only (first column and row, then
-    // columns and rows): elsewhere the images are known to be clean already.
-    resolve_origin: vec2<u32>,
-    resolve_size: vec2<u32>,
+    // Pixels the resolve visits, from the first of its (offset) bindings.
+    resolve_pixels: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 }
 
 // Side of the square each point covers, in pixels. A pipeline constant, not a uniform: with a

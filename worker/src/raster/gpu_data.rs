@@ -19,9 +19,9 @@ pub struct FrameUniforms {
     pub depth_band: f32,
     pub edl_strength: f32,
     pub edl_radius: f32,
-    /// The rectangle the resolve visits: first column and row, then columns and rows.
-    pub resolve_origin: [u32; 2],
-    pub resolve_size: [u32; 2],
+    /// Pixels the resolve visits, from the first of its bindings (`PixelRun`).
+    pub resolve_pixels: u32,
+    pub _pad: [u32; 3],
 }
 
 /// Bits of the quantised position per axis (x, y, z), relative to the batch's bounding box:

@@ -45,13 +45,13 @@ use crate::camera::{Camera, CameraError, CameraTransform};
 use crate::cloud::PointCloud;
 use crate::gpu::{read_buffer, GpuContext, GpuError};
 use basic_pass::{BasicPass, PointFrame};
-use culling::{FrameBatches, PixelRect};
+use culling::FrameBatches;
 use edl_pass::EdlPass;
 use fill_pass::FillPass;
 use gpu_data::FrameUniforms;
 use hq_pass::HqAccumulatePass;
 use pintus_pass::PintusPass;
-use resolve_pass::ResolvePass;
+use resolve_pass::{PixelRun, ResolvePass};
 use screen_params::ScreenUniforms;
 use targets::FrameTargets;
 use timing::GpuTimer;
@@ -623,7 +623,12 @@ impl Renderer {
         else {
             return Err(RenderError::Gpu("frame targets missing".into()));
         };
-        let uniforms = frame_uniforms(&transform, settings, resolve_area);
+        let resolve_run = PixelRun::covering(
+            resolve_area,
+            settings.width,
+            u64::from(self.gpu.device.limits().min_storage_buffer_offset_alignment),
+        );
+        let uniforms = frame_uniforms(&transform, settings, resolve_run);
         self.gpu
             .queue
             .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));
@@ -631,7 +636,7 @@ impl Renderer {
         timings.push(Stage::Upload, upload_ms, Clock::Host);
 
         let path = self.basic.path(settings.atomics == AtomicsMode::Auto);
-        self.run_passes(cloud, settings, path, resolve_area, &mut timings)?;
+        self.run_passes(cloud, settings, path, resolve_run, &mut timings)?;
         if let Some(targets) = self.targets.as_mut() {
             targets.needs_clear = false;
             targets.record_resolved(footprint, settings);
@@ -684,7 +689,7 @@ impl Renderer {
         cloud: &GpuPointCloud,
         settings: &FrameSettings,
         path: AtomicsPath,
-        resolve_rect: PixelRect,
+        resolve_run: PixelRun,
         timings: &mut StageTimings,
     ) -> Result<(), RenderError> {
         let device = &self.gpu.device;
@@ -722,7 +727,7 @@ impl Renderer {
                             pass,
                             uniforms,
                             targets,
-                            resolve_rect,
+                            resolve_run,
                             write_depth,
                         )
                     }),
@@ -750,7 +755,7 @@ impl Renderer {
                             pass,
                             uniforms,
                             targets,
-                            resolve_rect,
+                            resolve_run,
                             write_depth,
                         )
                     }),
@@ -833,7 +838,7 @@ impl Renderer {
 fn frame_uniforms(
     t: &CameraTransform,
     settings: &FrameSettings,
-    resolve_rect: PixelRect,
+    resolve_run: PixelRun,
 ) -> FrameUniforms {
     FrameUniforms {
         view_proj: t.view_proj.as_mat4().to_cols_array_2d(),
@@ -855,8 +860,9 @@ fn frame_uniforms(
             Shading::Edl { radius, .. } => radius,
             _ => 0.0,
         },
-        resolve_origin: [resolve_rect.x0, resolve_rect.y0],
-        resolve_size: [resolve_rect.width(), resolve_rect.height()],
+        // Image sides are at most MAX_IMAGE_SIDE: a run's length fits.
+        resolve_pixels: resolve_run.count as u32,
+        _pad: [0; 3],
     }
 }
 

@@ -186,7 +186,11 @@ impl PointListBaseline {
         let transform = settings
             .camera
             .transform(cloud.origin(), settings.width, settings.height);
-        let uniforms = super::frame_uniforms(&transform, settings, super::PixelRect::EMPTY);
+        let uniforms = super::frame_uniforms(
+            &transform,
+            settings,
+            super::resolve_pass::PixelRun { first: 0, count: 0 },
+        );
         self.gpu
             .queue
             .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));

@@ -346,6 +346,11 @@ fn consecutive_frames_equal_fresh_ones_while_the_resolve_skips_clean_pixels() {
     };
     let sequence = [
         centre,
+        slid(0.0, 0.6, centre),
+        FrameSettings {
+            read_depth: true,
+            ..slid(0.0, 0.6, centre)
+        },
         slid(0.4, 0.3, centre),
         slid(-0.5, -0.2, centre),
         slid(3.0, 0.0, centre),
