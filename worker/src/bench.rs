@@ -9,7 +9,8 @@
 //! per stage but left out of the frame time, since they do not depend on the method. Every
 //! figure is the median over measured frames, after warm-up frames; each round renders one
 //! frame with every method in turn, so that slow drifts of the machine's speed reach every
-//! method alike.
+//! method alike. Each compute method has a renderer of its own, so that no method starts its
+//! frame from the state another left (`Methods`).
 //!
 //! Series: uniform cubes of 1M to 30M points (frame time against points in view, with a
 //! least-squares line per method) and the k-plane cuboid (against overdraw); `huge` adds a
@@ -373,15 +374,10 @@ pub fn run(
     if options.frames == 0 {
         return Err(BenchError::NoFrames);
     }
-    let mut renderer = Renderer::new(gpu.clone());
-    let mut baseline = PointListBaseline::new(gpu.clone());
     // A software adapter's timestamps under-report compute passes (lavapipe: BENCHMARKS.md),
     // so it is always timed by host clocks.
     let host_clocks = options.host_clocks || gpu.adapter_info.device_type == wgpu::DeviceType::Cpu;
-    if host_clocks {
-        renderer.use_host_clocks();
-        baseline.use_host_clocks();
-    }
+    let mut methods = Methods::new(&gpu, options.modes.len(), host_clocks);
     // Refuse a bad image size before spending time on a 10M-point cloud.
     let unit_box = crate::cloud::WorldBounds {
         min: DVec3::ZERO,
@@ -393,8 +389,8 @@ pub fn run(
         options.height,
         Camera::auto(&unit_box, aspect),
     );
-    renderer.validate(&probe)?;
-    baseline.validate(&probe)?;
+    methods.compute[0].validate(&probe)?;
+    methods.baseline.validate(&probe)?;
     let mut workloads = Vec::new();
     let mut skipped = Vec::new();
     // A name selects itself and the views named after it ("uniform-10m" and its "-partial").
@@ -410,13 +406,7 @@ pub fn run(
 
     // The huge cloud first, while the process is small, so that its memory peak is its own.
     if options.huge && selected("uniform-100m") {
-        workloads.push(measure_huge(
-            &mut renderer,
-            &mut baseline,
-            options,
-            HUGE_POINTS,
-            progress,
-        )?);
+        workloads.push(measure_huge(&mut methods, options, HUGE_POINTS, progress)?);
     }
 
     // Scenes are built one at a time so that only one large cloud is in memory.
@@ -448,7 +438,7 @@ pub fn run(
             });
             continue;
         };
-        let resident = renderer.upload(&scene.cloud)?;
+        let resident = methods.compute[0].upload(&scene.cloud)?;
         for view in scene.views.iter().filter(|v| selected(&v.workload)) {
             progress(&format!(
                 "{}: {} points, measuring",
@@ -457,14 +447,7 @@ pub fn run(
             ));
             let settings = FrameSettings::new(options.width, options.height, view.camera);
             let in_view = points_in_view(&scene.cloud, &settings);
-            let result = measure(
-                &mut renderer,
-                &mut baseline,
-                &resident,
-                (view, in_view),
-                &settings,
-                options,
-            )?;
+            let result = measure(&mut methods, &resident, (view, in_view), &settings, options)?;
             progress(&summary_line(&result));
             workloads.push(result);
         }
@@ -510,8 +493,7 @@ fn summary_line(result: &WorkloadResult) -> String {
 /// uploaded chunk by chunk: the host never holds the whole cloud. Measured with one warm-up
 /// and three frames.
 fn measure_huge(
-    renderer: &mut Renderer,
-    baseline: &mut PointListBaseline,
+    methods: &mut Methods,
     options: &BenchOptions,
     points: usize,
     progress: &mut dyn FnMut(&str),
@@ -529,7 +511,7 @@ fn measure_huge(
     memory::reset_peak();
     let mut generator = CellCubeGenerator::new(points, 7);
     let mut in_view = 0usize;
-    let resident = renderer.upload_chunks(origin, &mut |n| {
+    let resident = methods.compute[0].upload_chunks(origin, &mut |n| {
         let chunk = generator.next_chunk(n)?;
         in_view += chunk
             .0
@@ -558,8 +540,7 @@ fn measure_huge(
         ..options.clone()
     };
     let mut result = measure(
-        renderer,
-        baseline,
+        methods,
         &resident,
         (&view, in_view),
         &settings,
@@ -576,9 +557,29 @@ fn measure_huge(
 }
 
 /// Warms up and measures every method on one view of a resident cloud.
+/// The methods a workload is measured with: the `PointList` baseline, and one renderer per
+/// compute method (basic first, then each mode). Each renderer keeps its own frame state (the
+/// resolve's last footprint, the high-quality accumulator), as one job's frames would: with a
+/// shared renderer every mode would start from the state another mode left.
+struct Methods {
+    baseline: PointListBaseline,
+    compute: Vec<Renderer>,
+}
+
+impl Methods {
+    fn new(gpu: &Arc<GpuContext>, modes: usize, host_clocks: bool) -> Self {
+        let mut baseline = PointListBaseline::new(gpu.clone());
+        let mut compute: Vec<Renderer> = (0..=modes).map(|_| Renderer::new(gpu.clone())).collect();
+        if host_clocks {
+            baseline.use_host_clocks();
+            compute.iter_mut().for_each(Renderer::use_host_clocks);
+        }
+        Self { baseline, compute }
+    }
+}
+
 fn measure(
-    renderer: &mut Renderer,
-    baseline: &mut PointListBaseline,
+    methods: &mut Methods,
     resident: &GpuPointCloud,
     (view, points_in_view): (&View, usize),
     settings: &FrameSettings,
@@ -601,13 +602,15 @@ fn measure(
     for round in 0..rounds {
         let measured = round >= options.warmup_frames;
         let started = Instant::now();
-        let frame = baseline.render(resident, settings)?;
+        let frame = methods.baseline.render(resident, settings)?;
         if measured {
             pointlist_wall_ms.push(started.elapsed().as_secs_f64() * 1e3);
             pointlist_timings.push(frame.timings);
         }
         pointlist_image = Some(frame.image);
-        for (method, settings) in settings_of.iter().enumerate() {
+        for (method, (settings, renderer)) in
+            settings_of.iter().zip(&mut methods.compute).enumerate()
+        {
             let started = Instant::now();
             let frame = renderer.render(resident, settings)?;
             if measured {
@@ -1247,20 +1250,18 @@ mod tests {
     #[test]
     fn runner_measures_both_methods_on_a_small_workload() {
         let gpu = gpu();
-        let mut renderer = Renderer::new(gpu.clone());
-        let mut baseline = PointListBaseline::new(gpu);
         let scene = cuboid_scene(4, 32, 64, 48, 5);
         let options = BenchOptions {
             warmup_frames: 1,
             frames: 2,
             ..BenchOptions::quick(64, 48, PathBuf::new())
         };
+        let mut methods = Methods::new(&gpu, options.modes.len(), false);
         let settings = FrameSettings::new(64, 48, scene.views[0].camera);
-        let resident = renderer.upload(&scene.cloud).expect("upload");
+        let resident = methods.compute[0].upload(&scene.cloud).expect("upload");
         let in_view = points_in_view(&scene.cloud, &settings);
         let result = measure(
-            &mut renderer,
-            &mut baseline,
+            &mut methods,
             &resident,
             (&scene.views[0], in_view),
             &settings,
@@ -1285,16 +1286,14 @@ mod tests {
     #[test]
     fn huge_workload_streams_many_chunks_and_reports_its_memory_peak() {
         let gpu = gpu();
-        let mut renderer = Renderer::new(gpu.clone());
-        // Chunks of 8 batches, so that 300,000 points arrive in ten chunks.
-        renderer.set_max_chunk_points(8 * BATCH_POINTS);
-        let mut baseline = PointListBaseline::new(gpu);
         let options = BenchOptions {
             modes: vec![ComputeMode::HighQuality],
             ..BenchOptions::quick(96, 54, PathBuf::new())
         };
-        let result = measure_huge(&mut renderer, &mut baseline, &options, 300_000, &mut |_| {})
-            .expect("measure");
+        let mut methods = Methods::new(&gpu, options.modes.len(), false);
+        // Chunks of 8 batches, so that 300,000 points arrive in ten chunks.
+        methods.compute[0].set_max_chunk_points(8 * BATCH_POINTS);
+        let result = measure_huge(&mut methods, &options, 300_000, &mut |_| {}).expect("measure");
         assert_eq!(result.workload, "uniform-300000");
         assert_eq!(result.points, 300_000);
         assert!(result.points_in_view > 290_000, "{}", result.points_in_view);

@@ -19,6 +19,7 @@ use bytemuck::Zeroable;
 use glam::{DVec2, DVec3, DVec4, Vec3};
 
 use super::gpu_data::GpuBatch;
+use super::pixel_rect::PixelRect;
 use crate::camera::CameraTransform;
 
 /// One frame's batch tables of a cloud's chunks, in one GPU buffer.
@@ -32,71 +33,6 @@ pub(crate) struct FrameBatches {
     staging: Vec<GpuBatch>,
     /// The pixels that points of the listed batches can touch this frame.
     footprint: PixelRect,
-}
-
-/// A rectangle of pixels: columns `x0..x1`, rows `y0..y1`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub(crate) struct PixelRect {
-    pub x0: u32,
-    pub y0: u32,
-    pub x1: u32,
-    pub y1: u32,
-}
-
-impl PixelRect {
-    pub const EMPTY: PixelRect = PixelRect {
-        x0: 0,
-        y0: 0,
-        x1: 0,
-        y1: 0,
-    };
-
-    /// The whole of a `width` x `height` image.
-    pub fn full(width: u32, height: u32) -> Self {
-        PixelRect {
-            x0: 0,
-            y0: 0,
-            x1: width,
-            y1: height,
-        }
-    }
-
-    pub fn width(&self) -> u32 {
-        self.x1.saturating_sub(self.x0)
-    }
-
-    pub fn height(&self) -> u32 {
-        self.y1.saturating_sub(self.y0)
-    }
-
-    pub fn pixels(&self) -> u64 {
-        u64::from(self.width()) * u64::from(self.height())
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.pixels() == 0
-    }
-
-    /// The smallest rectangle that holds both.
-    pub fn union(self, other: PixelRect) -> PixelRect {
-        if self.is_empty() {
-            return other;
-        }
-        if other.is_empty() {
-            return self;
-        }
-        PixelRect {
-            x0: self.x0.min(other.x0),
-            y0: self.y0.min(other.y0),
-            x1: self.x1.max(other.x1),
-            y1: self.y1.max(other.y1),
-        }
-    }
-
-    #[cfg(test)]
-    pub fn contains(&self, x: u32, y: u32) -> bool {
-        (self.x0..self.x1).contains(&x) && (self.y0..self.y1).contains(&y)
-    }
 }
 
 impl FrameBatches {

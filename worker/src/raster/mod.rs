@@ -19,6 +19,7 @@ mod gpu_data;
 mod hq_pass;
 mod pintus_pass;
 mod pipeline;
+mod pixel_rect;
 mod point_pipelines;
 mod point_workgroup;
 mod pointlist_baseline;

@@ -4,8 +4,8 @@
 
 use pointfarm_shaders::Shader;
 
-use super::culling::PixelRect;
 use super::pipeline::{bind_buffers, bind_resources, compute_pipeline, shader_module};
+use super::pixel_rect::PixelRect;
 use super::targets::FrameTargets;
 
 /// Must match `@workgroup_size` in resolve.wgsl.

@@ -5,7 +5,7 @@
 //! resolve visits only that and its own footprint: a cloud that covers a corner of the image
 //! does not pay for resolving the rest of it every frame.
 
-use super::culling::PixelRect;
+use super::pixel_rect::PixelRect;
 use super::FrameSettings;
 use crate::gpu::staging_buffer;
 
