@@ -54,6 +54,16 @@ fn resolve(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups
     }
 }
 
+// a / b rounded down, for b > 0, a / b < 2^16 and a + 2b < 2^32, without integer division,
+// which lavapipe runs lane by lane (it made the high-quality resolve 1.6 times as slow). The f32
+// quotient is within one of the exact one here, and one correction each way makes it exact.
+fn quotient(a: vec3<u32>, b: u32) -> vec3<u32> {
+    var q = vec3<u32>(vec3<f32>(a) / f32(b));
+    q = select(q, q - 1u, q * b > a);
+    q = select(q, q + 1u, (q + 1u) * b <= a);
+    return q;
+}
+
 // High-quality mode: the rounded average of the colours accumulated per pixel.
 @compute @workgroup_size(256)
 fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
@@ -66,10 +76,9 @@ fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_wo
     let count = sums.w;
     let depth_bits = framebuffer[pixel].y;
     framebuffer[pixel] = vec2<u32>(EMPTY, EMPTY);
-    // Round half up, in integers: (sum + count / 2) / count. Selects, not branches (see
-    // `resolve`).
+    // Round half up: (sum + count / 2) / count. Selects, not branches (see `resolve`).
     let divisor = max(count, 1u);
-    let average = (sums.xyz + vec3<u32>(count / 2u)) / divisor;
+    let average = quotient(sums.xyz + vec3<u32>(count / 2u), divisor);
     let rgba = average.x | (average.y << 8u) | (average.z << 16u) | (255u << 24u);
     colour_out[pixel] = select(rgba, frame.background, count == 0u);
     if WRITE_DEPTH {

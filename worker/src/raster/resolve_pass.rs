@@ -181,6 +181,97 @@ impl ResolvePass {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::gpu::{read_buffer, staging_buffer};
+    use wgpu::util::DeviceExt;
+
+    /// `quotient` of resolve.wgsl, the high-quality average's division without integer
+    /// division, equals integer division on this adapter over the range it is used in.
+    #[test]
+    fn the_shaders_quotient_is_exact_integer_division() {
+        let gpu = crate::testing::gpu();
+        let source = Shader::Resolve.source();
+        let start = source
+            .find("fn quotient(")
+            .expect("resolve.wgsl has quotient");
+        let end = start + source[start..].find("\n}\n").expect("end of quotient") + 3;
+        let wgsl = format!(
+            "{}\n@group(0) @binding(0) var<storage, read> pairs: array<vec2<u32>>;\n\
+             @group(0) @binding(1) var<storage, read_write> out: array<u32>;\n\
+             @compute @workgroup_size(64)\n\
+             fn main(@builtin(global_invocation_id) id: vec3<u32>) {{\n\
+                 if id.x < arrayLength(&pairs) {{\n\
+                     let p = pairs[id.x];\n\
+                     out[id.x] = quotient(vec3<u32>(p.x, p.x + 1u, p.x / 2u), p.y).x;\n\
+                 }}\n\
+             }}\n",
+            &source[start..end]
+        );
+        // Sums of 255 levels and counts as the resolve forms them, the exact multiples and
+        // their neighbours (where a wrong rounding shows first), up to 16 million points.
+        let mut pairs: Vec<[u32; 2]> = Vec::new();
+        let mut rng = 0x2545_f491_4f6c_dd1d_u64;
+        let mut next = |limit: u64| {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            (rng % limit) as u32
+        };
+        for count in (1u32..300).chain([1 << 12, 65_535, 65_536, 1 << 20, 16_000_000]) {
+            for level in [0u32, 1, 127, 128, 254, 255] {
+                let exact = level * count;
+                for a in [exact.saturating_sub(1), exact, exact + 1, exact + count / 2] {
+                    pairs.push([a, count]);
+                }
+            }
+        }
+        for _ in 0..20_000 {
+            let count = 1 + next(1 << 24);
+            let a = next(255 * u64::from(count) + u64::from(count / 2) + 1);
+            pairs.push([a, count]);
+        }
+        let input = gpu
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("pairs"),
+                contents: bytemuck::cast_slice(&pairs),
+                usage: wgpu::BufferUsages::STORAGE,
+            });
+        let bytes = pairs.len() as u64 * 4;
+        let output = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("quotients"),
+            size: bytes,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        let module = gpu
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("quotient test"),
+                source: wgpu::ShaderSource::Wgsl(wgsl.into()),
+            });
+        let pipeline = compute_pipeline(&gpu.device, &module, "main", &[]);
+        let bind_group = bind_buffers(
+            &gpu.device,
+            &pipeline,
+            "quotient test",
+            &[(0, &input), (1, &output)],
+        );
+        let mut encoder = gpu.device.create_command_encoder(&Default::default());
+        {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&pipeline);
+            pass.set_bind_group(0, &bind_group, &[]);
+            pass.dispatch_workgroups((pairs.len() as u32).div_ceil(64), 1, 1);
+        }
+        gpu.queue.submit([encoder.finish()]);
+        let staging = staging_buffer(&gpu.device, "quotients", bytes);
+        let quotients: Vec<u32> = bytemuck::pod_collect_to_vec(
+            &read_buffer(&gpu, &output, &staging, bytes).expect("read"),
+        );
+        for (&[a, b], &q) in pairs.iter().zip(&quotients) {
+            assert_eq!(q, a / b, "{a} / {b}");
+        }
+    }
 
     #[test]
     fn a_run_covers_the_rows_of_its_rectangle_from_an_aligned_first_pixel() {
