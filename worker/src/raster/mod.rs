@@ -52,7 +52,7 @@ use fill_pass::FillPass;
 use gpu_data::FrameUniforms;
 use hq_pass::HqAccumulatePass;
 use pintus_pass::PintusPass;
-use resolve_pass::{PixelRun, ResolvePass};
+use resolve_pass::{PixelRun, ResolveFrame, ResolvePass};
 use screen_params::ScreenUniforms;
 use targets::FrameTargets;
 use timing::GpuTimer;
@@ -705,7 +705,12 @@ impl Renderer {
             batches: &self.batches,
             targets,
         };
-        let write_depth = settings.needs_depth_image();
+        let resolve = ResolveFrame {
+            uniforms,
+            targets,
+            run: resolve_run,
+            write_depth: settings.needs_depth_image(),
+        };
         type Record<'a> = Box<dyn Fn(&mut wgpu::ComputePass<'_>) + 'a>;
         let mut passes: Vec<(Stage, Record<'_>)> = match settings.quality {
             // The resolve empties the framebuffer for the next frame: only a new one is
@@ -722,16 +727,7 @@ impl Renderer {
                 ),
                 (
                     Stage::Resolve,
-                    Box::new(move |pass| {
-                        self.resolve.record_resolve(
-                            device,
-                            pass,
-                            uniforms,
-                            targets,
-                            resolve_run,
-                            write_depth,
-                        )
-                    }),
+                    Box::new(move |pass| self.resolve.record_resolve(device, pass, resolve)),
                 ),
             ],
             Quality::High { .. } => vec![
@@ -750,15 +746,8 @@ impl Renderer {
                 ),
                 (
                     Stage::Resolve,
-                    Box::new(|pass| {
-                        self.resolve.record_resolve_average(
-                            device,
-                            pass,
-                            uniforms,
-                            targets,
-                            resolve_run,
-                            write_depth,
-                        )
+                    Box::new(move |pass| {
+                        self.resolve.record_resolve_average(device, pass, resolve)
                     }),
                 ),
             ],

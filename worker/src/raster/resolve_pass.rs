@@ -48,6 +48,17 @@ impl PixelRun {
     }
 }
 
+/// What one frame's resolve reads and writes.
+#[derive(Clone, Copy)]
+pub(crate) struct ResolveFrame<'a> {
+    pub uniforms: &'a wgpu::Buffer,
+    pub targets: &'a FrameTargets,
+    /// The pixels to visit.
+    pub run: PixelRun,
+    /// Whether to write the depth image (`FrameSettings::needs_depth_image`).
+    pub write_depth: bool,
+}
+
 pub(crate) struct ResolvePass {
     clear: wgpu::ComputePipeline,
     resolve: ByDepthOutput,
@@ -102,64 +113,54 @@ impl ResolvePass {
         self.dispatch(pass, &self.clear, &bind_group, targets.pixels());
     }
 
-    /// The nearest point's colour per pixel of `run`, and its depth where `write_depth`.
+    /// The nearest point's colour per pixel of the frame's run, and its depth where needed.
     pub fn record_resolve(
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
-        uniforms: &wgpu::Buffer,
-        targets: &FrameTargets,
-        run: PixelRun,
-        write_depth: bool,
+        frame: ResolveFrame<'_>,
     ) {
-        if run.count == 0 {
-            return;
-        }
-        let pipeline = self.resolve.get(write_depth);
-        let bind_group = bind_resources(
-            device,
-            pipeline,
-            "resolve",
-            vec![
-                (0, uniforms.as_entire_binding()),
-                (1, run.binding(&targets.framebuffer, 8)),
-                (2, run.binding(&targets.colour, 4)),
-                (3, run.binding(&targets.depth, 4)),
-            ],
-        );
-        self.dispatch(pass, pipeline, &bind_group, run.count);
+        let pipeline = self.resolve.get(frame.write_depth);
+        self.record(device, pass, pipeline, frame, None);
     }
 
-    /// High-quality mode: the average of the accumulated colours per pixel of `run`, and the
-    /// nearest depth where `write_depth`.
+    /// High-quality mode: the average of the accumulated colours per pixel of the frame's run,
+    /// and the nearest depth where needed.
     pub fn record_resolve_average(
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
-        uniforms: &wgpu::Buffer,
-        targets: &FrameTargets,
-        run: PixelRun,
-        write_depth: bool,
+        frame: ResolveFrame<'_>,
     ) {
-        let Some(accumulator) = targets.accumulator.as_ref() else {
+        let Some(accumulator) = frame.targets.accumulator.as_ref() else {
             return;
         };
+        let pipeline = self.resolve_average.get(frame.write_depth);
+        self.record(device, pass, pipeline, frame, Some(accumulator));
+    }
+
+    fn record(
+        &self,
+        device: &wgpu::Device,
+        pass: &mut wgpu::ComputePass<'_>,
+        pipeline: &wgpu::ComputePipeline,
+        frame: ResolveFrame<'_>,
+        accumulator: Option<&wgpu::Buffer>,
+    ) {
+        let (run, targets) = (frame.run, frame.targets);
         if run.count == 0 {
             return;
         }
-        let pipeline = self.resolve_average.get(write_depth);
-        let bind_group = bind_resources(
-            device,
-            pipeline,
-            "resolve average",
-            vec![
-                (0, uniforms.as_entire_binding()),
-                (1, run.binding(&targets.framebuffer, 8)),
-                (2, run.binding(&targets.colour, 4)),
-                (3, run.binding(&targets.depth, 4)),
-                (4, run.binding(accumulator, 16)),
-            ],
-        );
+        let mut resources = vec![
+            (0, frame.uniforms.as_entire_binding()),
+            (1, run.binding(&targets.framebuffer, 8)),
+            (2, run.binding(&targets.colour, 4)),
+            (3, run.binding(&targets.depth, 4)),
+        ];
+        if let Some(accumulator) = accumulator {
+            resources.push((4, run.binding(accumulator, 16)));
+        }
+        let bind_group = bind_resources(device, pipeline, "resolve", resources);
         self.dispatch(pass, pipeline, &bind_group, run.count);
     }
 
