@@ -3,7 +3,8 @@
 //! A frame is: write the frame uniforms; run the point pass over every chunk of the resident
 //! cloud (batch frustum culling, dequantisation, per-point projection, early depth test,
 //! atomic minimum of depth and colour); resolve the framebuffer into an RGBA8 image and a
-//! depth image, emptying it for the next frame (only a new framebuffer is cleared first);
+//! depth image, emptying it for the next frame (only a new framebuffer is cleared first), over
+//! the rows this frame's and the last frame's points can touch;
 //! optionally remove the points seen through holes and fill the holes (visibility and
 //! filling, Pintus et al.); optionally shade (Eye-Dome Lighting or Pintus's shape depiction);
 //! read both images back. Each stage is timed.
