@@ -914,13 +914,10 @@ fn panned_to_fraction(cloud: &PointCloud, camera: Camera, aspect: f64, fraction:
         .step_by(cloud.len().div_ceil(20_000))
         .collect();
     let sample = cloud.select(&sample);
-    let forward = (camera.target - camera.position).normalize();
-    let right = forward.cross(camera.up).normalize();
-    let diagonal = (right + forward.cross(right).normalize()).normalize();
-    let panned = |distance: f64| Camera {
-        position: camera.position + diagonal * distance,
-        target: camera.target + diagonal * distance,
-        ..camera
+    // Towards the image's lower right corner.
+    let panned = |distance: f64| {
+        let step = distance * std::f64::consts::FRAC_1_SQRT_2;
+        camera.moved_sideways(step, -step)
     };
     let height = 1000;
     let width = (f64::from(height) * aspect).round() as u32;

@@ -211,6 +211,20 @@ impl Camera {
         }
     }
 
+    /// This camera moved without turning, `right` and `up` world units along the image's
+    /// horizontal and vertical axes (a pan of the whole view).
+    pub fn moved_sideways(&self, right: f64, up: f64) -> Camera {
+        let forward = (self.target - self.position).normalize();
+        let image_right = forward.cross(self.up).normalize();
+        let image_up = image_right.cross(forward);
+        let offset = image_right * right + image_up * up;
+        Camera {
+            position: self.position + offset,
+            target: self.target + offset,
+            ..*self
+        }
+    }
+
     /// Frame `index` of `frames` of a turntable around the cloud, starting at the automatic
     /// camera.
     pub fn turntable(bounds: &WorldBounds, aspect: f64, index: usize, frames: usize) -> Camera {
@@ -284,6 +298,21 @@ mod tests {
             min: DVec3::new(515_000.0, 4_918_000.0, 2_000.0),
             max: DVec3::new(515_100.0, 4_918_050.0, 2_030.0),
         }
+    }
+
+    #[test]
+    fn a_camera_moved_sideways_keeps_its_direction_and_shifts_the_image() {
+        let camera = Camera::auto(&bounds(), 1.5);
+        let moved = camera.moved_sideways(3.0, -2.0);
+        assert!((moved.target - moved.position).abs_diff_eq(camera.target - camera.position, 1e-9));
+        assert!(((moved.position - camera.position).length() - 13f64.sqrt()).abs() < 1e-9);
+        // The old target now shows left of the image centre and above it.
+        let origin = bounds().center();
+        let (x, y, _) = moved
+            .transform(origin, 300, 200)
+            .project(camera.target - origin)
+            .expect("in view");
+        assert!(x < 150.0 && y < 100.0, "{x} {y}");
     }
 
     #[test]

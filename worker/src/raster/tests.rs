@@ -330,17 +330,9 @@ fn consecutive_frames_equal_fresh_ones_while_the_resolve_skips_clean_pixels() {
     // target): the cloud moves towards a corner of the image, or out of it.
     let slid = |right: f64, up: f64, settings: FrameSettings| {
         let c = settings.camera;
-        let forward = (c.target - c.position).normalize();
-        let side = forward.cross(c.up).normalize();
-        let above = side.cross(forward);
         let width = 2.0 * (c.target - c.position).length() * (25f64.to_radians()).tan() * 4.0 / 3.0;
-        let offset = (side * right + above * up) * width;
         FrameSettings {
-            camera: Camera {
-                position: c.position + offset,
-                target: c.target + offset,
-                ..c
-            },
+            camera: c.moved_sideways(right * width, up * width),
             ..settings
         }
     };
