@@ -585,10 +585,7 @@ impl Renderer {
         self.batches.update(
             &self.gpu.device,
             &self.gpu.queue,
-            cloud
-                .chunks
-                .iter()
-                .map(|chunk| chunk.batch_table.as_slice()),
+            cloud.chunks.iter().map(|chunk| chunk.tables()),
             &transform,
             settings.point_size,
         );

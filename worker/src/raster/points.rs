@@ -27,6 +27,12 @@ use crate::gpu::GpuContext;
 /// Points per batch: one workgroup culls and rasterizes one batch.
 pub const BATCH_POINTS: usize = 4096;
 
+/// Points per sub-batch: the host also keeps the box of every run of this many points of a
+/// batch, and lists only the runs that can be in view of a batch that straddles the edge of
+/// the view (`culling.rs`).
+pub const SUB_BATCH_POINTS: usize = 256;
+const _: () = assert!(BATCH_POINTS.is_multiple_of(SUB_BATCH_POINTS));
+
 /// Bytes one point adds to a chunk's point buffers (position and colour).
 pub const POINT_BYTES: u64 = std::mem::size_of::<QuantisedPosition>() as u64 + COLOUR_BYTES;
 
@@ -41,7 +47,27 @@ pub(crate) struct PointChunk {
     /// The same batch table on the host, from which each frame's table is built
     /// (`culling.rs`).
     pub batch_table: Vec<GpuBatch>,
+    /// Host only: each batch's points in runs of [`SUB_BATCH_POINTS`], each with the box of
+    /// the positions the shaders dequantise; batch `b`'s runs start at `b * BATCH_POINTS /
+    /// SUB_BATCH_POINTS`.
+    pub sub_batches: Vec<GpuBatch>,
     pub point_count: u32,
+}
+
+impl PointChunk {
+    pub(crate) fn tables(&self) -> BatchTables<'_> {
+        BatchTables {
+            batches: &self.batch_table,
+            sub_batches: &self.sub_batches,
+        }
+    }
+}
+
+/// A chunk's batches and sub-batches, as the host's culling reads them.
+#[derive(Clone, Copy)]
+pub(crate) struct BatchTables<'a> {
+    pub batches: &'a [GpuBatch],
+    pub sub_batches: &'a [GpuBatch],
 }
 
 /// A cloud uploaded for rendering. Create it with [`super::Renderer::upload`].
@@ -187,6 +213,7 @@ struct ChunkData {
     positions: Vec<QuantisedPosition>,
     colours: Vec<u8>,
     batches: Vec<GpuBatch>,
+    sub_batches: Vec<GpuBatch>,
 }
 
 impl ChunkData {
@@ -194,13 +221,18 @@ impl ChunkData {
     fn new(positions: &[Vec3], colours: impl Iterator<Item = u32>) -> Self {
         let mut quantised = Vec::with_capacity(positions.len());
         let mut batches = Vec::with_capacity(positions.len().div_ceil(BATCH_POINTS));
+        let mut sub_batches = Vec::with_capacity(positions.len().div_ceil(SUB_BATCH_POINTS));
         for (b, batch) in positions.chunks(BATCH_POINTS).enumerate() {
             let gpu_batch = batch_of(b * BATCH_POINTS, batch);
             let (min, step) = (
                 Vec3::from_array(gpu_batch.min),
                 quantisation_step(&gpu_batch),
             );
+            let first = quantised.len();
             quantised.extend(batch.iter().map(|&p| quantise(p, min, step)));
+            for (s, run) in quantised[first..].chunks(SUB_BATCH_POINTS).enumerate() {
+                sub_batches.push(sub_batch_of(&gpu_batch, first + s * SUB_BATCH_POINTS, run));
+            }
             batches.push(gpu_batch);
         }
         // Three bytes per point and one spare word (see `PointChunk::colours`).
@@ -213,6 +245,7 @@ impl ChunkData {
             positions: quantised,
             colours: rgb,
             batches,
+            sub_batches,
         }
     }
 
@@ -232,6 +265,7 @@ impl ChunkData {
             batches: buffer("batches", bytemuck::cast_slice(&self.batches)),
             point_count: self.positions.len() as u32,
             batch_table: self.batches,
+            sub_batches: self.sub_batches,
         }
     }
 }
@@ -248,6 +282,27 @@ fn batch_of(first: usize, points: &[Vec3]) -> GpuBatch {
         first: first as u32,
         max: max.to_array(),
         count: points.len() as u32,
+    }
+}
+
+/// The run of quantised points of `batch` starting at index `first`, with the box of their
+/// dequantised positions widened by one step on each side: the shaders' f32 dequantisation
+/// lands within a few ulp of the exact value, far inside that step.
+fn sub_batch_of(batch: &GpuBatch, first: usize, run: &[QuantisedPosition]) -> GpuBatch {
+    let (mut low, mut high) = (UVec3::MAX, UVec3::ZERO);
+    for &word in run {
+        let q = unpack(word);
+        low = low.min(q);
+        high = high.max(q);
+    }
+    let min = Vec3::from_array(batch.min).as_dvec3();
+    let step = quantisation_step(batch).as_dvec3();
+    let corner = |q: UVec3, side: f64| (min + (q.as_dvec3() + side) * step).as_vec3();
+    GpuBatch {
+        min: corner(low, -1.0).to_array(),
+        first: first as u32,
+        max: corner(high, 1.0).to_array(),
+        count: run.len() as u32,
     }
 }
 
@@ -278,15 +333,19 @@ pub(crate) fn quantise(p: Vec3, min: Vec3, step: Vec3) -> QuantisedPosition {
     [q[0] | (q[1] << 21), (q[1] >> 11) | (q[2] << 10)]
 }
 
-/// The position a shader reads back (`dequantise` in common.wgsl).
-#[cfg(test)]
-fn dequantise(word: QuantisedPosition, min: Vec3, step: Vec3) -> Vec3 {
-    let q = UVec3::new(
+/// The quantised steps of each axis (the shaders' `dequantise` in common.wgsl).
+fn unpack(word: QuantisedPosition) -> UVec3 {
+    UVec3::new(
         word[0] & 0x1f_ffff,
         (word[0] >> 21) | ((word[1] & 0x3ff) << 11),
         word[1] >> 10,
-    );
-    min + q.as_vec3() * step
+    )
+}
+
+/// The position a shader reads back (`dequantise` in common.wgsl).
+#[cfg(test)]
+fn dequantise(word: QuantisedPosition, min: Vec3, step: Vec3) -> Vec3 {
+    min + unpack(word).as_vec3() * step
 }
 
 /// Indices of `positions` in Z-order over their bounding box (21 bits per axis).
@@ -323,6 +382,27 @@ fn morton3(x: u32, y: u32, z: u32) -> u64 {
     spread(x) | (spread(y) << 1) | (spread(z) << 2)
 }
 
+/// Host tables of `positions` sorted in Morton order, as an upload builds them: the batches,
+/// the sub-batches and each point's position as the shaders dequantise it.
+#[cfg(test)]
+pub(crate) fn host_tables(positions: &[Vec3]) -> (Vec<GpuBatch>, Vec<GpuBatch>, Vec<Vec3>) {
+    let sorted: Vec<Vec3> = morton_order(positions)
+        .into_iter()
+        .map(|i| positions[i as usize])
+        .collect();
+    let data = ChunkData::new(&sorted, std::iter::repeat(0));
+    let dequantised = data
+        .positions
+        .iter()
+        .enumerate()
+        .map(|(i, &word)| {
+            let batch = &data.batches[i / BATCH_POINTS];
+            dequantise(word, Vec3::from_array(batch.min), quantisation_step(batch))
+        })
+        .collect();
+    (data.batches, data.sub_batches, dequantised)
+}
+
 #[cfg(test)]
 mod tests {
     use rand::{Rng, SeedableRng};
@@ -353,6 +433,43 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn sub_batches_split_each_batch_in_order_and_bound_its_dequantised_points() {
+        let mut rng = ChaCha8Rng::seed_from_u64(12);
+        // Two full batches and a partial one, at survey-like offsets.
+        let points: Vec<Vec3> = (0..2 * BATCH_POINTS + 700)
+            .map(|_| Vec3::from_array(std::array::from_fn(|_| 300.0 + rng.random::<f32>() * 90.0)))
+            .collect();
+        let (batches, subs, dequantised) = host_tables(&points);
+        assert_eq!(batches.len(), 3);
+        assert_eq!(subs.len(), 2 * BATCH_POINTS / SUB_BATCH_POINTS + 3);
+        let mut next = 0;
+        for (s, sub) in subs.iter().enumerate() {
+            assert_eq!(
+                sub.first as usize, next,
+                "sub-batch {s} follows the one before"
+            );
+            next += sub.count as usize;
+            let batch = &batches[sub.first as usize / BATCH_POINTS];
+            assert!(sub.first + sub.count <= batch.first + batch.count);
+            let (min, max) = (Vec3::from_array(sub.min), Vec3::from_array(sub.max));
+            let run = &dequantised[sub.first as usize..(sub.first + sub.count) as usize];
+            for p in run {
+                assert!(
+                    p.cmpge(min).all() && p.cmple(max).all(),
+                    "{p} outside {sub:?}"
+                );
+            }
+            // Tight: Morton order makes a run much smaller than its batch.
+            let batch_size = Vec3::from_array(batch.max) - Vec3::from_array(batch.min);
+            assert!(
+                (max - min).length() < batch_size.length(),
+                "{sub:?} in {batch:?}"
+            );
+        }
+        assert_eq!(next, points.len());
     }
 
     #[test]
