@@ -14,13 +14,13 @@
 //! The same pass over the boxes bounds the frame's footprint: the pixels any listed point can
 //! touch. The resolve skips the rest of the image when it is known to be empty (`targets.rs`).
 //!
-//! The table is a copy of the entries (32 bytes per 4096 points), in the cloud's Morton order.
-//! Sorting it front to back, for the early depth test, made lavapipe's 10M-point frame 20%
-//! slower: consecutive workgroups no longer write nearby pixels (BENCHMARKS.md).
+//! The table is a copy of the entries (32 bytes per 4096 points), each chunk's sorted near to
+//! far along a mirrored Z-order curve (`draw_order.rs`).
 
 use bytemuck::Zeroable;
 use glam::{DVec2, DVec3, DVec4, Vec3};
 
+use super::draw_order::sort_near_to_far;
 use super::gpu_data::GpuBatch;
 use super::pixel_rect::PixelRect;
 use super::points::{BatchTables, BATCH_POINTS, SUB_BATCH_POINTS};
@@ -73,6 +73,7 @@ impl FrameBatches {
             let start = self.staging.len();
             let footprint = list_in_view(&frustum, tables, &mut self.staging);
             self.footprint = self.footprint.union(footprint);
+            sort_near_to_far(&mut self.staging[start..], transform.depth_row.truncate());
             self.ranges.push((
                 (start * entry_bytes) as u64,
                 (self.staging.len() - start) as u32,
@@ -445,8 +446,8 @@ mod tests {
         let first = offset as usize / std::mem::size_of::<GpuBatch>();
         assert_eq!(
             &tables.staging[first..first + 2],
-            &[far, near],
-            "the cloud's order"
+            &[near, far],
+            "near to far"
         );
         let alignment = u64::from(gpu.device.limits().min_storage_buffer_offset_alignment);
         for chunk in [0, 2] {

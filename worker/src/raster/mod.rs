@@ -14,6 +14,7 @@
 
 mod basic_pass;
 mod culling;
+mod draw_order;
 mod edl_pass;
 mod fill_pass;
 mod gpu_data;

@@ -369,7 +369,7 @@ fn morton_order(positions: &[Vec3]) -> Vec<u32> {
 }
 
 /// Interleaves the low 21 bits of x, y and z.
-fn morton3(x: u32, y: u32, z: u32) -> u64 {
+pub(crate) fn morton3(x: u32, y: u32, z: u32) -> u64 {
     fn spread(v: u32) -> u64 {
         let mut v = v as u64 & 0x1f_ffff;
         v = (v | (v << 32)) & 0x001f_0000_0000_ffff;
