@@ -21,9 +21,10 @@ struct FrameUniforms {
     edl_radius: f32,
     // Pixels the resolve visits, from the first of its (offset) bindings.
     resolve_pixels: u32,
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
+    // The first tile of the frame's footprint, where the occlusion tiles are built from.
+    occlusion_tile_x0: u32,
+    occlusion_tile_y0: u32,
+    _pad: u32,
 }
 
 // Side of the square each point covers, in pixels. A pipeline constant, not a uniform: with a

@@ -29,10 +29,14 @@ fn accumulate(
         return;
     }
     let batch = batches[b];
+    let band = 1.0 + frame.depth_band;
     if batch_outside_view(frame, batch) {
         return;
     }
-    let band = 1.0 + frame.depth_band;
+    if batch_occluded(frame, batch, band) {
+        count_skipped(1u, lane);
+        return;
+    }
     let step = quantisation_step(batch);
     for (var i = batch.first + lane; i < batch.first + batch.count; i += WORKGROUP_SIZE) {
         let splat = project_point(frame, dequantise(positions[i], batch.min, step));

@@ -26,14 +26,19 @@ pub enum Shader {
     /// The benchmark's fixed-function baseline, a `PointList` render pipeline: entry points
     /// `vertex_main`, `fragment_main`.
     PointListBaseline,
+    /// The occlusion tiles between point dispatches: entry points `clear_tiles`,
+    /// `build_tiles`.
+    OcclusionTiles,
 }
 
 const COMMON: &str = include_str!("common.wgsl");
+/// The occlusion test of whole batches, after `common.wgsl` in the point passes.
+const OCCLUSION: &str = include_str!("occlusion.wgsl");
 /// Parameters and helpers of the passes on the resolved images, after `common.wgsl`.
 const SCREEN_COMMON: &str = include_str!("screen_common.wgsl");
 
 impl Shader {
-    pub const ALL: [Shader; 9] = [
+    pub const ALL: [Shader; 10] = [
         Shader::RasterAtomic64,
         Shader::RasterAtomic32,
         Shader::HqAccumulate,
@@ -43,6 +48,7 @@ impl Shader {
         Shader::Fill,
         Shader::PintusShading,
         Shader::PointListBaseline,
+        Shader::OcclusionTiles,
     ];
 
     /// A label for debuggers and logs.
@@ -57,6 +63,7 @@ impl Shader {
             Shader::Fill => "fill",
             Shader::PintusShading => "pintus",
             Shader::PointListBaseline => "pointlist_baseline",
+            Shader::OcclusionTiles => "occlusion_tiles",
         }
     }
 
@@ -72,10 +79,14 @@ impl Shader {
             Shader::Fill => include_str!("fill.wgsl"),
             Shader::PintusShading => include_str!("pintus.wgsl"),
             Shader::PointListBaseline => include_str!("pointlist_baseline.wgsl"),
+            Shader::OcclusionTiles => include_str!("occlusion_tiles.wgsl"),
         };
         match self {
             Shader::Visibility | Shader::Fill | Shader::PintusShading => {
                 format!("{COMMON}\n{SCREEN_COMMON}\n{own}")
+            }
+            Shader::RasterAtomic64 | Shader::RasterAtomic32 | Shader::HqAccumulate => {
+                format!("{COMMON}\n{OCCLUSION}\n{own}")
             }
             _ => format!("{COMMON}\n{own}"),
         }

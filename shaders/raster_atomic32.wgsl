@@ -38,6 +38,10 @@ fn rasterize_batch(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32, colour_pa
     if batch_outside_view(frame, batch) {
         return;
     }
+    if batch_occluded(frame, batch, 1.0) {
+        count_skipped(select(0u, 1u, colour_pass), lane);
+        return;
+    }
     let step = quantisation_step(batch);
     for (var i = batch.first + lane; i < batch.first + batch.count; i += WORKGROUP_SIZE) {
         let splat = project_point(frame, dequantise(positions[i], batch.min, step));

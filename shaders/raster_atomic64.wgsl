@@ -37,6 +37,10 @@ fn rasterize(
     if batch_outside_view(frame, batch) {
         return;
     }
+    if batch_occluded(frame, batch, 1.0) {
+        count_skipped(0u, lane);
+        return;
+    }
     let step = quantisation_step(batch);
     for (var i = batch.first + lane; i < batch.first + batch.count; i += WORKGROUP_SIZE) {
         let splat = project_point(frame, dequantise(positions[i], batch.min, step));

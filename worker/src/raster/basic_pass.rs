@@ -4,10 +4,15 @@
 //! Two variants render the same image: one 64-bit `atomicMin` per pixel where the adapter has
 //! 64-bit atomics (`shaders/raster_atomic64.wgsl`), and a depth pass followed by a colour pass
 //! with 32-bit atomics where it has not (`shaders/raster_atomic32.wgsl`).
+//!
+//! The pass that writes depths runs in phases over the near-to-far batch table, with the
+//! occlusion tiles built before each but the first, so that batches hidden behind what earlier
+//! phases drew are skipped whole (`occlusion.rs`).
 
 use pointfarm_shaders::Shader;
 
 use super::culling::FrameBatches;
+use super::occlusion::{phases_for, OcclusionPass};
 use super::pipeline::{bind_resources, shader_module};
 use super::point_pipelines::PointPipelines;
 use super::points::{GpuPointCloud, PointChunk};
@@ -27,6 +32,7 @@ pub(crate) struct BasicPass {
     atomic64: Option<PointPipelines>,
     atomic32_depth: PointPipelines,
     atomic32_colour: PointPipelines,
+    occlusion: OcclusionPass,
 }
 
 impl BasicPass {
@@ -40,6 +46,7 @@ impl BasicPass {
             atomic64,
             atomic32_depth: PointPipelines::new(device, &m32, "rasterize_depth", workgroup_size),
             atomic32_colour: PointPipelines::new(device, &m32, "rasterize_colour", workgroup_size),
+            occlusion: OcclusionPass::new(device),
         }
     }
 
@@ -60,26 +67,80 @@ impl BasicPass {
         path: AtomicsPath,
         frame: PointFrame<'_>,
     ) {
-        let stages: Vec<&PointPipelines> = match (path, &self.atomic64) {
-            (AtomicsPath::Atomic64, Some(p)) => vec![p],
-            _ => vec![&self.atomic32_depth, &self.atomic32_colour],
-        };
-        // The 32-bit colour pass needs every chunk's depths, so stages run outermost.
-        for pipelines in stages {
-            let pipeline = pipelines.get(device, frame.point_size);
-            dispatch_chunks(device, pass, &pipeline, path, frame);
+        match (path, &self.atomic64) {
+            (AtomicsPath::Atomic64, Some(pipelines)) => {
+                self.record_phased(device, pass, pipelines, AtomicsPath::Atomic64, frame);
+            }
+            _ => {
+                // The colour pass needs every chunk's final depths: it runs after the depth
+                // pass over all of them, against the final tiles.
+                self.record_depth(device, pass, frame);
+                let pipeline = self.atomic32_colour.get(device, frame.point_size);
+                pass.set_pipeline(&pipeline);
+                for chunk in 0..frame.cloud.chunks.len() {
+                    let part = (chunk, (0.0, 1.0));
+                    dispatch_part(device, pass, &pipeline, AtomicsPath::Atomic32, frame, part);
+                }
+            }
         }
     }
 
-    /// Records only the nearest-depth pass (the first pass of the high-quality mode).
+    /// Records only the nearest-depth pass (the first pass of the high-quality mode), and
+    /// builds the occlusion tiles from its final depths for the passes after it.
     pub fn record_depth(
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
         frame: PointFrame<'_>,
     ) {
-        let pipeline = self.atomic32_depth.get(device, frame.point_size);
-        dispatch_chunks(device, pass, &pipeline, AtomicsPath::Atomic32, frame);
+        self.record_phased(
+            device,
+            pass,
+            &self.atomic32_depth,
+            AtomicsPath::Atomic32,
+            frame,
+        );
+        self.build_tiles(device, pass, frame);
+    }
+
+    /// The depth-writing pass over every chunk, in phases with the occlusion tiles built
+    /// before each but the first.
+    fn record_phased(
+        &self,
+        device: &wgpu::Device,
+        pass: &mut wgpu::ComputePass<'_>,
+        pipelines: &PointPipelines,
+        path: AtomicsPath,
+        frame: PointFrame<'_>,
+    ) {
+        self.occlusion
+            .record_clear(device, pass, &frame.targets.occlusion);
+        let pipeline = pipelines.get(device, frame.point_size);
+        for (index, &shares) in phases_for(frame.batches.total()).iter().enumerate() {
+            if index > 0 {
+                self.build_tiles(device, pass, frame);
+            }
+            pass.set_pipeline(&pipeline);
+            for chunk in 0..frame.cloud.chunks.len() {
+                dispatch_part(device, pass, &pipeline, path, frame, (chunk, shares));
+            }
+        }
+    }
+
+    fn build_tiles(
+        &self,
+        device: &wgpu::Device,
+        pass: &mut wgpu::ComputePass<'_>,
+        frame: PointFrame<'_>,
+    ) {
+        let targets = frame.targets;
+        self.occlusion.record_build(
+            device,
+            pass,
+            (frame.uniforms, frame.batches.footprint()),
+            &targets.framebuffer,
+            &targets.occlusion,
+        );
     }
 }
 
@@ -94,24 +155,30 @@ pub(crate) struct PointFrame<'a> {
     pub targets: &'a FrameTargets,
 }
 
-fn dispatch_chunks(
+/// Dispatches the part of chunk `chunk`'s batch table between two shares of it; the pipeline
+/// is set.
+fn dispatch_part(
     device: &wgpu::Device,
     pass: &mut wgpu::ComputePass<'_>,
     pipeline: &wgpu::ComputePipeline,
     path: AtomicsPath,
     frame: PointFrame<'_>,
+    (chunk, shares): (usize, (f64, f64)),
 ) {
-    pass.set_pipeline(pipeline);
-    for (index, chunk) in frame.cloud.chunks.iter().enumerate() {
-        // A chunk with no batch in view is skipped.
-        let Some(table) = frame.batches.binding(index) else {
-            continue;
-        };
-        let bind_group = bind_group(device, pipeline, path, frame, (chunk, table));
-        pass.set_bind_group(0, &bind_group, &[]);
-        let (x, y) = super::dispatch_grid(frame.batches.count(index));
-        pass.dispatch_workgroups(x, y, 1);
-    }
+    // A chunk with no batch in view is skipped.
+    let Some((table, batches)) = frame.batches.part(chunk, shares) else {
+        return;
+    };
+    let bind_group = bind_group(
+        device,
+        pipeline,
+        path,
+        frame,
+        (&frame.cloud.chunks[chunk], table),
+    );
+    pass.set_bind_group(0, &bind_group, &[]);
+    let (x, y) = super::dispatch_grid(batches);
+    pass.dispatch_workgroups(x, y, 1);
 }
 
 fn bind_group(
@@ -128,6 +195,8 @@ fn bind_group(
         (2, wgpu::BindingResource::Buffer(batch_table)),
         (3, framebuffer.as_entire_binding()),
         (5, chunk.colours.as_entire_binding()),
+        (6, frame.targets.occlusion.tiles.as_entire_binding()),
+        (7, frame.targets.occlusion.skipped.as_entire_binding()),
     ];
     if path == AtomicsPath::Atomic64 {
         // The non-atomic view of the same framebuffer, for the early depth test.

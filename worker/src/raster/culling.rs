@@ -37,6 +37,8 @@ pub(crate) struct FrameBatches {
     staging: Vec<GpuBatch>,
     /// The pixels that points of the listed batches can touch this frame.
     footprint: PixelRect,
+    /// The storage-binding offset alignment, in entries.
+    alignment_entries: u32,
 }
 
 impl FrameBatches {
@@ -46,6 +48,7 @@ impl FrameBatches {
             ranges: Vec::new(),
             staging: Vec::new(),
             footprint: PixelRect::EMPTY,
+            alignment_entries: 1,
         }
     }
 
@@ -63,6 +66,7 @@ impl FrameBatches {
         let entry_bytes = std::mem::size_of::<GpuBatch>();
         let alignment =
             (device.limits().min_storage_buffer_offset_alignment as usize).div_ceil(entry_bytes);
+        self.alignment_entries = alignment as u32;
         self.staging.clear();
         self.ranges.clear();
         self.footprint = PixelRect::EMPTY;
@@ -101,6 +105,44 @@ impl FrameBatches {
     /// listed).
     pub fn footprint(&self) -> PixelRect {
         self.footprint
+    }
+
+    /// Number of batches of all chunks in this frame's tables.
+    pub fn total(&self) -> u32 {
+        self.ranges.iter().map(|&(_, count)| count).sum()
+    }
+
+    /// The part of chunk `chunk`'s table from share `from` to share `to` of its batches, as a
+    /// storage binding and its number of batches; `None` when that part is empty. Parts
+    /// start at offsets the adapter can bind; consecutive shares hold the table in order.
+    pub fn part(
+        &self,
+        chunk: usize,
+        (from, to): (f64, f64),
+    ) -> Option<(wgpu::BufferBinding<'_>, u32)> {
+        let (offset, count) = *self.ranges.get(chunk)?;
+        let buffer = self.buffer.as_ref()?;
+        let entry = std::mem::size_of::<GpuBatch>() as u64;
+        let boundary = |share: f64| {
+            if share >= 1.0 {
+                count
+            } else {
+                ((f64::from(count) * share.max(0.0)) as u32)
+                    .next_multiple_of(self.alignment_entries)
+                    .min(count)
+            }
+        };
+        let (start, end) = (boundary(from), boundary(to));
+        (end > start).then(|| {
+            (
+                wgpu::BufferBinding {
+                    buffer,
+                    offset: offset + u64::from(start) * entry,
+                    size: wgpu::BufferSize::new(u64::from(end - start) * entry),
+                },
+                end - start,
+            )
+        })
     }
 
     /// Number of batches of chunk `chunk` in this frame's table.

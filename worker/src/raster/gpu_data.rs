@@ -21,7 +21,10 @@ pub struct FrameUniforms {
     pub edl_radius: f32,
     /// Pixels the resolve visits, from the first of its bindings (`PixelRun`).
     pub resolve_pixels: u32,
-    pub _pad: [u32; 3],
+    /// The first occlusion tile of the frame's footprint (`occlusion.rs`).
+    pub occlusion_tile_x0: u32,
+    pub occlusion_tile_y0: u32,
+    pub _pad: u32,
 }
 
 /// Bits of the quantised position per axis (x, y, z), relative to the batch's bounding box:

@@ -48,6 +48,9 @@ impl HqAccumulatePass {
                     (3, frame.targets.framebuffer.as_entire_binding()),
                     (4, accumulator.as_entire_binding()),
                     (5, chunk.colours.as_entire_binding()),
+                    // The tiles after the depth pass: batches behind the depth band are skipped.
+                    (6, frame.targets.occlusion.tiles.as_entire_binding()),
+                    (7, frame.targets.occlusion.skipped.as_entire_binding()),
                 ],
             );
             pass.set_bind_group(0, &bind_group, &[]);

@@ -19,6 +19,7 @@ mod edl_pass;
 mod fill_pass;
 mod gpu_data;
 mod hq_pass;
+mod occlusion;
 mod pintus_pass;
 mod pipeline;
 mod pixel_rect;
@@ -39,6 +40,7 @@ use image::RgbaImage;
 use thiserror::Error;
 
 pub use basic_pass::AtomicsPath;
+pub use occlusion::OcclusionSkipped;
 pub use point_workgroup::WORKGROUP_SIZE_ENV;
 pub use pointlist_baseline::{PointListBaseline, PointListFrame};
 pub use points::{GpuPointCloud, BATCH_POINTS, POINT_BYTES};
@@ -481,6 +483,16 @@ impl Renderer {
         self.timer = None;
     }
 
+    /// Batches the last frame skipped whole because they were hidden behind points drawn
+    /// before them (occlusion culling); zero before the first frame. A readback: for tests
+    /// and the benchmark, outside any timed frame.
+    pub fn occlusion_skipped(&self) -> Result<OcclusionSkipped, RenderError> {
+        match &self.targets {
+            Some(targets) => Ok(occlusion::read_skipped(&self.gpu, &targets.occlusion)?),
+            None => Ok(OcclusionSkipped::default()),
+        }
+    }
+
     /// Uploads a cloud; its buffers stay resident for as many frames as needed.
     pub fn upload(&self, cloud: &PointCloud) -> Result<GpuPointCloud, RenderError> {
         GpuPointCloud::upload(&self.gpu, cloud, self.max_chunk_points)
@@ -628,7 +640,7 @@ impl Renderer {
             settings.width,
             u64::from(self.gpu.device.limits().min_storage_buffer_offset_alignment),
         );
-        let uniforms = frame_uniforms(&transform, settings, resolve_run);
+        let uniforms = frame_uniforms(&transform, settings, resolve_run, footprint);
         self.gpu
             .queue
             .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));
@@ -828,6 +840,7 @@ fn frame_uniforms(
     t: &CameraTransform,
     settings: &FrameSettings,
     resolve_run: PixelRun,
+    footprint: pixel_rect::PixelRect,
 ) -> FrameUniforms {
     FrameUniforms {
         view_proj: t.view_proj.as_mat4().to_cols_array_2d(),
@@ -851,7 +864,9 @@ fn frame_uniforms(
         },
         // Image sides are at most MAX_IMAGE_SIDE: a run's length fits.
         resolve_pixels: resolve_run.count as u32,
-        _pad: [0; 3],
+        occlusion_tile_x0: footprint.x0 / occlusion::TILE,
+        occlusion_tile_y0: footprint.y0 / occlusion::TILE,
+        _pad: 0,
     }
 }
 

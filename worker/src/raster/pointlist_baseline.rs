@@ -190,6 +190,7 @@ impl PointListBaseline {
             &transform,
             settings,
             super::resolve_pass::PixelRun { first: 0, count: 0 },
+            super::pixel_rect::PixelRect::EMPTY,
         );
         self.gpu
             .queue

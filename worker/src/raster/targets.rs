@@ -5,6 +5,7 @@
 //! resolve visits only that and its own footprint: a cloud that covers a corner of the image
 //! does not pay for resolving the rest of it every frame.
 
+use super::occlusion::OcclusionTiles;
 use super::pixel_rect::PixelRect;
 use super::FrameSettings;
 use crate::gpu::staging_buffer;
@@ -17,6 +18,8 @@ pub(crate) struct FrameTargets {
     pub framebuffer: wgpu::Buffer,
     /// True until the framebuffer was first cleared (a new buffer holds zeros, not "empty").
     pub needs_clear: bool,
+    /// The point passes' occlusion culling of whole batches (`occlusion.rs`).
+    pub occlusion: OcclusionTiles,
     /// RGBA8 per pixel.
     pub colour: wgpu::Buffer,
     /// Linear depth per pixel as f32, +infinity where no point landed.
@@ -76,6 +79,7 @@ impl FrameTargets {
             height,
             framebuffer: storage("point framebuffer", pixels * 8),
             needs_clear: true,
+            occlusion: OcclusionTiles::new(device, width, height),
             colour: storage("colour image", pixels * 4),
             depth: storage("depth image", pixels * 4),
             colour_staging: staging_buffer(device, "colour image readback", pixels * 4),

@@ -50,6 +50,23 @@ fn pixel_centre_scene_with(
     seed: u64,
     mut depths: impl FnMut(&mut ChaCha8Rng) -> Vec<f64>,
 ) -> PointCloud {
+    pixel_centre_scene_by_pixel(settings, seed, |rng, _, _| {
+        if rng.random_bool(0.25) {
+            // Leave holes so the background shows.
+            Vec::new()
+        } else {
+            depths(rng)
+        }
+    })
+}
+
+/// Points on pixel centres at the depths `depths` gives for each pixel (x, y), plus the
+/// points [`pixel_centre_scene`] places to be culled (red), in shuffled order.
+fn pixel_centre_scene_by_pixel(
+    settings: &FrameSettings,
+    seed: u64,
+    mut depths: impl FnMut(&mut ChaCha8Rng, u32, u32) -> Vec<f64>,
+) -> PointCloud {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let cam = settings.camera;
     let (w, h) = (settings.width, settings.height);
@@ -70,12 +87,9 @@ fn pixel_centre_scene_with(
     let random_colour = |rng: &mut ChaCha8Rng| pack_rgba8(rng.random(), rng.random(), rng.random());
     for y in 0..h {
         for x in 0..w {
-            if rng.random_bool(0.25) {
-                continue; // leave holes so the background shows
-            }
             let ndc_x = (x as f64 + 0.5) / w as f64 * 2.0 - 1.0;
             let ndc_y = 1.0 - (y as f64 + 0.5) / h as f64 * 2.0;
-            for depth in depths(&mut rng) {
+            for depth in depths(&mut rng, x, y) {
                 points.push(SURVEY_ORIGIN + at_depth(ndc_x, ndc_y, depth));
                 colours.push(random_colour(&mut rng));
             }
@@ -839,4 +853,84 @@ fn invalid_settings_are_refused_before_any_gpu_work() {
         renderer.upload(&PointCloud::from_world_points(&[], vec![])),
         Err(RenderError::EmptyCloud)
     ));
+}
+
+/// A wall with a window in front of a deep block of points: the batches behind the wall are
+/// skipped whole (occlusion culling), the ones seen through the window are drawn, and every
+/// mode renders what the reference does.
+#[test]
+fn batches_hidden_behind_a_wall_are_skipped_and_the_image_is_unchanged() {
+    // Looking straight down, so that the near-to-far order draws the wall first.
+    let base = FrameSettings::new(
+        256,
+        192,
+        Camera {
+            position: SURVEY_ORIGIN + DVec3::new(0.0, 0.0, 200.0),
+            target: SURVEY_ORIGIN,
+            up: DVec3::Y,
+            projection: Projection::Orthographic { height: 15.0 },
+            near: 5.0,
+            far: 300.0,
+        },
+    );
+    let window = |x: u32, y: u32| x < 40 && y < 30;
+    let scene = pixel_centre_scene_by_pixel(&base, 17, |rng, x, y| {
+        // The wall at depth 20 (none in the window), then 8 points a pixel between 60 and 140.
+        let mut depths = if window(x, y) { vec![] } else { vec![20.0] };
+        depths.extend((0..8).map(|_| rng.random_range(60.0..140.0)));
+        depths
+    });
+    // Without the points placed to be culled, whose batches would span the whole view.
+    let kept: Vec<usize> = (0..scene.len())
+        .filter(|&i| scene.colors[i] != pack_rgba8(255, 0, 0))
+        .collect();
+    let cloud = scene.select(&kept);
+    let batches = cloud.len().div_ceil(BATCH_POINTS) as u32;
+
+    let mut renderer = Renderer::new(gpu());
+    let resident = renderer.upload(&cloud).expect("upload");
+    let expected = reference::render(&cloud, &base);
+    for atomics in [AtomicsMode::Auto, AtomicsMode::Force32] {
+        let settings = FrameSettings { atomics, ..base };
+        let frame = renderer.render(&resident, &settings).expect("render");
+        let name = format!("occlusion-{atomics:?}");
+        assert_eq!(
+            compare_images(&name, &frame.image, &expected.image).differing,
+            0,
+            "{name}"
+        );
+        let skipped = renderer.occlusion_skipped().expect("counts");
+        eprintln!("{name}: {skipped:?} of {batches} batches skipped");
+        // The far block's batches behind the wall, drawn after the first phase.
+        assert!(
+            skipped.depth_pass * 3 >= batches,
+            "{name}: only {skipped:?} of {batches} batches skipped"
+        );
+        if atomics == AtomicsMode::Force32 {
+            assert!(
+                skipped.later_passes > skipped.depth_pass,
+                "{name}: {skipped:?}"
+            );
+        }
+    }
+
+    let settings = FrameSettings {
+        quality: Quality::HIGH,
+        ..base
+    };
+    let frame = renderer.render(&resident, &settings).expect("render");
+    let expected = reference::render(&cloud, &settings);
+    assert!(max_channel_difference(&frame.image, &expected.image) <= 1);
+    let skipped = renderer.occlusion_skipped().expect("counts");
+    eprintln!("high quality: {skipped:?} of {batches} batches skipped");
+    // The accumulation tests against the final depths: every batch behind the wall but not
+    // behind the window is skipped.
+    assert!(
+        skipped.later_passes * 2 >= batches,
+        "high quality: only {skipped:?} of {batches} batches skipped"
+    );
+    // The points seen through the window are drawn: the window shows the block, not the
+    // background.
+    let inside = frame.image.get_pixel(10, 10);
+    assert_ne!(inside.0, base.background, "the window shows nothing");
 }

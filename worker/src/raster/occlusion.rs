@@ -1,0 +1,156 @@
+//! Occlusion culling of whole batches (`shaders/occlusion.wgsl`): the tiles of largest depth
+//! that the point passes test a batch's box against, and the dispatches that build them.
+//!
+//! A depth-writing point pass runs in two phases over the frame's near-to-far batch table
+//! (`draw_order.rs`): the nearest [`FIRST_PHASE`] of the batches, then the tiles are built from
+//! the framebuffer, then the rest, each workgroup skipping its batch when the box lies behind
+//! the tiles it can reach. The high-quality accumulation and the 32-bit colour pass test
+//! against tiles built after the depth pass, which are final.
+//!
+//! On lavapipe every memory access of a shader costs a loop over the SIMD lanes whether or not
+//! a lane is active, so the tiles are built between dispatches from the framebuffer rather
+//! than updated by each point (that cost more than culling saved). Figures: BENCHMARKS.md.
+
+use pointfarm_shaders::Shader;
+
+use super::pipeline::{bind_buffers, compute_pipeline, shader_module};
+use super::pixel_rect::PixelRect;
+use crate::gpu::{read_buffer, staging_buffer, GpuContext, GpuError};
+
+/// Side of a tile in pixels (`OCCLUSION_TILE` in occlusion.wgsl).
+pub(crate) const TILE: u32 = 16;
+
+/// Share of a frame's batch table drawn before the tiles are first built.
+pub(crate) const FIRST_PHASE: f64 = 0.3;
+
+/// Fewest listed batches for which a depth pass is split in phases: building the tiles costs
+/// about as much as a few dozen batches.
+pub(crate) const MIN_BATCHES_FOR_PHASES: u32 = 64;
+
+/// Per tile of one image size, the bits of the largest depth of its pixels; and the counts of
+/// batches skipped this frame.
+pub(crate) struct OcclusionTiles {
+    pub tiles: wgpu::Buffer,
+    /// [batches skipped by the pass that writes depths, by the passes that read them]: u32s.
+    pub skipped: wgpu::Buffer,
+    pub skipped_staging: wgpu::Buffer,
+    count: u32,
+}
+
+/// Batches a frame skipped whole because they were hidden (`Renderer::occlusion_skipped`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct OcclusionSkipped {
+    /// By the pass that writes depths (the basic mode's, or the depth pass of the 32-bit path
+    /// and of the high-quality mode).
+    pub depth_pass: u32,
+    /// By the passes that read the final depths: the 32-bit path's colour pass and the
+    /// high-quality accumulation.
+    pub later_passes: u32,
+}
+
+impl OcclusionTiles {
+    pub fn new(device: &wgpu::Device, width: u32, height: u32) -> Self {
+        let count = width.div_ceil(TILE) * height.div_ceil(TILE);
+        Self {
+            tiles: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("occlusion tiles"),
+                size: u64::from(count) * 4,
+                usage: wgpu::BufferUsages::STORAGE,
+                mapped_at_creation: false,
+            }),
+            skipped: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("occlusion skipped batches"),
+                size: SKIPPED_BYTES,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            }),
+            skipped_staging: staging_buffer(device, "occlusion skipped readback", SKIPPED_BYTES),
+            count,
+        }
+    }
+}
+
+const SKIPPED_BYTES: u64 = 8;
+
+/// Reads back the counts of the last frame drawn with `tiles`.
+pub(crate) fn read_skipped(
+    gpu: &GpuContext,
+    tiles: &OcclusionTiles,
+) -> Result<OcclusionSkipped, GpuError> {
+    let bytes = read_buffer(gpu, &tiles.skipped, &tiles.skipped_staging, SKIPPED_BYTES)?;
+    let counts: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes);
+    Ok(OcclusionSkipped {
+        depth_pass: counts[0],
+        later_passes: counts[1],
+    })
+}
+
+/// The pipelines that mark the tiles unknown and build them.
+pub(crate) struct OcclusionPass {
+    clear: wgpu::ComputePipeline,
+    build: wgpu::ComputePipeline,
+}
+
+impl OcclusionPass {
+    pub fn new(device: &wgpu::Device) -> Self {
+        let module = shader_module(device, Shader::OcclusionTiles);
+        Self {
+            clear: compute_pipeline(device, &module, "clear_tiles", &[]),
+            build: compute_pipeline(device, &module, "build_tiles", &[]),
+        }
+    }
+
+    /// Marks every tile unknown: before a frame's first point dispatch.
+    pub fn record_clear(
+        &self,
+        device: &wgpu::Device,
+        pass: &mut wgpu::ComputePass<'_>,
+        tiles: &OcclusionTiles,
+    ) {
+        let bind_group = bind_buffers(
+            device,
+            &self.clear,
+            "occlusion tiles",
+            &[(2, &tiles.tiles), (3, &tiles.skipped)],
+        );
+        pass.set_pipeline(&self.clear);
+        pass.set_bind_group(0, &bind_group, &[]);
+        pass.dispatch_workgroups(tiles.count.div_ceil(64), 1, 1);
+    }
+
+    /// Builds the tiles of `footprint` (the frame's, whose first tile the uniforms hold) from
+    /// `framebuffer` as the dispatches before left it.
+    pub fn record_build(
+        &self,
+        device: &wgpu::Device,
+        pass: &mut wgpu::ComputePass<'_>,
+        (uniforms, footprint): (&wgpu::Buffer, PixelRect),
+        framebuffer: &wgpu::Buffer,
+        tiles: &OcclusionTiles,
+    ) {
+        if footprint.is_empty() {
+            return;
+        }
+        let bind_group = bind_buffers(
+            device,
+            &self.build,
+            "occlusion tiles",
+            &[(0, uniforms), (1, framebuffer), (2, &tiles.tiles)],
+        );
+        pass.set_pipeline(&self.build);
+        pass.set_bind_group(0, &bind_group, &[]);
+        let across = footprint.x1.div_ceil(TILE) - footprint.x0 / TILE;
+        let down = footprint.y1.div_ceil(TILE) - footprint.y0 / TILE;
+        pass.dispatch_workgroups(across.div_ceil(8), down.div_ceil(8), 1);
+    }
+}
+
+/// The parts of a frame's batch table a depth pass over `batches` batches is drawn in, as
+/// shares of the table: with the tiles built before every part but the first.
+pub(crate) fn phases_for(batches: u32) -> &'static [(f64, f64)] {
+    if batches >= MIN_BATCHES_FOR_PHASES {
+        &[(0.0, FIRST_PHASE), (FIRST_PHASE, 1.0)]
+    } else {
+        &[(0.0, 1.0)]
+    }
+}
