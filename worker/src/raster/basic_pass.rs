@@ -12,7 +12,7 @@
 use pointfarm_shaders::Shader;
 
 use super::culling::FrameBatches;
-use super::occlusion::{phases_for, OcclusionPass};
+use super::occlusion::{phases_for, OcclusionPass, MIN_POINTS_PER_PIXEL_FOR_FINAL_TILES};
 use super::pipeline::{bind_resources, shader_module};
 use super::point_pipelines::PointPipelines;
 use super::points::{GpuPointCloud, PointChunk};
@@ -86,7 +86,8 @@ impl BasicPass {
     }
 
     /// Records only the nearest-depth pass (the first pass of the high-quality mode), and
-    /// builds the occlusion tiles from its final depths for the passes after it.
+    /// builds the occlusion tiles from its final depths for the passes after it where points
+    /// lie deep enough for that to pay.
     pub fn record_depth(
         &self,
         device: &wgpu::Device,
@@ -100,7 +101,9 @@ impl BasicPass {
             AtomicsPath::Atomic32,
             frame,
         );
-        self.build_tiles(device, pass, frame);
+        if frame.batches.points_per_pixel() >= MIN_POINTS_PER_PIXEL_FOR_FINAL_TILES {
+            self.build_tiles(device, pass, frame);
+        }
     }
 
     /// The depth-writing pass over every chunk, in phases with the occlusion tiles built
@@ -116,7 +119,8 @@ impl BasicPass {
         self.occlusion
             .record_clear(device, pass, &frame.targets.occlusion);
         let pipeline = pipelines.get(device, frame.point_size);
-        for (index, &shares) in phases_for(frame.batches.total()).iter().enumerate() {
+        let phases = phases_for(frame.batches.total(), frame.batches.points_per_pixel());
+        for (index, &shares) in phases.iter().enumerate() {
             if index > 0 {
                 self.build_tiles(device, pass, frame);
             }

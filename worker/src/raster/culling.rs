@@ -39,6 +39,8 @@ pub(crate) struct FrameBatches {
     footprint: PixelRect,
     /// The storage-binding offset alignment, in entries.
     alignment_entries: u32,
+    /// Points of this frame's listed batches.
+    listed_points: u64,
 }
 
 impl FrameBatches {
@@ -49,6 +51,7 @@ impl FrameBatches {
             staging: Vec::new(),
             footprint: PixelRect::EMPTY,
             alignment_entries: 1,
+            listed_points: 0,
         }
     }
 
@@ -83,6 +86,7 @@ impl FrameBatches {
                 (self.staging.len() - start) as u32,
             ));
         }
+        self.listed_points = self.staging.iter().map(|e| u64::from(e.count)).sum();
         if self.staging.is_empty() {
             return;
         }
@@ -110,6 +114,12 @@ impl FrameBatches {
     /// Number of batches of all chunks in this frame's tables.
     pub fn total(&self) -> u32 {
         self.ranges.iter().map(|&(_, count)| count).sum()
+    }
+
+    /// Points of the listed batches per pixel of the footprint: how deep the points that can
+    /// be in view lie on the pixels they can reach.
+    pub fn points_per_pixel(&self) -> f64 {
+        self.listed_points as f64 / self.footprint.pixels().max(1) as f64
     }
 
     /// The part of chunk `chunk`'s table from share `from` to share `to` of its batches, as a

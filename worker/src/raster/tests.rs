@@ -875,9 +875,9 @@ fn batches_hidden_behind_a_wall_are_skipped_and_the_image_is_unchanged() {
     );
     let window = |x: u32, y: u32| x < 40 && y < 30;
     let scene = pixel_centre_scene_by_pixel(&base, 17, |rng, x, y| {
-        // The wall at depth 20 (none in the window), then 8 points a pixel between 60 and 140.
+        // The wall at depth 20 (none in the window), then 12 points a pixel between 60 and 140.
         let mut depths = if window(x, y) { vec![] } else { vec![20.0] };
-        depths.extend((0..8).map(|_| rng.random_range(60.0..140.0)));
+        depths.extend((0..12).map(|_| rng.random_range(60.0..140.0)));
         depths
     });
     // Without the points placed to be culled, whose batches would span the whole view.
