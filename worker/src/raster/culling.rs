@@ -22,7 +22,7 @@ use glam::{DVec2, DVec3, DVec4, Vec3};
 
 use super::draw_order::sort_near_to_far;
 use super::gpu_data::GpuBatch;
-use super::pixel_rect::PixelRect;
+use super::pixel_rect::{PixelCoverage, PixelRect};
 use super::points::{BatchTables, BATCH_POINTS, SUB_BATCH_POINTS};
 use crate::camera::CameraTransform;
 
@@ -37,6 +37,8 @@ pub(crate) struct FrameBatches {
     staging: Vec<GpuBatch>,
     /// The pixels that points of the listed batches can touch this frame.
     footprint: PixelRect,
+    /// Pixels of the cells of the image those points can touch (`PixelCoverage`).
+    covered_pixels: u64,
     /// The storage-binding offset alignment, in entries.
     alignment_entries: u32,
     /// Points of this frame's listed batches.
@@ -50,6 +52,7 @@ impl FrameBatches {
             ranges: Vec::new(),
             staging: Vec::new(),
             footprint: PixelRect::EMPTY,
+            covered_pixels: 0,
             alignment_entries: 1,
             listed_points: 0,
         }
@@ -72,20 +75,21 @@ impl FrameBatches {
         self.alignment_entries = alignment as u32;
         self.staging.clear();
         self.ranges.clear();
-        self.footprint = PixelRect::EMPTY;
+        let mut coverage = PixelCoverage::new(transform.width, transform.height);
         for tables in chunks {
             let padding = self.staging.len().next_multiple_of(alignment) - self.staging.len();
             self.staging
                 .extend(std::iter::repeat_n(GpuBatch::zeroed(), padding));
             let start = self.staging.len();
-            let footprint = list_in_view(&frustum, tables, &mut self.staging);
-            self.footprint = self.footprint.union(footprint);
+            list_in_view(&frustum, tables, &mut self.staging, &mut coverage);
             sort_near_to_far(&mut self.staging[start..], transform.depth_row.truncate());
             self.ranges.push((
                 (start * entry_bytes) as u64,
                 (self.staging.len() - start) as u32,
             ));
         }
+        self.footprint = coverage.union();
+        self.covered_pixels = coverage.pixels();
         self.listed_points = self.staging.iter().map(|e| u64::from(e.count)).sum();
         if self.staging.is_empty() {
             return;
@@ -116,10 +120,10 @@ impl FrameBatches {
         self.ranges.iter().map(|&(_, count)| count).sum()
     }
 
-    /// Points of the listed batches per pixel of the footprint: how deep the points that can
-    /// be in view lie on the pixels they can reach.
+    /// Points of the listed batches per pixel they can reach (counted in cells of 64 x 64
+    /// pixels): how deep the points that can be in view lie.
     pub fn points_per_pixel(&self) -> f64 {
-        self.listed_points as f64 / self.footprint.pixels().max(1) as f64
+        self.listed_points as f64 / self.covered_pixels.max(1) as f64
     }
 
     /// The part of chunk `chunk`'s table from share `from` to share `to` of its batches, as a
@@ -172,13 +176,17 @@ impl FrameBatches {
     }
 }
 
-/// Appends to `out` the entries of `tables` that can be in view and returns the pixels their
-/// points can touch. A batch wholly inside the frustum is listed as it is; of a batch that
+/// Appends to `out` the entries of `tables` that can be in view and adds the pixels their
+/// points can touch to `coverage`. A batch wholly inside the frustum is listed as it is; of a batch that
 /// straddles its edge, only the runs of sub-batches that can be in view, each run an entry
 /// with the batch's box (the shaders dequantise against it) and the run's points.
-fn list_in_view(frustum: &Frustum, tables: BatchTables<'_>, out: &mut Vec<GpuBatch>) -> PixelRect {
+fn list_in_view(
+    frustum: &Frustum,
+    tables: BatchTables<'_>,
+    out: &mut Vec<GpuBatch>,
+    coverage: &mut PixelCoverage,
+) {
     const SUBS_PER_BATCH: usize = BATCH_POINTS / SUB_BATCH_POINTS;
-    let mut footprint = PixelRect::EMPTY;
     for (b, batch) in tables.batches.iter().enumerate() {
         let Some(view) = frustum.view_of(batch) else {
             continue;
@@ -191,7 +199,7 @@ fn list_in_view(frustum: &Frustum, tables: BatchTables<'_>, out: &mut Vec<GpuBat
             .take(SUBS_PER_BATCH)
             .take_while(|sub| sub.first < batch.first + batch.count);
         if view.whole || tables.sub_batches.is_empty() {
-            footprint = footprint.union(view.footprint);
+            coverage.add(view.footprint);
             out.push(*batch);
             continue;
         }
@@ -201,7 +209,7 @@ fn list_in_view(frustum: &Frustum, tables: BatchTables<'_>, out: &mut Vec<GpuBat
                 out.extend(run.take());
                 continue;
             };
-            footprint = footprint.union(sub_view.footprint);
+            coverage.add(sub_view.footprint);
             match run.as_mut() {
                 Some(run) => run.count += sub.count,
                 None => {
@@ -215,7 +223,6 @@ fn list_in_view(frustum: &Frustum, tables: BatchTables<'_>, out: &mut Vec<GpuBat
         }
         out.extend(run);
     }
-    footprint
 }
 
 /// A box that can be in view.
@@ -552,14 +559,17 @@ mod tests {
             let transform = camera.transform(DVec3::ZERO, width, height);
             let frustum = Frustum::new(&transform, 1);
             let mut listed = Vec::new();
-            let footprint = list_in_view(
+            let mut coverage = PixelCoverage::new(width, height);
+            list_in_view(
                 &frustum,
                 BatchTables {
                     batches: &batches,
                     sub_batches: &sub_batches,
                 },
                 &mut listed,
+                &mut coverage,
             );
+            let footprint = coverage.union();
             let mut whole_batches = Vec::new();
             list_in_view(
                 &frustum,
@@ -568,6 +578,7 @@ mod tests {
                     sub_batches: &[],
                 },
                 &mut whole_batches,
+                &mut PixelCoverage::new(width, height),
             );
             let mut is_listed = vec![false; points.len()];
             for entry in &listed {

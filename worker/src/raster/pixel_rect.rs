@@ -65,6 +65,70 @@ impl PixelRect {
     }
 }
 
+/// Where rectangles of pixels landed in an image, in cells of [`PixelCoverage::CELL`] pixels:
+/// their union rectangle, and how many pixels the cells they touch hold, which follows a
+/// frame's points more closely than the union rectangle does (a cube's corner covers a
+/// triangle of its rectangle).
+pub(crate) struct PixelCoverage {
+    width: u32,
+    height: u32,
+    union: PixelRect,
+    marked: Vec<bool>,
+}
+
+impl PixelCoverage {
+    pub const CELL: u32 = 64;
+
+    pub fn new(width: u32, height: u32) -> Self {
+        Self {
+            width,
+            height,
+            union: PixelRect::EMPTY,
+            marked: vec![
+                false;
+                (width.div_ceil(Self::CELL) * height.div_ceil(Self::CELL)) as usize
+            ],
+        }
+    }
+
+    /// Adds a rectangle within the image.
+    pub fn add(&mut self, rect: PixelRect) {
+        if rect.is_empty() {
+            return;
+        }
+        self.union = self.union.union(rect);
+        let across = self.width.div_ceil(Self::CELL);
+        let x1 = rect.x1.min(self.width).div_ceil(Self::CELL);
+        let y1 = rect.y1.min(self.height).div_ceil(Self::CELL);
+        for y in rect.y0 / Self::CELL..y1 {
+            for x in rect.x0 / Self::CELL..x1 {
+                self.marked[(y * across + x) as usize] = true;
+            }
+        }
+    }
+
+    /// The union of the rectangles added.
+    pub fn union(&self) -> PixelRect {
+        self.union
+    }
+
+    /// Pixels of the image in the cells a rectangle touched.
+    pub fn pixels(&self) -> u64 {
+        let across = self.width.div_ceil(Self::CELL);
+        self.marked
+            .iter()
+            .enumerate()
+            .filter(|(_, &marked)| marked)
+            .map(|(i, _)| {
+                let (x, y) = (i as u32 % across, i as u32 / across);
+                let w = Self::CELL.min(self.width - x * Self::CELL);
+                let h = Self::CELL.min(self.height - y * Self::CELL);
+                u64::from(w) * u64::from(h)
+            })
+            .sum()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -105,5 +169,42 @@ mod tests {
         assert_eq!((a.width(), a.height(), a.pixels()), (3, 1, 3));
         assert_eq!(PixelRect::full(640, 480).pixels(), 640 * 480);
         assert!(a.contains(2, 3) && !a.contains(5, 3) && !a.contains(2, 4));
+    }
+
+    #[test]
+    fn coverage_counts_the_pixels_of_the_cells_rectangles_touch() {
+        let mut coverage = PixelCoverage::new(200, 100);
+        assert_eq!(coverage.pixels(), 0);
+        // Two cells in the first row, one of them marked twice.
+        coverage.add(PixelRect {
+            x0: 10,
+            y0: 10,
+            x1: 70,
+            y1: 20,
+        });
+        coverage.add(PixelRect {
+            x0: 65,
+            y0: 0,
+            x1: 66,
+            y1: 1,
+        });
+        assert_eq!(coverage.pixels(), 2 * 64 * 64);
+        // The clipped cells at the image's right and bottom edges hold fewer pixels.
+        coverage.add(PixelRect {
+            x0: 199,
+            y0: 99,
+            x1: 200,
+            y1: 100,
+        });
+        assert_eq!(coverage.pixels(), 2 * 64 * 64 + 8 * 36);
+        assert_eq!(
+            coverage.union(),
+            PixelRect {
+                x0: 10,
+                y0: 0,
+                x1: 200,
+                y1: 100
+            }
+        );
     }
 }
