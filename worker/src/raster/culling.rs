@@ -166,13 +166,7 @@ impl FrameBatches {
 
     /// The table of chunk `chunk` as a storage binding; `None` when no batch is in view.
     pub fn binding(&self, chunk: usize) -> Option<wgpu::BufferBinding<'_>> {
-        let (offset, count) = *self.ranges.get(chunk)?;
-        let buffer = self.buffer.as_ref()?;
-        (count > 0).then(|| wgpu::BufferBinding {
-            buffer,
-            offset,
-            size: wgpu::BufferSize::new(u64::from(count) * std::mem::size_of::<GpuBatch>() as u64),
-        })
+        self.part(chunk, (0.0, 1.0)).map(|(binding, _)| binding)
     }
 }
 
