@@ -118,6 +118,21 @@ fn project_point(frame: FrameUniforms, p: vec3<f32>) -> Splat {
     return s;
 }
 
+// Corner `corner` (0 to 7: bit 0 picks max x, bit 1 max y, bit 2 max z) of the batch's box,
+// as a point with w = 1.
+fn box_corner(batch: Batch, corner: u32) -> vec4<f32> {
+    return vec4<f32>(
+        select(batch.min.x, batch.max.x, (corner & 1u) != 0u),
+        select(batch.min.y, batch.max.y, (corner & 2u) != 0u),
+        select(batch.min.z, batch.max.z, (corner & 4u) != 0u),
+        1.0,
+    );
+}
+
+// Side in pixels of the occlusion tiles (occlusion.wgsl, occlusion_tiles.wgsl,
+// `raster/occlusion.rs`).
+const OCCLUSION_TILE: u32 = 16u;
+
 // True when no part of the batch's box can be in view: all eight corners lie outside the
 // same frustum plane (clip-space side planes widened by the point size, and near/far).
 // The host has culled the batches already; this f32 test is kept because it costs little for
@@ -134,13 +149,9 @@ fn batch_outside_view(frame: FrameUniforms, batch: Batch) -> bool {
     var out_near = true;
     var out_far = true;
     for (var corner = 0u; corner < 8u; corner++) {
-        let p = vec3<f32>(
-            select(batch.min.x, batch.max.x, (corner & 1u) != 0u),
-            select(batch.min.y, batch.max.y, (corner & 2u) != 0u),
-            select(batch.min.z, batch.max.z, (corner & 4u) != 0u),
-        );
-        let clip = frame.view_proj * vec4<f32>(p, 1.0);
-        let depth = dot(frame.depth_row, vec4<f32>(p, 1.0));
+        let p = box_corner(batch, corner);
+        let clip = frame.view_proj * p;
+        let depth = dot(frame.depth_row, p);
         let w = clip.w;
         out_left = out_left && clip.x < -w * widen.x;
         out_right = out_right && clip.x > w * widen.x;

@@ -7,7 +7,6 @@
 // whose nearest possible depth lies behind that on every tile its points can reach has no
 // point that could pass the depth test, and is skipped whole.
 
-const OCCLUSION_TILE: u32 = 16u;
 // A box that reaches more tiles than this is drawn untested: the test would cost more than it
 // can save (and such a box is near the camera, rarely hidden).
 const MAX_TESTED_TILES: u32 = 256u;
@@ -33,12 +32,7 @@ fn batch_occluded(frame: FrameUniforms, batch: Batch, band: f32) -> bool {
     var low = vec2<f32>(3.0e38);
     var high = vec2<f32>(-3.0e38);
     for (var corner = 0u; corner < 8u; corner++) {
-        let p = vec4<f32>(
-            select(batch.min.x, batch.max.x, (corner & 1u) != 0u),
-            select(batch.min.y, batch.max.y, (corner & 2u) != 0u),
-            select(batch.min.z, batch.max.z, (corner & 4u) != 0u),
-            1.0,
-        );
+        let p = box_corner(batch, corner);
         let depth = dot(frame.depth_row, p);
         let clip = frame.view_proj * p;
         // A corner before the near plane: the box's image is unbounded.

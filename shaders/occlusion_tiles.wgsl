@@ -1,8 +1,8 @@
 // The occlusion tiles between point dispatches (see occlusion.wgsl): mark them all unknown
-// (and zero the counts of skipped batches) before a frame's first point pass, and build them from the framebuffer before a dispatch
-// that tests against them. Composed after common.wgsl.
+// (and zero the counts of skipped batches) before a frame's first point pass, and build them
+// from the framebuffer before a dispatch that tests against them. Composed after common.wgsl.
 
-const TILE: u32 = 16u;
+const TILE: u32 = OCCLUSION_TILE;
 const UNKNOWN: u32 = 0xffffffffu;
 
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;

@@ -1,11 +1,13 @@
 //! Occlusion culling of whole batches (`shaders/occlusion.wgsl`): the tiles of largest depth
 //! that the point passes test a batch's box against, and the dispatches that build them.
 //!
-//! A depth-writing point pass runs in two phases over the frame's near-to-far batch table
-//! (`draw_order.rs`): the nearest [`FIRST_PHASE`] of the batches, then the tiles are built from
-//! the framebuffer, then the rest, each workgroup skipping its batch when the box lies behind
-//! the tiles it can reach. The high-quality accumulation and the 32-bit colour pass test
-//! against tiles built after the depth pass, which are final.
+//! Where points lie deep enough for it to pay (see the constants below), a depth-writing point
+//! pass runs in two phases over the frame's near-to-far batch table (`draw_order.rs`): the
+//! nearest [`FIRST_PHASE`] of the batches, then the tiles are built from the framebuffer, then
+//! the rest, each workgroup skipping its batch when the box lies behind the tiles it can
+//! reach. The high-quality accumulation and the 32-bit colour pass test against tiles built
+//! after the depth pass, which are final. Elsewhere the tiles stay "unknown" and nothing is
+//! skipped.
 //!
 //! On lavapipe every memory access of a shader costs a loop over the SIMD lanes whether or not
 //! a lane is active, so the tiles are built between dispatches from the framebuffer rather
@@ -17,7 +19,7 @@ use super::pipeline::{bind_buffers, compute_pipeline, shader_module};
 use super::pixel_rect::PixelRect;
 use crate::gpu::{read_buffer, staging_buffer, GpuContext, GpuError};
 
-/// Side of a tile in pixels (`OCCLUSION_TILE` in occlusion.wgsl).
+/// Side of a tile in pixels (`OCCLUSION_TILE` in common.wgsl).
 pub(crate) const TILE: u32 = 16;
 
 /// Share of a frame's batch table drawn before the tiles are first built.
