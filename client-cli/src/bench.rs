@@ -34,10 +34,11 @@ pub struct BenchArgs {
     /// selects its other views (`uniform-10m` selects `uniform-10m-corner` and `uniform-10m-partial`).
     #[arg(long, value_delimiter = ',', value_name = "NAMES")]
     only: Vec<String>,
-    /// Also render a 100M-point cube, generated and uploaded chunk by chunk, and report the
-    /// host's memory peak during its ingest (needs about 4 GiB on a software adapter).
-    #[arg(long)]
-    huge: bool,
+    /// Also render a cube of POINTS points (100 million when no count is given), generated and
+    /// uploaded chunk by chunk, and report the host's memory peak during its ingest (100M
+    /// points need about 4 GiB on a software adapter). Accepts `1000000000`, `1_000_000_000`.
+    #[arg(long, value_name = "POINTS", value_parser = parse_point_count)]
+    huge: Option<Option<usize>>,
     /// Measure the basic mode only (not high quality, the 32-bit atomics path, nor fill with
     /// EDL or Pintus shading).
     #[arg(long, conflicts_with = "modes")]
@@ -82,6 +83,15 @@ impl From<BenchMode> for ComputeMode {
             BenchMode::FillEdl => ComputeMode::FillEdl,
             BenchMode::FillPintus => ComputeMode::FillPintus,
         }
+    }
+}
+
+/// A point count, with optional `_` separators; at least one point.
+fn parse_point_count(text: &str) -> Result<usize, String> {
+    match text.replace('_', "").parse::<usize>() {
+        Ok(0) => Err("the huge cloud needs at least one point".into()),
+        Ok(n) => Ok(n),
+        Err(e) => Err(format!("'{text}' is not a point count: {e}")),
     }
 }
 
@@ -138,13 +148,16 @@ pub fn run(args: BenchArgs) -> Result<()> {
             args.modes.iter().map(|&mode| mode.into()).collect()
         },
         only: args.only.clone(),
-        huge: args.huge,
+        huge: args.huge.map(|points| points.unwrap_or(bench::HUGE_POINTS)),
         ..if args.quick {
             BenchOptions::quick(width, height, args.data.clone())
         } else {
             BenchOptions::full(width, height, args.data.clone())
         }
     };
+    if args.plot.is_some() {
+        crate::bench_plot::check_font()?;
+    }
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
     println!("adapter: {}", gpu.describe());
     println!(

@@ -7,7 +7,7 @@ use std::sync::OnceLock;
 
 use anyhow::{anyhow, Context, Result};
 use plotters::prelude::*;
-use pointfarm_worker::bench::{uniform_workload, BenchReport, CUBOID_PLANES, UNIFORM_SERIES};
+use pointfarm_worker::bench::{in_uniform_series, BenchReport, WorkloadResult, CUBOID_PLANES};
 
 /// Where the label font is looked for, in order.
 const FONT_PATHS: [&str; 4] = [
@@ -23,16 +23,11 @@ type Line = (String, Vec<(f64, f64)>);
 /// Writes the two panels side by side to `path` (PNG).
 pub fn write(report: &BenchReport, path: &Path) -> Result<()> {
     register_font()?;
-    let uniform = lines(report, |workload| {
-        UNIFORM_SERIES
-            .iter()
-            .chain(std::iter::once(&pointfarm_worker::bench::HUGE_POINTS))
-            .any(|&n| workload == uniform_workload(n))
-    });
-    let cuboid = lines(report, |workload| {
+    let uniform = lines(report, in_uniform_series);
+    let cuboid = lines(report, |w| {
         CUBOID_PLANES
             .iter()
-            .any(|k| workload == format!("cuboid-k{k}"))
+            .any(|k| w.workload == format!("cuboid-k{k}"))
     });
     const SIZE: (u32, u32) = (1600, 640);
     // Drawn into memory and encoded with the `image` crate the workspace already uses, so
@@ -69,13 +64,13 @@ pub fn write(report: &BenchReport, path: &Path) -> Result<()> {
 
 /// For the workloads that `select` picks: one line per method, x = points in view for the
 /// uniform series and planes for the cuboid, y = median frame time.
-fn lines(report: &BenchReport, select: impl Fn(&str) -> bool) -> Vec<Line> {
+fn lines(report: &BenchReport, select: impl Fn(&WorkloadResult) -> bool) -> Vec<Line> {
     let mut lines: Vec<Line> = Vec::new();
     let mut add = |method: &str, x: f64, ms: f64| match lines.iter_mut().find(|l| l.0 == method) {
         Some(line) => line.1.push((x, ms)),
         None => lines.push((method.to_string(), vec![(x, ms)])),
     };
-    for w in report.workloads.iter().filter(|w| select(&w.workload)) {
+    for w in report.workloads.iter().filter(|w| select(w)) {
         let x = match w.workload.strip_prefix("cuboid-k") {
             Some(k) => k.parse().unwrap_or(0.0),
             None => w.points_in_view as f64,
@@ -141,6 +136,11 @@ fn panel(
 
 fn plot_error(e: impl std::fmt::Display) -> anyhow::Error {
     anyhow!("drawing the plot: {e}")
+}
+
+/// Fails now, not after a long run, when no font for the plot's labels can be found.
+pub fn check_font() -> Result<()> {
+    register_font()
 }
 
 /// Registers the first font of `FONT_PATHS` found as plotters' "sans-serif", once.

@@ -39,7 +39,7 @@ use crate::raster::{
 pub const UNIFORM_POINTS: usize = 10_000_000;
 /// The uniform clouds of the scaling series (all in view); the headline cloud is one of them.
 pub const UNIFORM_SERIES: [usize; 4] = [1_000_000, 3_000_000, UNIFORM_POINTS, 30_000_000];
-/// Points of the opt-in huge workload.
+/// Points of the opt-in huge workload unless the run names another count.
 pub const HUGE_POINTS: usize = 100_000_000;
 /// Plane counts of the overdraw cuboid.
 pub const CUBOID_PLANES: [usize; 4] = [1, 4, 16, 64];
@@ -68,8 +68,9 @@ pub struct BenchOptions {
     /// Only these workloads (all when empty); a name also selects its other views
     /// (`uniform-10m` selects `uniform-10m-corner` and `uniform-10m-partial`).
     pub only: Vec<String>,
-    /// Also render the 100M-point cube ([`HUGE_POINTS`]), with its host memory peak.
-    pub huge: bool,
+    /// Also render a cube of this many points ([`HUGE_POINTS`] by default), generated and
+    /// uploaded chunk by chunk, with its host memory peak.
+    pub huge: Option<usize>,
 }
 
 /// A mode of the compute rasterizer measured besides the basic mode, as a change to the
@@ -143,7 +144,7 @@ impl BenchOptions {
             host_clocks: false,
             modes: ComputeMode::ALL.to_vec(),
             only: Vec::new(),
-            huge: false,
+            huge: None,
         }
     }
 
@@ -405,8 +406,8 @@ pub fn run(
     };
 
     // The huge cloud first, while the process is small, so that its memory peak is its own.
-    if options.huge && selected("uniform-100m") {
-        workloads.push(measure_huge(&mut methods, options, HUGE_POINTS, progress)?);
+    if let Some(points) = options.huge.filter(|&n| selected(&uniform_workload(n))) {
+        workloads.push(measure_huge(&mut methods, options, points, progress)?);
     }
 
     // Scenes are built one at a time so that only one large cloud is in memory.
@@ -686,14 +687,21 @@ fn is_frame_stage(stage: Stage) -> bool {
     )
 }
 
+/// Whether a workload belongs to the series of uniform cubes seen whole (the huge one
+/// included), against which frame time is fitted and plotted.
+pub fn in_uniform_series(workload: &WorkloadResult) -> bool {
+    workload.ingest_memory.is_some()
+        || UNIFORM_SERIES
+            .iter()
+            .any(|&n| workload.workload == uniform_workload(n))
+}
+
 /// Least-squares lines of frame time against points in view over the uniform series (all in
 /// view), one per method.
 fn scaling_fits(workloads: &[WorkloadResult]) -> Vec<ScalingFit> {
-    let series: Vec<&WorkloadResult> = UNIFORM_SERIES
-        .iter()
-        .chain(std::iter::once(&HUGE_POINTS))
-        .filter_map(|&n| workloads.iter().find(|w| w.workload == uniform_workload(n)))
-        .collect();
+    let mut series: Vec<&WorkloadResult> =
+        workloads.iter().filter(|w| in_uniform_series(w)).collect();
+    series.sort_by_key(|w| w.points);
     if series.len() < 2 {
         return Vec::new();
     }

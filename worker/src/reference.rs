@@ -386,6 +386,40 @@ fn frame_from(
 
 /// Basic mode: the nearest point's colour; at equal depths the smallest colour word.
 pub fn render_basic(cloud: &PointCloud, settings: &FrameSettings) -> ReferenceFrame {
+    let winner = basic_winners(cloud, settings);
+    let depth = winner
+        .iter()
+        .map(|w| w.map_or(f32::INFINITY, |(d, _)| d))
+        .collect();
+    frame_from(
+        settings,
+        winner.iter().map(|w| w.map(|(_, c)| c)).collect(),
+        depth,
+    )
+}
+
+/// Pixels whose nearest point has a rival of another colour at the same depth or behind it
+/// by at most `relative` of the depth.
+///
+/// There the winner hangs on rounding. This reference projects the exact positions in f64;
+/// the GPU projects positions quantised per batch in f32, so the two copies of a point that
+/// fall in different batches are no longer an exact tie there, and an adapter that fuses the
+/// multiply-adds (NVIDIA's does; lavapipe does not) can tip a near tie the other way.
+pub fn depth_ties(cloud: &PointCloud, settings: &FrameSettings, relative: f32) -> Vec<bool> {
+    let winner = basic_winners(cloud, settings);
+    let mut tied = vec![false; winner.len()];
+    for_each_covered_pixel(cloud, settings, |pixel, depth, colour| {
+        if let Some((d, c)) = winner[pixel] {
+            if colour != c && depth - d <= relative * d.abs() {
+                tied[pixel] = true;
+            }
+        }
+    });
+    tied
+}
+
+/// The nearest point of each pixel, as (depth, colour); equal depths go to the smaller colour.
+fn basic_winners(cloud: &PointCloud, settings: &FrameSettings) -> Vec<Option<(f32, u32)>> {
     let mut winner: Vec<Option<(f32, u32)>> =
         vec![None; (settings.width * settings.height) as usize];
     for_each_covered_pixel(cloud, settings, |pixel, depth, colour| {
@@ -397,15 +431,7 @@ pub fn render_basic(cloud: &PointCloud, settings: &FrameSettings) -> ReferenceFr
             winner[pixel] = Some((depth, colour));
         }
     });
-    let depth = winner
-        .iter()
-        .map(|w| w.map_or(f32::INFINITY, |(d, _)| d))
-        .collect();
-    frame_from(
-        settings,
-        winner.iter().map(|w| w.map(|(_, c)| c)).collect(),
-        depth,
-    )
+    winner
 }
 
 /// High-quality mode: the average colour of the points within the depth band.

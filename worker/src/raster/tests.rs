@@ -258,10 +258,31 @@ fn fallback_32_bit_path_renders_the_same_image_as_the_64_bit_path() {
     let diff = compare_images("fallback-vs-64", &narrow.image, &wide.image);
     assert_eq!(diff.differing, 0);
     assert_eq!(narrow.depth, wide.depth);
-    let expected = reference::render_basic(&cloud, &settings);
-    assert_eq!(
-        compare_images("fallback-vs-reference", &narrow.image, &expected.image).differing,
-        0
+    // Against the reference, exactly, except at a few depth ties: a point and its copy in
+    // another batch are quantised apart by a rounding error, and a real GPU's fused
+    // multiply-adds can put either in front (seen at 1 of ~4,800 tied pixels on an H200).
+    let expected = reference::render_basic(&cloud, &settings).image;
+    let ties = reference::depth_ties(&cloud, &settings, 1e-5);
+    let tied = ties.iter().filter(|&&t| t).count();
+    let differing: Vec<usize> = narrow
+        .image
+        .pixels()
+        .zip(expected.pixels())
+        .enumerate()
+        .filter(|(_, (a, e))| a != e)
+        .map(|(pixel, _)| pixel)
+        .collect();
+    if !differing.is_empty() {
+        compare_images("fallback-vs-reference", &narrow.image, &expected);
+    }
+    assert!(
+        differing.iter().all(|&pixel| ties[pixel]),
+        "pixels without a depth tie differ from the reference"
+    );
+    assert!(
+        tied > 1000 && differing.len() <= tied / 500,
+        "{} of {tied} tied pixels differ from the reference",
+        differing.len()
     );
 }
 
@@ -830,11 +851,16 @@ fn invalid_settings_are_refused_before_any_gpu_work() {
         height: 16_000,
         ..good
     };
-    let err = renderer
-        .validate(&too_many_pixels)
-        .expect_err("over the binding limit");
+    // 2 GB of framebuffer: over most adapters' binding limit (lavapipe's is 128 MiB), not
+    // over every one's (an H200's is 4 GiB).
+    let result = renderer.validate(&too_many_pixels);
     if gpu().capabilities.max_storage_binding_bytes < 16_000 * 16_000 * 8 {
-        assert!(matches!(err, RenderError::ImageTooLarge { .. }), "{err}");
+        assert!(
+            matches!(result, Err(RenderError::ImageTooLarge { .. })),
+            "{result:?}"
+        );
+    } else {
+        result.expect("within this adapter's binding limit");
     }
     let zero = FrameSettings { width: 0, ..good };
     assert!(renderer.validate(&zero).is_err());
