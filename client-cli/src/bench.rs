@@ -197,6 +197,16 @@ pub fn run(args: BenchArgs) -> Result<()> {
     Ok(())
 }
 
+/// Milliseconds to three significant digits where that takes more than one decimal: a GPU
+/// renders in a tenth of a millisecond what lavapipe renders in a hundred.
+fn ms(value: f64) -> String {
+    match value {
+        v if v < 1.0 => format!("{v:.3}"),
+        v if v < 10.0 => format!("{v:.2}"),
+        v => format!("{v:.1}"),
+    }
+}
+
 /// The summary table (frame time, throughput, speed-up, other modes' cost), the per-stage
 /// table, the scaling fits and the huge workload's memory.
 fn markdown_tables(report: &BenchReport) -> String {
@@ -225,21 +235,22 @@ fn markdown_tables(report: &BenchReport) -> String {
         let (pointlist, compute) = (&w.pointlist, &w.compute);
         let _ = write!(
             md,
-            "| {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.1} | {:.2}x |",
+            "| {} | {} | {} | {} | {:.1} | {} | {:.1} | {:.2}x |",
             w.workload,
             thousands(w.points),
             thousands(w.points_in_view),
-            pointlist.frame_ms,
+            ms(pointlist.frame_ms),
             pointlist.mpoints_per_s,
-            compute.frame_ms,
+            ms(compute.frame_ms),
             compute.mpoints_per_s,
             w.speedup_vs_pointlist,
         );
         for mode in &w.modes {
             let _ = write!(
                 md,
-                " {:.1} | {:.2}x |",
-                mode.result.frame_ms, mode.cost_vs_basic
+                " {} | {:.2}x |",
+                ms(mode.result.frame_ms),
+                mode.cost_vs_basic
             );
         }
         let _ = writeln!(
@@ -374,7 +385,7 @@ fn stage(method: &MethodResult, name: &str) -> String {
         .stages
         .iter()
         .find(|s| s.stage == name)
-        .map_or("–".into(), |s| format!("{:.2} ({})", s.ms, s.clock))
+        .map_or("–".into(), |s| format!("{} ({})", ms(s.ms), s.clock))
 }
 
 /// 10000000 as 10,000,000.

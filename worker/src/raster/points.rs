@@ -36,6 +36,12 @@ const _: () = assert!(BATCH_POINTS.is_multiple_of(SUB_BATCH_POINTS));
 /// Bytes one point adds to a chunk's point buffers (position and colour).
 pub const POINT_BYTES: u64 = std::mem::size_of::<QuantisedPosition>() as u64 + COLOUR_BYTES;
 
+/// Points per chunk when a cloud is streamed in. A chunk's host copy takes about 27 bytes a
+/// point while it is sorted and quantised (measured on an H200, where the 4 GiB binding let
+/// a 100M-point cloud come in as one chunk: 2.7 GB of host memory for 1.1 GB on the GPU);
+/// this keeps it near 430 MiB whatever the adapter's binding limit.
+pub const STREAM_CHUNK_POINTS: usize = 1 << 24;
+
 /// One storage binding's worth of points and the batches that index into it.
 pub(crate) struct PointChunk {
     /// `QuantisedPosition` per point.
@@ -154,7 +160,8 @@ impl GpuPointCloud {
         next_chunk: &mut dyn FnMut(usize) -> Option<(Vec<Vec3>, Vec<u32>)>,
     ) -> Result<Self, RenderError> {
         let started = Instant::now();
-        let chunk_points = (max_chunk_points / BATCH_POINTS).max(1) * BATCH_POINTS;
+        let chunk_points =
+            (max_chunk_points.min(STREAM_CHUNK_POINTS) / BATCH_POINTS).max(1) * BATCH_POINTS;
         let mut chunks = Vec::new();
         let mut points = 0;
         while let Some((positions, colours)) = next_chunk(chunk_points) {
@@ -518,5 +525,31 @@ mod tests {
             let p = positions[i as usize];
             assert!(p.max_element() <= 1.0, "{p}");
         }
+    }
+
+    /// However large the adapter's binding limit, a streamed cloud is asked for in chunks of
+    /// at most `STREAM_CHUNK_POINTS`, which bounds the host's memory during ingest.
+    #[test]
+    fn streamed_chunks_are_capped_whatever_the_binding_limit() {
+        let gpu = crate::testing::gpu();
+        let mut asked = Vec::new();
+        let mut left = 3;
+        let cloud = GpuPointCloud::upload_chunks(&gpu, glam::DVec3::ZERO, usize::MAX, &mut |n| {
+            asked.push(n);
+            left -= 1;
+            (left >= 0).then(|| {
+                (
+                    vec![Vec3::new(1.0, 2.0, left as f32); 5],
+                    vec![0xff00_00ff; 5],
+                )
+            })
+        })
+        .expect("upload");
+        assert_eq!(cloud.len(), 15);
+        assert_eq!(cloud.chunks.len(), 3);
+        assert!(
+            asked.iter().all(|&n| n == STREAM_CHUNK_POINTS),
+            "asked for {asked:?}"
+        );
     }
 }
