@@ -280,8 +280,9 @@ fn markdown_tables(report: &BenchReport) -> String {
         }
     }
     // In the order a frame runs them.
-    const ORDER: [&str; 8] = [
+    const ORDER: [&str; 9] = [
         "upload",
+        "cull",
         "rasterize",
         "accumulate",
         "resolve",

@@ -328,6 +328,7 @@ fn print_summary(dir: &Path, frames: &[StageTimings]) {
     );
     for stage in [
         Stage::Upload,
+        Stage::Cull,
         Stage::Rasterize,
         Stage::Resolve,
         Stage::Shade,

@@ -679,7 +679,8 @@ fn measure(
     })
 }
 
-/// Stages that are not GPU work producing the image, left out of the frame time.
+/// Stages left out of the frame time: transfers (the uniforms; the points, once) and what
+/// follows the image. The host's culling counts: it is the compute method's own work.
 fn is_frame_stage(stage: Stage) -> bool {
     !matches!(
         stage,

@@ -18,12 +18,12 @@
 //! far along a mirrored Z-order curve (`draw_order.rs`).
 
 use bytemuck::Zeroable;
-use glam::{DVec2, DVec3, DVec4, Vec3};
+use glam::{DVec2, DVec4, Vec3};
 
 use super::draw_order::sort_near_to_far;
 use super::gpu_data::GpuBatch;
 use super::pixel_rect::{PixelCoverage, PixelRect};
-use super::points::{BatchTables, BATCH_POINTS, SUB_BATCH_POINTS};
+use super::points::{BatchTables, BATCH_POINTS, GROUP_BATCHES, SUB_BATCH_POINTS};
 use crate::camera::CameraTransform;
 
 /// One frame's batch tables of a cloud's chunks, in one GPU buffer.
@@ -171,17 +171,49 @@ impl FrameBatches {
 }
 
 /// Appends to `out` the entries of `tables` that can be in view and adds the pixels their
-/// points can touch to `coverage`. A batch wholly inside the frustum is listed as it is; of a batch that
-/// straddles its edge, only the runs of sub-batches that can be in view, each run an entry
-/// with the batch's box (the shaders dequantise against it) and the run's points.
+/// points can touch to `coverage`. A group of batches wholly inside the frustum is listed as
+/// it is, with its box's footprint; of the other groups, each batch is tested: a batch wholly
+/// inside is listed as it is; of a batch that straddles the edge, only the runs of
+/// sub-batches that can be in view, each run an entry with the batch's box (the shaders
+/// dequantise against it) and the run's points.
 fn list_in_view(
     frustum: &Frustum,
     tables: BatchTables<'_>,
     out: &mut Vec<GpuBatch>,
     coverage: &mut PixelCoverage,
 ) {
+    if tables.groups.is_empty() {
+        list_batches_in_view(frustum, tables, 0..tables.batches.len(), out, coverage);
+        return;
+    }
+    for (g, group) in tables.groups.iter().enumerate() {
+        let Some(view) = frustum.view_of(group) else {
+            continue;
+        };
+        let batches = g * GROUP_BATCHES..((g + 1) * GROUP_BATCHES).min(tables.batches.len());
+        if view.whole {
+            coverage.add(view.footprint);
+            out.extend_from_slice(&tables.batches[batches]);
+        } else {
+            list_batches_in_view(frustum, tables, batches, out, coverage);
+        }
+    }
+}
+
+/// [`list_in_view`] for the batches `range`, one by one.
+fn list_batches_in_view(
+    frustum: &Frustum,
+    tables: BatchTables<'_>,
+    range: std::ops::Range<usize>,
+    out: &mut Vec<GpuBatch>,
+    coverage: &mut PixelCoverage,
+) {
     const SUBS_PER_BATCH: usize = BATCH_POINTS / SUB_BATCH_POINTS;
-    for (b, batch) in tables.batches.iter().enumerate() {
+    for (b, batch) in tables.batches[range.clone()]
+        .iter()
+        .enumerate()
+        .map(|(i, batch)| (range.start + i, batch))
+    {
         let Some(view) = frustum.view_of(batch) else {
             continue;
         };
@@ -266,14 +298,30 @@ impl Frustum {
         let mut all_inside = true;
         let mut all_in_front = true;
         let (mut low, mut high) = (DVec2::splat(f64::INFINITY), DVec2::splat(f64::NEG_INFINITY));
+        // The corners' clip coordinates and depths, from the minimum corner's plus the
+        // transformed edges of the box: one matrix product instead of eight.
+        let view_proj = &self.transform.view_proj;
+        let depth_row = self.transform.depth_row;
+        let extent = max - min;
+        let clip_min: DVec4 = *view_proj * min.extend(1.0);
+        let depth_min = depth_row.dot(min.extend(1.0));
+        let clip_edges = [
+            view_proj.x_axis * extent.x,
+            view_proj.y_axis * extent.y,
+            view_proj.z_axis * extent.z,
+        ];
+        let depth_edges = depth_row.truncate() * extent;
+        let (width, height) = (self.transform.width, self.transform.height);
+        let (half_width, half_height) = (0.5 * f64::from(width), 0.5 * f64::from(height));
         for corner in 0..8 {
-            let p = DVec3::new(
-                if corner & 1 == 0 { min.x } else { max.x },
-                if corner & 2 == 0 { min.y } else { max.y },
-                if corner & 4 == 0 { min.z } else { max.z },
-            );
-            let clip: DVec4 = self.transform.view_proj * p.extend(1.0);
-            let depth = self.transform.depth_row.dot(p.extend(1.0));
+            let mut clip = clip_min;
+            let mut depth = depth_min;
+            for axis in 0..3 {
+                if corner & (1 << axis) != 0 {
+                    clip += clip_edges[axis];
+                    depth += depth_edges[axis];
+                }
+            }
             let w = clip.w;
             outside[0] &= clip.x < -w * self.widen_x;
             outside[1] &= clip.x > w * self.widen_x;
@@ -288,9 +336,10 @@ impl Frustum {
             // Points nearer than `near` are culled, so when every corner is beyond it the box's
             // image is the hull of its corners' images, far from the singular w = 0.
             all_in_front &= depth >= self.near && w > 0.0;
+            let inverse_w = 1.0 / w;
             let pixel = DVec2::new(
-                (clip.x / w * 0.5 + 0.5) * f64::from(self.transform.width),
-                (0.5 - clip.y / w * 0.5) * f64::from(self.transform.height),
+                (clip.x * inverse_w + 1.0) * half_width,
+                (1.0 - clip.y * inverse_w) * half_height,
             );
             low = low.min(pixel);
             high = high.max(pixel);
@@ -298,7 +347,6 @@ impl Frustum {
         if outside.iter().any(|&o| o) {
             return None;
         }
-        let (width, height) = (self.transform.width, self.transform.height);
         let footprint = if all_in_front {
             let clamp = |v: f64, limit: u32| v.clamp(0.0, f64::from(limit)) as u32;
             PixelRect {
@@ -479,6 +527,7 @@ mod tests {
         let chunks = chunks.into_iter().map(|batches| BatchTables {
             batches,
             sub_batches: &[],
+            groups: &[],
         });
         tables.update(&gpu.device, &gpu.queue, chunks, &transform, 1);
 
@@ -559,6 +608,7 @@ mod tests {
                 BatchTables {
                     batches: &batches,
                     sub_batches: &sub_batches,
+                    groups: &[],
                 },
                 &mut listed,
                 &mut coverage,
@@ -570,6 +620,7 @@ mod tests {
                 BatchTables {
                     batches: &batches,
                     sub_batches: &[],
+                    groups: &[],
                 },
                 &mut whole_batches,
                 &mut PixelCoverage::new(width, height),
@@ -608,5 +659,77 @@ mod tests {
                  whole batches"
             );
         }
+    }
+
+    /// Listing by groups gives the very entries that testing every batch gives, in the same
+    /// order, and a footprint that holds theirs: a group is listed whole only when all its
+    /// batches would be.
+    #[test]
+    fn groups_list_the_same_entries_as_batches_one_by_one() {
+        let mut rng = ChaCha8Rng::seed_from_u64(13);
+        let points: Vec<Vec3> = (0..10 * GROUP_BATCHES * BATCH_POINTS + 999)
+            .map(|_| Vec3::from_array(std::array::from_fn(|_| rng.random_range(-10.0..10.0))))
+            .collect();
+        let (batches, sub_batches, _) = crate::raster::points::host_tables(&points);
+        let groups = crate::raster::points::batch_groups(&batches);
+        assert_eq!(groups.len(), 11);
+        let (width, height) = (160, 120);
+        let cameras = [
+            // The whole cube in view: every group listed whole.
+            Camera {
+                position: DVec3::new(0.0, -60.0, 10.0),
+                target: DVec3::ZERO,
+                up: DVec3::Z,
+                projection: Projection::Perspective { fov_y_deg: 40.0 },
+                near: 1.0,
+                far: 200.0,
+            },
+            // A corner: groups in, out, and across the edge.
+            Camera {
+                position: DVec3::new(14.0, -30.0, 12.0),
+                target: DVec3::new(9.0, 0.0, 8.0),
+                up: DVec3::Z,
+                projection: Projection::Perspective { fov_y_deg: 30.0 },
+                near: 1.0,
+                far: 100.0,
+            },
+            Camera {
+                position: DVec3::new(5.0, 5.0, 40.0),
+                target: DVec3::new(5.0, 5.0, 0.0),
+                up: DVec3::Y,
+                projection: Projection::Orthographic { height: 8.0 },
+                near: 20.0,
+                far: 60.0,
+            },
+        ];
+        let mut whole_groups = 0;
+        for camera in cameras {
+            let transform = camera.transform(DVec3::ZERO, width, height);
+            let frustum = Frustum::new(&transform, 1);
+            let list = |groups: &[GpuBatch]| {
+                let (mut listed, mut coverage) = (Vec::new(), PixelCoverage::new(width, height));
+                let tables = BatchTables {
+                    batches: &batches,
+                    sub_batches: &sub_batches,
+                    groups,
+                };
+                list_in_view(&frustum, tables, &mut listed, &mut coverage);
+                (listed, coverage.union())
+            };
+            let (by_group, group_footprint) = list(&groups);
+            let (one_by_one, footprint) = list(&[]);
+            assert!(!one_by_one.is_empty(), "{camera:?}: nothing listed");
+            assert_eq!(by_group, one_by_one, "{camera:?}");
+            assert_eq!(
+                group_footprint.union(footprint),
+                group_footprint,
+                "{camera:?}"
+            );
+            whole_groups += groups
+                .iter()
+                .filter(|g| frustum.view_of(g).is_some_and(|v| v.whole))
+                .count();
+        }
+        assert!(whole_groups >= groups.len(), "{whole_groups} groups whole");
     }
 }

@@ -21,6 +21,8 @@ use super::points::morton3;
 
 /// Cells per axis of the curve the batches are ordered along.
 const CELLS: u32 = 1 << 10;
+// The curve's key (3 bits per level) fills the upper half of a u64, the entry's index the lower.
+const _: () = assert!(CELLS <= 1 << 10);
 
 /// Sorts `entries` near to far along the mirrored Z-order curve; `depth_gradient` is the
 /// direction in which the view's linear depth grows. Entries with the same box (runs of one
@@ -38,19 +40,31 @@ pub(crate) fn sort_near_to_far(entries: &mut [GpuBatch], depth_gradient: DVec3) 
     let scale = largest / (high - low).max_element().max(f32::MIN_POSITIVE);
     // Along an axis whose depth falls as the coordinate grows, the upper half is nearer.
     let mirrored = depth_gradient.to_array().map(|g| g < 0.0);
-    entries.sort_by_cached_key(|entry| {
-        let centre = (Vec3::from_array(entry.min) + Vec3::from_array(entry.max)) * 0.5;
-        let cell = ((centre - low) * scale).clamp(Vec3::ZERO, Vec3::splat(largest));
-        let [x, y, z] = std::array::from_fn(|axis| {
-            let c = cell[axis] as u32;
-            if mirrored[axis] {
-                CELLS - 1 - c
-            } else {
-                c
-            }
-        });
-        morton3(x, y, z)
-    });
+    // Key and index in one word: an unstable sort of plain integers is several times faster
+    // than a stable sort by cached keys, and the index keeps runs of one batch in order.
+    let mut keyed: Vec<u64> = entries
+        .iter()
+        .enumerate()
+        .map(|(i, entry)| {
+            let centre = (Vec3::from_array(entry.min) + Vec3::from_array(entry.max)) * 0.5;
+            let cell = ((centre - low) * scale).clamp(Vec3::ZERO, Vec3::splat(largest));
+            let [x, y, z] = std::array::from_fn(|axis| {
+                let c = cell[axis] as u32;
+                if mirrored[axis] {
+                    CELLS - 1 - c
+                } else {
+                    c
+                }
+            });
+            (morton3(x, y, z) << 32) | i as u64
+        })
+        .collect();
+    keyed.sort_unstable();
+    let sorted: Vec<GpuBatch> = keyed
+        .iter()
+        .map(|&k| entries[(k & 0xffff_ffff) as usize])
+        .collect();
+    entries.copy_from_slice(&sorted);
 }
 
 #[cfg(test)]

@@ -399,6 +399,7 @@ fn fill_and_pintus_report_their_stages() {
         names,
         [
             "upload",
+            "cull",
             "rasterize",
             "resolve",
             "visibility",

@@ -602,6 +602,9 @@ impl Renderer {
             &transform,
             settings.point_size,
         );
+        let cull_ms = started.elapsed().as_secs_f64() * 1e3;
+
+        let started = Instant::now();
         if !self
             .targets
             .as_ref()
@@ -646,6 +649,7 @@ impl Renderer {
             .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));
         let upload_ms = started.elapsed().as_secs_f64() * 1e3 + cloud.take_upload_ms();
         timings.push(Stage::Upload, upload_ms, Clock::Host);
+        timings.push(Stage::Cull, cull_ms, Clock::Host);
 
         let path = self.basic.path(settings.atomics == AtomicsMode::Auto);
         self.run_passes(cloud, settings, path, resolve_run, &mut timings)?;

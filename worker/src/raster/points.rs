@@ -57,6 +57,9 @@ pub(crate) struct PointChunk {
     /// the positions the shaders dequantise; batch `b`'s runs start at `b * BATCH_POINTS /
     /// SUB_BATCH_POINTS`.
     pub sub_batches: Vec<GpuBatch>,
+    /// Host only: the boxes of runs of [`GROUP_BATCHES`] consecutive batches, which the
+    /// culling tests first (`batch_groups`).
+    pub groups: Vec<GpuBatch>,
     pub point_count: u32,
 }
 
@@ -65,6 +68,7 @@ impl PointChunk {
         BatchTables {
             batches: &self.batch_table,
             sub_batches: &self.sub_batches,
+            groups: &self.groups,
         }
     }
 }
@@ -74,6 +78,33 @@ impl PointChunk {
 pub(crate) struct BatchTables<'a> {
     pub batches: &'a [GpuBatch],
     pub sub_batches: &'a [GpuBatch],
+    /// Group `g` bounds batches `g * GROUP_BATCHES..`; empty when the chunk has none.
+    pub groups: &'a [GpuBatch],
+}
+
+/// Batches per group: the culling lists a group wholly in view without testing its batches
+/// one by one.
+pub const GROUP_BATCHES: usize = 32;
+
+/// The box of each run of [`GROUP_BATCHES`] consecutive batches, with the run's points. The
+/// batches are in Morton order, so a run is compact in space.
+pub(crate) fn batch_groups(batches: &[GpuBatch]) -> Vec<GpuBatch> {
+    batches
+        .chunks(GROUP_BATCHES)
+        .map(|run| {
+            let (mut min, mut max) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+            for batch in run {
+                min = min.min(Vec3::from_array(batch.min));
+                max = max.max(Vec3::from_array(batch.max));
+            }
+            GpuBatch {
+                min: min.to_array(),
+                first: run[0].first,
+                max: max.to_array(),
+                count: run.iter().map(|b| b.count).sum(),
+            }
+        })
+        .collect()
 }
 
 /// A cloud uploaded for rendering. Create it with [`super::Renderer::upload`].
@@ -271,6 +302,7 @@ impl ChunkData {
             colours: buffer("colours", &self.colours),
             batches: buffer("batches", bytemuck::cast_slice(&self.batches)),
             point_count: self.positions.len() as u32,
+            groups: batch_groups(&self.batches),
             batch_table: self.batches,
             sub_batches: self.sub_batches,
         }

@@ -542,6 +542,7 @@ fn every_frame_reports_its_stage_timings() {
     for frame in [&first, &second] {
         for stage in [
             Stage::Upload,
+            Stage::Cull,
             Stage::Rasterize,
             Stage::Resolve,
             Stage::Readback,

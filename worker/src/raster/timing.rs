@@ -8,6 +8,10 @@ use std::fmt;
 pub enum Stage {
     /// Host-to-GPU transfers: per-frame uniforms, and the points on the first frame of a cloud.
     Upload,
+    /// On the host: the batches that can be in view, culled against the frustum and put in
+    /// draw order, and their table sent to the GPU. Part of the frame's work: a baseline that
+    /// draws every point does none of it.
+    Cull,
     /// The point pass(es), in high-quality mode the depth pass (and the clear of a new
     /// framebuffer).
     Rasterize,
@@ -33,6 +37,7 @@ impl Stage {
     pub fn name(self) -> &'static str {
         match self {
             Stage::Upload => "upload",
+            Stage::Cull => "cull",
             Stage::Rasterize => "rasterize",
             Stage::Accumulate => "accumulate",
             Stage::Resolve => "resolve",
