@@ -327,6 +327,23 @@ fn markdown_tables(report: &BenchReport) -> String {
             );
         }
     }
+    let _ = writeln!(
+        md,
+        "\nBatches of 4096 points in the basic mode's last frame: listed by the host's culling \
+         (a batch at the view's edge once per run of it listed), then skipped by the depth pass \
+         as hidden:\n\n| workload | batches | listed | occluded |\n|---|---:|---:|---:|"
+    );
+    for w in &report.workloads {
+        let b = &w.batches;
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} | {} |",
+            w.workload,
+            thousands(b.total),
+            thousands(b.listed as usize),
+            thousands(b.occluded as usize)
+        );
+    }
     for w in &report.workloads {
         if let Some(memory) = &w.ingest_memory {
             let mib = |b: u64| b as f64 / (1u64 << 20) as f64;

@@ -214,9 +214,9 @@ pub struct MethodResult {
     /// mode's name ([`ComputeMode::name`]).
     pub method: &'static str,
     pub variant: String,
-    /// Median over frames of the time that produces the image: every GPU pass of the frame
-    /// (rasterize, accumulate, resolve, shade), on the GPU clock where the adapter has
-    /// timestamps.
+    /// Median over frames of the time that produces the image: the host's culling and every
+    /// GPU pass of the frame (rasterize, accumulate, resolve, shade), the passes on the GPU
+    /// clock where the adapter has timestamps.
     pub frame_ms: f64,
     /// Median host wall-clock time of a whole frame as a caller sees it, readback included: a
     /// cross-check of `frame_ms` that does not trust the adapter's timestamps.
@@ -249,6 +249,18 @@ pub struct WorkloadResult {
     /// Of the pixels covered by either method, the fraction with the same colour in both:
     /// a check that both drew the same thing.
     pub image_agreement: f64,
+    /// How the basic mode's last frame culled the cloud's batches.
+    pub batches: BatchCounts,
+}
+
+/// Batches of a cloud in one frame of the basic mode: all of them, those the host listed as
+/// possibly in view (a batch at the view's edge may count once per run of it listed), and
+/// those the depth pass then skipped as hidden (occlusion culling).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct BatchCounts {
+    pub total: usize,
+    pub listed: u32,
+    pub occluded: u32,
 }
 
 /// A compute mode other than basic on one workload.
@@ -630,6 +642,12 @@ fn measure(
         return Err(BenchError::NoFrames);
     };
 
+    // The basic renderer's last frame: what its culling left and what occlusion then skipped.
+    let batches = BatchCounts {
+        total: resident.batch_count(),
+        listed: methods.compute[0].listed_batches(),
+        occluded: methods.compute[0].occlusion_skipped()?.depth_pass,
+    };
     let image_agreement = match (&pointlist_image, &compute_frame) {
         (Some(a), Some(b)) => image_agreement(a, &b.image, settings.background),
         _ => 0.0,
@@ -676,6 +694,7 @@ fn measure(
         image_agreement,
         gpu_bytes_per_point: resident.gpu_bytes_per_point(),
         ingest_memory: None,
+        batches,
     })
 }
 

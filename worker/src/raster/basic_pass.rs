@@ -107,7 +107,8 @@ impl BasicPass {
     }
 
     /// The depth-writing pass over every chunk, in phases with the occlusion tiles built
-    /// before each but the first.
+    /// before each but the first. A phase is a share of all listed batches taken near to far
+    /// across the chunks, so the first builds its tiles from the nearest chunk's points.
     fn record_phased(
         &self,
         device: &wgpu::Device,
@@ -125,8 +126,8 @@ impl BasicPass {
                 self.build_tiles(device, pass, frame);
             }
             pass.set_pipeline(&pipeline);
-            for chunk in 0..frame.cloud.chunks.len() {
-                dispatch_part(device, pass, &pipeline, path, frame, (chunk, shares));
+            for part in frame.batches.parts(shares) {
+                dispatch_part(device, pass, &pipeline, path, frame, part);
             }
         }
     }

@@ -33,6 +33,8 @@ pub(crate) struct FrameBatches {
     buffer: Option<wgpu::Buffer>,
     /// Per chunk: byte offset of its table in `buffer` and its number of batches.
     ranges: Vec<(u64, u32)>,
+    /// The chunks with batches in view, near to far (by their listed batches' boxes).
+    chunk_order: Vec<usize>,
     /// Host copy reused from frame to frame.
     staging: Vec<GpuBatch>,
     /// The pixels that points of the listed batches can touch this frame.
@@ -50,6 +52,7 @@ impl FrameBatches {
         Self {
             buffer: None,
             ranges: Vec::new(),
+            chunk_order: Vec::new(),
             staging: Vec::new(),
             footprint: PixelRect::EMPTY,
             covered_pixels: 0,
@@ -88,6 +91,7 @@ impl FrameBatches {
                 (self.staging.len() - start) as u32,
             ));
         }
+        self.order_chunks(transform);
         self.footprint = coverage.union();
         self.covered_pixels = coverage.pixels();
         self.listed_points = self.staging.iter().map(|e| u64::from(e.count)).sum();
@@ -107,6 +111,58 @@ impl FrameBatches {
         if let Some(buffer) = &self.buffer {
             queue.write_buffer(buffer, 0, bytemuck::cast_slice(&self.staging));
         }
+    }
+
+    /// Orders the chunks that have batches in view near to far, as their batches are: a
+    /// cloud larger than one binding comes in chunks of neighbouring points (Morton order or
+    /// a streaming reader's), so this draws the near chunks' points first.
+    fn order_chunks(&mut self, transform: &CameraTransform) {
+        let entry_bytes = std::mem::size_of::<GpuBatch>() as u64;
+        let mut boxes: Vec<GpuBatch> = self
+            .ranges
+            .iter()
+            .enumerate()
+            .filter(|(_, &(_, count))| count > 0)
+            .map(|(chunk, &(offset, count))| {
+                let start = (offset / entry_bytes) as usize;
+                let (mut min, mut max) =
+                    (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+                for entry in &self.staging[start..start + count as usize] {
+                    min = min.min(Vec3::from_array(entry.min));
+                    max = max.max(Vec3::from_array(entry.max));
+                }
+                GpuBatch {
+                    min: min.to_array(),
+                    first: chunk as u32,
+                    max: max.to_array(),
+                    count,
+                }
+            })
+            .collect();
+        sort_near_to_far(&mut boxes, transform.depth_row.truncate());
+        self.chunk_order.clear();
+        self.chunk_order
+            .extend(boxes.iter().map(|chunk_box| chunk_box.first as usize));
+    }
+
+    /// The parts of the chunks' tables between shares `from` and `to` of all listed batches,
+    /// taken near to far: the chunks in their order, each from the start of its table. Each
+    /// part is a chunk and the shares of its own table for [`Self::part`]; consecutive
+    /// ranges of shares hold every listed batch once.
+    pub fn parts(&self, (from, to): (f64, f64)) -> Vec<(usize, (f64, f64))> {
+        let total = f64::from(self.total());
+        let (from, to) = (from * total, to * total);
+        let mut parts = Vec::new();
+        let mut before = 0.0;
+        for &chunk in &self.chunk_order {
+            let count = f64::from(self.count(chunk));
+            let (start, end) = (from.max(before), to.min(before + count));
+            if end > start {
+                parts.push((chunk, ((start - before) / count, (end - before) / count)));
+            }
+            before += count;
+        }
+        parts
     }
 
     /// The pixels that points of this frame's listed batches can touch (empty when none is
@@ -129,14 +185,27 @@ impl FrameBatches {
     /// The part of chunk `chunk`'s table from share `from` to share `to` of its batches, as a
     /// storage binding and its number of batches; `None` when that part is empty. Parts
     /// start at offsets the adapter can bind; consecutive shares hold the table in order.
-    pub fn part(
-        &self,
-        chunk: usize,
-        (from, to): (f64, f64),
-    ) -> Option<(wgpu::BufferBinding<'_>, u32)> {
-        let (offset, count) = *self.ranges.get(chunk)?;
+    pub fn part(&self, chunk: usize, shares: (f64, f64)) -> Option<(wgpu::BufferBinding<'_>, u32)> {
+        let (offset, _) = *self.ranges.get(chunk)?;
         let buffer = self.buffer.as_ref()?;
+        let entries = self.part_entries(chunk, shares);
         let entry = std::mem::size_of::<GpuBatch>() as u64;
+        (!entries.is_empty()).then(|| {
+            (
+                wgpu::BufferBinding {
+                    buffer,
+                    offset: offset + u64::from(entries.start) * entry,
+                    size: wgpu::BufferSize::new(u64::from(entries.len() as u32) * entry),
+                },
+                entries.len() as u32,
+            )
+        })
+    }
+
+    /// The entries of chunk `chunk`'s table between two shares of it: boundaries at multiples
+    /// of the binding alignment, the same for the same share.
+    fn part_entries(&self, chunk: usize, (from, to): (f64, f64)) -> std::ops::Range<u32> {
+        let count = self.count(chunk);
         let boundary = |share: f64| {
             if share >= 1.0 {
                 count
@@ -146,17 +215,7 @@ impl FrameBatches {
                     .min(count)
             }
         };
-        let (start, end) = (boundary(from), boundary(to));
-        (end > start).then(|| {
-            (
-                wgpu::BufferBinding {
-                    buffer,
-                    offset: offset + u64::from(start) * entry,
-                    size: wgpu::BufferSize::new(u64::from(end - start) * entry),
-                },
-                end - start,
-            )
-        })
+        boundary(from)..boundary(to).max(boundary(from))
     }
 
     /// Number of batches of chunk `chunk` in this frame's table.
@@ -659,6 +718,62 @@ mod tests {
                  whole batches"
             );
         }
+    }
+
+    /// Phases take the chunks near to far: the first share of all listed batches is the
+    /// nearest chunk's, and consecutive shares hold every listed batch once.
+    #[test]
+    fn parts_take_the_chunks_near_to_far_and_hold_every_batch_once() {
+        let gpu = crate::testing::gpu();
+        // Looking down -z from z = 10: depth is 10 - z.
+        let camera = Camera {
+            position: DVec3::new(0.0, 0.0, 10.0),
+            target: DVec3::ZERO,
+            up: DVec3::Y,
+            projection: Projection::Orthographic { height: 2.0 },
+            near: 1.0,
+            far: 20.0,
+        };
+        let transform = camera.transform(DVec3::ZERO, 64, 64);
+        let at_depth = |depth: f32, n: usize| {
+            let z = 10.0 - depth;
+            vec![batch(Vec3::new(-0.5, -0.5, z - 0.1), Vec3::new(0.5, 0.5, z + 0.1)); n]
+        };
+        // Chunk 0 far, chunk 1 near, chunk 2 between; 200 batches each, so that alignment
+        // rounding leaves whole parts.
+        let chunks = [at_depth(8.0, 200), at_depth(2.0, 200), at_depth(5.0, 200)];
+        let mut tables = FrameBatches::new();
+        tables.update(
+            &gpu.device,
+            &gpu.queue,
+            chunks.iter().map(|batches| BatchTables {
+                batches,
+                sub_batches: &[],
+                groups: &[],
+            }),
+            &transform,
+            1,
+        );
+        assert_eq!(tables.chunk_order, [1, 2, 0]);
+        let phases = [(0.0, 0.3), (0.3, 0.7), (0.7, 1.0)];
+        let parts: Vec<Vec<(usize, std::ops::Range<u32>)>> = phases
+            .iter()
+            .map(|&shares| {
+                tables
+                    .parts(shares)
+                    .into_iter()
+                    .map(|(chunk, shares)| (chunk, tables.part_entries(chunk, shares)))
+                    .collect()
+            })
+            .collect();
+        // The first 30% of 600 batches lie in the nearest chunk.
+        assert!(parts[0].iter().all(|(chunk, _)| *chunk == 1), "{parts:?}");
+        let mut seen = [0u32; 3];
+        for (chunk, entries) in parts.iter().flatten() {
+            assert_eq!(entries.start, seen[*chunk], "{parts:?}");
+            seen[*chunk] = entries.end;
+        }
+        assert_eq!(seen, [200, 200, 200]);
     }
 
     /// Listing by groups gives the very entries that testing every batch gives, in the same

@@ -493,6 +493,12 @@ impl Renderer {
         }
     }
 
+    /// Entries of the last frame's batch tables: the batches that could be in view, a batch
+    /// at the view's edge once per run of it listed; zero before the first frame.
+    pub fn listed_batches(&self) -> u32 {
+        self.batches.total()
+    }
+
     /// Uploads a cloud; its buffers stay resident for as many frames as needed.
     pub fn upload(&self, cloud: &PointCloud) -> Result<GpuPointCloud, RenderError> {
         GpuPointCloud::upload(&self.gpu, cloud, self.max_chunk_points)

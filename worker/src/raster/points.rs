@@ -130,6 +130,11 @@ impl GpuPointCloud {
         self.chunks.len()
     }
 
+    /// Batches of all chunks.
+    pub fn batch_count(&self) -> usize {
+        self.chunks.iter().map(|c| c.batch_table.len()).sum()
+    }
+
     pub fn origin(&self) -> glam::DVec3 {
         self.origin
     }
