@@ -452,7 +452,7 @@ impl Renderer {
             fill: FillPass::new(device),
             pintus: PintusPass::new(device),
             resolve: ResolvePass::new(device),
-            batches: FrameBatches::new(),
+            batches: FrameBatches::new(gpu.adapter_info.device_type == wgpu::DeviceType::Cpu),
             screen_uniforms: ScreenUniforms::new(device),
             uniforms: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("frame uniforms"),

@@ -107,6 +107,15 @@ impl PixelCoverage {
         }
     }
 
+    /// Adds what `other`, a coverage of the same image, holds.
+    pub fn merge(&mut self, other: &PixelCoverage) {
+        debug_assert_eq!((self.width, self.height), (other.width, other.height));
+        self.union = self.union.union(other.union);
+        for (mine, theirs) in self.marked.iter_mut().zip(&other.marked) {
+            *mine |= *theirs;
+        }
+    }
+
     /// The union of the rectangles added.
     pub fn union(&self) -> PixelRect {
         self.union
