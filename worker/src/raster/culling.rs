@@ -6,16 +6,22 @@
 //! size and a pixel of margin for the shaders' f32 arithmetic. The point passes read this
 //! table instead of the cloud's own and dispatch one workgroup per entry, so a culled batch
 //! costs the GPU nothing (on lavapipe, a view that sees none of a 10M-point cloud went from
-//! 3.7 ms to 0.1 ms). A batch that straddles the edge of the view is culled again in runs of
-//! 256 points (sub-batches, whose boxes only the host keeps), and only its runs that can be in
-//! view are listed: on lavapipe this took a view of a cube's corner from 9.9 to 8.4 ms of point
-//! pass (BENCHMARKS.md). Points of listed entries are still culled one by one.
+//! 3.7 ms to 0.1 ms). Points of listed entries are still culled one by one.
+//!
+//! - Runs of 32 batches (groups) are tested first: a group wholly in view is listed without
+//!   testing its batches, a group wholly outside is dropped with them.
+//! - On a CPU adapter, a batch that straddles the edge of the view is culled again in runs of
+//!   256 points (sub-batches, whose boxes only the host keeps), and only its runs that can be
+//!   in view are listed: on lavapipe this took a view of a cube's corner from 9.9 to 8.4 ms of
+//!   point pass (BENCHMARKS.md). A GPU draws the whole batch faster than the host tests them.
+//! - A cloud of many chunks is culled on all cores, a chunk per task.
 //!
 //! The same pass over the boxes bounds the frame's footprint: the pixels any listed point can
 //! touch. The resolve skips the rest of the image when it is known to be empty (`targets.rs`).
 //!
 //! The table is a copy of the entries (32 bytes per 4096 points), each chunk's sorted near to
-//! far along a mirrored Z-order curve (`draw_order.rs`).
+//! far along a mirrored Z-order curve (`draw_order.rs`), and the chunks themselves ordered
+//! near to far. This is the stage "cull" of a frame's timings, part of its frame time.
 
 use bytemuck::Zeroable;
 use glam::{DVec2, DVec4, Vec3};
