@@ -674,18 +674,9 @@ mod tests {
         }
     }
 
-    /// Of batches that straddle the edge of the view only the sub-batches that can be in
-    /// view are listed: every point in view is in a listed entry, and fewer points are listed
-    /// than whole batches would give.
-    #[test]
-    fn straddling_batches_list_only_their_sub_batches_that_can_be_in_view() {
-        let mut rng = ChaCha8Rng::seed_from_u64(9);
-        let points: Vec<Vec3> = (0..24 * BATCH_POINTS + 300)
-            .map(|_| Vec3::from_array(std::array::from_fn(|_| rng.random_range(-10.0..10.0))))
-            .collect();
-        let (batches, sub_batches, dequantised) = crate::raster::points::host_tables(&points);
-        let (width, height) = (160, 120);
-        let cameras = [
+    /// Views of a cube of side 20 centred on the origin that see part of it.
+    fn views_of_the_cube() -> [Camera; 3] {
+        [
             // Perspective, seeing a corner of the cube.
             Camera {
                 position: DVec3::new(14.0, -30.0, 12.0),
@@ -713,8 +704,21 @@ mod tests {
                 near: 2.0,
                 far: 100.0,
             },
-        ];
-        for camera in cameras {
+        ]
+    }
+
+    /// Of batches that straddle the edge of the view only the sub-batches that can be in
+    /// view are listed: every point in view is in a listed entry, and fewer points are listed
+    /// than whole batches would give.
+    #[test]
+    fn straddling_batches_list_only_their_sub_batches_that_can_be_in_view() {
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let points: Vec<Vec3> = (0..24 * BATCH_POINTS + 300)
+            .map(|_| Vec3::from_array(std::array::from_fn(|_| rng.random_range(-10.0..10.0))))
+            .collect();
+        let (batches, sub_batches, dequantised) = crate::raster::points::host_tables(&points);
+        let (width, height) = (160, 120);
+        for camera in views_of_the_cube() {
             let transform = camera.transform(DVec3::ZERO, width, height);
             let frustum = Frustum::new(&transform, 1);
             let mut listed = Vec::new();
@@ -930,36 +934,18 @@ mod tests {
         let groups = crate::raster::points::batch_groups(&batches);
         assert_eq!(groups.len(), 11);
         let (width, height) = (160, 120);
-        let cameras = [
-            // The whole cube in view: every group listed whole.
-            Camera {
-                position: DVec3::new(0.0, -60.0, 10.0),
-                target: DVec3::ZERO,
-                up: DVec3::Z,
-                projection: Projection::Perspective { fov_y_deg: 40.0 },
-                near: 1.0,
-                far: 200.0,
-            },
-            // A corner: groups in, out, and across the edge.
-            Camera {
-                position: DVec3::new(14.0, -30.0, 12.0),
-                target: DVec3::new(9.0, 0.0, 8.0),
-                up: DVec3::Z,
-                projection: Projection::Perspective { fov_y_deg: 30.0 },
-                near: 1.0,
-                far: 100.0,
-            },
-            Camera {
-                position: DVec3::new(5.0, 5.0, 40.0),
-                target: DVec3::new(5.0, 5.0, 0.0),
-                up: DVec3::Y,
-                projection: Projection::Orthographic { height: 8.0 },
-                near: 20.0,
-                far: 60.0,
-            },
-        ];
+        // The whole cube in view (every group listed whole), then groups in, out, and across
+        // the edge of the view.
+        let whole = Camera {
+            position: DVec3::new(0.0, -60.0, 10.0),
+            target: DVec3::ZERO,
+            up: DVec3::Z,
+            projection: Projection::Perspective { fov_y_deg: 40.0 },
+            near: 1.0,
+            far: 200.0,
+        };
         let mut whole_groups = 0;
-        for camera in cameras {
+        for camera in std::iter::once(whole).chain(views_of_the_cube()) {
             let transform = camera.transform(DVec3::ZERO, width, height);
             let frustum = Frustum::new(&transform, 1);
             let list = |groups: &[GpuBatch]| {
