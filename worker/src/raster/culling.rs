@@ -621,10 +621,8 @@ mod tests {
         }
     }
 
-    #[test]
-    fn tables_hold_the_batches_in_view_in_order_at_aligned_offsets() {
-        let gpu = crate::testing::gpu();
-        // Looking down -z from z = 10: depth is 10 - z.
+    /// A 64 x 64 orthographic view down -z from z = 10, 2 units high: depth is 10 - z.
+    fn looking_down_from_z_10() -> CameraTransform {
         let camera = Camera {
             position: DVec3::new(0.0, 0.0, 10.0),
             target: DVec3::ZERO,
@@ -633,7 +631,13 @@ mod tests {
             near: 1.0,
             far: 20.0,
         };
-        let transform = camera.transform(DVec3::ZERO, 64, 64);
+        camera.transform(DVec3::ZERO, 64, 64)
+    }
+
+    #[test]
+    fn tables_hold_the_batches_in_view_in_order_at_aligned_offsets() {
+        let gpu = crate::testing::gpu();
+        let transform = looking_down_from_z_10();
         let far = batch(Vec3::splat(-0.1), Vec3::splat(0.1));
         let near = batch(Vec3::new(-0.1, -0.1, 4.9), Vec3::new(0.1, 0.1, 5.1));
         let beside = batch(Vec3::splat(50.0), Vec3::splat(51.0));
@@ -786,16 +790,7 @@ mod tests {
     #[test]
     fn parts_take_the_chunks_near_to_far_and_hold_every_batch_once() {
         let gpu = crate::testing::gpu();
-        // Looking down -z from z = 10: depth is 10 - z.
-        let camera = Camera {
-            position: DVec3::new(0.0, 0.0, 10.0),
-            target: DVec3::ZERO,
-            up: DVec3::Y,
-            projection: Projection::Orthographic { height: 2.0 },
-            near: 1.0,
-            far: 20.0,
-        };
-        let transform = camera.transform(DVec3::ZERO, 64, 64);
+        let transform = looking_down_from_z_10();
         let at_depth = |depth: f32, n: usize| {
             let z = 10.0 - depth;
             vec![batch(Vec3::new(-0.5, -0.5, z - 0.1), Vec3::new(0.5, 0.5, z + 0.1)); n]
