@@ -67,7 +67,14 @@ fn renders_a_sample_cloud_to_a_png_and_prints_the_stage_timings() {
     assert_ok(&output);
     assert_rendered(&png, 320, 200);
     let text = stdout(&output);
-    for stage in ["upload", "cull", "rasterize", "resolve", "readback", "encode"] {
+    for stage in [
+        "upload",
+        "cull",
+        "rasterize",
+        "resolve",
+        "readback",
+        "encode",
+    ] {
         assert!(text.contains(stage), "no {stage} timing in:\n{text}");
     }
 }

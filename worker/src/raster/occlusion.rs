@@ -2,9 +2,9 @@
 //! that the point passes test a batch's box against, and the dispatches that build them.
 //!
 //! Where points lie deep enough for it to pay (see the constants below), a depth-writing point
-//! pass runs in two phases over the frame's near-to-far batch table (`draw_order.rs`): the
-//! nearest [`FIRST_PHASE`] of the batches, then the tiles are built from the framebuffer, then
-//! the rest, each workgroup skipping its batch when the box lies behind the tiles it can
+//! pass runs in two phases over the frame's near-to-far batch tables (`draw_order.rs`, the
+//! chunks near to far too): the nearest [`FIRST_PHASE`] of all listed batches, then the tiles
+//! are built from the framebuffer, then the rest, each workgroup skipping its batch when the box lies behind the tiles it can
 //! reach. The high-quality accumulation and the 32-bit colour pass test against tiles built
 //! after the depth pass, which are final. Elsewhere the tiles stay "unknown" and nothing is
 //! skipped.
@@ -22,7 +22,8 @@ use crate::gpu::{read_buffer, staging_buffer, GpuContext, GpuError};
 /// Side of a tile in pixels (`OCCLUSION_TILE` in common.wgsl).
 pub(crate) const TILE: u32 = 16;
 
-/// Share of a frame's batch table drawn before the tiles are first built.
+/// Share of a frame's listed batches, across its chunks, drawn before the tiles are first
+/// built.
 pub(crate) const FIRST_PHASE: f64 = 0.3;
 
 /// Fewest listed batches for which a depth pass is split in phases.
