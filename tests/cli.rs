@@ -522,3 +522,52 @@ fn bench_writes_its_figures_as_json_and_markdown() {
     let table = std::fs::read_to_string(&markdown).expect("markdown written");
     assert!(table.contains("| autzen_trim.laz |"), "{table}");
 }
+
+/// `--huge POINTS` streams a cube of that many points, reports its memory peak and batches,
+/// and a count of nothing is refused before any work.
+#[test]
+fn bench_streams_a_huge_cloud_of_the_size_asked() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let json = dir.path().join("bench.json");
+    let output = pointfarm(&[
+        "bench",
+        "--huge",
+        "200_000",
+        "--only",
+        "uniform-200000",
+        "--basic-only",
+        "--size",
+        "64x48",
+        "--json",
+        &path_arg(&json),
+    ]);
+    assert_ok(&output);
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&json).expect("json written")).expect("valid json");
+    let workloads = report["workloads"].as_array().expect("workloads");
+    assert_eq!(workloads.len(), 1, "{report}");
+    let huge = &workloads[0];
+    assert_eq!(huge["workload"], "uniform-200000");
+    assert_eq!(huge["points"], 200_000);
+    assert!(huge["ingest_memory"]["peak_host_bytes"]
+        .as_u64()
+        .is_some_and(|b| b > 0));
+    // 4096-point batches, all in view of the automatic camera.
+    assert_eq!(huge["batches"]["total"], 49);
+    assert_eq!(huge["batches"]["listed"], 49);
+    let stages: Vec<&str> = huge["compute"]["stages"]
+        .as_array()
+        .expect("stages")
+        .iter()
+        .filter_map(|s| s["stage"].as_str())
+        .collect();
+    assert!(stages.contains(&"cull"), "{stages:?}");
+
+    let refused = pointfarm(&["bench", "--huge", "0"]);
+    assert!(!refused.status.success());
+    assert!(
+        String::from_utf8_lossy(&refused.stderr).contains("at least one point"),
+        "{}",
+        String::from_utf8_lossy(&refused.stderr)
+    );
+}
