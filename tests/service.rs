@@ -53,7 +53,21 @@ async fn a_turntable_job_renders_the_same_frames_as_the_renderer() {
         "{}",
         finished.error
     );
-    assert_eq!(frames.len(), 3);
+    assert_eq!(
+        frames.iter().map(|f| f.index).collect::<Vec<_>>(),
+        vec![0, 1, 2],
+        "each frame reported once"
+    );
+    // A watcher that comes after the end learns of every frame from its first event.
+    let (late, late_frames) = watch_to_end(&mut jobs, &job.id).await;
+    assert_eq!(late.state, pb::JobState::Succeeded as i32);
+    let stages_of = |frames: &[pb::FrameFinished]| -> Vec<(u32, Vec<String>)> {
+        frames
+            .iter()
+            .map(|f| (f.index, f.timings.iter().map(|t| t.stage.clone()).collect()))
+            .collect()
+    };
+    assert_eq!(stages_of(&late_frames), stages_of(&frames));
     for frame in &frames {
         let stages: Vec<&str> = frame.timings.iter().map(|t| t.stage.as_str()).collect();
         assert!(

@@ -117,7 +117,8 @@ impl Client {
             bar.set_length(job.frames_total as u64);
             bar.set_position(job.frames_done as u64);
             bar.set_message(state_name(job.state).to_string());
-            if let Some(frame) = &event.frame {
+            // The first event lists the frames finished before the watch began.
+            for frame in job.frames.iter().chain(&event.frame) {
                 let line = format!("frame {:>5}  {}", frame.index, timings_line(&frame.timings));
                 if bar.is_hidden() && !quiet {
                     println!("{line}");

@@ -618,13 +618,26 @@ impl JobService for Api {
         let id = request.into_inner().id;
         // Subscribe before reading the state, so no event falls between the two.
         let mut events = self.daemon.subscribe();
-        let job = self.daemon.job(&id)?;
+        let daemon = self.daemon.clone();
+        let watched = id.clone();
+        let (job, finished) = blocking(move || {
+            let job = daemon.job(&watched)?;
+            let finished = daemon.store.frame_reports(&watched)?;
+            Ok((job, finished))
+        })
+        .await?;
         let (sender, receiver) = tokio::sync::mpsc::channel(64);
         tokio::spawn(async move {
             let ended = job.state.is_terminal();
+            // The first event carries the frames finished so far: a watcher that comes late
+            // (or back) still learns of every frame, each once.
+            let reported: std::collections::HashSet<u32> =
+                finished.iter().map(|frame| frame.index).collect();
+            let mut snapshot = job_message(&job, None);
+            snapshot.frames = finished.iter().map(frame_message).collect();
             if sender
                 .send(Ok(pb::JobEvent {
-                    job: Some(job_message(&job, None)),
+                    job: Some(snapshot),
                     frame: None,
                 }))
                 .await
@@ -637,7 +650,11 @@ impl JobService for Api {
                 match events.recv().await {
                     Ok(event) if event.job.id == id => {
                         let ended = event.job.state.is_terminal();
-                        let frame = event.frame.as_ref().map(frame_message);
+                        let frame = event
+                            .frame
+                            .as_ref()
+                            .filter(|frame| !reported.contains(&frame.index))
+                            .map(frame_message);
                         if sender
                             .send(Ok(pb::JobEvent {
                                 job: Some(job_message(&event.job, None)),

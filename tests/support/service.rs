@@ -197,9 +197,14 @@ pub async fn watch_to_end(
         .await
         .expect("job ends within 5 minutes")
     {
+        if let Some(job) = &event.job {
+            // The first event holds the frames finished before the watch began.
+            frames.extend(job.frames.iter().cloned());
+        }
         frames.extend(event.frame);
         last = event.job;
     }
+    frames.sort_by_key(|frame| frame.index);
     (last.expect("at least one event"), frames)
 }
 
