@@ -54,7 +54,8 @@ pub(crate) struct FrameBatches {
     listed_points: u64,
     /// Whether batches that straddle the view's edge are culled again run by run.
     refine_straddlers: bool,
-    /// Batches from which a cloud of several chunks is culled in parallel.
+    /// Batches from which a cloud of several chunks is culled in parallel: always
+    /// [`PARALLEL_CULL_BATCHES`], except in the test that compares both paths.
     parallel_from_batches: usize,
 }
 
@@ -174,6 +175,14 @@ impl FrameBatches {
     /// cloud larger than one binding comes in chunks of neighbouring points (Morton order or
     /// a streaming reader's), so this draws the near chunks' points first.
     fn order_chunks(&mut self, transform: &CameraTransform) {
+        self.chunk_order.clear();
+        let listed = self.ranges.iter().filter(|&&(_, count)| count > 0).count();
+        if listed < 2 {
+            // Nothing to order: skip the pass over the entries (most clouds are one chunk).
+            self.chunk_order
+                .extend(self.ranges.iter().position(|&(_, count)| count > 0));
+            return;
+        }
         let entry_bytes = std::mem::size_of::<GpuBatch>() as u64;
         let mut boxes: Vec<GpuBatch> = self
             .ranges
@@ -197,7 +206,6 @@ impl FrameBatches {
             })
             .collect();
         sort_near_to_far(&mut boxes, transform.depth_row.truncate());
-        self.chunk_order.clear();
         self.chunk_order
             .extend(boxes.iter().map(|chunk_box| chunk_box.first as usize));
     }
