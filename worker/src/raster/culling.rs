@@ -19,12 +19,13 @@
 //! The same pass over the boxes bounds the frame's footprint: the pixels any listed point can
 //! touch. The resolve skips the rest of the image when it is known to be empty (`targets.rs`).
 //!
-//! The table is a copy of the entries (32 bytes per 4096 points), each chunk's sorted near to
-//! far along a mirrored Z-order curve (`draw_order.rs`), and the chunks themselves ordered
-//! near to far. This is the stage "cull" of a frame's timings, part of its frame time.
+//! The table is a copy of the entries (32 bytes per 4096 points), each chunk's listed near to
+//! far along a mirrored Z-order curve (`draw_order.rs`: the order is kept per chunk and
+//! octant of view directions, so a frame walks it instead of sorting), and the chunks
+//! themselves ordered near to far. This is the stage "cull" of a frame's timings, part of its frame time.
 
 use bytemuck::Zeroable;
-use glam::{DVec2, DVec4, Vec3};
+use glam::{DVec2, DVec3, DVec4, Vec3};
 use rayon::prelude::*;
 
 use super::draw_order::sort_near_to_far;
@@ -117,8 +118,13 @@ impl FrameBatches {
                 .map(|&tables| {
                     let mut entries = Vec::new();
                     let mut chunk_coverage = PixelCoverage::new(transform.width, transform.height);
-                    list_in_view(&frustum, tables, &mut entries, &mut chunk_coverage);
-                    sort_near_to_far(&mut entries, depth_gradient);
+                    list_in_view(
+                        &frustum,
+                        tables,
+                        depth_gradient,
+                        &mut entries,
+                        &mut chunk_coverage,
+                    );
                     (entries, chunk_coverage)
                 })
                 .collect();
@@ -132,8 +138,13 @@ impl FrameBatches {
         } else {
             for tables in chunks {
                 let start = self.pad_to_alignment(alignment);
-                list_in_view(&frustum, tables, &mut self.staging, &mut coverage);
-                sort_near_to_far(&mut self.staging[start..], depth_gradient);
+                list_in_view(
+                    &frustum,
+                    tables,
+                    depth_gradient,
+                    &mut self.staging,
+                    &mut coverage,
+                );
                 self.ranges.push((
                     (start * entry_bytes) as u64,
                     (self.staging.len() - start) as u32,
@@ -294,21 +305,58 @@ impl FrameBatches {
     }
 }
 
-/// Appends to `out` the entries of `tables` that can be in view and adds the pixels their
-/// points can touch to `coverage`. A group of batches wholly inside the frustum is listed as
-/// it is, with its box's footprint; of the other groups, each batch is tested: a batch wholly
-/// inside is listed as it is; of a batch that straddles the edge, only the runs of
-/// sub-batches that can be in view, each run an entry with the batch's box (the shaders
-/// dequantise against it) and the run's points.
+/// Appends to `out` the entries of `tables` that can be in view, near to far for a view
+/// whose depth grows along `depth_gradient`, and adds the pixels their points can touch to
+/// `coverage`. A group of batches wholly inside the frustum is listed without testing its
+/// batches; of the other groups, each batch is tested: a batch wholly inside is listed as it
+/// is; of a batch that straddles the edge, only the runs of sub-batches that can be in view,
+/// each run an entry with the batch's box (the shaders dequantise against it) and the run's
+/// points. The entries follow the table's near-to-far order (`DrawOrders`), so no frame sorts.
 fn list_in_view(
     frustum: &Frustum,
     tables: BatchTables<'_>,
+    depth_gradient: DVec3,
     out: &mut Vec<GpuBatch>,
     coverage: &mut PixelCoverage,
 ) {
+    let visibility = batch_visibility(frustum, tables, coverage);
+    for &b in tables.draw_orders.get(tables.batches, depth_gradient) {
+        let b = b as usize;
+        match visibility[b] {
+            Visibility::Hidden => {}
+            Visibility::Whole => out.push(tables.batches[b]),
+            Visibility::Straddling => list_runs_in_view(frustum, tables, b, out, coverage),
+        }
+    }
+}
+
+/// Whether a batch is listed, and how.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Visibility {
+    Hidden,
+    /// Listed as it is (its footprint already added to the coverage).
+    Whole,
+    /// At the view's edge: its runs are tested when it is listed.
+    Straddling,
+}
+
+/// Each batch's [`Visibility`], testing groups first; adds the footprints of the batches
+/// listed whole to `coverage`.
+fn batch_visibility(
+    frustum: &Frustum,
+    tables: BatchTables<'_>,
+    coverage: &mut PixelCoverage,
+) -> Vec<Visibility> {
+    let mut visibility = vec![Visibility::Hidden; tables.batches.len()];
     if tables.groups.is_empty() {
-        list_batches_in_view(frustum, tables, 0..tables.batches.len(), out, coverage);
-        return;
+        test_batches(
+            frustum,
+            tables,
+            0..tables.batches.len(),
+            &mut visibility,
+            coverage,
+        );
+        return visibility;
     }
     for (g, group) in tables.groups.iter().enumerate() {
         let Some(view) = frustum.view_of(group) else {
@@ -317,62 +365,72 @@ fn list_in_view(
         let batches = g * GROUP_BATCHES..((g + 1) * GROUP_BATCHES).min(tables.batches.len());
         if view.whole {
             coverage.add(view.footprint);
-            out.extend_from_slice(&tables.batches[batches]);
+            visibility[batches].fill(Visibility::Whole);
         } else {
-            list_batches_in_view(frustum, tables, batches, out, coverage);
+            test_batches(frustum, tables, batches, &mut visibility, coverage);
         }
     }
+    visibility
 }
 
-/// [`list_in_view`] for the batches `range`, one by one.
-fn list_batches_in_view(
+/// [`batch_visibility`] for the batches `range`, one by one.
+fn test_batches(
     frustum: &Frustum,
     tables: BatchTables<'_>,
     range: std::ops::Range<usize>,
+    visibility: &mut [Visibility],
+    coverage: &mut PixelCoverage,
+) {
+    for b in range {
+        let Some(view) = frustum.view_of(&tables.batches[b]) else {
+            continue;
+        };
+        visibility[b] = if view.whole || tables.sub_batches.is_empty() {
+            coverage.add(view.footprint);
+            Visibility::Whole
+        } else {
+            Visibility::Straddling
+        };
+    }
+}
+
+/// Appends to `out` the runs of consecutive sub-batches of batch `b` that can be in view,
+/// each an entry with the batch's box, and adds their footprints to `coverage`.
+fn list_runs_in_view(
+    frustum: &Frustum,
+    tables: BatchTables<'_>,
+    b: usize,
     out: &mut Vec<GpuBatch>,
     coverage: &mut PixelCoverage,
 ) {
     const SUBS_PER_BATCH: usize = BATCH_POINTS / SUB_BATCH_POINTS;
-    for (b, batch) in tables.batches[range.clone()]
+    let batch = &tables.batches[b];
+    let subs = tables
+        .sub_batches
+        .get(b * SUBS_PER_BATCH..)
+        .unwrap_or_default()
         .iter()
-        .enumerate()
-        .map(|(i, batch)| (range.start + i, batch))
-    {
-        let Some(view) = frustum.view_of(batch) else {
+        .take(SUBS_PER_BATCH)
+        .take_while(|sub| sub.first < batch.first + batch.count);
+    let mut run: Option<GpuBatch> = None;
+    for sub in subs {
+        let Some(sub_view) = frustum.view_of(sub) else {
+            out.extend(run.take());
             continue;
         };
-        let subs = tables
-            .sub_batches
-            .get(b * SUBS_PER_BATCH..)
-            .unwrap_or_default()
-            .iter()
-            .take(SUBS_PER_BATCH)
-            .take_while(|sub| sub.first < batch.first + batch.count);
-        if view.whole || tables.sub_batches.is_empty() {
-            coverage.add(view.footprint);
-            out.push(*batch);
-            continue;
-        }
-        let mut run: Option<GpuBatch> = None;
-        for sub in subs {
-            let Some(sub_view) = frustum.view_of(sub) else {
-                out.extend(run.take());
-                continue;
-            };
-            coverage.add(sub_view.footprint);
-            match run.as_mut() {
-                Some(run) => run.count += sub.count,
-                None => {
-                    run = Some(GpuBatch {
-                        first: sub.first,
-                        count: sub.count,
-                        ..*batch
-                    })
-                }
+        coverage.add(sub_view.footprint);
+        match run.as_mut() {
+            Some(run) => run.count += sub.count,
+            None => {
+                run = Some(GpuBatch {
+                    first: sub.first,
+                    count: sub.count,
+                    ..*batch
+                })
             }
         }
-        out.extend(run);
     }
+    out.extend(run);
 }
 
 /// A box that can be in view.
@@ -497,6 +555,7 @@ mod tests {
 
     use super::*;
     use crate::camera::{Camera, Projection};
+    use crate::raster::draw_order::DrawOrders;
 
     fn batch(min: Vec3, max: Vec3) -> GpuBatch {
         GpuBatch {
@@ -651,12 +710,17 @@ mod tests {
         let beside = batch(Vec3::splat(50.0), Vec3::splat(51.0));
         let behind = batch(Vec3::new(-0.1, -0.1, 10.5), Vec3::new(0.1, 0.1, 11.0));
         let chunks: [&[GpuBatch]; 3] = [&[far, beside, near, behind], &[beside], &[beside, far]];
+        let orders: [DrawOrders; 3] = Default::default();
         let mut tables = FrameBatches::new(true);
-        let chunks = chunks.into_iter().map(|batches| BatchTables {
-            batches,
-            sub_batches: &[],
-            groups: &[],
-        });
+        let chunks = chunks
+            .into_iter()
+            .zip(&orders)
+            .map(|(batches, draw_orders)| BatchTables {
+                batches,
+                sub_batches: &[],
+                groups: &[],
+                draw_orders,
+            });
         tables.update(&gpu.device, &gpu.queue, chunks, &transform, 1);
 
         assert_eq!(
@@ -729,10 +793,12 @@ mod tests {
             .map(|_| Vec3::from_array(std::array::from_fn(|_| rng.random_range(-10.0..10.0))))
             .collect();
         let (batches, sub_batches, dequantised) = crate::raster::points::host_tables(&points);
+        let orders = DrawOrders::default();
         let (width, height) = (160, 120);
         for camera in views_of_the_cube() {
             let transform = camera.transform(DVec3::ZERO, width, height);
             let frustum = Frustum::new(&transform, 1);
+            let gradient = transform.depth_row.truncate();
             let mut listed = Vec::new();
             let mut coverage = PixelCoverage::new(width, height);
             list_in_view(
@@ -741,7 +807,9 @@ mod tests {
                     batches: &batches,
                     sub_batches: &sub_batches,
                     groups: &[],
+                    draw_orders: &orders,
                 },
+                gradient,
                 &mut listed,
                 &mut coverage,
             );
@@ -753,7 +821,9 @@ mod tests {
                     batches: &batches,
                     sub_batches: &[],
                     groups: &[],
+                    draw_orders: &orders,
                 },
+                gradient,
                 &mut whole_batches,
                 &mut PixelCoverage::new(width, height),
             );
@@ -806,15 +876,20 @@ mod tests {
         // Chunk 0 far, chunk 1 near, chunk 2 between; 200 batches each, so that alignment
         // rounding leaves whole parts.
         let chunks = [at_depth(8.0, 200), at_depth(2.0, 200), at_depth(5.0, 200)];
+        let orders: [DrawOrders; 3] = Default::default();
         let mut tables = FrameBatches::new(true);
         tables.update(
             &gpu.device,
             &gpu.queue,
-            chunks.iter().map(|batches| BatchTables {
-                batches,
-                sub_batches: &[],
-                groups: &[],
-            }),
+            chunks
+                .iter()
+                .zip(&orders)
+                .map(|(batches, draw_orders)| BatchTables {
+                    batches,
+                    sub_batches: &[],
+                    groups: &[],
+                    draw_orders,
+                }),
             &transform,
             1,
         );
@@ -890,17 +965,22 @@ mod tests {
         };
         let transform = camera.transform(DVec3::ZERO, 320, 200);
         let chunks = scattered_chunks(5, 1000);
+        let orders: Vec<DrawOrders> = chunks.iter().map(|_| DrawOrders::default()).collect();
         let build = |refine: bool, parallel_from: usize| {
             let mut tables = FrameBatches::new(refine);
             tables.parallel_from_batches = parallel_from;
             tables.update(
                 &gpu.device,
                 &gpu.queue,
-                chunks.iter().map(|(batches, sub_batches)| BatchTables {
-                    batches,
-                    sub_batches,
-                    groups: &[],
-                }),
+                chunks
+                    .iter()
+                    .zip(&orders)
+                    .map(|((batches, sub_batches), draw_orders)| BatchTables {
+                        batches,
+                        sub_batches,
+                        groups: &[],
+                        draw_orders,
+                    }),
                 &transform,
                 1,
             );
@@ -935,6 +1015,7 @@ mod tests {
             .collect();
         let (batches, sub_batches, _) = crate::raster::points::host_tables(&points);
         let groups = crate::raster::points::batch_groups(&batches);
+        let orders = DrawOrders::default();
         assert_eq!(groups.len(), 11);
         let (width, height) = (160, 120);
         // The whole cube in view (every group listed whole), then groups in, out, and across
@@ -957,8 +1038,10 @@ mod tests {
                     batches: &batches,
                     sub_batches: &sub_batches,
                     groups,
+                    draw_orders: &orders,
                 };
-                list_in_view(&frustum, tables, &mut listed, &mut coverage);
+                let gradient = transform.depth_row.truncate();
+                list_in_view(&frustum, tables, gradient, &mut listed, &mut coverage);
                 (listed, coverage.union())
             };
             let (by_group, group_footprint) = list(&groups);

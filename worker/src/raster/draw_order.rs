@@ -14,6 +14,8 @@
 //! On the benchmark's 10M-point cube the share of points that pass the early depth test falls
 //! from 25% to 8% (a CPU simulation; drawing in exact depth order would give 5%).
 
+use std::sync::OnceLock;
+
 use glam::{DVec3, Vec3};
 
 use super::gpu_data::GpuBatch;
@@ -28,18 +30,24 @@ const _: () = assert!(CELLS <= 1 << 10);
 /// direction in which the view's linear depth grows. Entries with the same box (runs of one
 /// batch) keep their order.
 pub(crate) fn sort_near_to_far(entries: &mut [GpuBatch], depth_gradient: DVec3) {
+    let order = near_to_far_order(entries, mirrored_axes(depth_gradient));
+    let sorted: Vec<GpuBatch> = order.iter().map(|&i| entries[i as usize]).collect();
+    entries.copy_from_slice(&sorted);
+}
+
+/// The indices of `entries` near to far along the Z-order curve of the space mirrored on the
+/// axes `mirrored` (see [`mirrored_axes`]); equal keys keep their order.
+fn near_to_far_order(entries: &[GpuBatch], mirrored: [bool; 3]) -> Vec<u32> {
     if entries.len() < 2 {
-        return;
+        return (0..entries.len() as u32).collect();
     }
     let (mut low, mut high) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
-    for entry in entries.iter() {
+    for entry in entries {
         low = low.min(Vec3::from_array(entry.min));
         high = high.max(Vec3::from_array(entry.max));
     }
     let largest = (CELLS - 1) as f32;
     let scale = largest / (high - low).max_element().max(f32::MIN_POSITIVE);
-    // Along an axis whose depth falls as the coordinate grows, the upper half is nearer.
-    let mirrored = depth_gradient.to_array().map(|g| g < 0.0);
     // Key and index in one word: an unstable sort of plain integers is several times faster
     // than a stable sort by cached keys, and the index keeps runs of one batch in order.
     let mut keyed: Vec<u64> = entries
@@ -60,11 +68,38 @@ pub(crate) fn sort_near_to_far(entries: &mut [GpuBatch], depth_gradient: DVec3) 
         })
         .collect();
     keyed.sort_unstable();
-    let sorted: Vec<GpuBatch> = keyed
-        .iter()
-        .map(|&k| entries[(k & 0xffff_ffff) as usize])
-        .collect();
-    entries.copy_from_slice(&sorted);
+    keyed.iter().map(|&k| (k & 0xffff_ffff) as u32).collect()
+}
+
+/// The axes along which depth falls as the coordinate grows: on those the upper half of a
+/// cell is the near one.
+fn mirrored_axes(depth_gradient: DVec3) -> [bool; 3] {
+    depth_gradient.to_array().map(|g| g < 0.0)
+}
+
+/// A batch table's near-to-far orders, one per octant of view directions, each built the
+/// first time a view needs it. The order depends only on which axes depth falls along, so a
+/// frame lists its batches by walking the order instead of sorting them (on the 10M-point
+/// cube that sort was half of the host's culling).
+#[derive(Debug, Default)]
+pub(crate) struct DrawOrders {
+    octants: [OnceLock<Vec<u32>>; 8],
+}
+
+impl DrawOrders {
+    /// The indices of `batches` (always the same table) near to far for a view whose depth
+    /// grows along `depth_gradient`.
+    pub fn get(&self, batches: &[GpuBatch], depth_gradient: DVec3) -> &[u32] {
+        let mirrored = mirrored_axes(depth_gradient);
+        let octant = mirrored
+            .iter()
+            .enumerate()
+            .map(|(axis, &m)| usize::from(m) << axis)
+            .sum::<usize>();
+        let order = self.octants[octant].get_or_init(|| near_to_far_order(batches, mirrored));
+        debug_assert_eq!(order.len(), batches.len(), "orders of another table");
+        order
+    }
 }
 
 #[cfg(test)]
@@ -123,6 +158,35 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A table's orders are built once per octant of view directions, and each is the
+    /// order the sort gives the whole table.
+    #[test]
+    fn each_octant_keeps_the_order_the_sort_gives() {
+        let batches = grid_batches(5);
+        let orders = DrawOrders::default();
+        for octant in 0..8 {
+            let gradient = DVec3::new(
+                if octant & 1 != 0 { -0.3 } else { 0.5 },
+                if octant & 2 != 0 { -1.0 } else { 0.2 },
+                if octant & 4 != 0 { -0.7 } else { 0.9 },
+            );
+            let order = orders.get(&batches, gradient);
+            let mut sorted = batches.clone();
+            sort_near_to_far(&mut sorted, gradient);
+            let walked: Vec<GpuBatch> = order.iter().map(|&i| batches[i as usize]).collect();
+            assert_eq!(walked, sorted, "octant {octant}");
+            // Another view of the same octant finds the order already built.
+            let again = orders.get(
+                &batches,
+                gradient * 2.0 + DVec3::splat(1e-3) * gradient.signum(),
+            );
+            assert!(std::ptr::eq(order, again), "octant {octant} built twice");
+        }
+        let first = orders.get(&batches, DVec3::ONE);
+        let opposite = orders.get(&batches, -DVec3::ONE);
+        assert_ne!(first, opposite);
     }
 
     #[test]

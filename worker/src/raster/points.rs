@@ -19,6 +19,7 @@ use std::time::Instant;
 use glam::{UVec3, Vec3};
 use wgpu::util::DeviceExt;
 
+use super::draw_order::DrawOrders;
 use super::gpu_data::{GpuBatch, QuantisedPosition, COLOUR_BYTES, POSITION_BITS};
 use super::RenderError;
 use crate::cloud::PointCloud;
@@ -60,6 +61,8 @@ pub(crate) struct PointChunk {
     /// Host only: the boxes of runs of [`GROUP_BATCHES`] consecutive batches, which the
     /// culling tests first (`batch_groups`).
     pub groups: Vec<GpuBatch>,
+    /// Host only: the batch table's near-to-far orders, built as views need them.
+    pub draw_orders: DrawOrders,
     pub point_count: u32,
 }
 
@@ -69,6 +72,7 @@ impl PointChunk {
             batches: &self.batch_table,
             sub_batches: &self.sub_batches,
             groups: &self.groups,
+            draw_orders: &self.draw_orders,
         }
     }
 }
@@ -80,6 +84,8 @@ pub(crate) struct BatchTables<'a> {
     pub sub_batches: &'a [GpuBatch],
     /// Group `g` bounds batches `g * GROUP_BATCHES..`; empty when the chunk has none.
     pub groups: &'a [GpuBatch],
+    /// The batches' near-to-far orders (`draw_order.rs`).
+    pub draw_orders: &'a DrawOrders,
 }
 
 /// Batches per group: the culling lists a group wholly in view without testing its batches
@@ -308,6 +314,7 @@ impl ChunkData {
             batches: buffer("batches", bytemuck::cast_slice(&self.batches)),
             point_count: self.positions.len() as u32,
             groups: batch_groups(&self.batches),
+            draw_orders: DrawOrders::default(),
             batch_table: self.batches,
             sub_batches: self.sub_batches,
         }
