@@ -42,6 +42,20 @@ struct Batch {
     count: u32,
 }
 
+// Points per sub-batch (`SUB_BATCH_POINTS` in `raster/points.rs`).
+const SUB_BATCH_POINTS: u32 = 256u;
+
+// The batch a frame table's entry lists (`ListedEntry` in `raster/culling.rs`): `batch`, the
+// chunk's table entry at `entry >> 8`, narrowed to the run of its sub-batches from
+// `(entry >> 4) & 15` for `(entry & 15) + 1` of them (the whole batch: 0 and 15).
+fn listed_batch(entry: u32, batch: Batch) -> Batch {
+    var listed = batch;
+    listed.first = batch.first + ((entry >> 4u) & 15u) * SUB_BATCH_POINTS;
+    let end = min(listed.first + ((entry & 15u) + 1u) * SUB_BATCH_POINTS, batch.first + batch.count);
+    listed.count = end - listed.first;
+    return listed;
+}
+
 // Points are stored quantised (Kanzok et al.), 11 bytes each, in two arrays per chunk:
 // - positions: array<vec2<u32>>, 21/21/22 bits of x/y/z as a fraction of the batch's box
 //   (bit layout in `dequantise`);

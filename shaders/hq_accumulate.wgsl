@@ -11,7 +11,9 @@ override WORKGROUP_SIZE: u32 = 128u;
 
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
 @group(0) @binding(1) var<storage, read> positions: array<vec2<u32>>;
-@group(0) @binding(2) var<storage, read> batches: array<Batch>;
+// This frame's entries for the chunk (`listed_batch`), and the chunk's batch table.
+@group(0) @binding(2) var<storage, read> listed: array<u32>;
+@group(0) @binding(8) var<storage, read> batches: array<Batch>;
 // The point framebuffer after the depth pass: y is the nearest depth's bits.
 @group(0) @binding(3) var<storage, read> framebuffer: array<vec2<u32>>;
 // Per pixel: sum of red, green, blue, and the number of points added.
@@ -25,10 +27,11 @@ fn accumulate(
     @builtin(local_invocation_index) lane: u32,
 ) {
     let b = batch_index(workgroup, groups);
-    if b >= arrayLength(&batches) {
+    if b >= arrayLength(&listed) {
         return;
     }
-    let batch = batches[b];
+    let entry = listed[b];
+    let batch = listed_batch(entry, batches[entry >> 8u]);
     let band = 1.0 + frame.depth_band;
     if batch_outside_view(frame, batch) {
         return;

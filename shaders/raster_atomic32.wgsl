@@ -11,7 +11,9 @@ override WORKGROUP_SIZE: u32 = 128u;
 
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
 @group(0) @binding(1) var<storage, read> positions: array<vec2<u32>>;
-@group(0) @binding(2) var<storage, read> batches: array<Batch>;
+// This frame's entries for the chunk (`listed_batch`), and the chunk's batch table.
+@group(0) @binding(2) var<storage, read> listed: array<u32>;
+@group(0) @binding(8) var<storage, read> batches: array<Batch>;
 @group(0) @binding(3) var<storage, read_write> framebuffer: array<atomic<u32>>;
 @group(0) @binding(5) var<storage, read> colours: array<u32>;
 
@@ -31,10 +33,11 @@ fn colour_word(pixel: i32) -> i32 {
 // The two passes walk the same points in the same way; `colour_pass` picks what they write.
 fn rasterize_batch(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32, colour_pass: bool) {
     let b = batch_index(workgroup, groups);
-    if b >= arrayLength(&batches) {
+    if b >= arrayLength(&listed) {
         return;
     }
-    let batch = batches[b];
+    let entry = listed[b];
+    let batch = listed_batch(entry, batches[entry >> 8u]);
     if batch_outside_view(frame, batch) {
         return;
     }

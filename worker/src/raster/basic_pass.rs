@@ -198,6 +198,7 @@ fn bind_group(
         (0, frame.uniforms.as_entire_binding()),
         (1, chunk.positions.as_entire_binding()),
         (2, wgpu::BindingResource::Buffer(batch_table)),
+        (8, chunk.batches.as_entire_binding()),
         (3, framebuffer.as_entire_binding()),
         (5, chunk.colours.as_entire_binding()),
         (6, frame.targets.occlusion.tiles.as_entire_binding()),

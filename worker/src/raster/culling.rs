@@ -19,12 +19,13 @@
 //! The same pass over the boxes bounds the frame's footprint: the pixels any listed point can
 //! touch. The resolve skips the rest of the image when it is known to be empty (`targets.rs`).
 //!
-//! The table is a copy of the entries (32 bytes per 4096 points), each chunk's listed near to
-//! far along a mirrored Z-order curve (`draw_order.rs`: the order is kept per chunk and
-//! octant of view directions, so a frame walks it instead of sorting), and the chunks
-//! themselves ordered near to far. This is the stage "cull" of a frame's timings, part of its frame time.
+//! The table holds a word per listed batch (`ListedEntry`: the batch's index in its chunk's
+//! resident table and the run of its sub-batches to draw), not a copy of its 32-byte entry.
+//! Each chunk's entries are listed near to far along a mirrored Z-order curve
+//! (`draw_order.rs`: the order is kept per chunk and octant of view directions, so a frame
+//! walks it instead of sorting), and the chunks themselves are ordered near to far. This is
+//! the stage "cull" of a frame's timings, part of its frame time.
 
-use bytemuck::Zeroable;
 use glam::{DVec2, DVec3, DVec4, Vec3};
 use rayon::prelude::*;
 
@@ -43,8 +44,10 @@ pub(crate) struct FrameBatches {
     ranges: Vec<(u64, u32)>,
     /// The chunks with batches in view, near to far (by their listed batches' boxes).
     chunk_order: Vec<usize>,
-    /// Host copy reused from frame to frame.
-    staging: Vec<GpuBatch>,
+    /// Host copy reused from frame to frame: [`ListedEntry`] words.
+    staging: Vec<u32>,
+    /// Per chunk (as `ranges`): what its listed entries hold.
+    listings: Vec<Listing>,
     /// The pixels that points of the listed batches can touch this frame.
     footprint: PixelRect,
     /// Pixels of the cells of the image those points can touch (`PixelCoverage`).
@@ -75,6 +78,7 @@ impl FrameBatches {
             ranges: Vec::new(),
             chunk_order: Vec::new(),
             staging: Vec::new(),
+            listings: Vec::new(),
             footprint: PixelRect::EMPTY,
             covered_pixels: 0,
             alignment_entries: 1,
@@ -95,12 +99,13 @@ impl FrameBatches {
         point_size: u32,
     ) {
         let frustum = Frustum::new(transform, point_size);
-        let entry_bytes = std::mem::size_of::<GpuBatch>();
+        let entry_bytes = std::mem::size_of::<u32>();
         let alignment =
             (device.limits().min_storage_buffer_offset_alignment as usize).div_ceil(entry_bytes);
         self.alignment_entries = alignment as u32;
         self.staging.clear();
         self.ranges.clear();
+        self.listings.clear();
         let mut coverage = PixelCoverage::new(transform.width, transform.height);
         let refine = self.refine_straddlers;
         let chunks: Vec<BatchTables<'a>> = chunks
@@ -113,32 +118,33 @@ impl FrameBatches {
         let batches: usize = chunks.iter().map(|tables| tables.batches.len()).sum();
         if chunks.len() > 1 && batches >= self.parallel_from_batches {
             // Every chunk on its own core, then their tables back to back.
-            let culled: Vec<(Vec<GpuBatch>, PixelCoverage)> = chunks
+            let culled: Vec<(Vec<u32>, Listing, PixelCoverage)> = chunks
                 .par_iter()
                 .map(|&tables| {
                     let mut entries = Vec::new();
                     let mut chunk_coverage = PixelCoverage::new(transform.width, transform.height);
-                    list_in_view(
+                    let listing = list_in_view(
                         &frustum,
                         tables,
                         depth_gradient,
                         &mut entries,
                         &mut chunk_coverage,
                     );
-                    (entries, chunk_coverage)
+                    (entries, listing, chunk_coverage)
                 })
                 .collect();
-            for (entries, chunk_coverage) in culled {
+            for (entries, listing, chunk_coverage) in culled {
                 let start = self.pad_to_alignment(alignment);
                 self.staging.extend_from_slice(&entries);
                 self.ranges
                     .push(((start * entry_bytes) as u64, entries.len() as u32));
+                self.listings.push(listing);
                 coverage.merge(&chunk_coverage);
             }
         } else {
             for tables in chunks {
                 let start = self.pad_to_alignment(alignment);
-                list_in_view(
+                let listing = list_in_view(
                     &frustum,
                     tables,
                     depth_gradient,
@@ -149,12 +155,13 @@ impl FrameBatches {
                     (start * entry_bytes) as u64,
                     (self.staging.len() - start) as u32,
                 ));
+                self.listings.push(listing);
             }
         }
         self.order_chunks(transform);
         self.footprint = coverage.union();
         self.covered_pixels = coverage.pixels();
-        self.listed_points = self.staging.iter().map(|e| u64::from(e.count)).sum();
+        self.listed_points = self.listings.iter().map(|l| l.points).sum();
         if self.staging.is_empty() {
             return;
         }
@@ -177,8 +184,7 @@ impl FrameBatches {
     /// table starts; returns that start.
     fn pad_to_alignment(&mut self, alignment: usize) -> usize {
         let padding = self.staging.len().next_multiple_of(alignment) - self.staging.len();
-        self.staging
-            .extend(std::iter::repeat_n(GpuBatch::zeroed(), padding));
+        self.staging.extend(std::iter::repeat_n(0, padding));
         self.staging.len()
     }
 
@@ -194,26 +200,16 @@ impl FrameBatches {
                 .extend(self.ranges.iter().position(|&(_, count)| count > 0));
             return;
         }
-        let entry_bytes = std::mem::size_of::<GpuBatch>() as u64;
         let mut boxes: Vec<GpuBatch> = self
-            .ranges
+            .listings
             .iter()
             .enumerate()
-            .filter(|(_, &(_, count))| count > 0)
-            .map(|(chunk, &(offset, count))| {
-                let start = (offset / entry_bytes) as usize;
-                let (mut min, mut max) =
-                    (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
-                for entry in &self.staging[start..start + count as usize] {
-                    min = min.min(Vec3::from_array(entry.min));
-                    max = max.max(Vec3::from_array(entry.max));
-                }
-                GpuBatch {
-                    min: min.to_array(),
-                    first: chunk as u32,
-                    max: max.to_array(),
-                    count,
-                }
+            .filter(|(_, listing)| listing.entries > 0)
+            .map(|(chunk, listing)| GpuBatch {
+                min: listing.min.to_array(),
+                first: chunk as u32,
+                max: listing.max.to_array(),
+                count: listing.entries,
             })
             .collect();
         sort_near_to_far(&mut boxes, transform.depth_row.truncate());
@@ -265,7 +261,7 @@ impl FrameBatches {
         let (offset, _) = *self.ranges.get(chunk)?;
         let buffer = self.buffer.as_ref()?;
         let entries = self.part_entries(chunk, shares);
-        let entry = std::mem::size_of::<GpuBatch>() as u64;
+        let entry = std::mem::size_of::<u32>() as u64;
         (!entries.is_empty()).then(|| {
             (
                 wgpu::BufferBinding {
@@ -305,29 +301,100 @@ impl FrameBatches {
     }
 }
 
+/// A frame table's entry: batch `index` of its chunk's resident table and the run of that
+/// batch's sub-batches to draw, in one word (the shaders' `listed_batch` in common.wgsl):
+/// the index in the upper 24 bits (a chunk's point indices are u32, so it holds at most
+/// 2^20 batches), then the run's first sub-batch and its length - 1, 4 bits each. A frame
+/// uploads 4 bytes per listed batch instead of a copy of its 32-byte entry.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct ListedEntry(pub u32);
+
+/// Sub-batches per batch: a run's first and length each fit in 4 bits.
+const SUBS_PER_BATCH: usize = BATCH_POINTS / SUB_BATCH_POINTS;
+const _: () = assert!(SUBS_PER_BATCH <= 16);
+const _: () = assert!((u32::MAX as usize / BATCH_POINTS) < 1 << 24);
+
+impl ListedEntry {
+    fn whole(batch: usize) -> Self {
+        Self::run(batch, 0, SUBS_PER_BATCH)
+    }
+
+    fn run(batch: usize, first_sub: usize, subs: usize) -> Self {
+        debug_assert!(first_sub + subs <= SUBS_PER_BATCH && subs > 0);
+        Self(((batch as u32) << 8) | ((first_sub as u32) << 4) | (subs as u32 - 1))
+    }
+
+    /// The entry as the shaders see it: its batch's box, with the run's points.
+    #[cfg(test)]
+    pub fn batch(self, batches: &[GpuBatch]) -> GpuBatch {
+        let batch = batches[(self.0 >> 8) as usize];
+        let first = batch.first + ((self.0 >> 4) & 15) * SUB_BATCH_POINTS as u32;
+        let end =
+            (first + ((self.0 & 15) + 1) * SUB_BATCH_POINTS as u32).min(batch.first + batch.count);
+        GpuBatch {
+            first,
+            count: end - first,
+            ..batch
+        }
+    }
+}
+
+/// What one chunk's listed entries hold.
+#[derive(Clone, Copy, Debug)]
+struct Listing {
+    entries: u32,
+    points: u64,
+    /// The box of the listed batches.
+    min: Vec3,
+    max: Vec3,
+}
+
+impl Listing {
+    const EMPTY: Self = Self {
+        entries: 0,
+        points: 0,
+        min: Vec3::INFINITY,
+        max: Vec3::NEG_INFINITY,
+    };
+
+    fn add(&mut self, batch: &GpuBatch, points: u32) {
+        self.entries += 1;
+        self.points += u64::from(points);
+        self.min = self.min.min(Vec3::from_array(batch.min));
+        self.max = self.max.max(Vec3::from_array(batch.max));
+    }
+}
+
 /// Appends to `out` the entries of `tables` that can be in view, near to far for a view
 /// whose depth grows along `depth_gradient`, and adds the pixels their points can touch to
 /// `coverage`. A group of batches wholly inside the frustum is listed without testing its
-/// batches; of the other groups, each batch is tested: a batch wholly inside is listed as it
-/// is; of a batch that straddles the edge, only the runs of sub-batches that can be in view,
-/// each run an entry with the batch's box (the shaders dequantise against it) and the run's
-/// points. The entries follow the table's near-to-far order (`DrawOrders`), so no frame sorts.
+/// batches; of the other groups, each batch is tested: a batch wholly inside is listed whole;
+/// of a batch that straddles the edge, only the runs of sub-batches that can be in view. The
+/// entries follow the table's near-to-far order (`DrawOrders`), so no frame sorts.
 fn list_in_view(
     frustum: &Frustum,
     tables: BatchTables<'_>,
     depth_gradient: DVec3,
-    out: &mut Vec<GpuBatch>,
+    out: &mut Vec<u32>,
     coverage: &mut PixelCoverage,
-) {
+) -> Listing {
     let visibility = batch_visibility(frustum, tables, coverage);
+    let mut listing = Listing::EMPTY;
     for &b in tables.draw_orders.get(tables.batches, depth_gradient) {
         let b = b as usize;
         match visibility[b] {
             Visibility::Hidden => {}
-            Visibility::Whole => out.push(tables.batches[b]),
-            Visibility::Straddling => list_runs_in_view(frustum, tables, b, out, coverage),
+            Visibility::Whole => {
+                let batch = &tables.batches[b];
+                out.push(ListedEntry::whole(b).0);
+                listing.add(batch, batch.count);
+            }
+            Visibility::Straddling => {
+                list_runs_in_view(frustum, tables, b, out, &mut listing, coverage);
+            }
         }
     }
+    listing
 }
 
 /// Whether a batch is listed, and how.
@@ -394,16 +461,16 @@ fn test_batches(
     }
 }
 
-/// Appends to `out` the runs of consecutive sub-batches of batch `b` that can be in view,
-/// each an entry with the batch's box, and adds their footprints to `coverage`.
+/// Appends to `out` the runs of consecutive sub-batches of batch `b` that can be in view and
+/// adds their footprints to `coverage`.
 fn list_runs_in_view(
     frustum: &Frustum,
     tables: BatchTables<'_>,
     b: usize,
-    out: &mut Vec<GpuBatch>,
+    out: &mut Vec<u32>,
+    listing: &mut Listing,
     coverage: &mut PixelCoverage,
 ) {
-    const SUBS_PER_BATCH: usize = BATCH_POINTS / SUB_BATCH_POINTS;
     let batch = &tables.batches[b];
     let subs = tables
         .sub_batches
@@ -412,25 +479,29 @@ fn list_runs_in_view(
         .iter()
         .take(SUBS_PER_BATCH)
         .take_while(|sub| sub.first < batch.first + batch.count);
-    let mut run: Option<GpuBatch> = None;
-    for sub in subs {
+    // The open run: its first sub-batch, length and points.
+    let mut run: Option<(usize, usize, u32)> = None;
+    let mut close = |run: Option<(usize, usize, u32)>, out: &mut Vec<u32>| {
+        if let Some((first, length, points)) = run {
+            out.push(ListedEntry::run(b, first, length).0);
+            listing.add(batch, points);
+        }
+    };
+    for (s, sub) in subs.enumerate() {
         let Some(sub_view) = frustum.view_of(sub) else {
-            out.extend(run.take());
+            close(run.take(), out);
             continue;
         };
         coverage.add(sub_view.footprint);
         match run.as_mut() {
-            Some(run) => run.count += sub.count,
-            None => {
-                run = Some(GpuBatch {
-                    first: sub.first,
-                    count: sub.count,
-                    ..*batch
-                })
+            Some((_, length, points)) => {
+                *length += 1;
+                *points += sub.count;
             }
+            None => run = Some((s, 1, sub.count)),
         }
     }
-    out.extend(run);
+    close(run, out);
 }
 
 /// A box that can be in view.
@@ -556,6 +627,54 @@ mod tests {
     use super::*;
     use crate::camera::{Camera, Projection};
     use crate::raster::draw_order::DrawOrders;
+
+    /// An entry names its batch and a run of its sub-batches; the run ends with the batch,
+    /// which may hold fewer points than a full one.
+    #[test]
+    fn entries_hold_their_batch_or_a_run_of_it() {
+        let full = GpuBatch {
+            first: 0,
+            count: BATCH_POINTS as u32,
+            ..batch(Vec3::ZERO, Vec3::ONE)
+        };
+        let short = GpuBatch {
+            first: BATCH_POINTS as u32,
+            count: 1000,
+            ..batch(Vec3::ONE, Vec3::splat(2.0))
+        };
+        let batches = [full, short];
+        let at = |entry: ListedEntry| {
+            let b = entry.batch(&batches);
+            (b.min, b.max, b.first, b.count)
+        };
+        let sub = SUB_BATCH_POINTS as u32;
+        assert_eq!(at(ListedEntry::whole(0)), (full.min, full.max, 0, 4096));
+        assert_eq!(
+            at(ListedEntry::whole(1)),
+            (short.min, short.max, 4096, 1000)
+        );
+        assert_eq!(
+            at(ListedEntry::run(0, 15, 1)),
+            (full.min, full.max, 15 * sub, sub)
+        );
+        assert_eq!(
+            at(ListedEntry::run(1, 1, 2)),
+            (short.min, short.max, 4096 + sub, 2 * sub)
+        );
+        // The last run of the short batch stops at its end.
+        assert_eq!(
+            at(ListedEntry::run(1, 2, 3)),
+            (short.min, short.max, 4096 + 2 * sub, 1000 - 2 * sub)
+        );
+    }
+
+    /// Entries of a frame table as the shaders see them, from their chunk's `batches`.
+    fn decoded(entries: &[u32], batches: &[GpuBatch]) -> Vec<GpuBatch> {
+        entries
+            .iter()
+            .map(|&entry| ListedEntry(entry).batch(batches))
+            .collect()
+    }
 
     fn batch(min: Vec3, max: Vec3) -> GpuBatch {
         GpuBatch {
@@ -712,7 +831,7 @@ mod tests {
         let chunks: [&[GpuBatch]; 3] = [&[far, beside, near, behind], &[beside], &[beside, far]];
         let orders: [DrawOrders; 3] = Default::default();
         let mut tables = FrameBatches::new(true);
-        let chunks = chunks
+        let tables_of = chunks
             .into_iter()
             .zip(&orders)
             .map(|(batches, draw_orders)| BatchTables {
@@ -721,7 +840,7 @@ mod tests {
                 groups: &[],
                 draw_orders,
             });
-        tables.update(&gpu.device, &gpu.queue, chunks, &transform, 1);
+        tables.update(&gpu.device, &gpu.queue, tables_of, &transform, 1);
 
         assert_eq!(
             (tables.count(0), tables.count(1), tables.count(2)),
@@ -739,8 +858,8 @@ mod tests {
         let (offset, _) = tables.ranges[0];
         let first = offset as usize / std::mem::size_of::<GpuBatch>();
         assert_eq!(
-            &tables.staging[first..first + 2],
-            &[near, far],
+            decoded(&tables.staging[first..first + 2], chunks[0]),
+            [near, far],
             "near to far"
         );
         let alignment = u64::from(gpu.device.limits().min_storage_buffer_offset_alignment);
@@ -814,6 +933,7 @@ mod tests {
                 &mut coverage,
             );
             let footprint = coverage.union();
+            let listed = decoded(&listed, &batches);
             let mut whole_batches = Vec::new();
             list_in_view(
                 &frustum,
@@ -827,6 +947,7 @@ mod tests {
                 &mut whole_batches,
                 &mut PixelCoverage::new(width, height),
             );
+            let whole_batches = decoded(&whole_batches, &batches);
             let mut is_listed = vec![false; points.len()];
             for entry in &listed {
                 // Each entry keeps its batch's box: the shaders dequantise against it.
@@ -993,10 +1114,16 @@ mod tests {
         assert_eq!(parallel.footprint, serial.footprint);
         assert_eq!(parallel.covered_pixels, serial.covered_pixels);
         let narrowed = |t: &FrameBatches| {
-            t.staging
-                .iter()
-                .filter(|e| e.count % BATCH_POINTS as u32 != 0)
-                .count()
+            let mut narrowed = 0;
+            for (&(offset, count), (batches, _)) in t.ranges.iter().zip(&chunks) {
+                let start = offset as usize / std::mem::size_of::<u32>();
+                let entries = decoded(&t.staging[start..][..count as usize], batches);
+                narrowed += entries
+                    .iter()
+                    .filter(|e| e.count % BATCH_POINTS as u32 != 0)
+                    .count();
+            }
+            narrowed
         };
         assert!(narrowed(&serial) > 0, "no batch straddles the view's edge");
         let whole = build(false, usize::MAX);

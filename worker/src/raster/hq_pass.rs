@@ -45,6 +45,7 @@ impl HqAccumulatePass {
                     (0, frame.uniforms.as_entire_binding()),
                     (1, chunk.positions.as_entire_binding()),
                     (2, wgpu::BindingResource::Buffer(table)),
+                    (8, chunk.batches.as_entire_binding()),
                     (3, frame.targets.framebuffer.as_entire_binding()),
                     (4, accumulator.as_entire_binding()),
                     (5, chunk.colours.as_entire_binding()),
