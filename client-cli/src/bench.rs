@@ -199,6 +199,15 @@ pub fn run(args: BenchArgs) -> Result<()> {
 
 /// Milliseconds to three significant digits where that takes more than one decimal: a GPU
 /// renders in a tenth of a millisecond what lavapipe renders in a hundred.
+/// `value` to three significant digits, however small (a GPU's ns per point is ~0.01).
+fn significant(value: f64) -> String {
+    if value == 0.0 || !value.is_finite() {
+        return format!("{value}");
+    }
+    let decimals = (2 - value.abs().log10().floor() as i32).clamp(0, 9) as usize;
+    format!("{value:.decimals$}")
+}
+
 fn ms(value: f64) -> String {
     match value {
         v if v < 1.0 => format!("{v:.3}"),
@@ -322,8 +331,11 @@ fn markdown_tables(report: &BenchReport) -> String {
         for fit in &report.scaling {
             let _ = writeln!(
                 md,
-                "| {} | {:.2} | {:.1} | {:.4} |",
-                fit.method, fit.ns_per_point, fit.intercept_ms, fit.r_squared
+                "| {} | {} | {} | {:.4} |",
+                fit.method,
+                significant(fit.ns_per_point),
+                significant(fit.intercept_ms),
+                fit.r_squared
             );
         }
     }
@@ -421,7 +433,7 @@ fn thousands(n: usize) -> String {
 
 #[cfg(test)]
 mod tests {
-    use super::thousands;
+    use super::{significant, thousands};
 
     #[test]
     fn thousands_separators() {
@@ -429,5 +441,14 @@ mod tests {
         assert_eq!(thousands(999), "999");
         assert_eq!(thousands(1000), "1,000");
         assert_eq!(thousands(10_000_000), "10,000,000");
+    }
+
+    #[test]
+    fn three_significant_digits_at_any_scale() {
+        assert_eq!(significant(0.009_412), "0.00941");
+        assert_eq!(significant(4.891), "4.89");
+        assert_eq!(significant(215.63), "216");
+        assert_eq!(significant(-0.25), "-0.250");
+        assert_eq!(significant(0.0), "0");
     }
 }
