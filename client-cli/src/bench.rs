@@ -342,17 +342,20 @@ fn markdown_tables(report: &BenchReport) -> String {
     let _ = writeln!(
         md,
         "\nBatches of 4096 points in the basic mode's last frame: listed by the host's culling \
-         (a batch at the view's edge once per run of it listed), then skipped by the depth pass \
-         as hidden:\n\n| workload | batches | listed | occluded |\n|---|---:|---:|---:|"
+         (a batch at the view's edge once per run of it listed) with their points, then skipped \
+         by the depth pass as hidden:\n\n| workload | batches | listed | points listed | points \
+         in view | occluded |\n|---|---:|---:|---:|---:|---:|"
     );
     for w in &report.workloads {
         let b = &w.batches;
         let _ = writeln!(
             md,
-            "| {} | {} | {} | {} |",
+            "| {} | {} | {} | {} | {} | {} |",
             w.workload,
             thousands(b.total),
             thousands(b.listed as usize),
+            thousands(b.listed_points as usize),
+            thousands(w.points_in_view),
             thousands(b.occluded as usize)
         );
     }

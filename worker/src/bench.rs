@@ -260,6 +260,8 @@ pub struct WorkloadResult {
 pub struct BatchCounts {
     pub total: usize,
     pub listed: u32,
+    /// Points of the listed entries (the culling's tightness against points in view).
+    pub listed_points: u64,
     pub occluded: u32,
 }
 
@@ -646,6 +648,7 @@ fn measure(
     let batches = BatchCounts {
         total: resident.batch_count(),
         listed: methods.compute[0].listed_batches(),
+        listed_points: methods.compute[0].listed_points(),
         occluded: methods.compute[0].occlusion_skipped()?.depth_pass,
     };
     let image_agreement = match (&pointlist_image, &compute_frame) {

@@ -243,6 +243,11 @@ impl FrameBatches {
         self.footprint
     }
 
+    /// Points of this frame's listed entries.
+    pub fn listed_points(&self) -> u64 {
+        self.listed_points
+    }
+
     /// Number of batches of all chunks in this frame's tables.
     pub fn total(&self) -> u32 {
         self.ranges.iter().map(|&(_, count)| count).sum()

@@ -499,6 +499,11 @@ impl Renderer {
         self.batches.total()
     }
 
+    /// Points of the last frame's listed entries: what the point passes read.
+    pub fn listed_points(&self) -> u64 {
+        self.batches.listed_points()
+    }
+
     /// Uploads a cloud; its buffers stay resident for as many frames as needed.
     pub fn upload(&self, cloud: &PointCloud) -> Result<GpuPointCloud, RenderError> {
         GpuPointCloud::upload(&self.gpu, cloud, self.max_chunk_points)
