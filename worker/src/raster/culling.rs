@@ -54,8 +54,6 @@ pub(crate) struct FrameBatches {
     covered_pixels: u64,
     /// The storage-binding offset alignment, in entries.
     alignment_entries: u32,
-    /// Points of this frame's listed batches.
-    listed_points: u64,
     /// Whether batches that straddle the view's edge are culled again run by run.
     refine_straddlers: bool,
     /// Batches from which a cloud of several chunks is culled in parallel: always
@@ -82,7 +80,6 @@ impl FrameBatches {
             footprint: PixelRect::EMPTY,
             covered_pixels: 0,
             alignment_entries: 1,
-            listed_points: 0,
             refine_straddlers,
             parallel_from_batches: PARALLEL_CULL_BATCHES,
         }
@@ -161,7 +158,6 @@ impl FrameBatches {
         self.order_chunks(transform);
         self.footprint = coverage.union();
         self.covered_pixels = coverage.pixels();
-        self.listed_points = self.listings.iter().map(|l| l.points).sum();
         if self.staging.is_empty() {
             return;
         }
@@ -195,21 +191,22 @@ impl FrameBatches {
         self.chunk_order.clear();
         let listed = self.ranges.iter().filter(|&&(_, count)| count > 0).count();
         if listed < 2 {
-            // Nothing to order: skip the pass over the entries (most clouds are one chunk).
+            // Nothing to order (most clouds are one chunk).
             self.chunk_order
                 .extend(self.ranges.iter().position(|&(_, count)| count > 0));
             return;
         }
         let mut boxes: Vec<GpuBatch> = self
-            .listings
+            .ranges
             .iter()
+            .zip(&self.listings)
             .enumerate()
-            .filter(|(_, listing)| listing.entries > 0)
-            .map(|(chunk, listing)| GpuBatch {
+            .filter(|(_, (&(_, count), _))| count > 0)
+            .map(|(chunk, (&(_, count), listing))| GpuBatch {
                 min: listing.min.to_array(),
                 first: chunk as u32,
                 max: listing.max.to_array(),
-                count: listing.entries,
+                count,
             })
             .collect();
         sort_near_to_far(&mut boxes, transform.depth_row.truncate());
@@ -245,7 +242,7 @@ impl FrameBatches {
 
     /// Points of this frame's listed entries.
     pub fn listed_points(&self) -> u64 {
-        self.listed_points
+        self.listings.iter().map(|listing| listing.points).sum()
     }
 
     /// Number of batches of all chunks in this frame's tables.
@@ -256,7 +253,7 @@ impl FrameBatches {
     /// Points of the listed batches per pixel they can reach (counted in cells of 64 x 64
     /// pixels): how deep the points that can be in view lie.
     pub fn points_per_pixel(&self) -> f64 {
-        self.listed_points as f64 / self.covered_pixels.max(1) as f64
+        self.listed_points() as f64 / self.covered_pixels.max(1) as f64
     }
 
     /// The part of chunk `chunk`'s table from share `from` to share `to` of its batches, as a
@@ -347,7 +344,6 @@ impl ListedEntry {
 /// What one chunk's listed entries hold.
 #[derive(Clone, Copy, Debug)]
 struct Listing {
-    entries: u32,
     points: u64,
     /// The box of the listed batches.
     min: Vec3,
@@ -356,14 +352,12 @@ struct Listing {
 
 impl Listing {
     const EMPTY: Self = Self {
-        entries: 0,
         points: 0,
         min: Vec3::INFINITY,
         max: Vec3::NEG_INFINITY,
     };
 
     fn add(&mut self, batch: &GpuBatch, points: u32) {
-        self.entries += 1;
         self.points += u64::from(points);
         self.min = self.min.min(Vec3::from_array(batch.min));
         self.max = self.max.max(Vec3::from_array(batch.max));
@@ -1133,7 +1127,7 @@ mod tests {
         assert!(narrowed(&serial) > 0, "no batch straddles the view's edge");
         let whole = build(false, usize::MAX);
         assert_eq!(narrowed(&whole), 0);
-        assert!(whole.listed_points > serial.listed_points);
+        assert!(whole.listed_points() > serial.listed_points());
     }
 
     /// Listing by groups gives the very entries that testing every batch gives, in the same
