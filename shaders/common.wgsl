@@ -98,6 +98,14 @@ fn unpack_colour(first: u32, second: u32, i: u32) -> u32 {
     return (rgb & 0xffffffu) | 0xff000000u;
 }
 
+// floor(x) as an i32, for |x| < 2^22. WGSL's i32(f32) clamps and maps NaN to 0, which
+// lavapipe (LLVM 15) compiles to a scalar conversion, compare and two conditional moves per
+// lane; this is three vector instructions. Adding 1.5 * 2^23 puts the integer floor(x) in the
+// low mantissa bits of a float whose exponent is fixed, exactly: ulp 1 in [2^23, 2^24).
+fn floor_to_i32(x: f32) -> i32 {
+    return bitcast<i32>(floor(x) + 12582912.0) - 0x4b400000;
+}
+
 // A point that survived the frustum test: its pixel square and its depth.
 struct Splat {
     // Top-left pixel of the square (may be partly off-screen).
@@ -125,8 +133,8 @@ fn project_point(frame: FrameUniforms, p: vec3<f32>) -> Splat {
         return s;
     }
     let half = i32((POINT_SIZE - 1u) / 2u);
-    s.x0 = i32(floor(px)) - half;
-    s.y0 = i32(floor(py)) - half;
+    s.x0 = floor_to_i32(px) - half;
+    s.y0 = floor_to_i32(py) - half;
     s.depth = depth;
     s.visible = true;
     return s;

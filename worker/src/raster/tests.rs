@@ -222,6 +222,41 @@ fn large_points_cover_squares_like_the_reference() {
 }
 
 #[test]
+fn large_points_centred_off_the_image_draw_their_squares_inside_part() {
+    // Splat corners left of and above the image: pixel coordinates below zero, which the
+    // shaders turn into integers without WGSL's clamping conversion (`floor_to_i32`).
+    let mut settings =
+        FrameSettings::new(64, 48, camera(Projection::Perspective { fov_y_deg: 40.0 }));
+    settings.point_size = 7;
+    settings.background = [0, 0, 0, 0];
+    let t = settings
+        .camera
+        .transform(SURVEY_ORIGIN, settings.width, settings.height);
+    let inverse = t.view_proj.inverse();
+    let (w, h) = (f64::from(settings.width), f64::from(settings.height));
+    let mut points = Vec::new();
+    let mut colours = Vec::new();
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    // A ring of pixel centres from 6 pixels outside each edge to 2 inside it.
+    for y in -6..(settings.height as i32 + 6) {
+        for x in -6..(settings.width as i32 + 6) {
+            let inside =
+                x >= 2 && y >= 2 && x < settings.width as i32 - 2 && y < settings.height as i32 - 2;
+            if inside || rng.random_bool(0.6) {
+                continue;
+            }
+            let ndc_x = (f64::from(x) + 0.5) / w * 2.0 - 1.0;
+            let ndc_y = 1.0 - (f64::from(y) + 0.5) / h * 2.0;
+            let p: DVec4 = inverse * DVec4::new(ndc_x, ndc_y, rng.random_range(0.2..0.8), 1.0);
+            points.push(SURVEY_ORIGIN + p.truncate() / p.w);
+            colours.push(pack_rgba8(rng.random(), rng.random(), rng.random()));
+        }
+    }
+    let cloud = PointCloud::from_world_points(&points, colours);
+    assert_matches_reference("point-size-7-off-edges", &cloud, &settings);
+}
+
+#[test]
 fn fallback_32_bit_path_renders_the_same_image_as_the_64_bit_path() {
     let gpu = gpu();
     assert!(
