@@ -27,44 +27,39 @@ fn fill_step(@builtin(global_invocation_id) id: vec3<u32>) {
         return;
     }
 
-    // The valid neighbours, in row-major order.
+    // The 3x3 neighbourhood in row-major order, each slot valid when it holds a point. Slots
+    // stay fixed (no compaction) so that every array index is a constant once the loops are
+    // unrolled: an array indexed by a variable is a per-lane loop through memory on lavapipe.
     var depths: array<f32, 9>;
     var colours: array<u32, 9>;
-    var weights: array<f32, 9>;
+    var valid: array<bool, 9>;
     var count = 0u;
-    for (var dy = -1; dy <= 1; dy++) {
-        for (var dx = -1; dx <= 1; dx++) {
-            let nx = x + dx;
-            let ny = y + dy;
-            if nx < 0 || ny < 0 || nx >= i32(params.width) || ny >= i32(params.height) {
-                continue;
-            }
-            let n = u32(ny) * params.width + u32(nx);
-            let z = depth_in[n];
-            if !is_surface_depth(z) {
-                continue;
-            }
-            depths[count] = z;
-            colours[count] = colour_in[n];
-            weights[count] = 1.0 - length(vec2<f32>(f32(dx), f32(dy))) / 2.0;
-            count++;
-        }
+    for (var k = 0u; k < 9u; k++) {
+        let nx = x + i32(k % 3u) - 1;
+        let ny = y + i32(k / 3u) - 1;
+        let inside = nx >= 0 && ny >= 0 && nx < i32(params.width) && ny < i32(params.height);
+        // Outside the image the read is clamped to a pixel of it, and the slot stays invalid.
+        let n = u32(clamp(ny, 0, i32(params.height) - 1)) * params.width
+            + u32(clamp(nx, 0, i32(params.width) - 1));
+        depths[k] = depth_in[n];
+        colours[k] = colour_in[n];
+        valid[k] = inside && is_surface_depth(depths[k]);
+        count += select(0u, 1u, valid[k]);
     }
     if count == 0u {
         return;
     }
 
     if !is_surface_depth(z0) {
-        // Median: the neighbour with (count - 1) / 2 others before it in (depth, order).
+        // Median: the valid neighbour with (count - 1) / 2 others before it in (depth, order).
         let wanted = (count - 1u) / 2u;
-        for (var i = 0u; i < count; i++) {
+        for (var i = 0u; i < 9u; i++) {
             var rank = 0u;
-            for (var j = 0u; j < count; j++) {
-                if depths[j] < depths[i] || (depths[j] == depths[i] && j < i) {
-                    rank++;
-                }
+            for (var j = 0u; j < 9u; j++) {
+                let before = depths[j] < depths[i] || (depths[j] == depths[i] && j < i);
+                rank += select(0u, 1u, valid[j] && before);
             }
-            if rank == wanted {
+            if valid[i] && rank == wanted {
                 depth_out[pixel] = depths[i];
                 colour_out[pixel] = colours[i];
             }
@@ -76,18 +71,20 @@ fn fill_step(@builtin(global_invocation_id) id: vec3<u32>) {
     var weight_sum = 0.0;
     var depth_sum = 0.0;
     var colour_sum = vec4<f32>(0.0);
-    for (var i = 0u; i < count; i++) {
-        let w = weights[i] * (1.0 - min(1.0, abs(depths[i] - z0) / delta));
-        weight_sum += w;
-        depth_sum += w * depths[i];
-        colour_sum += w * unpack4x8unorm(colours[i]);
+    for (var k = 0u; k < 9u; k++) {
+        if valid[k] {
+            let offset = vec2<f32>(f32(i32(k % 3u) - 1), f32(i32(k / 3u) - 1));
+            let w = (1.0 - length(offset) / 2.0) * (1.0 - min(1.0, abs(depths[k] - z0) / delta));
+            weight_sum += w;
+            depth_sum += w * depths[k];
+            colour_sum += w * unpack4x8unorm(colours[k]);
+        }
     }
     // The pixel itself always has weight 1, so the sum is never 0.
     depth_out[pixel] = depth_sum / weight_sum;
     colour_out[pixel] = pack4x8unorm(colour_sum / weight_sum);
 }
 
-// Copies the filled images back into the frame's own buffers.
 @compute @workgroup_size(16, 16)
 fn finish(@builtin(global_invocation_id) id: vec3<u32>) {
     if id.x >= params.width || id.y >= params.height {

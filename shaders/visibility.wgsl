@@ -25,10 +25,20 @@ const PI: f32 = 3.14159265;
 // Marks a sector that holds no point.
 const OPEN_SECTOR: f32 = -2.0;
 
+// The sector of offset (dx, dy): round(atan2(dy, dx) / (pi / 4)), from 0 to 7, found by
+// comparisons rather than atan2, a rounding and a float-to-int conversion (which lavapipe runs
+// lane by lane). Equal for every integer offset: no integer ratio dy / dx is within 0.01 of
+// tan(pi / 8), the boundary, for offsets up to 9.
 fn sector_of(dx: i32, dy: i32) -> u32 {
-    // Image y grows downwards; the sectors only need to be consistent.
-    let angle = atan2(f32(dy), f32(dx));
-    return u32(i32(round(angle / (PI / 4.0))) + 8) % SECTORS;
+    let ax = abs(f32(dx));
+    let ay = abs(f32(dy));
+    let tan_eighth = 0.41421356;
+    let east = dx > 0;
+    let south = dy > 0;
+    let horizontal = select(4u, 0u, east);
+    let vertical = select(6u, 2u, south);
+    let diagonal = select(select(5u, 7u, east), select(3u, 1u, east), south);
+    return select(select(diagonal, vertical, ax <= tan_eighth * ay), horizontal, ay <= tan_eighth * ax);
 }
 
 @compute @workgroup_size(16, 16)
@@ -67,8 +77,12 @@ fn classify(@builtin(global_invocation_id) id: vec3<u32>) {
             if surface {
                 cosine = dot(to_camera, normalize(view_point(params, nx, ny, there) - p0));
             }
+            // Every sector by a constant index, the one hit by a select: an array indexed by a
+            // variable is a per-lane loop through memory on lavapipe.
             let s = sector_of(dx, dy);
-            horizon[s] = max(horizon[s], cosine);
+            for (var k = 0u; k < SECTORS; k++) {
+                horizon[k] = select(horizon[k], max(horizon[k], cosine), s == k);
+            }
         }
     }
     var open = 0.0;
