@@ -388,8 +388,10 @@ fn list_in_view(
                 out.push(ListedEntry::whole(b).0);
                 listing.add(batch, batch.count);
             }
-            Visibility::Straddling => {
-                list_runs_in_view(frustum, tables, b, out, &mut listing, coverage);
+            Visibility::Straddling(footprint) => {
+                if list_runs_in_view(frustum, tables, b, out, &mut listing) {
+                    coverage.add(footprint);
+                }
             }
         }
     }
@@ -402,8 +404,9 @@ enum Visibility {
     Hidden,
     /// Listed as it is (its footprint already added to the coverage).
     Whole,
-    /// At the view's edge: its runs are tested when it is listed.
-    Straddling,
+    /// At the view's edge: its runs are tested when it is listed, and its footprint (the
+    /// batch's, which holds its runs') added to the coverage if any is.
+    Straddling(PixelRect),
 }
 
 /// Each batch's [`Visibility`], testing groups first; adds the footprints of the batches
@@ -455,21 +458,22 @@ fn test_batches(
             coverage.add(view.footprint);
             Visibility::Whole
         } else {
-            Visibility::Straddling
+            Visibility::Straddling(view.footprint)
         };
     }
 }
 
-/// Appends to `out` the runs of consecutive sub-batches of batch `b` that can be in view and
-/// adds their footprints to `coverage`.
+/// Appends to `out` the runs of consecutive sub-batches of batch `b` that can be in view;
+/// whether there was any. Their footprints are not computed: the batch's holds them, and the
+/// test without them costs a sub-batch no division (on the 10M cube's corner view, the cull
+/// went from 0.6 to 0.3 ms).
 fn list_runs_in_view(
     frustum: &Frustum,
     tables: BatchTables<'_>,
     b: usize,
     out: &mut Vec<u32>,
     listing: &mut Listing,
-    coverage: &mut PixelCoverage,
-) {
+) -> bool {
     let batch = &tables.batches[b];
     let subs = tables
         .sub_batches
@@ -480,18 +484,19 @@ fn list_runs_in_view(
         .take_while(|sub| sub.first < batch.first + batch.count);
     // The open run: its first sub-batch, length and points.
     let mut run: Option<(usize, usize, u32)> = None;
+    let mut listed = false;
     let mut close = |run: Option<(usize, usize, u32)>, out: &mut Vec<u32>| {
         if let Some((first, length, points)) = run {
             out.push(ListedEntry::run(b, first, length).0);
             listing.add(batch, points);
+            listed = true;
         }
     };
     for (s, sub) in subs.enumerate() {
-        let Some(sub_view) = frustum.view_of(sub) else {
+        if frustum.excludes(sub) {
             close(run.take(), out);
             continue;
-        };
-        coverage.add(sub_view.footprint);
+        }
         match run.as_mut() {
             Some((_, length, points)) => {
                 *length += 1;
@@ -501,6 +506,7 @@ fn list_runs_in_view(
         }
     }
     close(run, out);
+    listed
 }
 
 /// A box that can be in view.
@@ -539,19 +545,19 @@ impl Frustum {
         }
     }
 
-    /// `None` when no point in `batch`'s box can show in the image (all its corners lie
-    /// beyond one plane); else the pixels its points can touch.
-    fn view_of(&self, batch: &GpuBatch) -> Option<InView> {
+    /// Whether no point in `batch`'s box can show in the image: all its corners lie beyond
+    /// one plane. [`Frustum::view_of`]'s test without the footprint.
+    fn excludes(&self, batch: &GpuBatch) -> bool {
+        self.beyond_one_plane(&self.corners(batch))
+    }
+
+    /// The clip coordinates and depth of each corner of `batch`'s box, from the minimum
+    /// corner's plus the transformed edges of the box: one matrix product instead of eight.
+    fn corners(&self, batch: &GpuBatch) -> [(DVec4, f64); 8] {
         let (min, max) = (
             Vec3::from_array(batch.min).as_dvec3(),
             Vec3::from_array(batch.max).as_dvec3(),
         );
-        let mut outside = [true; 6];
-        let mut all_inside = true;
-        let mut all_in_front = true;
-        let (mut low, mut high) = (DVec2::splat(f64::INFINITY), DVec2::splat(f64::NEG_INFINITY));
-        // The corners' clip coordinates and depths, from the minimum corner's plus the
-        // transformed edges of the box: one matrix product instead of eight.
         let view_proj = &self.transform.view_proj;
         let depth_row = self.transform.depth_row;
         let extent = max - min;
@@ -563,9 +569,7 @@ impl Frustum {
             view_proj.z_axis * extent.z,
         ];
         let depth_edges = depth_row.truncate() * extent;
-        let (width, height) = (self.transform.width, self.transform.height);
-        let (half_width, half_height) = (0.5 * f64::from(width), 0.5 * f64::from(height));
-        for corner in 0..8 {
+        std::array::from_fn(|corner| {
             let mut clip = clip_min;
             let mut depth = depth_min;
             for axis in 0..3 {
@@ -574,6 +578,14 @@ impl Frustum {
                     depth += depth_edges[axis];
                 }
             }
+            (clip, depth)
+        })
+    }
+
+    /// Whether all `corners` lie beyond the same plane.
+    fn beyond_one_plane(&self, corners: &[(DVec4, f64); 8]) -> bool {
+        let mut outside = [true; 6];
+        for &(clip, depth) in corners {
             let w = clip.w;
             outside[0] &= clip.x < -w * self.widen_x;
             outside[1] &= clip.x > w * self.widen_x;
@@ -581,6 +593,24 @@ impl Frustum {
             outside[3] &= clip.y > w * self.widen_y;
             outside[4] &= depth < self.near;
             outside[5] &= depth > self.far;
+        }
+        outside.iter().any(|&o| o)
+    }
+
+    /// `None` when no point in `batch`'s box can show in the image (all its corners lie
+    /// beyond one plane); else the pixels its points can touch.
+    fn view_of(&self, batch: &GpuBatch) -> Option<InView> {
+        let corners = self.corners(batch);
+        if self.beyond_one_plane(&corners) {
+            return None;
+        }
+        let mut all_inside = true;
+        let mut all_in_front = true;
+        let (mut low, mut high) = (DVec2::splat(f64::INFINITY), DVec2::splat(f64::NEG_INFINITY));
+        let (width, height) = (self.transform.width, self.transform.height);
+        let (half_width, half_height) = (0.5 * f64::from(width), 0.5 * f64::from(height));
+        for (clip, depth) in corners {
+            let w = clip.w;
             all_inside &= clip.x.abs() <= w * self.widen_x
                 && clip.y.abs() <= w * self.widen_y
                 && depth >= self.near
@@ -595,9 +625,6 @@ impl Frustum {
             );
             low = low.min(pixel);
             high = high.max(pixel);
-        }
-        if outside.iter().any(|&o| o) {
-            return None;
         }
         let footprint = if all_in_front {
             let clamp = |v: f64, limit: u32| v.clamp(0.0, f64::from(limit)) as u32;
@@ -766,6 +793,8 @@ mod tests {
                 let pixels = pixels_in_view(&transform, min, max, &mut rng);
                 let shows = !pixels.is_empty();
                 let view = frustum.view_of(&batch(min, max));
+                // The test of sub-batches, without a footprint, decides the same.
+                assert_eq!(frustum.excludes(&batch(min, max)), view.is_none());
                 if view.as_ref().is_some_and(|v| v.whole) {
                     assert_wholly_in_view(&transform, frustum.margin, min, max, &mut rng);
                 }
