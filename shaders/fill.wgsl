@@ -20,12 +20,15 @@ fn fill_step(@builtin(global_invocation_id) id: vec3<u32>) {
     let x = i32(id.x);
     let y = i32(id.y);
     let pixel = id.y * params.width + id.x;
-    let z0 = depth_in[pixel];
-    depth_out[pixel] = z0;
-    colour_out[pixel] = colour_in[pixel];
+    // A fixed pixel holds the same value in both buffers from the start (the visibility pass
+    // copied it unchanged from the frame's buffers into the fill buffers), so no step copies
+    // it: on lavapipe the copy was most of a step's time.
     if mutable_pixels[pixel] == 0u {
         return;
     }
+    let z0 = depth_in[pixel];
+    depth_out[pixel] = z0;
+    colour_out[pixel] = colour_in[pixel];
 
     // The 3x3 neighbourhood in row-major order, each slot valid when it holds a point. Slots
     // stay fixed (no compaction) so that every array index is a constant once the loops are
@@ -91,6 +94,9 @@ fn finish(@builtin(global_invocation_id) id: vec3<u32>) {
         return;
     }
     let pixel = id.y * params.width + id.x;
+    if mutable_pixels[pixel] == 0u {
+        return;
+    }
     depth_out[pixel] = depth_in[pixel];
     colour_out[pixel] = colour_in[pixel];
 }

@@ -1,6 +1,8 @@
 //! Anisotropic filling (Pintus et al., section 5; `shaders/fill.wgsl`): `iterations` 3x3
 //! steps over the mutable pixels, ping-ponging between the fill buffers and the frame's own
-//! colour and depth buffers, then the result copied back into the frame's buffers.
+//! colour and depth buffers, then the result copied back into the frame's buffers. Only
+//! mutable pixels are written: a fixed pixel holds the same value in both pairs from the
+//! visibility pass on.
 
 use pointfarm_shaders::Shader;
 
@@ -42,22 +44,19 @@ impl FillPass {
             (&fill.depth, &fill.colour),
             (&targets.depth, &targets.colour),
         ];
-        // `finish` copies without looking at the mask, so its layout has no binding 3.
-        let bind = |pipeline: &wgpu::ComputePipeline, from: usize, with_mask: bool| {
+        let bind = |pipeline: &wgpu::ComputePipeline, from: usize| {
             let ((depth_in, colour_in), (depth_out, colour_out)) = (pairs[from], pairs[1 - from]);
-            let mut resources = vec![
+            let resources = vec![
                 (0, params.fill()),
                 (1, depth_in.as_entire_binding()),
                 (2, colour_in.as_entire_binding()),
+                (3, fill.mutable.as_entire_binding()),
                 (4, depth_out.as_entire_binding()),
                 (5, colour_out.as_entire_binding()),
             ];
-            if with_mask {
-                resources.push((3, fill.mutable.as_entire_binding()));
-            }
             bind_resources(device, pipeline, "fill", resources)
         };
-        let steps = [bind(&self.step, 0, true), bind(&self.step, 1, true)];
+        let steps = [bind(&self.step, 0), bind(&self.step, 1)];
         pass.set_pipeline(&self.step);
         for i in 0..iterations as usize {
             pass.set_bind_group(0, &steps[i % 2], &[]);
@@ -65,7 +64,7 @@ impl FillPass {
         }
         if iterations.is_multiple_of(2) {
             pass.set_pipeline(&self.finish);
-            pass.set_bind_group(0, &bind(&self.finish, 0, false), &[]);
+            pass.set_bind_group(0, &bind(&self.finish, 0), &[]);
             dispatch_tiles(pass, targets.width, targets.height);
         }
     }
