@@ -106,6 +106,14 @@ fn floor_to_i32(x: f32) -> i32 {
     return bitcast<i32>(floor(x) + 12582912.0) - 0x4b400000;
 }
 
+// WGSL's pack4x8unorm: each component clamped to [0, 1] and converted to the byte
+// floor(0.5 + 255 c). Lavapipe compiles the built-in's float-to-int conversions lane by lane;
+// this does them as above (`floor_to_i32`), exact since the bytes are integers below 2^23.
+fn pack_unorm4x8(v: vec4<f32>) -> u32 {
+    let bytes = bitcast<vec4<u32>>(floor(0.5 + 255.0 * clamp(v, vec4<f32>(0.0), vec4<f32>(1.0))) + 8388608.0) & vec4<u32>(0xffu);
+    return bytes.x | (bytes.y << 8u) | (bytes.z << 16u) | (bytes.w << 24u);
+}
+
 // A point that survived the frustum test: its pixel square and its depth.
 struct Splat {
     // Top-left pixel of the square (may be partly off-screen).

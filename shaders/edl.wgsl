@@ -54,5 +54,5 @@ fn shade(@builtin(global_invocation_id) id: vec3<u32>) {
     let rgba = unpack4x8unorm(colour[pixel]);
     // Outlines on a transparent background become opaque as they darken.
     let alpha = select(rgba.a, mix(1.0, rgba.a, shade), !is_surface(here));
-    colour[pixel] = pack4x8unorm(vec4<f32>(rgba.rgb * shade, alpha));
+    colour[pixel] = pack_unorm4x8(vec4<f32>(rgba.rgb * shade, alpha));
 }

@@ -37,28 +37,32 @@ fn level(@builtin(global_invocation_id) id: vec3<u32>) {
     if !is_surface_depth(d) {
         return;
     }
+    // The 3x3 neighbourhood in fixed slots, so that every array index is a constant once the
+    // loops are unrolled (an array indexed by a variable is a per-lane loop on lavapipe).
     var depths: array<f32, 9>;
+    var valid: array<bool, 9>;
     var count = 0u;
     var total = 0.0;
-    for (var dy = -1; dy <= 1; dy++) {
-        for (var dx = -1; dx <= 1; dx++) {
-            let nx = x + dx;
-            let ny = y + dy;
-            if nx < 0 || ny < 0 || nx >= i32(params.width) || ny >= i32(params.height) {
-                continue;
-            }
-            let z = depth_in[u32(ny) * params.width + u32(nx)];
-            if is_surface_depth(z) {
-                depths[count] = z;
-                total += z;
-                count++;
-            }
+    for (var k = 0u; k < 9u; k++) {
+        let nx = x + i32(k % 3u) - 1;
+        let ny = y + i32(k / 3u) - 1;
+        let inside = nx >= 0 && ny >= 0 && nx < i32(params.width) && ny < i32(params.height);
+        // Outside the image the read is clamped to a pixel of it, and the slot stays invalid.
+        let n = u32(clamp(ny, 0, i32(params.height) - 1)) * params.width
+            + u32(clamp(nx, 0, i32(params.width) - 1));
+        depths[k] = depth_in[n];
+        valid[k] = inside && is_surface_depth(depths[k]);
+        if valid[k] {
+            total += depths[k];
+            count++;
         }
     }
     let mean = total / f32(count);
     var squares = 0.0;
-    for (var i = 0u; i < count; i++) {
-        squares += (depths[i] - mean) * (depths[i] - mean);
+    for (var k = 0u; k < 9u; k++) {
+        if valid[k] {
+            squares += (depths[k] - mean) * (depths[k] - mean);
+        }
     }
     let sigma = sqrt(squares / f32(count));
     let d_min = mean - sigma;
@@ -81,5 +85,5 @@ fn apply(@builtin(global_invocation_id) id: vec3<u32>) {
     }
     let shade = shade_sum[pixel] * params.inverse_total_weight;
     let rgba = unpack4x8unorm(colour[pixel]);
-    colour[pixel] = pack4x8unorm(vec4<f32>(rgba.rgb * shade, rgba.a));
+    colour[pixel] = pack_unorm4x8(vec4<f32>(rgba.rgb * shade, rgba.a));
 }

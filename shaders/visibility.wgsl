@@ -11,14 +11,43 @@
 // points becomes fillable, and one beside a silhouette stays background.
 //
 // Output: the visible pixels unchanged and fixed; the others emptied (+infinity, background
-// colour) and marked mutable for the filling.
+// colour) and listed as mutable for the filling, which then visits only those (fill.wgsl).
 
 @group(0) @binding(0) var<uniform> params: ScreenParams;
 @group(0) @binding(1) var<storage, read> depth_in: array<f32>;
 @group(0) @binding(2) var<storage, read> colour_in: array<u32>;
 @group(0) @binding(3) var<storage, read_write> depth_out: array<f32>;
 @group(0) @binding(4) var<storage, read_write> colour_out: array<u32>;
-@group(0) @binding(5) var<storage, read_write> mutable_pixels: array<u32>;
+// The mutable pixels, (y << 16) | x each, in the order the invocations append them.
+@group(0) @binding(5) var<storage, read_write> mutable_list: array<u32>;
+
+// The filling's indirect dispatch over `mutable_list`, and the length of the list.
+struct FillArgs {
+    groups_x: u32,
+    groups_y: u32,
+    groups_z: u32,
+    count: atomic<u32>,
+}
+@group(0) @binding(6) var<storage, read_write> fill_args: FillArgs;
+
+// Workgroup size of the filling's passes over the list (`LIST_WORKGROUP` in fill.wgsl).
+const LIST_WORKGROUP: u32 = 64u;
+
+// Empties the list: before `classify`.
+@compute @workgroup_size(1)
+fn reset_list() {
+    atomicStore(&fill_args.count, 0u);
+}
+
+// The filling's dispatch for the listed pixels: after `classify`. At most 65535 workgroups a
+// dimension, so a long list takes rows of them.
+@compute @workgroup_size(1)
+fn prepare_fill() {
+    let groups = (atomicLoad(&fill_args.count) + LIST_WORKGROUP - 1u) / LIST_WORKGROUP;
+    fill_args.groups_x = min(groups, 65535u);
+    fill_args.groups_y = max(1u, (groups + 65534u) / 65535u);
+    fill_args.groups_z = 1u;
+}
 
 const SECTORS: u32 = 8u;
 const PI: f32 = 3.14159265;
@@ -94,10 +123,9 @@ fn classify(@builtin(global_invocation_id) id: vec3<u32>) {
     if open >= params.min_solid_angle {
         depth_out[pixel] = here;
         colour_out[pixel] = colour_in[pixel];
-        mutable_pixels[pixel] = 0u;
     } else {
         depth_out[pixel] = infinite_depth();
         colour_out[pixel] = params.background;
-        mutable_pixels[pixel] = 1u;
+        mutable_list[atomicAdd(&fill_args.count, 1u)] = (id.y << 16u) | id.x;
     }
 }

@@ -1,12 +1,13 @@
 //! Anisotropic filling (Pintus et al., section 5; `shaders/fill.wgsl`): `iterations` 3x3
 //! steps over the mutable pixels, ping-ponging between the fill buffers and the frame's own
-//! colour and depth buffers, then the result copied back into the frame's buffers. Only
-//! mutable pixels are written: a fixed pixel holds the same value in both pairs from the
+//! colour and depth buffers, then the result copied back into the frame's buffers. Each
+//! dispatch visits only the pixels the visibility pass listed as mutable (an indirect
+//! dispatch it prepared): a fixed pixel holds the same value in both pairs from the
 //! visibility pass on.
 
 use pointfarm_shaders::Shader;
 
-use super::pipeline::{bind_resources, compute_pipeline, dispatch_tiles, shader_module};
+use super::pipeline::{bind_resources, compute_pipeline, shader_module};
 use super::screen_params::ScreenUniforms;
 use super::targets::FrameTargets;
 
@@ -51,6 +52,7 @@ impl FillPass {
                 (1, depth_in.as_entire_binding()),
                 (2, colour_in.as_entire_binding()),
                 (3, fill.mutable.as_entire_binding()),
+                (6, fill.list_args.as_entire_binding()),
                 (4, depth_out.as_entire_binding()),
                 (5, colour_out.as_entire_binding()),
             ];
@@ -60,12 +62,12 @@ impl FillPass {
         pass.set_pipeline(&self.step);
         for i in 0..iterations as usize {
             pass.set_bind_group(0, &steps[i % 2], &[]);
-            dispatch_tiles(pass, targets.width, targets.height);
+            pass.dispatch_workgroups_indirect(&fill.list_args, 0);
         }
         if iterations.is_multiple_of(2) {
             pass.set_pipeline(&self.finish);
             pass.set_bind_group(0, &bind(&self.finish, 0), &[]);
-            dispatch_tiles(pass, targets.width, targets.height);
+            pass.dispatch_workgroups_indirect(&fill.list_args, 0);
         }
     }
 }

@@ -53,8 +53,12 @@ struct CleanOutside {
 pub(crate) struct FillTargets {
     pub depth: wgpu::Buffer,
     pub colour: wgpu::Buffer,
-    /// 1 where the filling may change the pixel, 0 where it is fixed.
+    /// The pixels the filling may change, `(y << 16) | x` each, in no particular order; the
+    /// others are fixed. Written by the visibility pass, which counts them in `list_args`.
     pub mutable: wgpu::Buffer,
+    /// The filling's indirect dispatch over `mutable` (workgroups x, y, z) and the number of
+    /// mutable pixels (`shaders/fill.wgsl`, `FillArgs`).
+    pub list_args: wgpu::Buffer,
 }
 
 /// Pintus shading's smoothed depth levels (ping-pong) and per-pixel weighted sum.
@@ -129,6 +133,12 @@ impl FrameTargets {
             depth: scratch(device, "fill depth", bytes),
             colour: scratch(device, "fill colour", bytes),
             mutable: scratch(device, "fill mutable pixels", bytes),
+            list_args: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("fill dispatch arguments"),
+                size: 16,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::INDIRECT,
+                mapped_at_creation: false,
+            }),
         });
     }
 

@@ -1,6 +1,7 @@
-//! Screen-space visibility (Pintus et al., section 4; `shaders/visibility.wgsl`): marks the
+//! Screen-space visibility (Pintus et al., section 4; `shaders/visibility.wgsl`): lists the
 //! points seen through holes of a nearer surface, and the background pixels enclosed by
-//! points, as mutable holes for the filling; everything else is fixed.
+//! points, as mutable holes for the filling, and prepares the filling's indirect dispatch
+//! over that list; everything else is fixed.
 
 use pointfarm_shaders::Shader;
 
@@ -9,14 +10,20 @@ use super::screen_params::ScreenUniforms;
 use super::targets::FrameTargets;
 
 pub(crate) struct VisibilityPass {
+    reset_list: wgpu::ComputePipeline,
     classify: wgpu::ComputePipeline,
+    prepare_fill: wgpu::ComputePipeline,
 }
 
 impl VisibilityPass {
     pub fn new(device: &wgpu::Device) -> Self {
         let module = shader_module(device, Shader::Visibility);
-        let classify = compute_pipeline(device, &module, "classify", &[]);
-        Self { classify }
+        let pipeline = |entry_point: &str| compute_pipeline(device, &module, entry_point, &[]);
+        Self {
+            reset_list: pipeline("reset_list"),
+            classify: pipeline("classify"),
+            prepare_fill: pipeline("prepare_fill"),
+        }
     }
 
     /// Reads the resolved images; writes the visible pixels into the fill buffers.
@@ -30,6 +37,13 @@ impl VisibilityPass {
         let Some(fill) = targets.fill.as_ref() else {
             return;
         };
+        let args = || (6, fill.list_args.as_entire_binding());
+        let list_only = |pipeline: &wgpu::ComputePipeline| {
+            bind_resources(device, pipeline, "fill list", vec![args()])
+        };
+        pass.set_pipeline(&self.reset_list);
+        pass.set_bind_group(0, &list_only(&self.reset_list), &[]);
+        pass.dispatch_workgroups(1, 1, 1);
         let bind_group = bind_resources(
             device,
             &self.classify,
@@ -41,10 +55,14 @@ impl VisibilityPass {
                 (3, fill.depth.as_entire_binding()),
                 (4, fill.colour.as_entire_binding()),
                 (5, fill.mutable.as_entire_binding()),
+                args(),
             ],
         );
         pass.set_pipeline(&self.classify);
         pass.set_bind_group(0, &bind_group, &[]);
         dispatch_tiles(pass, targets.width, targets.height);
+        pass.set_pipeline(&self.prepare_fill);
+        pass.set_bind_group(0, &list_only(&self.prepare_fill), &[]);
+        pass.dispatch_workgroups(1, 1, 1);
     }
 }
