@@ -24,6 +24,9 @@ struct ScreenParams {
     level_weight: f32,
     // ... and one over the sum of all levels' weights (a flat, facing surface keeps its colour).
     inverse_total_weight: f32,
+    // Visibility: the pixels it classifies, x0, y0, x1, y1 (the footprint grown by the
+    // kernel's radius and a pixel); all others are fixed background.
+    visibility_area: vec4<u32>,
 }
 
 const INFINITE_DEPTH_BITS: u32 = 0x7f800000u;

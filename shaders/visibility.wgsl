@@ -71,8 +71,10 @@ fn sector_of(dx: i32, dy: i32) -> u32 {
 }
 
 @compute @workgroup_size(16, 16)
-fn classify(@builtin(global_invocation_id) id: vec3<u32>) {
-    if id.x >= params.width || id.y >= params.height {
+fn classify(@builtin(global_invocation_id) invocation: vec3<u32>) {
+    // Dispatched over the visibility area only.
+    let id = invocation.xy + params.visibility_area.xy;
+    if id.x >= params.visibility_area.z || id.y >= params.visibility_area.w {
         return;
     }
     let x = i32(id.x);

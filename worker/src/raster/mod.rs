@@ -639,7 +639,8 @@ impl Renderer {
             }
         }
         if settings.fill.is_some() || matches!(settings.shading, Shading::Pintus { .. }) {
-            self.screen_uniforms.write(&self.gpu.queue, settings);
+            self.screen_uniforms
+                .write(&self.gpu.queue, settings, self.batches.footprint());
         }
         let footprint = self.batches.footprint();
         let Some(resolve_area) = self
@@ -779,10 +780,14 @@ impl Renderer {
             ],
         };
         let screen = &self.screen_uniforms;
+        let visibility_area = screen_params::visibility_area(settings, self.batches.footprint());
         if let Some(fill) = settings.fill {
             passes.push((
                 Stage::Visibility,
-                Box::new(|pass| self.visibility.record(device, pass, screen, targets)),
+                Box::new(move |pass| {
+                    self.visibility
+                        .record(device, pass, screen, targets, visibility_area)
+                }),
             ));
             passes.push((
                 Stage::Fill,

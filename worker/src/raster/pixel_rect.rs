@@ -59,6 +59,20 @@ impl PixelRect {
         }
     }
 
+    /// This rectangle widened by `margin` pixels on every side, within a `width` x `height`
+    /// image; empty stays empty.
+    pub fn grown(self, margin: u32, width: u32, height: u32) -> PixelRect {
+        if self.is_empty() {
+            return self;
+        }
+        PixelRect {
+            x0: self.x0.saturating_sub(margin),
+            y0: self.y0.saturating_sub(margin),
+            x1: self.x1.saturating_add(margin).min(width),
+            y1: self.y1.saturating_add(margin).min(height),
+        }
+    }
+
     #[cfg(test)]
     pub fn contains(&self, x: u32, y: u32) -> bool {
         (self.x0..self.x1).contains(&x) && (self.y0..self.y1).contains(&y)
@@ -178,6 +192,26 @@ mod tests {
         assert_eq!((a.width(), a.height(), a.pixels()), (3, 1, 3));
         assert_eq!(PixelRect::full(640, 480).pixels(), 640 * 480);
         assert!(a.contains(2, 3) && !a.contains(5, 3) && !a.contains(2, 4));
+    }
+
+    #[test]
+    fn growing_stays_inside_the_image_and_keeps_empty_rectangles_empty() {
+        let rect = PixelRect {
+            x0: 2,
+            y0: 10,
+            x1: 20,
+            y1: 30,
+        };
+        assert_eq!(
+            rect.grown(4, 22, 100),
+            PixelRect {
+                x0: 0,
+                y0: 6,
+                x1: 22,
+                y1: 34
+            }
+        );
+        assert!(PixelRect::EMPTY.grown(4, 22, 100).is_empty());
     }
 
     #[test]

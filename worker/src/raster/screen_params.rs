@@ -4,6 +4,7 @@
 
 use bytemuck::{Pod, Zeroable};
 
+use super::pixel_rect::PixelRect;
 use super::{FrameSettings, Shading, MAX_PINTUS_LEVELS};
 use crate::camera::Projection;
 
@@ -22,6 +23,8 @@ pub(crate) struct ScreenParams {
     pub first_level: u32,
     pub level_weight: f32,
     pub inverse_total_weight: f32,
+    /// The pixels the visibility pass classifies (`x0, y0, x1, y1`); all others are fixed.
+    pub visibility_area: [u32; 4],
 }
 
 /// Uniform buffer offsets must be multiples of this (wgpu's default limit).
@@ -44,9 +47,10 @@ impl ScreenUniforms {
         }
     }
 
-    /// Writes the frame's parameters (before the frame's passes are submitted).
-    pub fn write(&self, queue: &wgpu::Queue, settings: &FrameSettings) {
-        let base = ScreenParams::new(settings);
+    /// Writes the frame's parameters (before the frame's passes are submitted); the frame's
+    /// points can land only in `footprint`.
+    pub fn write(&self, queue: &wgpu::Queue, settings: &FrameSettings, footprint: PixelRect) {
+        let base = ScreenParams::new(settings, footprint);
         queue.write_buffer(&self.buffer, 0, bytemuck::bytes_of(&base));
         if let Shading::Pintus { levels, exponent } = settings.shading {
             let levels = levels.min(MAX_PINTUS_LEVELS);
@@ -96,13 +100,14 @@ pub(crate) fn level_weight(k: u32, exponent: f32) -> f32 {
 }
 
 impl ScreenParams {
-    pub fn new(settings: &FrameSettings) -> Self {
+    pub fn new(settings: &FrameSettings, footprint: PixelRect) -> Self {
         let aspect = settings.width as f64 / settings.height as f64;
         let (perspective, half_height) = match settings.camera.projection {
             Projection::Perspective { fov_y_deg } => (1, (fov_y_deg.to_radians() * 0.5).tan()),
             Projection::Orthographic { height } => (0, height * 0.5),
         };
         let fill = settings.fill.unwrap_or_default();
+        let area = visibility_area(settings, footprint);
         Self {
             width: settings.width,
             height: settings.height,
@@ -115,6 +120,16 @@ impl ScreenParams {
             first_level: 0,
             level_weight: 0.0,
             inverse_total_weight: 0.0,
+            visibility_area: [area.x0, area.y0, area.x1, area.y1],
         }
     }
+}
+
+/// The pixels the visibility pass classifies when the frame's points can land only in
+/// `footprint`. A pixel farther than the kernel's radius from every point sees no point: it
+/// stays background, fixed. One pixel more holds the neighbours the filling reads around the
+/// mutable pixels, which the visibility pass must have written.
+pub(crate) fn visibility_area(settings: &FrameSettings, footprint: PixelRect) -> PixelRect {
+    let kernel = settings.fill.unwrap_or_default().kernel;
+    footprint.grown(kernel / 2 + 1, settings.width, settings.height)
 }

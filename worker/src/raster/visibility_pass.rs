@@ -6,6 +6,7 @@
 use pointfarm_shaders::Shader;
 
 use super::pipeline::{bind_resources, compute_pipeline, dispatch_tiles, shader_module};
+use super::pixel_rect::PixelRect;
 use super::screen_params::ScreenUniforms;
 use super::targets::FrameTargets;
 
@@ -26,13 +27,15 @@ impl VisibilityPass {
         }
     }
 
-    /// Reads the resolved images; writes the visible pixels into the fill buffers.
+    /// Reads the resolved images; writes the visible pixels of `area` (which must be
+    /// `visibility_area` of the screen parameters) into the fill buffers.
     pub fn record(
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
         params: &ScreenUniforms,
         targets: &FrameTargets,
+        area: PixelRect,
     ) {
         let Some(fill) = targets.fill.as_ref() else {
             return;
@@ -60,7 +63,9 @@ impl VisibilityPass {
         );
         pass.set_pipeline(&self.classify);
         pass.set_bind_group(0, &bind_group, &[]);
-        dispatch_tiles(pass, targets.width, targets.height);
+        // Outside `area` (the footprint grown by the kernel's radius) every pixel is fixed
+        // background: its fill-buffer value is never read.
+        dispatch_tiles(pass, area.width(), area.height());
         pass.set_pipeline(&self.prepare_fill);
         pass.set_bind_group(0, &list_only(&self.prepare_fill), &[]);
         pass.dispatch_workgroups(1, 1, 1);
