@@ -58,7 +58,10 @@ fn resolve(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups
 // which lavapipe runs lane by lane (it made the high-quality resolve 1.6 times as slow). The f32
 // quotient is within one of the exact one here, and one correction each way makes it exact.
 fn quotient(a: vec3<u32>, b: u32) -> vec3<u32> {
-    var q = vec3<u32>(vec3<f32>(a) / f32(b));
+    // The f32 quotient to an integer by a float add and bitcast (`floor_to_i32`), not WGSL's
+    // clamping conversion, which lavapipe runs lane by lane too.
+    let estimate = floor(vec3<f32>(a) / f32(b)) + 8388608.0;
+    var q = bitcast<vec3<u32>>(estimate) - vec3<u32>(0x4b000000u);
     q = select(q, q - 1u, q * b > a);
     q = select(q, q + 1u, (q + 1u) * b <= a);
     return q;
