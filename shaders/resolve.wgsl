@@ -44,10 +44,14 @@ fn resolve(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups
         return;
     }
     let entry = framebuffer[pixel];
-    framebuffer[pixel] = vec2<u32>(EMPTY, EMPTY);
-    // Selects, not branches: in a CPU's SIMD lanes (lavapipe) both sides of a branch run
-    // wherever covered and empty pixels mix, and each side has its own stores.
     let empty = entry.y == EMPTY;
+    // Only a covered pixel needs emptying: lavapipe skips the store where 8 neighbouring
+    // pixels are all background (5-7% of the resolve on the 10M cube).
+    if !empty {
+        framebuffer[pixel] = vec2<u32>(EMPTY, EMPTY);
+    }
+    // Selects, not branches, for the images: in a CPU's SIMD lanes (lavapipe) both sides of a
+    // branch run wherever covered and empty pixels mix, and each side has its own stores.
     colour_out[pixel] = select(entry.x, frame.background, empty);
     if WRITE_DEPTH {
         depth_out[pixel] = bitcast<f32>(select(entry.y, NO_SURFACE_BITS, empty));
@@ -75,10 +79,15 @@ fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_wo
         return;
     }
     let sums = accumulator[pixel];
-    accumulator[pixel] = vec4<u32>(0u);
     let count = sums.w;
     let depth_bits = framebuffer[pixel].y;
-    framebuffer[pixel] = vec2<u32>(EMPTY, EMPTY);
+    // As in `resolve`: only what points wrote needs emptying.
+    if count != 0u {
+        accumulator[pixel] = vec4<u32>(0u);
+    }
+    if depth_bits != EMPTY {
+        framebuffer[pixel] = vec2<u32>(EMPTY, EMPTY);
+    }
     // Round half up: (sum + count / 2) / count. Selects, not branches (see `resolve`).
     let divisor = max(count, 1u);
     let average = quotient(sums.xyz + vec3<u32>(count / 2u), divisor);
