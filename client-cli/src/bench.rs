@@ -161,8 +161,11 @@ pub fn run(args: BenchArgs) -> Result<()> {
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
     println!("adapter: {}", gpu.describe());
     println!(
-        "{width}x{height}, {} warm-up + {} measured frames per method and workload",
-        options.warmup_frames, options.frames
+        "{width}x{height}, {} warm-up + {} measured rounds per workload; a round renders {} \
+         frames with each method in turn and measures the last",
+        options.warmup_frames,
+        options.frames,
+        bench::FRAMES_IN_A_ROW
     );
     let report = bench::run(gpu, &options, &mut |line| eprintln!("  {line}"))?;
 

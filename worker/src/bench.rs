@@ -7,9 +7,10 @@
 //! A frame's time is the GPU work that produces its image: every pass of the frame (clear,
 //! point passes, resolve, shading). Upload, readback and other host-side stages are reported
 //! per stage but left out of the frame time, since they do not depend on the method. Every
-//! figure is the median over measured frames, after warm-up frames; each round renders one
-//! frame with every method in turn, so that slow drifts of the machine's speed reach every
-//! method alike. Each compute method has a renderer of its own, so that no method starts its
+//! figure is the median over measured frames, after warm-up frames; each round renders
+//! [`FRAMES_IN_A_ROW`] frames with every method in turn and measures the last, so that slow
+//! drifts of the machine's speed reach every method alike while each measured frame follows
+//! one of its own method, as in a job's run of frames. Each compute method has a renderer of its own, so that no method starts its
 //! frame from the state another left (`Methods`).
 //!
 //! Series: uniform cubes of 1M to 30M points (frame time against points in view, with a
@@ -132,12 +133,12 @@ impl ComputeMode {
 }
 
 impl BenchOptions {
-    /// The full run: 1024x1024-point cuboid planes (up to 64 Mi points), 3 + 15 frames.
+    /// The full run: 1024x1024-point cuboid planes (up to 64 Mi points), 1 + 15 rounds.
     pub fn full(width: u32, height: u32, data_dir: PathBuf) -> Self {
         Self {
             width,
             height,
-            warmup_frames: 3,
+            warmup_frames: 1,
             frames: 15,
             cuboid_side: 1024,
             data_dir,
@@ -148,11 +149,11 @@ impl BenchOptions {
         }
     }
 
-    /// About two minutes on a 2-core software adapter: 512x512-point planes, 2 + 9 frames.
+    /// A few minutes on a 2-core software adapter: 512x512-point planes, 1 + 7 rounds.
     pub fn quick(width: u32, height: u32, data_dir: PathBuf) -> Self {
         Self {
-            warmup_frames: 2,
-            frames: 9,
+            warmup_frames: 1,
+            frames: 7,
             cuboid_side: 512,
             ..Self::full(width, height, data_dir)
         }
@@ -505,8 +506,8 @@ fn summary_line(result: &WorkloadResult) -> String {
 }
 
 /// A cube of `points` (the run's is [`HUGE_POINTS`]), generated in Morton-ordered cells and
-/// uploaded chunk by chunk: the host never holds the whole cloud. Measured with one warm-up
-/// and three frames.
+/// uploaded chunk by chunk: the host never holds the whole cloud. Measured over three rounds
+/// without warm-up rounds (each round's first frame of a method warms it).
 fn measure_huge(
     methods: &mut Methods,
     options: &BenchOptions,
@@ -550,7 +551,7 @@ fn measure_huge(
         camera,
     };
     let huge_options = BenchOptions {
-        warmup_frames: 1,
+        warmup_frames: 0,
         frames: 3,
         ..options.clone()
     };
@@ -593,6 +594,14 @@ impl Methods {
     }
 }
 
+/// Frames each method renders back to back in a round; the last is the measured one (in
+/// measured rounds). A frame then starts from the state its own method's last frame left, as
+/// in a job's run of frames, not from the caches another method left: on lavapipe the basic
+/// mode's view of the 10M cube's corner, whose points fit in the caches, took 7.5 ms of
+/// rasterizing right after a PointList frame and 5.3 ms after a compute frame (BENCHMARKS.md,
+/// session 8).
+pub const FRAMES_IN_A_ROW: usize = 2;
+
 fn measure(
     methods: &mut Methods,
     resident: &GpuPointCloud,
@@ -616,6 +625,9 @@ fn measure(
     let mut compute_frames = vec![None; settings_of.len()];
     for round in 0..rounds {
         let measured = round >= options.warmup_frames;
+        for _ in 1..FRAMES_IN_A_ROW {
+            methods.baseline.render(resident, settings)?;
+        }
         let started = Instant::now();
         let frame = methods.baseline.render(resident, settings)?;
         if measured {
@@ -626,6 +638,9 @@ fn measure(
         for (method, (settings, renderer)) in
             settings_of.iter().zip(&mut methods.compute).enumerate()
         {
+            for _ in 1..FRAMES_IN_A_ROW {
+                renderer.render(resident, settings)?;
+            }
             let started = Instant::now();
             let frame = renderer.render(resident, settings)?;
             if measured {
