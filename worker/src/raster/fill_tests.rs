@@ -341,6 +341,42 @@ fn visibility_and_filling_match_the_reference() {
 }
 
 #[test]
+fn filling_a_small_cloud_after_one_that_filled_the_image_matches_the_reference() {
+    // The visibility pass classifies only the frame's footprint grown by its kernel, and the
+    // filling reads the fill buffers around the mutable pixels only: what an earlier frame
+    // with a wider footprint left in those buffers must not show.
+    let perspective = settings(Projection::Perspective { fov_y_deg: 50.0 });
+    let wide = two_planes(&perspective);
+    let mut small_settings = with_fill(perspective, 5);
+    // The sphere seen from farther away covers the middle of the image only.
+    small_settings.camera.position = ORIGIN + DVec3::new(0.0, -25.0, 0.0);
+    let small = holey_sphere(&small_settings);
+    let mut renderer = Renderer::new(crate::testing::gpu());
+    let (wide_resident, small_resident) = (
+        renderer.upload(&wide).expect("upload"),
+        renderer.upload(&small).expect("upload"),
+    );
+    renderer
+        .render(&wide_resident, &with_fill(perspective, 9))
+        .expect("wide frame");
+    let frame = renderer
+        .render(&small_resident, &small_settings)
+        .expect("small frame");
+    let expected = reference::render(&small, &small_settings);
+    let far_colours = frame
+        .image
+        .pixels()
+        .zip(expected.image.pixels())
+        .filter(|(a, b)| (0..4).any(|c| a.0[c].abs_diff(b.0[c]) > 2))
+        .count();
+    compare_images("fill-after-wide", &frame.image, &expected.image);
+    assert!(
+        far_colours * 1000 <= (WIDTH * HEIGHT) as usize,
+        "{far_colours} colours differ"
+    );
+}
+
+#[test]
 fn pintus_shading_matches_the_reference() {
     let mut settings = with_fill(settings(Projection::Perspective { fov_y_deg: 50.0 }), 5);
     settings.shading = Shading::PINTUS;
