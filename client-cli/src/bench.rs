@@ -367,13 +367,16 @@ fn markdown_tables(report: &BenchReport) -> String {
             let mib = |b: u64| b as f64 / (1u64 << 20) as f64;
             let _ = writeln!(
                 md,
-                "\n{}: host memory peak during ingest {:.0} MiB ({:.0} MiB before it), GPU \
-                 data {:.0} MiB: peak / GPU data = {:.2}.",
+                "\n{}: host memory peak during ingest {:.0} MiB, {:.0} MiB above the {:.0} MiB \
+                 before it; GPU data {:.0} MiB: the ingest's peak / GPU data = {:.2}.",
                 w.workload,
                 mib(memory.peak_host_bytes),
+                mib(memory
+                    .peak_host_bytes
+                    .saturating_sub(memory.before_host_bytes)),
                 mib(memory.before_host_bytes),
                 mib(memory.gpu_bytes),
-                memory.peak_over_gpu
+                memory.ingest_over_gpu
             );
         }
     }
