@@ -287,6 +287,14 @@ fn filling_reconstructs_a_holey_sphere_without_growing_its_silhouette() {
     }
 }
 
+/// Pixels of `a` and `b` with a channel more than 2 levels apart.
+fn colours_apart(a: &image::RgbaImage, b: &image::RgbaImage) -> usize {
+    a.pixels()
+        .zip(b.pixels())
+        .filter(|(a, b)| (0..4).any(|c| a.0[c].abs_diff(b.0[c]) > 2))
+        .count()
+}
+
 /// GPU and reference agree within `tolerance` levels per channel on all but `allowed` pixels,
 /// and in depth within 1e-4 relative on all but `allowed` pixels.
 fn assert_close_to_reference(name: &str, cloud: &PointCloud, settings: &FrameSettings) {
@@ -294,12 +302,7 @@ fn assert_close_to_reference(name: &str, cloud: &PointCloud, settings: &FrameSet
     let expected = reference::render(cloud, settings);
     compare_images(name, &frame.image, &expected.image);
     let pixels = (settings.width * settings.height) as usize;
-    let far_colours = frame
-        .image
-        .pixels()
-        .zip(expected.image.pixels())
-        .filter(|(a, b)| (0..4).any(|c| a.0[c].abs_diff(b.0[c]) > 2))
-        .count();
+    let far_colours = colours_apart(&frame.image, &expected.image);
     let far_depths = depth_of(&frame)
         .iter()
         .zip(&expected.depth)
@@ -363,12 +366,7 @@ fn filling_a_small_cloud_after_one_that_filled_the_image_matches_the_reference()
         .render(&small_resident, &small_settings)
         .expect("small frame");
     let expected = reference::render(&small, &small_settings);
-    let far_colours = frame
-        .image
-        .pixels()
-        .zip(expected.image.pixels())
-        .filter(|(a, b)| (0..4).any(|c| a.0[c].abs_diff(b.0[c]) > 2))
-        .count();
+    let far_colours = colours_apart(&frame.image, &expected.image);
     compare_images("fill-after-wide", &frame.image, &expected.image);
     assert!(
         far_colours * 1000 <= (WIDTH * HEIGHT) as usize,
