@@ -60,23 +60,18 @@ fn fill_step(
     let pixel = listed.y * params.width + listed.x;
     let z0 = depth_in[pixel];
 
-    // The 3x3 neighbourhood in row-major order, each slot valid when it holds a point. Slots
-    // stay fixed (no compaction) so that every array index is a constant once the loops are
-    // unrolled: an array indexed by a variable is a per-lane loop through memory on lavapipe.
-    // Colours are read only where used: one for the median, the valid ones for the mean.
+    // The 3x3 neighbourhood in fixed slots (`neighbour`, no compaction), each valid when it
+    // holds a point. Colours are read only where used: one for the median, the valid ones for the mean.
     var depths: array<f32, 9>;
     var neighbours: array<u32, 9>;
     var valid: array<bool, 9>;
     var count = 0u;
     for (var k = 0u; k < 9u; k++) {
-        let nx = x + i32(k % 3u) - 1;
-        let ny = y + i32(k / 3u) - 1;
-        let inside = nx >= 0 && ny >= 0 && nx < i32(params.width) && ny < i32(params.height);
         // Outside the image the read is clamped to a pixel of it, and the slot stays invalid.
-        neighbours[k] = u32(clamp(ny, 0, i32(params.height) - 1)) * params.width
-            + u32(clamp(nx, 0, i32(params.width) - 1));
-        depths[k] = depth_in[neighbours[k]];
-        valid[k] = inside && is_surface_depth(depths[k]);
+        let n = neighbour(params, x, y, k);
+        neighbours[k] = n.pixel;
+        depths[k] = depth_in[n.pixel];
+        valid[k] = n.inside && is_surface_depth(depths[k]);
         count += select(0u, 1u, valid[k]);
     }
     if count == 0u {

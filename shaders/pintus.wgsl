@@ -37,21 +37,16 @@ fn level(@builtin(global_invocation_id) id: vec3<u32>) {
     if !is_surface_depth(d) {
         return;
     }
-    // The 3x3 neighbourhood in fixed slots, so that every array index is a constant once the
-    // loops are unrolled (an array indexed by a variable is a per-lane loop on lavapipe).
+    // The 3x3 neighbourhood in fixed slots (`neighbour`).
     var depths: array<f32, 9>;
     var valid: array<bool, 9>;
     var count = 0u;
     var total = 0.0;
     for (var k = 0u; k < 9u; k++) {
-        let nx = x + i32(k % 3u) - 1;
-        let ny = y + i32(k / 3u) - 1;
-        let inside = nx >= 0 && ny >= 0 && nx < i32(params.width) && ny < i32(params.height);
         // Outside the image the read is clamped to a pixel of it, and the slot stays invalid.
-        let n = u32(clamp(ny, 0, i32(params.height) - 1)) * params.width
-            + u32(clamp(nx, 0, i32(params.width) - 1));
-        depths[k] = depth_in[n];
-        valid[k] = inside && is_surface_depth(depths[k]);
+        let n = neighbour(params, x, y, k);
+        depths[k] = depth_in[n.pixel];
+        valid[k] = n.inside && is_surface_depth(depths[k]);
         if valid[k] {
             total += depths[k];
             count++;

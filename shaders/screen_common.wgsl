@@ -49,3 +49,22 @@ fn view_point(params: ScreenParams, x: i32, y: i32, d: f32) -> vec3<f32> {
     let scale = select(1.0, d, params.perspective == 1u);
     return vec3<f32>(ndc * params.unproject * scale, d);
 }
+
+// Slot k (0 to 8, row-major) of the 3x3 neighbourhood of pixel (x, y): its pixel index, clamped
+// to the image so that it can always be read, and whether it lies inside the image. Fixed slots
+// with constant k keep every private array index a constant once loops are unrolled (lavapipe
+// runs a variable index lane by lane).
+struct Neighbour {
+    pixel: u32,
+    inside: bool,
+}
+
+fn neighbour(params: ScreenParams, x: i32, y: i32, k: u32) -> Neighbour {
+    let nx = x + i32(k % 3u) - 1;
+    let ny = y + i32(k / 3u) - 1;
+    var n: Neighbour;
+    n.inside = nx >= 0 && ny >= 0 && nx < i32(params.width) && ny < i32(params.height);
+    n.pixel = u32(clamp(ny, 0, i32(params.height) - 1)) * params.width
+        + u32(clamp(nx, 0, i32(params.width) - 1));
+    return n;
+}
