@@ -523,6 +523,66 @@ fn bench_writes_its_figures_as_json_and_markdown() {
     assert!(table.contains("| autzen_trim.laz |"), "{table}");
 }
 
+/// `--only ingest` measures loading alone: the real scans found and a generated LAZ file of
+/// the size asked, each decoded on all cores and on one and given back by the dataset cache.
+#[test]
+fn bench_measures_decoding_and_the_dataset_cache() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (json, markdown) = (dir.path().join("bench.json"), dir.path().join("bench.md"));
+    let data = shared_data("autzen_trim.laz")
+        .and_then(|scan| scan.parent().map(Path::to_path_buf))
+        .unwrap_or_else(|| dir.path().join("no-scans"));
+    let output = pointfarm(&[
+        "bench",
+        "--quick",
+        "--only",
+        "ingest",
+        "--ingest-points",
+        "30_000",
+        "--data",
+        &path_arg(&data),
+        "--json",
+        &path_arg(&json),
+        "--markdown",
+        &path_arg(&markdown),
+    ]);
+    assert_ok(&output);
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&json).expect("json written")).expect("valid json");
+    assert!(report["workloads"]
+        .as_array()
+        .expect("workloads")
+        .is_empty());
+    let ingest = report["ingest"].as_array().expect("ingest");
+    let generated = ingest.last().expect("the generated file");
+    assert_eq!(generated["workload"], "ingest-uniform-30000.laz");
+    assert_eq!(generated["points"], 30_000);
+    for field in [
+        "decode_ms",
+        "decode_one_thread_ms",
+        "cache_hit_ms",
+        "cache_speedup",
+    ] {
+        assert!(
+            generated[field].as_f64().is_some_and(|v| v > 0.0),
+            "{field}: {generated}"
+        );
+    }
+    let table = std::fs::read_to_string(&markdown).expect("markdown written");
+    assert!(table.contains("| uniform-30000.laz | 30,000 |"), "{table}");
+    if shared_data("autzen_trim.laz").is_some() {
+        assert_eq!(ingest.len(), 3, "{report}");
+        assert_eq!(ingest[1]["workload"], "ingest-autzen_trim.laz");
+        assert_eq!(ingest[1]["points"], 110_000);
+    } else {
+        assert_eq!(
+            report["skipped"].as_array().map(Vec::len),
+            Some(2),
+            "{report}"
+        );
+    }
+}
+
 /// `--huge POINTS` streams a cube of that many points, reports its memory peak and batches,
 /// and a count of nothing is refused before any work.
 #[test]

@@ -39,6 +39,11 @@ pub struct BenchArgs {
     /// points need about 4 GiB on a software adapter). Accepts `1000000000`, `1_000_000_000`.
     #[arg(long, value_name = "POINTS", value_parser = parse_point_count)]
     huge: Option<Option<usize>>,
+    /// Points of the cube written as LAZ for the ingest figures (decoding on all cores and on
+    /// one, and loading from the dataset cache), besides the real scans: 10 million by
+    /// default, 2 million with `--quick`. Select only those figures with `--only ingest`.
+    #[arg(long, value_name = "POINTS", value_parser = parse_point_count)]
+    ingest_points: Option<usize>,
     /// Measure the basic mode only (not high quality, the 32-bit atomics path, nor fill with
     /// EDL or Pintus shading).
     #[arg(long, conflicts_with = "modes")]
@@ -138,7 +143,13 @@ impl Machine {
 pub fn run(args: BenchArgs) -> Result<()> {
     let started = Instant::now();
     let (width, height) = args.size;
+    let defaults = if args.quick {
+        BenchOptions::quick(width, height, args.data.clone())
+    } else {
+        BenchOptions::full(width, height, args.data.clone())
+    };
     let options = BenchOptions {
+        ingest_points: args.ingest_points.or(defaults.ingest_points),
         host_clocks: args.host_clocks,
         modes: if args.basic_only {
             Vec::new()
@@ -149,11 +160,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         },
         only: args.only.clone(),
         huge: args.huge.map(|points| points.unwrap_or(bench::HUGE_POINTS)),
-        ..if args.quick {
-            BenchOptions::quick(width, height, args.data.clone())
-        } else {
-            BenchOptions::full(width, height, args.data.clone())
-        }
+        ..defaults.clone()
     };
     if args.plot.is_some() {
         crate::bench_plot::check_font()?;
@@ -219,10 +226,22 @@ fn ms(value: f64) -> String {
     }
 }
 
-/// The summary table (frame time, throughput, speed-up, other modes' cost), the per-stage
-/// table, the scaling fits and the huge workload's memory.
+/// The render tables (when any workload was rendered), the ingest table and what was skipped.
 fn markdown_tables(report: &BenchReport) -> String {
     let mut md = String::new();
+    if !report.workloads.is_empty() {
+        render_tables(&mut md, report);
+    }
+    ingest_table(&mut md, report);
+    for s in &report.skipped {
+        let _ = writeln!(md, "\nSkipped {}: {}.", s.workload, s.reason);
+    }
+    md
+}
+
+/// The summary table (frame time, throughput, speed-up, other modes' cost), the per-stage
+/// table, the scaling fits and the huge workload's memory.
+fn render_tables(md: &mut String, report: &BenchReport) {
     let modes: Vec<&'static str> = report
         .workloads
         .first()
@@ -380,10 +399,38 @@ fn markdown_tables(report: &BenchReport) -> String {
             );
         }
     }
-    for s in &report.skipped {
-        let _ = writeln!(md, "\nSkipped {}: {}.", s.workload, s.reason);
+}
+
+/// Loading datasets: decoding on all cores and on one, and from the dataset cache.
+fn ingest_table(md: &mut String, report: &BenchReport) {
+    if report.ingest.is_empty() {
+        return;
     }
-    md
+    let _ = writeln!(
+        md,
+        "\nLoading datasets (medians; the files in the page cache): LAZ decoding on all cores \
+         and on one, and a dataset-cache hit just after the cache was opened again:\n\n\
+         | file | points | MB | decode ms | M points/s | threads | one thread ms | parallel \
+         speed-up | cache open ms | cache hit ms | hit vs decode |\n\
+         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+    );
+    for i in &report.ingest {
+        let _ = writeln!(
+            md,
+            "| {} | {} | {:.1} | {} | {:.1} | {} | {} | {:.2}x | {} | {} | {:.0}x |",
+            i.workload.trim_start_matches("ingest-"),
+            thousands(i.points),
+            i.file_bytes as f64 / 1e6,
+            significant(i.decode_ms),
+            i.decode_mpoints_per_s,
+            i.threads,
+            significant(i.decode_one_thread_ms),
+            i.parallel_speedup,
+            significant(i.cache_open_ms),
+            significant(i.cache_hit_ms),
+            i.cache_speedup
+        );
+    }
 }
 
 /// Frames whose wall-clock time exceeds their stages by much mean the GPU timestamps missed

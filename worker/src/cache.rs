@@ -301,6 +301,24 @@ mod tests {
     use crate::ingest::{write_las, LasWriteOptions};
     use crate::sample::sample_scene;
 
+    /// An origin and bounds that serde_json's default float parsing reads back one ulp off
+    /// (found by `pointfarm bench`'s ingest check on a generated UTM-like cube).
+    #[test]
+    fn origin_and_bounds_come_back_to_the_bit() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut cloud = sample_scene(100, 1);
+        cloud.origin = DVec3::new(515050.00399999996, 4918049.996, 2049.9935);
+        cloud.bounds.min = cloud.origin - DVec3::splat(0.30000000000000004);
+        cloud.bounds.max = cloud.origin + DVec3::new(1.0 / 3.0, 1e-17, 123456.789);
+        let cache = DatasetCache::open(&dir.path().join("cache"), u64::MAX).expect("open");
+        cache.put("k", &cloud).expect("put");
+        let back = cache.get("k").expect("get").expect("entry");
+        let bits = |v: DVec3| v.to_array().map(f64::to_bits);
+        assert_eq!(bits(back.origin), bits(cloud.origin));
+        assert_eq!(bits(back.bounds.min), bits(cloud.bounds.min));
+        assert_eq!(bits(back.bounds.max), bits(cloud.bounds.max));
+    }
+
     #[test]
     fn a_cached_cloud_equals_the_decoded_one_and_the_cache_evicts_the_least_recent() {
         let dir = tempfile::tempdir().expect("tempdir");

@@ -27,6 +27,11 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
+mod ingest;
+
+pub use ingest::{generated_workload, IngestResult};
+
+use crate::cache::CacheError;
 use crate::camera::{Camera, Projection};
 use crate::cloud::{pack_rgba8, PointCloud};
 use crate::gpu::GpuContext;
@@ -72,6 +77,10 @@ pub struct BenchOptions {
     /// Also render a cube of this many points ([`HUGE_POINTS`] by default), generated and
     /// uploaded chunk by chunk, with its host memory peak.
     pub huge: Option<usize>,
+    /// Points of the cube written as LAZ for the ingest figures (none: only the real scans).
+    pub ingest_points: Option<usize>,
+    /// Measured loads per file and way (decode on all cores, on one, from the cache).
+    pub ingest_repeats: usize,
 }
 
 /// A mode of the compute rasterizer measured besides the basic mode, as a change to the
@@ -146,6 +155,8 @@ impl BenchOptions {
             modes: ComputeMode::ALL.to_vec(),
             only: Vec::new(),
             huge: None,
+            ingest_points: Some(UNIFORM_POINTS),
+            ingest_repeats: 5,
         }
     }
 
@@ -155,6 +166,8 @@ impl BenchOptions {
             warmup_frames: 1,
             frames: 7,
             cuboid_side: 512,
+            ingest_points: Some(2_000_000),
+            ingest_repeats: 3,
             ..Self::full(width, height, data_dir)
         }
     }
@@ -170,6 +183,12 @@ pub enum BenchError {
     NoFrames,
     #[error("no workload matches --only {0}")]
     NothingSelected(String),
+    #[error(transparent)]
+    DatasetCache(#[from] CacheError),
+    #[error("{0}")]
+    CacheMismatch(String),
+    #[error("benchmark scratch space: {0}")]
+    Scratch(String),
 }
 
 /// The adapter the figures were measured on.
@@ -322,6 +341,8 @@ pub struct BenchReport {
     pub workloads: Vec<WorkloadResult>,
     /// Frame time against points in view over the uniform series, per method.
     pub scaling: Vec<ScalingFit>,
+    /// Loading datasets: LAZ decoding on all cores and on one, and dataset-cache hits.
+    pub ingest: Vec<IngestResult>,
     pub skipped: Vec<SkippedWorkload>,
 }
 
@@ -436,7 +457,29 @@ pub fn run(
                     .any(|view| selected(&format!("{HEADLINE_WORKLOAD}-{view}"))))
     });
     let huge_points = options.huge.filter(|&n| selected(&uniform_workload(n)));
-    if specs.is_empty() && huge_points.is_none() {
+    let mut ingest_files = Vec::new();
+    for file in REAL_SCANS
+        .iter()
+        .filter(|f| selected(&format!("ingest-{f}")))
+    {
+        let path = options.data_dir.join(file);
+        if path.is_file() {
+            ingest_files.push(path);
+        } else {
+            skipped.push(SkippedWorkload {
+                workload: format!("ingest-{file}"),
+                reason: format!("{file} not found in {}", options.data_dir.display()),
+            });
+        }
+    }
+    let ingest_points = options
+        .ingest_points
+        .filter(|&n| selected(&generated_workload(n)));
+    if specs.is_empty()
+        && huge_points.is_none()
+        && ingest_files.is_empty()
+        && ingest_points.is_none()
+    {
         return Err(BenchError::NothingSelected(options.only.join(",")));
     }
 
@@ -475,6 +518,17 @@ pub fn run(
         let huge = HugeCloud::ingest(&methods, options, points, progress)?;
         workloads.push(huge.measure(&mut methods, options, progress)?);
     }
+    // Ingest uses no GPU; last, so that its files and caches leave the renders alone.
+    let ingest = if ingest_files.is_empty() && ingest_points.is_none() {
+        Vec::new()
+    } else {
+        ingest::measure_files(
+            &ingest_files,
+            ingest_points,
+            options.ingest_repeats,
+            progress,
+        )?
+    };
 
     let speedup_vs_pointlist = workloads
         .iter()
@@ -490,6 +544,7 @@ pub fn run(
         speedup_vs_pointlist,
         scaling: scaling_fits(&workloads),
         workloads,
+        ingest,
         skipped,
     })
 }
