@@ -3,7 +3,9 @@
 //!
 //! Entries are keyed by the file's content hash and [`FORMAT_VERSION`], so a changed file or a
 //! changed layout never returns stale points. Columns are stored in chunks of
-//! [`CHUNK_POINTS`] points (sled prefers moderate values). The cache holds at most
+//! [`CHUNK_POINTS`] points, 80 KB each: sled reads a value of many megabytes through a slow
+//! path (a 10M-point cloud in chunks of 1Mi points, 20 MB each, took 341 ms to load and 362
+//! ms to open; BENCHMARKS.md). The cache holds at most
 //! `max_bytes`; the least recently used entries are evicted to make room.
 
 use std::path::Path;
@@ -18,7 +20,9 @@ use crate::ingest::{load_point_cloud, IngestError};
 
 /// Bump when the stored layout or the meaning of ingest's output changes.
 pub const FORMAT_VERSION: u32 = 1;
-const CHUNK_POINTS: usize = 1 << 20;
+const CHUNK_POINTS: usize = 1 << 12;
+/// The chunk size of entries written before it was recorded in them.
+const FIRST_CHUNK_POINTS: usize = 1 << 20;
 /// Bytes per point in the cache: position, colour, intensity, classification, return.
 const BYTES_PER_POINT: u64 = 12 + 4 + 2 + 1 + 1;
 
@@ -43,6 +47,8 @@ pub enum CacheOutcome {
 #[derive(Serialize, Deserialize)]
 struct EntryMeta {
     points: usize,
+    #[serde(default = "first_chunk_points")]
+    chunk_points: usize,
     origin: [f64; 3],
     bounds_min: [f64; 3],
     bounds_max: [f64; 3],
@@ -55,6 +61,10 @@ pub struct DatasetCache {
     entries: sled::Tree,
     chunks: sled::Tree,
     max_bytes: u64,
+}
+
+fn first_chunk_points() -> usize {
+    FIRST_CHUNK_POINTS
 }
 
 fn now_ms() -> u128 {
@@ -157,12 +167,16 @@ impl DatasetCache {
             color_source: source_from(&meta.color_source)
                 .ok_or_else(|| CacheError::Corrupt(meta.color_source.clone()))?,
         };
-        for chunk in 0..n.div_ceil(CHUNK_POINTS) {
+        let chunk_points = meta.chunk_points;
+        if chunk_points == 0 {
+            return Err(CacheError::Corrupt(format!("{key}: chunks of no points")));
+        }
+        for chunk in 0..n.div_ceil(chunk_points) {
             let bytes = self
                 .chunks
                 .get(chunk_key(key, chunk))?
                 .ok_or_else(|| CacheError::Corrupt(format!("{key}: chunk {chunk} missing")))?;
-            let count = (n - chunk * CHUNK_POINTS).min(CHUNK_POINTS);
+            let count = (n - chunk * chunk_points).min(chunk_points);
             decode_chunk(&bytes, count, &mut cloud).ok_or_else(|| {
                 CacheError::Corrupt(format!("{key}: chunk {chunk} has the wrong size"))
             })?;
@@ -193,6 +207,7 @@ impl DatasetCache {
         }
         let meta = EntryMeta {
             points: cloud.len(),
+            chunk_points: CHUNK_POINTS,
             origin: cloud.origin.to_array(),
             bounds_min: cloud.bounds.min.to_array(),
             bounds_max: cloud.bounds.max.to_array(),
@@ -219,19 +234,19 @@ impl DatasetCache {
         let mut used: u64 = entries.iter().map(|(_, m)| m.bytes).sum();
         entries.sort_by_key(|(_, m)| m.last_used_unix_ms);
         for (key, meta) in entries {
-            if used + needed <= self.max_bytes {
+            if used.saturating_add(needed) <= self.max_bytes {
                 break;
             }
-            self.remove(&key, meta.points)?;
+            self.remove(&key, &meta)?;
             used -= meta.bytes;
             tracing::info!(key, "evicted from the dataset cache");
         }
         Ok(())
     }
 
-    fn remove(&self, key: &str, points: usize) -> Result<(), CacheError> {
+    fn remove(&self, key: &str, meta: &EntryMeta) -> Result<(), CacheError> {
         self.entries.remove(key.as_bytes())?;
-        for chunk in 0..points.div_ceil(CHUNK_POINTS) {
+        for chunk in 0..meta.points.div_ceil(meta.chunk_points.max(1)) {
             self.chunks.remove(chunk_key(key, chunk))?;
         }
         Ok(())
@@ -300,6 +315,48 @@ mod tests {
     use super::*;
     use crate::ingest::{write_las, LasWriteOptions};
     use crate::sample::sample_scene;
+
+    /// Entries written before the chunk size was recorded (and made smaller) still load.
+    #[test]
+    fn an_entry_of_the_first_layout_still_loads() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let cloud = sample_scene(5_000, 2);
+        // Too small for the entry: the first eviction removes it.
+        let cache = DatasetCache::open(&dir.path().join("cache"), 10).expect("open");
+        let key = "old";
+        cache
+            .chunks
+            .insert(chunk_key(key, 0), encode_chunk(&cloud, 0..cloud.len()))
+            .expect("chunk");
+        let mut meta = serde_json::json!({
+            "points": cloud.len(),
+            "origin": cloud.origin.to_array(),
+            "bounds_min": cloud.bounds.min.to_array(),
+            "bounds_max": cloud.bounds.max.to_array(),
+            "color_source": source_name(cloud.color_source),
+            "bytes": cloud.len() as u64 * BYTES_PER_POINT,
+            "last_used_unix_ms": 1,
+        });
+        assert!(meta.get("chunk_points").is_none());
+        cache
+            .entries
+            .insert(key, serde_json::to_vec(&meta).expect("json"))
+            .expect("entry");
+        assert_eq!(cache.get(key).expect("get"), Some(cloud.clone()));
+
+        // A chunk size of nothing is a corrupt entry, not a division by zero.
+        meta["chunk_points"] = 0.into();
+        cache
+            .entries
+            .insert(key, serde_json::to_vec(&meta).expect("json"))
+            .expect("entry");
+        assert!(matches!(cache.get(key), Err(CacheError::Corrupt(_))));
+        cache
+            .evict_until_free(1)
+            .expect("eviction of the corrupt entry");
+        assert!(cache.entries.get(key).expect("entries").is_none());
+        assert!(cache.chunks.is_empty());
+    }
 
     /// An origin and bounds that serde_json's default float parsing reads back one ulp off
     /// (found by `pointfarm bench`'s ingest check on a generated UTM-like cube).
