@@ -12,7 +12,7 @@
 use pointfarm_shaders::Shader;
 
 use super::culling::FrameBatches;
-use super::occlusion::{phases_for, OcclusionPass, MIN_POINTS_PER_PIXEL_FOR_FINAL_TILES};
+use super::occlusion::{OcclusionPass, MIN_POINTS_PER_PIXEL_FOR_FINAL_TILES};
 use super::pipeline::{bind_resources, shader_module};
 use super::point_pipelines::PointPipelines;
 use super::points::{GpuPointCloud, PointChunk};
@@ -78,8 +78,15 @@ impl BasicPass {
                 let pipeline = self.atomic32_colour.get(device, frame.point_size);
                 pass.set_pipeline(&pipeline);
                 for chunk in 0..frame.cloud.chunks.len() {
-                    let part = (chunk, (0.0, 1.0));
-                    dispatch_part(device, pass, &pipeline, AtomicsPath::Atomic32, frame, part);
+                    let table = frame.batches.table(chunk);
+                    dispatch_table(
+                        device,
+                        pass,
+                        &pipeline,
+                        AtomicsPath::Atomic32,
+                        frame,
+                        (chunk, table),
+                    );
                 }
             }
         }
@@ -107,8 +114,8 @@ impl BasicPass {
     }
 
     /// The depth-writing pass over every chunk, in phases with the occlusion tiles built
-    /// before each but the first. A phase is a share of all listed batches taken near to far
-    /// across the chunks, so the first builds its tiles from the nearest chunk's points.
+    /// before each but the first. A phase is the listed batches within a band of depths
+    /// (`phases.rs`), the nearest first, chunk after chunk near to far.
     fn record_phased(
         &self,
         device: &wgpu::Device,
@@ -120,14 +127,14 @@ impl BasicPass {
         self.occlusion
             .record_clear(device, pass, &frame.targets.occlusion);
         let pipeline = pipelines.get(device, frame.point_size);
-        let phases = phases_for(frame.batches.total(), frame.batches.points_per_pixel());
-        for (index, &shares) in phases.iter().enumerate() {
-            if index > 0 {
+        for phase in 0..frame.batches.phase_count() {
+            if phase > 0 {
                 self.build_tiles(device, pass, frame);
             }
             pass.set_pipeline(&pipeline);
-            for part in frame.batches.parts(shares) {
-                dispatch_part(device, pass, &pipeline, path, frame, part);
+            for &chunk in frame.batches.chunk_order() {
+                let table = frame.batches.phase_part(chunk, phase);
+                dispatch_table(device, pass, &pipeline, path, frame, (chunk, table));
             }
         }
     }
@@ -160,18 +167,17 @@ pub(crate) struct PointFrame<'a> {
     pub targets: &'a FrameTargets,
 }
 
-/// Dispatches the part of chunk `chunk`'s batch table between two shares of it; the pipeline
-/// is set.
-fn dispatch_part(
+/// Dispatches one workgroup per entry of a part of chunk `chunk`'s batch table (none when
+/// the part is empty); the pipeline is set.
+fn dispatch_table(
     device: &wgpu::Device,
     pass: &mut wgpu::ComputePass<'_>,
     pipeline: &wgpu::ComputePipeline,
     path: AtomicsPath,
     frame: PointFrame<'_>,
-    (chunk, shares): (usize, (f64, f64)),
+    (chunk, table): (usize, Option<(wgpu::BufferBinding<'_>, u32)>),
 ) {
-    // A chunk with no batch in view is skipped.
-    let Some((table, batches)) = frame.batches.part(chunk, shares) else {
+    let Some((table, batches)) = table else {
         return;
     };
     let bind_group = bind_group(
@@ -203,6 +209,7 @@ fn bind_group(
         (5, chunk.colours.as_entire_binding()),
         (6, frame.targets.occlusion.tiles.as_entire_binding()),
         (7, frame.targets.occlusion.skipped.as_entire_binding()),
+        (9, chunk.sub_boxes.as_entire_binding()),
     ];
     if path == AtomicsPath::Atomic64 {
         // The non-atomic view of the same framebuffer, for the early depth test.

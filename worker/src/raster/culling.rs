@@ -31,6 +31,8 @@ use rayon::prelude::*;
 
 use super::draw_order::sort_near_to_far;
 use super::gpu_data::GpuBatch;
+use super::occlusion::phase_cuts;
+use super::phases::{split_by_depth, ChunkEntries};
 use super::pixel_rect::{PixelCoverage, PixelRect};
 use super::points::{BatchTables, BATCH_POINTS, GROUP_BATCHES, SUB_BATCH_POINTS};
 use crate::camera::CameraTransform;
@@ -48,6 +50,9 @@ pub(crate) struct FrameBatches {
     staging: Vec<u32>,
     /// Per chunk (as `ranges`): what its listed entries hold.
     listings: Vec<Listing>,
+    /// Per chunk (as `ranges`): the end of each phase's entries in its table, the nearest
+    /// phase first (`phases.rs`).
+    phase_ends: Vec<Vec<u32>>,
     /// The pixels that points of the listed batches can touch this frame.
     footprint: PixelRect,
     /// Pixels of the cells of the image those points can touch (`PixelCoverage`).
@@ -77,6 +82,7 @@ impl FrameBatches {
             chunk_order: Vec::new(),
             staging: Vec::new(),
             listings: Vec::new(),
+            phase_ends: Vec::new(),
             footprint: PixelRect::EMPTY,
             covered_pixels: 0,
             alignment_entries: 1,
@@ -139,7 +145,7 @@ impl FrameBatches {
                 coverage.merge(&chunk_coverage);
             }
         } else {
-            for tables in chunks {
+            for &tables in &chunks {
                 let start = self.pad_to_alignment(alignment);
                 let listing = list_in_view(
                     &frustum,
@@ -158,6 +164,7 @@ impl FrameBatches {
         self.order_chunks(transform);
         self.footprint = coverage.union();
         self.covered_pixels = coverage.pixels();
+        self.split_in_phases(&chunks, transform);
         if self.staging.is_empty() {
             return;
         }
@@ -182,6 +189,32 @@ impl FrameBatches {
         let padding = self.staging.len().next_multiple_of(alignment) - self.staging.len();
         self.staging.extend(std::iter::repeat_n(0, padding));
         self.staging.len()
+    }
+
+    /// Splits each chunk's entries in the phases of the depth-writing pass, where its points
+    /// lie deep enough for occlusion culling to pay (`occlusion::phase_cuts`).
+    fn split_in_phases(&mut self, chunks: &[BatchTables<'_>], transform: &CameraTransform) {
+        let cuts = phase_cuts(self.total(), self.points_per_pixel());
+        let mut rest = self.staging.as_mut_slice();
+        let mut taken = 0;
+        let mut entries = Vec::with_capacity(chunks.len());
+        for (tables, &(offset, count)) in chunks.iter().zip(&self.ranges) {
+            let start = offset as usize / std::mem::size_of::<u32>();
+            let (_, tail) = std::mem::take(&mut rest).split_at_mut(start - taken);
+            let (table, tail) = tail.split_at_mut(count as usize);
+            rest = tail;
+            taken = start + count as usize;
+            entries.push(ChunkEntries {
+                entries: table,
+                batches: tables.batches,
+            });
+        }
+        self.phase_ends = split_by_depth(
+            &mut entries,
+            cuts,
+            transform.depth_row,
+            self.alignment_entries,
+        );
     }
 
     /// Orders the chunks that have batches in view near to far, as their batches are: a
@@ -214,24 +247,14 @@ impl FrameBatches {
             .extend(boxes.iter().map(|chunk_box| chunk_box.first as usize));
     }
 
-    /// The parts of the chunks' tables between shares `from` and `to` of all listed batches,
-    /// taken near to far: the chunks in their order, each from the start of its table. Each
-    /// part is a chunk and the shares of its own table for [`Self::part`]; consecutive
-    /// ranges of shares hold every listed batch once.
-    pub fn parts(&self, (from, to): (f64, f64)) -> Vec<(usize, (f64, f64))> {
-        let total = f64::from(self.total());
-        let (from, to) = (from * total, to * total);
-        let mut parts = Vec::new();
-        let mut before = 0.0;
-        for &chunk in &self.chunk_order {
-            let count = f64::from(self.count(chunk));
-            let (start, end) = (from.max(before), to.min(before + count));
-            if end > start {
-                parts.push((chunk, ((start - before) / count, (end - before) / count)));
-            }
-            before += count;
-        }
-        parts
+    /// Phases of the depth-writing pass: at least one.
+    pub fn phase_count(&self) -> usize {
+        self.phase_ends.iter().map(Vec::len).max().unwrap_or(1)
+    }
+
+    /// The chunks with batches in view, near to far.
+    pub fn chunk_order(&self) -> &[usize] {
+        &self.chunk_order
     }
 
     /// The pixels that points of this frame's listed batches can touch (empty when none is
@@ -256,13 +279,35 @@ impl FrameBatches {
         self.listed_points() as f64 / self.covered_pixels.max(1) as f64
     }
 
-    /// The part of chunk `chunk`'s table from share `from` to share `to` of its batches, as a
-    /// storage binding and its number of batches; `None` when that part is empty. Parts
-    /// start at offsets the adapter can bind; consecutive shares hold the table in order.
-    pub fn part(&self, chunk: usize, shares: (f64, f64)) -> Option<(wgpu::BufferBinding<'_>, u32)> {
+    /// The entries of chunk `chunk`'s table in phase `phase` as a storage binding and their
+    /// number; `None` when there are none.
+    pub fn phase_part(&self, chunk: usize, phase: usize) -> Option<(wgpu::BufferBinding<'_>, u32)> {
+        let entries = self.phase_entries(chunk, phase);
+        self.entries_binding(chunk, entries)
+    }
+
+    /// The entries of chunk `chunk`'s table in phase `phase`: consecutive phases hold the
+    /// table in order, each from a multiple of the binding alignment.
+    fn phase_entries(&self, chunk: usize, phase: usize) -> std::ops::Range<u32> {
+        let Some(ends) = self.phase_ends.get(chunk) else {
+            return 0..0;
+        };
+        let start = if phase == 0 {
+            0
+        } else {
+            ends.get(phase - 1).copied().unwrap_or(0)
+        };
+        start..ends.get(phase).copied().unwrap_or(start).max(start)
+    }
+
+    /// `entries` of chunk `chunk`'s table as a storage binding and their number.
+    fn entries_binding(
+        &self,
+        chunk: usize,
+        entries: std::ops::Range<u32>,
+    ) -> Option<(wgpu::BufferBinding<'_>, u32)> {
         let (offset, _) = *self.ranges.get(chunk)?;
         let buffer = self.buffer.as_ref()?;
-        let entries = self.part_entries(chunk, shares);
         let entry = std::mem::size_of::<u32>() as u64;
         (!entries.is_empty()).then(|| {
             (
@@ -276,30 +321,20 @@ impl FrameBatches {
         })
     }
 
-    /// The entries of chunk `chunk`'s table between two shares of it: boundaries at multiples
-    /// of the binding alignment, the same for the same share.
-    fn part_entries(&self, chunk: usize, (from, to): (f64, f64)) -> std::ops::Range<u32> {
-        let count = self.count(chunk);
-        let boundary = |share: f64| {
-            if share >= 1.0 {
-                count
-            } else {
-                ((f64::from(count) * share.max(0.0)) as u32)
-                    .next_multiple_of(self.alignment_entries)
-                    .min(count)
-            }
-        };
-        boundary(from)..boundary(to).max(boundary(from))
-    }
-
     /// Number of batches of chunk `chunk` in this frame's table.
     pub fn count(&self, chunk: usize) -> u32 {
         self.ranges.get(chunk).map_or(0, |&(_, count)| count)
     }
 
+    /// The table of chunk `chunk` as a storage binding and its number of entries; `None`
+    /// when no batch is in view.
+    pub fn table(&self, chunk: usize) -> Option<(wgpu::BufferBinding<'_>, u32)> {
+        self.entries_binding(chunk, 0..self.count(chunk))
+    }
+
     /// The table of chunk `chunk` as a storage binding; `None` when no batch is in view.
     pub fn binding(&self, chunk: usize) -> Option<wgpu::BufferBinding<'_>> {
-        self.part(chunk, (0.0, 1.0)).map(|(binding, _)| binding)
+        self.table(chunk).map(|(binding, _)| binding)
     }
 }
 
@@ -653,6 +688,7 @@ mod tests {
     use super::*;
     use crate::camera::{Camera, Projection};
     use crate::raster::draw_order::DrawOrders;
+    use crate::raster::occlusion::PHASE_CUTS;
 
     /// An entry names its batch and a run of its sub-batches; the run ends with the batch,
     /// which may hold fewer points than a full one.
@@ -1012,18 +1048,30 @@ mod tests {
         }
     }
 
-    /// Phases take the chunks near to far: the first share of all listed batches is the
-    /// nearest chunk's, and consecutive shares hold every listed batch once.
+    /// The depth pass's phases split the listed batches by depth across the chunks: the first
+    /// holds the nearest batches, and together they hold every listed batch once, each chunk's
+    /// phases one after the other in its table.
     #[test]
-    fn parts_take_the_chunks_near_to_far_and_hold_every_batch_once() {
+    fn phases_split_the_chunks_by_depth_and_hold_every_batch_once() {
         let gpu = crate::testing::gpu();
         let transform = looking_down_from_z_10();
-        let at_depth = |depth: f32, n: usize| {
-            let z = 10.0 - depth;
-            vec![batch(Vec3::new(-0.5, -0.5, z - 0.1), Vec3::new(0.5, 0.5, z + 0.1)); n]
+        // Batch b of a chunk at `depth` lies 0.01 b deeper.
+        let at_depth = |depth: f32, n: usize| -> Vec<GpuBatch> {
+            (0..n)
+                .map(|b| {
+                    let z = 10.0 - depth - 0.01 * b as f32;
+                    GpuBatch {
+                        count: BATCH_POINTS as u32,
+                        ..batch(
+                            Vec3::new(-0.5, -0.5, z - 0.005),
+                            Vec3::new(0.5, 0.5, z + 0.005),
+                        )
+                    }
+                })
+                .collect()
         };
-        // Chunk 0 far, chunk 1 near, chunk 2 between; 200 batches each, so that alignment
-        // rounding leaves whole parts.
+        // Chunk 0 far, chunk 1 near, chunk 2 between; 200 full batches each, deep enough on
+        // the 64 x 64 image for phases.
         let chunks = [at_depth(8.0, 200), at_depth(2.0, 200), at_depth(5.0, 200)];
         let orders: [DrawOrders; 3] = Default::default();
         let mut tables = FrameBatches::new(true);
@@ -1042,26 +1090,43 @@ mod tests {
             &transform,
             1,
         );
-        assert_eq!(tables.chunk_order, [1, 2, 0]);
-        let phases = [(0.0, 0.3), (0.3, 0.7), (0.7, 1.0)];
-        let parts: Vec<Vec<(usize, std::ops::Range<u32>)>> = phases
-            .iter()
-            .map(|&shares| {
+        assert_eq!(tables.chunk_order(), [1, 2, 0]);
+        assert_eq!(tables.phase_count(), PHASE_CUTS.len() + 1);
+        let phases: Vec<Vec<(usize, std::ops::Range<u32>)>> = (0..tables.phase_count())
+            .map(|phase| {
                 tables
-                    .parts(shares)
-                    .into_iter()
-                    .map(|(chunk, shares)| (chunk, tables.part_entries(chunk, shares)))
+                    .chunk_order()
+                    .iter()
+                    .map(|&chunk| (chunk, tables.phase_entries(chunk, phase)))
+                    .filter(|(_, entries)| !entries.is_empty())
                     .collect()
             })
             .collect();
-        // The first 30% of 600 batches lie in the nearest chunk.
-        assert!(parts[0].iter().all(|(chunk, _)| *chunk == 1), "{parts:?}");
+        // Cut at 40% and 70% of 600 batches: the nearest chunk's 200 and the next chunk's
+        // nearest 40, then its other 160 and the farthest chunk's nearest 20, then the rest
+        // (alignment moves a few batches to the phase before theirs, in their own chunk).
+        assert_eq!(PHASE_CUTS, [0.4, 0.7]);
+        assert_eq!(phases[0][0], (1, 0..200), "{phases:?}");
+        assert!(phases[0].iter().all(|(chunk, _)| *chunk != 0), "{phases:?}");
+        assert!(phases[2].iter().all(|(chunk, _)| *chunk == 0), "{phases:?}");
         let mut seen = [0u32; 3];
-        for (chunk, entries) in parts.iter().flatten() {
-            assert_eq!(entries.start, seen[*chunk], "{parts:?}");
+        for (chunk, entries) in phases.iter().flatten() {
+            assert_eq!(entries.start, seen[*chunk], "{phases:?}");
+            assert_eq!(entries.start % tables.alignment_entries, 0, "{phases:?}");
             seen[*chunk] = entries.end;
         }
         assert_eq!(seen, [200, 200, 200]);
+        // Each chunk's table holds its batches once.
+        for chunk in 0..3 {
+            let (offset, count) = tables.ranges[chunk];
+            let start = offset as usize / 4;
+            let mut batches: Vec<u32> = tables.staging[start..start + count as usize]
+                .iter()
+                .map(|e| e >> 8)
+                .collect();
+            batches.sort_unstable();
+            assert_eq!(batches, (0..200).collect::<Vec<u32>>());
+        }
     }
 
     /// Synthetic chunks of `batches` boxes each, scattered in a 20-unit cube, each batch with

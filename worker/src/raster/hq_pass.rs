@@ -52,6 +52,7 @@ impl HqAccumulatePass {
                     // The tiles after the depth pass: batches behind the depth band are skipped.
                     (6, frame.targets.occlusion.tiles.as_entire_binding()),
                     (7, frame.targets.occlusion.skipped.as_entire_binding()),
+                    (9, chunk.sub_boxes.as_entire_binding()),
                 ],
             );
             pass.set_bind_group(0, &bind_group, &[]);

@@ -20,6 +20,7 @@ mod fill_pass;
 mod gpu_data;
 mod hq_pass;
 mod occlusion;
+mod phases;
 mod pintus_pass;
 mod pipeline;
 mod pixel_rect;

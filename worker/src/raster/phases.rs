@@ -1,0 +1,190 @@
+//! The phases of a frame's depth-writing point pass: its listed batches split by depth.
+//!
+//! Between phases the occlusion tiles are built from the framebuffer (`occlusion.rs`), and a
+//! later phase skips the batches and runs of 256 points that lie behind them. A phase is
+//! the batches whose nearest corner lies within a band of depths: phase 0 the nearest share
+//! of all listed batches (across the chunks), then the next share, and so on. Within a phase
+//! each chunk keeps its near-to-far Z-order (`draw_order.rs`), whose neighbouring batches
+//! write neighbouring pixels.
+//!
+//! Phases by depth, not by position along that curve, because a batch late on the curve may
+//! still lie near the camera somewhere on screen: on the 10M-point cube with 3 phases, 42% of
+//! the points were skipped against 33% with the curve cut in three (BENCHMARKS.md).
+
+use glam::{DVec3, DVec4, Vec3};
+
+use super::gpu_data::GpuBatch;
+
+/// One chunk's listed entries (`ListedEntry` words) and the resident batch table they index.
+pub(crate) struct ChunkEntries<'a> {
+    pub entries: &'a mut [u32],
+    pub batches: &'a [GpuBatch],
+}
+
+/// Splits every chunk's entries into phases at the depths below which the shares `cuts`
+/// (ascending, in 0..1) of all listed batches lie: reorders each chunk's entries phase by
+/// phase, each keeping its order, and returns per chunk the end of each phase's entries
+/// (`cuts.len() + 1` of them). Phase boundaries are rounded up to multiples of `alignment`
+/// entries, so that each phase's entries can be bound on their own: a few batches move to
+/// the phase before theirs, which only tests them against older tiles.
+pub(crate) fn split_by_depth(
+    chunks: &mut [ChunkEntries<'_>],
+    cuts: &[f64],
+    depth_row: DVec4,
+    alignment: u32,
+) -> Vec<Vec<u32>> {
+    let near = |chunk: &ChunkEntries<'_>, entry: u32| {
+        nearest_depth(&chunk.batches[(entry >> 8) as usize], depth_row)
+    };
+    let cut_depths = if cuts.is_empty() {
+        Vec::new()
+    } else {
+        let mut depths: Vec<f64> = chunks
+            .iter()
+            .flat_map(|chunk| chunk.entries.iter().map(|&e| near(chunk, e)))
+            .collect();
+        quantiles(&mut depths, cuts)
+    };
+    let phase_of = |depth: f64| cut_depths.iter().filter(|&&cut| depth >= cut).count();
+    chunks
+        .iter_mut()
+        .map(|chunk| {
+            let count = chunk.entries.len() as u32;
+            if cut_depths.is_empty() {
+                return vec![count];
+            }
+            // A stable partition by phase: a counting sort.
+            let phases: Vec<usize> = chunk
+                .entries
+                .iter()
+                .map(|&e| phase_of(near(chunk, e)))
+                .collect();
+            let mut ends = vec![0u32; cut_depths.len() + 1];
+            for &phase in &phases {
+                ends[phase] += 1;
+            }
+            let mut starts = vec![0u32; ends.len()];
+            for phase in 1..ends.len() {
+                starts[phase] = starts[phase - 1] + ends[phase - 1];
+            }
+            let mut sorted = vec![0u32; chunk.entries.len()];
+            let mut next = starts.clone();
+            for (&entry, &phase) in chunk.entries.iter().zip(&phases) {
+                sorted[next[phase] as usize] = entry;
+                next[phase] += 1;
+            }
+            chunk.entries.copy_from_slice(&sorted);
+            next.iter()
+                .map(|&end| end.next_multiple_of(alignment.max(1)).min(count))
+                .collect()
+        })
+        .collect()
+}
+
+/// The linear depth of the nearest point of `batch`'s box.
+fn nearest_depth(batch: &GpuBatch, depth_row: DVec4) -> f64 {
+    let (min, max) = (
+        Vec3::from_array(batch.min).as_dvec3(),
+        Vec3::from_array(batch.max).as_dvec3(),
+    );
+    let gradient: DVec3 = depth_row.truncate();
+    gradient.dot((min + max) * 0.5) + depth_row.w - gradient.abs().dot((max - min) * 0.5)
+}
+
+/// The values below which the shares `cuts` of `values` lie (reorders `values`).
+fn quantiles(values: &mut [f64], cuts: &[f64]) -> Vec<f64> {
+    cuts.iter()
+        .map(|&share| {
+            let rank = ((values.len() as f64 * share) as usize).min(values.len() - 1);
+            *values.select_nth_unstable_by(rank, f64::total_cmp).1
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A unit box centred at depth `z` for a camera looking down -z from the origin.
+    fn batch_at(z: f32) -> GpuBatch {
+        GpuBatch {
+            min: [-0.5, -0.5, -z - 0.5],
+            first: 0,
+            max: [0.5, 0.5, -z + 0.5],
+            count: 4096,
+        }
+    }
+
+    const LOOKING_DOWN_Z: DVec4 = DVec4::new(0.0, 0.0, -1.0, 0.0);
+
+    #[test]
+    fn the_nearest_share_comes_first_and_each_phase_keeps_its_order() {
+        // Two chunks; batch b of each lies at depth 10 + b in chunk 0 and 5 + 2b in chunk 1.
+        let tables: [Vec<GpuBatch>; 2] = [
+            (0..10).map(|b| batch_at(10.0 + b as f32)).collect(),
+            (0..10).map(|b| batch_at(5.0 + 2.0 * b as f32)).collect(),
+        ];
+        // Entries in a shuffled order (as the Z-order curve may list them), whole batches.
+        let mut lists: [Vec<u32>; 2] = [
+            [3u32, 0, 7, 1, 9, 2, 8, 4, 6, 5]
+                .map(|b| b << 8 | 15)
+                .to_vec(),
+            [9u32, 1, 0, 5, 2, 8, 3, 7, 4, 6]
+                .map(|b| b << 8 | 15)
+                .to_vec(),
+        ];
+        let [a, b] = &mut lists;
+        let mut chunks = [
+            ChunkEntries {
+                entries: a,
+                batches: &tables[0],
+            },
+            ChunkEntries {
+                entries: b,
+                batches: &tables[1],
+            },
+        ];
+        let ends = split_by_depth(&mut chunks, &[0.25, 0.5], LOOKING_DOWN_Z, 1);
+        // Nearest depths of the 20 batches: 9.5, 10.5, ..., 18.5 and 4.5, 6.5, ..., 22.5. The
+        // 25% cut (rank 5 of the 20) is 10.5, the 50% cut (rank 10) is 14.5.
+        let depth = |chunk: usize, entry: u32| {
+            nearest_depth(&tables[chunk][(entry >> 8) as usize], LOOKING_DOWN_Z)
+        };
+        for (chunk, list) in lists.iter().enumerate() {
+            let mut start = 0;
+            for (phase, &end) in ends[chunk].iter().enumerate() {
+                let band = [f64::MIN, 10.5, 14.5, f64::MAX];
+                for &entry in &list[start as usize..end as usize] {
+                    let d = depth(chunk, entry);
+                    assert!(
+                        d >= band[phase] && d < band[phase + 1],
+                        "{chunk} {phase} {d}"
+                    );
+                }
+                start = end;
+            }
+            assert_eq!(start, 10);
+        }
+        // Each phase keeps the order the batches were listed in.
+        let batches = |list: &[u32]| list.iter().map(|e| e >> 8).collect::<Vec<_>>();
+        assert_eq!(batches(&lists[0]), [0, 3, 1, 2, 4, 7, 9, 8, 6, 5]);
+        assert_eq!(ends[0], [1, 5, 10]);
+        assert_eq!(batches(&lists[1]), [1, 0, 2, 3, 4, 9, 5, 8, 7, 6]);
+        assert_eq!(ends[1], [3, 5, 10]);
+    }
+
+    #[test]
+    fn boundaries_round_up_to_the_alignment_and_no_cuts_is_one_phase() {
+        let table: Vec<GpuBatch> = (0..10).map(|b| batch_at(1.0 + b as f32)).collect();
+        let mut list: Vec<u32> = (0..10u32).rev().map(|b| b << 8 | 15).collect();
+        let mut chunks = [ChunkEntries {
+            entries: &mut list,
+            batches: &table,
+        }];
+        let ends = split_by_depth(&mut chunks, &[0.3], LOOKING_DOWN_Z, 4);
+        // Three batches in the first phase, rounded up to four entries.
+        assert_eq!(ends, [vec![4, 10]]);
+        let ends = split_by_depth(&mut chunks, &[], LOOKING_DOWN_Z, 4);
+        assert_eq!(ends, [vec![10]]);
+    }
+}
