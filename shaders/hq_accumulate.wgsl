@@ -46,7 +46,7 @@ fn accumulate(
     var sub = first_sub_batch(entry);
     for (var run = batch.first; run < end; run += SUB_BATCH_POINTS) {
         sub += 1u;
-        if run_hidden(frame, batch, step, sub - 1u, band, 1u, lane) {
+        if run_hidden(frame, batch, step, sub - 1u, band, lane) {
             continue;
         }
         for (var i = run + lane; i < min(run + SUB_BATCH_POINTS, end); i += WORKGROUP_SIZE) {

@@ -16,8 +16,8 @@ const MAX_TESTED_TILES: u32 = 256u;
 @group(0) @binding(6) var<storage, read> occlusion_tiles: array<u32>;
 
 // Skipped this frame, for tests and the benchmark: batches [0] by the pass that writes
-// depths, [1] by the passes that read them (32-bit colour, high-quality accumulation);
-// sub-batches of batches not skipped, [2] and [3] likewise.
+// depths, [1] by the passes that read them (32-bit colour, high-quality accumulation); [2]
+// runs of 256 points of batches not skipped, by the high-quality accumulation.
 @group(0) @binding(7) var<storage, read_write> occlusion_skipped: array<atomic<u32>>;
 
 // Per sub-batch, its box within its batch's (`SubBatchBox` in `raster/points.rs`), with
@@ -48,13 +48,14 @@ fn first_sub_batch(entry: u32) -> u32 {
 }
 
 // Whether the table's sub-batch `index` of `batch` (quantisation steps `step`) lies behind
-// `band` times the tiles' depths, counted for the pass of kind `pass_kind` (0: writes depths,
-// 1: reads them) when it does. A point pass walks its entry's runs of SUB_BATCH_POINTS points
-// with this test before each.
-fn run_hidden(frame: FrameUniforms, batch: Batch, step: vec3<f32>, index: u32, band: f32, pass_kind: u32, lane: u32) -> bool {
+// `band` times the tiles' depths (counted when it does). The high-quality accumulation walks
+// its entry's runs of SUB_BATCH_POINTS points with this test before each. The pass that
+// writes depths does not: on lavapipe the tests cost it more than the runs they skipped
+// (BENCHMARKS.md, session 9).
+fn run_hidden(frame: FrameUniforms, batch: Batch, step: vec3<f32>, index: u32, band: f32, lane: u32) -> bool {
     let hidden = batch_occluded(frame, sub_batch_box(batch, step, index), band);
     if hidden {
-        count_skipped(2u + pass_kind, lane);
+        count_skipped(2u, lane);
     }
     return hidden;
 }

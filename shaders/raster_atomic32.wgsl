@@ -46,35 +46,25 @@ fn rasterize_batch(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32, colour_pa
         return;
     }
     let step = quantisation_step(batch);
-    let end = batch.first + batch.count;
-    let pass_kind = select(0u, 1u, colour_pass);
-    // The entry's sub-batches, each skipped when hidden behind the tiles.
-    var sub = first_sub_batch(entry);
-    for (var run = batch.first; run < end; run += SUB_BATCH_POINTS) {
-        sub += 1u;
-        if run_hidden(frame, batch, step, sub - 1u, 1.0, pass_kind, lane) {
+    for (var i = batch.first + lane; i < batch.first + batch.count; i += WORKGROUP_SIZE) {
+        let splat = project_point(frame, dequantise(positions[i], batch.min, step));
+        if !splat.visible {
             continue;
         }
-        for (var i = run + lane; i < min(run + SUB_BATCH_POINTS, end); i += WORKGROUP_SIZE) {
-            let splat = project_point(frame, dequantise(positions[i], batch.min, step));
-            if !splat.visible {
+        let depth_bits = bitcast<u32>(splat.depth);
+        for (var k = 0u; k < SPLAT_PIXELS; k++) {
+            let pixel = splat_pixel(frame, splat, k);
+            if pixel < 0 {
                 continue;
             }
-            let depth_bits = bitcast<u32>(splat.depth);
-            for (var k = 0u; k < SPLAT_PIXELS; k++) {
-                let pixel = splat_pixel(frame, splat, k);
-                if pixel < 0 {
-                    continue;
+            let stored_depth = atomicLoad(&framebuffer[depth_word(pixel)]);
+            if colour_pass {
+                if stored_depth == depth_bits {
+                    atomicMin(&framebuffer[colour_word(pixel)], colour_of(i));
                 }
-                let stored_depth = atomicLoad(&framebuffer[depth_word(pixel)]);
-                if colour_pass {
-                    if stored_depth == depth_bits {
-                        atomicMin(&framebuffer[colour_word(pixel)], colour_of(i));
-                    }
-                } else if stored_depth >= depth_bits {
-                    // Early depth test as in the 64-bit pass: only nearer or equal points try.
-                    atomicMin(&framebuffer[depth_word(pixel)], depth_bits);
-                }
+            } else if stored_depth >= depth_bits {
+                // Early depth test as in the 64-bit pass: only nearer or equal points try.
+                atomicMin(&framebuffer[depth_word(pixel)], depth_bits);
             }
         }
     }

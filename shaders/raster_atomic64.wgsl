@@ -45,38 +45,29 @@ fn rasterize(
         return;
     }
     let step = quantisation_step(batch);
-    let end = batch.first + batch.count;
-    // The entry's sub-batches, each skipped when hidden behind the tiles.
-    var sub = first_sub_batch(entry);
-    for (var run = batch.first; run < end; run += SUB_BATCH_POINTS) {
-        sub += 1u;
-        if run_hidden(frame, batch, step, sub - 1u, 1.0, 0u, lane) {
+    for (var i = batch.first + lane; i < batch.first + batch.count; i += WORKGROUP_SIZE) {
+        let splat = project_point(frame, dequantise(positions[i], batch.min, step));
+        if !splat.visible {
             continue;
         }
-        for (var i = run + lane; i < min(run + SUB_BATCH_POINTS, end); i += WORKGROUP_SIZE) {
-            let splat = project_point(frame, dequantise(positions[i], batch.min, step));
-            if !splat.visible {
+        let depth_bits = bitcast<u32>(splat.depth);
+        // Read only once a pixel passed the early depth test.
+        var colour = 0u;
+        var have_colour = false;
+        for (var k = 0u; k < SPLAT_PIXELS; k++) {
+            let pixel = splat_pixel(frame, splat, k);
+            if pixel < 0 {
                 continue;
             }
-            let depth_bits = bitcast<u32>(splat.depth);
-            // Read only once a pixel passed the early depth test.
-            var colour = 0u;
-            var have_colour = false;
-            for (var k = 0u; k < SPLAT_PIXELS; k++) {
-                let pixel = splat_pixel(frame, splat, k);
-                if pixel < 0 {
-                    continue;
-                }
-                // Early depth test: skip the atomic when a nearer point is already stored.
-                if framebuffer_words[pixel].y < depth_bits {
-                    continue;
-                }
-                if !have_colour {
-                    colour = colour_of(i);
-                    have_colour = true;
-                }
-                atomicMin(&framebuffer[pixel], (u64(depth_bits) << 32u) | u64(colour));
+            // Early depth test: skip the atomic when a nearer point is already stored.
+            if framebuffer_words[pixel].y < depth_bits {
+                continue;
             }
+            if !have_colour {
+                colour = colour_of(i);
+                have_colour = true;
+            }
+            atomicMin(&framebuffer[pixel], (u64(depth_bits) << 32u) | u64(colour));
         }
     }
 }

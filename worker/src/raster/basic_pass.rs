@@ -209,7 +209,6 @@ fn bind_group(
         (5, chunk.colours.as_entire_binding()),
         (6, frame.targets.occlusion.tiles.as_entire_binding()),
         (7, frame.targets.occlusion.skipped.as_entire_binding()),
-        (9, chunk.sub_boxes.as_entire_binding()),
     ];
     if path == AtomicsPath::Atomic64 {
         // The non-atomic view of the same framebuffer, for the early depth test.

@@ -57,8 +57,9 @@ pub(crate) struct PointChunk {
     /// always read the two words that hold a point's colour.
     pub colours: wgpu::Buffer,
     pub batches: wgpu::Buffer,
-    /// `SubBatchBox` per sub-batch, [`SUB_BATCHES_PER_BATCH`] entries a batch: the point
-    /// passes skip a run hidden behind the occlusion tiles (`occlusion.wgsl`).
+    /// `SubBatchBox` per sub-batch, [`SUB_BATCHES_PER_BATCH`] entries a batch: the
+    /// high-quality accumulation skips a run hidden behind the occlusion tiles
+    /// (`occlusion.wgsl`).
     pub sub_boxes: wgpu::Buffer,
     /// The same batch table on the host, from which each frame's table is built
     /// (`culling.rs`).

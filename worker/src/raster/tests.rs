@@ -918,9 +918,9 @@ fn invalid_settings_are_refused_before_any_gpu_work() {
 }
 
 /// A wall with a window in front of a deep block of points: the batches behind the wall are
-/// skipped whole (occlusion culling), and of those that reach the window, the runs of 256
-/// points behind the wall; what the window shows is drawn, and every mode renders what the
-/// reference does.
+/// skipped whole (occlusion culling), and in the high-quality accumulation, of those that
+/// reach the window, the runs of 256 points behind the wall; what the window shows is drawn,
+/// and every mode renders what the reference does.
 #[test]
 fn batches_hidden_behind_a_wall_are_skipped_and_the_image_is_unchanged() {
     // Looking straight down, so that the near-to-far order draws the wall first.
@@ -964,13 +964,11 @@ fn batches_hidden_behind_a_wall_are_skipped_and_the_image_is_unchanged() {
         );
         let skipped = renderer.occlusion_skipped().expect("counts");
         eprintln!("{name}: {skipped:?} of {batches} batches skipped");
-        // The far block's batches behind the wall, drawn after the first phase, and runs of
-        // the batches at the window's edge.
+        // The far block's batches behind the wall, drawn after the first phase.
         assert!(
             skipped.depth_pass * 3 >= batches,
             "{name}: only {skipped:?} of {batches} batches skipped"
         );
-        assert!(skipped.depth_pass_runs > 0, "{name}: {skipped:?}");
         if atomics == AtomicsMode::Force32 {
             assert!(
                 skipped.later_passes > skipped.depth_pass,
