@@ -22,11 +22,14 @@ use crate::gpu::{read_buffer, staging_buffer, GpuContext, GpuError};
 /// Side of a tile in pixels (`OCCLUSION_TILE` in common.wgsl).
 pub(crate) const TILE: u32 = 16;
 
-/// Where a deep frame's depth-writing pass is split in phases: the nearest 40% of its listed
-/// batches, across its chunks, then the next 30%, then the rest (`phases.rs`). On the
-/// 10M-point cube three phases skip 43% of the points (30/30/40%: 42%; four phases, one more
-/// build of the tiles: 43-44%, no faster).
-pub(crate) const PHASE_CUTS: [f64; 2] = [0.4, 0.7];
+/// A deep frame's depth-writing pass is split in phases of equal shares of its listed
+/// batches by depth (`phases.rs`): one phase per this many points per footprint pixel, within
+/// [`MIN_PHASES`] and [`MAX_PHASES`]. Each phase after the first costs a build of the tiles
+/// and skips more. On lavapipe the best counts were 3 for the 10M-point cube (12.6 points a
+/// pixel), 5 to 7 for 30M (39) and 7 for 100M (about 130; 10 phases were slower).
+pub(crate) const POINTS_PER_PIXEL_PER_PHASE: f64 = 5.0;
+pub(crate) const MIN_PHASES: usize = 3;
+pub(crate) const MAX_PHASES: usize = 7;
 
 /// Fewest listed batches for which a depth pass is split in phases.
 pub(crate) const MIN_BATCHES_FOR_PHASES: u32 = 64;
@@ -166,14 +169,15 @@ impl OcclusionPass {
 }
 
 /// Where a depth pass over `batches` listed batches, `depth` points per footprint pixel, is
-/// split in phases, as shares of the batches near to far (none: one phase); the tiles are
-/// built before every phase but the first.
-pub(crate) fn phase_cuts(batches: u32, depth: f64) -> &'static [f64] {
-    if batches >= MIN_BATCHES_FOR_PHASES && depth >= MIN_POINTS_PER_PIXEL_FOR_PHASES {
-        &PHASE_CUTS
-    } else {
-        &[]
+/// split in phases, as ascending shares of the batches near to far (none: one phase); the
+/// tiles are built before every phase but the first.
+pub(crate) fn phase_cuts(batches: u32, depth: f64) -> Vec<f64> {
+    if batches < MIN_BATCHES_FOR_PHASES || depth < MIN_POINTS_PER_PIXEL_FOR_PHASES {
+        return Vec::new();
     }
+    let phases =
+        ((depth / POINTS_PER_PIXEL_PER_PHASE).round() as usize).clamp(MIN_PHASES, MAX_PHASES);
+    (1..phases).map(|k| k as f64 / phases as f64).collect()
 }
 
 #[cfg(test)]
@@ -182,7 +186,9 @@ mod tests {
 
     #[test]
     fn only_deep_tables_of_many_batches_are_drawn_in_phases() {
-        assert_eq!(phase_cuts(2441, 10.0), &PHASE_CUTS);
+        assert_eq!(phase_cuts(2441, 12.6), [1.0 / 3.0, 2.0 / 3.0]);
+        assert_eq!(phase_cuts(7325, 25.0).len(), 4);
+        assert_eq!(phase_cuts(24414, 130.0).len(), MAX_PHASES - 1);
         assert!(phase_cuts(2441, 0.7).is_empty());
         assert!(phase_cuts(20, 50.0).is_empty());
     }
