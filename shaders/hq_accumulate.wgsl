@@ -41,36 +41,27 @@ fn accumulate(
         return;
     }
     let step = quantisation_step(batch);
-    let end = batch.first + batch.count;
-    // The entry's sub-batches, each skipped when all of it lies behind the depth band.
-    var sub = first_sub_batch(entry);
-    for (var run = batch.first; run < end; run += SUB_BATCH_POINTS) {
-        sub += 1u;
-        if run_hidden(frame, batch, step, sub - 1u, band, lane) {
+    for (var i = batch.first + lane; i < batch.first + batch.count; i += WORKGROUP_SIZE) {
+        let splat = project_point(frame, dequantise(positions[i], batch.min, step));
+        if !splat.visible {
             continue;
         }
-        for (var i = run + lane; i < min(run + SUB_BATCH_POINTS, end); i += WORKGROUP_SIZE) {
-            let splat = project_point(frame, dequantise(positions[i], batch.min, step));
-            if !splat.visible {
+        for (var k = 0u; k < SPLAT_PIXELS; k++) {
+            let pixel = splat_pixel(frame, splat, k);
+            if pixel < 0 {
                 continue;
             }
-            for (var k = 0u; k < SPLAT_PIXELS; k++) {
-                let pixel = splat_pixel(frame, splat, k);
-                if pixel < 0 {
-                    continue;
-                }
-                let nearest = bitcast<f32>(framebuffer[pixel].y);
-                if splat.depth > nearest * band {
-                    continue;
-                }
-                let base = 4 * pixel;
-                let w = colour_word_index(i);
-                let colour = unpack_colour(colours[w], colours[w + 1u], i);
-                atomicAdd(&accumulator[base], colour & 0xffu);
-                atomicAdd(&accumulator[base + 1], (colour >> 8u) & 0xffu);
-                atomicAdd(&accumulator[base + 2], (colour >> 16u) & 0xffu);
-                atomicAdd(&accumulator[base + 3], 1u);
+            let nearest = bitcast<f32>(framebuffer[pixel].y);
+            if splat.depth > nearest * band {
+                continue;
             }
+            let base = 4 * pixel;
+            let w = colour_word_index(i);
+            let colour = unpack_colour(colours[w], colours[w + 1u], i);
+            atomicAdd(&accumulator[base], colour & 0xffu);
+            atomicAdd(&accumulator[base + 1], (colour >> 8u) & 0xffu);
+            atomicAdd(&accumulator[base + 2], (colour >> 16u) & 0xffu);
+            atomicAdd(&accumulator[base + 3], 1u);
         }
     }
 }

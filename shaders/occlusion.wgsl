@@ -15,50 +15,9 @@ const MAX_TESTED_TILES: u32 = 256u;
 // tiles were not built yet this frame).
 @group(0) @binding(6) var<storage, read> occlusion_tiles: array<u32>;
 
-// Skipped this frame, for tests and the benchmark: batches [0] by the pass that writes
-// depths, [1] by the passes that read them (32-bit colour, high-quality accumulation); [2]
-// runs of 256 points of batches not skipped, by the high-quality accumulation.
+// Batches skipped whole this frame, for tests and the benchmark: [0] by the pass that writes
+// depths, [1] by the passes that read them (32-bit colour, high-quality accumulation).
 @group(0) @binding(7) var<storage, read_write> occlusion_skipped: array<atomic<u32>>;
-
-// Per sub-batch, its box within its batch's (`SubBatchBox` in `raster/points.rs`), with
-// SUB_BATCHES_PER_BATCH entries for each batch of the chunk's table.
-@group(0) @binding(9) var<storage, read> sub_boxes: array<vec2<u32>>;
-
-const SUB_BATCHES_PER_BATCH: u32 = 16u;
-// One unit of a sub-batch box's 8-bit coordinates, in quantisation steps: 2^(bits - 8).
-const SUB_BOX_UNIT: vec3<f32> = vec3<f32>(8192.0, 8192.0, 16384.0);
-
-// The box of the table's sub-batch `index` (batch * SUB_BATCHES_PER_BATCH + its place), whose
-// batch `batch` has quantisation steps `step`: from the unit of its points' smallest quantised
-// values to the end of the unit of their largest, a step wider on each side for the f32
-// dequantisation, and no wider than the batch's own box.
-fn sub_batch_box(batch: Batch, step: vec3<f32>, index: u32) -> Batch {
-    let word = sub_boxes[index];
-    let low = vec3<u32>(word.x & 255u, (word.x >> 8u) & 255u, (word.x >> 16u) & 255u);
-    let high = vec3<u32>(word.x >> 24u, word.y & 255u, (word.y >> 8u) & 255u) + 1u;
-    var box = batch;
-    box.min = max(batch.min + (vec3<f32>(low) * SUB_BOX_UNIT - 1.0) * step, batch.min - step);
-    box.max = min(batch.min + (vec3<f32>(high) * SUB_BOX_UNIT + 1.0) * step, batch.max + step);
-    return box;
-}
-
-// The table's index of the first sub-batch of a frame table's entry (`listed_batch`).
-fn first_sub_batch(entry: u32) -> u32 {
-    return (entry >> 8u) * SUB_BATCHES_PER_BATCH + ((entry >> 4u) & 15u);
-}
-
-// Whether the table's sub-batch `index` of `batch` (quantisation steps `step`) lies behind
-// `band` times the tiles' depths (counted when it does). The high-quality accumulation walks
-// its entry's runs of SUB_BATCH_POINTS points with this test before each. The pass that
-// writes depths does not: on lavapipe the tests cost it more than the runs they skipped
-// (BENCHMARKS.md, session 9).
-fn run_hidden(frame: FrameUniforms, batch: Batch, step: vec3<f32>, index: u32, band: f32, lane: u32) -> bool {
-    let hidden = batch_occluded(frame, sub_batch_box(batch, step, index), band);
-    if hidden {
-        count_skipped(2u, lane);
-    }
-    return hidden;
-}
 
 fn count_skipped(pass_kind: u32, lane: u32) {
     if lane == 0u {

@@ -23,6 +23,8 @@ pub const FORMAT_VERSION: u32 = 1;
 const CHUNK_POINTS: usize = 1 << 12;
 /// The chunk size of entries written before it was recorded in them.
 const FIRST_CHUNK_POINTS: usize = 1 << 20;
+/// How long [`DatasetCache::open`] waits for sled's lock on the directory.
+const LOCK_WAIT: std::time::Duration = std::time::Duration::from_secs(2);
 /// Bytes per point in the cache: position, colour, intensity, classification, return.
 const BYTES_PER_POINT: u64 = 12 + 4 + 2 + 1 + 1;
 
@@ -30,6 +32,8 @@ const BYTES_PER_POINT: u64 = 12 + 4 + 2 + 1 + 1;
 pub enum CacheError {
     #[error("dataset cache: {0}")]
     Db(#[from] sled::Error),
+    #[error("dataset cache {0} is locked: is another worker using it? ({1})")]
+    Locked(String, String),
     #[error("dataset cache entry is unreadable: {0}")]
     Corrupt(String),
     #[error(transparent)]
@@ -101,8 +105,29 @@ fn source_from(name: &str) -> Option<ColorSource> {
 }
 
 impl DatasetCache {
+    /// Opens (or creates) the cache at `path`. sled locks its files; a handle of the same
+    /// process that was just dropped may hold the lock a little longer (its flusher thread
+    /// ends on its own), so a held lock is waited for up to [`LOCK_WAIT`] before the open
+    /// fails: then another process most likely uses the directory.
     pub fn open(path: &Path, max_bytes: u64) -> Result<Self, CacheError> {
-        let db = sled::open(path)?;
+        let started = Instant::now();
+        let db = loop {
+            match sled::open(path) {
+                Err(sled::Error::Io(error))
+                    if error.to_string().contains("could not acquire lock") =>
+                {
+                    if started.elapsed() >= LOCK_WAIT {
+                        return Err(CacheError::Locked(
+                            path.display().to_string(),
+                            error.to_string(),
+                        ));
+                    }
+                    std::thread::sleep(std::time::Duration::from_millis(10));
+                }
+                Err(error) => return Err(CacheError::Db(error)),
+                Ok(db) => break db,
+            }
+        };
         Ok(Self {
             entries: db.open_tree("entries")?,
             chunks: db.open_tree("chunks")?,
@@ -356,6 +381,22 @@ mod tests {
             .expect("eviction of the corrupt entry");
         assert!(cache.entries.get(key).expect("entries").is_none());
         assert!(cache.chunks.is_empty());
+    }
+
+    /// A second handle waits for the first to let go of the directory, and fails with a
+    /// clear error while it is held.
+    #[test]
+    fn a_locked_cache_is_waited_for_and_then_named() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("cache");
+        let first = DatasetCache::open(&path, u64::MAX).expect("open");
+        let started = Instant::now();
+        let error = DatasetCache::open(&path, u64::MAX).err().expect("locked");
+        assert!(started.elapsed() >= LOCK_WAIT, "{:?}", started.elapsed());
+        assert!(matches!(error, CacheError::Locked(..)), "{error}");
+        assert!(error.to_string().contains("another worker"), "{error}");
+        drop(first);
+        DatasetCache::open(&path, u64::MAX).expect("open once released");
     }
 
     /// An origin and bounds that serde_json's default float parsing reads back one ulp off

@@ -77,16 +77,19 @@ impl BasicPass {
                 self.record_depth(device, pass, frame);
                 let pipeline = self.atomic32_colour.get(device, frame.point_size);
                 pass.set_pipeline(&pipeline);
-                for chunk in 0..frame.cloud.chunks.len() {
-                    let table = frame.batches.table(chunk);
-                    dispatch_table(
-                        device,
-                        pass,
-                        &pipeline,
-                        AtomicsPath::Atomic32,
-                        frame,
-                        (chunk, table),
-                    );
+                // Phase by phase, as the accumulation (`hq_pass.rs`).
+                for phase in 0..frame.batches.phase_count() {
+                    for &chunk in frame.batches.chunk_order() {
+                        let table = frame.batches.phase_part(chunk, phase);
+                        dispatch_table(
+                            device,
+                            pass,
+                            &pipeline,
+                            AtomicsPath::Atomic32,
+                            frame,
+                            (chunk, table),
+                        );
+                    }
                 }
             }
         }

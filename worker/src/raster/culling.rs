@@ -322,19 +322,16 @@ impl FrameBatches {
     }
 
     /// Number of batches of chunk `chunk` in this frame's table.
-    pub fn count(&self, chunk: usize) -> u32 {
+    #[cfg(test)]
+    fn count(&self, chunk: usize) -> u32 {
         self.ranges.get(chunk).map_or(0, |&(_, count)| count)
     }
 
-    /// The table of chunk `chunk` as a storage binding and its number of entries; `None`
-    /// when no batch is in view.
-    pub fn table(&self, chunk: usize) -> Option<(wgpu::BufferBinding<'_>, u32)> {
-        self.entries_binding(chunk, 0..self.count(chunk))
-    }
-
     /// The table of chunk `chunk` as a storage binding; `None` when no batch is in view.
-    pub fn binding(&self, chunk: usize) -> Option<wgpu::BufferBinding<'_>> {
-        self.table(chunk).map(|(binding, _)| binding)
+    #[cfg(test)]
+    fn binding(&self, chunk: usize) -> Option<wgpu::BufferBinding<'_>> {
+        self.entries_binding(chunk, 0..self.count(chunk))
+            .map(|(binding, _)| binding)
     }
 }
 

@@ -5,9 +5,7 @@
 //! pass runs in phases by depth (`phases.rs`): the nearest batches, then the tiles are built
 //! from the framebuffer, then the next, and so on. A workgroup skips its batch when the box
 //! lies behind the tiles it can reach. The high-quality accumulation and the 32-bit colour
-//! pass test against tiles built after the depth pass, which are final; the accumulation also
-//! skips each run of 256 points whose box lies behind them (8 bytes a run on the GPU).
-//! Elsewhere the tiles stay "unknown" and nothing is skipped.
+//! pass test against tiles built after the depth pass, which are final. Elsewhere the tiles stay "unknown" and nothing is skipped.
 //!
 //! On lavapipe every memory access of a shader costs a loop over the SIMD lanes whether or not
 //! a lane is active, so the tiles are built between dispatches from the framebuffer rather
@@ -49,8 +47,7 @@ pub(crate) const MIN_POINTS_PER_PIXEL_FOR_FINAL_TILES: f64 = 2.0;
 /// batches skipped this frame.
 pub(crate) struct OcclusionTiles {
     pub tiles: wgpu::Buffer,
-    /// Batches skipped by the pass that writes depths and by the passes that read them, and
-    /// runs skipped by the high-quality accumulation: u32s.
+    /// [batches skipped by the pass that writes depths, by the passes that read them]: u32s.
     pub skipped: wgpu::Buffer,
     pub skipped_staging: wgpu::Buffer,
     count: u32,
@@ -65,9 +62,6 @@ pub struct OcclusionSkipped {
     /// By the passes that read the final depths: the 32-bit path's colour pass and the
     /// high-quality accumulation.
     pub later_passes: u32,
-    /// Runs of 256 points (sub-batches) of batches not skipped whole, by the high-quality
-    /// accumulation.
-    pub later_pass_runs: u32,
 }
 
 impl OcclusionTiles {
@@ -92,7 +86,7 @@ impl OcclusionTiles {
     }
 }
 
-const SKIPPED_BYTES: u64 = 12;
+const SKIPPED_BYTES: u64 = 8;
 
 /// Reads back the counts of the last frame drawn with `tiles`.
 pub(crate) fn read_skipped(
@@ -104,7 +98,6 @@ pub(crate) fn read_skipped(
     Ok(OcclusionSkipped {
         depth_pass: counts[0],
         later_passes: counts[1],
-        later_pass_runs: counts[2],
     })
 }
 

@@ -1,15 +1,15 @@
 //! The phases of a frame's depth-writing point pass: its listed batches split by depth.
 //!
 //! Between phases the occlusion tiles are built from the framebuffer (`occlusion.rs`), and a
-//! later phase skips the batches and runs of 256 points that lie behind them. A phase is
-//! the batches whose nearest corner lies within a band of depths: phase 0 the nearest share
-//! of all listed batches (across the chunks), then the next share, and so on. Within a phase
+//! later phase skips the batches that lie behind them. A phase is the batches whose nearest
+//! corner lies within a band of depths: phase 0 the nearest share of all listed batches
+//! (across the chunks), then the next share, and so on. Within a phase
 //! each chunk keeps its near-to-far Z-order (`draw_order.rs`), whose neighbouring batches
 //! write neighbouring pixels.
 //!
 //! Phases by depth, not by position along that curve, because a batch late on the curve may
-//! still lie near the camera somewhere on screen: on the 10M-point cube with 3 phases, 42% of
-//! the points were skipped against 33% with the curve cut in three (BENCHMARKS.md).
+//! still lie near the camera somewhere on screen: on the 10M-point cube with three phases,
+//! 35% of the batches were skipped against 24% with the curve cut in three (BENCHMARKS.md).
 
 use glam::{DVec3, DVec4, Vec3};
 

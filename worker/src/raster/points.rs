@@ -33,12 +33,6 @@ pub const BATCH_POINTS: usize = 4096;
 /// the view (`culling.rs`).
 pub const SUB_BATCH_POINTS: usize = 256;
 const _: () = assert!(BATCH_POINTS.is_multiple_of(SUB_BATCH_POINTS));
-/// Sub-batches per full batch: the GPU's table of their boxes has this many entries a batch.
-pub const SUB_BATCHES_PER_BATCH: usize = BATCH_POINTS / SUB_BATCH_POINTS;
-
-/// Bits per axis of a sub-batch's box on the GPU, a fraction of its batch's box
-/// (`SubBatchBox`).
-const SUB_BOX_BITS: u32 = 8;
 
 /// Bytes one point adds to a chunk's point buffers (position and colour).
 pub const POINT_BYTES: u64 = std::mem::size_of::<QuantisedPosition>() as u64 + COLOUR_BYTES;
@@ -57,10 +51,6 @@ pub(crate) struct PointChunk {
     /// always read the two words that hold a point's colour.
     pub colours: wgpu::Buffer,
     pub batches: wgpu::Buffer,
-    /// `SubBatchBox` per sub-batch, [`SUB_BATCHES_PER_BATCH`] entries a batch: the
-    /// high-quality accumulation skips a run hidden behind the occlusion tiles
-    /// (`occlusion.wgsl`).
-    pub sub_boxes: wgpu::Buffer,
     /// The same batch table on the host, from which each frame's table is built
     /// (`culling.rs`).
     pub batch_table: Vec<GpuBatch>,
@@ -155,12 +145,11 @@ impl GpuPointCloud {
         self.origin
     }
 
-    /// Bytes of every GPU buffer that holds this cloud: positions, colours, batch tables and
-    /// sub-batch boxes.
+    /// Bytes of every GPU buffer that holds this cloud: positions, colours and batch tables.
     pub fn gpu_bytes(&self) -> u64 {
         self.chunks
             .iter()
-            .map(|c| c.positions.size() + c.colours.size() + c.batches.size() + c.sub_boxes.size())
+            .map(|c| c.positions.size() + c.colours.size() + c.batches.size())
             .sum()
     }
 
@@ -274,7 +263,6 @@ struct ChunkData {
     colours: Vec<u8>,
     batches: Vec<GpuBatch>,
     sub_batches: Vec<GpuBatch>,
-    sub_boxes: Vec<SubBatchBox>,
 }
 
 impl ChunkData {
@@ -283,8 +271,6 @@ impl ChunkData {
         let mut quantised = Vec::with_capacity(positions.len());
         let mut batches = Vec::with_capacity(positions.len().div_ceil(BATCH_POINTS));
         let mut sub_batches = Vec::with_capacity(positions.len().div_ceil(SUB_BATCH_POINTS));
-        let mut sub_boxes =
-            Vec::with_capacity(positions.len().div_ceil(BATCH_POINTS) * SUB_BATCHES_PER_BATCH);
         for (b, batch) in positions.chunks(BATCH_POINTS).enumerate() {
             let gpu_batch = batch_of(b * BATCH_POINTS, batch);
             let (min, step) = (
@@ -295,10 +281,7 @@ impl ChunkData {
             quantised.extend(batch.iter().map(|&p| quantise(p, min, step)));
             for (s, run) in quantised[first..].chunks(SUB_BATCH_POINTS).enumerate() {
                 sub_batches.push(sub_batch_of(&gpu_batch, first + s * SUB_BATCH_POINTS, run));
-                sub_boxes.push(sub_batch_box(run));
             }
-            // A short last batch: its table still has a full batch's entries.
-            sub_boxes.resize((b + 1) * SUB_BATCHES_PER_BATCH, [0; 2]);
             batches.push(gpu_batch);
         }
         // Three bytes per point and one spare word (see `PointChunk::colours`).
@@ -312,7 +295,6 @@ impl ChunkData {
             colours: rgb,
             batches,
             sub_batches,
-            sub_boxes,
         }
     }
 
@@ -330,7 +312,6 @@ impl ChunkData {
             positions: buffer("positions", bytemuck::cast_slice(&self.positions)),
             colours: buffer("colours", &self.colours),
             batches: buffer("batches", bytemuck::cast_slice(&self.batches)),
-            sub_boxes: buffer("sub-batch boxes", bytemuck::cast_slice(&self.sub_boxes)),
             point_count: self.positions.len() as u32,
             groups: batch_groups(&self.batches),
             draw_orders: DrawOrders::default(),
@@ -374,28 +355,6 @@ fn sub_batch_of(batch: &GpuBatch, first: usize, run: &[QuantisedPosition]) -> Gp
         max: corner(high, 1.0).to_array(),
         count: run.len() as u32,
     }
-}
-
-/// A sub-batch's box as the GPU holds it (`sub_batch_box` in occlusion.wgsl): per axis, the
-/// top [`SUB_BOX_BITS`] bits of its points' smallest and largest quantised values, in the
-/// first word x, y, z of the smallest and x of the largest, in the second y and z of the
-/// largest. The box they stand for holds the points' exact positions, as the shaders
-/// dequantise them within a step (see `sub_batch_box`).
-pub(crate) type SubBatchBox = [u32; 2];
-
-fn sub_batch_box(run: &[QuantisedPosition]) -> SubBatchBox {
-    let (mut low, mut high) = (UVec3::MAX, UVec3::ZERO);
-    for &word in run {
-        let q = unpack(word);
-        low = low.min(q);
-        high = high.max(q);
-    }
-    let shift = UVec3::from_array(POSITION_BITS.map(|bits| bits - SUB_BOX_BITS));
-    let (low, high) = (low >> shift, high >> shift);
-    [
-        low.x | (low.y << 8) | (low.z << 16) | (high.x << 24),
-        high.y | (high.z << 8),
-    ]
 }
 
 /// Largest quantised value of each axis.
@@ -501,62 +460,6 @@ mod tests {
     use rand_chacha::ChaCha8Rng;
 
     use super::*;
-
-    /// `sub_batch_box` in occlusion.wgsl, in f32 as the shader computes it.
-    fn gpu_sub_box(batch: &GpuBatch, word: SubBatchBox) -> (Vec3, Vec3) {
-        let (min, max) = (Vec3::from_array(batch.min), Vec3::from_array(batch.max));
-        let step = quantisation_step(batch);
-        let unit = Vec3::new(8192.0, 8192.0, 16384.0);
-        let low = UVec3::new(word[0] & 255, (word[0] >> 8) & 255, (word[0] >> 16) & 255);
-        let high = UVec3::new(word[0] >> 24, word[1] & 255, (word[1] >> 8) & 255) + 1;
-        (
-            (min + (low.as_vec3() * unit - 1.0) * step).max(min - step),
-            (min + (high.as_vec3() * unit + 1.0) * step).min(max + step),
-        )
-    }
-
-    /// The GPU's 8-byte box of each sub-batch holds every point of it as the shaders
-    /// dequantise it, and is a small part of its batch's box.
-    #[test]
-    fn sub_batch_boxes_hold_their_points() {
-        let mut rng = ChaCha8Rng::seed_from_u64(5);
-        for (offset, size) in [(0.0, 1.0), (-250.0, 40.0), (1200.0, 0.01)] {
-            // Sorted along x, so that each run is a slab of the batch.
-            let mut points: Vec<Vec3> = (0..BATCH_POINTS + 300)
-                .map(|_| {
-                    Vec3::from_array(std::array::from_fn(|_| offset + rng.random::<f32>() * size))
-                })
-                .collect();
-            points.sort_by(|a, b| a.x.total_cmp(&b.x));
-            let data = ChunkData::new(&points, std::iter::repeat(0));
-            assert_eq!(data.sub_boxes.len(), 2 * SUB_BATCHES_PER_BATCH);
-            for (b, batch) in data.batches.iter().enumerate() {
-                let (min, step) = (Vec3::from_array(batch.min), quantisation_step(batch));
-                let first = batch.first as usize;
-                let runs =
-                    data.positions[first..first + batch.count as usize].chunks(SUB_BATCH_POINTS);
-                for (r, run) in runs.enumerate() {
-                    let (low, high) =
-                        gpu_sub_box(batch, data.sub_boxes[b * SUB_BATCHES_PER_BATCH + r]);
-                    for &word in run {
-                        let p = dequantise(word, min, step);
-                        assert!(
-                            p.cmpge(low).all() && p.cmple(high).all(),
-                            "{p} outside {low}..{high}"
-                        );
-                    }
-                    // A full batch's runs are slabs of a sixteenth of it.
-                    if batch.count as usize == BATCH_POINTS {
-                        let extent = Vec3::from_array(batch.max) - min;
-                        assert!(
-                            (high.x - low.x) < 0.1 * extent.x,
-                            "{low}..{high} of {extent}"
-                        );
-                    }
-                }
-            }
-        }
-    }
 
     /// The documented bound: half a step, plus f32 rounding of a few ulp of the coordinate.
     #[test]

@@ -918,9 +918,8 @@ fn invalid_settings_are_refused_before_any_gpu_work() {
 }
 
 /// A wall with a window in front of a deep block of points: the batches behind the wall are
-/// skipped whole (occlusion culling), and in the high-quality accumulation, of those that
-/// reach the window, the runs of 256 points behind the wall; what the window shows is drawn,
-/// and every mode renders what the reference does.
+/// skipped whole (occlusion culling), the ones seen through the window are drawn, and every
+/// mode renders what the reference does.
 #[test]
 fn batches_hidden_behind_a_wall_are_skipped_and_the_image_is_unchanged() {
     // Looking straight down, so that the near-to-far order draws the wall first.
@@ -992,7 +991,6 @@ fn batches_hidden_behind_a_wall_are_skipped_and_the_image_is_unchanged() {
         skipped.later_passes * 2 >= batches,
         "high quality: only {skipped:?} of {batches} batches skipped"
     );
-    assert!(skipped.later_pass_runs > 0, "high quality: {skipped:?}");
     // The points seen through the window are drawn: the window shows the block, not the
     // background.
     let inside = frame.image.get_pixel(10, 10);
