@@ -474,6 +474,11 @@ fn turntable_video_needs_ffmpeg_and_says_so_when_it_is_missing() {
     }
 }
 
+/// The JSON file a command wrote.
+fn read_json(path: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(path).expect("json written")).expect("valid json")
+}
+
 #[test]
 fn bench_writes_its_figures_as_json_and_markdown() {
     let Some(autzen) = shared_data("autzen_trim.laz") else {
@@ -499,8 +504,7 @@ fn bench_writes_its_figures_as_json_and_markdown() {
         &path_arg(&markdown),
     ]);
     assert_ok(&output);
-    let report: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(&json).expect("json written")).expect("valid json");
+    let report = read_json(&json);
     let workload = &report["workloads"][0];
     assert_eq!(workload["workload"], "autzen_trim.laz");
     assert_eq!(workload["points"], 110_000);
@@ -547,8 +551,7 @@ fn bench_measures_decoding_and_the_dataset_cache() {
         &path_arg(&markdown),
     ]);
     assert_ok(&output);
-    let report: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(&json).expect("json written")).expect("valid json");
+    let report = read_json(&json);
     assert!(report["workloads"]
         .as_array()
         .expect("workloads")
@@ -602,8 +605,7 @@ fn bench_streams_a_huge_cloud_of_the_size_asked() {
         &path_arg(&json),
     ]);
     assert_ok(&output);
-    let report: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(&json).expect("json written")).expect("valid json");
+    let report = read_json(&json);
     let workloads = report["workloads"].as_array().expect("workloads");
     assert_eq!(workloads.len(), 1, "{report}");
     let huge = &workloads[0];

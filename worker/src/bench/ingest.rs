@@ -217,18 +217,6 @@ fn same_cloud(a: &PointCloud, b: &PointCloud) -> bool {
 mod tests {
     use super::*;
 
-    fn shared_scan(name: &str) -> Option<PathBuf> {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../../shared/data")
-            .join(name);
-        if path.is_file() {
-            Some(path)
-        } else {
-            eprintln!("skipped: {} is absent", path.display());
-            None
-        }
-    }
-
     #[test]
     fn a_generated_laz_file_is_decoded_and_given_back_by_the_cache() {
         let mut lines = Vec::new();
@@ -254,7 +242,7 @@ mod tests {
 
     #[test]
     fn a_real_scan_comes_back_from_the_cache_unchanged() {
-        let Some(autzen) = shared_scan("autzen_trim.laz") else {
+        let Some(autzen) = crate::testing::shared_data("autzen_trim.laz") else {
             return;
         };
         // `measure_file` fails unless the cache's cloud equals the decoded one, bit for bit.
