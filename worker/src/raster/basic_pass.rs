@@ -79,16 +79,8 @@ impl BasicPass {
                 pass.set_pipeline(&pipeline);
                 // Phase by phase, as the accumulation (`hq_pass.rs`).
                 for phase in 0..frame.batches.phase_count() {
-                    for &chunk in frame.batches.chunk_order() {
-                        let table = frame.batches.phase_part(chunk, phase);
-                        dispatch_table(
-                            device,
-                            pass,
-                            &pipeline,
-                            AtomicsPath::Atomic32,
-                            frame,
-                            (chunk, table),
-                        );
+                    for part in frame.batches.phase_parts(phase) {
+                        dispatch_part(device, pass, &pipeline, AtomicsPath::Atomic32, frame, part);
                     }
                 }
             }
@@ -135,9 +127,8 @@ impl BasicPass {
                 self.build_tiles(device, pass, frame);
             }
             pass.set_pipeline(&pipeline);
-            for &chunk in frame.batches.chunk_order() {
-                let table = frame.batches.phase_part(chunk, phase);
-                dispatch_table(device, pass, &pipeline, path, frame, (chunk, table));
+            for part in frame.batches.phase_parts(phase) {
+                dispatch_part(device, pass, &pipeline, path, frame, part);
             }
         }
     }
@@ -170,19 +161,16 @@ pub(crate) struct PointFrame<'a> {
     pub targets: &'a FrameTargets,
 }
 
-/// Dispatches one workgroup per entry of a part of chunk `chunk`'s batch table (none when
-/// the part is empty); the pipeline is set.
-fn dispatch_table(
+/// Dispatches one workgroup per entry of a part of chunk `chunk`'s batch table; the pipeline
+/// is set.
+fn dispatch_part(
     device: &wgpu::Device,
     pass: &mut wgpu::ComputePass<'_>,
     pipeline: &wgpu::ComputePipeline,
     path: AtomicsPath,
     frame: PointFrame<'_>,
-    (chunk, table): (usize, Option<(wgpu::BufferBinding<'_>, u32)>),
+    (chunk, (table, batches)): (usize, (wgpu::BufferBinding<'_>, u32)),
 ) {
-    let Some((table, batches)) = table else {
-        return;
-    };
     let bind_group = bind_group(
         device,
         pipeline,

@@ -252,11 +252,6 @@ impl FrameBatches {
         self.phase_ends.iter().map(Vec::len).max().unwrap_or(1)
     }
 
-    /// The chunks with batches in view, near to far.
-    pub fn chunk_order(&self) -> &[usize] {
-        &self.chunk_order
-    }
-
     /// The pixels that points of this frame's listed batches can touch (empty when none is
     /// listed).
     pub fn footprint(&self) -> PixelRect {
@@ -279,9 +274,20 @@ impl FrameBatches {
         self.listed_points() as f64 / self.covered_pixels.max(1) as f64
     }
 
+    /// Phase `phase`'s entries of every chunk that has some, chunk after chunk near to far:
+    /// the chunk, its entries as a storage binding and their number.
+    pub fn phase_parts(
+        &self,
+        phase: usize,
+    ) -> impl Iterator<Item = (usize, (wgpu::BufferBinding<'_>, u32))> + '_ {
+        self.chunk_order
+            .iter()
+            .filter_map(move |&chunk| Some((chunk, self.phase_part(chunk, phase)?)))
+    }
+
     /// The entries of chunk `chunk`'s table in phase `phase` as a storage binding and their
     /// number; `None` when there are none.
-    pub fn phase_part(&self, chunk: usize, phase: usize) -> Option<(wgpu::BufferBinding<'_>, u32)> {
+    fn phase_part(&self, chunk: usize, phase: usize) -> Option<(wgpu::BufferBinding<'_>, u32)> {
         let entries = self.phase_entries(chunk, phase);
         self.entries_binding(chunk, entries)
     }
@@ -1087,13 +1093,13 @@ mod tests {
             &transform,
             1,
         );
-        assert_eq!(tables.chunk_order(), [1, 2, 0]);
+        assert_eq!(tables.chunk_order, [1, 2, 0]);
         let phase_count = tables.phase_count();
         assert!(phase_count >= MIN_PHASES, "{phase_count}");
         let phases: Vec<Vec<(usize, std::ops::Range<u32>)>> = (0..tables.phase_count())
             .map(|phase| {
                 tables
-                    .chunk_order()
+                    .chunk_order
                     .iter()
                     .map(|&chunk| (chunk, tables.phase_entries(chunk, phase)))
                     .filter(|(_, entries)| !entries.is_empty())

@@ -37,13 +37,10 @@ impl HqAccumulatePass {
         // near phases' batches, where most points add colours, came first and the hidden far
         // ones last, and lavapipe's threads shared that work unevenly (the 10M-point cube's
         // accumulation took 52-58 ms against 36 ms phase by phase).
-        let parts = (0..frame.batches.phase_count())
-            .flat_map(|phase| (0..frame.cloud.chunks.len()).map(move |index| (index, phase)));
-        for (index, phase) in parts {
+        let parts =
+            (0..frame.batches.phase_count()).flat_map(|phase| frame.batches.phase_parts(phase));
+        for (index, (table, entries)) in parts {
             let chunk = &frame.cloud.chunks[index];
-            let Some((table, entries)) = frame.batches.phase_part(index, phase) else {
-                continue;
-            };
             let bind_group = bind_resources(
                 device,
                 &pipeline,
