@@ -21,7 +21,6 @@ use serde::Serialize;
 
 use super::{median, uniform_cube, BenchError};
 use crate::cache::{CacheOutcome, DatasetCache};
-use crate::cloud::PointCloud;
 use crate::ingest::{load_point_cloud, write_las, LasWriteOptions};
 
 /// What one file's loads cost.
@@ -167,7 +166,7 @@ fn measure_file(
     for round in 0..=repeats {
         let (open_ms, cache) = time_ms(|| DatasetCache::open(cache_dir, max_bytes))?;
         let (hit_ms, (cloud, outcome)) = time_ms(|| cache.load(key, path))?;
-        if outcome != CacheOutcome::Hit || !same_cloud(&cloud, &decoded) {
+        if outcome != CacheOutcome::Hit || cloud != decoded {
             return Err(BenchError::CacheMismatch(format!(
                 "{workload}: the cache did not give back the decoded cloud ({outcome:?})"
             )));
@@ -203,14 +202,6 @@ where
     let started = Instant::now();
     let value = f()?;
     Ok((started.elapsed().as_secs_f64() * 1e3, value))
-}
-
-/// The same points, colours and placement, bit for bit.
-fn same_cloud(a: &PointCloud, b: &PointCloud) -> bool {
-    a.origin == b.origin
-        && a.positions == b.positions
-        && a.colors == b.colors
-        && a.color_source == b.color_source
 }
 
 #[cfg(test)]

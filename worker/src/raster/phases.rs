@@ -33,49 +33,51 @@ pub(crate) fn split_by_depth(
     depth_row: DVec4,
     alignment: u32,
 ) -> Vec<Vec<u32>> {
-    let near = |chunk: &ChunkEntries<'_>, entry: u32| {
-        nearest_depth(&chunk.batches[(entry >> 8) as usize], depth_row)
-    };
-    let cut_depths = if cuts.is_empty() {
-        Vec::new()
-    } else {
-        let mut depths: Vec<f64> = chunks
+    if cuts.is_empty() {
+        return chunks
             .iter()
-            .flat_map(|chunk| chunk.entries.iter().map(|&e| near(chunk, e)))
+            .map(|chunk| vec![chunk.entries.len() as u32])
             .collect();
-        quantiles(&mut depths, cuts)
-    };
+    }
+    // Each entry's nearest depth, once, all chunks back to back.
+    let depths: Vec<f64> = chunks
+        .iter()
+        .flat_map(|chunk| {
+            chunk
+                .entries
+                .iter()
+                .map(|&e| nearest_depth(&chunk.batches[(e >> 8) as usize], depth_row))
+        })
+        .collect();
+    let cut_depths = quantiles(&mut depths.clone(), cuts);
     let phase_of = |depth: f64| cut_depths.iter().filter(|&&cut| depth >= cut).count();
+    let mut chunk_depths = depths.as_slice();
     chunks
         .iter_mut()
         .map(|chunk| {
-            let count = chunk.entries.len() as u32;
-            if cut_depths.is_empty() {
-                return vec![count];
-            }
+            let count = chunk.entries.len();
+            let (own, rest) = chunk_depths.split_at(count);
+            chunk_depths = rest;
             // A stable partition by phase: a counting sort.
-            let phases: Vec<usize> = chunk
-                .entries
-                .iter()
-                .map(|&e| phase_of(near(chunk, e)))
-                .collect();
-            let mut ends = vec![0u32; cut_depths.len() + 1];
+            let phases: Vec<usize> = own.iter().map(|&depth| phase_of(depth)).collect();
+            let mut next = vec![0u32; cut_depths.len() + 1];
             for &phase in &phases {
-                ends[phase] += 1;
+                next[phase] += 1;
             }
-            let mut starts = vec![0u32; ends.len()];
-            for phase in 1..ends.len() {
-                starts[phase] = starts[phase - 1] + ends[phase - 1];
+            // From the phases' sizes to their starts.
+            let mut start = 0;
+            for slot in &mut next {
+                (*slot, start) = (start, start + *slot);
             }
-            let mut sorted = vec![0u32; chunk.entries.len()];
-            let mut next = starts.clone();
+            let mut sorted = vec![0u32; count];
             for (&entry, &phase) in chunk.entries.iter().zip(&phases) {
                 sorted[next[phase] as usize] = entry;
                 next[phase] += 1;
             }
             chunk.entries.copy_from_slice(&sorted);
+            // `next` now holds each phase's end.
             next.iter()
-                .map(|&end| end.next_multiple_of(alignment.max(1)).min(count))
+                .map(|&end| end.next_multiple_of(alignment.max(1)).min(count as u32))
                 .collect()
         })
         .collect()
