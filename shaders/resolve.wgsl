@@ -45,11 +45,10 @@ fn resolve(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups
     }
     let entry = framebuffer[pixel];
     let empty = entry.y == EMPTY;
-    // Only a covered pixel needs emptying: lavapipe skips the store where 8 neighbouring
-    // pixels are all background (5-7% of the resolve on the 10M cube).
-    if !empty {
-        framebuffer[pixel] = vec2<u32>(EMPTY, EMPTY);
-    }
+    // Every pixel is emptied, covered or not. Storing only where a point landed saves 5% on a
+    // solid view, but where covered and empty pixels mix at random (sparse points) lavapipe's
+    // lane-by-lane store branch mispredicts: the resolve took 1.8 times as long.
+    framebuffer[pixel] = vec2<u32>(EMPTY, EMPTY);
     // Selects, not branches, for the images: in a CPU's SIMD lanes (lavapipe) both sides of a
     // branch run wherever covered and empty pixels mix, and each side has its own stores.
     colour_out[pixel] = select(entry.x, frame.background, empty);
@@ -81,13 +80,9 @@ fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_wo
     let sums = accumulator[pixel];
     let count = sums.w;
     let depth_bits = framebuffer[pixel].y;
-    // As in `resolve`: only what points wrote needs emptying.
-    if count != 0u {
-        accumulator[pixel] = vec4<u32>(0u);
-    }
-    if depth_bits != EMPTY {
-        framebuffer[pixel] = vec2<u32>(EMPTY, EMPTY);
-    }
+    // Emptied unconditionally, as in `resolve` (1.45 times as fast where points are sparse).
+    accumulator[pixel] = vec4<u32>(0u);
+    framebuffer[pixel] = vec2<u32>(EMPTY, EMPTY);
     // Round half up: (sum + count / 2) / count. Selects, not branches (see `resolve`).
     let divisor = max(count, 1u);
     let average = quotient(sums.xyz + vec3<u32>(count / 2u), divisor);

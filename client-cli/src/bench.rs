@@ -168,11 +168,12 @@ pub fn run(args: BenchArgs) -> Result<()> {
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
     println!("adapter: {}", gpu.describe());
     println!(
-        "{width}x{height}, {} warm-up + {} measured rounds per workload; a round renders {} \
-         frames with each method in turn and measures the last",
+        "{width}x{height}, {} warm-up + {} measured rounds per workload; in a round each method \
+         renders unmeasured frames for {} ms (1 to {} frames), then the measured one",
         options.warmup_frames,
         options.frames,
-        bench::FRAMES_IN_A_ROW
+        bench::WARM_IN_A_ROW.as_millis(),
+        bench::MAX_WARM_FRAMES
     );
     let report = bench::run(gpu, &options, &mut |line| eprintln!("  {line}"))?;
 

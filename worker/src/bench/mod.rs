@@ -7,11 +7,11 @@
 //! A frame's time is the GPU work that produces its image: every pass of the frame (clear,
 //! point passes, resolve, shading). Upload, readback and other host-side stages are reported
 //! per stage but left out of the frame time, since they do not depend on the method. Every
-//! figure is the median over measured frames, after warm-up frames; each round renders
-//! [`FRAMES_IN_A_ROW`] frames with every method in turn and measures the last, so that slow
-//! drifts of the machine's speed reach every method alike while each measured frame follows
-//! one of its own method, as in a job's run of frames. Each compute method has a renderer of its own, so that no method starts its
-//! frame from the state another left (`Methods`).
+//! figure is the median over measured frames, after warm-up rounds. Each round renders frames
+//! with every method in turn, so that slow drifts of the machine's speed reach every method
+//! alike; each method's measured frame follows at least [`WARM_IN_A_ROW`] of its own
+//! unmeasured frames, as in a job's run of frames. Each compute method has a renderer of its
+//! own, so that no method starts its frame from the state another left (`Methods`).
 //!
 //! Series: uniform cubes of 1M to 30M points (frame time against points in view, with a
 //! least-squares line per method) and the k-plane cuboid (against overdraw); `huge` adds a
@@ -684,13 +684,30 @@ impl Methods {
     }
 }
 
-/// Frames each method renders back to back in a round; the last is the measured one (in
-/// measured rounds). A frame then starts from the state its own method's last frame left, as
-/// in a job's run of frames, not from the caches another method left: on lavapipe the basic
-/// mode's view of the 10M cube's corner, whose points fit in the caches, took 7.5 ms of
-/// rasterizing right after a PointList frame and 5.3 ms after a compute frame (BENCHMARKS.md,
-/// session 8).
-pub const FRAMES_IN_A_ROW: usize = 2;
+/// Before its measured frame in a round, a method renders unmeasured frames of its own until
+/// they took at least this long (one at least, [`MAX_WARM_FRAMES`] at most). A measured frame
+/// then starts from the state its own method left, as in a job's run of frames, not from the
+/// caches another method left. A time, not a count: refilling the caches costs a few
+/// milliseconds whatever the frame. On lavapipe the basic mode's view of the 10M cube's
+/// corner rasterized in 8.3 ms right after PointList frames, in 5.6 to 8.2 ms as the second
+/// frame and 5.5 to 6.1 from the third on (BENCHMARKS.md, sessions 8 and 10); for a frame of
+/// 40 ms or of a second one unmeasured frame is plenty.
+pub const WARM_IN_A_ROW: std::time::Duration = std::time::Duration::from_millis(50);
+
+/// At most this many unmeasured frames before each measured one.
+pub const MAX_WARM_FRAMES: usize = 8;
+
+/// Renders unmeasured frames with `render` until [`WARM_IN_A_ROW`] has passed.
+fn warm_in_a_row<E>(mut render: impl FnMut() -> Result<(), E>) -> Result<(), E> {
+    let started = Instant::now();
+    for _ in 0..MAX_WARM_FRAMES {
+        render()?;
+        if started.elapsed() >= WARM_IN_A_ROW {
+            break;
+        }
+    }
+    Ok(())
+}
 
 fn measure(
     methods: &mut Methods,
@@ -715,9 +732,7 @@ fn measure(
     let mut compute_frames = vec![None; settings_of.len()];
     for round in 0..rounds {
         let measured = round >= options.warmup_frames;
-        for _ in 1..FRAMES_IN_A_ROW {
-            methods.baseline.render(resident, settings)?;
-        }
+        warm_in_a_row(|| methods.baseline.render(resident, settings).map(drop))?;
         let started = Instant::now();
         let frame = methods.baseline.render(resident, settings)?;
         if measured {
@@ -728,9 +743,7 @@ fn measure(
         for (method, (settings, renderer)) in
             settings_of.iter().zip(&mut methods.compute).enumerate()
         {
-            for _ in 1..FRAMES_IN_A_ROW {
-                renderer.render(resident, settings)?;
-            }
+            warm_in_a_row(|| renderer.render(resident, settings).map(drop))?;
             let started = Instant::now();
             let frame = renderer.render(resident, settings)?;
             if measured {
@@ -1317,6 +1330,34 @@ mod tests {
         assert!(chunks >= 100_000 / (3 * BATCH_POINTS));
         assert_eq!(demorton3(0b111_000), [2, 2, 2]);
         assert_eq!(demorton3(0b100), [0, 0, 1]);
+    }
+
+    #[test]
+    fn frames_in_a_row_last_the_warm_up_time_within_their_bounds() {
+        // A frame longer than the warm-up time is rendered once.
+        let mut slow = 0;
+        warm_in_a_row(|| {
+            slow += 1;
+            std::thread::sleep(WARM_IN_A_ROW + std::time::Duration::from_millis(5));
+            Ok::<(), ()>(())
+        })
+        .unwrap();
+        assert_eq!(slow, 1);
+        // Instant frames stop at the cap.
+        let mut instant = 0;
+        warm_in_a_row(|| {
+            instant += 1;
+            Ok::<(), ()>(())
+        })
+        .unwrap();
+        assert!((1..=MAX_WARM_FRAMES).contains(&instant));
+        // A failing frame stops the row with its error.
+        let mut failing = 0;
+        let result = warm_in_a_row(|| {
+            failing += 1;
+            Err("lost device")
+        });
+        assert_eq!((result, failing), (Err("lost device"), 1));
     }
 
     #[test]
