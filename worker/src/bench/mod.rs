@@ -690,8 +690,8 @@ impl Methods {
 /// caches another method left. A time, not a count: refilling the caches costs a few
 /// milliseconds whatever the frame. On lavapipe the basic mode's view of the 10M cube's
 /// corner rasterized in 8.3 ms right after PointList frames, in 5.6 to 8.2 ms as the second
-/// frame and 5.5 to 6.1 from the third on (BENCHMARKS.md, sessions 8 and 10); for a frame of
-/// 40 ms or of a second one unmeasured frame is plenty.
+/// frame and 5.5 to 6.1 from the third on (BENCHMARKS.md, sessions 8 and 10); a frame of 50 ms
+/// or more gets one unmeasured frame, as all did before.
 pub const WARM_IN_A_ROW: std::time::Duration = std::time::Duration::from_millis(50);
 
 /// At most this many unmeasured frames before each measured one.
