@@ -687,11 +687,12 @@ impl Methods {
 /// Before its measured frame in a round, a method renders unmeasured frames of its own until
 /// they took at least this long (one at least, [`MAX_WARM_FRAMES`] at most). A measured frame
 /// then starts from the state its own method left, as in a job's run of frames, not from the
-/// caches another method left. A time, not a count: refilling the caches costs a few
-/// milliseconds whatever the frame. On lavapipe the basic mode's view of the 10M cube's
-/// corner rasterized in 8.3 ms right after PointList frames, in 5.6 to 8.2 ms as the second
-/// frame and 5.5 to 6.1 from the third on (BENCHMARKS.md, sessions 8 and 10); a frame of 50 ms
-/// or more gets one unmeasured frame, as all did before.
+/// caches another method left. A time, not a count: short frames need several. On lavapipe
+/// the basic mode's view of the 10M cube's corner rasterized in 8.3 ms right after PointList
+/// frames and in 5.5 ms a few frames later, with slow streaks of 7 to 10 ms coming back
+/// (BENCHMARKS.md, session 10); the bench's median of it went from 9.3-10.0 ms with one
+/// unmeasured frame to 7.7-8.9 ms with these. A frame of 50 ms or more gets one unmeasured
+/// frame, as all did before.
 pub const WARM_IN_A_ROW: std::time::Duration = std::time::Duration::from_millis(50);
 
 /// At most this many unmeasured frames before each measured one.
