@@ -9,6 +9,18 @@
 // landed and the images are already clean (`raster/targets.rs`). Index and bound keep the form
 // of a plain loop over consecutive pixels: on lavapipe adding an offset to the index, or a 2D
 // dispatch over a rectangle, cost 1.2 to 1.5 times as much per pixel.
+//
+// Each invocation resolves a short run of consecutive pixels, and empties the framebuffer (and
+// accumulator) entries of its run only when a point landed on one of them. llvmpipe stores lane
+// by lane behind a branch on each lane's mask: per pixel, that branch mispredicted wherever
+// covered and empty pixels mix at random (sparse points), while per run it is predictable on
+// both solid and sparse surfaces and still skips empty background. With runs, the basic resolve
+// took 0.5-0.6 of the per-pixel version's time on the 10M cube and the real scans at 1080p
+// (BENCHMARKS.md, session 10). The run lengths are the host's `RESOLVE_RUN`/`AVERAGE_RUN`
+// (`raster/resolve_pass.rs`); the high-quality resolve holds four words a pixel, and its
+// shorter runs were faster.
+const RESOLVE_RUN: u32 = 8u;
+const AVERAGE_RUN: u32 = 4u;
 
 const EMPTY: u32 = 0xffffffffu;
 // Depth where no point landed: the bits of +infinity.
@@ -39,21 +51,36 @@ fn clear(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
 
 @compute @workgroup_size(256)
 fn resolve(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let pixel = pixel_of(id, groups);
-    if pixel >= frame.resolve_pixels {
+    let first = pixel_of(id, groups) * RESOLVE_RUN;
+    if first >= frame.resolve_pixels {
         return;
     }
-    let entry = framebuffer[pixel];
-    let empty = entry.y == EMPTY;
-    // Every pixel is emptied, covered or not. Storing only where a point landed saves 5% on a
-    // solid view, but where covered and empty pixels mix at random (sparse points) lavapipe's
-    // lane-by-lane store branch mispredicts: the resolve took 1.8 times as long.
-    framebuffer[pixel] = vec2<u32>(EMPTY, EMPTY);
+    let count = min(RESOLVE_RUN, frame.resolve_pixels - first);
+    var entries: array<vec2<u32>, RESOLVE_RUN>;
+    var covered = false;
+    for (var k = 0u; k < RESOLVE_RUN; k++) {
+        if k < count {
+            entries[k] = framebuffer[first + k];
+            covered = covered || entries[k].y != EMPTY;
+        }
+    }
+    if covered {
+        for (var k = 0u; k < RESOLVE_RUN; k++) {
+            if k < count {
+                framebuffer[first + k] = vec2<u32>(EMPTY, EMPTY);
+            }
+        }
+    }
     // Selects, not branches, for the images: in a CPU's SIMD lanes (lavapipe) both sides of a
     // branch run wherever covered and empty pixels mix, and each side has its own stores.
-    colour_out[pixel] = select(entry.x, frame.background, empty);
-    if WRITE_DEPTH {
-        depth_out[pixel] = bitcast<f32>(select(entry.y, NO_SURFACE_BITS, empty));
+    for (var k = 0u; k < RESOLVE_RUN; k++) {
+        if k < count {
+            let empty = entries[k].y == EMPTY;
+            colour_out[first + k] = select(entries[k].x, frame.background, empty);
+            if WRITE_DEPTH {
+                depth_out[first + k] = bitcast<f32>(select(entries[k].y, NO_SURFACE_BITS, empty));
+            }
+        }
     }
 }
 
@@ -73,22 +100,41 @@ fn quotient(a: vec3<u32>, b: u32) -> vec3<u32> {
 // High-quality mode: the rounded average of the colours accumulated per pixel.
 @compute @workgroup_size(256)
 fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let pixel = pixel_of(id, groups);
-    if pixel >= frame.resolve_pixels {
+    let first = pixel_of(id, groups) * AVERAGE_RUN;
+    if first >= frame.resolve_pixels {
         return;
     }
-    let sums = accumulator[pixel];
-    let count = sums.w;
-    let depth_bits = framebuffer[pixel].y;
-    // Emptied unconditionally, as in `resolve` (1.45 times as fast where points are sparse).
-    accumulator[pixel] = vec4<u32>(0u);
-    framebuffer[pixel] = vec2<u32>(EMPTY, EMPTY);
-    // Round half up: (sum + count / 2) / count. Selects, not branches (see `resolve`).
-    let divisor = max(count, 1u);
-    let average = quotient(sums.xyz + vec3<u32>(count / 2u), divisor);
-    let rgba = average.x | (average.y << 8u) | (average.z << 16u) | (255u << 24u);
-    colour_out[pixel] = select(rgba, frame.background, count == 0u);
-    if WRITE_DEPTH {
-        depth_out[pixel] = bitcast<f32>(select(depth_bits, NO_SURFACE_BITS, count == 0u));
+    let pixels = min(AVERAGE_RUN, frame.resolve_pixels - first);
+    var sums: array<vec4<u32>, AVERAGE_RUN>;
+    var depths: array<u32, AVERAGE_RUN>;
+    var covered = false;
+    for (var k = 0u; k < AVERAGE_RUN; k++) {
+        if k < pixels {
+            sums[k] = accumulator[first + k];
+            depths[k] = framebuffer[first + k].y;
+            covered = covered || sums[k].w != 0u || depths[k] != EMPTY;
+        }
+    }
+    // As in `resolve`: only a run where points wrote needs emptying.
+    if covered {
+        for (var k = 0u; k < AVERAGE_RUN; k++) {
+            if k < pixels {
+                accumulator[first + k] = vec4<u32>(0u);
+                framebuffer[first + k] = vec2<u32>(EMPTY, EMPTY);
+            }
+        }
+    }
+    for (var k = 0u; k < AVERAGE_RUN; k++) {
+        if k < pixels {
+            // Round half up: (sum + count / 2) / count. Selects, not branches (see `resolve`).
+            let count = sums[k].w;
+            let divisor = max(count, 1u);
+            let average = quotient(sums[k].xyz + vec3<u32>(count / 2u), divisor);
+            let rgba = average.x | (average.y << 8u) | (average.z << 16u) | (255u << 24u);
+            colour_out[first + k] = select(rgba, frame.background, count == 0u);
+            if WRITE_DEPTH {
+                depth_out[first + k] = bitcast<f32>(select(depths[k], NO_SURFACE_BITS, count == 0u));
+            }
+        }
     }
 }

@@ -11,6 +11,11 @@ use super::targets::FrameTargets;
 /// Must match `@workgroup_size` in resolve.wgsl.
 const WORKGROUP_SIZE: u32 = 256;
 
+/// Consecutive pixels per invocation of `resolve` and of `resolve_average` (`RESOLVE_RUN` and
+/// `AVERAGE_RUN` in resolve.wgsl, where the reason is; a test checks they match).
+const RESOLVE_RUN: u64 = 8;
+const AVERAGE_RUN: u64 = 4;
+
 /// The pixels a resolve visits: `count` consecutive pixels from `first` (row-major). Whole
 /// rows, from the first row a rectangle touches to its last, the first pixel moved back to a
 /// binding-offset boundary: the shader then runs its fastest form, a plain loop over
@@ -121,7 +126,7 @@ impl ResolvePass {
         frame: ResolveFrame<'_>,
     ) {
         let pipeline = self.resolve.get(frame.write_depth);
-        self.record(device, pass, pipeline, frame, None);
+        self.record(device, pass, (pipeline, RESOLVE_RUN), frame, None);
     }
 
     /// High-quality mode: the average of the accumulated colours per pixel of the frame's run,
@@ -136,14 +141,20 @@ impl ResolvePass {
             return;
         };
         let pipeline = self.resolve_average.get(frame.write_depth);
-        self.record(device, pass, pipeline, frame, Some(accumulator));
+        self.record(
+            device,
+            pass,
+            (pipeline, AVERAGE_RUN),
+            frame,
+            Some(accumulator),
+        );
     }
 
     fn record(
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
-        pipeline: &wgpu::ComputePipeline,
+        (pipeline, pixels_per_invocation): (&wgpu::ComputePipeline, u64),
         frame: ResolveFrame<'_>,
         accumulator: Option<&wgpu::Buffer>,
     ) {
@@ -161,7 +172,8 @@ impl ResolvePass {
             resources.push((4, run.binding(accumulator, 16)));
         }
         let bind_group = bind_resources(device, pipeline, "resolve", resources);
-        self.dispatch(pass, pipeline, &bind_group, run.count);
+        let invocations = run.count.div_ceil(pixels_per_invocation);
+        self.dispatch(pass, pipeline, &bind_group, invocations);
     }
 
     fn dispatch(
@@ -169,11 +181,11 @@ impl ResolvePass {
         pass: &mut wgpu::ComputePass<'_>,
         pipeline: &wgpu::ComputePipeline,
         bind_group: &wgpu::BindGroup,
-        pixels: u64,
+        invocations: u64,
     ) {
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, bind_group, &[]);
-        let groups = pixels.div_ceil(WORKGROUP_SIZE as u64) as u32;
+        let groups = invocations.div_ceil(WORKGROUP_SIZE as u64) as u32;
         let (x, y) = super::dispatch_grid(groups);
         pass.dispatch_workgroups(x, y, 1);
     }
@@ -184,6 +196,18 @@ mod tests {
     use super::*;
     use crate::gpu::{read_buffer, staging_buffer};
     use wgpu::util::DeviceExt;
+
+    #[test]
+    fn the_hosts_run_lengths_are_the_shaders() {
+        let source = Shader::Resolve.source();
+        for (name, run) in [("RESOLVE_RUN", RESOLVE_RUN), ("AVERAGE_RUN", AVERAGE_RUN)] {
+            let declaration = format!("const {name}: u32 = {run}u;");
+            assert!(
+                source.contains(&declaration),
+                "resolve.wgsl lacks `{declaration}`"
+            );
+        }
+    }
 
     /// `quotient` of resolve.wgsl, the high-quality average's division without integer
     /// division, equals integer division on this adapter over the range it is used in.

@@ -371,6 +371,53 @@ fn every_point_workgroup_size_renders_the_same_image() {
     }
 }
 
+/// The resolves take runs of consecutive pixels per invocation (`resolve_pass.rs`): at image
+/// sizes whose pixel runs end in a partial one, both modes still equal the reference, and
+/// the framebuffer is emptied for the next frame (a frame after a different view equals the
+/// first).
+#[test]
+fn odd_image_sizes_resolve_their_last_pixels_and_empty_the_framebuffer() {
+    let mut renderer = Renderer::new(gpu());
+    for (width, height) in [(101, 77), (37, 29)] {
+        let basic = FrameSettings::new(
+            width,
+            height,
+            camera(Projection::Perspective { fov_y_deg: 50.0 }),
+        );
+        let high = FrameSettings {
+            quality: Quality::HIGH,
+            read_depth: true,
+            ..basic
+        };
+        let elsewhere = |settings: FrameSettings| FrameSettings {
+            camera: settings.camera.moved_sideways(9.0, 4.0),
+            ..settings
+        };
+        for (settings, cloud) in [
+            (basic, pixel_centre_scene(&basic, 3, 5)),
+            (high, surface_with_depth_noise(&high, 6)),
+        ] {
+            let name = format!("odd-size-{width}x{height}-{:?}", settings.quality);
+            let resident = renderer.upload(&cloud).expect("upload");
+            let first = renderer.render(&resident, &settings).expect("render");
+            let expected = reference::render(&cloud, &settings);
+            let difference = max_channel_difference(&first.image, &expected.image);
+            let allowed = u8::from(settings.quality != Quality::Basic);
+            assert!(difference <= allowed, "{name}: differs by {difference}/255");
+            let moved = renderer
+                .render(&resident, &elsewhere(settings))
+                .expect("render");
+            let fresh = render_gpu(&cloud, &elsewhere(settings));
+            let diff = compare_images(&format!("{name}-moved"), &moved.image, &fresh.image);
+            assert_eq!(diff.differing, 0, "{name}: the moved view");
+            let again = renderer.render(&resident, &settings).expect("render");
+            let diff = compare_images(&format!("{name}-again"), &again.image, &first.image);
+            assert_eq!(diff.differing, 0, "{name}: the first view again");
+            assert_eq!(again.depth, first.depth, "{name}");
+        }
+    }
+}
+
 /// The resolve visits only the pixels this frame's or the last frame's points can touch
 /// (`targets.rs`). Frames rendered one after another on one renderer, with the cloud moving
 /// across the image and out of it, and the background, mode, depth read-back, point size,
