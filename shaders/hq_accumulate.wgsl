@@ -4,8 +4,10 @@
 // so a pixel shows the average of all points near the front surface instead of one arbitrary
 // point: less aliasing and flicker under motion.
 //
-// 32-bit atomics only, so it runs on every adapter. Sums of 8-bit channels overflow a u32 only
-// beyond 16 million points in one pixel.
+// The per-pixel sums and `add_to_sums` come before this file: `hq_sums_atomic64.wgsl` where
+// the adapter has 64-bit atomicAdd (two atomics a point), else `hq_sums_atomic32.wgsl` (four).
+// Both hold the same words, so the resolve reads either. Sums of 8-bit channels overflow a
+// u32 only beyond 16 million points in one pixel.
 
 override WORKGROUP_SIZE: u32 = 128u;
 
@@ -16,8 +18,6 @@ override WORKGROUP_SIZE: u32 = 128u;
 @group(0) @binding(8) var<storage, read> batches: array<Batch>;
 // The point framebuffer after the depth pass: y is the nearest depth's bits.
 @group(0) @binding(3) var<storage, read> framebuffer: array<vec2<u32>>;
-// Per pixel: sum of red, green, blue, and the number of points added.
-@group(0) @binding(4) var<storage, read_write> accumulator: array<atomic<u32>>;
 @group(0) @binding(5) var<storage, read> colours: array<u32>;
 
 @compute @workgroup_size(WORKGROUP_SIZE)
@@ -55,13 +55,8 @@ fn accumulate(
             if splat.depth > nearest * band {
                 continue;
             }
-            let base = 4 * pixel;
             let w = colour_word_index(i);
-            let colour = unpack_colour(colours[w], colours[w + 1u], i);
-            atomicAdd(&accumulator[base], colour & 0xffu);
-            atomicAdd(&accumulator[base + 1], (colour >> 8u) & 0xffu);
-            atomicAdd(&accumulator[base + 2], (colour >> 16u) & 0xffu);
-            atomicAdd(&accumulator[base + 3], 1u);
+            add_to_sums(pixel, unpack_colour(colours[w], colours[w + 1u], i));
         }
     }
 }

@@ -11,8 +11,10 @@ pub enum Shader {
     RasterAtomic64,
     /// Basic mode with 32-bit atomics: entry points `rasterize_depth`, `rasterize_colour`.
     RasterAtomic32,
-    /// High-quality mode's colour accumulation: entry point `accumulate`.
+    /// High-quality mode's colour accumulation with 32-bit atomics: entry point `accumulate`.
     HqAccumulate,
+    /// The same with 64-bit atomicAdd (`SHADER_INT64_ATOMIC_ALL_OPS`), two atomics a point.
+    HqAccumulate64,
     /// Eye-Dome Lighting on the resolved images: entry point `shade`.
     Edl,
     /// Framebuffer clear and resolve: entry points `clear`, `resolve`, `resolve_average`.
@@ -34,14 +36,19 @@ pub enum Shader {
 const COMMON: &str = include_str!("common.wgsl");
 /// The occlusion test of whole batches, after `common.wgsl` in the point passes.
 const OCCLUSION: &str = include_str!("occlusion.wgsl");
+/// The high-quality accumulation, after its per-pixel sums (one of the two below).
+const HQ_ACCUMULATE: &str = include_str!("hq_accumulate.wgsl");
+const HQ_SUMS_ATOMIC32: &str = include_str!("hq_sums_atomic32.wgsl");
+const HQ_SUMS_ATOMIC64: &str = include_str!("hq_sums_atomic64.wgsl");
 /// Parameters and helpers of the passes on the resolved images, after `common.wgsl`.
 const SCREEN_COMMON: &str = include_str!("screen_common.wgsl");
 
 impl Shader {
-    pub const ALL: [Shader; 10] = [
+    pub const ALL: [Shader; 11] = [
         Shader::RasterAtomic64,
         Shader::RasterAtomic32,
         Shader::HqAccumulate,
+        Shader::HqAccumulate64,
         Shader::Edl,
         Shader::Resolve,
         Shader::Visibility,
@@ -57,6 +64,7 @@ impl Shader {
             Shader::RasterAtomic64 => "raster_atomic64",
             Shader::RasterAtomic32 => "raster_atomic32",
             Shader::HqAccumulate => "hq_accumulate",
+            Shader::HqAccumulate64 => "hq_accumulate64",
             Shader::Edl => "edl",
             Shader::Resolve => "resolve",
             Shader::Visibility => "visibility",
@@ -72,7 +80,8 @@ impl Shader {
         let own = match self {
             Shader::RasterAtomic64 => include_str!("raster_atomic64.wgsl"),
             Shader::RasterAtomic32 => include_str!("raster_atomic32.wgsl"),
-            Shader::HqAccumulate => include_str!("hq_accumulate.wgsl"),
+            Shader::HqAccumulate => HQ_ACCUMULATE,
+            Shader::HqAccumulate64 => HQ_ACCUMULATE,
             Shader::Edl => include_str!("edl.wgsl"),
             Shader::Resolve => include_str!("resolve.wgsl"),
             Shader::Visibility => include_str!("visibility.wgsl"),
@@ -85,9 +94,11 @@ impl Shader {
             Shader::Visibility | Shader::Fill | Shader::PintusShading => {
                 format!("{COMMON}\n{SCREEN_COMMON}\n{own}")
             }
-            Shader::RasterAtomic64 | Shader::RasterAtomic32 | Shader::HqAccumulate => {
+            Shader::RasterAtomic64 | Shader::RasterAtomic32 => {
                 format!("{COMMON}\n{OCCLUSION}\n{own}")
             }
+            Shader::HqAccumulate => format!("{COMMON}\n{OCCLUSION}\n{HQ_SUMS_ATOMIC32}\n{own}"),
+            Shader::HqAccumulate64 => format!("{COMMON}\n{OCCLUSION}\n{HQ_SUMS_ATOMIC64}\n{own}"),
             _ => format!("{COMMON}\n{own}"),
         }
     }

@@ -89,6 +89,9 @@ pub enum GpuError {
 pub struct GpuCapabilities {
     /// 64-bit `atomicMin` on storage buffers (`SHADER_INT64_ATOMIC_MIN_MAX`).
     pub int64_atomics: bool,
+    /// Every 64-bit atomic on storage buffers, `atomicAdd` included
+    /// (`SHADER_INT64_ATOMIC_ALL_OPS`).
+    pub int64_atomic_add: bool,
     /// GPU timestamp queries around compute passes.
     pub timestamps: bool,
     /// Largest storage buffer binding in bytes.
@@ -157,6 +160,7 @@ impl GpuContext {
 
         let wanted = wgpu::Features::SHADER_INT64
             | wgpu::Features::SHADER_INT64_ATOMIC_MIN_MAX
+            | wgpu::Features::SHADER_INT64_ATOMIC_ALL_OPS
             | wgpu::Features::TIMESTAMP_QUERY;
         let features = adapter.features() & wanted;
         let limits = adapter.limits();
@@ -175,6 +179,9 @@ impl GpuContext {
             int64_atomics: features.contains(
                 wgpu::Features::SHADER_INT64 | wgpu::Features::SHADER_INT64_ATOMIC_MIN_MAX,
             ),
+            int64_atomic_add: features.contains(
+                wgpu::Features::SHADER_INT64 | wgpu::Features::SHADER_INT64_ATOMIC_ALL_OPS,
+            ),
             timestamps: features.contains(wgpu::Features::TIMESTAMP_QUERY),
             max_storage_binding_bytes: limits.max_storage_buffer_binding_size as u64,
             max_buffer_bytes: limits.max_buffer_size,
@@ -186,6 +193,7 @@ impl GpuContext {
             driver = %adapter_info.driver,
             driver_info = %adapter_info.driver_info,
             int64_atomics = capabilities.int64_atomics,
+            int64_atomic_add = capabilities.int64_atomic_add,
             timestamps = capabilities.timestamps,
             max_storage_binding_mib = capabilities.max_storage_binding_bytes >> 20,
             "GPU ready"

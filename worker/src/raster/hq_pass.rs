@@ -9,29 +9,42 @@ use super::pipeline::{bind_resources, shader_module};
 use super::point_pipelines::PointPipelines;
 
 pub(crate) struct HqAccumulatePass {
-    accumulate: PointPipelines,
+    /// Four 32-bit atomics a point: any adapter.
+    atomic32: PointPipelines,
+    /// Two 64-bit atomics a point, where the device has 64-bit atomicAdd.
+    atomic64: Option<PointPipelines>,
 }
 
 impl HqAccumulatePass {
-    pub fn new(device: &wgpu::Device, workgroup_size: u32) -> Self {
-        let module = shader_module(device, Shader::HqAccumulate);
+    pub fn new(device: &wgpu::Device, int64_atomic_add: bool, workgroup_size: u32) -> Self {
+        let pipelines = |shader| {
+            let module = shader_module(device, shader);
+            PointPipelines::new(device, &module, "accumulate", workgroup_size)
+        };
         Self {
-            accumulate: PointPipelines::new(device, &module, "accumulate", workgroup_size),
+            atomic32: pipelines(Shader::HqAccumulate),
+            atomic64: int64_atomic_add.then(|| pipelines(Shader::HqAccumulate64)),
         }
     }
 
-    /// Records the accumulation over every chunk. `targets.accumulator` must exist and be
-    /// cleared, and the depth pass must have run.
+    /// Records the accumulation over every chunk, with 64-bit atomics where the device has
+    /// them and `allow_64`. `targets.accumulator` must exist and be cleared, and the depth pass
+    /// must have run.
     pub fn record(
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
         frame: PointFrame<'_>,
+        allow_64: bool,
     ) {
         let Some(accumulator) = frame.targets.accumulator.as_ref() else {
             return;
         };
-        let pipeline = self.accumulate.get(device, frame.point_size);
+        let pipelines = match &self.atomic64 {
+            Some(atomic64) if allow_64 => atomic64,
+            _ => &self.atomic32,
+        };
+        let pipeline = pipelines.get(device, frame.point_size);
         pass.set_pipeline(&pipeline);
         // One dispatch per phase of the depth pass (`phases.rs`): over the whole table, the
         // near phases' batches, where most points add colours, came first and the hidden far

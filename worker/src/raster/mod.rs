@@ -447,7 +447,7 @@ impl Renderer {
         tracing::debug!(workgroup_size, "point pass workgroups");
         Self {
             basic: BasicPass::new(device, caps.int64_atomics, workgroup_size),
-            hq: HqAccumulatePass::new(device, workgroup_size),
+            hq: HqAccumulatePass::new(device, caps.int64_atomic_add, workgroup_size),
             edl: EdlPass::new(device),
             visibility: VisibilityPass::new(device),
             fill: FillPass::new(device),
@@ -739,6 +739,7 @@ impl Renderer {
             run: resolve_run,
             write_depth: settings.needs_depth_image(),
         };
+        let allow_64 = settings.atomics == AtomicsMode::Auto;
         type Record<'a> = Box<dyn Fn(&mut wgpu::ComputePass<'_>) + 'a>;
         let mut passes: Vec<(Stage, Record<'_>)> = match settings.quality {
             // The resolve empties the framebuffer for the next frame: only a new one is
@@ -770,7 +771,7 @@ impl Renderer {
                 ),
                 (
                     Stage::Accumulate,
-                    Box::new(move |pass| self.hq.record(device, pass, points)),
+                    Box::new(move |pass| self.hq.record(device, pass, points, allow_64)),
                 ),
                 (
                     Stage::Resolve,

@@ -704,6 +704,41 @@ fn max_channel_difference(a: &image::RgbaImage, b: &image::RgbaImage) -> u8 {
         .unwrap_or(0)
 }
 
+/// The high-quality accumulation adds its sums with 64-bit atomics where the device has them
+/// (`hq_pass.rs`) and with 32-bit ones otherwise: both give the reference's image, the same to
+/// the bit, with and without large points.
+#[test]
+fn high_quality_sums_are_the_same_with_64_and_32_bit_atomics() {
+    let gpu = gpu();
+    eprintln!(
+        "64-bit atomicAdd on this adapter: {}",
+        gpu.capabilities.int64_atomic_add
+    );
+    let mut renderer = Renderer::new(gpu);
+    for point_size in [1, 3] {
+        let mut settings =
+            FrameSettings::new(96, 64, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+        settings.quality = Quality::HIGH;
+        settings.read_depth = true;
+        settings.point_size = point_size;
+        let cloud = surface_with_depth_noise(&settings, 11);
+        let resident = renderer.upload(&cloud).expect("upload");
+        let auto = renderer.render(&resident, &settings).expect("render");
+        let forced = FrameSettings {
+            atomics: AtomicsMode::Force32,
+            ..settings
+        };
+        let with_32 = renderer.render(&resident, &forced).expect("render");
+        let name = format!("hq-sums-size-{point_size}");
+        let diff = compare_images(&name, &auto.image, &with_32.image);
+        assert_eq!(diff.differing, 0, "{name}");
+        assert_eq!(auto.depth, with_32.depth, "{name}");
+        let expected = reference::render(&cloud, &settings);
+        let difference = max_channel_difference(&auto.image, &expected.image);
+        assert!(difference <= 1, "{name}: differs by {difference}/255");
+    }
+}
+
 #[test]
 fn high_quality_mode_averages_the_front_surface_like_the_reference() {
     let mut settings = FrameSettings::new(

@@ -1,0 +1,12 @@
+// The high-quality accumulation's per-pixel sums with 32-bit atomics (any adapter): four
+// words a pixel, the sums of red, green and blue and the number of points added.
+
+@group(0) @binding(4) var<storage, read_write> accumulator: array<atomic<u32>>;
+
+fn add_to_sums(pixel: i32, colour: u32) {
+    let base = 4 * pixel;
+    atomicAdd(&accumulator[base], colour & 0xffu);
+    atomicAdd(&accumulator[base + 1], (colour >> 8u) & 0xffu);
+    atomicAdd(&accumulator[base + 2], (colour >> 16u) & 0xffu);
+    atomicAdd(&accumulator[base + 3], 1u);
+}
