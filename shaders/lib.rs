@@ -80,8 +80,7 @@ impl Shader {
         let own = match self {
             Shader::RasterAtomic64 => include_str!("raster_atomic64.wgsl"),
             Shader::RasterAtomic32 => include_str!("raster_atomic32.wgsl"),
-            Shader::HqAccumulate => HQ_ACCUMULATE,
-            Shader::HqAccumulate64 => HQ_ACCUMULATE,
+            Shader::HqAccumulate | Shader::HqAccumulate64 => HQ_ACCUMULATE,
             Shader::Edl => include_str!("edl.wgsl"),
             Shader::Resolve => include_str!("resolve.wgsl"),
             Shader::Visibility => include_str!("visibility.wgsl"),
