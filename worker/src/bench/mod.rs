@@ -19,7 +19,7 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use glam::{DVec3, Vec3};
 use rand::seq::SliceRandom;
@@ -687,23 +687,40 @@ impl Methods {
 /// Before its measured frame in a round, a method renders unmeasured frames of its own until
 /// they took at least this long (one at least, [`MAX_WARM_FRAMES`] at most). A measured frame
 /// then starts from the state its own method left, as in a job's run of frames, not from the
-/// caches another method left. A time, not a count: short frames need several. On lavapipe
-/// the basic mode's view of the 10M cube's corner rasterized in 8.3 ms right after PointList
-/// frames and in 5.5 ms a few frames later, with slow streaks of 7 to 10 ms coming back
-/// (BENCHMARKS.md, session 10); the bench's median of it went from 9.3-10.0 ms with one
-/// unmeasured frame to 7.7-8.9 ms with these. A frame of 50 ms or more gets one unmeasured
-/// frame, as all did before.
-pub const WARM_IN_A_ROW: std::time::Duration = std::time::Duration::from_millis(50);
+/// caches another method left. A time, not a count: short frames need several. A frame of
+/// 50 ms or more gets one unmeasured frame.
+pub const WARM_IN_A_ROW: Duration = Duration::from_millis(50);
 
 /// At most this many unmeasured frames before each measured one.
 pub const MAX_WARM_FRAMES: usize = 8;
 
+/// The first compute method after the baseline's frame renders unmeasured frames for this
+/// long, however many that takes. While lavapipe draws a `PointList` frame (0.5 s to 13 s on
+/// 2 cores) its compute threads sleep, and for a while after they wake the two of them wait
+/// on the CPUs' run queues: right after two baseline frames, the 10M cube's corner view
+/// rasterized in 6.2-6.8 ms a frame, each compute thread waiting 12-21 ms over 8 frames,
+/// against 4.5-4.8 ms and under 1 ms of wait in a run of compute frames alone. Rounds of 8
+/// frames still slow in part after 200 ms of compute frames: 2 of 5; after 500 ms: 3 of 12;
+/// after 1 s: 0 of 6 (BENCHMARKS.md, session 11). A job renders its frames back to back: the
+/// bench measures that state.
+pub const SETTLE_AFTER_BASELINE: Duration = Duration::from_secs(1);
+
 /// Renders unmeasured frames with `render` until [`WARM_IN_A_ROW`] has passed.
-fn warm_in_a_row<E>(mut render: impl FnMut() -> Result<(), E>) -> Result<(), E> {
+fn warm_in_a_row<E>(render: impl FnMut() -> Result<(), E>) -> Result<(), E> {
+    warm_up(WARM_IN_A_ROW, MAX_WARM_FRAMES, render)
+}
+
+/// Renders frames with `render` until `least` has passed or `max_frames` were rendered (one
+/// at least).
+fn warm_up<E>(
+    least: Duration,
+    max_frames: usize,
+    mut render: impl FnMut() -> Result<(), E>,
+) -> Result<(), E> {
     let started = Instant::now();
-    for _ in 0..MAX_WARM_FRAMES {
+    for _ in 0..max_frames.max(1) {
         render()?;
-        if started.elapsed() >= WARM_IN_A_ROW {
+        if started.elapsed() >= least {
             break;
         }
     }
@@ -744,7 +761,12 @@ fn measure(
         for (method, (settings, renderer)) in
             settings_of.iter().zip(&mut methods.compute).enumerate()
         {
-            warm_in_a_row(|| renderer.render(resident, settings).map(drop))?;
+            let warm = || renderer.render(resident, settings).map(drop);
+            if method == 0 {
+                warm_up(SETTLE_AFTER_BASELINE, usize::MAX, warm)?;
+            } else {
+                warm_in_a_row(warm)?;
+            }
             let started = Instant::now();
             let frame = renderer.render(resident, settings)?;
             if measured {
@@ -1339,7 +1361,7 @@ mod tests {
         let mut slow = 0;
         let result = warm_in_a_row(|| {
             slow += 1;
-            std::thread::sleep(WARM_IN_A_ROW + std::time::Duration::from_millis(5));
+            std::thread::sleep(WARM_IN_A_ROW + Duration::from_millis(5));
             Ok::<(), ()>(())
         });
         assert_eq!(result, Ok(()));
@@ -1352,6 +1374,18 @@ mod tests {
         });
         assert_eq!(result, Ok(()));
         assert!((1..=MAX_WARM_FRAMES).contains(&instant));
+        // The settling after the baseline counts time only.
+        let mut settling = 0;
+        let least = Duration::from_millis(30);
+        let started = Instant::now();
+        let result = warm_up(least, usize::MAX, || {
+            settling += 1;
+            std::thread::sleep(Duration::from_millis(1));
+            Ok::<(), ()>(())
+        });
+        assert_eq!(result, Ok(()));
+        assert!(started.elapsed() >= least);
+        assert!(settling > MAX_WARM_FRAMES, "{settling} frames in {least:?}");
         // A failing frame stops the row with its error.
         let mut failing = 0;
         let result = warm_in_a_row(|| {
