@@ -169,11 +169,13 @@ pub fn run(args: BenchArgs) -> Result<()> {
     println!("adapter: {}", gpu.describe());
     println!(
         "{width}x{height}, {} warm-up + {} measured rounds per workload; in a round each method \
-         renders unmeasured frames for {} ms (1 to {} frames), then the measured one",
+         renders unmeasured frames for {} ms (1 to {} frames; the first compute method after \
+         PointList for {} ms), then the measured one",
         options.warmup_frames,
         options.frames,
         bench::WARM_IN_A_ROW.as_millis(),
-        bench::MAX_WARM_FRAMES
+        bench::MAX_WARM_FRAMES,
+        bench::SETTLE_AFTER_BASELINE.as_millis()
     );
     let report = bench::run(gpu, &options, &mut |line| eprintln!("  {line}"))?;
 

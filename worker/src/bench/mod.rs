@@ -10,7 +10,8 @@
 //! figure is the median over measured frames, after warm-up rounds. Each round renders frames
 //! with every method in turn, so that slow drifts of the machine's speed reach every method
 //! alike; each method's measured frame follows at least [`WARM_IN_A_ROW`] of its own
-//! unmeasured frames, as in a job's run of frames. Each compute method has a renderer of its
+//! unmeasured frames ([`SETTLE_AFTER_BASELINE`] for the first compute method after the
+//! baseline), as in a job's run of frames. Each compute method has a renderer of its
 //! own, so that no method starts its frame from the state another left (`Methods`).
 //!
 //! Series: uniform cubes of 1M to 30M points (frame time against points in view, with a
