@@ -58,7 +58,7 @@ fn listed_batch(entry: u32, batch: Batch) -> Batch {
 
 // Points are stored quantised (Kanzok et al.), 11 bytes each, in two arrays per chunk:
 // - positions: array<vec2<u32>>, 21/21/22 bits of x/y/z as a fraction of the batch's box
-//   (bit layout in `dequantise`);
+//   (bit layout in `quantised_coordinates`);
 // - colours: array<u32> holding 3 RGB bytes per point back to back, plus one spare word.
 // The colour lives apart so that a pass reads it only for points that pass the depth test.
 
@@ -70,15 +70,20 @@ fn quantisation_step(batch: Batch) -> vec3<f32> {
     return (batch.max - batch.min) * INV_QUANT_MAX;
 }
 
-// Position relative to the dataset origin of a quantised point of a batch with box minimum
-// `origin` and steps `step`.
-fn dequantise(word: vec2<u32>, origin: vec3<f32>, step: vec3<f32>) -> vec3<f32> {
-    let q = vec3<u32>(
+// The quantised coordinates of a point, as floats: its position is `origin + q * step` in the
+// batch with box minimum `origin` and steps `step`.
+fn quantised_coordinates(word: vec2<u32>) -> vec3<f32> {
+    return vec3<f32>(vec3<u32>(
         word.x & 0x1fffffu,
         (word.x >> 21u) | ((word.y & 0x3ffu) << 11u),
         word.y >> 10u,
-    );
-    return origin + vec3<f32>(q) * step;
+    ));
+}
+
+// Position relative to the dataset origin of a quantised point of a batch with box minimum
+// `origin` and steps `step`.
+fn dequantise(word: vec2<u32>, origin: vec3<f32>, step: vec3<f32>) -> vec3<f32> {
+    return origin + quantised_coordinates(word) * step;
 }
 
 // Index of the first of the two colour words that hold point `i`'s RGB bytes.
@@ -123,18 +128,50 @@ struct Splat {
     visible: bool,
 }
 
-fn project_point(frame: FrameUniforms, p: vec3<f32>) -> Splat {
+// A batch's projection of its quantised points. Each row maps a point's quantised coordinates
+// q to `dot(row.xyz, q) + row.w`: the dequantisation and the viewport are folded into the
+// camera's rows once per batch, which leaves a point three dot products and one division
+// (a third of the arithmetic of dequantising, transforming and mapping it in turn).
+struct BatchProjection {
+    // Pixel x and y, each times clip-space w.
+    x_w: vec4<f32>,
+    y_w: vec4<f32>,
+    // Clip-space w.
+    w: vec4<f32>,
+    // Linear view depth (`FrameUniforms::depth_row`).
+    depth: vec4<f32>,
+}
+
+fn quantised_row(row: vec4<f32>, origin: vec3<f32>, step: vec3<f32>) -> vec4<f32> {
+    return vec4<f32>(row.xyz * step, dot(row, vec4<f32>(origin, 1.0)));
+}
+
+fn batch_projection(frame: FrameUniforms, batch: Batch) -> BatchProjection {
+    let step = quantisation_step(batch);
+    let m = transpose(frame.view_proj);
+    // Pixel x = (ndc.x * 0.5 + 0.5) * width and y = (0.5 - ndc.y * 0.5) * height, with
+    // ndc = clip.xy / clip.w.
+    let half = 0.5 * vec2<f32>(f32(frame.width), f32(frame.height));
+    var p: BatchProjection;
+    p.x_w = quantised_row(half.x * (m[0] + m[3]), batch.min, step);
+    p.y_w = quantised_row(half.y * (m[3] - m[1]), batch.min, step);
+    p.w = quantised_row(m[3], batch.min, step);
+    p.depth = quantised_row(frame.depth_row, batch.min, step);
+    return p;
+}
+
+fn project_quantised(frame: FrameUniforms, projection: BatchProjection, word: vec2<u32>) -> Splat {
     var s: Splat;
     s.visible = false;
-    let depth = dot(frame.depth_row, vec4<f32>(p, 1.0));
+    let q = quantised_coordinates(word);
+    let depth = dot(projection.depth.xyz, q) + projection.depth.w;
     // Also rejects NaN: comparisons with NaN are false.
     if !(depth >= frame.near && depth <= frame.far) {
         return s;
     }
-    let clip = frame.view_proj * vec4<f32>(p, 1.0);
-    let ndc = clip.xy / clip.w;
-    let px = (ndc.x * 0.5 + 0.5) * f32(frame.width);
-    let py = (0.5 - ndc.y * 0.5) * f32(frame.height);
+    let inv_w = 1.0 / (dot(projection.w.xyz, q) + projection.w.w);
+    let px = (dot(projection.x_w.xyz, q) + projection.x_w.w) * inv_w;
+    let py = (dot(projection.y_w.xyz, q) + projection.y_w.w) * inv_w;
     // Far outside the image: reject before the float-to-int conversion can saturate.
     let margin = f32(POINT_SIZE);
     if !(px >= -margin && px < f32(frame.width) + margin && py >= -margin && py < f32(frame.height) + margin) {

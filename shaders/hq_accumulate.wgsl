@@ -40,9 +40,9 @@ fn accumulate(
         count_skipped(1u, lane);
         return;
     }
-    let step = quantisation_step(batch);
+    let projection = batch_projection(frame, batch);
     for (var i = batch.first + lane; i < batch.first + batch.count; i += WORKGROUP_SIZE) {
-        let splat = project_point(frame, dequantise(positions[i], batch.min, step));
+        let splat = project_quantised(frame, projection, positions[i]);
         if !splat.visible {
             continue;
         }

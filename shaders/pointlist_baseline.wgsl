@@ -4,7 +4,7 @@
 //
 // The vertex index is the point's index within its chunk. Points outside near..far are
 // clipped by the hardware against clip-space z in [0, 1] (the DirectX-style projection of
-// `camera.rs`), which matches `project_point`'s depth test up to rounding.
+// `camera.rs`), which matches `project_quantised`'s depth test up to rounding.
 
 // Points per batch (`points::BATCH_POINTS`): the batch of point i is i / BATCH_POINTS.
 override BATCH_POINTS: u32 = 4096u;

@@ -45,9 +45,9 @@ fn rasterize_batch(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32, colour_pa
         count_skipped(select(0u, 1u, colour_pass), lane);
         return;
     }
-    let step = quantisation_step(batch);
+    let projection = batch_projection(frame, batch);
     for (var i = batch.first + lane; i < batch.first + batch.count; i += WORKGROUP_SIZE) {
-        let splat = project_point(frame, dequantise(positions[i], batch.min, step));
+        let splat = project_quantised(frame, projection, positions[i]);
         if !splat.visible {
             continue;
         }
