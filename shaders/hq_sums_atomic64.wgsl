@@ -1,16 +1,40 @@
-// The high-quality accumulation's per-pixel sums with 64-bit atomics: the same four words as
-// `hq_sums_atomic32.wgsl` (red, green, blue, count), added as two little-endian pairs, so two
-// atomics a point instead of four. A carry into a pair's high half needs a red or blue sum
-// beyond a u32, which overflows the 32-bit path too (16 million points in a pixel). On lavapipe the accumulation took 0.8-0.96 of
-// the time it took with four on the real scans and a 1M cube, the same on a 10M one
-// (BENCHMARKS.md, session 10).
+// The high-quality accumulation's per-pixel sums with 64-bit atomics: one atomicAdd a point
+// on a packed word per pixel, `packed_sums` (red, green and blue sums and the count, 16 bits
+// each, little end first), while it holds fewer than PACKED_POINTS points, where no channel's
+// sum can overflow its 16 bits (256 x 255 < 2^16). A point that finds the word full takes its
+// add back and adds to the wide sums instead, the four words of `hq_sums_atomic32.wgsl` as two
+// little-endian pairs, and flags the packed word so that the resolve (`resolve_average_packed`)
+// reads them too. The sums are integers, so the image does not depend on which points went
+// where: it is the same as the 32-bit path's to the bit (tested). On lavapipe, against two
+// atomics a point on the wide sums alone, the 1M-point cube's accumulation took 8.4-10.3 ms
+// instead of 13.1-13.8 and its resolve 3.7-3.8 instead of 4.0-4.3: half the bytes a pixel
+// (BENCHMARKS.md, session 11).
+//
+// Another point's add, not yet taken back, can make a point find the word full early (it then
+// goes to the wide sums, which is still exact); a carry between the packed fields while adds
+// are in flight is undone with them, as integer addition is exact modulo 2^64. Only some
+// 32000 adds in flight on one pixel at once could carry into the flag bit.
+
+const PACKED_POINTS: u32 = 256u;
+const PACKED_COUNT_SHIFT: u32 = 48u;
+const PACKED_COUNT_MASK: u32 = 0x7fffu;
+const WIDE_SUMS_USED: u64 = 0x8000000000000000lu;
 
 @group(0) @binding(4) var<storage, read_write> accumulator: array<atomic<u64>>;
+@group(0) @binding(10) var<storage, read_write> packed_sums: array<atomic<u64>>;
 
 fn add_to_sums(pixel: i32, colour: u32) {
+    let red = u64(colour & 0xffu);
+    let green = u64((colour >> 8u) & 0xffu);
+    let blue = u64((colour >> 16u) & 0xffu);
+    let packed = red | (green << 16u) | (blue << 32u) | (1lu << PACKED_COUNT_SHIFT);
+    let before = atomicAdd(&packed_sums[pixel], packed);
+    if (u32(before >> PACKED_COUNT_SHIFT) & PACKED_COUNT_MASK) < PACKED_POINTS {
+        return;
+    }
+    atomicSub(&packed_sums[pixel], packed);
+    atomicOr(&packed_sums[pixel], WIDE_SUMS_USED);
     let base = 2 * pixel;
-    let red_green = u64(colour & 0xffu) | (u64((colour >> 8u) & 0xffu) << 32u);
-    let blue_count = u64((colour >> 16u) & 0xffu) | (u64(1u) << 32u);
-    atomicAdd(&accumulator[base], red_green);
-    atomicAdd(&accumulator[base + 1], blue_count);
+    atomicAdd(&accumulator[base], red | (green << 32u));
+    atomicAdd(&accumulator[base + 1], blue | (1lu << 32u));
 }

@@ -97,7 +97,22 @@ fn quotient(a: vec3<u32>, b: u32) -> vec3<u32> {
     return q;
 }
 
-// High-quality mode: the rounded average of the colours accumulated per pixel.
+// High-quality mode: writes pixel `pixel`'s rounded average of the colours accumulated in
+// `sums` (red, green, blue, count), or the background where none was; and its depth.
+fn write_average(pixel: u32, sums: vec4<u32>, depth_bits: u32) {
+    // Round half up: (sum + count / 2) / count. Selects, not branches (see `resolve`).
+    let count = sums.w;
+    let divisor = max(count, 1u);
+    let average = quotient(sums.xyz + vec3<u32>(count / 2u), divisor);
+    let rgba = average.x | (average.y << 8u) | (average.z << 16u) | (255u << 24u);
+    colour_out[pixel] = select(rgba, frame.background, count == 0u);
+    if WRITE_DEPTH {
+        depth_out[pixel] = bitcast<f32>(select(depth_bits, NO_SURFACE_BITS, count == 0u));
+    }
+}
+
+// High-quality mode with 32-bit atomics: the rounded average of the colours accumulated per
+// pixel.
 @compute @workgroup_size(256)
 fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let first = pixel_of(id, groups) * AVERAGE_RUN;
@@ -126,15 +141,53 @@ fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_wo
     }
     for (var k = 0u; k < AVERAGE_RUN; k++) {
         if k < pixels {
-            // Round half up: (sum + count / 2) / count. Selects, not branches (see `resolve`).
-            let count = sums[k].w;
-            let divisor = max(count, 1u);
-            let average = quotient(sums[k].xyz + vec3<u32>(count / 2u), divisor);
-            let rgba = average.x | (average.y << 8u) | (average.z << 16u) | (255u << 24u);
-            colour_out[first + k] = select(rgba, frame.background, count == 0u);
-            if WRITE_DEPTH {
-                depth_out[first + k] = bitcast<f32>(select(depths[k], NO_SURFACE_BITS, count == 0u));
+            write_average(first + k, sums[k], depths[k]);
+        }
+    }
+}
+
+// High-quality mode with 64-bit atomics (hq_sums_atomic64.wgsl): per pixel the packed sums,
+// 16 bits each (red, green, blue, count), and where their flag is set the wide sums too.
+// Zeroed as they are read, like the framebuffer.
+@group(0) @binding(5) var<storage, read_write> packed_sums: array<vec2<u32>>;
+
+// The flag of a packed word that says the wide sums hold points too (bit 63).
+const WIDE_SUMS_USED: u32 = 0x80000000u;
+
+@compute @workgroup_size(256)
+fn resolve_average_packed(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let first = pixel_of(id, groups) * AVERAGE_RUN;
+    if first >= frame.resolve_pixels {
+        return;
+    }
+    let pixels = min(AVERAGE_RUN, frame.resolve_pixels - first);
+    var sums: array<vec4<u32>, AVERAGE_RUN>;
+    var depths: array<u32, AVERAGE_RUN>;
+    var covered = false;
+    for (var k = 0u; k < AVERAGE_RUN; k++) {
+        if k < pixels {
+            let packed = packed_sums[first + k];
+            sums[k] = vec4<u32>(packed.x & 0xffffu, packed.x >> 16u, packed.y & 0xffffu, (packed.y >> 16u) & 0x7fffu);
+            // Rare: only pixels with more than 256 points in the depth band use them.
+            if (packed.y & WIDE_SUMS_USED) != 0u {
+                sums[k] += accumulator[first + k];
+                accumulator[first + k] = vec4<u32>(0u);
             }
+            depths[k] = framebuffer[first + k].y;
+            covered = covered || sums[k].w != 0u || depths[k] != EMPTY;
+        }
+    }
+    if covered {
+        for (var k = 0u; k < AVERAGE_RUN; k++) {
+            if k < pixels {
+                packed_sums[first + k] = vec2<u32>(0u);
+                framebuffer[first + k] = vec2<u32>(EMPTY, EMPTY);
+            }
+        }
+    }
+    for (var k = 0u; k < AVERAGE_RUN; k++) {
+        if k < pixels {
+            write_average(first + k, sums[k], depths[k]);
         }
     }
 }

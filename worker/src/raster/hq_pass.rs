@@ -27,6 +27,12 @@ impl HqAccumulatePass {
         }
     }
 
+    /// Whether the accumulation adds to the packed sums (`FrameTargets::packed_sums`): with
+    /// 64-bit atomics where the device has them and `allow_64`.
+    pub fn packs_sums(&self, allow_64: bool) -> bool {
+        allow_64 && self.atomic64.is_some()
+    }
+
     /// Records the accumulation over every chunk, with 64-bit atomics where the device has
     /// them and `allow_64`. `targets.accumulator` must exist and be cleared, and the depth pass
     /// must have run.
@@ -40,10 +46,11 @@ impl HqAccumulatePass {
         let Some(accumulator) = frame.targets.accumulator.as_ref() else {
             return;
         };
-        let pipelines = match &self.atomic64 {
-            Some(atomic64) if allow_64 => atomic64,
-            _ => &self.atomic32,
+        let packed_sums = match (&self.atomic64, &frame.targets.packed_sums) {
+            (Some(atomic64), Some(packed_sums)) if allow_64 => Some((atomic64, packed_sums)),
+            _ => None,
         };
+        let pipelines = packed_sums.map_or(&self.atomic32, |(atomic64, _)| atomic64);
         let pipeline = pipelines.get(device, frame.point_size);
         pass.set_pipeline(&pipeline);
         // One dispatch per phase of the depth pass (`phases.rs`): over the whole table, the
@@ -54,23 +61,22 @@ impl HqAccumulatePass {
             (0..frame.batches.phase_count()).flat_map(|phase| frame.batches.phase_parts(phase));
         for (index, (table, entries)) in parts {
             let chunk = &frame.cloud.chunks[index];
-            let bind_group = bind_resources(
-                device,
-                &pipeline,
-                "accumulate",
-                vec![
-                    (0, frame.uniforms.as_entire_binding()),
-                    (1, chunk.positions.as_entire_binding()),
-                    (2, wgpu::BindingResource::Buffer(table)),
-                    (8, chunk.batches.as_entire_binding()),
-                    (3, frame.targets.framebuffer.as_entire_binding()),
-                    (4, accumulator.as_entire_binding()),
-                    (5, chunk.colours.as_entire_binding()),
-                    // The tiles after the depth pass: batches behind the depth band are skipped.
-                    (6, frame.targets.occlusion.tiles.as_entire_binding()),
-                    (7, frame.targets.occlusion.skipped.as_entire_binding()),
-                ],
-            );
+            let mut resources = vec![
+                (0, frame.uniforms.as_entire_binding()),
+                (1, chunk.positions.as_entire_binding()),
+                (2, wgpu::BindingResource::Buffer(table)),
+                (8, chunk.batches.as_entire_binding()),
+                (3, frame.targets.framebuffer.as_entire_binding()),
+                (4, accumulator.as_entire_binding()),
+                (5, chunk.colours.as_entire_binding()),
+                // The tiles after the depth pass: batches behind the depth band are skipped.
+                (6, frame.targets.occlusion.tiles.as_entire_binding()),
+                (7, frame.targets.occlusion.skipped.as_entire_binding()),
+            ];
+            if let Some((_, packed_sums)) = packed_sums {
+                resources.push((10, packed_sums.as_entire_binding()));
+            }
+            let bind_group = bind_resources(device, &pipeline, "accumulate", resources);
             pass.set_bind_group(0, &bind_group, &[]);
             let (x, y) = super::dispatch_grid(entries);
             pass.dispatch_workgroups(x, y, 1);

@@ -629,7 +629,8 @@ impl Renderer {
             ));
         }
         if let (Quality::High { .. }, Some(targets)) = (settings.quality, self.targets.as_mut()) {
-            targets.ensure_accumulator(&self.gpu.device);
+            let packed_sums = self.hq.packs_sums(settings.atomics == AtomicsMode::Auto);
+            targets.ensure_accumulator(&self.gpu.device, packed_sums);
         }
         if let Some(targets) = self.targets.as_mut() {
             if settings.fill.is_some() {
@@ -776,7 +777,9 @@ impl Renderer {
                 (
                     Stage::Resolve,
                     Box::new(move |pass| {
-                        self.resolve.record_resolve_average(device, pass, resolve)
+                        let packed_sums = self.hq.packs_sums(allow_64);
+                        self.resolve
+                            .record_resolve_average(device, pass, resolve, packed_sums)
                     }),
                 ),
             ],

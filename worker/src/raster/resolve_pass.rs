@@ -68,6 +68,7 @@ pub(crate) struct ResolvePass {
     clear: wgpu::ComputePipeline,
     resolve: ByDepthOutput,
     resolve_average: ByDepthOutput,
+    resolve_average_packed: ByDepthOutput,
 }
 
 /// One resolve entry point built twice: with and without the store of the depth image
@@ -105,6 +106,7 @@ impl ResolvePass {
             clear: compute_pipeline(device, &module, "clear", &[]),
             resolve: ByDepthOutput::new(device, &module, "resolve"),
             resolve_average: ByDepthOutput::new(device, &module, "resolve_average"),
+            resolve_average_packed: ByDepthOutput::new(device, &module, "resolve_average_packed"),
         }
     }
 
@@ -130,23 +132,29 @@ impl ResolvePass {
     }
 
     /// High-quality mode: the average of the accumulated colours per pixel of the frame's run,
-    /// and the nearest depth where needed.
+    /// and the nearest depth where needed; from the packed sums too where `packed_sums` (the
+    /// accumulation added to them, `HqAccumulatePass::packs_sums`).
     pub fn record_resolve_average(
         &self,
         device: &wgpu::Device,
         pass: &mut wgpu::ComputePass<'_>,
         frame: ResolveFrame<'_>,
+        packed_sums: bool,
     ) {
-        let Some(accumulator) = frame.targets.accumulator.as_ref() else {
+        let targets = frame.targets;
+        let Some(accumulator) = targets.accumulator.as_ref() else {
             return;
         };
-        let pipeline = self.resolve_average.get(frame.write_depth);
+        let (pipeline, packed_sums) = match (packed_sums, &targets.packed_sums) {
+            (true, Some(packed)) => (&self.resolve_average_packed, Some(packed)),
+            _ => (&self.resolve_average, None),
+        };
         self.record(
             device,
             pass,
-            (pipeline, AVERAGE_RUN),
+            (pipeline.get(frame.write_depth), AVERAGE_RUN),
             frame,
-            Some(accumulator),
+            Some((accumulator, packed_sums)),
         );
     }
 
@@ -156,7 +164,7 @@ impl ResolvePass {
         pass: &mut wgpu::ComputePass<'_>,
         (pipeline, pixels_per_invocation): (&wgpu::ComputePipeline, u64),
         frame: ResolveFrame<'_>,
-        accumulator: Option<&wgpu::Buffer>,
+        sums: Option<(&wgpu::Buffer, Option<&wgpu::Buffer>)>,
     ) {
         let (run, targets) = (frame.run, frame.targets);
         if run.count == 0 {
@@ -168,8 +176,11 @@ impl ResolvePass {
             (2, run.binding(&targets.colour, 4)),
             (3, run.binding(&targets.depth, 4)),
         ];
-        if let Some(accumulator) = accumulator {
+        if let Some((accumulator, packed_sums)) = sums {
             resources.push((4, run.binding(accumulator, 16)));
+            if let Some(packed_sums) = packed_sums {
+                resources.push((5, run.binding(packed_sums, 8)));
+            }
         }
         let bind_group = bind_resources(device, pipeline, "resolve", resources);
         let invocations = run.count.div_ceil(pixels_per_invocation);

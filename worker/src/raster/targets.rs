@@ -31,6 +31,10 @@ pub(crate) struct FrameTargets {
     /// Created (zeroed) on the first high-quality frame of this size; `resolve_average`
     /// zeroes it again as it reads it.
     pub accumulator: Option<wgpu::Buffer>,
+    /// High-quality mode with 64-bit atomics: per pixel the sums of red, green, blue and the
+    /// count, 16 bits each, packed in a u64 (`shaders/hq_sums_atomic64.wgsl`); the
+    /// `accumulator` then holds only what overflows them. Created and zeroed like it.
+    pub packed_sums: Option<wgpu::Buffer>,
     /// Filling: created on the first filled frame of this size.
     pub fill: Option<FillTargets>,
     /// Pintus shading: created on the first such frame of this size.
@@ -89,6 +93,7 @@ impl FrameTargets {
             colour_staging: staging_buffer(device, "colour image readback", pixels * 4),
             depth_staging: staging_buffer(device, "depth image readback", pixels * 4),
             accumulator: None,
+            packed_sums: None,
             fill: None,
             shading: None,
             clean_outside: None,
@@ -153,16 +158,23 @@ impl FrameTargets {
         });
     }
 
-    pub fn ensure_accumulator(&mut self, device: &wgpu::Device) {
+    /// The high-quality accumulator, and the packed sums where `packed_sums`.
+    pub fn ensure_accumulator(&mut self, device: &wgpu::Device, packed_sums: bool) {
         let pixels = self.pixels();
-        self.accumulator.get_or_insert_with(|| {
+        let zeroed = |label, bytes_per_pixel| {
             device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("colour accumulator"),
-                size: pixels * 16,
+                label: Some(label),
+                size: pixels * bytes_per_pixel,
                 usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
                 mapped_at_creation: false,
             })
-        });
+        };
+        self.accumulator
+            .get_or_insert_with(|| zeroed("colour accumulator", 16));
+        if packed_sums {
+            self.packed_sums
+                .get_or_insert_with(|| zeroed("packed colour sums", 8));
+        }
     }
 
     pub fn pixels(&self) -> u64 {

@@ -739,6 +739,48 @@ fn high_quality_sums_are_the_same_with_64_and_32_bit_atomics() {
     }
 }
 
+/// Pixels with more points in the depth band than the packed sums hold (256) spill into the
+/// wide sums (`shaders/hq_sums_atomic64.wgsl`): their averages stay exact, the same as the
+/// 32-bit path's to the bit and the reference's, frame after frame.
+#[test]
+fn high_quality_averages_pixels_deeper_than_the_packed_sums() {
+    let mut renderer = Renderer::new(gpu());
+    let mut settings =
+        FrameSettings::new(24, 16, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    settings.quality = Quality::HIGH;
+    let (near, far) = (settings.camera.near, settings.camera.far);
+    // From one point to a thousand in a pixel's band: some fit the packed sums, most not.
+    let cloud = pixel_centre_scene_with(&settings, 12, |rng| {
+        let front = near + (far - near) * rng.random_range(0.1..0.6);
+        let points = rng.random_range(1..1000);
+        (0..points)
+            .map(|_| front * rng.random_range(1.0..1.005))
+            .collect()
+    });
+    // Bright colours, so that a channel's sum over more than 257 points overflows 16 bits.
+    let mut rng = ChaCha8Rng::seed_from_u64(13);
+    let mut cloud = cloud;
+    for colour in &mut cloud.colors {
+        let mut channel = || rng.random_range(224..=255);
+        *colour = pack_rgba8(channel(), channel(), channel());
+    }
+    let resident = renderer.upload(&cloud).expect("upload");
+    let expected = reference::render(&cloud, &settings);
+    let forced = FrameSettings {
+        atomics: AtomicsMode::Force32,
+        ..settings
+    };
+    for round in 0..2 {
+        let auto = renderer.render(&resident, &settings).expect("render");
+        let with_32 = renderer.render(&resident, &forced).expect("render");
+        let name = format!("hq-deep-pixels-{round}");
+        let diff = compare_images(&name, &auto.image, &with_32.image);
+        assert_eq!(diff.differing, 0, "{name}");
+        let difference = max_channel_difference(&auto.image, &expected.image);
+        assert!(difference <= 1, "{name}: differs by {difference}/255");
+    }
+}
+
 #[test]
 fn high_quality_mode_averages_the_front_surface_like_the_reference() {
     let mut settings = FrameSettings::new(
