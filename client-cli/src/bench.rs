@@ -167,15 +167,20 @@ pub fn run(args: BenchArgs) -> Result<()> {
     }
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
     println!("adapter: {}", gpu.describe());
+    let settle = match bench::settle_after_baseline(gpu.adapter_info.device_type) {
+        Some(settle) => format!(
+            "; the first compute method after PointList for {} ms",
+            settle.as_millis()
+        ),
+        None => String::new(),
+    };
     println!(
         "{width}x{height}, {} warm-up + {} measured rounds per workload; in a round each method \
-         renders unmeasured frames for {} ms (1 to {} frames; the first compute method after \
-         PointList for {} ms), then the measured one",
+         renders unmeasured frames for {} ms (1 to {} frames{settle}), then the measured one",
         options.warmup_frames,
         options.frames,
         bench::WARM_IN_A_ROW.as_millis(),
         bench::MAX_WARM_FRAMES,
-        bench::SETTLE_AFTER_BASELINE.as_millis()
     );
     let report = bench::run(gpu, &options, &mut |line| eprintln!("  {line}"))?;
 

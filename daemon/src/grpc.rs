@@ -574,12 +574,7 @@ impl JobService for Api {
     ) -> Result<Response<pb::Job>, Status> {
         let id = request.into_inner().id;
         let daemon = self.daemon.clone();
-        let (job, frames) = blocking(move || {
-            let job = daemon.job(&id)?;
-            let frames = daemon.store.frame_reports(&id)?;
-            Ok((job, frames))
-        })
-        .await?;
+        let (job, frames) = blocking(move || daemon.job_with_frames(&id)).await?;
         let mut message = job_message(&job, None);
         message.frames = frames.iter().map(frame_message).collect();
         Ok(Response::new(message))

@@ -342,6 +342,19 @@ impl Daemon {
             .ok_or_else(|| DaemonError::NotFound(format!("job {id}")))
     }
 
+    /// A job and the reports of its finished frames, as a crash would leave them: read under
+    /// the scheduling lock, which every change of a job's progress holds until it is flushed,
+    /// so a frame reported done here is never rendered again after a restart.
+    pub fn job_with_frames(
+        &self,
+        id: &str,
+    ) -> Result<(Job, Vec<crate::model::FrameReport>), DaemonError> {
+        let _scheduling = self.scheduling()?;
+        let job = self.job(id)?;
+        let frames = self.store.frame_reports(id)?;
+        Ok((job, frames))
+    }
+
     pub fn list_jobs(
         &self,
         state: Option<JobState>,
