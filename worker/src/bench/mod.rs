@@ -715,7 +715,7 @@ pub const SETTLE_AFTER_BASELINE: Duration = Duration::from_secs(1);
 
 /// [`SETTLE_AFTER_BASELINE`] on a software adapter, where the baseline's frame leaves the
 /// compute threads waiting on the CPUs; `None` on a GPU, which has no such state to leave
-/// (on an H200 the settling only made a run 308 s long instead of about 60).
+/// (on an H200 it took most of a 308 s run).
 pub fn settle_after_baseline(device_type: wgpu::DeviceType) -> Option<Duration> {
     (device_type == wgpu::DeviceType::Cpu).then_some(SETTLE_AFTER_BASELINE)
 }
