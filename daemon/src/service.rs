@@ -8,7 +8,7 @@ use sha2::{Digest, Sha256};
 use tokio::sync::broadcast;
 
 use crate::error::DaemonError;
-use crate::model::{now_unix_ms, Dataset, Job, JobEvent, JobSpec, JobState};
+use crate::model::{now_unix_ms, Dataset, FrameReport, Job, JobEvent, JobSpec, JobState};
 use crate::store::{Page, Store};
 
 /// Limits and locations of a daemon.
@@ -168,7 +168,7 @@ impl Daemon {
         self.events.subscribe()
     }
 
-    pub fn publish(&self, job: &Job, frame: Option<crate::model::FrameReport>) {
+    pub fn publish(&self, job: &Job, frame: Option<FrameReport>) {
         // No watcher is not an error.
         let _ = self.events.send(JobEvent {
             job: job.clone(),
@@ -343,12 +343,9 @@ impl Daemon {
     }
 
     /// A job and the reports of its finished frames, as a crash would leave them: read under
-    /// the scheduling lock, which every change of a job's progress holds until it is flushed,
+    /// the scheduling lock, which every change of a frame's state holds until it is flushed,
     /// so a frame reported done here is never rendered again after a restart.
-    pub fn job_with_frames(
-        &self,
-        id: &str,
-    ) -> Result<(Job, Vec<crate::model::FrameReport>), DaemonError> {
+    pub fn job_with_frames(&self, id: &str) -> Result<(Job, Vec<FrameReport>), DaemonError> {
         let _scheduling = self.scheduling()?;
         let job = self.job(id)?;
         let frames = self.store.frame_reports(id)?;
