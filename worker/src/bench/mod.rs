@@ -11,8 +11,9 @@
 //! with every method in turn, so that slow drifts of the machine's speed reach every method
 //! alike; each method's measured frame follows at least [`WARM_IN_A_ROW`] of its own
 //! unmeasured frames ([`SETTLE_AFTER_BASELINE`] for the first compute method after the
-//! baseline on a software adapter), as in a job's run of frames. Each compute method has a renderer of its
-//! own, so that no method starts its frame from the state another left (`Methods`).
+//! baseline on a software adapter), as in a job's run of frames. Each compute method has a
+//! renderer of its own, so that no method starts its frame from the state another left
+//! (`Methods`).
 //!
 //! Series: uniform cubes of 1M to 30M points (frame time against points in view, with a
 //! least-squares line per method) and the k-plane cuboid (against overdraw); `huge` adds a
@@ -703,9 +704,9 @@ pub const WARM_IN_A_ROW: Duration = Duration::from_millis(50);
 pub const MAX_WARM_FRAMES: usize = 8;
 
 /// On a software adapter, the first compute method after the baseline's frame renders
-/// unmeasured frames for this long, however many that takes. While lavapipe draws a `PointList` frame (0.5 s to 13 s on
-/// 2 cores) its compute threads sleep, and for a while after they wake the two of them wait
-/// on the CPUs' run queues: right after two baseline frames, the 10M cube's corner view
+/// unmeasured frames for this long, however many that takes. While lavapipe draws a
+/// `PointList` frame (0.5 s to 13 s on 2 cores) its compute threads sleep, and for a while
+/// after they wake the two of them wait on the CPUs' run queues: right after two baseline frames, the 10M cube's corner view
 /// rasterized in 6.2-6.8 ms a frame, each compute thread waiting 12-21 ms over 8 frames,
 /// against 4.5-4.8 ms and under 1 ms of wait in a run of compute frames alone. Rounds of 8
 /// frames still slow in part after 200 ms of compute frames: 2 of 5; after 500 ms: 3 of 12;
