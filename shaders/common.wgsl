@@ -87,13 +87,13 @@ fn dequantise(word: vec2<u32>, origin: vec3<f32>, step: vec3<f32>) -> vec3<f32> 
 }
 
 // Index of the first of the two colour words that hold point `i`'s RGB bytes.
-fn colour_word_index(i: u32) -> u32 {
+fn color_word_index(i: u32) -> u32 {
     return (3u * i) >> 2u;
 }
 
-// The RGBA8 colour of point `i` from the two words at `colour_word_index(i)`: alpha is 255,
+// The RGBA8 colour of point `i` from the two words at `color_word_index(i)`: alpha is 255,
 // points are opaque.
-fn unpack_colour(first: u32, second: u32, i: u32) -> u32 {
+fn unpack_color(first: u32, second: u32, i: u32) -> u32 {
     let shift = ((3u * i) & 3u) * 8u;
     // A shift by 32 is undefined in WGSL: only bytes that spill over come from `second`.
     var rgb = first >> shift;

@@ -8,7 +8,7 @@
 // shade = exp(-300 * edl_strength * response); colour *= shade.
 
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
-@group(0) @binding(1) var<storage, read_write> colour: array<u32>;
+@group(0) @binding(1) var<storage, read_write> color: array<u32>;
 @group(0) @binding(2) var<storage, read> depth: array<f32>;
 
 const OUTLINE_RESPONSE: f32 = 100.0;
@@ -51,8 +51,8 @@ fn shade(@builtin(global_invocation_id) id: vec3<u32>) {
     if shade >= 1.0 {
         return;
     }
-    let rgba = unpack4x8unorm(colour[pixel]);
+    let rgba = unpack4x8unorm(color[pixel]);
     // Outlines on a transparent background become opaque as they darken.
     let alpha = select(rgba.a, mix(1.0, rgba.a, shade), !is_surface(here));
-    colour[pixel] = pack_unorm4x8(vec4<f32>(rgba.rgb * shade, alpha));
+    color[pixel] = pack_unorm4x8(vec4<f32>(rgba.rgb * shade, alpha));
 }

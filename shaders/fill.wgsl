@@ -7,7 +7,7 @@
 
 @group(0) @binding(0) var<uniform> params: ScreenParams;
 @group(0) @binding(1) var<storage, read> depth_in: array<f32>;
-@group(0) @binding(2) var<storage, read> colour_in: array<u32>;
+@group(0) @binding(2) var<storage, read> color_in: array<u32>;
 // The mutable pixels, (y << 16) | x each, and their count (visibility.wgsl): the passes run
 // one invocation per listed pixel; fixed pixels are never visited.
 @group(0) @binding(3) var<storage, read> mutable_list: array<u32>;
@@ -40,7 +40,7 @@ fn listed_pixel(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32) -> ListedPix
     return listed;
 }
 @group(0) @binding(4) var<storage, read_write> depth_out: array<f32>;
-@group(0) @binding(5) var<storage, read_write> colour_out: array<u32>;
+@group(0) @binding(5) var<storage, read_write> color_out: array<u32>;
 
 @compute @workgroup_size(LIST_WORKGROUP)
 fn fill_step(
@@ -76,7 +76,7 @@ fn fill_step(
     }
     if count == 0u {
         depth_out[pixel] = z0;
-        colour_out[pixel] = colour_in[pixel];
+        color_out[pixel] = color_in[pixel];
         return;
     }
 
@@ -96,26 +96,26 @@ fn fill_step(
             median_depth = select(median_depth, depths[i], chosen);
         }
         depth_out[pixel] = median_depth;
-        colour_out[pixel] = colour_in[median];
+        color_out[pixel] = color_in[median];
         return;
     }
 
     let delta = params.depth_tolerance * z0;
     var weight_sum = 0.0;
     var depth_sum = 0.0;
-    var colour_sum = vec4<f32>(0.0);
+    var color_sum = vec4<f32>(0.0);
     for (var k = 0u; k < 9u; k++) {
         if valid[k] {
             let offset = vec2<f32>(f32(i32(k % 3u) - 1), f32(i32(k / 3u) - 1));
             let w = (1.0 - length(offset) / 2.0) * (1.0 - min(1.0, abs(depths[k] - z0) / delta));
             weight_sum += w;
             depth_sum += w * depths[k];
-            colour_sum += w * unpack4x8unorm(colour_in[neighbours[k]]);
+            color_sum += w * unpack4x8unorm(color_in[neighbours[k]]);
         }
     }
     // The pixel itself always has weight 1, so the sum is never 0.
     depth_out[pixel] = depth_sum / weight_sum;
-    colour_out[pixel] = pack_unorm4x8(colour_sum / weight_sum);
+    color_out[pixel] = pack_unorm4x8(color_sum / weight_sum);
 }
 
 // Copies the listed pixels of the last step's output into the other pair.
@@ -131,5 +131,5 @@ fn finish(
     }
     let pixel = listed.y * params.width + listed.x;
     depth_out[pixel] = depth_in[pixel];
-    colour_out[pixel] = colour_in[pixel];
+    color_out[pixel] = color_in[pixel];
 }

@@ -18,7 +18,7 @@ override WORKGROUP_SIZE: u32 = 128u;
 @group(0) @binding(8) var<storage, read> batches: array<Batch>;
 // The point framebuffer after the depth pass: y is the nearest depth's bits.
 @group(0) @binding(3) var<storage, read> framebuffer: array<vec2<u32>>;
-@group(0) @binding(5) var<storage, read> colours: array<u32>;
+@group(0) @binding(5) var<storage, read> colors: array<u32>;
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn accumulate(
@@ -55,8 +55,8 @@ fn accumulate(
             if splat.depth > nearest * band {
                 continue;
             }
-            let w = colour_word_index(i);
-            add_to_sums(pixel, unpack_colour(colours[w], colours[w + 1u], i));
+            let w = color_word_index(i);
+            add_to_sums(pixel, unpack_color(colors[w], colors[w + 1u], i));
         }
     }
 }

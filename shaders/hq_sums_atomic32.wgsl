@@ -3,10 +3,10 @@
 
 @group(0) @binding(4) var<storage, read_write> accumulator: array<atomic<u32>>;
 
-fn add_to_sums(pixel: i32, colour: u32) {
+fn add_to_sums(pixel: i32, color: u32) {
     let base = 4 * pixel;
-    atomicAdd(&accumulator[base], colour & 0xffu);
-    atomicAdd(&accumulator[base + 1], (colour >> 8u) & 0xffu);
-    atomicAdd(&accumulator[base + 2], (colour >> 16u) & 0xffu);
+    atomicAdd(&accumulator[base], color & 0xffu);
+    atomicAdd(&accumulator[base + 1], (color >> 8u) & 0xffu);
+    atomicAdd(&accumulator[base + 2], (color >> 16u) & 0xffu);
     atomicAdd(&accumulator[base + 3], 1u);
 }

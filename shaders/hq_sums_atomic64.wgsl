@@ -23,10 +23,10 @@ const WIDE_SUMS_USED: u64 = 0x8000000000000000lu;
 @group(0) @binding(4) var<storage, read_write> accumulator: array<atomic<u64>>;
 @group(0) @binding(10) var<storage, read_write> packed_sums: array<atomic<u64>>;
 
-fn add_to_sums(pixel: i32, colour: u32) {
-    let red = u64(colour & 0xffu);
-    let green = u64((colour >> 8u) & 0xffu);
-    let blue = u64((colour >> 16u) & 0xffu);
+fn add_to_sums(pixel: i32, color: u32) {
+    let red = u64(color & 0xffu);
+    let green = u64((color >> 8u) & 0xffu);
+    let blue = u64((color >> 16u) & 0xffu);
     let packed = red | (green << 16u) | (blue << 32u) | (1lu << PACKED_COUNT_SHIFT);
     let before = atomicAdd(&packed_sums[pixel], packed);
     if (u32(before >> PACKED_COUNT_SHIFT) & PACKED_COUNT_MASK) < PACKED_POINTS {

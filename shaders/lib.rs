@@ -9,7 +9,7 @@
 pub enum Shader {
     /// Basic mode with 64-bit atomics: one pass, entry point `rasterize`.
     RasterAtomic64,
-    /// Basic mode with 32-bit atomics: entry points `rasterize_depth`, `rasterize_colour`.
+    /// Basic mode with 32-bit atomics: entry points `rasterize_depth`, `rasterize_color`.
     RasterAtomic32,
     /// High-quality mode's colour accumulation with 32-bit atomics: entry point `accumulate`.
     HqAccumulate,

@@ -66,7 +66,7 @@ fn level(@builtin(global_invocation_id) id: vec3<u32>) {
     depth_out[pixel] = (mean + d_min) / 2.0;
 }
 
-@group(0) @binding(4) var<storage, read_write> colour: array<u32>;
+@group(0) @binding(4) var<storage, read_write> color: array<u32>;
 
 // Multiplies the colour of every surface pixel by its normalised shading term.
 @compute @workgroup_size(16, 16)
@@ -79,6 +79,6 @@ fn apply(@builtin(global_invocation_id) id: vec3<u32>) {
         return;
     }
     let shade = shade_sum[pixel] * params.inverse_total_weight;
-    let rgba = unpack4x8unorm(colour[pixel]);
-    colour[pixel] = pack_unorm4x8(vec4<f32>(rgba.rgb * shade, rgba.a));
+    let rgba = unpack4x8unorm(color[pixel]);
+    color[pixel] = pack_unorm4x8(vec4<f32>(rgba.rgb * shade, rgba.a));
 }

@@ -12,11 +12,11 @@ override BATCH_POINTS: u32 = 4096u;
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
 @group(0) @binding(1) var<storage, read> positions: array<vec2<u32>>;
 @group(0) @binding(2) var<storage, read> batches: array<Batch>;
-@group(0) @binding(5) var<storage, read> colours: array<u32>;
+@group(0) @binding(5) var<storage, read> colors: array<u32>;
 
 struct VertexOutput {
     @builtin(position) clip: vec4<f32>,
-    @location(0) @interpolate(flat) colour: vec4<f32>,
+    @location(0) @interpolate(flat) color: vec4<f32>,
 }
 
 @vertex
@@ -24,14 +24,14 @@ fn vertex_main(@builtin(vertex_index) index: u32) -> VertexOutput {
     // The same quantised points as the compute passes; dequantising is a few ALU operations.
     let batch = batches[index / BATCH_POINTS];
     let position = dequantise(positions[index], batch.min, quantisation_step(batch));
-    let w = colour_word_index(index);
+    let w = color_word_index(index);
     var out: VertexOutput;
     out.clip = frame.view_proj * vec4<f32>(position, 1.0);
-    out.colour = unpack4x8unorm(unpack_colour(colours[w], colours[w + 1u], index));
+    out.color = unpack4x8unorm(unpack_color(colors[w], colors[w + 1u], index));
     return out;
 }
 
 @fragment
 fn fragment_main(in: VertexOutput) -> @location(0) vec4<f32> {
-    return in.colour;
+    return in.color;
 }

@@ -3,7 +3,7 @@
 //
 // The framebuffer has the same memory layout as the 64-bit one, as pairs of u32 words:
 // [2i] = colour, [2i + 1] = depth bits. `rasterize_depth` keeps the nearest depth per pixel;
-// `rasterize_colour` then lets every point whose depth equals the stored one atomicMin its
+// `rasterize_color` then lets every point whose depth equals the stored one atomicMin its
 // colour, which picks the same winner as the 64-bit (depth << 32 | colour) minimum. Both
 // passes compute depths with the same code from the same inputs, so equality is exact.
 
@@ -15,23 +15,23 @@ override WORKGROUP_SIZE: u32 = 128u;
 @group(0) @binding(2) var<storage, read> listed: array<u32>;
 @group(0) @binding(8) var<storage, read> batches: array<Batch>;
 @group(0) @binding(3) var<storage, read_write> framebuffer: array<atomic<u32>>;
-@group(0) @binding(5) var<storage, read> colours: array<u32>;
+@group(0) @binding(5) var<storage, read> colors: array<u32>;
 
-fn colour_of(i: u32) -> u32 {
-    let w = colour_word_index(i);
-    return unpack_colour(colours[w], colours[w + 1u], i);
+fn color_of(i: u32) -> u32 {
+    let w = color_word_index(i);
+    return unpack_color(colors[w], colors[w + 1u], i);
 }
 
 fn depth_word(pixel: i32) -> i32 {
     return 2 * pixel + 1;
 }
 
-fn colour_word(pixel: i32) -> i32 {
+fn color_word(pixel: i32) -> i32 {
     return 2 * pixel;
 }
 
-// The two passes walk the same points in the same way; `colour_pass` picks what they write.
-fn rasterize_batch(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32, colour_pass: bool) {
+// The two passes walk the same points in the same way; `color_pass` picks what they write.
+fn rasterize_batch(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32, color_pass: bool) {
     let b = batch_index(workgroup, groups);
     if b >= arrayLength(&listed) {
         return;
@@ -42,7 +42,7 @@ fn rasterize_batch(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32, colour_pa
         return;
     }
     if batch_occluded(frame, batch, 1.0) {
-        count_skipped(select(0u, 1u, colour_pass), lane);
+        count_skipped(select(0u, 1u, color_pass), lane);
         return;
     }
     let projection = batch_projection(frame, batch);
@@ -58,9 +58,9 @@ fn rasterize_batch(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32, colour_pa
                 continue;
             }
             let stored_depth = atomicLoad(&framebuffer[depth_word(pixel)]);
-            if colour_pass {
+            if color_pass {
                 if stored_depth == depth_bits {
-                    atomicMin(&framebuffer[colour_word(pixel)], colour_of(i));
+                    atomicMin(&framebuffer[color_word(pixel)], color_of(i));
                 }
             } else if stored_depth >= depth_bits {
                 // Early depth test as in the 64-bit pass: only nearer or equal points try.
@@ -80,7 +80,7 @@ fn rasterize_depth(
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
-fn rasterize_colour(
+fn rasterize_color(
     @builtin(workgroup_id) workgroup: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lane: u32,

@@ -18,11 +18,11 @@ override WORKGROUP_SIZE: u32 = 128u;
 // The same buffer as `framebuffer`, read without atomics for the early depth test: a stale
 // read only costs an unneeded atomicMin, never a wrong pixel. y is the depth word.
 @group(0) @binding(4) var<storage, read_write> framebuffer_words: array<vec2<u32>>;
-@group(0) @binding(5) var<storage, read> colours: array<u32>;
+@group(0) @binding(5) var<storage, read> colors: array<u32>;
 
-fn colour_of(i: u32) -> u32 {
-    let w = colour_word_index(i);
-    return unpack_colour(colours[w], colours[w + 1u], i);
+fn color_of(i: u32) -> u32 {
+    let w = color_word_index(i);
+    return unpack_color(colors[w], colors[w + 1u], i);
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
@@ -52,8 +52,8 @@ fn rasterize(
         }
         let depth_bits = bitcast<u32>(splat.depth);
         // Read only once a pixel passed the early depth test.
-        var colour = 0u;
-        var have_colour = false;
+        var color = 0u;
+        var have_color = false;
         for (var k = 0u; k < SPLAT_PIXELS; k++) {
             let pixel = splat_pixel(frame, splat, k);
             if pixel < 0 {
@@ -63,11 +63,11 @@ fn rasterize(
             if framebuffer_words[pixel].y < depth_bits {
                 continue;
             }
-            if !have_colour {
-                colour = colour_of(i);
-                have_colour = true;
+            if !have_color {
+                color = color_of(i);
+                have_color = true;
             }
-            atomicMin(&framebuffer[pixel], (u64(depth_bits) << 32u) | u64(colour));
+            atomicMin(&framebuffer[pixel], (u64(depth_bits) << 32u) | u64(color));
         }
     }
 }

@@ -31,7 +31,7 @@ override WRITE_DEPTH: bool = true;
 
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
 @group(0) @binding(1) var<storage, read_write> framebuffer: array<vec2<u32>>;
-@group(0) @binding(2) var<storage, read_write> colour_out: array<u32>;
+@group(0) @binding(2) var<storage, read_write> color_out: array<u32>;
 @group(0) @binding(3) var<storage, read_write> depth_out: array<f32>;
 // High-quality mode only: per pixel the sums of red, green, blue and the count of points;
 // zeroed as they are read, like the framebuffer (buffers start zeroed).
@@ -76,7 +76,7 @@ fn resolve(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups
     for (var k = 0u; k < RESOLVE_RUN; k++) {
         if k < count {
             let empty = entries[k].y == EMPTY;
-            colour_out[first + k] = select(entries[k].x, frame.background, empty);
+            color_out[first + k] = select(entries[k].x, frame.background, empty);
             if WRITE_DEPTH {
                 depth_out[first + k] = bitcast<f32>(select(entries[k].y, NO_SURFACE_BITS, empty));
             }
@@ -105,7 +105,7 @@ fn write_average(pixel: u32, sums: vec4<u32>, depth_bits: u32) {
     let divisor = max(count, 1u);
     let average = quotient(sums.xyz + vec3<u32>(count / 2u), divisor);
     let rgba = average.x | (average.y << 8u) | (average.z << 16u) | (255u << 24u);
-    colour_out[pixel] = select(rgba, frame.background, count == 0u);
+    color_out[pixel] = select(rgba, frame.background, count == 0u);
     if WRITE_DEPTH {
         depth_out[pixel] = bitcast<f32>(select(depth_bits, NO_SURFACE_BITS, count == 0u));
     }

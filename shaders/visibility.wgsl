@@ -15,9 +15,9 @@
 
 @group(0) @binding(0) var<uniform> params: ScreenParams;
 @group(0) @binding(1) var<storage, read> depth_in: array<f32>;
-@group(0) @binding(2) var<storage, read> colour_in: array<u32>;
+@group(0) @binding(2) var<storage, read> color_in: array<u32>;
 @group(0) @binding(3) var<storage, read_write> depth_out: array<f32>;
-@group(0) @binding(4) var<storage, read_write> colour_out: array<u32>;
+@group(0) @binding(4) var<storage, read_write> color_out: array<u32>;
 // The mutable pixels, (y << 16) | x each, in the order the invocations append them.
 @group(0) @binding(5) var<storage, read_write> mutable_list: array<u32>;
 
@@ -124,10 +124,10 @@ fn classify(@builtin(global_invocation_id) invocation: vec3<u32>) {
 
     if open >= params.min_solid_angle {
         depth_out[pixel] = here;
-        colour_out[pixel] = colour_in[pixel];
+        color_out[pixel] = color_in[pixel];
     } else {
         depth_out[pixel] = infinite_depth();
-        colour_out[pixel] = params.background;
+        color_out[pixel] = params.background;
         mutable_list[atomicAdd(&fill_args.count, 1u)] = (id.y << 16u) | id.x;
     }
 }

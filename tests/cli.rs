@@ -197,7 +197,7 @@ fn bad_input_fails_with_one_line_that_names_the_problem() {
 }
 
 #[test]
-fn colour_modes_and_high_quality_are_options_of_render() {
+fn color_modes_and_high_quality_are_options_of_render() {
     let dir = tempfile::tempdir().expect("tempdir");
     let laz = sample(dir.path(), "sample.laz", 30_000);
     let mut images = Vec::new();

@@ -6,13 +6,13 @@ use std::time::Duration;
 use pointfarm_daemon::camera_path::camera_for_frame;
 use pointfarm_daemon::model::{CameraPath, Turntable};
 use pointfarm_proto::v1 as pb;
+use pointfarm_render::ingest::load_point_cloud;
+use pointfarm_render::raster::{FrameSettings, Renderer};
 use pointfarm_tests::service::{
     fetch_images, gpu, scan, turntable_job, upload, upload_messages, watch_to_end, write_sample,
     TestDaemon,
 };
 use pointfarm_tests::ServeProcess;
-use pointfarm_worker::ingest::load_point_cloud;
-use pointfarm_worker::raster::{FrameSettings, Renderer};
 use tonic::Code;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

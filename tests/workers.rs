@@ -10,12 +10,12 @@ use pointfarm_daemon::model::{CameraPath, Turntable};
 use pointfarm_daemon::service::DaemonConfig;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
+use pointfarm_render::ingest::load_point_cloud;
+use pointfarm_render::raster::{FrameSettings, Renderer};
 use pointfarm_tests::service::{
     fetch_images, gpu, scan, turntable_job, upload, watch_to_end, write_sample, TestDaemon,
 };
 use pointfarm_tests::WorkerProcess;
-use pointfarm_worker::ingest::load_point_cloud;
-use pointfarm_worker::raster::{FrameSettings, Renderer};
 use tonic::metadata::{Ascii, MetadataValue};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;

@@ -8,10 +8,10 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use pointfarm_worker::bench::{
+use pointfarm_render::bench::{
     self, BenchOptions, BenchReport, ComputeMode, MethodResult, HEADLINE_WORKLOAD,
 };
-use pointfarm_worker::gpu::{AdapterChoice, GpuContext};
+use pointfarm_render::gpu::{AdapterChoice, GpuContext};
 use serde::Serialize;
 
 use crate::parse;

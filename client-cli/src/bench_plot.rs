@@ -7,7 +7,7 @@ use std::sync::OnceLock;
 
 use anyhow::{anyhow, Context, Result};
 use plotters::prelude::*;
-use pointfarm_worker::bench::{in_uniform_series, BenchReport, WorkloadResult, CUBOID_PLANES};
+use pointfarm_render::bench::{in_uniform_series, BenchReport, WorkloadResult, CUBOID_PLANES};
 
 /// Where the label font is looked for, in order.
 const FONT_PATHS: [&str; 4] = [
@@ -123,16 +123,16 @@ fn panel(
         .draw()
         .map_err(plot_error)?;
     for (i, (method, pts)) in lines.into_iter().enumerate() {
-        let colour = Palette99::pick(i).to_rgba();
+        let color = Palette99::pick(i).to_rgba();
         chart
-            .draw_series(LineSeries::new(pts.clone(), colour.stroke_width(2)))
+            .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
             .map_err(plot_error)?
             .label(method)
             .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 24, y)], colour.stroke_width(3))
+                PathElement::new(vec![(x, y), (x + 24, y)], color.stroke_width(3))
             });
         chart
-            .draw_series(pts.into_iter().map(|p| Circle::new(p, 4, colour.filled())))
+            .draw_series(pts.into_iter().map(|p| Circle::new(p, 4, color.filled())))
             .map_err(plot_error)?;
     }
     chart

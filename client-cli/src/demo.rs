@@ -10,9 +10,9 @@ use clap::Args;
 use pointfarm_daemon::server::serve;
 use pointfarm_daemon::service::{Daemon, DaemonConfig};
 use pointfarm_proto::v1 as pb;
-use pointfarm_worker::gpu::{AdapterChoice, GpuContext};
-use pointfarm_worker::ingest::{write_las, LasWriteOptions};
-use pointfarm_worker::sample::{sample_scene, DEFAULT_SAMPLE_POINTS};
+use pointfarm_render::gpu::{AdapterChoice, GpuContext};
+use pointfarm_render::ingest::{write_las, LasWriteOptions};
+use pointfarm_render::sample::{sample_scene, DEFAULT_SAMPLE_POINTS};
 
 use crate::remote::{require_success, status_error, timings_line, Client};
 

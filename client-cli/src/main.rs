@@ -73,8 +73,8 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let default_level = match cli.verbose {
         0 => "warn",
-        1 => "warn,pointfarm_worker=info,pointfarm=info",
-        _ => "info,pointfarm_worker=debug,pointfarm=debug",
+        1 => "warn,pointfarm_render=info,pointfarm=info",
+        _ => "info,pointfarm_render=debug,pointfarm=debug",
     };
     tracing_subscriber::fmt()
         .with_env_filter(

@@ -1,7 +1,7 @@
 //! Parsers for command-line values.
 
 use glam::DVec3;
-use pointfarm_worker::color::ColorMode;
+use pointfarm_render::color::ColorMode;
 
 /// `1280x720`.
 pub fn size(s: &str) -> Result<(u32, u32), String> {
@@ -36,7 +36,7 @@ pub fn vec3(s: &str) -> Result<DVec3, String> {
 }
 
 /// `#rrggbb`, `#rrggbbaa` (the `#` optional) or `transparent`.
-pub fn colour(s: &str) -> Result<[u8; 4], String> {
+pub fn color(s: &str) -> Result<[u8; 4], String> {
     if s.eq_ignore_ascii_case("transparent") {
         return Ok([0, 0, 0, 0]);
     }
@@ -51,14 +51,14 @@ pub fn colour(s: &str) -> Result<[u8; 4], String> {
 }
 
 /// `rgb`, `intensity`, `elevation`, `classification`, `return`, or a colour like `#ff8000`.
-pub fn colour_mode(s: &str) -> Result<ColorMode, String> {
+pub fn color_mode(s: &str) -> Result<ColorMode, String> {
     match s.to_ascii_lowercase().as_str() {
         "rgb" => Ok(ColorMode::Rgb),
         "intensity" => Ok(ColorMode::Intensity),
         "elevation" | "height" => Ok(ColorMode::Elevation),
         "classification" | "class" => Ok(ColorMode::Classification),
         "return" | "return-number" => Ok(ColorMode::ReturnNumber),
-        _ => match colour(s) {
+        _ => match color(s) {
             Ok([r, g, b, _]) => Ok(ColorMode::Fixed([r, g, b])),
             Err(_) => Err(format!(
                 "'{s}' is not a colour mode (rgb, intensity, elevation, classification, return, \
@@ -81,20 +81,20 @@ mod tests {
     use super::*;
 
     #[test]
-    fn parses_sizes_points_and_colours() {
+    fn parses_sizes_points_and_colors() {
         assert_eq!(size("1280x720"), Ok((1280, 720)));
         assert!(size("1280").is_err());
         assert!(size("ax3").is_err());
         assert_eq!(vec3("1, 2.5,-3"), Ok(DVec3::new(1.0, 2.5, -3.0)));
         assert!(vec3("1,NaN,3").is_err());
         assert!(vec3("1,2").is_err());
-        assert_eq!(colour("#ff8000"), Ok([255, 128, 0, 255]));
-        assert_eq!(colour("ff800080"), Ok([255, 128, 0, 128]));
-        assert_eq!(colour("transparent"), Ok([0, 0, 0, 0]));
-        assert!(colour("#ff80").is_err());
-        assert_eq!(colour_mode("Elevation"), Ok(ColorMode::Elevation));
-        assert_eq!(colour_mode("#010203"), Ok(ColorMode::Fixed([1, 2, 3])));
-        assert!(colour_mode("rainbow").is_err());
+        assert_eq!(color("#ff8000"), Ok([255, 128, 0, 255]));
+        assert_eq!(color("ff800080"), Ok([255, 128, 0, 128]));
+        assert_eq!(color("transparent"), Ok([0, 0, 0, 0]));
+        assert!(color("#ff80").is_err());
+        assert_eq!(color_mode("Elevation"), Ok(ColorMode::Elevation));
+        assert_eq!(color_mode("#010203"), Ok(ColorMode::Fixed([1, 2, 3])));
+        assert!(color_mode("rainbow").is_err());
         assert!(positive("0").is_err());
         assert!(positive("inf").is_err());
     }

@@ -4,7 +4,7 @@
 
 use anyhow::{bail, Context, Result};
 use pointfarm_proto::v1 as pb;
-use pointfarm_worker::color::ColorMode;
+use pointfarm_render::color::ColorMode;
 
 use crate::remote::{require_success, timings_line, Client};
 use crate::render::{QualityArg, RenderArgs, ShadingArg};

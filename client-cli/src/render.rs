@@ -8,12 +8,12 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use glam::DVec3;
 use indicatif::{ProgressBar, ProgressStyle};
-use pointfarm_worker::camera::{Camera, Projection, DEFAULT_FOV_Y_DEG};
-use pointfarm_worker::cloud::PointCloud;
-use pointfarm_worker::color::{point_colours, ColorMode};
-use pointfarm_worker::gpu::{AdapterChoice, GpuContext};
-use pointfarm_worker::ingest::load_point_cloud;
-use pointfarm_worker::raster::{
+use pointfarm_render::camera::{Camera, Projection, DEFAULT_FOV_Y_DEG};
+use pointfarm_render::cloud::PointCloud;
+use pointfarm_render::color::{point_colors, ColorMode};
+use pointfarm_render::gpu::{AdapterChoice, GpuContext};
+use pointfarm_render::ingest::load_point_cloud;
+use pointfarm_render::raster::{
     AtomicsMode, FillSettings, FrameSettings, Quality, Renderer, Shading, Stage, StageTimings,
 };
 
@@ -82,11 +82,11 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = 1)]
     pub(crate) point_size: u32,
     /// Background colour: #rrggbb, #rrggbbaa or transparent.
-    #[arg(long, default_value = "#18181c", value_parser = parse::colour)]
+    #[arg(long, default_value = "#18181c", value_parser = parse::color)]
     pub(crate) background: [u8; 4],
     /// Colour points by: rgb (the file's colours, or intensity without them), intensity,
     /// elevation, classification, return, or one colour like #ff8000.
-    #[arg(long = "color", visible_alias = "colour", default_value = "rgb", value_parser = parse::colour_mode)]
+    #[arg(long = "color", visible_alias = "colour", default_value = "rgb", value_parser = parse::color_mode)]
     pub(crate) color: ColorMode,
     /// basic: the nearest point's colour; high: the average colour of the points near the
     /// front surface (less aliasing, smoother turntables; about two passes more).
@@ -173,7 +173,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let cloud = load_point_cloud(&args.input);
     spinner.finish_and_clear();
     let mut cloud = cloud?;
-    cloud.colors = point_colours(&cloud, args.color);
+    cloud.colors = point_colors(&cloud, args.color);
     println!(
         "{}: {} points, colour from {:?}, read in {:.0} ms",
         args.input.display(),
@@ -288,8 +288,8 @@ fn base_camera(args: &RenderArgs, cloud: &PointCloud) -> Camera {
     let auto = Camera::framing(
         bounds,
         aspect,
-        pointfarm_worker::camera::AUTO_AZIMUTH_DEG,
-        pointfarm_worker::camera::AUTO_ELEVATION_DEG,
+        pointfarm_render::camera::AUTO_AZIMUTH_DEG,
+        pointfarm_render::camera::AUTO_ELEVATION_DEG,
         projection,
     );
     let target = args.camera_target.unwrap_or(auto.target);
@@ -311,7 +311,7 @@ fn base_camera(args: &RenderArgs, cloud: &PointCloud) -> Camera {
 }
 
 fn save_depth(
-    frame: &pointfarm_worker::raster::Frame,
+    frame: &pointfarm_render::raster::Frame,
     path: &Path,
     settings: &FrameSettings,
 ) -> Result<()> {

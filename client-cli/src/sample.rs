@@ -4,8 +4,8 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use pointfarm_worker::ingest::{write_las, LasWriteOptions};
-use pointfarm_worker::sample::{sample_scene, DEFAULT_SAMPLE_POINTS};
+use pointfarm_render::ingest::{write_las, LasWriteOptions};
+use pointfarm_render::sample::{sample_scene, DEFAULT_SAMPLE_POINTS};
 
 #[derive(Args)]
 pub struct SampleArgs {

@@ -8,7 +8,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use pointfarm_daemon::server::serve;
 use pointfarm_daemon::service::{Daemon, DaemonConfig};
-use pointfarm_worker::gpu::{AdapterChoice, GpuContext};
+use pointfarm_render::gpu::{AdapterChoice, GpuContext};
 
 #[derive(Args)]
 pub struct ServeArgs {

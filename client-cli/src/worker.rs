@@ -6,7 +6,7 @@ use std::sync::Arc;
 use anyhow::{Context, Result};
 use clap::Args;
 use pointfarm_daemon::remote_worker::{run as run_worker, RemoteWorkerConfig};
-use pointfarm_worker::gpu::{AdapterChoice, GpuContext};
+use pointfarm_render::gpu::{AdapterChoice, GpuContext};
 
 #[derive(Args)]
 pub struct WorkerArgs {

@@ -2,8 +2,8 @@
 //! radius); keyframe paths interpolate linearly or along a Catmull-Rom spline.
 
 use glam::DVec3;
-use pointfarm_worker::camera::{Camera, Projection, AUTO_AZIMUTH_DEG};
-use pointfarm_worker::cloud::WorldBounds;
+use pointfarm_render::camera::{Camera, Projection, AUTO_AZIMUTH_DEG};
+use pointfarm_render::cloud::WorldBounds;
 
 use crate::model::{CameraPath, Interpolation, Keyframe, Turntable};
 

@@ -7,11 +7,11 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::Instant;
 
-use pointfarm_worker::cache::{CacheOutcome, DatasetCache};
-use pointfarm_worker::cloud::WorldBounds;
-use pointfarm_worker::color::{point_colours, ColorMode as WorkerColorMode};
-use pointfarm_worker::gpu::GpuContext;
-use pointfarm_worker::raster::{
+use pointfarm_render::cache::{CacheOutcome, DatasetCache};
+use pointfarm_render::cloud::WorldBounds;
+use pointfarm_render::color::{point_colors, ColorMode as WorkerColorMode};
+use pointfarm_render::gpu::GpuContext;
+use pointfarm_render::raster::{
     Clock, FillSettings, FrameSettings, GpuPointCloud, Quality as WorkerQuality, Renderer,
     Shading as WorkerShading, Stage,
 };
@@ -131,13 +131,13 @@ impl FrameRenderer {
         let started = Instant::now();
         let loaded = match &self.cache {
             Some(cache) => cache.load(&dataset.sha256, file).map_err(|e| e.to_string()),
-            None => pointfarm_worker::ingest::load_point_cloud(file)
+            None => pointfarm_render::ingest::load_point_cloud(file)
                 .map(|cloud| (cloud, CacheOutcome::Miss))
                 .map_err(|e| e.to_string()),
         };
         let (mut cloud, outcome) = loaded.map_err(|e| format!("dataset {}: {e}", dataset.id))?;
         let load_ms = started.elapsed().as_secs_f64() * 1e3;
-        cloud.colors = point_colours(&cloud, worker_color_mode(task.render.color_mode));
+        cloud.colors = point_colors(&cloud, worker_color_mode(task.render.color_mode));
         let gpu_cloud = self
             .renderer
             .upload(&cloud)
@@ -157,7 +157,7 @@ fn frame_settings(
     render: &RenderOptions,
     width: u32,
     height: u32,
-    camera: pointfarm_worker::camera::Camera,
+    camera: pointfarm_render::camera::Camera,
 ) -> FrameSettings {
     FrameSettings {
         point_size: render.point_size,

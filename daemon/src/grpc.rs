@@ -9,7 +9,7 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_server::DatasetService;
 use pointfarm_proto::v1::job_service_server::JobService;
 use pointfarm_proto::v1::worker_service_server::WorkerService;
-use pointfarm_worker::raster::{
+use pointfarm_render::raster::{
     FillSettings, Shading as RendererShading, MAX_FILL_KERNEL, MAX_PINTUS_LEVELS, MIN_FILL_KERNEL,
 };
 use sha2::{Digest, Sha256};
@@ -29,7 +29,7 @@ use crate::service::{hex, Daemon};
 /// Frames are streamed in chunks of this many bytes (well under gRPC's default 4 MiB limit).
 const FRAME_CHUNK_BYTES: usize = 1 << 20;
 /// Point size limit, as the renderer's.
-const MAX_POINT_SIZE: u32 = pointfarm_worker::raster::MAX_POINT_SIZE;
+const MAX_POINT_SIZE: u32 = pointfarm_render::raster::MAX_POINT_SIZE;
 
 impl From<DaemonError> for Status {
     fn from(e: DaemonError) -> Self {

@@ -12,7 +12,7 @@ use pointfarm_proto::v1::dataset_service_server::DatasetServiceServer;
 use pointfarm_proto::v1::job_service_server::JobServiceServer;
 use pointfarm_proto::v1::worker_service_server::WorkerServiceServer;
 use pointfarm_proto::v1::FILE_DESCRIPTOR_SET;
-use pointfarm_worker::gpu::GpuContext;
+use pointfarm_render::gpu::GpuContext;
 use tokio_stream::wrappers::TcpListenerStream;
 use tonic::{Request, Status};
 

@@ -6,8 +6,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use pointfarm_worker::cache::DatasetCache;
-use pointfarm_worker::gpu::GpuContext;
+use pointfarm_render::cache::DatasetCache;
+use pointfarm_render::gpu::GpuContext;
 
 use crate::error::DaemonError;
 use crate::frame_render::FrameRenderer;

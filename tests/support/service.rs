@@ -9,8 +9,8 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
-use pointfarm_worker::gpu::{AdapterChoice, GpuContext};
-use pointfarm_worker::ingest::{write_las, LasWriteOptions};
+use pointfarm_render::gpu::{AdapterChoice, GpuContext};
+use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use sha2::{Digest, Sha256};
 use tonic::transport::Channel;
 
@@ -239,7 +239,7 @@ pub async fn fetch_images(
 
 /// Writes the generated sample scene (`points` of them, from `seed`) to `path` as LAS.
 pub fn write_sample(path: &Path, points: usize, seed: u64) {
-    let cloud = pointfarm_worker::sample::sample_scene(points, seed);
+    let cloud = pointfarm_render::sample::sample_scene(points, seed);
     write_las(path, &cloud, &LasWriteOptions::default()).expect("write sample");
 }
 

@@ -75,7 +75,7 @@ pub(crate) struct ResolvePass {
 /// (the shader's `WRITE_DEPTH`), which only some frames need.
 struct ByDepthOutput {
     with_depth: wgpu::ComputePipeline,
-    colour_only: wgpu::ComputePipeline,
+    color_only: wgpu::ComputePipeline,
 }
 
 impl ByDepthOutput {
@@ -86,7 +86,7 @@ impl ByDepthOutput {
         };
         Self {
             with_depth: build(true),
-            colour_only: build(false),
+            color_only: build(false),
         }
     }
 
@@ -94,7 +94,7 @@ impl ByDepthOutput {
         if write_depth {
             &self.with_depth
         } else {
-            &self.colour_only
+            &self.color_only
         }
     }
 }
@@ -173,7 +173,7 @@ impl ResolvePass {
         let mut resources = vec![
             (0, frame.uniforms.as_entire_binding()),
             (1, run.binding(&targets.framebuffer, 8)),
-            (2, run.binding(&targets.colour, 4)),
+            (2, run.binding(&targets.color, 4)),
             (3, run.binding(&targets.depth, 4)),
         ];
         if let Some((accumulator, packed_sums)) = sums {

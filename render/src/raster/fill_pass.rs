@@ -41,20 +41,17 @@ impl FillPass {
         };
         // Each step reads one pair of buffers and writes the other; wgpu synchronises
         // successive dispatches of a pass.
-        let pairs = [
-            (&fill.depth, &fill.colour),
-            (&targets.depth, &targets.colour),
-        ];
+        let pairs = [(&fill.depth, &fill.color), (&targets.depth, &targets.color)];
         let bind = |pipeline: &wgpu::ComputePipeline, from: usize| {
-            let ((depth_in, colour_in), (depth_out, colour_out)) = (pairs[from], pairs[1 - from]);
+            let ((depth_in, color_in), (depth_out, color_out)) = (pairs[from], pairs[1 - from]);
             let resources = vec![
                 (0, params.fill()),
                 (1, depth_in.as_entire_binding()),
-                (2, colour_in.as_entire_binding()),
+                (2, color_in.as_entire_binding()),
                 (3, fill.mutable.as_entire_binding()),
                 (6, fill.list_args.as_entire_binding()),
                 (4, depth_out.as_entire_binding()),
-                (5, colour_out.as_entire_binding()),
+                (5, color_out.as_entire_binding()),
             ];
             bind_resources(device, pipeline, "fill", resources)
         };

@@ -33,21 +33,21 @@ pub const INTENSITY_GREY_MIN: u8 = 40;
 pub const CONSTANT_GREY_RGBA: u32 = u32::from_le_bytes([200, 200, 200, 255]);
 
 /// The colour of every point of `cloud` in `mode`.
-pub fn point_colours(cloud: &PointCloud, mode: ColorMode) -> Vec<u32> {
+pub fn point_colors(cloud: &PointCloud, mode: ColorMode) -> Vec<u32> {
     match mode {
         ColorMode::Rgb => cloud.colors.clone(),
         ColorMode::Intensity => intensity_grey(&cloud.intensity)
             .unwrap_or_else(|| vec![CONSTANT_GREY_RGBA; cloud.len()]),
-        ColorMode::Elevation => elevation_colours(cloud),
+        ColorMode::Elevation => elevation_colors(cloud),
         ColorMode::Classification => cloud
             .classification
             .iter()
-            .map(|&c| classification_colour(c))
+            .map(|&c| classification_color(c))
             .collect(),
         ColorMode::ReturnNumber => cloud
             .return_number
             .iter()
-            .map(|&r| return_colour(r))
+            .map(|&r| return_color(r))
             .collect(),
         ColorMode::Fixed([r, g, b]) => vec![pack_rgba8(r, g, b); cloud.len()],
     }
@@ -62,7 +62,7 @@ pub fn intensity_grey(intensity: &[u16]) -> Option<Vec<u32>> {
     let (low, high) = intensity_percentiles(intensity);
     let span = f32::from(high.saturating_sub(low).max(1));
     let grey_span = f32::from(u8::MAX - INTENSITY_GREY_MIN);
-    let colours = intensity
+    let colors = intensity
         .iter()
         .map(|&i| {
             let t = ((f32::from(i) - f32::from(low)) / span).clamp(0.0, 1.0);
@@ -70,7 +70,7 @@ pub fn intensity_grey(intensity: &[u16]) -> Option<Vec<u32>> {
             pack_rgba8(grey, grey, grey)
         })
         .collect();
-    Some(colours)
+    Some(colors)
 }
 
 /// The low and high stretch percentiles, from a full 16-bit histogram (linear time, exact).
@@ -122,7 +122,7 @@ pub fn viridis(t: f32) -> [u8; 3] {
     std::array::from_fn(|c| (a[c] as f32 + (b[c] as f32 - a[c] as f32) * f).round() as u8)
 }
 
-fn elevation_colours(cloud: &PointCloud) -> Vec<u32> {
+fn elevation_colors(cloud: &PointCloud) -> Vec<u32> {
     // Heights relative to the origin: the f32 offsets keep full precision.
     let mut heights: Vec<f32> = cloud.positions.iter().map(|p| p.z).collect();
     if heights.is_empty() {
@@ -144,7 +144,7 @@ fn elevation_colours(cloud: &PointCloud) -> Vec<u32> {
 }
 
 /// The ASPRS standard classes (LAS 1.4 R15, table 17) in the colours viewers commonly use.
-pub fn classification_colour(class: u8) -> u32 {
+pub fn classification_color(class: u8) -> u32 {
     let [r, g, b] = match class {
         0 | 1 => [170, 170, 170], // never classified, unclassified
         2 => [166, 118, 61],      // ground
@@ -175,7 +175,7 @@ pub fn classification_colour(class: u8) -> u32 {
     pack_rgba8(r, g, b)
 }
 
-fn return_colour(return_number: u8) -> u32 {
+fn return_color(return_number: u8) -> u32 {
     let [r, g, b] = match return_number {
         0 | 1 => [230, 230, 230], // single or first return (0: not recorded)
         2 => [250, 170, 40],
@@ -205,17 +205,17 @@ mod tests {
     #[test]
     fn elevation_runs_from_the_bottom_to_the_top_of_viridis_over_the_robust_range() {
         let cloud = ramp_cloud();
-        let colours = point_colours(&cloud, ColorMode::Elevation);
+        let colors = point_colors(&cloud, ColorMode::Elevation);
         let [r0, g0, b0] = VIRIDIS[0];
         let [r1, g1, b1] = VIRIDIS[10];
-        assert_eq!(colours[0], pack_rgba8(r0, g0, b0));
+        assert_eq!(colors[0], pack_rgba8(r0, g0, b0));
         assert_eq!(
-            colours[10],
+            colors[10],
             pack_rgba8(r0, g0, b0),
             "below the 2nd percentile: clamped"
         );
-        assert_eq!(colours[999], pack_rgba8(r1, g1, b1));
-        assert_ne!(colours[400], colours[600]);
+        assert_eq!(colors[999], pack_rgba8(r1, g1, b1));
+        assert_ne!(colors[400], colors[600]);
     }
 
     #[test]
@@ -238,33 +238,33 @@ mod tests {
     fn intensity_ignores_outliers_and_is_never_black() {
         let mut cloud = ramp_cloud();
         cloud.intensity[999] = u16::MAX; // one saturated return
-        let colours = point_colours(&cloud, ColorMode::Intensity);
+        let colors = point_colors(&cloud, ColorMode::Intensity);
         let grey = |c: u32| c.to_le_bytes()[0];
-        assert_eq!(grey(colours[0]), INTENSITY_GREY_MIN);
-        assert_eq!(grey(colours[990]), 255);
+        assert_eq!(grey(colors[0]), INTENSITY_GREY_MIN);
+        assert_eq!(grey(colors[990]), 255);
         assert!(
-            grey(colours[500]) > 130 && grey(colours[500]) < 170,
+            grey(colors[500]) > 130 && grey(colors[500]) < 170,
             "{}",
-            grey(colours[500])
+            grey(colors[500])
         );
         cloud.intensity.fill(0);
-        assert!(point_colours(&cloud, ColorMode::Intensity)
+        assert!(point_colors(&cloud, ColorMode::Intensity)
             .iter()
             .all(|&c| c == CONSTANT_GREY_RGBA));
     }
 
     #[test]
-    fn classes_returns_and_fixed_colours() {
+    fn classes_returns_and_fixed_colors() {
         let cloud = ramp_cloud();
-        let by_class = point_colours(&cloud, ColorMode::Classification);
-        assert_eq!(by_class[2], classification_colour(2));
-        assert_ne!(classification_colour(2), classification_colour(6));
-        assert_ne!(classification_colour(40), classification_colour(41));
-        let by_return = point_colours(&cloud, ColorMode::ReturnNumber);
+        let by_class = point_colors(&cloud, ColorMode::Classification);
+        assert_eq!(by_class[2], classification_color(2));
+        assert_ne!(classification_color(2), classification_color(6));
+        assert_ne!(classification_color(40), classification_color(41));
+        let by_return = point_colors(&cloud, ColorMode::ReturnNumber);
         assert_eq!(by_return[1], by_return[6]);
         assert_ne!(by_return[1], by_return[2]);
-        let fixed = point_colours(&cloud, ColorMode::Fixed([1, 2, 3]));
+        let fixed = point_colors(&cloud, ColorMode::Fixed([1, 2, 3]));
         assert!(fixed.iter().all(|&c| c == pack_rgba8(1, 2, 3)));
-        assert_eq!(point_colours(&cloud, ColorMode::Rgb), cloud.colors);
+        assert_eq!(point_colors(&cloud, ColorMode::Rgb), cloud.colors);
     }
 }

@@ -14,9 +14,12 @@
 
 mod basic_pass;
 mod culling;
+mod downsample;
 mod draw_order;
 mod edl_pass;
+mod error;
 mod fill_pass;
+mod frame;
 mod gpu_data;
 mod hq_pass;
 mod occlusion;
@@ -30,6 +33,7 @@ mod pointlist_baseline;
 mod points;
 mod resolve_pass;
 mod screen_params;
+mod settings;
 mod targets;
 mod timing;
 mod visibility_pass;
@@ -38,18 +42,21 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use image::RgbaImage;
-use thiserror::Error;
 
 pub use basic_pass::AtomicsPath;
+pub use downsample::downsample;
+pub use error::RenderError;
+pub use frame::Frame;
 pub use occlusion::OcclusionSkipped;
 pub use point_workgroup::WORKGROUP_SIZE_ENV;
 pub use pointlist_baseline::{PointListBaseline, PointListFrame};
 pub use points::{GpuPointCloud, BATCH_POINTS, POINT_BYTES};
+pub use settings::*;
 pub use timing::{Clock, Stage, StageTiming, StageTimings};
 
-use crate::camera::{Camera, CameraError, CameraTransform};
+use crate::camera::CameraTransform;
 use crate::cloud::PointCloud;
-use crate::gpu::{read_buffer, GpuContext, GpuError};
+use crate::gpu::{read_buffer, GpuContext};
 use basic_pass::{BasicPass, PointFrame};
 use culling::FrameBatches;
 use edl_pass::EdlPass;
@@ -62,350 +69,6 @@ use screen_params::ScreenUniforms;
 use targets::FrameTargets;
 use timing::GpuTimer;
 use visibility_pass::VisibilityPass;
-
-/// Largest image side accepted, in pixels.
-pub const MAX_IMAGE_SIDE: u32 = 16384;
-/// Largest supersampling factor.
-pub const MAX_SUPERSAMPLE: u32 = 4;
-/// Largest point size accepted, in pixels.
-pub const MAX_POINT_SIZE: u32 = 64;
-/// Smallest and largest visibility kernel side, in pixels (odd).
-pub const MIN_FILL_KERNEL: u32 = 3;
-pub const MAX_FILL_KERNEL: u32 = 9;
-/// Most smoothing levels of the Pintus shading.
-pub const MAX_PINTUS_LEVELS: u32 = 32;
-/// Visibility: a pixel is visible when the solid angle left open around its ray to the camera
-/// is at least 0.8 pi steradians, 40% of a hemisphere. A point on any plane, at any tilt, has
-/// about a hemisphere (2 pi); a point beside the edge of a nearer surface about half that
-/// (pi); a point seen through a hole that closes 6 of the 8 sectors at most pi / 2. Background
-/// pixels count 4 pi / 8 per sector without points: one beside a silhouette (3 or more open
-/// sectors, 1.5 pi) stays background, one enclosed by points (at most 1 open, pi / 2) is filled.
-pub const VISIBILITY_MIN_SOLID_ANGLE: f32 = 0.8 * std::f32::consts::PI;
-/// Filling: the paper's delta, as a fraction of the pixel's depth. A neighbour whose depth
-/// differs by 5% or more gets no weight, so the filling does not blur across depth edges;
-/// the depth step between neighbouring pixels of a plane seen at 10 degrees is about 2%
-/// (50 degree view, 240 pixels high).
-pub const FILL_DEPTH_TOLERANCE: f32 = 0.05;
-
-#[derive(Debug, Error)]
-pub enum RenderError {
-    #[error(
-        "image size {width}x{height} is invalid: each side must be 1 to {MAX_IMAGE_SIDE} pixels"
-    )]
-    ImageSize { width: u32, height: u32 },
-    #[error(
-        "image size {width}x{height} needs a {needed_mib} MiB framebuffer, more than this \
-         adapter's {limit_mib} MiB storage binding limit"
-    )]
-    ImageTooLarge {
-        width: u32,
-        height: u32,
-        needed_mib: u64,
-        limit_mib: u64,
-    },
-    #[error("depth band {0} is invalid: it must be a finite number from 0 to 1")]
-    DepthBand(f32),
-    #[error("Eye-Dome Lighting strength {strength} and radius {radius} are invalid: the strength must be 0 to 100, the radius 0.5 to 16 pixels")]
-    Edl { strength: f32, radius: f32 },
-    #[error(
-        "fill kernel {0} is invalid: it must be an odd number of pixels from {MIN_FILL_KERNEL} to {MAX_FILL_KERNEL}"
-    )]
-    FillKernel(u32),
-    #[error("Pintus shading with {levels} levels and exponent {exponent} is invalid: levels must be 1 to {MAX_PINTUS_LEVELS}, the exponent 0 to 4")]
-    Pintus { levels: u32, exponent: f32 },
-    #[error("supersampling factor {0} is invalid: it must be 1 to {MAX_SUPERSAMPLE}")]
-    Supersample(u32),
-    #[error("point size {0} is invalid: it must be 1 to {MAX_POINT_SIZE} pixels")]
-    PointSize(u32),
-    #[error("point size {0} is not supported by the PointList baseline: it draws 1-pixel points")]
-    PointListPointSize(u32),
-    #[error(transparent)]
-    Camera(#[from] CameraError),
-    #[error("the point cloud is empty")]
-    EmptyCloud,
-    #[error("GPU error: {0}")]
-    Gpu(String),
-}
-
-impl From<GpuError> for RenderError {
-    fn from(e: GpuError) -> Self {
-        RenderError::Gpu(e.to_string())
-    }
-}
-
-/// Which atomics the point pass may use.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub enum AtomicsMode {
-    /// 64-bit where the device has them, else 32-bit.
-    #[default]
-    Auto,
-    /// Always the 32-bit path (for adapters without 64-bit atomics, and to test it).
-    Force32,
-}
-
-/// How the colour of a pixel is chosen.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum Quality {
-    /// The nearest point's colour (one atomic minimum per pixel).
-    Basic,
-    /// The average colour of all points whose depth is at most `(1 + depth_band)` times the
-    /// nearest depth of the pixel (Schütz & Wimmer's high-quality mode).
-    High { depth_band: f32 },
-}
-
-impl Quality {
-    /// High quality with the papers' default band of 1%.
-    pub const HIGH: Quality = Quality::High { depth_band: 0.01 };
-}
-
-/// Screen-space shading applied after the resolve.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum Shading {
-    None,
-    /// Eye-Dome Lighting as in Potree: `strength` scales the darkening, `radius` is the
-    /// distance in pixels of the eight depth samples.
-    Edl {
-        strength: f32,
-        radius: f32,
-    },
-    /// Pintus et al.'s shape-depicting shading: a directional-light, ambient-occlusion and
-    /// line-drawing term from the depth alone, summed over `levels` smoothing levels with
-    /// weights 1 / (k + 1)^`exponent` (the paper's xi).
-    Pintus {
-        levels: u32,
-        exponent: f32,
-    },
-}
-
-impl Shading {
-    /// Potree's default EDL strength.
-    pub const DEFAULT_EDL_STRENGTH: f32 = 1.0;
-    /// Potree's default EDL radius, in pixels.
-    pub const DEFAULT_EDL_RADIUS: f32 = 1.4;
-    /// Smoothing levels of the Pintus term.
-    pub const DEFAULT_PINTUS_LEVELS: u32 = 8;
-    /// The paper's weight exponent, 3/2.
-    pub const DEFAULT_PINTUS_EXPONENT: f32 = 1.5;
-
-    pub const EDL: Shading = Shading::Edl {
-        strength: Self::DEFAULT_EDL_STRENGTH,
-        radius: Self::DEFAULT_EDL_RADIUS,
-    };
-    pub const PINTUS: Shading = Shading::Pintus {
-        levels: Self::DEFAULT_PINTUS_LEVELS,
-        exponent: Self::DEFAULT_PINTUS_EXPONENT,
-    };
-}
-
-/// Pintus et al.'s visibility and anisotropic filling, run after the resolve: points seen
-/// through holes of a nearer surface are removed, then the holes (and background pixels
-/// enclosed by points) get the depth and colour of the surface around them. Pixels outside
-/// silhouettes stay background.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct FillSettings {
-    /// Side of the visibility kernel in pixels: odd, 3 to 9. Holes up to about a third of it
-    /// are closed; the filling runs twice this many 3x3 steps.
-    pub kernel: u32,
-}
-
-impl Default for FillSettings {
-    fn default() -> Self {
-        Self {
-            kernel: Self::DEFAULT_KERNEL,
-        }
-    }
-}
-
-impl FillSettings {
-    pub const DEFAULT_KERNEL: u32 = 7;
-
-    /// The paper's iteration count: twice the kernel size.
-    pub fn iterations(&self) -> u32 {
-        2 * self.kernel
-    }
-}
-
-/// Everything that decides the pixels of one frame.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct FrameSettings {
-    pub width: u32,
-    pub height: u32,
-    pub camera: Camera,
-    /// Side of the square each point covers, in pixels.
-    pub point_size: u32,
-    /// RGBA written where no point landed.
-    pub background: [u8; 4],
-    pub atomics: AtomicsMode,
-    pub quality: Quality,
-    /// Visibility and filling; `None` turns both off.
-    pub fill: Option<FillSettings>,
-    pub shading: Shading,
-    /// Supersampling anti-aliasing: render at this many times the size in each direction
-    /// (points and shading radius scaled with it) and average k x k blocks. 1 turns it off.
-    pub supersample: u32,
-    /// Also read back the linear depth image.
-    pub read_depth: bool,
-}
-
-impl FrameSettings {
-    /// Defaults: one-pixel points on a dark grey background, automatic atomics.
-    pub fn new(width: u32, height: u32, camera: Camera) -> Self {
-        Self {
-            width,
-            height,
-            camera,
-            point_size: 1,
-            background: [24, 24, 28, 255],
-            atomics: AtomicsMode::Auto,
-            quality: Quality::Basic,
-            fill: None,
-            shading: Shading::None,
-            supersample: 1,
-            read_depth: false,
-        }
-    }
-}
-
-impl FrameSettings {
-    /// Whether the frame needs the resolved depth image: to read it back, or for filling or
-    /// shading, which work on it. Otherwise the resolve does not write it.
-    pub fn needs_depth_image(&self) -> bool {
-        self.read_depth || self.rewrites_resolved_images()
-    }
-
-    /// Whether passes after the resolve rewrite its images (filling, shading).
-    pub fn rewrites_resolved_images(&self) -> bool {
-        self.fill.is_some() || self.shading != Shading::None
-    }
-
-    /// The settings at which a supersampled frame is rendered before it is downsampled.
-    pub fn scaled_for_supersampling(&self) -> FrameSettings {
-        let k = self.supersample.max(1);
-        FrameSettings {
-            width: self.width.saturating_mul(k),
-            height: self.height.saturating_mul(k),
-            point_size: self.point_size.saturating_mul(k),
-            shading: match self.shading {
-                Shading::Edl { strength, radius } => Shading::Edl {
-                    strength,
-                    radius: radius * k as f32,
-                },
-                other => other,
-            },
-            // The same holes are k times wider: the kernel radius grows with them (the kernel
-            // may then exceed MAX_FILL_KERNEL, which bounds what a user asks for).
-            fill: self.fill.map(|fill| FillSettings {
-                kernel: (fill.kernel / 2) * k * 2 + 1,
-            }),
-            supersample: 1,
-            ..*self
-        }
-    }
-}
-
-/// Averages `k` x `k` blocks of the colour image (and keeps the nearest depth of each block).
-pub fn downsample(frame: Frame, k: u32) -> Frame {
-    let (width, height) = (frame.image.width() / k, frame.image.height() / k);
-    let big_width = frame.image.width() as usize;
-    let image = RgbaImage::from_fn(width, height, |x, y| {
-        let mut sum = [0u32; 4];
-        for dy in 0..k {
-            for dx in 0..k {
-                let p = frame.image.get_pixel(x * k + dx, y * k + dy).0;
-                for c in 0..4 {
-                    sum[c] += p[c] as u32;
-                }
-            }
-        }
-        let n = k * k;
-        image::Rgba(sum.map(|s| ((s + n / 2) / n) as u8))
-    });
-    let depth = frame.depth.map(|depth| {
-        let mut out = Vec::with_capacity((width * height) as usize);
-        for y in 0..height as usize {
-            for x in 0..width as usize {
-                let mut nearest = f32::INFINITY;
-                for dy in 0..k as usize {
-                    for dx in 0..k as usize {
-                        nearest = nearest
-                            .min(depth[(y * k as usize + dy) * big_width + x * k as usize + dx]);
-                    }
-                }
-                out.push(nearest);
-            }
-        }
-        out
-    });
-    Frame {
-        image,
-        depth,
-        ..frame
-    }
-}
-
-/// A rendered frame.
-#[derive(Debug, Clone)]
-pub struct Frame {
-    pub image: RgbaImage,
-    /// Linear depth per pixel, row-major; +infinity where no point landed. Present when
-    /// [`FrameSettings::read_depth`] was set.
-    pub depth: Option<Vec<f32>>,
-    pub timings: StageTimings,
-    pub atomics: AtomicsPath,
-}
-
-impl Frame {
-    /// Writes the depth image as a 16-bit grey PNG: linear depth from `near` (1) to `far`
-    /// (65535); 0 where no point landed. Needs [`FrameSettings::read_depth`].
-    pub fn save_depth_png16(
-        &self,
-        path: &std::path::Path,
-        near: f64,
-        far: f64,
-    ) -> Result<(), image::ImageError> {
-        let Some(depth) = &self.depth else {
-            return Err(image::ImageError::Parameter(
-                image::error::ParameterError::from_kind(image::error::ParameterErrorKind::Generic(
-                    "the frame was rendered without its depth image".into(),
-                )),
-            ));
-        };
-        let span = (far - near).max(f64::MIN_POSITIVE);
-        let pixels: Vec<u16> = depth
-            .iter()
-            .map(|&d| {
-                if d.is_finite() {
-                    1 + (((d as f64 - near) / span).clamp(0.0, 1.0) * 65534.0).round() as u16
-                } else {
-                    0
-                }
-            })
-            .collect();
-        let image = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_raw(
-            self.image.width(),
-            self.image.height(),
-            pixels,
-        )
-        .ok_or_else(|| {
-            image::ImageError::Parameter(image::error::ParameterError::from_kind(
-                image::error::ParameterErrorKind::DimensionMismatch,
-            ))
-        })?;
-        image.save_with_format(path, image::ImageFormat::Png)
-    }
-
-    /// Writes the image as PNG and records the time in the frame's "encode" stage.
-    pub fn save_png(&mut self, path: &std::path::Path) -> Result<(), image::ImageError> {
-        let started = Instant::now();
-        self.image.save_with_format(path, image::ImageFormat::Png)?;
-        self.timings.push(
-            Stage::Encode,
-            started.elapsed().as_secs_f64() * 1e3,
-            Clock::Host,
-        );
-        Ok(())
-    }
-}
 
 /// Renders frames of resident point clouds on one GPU.
 pub struct Renderer {
@@ -677,10 +340,10 @@ impl Renderer {
             return Err(RenderError::Gpu("frame targets missing".into()));
         };
         let pixels = targets.pixels();
-        let colour = read_buffer(
+        let color = read_buffer(
             &self.gpu,
-            &targets.colour,
-            &targets.colour_staging,
+            &targets.color,
+            &targets.color_staging,
             pixels * 4,
         )?;
         let depth = if settings.read_depth {
@@ -694,7 +357,7 @@ impl Renderer {
         } else {
             None
         };
-        let image = RgbaImage::from_raw(settings.width, settings.height, colour)
+        let image = RgbaImage::from_raw(settings.width, settings.height, color)
             .ok_or_else(|| RenderError::Gpu("colour readback has the wrong size".into()))?;
         timings.push(
             Stage::Readback,

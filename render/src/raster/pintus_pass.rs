@@ -63,7 +63,7 @@ impl PintusPass {
                 (0, params.pintus_level(0)),
                 (1, targets.depth.as_entire_binding()),
                 (3, shading.sum.as_entire_binding()),
-                (4, targets.colour.as_entire_binding()),
+                (4, targets.color.as_entire_binding()),
             ],
         );
         pass.set_pipeline(&self.apply);

@@ -21,11 +21,11 @@ pub(crate) struct FrameTargets {
     /// The point passes' occlusion culling of whole batches (`occlusion.rs`).
     pub occlusion: OcclusionTiles,
     /// RGBA8 per pixel.
-    pub colour: wgpu::Buffer,
+    pub color: wgpu::Buffer,
     /// Linear depth per pixel as f32, +infinity where no point landed.
     pub depth: wgpu::Buffer,
-    /// Host-mappable copies of `colour` and `depth`, for readback.
-    pub colour_staging: wgpu::Buffer,
+    /// Host-mappable copies of `color` and `depth`, for readback.
+    pub color_staging: wgpu::Buffer,
     pub depth_staging: wgpu::Buffer,
     /// High-quality mode: per pixel the sums of red, green, blue and a count (4 x u32).
     /// Created (zeroed) on the first high-quality frame of this size; `resolve_average`
@@ -56,7 +56,7 @@ struct CleanOutside {
 /// The visibility pass's output and the other half of the filling's ping-pong.
 pub(crate) struct FillTargets {
     pub depth: wgpu::Buffer,
-    pub colour: wgpu::Buffer,
+    pub color: wgpu::Buffer,
     /// The pixels the filling may change, `(y << 16) | x` each, in no particular order; the
     /// others are fixed. Written by the visibility pass, which counts them in `list_args`.
     pub mutable: wgpu::Buffer,
@@ -88,9 +88,9 @@ impl FrameTargets {
             framebuffer: storage("point framebuffer", pixels * 8),
             needs_clear: true,
             occlusion: OcclusionTiles::new(device, width, height),
-            colour: storage("colour image", pixels * 4),
+            color: storage("colour image", pixels * 4),
             depth: storage("depth image", pixels * 4),
-            colour_staging: staging_buffer(device, "colour image readback", pixels * 4),
+            color_staging: staging_buffer(device, "colour image readback", pixels * 4),
             depth_staging: staging_buffer(device, "depth image readback", pixels * 4),
             accumulator: None,
             packed_sums: None,
@@ -136,7 +136,7 @@ impl FrameTargets {
         let bytes = self.pixels() * 4;
         self.fill.get_or_insert_with(|| FillTargets {
             depth: scratch(device, "fill depth", bytes),
-            colour: scratch(device, "fill colour", bytes),
+            color: scratch(device, "fill colour", bytes),
             mutable: scratch(device, "fill mutable pixels", bytes),
             list_args: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("fill dispatch arguments"),

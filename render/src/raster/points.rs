@@ -49,7 +49,7 @@ pub(crate) struct PointChunk {
     pub positions: wgpu::Buffer,
     /// RGB bytes per point, back to back, padded with one spare word so that a shader can
     /// always read the two words that hold a point's colour.
-    pub colours: wgpu::Buffer,
+    pub colors: wgpu::Buffer,
     pub batches: wgpu::Buffer,
     /// The same batch table on the host, from which each frame's table is built
     /// (`culling.rs`).
@@ -149,7 +149,7 @@ impl GpuPointCloud {
     pub fn gpu_bytes(&self) -> u64 {
         self.chunks
             .iter()
-            .map(|c| c.positions.size() + c.colours.size() + c.batches.size())
+            .map(|c| c.positions.size() + c.colors.size() + c.batches.size())
             .sum()
     }
 
@@ -184,8 +184,8 @@ impl GpuPointCloud {
                 .iter()
                 .map(|&i| cloud.positions[i as usize])
                 .collect();
-            let colours = chunk_order.iter().map(|&i| cloud.colors[i as usize]);
-            chunks.push(ChunkData::new(&positions, colours).upload(gpu, chunks.len()));
+            let colors = chunk_order.iter().map(|&i| cloud.colors[i as usize]);
+            chunks.push(ChunkData::new(&positions, colors).upload(gpu, chunks.len()));
         }
         Self::finish(gpu, chunks, cloud.origin, cloud.len(), started)
     }
@@ -206,12 +206,12 @@ impl GpuPointCloud {
             (max_chunk_points.min(STREAM_CHUNK_POINTS) / BATCH_POINTS).max(1) * BATCH_POINTS;
         let mut chunks = Vec::new();
         let mut points = 0;
-        while let Some((positions, colours)) = next_chunk(chunk_points) {
+        while let Some((positions, colors)) = next_chunk(chunk_points) {
             if positions.is_empty() {
                 break;
             }
             points += positions.len();
-            let data = ChunkData::new(&positions, colours.into_iter());
+            let data = ChunkData::new(&positions, colors.into_iter());
             drop(positions);
             chunks.push(data.upload(gpu, chunks.len()));
             // Submit the chunk's pending copy and wait for it before the next chunk is
@@ -260,14 +260,14 @@ impl GpuPointCloud {
 /// One chunk's buffers, built on the host.
 struct ChunkData {
     positions: Vec<QuantisedPosition>,
-    colours: Vec<u8>,
+    colors: Vec<u8>,
     batches: Vec<GpuBatch>,
     sub_batches: Vec<GpuBatch>,
 }
 
 impl ChunkData {
     /// Batches, bounds and quantises points in their final order.
-    fn new(positions: &[Vec3], colours: impl Iterator<Item = u32>) -> Self {
+    fn new(positions: &[Vec3], colors: impl Iterator<Item = u32>) -> Self {
         let mut quantised = Vec::with_capacity(positions.len());
         let mut batches = Vec::with_capacity(positions.len().div_ceil(BATCH_POINTS));
         let mut sub_batches = Vec::with_capacity(positions.len().div_ceil(SUB_BATCH_POINTS));
@@ -284,15 +284,15 @@ impl ChunkData {
             }
             batches.push(gpu_batch);
         }
-        // Three bytes per point and one spare word (see `PointChunk::colours`).
+        // Three bytes per point and one spare word (see `PointChunk::colors`).
         let mut rgb = Vec::with_capacity(positions.len() * 3 + 8);
-        for colour in colours.take(positions.len()) {
-            rgb.extend_from_slice(&colour.to_le_bytes()[..3]);
+        for color in colors.take(positions.len()) {
+            rgb.extend_from_slice(&color.to_le_bytes()[..3]);
         }
         rgb.resize(rgb.len().next_multiple_of(4) + 4, 0);
         Self {
             positions: quantised,
-            colours: rgb,
+            colors: rgb,
             batches,
             sub_batches,
         }
@@ -310,7 +310,7 @@ impl ChunkData {
         };
         PointChunk {
             positions: buffer("positions", bytemuck::cast_slice(&self.positions)),
-            colours: buffer("colours", &self.colours),
+            colors: buffer("colors", &self.colors),
             batches: buffer("batches", bytemuck::cast_slice(&self.batches)),
             point_count: self.positions.len() as u32,
             groups: batch_groups(&self.batches),
@@ -538,10 +538,10 @@ mod tests {
     #[test]
     fn chunk_data_packs_rgb_bytes_and_a_spare_word() {
         let positions = vec![Vec3::ZERO; 5];
-        let colours = (0..5u32).map(|i| u32::from_le_bytes([i as u8, 10 + i as u8, 20, 255]));
-        let data = ChunkData::new(&positions, colours);
-        assert_eq!(data.colours.len(), 20);
-        assert_eq!(&data.colours[3..6], &[1, 11, 20]);
+        let colors = (0..5u32).map(|i| u32::from_le_bytes([i as u8, 10 + i as u8, 20, 255]));
+        let data = ChunkData::new(&positions, colors);
+        assert_eq!(data.colors.len(), 20);
+        assert_eq!(&data.colors[3..6], &[1, 11, 20]);
         assert_eq!(data.positions.len(), 5);
         assert_eq!(data.batches.len(), 1);
     }

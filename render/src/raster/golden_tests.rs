@@ -17,6 +17,7 @@ use image::RgbaImage;
 
 use super::fill_tests::{holey_sphere, sphere_settings};
 use super::*;
+use crate::camera::Camera;
 use crate::ingest::load_point_cloud;
 use crate::testing::{compare_images_within, gpu, shared_data};
 

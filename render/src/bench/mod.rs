@@ -1136,7 +1136,7 @@ fn cube_bounds() -> (DVec3, crate::cloud::WorldBounds) {
 }
 
 /// The colour of a point at `unit` (0..1 per axis) in the cube.
-fn cube_colour(unit: Vec3) -> u32 {
+fn cube_color(unit: Vec3) -> u32 {
     let [r, g, b] = (unit * 255.0).as_uvec3().to_array().map(|c| c as u8);
     pack_rgba8(r, g, b)
 }
@@ -1147,16 +1147,16 @@ pub fn uniform_cube(points: usize, seed: u64) -> PointCloud {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let (origin, bounds) = cube_bounds();
     let mut positions = Vec::with_capacity(points);
-    let mut colours = Vec::with_capacity(points);
+    let mut colors = Vec::with_capacity(points);
     for _ in 0..points {
         let unit = Vec3::new(rng.random(), rng.random(), rng.random());
         positions.push((unit - 0.5) * CUBE_SIDE as f32);
-        colours.push(cube_colour(unit));
+        colors.push(cube_color(unit));
     }
     PointCloud {
         origin,
         positions,
-        colors: colours,
+        colors: colors,
         intensity: vec![0; points],
         classification: vec![0; points],
         return_number: vec![0; points],
@@ -1204,7 +1204,7 @@ impl CellCubeGenerator {
             return None;
         }
         let side = (1u32 << self.levels) as f32;
-        let (mut positions, mut colours) = (Vec::new(), Vec::new());
+        let (mut positions, mut colors) = (Vec::new(), Vec::new());
         while self.next_cell < self.cells {
             let n = self.cell_points(self.next_cell);
             if !positions.is_empty() && positions.len() + n > max_points {
@@ -1215,11 +1215,11 @@ impl CellCubeGenerator {
                 let jitter = Vec3::new(self.rng.random(), self.rng.random(), self.rng.random());
                 let unit = (corner + jitter) / side;
                 positions.push((unit - 0.5) * CUBE_SIDE as f32);
-                colours.push(cube_colour(unit));
+                colors.push(cube_color(unit));
             }
             self.next_cell += 1;
         }
-        Some((positions, colours))
+        Some((positions, colors))
     }
 }
 
@@ -1303,19 +1303,19 @@ pub fn shuffled_cuboid(planes: usize, side: usize, seed: u64) -> PointCloud {
     let origin = DVec3::new(515_000.0, 4_918_000.0, 2_000.0);
     let mut order: Vec<usize> = (0..planes * side * side).collect();
     order.shuffle(&mut rng);
-    let plane_colours: Vec<u32> = (0..planes)
+    let plane_colors: Vec<u32> = (0..planes)
         .map(|_| pack_rgba8(rng.random(), rng.random(), rng.random()))
         .collect();
-    let (positions, colours) = order
+    let (positions, colors) = order
         .into_iter()
         .map(|i| {
             let (plane, cell) = (i / (side * side), i % (side * side));
             let (x, y) = (cell % side, cell / side);
             let p = origin + DVec3::new(x as f64 + 0.5, y as f64 + 0.5, plane as f64);
-            (p, plane_colours[plane])
+            (p, plane_colors[plane])
         })
         .unzip::<_, _, Vec<DVec3>, Vec<u32>>();
-    PointCloud::from_world_points(&positions, colours)
+    PointCloud::from_world_points(&positions, colors)
 }
 
 /// A real scan from the data directory, viewed by the automatic camera; `None` if absent.
@@ -1357,8 +1357,8 @@ mod tests {
     fn cell_generator_yields_every_point_once_in_compact_cells() {
         let mut generator = CellCubeGenerator::new(100_000, 3);
         let (mut total, mut chunks) = (0, 0);
-        while let Some((positions, colours)) = generator.next_chunk(3 * BATCH_POINTS) {
-            assert!(positions.len() <= 3 * BATCH_POINTS && positions.len() == colours.len());
+        while let Some((positions, colors)) = generator.next_chunk(3 * BATCH_POINTS) {
+            assert!(positions.len() <= 3 * BATCH_POINTS && positions.len() == colors.len());
             let half = CUBE_SIDE as f32 / 2.0;
             assert!(positions.iter().all(|p| p.abs().max_element() <= half));
             total += positions.len();

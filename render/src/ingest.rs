@@ -756,7 +756,7 @@ mod tests {
     }
 
     #[test]
-    fn sixteen_bit_colours_keep_their_high_byte() {
+    fn sixteen_bit_colors_keep_their_high_byte() {
         let dir = tempfile::tempdir().expect("temp dir");
         let path = dir.path().join("rgb16.las");
         // One channel above 255 makes the whole file 16-bit, dark points included.
@@ -767,7 +767,7 @@ mod tests {
     }
 
     #[test]
-    fn intensity_without_colour_becomes_a_stretched_grey_that_is_never_black() {
+    fn intensity_without_color_becomes_a_stretched_grey_that_is_never_black() {
         let dir = tempfile::tempdir().expect("temp dir");
         let mut cloud = test_cloud(1_000);
         // Mostly 100..1100, plus outliers the percentile stretch must ignore.
@@ -814,7 +814,7 @@ mod tests {
     }
 
     #[test]
-    fn no_colour_and_no_intensity_gives_one_light_grey() {
+    fn no_color_and_no_intensity_gives_one_light_grey() {
         let dir = tempfile::tempdir().expect("temp dir");
         let mut cloud = test_cloud(100);
         cloud.intensity = vec![0; 100];

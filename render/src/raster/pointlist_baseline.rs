@@ -42,7 +42,7 @@ pub struct PointListBaseline {
 struct RenderTargets {
     width: u32,
     height: u32,
-    colour: wgpu::Texture,
+    color: wgpu::Texture,
     depth: wgpu::Texture,
     /// Rows padded to `COPY_BYTES_PER_ROW_ALIGNMENT`.
     readback: wgpu::Buffer,
@@ -73,7 +73,7 @@ impl RenderTargets {
         Self {
             width,
             height,
-            colour: texture(
+            color: texture(
                 "pointlist colour",
                 COLOUR_FORMAT,
                 wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
@@ -218,7 +218,7 @@ impl PointListBaseline {
         self.draw(cloud, settings.background, targets, &mut timings)?;
 
         let started = Instant::now();
-        let image = self.read_colour(targets)?;
+        let image = self.read_color(targets)?;
         timings.push(
             Stage::Readback,
             started.elapsed().as_secs_f64() * 1e3,
@@ -242,7 +242,7 @@ impl PointListBaseline {
             .iter()
             .map(|chunk| (self.bind_group(chunk), chunk.point_count))
             .collect();
-        let colour_view = targets.colour.create_view(&Default::default());
+        let color_view = targets.color.create_view(&Default::default());
         let depth_view = targets.depth.create_view(&Default::default());
         let [r, g, b, a] = background.map(|c| c as f64 / 255.0);
 
@@ -252,7 +252,7 @@ impl PointListBaseline {
             let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("pointlist baseline"),
                 color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: &colour_view,
+                    view: &color_view,
                     depth_slice: None,
                     resolve_target: None,
                     ops: wgpu::Operations {
@@ -329,17 +329,17 @@ impl PointListBaseline {
                     },
                     wgpu::BindGroupEntry {
                         binding: 5,
-                        resource: chunk.colours.as_entire_binding(),
+                        resource: chunk.colors.as_entire_binding(),
                     },
                 ],
             })
     }
 
     /// Copies the colour attachment to the host, dropping the row padding.
-    fn read_colour(&self, targets: &RenderTargets) -> Result<RgbaImage, RenderError> {
+    fn read_color(&self, targets: &RenderTargets) -> Result<RgbaImage, RenderError> {
         let mut encoder = self.gpu.device.create_command_encoder(&Default::default());
         encoder.copy_texture_to_buffer(
-            targets.colour.as_image_copy(),
+            targets.color.as_image_copy(),
             wgpu::TexelCopyBufferInfo {
                 buffer: &targets.readback,
                 layout: wgpu::TexelCopyBufferLayout {
@@ -348,7 +348,7 @@ impl PointListBaseline {
                     rows_per_image: None,
                 },
             },
-            targets.colour.size(),
+            targets.color.size(),
         );
         self.gpu.queue.submit([encoder.finish()]);
         let padded = read_buffer(
@@ -387,10 +387,10 @@ mod tests {
         let positions: Vec<DVec3> = (0..points)
             .map(|_| origin + DVec3::new(rng.random(), rng.random(), rng.random()) * 20.0)
             .collect();
-        let colours = (0..points)
+        let colors = (0..points)
             .map(|_| pack_rgba8(rng.random(), rng.random(), rng.random()))
             .collect();
-        PointCloud::from_world_points(&positions, colours)
+        PointCloud::from_world_points(&positions, colors)
     }
 
     /// Fractions of the pixels covered by either method that are covered by both, and of

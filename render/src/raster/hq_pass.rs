@@ -68,7 +68,7 @@ impl HqAccumulatePass {
                 (8, chunk.batches.as_entire_binding()),
                 (3, frame.targets.framebuffer.as_entire_binding()),
                 (4, accumulator.as_entire_binding()),
-                (5, chunk.colours.as_entire_binding()),
+                (5, chunk.colors.as_entire_binding()),
                 // The tiles after the depth pass: batches behind the depth band are skipped.
                 (6, frame.targets.occlusion.tiles.as_entire_binding()),
                 (7, frame.targets.occlusion.skipped.as_entire_binding()),

@@ -177,8 +177,8 @@ pub fn fill_holes(frame: &mut ReferenceFrame, mutable: &[bool], iterations: u32)
                         let z = depth[(ny * width + nx) as usize];
                         if z.is_finite() {
                             let r = (((nx - x).pow(2) + (ny - y).pow(2)) as f64).sqrt();
-                            let colour = image.get_pixel(nx as u32, ny as u32).0;
-                            neighbours.push((z, colour, r));
+                            let color = image.get_pixel(nx as u32, ny as u32).0;
+                            neighbours.push((z, color, r));
                         }
                     }
                 }
@@ -186,31 +186,28 @@ pub fn fill_holes(frame: &mut ReferenceFrame, mutable: &[bool], iterations: u32)
                     continue;
                 }
                 let z0 = depth[pixel];
-                let (z, colour) = if z0.is_infinite() {
+                let (z, color) = if z0.is_infinite() {
                     neighbours.sort_by(|a, b| a.0.total_cmp(&b.0));
-                    let (z, colour, _) = neighbours[(neighbours.len() - 1) / 2];
-                    (z, colour)
+                    let (z, color, _) = neighbours[(neighbours.len() - 1) / 2];
+                    (z, color)
                 } else {
                     let delta = FILL_DEPTH_TOLERANCE as f64 * z0 as f64;
                     let mut total = 0.0;
                     let mut z_sum = 0.0;
-                    let mut colour_sum = [0.0f64; 4];
-                    for &(z, colour, r) in &neighbours {
+                    let mut color_sum = [0.0f64; 4];
+                    for &(z, color, r) in &neighbours {
                         let w = (1.0 - r / 2.0)
                             * (1.0 - ((z as f64 - z0 as f64).abs() / delta).min(1.0));
                         total += w;
                         z_sum += w * z as f64;
                         for c in 0..4 {
-                            colour_sum[c] += w * colour[c] as f64 / 255.0;
+                            color_sum[c] += w * color[c] as f64 / 255.0;
                         }
                     }
-                    (
-                        (z_sum / total) as f32,
-                        colour_sum.map(|c| unorm8(c / total)),
-                    )
+                    ((z_sum / total) as f32, color_sum.map(|c| unorm8(c / total)))
                 };
                 frame.depth[pixel] = z;
-                frame.image.get_pixel_mut(x as u32, y as u32).0 = colour;
+                frame.image.get_pixel_mut(x as u32, y as u32).0 = color;
             }
         }
     }
@@ -273,11 +270,11 @@ pub fn shade_pintus(
         }
         depth = next;
     }
-    for (pixel, colour) in frame.image.pixels_mut().enumerate() {
+    for (pixel, color) in frame.image.pixels_mut().enumerate() {
         if frame.depth[pixel].is_finite() {
             let s = shade[pixel] / total_weight;
             for c in 0..3 {
-                colour.0[c] = unorm8(colour.0[c] as f64 / 255.0 * s);
+                color.0[c] = unorm8(color.0[c] as f64 / 255.0 * s);
             }
         }
     }
@@ -348,7 +345,7 @@ fn for_each_covered_pixel(
         .camera
         .transform(cloud.origin, settings.width, settings.height);
     let size = settings.point_size as i64;
-    for (position, &colour) in cloud.positions.iter().zip(&cloud.colors) {
+    for (position, &color) in cloud.positions.iter().zip(&cloud.colors) {
         let Some((px, py, depth)) = transform.project(position.as_dvec3()) else {
             continue;
         };
@@ -356,7 +353,7 @@ fn for_each_covered_pixel(
         let y0 = py.floor() as i64 - (size - 1) / 2;
         for y in (y0..y0 + size).filter(|y| (0..height).contains(y)) {
             for x in (x0..x0 + size).filter(|x| (0..width).contains(x)) {
-                visit((y * width + x) as usize, depth as f32, colour);
+                visit((y * width + x) as usize, depth as f32, color);
             }
         }
     }
@@ -373,13 +370,13 @@ fn nearest_depths(cloud: &PointCloud, settings: &FrameSettings) -> Vec<f32> {
 
 fn frame_from(
     settings: &FrameSettings,
-    colours: Vec<Option<u32>>,
+    colors: Vec<Option<u32>>,
     depth: Vec<f32>,
 ) -> ReferenceFrame {
     let background = u32::from_le_bytes(settings.background);
     let mut image = RgbaImage::new(settings.width, settings.height);
-    for (pixel, colour) in image.pixels_mut().zip(colours) {
-        pixel.0 = colour.unwrap_or(background).to_le_bytes();
+    for (pixel, color) in image.pixels_mut().zip(colors) {
+        pixel.0 = color.unwrap_or(background).to_le_bytes();
     }
     ReferenceFrame { image, depth }
 }
@@ -408,9 +405,9 @@ pub fn render_basic(cloud: &PointCloud, settings: &FrameSettings) -> ReferenceFr
 pub fn depth_ties(cloud: &PointCloud, settings: &FrameSettings, relative: f32) -> Vec<bool> {
     let winner = basic_winners(cloud, settings);
     let mut tied = vec![false; winner.len()];
-    for_each_covered_pixel(cloud, settings, |pixel, depth, colour| {
+    for_each_covered_pixel(cloud, settings, |pixel, depth, color| {
         if let Some((d, c)) = winner[pixel] {
-            if colour != c && depth - d <= relative * d.abs() {
+            if color != c && depth - d <= relative * d.abs() {
                 tied[pixel] = true;
             }
         }
@@ -422,13 +419,13 @@ pub fn depth_ties(cloud: &PointCloud, settings: &FrameSettings, relative: f32) -
 fn basic_winners(cloud: &PointCloud, settings: &FrameSettings) -> Vec<Option<(f32, u32)>> {
     let mut winner: Vec<Option<(f32, u32)>> =
         vec![None; (settings.width * settings.height) as usize];
-    for_each_covered_pixel(cloud, settings, |pixel, depth, colour| {
+    for_each_covered_pixel(cloud, settings, |pixel, depth, color| {
         let wins = match winner[pixel] {
             None => true,
-            Some((d, c)) => depth < d || (depth == d && colour < c),
+            Some((d, c)) => depth < d || (depth == d && color < c),
         };
         if wins {
-            winner[pixel] = Some((depth, colour));
+            winner[pixel] = Some((depth, color));
         }
     });
     winner
@@ -444,9 +441,9 @@ pub fn render_high_quality(
     // The band test in f32, as the GPU does it.
     let band = 1.0f32 + depth_band;
     let mut sums = vec![[0u64; 4]; nearest.len()];
-    for_each_covered_pixel(cloud, settings, |pixel, depth, colour| {
+    for_each_covered_pixel(cloud, settings, |pixel, depth, color| {
         if depth <= nearest[pixel] * band {
-            let [r, g, b, _] = colour.to_le_bytes();
+            let [r, g, b, _] = color.to_le_bytes();
             let sum = &mut sums[pixel];
             sum[0] += r as u64;
             sum[1] += g as u64;
@@ -458,9 +455,9 @@ pub fn render_high_quality(
         let channel = |total: u64| (total as f64 / sum[3] as f64).round() as u8;
         u32::from_le_bytes([channel(sum[0]), channel(sum[1]), channel(sum[2]), 255])
     };
-    let colours = sums
+    let colors = sums
         .iter()
         .map(|s| (s[3] > 0).then(|| average(s)))
         .collect();
-    frame_from(settings, colours, nearest)
+    frame_from(settings, colors, nearest)
 }

@@ -31,7 +31,7 @@ pub(crate) struct BasicPass {
     /// Present when the device has 64-bit atomics.
     atomic64: Option<PointPipelines>,
     atomic32_depth: PointPipelines,
-    atomic32_colour: PointPipelines,
+    atomic32_color: PointPipelines,
     occlusion: OcclusionPass,
 }
 
@@ -45,7 +45,7 @@ impl BasicPass {
         Self {
             atomic64,
             atomic32_depth: PointPipelines::new(device, &m32, "rasterize_depth", workgroup_size),
-            atomic32_colour: PointPipelines::new(device, &m32, "rasterize_colour", workgroup_size),
+            atomic32_color: PointPipelines::new(device, &m32, "rasterize_color", workgroup_size),
             occlusion: OcclusionPass::new(device),
         }
     }
@@ -75,7 +75,7 @@ impl BasicPass {
                 // The colour pass needs every chunk's final depths: it runs after the depth
                 // pass over all of them, against the final tiles.
                 self.record_depth(device, pass, frame);
-                let pipeline = self.atomic32_colour.get(device, frame.point_size);
+                let pipeline = self.atomic32_color.get(device, frame.point_size);
                 pass.set_pipeline(&pipeline);
                 // Phase by phase, as the accumulation (`hq_pass.rs`).
                 for phase in 0..frame.batches.phase_count() {
@@ -197,7 +197,7 @@ fn bind_group(
         (2, wgpu::BindingResource::Buffer(batch_table)),
         (8, chunk.batches.as_entire_binding()),
         (3, framebuffer.as_entire_binding()),
-        (5, chunk.colours.as_entire_binding()),
+        (5, chunk.colors.as_entire_binding()),
         (6, frame.targets.occlusion.tiles.as_entire_binding()),
         (7, frame.targets.occlusion.skipped.as_entire_binding()),
     ];

@@ -7,6 +7,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::tests::render_gpu;
 use super::*;
+use crate::camera::Camera;
 use crate::camera::Projection;
 use crate::cloud::pack_rgba8;
 use crate::reference;
@@ -94,7 +95,7 @@ impl Rays {
     }
 }
 
-fn random_colour(rng: &mut ChaCha8Rng) -> u32 {
+fn random_color(rng: &mut ChaCha8Rng) -> u32 {
     pack_rgba8(
         rng.random_range(60..200),
         rng.random_range(60..200),
@@ -109,19 +110,19 @@ const FRONT: (std::ops::Range<u32>, std::ops::Range<u32>) = (40..120, 30..90);
 fn two_planes(settings: &FrameSettings) -> PointCloud {
     let rays = Rays::new(settings);
     let mut rng = ChaCha8Rng::seed_from_u64(7);
-    let (mut points, mut colours) = (Vec::new(), Vec::new());
+    let (mut points, mut colors) = (Vec::new(), Vec::new());
     for y in 0..settings.height {
         for x in 0..settings.width {
             let (px, py) = (x as f64 + 0.5, y as f64 + 0.5);
             points.push(rays.at_depth(px, py, 40.0));
-            colours.push(pack_rgba8(200, 40, 40));
+            colors.push(pack_rgba8(200, 40, 40));
             if FRONT.0.contains(&x) && FRONT.1.contains(&y) && rng.random_bool(0.3) {
                 points.push(rays.at_depth(px, py, 20.0));
-                colours.push(random_colour(&mut rng));
+                colors.push(random_color(&mut rng));
             }
         }
     }
-    PointCloud::from_world_points(&points, colours)
+    PointCloud::from_world_points(&points, colors)
 }
 
 const SPHERE_RADIUS: f64 = 3.0;
@@ -130,7 +131,7 @@ const SPHERE_RADIUS: f64 = 3.0;
 /// its image: holes of a few pixels, and back points behind them.
 pub(super) fn holey_sphere(settings: &FrameSettings) -> PointCloud {
     let mut rng = ChaCha8Rng::seed_from_u64(11);
-    let (mut points, mut colours) = (Vec::new(), Vec::new());
+    let (mut points, mut colors) = (Vec::new(), Vec::new());
     for _ in 0..48_000 {
         let z: f64 = rng.random_range(-1.0..1.0);
         let phi: f64 = rng.random_range(0.0..std::f64::consts::TAU);
@@ -139,10 +140,10 @@ pub(super) fn holey_sphere(settings: &FrameSettings) -> PointCloud {
         points.push(ORIGIN + unit * SPHERE_RADIUS);
         // Smooth bands with some noise, like a scanned surface's colour.
         let mut band = |v: f64| (150.0 + 60.0 * v + rng.random_range(-12.0..12.0)) as u8;
-        colours.push(pack_rgba8(band(unit.z), band(unit.x), band(-unit.z)));
+        colors.push(pack_rgba8(band(unit.z), band(unit.x), band(-unit.z)));
     }
     let _ = settings;
-    PointCloud::from_world_points(&points, colours)
+    PointCloud::from_world_points(&points, colors)
 }
 
 fn with_fill(mut settings: FrameSettings, kernel: u32) -> FrameSettings {
@@ -288,7 +289,7 @@ fn filling_reconstructs_a_holey_sphere_without_growing_its_silhouette() {
 }
 
 /// Pixels of `a` and `b` with a channel more than 2 levels apart.
-fn colours_apart(a: &image::RgbaImage, b: &image::RgbaImage) -> usize {
+fn colors_apart(a: &image::RgbaImage, b: &image::RgbaImage) -> usize {
     a.pixels()
         .zip(b.pixels())
         .filter(|(a, b)| (0..4).any(|c| a.0[c].abs_diff(b.0[c]) > 2))
@@ -302,19 +303,19 @@ fn assert_close_to_reference(name: &str, cloud: &PointCloud, settings: &FrameSet
     let expected = reference::render(cloud, settings);
     compare_images(name, &frame.image, &expected.image);
     let pixels = (settings.width * settings.height) as usize;
-    let far_colours = colours_apart(&frame.image, &expected.image);
+    let far_colors = colors_apart(&frame.image, &expected.image);
     let far_depths = depth_of(&frame)
         .iter()
         .zip(&expected.depth)
         .filter(|(&a, &b)| !(a == b || (a - b).abs() <= 1e-4 * b.abs()))
         .count();
     eprintln!(
-        "{name}: {far_colours} pixels differ by more than 2 levels, {far_depths} in depth by \
+        "{name}: {far_colors} pixels differ by more than 2 levels, {far_depths} in depth by \
          more than 1e-4, of {pixels}"
     );
     assert!(
-        far_colours * 1000 <= pixels,
-        "{name}: {far_colours} colours differ"
+        far_colors * 1000 <= pixels,
+        "{name}: {far_colors} colours differ"
     );
     assert!(
         far_depths * 1000 <= pixels,
@@ -366,11 +367,11 @@ fn filling_a_small_cloud_after_one_that_filled_the_image_matches_the_reference()
         .render(&small_resident, &small_settings)
         .expect("small frame");
     let expected = reference::render(&small, &small_settings);
-    let far_colours = colours_apart(&frame.image, &expected.image);
+    let far_colors = colors_apart(&frame.image, &expected.image);
     compare_images("fill-after-wide", &frame.image, &expected.image);
     assert!(
-        far_colours * 1000 <= (WIDTH * HEIGHT) as usize,
-        "{far_colours} colours differ"
+        far_colors * 1000 <= (WIDTH * HEIGHT) as usize,
+        "{far_colors} colours differ"
     );
 }
 

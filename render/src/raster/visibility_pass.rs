@@ -54,9 +54,9 @@ impl VisibilityPass {
             vec![
                 (0, params.fill()),
                 (1, targets.depth.as_entire_binding()),
-                (2, targets.colour.as_entire_binding()),
+                (2, targets.color.as_entire_binding()),
                 (3, fill.depth.as_entire_binding()),
-                (4, fill.colour.as_entire_binding()),
+                (4, fill.color.as_entire_binding()),
                 (5, fill.mutable.as_entire_binding()),
                 args(),
             ],

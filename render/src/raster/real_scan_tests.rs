@@ -5,6 +5,7 @@ use glam::DVec3;
 
 use super::tests::render_gpu;
 use super::*;
+use crate::camera::Camera;
 use crate::camera::Projection;
 use crate::cloud::pack_rgba8;
 use crate::ingest::load_point_cloud;

@@ -30,7 +30,7 @@ impl EdlPass {
             device,
             &self.shade,
             "edl",
-            &[(0, uniforms), (1, &targets.colour), (2, &targets.depth)],
+            &[(0, uniforms), (1, &targets.color), (2, &targets.depth)],
         );
         pass.set_pipeline(&self.shade);
         pass.set_bind_group(0, &bind_group, &[]);

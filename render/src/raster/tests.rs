@@ -8,6 +8,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::*;
+use crate::camera::Camera;
 use crate::camera::Projection;
 use crate::cloud::pack_rgba8;
 use crate::reference;
@@ -83,15 +84,15 @@ fn pixel_centre_scene_by_pixel(
         a + (b - a) * ((depth - depth_of(a)) / (depth_of(b) - depth_of(a)))
     };
     let mut points = Vec::new();
-    let mut colours = Vec::new();
-    let random_colour = |rng: &mut ChaCha8Rng| pack_rgba8(rng.random(), rng.random(), rng.random());
+    let mut colors = Vec::new();
+    let random_color = |rng: &mut ChaCha8Rng| pack_rgba8(rng.random(), rng.random(), rng.random());
     for y in 0..h {
         for x in 0..w {
             let ndc_x = (x as f64 + 0.5) / w as f64 * 2.0 - 1.0;
             let ndc_y = 1.0 - (y as f64 + 0.5) / h as f64 * 2.0;
             for depth in depths(&mut rng, x, y) {
                 points.push(SURVEY_ORIGIN + at_depth(ndc_x, ndc_y, depth));
-                colours.push(random_colour(&mut rng));
+                colors.push(random_color(&mut rng));
             }
         }
     }
@@ -99,17 +100,17 @@ fn pixel_centre_scene_by_pixel(
     let centre_ray = |depth: f64| SURVEY_ORIGIN + at_depth(0.1, -0.2, depth);
     for depth in [-10.0, -1.0, 0.5 * cam.near, cam.far * 1.01, cam.far * 3.0] {
         points.push(centre_ray(depth));
-        colours.push(pack_rgba8(255, 0, 0));
+        colors.push(pack_rgba8(255, 0, 0));
     }
     for ndc in [(-1.3, 0.0), (1.3, 0.2), (0.0, 1.4), (0.3, -1.5)] {
         points.push(SURVEY_ORIGIN + at_depth(ndc.0, ndc.1, 40.0));
-        colours.push(pack_rgba8(255, 0, 0));
+        colors.push(pack_rgba8(255, 0, 0));
     }
     let mut order: Vec<usize> = (0..points.len()).collect();
     order.shuffle(&mut rng);
     let points: Vec<DVec3> = order.iter().map(|&i| points[i]).collect();
-    let colours: Vec<u32> = order.iter().map(|&i| colours[i]).collect();
-    PointCloud::from_world_points(&points, colours)
+    let colors: Vec<u32> = order.iter().map(|&i| colors[i]).collect();
+    PointCloud::from_world_points(&points, colors)
 }
 
 pub(super) fn render_gpu(cloud: &PointCloud, settings: &FrameSettings) -> Frame {
@@ -235,7 +236,7 @@ fn large_points_centred_off_the_image_draw_their_squares_inside_part() {
     let inverse = t.view_proj.inverse();
     let (w, h) = (f64::from(settings.width), f64::from(settings.height));
     let mut points = Vec::new();
-    let mut colours = Vec::new();
+    let mut colors = Vec::new();
     let mut rng = ChaCha8Rng::seed_from_u64(9);
     // A ring of pixel centres from 6 pixels outside each edge to 2 inside it.
     for y in -6..(settings.height as i32 + 6) {
@@ -249,10 +250,10 @@ fn large_points_centred_off_the_image_draw_their_squares_inside_part() {
             let ndc_y = 1.0 - (f64::from(y) + 0.5) / h * 2.0;
             let p: DVec4 = inverse * DVec4::new(ndc_x, ndc_y, rng.random_range(0.2..0.8), 1.0);
             points.push(SURVEY_ORIGIN + p.truncate() / p.w);
-            colours.push(pack_rgba8(rng.random(), rng.random(), rng.random()));
+            colors.push(pack_rgba8(rng.random(), rng.random(), rng.random()));
         }
     }
-    let cloud = PointCloud::from_world_points(&points, colours);
+    let cloud = PointCloud::from_world_points(&points, colors);
     assert_matches_reference("point-size-7-off-edges", &cloud, &settings);
 }
 
@@ -571,10 +572,10 @@ fn batch_culling_keeps_every_point_that_is_in_view() {
                 ),
         );
     }
-    let colours = (0..points.len())
+    let colors = (0..points.len())
         .map(|i| pack_rgba8(i as u8, (i >> 8) as u8, 200))
         .collect();
-    let cloud = PointCloud::from_world_points(&points, colours);
+    let cloud = PointCloud::from_world_points(&points, colors);
     let cam = Camera {
         position: SURVEY_ORIGIN + DVec3::new(0.0, -120.0, 60.0),
         target: SURVEY_ORIGIN,
@@ -760,9 +761,9 @@ fn high_quality_averages_pixels_deeper_than_the_packed_sums() {
     // Bright colours, so that a channel's sum over more than 257 points overflows 16 bits.
     let mut rng = ChaCha8Rng::seed_from_u64(13);
     let mut cloud = cloud;
-    for colour in &mut cloud.colors {
+    for color in &mut cloud.colors {
         let mut channel = || rng.random_range(224..=255);
-        *colour = pack_rgba8(channel(), channel(), channel());
+        *color = pack_rgba8(channel(), channel(), channel());
     }
     let resident = renderer.upload(&cloud).expect("upload");
     let expected = reference::render(&cloud, &settings);
