@@ -14,6 +14,7 @@ pub mod error;
 pub mod frame_render;
 pub mod grpc;
 pub mod lease;
+pub mod lease_record;
 pub mod model;
 pub mod remote_worker;
 pub mod server;

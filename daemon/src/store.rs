@@ -7,18 +7,10 @@
 
 use serde::de::DeserializeOwned;
 use serde::Serialize;
-use thiserror::Error;
 
-use crate::lease::Lease;
+use crate::error::StoreError;
+use crate::lease_record::Lease;
 use crate::model::{now_unix_ms, Dataset, FrameReport, FrameState, Job, JobSpec, JobState};
-
-#[derive(Debug, Error)]
-pub enum StoreError {
-    #[error("state database: {0}")]
-    Db(#[from] sled::Error),
-    #[error("state database holds a record it cannot read: {0}")]
-    Corrupt(#[from] serde_json::Error),
-}
 
 pub struct Store {
     db: sled::Db,
@@ -278,6 +270,19 @@ impl Store {
 
     pub fn leases(&self) -> Result<Vec<Lease>, StoreError> {
         self.leases.iter().map(|entry| decode(&entry?.1)).collect()
+    }
+
+    /// Drops the leases held by embedded workers (found at start-up, they belonged to the
+    /// worker threads of the previous process); returns how many there were.
+    pub fn drop_embedded_leases(&self) -> Result<usize, StoreError> {
+        let mut dropped = 0;
+        for lease in self.leases()? {
+            if lease.embedded {
+                self.remove_lease(&lease.id)?;
+                dropped += 1;
+            }
+        }
+        Ok(dropped)
     }
 
     /// A new id, unique in this database (also across restarts).

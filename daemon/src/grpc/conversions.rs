@@ -11,7 +11,8 @@ use pointfarm_render::raster::{
 };
 
 use crate::error::DaemonError;
-use crate::lease::{FrameTask, HeartbeatAnswer, Lease, TaskDataset};
+use crate::lease::{FrameTask, HeartbeatAnswer, TaskDataset};
+use crate::lease_record::Lease;
 use crate::model::{
     CameraPath, ColorMode, Dataset, Fill, FrameReport, Interpolation, Job, JobSpec, JobState,
     Keyframe, Point3, Quality, RenderOptions, Shading, StageTiming, Turntable,
