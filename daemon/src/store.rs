@@ -35,6 +35,11 @@ fn decode<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, StoreError> {
     Ok(serde_json::from_slice(bytes)?)
 }
 
+/// The record stored under a key, if there is one.
+fn decode_stored<T: DeserializeOwned>(value: Option<sled::IVec>) -> Result<Option<T>, StoreError> {
+    value.map(|v| decode(&v)).transpose()
+}
+
 /// Frame keys sort by job, then by index.
 fn frame_key(job_id: &str, index: u32) -> Vec<u8> {
     let mut key = job_id.as_bytes().to_vec();
@@ -71,17 +76,11 @@ impl Store {
     }
 
     pub fn dataset(&self, id: &str) -> Result<Option<Dataset>, StoreError> {
-        self.datasets
-            .get(id.as_bytes())?
-            .map(|v| decode(&v))
-            .transpose()
+        decode_stored(self.datasets.get(id.as_bytes())?)
     }
 
     pub fn delete_dataset(&self, id: &str) -> Result<Option<Dataset>, StoreError> {
-        self.datasets
-            .remove(id.as_bytes())?
-            .map(|v| decode(&v))
-            .transpose()
+        decode_stored(self.datasets.remove(id.as_bytes())?)
     }
 
     pub fn list_datasets(
@@ -141,10 +140,7 @@ impl Store {
     }
 
     pub fn job(&self, id: &str) -> Result<Option<Job>, StoreError> {
-        self.jobs
-            .get(id.as_bytes())?
-            .map(|v| decode(&v))
-            .transpose()
+        decode_stored(self.jobs.get(id.as_bytes())?)
     }
 
     pub fn put_job(&self, job: &Job) -> Result<(), StoreError> {
@@ -184,10 +180,7 @@ impl Store {
     }
 
     pub fn frame(&self, job_id: &str, index: u32) -> Result<Option<FrameState>, StoreError> {
-        self.frames
-            .get(frame_key(job_id, index))?
-            .map(|v| decode(&v))
-            .transpose()
+        decode_stored(self.frames.get(frame_key(job_id, index))?)
     }
 
     pub fn set_frame(
@@ -257,10 +250,7 @@ impl Store {
     }
 
     pub fn lease(&self, id: &str) -> Result<Option<Lease>, StoreError> {
-        self.leases
-            .get(id.as_bytes())?
-            .map(|v| decode(&v))
-            .transpose()
+        decode_stored(self.leases.get(id.as_bytes())?)
     }
 
     pub fn remove_lease(&self, id: &str) -> Result<(), StoreError> {
