@@ -593,7 +593,8 @@ pub fn render_options_message(options: &RenderOptions) -> pb::RenderOptions {
     } as i32;
     message
 }
-// ------------------------------------------------------------ end of render options and camera paths
+
+// ----------------------------------------------------- end of render options and camera paths
 
 #[cfg(test)]
 mod tests {

@@ -1,7 +1,7 @@
 //! A worker's render state and the rendering of one leased frame, shared by the embedded
-//! worker threads and the remote worker process: load the dataset (through the worker's `DatasetCache`), colour it, keep it
-//! resident on the GPU across frames, render with the job's settings and encode the PNG,
-//! with the stage timings of every step.
+//! worker threads and the remote worker process: load the dataset (through the worker's
+//! `DatasetCache`), colour it, keep it resident on the GPU across frames, render with the
+//! job's settings and encode the PNG, with the stage timings of every step.
 
 use std::path::Path;
 use std::sync::Arc;
