@@ -1,5 +1,5 @@
 //! A worker in its own process (`pointfarm worker`): leases frames from a daemon over gRPC,
-//! renders them with [`FrameRenderer`] on its own GPU and hands the PNGs back.
+//! renders them with [`WorkerRenderState`] on its own GPU and hands the PNGs back.
 //!
 //! - The dataset's points come from the worker's own `DatasetCache`; a dataset it has never
 //!   seen is downloaded once (`FetchDataset`, SHA-256 checked) and decoded into the cache.
@@ -24,21 +24,17 @@ use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_proto::BearerToken;
 use pointfarm_render::cache::DatasetCache;
 use pointfarm_render::gpu::GpuContext;
-use sha2::{Digest, Sha256};
-use tokio::io::AsyncWriteExt;
 use tokio::sync::watch;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Channel, Endpoint};
 use tonic::{Code, Status};
 use tracing::Instrument;
 
-use crate::frame_render::{FrameRenderer, RenderedFrame};
+use crate::grpc::streaming::{HashingWriter, CHUNK_BYTES};
 use crate::grpc::{frame_task, timings_message};
 use crate::lease::FrameTask;
-use crate::service::hex;
+use crate::worker::render_state::{RenderedFrame, WorkerRenderState};
 
-/// PNG bytes per `CompleteFrame` message: well under gRPC's default 4 MiB limit.
-const PNG_CHUNK_BYTES: usize = 1 << 20;
 /// How long one lease request waits for work on the daemon.
 const LEASE_WAIT_MS: u32 = 10_000;
 
@@ -127,7 +123,7 @@ pub async fn run(
         let _ = stop_sender.send(true);
     });
 
-    let mut frames = Some(FrameRenderer::new(gpu, Some(Arc::new(cache))));
+    let mut render_state = Some(WorkerRenderState::new(gpu, Some(Arc::new(cache))));
     let mut backoff = Backoff::new();
     tracing::info!(server = %url, worker = %config.name, "worker started");
     while !*stop.borrow() {
@@ -188,7 +184,7 @@ pub async fn run(
             frame = task.lease.index,
             lease = %task.lease.id
         );
-        run_task(&mut client, &mut frames, &downloads, task)
+        run_task(&mut client, &mut render_state, &downloads, task)
             .instrument(span)
             .await?;
     }
@@ -200,7 +196,7 @@ pub async fn run(
 /// worker cannot go on.
 async fn run_task(
     client: &mut Client,
-    frames: &mut Option<FrameRenderer>,
+    render_state: &mut Option<WorkerRenderState>,
     downloads: &Path,
     task: FrameTask,
 ) -> anyhow::Result<()> {
@@ -217,7 +213,7 @@ async fn run_task(
         heartbeat_interval(task.lease_timeout),
         abandoned.clone(),
     ));
-    let result = download_and_render(client, frames, downloads, &task).await;
+    let result = download_and_render(client, render_state, downloads, &task).await;
     heartbeats.abort();
     if abandoned.load(Ordering::SeqCst) {
         tracing::info!("frame dropped on the daemon's word");
@@ -237,16 +233,16 @@ async fn run_task(
 /// renderer itself was lost.
 async fn download_and_render(
     client: &mut Client,
-    frames: &mut Option<FrameRenderer>,
+    render_state: &mut Option<WorkerRenderState>,
     downloads: &Path,
     task: &FrameTask,
 ) -> anyhow::Result<Result<RenderedFrame, String>> {
-    let renderer = frames.take().context("the renderer was lost")?;
-    let file = if renderer.needs_file(task) {
+    let state = render_state.take().context("the renderer was lost")?;
+    let file = if state.needs_file(task) {
         match download(client, task, downloads).await {
             Ok(file) => Some(file),
             Err(e) => {
-                *frames = Some(renderer);
+                *render_state = Some(state);
                 return Ok(Err(format!(
                     "downloading dataset {}: {e:#}",
                     task.dataset.id
@@ -260,15 +256,15 @@ async fn download_and_render(
     let blocking_task = task.clone();
     let span = tracing::Span::current();
     let path = file.clone().unwrap_or_default();
-    let (renderer, rendered) = tokio::task::spawn_blocking(move || {
+    let (state, rendered) = tokio::task::spawn_blocking(move || {
         let _entered = span.enter();
-        let mut renderer = renderer;
-        let rendered = renderer.render(&blocking_task, &path);
-        (renderer, rendered)
+        let mut state = state;
+        let rendered = state.render(&blocking_task, &path);
+        (state, rendered)
     })
     .await
     .context("the render thread panicked")?;
-    *frames = Some(renderer);
+    *render_state = Some(state);
     if let Some(file) = file {
         // The points are in the cache now.
         let _ = tokio::fs::remove_file(file).await;
@@ -326,23 +322,19 @@ async fn download(client: &mut Client, task: &FrameTask, dir: &Path) -> anyhow::
             .await
             .map_err(|s| anyhow::anyhow!("{:?}: {}", s.code(), s.message()))?
             .into_inner();
-        let mut file = tokio::fs::File::create(&partial).await?;
-        let mut hasher = Sha256::new();
-        let mut received: u64 = 0;
+        let mut file = HashingWriter::create(&partial).await?;
         while let Some(chunk) = stream
             .message()
             .await
             .map_err(|s| anyhow::anyhow!("{:?}: {}", s.code(), s.message()))?
         {
-            received += chunk.data.len() as u64;
-            if received > dataset.size_bytes {
+            if file.received() + chunk.data.len() as u64 > dataset.size_bytes {
                 bail!("more than the {} bytes announced", dataset.size_bytes);
             }
-            hasher.update(&chunk.data);
-            file.write_all(&chunk.data).await?;
+            file.write(&chunk.data).await?;
         }
-        file.flush().await?;
-        let sha256 = hex(&hasher.finalize());
+        let received = file.received();
+        let sha256 = file.finish().await?;
         if sha256 != dataset.sha256 {
             bail!(
                 "the download's SHA-256 is {sha256}, expected {}",
@@ -380,7 +372,7 @@ async fn complete_frame(client: &mut Client, task: &FrameTask, frame: RenderedFr
         };
         let chunks: Vec<pb::CompleteFrameRequest> = frame
             .png
-            .chunks(PNG_CHUNK_BYTES)
+            .chunks(CHUNK_BYTES)
             .map(|c| pb::CompleteFrameRequest {
                 part: Some(pb::complete_frame_request::Part::Png(c.to_vec())),
             })
