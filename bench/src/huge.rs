@@ -8,7 +8,6 @@ use pointfarm_render::raster::{FrameSettings, GpuPointCloud};
 use crate::clouds::{cube_bounds, CellCubeGenerator};
 use crate::report::{IngestMemory, WorkloadResult};
 use crate::rounds::{measure, Methods};
-use crate::run::summary_line;
 use crate::workloads::{uniform_workload, View};
 use crate::{BenchError, BenchOptions};
 
@@ -103,7 +102,7 @@ impl HugeCloud {
             &huge_options,
         )?;
         result.ingest_memory = Some(self.memory);
-        progress(&summary_line(&result));
+        progress(&result.summary_line());
         Ok(result)
     }
 }

@@ -216,6 +216,26 @@ pub(crate) fn scaling_fits(workloads: &[WorkloadResult]) -> Vec<ScalingFit> {
         .collect()
 }
 
+impl WorkloadResult {
+    /// One progress line of the workload's figures.
+    pub fn summary_line(&self) -> String {
+        let mut line = format!(
+            "{}: pointlist {:.1} ms, compute {:.1} ms, speed-up {:.2}x",
+            self.workload,
+            self.pointlist.frame_ms,
+            self.compute.frame_ms,
+            self.speedup_vs_pointlist
+        );
+        for mode in &self.modes {
+            line += &format!(
+                ", {} {:.1} ms ({:.2}x basic)",
+                mode.result.method, mode.result.frame_ms, mode.cost_vs_basic
+            );
+        }
+        line
+    }
+}
+
 impl MethodResult {
     /// Wall-clock time of a frame that none of its stages accounts for. Large when the
     /// adapter's timestamps under-report a pass (seen on lavapipe); small otherwise, since a

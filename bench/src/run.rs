@@ -11,7 +11,7 @@ use pointfarm_render::raster::FrameSettings;
 
 use crate::huge::HugeCloud;
 use crate::ingest::{self, generated_workload};
-use crate::report::{scaling_fits, AdapterReport, BenchReport, SkippedWorkload, WorkloadResult};
+use crate::report::{scaling_fits, AdapterReport, BenchReport, SkippedWorkload};
 use crate::rounds::{measure, Methods};
 use crate::workloads::{
     points_in_view, uniform_workload, SceneSpec, CUBOID_PLANES, HEADLINE_WORKLOAD, REAL_SCANS,
@@ -120,7 +120,7 @@ pub fn run(
             let settings = FrameSettings::new(options.width, options.height, view.camera);
             let in_view = points_in_view(&scene.cloud, &settings);
             let result = measure(&mut methods, &resident, (view, in_view), &settings, options)?;
-            progress(&summary_line(&result));
+            progress(&result.summary_line());
             workloads.push(result);
         }
         tracing::debug!(scene = %scene.name, "scene done");
@@ -162,22 +162,4 @@ pub fn run(
         ingest,
         skipped,
     })
-}
-
-/// One progress line of a workload's figures.
-pub(crate) fn summary_line(result: &WorkloadResult) -> String {
-    let mut line = format!(
-        "{}: pointlist {:.1} ms, compute {:.1} ms, speed-up {:.2}x",
-        result.workload,
-        result.pointlist.frame_ms,
-        result.compute.frame_ms,
-        result.speedup_vs_pointlist
-    );
-    for mode in &result.modes {
-        line += &format!(
-            ", {} {:.1} ms ({:.2}x basic)",
-            mode.result.method, mode.result.frame_ms, mode.cost_vs_basic
-        );
-    }
-    line
 }
