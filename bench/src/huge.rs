@@ -11,9 +11,9 @@ use crate::rounds::{measure, Methods};
 use crate::workloads::{uniform_workload, View};
 use crate::{BenchError, BenchOptions};
 
-/// A cube of `points` (the run's is [`HUGE_POINTS`](crate::HUGE_POINTS)), generated in Morton-ordered cells and
-/// uploaded chunk by chunk: the host never holds the whole cloud. Its ingest's memory is the
-/// peak above the process's size before it ([`IngestMemory`]).
+/// A cube of `points` (the run's is [`HUGE_POINTS`](crate::HUGE_POINTS)), generated in
+/// Morton-ordered cells and uploaded chunk by chunk: the host never holds the whole cloud. Its
+/// ingest's memory is the peak above the process's size before it ([`IngestMemory`]).
 pub(crate) struct HugeCloud {
     resident: GpuPointCloud,
     view: View,

@@ -153,7 +153,8 @@ pub struct BenchReport {
     pub height: u32,
     pub warmup_frames: usize,
     pub frames: usize,
-    /// Speed-up of the compute path over PointList on [`HEADLINE_WORKLOAD`](crate::HEADLINE_WORKLOAD).
+    /// Speed-up of the compute path over PointList on
+    /// [`HEADLINE_WORKLOAD`](crate::HEADLINE_WORKLOAD).
     pub speedup_vs_pointlist: Option<f64>,
     pub workloads: Vec<WorkloadResult>,
     /// Frame time against points in view over the uniform series, per method.
