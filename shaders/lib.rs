@@ -26,7 +26,8 @@ pub enum Shader {
     /// Pintus et al.'s multi-level shape-depicting shading: entry points `level`, `apply`.
     PintusShading,
     /// The benchmark's fixed-function baseline, a `PointList` render pipeline: entry points
-    /// `vertex_main`, `fragment_main`.
+    /// `vertex_main`, `fragment_main`. Only with the `pointlist-baseline` feature.
+    #[cfg(feature = "pointlist-baseline")]
     PointListBaseline,
     /// The occlusion tiles between point dispatches: entry points `clear_tiles`,
     /// `build_tiles`.
@@ -44,7 +45,7 @@ const HQ_SUMS_ATOMIC64: &str = include_str!("hq_sums_atomic64.wgsl");
 const SCREEN_COMMON: &str = include_str!("screen_common.wgsl");
 
 impl Shader {
-    pub const ALL: [Shader; 11] = [
+    pub const ALL: &'static [Shader] = &[
         Shader::RasterAtomic64,
         Shader::RasterAtomic32,
         Shader::HqAccumulate,
@@ -54,6 +55,7 @@ impl Shader {
         Shader::Visibility,
         Shader::Fill,
         Shader::PintusShading,
+        #[cfg(feature = "pointlist-baseline")]
         Shader::PointListBaseline,
         Shader::OcclusionTiles,
     ];
@@ -70,6 +72,7 @@ impl Shader {
             Shader::Visibility => "visibility",
             Shader::Fill => "fill",
             Shader::PintusShading => "pintus",
+            #[cfg(feature = "pointlist-baseline")]
             Shader::PointListBaseline => "pointlist_baseline",
             Shader::OcclusionTiles => "occlusion_tiles",
         }
@@ -86,6 +89,7 @@ impl Shader {
             Shader::Visibility => include_str!("visibility.wgsl"),
             Shader::Fill => include_str!("fill.wgsl"),
             Shader::PintusShading => include_str!("pintus.wgsl"),
+            #[cfg(feature = "pointlist-baseline")]
             Shader::PointListBaseline => include_str!("pointlist_baseline.wgsl"),
             Shader::OcclusionTiles => include_str!("occlusion_tiles.wgsl"),
         };

@@ -4,7 +4,6 @@
 //! This crate knows nothing of gRPC, the daemon or the CLI: it takes files, clouds, cameras
 //! and render settings, and returns images with their stage timings.
 
-pub mod bench;
 pub mod cache;
 pub mod camera;
 pub mod cloud;

@@ -29,6 +29,7 @@ mod pipeline;
 mod pixel_rect;
 mod point_pipelines;
 mod point_workgroup;
+#[cfg(feature = "pointlist-baseline")]
 mod pointlist_baseline;
 mod points;
 mod resolve_pass;
@@ -49,6 +50,7 @@ pub use error::RenderError;
 pub use frame::Frame;
 pub use occlusion::OcclusionSkipped;
 pub use point_workgroup::WORKGROUP_SIZE_ENV;
+#[cfg(feature = "pointlist-baseline")]
 pub use pointlist_baseline::{PointListBaseline, PointListFrame};
 pub use points::{GpuPointCloud, BATCH_POINTS, POINT_BYTES};
 pub use settings::*;

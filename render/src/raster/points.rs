@@ -63,7 +63,6 @@ pub(crate) struct PointChunk {
     pub groups: Vec<GpuBatch>,
     /// Host only: the batch table's near-to-far orders, built as views need them.
     pub draw_orders: DrawOrders,
-    pub point_count: u32,
 }
 
 impl PointChunk {
@@ -312,7 +311,6 @@ impl ChunkData {
             positions: buffer("positions", bytemuck::cast_slice(&self.positions)),
             colors: buffer("colors", &self.colors),
             batches: buffer("batches", bytemuck::cast_slice(&self.batches)),
-            point_count: self.positions.len() as u32,
             groups: batch_groups(&self.batches),
             draw_orders: DrawOrders::default(),
             batch_table: self.batches,

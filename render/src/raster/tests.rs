@@ -157,7 +157,7 @@ fn basic_mode_equals_the_reference_pixel_for_pixel() {
 #[test]
 fn points_take_at_most_12_bytes_each_on_the_gpu() {
     let mut renderer = Renderer::new(gpu());
-    let cloud = crate::bench::uniform_cube(50_000, 7);
+    let cloud = crate::sample::sample_scene(50_000, 7);
     for chunk_points in [usize::MAX, 3 * BATCH_POINTS] {
         renderer.set_max_chunk_points(chunk_points);
         let resident = renderer.upload(&cloud).expect("upload");
