@@ -9,7 +9,9 @@
 // Both hold the same words, so the resolve reads either. Sums of 8-bit channels overflow a
 // u32 only beyond 16 million points in one pixel.
 
-override WORKGROUP_SIZE: u32 = 128u;
+// Invocations per workgroup, which the host picks for the adapter and sets on every
+// pipeline (`raster/point_workgroup.rs`).
+override WORKGROUP_SIZE: u32;
 
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
 @group(0) @binding(1) var<storage, read> positions: array<vec2<u32>>;

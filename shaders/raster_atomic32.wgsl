@@ -7,7 +7,9 @@
 // colour, which picks the same winner as the 64-bit (depth << 32 | colour) minimum. Both
 // passes compute depths with the same code from the same inputs, so equality is exact.
 
-override WORKGROUP_SIZE: u32 = 128u;
+// Invocations per workgroup, which the host picks for the adapter and sets on every
+// pipeline (`raster/point_workgroup.rs`).
+override WORKGROUP_SIZE: u32;
 
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
 @group(0) @binding(1) var<storage, read> positions: array<vec2<u32>>;

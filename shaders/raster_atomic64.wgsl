@@ -7,7 +7,9 @@
 //
 // One workgroup per batch. Needs SHADER_INT64 and SHADER_INT64_ATOMIC_MIN_MAX.
 
-override WORKGROUP_SIZE: u32 = 128u;
+// Invocations per workgroup, which the host picks for the adapter and sets on every
+// pipeline (`raster/point_workgroup.rs`).
+override WORKGROUP_SIZE: u32;
 
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
 @group(0) @binding(1) var<storage, read> positions: array<vec2<u32>>;
