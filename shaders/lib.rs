@@ -40,6 +40,8 @@ pub enum Shader {
 const COMMON: &str = include_str!("common.wgsl");
 /// The occlusion test of whole batches, after `common.wgsl` in the point passes.
 const OCCLUSION: &str = include_str!("occlusion.wgsl");
+/// The point passes' bindings and batch, after the occlusion test.
+const POINT_PASS: &str = include_str!("point_pass.wgsl");
 /// The high-quality accumulation, after its per-pixel sums (one of the two below).
 const HQ_ACCUMULATE: &str = include_str!("hq_accumulate.wgsl");
 const HQ_SUMS_ATOMIC32: &str = include_str!("hq_sums_atomic32.wgsl");
@@ -99,10 +101,15 @@ impl Shader {
                 format!("{COMMON}\n{SCREEN_COMMON}\n{own}")
             }
             Shader::RasterAtomic64 | Shader::RasterAtomic32 => {
-                format!("{COMMON}\n{OCCLUSION}\n{own}")
+                format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{own}")
             }
-            Shader::HqAccumulate => format!("{COMMON}\n{OCCLUSION}\n{HQ_SUMS_ATOMIC32}\n{own}"),
-            Shader::HqAccumulate64 => format!("{COMMON}\n{OCCLUSION}\n{HQ_SUMS_ATOMIC64}\n{own}"),
+            Shader::HqAccumulate | Shader::HqAccumulate64 => {
+                let sums = match self {
+                    Shader::HqAccumulate => HQ_SUMS_ATOMIC32,
+                    _ => HQ_SUMS_ATOMIC64,
+                };
+                format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{sums}\n{own}")
+            }
             _ => format!("{COMMON}\n{own}"),
         };
         format!("{prelude}\n{composed}")
