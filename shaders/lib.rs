@@ -1,10 +1,11 @@
 //! The WGSL sources of the renderer, embedded at build time.
 //!
 //! WGSL has no `#include`, so every module is composed as the [`layout`] prelude (the
-//! constants host and shaders share), `common.wgsl`, then the pass's own file. The renderer
-//! only ever asks for a [`Shader`]; the tests below validate every composed module with naga,
-//! the ones that must run without 64-bit integers also with capabilities that lack them, so a
-//! broken shader fails CI even when no test renders it.
+//! constants host and shaders share), `common.wgsl`, the files it shares with passes of its
+//! kind ([`Shader::source`]), then its own file. The renderer only ever asks for a
+//! [`Shader`]; the tests below validate every composed module with naga, the ones that must
+//! run without 64-bit integers also with capabilities that lack them, so a broken shader fails
+//! CI even when no test renders it.
 
 pub mod layout;
 
@@ -103,12 +104,11 @@ impl Shader {
             Shader::RasterAtomic64 | Shader::RasterAtomic32 => {
                 format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{own}")
             }
-            Shader::HqAccumulate | Shader::HqAccumulate64 => {
-                let sums = match self {
-                    Shader::HqAccumulate => HQ_SUMS_ATOMIC32,
-                    _ => HQ_SUMS_ATOMIC64,
-                };
-                format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{sums}\n{own}")
+            Shader::HqAccumulate => {
+                format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{HQ_SUMS_ATOMIC32}\n{own}")
+            }
+            Shader::HqAccumulate64 => {
+                format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{HQ_SUMS_ATOMIC64}\n{own}")
             }
             _ => format!("{COMMON}\n{own}"),
         };
