@@ -1,6 +1,7 @@
 //! What every compute pass builds the same way: its shader module, its pipelines (layouts
 //! derived by wgpu from the shader) and bind groups for group 0.
 
+use pointfarm_shaders::layout::SCREEN_TILE;
 use pointfarm_shaders::Shader;
 
 /// The compiled module of one of our shaders.
@@ -71,8 +72,8 @@ pub(crate) fn bind_resources(
     })
 }
 
-/// Dispatches one 16 x 16 workgroup per tile of the image (the screen-space passes).
+/// Dispatches one workgroup per [`SCREEN_TILE`] x [`SCREEN_TILE`] tile of the image (the
+/// screen-space passes).
 pub(crate) fn dispatch_tiles(pass: &mut wgpu::ComputePass<'_>, width: u32, height: u32) {
-    const TILE: u32 = 16;
-    pass.dispatch_workgroups(width.div_ceil(TILE), height.div_ceil(TILE), 1);
+    pass.dispatch_workgroups(width.div_ceil(SCREEN_TILE), height.div_ceil(SCREEN_TILE), 1);
 }

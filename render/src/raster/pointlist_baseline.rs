@@ -14,7 +14,7 @@ use pointfarm_shaders::Shader;
 
 use super::gpu_data::{FrameUniforms, QuantisedPosition};
 use super::pipeline::shader_module;
-use super::points::{GpuPointCloud, PointChunk, BATCH_POINTS};
+use super::points::{GpuPointCloud, PointChunk};
 use super::timing::GpuTimer;
 use super::{Clock, FrameSettings, RenderError, Stage, StageTimings, MAX_IMAGE_SIDE};
 use crate::gpu::{read_buffer, GpuContext};
@@ -109,10 +109,7 @@ impl PointListBaseline {
             vertex: wgpu::VertexState {
                 module: &module,
                 entry_point: Some("vertex_main"),
-                compilation_options: wgpu::PipelineCompilationOptions {
-                    constants: &[("BATCH_POINTS", BATCH_POINTS as f64)],
-                    ..Default::default()
-                },
+                compilation_options: wgpu::PipelineCompilationOptions::default(),
                 // The points come from a storage buffer, indexed by the vertex index.
                 buffers: &[],
             },

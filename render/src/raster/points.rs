@@ -20,19 +20,20 @@ use glam::{UVec3, Vec3};
 use wgpu::util::DeviceExt;
 
 use super::draw_order::DrawOrders;
-use super::gpu_data::{GpuBatch, QuantisedPosition, COLOUR_BYTES, POSITION_BITS};
+use pointfarm_shaders::layout::{self, INV_QUANT_MAX, POSITION_BITS};
+
+use super::gpu_data::{GpuBatch, QuantisedPosition, COLOUR_BYTES};
 use super::RenderError;
 use crate::cloud::PointCloud;
 use crate::gpu::GpuContext;
 
-/// Points per batch: one workgroup culls and rasterizes one batch.
-pub const BATCH_POINTS: usize = 4096;
+/// Points per batch: one workgroup culls and rasterizes one batch ([`layout::BATCH_POINTS`]).
+pub const BATCH_POINTS: usize = layout::BATCH_POINTS as usize;
 
 /// Points per sub-batch: the host also keeps the box of every run of this many points of a
 /// batch, and lists only the runs that can be in view of a batch that straddles the edge of
-/// the view (`culling.rs`).
-pub const SUB_BATCH_POINTS: usize = 256;
-const _: () = assert!(BATCH_POINTS.is_multiple_of(SUB_BATCH_POINTS));
+/// the view (`culling.rs`; [`layout::SUB_BATCH_POINTS`]).
+pub const SUB_BATCH_POINTS: usize = layout::SUB_BATCH_POINTS as usize;
 
 /// Bytes one point adds to a chunk's point buffers (position and colour).
 pub const POINT_BYTES: u64 = std::mem::size_of::<QuantisedPosition>() as u64 + COLOUR_BYTES;
@@ -365,8 +366,13 @@ fn quantisation_max() -> UVec3 {
 /// quantised value, in f32.
 pub(crate) fn quantisation_step(batch: &GpuBatch) -> Vec3 {
     let extent = Vec3::from_array(batch.max) - Vec3::from_array(batch.min);
-    extent * quantisation_max().as_vec3().recip()
+    extent * Vec3::from_array(INV_QUANT_MAX)
 }
+
+/// Where y's bits split between the two words ([`POSITION_BITS`]): its low bits fill the first
+/// word above x's, its high bits start the second, below z's.
+const Y_LOW_BITS: u32 = 32 - POSITION_BITS[0];
+const Y_HIGH_BITS: u32 = POSITION_BITS[1] - Y_LOW_BITS;
 
 /// The nearest quantised position to `p` in a box starting at `min` with steps `step`.
 pub(crate) fn quantise(p: Vec3, min: Vec3, step: Vec3) -> QuantisedPosition {
@@ -379,15 +385,18 @@ pub(crate) fn quantise(p: Vec3, min: Vec3, step: Vec3) -> QuantisedPosition {
             0
         }
     });
-    [q[0] | (q[1] << 21), (q[1] >> 11) | (q[2] << 10)]
+    [
+        q[0] | (q[1] << POSITION_BITS[0]),
+        (q[1] >> Y_LOW_BITS) | (q[2] << Y_HIGH_BITS),
+    ]
 }
 
 /// The quantised steps of each axis (the shaders' `dequantise` in common.wgsl).
 fn unpack(word: QuantisedPosition) -> UVec3 {
     UVec3::new(
-        word[0] & 0x1f_ffff,
-        (word[0] >> 21) | ((word[1] & 0x3ff) << 11),
-        word[1] >> 10,
+        word[0] & ((1 << POSITION_BITS[0]) - 1),
+        (word[0] >> POSITION_BITS[0]) | ((word[1] & ((1 << Y_HIGH_BITS) - 1)) << Y_LOW_BITS),
+        word[1] >> Y_HIGH_BITS,
     )
 }
 
