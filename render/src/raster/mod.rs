@@ -22,6 +22,7 @@ mod fill_pass;
 mod frame;
 mod gpu_data;
 mod hq_pass;
+mod morton;
 mod occlusion;
 mod phases;
 mod pintus_pass;
