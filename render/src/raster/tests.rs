@@ -648,7 +648,7 @@ fn every_frame_reports_its_stage_timings() {
     // The point upload is reported once, by the first frame; later frames reuse the buffers.
     assert!(first.timings.get(Stage::Upload) > second.timings.get(Stage::Upload));
     let dir = tempfile::tempdir().expect("tempdir");
-    first.save_png(&dir.path().join("frame.png")).expect("png");
+    crate::encode::save_png(&mut first, &dir.path().join("frame.png")).expect("png");
     assert!(first.timings.get(Stage::Encode).is_some());
     let line = first.timings.to_string();
     assert!(
@@ -971,8 +971,7 @@ fn depth_image_is_written_as_16_bit_png() {
     let frame = render_gpu(&cloud, &settings);
     let dir = tempfile::tempdir().expect("tempdir");
     let path = dir.path().join("depth.png");
-    frame
-        .save_depth_png16(&path, settings.camera.near, settings.camera.far)
+    crate::encode::save_depth_png16(&frame, &path, settings.camera.near, settings.camera.far)
         .expect("write");
     let read = image::open(&path).expect("read").into_luma16();
     let depth = frame.depth.as_ref().expect("depth");
