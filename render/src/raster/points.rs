@@ -53,7 +53,7 @@ pub(crate) struct PointChunk {
     pub colors: wgpu::Buffer,
     pub batches: wgpu::Buffer,
     /// The same batch table on the host, from which each frame's table is built
-    /// (`culling.rs`).
+    /// (`culling/`).
     pub batch_table: Vec<GpuBatch>,
     /// Host only: each batch's points in runs of [`SUB_BATCH_POINTS`], each with the box of
     /// the positions the shaders dequantise; batch `b`'s runs start at `b * BATCH_POINTS /
