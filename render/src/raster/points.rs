@@ -20,7 +20,7 @@ use glam::{UVec3, Vec3};
 use wgpu::util::DeviceExt;
 
 use super::draw_order::DrawOrders;
-use super::gpu_data::{GpuBatch, QuantisedPosition, COLOUR_BYTES, POSITION_BITS};
+use super::gpu_data::{GpuBatch, QuantisedPosition, COLOR_BYTES, POSITION_BITS};
 use super::morton::morton_order;
 use super::RenderError;
 use crate::cloud::PointCloud;
@@ -36,7 +36,7 @@ pub const SUB_BATCH_POINTS: usize = 256;
 const _: () = assert!(BATCH_POINTS.is_multiple_of(SUB_BATCH_POINTS));
 
 /// Bytes one point adds to a chunk's point buffers (position and colour).
-pub const POINT_BYTES: u64 = std::mem::size_of::<QuantisedPosition>() as u64 + COLOUR_BYTES;
+pub const POINT_BYTES: u64 = std::mem::size_of::<QuantisedPosition>() as u64 + COLOR_BYTES;
 
 /// Points per chunk when a cloud is streamed in. A chunk's host copy takes about 27 bytes a
 /// point while it is sorted and quantised (measured on an H200, where the 4 GiB binding let
