@@ -527,10 +527,4 @@ impl Renderer {
 }
 
 #[cfg(test)]
-mod fill_tests;
-#[cfg(test)]
-mod golden_tests;
-#[cfg(test)]
-mod real_scan_tests;
-#[cfg(test)]
 mod tests;
