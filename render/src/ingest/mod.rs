@@ -1,5 +1,5 @@
-//! LAS/LAZ ingest: reads a file into a recentred [`PointCloud`](crate::cloud::PointCloud), and writes clouds back out
-//! (for tests and the generated sample scene).
+//! LAS/LAZ ingest: reads a file into a recentred [`PointCloud`](crate::cloud::PointCloud),
+//! and writes clouds back out (for tests and the generated sample scene).
 //!
 //! Every failure is an [`IngestError`] naming the file, never a panic. The header is checked by
 //! hand before the `las` crate sees it, because the crate trusts the declared point count: it
