@@ -32,6 +32,17 @@ pub(crate) fn compute_pipeline(
     })
 }
 
+/// The pipelines of `entry_points` of `shader`, in that order, without overridden constants
+/// (the screen-space passes).
+pub(crate) fn entry_pipelines<const N: usize>(
+    device: &wgpu::Device,
+    shader: Shader,
+    entry_points: [&str; N],
+) -> [wgpu::ComputePipeline; N] {
+    let module = shader_module(device, shader);
+    entry_points.map(|entry_point| compute_pipeline(device, &module, entry_point, &[]))
+}
+
 /// Splits a workgroup count over two dimensions: one dimension holds at most 65535.
 pub(crate) fn dispatch_grid(groups: u32) -> (u32, u32) {
     const MAX: u32 = 65535;
