@@ -154,7 +154,7 @@ mod tests {
 
     #[test]
     fn every_shader_parses_and_validates() {
-        for shader in Shader::ALL {
+        for &shader in Shader::ALL {
             if let Err(e) = validate(shader, Capabilities::all()) {
                 panic!("{}: {e}", shader.label());
             }
@@ -163,7 +163,7 @@ mod tests {
 
     #[test]
     fn the_32_bit_shaders_validate_without_64_bit_integers() {
-        for shader in Shader::ALL.into_iter().filter(|&s| !needs_int64(s)) {
+        for shader in Shader::ALL.iter().copied().filter(|&s| !needs_int64(s)) {
             if let Err(e) = validate(shader, without_int64()) {
                 panic!("{} uses 64-bit integers: {e}", shader.label());
             }
@@ -173,7 +173,7 @@ mod tests {
     /// The check above would catch a 64-bit type: the 64-bit shaders fail it.
     #[test]
     fn the_64_bit_shaders_need_64_bit_integers() {
-        for shader in Shader::ALL.into_iter().filter(|&s| needs_int64(s)) {
+        for shader in Shader::ALL.iter().copied().filter(|&s| needs_int64(s)) {
             assert!(
                 validate(shader, without_int64()).is_err(),
                 "{} validates without 64-bit integers",

@@ -11,6 +11,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_render::camera::{Camera, Projection, DEFAULT_FOV_Y_DEG};
 use pointfarm_render::cloud::PointCloud;
 use pointfarm_render::color::{point_colors, ColorMode};
+use pointfarm_render::encode;
 use pointfarm_render::gpu::{AdapterChoice, GpuContext};
 use pointfarm_render::ingest::load_point_cloud;
 use pointfarm_render::raster::{
@@ -227,8 +228,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
                 );
             }
             let mut frame = renderer.render(&resident, &base)?;
-            frame
-                .save_png(&args.out)
+            encode::save_png(&mut frame, &args.out)
                 .with_context(|| format!("writing {}", args.out.display()))?;
             if args.depth {
                 save_depth(&frame, &args.out.with_extension("depth.png"), &base)?;
@@ -247,8 +247,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
                 let camera = base.camera.orbit(360.0 * i as f64 / frames as f64);
                 let mut frame = renderer.render(&resident, &FrameSettings { camera, ..base })?;
                 let path = args.out.join(format!("frame_{i:05}.png"));
-                frame
-                    .save_png(&path)
+                encode::save_png(&mut frame, &path)
                     .with_context(|| format!("writing {}", path.display()))?;
                 if args.depth {
                     save_depth(&frame, &args.out.join(format!("depth_{i:05}.png")), &base)?;
@@ -315,8 +314,7 @@ fn save_depth(
     path: &Path,
     settings: &FrameSettings,
 ) -> Result<()> {
-    frame
-        .save_depth_png16(path, settings.camera.near, settings.camera.far)
+    encode::save_depth_png16(frame, path, settings.camera.near, settings.camera.far)
         .with_context(|| format!("writing {}", path.display()))
 }
 

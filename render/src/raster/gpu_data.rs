@@ -34,7 +34,7 @@ pub type QuantisedPosition = [u32; 2];
 
 /// Bytes of one point's colour on the GPU: RGB, 8 bits each, packed back to back (points are
 /// opaque; the shaders put alpha 255 back).
-pub const COLOUR_BYTES: u64 = 3;
+pub const COLOR_BYTES: u64 = 3;
 
 /// `Batch` in common.wgsl: a run of points in one chunk, with their bounding box.
 #[repr(C)]

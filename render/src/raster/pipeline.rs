@@ -1,5 +1,5 @@
 //! What every compute pass builds the same way: its shader module, its pipelines (layouts
-//! derived by wgpu from the shader) and bind groups for group 0.
+//! derived by wgpu from the shader), bind groups for group 0 and its workgroup grid.
 
 use pointfarm_shaders::layout::SCREEN_TILE;
 use pointfarm_shaders::Shader;
@@ -31,6 +31,27 @@ pub(crate) fn compute_pipeline(
         },
         cache: None,
     })
+}
+
+/// The pipelines of `entry_points` of `shader`, in that order, without overridden constants
+/// (the screen-space passes).
+pub(crate) fn entry_pipelines<const N: usize>(
+    device: &wgpu::Device,
+    shader: Shader,
+    entry_points: [&str; N],
+) -> [wgpu::ComputePipeline; N] {
+    let module = shader_module(device, shader);
+    entry_points.map(|entry_point| compute_pipeline(device, &module, entry_point, &[]))
+}
+
+/// Splits a workgroup count over two dimensions: one dimension holds at most 65535.
+pub(crate) fn dispatch_grid(groups: u32) -> (u32, u32) {
+    const MAX: u32 = 65535;
+    if groups <= MAX {
+        (groups, 1)
+    } else {
+        (MAX, groups.div_ceil(MAX))
+    }
 }
 
 /// A bind group for group 0 of `pipeline`, with each buffer bound whole at its binding index.

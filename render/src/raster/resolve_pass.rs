@@ -5,7 +5,9 @@
 use pointfarm_shaders::layout::{self, RESOLVE_WORKGROUP};
 use pointfarm_shaders::Shader;
 
-use super::pipeline::{bind_buffers, bind_resources, compute_pipeline, shader_module};
+use super::pipeline::{
+    bind_buffers, bind_resources, compute_pipeline, dispatch_grid, shader_module,
+};
 use super::pixel_rect::PixelRect;
 use super::targets::FrameTargets;
 
@@ -195,7 +197,7 @@ impl ResolvePass {
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, bind_group, &[]);
         let groups = invocations.div_ceil(u64::from(RESOLVE_WORKGROUP)) as u32;
-        let (x, y) = super::dispatch_grid(groups);
+        let (x, y) = dispatch_grid(groups);
         pass.dispatch_workgroups(x, y, 1);
     }
 }
