@@ -100,6 +100,10 @@ pub struct Turntable {
     pub azimuth_deg: f64,
     #[serde(default = "default_up")]
     pub up: Point3,
+    /// The camera of the first frame; when given, the radius, elevation and azimuth are its
+    /// offset from the centre's.
+    #[serde(default)]
+    pub start: Option<Point3>,
 }
 
 fn default_azimuth() -> f64 {
@@ -122,6 +126,7 @@ impl Turntable {
             fov_y_deg: DEFAULT_FOV_Y_DEG,
             azimuth_deg: AUTO_AZIMUTH_DEG,
             up: DEFAULT_UP,
+            start: None,
         }
     }
 }
@@ -270,15 +275,29 @@ fn turntable_camera(
     aspect: f64,
 ) -> Camera {
     let projection = lens.projection(t.fov_y_deg, bounds, aspect);
-    let azimuth = t.azimuth_deg + t.degrees * index as f64 / t.frames.max(1) as f64;
     let center = t.center.map_or(bounds.center(), DVec3::from);
-    // One radius for the whole orbit, the fit of the first frame's view, so the cloud does
-    // not zoom in and out.
-    let radius = t.radius.unwrap_or_else(|| {
-        let fitted = Camera::framing(bounds, aspect, t.azimuth_deg, t.elevation_deg, projection);
-        fitted.position.distance(fitted.target)
-    });
-    let (az, el) = (azimuth.to_radians(), t.elevation_deg.to_radians());
+    let (radius, elevation_deg, azimuth_deg) = match t.start {
+        Some(start) => {
+            let offset = DVec3::from(start) - center;
+            let radius = offset.length();
+            let elevation = (offset.z / radius.max(f64::MIN_POSITIVE))
+                .asin()
+                .to_degrees();
+            (radius, elevation, offset.y.atan2(offset.x).to_degrees())
+        }
+        None => {
+            // One radius for the whole orbit, the fit of the first frame's view, so the
+            // cloud does not zoom in and out.
+            let radius = t.radius.unwrap_or_else(|| {
+                let fitted =
+                    Camera::framing(bounds, aspect, t.azimuth_deg, t.elevation_deg, projection);
+                fitted.position.distance(fitted.target)
+            });
+            (radius, t.elevation_deg, t.azimuth_deg)
+        }
+    };
+    let azimuth = azimuth_deg + t.degrees * index as f64 / t.frames.max(1) as f64;
+    let (az, el) = (azimuth.to_radians(), elevation_deg.to_radians());
     let direction = DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
     let mut camera = Camera::looking_at(center + direction * radius, center, bounds, projection);
     camera.up = t.up.into();

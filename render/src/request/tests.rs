@@ -80,7 +80,7 @@ fn a_turntable_with_its_centre_and_radius_given_orbits_there() {
         azimuth_deg: 0.0,
         ..Turntable::around_the_cloud(4)
     };
-    let r = request(CameraPath::Turntable(turntable));
+    let r = request(CameraPath::Turntable(turntable.clone()));
     let first = r.camera(0, &bounds());
     assert!(first
         .position
@@ -90,6 +90,22 @@ fn a_turntable_with_its_centre_and_radius_given_orbits_there() {
     // Three quarters of 90 degrees counter-clockwise from +X.
     let angle = (last.position.y - center.y).atan2(last.position.x - center.x);
     assert!((angle.to_degrees() - 67.5).abs() < 1e-9, "{angle}");
+    // From a given first camera: the same orbit.
+    let from_start = Turntable {
+        start: Some(Point3 {
+            x: 515_020.0,
+            ..center
+        }),
+        radius: None,
+        elevation_deg: 45.0,
+        azimuth_deg: 123.0,
+        ..turntable
+    };
+    let r = request(CameraPath::Turntable(from_start));
+    assert!(r
+        .camera(3, &bounds())
+        .position
+        .abs_diff_eq(last.position, 1e-9));
 }
 
 #[test]

@@ -177,6 +177,18 @@ impl Turntable {
         if let Some(radius) = self.radius {
             positive(&f("radius"), "radius", radius)?;
         }
+        if let Some(start) = &self.start {
+            finite_point(&f("start"), start)?;
+            if self.radius.is_some() {
+                return Err(invalid(
+                    f("radius"),
+                    "cannot be given with a start position",
+                ));
+            }
+            if self.center == Some(*start) {
+                return Err(invalid(f("start"), "is the centre of the orbit"));
+            }
+        }
         let elevation = &f("elevation_deg");
         within(
             elevation,
