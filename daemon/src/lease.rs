@@ -476,7 +476,7 @@ mod tests {
             ..Default::default()
         };
         let job = daemon
-            .submit_job(crate::grpc::job_spec(&request).expect("spec"))
+            .submit_job(crate::model::JobSpec::try_from(&request).expect("spec"))
             .expect("submit");
         let remote = daemon
             .lease_frame("remote", false)

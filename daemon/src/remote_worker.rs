@@ -24,8 +24,6 @@ use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_proto::BearerToken;
 use pointfarm_render::cache::DatasetCache;
 use pointfarm_render::gpu::GpuContext;
-use sha2::{Digest, Sha256};
-use tokio::io::AsyncWriteExt;
 use tokio::sync::watch;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Channel, Endpoint};
@@ -33,12 +31,10 @@ use tonic::{Code, Status};
 use tracing::Instrument;
 
 use crate::frame_render::{FrameRenderer, RenderedFrame};
+use crate::grpc::streaming::{HashingWriter, CHUNK_BYTES};
 use crate::grpc::{frame_task, timings_message};
 use crate::lease::FrameTask;
-use crate::service::hex;
 
-/// PNG bytes per `CompleteFrame` message: well under gRPC's default 4 MiB limit.
-const PNG_CHUNK_BYTES: usize = 1 << 20;
 /// How long one lease request waits for work on the daemon.
 const LEASE_WAIT_MS: u32 = 10_000;
 
@@ -326,23 +322,19 @@ async fn download(client: &mut Client, task: &FrameTask, dir: &Path) -> anyhow::
             .await
             .map_err(|s| anyhow::anyhow!("{:?}: {}", s.code(), s.message()))?
             .into_inner();
-        let mut file = tokio::fs::File::create(&partial).await?;
-        let mut hasher = Sha256::new();
-        let mut received: u64 = 0;
+        let mut file = HashingWriter::create(&partial).await?;
         while let Some(chunk) = stream
             .message()
             .await
             .map_err(|s| anyhow::anyhow!("{:?}: {}", s.code(), s.message()))?
         {
-            received += chunk.data.len() as u64;
-            if received > dataset.size_bytes {
+            if file.received() + chunk.data.len() as u64 > dataset.size_bytes {
                 bail!("more than the {} bytes announced", dataset.size_bytes);
             }
-            hasher.update(&chunk.data);
-            file.write_all(&chunk.data).await?;
+            file.write(&chunk.data).await?;
         }
-        file.flush().await?;
-        let sha256 = hex(&hasher.finalize());
+        let received = file.received();
+        let sha256 = file.finish().await?;
         if sha256 != dataset.sha256 {
             bail!(
                 "the download's SHA-256 is {sha256}, expected {}",
@@ -380,7 +372,7 @@ async fn complete_frame(client: &mut Client, task: &FrameTask, frame: RenderedFr
         };
         let chunks: Vec<pb::CompleteFrameRequest> = frame
             .png
-            .chunks(PNG_CHUNK_BYTES)
+            .chunks(CHUNK_BYTES)
             .map(|c| pb::CompleteFrameRequest {
                 part: Some(pb::complete_frame_request::Part::Png(c.to_vec())),
             })

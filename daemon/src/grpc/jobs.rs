@@ -1,0 +1,180 @@
+//! `JobService`: submitting, reading, listing, cancelling and watching jobs, and streaming
+//! their finished frames.
+
+use pointfarm_proto::v1 as pb;
+use pointfarm_proto::v1::job_service_server::JobService;
+use tonic::{Request, Response, Status};
+
+use super::conversions::{invalid, state_filter};
+use super::streaming::{chunks, spawn_stream, ResponseStream};
+use super::{blocking, Api};
+use crate::model::{FrameState, JobSpec};
+
+#[tonic::async_trait]
+impl JobService for Api {
+    async fn submit_job(
+        &self,
+        request: Request<pb::SubmitJobRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
+        let r = request.into_inner();
+        let spec = JobSpec::try_from(&r)?;
+        let daemon = self.daemon.clone();
+        let job = blocking(move || daemon.submit_job(spec)).await?;
+        let mut message = pb::Job::from(&job);
+        message.spec = Some(r);
+        Ok(Response::new(message))
+    }
+
+    async fn get_job(
+        &self,
+        request: Request<pb::GetJobRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
+        let id = request.into_inner().id;
+        let daemon = self.daemon.clone();
+        let (job, frames) = blocking(move || daemon.job_with_frames(&id)).await?;
+        let mut message = pb::Job::from(&job);
+        message.frames = frames.iter().map(pb::FrameFinished::from).collect();
+        Ok(Response::new(message))
+    }
+
+    async fn list_jobs(
+        &self,
+        request: Request<pb::ListJobsRequest>,
+    ) -> Result<Response<pb::ListJobsResponse>, Status> {
+        let r = request.into_inner();
+        let page = self
+            .daemon
+            .list_jobs(state_filter(r.state)?, r.page_size, &r.page_token)?;
+        Ok(Response::new(pb::ListJobsResponse {
+            jobs: page.items.iter().map(pb::Job::from).collect(),
+            next_page_token: page.next_token,
+        }))
+    }
+
+    async fn cancel_job(
+        &self,
+        request: Request<pb::CancelJobRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
+        let daemon = self.daemon.clone();
+        let id = request.into_inner().id;
+        let job = blocking(move || daemon.cancel_job(&id)).await?;
+        Ok(Response::new(pb::Job::from(&job)))
+    }
+
+    type WatchJobStream = ResponseStream<pb::JobEvent>;
+
+    async fn watch_job(
+        &self,
+        request: Request<pb::WatchJobRequest>,
+    ) -> Result<Response<Self::WatchJobStream>, Status> {
+        let id = request.into_inner().id;
+        // Subscribe before reading the state, so no event falls between the two.
+        let mut events = self.daemon.subscribe();
+        let daemon = self.daemon.clone();
+        let watched = id.clone();
+        let (job, finished) = blocking(move || {
+            let job = daemon.job(&watched)?;
+            let finished = daemon.store.frame_reports(&watched)?;
+            Ok((job, finished))
+        })
+        .await?;
+        let stream = spawn_stream(64, move |sender| async move {
+            let ended = job.state.is_terminal();
+            // The first event carries the frames finished so far: a watcher that comes late
+            // (or back) still learns of every frame, each once.
+            let reported: std::collections::HashSet<u32> =
+                finished.iter().map(|frame| frame.index).collect();
+            let mut snapshot = pb::Job::from(&job);
+            snapshot.frames = finished.iter().map(pb::FrameFinished::from).collect();
+            if sender
+                .send(Ok(pb::JobEvent {
+                    job: Some(snapshot),
+                    frame: None,
+                }))
+                .await
+                .is_err()
+                || ended
+            {
+                return;
+            }
+            loop {
+                match events.recv().await {
+                    Ok(event) if event.job.id == id => {
+                        let ended = event.job.state.is_terminal();
+                        let frame = event
+                            .frame
+                            .as_ref()
+                            .filter(|frame| !reported.contains(&frame.index))
+                            .map(pb::FrameFinished::from);
+                        if sender
+                            .send(Ok(pb::JobEvent {
+                                job: Some(pb::Job::from(&event.job)),
+                                frame,
+                            }))
+                            .await
+                            .is_err()
+                            || ended
+                        {
+                            return;
+                        }
+                    }
+                    Ok(_) => {}
+                    Err(tokio::sync::broadcast::error::RecvError::Lagged(missed)) => {
+                        tracing::warn!(job = %id, missed, "a watcher fell behind; events were skipped");
+                    }
+                    Err(tokio::sync::broadcast::error::RecvError::Closed) => return,
+                }
+            }
+        });
+        Ok(Response::new(stream))
+    }
+
+    type FetchFramesStream = ResponseStream<pb::FrameChunk>;
+
+    async fn fetch_frames(
+        &self,
+        request: Request<pb::FetchFramesRequest>,
+    ) -> Result<Response<Self::FetchFramesStream>, Status> {
+        let r = request.into_inner();
+        let job = self.daemon.job(&r.job_id)?;
+        if r.from_index > job.frames_total {
+            return Err(invalid(
+                "from_index",
+                format!("job {} has {} frames", job.id, job.frames_total),
+            )
+            .into());
+        }
+        let daemon = self.daemon.clone();
+        let stream = spawn_stream(4, move |sender| async move {
+            for index in r.from_index..job.frames_total {
+                let done = matches!(
+                    daemon.store.frame(&job.id, index),
+                    Ok(Some(FrameState::Done { .. }))
+                );
+                if !done {
+                    continue;
+                }
+                let bytes = match tokio::fs::read(daemon.config.frame_path(&job.id, index)).await {
+                    Ok(bytes) => bytes,
+                    Err(e) => {
+                        let _ = sender
+                            .send(Err(Status::internal(format!("frame {index}: {e}"))))
+                            .await;
+                        return;
+                    }
+                };
+                for (chunk, last) in chunks(&bytes) {
+                    let message = pb::FrameChunk {
+                        index,
+                        png: chunk.to_vec(),
+                        last,
+                    };
+                    if sender.send(Ok(message)).await.is_err() {
+                        return;
+                    }
+                }
+            }
+        });
+        Ok(Response::new(stream))
+    }
+}

@@ -1,0 +1,51 @@
+//! The `pointfarm.v1` gRPC services: validate and convert requests, call [`Daemon`], convert
+//! results. No domain logic lives here.
+//!
+//! - `conversions`: messages to domain types and back (`From`/`TryFrom`); the frame-task
+//!   conversions are public, for the remote worker's side of the wire.
+//! - `status`: the one map from [`crate::error::DaemonError`] to status codes.
+//! - `datasets`, `jobs`, `workers`: one file per service.
+//! - `lease_guard`: gives back the frame of an abandoned long-polling lease request.
+//! - `streaming`: the one chunk size and the helpers for every stream of bytes.
+
+use std::sync::Arc;
+
+use tonic::Status;
+
+use crate::error::DaemonError;
+use crate::service::Daemon;
+
+mod conversions;
+mod datasets;
+mod jobs;
+mod lease_guard;
+mod status;
+pub mod streaming;
+mod workers;
+
+pub use conversions::{
+    camera_path, camera_path_message, frame_task, frame_task_message, render_options,
+    render_options_message, stage_timings, timings_message,
+};
+
+/// The three services over one daemon.
+#[derive(Clone)]
+pub struct Api {
+    daemon: Arc<Daemon>,
+}
+
+impl Api {
+    pub fn new(daemon: Arc<Daemon>) -> Self {
+        Self { daemon }
+    }
+}
+
+/// Runs blocking store work off the async executor.
+async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> Result<T, DaemonError> + Send + 'static,
+) -> Result<T, Status> {
+    tokio::task::spawn_blocking(f)
+        .await
+        .map_err(|e| Status::internal(e.to_string()))?
+        .map_err(Status::from)
+}

@@ -1,0 +1,198 @@
+//! `WorkerService`: the remote workers' side of frame leases — long-polled leasing,
+//! heartbeats, handing in (a size-checked PNG stream), failing and releasing frames — and
+//! the download of a task's dataset.
+
+use pointfarm_proto::v1 as pb;
+use pointfarm_proto::v1::worker_service_server::WorkerService;
+use tonic::{Request, Response, Status, Streaming};
+
+use super::conversions::{frame_task_message, invalid, stage_timings};
+use super::lease_guard::LeaseGuard;
+use super::streaming::{read_chunk, spawn_stream, ResponseStream};
+use super::{blocking, Api};
+use crate::error::DaemonError;
+use crate::lease::FrameOutcome;
+
+/// Longest wait of a `LeaseFrame` long poll.
+const MAX_LEASE_WAIT_MS: u32 = 30_000;
+/// Longest worker name kept.
+const MAX_WORKER_NAME: usize = 128;
+
+/// Largest PNG accepted for a frame: the raw RGBA size and room for PNG's overhead.
+fn max_png_bytes(width: u32, height: u32) -> u64 {
+    width as u64 * height as u64 * 5 + (1 << 20)
+}
+
+#[tonic::async_trait]
+impl WorkerService for Api {
+    async fn lease_frame(
+        &self,
+        request: Request<pb::LeaseFrameRequest>,
+    ) -> Result<Response<pb::LeaseFrameResponse>, Status> {
+        let peer = request.remote_addr();
+        let r = request.into_inner();
+        let mut name: String = r.worker_name.chars().take(MAX_WORKER_NAME).collect();
+        if name.is_empty() {
+            name = peer.map_or_else(|| "unnamed".into(), |a| a.to_string());
+        }
+        let wait = std::time::Duration::from_millis(r.wait_ms.min(MAX_LEASE_WAIT_MS) as u64);
+        let deadline = tokio::time::Instant::now() + wait;
+        // Subscribed before looking, so work that arrives in between is not missed.
+        let mut work = self.daemon.work.subscribe();
+        loop {
+            work.borrow_and_update();
+            if self.daemon.is_stopping() {
+                return Ok(Response::new(pb::LeaseFrameResponse { task: None }));
+            }
+            let guard = LeaseGuard::new(self.daemon.clone());
+            let (daemon, worker, slot) = (self.daemon.clone(), name.clone(), guard.slot.clone());
+            let leased = blocking(move || {
+                let task = daemon.lease_frame(&worker, false)?;
+                Ok(task.and_then(|task| slot.keep(&daemon, task)))
+            })
+            .await?;
+            if let Some(task) = leased {
+                guard.disarm();
+                return Ok(Response::new(pb::LeaseFrameResponse {
+                    task: Some(frame_task_message(&task)),
+                }));
+            }
+            match tokio::time::timeout_at(deadline, work.changed()).await {
+                Ok(Ok(())) => {}
+                Ok(Err(_)) | Err(_) => {
+                    return Ok(Response::new(pb::LeaseFrameResponse { task: None }))
+                }
+            }
+        }
+    }
+
+    async fn heartbeat(
+        &self,
+        request: Request<pb::HeartbeatRequest>,
+    ) -> Result<Response<pb::HeartbeatResponse>, Status> {
+        let lease_id = request.into_inner().lease_id;
+        let daemon = self.daemon.clone();
+        let answer = blocking(move || daemon.heartbeat(&lease_id)).await?;
+        Ok(Response::new(pb::HeartbeatResponse::from(answer)))
+    }
+
+    async fn complete_frame(
+        &self,
+        request: Request<Streaming<pb::CompleteFrameRequest>>,
+    ) -> Result<Response<pb::CompleteFrameResponse>, Status> {
+        let mut stream = request.into_inner();
+        let result = match stream.message().await? {
+            Some(pb::CompleteFrameRequest {
+                part: Some(pb::complete_frame_request::Part::Result(result)),
+            }) => result,
+            _ => {
+                return Err(invalid("result", "the first message must be the frame result").into())
+            }
+        };
+        // A stale lease is refused before the image is received.
+        let (daemon, lease_id) = (self.daemon.clone(), result.lease_id.clone());
+        let (_, width, height) = blocking(move || daemon.held_lease(&lease_id)).await?;
+        let limit = max_png_bytes(width, height);
+        if result.png_size_bytes > limit {
+            return Err(DaemonError::ResourceExhausted(format!(
+                "a {width}x{height} frame's PNG may have at most {limit} bytes, got {}",
+                result.png_size_bytes
+            ))
+            .into());
+        }
+        let mut png = Vec::with_capacity(result.png_size_bytes as usize);
+        while let Some(message) = stream.message().await? {
+            let Some(pb::complete_frame_request::Part::Png(chunk)) = message.part else {
+                return Err(invalid("png", "only the first message may be the result").into());
+            };
+            if png.len() as u64 + chunk.len() as u64 > result.png_size_bytes {
+                return Err(invalid(
+                    "result.png_size_bytes",
+                    format!("more than the declared {} bytes", result.png_size_bytes),
+                )
+                .into());
+            }
+            png.extend_from_slice(&chunk);
+        }
+        if png.len() as u64 != result.png_size_bytes {
+            return Err(invalid(
+                "result.png_size_bytes",
+                format!(
+                    "declared {} bytes, received {}",
+                    result.png_size_bytes,
+                    png.len()
+                ),
+            )
+            .into());
+        }
+        let outcome = FrameOutcome {
+            timings: stage_timings(&result.timings),
+            dataset_cache_hit: result.dataset_cache_hit,
+        };
+        let daemon = self.daemon.clone();
+        blocking(move || daemon.complete_frame(&result.lease_id, &png, outcome)).await?;
+        Ok(Response::new(pb::CompleteFrameResponse {}))
+    }
+
+    async fn fail_frame(
+        &self,
+        request: Request<pb::FailFrameRequest>,
+    ) -> Result<Response<pb::FailFrameResponse>, Status> {
+        let r = request.into_inner();
+        let reason = if r.reason.is_empty() {
+            "the worker gave no reason".to_string()
+        } else {
+            r.reason
+        };
+        let daemon = self.daemon.clone();
+        blocking(move || daemon.fail_frame(&r.lease_id, &reason)).await?;
+        Ok(Response::new(pb::FailFrameResponse {}))
+    }
+
+    async fn release_frame(
+        &self,
+        request: Request<pb::ReleaseFrameRequest>,
+    ) -> Result<Response<pb::ReleaseFrameResponse>, Status> {
+        let lease_id = request.into_inner().lease_id;
+        let daemon = self.daemon.clone();
+        blocking(move || daemon.release_frame(&lease_id)).await?;
+        Ok(Response::new(pb::ReleaseFrameResponse {}))
+    }
+
+    type FetchDatasetStream = ResponseStream<pb::DatasetChunk>;
+
+    async fn fetch_dataset(
+        &self,
+        request: Request<pb::FetchDatasetRequest>,
+    ) -> Result<Response<Self::FetchDatasetStream>, Status> {
+        let dataset = self.daemon.dataset(&request.into_inner().dataset_id)?;
+        let mut file = tokio::fs::File::open(&dataset.path)
+            .await
+            .map_err(|e| Status::internal(format!("dataset {}: {e}", dataset.id)))?;
+        let stream = spawn_stream(4, move |sender| async move {
+            loop {
+                let message = match read_chunk(&mut file).await {
+                    Ok(None) => return,
+                    Ok(Some(data)) => Ok(pb::DatasetChunk { data }),
+                    Err(e) => Err(Status::internal(format!("dataset {}: {e}", dataset.id))),
+                };
+                let failed = message.is_err();
+                if sender.send(message).await.is_err() || failed {
+                    return;
+                }
+            }
+        });
+        Ok(Response::new(stream))
+    }
+
+    async fn list_leases(
+        &self,
+        _request: Request<pb::ListLeasesRequest>,
+    ) -> Result<Response<pb::ListLeasesResponse>, Status> {
+        let daemon = self.daemon.clone();
+        let leases = blocking(move || daemon.leases()).await?;
+        Ok(Response::new(pb::ListLeasesResponse {
+            leases: leases.iter().map(pb::Lease::from).collect(),
+        }))
+    }
+}
