@@ -3,11 +3,10 @@
 
 use std::time::Duration;
 
-use pointfarm_daemon::camera_path::camera_for_frame;
-use pointfarm_daemon::model::{CameraPath, Turntable};
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::ingest::load_point_cloud;
 use pointfarm_render::raster::{FrameSettings, Renderer};
+use pointfarm_render::request::{camera_for_frame, CameraPath, Lens, Turntable};
 use pointfarm_tests::service::{
     fetch_images, gpu, scan, turntable_job, upload, upload_messages, watch_to_end, write_sample,
     TestDaemon,
@@ -85,16 +84,15 @@ async fn a_turntable_job_renders_the_same_frames_as_the_renderer() {
     let cloud = load_point_cloud(&file).expect("load");
     let mut renderer = Renderer::new(gpu());
     let resident = renderer.upload(&cloud).expect("upload");
-    let path = CameraPath::Turntable(Turntable {
-        frames: 3,
-        center: None,
-        radius: None,
-        elevation_deg: 30.0,
-        degrees: 360.0,
-        fov_y_deg: 50.0,
-    });
+    let path = CameraPath::Turntable(Turntable::around_the_cloud(3));
     for (index, image) in &fetched {
-        let camera = camera_for_frame(&path, *index, &cloud.bounds, 160.0 / 120.0);
+        let camera = camera_for_frame(
+            &path,
+            &Lens::default(),
+            *index,
+            &cloud.bounds,
+            160.0 / 120.0,
+        );
         let direct = renderer
             .render(&resident, &FrameSettings::new(160, 120, camera))
             .expect("render");
@@ -220,6 +218,7 @@ async fn invalid_requests_get_their_status_codes() {
             }),
             ..Default::default()
         })),
+        lens: None,
     });
     let (code, message) = code_and_message(jobs.submit_job(nan).await);
     assert_eq!(code, Code::InvalidArgument);

@@ -5,13 +5,12 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use pointfarm_daemon::camera_path::camera_for_frame;
-use pointfarm_daemon::model::{CameraPath, Turntable};
 use pointfarm_daemon::service::DaemonConfig;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_render::ingest::load_point_cloud;
 use pointfarm_render::raster::{FrameSettings, Renderer};
+use pointfarm_render::request::{camera_for_frame, CameraPath, Lens, Turntable};
 use pointfarm_tests::service::{
     fetch_images, gpu, scan, turntable_job, upload, watch_to_end, write_sample, TestDaemon,
 };
@@ -93,16 +92,15 @@ fn assert_equal_to_direct_renders(
     let cloud = load_point_cloud(file).expect("load");
     let mut renderer = Renderer::new(gpu());
     let resident = renderer.upload(&cloud).expect("upload");
-    let path = CameraPath::Turntable(Turntable {
-        frames,
-        center: None,
-        radius: None,
-        elevation_deg: 30.0,
-        degrees: 360.0,
-        fov_y_deg: 50.0,
-    });
+    let path = CameraPath::Turntable(Turntable::around_the_cloud(frames));
     for (index, image) in fetched {
-        let camera = camera_for_frame(&path, *index, &cloud.bounds, width as f64 / height as f64);
+        let camera = camera_for_frame(
+            &path,
+            &Lens::default(),
+            *index,
+            &cloud.bounds,
+            width as f64 / height as f64,
+        );
         let direct = renderer
             .render(&resident, &FrameSettings::new(width, height, camera))
             .expect("render");

@@ -9,7 +9,6 @@
 //! `remote_worker` the only modules that know protobuf), `server` (sockets, health,
 //! reflection, the lease sweep, shutdown).
 
-pub mod camera_path;
 pub mod error;
 pub mod frame_render;
 pub mod grpc;

@@ -172,6 +172,7 @@ pub fn turntable_job(
                 frames,
                 ..Default::default()
             })),
+            lens: None,
         }),
         width,
         height,
