@@ -157,13 +157,7 @@ mod tests {
         let render = &request.render;
         assert_eq!(render.point_size, 3);
         assert_eq!(render.quality, Quality::High { depth_band: 0.02 });
-        assert_eq!(
-            render.shading,
-            Shading::Pintus {
-                levels: 8,
-                exponent: 1.5
-            }
-        );
+        assert_eq!(render.shading, Shading::PINTUS);
         assert_eq!(
             render.color_mode,
             pointfarm_render::color::ColorMode::Fixed([16, 32, 48])

@@ -348,13 +348,7 @@ mod tests {
         });
         let render = JobSpec::try_from(&r).expect("valid").request.render;
         assert_eq!(render.fill, Some(FillSettings { kernel: 7 }));
-        assert_eq!(
-            render.shading,
-            Shading::Pintus {
-                levels: 8,
-                exponent: 1.5
-            }
-        );
+        assert_eq!(render.shading, Shading::PINTUS);
         assert_eq!(
             JobSpec::try_from(&valid())
                 .expect("valid")

@@ -290,34 +290,39 @@ fn invalid_requests_name_the_field() {
         }),
         "render.depth_band"
     );
-    assert_eq!(
-        with(&|r| r.render.shading = Shading::Edl {
-            strength: 101.0,
-            radius: 1.0
-        }),
-        "render.edl_strength"
-    );
-    assert_eq!(
-        with(&|r| r.render.shading = Shading::Edl {
-            strength: 1.0,
-            radius: 0.1
-        }),
-        "render.edl_radius"
-    );
-    assert_eq!(
-        with(&|r| r.render.shading = Shading::Pintus {
-            levels: 0,
-            exponent: 1.0
-        }),
-        "render.pintus_levels"
-    );
-    assert_eq!(
-        with(&|r| r.render.shading = Shading::Pintus {
-            levels: 4,
-            exponent: 5.0
-        }),
-        "render.pintus_exponent"
-    );
+    let shadings = [
+        (
+            Shading::Edl {
+                strength: 101.0,
+                radius: 1.0,
+            },
+            "render.edl_strength",
+        ),
+        (
+            Shading::Edl {
+                strength: 1.0,
+                radius: 0.1,
+            },
+            "render.edl_radius",
+        ),
+        (
+            Shading::Pintus {
+                levels: 0,
+                exponent: 1.0,
+            },
+            "render.pintus_levels",
+        ),
+        (
+            Shading::Pintus {
+                levels: 4,
+                exponent: 5.0,
+            },
+            "render.pintus_exponent",
+        ),
+    ];
+    for (shading, field) in shadings {
+        assert_eq!(with(&|r| r.render.shading = shading), field);
+    }
     for kernel in [1, 4, 11] {
         assert_eq!(
             with(&|r| r.render.fill = Some(FillSettings { kernel })),
