@@ -4,11 +4,9 @@
 use std::time::Duration;
 
 use pointfarm_proto::v1 as pb;
-use pointfarm_render::ingest::load_point_cloud;
-use pointfarm_render::raster::{FrameSettings, Renderer};
-use pointfarm_render::request::{camera_for_frame, CameraPath, Lens, Turntable};
 use pointfarm_tests::service::{
-    fetch_images, gpu, scan, turntable_job, upload, upload_messages, watch_to_end, write_sample,
+    assert_equal_to_direct_renders, clients, fetch_images, get_job, scan, scratch_sample, submit,
+    turntable_job, upload, upload_messages, watch_to_end, watch_to_success, write_sample,
     TestDaemon,
 };
 use pointfarm_tests::ServeProcess;
@@ -30,36 +28,21 @@ async fn a_turntable_job_renders_the_same_frames_as_the_renderer() {
 
     let mut jobs = daemon.jobs().await;
     let request = turntable_job("turntable-1", &dataset.id, 3, 160, 120);
-    let job = jobs
-        .submit_job(request.clone())
-        .await
-        .expect("submit")
-        .into_inner();
-    let again = jobs
-        .submit_job(request)
-        .await
-        .expect("resubmit")
-        .into_inner();
+    let job = submit(&mut jobs, request.clone()).await;
+    let again = submit(&mut jobs, request).await;
     assert_eq!(
         again.id, job.id,
         "a repeated request id returns the same job"
     );
 
-    let (finished, frames) = watch_to_end(&mut jobs, &job.id).await;
-    assert_eq!(
-        finished.state,
-        pb::JobState::Succeeded as i32,
-        "{}",
-        finished.error
-    );
+    let (_, frames) = watch_to_success(&mut jobs, &job.id, String::new).await;
     assert_eq!(
         frames.iter().map(|f| f.index).collect::<Vec<_>>(),
         vec![0, 1, 2],
         "each frame reported once"
     );
     // A watcher that comes after the end learns of every frame from its first event.
-    let (late, late_frames) = watch_to_end(&mut jobs, &job.id).await;
-    assert_eq!(late.state, pb::JobState::Succeeded as i32);
+    let (_, late_frames) = watch_to_success(&mut jobs, &job.id, String::new).await;
     let stages_of = |frames: &[pb::FrameFinished]| -> Vec<(u32, Vec<String>)> {
         frames
             .iter()
@@ -81,34 +64,11 @@ async fn a_turntable_job_renders_the_same_frames_as_the_renderer() {
         fetched.iter().map(|(i, _)| *i).collect::<Vec<_>>(),
         vec![0, 1, 2]
     );
-    let cloud = load_point_cloud(&file).expect("load");
-    let mut renderer = Renderer::new(gpu());
-    let resident = renderer.upload(&cloud).expect("upload");
-    let path = CameraPath::Turntable(Turntable::around_the_cloud(3));
-    for (index, image) in &fetched {
-        let camera = camera_for_frame(
-            &path,
-            &Lens::default(),
-            *index,
-            &cloud.bounds,
-            160.0 / 120.0,
-        );
-        let direct = renderer
-            .render(&resident, &FrameSettings::new(160, 120, camera))
-            .expect("render");
-        assert!(
-            direct.image == *image,
-            "frame {index} differs from the direct rendering"
-        );
-    }
+    assert_equal_to_direct_renders(&file, 3, (160, 120), &fetched);
     // Resuming a download from a frame index.
     assert_eq!(fetch_images(&mut jobs, &job.id, 2).await.len(), 1);
 
-    let shown = jobs
-        .get_job(pb::GetJobRequest { id: job.id.clone() })
-        .await
-        .expect("get")
-        .into_inner();
+    let shown = get_job(&mut jobs, &job.id).await;
     assert_eq!(
         shown.frames.len(),
         3,
@@ -134,14 +94,8 @@ async fn a_turntable_job_renders_the_same_frames_as_the_renderer() {
         color_mode: pb::ColorMode::Elevation as i32,
         ..Default::default()
     });
-    let second = jobs.submit_job(second).await.expect("submit").into_inner();
-    let (second_end, second_frames) = watch_to_end(&mut jobs, &second.id).await;
-    assert_eq!(
-        second_end.state,
-        pb::JobState::Succeeded as i32,
-        "{}",
-        second_end.error
-    );
+    let second = submit(&mut jobs, second).await;
+    let (_, second_frames) = watch_to_success(&mut jobs, &second.id, String::new).await;
     assert_eq!(
         second_frames[0].dataset_cache_hit,
         Some(true),
@@ -238,18 +192,8 @@ async fn invalid_requests_get_their_status_codes() {
     );
 
     // Finished jobs cannot be cancelled.
-    let job = jobs
-        .submit_job(turntable_job("e", &registered.id, 1, 32, 32))
-        .await
-        .expect("submit")
-        .into_inner();
-    let (finished, _) = watch_to_end(&mut jobs, &job.id).await;
-    assert_eq!(
-        finished.state,
-        pb::JobState::Succeeded as i32,
-        "{}",
-        finished.error
-    );
+    let job = submit(&mut jobs, turntable_job("e", &registered.id, 1, 32, 32)).await;
+    watch_to_success(&mut jobs, &job.id, String::new).await;
     let (code, _) = code_and_message(jobs.cancel_job(pb::CancelJobRequest { id: job.id }).await);
     assert_eq!(code, Code::FailedPrecondition);
 
@@ -310,9 +254,7 @@ async fn invalid_requests_get_their_status_codes() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_corrupt_dataset_fails_its_job_while_another_completes() {
     let daemon = TestDaemon::start(|_| {}, None).await;
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let good_file = scratch.path().join("good.las");
-    write_sample(&good_file, 5_000, 2);
+    let (_scratch, good_file) = scratch_sample("good.las", 5_000, 2);
     let good_bytes = std::fs::read(&good_file).expect("read");
     // The same file cut short: its header promises more points than it holds.
     let corrupt_bytes = good_bytes[..good_bytes.len() / 2].to_vec();
@@ -321,16 +263,8 @@ async fn a_corrupt_dataset_fails_its_job_while_another_completes() {
     let corrupt = upload(&mut datasets, "corrupt.las", &corrupt_bytes).await;
     let good = upload(&mut datasets, "good.las", &good_bytes).await;
     let mut jobs = daemon.jobs().await;
-    let bad_job = jobs
-        .submit_job(turntable_job("bad", &corrupt.id, 2, 64, 48))
-        .await
-        .expect("submit")
-        .into_inner();
-    let good_job = jobs
-        .submit_job(turntable_job("good", &good.id, 2, 64, 48))
-        .await
-        .expect("submit")
-        .into_inner();
+    let bad_job = submit(&mut jobs, turntable_job("bad", &corrupt.id, 2, 64, 48)).await;
+    let good_job = submit(&mut jobs, turntable_job("good", &good.id, 2, 64, 48)).await;
 
     let (bad_end, _) = watch_to_end(&mut jobs, &bad_job.id).await;
     assert_eq!(bad_end.state, pb::JobState::Failed as i32);
@@ -339,13 +273,7 @@ async fn a_corrupt_dataset_fails_its_job_while_another_completes() {
         "reason: {}",
         bad_end.error
     );
-    let (good_end, frames) = watch_to_end(&mut jobs, &good_job.id).await;
-    assert_eq!(
-        good_end.state,
-        pb::JobState::Succeeded as i32,
-        "{}",
-        good_end.error
-    );
+    let (good_end, frames) = watch_to_success(&mut jobs, &good_job.id, String::new).await;
     assert_eq!(
         frames.len() as u32 + good_end.frames_done - frames.len() as u32,
         2
@@ -372,22 +300,10 @@ async fn a_corrupt_dataset_fails_its_job_while_another_completes() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_killed_daemon_resumes_its_jobs_without_rerendering_finished_frames() {
     let data = tempfile::tempdir().expect("tempdir");
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let file = scratch.path().join("sample.laz");
-    write_sample(&file, 100_000, 4);
-    let connect = |address: String| async move {
-        tonic::transport::Channel::from_shared(format!("http://{address}"))
-            .expect("url")
-            .connect()
-            .await
-            .expect("connect")
-    };
+    let (_scratch, file) = scratch_sample("sample.laz", 100_000, 4);
     let mut server = ServeProcess::start(data.path());
     let address = server.address.clone();
-    let channel = connect(address.clone()).await;
-    let mut datasets =
-        pointfarm_proto::v1::dataset_service_client::DatasetServiceClient::new(channel.clone());
-    let mut jobs = pointfarm_proto::v1::job_service_client::JobServiceClient::new(channel);
+    let (mut datasets, mut jobs) = clients(&address).await;
     let dataset = upload(
         &mut datasets,
         "sample.laz",
@@ -402,16 +318,12 @@ async fn a_killed_daemon_resumes_its_jobs_without_rerendering_finished_frames() 
         point_size: 2,
         ..Default::default()
     });
-    let job = jobs.submit_job(request).await.expect("submit").into_inner();
+    let job = submit(&mut jobs, request).await;
 
     let frames_dir = data.path().join("jobs").join(&job.id);
     let mut before = Vec::new();
     for _ in 0..600 {
-        let current = jobs
-            .get_job(pb::GetJobRequest { id: job.id.clone() })
-            .await
-            .expect("get")
-            .into_inner();
+        let current = get_job(&mut jobs, &job.id).await;
         if current.frames_done >= 3 {
             before = current.frames.iter().map(|f| f.index).collect();
             break;
@@ -434,15 +346,8 @@ async fn a_killed_daemon_resumes_its_jobs_without_rerendering_finished_frames() 
         .collect();
 
     let _server = ServeProcess::start_at(&address, data.path());
-    let channel = connect(address.clone()).await;
-    let mut jobs = pointfarm_proto::v1::job_service_client::JobServiceClient::new(channel);
-    let (finished, _) = watch_to_end(&mut jobs, &job.id).await;
-    assert_eq!(
-        finished.state,
-        pb::JobState::Succeeded as i32,
-        "{}",
-        finished.error
-    );
+    let (_, mut jobs) = clients(&address).await;
+    let (finished, _) = watch_to_success(&mut jobs, &job.id, String::new).await;
     assert_eq!(finished.frames_done, 24);
     for (index, time) in modified {
         let path = frames_dir.join(format!("frame_{index:05}.png"));
@@ -468,9 +373,7 @@ async fn a_killed_daemon_resumes_its_jobs_without_rerendering_finished_frames() 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn higher_priority_jobs_run_first() {
     let daemon = TestDaemon::start(|_| {}, None).await;
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let file = scratch.path().join("s.laz");
-    write_sample(&file, 50_000, 5);
+    let (_scratch, file) = scratch_sample("s.laz", 50_000, 5);
     let mut datasets = daemon.datasets().await;
     let dataset = upload(&mut datasets, "s.laz", &std::fs::read(&file).expect("read")).await;
     let mut jobs = daemon.jobs().await;
@@ -479,17 +382,12 @@ async fn higher_priority_jobs_run_first() {
         quality: pb::Quality::High as i32,
         ..Default::default()
     });
-    let low = jobs.submit_job(low).await.expect("submit").into_inner();
+    let low = submit(&mut jobs, low).await;
     let mut high = turntable_job("high", &dataset.id, 1, 64, 48);
     high.priority = 10;
-    let high = jobs.submit_job(high).await.expect("submit").into_inner();
-    let (high_end, _) = watch_to_end(&mut jobs, &high.id).await;
-    assert_eq!(high_end.state, pb::JobState::Succeeded as i32);
-    let low_now = jobs
-        .get_job(pb::GetJobRequest { id: low.id.clone() })
-        .await
-        .expect("get")
-        .into_inner();
+    let high = submit(&mut jobs, high).await;
+    watch_to_success(&mut jobs, &high.id, String::new).await;
+    let low_now = get_job(&mut jobs, &low.id).await;
     assert!(
         low_now.frames_done < 20,
         "the high-priority job waited for the whole low-priority job"
@@ -499,11 +397,7 @@ async fn higher_priority_jobs_run_first() {
         .await
         .expect("cancel");
     tokio::time::sleep(Duration::from_millis(500)).await;
-    let cancelled = jobs
-        .get_job(pb::GetJobRequest { id: low.id })
-        .await
-        .expect("get")
-        .into_inner();
+    let cancelled = get_job(&mut jobs, &low.id).await;
     assert_eq!(cancelled.state, pb::JobState::Cancelled as i32);
     assert!(cancelled.frames_done < 20);
     daemon.stop().await;

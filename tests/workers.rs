@@ -2,17 +2,15 @@
 //! processes leasing frames over loopback gRPC, a worker killed mid-frame, and the lease rules
 //! (expiry, stale completions, cancel) spoken directly over the WorkerService.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Duration;
 
 use pointfarm_daemon::service::DaemonConfig;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
-use pointfarm_render::ingest::load_point_cloud;
-use pointfarm_render::raster::{FrameSettings, Renderer};
-use pointfarm_render::request::{camera_for_frame, CameraPath, Lens, Turntable};
 use pointfarm_tests::service::{
-    fetch_images, gpu, scan, turntable_job, upload, watch_to_end, write_sample, TestDaemon,
+    assert_equal_to_direct_renders, clients, fetch_images, get_job, scan, scratch_sample, submit,
+    turntable_job, upload, watch_to_success, TestDaemon,
 };
 use pointfarm_tests::WorkerProcess;
 use tonic::metadata::{Ascii, MetadataValue};
@@ -81,36 +79,6 @@ async fn workers_client(daemon: &TestDaemon) -> Workers {
     WorkerServiceClient::with_interceptor(daemon.channel().await, Token::new(None))
 }
 
-/// Asserts that each fetched frame equals the renderer's direct rendering of that turntable
-/// frame of `file`.
-fn assert_equal_to_direct_renders(
-    file: &Path,
-    frames: u32,
-    (width, height): (u32, u32),
-    fetched: &[(u32, image::RgbaImage)],
-) {
-    let cloud = load_point_cloud(file).expect("load");
-    let mut renderer = Renderer::new(gpu());
-    let resident = renderer.upload(&cloud).expect("upload");
-    let path = CameraPath::Turntable(Turntable::around_the_cloud(frames));
-    for (index, image) in fetched {
-        let camera = camera_for_frame(
-            &path,
-            &Lens::default(),
-            *index,
-            &cloud.bounds,
-            width as f64 / height as f64,
-        );
-        let direct = renderer
-            .render(&resident, &FrameSettings::new(width, height, camera))
-            .expect("render");
-        assert!(
-            direct.image == *image,
-            "frame {index} differs from the direct rendering"
-        );
-    }
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_worker_process_renders_a_turntable_like_the_renderer() {
     let DaemonWithScan {
@@ -120,21 +88,10 @@ async fn a_worker_process_renders_a_turntable_like_the_renderer() {
         dataset,
     } = DaemonWithScan::start(|_| {}).await;
     let mut jobs = daemon.jobs().await;
-    let job = jobs
-        .submit_job(turntable_job("remote", &dataset.id, 4, 160, 120))
-        .await
-        .expect("submit")
-        .into_inner();
+    let job = submit(&mut jobs, turntable_job("remote", &dataset.id, 4, 160, 120)).await;
 
     let mut worker = WorkerProcess::start(&daemon.url(), &scratch.path().join("cache"), "w1");
-    let (finished, frames) = watch_to_end(&mut jobs, &job.id).await;
-    assert_eq!(
-        finished.state,
-        pb::JobState::Succeeded as i32,
-        "{}\nworker log:\n{}",
-        finished.error,
-        worker.log()
-    );
+    let (_, frames) = watch_to_success(&mut jobs, &job.id, || worker.log()).await;
     assert_eq!(frames.len(), 4);
     // The worker downloaded and decoded the dataset once, and kept it on the GPU for the
     // other frames.
@@ -180,11 +137,7 @@ async fn a_worker_killed_mid_frame_loses_nothing() {
     } = DaemonWithScan::start(|config| config.lease_timeout = Duration::from_secs(2)).await;
     let mut jobs = daemon.jobs().await;
     let mut workers = workers_client(&daemon).await;
-    let job = jobs
-        .submit_job(turntable_job("killed", &dataset.id, 4, 160, 120))
-        .await
-        .expect("submit")
-        .into_inner();
+    let job = submit(&mut jobs, turntable_job("killed", &dataset.id, 4, 160, 120)).await;
 
     let mut first = WorkerProcess::start(&daemon.url(), &scratch.path().join("cache-1"), "first");
     // The first lease of a fresh worker covers downloading and decoding the dataset: the
@@ -199,22 +152,12 @@ async fn a_worker_killed_mid_frame_loses_nothing() {
             .any(|l| l.lease_id == held.lease_id),
         "the worker handed its frame in before the kill; the test needs it mid-frame"
     );
-    let now = jobs
-        .get_job(pb::GetJobRequest { id: job.id.clone() })
-        .await
-        .expect("the daemon keeps serving")
-        .into_inner();
+    // The daemon keeps serving.
+    let now = get_job(&mut jobs, &job.id).await;
     assert_eq!(now.state, pb::JobState::Running as i32);
 
     let second = WorkerProcess::start(&daemon.url(), &scratch.path().join("cache-2"), "second");
-    let (finished, frames) = watch_to_end(&mut jobs, &job.id).await;
-    assert_eq!(
-        finished.state,
-        pb::JobState::Succeeded as i32,
-        "{}\n{}",
-        finished.error,
-        second.log()
-    );
+    let (finished, frames) = watch_to_success(&mut jobs, &job.id, || second.log()).await;
     assert_eq!(finished.frames_done, 4);
     let mut indices: Vec<u32> = frames.iter().map(|f| f.index).collect();
     indices.sort();
@@ -343,9 +286,7 @@ async fn stale_and_cancelled_leases_are_refused() {
         channel, with_token,
     );
 
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let file = scratch.path().join("s.laz");
-    write_sample(&file, 2_000, 7);
+    let (_scratch, file) = scratch_sample("s.laz", 2_000, 7);
     let bytes = std::fs::read(&file).expect("read");
     let dataset = datasets
         .upload_dataset(tokio_stream::iter(
@@ -514,11 +455,11 @@ async fn sigterm_lets_a_worker_hand_in_its_frame_before_it_exits() {
     } = DaemonWithScan::start(|_| {}).await;
     let mut jobs = daemon.jobs().await;
     let mut workers = workers_client(&daemon).await;
-    let job = jobs
-        .submit_job(turntable_job("sigterm", &dataset.id, 8, 160, 120))
-        .await
-        .expect("submit")
-        .into_inner();
+    let job = submit(
+        &mut jobs,
+        turntable_job("sigterm", &dataset.id, 8, 160, 120),
+    )
+    .await;
     let mut worker = WorkerProcess::start(&daemon.url(), &scratch.path().join("cache"), "w");
     let held = wait_for_lease(&mut workers, &job.id, || worker.log()).await;
     // The worker has the lease in hand (not merely on its way) before the signal.
@@ -533,11 +474,7 @@ async fn sigterm_lets_a_worker_hand_in_its_frame_before_it_exits() {
         .terminate(Duration::from_secs(30))
         .expect("the worker stops after its frame");
     assert!(status.success(), "exit status {status}\n{}", worker.log());
-    let shown = jobs
-        .get_job(pb::GetJobRequest { id: job.id.clone() })
-        .await
-        .expect("get")
-        .into_inner();
+    let shown = get_job(&mut jobs, &job.id).await;
     assert!(
         shown
             .frames
@@ -563,9 +500,7 @@ async fn sigterm_lets_a_worker_hand_in_its_frame_before_it_exits() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_worker_reconnects_after_the_daemon_restarts() {
     let data = tempfile::tempdir().expect("tempdir");
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let file = scratch.path().join("s.laz");
-    write_sample(&file, 20_000, 9);
+    let (scratch, file) = scratch_sample("s.laz", 20_000, 9);
     let mut server =
         pointfarm_tests::ServeProcess::start_with(data.path(), &["--no-embedded-worker"]);
     let address = server.address.clone();
@@ -579,28 +514,14 @@ async fn a_worker_reconnects_after_the_daemon_restarts() {
     server.kill();
     tokio::time::sleep(Duration::from_millis(500)).await;
     let _server = pointfarm_tests::ServeProcess::start_at(&address, data.path());
-    let channel = Channel::from_shared(format!("http://{address}"))
-        .expect("url")
-        .connect()
-        .await
-        .expect("connect");
-    let mut datasets =
-        pointfarm_proto::v1::dataset_service_client::DatasetServiceClient::new(channel.clone());
-    let mut jobs = pointfarm_proto::v1::job_service_client::JobServiceClient::new(channel);
+    let (mut datasets, mut jobs) = clients(&address).await;
     let dataset = upload(&mut datasets, "s.laz", &std::fs::read(&file).expect("read")).await;
-    let job = jobs
-        .submit_job(turntable_job("after-restart", &dataset.id, 2, 64, 48))
-        .await
-        .expect("submit")
-        .into_inner();
-    let (finished, frames) = watch_to_end(&mut jobs, &job.id).await;
-    assert_eq!(
-        finished.state,
-        pb::JobState::Succeeded as i32,
-        "{}\n{}",
-        finished.error,
-        worker.log()
-    );
+    let job = submit(
+        &mut jobs,
+        turntable_job("after-restart", &dataset.id, 2, 64, 48),
+    )
+    .await;
+    let (_, frames) = watch_to_success(&mut jobs, &job.id, || worker.log()).await;
     assert_eq!(frames.len(), 2);
     assert!(worker.log().contains("unreachable"), "{}", worker.log());
 }

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
+use pointfarm_daemon::grpc::streaming::CHUNK_BYTES;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
@@ -15,9 +16,6 @@ use sha2::{Digest, Sha256};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 use tonic::{Code, Status};
-
-/// Upload chunk size: well under gRPC's default 4 MiB message limit.
-const UPLOAD_CHUNK_BYTES: usize = 1 << 20;
 
 type Authed = InterceptedService<Channel, BearerToken>;
 
@@ -78,7 +76,7 @@ impl Client {
             })),
         };
         let chunks: Vec<pb::UploadDatasetRequest> = bytes
-            .chunks(UPLOAD_CHUNK_BYTES)
+            .chunks(CHUNK_BYTES)
             .map(|c| pb::UploadDatasetRequest {
                 part: Some(pb::upload_dataset_request::Part::Data(c.to_vec())),
             })

@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use pointfarm_daemon::remote_worker::{run as run_worker, RemoteWorkerConfig};
+use pointfarm_daemon::worker::remote::{run as run_worker, RemoteWorkerConfig};
 use pointfarm_render::gpu::{AdapterChoice, GpuContext};
 
 #[derive(Args)]

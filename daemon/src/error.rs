@@ -1,9 +1,16 @@
-//! The daemon's errors, by what the caller should do about them. The gRPC layer maps each
-//! kind to one status code.
+//! The daemon's errors, by what the caller should do about them (the gRPC layer maps each
+//! kind to one status code), and the state database's errors they wrap.
 
 use thiserror::Error;
 
-use crate::store::StoreError;
+/// The state database failed, or holds what it cannot read.
+#[derive(Debug, Error)]
+pub enum StoreError {
+    #[error("state database: {0}")]
+    Db(#[from] sled::Error),
+    #[error("state database holds a record it cannot read: {0}")]
+    Corrupt(#[from] serde_json::Error),
+}
 
 #[derive(Debug, Error)]
 pub enum DaemonError {

@@ -15,29 +15,14 @@
 //! so two workers never get the same frame and a cancel never races a completion.
 
 use std::collections::HashSet;
-use std::path::Path;
-use std::sync::MutexGuard;
 use std::time::Duration;
 
-use serde::{Deserialize, Serialize};
-
-use crate::error::DaemonError;
 use pointfarm_render::request::RenderRequest;
 
-use crate::model::{now_unix_ms, FrameReport, FrameState, Job, JobId, JobState, StageTiming};
+use crate::error::DaemonError;
+use crate::lease_record::Lease;
+use crate::model::{now_unix_ms, FrameReport, FrameState, Job, JobState, StageTiming};
 use crate::service::Daemon;
-use crate::store::{Store, StoreError};
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Lease {
-    pub id: String,
-    pub job_id: JobId,
-    pub index: u32,
-    pub worker: String,
-    /// Held by a worker thread of the daemon itself.
-    pub embedded: bool,
-    pub expires_unix_ms: i64,
-}
 
 /// The dataset of a task, as a worker's cache knows it.
 #[derive(Debug, Clone, PartialEq)]
@@ -76,25 +61,7 @@ pub enum HeartbeatAnswer {
     Stop(String),
 }
 
-/// Leases found at start-up that belonged to the embedded workers of the previous process.
-pub(crate) fn drop_embedded_leases(store: &Store) -> Result<usize, StoreError> {
-    let mut dropped = 0;
-    for lease in store.leases()? {
-        if lease.embedded {
-            store.remove_lease(&lease.id)?;
-            dropped += 1;
-        }
-    }
-    Ok(dropped)
-}
-
 impl Daemon {
-    pub(crate) fn scheduling(&self) -> Result<MutexGuard<'_, ()>, DaemonError> {
-        self.scheduling
-            .lock()
-            .map_err(|_| DaemonError::Internal("the scheduling lock is poisoned".into()))
-    }
-
     fn lease_timeout_ms(&self) -> i64 {
         self.config.lease_timeout.as_millis() as i64
     }
@@ -152,7 +119,7 @@ impl Daemon {
             return Ok(Some(FrameTask {
                 lease,
                 lease_timeout: self.config.lease_timeout,
-                dataset: crate::lease::TaskDataset {
+                dataset: TaskDataset {
                     id: dataset.id,
                     sha256: dataset.sha256,
                     size_bytes: dataset.size_bytes,
@@ -397,26 +364,9 @@ fn check_png(png: &[u8], width: u32, height: u32) -> Result<(), DaemonError> {
     Ok(())
 }
 
-/// Removes the partial frames of leases that can never complete (after a restart).
-pub(crate) fn remove_partial_frames(dir: &Path) {
-    let Ok(jobs) = std::fs::read_dir(dir) else {
-        return;
-    };
-    for job in jobs.flatten() {
-        let Ok(frames) = std::fs::read_dir(job.path()) else {
-            continue;
-        };
-        for frame in frames.flatten() {
-            let path = frame.path();
-            if path.extension().is_some_and(|e| e == "part") {
-                let _ = std::fs::remove_file(path);
-            }
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
+    use std::path::Path;
     use std::sync::Arc;
 
     use pointfarm_proto::v1 as pb;

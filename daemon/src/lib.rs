@@ -2,19 +2,21 @@
 //! workers (embedded threads and `pointfarm worker` processes), and the `pointfarm.v1` gRPC API
 //! over all of it.
 //!
-//! Layers: `model` (domain types), `store` (sled), `service` (the domain operations), `lease`
-//! (frame leases: the one scheduling path), `frame_render` (renders one task with
-//! `pointfarm-worker`, shared by both kinds of worker), `worker` (the embedded worker thread),
-//! `remote_worker` (the worker process, a gRPC client), `grpc` (converts and delegates; with
-//! `remote_worker` the only modules that know protobuf), `server` (sockets, health,
-//! reflection, the lease sweep, shutdown).
+//! From the bottom up: `model` and `camera_path` (domain types, the camera of each frame),
+//! `error` (the daemon's and the store's errors), `lease_record` (the stored lease), `store`
+//! (sled), `service` (the `Daemon` and its dataset and job operations), `lease` (frame leases:
+//! the one scheduling path, more `Daemon` methods), `grpc` (validates, converts and
+//! delegates: one file per service, the conversions, the streaming of bytes), `worker`
+//! (what leases frames: the embedded thread, the remote worker process — a gRPC client — and
+//! their shared render state, which renders with `pointfarm-render`), `server` (sockets,
+//! health, reflection, the lease sweep, shutdown). Only `grpc`, `worker::remote` and `server`
+//! (which mounts the services) know protobuf.
 
 pub mod error;
-pub mod frame_render;
 pub mod grpc;
 pub mod lease;
+pub mod lease_record;
 pub mod model;
-pub mod remote_worker;
 pub mod server;
 pub mod service;
 pub mod store;

@@ -58,7 +58,7 @@ pub async fn serve(
         let (daemon, stop) = (daemon.clone(), stop.clone());
         std::thread::Builder::new()
             .name("pointfarm-worker".into())
-            .spawn(move || crate::worker::run(daemon, gpu, stop))
+            .spawn(move || crate::worker::embedded::run(daemon, gpu, stop))
     });
     let worker = worker.transpose().context("starting the embedded worker")?;
 

@@ -2,7 +2,7 @@
 //! watchers. The gRPC layer only converts and calls these methods.
 
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Condvar, Mutex};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 
 use sha2::{Digest, Sha256};
 use tokio::sync::broadcast;
@@ -134,14 +134,14 @@ impl Daemon {
         if requeued > 0 {
             tracing::info!(requeued, "resuming jobs that were running");
         }
-        let dropped = crate::lease::drop_embedded_leases(&store)?;
+        let dropped = store.drop_embedded_leases()?;
         if dropped > 0 {
             tracing::info!(
                 dropped,
                 "frames of the previous process's worker threads go back to the queue"
             );
         }
-        crate::lease::remove_partial_frames(&config.data_dir.join("jobs"));
+        remove_partial_frames(&config.data_dir.join("jobs"));
         let (events, _) = broadcast::channel(1024);
         Ok(Arc::new(Self {
             config,
@@ -151,6 +151,13 @@ impl Daemon {
             scheduling: Mutex::new(()),
             stopping: std::sync::atomic::AtomicBool::new(false),
         }))
+    }
+
+    /// Taken while leases, frame states and job states change together.
+    pub(crate) fn scheduling(&self) -> Result<MutexGuard<'_, ()>, DaemonError> {
+        self.scheduling
+            .lock()
+            .map_err(|_| DaemonError::Internal("the scheduling lock is poisoned".into()))
     }
 
     /// The server is stopping: waiting lease requests answer without work.
@@ -390,6 +397,25 @@ fn remove_unfinished_uploads(dir: &Path) {
         if path.extension().is_some_and(|e| e == "part") {
             tracing::info!(file = %path.display(), "removing an unfinished upload");
             let _ = std::fs::remove_file(path);
+        }
+    }
+}
+
+/// Removes the partial frames of leases that can never complete (after a restart): `lease`
+/// writes each handed-in frame under a `.part` name before renaming it into place.
+fn remove_partial_frames(dir: &Path) {
+    let Ok(jobs) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for job in jobs.flatten() {
+        let Ok(frames) = std::fs::read_dir(job.path()) else {
+            continue;
+        };
+        for frame in frames.flatten() {
+            let path = frame.path();
+            if path.extension().is_some_and(|e| e == "part") {
+                let _ = std::fs::remove_file(path);
+            }
         }
     }
 }

@@ -7,18 +7,10 @@
 
 use serde::de::DeserializeOwned;
 use serde::Serialize;
-use thiserror::Error;
 
-use crate::lease::Lease;
+use crate::error::StoreError;
+use crate::lease_record::Lease;
 use crate::model::{now_unix_ms, Dataset, FrameReport, FrameState, Job, JobSpec, JobState};
-
-#[derive(Debug, Error)]
-pub enum StoreError {
-    #[error("state database: {0}")]
-    Db(#[from] sled::Error),
-    #[error("state database holds a record it cannot read: {0}")]
-    Corrupt(#[from] serde_json::Error),
-}
 
 pub struct Store {
     db: sled::Db,
@@ -41,6 +33,11 @@ fn encode<T: Serialize>(value: &T) -> Result<Vec<u8>, StoreError> {
 
 fn decode<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, StoreError> {
     Ok(serde_json::from_slice(bytes)?)
+}
+
+/// The record stored under a key, if there is one.
+fn decode_stored<T: DeserializeOwned>(value: Option<sled::IVec>) -> Result<Option<T>, StoreError> {
+    value.map(|v| decode(&v)).transpose()
 }
 
 /// Frame keys sort by job, then by index.
@@ -79,17 +76,11 @@ impl Store {
     }
 
     pub fn dataset(&self, id: &str) -> Result<Option<Dataset>, StoreError> {
-        self.datasets
-            .get(id.as_bytes())?
-            .map(|v| decode(&v))
-            .transpose()
+        decode_stored(self.datasets.get(id.as_bytes())?)
     }
 
     pub fn delete_dataset(&self, id: &str) -> Result<Option<Dataset>, StoreError> {
-        self.datasets
-            .remove(id.as_bytes())?
-            .map(|v| decode(&v))
-            .transpose()
+        decode_stored(self.datasets.remove(id.as_bytes())?)
     }
 
     pub fn list_datasets(
@@ -149,10 +140,7 @@ impl Store {
     }
 
     pub fn job(&self, id: &str) -> Result<Option<Job>, StoreError> {
-        self.jobs
-            .get(id.as_bytes())?
-            .map(|v| decode(&v))
-            .transpose()
+        decode_stored(self.jobs.get(id.as_bytes())?)
     }
 
     pub fn put_job(&self, job: &Job) -> Result<(), StoreError> {
@@ -192,10 +180,7 @@ impl Store {
     }
 
     pub fn frame(&self, job_id: &str, index: u32) -> Result<Option<FrameState>, StoreError> {
-        self.frames
-            .get(frame_key(job_id, index))?
-            .map(|v| decode(&v))
-            .transpose()
+        decode_stored(self.frames.get(frame_key(job_id, index))?)
     }
 
     pub fn set_frame(
@@ -265,10 +250,7 @@ impl Store {
     }
 
     pub fn lease(&self, id: &str) -> Result<Option<Lease>, StoreError> {
-        self.leases
-            .get(id.as_bytes())?
-            .map(|v| decode(&v))
-            .transpose()
+        decode_stored(self.leases.get(id.as_bytes())?)
     }
 
     pub fn remove_lease(&self, id: &str) -> Result<(), StoreError> {
@@ -278,6 +260,19 @@ impl Store {
 
     pub fn leases(&self) -> Result<Vec<Lease>, StoreError> {
         self.leases.iter().map(|entry| decode(&entry?.1)).collect()
+    }
+
+    /// Drops the leases held by embedded workers (found at start-up, they belonged to the
+    /// worker threads of the previous process); returns how many there were.
+    pub fn drop_embedded_leases(&self) -> Result<usize, StoreError> {
+        let mut dropped = 0;
+        for lease in self.leases()? {
+            if lease.embedded {
+                self.remove_lease(&lease.id)?;
+                dropped += 1;
+            }
+        }
+        Ok(dropped)
     }
 
     /// A new id, unique in this database (also across restarts).

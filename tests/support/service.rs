@@ -10,7 +10,9 @@ use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_render::gpu::{AdapterChoice, GpuContext};
-use pointfarm_render::ingest::{write_las, LasWriteOptions};
+use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
+use pointfarm_render::raster::{FrameSettings, Renderer};
+use pointfarm_render::request::{camera_for_frame, CameraPath, Lens, Turntable};
 use sha2::{Digest, Sha256};
 use tonic::transport::Channel;
 
@@ -82,11 +84,7 @@ impl TestDaemon {
     }
 
     pub async fn channel(&self) -> Channel {
-        Channel::from_shared(format!("http://{}", self.address))
-            .expect("url")
-            .connect()
-            .await
-            .expect("connect")
+        connect(&self.address.to_string()).await
     }
 
     pub async fn jobs(&self) -> JobServiceClient<Channel> {
@@ -123,6 +121,24 @@ impl Drop for TestDaemon {
             let _ = shutdown.send(());
         }
     }
+}
+
+/// A channel to the daemon at `address` (`host:port`).
+pub async fn connect(address: &str) -> Channel {
+    Channel::from_shared(format!("http://{address}"))
+        .expect("url")
+        .connect()
+        .await
+        .expect("connect")
+}
+
+/// Dataset and job clients of the daemon at `address` (`host:port`), e.g. a `ServeProcess`.
+pub async fn clients(address: &str) -> (DatasetServiceClient<Channel>, JobServiceClient<Channel>) {
+    let channel = connect(address).await;
+    (
+        DatasetServiceClient::new(channel.clone()),
+        JobServiceClient::new(channel),
+    )
 }
 
 /// The upload messages for `bytes` named `name`.
@@ -179,6 +195,40 @@ pub fn turntable_job(
         render: None,
         priority: 0,
     }
+}
+
+/// Submits `request`; the job as the daemon answers.
+pub async fn submit(
+    jobs: &mut JobServiceClient<Channel>,
+    request: pb::SubmitJobRequest,
+) -> pb::Job {
+    jobs.submit_job(request).await.expect("submit").into_inner()
+}
+
+/// The job `id` as GetJob shows it, with its finished frames.
+pub async fn get_job(jobs: &mut JobServiceClient<Channel>, id: &str) -> pb::Job {
+    jobs.get_job(pb::GetJobRequest { id: id.into() })
+        .await
+        .expect("get")
+        .into_inner()
+}
+
+/// Watches a job to its end, asserting that it succeeded; a failure shows the job's error and
+/// `context` (e.g. a worker's log). Returns the final job and the finished-frame events.
+pub async fn watch_to_success(
+    jobs: &mut JobServiceClient<Channel>,
+    id: &str,
+    context: impl FnOnce() -> String,
+) -> (pb::Job, Vec<pb::FrameFinished>) {
+    let (finished, frames) = watch_to_end(jobs, id).await;
+    assert_eq!(
+        finished.state,
+        pb::JobState::Succeeded as i32,
+        "{}\n{}",
+        finished.error,
+        context()
+    );
+    (finished, frames)
 }
 
 /// Watches a job to its end; returns the final job and the finished-frame events.
@@ -238,10 +288,44 @@ pub async fn fetch_images(
     images
 }
 
+/// Asserts that each fetched frame equals the renderer's direct rendering of that frame of a
+/// default turntable of `frames` frames around `file`.
+pub fn assert_equal_to_direct_renders(
+    file: &Path,
+    frames: u32,
+    (width, height): (u32, u32),
+    fetched: &[(u32, image::RgbaImage)],
+) {
+    let cloud = load_point_cloud(file).expect("load");
+    let mut renderer = Renderer::new(gpu());
+    let resident = renderer.upload(&cloud).expect("upload");
+    let path = CameraPath::Turntable(Turntable::around_the_cloud(frames));
+    let aspect = width as f64 / height as f64;
+    for (index, image) in fetched {
+        let camera = camera_for_frame(&path, &Lens::default(), *index, &cloud.bounds, aspect);
+        let direct = renderer
+            .render(&resident, &FrameSettings::new(width, height, camera))
+            .expect("render");
+        assert!(
+            direct.image == *image,
+            "frame {index} differs from the direct rendering"
+        );
+    }
+}
+
 /// Writes the generated sample scene (`points` of them, from `seed`) to `path` as LAS.
 pub fn write_sample(path: &Path, points: usize, seed: u64) {
     let cloud = pointfarm_render::sample::sample_scene(points, seed);
     write_las(path, &cloud, &LasWriteOptions::default()).expect("write sample");
+}
+
+/// A scratch folder holding the generated sample scene (`points` of them, from `seed`) as
+/// the LAS file `name`; the folder is deleted when dropped.
+pub fn scratch_sample(name: &str, points: usize, seed: u64) -> (tempfile::TempDir, PathBuf) {
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let file = scratch.path().join(name);
+    write_sample(&file, points, seed);
+    (scratch, file)
 }
 
 /// autzen_trim.laz when the real scans are present, else a generated sample in `dir`.

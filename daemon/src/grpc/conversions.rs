@@ -9,7 +9,8 @@ use pointfarm_proto::v1 as pb;
 
 use super::request::{camera_path_message, render_options_message, render_request};
 use crate::error::DaemonError;
-use crate::lease::{FrameTask, HeartbeatAnswer, Lease, TaskDataset};
+use crate::lease::{FrameTask, HeartbeatAnswer, TaskDataset};
+use crate::lease_record::Lease;
 use crate::model::{Dataset, FrameReport, Job, JobSpec, JobState, StageTiming};
 
 pub(super) fn invalid(field: &str, message: impl Into<String>) -> DaemonError {

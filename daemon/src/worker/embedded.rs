@@ -1,5 +1,5 @@
 //! The embedded worker: a thread of the daemon that leases frames in-process, through the same
-//! leases as remote workers, and renders them with [`FrameRenderer`]. It reads datasets from
+//! leases as remote workers, and renders them with [`WorkerRenderState`]. It reads datasets from
 //! the daemon's own files; its cloud stays resident on the GPU across frames and jobs.
 
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -10,9 +10,9 @@ use pointfarm_render::cache::DatasetCache;
 use pointfarm_render::gpu::GpuContext;
 
 use crate::error::DaemonError;
-use crate::frame_render::FrameRenderer;
 use crate::lease::FrameTask;
 use crate::service::Daemon;
+use crate::worker::render_state::WorkerRenderState;
 
 /// Runs the worker until `stop` is set. Returns when the current frame is finished.
 pub fn run(daemon: Arc<Daemon>, gpu: Arc<GpuContext>, stop: Arc<AtomicBool>) {
@@ -26,7 +26,7 @@ pub fn run(daemon: Arc<Daemon>, gpu: Arc<GpuContext>, stop: Arc<AtomicBool>) {
             None
         }
     };
-    let mut frames = FrameRenderer::new(gpu, cache);
+    let mut render_state = WorkerRenderState::new(gpu, cache);
     let name = "embedded";
     while !stop.load(Ordering::SeqCst) {
         let task = match daemon.lease_frame(name, true) {
@@ -48,7 +48,7 @@ pub fn run(daemon: Arc<Daemon>, gpu: Arc<GpuContext>, stop: Arc<AtomicBool>) {
             worker = name
         );
         let _entered = span.enter();
-        if let Err(e) = render_task(&daemon, &mut frames, &task) {
+        if let Err(e) = render_task(&daemon, &mut render_state, &task) {
             tracing::error!(error = %e, "frame task failed");
         }
     }
@@ -56,13 +56,13 @@ pub fn run(daemon: Arc<Daemon>, gpu: Arc<GpuContext>, stop: Arc<AtomicBool>) {
 
 fn render_task(
     daemon: &Daemon,
-    frames: &mut FrameRenderer,
+    render_state: &mut WorkerRenderState,
     task: &FrameTask,
 ) -> Result<(), DaemonError> {
     let rendered = daemon
         .dataset(&task.dataset.id)
         .map_err(|e| e.to_string())
-        .and_then(|dataset| frames.render(task, &dataset.path));
+        .and_then(|dataset| render_state.render(task, &dataset.path));
     match rendered {
         Ok(frame) => match daemon.complete_frame(&task.lease.id, &frame.png, frame.outcome) {
             Ok(_) => tracing::info!("frame done"),

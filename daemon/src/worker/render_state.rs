@@ -1,7 +1,7 @@
-//! Rendering one leased frame, shared by the embedded worker threads and the remote worker
-//! process: load the dataset (through the worker's `DatasetCache`), colour it, keep it
-//! resident on the GPU across frames, render with the job's settings and encode the PNG,
-//! with the stage timings of every step.
+//! A worker's render state and the rendering of one leased frame, shared by the embedded
+//! worker threads and the remote worker process: load the dataset (through the worker's
+//! `DatasetCache`), colour it, keep it resident on the GPU across frames, render with the
+//! job's settings and encode the PNG, with the stage timings of every step.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -32,14 +32,14 @@ pub struct RenderedFrame {
     pub outcome: FrameOutcome,
 }
 
-/// One worker's renderer, dataset cache and resident cloud.
-pub struct FrameRenderer {
+/// One worker's renderer, dataset cache and resident cloud, which render its leased frames.
+pub struct WorkerRenderState {
     renderer: Renderer,
     cache: Option<Arc<DatasetCache>>,
     resident: Option<Resident>,
 }
 
-impl FrameRenderer {
+impl WorkerRenderState {
     /// Without a cache every new dataset is decoded from its file.
     pub fn new(gpu: Arc<GpuContext>, cache: Option<Arc<DatasetCache>>) -> Self {
         Self {

@@ -1,5 +1,5 @@
 //! A worker in its own process (`pointfarm worker`): leases frames from a daemon over gRPC,
-//! renders them with [`FrameRenderer`] on its own GPU and hands the PNGs back.
+//! renders them with [`WorkerRenderState`] on its own GPU and hands the PNGs back.
 //!
 //! - The dataset's points come from the worker's own `DatasetCache`; a dataset it has never
 //!   seen is downloaded once (`FetchDataset`, SHA-256 checked) and decoded into the cache.
@@ -30,10 +30,10 @@ use tonic::transport::{Channel, Endpoint};
 use tonic::{Code, Status};
 use tracing::Instrument;
 
-use crate::frame_render::{FrameRenderer, RenderedFrame};
 use crate::grpc::streaming::{HashingWriter, CHUNK_BYTES};
 use crate::grpc::{frame_task, timings_message};
 use crate::lease::FrameTask;
+use crate::worker::render_state::{RenderedFrame, WorkerRenderState};
 
 /// How long one lease request waits for work on the daemon.
 const LEASE_WAIT_MS: u32 = 10_000;
@@ -123,7 +123,7 @@ pub async fn run(
         let _ = stop_sender.send(true);
     });
 
-    let mut frames = Some(FrameRenderer::new(gpu, Some(Arc::new(cache))));
+    let mut render_state = Some(WorkerRenderState::new(gpu, Some(Arc::new(cache))));
     let mut backoff = Backoff::new();
     tracing::info!(server = %url, worker = %config.name, "worker started");
     while !*stop.borrow() {
@@ -184,7 +184,7 @@ pub async fn run(
             frame = task.lease.index,
             lease = %task.lease.id
         );
-        run_task(&mut client, &mut frames, &downloads, task)
+        run_task(&mut client, &mut render_state, &downloads, task)
             .instrument(span)
             .await?;
     }
@@ -196,7 +196,7 @@ pub async fn run(
 /// worker cannot go on.
 async fn run_task(
     client: &mut Client,
-    frames: &mut Option<FrameRenderer>,
+    render_state: &mut Option<WorkerRenderState>,
     downloads: &Path,
     task: FrameTask,
 ) -> anyhow::Result<()> {
@@ -213,7 +213,7 @@ async fn run_task(
         heartbeat_interval(task.lease_timeout),
         abandoned.clone(),
     ));
-    let result = download_and_render(client, frames, downloads, &task).await;
+    let result = download_and_render(client, render_state, downloads, &task).await;
     heartbeats.abort();
     if abandoned.load(Ordering::SeqCst) {
         tracing::info!("frame dropped on the daemon's word");
@@ -233,16 +233,16 @@ async fn run_task(
 /// renderer itself was lost.
 async fn download_and_render(
     client: &mut Client,
-    frames: &mut Option<FrameRenderer>,
+    render_state: &mut Option<WorkerRenderState>,
     downloads: &Path,
     task: &FrameTask,
 ) -> anyhow::Result<Result<RenderedFrame, String>> {
-    let renderer = frames.take().context("the renderer was lost")?;
-    let file = if renderer.needs_file(task) {
+    let state = render_state.take().context("the renderer was lost")?;
+    let file = if state.needs_file(task) {
         match download(client, task, downloads).await {
             Ok(file) => Some(file),
             Err(e) => {
-                *frames = Some(renderer);
+                *render_state = Some(state);
                 return Ok(Err(format!(
                     "downloading dataset {}: {e:#}",
                     task.dataset.id
@@ -256,15 +256,15 @@ async fn download_and_render(
     let blocking_task = task.clone();
     let span = tracing::Span::current();
     let path = file.clone().unwrap_or_default();
-    let (renderer, rendered) = tokio::task::spawn_blocking(move || {
+    let (state, rendered) = tokio::task::spawn_blocking(move || {
         let _entered = span.enter();
-        let mut renderer = renderer;
-        let rendered = renderer.render(&blocking_task, &path);
-        (renderer, rendered)
+        let mut state = state;
+        let rendered = state.render(&blocking_task, &path);
+        (state, rendered)
     })
     .await
     .context("the render thread panicked")?;
-    *frames = Some(renderer);
+    *render_state = Some(state);
     if let Some(file) = file {
         // The points are in the cache now.
         let _ = tokio::fs::remove_file(file).await;
