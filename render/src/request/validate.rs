@@ -12,8 +12,8 @@ use super::camera_path::{
 use super::{RenderOptions, RenderRequest};
 use crate::raster::{
     FillSettings, Quality, Shading, DEPTH_BAND_RANGE, EDL_RADIUS_RANGE, EDL_STRENGTH_RANGE,
-    MAX_FILL_KERNEL, MAX_IMAGE_SIDE, MAX_PINTUS_LEVELS, MAX_POINT_SIZE, MAX_SUPERSAMPLE,
-    MIN_FILL_KERNEL, PINTUS_EXPONENT_RANGE,
+    MAX_FILL_KERNEL, MAX_PINTUS_LEVELS, MAX_POINT_SIZE, MAX_SUPERSAMPLE, MIN_FILL_KERNEL,
+    PINTUS_EXPONENT_RANGE,
 };
 
 /// A field of a render request is invalid.
@@ -37,16 +37,11 @@ type Checked = Result<(), RequestError>;
 impl RenderRequest {
     /// Checks every field; the first invalid one is the error.
     pub fn validate(&self) -> Checked {
+        // The largest size depends on the adapter (and on a server's limits): the renderer
+        // and the daemon check it.
         for (field, side) in [("width", self.width), ("height", self.height)] {
-            if !(1..=MAX_IMAGE_SIDE).contains(&side) {
-                return Err(invalid(
-                    field,
-                    format!(
-                        "image size {}x{} is invalid: each side must be 1 to {MAX_IMAGE_SIDE} \
-                         pixels",
-                        self.width, self.height
-                    ),
-                ));
+            if side == 0 {
+                return Err(invalid(field, "must be at least 1 pixel"));
             }
         }
         self.camera_path.validate()?;
