@@ -42,9 +42,6 @@ struct Batch {
     count: u32,
 }
 
-// Points per sub-batch (`SUB_BATCH_POINTS` in `raster/points.rs`).
-const SUB_BATCH_POINTS: u32 = 256u;
-
 // The batch a frame table's entry lists (`ListedEntry` in `raster/culling.rs`): `batch`, the
 // chunk's table entry at `entry >> 8`, narrowed to the run of its sub-batches from
 // `(entry >> 4) & 15` for `(entry & 15) + 1` of them (the whole batch: 0 and 15).
@@ -57,26 +54,32 @@ fn listed_batch(entry: u32, batch: Batch) -> Batch {
 }
 
 // Points are stored quantised (Kanzok et al.), 11 bytes each, in two arrays per chunk:
-// - positions: array<vec2<u32>>, 21/21/22 bits of x/y/z as a fraction of the batch's box
+// - positions: array<vec2<u32>>, `POSITION_BITS` of x/y/z as a fraction of the batch's box
 //   (bit layout in `quantised_coordinates`);
 // - colours: array<u32> holding 3 RGB bytes per point back to back, plus one spare word.
 // The colour lives apart so that a pass reads it only for points that pass the depth test.
 
-// One quantisation step per axis: extent / (2^bits - 1). The reciprocals are exact f32
-// roundings, the same as the host's (`points::quantisation_step`).
-const INV_QUANT_MAX: vec3<f32> = vec3<f32>(1.0 / 2097151.0, 1.0 / 2097151.0, 1.0 / 4194303.0);
-
+// One quantisation step per axis: extent / (2^bits - 1), with the host's reciprocals
+// (`INV_QUANT_MAX` in the layout prelude, also used by `points::quantisation_step`).
 fn quantisation_step(batch: Batch) -> vec3<f32> {
     return (batch.max - batch.min) * INV_QUANT_MAX;
 }
+
+// The bit layout of a quantised position (`POSITION_BITS`): x in the first word's low bits,
+// y's low `Y_LOW_BITS` in the rest of the first word and its high `Y_HIGH_BITS` at the bottom
+// of the second, z above them.
+const X_MASK: u32 = (1u << POSITION_BITS.x) - 1u;
+const Y_LOW_BITS: u32 = 32u - POSITION_BITS.x;
+const Y_HIGH_BITS: u32 = POSITION_BITS.y - Y_LOW_BITS;
+const Y_HIGH_MASK: u32 = (1u << Y_HIGH_BITS) - 1u;
 
 // The quantised coordinates of a point, as floats: its position is `origin + q * step` in the
 // batch with box minimum `origin` and steps `step`.
 fn quantised_coordinates(word: vec2<u32>) -> vec3<f32> {
     return vec3<f32>(vec3<u32>(
-        word.x & 0x1fffffu,
-        (word.x >> 21u) | ((word.y & 0x3ffu) << 11u),
-        word.y >> 10u,
+        word.x & X_MASK,
+        (word.x >> POSITION_BITS.x) | ((word.y & Y_HIGH_MASK) << Y_LOW_BITS),
+        word.y >> Y_HIGH_BITS,
     ));
 }
 
@@ -195,10 +198,6 @@ fn box_corner(batch: Batch, corner: u32) -> vec4<f32> {
         1.0,
     );
 }
-
-// Side in pixels of the occlusion tiles (occlusion.wgsl, occlusion_tiles.wgsl,
-// `raster/occlusion.rs`).
-const OCCLUSION_TILE: u32 = 16u;
 
 // True when no part of the batch's box can be in view: all eight corners lie outside the
 // same frustum plane (clip-space side planes widened by the point size, and near/far).

@@ -26,7 +26,7 @@ fn depth_at(x: i32, y: i32) -> f32 {
     return depth[u32(y) * frame.width + u32(x)];
 }
 
-@compute @workgroup_size(16, 16)
+@compute @workgroup_size(SCREEN_TILE, SCREEN_TILE)
 fn shade(@builtin(global_invocation_id) id: vec3<u32>) {
     if id.x >= frame.width || id.y >= frame.height {
         return;

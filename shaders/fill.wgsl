@@ -19,8 +19,6 @@ struct FillArgs {
 }
 @group(0) @binding(6) var<storage, read> fill_args: FillArgs;
 
-const LIST_WORKGROUP: u32 = 64u;
-
 // The listed pixel of this invocation, or false past the end of the list.
 struct ListedPixel {
     x: u32,

@@ -9,16 +9,8 @@
 // Both hold the same words, so the resolve reads either. Sums of 8-bit channels overflow a
 // u32 only beyond 16 million points in one pixel.
 
-override WORKGROUP_SIZE: u32 = 128u;
-
-@group(0) @binding(0) var<uniform> frame: FrameUniforms;
-@group(0) @binding(1) var<storage, read> positions: array<vec2<u32>>;
-// This frame's entries for the chunk (`listed_batch`), and the chunk's batch table.
-@group(0) @binding(2) var<storage, read> listed: array<u32>;
-@group(0) @binding(8) var<storage, read> batches: array<Batch>;
 // The point framebuffer after the depth pass: y is the nearest depth's bits.
 @group(0) @binding(3) var<storage, read> framebuffer: array<vec2<u32>>;
-@group(0) @binding(5) var<storage, read> colors: array<u32>;
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn accumulate(
@@ -26,18 +18,9 @@ fn accumulate(
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lane: u32,
 ) {
-    let b = batch_index(workgroup, groups);
-    if b >= arrayLength(&listed) {
-        return;
-    }
-    let entry = listed[b];
-    let batch = listed_batch(entry, batches[entry >> 8u]);
     let band = 1.0 + frame.depth_band;
-    if batch_outside_view(frame, batch) {
-        return;
-    }
-    if batch_occluded(frame, batch, band) {
-        count_skipped(1u, lane);
+    let batch = workgroup_batch(workgroup, groups, lane, band, 1u);
+    if batch.count == 0u {
         return;
     }
     let projection = batch_projection(frame, batch);
@@ -55,8 +38,7 @@ fn accumulate(
             if splat.depth > nearest * band {
                 continue;
             }
-            let w = color_word_index(i);
-            add_to_sums(pixel, unpack_color(colors[w], colors[w + 1u], i));
+            add_to_sums(pixel, color_of(i));
         }
     }
 }

@@ -1,8 +1,13 @@
 //! The WGSL sources of the renderer, embedded at build time.
 //!
-//! WGSL has no `#include`, so every point pass is composed as `common.wgsl` followed by the
-//! pass's own file. The renderer only ever asks for a [`Shader`]; the tests below validate
-//! every composed module with naga, so a broken shader fails CI even when no test renders it.
+//! WGSL has no `#include`, so every module is composed as the [`layout`] prelude (the
+//! constants host and shaders share), `common.wgsl`, the files it shares with passes of its
+//! kind ([`Shader::source`]), then its own file. The renderer only ever asks for a
+//! [`Shader`]; the tests below validate every composed module with naga, the ones that must
+//! run without 64-bit integers also with capabilities that lack them, so a broken shader fails
+//! CI even when no test renders it.
+
+pub mod layout;
 
 /// One shader module of the renderer.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -26,7 +31,8 @@ pub enum Shader {
     /// Pintus et al.'s multi-level shape-depicting shading: entry points `level`, `apply`.
     PintusShading,
     /// The benchmark's fixed-function baseline, a `PointList` render pipeline: entry points
-    /// `vertex_main`, `fragment_main`.
+    /// `vertex_main`, `fragment_main`. Only with the `pointlist-baseline` feature.
+    #[cfg(feature = "pointlist-baseline")]
     PointListBaseline,
     /// The occlusion tiles between point dispatches: entry points `clear_tiles`,
     /// `build_tiles`.
@@ -36,6 +42,8 @@ pub enum Shader {
 const COMMON: &str = include_str!("common.wgsl");
 /// The occlusion test of whole batches, after `common.wgsl` in the point passes.
 const OCCLUSION: &str = include_str!("occlusion.wgsl");
+/// The point passes' bindings and batch, after the occlusion test.
+const POINT_PASS: &str = include_str!("point_pass.wgsl");
 /// The high-quality accumulation, after its per-pixel sums (one of the two below).
 const HQ_ACCUMULATE: &str = include_str!("hq_accumulate.wgsl");
 const HQ_SUMS_ATOMIC32: &str = include_str!("hq_sums_atomic32.wgsl");
@@ -44,7 +52,7 @@ const HQ_SUMS_ATOMIC64: &str = include_str!("hq_sums_atomic64.wgsl");
 const SCREEN_COMMON: &str = include_str!("screen_common.wgsl");
 
 impl Shader {
-    pub const ALL: [Shader; 11] = [
+    pub const ALL: &'static [Shader] = &[
         Shader::RasterAtomic64,
         Shader::RasterAtomic32,
         Shader::HqAccumulate,
@@ -54,6 +62,7 @@ impl Shader {
         Shader::Visibility,
         Shader::Fill,
         Shader::PintusShading,
+        #[cfg(feature = "pointlist-baseline")]
         Shader::PointListBaseline,
         Shader::OcclusionTiles,
     ];
@@ -70,6 +79,7 @@ impl Shader {
             Shader::Visibility => "visibility",
             Shader::Fill => "fill",
             Shader::PintusShading => "pintus",
+            #[cfg(feature = "pointlist-baseline")]
             Shader::PointListBaseline => "pointlist_baseline",
             Shader::OcclusionTiles => "occlusion_tiles",
         }
@@ -86,40 +96,142 @@ impl Shader {
             Shader::Visibility => include_str!("visibility.wgsl"),
             Shader::Fill => include_str!("fill.wgsl"),
             Shader::PintusShading => include_str!("pintus.wgsl"),
+            #[cfg(feature = "pointlist-baseline")]
             Shader::PointListBaseline => include_str!("pointlist_baseline.wgsl"),
             Shader::OcclusionTiles => include_str!("occlusion_tiles.wgsl"),
         };
-        match self {
+        let prelude = layout::wgsl_prelude();
+        let composed = match self {
             Shader::Visibility | Shader::Fill | Shader::PintusShading => {
                 format!("{COMMON}\n{SCREEN_COMMON}\n{own}")
             }
             Shader::RasterAtomic64 | Shader::RasterAtomic32 => {
-                format!("{COMMON}\n{OCCLUSION}\n{own}")
+                format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{own}")
             }
-            Shader::HqAccumulate => format!("{COMMON}\n{OCCLUSION}\n{HQ_SUMS_ATOMIC32}\n{own}"),
-            Shader::HqAccumulate64 => format!("{COMMON}\n{OCCLUSION}\n{HQ_SUMS_ATOMIC64}\n{own}"),
+            Shader::HqAccumulate => {
+                format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{HQ_SUMS_ATOMIC32}\n{own}")
+            }
+            Shader::HqAccumulate64 => {
+                format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{HQ_SUMS_ATOMIC64}\n{own}")
+            }
             _ => format!("{COMMON}\n{own}"),
-        }
+        };
+        format!("{prelude}\n{composed}")
     }
 }
 
 #[cfg(test)]
 mod tests {
-    use super::Shader;
+    use super::{layout, Shader};
+    use naga::valid::{Capabilities, ValidationFlags, Validator};
+
+    /// Capabilities of a device without 64-bit integers: everything else naga knows.
+    fn without_int64() -> Capabilities {
+        Capabilities::all()
+            - Capabilities::SHADER_INT64
+            - Capabilities::SHADER_INT64_ATOMIC_MIN_MAX
+            - Capabilities::SHADER_INT64_ATOMIC_ALL_OPS
+            - Capabilities::TEXTURE_INT64_ATOMIC
+    }
+
+    /// The shaders that need 64-bit integer atomics; every other one must run without them.
+    fn needs_int64(shader: Shader) -> bool {
+        matches!(shader, Shader::RasterAtomic64 | Shader::HqAccumulate64)
+    }
+
+    fn parse(shader: Shader) -> naga::Module {
+        naga::front::wgsl::parse_str(&shader.source()).unwrap_or_else(|e| {
+            panic!("{}: {}", shader.label(), e.emit_to_string(&shader.source()))
+        })
+    }
+
+    fn validate(shader: Shader, capabilities: Capabilities) -> Result<(), String> {
+        Validator::new(ValidationFlags::all(), capabilities)
+            .validate(&parse(shader))
+            .map(drop)
+            .map_err(|e| e.emit_to_string(&shader.source()))
+    }
 
     #[test]
     fn every_shader_parses_and_validates() {
-        for shader in Shader::ALL {
-            let module = naga::front::wgsl::parse_str(&shader.source()).unwrap_or_else(|e| {
-                panic!("{}: {}", shader.label(), e.emit_to_string(&shader.source()))
-            });
-            let mut validator = naga::valid::Validator::new(
-                naga::valid::ValidationFlags::all(),
-                naga::valid::Capabilities::all(),
-            );
-            if let Err(e) = validator.validate(&module) {
-                panic!("{}: {}", shader.label(), e.emit_to_string(&shader.source()));
+        for &shader in Shader::ALL {
+            if let Err(e) = validate(shader, Capabilities::all()) {
+                panic!("{}: {e}", shader.label());
             }
         }
+    }
+
+    #[test]
+    fn the_32_bit_shaders_validate_without_64_bit_integers() {
+        for shader in Shader::ALL.iter().copied().filter(|&s| !needs_int64(s)) {
+            if let Err(e) = validate(shader, without_int64()) {
+                panic!("{} uses 64-bit integers: {e}", shader.label());
+            }
+        }
+    }
+
+    /// The check above would catch a 64-bit type: the 64-bit shaders fail it.
+    #[test]
+    fn the_64_bit_shaders_need_64_bit_integers() {
+        for shader in Shader::ALL.iter().copied().filter(|&s| needs_int64(s)) {
+            assert!(
+                validate(shader, without_int64()).is_err(),
+                "{} validates without 64-bit integers",
+                shader.label()
+            );
+        }
+    }
+
+    /// Only the prelude declares the shared constants: a WGSL file that stated one of them
+    /// again (as a `const` or an `override`) would let it drift from the host's.
+    #[test]
+    fn no_wgsl_file_redeclares_a_shared_constant() {
+        for shader in Shader::ALL {
+            let source = shader.source();
+            for name in layout::names() {
+                for keyword in ["const", "override", "let", "var"] {
+                    let declared = source
+                        .match_indices(&format!("{keyword} {name}"))
+                        .filter(|&(at, found)| {
+                            let after = source[at + found.len()..].chars().next();
+                            !after.is_some_and(|c| c.is_alphanumeric() || c == '_')
+                        })
+                        .count();
+                    let expected = usize::from(keyword == "const");
+                    assert_eq!(
+                        declared,
+                        expected,
+                        "{}: `{keyword} {name}` {declared} times; only the layout prelude may \
+                         declare it",
+                        shader.label()
+                    );
+                }
+            }
+        }
+    }
+
+    /// The shaders' quantisation steps are the host's to the bit: the prelude's
+    /// `INV_QUANT_MAX` parses back to [`layout::INV_QUANT_MAX`].
+    #[test]
+    fn the_shaders_inverse_quantisation_maxima_are_the_hosts() {
+        let module = parse(Shader::RasterAtomic32);
+        let (_, constant) = module
+            .constants
+            .iter()
+            .find(|(_, c)| c.name.as_deref() == Some("INV_QUANT_MAX"))
+            .expect("INV_QUANT_MAX is declared");
+        let naga::Expression::Compose { components, .. } =
+            &module.global_expressions[constant.init]
+        else {
+            panic!("INV_QUANT_MAX is not a vector constructor");
+        };
+        let values: Vec<u32> = components
+            .iter()
+            .map(|&c| match module.global_expressions[c] {
+                naga::Expression::Literal(naga::Literal::F32(v)) => v.to_bits(),
+                ref other => panic!("INV_QUANT_MAX holds {other:?}"),
+            })
+            .collect();
+        assert_eq!(values, layout::INV_QUANT_MAX.map(f32::to_bits));
     }
 }

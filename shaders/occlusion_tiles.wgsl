@@ -2,7 +2,6 @@
 // (and zero the counts of skipped batches) before a frame's first point pass, and build them
 // from the framebuffer before a dispatch that tests against them. Composed after common.wgsl.
 
-const TILE: u32 = OCCLUSION_TILE;
 const UNKNOWN: u32 = 0xffffffffu;
 
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
@@ -12,7 +11,7 @@ const UNKNOWN: u32 = 0xffffffffu;
 // The counts of batches skipped (occlusion.wgsl).
 @group(0) @binding(3) var<storage, read_write> skipped: array<u32>;
 
-@compute @workgroup_size(64)
+@compute @workgroup_size(OCCLUSION_CLEAR_WORKGROUP)
 fn clear_tiles(@builtin(global_invocation_id) id: vec3<u32>) {
     if id.x < arrayLength(&tiles) {
         tiles[id.x] = UNKNOWN;
@@ -26,19 +25,19 @@ fn clear_tiles(@builtin(global_invocation_id) id: vec3<u32>) {
 // the largest depth bits of the tile's pixels. Positive depths order like their bits, and an
 // empty pixel's bits are the largest of all. Tiles outside the footprint stay unknown: no
 // listed batch reaches them.
-@compute @workgroup_size(8, 8)
+@compute @workgroup_size(OCCLUSION_BUILD_WORKGROUP_SIDE, OCCLUSION_BUILD_WORKGROUP_SIDE)
 fn build_tiles(@builtin(global_invocation_id) id: vec3<u32>) {
-    let across = (frame.width + TILE - 1u) / TILE;
-    let down = (frame.height + TILE - 1u) / TILE;
+    let across = (frame.width + OCCLUSION_TILE - 1u) / OCCLUSION_TILE;
+    let down = (frame.height + OCCLUSION_TILE - 1u) / OCCLUSION_TILE;
     let tx = frame.occlusion_tile_x0 + id.x;
     let ty = frame.occlusion_tile_y0 + id.y;
     if tx >= across || ty >= down {
         return;
     }
-    let x0 = tx * TILE;
-    let y0 = ty * TILE;
-    let x1 = min(x0 + TILE, frame.width);
-    let y1 = min(y0 + TILE, frame.height);
+    let x0 = tx * OCCLUSION_TILE;
+    let y0 = ty * OCCLUSION_TILE;
+    let x1 = min(x0 + OCCLUSION_TILE, frame.width);
+    let y1 = min(y0 + OCCLUSION_TILE, frame.height);
     var deepest = 0u;
     for (var y = y0; y < y1; y++) {
         for (var x = x0; x < x1; x++) {

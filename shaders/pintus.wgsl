@@ -21,7 +21,7 @@ fn pixel_footprint(d: f32) -> f32 {
     return select(height, height * d, params.perspective == 1u);
 }
 
-@compute @workgroup_size(16, 16)
+@compute @workgroup_size(SCREEN_TILE, SCREEN_TILE)
 fn level(@builtin(global_invocation_id) id: vec3<u32>) {
     if id.x >= params.width || id.y >= params.height {
         return;
@@ -69,7 +69,7 @@ fn level(@builtin(global_invocation_id) id: vec3<u32>) {
 @group(0) @binding(4) var<storage, read_write> color: array<u32>;
 
 // Multiplies the colour of every surface pixel by its normalised shading term.
-@compute @workgroup_size(16, 16)
+@compute @workgroup_size(SCREEN_TILE, SCREEN_TILE)
 fn apply(@builtin(global_invocation_id) id: vec3<u32>) {
     if id.x >= params.width || id.y >= params.height {
         return;

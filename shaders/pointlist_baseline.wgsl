@@ -6,9 +6,6 @@
 // clipped by the hardware against clip-space z in [0, 1] (the DirectX-style projection of
 // `camera.rs`), which matches `project_quantised`'s depth test up to rounding.
 
-// Points per batch (`points::BATCH_POINTS`): the batch of point i is i / BATCH_POINTS.
-override BATCH_POINTS: u32 = 4096u;
-
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
 @group(0) @binding(1) var<storage, read> positions: array<vec2<u32>>;
 @group(0) @binding(2) var<storage, read> batches: array<Batch>;

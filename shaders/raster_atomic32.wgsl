@@ -7,20 +7,7 @@
 // colour, which picks the same winner as the 64-bit (depth << 32 | colour) minimum. Both
 // passes compute depths with the same code from the same inputs, so equality is exact.
 
-override WORKGROUP_SIZE: u32 = 128u;
-
-@group(0) @binding(0) var<uniform> frame: FrameUniforms;
-@group(0) @binding(1) var<storage, read> positions: array<vec2<u32>>;
-// This frame's entries for the chunk (`listed_batch`), and the chunk's batch table.
-@group(0) @binding(2) var<storage, read> listed: array<u32>;
-@group(0) @binding(8) var<storage, read> batches: array<Batch>;
 @group(0) @binding(3) var<storage, read_write> framebuffer: array<atomic<u32>>;
-@group(0) @binding(5) var<storage, read> colors: array<u32>;
-
-fn color_of(i: u32) -> u32 {
-    let w = color_word_index(i);
-    return unpack_color(colors[w], colors[w + 1u], i);
-}
 
 fn depth_word(pixel: i32) -> i32 {
     return 2 * pixel + 1;
@@ -32,17 +19,8 @@ fn color_word(pixel: i32) -> i32 {
 
 // The two passes walk the same points in the same way; `color_pass` picks what they write.
 fn rasterize_batch(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32, color_pass: bool) {
-    let b = batch_index(workgroup, groups);
-    if b >= arrayLength(&listed) {
-        return;
-    }
-    let entry = listed[b];
-    let batch = listed_batch(entry, batches[entry >> 8u]);
-    if batch_outside_view(frame, batch) {
-        return;
-    }
-    if batch_occluded(frame, batch, 1.0) {
-        count_skipped(select(0u, 1u, color_pass), lane);
+    let batch = workgroup_batch(workgroup, groups, lane, 1.0, select(0u, 1u, color_pass));
+    if batch.count == 0u {
         return;
     }
     let projection = batch_projection(frame, batch);

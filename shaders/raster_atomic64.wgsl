@@ -7,23 +7,10 @@
 //
 // One workgroup per batch. Needs SHADER_INT64 and SHADER_INT64_ATOMIC_MIN_MAX.
 
-override WORKGROUP_SIZE: u32 = 128u;
-
-@group(0) @binding(0) var<uniform> frame: FrameUniforms;
-@group(0) @binding(1) var<storage, read> positions: array<vec2<u32>>;
-// This frame's entries for the chunk (`listed_batch`), and the chunk's batch table.
-@group(0) @binding(2) var<storage, read> listed: array<u32>;
-@group(0) @binding(8) var<storage, read> batches: array<Batch>;
 @group(0) @binding(3) var<storage, read_write> framebuffer: array<atomic<u64>>;
 // The same buffer as `framebuffer`, read without atomics for the early depth test: a stale
 // read only costs an unneeded atomicMin, never a wrong pixel. y is the depth word.
 @group(0) @binding(4) var<storage, read_write> framebuffer_words: array<vec2<u32>>;
-@group(0) @binding(5) var<storage, read> colors: array<u32>;
-
-fn color_of(i: u32) -> u32 {
-    let w = color_word_index(i);
-    return unpack_color(colors[w], colors[w + 1u], i);
-}
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn rasterize(
@@ -31,17 +18,8 @@ fn rasterize(
     @builtin(num_workgroups) groups: vec3<u32>,
     @builtin(local_invocation_index) lane: u32,
 ) {
-    let b = batch_index(workgroup, groups);
-    if b >= arrayLength(&listed) {
-        return;
-    }
-    let entry = listed[b];
-    let batch = listed_batch(entry, batches[entry >> 8u]);
-    if batch_outside_view(frame, batch) {
-        return;
-    }
-    if batch_occluded(frame, batch, 1.0) {
-        count_skipped(0u, lane);
+    let batch = workgroup_batch(workgroup, groups, lane, 1.0, 0u);
+    if batch.count == 0u {
         return;
     }
     let projection = batch_projection(frame, batch);

@@ -16,11 +16,9 @@
 // covered and empty pixels mix at random (sparse points), while per run it is predictable on
 // both solid and sparse surfaces and still skips empty background. With runs, the basic resolve
 // took 0.5-0.6 of the per-pixel version's time on the 10M cube and the real scans at 1080p
-// (BENCHMARKS.md, session 10). The run lengths are the host's `RESOLVE_RUN`/`AVERAGE_RUN`
-// (`raster/resolve_pass.rs`); the high-quality resolve holds four words a pixel, and its
-// shorter runs were faster.
-const RESOLVE_RUN: u32 = 8u;
-const AVERAGE_RUN: u32 = 4u;
+// (docs/perf/resolve-runs.md). The run lengths, `RESOLVE_RUN` and `AVERAGE_RUN`, come from the
+// layout prelude; the high-quality resolve holds four words a pixel, and its shorter runs were
+// faster.
 
 const EMPTY: u32 = 0xffffffffu;
 // Depth where no point landed: the bits of +infinity.
@@ -38,10 +36,10 @@ override WRITE_DEPTH: bool = true;
 @group(0) @binding(4) var<storage, read_write> accumulator: array<vec4<u32>>;
 
 fn pixel_of(id: vec3<u32>, groups: vec3<u32>) -> u32 {
-    return id.y * groups.x * 256u + id.x;
+    return id.y * groups.x * RESOLVE_WORKGROUP + id.x;
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(RESOLVE_WORKGROUP)
 fn clear(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let pixel = pixel_of(id, groups);
     if pixel < arrayLength(&framebuffer) {
@@ -49,7 +47,7 @@ fn clear(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) 
     }
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(RESOLVE_WORKGROUP)
 fn resolve(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let first = pixel_of(id, groups) * RESOLVE_RUN;
     if first >= frame.resolve_pixels {
@@ -113,7 +111,7 @@ fn write_average(pixel: u32, sums: vec4<u32>, depth_bits: u32) {
 
 // High-quality mode with 32-bit atomics: the rounded average of the colours accumulated per
 // pixel.
-@compute @workgroup_size(256)
+@compute @workgroup_size(RESOLVE_WORKGROUP)
 fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let first = pixel_of(id, groups) * AVERAGE_RUN;
     if first >= frame.resolve_pixels {
@@ -154,7 +152,7 @@ fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_wo
 // The flag of a packed word that says the wide sums hold points too (bit 63).
 const WIDE_SUMS_USED: u32 = 0x80000000u;
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(RESOLVE_WORKGROUP)
 fn resolve_average_packed(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let first = pixel_of(id, groups) * AVERAGE_RUN;
     if first >= frame.resolve_pixels {
@@ -168,7 +166,8 @@ fn resolve_average_packed(@builtin(global_invocation_id) id: vec3<u32>, @builtin
         if k < pixels {
             let packed = packed_sums[first + k];
             sums[k] = vec4<u32>(packed.x & 0xffffu, packed.x >> 16u, packed.y & 0xffffu, (packed.y >> 16u) & 0x7fffu);
-            // Rare: only pixels with more than 256 points in the depth band use them.
+            // Rare: only pixels with more than `PACKED_POINTS` points in the depth band use
+            // them (hq_sums_atomic64.wgsl).
             if (packed.y & WIDE_SUMS_USED) != 0u {
                 sums[k] += accumulator[first + k];
                 accumulator[first + k] = vec4<u32>(0u);

@@ -30,9 +30,6 @@ struct FillArgs {
 }
 @group(0) @binding(6) var<storage, read_write> fill_args: FillArgs;
 
-// Workgroup size of the filling's passes over the list (`LIST_WORKGROUP` in fill.wgsl).
-const LIST_WORKGROUP: u32 = 64u;
-
 // Empties the list: before `classify`.
 @compute @workgroup_size(1)
 fn reset_list() {
@@ -70,7 +67,7 @@ fn sector_of(dx: i32, dy: i32) -> u32 {
     return select(select(diagonal, vertical, ax <= tan_eighth * ay), horizontal, ay <= tan_eighth * ax);
 }
 
-@compute @workgroup_size(16, 16)
+@compute @workgroup_size(SCREEN_TILE, SCREEN_TILE)
 fn classify(@builtin(global_invocation_id) invocation: vec3<u32>) {
     // Dispatched over the visibility area only.
     let id = invocation.xy + params.visibility_area.xy;

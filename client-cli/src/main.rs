@@ -2,7 +2,6 @@
 
 mod admin;
 mod bench;
-mod bench_plot;
 mod demo;
 mod parse;
 mod remote;

@@ -8,6 +8,7 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_render::color::point_colors;
+use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::load_point_cloud;
 use pointfarm_render::raster::{FrameSettings, Renderer, Stage, StageTimings};
@@ -56,8 +57,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         }
         let base = settings(0);
         let mut frame = renderer.render(&resident, &base)?;
-        frame
-            .save_png(&args.out)
+        encode::save_png(&mut frame, &args.out)
             .with_context(|| format!("writing {}", args.out.display()))?;
         if request.render.depth {
             save_depth(&frame, &args.out.with_extension("depth.png"), &base)?;
@@ -77,8 +77,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         let frame_settings = settings(i);
         let mut frame = renderer.render(&resident, &frame_settings)?;
         let path = args.out.join(format!("frame_{i:05}.png"));
-        frame
-            .save_png(&path)
+        encode::save_png(&mut frame, &path)
             .with_context(|| format!("writing {}", path.display()))?;
         if request.render.depth {
             let depth = args.out.join(format!("depth_{i:05}.png"));
@@ -106,8 +105,7 @@ fn save_depth(
     path: &Path,
     settings: &FrameSettings,
 ) -> Result<()> {
-    frame
-        .save_depth_png16(path, settings.camera.near, settings.camera.far)
+    encode::save_depth_png16(frame, path, settings.camera.near, settings.camera.far)
         .with_context(|| format!("writing {}", path.display()))
 }
 

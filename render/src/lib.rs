@@ -4,11 +4,11 @@
 //! This crate knows nothing of gRPC, the daemon or the CLI: it takes files, clouds, cameras
 //! and render settings, and returns images with their stage timings.
 
-pub mod bench;
 pub mod cache;
 pub mod camera;
 pub mod cloud;
 pub mod color;
+pub mod encode;
 pub mod gpu;
 pub mod ingest;
 pub mod raster;

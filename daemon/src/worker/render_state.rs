@@ -10,8 +10,9 @@ use std::time::Instant;
 use pointfarm_render::cache::{CacheOutcome, DatasetCache};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::{point_colors, ColorMode};
+use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
-use pointfarm_render::raster::{Clock, GpuPointCloud, Renderer, Stage};
+use pointfarm_render::raster::{Clock, GpuPointCloud, Renderer};
 
 use crate::lease::{FrameOutcome, FrameTask};
 use crate::model::StageTiming;
@@ -78,10 +79,11 @@ impl WorkerRenderState {
         let settings = task
             .request
             .frame_settings(task.lease.index, &current.bounds);
-        let frame = self
+        let mut frame = self
             .renderer
             .render(&current.cloud, &settings)
             .map_err(|e| e.to_string())?;
+        let png = encode::png_bytes(&mut frame).map_err(|e| e.to_string())?;
 
         let mut timings: Vec<StageTiming> = Vec::new();
         let load = current.unreported_load.take();
@@ -97,17 +99,6 @@ impl WorkerRenderState {
             ms: t.ms,
             gpu_clock: t.clock == Clock::Gpu,
         }));
-        let started = Instant::now();
-        let mut png = Vec::new();
-        frame
-            .image
-            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
-            .map_err(|e| format!("encoding the PNG: {e}"))?;
-        timings.push(StageTiming {
-            stage: Stage::Encode.name().to_string(),
-            ms: started.elapsed().as_secs_f64() * 1e3,
-            gpu_clock: false,
-        });
         tracing::info!(
             total_ms = timings.iter().map(|t| t.ms).sum::<f64>(),
             "frame rendered"

@@ -13,7 +13,7 @@ use pointfarm_shaders::Shader;
 
 use super::culling::FrameBatches;
 use super::occlusion::{OcclusionPass, MIN_POINTS_PER_PIXEL_FOR_FINAL_TILES};
-use super::pipeline::{bind_resources, shader_module};
+use super::pipeline::{bind_resources, dispatch_grid, shader_module};
 use super::point_pipelines::PointPipelines;
 use super::points::{GpuPointCloud, PointChunk};
 use super::targets::FrameTargets;
@@ -179,7 +179,7 @@ fn dispatch_part(
         (&frame.cloud.chunks[chunk], table),
     );
     pass.set_bind_group(0, &bind_group, &[]);
-    let (x, y) = super::dispatch_grid(batches);
+    let (x, y) = dispatch_grid(batches);
     pass.dispatch_workgroups(x, y, 1);
 }
 

@@ -19,7 +19,7 @@ use std::sync::OnceLock;
 use glam::{DVec3, Vec3};
 
 use super::gpu_data::GpuBatch;
-use super::points::morton3;
+use super::morton::morton3;
 
 /// Cells per axis of the curve the batches are ordered along.
 const CELLS: u32 = 1 << 10;

@@ -2,11 +2,8 @@
 
 use pointfarm_shaders::Shader;
 
-use super::pipeline::{bind_buffers, compute_pipeline, shader_module};
+use super::pipeline::{bind_buffers, compute_pipeline, dispatch_tiles, shader_module};
 use super::targets::FrameTargets;
-
-/// Must match `@workgroup_size` in edl.wgsl.
-const TILE: u32 = 16;
 
 pub(crate) struct EdlPass {
     shade: wgpu::ComputePipeline,
@@ -34,10 +31,6 @@ impl EdlPass {
         );
         pass.set_pipeline(&self.shade);
         pass.set_bind_group(0, &bind_group, &[]);
-        pass.dispatch_workgroups(
-            targets.width.div_ceil(TILE),
-            targets.height.div_ceil(TILE),
-            1,
-        );
+        dispatch_tiles(pass, targets.width, targets.height);
     }
 }

@@ -53,6 +53,7 @@ pub enum RenderError {
     Supersample(u32),
     #[error("point size {0} is invalid: it must be 1 to {MAX_POINT_SIZE} pixels")]
     PointSize(u32),
+    #[cfg(feature = "pointlist-baseline")]
     #[error("point size {0} is not supported by the PointList baseline: it draws 1-pixel points")]
     PointListPointSize(u32),
     #[error(transparent)]

@@ -7,7 +7,7 @@
 
 use pointfarm_shaders::Shader;
 
-use super::pipeline::{bind_resources, compute_pipeline, shader_module};
+use super::pipeline::{bind_resources, entry_pipelines};
 use super::screen_params::ScreenUniforms;
 use super::targets::FrameTargets;
 
@@ -18,12 +18,8 @@ pub(crate) struct FillPass {
 
 impl FillPass {
     pub fn new(device: &wgpu::Device) -> Self {
-        let module = shader_module(device, Shader::Fill);
-        let pipeline = |entry_point: &str| compute_pipeline(device, &module, entry_point, &[]);
-        Self {
-            step: pipeline("fill_step"),
-            finish: pipeline("finish"),
-        }
+        let [step, finish] = entry_pipelines(device, Shader::Fill, ["fill_step", "finish"]);
+        Self { step, finish }
     }
 
     /// Expects the visibility pass's output in the fill buffers; leaves the filled images in

@@ -27,18 +27,14 @@ pub struct FrameUniforms {
     pub _pad: u32,
 }
 
-/// Bits of the quantised position per axis (x, y, z), relative to the batch's bounding box:
-/// 64 bits in all, `QuantisedPosition` in common.wgsl.
-pub const POSITION_BITS: [u32; 3] = [21, 21, 22];
-
-/// A point's position as two u32 words: x in bits 0..21 of the first, y in bits 21..32 of the
-/// first and 0..10 of the second, z in bits 10..32 of the second. Each is the position's
-/// fraction of its batch's box in steps of `extent / (2^bits - 1)` (see `points::quantise`).
+/// A point's position as two u32 words, laid out as `pointfarm_shaders::layout::POSITION_BITS`
+/// says: each axis is the position's fraction of its batch's box in steps of
+/// `extent / (2^bits - 1)` (see `points::quantise`).
 pub type QuantisedPosition = [u32; 2];
 
 /// Bytes of one point's colour on the GPU: RGB, 8 bits each, packed back to back (points are
 /// opaque; the shaders put alpha 255 back).
-pub const COLOUR_BYTES: u64 = 3;
+pub const COLOR_BYTES: u64 = 3;
 
 /// `Batch` in common.wgsl: a run of points in one chunk, with their bounding box.
 #[repr(C)]

@@ -5,7 +5,7 @@
 use pointfarm_shaders::Shader;
 
 use super::basic_pass::PointFrame;
-use super::pipeline::{bind_resources, shader_module};
+use super::pipeline::{bind_resources, dispatch_grid, shader_module};
 use super::point_pipelines::PointPipelines;
 
 pub(crate) struct HqAccumulatePass {
@@ -78,7 +78,7 @@ impl HqAccumulatePass {
             }
             let bind_group = bind_resources(device, &pipeline, "accumulate", resources);
             pass.set_bind_group(0, &bind_group, &[]);
-            let (x, y) = super::dispatch_grid(entries);
+            let (x, y) = dispatch_grid(entries);
             pass.dispatch_workgroups(x, y, 1);
         }
     }

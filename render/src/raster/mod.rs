@@ -22,6 +22,7 @@ mod fill_pass;
 mod frame;
 mod gpu_data;
 mod hq_pass;
+mod morton;
 mod occlusion;
 mod phases;
 mod pintus_pass;
@@ -29,6 +30,7 @@ mod pipeline;
 mod pixel_rect;
 mod point_pipelines;
 mod point_workgroup;
+#[cfg(feature = "pointlist-baseline")]
 mod pointlist_baseline;
 mod points;
 mod resolve_pass;
@@ -36,6 +38,7 @@ mod screen_params;
 mod settings;
 mod targets;
 mod timing;
+mod uniforms;
 mod visibility_pass;
 
 use std::sync::Arc;
@@ -49,12 +52,12 @@ pub use error::RenderError;
 pub use frame::Frame;
 pub use occlusion::OcclusionSkipped;
 pub use point_workgroup::WORKGROUP_SIZE_ENV;
+#[cfg(feature = "pointlist-baseline")]
 pub use pointlist_baseline::{PointListBaseline, PointListFrame};
 pub use points::{GpuPointCloud, BATCH_POINTS, POINT_BYTES};
 pub use settings::*;
 pub use timing::{Clock, Stage, StageTiming, StageTimings};
 
-use crate::camera::CameraTransform;
 use crate::cloud::PointCloud;
 use crate::gpu::{read_buffer, GpuContext};
 use basic_pass::{BasicPass, PointFrame};
@@ -68,6 +71,7 @@ use resolve_pass::{PixelRun, ResolveFrame, ResolvePass};
 use screen_params::ScreenUniforms;
 use targets::FrameTargets;
 use timing::GpuTimer;
+use uniforms::frame_uniforms;
 use visibility_pass::VisibilityPass;
 
 /// Renders frames of resident point clouds on one GPU.
@@ -526,55 +530,5 @@ impl Renderer {
     }
 }
 
-fn frame_uniforms(
-    t: &CameraTransform,
-    settings: &FrameSettings,
-    resolve_run: PixelRun,
-    footprint: pixel_rect::PixelRect,
-) -> FrameUniforms {
-    FrameUniforms {
-        view_proj: t.view_proj.as_mat4().to_cols_array_2d(),
-        depth_row: t.depth_row.as_vec4().to_array(),
-        depth_band: match settings.quality {
-            Quality::High { depth_band } => depth_band,
-            Quality::Basic => 0.0,
-        },
-        near: t.near as f32,
-        far: t.far as f32,
-        width: settings.width,
-        height: settings.height,
-        background: u32::from_le_bytes(settings.background),
-        edl_strength: match settings.shading {
-            Shading::Edl { strength, .. } => strength,
-            _ => 0.0,
-        },
-        edl_radius: match settings.shading {
-            Shading::Edl { radius, .. } => radius,
-            _ => 0.0,
-        },
-        // Image sides are at most MAX_IMAGE_SIDE: a run's length fits.
-        resolve_pixels: resolve_run.count as u32,
-        occlusion_tile_x0: footprint.x0 / occlusion::TILE,
-        occlusion_tile_y0: footprint.y0 / occlusion::TILE,
-        _pad: 0,
-    }
-}
-
-/// Splits a workgroup count over two dimensions: one dimension holds at most 65535.
-pub(crate) fn dispatch_grid(groups: u32) -> (u32, u32) {
-    const MAX: u32 = 65535;
-    if groups <= MAX {
-        (groups, 1)
-    } else {
-        (MAX, groups.div_ceil(MAX))
-    }
-}
-
-#[cfg(test)]
-mod fill_tests;
-#[cfg(test)]
-mod golden_tests;
-#[cfg(test)]
-mod real_scan_tests;
 #[cfg(test)]
 mod tests;

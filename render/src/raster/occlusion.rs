@@ -11,14 +11,15 @@
 //! a lane is active, so the tiles are built between dispatches from the framebuffer rather
 //! than updated by each point (that cost more than culling saved). Figures: BENCHMARKS.md.
 
+use pointfarm_shaders::layout::{OCCLUSION_BUILD_WORKGROUP_SIDE, OCCLUSION_CLEAR_WORKGROUP};
 use pointfarm_shaders::Shader;
 
 use super::pipeline::{bind_buffers, compute_pipeline, shader_module};
 use super::pixel_rect::PixelRect;
 use crate::gpu::{read_buffer, staging_buffer, GpuContext, GpuError};
 
-/// Side of a tile in pixels (`OCCLUSION_TILE` in common.wgsl).
-pub(crate) const TILE: u32 = 16;
+/// Side of a tile in pixels.
+pub(crate) use pointfarm_shaders::layout::OCCLUSION_TILE as TILE;
 
 /// A deep frame's depth-writing pass is split in phases of equal shares of its listed
 /// batches by depth (`phases.rs`): one phase per this many points per footprint pixel, within
@@ -131,7 +132,7 @@ impl OcclusionPass {
         );
         pass.set_pipeline(&self.clear);
         pass.set_bind_group(0, &bind_group, &[]);
-        pass.dispatch_workgroups(tiles.count.div_ceil(64), 1, 1);
+        pass.dispatch_workgroups(tiles.count.div_ceil(OCCLUSION_CLEAR_WORKGROUP), 1, 1);
     }
 
     /// Builds the tiles of `footprint` (the frame's, whose first tile the uniforms hold) from
@@ -157,7 +158,8 @@ impl OcclusionPass {
         pass.set_bind_group(0, &bind_group, &[]);
         let across = footprint.x1.div_ceil(TILE) - footprint.x0 / TILE;
         let down = footprint.y1.div_ceil(TILE) - footprint.y0 / TILE;
-        pass.dispatch_workgroups(across.div_ceil(8), down.div_ceil(8), 1);
+        let side = OCCLUSION_BUILD_WORKGROUP_SIDE;
+        pass.dispatch_workgroups(across.div_ceil(side), down.div_ceil(side), 1);
     }
 }
 

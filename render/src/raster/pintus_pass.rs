@@ -4,7 +4,7 @@
 
 use pointfarm_shaders::Shader;
 
-use super::pipeline::{bind_resources, compute_pipeline, dispatch_tiles, shader_module};
+use super::pipeline::{bind_resources, dispatch_tiles, entry_pipelines};
 use super::screen_params::ScreenUniforms;
 use super::targets::FrameTargets;
 
@@ -15,12 +15,8 @@ pub(crate) struct PintusPass {
 
 impl PintusPass {
     pub fn new(device: &wgpu::Device) -> Self {
-        let module = shader_module(device, Shader::PintusShading);
-        let pipeline = |entry_point: &str| compute_pipeline(device, &module, entry_point, &[]);
-        Self {
-            level: pipeline("level"),
-            apply: pipeline("apply"),
-        }
+        let [level, apply] = entry_pipelines(device, Shader::PintusShading, ["level", "apply"]);
+        Self { level, apply }
     }
 
     pub fn record(

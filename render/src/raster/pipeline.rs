@@ -1,6 +1,7 @@
 //! What every compute pass builds the same way: its shader module, its pipelines (layouts
-//! derived by wgpu from the shader) and bind groups for group 0.
+//! derived by wgpu from the shader), bind groups for group 0 and its workgroup grid.
 
+use pointfarm_shaders::layout::SCREEN_TILE;
 use pointfarm_shaders::Shader;
 
 /// The compiled module of one of our shaders.
@@ -30,6 +31,27 @@ pub(crate) fn compute_pipeline(
         },
         cache: None,
     })
+}
+
+/// The pipelines of `entry_points` of `shader`, in that order, without overridden constants
+/// (the screen-space passes).
+pub(crate) fn entry_pipelines<const N: usize>(
+    device: &wgpu::Device,
+    shader: Shader,
+    entry_points: [&str; N],
+) -> [wgpu::ComputePipeline; N] {
+    let module = shader_module(device, shader);
+    entry_points.map(|entry_point| compute_pipeline(device, &module, entry_point, &[]))
+}
+
+/// Splits a workgroup count over two dimensions: one dimension holds at most 65535.
+pub(crate) fn dispatch_grid(groups: u32) -> (u32, u32) {
+    const MAX: u32 = 65535;
+    if groups <= MAX {
+        (groups, 1)
+    } else {
+        (MAX, groups.div_ceil(MAX))
+    }
 }
 
 /// A bind group for group 0 of `pipeline`, with each buffer bound whole at its binding index.
@@ -71,8 +93,8 @@ pub(crate) fn bind_resources(
     })
 }
 
-/// Dispatches one 16 x 16 workgroup per tile of the image (the screen-space passes).
+/// Dispatches one workgroup per [`SCREEN_TILE`] x [`SCREEN_TILE`] tile of the image (the
+/// screen-space passes).
 pub(crate) fn dispatch_tiles(pass: &mut wgpu::ComputePass<'_>, width: u32, height: u32) {
-    const TILE: u32 = 16;
-    pass.dispatch_workgroups(width.div_ceil(TILE), height.div_ceil(TILE), 1);
+    pass.dispatch_workgroups(width.div_ceil(SCREEN_TILE), height.div_ceil(SCREEN_TILE), 1);
 }

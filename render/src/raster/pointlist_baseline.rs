@@ -12,14 +12,14 @@ use std::time::Instant;
 use image::RgbaImage;
 use pointfarm_shaders::Shader;
 
-use super::gpu_data::FrameUniforms;
+use super::gpu_data::{FrameUniforms, QuantisedPosition};
 use super::pipeline::shader_module;
-use super::points::{GpuPointCloud, PointChunk, BATCH_POINTS};
+use super::points::{GpuPointCloud, PointChunk};
 use super::timing::GpuTimer;
 use super::{Clock, FrameSettings, RenderError, Stage, StageTimings, MAX_IMAGE_SIDE};
 use crate::gpu::{read_buffer, GpuContext};
 
-const COLOUR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
+const COLOR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 
 /// An image drawn by the baseline, with its stage timings (upload, rasterize, readback).
@@ -75,7 +75,7 @@ impl RenderTargets {
             height,
             color: texture(
                 "pointlist colour",
-                COLOUR_FORMAT,
+                COLOR_FORMAT,
                 wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
             ),
             depth: texture(
@@ -109,10 +109,7 @@ impl PointListBaseline {
             vertex: wgpu::VertexState {
                 module: &module,
                 entry_point: Some("vertex_main"),
-                compilation_options: wgpu::PipelineCompilationOptions {
-                    constants: &[("BATCH_POINTS", BATCH_POINTS as f64)],
-                    ..Default::default()
-                },
+                compilation_options: wgpu::PipelineCompilationOptions::default(),
                 // The points come from a storage buffer, indexed by the vertex index.
                 buffers: &[],
             },
@@ -132,7 +129,7 @@ impl PointListBaseline {
                 module: &module,
                 entry_point: Some("fragment_main"),
                 compilation_options: Default::default(),
-                targets: &[Some(COLOUR_FORMAT.into())],
+                targets: &[Some(COLOR_FORMAT.into())],
             }),
             multiview_mask: None,
             cache: None,
@@ -240,7 +237,7 @@ impl PointListBaseline {
         let bind_groups: Vec<(wgpu::BindGroup, u32)> = cloud
             .chunks
             .iter()
-            .map(|chunk| (self.bind_group(chunk), chunk.point_count))
+            .map(|chunk| (self.bind_group(chunk), chunk_points(chunk)))
             .collect();
         let color_view = targets.color.create_view(&Default::default());
         let depth_view = targets.depth.create_view(&Default::default());
@@ -366,6 +363,11 @@ impl PointListBaseline {
         RgbaImage::from_raw(targets.width, targets.height, pixels)
             .ok_or_else(|| RenderError::Gpu("colour readback has the wrong size".into()))
     }
+}
+
+/// Points of `chunk`: its positions buffer holds exactly one quantised position per point.
+fn chunk_points(chunk: &PointChunk) -> u32 {
+    (chunk.positions.size() / std::mem::size_of::<QuantisedPosition>() as u64) as u32
 }
 
 #[cfg(test)]

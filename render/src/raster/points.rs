@@ -20,22 +20,24 @@ use glam::{UVec3, Vec3};
 use wgpu::util::DeviceExt;
 
 use super::draw_order::DrawOrders;
-use super::gpu_data::{GpuBatch, QuantisedPosition, COLOUR_BYTES, POSITION_BITS};
+use pointfarm_shaders::layout::{self, INV_QUANT_MAX, POSITION_BITS};
+
+use super::gpu_data::{GpuBatch, QuantisedPosition, COLOR_BYTES};
+use super::morton::morton_order;
 use super::RenderError;
 use crate::cloud::PointCloud;
 use crate::gpu::GpuContext;
 
-/// Points per batch: one workgroup culls and rasterizes one batch.
-pub const BATCH_POINTS: usize = 4096;
+/// Points per batch: one workgroup culls and rasterizes one batch ([`layout::BATCH_POINTS`]).
+pub const BATCH_POINTS: usize = layout::BATCH_POINTS as usize;
 
 /// Points per sub-batch: the host also keeps the box of every run of this many points of a
 /// batch, and lists only the runs that can be in view of a batch that straddles the edge of
-/// the view (`culling.rs`).
-pub const SUB_BATCH_POINTS: usize = 256;
-const _: () = assert!(BATCH_POINTS.is_multiple_of(SUB_BATCH_POINTS));
+/// the view (`culling/listing.rs`; [`layout::SUB_BATCH_POINTS`]).
+pub const SUB_BATCH_POINTS: usize = layout::SUB_BATCH_POINTS as usize;
 
 /// Bytes one point adds to a chunk's point buffers (position and colour).
-pub const POINT_BYTES: u64 = std::mem::size_of::<QuantisedPosition>() as u64 + COLOUR_BYTES;
+pub const POINT_BYTES: u64 = std::mem::size_of::<QuantisedPosition>() as u64 + COLOR_BYTES;
 
 /// Points per chunk when a cloud is streamed in. A chunk's host copy takes about 27 bytes a
 /// point while it is sorted and quantised (measured on an H200, where the 4 GiB binding let
@@ -52,7 +54,7 @@ pub(crate) struct PointChunk {
     pub colors: wgpu::Buffer,
     pub batches: wgpu::Buffer,
     /// The same batch table on the host, from which each frame's table is built
-    /// (`culling.rs`).
+    /// (`culling/`).
     pub batch_table: Vec<GpuBatch>,
     /// Host only: each batch's points in runs of [`SUB_BATCH_POINTS`], each with the box of
     /// the positions the shaders dequantise; batch `b`'s runs start at `b * BATCH_POINTS /
@@ -63,7 +65,6 @@ pub(crate) struct PointChunk {
     pub groups: Vec<GpuBatch>,
     /// Host only: the batch table's near-to-far orders, built as views need them.
     pub draw_orders: DrawOrders,
-    pub point_count: u32,
 }
 
 impl PointChunk {
@@ -312,7 +313,6 @@ impl ChunkData {
             positions: buffer("positions", bytemuck::cast_slice(&self.positions)),
             colors: buffer("colors", &self.colors),
             batches: buffer("batches", bytemuck::cast_slice(&self.batches)),
-            point_count: self.positions.len() as u32,
             groups: batch_groups(&self.batches),
             draw_orders: DrawOrders::default(),
             batch_table: self.batches,
@@ -367,8 +367,13 @@ fn quantisation_max() -> UVec3 {
 /// quantised value, in f32.
 pub(crate) fn quantisation_step(batch: &GpuBatch) -> Vec3 {
     let extent = Vec3::from_array(batch.max) - Vec3::from_array(batch.min);
-    extent * quantisation_max().as_vec3().recip()
+    extent * Vec3::from_array(INV_QUANT_MAX)
 }
+
+/// Where y's bits split between the two words ([`POSITION_BITS`]): its low bits fill the first
+/// word above x's, its high bits start the second, below z's.
+const Y_LOW_BITS: u32 = 32 - POSITION_BITS[0];
+const Y_HIGH_BITS: u32 = POSITION_BITS[1] - Y_LOW_BITS;
 
 /// The nearest quantised position to `p` in a box starting at `min` with steps `step`.
 pub(crate) fn quantise(p: Vec3, min: Vec3, step: Vec3) -> QuantisedPosition {
@@ -381,15 +386,18 @@ pub(crate) fn quantise(p: Vec3, min: Vec3, step: Vec3) -> QuantisedPosition {
             0
         }
     });
-    [q[0] | (q[1] << 21), (q[1] >> 11) | (q[2] << 10)]
+    [
+        q[0] | (q[1] << POSITION_BITS[0]),
+        (q[1] >> Y_LOW_BITS) | (q[2] << Y_HIGH_BITS),
+    ]
 }
 
 /// The quantised steps of each axis (the shaders' `dequantise` in common.wgsl).
 fn unpack(word: QuantisedPosition) -> UVec3 {
     UVec3::new(
-        word[0] & 0x1f_ffff,
-        (word[0] >> 21) | ((word[1] & 0x3ff) << 11),
-        word[1] >> 10,
+        word[0] & ((1 << POSITION_BITS[0]) - 1),
+        (word[0] >> POSITION_BITS[0]) | ((word[1] & ((1 << Y_HIGH_BITS) - 1)) << Y_LOW_BITS),
+        word[1] >> Y_HIGH_BITS,
     )
 }
 
@@ -397,40 +405,6 @@ fn unpack(word: QuantisedPosition) -> UVec3 {
 #[cfg(test)]
 fn dequantise(word: QuantisedPosition, min: Vec3, step: Vec3) -> Vec3 {
     min + unpack(word).as_vec3() * step
-}
-
-/// Indices of `positions` in Z-order over their bounding box (21 bits per axis).
-fn morton_order(positions: &[Vec3]) -> Vec<u32> {
-    let (min, max) = positions.iter().fold(
-        (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
-        |(lo, hi), p| (lo.min(*p), hi.max(*p)),
-    );
-    let scale = (max - min).max_element().max(f32::MIN_POSITIVE);
-    let cells = ((1u32 << 21) - 1) as f32;
-    let mut keyed: Vec<(u64, u32)> = positions
-        .iter()
-        .enumerate()
-        .map(|(i, p)| {
-            let q = ((*p - min) / scale * cells).clamp(Vec3::ZERO, Vec3::splat(cells));
-            (morton3(q.x as u32, q.y as u32, q.z as u32), i as u32)
-        })
-        .collect();
-    keyed.sort_unstable();
-    keyed.into_iter().map(|(_, i)| i).collect()
-}
-
-/// Interleaves the low 21 bits of x, y and z.
-pub(crate) fn morton3(x: u32, y: u32, z: u32) -> u64 {
-    fn spread(v: u32) -> u64 {
-        let mut v = v as u64 & 0x1f_ffff;
-        v = (v | (v << 32)) & 0x001f_0000_0000_ffff;
-        v = (v | (v << 16)) & 0x001f_0000_ff00_00ff;
-        v = (v | (v << 8)) & 0x100f_00f0_0f00_f00f;
-        v = (v | (v << 4)) & 0x10c3_0c30_c30c_30c3;
-        v = (v | (v << 2)) & 0x1249_2492_4924_9249;
-        v
-    }
-    spread(x) | (spread(y) << 1) | (spread(z) << 2)
 }
 
 /// Host tables of `positions` sorted in Morton order, as an upload builds them: the batches,
@@ -544,31 +518,6 @@ mod tests {
         assert_eq!(&data.colors[3..6], &[1, 11, 20]);
         assert_eq!(data.positions.len(), 5);
         assert_eq!(data.batches.len(), 1);
-    }
-
-    #[test]
-    fn morton_code_interleaves_bits() {
-        assert_eq!(morton3(1, 0, 0), 0b001);
-        assert_eq!(morton3(0, 1, 0), 0b010);
-        assert_eq!(morton3(0, 0, 1), 0b100);
-        assert_eq!(morton3(3, 0, 0), 0b001_001);
-        assert_eq!(morton3(0x1f_ffff, 0x1f_ffff, 0x1f_ffff), (1u64 << 63) - 1);
-    }
-
-    #[test]
-    fn morton_order_is_a_permutation_that_keeps_neighbours_together() {
-        let positions: Vec<Vec3> = (0..64)
-            .map(|i| Vec3::new((i % 4) as f32, ((i / 4) % 4) as f32, (i / 16) as f32))
-            .collect();
-        let order = morton_order(&positions);
-        let mut sorted = order.clone();
-        sorted.sort_unstable();
-        assert_eq!(sorted, (0..64).collect::<Vec<u32>>());
-        // The first eight points in Z-order form the 2x2x2 cube at the corner.
-        for &i in &order[..8] {
-            let p = positions[i as usize];
-            assert!(p.max_element() <= 1.0, "{p}");
-        }
     }
 
     /// However large the adapter's binding limit, a streamed cloud is asked for in chunks of

@@ -2,19 +2,19 @@
 //! images afterwards (`shaders/resolve.wgsl`). Shared by both atomics paths, whose
 //! framebuffers have the same layout.
 
+use pointfarm_shaders::layout::{self, RESOLVE_WORKGROUP};
 use pointfarm_shaders::Shader;
 
-use super::pipeline::{bind_buffers, bind_resources, compute_pipeline, shader_module};
+use super::pipeline::{
+    bind_buffers, bind_resources, compute_pipeline, dispatch_grid, shader_module,
+};
 use super::pixel_rect::PixelRect;
 use super::targets::FrameTargets;
 
-/// Must match `@workgroup_size` in resolve.wgsl.
-const WORKGROUP_SIZE: u32 = 256;
-
-/// Consecutive pixels per invocation of `resolve` and of `resolve_average` (`RESOLVE_RUN` and
-/// `AVERAGE_RUN` in resolve.wgsl, where the reason is; a test checks they match).
-const RESOLVE_RUN: u64 = 8;
-const AVERAGE_RUN: u64 = 4;
+/// Consecutive pixels per invocation of `resolve` and of `resolve_average` (resolve.wgsl says
+/// why).
+const RESOLVE_RUN: u64 = layout::RESOLVE_RUN as u64;
+const AVERAGE_RUN: u64 = layout::AVERAGE_RUN as u64;
 
 /// The pixels a resolve visits: `count` consecutive pixels from `first` (row-major). Whole
 /// rows, from the first row a rectangle touches to its last, the first pixel moved back to a
@@ -196,8 +196,8 @@ impl ResolvePass {
     ) {
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, bind_group, &[]);
-        let groups = invocations.div_ceil(WORKGROUP_SIZE as u64) as u32;
-        let (x, y) = super::dispatch_grid(groups);
+        let groups = invocations.div_ceil(u64::from(RESOLVE_WORKGROUP)) as u32;
+        let (x, y) = dispatch_grid(groups);
         pass.dispatch_workgroups(x, y, 1);
     }
 }
@@ -207,18 +207,6 @@ mod tests {
     use super::*;
     use crate::gpu::{read_buffer, staging_buffer};
     use wgpu::util::DeviceExt;
-
-    #[test]
-    fn the_hosts_run_lengths_are_the_shaders() {
-        let source = Shader::Resolve.source();
-        for (name, run) in [("RESOLVE_RUN", RESOLVE_RUN), ("AVERAGE_RUN", AVERAGE_RUN)] {
-            let declaration = format!("const {name}: u32 = {run}u;");
-            assert!(
-                source.contains(&declaration),
-                "resolve.wgsl lacks `{declaration}`"
-            );
-        }
-    }
 
     /// `quotient` of resolve.wgsl, the high-quality average's division without integer
     /// division, equals integer division on this adapter over the range it is used in.

@@ -5,7 +5,7 @@
 
 use pointfarm_shaders::Shader;
 
-use super::pipeline::{bind_resources, compute_pipeline, dispatch_tiles, shader_module};
+use super::pipeline::{bind_resources, dispatch_tiles, entry_pipelines};
 use super::pixel_rect::PixelRect;
 use super::screen_params::ScreenUniforms;
 use super::targets::FrameTargets;
@@ -18,12 +18,15 @@ pub(crate) struct VisibilityPass {
 
 impl VisibilityPass {
     pub fn new(device: &wgpu::Device) -> Self {
-        let module = shader_module(device, Shader::Visibility);
-        let pipeline = |entry_point: &str| compute_pipeline(device, &module, entry_point, &[]);
+        let [reset_list, classify, prepare_fill] = entry_pipelines(
+            device,
+            Shader::Visibility,
+            ["reset_list", "classify", "prepare_fill"],
+        );
         Self {
-            reset_list: pipeline("reset_list"),
-            classify: pipeline("classify"),
-            prepare_fill: pipeline("prepare_fill"),
+            reset_list,
+            classify,
+            prepare_fill,
         }
     }
 

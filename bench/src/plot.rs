@@ -5,9 +5,13 @@
 use std::path::Path;
 use std::sync::OnceLock;
 
-use anyhow::{anyhow, Context, Result};
 use plotters::prelude::*;
-use pointfarm_render::bench::{in_uniform_series, BenchReport, WorkloadResult, CUBOID_PLANES};
+
+use crate::report::{in_uniform_series, BenchReport, WorkloadResult};
+use crate::workloads::CUBOID_PLANES;
+use crate::BenchError;
+
+type Result<T> = std::result::Result<T, BenchError>;
 
 /// Where the label font is looked for, in order.
 const FONT_PATHS: [&str; 4] = [
@@ -55,11 +59,11 @@ pub fn write(report: &BenchReport, path: &Path) -> Result<()> {
         )?;
         root.present().map_err(plot_error)?;
     }
-    image::RgbImage::from_raw(SIZE.0, SIZE.1, pixels)
-        .context("plot buffer has the wrong size")?
+    let image = image::RgbImage::from_raw(SIZE.0, SIZE.1, pixels)
+        .ok_or_else(|| BenchError::Plot("plot buffer has the wrong size".into()))?;
+    image
         .save(path)
-        .with_context(|| format!("writing {}", path.display()))?;
-    Ok(())
+        .map_err(|e| BenchError::Plot(format!("writing {}: {e}", path.display())))
 }
 
 /// For the workloads that `select` picks: one line per method, x = points in view for the
@@ -146,8 +150,8 @@ fn panel(
     Ok(())
 }
 
-fn plot_error(e: impl std::fmt::Display) -> anyhow::Error {
-    anyhow!("drawing the plot: {e}")
+fn plot_error(e: impl std::fmt::Display) -> BenchError {
+    BenchError::Plot(format!("drawing the plot: {e}"))
 }
 
 /// Fails now, not after a long run, when no font for the plot's labels can be found.
@@ -157,7 +161,7 @@ pub fn check_font() -> Result<()> {
 
 /// Registers the first font of `FONT_PATHS` found as plotters' "sans-serif", once.
 fn register_font() -> Result<()> {
-    static REGISTERED: OnceLock<Result<(), String>> = OnceLock::new();
+    static REGISTERED: OnceLock<std::result::Result<(), String>> = OnceLock::new();
     REGISTERED
         .get_or_init(|| {
             let (path, bytes) = FONT_PATHS
@@ -176,6 +180,5 @@ fn register_font() -> Result<()> {
                 .map_err(|_| format!("{path} is not a usable TrueType font"))
         })
         .clone()
-        .map_err(|e| anyhow!(e))
-        .context("writing the benchmark plot")
+        .map_err(|e| BenchError::Plot(format!("writing the benchmark plot: {e}")))
 }

@@ -1,11 +1,11 @@
-//! Visibility, filling and Pintus shading (Pintus et al. 2011) against the CPU reference and
-//! against the ground truth of analytic scenes.
+//! Visibility, filling and shading (Eye-Dome Lighting; Pintus et al. 2011) against the CPU
+//! reference and against the ground truth of analytic scenes.
 
 use glam::{DVec3, DVec4};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::tests::render_gpu;
+use super::render_gpu;
 use super::*;
 use crate::camera::Camera;
 use crate::camera::Projection;
@@ -497,4 +497,54 @@ fn supersampled_filling_closes_the_same_holes() {
     let (a, b) = (covered(&single), covered(&double));
     // Points are twice as large at twice the size, so coverage is the same within the rim.
     assert!(a.abs_diff(b) * 50 < a, "{a} vs {b} covered pixels");
+}
+
+#[test]
+fn eye_dome_lighting_matches_the_reference_and_outlines_silhouettes() {
+    let mut settings = FrameSettings::new(
+        160,
+        120,
+        camera(Projection::Perspective { fov_y_deg: 50.0 }),
+    );
+    let cloud = pixel_centre_scene(&settings, 2, 12);
+    let mut renderer = Renderer::new(gpu());
+    let resident = renderer.upload(&cloud).expect("upload");
+    let plain = renderer.render(&resident, &settings).expect("plain");
+    for (quality, shading) in [
+        (Quality::Basic, Shading::EDL),
+        (
+            Quality::Basic,
+            Shading::Edl {
+                strength: 0.3,
+                radius: 3.0,
+            },
+        ),
+        (Quality::HIGH, Shading::EDL),
+    ] {
+        settings.quality = quality;
+        settings.shading = shading;
+        let frame = renderer.render(&resident, &settings).expect("render");
+        let expected = reference::render(&cloud, &settings);
+        let difference = max_channel_difference(&frame.image, &expected.image);
+        assert!(
+            difference <= 1,
+            "{shading:?}: a channel differs by {difference}/255"
+        );
+        assert!(frame.timings.get(Stage::Shade).is_some());
+        if quality == Quality::Basic {
+            let darkened = compare_images("edl-vs-plain", &frame.image, &plain.image).differing;
+            assert!(
+                darkened > 160 * 120 / 10,
+                "{shading:?}: only {darkened} pixels shaded"
+            );
+        }
+    }
+    settings.shading = Shading::Edl {
+        strength: f32::NAN,
+        radius: 1.0,
+    };
+    assert!(matches!(
+        renderer.validate(&settings),
+        Err(RenderError::Edl { .. })
+    ));
 }

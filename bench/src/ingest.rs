@@ -17,11 +17,14 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
+use pointfarm_render::cache::{CacheOutcome, DatasetCache};
+use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use serde::Serialize;
 
-use super::{median, uniform_cube, BenchError};
-use crate::cache::{CacheOutcome, DatasetCache};
-use crate::ingest::{load_point_cloud, write_las, LasWriteOptions};
+use crate::clouds::uniform_cube;
+use crate::stats::median;
+use crate::workloads::uniform_workload;
+use crate::BenchError;
 
 /// What one file's loads cost.
 #[derive(Debug, Clone, Serialize)]
@@ -75,7 +78,7 @@ fn scratch_error(path: &Path, error: impl std::fmt::Display) -> BenchError {
 
 /// The generated file's name for `points` points.
 pub fn generated_workload(points: usize) -> String {
-    format!("ingest-{}.laz", super::uniform_workload(points))
+    format!("ingest-{}.laz", uniform_workload(points))
 }
 
 /// Writes the uniform cube of `points` points as LAZ into a scratch directory (millimetre

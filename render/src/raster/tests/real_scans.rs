@@ -3,7 +3,7 @@
 
 use glam::DVec3;
 
-use super::tests::render_gpu;
+use super::render_gpu;
 use super::*;
 use crate::camera::Camera;
 use crate::camera::Projection;

@@ -15,7 +15,7 @@ use std::path::PathBuf;
 
 use image::RgbaImage;
 
-use super::fill_tests::{holey_sphere, sphere_settings};
+use super::fill_and_shading::{holey_sphere, sphere_settings};
 use super::*;
 use crate::camera::Camera;
 use crate::ingest::load_point_cloud;

@@ -1,0 +1,172 @@
+//! The huge workload: a cube of a hundred million points or more, generated cell by cell and
+//! uploaded chunk by chunk, rendered like any other workload, with the host's memory peak
+//! during its ingest.
+
+use pointfarm_render::camera::Camera;
+use pointfarm_render::raster::{FrameSettings, GpuPointCloud};
+
+use crate::clouds::{cube_bounds, CellCubeGenerator};
+use crate::report::{IngestMemory, WorkloadResult};
+use crate::rounds::{measure, Methods};
+use crate::workloads::{uniform_workload, View};
+use crate::{BenchError, BenchOptions};
+
+/// A cube of `points` (the run's is [`HUGE_POINTS`](crate::HUGE_POINTS)), generated in
+/// Morton-ordered cells and uploaded chunk by chunk: the host never holds the whole cloud. Its
+/// ingest's memory is the peak above the process's size before it ([`IngestMemory`]).
+pub(crate) struct HugeCloud {
+    resident: GpuPointCloud,
+    view: View,
+    in_view: usize,
+    settings: FrameSettings,
+    memory: IngestMemory,
+}
+
+impl HugeCloud {
+    pub(crate) fn ingest(
+        methods: &Methods,
+        options: &BenchOptions,
+        points: usize,
+        progress: &mut dyn FnMut(&str),
+    ) -> Result<Self, BenchError> {
+        let name = uniform_workload(points);
+        progress(&format!("{name}: generating and uploading chunk by chunk"));
+        let aspect = options.width as f64 / options.height as f64;
+        let (origin, bounds) = cube_bounds();
+        let camera = Camera::auto(&bounds, aspect);
+        let settings = FrameSettings::new(options.width, options.height, camera);
+        let transform = camera.transform(origin, options.width, options.height);
+        let (w, h) = (options.width as f64, options.height as f64);
+
+        let before_host_bytes = memory::resident_bytes();
+        memory::reset_peak();
+        let mut generator = CellCubeGenerator::new(points, 7);
+        let mut in_view = 0usize;
+        let resident = methods.compute[0].upload_chunks(origin, &mut |n| {
+            let chunk = generator.next_chunk(n)?;
+            in_view += chunk
+                .0
+                .iter()
+                .filter(|p| {
+                    transform
+                        .project(p.as_dvec3())
+                        .is_some_and(|(x, y, _)| x >= 0.0 && y >= 0.0 && x < w && y < h)
+                })
+                .count();
+            Some(chunk)
+        })?;
+        let peak_host_bytes = memory::peak_resident_bytes();
+        let gpu_bytes = resident.gpu_bytes();
+        let view = View {
+            workload: name,
+            description: format!(
+                "{points} uniform random points in a cube, all in view, generated and uploaded \
+                 chunk by chunk"
+            ),
+            camera,
+        };
+        Ok(Self {
+            resident,
+            view,
+            in_view,
+            settings,
+            memory: IngestMemory {
+                peak_host_bytes,
+                before_host_bytes,
+                gpu_bytes,
+                ingest_over_gpu: peak_host_bytes.saturating_sub(before_host_bytes) as f64
+                    / gpu_bytes.max(1) as f64,
+            },
+        })
+    }
+
+    /// Renders it, over three rounds without warm-up rounds (each round's first frame of a
+    /// method warms it).
+    pub(crate) fn measure(
+        self,
+        methods: &mut Methods,
+        options: &BenchOptions,
+        progress: &mut dyn FnMut(&str),
+    ) -> Result<WorkloadResult, BenchError> {
+        progress(&format!("{}: measuring", self.view.workload));
+        let huge_options = BenchOptions {
+            warmup_frames: 0,
+            frames: 3,
+            ..options.clone()
+        };
+        let mut result = measure(
+            methods,
+            &self.resident,
+            (&self.view, self.in_view),
+            &self.settings,
+            &huge_options,
+        )?;
+        result.ingest_memory = Some(self.memory);
+        progress(&result.summary_line());
+        Ok(result)
+    }
+}
+
+/// The process's resident memory, from `/proc/self/status` (Linux; 0 elsewhere).
+mod memory {
+    fn status_kib(field: &str) -> u64 {
+        std::fs::read_to_string("/proc/self/status")
+            .ok()
+            .and_then(|status| {
+                status
+                    .lines()
+                    .find(|l| l.starts_with(field))
+                    .and_then(|l| l.split_whitespace().nth(1))
+                    .and_then(|kib| kib.parse().ok())
+            })
+            .unwrap_or(0)
+    }
+
+    pub fn resident_bytes() -> u64 {
+        status_kib("VmRSS:") * 1024
+    }
+
+    /// The peak resident set size since the last [`reset_peak`] (or the start).
+    pub fn peak_resident_bytes() -> u64 {
+        status_kib("VmHWM:") * 1024
+    }
+
+    /// Resets the peak to the current size (Linux 4.0 and later; ignored where refused).
+    pub fn reset_peak() {
+        let _ = std::fs::write("/proc/self/clear_refs", "5");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::PathBuf;
+
+    use pointfarm_render::raster::BATCH_POINTS;
+
+    use super::*;
+    use crate::testing::gpu;
+    use crate::ComputeMode;
+
+    #[test]
+    fn huge_workload_streams_many_chunks_and_reports_its_memory_peak() {
+        let gpu = gpu();
+        let options = BenchOptions {
+            modes: vec![ComputeMode::HighQuality],
+            ..BenchOptions::quick(96, 54, PathBuf::new())
+        };
+        let mut methods = Methods::new(&gpu, options.modes.len(), false);
+        // Chunks of 8 batches, so that 300,000 points arrive in ten chunks.
+        methods.compute[0].set_max_chunk_points(8 * BATCH_POINTS);
+        let result = HugeCloud::ingest(&methods, &options, 300_000, &mut |_| {})
+            .and_then(|huge| huge.measure(&mut methods, &options, &mut |_| {}))
+            .expect("measure");
+        assert_eq!(result.workload, "uniform-300000");
+        assert_eq!(result.points, 300_000);
+        assert!(result.points_in_view > 290_000, "{}", result.points_in_view);
+        let memory = result.ingest_memory.expect("memory peak");
+        assert!(memory.peak_host_bytes >= memory.before_host_bytes);
+        assert!(memory.gpu_bytes as f64 >= 300_000.0 * 11.0);
+        assert!(result.compute.frame_ms > 0.0 && result.modes[0].result.frame_ms > 0.0);
+        assert!(result.image_agreement > 0.95, "{}", result.image_agreement);
+    }
+}

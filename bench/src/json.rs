@@ -1,0 +1,80 @@
+//! The benchmark's JSON file: the report, with the run's context (the command, when it ended,
+//! how long it took, the machine).
+
+use std::path::Path;
+use std::time::Instant;
+
+use serde::Serialize;
+
+use crate::report::BenchReport;
+use crate::BenchError;
+
+/// How the run was started, recorded beside its figures.
+pub struct RunContext {
+    /// The command line, as typed.
+    pub command: String,
+    /// Whether it was the quick run.
+    pub quick: bool,
+    /// When the run started, for its wall time.
+    pub started: Instant,
+}
+
+/// The JSON file: the run's context and the report.
+#[derive(Serialize)]
+struct BenchFile<'a> {
+    command: String,
+    quick: bool,
+    /// Seconds since the Unix epoch when the run ended.
+    finished_unix_s: u64,
+    wall_s: f64,
+    machine: Machine,
+    #[serde(flatten)]
+    report: &'a BenchReport,
+}
+
+/// The machine the run was on.
+#[derive(Serialize)]
+struct Machine {
+    cores: usize,
+    cpu: Option<String>,
+    os: &'static str,
+    arch: &'static str,
+}
+
+impl Machine {
+    fn this() -> Self {
+        let cpu = std::fs::read_to_string("/proc/cpuinfo")
+            .ok()
+            .and_then(|info| {
+                info.lines()
+                    .find(|l| l.starts_with("model name"))
+                    .and_then(|l| l.split_once(':'))
+                    .map(|(_, name)| name.trim().to_string())
+            });
+        Self {
+            cores: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            cpu,
+            os: std::env::consts::OS,
+            arch: std::env::consts::ARCH,
+        }
+    }
+}
+
+/// Writes `report` with its `context` as pretty-printed JSON to `path`.
+pub fn write(path: &Path, report: &BenchReport, context: &RunContext) -> Result<(), BenchError> {
+    let file = BenchFile {
+        command: context.command.clone(),
+        quick: context.quick,
+        finished_unix_s: std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs()),
+        wall_s: context.started.elapsed().as_secs_f64(),
+        machine: Machine::this(),
+        report,
+    };
+    let json = serde_json::to_string_pretty(&file).map_err(|e| BenchError::Json(e.to_string()))?;
+    std::fs::write(path, json + "\n").map_err(|source| BenchError::Write {
+        path: path.to_path_buf(),
+        source,
+    })
+}

@@ -1,0 +1,287 @@
+//! The decoded points, batch by batch, and the cloud made of them: the recentring origin,
+//! the positions in f32 relative to it, and display colours (16-bit RGB, 8-bit values in
+//! 16-bit fields, intensity grey, or one grey).
+
+use glam::{DVec3, Vec3};
+use las::PointData;
+
+use crate::cloud::{bounds_of, pack_rgba8, ColorSource, PointCloud, WorldBounds};
+use crate::color::{intensity_grey, CONSTANT_GREY_RGBA};
+
+pub(super) fn world_bounds(bounds: las::Bounds) -> WorldBounds {
+    let vector = |v: las::Vector<f64>| DVec3::new(v.x, v.y, v.z);
+    WorldBounds {
+        min: vector(bounds.min),
+        max: vector(bounds.max),
+    }
+}
+
+/// The recentring origin: the centre of the header bounds when they are finite and contain the
+/// first point (writers do leave stale or zeroed bounds), else the first point itself.
+pub(super) fn choose_origin(header_bounds: &WorldBounds, first_batch: &PointData) -> DVec3 {
+    let first_point = match (
+        first_batch.x().next(),
+        first_batch.y().next(),
+        first_batch.z().next(),
+    ) {
+        (Some(x), Some(y), Some(z)) => DVec3::new(x, y, z),
+        _ => return header_bounds.center(),
+    };
+    let usable = header_bounds.min.is_finite()
+        && header_bounds.max.is_finite()
+        && header_bounds.min.cmple(header_bounds.max).all();
+    // Header bounds are rounded to the file's scale; allow for that and a little more.
+    let slack = DVec3::splat(1e-3) + header_bounds.size().abs() * 1e-9;
+    let contains_first = usable
+        && (header_bounds.min - slack).cmple(first_point).all()
+        && first_point.cmple(header_bounds.max + slack).all();
+    if contains_first {
+        header_bounds.center()
+    } else {
+        first_point
+    }
+}
+
+/// Per-point columns accumulated batch by batch, before colours can be decided (that needs
+/// the whole file: 8-bit detection and intensity percentiles are global).
+pub(super) struct DecodedPoints {
+    positions: Vec<Vec3>,
+    bounds_min: DVec3,
+    bounds_max: DVec3,
+    rgb: Option<Vec<[u16; 3]>>,
+    intensity: Vec<u16>,
+    classification: Vec<u8>,
+    return_number: Vec<u8>,
+}
+
+impl DecodedPoints {
+    pub fn with_capacity(points: usize, has_color: bool) -> Self {
+        Self {
+            positions: Vec::with_capacity(points),
+            bounds_min: DVec3::splat(f64::INFINITY),
+            bounds_max: DVec3::splat(f64::NEG_INFINITY),
+            rgb: has_color.then(|| Vec::with_capacity(points)),
+            intensity: Vec::with_capacity(points),
+            classification: Vec::with_capacity(points),
+            return_number: Vec::with_capacity(points),
+        }
+    }
+
+    pub fn len(&self) -> u64 {
+        self.positions.len() as u64
+    }
+
+    pub fn append(&mut self, batch: &PointData, origin: DVec3) {
+        for ((x, y), z) in batch.x().zip(batch.y()).zip(batch.z()) {
+            let world = DVec3::new(x, y, z);
+            self.bounds_min = self.bounds_min.min(world);
+            self.bounds_max = self.bounds_max.max(world);
+            // Subtract in f64, round once: the f32 keeps the offset's full precision.
+            self.positions.push((world - origin).as_vec3());
+        }
+        if let (Some(rgb), Some(batch_rgb)) = (self.rgb.as_mut(), batch.rgb()) {
+            rgb.extend(batch_rgb.map(|(r, g, b)| [r, g, b]));
+        }
+        self.intensity.extend(batch.intensity());
+        self.classification.extend(batch.classification());
+        self.return_number.extend(batch.return_number());
+    }
+
+    pub fn into_cloud(self, origin: DVec3) -> PointCloud {
+        let (colors, color_source) = match &self.rgb {
+            Some(rgb) => colors_from_rgb(rgb),
+            None => match intensity_grey(&self.intensity) {
+                Some(colors) => (colors, ColorSource::IntensityGrey),
+                None => (
+                    vec![CONSTANT_GREY_RGBA; self.intensity.len()],
+                    ColorSource::Constant,
+                ),
+            },
+        };
+        let bounds = if self.positions.is_empty() {
+            bounds_of([])
+        } else {
+            WorldBounds {
+                min: self.bounds_min,
+                max: self.bounds_max,
+            }
+        };
+        PointCloud {
+            origin,
+            positions: self.positions,
+            colors,
+            intensity: self.intensity,
+            classification: self.classification,
+            return_number: self.return_number,
+            bounds,
+            color_source,
+        }
+    }
+}
+
+/// Display colours from the RGB fields. The spec says 16-bit, but some writers store 8-bit
+/// values as they are; if no channel of any point exceeds 255 that is what the file holds.
+fn colors_from_rgb(rgb: &[[u16; 3]]) -> (Vec<u32>, ColorSource) {
+    let max_channel = rgb.iter().flatten().copied().max().unwrap_or(0);
+    if max_channel <= 255 {
+        let colors = rgb
+            .iter()
+            .map(|&[r, g, b]| pack_rgba8(r as u8, g as u8, b as u8))
+            .collect();
+        (colors, ColorSource::Rgb8In16Bit)
+    } else {
+        let high_byte = |channel: u16| (channel >> 8) as u8;
+        let colors = rgb
+            .iter()
+            .map(|&[r, g, b]| pack_rgba8(high_byte(r), high_byte(g), high_byte(b)))
+            .collect();
+        (colors, ColorSource::Rgb16)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::fs;
+    use std::path::Path;
+
+    use las::{Color, Point};
+
+    use super::*;
+    use crate::color::INTENSITY_GREY_MIN;
+    use crate::ingest::test_files::*;
+    use crate::ingest::{load_point_cloud, LasWriteOptions};
+
+    /// Writes points with the given raw 16-bit colours (write_las always widens 8-bit colours).
+    fn write_raw_rgb(path: &Path, rgb: &[[u16; 3]]) {
+        let mut builder = las::Builder::from((1, 2));
+        builder.point_format = las::point::Format::new(2).expect("format 2");
+        let mut writer =
+            las::Writer::from_path(path, builder.into_header().expect("header")).expect("writer");
+        for (i, &[r, g, b]) in rgb.iter().enumerate() {
+            let point = Point {
+                x: i as f64,
+                y: 2.0 * i as f64,
+                z: 1.0,
+                color: Some(Color::new(r, g, b)),
+                ..Point::default()
+            };
+            writer.write_point(point).expect("write point");
+        }
+        writer.close().expect("close");
+    }
+
+    #[test]
+    fn eight_bit_values_in_sixteen_bit_fields_are_used_as_they_are() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join("rgb8.las");
+        write_raw_rgb(&path, &[[0, 128, 255], [10, 20, 30], [255, 255, 255]]);
+        let cloud = load_point_cloud(&path).expect("load");
+        assert_eq!(cloud.color_source, ColorSource::Rgb8In16Bit);
+        assert_eq!(
+            cloud.colors,
+            [
+                pack_rgba8(0, 128, 255),
+                pack_rgba8(10, 20, 30),
+                pack_rgba8(255, 255, 255)
+            ]
+        );
+    }
+
+    #[test]
+    fn sixteen_bit_colors_keep_their_high_byte() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join("rgb16.las");
+        // One channel above 255 makes the whole file 16-bit, dark points included.
+        write_raw_rgb(&path, &[[65_535, 32_768, 256], [255, 100, 0]]);
+        let cloud = load_point_cloud(&path).expect("load");
+        assert_eq!(cloud.color_source, ColorSource::Rgb16);
+        assert_eq!(cloud.colors, [pack_rgba8(255, 128, 1), pack_rgba8(0, 0, 0)]);
+    }
+
+    #[test]
+    fn intensity_without_color_becomes_a_stretched_grey_that_is_never_black() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let mut cloud = test_cloud(1_000);
+        // Mostly 100..1100, plus outliers the percentile stretch must ignore.
+        cloud.intensity = (0..1_000).map(|i| 100 + i as u16).collect();
+        cloud.intensity[0] = 0;
+        cloud.intensity[1] = 65_535;
+        let options = LasWriteOptions {
+            point_format: 1,
+            ..LasWriteOptions::default()
+        };
+        let path = write(dir.path(), "intensity.las", &cloud, &options);
+        let loaded = load_point_cloud(&path).expect("load");
+
+        assert_eq!(loaded.color_source, ColorSource::IntensityGrey);
+        assert_eq!(loaded.intensity, cloud.intensity, "raw intensity is kept");
+        let greys: Vec<u8> = loaded
+            .colors
+            .iter()
+            .map(|color| {
+                let [r, g, b, a] = color.to_le_bytes();
+                assert!(
+                    r == g && g == b && a == 255,
+                    "not an opaque grey: {color:#x}"
+                );
+                r
+            })
+            .collect();
+        assert_eq!(
+            greys[0], INTENSITY_GREY_MIN,
+            "darkest return is dim, not black"
+        );
+        assert_eq!(greys[1], 255);
+        assert!(greys.iter().all(|&grey| grey >= INTENSITY_GREY_MIN));
+        // The stretch spans the bulk of the data: the middle return is mid-grey.
+        assert!(
+            (130..=165).contains(&greys[500]),
+            "middle grey {}",
+            greys[500]
+        );
+        assert!(
+            greys[2..].windows(2).all(|pair| pair[0] <= pair[1]),
+            "monotonic in intensity"
+        );
+    }
+
+    #[test]
+    fn no_color_and_no_intensity_gives_one_light_grey() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let mut cloud = test_cloud(100);
+        cloud.intensity = vec![0; 100];
+        let options = LasWriteOptions {
+            point_format: 0,
+            ..LasWriteOptions::default()
+        };
+        let path = write(dir.path(), "plain.laz", &cloud, &options);
+        let loaded = load_point_cloud(&path).expect("load");
+        assert_eq!(loaded.color_source, ColorSource::Constant);
+        let grey = CONSTANT_GREY_RGBA;
+        assert!(loaded.colors.iter().all(|&color| color == grey));
+    }
+
+    #[test]
+    fn origin_falls_back_to_the_first_point_when_header_bounds_are_wrong() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let cloud = test_cloud(50);
+        let path = write(
+            dir.path(),
+            "stale_bounds.las",
+            &cloud,
+            &LasWriteOptions::default(),
+        );
+        let mut bytes = fs::read(&path).expect("read back");
+        // Header bounds (max x, min x, max y, min y, max z, min z) at 179: zero them all.
+        bytes[179..227].fill(0);
+        fs::write(&path, &bytes).expect("patch");
+        let loaded = load_point_cloud(&path).expect("load");
+        let first_point = world_positions(&cloud).next().expect("a point");
+        assert!(
+            (loaded.origin - first_point).abs().max_element() < 1e-4,
+            "{}",
+            loaded.origin
+        );
+        assert!(max_position_error(&loaded, &cloud) < 1e-4);
+    }
+}

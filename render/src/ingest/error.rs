@@ -1,0 +1,69 @@
+//! Why a file could not be loaded: [`IngestError`], whose every variant names the file.
+
+use std::io;
+use std::path::PathBuf;
+
+/// Why a file could not be loaded. Every variant names the file, and every message is complete
+/// on its own (the underlying cause is part of it), so it reads well in logs and the CLI.
+#[derive(Debug, thiserror::Error)]
+pub enum IngestError {
+    /// Opening, reading or seeking failed (missing file, permissions, device errors).
+    #[error("{}: {error}", path.display())]
+    Io { path: PathBuf, error: io::Error },
+
+    /// The file does not start with the `LASF` signature.
+    #[error("{}: not a LAS/LAZ file (starts with {found:?}, expected \"LASF\")", path.display())]
+    NotLas { path: PathBuf, found: String },
+
+    /// The file ends before its header (and VLRs) do.
+    #[error("{}: truncated: the file ends inside the LAS header ({file_len} bytes)", path.display())]
+    TruncatedHeader { path: PathBuf, file_len: u64 },
+
+    /// The point data holds fewer points than the header declares.
+    #[error(
+        "{}: truncated: header says {declared} points but data ends after {available}",
+        path.display()
+    )]
+    Truncated {
+        path: PathBuf,
+        declared: u64,
+        available: u64,
+    },
+
+    /// The declared count times the record length overflows 64 bits: no file holds that many.
+    #[error("{}: corrupt header: it declares {declared} points", path.display())]
+    ImpossiblePointCount { path: PathBuf, declared: u64 },
+
+    /// The LAZ chunk table accounts for fewer points than the header declares. With fixed-size
+    /// chunks (the usual case) the last chunk's count is not recorded, so this is an upper bound.
+    #[error(
+        "{}: truncated: header says {declared} points but the LAZ chunks hold at most {chunk_capacity}",
+        path.display()
+    )]
+    TruncatedLaz {
+        path: PathBuf,
+        declared: u64,
+        chunk_capacity: u64,
+    },
+
+    /// The LAZ chunk table, written after the points, is missing or unreadable: usually a file
+    /// that was cut short or whose writer never finished.
+    #[error("{}: truncated or unfinished LAZ: cannot read the chunk table: {error}", path.display())]
+    LazChunkTable {
+        path: PathBuf,
+        error: laz::LasZipError,
+    },
+
+    #[error("{}: unsupported LAS version {major}.{minor} (1.0 to 1.4 are supported)", path.display())]
+    UnsupportedVersion { path: PathBuf, major: u8, minor: u8 },
+
+    #[error("{}: unsupported point format {format} (0 to 10 are supported)", path.display())]
+    UnsupportedPointFormat { path: PathBuf, format: u8 },
+
+    #[error("{}: the file contains no points", path.display())]
+    NoPoints { path: PathBuf },
+
+    /// Anything else the `las` crate rejects: malformed VLRs, corrupt LAZ chunks, ...
+    #[error("{}: malformed LAS/LAZ data: {error}", path.display())]
+    Malformed { path: PathBuf, error: las::Error },
+}

@@ -1,0 +1,573 @@
+//! The frame's batch tables: every chunk's listed entries (`listing.rs`) back to back in one
+//! GPU buffer, each chunk's from a multiple of the storage-binding offset alignment; a cloud
+//! of many chunks culled on all cores, a chunk per task; the chunks ordered near to far; each
+//! chunk's entries split in the phases of the depth-writing pass; the frame's footprint.
+
+use rayon::prelude::*;
+
+use super::frustum::Frustum;
+use super::listing::{list_in_view, Listing};
+use crate::camera::CameraTransform;
+use crate::raster::draw_order::sort_near_to_far;
+use crate::raster::gpu_data::GpuBatch;
+use crate::raster::occlusion::phase_cuts;
+use crate::raster::phases::{split_by_depth, ChunkEntries};
+use crate::raster::pixel_rect::{PixelCoverage, PixelRect};
+use crate::raster::points::BatchTables;
+
+/// One frame's batch tables of a cloud's chunks, in one GPU buffer.
+pub(crate) struct FrameBatches {
+    /// Per chunk, its batches that can be in view; each chunk's table starts at a multiple of
+    /// the storage-binding offset alignment.
+    buffer: Option<wgpu::Buffer>,
+    /// Per chunk: byte offset of its table in `buffer` and its number of batches.
+    ranges: Vec<(u64, u32)>,
+    /// The chunks with batches in view, near to far (by their listed batches' boxes).
+    chunk_order: Vec<usize>,
+    /// Host copy reused from frame to frame: [`ListedEntry`] words.
+    staging: Vec<u32>,
+    /// Per chunk (as `ranges`): what its listed entries hold.
+    listings: Vec<Listing>,
+    /// Per chunk (as `ranges`): the end of each phase's entries in its table, the nearest
+    /// phase first (`phases.rs`).
+    phase_ends: Vec<Vec<u32>>,
+    /// The pixels that points of the listed batches can touch this frame.
+    footprint: PixelRect,
+    /// Pixels of the cells of the image those points can touch (`PixelCoverage`).
+    covered_pixels: u64,
+    /// The storage-binding offset alignment, in entries.
+    alignment_entries: u32,
+    /// Whether batches that straddle the view's edge are culled again run by run.
+    refine_straddlers: bool,
+    /// Batches from which a cloud of several chunks is culled in parallel: always
+    /// [`PARALLEL_CULL_BATCHES`], except in the test that compares both paths.
+    parallel_from_batches: usize,
+}
+
+/// Batches from which a cloud of several chunks is culled on all cores: one chunk per task.
+const PARALLEL_CULL_BATCHES: usize = 16_384;
+
+impl FrameBatches {
+    /// `refine_straddlers`: cull batches that straddle the view's edge again in runs of 256
+    /// points. That pays where a point costs far more than a box test on the host, as on a
+    /// CPU adapter; on a GPU, which draws a whole batch in less time than the host takes to
+    /// test its runs, it does not (docs/perf/batch-culling.md).
+    pub fn new(refine_straddlers: bool) -> Self {
+        Self {
+            buffer: None,
+            ranges: Vec::new(),
+            chunk_order: Vec::new(),
+            staging: Vec::new(),
+            listings: Vec::new(),
+            phase_ends: Vec::new(),
+            footprint: PixelRect::EMPTY,
+            covered_pixels: 0,
+            alignment_entries: 1,
+            refine_straddlers,
+            parallel_from_batches: PARALLEL_CULL_BATCHES,
+        }
+    }
+
+    /// Builds the tables of `chunks` (each its full batch table) for a frame seen through
+    /// `transform` with points of `point_size` pixels, and uploads them.
+    pub fn update<'a>(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        chunks: impl Iterator<Item = BatchTables<'a>>,
+        transform: &CameraTransform,
+        point_size: u32,
+    ) {
+        let frustum = Frustum::new(transform, point_size);
+        let entry_bytes = std::mem::size_of::<u32>();
+        let alignment =
+            (device.limits().min_storage_buffer_offset_alignment as usize).div_ceil(entry_bytes);
+        self.alignment_entries = alignment as u32;
+        self.staging.clear();
+        self.ranges.clear();
+        self.listings.clear();
+        let mut coverage = PixelCoverage::new(transform.width, transform.height);
+        let refine = self.refine_straddlers;
+        let chunks: Vec<BatchTables<'a>> = chunks
+            .map(|tables| BatchTables {
+                sub_batches: if refine { tables.sub_batches } else { &[] },
+                ..tables
+            })
+            .collect();
+        let depth_gradient = transform.depth_row.truncate();
+        let batches: usize = chunks.iter().map(|tables| tables.batches.len()).sum();
+        if chunks.len() > 1 && batches >= self.parallel_from_batches {
+            // Every chunk on its own core, then their tables back to back.
+            let culled: Vec<(Vec<u32>, Listing, PixelCoverage)> = chunks
+                .par_iter()
+                .map(|&tables| {
+                    let mut entries = Vec::new();
+                    let mut chunk_coverage = PixelCoverage::new(transform.width, transform.height);
+                    let listing = list_in_view(
+                        &frustum,
+                        tables,
+                        depth_gradient,
+                        &mut entries,
+                        &mut chunk_coverage,
+                    );
+                    (entries, listing, chunk_coverage)
+                })
+                .collect();
+            for (entries, listing, chunk_coverage) in culled {
+                let start = self.pad_to_alignment(alignment);
+                self.staging.extend_from_slice(&entries);
+                self.ranges
+                    .push(((start * entry_bytes) as u64, entries.len() as u32));
+                self.listings.push(listing);
+                coverage.merge(&chunk_coverage);
+            }
+        } else {
+            for &tables in &chunks {
+                let start = self.pad_to_alignment(alignment);
+                let listing = list_in_view(
+                    &frustum,
+                    tables,
+                    depth_gradient,
+                    &mut self.staging,
+                    &mut coverage,
+                );
+                self.ranges.push((
+                    (start * entry_bytes) as u64,
+                    (self.staging.len() - start) as u32,
+                ));
+                self.listings.push(listing);
+            }
+        }
+        self.order_chunks(transform);
+        self.footprint = coverage.union();
+        self.covered_pixels = coverage.pixels();
+        self.split_in_phases(&chunks, transform);
+        if self.staging.is_empty() {
+            return;
+        }
+        let bytes = (self.staging.len() * entry_bytes) as u64;
+        if self.buffer.as_ref().is_none_or(|b| b.size() < bytes) {
+            self.buffer = Some(device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("frame batch table"),
+                // Room to grow, so that a moving camera does not reallocate every frame.
+                size: bytes.next_power_of_two(),
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }));
+        }
+        if let Some(buffer) = &self.buffer {
+            queue.write_buffer(buffer, 0, bytemuck::cast_slice(&self.staging));
+        }
+    }
+
+    /// Pads the staged tables to a multiple of `alignment` entries, where the next chunk's
+    /// table starts; returns that start.
+    fn pad_to_alignment(&mut self, alignment: usize) -> usize {
+        let padding = self.staging.len().next_multiple_of(alignment) - self.staging.len();
+        self.staging.extend(std::iter::repeat_n(0, padding));
+        self.staging.len()
+    }
+
+    /// Splits each chunk's entries in the phases of the depth-writing pass, where its points
+    /// lie deep enough for occlusion culling to pay (`occlusion::phase_cuts`).
+    fn split_in_phases(&mut self, chunks: &[BatchTables<'_>], transform: &CameraTransform) {
+        let cuts = phase_cuts(self.total(), self.points_per_pixel());
+        let mut rest = self.staging.as_mut_slice();
+        let mut taken = 0;
+        let mut entries = Vec::with_capacity(chunks.len());
+        for (tables, &(offset, count)) in chunks.iter().zip(&self.ranges) {
+            let start = offset as usize / std::mem::size_of::<u32>();
+            let (_, tail) = std::mem::take(&mut rest).split_at_mut(start - taken);
+            let (table, tail) = tail.split_at_mut(count as usize);
+            rest = tail;
+            taken = start + count as usize;
+            entries.push(ChunkEntries {
+                entries: table,
+                batches: tables.batches,
+            });
+        }
+        self.phase_ends = split_by_depth(
+            &mut entries,
+            &cuts,
+            transform.depth_row,
+            self.alignment_entries,
+        );
+    }
+
+    /// Orders the chunks that have batches in view near to far, as their batches are: a
+    /// cloud larger than one binding comes in chunks of neighbouring points (Morton order or
+    /// a streaming reader's), so this draws the near chunks' points first.
+    fn order_chunks(&mut self, transform: &CameraTransform) {
+        self.chunk_order.clear();
+        let listed = self.ranges.iter().filter(|&&(_, count)| count > 0).count();
+        if listed < 2 {
+            // Nothing to order (most clouds are one chunk).
+            self.chunk_order
+                .extend(self.ranges.iter().position(|&(_, count)| count > 0));
+            return;
+        }
+        let mut boxes: Vec<GpuBatch> = self
+            .ranges
+            .iter()
+            .zip(&self.listings)
+            .enumerate()
+            .filter(|(_, (&(_, count), _))| count > 0)
+            .map(|(chunk, (&(_, count), listing))| GpuBatch {
+                min: listing.min.to_array(),
+                first: chunk as u32,
+                max: listing.max.to_array(),
+                count,
+            })
+            .collect();
+        sort_near_to_far(&mut boxes, transform.depth_row.truncate());
+        self.chunk_order
+            .extend(boxes.iter().map(|chunk_box| chunk_box.first as usize));
+    }
+
+    /// Phases of the depth-writing pass: at least one.
+    pub fn phase_count(&self) -> usize {
+        self.phase_ends.iter().map(Vec::len).max().unwrap_or(1)
+    }
+
+    /// The pixels that points of this frame's listed batches can touch (empty when none is
+    /// listed).
+    pub fn footprint(&self) -> PixelRect {
+        self.footprint
+    }
+
+    /// Points of this frame's listed entries.
+    pub fn listed_points(&self) -> u64 {
+        self.listings.iter().map(|listing| listing.points).sum()
+    }
+
+    /// Number of batches of all chunks in this frame's tables.
+    pub fn total(&self) -> u32 {
+        self.ranges.iter().map(|&(_, count)| count).sum()
+    }
+
+    /// Points of the listed batches per pixel they can reach (counted in cells of 64 x 64
+    /// pixels): how deep the points that can be in view lie.
+    pub fn points_per_pixel(&self) -> f64 {
+        self.listed_points() as f64 / self.covered_pixels.max(1) as f64
+    }
+
+    /// Phase `phase`'s entries of every chunk that has some, chunk after chunk near to far:
+    /// the chunk, its entries as a storage binding and their number.
+    pub fn phase_parts(
+        &self,
+        phase: usize,
+    ) -> impl Iterator<Item = (usize, (wgpu::BufferBinding<'_>, u32))> + '_ {
+        self.chunk_order
+            .iter()
+            .filter_map(move |&chunk| Some((chunk, self.phase_part(chunk, phase)?)))
+    }
+
+    /// The entries of chunk `chunk`'s table in phase `phase` as a storage binding and their
+    /// number; `None` when there are none.
+    fn phase_part(&self, chunk: usize, phase: usize) -> Option<(wgpu::BufferBinding<'_>, u32)> {
+        let entries = self.phase_entries(chunk, phase);
+        self.entries_binding(chunk, entries)
+    }
+
+    /// The entries of chunk `chunk`'s table in phase `phase`: consecutive phases hold the
+    /// table in order, each from a multiple of the binding alignment.
+    fn phase_entries(&self, chunk: usize, phase: usize) -> std::ops::Range<u32> {
+        let Some(ends) = self.phase_ends.get(chunk) else {
+            return 0..0;
+        };
+        let start = if phase == 0 {
+            0
+        } else {
+            ends.get(phase - 1).copied().unwrap_or(0)
+        };
+        start..ends.get(phase).copied().unwrap_or(start).max(start)
+    }
+
+    /// `entries` of chunk `chunk`'s table as a storage binding and their number.
+    fn entries_binding(
+        &self,
+        chunk: usize,
+        entries: std::ops::Range<u32>,
+    ) -> Option<(wgpu::BufferBinding<'_>, u32)> {
+        let (offset, _) = *self.ranges.get(chunk)?;
+        let buffer = self.buffer.as_ref()?;
+        let entry = std::mem::size_of::<u32>() as u64;
+        (!entries.is_empty()).then(|| {
+            (
+                wgpu::BufferBinding {
+                    buffer,
+                    offset: offset + u64::from(entries.start) * entry,
+                    size: wgpu::BufferSize::new(u64::from(entries.len() as u32) * entry),
+                },
+                entries.len() as u32,
+            )
+        })
+    }
+
+    /// Number of batches of chunk `chunk` in this frame's table.
+    #[cfg(test)]
+    fn count(&self, chunk: usize) -> u32 {
+        self.ranges.get(chunk).map_or(0, |&(_, count)| count)
+    }
+
+    /// The table of chunk `chunk` as a storage binding; `None` when no batch is in view.
+    #[cfg(test)]
+    fn binding(&self, chunk: usize) -> Option<wgpu::BufferBinding<'_>> {
+        self.entries_binding(chunk, 0..self.count(chunk))
+            .map(|(binding, _)| binding)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::{DVec3, Vec3};
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    use super::*;
+    use crate::camera::{Camera, Projection};
+    use crate::raster::culling::{batch, decoded};
+    use crate::raster::draw_order::DrawOrders;
+    use crate::raster::occlusion::MIN_PHASES;
+    use crate::raster::points::{BATCH_POINTS, SUB_BATCH_POINTS};
+
+    /// A 64 x 64 orthographic view down -z from z = 10, 2 units high: depth is 10 - z.
+    fn looking_down_from_z_10() -> CameraTransform {
+        let camera = Camera {
+            position: DVec3::new(0.0, 0.0, 10.0),
+            target: DVec3::ZERO,
+            up: DVec3::Y,
+            projection: Projection::Orthographic { height: 2.0 },
+            near: 1.0,
+            far: 20.0,
+        };
+        camera.transform(DVec3::ZERO, 64, 64)
+    }
+
+    #[test]
+    fn tables_hold_the_batches_in_view_in_order_at_aligned_offsets() {
+        let gpu = crate::testing::gpu();
+        let transform = looking_down_from_z_10();
+        let far = batch(Vec3::splat(-0.1), Vec3::splat(0.1));
+        let near = batch(Vec3::new(-0.1, -0.1, 4.9), Vec3::new(0.1, 0.1, 5.1));
+        let beside = batch(Vec3::splat(50.0), Vec3::splat(51.0));
+        let behind = batch(Vec3::new(-0.1, -0.1, 10.5), Vec3::new(0.1, 0.1, 11.0));
+        let chunks: [&[GpuBatch]; 3] = [&[far, beside, near, behind], &[beside], &[beside, far]];
+        let orders: [DrawOrders; 3] = Default::default();
+        let mut tables = FrameBatches::new(true);
+        let tables_of = chunks
+            .into_iter()
+            .zip(&orders)
+            .map(|(batches, draw_orders)| BatchTables {
+                batches,
+                sub_batches: &[],
+                groups: &[],
+                draw_orders,
+            });
+        tables.update(&gpu.device, &gpu.queue, tables_of, &transform, 1);
+
+        assert_eq!(
+            (tables.count(0), tables.count(1), tables.count(2)),
+            (2, 0, 1)
+        );
+        assert!(tables.binding(1).is_none());
+        // Both listed boxes project to the middle of the image, 0.2 of its 2 units wide
+        // (6.4 pixels), widened by the 1-pixel points and a pixel of margin.
+        let footprint = tables.footprint();
+        assert!(footprint.contains(32, 32), "{footprint:?}");
+        assert!(
+            footprint.width() <= 12 && footprint.height() <= 12,
+            "{footprint:?}"
+        );
+        let (offset, _) = tables.ranges[0];
+        let first = offset as usize / std::mem::size_of::<GpuBatch>();
+        assert_eq!(
+            decoded(&tables.staging[first..first + 2], chunks[0]),
+            [near, far],
+            "near to far"
+        );
+        let alignment = u64::from(gpu.device.limits().min_storage_buffer_offset_alignment);
+        for chunk in [0, 2] {
+            let binding = tables.binding(chunk).expect("batches in view");
+            assert_eq!(binding.offset % alignment, 0);
+        }
+    }
+
+    /// The depth pass's phases split the listed batches by depth across the chunks: the first
+    /// holds the nearest batches, and together they hold every listed batch once, each chunk's
+    /// phases one after the other in its table.
+    #[test]
+    fn phases_split_the_chunks_by_depth_and_hold_every_batch_once() {
+        let gpu = crate::testing::gpu();
+        let transform = looking_down_from_z_10();
+        // Batch b of a chunk at `depth` lies 0.01 b deeper.
+        let at_depth = |depth: f32, n: usize| -> Vec<GpuBatch> {
+            (0..n)
+                .map(|b| {
+                    let z = 10.0 - depth - 0.01 * b as f32;
+                    GpuBatch {
+                        count: BATCH_POINTS as u32,
+                        ..batch(
+                            Vec3::new(-0.5, -0.5, z - 0.005),
+                            Vec3::new(0.5, 0.5, z + 0.005),
+                        )
+                    }
+                })
+                .collect()
+        };
+        // Chunk 0 far, chunk 1 near, chunk 2 between; 200 full batches each, deep enough on
+        // the 64 x 64 image for phases.
+        let chunks = [at_depth(8.0, 200), at_depth(2.0, 200), at_depth(5.0, 200)];
+        let orders: [DrawOrders; 3] = Default::default();
+        let mut tables = FrameBatches::new(true);
+        tables.update(
+            &gpu.device,
+            &gpu.queue,
+            chunks
+                .iter()
+                .zip(&orders)
+                .map(|(batches, draw_orders)| BatchTables {
+                    batches,
+                    sub_batches: &[],
+                    groups: &[],
+                    draw_orders,
+                }),
+            &transform,
+            1,
+        );
+        assert_eq!(tables.chunk_order, [1, 2, 0]);
+        let phase_count = tables.phase_count();
+        assert!(phase_count >= MIN_PHASES, "{phase_count}");
+        let phases: Vec<Vec<(usize, std::ops::Range<u32>)>> = (0..tables.phase_count())
+            .map(|phase| {
+                tables
+                    .chunk_order
+                    .iter()
+                    .map(|&chunk| (chunk, tables.phase_entries(chunk, phase)))
+                    .filter(|(_, entries)| !entries.is_empty())
+                    .collect()
+            })
+            .collect();
+        // Equal shares of 600 batches: the first from the nearest chunk, the last from the
+        // farthest (alignment moves a few batches to the phase before theirs, in their own
+        // chunk).
+        assert!(phases[0].iter().all(|(chunk, _)| *chunk == 1), "{phases:?}");
+        assert!(
+            phases[phase_count - 1].iter().all(|(chunk, _)| *chunk == 0),
+            "{phases:?}"
+        );
+        let mut seen = [0u32; 3];
+        for (chunk, entries) in phases.iter().flatten() {
+            assert_eq!(entries.start, seen[*chunk], "{phases:?}");
+            assert_eq!(entries.start % tables.alignment_entries, 0, "{phases:?}");
+            seen[*chunk] = entries.end;
+        }
+        assert_eq!(seen, [200, 200, 200]);
+        // Each chunk's table holds its batches once.
+        for chunk in 0..3 {
+            let (offset, count) = tables.ranges[chunk];
+            let start = offset as usize / 4;
+            let mut batches: Vec<u32> = tables.staging[start..start + count as usize]
+                .iter()
+                .map(|e| e >> 8)
+                .collect();
+            batches.sort_unstable();
+            assert_eq!(batches, (0..200).collect::<Vec<u32>>());
+        }
+    }
+
+    /// Synthetic chunks of `batches` boxes each, scattered in a 20-unit cube, each batch with
+    /// its 16 runs as slabs along x.
+    fn scattered_chunks(chunks: usize, batches: usize) -> Vec<(Vec<GpuBatch>, Vec<GpuBatch>)> {
+        let mut rng = ChaCha8Rng::seed_from_u64(21);
+        let runs = (BATCH_POINTS / SUB_BATCH_POINTS) as u32;
+        (0..chunks)
+            .map(|_| {
+                let mut table = Vec::new();
+                let mut subs = Vec::new();
+                for b in 0..batches as u32 {
+                    let min =
+                        Vec3::from_array(std::array::from_fn(|_| rng.random_range(-10.0..9.0)));
+                    let max = min + Vec3::splat(rng.random_range(0.1..1.0));
+                    let whole = GpuBatch {
+                        min: min.to_array(),
+                        first: b * BATCH_POINTS as u32,
+                        max: max.to_array(),
+                        count: BATCH_POINTS as u32,
+                    };
+                    for s in 0..runs {
+                        let x = |k: u32| min.x + (max.x - min.x) * k as f32 / runs as f32;
+                        subs.push(GpuBatch {
+                            min: [x(s), min.y, min.z],
+                            first: whole.first + s * SUB_BATCH_POINTS as u32,
+                            max: [x(s + 1), max.y, max.z],
+                            count: SUB_BATCH_POINTS as u32,
+                        });
+                    }
+                    table.push(whole);
+                }
+                (table, subs)
+            })
+            .collect()
+    }
+
+    /// A cloud of many chunks is culled on all cores into the very tables one core builds;
+    /// on a GPU adapter, batches at the view's edge are listed whole.
+    #[test]
+    fn parallel_culling_builds_the_same_tables_and_gpus_list_straddlers_whole() {
+        let gpu = crate::testing::gpu();
+        let camera = Camera {
+            position: DVec3::new(6.0, -25.0, 8.0),
+            target: DVec3::new(4.0, 0.0, 3.0),
+            up: DVec3::Z,
+            projection: Projection::Perspective { fov_y_deg: 35.0 },
+            near: 1.0,
+            far: 100.0,
+        };
+        let transform = camera.transform(DVec3::ZERO, 320, 200);
+        let chunks = scattered_chunks(5, 1000);
+        let orders: Vec<DrawOrders> = chunks.iter().map(|_| DrawOrders::default()).collect();
+        let build = |refine: bool, parallel_from: usize| {
+            let mut tables = FrameBatches::new(refine);
+            tables.parallel_from_batches = parallel_from;
+            tables.update(
+                &gpu.device,
+                &gpu.queue,
+                chunks
+                    .iter()
+                    .zip(&orders)
+                    .map(|((batches, sub_batches), draw_orders)| BatchTables {
+                        batches,
+                        sub_batches,
+                        groups: &[],
+                        draw_orders,
+                    }),
+                &transform,
+                1,
+            );
+            tables
+        };
+        let (parallel, serial) = (build(true, 0), build(true, usize::MAX));
+        assert_eq!(parallel.staging, serial.staging);
+        assert_eq!(parallel.ranges, serial.ranges);
+        assert_eq!(parallel.chunk_order, serial.chunk_order);
+        assert_eq!(parallel.footprint, serial.footprint);
+        assert_eq!(parallel.covered_pixels, serial.covered_pixels);
+        let narrowed = |t: &FrameBatches| {
+            let mut narrowed = 0;
+            for (&(offset, count), (batches, _)) in t.ranges.iter().zip(&chunks) {
+                let start = offset as usize / std::mem::size_of::<u32>();
+                let entries = decoded(&t.staging[start..][..count as usize], batches);
+                narrowed += entries
+                    .iter()
+                    .filter(|e| e.count % BATCH_POINTS as u32 != 0)
+                    .count();
+            }
+            narrowed
+        };
+        assert!(narrowed(&serial) > 0, "no batch straddles the view's edge");
+        let whole = build(false, usize::MAX);
+        assert_eq!(narrowed(&whole), 0);
+        assert!(whole.listed_points() > serial.listed_points());
+    }
+}

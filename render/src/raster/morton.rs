@@ -1,0 +1,68 @@
+//! Z-order (Morton) codes: the curve along which an upload sorts a cloud's points, so that
+//! consecutive points lie close together, and along which `draw_order.rs` orders batches.
+
+use glam::Vec3;
+
+/// Indices of `positions` in Z-order over their bounding box (21 bits per axis).
+pub(crate) fn morton_order(positions: &[Vec3]) -> Vec<u32> {
+    let (min, max) = positions.iter().fold(
+        (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+        |(lo, hi), p| (lo.min(*p), hi.max(*p)),
+    );
+    let scale = (max - min).max_element().max(f32::MIN_POSITIVE);
+    let cells = ((1u32 << 21) - 1) as f32;
+    let mut keyed: Vec<(u64, u32)> = positions
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let q = ((*p - min) / scale * cells).clamp(Vec3::ZERO, Vec3::splat(cells));
+            (morton3(q.x as u32, q.y as u32, q.z as u32), i as u32)
+        })
+        .collect();
+    keyed.sort_unstable();
+    keyed.into_iter().map(|(_, i)| i).collect()
+}
+
+/// Interleaves the low 21 bits of x, y and z.
+pub(crate) fn morton3(x: u32, y: u32, z: u32) -> u64 {
+    fn spread(v: u32) -> u64 {
+        let mut v = v as u64 & 0x1f_ffff;
+        v = (v | (v << 32)) & 0x001f_0000_0000_ffff;
+        v = (v | (v << 16)) & 0x001f_0000_ff00_00ff;
+        v = (v | (v << 8)) & 0x100f_00f0_0f00_f00f;
+        v = (v | (v << 4)) & 0x10c3_0c30_c30c_30c3;
+        v = (v | (v << 2)) & 0x1249_2492_4924_9249;
+        v
+    }
+    spread(x) | (spread(y) << 1) | (spread(z) << 2)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn morton_code_interleaves_bits() {
+        assert_eq!(morton3(1, 0, 0), 0b001);
+        assert_eq!(morton3(0, 1, 0), 0b010);
+        assert_eq!(morton3(0, 0, 1), 0b100);
+        assert_eq!(morton3(3, 0, 0), 0b001_001);
+        assert_eq!(morton3(0x1f_ffff, 0x1f_ffff, 0x1f_ffff), (1u64 << 63) - 1);
+    }
+
+    #[test]
+    fn morton_order_is_a_permutation_that_keeps_neighbours_together() {
+        let positions: Vec<Vec3> = (0..64)
+            .map(|i| Vec3::new((i % 4) as f32, ((i / 4) % 4) as f32, (i / 16) as f32))
+            .collect();
+        let order = morton_order(&positions);
+        let mut sorted = order.clone();
+        sorted.sort_unstable();
+        assert_eq!(sorted, (0..64).collect::<Vec<u32>>());
+        // The first eight points in Z-order form the 2x2x2 cube at the corner.
+        for &i in &order[..8] {
+            let p = positions[i as usize];
+            assert!(p.max_element() <= 1.0, "{p}");
+        }
+    }
+}
