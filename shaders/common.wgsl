@@ -28,13 +28,13 @@ struct FrameUniforms {
 }
 
 // Side of the square each point covers, in pixels. A pipeline constant, not a uniform: with a
-// constant trip count the compiler unrolls the per-pixel loop, and on lavapipe that loop made
-// the 1-pixel point pass half as fast again (BENCHMARKS.md). One pipeline per size.
+// constant trip count the compiler unrolls the per-pixel loop, which lavapipe runs much faster
+// (docs/perf/point-size-constant.md). One pipeline per size.
 override POINT_SIZE: u32 = 1u;
 
 // Points are grouped in batches of nearby points (Morton order), each with its bounding box.
 // Each frame the host lists the batches that can be in view and a point pass runs one
-// workgroup per listed batch (`raster/culling.rs`), so culled batches cost nothing.
+// workgroup per listed batch (`raster/culling/`), so culled batches cost nothing.
 struct Batch {
     min: vec3<f32>,
     first: u32,
@@ -42,7 +42,7 @@ struct Batch {
     count: u32,
 }
 
-// The batch a frame table's entry lists (`ListedEntry` in `raster/culling.rs`): `batch`, the
+// The batch a frame table's entry lists (`ListedEntry` in `raster/culling/listing.rs`): `batch`, the
 // chunk's table entry at `entry >> 8`, narrowed to the run of its sub-batches from
 // `(entry >> 4) & 15` for `(entry & 15) + 1` of them (the whole batch: 0 and 15).
 fn listed_batch(entry: u32, batch: Batch) -> Batch {
@@ -202,7 +202,8 @@ fn box_corner(batch: Batch, corner: u32) -> vec4<f32> {
 // True when no part of the batch's box can be in view: all eight corners lie outside the
 // same frustum plane (clip-space side planes widened by the point size, and near/far).
 // The host has culled the batches already; this f32 test is kept because it costs little for
-// a batch in view, and without it lavapipe ran the point passes 55% slower (BENCHMARKS.md).
+// a batch in view, and without it lavapipe ran the point passes slower
+// (docs/perf/shader-box-test.md).
 fn batch_outside_view(frame: FrameUniforms, batch: Batch) -> bool {
     let widen = vec2<f32>(
         1.0 + 2.0 * f32(POINT_SIZE) / f32(frame.width),

@@ -48,7 +48,8 @@ fn fill_step(
 ) {
     // Fixed pixels hold the same value in both buffer pairs from the start (the visibility
     // pass copied them unchanged into the fill buffers) and are not listed: on lavapipe,
-    // visiting every pixel to skip the fixed ones was 40% of the filling's time.
+    // visiting every pixel to skip the fixed ones was much of the filling's time
+    // (docs/perf/fill-and-shading.md).
     let listed = listed_pixel(workgroup, groups, lane);
     if !listed.listed {
         return;

@@ -5,10 +5,9 @@
 // add back and adds to the wide sums instead, the four words of `hq_sums_atomic32.wgsl` as two
 // little-endian pairs, and flags the packed word so that the resolve (`resolve_average_packed`)
 // reads them too. The sums are integers, so the image does not depend on which points went
-// where: it is the same as the 32-bit path's to the bit (tested). On lavapipe, against two
-// atomics a point on the wide sums alone, the 1M-point cube's accumulation took 8.4-10.3 ms
-// instead of 13.1-13.8 and its resolve 3.7-3.8 instead of 4.0-4.3: half the bytes a pixel
-// (BENCHMARKS.md, session 11).
+// where: it is the same as the 32-bit path's to the bit (tested). Half the bytes a pixel make
+// both the accumulation and its resolve faster than two atomics a point on the wide sums
+// alone (docs/perf/hq-accumulation.md).
 //
 // Another point's add, not yet taken back, can make a point find the word full early (it then
 // goes to the wide sums, which is still exact); a carry between the packed fields while adds

@@ -14,9 +14,7 @@
 // accumulator) entries of its run only when a point landed on one of them. llvmpipe stores lane
 // by lane behind a branch on each lane's mask: per pixel, that branch mispredicted wherever
 // covered and empty pixels mix at random (sparse points), while per run it is predictable on
-// both solid and sparse surfaces and still skips empty background. With runs, the basic resolve
-// took 0.5-0.6 of the per-pixel version's time on the 10M cube and the real scans at 1080p
-// (docs/perf/resolve-runs.md). The run lengths, `RESOLVE_RUN` and `AVERAGE_RUN`, come from the
+// both solid and sparse surfaces and still skips empty background (docs/perf/resolve-runs.md). The run lengths, `RESOLVE_RUN` and `AVERAGE_RUN`, come from the
 // layout prelude; the high-quality resolve holds four words a pixel, and its shorter runs were
 // faster.
 

@@ -4,9 +4,8 @@
 //! Entries are keyed by the file's content hash and [`FORMAT_VERSION`], so a changed file or a
 //! changed layout never returns stale points. Columns are stored in chunks of
 //! [`CHUNK_POINTS`] points, 80 KB each: sled reads a value of many megabytes through a slow
-//! path (a 10M-point cloud in chunks of 1Mi points, 20 MB each, took 341 ms to load and 362
-//! ms to open; BENCHMARKS.md). The cache holds at most
-//! `max_bytes`; the least recently used entries are evicted to make room.
+//! path (docs/perf/dataset-cache.md). The cache holds at most `max_bytes`; the least recently
+//! used entries are evicted to make room.
 
 use std::path::Path;
 use std::time::Instant;

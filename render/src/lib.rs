@@ -1,4 +1,4 @@
-//! pointfarm's worker library: reads LAS/LAZ into a recentred [`cloud::PointCloud`] and
+//! pointfarm's rendering library: reads LAS/LAZ into a recentred [`cloud::PointCloud`] and
 //! renders it with a wgpu compute-shader rasterizer.
 //!
 //! This crate knows nothing of gRPC, the daemon or the CLI: it takes files, clouds, cameras

@@ -1,3 +1,5 @@
+//! Supersampling's last step: averaging k x k blocks of a frame rendered k times larger.
+
 use image::RgbaImage;
 
 use super::Frame;

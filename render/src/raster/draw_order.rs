@@ -4,15 +4,15 @@
 //! The point passes' early depth test skips the atomic and the colour fetch of a point
 //! behind one already drawn, so drawing near batches first saves work. Sorting the batches by
 //! depth loses what the cloud's Morton order gives: consecutive workgroups write nearby pixels
-//! (on lavapipe that sort made the 10M-point frame 20% slower, BENCHMARKS.md). Instead, the
+//! (on lavapipe that sort made frames slower: docs/perf/draw-order.md). Instead, the
 //! batches follow the Z-order curve of the space mirrored on each axis along which depth
 //! falls. At every level of that curve's octree the near half of a cell comes first, and
 //! consecutive batches stay neighbours. For a view from outside the cell the "near half" is
 //! taken from the depth gradient, exact for orthographic views and nearly so for perspective
 //! ones.
 //!
-//! On the benchmark's 10M-point cube the share of points that pass the early depth test falls
-//! from 25% to 8% (a CPU simulation; drawing in exact depth order would give 5%).
+//! The order lets far fewer points pass the early depth test, nearly as few as an exact depth
+//! order would (docs/perf/draw-order.md).
 
 use std::sync::OnceLock;
 

@@ -55,8 +55,8 @@ impl HqAccumulatePass {
         pass.set_pipeline(&pipeline);
         // One dispatch per phase of the depth pass (`phases.rs`): over the whole table, the
         // near phases' batches, where most points add colours, came first and the hidden far
-        // ones last, and lavapipe's threads shared that work unevenly (the 10M-point cube's
-        // accumulation took 52-58 ms against 36 ms phase by phase).
+        // ones last, and lavapipe's threads shared that work unevenly
+        // (docs/perf/depth-phases.md).
         let parts =
             (0..frame.batches.phase_count()).flat_map(|phase| frame.batches.phase_parts(phase));
         for (index, (table, entries)) in parts {

@@ -9,7 +9,8 @@
 //!
 //! On lavapipe every memory access of a shader costs a loop over the SIMD lanes whether or not
 //! a lane is active, so the tiles are built between dispatches from the framebuffer rather
-//! than updated by each point (that cost more than culling saved). Figures: BENCHMARKS.md.
+//! than updated by each point (that cost more than culling saved:
+//! docs/perf/occlusion-culling.md).
 
 use pointfarm_shaders::layout::{OCCLUSION_BUILD_WORKGROUP_SIDE, OCCLUSION_CLEAR_WORKGROUP};
 use pointfarm_shaders::Shader;

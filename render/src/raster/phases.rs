@@ -8,8 +8,8 @@
 //! write neighbouring pixels.
 //!
 //! Phases by depth, not by position along that curve, because a batch late on the curve may
-//! still lie near the camera somewhere on screen: on the 10M-point cube with three phases,
-//! 35% of the batches were skipped against 24% with the curve cut in three (BENCHMARKS.md).
+//! still lie near the camera somewhere on screen, and phases by depth skip more batches
+//! (docs/perf/depth-phases.md).
 
 use glam::{DVec3, DVec4, Vec3};
 

@@ -2,7 +2,7 @@
 //!
 //! The side of a point's square is the shaders' pipeline constant `POINT_SIZE`, not a uniform:
 //! with a constant trip count the shader compiler unrolls the per-pixel loop, and on lavapipe
-//! the runtime loop cost a third of the 1-pixel point pass (BENCHMARKS.md). The default size 1
+//! the runtime loop made the point pass much slower (docs/perf/point-size-constant.md). The default size 1
 //! is built with the renderer, other sizes on first use, then kept.
 
 use std::collections::HashMap;

@@ -6,8 +6,8 @@
 //! invocations of a workgroup as SIMD vectors of one subgroup each, one vector after the
 //! other. With a workgroup of one subgroup, that vector walks its Morton-ordered batch in order
 //! instead of striding through it 128 points at a time, so consecutive iterations read
-//! adjacent positions and write nearby pixels: on lavapipe the 10M-point frame's point pass
-//! fell from 68 to 59 ms (BENCHMARKS.md).
+//! adjacent positions and write nearby pixels, which makes lavapipe's point pass faster
+//! (docs/perf/point-workgroup-size.md).
 
 use super::points::BATCH_POINTS;
 
