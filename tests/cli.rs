@@ -166,6 +166,19 @@ fn bad_input_fails_with_one_line_that_names_the_problem() {
             render(&["--shading", "pintus", "--pintus-levels", "0"]),
             "Pintus shading",
         ),
+        (
+            render(&["--shading", "edl", "--edl-strength", "500"]),
+            "render.edl_strength",
+        ),
+        // What the service cannot do is refused before anything is sent, never dropped.
+        (
+            render(&["--server", "http://127.0.0.1:9", "--depth"]),
+            "--depth is not available through a server",
+        ),
+        (
+            render(&["--server", "http://127.0.0.1:9", "--atomics", "32"]),
+            "--atomics",
+        ),
     ];
     for (output, needle) in cases {
         assert!(
@@ -364,6 +377,57 @@ fn fill_and_pintus_shading_render_the_same_locally_and_through_the_service() {
     ];
     assert_ok(&pointfarm(&args));
     assert_ne!(frame(&local), frame(&plain));
+}
+
+#[test]
+fn lens_camera_and_supersampling_render_the_same_locally_and_through_the_service() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let laz = sample(dir.path(), "sample.laz", 20_000);
+    let server = ServeProcess::start(&dir.path().join("data"));
+    // The sample scene lies around (500000, 4500000, 100), 120 m across.
+    let options = [
+        "--size",
+        "64x48",
+        "--turntable",
+        "2",
+        "--supersample",
+        "2",
+        "--ortho",
+        "--ortho-height",
+        "80",
+        "--camera-pos",
+        "500000,4499850,180",
+        "--camera-target",
+        "500000,4500000,100",
+        "--near",
+        "120",
+        "--far",
+        "200",
+        "--point-size",
+        "2",
+    ];
+    let render_to = |out: &Path, server: Option<&str>| {
+        let out = path_arg(out);
+        let mut args = vec!["render", laz.as_str(), "--out", out.as_str()];
+        if let Some(address) = server {
+            args.extend(["--server", address]);
+        }
+        args.extend(options);
+        assert_ok(&pointfarm(&args));
+    };
+    let (local, remote) = (dir.path().join("local"), dir.path().join("remote"));
+    render_to(&local, None);
+    render_to(&remote, Some(&server.address));
+    for i in 0..2 {
+        let name = format!("frame_{i:05}.png");
+        assert_rendered(&local.join(&name), 64, 48);
+        let image = |dir: &Path| image::open(dir.join(&name)).expect("frame").to_rgba8();
+        assert_eq!(
+            image(&local),
+            image(&remote),
+            "{name}: the service rendered another picture"
+        );
+    }
 }
 
 #[test]

@@ -172,6 +172,7 @@ async fn invalid_requests_get_their_status_codes() {
             }),
             ..Default::default()
         })),
+        lens: None,
     });
     let (code, message) = code_and_message(jobs.submit_job(nan).await);
     assert_eq!(code, Code::InvalidArgument);

@@ -7,11 +7,14 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use clap::Args;
+use pointfarm_daemon::model::JobSpec;
 use pointfarm_daemon::server::serve;
 use pointfarm_daemon::service::{Daemon, DaemonConfig};
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::gpu::{AdapterChoice, GpuContext};
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
+use pointfarm_render::raster::Quality;
+use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
 use pointfarm_render::sample::{sample_scene, DEFAULT_SAMPLE_POINTS};
 
 use crate::remote::{require_success, status_error, timings_line, Client};
@@ -69,27 +72,26 @@ pub fn run(args: DemoArgs) -> Result<()> {
         let result = async {
             let mut client = Client::connect(&address.to_string(), None).await?;
             let dataset = client.ensure_dataset(&input).await?;
-            let request = pb::SubmitJobRequest {
+            let spec = JobSpec {
                 request_id: format!(
                     "demo-{}-{}-{}x{}",
                     dataset.id, args.frames, args.size.0, args.size.1
                 ),
                 dataset_id: dataset.id.clone(),
-                camera_path: Some(pb::CameraPath {
-                    path: Some(pb::camera_path::Path::Turntable(pb::Turntable {
-                        frames: args.frames,
-                        ..Default::default()
-                    })),
-                }),
-                width: args.size.0,
-                height: args.size.1,
-                render: Some(pb::RenderOptions {
-                    point_size: 2,
-                    quality: pb::Quality::High as i32,
-                    ..Default::default()
-                }),
+                request: RenderRequest {
+                    width: args.size.0,
+                    height: args.size.1,
+                    camera_path: CameraPath::Turntable(Turntable::around_the_cloud(args.frames)),
+                    lens: Lens::default(),
+                    render: RenderOptions {
+                        point_size: 2,
+                        quality: Quality::HIGH,
+                        ..RenderOptions::default()
+                    },
+                },
                 priority: 0,
             };
+            let request = pb::SubmitJobRequest::from(&spec);
             let job = client
                 .jobs
                 .submit_job(request)

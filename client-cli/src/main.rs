@@ -7,6 +7,7 @@ mod parse;
 mod remote;
 mod remote_render;
 mod render;
+mod render_args;
 mod sample;
 mod serve;
 mod video;

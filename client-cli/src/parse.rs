@@ -50,6 +50,22 @@ pub fn color(s: &str) -> Result<[u8; 4], String> {
     Ok([byte(0)?, byte(2)?, byte(4)?, alpha])
 }
 
+/// An RGBA colour that prints as `#rrggbbaa` (for defaults shown in the help).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Rgba(pub [u8; 4]);
+
+impl std::fmt::Display for Rgba {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let [r, g, b, a] = self.0;
+        write!(f, "#{r:02x}{g:02x}{b:02x}{a:02x}")
+    }
+}
+
+/// [`color`] as an [`Rgba`].
+pub fn rgba(s: &str) -> Result<Rgba, String> {
+    color(s).map(Rgba)
+}
+
 /// `rgb`, `intensity`, `elevation`, `classification`, `return`, or a colour like `#ff8000`.
 pub fn color_mode(s: &str) -> Result<ColorMode, String> {
     match s.to_ascii_lowercase().as_str() {
@@ -92,6 +108,8 @@ mod tests {
         assert_eq!(color("ff800080"), Ok([255, 128, 0, 128]));
         assert_eq!(color("transparent"), Ok([0, 0, 0, 0]));
         assert!(color("#ff80").is_err());
+        let background = Rgba([24, 24, 28, 255]);
+        assert_eq!(rgba(&background.to_string()), Ok(background));
         assert_eq!(color_mode("Elevation"), Ok(ColorMode::Elevation));
         assert_eq!(color_mode("#010203"), Ok(ColorMode::Fixed([1, 2, 3])));
         assert!(color_mode("rainbow").is_err());

@@ -1,126 +1,55 @@
-//! `pointfarm render --server URL`: the local render's options, carried out by a daemon.
+//! `pointfarm render --server URL`: the request of the local render, carried out by a daemon
+//! (or refused, naming the option the service does not have).
 //! Uploads the file if the server lacks it, submits, follows with a progress bar and
 //! downloads the frames.
 
 use anyhow::{bail, Context, Result};
+use pointfarm_daemon::model::JobSpec;
 use pointfarm_proto::v1 as pb;
-use pointfarm_render::color::ColorMode;
+use pointfarm_render::raster::AtomicsMode;
+use pointfarm_render::request::RenderRequest;
 
 use crate::remote::{require_success, timings_line, Client};
-use crate::render::{QualityArg, RenderArgs, ShadingArg};
+use crate::render_args::RenderArgs;
 
-fn vec3(v: glam::DVec3) -> pb::Vec3 {
-    pb::Vec3 {
-        x: v.x,
-        y: v.y,
-        z: v.z,
+/// Refuses what the service cannot do, so that no option is dropped on the way.
+fn refuse_local_only_options(args: &RenderArgs, request: &RenderRequest) -> Result<()> {
+    if request.render.depth {
+        bail!(
+            "--depth is not available through a server: the service returns colour frames \
+             only; render locally for depth images"
+        );
     }
+    if args.atomics() != AtomicsMode::Auto {
+        bail!(
+            "--atomics chooses this machine's point pass and is not available through a \
+             server (its workers choose theirs); render locally to force the 32-bit path"
+        );
+    }
+    Ok(())
 }
 
-fn color(rgba: [u8; 4]) -> pb::Color {
-    pb::Color {
-        rgba: u32::from_be_bytes(rgba),
-    }
-}
-
-/// The job a set of render options describes.
-fn submission(args: &RenderArgs, dataset_id: String) -> Result<pb::SubmitJobRequest> {
-    if args.ortho || args.near.is_some() || args.far.is_some() {
-        bail!("--ortho, --near and --far are not available through a server yet; render locally");
-    }
-    let frames = args.turntable.unwrap_or(1) as u32;
-    let path = match (args.camera_pos, args.turntable) {
-        // A fixed camera: one keyframe, held.
-        (Some(position), None) => {
-            let target = args
-                .camera_target
-                .context("--camera-pos needs --camera-target with --server")?;
-            let key = pb::Keyframe {
-                position: Some(vec3(position)),
-                target: Some(vec3(target)),
-                up: Some(vec3(args.camera_up)),
-                fov_y_deg: args.fov,
-            };
-            pb::camera_path::Path::Keyframes(pb::KeyframePath {
-                keyframes: vec![key, key],
-                frames: 1,
-                interpolation: pb::Interpolation::Linear as i32,
-            })
-        }
-        // An orbit through the given position around the target.
-        (Some(position), Some(_)) => {
-            let target = args
-                .camera_target
-                .context("--camera-pos needs --camera-target with --server")?;
-            let offset = position - target;
-            let radius = offset.length();
-            pb::camera_path::Path::Turntable(pb::Turntable {
-                frames,
-                center: Some(vec3(target)),
-                radius: Some(radius),
-                elevation_deg: Some(
-                    (offset.z / radius.max(f64::MIN_POSITIVE))
-                        .asin()
-                        .to_degrees(),
-                ),
-                degrees: None,
-                fov_y_deg: Some(args.fov),
-            })
-        }
-        (None, _) => pb::camera_path::Path::Turntable(pb::Turntable {
-            frames,
-            center: args.camera_target.map(vec3),
-            fov_y_deg: Some(args.fov),
-            ..Default::default()
-        }),
-    };
-    let (color_mode, fixed_color) = match args.color {
-        ColorMode::Rgb => (pb::ColorMode::Rgb, None),
-        ColorMode::Intensity => (pb::ColorMode::Intensity, None),
-        ColorMode::Elevation => (pb::ColorMode::Elevation, None),
-        ColorMode::Classification => (pb::ColorMode::Classification, None),
-        ColorMode::ReturnNumber => (pb::ColorMode::ReturnNumber, None),
-        ColorMode::Fixed([r, g, b]) => (pb::ColorMode::Fixed, Some(color([r, g, b, 255]))),
-    };
-    let render = pb::RenderOptions {
-        point_size: args.point_size,
-        quality: match args.quality {
-            QualityArg::Basic => pb::Quality::Basic,
-            QualityArg::High => pb::Quality::High,
-        } as i32,
-        depth_band: Some(args.depth_band),
-        shading: match args.shading {
-            ShadingArg::None => pb::Shading::None,
-            ShadingArg::Edl => pb::Shading::Edl,
-            ShadingArg::Pintus => pb::Shading::Pintus,
-        } as i32,
-        fill: args
-            .fill_settings()
-            .map(|f| pb::FillOptions { kernel: f.kernel }),
-        pintus_levels: Some(args.pintus_levels),
-        pintus_exponent: Some(args.pintus_exponent),
-        edl_strength: Some(args.edl_strength),
-        edl_radius: Some(args.edl_radius),
-        color_mode: color_mode as i32,
-        fixed_color,
-        background: Some(color(args.background)),
-    };
+/// The job `request` describes.
+fn submission(
+    args: &RenderArgs,
+    request: &RenderRequest,
+    dataset_id: String,
+) -> pb::SubmitJobRequest {
     let nonce = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_nanos())
         .unwrap_or(0);
-    Ok(pb::SubmitJobRequest {
+    let spec = JobSpec {
         request_id: format!("cli-{}-{nonce}", std::process::id()),
         dataset_id,
-        camera_path: Some(pb::CameraPath { path: Some(path) }),
-        width: args.size.0,
-        height: args.size.1,
-        render: Some(render),
+        request: request.clone(),
         priority: args.priority,
-    })
+    };
+    pb::SubmitJobRequest::from(&spec)
 }
 
-pub fn run(server: &str, args: &RenderArgs) -> Result<()> {
+pub fn run(server: &str, args: &RenderArgs, request: &RenderRequest) -> Result<()> {
+    refuse_local_only_options(args, request)?;
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {
         let mut client = Client::connect(server, args.token.as_deref()).await?;
@@ -132,7 +61,7 @@ pub fn run(server: &str, args: &RenderArgs) -> Result<()> {
         );
         let job = client
             .jobs
-            .submit_job(submission(args, dataset.id)?)
+            .submit_job(submission(args, request, dataset.id))
             .await
             .map_err(crate::remote::status_error)?
             .into_inner();

@@ -17,11 +17,11 @@
 use std::collections::HashSet;
 use std::time::Duration;
 
+use pointfarm_render::request::RenderRequest;
+
 use crate::error::DaemonError;
 use crate::lease_record::Lease;
-use crate::model::{
-    now_unix_ms, CameraPath, FrameReport, FrameState, Job, JobState, RenderOptions, StageTiming,
-};
+use crate::model::{now_unix_ms, FrameReport, FrameState, Job, JobState, StageTiming};
 use crate::service::Daemon;
 
 /// The dataset of a task, as a worker's cache knows it.
@@ -38,10 +38,8 @@ pub struct FrameTask {
     pub lease: Lease,
     pub lease_timeout: Duration,
     pub dataset: TaskDataset,
-    pub camera_path: CameraPath,
-    pub width: u32,
-    pub height: u32,
-    pub render: RenderOptions,
+    /// The job's request; the frame is `lease.index` of its camera path.
+    pub request: RenderRequest,
     /// Attempts at this frame that ended without a result.
     pub failed_attempts: u32,
 }
@@ -126,10 +124,7 @@ impl Daemon {
                     sha256: dataset.sha256,
                     size_bytes: dataset.size_bytes,
                 },
-                camera_path: job.spec.camera_path.clone(),
-                width: job.spec.width,
-                height: job.spec.height,
-                render: job.spec.render.clone(),
+                request: job.spec.request.clone(),
                 failed_attempts,
             }));
         }
@@ -164,7 +159,7 @@ impl Daemon {
         let _scheduling = self.scheduling()?;
         self.expire_leases_locked()?;
         let (lease, job) = self.held_lease_locked(lease_id)?;
-        Ok((lease, job.spec.width, job.spec.height))
+        Ok((lease, job.spec.request.width, job.spec.request.height))
     }
 
     /// Extends a lease, or says why the worker should drop its frame.
@@ -419,6 +414,7 @@ mod tests {
                     frames: 3,
                     ..Default::default()
                 })),
+                lens: None,
             }),
             width: 8,
             height: 6,

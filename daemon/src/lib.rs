@@ -12,7 +12,6 @@
 //! health, reflection, the lease sweep, shutdown). Only `grpc`, `worker::remote` and `server`
 //! (which mounts the services) know protobuf.
 
-pub mod camera_path;
 pub mod error;
 pub mod grpc;
 pub mod lease;

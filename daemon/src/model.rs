@@ -1,6 +1,8 @@
 //! The daemon's domain types: what is stored in sled and what the gRPC layer converts to and
-//! from. Nothing here knows about protobuf.
+//! from. Nothing here knows about protobuf. What a job renders is the render crate's
+//! [`RenderRequest`], stored as it is.
 
+use pointfarm_render::request::RenderRequest;
 use serde::{Deserialize, Serialize};
 
 pub type DatasetId = String;
@@ -16,113 +18,15 @@ pub struct Dataset {
     pub created_unix_ms: i64,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Point3 {
-    pub x: f64,
-    pub y: f64,
-    pub z: f64,
-}
-
-impl From<Point3> for glam::DVec3 {
-    fn from(p: Point3) -> Self {
-        glam::DVec3::new(p.x, p.y, p.z)
-    }
-}
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Turntable {
-    pub frames: u32,
-    pub center: Option<Point3>,
-    pub radius: Option<f64>,
-    pub elevation_deg: f64,
-    pub degrees: f64,
-    pub fov_y_deg: f64,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Keyframe {
-    pub position: Point3,
-    pub target: Point3,
-    pub up: Point3,
-    pub fov_y_deg: f64,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Interpolation {
-    Linear,
-    Spline,
-}
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub enum CameraPath {
-    Turntable(Turntable),
-    Keyframes {
-        keyframes: Vec<Keyframe>,
-        frames: u32,
-        interpolation: Interpolation,
-    },
-}
-
-impl CameraPath {
-    pub fn frames(&self) -> u32 {
-        match self {
-            CameraPath::Turntable(t) => t.frames,
-            CameraPath::Keyframes { frames, .. } => *frames,
-        }
-    }
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub enum Quality {
-    Basic,
-    High { depth_band: f32 },
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub enum Shading {
-    None,
-    Edl { strength: f32, radius: f32 },
-    Pintus { levels: u32, exponent: f32 },
-}
-
-/// Pintus et al.'s visibility and hole filling.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-pub struct Fill {
-    /// Visibility kernel side in pixels (odd, 3 to 9).
-    pub kernel: u32,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-pub enum ColorMode {
-    Rgb,
-    Intensity,
-    Elevation,
-    Classification,
-    ReturnNumber,
-    Fixed([u8; 3]),
-}
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct RenderOptions {
-    pub point_size: u32,
-    pub quality: Quality,
-    pub shading: Shading,
-    pub color_mode: ColorMode,
-    pub background: [u8; 4],
-    /// Absent in jobs stored before filling existed.
-    #[serde(default)]
-    pub fill: Option<Fill>,
-}
-
 /// What a client asked for, validated.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct JobSpec {
     pub request_id: String,
     pub dataset_id: DatasetId,
-    pub camera_path: CameraPath,
-    pub width: u32,
-    pub height: u32,
-    pub render: RenderOptions,
+    /// Flattened: stored jobs keep their `camera_path`, `width`, `height` and `render` fields
+    /// at the top level, as before the request had a type of its own.
+    #[serde(flatten)]
+    pub request: RenderRequest,
     pub priority: i32,
 }
 
@@ -195,4 +99,74 @@ pub fn now_unix_ms() -> i64 {
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_millis() as i64)
         .unwrap_or(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use pointfarm_render::raster::{FillSettings, Quality, Shading};
+    use pointfarm_render::request::{CameraPath, Interpolation, Lens, Point3};
+
+    use super::*;
+
+    /// A job record exactly as the daemon stored it before the render request moved into
+    /// the render crate.
+    const STORED_JOB: &str = r#"{"id":"job-1","spec":{"request_id":"r1","dataset_id":"ds-1",
+        "camera_path":{"Keyframes":{"keyframes":[
+            {"position":{"x":1.0,"y":0.0,"z":10.0},"target":{"x":0.0,"y":1.0,"z":0.0},
+             "up":{"x":0.0,"y":0.0,"z":1.0},"fov_y_deg":40.0},
+            {"position":{"x":5.0,"y":0.0,"z":10.0},"target":{"x":0.0,"y":1.0,"z":0.0},
+             "up":{"x":0.0,"y":0.0,"z":1.0},"fov_y_deg":40.0}],
+            "frames":7,"interpolation":"Spline"}},
+        "width":64,"height":48,
+        "render":{"point_size":3,"quality":{"High":{"depth_band":0.02}},
+            "shading":{"Pintus":{"levels":8,"exponent":1.5}},"color_mode":{"Fixed":[16,32,48]},
+            "background":[1,2,3,4],"fill":{"kernel":5}},
+        "priority":2},
+        "state":"Queued","frames_total":7,"frames_done":0,"error":null,
+        "created_unix_ms":1,"updated_unix_ms":2}"#;
+
+    #[test]
+    fn jobs_stored_before_the_render_request_moved_still_read() {
+        let job: Job = serde_json::from_str(STORED_JOB).expect("the stored shape reads");
+        let request = &job.spec.request;
+        assert_eq!(
+            (request.width, request.height, job.spec.priority),
+            (64, 48, 2)
+        );
+        let CameraPath::Keyframes {
+            keyframes,
+            frames,
+            interpolation,
+        } = &request.camera_path
+        else {
+            panic!("not keyframes: {:?}", request.camera_path);
+        };
+        assert_eq!(
+            (*frames, *interpolation, keyframes.len()),
+            (7, Interpolation::Spline, 2)
+        );
+        assert_eq!(
+            keyframes[1].position,
+            Point3 {
+                x: 5.0,
+                y: 0.0,
+                z: 10.0
+            }
+        );
+        assert_eq!(request.lens, Lens::default());
+        let render = &request.render;
+        assert_eq!(render.point_size, 3);
+        assert_eq!(render.quality, Quality::High { depth_band: 0.02 });
+        assert_eq!(render.shading, Shading::PINTUS);
+        assert_eq!(
+            render.color_mode,
+            pointfarm_render::color::ColorMode::Fixed([16, 32, 48])
+        );
+        assert_eq!(render.background, [1, 2, 3, 4]);
+        assert_eq!(render.fill, Some(FillSettings { kernel: 5 }));
+        assert_eq!((render.supersample, render.depth), (1, false));
+        // And what is written now reads back the same.
+        let written = serde_json::to_string(&job).expect("encodes");
+        assert_eq!(serde_json::from_str::<Job>(&written).expect("decodes"), job);
+    }
 }

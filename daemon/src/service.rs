@@ -318,16 +318,14 @@ impl Daemon {
     /// Validates limits that depend on this server, stores the job and wakes a worker.
     pub fn submit_job(&self, spec: JobSpec) -> Result<Job, DaemonError> {
         let side = self.config.max_image_side;
-        if spec.width > side || spec.height > side {
+        let (width, height) = (spec.request.width, spec.request.height);
+        if width > side || height > side {
             return Err(DaemonError::invalid(
-                if spec.width > side { "width" } else { "height" },
-                format!(
-                    "{}x{} exceeds this server's maximum of {side} pixels per side",
-                    spec.width, spec.height
-                ),
+                if width > side { "width" } else { "height" },
+                format!("{width}x{height} exceeds this server's maximum of {side} pixels per side"),
             ));
         }
-        if spec.camera_path.frames() > self.config.max_frames {
+        if spec.request.frames() > self.config.max_frames {
             return Err(DaemonError::invalid(
                 "camera_path",
                 format!("more than {} frames", self.config.max_frames),

@@ -113,7 +113,7 @@ impl Store {
         // Ids sort by creation: a monotonic counter, zero-padded.
         let id = format!("job-{:012}", self.db.generate_id()?);
         let now = now_unix_ms();
-        let frames = spec.camera_path.frames();
+        let frames = spec.request.frames();
         let job = Job {
             id: id.clone(),
             state: JobState::Queued,

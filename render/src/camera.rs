@@ -195,8 +195,9 @@ impl Camera {
         )
     }
 
-    /// This camera moved `degrees` around the vertical axis through its target (a turntable
-    /// step): distance, height and target stay as they are.
+    /// This camera moved `degrees` around the vertical axis through its target: distance,
+    /// height and target stay as they are (a test's view from another side; turntables are
+    /// camera paths, `request::camera_for_frame`).
     pub fn orbit(&self, degrees: f64) -> Camera {
         let (sin, cos) = degrees.to_radians().sin_cos();
         let offset = self.position - self.target;
@@ -223,12 +224,6 @@ impl Camera {
             target: self.target + offset,
             ..*self
         }
-    }
-
-    /// Frame `index` of `frames` of a turntable around the cloud, starting at the automatic
-    /// camera.
-    pub fn turntable(bounds: &WorldBounds, aspect: f64, index: usize, frames: usize) -> Camera {
-        Camera::auto(bounds, aspect).orbit(360.0 * index as f64 / frames.max(1) as f64)
     }
 
     /// The camera's transform for points stored relative to `origin`. Built entirely in f64:
@@ -391,22 +386,5 @@ mod tests {
         let mut fov = good;
         fov.projection = Projection::Perspective { fov_y_deg: 180.0 };
         assert_eq!(fov.validate(), Err(CameraError::FieldOfView(180.0)));
-    }
-
-    #[test]
-    fn turntable_keeps_distance_and_goes_all_the_way_round() {
-        let b = bounds();
-        let frames = 8;
-        let cams: Vec<Camera> = (0..frames)
-            .map(|i| Camera::turntable(&b, 1.5, i, frames))
-            .collect();
-        let d0 = cams[0].position.distance(b.center());
-        for c in &cams {
-            assert!((c.position.distance(b.center()) - d0).abs() < 1e-6);
-            assert_eq!(c.target, b.center());
-        }
-        let opposite = cams[frames / 2].position - b.center();
-        let first = cams[0].position - b.center();
-        assert!((opposite.x + first.x).abs() < 1e-6 && (opposite.y + first.y).abs() < 1e-6);
     }
 }

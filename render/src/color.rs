@@ -7,7 +7,7 @@
 use crate::cloud::{pack_rgba8, PointCloud};
 
 /// What the points are coloured by.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 pub enum ColorMode {
     /// The file's RGB (or, without RGB, intensity grey: the colour chosen at ingest).
     #[default]

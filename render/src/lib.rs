@@ -13,6 +13,7 @@ pub mod gpu;
 pub mod ingest;
 pub mod raster;
 pub mod reference;
+pub mod request;
 pub mod sample;
 
 #[cfg(test)]

@@ -4,8 +4,6 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
 
-use pointfarm_daemon::camera_path::camera_for_frame;
-use pointfarm_daemon::model::{CameraPath, Turntable};
 use pointfarm_daemon::service::{Daemon, DaemonConfig};
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
@@ -14,6 +12,7 @@ use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_render::gpu::{AdapterChoice, GpuContext};
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::raster::{FrameSettings, Renderer};
+use pointfarm_render::request::{camera_for_frame, CameraPath, Lens, Turntable};
 use sha2::{Digest, Sha256};
 use tonic::transport::Channel;
 
@@ -189,6 +188,7 @@ pub fn turntable_job(
                 frames,
                 ..Default::default()
             })),
+            lens: None,
         }),
         width,
         height,
@@ -299,16 +299,10 @@ pub fn assert_equal_to_direct_renders(
     let cloud = load_point_cloud(file).expect("load");
     let mut renderer = Renderer::new(gpu());
     let resident = renderer.upload(&cloud).expect("upload");
-    let path = CameraPath::Turntable(Turntable {
-        frames,
-        center: None,
-        radius: None,
-        elevation_deg: 30.0,
-        degrees: 360.0,
-        fov_y_deg: 50.0,
-    });
+    let path = CameraPath::Turntable(Turntable::around_the_cloud(frames));
+    let aspect = width as f64 / height as f64;
     for (index, image) in fetched {
-        let camera = camera_for_frame(&path, *index, &cloud.bounds, width as f64 / height as f64);
+        let camera = camera_for_frame(&path, &Lens::default(), *index, &cloud.bounds, aspect);
         let direct = renderer
             .render(&resident, &FrameSettings::new(width, height, camera))
             .expect("render");

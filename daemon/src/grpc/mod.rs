@@ -19,14 +19,13 @@ mod conversions;
 mod datasets;
 mod jobs;
 mod lease_guard;
+mod request;
 mod status;
 pub mod streaming;
 mod workers;
 
-pub use conversions::{
-    camera_path, camera_path_message, frame_task, frame_task_message, render_options,
-    render_options_message, stage_timings, timings_message,
-};
+pub use conversions::{frame_task, frame_task_message, stage_timings, timings_message};
+pub use request::{camera_path_message, render_options_message, render_request};
 
 /// The three services over one daemon.
 #[derive(Clone)]

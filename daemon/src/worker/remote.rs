@@ -202,7 +202,7 @@ async fn run_task(
 ) -> anyhow::Result<()> {
     tracing::info!(
         dataset = %task.dataset.id,
-        size = %format!("{}x{}", task.width, task.height),
+        size = %format!("{}x{}", task.request.width, task.request.height),
         failed_attempts = task.failed_attempts,
         "frame leased"
     );

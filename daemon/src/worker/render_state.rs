@@ -9,17 +9,13 @@ use std::time::Instant;
 
 use pointfarm_render::cache::{CacheOutcome, DatasetCache};
 use pointfarm_render::cloud::WorldBounds;
-use pointfarm_render::color::{point_colors, ColorMode as WorkerColorMode};
+use pointfarm_render::color::{point_colors, ColorMode};
 use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
-use pointfarm_render::raster::{
-    Clock, FillSettings, FrameSettings, GpuPointCloud, Quality as WorkerQuality, Renderer,
-    Shading as WorkerShading,
-};
+use pointfarm_render::raster::{Clock, GpuPointCloud, Renderer};
 
-use crate::camera_path::camera_for_frame;
 use crate::lease::{FrameOutcome, FrameTask};
-use crate::model::{ColorMode, Quality, RenderOptions, Shading, StageTiming};
+use crate::model::StageTiming;
 
 /// The cloud currently on the GPU.
 struct Resident {
@@ -56,7 +52,7 @@ impl WorkerRenderState {
 
     fn is_resident(&self, task: &FrameTask) -> bool {
         self.resident.as_ref().is_some_and(|r| {
-            r.sha256 == task.dataset.sha256 && r.color_mode == task.render.color_mode
+            r.sha256 == task.dataset.sha256 && r.color_mode == task.request.render.color_mode
         })
     }
 
@@ -80,9 +76,9 @@ impl WorkerRenderState {
         let Some(current) = self.resident.as_mut() else {
             return Err("no resident cloud".into());
         };
-        let aspect = task.width as f64 / task.height as f64;
-        let camera = camera_for_frame(&task.camera_path, task.lease.index, &current.bounds, aspect);
-        let settings = frame_settings(&task.render, task.width, task.height, camera);
+        let settings = task
+            .request
+            .frame_settings(task.lease.index, &current.bounds);
         let mut frame = self
             .renderer
             .render(&current.cloud, &settings)
@@ -128,7 +124,7 @@ impl WorkerRenderState {
         };
         let (mut cloud, outcome) = loaded.map_err(|e| format!("dataset {}: {e}", dataset.id))?;
         let load_ms = started.elapsed().as_secs_f64() * 1e3;
-        cloud.colors = point_colors(&cloud, worker_color_mode(task.render.color_mode));
+        cloud.colors = point_colors(&cloud, task.request.render.color_mode);
         let gpu_cloud = self
             .renderer
             .upload(&cloud)
@@ -136,44 +132,10 @@ impl WorkerRenderState {
         tracing::info!(dataset = %dataset.id, points = cloud.len(), load_ms, ?outcome, "cloud resident");
         Ok(Resident {
             sha256: dataset.sha256.clone(),
-            color_mode: task.render.color_mode,
+            color_mode: task.request.render.color_mode,
             bounds: cloud.bounds,
             cloud: gpu_cloud,
             unreported_load: Some((load_ms, outcome)),
         })
-    }
-}
-
-fn frame_settings(
-    render: &RenderOptions,
-    width: u32,
-    height: u32,
-    camera: pointfarm_render::camera::Camera,
-) -> FrameSettings {
-    FrameSettings {
-        point_size: render.point_size,
-        background: render.background,
-        quality: match render.quality {
-            Quality::Basic => WorkerQuality::Basic,
-            Quality::High { depth_band } => WorkerQuality::High { depth_band },
-        },
-        shading: match render.shading {
-            Shading::None => WorkerShading::None,
-            Shading::Edl { strength, radius } => WorkerShading::Edl { strength, radius },
-            Shading::Pintus { levels, exponent } => WorkerShading::Pintus { levels, exponent },
-        },
-        fill: render.fill.map(|f| FillSettings { kernel: f.kernel }),
-        ..FrameSettings::new(width, height, camera)
-    }
-}
-
-fn worker_color_mode(mode: ColorMode) -> WorkerColorMode {
-    match mode {
-        ColorMode::Rgb => WorkerColorMode::Rgb,
-        ColorMode::Intensity => WorkerColorMode::Intensity,
-        ColorMode::Elevation => WorkerColorMode::Elevation,
-        ColorMode::Classification => WorkerColorMode::Classification,
-        ColorMode::ReturnNumber => WorkerColorMode::ReturnNumber,
-        ColorMode::Fixed(rgb) => WorkerColorMode::Fixed(rgb),
     }
 }

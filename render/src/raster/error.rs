@@ -1,8 +1,8 @@
 use thiserror::Error;
 
 use super::settings::{
-    MAX_FILL_KERNEL, MAX_IMAGE_SIDE, MAX_PINTUS_LEVELS, MAX_POINT_SIZE, MAX_SUPERSAMPLE,
-    MIN_FILL_KERNEL,
+    DEPTH_BAND_RANGE, EDL_RADIUS_RANGE, EDL_STRENGTH_RANGE, MAX_FILL_KERNEL, MAX_IMAGE_SIDE,
+    MAX_PINTUS_LEVELS, MAX_POINT_SIZE, MAX_SUPERSAMPLE, MIN_FILL_KERNEL, PINTUS_EXPONENT_RANGE,
 };
 use crate::camera::CameraError;
 use crate::gpu::GpuError;
@@ -23,15 +23,31 @@ pub enum RenderError {
         needed_mib: u64,
         limit_mib: u64,
     },
-    #[error("depth band {0} is invalid: it must be a finite number from 0 to 1")]
+    #[error(
+        "depth band {0} is invalid: it must be a finite number from {low} to {high}",
+        low = DEPTH_BAND_RANGE.start(),
+        high = DEPTH_BAND_RANGE.end()
+    )]
     DepthBand(f32),
-    #[error("Eye-Dome Lighting strength {strength} and radius {radius} are invalid: the strength must be 0 to 100, the radius 0.5 to 16 pixels")]
+    #[error(
+        "Eye-Dome Lighting strength {strength} and radius {radius} are invalid: the strength \
+         must be {s_low} to {s_high}, the radius {r_low} to {r_high} pixels",
+        s_low = EDL_STRENGTH_RANGE.start(),
+        s_high = EDL_STRENGTH_RANGE.end(),
+        r_low = EDL_RADIUS_RANGE.start(),
+        r_high = EDL_RADIUS_RANGE.end()
+    )]
     Edl { strength: f32, radius: f32 },
     #[error(
         "fill kernel {0} is invalid: it must be an odd number of pixels from {MIN_FILL_KERNEL} to {MAX_FILL_KERNEL}"
     )]
     FillKernel(u32),
-    #[error("Pintus shading with {levels} levels and exponent {exponent} is invalid: levels must be 1 to {MAX_PINTUS_LEVELS}, the exponent 0 to 4")]
+    #[error(
+        "Pintus shading with {levels} levels and exponent {exponent} is invalid: levels must \
+         be 1 to {MAX_PINTUS_LEVELS}, the exponent {low} to {high}",
+        low = PINTUS_EXPONENT_RANGE.start(),
+        high = PINTUS_EXPONENT_RANGE.end()
+    )]
     Pintus { levels: u32, exponent: f32 },
     #[error("supersampling factor {0} is invalid: it must be 1 to {MAX_SUPERSAMPLE}")]
     Supersample(u32),

@@ -200,7 +200,9 @@ impl Renderer {
             }
         }
         if let Shading::Pintus { levels, exponent } = settings.shading {
-            if !((1..=MAX_PINTUS_LEVELS).contains(&levels) && (0.0..=4.0).contains(&exponent)) {
+            if !((1..=MAX_PINTUS_LEVELS).contains(&levels)
+                && PINTUS_EXPONENT_RANGE.contains(&exponent))
+            {
                 return Err(RenderError::Pintus { levels, exponent });
             }
         }
@@ -229,12 +231,12 @@ impl Renderer {
             return Err(RenderError::PointSize(settings.point_size));
         }
         if let Quality::High { depth_band } = settings.quality {
-            if !(depth_band.is_finite() && (0.0..=1.0).contains(&depth_band)) {
+            if !(depth_band.is_finite() && DEPTH_BAND_RANGE.contains(&depth_band)) {
                 return Err(RenderError::DepthBand(depth_band));
             }
         }
         if let Shading::Edl { strength, radius } = settings.shading {
-            if !((0.0..=100.0).contains(&strength) && (0.5..=16.0).contains(&radius)) {
+            if !(EDL_STRENGTH_RANGE.contains(&strength) && EDL_RADIUS_RANGE.contains(&radius)) {
                 return Err(RenderError::Edl { strength, radius });
             }
         }

@@ -1,6 +1,10 @@
 //! What decides the pixels of a frame: its size, camera, quality, filling, shading and
 //! supersampling, with the limits the renderer accepts.
 
+use std::ops::RangeInclusive;
+
+use serde::{Deserialize, Serialize};
+
 use crate::camera::Camera;
 
 /// Largest image side accepted, in pixels.
@@ -9,6 +13,21 @@ pub const MAX_IMAGE_SIDE: u32 = 16384;
 pub const MAX_SUPERSAMPLE: u32 = 4;
 /// Largest point size accepted, in pixels.
 pub const MAX_POINT_SIZE: u32 = 64;
+/// One-pixel points unless asked otherwise.
+pub const DEFAULT_POINT_SIZE: u32 = 1;
+/// Dark grey (#18181c), opaque: written where no point landed unless asked otherwise.
+pub const DEFAULT_BACKGROUND: [u8; 4] = [24, 24, 28, 255];
+/// High quality averages the points up to this fraction behind the nearest depth (the
+/// papers' 1%).
+pub const DEFAULT_DEPTH_BAND: f32 = 0.01;
+/// Depth bands accepted: a fraction of the nearest depth.
+pub const DEPTH_BAND_RANGE: RangeInclusive<f32> = 0.0..=1.0;
+/// Eye-Dome Lighting strengths accepted.
+pub const EDL_STRENGTH_RANGE: RangeInclusive<f32> = 0.0..=100.0;
+/// Eye-Dome Lighting sample distances accepted, in pixels.
+pub const EDL_RADIUS_RANGE: RangeInclusive<f32> = 0.5..=16.0;
+/// Pintus weight exponents accepted.
+pub const PINTUS_EXPONENT_RANGE: RangeInclusive<f32> = 0.0..=4.0;
 /// Smallest and largest visibility kernel side, in pixels (odd).
 pub const MIN_FILL_KERNEL: u32 = 3;
 pub const MAX_FILL_KERNEL: u32 = 9;
@@ -37,7 +56,7 @@ pub enum AtomicsMode {
 }
 
 /// How the colour of a pixel is chosen.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub enum Quality {
     /// The nearest point's colour (one atomic minimum per pixel).
     Basic,
@@ -48,11 +67,13 @@ pub enum Quality {
 
 impl Quality {
     /// High quality with the papers' default band of 1%.
-    pub const HIGH: Quality = Quality::High { depth_band: 0.01 };
+    pub const HIGH: Quality = Quality::High {
+        depth_band: DEFAULT_DEPTH_BAND,
+    };
 }
 
 /// Screen-space shading applied after the resolve.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub enum Shading {
     None,
     /// Eye-Dome Lighting as in Potree: `strength` scales the darkening, `radius` is the
@@ -94,7 +115,7 @@ impl Shading {
 /// through holes of a nearer surface are removed, then the holes (and background pixels
 /// enclosed by points) get the depth and colour of the surface around them. Pixels outside
 /// silhouettes stay background.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct FillSettings {
     /// Side of the visibility kernel in pixels: odd, 3 to 9. Holes up to about a third of it
     /// are closed; the filling runs twice this many 3x3 steps.
@@ -147,8 +168,8 @@ impl FrameSettings {
             width,
             height,
             camera,
-            point_size: 1,
-            background: [24, 24, 28, 255],
+            point_size: DEFAULT_POINT_SIZE,
+            background: DEFAULT_BACKGROUND,
             atomics: AtomicsMode::Auto,
             quality: Quality::Basic,
             fill: None,

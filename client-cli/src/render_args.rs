@@ -1,0 +1,231 @@
+//! The arguments of `pointfarm render` and the one [`RenderRequest`] they describe, which
+//! local rendering (`render`) and server rendering (`remote_render`) both start from. Every
+//! default comes from the render crate's constants.
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Result};
+use clap::{Args, ValueEnum};
+use glam::DVec3;
+use pointfarm_render::camera::DEFAULT_FOV_Y_DEG;
+use pointfarm_render::color::ColorMode;
+use pointfarm_render::gpu::AdapterChoice;
+use pointfarm_render::raster::{
+    AtomicsMode, FillSettings, Quality, Shading, DEFAULT_BACKGROUND, DEFAULT_DEPTH_BAND,
+    DEFAULT_POINT_SIZE,
+};
+use pointfarm_render::request::{
+    CameraPath, Lens, Point3, RenderOptions, RenderRequest, StillCamera, Turntable,
+    DEFAULT_SUPERSAMPLE, DEFAULT_UP,
+};
+
+use crate::parse::{self, Rgba};
+
+#[derive(Args)]
+pub struct RenderArgs {
+    /// LAS or LAZ file to render.
+    pub(crate) input: PathBuf,
+    /// Render on this pointfarm server instead of here (uploading the file if needed).
+    #[arg(long, env = "POINTFARM_SERVER")]
+    pub(crate) server: Option<String>,
+    /// Bearer token for the server.
+    #[arg(long, env = "POINTFARM_TOKEN", hide_env_values = true)]
+    pub(crate) token: Option<String>,
+    /// Supersampling anti-aliasing: render at K times the size and average (1 = off).
+    #[arg(long, default_value_t = DEFAULT_SUPERSAMPLE, value_name = "K")]
+    supersample: u32,
+    /// Also write each frame's linear depth as a 16-bit PNG (0 = no point, 1..65535 from
+    /// near to far): FRAME.depth.png, or depth_00000.png, ... with --turntable. Local only.
+    #[arg(long)]
+    depth: bool,
+    /// With --turntable: also assemble the frames into this video (needs ffmpeg).
+    #[arg(long, requires = "turntable")]
+    pub(crate) video: Option<PathBuf>,
+    /// Frames per second of --video.
+    #[arg(long, default_value_t = 30)]
+    pub(crate) fps: u32,
+    /// Server jobs: higher runs first.
+    #[arg(long, default_value_t = 0)]
+    pub(crate) priority: i32,
+    /// Output PNG file; with --turntable, a directory for frame_00000.png, frame_00001.png, ...
+    #[arg(short, long)]
+    pub(crate) out: PathBuf,
+    /// Image size in pixels.
+    #[arg(long, default_value = "1280x720", value_parser = parse::size)]
+    size: (u32, u32),
+    /// Render N frames orbiting the cloud (around the vertical axis through the target).
+    #[arg(long, value_name = "N")]
+    pub(crate) turntable: Option<u32>,
+    /// Camera position in the file's coordinates (default: an oblique view of the whole cloud).
+    #[arg(long, value_parser = parse::vec3, value_name = "X,Y,Z")]
+    camera_pos: Option<DVec3>,
+    /// Point the camera looks at, in the file's coordinates (default: the cloud's centre).
+    #[arg(long, value_parser = parse::vec3, value_name = "X,Y,Z")]
+    camera_target: Option<DVec3>,
+    /// Camera up direction [default: 0,0,1].
+    #[arg(long, value_parser = parse::vec3, value_name = "X,Y,Z")]
+    camera_up: Option<DVec3>,
+    /// Vertical field of view in degrees (perspective).
+    #[arg(long, default_value_t = DEFAULT_FOV_Y_DEG, value_parser = parse::positive)]
+    fov: f64,
+    /// Orthographic projection; the view height fits the cloud unless --ortho-height is given.
+    #[arg(long)]
+    ortho: bool,
+    /// Height of the orthographic view in the file's units.
+    #[arg(long, value_parser = parse::positive, requires = "ortho")]
+    ortho_height: Option<f64>,
+    /// Near clipping distance (default: fitted to the cloud).
+    #[arg(long, value_parser = parse::positive)]
+    near: Option<f64>,
+    /// Far clipping distance (default: fitted to the cloud).
+    #[arg(long, value_parser = parse::positive)]
+    far: Option<f64>,
+    /// Side of the square drawn for each point, in pixels.
+    #[arg(long, default_value_t = DEFAULT_POINT_SIZE)]
+    point_size: u32,
+    /// Background colour: #rrggbb, #rrggbbaa or transparent.
+    #[arg(long, default_value_t = Rgba(DEFAULT_BACKGROUND), value_parser = parse::rgba)]
+    background: Rgba,
+    /// Colour points by: rgb (the file's colours, or intensity without them), intensity,
+    /// elevation, classification, return, or one colour like #ff8000.
+    #[arg(long = "color", visible_alias = "colour", default_value = "rgb", value_parser = parse::color_mode)]
+    color: ColorMode,
+    /// basic: the nearest point's colour; high: the average colour of the points near the
+    /// front surface (less aliasing, smoother turntables; about two passes more).
+    #[arg(long, value_enum, default_value = "basic")]
+    quality: QualityArg,
+    /// High quality: points up to this fraction behind the nearest depth are averaged.
+    #[arg(long, default_value_t = DEFAULT_DEPTH_BAND)]
+    depth_band: f32,
+    /// Close the holes between points (Pintus et al.): points seen through gaps of a nearer
+    /// surface are removed, then holes take the depth and colour of the surface around them.
+    /// Silhouettes stay sharp.
+    #[arg(long)]
+    fill: bool,
+    /// Filling: visibility kernel side in pixels, odd, 3 to 9 (implies --fill). Holes up to
+    /// about a third of it close; raise it for sparse scans.
+    #[arg(long, value_name = "N")]
+    fill_kernel: Option<u32>,
+    /// Screen-space shading: edl (Eye-Dome Lighting, shapes read without colour or normals),
+    /// pintus (Pintus et al.'s shape depiction: directional light, ambient occlusion and
+    /// lines from depth alone; best with --fill) or none.
+    #[arg(long, value_enum, default_value = "none")]
+    shading: ShadingArg,
+    /// Pintus shading: number of smoothing levels (1 to 32); more adds broader, softer
+    /// ambient shading.
+    #[arg(long, default_value_t = Shading::DEFAULT_PINTUS_LEVELS)]
+    pintus_levels: u32,
+    /// Pintus shading: level k weighs 1 / (k + 1)^exponent (0 to 4); higher is sharper.
+    #[arg(long, default_value_t = Shading::DEFAULT_PINTUS_EXPONENT)]
+    pintus_exponent: f32,
+    /// Eye-Dome Lighting: how strongly depth steps darken.
+    #[arg(long, default_value_t = Shading::DEFAULT_EDL_STRENGTH)]
+    edl_strength: f32,
+    /// Eye-Dome Lighting: distance of the depth samples in pixels.
+    #[arg(long, default_value_t = Shading::DEFAULT_EDL_RADIUS)]
+    edl_radius: f32,
+    /// Adapter: auto (hardware GPU if present, else lavapipe), hardware or software. With
+    /// --server the server's workers choose theirs.
+    #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
+    pub(crate) adapter: AdapterChoice,
+    /// Atomics of the point pass: auto (64-bit where available) or 32 (the fallback path).
+    /// Local only.
+    #[arg(long, value_enum, default_value = "auto")]
+    atomics: AtomicsArg,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum ShadingArg {
+    None,
+    Edl,
+    Pintus,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum QualityArg {
+    Basic,
+    High,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum AtomicsArg {
+    Auto,
+    #[value(name = "32")]
+    Force32,
+}
+
+impl RenderArgs {
+    /// The request these arguments describe, validated.
+    pub(crate) fn request(&self) -> Result<RenderRequest> {
+        if self.turntable == Some(0) {
+            bail!("--turntable needs at least one frame");
+        }
+        let point = |v: Option<DVec3>| v.map(Point3::from);
+        let up = self.camera_up.map_or(DEFAULT_UP, Point3::from);
+        let camera_path = match self.turntable {
+            None => CameraPath::Still(StillCamera {
+                position: point(self.camera_pos),
+                target: point(self.camera_target),
+                up,
+                fov_y_deg: self.fov,
+            }),
+            Some(frames) => CameraPath::Turntable(Turntable {
+                center: point(self.camera_target),
+                start: point(self.camera_pos),
+                fov_y_deg: self.fov,
+                up,
+                ..Turntable::around_the_cloud(frames)
+            }),
+        };
+        let request = RenderRequest {
+            width: self.size.0,
+            height: self.size.1,
+            camera_path,
+            lens: Lens {
+                orthographic: self.ortho,
+                ortho_height: self.ortho_height,
+                near: self.near,
+                far: self.far,
+            },
+            render: RenderOptions {
+                point_size: self.point_size,
+                quality: match self.quality {
+                    QualityArg::Basic => Quality::Basic,
+                    QualityArg::High => Quality::High {
+                        depth_band: self.depth_band,
+                    },
+                },
+                shading: match self.shading {
+                    ShadingArg::None => Shading::None,
+                    ShadingArg::Edl => Shading::Edl {
+                        strength: self.edl_strength,
+                        radius: self.edl_radius,
+                    },
+                    ShadingArg::Pintus => Shading::Pintus {
+                        levels: self.pintus_levels,
+                        exponent: self.pintus_exponent,
+                    },
+                },
+                color_mode: self.color,
+                background: self.background.0,
+                // --fill, or --fill-kernel alone.
+                fill: (self.fill || self.fill_kernel.is_some()).then(|| FillSettings {
+                    kernel: self.fill_kernel.unwrap_or(FillSettings::DEFAULT_KERNEL),
+                }),
+                supersample: self.supersample,
+                depth: self.depth,
+            },
+        };
+        request.validate()?;
+        Ok(request)
+    }
+
+    /// The atomics of the local point pass (a property of this machine's adapter, not of
+    /// the request).
+    pub(crate) fn atomics(&self) -> AtomicsMode {
+        match self.atomics {
+            AtomicsArg::Auto => AtomicsMode::Auto,
+            AtomicsArg::Force32 => AtomicsMode::Force32,
+        }
+    }
+}

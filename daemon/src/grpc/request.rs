@@ -1,0 +1,354 @@
+//! The render request on the wire: `pointfarm.v1` camera paths, lenses and render options to
+//! the render crate's [`RenderRequest`] and back. Absent fields take the render crate's
+//! defaults, and the result is checked by the request's one `validate()`, whose field names
+//! are these messages' paths. Plain functions rather than `From`/`TryFrom`, because both
+//! sides are other crates' types; `JobSpec`'s conversions build on them.
+
+use pointfarm_proto::v1 as pb;
+use pointfarm_render::color::ColorMode;
+use pointfarm_render::raster::{FillSettings, Quality, Shading, DEFAULT_DEPTH_BAND};
+use pointfarm_render::request::{
+    CameraPath, Interpolation, Keyframe, Lens, Point3, RenderOptions, RenderRequest, RequestError,
+    StillCamera, Turntable, DEFAULT_UP,
+};
+
+use crate::error::DaemonError;
+use crate::model::JobSpec;
+
+impl From<RequestError> for DaemonError {
+    fn from(e: RequestError) -> Self {
+        DaemonError::invalid(e.field, e.message)
+    }
+}
+
+/// The request of a submission or a frame task, validated.
+pub fn render_request(
+    width: u32,
+    height: u32,
+    camera_path: Option<&pb::CameraPath>,
+    render: Option<&pb::RenderOptions>,
+) -> Result<RenderRequest, DaemonError> {
+    let (camera_path, lens) = camera_path_and_lens(camera_path)?;
+    let request = RenderRequest {
+        width,
+        height,
+        camera_path,
+        lens,
+        render: render_options(render)?,
+    };
+    request.validate()?;
+    Ok(request)
+}
+
+fn point(v: &pb::Vec3) -> Point3 {
+    Point3 {
+        x: v.x,
+        y: v.y,
+        z: v.z,
+    }
+}
+
+fn required_point(field: &str, v: Option<&pb::Vec3>) -> Result<Point3, DaemonError> {
+    v.map(point)
+        .ok_or_else(|| DaemonError::invalid(field, "is required"))
+}
+
+fn camera_path_and_lens(
+    message: Option<&pb::CameraPath>,
+) -> Result<(CameraPath, Lens), DaemonError> {
+    let path = message.and_then(|p| p.path.as_ref()).ok_or_else(|| {
+        DaemonError::invalid("camera_path", "is required (turntable, keyframes or still)")
+    })?;
+    let camera_path = match path {
+        pb::camera_path::Path::Turntable(t) => {
+            let default = Turntable::around_the_cloud(t.frames);
+            CameraPath::Turntable(Turntable {
+                center: t.center.as_ref().map(point),
+                radius: t.radius,
+                elevation_deg: t.elevation_deg.unwrap_or(default.elevation_deg),
+                degrees: t.degrees.unwrap_or(default.degrees),
+                fov_y_deg: t.fov_y_deg.unwrap_or(default.fov_y_deg),
+                azimuth_deg: t.azimuth_deg.unwrap_or(default.azimuth_deg),
+                up: t.up.as_ref().map_or(default.up, point),
+                start: t.start.as_ref().map(point),
+                ..default
+            })
+        }
+        pb::camera_path::Path::Keyframes(k) => {
+            let keyframes = k
+                .keyframes
+                .iter()
+                .enumerate()
+                .map(|(i, key)| {
+                    let f = |name: &str| format!("camera_path.keyframes.keyframes[{i}].{name}");
+                    Ok(Keyframe {
+                        position: required_point(&f("position"), key.position.as_ref())?,
+                        target: required_point(&f("target"), key.target.as_ref())?,
+                        up: key.up.as_ref().map_or(DEFAULT_UP, point),
+                        fov_y_deg: key.fov_y_deg,
+                    })
+                })
+                .collect::<Result<Vec<_>, DaemonError>>()?;
+            let interpolation = match pb::Interpolation::try_from(k.interpolation) {
+                Ok(pb::Interpolation::Spline) => Interpolation::Spline,
+                Ok(pb::Interpolation::Linear | pb::Interpolation::Unspecified) => {
+                    Interpolation::Linear
+                }
+                Err(_) => {
+                    return Err(DaemonError::invalid(
+                        "camera_path.keyframes.interpolation",
+                        format!("unknown value {}", k.interpolation),
+                    ))
+                }
+            };
+            CameraPath::Keyframes {
+                keyframes,
+                frames: k.frames,
+                interpolation,
+            }
+        }
+        pb::camera_path::Path::Still(s) => {
+            let default = StillCamera::default();
+            CameraPath::Still(StillCamera {
+                position: s.position.as_ref().map(point),
+                target: s.target.as_ref().map(point),
+                up: s.up.as_ref().map_or(default.up, point),
+                fov_y_deg: s.fov_y_deg.unwrap_or(default.fov_y_deg),
+            })
+        }
+    };
+    let lens = message
+        .and_then(|p| p.lens.as_ref())
+        .map_or_else(Lens::default, |l| Lens {
+            orthographic: l.orthographic,
+            ortho_height: l.ortho_height,
+            near: l.near,
+            far: l.far,
+        });
+    Ok((camera_path, lens))
+}
+
+fn rgba(color: &pb::Color) -> [u8; 4] {
+    color.rgba.to_be_bytes()
+}
+
+fn render_options(message: Option<&pb::RenderOptions>) -> Result<RenderOptions, DaemonError> {
+    let empty = pb::RenderOptions::default();
+    let o = message.unwrap_or(&empty);
+    let default = RenderOptions::default();
+    let quality = match pb::Quality::try_from(o.quality) {
+        Ok(pb::Quality::High) => Quality::High {
+            depth_band: o.depth_band.unwrap_or(DEFAULT_DEPTH_BAND),
+        },
+        Ok(pb::Quality::Basic | pb::Quality::Unspecified) => Quality::Basic,
+        Err(_) => {
+            return Err(DaemonError::invalid(
+                "render.quality",
+                format!("unknown value {}", o.quality),
+            ))
+        }
+    };
+    let shading = match pb::Shading::try_from(o.shading) {
+        Ok(pb::Shading::Edl) => Shading::Edl {
+            strength: o.edl_strength.unwrap_or(Shading::DEFAULT_EDL_STRENGTH),
+            radius: o.edl_radius.unwrap_or(Shading::DEFAULT_EDL_RADIUS),
+        },
+        Ok(pb::Shading::Pintus) => Shading::Pintus {
+            levels: o.pintus_levels.unwrap_or(Shading::DEFAULT_PINTUS_LEVELS),
+            exponent: o
+                .pintus_exponent
+                .unwrap_or(Shading::DEFAULT_PINTUS_EXPONENT),
+        },
+        Ok(pb::Shading::None | pb::Shading::Unspecified) => Shading::None,
+        Err(_) => {
+            return Err(DaemonError::invalid(
+                "render.shading",
+                format!("unknown value {}", o.shading),
+            ))
+        }
+    };
+    let color_mode = match pb::ColorMode::try_from(o.color_mode) {
+        Ok(pb::ColorMode::Unspecified | pb::ColorMode::Rgb) => ColorMode::Rgb,
+        Ok(pb::ColorMode::Intensity) => ColorMode::Intensity,
+        Ok(pb::ColorMode::Elevation) => ColorMode::Elevation,
+        Ok(pb::ColorMode::Classification) => ColorMode::Classification,
+        Ok(pb::ColorMode::ReturnNumber) => ColorMode::ReturnNumber,
+        Ok(pb::ColorMode::Fixed) => {
+            let [r, g, b, _] = o.fixed_color.as_ref().map(rgba).ok_or_else(|| {
+                DaemonError::invalid("render.fixed_color", "is required with COLOR_MODE_FIXED")
+            })?;
+            ColorMode::Fixed([r, g, b])
+        }
+        Err(_) => {
+            return Err(DaemonError::invalid(
+                "render.color_mode",
+                format!("unknown value {}", o.color_mode),
+            ))
+        }
+    };
+    Ok(RenderOptions {
+        point_size: if o.point_size == 0 {
+            default.point_size
+        } else {
+            o.point_size
+        },
+        quality,
+        shading,
+        color_mode,
+        background: o.background.as_ref().map_or(default.background, rgba),
+        fill: o.fill.as_ref().map(|f| FillSettings {
+            kernel: if f.kernel == 0 {
+                FillSettings::DEFAULT_KERNEL
+            } else {
+                f.kernel
+            },
+        }),
+        supersample: o.supersample.unwrap_or(default.supersample),
+        // The service has no depth output (the proto says so); the CLI refuses it there.
+        depth: false,
+    })
+}
+
+fn vec3(p: &Point3) -> pb::Vec3 {
+    pb::Vec3 {
+        x: p.x,
+        y: p.y,
+        z: p.z,
+    }
+}
+
+fn color(rgba: [u8; 4]) -> pb::Color {
+    pb::Color {
+        rgba: u32::from_be_bytes(rgba),
+    }
+}
+
+/// The message of a camera path and its lens, the inverse of [`render_request`]'s reading.
+pub fn camera_path_message(path: &CameraPath, lens: &Lens) -> pb::CameraPath {
+    let path = match path {
+        CameraPath::Turntable(t) => pb::camera_path::Path::Turntable(pb::Turntable {
+            frames: t.frames,
+            center: t.center.as_ref().map(vec3),
+            radius: t.radius,
+            elevation_deg: Some(t.elevation_deg),
+            degrees: Some(t.degrees),
+            fov_y_deg: Some(t.fov_y_deg),
+            azimuth_deg: Some(t.azimuth_deg),
+            up: Some(vec3(&t.up)),
+            start: t.start.as_ref().map(vec3),
+        }),
+        CameraPath::Keyframes {
+            keyframes,
+            frames,
+            interpolation,
+        } => pb::camera_path::Path::Keyframes(pb::KeyframePath {
+            keyframes: keyframes
+                .iter()
+                .map(|k| pb::Keyframe {
+                    position: Some(vec3(&k.position)),
+                    target: Some(vec3(&k.target)),
+                    up: Some(vec3(&k.up)),
+                    fov_y_deg: k.fov_y_deg,
+                })
+                .collect(),
+            frames: *frames,
+            interpolation: match interpolation {
+                Interpolation::Linear => pb::Interpolation::Linear,
+                Interpolation::Spline => pb::Interpolation::Spline,
+            } as i32,
+        }),
+        CameraPath::Still(s) => pb::camera_path::Path::Still(pb::StillCamera {
+            position: s.position.as_ref().map(vec3),
+            target: s.target.as_ref().map(vec3),
+            up: Some(vec3(&s.up)),
+            fov_y_deg: Some(s.fov_y_deg),
+        }),
+    };
+    let Lens {
+        orthographic,
+        ortho_height,
+        near,
+        far,
+    } = *lens;
+    pb::CameraPath {
+        path: Some(path),
+        lens: Some(pb::Lens {
+            orthographic,
+            ortho_height,
+            near,
+            far,
+        }),
+    }
+}
+
+/// The message of render options. `depth` is not carried: the service has no depth output,
+/// and the CLI refuses `--depth` with `--server` before it gets here.
+pub fn render_options_message(options: &RenderOptions) -> pb::RenderOptions {
+    // Destructured so that a new option cannot be forgotten here.
+    let RenderOptions {
+        point_size,
+        quality,
+        shading,
+        color_mode,
+        background,
+        fill,
+        supersample,
+        depth: _,
+    } = *options;
+    let mut message = pb::RenderOptions {
+        point_size,
+        background: Some(color(background)),
+        fill: fill.map(|FillSettings { kernel }| pb::FillOptions { kernel }),
+        supersample: Some(supersample),
+        ..Default::default()
+    };
+    match quality {
+        Quality::Basic => message.quality = pb::Quality::Basic as i32,
+        Quality::High { depth_band } => {
+            message.quality = pb::Quality::High as i32;
+            message.depth_band = Some(depth_band);
+        }
+    }
+    match shading {
+        Shading::None => message.shading = pb::Shading::None as i32,
+        Shading::Edl { strength, radius } => {
+            message.shading = pb::Shading::Edl as i32;
+            message.edl_strength = Some(strength);
+            message.edl_radius = Some(radius);
+        }
+        Shading::Pintus { levels, exponent } => {
+            message.shading = pb::Shading::Pintus as i32;
+            message.pintus_levels = Some(levels);
+            message.pintus_exponent = Some(exponent);
+        }
+    }
+    message.color_mode = match color_mode {
+        ColorMode::Rgb => pb::ColorMode::Rgb,
+        ColorMode::Intensity => pb::ColorMode::Intensity,
+        ColorMode::Elevation => pb::ColorMode::Elevation,
+        ColorMode::Classification => pb::ColorMode::Classification,
+        ColorMode::ReturnNumber => pb::ColorMode::ReturnNumber,
+        ColorMode::Fixed([r, g, b]) => {
+            message.fixed_color = Some(color([r, g, b, 255]));
+            pb::ColorMode::Fixed
+        }
+    } as i32;
+    message
+}
+
+/// The submission of a job: what `pointfarm render --server` sends, and what a job's message
+/// shows of its spec.
+impl From<&JobSpec> for pb::SubmitJobRequest {
+    fn from(spec: &JobSpec) -> Self {
+        let request = &spec.request;
+        pb::SubmitJobRequest {
+            request_id: spec.request_id.clone(),
+            dataset_id: spec.dataset_id.clone(),
+            camera_path: Some(camera_path_message(&request.camera_path, &request.lens)),
+            width: request.width,
+            height: request.height,
+            render: Some(render_options_message(&request.render)),
+            priority: spec.priority,
+        }
+    }
+}

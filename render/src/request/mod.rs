@@ -1,0 +1,80 @@
+//! One render request: the image size, the camera path with its lens, and the render
+//! options, with their defaults and ranges, one validation naming the field at fault, and the
+//! per-frame [`Camera`] and [`FrameSettings`] they describe. The CLI renders it here, the
+//! daemon stores it and its workers render it: nothing else re-states a default or a range.
+
+mod camera_path;
+mod options;
+mod validate;
+
+use serde::{Deserialize, Serialize};
+
+pub use camera_path::{
+    camera_for_frame, CameraPath, Interpolation, Keyframe, Lens, Point3, StillCamera, Turntable,
+    DEFAULT_TURNTABLE_DEGREES, DEFAULT_UP, FOV_Y_DEG_RANGE, MIN_KEYFRAMES, TURNTABLE_DEGREES_RANGE,
+    TURNTABLE_ELEVATION_RANGE,
+};
+pub use options::{RenderOptions, DEFAULT_SUPERSAMPLE};
+pub use validate::RequestError;
+
+use crate::camera::Camera;
+use crate::cloud::WorldBounds;
+use crate::raster::{AtomicsMode, FrameSettings};
+
+/// Everything that decides the frames of a render, apart from the cloud.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RenderRequest {
+    pub width: u32,
+    pub height: u32,
+    pub camera_path: CameraPath,
+    /// Absent in jobs stored before lenses could be chosen: a fitted perspective lens.
+    #[serde(default)]
+    pub lens: Lens,
+    pub render: RenderOptions,
+}
+
+impl RenderRequest {
+    pub fn frames(&self) -> u32 {
+        self.camera_path.frames()
+    }
+
+    /// Width over height.
+    pub fn aspect(&self) -> f64 {
+        self.width as f64 / self.height.max(1) as f64
+    }
+
+    /// The camera of frame `index` for a cloud with `bounds`.
+    pub fn camera(&self, index: u32, bounds: &WorldBounds) -> Camera {
+        camera_for_frame(&self.camera_path, &self.lens, index, bounds, self.aspect())
+    }
+
+    /// The renderer's settings of frame `index` for a cloud with `bounds`.
+    pub fn frame_settings(&self, index: u32, bounds: &WorldBounds) -> FrameSettings {
+        let RenderOptions {
+            point_size,
+            quality,
+            shading,
+            color_mode: _, // applied to the cloud's colours before upload
+            background,
+            fill,
+            supersample,
+            depth,
+        } = self.render;
+        FrameSettings {
+            width: self.width,
+            height: self.height,
+            camera: self.camera(index, bounds),
+            point_size,
+            background,
+            atomics: AtomicsMode::Auto,
+            quality,
+            fill,
+            shading,
+            supersample,
+            read_depth: depth,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,360 @@
+use glam::DVec3;
+
+use super::*;
+use crate::camera::Projection;
+use crate::raster::{FillSettings, Quality, Shading};
+
+fn bounds() -> WorldBounds {
+    WorldBounds {
+        min: DVec3::new(515_000.0, 4_918_000.0, 2_000.0),
+        max: DVec3::new(515_100.0, 4_918_050.0, 2_030.0),
+    }
+}
+
+fn request(camera_path: CameraPath) -> RenderRequest {
+    RenderRequest {
+        width: 64,
+        height: 48,
+        camera_path,
+        lens: Lens::default(),
+        render: RenderOptions::default(),
+    }
+}
+
+fn key(x: f64) -> Keyframe {
+    Keyframe {
+        position: Point3 {
+            x: 515_000.0 + x,
+            y: 4_917_900.0,
+            z: 2_050.0,
+        },
+        target: Point3 {
+            x: 515_000.0 + x,
+            y: 4_918_025.0,
+            z: 2_000.0,
+        },
+        up: DEFAULT_UP,
+        fov_y_deg: 40.0 + x / 10.0,
+    }
+}
+
+fn field_of(request: &RenderRequest) -> String {
+    match request.validate() {
+        Err(RequestError { field, .. }) => field,
+        Ok(()) => panic!("expected an invalid field"),
+    }
+}
+
+#[test]
+fn the_turntable_keeps_its_distance_and_goes_all_the_way_round() {
+    let b = bounds();
+    let frames = 8;
+    let path = request(CameraPath::Turntable(Turntable::around_the_cloud(frames)));
+    let cams: Vec<Camera> = (0..frames).map(|i| path.camera(i, &b)).collect();
+    let d0 = cams[0].position.distance(b.center());
+    for c in &cams {
+        c.validate().expect("valid camera");
+        assert!((c.position.distance(b.center()) - d0).abs() < 1e-6 * d0);
+        assert_eq!(c.target, b.center());
+    }
+    let opposite = cams[frames as usize / 2].position - b.center();
+    let first = cams[0].position - b.center();
+    assert!((opposite.x + first.x).abs() < 1e-6 && (opposite.y + first.y).abs() < 1e-6);
+    // The first frame is the automatic view.
+    let auto = Camera::auto(&b, path.aspect());
+    assert!(cams[0].position.abs_diff_eq(auto.position, 1e-6 * d0));
+}
+
+#[test]
+fn a_turntable_with_its_centre_and_radius_given_orbits_there() {
+    let center = Point3 {
+        x: 515_010.0,
+        y: 4_918_020.0,
+        z: 2_003.0,
+    };
+    let turntable = Turntable {
+        center: Some(center),
+        radius: Some(10.0),
+        elevation_deg: 0.0,
+        degrees: 90.0,
+        azimuth_deg: 0.0,
+        ..Turntable::around_the_cloud(4)
+    };
+    let r = request(CameraPath::Turntable(turntable.clone()));
+    let first = r.camera(0, &bounds());
+    assert!(first
+        .position
+        .abs_diff_eq(DVec3::new(515_020.0, 4_918_020.0, 2_003.0), 1e-9));
+    let last = r.camera(3, &bounds());
+    assert!((last.position.distance(center.into()) - 10.0).abs() < 1e-9);
+    // Three quarters of 90 degrees counter-clockwise from +X.
+    let angle = (last.position.y - center.y).atan2(last.position.x - center.x);
+    assert!((angle.to_degrees() - 67.5).abs() < 1e-9, "{angle}");
+    // From a given first camera: the same orbit.
+    let from_start = Turntable {
+        start: Some(Point3 {
+            x: 515_020.0,
+            ..center
+        }),
+        radius: None,
+        elevation_deg: 45.0,
+        azimuth_deg: 123.0,
+        ..turntable
+    };
+    let r = request(CameraPath::Turntable(from_start));
+    assert!(r
+        .camera(3, &bounds())
+        .position
+        .abs_diff_eq(last.position, 1e-9));
+}
+
+#[test]
+fn keyframe_paths_pass_through_their_keyframes() {
+    let keys = vec![key(0.0), key(30.0), key(100.0)];
+    let path = |interpolation| {
+        request(CameraPath::Keyframes {
+            keyframes: keys.clone(),
+            frames: 5,
+            interpolation,
+        })
+    };
+    for interpolation in [Interpolation::Linear, Interpolation::Spline] {
+        let r = path(interpolation);
+        let x: Vec<f64> = (0..5)
+            .map(|i| r.camera(i, &bounds()).position.x - 515_000.0)
+            .collect();
+        assert!(x[0].abs() < 1e-9 && (x[2] - 30.0).abs() < 1e-9 && (x[4] - 100.0).abs() < 1e-9);
+        for i in 0..5 {
+            r.camera(i, &bounds()).validate().expect("valid camera");
+        }
+    }
+    let linear = path(Interpolation::Linear).camera(1, &bounds()).position.x - 515_000.0;
+    let spline = path(Interpolation::Spline).camera(1, &bounds()).position.x - 515_000.0;
+    assert!((linear - 15.0).abs() < 1e-9);
+    assert!(
+        (spline - linear).abs() > 0.1,
+        "the spline bends: {spline} vs {linear}"
+    );
+}
+
+#[test]
+fn the_automatic_still_camera_is_the_automatic_view() {
+    let r = request(CameraPath::Still(StillCamera::default()));
+    let camera = r.camera(0, &bounds());
+    let auto = Camera::auto(&bounds(), r.aspect());
+    assert!(camera.position.abs_diff_eq(auto.position, 1e-6));
+    assert_eq!(camera.target, auto.target);
+    assert_eq!(r.frames(), 1);
+}
+
+#[test]
+fn the_lens_sets_the_projection_and_the_clipping_planes() {
+    let mut r = request(CameraPath::Turntable(Turntable::around_the_cloud(3)));
+    r.lens = Lens {
+        orthographic: true,
+        ortho_height: None,
+        near: Some(2.0),
+        far: Some(900.0),
+    };
+    let camera = r.camera(1, &bounds());
+    let Projection::Orthographic { height } = camera.projection else {
+        panic!("not orthographic: {camera:?}");
+    };
+    // Fitted: at least the cloud's 30 m height, at most its diagonal with the margin.
+    assert!(height > 30.0 && height < 120.0, "{height}");
+    assert_eq!((camera.near, camera.far), (2.0, 900.0));
+    r.lens.ortho_height = Some(12.5);
+    assert_eq!(
+        r.camera(0, &bounds()).projection,
+        Projection::Orthographic { height: 12.5 }
+    );
+}
+
+#[test]
+fn frame_settings_carry_every_option() {
+    let mut r = request(CameraPath::Still(StillCamera::default()));
+    r.render = RenderOptions {
+        point_size: 3,
+        quality: Quality::High { depth_band: 0.02 },
+        shading: Shading::Edl {
+            strength: 2.0,
+            radius: 1.0,
+        },
+        color_mode: crate::color::ColorMode::Elevation,
+        background: [1, 2, 3, 4],
+        fill: Some(FillSettings { kernel: 5 }),
+        supersample: 2,
+        depth: true,
+    };
+    let s = r.frame_settings(0, &bounds());
+    assert_eq!((s.width, s.height, s.point_size), (64, 48, 3));
+    assert_eq!(s.quality, r.render.quality);
+    assert_eq!(s.shading, r.render.shading);
+    assert_eq!(s.fill, r.render.fill);
+    assert_eq!(s.background, [1, 2, 3, 4]);
+    assert_eq!((s.supersample, s.read_depth), (2, true));
+    assert_eq!(s.camera, r.camera(0, &bounds()));
+}
+
+#[test]
+fn invalid_requests_name_the_field() {
+    let valid = request(CameraPath::Turntable(Turntable::around_the_cloud(4)));
+    assert_eq!(valid.validate(), Ok(()));
+    let with = |change: &dyn Fn(&mut RenderRequest)| {
+        let mut r = valid.clone();
+        change(&mut r);
+        field_of(&r)
+    };
+    let turntable = |change: &dyn Fn(&mut Turntable)| {
+        with(&|r| {
+            let mut t = Turntable::around_the_cloud(4);
+            change(&mut t);
+            r.camera_path = CameraPath::Turntable(t);
+        })
+    };
+    assert_eq!(with(&|r| r.width = 0), "width");
+    assert_eq!(with(&|r| r.height = 0), "height");
+    assert_eq!(turntable(&|t| t.frames = 0), "camera_path.turntable.frames");
+    assert_eq!(
+        turntable(&|t| t.center = Some(Point3 {
+            x: f64::NAN,
+            y: 0.0,
+            z: 0.0
+        })),
+        "camera_path.turntable.center"
+    );
+    assert_eq!(
+        turntable(&|t| t.radius = Some(0.0)),
+        "camera_path.turntable.radius"
+    );
+    assert_eq!(
+        turntable(&|t| t.elevation_deg = 90.0),
+        "camera_path.turntable.elevation_deg"
+    );
+    assert_eq!(
+        turntable(&|t| t.fov_y_deg = 180.0),
+        "camera_path.turntable.fov_y_deg"
+    );
+    assert_eq!(
+        with(&|r| {
+            let mut bad = key(5.0);
+            bad.position.y = f64::INFINITY;
+            r.camera_path = CameraPath::Keyframes {
+                keyframes: vec![key(1.0), bad],
+                frames: 3,
+                interpolation: Interpolation::Linear,
+            };
+        }),
+        "camera_path.keyframes.keyframes[1].position"
+    );
+    assert_eq!(
+        with(&|r| {
+            r.camera_path = CameraPath::Keyframes {
+                keyframes: vec![key(1.0)],
+                frames: 3,
+                interpolation: Interpolation::Linear,
+            }
+        }),
+        "camera_path.keyframes.keyframes"
+    );
+    assert_eq!(
+        with(&|r| {
+            let p = Point3 {
+                x: 1.0,
+                y: 2.0,
+                z: 3.0,
+            };
+            r.camera_path = CameraPath::Still(StillCamera {
+                position: Some(p),
+                target: Some(p),
+                ..StillCamera::default()
+            })
+        }),
+        "camera_path.still.target"
+    );
+    assert_eq!(
+        with(&|r| r.lens.ortho_height = Some(3.0)),
+        "camera_path.lens.ortho_height"
+    );
+    assert_eq!(
+        with(&|r| {
+            r.lens.near = Some(5.0);
+            r.lens.far = Some(4.0);
+        }),
+        "camera_path.lens.far"
+    );
+    assert_eq!(with(&|r| r.render.point_size = 0), "render.point_size");
+    assert_eq!(
+        with(&|r| r.render.quality = Quality::High {
+            depth_band: f32::NAN
+        }),
+        "render.depth_band"
+    );
+    let shadings = [
+        (
+            Shading::Edl {
+                strength: 101.0,
+                radius: 1.0,
+            },
+            "render.edl_strength",
+        ),
+        (
+            Shading::Edl {
+                strength: 1.0,
+                radius: 0.1,
+            },
+            "render.edl_radius",
+        ),
+        (
+            Shading::Pintus {
+                levels: 0,
+                exponent: 1.0,
+            },
+            "render.pintus_levels",
+        ),
+        (
+            Shading::Pintus {
+                levels: 4,
+                exponent: 5.0,
+            },
+            "render.pintus_exponent",
+        ),
+    ];
+    for (shading, field) in shadings {
+        assert_eq!(with(&|r| r.render.shading = shading), field);
+    }
+    for kernel in [1, 4, 11] {
+        assert_eq!(
+            with(&|r| r.render.fill = Some(FillSettings { kernel })),
+            "render.fill.kernel"
+        );
+    }
+    assert_eq!(with(&|r| r.render.supersample = 5), "render.supersample");
+    let message = with_message(&valid, |r| r.render.fill = Some(FillSettings { kernel: 4 }));
+    assert!(message.contains("fill kernel 4"), "{message}");
+}
+
+fn with_message(valid: &RenderRequest, change: impl Fn(&mut RenderRequest)) -> String {
+    let mut r = valid.clone();
+    change(&mut r);
+    r.validate().expect_err("invalid").to_string()
+}
+
+#[test]
+fn options_stored_before_supersampling_and_lenses_read_with_the_defaults() {
+    let stored = r#"{"width":64,"height":48,
+        "camera_path":{"Turntable":{"frames":2,"center":null,"radius":null,
+            "elevation_deg":30.0,"degrees":360.0,"fov_y_deg":50.0}},
+        "render":{"point_size":1,"quality":"Basic","shading":"None","color_mode":"Rgb",
+            "background":[24,24,28,255]}}"#;
+    let r: RenderRequest = serde_json::from_str(stored).expect("today's shape reads");
+    assert_eq!(r.render, RenderOptions::default());
+    assert_eq!(r.lens, Lens::default());
+    assert_eq!(
+        r.camera_path,
+        CameraPath::Turntable(Turntable::around_the_cloud(2))
+    );
+    let round_trip: RenderRequest =
+        serde_json::from_str(&serde_json::to_string(&r).expect("encodes")).expect("decodes");
+    assert_eq!(round_trip, r);
+}
