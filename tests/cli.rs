@@ -335,48 +335,62 @@ fn fill_and_pintus_shading_render_the_same_locally_and_through_the_service() {
         "--pintus-levels",
         "4",
     ];
-    let local = dir.path().join("local");
-    let mut args = vec!["render", laz.as_str(), "--out"];
-    let local_arg = path_arg(&local);
-    args.push(&local_arg);
-    args.extend(options);
-    let output = pointfarm(&args);
-    assert_ok(&output);
+    let output = render_into(&laz, &dir.path().join("local"), None, &options);
     for stage in ["visibility", "fill", "shade"] {
         assert!(stdout(&output).contains(stage), "no {stage} stage");
     }
-    let remote = dir.path().join("remote");
-    let remote_arg = path_arg(&remote);
-    let mut args = vec!["render", laz.as_str(), "--server", &server.address, "--out"];
-    args.push(&remote_arg);
-    args.extend(options);
-    assert_ok(&pointfarm(&args));
-    let frame = |dir: &Path| {
-        image::open(dir.join("frame_00000.png"))
-            .expect("frame")
-            .to_rgba8()
-    };
-    assert_rendered(&local.join("frame_00000.png"), 160, 120);
-    assert_eq!(
-        frame(&local),
-        frame(&remote),
-        "the service rendered another picture"
+    render_into(
+        &laz,
+        &dir.path().join("remote"),
+        Some(&server.address),
+        &options,
     );
+    let filled = assert_same_frames(dir.path(), 1, (160, 120));
     // Filling changes the picture.
     let plain = dir.path().join("plain");
-    let plain_arg = path_arg(&plain);
-    let args = [
-        "render",
+    render_into(
         &laz,
-        "--out",
-        &plain_arg,
-        "--turntable",
-        "1",
-        "--size",
-        "160x120",
-    ];
-    assert_ok(&pointfarm(&args));
-    assert_ne!(frame(&local), frame(&plain));
+        &plain,
+        None,
+        &["--turntable", "1", "--size", "160x120"],
+    );
+    assert_ne!(filled[0], frame_image(&plain, 0));
+}
+
+/// Renders `laz` into the folder `out`, here or through `server`, with `options`.
+fn render_into(laz: &str, out: &Path, server: Option<&str>, options: &[&str]) -> Output {
+    let out = path_arg(out);
+    let mut args = vec!["render", laz, "--out", out.as_str()];
+    if let Some(address) = server {
+        args.extend(["--server", address]);
+    }
+    args.extend(options);
+    let output = pointfarm(&args);
+    assert_ok(&output);
+    output
+}
+
+fn frame_image(dir: &Path, index: u32) -> image::RgbaImage {
+    image::open(dir.join(format!("frame_{index:05}.png")))
+        .expect("frame")
+        .to_rgba8()
+}
+
+/// Checks that `dir/local` and `dir/remote` hold the same `frames` frames of `size`, and
+/// returns the local ones.
+fn assert_same_frames(dir: &Path, frames: u32, size: (u32, u32)) -> Vec<image::RgbaImage> {
+    (0..frames)
+        .map(|i| {
+            assert_rendered(&dir.join(format!("local/frame_{i:05}.png")), size.0, size.1);
+            let local = frame_image(&dir.join("local"), i);
+            assert_eq!(
+                local,
+                frame_image(&dir.join("remote"), i),
+                "frame {i}: the service rendered another picture"
+            );
+            local
+        })
+        .collect()
 }
 
 #[test]
@@ -406,28 +420,14 @@ fn lens_camera_and_supersampling_render_the_same_locally_and_through_the_service
         "--point-size",
         "2",
     ];
-    let render_to = |out: &Path, server: Option<&str>| {
-        let out = path_arg(out);
-        let mut args = vec!["render", laz.as_str(), "--out", out.as_str()];
-        if let Some(address) = server {
-            args.extend(["--server", address]);
-        }
-        args.extend(options);
-        assert_ok(&pointfarm(&args));
-    };
-    let (local, remote) = (dir.path().join("local"), dir.path().join("remote"));
-    render_to(&local, None);
-    render_to(&remote, Some(&server.address));
-    for i in 0..2 {
-        let name = format!("frame_{i:05}.png");
-        assert_rendered(&local.join(&name), 64, 48);
-        let image = |dir: &Path| image::open(dir.join(&name)).expect("frame").to_rgba8();
-        assert_eq!(
-            image(&local),
-            image(&remote),
-            "{name}: the service rendered another picture"
-        );
-    }
+    render_into(&laz, &dir.path().join("local"), None, &options);
+    render_into(
+        &laz,
+        &dir.path().join("remote"),
+        Some(&server.address),
+        &options,
+    );
+    assert_same_frames(dir.path(), 2, (64, 48));
 }
 
 #[test]

@@ -84,24 +84,19 @@ fn no_debian_mirror_is_invented() {
 #[test]
 fn the_backports_source_is_written_in_the_style_of_its_mirror() {
     let dir = apt_dir(&[]);
-    let path = dir.path().to_str().expect("UTF-8 path");
-    let written = setup_function(
-        "write_backports_source",
-        &["sources http://mirror.example/debian /k.gpg", path, ""],
-    );
-    let text = std::fs::read_to_string(written.trim()).expect("the written source");
+    // What the script writes for the mirror line `mirror`, as it reads back.
+    let written_for = |mirror: &str| {
+        let path = dir.path().to_str().expect("UTF-8 path");
+        let written = setup_function("write_backports_source", &[mirror, path, ""]);
+        std::fs::read_to_string(written.trim()).expect("the written source")
+    };
     assert_eq!(
-        text,
+        written_for("sources http://mirror.example/debian /k.gpg"),
         "Types: deb\nURIs: http://mirror.example/debian\nSuites: bookworm-backports\n\
          Components: main\nSigned-By: /k.gpg\n"
     );
-    let written = setup_function(
-        "write_backports_source",
-        &["list http://mirror.example/debian -", path, ""],
-    );
-    let text = std::fs::read_to_string(written.trim()).expect("the written source");
     assert_eq!(
-        text,
+        written_for("list http://mirror.example/debian -"),
         "deb http://mirror.example/debian bookworm-backports main\n"
     );
 }
