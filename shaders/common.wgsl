@@ -243,7 +243,16 @@ fn splat_pixel(frame: FrameUniforms, splat: Splat, k: u32) -> i32 {
     return y * i32(frame.width) + x;
 }
 
-// Batches are dispatched on a 2D grid because one dimension holds at most 65535 workgroups.
-fn batch_index(workgroup: vec3<u32>, groups: vec3<u32>) -> u32 {
-    return workgroup.y * groups.x + workgroup.x;
+// The builtins of an entry point that finds its work by its workgroup and lane: the point
+// passes (a batch a workgroup) and the filling (a run of listed pixels a workgroup).
+struct GridInvocation {
+    @builtin(workgroup_id) workgroup: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lane: u32,
+}
+
+// The invocation's workgroup counted across the dispatch, whose workgroups lie on a 2D grid
+// because one dimension holds at most 65535 of them.
+fn workgroup_index(invocation: GridInvocation) -> u32 {
+    return invocation.workgroup.y * invocation.groups.x + invocation.workgroup.x;
 }

@@ -5,58 +5,53 @@
 // paper's equation 1: w = (1 - r / 2) (1 - min(1, |z - z0| / delta)), r the distance in
 // pixels, delta = depth_tolerance * z0. Fixed pixels never change.
 
-@group(0) @binding(0) var<uniform> params: ScreenParams;
-@group(0) @binding(1) var<storage, read> depth_in: array<f32>;
 @group(0) @binding(2) var<storage, read> color_in: array<u32>;
 // The mutable pixels, (y << 16) | x each, and their count (visibility.wgsl): the passes run
 // one invocation per listed pixel; fixed pixels are never visited.
 @group(0) @binding(3) var<storage, read> mutable_list: array<u32>;
+@group(0) @binding(4) var<storage, read_write> depth_out: array<f32>;
+@group(0) @binding(5) var<storage, read_write> color_out: array<u32>;
+// The same words as visibility.wgsl's `FillArgs`, read once the count is final.
 struct FillArgs {
-    groups_x: u32,
-    groups_y: u32,
-    groups_z: u32,
+    groups: vec3<u32>,
     count: u32,
 }
 @group(0) @binding(6) var<storage, read> fill_args: FillArgs;
 
-// The listed pixel of this invocation, or false past the end of the list.
+// The listed pixel of this invocation (x, y and its index), or false past the end of the list.
 struct ListedPixel {
     x: u32,
     y: u32,
+    pixel: u32,
     listed: bool,
 }
 
-fn listed_pixel(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32) -> ListedPixel {
-    let index = (workgroup.y * groups.x + workgroup.x) * LIST_WORKGROUP + lane;
+fn listed_pixel(invocation: GridInvocation) -> ListedPixel {
+    let index = workgroup_index(invocation) * LIST_WORKGROUP + invocation.lane;
     var listed: ListedPixel;
     listed.listed = index < fill_args.count;
     if listed.listed {
         let packed = mutable_list[index];
         listed.x = packed & 0xffffu;
         listed.y = packed >> 16u;
+        listed.pixel = listed.y * params.width + listed.x;
     }
     return listed;
 }
-@group(0) @binding(4) var<storage, read_write> depth_out: array<f32>;
-@group(0) @binding(5) var<storage, read_write> color_out: array<u32>;
 
 @compute @workgroup_size(LIST_WORKGROUP)
-fn fill_step(
-    @builtin(workgroup_id) workgroup: vec3<u32>,
-    @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_index) lane: u32,
-) {
+fn fill_step(invocation: GridInvocation) {
     // Fixed pixels hold the same value in both buffer pairs from the start (the visibility
     // pass copied them unchanged into the fill buffers) and are not listed: on lavapipe,
     // visiting every pixel to skip the fixed ones was much of the filling's time
     // (docs/perf/fill-and-shading.md).
-    let listed = listed_pixel(workgroup, groups, lane);
+    let listed = listed_pixel(invocation);
     if !listed.listed {
         return;
     }
     let x = i32(listed.x);
     let y = i32(listed.y);
-    let pixel = listed.y * params.width + listed.x;
+    let pixel = listed.pixel;
     let z0 = depth_in[pixel];
 
     // The 3x3 neighbourhood in fixed slots (`neighbour`, no compaction), each valid when it
@@ -119,16 +114,10 @@ fn fill_step(
 
 // Copies the listed pixels of the last step's output into the other pair.
 @compute @workgroup_size(LIST_WORKGROUP)
-fn finish(
-    @builtin(workgroup_id) workgroup: vec3<u32>,
-    @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_index) lane: u32,
-) {
-    let listed = listed_pixel(workgroup, groups, lane);
-    if !listed.listed {
-        return;
+fn finish(invocation: GridInvocation) {
+    let listed = listed_pixel(invocation);
+    if listed.listed {
+        depth_out[listed.pixel] = depth_in[listed.pixel];
+        color_out[listed.pixel] = color_in[listed.pixel];
     }
-    let pixel = listed.y * params.width + listed.x;
-    depth_out[pixel] = depth_in[pixel];
-    color_out[pixel] = color_in[pixel];
 }

@@ -13,32 +13,22 @@
 @group(0) @binding(3) var<storage, read> framebuffer: array<vec2<u32>>;
 
 @compute @workgroup_size(WORKGROUP_SIZE)
-fn accumulate(
-    @builtin(workgroup_id) workgroup: vec3<u32>,
-    @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_index) lane: u32,
-) {
-    let band = 1.0 + frame.depth_band;
-    let batch = workgroup_batch(workgroup, groups, lane, band, 1u);
-    if batch.count == 0u {
-        return;
-    }
-    let projection = batch_projection(frame, batch);
-    for (var i = batch.first + lane; i < batch.first + batch.count; i += WORKGROUP_SIZE) {
-        let splat = project_quantised(frame, projection, positions[i]);
-        if !splat.visible {
+fn accumulate(invocation: GridInvocation) {
+    draw_batch(invocation, 1.0 + frame.depth_band, READS_DEPTHS);
+}
+
+// Adds point `i`'s colour to every pixel of its splat where it lies within `band` times the
+// nearest depth.
+fn draw_splat(i: u32, splat: Splat, band: f32, pass_kind: u32) {
+    for (var k = 0u; k < SPLAT_PIXELS; k++) {
+        let pixel = splat_pixel(frame, splat, k);
+        if pixel < 0 {
             continue;
         }
-        for (var k = 0u; k < SPLAT_PIXELS; k++) {
-            let pixel = splat_pixel(frame, splat, k);
-            if pixel < 0 {
-                continue;
-            }
-            let nearest = bitcast<f32>(framebuffer[pixel].y);
-            if splat.depth > nearest * band {
-                continue;
-            }
-            add_to_sums(pixel, color_of(i));
+        let nearest = bitcast<f32>(framebuffer[pixel].y);
+        if splat.depth > nearest * band {
+            continue;
         }
+        add_to_sums(pixel, color_of(i));
     }
 }

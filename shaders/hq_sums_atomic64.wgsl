@@ -3,7 +3,7 @@
 // each, little end first), while it holds fewer than PACKED_POINTS points, where no channel's
 // sum can overflow its 16 bits (256 x 255 < 2^16). A point that finds the word full takes its
 // add back and adds to the wide sums instead, the four words of `hq_sums_atomic32.wgsl` as two
-// little-endian pairs, and flags the packed word so that the resolve (`resolve_average_packed`)
+// little-endian pairs, and flags the packed word so that the resolve (resolve_sums_packed.wgsl)
 // reads them too. The sums are integers, so the image does not depend on which points went
 // where: it is the same as the 32-bit path's to the bit (tested). Half the bytes a pixel make
 // both the accumulation and its resolve faster than two atomics a point on the wide sums

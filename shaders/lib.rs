@@ -2,7 +2,8 @@
 //!
 //! WGSL has no `#include`, so every module is composed as the [`layout`] prelude (the
 //! constants host and shaders share), `common.wgsl`, the files it shares with passes of its
-//! kind ([`Shader::source`]), then its own file. The renderer only ever asks for a
+//! kind ([`Shader::source`]), then its own file (the resolve's followed by the file that
+//! says where it finds the high-quality sums). The renderer only ever asks for a
 //! [`Shader`]; the tests below validate every composed module with naga, the ones that must
 //! run without 64-bit integers also with capabilities that lack them, so a broken shader fails
 //! CI even when no test renders it.
@@ -22,8 +23,11 @@ pub enum Shader {
     HqAccumulate64,
     /// Eye-Dome Lighting on the resolved images: entry point `shade`.
     Edl,
-    /// Framebuffer clear and resolve: entry points `clear`, `resolve`, `resolve_average`.
+    /// Framebuffer clear and resolve: entry points `clear`, `resolve`, and `resolve_average`
+    /// after the 32-bit high-quality accumulation.
     Resolve,
+    /// The same, its `resolve_average` after the 64-bit accumulation (the packed sums).
+    ResolvePacked,
     /// Pintus et al.'s screen-space visibility on the resolved images: entry point `classify`.
     Visibility,
     /// Pintus et al.'s anisotropic filling: entry points `fill_step`, `finish`.
@@ -50,6 +54,10 @@ const HQ_SUMS_ATOMIC32: &str = include_str!("hq_sums_atomic32.wgsl");
 const HQ_SUMS_ATOMIC64: &str = include_str!("hq_sums_atomic64.wgsl");
 /// Parameters and helpers of the passes on the resolved images, after `common.wgsl`.
 const SCREEN_COMMON: &str = include_str!("screen_common.wgsl");
+/// Where the high-quality resolve finds the sums, after `resolve.wgsl`: the 32-bit
+/// accumulation's, or the 64-bit one's packed sums.
+const RESOLVE_SUMS: &str = include_str!("resolve_sums.wgsl");
+const RESOLVE_SUMS_PACKED: &str = include_str!("resolve_sums_packed.wgsl");
 
 impl Shader {
     pub const ALL: &'static [Shader] = &[
@@ -59,6 +67,7 @@ impl Shader {
         Shader::HqAccumulate64,
         Shader::Edl,
         Shader::Resolve,
+        Shader::ResolvePacked,
         Shader::Visibility,
         Shader::Fill,
         Shader::PintusShading,
@@ -76,6 +85,7 @@ impl Shader {
             Shader::HqAccumulate64 => "hq_accumulate64",
             Shader::Edl => "edl",
             Shader::Resolve => "resolve",
+            Shader::ResolvePacked => "resolve_packed",
             Shader::Visibility => "visibility",
             Shader::Fill => "fill",
             Shader::PintusShading => "pintus",
@@ -92,7 +102,7 @@ impl Shader {
             Shader::RasterAtomic32 => include_str!("raster_atomic32.wgsl"),
             Shader::HqAccumulate | Shader::HqAccumulate64 => HQ_ACCUMULATE,
             Shader::Edl => include_str!("edl.wgsl"),
-            Shader::Resolve => include_str!("resolve.wgsl"),
+            Shader::Resolve | Shader::ResolvePacked => include_str!("resolve.wgsl"),
             Shader::Visibility => include_str!("visibility.wgsl"),
             Shader::Fill => include_str!("fill.wgsl"),
             Shader::PintusShading => include_str!("pintus.wgsl"),
@@ -114,6 +124,8 @@ impl Shader {
             Shader::HqAccumulate64 => {
                 format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{HQ_SUMS_ATOMIC64}\n{own}")
             }
+            Shader::Resolve => format!("{COMMON}\n{own}\n{RESOLVE_SUMS}"),
+            Shader::ResolvePacked => format!("{COMMON}\n{own}\n{RESOLVE_SUMS_PACKED}"),
             _ => format!("{COMMON}\n{own}"),
         };
         format!("{prelude}\n{composed}")

@@ -11,8 +11,6 @@
 // directional light the paper describes (1 facing the camera, towards 1/2 at grazing angles)
 // and makes it independent of the scene's units.
 
-@group(0) @binding(0) var<uniform> params: ScreenParams;
-@group(0) @binding(1) var<storage, read> depth_in: array<f32>;
 @group(0) @binding(2) var<storage, read_write> depth_out: array<f32>;
 @group(0) @binding(3) var<storage, read_write> shade_sum: array<f32>;
 

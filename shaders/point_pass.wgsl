@@ -1,6 +1,7 @@
 // What the point passes (raster_atomic64.wgsl, raster_atomic32.wgsl, hq_accumulate.wgsl)
-// share: their common bindings, their workgroup size, and the batch a workgroup draws.
-// Composed after common.wgsl and occlusion.wgsl.
+// share: their common bindings, their workgroup size, and the
+// walk over the points of the batch a workgroup draws. Composed after common.wgsl and
+// occlusion.wgsl; each pass's own file defines `draw_splat`, what it does with one point.
 
 // Invocations per workgroup, which the host picks for the adapter and sets on every
 // pipeline (`raster/point_workgroup.rs`).
@@ -18,12 +19,17 @@ fn color_of(i: u32) -> u32 {
     return unpack_color(colors[w], colors[w + 1u], i);
 }
 
+// Which kind of pass draws, as `occlusion_skipped` counts them (occlusion.wgsl): the one that
+// writes depths, or one that reads them (32-bit colour, high-quality accumulation).
+const WRITES_DEPTHS: u32 = 0u;
+const READS_DEPTHS: u32 = 1u;
+
 // The batch of this workgroup's listed entry, or none (`count` 0): past the end of the list,
 // outside the view, or behind the occlusion tiles by `band` (`batch_occluded`), which counts
 // it as skipped by `pass_kind` (`count_skipped`).
-fn workgroup_batch(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32, band: f32, pass_kind: u32) -> Batch {
+fn workgroup_batch(invocation: GridInvocation, band: f32, pass_kind: u32) -> Batch {
     var none: Batch;
-    let b = batch_index(workgroup, groups);
+    let b = workgroup_index(invocation);
     if b >= arrayLength(&listed) {
         return none;
     }
@@ -33,8 +39,26 @@ fn workgroup_batch(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32, band: f32
         return none;
     }
     if batch_occluded(frame, batch, band) {
-        count_skipped(pass_kind, lane);
+        count_skipped(pass_kind, invocation.lane);
         return none;
     }
     return batch;
+}
+
+// Hands each point of the workgroup's batch that lies in the view to the pass's
+// `draw_splat(point, splat, band, pass_kind)`, a point per lane at a time. Every pass walks its
+// points this way; the call is inlined, so each pass's loop is the one it had written out.
+fn draw_batch(invocation: GridInvocation, band: f32, pass_kind: u32) {
+    let batch = workgroup_batch(invocation, band, pass_kind);
+    if batch.count == 0u {
+        return;
+    }
+    let projection = batch_projection(frame, batch);
+    for (var i = batch.first + invocation.lane; i < batch.first + batch.count; i += WORKGROUP_SIZE) {
+        let splat = project_quantised(frame, projection, positions[i]);
+        if !splat.visible {
+            continue;
+        }
+        draw_splat(i, splat, band, pass_kind);
+    }
 }

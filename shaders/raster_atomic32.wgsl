@@ -17,51 +17,33 @@ fn color_word(pixel: i32) -> i32 {
     return 2 * pixel;
 }
 
-// The two passes walk the same points in the same way; `color_pass` picks what they write.
-fn rasterize_batch(workgroup: vec3<u32>, groups: vec3<u32>, lane: u32, color_pass: bool) {
-    let batch = workgroup_batch(workgroup, groups, lane, 1.0, select(0u, 1u, color_pass));
-    if batch.count == 0u {
-        return;
-    }
-    let projection = batch_projection(frame, batch);
-    for (var i = batch.first + lane; i < batch.first + batch.count; i += WORKGROUP_SIZE) {
-        let splat = project_quantised(frame, projection, positions[i]);
-        if !splat.visible {
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn rasterize_depth(invocation: GridInvocation) {
+    draw_batch(invocation, 1.0, WRITES_DEPTHS);
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn rasterize_color(invocation: GridInvocation) {
+    draw_batch(invocation, 1.0, READS_DEPTHS);
+}
+
+// The two passes walk the same points in the same way; `pass_kind`, a constant in each entry
+// point once inlined, picks what they write.
+fn draw_splat(i: u32, splat: Splat, band: f32, pass_kind: u32) {
+    let depth_bits = bitcast<u32>(splat.depth);
+    for (var k = 0u; k < SPLAT_PIXELS; k++) {
+        let pixel = splat_pixel(frame, splat, k);
+        if pixel < 0 {
             continue;
         }
-        let depth_bits = bitcast<u32>(splat.depth);
-        for (var k = 0u; k < SPLAT_PIXELS; k++) {
-            let pixel = splat_pixel(frame, splat, k);
-            if pixel < 0 {
-                continue;
+        let stored_depth = atomicLoad(&framebuffer[depth_word(pixel)]);
+        if pass_kind == READS_DEPTHS {
+            if stored_depth == depth_bits {
+                atomicMin(&framebuffer[color_word(pixel)], color_of(i));
             }
-            let stored_depth = atomicLoad(&framebuffer[depth_word(pixel)]);
-            if color_pass {
-                if stored_depth == depth_bits {
-                    atomicMin(&framebuffer[color_word(pixel)], color_of(i));
-                }
-            } else if stored_depth >= depth_bits {
-                // Early depth test as in the 64-bit pass: only nearer or equal points try.
-                atomicMin(&framebuffer[depth_word(pixel)], depth_bits);
-            }
+        } else if stored_depth >= depth_bits {
+            // Early depth test as in the 64-bit pass: only nearer or equal points try.
+            atomicMin(&framebuffer[depth_word(pixel)], depth_bits);
         }
     }
-}
-
-@compute @workgroup_size(WORKGROUP_SIZE)
-fn rasterize_depth(
-    @builtin(workgroup_id) workgroup: vec3<u32>,
-    @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_index) lane: u32,
-) {
-    rasterize_batch(workgroup, groups, lane, false);
-}
-
-@compute @workgroup_size(WORKGROUP_SIZE)
-fn rasterize_color(
-    @builtin(workgroup_id) workgroup: vec3<u32>,
-    @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_index) lane: u32,
-) {
-    rasterize_batch(workgroup, groups, lane, true);
 }

@@ -13,39 +13,29 @@
 @group(0) @binding(4) var<storage, read_write> framebuffer_words: array<vec2<u32>>;
 
 @compute @workgroup_size(WORKGROUP_SIZE)
-fn rasterize(
-    @builtin(workgroup_id) workgroup: vec3<u32>,
-    @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_index) lane: u32,
-) {
-    let batch = workgroup_batch(workgroup, groups, lane, 1.0, 0u);
-    if batch.count == 0u {
-        return;
-    }
-    let projection = batch_projection(frame, batch);
-    for (var i = batch.first + lane; i < batch.first + batch.count; i += WORKGROUP_SIZE) {
-        let splat = project_quantised(frame, projection, positions[i]);
-        if !splat.visible {
+fn rasterize(invocation: GridInvocation) {
+    draw_batch(invocation, 1.0, WRITES_DEPTHS);
+}
+
+// Keeps point `i` in every pixel of its splat where it is the nearest.
+fn draw_splat(i: u32, splat: Splat, band: f32, pass_kind: u32) {
+    let depth_bits = bitcast<u32>(splat.depth);
+    // Read only once a pixel passed the early depth test.
+    var color = 0u;
+    var have_color = false;
+    for (var k = 0u; k < SPLAT_PIXELS; k++) {
+        let pixel = splat_pixel(frame, splat, k);
+        if pixel < 0 {
             continue;
         }
-        let depth_bits = bitcast<u32>(splat.depth);
-        // Read only once a pixel passed the early depth test.
-        var color = 0u;
-        var have_color = false;
-        for (var k = 0u; k < SPLAT_PIXELS; k++) {
-            let pixel = splat_pixel(frame, splat, k);
-            if pixel < 0 {
-                continue;
-            }
-            // Early depth test: skip the atomic when a nearer point is already stored.
-            if framebuffer_words[pixel].y < depth_bits {
-                continue;
-            }
-            if !have_color {
-                color = color_of(i);
-                have_color = true;
-            }
-            atomicMin(&framebuffer[pixel], (u64(depth_bits) << 32u) | u64(color));
+        // Early depth test: skip the atomic when a nearer point is already stored.
+        if framebuffer_words[pixel].y < depth_bits {
+            continue;
         }
+        if !have_color {
+            color = color_of(i);
+            have_color = true;
+        }
+        atomicMin(&framebuffer[pixel], (u64(depth_bits) << 32u) | u64(color));
     }
 }

@@ -29,8 +29,9 @@ override WRITE_DEPTH: bool = true;
 @group(0) @binding(1) var<storage, read_write> framebuffer: array<vec2<u32>>;
 @group(0) @binding(2) var<storage, read_write> color_out: array<u32>;
 @group(0) @binding(3) var<storage, read_write> depth_out: array<f32>;
-// High-quality mode only: per pixel the sums of red, green, blue and the count of points;
-// zeroed as they are read, like the framebuffer (buffers start zeroed).
+// High-quality mode only: per pixel the sums of red, green, blue and the count of points (after
+// the 64-bit accumulation, the wide sums beside the packed ones); zeroed as they are read, like
+// the framebuffer (buffers start zeroed).
 @group(0) @binding(4) var<storage, read_write> accumulator: array<vec4<u32>>;
 
 fn pixel_of(id: vec3<u32>, groups: vec3<u32>) -> u32 {
@@ -107,8 +108,10 @@ fn write_average(pixel: u32, sums: vec4<u32>, depth_bits: u32) {
     }
 }
 
-// High-quality mode with 32-bit atomics: the rounded average of the colours accumulated per
-// pixel.
+// High-quality mode: the rounded average of the colours accumulated per pixel. The sums come
+// from `read_sums` and are emptied by `empty_sums`, which the file composed after this one
+// defines: resolve_sums.wgsl for the 32-bit accumulation's, resolve_sums_packed.wgsl for the
+// 64-bit one's (hq_sums_atomic32.wgsl, hq_sums_atomic64.wgsl).
 @compute @workgroup_size(RESOLVE_WORKGROUP)
 fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let first = pixel_of(id, groups) * AVERAGE_RUN;
@@ -121,7 +124,7 @@ fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_wo
     var covered = false;
     for (var k = 0u; k < AVERAGE_RUN; k++) {
         if k < pixels {
-            sums[k] = accumulator[first + k];
+            sums[k] = read_sums(first + k);
             depths[k] = framebuffer[first + k].y;
             covered = covered || sums[k].w != 0u || depths[k] != EMPTY;
         }
@@ -130,54 +133,7 @@ fn resolve_average(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_wo
     if covered {
         for (var k = 0u; k < AVERAGE_RUN; k++) {
             if k < pixels {
-                accumulator[first + k] = vec4<u32>(0u);
-                framebuffer[first + k] = vec2<u32>(EMPTY, EMPTY);
-            }
-        }
-    }
-    for (var k = 0u; k < AVERAGE_RUN; k++) {
-        if k < pixels {
-            write_average(first + k, sums[k], depths[k]);
-        }
-    }
-}
-
-// High-quality mode with 64-bit atomics (hq_sums_atomic64.wgsl): per pixel the packed sums,
-// 16 bits each (red, green, blue, count), and where their flag is set the wide sums too.
-// Zeroed as they are read, like the framebuffer.
-@group(0) @binding(5) var<storage, read_write> packed_sums: array<vec2<u32>>;
-
-// The flag of a packed word that says the wide sums hold points too (bit 63).
-const WIDE_SUMS_USED: u32 = 0x80000000u;
-
-@compute @workgroup_size(RESOLVE_WORKGROUP)
-fn resolve_average_packed(@builtin(global_invocation_id) id: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let first = pixel_of(id, groups) * AVERAGE_RUN;
-    if first >= frame.resolve_pixels {
-        return;
-    }
-    let pixels = min(AVERAGE_RUN, frame.resolve_pixels - first);
-    var sums: array<vec4<u32>, AVERAGE_RUN>;
-    var depths: array<u32, AVERAGE_RUN>;
-    var covered = false;
-    for (var k = 0u; k < AVERAGE_RUN; k++) {
-        if k < pixels {
-            let packed = packed_sums[first + k];
-            sums[k] = vec4<u32>(packed.x & 0xffffu, packed.x >> 16u, packed.y & 0xffffu, (packed.y >> 16u) & 0x7fffu);
-            // Rare: only pixels with more than `PACKED_POINTS` points in the depth band use
-            // them (hq_sums_atomic64.wgsl).
-            if (packed.y & WIDE_SUMS_USED) != 0u {
-                sums[k] += accumulator[first + k];
-                accumulator[first + k] = vec4<u32>(0u);
-            }
-            depths[k] = framebuffer[first + k].y;
-            covered = covered || sums[k].w != 0u || depths[k] != EMPTY;
-        }
-    }
-    if covered {
-        for (var k = 0u; k < AVERAGE_RUN; k++) {
-            if k < pixels {
-                packed_sums[first + k] = vec2<u32>(0u);
+                empty_sums(first + k);
                 framebuffer[first + k] = vec2<u32>(EMPTY, EMPTY);
             }
         }

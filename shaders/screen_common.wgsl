@@ -1,5 +1,6 @@
 // Shared by the screen-space passes that run on the resolved images (visibility, filling,
-// Pintus shading): their parameters and how a pixel and its depth become a view-space point.
+// Pintus shading): their parameters, the depth image they read, and how a pixel and its depth
+// become a view-space point.
 
 struct ScreenParams {
     width: u32,
@@ -28,6 +29,9 @@ struct ScreenParams {
     // kernel's radius and a pixel); all others are fixed background.
     visibility_area: vec4<u32>,
 }
+
+@group(0) @binding(0) var<uniform> params: ScreenParams;
+@group(0) @binding(1) var<storage, read> depth_in: array<f32>;
 
 const INFINITE_DEPTH_BITS: u32 = 0x7f800000u;
 

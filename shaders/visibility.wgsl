@@ -13,8 +13,6 @@
 // Output: the visible pixels unchanged and fixed; the others emptied (+infinity, background
 // colour) and listed as mutable for the filling, which then visits only those (fill.wgsl).
 
-@group(0) @binding(0) var<uniform> params: ScreenParams;
-@group(0) @binding(1) var<storage, read> depth_in: array<f32>;
 @group(0) @binding(2) var<storage, read> color_in: array<u32>;
 @group(0) @binding(3) var<storage, read_write> depth_out: array<f32>;
 @group(0) @binding(4) var<storage, read_write> color_out: array<u32>;
@@ -23,9 +21,7 @@
 
 // The filling's indirect dispatch over `mutable_list`, and the length of the list.
 struct FillArgs {
-    groups_x: u32,
-    groups_y: u32,
-    groups_z: u32,
+    groups: vec3<u32>,
     count: atomic<u32>,
 }
 @group(0) @binding(6) var<storage, read_write> fill_args: FillArgs;
@@ -41,9 +37,7 @@ fn reset_list() {
 @compute @workgroup_size(1)
 fn prepare_fill() {
     let groups = (atomicLoad(&fill_args.count) + LIST_WORKGROUP - 1u) / LIST_WORKGROUP;
-    fill_args.groups_x = min(groups, 65535u);
-    fill_args.groups_y = max(1u, (groups + 65534u) / 65535u);
-    fill_args.groups_z = 1u;
+    fill_args.groups = vec3<u32>(min(groups, 65535u), max(1u, (groups + 65534u) / 65535u), 1u);
 }
 
 const SECTORS: u32 = 8u;

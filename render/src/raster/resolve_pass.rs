@@ -102,11 +102,12 @@ impl ByDepthOutput {
 impl ResolvePass {
     pub fn new(device: &wgpu::Device) -> Self {
         let module = shader_module(device, Shader::Resolve);
+        let packed = shader_module(device, Shader::ResolvePacked);
         Self {
             clear: compute_pipeline(device, &module, "clear", &[]),
             resolve: ByDepthOutput::new(device, &module, "resolve"),
             resolve_average: ByDepthOutput::new(device, &module, "resolve_average"),
-            resolve_average_packed: ByDepthOutput::new(device, &module, "resolve_average_packed"),
+            resolve_average_packed: ByDepthOutput::new(device, &packed, "resolve_average"),
         }
     }
 
