@@ -170,6 +170,17 @@ mod tests {
         writer.close().expect("close");
     }
 
+    /// `cloud` written as `name` in a point format without colour fields (0 or 1), loaded back.
+    fn written_without_color(cloud: &PointCloud, point_format: u8, name: &str) -> PointCloud {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let options = LasWriteOptions {
+            point_format,
+            ..LasWriteOptions::default()
+        };
+        let path = write(dir.path(), name, cloud, &options);
+        load_point_cloud(&path).expect("load")
+    }
+
     #[test]
     fn eight_bit_values_in_sixteen_bit_fields_are_used_as_they_are() {
         let dir = tempfile::tempdir().expect("temp dir");
@@ -200,18 +211,12 @@ mod tests {
 
     #[test]
     fn intensity_without_color_becomes_a_stretched_grey_that_is_never_black() {
-        let dir = tempfile::tempdir().expect("temp dir");
         let mut cloud = test_cloud(1_000);
         // Mostly 100..1100, plus outliers the percentile stretch must ignore.
         cloud.intensity = (0..1_000).map(|i| 100 + i as u16).collect();
         cloud.intensity[0] = 0;
         cloud.intensity[1] = 65_535;
-        let options = LasWriteOptions {
-            point_format: 1,
-            ..LasWriteOptions::default()
-        };
-        let path = write(dir.path(), "intensity.las", &cloud, &options);
-        let loaded = load_point_cloud(&path).expect("load");
+        let loaded = written_without_color(&cloud, 1, "intensity.las");
 
         assert_eq!(loaded.color_source, ColorSource::IntensityGrey);
         assert_eq!(loaded.intensity, cloud.intensity, "raw intensity is kept");
@@ -247,15 +252,9 @@ mod tests {
 
     #[test]
     fn no_color_and_no_intensity_gives_one_light_grey() {
-        let dir = tempfile::tempdir().expect("temp dir");
         let mut cloud = test_cloud(100);
         cloud.intensity = vec![0; 100];
-        let options = LasWriteOptions {
-            point_format: 0,
-            ..LasWriteOptions::default()
-        };
-        let path = write(dir.path(), "plain.laz", &cloud, &options);
-        let loaded = load_point_cloud(&path).expect("load");
+        let loaded = written_without_color(&cloud, 0, "plain.laz");
         assert_eq!(loaded.color_source, ColorSource::Constant);
         let grey = CONSTANT_GREY_RGBA;
         assert!(loaded.colors.iter().all(|&color| color == grey));
@@ -265,12 +264,7 @@ mod tests {
     fn origin_falls_back_to_the_first_point_when_header_bounds_are_wrong() {
         let dir = tempfile::tempdir().expect("temp dir");
         let cloud = test_cloud(50);
-        let path = write(
-            dir.path(),
-            "stale_bounds.las",
-            &cloud,
-            &LasWriteOptions::default(),
-        );
+        let path = write_default(dir.path(), "stale_bounds.las", &cloud);
         let mut bytes = fs::read(&path).expect("read back");
         // Header bounds (max x, min x, max y, min y, max z, min z) at 179: zero them all.
         bytes[179..227].fill(0);

@@ -224,6 +224,16 @@ mod tests {
         fs::write(path, bytes).expect("patch");
     }
 
+    /// Loads `$path`, which must fail with an error matching `$pattern` (shown when it does
+    /// not), and gives the error.
+    macro_rules! assert_load_fails {
+        ($path:expr, $pattern:pat) => {{
+            let error = load_error($path);
+            assert!(matches!(error, $pattern), "{error}");
+            error
+        }};
+    }
+
     #[test]
     fn rejects_files_that_are_not_las() {
         let dir = tempfile::tempdir().expect("temp dir");
@@ -239,27 +249,17 @@ mod tests {
     #[test]
     fn reports_how_many_points_a_truncated_las_file_holds() {
         let dir = tempfile::tempdir().expect("temp dir");
-        let path = write(
-            dir.path(),
-            "cut.las",
-            &test_cloud(1_000),
-            &LasWriteOptions::default(),
-        );
-        let bytes = fs::read(&path).expect("read back");
+        let (path, bytes) = file_to_cut(dir.path(), "cut.las", 1_000);
         // Format 3 records are 34 bytes: keep 412 and a half.
         let data_start = bytes.len() - 1_000 * 34;
         fs::write(&path, &bytes[..data_start + 412 * 34 + 17]).expect("cut");
-        let error = load_error(&path);
-        assert!(
-            matches!(
-                error,
-                IngestError::Truncated {
-                    declared: 1_000,
-                    available: 412,
-                    ..
-                }
-            ),
-            "{error}"
+        let error = assert_load_fails!(
+            &path,
+            IngestError::Truncated {
+                declared: 1_000,
+                available: 412,
+                ..
+            }
         );
         assert!(error
             .to_string()
@@ -289,23 +289,18 @@ mod tests {
                 &options,
             );
             patch_point_count(&las, 1_001);
-            let error = load_error(&las);
-            assert!(
-                matches!(
-                    error,
-                    IngestError::Truncated {
-                        declared: 1_001,
-                        available: 1_000,
-                        ..
-                    }
-                ),
-                "{error}"
+            assert_load_fails!(
+                &las,
+                IngestError::Truncated {
+                    declared: 1_001,
+                    available: 1_000,
+                    ..
+                }
             );
             if minor == 4 {
                 // A 64-bit count that would overflow `count * record_length` in `las`.
                 patch_point_count(&las, u64::MAX / 2);
-                let error = load_error(&las);
-                assert!(matches!(error, IngestError::Truncated { .. }), "{error}");
+                assert_load_fails!(&las, IngestError::Truncated { .. });
             }
 
             let laz = write(
@@ -322,25 +317,17 @@ mod tests {
             };
             for &declared in [60_000].iter().chain(beyond_u32) {
                 patch_point_count(&laz, declared);
-                let error = load_error(&laz);
-                assert!(
-                    matches!(
-                        error,
-                        IngestError::TruncatedLaz {
-                            chunk_capacity: 50_000,
-                            ..
-                        }
-                    ),
-                    "{error}"
+                assert_load_fails!(
+                    &laz,
+                    IngestError::TruncatedLaz {
+                        chunk_capacity: 50_000,
+                        ..
+                    }
                 );
             }
             if minor == 4 {
                 patch_point_count(&laz, u64::MAX / 2);
-                let error = load_error(&laz);
-                assert!(
-                    matches!(error, IngestError::ImpossiblePointCount { .. }),
-                    "{error}"
-                );
+                assert_load_fails!(&laz, IngestError::ImpossiblePointCount { .. });
             }
         }
     }
@@ -348,31 +335,16 @@ mod tests {
     #[test]
     fn rejects_a_laz_file_cut_short() {
         let dir = tempfile::tempdir().expect("temp dir");
-        let path = write(
-            dir.path(),
-            "cut.laz",
-            &test_cloud(1_000),
-            &LasWriteOptions::default(),
-        );
-        let bytes = fs::read(&path).expect("read back");
+        let (path, bytes) = file_to_cut(dir.path(), "cut.laz", 1_000);
         fs::write(&path, &bytes[..bytes.len() * 2 / 3]).expect("cut");
-        let error = load_error(&path);
-        assert!(
-            matches!(error, IngestError::LazChunkTable { .. }),
-            "{error}"
-        );
+        assert_load_fails!(&path, IngestError::LazChunkTable { .. });
     }
 
     #[test]
     fn rejects_a_file_without_points() {
         let dir = tempfile::tempdir().expect("temp dir");
         for name in ["empty_cloud.las", "empty_cloud.laz"] {
-            let path = write(
-                dir.path(),
-                name,
-                &test_cloud(0),
-                &LasWriteOptions::default(),
-            );
+            let path = write_default(dir.path(), name, &test_cloud(0));
             assert!(matches!(load_error(&path), IngestError::NoPoints { .. }));
         }
     }
@@ -380,40 +352,26 @@ mod tests {
     #[test]
     fn rejects_unsupported_point_formats_and_versions() {
         let dir = tempfile::tempdir().expect("temp dir");
-        let path = write(
-            dir.path(),
-            "odd.las",
-            &test_cloud(10),
-            &LasWriteOptions::default(),
-        );
-        let original = fs::read(&path).expect("read back");
+        let (path, original) = file_to_cut(dir.path(), "odd.las", 10);
 
         let mut bytes = original.clone();
         bytes[POINT_FORMAT_OFFSET] = 42;
         fs::write(&path, &bytes).expect("patch");
-        let error = load_error(&path);
-        assert!(
-            matches!(
-                error,
-                IngestError::UnsupportedPointFormat { format: 42, .. }
-            ),
-            "{error}"
+        assert_load_fails!(
+            &path,
+            IngestError::UnsupportedPointFormat { format: 42, .. }
         );
 
         let mut bytes = original;
         bytes[VERSION_MINOR_OFFSET] = 9;
         fs::write(&path, &bytes).expect("patch");
-        let error = load_error(&path);
-        assert!(
-            matches!(
-                error,
-                IngestError::UnsupportedVersion {
-                    major: 1,
-                    minor: 9,
-                    ..
-                }
-            ),
-            "{error}"
+        assert_load_fails!(
+            &path,
+            IngestError::UnsupportedVersion {
+                major: 1,
+                minor: 9,
+                ..
+            }
         );
     }
 }

@@ -77,6 +77,19 @@ pub(super) fn write(
     path
 }
 
+/// `write` with the default options (`LasWriteOptions::default`); LAZ where `name` ends in `.laz`.
+pub(super) fn write_default(dir: &Path, name: &str, cloud: &PointCloud) -> PathBuf {
+    write(dir, name, cloud, &LasWriteOptions::default())
+}
+
+/// A test file of `points` points written with the default options, to be cut or patched:
+/// its path and its bytes.
+pub(super) fn file_to_cut(dir: &Path, name: &str, points: usize) -> (PathBuf, Vec<u8>) {
+    let path = write_default(dir, name, &test_cloud(points));
+    let bytes = std::fs::read(&path).expect("read back");
+    (path, bytes)
+}
+
 // Byte offsets of header fields patched below (LAS 1.0–1.4 public header block).
 pub(super) const VERSION_MINOR_OFFSET: usize = 25;
 

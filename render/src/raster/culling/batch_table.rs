@@ -326,10 +326,38 @@ mod tests {
 
     use super::*;
     use crate::camera::{Camera, Projection};
+    use crate::gpu::GpuContext;
     use crate::raster::culling::{batch, decoded};
     use crate::raster::draw_order::DrawOrders;
     use crate::raster::occlusion::MIN_PHASES;
     use crate::raster::points::{BATCH_POINTS, SUB_BATCH_POINTS};
+
+    /// A chunk's tables with batches only: no sub-batches or groups to refine them.
+    fn whole_batches<'a>(batches: &'a [GpuBatch], draw_orders: &'a DrawOrders) -> BatchTables<'a> {
+        BatchTables {
+            batches,
+            sub_batches: &[],
+            groups: &[],
+            draw_orders,
+        }
+    }
+
+    /// The frame's tables for `chunks` of whole batches, straddlers refined.
+    fn tables_of_whole_batches(
+        gpu: &GpuContext,
+        chunks: &[impl AsRef<[GpuBatch]>],
+        transform: &CameraTransform,
+    ) -> FrameBatches {
+        // One cache of draw orders per chunk: a cache serves one batch table only.
+        let orders: Vec<DrawOrders> = chunks.iter().map(|_| DrawOrders::default()).collect();
+        let mut tables = FrameBatches::new(true);
+        let tables_of = chunks
+            .iter()
+            .zip(&orders)
+            .map(|(batches, draw_orders)| whole_batches(batches.as_ref(), draw_orders));
+        tables.update(&gpu.device, &gpu.queue, tables_of, transform, 1);
+        tables
+    }
 
     /// A 64 x 64 orthographic view down -z from z = 10, 2 units high: depth is 10 - z.
     fn looking_down_from_z_10() -> CameraTransform {
@@ -353,18 +381,7 @@ mod tests {
         let beside = batch(Vec3::splat(50.0), Vec3::splat(51.0));
         let behind = batch(Vec3::new(-0.1, -0.1, 10.5), Vec3::new(0.1, 0.1, 11.0));
         let chunks: [&[GpuBatch]; 3] = [&[far, beside, near, behind], &[beside], &[beside, far]];
-        let orders: [DrawOrders; 3] = Default::default();
-        let mut tables = FrameBatches::new(true);
-        let tables_of = chunks
-            .into_iter()
-            .zip(&orders)
-            .map(|(batches, draw_orders)| BatchTables {
-                batches,
-                sub_batches: &[],
-                groups: &[],
-                draw_orders,
-            });
-        tables.update(&gpu.device, &gpu.queue, tables_of, &transform, 1);
+        let tables = tables_of_whole_batches(&gpu, &chunks, &transform);
 
         assert_eq!(
             (tables.count(0), tables.count(1), tables.count(2)),
@@ -418,23 +435,7 @@ mod tests {
         // Chunk 0 far, chunk 1 near, chunk 2 between; 200 full batches each, deep enough on
         // the 64 x 64 image for phases.
         let chunks = [at_depth(8.0, 200), at_depth(2.0, 200), at_depth(5.0, 200)];
-        let orders: [DrawOrders; 3] = Default::default();
-        let mut tables = FrameBatches::new(true);
-        tables.update(
-            &gpu.device,
-            &gpu.queue,
-            chunks
-                .iter()
-                .zip(&orders)
-                .map(|(batches, draw_orders)| BatchTables {
-                    batches,
-                    sub_batches: &[],
-                    groups: &[],
-                    draw_orders,
-                }),
-            &transform,
-            1,
-        );
+        let tables = tables_of_whole_batches(&gpu, &chunks, &transform);
         assert_eq!(tables.chunk_order, [1, 2, 0]);
         let phase_count = tables.phase_count();
         assert!(phase_count >= MIN_PHASES, "{phase_count}");
@@ -530,21 +531,15 @@ mod tests {
         let build = |refine: bool, parallel_from: usize| {
             let mut tables = FrameBatches::new(refine);
             tables.parallel_from_batches = parallel_from;
-            tables.update(
-                &gpu.device,
-                &gpu.queue,
+            let tables_of =
                 chunks
                     .iter()
                     .zip(&orders)
                     .map(|((batches, sub_batches), draw_orders)| BatchTables {
-                        batches,
                         sub_batches,
-                        groups: &[],
-                        draw_orders,
-                    }),
-                &transform,
-                1,
-            );
+                        ..whole_batches(batches, draw_orders)
+                    });
+            tables.update(&gpu.device, &gpu.queue, tables_of, &transform, 1);
             tables
         };
         let (parallel, serial) = (build(true, 0), build(true, usize::MAX));

@@ -10,11 +10,7 @@ fn fallback_32_bit_path_renders_the_same_image_as_the_64_bit_path() {
         gpu.capabilities.int64_atomics,
         "this adapter lacks 64-bit atomics; the comparison needs both paths"
     );
-    let mut settings = FrameSettings::new(
-        160,
-        120,
-        camera(Projection::Perspective { fov_y_deg: 50.0 }),
-    );
+    let mut settings = perspective_settings(160, 120);
     settings.read_depth = true;
     // Many points per pixel, including exact depth ties broken by colour.
     let mut cloud = pixel_centre_scene(&settings, 4, 4);
@@ -74,11 +70,7 @@ fn fallback_32_bit_path_renders_the_same_image_as_the_64_bit_path() {
 #[test]
 fn every_point_workgroup_size_renders_the_same_image() {
     let gpu = gpu();
-    let mut settings = FrameSettings::new(
-        160,
-        120,
-        camera(Projection::Perspective { fov_y_deg: 50.0 }),
-    );
+    let mut settings = perspective_settings(160, 120);
     settings.read_depth = true;
     let cloud = surface_with_depth_noise(&settings, 11);
     let sizes = [4, 8, 32, 128, 256];
@@ -130,8 +122,7 @@ fn high_quality_sums_are_the_same_with_64_and_32_bit_atomics() {
     );
     let mut renderer = Renderer::new(gpu);
     for point_size in [1, 3] {
-        let mut settings =
-            FrameSettings::new(96, 64, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+        let mut settings = perspective_settings(96, 64);
         settings.quality = Quality::HIGH;
         settings.read_depth = true;
         settings.point_size = point_size;

@@ -6,11 +6,7 @@ use super::*;
 
 #[test]
 fn basic_mode_equals_the_reference_pixel_for_pixel() {
-    let settings = FrameSettings::new(
-        160,
-        120,
-        camera(Projection::Perspective { fov_y_deg: 50.0 }),
-    );
+    let settings = perspective_settings(160, 120);
     let cloud = pixel_centre_scene(&settings, 3, 1);
     let frame = assert_matches_reference("basic-perspective", &cloud, &settings);
     // The scene really exercises the depth test and the background.
@@ -93,11 +89,7 @@ fn large_points_centred_off_the_image_draw_their_squares_inside_part() {
 fn odd_image_sizes_resolve_their_last_pixels_and_empty_the_framebuffer() {
     let mut renderer = Renderer::new(gpu());
     for (width, height) in [(101, 77), (37, 29)] {
-        let basic = FrameSettings::new(
-            width,
-            height,
-            camera(Projection::Perspective { fov_y_deg: 50.0 }),
-        );
+        let basic = perspective_settings(width, height);
         let high = FrameSettings {
             quality: Quality::HIGH,
             read_depth: true,
@@ -139,11 +131,7 @@ fn odd_image_sizes_resolve_their_last_pixels_and_empty_the_framebuffer() {
 #[test]
 fn consecutive_frames_equal_fresh_ones_while_the_resolve_skips_clean_pixels() {
     let gpu = gpu();
-    let centre = FrameSettings::new(
-        160,
-        120,
-        camera(Projection::Perspective { fov_y_deg: 50.0 }),
-    );
+    let centre = perspective_settings(160, 120);
     // A noisy surface near the target's depth, without the points placed to be culled, which
     // would stretch their batches' boxes over the whole image.
     let surface = pixel_centre_scene_with(&centre, 13, |rng| {
@@ -237,7 +225,7 @@ fn consecutive_frames_equal_fresh_ones_while_the_resolve_skips_clean_pixels() {
 #[test]
 fn invalid_settings_are_refused_before_any_gpu_work() {
     let renderer = Renderer::new(gpu());
-    let good = FrameSettings::new(64, 48, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    let good = perspective_settings(64, 48);
     renderer.validate(&good).expect("good settings");
     let huge = FrameSettings {
         width: 100_000,

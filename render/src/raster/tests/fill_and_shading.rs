@@ -501,11 +501,7 @@ fn supersampled_filling_closes_the_same_holes() {
 
 #[test]
 fn eye_dome_lighting_matches_the_reference_and_outlines_silhouettes() {
-    let mut settings = FrameSettings::new(
-        160,
-        120,
-        camera(Projection::Perspective { fov_y_deg: 50.0 }),
-    );
+    let mut settings = perspective_settings(160, 120);
     let cloud = pixel_centre_scene(&settings, 2, 12);
     let mut renderer = Renderer::new(gpu());
     let resident = renderer.upload(&cloud).expect("upload");

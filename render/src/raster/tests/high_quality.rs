@@ -9,8 +9,7 @@ use super::*;
 #[test]
 fn high_quality_averages_pixels_deeper_than_the_packed_sums() {
     let mut renderer = Renderer::new(gpu());
-    let mut settings =
-        FrameSettings::new(24, 16, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    let mut settings = perspective_settings(24, 16);
     settings.quality = Quality::HIGH;
     let (near, far) = (settings.camera.near, settings.camera.far);
     // From one point to a thousand in a pixel's band: some fit the packed sums, most not.
@@ -47,11 +46,7 @@ fn high_quality_averages_pixels_deeper_than_the_packed_sums() {
 
 #[test]
 fn high_quality_mode_averages_the_front_surface_like_the_reference() {
-    let mut settings = FrameSettings::new(
-        160,
-        120,
-        camera(Projection::Perspective { fov_y_deg: 50.0 }),
-    );
+    let mut settings = perspective_settings(160, 120);
     settings.quality = Quality::HIGH;
     settings.read_depth = true;
     let cloud = surface_with_depth_noise(&settings, 10);
@@ -98,8 +93,7 @@ fn high_quality_mode_averages_the_front_surface_like_the_reference() {
 
 #[test]
 fn high_quality_band_is_configurable() {
-    let mut settings =
-        FrameSettings::new(96, 64, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    let mut settings = perspective_settings(96, 64);
     let cloud = surface_with_depth_noise(&settings, 11);
     let mut renderer = Renderer::new(gpu());
     let resident = renderer.upload(&cloud).expect("upload");

@@ -39,6 +39,16 @@ fn camera(projection: Projection) -> Camera {
     }
 }
 
+/// A `width` x `height` frame through the tests' camera with a 50° perspective, the view
+/// most tests use.
+fn perspective_settings(width: u32, height: u32) -> FrameSettings {
+    FrameSettings::new(
+        width,
+        height,
+        camera(Projection::Perspective { fov_y_deg: 50.0 }),
+    )
+}
+
 /// Points placed exactly on pixel centres (so no rounding can move them to another pixel),
 /// `layers` per covered pixel at well-separated depths, in shuffled order, plus points that
 /// must be culled: behind the camera, beyond `far`, before `near` and beside the image.

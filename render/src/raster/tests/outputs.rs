@@ -5,8 +5,7 @@ use super::*;
 
 #[test]
 fn depth_image_holds_linear_depth() {
-    let mut settings =
-        FrameSettings::new(64, 48, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    let mut settings = perspective_settings(64, 48);
     settings.read_depth = true;
     let cloud = pixel_centre_scene(&settings, 2, 7);
     let frame = render_gpu(&cloud, &settings);
@@ -26,8 +25,7 @@ fn depth_image_holds_linear_depth() {
 
 #[test]
 fn depth_image_is_written_as_16_bit_png() {
-    let mut settings =
-        FrameSettings::new(64, 48, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    let mut settings = perspective_settings(64, 48);
     settings.read_depth = true;
     let cloud = pixel_centre_scene(&settings, 1, 14);
     let frame = render_gpu(&cloud, &settings);
@@ -56,8 +54,7 @@ fn depth_image_is_written_as_16_bit_png() {
 
 #[test]
 fn supersampling_renders_larger_and_averages_blocks() {
-    let mut settings =
-        FrameSettings::new(80, 60, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    let mut settings = perspective_settings(80, 60);
     settings.supersample = 2;
     settings.read_depth = true;
     let big = settings.scaled_for_supersampling();
@@ -100,7 +97,7 @@ fn supersampling_renders_larger_and_averages_blocks() {
 
 #[test]
 fn every_frame_reports_its_stage_timings() {
-    let settings = FrameSettings::new(64, 48, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    let settings = perspective_settings(64, 48);
     let cloud = pixel_centre_scene(&settings, 1, 8);
     let mut renderer = Renderer::new(gpu());
     let resident = renderer.upload(&cloud).expect("upload");
@@ -143,7 +140,7 @@ fn every_frame_reports_its_stage_timings() {
 
 #[test]
 fn host_clocks_time_the_passes_without_timestamp_queries() {
-    let settings = FrameSettings::new(64, 48, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    let settings = perspective_settings(64, 48);
     let cloud = pixel_centre_scene(&settings, 1, 9);
     let mut renderer = Renderer::new(gpu());
     renderer.use_host_clocks();

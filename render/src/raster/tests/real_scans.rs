@@ -17,6 +17,29 @@ fn load(file: &str) -> Option<PointCloud> {
     Some(load_point_cloud(&path).unwrap_or_else(|e| panic!("{e}")))
 }
 
+/// Runs `check` on each of `files` found in `../shared/data/`, loaded and uploaded by one
+/// renderer.
+fn each_real_scan(
+    files: &[&str],
+    mut check: impl FnMut(&str, &PointCloud, &mut Renderer, &GpuPointCloud),
+) {
+    let mut renderer = Renderer::new(gpu());
+    for file in files {
+        let Some(cloud) = load(file) else { continue };
+        let resident = renderer.upload(&cloud).expect("upload");
+        check(file, &cloud, &mut renderer, &resident);
+    }
+}
+
+/// The automatic camera turned 100° about its target and moved to `closeness` of its
+/// distance, the near plane brought in tenfold: a close oblique view with many points per pixel.
+fn close_oblique_camera(cloud: &PointCloud, aspect: f64, closeness: f64) -> Camera {
+    let mut camera = Camera::auto(&cloud.bounds, aspect).orbit(100.0);
+    camera.position = camera.target + (camera.position - camera.target) * closeness;
+    camera.near *= 0.1;
+    camera
+}
+
 /// Share of equal pixels overall and among pixels that the reference covers.
 fn agreement(
     name: &str,
@@ -41,44 +64,41 @@ fn agreement(
 
 #[test]
 fn real_scans_agree_with_the_reference() {
-    let mut renderer = Renderer::new(gpu());
-    for file in ["autzen_trim.las", "autzen_trim.laz", "lone-star.laz"] {
-        let Some(cloud) = load(file) else { continue };
-        let resident = renderer.upload(&cloud).expect("upload");
-        let (w, h) = (800, 600);
-        let overview = FrameSettings::new(w, h, Camera::auto(&cloud.bounds, w as f64 / h as f64));
-        // A closer oblique view with larger points, where many points compete per pixel.
-        let near_view = FrameSettings {
-            camera: Camera::auto(&cloud.bounds, w as f64 / h as f64).orbit(100.0),
-            point_size: 3,
-            ..overview
-        };
-        let mut near_view = near_view;
-        near_view.camera.position =
-            near_view.camera.target + (near_view.camera.position - near_view.camera.target) * 0.35;
-        near_view.camera.near *= 0.1;
-        for (view, settings) in [("overview", overview), ("close", near_view)] {
-            for atomics in [AtomicsMode::Auto, AtomicsMode::Force32] {
-                let settings = FrameSettings {
-                    atomics,
-                    ..settings
-                };
-                let frame = renderer.render(&resident, &settings).expect("render");
-                let name = format!("{file}-{view}-{atomics:?}");
-                let (all, covered) = agreement(&name, &cloud, &settings, &frame);
-                assert!(
-                    all >= 0.995,
-                    "{name}: only {:.3}% of pixels equal",
-                    all * 100.0
-                );
-                assert!(
-                    covered >= 0.99,
-                    "{name}: only {:.3}% of covered pixels equal",
-                    covered * 100.0
-                );
+    each_real_scan(
+        &["autzen_trim.las", "autzen_trim.laz", "lone-star.laz"],
+        |file, cloud, renderer, resident| {
+            let (w, h) = (800, 600);
+            let overview =
+                FrameSettings::new(w, h, Camera::auto(&cloud.bounds, w as f64 / h as f64));
+            // A closer oblique view with larger points, where many points compete per pixel.
+            let near_view = FrameSettings {
+                camera: close_oblique_camera(cloud, w as f64 / h as f64, 0.35),
+                point_size: 3,
+                ..overview
+            };
+            for (view, settings) in [("overview", overview), ("close", near_view)] {
+                for atomics in [AtomicsMode::Auto, AtomicsMode::Force32] {
+                    let settings = FrameSettings {
+                        atomics,
+                        ..settings
+                    };
+                    let frame = renderer.render(resident, &settings).expect("render");
+                    let name = format!("{file}-{view}-{atomics:?}");
+                    let (all, covered) = agreement(&name, cloud, &settings, &frame);
+                    assert!(
+                        all >= 0.995,
+                        "{name}: only {:.3}% of pixels equal",
+                        all * 100.0
+                    );
+                    assert!(
+                        covered >= 0.99,
+                        "{name}: only {:.3}% of covered pixels equal",
+                        covered * 100.0
+                    );
+                }
             }
-        }
-    }
+        },
+    );
 }
 
 /// lone-star is in UTM at 0.25 mm resolution: in f32 world coordinates a position would be
@@ -189,57 +209,56 @@ fn survey_coordinates_render_with_sub_pixel_accuracy_in_a_close_up() {
 /// either side of it in f32).
 #[test]
 fn real_scans_high_quality_agrees_with_the_reference() {
-    let mut renderer = Renderer::new(gpu());
-    for file in ["autzen_trim.laz", "lone-star.laz"] {
-        let Some(cloud) = load(file) else { continue };
-        let resident = renderer.upload(&cloud).expect("upload");
-        let (w, h) = (800, 600);
-        let mut settings =
-            FrameSettings::new(w, h, Camera::auto(&cloud.bounds, w as f64 / h as f64));
-        settings.quality = Quality::HIGH;
-        settings.point_size = 2;
-        let frame = renderer.render(&resident, &settings).expect("render");
-        let expected = reference::render(&cloud, &settings);
-        let within = frame
-            .image
-            .pixels()
-            .zip(expected.image.pixels())
-            .filter(|(a, e)| a.0.iter().zip(e.0).all(|(x, y)| x.abs_diff(y) <= 1))
-            .count();
-        let fraction = within as f64 / (w * h) as f64;
-        eprintln!(
-            "{file} high quality: {:.4}% of pixels within 1/255",
-            fraction * 100.0
-        );
-        assert!(fraction >= 0.995, "{file}: {:.3}%", fraction * 100.0);
-    }
+    each_real_scan(
+        &["autzen_trim.laz", "lone-star.laz"],
+        |file, cloud, renderer, resident| {
+            let (w, h) = (800, 600);
+            let mut settings =
+                FrameSettings::new(w, h, Camera::auto(&cloud.bounds, w as f64 / h as f64));
+            settings.quality = Quality::HIGH;
+            settings.point_size = 2;
+            let frame = renderer.render(resident, &settings).expect("render");
+            let expected = reference::render(cloud, &settings);
+            let within = frame
+                .image
+                .pixels()
+                .zip(expected.image.pixels())
+                .filter(|(a, e)| a.0.iter().zip(e.0).all(|(x, y)| x.abs_diff(y) <= 1))
+                .count();
+            let fraction = within as f64 / (w * h) as f64;
+            eprintln!(
+                "{file} high quality: {:.4}% of pixels within 1/255",
+                fraction * 100.0
+            );
+            assert!(fraction >= 0.995, "{file}: {:.3}%", fraction * 100.0);
+        },
+    );
 }
 
 #[test]
 fn filling_and_pintus_shading_of_real_scans_agree_with_the_reference() {
-    let mut renderer = Renderer::new(gpu());
-    for file in ["autzen_trim.laz", "lone-star.laz"] {
-        let Some(cloud) = load(file) else { continue };
-        let resident = renderer.upload(&cloud).expect("upload");
-        let (w, h) = (320, 240);
-        let mut camera = Camera::auto(&cloud.bounds, w as f64 / h as f64).orbit(100.0);
-        camera.position = camera.target + (camera.position - camera.target) * 0.5;
-        camera.near *= 0.1;
-        let settings = FrameSettings {
-            fill: Some(FillSettings::default()),
-            shading: Shading::PINTUS,
-            ..FrameSettings::new(w, h, camera)
-        };
-        let frame = renderer.render(&resident, &settings).expect("render");
-        let expected = reference::render(&cloud, &settings);
-        let name = format!("{file}-fill-pintus");
-        let diff = crate::testing::compare_images_within(&name, &frame.image, &expected.image, 2);
-        eprintln!(
-            "{name}: {:.3}% of pixels within 2 levels of the reference",
-            diff.equal_fraction() * 100.0
-        );
-        // The point pass itself agrees on at least 99.5% of pixels (f32 vs f64 projection
-        // at pixel edges); the 3x3 filling spreads each difference to a few neighbours.
-        assert!(diff.equal_fraction() >= 0.995, "{name}");
-    }
+    each_real_scan(
+        &["autzen_trim.laz", "lone-star.laz"],
+        |file, cloud, renderer, resident| {
+            let (w, h) = (320, 240);
+            let camera = close_oblique_camera(cloud, w as f64 / h as f64, 0.5);
+            let settings = FrameSettings {
+                fill: Some(FillSettings::default()),
+                shading: Shading::PINTUS,
+                ..FrameSettings::new(w, h, camera)
+            };
+            let frame = renderer.render(resident, &settings).expect("render");
+            let expected = reference::render(cloud, &settings);
+            let name = format!("{file}-fill-pintus");
+            let diff =
+                crate::testing::compare_images_within(&name, &frame.image, &expected.image, 2);
+            eprintln!(
+                "{name}: {:.3}% of pixels within 2 levels of the reference",
+                diff.equal_fraction() * 100.0
+            );
+            // The point pass itself agrees on at least 99.5% of pixels (f32 vs f64 projection
+            // at pixel edges); the 3x3 filling spreads each difference to a few neighbours.
+            assert!(diff.equal_fraction() >= 0.995, "{name}");
+        },
+    );
 }

@@ -24,7 +24,7 @@ fn points_take_at_most_12_bytes_each_on_the_gpu() {
 /// A cloud uploaded chunk by chunk renders like the same points uploaded whole.
 #[test]
 fn a_streamed_upload_renders_like_a_whole_one() {
-    let settings = FrameSettings::new(96, 64, camera(Projection::Perspective { fov_y_deg: 50.0 }));
+    let settings = perspective_settings(96, 64);
     let cloud = pixel_centre_scene(&settings, 2, 21);
     let mut renderer = Renderer::new(gpu());
     let whole = renderer.upload(&cloud).expect("upload");
@@ -50,11 +50,7 @@ fn a_streamed_upload_renders_like_a_whole_one() {
 
 #[test]
 fn a_cloud_larger_than_one_binding_renders_in_chunks() {
-    let settings = FrameSettings::new(
-        160,
-        120,
-        camera(Projection::Perspective { fov_y_deg: 50.0 }),
-    );
+    let settings = perspective_settings(160, 120);
     let cloud = pixel_centre_scene(&settings, 3, 5);
     let mut renderer = Renderer::new(gpu());
     // Lower the binding limit to two batches per chunk.
