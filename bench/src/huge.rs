@@ -144,8 +144,8 @@ mod tests {
     use pointfarm_render::raster::BATCH_POINTS;
 
     use super::*;
-    use crate::testing::gpu;
     use crate::ComputeMode;
+    use pointfarm_render::testing::gpu;
 
     #[test]
     fn huge_workload_streams_many_chunks_and_reports_its_memory_peak() {

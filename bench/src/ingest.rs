@@ -236,7 +236,7 @@ mod tests {
 
     #[test]
     fn a_real_scan_comes_back_from_the_cache_unchanged() {
-        let Some(autzen) = crate::testing::shared_data("autzen_trim.laz") else {
+        let Some(autzen) = pointfarm_render::testing::shared_data("autzen_trim.laz") else {
             return;
         };
         // `measure_file` fails unless the cache's cloud equals the decoded one, bit for bit.

@@ -42,9 +42,6 @@ mod run;
 mod stats;
 pub mod workloads;
 
-#[cfg(test)]
-mod testing;
-
 pub use error::BenchError;
 pub use ingest::{generated_workload, IngestResult};
 pub use options::{BenchOptions, ComputeMode};

@@ -283,9 +283,9 @@ mod tests {
     use std::path::PathBuf;
 
     use super::*;
-    use crate::testing::gpu;
     use crate::workloads::{cuboid_scene, points_in_view};
     use crate::ComputeMode;
+    use pointfarm_render::testing::gpu;
 
     #[test]
     fn frames_in_a_row_last_the_warm_up_time_within_their_bounds() {

@@ -16,5 +16,5 @@ pub mod reference;
 pub mod request;
 pub mod sample;
 
-#[cfg(test)]
-mod testing;
+#[cfg(any(test, feature = "testing"))]
+pub mod testing;

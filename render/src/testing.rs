@@ -1,5 +1,5 @@
-//! Helpers for the crate's own tests: one shared GPU, image comparison with diff output, and
-//! the location of the real scans.
+//! Helpers for tests, this crate's and (with the `testing` feature) other crates': one shared
+//! GPU, image comparison with diff output, and the location of the real scans.
 
 use std::path::PathBuf;
 use std::sync::{Arc, OnceLock};

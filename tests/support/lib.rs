@@ -46,21 +46,7 @@ pub fn pointfarm(args: &[&str]) -> Output {
         .expect("run pointfarm")
 }
 
-/// A file in `../shared/data/`, or None (with a message) when that folder is absent.
-pub fn shared_data(file: &str) -> Option<PathBuf> {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/data")
-        .join(file);
-    if path.is_file() {
-        Some(path)
-    } else {
-        eprintln!(
-            "skipped: {} not found (the real scans live in ../shared/data)",
-            path.display()
-        );
-        None
-    }
-}
+pub use pointfarm_render::testing::shared_data;
 
 /// Lines of stderr that are pointfarm's own, without what the Vulkan loader or drivers print
 /// on their own (e.g. about XDG_RUNTIME_DIR on machines without a session).

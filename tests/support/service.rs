@@ -2,31 +2,19 @@
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, OnceLock};
 
 use pointfarm_daemon::service::{Daemon, DaemonConfig};
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
-use pointfarm_render::gpu::{AdapterChoice, GpuContext};
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::raster::{FrameSettings, Renderer};
 use pointfarm_render::request::{camera_for_frame, CameraPath, Lens, Turntable};
 use sha2::{Digest, Sha256};
 use tonic::transport::Channel;
 
-/// One GPU for all the daemons of a test process.
-pub fn gpu() -> Arc<GpuContext> {
-    static GPU: OnceLock<Arc<GpuContext>> = OnceLock::new();
-    GPU.get_or_init(|| {
-        Arc::new(
-            GpuContext::new(AdapterChoice::from_env().expect("POINTFARM_ADAPTER"))
-                .expect("a GPU adapter (lavapipe)"),
-        )
-    })
-    .clone()
-}
+pub use pointfarm_render::testing::gpu;
 
 /// A running daemon; shut down and its data deleted on drop.
 pub struct TestDaemon {
