@@ -53,6 +53,15 @@ fn cases(cloud: &PointCloud) -> Vec<(&'static str, RenderRequest)> {
         up: DEFAULT_UP,
         fov_y_deg,
     };
+    let keyframes = |interpolation| {
+        let mut r = still();
+        r.camera_path = CameraPath::Keyframes {
+            keyframes: vec![key(-50.0, 40.0), key(0.0, 50.0), key(80.0, 30.0)],
+            frames: 4,
+            interpolation,
+        };
+        r
+    };
     let colors = [
         ("color intensity", ColorMode::Intensity),
         ("color elevation", ColorMode::Elevation),
@@ -140,24 +149,8 @@ fn cases(cloud: &PointCloud) -> Vec<(&'static str, RenderRequest)> {
             });
             r
         }),
-        ("linear keyframes", {
-            let mut r = still();
-            r.camera_path = CameraPath::Keyframes {
-                keyframes: vec![key(-50.0, 40.0), key(0.0, 50.0), key(80.0, 30.0)],
-                frames: 4,
-                interpolation: Interpolation::Linear,
-            };
-            r
-        }),
-        ("spline keyframes", {
-            let mut r = still();
-            r.camera_path = CameraPath::Keyframes {
-                keyframes: vec![key(-50.0, 40.0), key(0.0, 50.0), key(80.0, 30.0)],
-                frames: 4,
-                interpolation: Interpolation::Spline,
-            };
-            r
-        }),
+        ("linear keyframes", keyframes(Interpolation::Linear)),
+        ("spline keyframes", keyframes(Interpolation::Spline)),
         ("a given still camera", {
             let mut r = still();
             r.camera_path = CameraPath::Still(StillCamera {

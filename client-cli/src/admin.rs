@@ -8,7 +8,7 @@ use clap::{Args, Subcommand};
 use pointfarm_proto::v1 as pb;
 use serde_json::json;
 
-use crate::remote::{state_name, status_error, Client};
+use crate::remote::{answer, state_name, status_error, Client};
 
 #[derive(Args, Clone)]
 pub struct ServerArgs {
@@ -107,12 +107,7 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
                     path,
                     name: String::new(),
                 };
-                let dataset = client
-                    .datasets
-                    .register_dataset(request)
-                    .await
-                    .map_err(status_error)?
-                    .into_inner();
+                let dataset = answer(client.datasets.register_dataset(request).await)?;
                 print_dataset(server, &dataset)
             }
             DatasetCommand::List => {
@@ -123,12 +118,7 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
                         page_size: 100,
                         page_token,
                     };
-                    let page = client
-                        .datasets
-                        .list_datasets(request)
-                        .await
-                        .map_err(status_error)?
-                        .into_inner();
+                    let page = answer(client.datasets.list_datasets(request).await)?;
                     all.extend(page.datasets);
                     if page.next_page_token.is_empty() {
                         break;
@@ -210,7 +200,7 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                 let mut page_token = String::new();
                 loop {
                     let request = pb::ListJobsRequest { state: state as i32, page_size: 100, page_token };
-                    let page = client.jobs.list_jobs(request).await.map_err(status_error)?.into_inner();
+                    let page = answer(client.jobs.list_jobs(request).await)?;
                     all.extend(page.jobs);
                     if page.next_page_token.is_empty() {
                         break;
@@ -228,7 +218,7 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                 }
             }
             JobsCommand::Show { id } => {
-                let job = client.jobs.get_job(pb::GetJobRequest { id }).await.map_err(status_error)?.into_inner();
+                let job = answer(client.jobs.get_job(pb::GetJobRequest { id }).await)?;
                 let stats = stage_statistics(&job.frames);
                 if server.json {
                     let mut value = job_json(&job);
@@ -253,7 +243,7 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                 }
             }
             JobsCommand::Cancel { id } => {
-                let job = client.jobs.cancel_job(pb::CancelJobRequest { id }).await.map_err(status_error)?.into_inner();
+                let job = answer(client.jobs.cancel_job(pb::CancelJobRequest { id }).await)?;
                 println!("job {} {}", job.id, state_name(job.state));
             }
             JobsCommand::Watch { id } => {
@@ -266,7 +256,7 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                 }
             }
             JobsCommand::Leases => {
-                let leases = client.workers.list_leases(pb::ListLeasesRequest {}).await.map_err(status_error)?.into_inner().leases;
+                let leases = answer(client.workers.list_leases(pb::ListLeasesRequest {}).await)?.leases;
                 let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis() as i64).unwrap_or(0);
                 if server.json {
                     let values: Vec<serde_json::Value> = leases.iter().map(|l| json!({

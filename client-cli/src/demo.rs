@@ -17,7 +17,7 @@ use pointfarm_render::raster::Quality;
 use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
 use pointfarm_render::sample::{sample_scene, DEFAULT_SAMPLE_POINTS};
 
-use crate::remote::{require_success, status_error, timings_line, Client};
+use crate::remote::{answer, require_success, timings_line, Client};
 
 #[derive(Args)]
 pub struct DemoArgs {
@@ -92,12 +92,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
                 priority: 0,
             };
             let request = pb::SubmitJobRequest::from(&spec);
-            let job = client
-                .jobs
-                .submit_job(request)
-                .await
-                .map_err(status_error)?
-                .into_inner();
+            let job = answer(client.jobs.submit_job(request).await)?;
             println!(
                 "job {} on dataset {}: {} frames",
                 job.id, dataset.id, job.frames_total
@@ -105,12 +100,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
             let finished = client.follow(&job.id, false).await?;
             require_success(&finished)?;
             let written = client.fetch_frames(&job.id, 0, &args.out).await?;
-            let details = client
-                .jobs
-                .get_job(pb::GetJobRequest { id: job.id })
-                .await
-                .map_err(status_error)?
-                .into_inner();
+            let details = answer(client.jobs.get_job(pb::GetJobRequest { id: job.id }).await)?;
             if let Some(frame) = details.frames.last() {
                 println!("last frame: {}", timings_line(&frame.timings));
             }

@@ -171,6 +171,11 @@ pub fn status_error(status: Status) -> anyhow::Error {
     anyhow::anyhow!("{:?}: {}", status.code(), status.message())
 }
 
+/// A unary call's answer, or its status as an error.
+pub fn answer<T>(reply: Result<tonic::Response<T>, Status>) -> anyhow::Result<T> {
+    reply.map(tonic::Response::into_inner).map_err(status_error)
+}
+
 pub fn state_name(state: i32) -> &'static str {
     match pb::JobState::try_from(state) {
         Ok(pb::JobState::Queued) => "queued",

@@ -7,7 +7,7 @@
 
 use pointfarm_proto::v1 as pb;
 
-use super::request::{camera_path_message, render_options_message, render_request};
+use super::request::{camera_path_message, known_enum, render_options_message, render_request};
 use crate::error::DaemonError;
 use crate::lease::{FrameTask, HeartbeatAnswer, TaskDataset};
 use crate::lease_record::Lease;
@@ -48,14 +48,13 @@ impl From<JobState> for pb::JobState {
 
 /// The state a listing is filtered by; unspecified lists every state.
 pub(super) fn state_filter(state: i32) -> Result<Option<JobState>, DaemonError> {
-    Ok(match pb::JobState::try_from(state) {
-        Ok(pb::JobState::Unspecified) => None,
-        Ok(pb::JobState::Queued) => Some(JobState::Queued),
-        Ok(pb::JobState::Running) => Some(JobState::Running),
-        Ok(pb::JobState::Succeeded) => Some(JobState::Succeeded),
-        Ok(pb::JobState::Failed) => Some(JobState::Failed),
-        Ok(pb::JobState::Cancelled) => Some(JobState::Cancelled),
-        Err(_) => return Err(invalid("state", format!("unknown value {state}"))),
+    Ok(match known_enum("state", state)? {
+        pb::JobState::Unspecified => None,
+        pb::JobState::Queued => Some(JobState::Queued),
+        pb::JobState::Running => Some(JobState::Running),
+        pb::JobState::Succeeded => Some(JobState::Succeeded),
+        pb::JobState::Failed => Some(JobState::Failed),
+        pb::JobState::Cancelled => Some(JobState::Cancelled),
     })
 }
 
@@ -302,41 +301,59 @@ mod tests {
         let mut r = valid();
         r.camera_path = None;
         assert_eq!(field_of(&r), "camera_path");
-        let mut r = valid();
-        r.render = Some(pb::RenderOptions {
-            point_size: 1000,
-            ..Default::default()
-        });
-        assert_eq!(field_of(&r), "render.point_size");
-        let mut r = valid();
-        r.render = Some(pb::RenderOptions {
-            quality: pb::Quality::High as i32,
-            depth_band: Some(f32::NAN),
-            ..Default::default()
-        });
-        assert_eq!(field_of(&r), "render.depth_band");
-        for kernel in [1, 4, 11] {
-            let mut r = valid();
-            r.render = Some(pb::RenderOptions {
+        let render_cases = [
+            (
+                pb::RenderOptions {
+                    point_size: 1000,
+                    ..Default::default()
+                },
+                "render.point_size",
+            ),
+            (
+                pb::RenderOptions {
+                    quality: pb::Quality::High as i32,
+                    depth_band: Some(f32::NAN),
+                    ..Default::default()
+                },
+                "render.depth_band",
+            ),
+            (
+                pb::RenderOptions {
+                    shading: pb::Shading::Pintus as i32,
+                    pintus_levels: Some(0),
+                    ..Default::default()
+                },
+                "render.pintus_levels",
+            ),
+            (
+                pb::RenderOptions {
+                    shading: pb::Shading::Pintus as i32,
+                    pintus_exponent: Some(f32::NAN),
+                    ..Default::default()
+                },
+                "render.pintus_exponent",
+            ),
+            (
+                pb::RenderOptions {
+                    quality: 99,
+                    ..Default::default()
+                },
+                "render.quality",
+            ),
+        ]
+        .into_iter()
+        .chain([1, 4, 11].map(|kernel| {
+            let options = pb::RenderOptions {
                 fill: Some(pb::FillOptions { kernel }),
                 ..Default::default()
-            });
-            assert_eq!(field_of(&r), "render.fill.kernel");
+            };
+            (options, "render.fill.kernel")
+        }));
+        for (options, field) in render_cases {
+            let mut r = valid();
+            r.render = Some(options);
+            assert_eq!(field_of(&r), field);
         }
-        let mut r = valid();
-        r.render = Some(pb::RenderOptions {
-            shading: pb::Shading::Pintus as i32,
-            pintus_levels: Some(0),
-            ..Default::default()
-        });
-        assert_eq!(field_of(&r), "render.pintus_levels");
-        let mut r = valid();
-        r.render = Some(pb::RenderOptions {
-            shading: pb::Shading::Pintus as i32,
-            pintus_exponent: Some(f32::NAN),
-            ..Default::default()
-        });
-        assert_eq!(field_of(&r), "render.pintus_exponent");
     }
 
     #[test]

@@ -15,6 +15,12 @@ use pointfarm_render::request::{
 use crate::error::DaemonError;
 use crate::model::JobSpec;
 
+/// The value of a proto enum field, or an error naming `field` for a number this API does not
+/// define (a newer client's value, or garbage).
+pub(super) fn known_enum<E: TryFrom<i32>>(field: &str, value: i32) -> Result<E, DaemonError> {
+    E::try_from(value).map_err(|_| DaemonError::invalid(field, format!("unknown value {value}")))
+}
+
 impl From<RequestError> for DaemonError {
     fn from(e: RequestError) -> Self {
         DaemonError::invalid(e.field, e.message)
@@ -89,18 +95,13 @@ fn camera_path_and_lens(
                     })
                 })
                 .collect::<Result<Vec<_>, DaemonError>>()?;
-            let interpolation = match pb::Interpolation::try_from(k.interpolation) {
-                Ok(pb::Interpolation::Spline) => Interpolation::Spline,
-                Ok(pb::Interpolation::Linear | pb::Interpolation::Unspecified) => {
-                    Interpolation::Linear
-                }
-                Err(_) => {
-                    return Err(DaemonError::invalid(
-                        "camera_path.keyframes.interpolation",
-                        format!("unknown value {}", k.interpolation),
-                    ))
-                }
-            };
+            let interpolation =
+                match known_enum("camera_path.keyframes.interpolation", k.interpolation)? {
+                    pb::Interpolation::Spline => Interpolation::Spline,
+                    pb::Interpolation::Linear | pb::Interpolation::Unspecified => {
+                        Interpolation::Linear
+                    }
+                };
             CameraPath::Keyframes {
                 keyframes,
                 frames: k.frames,
@@ -136,54 +137,36 @@ fn render_options(message: Option<&pb::RenderOptions>) -> Result<RenderOptions, 
     let empty = pb::RenderOptions::default();
     let o = message.unwrap_or(&empty);
     let default = RenderOptions::default();
-    let quality = match pb::Quality::try_from(o.quality) {
-        Ok(pb::Quality::High) => Quality::High {
+    let quality = match known_enum("render.quality", o.quality)? {
+        pb::Quality::High => Quality::High {
             depth_band: o.depth_band.unwrap_or(DEFAULT_DEPTH_BAND),
         },
-        Ok(pb::Quality::Basic | pb::Quality::Unspecified) => Quality::Basic,
-        Err(_) => {
-            return Err(DaemonError::invalid(
-                "render.quality",
-                format!("unknown value {}", o.quality),
-            ))
-        }
+        pb::Quality::Basic | pb::Quality::Unspecified => Quality::Basic,
     };
-    let shading = match pb::Shading::try_from(o.shading) {
-        Ok(pb::Shading::Edl) => Shading::Edl {
+    let shading = match known_enum("render.shading", o.shading)? {
+        pb::Shading::Edl => Shading::Edl {
             strength: o.edl_strength.unwrap_or(Shading::DEFAULT_EDL_STRENGTH),
             radius: o.edl_radius.unwrap_or(Shading::DEFAULT_EDL_RADIUS),
         },
-        Ok(pb::Shading::Pintus) => Shading::Pintus {
+        pb::Shading::Pintus => Shading::Pintus {
             levels: o.pintus_levels.unwrap_or(Shading::DEFAULT_PINTUS_LEVELS),
             exponent: o
                 .pintus_exponent
                 .unwrap_or(Shading::DEFAULT_PINTUS_EXPONENT),
         },
-        Ok(pb::Shading::None | pb::Shading::Unspecified) => Shading::None,
-        Err(_) => {
-            return Err(DaemonError::invalid(
-                "render.shading",
-                format!("unknown value {}", o.shading),
-            ))
-        }
+        pb::Shading::None | pb::Shading::Unspecified => Shading::None,
     };
-    let color_mode = match pb::ColorMode::try_from(o.color_mode) {
-        Ok(pb::ColorMode::Unspecified | pb::ColorMode::Rgb) => ColorMode::Rgb,
-        Ok(pb::ColorMode::Intensity) => ColorMode::Intensity,
-        Ok(pb::ColorMode::Elevation) => ColorMode::Elevation,
-        Ok(pb::ColorMode::Classification) => ColorMode::Classification,
-        Ok(pb::ColorMode::ReturnNumber) => ColorMode::ReturnNumber,
-        Ok(pb::ColorMode::Fixed) => {
+    let color_mode = match known_enum("render.color_mode", o.color_mode)? {
+        pb::ColorMode::Unspecified | pb::ColorMode::Rgb => ColorMode::Rgb,
+        pb::ColorMode::Intensity => ColorMode::Intensity,
+        pb::ColorMode::Elevation => ColorMode::Elevation,
+        pb::ColorMode::Classification => ColorMode::Classification,
+        pb::ColorMode::ReturnNumber => ColorMode::ReturnNumber,
+        pb::ColorMode::Fixed => {
             let [r, g, b, _] = o.fixed_color.as_ref().map(rgba).ok_or_else(|| {
                 DaemonError::invalid("render.fixed_color", "is required with COLOR_MODE_FIXED")
             })?;
             ColorMode::Fixed([r, g, b])
-        }
-        Err(_) => {
-            return Err(DaemonError::invalid(
-                "render.color_mode",
-                format!("unknown value {}", o.color_mode),
-            ))
         }
     };
     Ok(RenderOptions {
