@@ -6,6 +6,9 @@ use std::sync::{Arc, OnceLock};
 
 use image::RgbaImage;
 
+use glam::DVec3;
+
+use crate::camera::{Camera, Projection};
 use crate::gpu::{AdapterChoice, GpuContext};
 
 /// One GPU context for all tests of the process (device creation is slow on lavapipe).
@@ -21,6 +24,24 @@ pub fn gpu() -> Arc<GpuContext> {
         Arc::new(gpu)
     })
     .clone()
+}
+
+/// A Z-up perspective camera at `position` looking at `target`, with a vertical field of view
+/// of `fov_y_deg` and the clip planes `(near, far)`.
+pub fn perspective_camera(
+    position: DVec3,
+    target: DVec3,
+    fov_y_deg: f64,
+    clip: (f64, f64),
+) -> Camera {
+    Camera {
+        position,
+        target,
+        up: DVec3::Z,
+        projection: Projection::Perspective { fov_y_deg },
+        near: clip.0,
+        far: clip.1,
+    }
 }
 
 /// `../shared/data` next to the repository, or None (with a message) when it is absent.

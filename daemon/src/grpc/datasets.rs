@@ -6,9 +6,11 @@ use pointfarm_proto::v1::dataset_service_server::DatasetService;
 use tonic::{Request, Response, Status, Streaming};
 
 use super::conversions::invalid;
-use super::streaming::HashingWriter;
-use super::{blocking, Api};
+use super::streaming::{first_part, HashingWriter};
+use super::Api;
 use crate::error::DaemonError;
+use crate::service::Daemon;
+use std::sync::Arc;
 
 #[tonic::async_trait]
 impl DatasetService for Api {
@@ -17,8 +19,9 @@ impl DatasetService for Api {
         request: Request<pb::RegisterDatasetRequest>,
     ) -> Result<Response<pb::Dataset>, Status> {
         let r = request.into_inner();
-        let daemon = self.daemon.clone();
-        let dataset = blocking(move || daemon.register_dataset(&r.path, &r.name)).await?;
+        let dataset = self
+            .run(move |daemon| daemon.register_dataset(&r.path, &r.name))
+            .await?;
         Ok(Response::new(pb::Dataset::from(&dataset)))
     }
 
@@ -26,15 +29,13 @@ impl DatasetService for Api {
         &self,
         request: Request<Streaming<pb::UploadDatasetRequest>>,
     ) -> Result<Response<pb::Dataset>, Status> {
+        use pb::upload_dataset_request::Part;
         let mut stream = request.into_inner();
-        let header = match stream.message().await? {
-            Some(pb::UploadDatasetRequest {
-                part: Some(pb::upload_dataset_request::Part::Header(h)),
-            }) => h,
-            _ => {
-                return Err(invalid("header", "the first message must be the upload header").into())
-            }
-        };
+        let header = first_part(&mut stream, "header", |m| match m.part {
+            Some(Part::Header(header)) => Some(header),
+            _ => None,
+        })
+        .await?;
         let limit = self.daemon.config.max_upload_bytes;
         if header.size_bytes > limit {
             return Err(DaemonError::ResourceExhausted(format!(
@@ -97,14 +98,14 @@ impl DatasetService for Api {
                 return Err(status);
             }
         };
-        let daemon = self.daemon.clone();
-        if let Ok(existing) = daemon.dataset(&known_id) {
+        if let Ok(existing) = self.daemon.dataset(&known_id) {
             let _ = tokio::fs::remove_file(&temp).await;
             return Ok(Response::new(pb::Dataset::from(&existing)));
         }
         let sha = header.sha256.to_ascii_lowercase();
-        let dataset =
-            blocking(move || daemon.finish_upload(&temp, &header.name, sha, received)).await?;
+        let finish =
+            move |daemon: &Arc<Daemon>| daemon.finish_upload(&temp, &header.name, sha, received);
+        let dataset = self.run(finish).await?;
         Ok(Response::new(pb::Dataset::from(&dataset)))
     }
 

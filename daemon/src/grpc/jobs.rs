@@ -7,7 +7,7 @@ use tonic::{Request, Response, Status};
 
 use super::conversions::{invalid, state_filter};
 use super::streaming::{chunks, spawn_stream, ResponseStream};
-use super::{blocking, Api};
+use super::Api;
 use crate::model::{FrameState, JobSpec};
 
 #[tonic::async_trait]
@@ -18,8 +18,7 @@ impl JobService for Api {
     ) -> Result<Response<pb::Job>, Status> {
         let r = request.into_inner();
         let spec = JobSpec::try_from(&r)?;
-        let daemon = self.daemon.clone();
-        let job = blocking(move || daemon.submit_job(spec)).await?;
+        let job = self.run(move |daemon| daemon.submit_job(spec)).await?;
         let mut message = pb::Job::from(&job);
         message.spec = Some(r);
         Ok(Response::new(message))
@@ -30,8 +29,7 @@ impl JobService for Api {
         request: Request<pb::GetJobRequest>,
     ) -> Result<Response<pb::Job>, Status> {
         let id = request.into_inner().id;
-        let daemon = self.daemon.clone();
-        let (job, frames) = blocking(move || daemon.job_with_frames(&id)).await?;
+        let (job, frames) = self.run(move |daemon| daemon.job_with_frames(&id)).await?;
         let mut message = pb::Job::from(&job);
         message.frames = frames.iter().map(pb::FrameFinished::from).collect();
         Ok(Response::new(message))
@@ -55,9 +53,8 @@ impl JobService for Api {
         &self,
         request: Request<pb::CancelJobRequest>,
     ) -> Result<Response<pb::Job>, Status> {
-        let daemon = self.daemon.clone();
         let id = request.into_inner().id;
-        let job = blocking(move || daemon.cancel_job(&id)).await?;
+        let job = self.run(move |daemon| daemon.cancel_job(&id)).await?;
         Ok(Response::new(pb::Job::from(&job)))
     }
 
@@ -70,14 +67,14 @@ impl JobService for Api {
         let id = request.into_inner().id;
         // Subscribe before reading the state, so no event falls between the two.
         let mut events = self.daemon.subscribe();
-        let daemon = self.daemon.clone();
         let watched = id.clone();
-        let (job, finished) = blocking(move || {
-            let job = daemon.job(&watched)?;
-            let finished = daemon.store.frame_reports(&watched)?;
-            Ok((job, finished))
-        })
-        .await?;
+        let (job, finished) = self
+            .run(move |daemon| {
+                let job = daemon.job(&watched)?;
+                let finished = daemon.store.frame_reports(&watched)?;
+                Ok((job, finished))
+            })
+            .await?;
         let stream = spawn_stream(64, move |sender| async move {
             let ended = job.state.is_terminal();
             // The first event carries the frames finished so far: a watcher that comes late

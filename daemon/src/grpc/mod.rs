@@ -37,14 +37,16 @@ impl Api {
     pub fn new(daemon: Arc<Daemon>) -> Self {
         Self { daemon }
     }
-}
 
-/// Runs blocking store work off the async executor.
-async fn blocking<T: Send + 'static>(
-    f: impl FnOnce() -> Result<T, DaemonError> + Send + 'static,
-) -> Result<T, Status> {
-    tokio::task::spawn_blocking(f)
-        .await
-        .map_err(|e| Status::internal(e.to_string()))?
-        .map_err(Status::from)
+    /// Runs `work` on the daemon off the async executor: store work blocks.
+    async fn run<T: Send + 'static>(
+        &self,
+        work: impl FnOnce(&Arc<Daemon>) -> Result<T, DaemonError> + Send + 'static,
+    ) -> Result<T, Status> {
+        let daemon = self.daemon.clone();
+        tokio::task::spawn_blocking(move || work(&daemon))
+            .await
+            .map_err(|e| Status::internal(e.to_string()))?
+            .map_err(Status::from)
+    }
 }

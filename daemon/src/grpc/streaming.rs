@@ -11,7 +11,9 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::Stream;
-use tonic::Status;
+use tonic::{Status, Streaming};
+
+use super::conversions::invalid;
 
 use crate::service::hex;
 
@@ -32,6 +34,20 @@ where
     let (sender, receiver) = mpsc::channel(capacity);
     tokio::spawn(produce(sender));
     Box::pin(ReceiverStream::new(receiver))
+}
+
+/// The first message of a client stream, which must carry the part `pick` takes from it
+/// (its header): an error naming `field` otherwise.
+pub(super) async fn first_part<M, P>(
+    stream: &mut Streaming<M>,
+    field: &str,
+    pick: impl FnOnce(M) -> Option<P>,
+) -> Result<P, Status> {
+    match stream.message().await? {
+        Some(message) => pick(message),
+        None => None,
+    }
+    .ok_or_else(|| invalid(field, format!("the first message must be the {field}")).into())
 }
 
 /// `bytes` in chunks of [`CHUNK_BYTES`], each with whether it is the last; none for no bytes.

@@ -8,8 +8,8 @@ use tonic::{Request, Response, Status, Streaming};
 
 use super::conversions::{frame_task_message, invalid, stage_timings};
 use super::lease_guard::LeaseGuard;
-use super::streaming::{read_chunk, spawn_stream, ResponseStream};
-use super::{blocking, Api};
+use super::streaming::{first_part, read_chunk, spawn_stream, ResponseStream};
+use super::Api;
 use crate::error::DaemonError;
 use crate::lease::FrameOutcome;
 
@@ -45,12 +45,13 @@ impl WorkerService for Api {
                 return Ok(Response::new(pb::LeaseFrameResponse { task: None }));
             }
             let guard = LeaseGuard::new(self.daemon.clone());
-            let (daemon, worker, slot) = (self.daemon.clone(), name.clone(), guard.slot.clone());
-            let leased = blocking(move || {
-                let task = daemon.lease_frame(&worker, false)?;
-                Ok(task.and_then(|task| slot.keep(&daemon, task)))
-            })
-            .await?;
+            let (worker, slot) = (name.clone(), guard.slot.clone());
+            let leased = self
+                .run(move |daemon| {
+                    let task = daemon.lease_frame(&worker, false)?;
+                    Ok(task.and_then(|task| slot.keep(daemon, task)))
+                })
+                .await?;
             if let Some(task) = leased {
                 guard.disarm();
                 return Ok(Response::new(pb::LeaseFrameResponse {
@@ -71,8 +72,7 @@ impl WorkerService for Api {
         request: Request<pb::HeartbeatRequest>,
     ) -> Result<Response<pb::HeartbeatResponse>, Status> {
         let lease_id = request.into_inner().lease_id;
-        let daemon = self.daemon.clone();
-        let answer = blocking(move || daemon.heartbeat(&lease_id)).await?;
+        let answer = self.run(move |daemon| daemon.heartbeat(&lease_id)).await?;
         Ok(Response::new(pb::HeartbeatResponse::from(answer)))
     }
 
@@ -80,18 +80,16 @@ impl WorkerService for Api {
         &self,
         request: Request<Streaming<pb::CompleteFrameRequest>>,
     ) -> Result<Response<pb::CompleteFrameResponse>, Status> {
+        use pb::complete_frame_request::Part;
         let mut stream = request.into_inner();
-        let result = match stream.message().await? {
-            Some(pb::CompleteFrameRequest {
-                part: Some(pb::complete_frame_request::Part::Result(result)),
-            }) => result,
-            _ => {
-                return Err(invalid("result", "the first message must be the frame result").into())
-            }
-        };
+        let result = first_part(&mut stream, "result", |m| match m.part {
+            Some(Part::Result(result)) => Some(result),
+            _ => None,
+        })
+        .await?;
         // A stale lease is refused before the image is received.
-        let (daemon, lease_id) = (self.daemon.clone(), result.lease_id.clone());
-        let (_, width, height) = blocking(move || daemon.held_lease(&lease_id)).await?;
+        let lease_id = result.lease_id.clone();
+        let (_, width, height) = self.run(move |daemon| daemon.held_lease(&lease_id)).await?;
         let limit = max_png_bytes(width, height);
         if result.png_size_bytes > limit {
             return Err(DaemonError::ResourceExhausted(format!(
@@ -102,7 +100,7 @@ impl WorkerService for Api {
         }
         let mut png = Vec::with_capacity(result.png_size_bytes as usize);
         while let Some(message) = stream.message().await? {
-            let Some(pb::complete_frame_request::Part::Png(chunk)) = message.part else {
+            let Some(Part::Png(chunk)) = message.part else {
                 return Err(invalid("png", "only the first message may be the result").into());
             };
             if png.len() as u64 + chunk.len() as u64 > result.png_size_bytes {
@@ -129,8 +127,8 @@ impl WorkerService for Api {
             timings: stage_timings(&result.timings),
             dataset_cache_hit: result.dataset_cache_hit,
         };
-        let daemon = self.daemon.clone();
-        blocking(move || daemon.complete_frame(&result.lease_id, &png, outcome)).await?;
+        self.run(move |daemon| daemon.complete_frame(&result.lease_id, &png, outcome))
+            .await?;
         Ok(Response::new(pb::CompleteFrameResponse {}))
     }
 
@@ -144,8 +142,8 @@ impl WorkerService for Api {
         } else {
             r.reason
         };
-        let daemon = self.daemon.clone();
-        blocking(move || daemon.fail_frame(&r.lease_id, &reason)).await?;
+        self.run(move |daemon| daemon.fail_frame(&r.lease_id, &reason))
+            .await?;
         Ok(Response::new(pb::FailFrameResponse {}))
     }
 
@@ -154,8 +152,8 @@ impl WorkerService for Api {
         request: Request<pb::ReleaseFrameRequest>,
     ) -> Result<Response<pb::ReleaseFrameResponse>, Status> {
         let lease_id = request.into_inner().lease_id;
-        let daemon = self.daemon.clone();
-        blocking(move || daemon.release_frame(&lease_id)).await?;
+        self.run(move |daemon| daemon.release_frame(&lease_id))
+            .await?;
         Ok(Response::new(pb::ReleaseFrameResponse {}))
     }
 
@@ -189,8 +187,7 @@ impl WorkerService for Api {
         &self,
         _request: Request<pb::ListLeasesRequest>,
     ) -> Result<Response<pb::ListLeasesResponse>, Status> {
-        let daemon = self.daemon.clone();
-        let leases = blocking(move || daemon.leases()).await?;
+        let leases = self.run(|daemon| daemon.leases()).await?;
         Ok(Response::new(pb::ListLeasesResponse {
             leases: leases.iter().map(pb::Lease::from).collect(),
         }))

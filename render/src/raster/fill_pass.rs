@@ -6,10 +6,10 @@
 //! visibility pass on.
 
 use pointfarm_shaders::Shader;
+use wgpu::ComputePass;
 
-use super::pipeline::{bind_resources, entry_pipelines};
-use super::screen_params::ScreenUniforms;
-use super::targets::FrameTargets;
+use super::pipeline::entry_pipelines;
+use super::screen_params::ScreenFrame;
 
 pub(crate) struct FillPass {
     step: wgpu::ComputePipeline,
@@ -24,14 +24,8 @@ impl FillPass {
 
     /// Expects the visibility pass's output in the fill buffers; leaves the filled images in
     /// the frame's colour and depth buffers.
-    pub fn record(
-        &self,
-        device: &wgpu::Device,
-        pass: &mut wgpu::ComputePass<'_>,
-        params: &ScreenUniforms,
-        targets: &FrameTargets,
-        iterations: u32,
-    ) {
+    pub fn record(&self, pass: &mut ComputePass<'_>, frame: ScreenFrame<'_>, iterations: u32) {
+        let targets = frame.targets;
         let Some(fill) = targets.fill.as_ref() else {
             return;
         };
@@ -41,7 +35,7 @@ impl FillPass {
         let bind = |pipeline: &wgpu::ComputePipeline, from: usize| {
             let ((depth_in, color_in), (depth_out, color_out)) = (pairs[from], pairs[1 - from]);
             let resources = vec![
-                (0, params.fill()),
+                (0, frame.params.fill()),
                 (1, depth_in.as_entire_binding()),
                 (2, color_in.as_entire_binding()),
                 (3, fill.mutable.as_entire_binding()),
@@ -49,7 +43,7 @@ impl FillPass {
                 (4, depth_out.as_entire_binding()),
                 (5, color_out.as_entire_binding()),
             ];
-            bind_resources(device, pipeline, "fill", resources)
+            frame.bind(pipeline, "fill", resources)
         };
         let steps = [bind(&self.step, 0), bind(&self.step, 1)];
         pass.set_pipeline(&self.step);

@@ -68,7 +68,7 @@ use gpu_data::FrameUniforms;
 use hq_pass::HqAccumulatePass;
 use pintus_pass::PintusPass;
 use resolve_pass::{PixelRun, ResolveFrame, ResolvePass};
-use screen_params::ScreenUniforms;
+use screen_params::{ScreenFrame, ScreenUniforms};
 use targets::FrameTargets;
 use timing::GpuTimer;
 use uniforms::frame_uniforms;
@@ -207,10 +207,8 @@ impl Renderer {
             }
         }
         let settings = &settings.scaled_for_supersampling();
+        settings.validate_view(MAX_IMAGE_SIDE)?;
         let (width, height) = (settings.width, settings.height);
-        if width == 0 || height == 0 || width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE {
-            return Err(RenderError::ImageSize { width, height });
-        }
         // The largest per-pixel binding: the high-quality accumulator (4 words), else the point
         // framebuffer (2 words).
         let bytes_per_pixel = match settings.quality {
@@ -240,7 +238,6 @@ impl Renderer {
                 return Err(RenderError::Edl { strength, radius });
             }
         }
-        settings.camera.validate()?;
         Ok(())
     }
 
@@ -286,16 +283,9 @@ impl Renderer {
         let cull_ms = started.elapsed().as_secs_f64() * 1e3;
 
         let started = Instant::now();
-        if !self
-            .targets
-            .as_ref()
-            .is_some_and(|t| t.width == settings.width && t.height == settings.height)
-        {
-            self.targets = Some(FrameTargets::new(
-                &self.gpu.device,
-                settings.width,
-                settings.height,
-            ));
+        let (width, height) = (settings.width, settings.height);
+        if self.targets.as_ref().map(|t| (t.width, t.height)) != Some((width, height)) {
+            self.targets = Some(FrameTargets::new(&self.gpu.device, width, height));
         }
         if let (Quality::High { .. }, Some(targets)) = (settings.quality, self.targets.as_mut()) {
             let packed_sums = self.hq.packs_sums(settings.atomics == AtomicsMode::Auto);
@@ -453,22 +443,20 @@ impl Renderer {
                 ),
             ],
         };
-        let screen = &self.screen_uniforms;
+        let screen = ScreenFrame {
+            device,
+            params: &self.screen_uniforms,
+            targets,
+        };
         let visibility_area = screen_params::visibility_area(settings, self.batches.footprint());
         if let Some(fill) = settings.fill {
             passes.push((
                 Stage::Visibility,
-                Box::new(move |pass| {
-                    self.visibility
-                        .record(device, pass, screen, targets, visibility_area)
-                }),
+                Box::new(move |pass| self.visibility.record(pass, screen, visibility_area)),
             ));
             passes.push((
                 Stage::Fill,
-                Box::new(move |pass| {
-                    self.fill
-                        .record(device, pass, screen, targets, fill.iterations())
-                }),
+                Box::new(move |pass| self.fill.record(pass, screen, fill.iterations())),
             ));
         }
         match settings.shading {
@@ -479,7 +467,7 @@ impl Renderer {
             )),
             Shading::Pintus { levels, .. } => passes.push((
                 Stage::Shade,
-                Box::new(move |pass| self.pintus.record(device, pass, screen, targets, levels)),
+                Box::new(move |pass| self.pintus.record(pass, screen, levels)),
             )),
         }
         let run = |encoder: &mut wgpu::CommandEncoder,

@@ -3,10 +3,10 @@
 //! multiplied by the normalised sum. The frame's depth image is only read.
 
 use pointfarm_shaders::Shader;
+use wgpu::ComputePass;
 
-use super::pipeline::{bind_resources, dispatch_tiles, entry_pipelines};
-use super::screen_params::ScreenUniforms;
-use super::targets::FrameTargets;
+use super::pipeline::{dispatch_tiles, entry_pipelines};
+use super::screen_params::ScreenFrame;
 
 pub(crate) struct PintusPass {
     level: wgpu::ComputePipeline,
@@ -19,14 +19,8 @@ impl PintusPass {
         Self { level, apply }
     }
 
-    pub fn record(
-        &self,
-        device: &wgpu::Device,
-        pass: &mut wgpu::ComputePass<'_>,
-        params: &ScreenUniforms,
-        targets: &FrameTargets,
-        levels: u32,
-    ) {
+    pub fn record(&self, pass: &mut ComputePass<'_>, frame: ScreenFrame<'_>, levels: u32) {
+        let (params, targets) = (frame.params, frame.targets);
         let Some(shading) = targets.shading.as_ref() else {
             return;
         };
@@ -37,33 +31,23 @@ impl PintusPass {
                 0 => &targets.depth,
                 _ => &shading.depth[(k as usize + 1) % 2],
             };
-            let bind_group = bind_resources(
-                device,
-                &self.level,
-                "pintus level",
-                vec![
-                    (0, params.pintus_level(k)),
-                    (1, depth_in.as_entire_binding()),
-                    (2, shading.depth[k as usize % 2].as_entire_binding()),
-                    (3, shading.sum.as_entire_binding()),
-                ],
-            );
-            pass.set_bind_group(0, &bind_group, &[]);
+            let resources = vec![
+                (0, params.pintus_level(k)),
+                (1, depth_in.as_entire_binding()),
+                (2, shading.depth[k as usize % 2].as_entire_binding()),
+                (3, shading.sum.as_entire_binding()),
+            ];
+            pass.set_bind_group(0, &frame.bind(&self.level, "pintus level", resources), &[]);
             dispatch_tiles(pass, targets.width, targets.height);
         }
-        let bind_group = bind_resources(
-            device,
-            &self.apply,
-            "pintus apply",
-            vec![
-                (0, params.pintus_level(0)),
-                (1, targets.depth.as_entire_binding()),
-                (3, shading.sum.as_entire_binding()),
-                (4, targets.color.as_entire_binding()),
-            ],
-        );
+        let resources = vec![
+            (0, params.pintus_level(0)),
+            (1, targets.depth.as_entire_binding()),
+            (3, shading.sum.as_entire_binding()),
+            (4, targets.color.as_entire_binding()),
+        ];
         pass.set_pipeline(&self.apply);
-        pass.set_bind_group(0, &bind_group, &[]);
+        pass.set_bind_group(0, &frame.bind(&self.apply, "pintus apply", resources), &[]);
         dispatch_tiles(pass, targets.width, targets.height);
     }
 }

@@ -16,7 +16,7 @@ use super::gpu_data::{FrameUniforms, QuantisedPosition};
 use super::pipeline::shader_module;
 use super::points::{GpuPointCloud, PointChunk};
 use super::timing::GpuTimer;
-use super::{Clock, FrameSettings, RenderError, Stage, StageTimings, MAX_IMAGE_SIDE};
+use super::{Clock, FrameSettings, RenderError, Stage, StageTimings};
 use crate::gpu::{read_buffer, GpuContext};
 
 const COLOR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
@@ -158,16 +158,10 @@ impl PointListBaseline {
 
     /// Checks what the baseline can draw: image size, 1-pixel points, a valid camera.
     pub fn validate(&self, settings: &FrameSettings) -> Result<(), RenderError> {
-        let (width, height) = (settings.width, settings.height);
-        let max_side = MAX_IMAGE_SIDE.min(self.gpu.device.limits().max_texture_dimension_2d);
-        if width == 0 || height == 0 || width > max_side || height > max_side {
-            return Err(RenderError::ImageSize { width, height });
-        }
         if settings.point_size != 1 {
             return Err(RenderError::PointListPointSize(settings.point_size));
         }
-        settings.camera.validate()?;
-        Ok(())
+        settings.validate_view(self.gpu.device.limits().max_texture_dimension_2d)
     }
 
     /// Draws one frame of `cloud`. Ignores `settings.atomics` and `settings.read_depth`.
@@ -192,16 +186,9 @@ impl PointListBaseline {
         self.gpu
             .queue
             .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));
-        if !self
-            .targets
-            .as_ref()
-            .is_some_and(|t| t.width == settings.width && t.height == settings.height)
-        {
-            self.targets = Some(RenderTargets::new(
-                &self.gpu.device,
-                settings.width,
-                settings.height,
-            ));
+        let (width, height) = (settings.width, settings.height);
+        if self.targets.as_ref().map(|t| (t.width, t.height)) != Some((width, height)) {
+            self.targets = Some(RenderTargets::new(&self.gpu.device, width, height));
         }
         timings.push(
             Stage::Upload,

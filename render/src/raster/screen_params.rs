@@ -4,7 +4,9 @@
 
 use bytemuck::{Pod, Zeroable};
 
+use super::pipeline::bind_resources;
 use super::pixel_rect::PixelRect;
+use super::targets::FrameTargets;
 use super::{FrameSettings, Shading, MAX_PINTUS_LEVELS};
 use crate::camera::Projection;
 
@@ -91,6 +93,25 @@ impl ScreenUniforms {
             offset: Self::offset(slot),
             size: wgpu::BufferSize::new(std::mem::size_of::<ScreenParams>() as u64),
         })
+    }
+}
+
+/// What every pass on the resolved images binds from: the frame's buffers and these uniforms.
+#[derive(Clone, Copy)]
+pub(crate) struct ScreenFrame<'a> {
+    pub device: &'a wgpu::Device,
+    pub params: &'a ScreenUniforms,
+    pub targets: &'a FrameTargets,
+}
+
+impl ScreenFrame<'_> {
+    pub fn bind(
+        &self,
+        pipeline: &wgpu::ComputePipeline,
+        label: &str,
+        resources: Vec<(u32, wgpu::BindingResource<'_>)>,
+    ) -> wgpu::BindGroup {
+        bind_resources(self.device, pipeline, label, resources)
     }
 }
 

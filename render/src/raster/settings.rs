@@ -5,6 +5,7 @@ use std::ops::RangeInclusive;
 
 use serde::{Deserialize, Serialize};
 
+use super::RenderError;
 use crate::camera::Camera;
 
 /// Largest image side accepted, in pixels.
@@ -181,6 +182,20 @@ impl FrameSettings {
 }
 
 impl FrameSettings {
+    /// The checks every renderer makes: each side 1 to `max_side` pixels (at most
+    /// [`MAX_IMAGE_SIDE`]) and a camera that can render.
+    pub(crate) fn validate_view(&self, max_side: u32) -> Result<(), RenderError> {
+        let (width, height) = (self.width, self.height);
+        if width == 0
+            || height == 0
+            || width > max_side.min(MAX_IMAGE_SIDE)
+            || height > max_side.min(MAX_IMAGE_SIDE)
+        {
+            return Err(RenderError::ImageSize { width, height });
+        }
+        Ok(self.camera.validate()?)
+    }
+
     /// Whether the frame needs the resolved depth image: to read it back, or for filling or
     /// shading, which work on it. Otherwise the resolve does not write it.
     pub fn needs_depth_image(&self) -> bool {

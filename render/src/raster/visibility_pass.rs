@@ -4,11 +4,11 @@
 //! over that list; everything else is fixed.
 
 use pointfarm_shaders::Shader;
+use wgpu::ComputePass;
 
-use super::pipeline::{bind_resources, dispatch_tiles, entry_pipelines};
+use super::pipeline::{dispatch_tiles, entry_pipelines};
 use super::pixel_rect::PixelRect;
-use super::screen_params::ScreenUniforms;
-use super::targets::FrameTargets;
+use super::screen_params::ScreenFrame;
 
 pub(crate) struct VisibilityPass {
     reset_list: wgpu::ComputePipeline,
@@ -32,40 +32,28 @@ impl VisibilityPass {
 
     /// Reads the resolved images; writes the visible pixels of `area` (which must be
     /// `visibility_area` of the screen parameters) into the fill buffers.
-    pub fn record(
-        &self,
-        device: &wgpu::Device,
-        pass: &mut wgpu::ComputePass<'_>,
-        params: &ScreenUniforms,
-        targets: &FrameTargets,
-        area: PixelRect,
-    ) {
+    pub fn record(&self, pass: &mut ComputePass<'_>, frame: ScreenFrame<'_>, area: PixelRect) {
+        let targets = frame.targets;
         let Some(fill) = targets.fill.as_ref() else {
             return;
         };
         let args = || (6, fill.list_args.as_entire_binding());
-        let list_only = |pipeline: &wgpu::ComputePipeline| {
-            bind_resources(device, pipeline, "fill list", vec![args()])
-        };
+        let list_only =
+            |pipeline: &wgpu::ComputePipeline| frame.bind(pipeline, "fill list", vec![args()]);
         pass.set_pipeline(&self.reset_list);
         pass.set_bind_group(0, &list_only(&self.reset_list), &[]);
         pass.dispatch_workgroups(1, 1, 1);
-        let bind_group = bind_resources(
-            device,
-            &self.classify,
-            "visibility",
-            vec![
-                (0, params.fill()),
-                (1, targets.depth.as_entire_binding()),
-                (2, targets.color.as_entire_binding()),
-                (3, fill.depth.as_entire_binding()),
-                (4, fill.color.as_entire_binding()),
-                (5, fill.mutable.as_entire_binding()),
-                args(),
-            ],
-        );
+        let resources = vec![
+            (0, frame.params.fill()),
+            (1, targets.depth.as_entire_binding()),
+            (2, targets.color.as_entire_binding()),
+            (3, fill.depth.as_entire_binding()),
+            (4, fill.color.as_entire_binding()),
+            (5, fill.mutable.as_entire_binding()),
+            args(),
+        ];
         pass.set_pipeline(&self.classify);
-        pass.set_bind_group(0, &bind_group, &[]);
+        pass.set_bind_group(0, &frame.bind(&self.classify, "visibility", resources), &[]);
         // Outside `area` (the footprint grown by the kernel's radius) every pixel is fixed
         // background: its fill-buffer value is never read.
         dispatch_tiles(pass, area.width(), area.height());

@@ -320,6 +320,7 @@ impl FrameBatches {
 
 #[cfg(test)]
 mod tests {
+    use crate::testing::perspective_camera;
     use glam::{DVec3, Vec3};
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
@@ -517,14 +518,12 @@ mod tests {
     #[test]
     fn parallel_culling_builds_the_same_tables_and_gpus_list_straddlers_whole() {
         let gpu = crate::testing::gpu();
-        let camera = Camera {
-            position: DVec3::new(6.0, -25.0, 8.0),
-            target: DVec3::new(4.0, 0.0, 3.0),
-            up: DVec3::Z,
-            projection: Projection::Perspective { fov_y_deg: 35.0 },
-            near: 1.0,
-            far: 100.0,
-        };
+        let camera = perspective_camera(
+            DVec3::new(6.0, -25.0, 8.0),
+            DVec3::new(4.0, 0.0, 3.0),
+            35.0,
+            (1.0, 100.0),
+        );
         let transform = camera.transform(DVec3::ZERO, 320, 200);
         let chunks = scattered_chunks(5, 1000);
         let orders: Vec<DrawOrders> = chunks.iter().map(|_| DrawOrders::default()).collect();

@@ -145,6 +145,7 @@ impl Frustum {
 
 #[cfg(test)]
 mod tests {
+    use crate::testing::perspective_camera;
     use glam::DVec3;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
@@ -202,14 +203,7 @@ mod tests {
     fn culling_never_drops_a_box_with_a_point_in_view_and_drops_most_outside() {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         let cameras = [
-            Camera {
-                position: DVec3::new(0.0, -30.0, 10.0),
-                target: DVec3::ZERO,
-                up: DVec3::Z,
-                projection: Projection::Perspective { fov_y_deg: 50.0 },
-                near: 1.0,
-                far: 60.0,
-            },
+            perspective_camera(DVec3::new(0.0, -30.0, 10.0), DVec3::ZERO, 50.0, (1.0, 60.0)),
             Camera {
                 position: DVec3::new(0.0, 0.0, 40.0),
                 target: DVec3::ZERO,

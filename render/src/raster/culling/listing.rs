@@ -217,6 +217,7 @@ fn list_runs_in_view(
 
 #[cfg(test)]
 mod tests {
+    use crate::testing::perspective_camera;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
@@ -269,14 +270,12 @@ mod tests {
     fn views_of_the_cube() -> [Camera; 3] {
         [
             // Perspective, seeing a corner of the cube.
-            Camera {
-                position: DVec3::new(14.0, -30.0, 12.0),
-                target: DVec3::new(9.0, 0.0, 8.0),
-                up: DVec3::Z,
-                projection: Projection::Perspective { fov_y_deg: 30.0 },
-                near: 1.0,
-                far: 100.0,
-            },
+            perspective_camera(
+                DVec3::new(14.0, -30.0, 12.0),
+                DVec3::new(9.0, 0.0, 8.0),
+                30.0,
+                (1.0, 100.0),
+            ),
             // Orthographic from above, a quarter of the top face.
             Camera {
                 position: DVec3::new(5.0, 5.0, 40.0),
@@ -287,14 +286,12 @@ mod tests {
                 far: 60.0,
             },
             // Perspective, the near plane cutting through the cube.
-            Camera {
-                position: DVec3::new(0.0, -5.0, 0.0),
-                target: DVec3::new(0.0, 10.0, 0.0),
-                up: DVec3::Z,
-                projection: Projection::Perspective { fov_y_deg: 60.0 },
-                near: 2.0,
-                far: 100.0,
-            },
+            perspective_camera(
+                DVec3::new(0.0, -5.0, 0.0),
+                DVec3::new(0.0, 10.0, 0.0),
+                60.0,
+                (2.0, 100.0),
+            ),
         ]
     }
 
@@ -396,14 +393,12 @@ mod tests {
         let (width, height) = (160, 120);
         // The whole cube in view (every group listed whole), then groups in, out, and across
         // the edge of the view.
-        let whole = Camera {
-            position: DVec3::new(0.0, -60.0, 10.0),
-            target: DVec3::ZERO,
-            up: DVec3::Z,
-            projection: Projection::Perspective { fov_y_deg: 40.0 },
-            near: 1.0,
-            far: 200.0,
-        };
+        let whole = perspective_camera(
+            DVec3::new(0.0, -60.0, 10.0),
+            DVec3::ZERO,
+            40.0,
+            (1.0, 200.0),
+        );
         let mut whole_groups = 0;
         for camera in std::iter::once(whole).chain(views_of_the_cube()) {
             let transform = camera.transform(DVec3::ZERO, width, height);

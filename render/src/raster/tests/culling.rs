@@ -2,6 +2,7 @@
 //! culling skips batches hidden behind a wall without changing the image.
 
 use super::*;
+use crate::testing::perspective_camera;
 
 #[test]
 fn batch_culling_keeps_every_point_that_is_in_view() {
@@ -23,14 +24,12 @@ fn batch_culling_keeps_every_point_that_is_in_view() {
         .map(|i| pack_rgba8(i as u8, (i >> 8) as u8, 200))
         .collect();
     let cloud = PointCloud::from_world_points(&points, colors);
-    let cam = Camera {
-        position: SURVEY_ORIGIN + DVec3::new(0.0, -120.0, 60.0),
-        target: SURVEY_ORIGIN,
-        up: DVec3::Z,
-        projection: Projection::Perspective { fov_y_deg: 30.0 },
-        near: 1.0,
-        far: 400.0,
-    };
+    let cam = perspective_camera(
+        SURVEY_ORIGIN + DVec3::new(0.0, -120.0, 60.0),
+        SURVEY_ORIGIN,
+        30.0,
+        (1.0, 400.0),
+    );
     let mut settings = FrameSettings::new(200, 150, cam);
     settings.point_size = 2;
     let frame = assert_matches_reference("culling", &cloud, &settings);

@@ -6,11 +6,10 @@ use glam::DVec3;
 use super::render_gpu;
 use super::*;
 use crate::camera::Camera;
-use crate::camera::Projection;
 use crate::cloud::pack_rgba8;
 use crate::ingest::load_point_cloud;
 use crate::reference;
-use crate::testing::{compare_images, gpu, shared_data};
+use crate::testing::{compare_images, gpu, perspective_camera, shared_data};
 
 fn load(file: &str) -> Option<PointCloud> {
     let path = shared_data(file)?;
@@ -124,14 +123,12 @@ fn survey_coordinates_render_with_sub_pixel_accuracy_in_a_close_up() {
     // A close-up: 3 m from a point in the middle of the scan.
     let focus = world[world.len() / 2];
     let (w, h) = (1024u32, 768u32);
-    let camera = Camera {
-        position: focus + DVec3::new(1.8, -2.0, 1.2),
-        target: focus,
-        up: DVec3::Z,
-        projection: Projection::Perspective { fov_y_deg: 45.0 },
-        near: 0.05,
-        far: 50.0,
-    };
+    let camera = perspective_camera(
+        focus + DVec3::new(1.8, -2.0, 1.2),
+        focus,
+        45.0,
+        (0.05, 50.0),
+    );
     // The independent projection: f64 throughout, from absolute file coordinates.
     let absolute = camera.transform(DVec3::ZERO, w, h);
     let mut cell_taken = vec![false; (w as usize / 8 + 1) * (h as usize / 8 + 1)];
