@@ -162,18 +162,15 @@ async fn invalid_requests_get_their_status_codes() {
     );
 
     let mut nan = turntable_job("c", &registered.id, 2, 64, 64);
-    nan.camera_path = Some(pb::CameraPath {
-        path: Some(pb::camera_path::Path::Turntable(pb::Turntable {
-            frames: 2,
-            center: Some(pb::Vec3 {
-                x: 1.0,
-                y: f64::NAN,
-                z: 0.0,
-            }),
-            ..Default::default()
-        })),
-        lens: None,
-    });
+    nan.camera_path = Some(pb::CameraPath::turntable(pb::Turntable {
+        frames: 2,
+        center: Some(pb::Vec3 {
+            x: 1.0,
+            y: f64::NAN,
+            z: 0.0,
+        }),
+        ..Default::default()
+    }));
     let (code, message) = code_and_message(jobs.submit_job(nan).await);
     assert_eq!(code, Code::InvalidArgument);
     assert!(

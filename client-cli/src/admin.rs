@@ -10,6 +10,26 @@ use serde_json::json;
 
 use crate::remote::{answer, state_name, status_error, Client};
 
+/// Items asked for per page of a listing.
+const PAGE_SIZE: u32 = 100;
+
+/// Every item of a paged listing: `page` fetches the page at a token and returns its items and
+/// the next token, empty after the last page.
+async fn every_page<T, Page>(mut page: impl FnMut(String) -> Page) -> Result<Vec<T>>
+where
+    Page: std::future::Future<Output = Result<(Vec<T>, String)>>,
+{
+    let (mut all, mut token) = (Vec::new(), String::new());
+    loop {
+        let (items, next) = page(token).await?;
+        all.extend(items);
+        if next.is_empty() {
+            return Ok(all);
+        }
+        token = next;
+    }
+}
+
 #[derive(Args, Clone)]
 pub struct ServerArgs {
     /// The pointfarm server.
@@ -111,20 +131,18 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
                 print_dataset(server, &dataset)
             }
             DatasetCommand::List => {
-                let mut all = Vec::new();
-                let mut page_token = String::new();
-                loop {
+                let all = every_page(|page_token| {
+                    let mut datasets = client.datasets.clone();
                     let request = pb::ListDatasetsRequest {
-                        page_size: 100,
+                        page_size: PAGE_SIZE,
                         page_token,
                     };
-                    let page = answer(client.datasets.list_datasets(request).await)?;
-                    all.extend(page.datasets);
-                    if page.next_page_token.is_empty() {
-                        break;
+                    async move {
+                        answer(datasets.list_datasets(request).await)
+                            .map(|p| (p.datasets, p.next_page_token))
                     }
-                    page_token = page.next_page_token;
-                }
+                })
+                .await?;
                 if server.json {
                     println!(
                         "{}",
@@ -196,17 +214,12 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
         match command {
             JobsCommand::List { state } => {
                 let state = state.as_deref().map(parse_state).transpose()?.unwrap_or(pb::JobState::Unspecified);
-                let mut all = Vec::new();
-                let mut page_token = String::new();
-                loop {
-                    let request = pb::ListJobsRequest { state: state as i32, page_size: 100, page_token };
-                    let page = answer(client.jobs.list_jobs(request).await)?;
-                    all.extend(page.jobs);
-                    if page.next_page_token.is_empty() {
-                        break;
-                    }
-                    page_token = page.next_page_token;
-                }
+                let all = every_page(|page_token| {
+                    let mut jobs = client.jobs.clone();
+                    let request = pb::ListJobsRequest { state: state as i32, page_size: PAGE_SIZE, page_token };
+                    async move { answer(jobs.list_jobs(request).await).map(|p| (p.jobs, p.next_page_token)) }
+                })
+                .await?;
                 if server.json {
                     println!("{}", serde_json::Value::from(all.iter().map(job_json).collect::<Vec<_>>()));
                 } else {

@@ -409,13 +409,7 @@ mod tests {
         let dataset = daemon.register_dataset("a.las", "").expect("register");
         let request = pb::SubmitJobRequest {
             dataset_id: dataset.id.clone(),
-            camera_path: Some(pb::CameraPath {
-                path: Some(pb::camera_path::Path::Turntable(pb::Turntable {
-                    frames: 3,
-                    ..Default::default()
-                })),
-                lens: None,
-            }),
+            camera_path: Some(pb::CameraPath::turntable(pb::Turntable::of_frames(3))),
             width: 8,
             height: 6,
             ..Default::default()

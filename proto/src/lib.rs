@@ -10,6 +10,26 @@ pub mod v1 {
     /// The encoded file descriptor set, for gRPC server reflection.
     pub const FILE_DESCRIPTOR_SET: &[u8] =
         include_bytes!(concat!(env!("OUT_DIR"), "/pointfarm_descriptor.bin"));
+
+    impl CameraPath {
+        /// The turntable `turntable` through the default lens.
+        pub fn turntable(turntable: Turntable) -> Self {
+            Self {
+                path: Some(camera_path::Path::Turntable(turntable)),
+                lens: None,
+            }
+        }
+    }
+
+    impl Turntable {
+        /// `frames` frames around the automatic centre, radius and height.
+        pub fn of_frames(frames: u32) -> Self {
+            Self {
+                frames,
+                ..Default::default()
+            }
+        }
+    }
 }
 
 use tonic::metadata::{Ascii, MetadataValue};

@@ -171,13 +171,7 @@ pub fn turntable_job(
     pb::SubmitJobRequest {
         request_id: request_id.into(),
         dataset_id: dataset_id.into(),
-        camera_path: Some(pb::CameraPath {
-            path: Some(pb::camera_path::Path::Turntable(pb::Turntable {
-                frames,
-                ..Default::default()
-            })),
-            lens: None,
-        }),
+        camera_path: Some(pb::CameraPath::turntable(pb::Turntable::of_frames(frames))),
         width,
         height,
         render: None,

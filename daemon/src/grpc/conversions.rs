@@ -228,13 +228,7 @@ mod tests {
         pb::SubmitJobRequest {
             request_id: "r1".into(),
             dataset_id: "ds-1".into(),
-            camera_path: Some(pb::CameraPath {
-                path: Some(pb::camera_path::Path::Turntable(pb::Turntable {
-                    frames: 4,
-                    ..Default::default()
-                })),
-                lens: None,
-            }),
+            camera_path: Some(pb::CameraPath::turntable(pb::Turntable::of_frames(4))),
             width: 64,
             height: 48,
             render: None,
@@ -249,40 +243,31 @@ mod tests {
         }
     }
 
+    fn vec3(x: f64, y: f64, z: f64) -> Option<pb::Vec3> {
+        Some(pb::Vec3 { x, y, z })
+    }
+
+    fn kernel(kernel: u32) -> pb::FillOptions {
+        pb::FillOptions { kernel }
+    }
+
     #[test]
     fn invalid_submissions_name_the_field() {
         assert!(JobSpec::try_from(&valid()).is_ok());
         let mut r = valid();
-        r.camera_path = Some(pb::CameraPath {
-            path: Some(pb::camera_path::Path::Turntable(pb::Turntable {
-                frames: 0,
-                ..Default::default()
-            })),
-            lens: None,
-        });
+        r.camera_path = Some(pb::CameraPath::turntable(pb::Turntable::of_frames(0)));
         assert_eq!(field_of(&r), "camera_path.turntable.frames");
         let mut r = valid();
-        r.camera_path = Some(pb::CameraPath {
-            path: Some(pb::camera_path::Path::Turntable(pb::Turntable {
-                frames: 2,
-                center: Some(pb::Vec3 {
-                    x: f64::NAN,
-                    y: 0.0,
-                    z: 0.0,
-                }),
-                ..Default::default()
-            })),
-            lens: None,
-        });
+        r.camera_path = Some(pb::CameraPath::turntable(pb::Turntable {
+            frames: 2,
+            center: vec3(f64::NAN, 0.0, 0.0),
+            ..Default::default()
+        }));
         assert_eq!(field_of(&r), "camera_path.turntable.center");
         let mut r = valid();
         let key = |x: f64| pb::Keyframe {
-            position: Some(pb::Vec3 { x, y: 0.0, z: 10.0 }),
-            target: Some(pb::Vec3 {
-                x: 0.0,
-                y: 0.0,
-                z: 0.0,
-            }),
+            position: vec3(x, 0.0, 10.0),
+            target: vec3(0.0, 0.0, 0.0),
             up: None,
             fov_y_deg: 50.0,
         };
@@ -301,55 +286,30 @@ mod tests {
         let mut r = valid();
         r.camera_path = None;
         assert_eq!(field_of(&r), "camera_path");
-        let render_cases = [
+        const PINTUS: i32 = pb::Shading::Pintus as i32;
+        type Edit = fn(&mut pb::RenderOptions);
+        let render_cases: [(Edit, &str); 8] = [
+            (|o| o.point_size = 1000, "render.point_size"),
             (
-                pb::RenderOptions {
-                    point_size: 1000,
-                    ..Default::default()
-                },
-                "render.point_size",
-            ),
-            (
-                pb::RenderOptions {
-                    quality: pb::Quality::High as i32,
-                    depth_band: Some(f32::NAN),
-                    ..Default::default()
-                },
+                |o| (o.quality, o.depth_band) = (pb::Quality::High as i32, Some(f32::NAN)),
                 "render.depth_band",
             ),
             (
-                pb::RenderOptions {
-                    shading: pb::Shading::Pintus as i32,
-                    pintus_levels: Some(0),
-                    ..Default::default()
-                },
+                |o| (o.shading, o.pintus_levels) = (PINTUS, Some(0)),
                 "render.pintus_levels",
             ),
             (
-                pb::RenderOptions {
-                    shading: pb::Shading::Pintus as i32,
-                    pintus_exponent: Some(f32::NAN),
-                    ..Default::default()
-                },
+                |o| (o.shading, o.pintus_exponent) = (PINTUS, Some(f32::NAN)),
                 "render.pintus_exponent",
             ),
-            (
-                pb::RenderOptions {
-                    quality: 99,
-                    ..Default::default()
-                },
-                "render.quality",
-            ),
-        ]
-        .into_iter()
-        .chain([1, 4, 11].map(|kernel| {
-            let options = pb::RenderOptions {
-                fill: Some(pb::FillOptions { kernel }),
-                ..Default::default()
-            };
-            (options, "render.fill.kernel")
-        }));
-        for (options, field) in render_cases {
+            (|o| o.quality = 99, "render.quality"),
+            (|o| o.fill = Some(kernel(1)), "render.fill.kernel"),
+            (|o| o.fill = Some(kernel(4)), "render.fill.kernel"),
+            (|o| o.fill = Some(kernel(11)), "render.fill.kernel"),
+        ];
+        for (edit, field) in render_cases {
+            let mut options = pb::RenderOptions::default();
+            edit(&mut options);
             let mut r = valid();
             r.render = Some(options);
             assert_eq!(field_of(&r), field);
@@ -395,12 +355,8 @@ mod tests {
             ..Default::default()
         });
         let key = |x: f64| pb::Keyframe {
-            position: Some(pb::Vec3 { x, y: 0.0, z: 10.0 }),
-            target: Some(pb::Vec3 {
-                x: 0.0,
-                y: 1.0,
-                z: 0.0,
-            }),
+            position: vec3(x, 0.0, 10.0),
+            target: vec3(0.0, 1.0, 0.0),
             up: None,
             fov_y_deg: 40.0,
         };
@@ -412,26 +368,15 @@ mod tests {
             })),
             lens: None,
         };
-        let turntable = pb::CameraPath {
-            path: Some(pb::camera_path::Path::Turntable(pb::Turntable {
-                frames: 5,
-                center: Some(pb::Vec3 {
-                    x: 1e6,
-                    y: 2e6,
-                    z: 3.0,
-                }),
-                radius: Some(12.5),
-                ..Default::default()
-            })),
-            lens: None,
-        };
+        let turntable = pb::CameraPath::turntable(pb::Turntable {
+            frames: 5,
+            center: vec3(1e6, 2e6, 3.0),
+            radius: Some(12.5),
+            ..Default::default()
+        });
         let still = pb::CameraPath {
             path: Some(pb::camera_path::Path::Still(pb::StillCamera {
-                position: Some(pb::Vec3 {
-                    x: 1.0,
-                    y: 2.0,
-                    z: 30.0,
-                }),
+                position: vec3(1.0, 2.0, 30.0),
                 ..Default::default()
             })),
             lens: Some(pb::Lens {

@@ -73,6 +73,21 @@ fn within<T: Into<f64> + Copy + Display>(
     }
 }
 
+/// The whole number `value` lies in `range`.
+fn counted(
+    field: &str,
+    what: &str,
+    (value, range): (u32, RangeInclusive<u32>),
+    unit: &str,
+) -> Checked {
+    if range.contains(&value) {
+        return Ok(());
+    }
+    let (low, high) = (range.start(), range.end());
+    let message = format!("{what} {value} is invalid: it must be {low} to {high}{unit}");
+    Err(invalid(field, message))
+}
+
 fn finite_point(field: &str, p: &Point3) -> Checked {
     if p.is_finite() {
         Ok(())
@@ -252,15 +267,8 @@ impl Lens {
 
 impl RenderOptions {
     fn validate(&self) -> Checked {
-        if !(1..=MAX_POINT_SIZE).contains(&self.point_size) {
-            return Err(invalid(
-                "render.point_size",
-                format!(
-                    "point size {} is invalid: it must be 1 to {MAX_POINT_SIZE} pixels",
-                    self.point_size
-                ),
-            ));
-        }
+        let point_size = (self.point_size, 1..=MAX_POINT_SIZE);
+        counted("render.point_size", "point size", point_size, " pixels")?;
         if let Quality::High { depth_band } = self.quality {
             within(
                 "render.depth_band",
@@ -291,15 +299,13 @@ impl RenderOptions {
                 )?;
             }
             Shading::Pintus { levels, exponent } => {
-                if !(1..=MAX_PINTUS_LEVELS).contains(&levels) {
-                    return Err(invalid(
-                        "render.pintus_levels",
-                        format!(
-                            "Pintus shading levels {levels} are invalid: they must be 1 to \
-                             {MAX_PINTUS_LEVELS}"
-                        ),
-                    ));
-                }
+                let what = "number of Pintus shading levels";
+                counted(
+                    "render.pintus_levels",
+                    what,
+                    (levels, 1..=MAX_PINTUS_LEVELS),
+                    "",
+                )?;
                 let what = "Pintus shading exponent";
                 within(
                     "render.pintus_exponent",
@@ -321,15 +327,12 @@ impl RenderOptions {
                 ));
             }
         }
-        if !(1..=MAX_SUPERSAMPLE).contains(&self.supersample) {
-            return Err(invalid(
-                "render.supersample",
-                format!(
-                    "supersampling factor {} is invalid: it must be 1 to {MAX_SUPERSAMPLE}",
-                    self.supersample
-                ),
-            ));
-        }
-        Ok(())
+        let supersample = (self.supersample, 1..=MAX_SUPERSAMPLE);
+        counted(
+            "render.supersample",
+            "supersampling factor",
+            supersample,
+            "",
+        )
     }
 }

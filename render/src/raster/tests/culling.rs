@@ -71,8 +71,7 @@ fn batches_hidden_behind_a_wall_are_skipped_and_the_image_is_unchanged() {
     let cloud = scene.select(&kept);
     let batches = cloud.len().div_ceil(BATCH_POINTS) as u32;
 
-    let mut renderer = Renderer::new(gpu());
-    let resident = renderer.upload(&cloud).expect("upload");
+    let (mut renderer, resident) = uploaded(&cloud);
     let expected = reference::render(&cloud, &base);
     for atomics in [AtomicsMode::Auto, AtomicsMode::Force32] {
         let settings = FrameSettings { atomics, ..base };

@@ -503,8 +503,7 @@ fn supersampled_filling_closes_the_same_holes() {
 fn eye_dome_lighting_matches_the_reference_and_outlines_silhouettes() {
     let mut settings = perspective_settings(160, 120);
     let cloud = pixel_centre_scene(&settings, 2, 12);
-    let mut renderer = Renderer::new(gpu());
-    let resident = renderer.upload(&cloud).expect("upload");
+    let (mut renderer, resident) = uploaded(&cloud);
     let plain = renderer.render(&resident, &settings).expect("plain");
     for (quality, shading) in [
         (Quality::Basic, Shading::EDL),

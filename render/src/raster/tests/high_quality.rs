@@ -50,8 +50,7 @@ fn high_quality_mode_averages_the_front_surface_like_the_reference() {
     settings.quality = Quality::HIGH;
     settings.read_depth = true;
     let cloud = surface_with_depth_noise(&settings, 10);
-    let mut renderer = Renderer::new(gpu());
-    let resident = renderer.upload(&cloud).expect("upload");
+    let (mut renderer, resident) = uploaded(&cloud);
     let frame = renderer.render(&resident, &settings).expect("render");
     let expected = reference::render(&cloud, &settings);
     let difference = max_channel_difference(&frame.image, &expected.image);
@@ -95,8 +94,7 @@ fn high_quality_mode_averages_the_front_surface_like_the_reference() {
 fn high_quality_band_is_configurable() {
     let mut settings = perspective_settings(96, 64);
     let cloud = surface_with_depth_noise(&settings, 11);
-    let mut renderer = Renderer::new(gpu());
-    let resident = renderer.upload(&cloud).expect("upload");
+    let (mut renderer, resident) = uploaded(&cloud);
     // A zero band averages only points at exactly the nearest depth: the basic image, up to
     // ties; a 50% band takes in the points behind the surface as well.
     for depth_band in [0.0, 0.5] {

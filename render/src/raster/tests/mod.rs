@@ -134,6 +134,13 @@ fn pixel_centre_scene_by_pixel(
     PointCloud::from_world_points(&points, colors)
 }
 
+/// A renderer on the shared GPU and `cloud` uploaded to it.
+fn uploaded(cloud: &PointCloud) -> (Renderer, GpuPointCloud) {
+    let renderer = Renderer::new(gpu());
+    let resident = renderer.upload(cloud).expect("upload");
+    (renderer, resident)
+}
+
 pub(super) fn render_gpu(cloud: &PointCloud, settings: &FrameSettings) -> Frame {
     let mut renderer = Renderer::new(gpu());
     let resident = renderer.upload(cloud).expect("upload");

@@ -3,12 +3,20 @@
 
 use super::*;
 
+/// A 64x48 frame with its depth image, of `layers` points per pixel centre.
+fn frame_with_depth(layers: usize, seed: u64) -> (FrameSettings, PointCloud, Frame) {
+    let settings = FrameSettings {
+        read_depth: true,
+        ..perspective_settings(64, 48)
+    };
+    let cloud = pixel_centre_scene(&settings, layers, seed);
+    let frame = render_gpu(&cloud, &settings);
+    (settings, cloud, frame)
+}
+
 #[test]
 fn depth_image_holds_linear_depth() {
-    let mut settings = perspective_settings(64, 48);
-    settings.read_depth = true;
-    let cloud = pixel_centre_scene(&settings, 2, 7);
-    let frame = render_gpu(&cloud, &settings);
+    let (settings, cloud, frame) = frame_with_depth(2, 7);
     let expected = reference::render_basic(&cloud, &settings);
     let depth = frame.depth.expect("depth was requested");
     for (gpu_depth, reference_depth) in depth.iter().zip(&expected.depth) {
@@ -25,10 +33,7 @@ fn depth_image_holds_linear_depth() {
 
 #[test]
 fn depth_image_is_written_as_16_bit_png() {
-    let mut settings = perspective_settings(64, 48);
-    settings.read_depth = true;
-    let cloud = pixel_centre_scene(&settings, 1, 14);
-    let frame = render_gpu(&cloud, &settings);
+    let (settings, _, frame) = frame_with_depth(1, 14);
     let dir = tempfile::tempdir().expect("tempdir");
     let path = dir.path().join("depth.png");
     crate::encode::save_depth_png16(&frame, &path, settings.camera.near, settings.camera.far)
@@ -98,9 +103,7 @@ fn supersampling_renders_larger_and_averages_blocks() {
 #[test]
 fn every_frame_reports_its_stage_timings() {
     let settings = perspective_settings(64, 48);
-    let cloud = pixel_centre_scene(&settings, 1, 8);
-    let mut renderer = Renderer::new(gpu());
-    let resident = renderer.upload(&cloud).expect("upload");
+    let (mut renderer, resident) = uploaded(&pixel_centre_scene(&settings, 1, 8));
     let mut first = renderer.render(&resident, &settings).expect("render");
     let second = renderer.render(&resident, &settings).expect("render");
     for frame in [&first, &second] {

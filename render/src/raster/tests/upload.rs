@@ -26,8 +26,7 @@ fn points_take_at_most_12_bytes_each_on_the_gpu() {
 fn a_streamed_upload_renders_like_a_whole_one() {
     let settings = perspective_settings(96, 64);
     let cloud = pixel_centre_scene(&settings, 2, 21);
-    let mut renderer = Renderer::new(gpu());
-    let whole = renderer.upload(&cloud).expect("upload");
+    let (mut renderer, whole) = uploaded(&cloud);
     let mut next = 0;
     let streamed = renderer
         .upload_chunks(cloud.origin, &mut |n| {
