@@ -7,7 +7,7 @@ use std::sync::Arc;
 use anyhow::{Context, Result};
 use clap::Args;
 use pointfarm_daemon::server::serve;
-use pointfarm_daemon::service::{Daemon, DaemonConfig};
+use pointfarm_daemon::service::{Daemon, DaemonConfig, DEFAULT_MAX_UPLOAD_BYTES};
 use pointfarm_render::gpu::{AdapterChoice, GpuContext};
 
 #[derive(Args)]
@@ -27,6 +27,13 @@ pub struct ServeArgs {
     /// Largest image side accepted.
     #[arg(long, default_value_t = 8192)]
     max_image_side: u32,
+    /// Largest upload accepted, in bytes.
+    #[arg(long, default_value_t = DEFAULT_MAX_UPLOAD_BYTES)]
+    max_upload_bytes: u64,
+    /// Most bytes all uploaded datasets may take together; an upload past it is refused
+    /// before its data is sent (default: no quota, only the disk bounds them).
+    #[arg(long)]
+    upload_quota_bytes: Option<u64>,
     /// Run no embedded worker: only `pointfarm worker` processes render.
     #[arg(long, alias = "no-worker")]
     no_embedded_worker: bool,
@@ -44,6 +51,8 @@ pub fn run(args: ServeArgs) -> Result<()> {
         let mut config = DaemonConfig::new(args.data_dir.clone());
         config.data_roots = args.data_roots.clone();
         config.max_image_side = args.max_image_side;
+        config.max_upload_bytes = args.max_upload_bytes;
+        config.upload_quota_bytes = args.upload_quota_bytes;
         config.lease_timeout = std::time::Duration::from_secs_f64(args.lease_timeout);
         let daemon =
             Daemon::open(config).with_context(|| format!("opening {}", args.data_dir.display()))?;

@@ -3,7 +3,8 @@
 //! over all of it.
 //!
 //! From the bottom up: `model` and `camera_path` (domain types, the camera of each frame),
-//! `error` (the daemon's and the store's errors), `lease_record` (the stored lease), `store`
+//! `error` (the daemon's and the store's errors), `limits` (the bounds on
+//! names and ids clients send), `lease_record` (the stored lease), `store`
 //! (sled), `service` (the `Daemon` and its dataset and job operations), `lease` (frame leases:
 //! the one scheduling path, more `Daemon` methods), `grpc` (validates, converts and
 //! delegates: one file per service, the conversions, the streaming of bytes), `worker`
@@ -16,6 +17,7 @@ pub mod error;
 pub mod grpc;
 pub mod lease;
 pub mod lease_record;
+pub mod limits;
 pub mod model;
 pub mod server;
 pub mod service;

@@ -179,6 +179,30 @@ impl Store {
         )
     }
 
+    /// Whether an unfinished job renders the dataset `dataset_id`: every job is looked at.
+    pub fn dataset_in_use(&self, dataset_id: &str) -> Result<bool, StoreError> {
+        for entry in self.jobs.iter() {
+            let job: Job = decode(&entry?.1)?;
+            if job.spec.dataset_id == dataset_id && !job.state.is_terminal() {
+                return Ok(true);
+            }
+        }
+        Ok(false)
+    }
+
+    /// The bytes of the datasets whose files lie in `uploads` (the ones uploaded, not
+    /// registered from a data root).
+    pub fn uploaded_bytes(&self, uploads: &std::path::Path) -> Result<u64, StoreError> {
+        let mut total = 0u64;
+        for entry in self.datasets.iter() {
+            let dataset: Dataset = decode(&entry?.1)?;
+            if dataset.path.starts_with(uploads) {
+                total = total.saturating_add(dataset.size_bytes);
+            }
+        }
+        Ok(total)
+    }
+
     pub fn frame(&self, job_id: &str, index: u32) -> Result<Option<FrameState>, StoreError> {
         decode_stored(self.frames.get(frame_key(job_id, index))?)
     }

@@ -12,11 +12,10 @@ use super::streaming::{first_part, read_chunk, spawn_stream, ResponseStream};
 use super::Api;
 use crate::error::DaemonError;
 use crate::lease::FrameOutcome;
+use crate::limits::{check_id, check_length, truncated, MAX_REASON_BYTES, MAX_WORKER_NAME_BYTES};
 
 /// Longest wait of a `LeaseFrame` long poll.
 const MAX_LEASE_WAIT_MS: u32 = 30_000;
-/// Longest worker name kept.
-const MAX_WORKER_NAME: usize = 128;
 
 /// Largest PNG accepted for a frame: the raw RGBA size and room for PNG's overhead.
 fn max_png_bytes(width: u32, height: u32) -> u64 {
@@ -31,7 +30,8 @@ impl WorkerService for Api {
     ) -> Result<Response<pb::LeaseFrameResponse>, Status> {
         let peer = request.remote_addr();
         let r = request.into_inner();
-        let mut name: String = r.worker_name.chars().take(MAX_WORKER_NAME).collect();
+        check_length("worker_name", &r.worker_name, MAX_WORKER_NAME_BYTES)?;
+        let mut name = r.worker_name;
         if name.is_empty() {
             name = peer.map_or_else(|| "unnamed".into(), |a| a.to_string());
         }
@@ -72,6 +72,7 @@ impl WorkerService for Api {
         request: Request<pb::HeartbeatRequest>,
     ) -> Result<Response<pb::HeartbeatResponse>, Status> {
         let lease_id = request.into_inner().lease_id;
+        check_id("lease_id", &lease_id)?;
         let answer = self.run(move |daemon| daemon.heartbeat(&lease_id)).await?;
         Ok(Response::new(pb::HeartbeatResponse::from(answer)))
     }
@@ -88,6 +89,7 @@ impl WorkerService for Api {
         })
         .await?;
         // A stale lease is refused before the image is received.
+        check_id("result.lease_id", &result.lease_id)?;
         let lease_id = result.lease_id.clone();
         let (_, width, height) = self.run(move |daemon| daemon.held_lease(&lease_id)).await?;
         let limit = max_png_bytes(width, height);
@@ -137,10 +139,11 @@ impl WorkerService for Api {
         request: Request<pb::FailFrameRequest>,
     ) -> Result<Response<pb::FailFrameResponse>, Status> {
         let r = request.into_inner();
+        check_id("lease_id", &r.lease_id)?;
         let reason = if r.reason.is_empty() {
             "the worker gave no reason".to_string()
         } else {
-            r.reason
+            truncated(&r.reason, MAX_REASON_BYTES)
         };
         self.run(move |daemon| daemon.fail_frame(&r.lease_id, &reason))
             .await?;
@@ -152,6 +155,7 @@ impl WorkerService for Api {
         request: Request<pb::ReleaseFrameRequest>,
     ) -> Result<Response<pb::ReleaseFrameResponse>, Status> {
         let lease_id = request.into_inner().lease_id;
+        check_id("lease_id", &lease_id)?;
         self.run(move |daemon| daemon.release_frame(&lease_id))
             .await?;
         Ok(Response::new(pb::ReleaseFrameResponse {}))
