@@ -34,6 +34,11 @@ pub struct ServeArgs {
     /// before its data is sent (default: no quota, only the disk bounds them).
     #[arg(long)]
     upload_quota_bytes: Option<u64>,
+    /// Start even when the state database is damaged (truncated, bit-flipped, records
+    /// missing): go on with what it still holds and log exactly what was lost. Without it
+    /// the daemon refuses to start on such a state and says why.
+    #[arg(long)]
+    recover_state: bool,
     /// Run no embedded worker: only `pointfarm worker` processes render.
     #[arg(long, alias = "no-worker")]
     no_embedded_worker: bool,
@@ -53,6 +58,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
         config.max_image_side = args.max_image_side;
         config.max_upload_bytes = args.max_upload_bytes;
         config.upload_quota_bytes = args.upload_quota_bytes;
+        config.recover_state = args.recover_state;
         config.lease_timeout = std::time::Duration::from_secs_f64(args.lease_timeout);
         let daemon =
             Daemon::open(config).with_context(|| format!("opening {}", args.data_dir.display()))?;

@@ -4,8 +4,8 @@
 //!
 //! From the bottom up: `model` and `camera_path` (domain types, the camera of each frame),
 //! `error` (the daemon's and the store's errors), `limits` (the bounds on
-//! names and ids clients send), `lease_record` (the stored lease), `store`
-//! (sled), `service` (the `Daemon` and its dataset and job operations), `lease` (frame leases:
+//! names and ids clients send), `lease_record` (the stored lease), `manifest` (the counts recorded beside the
+//! database), `store` (sled), `service` (the `Daemon` and its dataset and job operations), `lease` (frame leases:
 //! the one scheduling path, more `Daemon` methods), `grpc` (validates, converts and
 //! delegates: one file per service, the conversions, the streaming of bytes), `worker`
 //! (what leases frames: the embedded thread, the remote worker process — a gRPC client — and
@@ -18,6 +18,7 @@ pub mod grpc;
 pub mod lease;
 pub mod lease_record;
 pub mod limits;
+pub mod manifest;
 pub mod model;
 pub mod server;
 pub mod service;

@@ -36,6 +36,9 @@ pub struct DaemonConfig {
     pub lease_timeout: std::time::Duration,
     /// Size bound of the worker's processed-dataset cache.
     pub worker_cache_bytes: u64,
+    /// Start on a damaged state database with what can be read, saying what was lost,
+    /// rather than refusing to start.
+    pub recover_state: bool,
     /// Job events buffered for watchers; one that falls further behind catches up from the
     /// store instead.
     pub event_buffer: usize,
@@ -53,6 +56,7 @@ impl DaemonConfig {
             lease_timeout: std::time::Duration::from_secs(30),
             worker_cache_bytes: 8 << 30,
             event_buffer: 1024,
+            recover_state: false,
             data_dir,
         }
     }
@@ -140,7 +144,11 @@ impl Daemon {
         std::fs::create_dir_all(config.uploads_dir())?;
         std::fs::create_dir_all(config.data_dir.join("jobs"))?;
         remove_unfinished_uploads(&config.uploads_dir());
-        let store = Store::open(&config.data_dir.join("state.sled"))?;
+        let (store, loss) = Store::open(&config.data_dir.join("state.sled"), config.recover_state)?;
+        if !loss.is_empty() {
+            tracing::warn!(%loss, "started on a damaged state database with what it still holds");
+        }
+        check_frames_have_jobs(&store, &config.data_dir.join("jobs"), config.recover_state)?;
         let requeued = store.requeue_running()?;
         if requeued > 0 {
             tracing::info!(requeued, "resuming jobs that were running");
@@ -426,6 +434,42 @@ impl Daemon {
         self.publish(&job, None);
         Ok(job)
     }
+}
+
+/// Every folder of rendered frames belongs to a stored job: one that does not is the trace of
+/// a job the state database lost (with or without a manifest to tell it).
+fn check_frames_have_jobs(
+    store: &Store,
+    jobs_dir: &Path,
+    recover: bool,
+) -> Result<(), DaemonError> {
+    let Ok(entries) = std::fs::read_dir(jobs_dir) else {
+        return Ok(());
+    };
+    let mut orphaned = Vec::new();
+    for entry in entries.flatten() {
+        let id = entry.file_name().to_string_lossy().into_owned();
+        if entry.path().is_dir() && store.job(&id)?.is_none() {
+            orphaned.push(id);
+        }
+    }
+    if orphaned.is_empty() {
+        return Ok(());
+    }
+    orphaned.sort();
+    let message = format!(
+        "the state database has lost {} jobs whose frames are in {}: {}",
+        orphaned.len(),
+        jobs_dir.display(),
+        orphaned.join(", ")
+    );
+    if !recover {
+        return Err(DaemonError::FailedPrecondition(format!(
+            "{message}; start with --recover-state to go on without them"
+        )));
+    }
+    tracing::warn!("{message}");
+    Ok(())
 }
 
 /// Uploads that were still arriving when the daemon stopped can never complete: remove them.
