@@ -123,3 +123,22 @@ async fn a_bit_flipped_state_is_refused() {
         Ok(daemon) => assert_eq!(job_count(&daemon), 30, "a quiet partial start"),
     }
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn frames_of_a_job_the_state_lacks_are_a_loss_even_without_a_manifest() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    state_with_jobs(dir.path(), 3).await;
+    std::fs::remove_file(dir.path().join("state.manifest.json")).expect("no manifest");
+    let frames = dir.path().join("jobs").join("job-000000099999");
+    std::fs::create_dir_all(&frames).expect("frames folder");
+    std::fs::write(frames.join("frame_00000.png"), b"png").expect("frame");
+    let Err(refused) = open(dir.path(), false) else {
+        panic!("frames without their job must not pass unnoticed");
+    };
+    assert!(refused.contains("lost 1 jobs"), "{refused}");
+    assert!(refused.contains("job-000000099999"), "{refused}");
+    assert_eq!(
+        job_count(&open(dir.path(), true).expect("recovering opens")),
+        3
+    );
+}

@@ -19,6 +19,8 @@ pub enum BenchError {
     DatasetCache(#[from] CacheError),
     #[error("{0}")]
     CacheMismatch(String),
+    #[error("the scheduler's daemon: {0}")]
+    Scheduler(String),
     #[error("benchmark scratch space: {0}")]
     Scratch(String),
     #[error("the benchmark's JSON: {0}")]

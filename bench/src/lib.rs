@@ -22,7 +22,8 @@
 //!
 //! The crate's modules, one job each: [`workloads`] (the scenes and their views) from the
 //! generated [`clouds`]; `rounds` (warming and measuring the methods) and `huge` (the cloud
-//! uploaded chunk by chunk); [`ingest`] (decoding and the dataset cache); [`report`] (what was
+//! uploaded chunk by chunk); [`ingest`] (decoding and the dataset cache); [`scheduler`] (leasing
+//! a frame against the daemon's job history, no GPU); [`report`] (what was
 //! measured), written as [`markdown`], [`json`] and a [`plot`].
 //!
 //! The `PointList` baseline is compiled into the renderer only here: this crate enables the
@@ -39,6 +40,7 @@ pub mod plot;
 pub mod report;
 mod rounds;
 mod run;
+pub mod scheduler;
 mod stats;
 pub mod workloads;
 

@@ -14,6 +14,17 @@ pub(crate) fn median(mut values: Vec<f64>) -> f64 {
     }
 }
 
+/// The value below which the fraction `q` of `values` lie, by nearest rank (NaN when there
+/// are none).
+pub(crate) fn percentile(mut values: Vec<f64>, q: f64) -> f64 {
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    values.sort_by(f64::total_cmp);
+    let rank = ((q * values.len() as f64).ceil() as usize).clamp(1, values.len());
+    values[rank - 1]
+}
+
 /// Slope, intercept and coefficient of determination of the line through (xs, ys).
 pub(crate) fn least_squares(xs: &[f64], ys: &[f64]) -> (f64, f64, f64) {
     let n = xs.len() as f64;

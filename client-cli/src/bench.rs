@@ -62,6 +62,10 @@ pub struct BenchArgs {
     /// Adapter: auto (hardware GPU if present, else lavapipe), hardware or software.
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
     adapter: AdapterChoice,
+    /// Measure the daemon's scheduler instead of the renderer: leasing a frame with no job
+    /// history and with up to 10,000 finished jobs (1,000 with --quick). Needs no GPU.
+    #[arg(long, conflicts_with_all = ["only", "huge", "modes", "basic_only", "plot"])]
+    scheduler: bool,
 }
 
 /// A compute mode besides the basic one, as `--modes` names it.
@@ -100,6 +104,9 @@ fn parse_point_count(text: &str) -> Result<usize, String> {
 
 pub fn run(args: BenchArgs) -> Result<()> {
     let started = Instant::now();
+    if args.scheduler {
+        return run_scheduler(&args, started);
+    }
     let (width, height) = args.size;
     let defaults = if args.quick {
         BenchOptions::quick(width, height, args.data.clone())
@@ -164,6 +171,34 @@ pub fn run(args: BenchArgs) -> Result<()> {
     }
     if let Some(path) = &args.plot {
         bench::plot::write(&report, path)?;
+    }
+    println!("done in {:.0} s", started.elapsed().as_secs_f64());
+    Ok(())
+}
+
+/// `--scheduler`: the lease latency against the job history.
+fn run_scheduler(args: &BenchArgs, started: Instant) -> Result<()> {
+    use bench::scheduler::{self, FULL_HISTORY_JOBS};
+    let longest = if args.quick {
+        FULL_HISTORY_JOBS / 10
+    } else {
+        FULL_HISTORY_JOBS
+    };
+    let samples = if args.quick { 50 } else { 500 };
+    let histories = [0, longest / 10, longest];
+    let results = scheduler::measure(&histories, samples, &mut |line| eprintln!("  {line}"))?;
+    let markdown = scheduler::markdown(&results);
+    println!("\n{markdown}");
+    if let Some(path) = &args.markdown {
+        std::fs::write(path, &markdown).with_context(|| format!("writing {}", path.display()))?;
+    }
+    if let Some(path) = &args.json {
+        let json = serde_json::json!({
+            "command": std::env::args().collect::<Vec<_>>().join(" "),
+            "scheduler": results,
+        });
+        std::fs::write(path, serde_json::to_vec_pretty(&json)?)
+            .with_context(|| format!("writing {}", path.display()))?;
     }
     println!("done in {:.0} s", started.elapsed().as_secs_f64());
     Ok(())

@@ -7,7 +7,7 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use sha2::{Digest, Sha256};
 use tokio::sync::broadcast;
 
-use crate::error::DaemonError;
+use crate::error::{DaemonError, StoreError};
 use crate::limits::{check_id, check_length, MAX_NAME_BYTES, MAX_PATH_BYTES, MAX_REQUEST_ID_BYTES};
 use crate::model::{now_unix_ms, Dataset, FrameReport, Job, JobEvent, JobSpec, JobState};
 use crate::store::{Page, Store};
@@ -335,10 +335,7 @@ impl Daemon {
     }
 
     pub fn dataset(&self, id: &str) -> Result<Dataset, DaemonError> {
-        check_id("dataset_id", id)?;
-        self.store
-            .dataset(id)?
-            .ok_or_else(|| DaemonError::NotFound(format!("dataset {id}")))
+        lookup("dataset_id", "dataset", id, |id| self.store.dataset(id))
     }
 
     pub fn list_datasets(&self, page_size: u32, token: &str) -> Result<Page<Dataset>, DaemonError> {
@@ -390,10 +387,7 @@ impl Daemon {
     }
 
     pub fn job(&self, id: &str) -> Result<Job, DaemonError> {
-        check_id("id", id)?;
-        self.store
-            .job(id)?
-            .ok_or_else(|| DaemonError::NotFound(format!("job {id}")))
+        lookup("id", "job", id, |id| self.store.job(id))
     }
 
     /// A job and the reports of its finished frames, as a crash would leave them: read under
@@ -436,6 +430,18 @@ impl Daemon {
     }
 }
 
+/// The `what` that `id` (the request's `field`) names, found by `find`: an id too long to be
+/// one of ours, or no such record, is an error.
+fn lookup<T>(
+    field: &str,
+    what: &str,
+    id: &str,
+    find: impl FnOnce(&str) -> Result<Option<T>, StoreError>,
+) -> Result<T, DaemonError> {
+    check_id(field, id)?;
+    find(id)?.ok_or_else(|| DaemonError::NotFound(format!("{what} {id}")))
+}
+
 /// Every folder of rendered frames belongs to a stored job: one that does not is the trace of
 /// a job the state database lost (with or without a manifest to tell it).
 fn check_frames_have_jobs(
@@ -457,11 +463,17 @@ fn check_frames_have_jobs(
         return Ok(());
     }
     orphaned.sort();
+    let shown = orphaned
+        .iter()
+        .take(10)
+        .cloned()
+        .collect::<Vec<_>>()
+        .join(", ");
+    let more = if orphaned.len() > 10 { ", ..." } else { "" };
     let message = format!(
-        "the state database has lost {} jobs whose frames are in {}: {}",
+        "the state database has lost {} jobs whose frames are in {}: {shown}{more}",
         orphaned.len(),
         jobs_dir.display(),
-        orphaned.join(", ")
     );
     if !recover {
         return Err(DaemonError::FailedPrecondition(format!(
