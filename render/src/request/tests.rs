@@ -330,6 +330,52 @@ fn invalid_requests_name_the_field() {
         );
     }
     assert_eq!(with(&|r| r.render.supersample = 5), "render.supersample");
+    // Cameras that could not render are refused with the request, not when a frame fails.
+    assert_eq!(
+        turntable(&|t| t.radius = Some(1e300)),
+        "camera_path.turntable.radius"
+    );
+    let far_away = Point3 {
+        x: 1e13,
+        y: 0.0,
+        z: 0.0,
+    };
+    assert_eq!(
+        turntable(&|t| t.center = Some(far_away)),
+        "camera_path.turntable.center"
+    );
+    let straight_down = |r: &mut RenderRequest| {
+        r.camera_path = CameraPath::Still(StillCamera {
+            position: Some(Point3 {
+                x: 1.0,
+                y: 2.0,
+                z: 30.0,
+            }),
+            target: Some(Point3 {
+                x: 1.0,
+                y: 2.0,
+                z: 0.0,
+            }),
+            ..StillCamera::default()
+        })
+    };
+    assert_eq!(with(&straight_down), "camera_path.still.up");
+    assert_eq!(
+        with(&|r| {
+            let mut overhead = key(5.0);
+            overhead.up = Point3 {
+                x: overhead.target.x - overhead.position.x,
+                y: overhead.target.y - overhead.position.y,
+                z: overhead.target.z - overhead.position.z,
+            };
+            r.camera_path = CameraPath::Keyframes {
+                keyframes: vec![key(1.0), overhead],
+                frames: 3,
+                interpolation: Interpolation::Linear,
+            };
+        }),
+        "camera_path.keyframes.keyframes[1].up"
+    );
     let message = with_message(&valid, |r| r.render.fill = Some(FillSettings { kernel: 4 }));
     assert!(message.contains("fill kernel 4"), "{message}");
 }

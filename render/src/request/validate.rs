@@ -6,8 +6,8 @@ use std::fmt::Display;
 use std::ops::RangeInclusive;
 
 use super::camera_path::{
-    CameraPath, Keyframe, Lens, Point3, StillCamera, Turntable, FOV_Y_DEG_RANGE, MIN_KEYFRAMES,
-    TURNTABLE_DEGREES_RANGE, TURNTABLE_ELEVATION_RANGE,
+    CameraPath, Keyframe, Lens, Point3, StillCamera, Turntable, FOV_Y_DEG_RANGE, MAX_COORDINATE,
+    MIN_KEYFRAMES, TURNTABLE_DEGREES_RANGE, TURNTABLE_ELEVATION_RANGE,
 };
 use super::{RenderOptions, RenderRequest};
 use crate::raster::{
@@ -88,12 +88,29 @@ fn counted(
     Err(invalid(field, message))
 }
 
+/// A point of a camera path: finite, and no coordinate beyond [`MAX_COORDINATE`].
 fn finite_point(field: &str, p: &Point3) -> Checked {
-    if p.is_finite() {
-        Ok(())
-    } else {
-        Err(invalid(field, "must be finite (no NaN or infinity)"))
+    if !p.is_finite() {
+        return Err(invalid(field, "must be finite (no NaN or infinity)"));
     }
+    if [p.x, p.y, p.z].iter().any(|c| c.abs() > MAX_COORDINATE) {
+        return Err(invalid(
+            field,
+            format!("has a coordinate beyond ±{MAX_COORDINATE:e}"),
+        ));
+    }
+    Ok(())
+}
+
+/// A camera looking from `position` at `target` has an `up` that is not along its view: the
+/// picture would have no vertical direction.
+fn up_across_the_view(field: &str, up: &Point3, position: &Point3, target: &Point3) -> Checked {
+    let view = glam::DVec3::from(*target) - glam::DVec3::from(*position);
+    let up = glam::DVec3::from(*up);
+    if view.cross(up).length() <= 1e-9 * view.length() * up.length() {
+        return Err(invalid(field, "is parallel to the view direction"));
+    }
+    Ok(())
 }
 
 fn direction(field: &str, p: &Point3) -> Checked {
@@ -116,13 +133,14 @@ fn field_of_view(field: &str, fov_y_deg: f64) -> Checked {
     }
 }
 
+/// A length of a camera path: positive and at most [`MAX_COORDINATE`].
 fn positive(field: &str, what: &str, value: f64) -> Checked {
-    if value.is_finite() && value > 0.0 {
+    if value.is_finite() && value > 0.0 && value <= MAX_COORDINATE {
         Ok(())
     } else {
         Err(invalid(
             field,
-            format!("{what} {value} is invalid: it must be positive"),
+            format!("{what} {value} is invalid: it must be positive, at most {MAX_COORDINATE:e}"),
         ))
     }
 }
@@ -173,6 +191,9 @@ impl StillCamera {
             ));
         }
         direction(&f("up"), &self.up)?;
+        if let (Some(position), Some(target)) = (&self.position, &self.target) {
+            up_across_the_view(&f("up"), &self.up, position, target)?;
+        }
         field_of_view(&f("fov_y_deg"), self.fov_y_deg)
     }
 }
@@ -231,6 +252,7 @@ impl Keyframe {
             return Err(invalid(f("target"), "must differ from the position"));
         }
         direction(&f("up"), &self.up)?;
+        up_across_the_view(&f("up"), &self.up, &self.position, &self.target)?;
         field_of_view(&f("fov_y_deg"), self.fov_y_deg)
     }
 }
