@@ -40,8 +40,9 @@ pub struct ServeArgs {
     /// Attempts at a frame (failed, or lost with its worker) before its job fails.
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=100))]
     max_frame_attempts: u32,
-    /// Cap the embedded worker process's memory (address space) at this many MiB: a frame
-    /// that needs more crashes that process, not the machine, and counts a failed attempt.
+    /// Cap the embedded worker process's memory (heap and other private writable memory) at
+    /// this many MiB: a frame that needs more crashes that process, not the machine, and
+    /// counts a failed attempt.
     #[arg(long, value_name = "MIB")]
     worker_max_memory_mib: Option<u64>,
     /// GPU of the embedded worker: auto, hardware or software (lavapipe).

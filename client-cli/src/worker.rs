@@ -35,8 +35,8 @@ pub struct WorkerArgs {
     /// GPU to render on: auto, hardware or software (lavapipe).
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
     adapter: AdapterChoice,
-    /// Cap this process's memory (address space) at this many MiB: a frame that needs more
-    /// aborts the worker instead of exhausting the machine.
+    /// Cap this process's memory (heap and other private writable memory) at this many MiB:
+    /// a frame that needs more aborts the worker instead of exhausting the machine.
     #[arg(long, value_name = "MIB")]
     max_memory_mib: Option<u64>,
     /// Run as a daemon's embedded worker: exit as soon as standard input (a pipe from the

@@ -125,6 +125,9 @@ impl Daemon {
                 expires_unix_ms: now_unix_ms() + self.lease_timeout_ms(),
             };
             self.store.put_lease(&lease)?;
+            // Durable before the worker starts: a crash of the daemon while the frame renders
+            // then still counts the attempt at the next start.
+            self.store.flush()?;
             tracing::debug!(job = %job.id, frame = index, lease = %lease.id, worker, "frame leased");
             return Ok(Some(FrameTask {
                 lease,

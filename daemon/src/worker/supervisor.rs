@@ -123,23 +123,7 @@ async fn supervise(daemon: Arc<Daemon>, launch: Launch, mut stop: watch::Receive
             Ok(child) => {
                 let how = run_until_exit(&daemon, child, &mut stop).await;
                 let stopping = *stop.borrow();
-                let d = daemon.clone();
-                let counted = tokio::task::spawn_blocking(move || {
-                    d.embedded_worker_exited(EMBEDDED_WORKER_NAME, &how)
-                })
-                .await;
-                match counted {
-                    Ok(Ok(0)) => {}
-                    Ok(Ok(frames)) => {
-                        tracing::warn!(frames, "the frames it held go back to the queue")
-                    }
-                    Ok(Err(e)) => {
-                        tracing::error!(error = %e, "counting the attempts of the embedded worker's frames")
-                    }
-                    Err(e) => {
-                        tracing::error!(error = %e, "counting the attempts of the embedded worker's frames")
-                    }
-                }
+                count_lost_frames(&daemon, how).await;
                 if stopping {
                     return;
                 }
@@ -159,6 +143,24 @@ async fn supervise(daemon: Arc<Daemon>, launch: Launch, mut stop: watch::Receive
             _ = stop.changed() => {}
         }
         backoff = (backoff * 2).min(RESTART_MAX);
+    }
+}
+
+/// Counts a failed attempt for each frame the exited worker held (`how` it exited).
+async fn count_lost_frames(daemon: &Arc<Daemon>, how: String) {
+    let daemon = daemon.clone();
+    let counted = tokio::task::spawn_blocking(move || {
+        daemon.embedded_worker_exited(EMBEDDED_WORKER_NAME, &how)
+    })
+    .await
+    .map_err(|e| e.to_string())
+    .and_then(|counted| counted.map_err(|e| e.to_string()));
+    match counted {
+        Ok(0) => {}
+        Ok(frames) => tracing::warn!(frames, "each frame it held counts a failed attempt"),
+        Err(error) => {
+            tracing::error!(%error, "counting the attempts of the embedded worker's frames")
+        }
     }
 }
 
