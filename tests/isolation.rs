@@ -8,7 +8,7 @@ use std::time::Duration;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_tests::service::{
-    clients, connect, scratch_sample, submit, turntable_job, upload, watch_to_end,
+    clients, connect, scratch_sample, submit, turntable_job, upload, upload_file, watch_to_end,
     watch_to_success, TestDaemon,
 };
 use pointfarm_tests::WorkerProcess;
@@ -62,8 +62,7 @@ async fn a_worker_killed_mid_frame_is_restarted_and_the_frame_rendered_once() {
     let (_scratch, file) = scratch_sample("scan.laz", 1_500_000, 5);
     let mut server = ServeProcess::start_with(&data.path().join("data"), &[]);
     let (mut datasets, mut jobs) = clients(&server.address).await;
-    let bytes = std::fs::read(&file).expect("read");
-    let dataset = upload(&mut datasets, "scan.laz", &bytes).await;
+    let dataset = upload_file(&mut datasets, "scan.laz", &file).await;
     let job = submit(&mut jobs, turntable_job("killed", &dataset.id, 3, 64, 48)).await;
 
     let index = embedded_lease_of(&server.address, &job.id).await;
@@ -127,18 +126,8 @@ async fn a_frame_that_crashes_its_worker_fails_its_job_also_across_daemon_restar
     let mut server = ServeProcess::start_with(&data_dir, &args);
     let address = server.address.clone();
     let (mut datasets, mut jobs) = clients(&address).await;
-    let poison = upload(
-        &mut datasets,
-        "poison.laz",
-        &std::fs::read(&poison_file).expect("read"),
-    )
-    .await;
-    let good = upload(
-        &mut datasets,
-        "good.laz",
-        &std::fs::read(&good_file).expect("read"),
-    )
-    .await;
+    let poison = upload_file(&mut datasets, "poison.laz", &poison_file).await;
+    let good = upload_file(&mut datasets, "good.laz", &good_file).await;
 
     let poisoned = submit(&mut jobs, turntable_job("poison-1", &poison.id, 1, 64, 48)).await;
     let next = submit(&mut jobs, turntable_job("good-1", &good.id, 1, 64, 48)).await;

@@ -490,6 +490,14 @@ mod tests {
         bytes
     }
 
+    /// Leases the next frame, which there must be.
+    fn lease(daemon: &Daemon, worker: &str, embedded: bool) -> FrameTask {
+        daemon
+            .lease_frame(worker, embedded)
+            .expect("lease")
+            .expect("a frame to lease")
+    }
+
     fn outcome() -> FrameOutcome {
         FrameOutcome {
             timings: Vec::new(),
@@ -499,16 +507,9 @@ mod tests {
 
     #[test]
     fn remote_leases_survive_a_restart_and_embedded_ones_count_an_attempt() {
-        let dir = tempfile::tempdir().expect("tempdir");
-        let (daemon, job) = daemon_with_job(dir.path(), 3);
-        let remote = daemon
-            .lease_frame("remote", false)
-            .expect("lease")
-            .expect("task");
-        let embedded = daemon
-            .lease_frame("embedded", true)
-            .expect("lease")
-            .expect("task");
+        let (dir, daemon, job) = daemon_with_job(3);
+        let remote = lease(&daemon, "remote", false);
+        let embedded = lease(&daemon, "embedded", true);
         assert_eq!((remote.lease.index, embedded.lease.index), (0, 1));
         drop(daemon);
 
@@ -519,10 +520,7 @@ mod tests {
             vec![remote.lease.clone()],
             "only the remote lease is left"
         );
-        let again = daemon
-            .lease_frame("embedded", true)
-            .expect("lease")
-            .expect("task");
+        let again = lease(&daemon, "embedded", true);
         assert_eq!(
             (again.lease.index, again.failed_attempts),
             (1, 1),
@@ -538,8 +536,11 @@ mod tests {
         assert!(matches!(refused, Err(DaemonError::FailedPrecondition(_))));
     }
 
-    /// A daemon with one job of `frames` frames on a registered (never decoded) file.
-    fn daemon_with_job(dir: &Path, frames: u32) -> (Arc<Daemon>, crate::model::Job) {
+    /// A daemon in a new folder with one job of `frames` frames on a registered (never
+    /// decoded) file.
+    fn daemon_with_job(frames: u32) -> (tempfile::TempDir, Arc<Daemon>, crate::model::Job) {
+        let folder = tempfile::tempdir().expect("tempdir");
+        let dir = folder.path();
         std::fs::create_dir_all(dir.join("roots")).expect("roots");
         std::fs::write(dir.join("roots/a.las"), b"points").expect("file");
         let daemon = open(dir);
@@ -554,25 +555,18 @@ mod tests {
         let job = daemon
             .submit_job(crate::model::JobSpec::try_from(&request).expect("spec"))
             .expect("submit");
-        (daemon, job)
+        (folder, daemon, job)
     }
 
     #[test]
     fn a_permanent_failure_fails_the_job_at_once_and_a_transient_one_retries() {
-        let dir = tempfile::tempdir().expect("tempdir");
-        let (daemon, job) = daemon_with_job(dir.path(), 2);
-        let task = daemon
-            .lease_frame("w", false)
-            .expect("lease")
-            .expect("task");
+        let (_dir, daemon, job) = daemon_with_job(2);
+        let task = lease(&daemon, "w", false);
         daemon
             .fail_frame(&task.lease.id, "GPU lost", FailureKind::Transient)
             .expect("fail");
         assert_eq!(daemon.job(&job.id).expect("job").state, JobState::Running);
-        let again = daemon
-            .lease_frame("w", false)
-            .expect("lease")
-            .expect("task");
+        let again = lease(&daemon, "w", false);
         assert_eq!((again.lease.index, again.failed_attempts), (0, 1));
         daemon
             .fail_frame(&again.lease.id, "not a LAS file", FailureKind::Permanent)
@@ -587,25 +581,15 @@ mod tests {
 
     #[test]
     fn an_exited_embedded_worker_counts_an_attempt_for_its_frames_only() {
-        let dir = tempfile::tempdir().expect("tempdir");
-        let (daemon, job) = daemon_with_job(dir.path(), 3);
-        let child = daemon
-            .lease_frame("embedded", true)
-            .expect("lease")
-            .expect("task");
-        let remote = daemon
-            .lease_frame("remote", false)
-            .expect("lease")
-            .expect("task");
+        let (_dir, daemon, job) = daemon_with_job(3);
+        let child = lease(&daemon, "embedded", true);
+        let remote = lease(&daemon, "remote", false);
         let counted = daemon
             .embedded_worker_exited("embedded", "killed by signal 9 (SIGKILL)")
             .expect("exited");
         assert_eq!(counted, 1);
         assert_eq!(daemon.leases().expect("leases"), vec![remote.lease]);
-        let again = daemon
-            .lease_frame("embedded", true)
-            .expect("lease")
-            .expect("task");
+        let again = lease(&daemon, "embedded", true);
         assert_eq!(
             (again.lease.index, again.failed_attempts),
             (child.lease.index, 1)
@@ -614,10 +598,7 @@ mod tests {
         daemon
             .embedded_worker_exited("embedded", "killed by signal 6 (SIGABRT)")
             .expect("exited");
-        let third = daemon
-            .lease_frame("embedded", true)
-            .expect("lease")
-            .expect("task");
+        let third = lease(&daemon, "embedded", true);
         assert_eq!(third.failed_attempts, 2);
         daemon
             .embedded_worker_exited("embedded", "killed by signal 6 (SIGABRT)")

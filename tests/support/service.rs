@@ -174,6 +174,20 @@ pub async fn upload(
         .into_inner()
 }
 
+/// Uploads the file at `path` as `name`.
+pub async fn upload_file(
+    datasets: &mut DatasetServiceClient<Channel>,
+    name: &str,
+    path: &Path,
+) -> pb::Dataset {
+    upload(
+        datasets,
+        name,
+        &std::fs::read(path).expect("read the file to upload"),
+    )
+    .await
+}
+
 pub fn turntable_job(
     request_id: &str,
     dataset_id: &str,
