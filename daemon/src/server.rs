@@ -160,7 +160,11 @@ async fn report_health(daemon: Arc<Daemon>, health: HealthReporter) {
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut reported = None;
     loop {
-        tick.tick().await;
+        // Time makes remote workers stale; calls and the embedded worker's exits change it.
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = daemon.workers.changed() => {}
+        }
         let can_render = daemon.workers.can_render(timeout);
         if reported == Some(can_render) {
             continue;

@@ -18,6 +18,8 @@ struct State {
 #[derive(Default)]
 pub struct WorkerPresence {
     state: Mutex<State>,
+    /// Woken on every change, so that health follows a worker's arrival at once.
+    changed: tokio::sync::Notify,
 }
 
 /// A remote worker's lease request in progress: the worker counts as present until it ends.
@@ -42,17 +44,24 @@ impl WorkerPresence {
         self.state.lock().unwrap_or_else(|e| e.into_inner())
     }
 
+    /// Completes at the next change (or at once if one happened since the last wait).
+    pub async fn changed(&self) {
+        self.changed.notified().await
+    }
+
     /// A new embedded worker process is running; it counts once it calls in.
     pub fn embedded_started(&self) {
         let mut state = self.state();
         state.embedded_running = true;
         state.embedded_called_in = false;
+        self.changed.notify_one();
     }
 
     pub fn embedded_exited(&self) {
         let mut state = self.state();
         state.embedded_running = false;
         state.embedded_called_in = false;
+        self.changed.notify_one();
     }
 
     /// A worker called the daemon (a heartbeat, a finished or failed frame).
@@ -64,6 +73,7 @@ impl WorkerPresence {
         } else {
             state.remote_last_seen = Some(Instant::now());
         }
+        self.changed.notify_one();
     }
 
     /// A worker asks for a frame; a remote one counts as present while it waits.
