@@ -6,13 +6,14 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
-use pointfarm_daemon::grpc::streaming::CHUNK_BYTES;
+use pointfarm_daemon::grpc::streaming::read_chunk;
+use pointfarm_daemon::service::{dataset_id, hash_file};
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_proto::BearerToken;
-use sha2::{Digest, Sha256};
+use tokio_stream::wrappers::ReceiverStream;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 use tonic::{Code, Status};
@@ -47,19 +48,14 @@ impl Client {
 
     /// The dataset with the content of `file`, uploaded first if the server does not have it.
     pub async fn ensure_dataset(&mut self, file: &Path) -> Result<pb::Dataset> {
-        let bytes = tokio::fs::read(file)
-            .await
+        let path = file.to_path_buf();
+        let (sha256, size_bytes) = tokio::task::spawn_blocking(move || hash_file(&path))
+            .await?
             .with_context(|| format!("reading {}", file.display()))?;
-        let sha256: String = Sha256::digest(&bytes)
-            .iter()
-            .map(|b| format!("{b:02x}"))
-            .collect();
-        let id = format!("ds-{}", &sha256[..16]);
-        match self
-            .datasets
-            .get_dataset(pb::GetDatasetRequest { id })
-            .await
-        {
+        let request = pb::GetDatasetRequest {
+            id: dataset_id(&sha256),
+        };
+        match self.datasets.get_dataset(request).await {
             Ok(found) => return Ok(found.into_inner()),
             Err(status) if status.code() == Code::NotFound => {}
             Err(status) => return Err(status_error(status)),
@@ -68,26 +64,24 @@ impl Client {
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_default();
-        let header = pb::UploadDatasetRequest {
-            part: Some(pb::upload_dataset_request::Part::Header(pb::UploadHeader {
-                name,
-                size_bytes: bytes.len() as u64,
-                sha256,
-            })),
+        let header = pb::UploadHeader {
+            name,
+            size_bytes,
+            sha256,
         };
-        let chunks: Vec<pb::UploadDatasetRequest> = bytes
-            .chunks(CHUNK_BYTES)
-            .map(|c| pb::UploadDatasetRequest {
-                part: Some(pb::upload_dataset_request::Part::Data(c.to_vec())),
-            })
-            .collect();
-        let messages = tokio_stream::iter(std::iter::once(header).chain(chunks));
-        let dataset = self
-            .datasets
-            .upload_dataset(messages)
-            .await
-            .map_err(status_error)?;
-        Ok(dataset.into_inner())
+        let bar = ProgressBar::new(size_bytes).with_style(
+            ProgressStyle::with_template(
+                "uploading {bar:40} {bytes}/{total_bytes} {bytes_per_sec}",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        let (messages, sent) = upload_messages(file, header, bar.clone()).await?;
+        let uploaded = self.datasets.upload_dataset(messages).await;
+        bar.finish_and_clear();
+        // A file that could not be read explains a refused upload better than the refusal.
+        sent.await?
+            .with_context(|| format!("reading {}", file.display()))?;
+        Ok(uploaded.map_err(status_error)?.into_inner())
     }
 
     /// Follows a job with a progress bar until it ends; returns the final job.
@@ -164,6 +158,39 @@ impl Client {
         }
         Ok(written)
     }
+}
+
+/// The messages of an upload: `header`, then the file's bytes read chunk by chunk as the
+/// stream is sent (a few chunks in memory, whatever the file's size), counted on `bar`. The
+/// task's result says whether the whole file was read.
+async fn upload_messages(
+    file: &Path,
+    header: pb::UploadHeader,
+    bar: ProgressBar,
+) -> Result<(
+    ReceiverStream<pb::UploadDatasetRequest>,
+    tokio::task::JoinHandle<std::io::Result<()>>,
+)> {
+    use pb::upload_dataset_request::Part;
+    let mut reader = tokio::fs::File::open(file)
+        .await
+        .with_context(|| format!("opening {}", file.display()))?;
+    let (sender, receiver) = tokio::sync::mpsc::channel(2);
+    let sent = tokio::spawn(async move {
+        let mut part = Part::Header(header);
+        loop {
+            let message = pb::UploadDatasetRequest { part: Some(part) };
+            if sender.send(message).await.is_err() {
+                return Ok(()); // The server ended the call; its answer says why.
+            }
+            let Some(data) = read_chunk(&mut reader).await? else {
+                return Ok(());
+            };
+            bar.inc(data.len() as u64);
+            part = Part::Data(data);
+        }
+    });
+    Ok((ReceiverStream::new(receiver), sent))
 }
 
 /// A gRPC error as one readable line.

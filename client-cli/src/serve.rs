@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 use clap::Args;
 use pointfarm_daemon::server::serve;
-use pointfarm_daemon::service::{Daemon, DaemonConfig};
+use pointfarm_daemon::service::{Daemon, DaemonConfig, DEFAULT_MAX_UPLOAD_BYTES};
 use pointfarm_daemon::worker::supervisor::WorkerCommand;
 use pointfarm_render::gpu::AdapterChoice;
 
@@ -30,6 +30,18 @@ pub struct ServeArgs {
     /// Largest image side accepted.
     #[arg(long, default_value_t = 8192)]
     max_image_side: u32,
+    /// Largest upload accepted, in bytes.
+    #[arg(long, default_value_t = DEFAULT_MAX_UPLOAD_BYTES)]
+    max_upload_bytes: u64,
+    /// Most bytes all uploaded datasets may take together; an upload past it is refused
+    /// before its data is sent (default: no quota, only the disk bounds them).
+    #[arg(long)]
+    upload_quota_bytes: Option<u64>,
+    /// Start even when the state database is damaged (truncated, bit-flipped, records
+    /// missing): go on with what it still holds and log exactly what was lost. Without it
+    /// the daemon refuses to start on such a state and says why.
+    #[arg(long)]
+    recover_state: bool,
     /// Run no embedded worker: only `pointfarm worker` processes render.
     #[arg(long, alias = "no-worker")]
     no_embedded_worker: bool,
@@ -56,6 +68,9 @@ pub fn run(args: ServeArgs) -> Result<()> {
         let mut config = DaemonConfig::new(args.data_dir.clone());
         config.data_roots = args.data_roots.clone();
         config.max_image_side = args.max_image_side;
+        config.max_upload_bytes = args.max_upload_bytes;
+        config.upload_quota_bytes = args.upload_quota_bytes;
+        config.recover_state = args.recover_state;
         config.lease_timeout = std::time::Duration::from_secs_f64(args.lease_timeout);
         config.max_frame_attempts = args.max_frame_attempts;
         let daemon =

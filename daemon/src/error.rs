@@ -10,6 +10,14 @@ pub enum StoreError {
     Db(#[from] sled::Error),
     #[error("state database holds a record it cannot read: {0}")]
     Corrupt(#[from] serde_json::Error),
+    /// Another process (or a daemon not yet gone) holds the database.
+    #[error("the state database {} is in use by another pointfarm daemon", .0.display())]
+    Locked(std::path::PathBuf),
+    /// Found when the database is opened: it lost or garbled records.
+    #[error("{0}")]
+    Damaged(String),
+    #[error("state database: {0}")]
+    Io(#[from] std::io::Error),
 }
 
 #[derive(Debug, Error)]
@@ -40,7 +48,10 @@ impl DaemonError {
 
 impl From<StoreError> for DaemonError {
     fn from(e: StoreError) -> Self {
-        DaemonError::Internal(e.to_string())
+        match e {
+            StoreError::Damaged(message) => DaemonError::FailedPrecondition(message),
+            other => DaemonError::Internal(other.to_string()),
+        }
     }
 }
 

@@ -8,9 +8,13 @@ use sha2::{Digest, Sha256};
 use tokio::sync::broadcast;
 
 use crate::error::DaemonError;
+use crate::limits::{check_id, check_length, MAX_NAME_BYTES, MAX_PATH_BYTES, MAX_REQUEST_ID_BYTES};
 use crate::model::{now_unix_ms, Dataset, FrameReport, Job, JobEvent, JobSpec, JobState};
 use crate::store::{Page, Store};
 use crate::worker_presence::WorkerPresence;
+
+/// The default bound of one upload.
+pub const DEFAULT_MAX_UPLOAD_BYTES: u64 = 16 << 30;
 
 /// Limits and locations of a daemon.
 #[derive(Debug, Clone)]
@@ -25,12 +29,20 @@ pub struct DaemonConfig {
     pub max_frames: u32,
     /// Largest upload, in bytes.
     pub max_upload_bytes: u64,
+    /// Most bytes all uploaded datasets may take together (none: only the disk bounds them).
+    pub upload_quota_bytes: Option<u64>,
     /// Attempts per frame before its job fails.
     pub max_frame_attempts: u32,
     /// A remote worker's lease on a frame ends unless renewed within this time.
     pub lease_timeout: std::time::Duration,
     /// Size bound of the worker's processed-dataset cache.
     pub worker_cache_bytes: u64,
+    /// Start on a damaged state database with what can be read, saying what was lost,
+    /// rather than refusing to start.
+    pub recover_state: bool,
+    /// Job events buffered for watchers; one that falls further behind catches up from the
+    /// store instead.
+    pub event_buffer: usize,
 }
 
 impl DaemonConfig {
@@ -39,10 +51,13 @@ impl DaemonConfig {
             data_roots: Vec::new(),
             max_image_side: 8192,
             max_frames: 100_000,
-            max_upload_bytes: 16 << 30,
+            max_upload_bytes: DEFAULT_MAX_UPLOAD_BYTES,
+            upload_quota_bytes: None,
             max_frame_attempts: 3,
             lease_timeout: std::time::Duration::from_secs(30),
             worker_cache_bytes: 8 << 30,
+            event_buffer: 1024,
+            recover_state: false,
             data_dir,
         }
     }
@@ -133,13 +148,17 @@ impl Daemon {
         std::fs::create_dir_all(config.uploads_dir())?;
         std::fs::create_dir_all(config.data_dir.join("jobs"))?;
         remove_unfinished_uploads(&config.uploads_dir());
-        let store = Store::open(&config.data_dir.join("state.sled"))?;
+        let (store, loss) = Store::open(&config.data_dir.join("state.sled"), config.recover_state)?;
+        if !loss.is_empty() {
+            tracing::warn!(%loss, "started on a damaged state database with what it still holds");
+        }
+        check_frames_have_jobs(&store, &config.data_dir.join("jobs"), config.recover_state)?;
         let requeued = store.requeue_running()?;
         if requeued > 0 {
             tracing::info!(requeued, "resuming jobs that were running");
         }
         remove_partial_frames(&config.data_dir.join("jobs"));
-        let (events, _) = broadcast::channel(1024);
+        let (events, _) = broadcast::channel(config.event_buffer.max(1));
         let daemon = Arc::new(Self {
             config,
             store,
@@ -190,6 +209,8 @@ impl Daemon {
         if path.is_empty() {
             return Err(DaemonError::invalid("path", "is empty"));
         }
+        check_length("path", path, MAX_PATH_BYTES)?;
+        check_length("name", name, MAX_NAME_BYTES)?;
         let Some(first_root) = self.config.data_roots.first() else {
             return Err(DaemonError::FailedPrecondition(
                 "this server has no data roots configured; upload the file instead".into(),
@@ -238,6 +259,42 @@ impl Daemon {
             .join(format!("upload-{}.part", unique_suffix()))
     }
 
+    /// The lower-case extension of an upload named `name` (`las` or `laz`), checked before
+    /// any of its bytes are received.
+    fn upload_extension(name: &str) -> Result<String, DaemonError> {
+        check_length("header.name", name, MAX_NAME_BYTES)?;
+        Path::new(name)
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase)
+            .filter(|e| e == "las" || e == "laz")
+            .ok_or_else(|| DaemonError::invalid("header.name", "must end in .las or .laz"))
+    }
+
+    /// Refuses, before any of its bytes arrive, an upload named `name` of `size_bytes` that
+    /// is not LAS/LAZ by its name, exceeds the upload limit, or would take the uploaded
+    /// datasets past the quota.
+    pub fn check_upload(&self, name: &str, size_bytes: u64) -> Result<(), DaemonError> {
+        Self::upload_extension(name)?;
+        let limit = self.config.max_upload_bytes;
+        if size_bytes > limit {
+            return Err(DaemonError::ResourceExhausted(format!(
+                "upload of {size_bytes} bytes exceeds the limit of {limit} bytes"
+            )));
+        }
+        let Some(quota) = self.config.upload_quota_bytes else {
+            return Ok(());
+        };
+        let used = self.store.uploaded_bytes(&self.config.uploads_dir())?;
+        if used.saturating_add(size_bytes) > quota {
+            return Err(DaemonError::ResourceExhausted(format!(
+                "an upload of {size_bytes} bytes exceeds the quota: {used} of {quota} bytes \
+                 are taken by uploaded datasets"
+            )));
+        }
+        Ok(())
+    }
+
     /// Takes a completely received upload at `temp` into the store.
     pub fn finish_upload(
         &self,
@@ -246,12 +303,7 @@ impl Daemon {
         sha256: String,
         size_bytes: u64,
     ) -> Result<Dataset, DaemonError> {
-        let extension = Path::new(name)
-            .extension()
-            .and_then(|e| e.to_str())
-            .map(str::to_ascii_lowercase)
-            .filter(|e| e == "las" || e == "laz")
-            .ok_or_else(|| DaemonError::invalid("header.name", "must end in .las or .laz"))?;
+        let extension = Self::upload_extension(name)?;
         let id = dataset_id(&sha256);
         let path = self.config.uploads_dir().join(format!("{id}.{extension}"));
         std::fs::rename(temp, &path)?;
@@ -283,6 +335,7 @@ impl Daemon {
     }
 
     pub fn dataset(&self, id: &str) -> Result<Dataset, DaemonError> {
+        check_id("dataset_id", id)?;
         self.store
             .dataset(id)?
             .ok_or_else(|| DaemonError::NotFound(format!("dataset {id}")))
@@ -295,13 +348,7 @@ impl Daemon {
     /// Deletes a dataset (and the file, if it was uploaded). Refused while unfinished jobs use it.
     pub fn delete_dataset(&self, id: &str) -> Result<(), DaemonError> {
         let dataset = self.dataset(id)?;
-        let in_use = self
-            .store
-            .list_jobs(None, 1000, "")?
-            .items
-            .into_iter()
-            .any(|j| j.spec.dataset_id == id && !j.state.is_terminal());
-        if in_use {
+        if self.store.dataset_in_use(id)? {
             return Err(DaemonError::FailedPrecondition(format!(
                 "dataset {id} is used by unfinished jobs"
             )));
@@ -317,6 +364,7 @@ impl Daemon {
 
     /// Validates limits that depend on this server, stores the job and wakes a worker.
     pub fn submit_job(&self, spec: JobSpec) -> Result<Job, DaemonError> {
+        check_length("request_id", &spec.request_id, MAX_REQUEST_ID_BYTES)?;
         let side = self.config.max_image_side;
         let (width, height) = (spec.request.width, spec.request.height);
         if width > side || height > side {
@@ -342,6 +390,7 @@ impl Daemon {
     }
 
     pub fn job(&self, id: &str) -> Result<Job, DaemonError> {
+        check_id("id", id)?;
         self.store
             .job(id)?
             .ok_or_else(|| DaemonError::NotFound(format!("job {id}")))
@@ -385,6 +434,42 @@ impl Daemon {
         self.publish(&job, None);
         Ok(job)
     }
+}
+
+/// Every folder of rendered frames belongs to a stored job: one that does not is the trace of
+/// a job the state database lost (with or without a manifest to tell it).
+fn check_frames_have_jobs(
+    store: &Store,
+    jobs_dir: &Path,
+    recover: bool,
+) -> Result<(), DaemonError> {
+    let Ok(entries) = std::fs::read_dir(jobs_dir) else {
+        return Ok(());
+    };
+    let mut orphaned = Vec::new();
+    for entry in entries.flatten() {
+        let id = entry.file_name().to_string_lossy().into_owned();
+        if entry.path().is_dir() && store.job(&id)?.is_none() {
+            orphaned.push(id);
+        }
+    }
+    if orphaned.is_empty() {
+        return Ok(());
+    }
+    orphaned.sort();
+    let message = format!(
+        "the state database has lost {} jobs whose frames are in {}: {}",
+        orphaned.len(),
+        jobs_dir.display(),
+        orphaned.join(", ")
+    );
+    if !recover {
+        return Err(DaemonError::FailedPrecondition(format!(
+            "{message}; start with --recover-state to go on without them"
+        )));
+    }
+    tracing::warn!("{message}");
+    Ok(())
 }
 
 /// Uploads that were still arriving when the daemon stopped can never complete: remove them.
@@ -438,7 +523,8 @@ fn file_name(path: &Path) -> String {
         .unwrap_or_default()
 }
 
-fn hash_file(path: &Path) -> Result<(String, u64), DaemonError> {
+/// The SHA-256 (hex) and size of the file at `path`, read in a stream.
+pub fn hash_file(path: &Path) -> std::io::Result<(String, u64)> {
     let mut file = std::fs::File::open(path)?;
     let mut hasher = Sha256::new();
     let size = std::io::copy(&mut file, &mut hasher)?;

@@ -1,16 +1,20 @@
-//! `DatasetService`: registering server-side files, receiving uploads (size-limited and
-//! SHA-256 checked while they arrive), listing and deleting datasets.
+//! `DatasetService`: registering server-side files, receiving uploads (name, size and quota
+//! checked from the header, the LAS signature from the first bytes, SHA-256 while they
+//! arrive; nothing left behind when refused), listing and deleting datasets.
+
+use std::path::Path;
+use std::sync::Arc;
 
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_server::DatasetService;
+use pointfarm_render::ingest::LAS_SIGNATURE;
 use tonic::{Request, Response, Status, Streaming};
 
 use super::conversions::invalid;
 use super::streaming::{first_part, HashingWriter};
 use super::Api;
 use crate::error::DaemonError;
-use crate::service::Daemon;
-use std::sync::Arc;
+use crate::service::{dataset_id, Daemon};
 
 #[tonic::async_trait]
 impl DatasetService for Api {
@@ -36,75 +40,33 @@ impl DatasetService for Api {
             _ => None,
         })
         .await?;
-        let limit = self.daemon.config.max_upload_bytes;
-        if header.size_bytes > limit {
-            return Err(DaemonError::ResourceExhausted(format!(
-                "upload of {} bytes exceeds the limit of {limit} bytes",
-                header.size_bytes
-            ))
-            .into());
-        }
         if header.sha256.len() != 64 || !header.sha256.bytes().all(|b| b.is_ascii_hexdigit()) {
             return Err(invalid("header.sha256", "must be 64 hex digits").into());
         }
-        // Already known content: no need to keep the bytes.
-        let known_id = crate::service::dataset_id(&header.sha256.to_ascii_lowercase());
+        let sha = header.sha256.to_ascii_lowercase();
+        // Refused from the header alone: nothing of the body is received or written.
+        self.daemon.check_upload(&header.name, header.size_bytes)?;
         let temp = self.daemon.upload_path();
-        let mut file = HashingWriter::create(&temp)
-            .await
-            .map_err(|e| Status::internal(e.to_string()))?;
-        let result: Result<u64, Status> = async {
-            while let Some(message) = stream.message().await? {
-                let Some(pb::upload_dataset_request::Part::Data(data)) = message.part else {
-                    return Err(invalid("data", "only the first message may be a header").into());
-                };
-                if file.received() + data.len() as u64 > limit.min(header.size_bytes) {
-                    return Err(DaemonError::ResourceExhausted(format!(
-                        "upload exceeds its declared size of {} bytes",
-                        header.size_bytes
-                    ))
-                    .into());
-                }
-                file.write(&data)
-                    .await
-                    .map_err(|e| Status::internal(e.to_string()))?;
-            }
-            let received = file.received();
-            let sha = file
-                .finish()
-                .await
-                .map_err(|e| Status::internal(e.to_string()))?;
-            if received != header.size_bytes {
-                return Err(invalid(
-                    "header.size_bytes",
-                    format!("declared {} bytes, received {received}", header.size_bytes),
-                )
-                .into());
-            }
-            if sha != header.sha256.to_ascii_lowercase() {
-                return Err(invalid(
-                    "header.sha256",
-                    format!("does not match the data (got {sha})"),
-                )
-                .into());
-            }
-            Ok(received)
-        }
-        .await;
-        let received = match result {
+        let received = receive_upload(&mut stream, &temp, header.size_bytes, &sha).await;
+        let received = match received {
             Ok(received) => received,
             Err(status) => {
                 let _ = tokio::fs::remove_file(&temp).await;
                 return Err(status);
             }
         };
-        if let Ok(existing) = self.daemon.dataset(&known_id) {
+        // Already known content: no need to keep the bytes.
+        if let Ok(existing) = self.daemon.dataset(&dataset_id(&sha)) {
             let _ = tokio::fs::remove_file(&temp).await;
             return Ok(Response::new(pb::Dataset::from(&existing)));
         }
-        let sha = header.sha256.to_ascii_lowercase();
-        let finish =
-            move |daemon: &Arc<Daemon>| daemon.finish_upload(&temp, &header.name, sha, received);
+        let finish = move |daemon: &Arc<Daemon>| {
+            let added = daemon.finish_upload(&temp, &header.name, sha, received);
+            if added.is_err() {
+                let _ = std::fs::remove_file(&temp);
+            }
+            added
+        };
         let dataset = self.run(finish).await?;
         Ok(Response::new(pb::Dataset::from(&dataset)))
     }
@@ -137,4 +99,59 @@ impl DatasetService for Api {
         self.daemon.delete_dataset(&request.into_inner().id)?;
         Ok(Response::new(pb::DeleteDatasetResponse {}))
     }
+}
+
+/// Receives an upload's data messages into `temp`: exactly `size_bytes` bytes that start
+/// with the LAS signature and hash to `sha256`. Returns the bytes received; on an error the
+/// caller removes `temp`.
+async fn receive_upload(
+    stream: &mut Streaming<pb::UploadDatasetRequest>,
+    temp: &Path,
+    size_bytes: u64,
+    sha256: &str,
+) -> Result<u64, Status> {
+    let internal = |e: std::io::Error| Status::internal(e.to_string());
+    let mut file = HashingWriter::create(temp).await.map_err(internal)?;
+    let mut signature = Vec::with_capacity(LAS_SIGNATURE.len());
+    while let Some(message) = stream.message().await? {
+        let Some(pb::upload_dataset_request::Part::Data(data)) = message.part else {
+            return Err(invalid("data", "only the first message may be a header").into());
+        };
+        if file.received() + data.len() as u64 > size_bytes {
+            return Err(DaemonError::ResourceExhausted(format!(
+                "upload exceeds its declared size of {size_bytes} bytes"
+            ))
+            .into());
+        }
+        // The signature is checked as soon as its bytes are in, not after the whole body.
+        if signature.len() < LAS_SIGNATURE.len() {
+            let missing = LAS_SIGNATURE.len() - signature.len();
+            signature.extend_from_slice(&data[..missing.min(data.len())]);
+            if !LAS_SIGNATURE.starts_with(&signature) {
+                return Err(invalid(
+                    "data",
+                    "is not a LAS/LAZ file: it does not start with \"LASF\"",
+                )
+                .into());
+            }
+        }
+        file.write(&data).await.map_err(internal)?;
+    }
+    let received = file.received();
+    let sha = file.finish().await.map_err(internal)?;
+    if received != size_bytes {
+        return Err(invalid(
+            "header.size_bytes",
+            format!("declared {size_bytes} bytes, received {received}"),
+        )
+        .into());
+    }
+    if sha != sha256 {
+        return Err(invalid(
+            "header.sha256",
+            format!("does not match the data (got {sha})"),
+        )
+        .into());
+    }
+    Ok(received)
 }

@@ -1,14 +1,19 @@
 //! `JobService`: submitting, reading, listing, cancelling and watching jobs, and streaming
 //! their finished frames.
 
+use std::collections::HashSet;
+use std::sync::Arc;
+
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_server::JobService;
+use tokio::sync::broadcast::error::RecvError;
 use tonic::{Request, Response, Status};
 
 use super::conversions::{invalid, state_filter};
 use super::streaming::{chunks, spawn_stream, ResponseStream};
 use super::Api;
 use crate::model::{FrameState, JobSpec};
+use crate::service::Daemon;
 
 #[tonic::async_trait]
 impl JobService for Api {
@@ -67,59 +72,49 @@ impl JobService for Api {
         let id = request.into_inner().id;
         // Subscribe before reading the state, so no event falls between the two.
         let mut events = self.daemon.subscribe();
-        let watched = id.clone();
-        let (job, finished) = self
-            .run(move |daemon| {
-                let job = daemon.job(&watched)?;
-                let finished = daemon.store.frame_reports(&watched)?;
-                Ok((job, finished))
-            })
-            .await?;
+        let daemon = self.daemon.clone();
+        let first = catch_up(daemon.clone(), id.clone(), HashSet::new()).await?;
         let stream = spawn_stream(64, move |sender| async move {
-            let ended = job.state.is_terminal();
             // The first event carries the frames finished so far: a watcher that comes late
             // (or back) still learns of every frame, each once.
-            let reported: std::collections::HashSet<u32> =
-                finished.iter().map(|frame| frame.index).collect();
-            let mut snapshot = pb::Job::from(&job);
-            snapshot.frames = finished.iter().map(pb::FrameFinished::from).collect();
-            if sender
-                .send(Ok(pb::JobEvent {
-                    job: Some(snapshot),
-                    frame: None,
-                }))
-                .await
-                .is_err()
-                || ended
-            {
+            let (mut reported, mut ended) = (first.reported, first.ended);
+            if sender.send(Ok(first.event)).await.is_err() || ended {
                 return;
             }
-            loop {
-                match events.recv().await {
+            while !ended {
+                let event = match events.recv().await {
                     Ok(event) if event.job.id == id => {
-                        let ended = event.job.state.is_terminal();
+                        ended = event.job.state.is_terminal();
                         let frame = event
                             .frame
                             .as_ref()
-                            .filter(|frame| !reported.contains(&frame.index))
+                            .filter(|frame| reported.insert(frame.index))
                             .map(pb::FrameFinished::from);
-                        if sender
-                            .send(Ok(pb::JobEvent {
-                                job: Some(pb::Job::from(&event.job)),
-                                frame,
-                            }))
-                            .await
-                            .is_err()
-                            || ended
-                        {
-                            return;
+                        Ok(pb::JobEvent {
+                            job: Some(pb::Job::from(&event.job)),
+                            frame,
+                        })
+                    }
+                    Ok(_) => continue,
+                    // A reader too slow for the event channel is brought up to date from the
+                    // store: it misses no frame, whatever it skipped.
+                    Err(RecvError::Lagged(missed)) => {
+                        tracing::debug!(job = %id, missed, "a watcher fell behind; catching up");
+                        match catch_up(daemon.clone(), id.clone(), reported).await {
+                            Ok(caught_up) => {
+                                (reported, ended) = (caught_up.reported, caught_up.ended);
+                                Ok(caught_up.event)
+                            }
+                            Err(status) => {
+                                let _ = sender.send(Err(status)).await;
+                                return;
+                            }
                         }
                     }
-                    Ok(_) => {}
-                    Err(tokio::sync::broadcast::error::RecvError::Lagged(missed)) => {
-                        tracing::warn!(job = %id, missed, "a watcher fell behind; events were skipped");
-                    }
-                    Err(tokio::sync::broadcast::error::RecvError::Closed) => return,
+                    Err(RecvError::Closed) => return,
+                };
+                if sender.send(event).await.is_err() {
+                    return;
                 }
             }
         });
@@ -174,4 +169,38 @@ impl JobService for Api {
         });
         Ok(Response::new(stream))
     }
+}
+
+/// A watcher brought up to date: one event with the job as stored and every finished frame
+/// it has not been sent yet.
+struct CaughtUp {
+    event: pb::JobEvent,
+    reported: HashSet<u32>,
+    ended: bool,
+}
+
+/// Reads job `id` and its finished frames under the scheduling lock (as a crash would leave
+/// them) and adds the frames not in `reported` to one event.
+async fn catch_up(
+    daemon: Arc<Daemon>,
+    id: String,
+    mut reported: HashSet<u32>,
+) -> Result<CaughtUp, Status> {
+    let (job, finished) = tokio::task::spawn_blocking(move || daemon.job_with_frames(&id))
+        .await
+        .map_err(|e| Status::internal(e.to_string()))??;
+    let mut snapshot = pb::Job::from(&job);
+    snapshot.frames = finished
+        .iter()
+        .filter(|frame| reported.insert(frame.index))
+        .map(pb::FrameFinished::from)
+        .collect();
+    Ok(CaughtUp {
+        event: pb::JobEvent {
+            job: Some(snapshot),
+            frame: None,
+        },
+        reported,
+        ended: job.state.is_terminal(),
+    })
 }

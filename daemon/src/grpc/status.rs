@@ -1,18 +1,22 @@
 //! The one map from the daemon's errors to gRPC status codes.
 
-use tonic::Status;
+use tonic::{Code, Status};
 
 use crate::error::DaemonError;
+use crate::limits::{truncated, MAX_MESSAGE_BYTES};
 
 impl From<DaemonError> for Status {
     fn from(e: DaemonError) -> Self {
-        match e {
-            DaemonError::InvalidArgument { .. } => Status::invalid_argument(e.to_string()),
-            DaemonError::NotFound(_) => Status::not_found(e.to_string()),
-            DaemonError::FailedPrecondition(_) => Status::failed_precondition(e.to_string()),
-            DaemonError::ResourceExhausted(_) => Status::resource_exhausted(e.to_string()),
-            DaemonError::Internal(_) => Status::internal(e.to_string()),
-        }
+        // Whatever a message quotes, it stays small enough for a header.
+        let message = truncated(&e.to_string(), MAX_MESSAGE_BYTES);
+        let code = match e {
+            DaemonError::InvalidArgument { .. } => Code::InvalidArgument,
+            DaemonError::NotFound(_) => Code::NotFound,
+            DaemonError::FailedPrecondition(_) => Code::FailedPrecondition,
+            DaemonError::ResourceExhausted(_) => Code::ResourceExhausted,
+            DaemonError::Internal(_) => Code::Internal,
+        };
+        Status::new(code, message)
     }
 }
 
@@ -21,8 +25,13 @@ mod tests {
     use super::*;
 
     #[test]
+    fn messages_are_bounded() {
+        let status = Status::from(DaemonError::NotFound("x".repeat(1 << 20)));
+        assert!(status.message().len() <= MAX_MESSAGE_BYTES);
+    }
+
+    #[test]
     fn every_daemon_error_has_its_status_code() {
-        use tonic::Code;
         let cases = [
             (DaemonError::invalid("f", "m"), Code::InvalidArgument),
             (DaemonError::NotFound("x".into()), Code::NotFound),

@@ -60,7 +60,7 @@ pub fn chunks(bytes: &[u8]) -> impl Iterator<Item = (&[u8], bool)> {
 }
 
 /// The next chunk of at most [`CHUNK_BYTES`] read from `file`; None at its end.
-pub(super) async fn read_chunk(file: &mut tokio::fs::File) -> std::io::Result<Option<Vec<u8>>> {
+pub async fn read_chunk(file: &mut tokio::fs::File) -> std::io::Result<Option<Vec<u8>>> {
     let mut buffer = vec![0u8; CHUNK_BYTES];
     let n = file.read(&mut buffer).await?;
     if n == 0 {

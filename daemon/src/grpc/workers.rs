@@ -13,11 +13,10 @@ use super::streaming::{first_part, read_chunk, spawn_stream, ResponseStream};
 use super::Api;
 use crate::error::DaemonError;
 use crate::lease::FrameOutcome;
+use crate::limits::{check_id, check_length, truncated, MAX_REASON_BYTES, MAX_WORKER_NAME_BYTES};
 
 /// Longest wait of a `LeaseFrame` long poll.
 const MAX_LEASE_WAIT_MS: u32 = 30_000;
-/// Longest worker name kept.
-const MAX_WORKER_NAME: usize = 128;
 
 /// Marks a call of the daemon's embedded worker process (the authentication layer knows it by
 /// its token): its leases are the embedded worker's.
@@ -43,7 +42,8 @@ impl WorkerService for Api {
         let embedded = is_embedded(&request);
         let _present = self.daemon.workers.poll(embedded);
         let r = request.into_inner();
-        let mut name: String = r.worker_name.chars().take(MAX_WORKER_NAME).collect();
+        check_length("worker_name", &r.worker_name, MAX_WORKER_NAME_BYTES)?;
+        let mut name = r.worker_name;
         if name.is_empty() {
             name = peer.map_or_else(|| "unnamed".into(), |a| a.to_string());
         }
@@ -85,6 +85,7 @@ impl WorkerService for Api {
     ) -> Result<Response<pb::HeartbeatResponse>, Status> {
         self.daemon.workers.heard_from(is_embedded(&request));
         let lease_id = request.into_inner().lease_id;
+        check_id("lease_id", &lease_id)?;
         let answer = self.run(move |daemon| daemon.heartbeat(&lease_id)).await?;
         Ok(Response::new(pb::HeartbeatResponse::from(answer)))
     }
@@ -102,6 +103,7 @@ impl WorkerService for Api {
         })
         .await?;
         // A stale lease is refused before the image is received.
+        check_id("result.lease_id", &result.lease_id)?;
         let lease_id = result.lease_id.clone();
         let (_, width, height) = self.run(move |daemon| daemon.held_lease(&lease_id)).await?;
         let limit = max_png_bytes(width, height);
@@ -152,10 +154,11 @@ impl WorkerService for Api {
     ) -> Result<Response<pb::FailFrameResponse>, Status> {
         self.daemon.workers.heard_from(is_embedded(&request));
         let r = request.into_inner();
+        check_id("lease_id", &r.lease_id)?;
         let reason = if r.reason.is_empty() {
             "the worker gave no reason".to_string()
         } else {
-            r.reason
+            truncated(&r.reason, MAX_REASON_BYTES)
         };
         let kind = failure_kind(r.kind);
         self.run(move |daemon| daemon.fail_frame(&r.lease_id, &reason, kind))
@@ -169,6 +172,7 @@ impl WorkerService for Api {
     ) -> Result<Response<pb::ReleaseFrameResponse>, Status> {
         self.daemon.workers.heard_from(is_embedded(&request));
         let lease_id = request.into_inner().lease_id;
+        check_id("lease_id", &lease_id)?;
         self.run(move |daemon| daemon.release_frame(&lease_id))
             .await?;
         Ok(Response::new(pb::ReleaseFrameResponse {}))

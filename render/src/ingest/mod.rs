@@ -24,5 +24,8 @@ mod test_files;
 mod write;
 
 pub use error::IngestError;
+
+/// The first four bytes of every LAS and LAZ file.
+pub const LAS_SIGNATURE: &[u8; 4] = b"LASF";
 pub use read::load_point_cloud;
 pub use write::{write_las, LasWriteOptions, WriteLasError};
