@@ -1,14 +1,15 @@
 //! A bad frame never stops the farm: the embedded worker is a child process of the daemon, so a
 //! worker killed mid-frame is restarted and the frame rendered once by its successor; a frame
 //! that crashes its worker every time fails its job after its attempts, also across daemon
-//! restarts; an unreadable dataset fails at once; health says whether any worker can render.
+//! restarts; health says whether any worker can render. (That an unreadable dataset fails its
+//! job at once is tested in `service.rs`.)
 
 use std::time::Duration;
 
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_tests::service::{
-    clients, connect, scratch_sample, submit, turntable_job, upload, upload_file, watch_to_end,
+    clients, connect, scratch_sample, submit, turntable_job, upload_file, watch_to_end,
     watch_to_success, TestDaemon,
 };
 use pointfarm_tests::WorkerProcess;
@@ -173,40 +174,6 @@ async fn a_frame_that_crashes_its_worker_fails_its_job_also_across_daemon_restar
     );
     let last = submit(&mut jobs, turntable_job("good-2", &good.id, 1, 64, 48)).await;
     watch_to_success(&mut jobs, &last.id, || server.log()).await;
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn an_unreadable_dataset_fails_its_job_at_once_with_the_ingest_error() {
-    let daemon = TestDaemon::start(|_| {}, None).await;
-    let (_scratch, good_file) = scratch_sample("good.las", 5_000, 2);
-    let good_bytes = std::fs::read(&good_file).expect("read");
-    let mut not_las = good_bytes.clone();
-    not_las[..4].copy_from_slice(b"PK\x03\x04");
-
-    let mut datasets = daemon.datasets().await;
-    let unreadable = upload(&mut datasets, "zipped.las", &not_las).await;
-    let good = upload(&mut datasets, "good.las", &good_bytes).await;
-    let mut jobs = daemon.jobs().await;
-    let bad_job = submit(
-        &mut jobs,
-        turntable_job("unreadable", &unreadable.id, 2, 64, 48),
-    )
-    .await;
-    let good_job = submit(&mut jobs, turntable_job("good", &good.id, 2, 64, 48)).await;
-
-    let (failed, _) = watch_to_end(&mut jobs, &bad_job.id).await;
-    assert_eq!(failed.state, pb::JobState::Failed as i32);
-    let expected = format!(
-        "frame 0 cannot be rendered (attempt 1, not retried): dataset {}: ",
-        unreadable.id
-    );
-    assert!(
-        failed.error.starts_with(&expected) && failed.error.contains("not a LAS/LAZ file"),
-        "reason: {}",
-        failed.error
-    );
-    watch_to_success(&mut jobs, &good_job.id, String::new).await;
-    daemon.stop().await;
 }
 
 /// The health of `service` on the daemon at `address`.
