@@ -263,10 +263,15 @@ async fn a_corrupt_dataset_fails_its_job_while_another_completes() {
     let bad_job = submit(&mut jobs, turntable_job("bad", &corrupt.id, 2, 64, 48)).await;
     let good_job = submit(&mut jobs, turntable_job("good", &good.id, 2, 64, 48)).await;
 
+    // An ingest error fails the job at once, on its first attempt, with the error's text.
     let (bad_end, _) = watch_to_end(&mut jobs, &bad_job.id).await;
     assert_eq!(bad_end.state, pb::JobState::Failed as i32);
+    let expected = format!(
+        "frame 0 cannot be rendered (attempt 1, not retried): dataset {}: ",
+        corrupt.id
+    );
     assert!(
-        bad_end.error.contains("truncated"),
+        bad_end.error.starts_with(&expected) && bad_end.error.contains("truncated"),
         "reason: {}",
         bad_end.error
     );

@@ -509,7 +509,11 @@ async fn a_worker_reconnects_after_the_daemon_restarts() {
         &scratch.path().join("cache"),
         "steady",
     );
-    // The worker is connected and long-polling.
+    // The worker is connected and long-polling (its GPU set-up may take a while on a busy
+    // machine).
+    pointfarm_tests::wait_for(Duration::from_secs(60), "worker start", || {
+        worker.log().contains("worker started").then_some(())
+    });
     tokio::time::sleep(Duration::from_millis(500)).await;
     server.kill();
     tokio::time::sleep(Duration::from_millis(500)).await;

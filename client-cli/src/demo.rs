@@ -1,17 +1,17 @@
-//! `pointfarm demo`: the whole service in one process. Starts a daemon with its embedded
-//! worker on a loopback port, uploads a cloud (a generated sample unless a file is given),
+//! `pointfarm demo`: the whole service from one command. Starts a daemon with its embedded
+//! worker (a child process) on a loopback port, uploads a cloud (a generated sample unless a file is given),
 //! submits a turntable over gRPC, follows it and downloads the frames.
 
 use std::path::PathBuf;
-use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use clap::Args;
 use pointfarm_daemon::model::JobSpec;
 use pointfarm_daemon::server::serve;
 use pointfarm_daemon::service::{Daemon, DaemonConfig};
+use pointfarm_daemon::worker::supervisor::WorkerCommand;
 use pointfarm_proto::v1 as pb;
-use pointfarm_render::gpu::{AdapterChoice, GpuContext};
+use pointfarm_render::gpu::AdapterChoice;
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::raster::Quality;
 use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
@@ -57,14 +57,20 @@ pub fn run(args: DemoArgs) -> Result<()> {
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async move {
         let daemon = Daemon::open(DaemonConfig::new(args.out.join(".pointfarm-data")))?;
-        let gpu = Arc::new(GpuContext::new(args.adapter)?);
-        println!("worker on {}", gpu.describe());
+        let worker = WorkerCommand {
+            program: std::env::current_exe().context("finding the pointfarm binary")?,
+            args: crate::serve::worker_args(
+                &daemon.config.data_dir.join("embedded-worker"),
+                daemon.config.worker_cache_bytes,
+                args.adapter,
+            ),
+        };
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
             .await
             .context("binding a loopback port")?;
         let address = listener.local_addr()?;
         let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-        let server = tokio::spawn(serve(daemon, Some(gpu), listener, None, async {
+        let server = tokio::spawn(serve(daemon, Some(worker), listener, None, async {
             let _ = stopped.await;
         }));
         println!("daemon on {address}");

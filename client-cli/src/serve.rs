@@ -1,14 +1,17 @@
-//! `pointfarm serve`: the daemon, by default with an embedded worker in the same process;
-//! separate `pointfarm worker` processes can render for it as well or instead.
+//! `pointfarm serve`: the daemon, by default with an embedded worker: this binary's `worker`
+//! command as a child process that the daemon supervises, so that a frame that crashes its
+//! worker never takes the daemon down. Separate `pointfarm worker` processes can render for it
+//! as well or instead.
 
-use std::path::PathBuf;
-use std::sync::Arc;
+use std::ffi::OsString;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use clap::Args;
 use pointfarm_daemon::server::serve;
 use pointfarm_daemon::service::{Daemon, DaemonConfig, DEFAULT_MAX_UPLOAD_BYTES};
-use pointfarm_render::gpu::{AdapterChoice, GpuContext};
+use pointfarm_daemon::worker::supervisor::WorkerCommand;
+use pointfarm_render::gpu::AdapterChoice;
 
 #[derive(Args)]
 pub struct ServeArgs {
@@ -46,6 +49,15 @@ pub struct ServeArgs {
     /// worker died or was cut off) the frame goes back to the queue.
     #[arg(long, default_value_t = 30.0, value_parser = parse_lease_timeout)]
     lease_timeout: f64,
+    /// Attempts at a frame (failed, or lost with its worker) before its job fails.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=100))]
+    max_frame_attempts: u32,
+    /// Cap the embedded worker process's memory (heap and other private writable memory) at
+    /// this many MiB: a frame that needs more crashes that process, not the machine, and
+    /// counts a failed attempt.
+    #[arg(long, value_name = "MIB")]
+    worker_max_memory_mib: Option<u64>,
+    /// GPU of the embedded worker: auto, hardware or software (lavapipe).
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
     adapter: AdapterChoice,
 }
@@ -60,17 +72,17 @@ pub fn run(args: ServeArgs) -> Result<()> {
         config.upload_quota_bytes = args.upload_quota_bytes;
         config.recover_state = args.recover_state;
         config.lease_timeout = std::time::Duration::from_secs_f64(args.lease_timeout);
+        config.max_frame_attempts = args.max_frame_attempts;
         let daemon =
             Daemon::open(config).with_context(|| format!("opening {}", args.data_dir.display()))?;
-        let gpu = if args.no_embedded_worker {
+        let embedded_worker = if args.no_embedded_worker {
+            println!("no embedded worker: start `pointfarm worker --server ...` to render");
             None
         } else {
-            Some(Arc::new(GpuContext::new(args.adapter)?))
+            let command = embedded_worker_command(&args, &daemon.config)?;
+            println!("embedded worker: {}", command.program.display());
+            Some(command)
         };
-        match &gpu {
-            Some(gpu) => println!("embedded worker on {}", gpu.describe()),
-            None => println!("no embedded worker: start `pointfarm worker --server ...` to render"),
-        }
         let listener = tokio::net::TcpListener::bind(&args.listen)
             .await
             .with_context(|| format!("listening on {}", args.listen))?;
@@ -79,8 +91,48 @@ pub fn run(args: ServeArgs) -> Result<()> {
             listener.local_addr()?,
             args.data_dir.display()
         );
-        serve(daemon, gpu, listener, args.token, shutdown_signal()).await
+        serve(
+            daemon,
+            embedded_worker,
+            listener,
+            args.token,
+            shutdown_signal(),
+        )
+        .await
     })
+}
+
+/// This binary's `worker` command, rendering with the daemon's settings; its cache lives in
+/// the data folder.
+fn embedded_worker_command(args: &ServeArgs, config: &DaemonConfig) -> Result<WorkerCommand> {
+    let program = std::env::current_exe().context("finding the pointfarm binary")?;
+    let cache_dir = config.data_dir.join("embedded-worker");
+    let mut worker_args = worker_args(&cache_dir, config.worker_cache_bytes, args.adapter);
+    if let Some(mib) = args.worker_max_memory_mib {
+        worker_args.extend(["--max-memory-mib".into(), mib.to_string().into()]);
+    }
+    Ok(WorkerCommand {
+        program,
+        args: worker_args,
+    })
+}
+
+/// The arguments of `pointfarm worker` for an embedded worker (the supervisor adds the
+/// server, the name and the token).
+pub(crate) fn worker_args(
+    cache_dir: &Path,
+    cache_bytes: u64,
+    adapter: AdapterChoice,
+) -> Vec<OsString> {
+    vec![
+        "worker".into(),
+        "--cache-dir".into(),
+        cache_dir.into(),
+        "--cache-gib".into(),
+        (cache_bytes >> 30).max(1).to_string().into(),
+        "--adapter".into(),
+        adapter.to_string().into(),
+    ]
 }
 
 fn parse_lease_timeout(value: &str) -> Result<f64, String> {

@@ -1,11 +1,14 @@
-//! `pointfarm worker`: a render worker in its own process, leasing frames from a daemon.
+//! `pointfarm worker`: a render worker in its own process, leasing frames from a daemon; also
+//! what `pointfarm serve` runs as its embedded worker (`--supervised`).
 
 use std::path::PathBuf;
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use clap::Args;
+use pointfarm_daemon::worker::memory_limit;
 use pointfarm_daemon::worker::remote::{run as run_worker, RemoteWorkerConfig};
+use pointfarm_daemon::worker::supervisor::exit_when_supervisor_exits;
 use pointfarm_render::gpu::{AdapterChoice, GpuContext};
 
 #[derive(Args)]
@@ -32,10 +35,25 @@ pub struct WorkerArgs {
     /// GPU to render on: auto, hardware or software (lavapipe).
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
     adapter: AdapterChoice,
+    /// Cap this process's memory (heap and other private writable memory) at this many MiB:
+    /// a frame that needs more aborts the worker instead of exhausting the machine.
+    #[arg(long, value_name = "MIB")]
+    max_memory_mib: Option<u64>,
+    /// Run as a daemon's embedded worker: exit as soon as standard input (a pipe from the
+    /// daemon) closes.
+    #[arg(long, hide = true)]
+    supervised: bool,
 }
 
 pub fn run(args: WorkerArgs) -> Result<()> {
+    if args.supervised {
+        exit_when_supervisor_exits().context("watching the supervising daemon")?;
+    }
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
+    // After the GPU is set up: the limit is for the frames' data.
+    if let Some(mib) = args.max_memory_mib {
+        memory_limit::apply(mib << 20)?;
+    }
     let name = args.name.unwrap_or_else(|| {
         let host = std::env::var("HOSTNAME")
             .ok()

@@ -7,9 +7,10 @@
 //! rendering while the daemon restarts can still hand its frame in afterwards. A remote lease
 //! that is not renewed by heartbeats expires: the frame goes back to the queue and the attempt
 //! counts toward `max_frame_attempts`, so a frame that kills every worker fails its job
-//! instead of looping. Embedded leases never expire (their thread cannot die without the
-//! daemon); those found at start-up belonged to the previous process and are dropped without
-//! counting.
+//! instead of looping. The embedded worker is a child process of the daemon: when it exits
+//! its leases count an attempt at once, and those found at start-up (the child died with the
+//! previous daemon) count one too. A failure the worker reports as permanent (the dataset
+//! cannot be read, the request cannot render) fails the job at once.
 //!
 //! Every change to leases, frames and job states made here happens under one scheduling lock,
 //! so two workers never get the same frame and a cancel never races a completion.
@@ -49,6 +50,15 @@ pub struct FrameTask {
 pub struct FrameOutcome {
     pub timings: Vec<StageTiming>,
     pub dataset_cache_hit: Option<bool>,
+}
+
+/// Whether a failed frame is worth another attempt.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FailureKind {
+    /// May succeed next time: a lost GPU, an I/O error, a dead worker.
+    Transient,
+    /// Fails the same way every time: an unreadable dataset, a request that cannot render.
+    Permanent,
 }
 
 /// The answer to a heartbeat.
@@ -115,6 +125,9 @@ impl Daemon {
                 expires_unix_ms: now_unix_ms() + self.lease_timeout_ms(),
             };
             self.store.put_lease(&lease)?;
+            // Durable before the worker starts: a crash of the daemon while the frame renders
+            // then still counts the attempt at the next start.
+            self.store.flush()?;
             tracing::debug!(job = %job.id, frame = index, lease = %lease.id, worker, "frame leased");
             return Ok(Some(FrameTask {
                 lease,
@@ -244,13 +257,84 @@ impl Daemon {
     }
 
     /// The holder of `lease_id` could not render its frame: the attempt counts; the job fails
-    /// when the frame has used up its attempts.
-    pub fn fail_frame(&self, lease_id: &str, reason: &str) -> Result<(), DaemonError> {
+    /// when the frame has used up its attempts, or at once when the failure is permanent.
+    pub fn fail_frame(
+        &self,
+        lease_id: &str,
+        reason: &str,
+        kind: FailureKind,
+    ) -> Result<(), DaemonError> {
         let _scheduling = self.scheduling()?;
         let (lease, _) = self.held_lease_locked(lease_id)?;
         self.store.remove_lease(lease_id)?;
-        tracing::warn!(job = %lease.job_id, frame = lease.index, worker = %lease.worker, %reason, "frame failed");
-        self.count_failed_attempt_locked(&lease, reason)
+        tracing::warn!(job = %lease.job_id, frame = lease.index, worker = %lease.worker, %reason, ?kind, "frame failed");
+        match kind {
+            FailureKind::Transient => self.count_failed_attempt_locked(&lease, reason),
+            FailureKind::Permanent => {
+                let attempts = self.failed_attempts_locked(&lease)? + 1;
+                self.fail_job_locked(
+                    &lease.job_id,
+                    format!(
+                        "frame {} cannot be rendered (attempt {attempts}, not retried): {reason}",
+                        lease.index
+                    ),
+                )
+            }
+        }
+    }
+
+    /// The embedded worker `worker` exited (`how`: its exit status): each frame it held
+    /// counts a failed attempt and goes back to the queue. Returns how many it held.
+    pub fn embedded_worker_exited(&self, worker: &str, how: &str) -> Result<usize, DaemonError> {
+        let _scheduling = self.scheduling()?;
+        self.count_embedded_leases_locked(|lease| {
+            (lease.worker == worker).then(|| {
+                format!(
+                    "worker {worker} died while rendering frame {} ({how})",
+                    lease.index
+                )
+            })
+        })
+    }
+
+    /// At start-up: the embedded worker died with the previous daemon, so each frame it held
+    /// counts a failed attempt, as if it had exited now. Returns how many it held.
+    pub fn count_leases_of_previous_run(&self) -> Result<usize, DaemonError> {
+        let _scheduling = self.scheduling()?;
+        let counted = self.count_embedded_leases_locked(|lease| {
+            Some(format!(
+                "worker {} died while rendering frame {} (the daemon stopped)",
+                lease.worker, lease.index
+            ))
+        })?;
+        if counted > 0 {
+            tracing::warn!(
+                counted,
+                "the previous run's embedded worker held frames: each counts a failed attempt"
+            );
+        }
+        Ok(counted)
+    }
+
+    /// Removes the embedded leases for which `reason` gives a reason, counting an attempt each.
+    fn count_embedded_leases_locked(
+        &self,
+        reason: impl Fn(&Lease) -> Option<String>,
+    ) -> Result<usize, DaemonError> {
+        let mut counted = 0;
+        for lease in self.store.leases()? {
+            let Some(reason) = lease.embedded.then(|| reason(&lease)).flatten() else {
+                continue;
+            };
+            self.store.remove_lease(&lease.id)?;
+            if self.is_wanted_locked(&lease)? {
+                tracing::warn!(job = %lease.job_id, frame = lease.index, %reason, "frame lost");
+                self.count_failed_attempt_locked(&lease, &reason)?;
+                counted += 1;
+            }
+        }
+        self.store.flush()?;
+        Ok(counted)
     }
 
     /// Gives a lease back without a result and without counting an attempt. Releasing a lease
@@ -280,17 +364,13 @@ impl Daemon {
         let now = now_unix_ms();
         let mut expired = 0;
         for lease in self.store.leases()? {
-            if lease.embedded || lease.expires_unix_ms >= now {
+            if lease.expires_unix_ms >= now {
                 continue;
             }
             self.store.remove_lease(&lease.id)?;
             // A lease of an ended job is kept until it runs out, so that its holder's
             // heartbeat learns why to stop; its expiry counts nothing.
-            let wanted = self
-                .store
-                .job(&lease.job_id)?
-                .is_some_and(|j| !j.state.is_terminal());
-            if wanted {
+            if self.is_wanted_locked(&lease)? {
                 tracing::warn!(
                     job = %lease.job_id,
                     frame = lease.index,
@@ -310,12 +390,30 @@ impl Daemon {
         Ok(expired)
     }
 
+    /// Whether the job of `lease` still wants its frame.
+    fn is_wanted_locked(&self, lease: &Lease) -> Result<bool, DaemonError> {
+        Ok(self
+            .store
+            .job(&lease.job_id)?
+            .is_some_and(|j| !j.state.is_terminal()))
+    }
+
+    /// The failed attempts so far at the frame of `lease`.
+    fn failed_attempts_locked(&self, lease: &Lease) -> Result<u32, DaemonError> {
+        Ok(match self.store.frame(&lease.job_id, lease.index)? {
+            Some(FrameState::Pending { attempts }) => attempts,
+            _ => 0,
+        })
+    }
+
     fn count_failed_attempt_locked(&self, lease: &Lease, reason: &str) -> Result<(), DaemonError> {
-        let attempts = match self.store.frame(&lease.job_id, lease.index)? {
-            Some(FrameState::Pending { attempts }) => attempts + 1,
-            Some(FrameState::Done(_)) => return Ok(()),
-            None => 1,
-        };
+        if matches!(
+            self.store.frame(&lease.job_id, lease.index)?,
+            Some(FrameState::Done(_))
+        ) {
+            return Ok(());
+        }
+        let attempts = self.failed_attempts_locked(lease)? + 1;
         if attempts >= self.config.max_frame_attempts {
             return self.fail_job_locked(
                 &lease.job_id,
@@ -392,6 +490,14 @@ mod tests {
         bytes
     }
 
+    /// Leases the next frame, which there must be.
+    fn lease(daemon: &Daemon, worker: &str, embedded: bool) -> FrameTask {
+        daemon
+            .lease_frame(worker, embedded)
+            .expect("lease")
+            .expect("a frame to lease")
+    }
+
     fn outcome() -> FrameOutcome {
         FrameOutcome {
             timings: Vec::new(),
@@ -400,31 +506,10 @@ mod tests {
     }
 
     #[test]
-    fn remote_leases_survive_a_restart_and_embedded_ones_are_dropped() {
-        let dir = tempfile::tempdir().expect("tempdir");
-        std::fs::create_dir_all(dir.path().join("roots")).expect("roots");
-        // Registering hashes the file; it is not decoded here.
-        std::fs::write(dir.path().join("roots/a.las"), b"points").expect("file");
-        let daemon = open(dir.path());
-        let dataset = daemon.register_dataset("a.las", "").expect("register");
-        let request = pb::SubmitJobRequest {
-            dataset_id: dataset.id.clone(),
-            camera_path: Some(pb::CameraPath::turntable(pb::Turntable::of_frames(3))),
-            width: 8,
-            height: 6,
-            ..Default::default()
-        };
-        let job = daemon
-            .submit_job(crate::model::JobSpec::try_from(&request).expect("spec"))
-            .expect("submit");
-        let remote = daemon
-            .lease_frame("remote", false)
-            .expect("lease")
-            .expect("task");
-        let embedded = daemon
-            .lease_frame("embedded", true)
-            .expect("lease")
-            .expect("task");
+    fn remote_leases_survive_a_restart_and_embedded_ones_count_an_attempt() {
+        let (dir, daemon, job) = daemon_with_job(3);
+        let remote = lease(&daemon, "remote", false);
+        let embedded = lease(&daemon, "embedded", true);
         assert_eq!((remote.lease.index, embedded.lease.index), (0, 1));
         drop(daemon);
 
@@ -435,14 +520,11 @@ mod tests {
             vec![remote.lease.clone()],
             "only the remote lease is left"
         );
-        let again = daemon
-            .lease_frame("embedded", true)
-            .expect("lease")
-            .expect("task");
+        let again = lease(&daemon, "embedded", true);
         assert_eq!(
             (again.lease.index, again.failed_attempts),
-            (1, 0),
-            "the embedded frame is back, without a failed attempt"
+            (1, 1),
+            "the embedded frame is back, with the attempt its dead worker made"
         );
         // The remote worker that rendered through the restart hands its frame in.
         let after = daemon
@@ -452,5 +534,83 @@ mod tests {
         assert!(daemon.config.frame_path(&job.id, 0).is_file());
         let refused = daemon.complete_frame(&remote.lease.id, &png(8, 6), outcome());
         assert!(matches!(refused, Err(DaemonError::FailedPrecondition(_))));
+    }
+
+    /// A daemon in a new folder with one job of `frames` frames on a registered (never
+    /// decoded) file.
+    fn daemon_with_job(frames: u32) -> (tempfile::TempDir, Arc<Daemon>, crate::model::Job) {
+        let folder = tempfile::tempdir().expect("tempdir");
+        let dir = folder.path();
+        std::fs::create_dir_all(dir.join("roots")).expect("roots");
+        std::fs::write(dir.join("roots/a.las"), b"points").expect("file");
+        let daemon = open(dir);
+        let dataset = daemon.register_dataset("a.las", "").expect("register");
+        let request = pb::SubmitJobRequest {
+            dataset_id: dataset.id.clone(),
+            camera_path: Some(pb::CameraPath::turntable(pb::Turntable::of_frames(frames))),
+            width: 8,
+            height: 6,
+            ..Default::default()
+        };
+        let job = daemon
+            .submit_job(crate::model::JobSpec::try_from(&request).expect("spec"))
+            .expect("submit");
+        (folder, daemon, job)
+    }
+
+    #[test]
+    fn a_permanent_failure_fails_the_job_at_once_and_a_transient_one_retries() {
+        let (_dir, daemon, job) = daemon_with_job(2);
+        let task = lease(&daemon, "w", false);
+        daemon
+            .fail_frame(&task.lease.id, "GPU lost", FailureKind::Transient)
+            .expect("fail");
+        assert_eq!(daemon.job(&job.id).expect("job").state, JobState::Running);
+        let again = lease(&daemon, "w", false);
+        assert_eq!((again.lease.index, again.failed_attempts), (0, 1));
+        daemon
+            .fail_frame(&again.lease.id, "not a LAS file", FailureKind::Permanent)
+            .expect("fail");
+        let failed = daemon.job(&job.id).expect("job");
+        assert_eq!(failed.state, JobState::Failed);
+        assert_eq!(
+            failed.error.as_deref(),
+            Some("frame 0 cannot be rendered (attempt 2, not retried): not a LAS file")
+        );
+    }
+
+    #[test]
+    fn an_exited_embedded_worker_counts_an_attempt_for_its_frames_only() {
+        let (_dir, daemon, job) = daemon_with_job(3);
+        let child = lease(&daemon, "embedded", true);
+        let remote = lease(&daemon, "remote", false);
+        let counted = daemon
+            .embedded_worker_exited("embedded", "killed by signal 9 (SIGKILL)")
+            .expect("exited");
+        assert_eq!(counted, 1);
+        assert_eq!(daemon.leases().expect("leases"), vec![remote.lease]);
+        let again = lease(&daemon, "embedded", true);
+        assert_eq!(
+            (again.lease.index, again.failed_attempts),
+            (child.lease.index, 1)
+        );
+        // The last allowed attempt dies too: the job fails, saying how.
+        daemon
+            .embedded_worker_exited("embedded", "killed by signal 6 (SIGABRT)")
+            .expect("exited");
+        let third = lease(&daemon, "embedded", true);
+        assert_eq!(third.failed_attempts, 2);
+        daemon
+            .embedded_worker_exited("embedded", "killed by signal 6 (SIGABRT)")
+            .expect("exited");
+        let failed = daemon.job(&job.id).expect("job");
+        assert_eq!(failed.state, JobState::Failed);
+        assert_eq!(
+            failed.error.as_deref(),
+            Some(
+                "frame 0 failed 3 times; last: worker embedded died while rendering frame 0 \
+                 (killed by signal 6 (SIGABRT))"
+            )
+        );
     }
 }

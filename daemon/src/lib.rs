@@ -1,17 +1,18 @@
 //! The pointfarm daemon: datasets, jobs and their durable state (sled), frame tasks leased to
-//! workers (embedded threads and `pointfarm worker` processes), and the `pointfarm.v1` gRPC API
-//! over all of it.
+//! workers (the embedded worker process and `pointfarm worker` processes), and the
+//! `pointfarm.v1` gRPC API over all of it.
 //!
 //! From the bottom up: `model` and `camera_path` (domain types, the camera of each frame),
-//! `error` (the daemon's and the store's errors), `limits` (the bounds on
-//! names and ids clients send), `lease_record` (the stored lease), `manifest` (the counts recorded beside the
-//! database), `store` (sled), `service` (the `Daemon` and its dataset and job operations), `lease` (frame leases:
-//! the one scheduling path, more `Daemon` methods), `grpc` (validates, converts and
-//! delegates: one file per service, the conversions, the streaming of bytes), `worker`
-//! (what leases frames: the embedded thread, the remote worker process — a gRPC client — and
-//! their shared render state, which renders with `pointfarm-render`), `server` (sockets,
-//! health, reflection, the lease sweep, shutdown). Only `grpc`, `worker::remote` and `server`
-//! (which mounts the services) know protobuf.
+//! `error` (the daemon's and the store's errors), `limits` (the bounds on names and ids
+//! clients send), `lease_record` (the stored lease), `manifest` (the counts recorded beside
+//! the database), `store` (sled), `worker_presence` (which workers can render, for health),
+//! `service` (the `Daemon` and its dataset and job operations), `lease` (frame leases: the one
+//! scheduling path, more `Daemon` methods), `grpc` (validates, converts and delegates: one
+//! file per service, the conversions, the streaming of bytes), `worker` (what leases frames:
+//! the worker process — a gRPC client — with its render state, which renders with
+//! `pointfarm-render`, and the supervisor that runs it as the daemon's embedded worker),
+//! `server` (sockets, health, reflection, the lease sweep, shutdown). Only `grpc`,
+//! `worker::remote` and `server` (which mounts the services) know protobuf.
 
 pub mod error;
 pub mod grpc;
@@ -24,3 +25,4 @@ pub mod server;
 pub mod service;
 pub mod store;
 pub mod worker;
+pub mod worker_presence;

@@ -11,6 +11,7 @@ use crate::error::{DaemonError, StoreError};
 use crate::limits::{check_id, check_length, MAX_NAME_BYTES, MAX_PATH_BYTES, MAX_REQUEST_ID_BYTES};
 use crate::model::{now_unix_ms, Dataset, FrameReport, Job, JobEvent, JobSpec, JobState};
 use crate::store::{Page, Store};
+use crate::worker_presence::WorkerPresence;
 
 /// The default bound of one upload.
 pub const DEFAULT_MAX_UPLOAD_BYTES: u64 = 16 << 30;
@@ -135,11 +136,14 @@ pub struct Daemon {
     /// Held while leases, frame states and job states change together (see `lease`).
     pub(crate) scheduling: Mutex<()>,
     stopping: std::sync::atomic::AtomicBool,
+    /// Which workers can render now, for health checking.
+    pub workers: WorkerPresence,
 }
 
 impl Daemon {
     /// Opens (or creates) the state in `config.data_dir`; jobs that were running when the
-    /// daemon stopped go back to the queue.
+    /// daemon stopped go back to the queue, and the frames its embedded worker held count a
+    /// failed attempt.
     pub fn open(config: DaemonConfig) -> Result<Arc<Self>, DaemonError> {
         std::fs::create_dir_all(config.uploads_dir())?;
         std::fs::create_dir_all(config.data_dir.join("jobs"))?;
@@ -153,23 +157,19 @@ impl Daemon {
         if requeued > 0 {
             tracing::info!(requeued, "resuming jobs that were running");
         }
-        let dropped = store.drop_embedded_leases()?;
-        if dropped > 0 {
-            tracing::info!(
-                dropped,
-                "frames of the previous process's worker threads go back to the queue"
-            );
-        }
         remove_partial_frames(&config.data_dir.join("jobs"));
         let (events, _) = broadcast::channel(config.event_buffer.max(1));
-        Ok(Arc::new(Self {
+        let daemon = Arc::new(Self {
             config,
             store,
             events,
             work: WorkSignal::default(),
             scheduling: Mutex::new(()),
             stopping: std::sync::atomic::AtomicBool::new(false),
-        }))
+            workers: WorkerPresence::default(),
+        });
+        daemon.count_leases_of_previous_run()?;
+        Ok(daemon)
     }
 
     /// Taken while leases, frame states and job states change together.

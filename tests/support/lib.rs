@@ -4,6 +4,9 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
+use std::time::Duration;
+
+use pointfarm_render::ingest::write_las;
 
 /// The `pointfarm` binary of this workspace, built (or brought up to date) on first use with
 /// the same profile as the running test.
@@ -58,10 +61,12 @@ pub fn own_stderr_lines(output: &Output) -> Vec<String> {
         .collect()
 }
 
-/// `pointfarm serve` as a child process on a loopback port; killed when dropped.
+/// `pointfarm serve` as a child process on a loopback port; killed when dropped. Its log and
+/// its embedded worker's (at info level) are appended to `serve.log` in its data folder.
 pub struct ServeProcess {
     pub address: String,
     child: std::process::Child,
+    log: PathBuf,
 }
 
 impl ServeProcess {
@@ -88,18 +93,29 @@ impl ServeProcess {
         Self::start_with_args(&format!("127.0.0.1:{port}"), data_dir, args)
     }
 
-    fn start_with_args(address: &str, data_dir: &Path, args: &[&str]) -> Self {
+    /// Starts a daemon on `address` with more `serve` arguments and waits until it listens.
+    pub fn start_with_args(address: &str, data_dir: &Path, args: &[&str]) -> Self {
+        std::fs::create_dir_all(data_dir).expect("data folder");
+        let log = data_dir.join("serve.log");
+        let log_file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&log)
+            .expect("serve log file");
         let child = Command::new(pointfarm_bin())
             .args(["serve", "--listen", address, "--data-dir"])
             .arg(data_dir)
             .args(args)
+            .env("RUST_LOG", "warn,pointfarm=info")
+            .env("NO_COLOR", "1")
             .stdout(std::process::Stdio::null())
-            .stderr(std::process::Stdio::null())
+            .stderr(log_file)
             .spawn()
             .expect("start pointfarm serve");
         let server = Self {
             address: address.to_string(),
             child,
+            log,
         };
         for _ in 0..300 {
             if std::net::TcpStream::connect(address).is_ok() {
@@ -114,10 +130,42 @@ impl ServeProcess {
         self.child.id()
     }
 
+    /// What the daemon and its embedded worker have logged, across restarts on this folder.
+    pub fn log(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// The process ids of the embedded workers this folder's daemons started, oldest first.
+    pub fn embedded_worker_pids(&self) -> Vec<u32> {
+        self.log()
+            .lines()
+            .filter(|line| line.contains("embedded worker started"))
+            .filter_map(|line| line.split("pid=").nth(1))
+            .filter_map(|rest| rest.split_whitespace().next()?.parse().ok())
+            .collect()
+    }
+
+    /// The newest embedded worker's process id, once it has started (waiting up to 60 s).
+    pub fn embedded_worker_pid(&self) -> u32 {
+        wait_for(Duration::from_secs(60), "an embedded worker", || {
+            self.embedded_worker_pids().last().copied()
+        })
+    }
+
+    /// Whether the daemon is still running.
+    pub fn is_running(&mut self) -> bool {
+        matches!(self.child.try_wait(), Ok(None))
+    }
+
     /// `kill -9`, and reap it.
     pub fn kill(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+    }
+
+    /// Sends SIGTERM and waits up to `timeout` for the exit.
+    pub fn terminate(&mut self, timeout: Duration) -> Option<std::process::ExitStatus> {
+        terminate(&mut self.child, timeout)
     }
 
     /// Waits up to `timeout` for the process to exit by itself.
@@ -182,13 +230,8 @@ impl WorkerProcess {
     }
 
     /// Sends SIGTERM and waits up to `timeout` for the exit.
-    pub fn terminate(&mut self, timeout: std::time::Duration) -> Option<std::process::ExitStatus> {
-        let sent = Command::new("kill")
-            .args(["-TERM", &self.child.id().to_string()])
-            .status()
-            .expect("kill -TERM");
-        assert!(sent.success());
-        exit_within(&mut self.child, timeout)
+    pub fn terminate(&mut self, timeout: Duration) -> Option<std::process::ExitStatus> {
+        terminate(&mut self.child, timeout)
     }
 }
 
@@ -199,6 +242,76 @@ impl Drop for WorkerProcess {
 }
 
 pub mod service;
+
+/// Sends SIGTERM to `child` and waits up to `timeout` for its exit.
+fn terminate(
+    child: &mut std::process::Child,
+    timeout: Duration,
+) -> Option<std::process::ExitStatus> {
+    signal(child.id(), "TERM");
+    exit_within(child, timeout)
+}
+
+/// Sends `signal` (`KILL`, `TERM`) to the process `pid`, which must exist.
+pub fn signal(pid: u32, signal: &str) {
+    let sent = Command::new("kill")
+        .args([format!("-{signal}"), pid.to_string()])
+        .status()
+        .expect("kill");
+    assert!(sent.success(), "kill -{signal} {pid}");
+}
+
+/// Whether the process `pid` has ended (a zombie that nobody reaps has ended too).
+pub fn process_is_gone(pid: u32) -> bool {
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        // The state follows the parenthesised command name.
+        Ok(stat) => stat
+            .rsplit_once(") ")
+            .is_some_and(|(_, rest)| rest.starts_with('Z') || rest.starts_with('X')),
+        Err(_) => true,
+    }
+}
+
+/// Polls `probe` until it gives a value, panicking after `timeout` with what was awaited.
+pub fn wait_for<T>(timeout: Duration, awaited: &str, mut probe: impl FnMut() -> Option<T>) -> T {
+    let deadline = std::time::Instant::now() + timeout;
+    loop {
+        if let Some(value) = probe() {
+            return value;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "no {awaited} within {timeout:?}"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// Writes a LAZ file of `points` points in runs of equal points: it compresses to a small
+/// file, but its decoded points need `points` times about 20 bytes of memory.
+pub fn write_dense_laz(path: &Path, points: usize) {
+    use pointfarm_render::cloud::PointCloud;
+    let tile = pointfarm_render::sample::sample_scene(1_000, 1);
+    let run = points.div_ceil(tile.len());
+    let repeated = |i: usize| i / run;
+    let cloud = PointCloud {
+        positions: (0..points).map(|i| tile.positions[repeated(i)]).collect(),
+        colors: (0..points).map(|i| tile.colors[repeated(i)]).collect(),
+        intensity: vec![0; points],
+        classification: vec![2; points],
+        return_number: vec![1; points],
+        ..tile
+    };
+    write_las(
+        path,
+        &cloud,
+        &pointfarm_render::ingest::LasWriteOptions {
+            point_format: 0,
+            ..Default::default()
+        },
+    )
+    .expect("write the dense LAZ");
+}
 
 /// The child's exit status once it has exited, waiting at most `timeout`.
 fn exit_within(

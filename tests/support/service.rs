@@ -4,6 +4,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
 use pointfarm_daemon::service::{Daemon, DaemonConfig};
+use pointfarm_daemon::worker::supervisor::WorkerCommand;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
@@ -25,7 +26,7 @@ pub struct TestDaemon {
 }
 
 impl TestDaemon {
-    /// Starts a daemon with an embedded worker; `configure` may change the defaults (limits,
+    /// Starts a daemon with an embedded worker (a `pointfarm worker` process); `configure` may change the defaults (limits,
     /// data roots).
     pub async fn start(configure: impl FnOnce(&mut DaemonConfig), token: Option<&str>) -> Self {
         Self::start_with(configure, token, true).await
@@ -47,6 +48,7 @@ impl TestDaemon {
         let data_dir = tempfile::tempdir().expect("tempdir");
         let mut config = DaemonConfig::new(data_dir.path().to_path_buf());
         configure(&mut config);
+        let worker = embedded_worker.then(|| embedded_worker_command(&config));
         let daemon = Daemon::open(config).expect("open daemon");
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
             .await
@@ -58,8 +60,7 @@ impl TestDaemon {
             let stop = async {
                 let _ = signal.await;
             };
-            let gpu = embedded_worker.then(gpu);
-            pointfarm_daemon::server::serve(daemon, gpu, listener, token, stop)
+            pointfarm_daemon::server::serve(daemon, worker, listener, token, stop)
                 .await
                 .expect("serve");
         });
@@ -111,6 +112,18 @@ impl Drop for TestDaemon {
     }
 }
 
+/// The embedded worker of a daemon with `config`: this workspace's `pointfarm worker`.
+fn embedded_worker_command(config: &DaemonConfig) -> WorkerCommand {
+    WorkerCommand {
+        program: crate::pointfarm_bin().to_path_buf(),
+        args: vec![
+            "worker".into(),
+            "--cache-dir".into(),
+            config.data_dir.join("embedded-worker").into(),
+        ],
+    }
+}
+
 /// A channel to the daemon at `address` (`host:port`).
 pub async fn connect(address: &str) -> Channel {
     Channel::from_shared(format!("http://{address}"))
@@ -159,6 +172,20 @@ pub async fn upload(
         .await
         .expect("upload")
         .into_inner()
+}
+
+/// Uploads the file at `path` as `name`.
+pub async fn upload_file(
+    datasets: &mut DatasetServiceClient<Channel>,
+    name: &str,
+    path: &Path,
+) -> pb::Dataset {
+    upload(
+        datasets,
+        name,
+        &std::fs::read(path).expect("read the file to upload"),
+    )
+    .await
 }
 
 pub fn turntable_job(

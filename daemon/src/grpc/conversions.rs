@@ -9,7 +9,7 @@ use pointfarm_proto::v1 as pb;
 
 use super::request::{camera_path_message, known_enum, render_options_message, render_request};
 use crate::error::DaemonError;
-use crate::lease::{FrameTask, HeartbeatAnswer, TaskDataset};
+use crate::lease::{FailureKind, FrameTask, HeartbeatAnswer, TaskDataset};
 use crate::lease_record::Lease;
 use crate::model::{Dataset, FrameReport, Job, JobSpec, JobState, StageTiming};
 
@@ -158,6 +158,24 @@ impl From<HeartbeatAnswer> for pb::HeartbeatResponse {
                 lease_expires_unix_ms: 0,
             },
         }
+    }
+}
+
+impl From<FailureKind> for pb::FailureKind {
+    fn from(kind: FailureKind) -> Self {
+        match kind {
+            FailureKind::Transient => pb::FailureKind::Transient,
+            FailureKind::Permanent => pb::FailureKind::Permanent,
+        }
+    }
+}
+
+/// A failed frame's kind; unset and unknown kinds (from older or newer workers) are tried
+/// again.
+pub(super) fn failure_kind(kind: i32) -> FailureKind {
+    match pb::FailureKind::try_from(kind) {
+        Ok(pb::FailureKind::Permanent) => FailureKind::Permanent,
+        _ => FailureKind::Transient,
     }
 }
 

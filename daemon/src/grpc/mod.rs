@@ -26,6 +26,7 @@ mod workers;
 
 pub use conversions::{frame_task, frame_task_message, stage_timings, timings_message};
 pub use request::{camera_path_message, render_options_message, render_request};
+pub use workers::EmbeddedWorkerCall;
 
 /// The three services over one daemon.
 #[derive(Clone)]

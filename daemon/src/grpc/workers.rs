@@ -1,12 +1,13 @@
-//! `WorkerService`: the remote workers' side of frame leases — long-polled leasing,
-//! heartbeats, handing in (a size-checked PNG stream), failing and releasing frames — and
-//! the download of a task's dataset.
+//! `WorkerService`: the workers' side of frame leases — long-polled leasing, heartbeats,
+//! handing in (a size-checked PNG stream), failing and releasing frames — and the download of
+//! a task's dataset. Every call tells the daemon's `WorkerPresence` that a worker is there;
+//! calls of the daemon's own embedded worker process carry [`EmbeddedWorkerCall`].
 
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::worker_service_server::WorkerService;
 use tonic::{Request, Response, Status, Streaming};
 
-use super::conversions::{frame_task_message, invalid, stage_timings};
+use super::conversions::{failure_kind, frame_task_message, invalid, stage_timings};
 use super::lease_guard::LeaseGuard;
 use super::streaming::{first_part, read_chunk, spawn_stream, ResponseStream};
 use super::Api;
@@ -16,6 +17,15 @@ use crate::limits::{check_id, check_length, truncated, MAX_REASON_BYTES, MAX_WOR
 
 /// Longest wait of a `LeaseFrame` long poll.
 const MAX_LEASE_WAIT_MS: u32 = 30_000;
+
+/// Marks a call of the daemon's embedded worker process (the authentication layer knows it by
+/// its token): its leases are the embedded worker's.
+#[derive(Debug, Clone, Copy)]
+pub struct EmbeddedWorkerCall;
+
+fn is_embedded<T>(request: &Request<T>) -> bool {
+    request.extensions().get::<EmbeddedWorkerCall>().is_some()
+}
 
 /// Largest PNG accepted for a frame: the raw RGBA size and room for PNG's overhead.
 fn max_png_bytes(width: u32, height: u32) -> u64 {
@@ -29,6 +39,8 @@ impl WorkerService for Api {
         request: Request<pb::LeaseFrameRequest>,
     ) -> Result<Response<pb::LeaseFrameResponse>, Status> {
         let peer = request.remote_addr();
+        let embedded = is_embedded(&request);
+        let _present = self.daemon.workers.poll(embedded);
         let r = request.into_inner();
         check_length("worker_name", &r.worker_name, MAX_WORKER_NAME_BYTES)?;
         let mut name = r.worker_name;
@@ -48,7 +60,7 @@ impl WorkerService for Api {
             let (worker, slot) = (name.clone(), guard.slot.clone());
             let leased = self
                 .run(move |daemon| {
-                    let task = daemon.lease_frame(&worker, false)?;
+                    let task = daemon.lease_frame(&worker, embedded)?;
                     Ok(task.and_then(|task| slot.keep(daemon, task)))
                 })
                 .await?;
@@ -71,6 +83,7 @@ impl WorkerService for Api {
         &self,
         request: Request<pb::HeartbeatRequest>,
     ) -> Result<Response<pb::HeartbeatResponse>, Status> {
+        self.daemon.workers.heard_from(is_embedded(&request));
         let lease_id = request.into_inner().lease_id;
         check_id("lease_id", &lease_id)?;
         let answer = self.run(move |daemon| daemon.heartbeat(&lease_id)).await?;
@@ -82,6 +95,7 @@ impl WorkerService for Api {
         request: Request<Streaming<pb::CompleteFrameRequest>>,
     ) -> Result<Response<pb::CompleteFrameResponse>, Status> {
         use pb::complete_frame_request::Part;
+        self.daemon.workers.heard_from(is_embedded(&request));
         let mut stream = request.into_inner();
         let result = first_part(&mut stream, "result", |m| match m.part {
             Some(Part::Result(result)) => Some(result),
@@ -138,6 +152,7 @@ impl WorkerService for Api {
         &self,
         request: Request<pb::FailFrameRequest>,
     ) -> Result<Response<pb::FailFrameResponse>, Status> {
+        self.daemon.workers.heard_from(is_embedded(&request));
         let r = request.into_inner();
         check_id("lease_id", &r.lease_id)?;
         let reason = if r.reason.is_empty() {
@@ -145,7 +160,8 @@ impl WorkerService for Api {
         } else {
             truncated(&r.reason, MAX_REASON_BYTES)
         };
-        self.run(move |daemon| daemon.fail_frame(&r.lease_id, &reason))
+        let kind = failure_kind(r.kind);
+        self.run(move |daemon| daemon.fail_frame(&r.lease_id, &reason, kind))
             .await?;
         Ok(Response::new(pb::FailFrameResponse {}))
     }
@@ -154,6 +170,7 @@ impl WorkerService for Api {
         &self,
         request: Request<pb::ReleaseFrameRequest>,
     ) -> Result<Response<pb::ReleaseFrameResponse>, Status> {
+        self.daemon.workers.heard_from(is_embedded(&request));
         let lease_id = request.into_inner().lease_id;
         check_id("lease_id", &lease_id)?;
         self.run(move |daemon| daemon.release_frame(&lease_id))

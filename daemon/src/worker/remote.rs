@@ -11,6 +11,9 @@
 //!   a finished frame is handed in again until its lease would have expired.
 //! - Stopping (SIGTERM) lets the current frame finish and hands it in; a stop while waiting for
 //!   work exits at once.
+//! - A failed frame is reported with its kind: permanent (the dataset cannot be read, the
+//!   request cannot render) fails the job at once, transient is tried again. A panic while
+//!   rendering is reported, and then the worker exits: its renderer is lost.
 
 use std::future::Future;
 use std::path::{Path, PathBuf};
@@ -33,6 +36,7 @@ use tracing::Instrument;
 use crate::grpc::streaming::{HashingWriter, CHUNK_BYTES};
 use crate::grpc::{frame_task, timings_message};
 use crate::lease::FrameTask;
+use crate::worker::failure::FrameFailure;
 use crate::worker::render_state::{RenderedFrame, WorkerRenderState};
 
 /// How long one lease request waits for work on the daemon.
@@ -172,9 +176,9 @@ pub async fn run(
         let task = match frame_task(&message, &config.name) {
             Ok(task) => task,
             Err(e) => {
-                let reason = format!("the task is invalid: {e}");
-                tracing::error!(%reason);
-                fail_frame(&mut client, &message.lease_id, &reason).await;
+                let failure = FrameFailure::permanent(format!("the task is invalid: {e}"));
+                tracing::error!(reason = %failure.reason);
+                fail_frame(&mut client, &message.lease_id, &failure).await;
                 continue;
             }
         };
@@ -217,36 +221,41 @@ async fn run_task(
     heartbeats.abort();
     if abandoned.load(Ordering::SeqCst) {
         tracing::info!("frame dropped on the daemon's word");
-        return Ok(());
+        return result.map(|_| ());
     }
-    match result? {
-        Ok(frame) => complete_frame(client, &task, frame).await,
-        Err(reason) => {
-            tracing::warn!(%reason, "frame failed");
-            fail_frame(client, &task.lease.id, &reason).await;
+    match result {
+        Ok(Ok(frame)) => complete_frame(client, &task, frame).await,
+        Ok(Err(failure)) => {
+            tracing::warn!(reason = %failure.reason, kind = ?failure.kind, "frame failed");
+            fail_frame(client, &task.lease.id, &failure).await;
+        }
+        Err(lost) => {
+            let failure = FrameFailure::transient(format!("{lost:#}"));
+            fail_frame(client, &task.lease.id, &failure).await;
+            return Err(lost);
         }
     }
     Ok(())
 }
 
-/// The rendered frame, or the reason it could not be rendered. The outer error means the
-/// renderer itself was lost.
+/// The rendered frame, or why it could not be rendered. The outer error means the renderer
+/// itself was lost (it panicked).
 async fn download_and_render(
     client: &mut Client,
     render_state: &mut Option<WorkerRenderState>,
     downloads: &Path,
     task: &FrameTask,
-) -> anyhow::Result<Result<RenderedFrame, String>> {
+) -> anyhow::Result<Result<RenderedFrame, FrameFailure>> {
     let state = render_state.take().context("the renderer was lost")?;
     let file = if state.needs_file(task) {
         match download(client, task, downloads).await {
             Ok(file) => Some(file),
             Err(e) => {
                 *render_state = Some(state);
-                return Ok(Err(format!(
+                return Ok(Err(FrameFailure::transient(format!(
                     "downloading dataset {}: {e:#}",
                     task.dataset.id
-                )));
+                ))));
             }
         }
     } else {
@@ -263,7 +272,7 @@ async fn download_and_render(
         (state, rendered)
     })
     .await
-    .context("the render thread panicked")?;
+    .map_err(|e| anyhow::anyhow!("the renderer panicked: {}", panic_message(e)))?;
     *render_state = Some(state);
     if let Some(file) = file {
         // The points are in the cache now.
@@ -412,10 +421,24 @@ async fn release_frame(client: &mut Client, lease_id: &str) {
     }
 }
 
-async fn fail_frame(client: &mut Client, lease_id: &str, reason: &str) {
+/// What a panicked render thread said.
+fn panic_message(error: tokio::task::JoinError) -> String {
+    if !error.is_panic() {
+        return error.to_string();
+    }
+    let payload = error.into_panic();
+    payload
+        .downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| payload.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "no message".into())
+}
+
+async fn fail_frame(client: &mut Client, lease_id: &str, failure: &FrameFailure) {
     let request = pb::FailFrameRequest {
         lease_id: lease_id.to_string(),
-        reason: reason.to_string(),
+        reason: failure.reason.clone(),
+        kind: pb::FailureKind::from(failure.kind) as i32,
     };
     if let Err(status) = client.fail_frame(request).await {
         tracing::warn!(code = ?status.code(), message = status.message(), "reporting the failure failed; the lease will expire");

@@ -1,5 +1,5 @@
-//! A worker's render state and the rendering of one leased frame, shared by the embedded
-//! worker threads and the remote worker process: load the dataset (through the worker's
+//! A worker's render state and the rendering of one leased frame (`pointfarm worker`, also
+//! as the daemon's embedded worker): load the dataset (through the worker's
 //! `DatasetCache`), colour it, keep it resident on the GPU across frames, render with the
 //! job's settings and encode the PNG, with the stage timings of every step.
 
@@ -16,6 +16,7 @@ use pointfarm_render::raster::{Clock, GpuPointCloud, Renderer};
 
 use crate::lease::{FrameOutcome, FrameTask};
 use crate::model::StageTiming;
+use crate::worker::failure::FrameFailure;
 
 /// The cloud currently on the GPU.
 struct Resident {
@@ -67,14 +68,14 @@ impl WorkerRenderState {
     }
 
     /// Renders the frame of `task`; `file` is the dataset's file, read only when
-    /// [`needs_file`](Self::needs_file) says so. Errors are reasons to report.
-    pub fn render(&mut self, task: &FrameTask, file: &Path) -> Result<RenderedFrame, String> {
+    /// [`needs_file`](Self::needs_file) says so. Errors are failures to report.
+    pub fn render(&mut self, task: &FrameTask, file: &Path) -> Result<RenderedFrame, FrameFailure> {
         if !self.is_resident(task) {
             self.resident = None; // free the old cloud's GPU memory first
             self.resident = Some(self.load(task, file)?);
         }
         let Some(current) = self.resident.as_mut() else {
-            return Err("no resident cloud".into());
+            return Err(FrameFailure::transient("no resident cloud"));
         };
         let settings = task
             .request
@@ -82,8 +83,9 @@ impl WorkerRenderState {
         let mut frame = self
             .renderer
             .render(&current.cloud, &settings)
-            .map_err(|e| e.to_string())?;
-        let png = encode::png_bytes(&mut frame).map_err(|e| e.to_string())?;
+            .map_err(|e| FrameFailure::from(&e))?;
+        let png = encode::png_bytes(&mut frame)
+            .map_err(|e| FrameFailure::transient(format!("encoding the PNG: {e}")))?;
 
         let mut timings: Vec<StageTiming> = Vec::new();
         let load = current.unreported_load.take();
@@ -113,22 +115,26 @@ impl WorkerRenderState {
     }
 
     /// Loads a dataset (from the cache when it has it), colours it and uploads it.
-    fn load(&self, task: &FrameTask, file: &Path) -> Result<Resident, String> {
+    fn load(&self, task: &FrameTask, file: &Path) -> Result<Resident, FrameFailure> {
         let dataset = &task.dataset;
+        let in_dataset =
+            |failure: FrameFailure| failure.context(&format!("dataset {}", dataset.id));
         let started = Instant::now();
         let loaded = match &self.cache {
-            Some(cache) => cache.load(&dataset.sha256, file).map_err(|e| e.to_string()),
+            Some(cache) => cache
+                .load(&dataset.sha256, file)
+                .map_err(|e| FrameFailure::from(&e)),
             None => pointfarm_render::ingest::load_point_cloud(file)
                 .map(|cloud| (cloud, CacheOutcome::Miss))
-                .map_err(|e| e.to_string()),
+                .map_err(|e| FrameFailure::from(&e)),
         };
-        let (mut cloud, outcome) = loaded.map_err(|e| format!("dataset {}: {e}", dataset.id))?;
+        let (mut cloud, outcome) = loaded.map_err(in_dataset)?;
         let load_ms = started.elapsed().as_secs_f64() * 1e3;
         cloud.colors = point_colors(&cloud, task.request.render.color_mode);
         let gpu_cloud = self
             .renderer
             .upload(&cloud)
-            .map_err(|e| format!("dataset {}: {e}", dataset.id))?;
+            .map_err(|e| in_dataset(FrameFailure::from(&e)))?;
         tracing::info!(dataset = %dataset.id, points = cloud.len(), load_ms, ?outcome, "cloud resident");
         Ok(Resident {
             sha256: dataset.sha256.clone(),
