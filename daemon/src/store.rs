@@ -468,19 +468,6 @@ impl Store {
             .collect()
     }
 
-    /// Drops the leases held by embedded workers (found at start-up, they belonged to the
-    /// worker threads of the previous process); returns how many there were.
-    pub fn drop_embedded_leases(&self) -> Result<usize, StoreError> {
-        let mut dropped = 0;
-        for lease in self.leases()? {
-            if lease.embedded {
-                self.remove_lease(&lease.id)?;
-                dropped += 1;
-            }
-        }
-        Ok(dropped)
-    }
-
     /// A new id, unique in this database (also across restarts).
     pub fn generate_id(&self) -> Result<u64, StoreError> {
         Ok(self.db.generate_id()?)
