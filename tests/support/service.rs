@@ -162,11 +162,10 @@ pub fn upload_messages(name: &str, bytes: &[u8]) -> Vec<pb::UploadDatasetRequest
         .collect()
 }
 
-pub async fn upload(
-    datasets: &mut DatasetServiceClient<Channel>,
-    name: &str,
-    bytes: &[u8],
-) -> pb::Dataset {
+/// The dataset service of a daemon on loopback.
+pub type Datasets = DatasetServiceClient<Channel>;
+
+pub async fn upload(datasets: &mut Datasets, name: &str, bytes: &[u8]) -> pb::Dataset {
     datasets
         .upload_dataset(tokio_stream::iter(upload_messages(name, bytes)))
         .await
@@ -175,17 +174,9 @@ pub async fn upload(
 }
 
 /// Uploads the file at `path` as `name`.
-pub async fn upload_file(
-    datasets: &mut DatasetServiceClient<Channel>,
-    name: &str,
-    path: &Path,
-) -> pb::Dataset {
-    upload(
-        datasets,
-        name,
-        &std::fs::read(path).expect("read the file to upload"),
-    )
-    .await
+pub async fn upload_file(datasets: &mut Datasets, name: &str, path: &Path) -> pb::Dataset {
+    let bytes = std::fs::read(path).expect("read the file to upload");
+    upload(datasets, name, &bytes).await
 }
 
 pub fn turntable_job(

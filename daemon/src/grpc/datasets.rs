@@ -96,8 +96,8 @@ impl DatasetService for Api {
         &self,
         request: Request<pb::DeleteDatasetRequest>,
     ) -> Result<Response<pb::DeleteDatasetResponse>, Status> {
-        self.daemon.delete_dataset(&request.into_inner().id)?;
-        Ok(Response::new(pb::DeleteDatasetResponse {}))
+        let id = request.into_inner().id;
+        self.done(move |daemon| daemon.delete_dataset(&id)).await
     }
 }
 

@@ -39,6 +39,15 @@ impl Api {
         Self { daemon }
     }
 
+    /// Runs `work` as [`Api::run`] does, and answers with the empty message `R`.
+    async fn done<R: Default>(
+        &self,
+        work: impl FnOnce(&Arc<Daemon>) -> Result<(), DaemonError> + Send + 'static,
+    ) -> Result<tonic::Response<R>, Status> {
+        self.run(work).await?;
+        Ok(tonic::Response::new(R::default()))
+    }
+
     /// Runs `work` on the daemon off the async executor: store work blocks.
     async fn run<T: Send + 'static>(
         &self,

@@ -32,6 +32,20 @@ fn max_png_bytes(width: u32, height: u32) -> u64 {
     width as u64 * height as u64 * 5 + (1 << 20)
 }
 
+/// A lease id as a worker sends it, refused when no lease of ours could have it.
+fn checked_lease_id(lease_id: String) -> Result<String, DaemonError> {
+    check_id("lease_id", &lease_id)?;
+    Ok(lease_id)
+}
+
+impl Api {
+    /// The message of a worker's call, which tells the daemon that a worker is there.
+    fn heard<T>(&self, request: Request<T>) -> T {
+        self.daemon.workers.heard_from(is_embedded(&request));
+        request.into_inner()
+    }
+}
+
 #[tonic::async_trait]
 impl WorkerService for Api {
     async fn lease_frame(
@@ -83,9 +97,7 @@ impl WorkerService for Api {
         &self,
         request: Request<pb::HeartbeatRequest>,
     ) -> Result<Response<pb::HeartbeatResponse>, Status> {
-        self.daemon.workers.heard_from(is_embedded(&request));
-        let lease_id = request.into_inner().lease_id;
-        check_id("lease_id", &lease_id)?;
+        let lease_id = checked_lease_id(self.heard(request).lease_id)?;
         let answer = self.run(move |daemon| daemon.heartbeat(&lease_id)).await?;
         Ok(Response::new(pb::HeartbeatResponse::from(answer)))
     }
@@ -95,8 +107,7 @@ impl WorkerService for Api {
         request: Request<Streaming<pb::CompleteFrameRequest>>,
     ) -> Result<Response<pb::CompleteFrameResponse>, Status> {
         use pb::complete_frame_request::Part;
-        self.daemon.workers.heard_from(is_embedded(&request));
-        let mut stream = request.into_inner();
+        let mut stream = self.heard(request);
         let result = first_part(&mut stream, "result", |m| match m.part {
             Some(Part::Result(result)) => Some(result),
             _ => None,
@@ -143,17 +154,16 @@ impl WorkerService for Api {
             timings: stage_timings(&result.timings),
             dataset_cache_hit: result.dataset_cache_hit,
         };
-        self.run(move |daemon| daemon.complete_frame(&result.lease_id, &png, outcome))
-            .await?;
-        Ok(Response::new(pb::CompleteFrameResponse {}))
+        let lease_id = result.lease_id;
+        self.done(move |daemon| daemon.complete_frame(&lease_id, &png, outcome).map(drop))
+            .await
     }
 
     async fn fail_frame(
         &self,
         request: Request<pb::FailFrameRequest>,
     ) -> Result<Response<pb::FailFrameResponse>, Status> {
-        self.daemon.workers.heard_from(is_embedded(&request));
-        let r = request.into_inner();
+        let r = self.heard(request);
         check_id("lease_id", &r.lease_id)?;
         let reason = if r.reason.is_empty() {
             "the worker gave no reason".to_string()
@@ -161,21 +171,17 @@ impl WorkerService for Api {
             truncated(&r.reason, MAX_REASON_BYTES)
         };
         let kind = failure_kind(r.kind);
-        self.run(move |daemon| daemon.fail_frame(&r.lease_id, &reason, kind))
-            .await?;
-        Ok(Response::new(pb::FailFrameResponse {}))
+        self.done(move |daemon| daemon.fail_frame(&r.lease_id, &reason, kind))
+            .await
     }
 
     async fn release_frame(
         &self,
         request: Request<pb::ReleaseFrameRequest>,
     ) -> Result<Response<pb::ReleaseFrameResponse>, Status> {
-        self.daemon.workers.heard_from(is_embedded(&request));
-        let lease_id = request.into_inner().lease_id;
-        check_id("lease_id", &lease_id)?;
-        self.run(move |daemon| daemon.release_frame(&lease_id))
-            .await?;
-        Ok(Response::new(pb::ReleaseFrameResponse {}))
+        let lease_id = checked_lease_id(self.heard(request).lease_id)?;
+        self.done(move |daemon| daemon.release_frame(&lease_id))
+            .await
     }
 
     type FetchDatasetStream = ResponseStream<pb::DatasetChunk>;
