@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The README's first command: from a fresh clone, run the render service end to end in one
-# process (daemon and embedded worker on a loopback port) on a generated sample cloud, and
-# write a 12-frame turntable to ./frames/.
+# command (the daemon and its supervised worker process on a loopback port) on a generated
+# sample cloud, and write a 12-frame turntable to ./frames/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
