@@ -71,6 +71,11 @@ impl DecodedPoints {
         self.positions.len() as u64
     }
 
+    /// Whether every decoded coordinate is finite (a huge scale factor can overflow f64).
+    pub fn bounds_are_finite(&self) -> bool {
+        self.positions.is_empty() || (self.bounds_min.is_finite() && self.bounds_max.is_finite())
+    }
+
     pub fn append(&mut self, batch: &PointData, origin: DVec3) {
         for ((x, y), z) in batch.x().zip(batch.y()).zip(batch.z()) {
             let world = DVec3::new(x, y, z);
