@@ -77,12 +77,13 @@ pub enum IngestError {
         problem: &'static str,
     },
 
-    /// The decoded coordinates overflow f64 (a huge but finite scale factor or offset).
+    /// The scale factors and offsets put points where no survey is: beyond
+    /// [`MAX_COORDINATE`](super::MAX_COORDINATE) or past what f64 holds.
     #[error(
-        "{}: corrupt header: scale factors and offsets put points at non-finite coordinates",
+        "{}: corrupt header: scale factors and offsets put points at {extreme:e}, beyond ±1e12",
         path.display()
     )]
-    NonFiniteCoordinates { path: PathBuf },
+    ImplausibleCoordinates { path: PathBuf, extreme: f64 },
 
     /// The `las`/`laz` decoder panicked on data that passed every check made beforehand; the
     /// panic was contained and its message is kept.

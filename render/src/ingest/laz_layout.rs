@@ -175,6 +175,14 @@ fn check_items(
             )));
         }
     }
+    // LASzip writes every item of a file with one coder version; data coded with another
+    // decodes to garbage the coder's own assertions trip on.
+    if let Some(odd) = items.iter().find(|item| item.version != items[0].version) {
+        return Err(raw.corrupt(format!(
+            "LASzip items of mixed coder versions ({} and {})",
+            items[0].version, odd.version
+        )));
+    }
     let items_len: u64 = items.iter().map(|item| u64::from(item.size)).sum();
     if items_len != u64::from(facts.record_len) {
         return Err(raw.corrupt(format!(
@@ -318,4 +326,115 @@ fn check_layers(
         chunk_start += chunk.byte_count;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use std::fs;
+    use std::path::Path;
+
+    use crate::ingest::test_files::*;
+    use crate::ingest::{IngestError, LasWriteOptions};
+
+    /// The LASzip VLR's data starts after the 227-byte (LAS 1.2) or 375-byte (LAS 1.4)
+    /// header and its 54-byte VLR header.
+    const LASZIP_DATA_1_2: usize = 227 + 54;
+    const LASZIP_DATA_1_4: usize = 375 + 54;
+
+    fn corrupt_message(path: &Path) -> String {
+        match load_error(path) {
+            IngestError::Corrupt { what, .. } => what,
+            other => panic!("expected a corrupt-file error, got {other}"),
+        }
+    }
+
+    fn patched(path: &Path, original: &[u8], at: usize, value: &[u8]) {
+        let mut bytes = original.to_vec();
+        bytes[at..at + value.len()].copy_from_slice(value);
+        fs::write(path, &bytes).expect("patch");
+    }
+
+    #[test]
+    fn items_must_make_the_record_the_header_declares() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let (path, original) = file_to_cut(dir.path(), "items.laz", 100);
+        let first_item = LASZIP_DATA_1_2 + 34;
+        // Point10's size set to 0 (the decoder divides by the items' size) and to 21.
+        patched(&path, &original, first_item + 2, &0u16.to_le_bytes());
+        assert!(corrupt_message(&path).contains("item type 6 of 0 bytes"));
+        patched(&path, &original, first_item + 2, &21u16.to_le_bytes());
+        assert!(corrupt_message(&path).contains("of 21 bytes"));
+        // One item fewer: the record is shorter than the header's 34 bytes.
+        let count = u16::from_le_bytes([
+            original[LASZIP_DATA_1_2 + 32],
+            original[LASZIP_DATA_1_2 + 33],
+        ]);
+        patched(
+            &path,
+            &original,
+            LASZIP_DATA_1_2 + 32,
+            &(count - 1).to_le_bytes(),
+        );
+        assert!(corrupt_message(&path).contains("but the header says 34"));
+        // Mixed coder versions.
+        patched(&path, &original, first_item + 4, &1u16.to_le_bytes());
+        assert!(corrupt_message(&path).contains("mixed coder versions"));
+    }
+
+    #[test]
+    fn the_chunk_table_is_checked_against_the_compressed_data() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let (path, original) = file_to_cut(dir.path(), "chunks.laz", 1_000);
+        let data_start = u32::from_le_bytes(original[96..100].try_into().expect("4 bytes"));
+        let table = u64::from_le_bytes(
+            original[data_start as usize..][..8]
+                .try_into()
+                .expect("8 bytes"),
+        ) as usize;
+        // 2^32 - 1 chunks would reserve 64 GiB before the first entry is read.
+        patched(&path, &original, table + 4, &u32::MAX.to_le_bytes());
+        assert!(corrupt_message(&path).contains("declares 4294967295 chunks"));
+        // A chunk of 2^31 points in a file of 1,000.
+        patched(
+            &path,
+            &original,
+            LASZIP_DATA_1_2 + 12,
+            &(1u32 << 31).to_le_bytes(),
+        );
+        assert!(corrupt_message(&path).contains("a LAZ chunk of 2147483648 points"));
+        // The table's offset beyond the end of the file.
+        let beyond = (original.len() as u64 + 1).to_le_bytes();
+        patched(&path, &original, data_start as usize, &beyond);
+        assert!(matches!(
+            load_error(&path),
+            IngestError::LazChunkTable { .. }
+        ));
+    }
+
+    #[test]
+    fn layered_chunks_must_hold_their_layers() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let options = LasWriteOptions {
+            version: (1, 4),
+            point_format: 7,
+            scale: 0.001,
+        };
+        let path = write(dir.path(), "layers.laz", &test_cloud(1_000), &options);
+        let original = fs::read(&path).expect("read back");
+        assert_eq!(
+            u16::from_le_bytes([original[LASZIP_DATA_1_4], original[LASZIP_DATA_1_4 + 1]]),
+            3
+        );
+        let data_start =
+            u32::from_le_bytes(original[96..100].try_into().expect("4 bytes")) as usize;
+        // The first layer size after the chunk's raw first record (36 bytes) and point count.
+        let first_layer_size = data_start + 8 + 36 + 4;
+        patched(
+            &path,
+            &original,
+            first_layer_size,
+            &0x7fff_ffffu32.to_le_bytes(),
+        );
+        assert!(corrupt_message(&path).contains("layers take"));
+    }
 }

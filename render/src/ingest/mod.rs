@@ -34,6 +34,7 @@ mod test_files;
 mod transforms;
 mod write;
 
+pub use columns::MAX_COORDINATE;
 pub use error::IngestError;
 pub use read::load_point_cloud;
 pub use write::{write_las, LasWriteOptions, WriteLasError};

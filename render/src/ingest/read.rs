@@ -91,9 +91,10 @@ fn decode(
             available: decoded.len(),
         });
     }
-    if !decoded.bounds_are_finite() {
-        return Err(IngestError::NonFiniteCoordinates {
+    if let Some(extreme) = decoded.implausible_extreme() {
+        return Err(IngestError::ImplausibleCoordinates {
             path: path.to_owned(),
+            extreme,
         });
     }
     Ok(decoded.into_cloud(origin.unwrap_or(DVec3::ZERO)))

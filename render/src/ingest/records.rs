@@ -100,3 +100,77 @@ fn check_evlrs(
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use std::fs;
+
+    use crate::ingest::test_files::*;
+    use crate::ingest::{IngestError, LasWriteOptions};
+
+    const OFFSET_TO_POINT_DATA: usize = 96;
+
+    fn corrupt_message(path: &std::path::Path) -> String {
+        match load_error(path) {
+            IngestError::Corrupt { what, .. } => what,
+            other => panic!("expected a corrupt-file error, got {other}"),
+        }
+    }
+
+    #[test]
+    fn a_vlr_running_into_the_point_data_is_corrupt() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        // A LAZ file has one VLR (LASzip's), its length at 227 + 20.
+        let (path, mut bytes) = file_to_cut(dir.path(), "long_vlr.laz", 100);
+        bytes[247..249].copy_from_slice(&u16::MAX.to_le_bytes());
+        fs::write(&path, &bytes).expect("patch");
+        assert!(corrupt_message(&path).contains("run past the start of the point data"));
+
+        // More VLRs than fit before the point data.
+        let (path, mut bytes) = file_to_cut(dir.path(), "many_vlrs.laz", 100);
+        bytes[100..104].copy_from_slice(&u32::MAX.to_le_bytes());
+        fs::write(&path, &bytes).expect("patch");
+        assert!(corrupt_message(&path).contains("VLR 1 of 4294967295"));
+    }
+
+    #[test]
+    fn an_evlr_longer_than_the_file_is_corrupt_before_anything_is_allocated() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let options = LasWriteOptions {
+            version: (1, 4),
+            point_format: 6,
+            scale: 0.001,
+        };
+        let path = write(dir.path(), "evlr.las", &test_cloud(100), &options);
+        let mut bytes = fs::read(&path).expect("read back");
+        // One EVLR after the points, then its length set to a terabyte.
+        let start = bytes.len() as u64;
+        bytes[235..243].copy_from_slice(&start.to_le_bytes());
+        bytes[243..247].copy_from_slice(&1u32.to_le_bytes());
+        let mut evlr = vec![0u8; 60];
+        evlr[20..28].copy_from_slice(&4u64.to_le_bytes());
+        bytes.extend_from_slice(&evlr);
+        bytes.extend_from_slice(b"data");
+        fs::write(&path, &bytes).expect("append");
+        assert_eq!(
+            crate::ingest::load_point_cloud(&path)
+                .expect("a well-formed EVLR loads")
+                .len(),
+            100
+        );
+
+        let at = start as usize + 20;
+        bytes[at..at + 8].copy_from_slice(&(1u64 << 40).to_le_bytes());
+        fs::write(&path, &bytes).expect("patch");
+        assert!(corrupt_message(&path).contains("EVLR 0's data (1099511627776 bytes"));
+
+        let data_start = u32::from_le_bytes(
+            bytes[OFFSET_TO_POINT_DATA..OFFSET_TO_POINT_DATA + 4]
+                .try_into()
+                .expect("4 bytes"),
+        );
+        bytes[235..243].copy_from_slice(&u64::from(data_start - 1).to_le_bytes());
+        fs::write(&path, &bytes).expect("patch");
+        assert!(corrupt_message(&path).contains("lies before the point data"));
+    }
+}

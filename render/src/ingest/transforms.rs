@@ -96,14 +96,17 @@ mod tests {
     }
 
     #[test]
-    fn a_huge_scale_that_overflows_the_coordinates_is_an_error() {
+    fn a_huge_scale_that_puts_points_beyond_any_survey_is_an_error() {
         let dir = tempfile::tempdir().expect("temp dir");
         let (path, mut bytes) = file_to_cut(dir.path(), "huge_scale.las", 100);
-        bytes[X_SCALE_OFFSET..][..8].copy_from_slice(&1e305_f64.to_le_bytes());
-        fs::write(&path, &bytes).expect("patch");
-        assert!(matches!(
-            load_error(&path),
-            IngestError::NonFiniteCoordinates { .. }
-        ));
+        for scale in [1e305, 1e300, 1e12] {
+            bytes[X_SCALE_OFFSET..][..8].copy_from_slice(&f64::to_le_bytes(scale));
+            fs::write(&path, &bytes).expect("patch");
+            let error = load_error(&path);
+            assert!(
+                matches!(error, IngestError::ImplausibleCoordinates { .. }),
+                "{error}"
+            );
+        }
     }
 }
