@@ -36,7 +36,8 @@ mod tests {
     #[test]
     fn a_panic_becomes_an_error_naming_the_file() {
         let path = Path::new("/data/broken.laz");
-        let error = contain_panics::<()>(path, || panic!("index out of bounds")).unwrap_err();
+        let error = contain_panics::<()>(path, || panic!("index out of bounds"))
+            .expect_err("a panic is an error");
         assert!(
             matches!(&error, IngestError::DecoderPanicked { message, .. } if message == "index out of bounds")
         );
@@ -44,7 +45,8 @@ mod tests {
             error.to_string().starts_with("/data/broken.laz: "),
             "{error}"
         );
-        let formatted = contain_panics::<()>(path, || panic!("{} chunks", 3)).unwrap_err();
+        let formatted =
+            contain_panics::<()>(path, || panic!("{} chunks", 3)).expect_err("a panic is an error");
         assert!(formatted.to_string().ends_with("3 chunks"), "{formatted}");
         assert_eq!(contain_panics(path, || Ok(7)).ok(), Some(7));
     }
