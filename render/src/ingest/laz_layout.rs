@@ -12,8 +12,7 @@ use std::io;
 use laz::laszip::{ChunkTable, ChunkTableEntry};
 
 use super::header::HeaderFacts;
-use super::raw_file::RawFile;
-use super::records::RecordSpan;
+use super::raw_file::{RawFile, RecordSpan};
 use super::IngestError;
 
 /// Fixed part of the LASzip VLR's data: compressor, coder, version, options, chunk size,
@@ -340,13 +339,6 @@ mod tests {
     /// header and its 54-byte VLR header.
     const LASZIP_DATA_1_2: usize = 227 + 54;
     const LASZIP_DATA_1_4: usize = 375 + 54;
-
-    fn corrupt_message(path: &Path) -> String {
-        match load_error(path) {
-            IngestError::Corrupt { what, .. } => what,
-            other => panic!("expected a corrupt-file error, got {other}"),
-        }
-    }
 
     fn patched(path: &Path, original: &[u8], at: usize, value: &[u8]) {
         let mut bytes = original.to_vec();

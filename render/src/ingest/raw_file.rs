@@ -8,6 +8,13 @@ use std::path::Path;
 
 use super::IngestError;
 
+/// Where a record's data lies in the file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) struct RecordSpan {
+    pub offset: u64,
+    pub len: u64,
+}
+
 /// The file under inspection, its path (for errors) and its size (the bound of every read).
 pub(super) struct RawFile<'a> {
     pub path: &'a Path,
@@ -65,7 +72,7 @@ impl<'a> RawFile<'a> {
     }
 
     /// A record's data, already known to lie inside the file.
-    pub fn vlr_at(&mut self, span: super::records::RecordSpan) -> Result<Vec<u8>, IngestError> {
+    pub fn vlr_at(&mut self, span: RecordSpan) -> Result<Vec<u8>, IngestError> {
         self.vec_at(span.offset, span.len, "the LASzip VLR")
     }
 

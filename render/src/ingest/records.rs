@@ -4,7 +4,7 @@
 //! allocated (and zeroed) in full before the read fails.
 
 use super::header::HeaderFacts;
-use super::raw_file::RawFile;
+use super::raw_file::{RawFile, RecordSpan};
 use super::IngestError;
 
 /// A VLR's header: reserved (2), user id (16), record id (2), length (2), description (32).
@@ -18,13 +18,6 @@ const LENGTH_OFFSET: u64 = 20;
 /// The LASzip VLR: the compressor, chunk size and item layout of a LAZ file.
 const LASZIP_USER_ID: &[u8; 16] = b"laszip encoded\0\0";
 const LASZIP_RECORD_ID: u16 = 22204;
-
-/// Where a record's data lies in the file.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(super) struct RecordSpan {
-    pub offset: u64,
-    pub len: u64,
-}
 
 /// Walks the VLRs and EVLRs, checking every one's extent; gives the LASzip VLR's data span
 /// when there is one.
@@ -106,16 +99,9 @@ mod tests {
     use std::fs;
 
     use crate::ingest::test_files::*;
-    use crate::ingest::{IngestError, LasWriteOptions};
+    use crate::ingest::LasWriteOptions;
 
     const OFFSET_TO_POINT_DATA: usize = 96;
-
-    fn corrupt_message(path: &std::path::Path) -> String {
-        match load_error(path) {
-            IngestError::Corrupt { what, .. } => what,
-            other => panic!("expected a corrupt-file error, got {other}"),
-        }
-    }
 
     #[test]
     fn a_vlr_running_into_the_point_data_is_corrupt() {

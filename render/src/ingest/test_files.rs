@@ -66,6 +66,14 @@ pub(super) fn load_error(path: &Path) -> IngestError {
     error
 }
 
+/// Loads a file that must fail as corrupt (naming the file), and gives what is corrupt.
+pub(super) fn corrupt_message(path: &Path) -> String {
+    match load_error(path) {
+        IngestError::Corrupt { what, .. } => what,
+        other => panic!("expected a corrupt-file error, got {other}"),
+    }
+}
+
 pub(super) fn write(
     dir: &Path,
     name: &str,
