@@ -333,7 +333,7 @@ mod tests {
     use std::path::Path;
 
     use crate::ingest::test_files::*;
-    use crate::ingest::{IngestError, LasWriteOptions};
+    use crate::ingest::IngestError;
 
     /// The LASzip VLR's data starts after the 227-byte (LAS 1.2) or 375-byte (LAS 1.4)
     /// header and its 54-byte VLR header.
@@ -406,13 +406,7 @@ mod tests {
     #[test]
     fn layered_chunks_must_hold_their_layers() {
         let dir = tempfile::tempdir().expect("temp dir");
-        let options = LasWriteOptions {
-            version: (1, 4),
-            point_format: 7,
-            scale: 0.001,
-        };
-        let path = write(dir.path(), "layers.laz", &test_cloud(1_000), &options);
-        let original = fs::read(&path).expect("read back");
+        let (path, original) = written_1_4(dir.path(), "layers.laz", 1_000, 7);
         assert_eq!(
             u16::from_le_bytes([original[LASZIP_DATA_1_4], original[LASZIP_DATA_1_4 + 1]]),
             3

@@ -99,7 +99,6 @@ mod tests {
     use std::fs;
 
     use crate::ingest::test_files::*;
-    use crate::ingest::LasWriteOptions;
 
     const OFFSET_TO_POINT_DATA: usize = 96;
 
@@ -122,13 +121,7 @@ mod tests {
     #[test]
     fn an_evlr_longer_than_the_file_is_corrupt_before_anything_is_allocated() {
         let dir = tempfile::tempdir().expect("temp dir");
-        let options = LasWriteOptions {
-            version: (1, 4),
-            point_format: 6,
-            scale: 0.001,
-        };
-        let path = write(dir.path(), "evlr.las", &test_cloud(100), &options);
-        let mut bytes = fs::read(&path).expect("read back");
+        let (path, mut bytes) = written_1_4(dir.path(), "evlr.las", 100, 6);
         // One EVLR after the points, then its length set to a terabyte.
         let start = bytes.len() as u64;
         bytes[235..243].copy_from_slice(&start.to_le_bytes());

@@ -85,6 +85,23 @@ pub(super) fn write(
     path
 }
 
+/// A LAS 1.4 file of `points` points in `point_format`: its path and its bytes.
+pub(super) fn written_1_4(
+    dir: &Path,
+    name: &str,
+    points: usize,
+    point_format: u8,
+) -> (PathBuf, Vec<u8>) {
+    let options = LasWriteOptions {
+        version: (1, 4),
+        point_format,
+        scale: 0.001,
+    };
+    let path = write(dir, name, &test_cloud(points), &options);
+    let bytes = std::fs::read(&path).expect("read back");
+    (path, bytes)
+}
+
 /// `write` with the default options (`LasWriteOptions::default`); LAZ where `name` ends in `.laz`.
 pub(super) fn write_default(dir: &Path, name: &str, cloud: &PointCloud) -> PathBuf {
     write(dir, name, cloud, &LasWriteOptions::default())
