@@ -8,6 +8,10 @@ use las::PointData;
 use crate::cloud::{bounds_of, pack_rgba8, ColorSource, PointCloud, WorldBounds};
 use crate::color::{intensity_grey, CONSTANT_GREY_RGBA};
 
+/// The largest coordinate magnitude a file may hold: survey coordinates, even geocentric
+/// ones in millimetres, stay below 1e10; farther than this the camera's arithmetic overflows.
+pub const MAX_COORDINATE: f64 = 1e12;
+
 pub(super) fn world_bounds(bounds: las::Bounds) -> WorldBounds {
     let vector = |v: las::Vector<f64>| DVec3::new(v.x, v.y, v.z);
     WorldBounds {
@@ -69,6 +73,21 @@ impl DecodedPoints {
 
     pub fn len(&self) -> u64 {
         self.positions.len() as u64
+    }
+
+    /// The decoded coordinate farthest from zero, when it lies beyond [`MAX_COORDINATE`] or
+    /// is not finite (a huge scale factor or offset).
+    pub fn implausible_extreme(&self) -> Option<f64> {
+        if self.positions.is_empty() {
+            return None;
+        }
+        let extreme = self
+            .bounds_min
+            .abs()
+            .max(self.bounds_max.abs())
+            .max_element();
+        let plausible = extreme.is_finite() && extreme <= MAX_COORDINATE;
+        (!plausible).then_some(extreme)
     }
 
     pub fn append(&mut self, batch: &PointData, origin: DVec3) {

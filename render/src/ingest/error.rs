@@ -63,6 +63,33 @@ pub enum IngestError {
     #[error("{}: the file contains no points", path.display())]
     NoPoints { path: PathBuf },
 
+    /// A size, count or offset read from the file points outside it or contradicts another
+    /// field; `what` names the field and says why.
+    #[error("{}: corrupt file: {what}", path.display())]
+    Corrupt { path: PathBuf, what: String },
+
+    /// A scale factor that is not a finite, normal, non-zero number, or an offset that is not
+    /// finite: points cannot be placed (`x scale factor is NaN`).
+    #[error("{}: corrupt header: {field} is {problem}", path.display())]
+    BadTransform {
+        path: PathBuf,
+        field: &'static str,
+        problem: &'static str,
+    },
+
+    /// The scale factors and offsets put points where no survey is: beyond
+    /// [`MAX_COORDINATE`](super::MAX_COORDINATE) or past what f64 holds.
+    #[error(
+        "{}: corrupt header: scale factors and offsets put points at {extreme:e}, beyond ±1e12",
+        path.display()
+    )]
+    ImplausibleCoordinates { path: PathBuf, extreme: f64 },
+
+    /// The `las`/`laz` decoder panicked on data that passed every check made beforehand; the
+    /// panic was contained and its message is kept.
+    #[error("{}: malformed LAS/LAZ data: the decoder failed: {message}", path.display())]
+    DecoderPanicked { path: PathBuf, message: String },
+
     /// Anything else the `las` crate rejects: malformed VLRs, corrupt LAZ chunks, ...
     #[error("{}: malformed LAS/LAZ data: {error}", path.display())]
     Malformed { path: PathBuf, error: las::Error },

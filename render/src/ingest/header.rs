@@ -1,74 +1,17 @@
-//! The checks made before the `las` crate sees a file: the signature, version, point
-//! format and declared point count against the file's size, and for LAZ against its chunk
-//! table. The crate trusts the declared count: it sizes its read buffer from it, in LAS 1.4
-//! files it multiplies the 64-bit count by the record length unchecked, and its parallel LAZ
-//! decoder panics when asked for more points than the file's chunks hold.
+//! The public header block, read and checked before the `las` crate sees a file: signature,
+//! version, point format and record length, the declared point count against the file's size,
+//! the header size against the offset to the point data, and the scale factors and offsets.
+//! The crate trusts the declared count: it sizes its read buffer from it, and it computes
+//! `offset + count * record_length` unchecked.
 
 use std::fs::File;
 use std::io::{self, BufReader, Read, Seek, SeekFrom};
 use std::path::Path;
 
+use super::transforms::check_transforms;
 use super::IngestError;
 
-/// Checks the declared point count against the LAZ chunk table before decoding: the parallel
-/// decompressor asserts (and in release builds underflows) when asked for more points than its
-/// chunks hold. Within the last fixed-size chunk the decoder's own end-of-data error applies.
-pub(super) fn check_laz_chunk_capacity(
-    path: &Path,
-    file: &mut File,
-    declared: u64,
-) -> Result<(), IngestError> {
-    let malformed = |error| IngestError::Malformed {
-        path: path.to_owned(),
-        error,
-    };
-    file.seek(SeekFrom::Start(0))
-        .map_err(|error| IngestError::Io {
-            path: path.to_owned(),
-            error,
-        })?;
-    let mut read = BufReader::new(file);
-    // Parsing the header leaves `read` at the start of the point data, where the table offset is.
-    let header = las::Header::new(&mut read).map_err(malformed)?;
-    let vlr = header.laz_vlr().map_err(malformed)?;
-    if !is_chunked_laz(&header) {
-        return Ok(()); // Pre-2011 LAZ: no chunk table, and decoded sequentially.
-    }
-    let chunk_table = laz::laszip::ChunkTable::read_from(&mut read, &vlr).map_err(|error| {
-        IngestError::LazChunkTable {
-            path: path.to_owned(),
-            error,
-        }
-    })?;
-    let chunk_capacity = chunk_table
-        .as_ref()
-        .iter()
-        .map(|chunk| chunk.point_count)
-        .sum();
-    if declared > chunk_capacity {
-        return Err(IngestError::TruncatedLaz {
-            path: path.to_owned(),
-            declared,
-            chunk_capacity,
-        });
-    }
-    Ok(())
-}
-
-/// Whether the LASzip VLR names a chunked compressor (its first field; `laz` keeps it private).
-pub(super) fn is_chunked_laz(header: &las::Header) -> bool {
-    const POINT_WISE_UNCHUNKED: u16 = 1;
-    header
-        .vlrs()
-        .iter()
-        .find(|vlr| vlr.user_id == laz::LazVlr::USER_ID && vlr.record_id == laz::LazVlr::RECORD_ID)
-        .and_then(|vlr| vlr.data.get(..2))
-        .is_some_and(|compressor| {
-            u16::from_le_bytes([compressor[0], compressor[1]]) != POINT_WISE_UNCHUNKED
-        })
-}
-
-/// The header fields that decide whether a file can be read at all, validated before the
+/// The header fields that decide whether and how a file can be read, validated before the
 /// `las` crate parses it.
 pub(super) struct HeaderFacts {
     pub version: (u8, u8),
@@ -76,6 +19,14 @@ pub(super) struct HeaderFacts {
     pub point_format: u8,
     pub compressed: bool,
     pub declared_points: u64,
+    /// Bytes of one point record, extra bytes included.
+    pub record_len: u16,
+    /// Where the VLRs start (the header's declared size).
+    pub header_size: u16,
+    pub vlr_count: u32,
+    pub offset_to_point_data: u64,
+    /// LAS 1.4: the first EVLR's offset and the number of EVLRs, when both are non-zero.
+    pub evlrs: Option<(u64, u32)>,
 }
 
 impl HeaderFacts {
@@ -96,6 +47,8 @@ impl HeaderFacts {
                 path: path.to_owned(),
                 error,
             })?;
+        // The raw header allocates nothing the file does not hold (its padding is at most
+        // 65,535 bytes, read up to the end of the file).
         let raw =
             las::raw::Header::read_from(BufReader::new(&mut *file)).map_err(
                 |error| match error {
@@ -111,6 +64,10 @@ impl HeaderFacts {
                     },
                 },
             )?;
+        let corrupt = |what: String| IngestError::Corrupt {
+            path: path.to_owned(),
+            what,
+        };
 
         let version = (raw.version.major, raw.version.minor);
         if version.0 != 1 || version.1 > 4 {
@@ -123,12 +80,19 @@ impl HeaderFacts {
         // LASzip marks compressed data by setting bit 7 (and sometimes bit 6) of the format.
         let compressed = raw.point_data_record_format & 0x80 != 0;
         let point_format = raw.point_data_record_format & 0x3f;
-        if point_format > 10 {
+        let Some(format_len) = point_record_len(point_format) else {
             return Err(IngestError::UnsupportedPointFormat {
                 path: path.to_owned(),
                 format: point_format,
             });
+        };
+        let record_len = raw.point_data_record_length;
+        if record_len < format_len {
+            return Err(corrupt(format!(
+                "point record length {record_len} is shorter than point format {point_format} ({format_len} bytes)"
+            )));
         }
+        check_transforms(path, &raw)?;
 
         // LAS 1.4 keeps a 64-bit count; a non-zero legacy count wins, as the spec asks.
         let legacy_points = u64::from(raw.number_of_point_records);
@@ -149,32 +113,48 @@ impl HeaderFacts {
                 file_len,
             });
         }
-        let record_len = u64::from(raw.point_data_record_length);
+        let standard_header_size = raw.version.header_size();
+        if raw.header_size < standard_header_size || u64::from(raw.header_size) > data_start {
+            return Err(corrupt(format!(
+                "header size {} must lie between {standard_header_size} (LAS {}.{}) and the offset to the point data ({data_start})",
+                raw.header_size, version.0, version.1
+            )));
+        }
         let bytes_after_header = file_len - data_start;
-        if compressed {
-            // `las` computes `count * record_len` unchecked while parsing the header; an absurd
-            // 64-bit count would overflow it.
-            if declared_points.checked_mul(record_len).is_none() {
-                return Err(IngestError::ImpossiblePointCount {
-                    path: path.to_owned(),
-                    declared: declared_points,
-                });
-            }
-        } else if record_len > 0 && declared_points.saturating_mul(record_len) > bytes_after_header
+        if !compressed && declared_points.saturating_mul(u64::from(record_len)) > bytes_after_header
         {
             // Uncompressed data has a fixed size: check it up front, so a short file is reported
             // with the number of points that are really there.
             return Err(IngestError::Truncated {
                 path: path.to_owned(),
                 declared: declared_points,
-                available: bytes_after_header / record_len,
+                available: bytes_after_header / u64::from(record_len),
             });
         }
+        // `las` adds the offset to `count * record_length` unchecked; no real file comes close.
+        let data_end = declared_points
+            .checked_mul(u64::from(record_len))
+            .and_then(|len| len.checked_add(data_start));
+        if data_end.is_none() {
+            return Err(IngestError::ImpossiblePointCount {
+                path: path.to_owned(),
+                declared: declared_points,
+            });
+        }
+        let evlrs = raw
+            .evlr
+            .filter(|evlr| evlr.start_of_first_evlr > 0 && evlr.number_of_evlrs > 0)
+            .map(|evlr| (evlr.start_of_first_evlr, evlr.number_of_evlrs));
         Ok(Self {
             version,
             point_format,
             compressed,
             declared_points,
+            record_len,
+            header_size: raw.header_size,
+            vlr_count: raw.number_of_variable_length_records,
+            offset_to_point_data: data_start,
+            evlrs,
         })
     }
 
@@ -188,6 +168,12 @@ impl HeaderFacts {
         };
         usize::try_from(capacity).unwrap_or(0)
     }
+}
+
+/// The record length of a point format without extra bytes (LAS 1.4 R15, table 7 onwards).
+fn point_record_len(point_format: u8) -> Option<u16> {
+    const LENGTHS: [u16; 11] = [20, 28, 26, 34, 57, 63, 30, 36, 38, 59, 67];
+    LENGTHS.get(usize::from(point_format)).copied()
 }
 
 /// Like `read_exact`, but returns how many bytes there were instead of failing on a short file.

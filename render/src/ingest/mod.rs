@@ -1,28 +1,40 @@
 //! LAS/LAZ ingest: reads a file into a recentred [`PointCloud`](crate::cloud::PointCloud),
 //! and writes clouds back out (for tests and the generated sample scene).
 //!
-//! Every failure is an [`IngestError`] naming the file, never a panic. The header is checked by
-//! hand before the `las` crate sees it, because the crate trusts the declared point count: it
-//! sizes its read buffer from it (an inflated count means a huge allocation), in LAS 1.4 files it
-//! multiplies the 64-bit count by the record length unchecked, and its parallel LAZ decoder
-//! panics when asked for more points than the file's chunks hold.
+//! Every failure is an [`IngestError`] naming the file, never a panic, an abort or an
+//! allocation larger than the file. The file is pre-parsed by hand before the `las` and `laz`
+//! crates see it (header, VLRs, EVLRs, the LASzip VLR, the chunk table), because the crates
+//! trust what it declares: they allocate declared record lengths, chunk counts and byte counts
+//! before reading them, multiply counts by record lengths unchecked and assert that the
+//! LASzip items match the record length. What they can still panic on is contained.
 //!
 //! LAZ is decoded on all cores (`laz-parallel`, rayon); LAS is a plain sequential read.
 //!
-//! - `header.rs`: the checks before the `las` crate sees the file;
+//! - `preparse.rs`: the checks before the `las` crate sees the file, made by `header.rs` (the
+//!   header block), `transforms.rs` (scales and offsets), `records.rs` (VLRs and EVLRs) and
+//!   `laz_layout.rs` (the LASzip VLR, the chunk table, layered chunks), reading through
+//!   `raw_file.rs` (bounded reads);
+//! - `contain.rs`: a decoder panic turned into an error;
 //! - `read.rs`: reading a checked file batch by batch (LAZ on all cores);
 //! - `columns.rs`: the decoded points and the cloud made of them (origin, colours);
 //! - `write.rs`: writing clouds as LAS or LAZ;
 //! - `error.rs`: [`IngestError`].
 
 mod columns;
+mod contain;
 mod error;
 mod header;
+mod laz_layout;
+mod preparse;
+mod raw_file;
 mod read;
+mod records;
 #[cfg(test)]
 mod test_files;
+mod transforms;
 mod write;
 
+pub use columns::MAX_COORDINATE;
 pub use error::IngestError;
 
 /// The first four bytes of every LAS and LAZ file.

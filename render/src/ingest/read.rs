@@ -1,5 +1,6 @@
 //! Reading a checked file: the `las` reader (LAZ decoded on all cores, old unchunked LAZ
-//! sequentially) filled batch by batch into the point columns (`columns.rs`).
+//! sequentially) filled batch by batch into the point columns (`columns.rs`), inside the
+//! panic containment of `contain.rs`.
 
 use std::fs::File;
 use std::io::{BufReader, Seek, SeekFrom};
@@ -10,13 +11,18 @@ use glam::DVec3;
 use las::{PointDataBuilder, Reader};
 
 use super::columns::{choose_origin, world_bounds, DecodedPoints};
-use super::header::{check_laz_chunk_capacity, HeaderFacts};
+use super::contain::contain_panics;
+use super::header::HeaderFacts;
+use super::laz_layout::LazLayout;
+use super::preparse::{check_file, CheckedFile};
 use super::IngestError;
 use crate::cloud::PointCloud;
 
-/// Points decoded per batch. Bounds the scratch buffer, and for LAZ spans ~20 chunks of the
-/// usual 50,000 points, enough for the parallel decompressor to keep every core busy.
+/// Points decoded per batch at most. Bounds the scratch buffer, and for LAZ spans ~20 chunks
+/// of the usual 50,000 points, enough for the parallel decompressor to keep every core busy.
 const POINTS_PER_BATCH: u64 = 1 << 20;
+/// Bytes of decoded records per batch at most, for records made long by extra bytes.
+const BYTES_PER_BATCH: u64 = 64 << 20;
 
 /// Loads a LAS or LAZ file (LAS 1.0–1.4, point formats 0–10) into a recentred cloud.
 ///
@@ -32,13 +38,32 @@ pub fn load_point_cloud(path: &Path) -> Result<PointCloud, IngestError> {
 
     let mut file = File::open(path).map_err(io_error)?;
     let file_len = file.metadata().map_err(io_error)?.len();
-    let facts = HeaderFacts::read(path, &mut file, file_len)?;
-    if facts.compressed {
-        check_laz_chunk_capacity(path, &mut file, facts.declared_points)?;
-    }
+    let CheckedFile { facts, laz } = check_file(path, &mut file, file_len)?;
     file.seek(SeekFrom::Start(0)).map_err(io_error)?;
 
-    let mut reader = open_reader(path, file)?;
+    let cloud = contain_panics(path, || decode(path, file, file_len, &facts, laz))?;
+    tracing::info!(
+        file = %path.display(),
+        points = cloud.len(),
+        version = %format_args!("{}.{}", facts.version.0, facts.version.1),
+        point_format = facts.point_format,
+        compressed = facts.compressed,
+        color_source = ?cloud.color_source,
+        elapsed_ms = started.elapsed().as_secs_f64() * 1e3,
+        "loaded point cloud"
+    );
+    Ok(cloud)
+}
+
+/// Decodes every declared point of a file that passed the pre-parse.
+fn decode(
+    path: &Path,
+    file: File,
+    file_len: u64,
+    facts: &HeaderFacts,
+    laz: Option<LazLayout>,
+) -> Result<PointCloud, IngestError> {
+    let mut reader = open_reader(path, file, laz)?;
     let malformed = |error| IngestError::Malformed {
         path: path.to_owned(),
         error,
@@ -48,9 +73,10 @@ pub fn load_point_cloud(path: &Path) -> Result<PointCloud, IngestError> {
     let has_color = reader.header().point_format().has_color;
     let mut decoded = DecodedPoints::with_capacity(facts.capacity_hint(file_len), has_color);
     let mut batch = PointDataBuilder::new().for_header(reader.header()).build();
+    let batch_points = (BYTES_PER_BATCH / u64::from(facts.record_len)).clamp(1, POINTS_PER_BATCH);
     let mut origin = None;
     while decoded.len() < facts.declared_points {
-        let wanted = POINTS_PER_BATCH.min(facts.declared_points - decoded.len());
+        let wanted = batch_points.min(facts.declared_points - decoded.len());
         if reader.fill_points(wanted, &mut batch).map_err(malformed)? == 0 {
             break;
         }
@@ -65,42 +91,27 @@ pub fn load_point_cloud(path: &Path) -> Result<PointCloud, IngestError> {
             available: decoded.len(),
         });
     }
-
-    let cloud = decoded.into_cloud(origin.unwrap_or(DVec3::ZERO));
-    tracing::info!(
-        file = %path.display(),
-        points = cloud.len(),
-        version = %format_args!("{}.{}", facts.version.0, facts.version.1),
-        point_format = facts.point_format,
-        compressed = facts.compressed,
-        color_source = ?cloud.color_source,
-        elapsed_ms = started.elapsed().as_secs_f64() * 1e3,
-        "loaded point cloud"
-    );
-    Ok(cloud)
+    if let Some(extreme) = decoded.implausible_extreme() {
+        return Err(IngestError::ImplausibleCoordinates {
+            path: path.to_owned(),
+            extreme,
+        });
+    }
+    Ok(decoded.into_cloud(origin.unwrap_or(DVec3::ZERO)))
 }
 
-/// Opens the `las` reader. LAZ is decoded by the parallel decompressor (the crate's default with
-/// `laz-parallel`), which only handles chunked LAZ; old non-chunked files fall back to the
-/// sequential one.
-fn open_reader(path: &Path, file: File) -> Result<Reader, IngestError> {
-    let malformed = |error| IngestError::Malformed {
+/// Opens the `las` reader: chunked LAZ with the parallel decompressor (the crate's default
+/// with `laz-parallel`), old non-chunked LAZ with the sequential one.
+fn open_reader(path: &Path, file: File, laz: Option<LazLayout>) -> Result<Reader, IngestError> {
+    let parallelism = match laz {
+        Some(LazLayout::Unchunked) => las::LazParallelism::No,
+        Some(LazLayout::Chunked) | None => las::LazParallelism::Yes,
+    };
+    let options = las::ReaderOptions::default().with_laz_parallelism(parallelism);
+    Reader::with_options(BufReader::new(file), options).map_err(|error| IngestError::Malformed {
         path: path.to_owned(),
         error,
-    };
-    match Reader::new(BufReader::new(file)) {
-        Err(las::Error::LasZipError(error)) => {
-            tracing::debug!(file = %path.display(), %error, "parallel LAZ decoding unavailable");
-            let file = File::open(path).map_err(|error| IngestError::Io {
-                path: path.to_owned(),
-                error,
-            })?;
-            let options =
-                las::ReaderOptions::default().with_laz_parallelism(las::LazParallelism::No);
-            Reader::with_options(BufReader::new(file), options).map_err(malformed)
-        }
-        result => result.map_err(malformed),
-    }
+    })
 }
 
 #[cfg(test)]

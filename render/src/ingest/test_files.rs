@@ -66,6 +66,14 @@ pub(super) fn load_error(path: &Path) -> IngestError {
     error
 }
 
+/// Loads a file that must fail as corrupt (naming the file), and gives what is corrupt.
+pub(super) fn corrupt_message(path: &Path) -> String {
+    match load_error(path) {
+        IngestError::Corrupt { what, .. } => what,
+        other => panic!("expected a corrupt-file error, got {other}"),
+    }
+}
+
 pub(super) fn write(
     dir: &Path,
     name: &str,
@@ -75,6 +83,23 @@ pub(super) fn write(
     let path = dir.join(name);
     write_las(&path, cloud, options).expect("write test file");
     path
+}
+
+/// A LAS 1.4 file of `points` points in `point_format`: its path and its bytes.
+pub(super) fn written_1_4(
+    dir: &Path,
+    name: &str,
+    points: usize,
+    point_format: u8,
+) -> (PathBuf, Vec<u8>) {
+    let options = LasWriteOptions {
+        version: (1, 4),
+        point_format,
+        scale: 0.001,
+    };
+    let path = write(dir, name, &test_cloud(points), &options);
+    let bytes = std::fs::read(&path).expect("read back");
+    (path, bytes)
 }
 
 /// `write` with the default options (`LasWriteOptions::default`); LAZ where `name` ends in `.laz`.
