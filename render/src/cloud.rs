@@ -8,6 +8,11 @@
 
 use glam::{DVec3, Vec3};
 
+/// The largest coordinate magnitude of a point or camera, in the file's units: survey
+/// coordinates, even geocentric ones in millimetres, stay below 1e10; beyond this the
+/// camera's arithmetic overflows. Files and camera paths beyond it are refused.
+pub const MAX_COORDINATE: f64 = 1e12;
+
 /// An axis-aligned box in f64 world coordinates.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct WorldBounds {

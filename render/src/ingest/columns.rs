@@ -5,12 +5,8 @@
 use glam::{DVec3, Vec3};
 use las::PointData;
 
-use crate::cloud::{bounds_of, pack_rgba8, ColorSource, PointCloud, WorldBounds};
+use crate::cloud::{bounds_of, pack_rgba8, ColorSource, PointCloud, WorldBounds, MAX_COORDINATE};
 use crate::color::{intensity_grey, CONSTANT_GREY_RGBA};
-
-/// The largest coordinate magnitude a file may hold: survey coordinates, even geocentric
-/// ones in millimetres, stay below 1e10; farther than this the camera's arithmetic overflows.
-pub const MAX_COORDINATE: f64 = 1e12;
 
 pub(super) fn world_bounds(bounds: las::Bounds) -> WorldBounds {
     let vector = |v: las::Vector<f64>| DVec3::new(v.x, v.y, v.z);

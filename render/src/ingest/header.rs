@@ -36,7 +36,7 @@ impl HeaderFacts {
             path: path.to_owned(),
             error,
         })?;
-        if signature[..signature_len] != *b"LASF" {
+        if signature[..signature_len] != *super::LAS_SIGNATURE {
             return Err(IngestError::NotLas {
                 path: path.to_owned(),
                 found: String::from_utf8_lossy(&signature[..signature_len]).into_owned(),

@@ -34,7 +34,7 @@ mod test_files;
 mod transforms;
 mod write;
 
-pub use columns::MAX_COORDINATE;
+pub use crate::cloud::MAX_COORDINATE;
 pub use error::IngestError;
 
 /// The first four bytes of every LAS and LAZ file.

@@ -19,9 +19,7 @@ pub const TURNTABLE_ELEVATION_RANGE: RangeInclusive<f64> = -89.0..=89.0;
 pub const TURNTABLE_DEGREES_RANGE: RangeInclusive<f64> = -36000.0..=36000.0;
 /// Vertical fields of view accepted, in degrees (exclusive at both ends).
 pub const FOV_Y_DEG_RANGE: RangeInclusive<f64> = 0.0..=180.0;
-/// The largest magnitude of a coordinate, radius or distance in a camera path, in the file's
-/// units: beyond any survey's extent, and far from where f64 loses the metre.
-pub const MAX_COORDINATE: f64 = 1e12;
+pub use crate::cloud::MAX_COORDINATE;
 /// A keyframe path needs at least this many keyframes.
 pub const MIN_KEYFRAMES: usize = 2;
 /// The up direction unless asked otherwise: +Z.
