@@ -100,8 +100,6 @@ mod tests {
 
     use crate::ingest::test_files::*;
 
-    const OFFSET_TO_POINT_DATA: usize = 96;
-
     #[test]
     fn a_vlr_running_into_the_point_data_is_corrupt() {
         let dir = tempfile::tempdir().expect("temp dir");

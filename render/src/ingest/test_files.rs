@@ -117,6 +117,10 @@ pub(super) fn file_to_cut(dir: &Path, name: &str, points: usize) -> (PathBuf, Ve
 
 // Byte offsets of header fields patched below (LAS 1.0–1.4 public header block).
 pub(super) const VERSION_MINOR_OFFSET: usize = 25;
+/// Header offset of the offset to the point data.
+pub(super) const OFFSET_TO_POINT_DATA: usize = 96;
+/// Header offset of the x scale factor; y, z and the offsets follow 8 bytes apart.
+pub(super) const X_SCALE_OFFSET: usize = 131;
 
 pub(super) const LEGACY_POINT_COUNT_OFFSET: usize = 107;
 

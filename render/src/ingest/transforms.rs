@@ -65,9 +65,6 @@ mod tests {
     use crate::ingest::test_files::*;
     use crate::ingest::IngestError;
 
-    /// Header offsets of the x scale factor; y, z and the offsets follow 8 bytes apart.
-    const X_SCALE_OFFSET: usize = 131;
-
     #[test]
     fn unusable_scales_and_offsets_are_errors_naming_the_field() {
         let dir = tempfile::tempdir().expect("temp dir");
