@@ -421,11 +421,13 @@ fn serve_without_an_embedded_worker_renders_through_a_worker_process() {
             "5",
             "--token",
             "t0k",
+            "--worker-token",
+            "w0rker",
         ],
     );
     let address = server.address.clone();
     let url = format!("http://{address}");
-    // Without the token the worker is refused and says so.
+    // Without the worker token the worker is refused and says so; the client token is not one.
     let refused = pointfarm(&[
         "worker",
         "--server",
@@ -434,8 +436,22 @@ fn serve_without_an_embedded_worker_renders_through_a_worker_process() {
         &path_arg(&dir.join("c0")),
     ]);
     assert_fails_saying(&refused, "Unauthenticated");
-    let worker =
-        WorkerProcess::start_with(&url, &dir.join("cache"), "cli-worker", &["--token", "t0k"]);
+    let refused = pointfarm(&[
+        "worker",
+        "--server",
+        &url,
+        "--worker-token",
+        "t0k",
+        "--cache-dir",
+        &path_arg(&dir.join("c0")),
+    ]);
+    assert_fails_saying(&refused, "PermissionDenied");
+    let worker = WorkerProcess::start_with(
+        &url,
+        &dir.join("cache"),
+        "cli-worker",
+        &["--worker-token", "w0rker"],
+    );
     let frames = dir.join("remote");
     let frames_arg = path_arg(&frames);
     let output = pointfarm(&[

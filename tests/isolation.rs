@@ -6,8 +6,9 @@
 
 use std::time::Duration;
 
+use pointfarm_daemon::access::Access;
 use pointfarm_proto::v1 as pb;
-use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
+use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_tests::service::{
     clients, connect, scratch_sample, submit, turntable_job, upload_file, watch_to_end,
     watch_to_success, TestDaemon,
@@ -20,7 +21,7 @@ use tonic_health::pb::HealthCheckRequest;
 
 /// The leases the daemon at `address` holds now.
 async fn leases(address: &str) -> Vec<pb::Lease> {
-    WorkerServiceClient::new(connect(address).await)
+    JobServiceClient::new(connect(address).await)
         .list_leases(pb::ListLeasesRequest {})
         .await
         .expect("list leases")
@@ -209,7 +210,7 @@ async fn wait_for_health(address: &str, status: ServingStatus, timeout: Duration
 async fn health_says_whether_a_worker_can_render() {
     let daemon = TestDaemon::start_without_worker(
         |config| config.lease_timeout = Duration::from_secs(1),
-        None,
+        Access::default(),
     )
     .await;
     let address = daemon.address.to_string();

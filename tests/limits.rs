@@ -5,6 +5,7 @@
 
 use std::time::Duration;
 
+use pointfarm_daemon::access::Access;
 use pointfarm_proto::v1 as pb;
 use pointfarm_tests::service::{
     scratch_sample, submit, turntable_job, upload, upload_messages, TestDaemon,
@@ -37,7 +38,7 @@ fn dataset_files(daemon: &TestDaemon) -> Vec<String> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn long_names_and_ids_are_refused_and_never_echoed() {
-    let daemon = TestDaemon::start_without_worker(|_| {}, None).await;
+    let daemon = TestDaemon::start_without_worker(|_| {}, Access::default()).await;
     let (mut datasets, mut jobs) = (daemon.datasets().await, daemon.jobs().await);
     let huge = "x".repeat(1 << 20);
 
@@ -140,7 +141,7 @@ async fn uploads_are_refused_from_their_header_or_first_bytes_and_leave_nothing(
             c.max_upload_bytes = 1 << 20;
             c.upload_quota_bytes = Some(quota);
         },
-        None,
+        Access::default(),
     )
     .await;
 
@@ -200,7 +201,7 @@ async fn uploads_are_refused_from_their_header_or_first_bytes_and_leave_nothing(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_dataset_used_by_any_unfinished_job_cannot_be_deleted() {
-    let daemon = TestDaemon::start_without_worker(|_| {}, None).await;
+    let daemon = TestDaemon::start_without_worker(|_| {}, Access::default()).await;
     let (mut datasets, mut jobs) = (daemon.datasets().await, daemon.jobs().await);
     let busy = upload(&mut datasets, "busy.las", &sample_bytes(500, 3)).await;
     let used = upload(&mut datasets, "used.las", &sample_bytes(500, 4)).await;
@@ -232,7 +233,7 @@ async fn a_dataset_used_by_any_unfinished_job_cannot_be_deleted() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_watcher_that_pauses_still_receives_every_frame_once() {
     // A tiny event buffer, so that the paused watcher falls behind it.
-    let daemon = TestDaemon::start(|c| c.event_buffer = 4, None).await;
+    let daemon = TestDaemon::start(|c| c.event_buffer = 4, Access::default()).await;
     let (mut datasets, mut jobs) = (daemon.datasets().await, daemon.jobs().await);
     let dataset = upload(&mut datasets, "s.las", &sample_bytes(300, 5)).await;
     let frames = 600;

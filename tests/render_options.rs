@@ -6,6 +6,7 @@
 //! cannot pass.
 
 use image::RgbaImage;
+use pointfarm_daemon::access::Access;
 use pointfarm_daemon::model::JobSpec;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::cloud::PointCloud;
@@ -193,7 +194,7 @@ async fn every_option_renders_the_same_here_and_through_the_service() {
     let file = scratch.path().join("sample.las");
     write_sample(&file, 20_000, 11);
     let cloud = load_point_cloud(&file).expect("load the sample");
-    let daemon = TestDaemon::start(|_| {}, None).await;
+    let daemon = TestDaemon::start(|_| {}, Access::default()).await;
     let bytes = std::fs::read(&file).expect("read the sample");
     let dataset = upload(&mut daemon.datasets().await, "sample.las", &bytes).await;
     let mut jobs = daemon.jobs().await;

@@ -3,6 +3,7 @@
 
 use std::time::Duration;
 
+use pointfarm_daemon::access::Access;
 use pointfarm_proto::v1 as pb;
 use pointfarm_tests::service::{
     assert_equal_to_direct_renders, clients, fetch_images, get_job, scan, scratch_sample, submit,
@@ -14,7 +15,7 @@ use tonic::Code;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_turntable_job_renders_the_same_frames_as_the_renderer() {
-    let daemon = TestDaemon::start(|_| {}, None).await;
+    let daemon = TestDaemon::start(|_| {}, Access::default()).await;
     let scratch = tempfile::tempdir().expect("tempdir");
     let file = scan(scratch.path());
     let bytes = std::fs::read(&file).expect("read scan");
@@ -121,7 +122,7 @@ async fn invalid_requests_get_their_status_codes() {
             c.max_upload_bytes = 4096;
             c.data_roots = vec![root];
         },
-        None,
+        Access::default(),
     )
     .await;
     let mut jobs = daemon.jobs().await;
@@ -226,7 +227,7 @@ async fn invalid_requests_get_their_status_codes() {
     daemon.stop().await;
 
     // A server with a token refuses calls without it.
-    let guarded = TestDaemon::start(|_| {}, Some("s3cret")).await;
+    let guarded = TestDaemon::start(|_| {}, Access::new(Some("s3cret"), None)).await;
     let status = guarded
         .jobs()
         .await
@@ -250,7 +251,7 @@ async fn invalid_requests_get_their_status_codes() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_corrupt_dataset_fails_its_job_while_another_completes() {
-    let daemon = TestDaemon::start(|_| {}, None).await;
+    let daemon = TestDaemon::start(|_| {}, Access::default()).await;
     let (_scratch, good_file) = scratch_sample("good.las", 5_000, 2);
     let good_bytes = std::fs::read(&good_file).expect("read");
     // The same file cut short: its header promises more points than it holds.
@@ -374,7 +375,7 @@ async fn a_killed_daemon_resumes_its_jobs_without_rerendering_finished_frames() 
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn higher_priority_jobs_run_first() {
-    let daemon = TestDaemon::start(|_| {}, None).await;
+    let daemon = TestDaemon::start(|_| {}, Access::default()).await;
     let (_scratch, file) = scratch_sample("s.laz", 50_000, 5);
     let mut datasets = daemon.datasets().await;
     let dataset = upload(&mut datasets, "s.laz", &std::fs::read(&file).expect("read")).await;

@@ -19,7 +19,7 @@ async fn state_with_jobs(data_dir: &Path, jobs: usize) {
         daemon,
         None,
         listener,
-        None,
+        pointfarm_daemon::server::ServeOptions::default(),
         async {
             let _ = stopped.await;
         },

@@ -5,8 +5,10 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
+use pointfarm_daemon::access::Access;
 use pointfarm_daemon::service::DaemonConfig;
 use pointfarm_proto::v1 as pb;
+use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_tests::service::{
     assert_equal_to_direct_renders, clients, fetch_images, get_job, scan, scratch_sample, submit,
@@ -55,7 +57,7 @@ struct DaemonWithScan {
 
 impl DaemonWithScan {
     async fn start(configure: impl FnOnce(&mut DaemonConfig)) -> Self {
-        let daemon = TestDaemon::start_without_worker(configure, None).await;
+        let daemon = TestDaemon::start_without_worker(configure, Access::default()).await;
         let scratch = tempfile::tempdir().expect("tempdir");
         let file = scan(scratch.path());
         let mut datasets = daemon.datasets().await;
@@ -72,11 +74,6 @@ impl DaemonWithScan {
             dataset,
         }
     }
-}
-
-/// A WorkerService client without a token.
-async fn workers_client(daemon: &TestDaemon) -> Workers {
-    WorkerServiceClient::with_interceptor(daemon.channel().await, Token::new(None))
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -136,17 +133,17 @@ async fn a_worker_killed_mid_frame_loses_nothing() {
         dataset,
     } = DaemonWithScan::start(|config| config.lease_timeout = Duration::from_secs(2)).await;
     let mut jobs = daemon.jobs().await;
-    let mut workers = workers_client(&daemon).await;
+    let mut lister = daemon.jobs().await;
     let job = submit(&mut jobs, turntable_job("killed", &dataset.id, 4, 160, 120)).await;
 
     let mut first = WorkerProcess::start(&daemon.url(), &scratch.path().join("cache-1"), "first");
     // The first lease of a fresh worker covers downloading and decoding the dataset: the
     // worker is killed while it holds that lease.
-    let held = wait_for_lease(&mut workers, &job.id, || first.log()).await;
+    let held = wait_for_lease(&mut lister, &job.id, || first.log()).await;
     first.kill();
     assert_eq!(held.worker_name, "first");
     assert!(
-        list_leases(&mut workers)
+        list_leases(&mut lister)
             .await
             .iter()
             .any(|l| l.lease_id == held.lease_id),
@@ -180,13 +177,13 @@ async fn a_worker_killed_mid_frame_loses_nothing() {
         vec![0, 1, 2, 3]
     );
     assert_equal_to_direct_renders(&file, 4, (160, 120), &fetched);
-    assert!(list_leases(&mut workers).await.is_empty());
+    assert!(list_leases(&mut lister).await.is_empty());
     daemon.stop().await;
 }
 
-async fn list_leases(workers: &mut Workers) -> Vec<pb::Lease> {
-    workers
-        .list_leases(pb::ListLeasesRequest {})
+/// The leases held now, as clients see them.
+async fn list_leases(jobs: &mut JobServiceClient<Channel>) -> Vec<pb::Lease> {
+    jobs.list_leases(pb::ListLeasesRequest {})
         .await
         .expect("list leases")
         .into_inner()
@@ -266,24 +263,43 @@ async fn stale_and_cancelled_leases_are_refused() {
             config.lease_timeout = lease_timeout;
             config.max_frame_attempts = 2;
         },
-        Some("s3cret"),
+        Access::new(Some("c1ient"), Some("s3cret")),
     )
     .await;
     let channel = daemon.channel().await;
     let refused = WorkerServiceClient::new(channel.clone())
-        .list_leases(pb::ListLeasesRequest {})
+        .lease_frame(pb::LeaseFrameRequest::default())
         .await
         .expect_err("no token");
     assert_eq!(refused.code(), Code::Unauthenticated);
-    let with_token = Token::new(Some("s3cret"));
-    let mut workers = WorkerServiceClient::with_interceptor(channel.clone(), with_token.clone());
+    let (worker_token, client_token) = (Token::new(Some("s3cret")), Token::new(Some("c1ient")));
+    let mut workers = WorkerServiceClient::with_interceptor(channel.clone(), worker_token);
     let mut datasets =
         pointfarm_proto::v1::dataset_service_client::DatasetServiceClient::with_interceptor(
             channel.clone(),
-            with_token.clone(),
+            client_token.clone(),
         );
-    let mut jobs = pointfarm_proto::v1::job_service_client::JobServiceClient::with_interceptor(
-        channel, with_token,
+    let mut jobs = JobServiceClient::with_interceptor(channel.clone(), client_token.clone());
+    // Each role's token opens only its own services.
+    let denied = WorkerServiceClient::with_interceptor(channel.clone(), client_token)
+        .lease_frame(pb::LeaseFrameRequest::default())
+        .await
+        .expect_err("a client token on the worker service");
+    assert_eq!(
+        denied.code(),
+        Code::PermissionDenied,
+        "{}",
+        denied.message()
+    );
+    let denied = JobServiceClient::with_interceptor(channel, Token::new(Some("s3cret")))
+        .list_leases(pb::ListLeasesRequest {})
+        .await
+        .expect_err("a worker token on the job service");
+    assert_eq!(
+        denied.code(),
+        Code::PermissionDenied,
+        "{}",
+        denied.message()
     );
 
     let (_scratch, file) = scratch_sample("s.laz", 2_000, 7);
@@ -342,7 +358,12 @@ async fn stale_and_cancelled_leases_are_refused() {
         .expect("release");
     tokio::time::sleep(lease_timeout * 5 / 2).await;
     assert!(
-        list_leases(&mut workers).await.is_empty(),
+        jobs.list_leases(pb::ListLeasesRequest {})
+            .await
+            .expect("list leases")
+            .into_inner()
+            .leases
+            .is_empty(),
         "the lease expired"
     );
     let late = complete(&mut workers, &first, png(32, 24))
@@ -430,12 +451,12 @@ async fn stale_and_cancelled_leases_are_refused() {
 
 /// Waits until a worker holds a lease on a frame of `job_id`, and returns it.
 async fn wait_for_lease(
-    workers: &mut Workers,
+    jobs: &mut JobServiceClient<Channel>,
     job_id: &str,
     log: impl Fn() -> String,
 ) -> pb::Lease {
     for _ in 0..6000 {
-        let leases = list_leases(workers).await;
+        let leases = list_leases(jobs).await;
         if let Some(lease) = leases.into_iter().find(|l| l.job_id == job_id) {
             return lease;
         }
@@ -454,14 +475,14 @@ async fn sigterm_lets_a_worker_hand_in_its_frame_before_it_exits() {
         dataset,
     } = DaemonWithScan::start(|_| {}).await;
     let mut jobs = daemon.jobs().await;
-    let mut workers = workers_client(&daemon).await;
+    let mut lister = daemon.jobs().await;
     let job = submit(
         &mut jobs,
         turntable_job("sigterm", &dataset.id, 8, 160, 120),
     )
     .await;
     let mut worker = WorkerProcess::start(&daemon.url(), &scratch.path().join("cache"), "w");
-    let held = wait_for_lease(&mut workers, &job.id, || worker.log()).await;
+    let held = wait_for_lease(&mut lister, &job.id, || worker.log()).await;
     // The worker has the lease in hand (not merely on its way) before the signal.
     for _ in 0..3000 {
         if worker.log().contains("frame leased") {
@@ -485,7 +506,7 @@ async fn sigterm_lets_a_worker_hand_in_its_frame_before_it_exits() {
         worker.log()
     );
     assert!(
-        list_leases(&mut workers).await.is_empty(),
+        list_leases(&mut lister).await.is_empty(),
         "no frame left leased"
     );
     assert!(

@@ -8,6 +8,7 @@ use clap::{Args, Subcommand};
 use pointfarm_proto::v1 as pb;
 use serde_json::json;
 
+use crate::credentials::ClientCredentials;
 use crate::remote::{answer, state_name, status_error, Client};
 
 /// Items asked for per page of a listing.
@@ -40,9 +41,8 @@ pub struct ServerArgs {
         global = true
     )]
     pub server: String,
-    /// Bearer token for the server.
-    #[arg(long, env = "POINTFARM_TOKEN", hide_env_values = true, global = true)]
-    pub token: Option<String>,
+    #[command(flatten)]
+    pub credentials: ClientCredentials,
     /// Print JSON instead of tables.
     #[arg(long, global = true)]
     pub json: bool,
@@ -117,7 +117,7 @@ fn job_json(j: &pb::Job) -> serde_json::Value {
 
 pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
     runtime()?.block_on(async {
-        let mut client = Client::connect(&server.server, server.token.as_deref()).await?;
+        let mut client = Client::connect(&server.server, &server.credentials).await?;
         match command {
             DatasetCommand::Add { file } => {
                 print_dataset(server, &client.ensure_dataset(&file).await?)
@@ -210,7 +210,7 @@ pub fn stage_statistics(frames: &[pb::FrameFinished]) -> Vec<(String, f64, f64)>
 
 pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
     runtime()?.block_on(async {
-        let mut client = Client::connect(&server.server, server.token.as_deref()).await?;
+        let mut client = Client::connect(&server.server, &server.credentials).await?;
         match command {
             JobsCommand::List { state } => {
                 let state = state.as_deref().map(parse_state).transpose()?.unwrap_or(pb::JobState::Unspecified);
@@ -269,7 +269,7 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                 }
             }
             JobsCommand::Leases => {
-                let leases = answer(client.workers.list_leases(pb::ListLeasesRequest {}).await)?.leases;
+                let leases = answer(client.jobs.list_leases(pb::ListLeasesRequest {}).await)?.leases;
                 let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis() as i64).unwrap_or(0);
                 if server.json {
                     let values: Vec<serde_json::Value> = leases.iter().map(|l| json!({
@@ -292,7 +292,7 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
 
 pub fn frames(server: &ServerArgs, command: FramesCommand) -> Result<()> {
     runtime()?.block_on(async {
-        let mut client = Client::connect(&server.server, server.token.as_deref()).await?;
+        let mut client = Client::connect(&server.server, &server.credentials).await?;
         match command {
             FramesCommand::Fetch { job, out, from } => {
                 let written = client.fetch_frames(&job, from, &out).await?;

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result};
 use clap::Args;
 use pointfarm_daemon::model::JobSpec;
-use pointfarm_daemon::server::serve;
+use pointfarm_daemon::server::{serve, ServeOptions};
 use pointfarm_daemon::service::{Daemon, DaemonConfig};
 use pointfarm_daemon::worker::supervisor::WorkerCommand;
 use pointfarm_proto::v1 as pb;
@@ -17,6 +17,7 @@ use pointfarm_render::raster::Quality;
 use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
 use pointfarm_render::sample::{sample_scene, DEFAULT_SAMPLE_POINTS};
 
+use crate::credentials::ClientCredentials;
 use crate::remote::{answer, require_success, timings_line, Client};
 
 #[derive(Args)]
@@ -70,13 +71,20 @@ pub fn run(args: DemoArgs) -> Result<()> {
             .context("binding a loopback port")?;
         let address = listener.local_addr()?;
         let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-        let server = tokio::spawn(serve(daemon, Some(worker), listener, None, async {
-            let _ = stopped.await;
-        }));
+        let server = tokio::spawn(serve(
+            daemon,
+            Some(worker),
+            listener,
+            ServeOptions::default(),
+            async {
+                let _ = stopped.await;
+            },
+        ));
         println!("daemon on {address}");
 
         let result = async {
-            let mut client = Client::connect(&address.to_string(), None).await?;
+            let mut client =
+                Client::connect(&address.to_string(), &ClientCredentials::default()).await?;
             let dataset = client.ensure_dataset(&input).await?;
             let spec = JobSpec {
                 request_id: format!(

@@ -2,6 +2,7 @@
 
 mod admin;
 mod bench;
+mod credentials;
 mod demo;
 mod parse;
 mod remote;

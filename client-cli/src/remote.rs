@@ -1,6 +1,6 @@
 //! The client side of the render service: connecting, uploading, submitting, following and
 //! downloading. Used by `render --server`, `dataset`, `jobs` (`jobs leases` lists the frames
-//! workers hold) and `frames`.
+//! workers hold) and `frames`: the client API only, never the workers'.
 
 use std::path::{Path, PathBuf};
 
@@ -11,38 +11,35 @@ use pointfarm_daemon::service::{dataset_id, hash_file};
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
-use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_proto::BearerToken;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 use tonic::{Code, Status};
 
+use crate::credentials::ClientCredentials;
+
 type Authed = InterceptedService<Channel, BearerToken>;
 
+/// A client of a daemon's client API (datasets and jobs).
 pub struct Client {
     pub datasets: DatasetServiceClient<Authed>,
     pub jobs: JobServiceClient<Authed>,
-    pub workers: WorkerServiceClient<Authed>,
 }
 
 impl Client {
-    pub async fn connect(server: &str, token: Option<&str>) -> Result<Self> {
-        let url = if server.contains("://") {
-            server.to_string()
-        } else {
-            format!("http://{server}")
-        };
-        let channel = Channel::from_shared(url.clone())
-            .with_context(|| format!("'{server}' is not a server address"))?
+    /// Connects to `server` as `credentials` say (TLS trust, bearer token).
+    pub async fn connect(server: &str, credentials: &ClientCredentials) -> Result<Self> {
+        let endpoint = credentials.endpoint(server)?;
+        let auth = BearerToken::new(credentials.token()?.as_deref())?;
+        let channel = endpoint
+            .endpoint()?
             .connect()
             .await
-            .with_context(|| format!("cannot connect to {url}"))?;
-        let auth = BearerToken::new(token)?;
+            .with_context(|| format!("cannot connect to {}", endpoint.url()))?;
         Ok(Self {
             datasets: DatasetServiceClient::with_interceptor(channel.clone(), auth.clone()),
-            jobs: JobServiceClient::with_interceptor(channel.clone(), auth.clone()),
-            workers: WorkerServiceClient::with_interceptor(channel, auth),
+            jobs: JobServiceClient::with_interceptor(channel, auth),
         })
     }
 

@@ -52,7 +52,7 @@ pub fn run(server: &str, args: &RenderArgs, request: &RenderRequest) -> Result<(
     refuse_local_only_options(args, request)?;
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {
-        let mut client = Client::connect(server, args.token.as_deref()).await?;
+        let mut client = Client::connect(server, &args.credentials).await?;
         let dataset = client.ensure_dataset(&args.input).await?;
         println!(
             "{}: dataset {} on {server}",

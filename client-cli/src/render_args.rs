@@ -19,6 +19,7 @@ use pointfarm_render::request::{
     DEFAULT_SUPERSAMPLE, DEFAULT_UP,
 };
 
+use crate::credentials::ClientCredentials;
 use crate::parse::{self, Rgba};
 
 #[derive(Args)]
@@ -28,9 +29,8 @@ pub struct RenderArgs {
     /// Render on this pointfarm server instead of here (uploading the file if needed).
     #[arg(long, env = "POINTFARM_SERVER")]
     pub(crate) server: Option<String>,
-    /// Bearer token for the server.
-    #[arg(long, env = "POINTFARM_TOKEN", hide_env_values = true)]
-    pub(crate) token: Option<String>,
+    #[command(flatten)]
+    pub(crate) credentials: ClientCredentials,
     /// Supersampling anti-aliasing: render at K times the size and average (1 = off).
     #[arg(long, default_value_t = DEFAULT_SUPERSAMPLE, value_name = "K")]
     supersample: u32,

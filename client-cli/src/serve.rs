@@ -6,12 +6,15 @@
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use clap::Args;
-use pointfarm_daemon::server::serve;
+use pointfarm_daemon::access::Access;
+use pointfarm_daemon::server::{serve, ServeOptions, TlsIdentity};
 use pointfarm_daemon::service::{Daemon, DaemonConfig, DEFAULT_MAX_UPLOAD_BYTES};
 use pointfarm_daemon::worker::supervisor::WorkerCommand;
 use pointfarm_render::gpu::AdapterChoice;
+
+use crate::credentials::secret;
 
 #[derive(Args)]
 pub struct ServeArgs {
@@ -24,9 +27,31 @@ pub struct ServeArgs {
     /// Folder whose files clients may register by path (repeatable).
     #[arg(long = "data-root")]
     data_roots: Vec<PathBuf>,
-    /// Require this bearer token on every call.
+    /// Require this bearer token of clients (datasets and jobs). Without it those services
+    /// are open, which is refused beyond loopback unless --insecure.
     #[arg(long, env = "POINTFARM_TOKEN", hide_env_values = true)]
     token: Option<String>,
+    /// Read the client token from this file instead.
+    #[arg(long, value_name = "FILE", env = "POINTFARM_TOKEN_FILE")]
+    token_file: Option<PathBuf>,
+    /// Require this bearer token of workers (`pointfarm worker --worker-token`); a client
+    /// token is refused there. Without it, a daemon with a client token serves no remote
+    /// workers, and one without is open to any.
+    #[arg(long, env = "POINTFARM_WORKER_TOKEN", hide_env_values = true)]
+    worker_token: Option<String>,
+    /// Read the worker token from this file instead.
+    #[arg(long, value_name = "FILE", env = "POINTFARM_WORKER_TOKEN_FILE")]
+    worker_token_file: Option<PathBuf>,
+    /// Serve TLS with this certificate chain (PEM); needs --tls-key.
+    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    /// The private key (PEM) of --tls-cert.
+    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
+    /// Listen beyond loopback without a client token or without TLS: anyone who reaches the
+    /// port can then use the farm (or read it on the wire).
+    #[arg(long)]
+    insecure: bool,
     /// Largest image side accepted.
     #[arg(long, default_value_t = 8192)]
     max_image_side: u32,
@@ -62,7 +87,35 @@ pub struct ServeArgs {
     adapter: AdapterChoice,
 }
 
+/// The tokens and TLS identity the flags give.
+fn serve_options(args: &ServeArgs) -> Result<ServeOptions> {
+    let token = secret(args.token.as_deref(), args.token_file.as_deref(), "--token")?;
+    let worker_token = secret(
+        args.worker_token.as_deref(),
+        args.worker_token_file.as_deref(),
+        "--worker-token",
+    )?;
+    if token.is_some() && token == worker_token {
+        bail!("--token and --worker-token are the same: give clients and workers different tokens");
+    }
+    let read =
+        |path: &PathBuf| std::fs::read(path).with_context(|| format!("reading {}", path.display()));
+    let tls = match (&args.tls_cert, &args.tls_key) {
+        (Some(cert), Some(key)) => Some(TlsIdentity {
+            cert_pem: read(cert)?,
+            key_pem: read(key)?,
+        }),
+        _ => None,
+    };
+    Ok(ServeOptions {
+        access: Access::new(token.as_deref(), worker_token.as_deref()),
+        tls,
+        insecure: args.insecure,
+    })
+}
+
 pub fn run(args: ServeArgs) -> Result<()> {
+    let options = serve_options(&args)?;
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async move {
         let mut config = DaemonConfig::new(args.data_dir.clone());
@@ -86,16 +139,22 @@ pub fn run(args: ServeArgs) -> Result<()> {
         let listener = tokio::net::TcpListener::bind(&args.listen)
             .await
             .with_context(|| format!("listening on {}", args.listen))?;
+        let address = listener.local_addr()?;
+        options.check_exposure(address)?;
         println!(
-            "pointfarm serving on {} (data in {})",
-            listener.local_addr()?,
+            "pointfarm serving on {}{address} (data in {})",
+            if options.tls.is_some() {
+                "https://"
+            } else {
+                "http://"
+            },
             args.data_dir.display()
         );
         serve(
             daemon,
             embedded_worker,
             listener,
-            args.token,
+            options,
             shutdown_signal(),
         )
         .await

@@ -9,7 +9,10 @@ use clap::Args;
 use pointfarm_daemon::worker::memory_limit;
 use pointfarm_daemon::worker::remote::{run as run_worker, RemoteWorkerConfig};
 use pointfarm_daemon::worker::supervisor::exit_when_supervisor_exits;
+use pointfarm_proto::endpoint::ServerEndpoint;
 use pointfarm_render::gpu::{AdapterChoice, GpuContext};
+
+use crate::credentials::secret;
 
 #[derive(Args)]
 pub struct WorkerArgs {
@@ -20,9 +23,16 @@ pub struct WorkerArgs {
         default_value = "http://127.0.0.1:50051"
     )]
     server: String,
-    /// Bearer token for the daemon.
-    #[arg(long, env = "POINTFARM_TOKEN", hide_env_values = true)]
-    token: Option<String>,
+    /// The daemon's worker token (its --worker-token; a client token is refused).
+    #[arg(long, env = "POINTFARM_WORKER_TOKEN", hide_env_values = true)]
+    worker_token: Option<String>,
+    /// Read the worker token from this file instead.
+    #[arg(long, value_name = "FILE", env = "POINTFARM_WORKER_TOKEN_FILE")]
+    worker_token_file: Option<PathBuf>,
+    /// Trust the CA certificates in this PEM file for the daemon's TLS, instead of the
+    /// system's (a bare HOST:PORT then means https://).
+    #[arg(long, value_name = "FILE", env = "POINTFARM_TLS_CA")]
+    tls_ca: Option<PathBuf>,
     /// Folder for this worker's dataset cache (processed points, kept across runs).
     #[arg(long, default_value = "pointfarm-worker-cache")]
     cache_dir: PathBuf,
@@ -49,6 +59,13 @@ pub fn run(args: WorkerArgs) -> Result<()> {
     if args.supervised {
         exit_when_supervisor_exits().context("watching the supervising daemon")?;
     }
+    // Before the GPU is set up: a wrong address or credential is reported at once.
+    let server = ServerEndpoint::new(&args.server, args.tls_ca.as_deref())?;
+    let token = secret(
+        args.worker_token.as_deref(),
+        args.worker_token_file.as_deref(),
+        "--worker-token",
+    )?;
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
     // After the GPU is set up: the limit is for the frames' data.
     if let Some(mib) = args.max_memory_mib {
@@ -64,11 +81,11 @@ pub fn run(args: WorkerArgs) -> Result<()> {
     println!(
         "worker {name} on {} rendering for {}",
         gpu.describe(),
-        args.server
+        server.url()
     );
     let config = RemoteWorkerConfig {
-        server: args.server,
-        token: args.token,
+        server,
+        token,
         name,
         cache_dir: args.cache_dir,
         cache_bytes: args.cache_gib << 30,

@@ -30,6 +30,9 @@ pub enum DaemonError {
     /// The request is valid but the state of things does not allow it.
     #[error("{0}")]
     FailedPrecondition(String),
+    /// The caller's credentials do not allow this (e.g. another worker's lease).
+    #[error("{0}")]
+    PermissionDenied(String),
     /// A size limit was exceeded.
     #[error("{0}")]
     ResourceExhausted(String),

@@ -117,7 +117,7 @@ impl Daemon {
                 job
             };
             let lease = Lease {
-                id: format!("lease-{:012}", self.store.generate_id()?),
+                id: Lease::new_id(),
                 job_id: job.id.clone(),
                 index,
                 worker: worker.to_string(),
@@ -351,6 +351,25 @@ impl Daemon {
 
     pub fn leases(&self) -> Result<Vec<Lease>, DaemonError> {
         Ok(self.store.leases()?)
+    }
+
+    /// Refuses (PermissionDenied) a call on `lease_id` from the other kind of worker than the
+    /// one holding it: the embedded worker's leases are only its own, and no remote worker's
+    /// are. A lease that is not held passes, for the call itself to answer.
+    pub fn check_lease_holder(&self, lease_id: &str, embedded: bool) -> Result<(), DaemonError> {
+        match self.store.lease(lease_id)? {
+            Some(lease) if lease.embedded != embedded => {
+                Err(DaemonError::PermissionDenied(format!(
+                    "lease {lease_id} is held by {}",
+                    if lease.embedded {
+                        "the daemon's embedded worker"
+                    } else {
+                        "a remote worker"
+                    }
+                )))
+            }
+            _ => Ok(()),
+        }
     }
 
     /// Puts the frames of expired leases back in the queue, counting the attempts. Returns how

@@ -1,12 +1,15 @@
 //! The stored record of a frame lease: which worker holds which frame of which job, until
 //! when. The store keeps these; `lease` decides when they are made, renewed and dropped.
 
+use rand::Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::model::JobId;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Lease {
+    /// Random and unguessable ([`Lease::new_id`]): a worker's calls on its frame carry it, so
+    /// only the worker it was handed to can renew, fail or complete the frame.
     pub id: String,
     pub job_id: JobId,
     pub index: u32,
@@ -14,4 +17,28 @@ pub struct Lease {
     /// Held by a worker thread of the daemon itself.
     pub embedded: bool,
     pub expires_unix_ms: i64,
+}
+
+impl Lease {
+    /// A new lease id: 128 bits from a cryptographically secure generator, so ids can be
+    /// neither guessed nor derived from one another.
+    pub fn new_id() -> String {
+        let bytes: [u8; 16] = rand::rng().random();
+        format!("lease-{}", crate::service::hex(&bytes))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lease_ids_are_random_and_fit_the_id_bound() {
+        let ids: std::collections::HashSet<String> = (0..1000).map(|_| Lease::new_id()).collect();
+        assert_eq!(ids.len(), 1000);
+        for id in &ids {
+            assert_eq!(id.len(), "lease-".len() + 32);
+            assert!(id.len() <= crate::limits::MAX_ID_BYTES);
+        }
+    }
 }

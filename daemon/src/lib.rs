@@ -11,9 +11,11 @@
 //! file per service, the conversions, the streaming of bytes), `worker` (what leases frames:
 //! the worker process — a gRPC client — with its render state, which renders with
 //! `pointfarm-render`, and the supervisor that runs it as the daemon's embedded worker),
-//! `server` (sockets, health, reflection, the lease sweep, shutdown). Only `grpc`,
+//! `access` (the client and worker roles and their tokens), `server` (sockets, TLS, health,
+//! reflection, the lease sweep, shutdown). Only `grpc`,
 //! `worker::remote` and `server` (which mounts the services) know protobuf.
 
+pub mod access;
 pub mod error;
 pub mod grpc;
 pub mod lease;

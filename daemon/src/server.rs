@@ -1,7 +1,7 @@
-//! Serving the API: the gRPC services with health checking and reflection (so `grpcurl` works
-//! out of the box), optional bearer-token authentication (workers included), the embedded
-//! worker process and its supervisor, the sweep that expires the leases of lost workers, and
-//! a graceful shutdown that lets the current frame finish.
+//! Serving the API: the gRPC services with health checking and reflection (v1 and v1alpha, so
+//! `grpcurl` and older tools work out of the box), TLS, the roles' tokens (`access`), the
+//! embedded worker process on a loopback listener of its own, the sweep that expires the
+//! leases of lost workers, and a graceful shutdown that lets the current frame finish.
 //!
 //! Health: the overall service ("") and `JobService` are SERVING while some worker can render
 //! (the embedded worker is up, or a remote worker was heard from within the lease timeout)
@@ -9,6 +9,7 @@
 //! does, since uploads and workers need them to get going.
 
 use std::future::Future;
+use std::net::Ipv4Addr;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -19,44 +20,63 @@ use pointfarm_proto::v1::worker_service_server::WorkerServiceServer;
 use pointfarm_proto::v1::FILE_DESCRIPTOR_SET;
 use rand::Rng;
 use tokio_stream::wrappers::TcpListenerStream;
+use tonic::transport::{Identity, ServerTlsConfig};
 use tonic::{Request, Status};
 use tonic_health::server::HealthReporter;
 use tonic_health::ServingStatus;
 
+use crate::access::{bearer_token, Access, Exposure, Role};
 use crate::grpc::{Api, EmbeddedWorkerCall};
 use crate::service::Daemon;
 use crate::worker::supervisor::{Supervisor, WorkerCommand};
 
-/// The one authentication hook: requires `authorization: Bearer <token>` on every API call
-/// when a token is configured, and knows the embedded worker's calls by the token made for it
-/// at start-up.
-#[derive(Clone)]
-struct BearerAuth {
-    expected: Option<Arc<str>>,
-    embedded_worker: Arc<str>,
+/// How the daemon is reached: who may call (tokens per role), TLS, and whether to serve
+/// beyond loopback without them.
+#[derive(Clone, Default)]
+pub struct ServeOptions {
+    pub access: Access,
+    pub tls: Option<TlsIdentity>,
+    /// Listen beyond loopback without a client token or without TLS.
+    pub insecure: bool,
 }
 
-impl tonic::service::Interceptor for BearerAuth {
+impl ServeOptions {
+    /// Refuses to serve on `address` beyond loopback without a client token or TLS, unless
+    /// `insecure` ([`Access::check_exposure`]).
+    pub fn check_exposure(&self, address: std::net::SocketAddr) -> anyhow::Result<()> {
+        self.access
+            .check_exposure(Exposure {
+                address,
+                tls: self.tls.is_some(),
+                insecure: self.insecure,
+            })
+            .map_err(anyhow::Error::msg)
+    }
+}
+
+/// The server's certificate chain and private key, PEM-encoded.
+#[derive(Clone)]
+pub struct TlsIdentity {
+    pub cert_pem: Vec<u8>,
+    pub key_pem: Vec<u8>,
+}
+
+/// The embedded worker's listener admits only calls with the token made for it at start-up;
+/// they carry [`EmbeddedWorkerCall`].
+#[derive(Clone)]
+struct EmbeddedGate(Arc<str>);
+
+impl tonic::service::Interceptor for EmbeddedGate {
     fn call(&mut self, mut request: Request<()>) -> Result<Request<()>, Status> {
-        let given = request
-            .metadata()
-            .get("authorization")
-            .and_then(|v| v.to_str().ok())
-            .and_then(|v| v.strip_prefix("Bearer "));
-        if given == Some(&*self.embedded_worker) {
-            request.extensions_mut().insert(EmbeddedWorkerCall);
-            return Ok(request);
+        // The token is random and new for every start; comparing it is no timing oracle for
+        // the clients' or workers' tokens, which this listener never accepts.
+        if bearer_token(&request) != Some(&*self.0) {
+            return Err(Status::unauthenticated(
+                "this listener serves only the daemon's embedded worker",
+            ));
         }
-        let Some(expected) = &self.expected else {
-            return Ok(request);
-        };
-        match given {
-            Some(token) if token == &**expected => Ok(request),
-            Some(_) => Err(Status::unauthenticated("invalid bearer token")),
-            None => Err(Status::unauthenticated(
-                "missing 'authorization: Bearer <token>' header",
-            )),
-        }
+        request.extensions_mut().insert(EmbeddedWorkerCall);
+        Ok(request)
     }
 }
 
@@ -73,17 +93,29 @@ fn sweep_period(lease_timeout: Duration) -> Duration {
 
 /// Serves `daemon` on `listener` until `shutdown` completes, with an embedded worker process
 /// started by `embedded_worker` (none: only remote workers render, `pointfarm worker`).
+/// Refuses to start beyond loopback without a client token or TLS unless `options.insecure`.
 pub async fn serve(
     daemon: Arc<Daemon>,
     embedded_worker: Option<WorkerCommand>,
     listener: tokio::net::TcpListener,
-    auth_token: Option<String>,
+    options: ServeOptions,
     shutdown: impl Future<Output = ()> + Send,
 ) -> anyhow::Result<()> {
     let address = listener.local_addr()?;
-    let embedded_token = embedded_worker_token();
-    let supervisor = embedded_worker
-        .map(|command| Supervisor::start(daemon.clone(), command, address, embedded_token.clone()));
+    options.check_exposure(address)?;
+    let mut server = tonic::transport::Server::builder();
+    if let Some(tls) = &options.tls {
+        server = server
+            .tls_config(
+                ServerTlsConfig::new().identity(Identity::from_pem(&tls.cert_pem, &tls.key_pem)),
+            )
+            .context("the TLS certificate and key")?;
+    }
+    let api = Api::new(daemon.clone());
+    let embedded = match embedded_worker {
+        Some(command) => Some(EmbeddedListener::start(daemon.clone(), api.clone(), command).await?),
+        None => None,
+    };
 
     // Lost workers' frames go back to the queue within a fraction of the lease timeout.
     let sweeper = {
@@ -108,16 +140,15 @@ pub async fn serve(
     health.set_serving::<DatasetServiceServer<Api>>().await;
     health.set_serving::<WorkerServiceServer<Api>>().await;
     let health_watch = tokio::spawn(report_health(daemon.clone(), health));
+    // grpcurl and grpcio-reflection speak v1; older tools only v1alpha.
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(FILE_DESCRIPTOR_SET)
         .build_v1()
         .context("building the reflection service")?;
-
-    let api = Api::new(daemon.clone());
-    let auth = BearerAuth {
-        expected: auth_token.map(Arc::from),
-        embedded_worker: Arc::from(embedded_token),
-    };
+    let reflection_v1alpha = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(FILE_DESCRIPTOR_SET)
+        .build_v1alpha()
+        .context("building the reflection service")?;
     // Long-polling lease requests answer at once when the server begins to stop; the server
     // serves on until the embedded worker has handed in its current frame.
     let shutdown = {
@@ -126,24 +157,29 @@ pub async fn serve(
             shutdown.await;
             tracing::info!("shutting down: finishing the current frame");
             daemon.begin_shutdown();
-            if let Some(supervisor) = supervisor {
-                supervisor.stop().await;
+            if let Some(embedded) = embedded {
+                embedded.stop().await;
             }
         }
     };
-    tracing::info!(%address, "serving pointfarm.v1");
-    tonic::transport::Server::builder()
+    let access = &options.access;
+    tracing::info!(%address, tls = options.tls.is_some(), "serving pointfarm.v1");
+    server
         .add_service(health_service)
         .add_service(reflection)
+        .add_service(reflection_v1alpha)
         .add_service(DatasetServiceServer::with_interceptor(
             api.clone(),
-            auth.clone(),
+            access.gate(Role::Client),
         ))
         .add_service(JobServiceServer::with_interceptor(
             api.clone(),
-            auth.clone(),
+            access.gate(Role::Client),
         ))
-        .add_service(WorkerServiceServer::with_interceptor(api, auth))
+        .add_service(WorkerServiceServer::with_interceptor(
+            api,
+            access.gate(Role::Worker),
+        ))
         .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
         .await
         .context("gRPC server")?;
@@ -151,6 +187,50 @@ pub async fn serve(
     health_watch.abort();
     daemon.store.flush()?;
     Ok(())
+}
+
+/// The embedded worker process and the loopback listener only it can use (plaintext: it never
+/// leaves the machine, and its token is new for every start).
+struct EmbeddedListener {
+    supervisor: Supervisor,
+    stop: tokio::sync::oneshot::Sender<()>,
+    server: tokio::task::JoinHandle<Result<(), tonic::transport::Error>>,
+}
+
+impl EmbeddedListener {
+    async fn start(daemon: Arc<Daemon>, api: Api, command: WorkerCommand) -> anyhow::Result<Self> {
+        let listener = tokio::net::TcpListener::bind((Ipv4Addr::LOCALHOST, 0))
+            .await
+            .context("listening on loopback for the embedded worker")?;
+        let address = listener.local_addr()?;
+        let token = embedded_worker_token();
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let gate = EmbeddedGate(Arc::from(token.as_str()));
+        let server = tokio::spawn(
+            tonic::transport::Server::builder()
+                .add_service(WorkerServiceServer::with_interceptor(api, gate))
+                .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async {
+                    let _ = stopped.await;
+                }),
+        );
+        let supervisor = Supervisor::start(daemon, command, address, token);
+        Ok(Self {
+            supervisor,
+            stop,
+            server,
+        })
+    }
+
+    /// Stops the worker once it has handed in its frame, then the listener.
+    async fn stop(self) {
+        self.supervisor.stop().await;
+        let _ = self.stop.send(());
+        match self.server.await {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => tracing::error!(error = %e, "the embedded worker's listener"),
+            Err(e) => tracing::error!(error = %e, "the embedded worker's listener panicked"),
+        }
+    }
 }
 
 /// Keeps the health of "" and `JobService` at whether some worker can render.

@@ -32,6 +32,8 @@ pub mod v1 {
     }
 }
 
+pub mod endpoint;
+
 use tonic::metadata::{Ascii, MetadataValue};
 use tonic::{Request, Status};
 

@@ -3,6 +3,8 @@
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
+use pointfarm_daemon::access::Access;
+use pointfarm_daemon::server::ServeOptions;
 use pointfarm_daemon::service::{Daemon, DaemonConfig};
 use pointfarm_daemon::worker::supervisor::WorkerCommand;
 use pointfarm_proto::v1 as pb;
@@ -28,21 +30,21 @@ pub struct TestDaemon {
 impl TestDaemon {
     /// Starts a daemon with an embedded worker (a `pointfarm worker` process); `configure` may change the defaults (limits,
     /// data roots).
-    pub async fn start(configure: impl FnOnce(&mut DaemonConfig), token: Option<&str>) -> Self {
-        Self::start_with(configure, token, true).await
+    pub async fn start(configure: impl FnOnce(&mut DaemonConfig), access: Access) -> Self {
+        Self::start_with(configure, access, true).await
     }
 
     /// Starts a daemon without an embedded worker: only worker processes render for it.
     pub async fn start_without_worker(
         configure: impl FnOnce(&mut DaemonConfig),
-        token: Option<&str>,
+        access: Access,
     ) -> Self {
-        Self::start_with(configure, token, false).await
+        Self::start_with(configure, access, false).await
     }
 
     async fn start_with(
         configure: impl FnOnce(&mut DaemonConfig),
-        token: Option<&str>,
+        access: Access,
         embedded_worker: bool,
     ) -> Self {
         let data_dir = tempfile::tempdir().expect("tempdir");
@@ -55,12 +57,15 @@ impl TestDaemon {
             .expect("bind loopback");
         let address = listener.local_addr().expect("address");
         let (shutdown, signal) = tokio::sync::oneshot::channel::<()>();
-        let token = token.map(str::to_owned);
+        let options = ServeOptions {
+            access,
+            ..ServeOptions::default()
+        };
         let task = tokio::spawn(async move {
             let stop = async {
                 let _ = signal.await;
             };
-            pointfarm_daemon::server::serve(daemon, worker, listener, token, stop)
+            pointfarm_daemon::server::serve(daemon, worker, listener, options, stop)
                 .await
                 .expect("serve");
         });

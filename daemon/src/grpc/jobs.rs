@@ -169,6 +169,16 @@ impl JobService for Api {
         });
         Ok(Response::new(stream))
     }
+
+    async fn list_leases(
+        &self,
+        _request: Request<pb::ListLeasesRequest>,
+    ) -> Result<Response<pb::ListLeasesResponse>, Status> {
+        let leases = self.run(|daemon| daemon.leases()).await?;
+        Ok(Response::new(pb::ListLeasesResponse {
+            leases: leases.iter().map(pb::Lease::from).collect(),
+        }))
+    }
 }
 
 /// A watcher brought up to date: one event with the job as stored and every finished frame

@@ -13,6 +13,7 @@ impl From<DaemonError> for Status {
             DaemonError::InvalidArgument { .. } => Code::InvalidArgument,
             DaemonError::NotFound(_) => Code::NotFound,
             DaemonError::FailedPrecondition(_) => Code::FailedPrecondition,
+            DaemonError::PermissionDenied(_) => Code::PermissionDenied,
             DaemonError::ResourceExhausted(_) => Code::ResourceExhausted,
             DaemonError::Internal(_) => Code::Internal,
         };
@@ -38,6 +39,10 @@ mod tests {
             (
                 DaemonError::FailedPrecondition("x".into()),
                 Code::FailedPrecondition,
+            ),
+            (
+                DaemonError::PermissionDenied("x".into()),
+                Code::PermissionDenied,
             ),
             (
                 DaemonError::ResourceExhausted("x".into()),

@@ -32,17 +32,28 @@ fn max_png_bytes(width: u32, height: u32) -> u64 {
     width as u64 * height as u64 * 5 + (1 << 20)
 }
 
-/// A lease id as a worker sends it, refused when no lease of ours could have it.
-fn checked_lease_id(lease_id: String) -> Result<String, DaemonError> {
-    check_id("lease_id", &lease_id)?;
-    Ok(lease_id)
-}
-
 impl Api {
-    /// The message of a worker's call, which tells the daemon that a worker is there.
-    fn heard<T>(&self, request: Request<T>) -> T {
-        self.daemon.workers.heard_from(is_embedded(&request));
-        request.into_inner()
+    /// The message of a worker's call, which tells the daemon that a worker is there, and
+    /// whether the call is the embedded worker's.
+    fn heard<T>(&self, request: Request<T>) -> (T, bool) {
+        let embedded = is_embedded(&request);
+        self.daemon.workers.heard_from(embedded);
+        (request.into_inner(), embedded)
+    }
+
+    /// A lease id as a worker sends it: refused when no lease of ours could have it, or when
+    /// the other kind of worker holds it.
+    async fn own_lease(
+        &self,
+        field: &'static str,
+        lease_id: String,
+        embedded: bool,
+    ) -> Result<String, Status> {
+        check_id(field, &lease_id)?;
+        let id = lease_id.clone();
+        self.run(move |daemon| daemon.check_lease_holder(&id, embedded))
+            .await?;
+        Ok(lease_id)
     }
 }
 
@@ -97,7 +108,8 @@ impl WorkerService for Api {
         &self,
         request: Request<pb::HeartbeatRequest>,
     ) -> Result<Response<pb::HeartbeatResponse>, Status> {
-        let lease_id = checked_lease_id(self.heard(request).lease_id)?;
+        let (r, embedded) = self.heard(request);
+        let lease_id = self.own_lease("lease_id", r.lease_id, embedded).await?;
         let answer = self.run(move |daemon| daemon.heartbeat(&lease_id)).await?;
         Ok(Response::new(pb::HeartbeatResponse::from(answer)))
     }
@@ -107,15 +119,16 @@ impl WorkerService for Api {
         request: Request<Streaming<pb::CompleteFrameRequest>>,
     ) -> Result<Response<pb::CompleteFrameResponse>, Status> {
         use pb::complete_frame_request::Part;
-        let mut stream = self.heard(request);
+        let (mut stream, embedded) = self.heard(request);
         let result = first_part(&mut stream, "result", |m| match m.part {
             Some(Part::Result(result)) => Some(result),
             _ => None,
         })
         .await?;
         // A stale lease is refused before the image is received.
-        check_id("result.lease_id", &result.lease_id)?;
-        let lease_id = result.lease_id.clone();
+        let lease_id = self
+            .own_lease("result.lease_id", result.lease_id.clone(), embedded)
+            .await?;
         let (_, width, height) = self.run(move |daemon| daemon.held_lease(&lease_id)).await?;
         let limit = max_png_bytes(width, height);
         if result.png_size_bytes > limit {
@@ -163,15 +176,15 @@ impl WorkerService for Api {
         &self,
         request: Request<pb::FailFrameRequest>,
     ) -> Result<Response<pb::FailFrameResponse>, Status> {
-        let r = self.heard(request);
-        check_id("lease_id", &r.lease_id)?;
+        let (r, embedded) = self.heard(request);
+        let lease_id = self.own_lease("lease_id", r.lease_id, embedded).await?;
         let reason = if r.reason.is_empty() {
             "the worker gave no reason".to_string()
         } else {
             truncated(&r.reason, MAX_REASON_BYTES)
         };
         let kind = failure_kind(r.kind);
-        self.done(move |daemon| daemon.fail_frame(&r.lease_id, &reason, kind))
+        self.done(move |daemon| daemon.fail_frame(&lease_id, &reason, kind))
             .await
     }
 
@@ -179,7 +192,8 @@ impl WorkerService for Api {
         &self,
         request: Request<pb::ReleaseFrameRequest>,
     ) -> Result<Response<pb::ReleaseFrameResponse>, Status> {
-        let lease_id = checked_lease_id(self.heard(request).lease_id)?;
+        let (r, embedded) = self.heard(request);
+        let lease_id = self.own_lease("lease_id", r.lease_id, embedded).await?;
         self.done(move |daemon| daemon.release_frame(&lease_id))
             .await
     }
@@ -208,15 +222,5 @@ impl WorkerService for Api {
             }
         });
         Ok(Response::new(stream))
-    }
-
-    async fn list_leases(
-        &self,
-        _request: Request<pb::ListLeasesRequest>,
-    ) -> Result<Response<pb::ListLeasesResponse>, Status> {
-        let leases = self.run(|daemon| daemon.leases()).await?;
-        Ok(Response::new(pb::ListLeasesResponse {
-            leases: leases.iter().map(pb::Lease::from).collect(),
-        }))
     }
 }

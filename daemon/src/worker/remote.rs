@@ -22,6 +22,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::{bail, Context};
+use pointfarm_proto::endpoint::ServerEndpoint;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_proto::BearerToken;
@@ -29,7 +30,7 @@ use pointfarm_render::cache::DatasetCache;
 use pointfarm_render::gpu::GpuContext;
 use tokio::sync::watch;
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::{Channel, Endpoint};
+use tonic::transport::Channel;
 use tonic::{Code, Status};
 use tracing::Instrument;
 
@@ -44,8 +45,9 @@ const LEASE_WAIT_MS: u32 = 10_000;
 
 #[derive(Debug, Clone)]
 pub struct RemoteWorkerConfig {
-    /// The daemon, e.g. `http://127.0.0.1:50051`.
-    pub server: String,
+    /// The daemon, e.g. `http://127.0.0.1:50051`, and for `https://` the CA to trust.
+    pub server: ServerEndpoint,
+    /// The daemon's `--worker-token`.
     pub token: Option<String>,
     /// Shown in the daemon's leases and logs.
     pub name: String,
@@ -107,15 +109,8 @@ pub async fn run(
     std::fs::create_dir_all(&downloads)
         .with_context(|| format!("creating {}", downloads.display()))?;
 
-    let url = if config.server.contains("://") {
-        config.server.clone()
-    } else {
-        format!("http://{}", config.server)
-    };
-    let channel = Endpoint::from_shared(url.clone())
-        .with_context(|| format!("'{}' is not a server address", config.server))?
-        .connect_timeout(Duration::from_secs(5))
-        .connect_lazy();
+    let url = config.server.url().to_owned();
+    let channel = config.server.endpoint()?.connect_lazy();
     let token = BearerToken::new(config.token.as_deref())?;
     let mut client =
         WorkerServiceClient::with_interceptor(channel, token).max_decoding_message_size(8 << 20);

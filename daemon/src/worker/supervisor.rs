@@ -29,8 +29,15 @@ use crate::service::Daemon;
 /// The name of the embedded worker in leases and logs.
 pub const EMBEDDED_WORKER_NAME: &str = "embedded";
 
-/// The environment variable that hands the embedded worker its token.
-pub const TOKEN_ENV: &str = "POINTFARM_TOKEN";
+/// The environment variable that hands the embedded worker its token (`worker --worker-token`).
+pub const TOKEN_ENV: &str = "POINTFARM_WORKER_TOKEN";
+/// Settings of the daemon's environment that are not the embedded worker's: it speaks
+/// plaintext to its own loopback listener.
+const NOT_INHERITED: [&str; 3] = [
+    "POINTFARM_TLS_CA",
+    "POINTFARM_SERVER",
+    "POINTFARM_WORKER_TOKEN_FILE",
+];
 
 /// The first wait before a restart; it doubles on each quick exit up to [`RESTART_MAX`].
 const RESTART_FIRST: Duration = Duration::from_millis(250);
@@ -103,7 +110,11 @@ struct Launch {
 
 impl Launch {
     fn spawn(&self) -> std::io::Result<Child> {
-        Command::new(&self.command.program)
+        let mut command = Command::new(&self.command.program);
+        for name in NOT_INHERITED {
+            command.env_remove(name);
+        }
+        command
             .args(&self.command.args)
             .args(["--server", &self.server, "--name", EMBEDDED_WORKER_NAME])
             .arg("--supervised")

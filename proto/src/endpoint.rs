@@ -1,0 +1,172 @@
+//! Where a daemon is and how to reach it, for the CLI and worker processes alike: its URL, and
+//! for `https://` the certificate authorities to trust. An `https://` server is only ever
+//! reached over TLS (tonic refuses such a URL without a TLS configuration; here every one gets
+//! one), and a CA given for a plaintext URL is an error, not a silent downgrade.
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use tonic::transport::{Certificate, ClientTlsConfig, Endpoint};
+
+/// A daemon's address with its TLS settings.
+#[derive(Debug, Clone)]
+pub struct ServerEndpoint {
+    url: String,
+    /// The CA certificates (PEM) trusted instead of the system's; `None` trusts the system's.
+    ca_pem: Option<Vec<u8>>,
+}
+
+/// Why a server address cannot be used.
+#[derive(Debug)]
+pub enum EndpointError {
+    /// Not a URL tonic can connect to.
+    Address { server: String, reason: String },
+    /// `--tls-ca` with an `http://` URL.
+    CaForPlaintext { server: String },
+    /// The CA file cannot be read, or holds no certificate.
+    Ca { path: PathBuf, reason: String },
+}
+
+impl fmt::Display for EndpointError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            EndpointError::Address { server, reason } => {
+                write!(f, "'{server}' is not a server address: {reason}")
+            }
+            EndpointError::CaForPlaintext { server } => write!(
+                f,
+                "--tls-ca is for https:// servers, but '{server}' is plaintext http://"
+            ),
+            EndpointError::Ca { path, reason } => {
+                write!(f, "the CA certificate {}: {reason}", path.display())
+            }
+        }
+    }
+}
+
+impl std::error::Error for EndpointError {}
+
+impl ServerEndpoint {
+    /// `server` is `host:port` (plaintext, or TLS when a CA is given), `http://host:port` or
+    /// `https://host:port`; `tls_ca` a PEM file of CA certificates to trust for TLS instead of
+    /// the system's.
+    pub fn new(server: &str, tls_ca: Option<&Path>) -> Result<Self, EndpointError> {
+        let url = url_of(server, tls_ca.is_some())?;
+        let ca_pem = tls_ca.map(read_ca).transpose()?;
+        let endpoint = Self { url, ca_pem };
+        // Checked here, so that a bad address or certificate is reported before any work.
+        endpoint.endpoint()?;
+        Ok(endpoint)
+    }
+
+    /// The URL, with its scheme.
+    pub fn url(&self) -> &str {
+        &self.url
+    }
+
+    pub fn is_tls(&self) -> bool {
+        self.url.starts_with("https://")
+    }
+
+    /// The tonic endpoint, with TLS for `https://`.
+    pub fn endpoint(&self) -> Result<Endpoint, EndpointError> {
+        let invalid = |reason: String| EndpointError::Address {
+            server: self.url.clone(),
+            reason,
+        };
+        let endpoint = Endpoint::from_shared(self.url.clone())
+            .map_err(|e| invalid(e.to_string()))?
+            .connect_timeout(Duration::from_secs(10));
+        if !self.is_tls() {
+            return Ok(endpoint);
+        }
+        let tls = match &self.ca_pem {
+            Some(pem) => ClientTlsConfig::new().ca_certificate(Certificate::from_pem(pem)),
+            None => ClientTlsConfig::new().with_native_roots(),
+        };
+        endpoint.tls_config(tls).map_err(|e| invalid(e.to_string()))
+    }
+}
+
+/// The URL of `server`: a bare `host:port` is plaintext, or TLS when a CA is given.
+fn url_of(server: &str, has_ca: bool) -> Result<String, EndpointError> {
+    match (server.split_once("://"), has_ca) {
+        (None, false) => Ok(format!("http://{server}")),
+        (None, true) => Ok(format!("https://{server}")),
+        (Some(("http", _)), true) => Err(EndpointError::CaForPlaintext {
+            server: server.into(),
+        }),
+        (Some(("http" | "https", _)), _) => Ok(server.to_string()),
+        (Some((scheme, _)), _) => Err(EndpointError::Address {
+            server: server.into(),
+            reason: format!("unknown scheme '{scheme}' (http or https)"),
+        }),
+    }
+}
+
+fn read_ca(path: &Path) -> Result<Vec<u8>, EndpointError> {
+    let error = |reason: String| EndpointError::Ca {
+        path: path.to_owned(),
+        reason,
+    };
+    let pem = std::fs::read(path).map_err(|e| error(e.to_string()))?;
+    if !pem
+        .windows(b"-----BEGIN CERTIFICATE-----".len())
+        .any(|w| w == b"-----BEGIN CERTIFICATE-----")
+    {
+        return Err(error("holds no PEM certificate".into()));
+    }
+    Ok(pem)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn addresses_get_their_scheme_and_tls() {
+        let plain = ServerEndpoint::new("127.0.0.1:50051", None).expect("plain");
+        assert_eq!(plain.url(), "http://127.0.0.1:50051");
+        assert!(!plain.is_tls());
+        let https = ServerEndpoint::new("https://farm.example:443", None).expect("https");
+        assert!(https.is_tls());
+    }
+
+    #[test]
+    fn a_ca_makes_tls_and_never_goes_with_plaintext() {
+        let dir = std::env::temp_dir().join(format!("pointfarm-ca-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let ca = dir.join("ca.pem");
+        std::fs::write(
+            &ca,
+            "-----BEGIN CERTIFICATE-----\nAAAA\n-----END CERTIFICATE-----\n",
+        )
+        .expect("write");
+        assert_eq!(
+            url_of("farm:50051", true).expect("bare"),
+            "https://farm:50051"
+        );
+        let refused = ServerEndpoint::new("http://farm:50051", Some(&ca)).expect_err("http");
+        assert!(matches!(refused, EndpointError::CaForPlaintext { .. }));
+        let not_pem = dir.join("not.pem");
+        std::fs::write(&not_pem, "hello").expect("write");
+        let refused = ServerEndpoint::new("https://farm:1", Some(&not_pem)).expect_err("pem");
+        assert!(
+            refused.to_string().contains("no PEM certificate"),
+            "{refused}"
+        );
+        let missing = ServerEndpoint::new("https://farm:1", Some(&dir.join("missing.pem")));
+        assert!(matches!(missing, Err(EndpointError::Ca { .. })));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn unknown_schemes_are_refused() {
+        let refused = ServerEndpoint::new("ftp://farm:1", None).expect_err("ftp");
+        assert!(
+            refused.to_string().contains("unknown scheme 'ftp'"),
+            "{refused}"
+        );
+    }
+}
