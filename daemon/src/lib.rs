@@ -11,7 +11,8 @@
 //! file per service, the conversions, the streaming of bytes), `worker` (what leases frames:
 //! the worker process — a gRPC client — with its render state, which renders with
 //! `pointfarm-render`, and the supervisor that runs it as the daemon's embedded worker),
-//! `server` (sockets, health, reflection, the lease sweep, shutdown). Only `grpc`,
+//! `server` (sockets, health, reflection, the lease sweep, shutdown); `testing` (a small real
+//! disk to fill, for tests). Only `grpc`,
 //! `worker::remote` and `server` (which mounts the services) know protobuf.
 
 pub mod error;
@@ -24,5 +25,7 @@ pub mod model;
 pub mod server;
 pub mod service;
 pub mod store;
+#[cfg(any(test, feature = "testing"))]
+pub mod testing;
 pub mod worker;
 pub mod worker_presence;
