@@ -149,3 +149,99 @@ fn an_exited_embedded_worker_counts_an_attempt_for_its_frames_only() {
         )
     );
 }
+
+/// A daemon whose data lie on `dir`, with one job of `frames` frames on a registered file.
+fn daemon_with_job_in(dir: &Path, frames: u32) -> (Arc<Daemon>, crate::model::Job) {
+    std::fs::create_dir_all(dir.join("roots")).expect("roots");
+    std::fs::write(dir.join("roots/a.las"), b"points").expect("file");
+    let daemon = open(dir);
+    let dataset = daemon.register_dataset("a.las", "").expect("register");
+    let request = pb::SubmitJobRequest {
+        dataset_id: dataset.id.clone(),
+        camera_path: Some(pb::CameraPath::turntable(pb::Turntable::of_frames(frames))),
+        width: 8,
+        height: 6,
+        ..Default::default()
+    };
+    let job = daemon
+        .submit_job(crate::model::JobSpec::try_from(&request).expect("spec"))
+        .expect("submit");
+    (daemon, job)
+}
+
+/// The files of the job's frames folder that are not whole frames.
+fn partial_files(daemon: &Daemon, job_id: &str) -> Vec<String> {
+    std::fs::read_dir(daemon.config.frames_dir(job_id))
+        .map(|entries| {
+            entries
+                .flatten()
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .filter(|name| name.ends_with(".part"))
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+#[test]
+fn a_full_disk_gives_frames_back_without_an_attempt_and_the_daemon_resumes_by_itself() {
+    let Some(disk) = crate::testing::SmallDisk::mount(16) else {
+        return;
+    };
+    let (daemon, job) = daemon_with_job_in(disk.path(), 3);
+    let first = lease(&daemon, "w", false);
+    daemon
+        .complete_frame(&first.lease.id, &png(8, 6), outcome())
+        .expect("complete before the disk fills");
+    let held = lease(&daemon, "w", false);
+
+    let filler = disk.fill("filler");
+    let refused = daemon.complete_frame(&held.lease.id, &png(8, 6), outcome());
+    let Err(DaemonError::ResourceExhausted(message)) = &refused else {
+        panic!("a full disk is told as such: {refused:?}");
+    };
+    assert!(message.contains("disk is full"), "{message}");
+    assert!(message.contains("no attempt counted"), "{message}");
+    assert!(partial_files(&daemon, &job.id).is_empty());
+    assert!(daemon.store.outage().is_some());
+    assert!(daemon.leases().expect("leases").is_empty(), "given back");
+    let leasing = daemon.lease_frame("w", false);
+    assert!(
+        matches!(leasing, Err(DaemonError::ResourceExhausted(_))),
+        "no frames are leased while the disk is full: {leasing:?}"
+    );
+    assert_eq!(daemon.expire_leases().expect("sweep"), 0);
+    assert!(daemon.store.outage().is_some(), "the probe fails");
+
+    std::fs::remove_file(filler).expect("free the disk");
+    daemon.expire_leases().expect("sweep");
+    assert!(
+        daemon.store.outage().is_none(),
+        "the sweep ended the outage"
+    );
+    let again = lease(&daemon, "w", false);
+    assert_eq!(
+        (again.lease.index, again.failed_attempts),
+        (held.lease.index, 0),
+        "the refused frame is back, with no attempt counted"
+    );
+    daemon
+        .complete_frame(&again.lease.id, &png(8, 6), outcome())
+        .expect("complete after the outage");
+    let last = lease(&daemon, "w", false);
+    let done = daemon
+        .complete_frame(&last.lease.id, &png(8, 6), outcome())
+        .expect("complete");
+    assert_eq!(done.state, JobState::Succeeded);
+    let reports = daemon.store.frame_reports(&job.id).expect("reports");
+    assert_eq!(
+        reports
+            .iter()
+            .map(|r| r.failed_attempts)
+            .collect::<Vec<_>>(),
+        [0, 0, 0]
+    );
+    drop(daemon);
+    // All of it durable: a restart finds the job done.
+    let daemon = open(disk.path());
+    assert_eq!(daemon.job(&job.id).expect("job").state, JobState::Succeeded);
+}
