@@ -9,6 +9,11 @@
 //! Scheduling reads an index rather than every job: `queue` holds the unfinished jobs by
 //! priority and age, `pending` the frames still to render. A lease therefore costs the same
 //! with one job in the history or ten thousand (`docs/perf/lease-index.md`).
+//!
+//! A disk that refuses a write (full, over quota, failing) starts an outage: callers get
+//! [`StoreError::Unwritable`], the first refusal is logged, and sled (0.34), which keeps the
+//! I/O error and refuses every later write until it is opened again, is closed and reopened
+//! by [`Store::end_outage`] once a probe write succeeds.
 
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
