@@ -9,7 +9,7 @@ use crate::clouds::{cube_bounds, CellCubeGenerator};
 use crate::report::{IngestMemory, WorkloadResult};
 use crate::rounds::{measure, Methods};
 use crate::workloads::{uniform_workload, View};
-use crate::{BenchError, BenchOptions};
+use crate::{BenchError, BenchOptions, FrameRounds};
 
 /// A cube of `points` (the run's is [`HUGE_POINTS`](crate::HUGE_POINTS)), generated in
 /// Morton-ordered cells and uploaded chunk by chunk: the host never holds the whole cloud. Its
@@ -31,12 +31,12 @@ impl HugeCloud {
     ) -> Result<Self, BenchError> {
         let name = uniform_workload(points);
         progress(&format!("{name}: generating and uploading chunk by chunk"));
-        let aspect = options.width as f64 / options.height as f64;
+        let aspect = options.rounds.width as f64 / options.rounds.height as f64;
         let (origin, bounds) = cube_bounds();
         let camera = Camera::auto(&bounds, aspect);
-        let settings = FrameSettings::new(options.width, options.height, camera);
-        let transform = camera.transform(origin, options.width, options.height);
-        let (w, h) = (options.width as f64, options.height as f64);
+        let settings = FrameSettings::new(options.rounds.width, options.rounds.height, camera);
+        let transform = camera.transform(origin, options.rounds.width, options.rounds.height);
+        let (w, h) = (options.rounds.width as f64, options.rounds.height as f64);
 
         let before_host_bytes = memory::resident_bytes();
         memory::reset_peak();
@@ -90,8 +90,11 @@ impl HugeCloud {
     ) -> Result<WorkloadResult, BenchError> {
         progress(&format!("{}: measuring", self.view.workload));
         let huge_options = BenchOptions {
-            warmup_frames: 0,
-            frames: 3,
+            rounds: FrameRounds {
+                warmup_frames: 0,
+                frames: 3,
+                ..options.rounds
+            },
             ..options.clone()
         };
         let mut result = measure(

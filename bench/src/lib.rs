@@ -46,7 +46,7 @@ pub mod workloads;
 
 pub use error::BenchError;
 pub use ingest::{generated_workload, IngestResult};
-pub use options::{BenchOptions, ComputeMode};
+pub use options::{BenchOptions, ComputeMode, FrameRounds};
 pub use report::{
     in_uniform_series, AdapterReport, BatchCounts, BenchReport, IngestMemory, MethodResult,
     ModeResult, ScalingFit, SkippedWorkload, StageMedian, WorkloadResult,

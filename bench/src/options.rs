@@ -3,19 +3,28 @@
 
 use std::path::PathBuf;
 
+use serde::Serialize;
+
 use pointfarm_render::raster::{AtomicsMode, FillSettings, FrameSettings, Quality, Shading};
 
 use crate::workloads::UNIFORM_POINTS;
 
+/// The frames rendered per method and workload: their size and how many. The report holds
+/// the ones it measured.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct FrameRounds {
+    pub width: u32,
+    pub height: u32,
+    /// Frames rendered and discarded before measuring.
+    pub warmup_frames: usize,
+    /// Frames measured.
+    pub frames: usize,
+}
+
 /// What to run.
 #[derive(Debug, Clone)]
 pub struct BenchOptions {
-    pub width: u32,
-    pub height: u32,
-    /// Frames rendered and discarded before measuring, per method and workload.
-    pub warmup_frames: usize,
-    /// Frames measured per method and workload.
-    pub frames: usize,
+    pub rounds: FrameRounds,
     /// Points per side of a cuboid plane.
     pub cuboid_side: usize,
     /// Where the real scans are looked for.
@@ -98,10 +107,12 @@ impl BenchOptions {
     /// The full run: 1024x1024-point cuboid planes (up to 64 Mi points), 1 + 15 rounds.
     pub fn full(width: u32, height: u32, data_dir: PathBuf) -> Self {
         Self {
-            width,
-            height,
-            warmup_frames: 1,
-            frames: 15,
+            rounds: FrameRounds {
+                width,
+                height,
+                warmup_frames: 1,
+                frames: 15,
+            },
             cuboid_side: 1024,
             data_dir,
             host_clocks: false,
@@ -115,13 +126,16 @@ impl BenchOptions {
 
     /// A few minutes on a 2-core software adapter: 512x512-point planes, 1 + 7 rounds.
     pub fn quick(width: u32, height: u32, data_dir: PathBuf) -> Self {
+        let full = Self::full(width, height, data_dir);
         Self {
-            warmup_frames: 1,
-            frames: 7,
+            rounds: FrameRounds {
+                frames: 7,
+                ..full.rounds
+            },
             cuboid_side: 512,
             ingest_points: Some(2_000_000),
             ingest_repeats: 3,
-            ..Self::full(width, height, data_dir)
+            ..full
         }
     }
 }

@@ -41,7 +41,7 @@ pub fn write(report: &BenchReport, path: &Path) -> Result<()> {
         let root = BitMapBackend::with_buffer(&mut pixels, SIZE).into_drawing_area();
         root.fill(&WHITE).map_err(plot_error)?;
         let (left, right) = root.split_horizontally(800);
-        let size = format!("{}x{}", report.width, report.height);
+        let size = format!("{}x{}", report.rounds.width, report.rounds.height);
         panel(
             &left,
             &format!("Uniform cube, all in view, {size}"),

@@ -5,6 +5,7 @@ use pointfarm_render::gpu::GpuContext;
 use serde::Serialize;
 
 use crate::ingest::IngestResult;
+use crate::options::FrameRounds;
 use crate::stats::least_squares;
 use crate::workloads::{uniform_workload, UNIFORM_SERIES};
 
@@ -149,10 +150,8 @@ pub struct BenchReport {
     pub adapter: AdapterReport,
     /// Whether stages were timed by host clocks (asked for, or a software adapter).
     pub host_clocks: bool,
-    pub width: u32,
-    pub height: u32,
-    pub warmup_frames: usize,
-    pub frames: usize,
+    #[serde(flatten)]
+    pub rounds: FrameRounds,
     /// Speed-up of the compute path over PointList on
     /// [`HEADLINE_WORKLOAD`](crate::HEADLINE_WORKLOAD).
     pub speedup_vs_pointlist: Option<f64>,

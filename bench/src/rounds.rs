@@ -97,7 +97,7 @@ pub(crate) fn measure(
     settings: &FrameSettings,
     options: &BenchOptions,
 ) -> Result<WorkloadResult, BenchError> {
-    let rounds = options.warmup_frames + options.frames;
+    let rounds = options.rounds.warmup_frames + options.rounds.frames;
     let points = resident.len();
 
     // Every round renders one frame with each method in turn, so that every method sees the
@@ -105,14 +105,14 @@ pub(crate) fn measure(
     // methods one after another turned that drift into their ratios.
     let mut settings_of: Vec<FrameSettings> = vec![*settings];
     settings_of.extend(options.modes.iter().map(|mode| mode.settings(settings)));
-    let mut pointlist_timings = Vec::with_capacity(options.frames);
-    let mut pointlist_wall_ms = Vec::with_capacity(options.frames);
+    let mut pointlist_timings = Vec::with_capacity(options.rounds.frames);
+    let mut pointlist_wall_ms = Vec::with_capacity(options.rounds.frames);
     let mut pointlist_image = None;
-    let mut compute_timings = vec![Vec::with_capacity(options.frames); settings_of.len()];
-    let mut compute_wall_ms = vec![Vec::with_capacity(options.frames); settings_of.len()];
+    let mut compute_timings = vec![Vec::with_capacity(options.rounds.frames); settings_of.len()];
+    let mut compute_wall_ms = vec![Vec::with_capacity(options.rounds.frames); settings_of.len()];
     let mut compute_frames = vec![None; settings_of.len()];
     for round in 0..rounds {
-        let measured = round >= options.warmup_frames;
+        let measured = round >= options.rounds.warmup_frames;
         warm_in_a_row(|| methods.baseline.render(resident, settings).map(drop))?;
         let started = Instant::now();
         let frame = methods.baseline.render(resident, settings)?;
@@ -342,11 +342,9 @@ mod tests {
     fn runner_measures_both_methods_on_a_small_workload() {
         let gpu = gpu();
         let scene = cuboid_scene(4, 32, 64, 48, 5);
-        let options = BenchOptions {
-            warmup_frames: 1,
-            frames: 2,
-            ..BenchOptions::quick(64, 48, PathBuf::new())
-        };
+        let mut options = BenchOptions::quick(64, 48, PathBuf::new());
+        options.rounds.warmup_frames = 1;
+        options.rounds.frames = 2;
         let mut methods = Methods::new(&gpu, options.modes.len(), false);
         let settings = FrameSettings::new(64, 48, scene.views[0].camera);
         let resident = methods.compute[0].upload(&scene.cloud).expect("upload");

@@ -25,7 +25,7 @@ pub fn run(
     options: &BenchOptions,
     progress: &mut dyn FnMut(&str),
 ) -> Result<BenchReport, BenchError> {
-    if options.frames == 0 {
+    if options.rounds.frames == 0 {
         return Err(BenchError::NoFrames);
     }
     // A software adapter's timestamps under-report compute passes (docs/perf/gpu-timestamps.md),
@@ -37,10 +37,10 @@ pub fn run(
         min: DVec3::ZERO,
         max: DVec3::ONE,
     };
-    let aspect = options.width as f64 / options.height.max(1) as f64;
+    let aspect = options.rounds.width as f64 / options.rounds.height.max(1) as f64;
     let probe = FrameSettings::new(
-        options.width,
-        options.height,
+        options.rounds.width,
+        options.rounds.height,
         Camera::auto(&unit_box, aspect),
     );
     methods.compute[0].validate(&probe)?;
@@ -117,7 +117,8 @@ pub fn run(
                 view.workload,
                 scene.cloud.len()
             ));
-            let settings = FrameSettings::new(options.width, options.height, view.camera);
+            let settings =
+                FrameSettings::new(options.rounds.width, options.rounds.height, view.camera);
             let in_view = points_in_view(&scene.cloud, &settings);
             let result = measure(&mut methods, &resident, (view, in_view), &settings, options)?;
             progress(&result.summary_line());
@@ -152,10 +153,7 @@ pub fn run(
     Ok(BenchReport {
         adapter: AdapterReport::of(&gpu),
         host_clocks,
-        width: options.width,
-        height: options.height,
-        warmup_frames: options.warmup_frames,
-        frames: options.frames,
+        rounds: options.rounds,
         speedup_vs_pointlist,
         scaling: scaling_fits(&workloads),
         workloads,

@@ -55,14 +55,14 @@ impl SceneSpec {
 
     /// The scene, or `None` for a real scan that is not there.
     pub(crate) fn build(&self, options: &BenchOptions) -> Result<Option<Scene>, BenchError> {
-        let aspect = options.width as f64 / options.height as f64;
+        let aspect = options.rounds.width as f64 / options.rounds.height as f64;
         Ok(Some(match self {
             SceneSpec::Uniform(points) => uniform_scene(*points, aspect, 1),
             SceneSpec::Cuboid(planes) => cuboid_scene(
                 *planes,
                 options.cuboid_side,
-                options.width,
-                options.height,
+                options.rounds.width,
+                options.rounds.height,
                 2,
             ),
             SceneSpec::RealScan(path) => return real_scene(path, aspect),

@@ -142,8 +142,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
     println!(
         "{width}x{height}, {} warm-up + {} measured rounds per workload; in a round each method \
          renders unmeasured frames for {} ms (1 to {} frames{settle}), then the measured one",
-        options.warmup_frames,
-        options.frames,
+        options.rounds.warmup_frames,
+        options.rounds.frames,
         bench::WARM_IN_A_ROW.as_millis(),
         bench::MAX_WARM_FRAMES,
     );

@@ -90,22 +90,24 @@ pub(super) fn check_laz(
         )));
     }
     let vlr_bytes = raw.vlr_at(vlr_span)?;
-    let compressor = u16_in(&vlr_bytes, 0);
-    let chunk_size = match u32_in(&vlr_bytes, CHUNK_SIZE_OFFSET) {
-        0 => VARIABLE_CHUNK_SIZE,
-        size => size,
+    let laszip = LaszipVlr {
+        compressor: u16_in(&vlr_bytes, 0),
+        chunk_size: match u32_in(&vlr_bytes, CHUNK_SIZE_OFFSET) {
+            0 => VARIABLE_CHUNK_SIZE,
+            size => size,
+        },
+        items: laz_items(raw, &vlr_bytes)?,
     };
-    let items = laz_items(raw, &vlr_bytes)?;
-    check_items(raw, facts, compressor, &items)?;
-    if compressor == 1 {
+    laszip.check_items(raw, facts)?;
+    if laszip.compressor == 1 {
         return Ok(LazLayout::Unchunked);
     }
     let vlr = laz::LazVlr::from_buffer(&vlr_bytes)
         .map_err(|error| raw.corrupt(format!("the LASzip VLR cannot be parsed: {error}")))?;
     let chunks = check_chunk_table(raw, facts, &vlr)?;
-    check_chunk_points(raw, facts, chunk_size, chunks.as_ref())?;
-    if items.iter().all(LazItem::is_layered) {
-        check_layers(raw, facts, &items, chunks.as_ref())?;
+    laszip.check_chunk_points(raw, facts, chunks.as_ref())?;
+    if laszip.items.iter().all(LazItem::is_layered) {
+        check_layers(raw, facts, &laszip.items, chunks.as_ref())?;
     }
     Ok(LazLayout::Chunked)
 }
@@ -141,55 +143,97 @@ fn laz_items(raw: &RawFile<'_>, vlr: &[u8]) -> Result<Vec<LazItem>, IngestError>
         .collect())
 }
 
-/// The items must be known, of their kind's size, of one family (point-wise or layered, as
-/// the compressor says) and together exactly one point record long.
-fn check_items(
-    raw: &RawFile<'_>,
-    facts: &HeaderFacts,
+/// The parts of the LASzip VLR the checks read.
+struct LaszipVlr {
     compressor: u16,
-    items: &[LazItem],
-) -> Result<(), IngestError> {
-    if !(1..=3).contains(&compressor) {
-        return Err(raw.corrupt(format!("unknown LASzip compressor {compressor}")));
+    /// Points per chunk, or [`VARIABLE_CHUNK_SIZE`].
+    chunk_size: u32,
+    items: Vec<LazItem>,
+}
+
+impl LaszipVlr {
+    /// The items must be known, of their kind's size, of one family (point-wise or layered, as
+    /// the compressor says) and together exactly one point record long.
+    fn check_items(&self, raw: &RawFile<'_>, facts: &HeaderFacts) -> Result<(), IngestError> {
+        let (compressor, items) = (self.compressor, &self.items);
+        if !(1..=3).contains(&compressor) {
+            return Err(raw.corrupt(format!("unknown LASzip compressor {compressor}")));
+        }
+        if items.is_empty() {
+            return Err(raw.corrupt("the LASzip VLR lists no items"));
+        }
+        let layered = compressor == 3;
+        for item in items {
+            let Some(fixed_size) = item.fixed_size() else {
+                return Err(raw.corrupt(format!("unknown LASzip item type {}", item.kind)));
+            };
+            if fixed_size.is_some_and(|size| size != item.size) || item.size == 0 {
+                return Err(raw.corrupt(format!(
+                    "LASzip item type {} of {} bytes",
+                    item.kind, item.size
+                )));
+            }
+            let known_versions = if layered { 3..=4 } else { 1..=2 };
+            if item.is_layered() != layered || !known_versions.contains(&item.version) {
+                return Err(raw.corrupt(format!(
+                    "LASzip item type {} version {} does not fit compressor {compressor}",
+                    item.kind, item.version
+                )));
+            }
+        }
+        // LASzip writes every item of a file with one coder version; data coded with another
+        // decodes to garbage the coder's own assertions trip on.
+        if let Some(odd) = items.iter().find(|item| item.version != items[0].version) {
+            return Err(raw.corrupt(format!(
+                "LASzip items of mixed coder versions ({} and {})",
+                items[0].version, odd.version
+            )));
+        }
+        let items_len: u64 = items.iter().map(|item| u64::from(item.size)).sum();
+        if items_len != u64::from(facts.record_len) {
+            return Err(raw.corrupt(format!(
+                "LASzip items make {items_len}-byte records but the header says {}",
+                facts.record_len
+            )));
+        }
+        Ok(())
     }
-    if items.is_empty() {
-        return Err(raw.corrupt("the LASzip VLR lists no items"));
-    }
-    let layered = compressor == 3;
-    for item in items {
-        let Some(fixed_size) = item.fixed_size() else {
-            return Err(raw.corrupt(format!("unknown LASzip item type {}", item.kind)));
+
+    /// The chunks must hold the declared points, and no chunk may hold far more points than the
+    /// file declares (the decoder allocates a whole chunk's records).
+    fn check_chunk_points(
+        &self,
+        raw: &RawFile<'_>,
+        facts: &HeaderFacts,
+        chunks: &[ChunkTableEntry],
+    ) -> Result<(), IngestError> {
+        let chunk_size = self.chunk_size;
+        let declared = facts.declared_points;
+        let largest_allowed = declared.max(MAX_CHUNK_POINTS_BEYOND_DECLARED);
+        let (largest, chunk_capacity) = if chunk_size == VARIABLE_CHUNK_SIZE {
+            let largest = chunks.iter().map(|chunk| chunk.point_count).max();
+            let total = chunks
+                .iter()
+                .fold(0u64, |sum, chunk| sum.saturating_add(chunk.point_count));
+            (largest.unwrap_or(0), total)
+        } else {
+            let size = u64::from(chunk_size);
+            (size, size.saturating_mul(chunks.len() as u64))
         };
-        if fixed_size.is_some_and(|size| size != item.size) || item.size == 0 {
+        if largest > largest_allowed {
             return Err(raw.corrupt(format!(
-                "LASzip item type {} of {} bytes",
-                item.kind, item.size
+                "a LAZ chunk of {largest} points in a file of {declared} points"
             )));
         }
-        let known_versions = if layered { 3..=4 } else { 1..=2 };
-        if item.is_layered() != layered || !known_versions.contains(&item.version) {
-            return Err(raw.corrupt(format!(
-                "LASzip item type {} version {} does not fit compressor {compressor}",
-                item.kind, item.version
-            )));
+        if declared > chunk_capacity {
+            return Err(IngestError::TruncatedLaz {
+                path: raw.path.to_owned(),
+                declared,
+                chunk_capacity,
+            });
         }
+        Ok(())
     }
-    // LASzip writes every item of a file with one coder version; data coded with another
-    // decodes to garbage the coder's own assertions trip on.
-    if let Some(odd) = items.iter().find(|item| item.version != items[0].version) {
-        return Err(raw.corrupt(format!(
-            "LASzip items of mixed coder versions ({} and {})",
-            items[0].version, odd.version
-        )));
-    }
-    let items_len: u64 = items.iter().map(|item| u64::from(item.size)).sum();
-    if items_len != u64::from(facts.record_len) {
-        return Err(raw.corrupt(format!(
-            "LASzip items make {items_len}-byte records but the header says {}",
-            facts.record_len
-        )));
-    }
-    Ok(())
 }
 
 /// Reads the chunk table after checking where it is and that its declared chunk count fits
@@ -256,41 +300,6 @@ fn chunk_table_offset(raw: &mut RawFile<'_>, data_start: u64) -> Result<u64, Ing
         path: raw.path.to_owned(),
         error: laz::LasZipError::MissingChunkTable,
     })
-}
-
-/// The chunks must hold the declared points, and no chunk may hold far more points than the
-/// file declares (the decoder allocates a whole chunk's records).
-fn check_chunk_points(
-    raw: &RawFile<'_>,
-    facts: &HeaderFacts,
-    chunk_size: u32,
-    chunks: &[ChunkTableEntry],
-) -> Result<(), IngestError> {
-    let declared = facts.declared_points;
-    let largest_allowed = declared.max(MAX_CHUNK_POINTS_BEYOND_DECLARED);
-    let (largest, chunk_capacity) = if chunk_size == VARIABLE_CHUNK_SIZE {
-        let largest = chunks.iter().map(|chunk| chunk.point_count).max();
-        let total = chunks
-            .iter()
-            .fold(0u64, |sum, chunk| sum.saturating_add(chunk.point_count));
-        (largest.unwrap_or(0), total)
-    } else {
-        let size = u64::from(chunk_size);
-        (size, size.saturating_mul(chunks.len() as u64))
-    };
-    if largest > largest_allowed {
-        return Err(raw.corrupt(format!(
-            "a LAZ chunk of {largest} points in a file of {declared} points"
-        )));
-    }
-    if declared > chunk_capacity {
-        return Err(IngestError::TruncatedLaz {
-            path: raw.path.to_owned(),
-            declared,
-            chunk_capacity,
-        });
-    }
-    Ok(())
 }
 
 /// A layered chunk starts with one raw record, its point count and every layer's byte size;
