@@ -18,6 +18,10 @@ pub enum StoreError {
     Damaged(String),
     #[error("state database: {0}")]
     Io(#[from] std::io::Error),
+    /// The disk refused a write (full, over quota, failing); worth retrying once the daemon
+    /// reports it takes writes again.
+    #[error("{0}")]
+    Unwritable(String),
 }
 
 #[derive(Debug, Error)]
@@ -53,6 +57,8 @@ impl From<StoreError> for DaemonError {
     fn from(e: StoreError) -> Self {
         match e {
             StoreError::Damaged(message) => DaemonError::FailedPrecondition(message),
+            // Not the request's fault, and it passes: the client should back off and retry.
+            StoreError::Unwritable(message) => DaemonError::ResourceExhausted(message),
             other => DaemonError::Internal(other.to_string()),
         }
     }

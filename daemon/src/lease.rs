@@ -84,6 +84,9 @@ impl Daemon {
         embedded: bool,
     ) -> Result<Option<FrameTask>, DaemonError> {
         let _scheduling = self.scheduling()?;
+        if let Some(outage) = self.store.outage() {
+            return Err(DaemonError::ResourceExhausted(outage));
+        }
         self.expire_leases_locked()?;
         let leased: HashSet<(String, u32)> = self
             .store
@@ -124,10 +127,13 @@ impl Daemon {
                 embedded,
                 expires_unix_ms: now_unix_ms() + self.lease_timeout_ms(),
             };
-            self.store.put_lease(&lease)?;
             // Durable before the worker starts: a crash of the daemon while the frame renders
             // then still counts the attempt at the next start.
-            self.store.flush()?;
+            let recorded = self
+                .store
+                .put_lease(&lease)
+                .and_then(|()| self.store.flush());
+            self.unless_disk_refused(&lease, recorded.map_err(DaemonError::from))?;
             tracing::debug!(job = %job.id, frame = index, lease = %lease.id, worker, "frame leased");
             return Ok(Some(FrameTask {
                 lease,
@@ -182,7 +188,11 @@ impl Daemon {
         match self.held_lease_locked(lease_id) {
             Ok((mut lease, _)) => {
                 lease.expires_unix_ms = now_unix_ms() + self.lease_timeout_ms();
-                self.store.put_lease(&lease)?;
+                // The disk takes no renewal now; every lease is renewed when it takes writes
+                // again, so the holder renders on.
+                if self.store.outage().is_none() {
+                    self.store.put_lease(&lease)?;
+                }
                 Ok(HeartbeatAnswer::Continue {
                     expires_unix_ms: lease.expires_unix_ms,
                 })
@@ -193,7 +203,9 @@ impl Daemon {
     }
 
     /// Stores the PNG of a leased frame and marks the frame done. Refused (FailedPrecondition)
-    /// when the lease is no longer held; then nothing is written over.
+    /// when the lease is no longer held; then nothing is written over. When the disk refuses
+    /// the PNG or the state (ResourceExhausted), the frame goes back to the queue without an
+    /// attempt counted and no partial file is left.
     pub fn complete_frame(
         &self,
         lease_id: &str,
@@ -206,8 +218,14 @@ impl Daemon {
         // lease is still held then.
         let path = self.config.frame_path(&lease.job_id, lease.index);
         let partial = path.with_extension(format!("{lease_id}.part"));
-        std::fs::create_dir_all(self.config.frames_dir(&lease.job_id))?;
-        std::fs::write(&partial, png)?;
+        let written = std::fs::create_dir_all(self.config.frames_dir(&lease.job_id))
+            .and_then(|()| std::fs::write(&partial, png));
+        if let Err(e) = written {
+            let _ = std::fs::remove_file(&partial);
+            let refused = self.store.frame_write_refused(&e);
+            let _scheduling = self.scheduling()?;
+            return Err(self.give_back_refused_locked(&lease, refused));
+        }
 
         let _scheduling = self.scheduling()?;
         let checked = (|| {
@@ -225,35 +243,65 @@ impl Daemon {
             Ok(attempts) => attempts,
             Err(e) => {
                 let _ = std::fs::remove_file(&partial);
-                return Err(e);
+                return self.unless_disk_refused(&lease, Err(e));
             }
         };
         // The rename makes the frame appear whole or not at all; it is marked done only after.
-        std::fs::rename(&partial, &path)?;
+        if let Err(e) = std::fs::rename(&partial, &path) {
+            let _ = std::fs::remove_file(&partial);
+            let refused = self.store.frame_write_refused(&e);
+            return Err(self.give_back_refused_locked(&lease, refused));
+        }
         let report = FrameReport {
             index: lease.index,
             timings: outcome.timings,
             dataset_cache_hit: outcome.dataset_cache_hit,
             failed_attempts,
         };
-        self.store.set_frame(
-            &lease.job_id,
-            lease.index,
-            &FrameState::Done(report.clone()),
-        )?;
-        self.store.remove_lease(lease_id)?;
+        // A refused state write leaves the PNG in place: the write may yet have reached the
+        // disk, and a frame marked done must have its image; rendered again, it is replaced.
+        let finished = self.store.finish_frame(&lease, &report, |j| {
+            j.frames_done += 1;
+            if j.frames_done >= j.frames_total {
+                j.state = JobState::Succeeded;
+            }
+        });
         let job = self
-            .store
-            .update_job(&lease.job_id, |j| {
-                j.frames_done += 1;
-                if j.frames_done >= j.frames_total {
-                    j.state = JobState::Succeeded;
-                }
-            })?
+            .unless_disk_refused(&lease, finished.map_err(DaemonError::from))?
             .ok_or_else(|| DaemonError::NotFound(format!("job {}", lease.job_id)))?;
-        self.store.flush()?;
         self.publish(&job, Some(report));
         Ok(job)
+    }
+
+    /// `result` of storing something of `lease`'s frame; when the disk refused it, the lease
+    /// is given back (`give_back_refused_locked`).
+    fn unless_disk_refused<T>(
+        &self,
+        lease: &Lease,
+        result: Result<T, DaemonError>,
+    ) -> Result<T, DaemonError> {
+        match result {
+            Err(DaemonError::ResourceExhausted(refused)) if self.store.outage().is_some() => {
+                Err(self.give_back_refused_locked(lease, refused))
+            }
+            other => other,
+        }
+    }
+
+    /// The disk refused to store the frame of `lease` (`refused` says how): not the frame's
+    /// fault, so it goes back to the queue without an attempt counted. Returns the error that
+    /// tells its worker to back off.
+    fn give_back_refused_locked(&self, lease: &Lease, refused: String) -> DaemonError {
+        if let Err(e) = self.store.give_back_lease(&lease.id) {
+            // Then the lease runs out and counts an attempt: the store cannot do better.
+            tracing::warn!(lease = %lease.id, error = %e, "giving back a lease the disk refused");
+        }
+        tracing::debug!(job = %lease.job_id, frame = lease.index, worker = %lease.worker, "the disk refused the frame: back in the queue, no attempt counted");
+        self.work.notify();
+        DaemonError::ResourceExhausted(format!(
+            "frame {} of job {} goes back to the queue (no attempt counted): {refused}",
+            lease.index, lease.job_id
+        ))
     }
 
     /// The holder of `lease_id` could not render its frame: the attempt counts; the job fails
@@ -266,12 +314,25 @@ impl Daemon {
     ) -> Result<(), DaemonError> {
         let _scheduling = self.scheduling()?;
         let (lease, _) = self.held_lease_locked(lease_id)?;
-        self.store.remove_lease(lease_id)?;
         tracing::warn!(job = %lease.job_id, frame = lease.index, worker = %lease.worker, %reason, ?kind, "frame failed");
+        let counted = self
+            .store
+            .remove_lease(lease_id)
+            .map_err(DaemonError::from)
+            .and_then(|()| self.count_failure_locked(&lease, reason, kind));
+        self.unless_disk_refused(&lease, counted)
+    }
+
+    fn count_failure_locked(
+        &self,
+        lease: &Lease,
+        reason: &str,
+        kind: FailureKind,
+    ) -> Result<(), DaemonError> {
         match kind {
-            FailureKind::Transient => self.count_failed_attempt_locked(&lease, reason),
+            FailureKind::Transient => self.count_failed_attempt_locked(lease, reason),
             FailureKind::Permanent => {
-                let attempts = self.failed_attempts_locked(&lease)? + 1;
+                let attempts = self.failed_attempts_locked(lease)? + 1;
                 self.fail_job_locked(
                     &lease.job_id,
                     format!(
@@ -342,7 +403,7 @@ impl Daemon {
     pub fn release_frame(&self, lease_id: &str) -> Result<(), DaemonError> {
         let _scheduling = self.scheduling()?;
         if let Some(lease) = self.store.lease(lease_id)? {
-            self.store.remove_lease(lease_id)?;
+            self.store.give_back_lease(lease_id)?;
             tracing::info!(job = %lease.job_id, frame = lease.index, worker = %lease.worker, "frame handed back");
             self.work.notify();
         }
@@ -373,13 +434,44 @@ impl Daemon {
     }
 
     /// Puts the frames of expired leases back in the queue, counting the attempts. Returns how
-    /// many leases expired.
+    /// many leases expired. The server's sweep calls it on a timer, so it also probes a disk
+    /// that refused writes and ends the outage when it takes them again.
     pub fn expire_leases(&self) -> Result<usize, DaemonError> {
         let _scheduling = self.scheduling()?;
+        if self.store.outage().is_some() && !self.end_outage_locked()? {
+            return Ok(0);
+        }
         self.expire_leases_locked()
     }
 
+    /// Ends a disk outage if the disk takes writes again (see `Store::end_outage`); every
+    /// lease is renewed, since no holder could renew it meanwhile. Returns whether it ended.
+    fn end_outage_locked(&self) -> Result<bool, DaemonError> {
+        match self.store.end_outage() {
+            Ok(true) => {}
+            Ok(false) => return Ok(false),
+            Err(e) => {
+                tracing::debug!(error = %e, "the disk still refuses writes");
+                return Ok(false);
+            }
+        }
+        let renewed = now_unix_ms() + self.lease_timeout_ms();
+        for mut lease in self.store.leases()? {
+            if lease.expires_unix_ms < renewed {
+                lease.expires_unix_ms = renewed;
+                self.store.put_lease(&lease)?;
+            }
+        }
+        self.store.flush()?;
+        self.work.notify();
+        Ok(true)
+    }
+
     fn expire_leases_locked(&self) -> Result<usize, DaemonError> {
+        // No holder can renew while the disk refuses writes: nothing runs out meanwhile.
+        if self.store.outage().is_some() {
+            return Ok(0);
+        }
         let now = now_unix_ms();
         let mut expired = 0;
         for lease in self.store.leases()? {
@@ -482,154 +574,4 @@ fn check_png(png: &[u8], width: u32, height: u32) -> Result<(), DaemonError> {
 }
 
 #[cfg(test)]
-mod tests {
-    use std::path::Path;
-    use std::sync::Arc;
-
-    use pointfarm_proto::v1 as pb;
-
-    use super::*;
-    use crate::service::DaemonConfig;
-
-    fn open(dir: &Path) -> Arc<Daemon> {
-        let mut config = DaemonConfig::new(dir.join("data"));
-        config.data_roots = vec![dir.join("roots")];
-        config.lease_timeout = Duration::from_secs(60);
-        Daemon::open(config).expect("open")
-    }
-
-    fn png(width: u32, height: u32) -> Vec<u8> {
-        let mut bytes = Vec::new();
-        image::RgbaImage::new(width, height)
-            .write_to(
-                &mut std::io::Cursor::new(&mut bytes),
-                image::ImageFormat::Png,
-            )
-            .expect("encode");
-        bytes
-    }
-
-    /// Leases the next frame, which there must be.
-    fn lease(daemon: &Daemon, worker: &str, embedded: bool) -> FrameTask {
-        daemon
-            .lease_frame(worker, embedded)
-            .expect("lease")
-            .expect("a frame to lease")
-    }
-
-    fn outcome() -> FrameOutcome {
-        FrameOutcome {
-            timings: Vec::new(),
-            dataset_cache_hit: None,
-        }
-    }
-
-    #[test]
-    fn remote_leases_survive_a_restart_and_embedded_ones_count_an_attempt() {
-        let (dir, daemon, job) = daemon_with_job(3);
-        let remote = lease(&daemon, "remote", false);
-        let embedded = lease(&daemon, "embedded", true);
-        assert_eq!((remote.lease.index, embedded.lease.index), (0, 1));
-        drop(daemon);
-
-        let daemon = open(dir.path());
-        let leases = daemon.leases().expect("leases");
-        assert_eq!(
-            leases,
-            vec![remote.lease.clone()],
-            "only the remote lease is left"
-        );
-        let again = lease(&daemon, "embedded", true);
-        assert_eq!(
-            (again.lease.index, again.failed_attempts),
-            (1, 1),
-            "the embedded frame is back, with the attempt its dead worker made"
-        );
-        // The remote worker that rendered through the restart hands its frame in.
-        let after = daemon
-            .complete_frame(&remote.lease.id, &png(8, 6), outcome())
-            .expect("complete");
-        assert_eq!(after.frames_done, 1);
-        assert!(daemon.config.frame_path(&job.id, 0).is_file());
-        let refused = daemon.complete_frame(&remote.lease.id, &png(8, 6), outcome());
-        assert!(matches!(refused, Err(DaemonError::FailedPrecondition(_))));
-    }
-
-    /// A daemon in a new folder with one job of `frames` frames on a registered (never
-    /// decoded) file.
-    fn daemon_with_job(frames: u32) -> (tempfile::TempDir, Arc<Daemon>, crate::model::Job) {
-        let folder = tempfile::tempdir().expect("tempdir");
-        let dir = folder.path();
-        std::fs::create_dir_all(dir.join("roots")).expect("roots");
-        std::fs::write(dir.join("roots/a.las"), b"points").expect("file");
-        let daemon = open(dir);
-        let dataset = daemon.register_dataset("a.las", "").expect("register");
-        let request = pb::SubmitJobRequest {
-            dataset_id: dataset.id.clone(),
-            camera_path: Some(pb::CameraPath::turntable(pb::Turntable::of_frames(frames))),
-            width: 8,
-            height: 6,
-            ..Default::default()
-        };
-        let job = daemon
-            .submit_job(crate::model::JobSpec::try_from(&request).expect("spec"))
-            .expect("submit");
-        (folder, daemon, job)
-    }
-
-    #[test]
-    fn a_permanent_failure_fails_the_job_at_once_and_a_transient_one_retries() {
-        let (_dir, daemon, job) = daemon_with_job(2);
-        let task = lease(&daemon, "w", false);
-        daemon
-            .fail_frame(&task.lease.id, "GPU lost", FailureKind::Transient)
-            .expect("fail");
-        assert_eq!(daemon.job(&job.id).expect("job").state, JobState::Running);
-        let again = lease(&daemon, "w", false);
-        assert_eq!((again.lease.index, again.failed_attempts), (0, 1));
-        daemon
-            .fail_frame(&again.lease.id, "not a LAS file", FailureKind::Permanent)
-            .expect("fail");
-        let failed = daemon.job(&job.id).expect("job");
-        assert_eq!(failed.state, JobState::Failed);
-        assert_eq!(
-            failed.error.as_deref(),
-            Some("frame 0 cannot be rendered (attempt 2, not retried): not a LAS file")
-        );
-    }
-
-    #[test]
-    fn an_exited_embedded_worker_counts_an_attempt_for_its_frames_only() {
-        let (_dir, daemon, job) = daemon_with_job(3);
-        let child = lease(&daemon, "embedded", true);
-        let remote = lease(&daemon, "remote", false);
-        let counted = daemon
-            .embedded_worker_exited("embedded", "killed by signal 9 (SIGKILL)")
-            .expect("exited");
-        assert_eq!(counted, 1);
-        assert_eq!(daemon.leases().expect("leases"), vec![remote.lease]);
-        let again = lease(&daemon, "embedded", true);
-        assert_eq!(
-            (again.lease.index, again.failed_attempts),
-            (child.lease.index, 1)
-        );
-        // The last allowed attempt dies too: the job fails, saying how.
-        daemon
-            .embedded_worker_exited("embedded", "killed by signal 6 (SIGABRT)")
-            .expect("exited");
-        let third = lease(&daemon, "embedded", true);
-        assert_eq!(third.failed_attempts, 2);
-        daemon
-            .embedded_worker_exited("embedded", "killed by signal 6 (SIGABRT)")
-            .expect("exited");
-        let failed = daemon.job(&job.id).expect("job");
-        assert_eq!(failed.state, JobState::Failed);
-        assert_eq!(
-            failed.error.as_deref(),
-            Some(
-                "frame 0 failed 3 times; last: worker embedded died while rendering frame 0 \
-                 (killed by signal 6 (SIGABRT))"
-            )
-        );
-    }
-}
+mod tests;

@@ -12,7 +12,8 @@
 //! the worker process — a gRPC client — with its render state, which renders with
 //! `pointfarm-render`, and the supervisor that runs it as the daemon's embedded worker),
 //! `access` (the client and worker roles and their tokens), `server` (sockets, TLS, health,
-//! reflection, the lease sweep, shutdown). Only `grpc`,
+//! reflection, the lease sweep, shutdown); `testing` (a small real disk to fill, for tests).
+//! Only `grpc`,
 //! `worker::remote` and `server` (which mounts the services) know protobuf.
 
 pub mod access;
@@ -26,5 +27,7 @@ pub mod model;
 pub mod server;
 pub mod service;
 pub mod store;
+#[cfg(any(test, feature = "testing"))]
+pub mod testing;
 pub mod worker;
 pub mod worker_presence;

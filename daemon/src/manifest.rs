@@ -68,8 +68,12 @@ impl Manifest {
     /// Replaces the file whole: a crash leaves the old counts or the new, never half of them.
     fn write(&self, counts: Counts) -> Result<(), StoreError> {
         let partial = self.path.with_extension("json.part");
-        std::fs::write(&partial, serde_json::to_vec(&counts)?)?;
-        std::fs::rename(&partial, &self.path)?;
-        Ok(())
+        let written = std::fs::write(&partial, serde_json::to_vec(&counts)?)
+            .and_then(|()| std::fs::rename(&partial, &self.path));
+        if written.is_err() {
+            // A full disk must not keep the half-written file.
+            let _ = std::fs::remove_file(&partial);
+        }
+        Ok(written?)
     }
 }

@@ -245,7 +245,8 @@ async fn report_health(daemon: Arc<Daemon>, health: HealthReporter) {
             _ = tick.tick() => {}
             _ = daemon.workers.changed() => {}
         }
-        let can_render = daemon.workers.can_render(timeout);
+        // A full disk stores no frames: the store logs it once, health follows it.
+        let can_render = daemon.workers.can_render(timeout) && daemon.store.outage().is_none();
         if reported == Some(can_render) {
             continue;
         }
@@ -253,7 +254,9 @@ async fn report_health(daemon: Arc<Daemon>, health: HealthReporter) {
             tracing::info!("a worker can render: SERVING");
             ServingStatus::Serving
         } else {
-            tracing::warn!("no worker can render: NOT_SERVING until one is back");
+            tracing::warn!(
+                "no worker can render or the disk is full: NOT_SERVING until both are back"
+            );
             ServingStatus::NotServing
         };
         health.set_service_status("", status).await;

@@ -9,22 +9,47 @@
 //! Scheduling reads an index rather than every job: `queue` holds the unfinished jobs by
 //! priority and age, `pending` the frames still to render. A lease therefore costs the same
 //! with one job in the history or ten thousand (`docs/perf/lease-index.md`).
+//!
+//! A disk that refuses a write (full, over quota, failing) starts an outage: callers get
+//! [`StoreError::Unwritable`], the first refusal is logged, and sled (0.34), which keeps the
+//! I/O error and refuses every later write until it is opened again, is closed and reopened
+//! by [`Store::end_outage`] once a probe write succeeds.
+
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+use std::sync::{Mutex, MutexGuard, RwLock};
+use std::time::{Duration, Instant};
 
 use serde::de::DeserializeOwned;
 use serde::Serialize;
 use sled::transaction::TransactionError;
-use sled::Transactional;
 
 use crate::error::StoreError;
 use crate::lease_record::Lease;
 use crate::manifest::{Counts, Manifest};
-use crate::model::{now_unix_ms, Dataset, FrameReport, FrameState, Job, JobSpec, JobState};
+use crate::model::{Dataset, FrameReport, FrameState, Job, JobSpec, JobState};
+
+mod health;
+mod records;
+mod trees;
+
+pub use health::disk_error_message;
+use health::DiskHealth;
+use records::Records;
+use trees::Trees;
 
 pub struct Store {
-    db: sled::Db,
-    trees: Trees,
+    path: PathBuf,
+    /// The open database. sled refuses every write after one failed until it is opened
+    /// again, so after a disk outage [`Store::end_outage`] swaps in a new one; None only
+    /// while that failed.
+    records: RwLock<Option<Records>>,
     /// How many jobs and datasets the database holds, recorded beside it.
     manifest: Manifest,
+    /// Whether the disk takes writes.
+    disk: DiskHealth,
+    /// Leases given back while the disk refused writes, removed again when it takes them.
+    given_back: Mutex<HashSet<String>>,
 }
 
 /// What opening a damaged database found missing or unreadable.
@@ -116,17 +141,8 @@ impl Store {
     /// Opens the database at `path`, after checking every record and the counts in its
     /// manifest: a damaged database is refused with what it lost, unless `recover`, which
     /// drops the unreadable records and returns what was lost with the store.
-    pub fn open(path: &std::path::Path, recover: bool) -> Result<(Self, StateLoss), StoreError> {
-        let db = sled::open(path).map_err(|e| match e {
-            // sled reports the lock held by another process only in its message.
-            sled::Error::Io(io) if io.to_string().contains("could not acquire lock") => {
-                StoreError::Locked(path.to_owned())
-            }
-            e => StoreError::Damaged(format!(
-                "the state database {} cannot be opened: {e}",
-                path.display()
-            )),
-        })?;
+    pub fn open(path: &Path, recover: bool) -> Result<(Self, StateLoss), StoreError> {
+        let db = open_database(path)?;
         let manifest_path = Manifest::beside(path);
         let recorded = Manifest::read(&manifest_path)?;
         let trees = Trees::open(&db)?;
@@ -147,75 +163,146 @@ impl Store {
         }
         trees.remove_unreadable(&loss.unreadable)?;
         let manifest = Manifest::create(manifest_path, found)?;
-        let store = Self {
-            db,
-            trees,
-            manifest,
-        };
-        if store.trees.meta.get(INDEX_VERSION_KEY)?.as_deref() != Some(INDEX_VERSION) {
-            store.rebuild_index()?;
+        let records = Records { db, trees };
+        if records.trees.meta.get(INDEX_VERSION_KEY)?.as_deref() != Some(INDEX_VERSION) {
+            records.rebuild_index()?;
         }
+        let store = Self {
+            path: path.to_owned(),
+            records: RwLock::new(Some(records)),
+            manifest,
+            disk: DiskHealth::new(path),
+            given_back: Mutex::new(HashSet::new()),
+        };
         Ok((store, loss))
     }
 
-    /// Builds the scheduling index from the jobs and frames (a database written before the
-    /// index existed).
-    fn rebuild_index(&self) -> Result<(), StoreError> {
-        self.trees.queue.clear()?;
-        self.trees.pending.clear()?;
-        for entry in self.trees.jobs.iter() {
-            let job: Job = decode(&entry?.1)?;
-            if !job.state.is_terminal() {
-                self.trees
-                    .queue
-                    .insert(queue_key(&job), job.id.as_bytes())?;
+    /// Runs `work` on the open database; a write the disk refused is remembered (logged
+    /// once) and told as [`StoreError::Unwritable`].
+    fn with<T>(
+        &self,
+        work: impl FnOnce(&Records) -> Result<T, StoreError>,
+    ) -> Result<T, StoreError> {
+        // The records are replaced whole or not at all, so a panic elsewhere leaves them usable.
+        let records = self.records.read().unwrap_or_else(|e| e.into_inner());
+        let Some(records) = records.as_ref() else {
+            return Err(StoreError::Unwritable(self.disk.outage().unwrap_or_else(
+                || "the state database is being opened again after a failed write".into(),
+            )));
+        };
+        work(records).map_err(|e| self.noted(e))
+    }
+
+    /// `error` as callers should see it: a refused write becomes part of the outage.
+    fn noted(&self, error: StoreError) -> StoreError {
+        match &error {
+            StoreError::Db(sled::Error::Io(io)) => {
+                StoreError::Unwritable(self.disk.refused(io, true))
             }
+            StoreError::Io(io) => StoreError::Unwritable(self.disk.refused(io, false)),
+            _ => error,
         }
-        for entry in self.trees.frames.iter() {
-            let (key, value) = entry?;
-            if let FrameState::Pending { .. } = decode::<FrameState>(&value)? {
-                self.trees.pending.insert(key, &[])?;
-            }
-        }
-        self.trees.meta.insert(INDEX_VERSION_KEY, INDEX_VERSION)?;
-        self.db.flush()?;
-        Ok(())
+    }
+
+    /// Applies `change` to the manifest's counts; a refused write is part of the outage.
+    fn count(&self, change: impl FnOnce(&mut Counts)) -> Result<(), StoreError> {
+        self.manifest.update(change).map_err(|e| self.noted(e))
     }
 
     /// Writes everything to disk.
     pub fn flush(&self) -> Result<(), StoreError> {
-        self.db.flush()?;
+        self.with(Records::flush)
+    }
+
+    // ------------------------------------------------------------------ the disk
+
+    /// Why the disk refuses writes, while it does (a full disk, a quota, a failing device).
+    pub fn outage(&self) -> Option<String> {
+        self.disk.outage()
+    }
+
+    /// The disk refused to write a frame (`error`); returns what to tell the worker.
+    pub fn frame_write_refused(&self, error: &std::io::Error) -> String {
+        self.disk.refused(error, false)
+    }
+
+    /// Ends an outage once the disk takes writes again: a probe file is written beside the
+    /// database, and if sled met the outage (it then refuses every write until it is opened
+    /// again) the database is closed and opened anew. Returns whether the outage ended.
+    ///
+    /// What was flushed before the outage is all there after it. What the outage can lose is
+    /// the write that failed and what had not been flushed when it failed: the daemon flushes
+    /// after every change it reports as done, so that is at most the change the caller was
+    /// told had failed, and lease renewals (which `Daemon` makes again after an outage).
+    /// Leases given back meanwhile ([`Store::give_back_lease`]) are removed again here.
+    pub fn end_outage(&self) -> Result<bool, StoreError> {
+        if self.disk.outage().is_none() || self.disk.probe().is_err() {
+            return Ok(false);
+        }
+        if self.disk.database_failed() {
+            self.reopen()?;
+        }
+        let given_back: Vec<String> = self.given_back().drain().collect();
+        let removed = self.with(|records| {
+            for id in &given_back {
+                records.remove_lease(id)?;
+            }
+            records.flush()
+        });
+        if let Err(e) = removed {
+            self.given_back().extend(given_back);
+            return Err(e);
+        }
+        self.disk.recovered();
+        Ok(true)
+    }
+
+    /// Closes the failed database and opens it again (sled resets its failure only then).
+    fn reopen(&self) -> Result<(), StoreError> {
+        let mut slot = self.records.write().unwrap_or_else(|e| e.into_inner());
+        // Dropped first: sled holds a lock on its files until then.
+        drop(slot.take());
+        let deadline = Instant::now() + REOPEN_WAIT;
+        let db = loop {
+            match open_database(&self.path) {
+                // sled's last threads of the old database may still hold its files.
+                Err(StoreError::Locked(_)) if Instant::now() < deadline => {
+                    std::thread::sleep(Duration::from_millis(20))
+                }
+                opened => break opened?,
+            }
+        };
+        let trees = Trees::open(&db)?;
+        *slot = Some(Records { db, trees });
+        tracing::info!(database = %self.path.display(), "the state database was opened again after the failed write");
         Ok(())
+    }
+
+    fn given_back(&self) -> MutexGuard<'_, HashSet<String>> {
+        // A plain set, consistent after any panic.
+        self.given_back.lock().unwrap_or_else(|e| e.into_inner())
     }
 
     // ------------------------------------------------------------------ datasets
 
     pub fn put_dataset(&self, dataset: &Dataset) -> Result<(), StoreError> {
-        let replaced = self
-            .trees
-            .datasets
-            .insert(dataset.id.as_bytes(), encode(dataset)?)?;
-        if replaced.is_none() {
-            self.db.flush()?;
-            self.manifest.update(|counts| counts.datasets += 1)?;
+        if self.with(|records| records.put_dataset(dataset))? {
+            self.count(|counts| counts.datasets += 1)?;
         }
         Ok(())
     }
 
     pub fn dataset(&self, id: &str) -> Result<Option<Dataset>, StoreError> {
-        decode_stored(self.trees.datasets.get(id.as_bytes())?)
+        self.with(|records| records.dataset(id))
     }
 
     pub fn delete_dataset(&self, id: &str) -> Result<Option<Dataset>, StoreError> {
-        if !self.trees.datasets.contains_key(id.as_bytes())? {
+        if self.dataset(id)?.is_none() {
             return Ok(None);
         }
         // Counted out first: a crash in between leaves the manifest short, never over.
-        self.manifest
-            .update(|counts| counts.datasets = counts.datasets.saturating_sub(1))?;
-        let removed = decode_stored(self.trees.datasets.remove(id.as_bytes())?);
-        self.db.flush()?;
-        removed
+        self.count(|counts| counts.datasets = counts.datasets.saturating_sub(1))?;
+        self.with(|records| records.delete_dataset(id))
     }
 
     pub fn list_datasets(
@@ -223,13 +310,7 @@ impl Store {
         page_size: usize,
         token: &str,
     ) -> Result<Page<Dataset>, StoreError> {
-        page(
-            &self.trees.datasets,
-            page_size,
-            token,
-            |_: &Dataset| true,
-            |d| d.id.clone(),
-        )
+        self.with(|records| records.list_datasets(page_size, token))
     }
 
     // ------------------------------------------------------------------ jobs
@@ -237,84 +318,20 @@ impl Store {
     /// Creates a job with all its frames pending, or returns the job that an earlier
     /// submission with the same request id created (`false`).
     pub fn submit_job(&self, spec: JobSpec) -> Result<(Job, bool), StoreError> {
-        if !spec.request_id.is_empty() {
-            if let Some(id) = self.trees.requests.get(spec.request_id.as_bytes())? {
-                let id = String::from_utf8_lossy(&id).into_owned();
-                if let Some(job) = self.job(&id)? {
-                    return Ok((job, false));
-                }
-            }
+        let (job, created) = self.with(|records| records.submit_job(spec))?;
+        if created {
+            self.count(|counts| counts.jobs += 1)?;
         }
-        // Ids sort by creation: a monotonic counter, zero-padded.
-        let id = format!("job-{:012}", self.db.generate_id()?);
-        let now = now_unix_ms();
-        let frames = spec.request.frames();
-        let job = Job {
-            id: id.clone(),
-            state: JobState::Queued,
-            frames_total: frames,
-            frames_done: 0,
-            error: None,
-            created_unix_ms: now,
-            updated_unix_ms: now,
-            spec,
-        };
-        let pending = encode(&FrameState::Pending { attempts: 0 })?;
-        let (mut frame_batch, mut pending_batch) = (sled::Batch::default(), sled::Batch::default());
-        for index in 0..frames {
-            frame_batch.insert(frame_key(&id, index), pending.clone());
-            pending_batch.insert(frame_key(&id, index), &[]);
-        }
-        let encoded = encode(&job)?;
-        let trees = (
-            &self.trees.frames,
-            &self.trees.pending,
-            &self.trees.jobs,
-            &self.trees.requests,
-            &self.trees.queue,
-        );
-        trees
-            .transaction(|(frames, pending, jobs, requests, queue)| {
-                frames.apply_batch(&frame_batch)?;
-                pending.apply_batch(&pending_batch)?;
-                jobs.insert(id.as_bytes(), encoded.as_slice())?;
-                if !job.spec.request_id.is_empty() {
-                    requests.insert(job.spec.request_id.as_bytes(), id.as_bytes())?;
-                }
-                queue.insert(queue_key(&job), id.as_bytes())?;
-                Ok(())
-            })
-            .map_err(transaction_error)?;
-        self.db.flush()?;
-        self.manifest.update(|counts| counts.jobs += 1)?;
-        Ok((job, true))
+        Ok((job, created))
     }
 
     pub fn job(&self, id: &str) -> Result<Option<Job>, StoreError> {
-        decode_stored(self.trees.jobs.get(id.as_bytes())?)
+        self.with(|records| records.job(id))
     }
 
     /// Stores `job`; a job that has ended leaves the scheduling index, with its frames.
     pub fn put_job(&self, job: &Job) -> Result<(), StoreError> {
-        let encoded = encode(job)?;
-        if !job.state.is_terminal() {
-            self.trees.jobs.insert(job.id.as_bytes(), encoded)?;
-            return Ok(());
-        }
-        let mut prefix = job.id.as_bytes().to_vec();
-        prefix.push(b'/');
-        let mut unlisted = sled::Batch::default();
-        for key in self.trees.pending.scan_prefix(&prefix).keys() {
-            unlisted.remove(key?);
-        }
-        (&self.trees.jobs, &self.trees.queue, &self.trees.pending)
-            .transaction(|(jobs, queue, pending)| {
-                jobs.insert(job.id.as_bytes(), encoded.as_slice())?;
-                queue.remove(queue_key(job))?;
-                pending.apply_batch(&unlisted)?;
-                Ok(())
-            })
-            .map_err(transaction_error)
+        self.with(|records| records.put_job(job))
     }
 
     /// Applies `change` to the stored job and returns the result (None if there is no such
@@ -324,13 +341,7 @@ impl Store {
         id: &str,
         change: impl FnOnce(&mut Job),
     ) -> Result<Option<Job>, StoreError> {
-        let Some(mut job) = self.job(id)? else {
-            return Ok(None);
-        };
-        change(&mut job);
-        job.updated_unix_ms = now_unix_ms();
-        self.put_job(&job)?;
-        Ok(Some(job))
+        self.with(|records| records.update_job(id, change))
     }
 
     pub fn list_jobs(
@@ -339,41 +350,22 @@ impl Store {
         page_size: usize,
         token: &str,
     ) -> Result<Page<Job>, StoreError> {
-        page(
-            &self.trees.jobs,
-            page_size,
-            token,
-            |j: &Job| state.is_none_or(|s| j.state == s),
-            |j| j.id.clone(),
-        )
+        self.with(|records| records.list_jobs(state, page_size, token))
     }
 
     /// Whether an unfinished job renders the dataset `dataset_id`: every job is looked at.
     pub fn dataset_in_use(&self, dataset_id: &str) -> Result<bool, StoreError> {
-        for entry in self.trees.jobs.iter() {
-            let job: Job = decode(&entry?.1)?;
-            if job.spec.dataset_id == dataset_id && !job.state.is_terminal() {
-                return Ok(true);
-            }
-        }
-        Ok(false)
+        self.with(|records| records.dataset_in_use(dataset_id))
     }
 
     /// The bytes of the datasets whose files lie in `uploads` (the ones uploaded, not
     /// registered from a data root).
-    pub fn uploaded_bytes(&self, uploads: &std::path::Path) -> Result<u64, StoreError> {
-        let mut total = 0u64;
-        for entry in self.trees.datasets.iter() {
-            let dataset: Dataset = decode(&entry?.1)?;
-            if dataset.path.starts_with(uploads) {
-                total = total.saturating_add(dataset.size_bytes);
-            }
-        }
-        Ok(total)
+    pub fn uploaded_bytes(&self, uploads: &Path) -> Result<u64, StoreError> {
+        self.with(|records| records.uploaded_bytes(uploads))
     }
 
     pub fn frame(&self, job_id: &str, index: u32) -> Result<Option<FrameState>, StoreError> {
-        decode_stored(self.trees.frames.get(frame_key(job_id, index))?)
+        self.with(|records| records.frame(job_id, index))
     }
 
     pub fn set_frame(
@@ -382,20 +374,18 @@ impl Store {
         index: u32,
         state: &FrameState,
     ) -> Result<(), StoreError> {
-        let key = frame_key(job_id, index);
-        let encoded = encode(state)?;
-        let is_pending = matches!(state, FrameState::Pending { .. });
-        (&self.trees.frames, &self.trees.pending)
-            .transaction(|(frames, pending)| {
-                frames.insert(key.as_slice(), encoded.as_slice())?;
-                if is_pending {
-                    pending.insert(key.as_slice(), &[])?;
-                } else {
-                    pending.remove(key.as_slice())?;
-                }
-                Ok(())
-            })
-            .map_err(transaction_error)
+        self.with(|records| records.set_frame(job_id, index, state))
+    }
+
+    /// Marks the frame of `lease` done with `report`, removes the lease and applies `change`
+    /// to its job, as one flushed transaction. None if there is no such job.
+    pub fn finish_frame(
+        &self,
+        lease: &Lease,
+        report: &FrameReport,
+        change: impl FnOnce(&mut Job),
+    ) -> Result<Option<Job>, StoreError> {
+        self.with(|records| records.finish_frame(lease, report, change))
     }
 
     /// The next frame to render: the first pending frame that is not `leased`, of the
@@ -403,168 +393,86 @@ impl Store {
     /// scheduling index, so finished jobs cost nothing.
     pub fn next_task(
         &self,
-        leased: &std::collections::HashSet<(String, u32)>,
+        leased: &HashSet<(String, u32)>,
     ) -> Result<Option<(Job, u32)>, StoreError> {
-        for entry in self.trees.queue.iter() {
-            let (_, job_id) = entry?;
-            let mut prefix = job_id.to_vec();
-            prefix.push(b'/');
-            let job_id = String::from_utf8_lossy(&job_id).into_owned();
-            for key in self.trees.pending.scan_prefix(&prefix).keys() {
-                let key = key?;
-                let index_bytes: [u8; 4] = key[prefix.len()..].try_into().unwrap_or([0; 4]);
-                let index = u32::from_be_bytes(index_bytes);
-                if leased.contains(&(job_id.clone(), index)) {
-                    continue;
-                }
-                match self.job(&job_id)? {
-                    Some(job) if !job.state.is_terminal() => return Ok(Some((job, index))),
-                    _ => break,
-                }
-            }
-        }
-        Ok(None)
+        self.with(|records| records.next_task(leased))
     }
 
     /// After a restart: jobs that were running go back to the queue (their finished frames
     /// stay finished). Returns how many.
     pub fn requeue_running(&self) -> Result<usize, StoreError> {
-        let mut requeued = 0;
-        for entry in self.trees.jobs.iter() {
-            let (_, value) = entry?;
-            let mut job: Job = decode(&value)?;
-            if job.state == JobState::Running {
-                job.state = JobState::Queued;
-                self.put_job(&job)?;
-                requeued += 1;
-            }
-        }
-        Ok(requeued)
+        self.with(Records::requeue_running)
+    }
+
+    /// The reports of the finished frames of a job, by frame index.
+    pub fn frame_reports(&self, job_id: &str) -> Result<Vec<FrameReport>, StoreError> {
+        self.with(|records| records.frame_reports(job_id))
+    }
+
+    /// A new id, unique in this database (also across restarts).
+    pub fn generate_id(&self) -> Result<u64, StoreError> {
+        self.with(Records::generate_id)
     }
 
     // ------------------------------------------------------------------ leases
 
     pub fn put_lease(&self, lease: &Lease) -> Result<(), StoreError> {
-        self.trees
-            .leases
-            .insert(lease.id.as_bytes(), encode(lease)?)?;
-        Ok(())
+        self.with(|records| records.put_lease(lease))
     }
 
+    /// The lease `id`; one given back during an outage is not held any more.
     pub fn lease(&self, id: &str) -> Result<Option<Lease>, StoreError> {
-        decode_stored(self.trees.leases.get(id.as_bytes())?)
+        if self.given_back().contains(id) {
+            return Ok(None);
+        }
+        self.with(|records| records.lease(id))
     }
 
     pub fn remove_lease(&self, id: &str) -> Result<(), StoreError> {
-        self.trees.leases.remove(id.as_bytes())?;
-        Ok(())
+        self.with(|records| records.remove_lease(id))
     }
 
+    /// Removes the lease `id` durably; while the disk refuses writes its removal is kept in
+    /// memory and done again when the outage ends, so that its frame counts no attempt when
+    /// the lease would have run out.
+    pub fn give_back_lease(&self, id: &str) -> Result<(), StoreError> {
+        let removed = self.with(|records| {
+            records.remove_lease(id)?;
+            records.flush()
+        });
+        match removed {
+            Err(StoreError::Unwritable(_)) => {
+                self.given_back().insert(id.to_owned());
+                Ok(())
+            }
+            other => other,
+        }
+    }
+
+    /// Every lease held, without those given back during an outage.
     pub fn leases(&self) -> Result<Vec<Lease>, StoreError> {
-        self.trees
-            .leases
-            .iter()
-            .map(|entry| decode(&entry?.1))
-            .collect()
-    }
-
-    /// A new id, unique in this database (also across restarts).
-    pub fn generate_id(&self) -> Result<u64, StoreError> {
-        Ok(self.db.generate_id()?)
-    }
-
-    /// The reports of the finished frames of a job, by frame index.
-    pub fn frame_reports(&self, job_id: &str) -> Result<Vec<FrameReport>, StoreError> {
-        let mut prefix = job_id.as_bytes().to_vec();
-        prefix.push(b'/');
-        let mut out = Vec::new();
-        for entry in self.trees.frames.scan_prefix(&prefix) {
-            let (_, value) = entry?;
-            if let FrameState::Done(report) = decode::<FrameState>(&value)? {
-                out.push(report);
-            }
-        }
-        Ok(out)
+        let mut leases = self.with(Records::leases)?;
+        let given_back = self.given_back();
+        leases.retain(|lease| !given_back.contains(&lease.id));
+        Ok(leases)
     }
 }
 
-/// A tree of records by name, with the test that a record decodes.
-type RecordTree<'a> = (&'static str, &'a sled::Tree, fn(&[u8]) -> bool);
+/// How long reopening waits for the old database's threads to let go of its files.
+const REOPEN_WAIT: Duration = Duration::from_secs(10);
 
-/// The trees of a database.
-struct Trees {
-    datasets: sled::Tree,
-    jobs: sled::Tree,
-    /// Request ids to the jobs they created.
-    requests: sled::Tree,
-    frames: sled::Tree,
-    leases: sled::Tree,
-    /// The unfinished jobs, keyed by [`queue_key`] (highest priority first, then oldest).
-    queue: sled::Tree,
-    /// The pending frames, keyed as in `frames`; the values are empty.
-    pending: sled::Tree,
-    /// The database's own facts (the version of the scheduling index).
-    meta: sled::Tree,
-}
-
-impl Trees {
-    fn open(db: &sled::Db) -> Result<Self, StoreError> {
-        Ok(Self {
-            datasets: db.open_tree("datasets")?,
-            jobs: db.open_tree("jobs")?,
-            requests: db.open_tree("requests")?,
-            frames: db.open_tree("frames")?,
-            leases: db.open_tree("leases")?,
-            queue: db.open_tree("queue")?,
-            pending: db.open_tree("pending")?,
-            meta: db.open_tree("meta")?,
-        })
-    }
-
-    /// The trees whose records must decode, by name.
-    fn records(&self) -> [RecordTree<'_>; 4] {
-        [
-            ("datasets", &self.datasets, |v| decode::<Dataset>(v).is_ok()),
-            ("jobs", &self.jobs, |v| decode::<Job>(v).is_ok()),
-            ("frames", &self.frames, |v| decode::<FrameState>(v).is_ok()),
-            ("leases", &self.leases, |v| decode::<Lease>(v).is_ok()),
-        ]
-    }
-
-    /// Counts the readable jobs and datasets and lists the records that do not decode.
-    fn census(&self) -> Result<(Counts, Vec<String>), StoreError> {
-        let mut unreadable = Vec::new();
-        for (name, tree, readable) in self.records() {
-            for entry in tree.iter() {
-                let (key, value) = entry?;
-                if !readable(&value) {
-                    unreadable.push(format!("{name}/{}", String::from_utf8_lossy(&key)));
-                }
-            }
+/// Opens the sled database at `path`.
+fn open_database(path: &Path) -> Result<sled::Db, StoreError> {
+    sled::open(path).map_err(|e| match e {
+        // sled reports the lock held by another process only in its message.
+        sled::Error::Io(io) if io.to_string().contains("could not acquire lock") => {
+            StoreError::Locked(path.to_owned())
         }
-        let unreadable_in = |tree: &str| unreadable.iter().filter(|r| r.starts_with(tree)).count();
-        let counts = Counts {
-            jobs: (self.jobs.len() - unreadable_in("jobs/")) as u64,
-            datasets: (self.datasets.len() - unreadable_in("datasets/")) as u64,
-        };
-        Ok((counts, unreadable))
-    }
-
-    /// Drops the records listed as `tree/key`; the scheduling index is rebuilt after it.
-    fn remove_unreadable(&self, unreadable: &[String]) -> Result<(), StoreError> {
-        for record in unreadable {
-            let Some((name, key)) = record.split_once('/') else {
-                continue;
-            };
-            if let Some((_, tree, _)) = self.records().into_iter().find(|(n, ..)| *n == name) {
-                tree.remove(key.as_bytes())?;
-            }
-        }
-        if !unreadable.is_empty() {
-            self.meta.remove(INDEX_VERSION_KEY)?;
-        }
-        Ok(())
-    }
+        e => StoreError::Damaged(format!(
+            "the state database {} cannot be opened: {e}",
+            path.display()
+        )),
+    })
 }
 
 /// A page of `tree` in key order after `token`, keeping the records `keep` accepts.

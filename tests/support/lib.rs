@@ -95,8 +95,14 @@ impl ServeProcess {
 
     /// Starts a daemon on `address` with more `serve` arguments and waits until it listens.
     pub fn start_with_args(address: &str, data_dir: &Path, args: &[&str]) -> Self {
+        Self::start_logging_to(address, data_dir, &data_dir.join("serve.log"), args)
+    }
+
+    /// Starts a daemon as [`ServeProcess::start_with_args`] does, its log in `log` (e.g. off a
+    /// data folder on a disk that fills up).
+    pub fn start_logging_to(address: &str, data_dir: &Path, log: &Path, args: &[&str]) -> Self {
         std::fs::create_dir_all(data_dir).expect("data folder");
-        let log = data_dir.join("serve.log");
+        let log = log.to_path_buf();
         let log_file = std::fs::OpenOptions::new()
             .create(true)
             .append(true)

@@ -1,4 +1,5 @@
-//! The scheduling index: order, what leaves it, and its rebuilding in an older database.
+//! The scheduling index: order, what leaves it, and its rebuilding in an older database; a
+//! database on a real disk that fills up and empties again.
 
 use std::collections::HashSet;
 
@@ -95,12 +96,58 @@ fn a_database_without_the_index_gets_it_when_opened() {
         store.submit_job(spec("b", 1, 3)).expect("submit");
         let scheduled = schedule(&store);
         // As a database written before the index existed.
-        for tree in [&store.trees.queue, &store.trees.pending, &store.trees.meta] {
-            tree.clear().expect("clear");
-        }
+        store
+            .with(|records| {
+                let trees = &records.trees;
+                for tree in [&trees.queue, &trees.pending, &trees.meta] {
+                    tree.clear()?;
+                }
+                Ok(())
+            })
+            .expect("clear");
         store.flush().expect("flush");
         assert!(schedule(&store).is_empty());
         scheduled
     };
     assert_eq!(schedule(&open(&path)), scheduled);
+}
+
+#[test]
+fn a_database_the_full_disk_failed_is_opened_again_with_all_it_had_flushed() {
+    let Some(disk) = crate::testing::SmallDisk::mount(16) else {
+        return;
+    };
+    let store = open(&disk.path().join("state.sled"));
+    let (before, _) = store.submit_job(spec("before", 4, 0)).expect("submit");
+    let filler = disk.fill("filler");
+    // Requests ids of a few KiB: the log needs new pages within a few writes.
+    let refused = (0..1000)
+        .map(|i| store.submit_job(spec(&format!("{i:04}{}", "x".repeat(4000)), 1, 0)))
+        .find_map(Result::err)
+        .expect("the full disk refuses a write");
+    assert!(
+        matches!(&refused, StoreError::Unwritable(m) if m.contains("disk is full")),
+        "{refused}"
+    );
+    assert!(store.outage().is_some());
+    assert!(store.disk.database_failed(), "sled met the error");
+    assert!(
+        !store.end_outage().expect("probe"),
+        "the disk is still full"
+    );
+
+    std::fs::remove_file(filler).expect("free the disk");
+    assert!(store.end_outage().expect("reopen"), "space is back");
+    assert!(store.outage().is_none());
+    assert_eq!(
+        store.job(&before.id).expect("read").map(|j| j.frames_total),
+        Some(4),
+        "what was flushed before the outage is kept"
+    );
+    let (after, created) = store.submit_job(spec("after", 1, 0)).expect("writes again");
+    assert!(created);
+    assert!(after.id > before.id, "ids still sort by creation");
+    drop(store);
+    let reopened = open(&disk.path().join("state.sled"));
+    assert!(reopened.job(&after.id).expect("read").is_some());
 }

@@ -9,6 +9,9 @@
 //!   dropped.
 //! - Lost connections are retried with exponential backoff, so a daemon restart is ridden out;
 //!   a finished frame is handed in again until its lease would have expired.
+//! - RESOURCE_EXHAUSTED means the daemon cannot store frames now (its disk is full): it gave
+//!   the frame back to its queue, and the worker waits with the same backoff before asking
+//!   for another, saying so once, not per try.
 //! - Stopping (SIGTERM) lets the current frame finish and hands it in; a stop while waiting for
 //!   work exits at once.
 //! - A failed frame is reported with its kind: permanent (the dataset cannot be read, the
@@ -92,6 +95,20 @@ fn is_transient(status: &Status) -> bool {
     )
 }
 
+/// Whether the daemon refused a call because it cannot store frames now (its disk is full):
+/// the frame is back in its queue, and the worker waits before it asks for another.
+fn daemon_cannot_store(status: &Status) -> bool {
+    status.code() == Code::ResourceExhausted
+}
+
+/// How a leased frame ended, for the lease loop.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum TaskEnd {
+    Finished,
+    /// The daemon could not store the result (its disk is full): wait before the next lease.
+    DaemonCannotStore,
+}
+
 /// Runs the worker until `shutdown` completes (and the current frame is handed in).
 pub async fn run(
     config: RemoteWorkerConfig,
@@ -124,6 +141,8 @@ pub async fn run(
 
     let mut render_state = Some(WorkerRenderState::new(gpu, Some(Arc::new(cache))));
     let mut backoff = Backoff::new();
+    // Said once when the daemon cannot store frames, once when it can again.
+    let mut daemon_full = false;
     tracing::info!(server = %url, worker = %config.name, "worker started");
     while !*stop.borrow() {
         let request = pb::LeaseFrameRequest {
@@ -149,9 +168,25 @@ pub async fn run(
         let message = match leased {
             Ok(response) => {
                 backoff.reset();
+                if std::mem::take(&mut daemon_full) {
+                    tracing::info!("the daemon stores frames again");
+                }
                 match response.into_inner().task {
                     Some(task) => task,
                     None => continue,
+                }
+            }
+            Err(status) if daemon_cannot_store(&status) => {
+                let wait = backoff.next();
+                if !std::mem::replace(&mut daemon_full, true) {
+                    tracing::warn!(
+                        message = status.message(),
+                        "the daemon cannot store frames now; waiting until it can"
+                    );
+                }
+                tokio::select! {
+                    _ = stop.changed() => break,
+                    _ = tokio::time::sleep(wait) => continue,
                 }
             }
             Err(status) if is_transient(&status) => {
@@ -183,9 +218,17 @@ pub async fn run(
             frame = task.lease.index,
             lease = %task.lease.id
         );
-        run_task(&mut client, &mut render_state, &downloads, task)
+        let end = run_task(&mut client, &mut render_state, &downloads, task)
             .instrument(span)
             .await?;
+        if end == TaskEnd::DaemonCannotStore {
+            daemon_full = true;
+            let wait = backoff.next();
+            tokio::select! {
+                _ = stop.changed() => break,
+                _ = tokio::time::sleep(wait) => {}
+            }
+        }
     }
     tracing::info!("worker stopped");
     Ok(())
@@ -198,7 +241,7 @@ async fn run_task(
     render_state: &mut Option<WorkerRenderState>,
     downloads: &Path,
     task: FrameTask,
-) -> anyhow::Result<()> {
+) -> anyhow::Result<TaskEnd> {
     tracing::info!(
         dataset = %task.dataset.id,
         size = %format!("{}x{}", task.request.width, task.request.height),
@@ -216,21 +259,20 @@ async fn run_task(
     heartbeats.abort();
     if abandoned.load(Ordering::SeqCst) {
         tracing::info!("frame dropped on the daemon's word");
-        return result.map(|_| ());
+        return result.map(|_| TaskEnd::Finished);
     }
     match result {
-        Ok(Ok(frame)) => complete_frame(client, &task, frame).await,
+        Ok(Ok(frame)) => Ok(complete_frame(client, &task, frame).await),
         Ok(Err(failure)) => {
             tracing::warn!(reason = %failure.reason, kind = ?failure.kind, "frame failed");
-            fail_frame(client, &task.lease.id, &failure).await;
+            Ok(fail_frame(client, &task.lease.id, &failure).await)
         }
         Err(lost) => {
             let failure = FrameFailure::transient(format!("{lost:#}"));
             fail_frame(client, &task.lease.id, &failure).await;
-            return Err(lost);
+            Err(lost)
         }
     }
-    Ok(())
 }
 
 /// The rendered frame, or why it could not be rendered. The outer error means the renderer
@@ -362,7 +404,7 @@ async fn download(client: &mut Client, task: &FrameTask, dir: &Path) -> anyhow::
 }
 
 /// Hands the frame in, retrying through connection losses until its lease would have expired.
-async fn complete_frame(client: &mut Client, task: &FrameTask, frame: RenderedFrame) {
+async fn complete_frame(client: &mut Client, task: &FrameTask, frame: RenderedFrame) -> TaskEnd {
     let give_up = tokio::time::Instant::now() + task.lease_timeout;
     let mut backoff = Backoff::new();
     loop {
@@ -385,7 +427,15 @@ async fn complete_frame(client: &mut Client, task: &FrameTask, frame: RenderedFr
         match client.complete_frame(messages).await {
             Ok(_) => {
                 tracing::info!(bytes = frame.png.len(), "frame handed in");
-                return;
+                return TaskEnd::Finished;
+            }
+            Err(status) if daemon_cannot_store(&status) => {
+                // The daemon gave the frame back to its queue; it is rendered again later.
+                tracing::warn!(
+                    message = status.message(),
+                    "the daemon could not store the frame; waiting before the next one"
+                );
+                return TaskEnd::DaemonCannotStore;
             }
             Err(status) if is_transient(&status) && tokio::time::Instant::now() < give_up => {
                 let wait = backoff.next();
@@ -398,7 +448,7 @@ async fn complete_frame(client: &mut Client, task: &FrameTask, frame: RenderedFr
                     message = status.message(),
                     "the daemon did not take the frame; it is dropped"
                 );
-                return;
+                return TaskEnd::Finished;
             }
         }
     }
@@ -429,13 +479,25 @@ fn panic_message(error: tokio::task::JoinError) -> String {
         .unwrap_or_else(|| "no message".into())
 }
 
-async fn fail_frame(client: &mut Client, lease_id: &str, failure: &FrameFailure) {
+/// Reports a failed frame; the daemon may answer that it cannot store even that.
+async fn fail_frame(client: &mut Client, lease_id: &str, failure: &FrameFailure) -> TaskEnd {
     let request = pb::FailFrameRequest {
         lease_id: lease_id.to_string(),
         reason: failure.reason.clone(),
         kind: pb::FailureKind::from(failure.kind) as i32,
     };
-    if let Err(status) = client.fail_frame(request).await {
-        tracing::warn!(code = ?status.code(), message = status.message(), "reporting the failure failed; the lease will expire");
+    match client.fail_frame(request).await {
+        Ok(_) => TaskEnd::Finished,
+        Err(status) if daemon_cannot_store(&status) => {
+            tracing::warn!(
+                message = status.message(),
+                "the daemon could not record the failure; waiting before the next frame"
+            );
+            TaskEnd::DaemonCannotStore
+        }
+        Err(status) => {
+            tracing::warn!(code = ?status.code(), message = status.message(), "reporting the failure failed; the lease will expire");
+            TaskEnd::Finished
+        }
     }
 }

@@ -1,0 +1,386 @@
+//! The records of one opened database and what is done with them; the `Store` around it
+//! adds the manifest, the disk's health and reopening.
+
+use sled::Transactional;
+
+use super::trees::Trees;
+use super::{
+    decode, decode_stored, encode, frame_key, page, queue_key, transaction_error, Page,
+    INDEX_VERSION, INDEX_VERSION_KEY,
+};
+use crate::error::StoreError;
+use crate::lease_record::Lease;
+use crate::model::{now_unix_ms, Dataset, FrameReport, FrameState, Job, JobSpec, JobState};
+
+/// An opened database and its trees.
+pub(super) struct Records {
+    pub(super) db: sled::Db,
+    pub(super) trees: Trees,
+}
+
+impl Records {
+    /// Builds the scheduling index from the jobs and frames (a database written before the
+    /// index existed).
+    pub(super) fn rebuild_index(&self) -> Result<(), StoreError> {
+        self.trees.queue.clear()?;
+        self.trees.pending.clear()?;
+        for entry in self.trees.jobs.iter() {
+            let job: Job = decode(&entry?.1)?;
+            if !job.state.is_terminal() {
+                self.trees
+                    .queue
+                    .insert(queue_key(&job), job.id.as_bytes())?;
+            }
+        }
+        for entry in self.trees.frames.iter() {
+            let (key, value) = entry?;
+            if let FrameState::Pending { .. } = decode::<FrameState>(&value)? {
+                self.trees.pending.insert(key, &[])?;
+            }
+        }
+        self.trees.meta.insert(INDEX_VERSION_KEY, INDEX_VERSION)?;
+        self.db.flush()?;
+        Ok(())
+    }
+
+    /// Writes everything to disk.
+    pub(super) fn flush(&self) -> Result<(), StoreError> {
+        self.db.flush()?;
+        Ok(())
+    }
+
+    pub(super) fn put_dataset(&self, dataset: &Dataset) -> Result<bool, StoreError> {
+        let replaced = self
+            .trees
+            .datasets
+            .insert(dataset.id.as_bytes(), encode(dataset)?)?;
+        if replaced.is_none() {
+            self.db.flush()?;
+        }
+        Ok(replaced.is_none())
+    }
+
+    pub(super) fn dataset(&self, id: &str) -> Result<Option<Dataset>, StoreError> {
+        decode_stored(self.trees.datasets.get(id.as_bytes())?)
+    }
+
+    pub(super) fn delete_dataset(&self, id: &str) -> Result<Option<Dataset>, StoreError> {
+        let removed = decode_stored(self.trees.datasets.remove(id.as_bytes())?);
+        self.db.flush()?;
+        removed
+    }
+
+    pub(super) fn list_datasets(
+        &self,
+        page_size: usize,
+        token: &str,
+    ) -> Result<Page<Dataset>, StoreError> {
+        page(
+            &self.trees.datasets,
+            page_size,
+            token,
+            |_: &Dataset| true,
+            |d| d.id.clone(),
+        )
+    }
+
+    /// Creates a job with all its frames pending, or returns the job that an earlier
+    /// submission with the same request id created (`false`).
+    pub(super) fn submit_job(&self, spec: JobSpec) -> Result<(Job, bool), StoreError> {
+        if !spec.request_id.is_empty() {
+            if let Some(id) = self.trees.requests.get(spec.request_id.as_bytes())? {
+                let id = String::from_utf8_lossy(&id).into_owned();
+                if let Some(job) = self.job(&id)? {
+                    return Ok((job, false));
+                }
+            }
+        }
+        // Ids sort by creation: a monotonic counter, zero-padded.
+        let id = format!("job-{:012}", self.db.generate_id()?);
+        let now = now_unix_ms();
+        let frames = spec.request.frames();
+        let job = Job {
+            id: id.clone(),
+            state: JobState::Queued,
+            frames_total: frames,
+            frames_done: 0,
+            error: None,
+            created_unix_ms: now,
+            updated_unix_ms: now,
+            spec,
+        };
+        let pending = encode(&FrameState::Pending { attempts: 0 })?;
+        let (mut frame_batch, mut pending_batch) = (sled::Batch::default(), sled::Batch::default());
+        for index in 0..frames {
+            frame_batch.insert(frame_key(&id, index), pending.clone());
+            pending_batch.insert(frame_key(&id, index), &[]);
+        }
+        let encoded = encode(&job)?;
+        let trees = (
+            &self.trees.frames,
+            &self.trees.pending,
+            &self.trees.jobs,
+            &self.trees.requests,
+            &self.trees.queue,
+        );
+        trees
+            .transaction(|(frames, pending, jobs, requests, queue)| {
+                frames.apply_batch(&frame_batch)?;
+                pending.apply_batch(&pending_batch)?;
+                jobs.insert(id.as_bytes(), encoded.as_slice())?;
+                if !job.spec.request_id.is_empty() {
+                    requests.insert(job.spec.request_id.as_bytes(), id.as_bytes())?;
+                }
+                queue.insert(queue_key(&job), id.as_bytes())?;
+                Ok(())
+            })
+            .map_err(transaction_error)?;
+        self.db.flush()?;
+        Ok((job, true))
+    }
+
+    pub(super) fn job(&self, id: &str) -> Result<Option<Job>, StoreError> {
+        decode_stored(self.trees.jobs.get(id.as_bytes())?)
+    }
+
+    /// Stores `job`; a job that has ended leaves the scheduling index, with its frames.
+    pub(super) fn put_job(&self, job: &Job) -> Result<(), StoreError> {
+        let encoded = encode(job)?;
+        if !job.state.is_terminal() {
+            self.trees.jobs.insert(job.id.as_bytes(), encoded)?;
+            return Ok(());
+        }
+        let mut prefix = job.id.as_bytes().to_vec();
+        prefix.push(b'/');
+        let mut unlisted = sled::Batch::default();
+        for key in self.trees.pending.scan_prefix(&prefix).keys() {
+            unlisted.remove(key?);
+        }
+        (&self.trees.jobs, &self.trees.queue, &self.trees.pending)
+            .transaction(|(jobs, queue, pending)| {
+                jobs.insert(job.id.as_bytes(), encoded.as_slice())?;
+                queue.remove(queue_key(job))?;
+                pending.apply_batch(&unlisted)?;
+                Ok(())
+            })
+            .map_err(transaction_error)
+    }
+
+    /// Applies `change` to the stored job and returns the result (None if there is no such
+    /// job). Bumps the update time.
+    pub(super) fn update_job(
+        &self,
+        id: &str,
+        change: impl FnOnce(&mut Job),
+    ) -> Result<Option<Job>, StoreError> {
+        let Some(mut job) = self.job(id)? else {
+            return Ok(None);
+        };
+        change(&mut job);
+        job.updated_unix_ms = now_unix_ms();
+        self.put_job(&job)?;
+        Ok(Some(job))
+    }
+
+    pub(super) fn list_jobs(
+        &self,
+        state: Option<JobState>,
+        page_size: usize,
+        token: &str,
+    ) -> Result<Page<Job>, StoreError> {
+        page(
+            &self.trees.jobs,
+            page_size,
+            token,
+            |j: &Job| state.is_none_or(|s| j.state == s),
+            |j| j.id.clone(),
+        )
+    }
+
+    /// Whether an unfinished job renders the dataset `dataset_id`: every job is looked at.
+    pub(super) fn dataset_in_use(&self, dataset_id: &str) -> Result<bool, StoreError> {
+        for entry in self.trees.jobs.iter() {
+            let job: Job = decode(&entry?.1)?;
+            if job.spec.dataset_id == dataset_id && !job.state.is_terminal() {
+                return Ok(true);
+            }
+        }
+        Ok(false)
+    }
+
+    /// The bytes of the datasets whose files lie in `uploads` (the ones uploaded, not
+    /// registered from a data root).
+    pub(super) fn uploaded_bytes(&self, uploads: &std::path::Path) -> Result<u64, StoreError> {
+        let mut total = 0u64;
+        for entry in self.trees.datasets.iter() {
+            let dataset: Dataset = decode(&entry?.1)?;
+            if dataset.path.starts_with(uploads) {
+                total = total.saturating_add(dataset.size_bytes);
+            }
+        }
+        Ok(total)
+    }
+
+    pub(super) fn frame(&self, job_id: &str, index: u32) -> Result<Option<FrameState>, StoreError> {
+        decode_stored(self.trees.frames.get(frame_key(job_id, index))?)
+    }
+
+    /// Marks the frame of `lease` done with `report`, removes the lease and applies `change`
+    /// to its job, in one transaction, flushed: after a crash or a failed write either all of
+    /// it happened or none. None if there is no such job.
+    pub(super) fn finish_frame(
+        &self,
+        lease: &Lease,
+        report: &FrameReport,
+        change: impl FnOnce(&mut Job),
+    ) -> Result<Option<Job>, StoreError> {
+        let Some(mut job) = self.job(&lease.job_id)? else {
+            return Ok(None);
+        };
+        change(&mut job);
+        job.updated_unix_ms = now_unix_ms();
+        let key = frame_key(&lease.job_id, lease.index);
+        let frame = encode(&FrameState::Done(report.clone()))?;
+        let encoded = encode(&job)?;
+        let ended = job.state.is_terminal();
+        let mut unlisted = sled::Batch::default();
+        if ended {
+            let mut prefix = job.id.as_bytes().to_vec();
+            prefix.push(b'/');
+            for key in self.trees.pending.scan_prefix(&prefix).keys() {
+                unlisted.remove(key?);
+            }
+        }
+        let trees = (
+            &self.trees.frames,
+            &self.trees.pending,
+            &self.trees.leases,
+            &self.trees.jobs,
+            &self.trees.queue,
+        );
+        trees
+            .transaction(|(frames, pending, leases, jobs, queue)| {
+                frames.insert(key.as_slice(), frame.as_slice())?;
+                pending.remove(key.as_slice())?;
+                leases.remove(lease.id.as_bytes())?;
+                jobs.insert(job.id.as_bytes(), encoded.as_slice())?;
+                if ended {
+                    queue.remove(queue_key(&job))?;
+                    pending.apply_batch(&unlisted)?;
+                }
+                Ok(())
+            })
+            .map_err(transaction_error)?;
+        self.db.flush()?;
+        Ok(Some(job))
+    }
+
+    pub(super) fn set_frame(
+        &self,
+        job_id: &str,
+        index: u32,
+        state: &FrameState,
+    ) -> Result<(), StoreError> {
+        let key = frame_key(job_id, index);
+        let encoded = encode(state)?;
+        let is_pending = matches!(state, FrameState::Pending { .. });
+        (&self.trees.frames, &self.trees.pending)
+            .transaction(|(frames, pending)| {
+                frames.insert(key.as_slice(), encoded.as_slice())?;
+                if is_pending {
+                    pending.insert(key.as_slice(), &[])?;
+                } else {
+                    pending.remove(key.as_slice())?;
+                }
+                Ok(())
+            })
+            .map_err(transaction_error)
+    }
+
+    /// The next frame to render: the first pending frame that is not `leased`, of the
+    /// unfinished job with the highest priority, the oldest first among equals. Reads the
+    /// scheduling index, so finished jobs cost nothing.
+    pub(super) fn next_task(
+        &self,
+        leased: &std::collections::HashSet<(String, u32)>,
+    ) -> Result<Option<(Job, u32)>, StoreError> {
+        for entry in self.trees.queue.iter() {
+            let (_, job_id) = entry?;
+            let mut prefix = job_id.to_vec();
+            prefix.push(b'/');
+            let job_id = String::from_utf8_lossy(&job_id).into_owned();
+            for key in self.trees.pending.scan_prefix(&prefix).keys() {
+                let key = key?;
+                let index_bytes: [u8; 4] = key[prefix.len()..].try_into().unwrap_or([0; 4]);
+                let index = u32::from_be_bytes(index_bytes);
+                if leased.contains(&(job_id.clone(), index)) {
+                    continue;
+                }
+                match self.job(&job_id)? {
+                    Some(job) if !job.state.is_terminal() => return Ok(Some((job, index))),
+                    _ => break,
+                }
+            }
+        }
+        Ok(None)
+    }
+
+    /// After a restart: jobs that were running go back to the queue (their finished frames
+    /// stay finished). Returns how many.
+    pub(super) fn requeue_running(&self) -> Result<usize, StoreError> {
+        let mut requeued = 0;
+        for entry in self.trees.jobs.iter() {
+            let (_, value) = entry?;
+            let mut job: Job = decode(&value)?;
+            if job.state == JobState::Running {
+                job.state = JobState::Queued;
+                self.put_job(&job)?;
+                requeued += 1;
+            }
+        }
+        Ok(requeued)
+    }
+
+    pub(super) fn put_lease(&self, lease: &Lease) -> Result<(), StoreError> {
+        self.trees
+            .leases
+            .insert(lease.id.as_bytes(), encode(lease)?)?;
+        Ok(())
+    }
+
+    pub(super) fn lease(&self, id: &str) -> Result<Option<Lease>, StoreError> {
+        decode_stored(self.trees.leases.get(id.as_bytes())?)
+    }
+
+    pub(super) fn remove_lease(&self, id: &str) -> Result<(), StoreError> {
+        self.trees.leases.remove(id.as_bytes())?;
+        Ok(())
+    }
+
+    pub(super) fn leases(&self) -> Result<Vec<Lease>, StoreError> {
+        self.trees
+            .leases
+            .iter()
+            .map(|entry| decode(&entry?.1))
+            .collect()
+    }
+
+    /// A new id, unique in this database (also across restarts).
+    pub(super) fn generate_id(&self) -> Result<u64, StoreError> {
+        Ok(self.db.generate_id()?)
+    }
+
+    /// The reports of the finished frames of a job, by frame index.
+    pub(super) fn frame_reports(&self, job_id: &str) -> Result<Vec<FrameReport>, StoreError> {
+        let mut prefix = job_id.as_bytes().to_vec();
+        prefix.push(b'/');
+        let mut out = Vec::new();
+        for entry in self.trees.frames.scan_prefix(&prefix) {
+            let (_, value) = entry?;
+            if let FrameState::Done(report) = decode::<FrameState>(&value)? {
+                out.push(report);
+            }
+        }
+        Ok(out)
+    }
+}

@@ -1,0 +1,140 @@
+//! A full disk under the daemon's data: the frames it refuses go back to the queue without an
+//! attempt counted, the worker waits instead of spinning, health is NOT_SERVING and the
+//! daemon says so once; when space returns the job finishes, without a restart. A real tmpfs
+//! filled to its last byte, a real daemon and a real `pointfarm worker` process.
+
+use std::time::Duration;
+
+use pointfarm_daemon::testing::SmallDisk;
+use pointfarm_proto::v1 as pb;
+use pointfarm_proto::v1::job_service_client::JobServiceClient;
+use pointfarm_tests::service::{
+    clients, connect, get_job, scratch_sample, submit, turntable_job, upload_file, watch_to_success,
+};
+use pointfarm_tests::{wait_for, ServeProcess, WorkerProcess};
+use tonic_health::pb::health_check_response::ServingStatus;
+use tonic_health::pb::health_client::HealthClient;
+use tonic_health::pb::HealthCheckRequest;
+
+/// The health of `JobService` on the daemon at `address`.
+async fn job_service_health(address: &str) -> i32 {
+    HealthClient::new(connect(address).await)
+        .check(HealthCheckRequest {
+            service: "pointfarm.v1.JobService".into(),
+        })
+        .await
+        .expect("health")
+        .into_inner()
+        .status
+}
+
+/// Waits up to 30 s until `JobService` reports `status`.
+async fn wait_for_health(address: &str, status: ServingStatus) {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    while job_service_health(address).await != status as i32 {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "JobService is not {status:?} after 30 s"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// How many lines of `log` say `message`.
+fn count(log: &str, message: &str) -> usize {
+    log.lines().filter(|l| l.contains(message)).count()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_disk_holds_frames_back_and_the_daemon_resumes_when_space_returns() {
+    // Declared first, so dropped last: the processes on it stop before it is unmounted.
+    let Some(disk) = SmallDisk::mount(64) else {
+        eprintln!("skipped: no tmpfs could be mounted (see above)");
+        return;
+    };
+    let outside = tempfile::tempdir().expect("tempdir");
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|probe| probe.local_addr())
+        .expect("a free loopback port")
+        .port();
+    let address = format!("127.0.0.1:{port}");
+    // The log lies off the full disk, so that what the daemon says there is kept.
+    let mut server = ServeProcess::start_logging_to(
+        &address,
+        &disk.path().join("data"),
+        &outside.path().join("serve.log"),
+        &["--no-embedded-worker", "--lease-timeout", "5"],
+    );
+    let (mut datasets, mut jobs) = clients(&address).await;
+    let (_scratch, file) = scratch_sample("s.las", 20_000, 7);
+    let dataset = upload_file(&mut datasets, "s.las", &file).await;
+    let job = submit(&mut jobs, turntable_job("full", &dataset.id, 4, 64, 48)).await;
+
+    let filler = disk.fill("filler");
+    // The worker's own cache is elsewhere: only the daemon's disk is full.
+    let worker = WorkerProcess::start(
+        &format!("http://{address}"),
+        &outside.path().join("worker"),
+        "w",
+    );
+    wait_for(Duration::from_secs(120), "disk-full report", || {
+        server
+            .log()
+            .contains("the daemon's disk is full")
+            .then_some(())
+    });
+    wait_for_health(&address, ServingStatus::NotServing).await;
+    // A few rounds of the worker's backoff while the disk stays full.
+    tokio::time::sleep(Duration::from_secs(4)).await;
+    let held_back = get_job(&mut jobs, &job.id).await;
+    assert_eq!(held_back.frames_done, 0, "{}", server.log());
+    let leases = JobServiceClient::new(connect(&address).await)
+        .list_leases(pb::ListLeasesRequest {})
+        .await
+        .expect("leases")
+        .into_inner()
+        .leases;
+    assert!(
+        leases.is_empty(),
+        "refused frames are given back: {leases:?}"
+    );
+    let frames_dir = disk.path().join("data/jobs").join(&job.id);
+    let partial: Vec<_> = std::fs::read_dir(&frames_dir)
+        .map(|entries| entries.flatten().map(|e| e.file_name()).collect())
+        .unwrap_or_default();
+    assert!(partial.is_empty(), "files left behind: {partial:?}");
+    let log = server.log();
+    assert_eq!(
+        count(&log, "the daemon's disk is full"),
+        1,
+        "said once, not per frame:\n{log}"
+    );
+    let worker_log = worker.log();
+    assert!(
+        count(&worker_log, "the daemon cannot store frames now") <= 1
+            && count(&worker_log, "could not store the frame") <= 1,
+        "the worker says it waits once, not per try:\n{worker_log}"
+    );
+
+    std::fs::remove_file(filler).expect("free the disk");
+    let (_, frames) = watch_to_success(&mut jobs, &job.id, || {
+        format!("{}\n{}", server.log(), worker.log())
+    })
+    .await;
+    let attempts: Vec<(u32, u32)> = frames
+        .iter()
+        .map(|f| (f.index, f.failed_attempts))
+        .collect();
+    assert_eq!(
+        attempts,
+        [(0, 0), (1, 0), (2, 0), (3, 0)],
+        "every frame once, no attempt counted against any"
+    );
+    assert!(server.is_running(), "no restart");
+    assert!(
+        server.log().contains("takes writes again"),
+        "{}",
+        server.log()
+    );
+    wait_for_health(&address, ServingStatus::Serving).await;
+}
