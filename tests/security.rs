@@ -1,0 +1,401 @@
+//! Transport and roles, with real processes and sockets: TLS with a certificate made for the
+//! test (clients and workers through it, plaintext and unknown CAs refused), the refusal to
+//! listen beyond loopback without a token and TLS, reflection in both versions, and leases
+//! that only their holder can use.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+use pointfarm_daemon::access::Access;
+use pointfarm_proto::v1 as pb;
+use pointfarm_proto::v1::job_service_client::JobServiceClient;
+use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
+use pointfarm_tests::service::{scratch_sample, submit, turntable_job, upload_file, TestDaemon};
+use pointfarm_tests::{pointfarm, pointfarm_bin, ServeProcess, WorkerProcess};
+use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, Issuer, KeyPair, KeyUsagePurpose};
+use tokio_stream::StreamExt;
+use tonic::Code;
+
+/// A private CA and a certificate it signed for `localhost` and 127.0.0.1, as PEM files.
+struct TestPki {
+    ca: PathBuf,
+    cert: PathBuf,
+    key: PathBuf,
+}
+
+impl TestPki {
+    fn create(dir: &Path) -> Self {
+        let ca_key = KeyPair::generate().expect("CA key");
+        let mut ca_params = CertificateParams::new(Vec::<String>::new()).expect("CA params");
+        ca_params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+        ca_params
+            .distinguished_name
+            .push(DnType::CommonName, "pointfarm test CA");
+        ca_params.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::CrlSign];
+        let ca_cert = ca_params.self_signed(&ca_key).expect("CA certificate");
+        let issuer = Issuer::new(ca_params, ca_key);
+        let server_key = KeyPair::generate().expect("server key");
+        let server_cert = CertificateParams::new(vec!["localhost".into(), "127.0.0.1".into()])
+            .expect("server params")
+            .signed_by(&server_key, &issuer)
+            .expect("server certificate");
+        let pki = Self {
+            ca: dir.join("ca.pem"),
+            cert: dir.join("server.pem"),
+            key: dir.join("server.key"),
+        };
+        std::fs::write(&pki.ca, ca_cert.pem()).expect("write CA");
+        std::fs::write(&pki.cert, server_cert.pem()).expect("write certificate");
+        std::fs::write(&pki.key, server_key.serialize_pem()).expect("write key");
+        pki
+    }
+}
+
+fn arg(path: &Path) -> &str {
+    path.to_str().expect("temporary paths are UTF-8")
+}
+
+fn stderr(output: &Output) -> String {
+    String::from_utf8_lossy(&output.stderr).into_owned()
+}
+
+fn assert_fails_saying(output: &Output, needle: &str) {
+    assert!(
+        !output.status.success(),
+        "expected a failure saying {needle}"
+    );
+    assert!(stderr(output).contains(needle), "{}", stderr(output));
+}
+
+fn port_of(server: &ServeProcess) -> &str {
+    server
+        .address
+        .rsplit(':')
+        .next()
+        .expect("the address has a port")
+}
+
+#[test]
+fn tls_carries_clients_and_workers_and_plaintext_is_refused() {
+    let (scratch, scene) = scratch_sample("scene.las", 20_000, 5);
+    let dir = scratch.path();
+    let pki = TestPki::create(dir);
+    let (client_token, worker_token) = (dir.join("client.token"), dir.join("worker.token"));
+    std::fs::write(&client_token, "client-Secret-4f1c\n").expect("token");
+    std::fs::write(&worker_token, "worker-Secret-9a2e\n").expect("token");
+    let server = ServeProcess::start_with(
+        &dir.join("data"),
+        &[
+            "--no-embedded-worker",
+            "--tls-cert",
+            arg(&pki.cert),
+            "--tls-key",
+            arg(&pki.key),
+            "--token-file",
+            arg(&client_token),
+            "--worker-token-file",
+            arg(&worker_token),
+        ],
+    );
+    let https = format!("https://localhost:{}", port_of(&server));
+    let worker = WorkerProcess::start_with(
+        &https,
+        &dir.join("cache"),
+        "tls-worker",
+        &[
+            "--tls-ca",
+            arg(&pki.ca),
+            "--worker-token-file",
+            arg(&worker_token),
+        ],
+    );
+    // A bare address with a CA means TLS.
+    let frames = dir.join("frames");
+    let bare = format!("localhost:{}", port_of(&server));
+    let rendered = pointfarm(&[
+        "render",
+        arg(&scene),
+        "--server",
+        &bare,
+        "--tls-ca",
+        arg(&pki.ca),
+        "--token-file",
+        arg(&client_token),
+        "--turntable=2",
+        "--size=64x48",
+        "--out",
+        arg(&frames),
+    ]);
+    assert!(
+        rendered.status.success(),
+        "{}\n{}\n{}",
+        stderr(&rendered),
+        worker.log(),
+        server.log()
+    );
+    for i in 0..2 {
+        assert!(frames.join(format!("frame_{i:05}.png")).is_file());
+    }
+    let listed = pointfarm(&[
+        "dataset",
+        "list",
+        "--server",
+        &https,
+        "--tls-ca",
+        arg(&pki.ca),
+        "--token-file",
+        arg(&client_token),
+    ]);
+    assert!(listed.status.success(), "{}", stderr(&listed));
+
+    // A CA the system does not know, plaintext to the TLS port, and a CA with a plaintext URL
+    // all fail; none falls back.
+    let client = |server: &str, extra: &[&str]| {
+        let mut args = vec!["dataset", "list", "--server", server, "--token-file"];
+        args.push(arg(&client_token));
+        args.extend_from_slice(extra);
+        pointfarm(&args)
+    };
+    assert_fails_saying(&client(&https, &[]), "cannot connect");
+    let plaintext = format!("http://localhost:{}", port_of(&server));
+    assert!(!client(&plaintext, &[]).status.success());
+    assert_fails_saying(
+        &client(&plaintext, &["--tls-ca", arg(&pki.ca)]),
+        "--tls-ca is for https://",
+    );
+    assert_fails_saying(
+        &client(&https, &["--tls-ca", arg(&pki.ca), "--token", "x"]),
+        "give the token once",
+    );
+    // The client token is no worker token.
+    let refused = pointfarm(&[
+        "worker",
+        "--server",
+        &https,
+        "--tls-ca",
+        arg(&pki.ca),
+        "--worker-token-file",
+        arg(&client_token),
+        "--cache-dir",
+        arg(&dir.join("cache-refused")),
+    ]);
+    assert_fails_saying(&refused, "PermissionDenied");
+    // Tokens never reach the logs.
+    for log in [server.log(), worker.log()] {
+        assert!(!log.contains("Secret-"), "a token in a log:\n{log}");
+    }
+}
+
+/// Runs `pointfarm serve` with `args`; its output if it exits within 30 s (it is killed and
+/// the test fails otherwise).
+fn serve_exits(data_dir: &Path, args: &[&str]) -> Output {
+    let mut child = Command::new(pointfarm_bin())
+        .arg("serve")
+        .args(["--data-dir", arg(data_dir), "--no-embedded-worker"])
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start pointfarm serve");
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while child.try_wait().expect("poll").is_none() {
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            panic!("pointfarm serve {args:?} did not refuse to start");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    child.wait_with_output().expect("output")
+}
+
+#[test]
+fn listening_beyond_loopback_needs_a_token_and_tls_or_insecure() {
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let dir = scratch.path();
+    let pki = TestPki::create(dir);
+    let refused = serve_exits(&dir.join("d1"), &["--listen", "0.0.0.0:0"]);
+    assert_fails_saying(&refused, "refusing to listen on 0.0.0.0");
+    assert_fails_saying(&refused, "--insecure");
+    let refused = serve_exits(
+        &dir.join("d2"),
+        &["--listen", "0.0.0.0:0", "--token", "client-token"],
+    );
+    assert_fails_saying(&refused, "TLS (--tls-cert and --tls-key)");
+    let same = serve_exits(
+        &dir.join("d3"),
+        &["--token", "same-token", "--worker-token", "same-token"],
+    );
+    assert_fails_saying(&same, "give clients and workers different tokens");
+
+    let port = || {
+        std::net::TcpListener::bind("0.0.0.0:0")
+            .and_then(|probe| probe.local_addr())
+            .expect("a free port")
+            .port()
+    };
+    let tls = [
+        "--no-embedded-worker",
+        "--token",
+        "client-token",
+        "--tls-cert",
+        arg(&pki.cert),
+        "--tls-key",
+        arg(&pki.key),
+    ];
+    let mut secured =
+        ServeProcess::start_with_args(&format!("0.0.0.0:{}", port()), &dir.join("d4"), &tls);
+    assert!(secured.is_running(), "{}", secured.log());
+    let mut insecure = ServeProcess::start_with_args(
+        &format!("0.0.0.0:{}", port()),
+        &dir.join("d5"),
+        &["--no-embedded-worker", "--insecure"],
+    );
+    assert!(insecure.is_running(), "{}", insecure.log());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn reflection_answers_in_v1_and_v1alpha() {
+    use tonic_reflection::pb::{v1, v1alpha};
+    let daemon = TestDaemon::start_without_worker(|_| {}, Access::default()).await;
+    let channel = daemon.channel().await;
+
+    let request = v1alpha::ServerReflectionRequest {
+        host: String::new(),
+        message_request: Some(
+            v1alpha::server_reflection_request::MessageRequest::ListServices(String::new()),
+        ),
+    };
+    let mut answers =
+        v1alpha::server_reflection_client::ServerReflectionClient::new(channel.clone())
+            .server_reflection_info(tokio_stream::iter([request]))
+            .await
+            .expect("v1alpha reflection")
+            .into_inner();
+    let answer = answers.next().await.expect("an answer").expect("ok");
+    let Some(v1alpha::server_reflection_response::MessageResponse::ListServicesResponse(list)) =
+        answer.message_response
+    else {
+        panic!("not a service list: {answer:?}");
+    };
+    let names: Vec<String> = list.service.into_iter().map(|s| s.name).collect();
+    assert!(
+        names.iter().any(|n| n == "pointfarm.v1.JobService"),
+        "{names:?}"
+    );
+
+    let request = v1::ServerReflectionRequest {
+        host: String::new(),
+        message_request: Some(v1::server_reflection_request::MessageRequest::ListServices(
+            String::new(),
+        )),
+    };
+    let mut answers = v1::server_reflection_client::ServerReflectionClient::new(channel)
+        .server_reflection_info(tokio_stream::iter([request]))
+        .await
+        .expect("v1 reflection")
+        .into_inner();
+    let answer = answers.next().await.expect("an answer").expect("ok");
+    assert!(matches!(
+        answer.message_response,
+        Some(v1::server_reflection_response::MessageResponse::ListServicesResponse(_))
+    ));
+    daemon.stop().await;
+}
+
+/// The embedded worker's lease, taken from the client's listing, cannot be renewed or failed
+/// through the public worker service; lease ids are 128 random bits.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_lease_is_usable_only_by_its_holder() {
+    let daemon = TestDaemon::start(|_| {}, Access::default()).await;
+    let (_scratch, scene) = scratch_sample("scene.las", 200_000, 9);
+    let mut datasets = daemon.datasets().await;
+    let dataset = upload_file(&mut datasets, "scene.las", &scene).await;
+    let mut jobs = daemon.jobs().await;
+    let job = submit(
+        &mut jobs,
+        turntable_job("bound", &dataset.id, 400, 320, 240),
+    )
+    .await;
+    let mut workers = WorkerServiceClient::new(daemon.channel().await);
+    let mut lister = JobServiceClient::new(daemon.channel().await);
+
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let mut seen = std::collections::HashSet::new();
+    let denied = loop {
+        assert!(
+            Instant::now() < deadline,
+            "no embedded lease could be tried"
+        );
+        let leases = lister
+            .list_leases(pb::ListLeasesRequest {})
+            .await
+            .expect("list leases")
+            .into_inner()
+            .leases;
+        let Some(lease) = leases.into_iter().find(|l| l.embedded) else {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+            continue;
+        };
+        let hex = lease
+            .lease_id
+            .strip_prefix("lease-")
+            .expect("lease- prefix");
+        assert!(
+            hex.len() == 32 && hex.bytes().all(|b| b.is_ascii_hexdigit()),
+            "{}",
+            lease.lease_id
+        );
+        seen.insert(lease.lease_id.clone());
+        let heartbeat = workers
+            .heartbeat(pb::HeartbeatRequest {
+                lease_id: lease.lease_id.clone(),
+            })
+            .await;
+        match heartbeat {
+            Err(status) => break (status, lease.lease_id),
+            // Handed in between the listing and the call: try the next one.
+            Ok(answer) => assert_eq!(answer.into_inner().action, pb::LeaseAction::Stop as i32),
+        }
+    };
+    let (status, lease_id) = denied;
+    assert_eq!(
+        status.code(),
+        Code::PermissionDenied,
+        "{}",
+        status.message()
+    );
+    assert!(
+        status.message().contains("embedded worker"),
+        "{}",
+        status.message()
+    );
+    let failed = workers
+        .fail_frame(pb::FailFrameRequest {
+            lease_id,
+            reason: "forged".into(),
+            kind: pb::FailureKind::Permanent as i32,
+        })
+        .await;
+    // Denied, or the lease is gone already; never a failed job.
+    if let Err(status) = &failed {
+        assert!(
+            matches!(
+                status.code(),
+                Code::PermissionDenied | Code::FailedPrecondition
+            ),
+            "{status:?}"
+        );
+    }
+    let now = jobs
+        .cancel_job(pb::CancelJobRequest { id: job.id })
+        .await
+        .expect("cancel")
+        .into_inner();
+    assert!(
+        now.error.is_empty(),
+        "the forged failure reached the job: {}",
+        now.error
+    );
+    daemon.stop().await;
+}
