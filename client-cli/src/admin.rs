@@ -278,10 +278,11 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                     })).collect();
                     println!("{}", serde_json::Value::from(values));
                 } else {
-                    println!("{:<20} {:<18} {:>6}  {:<24} expires", "lease", "job", "frame", "worker");
+                    println!("{:<38} {:<18} {:>6}  {:<24} expires", "lease", "job", "frame", "worker");
                     for l in &leases {
-                        let expires = if l.embedded { "with the daemon".to_string() } else { format!("in {:.1} s", (l.expires_unix_ms - now) as f64 / 1e3) };
-                        println!("{:<20} {:<18} {:>6}  {:<24} {expires}", l.lease_id, l.job_id, l.frame_index, l.worker_name);
+                        let expires = (l.expires_unix_ms - now) as f64 / 1e3;
+                        let worker = if l.embedded { format!("{} (embedded)", l.worker_name) } else { l.worker_name.clone() };
+                        println!("{:<38} {:<18} {:>6}  {:<24} in {expires:.1} s", l.lease_id, l.job_id, l.frame_index, worker);
                     }
                 }
             }

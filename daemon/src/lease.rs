@@ -1,5 +1,5 @@
-//! Frame leases: the one way frames reach workers, the embedded threads and remote worker
-//! processes alike. A worker leases a pending frame, renders it, and hands the PNG in under
+//! Frame leases: the one way frames reach workers, the embedded worker process and remote
+//! worker processes alike. A worker leases a pending frame, renders it, and hands the PNG in under
 //! its lease; only the holder of a live lease can complete a frame, so a frame is never
 //! stored twice.
 //!
