@@ -66,6 +66,14 @@ impl From<StoreError> for DaemonError {
 
 impl From<std::io::Error> for DaemonError {
     fn from(e: std::io::Error) -> Self {
-        DaemonError::Internal(e.to_string())
+        use std::io::ErrorKind;
+        match e.kind() {
+            // A full disk or quota (an upload's file, a frame's PNG) passes: the caller should
+            // back off and retry.
+            ErrorKind::StorageFull | ErrorKind::QuotaExceeded => {
+                DaemonError::ResourceExhausted(crate::store::disk_error_message(&e))
+            }
+            _ => DaemonError::Internal(e.to_string()),
+        }
     }
 }

@@ -246,7 +246,9 @@ async fn report_health(daemon: Arc<Daemon>, health: HealthReporter) {
             _ = daemon.workers.changed() => {}
         }
         // A full disk stores no frames: the store logs it once, health follows it.
-        let can_render = daemon.workers.can_render(timeout) && daemon.store.outage().is_none();
+        let workers = daemon.workers.can_render(timeout);
+        let disk = daemon.store.outage().is_none();
+        let can_render = workers && disk && !daemon.is_stopping();
         if reported == Some(can_render) {
             continue;
         }
@@ -254,9 +256,13 @@ async fn report_health(daemon: Arc<Daemon>, health: HealthReporter) {
             tracing::info!("a worker can render: SERVING");
             ServingStatus::Serving
         } else {
-            tracing::warn!(
-                "no worker can render or the disk is full: NOT_SERVING until both are back"
-            );
+            if daemon.is_stopping() {
+                tracing::info!("stopping: NOT_SERVING");
+            } else if !disk {
+                tracing::warn!("the disk refuses writes: NOT_SERVING until it takes them again");
+            } else {
+                tracing::warn!("no worker can render: NOT_SERVING until one is back");
+            }
             ServingStatus::NotServing
         };
         health.set_service_status("", status).await;
