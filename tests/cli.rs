@@ -656,3 +656,44 @@ fn bench_streams_a_huge_cloud_of_the_size_asked() {
     let refused = pointfarm(&["bench", "--huge", "0"]);
     assert_fails_saying(&refused, "at least one point");
 }
+
+/// `render DIR` renders the files of a folder as one dataset: tiles cut from a file give the
+/// image of that file.
+#[test]
+fn a_folder_of_tiles_renders_as_the_file_they_were_cut_from() {
+    use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
+    let scene = Scene::sampled("sample.laz", 30_000);
+    let sampled = load_point_cloud(Path::new(&scene.cloud)).expect("load");
+    // Written again from the loaded cloud, so the tiles share its scale and offset.
+    let whole = scene.path("whole.laz");
+    write_las(&whole, &sampled, &LasWriteOptions::default()).expect("whole");
+    let cloud = load_point_cloud(&whole).expect("load whole");
+    let tiles = scene.path("tiles");
+    std::fs::create_dir_all(tiles.join("east")).expect("tiles");
+    let middle = cloud.bounds.center().x;
+    let (west, east): (Vec<usize>, Vec<usize>) = (0..cloud.len())
+        .partition(|&i| cloud.origin.x + f64::from(cloud.positions[i].x) < middle);
+    let options = LasWriteOptions::default();
+    write_las(&tiles.join("west.las"), &cloud.select(&west), &options).expect("west");
+    write_las(&tiles.join("east/east.laz"), &cloud.select(&east), &options).expect("east");
+
+    let size = ["--size=160x120"];
+    render_into(&path_arg(&whole), &scene.path("whole.png"), None, &size);
+    let output = render_into(&path_arg(&tiles), &scene.path("tiles.png"), None, &size);
+    assert_says(&output, "30000 points in 2 files");
+    let image = |name: &str| image::open(scene.path(name)).expect("png").to_rgba8();
+    assert!(
+        image("whole.png") == image("tiles.png"),
+        "the tiles render differently"
+    );
+    // Through a server, a dataset of several files is refused, not cut down to one.
+    let refused = pointfarm(&[
+        "render",
+        &path_arg(&tiles),
+        "--server",
+        "127.0.0.1:1",
+        "--out",
+        &path_arg(&scene.path("remote.png")),
+    ]);
+    assert_fails_saying(&refused, "not through a server");
+}

@@ -52,13 +52,16 @@ pub fn run(server: &str, args: &RenderArgs, request: &RenderRequest) -> Result<(
     refuse_local_only_options(args, request)?;
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {
+        let input = match args.inputs.as_slice() {
+            [file] if !file.is_dir() => file,
+            _ => bail!(
+                "a dataset of several files or a folder renders here, not through a server \
+                 yet: give one LAS/LAZ file with --server"
+            ),
+        };
         let mut client = Client::connect(server, &args.credentials).await?;
-        let dataset = client.ensure_dataset(&args.input).await?;
-        println!(
-            "{}: dataset {} on {server}",
-            args.input.display(),
-            dataset.id
-        );
+        let dataset = client.ensure_dataset(input).await?;
+        println!("{}: dataset {} on {server}", input.display(), dataset.id);
         let job = client
             .jobs
             .submit_job(submission(args, request, dataset.id))
