@@ -671,8 +671,8 @@ fn a_folder_of_tiles_renders_as_the_file_they_were_cut_from() {
     let tiles = scene.path("tiles");
     std::fs::create_dir_all(tiles.join("east")).expect("tiles");
     let middle = cloud.bounds.center().x;
-    let (west, east): (Vec<usize>, Vec<usize>) = (0..cloud.len())
-        .partition(|&i| cloud.origin.x + f64::from(cloud.positions[i].x) < middle);
+    let (west, east): (Vec<usize>, Vec<usize>) =
+        (0..cloud.len()).partition(|&i| cloud.origin.x + f64::from(cloud.positions[i].x) < middle);
     let options = LasWriteOptions::default();
     write_las(&tiles.join("west.las"), &cloud.select(&west), &options).expect("west");
     write_las(&tiles.join("east/east.laz"), &cloud.select(&east), &options).expect("east");

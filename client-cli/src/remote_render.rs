@@ -6,6 +6,7 @@
 use anyhow::{bail, Context, Result};
 use pointfarm_daemon::model::JobSpec;
 use pointfarm_proto::v1 as pb;
+use pointfarm_render::ingest::dataset_files;
 use pointfarm_render::raster::AtomicsMode;
 use pointfarm_render::request::RenderRequest;
 
@@ -52,16 +53,14 @@ pub fn run(server: &str, args: &RenderArgs, request: &RenderRequest) -> Result<(
     refuse_local_only_options(args, request)?;
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {
-        let input = match args.inputs.as_slice() {
-            [file] if !file.is_dir() => file,
-            _ => bail!(
-                "a dataset of several files or a folder renders here, not through a server \
-                 yet: give one LAS/LAZ file with --server"
-            ),
-        };
+        let files = dataset_files(&args.inputs)?;
         let mut client = Client::connect(server, &args.credentials).await?;
-        let dataset = client.ensure_dataset(input).await?;
-        println!("{}: dataset {} on {server}", input.display(), dataset.id);
+        let dataset = client.ensure_dataset(&files).await?;
+        println!(
+            "{}: dataset {} on {server}",
+            args.inputs_label(),
+            dataset.id
+        );
         let job = client
             .jobs
             .submit_job(submission(args, request, dataset.id))
