@@ -658,7 +658,7 @@ fn bench_streams_a_huge_cloud_of_the_size_asked() {
 }
 
 /// `render DIR` renders the files of a folder as one dataset: tiles cut from a file give the
-/// image of that file.
+/// image of that file, here and through a server (uploaded file by file and composed).
 #[test]
 fn a_folder_of_tiles_renders_as_the_file_they_were_cut_from() {
     use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
@@ -686,14 +686,26 @@ fn a_folder_of_tiles_renders_as_the_file_they_were_cut_from() {
         image("whole.png") == image("tiles.png"),
         "the tiles render differently"
     );
-    // Through a server, a dataset of several files is refused, not cut down to one.
-    let refused = pointfarm(&[
-        "render",
+    let server = ServeProcess::start(&scene.path("data"));
+    let remote = render_into(
         &path_arg(&tiles),
-        "--server",
-        "127.0.0.1:1",
-        "--out",
-        &path_arg(&scene.path("remote.png")),
-    ]);
-    assert_fails_saying(&refused, "not through a server");
+        &scene.path("remote.png"),
+        Some(&server.address),
+        &size,
+    );
+    assert_says(&remote, "of 2 files on");
+    assert!(
+        image("tiles.png") == image("remote.png"),
+        "the dataset renders differently through the server\n{}",
+        server.log()
+    );
+    let listed = pointfarm(&["dataset", "list", "--server", &server.address, "--json"]);
+    assert_ok(&listed);
+    let datasets: serde_json::Value = serde_json::from_str(&stdout(&listed)).expect("json");
+    let composed = datasets
+        .as_array()
+        .expect("a list")
+        .iter()
+        .find(|d| d["files"].as_array().is_some_and(|f| f.len() == 2));
+    assert!(composed.is_some(), "no dataset of the two files: {datasets}");
 }

@@ -57,9 +57,11 @@ pub fn run(server: &str, args: &RenderArgs, request: &RenderRequest) -> Result<(
         let mut client = Client::connect(server, &args.credentials).await?;
         let dataset = client.ensure_dataset(&files).await?;
         println!(
-            "{}: dataset {} on {server}",
+            "{}: dataset {} of {} file{} on {server}",
             args.inputs_label(),
-            dataset.id
+            dataset.id,
+            files.len(),
+            if files.len() == 1 { "" } else { "s" }
         );
         let job = client
             .jobs
