@@ -707,5 +707,8 @@ fn a_folder_of_tiles_renders_as_the_file_they_were_cut_from() {
         .expect("a list")
         .iter()
         .find(|d| d["files"].as_array().is_some_and(|f| f.len() == 2));
-    assert!(composed.is_some(), "no dataset of the two files: {datasets}");
+    assert!(
+        composed.is_some(),
+        "no dataset of the two files: {datasets}"
+    );
 }

@@ -66,10 +66,7 @@ fn a_folder_registers_as_one_dataset_of_its_files_in_order() {
     // Outside the roots, empty folders and missing paths are refused.
     std::fs::create_dir_all(dir.join("roots/empty")).expect("empty");
     for bad in ["/etc", "empty", "missing"] {
-        assert!(
-            daemon.register_dataset(&[bad.into()], "").is_err(),
-            "{bad}"
-        );
+        assert!(daemon.register_dataset(&[bad.into()], "").is_err(), "{bad}");
     }
 }
 
@@ -85,7 +82,10 @@ fn uploads_compose_and_share_their_files_until_the_last_dataset_goes() {
     assert_eq!(both.files().len(), 2, "each file once");
     assert_eq!(both.size_bytes, a.size_bytes + b.size_bytes);
     assert_eq!(
-        daemon.store.uploaded_bytes(&daemon.config.uploads_dir()).expect("bytes"),
+        daemon
+            .store
+            .uploaded_bytes(&daemon.config.uploads_dir())
+            .expect("bytes"),
         a.size_bytes + b.size_bytes,
         "a shared file counts once against the quota"
     );
