@@ -712,3 +712,40 @@ fn a_folder_of_tiles_renders_as_the_file_they_were_cut_from() {
         "no dataset of the two files: {datasets}"
     );
 }
+
+/// `render --json` prints one object per frame on standard output and nothing else there.
+#[test]
+fn render_json_reports_every_frame_and_its_points() {
+    let scene = Scene::sampled("sample.laz", 20_000);
+    let out = scene.path("frames");
+    let output = pointfarm(&[
+        "render",
+        &scene.cloud,
+        "--out",
+        &path_arg(&out),
+        "--turntable=3",
+        "--size=96x64",
+        "--json",
+    ]);
+    assert_ok(&output);
+    let lines: Vec<serde_json::Value> = stdout(&output)
+        .lines()
+        .map(|line| serde_json::from_str(line).expect("each line is one JSON object"))
+        .collect();
+    assert_eq!(lines.len(), 3, "one object per frame");
+    for (i, frame) in lines.iter().enumerate() {
+        assert_eq!(frame["frame"], i);
+        assert_eq!(frame["points_total"], 20_000);
+        let rendered = frame["points_rendered"].as_u64().expect("points_rendered");
+        assert!(rendered > 0 && rendered <= 20_000, "{frame}");
+        assert!(
+            frame["timings_ms"]["rasterize"].as_f64().is_some(),
+            "{frame}"
+        );
+        assert_eq!(
+            (frame["width"].clone(), frame["height"].clone()),
+            (96.into(), 64.into())
+        );
+    }
+    assert_frames(&out, 3, (96, 64));
+}

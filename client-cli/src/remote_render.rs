@@ -21,6 +21,12 @@ fn refuse_local_only_options(args: &RenderArgs, request: &RenderRequest) -> Resu
              only; render locally for depth images"
         );
     }
+    if args.json {
+        bail!(
+            "--json reports the points each frame read, which a server does not report yet; \
+             use `jobs show --json` for a server job's frames"
+        );
+    }
     if args.atomics() != AtomicsMode::Auto {
         bail!(
             "--atomics chooses this machine's point pass and is not available through a \
@@ -77,6 +83,7 @@ pub fn run(server: &str, args: &RenderArgs, request: &RenderRequest) -> Result<(
             println!("{} frames in {}", written.len(), args.out.display());
             if let Some(video) = &args.video {
                 crate::video::assemble(&args.out, video, args.fps)?;
+                println!("video: {}", video.display());
             }
         } else {
             let temp = tempdir_beside(&args.out)?;

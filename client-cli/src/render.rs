@@ -7,11 +7,12 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
+use pointfarm_render::cloud::PointCloud;
 use pointfarm_render::color::point_colors;
 use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::{dataset_files, load_dataset};
-use pointfarm_render::raster::{FrameSettings, Renderer, Stage, StageTimings};
+use pointfarm_render::raster::{Frame, FrameSettings, Renderer, Stage, StageTimings};
 
 pub use crate::render_args::RenderArgs;
 
@@ -32,7 +33,15 @@ pub fn run(args: RenderArgs) -> Result<()> {
     spinner.finish_and_clear();
     let mut cloud = cloud?;
     cloud.colors = point_colors(&cloud, request.render.color_mode);
-    println!(
+    // With --json, standard output carries only the frames' objects.
+    let say = |line: String| {
+        if args.json {
+            eprintln!("{line}");
+        } else {
+            println!("{line}");
+        }
+    };
+    say(format!(
         "{}: {} points in {} file{}, colour from {:?}, read in {:.0} ms",
         args.inputs_label(),
         cloud.len(),
@@ -40,10 +49,10 @@ pub fn run(args: RenderArgs) -> Result<()> {
         if files.len() == 1 { "" } else { "s" },
         cloud.color_source,
         started.elapsed().as_secs_f64() * 1e3
-    );
+    ));
 
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
-    println!("adapter: {}", gpu.describe());
+    say(format!("adapter: {}", gpu.describe()));
     let mut renderer = Renderer::new(gpu);
     let settings = |index: u32| FrameSettings {
         atomics: args.atomics(),
@@ -68,7 +77,12 @@ pub fn run(args: RenderArgs) -> Result<()> {
         if request.render.depth {
             save_depth(&frame, &args.out.with_extension("depth.png"), &base)?;
         }
-        println!("{}  {}", args.out.display(), frame.timings);
+        if args.json {
+            let report = frame_json(0, &args.out, &base, &frame, &cloud, &renderer);
+            println!("{report}");
+        } else {
+            println!("{}  {}", args.out.display(), frame.timings);
+        }
         return Ok(());
     }
     let frames = request.frames();
@@ -89,21 +103,55 @@ pub fn run(args: RenderArgs) -> Result<()> {
             let depth = args.out.join(format!("depth_{i:05}.png"));
             save_depth(&frame, &depth, &frame_settings)?;
         }
-        let line = format!("{}  {}", path.display(), frame.timings);
-        if progress.is_hidden() {
-            println!("{line}"); // not a terminal: plain lines for logs and scripts
+        if args.json {
+            let report = frame_json(i, &path, &frame_settings, &frame, &cloud, &renderer);
+            println!("{report}");
         } else {
-            progress.println(line);
+            let line = format!("{}  {}", path.display(), frame.timings);
+            if progress.is_hidden() {
+                println!("{line}"); // not a terminal: plain lines for logs and scripts
+            } else {
+                progress.println(line);
+            }
         }
         all.push(frame.timings);
         progress.inc(1);
     }
     progress.finish_and_clear();
-    print_summary(&args.out, &all);
+    if !args.json {
+        print_summary(&args.out, &all);
+    }
     if let Some(video) = &args.video {
         crate::video::assemble(&args.out, video, args.fps)?;
+        say(format!("video: {}", video.display()));
     }
     Ok(())
+}
+
+/// One frame as `render --json` reports it.
+fn frame_json(
+    index: u32,
+    path: &Path,
+    settings: &FrameSettings,
+    frame: &Frame,
+    cloud: &PointCloud,
+    renderer: &Renderer,
+) -> serde_json::Value {
+    let timings: serde_json::Map<String, serde_json::Value> = frame
+        .timings
+        .stages
+        .iter()
+        .map(|t| (t.stage.name().to_string(), serde_json::json!(t.ms)))
+        .collect();
+    serde_json::json!({
+        "frame": index,
+        "path": path.display().to_string(),
+        "width": settings.width,
+        "height": settings.height,
+        "points_total": cloud.len(),
+        "points_rendered": renderer.listed_points(),
+        "timings_ms": timings,
+    })
 }
 
 fn save_depth(

@@ -46,6 +46,11 @@ pub struct RenderArgs {
     /// Frames per second of --video.
     #[arg(long, default_value_t = 30)]
     pub(crate) fps: u32,
+    /// Print one JSON object per frame on standard output, and nothing else there: its file,
+    /// size, the points of the dataset and those the point passes read, its stage timings.
+    /// Local only.
+    #[arg(long)]
+    pub(crate) json: bool,
     /// Server jobs: higher runs first.
     #[arg(long, default_value_t = 0)]
     pub(crate) priority: i32,

@@ -42,6 +42,5 @@ pub fn assemble(dir: &Path, video: &Path, fps: u32) -> Result<()> {
             String::from_utf8_lossy(&output.stderr).trim()
         );
     }
-    println!("video: {}", video.display());
     Ok(())
 }
