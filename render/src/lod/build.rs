@@ -123,7 +123,12 @@ fn build_on_pool(
     let (grid, stats) = count_points(source, &cube, level, &meter)?;
     let plan = plan_chunks(grid, max_chunk);
     timings.counting = start.elapsed();
-    tracing::info!(points = source.point_count(), chunks = plan.chunks.len(), level, "counted");
+    tracing::info!(
+        points = source.point_count(),
+        chunks = plan.chunks.len(),
+        level,
+        "counted"
+    );
 
     let sink = NodeSink::new(store, cube, stats.has_rgb);
     let ctx = BuildContext {
@@ -137,7 +142,8 @@ fn build_on_pool(
     };
     let distributing = Instant::now();
     let index_bytes = CELL_BLOCK_POINTS as u64 * 8;
-    let buffer_bytes = (budget.saturating_sub(grid_bytes + index_bytes) / 4).clamp(1 << 16, 256 << 20);
+    let buffer_bytes =
+        (budget.saturating_sub(grid_bytes + index_bytes) / 4).clamp(1 << 16, 256 << 20);
     let chunks = distribute(&ctx, source, &plan, buffer_bytes)?;
     let chunk_count = chunks.len();
     drop(plan);

@@ -2,7 +2,7 @@
 //! local octrees, built in parallel with only as many chunks in memory as the budget allows;
 //! a chunk too large for the budget is split into its eight children on disk first.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 
@@ -37,7 +37,9 @@ pub fn distribute(
     buffer_bytes: u64,
 ) -> Result<Vec<(Chunk, PathBuf)>, LodError> {
     let paths: Vec<PathBuf> = plan.chunks.iter().map(|c| chunk_path(ctx, c)).collect();
-    let reservation = ctx.meter.try_reserve(2 * buffer_bytes, "distribution write buffers")?;
+    let reservation = ctx
+        .meter
+        .try_reserve(2 * buffer_bytes, "distribution write buffers")?;
     let mut writer = SpillWriter::new(ctx.spill, paths.clone(), buffer_bytes as usize, reservation);
     let mut counts = vec![0u64; plan.chunks.len()];
     let mut read = 0u64;
@@ -51,7 +53,9 @@ pub fn distribute(
         for (b, block) in batch.positions.chunks(CELL_BLOCK_POINTS).enumerate() {
             block
                 .par_iter()
-                .map(|p| plan.lookup[CountGrid::index(plan.level, ctx.cube.cell_at(*p, plan.level))])
+                .map(|p| {
+                    plan.lookup[CountGrid::index(plan.level, ctx.cube.cell_at(*p, plan.level))]
+                })
                 .collect_into_vec(&mut targets);
             for (j, &target) in targets.iter().enumerate() {
                 let i = b * CELL_BLOCK_POINTS + j;
@@ -88,7 +92,10 @@ pub fn distribute(
 }
 
 /// Builds every chunk, largest first, on the current rayon pool.
-pub fn build_chunks(ctx: &BuildContext<'_>, mut chunks: Vec<(Chunk, PathBuf)>) -> Result<(), LodError> {
+pub fn build_chunks(
+    ctx: &BuildContext<'_>,
+    mut chunks: Vec<(Chunk, PathBuf)>,
+) -> Result<(), LodError> {
     chunks.sort_by(|a, b| b.0.count.cmp(&a.0.count).then(a.0.key.cmp(&b.0.key)));
     chunks
         .into_par_iter()
@@ -106,7 +113,8 @@ fn build_chunk(ctx: &BuildContext<'_>, chunk: Chunk, path: PathBuf) -> Result<()
             });
         }
         let parts = split_chunk(ctx, chunk, &path)?;
-        ctx.chunks_split.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        ctx.chunks_split
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         // No reservation is held here: a task that waits for memory must hold none.
         return build_chunks(ctx, parts);
     }
@@ -118,7 +126,11 @@ fn build_chunk(ctx: &BuildContext<'_>, chunk: Chunk, path: PathBuf) -> Result<()
 }
 
 /// Streams a chunk's file into eight files, one per child.
-fn split_chunk(ctx: &BuildContext<'_>, chunk: Chunk, path: &PathBuf) -> Result<Vec<(Chunk, PathBuf)>, LodError> {
+fn split_chunk(
+    ctx: &BuildContext<'_>,
+    chunk: Chunk,
+    path: &Path,
+) -> Result<Vec<(Chunk, PathBuf)>, LodError> {
     let children: Vec<Chunk> = (0..8)
         .map(|i| Chunk {
             key: chunk.key.child(i),

@@ -42,7 +42,9 @@ fn quantise(cube: &RootCube, key: NodeKey, p: DVec3) -> [u32; 3] {
     let max = (1i64 << POSITION_BITS) - 1;
     let cell = key.cell().to_array();
     let s = scaled.to_array();
-    std::array::from_fn(|a| ((s[a] as i64) - (i64::from(cell[a]) << POSITION_BITS)).clamp(0, max) as u32)
+    std::array::from_fn(|a| {
+        ((s[a] as i64) - (i64::from(cell[a]) << POSITION_BITS)).clamp(0, max) as u32
+    })
 }
 
 pub fn encode_node(cube: &RootCube, key: NodeKey, points: &[RawPoint], has_rgb: bool) -> Vec<u8> {
@@ -52,7 +54,10 @@ pub fn encode_node(cube: &RootCube, key: NodeKey, points: &[RawPoint], has_rgb: 
     out.extend_from_slice(&(n as u32).to_le_bytes());
     out.push(if has_rgb { FLAG_RGB } else { 0 });
     out.extend_from_slice(&[0; 3]);
-    let quantised: Vec<[u32; 3]> = points.iter().map(|p| quantise(cube, key, p.position)).collect();
+    let quantised: Vec<[u32; 3]> = points
+        .iter()
+        .map(|p| quantise(cube, key, p.position))
+        .collect();
     let mask = (1u32 << STREAM_BITS) - 1;
     for stream in 0..3 {
         let shift = POSITION_BITS - STREAM_BITS * (stream + 1);
@@ -139,7 +144,10 @@ pub fn decode_node(
     bytes: &[u8],
 ) -> Result<NodePoints, LodError> {
     if bytes.len() < HEADER_BYTES + 8 {
-        return Err(corrupt(key, format!("{} bytes is shorter than a node's header", bytes.len())));
+        return Err(corrupt(
+            key,
+            format!("{} bytes is shorter than a node's header", bytes.len()),
+        ));
     }
     let (body, sum) = bytes.split_at(bytes.len() - 8);
     let mut stored = [0; 8];
@@ -148,7 +156,10 @@ pub fn decode_node(
     if u64::from_le_bytes(stored) != computed {
         return Err(corrupt(
             key,
-            format!("checksum mismatch (stored {:016x}, computed {computed:016x})", u64::from_le_bytes(stored)),
+            format!(
+                "checksum mismatch (stored {:016x}, computed {computed:016x})",
+                u64::from_le_bytes(stored)
+            ),
         ));
     }
     if &body[..4] != MAGIC {
@@ -156,14 +167,21 @@ pub fn decode_node(
     }
     let count = u32::from_le_bytes([body[4], body[5], body[6], body[7]]);
     if count != expected {
-        return Err(corrupt(key, format!("holds {count} points, the hierarchy says {expected}")));
+        return Err(corrupt(
+            key,
+            format!("holds {count} points, the hierarchy says {expected}"),
+        ));
     }
     let has_rgb = body[8] & FLAG_RGB != 0;
     let n = count as usize;
     if bytes.len() != encoded_len(n, has_rgb) {
         return Err(corrupt(
             key,
-            format!("{} bytes, {} expected for {n} points", bytes.len(), encoded_len(n, has_rgb)),
+            format!(
+                "{} bytes, {} expected for {n} points",
+                bytes.len(),
+                encoded_len(n, has_rgb)
+            ),
         ));
     }
     let mut at = HEADER_BYTES;
@@ -189,7 +207,10 @@ pub fn decode_node(
         })
         .collect();
     let halves = |slice: &[u8]| -> Vec<u16> {
-        slice.chunks_exact(2).map(|h| u16::from_le_bytes([h[0], h[1]])).collect()
+        slice
+            .chunks_exact(2)
+            .map(|h| u16::from_le_bytes([h[0], h[1]]))
+            .collect()
     };
     let rgb = has_rgb.then(|| {
         halves(take(6 * n))
@@ -231,7 +252,8 @@ mod tests {
         let side = cube.side_at(3);
         let points: Vec<RawPoint> = (0..500)
             .map(|i| RawPoint {
-                position: min + DVec3::new(i as f64 / 500.0, (i * 7 % 500) as f64 / 500.0, 1.0) * side,
+                position: min
+                    + DVec3::new(i as f64 / 500.0, (i * 7 % 500) as f64 / 500.0, 1.0) * side,
                 rgb: [i as u16, 2, 3],
                 intensity: i as u16 * 3,
                 classification: (i % 7) as u8,
@@ -247,6 +269,9 @@ mod tests {
         assert_eq!(node.intensity[7], 21);
         assert_eq!(node.rgb.as_ref().map(|c| c[9]), Some([9, 2, 3]));
         assert!(decode_node(&cube, key, 499, &bytes).is_err());
-        assert!(decode_node(&cube, key.child(0), 500, &bytes).is_err(), "another key's node");
+        assert!(
+            decode_node(&cube, key.child(0), 500, &bytes).is_err(),
+            "another key's node"
+        );
     }
 }

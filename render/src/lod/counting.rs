@@ -115,5 +115,8 @@ pub fn count_points(
             pass: "counting",
         });
     }
-    Ok((CountGrid { level, counts }, stats.unwrap_or_else(|| DatasetStats::new(false))))
+    Ok((
+        CountGrid { level, counts },
+        stats.unwrap_or_else(|| DatasetStats::new(false)),
+    ))
 }

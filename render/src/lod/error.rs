@@ -28,7 +28,11 @@ pub enum LodError {
     #[error("point source: bounds {min:?}..{max:?} are not finite, inverted or beyond the coordinate limit")]
     InvalidBounds { min: [f64; 3], max: [f64; 3] },
     #[error("point source: it declared {declared} points but gave {read} on pass {pass}")]
-    CountMismatch { declared: u64, read: u64, pass: &'static str },
+    CountMismatch {
+        declared: u64,
+        read: u64,
+        pass: &'static str,
+    },
     #[error("point source: the second pass differs from the first ({0}); the points must be read in the same order each time")]
     SourceChanged(String),
     #[error("the memory budget of {budget} bytes cannot hold {needed} bytes for {what}")]

@@ -125,11 +125,10 @@ impl PointSource for GeneratedSource {
         let extent = self.terrain_extent();
         let batches = self.points.div_ceil(SOURCE_BATCH_POINTS as u64);
         for batch in 0..batches {
-            let mut rng = ChaCha8Rng::seed_from_u64(
-                self.seed ^ batch.wrapping_mul(0x9E37_79B9_7F4A_7C15),
-            );
-            let count = (self.points - batch * SOURCE_BATCH_POINTS as u64)
-                .min(SOURCE_BATCH_POINTS as u64);
+            let mut rng =
+                ChaCha8Rng::seed_from_u64(self.seed ^ batch.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+            let count =
+                (self.points - batch * SOURCE_BATCH_POINTS as u64).min(SOURCE_BATCH_POINTS as u64);
             columns.clear();
             for _ in 0..count {
                 match self.shape {

@@ -58,7 +58,7 @@ impl LodHierarchy {
         mut emitted: Vec<NodeInfo>,
     ) -> Self {
         // Deepest first, so a node's children are settled before it is.
-        emitted.sort_by(|a, b| b.key.cmp(&a.key));
+        emitted.sort_by_key(|n| std::cmp::Reverse(n.key));
         let mut masks: HashMap<NodeKey, u8> = HashMap::new();
         let mut nodes = Vec::with_capacity(emitted.len());
         for mut node in emitted {
@@ -221,7 +221,13 @@ impl LodHierarchy {
             return Err(corrupt("trailing bytes"));
         }
         debug_assert_eq!(stats.intensity_histogram.len(), INTENSITY_BINS);
-        Ok(Self::from_nodes(cube, point_count, max_leaf_points, stats, nodes))
+        Ok(Self::from_nodes(
+            cube,
+            point_count,
+            max_leaf_points,
+            stats,
+            nodes,
+        ))
     }
 }
 

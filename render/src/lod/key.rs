@@ -61,7 +61,11 @@ impl NodeKey {
 
     /// Child `index` (bit 0: x, bit 1: y, bit 2: z).
     pub fn child(&self, index: usize) -> NodeKey {
-        let offset = UVec3::new(index as u32 & 1, (index as u32 >> 1) & 1, (index as u32 >> 2) & 1);
+        let offset = UVec3::new(
+            index as u32 & 1,
+            (index as u32 >> 1) & 1,
+            (index as u32 >> 2) & 1,
+        );
         NodeKey::new(self.level + 1, self.cell() * 2 + offset)
     }
 
@@ -118,7 +122,10 @@ impl RootCube {
         let cells = (1u64 << level) as f64;
         let scaled = (p - self.min) * (cells / self.side);
         let max = ((1u64 << level) - 1) as f64;
-        scaled.floor().clamp(DVec3::ZERO, DVec3::splat(max)).as_uvec3()
+        scaled
+            .floor()
+            .clamp(DVec3::ZERO, DVec3::splat(max))
+            .as_uvec3()
     }
 
     /// The side of a node at `level`.
@@ -172,7 +179,10 @@ mod tests {
             min: DVec3::splat(f64::NAN),
             max: DVec3::ONE,
         };
-        assert!(matches!(RootCube::around(&nan), Err(LodError::InvalidBounds { .. })));
+        assert!(matches!(
+            RootCube::around(&nan),
+            Err(LodError::InvalidBounds { .. })
+        ));
         let inverted = WorldBounds {
             min: DVec3::ONE,
             max: DVec3::ZERO,

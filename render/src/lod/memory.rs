@@ -47,7 +47,9 @@ impl MemoryMeter {
 
     fn lock(&self) -> MutexGuard<'_, MeterState> {
         // A panic elsewhere cannot leave the counters half-updated: each update is one statement.
-        self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+        self.state
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
     }
 
     /// The most one reservation can ever get: the budget less what is pinned.

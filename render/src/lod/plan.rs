@@ -35,7 +35,10 @@ pub fn plan_chunks(grid: CountGrid, max_points: u64) -> ChunkPlan {
                 for x in 0..n {
                     let cell = UVec3::new(x, y, z);
                     counts[CountGrid::index(level, cell)] = (0..8)
-                        .map(|i| finer[CountGrid::index(level + 1, NodeKey::new(0, cell).child(i).cell())])
+                        .map(|i| {
+                            finer
+                                [CountGrid::index(level + 1, NodeKey::new(0, cell).child(i).cell())]
+                        })
                         .sum();
                 }
             }
@@ -95,12 +98,21 @@ mod tests {
         assert_eq!(
             plan.chunks,
             vec![
-                Chunk { key: NodeKey::new(1, UVec3::ZERO), count: 7 },
-                Chunk { key: NodeKey::new(2, UVec3::splat(3)), count: 100 },
+                Chunk {
+                    key: NodeKey::new(1, UVec3::ZERO),
+                    count: 7
+                },
+                Chunk {
+                    key: NodeKey::new(2, UVec3::splat(3)),
+                    count: 100
+                },
             ]
         );
         assert_eq!(plan.lookup[CountGrid::index(level, UVec3::new(1, 0, 0))], 0);
         assert_eq!(plan.lookup[CountGrid::index(level, UVec3::new(3, 3, 3))], 1);
-        assert_eq!(plan.lookup[CountGrid::index(level, UVec3::new(2, 2, 2))], u32::MAX);
+        assert_eq!(
+            plan.lookup[CountGrid::index(level, UVec3::new(2, 2, 2))],
+            u32::MAX
+        );
     }
 }

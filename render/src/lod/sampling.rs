@@ -75,7 +75,8 @@ pub fn sample(
                 let (bd, bc, bi) = *entry;
                 let better = d < bd
                     || (d == bd
-                        && p.content_cmp(&children[usize::from(bc)][bi as usize]).is_lt());
+                        && p.content_cmp(&children[usize::from(bc)][bi as usize])
+                            .is_lt());
                 if better {
                     *entry = (d, c as u8, i as u32);
                 }

@@ -33,12 +33,18 @@ impl<'a> NodeSink<'a> {
 
     /// Stores a finished node; `sample_grid` is 0 for a leaf. An empty node is only listed:
     /// the hierarchy keeps it if it has children.
-    pub fn emit(&self, key: NodeKey, points: &[RawPoint], sample_grid: u32) -> Result<(), LodError> {
+    pub fn emit(
+        &self,
+        key: NodeKey,
+        points: &[RawPoint],
+        sample_grid: u32,
+    ) -> Result<(), LodError> {
         if !points.is_empty() {
             let bytes = encode_node(&self.cube, key, points, self.has_rgb);
             self.bytes.fetch_add(bytes.len() as u64, Ordering::Relaxed);
             self.store.write_node(key, bytes)?;
-            self.points.fetch_add(points.len() as u64, Ordering::Relaxed);
+            self.points
+                .fetch_add(points.len() as u64, Ordering::Relaxed);
         }
         let info = NodeInfo {
             key,

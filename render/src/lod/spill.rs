@@ -135,7 +135,8 @@ impl<'a> SpillWriter<'a> {
                 .append(true)
                 .open(path)
                 .map_err(|e| LodError::spill(path, e))?;
-            file.write_all(buffer).map_err(|e| LodError::spill(path, e))?;
+            file.write_all(buffer)
+                .map_err(|e| LodError::spill(path, e))?;
             self.dir.count_written(buffer.len());
             *buffer = Vec::new();
         }
@@ -180,7 +181,11 @@ pub fn for_each_block(
             return Ok(total);
         }
         points.clear();
-        points.extend(bytes[..filled].chunks_exact(SPILL_RECORD_BYTES).map(RawPoint::read_from));
+        points.extend(
+            bytes[..filled]
+                .chunks_exact(SPILL_RECORD_BYTES)
+                .map(RawPoint::read_from),
+        );
         total += points.len() as u64;
         visit(&points)?;
     }

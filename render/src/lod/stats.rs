@@ -41,8 +41,8 @@ impl DatasetStats {
     pub(crate) fn add(&mut self, batch: &super::source::PointBatch<'_>) {
         if let Some(rgb) = batch.rgb {
             for c in rgb {
-                for axis in 0..3 {
-                    self.max_rgb[axis] = self.max_rgb[axis].max(c[axis]);
+                for (max, &value) in self.max_rgb.iter_mut().zip(c) {
+                    *max = (*max).max(value);
                 }
             }
         }

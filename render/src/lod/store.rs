@@ -52,7 +52,10 @@ impl LodStore {
     }
 
     pub fn read_hierarchy(&self) -> Result<LodHierarchy, LodError> {
-        let bytes = self.tree.get(HIERARCHY_KEY)?.ok_or(LodError::MissingHierarchy)?;
+        let bytes = self
+            .tree
+            .get(HIERARCHY_KEY)?
+            .ok_or(LodError::MissingHierarchy)?;
         LodHierarchy::decode(&bytes)
     }
 
@@ -62,13 +65,18 @@ impl LodStore {
     }
 
     /// Reads and checks one node of `hierarchy`.
-    pub fn read_node(&self, hierarchy: &LodHierarchy, key: NodeKey) -> Result<NodePoints, LodError> {
+    pub fn read_node(
+        &self,
+        hierarchy: &LodHierarchy,
+        key: NodeKey,
+    ) -> Result<NodePoints, LodError> {
         let info = hierarchy.node(key).ok_or(LodError::UnknownNode { key })?;
         if info.point_count == 0 {
             return Ok(NodePoints {
                 key,
                 cube_min: hierarchy.cube.node_min(key),
-                step: hierarchy.cube.side_at(key.level) / f64::from(1u32 << super::codec::POSITION_BITS),
+                step: hierarchy.cube.side_at(key.level)
+                    / f64::from(1u32 << super::codec::POSITION_BITS),
                 quantised: Vec::new(),
                 rgb: hierarchy.stats.has_rgb.then(Vec::new),
                 intensity: Vec::new(),
@@ -76,16 +84,23 @@ impl LodStore {
                 return_number: Vec::new(),
             });
         }
-        let bytes = self.tree.get(node_key(key))?.ok_or_else(|| LodError::CorruptNode {
-            key,
-            reason: "its record is missing".into(),
-        })?;
+        let bytes = self
+            .tree
+            .get(node_key(key))?
+            .ok_or_else(|| LodError::CorruptNode {
+                key,
+                reason: "its record is missing".into(),
+            })?;
         decode_node(&hierarchy.cube, key, info.point_count, &bytes)
     }
 
     /// Overwrites a node's stored bytes, to test that damage is detected.
     #[cfg(test)]
-    pub(crate) fn overwrite_node_bytes(&self, key: NodeKey, bytes: Vec<u8>) -> Result<(), LodError> {
+    pub(crate) fn overwrite_node_bytes(
+        &self,
+        key: NodeKey,
+        bytes: Vec<u8>,
+    ) -> Result<(), LodError> {
         self.write_node(key, bytes)
     }
 }
