@@ -34,6 +34,9 @@ use super::stats::DatasetStats;
 use super::store::LodStore;
 use super::upper::build_upper_levels;
 
+/// The most bytes of records the distribution pass buffers before it appends them to files.
+const DISTRIBUTION_BUFFER_BYTES: u64 = 64 << 20;
+
 /// Seconds each stage took.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct BuildTimings {
@@ -108,10 +111,11 @@ fn build_on_pool(
     let budget = meter.largest_possible();
     let threads = rayon::current_num_threads() as u64;
     let leaf = options.max_leaf_points as u64;
-    // Small enough that every thread can hold a chunk, never below a few leaves, and always
-    // within the budget.
+    // Small enough that every thread can hold a chunk and has several to build, never below
+    // a few leaves, and always within the budget.
     let max_chunk = (budget / (BUILD_BYTES_PER_POINT * threads))
         .min(options.max_chunk_points)
+        .min(source.point_count() / (4 * threads))
         .max(4 * leaf)
         .min((budget - chunk_bytes(0)) / BUILD_BYTES_PER_POINT);
     let level = count_level(source.point_count(), max_chunk, budget);
@@ -142,8 +146,8 @@ fn build_on_pool(
     };
     let distributing = Instant::now();
     let index_bytes = CELL_BLOCK_POINTS as u64 * 8;
-    let buffer_bytes =
-        (budget.saturating_sub(grid_bytes + index_bytes) / 4).clamp(1 << 16, 256 << 20);
+    let buffer_bytes = (budget.saturating_sub(grid_bytes + index_bytes) / 4)
+        .clamp(1 << 16, DISTRIBUTION_BUFFER_BYTES);
     let chunks = distribute(&ctx, source, &plan, buffer_bytes)?;
     let chunk_count = chunks.len();
     drop(plan);

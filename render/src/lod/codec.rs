@@ -38,7 +38,8 @@ pub fn encoded_len(count: usize, has_rgb: bool) -> usize {
 /// The 30-bit coordinates of `p` in `key`'s cube, from the one cell formula at level + 30.
 fn quantise(cube: &RootCube, key: NodeKey, p: DVec3) -> [u32; 3] {
     let scale = (1u64 << (u32::from(key.level) + POSITION_BITS)) as f64 / cube.side;
-    let scaled = ((p - cube.min) * scale).floor();
+    // Truncation is the floor here: only values below zero differ, and they clamp to 0.
+    let scaled = (p - cube.min) * scale;
     let max = (1i64 << POSITION_BITS) - 1;
     let cell = key.cell().to_array();
     let s = scaled.to_array();

@@ -57,7 +57,7 @@ impl LocalBuilder<'_> {
 }
 
 /// `points` of `key` by child, each child's vector allocated at its exact size.
-pub fn split(cube: &RootCube, key: NodeKey, points: Vec<RawPoint>) -> [Vec<RawPoint>; 8] {
+pub(crate) fn split(cube: &RootCube, key: NodeKey, points: Vec<RawPoint>) -> [Vec<RawPoint>; 8] {
     let child_level = u32::from(key.level) + 1;
     let base = key.cell() * 2;
     let child_of = |p: &RawPoint| {

@@ -32,15 +32,17 @@ impl RawPoint {
     }
 
     pub fn write_to(&self, out: &mut Vec<u8>) {
-        for c in self.position.to_array() {
-            out.extend_from_slice(&c.to_le_bytes());
+        let mut record = [0u8; SPILL_RECORD_BYTES];
+        for (i, c) in self.position.to_array().into_iter().enumerate() {
+            record[8 * i..8 * i + 8].copy_from_slice(&c.to_le_bytes());
         }
-        for c in self.rgb {
-            out.extend_from_slice(&c.to_le_bytes());
+        for (i, c) in self.rgb.into_iter().enumerate() {
+            record[24 + 2 * i..26 + 2 * i].copy_from_slice(&c.to_le_bytes());
         }
-        out.extend_from_slice(&self.intensity.to_le_bytes());
-        out.push(self.classification);
-        out.push(self.return_number);
+        record[30..32].copy_from_slice(&self.intensity.to_le_bytes());
+        record[32] = self.classification;
+        record[33] = self.return_number;
+        out.extend_from_slice(&record);
     }
 
     /// Reads one record; `bytes` is exactly [`SPILL_RECORD_BYTES`] long.

@@ -48,7 +48,11 @@ impl Hasher for CellHasher {
     }
 }
 
-type CellMap = HashMap<u32, (f64, u8, u32), BuildHasherDefault<CellHasher>>;
+type CellMap = HashMap<u32, (f64, u32), BuildHasherDefault<CellHasher>>;
+
+/// Bytes per candidate point a dense cell table may take (it replaces the map when the
+/// grid's cells are few for the points): within the builder's per-point reservation.
+const DENSE_BYTES_PER_POINT: usize = 32;
 
 /// Samples `key` from its children's own points with at most `max_points` points.
 pub fn sample(
@@ -58,40 +62,97 @@ pub fn sample(
     grid: u32,
     max_points: usize,
 ) -> Sampled {
-    let candidates: usize = children.iter().map(Vec::len).sum();
+    let largest = children.iter().map(Vec::len).max().unwrap_or(0);
     let mut bits = grid.trailing_zeros();
-    let mut best = CellMap::with_capacity_and_hasher(candidates.min(1 << 21), Default::default());
+    let mut map = CellMap::default();
+    let mut dense: Vec<u32> = Vec::new();
+    let mut chosen: [Vec<bool>; 8] = std::array::from_fn(|c| vec![false; children[c].len()]);
     loop {
-        best.clear();
         let cell_side = cube.side_at(key.level) / f64::from(1u32 << bits);
         let corner = cube.node_min(key);
-        for (c, points) in children.iter().enumerate() {
-            for (i, p) in points.iter().enumerate() {
-                let cell = sampling_cell(cube, key, bits, p.position);
-                let centre = corner + (cell.as_dvec3() + 0.5) * cell_side;
-                let d = p.position.distance_squared(centre);
-                let index = cell.x | (cell.y << bits) | (cell.z << (2 * bits));
-                let entry = best.entry(index).or_insert((d, c as u8, i as u32));
-                let (bd, bc, bi) = *entry;
-                let better = d < bd
-                    || (d == bd
-                        && p.content_cmp(&children[usize::from(bc)][bi as usize])
-                            .is_lt());
-                if better {
-                    *entry = (d, c as u8, i as u32);
+        let distance = |p: &RawPoint, cell: glam::UVec3| {
+            p.position
+                .distance_squared(corner + (cell.as_dvec3() + 0.5) * cell_side)
+        };
+        // Whether `p` (at squared distance `d`) beats the point now holding its cell.
+        let beats = |p: &RawPoint, d: f64, held: &RawPoint, held_d: f64| {
+            d < held_d || (d == held_d && p.content_cmp(held).is_lt())
+        };
+        let mut taken = 0;
+        if bits == 0 {
+            // One cell holds the whole node: the point nearest its centre.
+            let mut best: Option<(usize, usize, f64)> = None;
+            for (c, points) in children.iter().enumerate() {
+                for (i, p) in points.iter().enumerate() {
+                    let d = distance(p, glam::UVec3::ZERO);
+                    let better = best.is_none_or(|(bc, bi, bd)| beats(p, d, &children[bc][bi], bd));
+                    if better {
+                        best = Some((c, i, d));
+                    }
+                }
+            }
+            if let Some((c, i, _)) = best {
+                chosen[c][i] = true;
+                taken = 1;
+            }
+        } else {
+            // With two or more cells per axis no cell spans two children, so each child is
+            // sampled on its own, on the cells of its octant.
+            let local_bits = bits - 1;
+            let cells = 1usize << (3 * local_bits);
+            for (c, points) in children.iter().enumerate() {
+                let offset = NodeKey::ROOT.child(c).cell() << local_bits;
+                let local = |p: &RawPoint| {
+                    let cell = sampling_cell(cube, key, bits, p.position);
+                    let l = cell - offset;
+                    (
+                        cell,
+                        (l.x | (l.y << local_bits) | (l.z << (2 * local_bits))) as usize,
+                    )
+                };
+                if cells <= points.len() * DENSE_BYTES_PER_POINT / 4 {
+                    dense.clear();
+                    dense.resize(cells, u32::MAX);
+                    for (i, p) in points.iter().enumerate() {
+                        let (cell, index) = local(p);
+                        let held = dense[index];
+                        let better = held == u32::MAX || {
+                            let h = &points[held as usize];
+                            beats(p, distance(p, cell), h, distance(h, cell))
+                        };
+                        if better {
+                            dense[index] = i as u32;
+                        }
+                    }
+                    for &i in dense.iter().filter(|&&i| i != u32::MAX) {
+                        chosen[c][i as usize] = true;
+                        taken += 1;
+                    }
+                } else {
+                    map.clear();
+                    map.reserve(points.len().min(largest));
+                    for (i, p) in points.iter().enumerate() {
+                        let (cell, index) = local(p);
+                        let d = distance(p, cell);
+                        let entry = map.entry(index as u32).or_insert((d, i as u32));
+                        if beats(p, d, &points[entry.1 as usize], entry.0) {
+                            *entry = (d, i as u32);
+                        }
+                    }
+                    for &(_, i) in map.values() {
+                        chosen[c][i as usize] = true;
+                    }
+                    taken += map.len();
                 }
             }
         }
-        if best.len() <= max_points || bits == 0 {
+        if taken <= max_points || bits == 0 {
             break;
         }
+        chosen.iter_mut().for_each(|c| c.fill(false));
         bits -= 1;
     }
-    let mut chosen: [Vec<bool>; 8] = std::array::from_fn(|c| vec![false; children[c].len()]);
-    for &(_, c, i) in best.values() {
-        chosen[usize::from(c)][i as usize] = true;
-    }
-    drop(best);
+    drop((map, dense));
     let mut parent = Vec::new();
     let kept = std::array::from_fn(|c| {
         let mut kept = Vec::with_capacity(children[c].len());
@@ -108,5 +169,63 @@ pub fn sample(
         parent,
         kept,
         grid: 1 << bits,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Brute force: in every cell the chosen point is the one nearest the cell's centre, and
+    /// every occupied cell has one, on both the dense table (grid 8) and the map (grid 128).
+    #[test]
+    fn each_cell_gives_its_point_nearest_the_centre() {
+        let cube = RootCube {
+            min: DVec3::new(100.0, 200.0, 300.0),
+            side: 64.0,
+        };
+        let key = NodeKey::new(1, glam::UVec3::new(1, 0, 1));
+        let (min, side) = (cube.node_min(key), cube.side_at(1));
+        let mut state = 12345u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let points: Vec<RawPoint> = (0..3000)
+            .map(|i| RawPoint {
+                position: min + DVec3::new(next(), next(), next()) * side,
+                rgb: [0; 3],
+                intensity: i,
+                classification: 0,
+                return_number: 0,
+            })
+            .collect();
+        for grid in [8u32, 128] {
+            let bits = grid.trailing_zeros();
+            let children = super::super::local::split(&cube, key, points.clone());
+            let sampled = sample(&cube, key, children, grid, usize::MAX);
+            assert_eq!(sampled.grid, grid);
+            let kept: usize = sampled.kept.iter().map(Vec::len).sum();
+            assert_eq!(sampled.parent.len() + kept, points.len());
+            let cell_side = side / f64::from(grid);
+            let mut nearest: HashMap<glam::UVec3, (f64, u16)> = HashMap::new();
+            for p in &points {
+                let cell = sampling_cell(&cube, key, bits, p.position);
+                let d = p
+                    .position
+                    .distance_squared(min + (cell.as_dvec3() + 0.5) * cell_side);
+                let e = nearest.entry(cell).or_insert((d, p.intensity));
+                if d < e.0 {
+                    *e = (d, p.intensity);
+                }
+            }
+            let mut chosen: Vec<u16> = sampled.parent.iter().map(|p| p.intensity).collect();
+            let mut expected: Vec<u16> = nearest.values().map(|&(_, i)| i).collect();
+            chosen.sort_unstable();
+            expected.sort_unstable();
+            assert_eq!(chosen, expected, "grid {grid}");
+        }
     }
 }
