@@ -7,9 +7,6 @@
 //! Ties in distance are broken by the points' content, so the choice never depends on the
 //! order points arrived in.
 
-use std::collections::HashMap;
-use std::hash::{BuildHasherDefault, Hasher};
-
 use glam::DVec3;
 
 use super::key::{NodeKey, RootCube};
@@ -28,29 +25,7 @@ pub fn sampling_cell(cube: &RootCube, key: NodeKey, grid_bits: u32, p: DVec3) ->
     cube.cell_at(p, u32::from(key.level) + grid_bits) - (key.cell() << grid_bits)
 }
 
-/// Cell indices are below 2^21 and already spread: a multiply mixes them enough.
-#[derive(Default)]
-struct CellHasher(u64);
-
-impl Hasher for CellHasher {
-    fn finish(&self) -> u64 {
-        self.0
-    }
-
-    fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.0 = (self.0 << 8 | u64::from(b)).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-        }
-    }
-
-    fn write_u32(&mut self, n: u32) {
-        self.0 = u64::from(n).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-    }
-}
-
-type CellMap = HashMap<u32, (f64, u32), BuildHasherDefault<CellHasher>>;
-
-/// Bytes per candidate point a dense cell table may take (it replaces the map when the
+/// Bytes per candidate point a dense cell table may take (it replaces the sort when the
 /// grid's cells are few for the points): within the builder's per-point reservation.
 const DENSE_BYTES_PER_POINT: usize = 32;
 
@@ -62,9 +37,8 @@ pub fn sample(
     grid: u32,
     max_points: usize,
 ) -> Sampled {
-    let largest = children.iter().map(Vec::len).max().unwrap_or(0);
     let mut bits = grid.trailing_zeros();
-    let mut map = CellMap::default();
+    let mut keyed: Vec<u64> = Vec::new();
     let mut dense: Vec<u32> = Vec::new();
     let mut chosen: [Vec<bool>; 8] = std::array::from_fn(|c| vec![false; children[c].len()]);
     loop {
@@ -129,20 +103,32 @@ pub fn sample(
                         taken += 1;
                     }
                 } else {
-                    map.clear();
-                    map.reserve(points.len().min(largest));
-                    for (i, p) in points.iter().enumerate() {
-                        let (cell, index) = local(p);
-                        let d = distance(p, cell);
-                        let entry = map.entry(index as u32).or_insert((d, i as u32));
-                        if beats(p, d, &points[entry.1 as usize], entry.0) {
-                            *entry = (d, i as u32);
+                    // Few points for many cells: sorted by cell (cache-friendly, unlike a map),
+                    // then the best of each run of one cell.
+                    keyed.clear();
+                    keyed.extend(
+                        points
+                            .iter()
+                            .enumerate()
+                            .map(|(i, p)| ((local(p).1 as u64) << 32) | i as u64),
+                    );
+                    keyed.sort_unstable();
+                    for run in keyed.chunk_by(|a, b| a >> 32 == b >> 32) {
+                        let first = &points[run[0] as u32 as usize];
+                        let (cell, _) = local(first);
+                        let mut best = run[0] as u32 as usize;
+                        let mut best_d = distance(first, cell);
+                        for &k in &run[1..] {
+                            let i = k as u32 as usize;
+                            let d = distance(&points[i], cell);
+                            if beats(&points[i], d, &points[best], best_d) {
+                                best = i;
+                                best_d = d;
+                            }
                         }
+                        chosen[c][best] = true;
+                        taken += 1;
                     }
-                    for &(_, i) in map.values() {
-                        chosen[c][i as usize] = true;
-                    }
-                    taken += map.len();
                 }
             }
         }
@@ -152,7 +138,7 @@ pub fn sample(
         chosen.iter_mut().for_each(|c| c.fill(false));
         bits -= 1;
     }
-    drop((map, dense));
+    drop((keyed, dense));
     let mut parent = Vec::new();
     let kept = std::array::from_fn(|c| {
         let mut kept = Vec::with_capacity(children[c].len());
@@ -174,6 +160,8 @@ pub fn sample(
 
 #[cfg(test)]
 mod tests {
+    use std::collections::HashMap;
+
     use super::*;
 
     /// Brute force: in every cell the chosen point is the one nearest the cell's centre, and
