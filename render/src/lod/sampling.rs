@@ -165,7 +165,7 @@ mod tests {
     use super::*;
 
     /// Brute force: in every cell the chosen point is the one nearest the cell's centre, and
-    /// every occupied cell has one, on both the dense table (grid 8) and the map (grid 128).
+    /// every occupied cell has one, on both the dense table (grid 8) and the sorted runs (grid 128).
     #[test]
     fn each_cell_gives_its_point_nearest_the_centre() {
         let cube = RootCube {

@@ -10,6 +10,9 @@ use super::key::{NodeKey, RootCube};
 use super::point::RawPoint;
 use super::store::LodStore;
 
+/// Bytes of node records written between two flushes of the store.
+const FLUSH_EVERY_BYTES: u64 = 64 << 20;
+
 pub struct NodeSink<'a> {
     store: &'a LodStore,
     cube: RootCube,
@@ -41,8 +44,13 @@ impl<'a> NodeSink<'a> {
     ) -> Result<(), LodError> {
         if !points.is_empty() {
             let bytes = encode_node(&self.cube, key, points, self.has_rgb);
-            self.bytes.fetch_add(bytes.len() as u64, Ordering::Relaxed);
-            self.store.write_node(key, bytes)?;
+            let before = self.bytes.fetch_add(bytes.len() as u64, Ordering::Relaxed);
+            self.store.write_node(key, &bytes)?;
+            // sled holds written pages in memory until they are flushed, beyond its cache
+            // capacity: flushing as the store grows keeps the process's memory bounded.
+            if before / FLUSH_EVERY_BYTES != (before + bytes.len() as u64) / FLUSH_EVERY_BYTES {
+                self.store.flush()?;
+            }
             self.points
                 .fetch_add(points.len() as u64, Ordering::Relaxed);
         }

@@ -9,16 +9,28 @@ use super::key::NodeKey;
 
 const HIERARCHY_KEY: &[u8] = b"hierarchy";
 const NODE_PREFIX: u8 = b'n';
+/// A node's record is stored in pages of at most this many bytes: sled reads large values
+/// through a slow path and rescans them when it opens (docs/perf/dataset-cache.md).
+pub const NODE_PAGE_BYTES: usize = 64 << 10;
 
 #[derive(Debug, Clone)]
 pub struct LodStore {
     tree: sled::Tree,
 }
 
-fn node_key(key: NodeKey) -> [u8; 14] {
+/// The prefix of a node's pages: the node prefix and its 13-byte key.
+fn node_prefix(key: NodeKey) -> [u8; 14] {
     let mut out = [0; 14];
     out[0] = NODE_PREFIX;
     out[1..].copy_from_slice(&key.to_bytes());
+    out
+}
+
+/// Page `page` of a node: big-endian, so a prefix scan returns the pages in order.
+fn page_key(key: NodeKey, page: u16) -> [u8; 16] {
+    let mut out = [0; 16];
+    out[..14].copy_from_slice(&node_prefix(key));
+    out[14..].copy_from_slice(&page.to_be_bytes());
     out
 }
 
@@ -39,8 +51,22 @@ impl LodStore {
         Ok(())
     }
 
-    pub(crate) fn write_node(&self, key: NodeKey, bytes: Vec<u8>) -> Result<(), LodError> {
-        self.tree.insert(node_key(key), bytes)?;
+    /// Writes a node's record in pages; a store is cleared before a build, so no page of an
+    /// earlier record is left behind.
+    pub(crate) fn write_node(&self, key: NodeKey, bytes: &[u8]) -> Result<(), LodError> {
+        for (page, chunk) in bytes.chunks(NODE_PAGE_BYTES).enumerate() {
+            let page = u16::try_from(page).map_err(|_| LodError::CorruptNode {
+                key,
+                reason: format!("{} bytes is more than a node may hold", bytes.len()),
+            })?;
+            self.tree.insert(page_key(key, page), chunk)?;
+        }
+        Ok(())
+    }
+
+    /// Writes what sled buffers to disk.
+    pub(crate) fn flush(&self) -> Result<(), LodError> {
+        self.tree.flush()?;
         Ok(())
     }
 
@@ -59,9 +85,17 @@ impl LodStore {
         LodHierarchy::decode(&bytes)
     }
 
-    /// The raw stored bytes of a node (tests and tools that check the store).
-    pub fn node_bytes(&self, key: NodeKey) -> Result<Option<sled::IVec>, LodError> {
-        Ok(self.tree.get(node_key(key))?)
+    /// The raw stored bytes of a node, its pages joined (tests and tools that check the
+    /// store); `None` when it has no page.
+    pub fn node_bytes(&self, key: NodeKey) -> Result<Option<Vec<u8>>, LodError> {
+        let mut bytes = Vec::new();
+        let mut pages = 0;
+        for page in self.tree.scan_prefix(node_prefix(key)) {
+            let (_, value) = page?;
+            bytes.extend_from_slice(&value);
+            pages += 1;
+        }
+        Ok((pages > 0).then_some(bytes))
     }
 
     /// Reads and checks one node of `hierarchy`.
@@ -84,23 +118,19 @@ impl LodStore {
                 return_number: Vec::new(),
             });
         }
-        let bytes = self
-            .tree
-            .get(node_key(key))?
-            .ok_or_else(|| LodError::CorruptNode {
-                key,
-                reason: "its record is missing".into(),
-            })?;
+        let bytes = self.node_bytes(key)?.ok_or_else(|| LodError::CorruptNode {
+            key,
+            reason: "its record is missing".into(),
+        })?;
         decode_node(&hierarchy.cube, key, info.point_count, &bytes)
     }
 
     /// Overwrites a node's stored bytes, to test that damage is detected.
     #[cfg(test)]
-    pub(crate) fn overwrite_node_bytes(
-        &self,
-        key: NodeKey,
-        bytes: Vec<u8>,
-    ) -> Result<(), LodError> {
+    pub(crate) fn overwrite_node_bytes(&self, key: NodeKey, bytes: &[u8]) -> Result<(), LodError> {
+        for page in self.tree.scan_prefix(node_prefix(key)).keys() {
+            self.tree.remove(page?)?;
+        }
         self.write_node(key, bytes)
     }
 }

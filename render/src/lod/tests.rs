@@ -253,25 +253,27 @@ fn a_chunk_larger_than_the_budget_is_split_on_disk() {
 
 #[test]
 fn a_damaged_node_is_detected_by_its_checksum() {
-    let built = build_with(&GeneratedSource::terrain(20_000, 5), |_| {});
+    // One leaf of 8,000 points: a record of three pages or more.
+    let built = build_with(&GeneratedSource::terrain(8_000, 5), |o| {
+        o.max_leaf_points = 10_000
+    });
     let hierarchy = built.store.read_hierarchy().expect("hierarchy");
     let node = hierarchy
         .nodes()
         .iter()
-        .find(|n| n.point_count > 100)
-        .expect("a node");
+        .find(|n| n.point_count as usize * 22 > 2 * store::NODE_PAGE_BYTES)
+        .expect("a node of three pages or more");
     let bytes = built
         .store
         .node_bytes(node.key)
         .expect("read")
-        .expect("stored")
-        .to_vec();
+        .expect("stored");
     for at in [0, 13, bytes.len() / 2, bytes.len() - 1] {
         let mut damaged = bytes.clone();
         damaged[at] ^= 0x10;
         built
             .store
-            .overwrite_node_bytes(node.key, damaged)
+            .overwrite_node_bytes(node.key, &damaged)
             .expect("write");
         let error = built
             .store
@@ -285,7 +287,7 @@ fn a_damaged_node_is_detected_by_its_checksum() {
     }
     built
         .store
-        .overwrite_node_bytes(node.key, bytes[..bytes.len() - 9].to_vec())
+        .overwrite_node_bytes(node.key, &bytes[..bytes.len() - 9])
         .expect("write");
     assert!(
         built.store.read_node(&hierarchy, node.key).is_err(),
@@ -293,14 +295,30 @@ fn a_damaged_node_is_detected_by_its_checksum() {
     );
     built
         .store
-        .overwrite_node_bytes(node.key, bytes)
+        .overwrite_node_bytes(node.key, &bytes)
         .expect("write");
     assert!(
         built.store.read_node(&hierarchy, node.key).is_ok(),
         "restored"
     );
 
+    // A lost page is a node too short for its count.
     let tree = built.store.tree();
+    let mut prefix = vec![b'n'];
+    prefix.extend_from_slice(&node.key.to_bytes());
+    let pages: Vec<sled::IVec> = tree
+        .scan_prefix(&prefix)
+        .keys()
+        .map(|k| k.expect("key"))
+        .collect();
+    assert!(pages.len() >= 3, "{} pages", pages.len());
+    tree.remove(&pages[1]).expect("remove");
+    let error = built
+        .store
+        .read_node(&hierarchy, node.key)
+        .expect_err("a lost page");
+    assert!(matches!(error, LodError::CorruptNode { .. }), "{error}");
+
     let mut record = tree
         .get("hierarchy")
         .expect("get")
@@ -327,7 +345,7 @@ fn stored_nodes(built: &Built) -> Vec<(NodeKey, Vec<u8>)> {
                 .node_bytes(n.key)
                 .expect("read")
                 .expect("stored");
-            (n.key, bytes.to_vec())
+            (n.key, bytes)
         })
         .collect()
 }
@@ -522,9 +540,23 @@ fn throughput_of_a_20m_point_terrain() {
         .expect("sled");
     let store = LodStore::new(db.open_tree("lod").expect("tree"));
     let source = GeneratedSource::terrain(points, 1);
-    let options = LodBuildOptions::new(dir.path().join("spill"));
+    let mut options = LodBuildOptions::new(dir.path().join("spill"));
+    if let Some(budget) = std::env::var("POINTFARM_LOD_BUDGET_MIB")
+        .ok()
+        .and_then(|v| v.parse::<u64>().ok())
+    {
+        options.memory_budget_bytes = budget << 20;
+    }
+    // The source's own cost: the build reads it twice.
+    let reading = std::time::Instant::now();
+    source.for_each_batch(&mut |_| Ok(())).expect("read");
+    let read_s = reading.elapsed().as_secs_f64();
     let report = build_lod(&source, &store, &options).expect("build");
     let t = report.timings;
+    println!(
+        "generating the source once: {read_s:.1} s; the build without its two reads: {:.2} M points/s",
+        points as f64 / (t.total.as_secs_f64() - 2.0 * read_s) / 1e6
+    );
     let rate = points as f64 / t.total.as_secs_f64();
     let vm_hwm = std::fs::read_to_string("/proc/self/status")
         .ok()
