@@ -1,11 +1,14 @@
 //! The builder end to end: real sources, real spill files, real sled trees.
 
+mod refusals;
+mod throughput;
+
 use std::collections::HashMap;
 
 use glam::DVec3;
 
 use super::*;
-use crate::cloud::{PointCloud, WorldBounds};
+use crate::cloud::PointCloud;
 
 struct Built {
     _dir: tempfile::TempDir,
@@ -414,174 +417,4 @@ fn a_single_chunk_dataset_is_one_tree_from_the_root() {
     for (r, w) in relative.iter().zip(node.world_positions()) {
         assert!((r.as_dvec3() - (w - scene.origin)).abs().max_element() < 1e-3);
     }
-}
-
-/// A source that breaks its promises in one chosen way.
-struct Broken {
-    points: Vec<DVec3>,
-    bounds: WorldBounds,
-    declared: u64,
-    short_intensity: bool,
-}
-
-impl Broken {
-    fn new(points: Vec<DVec3>) -> Self {
-        Self {
-            bounds: crate::cloud::bounds_of(points.iter().copied()),
-            declared: points.len() as u64,
-            points,
-            short_intensity: false,
-        }
-    }
-}
-
-impl PointSource for Broken {
-    fn bounds(&self) -> WorldBounds {
-        self.bounds
-    }
-
-    fn point_count(&self) -> u64 {
-        self.declared
-    }
-
-    fn for_each_batch(
-        &self,
-        visit: &mut dyn FnMut(PointBatch<'_>) -> Result<(), LodError>,
-    ) -> Result<(), LodError> {
-        let n = self.points.len();
-        let intensity = vec![0; if self.short_intensity { n - 1 } else { n }];
-        visit(PointBatch {
-            positions: &self.points,
-            rgb: None,
-            intensity: &intensity,
-            classification: &vec![0; n],
-            return_number: &vec![0; n],
-        })
-    }
-}
-
-#[test]
-fn bad_sources_are_refused_with_clear_errors() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let db = sled::open(dir.path().join("db")).expect("sled");
-    let store = LodStore::new(db.open_tree("lod").expect("tree"));
-    let options = options(dir.path(), 500);
-    let grid: Vec<DVec3> = (0..1000)
-        .map(|i| DVec3::new(f64::from(i), 1.0, 2.0))
-        .collect();
-
-    let mut nan = Broken::new(grid.clone());
-    nan.points[10].y = f64::NAN;
-    let error = build_lod(&nan, &store, &options).expect_err("NaN");
-    assert!(
-        matches!(error, LodError::NonFinitePoint { index: 10, .. }),
-        "{error}"
-    );
-
-    let mut lying = Broken::new(grid.clone());
-    lying.bounds.max.x = 500.0;
-    let error = build_lod(&lying, &store, &options).expect_err("outside");
-    assert!(
-        matches!(error, LodError::PointOutsideBounds { index: 501, .. }),
-        "{error}"
-    );
-
-    let mut counted = Broken::new(grid.clone());
-    counted.declared = 1001;
-    let error = build_lod(&counted, &store, &options).expect_err("count");
-    assert!(
-        matches!(error, LodError::CountMismatch { read: 1000, .. }),
-        "{error}"
-    );
-
-    let mut short = Broken::new(grid.clone());
-    short.short_intensity = true;
-    let error = build_lod(&short, &store, &options).expect_err("lengths");
-    assert!(
-        error.to_string().contains("intensity has 999 values"),
-        "{error}"
-    );
-
-    let mut infinite = Broken::new(grid);
-    infinite.bounds.max.z = f64::INFINITY;
-    assert!(matches!(
-        build_lod(&infinite, &store, &options),
-        Err(LodError::InvalidBounds { .. })
-    ));
-
-    let mut tiny = options.clone();
-    tiny.memory_budget_bytes = 1 << 20;
-    assert!(matches!(
-        build_lod(&GeneratedSource::cube(10, 1), &store, &tiny),
-        Err(LodError::InvalidOptions(_))
-    ));
-    assert!(matches!(
-        store.read_hierarchy(),
-        Err(LodError::MissingHierarchy)
-    ));
-}
-
-/// Throughput and memory of a 20M-point build with the default options on every core:
-/// `cargo test -p pointfarm-render --release --lib lod::tests::throughput -- --ignored --nocapture`.
-#[test]
-#[ignore = "a measurement, not a check: minutes of CPU"]
-fn throughput_of_a_20m_point_terrain() {
-    let points = std::env::var("POINTFARM_LOD_POINTS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(20_000_000u64);
-    let dir = tempfile::tempdir().expect("tempdir");
-    // sled's page cache is outside the builder's budget; kept small so the process's peak
-    // shows the builder's own memory.
-    let db = sled::Config::new()
-        .path(dir.path().join("db"))
-        .cache_capacity(64 << 20)
-        .open()
-        .expect("sled");
-    let store = LodStore::new(db.open_tree("lod").expect("tree"));
-    let source = GeneratedSource::terrain(points, 1);
-    let mut options = LodBuildOptions::new(dir.path().join("spill"));
-    if let Some(budget) = std::env::var("POINTFARM_LOD_BUDGET_MIB")
-        .ok()
-        .and_then(|v| v.parse::<u64>().ok())
-    {
-        options.memory_budget_bytes = budget << 20;
-    }
-    // The source's own cost: the build reads it twice.
-    let reading = std::time::Instant::now();
-    source.for_each_batch(&mut |_| Ok(())).expect("read");
-    let read_s = reading.elapsed().as_secs_f64();
-    let report = build_lod(&source, &store, &options).expect("build");
-    let t = report.timings;
-    println!(
-        "generating the source once: {read_s:.1} s; the build without its two reads: {:.2} M points/s",
-        points as f64 / (t.total.as_secs_f64() - 2.0 * read_s) / 1e6
-    );
-    let rate = points as f64 / t.total.as_secs_f64();
-    let vm_hwm = std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM"))
-                .map(str::to_string)
-        })
-        .unwrap_or_default();
-    println!(
-        "lod build: {points} points, {} threads, {:.2} M points/s ({:.1} s: counting {:.1}, distribution {:.1}, chunks {:.1}, upper {:.1}); \
-         {} chunks, {} nodes; tracked peak {:.0} MiB of {:.0} MiB; spilled {:.0} MiB; stored {:.0} MiB ({:.1} B/point); {vm_hwm}",
-        rayon::current_num_threads(),
-        rate / 1e6,
-        t.total.as_secs_f64(),
-        t.counting.as_secs_f64(),
-        t.distribution.as_secs_f64(),
-        t.chunks.as_secs_f64(),
-        t.upper_levels.as_secs_f64(),
-        report.chunks,
-        report.hierarchy.nodes().len(),
-        report.peak_memory_bytes as f64 / 1048576.0,
-        report.memory_budget_bytes as f64 / 1048576.0,
-        report.spilled_bytes as f64 / 1048576.0,
-        report.stored_bytes as f64 / 1048576.0,
-        report.stored_bytes as f64 / points as f64,
-    );
 }
