@@ -656,3 +656,59 @@ fn bench_streams_a_huge_cloud_of_the_size_asked() {
     let refused = pointfarm(&["bench", "--huge", "0"]);
     assert_fails_saying(&refused, "at least one point");
 }
+
+/// `render DIR` renders the files of a folder as one dataset: tiles cut from a file give the
+/// image of that file, here and through a server (uploaded file by file and composed).
+#[test]
+fn a_folder_of_tiles_renders_as_the_file_they_were_cut_from() {
+    use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
+    let scene = Scene::sampled("sample.laz", 30_000);
+    let sampled = load_point_cloud(Path::new(&scene.cloud)).expect("load");
+    // Written again from the loaded cloud, so the tiles share its scale and offset.
+    let whole = scene.path("whole.laz");
+    write_las(&whole, &sampled, &LasWriteOptions::default()).expect("whole");
+    let cloud = load_point_cloud(&whole).expect("load whole");
+    let tiles = scene.path("tiles");
+    std::fs::create_dir_all(tiles.join("east")).expect("tiles");
+    let middle = cloud.bounds.center().x;
+    let (west, east): (Vec<usize>, Vec<usize>) =
+        (0..cloud.len()).partition(|&i| cloud.origin.x + f64::from(cloud.positions[i].x) < middle);
+    let options = LasWriteOptions::default();
+    write_las(&tiles.join("west.las"), &cloud.select(&west), &options).expect("west");
+    write_las(&tiles.join("east/east.laz"), &cloud.select(&east), &options).expect("east");
+
+    let size = ["--size=160x120"];
+    render_into(&path_arg(&whole), &scene.path("whole.png"), None, &size);
+    let output = render_into(&path_arg(&tiles), &scene.path("tiles.png"), None, &size);
+    assert_says(&output, "30000 points in 2 files");
+    let image = |name: &str| image::open(scene.path(name)).expect("png").to_rgba8();
+    assert!(
+        image("whole.png") == image("tiles.png"),
+        "the tiles render differently"
+    );
+    let server = ServeProcess::start(&scene.path("data"));
+    let remote = render_into(
+        &path_arg(&tiles),
+        &scene.path("remote.png"),
+        Some(&server.address),
+        &size,
+    );
+    assert_says(&remote, "of 2 files on");
+    assert!(
+        image("tiles.png") == image("remote.png"),
+        "the dataset renders differently through the server\n{}",
+        server.log()
+    );
+    let listed = pointfarm(&["dataset", "list", "--server", &server.address, "--json"]);
+    assert_ok(&listed);
+    let datasets: serde_json::Value = serde_json::from_str(&stdout(&listed)).expect("json");
+    let composed = datasets
+        .as_array()
+        .expect("a list")
+        .iter()
+        .find(|d| d["files"].as_array().is_some_and(|f| f.len() == 2));
+    assert!(
+        composed.is_some(),
+        "no dataset of the two files: {datasets}"
+    );
+}

@@ -146,7 +146,7 @@ async fn invalid_requests_get_their_status_codes() {
     let registered = datasets
         .register_dataset(pb::RegisterDatasetRequest {
             path: "tiny.las".into(),
-            name: String::new(),
+            ..Default::default()
         })
         .await
         .expect("register under the data root")
@@ -213,7 +213,7 @@ async fn invalid_requests_get_their_status_codes() {
         let status = datasets
             .register_dataset(pb::RegisterDatasetRequest {
                 path: path.into(),
-                name: String::new(),
+                ..Default::default()
             })
             .await
             .expect_err("outside the roots");

@@ -339,6 +339,7 @@ async fn stale_and_cancelled_leases_are_refused() {
     let mut stream = workers
         .fetch_dataset(pb::FetchDatasetRequest {
             dataset_id: dataset.id.clone(),
+            file_index: 0,
         })
         .await
         .expect("fetch dataset")

@@ -156,7 +156,7 @@ fn measure_file(
     let max_bytes = u64::MAX;
     {
         let cache = DatasetCache::open(cache_dir, max_bytes)?;
-        let (_, outcome) = cache.load(key, path)?;
+        let (_, outcome) = cache.load(key, std::slice::from_ref(&path.to_path_buf()))?;
         if outcome != CacheOutcome::Miss {
             return Err(BenchError::CacheMismatch(format!(
                 "{workload}: a new cache already held the cloud"
@@ -168,7 +168,8 @@ fn measure_file(
     // The first hit after the store is unmeasured, like the first decode.
     for round in 0..=repeats {
         let (open_ms, cache) = time_ms(|| DatasetCache::open(cache_dir, max_bytes))?;
-        let (hit_ms, (cloud, outcome)) = time_ms(|| cache.load(key, path))?;
+        let (hit_ms, (cloud, outcome)) =
+            time_ms(|| cache.load(key, std::slice::from_ref(&path.to_path_buf())))?;
         if outcome != CacheOutcome::Hit || cloud != decoded {
             return Err(BenchError::CacheMismatch(format!(
                 "{workload}: the cache did not give back the decoded cloud ({outcome:?})"

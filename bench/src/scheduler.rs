@@ -61,7 +61,9 @@ pub fn measure(
     let mut config = DaemonConfig::new(scratch.path().join("data"));
     config.data_roots = vec![roots];
     let daemon = Daemon::open(config).map_err(daemon_error)?;
-    let dataset = daemon.register_dataset("d.las", "").map_err(daemon_error)?;
+    let dataset = daemon
+        .register_dataset(&["d.las".to_string()], "")
+        .map_err(daemon_error)?;
     let finished = FrameState::Done(FrameReport {
         index: 0,
         timings: Vec::new(),

@@ -8,6 +8,8 @@ use clap::{Args, Subcommand};
 use pointfarm_proto::v1 as pb;
 use serde_json::json;
 
+use pointfarm_render::ingest::dataset_files;
+
 use crate::credentials::ClientCredentials;
 use crate::remote::{answer, state_name, status_error, Client};
 
@@ -50,13 +52,17 @@ pub struct ServerArgs {
 
 #[derive(Subcommand)]
 pub enum DatasetCommand {
-    /// Upload a LAS/LAZ file (nothing is sent if the server already has the same content).
+    /// Upload LAS/LAZ files or folders of them as one dataset (a file the server already
+    /// has is not sent again).
     Add {
-        file: PathBuf,
+        #[arg(required = true, value_name = "INPUT")]
+        inputs: Vec<PathBuf>,
     },
-    /// Register a file that is already on the server, under one of its data roots.
+    /// Register files or folders that are already on the server, under its data roots, as
+    /// one dataset.
     Register {
-        path: String,
+        #[arg(required = true, value_name = "PATH")]
+        paths: Vec<String>,
     },
     List,
     Rm {
@@ -104,7 +110,12 @@ fn runtime() -> Result<tokio::runtime::Runtime> {
 }
 
 fn dataset_json(d: &pb::Dataset) -> serde_json::Value {
-    json!({ "id": d.id, "name": d.name, "size_bytes": d.size_bytes, "sha256": d.sha256, "path": d.path })
+    let files: Vec<serde_json::Value> = d
+        .files
+        .iter()
+        .map(|f| json!({ "name": f.name, "size_bytes": f.size_bytes, "sha256": f.sha256, "path": f.path }))
+        .collect();
+    json!({ "id": d.id, "name": d.name, "size_bytes": d.size_bytes, "sha256": d.sha256, "path": d.path, "files": files })
 }
 
 fn job_json(j: &pb::Job) -> serde_json::Value {
@@ -119,13 +130,15 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
     runtime()?.block_on(async {
         let mut client = Client::connect(&server.server, &server.credentials).await?;
         match command {
-            DatasetCommand::Add { file } => {
-                print_dataset(server, &client.ensure_dataset(&file).await?)
+            DatasetCommand::Add { inputs } => {
+                let files = dataset_files(&inputs)?;
+                print_dataset(server, &client.ensure_dataset(&files).await?)
             }
-            DatasetCommand::Register { path } => {
+            DatasetCommand::Register { paths } => {
                 let request = pb::RegisterDatasetRequest {
-                    path,
+                    path: String::new(),
                     name: String::new(),
+                    paths,
                 };
                 let dataset = answer(client.datasets.register_dataset(request).await)?;
                 print_dataset(server, &dataset)
@@ -172,7 +185,11 @@ fn print_dataset(server: &ServerArgs, d: &pb::Dataset) {
     if server.json {
         println!("{}", dataset_json(d));
     } else {
-        println!("{}  {} ({} bytes)", d.id, d.name, d.size_bytes);
+        let files = match d.files.len() {
+            0 | 1 => String::new(),
+            n => format!(", {n} files"),
+        };
+        println!("{}  {} ({} bytes{files})", d.id, d.name, d.size_bytes);
     }
 }
 

@@ -85,7 +85,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
         let result = async {
             let mut client =
                 Client::connect(&address.to_string(), &ClientCredentials::default()).await?;
-            let dataset = client.ensure_dataset(&input).await?;
+            let dataset = client.ensure_dataset(std::slice::from_ref(&input)).await?;
             let spec = JobSpec {
                 request_id: format!(
                     "demo-{}-{}-{}x{}",

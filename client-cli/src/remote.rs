@@ -43,8 +43,28 @@ impl Client {
         })
     }
 
+    /// The dataset of `files` (in this order), each uploaded first if the server does not
+    /// have it, and composed into one when there are several.
+    pub async fn ensure_dataset(&mut self, files: &[PathBuf]) -> Result<pb::Dataset> {
+        let [first, rest @ ..] = files else {
+            bail!("a dataset needs at least one LAS/LAZ file");
+        };
+        if rest.is_empty() {
+            return self.ensure_file(first).await;
+        }
+        let mut dataset_ids = Vec::with_capacity(files.len());
+        for file in files {
+            dataset_ids.push(self.ensure_file(file).await?.id);
+        }
+        let request = pb::ComposeDatasetRequest {
+            dataset_ids,
+            name: String::new(),
+        };
+        answer(self.datasets.compose_dataset(request).await)
+    }
+
     /// The dataset with the content of `file`, uploaded first if the server does not have it.
-    pub async fn ensure_dataset(&mut self, file: &Path) -> Result<pb::Dataset> {
+    async fn ensure_file(&mut self, file: &Path) -> Result<pb::Dataset> {
         let path = file.to_path_buf();
         let (sha256, size_bytes) = tokio::task::spawn_blocking(move || hash_file(&path))
             .await?

@@ -6,6 +6,7 @@
 use anyhow::{bail, Context, Result};
 use pointfarm_daemon::model::JobSpec;
 use pointfarm_proto::v1 as pb;
+use pointfarm_render::ingest::dataset_files;
 use pointfarm_render::raster::AtomicsMode;
 use pointfarm_render::request::RenderRequest;
 
@@ -52,12 +53,15 @@ pub fn run(server: &str, args: &RenderArgs, request: &RenderRequest) -> Result<(
     refuse_local_only_options(args, request)?;
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {
+        let files = dataset_files(&args.inputs)?;
         let mut client = Client::connect(server, &args.credentials).await?;
-        let dataset = client.ensure_dataset(&args.input).await?;
+        let dataset = client.ensure_dataset(&files).await?;
         println!(
-            "{}: dataset {} on {server}",
-            args.input.display(),
-            dataset.id
+            "{}: dataset {} of {} file{} on {server}",
+            args.inputs_label(),
+            dataset.id,
+            files.len(),
+            if files.len() == 1 { "" } else { "s" }
         );
         let job = client
             .jobs

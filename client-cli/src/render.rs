@@ -10,7 +10,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_render::color::point_colors;
 use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
-use pointfarm_render::ingest::load_point_cloud;
+use pointfarm_render::ingest::{dataset_files, load_dataset};
 use pointfarm_render::raster::{FrameSettings, Renderer, Stage, StageTimings};
 
 pub use crate::render_args::RenderArgs;
@@ -23,15 +23,21 @@ pub fn run(args: RenderArgs) -> Result<()> {
     }
 
     let started = Instant::now();
-    let spinner = spinner(format!("reading {}", args.input.display()));
-    let cloud = load_point_cloud(&args.input);
+    let files = dataset_files(&args.inputs)?;
+    let spinner = spinner(match files.as_slice() {
+        [one] => format!("reading {}", one.display()),
+        many => format!("reading {} files", many.len()),
+    });
+    let cloud = load_dataset(&files);
     spinner.finish_and_clear();
     let mut cloud = cloud?;
     cloud.colors = point_colors(&cloud, request.render.color_mode);
     println!(
-        "{}: {} points, colour from {:?}, read in {:.0} ms",
-        args.input.display(),
+        "{}: {} points in {} file{}, colour from {:?}, read in {:.0} ms",
+        args.inputs_label(),
         cloud.len(),
+        files.len(),
+        if files.len() == 1 { "" } else { "s" },
         cloud.color_source,
         started.elapsed().as_secs_f64() * 1e3
     );

@@ -24,8 +24,10 @@ use crate::parse::{self, Rgba};
 
 #[derive(Args)]
 pub struct RenderArgs {
-    /// LAS or LAZ file to render.
-    pub(crate) input: PathBuf,
+    /// LAS/LAZ files or folders of them, rendered as one dataset (tiles or scan positions of
+    /// one campaign: one origin, bounds and colour decision).
+    #[arg(required = true, value_name = "INPUT")]
+    pub(crate) inputs: Vec<PathBuf>,
     /// Render on this pointfarm server instead of here (uploading the file if needed).
     #[arg(long, env = "POINTFARM_SERVER")]
     pub(crate) server: Option<String>,
@@ -156,6 +158,14 @@ enum AtomicsArg {
 
 impl RenderArgs {
     /// The request these arguments describe, validated.
+    /// What the inputs are called in messages: the one file or folder, or how many.
+    pub(crate) fn inputs_label(&self) -> String {
+        match self.inputs.as_slice() {
+            [one] => one.display().to_string(),
+            many => format!("{} inputs", many.len()),
+        }
+    }
+
     pub(crate) fn request(&self) -> Result<RenderRequest> {
         if self.turntable == Some(0) {
             bail!("--turntable needs at least one frame");

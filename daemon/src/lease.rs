@@ -29,6 +29,16 @@ use crate::service::Daemon;
 #[derive(Debug, Clone, PartialEq)]
 pub struct TaskDataset {
     pub id: String,
+    /// The content's hash: the key of the worker's cache.
+    pub sha256: String,
+    pub size_bytes: u64,
+    /// Its files in order, fetched one by one.
+    pub files: Vec<TaskFile>,
+}
+
+/// One file of a task's dataset.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TaskFile {
     pub sha256: String,
     pub size_bytes: u64,
 }
@@ -139,6 +149,14 @@ impl Daemon {
                 lease,
                 lease_timeout: self.config.lease_timeout,
                 dataset: TaskDataset {
+                    files: dataset
+                        .files()
+                        .into_iter()
+                        .map(|file| TaskFile {
+                            sha256: file.sha256,
+                            size_bytes: file.size_bytes,
+                        })
+                        .collect(),
                     id: dataset.id,
                     sha256: dataset.sha256,
                     size_bytes: dataset.size_bytes,

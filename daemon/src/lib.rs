@@ -17,6 +17,7 @@
 //! `worker::remote` and `server` (which mounts the services) know protobuf.
 
 pub mod access;
+pub mod datasets;
 pub mod error;
 pub mod grpc;
 pub mod lease;

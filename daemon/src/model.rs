@@ -8,14 +8,65 @@ use serde::{Deserialize, Serialize};
 pub type DatasetId = String;
 pub type JobId = String;
 
+/// Point cloud files rendered as one: a scan, or the tiles or scan positions of a campaign.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Dataset {
     pub id: DatasetId,
     pub name: String,
+    /// Bytes of all its files.
+    pub size_bytes: u64,
+    /// The content's SHA-256: the file's own for one file, else that of its files' hashes in
+    /// order ([`content_sha256`]).
+    pub sha256: String,
+    /// The first file.
+    pub path: std::path::PathBuf,
+    /// Every file, in order. Empty in records written when a dataset was one file: that file
+    /// is then `path` (see [`Dataset::files`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub files: Vec<DatasetFile>,
+    pub created_unix_ms: i64,
+}
+
+/// One file of a dataset.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DatasetFile {
+    pub name: String,
+    pub path: std::path::PathBuf,
     pub size_bytes: u64,
     pub sha256: String,
-    pub path: std::path::PathBuf,
-    pub created_unix_ms: i64,
+}
+
+impl Dataset {
+    /// Every file of the dataset, in order.
+    pub fn files(&self) -> Vec<DatasetFile> {
+        if self.files.is_empty() {
+            vec![DatasetFile {
+                name: self.name.clone(),
+                path: self.path.clone(),
+                size_bytes: self.size_bytes,
+                sha256: self.sha256.clone(),
+            }]
+        } else {
+            self.files.clone()
+        }
+    }
+}
+
+/// The content hash of files with these hashes, in this order: a single file's own hash, so
+/// a one-file dataset keeps the id it always had.
+pub fn content_sha256(files: &[DatasetFile]) -> String {
+    use sha2::{Digest, Sha256};
+    match files {
+        [one] => one.sha256.clone(),
+        many => {
+            let mut hasher = Sha256::new();
+            for file in many {
+                hasher.update(file.sha256.as_bytes());
+                hasher.update(b"\n");
+            }
+            crate::service::hex(&hasher.finalize())
+        }
+    }
 }
 
 /// What a client asked for, validated.

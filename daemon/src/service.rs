@@ -8,8 +8,8 @@ use sha2::{Digest, Sha256};
 use tokio::sync::broadcast;
 
 use crate::error::{DaemonError, StoreError};
-use crate::limits::{check_id, check_length, MAX_NAME_BYTES, MAX_PATH_BYTES, MAX_REQUEST_ID_BYTES};
-use crate::model::{now_unix_ms, Dataset, FrameReport, Job, JobEvent, JobSpec, JobState};
+use crate::limits::{check_id, check_length, MAX_REQUEST_ID_BYTES};
+use crate::model::{now_unix_ms, FrameReport, Job, JobEvent, JobSpec, JobState};
 use crate::store::{Page, Store};
 use crate::worker_presence::WorkerPresence;
 
@@ -75,7 +75,7 @@ impl DaemonConfig {
         self.data_dir.join("worker-cache.sled")
     }
 
-    fn uploads_dir(&self) -> PathBuf {
+    pub(crate) fn uploads_dir(&self) -> PathBuf {
         self.data_dir.join("datasets")
     }
 }
@@ -202,161 +202,6 @@ impl Daemon {
         });
     }
 
-    // ------------------------------------------------------------------ datasets
-
-    /// Registers a file already on the server, under a configured data root.
-    pub fn register_dataset(&self, path: &str, name: &str) -> Result<Dataset, DaemonError> {
-        if path.is_empty() {
-            return Err(DaemonError::invalid("path", "is empty"));
-        }
-        check_length("path", path, MAX_PATH_BYTES)?;
-        check_length("name", name, MAX_NAME_BYTES)?;
-        let Some(first_root) = self.config.data_roots.first() else {
-            return Err(DaemonError::FailedPrecondition(
-                "this server has no data roots configured; upload the file instead".into(),
-            ));
-        };
-        let requested = Path::new(path);
-        let requested = if requested.is_absolute() {
-            requested.to_path_buf()
-        } else {
-            first_root.join(requested)
-        };
-        let resolved = requested
-            .canonicalize()
-            .map_err(|_| DaemonError::NotFound(format!("file {path}")))?;
-        let allowed = self
-            .config
-            .data_roots
-            .iter()
-            .filter_map(|root| root.canonicalize().ok())
-            .any(|root| resolved.starts_with(root));
-        if !allowed {
-            return Err(DaemonError::invalid(
-                "path",
-                format!("{path} is outside the server's data roots"),
-            ));
-        }
-        if !resolved.is_file() {
-            return Err(DaemonError::invalid(
-                "path",
-                format!("{path} is not a file"),
-            ));
-        }
-        let (sha256, size_bytes) = hash_file(&resolved)?;
-        let name = if name.is_empty() {
-            file_name(&resolved)
-        } else {
-            name.to_string()
-        };
-        self.add_dataset(resolved, name, sha256, size_bytes)
-    }
-
-    /// Where an upload is written while it arrives.
-    pub fn upload_path(&self) -> PathBuf {
-        self.config
-            .uploads_dir()
-            .join(format!("upload-{}.part", unique_suffix()))
-    }
-
-    /// The lower-case extension of an upload named `name` (`las` or `laz`), checked before
-    /// any of its bytes are received.
-    fn upload_extension(name: &str) -> Result<String, DaemonError> {
-        check_length("header.name", name, MAX_NAME_BYTES)?;
-        Path::new(name)
-            .extension()
-            .and_then(|e| e.to_str())
-            .map(str::to_ascii_lowercase)
-            .filter(|e| e == "las" || e == "laz")
-            .ok_or_else(|| DaemonError::invalid("header.name", "must end in .las or .laz"))
-    }
-
-    /// Refuses, before any of its bytes arrive, an upload named `name` of `size_bytes` that
-    /// is not LAS/LAZ by its name, exceeds the upload limit, or would take the uploaded
-    /// datasets past the quota.
-    pub fn check_upload(&self, name: &str, size_bytes: u64) -> Result<(), DaemonError> {
-        Self::upload_extension(name)?;
-        let limit = self.config.max_upload_bytes;
-        if size_bytes > limit {
-            return Err(DaemonError::ResourceExhausted(format!(
-                "upload of {size_bytes} bytes exceeds the limit of {limit} bytes"
-            )));
-        }
-        let Some(quota) = self.config.upload_quota_bytes else {
-            return Ok(());
-        };
-        let used = self.store.uploaded_bytes(&self.config.uploads_dir())?;
-        if used.saturating_add(size_bytes) > quota {
-            return Err(DaemonError::ResourceExhausted(format!(
-                "an upload of {size_bytes} bytes exceeds the quota: {used} of {quota} bytes \
-                 are taken by uploaded datasets"
-            )));
-        }
-        Ok(())
-    }
-
-    /// Takes a completely received upload at `temp` into the store.
-    pub fn finish_upload(
-        &self,
-        temp: &Path,
-        name: &str,
-        sha256: String,
-        size_bytes: u64,
-    ) -> Result<Dataset, DaemonError> {
-        let extension = Self::upload_extension(name)?;
-        let id = dataset_id(&sha256);
-        let path = self.config.uploads_dir().join(format!("{id}.{extension}"));
-        std::fs::rename(temp, &path)?;
-        self.add_dataset(path, name.to_string(), sha256, size_bytes)
-    }
-
-    fn add_dataset(
-        &self,
-        path: PathBuf,
-        name: String,
-        sha256: String,
-        size_bytes: u64,
-    ) -> Result<Dataset, DaemonError> {
-        let id = dataset_id(&sha256);
-        if let Some(existing) = self.store.dataset(&id)? {
-            return Ok(existing);
-        }
-        let dataset = Dataset {
-            id,
-            name,
-            size_bytes,
-            sha256,
-            path,
-            created_unix_ms: now_unix_ms(),
-        };
-        self.store.put_dataset(&dataset)?;
-        tracing::info!(dataset = %dataset.id, path = %dataset.path.display(), "dataset added");
-        Ok(dataset)
-    }
-
-    pub fn dataset(&self, id: &str) -> Result<Dataset, DaemonError> {
-        lookup("dataset_id", "dataset", id, |id| self.store.dataset(id))
-    }
-
-    pub fn list_datasets(&self, page_size: u32, token: &str) -> Result<Page<Dataset>, DaemonError> {
-        Ok(self.store.list_datasets(page_size as usize, token)?)
-    }
-
-    /// Deletes a dataset (and the file, if it was uploaded). Refused while unfinished jobs use it.
-    pub fn delete_dataset(&self, id: &str) -> Result<(), DaemonError> {
-        let dataset = self.dataset(id)?;
-        if self.store.dataset_in_use(id)? {
-            return Err(DaemonError::FailedPrecondition(format!(
-                "dataset {id} is used by unfinished jobs"
-            )));
-        }
-        self.store.delete_dataset(id)?;
-        if dataset.path.starts_with(self.config.uploads_dir()) {
-            let _ = std::fs::remove_file(&dataset.path);
-        }
-        Ok(())
-    }
-
     // ------------------------------------------------------------------ jobs
 
     /// Validates limits that depend on this server, stores the job and wakes a worker.
@@ -432,7 +277,7 @@ impl Daemon {
 
 /// The `what` that `id` (the request's `field`) names, found by `find`: an id too long to be
 /// one of ours, or no such record, is an error.
-fn lookup<T>(
+pub(crate) fn lookup<T>(
     field: &str,
     what: &str,
     id: &str,
@@ -518,7 +363,7 @@ fn remove_partial_frames(dir: &Path) {
 }
 
 /// A suffix for temporary file names: unique within the process, and across restarts.
-fn unique_suffix() -> String {
+pub(crate) fn unique_suffix() -> String {
     static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
     let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     format!("{}-{}-{n}", now_unix_ms(), std::process::id())
@@ -529,7 +374,7 @@ pub fn dataset_id(sha256: &str) -> String {
     format!("ds-{}", &sha256[..sha256.len().min(16)])
 }
 
-fn file_name(path: &Path) -> String {
+pub(crate) fn file_name(path: &Path) -> String {
     path.file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default()

@@ -142,7 +142,7 @@ impl Store {
     /// manifest: a damaged database is refused with what it lost, unless `recover`, which
     /// drops the unreadable records and returns what was lost with the store.
     pub fn open(path: &Path, recover: bool) -> Result<(Self, StateLoss), StoreError> {
-        let db = open_database(path)?;
+        let db = open_database_waiting(path, OPEN_WAIT)?;
         let manifest_path = Manifest::beside(path);
         let recorded = Manifest::read(&manifest_path)?;
         let trees = Trees::open(&db)?;
@@ -262,16 +262,7 @@ impl Store {
         let mut slot = self.records.write().unwrap_or_else(|e| e.into_inner());
         // Dropped first: sled holds a lock on its files until then.
         drop(slot.take());
-        let deadline = Instant::now() + REOPEN_WAIT;
-        let db = loop {
-            match open_database(&self.path) {
-                // sled's last threads of the old database may still hold its files.
-                Err(StoreError::Locked(_)) if Instant::now() < deadline => {
-                    std::thread::sleep(Duration::from_millis(20))
-                }
-                opened => break opened?,
-            }
-        };
+        let db = open_database_waiting(&self.path, REOPEN_WAIT)?;
         let trees = Trees::open(&db)?;
         *slot = Some(Records { db, trees });
         tracing::info!(database = %self.path.display(), "the state database was opened again after the failed write");
@@ -360,6 +351,11 @@ impl Store {
 
     /// The bytes of the datasets whose files lie in `uploads` (the ones uploaded, not
     /// registered from a data root).
+    /// Every dataset (they are few: files, not points).
+    pub fn datasets(&self) -> Result<Vec<Dataset>, StoreError> {
+        self.with(|records| records.datasets())
+    }
+
     pub fn uploaded_bytes(&self, uploads: &Path) -> Result<u64, StoreError> {
         self.with(|records| records.uploaded_bytes(uploads))
     }
@@ -460,6 +456,23 @@ impl Store {
 
 /// How long reopening waits for the old database's threads to let go of its files.
 const REOPEN_WAIT: Duration = Duration::from_secs(10);
+/// How long opening waits for a database just closed (by this process, or a daemon that is
+/// exiting) to let go of its files; a daemon still running is refused after it.
+const OPEN_WAIT: Duration = Duration::from_secs(2);
+
+/// Opens the sled database at `path`, waiting up to `wait` while its lock is held: sled's
+/// last threads of a database just dropped may still hold its files.
+fn open_database_waiting(path: &Path, wait: Duration) -> Result<sled::Db, StoreError> {
+    let deadline = Instant::now() + wait;
+    loop {
+        match open_database(path) {
+            Err(StoreError::Locked(_)) if Instant::now() < deadline => {
+                std::thread::sleep(Duration::from_millis(20))
+            }
+            opened => return opened,
+        }
+    }
+}
 
 /// Opens the sled database at `path`.
 fn open_database(path: &Path) -> Result<sled::Db, StoreError> {

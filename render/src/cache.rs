@@ -7,7 +7,7 @@
 //! path (docs/perf/dataset-cache.md). The cache holds at most `max_bytes`; the least recently
 //! used entries are evicted to make room.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use glam::{DVec3, Vec3};
@@ -15,7 +15,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::cloud::{ColorSource, PointCloud, WorldBounds};
-use crate::ingest::{load_point_cloud, IngestError};
+use crate::ingest::{load_dataset, IngestError};
 
 /// Bump when the stored layout or the meaning of ingest's output changes.
 pub const FORMAT_VERSION: u32 = 1;
@@ -146,7 +146,7 @@ impl DatasetCache {
     pub fn load(
         &self,
         sha256: &str,
-        path: &Path,
+        files: &[PathBuf],
     ) -> Result<(PointCloud, CacheOutcome), CacheError> {
         let key = format!("{sha256}-v{FORMAT_VERSION}");
         let started = Instant::now();
@@ -159,7 +159,7 @@ impl DatasetCache {
             );
             return Ok((cloud, CacheOutcome::Hit));
         }
-        let cloud = load_point_cloud(path)?;
+        let cloud = load_dataset(files)?;
         tracing::info!(
             dataset = sha256,
             points = cloud.len(),
@@ -337,7 +337,7 @@ fn decode_chunk(bytes: &[u8], count: usize, cloud: &mut PointCloud) -> Option<()
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ingest::{write_las, LasWriteOptions};
+    use crate::ingest::{load_point_cloud, write_las, LasWriteOptions};
     use crate::sample::sample_scene;
 
     /// Entries written before the chunk size was recorded (and made smaller) still load.
@@ -435,19 +435,29 @@ mod tests {
         let cache = DatasetCache::open(&dir.path().join("cache"), 2 * 3_000 * BYTES_PER_POINT + 10)
             .expect("open");
         assert!(!cache.contains("aaa"));
-        let (first, outcome) = cache.load("aaa", &files[0]).expect("load");
+        let (first, outcome) = cache
+            .load("aaa", std::slice::from_ref(&files[0]))
+            .expect("load");
         assert_eq!(outcome, CacheOutcome::Miss);
         assert!(cache.contains("aaa"));
-        let (again, outcome) = cache.load("aaa", &files[0]).expect("load");
+        let (again, outcome) = cache
+            .load("aaa", std::slice::from_ref(&files[0]))
+            .expect("load");
         assert_eq!(outcome, CacheOutcome::Hit);
         assert_eq!(again, first, "the cache returns exactly the decoded cloud");
         assert_eq!(again, load_point_cloud(&files[0]).expect("decode"));
 
-        cache.load("bbb", &files[1]).expect("load");
+        cache
+            .load("bbb", std::slice::from_ref(&files[1]))
+            .expect("load");
         std::thread::sleep(std::time::Duration::from_millis(5));
-        cache.load("aaa", &files[0]).expect("touch aaa"); // bbb is now the least recent
+        cache
+            .load("aaa", std::slice::from_ref(&files[0]))
+            .expect("touch aaa"); // bbb is now the least recent
         std::thread::sleep(std::time::Duration::from_millis(5));
-        cache.load("ccc", &files[2]).expect("load");
+        cache
+            .load("ccc", std::slice::from_ref(&files[2]))
+            .expect("load");
         let mut keys = cache.keys();
         keys.sort();
         assert_eq!(

@@ -8,8 +8,9 @@
 use pointfarm_proto::v1 as pb;
 
 use super::request::{camera_path_message, known_enum, render_options_message, render_request};
+use crate::datasets::MAX_DATASET_FILES;
 use crate::error::DaemonError;
-use crate::lease::{FailureKind, FrameTask, HeartbeatAnswer, TaskDataset};
+use crate::lease::{FailureKind, FrameTask, HeartbeatAnswer, TaskDataset, TaskFile};
 use crate::lease_record::Lease;
 use crate::model::{Dataset, FrameReport, Job, JobSpec, JobState, StageTiming};
 
@@ -88,6 +89,16 @@ impl From<&Dataset> for pb::Dataset {
             sha256: d.sha256.clone(),
             path: d.path.display().to_string(),
             created_unix_ms: d.created_unix_ms,
+            files: d
+                .files()
+                .iter()
+                .map(|f| pb::DatasetFile {
+                    name: f.name.clone(),
+                    size_bytes: f.size_bytes,
+                    sha256: f.sha256.clone(),
+                    path: f.path.display().to_string(),
+                })
+                .collect(),
         }
     }
 }
@@ -190,6 +201,15 @@ pub fn frame_task_message(task: &FrameTask) -> pb::FrameTask {
             id: task.dataset.id.clone(),
             sha256: task.dataset.sha256.clone(),
             size_bytes: task.dataset.size_bytes,
+            files: task
+                .dataset
+                .files
+                .iter()
+                .map(|f| pb::TaskFile {
+                    sha256: f.sha256.clone(),
+                    size_bytes: f.size_bytes,
+                })
+                .collect(),
         }),
         camera_path: Some(camera_path_message(
             &task.request.camera_path,
@@ -211,6 +231,28 @@ pub fn frame_task(message: &pb::FrameTask, worker: &str) -> Result<FrameTask, Da
     if message.lease_timeout_ms == 0 {
         return Err(invalid("lease_timeout_ms", "must be positive"));
     }
+    if dataset.files.len() > MAX_DATASET_FILES {
+        return Err(invalid(
+            "dataset.files",
+            format!("at most {MAX_DATASET_FILES} files"),
+        ));
+    }
+    // A daemon that knew only datasets of one file sent none.
+    let files = if dataset.files.is_empty() {
+        vec![TaskFile {
+            sha256: dataset.sha256.clone(),
+            size_bytes: dataset.size_bytes,
+        }]
+    } else {
+        dataset
+            .files
+            .iter()
+            .map(|f| TaskFile {
+                sha256: f.sha256.clone(),
+                size_bytes: f.size_bytes,
+            })
+            .collect()
+    };
     Ok(FrameTask {
         lease: Lease {
             id: message.lease_id.clone(),
@@ -225,6 +267,7 @@ pub fn frame_task(message: &pb::FrameTask, worker: &str) -> Result<FrameTask, Da
             id: dataset.id.clone(),
             sha256: dataset.sha256.clone(),
             size_bytes: dataset.size_bytes,
+            files,
         },
         request: render_request(
             message.width,
@@ -421,6 +464,16 @@ mod tests {
                     id: "ds-1".into(),
                     sha256: "ab".repeat(32),
                     size_bytes: 99,
+                    files: vec![
+                        TaskFile {
+                            sha256: "cd".repeat(32),
+                            size_bytes: 40,
+                        },
+                        TaskFile {
+                            sha256: "ef".repeat(32),
+                            size_bytes: 59,
+                        },
+                    ],
                 },
                 request: spec.request.clone(),
                 failed_attempts: 2,

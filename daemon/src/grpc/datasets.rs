@@ -23,8 +23,23 @@ impl DatasetService for Api {
         request: Request<pb::RegisterDatasetRequest>,
     ) -> Result<Response<pb::Dataset>, Status> {
         let r = request.into_inner();
+        let paths: Vec<String> = std::iter::once(r.path)
+            .filter(|path| !path.is_empty())
+            .chain(r.paths)
+            .collect();
         let dataset = self
-            .run(move |daemon| daemon.register_dataset(&r.path, &r.name))
+            .run(move |daemon| daemon.register_dataset(&paths, &r.name))
+            .await?;
+        Ok(Response::new(pb::Dataset::from(&dataset)))
+    }
+
+    async fn compose_dataset(
+        &self,
+        request: Request<pb::ComposeDatasetRequest>,
+    ) -> Result<Response<pb::Dataset>, Status> {
+        let r = request.into_inner();
+        let dataset = self
+            .run(move |daemon| daemon.compose_dataset(&r.dataset_ids, &r.name))
             .await?;
         Ok(Response::new(pb::Dataset::from(&dataset)))
     }

@@ -204,8 +204,17 @@ impl WorkerService for Api {
         &self,
         request: Request<pb::FetchDatasetRequest>,
     ) -> Result<Response<Self::FetchDatasetStream>, Status> {
-        let dataset = self.daemon.dataset(&request.into_inner().dataset_id)?;
-        let mut file = tokio::fs::File::open(&dataset.path)
+        let r = request.into_inner();
+        let dataset = self.daemon.dataset(&r.dataset_id)?;
+        let files = dataset.files();
+        let Some(wanted) = files.get(r.file_index as usize) else {
+            return Err(invalid(
+                "file_index",
+                format!("dataset {} has {} files", dataset.id, files.len()),
+            )
+            .into());
+        };
+        let mut file = tokio::fs::File::open(&wanted.path)
             .await
             .map_err(|e| Status::internal(format!("dataset {}: {e}", dataset.id)))?;
         let stream = spawn_stream(4, move |sender| async move {

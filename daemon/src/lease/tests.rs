@@ -80,7 +80,9 @@ fn daemon_with_job(frames: u32) -> (tempfile::TempDir, Arc<Daemon>, crate::model
     std::fs::create_dir_all(dir.join("roots")).expect("roots");
     std::fs::write(dir.join("roots/a.las"), b"points").expect("file");
     let daemon = open(dir);
-    let dataset = daemon.register_dataset("a.las", "").expect("register");
+    let dataset = daemon
+        .register_dataset(&["a.las".to_string()], "")
+        .expect("register");
     let request = pb::SubmitJobRequest {
         dataset_id: dataset.id.clone(),
         camera_path: Some(pb::CameraPath::turntable(pb::Turntable::of_frames(frames))),
@@ -155,7 +157,9 @@ fn daemon_with_job_in(dir: &Path, frames: u32) -> (Arc<Daemon>, crate::model::Jo
     std::fs::create_dir_all(dir.join("roots")).expect("roots");
     std::fs::write(dir.join("roots/a.las"), b"points").expect("file");
     let daemon = open(dir);
-    let dataset = daemon.register_dataset("a.las", "").expect("register");
+    let dataset = daemon
+        .register_dataset(&["a.las".to_string()], "")
+        .expect("register");
     let request = pb::SubmitJobRequest {
         dataset_id: dataset.id.clone(),
         camera_path: Some(pb::CameraPath::turntable(pb::Turntable::of_frames(frames))),

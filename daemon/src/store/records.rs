@@ -210,15 +210,26 @@ impl Records {
 
     /// The bytes of the datasets whose files lie in `uploads` (the ones uploaded, not
     /// registered from a data root).
+    /// Bytes of the distinct uploaded files (several datasets may share one).
     pub(super) fn uploaded_bytes(&self, uploads: &std::path::Path) -> Result<u64, StoreError> {
+        let mut counted = std::collections::HashSet::new();
         let mut total = 0u64;
-        for entry in self.trees.datasets.iter() {
-            let dataset: Dataset = decode(&entry?.1)?;
-            if dataset.path.starts_with(uploads) {
-                total = total.saturating_add(dataset.size_bytes);
+        for dataset in self.datasets()? {
+            for file in dataset.files() {
+                if file.path.starts_with(uploads) && counted.insert(file.path) {
+                    total = total.saturating_add(file.size_bytes);
+                }
             }
         }
         Ok(total)
+    }
+
+    pub(super) fn datasets(&self) -> Result<Vec<Dataset>, StoreError> {
+        self.trees
+            .datasets
+            .iter()
+            .map(|entry| decode(&entry?.1))
+            .collect()
     }
 
     pub(super) fn frame(&self, job_id: &str, index: u32) -> Result<Option<FrameState>, StoreError> {

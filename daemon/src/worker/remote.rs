@@ -39,7 +39,7 @@ use tracing::Instrument;
 
 use crate::grpc::streaming::{HashingWriter, CHUNK_BYTES};
 use crate::grpc::{frame_task, timings_message};
-use crate::lease::FrameTask;
+use crate::lease::{FrameTask, TaskFile};
 use crate::worker::failure::FrameFailure;
 use crate::worker::render_state::{RenderedFrame, WorkerRenderState};
 
@@ -284,9 +284,9 @@ async fn download_and_render(
     task: &FrameTask,
 ) -> anyhow::Result<Result<RenderedFrame, FrameFailure>> {
     let state = render_state.take().context("the renderer was lost")?;
-    let file = if state.needs_file(task) {
+    let files = if state.needs_files(task) {
         match download(client, task, downloads).await {
-            Ok(file) => Some(file),
+            Ok(files) => files,
             Err(e) => {
                 *render_state = Some(state);
                 return Ok(Err(FrameFailure::transient(format!(
@@ -296,23 +296,23 @@ async fn download_and_render(
             }
         }
     } else {
-        None
+        Vec::new()
     };
     // Rendering blocks on the GPU: off the async threads, so heartbeats go on meanwhile.
     let blocking_task = task.clone();
     let span = tracing::Span::current();
-    let path = file.clone().unwrap_or_default();
+    let paths = files.clone();
     let (state, rendered) = tokio::task::spawn_blocking(move || {
         let _entered = span.enter();
         let mut state = state;
-        let rendered = state.render(&blocking_task, &path);
+        let rendered = state.render(&blocking_task, &paths);
         (state, rendered)
     })
     .await
     .map_err(|e| anyhow::anyhow!("the renderer panicked: {}", panic_message(e)))?;
     *render_state = Some(state);
-    if let Some(file) = file {
-        // The points are in the cache now.
+    // The points are in the cache now.
+    for file in files {
         let _ = tokio::fs::remove_file(file).await;
     }
     Ok(rendered)
@@ -354,16 +354,44 @@ async fn keep_lease(
     }
 }
 
-/// Downloads the dataset's file into `dir`, checking its SHA-256.
-async fn download(client: &mut Client, task: &FrameTask, dir: &Path) -> anyhow::Result<PathBuf> {
-    let dataset = &task.dataset;
+/// Downloads the dataset's files into `dir`, checking each one's SHA-256; on an error none is
+/// left behind.
+async fn download(
+    client: &mut Client,
+    task: &FrameTask,
+    dir: &Path,
+) -> anyhow::Result<Vec<PathBuf>> {
+    let mut paths = Vec::with_capacity(task.dataset.files.len());
+    for (index, file) in task.dataset.files.iter().enumerate() {
+        match download_file(client, &task.dataset.id, index, file, dir).await {
+            Ok(path) => paths.push(path),
+            Err(e) => {
+                for path in paths {
+                    let _ = tokio::fs::remove_file(path).await;
+                }
+                return Err(e);
+            }
+        }
+    }
+    Ok(paths)
+}
+
+/// Downloads file `index` of dataset `dataset_id` into `dir`, checking its SHA-256.
+async fn download_file(
+    client: &mut Client,
+    dataset_id: &str,
+    index: usize,
+    dataset: &TaskFile,
+    dir: &Path,
+) -> anyhow::Result<PathBuf> {
     let started = std::time::Instant::now();
     let path = dir.join(&dataset.sha256);
     let partial = dir.join(format!("{}.part", dataset.sha256));
     let result = async {
         let mut stream = client
             .fetch_dataset(pb::FetchDatasetRequest {
-                dataset_id: dataset.id.clone(),
+                dataset_id: dataset_id.to_owned(),
+                file_index: u32::try_from(index)?,
             })
             .await
             .map_err(|s| anyhow::anyhow!("{:?}: {}", s.code(), s.message()))?
@@ -393,7 +421,7 @@ async fn download(client: &mut Client, task: &FrameTask, dir: &Path) -> anyhow::
     .await;
     match result {
         Ok(bytes) => {
-            tracing::info!(dataset = %dataset.id, bytes, ms = started.elapsed().as_millis() as u64, "dataset downloaded");
+            tracing::info!(dataset = %dataset_id, file = index, bytes, ms = started.elapsed().as_millis() as u64, "dataset file downloaded");
             Ok(path)
         }
         Err(e) => {

@@ -3,7 +3,7 @@
 //! `DatasetCache`), colour it, keep it resident on the GPU across frames, render with the
 //! job's settings and encode the PNG, with the stage timings of every step.
 
-use std::path::Path;
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -57,9 +57,9 @@ impl WorkerRenderState {
         })
     }
 
-    /// Whether rendering `task` reads the dataset's file: its points are neither on the GPU
+    /// Whether rendering `task` reads the dataset's files: its points are neither on the GPU
     /// nor in the cache.
-    pub fn needs_file(&self, task: &FrameTask) -> bool {
+    pub fn needs_files(&self, task: &FrameTask) -> bool {
         !self.is_resident(task)
             && !self
                 .cache
@@ -67,12 +67,16 @@ impl WorkerRenderState {
                 .is_some_and(|c| c.contains(&task.dataset.sha256))
     }
 
-    /// Renders the frame of `task`; `file` is the dataset's file, read only when
-    /// [`needs_file`](Self::needs_file) says so. Errors are failures to report.
-    pub fn render(&mut self, task: &FrameTask, file: &Path) -> Result<RenderedFrame, FrameFailure> {
+    /// Renders the frame of `task`; `files` are the dataset's files, read only when
+    /// [`needs_files`](Self::needs_files) says so. Errors are failures to report.
+    pub fn render(
+        &mut self,
+        task: &FrameTask,
+        files: &[PathBuf],
+    ) -> Result<RenderedFrame, FrameFailure> {
         if !self.is_resident(task) {
             self.resident = None; // free the old cloud's GPU memory first
-            self.resident = Some(self.load(task, file)?);
+            self.resident = Some(self.load(task, files)?);
         }
         let Some(current) = self.resident.as_mut() else {
             return Err(FrameFailure::transient("no resident cloud"));
@@ -115,16 +119,16 @@ impl WorkerRenderState {
     }
 
     /// Loads a dataset (from the cache when it has it), colours it and uploads it.
-    fn load(&self, task: &FrameTask, file: &Path) -> Result<Resident, FrameFailure> {
+    fn load(&self, task: &FrameTask, files: &[PathBuf]) -> Result<Resident, FrameFailure> {
         let dataset = &task.dataset;
         let in_dataset =
             |failure: FrameFailure| failure.context(&format!("dataset {}", dataset.id));
         let started = Instant::now();
         let loaded = match &self.cache {
             Some(cache) => cache
-                .load(&dataset.sha256, file)
+                .load(&dataset.sha256, files)
                 .map_err(|e| FrameFailure::from(&e)),
-            None => pointfarm_render::ingest::load_point_cloud(file)
+            None => pointfarm_render::ingest::load_dataset(files)
                 .map(|cloud| (cloud, CacheOutcome::Miss))
                 .map_err(|e| FrameFailure::from(&e)),
         };

@@ -60,6 +60,12 @@ pub enum IngestError {
     #[error("{}: unsupported point format {format} (0 to 10 are supported)", path.display())]
     UnsupportedPointFormat { path: PathBuf, format: u8 },
 
+    #[error("a dataset needs at least one LAS/LAZ file")]
+    NoFiles,
+
+    #[error("{}: the folder holds no .las or .laz file", path.display())]
+    NoFilesInFolder { path: PathBuf },
+
     #[error("{}: the file contains no points", path.display())]
     NoPoints { path: PathBuf },
 

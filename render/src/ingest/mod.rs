@@ -15,14 +15,19 @@
 //!   `laz_layout.rs` (the LASzip VLR, the chunk table, layered chunks), reading through
 //!   `raw_file.rs` (bounded reads);
 //! - `contain.rs`: a decoder panic turned into an error;
-//! - `read.rs`: reading a checked file batch by batch (LAZ on all cores);
+//! - `read.rs`: reading checked files batch by batch (LAZ on all cores), a dataset's files
+//!   into one cloud;
 //! - `columns.rs`: the decoded points and the cloud made of them (origin, colours);
+//! - `files.rs`: the files of a dataset, from files and folders;
 //! - `write.rs`: writing clouds as LAS or LAZ;
 //! - `error.rs`: [`IngestError`].
 
 mod columns;
 mod contain;
+#[cfg(test)]
+mod dataset_tests;
 mod error;
+mod files;
 mod header;
 mod laz_layout;
 mod preparse;
@@ -36,8 +41,9 @@ mod write;
 
 pub use crate::cloud::MAX_COORDINATE;
 pub use error::IngestError;
+pub use files::dataset_files;
 
 /// The first four bytes of every LAS and LAZ file.
 pub const LAS_SIGNATURE: &[u8; 4] = b"LASF";
-pub use read::load_point_cloud;
+pub use read::{load_dataset, load_point_cloud};
 pub use write::{write_las, LasWriteOptions, WriteLasError};

@@ -1,10 +1,10 @@
-//! Reading a checked file: the `las` reader (LAZ decoded on all cores, old unchunked LAZ
+//! Reading checked files: the `las` reader (LAZ decoded on all cores, old unchunked LAZ
 //! sequentially) filled batch by batch into the point columns (`columns.rs`), inside the
-//! panic containment of `contain.rs`.
+//! panic containment of `contain.rs`; the files of a dataset into one cloud.
 
 use std::fs::File;
 use std::io::{BufReader, Seek, SeekFrom};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use glam::DVec3;
@@ -16,7 +16,7 @@ use super::header::HeaderFacts;
 use super::laz_layout::LazLayout;
 use super::preparse::{check_file, CheckedFile};
 use super::IngestError;
-use crate::cloud::PointCloud;
+use crate::cloud::{PointCloud, WorldBounds};
 
 /// Points decoded per batch at most. Bounds the scratch buffer, and for LAZ spans ~20 chunks
 /// of the usual 50,000 points, enough for the parallel decompressor to keep every core busy.
@@ -29,25 +29,59 @@ const BYTES_PER_BATCH: u64 = 64 << 20;
 /// Coordinates are decoded in f64 and recentred on an origin fixed before the points are read
 /// (the centre of the header bounds, or the first point if those are unusable), so the f32
 /// positions keep the file's precision. See [`ColorSource`] for how display colours are chosen.
+///
+/// [`ColorSource`]: crate::cloud::ColorSource
 pub fn load_point_cloud(path: &Path) -> Result<PointCloud, IngestError> {
+    load_dataset(&[path.to_path_buf()])
+}
+
+/// Loads the files of one dataset (tiles or scan positions of a campaign) into one cloud, as
+/// if they were one file: one origin (the centre of the union of their header bounds, or the
+/// first point), one set of bounds and one colour decision over every point. Files may differ
+/// in version, point format, scale and offset. RGB is used only when every file has it. A
+/// file that cannot be read fails the whole load with that file named.
+pub fn load_dataset(paths: &[PathBuf]) -> Result<PointCloud, IngestError> {
     let started = Instant::now();
-    let io_error = |error| IngestError::Io {
-        path: path.to_owned(),
-        error,
-    };
-
-    let mut file = File::open(path).map_err(io_error)?;
-    let file_len = file.metadata().map_err(io_error)?.len();
-    let CheckedFile { facts, laz } = check_file(path, &mut file, file_len)?;
-    file.seek(SeekFrom::Start(0)).map_err(io_error)?;
-
-    let cloud = contain_panics(path, || decode(path, file, file_len, &facts, laz))?;
+    if paths.is_empty() {
+        return Err(IngestError::NoFiles);
+    }
+    let files = paths
+        .iter()
+        .map(|path| DatasetFile::check(path))
+        .collect::<Result<Vec<_>, _>>()?;
+    let header_bounds = files
+        .iter()
+        .map(|file| file.header_bounds)
+        .filter(usable)
+        .reduce(|a, b| WorldBounds {
+            min: a.min.min(b.min),
+            max: a.max.max(b.max),
+        })
+        .unwrap_or(files[0].header_bounds);
+    let has_color = files.iter().all(|file| file.has_color);
+    let capacity = files
+        .iter()
+        .map(|file| file.facts.capacity_hint(file.file_len))
+        .fold(0usize, usize::saturating_add);
+    let mut decoded = DecodedPoints::with_capacity(capacity, has_color);
+    let mut origin = None;
+    for file in &files {
+        contain_panics(&file.path, || {
+            file.decode_into(&header_bounds, &mut origin, &mut decoded)
+        })?;
+        tracing::info!(
+            file = %file.path.display(),
+            points = file.facts.declared_points,
+            version = %format_args!("{}.{}", file.facts.version.0, file.facts.version.1),
+            point_format = file.facts.point_format,
+            compressed = file.facts.compressed,
+            "read"
+        );
+    }
+    let cloud = decoded.into_cloud(origin.unwrap_or(DVec3::ZERO));
     tracing::info!(
-        file = %path.display(),
+        files = files.len(),
         points = cloud.len(),
-        version = %format_args!("{}.{}", facts.version.0, facts.version.1),
-        point_format = facts.point_format,
-        compressed = facts.compressed,
         color_source = ?cloud.color_source,
         elapsed_ms = started.elapsed().as_secs_f64() * 1e3,
         "loaded point cloud"
@@ -55,49 +89,100 @@ pub fn load_point_cloud(path: &Path) -> Result<PointCloud, IngestError> {
     Ok(cloud)
 }
 
-/// Decodes every declared point of a file that passed the pre-parse.
-fn decode(
-    path: &Path,
-    file: File,
-    file_len: u64,
-    facts: &HeaderFacts,
-    laz: Option<LazLayout>,
-) -> Result<PointCloud, IngestError> {
-    let mut reader = open_reader(path, file, laz)?;
-    let malformed = |error| IngestError::Malformed {
-        path: path.to_owned(),
-        error,
-    };
-    let header_bounds = world_bounds(reader.header().bounds());
+/// Header bounds worth taking into the union: finite and not inverted.
+fn usable(bounds: &WorldBounds) -> bool {
+    bounds.min.is_finite() && bounds.max.is_finite() && bounds.min.cmple(bounds.max).all()
+}
 
-    let has_color = reader.header().point_format().has_color;
-    let mut decoded = DecodedPoints::with_capacity(facts.capacity_hint(file_len), has_color);
-    let mut batch = PointDataBuilder::new().for_header(reader.header()).build();
-    let batch_points = (BYTES_PER_BATCH / u64::from(facts.record_len)).clamp(1, POINTS_PER_BATCH);
-    let mut origin = None;
-    while decoded.len() < facts.declared_points {
-        let wanted = batch_points.min(facts.declared_points - decoded.len());
-        if reader.fill_points(wanted, &mut batch).map_err(malformed)? == 0 {
-            break;
+/// A file of a dataset that passed the pre-parse, with what its header says.
+struct DatasetFile {
+    path: PathBuf,
+    file_len: u64,
+    facts: HeaderFacts,
+    laz: Option<LazLayout>,
+    header_bounds: WorldBounds,
+    has_color: bool,
+}
+
+impl DatasetFile {
+    fn check(path: &Path) -> Result<Self, IngestError> {
+        let io_error = |error| IngestError::Io {
+            path: path.to_owned(),
+            error,
+        };
+        let mut file = File::open(path).map_err(io_error)?;
+        let file_len = file.metadata().map_err(io_error)?.len();
+        let CheckedFile { facts, laz } = check_file(path, &mut file, file_len)?;
+        file.seek(SeekFrom::Start(0)).map_err(io_error)?;
+        let (header_bounds, has_color) = contain_panics(path, || {
+            let reader = open_reader(path, file, laz)?;
+            let header = reader.header();
+            Ok((
+                world_bounds(header.bounds()),
+                header.point_format().has_color,
+            ))
+        })?;
+        Ok(Self {
+            path: path.to_owned(),
+            file_len,
+            facts,
+            laz,
+            header_bounds,
+            has_color,
+        })
+    }
+
+    /// Decodes every declared point into `decoded`, relative to `origin` (fixed by the first
+    /// batch of the dataset against the dataset's `header_bounds`).
+    fn decode_into(
+        &self,
+        header_bounds: &WorldBounds,
+        origin: &mut Option<DVec3>,
+        decoded: &mut DecodedPoints,
+    ) -> Result<(), IngestError> {
+        let path = self.path.as_path();
+        let facts = &self.facts;
+        let file = File::open(path).map_err(|error| IngestError::Io {
+            path: path.to_owned(),
+            error,
+        })?;
+        let mut reader = open_reader(path, file, self.laz)?;
+        let malformed = |error| IngestError::Malformed {
+            path: path.to_owned(),
+            error,
+        };
+        let mut batch = PointDataBuilder::new().for_header(reader.header()).build();
+        let batch_points =
+            (BYTES_PER_BATCH / u64::from(facts.record_len)).clamp(1, POINTS_PER_BATCH);
+        let first = decoded.len();
+        let mut read = 0;
+        while read < facts.declared_points {
+            let wanted = batch_points.min(facts.declared_points - read);
+            let filled = reader.fill_points(wanted, &mut batch).map_err(malformed)?;
+            if filled == 0 {
+                break;
+            }
+            let origin = *origin.get_or_insert_with(|| choose_origin(header_bounds, &batch));
+            decoded.append(&batch, origin);
+            read = decoded.len() - first;
         }
-        let origin = *origin.get_or_insert_with(|| choose_origin(&header_bounds, &batch));
-        decoded.append(&batch, origin);
+        // Unreachable after the checks above unless the file changes while we read it.
+        if read < facts.declared_points {
+            return Err(IngestError::Truncated {
+                path: path.to_owned(),
+                declared: facts.declared_points,
+                available: read,
+            });
+        }
+        // The files before were plausible: an extreme now is this file's.
+        if let Some(extreme) = decoded.implausible_extreme() {
+            return Err(IngestError::ImplausibleCoordinates {
+                path: path.to_owned(),
+                extreme,
+            });
+        }
+        Ok(())
     }
-    // Unreachable after the checks above unless the file changes while we read it.
-    if decoded.len() < facts.declared_points {
-        return Err(IngestError::Truncated {
-            path: path.to_owned(),
-            declared: facts.declared_points,
-            available: decoded.len(),
-        });
-    }
-    if let Some(extreme) = decoded.implausible_extreme() {
-        return Err(IngestError::ImplausibleCoordinates {
-            path: path.to_owned(),
-            extreme,
-        });
-    }
-    Ok(decoded.into_cloud(origin.unwrap_or(DVec3::ZERO)))
 }
 
 /// Opens the `las` reader: chunked LAZ with the parallel decompressor (the crate's default

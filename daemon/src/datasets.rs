@@ -1,0 +1,296 @@
+//! Datasets: files registered from the server's data roots (files or folders of them),
+//! uploaded files, and datasets composed of the files of others (a campaign uploaded file by
+//! file). More `Daemon` methods.
+//!
+//! A dataset's id comes from its content ([`content_sha256`]): the same files in the same
+//! order are always the same dataset. Uploaded files live once under the uploads folder and
+//! may belong to several datasets; deleting a dataset removes an uploaded file only when no
+//! other dataset has it.
+
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+
+use pointfarm_render::ingest::dataset_files;
+
+use crate::error::DaemonError;
+use crate::limits::{check_id, check_length, MAX_NAME_BYTES, MAX_PATH_BYTES};
+use crate::model::{content_sha256, now_unix_ms, Dataset, DatasetFile};
+use crate::service::{dataset_id, file_name, hash_file, lookup, unique_suffix, Daemon};
+use crate::store::Page;
+
+/// Most files in one dataset: a campaign of hundreds of tiles fits, a record that breaks the
+/// listing does not.
+pub const MAX_DATASET_FILES: usize = 10_000;
+
+impl Daemon {
+    /// Registers files already on the server, under its data roots, as one dataset: each
+    /// path a file or a folder of `.las`/`.laz` files (relative paths are taken from the
+    /// first data root).
+    pub fn register_dataset(&self, paths: &[String], name: &str) -> Result<Dataset, DaemonError> {
+        if paths.is_empty() {
+            return Err(DaemonError::invalid("path", "is empty"));
+        }
+        if paths.len() > MAX_DATASET_FILES {
+            return Err(DaemonError::invalid(
+                "paths",
+                format!("at most {MAX_DATASET_FILES} paths"),
+            ));
+        }
+        check_length("name", name, MAX_NAME_BYTES)?;
+        let resolved = paths
+            .iter()
+            .map(|path| self.resolve_under_data_roots(path))
+            .collect::<Result<Vec<_>, _>>()?;
+        let found = dataset_files(&resolved)
+            .map_err(|e| DaemonError::invalid("path", self.without_roots(&e.to_string())))?;
+        if found.len() > MAX_DATASET_FILES {
+            return Err(DaemonError::invalid(
+                "path",
+                format!(
+                    "{} files; a dataset has at most {MAX_DATASET_FILES}",
+                    found.len()
+                ),
+            ));
+        }
+        let files = found
+            .into_iter()
+            .map(|path| {
+                let (sha256, size_bytes) = hash_file(&path)?;
+                Ok(DatasetFile {
+                    name: file_name(&path),
+                    path,
+                    size_bytes,
+                    sha256,
+                })
+            })
+            .collect::<Result<Vec<_>, DaemonError>>()?;
+        let name = match (name, paths) {
+            ("", [one]) => file_name(Path::new(one)),
+            ("", many) => format!("{} paths", many.len()),
+            (name, _) => name.to_string(),
+        };
+        self.add_dataset(name, files)
+    }
+
+    /// `path` as a canonical path under one of the data roots.
+    fn resolve_under_data_roots(&self, path: &str) -> Result<PathBuf, DaemonError> {
+        if path.is_empty() {
+            return Err(DaemonError::invalid("path", "is empty"));
+        }
+        check_length("path", path, MAX_PATH_BYTES)?;
+        let Some(first_root) = self.config.data_roots.first() else {
+            return Err(DaemonError::FailedPrecondition(
+                "this server has no data roots configured; upload the file instead".into(),
+            ));
+        };
+        let requested = Path::new(path);
+        let requested = if requested.is_absolute() {
+            requested.to_path_buf()
+        } else {
+            first_root.join(requested)
+        };
+        let resolved = requested
+            .canonicalize()
+            .map_err(|_| DaemonError::NotFound(format!("file {path}")))?;
+        if !resolved.is_file() && !resolved.is_dir() {
+            return Err(DaemonError::invalid(
+                "path",
+                format!("{path} is not a file or a folder"),
+            ));
+        }
+        let allowed = self
+            .config
+            .data_roots
+            .iter()
+            .filter_map(|root| root.canonicalize().ok())
+            .any(|root| resolved.starts_with(root));
+        if !allowed {
+            return Err(DaemonError::invalid(
+                "path",
+                format!("{path} is outside the server's data roots"),
+            ));
+        }
+        Ok(resolved)
+    }
+
+    /// A message about the server's own files, with the data roots left out of their paths.
+    fn without_roots(&self, message: &str) -> String {
+        self.config
+            .data_roots
+            .iter()
+            .filter_map(|root| root.canonicalize().ok())
+            .fold(message.to_string(), |message, root| {
+                message.replace(&format!("{}/", root.display()), "")
+            })
+    }
+
+    /// One dataset of the files of `ids`, in that order (a campaign uploaded file by file).
+    pub fn compose_dataset(&self, ids: &[String], name: &str) -> Result<Dataset, DaemonError> {
+        if ids.is_empty() {
+            return Err(DaemonError::invalid("dataset_ids", "is empty"));
+        }
+        if ids.len() > MAX_DATASET_FILES {
+            return Err(DaemonError::invalid(
+                "dataset_ids",
+                format!("at most {MAX_DATASET_FILES} datasets"),
+            ));
+        }
+        check_length("name", name, MAX_NAME_BYTES)?;
+        let mut files = Vec::new();
+        let mut seen = HashSet::new();
+        for id in ids {
+            let dataset = lookup("dataset_ids", "dataset", id, |id| self.store.dataset(id))?;
+            files.extend(
+                dataset
+                    .files()
+                    .into_iter()
+                    .filter(|file| seen.insert(file.sha256.clone())),
+            );
+        }
+        if files.len() > MAX_DATASET_FILES {
+            return Err(DaemonError::invalid(
+                "dataset_ids",
+                format!(
+                    "{} files; a dataset has at most {MAX_DATASET_FILES}",
+                    files.len()
+                ),
+            ));
+        }
+        let name = if name.is_empty() {
+            format!("{} files", files.len())
+        } else {
+            name.to_string()
+        };
+        self.add_dataset(name, files)
+    }
+
+    /// Where an upload is written while it arrives.
+    pub fn upload_path(&self) -> PathBuf {
+        self.config
+            .uploads_dir()
+            .join(format!("upload-{}.part", unique_suffix()))
+    }
+
+    /// The lower-case extension of an upload named `name` (`las` or `laz`), checked before
+    /// any of its bytes are received.
+    fn upload_extension(name: &str) -> Result<String, DaemonError> {
+        check_length("header.name", name, MAX_NAME_BYTES)?;
+        Path::new(name)
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase)
+            .filter(|e| e == "las" || e == "laz")
+            .ok_or_else(|| DaemonError::invalid("header.name", "must end in .las or .laz"))
+    }
+
+    /// Refuses, before any of its bytes arrive, an upload named `name` of `size_bytes` that
+    /// is not LAS/LAZ by its name, exceeds the upload limit, or would take the uploaded
+    /// datasets past the quota.
+    pub fn check_upload(&self, name: &str, size_bytes: u64) -> Result<(), DaemonError> {
+        Self::upload_extension(name)?;
+        let limit = self.config.max_upload_bytes;
+        if size_bytes > limit {
+            return Err(DaemonError::ResourceExhausted(format!(
+                "upload of {size_bytes} bytes exceeds the limit of {limit} bytes"
+            )));
+        }
+        let Some(quota) = self.config.upload_quota_bytes else {
+            return Ok(());
+        };
+        let used = self.store.uploaded_bytes(&self.config.uploads_dir())?;
+        if used.saturating_add(size_bytes) > quota {
+            return Err(DaemonError::ResourceExhausted(format!(
+                "an upload of {size_bytes} bytes exceeds the quota: {used} of {quota} bytes \
+                 are taken by uploaded datasets"
+            )));
+        }
+        Ok(())
+    }
+
+    /// Takes a completely received upload at `temp` into the store.
+    pub fn finish_upload(
+        &self,
+        temp: &Path,
+        name: &str,
+        sha256: String,
+        size_bytes: u64,
+    ) -> Result<Dataset, DaemonError> {
+        let extension = Self::upload_extension(name)?;
+        let id = dataset_id(&sha256);
+        let path = self.config.uploads_dir().join(format!("{id}.{extension}"));
+        std::fs::rename(temp, &path)?;
+        let file = DatasetFile {
+            name: name.to_string(),
+            path,
+            size_bytes,
+            sha256,
+        };
+        self.add_dataset(name.to_string(), vec![file])
+    }
+
+    fn add_dataset(&self, name: String, files: Vec<DatasetFile>) -> Result<Dataset, DaemonError> {
+        let sha256 = content_sha256(&files);
+        let id = dataset_id(&sha256);
+        if let Some(existing) = self.store.dataset(&id)? {
+            return Ok(existing);
+        }
+        let Some(first) = files.first() else {
+            return Err(DaemonError::invalid("path", "names no file"));
+        };
+        let dataset = Dataset {
+            id,
+            name,
+            size_bytes: files.iter().map(|f| f.size_bytes).sum(),
+            sha256,
+            path: first.path.clone(),
+            files: if files.len() > 1 { files } else { Vec::new() },
+            created_unix_ms: now_unix_ms(),
+        };
+        self.store.put_dataset(&dataset)?;
+        tracing::info!(
+            dataset = %dataset.id,
+            files = dataset.files().len(),
+            path = %dataset.path.display(),
+            "dataset added"
+        );
+        Ok(dataset)
+    }
+
+    pub fn dataset(&self, id: &str) -> Result<Dataset, DaemonError> {
+        lookup("dataset_id", "dataset", id, |id| self.store.dataset(id))
+    }
+
+    pub fn list_datasets(&self, page_size: u32, token: &str) -> Result<Page<Dataset>, DaemonError> {
+        Ok(self.store.list_datasets(page_size as usize, token)?)
+    }
+
+    /// Deletes a dataset, and those of its uploaded files that no other dataset has. Refused
+    /// while unfinished jobs use it.
+    pub fn delete_dataset(&self, id: &str) -> Result<(), DaemonError> {
+        check_id("dataset_id", id)?;
+        let dataset = self.dataset(id)?;
+        if self.store.dataset_in_use(id)? {
+            return Err(DaemonError::FailedPrecondition(format!(
+                "dataset {id} is used by unfinished jobs"
+            )));
+        }
+        self.store.delete_dataset(id)?;
+        let still_used: HashSet<PathBuf> = self
+            .store
+            .datasets()?
+            .iter()
+            .flat_map(Dataset::files)
+            .map(|file| file.path)
+            .collect();
+        let uploads = self.config.uploads_dir();
+        for file in dataset.files() {
+            if file.path.starts_with(&uploads) && !still_used.contains(&file.path) {
+                let _ = std::fs::remove_file(&file.path);
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests;
