@@ -46,8 +46,8 @@ impl<'a> NodeSink<'a> {
             let bytes = encode_node(&self.cube, key, points, self.has_rgb);
             let before = self.bytes.fetch_add(bytes.len() as u64, Ordering::Relaxed);
             self.store.write_node(key, &bytes)?;
-            // sled holds written pages in memory until they are flushed, beyond its cache
-            // capacity: flushing as the store grows keeps the process's memory bounded.
+            // Flushed as the store grows, so a long build's nodes reach the disk as it goes
+            // rather than all in the final flush.
             if before / FLUSH_EVERY_BYTES != (before + bytes.len() as u64) / FLUSH_EVERY_BYTES {
                 self.store.flush()?;
             }
