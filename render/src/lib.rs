@@ -11,6 +11,7 @@ pub mod color;
 pub mod encode;
 pub mod gpu;
 pub mod ingest;
+pub mod lod;
 pub mod raster;
 pub mod reference;
 pub mod request;

@@ -1,0 +1,200 @@
+//! `build_lod`: the whole build, PotreeConverter-2-like and streaming:
+//!
+//! 1. counting: the source read once, every point checked and counted into a coarse grid of
+//!    the root cube, with the dataset's statistics;
+//! 2. planning: grid cells merged into chunks of at most a budget-derived number of points;
+//! 3. distribution: the source read again, every point appended to its chunk's spill file
+//!    through bounded buffers;
+//! 4. chunks: each chunk's local octree built in memory, in parallel, as many at once as the
+//!    budget holds (a chunk too large is split on disk first);
+//! 5. upper levels: the nodes above the chunks sampled from their children up to the root;
+//! 6. the hierarchy written last.
+//!
+//! Every buffer the builder holds is reserved from one [`MemoryMeter`] first; the source's
+//! own batches and sled's memory are outside it (sled 0.34 holds about as many bytes as were
+//! written, whatever its cache capacity: the store is flushed as it grows, which does not
+//! release them).
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use super::chunks::{build_chunks, chunk_bytes, distribute};
+use super::context::BuildContext;
+use super::counting::{count_points, CountGrid, CELL_BLOCK_POINTS, MAX_COUNT_LEVEL};
+use super::error::LodError;
+use super::hierarchy::LodHierarchy;
+use super::key::RootCube;
+use super::memory::MemoryMeter;
+use super::options::{LodBuildOptions, BUILD_BYTES_PER_POINT};
+use super::plan::plan_chunks;
+use super::sink::NodeSink;
+use super::source::PointSource;
+use super::spill::SpillDir;
+use super::stats::DatasetStats;
+use super::store::LodStore;
+use super::upper::build_upper_levels;
+
+/// The most bytes of records the distribution pass buffers before it appends them to files.
+const DISTRIBUTION_BUFFER_BYTES: u64 = 64 << 20;
+
+/// Seconds each stage took.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct BuildTimings {
+    pub counting: Duration,
+    pub distribution: Duration,
+    pub chunks: Duration,
+    pub upper_levels: Duration,
+    pub total: Duration,
+}
+
+#[derive(Debug, Clone)]
+pub struct LodBuildReport {
+    pub hierarchy: LodHierarchy,
+    pub chunks: usize,
+    /// Chunks too large for the budget, split on disk before they were built.
+    pub chunks_split: usize,
+    /// The counting grid's level (cells per axis = 2^level).
+    pub count_level: u32,
+    /// Bytes written to spill files.
+    pub spilled_bytes: u64,
+    /// Bytes of node records written to the store.
+    pub stored_bytes: u64,
+    /// The most bytes the builder's buffers held at once.
+    pub peak_memory_bytes: u64,
+    pub memory_budget_bytes: u64,
+    /// The build's spill folder (removed when the build returned).
+    pub spill_path: PathBuf,
+    pub timings: BuildTimings,
+}
+
+/// Builds the level-of-detail store of `source` into `store`, replacing what it held.
+pub fn build_lod(
+    source: &dyn PointSource,
+    store: &LodStore,
+    options: &LodBuildOptions,
+) -> Result<LodBuildReport, LodError> {
+    options.validate()?;
+    match options.threads {
+        Some(threads) => rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .map_err(|e| LodError::InvalidOptions(format!("threads: {e}")))?
+            .install(|| build_on_pool(source, store, options)),
+        None => build_on_pool(source, store, options),
+    }
+}
+
+/// The counting grid's level: fine enough that merged cells make chunks well below the
+/// chunk size on surfaces (which fill about 4^level cells), within a quarter of the budget.
+fn count_level(points: u64, max_chunk_points: u64, budget: u64) -> u32 {
+    let wanted = 64.0 * points as f64 / max_chunk_points as f64;
+    let mut level = 0;
+    while level < MAX_COUNT_LEVEL && 4f64.powi(level as i32) < wanted {
+        level += 1;
+    }
+    while level > 0 && CountGrid::planning_bytes(level) > budget / 4 {
+        level -= 1;
+    }
+    level
+}
+
+fn build_on_pool(
+    source: &dyn PointSource,
+    store: &LodStore,
+    options: &LodBuildOptions,
+) -> Result<LodBuildReport, LodError> {
+    let start = Instant::now();
+    let mut timings = BuildTimings::default();
+    let cube = RootCube::around(&source.bounds())?;
+    let meter = MemoryMeter::new(options.memory_budget_bytes);
+    meter.pin(DatasetStats::HEAP_BYTES, "the dataset's statistics")?;
+    let budget = meter.largest_possible();
+    let threads = rayon::current_num_threads() as u64;
+    let leaf = options.max_leaf_points as u64;
+    // Small enough that every thread can hold a chunk and has several to build, never below
+    // a few leaves, and always within the budget.
+    let max_chunk = (budget / (BUILD_BYTES_PER_POINT * threads))
+        .min(options.max_chunk_points)
+        .min(source.point_count() / (4 * threads))
+        .max(4 * leaf)
+        .min((budget - chunk_bytes(0)) / BUILD_BYTES_PER_POINT);
+    let level = count_level(source.point_count(), max_chunk, budget);
+    store.clear()?;
+    let spill = SpillDir::create(&options.spill_dir)?;
+
+    let grid_bytes = CountGrid::planning_bytes(level);
+    let grid_reservation = meter.try_reserve(grid_bytes, "the counting grid")?;
+    let (grid, stats) = count_points(source, &cube, level, &meter)?;
+    let plan = plan_chunks(grid, max_chunk);
+    timings.counting = start.elapsed();
+    tracing::info!(
+        points = source.point_count(),
+        chunks = plan.chunks.len(),
+        level,
+        "counted"
+    );
+
+    let sink = NodeSink::new(store, cube, stats.has_rgb);
+    let ctx = BuildContext {
+        cube,
+        options,
+        meter: &meter,
+        spill: &spill,
+        sink: &sink,
+        pending: Mutex::new(Default::default()),
+        chunks_split: AtomicUsize::new(0),
+    };
+    let distributing = Instant::now();
+    let index_bytes = CELL_BLOCK_POINTS as u64 * 8;
+    let buffer_bytes = (budget.saturating_sub(grid_bytes + index_bytes) / 4)
+        .clamp(1 << 16, DISTRIBUTION_BUFFER_BYTES);
+    let chunks = distribute(&ctx, source, &plan, buffer_bytes)?;
+    let chunk_count = chunks.len();
+    drop(plan);
+    drop(grid_reservation);
+    timings.distribution = distributing.elapsed();
+
+    let building = Instant::now();
+    build_chunks(&ctx, chunks)?;
+    timings.chunks = building.elapsed();
+    let upper = Instant::now();
+    build_upper_levels(&ctx)?;
+    timings.upper_levels = upper.elapsed();
+    let chunks_split = ctx.chunks_split.load(Ordering::Relaxed);
+    drop(ctx);
+
+    let stored_points = sink.points();
+    let stored_bytes = sink.bytes();
+    if stored_points != source.point_count() {
+        return Err(LodError::SourceChanged(format!(
+            "{stored_points} points were stored of {}",
+            source.point_count()
+        )));
+    }
+    let hierarchy = LodHierarchy::assemble(
+        cube,
+        source.point_count(),
+        options.max_leaf_points as u32,
+        stats,
+        sink.into_nodes(),
+    );
+    store.write_hierarchy(&hierarchy)?;
+    timings.total = start.elapsed();
+    let spilled_bytes = spill.written_bytes();
+    let spill_path = spill.path().to_path_buf();
+    drop(spill);
+    Ok(LodBuildReport {
+        hierarchy,
+        chunks: chunk_count,
+        chunks_split,
+        count_level: level,
+        spilled_bytes,
+        stored_bytes,
+        peak_memory_bytes: meter.peak(),
+        memory_budget_bytes: meter.budget(),
+        spill_path,
+        timings,
+    })
+}

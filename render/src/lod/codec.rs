@@ -1,0 +1,278 @@
+//! A node's stored bytes: quantised positions, the raw attributes, a checksum.
+//!
+//! Positions are 30 bits per axis relative to the node's cube, stored as three streams of one
+//! 4-byte word per point (after Schütz et al. 2022): the first holds the top 10 bits of x, y
+//! and z, the second the next 10, the third the last 10. A reader that needs a coarse node only
+//! at 10 or 20 bits reads 4 or 8 of the 12 bytes. Layout, little-endian:
+//!
+//! ```text
+//! "PFN1" | count u32 | flags u8 (bit 0: RGB) | 3 zero bytes
+//! stream 0, 1, 2 (count x u32 each) | RGB (count x 3 x u16, if flagged)
+//! intensity (count x u16) | classification (count x u8) | return number (count x u8)
+//! checksum u64 of the key and everything before it
+//! ```
+
+use glam::{DVec3, Vec3};
+
+use super::checksum::checksum64;
+use super::error::LodError;
+use super::key::{NodeKey, RootCube};
+use super::point::RawPoint;
+
+const MAGIC: &[u8; 4] = b"PFN1";
+const HEADER_BYTES: usize = 12;
+const FLAG_RGB: u8 = 1;
+/// Bits per axis of a stored position, relative to the node's cube.
+pub const POSITION_BITS: u32 = 30;
+/// Bits per axis in each of the three position streams.
+pub const STREAM_BITS: u32 = 10;
+/// Bytes of a stored point's position: three 4-byte streams.
+pub const POSITION_BYTES: usize = 12;
+
+/// The bytes a node of `count` points takes.
+pub fn encoded_len(count: usize, has_rgb: bool) -> usize {
+    let per_point = POSITION_BYTES + if has_rgb { 6 } else { 0 } + 2 + 1 + 1;
+    HEADER_BYTES + count * per_point + 8
+}
+
+/// The 30-bit coordinates of `p` in `key`'s cube, from the one cell formula at level + 30.
+fn quantise(cube: &RootCube, key: NodeKey, p: DVec3) -> [u32; 3] {
+    let scale = (1u64 << (u32::from(key.level) + POSITION_BITS)) as f64 / cube.side;
+    // Truncation is the floor here: only values below zero differ, and they clamp to 0.
+    let scaled = (p - cube.min) * scale;
+    let max = (1i64 << POSITION_BITS) - 1;
+    let cell = key.cell().to_array();
+    let s = scaled.to_array();
+    std::array::from_fn(|a| {
+        ((s[a] as i64) - (i64::from(cell[a]) << POSITION_BITS)).clamp(0, max) as u32
+    })
+}
+
+pub fn encode_node(cube: &RootCube, key: NodeKey, points: &[RawPoint], has_rgb: bool) -> Vec<u8> {
+    let n = points.len();
+    let mut out = Vec::with_capacity(encoded_len(n, has_rgb));
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&(n as u32).to_le_bytes());
+    out.push(if has_rgb { FLAG_RGB } else { 0 });
+    out.extend_from_slice(&[0; 3]);
+    let quantised: Vec<[u32; 3]> = points
+        .iter()
+        .map(|p| quantise(cube, key, p.position))
+        .collect();
+    let mask = (1u32 << STREAM_BITS) - 1;
+    for stream in 0..3 {
+        let shift = POSITION_BITS - STREAM_BITS * (stream + 1);
+        for q in &quantised {
+            let word = ((q[0] >> shift) & mask)
+                | (((q[1] >> shift) & mask) << STREAM_BITS)
+                | (((q[2] >> shift) & mask) << (2 * STREAM_BITS));
+            out.extend_from_slice(&word.to_le_bytes());
+        }
+    }
+    if has_rgb {
+        for p in points {
+            for c in p.rgb {
+                out.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+    }
+    for p in points {
+        out.extend_from_slice(&p.intensity.to_le_bytes());
+    }
+    out.extend(points.iter().map(|p| p.classification));
+    out.extend(points.iter().map(|p| p.return_number));
+    let sum = checksum64(&key.to_bytes(), &out);
+    out.extend_from_slice(&sum.to_le_bytes());
+    out
+}
+
+/// A node read back: its points' quantised positions and raw attributes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NodePoints {
+    pub key: NodeKey,
+    /// The corner of the node's cube, in world coordinates.
+    pub cube_min: DVec3,
+    /// World units per step of the 30-bit coordinates.
+    pub step: f64,
+    /// 30-bit coordinates per axis in the node's cube.
+    pub quantised: Vec<[u32; 3]>,
+    pub rgb: Option<Vec<[u16; 3]>>,
+    pub intensity: Vec<u16>,
+    pub classification: Vec<u8>,
+    pub return_number: Vec<u8>,
+}
+
+impl NodePoints {
+    pub fn len(&self) -> usize {
+        self.quantised.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.quantised.is_empty()
+    }
+
+    /// The centre of each point's quantisation step, in world coordinates (within half a step,
+    /// [`NodePoints::step`], of the original per axis).
+    pub fn world_positions(&self) -> Vec<DVec3> {
+        self.quantised
+            .iter()
+            .map(|q| self.cube_min + (DVec3::from(q.map(f64::from)) + 0.5) * self.step)
+            .collect()
+    }
+
+    /// Positions relative to `origin`, computed in f64 and only then rounded to f32.
+    pub fn positions_relative_to(&self, origin: DVec3) -> Vec<Vec3> {
+        let corner = self.cube_min - origin;
+        self.quantised
+            .iter()
+            .map(|q| (corner + (DVec3::from(q.map(f64::from)) + 0.5) * self.step).as_vec3())
+            .collect()
+    }
+}
+
+fn corrupt(key: NodeKey, reason: impl Into<String>) -> LodError {
+    LodError::CorruptNode {
+        key,
+        reason: reason.into(),
+    }
+}
+
+/// Decodes a node, checking its checksum, its layout and that it holds `expected` points.
+pub fn decode_node(
+    cube: &RootCube,
+    key: NodeKey,
+    expected: u32,
+    bytes: &[u8],
+) -> Result<NodePoints, LodError> {
+    if bytes.len() < HEADER_BYTES + 8 {
+        return Err(corrupt(
+            key,
+            format!("{} bytes is shorter than a node's header", bytes.len()),
+        ));
+    }
+    let (body, sum) = bytes.split_at(bytes.len() - 8);
+    let mut stored = [0; 8];
+    stored.copy_from_slice(sum);
+    let computed = checksum64(&key.to_bytes(), body);
+    if u64::from_le_bytes(stored) != computed {
+        return Err(corrupt(
+            key,
+            format!(
+                "checksum mismatch (stored {:016x}, computed {computed:016x})",
+                u64::from_le_bytes(stored)
+            ),
+        ));
+    }
+    if &body[..4] != MAGIC {
+        return Err(corrupt(key, "not a node record"));
+    }
+    let count = u32::from_le_bytes([body[4], body[5], body[6], body[7]]);
+    if count != expected {
+        return Err(corrupt(
+            key,
+            format!("holds {count} points, the hierarchy says {expected}"),
+        ));
+    }
+    let has_rgb = body[8] & FLAG_RGB != 0;
+    let n = count as usize;
+    if bytes.len() != encoded_len(n, has_rgb) {
+        return Err(corrupt(
+            key,
+            format!(
+                "{} bytes, {} expected for {n} points",
+                bytes.len(),
+                encoded_len(n, has_rgb)
+            ),
+        ));
+    }
+    let mut at = HEADER_BYTES;
+    let mut take = |len: usize| {
+        let slice = &body[at..at + len];
+        at += len;
+        slice
+    };
+    let words = |slice: &[u8]| -> Vec<u32> {
+        slice
+            .chunks_exact(4)
+            .map(|w| u32::from_le_bytes([w[0], w[1], w[2], w[3]]))
+            .collect()
+    };
+    let streams = [words(take(4 * n)), words(take(4 * n)), words(take(4 * n))];
+    let mask = (1u32 << STREAM_BITS) - 1;
+    let quantised = (0..n)
+        .map(|i| {
+            std::array::from_fn(|axis| {
+                let part = |s: usize| (streams[s][i] >> (axis as u32 * STREAM_BITS)) & mask;
+                (part(0) << (2 * STREAM_BITS)) | (part(1) << STREAM_BITS) | part(2)
+            })
+        })
+        .collect();
+    let halves = |slice: &[u8]| -> Vec<u16> {
+        slice
+            .chunks_exact(2)
+            .map(|h| u16::from_le_bytes([h[0], h[1]]))
+            .collect()
+    };
+    let rgb = has_rgb.then(|| {
+        halves(take(6 * n))
+            .chunks_exact(3)
+            .map(|c| [c[0], c[1], c[2]])
+            .collect()
+    });
+    let intensity = halves(take(2 * n));
+    let classification = take(n).to_vec();
+    let return_number = take(n).to_vec();
+    Ok(NodePoints {
+        key,
+        cube_min: cube.node_min(key),
+        step: cube.side_at(key.level) / f64::from(1u32 << POSITION_BITS),
+        quantised,
+        rgb,
+        intensity,
+        classification,
+        return_number,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cube() -> RootCube {
+        RootCube {
+            min: DVec3::new(515_000.0, 4_918_000.0, 100.0),
+            side: 1000.0,
+        }
+    }
+
+    #[test]
+    fn nodes_round_trip_within_half_a_step() {
+        let cube = cube();
+        let key = NodeKey::new(3, glam::UVec3::new(2, 5, 0));
+        let min = cube.node_min(key);
+        let side = cube.side_at(3);
+        let points: Vec<RawPoint> = (0..500)
+            .map(|i| RawPoint {
+                position: min
+                    + DVec3::new(i as f64 / 500.0, (i * 7 % 500) as f64 / 500.0, 1.0) * side,
+                rgb: [i as u16, 2, 3],
+                intensity: i as u16 * 3,
+                classification: (i % 7) as u8,
+                return_number: (i % 3) as u8,
+            })
+            .collect();
+        let bytes = encode_node(&cube, key, &points, true);
+        assert_eq!(bytes.len(), encoded_len(points.len(), true));
+        let node = decode_node(&cube, key, 500, &bytes).expect("decodes");
+        for (p, q) in points.iter().zip(node.world_positions()) {
+            assert!((p.position - q).abs().max_element() <= node.step * 0.5 + 1e-9);
+        }
+        assert_eq!(node.intensity[7], 21);
+        assert_eq!(node.rgb.as_ref().map(|c| c[9]), Some([9, 2, 3]));
+        assert!(decode_node(&cube, key, 499, &bytes).is_err());
+        assert!(
+            decode_node(&cube, key.child(0), 500, &bytes).is_err(),
+            "another key's node"
+        );
+    }
+}

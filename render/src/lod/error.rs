@@ -1,0 +1,71 @@
+//! `LodError`: everything that can go wrong while building or reading a level-of-detail store.
+
+use std::path::PathBuf;
+
+use super::key::NodeKey;
+
+#[derive(Debug, thiserror::Error)]
+pub enum LodError {
+    #[error("level-of-detail options: {0}")]
+    InvalidOptions(String),
+    #[error("point source: {0}")]
+    Source(String),
+    #[error("point source: batch has {positions} positions but {field} has {len} values")]
+    BatchLengths {
+        positions: usize,
+        field: &'static str,
+        len: usize,
+    },
+    #[error("point source: point {index} is not finite ({position:?})")]
+    NonFinitePoint { index: u64, position: [f64; 3] },
+    #[error("point source: point {index} at {position:?} lies outside the declared bounds {min:?}..{max:?}")]
+    PointOutsideBounds {
+        index: u64,
+        position: [f64; 3],
+        min: [f64; 3],
+        max: [f64; 3],
+    },
+    #[error("point source: bounds {min:?}..{max:?} are not finite, inverted or beyond the coordinate limit")]
+    InvalidBounds { min: [f64; 3], max: [f64; 3] },
+    #[error("point source: it declared {declared} points but gave {read} on pass {pass}")]
+    CountMismatch {
+        declared: u64,
+        read: u64,
+        pass: &'static str,
+    },
+    #[error("point source: the second pass differs from the first ({0}); the points must be read in the same order each time")]
+    SourceChanged(String),
+    #[error("the memory budget of {budget} bytes cannot hold {needed} bytes for {what}")]
+    BudgetTooSmall {
+        budget: u64,
+        needed: u64,
+        what: &'static str,
+    },
+    #[error("{count} points lie within node {key} at the deepest level; they cannot be split to fit the memory budget")]
+    TooDense { key: NodeKey, count: u64 },
+    #[error("spill file {}: {error}", path.display())]
+    Spill {
+        path: PathBuf,
+        #[source]
+        error: std::io::Error,
+    },
+    #[error("level-of-detail store: {0}")]
+    Db(#[from] sled::Error),
+    #[error("level-of-detail store holds no hierarchy (never built, or the build did not finish)")]
+    MissingHierarchy,
+    #[error("level-of-detail hierarchy is damaged: {0}")]
+    CorruptHierarchy(String),
+    #[error("level-of-detail node {key} is not in the hierarchy")]
+    UnknownNode { key: NodeKey },
+    #[error("level-of-detail node {key} is damaged: {reason}")]
+    CorruptNode { key: NodeKey, reason: String },
+}
+
+impl LodError {
+    pub(crate) fn spill(path: impl Into<PathBuf>, error: std::io::Error) -> Self {
+        Self::Spill {
+            path: path.into(),
+            error,
+        }
+    }
+}

@@ -1,0 +1,283 @@
+//! `LodHierarchy`: the small, always-resident description of a built dataset (its cube, every
+//! node's key, point count and sampling grid, and the dataset's statistics), and its record.
+//!
+//! Layout, little-endian: "PFH1" | cube min 3 x f64 | side f64 | points u64 |
+//! max leaf points u32 | flags u8 (bit 0: RGB) | max RGB 3 x u16 | z range 2 x f64 |
+//! intensity bins used u32, then (value u16, count u64) each | classes used u16, then
+//! (class u8, count u64) each | nodes u32, then per node: level u8, x, y, z u32, points u32,
+//! sampling grid u16, child mask u8 | checksum u64.
+
+use std::collections::HashMap;
+
+use glam::DVec3;
+
+use super::checksum::checksum64;
+use super::error::LodError;
+use super::key::{NodeKey, RootCube};
+use super::stats::{DatasetStats, INTENSITY_BINS};
+
+const MAGIC: &[u8; 4] = b"PFH1";
+const CHECKSUM_SEED: &[u8] = b"hierarchy";
+
+/// One node of the hierarchy.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct NodeInfo {
+    pub key: NodeKey,
+    pub point_count: u32,
+    /// Cells per axis of the grid the node was sampled on; 0 for a leaf.
+    pub sample_grid: u32,
+    /// Bit `i` set when child `i` exists.
+    pub child_mask: u8,
+}
+
+impl NodeInfo {
+    pub fn is_leaf(&self) -> bool {
+        self.child_mask == 0
+    }
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct LodHierarchy {
+    pub cube: RootCube,
+    pub point_count: u64,
+    pub max_leaf_points: u32,
+    pub stats: DatasetStats,
+    /// Sorted by key: level, then x, y, z.
+    nodes: Vec<NodeInfo>,
+    index: HashMap<NodeKey, usize>,
+}
+
+impl LodHierarchy {
+    /// Builds the hierarchy from every emitted node: empty nodes without children dropped,
+    /// child masks set, sorted by key.
+    pub(crate) fn assemble(
+        cube: RootCube,
+        point_count: u64,
+        max_leaf_points: u32,
+        stats: DatasetStats,
+        mut emitted: Vec<NodeInfo>,
+    ) -> Self {
+        // Deepest first, so a node's children are settled before it is.
+        emitted.sort_by_key(|n| std::cmp::Reverse(n.key));
+        let mut masks: HashMap<NodeKey, u8> = HashMap::new();
+        let mut nodes = Vec::with_capacity(emitted.len());
+        for mut node in emitted {
+            node.child_mask = masks.get(&node.key).copied().unwrap_or(0);
+            if node.point_count == 0 && node.child_mask == 0 {
+                continue;
+            }
+            if let Some(parent) = node.key.parent() {
+                *masks.entry(parent).or_insert(0) |= 1 << node.key.child_index();
+            }
+            nodes.push(node);
+        }
+        nodes.reverse();
+        Self::from_nodes(cube, point_count, max_leaf_points, stats, nodes)
+    }
+
+    fn from_nodes(
+        cube: RootCube,
+        point_count: u64,
+        max_leaf_points: u32,
+        stats: DatasetStats,
+        nodes: Vec<NodeInfo>,
+    ) -> Self {
+        let index = nodes.iter().enumerate().map(|(i, n)| (n.key, i)).collect();
+        Self {
+            cube,
+            point_count,
+            max_leaf_points,
+            stats,
+            nodes,
+            index,
+        }
+    }
+
+    pub fn nodes(&self) -> &[NodeInfo] {
+        &self.nodes
+    }
+
+    pub fn node(&self, key: NodeKey) -> Option<&NodeInfo> {
+        self.index.get(&key).map(|&i| &self.nodes[i])
+    }
+
+    pub fn root(&self) -> Option<&NodeInfo> {
+        self.node(NodeKey::ROOT)
+    }
+
+    pub fn children(&self, key: NodeKey) -> impl Iterator<Item = &NodeInfo> + '_ {
+        let mask = self.node(key).map_or(0, |n| n.child_mask);
+        (0..8)
+            .filter(move |i| mask & (1 << i) != 0)
+            .filter_map(move |i| self.node(key.child(i)))
+    }
+
+    /// The corner and side of `key`'s cube in world coordinates.
+    pub fn node_cube(&self, key: NodeKey) -> (DVec3, f64) {
+        (self.cube.node_min(key), self.cube.side_at(key.level))
+    }
+
+    /// The spacing of an inner node's points (its side over its sampling grid); `None` for a
+    /// leaf, whose points are simply all that is left.
+    pub fn spacing(&self, key: NodeKey) -> Option<f64> {
+        let node = self.node(key)?;
+        (node.sample_grid > 0).then(|| self.cube.side_at(key.level) / f64::from(node.sample_grid))
+    }
+
+    pub fn encode(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(128 + self.nodes.len() * 20);
+        out.extend_from_slice(MAGIC);
+        for c in self.cube.min.to_array() {
+            out.extend_from_slice(&c.to_le_bytes());
+        }
+        out.extend_from_slice(&self.cube.side.to_le_bytes());
+        out.extend_from_slice(&self.point_count.to_le_bytes());
+        out.extend_from_slice(&self.max_leaf_points.to_le_bytes());
+        out.push(u8::from(self.stats.has_rgb));
+        for c in self.stats.max_rgb {
+            out.extend_from_slice(&c.to_le_bytes());
+        }
+        for z in self.stats.z_range {
+            out.extend_from_slice(&z.to_le_bytes());
+        }
+        let used: Vec<(usize, u64)> = nonzero(&self.stats.intensity_histogram);
+        out.extend_from_slice(&(used.len() as u32).to_le_bytes());
+        for (value, count) in used {
+            out.extend_from_slice(&(value as u16).to_le_bytes());
+            out.extend_from_slice(&count.to_le_bytes());
+        }
+        let classes = nonzero(&self.stats.class_counts);
+        out.extend_from_slice(&(classes.len() as u16).to_le_bytes());
+        for (class, count) in classes {
+            out.push(class as u8);
+            out.extend_from_slice(&count.to_le_bytes());
+        }
+        out.extend_from_slice(&(self.nodes.len() as u32).to_le_bytes());
+        for n in &self.nodes {
+            out.extend_from_slice(&n.key.level.to_le_bytes());
+            for c in [n.key.x, n.key.y, n.key.z, n.point_count] {
+                out.extend_from_slice(&c.to_le_bytes());
+            }
+            out.extend_from_slice(&(n.sample_grid as u16).to_le_bytes());
+            out.push(n.child_mask);
+        }
+        let sum = checksum64(CHECKSUM_SEED, &out);
+        out.extend_from_slice(&sum.to_le_bytes());
+        out
+    }
+
+    pub fn decode(bytes: &[u8]) -> Result<Self, LodError> {
+        let corrupt = |reason: &str| LodError::CorruptHierarchy(reason.to_string());
+        if bytes.len() < MAGIC.len() + 8 {
+            return Err(corrupt("shorter than its header"));
+        }
+        let (body, sum) = bytes.split_at(bytes.len() - 8);
+        let mut stored = [0; 8];
+        stored.copy_from_slice(sum);
+        if checksum64(CHECKSUM_SEED, body) != u64::from_le_bytes(stored) {
+            return Err(corrupt("checksum mismatch"));
+        }
+        let mut r = Reader { bytes: body, at: 0 };
+        if r.take(4)? != MAGIC {
+            return Err(corrupt("not a hierarchy record"));
+        }
+        let min = DVec3::new(r.f64()?, r.f64()?, r.f64()?);
+        let side = r.f64()?;
+        let cube = RootCube { min, side };
+        let point_count = r.u64()?;
+        let max_leaf_points = r.u32()?;
+        let mut stats = DatasetStats::new(r.u8()? & 1 != 0);
+        stats.max_rgb = [r.u16()?, r.u16()?, r.u16()?];
+        stats.z_range = [r.f64()?, r.f64()?];
+        for _ in 0..r.u32()? {
+            let value = usize::from(r.u16()?);
+            stats.intensity_histogram[value] = r.u64()?;
+        }
+        for _ in 0..r.u16()? {
+            let class = usize::from(r.u8()?);
+            stats.class_counts[class] = r.u64()?;
+        }
+        let count = r.u32()? as usize;
+        if count > body.len() / 20 {
+            return Err(corrupt("more nodes than bytes"));
+        }
+        let mut nodes = Vec::with_capacity(count);
+        for _ in 0..count {
+            let level = r.u8()?;
+            let key = NodeKey {
+                level,
+                x: r.u32()?,
+                y: r.u32()?,
+                z: r.u32()?,
+            };
+            nodes.push(NodeInfo {
+                key,
+                point_count: r.u32()?,
+                sample_grid: u32::from(r.u16()?),
+                child_mask: r.u8()?,
+            });
+        }
+        if r.at != body.len() {
+            return Err(corrupt("trailing bytes"));
+        }
+        debug_assert_eq!(stats.intensity_histogram.len(), INTENSITY_BINS);
+        Ok(Self::from_nodes(
+            cube,
+            point_count,
+            max_leaf_points,
+            stats,
+            nodes,
+        ))
+    }
+}
+
+fn nonzero(counts: &[u64]) -> Vec<(usize, u64)> {
+    counts
+        .iter()
+        .enumerate()
+        .filter(|(_, &c)| c > 0)
+        .map(|(i, &c)| (i, c))
+        .collect()
+}
+
+/// Reads little-endian fields, failing on a short record instead of panicking.
+struct Reader<'a> {
+    bytes: &'a [u8],
+    at: usize,
+}
+
+impl<'a> Reader<'a> {
+    fn take(&mut self, n: usize) -> Result<&'a [u8], LodError> {
+        let end = self.at.checked_add(n).filter(|&e| e <= self.bytes.len());
+        let end = end.ok_or_else(|| LodError::CorruptHierarchy("truncated".into()))?;
+        let slice = &self.bytes[self.at..end];
+        self.at = end;
+        Ok(slice)
+    }
+
+    fn array<const N: usize>(&mut self) -> Result<[u8; N], LodError> {
+        let mut out = [0; N];
+        out.copy_from_slice(self.take(N)?);
+        Ok(out)
+    }
+
+    fn u8(&mut self) -> Result<u8, LodError> {
+        Ok(self.array::<1>()?[0])
+    }
+
+    fn u16(&mut self) -> Result<u16, LodError> {
+        self.array().map(u16::from_le_bytes)
+    }
+
+    fn u32(&mut self) -> Result<u32, LodError> {
+        self.array().map(u32::from_le_bytes)
+    }
+
+    fn u64(&mut self) -> Result<u64, LodError> {
+        self.array().map(u64::from_le_bytes)
+    }
+
+    fn f64(&mut self) -> Result<f64, LodError> {
+        self.array().map(f64::from_le_bytes)
+    }
+}

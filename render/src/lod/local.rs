@@ -1,0 +1,76 @@
+//! A chunk's local octree, built in memory: a node above the leaf bound splits its points into
+//! its children, the children are built, then the node samples its own points from theirs
+//! (bottom-up, as PotreeConverter 2 does) and every child is finished. The chunk's root is
+//! returned unfinished: the levels above the chunks still sample from it.
+
+use super::error::LodError;
+use super::key::{NodeKey, RootCube, MAX_LEVEL};
+use super::point::RawPoint;
+use super::sampling::sample;
+use super::sink::NodeSink;
+
+/// A built subtree's root: its own points and its sampling grid (0 for a leaf).
+pub struct SubtreeRoot {
+    pub points: Vec<RawPoint>,
+    pub sample_grid: u32,
+}
+
+pub struct LocalBuilder<'a> {
+    pub cube: RootCube,
+    pub max_leaf_points: usize,
+    pub sample_grid: u32,
+    pub sink: &'a NodeSink<'a>,
+}
+
+impl LocalBuilder<'_> {
+    pub fn build(&self, key: NodeKey, points: Vec<RawPoint>) -> Result<SubtreeRoot, LodError> {
+        if points.len() <= self.max_leaf_points || key.level >= MAX_LEVEL {
+            return Ok(SubtreeRoot {
+                points,
+                sample_grid: 0,
+            });
+        }
+        let children = split(&self.cube, key, points);
+        let mut own: [Vec<RawPoint>; 8] = Default::default();
+        let mut grids = [0u32; 8];
+        let mut present = [false; 8];
+        for (i, child_points) in children.into_iter().enumerate() {
+            if child_points.is_empty() {
+                continue;
+            }
+            let child = self.build(key.child(i), child_points)?;
+            own[i] = child.points;
+            grids[i] = child.sample_grid;
+            present[i] = true;
+        }
+        let sampled = sample(&self.cube, key, own, self.sample_grid, self.max_leaf_points);
+        for (i, kept) in sampled.kept.iter().enumerate() {
+            if present[i] {
+                self.sink.emit(key.child(i), kept, grids[i])?;
+            }
+        }
+        Ok(SubtreeRoot {
+            points: sampled.parent,
+            sample_grid: sampled.grid,
+        })
+    }
+}
+
+/// `points` of `key` by child, each child's vector allocated at its exact size.
+pub(crate) fn split(cube: &RootCube, key: NodeKey, points: Vec<RawPoint>) -> [Vec<RawPoint>; 8] {
+    let child_level = u32::from(key.level) + 1;
+    let base = key.cell() * 2;
+    let child_of = |p: &RawPoint| {
+        let c = cube.cell_at(p.position, child_level) - base;
+        (c.x | (c.y << 1) | (c.z << 2)) as usize
+    };
+    let mut counts = [0usize; 8];
+    for p in &points {
+        counts[child_of(p)] += 1;
+    }
+    let mut children: [Vec<RawPoint>; 8] = std::array::from_fn(|i| Vec::with_capacity(counts[i]));
+    for p in points {
+        children[child_of(&p)].push(p);
+    }
+    children
+}

@@ -1,0 +1,153 @@
+//! `MemoryMeter`: the builder's buffers reserve their bytes here before they allocate, so the
+//! budget holds whatever the input size, and the peak can be reported and tested.
+
+use std::sync::{Condvar, Mutex, MutexGuard};
+
+use super::error::LodError;
+
+#[derive(Debug)]
+pub struct MemoryMeter {
+    budget: u64,
+    state: Mutex<MeterState>,
+    freed: Condvar,
+}
+
+#[derive(Debug, Default)]
+struct MeterState {
+    used: u64,
+    peak: u64,
+    /// Bytes held for the whole build; no single reservation can ever use them.
+    pinned: u64,
+}
+
+/// Bytes held under the budget until dropped.
+#[derive(Debug)]
+pub struct Reservation<'a> {
+    meter: &'a MemoryMeter,
+    bytes: u64,
+}
+
+impl MemoryMeter {
+    pub fn new(budget: u64) -> Self {
+        Self {
+            budget,
+            state: Mutex::new(MeterState::default()),
+            freed: Condvar::new(),
+        }
+    }
+
+    pub fn budget(&self) -> u64 {
+        self.budget
+    }
+
+    /// The most bytes reserved at once so far.
+    pub fn peak(&self) -> u64 {
+        self.lock().peak
+    }
+
+    fn lock(&self) -> MutexGuard<'_, MeterState> {
+        // A panic elsewhere cannot leave the counters half-updated: each update is one statement.
+        self.state
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
+    }
+
+    /// The most one reservation can ever get: the budget less what is pinned.
+    pub fn largest_possible(&self) -> u64 {
+        self.budget - self.lock().pinned
+    }
+
+    fn check(&self, bytes: u64, what: &'static str) -> Result<(), LodError> {
+        let largest = self.largest_possible();
+        if bytes > largest {
+            return Err(LodError::BudgetTooSmall {
+                budget: largest,
+                needed: bytes,
+                what,
+            });
+        }
+        Ok(())
+    }
+
+    /// Reserves `bytes` for as long as the meter lives (statistics kept for the whole build).
+    pub fn pin(&self, bytes: u64, what: &'static str) -> Result<(), LodError> {
+        let mut state = self.lock();
+        if state.used + bytes > self.budget {
+            return Err(LodError::BudgetTooSmall {
+                budget: self.budget - state.used,
+                needed: bytes,
+                what,
+            });
+        }
+        state.used += bytes;
+        state.pinned += bytes;
+        state.peak = state.peak.max(state.used);
+        Ok(())
+    }
+
+    /// Reserves `bytes` now, or fails if they do not fit beside what is already held.
+    pub fn try_reserve(&self, bytes: u64, what: &'static str) -> Result<Reservation<'_>, LodError> {
+        self.check(bytes, what)?;
+        let mut state = self.lock();
+        if state.used + bytes > self.budget {
+            return Err(LodError::BudgetTooSmall {
+                budget: self.budget - state.used,
+                needed: bytes,
+                what,
+            });
+        }
+        state.used += bytes;
+        state.peak = state.peak.max(state.used);
+        Ok(Reservation { meter: self, bytes })
+    }
+
+    /// Reserves `bytes`, waiting for other work to release enough; fails only if they exceed
+    /// the whole budget. Waiting cannot deadlock: every holder releases without reserving more.
+    pub fn reserve(&self, bytes: u64, what: &'static str) -> Result<Reservation<'_>, LodError> {
+        self.check(bytes, what)?;
+        let mut state = self.lock();
+        while state.used + bytes > self.budget {
+            state = self
+                .freed
+                .wait(state)
+                .unwrap_or_else(|poisoned| poisoned.into_inner());
+        }
+        state.used += bytes;
+        state.peak = state.peak.max(state.used);
+        Ok(Reservation { meter: self, bytes })
+    }
+}
+
+impl Reservation<'_> {
+    pub fn bytes(&self) -> u64 {
+        self.bytes
+    }
+}
+
+impl Drop for Reservation<'_> {
+    fn drop(&mut self) {
+        let mut state = self.meter.lock();
+        state.used -= self.bytes;
+        drop(state);
+        self.meter.freed.notify_all();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reservations_count_towards_the_peak_and_are_released() {
+        let meter = MemoryMeter::new(100);
+        let a = meter.try_reserve(60, "a").expect("fits");
+        assert!(meter.try_reserve(50, "b").is_err());
+        drop(a);
+        let _b = meter.try_reserve(50, "b").expect("fits after release");
+        assert_eq!(meter.peak(), 60);
+        assert!(matches!(
+            meter.reserve(101, "c"),
+            Err(LodError::BudgetTooSmall { needed: 101, .. })
+        ));
+    }
+}

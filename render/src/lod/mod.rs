@@ -1,0 +1,50 @@
+//! The level-of-detail store: an octree of a dataset's original points, built by streaming
+//! from any [`PointSource`] within a memory budget, stored node by node in sled.
+//!
+//! How it works: every point lies in exactly one node. A leaf holds at most
+//! [`LodBuildOptions::max_leaf_points`] points; an inner node holds a spatially even subset,
+//! one point per cell of a grid over its cube (the point closest to the cell's centre), chosen
+//! from its children's points, which keep the rest ([`sampling`]). Keys are COPC's voxel keys
+//! (level, x, y, z) in a cube around the bounds ([`key`]). The build follows PotreeConverter 2
+//! ([`build`]): a counting pass, chunks of bounded size spilled to disk, each chunk's octree
+//! built in memory in parallel, then the levels above. Nodes are stored quantised to 30 bits
+//! per axis in their cube, 12 bytes a position in three coarse-to-fine streams, with the raw
+//! attributes and a checksum ([`codec`]); the hierarchy, small and always resident, is one
+//! record written last ([`hierarchy`], [`store`]).
+
+pub mod build;
+mod checksum;
+mod chunks;
+pub mod codec;
+mod context;
+mod counting;
+pub mod error;
+pub mod generated;
+pub mod hierarchy;
+pub mod key;
+mod local;
+pub mod memory;
+pub mod options;
+mod plan;
+mod point;
+pub mod sampling;
+mod sink;
+pub mod source;
+mod spill;
+pub mod stats;
+pub mod store;
+mod upper;
+
+#[cfg(test)]
+mod tests;
+
+pub use build::{build_lod, BuildTimings, LodBuildReport};
+pub use codec::NodePoints;
+pub use error::LodError;
+pub use generated::{GeneratedShape, GeneratedSource};
+pub use hierarchy::{LodHierarchy, NodeInfo};
+pub use key::{NodeKey, RootCube, MAX_LEVEL};
+pub use options::LodBuildOptions;
+pub use source::{CloudSource, PointBatch, PointSource};
+pub use stats::DatasetStats;
+pub use store::LodStore;

@@ -1,0 +1,219 @@
+//! The sampling rule of inner nodes: a node takes, from its children's own points, the one
+//! point closest to the centre of each cell of a grid over its cube (Scheiblauer's choice of
+//! representative); the children keep the rest. The grid starts at the configured cells per
+//! axis and is halved while the sample would hold more than the node bound, so inner nodes are
+//! even and bounded on surfaces and volumes alike.
+//!
+//! Ties in distance are broken by the points' content, so the choice never depends on the
+//! order points arrived in.
+
+use glam::DVec3;
+
+use super::key::{NodeKey, RootCube};
+use super::point::RawPoint;
+
+/// A node's sample and what its children keep.
+pub struct Sampled {
+    pub parent: Vec<RawPoint>,
+    pub kept: [Vec<RawPoint>; 8],
+    /// Cells per axis of the grid that was used.
+    pub grid: u32,
+}
+
+/// The sampling cell of `p` in `key`'s grid of `2^grid_bits` cells per axis.
+pub fn sampling_cell(cube: &RootCube, key: NodeKey, grid_bits: u32, p: DVec3) -> glam::UVec3 {
+    cube.cell_at(p, u32::from(key.level) + grid_bits) - (key.cell() << grid_bits)
+}
+
+/// Bytes per candidate point a dense cell table may take (it replaces the sort when the
+/// grid's cells are few for the points): within the builder's per-point reservation.
+const DENSE_BYTES_PER_POINT: usize = 32;
+
+/// Samples `key` from its children's own points with at most `max_points` points.
+pub fn sample(
+    cube: &RootCube,
+    key: NodeKey,
+    children: [Vec<RawPoint>; 8],
+    grid: u32,
+    max_points: usize,
+) -> Sampled {
+    let mut bits = grid.trailing_zeros();
+    let mut keyed: Vec<u64> = Vec::new();
+    let mut dense: Vec<u32> = Vec::new();
+    let mut chosen: [Vec<bool>; 8] = std::array::from_fn(|c| vec![false; children[c].len()]);
+    loop {
+        let cell_side = cube.side_at(key.level) / f64::from(1u32 << bits);
+        let corner = cube.node_min(key);
+        let distance = |p: &RawPoint, cell: glam::UVec3| {
+            p.position
+                .distance_squared(corner + (cell.as_dvec3() + 0.5) * cell_side)
+        };
+        // Whether `p` (at squared distance `d`) beats the point now holding its cell.
+        let beats = |p: &RawPoint, d: f64, held: &RawPoint, held_d: f64| {
+            d < held_d || (d == held_d && p.content_cmp(held).is_lt())
+        };
+        let mut taken = 0;
+        if bits == 0 {
+            // One cell holds the whole node: the point nearest its centre.
+            let mut best: Option<(usize, usize, f64)> = None;
+            for (c, points) in children.iter().enumerate() {
+                for (i, p) in points.iter().enumerate() {
+                    let d = distance(p, glam::UVec3::ZERO);
+                    let better = best.is_none_or(|(bc, bi, bd)| beats(p, d, &children[bc][bi], bd));
+                    if better {
+                        best = Some((c, i, d));
+                    }
+                }
+            }
+            if let Some((c, i, _)) = best {
+                chosen[c][i] = true;
+                taken = 1;
+            }
+        } else {
+            // With two or more cells per axis no cell spans two children, so each child is
+            // sampled on its own, on the cells of its octant.
+            let local_bits = bits - 1;
+            let cells = 1usize << (3 * local_bits);
+            for (c, points) in children.iter().enumerate() {
+                let offset = NodeKey::ROOT.child(c).cell() << local_bits;
+                let local = |p: &RawPoint| {
+                    let cell = sampling_cell(cube, key, bits, p.position);
+                    let l = cell - offset;
+                    (
+                        cell,
+                        (l.x | (l.y << local_bits) | (l.z << (2 * local_bits))) as usize,
+                    )
+                };
+                if cells <= points.len() * DENSE_BYTES_PER_POINT / 4 {
+                    dense.clear();
+                    dense.resize(cells, u32::MAX);
+                    for (i, p) in points.iter().enumerate() {
+                        let (cell, index) = local(p);
+                        let held = dense[index];
+                        let better = held == u32::MAX || {
+                            let h = &points[held as usize];
+                            beats(p, distance(p, cell), h, distance(h, cell))
+                        };
+                        if better {
+                            dense[index] = i as u32;
+                        }
+                    }
+                    for &i in dense.iter().filter(|&&i| i != u32::MAX) {
+                        chosen[c][i as usize] = true;
+                        taken += 1;
+                    }
+                } else {
+                    // Few points for many cells: sorted by cell (cache-friendly, unlike a map),
+                    // then the best of each run of one cell.
+                    keyed.clear();
+                    keyed.extend(
+                        points
+                            .iter()
+                            .enumerate()
+                            .map(|(i, p)| ((local(p).1 as u64) << 32) | i as u64),
+                    );
+                    keyed.sort_unstable();
+                    for run in keyed.chunk_by(|a, b| a >> 32 == b >> 32) {
+                        let first = &points[run[0] as u32 as usize];
+                        let (cell, _) = local(first);
+                        let mut best = run[0] as u32 as usize;
+                        let mut best_d = distance(first, cell);
+                        for &k in &run[1..] {
+                            let i = k as u32 as usize;
+                            let d = distance(&points[i], cell);
+                            if beats(&points[i], d, &points[best], best_d) {
+                                best = i;
+                                best_d = d;
+                            }
+                        }
+                        chosen[c][best] = true;
+                        taken += 1;
+                    }
+                }
+            }
+        }
+        if taken <= max_points || bits == 0 {
+            break;
+        }
+        chosen.iter_mut().for_each(|c| c.fill(false));
+        bits -= 1;
+    }
+    drop((keyed, dense));
+    let mut parent = Vec::new();
+    let kept = std::array::from_fn(|c| {
+        let mut kept = Vec::with_capacity(children[c].len());
+        for (p, &take) in children[c].iter().zip(&chosen[c]) {
+            if take {
+                parent.push(*p);
+            } else {
+                kept.push(*p);
+            }
+        }
+        kept
+    });
+    Sampled {
+        parent,
+        kept,
+        grid: 1 << bits,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::HashMap;
+
+    use super::*;
+
+    /// Brute force: in every cell the chosen point is the one nearest the cell's centre, and
+    /// every occupied cell has one, on both the dense table (grid 8) and the sorted runs (grid 128).
+    #[test]
+    fn each_cell_gives_its_point_nearest_the_centre() {
+        let cube = RootCube {
+            min: DVec3::new(100.0, 200.0, 300.0),
+            side: 64.0,
+        };
+        let key = NodeKey::new(1, glam::UVec3::new(1, 0, 1));
+        let (min, side) = (cube.node_min(key), cube.side_at(1));
+        let mut state = 12345u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let points: Vec<RawPoint> = (0..3000)
+            .map(|i| RawPoint {
+                position: min + DVec3::new(next(), next(), next()) * side,
+                rgb: [0; 3],
+                intensity: i,
+                classification: 0,
+                return_number: 0,
+            })
+            .collect();
+        for grid in [8u32, 128] {
+            let bits = grid.trailing_zeros();
+            let children = super::super::local::split(&cube, key, points.clone());
+            let sampled = sample(&cube, key, children, grid, usize::MAX);
+            assert_eq!(sampled.grid, grid);
+            let kept: usize = sampled.kept.iter().map(Vec::len).sum();
+            assert_eq!(sampled.parent.len() + kept, points.len());
+            let cell_side = side / f64::from(grid);
+            let mut nearest: HashMap<glam::UVec3, (f64, u16)> = HashMap::new();
+            for p in &points {
+                let cell = sampling_cell(&cube, key, bits, p.position);
+                let d = p
+                    .position
+                    .distance_squared(min + (cell.as_dvec3() + 0.5) * cell_side);
+                let e = nearest.entry(cell).or_insert((d, p.intensity));
+                if d < e.0 {
+                    *e = (d, p.intensity);
+                }
+            }
+            let mut chosen: Vec<u16> = sampled.parent.iter().map(|p| p.intensity).collect();
+            let mut expected: Vec<u16> = nearest.values().map(|&(_, i)| i).collect();
+            chosen.sort_unstable();
+            expected.sort_unstable();
+            assert_eq!(chosen, expected, "grid {grid}");
+        }
+    }
+}

@@ -1,0 +1,85 @@
+//! `NodeSink`: where finished nodes go: encoded into the store and listed for the hierarchy.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Mutex;
+
+use super::codec::encode_node;
+use super::error::LodError;
+use super::hierarchy::NodeInfo;
+use super::key::{NodeKey, RootCube};
+use super::point::RawPoint;
+use super::store::LodStore;
+
+/// Bytes of node records written between two flushes of the store.
+const FLUSH_EVERY_BYTES: u64 = 64 << 20;
+
+pub struct NodeSink<'a> {
+    store: &'a LodStore,
+    cube: RootCube,
+    has_rgb: bool,
+    nodes: Mutex<Vec<NodeInfo>>,
+    points: AtomicU64,
+    bytes: AtomicU64,
+}
+
+impl<'a> NodeSink<'a> {
+    pub fn new(store: &'a LodStore, cube: RootCube, has_rgb: bool) -> Self {
+        Self {
+            store,
+            cube,
+            has_rgb,
+            nodes: Mutex::new(Vec::new()),
+            points: AtomicU64::new(0),
+            bytes: AtomicU64::new(0),
+        }
+    }
+
+    /// Stores a finished node; `sample_grid` is 0 for a leaf. An empty node is only listed:
+    /// the hierarchy keeps it if it has children.
+    pub fn emit(
+        &self,
+        key: NodeKey,
+        points: &[RawPoint],
+        sample_grid: u32,
+    ) -> Result<(), LodError> {
+        if !points.is_empty() {
+            let bytes = encode_node(&self.cube, key, points, self.has_rgb);
+            let before = self.bytes.fetch_add(bytes.len() as u64, Ordering::Relaxed);
+            self.store.write_node(key, &bytes)?;
+            // Flushed as the store grows, so a long build's nodes reach the disk as it goes
+            // rather than all in the final flush.
+            if before / FLUSH_EVERY_BYTES != (before + bytes.len() as u64) / FLUSH_EVERY_BYTES {
+                self.store.flush()?;
+            }
+            self.points
+                .fetch_add(points.len() as u64, Ordering::Relaxed);
+        }
+        let info = NodeInfo {
+            key,
+            point_count: points.len() as u32,
+            sample_grid,
+            child_mask: 0,
+        };
+        self.nodes
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
+            .push(info);
+        Ok(())
+    }
+
+    /// Points stored so far.
+    pub fn points(&self) -> u64 {
+        self.points.load(Ordering::Relaxed)
+    }
+
+    /// Bytes of node records stored so far.
+    pub fn bytes(&self) -> u64 {
+        self.bytes.load(Ordering::Relaxed)
+    }
+
+    pub fn into_nodes(self) -> Vec<NodeInfo> {
+        self.nodes
+            .into_inner()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
+    }
+}

@@ -1,0 +1,117 @@
+//! What the builder reads: `PointSource`, points in batches that can be read again in the same
+//! order, and its implementation for an in-memory [`PointCloud`].
+
+use glam::DVec3;
+
+use super::error::LodError;
+use crate::cloud::{PointCloud, WorldBounds};
+
+/// One batch of original points in world coordinates (f64) with their raw attributes.
+#[derive(Debug, Clone, Copy)]
+pub struct PointBatch<'a> {
+    pub positions: &'a [DVec3],
+    /// Raw 16-bit LAS RGB fields, `None` when the files have none.
+    pub rgb: Option<&'a [[u16; 3]]>,
+    pub intensity: &'a [u16],
+    pub classification: &'a [u8],
+    pub return_number: &'a [u8],
+}
+
+impl PointBatch<'_> {
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+
+    /// Every column as long as `positions`.
+    pub(crate) fn check_lengths(&self) -> Result<(), LodError> {
+        let positions = self.positions.len();
+        let columns = [
+            ("rgb", self.rgb.map_or(positions, <[_]>::len)),
+            ("intensity", self.intensity.len()),
+            ("classification", self.classification.len()),
+            ("return_number", self.return_number.len()),
+        ];
+        for (field, len) in columns {
+            if len != positions {
+                return Err(LodError::BatchLengths {
+                    positions,
+                    field,
+                    len,
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Points that can be read (at least) twice, in the same order each time.
+pub trait PointSource: Sync {
+    /// A box holding every point.
+    fn bounds(&self) -> WorldBounds;
+    fn point_count(&self) -> u64;
+    /// Visits every point once, batch by batch; an error from `visit` stops the walk and is
+    /// returned.
+    fn for_each_batch(
+        &self,
+        visit: &mut dyn FnMut(PointBatch<'_>) -> Result<(), LodError>,
+    ) -> Result<(), LodError>;
+}
+
+/// Points per batch of the in-memory and generated sources.
+pub const SOURCE_BATCH_POINTS: usize = 1 << 16;
+
+/// A [`PointCloud`] as a source: world = origin + offset, in f64. Its colours are already
+/// packed for display, so its batches carry no raw RGB.
+pub struct CloudSource<'a> {
+    cloud: &'a PointCloud,
+    bounds: WorldBounds,
+}
+
+impl<'a> CloudSource<'a> {
+    /// The bounds are those of the reconstructed world positions: the cloud's own bounds came
+    /// from the f64 positions before they were rounded to f32 offsets.
+    pub fn new(cloud: &'a PointCloud) -> Self {
+        let bounds =
+            crate::cloud::bounds_of(cloud.positions.iter().map(|p| cloud.origin + p.as_dvec3()));
+        Self { cloud, bounds }
+    }
+}
+
+impl PointSource for CloudSource<'_> {
+    fn bounds(&self) -> WorldBounds {
+        self.bounds
+    }
+
+    fn point_count(&self) -> u64 {
+        self.cloud.len() as u64
+    }
+
+    fn for_each_batch(
+        &self,
+        visit: &mut dyn FnMut(PointBatch<'_>) -> Result<(), LodError>,
+    ) -> Result<(), LodError> {
+        let cloud = self.cloud;
+        let mut world = Vec::with_capacity(SOURCE_BATCH_POINTS.min(cloud.len()));
+        for start in (0..cloud.len()).step_by(SOURCE_BATCH_POINTS) {
+            let end = (start + SOURCE_BATCH_POINTS).min(cloud.len());
+            world.clear();
+            world.extend(
+                cloud.positions[start..end]
+                    .iter()
+                    .map(|p| cloud.origin + p.as_dvec3()),
+            );
+            visit(PointBatch {
+                positions: &world,
+                rgb: None,
+                intensity: &cloud.intensity[start..end],
+                classification: &cloud.classification[start..end],
+                return_number: &cloud.return_number[start..end],
+            })?;
+        }
+        Ok(())
+    }
+}

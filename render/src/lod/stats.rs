@@ -1,0 +1,60 @@
+//! `DatasetStats`: what colour decisions need about the whole dataset, gathered in the
+//! counting pass so colours can be decided once, not per node.
+
+/// Bins of the intensity histogram: one per 16-bit value, so percentiles are exact.
+pub const INTENSITY_BINS: usize = 1 << 16;
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct DatasetStats {
+    /// Whether the source's points carry raw RGB.
+    pub has_rgb: bool,
+    /// The largest raw value of each RGB channel (all 255 or less: 8-bit values in 16-bit
+    /// fields).
+    pub max_rgb: [u16; 3],
+    /// Points per intensity value.
+    pub intensity_histogram: Vec<u64>,
+    /// Points per classification code.
+    pub class_counts: Vec<u64>,
+    /// Lowest and highest z of the points.
+    pub z_range: [f64; 2],
+}
+
+impl DatasetStats {
+    pub(crate) fn new(has_rgb: bool) -> Self {
+        Self {
+            has_rgb,
+            max_rgb: [0; 3],
+            intensity_histogram: vec![0; INTENSITY_BINS],
+            class_counts: vec![0; 256],
+            z_range: [f64::INFINITY, f64::NEG_INFINITY],
+        }
+    }
+
+    /// Bytes this holds in memory.
+    pub(crate) const HEAP_BYTES: u64 = (INTENSITY_BINS as u64 + 256) * 8;
+
+    /// The largest raw value of any RGB channel.
+    pub fn max_rgb_channel(&self) -> u16 {
+        self.max_rgb.into_iter().max().unwrap_or(0)
+    }
+
+    pub(crate) fn add(&mut self, batch: &super::source::PointBatch<'_>) {
+        if let Some(rgb) = batch.rgb {
+            for c in rgb {
+                for (max, &value) in self.max_rgb.iter_mut().zip(c) {
+                    *max = (*max).max(value);
+                }
+            }
+        }
+        for &i in batch.intensity {
+            self.intensity_histogram[usize::from(i)] += 1;
+        }
+        for &c in batch.classification {
+            self.class_counts[usize::from(c)] += 1;
+        }
+        for p in batch.positions {
+            self.z_range[0] = self.z_range[0].min(p.z);
+            self.z_range[1] = self.z_range[1].max(p.z);
+        }
+    }
+}
