@@ -67,10 +67,6 @@ impl DecodedPoints {
         }
     }
 
-    pub fn len(&self) -> u64 {
-        self.positions.len() as u64
-    }
-
     /// The decoded coordinate farthest from zero, when it lies beyond [`MAX_COORDINATE`] or
     /// is not finite (a huge scale factor or offset).
     pub fn implausible_extreme(&self) -> Option<f64> {

@@ -19,6 +19,7 @@
 //!   into one cloud;
 //! - `columns.rs`: the decoded points and the cloud made of them (origin, colours);
 //! - `files.rs`: the files of a dataset, from files and folders;
+//! - `source.rs`: a dataset's files as the level-of-detail builder's source, streamed;
 //! - `write.rs`: writing clouds as LAS or LAZ;
 //! - `error.rs`: [`IngestError`].
 
@@ -34,6 +35,7 @@ mod preparse;
 mod raw_file;
 mod read;
 mod records;
+mod source;
 #[cfg(test)]
 mod test_files;
 mod transforms;
@@ -42,6 +44,7 @@ mod write;
 pub use crate::cloud::MAX_COORDINATE;
 pub use error::IngestError;
 pub use files::dataset_files;
+pub use source::DatasetSource;
 
 /// The first four bytes of every LAS and LAZ file.
 pub const LAS_SIGNATURE: &[u8; 4] = b"LASF";

@@ -90,22 +90,22 @@ pub fn load_dataset(paths: &[PathBuf]) -> Result<PointCloud, IngestError> {
 }
 
 /// Header bounds worth taking into the union: finite and not inverted.
-fn usable(bounds: &WorldBounds) -> bool {
+pub(super) fn usable(bounds: &WorldBounds) -> bool {
     bounds.min.is_finite() && bounds.max.is_finite() && bounds.min.cmple(bounds.max).all()
 }
 
 /// A file of a dataset that passed the pre-parse, with what its header says.
-struct DatasetFile {
-    path: PathBuf,
+pub(super) struct DatasetFile {
+    pub path: PathBuf,
     file_len: u64,
-    facts: HeaderFacts,
+    pub facts: HeaderFacts,
     laz: Option<LazLayout>,
-    header_bounds: WorldBounds,
-    has_color: bool,
+    pub header_bounds: WorldBounds,
+    pub has_color: bool,
 }
 
 impl DatasetFile {
-    fn check(path: &Path) -> Result<Self, IngestError> {
+    pub(super) fn check(path: &Path) -> Result<Self, IngestError> {
         let io_error = |error| IngestError::Io {
             path: path.to_owned(),
             error,
@@ -140,6 +140,27 @@ impl DatasetFile {
         origin: &mut Option<DVec3>,
         decoded: &mut DecodedPoints,
     ) -> Result<(), IngestError> {
+        self.for_each_batch(|batch| {
+            let origin = *origin.get_or_insert_with(|| choose_origin(header_bounds, batch));
+            decoded.append(batch, origin);
+            Ok(())
+        })?;
+        // The files before were plausible: an extreme now is this file's.
+        if let Some(extreme) = decoded.implausible_extreme() {
+            return Err(IngestError::ImplausibleCoordinates {
+                path: self.path.clone(),
+                extreme,
+            });
+        }
+        Ok(())
+    }
+
+    /// Decodes every declared point, handing `visit` one batch at a time; an error of
+    /// `visit` stops the reading and is returned.
+    pub(super) fn for_each_batch(
+        &self,
+        mut visit: impl FnMut(&las::PointData) -> Result<(), IngestError>,
+    ) -> Result<(), IngestError> {
         let path = self.path.as_path();
         let facts = &self.facts;
         let file = File::open(path).map_err(|error| IngestError::Io {
@@ -154,7 +175,6 @@ impl DatasetFile {
         let mut batch = PointDataBuilder::new().for_header(reader.header()).build();
         let batch_points =
             (BYTES_PER_BATCH / u64::from(facts.record_len)).clamp(1, POINTS_PER_BATCH);
-        let first = decoded.len();
         let mut read = 0;
         while read < facts.declared_points {
             let wanted = batch_points.min(facts.declared_points - read);
@@ -162,9 +182,8 @@ impl DatasetFile {
             if filled == 0 {
                 break;
             }
-            let origin = *origin.get_or_insert_with(|| choose_origin(header_bounds, &batch));
-            decoded.append(&batch, origin);
-            read = decoded.len() - first;
+            visit(&batch)?;
+            read += filled;
         }
         // Unreachable after the checks above unless the file changes while we read it.
         if read < facts.declared_points {
@@ -172,13 +191,6 @@ impl DatasetFile {
                 path: path.to_owned(),
                 declared: facts.declared_points,
                 available: read,
-            });
-        }
-        // The files before were plausible: an extreme now is this file's.
-        if let Some(extreme) = decoded.implausible_extreme() {
-            return Err(IngestError::ImplausibleCoordinates {
-                path: path.to_owned(),
-                extreme,
             });
         }
         Ok(())
