@@ -22,20 +22,25 @@ use crate::store::Page;
 /// listing does not.
 pub const MAX_DATASET_FILES: usize = 10_000;
 
+/// `count` paths, ids or files (of the request's `field`) make a dataset: one at least, and
+/// at most [`MAX_DATASET_FILES`].
+fn check_count(field: &str, count: usize) -> Result<(), DaemonError> {
+    match count {
+        0 => Err(DaemonError::invalid(field, "names no file")),
+        n if n > MAX_DATASET_FILES => Err(DaemonError::invalid(
+            field,
+            format!("{n} files; a dataset has at most {MAX_DATASET_FILES}"),
+        )),
+        _ => Ok(()),
+    }
+}
+
 impl Daemon {
     /// Registers files already on the server, under its data roots, as one dataset: each
     /// path a file or a folder of `.las`/`.laz` files (relative paths are taken from the
     /// first data root).
     pub fn register_dataset(&self, paths: &[String], name: &str) -> Result<Dataset, DaemonError> {
-        if paths.is_empty() {
-            return Err(DaemonError::invalid("path", "is empty"));
-        }
-        if paths.len() > MAX_DATASET_FILES {
-            return Err(DaemonError::invalid(
-                "paths",
-                format!("at most {MAX_DATASET_FILES} paths"),
-            ));
-        }
+        check_count("paths", paths.len())?;
         check_length("name", name, MAX_NAME_BYTES)?;
         let resolved = paths
             .iter()
@@ -43,15 +48,7 @@ impl Daemon {
             .collect::<Result<Vec<_>, _>>()?;
         let found = dataset_files(&resolved)
             .map_err(|e| DaemonError::invalid("path", self.without_roots(&e.to_string())))?;
-        if found.len() > MAX_DATASET_FILES {
-            return Err(DaemonError::invalid(
-                "path",
-                format!(
-                    "{} files; a dataset has at most {MAX_DATASET_FILES}",
-                    found.len()
-                ),
-            ));
-        }
+        check_count("path", found.len())?;
         let files = found
             .into_iter()
             .map(|path| {
@@ -126,15 +123,7 @@ impl Daemon {
 
     /// One dataset of the files of `ids`, in that order (a campaign uploaded file by file).
     pub fn compose_dataset(&self, ids: &[String], name: &str) -> Result<Dataset, DaemonError> {
-        if ids.is_empty() {
-            return Err(DaemonError::invalid("dataset_ids", "is empty"));
-        }
-        if ids.len() > MAX_DATASET_FILES {
-            return Err(DaemonError::invalid(
-                "dataset_ids",
-                format!("at most {MAX_DATASET_FILES} datasets"),
-            ));
-        }
+        check_count("dataset_ids", ids.len())?;
         check_length("name", name, MAX_NAME_BYTES)?;
         let mut files = Vec::new();
         let mut seen = HashSet::new();
@@ -147,15 +136,7 @@ impl Daemon {
                     .filter(|file| seen.insert(file.sha256.clone())),
             );
         }
-        if files.len() > MAX_DATASET_FILES {
-            return Err(DaemonError::invalid(
-                "dataset_ids",
-                format!(
-                    "{} files; a dataset has at most {MAX_DATASET_FILES}",
-                    files.len()
-                ),
-            ));
-        }
+        check_count("dataset_ids", files.len())?;
         let name = if name.is_empty() {
             format!("{} files", files.len())
         } else {

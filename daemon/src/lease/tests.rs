@@ -76,23 +76,7 @@ fn remote_leases_survive_a_restart_and_embedded_ones_count_an_attempt() {
 /// decoded) file.
 fn daemon_with_job(frames: u32) -> (tempfile::TempDir, Arc<Daemon>, crate::model::Job) {
     let folder = tempfile::tempdir().expect("tempdir");
-    let dir = folder.path();
-    std::fs::create_dir_all(dir.join("roots")).expect("roots");
-    std::fs::write(dir.join("roots/a.las"), b"points").expect("file");
-    let daemon = open(dir);
-    let dataset = daemon
-        .register_dataset(&["a.las".to_string()], "")
-        .expect("register");
-    let request = pb::SubmitJobRequest {
-        dataset_id: dataset.id.clone(),
-        camera_path: Some(pb::CameraPath::turntable(pb::Turntable::of_frames(frames))),
-        width: 8,
-        height: 6,
-        ..Default::default()
-    };
-    let job = daemon
-        .submit_job(crate::model::JobSpec::try_from(&request).expect("spec"))
-        .expect("submit");
+    let (daemon, job) = daemon_with_job_in(folder.path(), frames);
     (folder, daemon, job)
 }
 

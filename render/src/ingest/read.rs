@@ -42,13 +42,7 @@ pub fn load_point_cloud(path: &Path) -> Result<PointCloud, IngestError> {
 /// file that cannot be read fails the whole load with that file named.
 pub fn load_dataset(paths: &[PathBuf]) -> Result<PointCloud, IngestError> {
     let started = Instant::now();
-    if paths.is_empty() {
-        return Err(IngestError::NoFiles);
-    }
-    let files = paths
-        .iter()
-        .map(|path| DatasetFile::check(path))
-        .collect::<Result<Vec<_>, _>>()?;
+    let files = DatasetFile::check_all(paths)?;
     let header_bounds = files
         .iter()
         .map(|file| file.header_bounds)
@@ -105,7 +99,15 @@ pub(super) struct DatasetFile {
 }
 
 impl DatasetFile {
-    pub(super) fn check(path: &Path) -> Result<Self, IngestError> {
+    /// Every file of a dataset, checked; there must be one at least.
+    pub(super) fn check_all(paths: &[PathBuf]) -> Result<Vec<Self>, IngestError> {
+        if paths.is_empty() {
+            return Err(IngestError::NoFiles);
+        }
+        paths.iter().map(|path| Self::check(path)).collect()
+    }
+
+    fn check(path: &Path) -> Result<Self, IngestError> {
         let io_error = |error| IngestError::Io {
             path: path.to_owned(),
             error,

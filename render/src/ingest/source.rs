@@ -9,7 +9,7 @@ use super::contain::contain_panics;
 use super::read::{usable, DatasetFile};
 use super::IngestError;
 use crate::cloud::WorldBounds;
-use crate::lod::{LodError, PointBatch, PointSource};
+use crate::lod::{BatchColumns, LodError, PointBatch, PointSource};
 
 /// The files of a dataset, checked, as a source the level-of-detail builder reads twice.
 pub struct DatasetSource {
@@ -24,13 +24,7 @@ impl DatasetSource {
     /// headers', widened by their rounding. A file whose header bounds are unusable is an
     /// error naming it: the builder needs bounds before it reads a point.
     pub fn open(paths: &[PathBuf]) -> Result<Self, IngestError> {
-        if paths.is_empty() {
-            return Err(IngestError::NoFiles);
-        }
-        let files = paths
-            .iter()
-            .map(|path| DatasetFile::check(path))
-            .collect::<Result<Vec<_>, _>>()?;
+        let files = DatasetFile::check_all(paths)?;
         if let Some(file) = files.iter().find(|file| !usable(&file.header_bounds)) {
             return Err(IngestError::Corrupt {
                 path: file.path.clone(),
@@ -59,47 +53,22 @@ impl DatasetSource {
     }
 }
 
-/// The columns of one decoded batch, reused from batch to batch.
-#[derive(Default)]
-struct Columns {
-    positions: Vec<DVec3>,
-    rgb: Vec<[u16; 3]>,
-    intensity: Vec<u16>,
-    classification: Vec<u8>,
-    return_number: Vec<u8>,
-}
-
-impl Columns {
-    fn fill(&mut self, batch: &las::PointData, with_rgb: bool) {
-        self.positions.clear();
-        self.positions.extend(
-            batch
-                .x()
-                .zip(batch.y())
-                .zip(batch.z())
-                .map(|((x, y), z)| DVec3::new(x, y, z)),
-        );
-        self.rgb.clear();
-        if let (true, Some(rgb)) = (with_rgb, batch.rgb()) {
-            self.rgb.extend(rgb.map(|(r, g, b)| [r, g, b]));
-        }
-        self.intensity.clear();
-        self.intensity.extend(batch.intensity());
-        self.classification.clear();
-        self.classification.extend(batch.classification());
-        self.return_number.clear();
-        self.return_number.extend(batch.return_number());
+/// Fills `columns` with a decoded batch (its RGB only `with_rgb`).
+fn fill(columns: &mut BatchColumns, batch: &las::PointData, with_rgb: bool) {
+    columns.clear();
+    columns.positions.extend(
+        batch
+            .x()
+            .zip(batch.y())
+            .zip(batch.z())
+            .map(|((x, y), z)| DVec3::new(x, y, z)),
+    );
+    if let (true, Some(rgb)) = (with_rgb, batch.rgb()) {
+        columns.rgb.extend(rgb.map(|(r, g, b)| [r, g, b]));
     }
-
-    fn batch(&self, with_rgb: bool) -> PointBatch<'_> {
-        PointBatch {
-            positions: &self.positions,
-            rgb: with_rgb.then_some(self.rgb.as_slice()),
-            intensity: &self.intensity,
-            classification: &self.classification,
-            return_number: &self.return_number,
-        }
-    }
+    columns.intensity.extend(batch.intensity());
+    columns.classification.extend(batch.classification());
+    columns.return_number.extend(batch.return_number());
 }
 
 impl PointSource for DatasetSource {
@@ -115,13 +84,13 @@ impl PointSource for DatasetSource {
         &self,
         visit: &mut dyn FnMut(PointBatch<'_>) -> Result<(), LodError>,
     ) -> Result<(), LodError> {
-        let mut columns = Columns::default();
+        let mut columns = BatchColumns::default();
         for file in &self.files {
             // The visitor's error stops the read; it is kept apart from the file's errors.
             let mut stopped = None;
             let read = contain_panics(&file.path, || {
                 file.for_each_batch(|batch| {
-                    columns.fill(batch, self.has_rgb);
+                    fill(&mut columns, batch, self.has_rgb);
                     match visit(columns.batch(self.has_rgb)) {
                         Ok(()) => Ok(()),
                         Err(error) => {

@@ -6,7 +6,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::error::LodError;
-use super::source::{PointBatch, PointSource, SOURCE_BATCH_POINTS};
+use super::source::{BatchColumns, PointBatch, PointSource, SOURCE_BATCH_POINTS};
 use crate::cloud::WorldBounds;
 
 /// The corner of the generated clouds, at survey-like coordinates.
@@ -63,25 +63,12 @@ fn ground(x: f64, y: f64) -> f64 {
     8.0 * (x / 97.0).sin() + 5.0 * (y / 61.0).cos() + 0.002 * x
 }
 
-/// Reused columns of one batch.
-#[derive(Default)]
-struct Columns {
-    positions: Vec<DVec3>,
-    rgb: Vec<[u16; 3]>,
-    intensity: Vec<u16>,
-    classification: Vec<u8>,
-    return_number: Vec<u8>,
+/// Appends one generated point.
+trait PushPoint {
+    fn push(&mut self, p: DVec3, rgb: [u16; 3], intensity: u16, class: u8, ret: u8);
 }
 
-impl Columns {
-    fn clear(&mut self) {
-        self.positions.clear();
-        self.rgb.clear();
-        self.intensity.clear();
-        self.classification.clear();
-        self.return_number.clear();
-    }
-
+impl PushPoint for BatchColumns {
     fn push(&mut self, p: DVec3, rgb: [u16; 3], intensity: u16, class: u8, ret: u8) {
         self.positions.push(p);
         self.rgb.push(rgb);
@@ -121,7 +108,7 @@ impl PointSource for GeneratedSource {
         &self,
         visit: &mut dyn FnMut(PointBatch<'_>) -> Result<(), LodError>,
     ) -> Result<(), LodError> {
-        let mut columns = Columns::default();
+        let mut columns = BatchColumns::default();
         let extent = self.terrain_extent();
         let batches = self.points.div_ceil(SOURCE_BATCH_POINTS as u64);
         for batch in 0..batches {
@@ -163,13 +150,7 @@ impl PointSource for GeneratedSource {
                     }
                 }
             }
-            visit(PointBatch {
-                positions: &columns.positions,
-                rgb: Some(&columns.rgb),
-                intensity: &columns.intensity,
-                classification: &columns.classification,
-                return_number: &columns.return_number,
-            })?;
+            visit(columns.batch(true))?;
         }
         Ok(())
     }

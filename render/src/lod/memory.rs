@@ -20,6 +20,27 @@ struct MeterState {
     pinned: u64,
 }
 
+impl MeterState {
+    /// Takes `bytes` if they fit beside what is held within `budget`.
+    fn take_now(
+        &mut self,
+        budget: u64,
+        bytes: u64,
+        what: &'static str,
+    ) -> Result<&mut Self, LodError> {
+        if self.used + bytes > budget {
+            return Err(LodError::BudgetTooSmall {
+                budget: budget - self.used,
+                needed: bytes,
+                what,
+            });
+        }
+        self.used += bytes;
+        self.peak = self.peak.max(self.used);
+        Ok(self)
+    }
+}
+
 /// Bytes held under the budget until dropped.
 #[derive(Debug)]
 pub struct Reservation<'a> {
@@ -71,33 +92,14 @@ impl MemoryMeter {
 
     /// Reserves `bytes` for as long as the meter lives (statistics kept for the whole build).
     pub fn pin(&self, bytes: u64, what: &'static str) -> Result<(), LodError> {
-        let mut state = self.lock();
-        if state.used + bytes > self.budget {
-            return Err(LodError::BudgetTooSmall {
-                budget: self.budget - state.used,
-                needed: bytes,
-                what,
-            });
-        }
-        state.used += bytes;
-        state.pinned += bytes;
-        state.peak = state.peak.max(state.used);
+        self.lock().take_now(self.budget, bytes, what)?.pinned += bytes;
         Ok(())
     }
 
     /// Reserves `bytes` now, or fails if they do not fit beside what is already held.
     pub fn try_reserve(&self, bytes: u64, what: &'static str) -> Result<Reservation<'_>, LodError> {
         self.check(bytes, what)?;
-        let mut state = self.lock();
-        if state.used + bytes > self.budget {
-            return Err(LodError::BudgetTooSmall {
-                budget: self.budget - state.used,
-                needed: bytes,
-                what,
-            });
-        }
-        state.used += bytes;
-        state.peak = state.peak.max(state.used);
+        self.lock().take_now(self.budget, bytes, what)?;
         Ok(Reservation { meter: self, bytes })
     }
 

@@ -48,6 +48,38 @@ impl PointBatch<'_> {
     }
 }
 
+/// The owned columns of one batch, reused from batch to batch by sources that make or decode
+/// their points.
+#[derive(Debug, Default)]
+pub struct BatchColumns {
+    pub positions: Vec<DVec3>,
+    pub rgb: Vec<[u16; 3]>,
+    pub intensity: Vec<u16>,
+    pub classification: Vec<u8>,
+    pub return_number: Vec<u8>,
+}
+
+impl BatchColumns {
+    pub fn clear(&mut self) {
+        self.positions.clear();
+        self.rgb.clear();
+        self.intensity.clear();
+        self.classification.clear();
+        self.return_number.clear();
+    }
+
+    /// The batch of these columns; its RGB only `with_rgb`.
+    pub fn batch(&self, with_rgb: bool) -> PointBatch<'_> {
+        PointBatch {
+            positions: &self.positions,
+            rgb: with_rgb.then_some(self.rgb.as_slice()),
+            intensity: &self.intensity,
+            classification: &self.classification,
+            return_number: &self.return_number,
+        }
+    }
+}
+
 /// Points that can be read (at least) twice, in the same order each time.
 pub trait PointSource: Sync {
     /// A box holding every point.
