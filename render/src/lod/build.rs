@@ -13,7 +13,7 @@
 //! Every buffer the builder holds is reserved from one [`MemoryMeter`] first; the source's
 //! own batches and sled's memory are outside it (sled 0.34 holds about as many bytes as were
 //! written, whatever its cache capacity: the store is flushed as it grows, which does not
-//! release them).
+//! release them; docs/perf/lod-build.md).
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicUsize, Ordering};
