@@ -71,9 +71,20 @@ impl From<std::io::Error> for DaemonError {
             // A full disk or quota (an upload's file, a frame's PNG) passes: the caller should
             // back off and retry.
             ErrorKind::StorageFull | ErrorKind::QuotaExceeded => {
-                DaemonError::ResourceExhausted(crate::store::disk_error_message(&e))
+                DaemonError::ResourceExhausted(disk_error_message(&e))
             }
             _ => DaemonError::Internal(e.to_string()),
         }
+    }
+}
+
+/// How a refused write reads to a user: a full disk or quota by name, anything else as a
+/// failed write.
+pub fn disk_error_message(error: &std::io::Error) -> String {
+    use std::io::ErrorKind;
+    match error.kind() {
+        ErrorKind::StorageFull => format!("the daemon's disk is full ({error})"),
+        ErrorKind::QuotaExceeded => format!("the daemon's disk quota is used up ({error})"),
+        _ => format!("the daemon's disk refused a write ({error})"),
     }
 }

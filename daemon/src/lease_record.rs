@@ -24,7 +24,7 @@ impl Lease {
     /// neither guessed nor derived from one another.
     pub fn new_id() -> String {
         let bytes: [u8; 16] = rand::rng().random();
-        format!("lease-{}", crate::service::hex(&bytes))
+        format!("lease-{}", crate::model::hex(&bytes))
     }
 }
 

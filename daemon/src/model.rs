@@ -52,6 +52,11 @@ impl Dataset {
     }
 }
 
+/// Lower-case hex of `bytes` (hashes, random ids).
+pub fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
 /// The content hash of files with these hashes, in this order: a single file's own hash, so
 /// a one-file dataset keeps the id it always had.
 pub fn content_sha256(files: &[DatasetFile]) -> String {
@@ -64,7 +69,7 @@ pub fn content_sha256(files: &[DatasetFile]) -> String {
                 hasher.update(file.sha256.as_bytes());
                 hasher.update(b"\n");
             }
-            crate::service::hex(&hasher.finalize())
+            hex(&hasher.finalize())
         }
     }
 }

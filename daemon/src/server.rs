@@ -83,7 +83,7 @@ impl tonic::service::Interceptor for EmbeddedGate {
 /// A token for the embedded worker, new for every start of the daemon.
 fn embedded_worker_token() -> String {
     let bytes: [u8; 32] = rand::rng().random();
-    crate::service::hex(&bytes)
+    crate::model::hex(&bytes)
 }
 
 /// How often the lease sweep and the health check run: a fraction of the lease timeout.

@@ -33,7 +33,6 @@ mod health;
 mod records;
 mod trees;
 
-pub use health::disk_error_message;
 use health::DiskHealth;
 use records::Records;
 use trees::Trees;

@@ -15,7 +15,7 @@ use tonic::{Status, Streaming};
 
 use super::conversions::invalid;
 
-use crate::service::hex;
+use crate::model::hex;
 
 /// Bytes per streamed message: well under gRPC's default 4 MiB message limit.
 pub const CHUNK_BYTES: usize = 1 << 20;

@@ -7,6 +7,8 @@ use std::path::{Path, PathBuf};
 use std::sync::{Mutex, MutexGuard};
 use std::time::Instant;
 
+use crate::error::disk_error_message;
+
 /// Enough for sled's next log segment (512 KiB) and a frame or two: a disk with less free
 /// would fail again at once.
 const PROBE_BYTES: usize = 2 << 20;
@@ -26,17 +28,6 @@ pub(super) struct DiskHealth {
     /// The probe file, beside the database (the frames live on the same data folder).
     probe_path: PathBuf,
     failure: Mutex<Option<Failure>>,
-}
-
-/// How a refused write reads to a user: a full disk or quota by name, anything else as a
-/// failed write.
-pub fn disk_error_message(error: &std::io::Error) -> String {
-    use std::io::ErrorKind;
-    match error.kind() {
-        ErrorKind::StorageFull => format!("the daemon's disk is full ({error})"),
-        ErrorKind::QuotaExceeded => format!("the daemon's disk quota is used up ({error})"),
-        _ => format!("the daemon's disk refused a write ({error})"),
-    }
 }
 
 impl DiskHealth {

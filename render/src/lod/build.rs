@@ -107,7 +107,11 @@ fn build_on_pool(
 ) -> Result<LodBuildReport, LodError> {
     let start = Instant::now();
     let mut timings = BuildTimings::default();
-    let cube = RootCube::around(&source.bounds())?;
+    let bounds = source.bounds();
+    let cube = RootCube::around(&bounds).ok_or(LodError::InvalidBounds {
+        min: bounds.min.to_array(),
+        max: bounds.max.to_array(),
+    })?;
     let meter = MemoryMeter::new(options.memory_budget_bytes);
     meter.pin(DatasetStats::HEAP_BYTES, "the dataset's statistics")?;
     let budget = meter.largest_possible();

@@ -10,7 +10,6 @@ use std::fmt;
 
 use glam::{DVec3, UVec3};
 
-use super::error::LodError;
 use crate::cloud::{WorldBounds, MAX_COORDINATE};
 
 /// The deepest level a node may have. A node splits only above it, so points closer together
@@ -94,24 +93,21 @@ pub struct RootCube {
 
 impl RootCube {
     /// The smallest cube at `bounds.min` holding `bounds`; a flat or single-point cloud still
-    /// gets a cube of positive side.
-    pub fn around(bounds: &WorldBounds) -> Result<Self, LodError> {
-        let invalid = || LodError::InvalidBounds {
-            min: bounds.min.to_array(),
-            max: bounds.max.to_array(),
-        };
+    /// gets a cube of positive side. None for bounds that are not finite, inverted or beyond
+    /// [`MAX_COORDINATE`].
+    pub fn around(bounds: &WorldBounds) -> Option<Self> {
         let finite = bounds.min.is_finite() && bounds.max.is_finite();
         if !finite
             || bounds.min.cmpgt(bounds.max).any()
             || bounds.min.abs().max_element() > MAX_COORDINATE
             || bounds.max.abs().max_element() > MAX_COORDINATE
         {
-            return Err(invalid());
+            return None;
         }
         let extent = bounds.size().max_element();
         // A zero extent would make every cell index undefined; any positive side holds one spot.
         let side = if extent > 0.0 { extent } else { 1.0 };
-        Ok(Self {
+        Some(Self {
             min: bounds.min,
             side,
         })
@@ -179,19 +175,16 @@ mod tests {
             min: DVec3::splat(f64::NAN),
             max: DVec3::ONE,
         };
-        assert!(matches!(
-            RootCube::around(&nan),
-            Err(LodError::InvalidBounds { .. })
-        ));
+        assert!(RootCube::around(&nan).is_none());
         let inverted = WorldBounds {
             min: DVec3::ONE,
             max: DVec3::ZERO,
         };
-        assert!(RootCube::around(&inverted).is_err());
+        assert!(RootCube::around(&inverted).is_none());
         let point = WorldBounds {
             min: DVec3::ONE,
             max: DVec3::ONE,
         };
-        assert_eq!(RootCube::around(&point).map(|c| c.side).ok(), Some(1.0));
+        assert_eq!(RootCube::around(&point).map(|c| c.side), Some(1.0));
     }
 }
