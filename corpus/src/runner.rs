@@ -12,7 +12,7 @@ use std::sync::Mutex;
 use std::thread;
 use std::time::{Duration, Instant};
 
-use crate::child::{peak_kib, CONTAINED, ERROR, LOADED};
+use crate::child::{exec_peak_kib, CONTAINED, ERROR, LOADED};
 use crate::CorpusError;
 
 /// How often a running child's memory is sampled.
@@ -119,9 +119,13 @@ pub fn run_one(child_exe: &Path, path: &Path, timeout: Duration) -> Result<FileR
     let stdout = drain(child.stdout.take());
     let stderr = drain(child.stderr.take());
     let status_file = PathBuf::from(format!("/proc/{}/status", child.id()));
+    let program = child_exe
+        .file_name()
+        .map(|name| name.to_string_lossy().into_owned())
+        .unwrap_or_default();
     let mut sampled_kib = 0;
     let status = loop {
-        if let Some(peak) = peak_kib(&status_file) {
+        if let Some(peak) = exec_peak_kib(&status_file, &program) {
             sampled_kib = sampled_kib.max(peak);
         }
         if let Some(status) = child
