@@ -79,7 +79,11 @@ mod peak_tests {
             fs::write(&status, format!("Name:\t{name}\nVmHWM:\t  1118440 kB\n")).expect("write")
         };
         write("fast_subset-3f2");
-        assert_eq!(exec_peak_kib(&status, "pointfarm-corpus"), None, "still the parent");
+        assert_eq!(
+            exec_peak_kib(&status, "pointfarm-corpus"),
+            None,
+            "still the parent"
+        );
         write("pointfarm-corpu");
         assert_eq!(exec_peak_kib(&status, "pointfarm-corpus"), Some(1_118_440));
         assert_eq!(peak_kib(&status), Some(1_118_440));
