@@ -6,15 +6,15 @@
 //! `error` (the daemon's and the store's errors), `limits` (the bounds on names and ids
 //! clients send), `lease_record` (the stored lease), `manifest` (the counts recorded beside
 //! the database), `store` (sled), `worker_presence` (which workers can render, for health),
-//! `service` (the `Daemon` and its dataset and job operations), `lease` (frame leases: the one
+//! `service` (the `Daemon` and its job operations), `datasets` (datasets of one or more
+//! files: registered, uploaded, composed; more `Daemon` methods), `lease` (frame leases: the one
 //! scheduling path, more `Daemon` methods), `grpc` (validates, converts and delegates: one
 //! file per service, the conversions, the streaming of bytes), `worker` (what leases frames:
 //! the worker process — a gRPC client — with its render state, which renders with
 //! `pointfarm-render`, and the supervisor that runs it as the daemon's embedded worker),
 //! `access` (the client and worker roles and their tokens), `server` (sockets, TLS, health,
 //! reflection, the lease sweep, shutdown); `testing` (a small real disk to fill, for tests).
-//! Only `grpc`,
-//! `worker::remote` and `server` (which mounts the services) know protobuf.
+//! Only `grpc`, `worker::remote` and `server` (which mounts the services) know protobuf.
 
 pub mod access;
 pub mod datasets;
