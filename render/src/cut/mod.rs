@@ -40,7 +40,7 @@ use thiserror::Error;
 
 use crate::cloud::WorldBounds;
 use crate::color::ColorMode;
-use crate::lod::{codec::encoded_len, LodError, LodHierarchy, LodStore, NodeKey, NodePoints};
+use crate::lod::{LodError, LodHierarchy, LodStore, NodeKey, NodePoints};
 use crate::raster::morton::morton_order;
 use crate::raster::points::ChunkData;
 use crate::raster::{Clock, Frame, FrameSettings, RenderError, Renderer, Stage, StageTiming};
@@ -136,8 +136,8 @@ impl LodDataset {
     }
 
     /// Bytes a node's record takes in the store.
-    fn stored_bytes(&self, points: u32) -> u64 {
-        encoded_len(points as usize, self.hierarchy.stats.has_rgb) as u64
+    fn stored_bytes(&self, key: NodeKey) -> u64 {
+        u64::from(self.hierarchy.node_byte_len(key))
     }
 }
 
@@ -338,7 +338,7 @@ impl CutRenderer {
         report.nodes_read += read.len() as u64;
         report.bytes_read += to_read
             .iter()
-            .map(|n| dataset.stored_bytes(n.points))
+            .map(|n| dataset.stored_bytes(n.key))
             .sum::<u64>();
         let mut host = self
             .host
@@ -385,7 +385,6 @@ impl CutRenderer {
         let store = dataset.store.clone();
         let hierarchy = Arc::clone(&dataset.hierarchy);
         let host = Arc::clone(&self.host);
-        let has_rgb = hierarchy.stats.has_rgb;
         let thread = std::thread::Builder::new()
             .name("pointfarm-read-ahead".into())
             .spawn(move || {
@@ -397,7 +396,7 @@ impl CutRenderer {
                         .collect::<Result<_, _>>()?;
                     bytes += group
                         .iter()
-                        .map(|n| encoded_len(n.points as usize, has_rgb) as u64)
+                        .map(|n| u64::from(hierarchy.node_byte_len(n.key)))
                         .sum::<u64>();
                     if let Ok(mut host) = host.lock() {
                         for node in read {

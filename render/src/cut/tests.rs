@@ -161,7 +161,7 @@ fn a_frame_is_the_same_from_a_cold_and_a_warm_cache() {
     let fixture = fixture(40_000);
     let mut renderer = Renderer::new(gpu());
     let first = settings(&fixture, &RenderOptions::default());
-    let mut other = first.clone();
+    let mut other = first;
     other.camera = Camera::framing(
         &fixture.cloud.bounds,
         4.0 / 3.0,
@@ -208,7 +208,7 @@ fn the_caches_stay_within_their_budgets_and_evict() {
             35.0,
             Projection::Perspective { fov_y_deg: 30.0 },
         );
-        let again = settings.clone();
+        let again = settings;
         let (frame, report) = cut
             .render(&mut renderer, &fixture.dataset, &settings, ColorMode::Rgb)
             .expect("frame");
@@ -293,7 +293,7 @@ fn a_read_ahead_fills_the_host_cache_and_changes_no_pixel() {
     let fixture = fixture(40_000);
     let mut renderer = Renderer::new(gpu());
     let first = settings(&fixture, &RenderOptions::default());
-    let mut next = first.clone();
+    let mut next = first;
     next.camera.position =
         first.camera.target + (first.camera.position - first.camera.target) * 0.5;
     let mut cold = cut_renderer(&renderer, &fixture, 0.0);
@@ -358,10 +358,9 @@ fn a_damaged_node_is_reported_not_drawn() {
     let mut renderer = Renderer::new(gpu());
     let mut cut = cut_renderer(&renderer, &fixture, 0.0);
     let settings = settings(&fixture, &RenderOptions::default());
-    let error = cut
-        .render(&mut renderer, &fixture.dataset, &settings, ColorMode::Rgb)
-        .err()
-        .expect("a damaged node fails the frame");
+    let Err(error) = cut.render(&mut renderer, &fixture.dataset, &settings, ColorMode::Rgb) else {
+        panic!("a damaged node fails the frame");
+    };
     assert!(
         matches!(error, CutError::Store(LodError::CorruptNode { .. })),
         "{error}"
