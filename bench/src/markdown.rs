@@ -233,6 +233,15 @@ fn ingest_table(md: &mut String, report: &BenchReport) {
     }
 }
 
+/// Seconds to two decimals, or three below a tenth.
+fn seconds(value: f64) -> String {
+    match value {
+        v if v < 0.1 => format!("{v:.3}"),
+        v if v < 100.0 => format!("{v:.2}"),
+        v => format!("{v:.0}"),
+    }
+}
+
 /// The campaign benchmark: reading and building per kind of files, the builder's stages and
 /// memory, the store's disk.
 pub fn campaign_tables(c: &CampaignResult) -> String {
@@ -243,7 +252,7 @@ pub fn campaign_tables(c: &CampaignResult) -> String {
         "Campaign ingest: {} points of generated terrain in {} files ({}x{} tiles), written in \
          {:.1} s; {} threads.\n\n\
          | input | files MB | file B/point | read s | read M points/s | build s | build M \
-         points/s | build / read | peak RSS MiB | builder peak MiB | store B/point |\n\
+         points/s | build / read | peak RSS MiB | builder's tracked peak MiB | store B/point |\n\
          |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
         thousands(c.points as usize),
         c.files,
@@ -262,9 +271,9 @@ pub fn campaign_tables(c: &CampaignResult) -> String {
             b.input.to_uppercase(),
             read.file_bytes as f64 / 1e6,
             read.file_bytes_per_point,
-            significant(read.read_s),
+            seconds(read.read_s),
             read.mpoints_per_s,
-            significant(b.build_s),
+            seconds(b.build_s),
             b.mpoints_per_s,
             b.over_decode * 100.0,
             mib(b.peak_rss_bytes),
@@ -285,11 +294,11 @@ pub fn campaign_tables(c: &CampaignResult) -> String {
             md,
             "| {} | {} | {} | {} | {} | {} | {} | {} | {:.0} | {:.0} | {:.0} | {:.0} |",
             b.input.to_uppercase(),
-            significant(s.counting_s),
-            significant(s.distribution_s),
-            significant(s.chunks_s),
-            significant(s.upper_levels_s),
-            significant(s.total_s),
+            seconds(s.counting_s),
+            seconds(s.distribution_s),
+            seconds(s.chunks_s),
+            seconds(s.upper_levels_s),
+            seconds(s.total_s),
             b.chunks,
             thousands(b.nodes),
             mib(b.spilled_bytes),
