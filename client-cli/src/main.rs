@@ -4,6 +4,8 @@ mod admin;
 mod bench;
 mod credentials;
 mod demo;
+mod frame_source;
+mod lod_store;
 mod parse;
 mod remote;
 mod remote_render;

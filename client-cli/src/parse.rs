@@ -92,6 +92,38 @@ pub fn positive(s: &str) -> Result<f64, String> {
     }
 }
 
+/// A number of bytes: `512MiB`, `4GiB`, `2G`, `300M`, `65536` (a suffix is binary: `G` is
+/// `GiB`).
+pub fn bytes(s: &str) -> Result<u64, String> {
+    let t = s.trim();
+    let digits = t
+        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .unwrap_or(t.len());
+    let (number, unit) = t.split_at(digits);
+    let shift = match unit.trim().to_ascii_lowercase().as_str() {
+        "" | "b" => 0,
+        "k" | "kib" | "kb" => 10,
+        "m" | "mib" | "mb" => 20,
+        "g" | "gib" | "gb" => 30,
+        "t" | "tib" | "tb" => 40,
+        _ => return Err(format!("'{s}' is not a size (like 512MiB or 4GiB)")),
+    };
+    match number.parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 && v * ((1u64 << shift) as f64) < u64::MAX as f64 => {
+            Ok((v * (1u64 << shift) as f64) as u64)
+        }
+        _ => Err(format!("'{s}' is not a size (like 512MiB or 4GiB)")),
+    }
+}
+
+/// A finite number from 0.
+pub fn non_negative(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!("'{s}' is not a number from 0")),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -115,5 +147,13 @@ mod tests {
         assert!(color_mode("rainbow").is_err());
         assert!(positive("0").is_err());
         assert!(positive("inf").is_err());
+        assert_eq!(bytes("512MiB"), Ok(512 << 20));
+        assert_eq!(bytes("4GiB"), Ok(4 << 30));
+        assert_eq!(bytes("1.5G"), Ok(3 << 29));
+        assert_eq!(bytes("65536"), Ok(65536));
+        assert!(bytes("lots").is_err());
+        assert!(bytes("-1G").is_err());
+        assert_eq!(non_negative("0"), Ok(0.0));
+        assert!(non_negative("NaN").is_err());
     }
 }

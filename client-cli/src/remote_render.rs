@@ -27,6 +27,12 @@ fn refuse_local_only_options(args: &RenderArgs, request: &RenderRequest) -> Resu
              use `jobs show --json` for a server job's frames"
         );
     }
+    if let Some(flag) = args.lod_flag() {
+        bail!(
+            "{flag} sets this machine's level-of-detail rendering and is not available \
+             through a server yet; render locally to use it"
+        );
+    }
     if args.atomics() != AtomicsMode::Auto {
         bail!(
             "--atomics chooses this machine's point pass and is not available through a \

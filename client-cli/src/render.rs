@@ -3,16 +3,16 @@
 
 use std::path::Path;
 use std::sync::Arc;
-use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
-use pointfarm_render::cloud::PointCloud;
-use pointfarm_render::color::point_colors;
 use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
-use pointfarm_render::ingest::{dataset_files, load_dataset};
-use pointfarm_render::raster::{Frame, FrameSettings, Renderer, Stage, StageTimings};
+use pointfarm_render::ingest::{dataset_files, dataset_point_count};
+use pointfarm_render::raster::{FrameSettings, Stage, StageTimings};
+
+use crate::frame_source::{FrameSource, RenderedFrame};
+use crate::lod_store::default_cache_dir;
 
 pub use crate::render_args::RenderArgs;
 
@@ -23,16 +23,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         return crate::remote_render::run(&server, &args, &request);
     }
 
-    let started = Instant::now();
     let files = dataset_files(&args.inputs)?;
-    let spinner = spinner(match files.as_slice() {
-        [one] => format!("reading {}", one.display()),
-        many => format!("reading {} files", many.len()),
-    });
-    let cloud = load_dataset(&files);
-    spinner.finish_and_clear();
-    let mut cloud = cloud?;
-    cloud.colors = point_colors(&cloud, request.render.color_mode);
     // With --json, standard output carries only the frames' objects.
     let say = |line: String| {
         if args.json {
@@ -41,27 +32,34 @@ pub fn run(args: RenderArgs) -> Result<()> {
             println!("{line}");
         }
     };
-    say(format!(
-        "{}: {} points in {} file{}, colour from {:?}, read in {:.0} ms",
-        args.inputs_label(),
-        cloud.len(),
-        files.len(),
-        if files.len() == 1 { "" } else { "s" },
-        cloud.color_source,
-        started.elapsed().as_secs_f64() * 1e3
-    ));
-
+    let points = dataset_point_count(&files)?;
+    let label = args.inputs_label();
+    let say_input = |line: String| say(format!("{label}: {line}"));
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
+    let color_mode = request.render.color_mode;
+    let mut source = match args.cut_options(points)? {
+        None => FrameSource::resident(Arc::clone(&gpu), &files, color_mode, &say_input)?,
+        Some(options) => {
+            let cache_dir = args.cache_dir.clone().unwrap_or_else(default_cache_dir);
+            FrameSource::cut(
+                Arc::clone(&gpu),
+                &files,
+                &cache_dir,
+                options,
+                color_mode,
+                &say_input,
+            )?
+        }
+    };
     say(format!("adapter: {}", gpu.describe()));
-    let mut renderer = Renderer::new(gpu);
+    let bounds = source.bounds();
     let settings = |index: u32| FrameSettings {
         atomics: args.atomics(),
-        ..request.frame_settings(index, &cloud.bounds)
+        ..request.frame_settings(index, &bounds)
     };
     // Refuse sizes this adapter cannot hold, or cameras the cloud makes invalid, before the
-    // upload.
-    renderer.validate(&settings(0))?;
-    let resident = renderer.upload(&cloud)?;
+    // first frame.
+    source.renderer().validate(&settings(0))?;
 
     if args.turntable.is_none() {
         if args.out.is_dir() {
@@ -71,18 +69,17 @@ pub fn run(args: RenderArgs) -> Result<()> {
             );
         }
         let base = settings(0);
-        let mut frame = renderer.render(&resident, &base)?;
-        encode::save_png(&mut frame, &args.out)
+        let mut rendered = source.render(&base)?;
+        encode::save_png(&mut rendered.frame, &args.out)
             .with_context(|| format!("writing {}", args.out.display()))?;
         if request.render.depth {
-            save_depth(&frame, &args.out.with_extension("depth.png"), &base)?;
+            save_depth(
+                &rendered.frame,
+                &args.out.with_extension("depth.png"),
+                &base,
+            )?;
         }
-        if args.json {
-            let report = frame_json(0, &args.out, &base, &frame, &cloud, &renderer);
-            println!("{report}");
-        } else {
-            println!("{}  {}", args.out.display(), frame.timings);
-        }
+        report_frame(&args, 0, &args.out, &base, &rendered, None);
         return Ok(());
     }
     let frames = request.frames();
@@ -95,26 +92,20 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let mut all = Vec::with_capacity(frames as usize);
     for i in 0..frames {
         let frame_settings = settings(i);
-        let mut frame = renderer.render(&resident, &frame_settings)?;
+        let mut rendered = source.render(&frame_settings)?;
+        // The next frame's nodes load while this one is encoded and written.
+        if i + 1 < frames {
+            source.read_ahead(&settings(i + 1));
+        }
         let path = args.out.join(format!("frame_{i:05}.png"));
-        encode::save_png(&mut frame, &path)
+        encode::save_png(&mut rendered.frame, &path)
             .with_context(|| format!("writing {}", path.display()))?;
         if request.render.depth {
             let depth = args.out.join(format!("depth_{i:05}.png"));
-            save_depth(&frame, &depth, &frame_settings)?;
+            save_depth(&rendered.frame, &depth, &frame_settings)?;
         }
-        if args.json {
-            let report = frame_json(i, &path, &frame_settings, &frame, &cloud, &renderer);
-            println!("{report}");
-        } else {
-            let line = format!("{}  {}", path.display(), frame.timings);
-            if progress.is_hidden() {
-                println!("{line}"); // not a terminal: plain lines for logs and scripts
-            } else {
-                progress.println(line);
-            }
-        }
-        all.push(frame.timings);
+        report_frame(&args, i, &path, &frame_settings, &rendered, Some(&progress));
+        all.push(rendered.frame.timings);
         progress.inc(1);
     }
     progress.finish_and_clear();
@@ -128,30 +119,66 @@ pub fn run(args: RenderArgs) -> Result<()> {
     Ok(())
 }
 
+/// A frame's line (or its JSON object with --json), above the progress bar if there is one.
+fn report_frame(
+    args: &RenderArgs,
+    index: u32,
+    path: &Path,
+    settings: &FrameSettings,
+    rendered: &RenderedFrame,
+    progress: Option<&ProgressBar>,
+) {
+    let line = if args.json {
+        frame_json(index, path, settings, rendered).to_string()
+    } else {
+        let mut line = format!("{}  {}", path.display(), rendered.frame.timings);
+        if let Some(cut) = &rendered.cut {
+            line.push_str(&format!(
+                "  | cut {} nodes, {} points; read {} nodes ({:.1} MiB), host hits {}, GPU hits {}",
+                cut.nodes,
+                cut.points_rendered,
+                cut.nodes_read,
+                cut.bytes_read as f64 / f64::from(1 << 20),
+                cut.host_hits,
+                cut.gpu_hits
+            ));
+        }
+        line
+    };
+    match progress {
+        // Not a terminal: plain lines for logs and scripts.
+        Some(progress) if !progress.is_hidden() => progress.println(line),
+        _ => println!("{line}"),
+    }
+}
+
 /// One frame as `render --json` reports it.
 fn frame_json(
     index: u32,
     path: &Path,
     settings: &FrameSettings,
-    frame: &Frame,
-    cloud: &PointCloud,
-    renderer: &Renderer,
+    rendered: &RenderedFrame,
 ) -> serde_json::Value {
-    let timings: serde_json::Map<String, serde_json::Value> = frame
+    let timings: serde_json::Map<String, serde_json::Value> = rendered
+        .frame
         .timings
         .stages
         .iter()
         .map(|t| (t.stage.name().to_string(), serde_json::json!(t.ms)))
         .collect();
-    serde_json::json!({
+    let mut object = serde_json::json!({
         "frame": index,
         "path": path.display().to_string(),
         "width": settings.width,
         "height": settings.height,
-        "points_total": cloud.len(),
-        "points_rendered": renderer.listed_points(),
+        "points_total": rendered.points_total,
+        "points_rendered": rendered.points_rendered,
         "timings_ms": timings,
-    })
+    });
+    if let Some(cut) = &rendered.cut {
+        object["cut"] = serde_json::to_value(cut).unwrap_or_default();
+    }
+    object
 }
 
 fn save_depth(
@@ -170,6 +197,8 @@ fn print_summary(dir: &Path, frames: &[StageTimings]) {
         dir.display()
     );
     for stage in [
+        Stage::Select,
+        Stage::Load,
         Stage::Upload,
         Stage::Cull,
         Stage::Rasterize,
@@ -188,7 +217,7 @@ fn print_summary(dir: &Path, frames: &[StageTimings]) {
     }
 }
 
-fn spinner(message: String) -> ProgressBar {
+pub(crate) fn spinner(message: String) -> ProgressBar {
     let spinner = ProgressBar::new_spinner().with_message(message);
     spinner.enable_steady_tick(std::time::Duration::from_millis(100));
     spinner

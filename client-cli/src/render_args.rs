@@ -9,6 +9,7 @@ use clap::{Args, ValueEnum};
 use glam::DVec3;
 use pointfarm_render::camera::DEFAULT_FOV_Y_DEG;
 use pointfarm_render::color::ColorMode;
+use pointfarm_render::cut::{CutOptions, RESIDENT_MAX_POINTS};
 use pointfarm_render::gpu::AdapterChoice;
 use pointfarm_render::raster::{
     AtomicsMode, FillSettings, Quality, Shading, DEFAULT_BACKGROUND, DEFAULT_DEPTH_BAND,
@@ -139,6 +140,23 @@ pub struct RenderArgs {
     /// Local only.
     #[arg(long, value_enum, default_value = "auto")]
     atomics: AtomicsArg,
+    /// Render from levels of detail: a node is refined while its point spacing covers more
+    /// than PX pixels on screen (0: every point). Datasets of more than 20M points use them
+    /// anyway, at 1 pixel. The store is built once and kept in --cache-dir. Local only.
+    #[arg(long, value_name = "PX", value_parser = parse::non_negative)]
+    lod_error: Option<f64>,
+    /// Levels of detail: host memory for the node cache and the store's build, e.g. 512MiB
+    /// or 4GiB; on a software adapter (lavapipe) the GPU node cache's share too. Local only.
+    #[arg(long, value_name = "SIZE", value_parser = parse::bytes)]
+    memory_budget: Option<u64>,
+    /// Levels of detail: GPU memory for the node cache (default 2GiB; on a software adapter
+    /// half of --memory-budget). Local only.
+    #[arg(long, value_name = "SIZE", value_parser = parse::bytes)]
+    gpu_budget: Option<u64>,
+    /// Where level-of-detail stores are kept between renders (default
+    /// $XDG_CACHE_HOME/pointfarm or ~/.cache/pointfarm).
+    #[arg(long, env = "POINTFARM_CACHE_DIR", value_name = "DIR")]
+    pub(crate) cache_dir: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -233,6 +251,33 @@ impl RenderArgs {
         };
         request.validate()?;
         Ok(request)
+    }
+
+    /// The first level-of-detail option given, to name it where it does not apply.
+    pub(crate) fn lod_flag(&self) -> Option<&'static str> {
+        [
+            ("--lod-error", self.lod_error.is_some()),
+            ("--memory-budget", self.memory_budget.is_some()),
+            ("--gpu-budget", self.gpu_budget.is_some()),
+        ]
+        .into_iter()
+        .find_map(|(flag, given)| given.then_some(flag))
+    }
+
+    /// The cut options when the arguments ask for levels of detail, or a dataset of
+    /// `points` needs them; `None` renders the dataset resident.
+    pub(crate) fn cut_options(&self, points: u64) -> Result<Option<CutOptions>> {
+        if self.lod_flag().is_none() && points <= RESIDENT_MAX_POINTS {
+            return Ok(None);
+        }
+        let defaults = CutOptions::default();
+        let options = CutOptions {
+            lod_error: self.lod_error.unwrap_or(defaults.lod_error),
+            memory_budget_bytes: self.memory_budget.unwrap_or(defaults.memory_budget_bytes),
+            gpu_budget_bytes: self.gpu_budget,
+        };
+        options.validate()?;
+        Ok(Some(options))
     }
 
     /// The atomics of the local point pass (a property of this machine's adapter, not of

@@ -59,42 +59,54 @@ pub fn intensity_grey(intensity: &[u16]) -> Option<Vec<u32>> {
     if intensity.iter().all(|&i| i == 0) {
         return None;
     }
-    let (low, high) = intensity_percentiles(intensity);
-    let span = f32::from(high.saturating_sub(low).max(1));
-    let grey_span = f32::from(u8::MAX - INTENSITY_GREY_MIN);
-    let colors = intensity
-        .iter()
-        .map(|&i| {
-            let t = ((f32::from(i) - f32::from(low)) / span).clamp(0.0, 1.0);
-            let grey = INTENSITY_GREY_MIN + (t * grey_span).round() as u8;
-            pack_rgba8(grey, grey, grey)
-        })
-        .collect();
-    Some(colors)
-}
-
-/// The low and high stretch percentiles, from a full 16-bit histogram (linear time, exact).
-fn intensity_percentiles(intensity: &[u16]) -> (u16, u16) {
     let mut histogram = vec![0u64; usize::from(u16::MAX) + 1];
     for &i in intensity {
         histogram[usize::from(i)] += 1;
     }
-    let count = intensity.len() as f64;
-    let rank = |fraction: f64| ((count - 1.0) * fraction).round() as u64;
-    let value_at_rank = |rank: u64| {
-        let mut seen = 0;
-        for (value, &n) in histogram.iter().enumerate() {
-            seen += n;
-            if seen > rank {
-                return value as u16;
-            }
+    let range = IntensityRange::from_histogram(&histogram)?;
+    Some(intensity.iter().map(|&i| range.grey(i)).collect())
+}
+
+/// The robust range intensity is stretched over, and the grey of a value in it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct IntensityRange {
+    pub low: u16,
+    pub high: u16,
+}
+
+impl IntensityRange {
+    /// The low and high stretch percentiles of a full 16-bit histogram (linear time, exact);
+    /// `None` when every intensity is zero (the files have none).
+    pub fn from_histogram(histogram: &[u64]) -> Option<Self> {
+        let count: u64 = histogram.iter().sum();
+        if count == histogram.first().copied().unwrap_or(0) {
+            return None;
         }
-        u16::MAX
-    };
-    (
-        value_at_rank(rank(LOW_PERCENTILE)),
-        value_at_rank(rank(HIGH_PERCENTILE)),
-    )
+        let rank = |fraction: f64| ((count - 1) as f64 * fraction).round() as u64;
+        let value_at_rank = |rank: u64| {
+            let mut seen = 0;
+            for (value, &n) in histogram.iter().enumerate() {
+                seen += n;
+                if seen > rank {
+                    return value as u16;
+                }
+            }
+            u16::MAX
+        };
+        Some(Self {
+            low: value_at_rank(rank(LOW_PERCENTILE)),
+            high: value_at_rank(rank(HIGH_PERCENTILE)),
+        })
+    }
+
+    /// Grey stretched onto `INTENSITY_GREY_MIN..=255`.
+    pub fn grey(&self, intensity: u16) -> u32 {
+        let span = f32::from(self.high.saturating_sub(self.low).max(1));
+        let grey_span = f32::from(u8::MAX - INTENSITY_GREY_MIN);
+        let t = ((f32::from(intensity) - f32::from(self.low)) / span).clamp(0.0, 1.0);
+        let grey = INTENSITY_GREY_MIN + (t * grey_span).round() as u8;
+        pack_rgba8(grey, grey, grey)
+    }
 }
 
 /// Viridis at eleven evenly spaced stops (perceptually uniform, readable by colour-blind
@@ -125,22 +137,37 @@ pub fn viridis(t: f32) -> [u8; 3] {
 fn elevation_colors(cloud: &PointCloud) -> Vec<u32> {
     // Heights relative to the origin: the f32 offsets keep full precision.
     let mut heights: Vec<f32> = cloud.positions.iter().map(|p| p.z).collect();
-    if heights.is_empty() {
+    let Some(range) = ElevationRange::of(&mut heights) else {
         return Vec::new();
+    };
+    cloud.positions.iter().map(|p| range.color(p.z)).collect()
+}
+
+/// The robust range of heights the viridis map spans (relative to the origin).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ElevationRange {
+    pub low: f32,
+    pub high: f32,
+}
+
+impl ElevationRange {
+    /// The 2nd and 98th percentiles of `heights` (reordered); `None` when empty.
+    pub fn of(heights: &mut [f32]) -> Option<Self> {
+        if heights.is_empty() {
+            return None;
+        }
+        let rank = |fraction: f64| ((heights.len() - 1) as f64 * fraction).round() as usize;
+        let (low_rank, high_rank) = (rank(LOW_PERCENTILE), rank(HIGH_PERCENTILE));
+        let low = *heights.select_nth_unstable_by(low_rank, f32::total_cmp).1;
+        let high = *heights.select_nth_unstable_by(high_rank, f32::total_cmp).1;
+        Some(Self { low, high })
     }
-    let rank = |fraction: f64| ((heights.len() - 1) as f64 * fraction).round() as usize;
-    let (low_rank, high_rank) = (rank(LOW_PERCENTILE), rank(HIGH_PERCENTILE));
-    let low = *heights.select_nth_unstable_by(low_rank, f32::total_cmp).1;
-    let high = *heights.select_nth_unstable_by(high_rank, f32::total_cmp).1;
-    let span = (high - low).max(f32::MIN_POSITIVE);
-    cloud
-        .positions
-        .iter()
-        .map(|p| {
-            let [r, g, b] = viridis((p.z - low) / span);
-            pack_rgba8(r, g, b)
-        })
-        .collect()
+
+    pub fn color(&self, height: f32) -> u32 {
+        let span = (self.high - self.low).max(f32::MIN_POSITIVE);
+        let [r, g, b] = viridis((height - self.low) / span);
+        pack_rgba8(r, g, b)
+    }
 }
 
 /// The ASPRS standard classes (LAS 1.4 R15, table 17) in the colours viewers commonly use.
@@ -175,7 +202,7 @@ pub fn classification_color(class: u8) -> u32 {
     pack_rgba8(r, g, b)
 }
 
-fn return_color(return_number: u8) -> u32 {
+pub fn return_color(return_number: u8) -> u32 {
     let [r, g, b] = match return_number {
         0 | 1 => [230, 230, 230], // single or first return (0: not recorded)
         2 => [250, 170, 40],

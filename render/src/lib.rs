@@ -8,6 +8,7 @@ pub mod cache;
 pub mod camera;
 pub mod cloud;
 pub mod color;
+pub mod cut;
 pub mod encode;
 pub mod gpu;
 pub mod ingest;

@@ -89,6 +89,15 @@ pub(super) fn usable(bounds: &WorldBounds) -> bool {
 }
 
 /// A file of a dataset that passed the pre-parse, with what its header says.
+/// The points a dataset's files declare, each file checked as a load checks it: what a caller
+/// reads to choose how to render a dataset before it reads a point.
+pub fn dataset_point_count(paths: &[PathBuf]) -> Result<u64, IngestError> {
+    Ok(DatasetFile::check_all(paths)?
+        .iter()
+        .map(|file| file.facts.declared_points)
+        .sum())
+}
+
 pub(super) struct DatasetFile {
     pub path: PathBuf,
     file_len: u64,

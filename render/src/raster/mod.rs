@@ -13,16 +13,16 @@
 //! cloud's GPU buffers and outlives any number of frames.
 
 mod basic_pass;
-mod culling;
+pub(crate) mod culling;
 mod downsample;
 mod draw_order;
 mod edl_pass;
 mod error;
 mod fill_pass;
 mod frame;
-mod gpu_data;
+pub(crate) mod gpu_data;
 mod hq_pass;
-mod morton;
+pub(crate) mod morton;
 mod occlusion;
 mod phases;
 mod pintus_pass;
@@ -32,7 +32,7 @@ mod point_pipelines;
 mod point_workgroup;
 #[cfg(feature = "pointlist-baseline")]
 mod pointlist_baseline;
-mod points;
+pub(crate) mod points;
 mod resolve_pass;
 mod screen_params;
 mod settings;
@@ -133,6 +133,11 @@ impl Renderer {
             max_chunk_points,
             gpu,
         }
+    }
+
+    /// The most points one chunk (one storage binding) may hold on this adapter.
+    pub(crate) fn max_chunk_points(&self) -> usize {
+        self.max_chunk_points
     }
 
     pub fn gpu(&self) -> &GpuContext {

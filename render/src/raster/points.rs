@@ -68,6 +68,51 @@ pub(crate) struct PointChunk {
 }
 
 impl PointChunk {
+    /// An empty page of the GPU node cache: room for `capacity` points (a multiple of
+    /// [`BATCH_POINTS`]), written batch slot by batch slot, its batch table set per frame
+    /// (`cut/gpu_cache.rs`).
+    pub(crate) fn page(gpu: &GpuContext, index: usize, capacity: usize) -> Self {
+        let buffer = |what: &str, size: u64| {
+            gpu.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(&format!("node page {index} {what}")),
+                size,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        let slots = capacity.div_ceil(BATCH_POINTS) as u64;
+        let capacity = capacity as u64;
+        Self {
+            positions: buffer(
+                "positions",
+                capacity * std::mem::size_of::<QuantisedPosition>() as u64,
+            ),
+            colors: buffer("colors", capacity * COLOR_BYTES + 8), // the spare words of `colors`
+            batches: buffer("batches", slots * std::mem::size_of::<GpuBatch>() as u64),
+            batch_table: Vec::new(),
+            sub_batches: Vec::new(),
+            groups: Vec::new(),
+            draw_orders: DrawOrders::default(),
+        }
+    }
+
+    /// Sets the batches a frame draws from this chunk (their points already written), on the
+    /// host and in its GPU table.
+    pub(crate) fn set_batches(
+        &mut self,
+        queue: &wgpu::Queue,
+        batches: Vec<GpuBatch>,
+        sub_batches: Vec<GpuBatch>,
+    ) {
+        if !batches.is_empty() {
+            queue.write_buffer(&self.batches, 0, bytemuck::cast_slice(&batches));
+        }
+        self.groups = batch_groups(&batches);
+        self.draw_orders = DrawOrders::default();
+        self.batch_table = batches;
+        self.sub_batches = sub_batches;
+    }
+
     pub(crate) fn tables(&self) -> BatchTables<'_> {
         BatchTables {
             batches: &self.batch_table,
@@ -157,6 +202,24 @@ impl GpuPointCloud {
     /// [`Self::gpu_bytes`] per point.
     pub fn gpu_bytes_per_point(&self) -> f64 {
         self.gpu_bytes() as f64 / self.point_count.max(1) as f64
+    }
+
+    /// A cloud of node-cache pages, filled and given its batches frame by frame.
+    pub(crate) fn of_pages(origin: glam::DVec3) -> Self {
+        Self {
+            chunks: Vec::new(),
+            origin,
+            point_count: 0,
+            unreported_upload_ms: Mutex::new(None),
+        }
+    }
+
+    /// The points a frame of pages draws, and the time their transfers took.
+    pub(crate) fn set_frame_points(&mut self, points: usize, upload_ms: f64) {
+        self.point_count = points;
+        if let Ok(mut pending) = self.unreported_upload_ms.lock() {
+            *pending = Some(pending.unwrap_or(0.0) + upload_ms);
+        }
     }
 
     pub(crate) fn take_upload_ms(&self) -> f64 {
@@ -258,17 +321,20 @@ impl GpuPointCloud {
     }
 }
 
-/// One chunk's buffers, built on the host.
-struct ChunkData {
-    positions: Vec<QuantisedPosition>,
-    colors: Vec<u8>,
-    batches: Vec<GpuBatch>,
-    sub_batches: Vec<GpuBatch>,
+/// One chunk's buffers, built on the host (also a level-of-detail node's, before it is
+/// written into the pages of the GPU node cache, `cut/gpu_cache.rs`).
+pub(crate) struct ChunkData {
+    pub positions: Vec<QuantisedPosition>,
+    /// RGB bytes per point and one spare word (see [`PointChunk::colors`]).
+    pub colors: Vec<u8>,
+    /// `first` counts from the chunk's first point.
+    pub batches: Vec<GpuBatch>,
+    pub sub_batches: Vec<GpuBatch>,
 }
 
 impl ChunkData {
     /// Batches, bounds and quantises points in their final order.
-    fn new(positions: &[Vec3], colors: impl Iterator<Item = u32>) -> Self {
+    pub(crate) fn new(positions: &[Vec3], colors: impl Iterator<Item = u32>) -> Self {
         let mut quantised = Vec::with_capacity(positions.len());
         let mut batches = Vec::with_capacity(positions.len().div_ceil(BATCH_POINTS));
         let mut sub_batches = Vec::with_capacity(positions.len().div_ceil(SUB_BATCH_POINTS));

@@ -6,6 +6,11 @@ use std::fmt;
 /// A stage of producing a frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Stage {
+    /// Levels of detail: the frame's cut chosen from the hierarchy (`cut/select.rs`).
+    Select,
+    /// Levels of detail: the cut's missing nodes read from the store or the host cache,
+    /// decoded, coloured and quantised for the GPU (their transfer is "upload").
+    Load,
     /// Host-to-GPU transfers: per-frame uniforms, and the points on the first frame of a cloud.
     Upload,
     /// On the host: the batches that can be in view, culled against the frustum and put in
@@ -36,6 +41,8 @@ pub enum Stage {
 impl Stage {
     pub fn name(self) -> &'static str {
         match self {
+            Stage::Select => "select",
+            Stage::Load => "load",
             Stage::Upload => "upload",
             Stage::Cull => "cull",
             Stage::Rasterize => "rasterize",

@@ -17,7 +17,7 @@ pub(super) struct InView {
 }
 
 /// The frustum planes of one frame in homogeneous clip space, widened for the point size.
-pub(super) struct Frustum {
+pub(crate) struct Frustum {
     transform: CameraTransform,
     /// Pixels a splat reaches beyond its centre's pixel, plus one for the shaders' f32.
     margin: f64,
@@ -28,7 +28,7 @@ pub(super) struct Frustum {
 }
 
 impl Frustum {
-    pub fn new(transform: &CameraTransform, point_size: u32) -> Self {
+    pub(crate) fn new(transform: &CameraTransform, point_size: u32) -> Self {
         // A splat reaches point_size pixels beyond its centre's pixel; one more pixel covers
         // the shaders' f32 rounding.
         let margin = f64::from(point_size) + 1.0;
@@ -46,7 +46,7 @@ impl Frustum {
 
     /// Whether no point in `batch`'s box can show in the image: all its corners lie beyond
     /// one plane. [`Frustum::view_of`]'s test without the footprint.
-    pub fn excludes(&self, batch: &GpuBatch) -> bool {
+    pub(crate) fn excludes(&self, batch: &GpuBatch) -> bool {
         self.beyond_one_plane(&self.corners(batch))
     }
 
@@ -98,7 +98,7 @@ impl Frustum {
 
     /// `None` when no point in `batch`'s box can show in the image (all its corners lie
     /// beyond one plane); else the pixels its points can touch.
-    pub fn view_of(&self, batch: &GpuBatch) -> Option<InView> {
+    pub(super) fn view_of(&self, batch: &GpuBatch) -> Option<InView> {
         let corners = self.corners(batch);
         if self.beyond_one_plane(&corners) {
             return None;

@@ -36,6 +36,7 @@ mod frustum;
 mod listing;
 
 pub(crate) use batch_table::FrameBatches;
+pub(crate) use frustum::Frustum;
 
 #[cfg(test)]
 use crate::raster::gpu_data::GpuBatch;

@@ -1,0 +1,157 @@
+//! What local frames are rendered from: the whole dataset resident on the GPU, or cuts of its
+//! level-of-detail store through bounded node caches. Both give a frame and what it drew.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::Result;
+use pointfarm_render::cloud::WorldBounds;
+use pointfarm_render::color::{point_colors, ColorMode};
+use pointfarm_render::cut::{CutOptions, CutRenderer, CutReport};
+use pointfarm_render::gpu::GpuContext;
+use pointfarm_render::ingest::load_dataset;
+use pointfarm_render::raster::{Frame, FrameSettings, GpuPointCloud, Renderer};
+
+use crate::lod_store::{open_or_build, LocalLod};
+
+/// A frame and what it drew.
+pub struct RenderedFrame {
+    pub frame: Frame,
+    pub points_total: u64,
+    pub points_rendered: u64,
+    /// The cut's nodes, caches and loads, when the frame came from a store.
+    pub cut: Option<CutReport>,
+}
+
+pub enum FrameSource {
+    Resident {
+        renderer: Renderer,
+        cloud: GpuPointCloud,
+        bounds: WorldBounds,
+    },
+    Cut {
+        renderer: Renderer,
+        cut: Box<CutRenderer>,
+        lod: Box<LocalLod>,
+        color_mode: ColorMode,
+    },
+}
+
+impl FrameSource {
+    /// The dataset read whole, coloured and uploaded.
+    pub fn resident(
+        gpu: Arc<GpuContext>,
+        files: &[PathBuf],
+        color_mode: ColorMode,
+        say: &dyn Fn(String),
+    ) -> Result<Self> {
+        let started = Instant::now();
+        let spinner = crate::render::spinner(match files {
+            [one] => format!("reading {}", one.display()),
+            many => format!("reading {} files", many.len()),
+        });
+        let cloud = load_dataset(files);
+        spinner.finish_and_clear();
+        let mut cloud = cloud?;
+        cloud.colors = point_colors(&cloud, color_mode);
+        say(format!(
+            "{} points in {} file{}, colour from {:?}, read in {:.0} ms",
+            cloud.len(),
+            files.len(),
+            if files.len() == 1 { "" } else { "s" },
+            cloud.color_source,
+            started.elapsed().as_secs_f64() * 1e3
+        ));
+        let renderer = Renderer::new(gpu);
+        let bounds = cloud.bounds;
+        let resident = renderer.upload(&cloud)?;
+        Ok(Self::Resident {
+            renderer,
+            cloud: resident,
+            bounds,
+        })
+    }
+
+    /// The dataset's store, built first if the cache folder has none, rendered cut by cut.
+    pub fn cut(
+        gpu: Arc<GpuContext>,
+        files: &[PathBuf],
+        cache_dir: &std::path::Path,
+        options: CutOptions,
+        color_mode: ColorMode,
+        say: &dyn Fn(String),
+    ) -> Result<Self> {
+        let renderer = Renderer::new(gpu);
+        let lod = open_or_build(files, cache_dir, options.memory_budget_bytes, say)?;
+        let cut = CutRenderer::new(&renderer, &lod.dataset, options)?;
+        let budgets = cut.budgets();
+        say(format!(
+            "{} points in {} file{}, levels of detail from {}; node caches: host {} MiB, GPU {} MiB; pixel error {}",
+            lod.dataset.point_count(),
+            files.len(),
+            if files.len() == 1 { "" } else { "s" },
+            lod.folder.display(),
+            budgets.host_bytes >> 20,
+            budgets.gpu_bytes >> 20,
+            options.lod_error,
+        ));
+        Ok(Self::Cut {
+            renderer,
+            cut: Box::new(cut),
+            lod: Box::new(lod),
+            color_mode,
+        })
+    }
+
+    /// The bounds the automatic camera frames.
+    pub fn bounds(&self) -> WorldBounds {
+        match self {
+            Self::Resident { bounds, .. } => *bounds,
+            Self::Cut { lod, .. } => lod.dataset.bounds(),
+        }
+    }
+
+    pub fn renderer(&self) -> &Renderer {
+        match self {
+            Self::Resident { renderer, .. } | Self::Cut { renderer, .. } => renderer,
+        }
+    }
+
+    pub fn render(&mut self, settings: &FrameSettings) -> Result<RenderedFrame> {
+        match self {
+            Self::Resident {
+                renderer, cloud, ..
+            } => {
+                let frame = renderer.render(cloud, settings)?;
+                Ok(RenderedFrame {
+                    frame,
+                    points_total: cloud.len() as u64,
+                    points_rendered: renderer.listed_points(),
+                    cut: None,
+                })
+            }
+            Self::Cut {
+                renderer,
+                cut,
+                lod,
+                color_mode,
+            } => {
+                let (frame, report) = cut.render(renderer, &lod.dataset, settings, *color_mode)?;
+                Ok(RenderedFrame {
+                    frame,
+                    points_total: report.points_total,
+                    points_rendered: report.points_rendered,
+                    cut: Some(report),
+                })
+            }
+        }
+    }
+
+    /// Starts loading the nodes of the next frame while this one is written.
+    pub fn read_ahead(&mut self, settings: &FrameSettings) {
+        if let Self::Cut { cut, lod, .. } = self {
+            cut.read_ahead(&lod.dataset, settings);
+        }
+    }
+}

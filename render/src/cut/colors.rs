@@ -1,0 +1,90 @@
+//! `NodeColoring`: the colour of each point of a node, decided once for the whole dataset.
+//!
+//! A colour mode's ranges are the dataset's, never a node's, or neighbouring nodes would not
+//! match: the RGB decision (8-bit values in 16-bit fields, or 16-bit) and the intensity
+//! percentiles come from the statistics of every point gathered while the store was built;
+//! the elevation percentiles from the coarsest nodes, a spatially even sample of the dataset.
+
+use glam::DVec3;
+
+use crate::cloud::pack_rgba8;
+use crate::color::{
+    classification_color, return_color, ColorMode, ElevationRange, IntensityRange,
+    CONSTANT_GREY_RGBA,
+};
+use crate::lod::{DatasetStats, NodePoints};
+
+/// Points of the coarsest nodes the elevation range is taken from, at least.
+pub const ELEVATION_SAMPLE_POINTS: u64 = 1 << 20;
+
+/// What colouring needs of a dataset.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DatasetColoring {
+    /// Whether the RGB fields hold 8-bit values (no channel above 255); `None` without RGB.
+    rgb_is_8_bit: Option<bool>,
+    intensity: Option<IntensityRange>,
+    /// Heights relative to the rendering origin.
+    elevation: Option<ElevationRange>,
+}
+
+impl DatasetColoring {
+    /// From the store's statistics and the heights (relative to the origin) of a sample.
+    pub fn new(stats: &DatasetStats, mut sample_heights: Vec<f32>) -> Self {
+        Self {
+            rgb_is_8_bit: stats.has_rgb.then(|| stats.max_rgb_channel() <= 255),
+            intensity: IntensityRange::from_histogram(&stats.intensity_histogram),
+            elevation: ElevationRange::of(&mut sample_heights),
+        }
+    }
+
+    /// The colours of `node`'s points (RGBA8), its positions relative to `origin` given.
+    pub fn colors(&self, node: &NodePoints, heights: &[f32], mode: ColorMode) -> Vec<u32> {
+        let n = node.len();
+        match mode {
+            ColorMode::Rgb => match (&node.rgb, self.rgb_is_8_bit) {
+                (Some(rgb), Some(eight_bit)) => {
+                    let shift = if eight_bit { 0 } else { 8 };
+                    rgb.iter()
+                        .map(|c| {
+                            let [r, g, b] = c.map(|v| (v >> shift) as u8);
+                            pack_rgba8(r, g, b)
+                        })
+                        .collect()
+                }
+                _ => self.intensity_colors(node),
+            },
+            ColorMode::Intensity => self.intensity_colors(node),
+            ColorMode::Elevation => match self.elevation {
+                Some(range) => heights.iter().map(|&z| range.color(z)).collect(),
+                None => vec![CONSTANT_GREY_RGBA; n],
+            },
+            ColorMode::Classification => node
+                .classification
+                .iter()
+                .map(|&c| classification_color(c))
+                .collect(),
+            ColorMode::ReturnNumber => node
+                .return_number
+                .iter()
+                .map(|&r| return_color(r))
+                .collect(),
+            ColorMode::Fixed([r, g, b]) => vec![pack_rgba8(r, g, b); n],
+        }
+    }
+
+    fn intensity_colors(&self, node: &NodePoints) -> Vec<u32> {
+        match self.intensity {
+            Some(range) => node.intensity.iter().map(|&i| range.grey(i)).collect(),
+            None => vec![CONSTANT_GREY_RGBA; node.len()],
+        }
+    }
+}
+
+/// Heights of a node's points relative to `origin` (f64, then f32, as positions are).
+pub fn node_heights(node: &NodePoints, origin: DVec3) -> Vec<f32> {
+    let base = node.cube_min.z - origin.z;
+    node.quantised
+        .iter()
+        .map(|q| (base + (f64::from(q[2]) + 0.5) * node.step) as f32)
+        .collect()
+}

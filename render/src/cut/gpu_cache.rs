@@ -1,0 +1,260 @@
+//! `GpuNodeCache`: nodes resident on the GPU, in pages of batch slots, least recently used
+//! first out, within a byte bound.
+//!
+//! A page is one chunk of the renderer's cloud (`raster/points.rs`): a positions, a colours
+//! and a batch buffer of a fixed number of batch slots. A node takes one slot per batch of its
+//! points (a node is at most tens of thousands of points, a batch 4096), anywhere in any page,
+//! so the cache never fragments. Each frame every page's batch table is set to the batches of
+//! the cut's nodes it holds, in key order, and the renderer draws the pages as it draws any
+//! cloud: the batch culling, the draw order, the phases and the occlusion tiles work inside
+//! the nodes unchanged.
+//!
+//! Colours are written with the points, so the cache holds one colour mode: a frame in another
+//! mode empties it.
+
+use std::collections::{BTreeMap, HashMap, HashSet};
+
+use crate::color::ColorMode;
+use crate::gpu::GpuContext;
+use crate::lod::NodeKey;
+use crate::raster::gpu_data::{GpuBatch, QuantisedPosition, COLOR_BYTES};
+use crate::raster::points::{ChunkData, GpuPointCloud, PointChunk, SUB_BATCH_POINTS};
+use crate::raster::BATCH_POINTS;
+
+/// Sub-batches per batch slot: a batch's runs are found at `slot * SUBS_PER_SLOT`.
+const SUBS_PER_SLOT: usize = BATCH_POINTS / SUB_BATCH_POINTS;
+
+/// Bytes one batch slot takes on the GPU: its points' positions and colours and its entry.
+pub const SLOT_BYTES: u64 = BATCH_POINTS as u64
+    * (std::mem::size_of::<QuantisedPosition>() as u64 + COLOR_BYTES)
+    + std::mem::size_of::<GpuBatch>() as u64;
+
+/// Bytes a page has beyond its slots: its colours' spare words (`PointChunk::page`).
+const PAGE_SPARE_BYTES: u64 = 8;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+struct Slot {
+    page: u32,
+    index: u32,
+}
+
+struct ResidentNode {
+    slots: Vec<Slot>,
+    /// Per slot: its batch (`first` at the slot's first point) and its runs, padded to
+    /// [`SUBS_PER_SLOT`].
+    batches: Vec<GpuBatch>,
+    sub_batches: Vec<GpuBatch>,
+    points: u32,
+    last_used: u64,
+}
+
+pub struct GpuNodeCache {
+    cloud: GpuPointCloud,
+    slots_per_page: usize,
+    max_pages: usize,
+    /// Free slots, the lowest first, so where a node lands depends only on what came before.
+    free: std::collections::BTreeSet<Slot>,
+    resident: HashMap<NodeKey, ResidentNode>,
+    by_use: BTreeMap<u64, NodeKey>,
+    tick: u64,
+    color_mode: Option<ColorMode>,
+}
+
+impl GpuNodeCache {
+    /// A cache of at most `budget_bytes`, in pages of at most `max_page_points` points.
+    pub fn new(origin: glam::DVec3, budget_bytes: u64, max_page_points: usize) -> Self {
+        let total_slots = (budget_bytes / SLOT_BYTES).max(1) as usize;
+        let mut slots_per_page = (max_page_points / BATCH_POINTS).clamp(1, total_slots);
+        let mut max_pages = (total_slots / slots_per_page).max(1);
+        // Every page's colour buffer has a spare word or two beyond its slots.
+        while slots_per_page > 1
+            && max_pages as u64 * (slots_per_page as u64 * SLOT_BYTES + PAGE_SPARE_BYTES)
+                > budget_bytes
+        {
+            slots_per_page -= 1;
+            max_pages = (total_slots / slots_per_page).max(1);
+        }
+        Self {
+            cloud: GpuPointCloud::of_pages(origin),
+            slots_per_page,
+            max_pages,
+            free: Default::default(),
+            resident: HashMap::new(),
+            by_use: BTreeMap::new(),
+            tick: 0,
+            color_mode: None,
+        }
+    }
+
+    /// Batch slots the cache can hold: the most a cut may take.
+    pub fn capacity_batches(&self) -> usize {
+        self.max_pages * self.slots_per_page
+    }
+
+    /// Bytes of the pages allocated so far.
+    pub fn gpu_bytes(&self) -> u64 {
+        self.cloud.gpu_bytes()
+    }
+
+    pub fn contains(&self, key: NodeKey) -> bool {
+        self.resident.contains_key(&key)
+    }
+
+    /// Empties the cache when `mode` is not the one its colours were written in.
+    pub fn use_color_mode(&mut self, mode: ColorMode) {
+        if self.color_mode != Some(mode) {
+            let keys: Vec<NodeKey> = self.resident.keys().copied().collect();
+            for key in keys {
+                self.evict(key);
+            }
+            self.color_mode = Some(mode);
+        }
+    }
+
+    /// Marks a resident node as used by this frame.
+    pub fn touch(&mut self, key: NodeKey) -> bool {
+        let Some(node) = self.resident.get_mut(&key) else {
+            return false;
+        };
+        self.by_use.remove(&node.last_used);
+        self.tick += 1;
+        node.last_used = self.tick;
+        self.by_use.insert(self.tick, key);
+        true
+    }
+
+    /// Writes a node's prepared points (`data`, batches counted from its first point) into
+    /// free slots, evicting the least recently used nodes not in `keep`. The caller has made
+    /// sure the frame's cut fits (`capacity_batches`).
+    pub fn insert(
+        &mut self,
+        gpu: &GpuContext,
+        key: NodeKey,
+        data: &ChunkData,
+        keep: &HashSet<NodeKey>,
+    ) -> Result<u64, String> {
+        let needed = data.batches.len();
+        let mut evicted = 0;
+        while self.free.len() < needed {
+            if self.cloud.chunks.len() < self.max_pages {
+                let page = self.cloud.chunks.len();
+                self.cloud.chunks.push(PointChunk::page(
+                    gpu,
+                    page,
+                    self.slots_per_page * BATCH_POINTS,
+                ));
+                self.free.extend((0..self.slots_per_page).map(|index| Slot {
+                    page: page as u32,
+                    index: index as u32,
+                }));
+                continue;
+            }
+            let oldest = self
+                .by_use
+                .values()
+                .copied()
+                .find(|k| !keep.contains(k))
+                .ok_or_else(|| {
+                    format!("the GPU node cache is full: node {key} needs {needed} batch slots")
+                })?;
+            self.evict(oldest);
+            evicted += 1;
+        }
+        let slots: Vec<Slot> = (0..needed)
+            .map(|_| self.free.pop_first().expect("counted above"))
+            .collect();
+        let mut batches = Vec::with_capacity(needed);
+        let mut sub_batches = Vec::with_capacity(needed * SUBS_PER_SLOT);
+        let position_bytes = std::mem::size_of::<QuantisedPosition>();
+        for (b, (slot, batch)) in slots.iter().zip(&data.batches).enumerate() {
+            let page = &self.cloud.chunks[slot.page as usize];
+            let base = slot.index as usize * BATCH_POINTS;
+            let (first, count) = (batch.first as usize, batch.count as usize);
+            gpu.queue.write_buffer(
+                &page.positions,
+                (base * position_bytes) as u64,
+                bytemuck::cast_slice(&data.positions[first..first + count]),
+            );
+            // Colours are written in 4-byte words: the slot's bytes are a multiple of 4 from
+            // its start, and the last slot of a node has room for the padding.
+            let color_start = first * COLOR_BYTES as usize;
+            let color_end = ((first + count) * COLOR_BYTES as usize).next_multiple_of(4);
+            let color_end = color_end.min(data.colors.len());
+            gpu.queue.write_buffer(
+                &page.colors,
+                (base * COLOR_BYTES as usize) as u64,
+                &data.colors[color_start..color_end],
+            );
+            let shift = |mut entry: GpuBatch| {
+                entry.first = entry.first - batch.first + base as u32;
+                entry
+            };
+            batches.push(shift(*batch));
+            let runs = &data.sub_batches[b * SUBS_PER_SLOT..]
+                [..count.div_ceil(SUB_BATCH_POINTS).min(SUBS_PER_SLOT)];
+            sub_batches.extend(runs.iter().map(|&run| shift(run)));
+            // Padding that the listing's walk stops at: it starts at the batch's end.
+            let end = GpuBatch {
+                first: (base + count) as u32,
+                count: 0,
+                ..*batch
+            };
+            sub_batches.resize(sub_batches.len().next_multiple_of(SUBS_PER_SLOT), end);
+        }
+        self.tick += 1;
+        self.by_use.insert(self.tick, key);
+        self.resident.insert(
+            key,
+            ResidentNode {
+                slots,
+                batches,
+                sub_batches,
+                points: data.positions.len() as u32,
+                last_used: self.tick,
+            },
+        );
+        Ok(evicted)
+    }
+
+    fn evict(&mut self, key: NodeKey) {
+        if let Some(node) = self.resident.remove(&key) {
+            self.by_use.remove(&node.last_used);
+            self.free.extend(node.slots);
+        }
+    }
+
+    /// Sets every page's batch table to the batches of `cut` (resident nodes, in key order)
+    /// and returns the cloud to render, with `upload_ms` to report as its transfers.
+    pub fn frame_cloud(
+        &mut self,
+        gpu: &GpuContext,
+        cut: &[NodeKey],
+        upload_ms: f64,
+    ) -> &GpuPointCloud {
+        let mut keys: Vec<NodeKey> = cut
+            .iter()
+            .copied()
+            .filter(|k| self.resident.contains_key(k))
+            .collect();
+        keys.sort_unstable();
+        let pages = self.cloud.chunks.len();
+        let mut tables: Vec<(Vec<GpuBatch>, Vec<GpuBatch>)> = vec![Default::default(); pages];
+        let mut points = 0;
+        for key in keys {
+            let node = &self.resident[&key];
+            points += node.points as usize;
+            for (s, slot) in node.slots.iter().enumerate() {
+                let (batches, subs) = &mut tables[slot.page as usize];
+                batches.push(node.batches[s]);
+                subs.extend_from_slice(
+                    &node.sub_batches[s * SUBS_PER_SLOT..(s + 1) * SUBS_PER_SLOT],
+                );
+            }
+        }
+        for (page, (batches, subs)) in self.cloud.chunks.iter_mut().zip(tables) {
+            page.set_batches(&gpu.queue, batches, subs);
+        }
+        self.cloud.set_frame_points(points, upload_ms);
+        &self.cloud
+    }
+}

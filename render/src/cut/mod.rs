@@ -1,0 +1,430 @@
+//! Rendering a level-of-detail store out of core: per frame a cut of its nodes, loaded through
+//! a host and a GPU node cache, each bounded, then drawn by the same renderer as any cloud.
+//!
+//! A frame (Kanzok et al.'s out-of-core renderer on Scheiblauer's and Potree's octree of
+//! original points):
+//! 1. **select** (`select.rs`): the nodes in view whose parent's spacing on screen exceeds the
+//!    pixel error, largest on screen first, as many as the GPU node cache holds;
+//! 2. **load**: the cut's nodes the GPU cache lacks are taken from the host cache
+//!    (`host_cache.rs`) or read from the store on all cores, in the cut's order (the load
+//!    queue, by priority), a group at a time so the transient memory stays small;
+//! 3. **upload**: each is coloured for the frame's colour mode with the dataset's ranges
+//!    (`colors.rs`), put in Morton order, batched and quantised as any cloud, and written into
+//!    free batch slots of the GPU cache's pages (`gpu_cache.rs`), the least recently used nodes
+//!    outside the cut evicted;
+//! 4. **draw**: the pages' batch tables are set to the cut's batches and the renderer draws
+//!    them with every mode it has.
+//!
+//! A frame renders only once its whole cut is resident, so the same request gives the same
+//! image from a cold or a warm cache. `read_ahead` loads the next frame's nodes into the host
+//! cache on another thread while the caller encodes this one.
+
+mod colors;
+mod gpu_cache;
+mod host_cache;
+mod options;
+mod report;
+mod select;
+
+#[cfg(test)]
+mod tests;
+
+use std::collections::HashSet;
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::Instant;
+
+use glam::DVec3;
+use rayon::prelude::*;
+use thiserror::Error;
+
+use crate::cloud::WorldBounds;
+use crate::color::ColorMode;
+use crate::lod::{codec::encoded_len, LodError, LodHierarchy, LodStore, NodeKey, NodePoints};
+use crate::raster::morton::morton_order;
+use crate::raster::points::ChunkData;
+use crate::raster::{Clock, Frame, FrameSettings, RenderError, Renderer, Stage, StageTiming};
+
+pub use colors::DatasetColoring;
+pub use gpu_cache::SLOT_BYTES;
+pub use host_cache::node_heap_bytes;
+pub use options::{
+    CacheBudgets, CutOptions, CutOptionsError, DEFAULT_GPU_BUDGET_BYTES, DEFAULT_LOD_ERROR_PX,
+    DEFAULT_MEMORY_BUDGET_BYTES, MAX_LOD_ERROR_PX, MIN_BUDGET_BYTES, RESIDENT_MAX_POINTS,
+};
+pub use report::CutReport;
+pub use select::{select_cut, Cut, CutNode, CutView};
+
+use gpu_cache::GpuNodeCache;
+use host_cache::HostNodeCache;
+
+/// The most points of a page of the GPU node cache: few pages keep a frame's dispatches few,
+/// small ones keep a small dataset's cache small.
+const MAX_PAGE_POINTS: usize = 1 << 22;
+
+/// Nodes read, prepared and written to the GPU together: bounds the transient memory of a
+/// frame's loads to this many nodes' decoded and prepared points.
+const LOAD_GROUP_NODES: usize = 32;
+
+#[derive(Debug, Error)]
+pub enum CutError {
+    #[error(transparent)]
+    Options(#[from] CutOptionsError),
+    #[error(transparent)]
+    Store(#[from] LodError),
+    #[error(transparent)]
+    Render(#[from] RenderError),
+    #[error("{0}")]
+    Cache(String),
+}
+
+/// A built store opened for rendering: its hierarchy (always resident), rendering origin,
+/// bounds and colour ranges.
+pub struct LodDataset {
+    store: LodStore,
+    hierarchy: Arc<LodHierarchy>,
+    origin: DVec3,
+    bounds: WorldBounds,
+    coloring: DatasetColoring,
+}
+
+impl LodDataset {
+    /// Opens a built store whose points lie in `bounds` (the dataset's, as the camera frames
+    /// them); the origin is their centre.
+    pub fn open(store: LodStore, bounds: WorldBounds) -> Result<Self, LodError> {
+        let hierarchy = store.read_hierarchy()?;
+        let origin = bounds.center();
+        // The coarsest nodes, level by level, are an even sample of the whole dataset.
+        let mut heights = Vec::new();
+        let mut levels: Vec<_> = hierarchy
+            .nodes()
+            .iter()
+            .filter(|n| n.point_count > 0)
+            .collect();
+        levels.sort_by_key(|n| n.key);
+        for node in levels {
+            if heights.len() as u64 >= colors::ELEVATION_SAMPLE_POINTS {
+                break;
+            }
+            let points = store.read_node(&hierarchy, node.key)?;
+            heights.extend(colors::node_heights(&points, origin));
+        }
+        let coloring = DatasetColoring::new(&hierarchy.stats, heights);
+        Ok(Self {
+            store,
+            hierarchy: Arc::new(hierarchy),
+            origin,
+            bounds,
+            coloring,
+        })
+    }
+
+    pub fn hierarchy(&self) -> &LodHierarchy {
+        &self.hierarchy
+    }
+
+    pub fn origin(&self) -> DVec3 {
+        self.origin
+    }
+
+    pub fn bounds(&self) -> WorldBounds {
+        self.bounds
+    }
+
+    pub fn point_count(&self) -> u64 {
+        self.hierarchy.point_count
+    }
+
+    /// Bytes a node's record takes in the store.
+    fn stored_bytes(&self, points: u32) -> u64 {
+        encoded_len(points as usize, self.hierarchy.stats.has_rgb) as u64
+    }
+}
+
+/// The nodes a read-ahead is fetching, and the thread doing it.
+struct ReadAhead {
+    thread: JoinHandle<Result<u64, LodError>>,
+}
+
+/// Renders frames of one [`LodDataset`], keeping its nodes cached between them.
+pub struct CutRenderer {
+    options: CutOptions,
+    budgets: CacheBudgets,
+    host: Arc<Mutex<HostNodeCache>>,
+    gpu_cache: GpuNodeCache,
+    read_ahead: Option<ReadAhead>,
+    /// Bytes read by a read-ahead, reported by the next frame.
+    read_ahead_bytes: u64,
+}
+
+impl CutRenderer {
+    pub fn new(
+        renderer: &Renderer,
+        dataset: &LodDataset,
+        options: CutOptions,
+    ) -> Result<Self, CutError> {
+        let cpu = renderer.gpu().adapter_info.device_type == wgpu::DeviceType::Cpu;
+        let budgets = options.budgets(cpu)?;
+        Ok(Self::with_budgets(renderer, dataset, options, budgets))
+    }
+
+    /// A renderer with budgets of any size (the tests' small ones below the minimum).
+    pub(crate) fn with_budgets(
+        renderer: &Renderer,
+        dataset: &LodDataset,
+        options: CutOptions,
+        budgets: CacheBudgets,
+    ) -> Self {
+        Self {
+            options,
+            budgets,
+            host: Arc::new(Mutex::new(HostNodeCache::new(budgets.host_bytes))),
+            gpu_cache: GpuNodeCache::new(
+                dataset.origin,
+                budgets.gpu_bytes,
+                renderer.max_chunk_points().min(MAX_PAGE_POINTS),
+            ),
+            read_ahead: None,
+            read_ahead_bytes: 0,
+        }
+    }
+
+    pub fn options(&self) -> &CutOptions {
+        &self.options
+    }
+
+    pub fn budgets(&self) -> CacheBudgets {
+        self.budgets
+    }
+
+    /// Bytes of the GPU node cache's pages so far.
+    pub fn gpu_bytes(&self) -> u64 {
+        self.gpu_cache.gpu_bytes()
+    }
+
+    /// Bytes of the nodes in the host cache.
+    pub fn host_bytes(&self) -> u64 {
+        self.host.lock().map(|h| h.bytes()).unwrap_or(0)
+    }
+
+    /// The cut a frame of `settings` draws.
+    pub fn cut(&self, dataset: &LodDataset, settings: &FrameSettings) -> Cut {
+        let k = settings.supersample.max(1);
+        select_cut(
+            &dataset.hierarchy,
+            &CutView {
+                camera: &settings.camera,
+                origin: dataset.origin,
+                width: settings.width.saturating_mul(k),
+                height: settings.height.saturating_mul(k),
+                point_size: settings.point_size.saturating_mul(k),
+                lod_error: self.options.lod_error * f64::from(k),
+                max_batches: self.gpu_cache.capacity_batches(),
+            },
+        )
+    }
+
+    /// Renders one frame: its cut made resident, then drawn.
+    pub fn render(
+        &mut self,
+        renderer: &mut Renderer,
+        dataset: &LodDataset,
+        settings: &FrameSettings,
+        color_mode: ColorMode,
+    ) -> Result<(Frame, CutReport), CutError> {
+        renderer.validate(settings)?;
+        let started = Instant::now();
+        let cut = self.cut(dataset, settings);
+        let select_ms = ms_since(started);
+        let mut report = CutReport::of_cut(&cut, dataset.point_count());
+        report.select_ms = select_ms;
+
+        let started = Instant::now();
+        if let Some(ahead) = self.read_ahead.take() {
+            match ahead.thread.join() {
+                Ok(Ok(bytes)) => self.read_ahead_bytes += bytes,
+                // A failed read-ahead only loses time: the frame reads what it needs itself
+                // and reports a damaged node from there.
+                Ok(Err(error)) => tracing::debug!(%error, "read-ahead stopped"),
+                Err(_) => tracing::warn!("read-ahead thread panicked"),
+            }
+        }
+        report.read_ahead_bytes = std::mem::take(&mut self.read_ahead_bytes);
+        report.wait_ms = ms_since(started);
+
+        self.gpu_cache.use_color_mode(color_mode);
+        let keys: Vec<NodeKey> = cut.nodes.iter().map(|n| n.key).collect();
+        let keep: HashSet<NodeKey> = keys.iter().copied().collect();
+        let missing: Vec<&CutNode> = cut
+            .nodes
+            .iter()
+            .filter(|n| !self.gpu_cache.touch(n.key))
+            .collect();
+        report.gpu_hits = (cut.nodes.len() - missing.len()) as u64;
+        let mut upload_ms = 0.0;
+        for group in missing.chunks(LOAD_GROUP_NODES) {
+            let started = Instant::now();
+            let nodes = self.load_group(dataset, group, &mut report)?;
+            report.load_ms += ms_since(started);
+
+            let started = Instant::now();
+            let prepared: Vec<ChunkData> = nodes
+                .par_iter()
+                .map(|node| prepare(dataset, node, color_mode))
+                .collect();
+            report.prepare_ms += ms_since(started);
+
+            let started = Instant::now();
+            for (node, data) in nodes.iter().zip(&prepared) {
+                report.gpu_evicted += self
+                    .gpu_cache
+                    .insert(renderer.gpu(), node.key, data, &keep)
+                    .map_err(CutError::Cache)?;
+                report.gpu_uploaded += 1;
+            }
+            upload_ms += ms_since(started);
+        }
+        let cloud = self.gpu_cache.frame_cloud(renderer.gpu(), &keys, upload_ms);
+        let mut frame = renderer.render(cloud, settings)?;
+        let load_ms = report.wait_ms + report.load_ms + report.prepare_ms;
+        let mut stages = vec![
+            StageTiming {
+                stage: Stage::Select,
+                ms: report.select_ms,
+                clock: Clock::Host,
+            },
+            StageTiming {
+                stage: Stage::Load,
+                ms: load_ms,
+                clock: Clock::Host,
+            },
+        ];
+        stages.append(&mut frame.timings.stages);
+        frame.timings.stages = stages;
+        report.host_cache_bytes = self.host_bytes();
+        report.gpu_cache_bytes = self.gpu_cache.gpu_bytes();
+        Ok((frame, report))
+    }
+
+    /// The group's nodes from the host cache, or read from the store on all cores.
+    fn load_group(
+        &self,
+        dataset: &LodDataset,
+        group: &[&CutNode],
+        report: &mut CutReport,
+    ) -> Result<Vec<Arc<NodePoints>>, CutError> {
+        let mut host = self
+            .host
+            .lock()
+            .map_err(|_| CutError::Cache("the host node cache is poisoned".into()))?;
+        let cached: Vec<Option<Arc<NodePoints>>> = group.iter().map(|n| host.get(n.key)).collect();
+        drop(host);
+        let to_read: Vec<&CutNode> = group
+            .iter()
+            .zip(&cached)
+            .filter(|(_, c)| c.is_none())
+            .map(|(n, _)| *n)
+            .collect();
+        report.host_hits += (group.len() - to_read.len()) as u64;
+        let read: Vec<Arc<NodePoints>> = to_read
+            .par_iter()
+            .map(|n| {
+                dataset
+                    .store
+                    .read_node(&dataset.hierarchy, n.key)
+                    .map(Arc::new)
+            })
+            .collect::<Result<_, _>>()?;
+        report.nodes_read += read.len() as u64;
+        report.bytes_read += to_read
+            .iter()
+            .map(|n| dataset.stored_bytes(n.points))
+            .sum::<u64>();
+        let mut host = self
+            .host
+            .lock()
+            .map_err(|_| CutError::Cache("the host node cache is poisoned".into()))?;
+        for node in &read {
+            host.insert(Arc::clone(node));
+        }
+        let mut read = read.into_iter();
+        Ok(cached
+            .into_iter()
+            .map(|c| c.or_else(|| read.next()).expect("one read per miss"))
+            .collect())
+    }
+
+    /// Starts reading the nodes of the frame of `settings` that neither cache holds into the
+    /// host cache, on another thread, largest on screen first, as far as the host cache has
+    /// room. The next [`CutRenderer::render`] waits for it.
+    pub fn read_ahead(&mut self, dataset: &LodDataset, settings: &FrameSettings) {
+        if self.read_ahead.is_some() {
+            return;
+        }
+        let cut = self.cut(dataset, settings);
+        let Ok(host) = self.host.lock() else {
+            return;
+        };
+        let mut room = host.capacity_bytes().saturating_sub(host.bytes());
+        let mut wanted = Vec::new();
+        for node in &cut.nodes {
+            if self.gpu_cache.contains(node.key) || host.contains(node.key) {
+                continue;
+            }
+            let bytes = 128 + u64::from(node.points) * 22;
+            if bytes > room {
+                break;
+            }
+            room -= bytes;
+            wanted.push(*node);
+        }
+        drop(host);
+        if wanted.is_empty() {
+            return;
+        }
+        let store = dataset.store.clone();
+        let hierarchy = Arc::clone(&dataset.hierarchy);
+        let host = Arc::clone(&self.host);
+        let has_rgb = hierarchy.stats.has_rgb;
+        let thread = std::thread::Builder::new()
+            .name("pointfarm-read-ahead".into())
+            .spawn(move || {
+                let mut bytes = 0;
+                for group in wanted.chunks(LOAD_GROUP_NODES) {
+                    let read: Vec<NodePoints> = group
+                        .par_iter()
+                        .map(|n| store.read_node(&hierarchy, n.key))
+                        .collect::<Result<_, _>>()?;
+                    bytes += group
+                        .iter()
+                        .map(|n| encoded_len(n.points as usize, has_rgb) as u64)
+                        .sum::<u64>();
+                    if let Ok(mut host) = host.lock() {
+                        for node in read {
+                            host.insert(Arc::new(node));
+                        }
+                    }
+                }
+                Ok(bytes)
+            });
+        match thread {
+            Ok(thread) => self.read_ahead = Some(ReadAhead { thread }),
+            Err(error) => tracing::debug!(%error, "no read-ahead thread"),
+        }
+    }
+}
+
+/// A node's points as the renderer takes them: relative to the origin, coloured, in Morton
+/// order, batched and quantised.
+fn prepare(dataset: &LodDataset, node: &NodePoints, color_mode: ColorMode) -> ChunkData {
+    let positions = node.positions_relative_to(dataset.origin);
+    let heights: Vec<f32> = positions.iter().map(|p| p.z).collect();
+    let colors = dataset.coloring.colors(node, &heights, color_mode);
+    let order = morton_order(&positions);
+    let sorted: Vec<glam::Vec3> = order.iter().map(|&i| positions[i as usize]).collect();
+    ChunkData::new(&sorted, order.iter().map(|&i| colors[i as usize]))
+}
+
+fn ms_since(started: Instant) -> f64 {
+    started.elapsed().as_secs_f64() * 1e3
+}

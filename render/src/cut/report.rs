@@ -1,0 +1,49 @@
+//! `CutReport`: what a frame's cut held and what loading it did.
+
+use serde::Serialize;
+
+use super::select::Cut;
+
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct CutReport {
+    /// Nodes and points the frame drew.
+    pub nodes: u64,
+    pub points_rendered: u64,
+    /// Points of the whole dataset.
+    pub points_total: u64,
+    /// Whether the GPU node cache's size, not the pixel error, bounded the cut.
+    pub limited_by_budget: bool,
+    /// Cut nodes already on the GPU.
+    pub gpu_hits: u64,
+    /// Cut nodes written to the GPU, and resident ones evicted for them.
+    pub gpu_uploaded: u64,
+    pub gpu_evicted: u64,
+    /// Of the uploaded nodes: those the host cache held, and those read from the store.
+    pub host_hits: u64,
+    pub nodes_read: u64,
+    /// Bytes read from the store by this frame, and by the read-ahead before it.
+    pub bytes_read: u64,
+    pub read_ahead_bytes: u64,
+    /// Bytes the caches hold after the frame.
+    pub host_cache_bytes: u64,
+    pub gpu_cache_bytes: u64,
+    /// The load stages: selecting the cut, waiting for the read-ahead, reading and decoding
+    /// nodes, preparing them (colours, order, quantisation); their transfer to the GPU is the
+    /// frame's "upload" stage.
+    pub select_ms: f64,
+    pub wait_ms: f64,
+    pub load_ms: f64,
+    pub prepare_ms: f64,
+}
+
+impl CutReport {
+    pub(crate) fn of_cut(cut: &Cut, points_total: u64) -> Self {
+        Self {
+            nodes: cut.nodes.len() as u64,
+            points_rendered: cut.points(),
+            points_total,
+            limited_by_budget: cut.limited_by_budget,
+            ..Default::default()
+        }
+    }
+}

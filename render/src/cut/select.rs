@@ -1,0 +1,209 @@
+//! The cut of one frame: the nodes in view whose parents' point spacing, projected, exceeds the
+//! pixel error, found largest on screen first.
+//!
+//! A best-first walk as Potree's and Kanzok et al.'s: the root, if in view, goes into a queue
+//! ordered by how large the node's cube is on screen (nearest and largest first); the walk takes
+//! the first node, adds it to the cut, and queues the children in view when the node's spacing
+//! projected at its nearest depth is more than `lod_error` pixels. The cut stops growing when the
+//! next node would take it past the GPU node cache's batches, so a view too dense for the budget
+//! loses detail far away, never near. The order of the cut is the order its nodes are loaded in.
+
+use std::cmp::Ordering;
+use std::collections::BinaryHeap;
+
+use glam::DVec3;
+
+use crate::camera::{Camera, CameraTransform, Projection};
+use crate::lod::{LodHierarchy, NodeKey};
+use crate::raster::culling::Frustum;
+use crate::raster::gpu_data::GpuBatch;
+use crate::raster::BATCH_POINTS;
+
+/// One node of a cut.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CutNode {
+    pub key: NodeKey,
+    pub points: u32,
+    /// The node's cube side in pixels at its nearest depth: the load queue's priority.
+    pub priority: f64,
+}
+
+impl CutNode {
+    /// Batches the node takes in the GPU node cache.
+    pub fn batches(&self) -> usize {
+        (self.points as usize).div_ceil(BATCH_POINTS)
+    }
+}
+
+/// The nodes a frame draws, in load order.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Cut {
+    pub nodes: Vec<CutNode>,
+    /// Whether the GPU node cache's size stopped the cut before the pixel error did.
+    pub limited_by_budget: bool,
+}
+
+impl Cut {
+    pub fn points(&self) -> u64 {
+        self.nodes.iter().map(|n| u64::from(n.points)).sum()
+    }
+
+    pub fn batches(&self) -> usize {
+        self.nodes.iter().map(CutNode::batches).sum()
+    }
+}
+
+/// What the selection needs of a frame.
+#[derive(Debug, Clone, Copy)]
+pub struct CutView<'a> {
+    pub camera: &'a Camera,
+    /// The dataset's rendering origin: node cubes are tested relative to it, as the batches.
+    pub origin: DVec3,
+    pub width: u32,
+    pub height: u32,
+    pub point_size: u32,
+    /// The largest projected spacing a drawn node may leave unrefined, in pixels; 0 draws
+    /// every node in view.
+    pub lod_error: f64,
+    /// The most batches the cut may take.
+    pub max_batches: usize,
+}
+
+struct Queued {
+    priority: f64,
+    key: NodeKey,
+}
+
+impl PartialEq for Queued {
+    fn eq(&self, other: &Self) -> bool {
+        self.cmp(other) == Ordering::Equal
+    }
+}
+impl Eq for Queued {}
+impl PartialOrd for Queued {
+    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
+        Some(self.cmp(other))
+    }
+}
+impl Ord for Queued {
+    /// Larger on screen first; equal sizes by key, so the walk never depends on the heap.
+    fn cmp(&self, other: &Self) -> Ordering {
+        self.priority
+            .total_cmp(&other.priority)
+            .then_with(|| other.key.cmp(&self.key))
+    }
+}
+
+/// Pixels per world unit at linear depth `depth` (an orthographic camera: at any depth).
+fn pixels_per_unit(camera: &Camera, height: u32, depth: f64) -> f64 {
+    match camera.projection {
+        Projection::Perspective { fov_y_deg } => {
+            let half = (fov_y_deg.to_radians() * 0.5).tan();
+            f64::from(height) / (2.0 * half * depth.max(camera.near))
+        }
+        Projection::Orthographic {
+            height: view_height,
+        } => f64::from(height) / view_height,
+    }
+}
+
+/// The nearest linear depth of a cube's corners (relative to the origin).
+fn nearest_depth(transform: &CameraTransform, min: DVec3, side: f64) -> f64 {
+    (0..8)
+        .map(|corner| {
+            let offset = DVec3::new(
+                f64::from(corner & 1),
+                f64::from((corner >> 1) & 1),
+                f64::from((corner >> 2) & 1),
+            ) * side;
+            transform.depth_row.dot((min + offset).extend(1.0))
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+/// Whether the camera's position lies inside the cube, where every corner's depth can be far
+/// while the points are near.
+fn contains(min: DVec3, side: f64, p: DVec3) -> bool {
+    p.cmpge(min).all() && p.cmple(min + side).all()
+}
+
+/// The cut of `hierarchy` for `view`.
+pub fn select_cut(hierarchy: &LodHierarchy, view: &CutView<'_>) -> Cut {
+    let transform = view.camera.transform(view.origin, view.width, view.height);
+    let frustum = Frustum::new(&transform, view.point_size);
+    let eye = view.camera.position - view.origin;
+    // The cube of a node relative to the origin, widened by a hair for the f32 of the test.
+    let cube = |key: NodeKey| {
+        let (min, side) = hierarchy.node_cube(key);
+        (min - view.origin, side)
+    };
+    let in_view = |key: NodeKey| {
+        let (min, side) = cube(key);
+        let pad = side * 1e-6 + 1e-6;
+        let lo = (min - pad).as_vec3();
+        let hi = (min + side + pad).as_vec3();
+        !frustum.excludes(&GpuBatch {
+            min: lo.to_array(),
+            first: 0,
+            max: hi.to_array(),
+            count: 0,
+        })
+    };
+    let on_screen = |key: NodeKey| {
+        let (min, side) = cube(key);
+        if contains(min, side, eye) {
+            return f64::INFINITY;
+        }
+        let depth = nearest_depth(&transform, min, side);
+        side * pixels_per_unit(view.camera, view.height, depth)
+    };
+
+    let mut cut = Cut::default();
+    let mut queue = BinaryHeap::new();
+    if let Some(root) = hierarchy.root() {
+        if in_view(root.key) {
+            queue.push(Queued {
+                priority: on_screen(root.key),
+                key: root.key,
+            });
+        }
+    }
+    let mut batches = 0;
+    while let Some(Queued { priority, key }) = queue.pop() {
+        let Some(node) = hierarchy.node(key) else {
+            continue;
+        };
+        let node_batches = (node.point_count as usize).div_ceil(BATCH_POINTS);
+        if batches + node_batches > view.max_batches {
+            cut.limited_by_budget = true;
+            break;
+        }
+        batches += node_batches;
+        if node.point_count > 0 {
+            cut.nodes.push(CutNode {
+                key,
+                points: node.point_count,
+                priority,
+            });
+        }
+        // A node's spacing on screen: its side in pixels over its sampling grid.
+        let refine = match hierarchy.spacing(key) {
+            Some(spacing) => {
+                let side = hierarchy.cube.side_at(key.level);
+                priority * spacing / side > view.lod_error
+            }
+            None => false,
+        };
+        if refine || node.point_count == 0 {
+            for child in hierarchy.children(key) {
+                if in_view(child.key) {
+                    queue.push(Queued {
+                        priority: on_screen(child.key),
+                        key: child.key,
+                    });
+                }
+            }
+        }
+    }
+    cut
+}

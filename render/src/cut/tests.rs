@@ -1,0 +1,403 @@
+//! Cuts rendered on the GPU against the resident cloud of the same file, cold and warm caches,
+//! the budgets, the read-ahead and a damaged node.
+
+use std::path::Path;
+
+use super::*;
+use crate::camera::{Camera, Projection};
+use crate::cloud::PointCloud;
+use crate::ingest::{load_point_cloud, write_las, DatasetSource, LasWriteOptions};
+use crate::lod::{build_lod, LodBuildOptions, PointSource};
+use crate::raster::{FillSettings, Quality, Shading};
+use crate::request::RenderOptions;
+use crate::sample::sample_scene;
+use crate::testing::{compare_images_within, gpu};
+
+struct Fixture {
+    _dir: tempfile::TempDir,
+    cloud: PointCloud,
+    dataset: LodDataset,
+}
+
+fn open_store(dir: &Path) -> LodStore {
+    let db = sled::open(dir.join("db")).expect("sled");
+    LodStore::new(db.open_tree("lod").expect("tree"))
+}
+
+/// A sample scene written as LAS, loaded whole and built into a store of small nodes.
+fn fixture(points: usize) -> Fixture {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("scene.las");
+    write_las(&path, &sample_scene(points, 5), &LasWriteOptions::default()).expect("write");
+    let cloud = load_point_cloud(&path).expect("load");
+    let source = DatasetSource::open(&[path]).expect("source");
+    let store = open_store(dir.path());
+    let mut options = LodBuildOptions::new(dir.path().join("spill"));
+    options.max_leaf_points = 3_000;
+    build_lod(&source, &store, &options).expect("build");
+    let dataset = LodDataset::open(store, source.bounds()).expect("open");
+    assert_eq!(dataset.origin(), cloud.origin, "one origin for both paths");
+    Fixture {
+        _dir: dir,
+        cloud,
+        dataset,
+    }
+}
+
+fn settings(fixture: &Fixture, options: &RenderOptions) -> FrameSettings {
+    let camera = Camera::auto(&fixture.cloud.bounds, 4.0 / 3.0);
+    let mut settings = FrameSettings::new(200, 150, camera);
+    settings.point_size = options.point_size;
+    settings.quality = options.quality;
+    settings.shading = options.shading;
+    settings.fill = options.fill;
+    settings.supersample = options.supersample;
+    settings
+}
+
+fn resident_image(
+    fixture: &Fixture,
+    settings: &FrameSettings,
+    mode: ColorMode,
+) -> image::RgbaImage {
+    let mut cloud = fixture.cloud.clone();
+    cloud.colors = crate::color::point_colors(&cloud, mode);
+    let mut renderer = Renderer::new(gpu());
+    let resident = renderer.upload(&cloud).expect("upload");
+    renderer.render(&resident, settings).expect("render").image
+}
+
+fn cut_renderer(renderer: &Renderer, fixture: &Fixture, lod_error: f64) -> CutRenderer {
+    let options = CutOptions {
+        lod_error,
+        ..CutOptions::default()
+    };
+    CutRenderer::new(renderer, &fixture.dataset, options).expect("cut renderer")
+}
+
+/// The share of pixels within 8/255 of the expected image.
+fn close_share(name: &str, actual: &image::RgbaImage, expected: &image::RgbaImage) -> f64 {
+    compare_images_within(name, actual, expected, 8).equal_fraction()
+}
+
+#[test]
+fn every_mode_at_lod_error_zero_renders_as_the_resident_cloud() {
+    let fixture = fixture(60_000);
+    let mut renderer = Renderer::new(gpu());
+    let mut cut = cut_renderer(&renderer, &fixture, 0.0);
+    let modes: Vec<(&str, RenderOptions, ColorMode)> = vec![
+        ("basic", RenderOptions::default(), ColorMode::Rgb),
+        (
+            "high-quality",
+            RenderOptions {
+                quality: Quality::HIGH,
+                point_size: 2,
+                ..RenderOptions::default()
+            },
+            ColorMode::Rgb,
+        ),
+        (
+            "fill-edl",
+            RenderOptions {
+                fill: Some(FillSettings::default()),
+                shading: Shading::EDL,
+                ..RenderOptions::default()
+            },
+            ColorMode::Rgb,
+        ),
+        (
+            "pintus",
+            RenderOptions {
+                fill: Some(FillSettings::default()),
+                shading: Shading::PINTUS,
+                ..RenderOptions::default()
+            },
+            ColorMode::Rgb,
+        ),
+        (
+            "supersampled",
+            RenderOptions {
+                supersample: 2,
+                ..RenderOptions::default()
+            },
+            ColorMode::Rgb,
+        ),
+        ("intensity", RenderOptions::default(), ColorMode::Intensity),
+        (
+            "classes",
+            RenderOptions::default(),
+            ColorMode::Classification,
+        ),
+        ("returns", RenderOptions::default(), ColorMode::ReturnNumber),
+        (
+            "fixed",
+            RenderOptions::default(),
+            ColorMode::Fixed([255, 128, 0]),
+        ),
+        ("elevation", RenderOptions::default(), ColorMode::Elevation),
+    ];
+    for (name, options, color_mode) in modes {
+        let settings = settings(&fixture, &options);
+        let (frame, report) = cut
+            .render(&mut renderer, &fixture.dataset, &settings, color_mode)
+            .expect("cut");
+        assert_eq!(
+            report.points_rendered, report.points_total,
+            "{name}: lod 0 draws all"
+        );
+        let expected = resident_image(&fixture, &settings, color_mode);
+        let share = close_share(&format!("cut-{name}"), &frame.image, &expected);
+        // Elevation takes its range from a sample of the store, the resident cloud from every
+        // point: a few colours shift by a level or two.
+        assert!(
+            share >= 0.99,
+            "{name}: only {share:.4} of pixels within 8/255"
+        );
+    }
+}
+
+#[test]
+fn a_frame_is_the_same_from_a_cold_and_a_warm_cache() {
+    let fixture = fixture(40_000);
+    let mut renderer = Renderer::new(gpu());
+    let first = settings(&fixture, &RenderOptions::default());
+    let mut other = first.clone();
+    other.camera = Camera::framing(
+        &fixture.cloud.bounds,
+        4.0 / 3.0,
+        40.0,
+        50.0,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    let mut cut = cut_renderer(&renderer, &fixture, DEFAULT_LOD_ERROR_PX);
+    let (cold, cold_report) = cut
+        .render(&mut renderer, &fixture.dataset, &first, ColorMode::Rgb)
+        .expect("cold");
+    assert_eq!(cold_report.gpu_hits, 0);
+    assert!(cold_report.nodes_read > 0 && cold_report.bytes_read > 0);
+    cut.render(&mut renderer, &fixture.dataset, &other, ColorMode::Rgb)
+        .expect("other");
+    let (warm, warm_report) = cut
+        .render(&mut renderer, &fixture.dataset, &first, ColorMode::Rgb)
+        .expect("warm");
+    assert_eq!(warm_report.nodes_read, 0, "{warm_report:?}");
+    assert_eq!(warm_report.gpu_hits, warm_report.nodes);
+    assert!(
+        cold.image == warm.image,
+        "the warm frame differs from the cold one"
+    );
+}
+
+#[test]
+fn the_caches_stay_within_their_budgets_and_evict() {
+    let fixture = fixture(120_000);
+    let mut renderer = Renderer::new(gpu());
+    let budgets = CacheBudgets {
+        host_bytes: 600 << 10,
+        gpu_bytes: 30 * SLOT_BYTES,
+    };
+    let mut cut =
+        CutRenderer::with_budgets(&renderer, &fixture.dataset, CutOptions::default(), budgets);
+    let mut evicted = 0;
+    for step in 0..6 {
+        let mut settings = settings(&fixture, &RenderOptions::default());
+        settings.camera = Camera::framing(
+            &fixture.cloud.bounds,
+            4.0 / 3.0,
+            f64::from(step) * 60.0,
+            35.0,
+            Projection::Perspective { fov_y_deg: 30.0 },
+        );
+        let again = settings.clone();
+        let (frame, report) = cut
+            .render(&mut renderer, &fixture.dataset, &settings, ColorMode::Rgb)
+            .expect("frame");
+        assert!(report.gpu_cache_bytes <= budgets.gpu_bytes, "{report:?}");
+        assert!(report.host_cache_bytes <= budgets.host_bytes, "{report:?}");
+        assert!(
+            report.points_rendered <= 30 * BATCH_POINTS_U64,
+            "{report:?}"
+        );
+        evicted += report.gpu_evicted;
+        // The same view again, after whatever the budget evicted: the same image.
+        let (repeat, _) = cut
+            .render(&mut renderer, &fixture.dataset, &again, ColorMode::Rgb)
+            .expect("repeat");
+        assert!(
+            repeat.image == frame.image,
+            "step {step}: a repeated frame differs"
+        );
+    }
+    assert!(evicted > 0, "a small GPU budget evicts as the camera turns");
+}
+
+const BATCH_POINTS_U64: u64 = crate::raster::BATCH_POINTS as u64;
+
+/// The share of the covered pixels of `full` that `cut` renders within 8/255.
+fn fidelity(name: &str, cut: &image::RgbaImage, full: &image::RgbaImage) -> f64 {
+    let covered = full
+        .pixels()
+        .filter(|p| p.0 != crate::raster::DEFAULT_BACKGROUND)
+        .count();
+    let differing = compare_images_within(name, cut, full, 8).differing;
+    1.0 - differing as f64 / covered.max(1) as f64
+}
+
+#[test]
+fn a_coarser_pixel_error_draws_fewer_points_and_the_default_keeps_the_image() {
+    let fixture = fixture(120_000);
+    let mut renderer = Renderer::new(gpu());
+    for (quality, least) in [(Quality::Basic, 0.96), (Quality::HIGH, 0.99)] {
+        let mut settings = settings(&fixture, &RenderOptions::default());
+        settings.quality = quality;
+        let mut full = cut_renderer(&renderer, &fixture, 0.0);
+        let (full_frame, full_report) = full
+            .render(&mut renderer, &fixture.dataset, &settings, ColorMode::Rgb)
+            .expect("full");
+        let mut default = cut_renderer(&renderer, &fixture, DEFAULT_LOD_ERROR_PX);
+        let (frame, report) = default
+            .render(&mut renderer, &fixture.dataset, &settings, ColorMode::Rgb)
+            .expect("default");
+        let share = fidelity("cut-default-error", &frame.image, &full_frame.image);
+        assert!(
+            share >= least,
+            "{quality:?}: {share:.4} of covered pixels within 8/255"
+        );
+        assert!(report.points_rendered <= full_report.points_rendered);
+    }
+    // Far away, a coarser error draws fewer points.
+    let mut settings = settings(&fixture, &RenderOptions::default());
+    let target = fixture.cloud.bounds.center();
+    settings.camera.position = target + (settings.camera.position - target) * 3.0;
+    settings.camera.far *= 4.0;
+    let points = |lod_error: f64, renderer: &mut Renderer| {
+        let mut cut = cut_renderer(renderer, &fixture, lod_error);
+        cut.render(renderer, &fixture.dataset, &settings, ColorMode::Rgb)
+            .expect("frame")
+            .1
+            .points_rendered
+    };
+    let (full, default, coarse) = (
+        points(0.0, &mut renderer),
+        points(DEFAULT_LOD_ERROR_PX, &mut renderer),
+        points(2.0, &mut renderer),
+    );
+    assert!(
+        coarse < default && default < full,
+        "{coarse} {default} {full}"
+    );
+}
+
+#[test]
+fn a_read_ahead_fills_the_host_cache_and_changes_no_pixel() {
+    let fixture = fixture(40_000);
+    let mut renderer = Renderer::new(gpu());
+    let first = settings(&fixture, &RenderOptions::default());
+    let mut next = first.clone();
+    next.camera.position =
+        first.camera.target + (first.camera.position - first.camera.target) * 0.5;
+    let mut cold = cut_renderer(&renderer, &fixture, 0.0);
+    let (expected, _) = cold
+        .render(&mut renderer, &fixture.dataset, &next, ColorMode::Rgb)
+        .expect("cold");
+
+    let mut cut = CutRenderer::with_budgets(
+        &renderer,
+        &fixture.dataset,
+        CutOptions {
+            lod_error: 0.0,
+            ..CutOptions::default()
+        },
+        CacheBudgets {
+            host_bytes: 64 << 20,
+            gpu_bytes: 64 << 20,
+        },
+    );
+    cut.render(
+        &mut renderer,
+        &fixture.dataset,
+        &first,
+        ColorMode::Intensity,
+    )
+    .expect("first");
+    // Another colour mode empties the GPU cache, so the next frame needs every node.
+    cut.read_ahead(&fixture.dataset, &next);
+    let (frame, report) = cut
+        .render(&mut renderer, &fixture.dataset, &next, ColorMode::Rgb)
+        .expect("next");
+    assert_eq!(report.gpu_hits, 0);
+    assert_eq!(
+        report.nodes_read, 0,
+        "every node came from the host cache: {report:?}"
+    );
+    assert!(report.host_hits > 0);
+    assert!(frame.image == expected.image);
+}
+
+#[test]
+fn a_damaged_node_is_reported_not_drawn() {
+    let fixture = fixture(20_000);
+    let hierarchy = fixture.dataset.hierarchy();
+    let node = hierarchy
+        .nodes()
+        .iter()
+        .find(|n| n.point_count > 100)
+        .copied()
+        .expect("a node");
+    let store = &fixture.dataset.store;
+    let mut bytes = store.node_bytes(node.key).expect("read").expect("bytes");
+    let middle = bytes.len() / 2;
+    bytes[middle] ^= 0x55;
+    store
+        .overwrite_node_bytes(node.key, &bytes)
+        .expect("damage");
+    let mut renderer = Renderer::new(gpu());
+    let mut cut = cut_renderer(&renderer, &fixture, 0.0);
+    let settings = settings(&fixture, &RenderOptions::default());
+    let error = cut
+        .render(&mut renderer, &fixture.dataset, &settings, ColorMode::Rgb)
+        .err()
+        .expect("a damaged node fails the frame");
+    assert!(
+        matches!(error, CutError::Store(LodError::CorruptNode { .. })),
+        "{error}"
+    );
+    assert!(error.to_string().contains(&node.key.to_string()), "{error}");
+}
+
+/// The fidelity table of docs/perf/lod-fidelity.md: `cargo test -p pointfarm-render --lib
+/// cut::tests::fidelity_by_pixel_error -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn fidelity_by_pixel_error() {
+    let fixture = fixture(400_000);
+    let mut renderer = Renderer::new(gpu());
+    let views = [
+        (1.0, Quality::Basic),
+        (3.0, Quality::Basic),
+        (1.0, Quality::HIGH),
+        (3.0, Quality::HIGH),
+    ];
+    for (distance, quality) in views {
+        let mut settings = settings(&fixture, &RenderOptions::default());
+        settings.quality = quality;
+        let target = fixture.cloud.bounds.center();
+        settings.camera.position = target + (settings.camera.position - target) * distance;
+        settings.camera.far *= 4.0;
+        let mut full = cut_renderer(&renderer, &fixture, 0.0);
+        let (full_frame, _) = full
+            .render(&mut renderer, &fixture.dataset, &settings, ColorMode::Rgb)
+            .expect("full");
+        for error in [0.1, 0.25, 0.5, 1.0, 2.0] {
+            let mut cut = cut_renderer(&renderer, &fixture, error);
+            let (frame, report) = cut
+                .render(&mut renderer, &fixture.dataset, &settings, ColorMode::Rgb)
+                .expect("cut");
+            let share = fidelity("fidelity", &frame.image, &full_frame.image);
+            eprintln!(
+                "distance {distance} {quality:?} error {error}: {} of {} points, {share:.4}",
+                report.points_rendered, report.points_total
+            );
+        }
+    }
+}
