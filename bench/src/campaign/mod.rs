@@ -21,8 +21,8 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use pointfarm_render::ingest::DatasetSource;
-use pointfarm_render::lod::{build_lod, BuildTimings, LodBuildOptions, LodError, LodStore};
 use pointfarm_render::lod::PointSource;
+use pointfarm_render::lod::{build_lod, BuildTimings, LodBuildOptions, LodError, LodStore};
 use serde::Serialize;
 
 use crate::{memory, BenchError};
@@ -305,7 +305,11 @@ pub fn measure(
     let load_before = load_average();
     let las_plan = plan_disk(options, dir)?;
     let (rows, cols) = grid(options.files);
-    let kinds = if las_plan.is_ok() { "LAZ and LAS" } else { "LAZ" };
+    let kinds = if las_plan.is_ok() {
+        "LAZ and LAS"
+    } else {
+        "LAZ"
+    };
     log(format!(
         "campaign: writing {} points of terrain as {} tiles ({rows}x{cols}), {kinds}, in {}",
         options.points,
@@ -366,9 +370,11 @@ pub fn measure(
         builds.push(build);
     }
     if !peak_reset {
-        log("campaign: the peak resident memory could not be reset: each peak is the \
+        log(
+            "campaign: the peak resident memory could not be reset: each peak is the \
              process's since its start"
-            .into());
+                .into(),
+        );
     }
     drop(scratch);
     Ok(CampaignResult {
@@ -470,7 +476,10 @@ mod tests {
         };
         let mut lines = Vec::new();
         let result = measure(&options, &mut |l| lines.push(l.to_string())).expect("measured");
-        assert_eq!((result.points, result.files, result.grid), (200_000, 4, [2, 2]));
+        assert_eq!(
+            (result.points, result.files, result.grid),
+            (200_000, 4, [2, 2])
+        );
         assert!(result.threads >= 1 && result.write_s > 0.0);
         assert!(result.las_skipped.is_none(), "{:?}", result.las_skipped);
         assert_eq!(result.decode.len(), 2);
@@ -484,9 +493,15 @@ mod tests {
         assert!(result.decode_of("laz").expect("laz").file_bytes < las.file_bytes);
         for build in &result.builds {
             assert_eq!((build.points, build.stored_points), (200_000, 200_000));
-            assert!(build.mpoints_per_s > 0.0 && build.over_decode > 0.0, "{build:?}");
+            assert!(
+                build.mpoints_per_s > 0.0 && build.over_decode > 0.0,
+                "{build:?}"
+            );
             let s = build.stages;
-            assert!(s.total_s >= s.counting_s + s.distribution_s + s.chunks_s, "{s:?}");
+            assert!(
+                s.total_s >= s.counting_s + s.distribution_s + s.chunks_s,
+                "{s:?}"
+            );
             assert!(build.build_s >= s.total_s);
             assert!(build.nodes >= 1 && build.chunks >= 1);
             assert!(build.store_disk_bytes_per_point > 0.0, "{build:?}");

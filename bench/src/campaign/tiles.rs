@@ -108,7 +108,9 @@ impl Tile {
             .build_from_points(points)
             .map_err(|e| las_error(path, e))?;
         self.written += data.len() as u64;
-        self.laz.write_points(&data).map_err(|e| las_error(path, e))?;
+        self.laz
+            .write_points(&data)
+            .map_err(|e| las_error(path, e))?;
         if let Some(las) = &mut self.las {
             las.write_points(&data).map_err(|e| las_error(path, e))?;
         }
@@ -238,7 +240,10 @@ mod tests {
     fn the_tiles_hold_every_generated_point_once_and_split_the_terrain() {
         let dir = tempfile::tempdir().expect("tempdir");
         let files = write_campaign(dir.path(), 40_000, 4, 3, true).expect("written");
-        assert_eq!((files.laz.len(), files.las.len(), files.points), (4, 4, 40_000));
+        assert_eq!(
+            (files.laz.len(), files.las.len(), files.points),
+            (4, 4, 40_000)
+        );
         let laz = DatasetSource::open(&files.laz).expect("laz");
         let las = DatasetSource::open(&files.las).expect("las");
         assert_eq!(laz.point_count(), 40_000);
@@ -250,8 +255,15 @@ mod tests {
         let first = load_dataset(&files.laz[..1]).expect("tile");
         let whole = generated.size();
         let tile = first.bounds.max - first.bounds.min;
-        assert!(tile.x < whole.x * 0.51 && tile.y < whole.y * 0.51, "{tile} of {whole}");
-        assert!(first.len() > 8_000 && first.len() < 12_000, "{}", first.len());
+        assert!(
+            tile.x < whole.x * 0.51 && tile.y < whole.y * 0.51,
+            "{tile} of {whole}"
+        );
+        assert!(
+            first.len() > 8_000 && first.len() < 12_000,
+            "{}",
+            first.len()
+        );
         // LAS and LAZ hold the same points.
         let same = load_dataset(&files.las[..1]).expect("las tile");
         assert_eq!(same.positions, first.positions);
