@@ -70,7 +70,7 @@ pub fn open_or_build(
         .cache_capacity(16 << 20)
         .open()
         .with_context(|| format!("opening the store in {}", folder.display()))?;
-    let store = LodStore::new(db.open_tree("lod")?);
+    let store = LodStore::open(db.open_tree("lod")?, folder.join("nodes.bin"))?;
     let current = match store.read_hierarchy() {
         Ok(hierarchy) => hierarchy.point_count == source.point_count(),
         Err(LodError::MissingHierarchy) => false,

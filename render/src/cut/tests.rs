@@ -21,7 +21,7 @@ struct Fixture {
 
 fn open_store(dir: &Path) -> LodStore {
     let db = sled::open(dir.join("db")).expect("sled");
-    LodStore::new(db.open_tree("lod").expect("tree"))
+    LodStore::open(db.open_tree("lod").expect("tree"), dir.join("lod.bin")).expect("store")
 }
 
 /// A sample scene written as LAS, loaded whole and built into a store of small nodes.
@@ -345,11 +345,15 @@ fn a_damaged_node_is_reported_not_drawn() {
         .copied()
         .expect("a node");
     let store = &fixture.dataset.store;
-    let mut bytes = store.node_bytes(node.key).expect("read").expect("bytes");
+    let mut bytes = store
+        .node_bytes(hierarchy, node.key)
+        .expect("read")
+        .expect("bytes");
     let middle = bytes.len() / 2;
     bytes[middle] ^= 0x55;
+    // The same length: damaged in place, where the dataset's hierarchy points.
     store
-        .overwrite_node_bytes(node.key, &bytes)
+        .overwrite_node_bytes(&mut hierarchy.clone(), node.key, &bytes)
         .expect("damage");
     let mut renderer = Renderer::new(gpu());
     let mut cut = cut_renderer(&renderer, &fixture, 0.0);

@@ -138,7 +138,11 @@ mod tests {
         assert!(loaded.bounds.max.cmple(source.bounds().max).all());
 
         let db = sled::Config::new().temporary(true).open().expect("sled");
-        let store = LodStore::new(db.open_tree("lod").expect("tree"));
+        let store = LodStore::open(
+            db.open_tree("lod").expect("tree"),
+            dir.path().join("lod.bin"),
+        )
+        .expect("store");
         let mut options = LodBuildOptions::new(dir.path().join("spill"));
         options.max_leaf_points = 4_000;
         let report = build_lod(&source, &store, &options).expect("build");

@@ -11,9 +11,8 @@
 //! 6. the hierarchy written last.
 //!
 //! Every buffer the builder holds is reserved from one [`MemoryMeter`] first; the source's
-//! own batches and sled's memory are outside it (sled 0.34 holds about as many bytes as were
-//! written, whatever its cache capacity: the store is flushed as it grows, which does not
-//! release them; docs/perf/lod-build.md).
+//! own batches are outside it. Node payloads go to the store's payload file, not to sled,
+//! whose memory grows with the bytes it stores (docs/perf/lod-build.md).
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -59,14 +58,25 @@ pub struct LodBuildReport {
     pub count_level: u32,
     /// Bytes written to spill files.
     pub spilled_bytes: u64,
-    /// Bytes of node records written to the store.
+    /// Bytes of node records written to the store's payload file.
     pub stored_bytes: u64,
+    /// Bytes of the hierarchy's record in sled.
+    pub hierarchy_bytes: u64,
     /// The most bytes the builder's buffers held at once.
     pub peak_memory_bytes: u64,
     pub memory_budget_bytes: u64,
     /// The build's spill folder (removed when the build returned).
     pub spill_path: PathBuf,
     pub timings: BuildTimings,
+}
+
+impl LodBuildReport {
+    /// The store's bytes on disk per point: the payload file and the hierarchy's record (sled's
+    /// own overhead, in a database the caller owns, is not counted).
+    pub fn disk_bytes_per_point(&self) -> f64 {
+        let points = self.hierarchy.point_count.max(1);
+        (self.stored_bytes + self.hierarchy_bytes) as f64 / points as f64
+    }
 }
 
 /// Builds the level-of-detail store of `source` into `store`, replacing what it held.
@@ -184,7 +194,7 @@ fn build_on_pool(
         stats,
         sink.into_nodes(),
     );
-    store.write_hierarchy(&hierarchy)?;
+    let hierarchy_bytes = store.write_hierarchy(&hierarchy)?;
     timings.total = start.elapsed();
     let spilled_bytes = spill.written_bytes();
     let spill_path = spill.path().to_path_buf();
@@ -196,6 +206,7 @@ fn build_on_pool(
         count_level: level,
         spilled_bytes,
         stored_bytes,
+        hierarchy_bytes,
         peak_memory_bytes: meter.peak(),
         memory_budget_bytes: meter.budget(),
         spill_path,

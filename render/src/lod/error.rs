@@ -51,6 +51,12 @@ pub enum LodError {
     },
     #[error("level-of-detail store: {0}")]
     Db(#[from] sled::Error),
+    #[error("level-of-detail payload file {}: {error}", path.display())]
+    Payload {
+        path: PathBuf,
+        #[source]
+        error: std::io::Error,
+    },
     #[error("level-of-detail store holds no hierarchy (never built, or the build did not finish)")]
     MissingHierarchy,
     #[error("level-of-detail hierarchy is damaged: {0}")]
@@ -64,6 +70,13 @@ pub enum LodError {
 impl LodError {
     pub(crate) fn spill(path: impl Into<PathBuf>, error: std::io::Error) -> Self {
         Self::Spill {
+            path: path.into(),
+            error,
+        }
+    }
+
+    pub(crate) fn payload(path: impl Into<PathBuf>, error: std::io::Error) -> Self {
+        Self::Payload {
             path: path.into(),
             error,
         }

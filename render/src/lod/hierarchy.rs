@@ -1,11 +1,13 @@
 //! `LodHierarchy`: the small, always-resident description of a built dataset (its cube, every
-//! node's key, point count and sampling grid, and the dataset's statistics), and its record.
+//! node's key, point count, sampling grid and byte range in the payload file, and the
+//! dataset's statistics), and its record.
 //!
-//! Layout, little-endian: "PFH1" | cube min 3 x f64 | side f64 | points u64 |
+//! Layout, little-endian: "PFH2" | cube min 3 x f64 | side f64 | points u64 |
 //! max leaf points u32 | flags u8 (bit 0: RGB) | max RGB 3 x u16 | z range 2 x f64 |
 //! intensity bins used u32, then (value u16, count u64) each | classes used u16, then
 //! (class u8, count u64) each | nodes u32, then per node: level u8, x, y, z u32, points u32,
-//! sampling grid u16, child mask u8 | checksum u64.
+//! sampling grid u16, child mask u8, payload offset u64, payload bytes u32 | checksum u64.
+//! A record of another version is refused (the dataset is then rebuilt).
 
 use std::collections::HashMap;
 
@@ -16,7 +18,9 @@ use super::error::LodError;
 use super::key::{NodeKey, RootCube};
 use super::stats::{DatasetStats, INTENSITY_BINS};
 
-const MAGIC: &[u8; 4] = b"PFH1";
+const MAGIC: &[u8; 4] = b"PFH2";
+/// Bytes of one node in the record.
+const NODE_RECORD_BYTES: usize = 32;
 const CHECKSUM_SEED: &[u8] = b"hierarchy";
 
 /// One node of the hierarchy.
@@ -28,11 +32,21 @@ pub struct NodeInfo {
     pub sample_grid: u32,
     /// Bit `i` set when child `i` exists.
     pub child_mask: u8,
+    /// Where the node's record starts in the payload file; 0 for a node without points.
+    pub offset: u64,
+    /// Bytes of the node's record in the payload file (what reading it costs); 0 for a node
+    /// without points.
+    pub byte_len: u32,
 }
 
 impl NodeInfo {
     pub fn is_leaf(&self) -> bool {
         self.child_mask == 0
+    }
+
+    /// The node's record's bytes in the payload file.
+    pub fn byte_range(&self) -> std::ops::Range<u64> {
+        self.offset..self.offset + u64::from(self.byte_len)
     }
 }
 
@@ -101,6 +115,26 @@ impl LodHierarchy {
         self.index.get(&key).map(|&i| &self.nodes[i])
     }
 
+    /// Bytes of `key`'s record in the payload file: what reading it costs (0 for a node without
+    /// points or one the hierarchy does not list).
+    pub fn node_byte_len(&self, key: NodeKey) -> u32 {
+        self.node(key).map_or(0, |n| n.byte_len)
+    }
+
+    /// Bytes of every node's record: the payload file's size after the build.
+    pub fn payload_bytes(&self) -> u64 {
+        self.nodes.iter().map(|n| u64::from(n.byte_len)).sum()
+    }
+
+    /// Points a node to another copy of its record (the damage tests' hook).
+    #[cfg(test)]
+    pub(crate) fn set_byte_range(&mut self, key: NodeKey, offset: u64, byte_len: u32) {
+        if let Some(&i) = self.index.get(&key) {
+            self.nodes[i].offset = offset;
+            self.nodes[i].byte_len = byte_len;
+        }
+    }
+
     pub fn root(&self) -> Option<&NodeInfo> {
         self.node(NodeKey::ROOT)
     }
@@ -125,7 +159,7 @@ impl LodHierarchy {
     }
 
     pub fn encode(&self) -> Vec<u8> {
-        let mut out = Vec::with_capacity(128 + self.nodes.len() * 20);
+        let mut out = Vec::with_capacity(128 + self.nodes.len() * NODE_RECORD_BYTES);
         out.extend_from_slice(MAGIC);
         for c in self.cube.min.to_array() {
             out.extend_from_slice(&c.to_le_bytes());
@@ -160,6 +194,8 @@ impl LodHierarchy {
             }
             out.extend_from_slice(&(n.sample_grid as u16).to_le_bytes());
             out.push(n.child_mask);
+            out.extend_from_slice(&n.offset.to_le_bytes());
+            out.extend_from_slice(&n.byte_len.to_le_bytes());
         }
         let sum = checksum64(CHECKSUM_SEED, &out);
         out.extend_from_slice(&sum.to_le_bytes());
@@ -178,7 +214,13 @@ impl LodHierarchy {
             return Err(corrupt("checksum mismatch"));
         }
         let mut r = Reader { bytes: body, at: 0 };
-        if r.take(4)? != MAGIC {
+        let magic = r.take(4)?;
+        if magic == b"PFH1" {
+            return Err(corrupt(
+                "a record of an earlier version (payloads in sled): rebuild the dataset",
+            ));
+        }
+        if magic != MAGIC {
             return Err(corrupt("not a hierarchy record"));
         }
         let min = DVec3::new(r.f64()?, r.f64()?, r.f64()?);
@@ -198,7 +240,7 @@ impl LodHierarchy {
             stats.class_counts[class] = r.u64()?;
         }
         let count = r.u32()? as usize;
-        if count > body.len() / 20 {
+        if count > body.len() / NODE_RECORD_BYTES {
             return Err(corrupt("more nodes than bytes"));
         }
         let mut nodes = Vec::with_capacity(count);
@@ -215,6 +257,8 @@ impl LodHierarchy {
                 point_count: r.u32()?,
                 sample_grid: u32::from(r.u16()?),
                 child_mask: r.u8()?,
+                offset: r.u64()?,
+                byte_len: r.u32()?,
             });
         }
         if r.at != body.len() {

@@ -1,5 +1,5 @@
 //! The level-of-detail store: an octree of a dataset's original points, built by streaming
-//! from any [`PointSource`] within a memory budget, stored node by node in sled.
+//! from any [`PointSource`] within a memory budget, its nodes appended to one payload file.
 //!
 //! How it works: every point lies in exactly one node. A leaf holds at most
 //! [`LodBuildOptions::max_leaf_points`] points; an inner node holds a spatially even subset,
@@ -9,8 +9,11 @@
 //! ([`build`]): a counting pass, chunks of bounded size spilled to disk, each chunk's octree
 //! built in memory in parallel, then the levels above. Nodes are stored quantised to 30 bits
 //! per axis in their cube, 12 bytes a position in three coarse-to-fine streams, with the raw
-//! attributes and a checksum ([`codec`]); the hierarchy, small and always resident, is one
-//! record written last ([`hierarchy`], [`store`]).
+//! attributes and a checksum ([`codec`]). Each node's record lies in one append-only payload
+//! file at the byte range its [`NodeInfo`] records, read with positioned reads from any number
+//! of threads; the hierarchy, small and always resident, is one sled record written last,
+//! after the payload file is synced ([`hierarchy`], [`store`]). Payloads are not sled values:
+//! sled holds memory in proportion to what it stores.
 
 pub mod build;
 mod checksum;

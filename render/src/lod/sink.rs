@@ -1,4 +1,5 @@
-//! `NodeSink`: where finished nodes go: encoded into the store and listed for the hierarchy.
+//! `NodeSink`: where finished nodes go: encoded, appended to the store's payload file and
+//! listed, with their byte ranges, for the hierarchy.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
@@ -9,9 +10,6 @@ use super::hierarchy::NodeInfo;
 use super::key::{NodeKey, RootCube};
 use super::point::RawPoint;
 use super::store::LodStore;
-
-/// Bytes of node records written between two flushes of the store.
-const FLUSH_EVERY_BYTES: u64 = 64 << 20;
 
 pub struct NodeSink<'a> {
     store: &'a LodStore,
@@ -42,15 +40,12 @@ impl<'a> NodeSink<'a> {
         points: &[RawPoint],
         sample_grid: u32,
     ) -> Result<(), LodError> {
+        let (mut offset, mut byte_len) = (0, 0);
         if !points.is_empty() {
             let bytes = encode_node(&self.cube, key, points, self.has_rgb);
-            let before = self.bytes.fetch_add(bytes.len() as u64, Ordering::Relaxed);
-            self.store.write_node(key, &bytes)?;
-            // Flushed as the store grows, so a long build's nodes reach the disk as it goes
-            // rather than all in the final flush.
-            if before / FLUSH_EVERY_BYTES != (before + bytes.len() as u64) / FLUSH_EVERY_BYTES {
-                self.store.flush()?;
-            }
+            offset = self.store.write_node(key, &bytes)?;
+            byte_len = bytes.len() as u32;
+            self.bytes.fetch_add(bytes.len() as u64, Ordering::Relaxed);
             self.points
                 .fetch_add(points.len() as u64, Ordering::Relaxed);
         }
@@ -59,6 +54,8 @@ impl<'a> NodeSink<'a> {
             point_count: points.len() as u32,
             sample_grid,
             child_mask: 0,
+            offset,
+            byte_len,
         };
         self.nodes
             .lock()

@@ -1,80 +1,137 @@
-//! `LodStore`: a built dataset in a `sled::Tree` the caller owns (so it can live in the dataset
-//! cache): one record per node and one for the hierarchy, written last, so a build that did not
-//! finish leaves no hierarchy and is never read as complete.
+//! `LodStore`: a built dataset in two places. The node payloads are appended to one file (as
+//! Potree 2's `octree.bin`), each addressed by the byte range its [`NodeInfo`] records; the
+//! hierarchy is one record in a `sled::Tree` the caller owns (so it can live in the dataset
+//! cache). Payloads are kept out of sled because sled holds process memory in proportion to
+//! the bytes it stores (docs/perf/lod-build.md).
+//!
+//! The hierarchy is written last, after the payload file is synced, so a build that did not
+//! finish leaves no hierarchy and is never read as complete. Nodes are appended from many
+//! threads at offsets reserved from an atomic counter, and read with positioned reads on one
+//! shared handle: reads need no lock and may run on many threads at once.
+
+use std::fs::{File, OpenOptions};
+use std::io;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 
 use super::codec::{decode_node, NodePoints};
 use super::error::LodError;
-use super::hierarchy::LodHierarchy;
+use super::hierarchy::{LodHierarchy, NodeInfo};
 use super::key::NodeKey;
 
 const HIERARCHY_KEY: &[u8] = b"hierarchy";
-const NODE_PREFIX: u8 = b'n';
-/// A node's record is stored in pages of at most this many bytes: sled reads large values
-/// through a slow path and rescans them when it opens (docs/perf/dataset-cache.md).
-pub const NODE_PAGE_BYTES: usize = 64 << 10;
 
 #[derive(Debug, Clone)]
 pub struct LodStore {
     tree: sled::Tree,
+    payload: Arc<Payload>,
 }
 
-/// The prefix of a node's pages: the node prefix and its 13-byte key.
-fn node_prefix(key: NodeKey) -> [u8; 14] {
-    let mut out = [0; 14];
-    out[0] = NODE_PREFIX;
-    out[1..].copy_from_slice(&key.to_bytes());
-    out
+/// The payload file: one handle for positioned reads and writes, and the offset of the next
+/// append.
+#[derive(Debug)]
+struct Payload {
+    path: PathBuf,
+    file: File,
+    end: AtomicU64,
 }
 
-/// Page `page` of a node: big-endian, so a prefix scan returns the pages in order.
-fn page_key(key: NodeKey, page: u16) -> [u8; 16] {
-    let mut out = [0; 16];
-    out[..14].copy_from_slice(&node_prefix(key));
-    out[14..].copy_from_slice(&page.to_be_bytes());
-    out
+impl Payload {
+    fn error(&self, error: io::Error) -> LodError {
+        LodError::payload(&self.path, error)
+    }
+
+    fn len(&self) -> Result<u64, LodError> {
+        Ok(self.file.metadata().map_err(|e| self.error(e))?.len())
+    }
 }
 
 impl LodStore {
-    /// A store in `tree`, which holds this dataset only.
-    pub fn new(tree: sled::Tree) -> Self {
-        Self { tree }
+    /// A store whose hierarchy lives in `tree` and whose node payloads live in the file at
+    /// `payload_path` (created if missing; its folder must exist). Both hold this dataset only.
+    pub fn open(tree: sled::Tree, payload_path: impl Into<PathBuf>) -> Result<Self, LodError> {
+        let path = payload_path.into();
+        let file = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)
+            .map_err(|e| LodError::payload(&path, e))?;
+        let end = file
+            .metadata()
+            .map_err(|e| LodError::payload(&path, e))?
+            .len();
+        let payload = Payload {
+            path,
+            file,
+            end: AtomicU64::new(end),
+        };
+        Ok(Self {
+            tree,
+            payload: Arc::new(payload),
+        })
     }
 
     pub fn tree(&self) -> &sled::Tree {
         &self.tree
     }
 
-    /// Removes everything, hierarchy first, so a half-cleared store is never read as built.
+    pub fn payload_path(&self) -> &Path {
+        &self.payload.path
+    }
+
+    /// Bytes in the payload file now.
+    pub fn payload_bytes(&self) -> Result<u64, LodError> {
+        self.payload.len()
+    }
+
+    /// Removes everything, hierarchy first (and synced), so a half-cleared store is never read
+    /// as built; then empties the payload file.
     pub(crate) fn clear(&self) -> Result<(), LodError> {
         self.tree.remove(HIERARCHY_KEY)?;
+        self.tree.flush()?;
+        self.payload
+            .file
+            .set_len(0)
+            .map_err(|e| self.payload.error(e))?;
+        self.payload.end.store(0, Ordering::SeqCst);
         self.tree.clear()?;
         Ok(())
     }
 
-    /// Writes a node's record in pages; a store is cleared before a build, so no page of an
-    /// earlier record is left behind.
-    pub(crate) fn write_node(&self, key: NodeKey, bytes: &[u8]) -> Result<(), LodError> {
-        for (page, chunk) in bytes.chunks(NODE_PAGE_BYTES).enumerate() {
-            let page = u16::try_from(page).map_err(|_| LodError::CorruptNode {
-                key,
-                reason: format!("{} bytes is more than a node may hold", bytes.len()),
-            })?;
-            self.tree.insert(page_key(key, page), chunk)?;
-        }
-        Ok(())
+    /// Appends a node's record to the payload file and returns its offset; callable from many
+    /// threads at once (each write goes to a range reserved for it alone).
+    pub(crate) fn write_node(&self, key: NodeKey, bytes: &[u8]) -> Result<u64, LodError> {
+        u32::try_from(bytes.len()).map_err(|_| LodError::CorruptNode {
+            key,
+            reason: format!("{} bytes is more than a node may hold", bytes.len()),
+        })?;
+        let offset = self
+            .payload
+            .end
+            .fetch_add(bytes.len() as u64, Ordering::Relaxed);
+        self.payload
+            .file
+            .write_all_at(bytes, offset)
+            .map_err(|e| self.payload.error(e))?;
+        Ok(offset)
     }
 
-    /// Writes what sled buffers to disk.
-    pub(crate) fn flush(&self) -> Result<(), LodError> {
+    /// Syncs the payload file, then writes the hierarchy and flushes sled: a hierarchy on disk
+    /// always describes payloads on disk. Returns the record's length.
+    pub(crate) fn write_hierarchy(&self, hierarchy: &LodHierarchy) -> Result<u64, LodError> {
+        self.payload
+            .file
+            .sync_data()
+            .map_err(|e| self.payload.error(e))?;
+        let record = hierarchy.encode();
+        let len = record.len() as u64;
+        self.tree.insert(HIERARCHY_KEY, record)?;
         self.tree.flush()?;
-        Ok(())
-    }
-
-    pub(crate) fn write_hierarchy(&self, hierarchy: &LodHierarchy) -> Result<(), LodError> {
-        self.tree.flush()?;
-        self.tree.insert(HIERARCHY_KEY, hierarchy.encode())?;
-        self.tree.flush()?;
-        Ok(())
+        Ok(len)
     }
 
     pub fn read_hierarchy(&self) -> Result<LodHierarchy, LodError> {
@@ -85,20 +142,44 @@ impl LodStore {
         LodHierarchy::decode(&bytes)
     }
 
-    /// The raw stored bytes of a node, its pages joined (tests and tools that check the
-    /// store); `None` when it has no page.
-    pub fn node_bytes(&self, key: NodeKey) -> Result<Option<Vec<u8>>, LodError> {
-        let mut bytes = Vec::new();
-        let mut pages = 0;
-        for page in self.tree.scan_prefix(node_prefix(key)) {
-            let (_, value) = page?;
-            bytes.extend_from_slice(&value);
-            pages += 1;
+    /// Reads a node's byte range from the payload file, after checking that the file holds it
+    /// (a damaged hierarchy or a truncated file must not cause a huge allocation).
+    fn read_range(&self, info: &NodeInfo) -> Result<Vec<u8>, LodError> {
+        let key = info.key;
+        let corrupt = |reason: String| LodError::CorruptNode { key, reason };
+        let file_len = self.payload.len()?;
+        let end = info.offset.checked_add(u64::from(info.byte_len));
+        if end.is_none_or(|end| end > file_len) {
+            return Err(corrupt(format!(
+                "its {} bytes at offset {} run past the end of the payload file ({file_len} bytes)",
+                info.byte_len, info.offset
+            )));
         }
-        Ok((pages > 0).then_some(bytes))
+        let mut bytes = vec![0; info.byte_len as usize];
+        match self.payload.file.read_exact_at(&mut bytes, info.offset) {
+            Ok(()) => Ok(bytes),
+            Err(e) if e.kind() == io::ErrorKind::UnexpectedEof => Err(corrupt(format!(
+                "the payload file ended within its {} bytes at offset {}",
+                info.byte_len, info.offset
+            ))),
+            Err(e) => Err(self.payload.error(e)),
+        }
     }
 
-    /// Reads and checks one node of `hierarchy`.
+    /// The raw stored bytes of a node of `hierarchy` (tests and tools that check the store);
+    /// `None` when the hierarchy does not list it or it stores no points.
+    pub fn node_bytes(
+        &self,
+        hierarchy: &LodHierarchy,
+        key: NodeKey,
+    ) -> Result<Option<Vec<u8>>, LodError> {
+        match hierarchy.node(key) {
+            Some(info) if info.point_count > 0 => self.read_range(info).map(Some),
+            _ => Ok(None),
+        }
+    }
+
+    /// Reads and checks one node of `hierarchy`; callable from many threads at once.
     pub fn read_node(
         &self,
         hierarchy: &LodHierarchy,
@@ -118,19 +199,30 @@ impl LodStore {
                 return_number: Vec::new(),
             });
         }
-        let bytes = self.node_bytes(key)?.ok_or_else(|| LodError::CorruptNode {
-            key,
-            reason: "its record is missing".into(),
-        })?;
+        let bytes = self.read_range(info)?;
         decode_node(&hierarchy.cube, key, info.point_count, &bytes)
     }
 
-    /// Overwrites a node's stored bytes, to test that damage is detected.
+    /// Replaces a node's stored bytes, to test that damage is detected: in place when the
+    /// length is unchanged, else appended as a new copy, with the node's range updated in
+    /// `hierarchy` and in the stored record.
     #[cfg(test)]
-    pub(crate) fn overwrite_node_bytes(&self, key: NodeKey, bytes: &[u8]) -> Result<(), LodError> {
-        for page in self.tree.scan_prefix(node_prefix(key)).keys() {
-            self.tree.remove(page?)?;
+    pub(crate) fn overwrite_node_bytes(
+        &self,
+        hierarchy: &mut LodHierarchy,
+        key: NodeKey,
+        bytes: &[u8],
+    ) -> Result<(), LodError> {
+        let info = *hierarchy.node(key).ok_or(LodError::UnknownNode { key })?;
+        if bytes.len() == info.byte_len as usize {
+            return self
+                .payload
+                .file
+                .write_all_at(bytes, info.offset)
+                .map_err(|e| self.payload.error(e));
         }
-        self.write_node(key, bytes)
+        let offset = self.write_node(key, bytes)?;
+        hierarchy.set_byte_range(key, offset, bytes.len() as u32);
+        self.write_hierarchy(hierarchy).map(drop)
     }
 }

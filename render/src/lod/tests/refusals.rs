@@ -54,7 +54,11 @@ impl PointSource for Broken {
 fn bad_sources_are_refused_with_clear_errors() {
     let dir = tempfile::tempdir().expect("tempdir");
     let db = sled::open(dir.path().join("db")).expect("sled");
-    let store = LodStore::new(db.open_tree("lod").expect("tree"));
+    let store = LodStore::open(
+        db.open_tree("lod").expect("tree"),
+        dir.path().join("lod.bin"),
+    )
+    .expect("store");
     let options = options(dir.path(), 500);
     let grid: Vec<DVec3> = (0..1000)
         .map(|i| DVec3::new(f64::from(i), 1.0, 2.0))

@@ -1,0 +1,203 @@
+//! `pointfarm render` from levels of detail, run as a user would: a folder of tiles rendered
+//! out of core as the file they were cut from, the store kept and reused, what each frame
+//! reports, and the options refused where they do not apply.
+
+use std::path::Path;
+use std::process::Output;
+
+use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
+use pointfarm_render::sample::sample_scene;
+use pointfarm_render::testing::compare_images_within;
+use pointfarm_tests::pointfarm;
+
+fn text(output: &Output) -> String {
+    format!(
+        "{}\n{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    )
+}
+
+fn ok(args: &[&str]) -> Output {
+    let output = pointfarm(args);
+    assert!(
+        output.status.success(),
+        "pointfarm {args:?} failed:\n{}",
+        text(&output)
+    );
+    output
+}
+
+fn arg(path: &Path) -> &str {
+    path.to_str().expect("temporary paths are UTF-8")
+}
+
+/// A scene written whole and as four tiles (LAS and LAZ, one in a subfolder).
+fn scene_and_tiles(dir: &Path, points: usize) -> (std::path::PathBuf, std::path::PathBuf) {
+    let whole = dir.join("whole.laz");
+    write_las(
+        &whole,
+        &sample_scene(points, 9),
+        &LasWriteOptions::default(),
+    )
+    .expect("whole");
+    let cloud = load_point_cloud(&whole).expect("load whole");
+    let tiles = dir.join("tiles");
+    std::fs::create_dir_all(tiles.join("north")).expect("tiles");
+    let centre = cloud.bounds.center() - cloud.origin;
+    let mut quarters: [Vec<usize>; 4] = Default::default();
+    for (i, p) in cloud.positions.iter().enumerate() {
+        let quarter =
+            usize::from(f64::from(p.x) >= centre.x) + 2 * usize::from(f64::from(p.y) >= centre.y);
+        quarters[quarter].push(i);
+    }
+    let names = ["sw.las", "se.laz", "north/nw.laz", "north/ne.las"];
+    for (name, quarter) in names.iter().zip(&quarters) {
+        write_las(
+            &tiles.join(name),
+            &cloud.select(quarter),
+            &LasWriteOptions::default(),
+        )
+        .expect("tile");
+    }
+    (whole, tiles)
+}
+
+#[test]
+fn tiles_render_from_levels_of_detail_as_the_file_they_were_cut_from() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (whole, tiles) = scene_and_tiles(dir.path(), 40_000);
+    let cache = dir.path().join("cache");
+    let size = "--size=200x150";
+    let (resident, cut) = (dir.path().join("resident.png"), dir.path().join("cut.png"));
+    ok(&["render", arg(&whole), "--out", arg(&resident), size]);
+    let first = ok(&[
+        "render",
+        arg(&tiles),
+        "--out",
+        arg(&cut),
+        size,
+        "--lod-error",
+        "0",
+        "--cache-dir",
+        arg(&cache),
+    ]);
+    assert!(
+        text(&first).contains("levels of detail:"),
+        "{}",
+        text(&first)
+    );
+    let image = |path: &Path| image::open(path).expect("png").to_rgba8();
+    let diff = compare_images_within("lod-tiles", &image(&cut), &image(&resident), 8);
+    assert!(
+        diff.equal_fraction() >= 0.99,
+        "the tiles' cut at --lod-error 0 differs from the whole file: {} pixels",
+        diff.differing
+    );
+
+    // The store is kept: a turntable reuses it, and each frame reports its cut.
+    let frames = dir.path().join("frames");
+    let again = ok(&[
+        "render",
+        arg(&tiles),
+        "--out",
+        arg(&frames),
+        size,
+        "--turntable",
+        "3",
+        "--lod-error",
+        "0.5",
+        "--cache-dir",
+        arg(&cache),
+        "--json",
+    ]);
+    assert!(
+        !text(&again).contains("levels of detail:"),
+        "built again:\n{}",
+        text(&again)
+    );
+    let reports: Vec<serde_json::Value> = String::from_utf8_lossy(&again.stdout)
+        .lines()
+        .map(|line| serde_json::from_str(line).expect("one JSON object a line"))
+        .collect();
+    assert_eq!(reports.len(), 3);
+    for report in &reports {
+        let cut = &report["cut"];
+        assert_eq!(report["points_total"], 40_000);
+        assert!(report["points_rendered"].as_u64() <= Some(40_000));
+        assert!(cut["nodes"].as_u64() > Some(0), "{report}");
+        for stage in ["select", "load", "rasterize"] {
+            assert!(report["timings_ms"][stage].is_number(), "{stage}: {report}");
+        }
+    }
+    assert!(reports[0]["cut"]["nodes_read"].as_u64() > Some(0));
+    assert!(reports[0]["cut"]["bytes_read"].as_u64() > Some(0));
+    assert!(
+        reports[2]["cut"]["gpu_hits"].as_u64() > Some(0),
+        "{}",
+        reports[2]
+    );
+
+    // A changed file is a new dataset: its store is built anew.
+    let tile = tiles.join("sw.las");
+    let bytes = std::fs::read(&tile).expect("read tile");
+    std::thread::sleep(std::time::Duration::from_millis(20));
+    std::fs::write(&tile, bytes).expect("rewrite tile");
+    let rebuilt = ok(&[
+        "render",
+        arg(&tiles),
+        "--out",
+        arg(&cut),
+        size,
+        "--lod-error",
+        "1",
+        "--cache-dir",
+        arg(&cache),
+    ]);
+    assert!(
+        text(&rebuilt).contains("levels of detail:"),
+        "{}",
+        text(&rebuilt)
+    );
+}
+
+#[test]
+fn level_of_detail_options_are_checked_and_refused_through_a_server() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cloud = dir.path().join("scene.laz");
+    write_las(&cloud, &sample_scene(2_000, 3), &LasWriteOptions::default()).expect("write");
+    let out = dir.path().join("out.png");
+    let cache = dir.path().join("cache");
+    let refused = |args: &[&str], expected: &str| {
+        let mut all = vec![
+            "render",
+            arg(&cloud),
+            "--out",
+            arg(&out),
+            "--cache-dir",
+            arg(&cache),
+        ];
+        all.extend(args);
+        let output = pointfarm(&all);
+        assert!(!output.status.success(), "{args:?} was accepted");
+        assert!(
+            text(&output).contains(expected),
+            "{args:?}:\n{}",
+            text(&output)
+        );
+        assert_ne!(
+            output.status.code(),
+            Some(101),
+            "a panic:\n{}",
+            text(&output)
+        );
+    };
+    refused(&["--lod-error=-1"], "not a number from 0");
+    refused(&["--lod-error", "1000"], "lod_error");
+    refused(&["--memory-budget", "1KiB"], "memory_budget");
+    refused(&["--memory-budget", "plenty"], "not a size");
+    refused(
+        &["--lod-error", "1", "--server", "http://127.0.0.1:9"],
+        "--lod-error",
+    );
+}
