@@ -132,7 +132,8 @@ pub struct BuildResult {
     pub spilled_bytes: u64,
     /// Bytes of node records written.
     pub stored_bytes: u64,
-    /// Bytes the store's folder takes on disk once closed.
+    /// Bytes the store's folder (sled's hierarchy and the node payload file) takes on disk
+    /// once closed.
     pub store_disk_bytes: u64,
     pub store_disk_bytes_per_point: f64,
 }
@@ -188,7 +189,11 @@ fn create_store(dir: &Path) -> Result<BenchStore, BenchError> {
         .cache_capacity(64 << 20)
         .open()
         .map_err(LodError::from)?;
-    let store = LodStore::new(db.open_tree("lod").map_err(LodError::from)?);
+    // The payload file beside sled's folder, which sled's open has made `dir`.
+    let store = LodStore::open(
+        db.open_tree("lod").map_err(LodError::from)?,
+        dir.join("nodes.bin"),
+    )?;
     Ok(BenchStore { _db: db, store })
 }
 
