@@ -2,6 +2,7 @@
 
 use pointfarm_render::cache::CacheError;
 use pointfarm_render::ingest::IngestError;
+use pointfarm_render::lod::LodError;
 use pointfarm_render::raster::RenderError;
 
 /// Why a run failed.
@@ -11,6 +12,8 @@ pub enum BenchError {
     Render(#[from] RenderError),
     #[error(transparent)]
     Ingest(#[from] IngestError),
+    #[error(transparent)]
+    Lod(#[from] LodError),
     #[error("the benchmark needs at least one measured frame")]
     NoFrames,
     #[error("no workload matches --only {0}")]

@@ -6,6 +6,7 @@ use pointfarm_render::camera::Camera;
 use pointfarm_render::raster::{FrameSettings, GpuPointCloud};
 
 use crate::clouds::{cube_bounds, CellCubeGenerator};
+use crate::memory;
 use crate::report::{IngestMemory, WorkloadResult};
 use crate::rounds::{measure, Methods};
 use crate::workloads::{uniform_workload, View};
@@ -107,36 +108,6 @@ impl HugeCloud {
         result.ingest_memory = Some(self.memory);
         progress(&result.summary_line());
         Ok(result)
-    }
-}
-
-/// The process's resident memory, from `/proc/self/status` (Linux; 0 elsewhere).
-mod memory {
-    fn status_kib(field: &str) -> u64 {
-        std::fs::read_to_string("/proc/self/status")
-            .ok()
-            .and_then(|status| {
-                status
-                    .lines()
-                    .find(|l| l.starts_with(field))
-                    .and_then(|l| l.split_whitespace().nth(1))
-                    .and_then(|kib| kib.parse().ok())
-            })
-            .unwrap_or(0)
-    }
-
-    pub fn resident_bytes() -> u64 {
-        status_kib("VmRSS:") * 1024
-    }
-
-    /// The peak resident set size since the last [`reset_peak`] (or the start).
-    pub fn peak_resident_bytes() -> u64 {
-        status_kib("VmHWM:") * 1024
-    }
-
-    /// Resets the peak to the current size (Linux 4.0 and later; ignored where refused).
-    pub fn reset_peak() {
-        let _ = std::fs::write("/proc/self/clear_refs", "5");
     }
 }
 

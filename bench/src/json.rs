@@ -1,11 +1,12 @@
-//! The benchmark's JSON file: the report, with the run's context (the command, when it ended,
-//! how long it took, the machine).
+//! The benchmark's JSON file: the report (or the campaign benchmark's `campaign` section), with
+//! the run's context (the command, when it ended, how long it took, the machine).
 
 use std::path::Path;
 use std::time::Instant;
 
 use serde::Serialize;
 
+use crate::campaign::CampaignResult;
 use crate::report::BenchReport;
 use crate::BenchError;
 
@@ -19,9 +20,9 @@ pub struct RunContext {
     pub started: Instant,
 }
 
-/// The JSON file: the run's context and the report.
+/// The JSON file: the run's context and the report's sections.
 #[derive(Serialize)]
-struct BenchFile<'a> {
+struct BenchFile<'a, R: Serialize> {
     command: String,
     quick: bool,
     /// Seconds since the Unix epoch when the run ended.
@@ -29,7 +30,13 @@ struct BenchFile<'a> {
     wall_s: f64,
     machine: Machine,
     #[serde(flatten)]
-    report: &'a BenchReport,
+    report: &'a R,
+}
+
+/// The campaign benchmark's file: its figures as the `campaign` section.
+#[derive(Serialize)]
+struct CampaignSection<'a> {
+    campaign: &'a CampaignResult,
 }
 
 /// The machine the run was on.
@@ -62,6 +69,23 @@ impl Machine {
 
 /// Writes `report` with its `context` as pretty-printed JSON to `path`.
 pub fn write(path: &Path, report: &BenchReport, context: &RunContext) -> Result<(), BenchError> {
+    write_file(path, report, context)
+}
+
+/// Writes the campaign benchmark's figures, as the file's `campaign` section, with `context`.
+pub fn write_campaign(
+    path: &Path,
+    campaign: &CampaignResult,
+    context: &RunContext,
+) -> Result<(), BenchError> {
+    write_file(path, &CampaignSection { campaign }, context)
+}
+
+fn write_file<R: Serialize>(
+    path: &Path,
+    report: &R,
+    context: &RunContext,
+) -> Result<(), BenchError> {
     let file = BenchFile {
         command: context.command.clone(),
         quick: context.quick,

@@ -22,19 +22,22 @@
 //!
 //! The crate's modules, one job each: [`workloads`] (the scenes and their views) from the
 //! generated [`clouds`]; `rounds` (warming and measuring the methods) and `huge` (the cloud
-//! uploaded chunk by chunk); [`ingest`] (decoding and the dataset cache); [`scheduler`] (leasing
-//! a frame against the daemon's job history, no GPU); [`report`] (what was
-//! measured), written as [`markdown`], [`json`] and a [`plot`].
+//! uploaded chunk by chunk); [`ingest`] (decoding and the dataset cache); [`campaign`] (building
+//! the level-of-detail store of a campaign of many files, no GPU); [`scheduler`] (leasing a
+//! frame against the daemon's job history, no GPU); `memory` (the process's resident memory);
+//! [`report`] (what was measured), written as [`markdown`], [`json`] and a [`plot`].
 //!
 //! The `PointList` baseline is compiled into the renderer only here: this crate enables the
 //! render crate's `pointlist-baseline` feature.
 
+pub mod campaign;
 pub mod clouds;
 mod error;
 mod huge;
 pub mod ingest;
 pub mod json;
 pub mod markdown;
+mod memory;
 mod options;
 pub mod plot;
 pub mod report;

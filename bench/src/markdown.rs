@@ -1,9 +1,10 @@
 //! The benchmark's figures as markdown: the render tables (frame times, throughput, speed-ups,
-//! per-stage medians, scaling fits, batch counts, the huge cloud's memory), the ingest table
-//! and what was skipped.
+//! per-stage medians, scaling fits, batch counts, the huge cloud's memory), the ingest table,
+//! what was skipped, and the campaign benchmark's tables.
 
 use std::fmt::Write as _;
 
+use crate::campaign::CampaignResult;
 use crate::report::{BenchReport, MethodResult, WorkloadResult};
 
 /// `value` to three significant digits, however small (a GPU's ns per point is ~0.01).
@@ -230,6 +231,100 @@ fn ingest_table(md: &mut String, report: &BenchReport) {
             i.cache_speedup
         );
     }
+}
+
+/// Seconds to two decimals, or three below a tenth.
+fn seconds(value: f64) -> String {
+    match value {
+        v if v < 0.1 => format!("{v:.3}"),
+        v if v < 100.0 => format!("{v:.2}"),
+        v => format!("{v:.0}"),
+    }
+}
+
+/// The campaign benchmark: reading and building per kind of files, the builder's stages and
+/// memory, the store's disk.
+pub fn campaign_tables(c: &CampaignResult) -> String {
+    let mut md = String::new();
+    let mib = |b: u64| b as f64 / (1u64 << 20) as f64;
+    let _ = writeln!(
+        md,
+        "Campaign ingest: {} points of generated terrain in {} files ({}x{} tiles), written in \
+         {:.1} s; {} threads.\n\n\
+         | input | files MB | file B/point | read s | read M points/s | build s | build M \
+         points/s | build / read | peak RSS MiB | builder's tracked peak MiB | store B/point |\n\
+         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        thousands(c.points as usize),
+        c.files,
+        c.grid[0],
+        c.grid[1],
+        c.write_s,
+        c.threads
+    );
+    for b in &c.builds {
+        let Some(read) = c.decode_of(b.input) else {
+            continue;
+        };
+        let _ = writeln!(
+            md,
+            "| {} | {:.1} | {:.2} | {} | {:.2} | {} | {:.2} | {:.0}% | {:.0} | {:.0} | {:.2} |",
+            b.input.to_uppercase(),
+            read.file_bytes as f64 / 1e6,
+            read.file_bytes_per_point,
+            seconds(read.read_s),
+            read.mpoints_per_s,
+            seconds(b.build_s),
+            b.mpoints_per_s,
+            b.over_decode * 100.0,
+            mib(b.peak_rss_bytes),
+            mib(b.builder_peak_bytes),
+            b.store_disk_bytes_per_point
+        );
+    }
+    let _ = writeln!(
+        md,
+        "\nThe builder's stages (s), the chunks, the nodes, what was spilled and stored:\n\n\
+         | input | counting | distribution | chunks | upper levels | total | chunks | nodes | \
+         spilled MiB | node records MiB | store on disk MiB | RSS before MiB |\n\
+         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+    );
+    for b in &c.builds {
+        let s = &b.stages;
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {:.0} | {:.0} | {:.0} | {:.0} |",
+            b.input.to_uppercase(),
+            seconds(s.counting_s),
+            seconds(s.distribution_s),
+            seconds(s.chunks_s),
+            seconds(s.upper_levels_s),
+            seconds(s.total_s),
+            b.chunks,
+            thousands(b.nodes),
+            mib(b.spilled_bytes),
+            mib(b.stored_bytes),
+            mib(b.store_disk_bytes),
+            mib(b.before_rss_bytes)
+        );
+    }
+    if let Some([before, after]) = c.load_average {
+        let _ = writeln!(
+            md,
+            "\nLoad average {before:.1} at the start, {after:.1} at the end ({} threads).",
+            c.threads
+        );
+    }
+    if let Some(reason) = &c.las_skipped {
+        let _ = writeln!(md, "\nNo LAS: {reason}.");
+    }
+    if !c.peak_reset {
+        let _ = writeln!(
+            md,
+            "\nThe peak resident memory could not be reset before the builds: each peak is the \
+             process's since its start."
+        );
+    }
+    md
 }
 
 fn stage(method: &MethodResult, name: &str) -> String {

@@ -66,6 +66,21 @@ pub struct BenchArgs {
     /// history and with up to 10,000 finished jobs (1,000 with --quick). Needs no GPU.
     #[arg(long, conflicts_with_all = ["only", "huge", "modes", "basic_only", "plot"])]
     scheduler: bool,
+    /// Measure building the level-of-detail store of a campaign instead of the renderer:
+    /// POINTS points of generated terrain (20 million when no count is given, 4 million with
+    /// --quick) split into --campaign-files tiles, written as LAZ and, when the disk holds it,
+    /// as LAS (34 B a point); each kind read through the dataset source, then built into a
+    /// fresh store, with its stages, peak memory and disk. Needs no GPU.
+    #[arg(
+        long,
+        value_name = "POINTS",
+        value_parser = parse_point_count,
+        conflicts_with_all = ["only", "huge", "modes", "basic_only", "plot", "scheduler"]
+    )]
+    campaign: Option<Option<usize>>,
+    /// Files (tiles) of the --campaign.
+    #[arg(long, value_name = "N", default_value_t = bench::campaign::CAMPAIGN_FILES)]
+    campaign_files: usize,
 }
 
 /// A compute mode besides the basic one, as `--modes` names it.
@@ -96,7 +111,7 @@ impl From<BenchMode> for ComputeMode {
 /// A point count, with optional `_` separators; at least one point.
 fn parse_point_count(text: &str) -> Result<usize, String> {
     match text.replace('_', "").parse::<usize>() {
-        Ok(0) => Err("the huge cloud needs at least one point".into()),
+        Ok(0) => Err("at least one point is needed".into()),
         Ok(n) => Ok(n),
         Err(e) => Err(format!("'{text}' is not a point count: {e}")),
     }
@@ -106,6 +121,9 @@ pub fn run(args: BenchArgs) -> Result<()> {
     let started = Instant::now();
     if args.scheduler {
         return run_scheduler(&args, started);
+    }
+    if let Some(points) = args.campaign {
+        return run_campaign(&args, points, started);
     }
     let (width, height) = args.size;
     let defaults = if args.quick {
@@ -199,6 +217,34 @@ fn run_scheduler(args: &BenchArgs, started: Instant) -> Result<()> {
         });
         std::fs::write(path, serde_json::to_vec_pretty(&json)?)
             .with_context(|| format!("writing {}", path.display()))?;
+    }
+    println!("done in {:.0} s", started.elapsed().as_secs_f64());
+    Ok(())
+}
+
+/// `--campaign`: building the level-of-detail store of a campaign of many files.
+fn run_campaign(args: &BenchArgs, points: Option<usize>, started: Instant) -> Result<()> {
+    use bench::campaign::{self, CampaignOptions, CAMPAIGN_POINTS, CAMPAIGN_QUICK_POINTS};
+    let default = if args.quick {
+        CAMPAIGN_QUICK_POINTS
+    } else {
+        CAMPAIGN_POINTS
+    };
+    let points = points.map_or(default, |n| n as u64);
+    let options = CampaignOptions::new(points, args.campaign_files);
+    let result = campaign::measure(&options, &mut |line| eprintln!("  {line}"))?;
+    let markdown = bench::markdown::campaign_tables(&result);
+    println!("\n{markdown}");
+    if let Some(path) = &args.markdown {
+        std::fs::write(path, &markdown).with_context(|| format!("writing {}", path.display()))?;
+    }
+    if let Some(path) = &args.json {
+        let context = RunContext {
+            command: std::env::args().collect::<Vec<_>>().join(" "),
+            quick: args.quick,
+            started,
+        };
+        bench::json::write_campaign(path, &result, &context)?;
     }
     println!("done in {:.0} s", started.elapsed().as_secs_f64());
     Ok(())
