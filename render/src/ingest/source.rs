@@ -4,6 +4,7 @@
 use std::path::PathBuf;
 
 use glam::DVec3;
+use rayon::prelude::*;
 
 use super::contain::contain_panics;
 use super::read::{usable, DatasetFile};
@@ -53,22 +54,94 @@ impl DatasetSource {
     }
 }
 
-/// Fills `columns` with a decoded batch (its RGB only `with_rgb`).
-fn fill(columns: &mut BatchColumns, batch: &las::PointData, with_rgb: bool) {
-    columns.clear();
-    columns.positions.extend(
-        batch
-            .x()
-            .zip(batch.y())
-            .zip(batch.z())
-            .map(|((x, y), z)| DVec3::new(x, y, z)),
-    );
-    if let (true, Some(rgb)) = (with_rgb, batch.rgb()) {
-        columns.rgb.extend(rgb.map(|(r, g, b)| [r, g, b]));
+/// Records decoded per task when a batch is turned into columns on all cores.
+const FILL_BLOCK_POINTS: usize = 1 << 14;
+
+/// Where a record's fields lie, from its point format (as the `las` crate lays them out).
+#[derive(Clone, Copy)]
+struct RecordFields {
+    len: usize,
+    extended: bool,
+    rgb: Option<usize>,
+}
+
+impl RecordFields {
+    fn of(batch: &las::PointData) -> Self {
+        let format = batch.format();
+        // Legacy: XYZ, intensity, 2 flag bytes, scan angle, user data, source id (20 bytes),
+        // then GPS time; extended (6-10): 3 flag bytes and a 2-byte scan angle (22), GPS time.
+        let rgb = if format.is_extended {
+            30
+        } else {
+            20 + if format.has_gps_time { 8 } else { 0 }
+        };
+        Self {
+            len: batch.record_len(),
+            extended: format.is_extended,
+            rgb: format.has_color.then_some(rgb),
+        }
     }
-    columns.intensity.extend(batch.intensity());
-    columns.classification.extend(batch.classification());
-    columns.return_number.extend(batch.return_number());
+}
+
+fn u16_at(record: &[u8], at: usize) -> u16 {
+    u16::from_le_bytes([record[at], record[at + 1]])
+}
+
+fn i32_at(record: &[u8], at: usize) -> i32 {
+    i32::from_le_bytes([record[at], record[at + 1], record[at + 2], record[at + 3]])
+}
+
+/// Fills `columns` with a decoded batch (its RGB only `with_rgb`), blocks of records decoded
+/// in parallel: the same values as the `las` crate's column iterators.
+fn fill(columns: &mut BatchColumns, batch: &las::PointData, with_rgb: bool) {
+    let fields = RecordFields::of(batch);
+    let n = batch.len();
+    let bytes = &batch.raw_bytes()[..n * fields.len];
+    let t = batch.transforms();
+    let (tx, ty, tz) = (t.x, t.y, t.z);
+    columns.clear();
+    columns.positions.resize(n, DVec3::ZERO);
+    columns.intensity.resize(n, 0);
+    columns.classification.resize(n, 0);
+    columns.return_number.resize(n, 0);
+    let block_bytes = FILL_BLOCK_POINTS * fields.len;
+    columns
+        .positions
+        .par_chunks_mut(FILL_BLOCK_POINTS)
+        .zip(columns.intensity.par_chunks_mut(FILL_BLOCK_POINTS))
+        .zip(columns.classification.par_chunks_mut(FILL_BLOCK_POINTS))
+        .zip(columns.return_number.par_chunks_mut(FILL_BLOCK_POINTS))
+        .zip(bytes.par_chunks(block_bytes))
+        .for_each(|((((positions, intensity), classes), returns), block)| {
+            let records = block.chunks_exact(fields.len);
+            for (i, r) in records.enumerate() {
+                positions[i] = DVec3::new(
+                    tx.direct(i32_at(r, 0)),
+                    ty.direct(i32_at(r, 4)),
+                    tz.direct(i32_at(r, 8)),
+                );
+                intensity[i] = u16_at(r, 12);
+                if fields.extended {
+                    returns[i] = r[14] & 15;
+                    classes[i] = r[16];
+                } else {
+                    returns[i] = r[14] & 7;
+                    classes[i] = r[15] & 0b0001_1111;
+                }
+            }
+        });
+    if let (true, Some(at)) = (with_rgb, fields.rgb) {
+        columns.rgb.resize(n, [0; 3]);
+        columns
+            .rgb
+            .par_chunks_mut(FILL_BLOCK_POINTS)
+            .zip(bytes.par_chunks(block_bytes))
+            .for_each(|(rgb, block)| {
+                for (c, r) in rgb.iter_mut().zip(block.chunks_exact(fields.len)) {
+                    *c = [u16_at(r, at), u16_at(r, at + 2), u16_at(r, at + 4)];
+                }
+            });
+    }
 }
 
 impl PointSource for DatasetSource {
@@ -160,6 +233,39 @@ mod tests {
         );
         assert!(hierarchy.stats.has_rgb);
         assert!(report.hierarchy.nodes().len() > 1);
+    }
+
+    /// The parallel fill gives what the `las` crate's column iterators give, in every point
+    /// format, over more than one block.
+    #[test]
+    fn columns_are_the_crates_in_every_point_format() {
+        use crate::ingest::test_files::written_1_4;
+        let dir = tempfile::tempdir().expect("tempdir");
+        for format in 0..=10u8 {
+            let (path, _) = written_1_4(dir.path(), &format!("f{format}.las"), 40_000, format);
+            let mut reader = las::Reader::from_path(&path).expect("reader");
+            let points = reader.read_all().expect("read");
+            let mut columns = BatchColumns::default();
+            fill(&mut columns, &points, true);
+            let positions: Vec<DVec3> = points
+                .x()
+                .zip(points.y())
+                .zip(points.z())
+                .map(|((x, y), z)| DVec3::new(x, y, z))
+                .collect();
+            assert_eq!(columns.positions, positions, "format {format}");
+            let intensity: Vec<u16> = points.intensity().collect();
+            assert_eq!(columns.intensity, intensity, "format {format}");
+            let classes: Vec<u8> = points.classification().collect();
+            assert_eq!(columns.classification, classes, "format {format}");
+            let returns: Vec<u8> = points.return_number().collect();
+            assert_eq!(columns.return_number, returns, "format {format}");
+            let rgb: Vec<[u16; 3]> = points
+                .rgb()
+                .map(|rgb| rgb.map(|(r, g, b)| [r, g, b]).collect())
+                .unwrap_or_default();
+            assert_eq!(columns.rgb, rgb, "format {format}");
+        }
     }
 
     #[test]
