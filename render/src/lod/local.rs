@@ -56,21 +56,25 @@ impl LocalBuilder<'_> {
     }
 }
 
-/// `points` of `key` by child, each child's vector allocated at its exact size.
+/// `points` of `key` by child, each child's vector allocated at its exact size; each point's
+/// child is computed once.
 pub(crate) fn split(cube: &RootCube, key: NodeKey, points: Vec<RawPoint>) -> [Vec<RawPoint>; 8] {
     let child_level = u32::from(key.level) + 1;
     let base = key.cell() * 2;
-    let child_of = |p: &RawPoint| {
-        let c = cube.cell_at(p.position, child_level) - base;
-        (c.x | (c.y << 1) | (c.z << 2)) as usize
-    };
+    let which: Vec<u8> = points
+        .iter()
+        .map(|p| {
+            let c = cube.cell_at(p.position, child_level) - base;
+            (c.x | (c.y << 1) | (c.z << 2)) as u8
+        })
+        .collect();
     let mut counts = [0usize; 8];
-    for p in &points {
-        counts[child_of(p)] += 1;
+    for &i in &which {
+        counts[usize::from(i)] += 1;
     }
     let mut children: [Vec<RawPoint>; 8] = std::array::from_fn(|i| Vec::with_capacity(counts[i]));
-    for p in points {
-        children[child_of(&p)].push(p);
+    for (p, &i) in points.into_iter().zip(&which) {
+        children[usize::from(i)].push(p);
     }
     children
 }
