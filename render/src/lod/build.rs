@@ -3,8 +3,9 @@
 //! 1. counting: the source read once, every point checked and counted into a coarse grid of
 //!    the root cube, with the dataset's statistics;
 //! 2. planning: grid cells merged into chunks of at most a budget-derived number of points;
-//! 3. distribution: the source read again, every point appended to its chunk's spill file
-//!    through bounded buffers;
+//! 3. distribution: the source read again (or, for a source costly to read again such as
+//!    LAZ, the copy of it the counting pass wrote), every point appended to its chunk's spill
+//!    file through bounded buffers;
 //! 4. chunks: each chunk's local octree built in memory, in parallel, as many at once as the
 //!    budget holds (a chunk too large is split on disk first);
 //! 5. upper levels: the nodes above the chunks sampled from their children up to the root;
@@ -19,6 +20,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
+use super::cached::SourceCopyWriter;
 use super::chunks::{build_chunks, chunk_bytes, distribute};
 use super::context::BuildContext;
 use super::counting::{count_points, CountGrid, CELL_BLOCK_POINTS, MAX_COUNT_LEVEL};
@@ -140,7 +142,15 @@ fn build_on_pool(
 
     let grid_bytes = CountGrid::planning_bytes(level);
     let grid_reservation = meter.try_reserve(grid_bytes, "the counting grid")?;
-    let (grid, stats) = count_points(source, &cube, level, &meter)?;
+    let mut copy = if source.rereads_cheaply() {
+        None
+    } else {
+        Some(SourceCopyWriter::create(&spill, &meter)?)
+    };
+    let (grid, stats) = count_points(source, &cube, level, &meter, copy.as_mut())?;
+    let copy = copy
+        .map(|copy| copy.finish(bounds, source.point_count(), stats.has_rgb, &meter))
+        .transpose()?;
     let plan = plan_chunks(grid, max_chunk);
     timings.counting = start.elapsed();
     tracing::info!(
@@ -164,7 +174,12 @@ fn build_on_pool(
     let index_bytes = CELL_BLOCK_POINTS as u64 * 8;
     let buffer_bytes = (budget.saturating_sub(grid_bytes + index_bytes) / 4)
         .clamp(1 << 16, DISTRIBUTION_BUFFER_BYTES);
-    let chunks = distribute(&ctx, source, &plan, buffer_bytes)?;
+    let second: &dyn PointSource = match &copy {
+        Some(copy) => copy,
+        None => source,
+    };
+    let chunks = distribute(&ctx, second, &plan, buffer_bytes)?;
+    drop(copy);
     let chunk_count = chunks.len();
     drop(plan);
     drop(grid_reservation);

@@ -3,6 +3,7 @@
 
 use rayon::prelude::*;
 
+use super::cached::SourceCopyWriter;
 use super::error::LodError;
 use super::key::RootCube;
 use super::memory::MemoryMeter;
@@ -73,12 +74,14 @@ pub fn check_batch(
     })
 }
 
-/// Counts every point of `source` into a grid of `level` and gathers the statistics.
+/// Counts every point of `source` into a grid of `level` and gathers the statistics; with
+/// `copy`, every point is also written to the copy of the source.
 pub fn count_points(
     source: &dyn PointSource,
     cube: &RootCube,
     level: u32,
     meter: &MemoryMeter,
+    mut copy: Option<&mut SourceCopyWriter<'_>>,
 ) -> Result<(CountGrid, DatasetStats), LodError> {
     let mut counts = vec![0u64; 1 << (3 * level)];
     let mut stats: Option<DatasetStats> = None;
@@ -105,6 +108,9 @@ pub fn count_points(
             }
         }
         stats.add(&batch);
+        if let Some(copy) = copy.as_deref_mut() {
+            copy.push_batch(&batch)?;
+        }
         read += batch.len() as u64;
         Ok(())
     })?;

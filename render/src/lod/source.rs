@@ -91,6 +91,13 @@ pub trait PointSource: Sync {
         &self,
         visit: &mut dyn FnMut(PointBatch<'_>) -> Result<(), LodError>,
     ) -> Result<(), LodError>;
+
+    /// Whether a second walk costs about what reading a spill file would: false for sources
+    /// that decode (LAZ), whose points the builder then keeps in a spill file during the
+    /// counting pass and distributes from there, decoding them once.
+    fn rereads_cheaply(&self) -> bool {
+        true
+    }
 }
 
 /// Points per batch of the in-memory and generated sources.
