@@ -25,6 +25,7 @@ mod host_cache;
 mod options;
 mod report;
 mod select;
+mod stored;
 
 #[cfg(test)]
 mod tests;
@@ -54,6 +55,7 @@ pub use options::{
 };
 pub use report::CutReport;
 pub use select::{select_cut, Cut, CutNode, CutView};
+pub use stored::StoredLod;
 
 use gpu_cache::GpuNodeCache;
 use host_cache::HostNodeCache;
@@ -70,6 +72,8 @@ const LOAD_GROUP_NODES: usize = 32;
 pub enum CutError {
     #[error(transparent)]
     Options(#[from] CutOptionsError),
+    #[error(transparent)]
+    Ingest(#[from] crate::ingest::IngestError),
     #[error(transparent)]
     Store(#[from] LodError),
     #[error(transparent)]
