@@ -68,7 +68,7 @@ impl From<&CutError> for FrameFailure {
         match e {
             CutError::Ingest(ingest) => ingest.into(),
             CutError::Render(render) => render.into(),
-            CutError::Options(_) => Self::permanent(e.to_string()),
+            CutError::Options(_) | CutError::DiskTooSmall { .. } => Self::permanent(e.to_string()),
             CutError::Store(_) | CutError::Cache(_) => Self::transient(e.to_string()),
         }
     }

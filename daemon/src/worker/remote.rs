@@ -146,6 +146,7 @@ pub async fn run(
     let lod = LodConfig {
         dir: config.cache_dir.join("lod"),
         options: config.cut,
+        disk_budget: Some(config.cache_bytes),
     };
     let mut render_state = Some(WorkerRenderState::new(
         gpu,

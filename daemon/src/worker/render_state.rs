@@ -60,6 +60,9 @@ pub struct LodConfig {
     pub dir: PathBuf,
     /// The pixel error and node-cache budgets; a request's own pixel error wins.
     pub options: CutOptions,
+    /// The most disk one dataset's store may take while it is built (the worker's cache
+    /// bound); larger datasets are refused before their build starts.
+    pub disk_budget: Option<u64>,
 }
 
 /// One worker's renderer, dataset cache and loaded dataset, which render its leased frames.
@@ -257,9 +260,14 @@ impl WorkerRenderState {
             .validate()
             .map_err(|e| FrameFailure::permanent(e.to_string()))?;
         let started = Instant::now();
-        let lod_store =
-            StoredLod::open_or_build(files, &folder, options.memory_budget_bytes, &mut |_| {})
-                .map_err(|e| in_dataset(FrameFailure::from(&e)))?;
+        let lod_store = StoredLod::open_or_build(
+            files,
+            &folder,
+            options.memory_budget_bytes,
+            lod.disk_budget,
+            &mut |_| {},
+        )
+        .map_err(|e| in_dataset(FrameFailure::from(&e)))?;
         let build_ms = lod_store
             .built
             .as_ref()

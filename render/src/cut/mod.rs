@@ -80,6 +80,17 @@ pub enum CutError {
     Render(#[from] RenderError),
     #[error("{0}")]
     Cache(String),
+    #[error(
+        "building the levels of detail of {points} points needs about {needed_mib} MiB of disk \
+         in {folder}, {limit}"
+    )]
+    DiskTooSmall {
+        points: u64,
+        needed_mib: u64,
+        folder: std::path::PathBuf,
+        /// What is short: the free space, or the budget.
+        limit: String,
+    },
 }
 
 /// A built store opened for rendering: its hierarchy (always resident), rendering origin,

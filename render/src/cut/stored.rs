@@ -8,6 +8,7 @@ use std::time::Instant;
 
 use super::{CutError, LodDataset};
 use crate::ingest::DatasetSource;
+use crate::lod::disk::build_disk_bytes;
 use crate::lod::{build_lod, LodBuildOptions, LodBuildReport, LodError, LodStore, PointSource};
 
 /// sled's page cache for the index: it holds one small hierarchy record.
@@ -30,11 +31,14 @@ impl StoredLod {
 
     /// Opens the store in `folder`, building it from `files` first when it has none, an
     /// unfinished or a damaged one, or one of another point count, within `memory_budget`
-    /// bytes of build buffers. `on_build` is told the points before a build starts.
+    /// bytes of build buffers. A build that would not fit the disk's free space or
+    /// `disk_budget` is refused before it starts. `on_build` is told the points before a
+    /// build starts.
     pub fn open_or_build(
         files: &[PathBuf],
         folder: &Path,
         memory_budget: u64,
+        disk_budget: Option<u64>,
         on_build: &mut dyn FnMut(u64),
     ) -> Result<Self, CutError> {
         let source = DatasetSource::open(files)?;
@@ -60,6 +64,7 @@ impl StoredLod {
         };
         let mut built = None;
         if !current {
+            check_disk(folder, source.point_count(), disk_budget)?;
             on_build(source.point_count());
             let started = Instant::now();
             let mut options = LodBuildOptions::new(folder.join("spill"));
@@ -82,5 +87,50 @@ impl StoredLod {
             built,
             _db: db,
         })
+    }
+}
+
+/// Refuses a build whose disk need exceeds the free space under `folder` or `budget`.
+fn check_disk(folder: &Path, points: u64, budget: Option<u64>) -> Result<(), CutError> {
+    let needed = build_disk_bytes(points, true);
+    let mib = |bytes: u64| bytes >> 20;
+    let refuse = |limit: String| CutError::DiskTooSmall {
+        points,
+        needed_mib: mib(needed),
+        folder: folder.to_owned(),
+        limit,
+    };
+    if let Some(budget) = budget.filter(|&b| needed > b) {
+        return Err(refuse(format!(
+            "more than its budget of {} MiB",
+            mib(budget)
+        )));
+    }
+    if let Ok(stat) = rustix::fs::statvfs(folder) {
+        let free = stat.f_bavail.saturating_mul(stat.f_frsize);
+        if needed > free {
+            return Err(refuse(format!(
+                "more than the {} MiB free there",
+                mib(free)
+            )));
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_build_larger_than_its_disk_budget_is_refused_before_it_starts() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let error = check_disk(dir.path(), 10_000_000, Some(100 << 20)).expect_err("refused");
+        assert!(matches!(error, CutError::DiskTooSmall { .. }));
+        assert!(error.to_string().contains("budget of 100 MiB"), "{error}");
+        // More than any disk has free.
+        let error = check_disk(dir.path(), u64::MAX / 64, None).expect_err("refused");
+        assert!(error.to_string().contains("free there"), "{error}");
+        assert!(check_disk(dir.path(), 1_000, None).is_ok());
     }
 }
