@@ -5,9 +5,11 @@ use super::codec::encoded_len;
 use super::point::SPILL_RECORD_BYTES;
 
 /// Bytes a build of `points` points needs on disk at its peak: the spilled chunks (every
-/// point once) and the stored nodes, with a margin for the hierarchy and partial pages.
+/// point once) and, whichever is larger, the stored nodes or the copy of a source costly to
+/// read again (LAZ: a spill record a point, removed when the distribution ends, before a
+/// node is stored), with a margin for the hierarchy and partial pages.
 pub fn build_disk_bytes(points: u64, has_rgb: bool) -> u64 {
-    let stored = encoded_len(1, has_rgb) as u64;
+    let stored = (encoded_len(1, has_rgb) as u64).max(SPILL_RECORD_BYTES as u64);
     points
         .saturating_mul(SPILL_RECORD_BYTES as u64 + stored)
         .saturating_add(64 << 20)
@@ -21,6 +23,11 @@ mod tests {
     fn the_estimate_covers_spill_and_store() {
         let per_point = (build_disk_bytes(1_000_000, true) - (64 << 20)) / 1_000_000;
         assert!(per_point >= SPILL_RECORD_BYTES as u64 + 22, "{per_point}");
+        let without_rgb = (build_disk_bytes(1_000_000, false) - (64 << 20)) / 1_000_000;
+        assert!(
+            without_rgb >= 2 * SPILL_RECORD_BYTES as u64,
+            "{without_rgb}"
+        );
         assert_eq!(build_disk_bytes(u64::MAX, true), u64::MAX);
     }
 }
