@@ -94,6 +94,17 @@ impl CutsOptions {
     }
 }
 
+/// 10000000 as `10m`, 200000 as `200k`.
+fn short_count(points: u64) -> String {
+    if points >= 1_000_000 && points.is_multiple_of(1_000_000) {
+        format!("{}m", points / 1_000_000)
+    } else if points >= 1_000 {
+        format!("{}k", points / 1_000)
+    } else {
+        points.to_string()
+    }
+}
+
 /// A store's build.
 #[derive(Debug, Clone, Serialize)]
 pub struct StoreBuild {
@@ -315,7 +326,7 @@ pub fn measure(
     };
 
     // The large terrain first, so that the out-of-core turntable starts from a small process.
-    let large_name = format!("terrain-{}m", options.large_points / 1_000_000);
+    let large_name = format!("terrain-{}", short_count(options.large_points));
     let large_source = GeneratedSource::terrain(options.large_points, options.seed);
     let large = built(&large_name, &large_source, &mut log)?;
     let out_of_core = if options.out_of_core_frames > 0 {
@@ -348,7 +359,7 @@ pub fn measure(
     drop(large);
     let _ = std::fs::remove_dir_all(dir.join(&large_name));
 
-    let small_name = format!("terrain-{}m", options.small_points / 1_000_000);
+    let small_name = format!("terrain-{}", short_count(options.small_points));
     let small = built(
         &small_name,
         &GeneratedSource::terrain(options.small_points, options.seed),
@@ -398,7 +409,7 @@ pub fn measure(
         fidelity_of(scan, &store.dataset, &mut log)?;
     }
 
-    let cube_name = format!("uniform-{}m", options.cube_points / 1_000_000);
+    let cube_name = format!("uniform-{}", short_count(options.cube_points));
     let cube_source = GeneratedSource::cube(options.cube_points, options.seed);
     let cube = built(&cube_name, &cube_source, &mut log)?;
     fidelity_of(&cube_name, &cube.dataset, &mut log)?;
@@ -432,4 +443,89 @@ pub fn measure(
         },
         missing_scans,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use pointfarm_render::testing::gpu;
+
+    #[test]
+    fn tiny_cuts_keep_their_invariants_and_leave_no_files() {
+        let parent = tempfile::tempdir().expect("tempdir");
+        let options = CutsOptions {
+            small_points: 100_000,
+            large_points: 300_000,
+            cube_points: 100_000,
+            out_of_core_frames: 3,
+            data_dir: parent.path().join("no-scans"),
+            scratch_parent: Some(parent.path().to_path_buf()),
+            ..CutsOptions::quick(160, 120, PathBuf::new())
+        };
+        let mut lines = Vec::new();
+        let r = measure(&gpu(), &options, &mut |l| lines.push(l.to_string())).expect("measured");
+        assert_eq!(r.builds.len(), 3, "{:?}", r.builds);
+        assert_eq!(r.missing_scans.len(), REAL_SCANS.len());
+        let [small, large] = &r.scaling;
+        assert_eq!((small.points, large.points), (100_000, 300_000));
+        for v in [small, large, &r.resident_vs_cut.cut_default] {
+            assert!(v.cut_nodes >= 1 && v.cut_points >= 1, "{v:?}");
+            assert!(v.cut_points <= v.points, "{v:?}");
+            assert!(v.warm_ms > 0.0 && v.cold_ms > 0.0, "{v:?}");
+        }
+        assert!(r.scaling_ratio() > 0.0);
+
+        let t = r.out_of_core.as_ref().expect("out of core");
+        assert_eq!(t.frames.len(), 3);
+        assert_eq!(t.host_budget_bytes + t.gpu_budget_bytes, OUT_OF_CORE_BUDGET);
+        let first = &t.frames[0].cut;
+        assert_eq!(first.gpu_hits, 0, "a cold cache: {first:?}");
+        assert!(first.nodes_read >= 1 && first.bytes_read > 0, "{first:?}");
+        for f in &t.frames {
+            let c = &f.cut;
+            assert_eq!(c.gpu_hits + c.gpu_uploaded, c.nodes, "{c:?}");
+            assert_eq!(c.host_hits + c.nodes_read, c.gpu_uploaded, "{c:?}");
+            assert!(c.points_rendered <= c.points_total && c.points_total == 300_000);
+            let names: Vec<_> = f.stages.iter().map(|s| s.stage).collect();
+            assert_eq!(&names[..2], ["select", "load"], "{names:?}");
+            assert!(f.wall_ms > 0.0);
+        }
+        assert_eq!(t.first_ms, t.frames[0].wall_ms);
+        assert!(t.following_median_ms > 0.0 && t.following_max_ms >= t.following_median_ms);
+        assert!(t.peak_rss_bytes > 0 && t.bytes_read() > 0);
+
+        let names: Vec<_> = r.fidelity.iter().map(|f| f.workload.as_str()).collect();
+        assert_eq!(names, ["terrain-100k", "uniform-100k"]);
+        for f in &r.fidelity {
+            assert_eq!(f.modes.len(), fidelity::FIDELITY_MODES.len());
+            assert!(f.cut_points <= f.full_points && f.full_points <= f.points, "{f:?}");
+            for m in &f.modes {
+                assert!(m.covered_pixels > 0, "{f:?}");
+                assert!((0.0..=1.0).contains(&m.close_share), "{f:?}");
+            }
+        }
+        let rc = &r.resident_vs_cut;
+        assert!(rc.resident_ms > 0.0 && rc.default_over_resident() > 0.0);
+        assert!(rc.cut_full.cut_points >= rc.cut_default.cut_points);
+
+        let md = markdown::cuts_tables(&r);
+        for needle in ["| terrain-300k |", "| uniform-100k |", "Out of core", "| resident |"] {
+            assert!(md.contains(needle), "{needle}: {md}");
+        }
+        println!("{md}");
+        let json_path = parent.path().join("cuts.json");
+        let context = crate::json::RunContext {
+            command: "test".into(),
+            quick: true,
+            started: Instant::now(),
+        };
+        crate::json::write_cuts(&json_path, &r, &context).expect("json");
+        let json: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&json_path).expect("read")).expect("parse");
+        assert_eq!(json["cuts"]["scaling"][1]["points"], 300_000);
+        assert_eq!(json["cuts"]["out_of_core"]["frames"][0]["stages"][0]["stage"], "select");
+        std::fs::remove_file(&json_path).expect("removed");
+        let left: Vec<_> = std::fs::read_dir(parent.path()).expect("dir").collect();
+        assert!(left.is_empty(), "{left:?}");
+    }
 }
