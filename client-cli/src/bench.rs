@@ -281,9 +281,7 @@ fn run_campaign(args: &BenchArgs, points: Option<usize>, started: Instant) -> Re
             width,
             height,
             memory_budget_bytes: args.cut_memory_budget,
-            ..bench::cuts::TurntableOptions::new(
-                frames.unwrap_or(bench::cuts::TURNTABLE_FRAMES),
-            )
+            ..bench::cuts::TurntableOptions::new(frames.unwrap_or(bench::cuts::TURNTABLE_FRAMES))
         }),
         ..CampaignOptions::new(points, args.campaign_files)
     };
@@ -331,9 +329,9 @@ fn run_cuts(args: &BenchArgs, started: Instant) -> Result<()> {
     let options = CutsOptions {
         small_points,
         large_points,
-        out_of_core_frames: args
-            .cut_frames
-            .map_or(defaults.out_of_core_frames, |n| n.unwrap_or(cuts::TURNTABLE_FRAMES)),
+        out_of_core_frames: args.cut_frames.map_or(defaults.out_of_core_frames, |n| {
+            n.unwrap_or(cuts::TURNTABLE_FRAMES)
+        }),
         memory_budget_bytes: args.cut_memory_budget,
         ..defaults
     };

@@ -125,12 +125,11 @@ pub fn close_pixels(
             continue;
         }
         covered += 1;
-        let within = a
-            .0
-            .iter()
-            .zip(e.0)
-            .take(3)
-            .all(|(&x, y)| x.abs_diff(y) <= FIDELITY_TOLERANCE);
+        let within =
+            a.0.iter()
+                .zip(e.0)
+                .take(3)
+                .all(|(&x, y)| x.abs_diff(y) <= FIDELITY_TOLERANCE);
         close += u64::from(within);
     }
     (covered, close)

@@ -102,9 +102,7 @@ pub fn cuts_tables(r: &CutsResult) -> String {
         r.lod_error,
         mib(r.memory_budget_bytes)
     );
-    md.push_str(
-        "| store | points | build s | nodes |\n|---|---:|---:|---:|\n",
-    );
+    md.push_str("| store | points | build s | nodes |\n|---|---:|---:|---:|\n");
     for b in &r.builds {
         let _ = writeln!(
             md,

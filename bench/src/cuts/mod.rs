@@ -183,7 +183,11 @@ pub fn build_and_open(
 ) -> Result<OpenStore, BenchError> {
     let store = create_store(&dir.join("store"))?;
     let started = Instant::now();
-    let report = build_lod(source, &store.store, &LodBuildOptions::new(dir.join("spill")))?;
+    let report = build_lod(
+        source,
+        &store.store,
+        &LodBuildOptions::new(dir.join("spill")),
+    )?;
     let build_s = started.elapsed().as_secs_f64();
     let _ = std::fs::remove_dir_all(dir.join("spill"));
     let dataset = LodDataset::open(store.store.clone(), source.bounds())?;
@@ -366,7 +370,13 @@ pub fn measure(
         &mut log,
     )?;
     let small_settings = full_view(&small.dataset.bounds(), w, h);
-    let small_view = warm_view(gpu, &small_name, &small.dataset, &small_settings, default_error)?;
+    let small_view = warm_view(
+        gpu,
+        &small_name,
+        &small.dataset,
+        &small_settings,
+        default_error,
+    )?;
     log(format!(
         "cuts: full views: {small_name} {:.0} ms ({} points), {large_name} {:.0} ms ({} points)",
         small_view.warm_ms, small_view.cut_points, large_view.warm_ms, large_view.cut_points
@@ -498,7 +508,10 @@ mod tests {
         assert_eq!(names, ["terrain-100k", "uniform-100k"]);
         for f in &r.fidelity {
             assert_eq!(f.modes.len(), fidelity::FIDELITY_MODES.len());
-            assert!(f.cut_points <= f.full_points && f.full_points <= f.points, "{f:?}");
+            assert!(
+                f.cut_points <= f.full_points && f.full_points <= f.points,
+                "{f:?}"
+            );
             for m in &f.modes {
                 assert!(m.covered_pixels > 0, "{f:?}");
                 assert!((0.0..=1.0).contains(&m.close_share), "{f:?}");
@@ -509,7 +522,12 @@ mod tests {
         assert!(rc.cut_full.cut_points >= rc.cut_default.cut_points);
 
         let md = markdown::cuts_tables(&r);
-        for needle in ["| terrain-300k |", "| uniform-100k |", "Out of core", "| resident |"] {
+        for needle in [
+            "| terrain-300k |",
+            "| uniform-100k |",
+            "Out of core",
+            "| resident |",
+        ] {
             assert!(md.contains(needle), "{needle}: {md}");
         }
         println!("{md}");
@@ -523,7 +541,10 @@ mod tests {
         let json: serde_json::Value =
             serde_json::from_slice(&std::fs::read(&json_path).expect("read")).expect("parse");
         assert_eq!(json["cuts"]["scaling"][1]["points"], 300_000);
-        assert_eq!(json["cuts"]["out_of_core"]["frames"][0]["stages"][0]["stage"], "select");
+        assert_eq!(
+            json["cuts"]["out_of_core"]["frames"][0]["stages"][0]["stage"],
+            "select"
+        );
         std::fs::remove_file(&json_path).expect("removed");
         let left: Vec<_> = std::fs::read_dir(parent.path()).expect("dir").collect();
         assert!(left.is_empty(), "{left:?}");
