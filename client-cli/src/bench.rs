@@ -85,6 +85,7 @@ pub struct BenchArgs {
     /// no count is given) of its store cut by cut, from a cold cache with read-ahead, within
     /// --cut-memory-budget; needs a GPU (or lavapipe). With --cuts: the frames of the
     /// out-of-core turntable (12, 6 with --quick).
+    #[arg(long, value_name = "N")]
     cut_frames: Option<Option<usize>>,
     /// The memory budget of the --cut-frames turntable and of --cuts' cuts (not the
     /// out-of-core turntable's 512 MiB), in bytes (`4GiB`, `512MiB` accepted).
