@@ -197,7 +197,69 @@ fn level_of_detail_options_are_checked_and_refused_through_a_server() {
     refused(&["--memory-budget", "1KiB"], "memory_budget");
     refused(&["--memory-budget", "plenty"], "not a size");
     refused(
-        &["--lod-error", "1", "--server", "http://127.0.0.1:9"],
-        "--lod-error",
+        &["--memory-budget", "1GiB", "--server", "http://127.0.0.1:9"],
+        "--memory-budget",
     );
+}
+
+/// A job with a pixel error renders from levels of detail on the server's worker as it does
+/// here, and `jobs show` reports each frame's cut.
+#[test]
+fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (whole, _) = scene_and_tiles(dir.path(), 30_000);
+    let cache = dir.path().join("cache");
+    let (local, remote) = (dir.path().join("local"), dir.path().join("remote"));
+    let options = ["--size=160x120", "--turntable", "2", "--lod-error", "0.5"];
+    let mut args = vec![
+        "render",
+        arg(&whole),
+        "--out",
+        arg(&local),
+        "--cache-dir",
+        arg(&cache),
+    ];
+    args.extend(options);
+    ok(&args);
+    let server = pointfarm_tests::ServeProcess::start(&dir.path().join("data"));
+    let mut args = vec![
+        "render",
+        arg(&whole),
+        "--out",
+        arg(&remote),
+        "--server",
+        &server.address,
+    ];
+    args.extend(options);
+    ok(&args);
+    for frame in ["frame_00000.png", "frame_00001.png"] {
+        let image = |dir: &Path| image::open(dir.join(frame)).expect("png").to_rgba8();
+        assert!(
+            image(&local) == image(&remote),
+            "{frame} differs through the service\n{}",
+            server.log()
+        );
+    }
+    let listed = ok(&["jobs", "list", "--server", &server.address, "--json"]);
+    let jobs: serde_json::Value = serde_json::from_slice(&listed.stdout).expect("json");
+    let id = jobs[0]["id"].as_str().expect("a job id").to_owned();
+    let shown = ok(&["jobs", "show", &id, "--server", &server.address, "--json"]);
+    let job: serde_json::Value = serde_json::from_slice(&shown.stdout).expect("json");
+    let frames = job["frames"].as_array().expect("frames");
+    assert_eq!(frames.len(), 2, "{job}");
+    for frame in frames {
+        assert_eq!(frame["cut"]["points_total"], 30_000, "{job}");
+        assert!(frame["cut"]["nodes"].as_u64() > Some(0), "{job}");
+    }
+    let stages: Vec<&str> = job["stages"]
+        .as_array()
+        .expect("stages")
+        .iter()
+        .filter_map(|s| s["stage"].as_str())
+        .collect();
+    for stage in ["build", "select", "load"] {
+        assert!(stages.contains(&stage), "{stage} missing from {stages:?}");
+    }
+    let text = text(&ok(&["jobs", "show", &id, "--server", &server.address]));
+    assert!(text.contains("levels of detail, 2 frames"), "{text}");
 }

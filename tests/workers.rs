@@ -238,6 +238,7 @@ async fn complete(
                 gpu_clock: false,
             }],
             dataset_cache_hit: None,
+            cut: None,
         })),
     };
     let chunks: Vec<pb::CompleteFrameRequest> = png

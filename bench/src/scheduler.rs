@@ -68,6 +68,7 @@ pub fn measure(
         index: 0,
         timings: Vec::new(),
         dataset_cache_hit: None,
+        cut: None,
         failed_attempts: 0,
     });
 

@@ -126,6 +126,39 @@ fn job_json(j: &pb::Job) -> serde_json::Value {
     })
 }
 
+/// A finished frame of `jobs show --json`: its attempts, cache and cut.
+fn frame_json(f: &pb::FrameFinished) -> serde_json::Value {
+    let mut value = json!({ "index": f.index, "failed_attempts": f.failed_attempts, "dataset_cache_hit": f.dataset_cache_hit });
+    if let Some(c) = &f.cut {
+        value["cut"] = json!({
+            "nodes": c.nodes, "points_rendered": c.points_rendered, "points_total": c.points_total,
+            "limited_by_budget": c.limited_by_budget, "gpu_hits": c.gpu_hits, "gpu_uploaded": c.gpu_uploaded,
+            "gpu_evicted": c.gpu_evicted, "host_hits": c.host_hits, "nodes_read": c.nodes_read,
+            "bytes_read": c.bytes_read, "read_ahead_bytes": c.read_ahead_bytes,
+        });
+    }
+    value
+}
+
+/// One line on the frames rendered from levels of detail: the median cut and what was read.
+fn cut_summary(frames: &[pb::FrameFinished]) -> Option<String> {
+    let cuts: Vec<&pb::FrameCut> = frames.iter().filter_map(|f| f.cut.as_ref()).collect();
+    let first = cuts.first()?;
+    let median = |value: fn(&pb::FrameCut) -> u64| {
+        let mut values: Vec<u64> = cuts.iter().map(|c| value(c)).collect();
+        values.sort_unstable();
+        values[values.len() / 2]
+    };
+    let sum = |value: fn(&pb::FrameCut) -> u64| cuts.iter().map(|c| value(c)).sum::<u64>();
+    Some(format!(
+        "levels of detail, {} frames: median cut {} nodes, {} of {} points; {} nodes read ({:.1} MiB, {:.1} MiB ahead), {} host and {} GPU cache hits{}",
+        cuts.len(), median(|c| c.nodes), median(|c| c.points_rendered), first.points_total,
+        sum(|c| c.nodes_read), sum(|c| c.bytes_read) as f64 / f64::from(1 << 20),
+        sum(|c| c.read_ahead_bytes) as f64 / f64::from(1 << 20), sum(|c| c.host_hits), sum(|c| c.gpu_hits),
+        if cuts.iter().any(|c| c.limited_by_budget) { "; some cuts bounded by the GPU budget" } else { "" },
+    ))
+}
+
 pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
     runtime()?.block_on(async {
         let mut client = Client::connect(&server.server, &server.credentials).await?;
@@ -253,6 +286,7 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                 if server.json {
                     let mut value = job_json(&job);
                     value["stages"] = stats.iter().map(|(s, median, p95)| json!({"stage": s, "median_ms": median, "p95_ms": p95})).collect();
+                    value["frames"] = job.frames.iter().map(frame_json).collect();
                     println!("{value}");
                 } else {
                     println!("job {}  {}  {}/{} frames  dataset {}", job.id, state_name(job.state), job.frames_done, job.frames_total, job.dataset_id);
@@ -263,6 +297,9 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                         .map(|f| format!("{} ({} failed)", f.index, f.failed_attempts)).collect();
                     if !retried.is_empty() {
                         println!("frames that needed more than one attempt: {}", retried.join(", "));
+                    }
+                    if let Some(line) = cut_summary(&job.frames) {
+                        println!("{line}");
                     }
                     if !stats.is_empty() {
                         println!("{:<12} {:>10} {:>10}", "stage", "median ms", "p95 ms");
@@ -332,6 +369,7 @@ mod tests {
                 index: i,
                 dataset_cache_hit: None,
                 failed_attempts: 0,
+                cut: None,
                 timings: vec![
                     pb::StageTiming {
                         stage: "rasterize".into(),

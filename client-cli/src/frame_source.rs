@@ -13,7 +13,8 @@ use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::load_dataset;
 use pointfarm_render::raster::{Frame, FrameSettings, GpuPointCloud, Renderer};
 
-use crate::lod_store::{open_or_build, LocalLod};
+use crate::lod_store::open_or_build;
+use pointfarm_render::cut::StoredLod;
 
 /// A frame and what it drew.
 pub struct RenderedFrame {
@@ -33,7 +34,7 @@ pub enum FrameSource {
     Cut {
         renderer: Renderer,
         cut: Box<CutRenderer>,
-        lod: Box<LocalLod>,
+        lod: Box<StoredLod>,
         color_mode: ColorMode,
     },
 }

@@ -27,10 +27,10 @@ fn refuse_local_only_options(args: &RenderArgs, request: &RenderRequest) -> Resu
              use `jobs show --json` for a server job's frames"
         );
     }
-    if let Some(flag) = args.lod_flag() {
+    if let Some(flag) = args.cache_flag() {
         bail!(
-            "{flag} sets this machine's level-of-detail rendering and is not available \
-             through a server yet; render locally to use it"
+            "{flag} sizes this machine's node caches; a server's workers have their own \
+             (`pointfarm worker --memory-budget`); render locally to use it"
         );
     }
     if args.atomics() != AtomicsMode::Auto {

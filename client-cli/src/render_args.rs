@@ -142,7 +142,8 @@ pub struct RenderArgs {
     atomics: AtomicsArg,
     /// Render from levels of detail: a node is refined while its point spacing covers more
     /// than PX pixels on screen (0: every point). Datasets of more than 20M points use them
-    /// anyway, at 1 pixel. The store is built once and kept in --cache-dir. Local only.
+    /// anyway, at 0.25 pixels. The store is built once and kept in --cache-dir (by the
+    /// server's workers in theirs).
     #[arg(long, value_name = "PX", value_parser = parse::non_negative)]
     lod_error: Option<f64>,
     /// Levels of detail: host memory for the node cache and the store's build, e.g. 512MiB
@@ -247,16 +248,17 @@ impl RenderArgs {
                 }),
                 supersample: self.supersample,
                 depth: self.depth,
+                lod_error: self.lod_error,
             },
         };
         request.validate()?;
         Ok(request)
     }
 
-    /// The first level-of-detail option given, to name it where it does not apply.
-    pub(crate) fn lod_flag(&self) -> Option<&'static str> {
+    /// The first option of this machine's node caches given, to name it where it does not
+    /// apply.
+    pub(crate) fn cache_flag(&self) -> Option<&'static str> {
         [
-            ("--lod-error", self.lod_error.is_some()),
             ("--memory-budget", self.memory_budget.is_some()),
             ("--gpu-budget", self.gpu_budget.is_some()),
         ]
@@ -267,7 +269,8 @@ impl RenderArgs {
     /// The cut options when the arguments ask for levels of detail, or a dataset of
     /// `points` needs them; `None` renders the dataset resident.
     pub(crate) fn cut_options(&self, points: u64) -> Result<Option<CutOptions>> {
-        if self.lod_flag().is_none() && points <= RESIDENT_MAX_POINTS {
+        if self.lod_error.is_none() && self.cache_flag().is_none() && points <= RESIDENT_MAX_POINTS
+        {
             return Ok(None);
         }
         let defaults = CutOptions::default();

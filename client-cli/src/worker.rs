@@ -1,6 +1,7 @@
 //! `pointfarm worker`: a render worker in its own process, leasing frames from a daemon; also
 //! what `pointfarm serve` runs as its embedded worker (`--supervised`).
 
+use pointfarm_render::cut::{CutOptions, DEFAULT_LOD_ERROR_PX, DEFAULT_MEMORY_BUDGET_BYTES};
 use std::path::PathBuf;
 use std::sync::Arc;
 
@@ -13,6 +14,7 @@ use pointfarm_proto::endpoint::ServerEndpoint;
 use pointfarm_render::gpu::{AdapterChoice, GpuContext};
 
 use crate::credentials::secret;
+use crate::parse;
 
 #[derive(Args)]
 pub struct WorkerArgs {
@@ -49,6 +51,18 @@ pub struct WorkerArgs {
     /// a frame that needs more aborts the worker instead of exhausting the machine.
     #[arg(long, value_name = "MIB")]
     max_memory_mib: Option<u64>,
+    /// Levels of detail: the pixel error of datasets of more than 20M points rendered by
+    /// jobs that do not set one.
+    #[arg(long, value_name = "PX", value_parser = parse::non_negative, default_value_t = DEFAULT_LOD_ERROR_PX)]
+    lod_error: f64,
+    /// Levels of detail: host memory for the node cache and the stores' builds, e.g. 4GiB;
+    /// on a software adapter the GPU node cache's share too.
+    #[arg(long, value_name = "SIZE", value_parser = parse::bytes, default_value_t = DEFAULT_MEMORY_BUDGET_BYTES)]
+    memory_budget: u64,
+    /// Levels of detail: GPU memory for the node cache (default 2GiB; on a software adapter
+    /// half of --memory-budget).
+    #[arg(long, value_name = "SIZE", value_parser = parse::bytes)]
+    gpu_budget: Option<u64>,
     /// Run as a daemon's embedded worker: exit as soon as standard input (a pipe from the
     /// daemon) closes.
     #[arg(long, hide = true)]
@@ -66,6 +80,12 @@ pub fn run(args: WorkerArgs) -> Result<()> {
         args.worker_token_file.as_deref(),
         "--worker-token",
     )?;
+    let cut = CutOptions {
+        lod_error: args.lod_error,
+        memory_budget_bytes: args.memory_budget,
+        gpu_budget_bytes: args.gpu_budget,
+    };
+    cut.validate()?;
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
     // After the GPU is set up: the limit is for the frames' data.
     if let Some(mib) = args.max_memory_mib {
@@ -89,6 +109,7 @@ pub fn run(args: WorkerArgs) -> Result<()> {
         name,
         cache_dir: args.cache_dir,
         cache_bytes: args.cache_gib << 30,
+        cut,
     };
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(run_worker(config, gpu, crate::serve::shutdown_signal()))

@@ -22,7 +22,7 @@ use pointfarm_render::request::RenderRequest;
 
 use crate::error::DaemonError;
 use crate::lease_record::Lease;
-use crate::model::{now_unix_ms, FrameReport, FrameState, Job, JobState, StageTiming};
+use crate::model::{now_unix_ms, FrameCut, FrameReport, FrameState, Job, JobState, StageTiming};
 use crate::service::Daemon;
 
 /// The dataset of a task, as a worker's cache knows it.
@@ -60,6 +60,7 @@ pub struct FrameTask {
 pub struct FrameOutcome {
     pub timings: Vec<StageTiming>,
     pub dataset_cache_hit: Option<bool>,
+    pub cut: Option<FrameCut>,
 }
 
 /// Whether a failed frame is worth another attempt.
@@ -275,6 +276,7 @@ impl Daemon {
             timings: outcome.timings,
             dataset_cache_hit: outcome.dataset_cache_hit,
             failed_attempts,
+            cut: outcome.cut,
         };
         // A refused state write leaves the PNG in place: the write may yet have reached the
         // disk, and a frame marked done must have its image; rendered again, it is replaced.

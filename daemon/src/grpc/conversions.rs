@@ -12,7 +12,7 @@ use crate::datasets::MAX_DATASET_FILES;
 use crate::error::DaemonError;
 use crate::lease::{FailureKind, FrameTask, HeartbeatAnswer, TaskDataset, TaskFile};
 use crate::lease_record::Lease;
-use crate::model::{Dataset, FrameReport, Job, JobSpec, JobState, StageTiming};
+use crate::model::{Dataset, FrameCut, FrameReport, Job, JobSpec, JobState, StageTiming};
 
 pub(super) fn invalid(field: &str, message: impl Into<String>) -> DaemonError {
     DaemonError::invalid(field, message)
@@ -138,6 +138,43 @@ impl From<&FrameReport> for pb::FrameFinished {
             timings: timings_message(&report.timings),
             dataset_cache_hit: report.dataset_cache_hit,
             failed_attempts: report.failed_attempts,
+            cut: report.cut.as_ref().map(pb::FrameCut::from),
+        }
+    }
+}
+
+impl From<&FrameCut> for pb::FrameCut {
+    fn from(c: &FrameCut) -> Self {
+        pb::FrameCut {
+            nodes: c.nodes,
+            points_rendered: c.points_rendered,
+            points_total: c.points_total,
+            limited_by_budget: c.limited_by_budget,
+            gpu_hits: c.gpu_hits,
+            gpu_uploaded: c.gpu_uploaded,
+            gpu_evicted: c.gpu_evicted,
+            host_hits: c.host_hits,
+            nodes_read: c.nodes_read,
+            bytes_read: c.bytes_read,
+            read_ahead_bytes: c.read_ahead_bytes,
+        }
+    }
+}
+
+impl From<&pb::FrameCut> for FrameCut {
+    fn from(c: &pb::FrameCut) -> Self {
+        FrameCut {
+            nodes: c.nodes,
+            points_rendered: c.points_rendered,
+            points_total: c.points_total,
+            limited_by_budget: c.limited_by_budget,
+            gpu_hits: c.gpu_hits,
+            gpu_uploaded: c.gpu_uploaded,
+            gpu_evicted: c.gpu_evicted,
+            host_hits: c.host_hits,
+            nodes_read: c.nodes_read,
+            bytes_read: c.bytes_read,
+            read_ahead_bytes: c.read_ahead_bytes,
         }
     }
 }

@@ -189,6 +189,7 @@ fn render_options(message: Option<&pb::RenderOptions>) -> Result<RenderOptions, 
         supersample: o.supersample.unwrap_or(default.supersample),
         // The service has no depth output (the proto says so); the CLI refuses it there.
         depth: false,
+        lod_error: o.lod_error,
     })
 }
 
@@ -277,9 +278,11 @@ pub fn render_options_message(options: &RenderOptions) -> pb::RenderOptions {
         fill,
         supersample,
         depth: _,
+        lod_error,
     } = *options;
     let mut message = pb::RenderOptions {
         point_size,
+        lod_error,
         background: Some(color(background)),
         fill: fill.map(|FillSettings { kernel }| pb::FillOptions { kernel }),
         supersample: Some(supersample),

@@ -14,6 +14,7 @@ use super::Api;
 use crate::error::DaemonError;
 use crate::lease::FrameOutcome;
 use crate::limits::{check_id, check_length, truncated, MAX_REASON_BYTES, MAX_WORKER_NAME_BYTES};
+use crate::model::FrameCut;
 
 /// Longest wait of a `LeaseFrame` long poll.
 const MAX_LEASE_WAIT_MS: u32 = 30_000;
@@ -166,6 +167,7 @@ impl WorkerService for Api {
         let outcome = FrameOutcome {
             timings: stage_timings(&result.timings),
             dataset_cache_hit: result.dataset_cache_hit,
+            cut: result.cut.as_ref().map(FrameCut::from),
         };
         let lease_id = result.lease_id;
         self.done(move |daemon| daemon.complete_frame(&lease_id, &png, outcome).map(drop))

@@ -38,6 +38,7 @@ fn outcome() -> FrameOutcome {
     FrameOutcome {
         timings: Vec::new(),
         dataset_cache_hit: None,
+        cut: None,
     }
 }
 

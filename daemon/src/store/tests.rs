@@ -67,6 +67,7 @@ fn done_frames_and_ended_jobs_leave_the_schedule() {
         index: 0,
         timings: Vec::new(),
         dataset_cache_hit: None,
+        cut: None,
         failed_attempts: 0,
     };
     store

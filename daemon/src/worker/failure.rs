@@ -3,6 +3,7 @@
 //! cut downloads may not.
 
 use pointfarm_render::cache::CacheError;
+use pointfarm_render::cut::CutError;
 use pointfarm_render::ingest::IngestError;
 use pointfarm_render::raster::RenderError;
 
@@ -56,6 +57,19 @@ impl From<&CacheError> for FrameFailure {
         match e {
             CacheError::Ingest(ingest) => ingest.into(),
             _ => Self::transient(e.to_string()),
+        }
+    }
+}
+
+/// A bad file fails every time; a damaged store is rebuilt by the next attempt, the GPU may
+/// come back.
+impl From<&CutError> for FrameFailure {
+    fn from(e: &CutError) -> Self {
+        match e {
+            CutError::Ingest(ingest) => ingest.into(),
+            CutError::Render(render) => render.into(),
+            CutError::Options(_) | CutError::DiskTooSmall { .. } => Self::permanent(e.to_string()),
+            CutError::Store(_) | CutError::Cache(_) => Self::transient(e.to_string()),
         }
     }
 }

@@ -30,6 +30,7 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_proto::BearerToken;
 use pointfarm_render::cache::DatasetCache;
+use pointfarm_render::cut::CutOptions;
 use pointfarm_render::gpu::GpuContext;
 use tokio::sync::watch;
 use tonic::service::interceptor::InterceptedService;
@@ -41,7 +42,7 @@ use crate::grpc::streaming::{HashingWriter, CHUNK_BYTES};
 use crate::grpc::{frame_task, timings_message};
 use crate::lease::{FrameTask, TaskFile};
 use crate::worker::failure::FrameFailure;
-use crate::worker::render_state::{RenderedFrame, WorkerRenderState};
+use crate::worker::render_state::{LodConfig, RenderedFrame, WorkerRenderState};
 
 /// How long one lease request waits for work on the daemon.
 const LEASE_WAIT_MS: u32 = 10_000;
@@ -57,6 +58,9 @@ pub struct RemoteWorkerConfig {
     /// The worker's dataset cache and downloads live here.
     pub cache_dir: PathBuf,
     pub cache_bytes: u64,
+    /// The pixel error of datasets rendered from levels of detail without one of their own,
+    /// and the node caches' budgets.
+    pub cut: CutOptions,
 }
 
 type Client = WorkerServiceClient<InterceptedService<Channel, BearerToken>>;
@@ -139,7 +143,16 @@ pub async fn run(
         let _ = stop_sender.send(true);
     });
 
-    let mut render_state = Some(WorkerRenderState::new(gpu, Some(Arc::new(cache))));
+    let lod = LodConfig {
+        dir: config.cache_dir.join("lod"),
+        options: config.cut,
+        disk_budget: Some(config.cache_bytes),
+    };
+    let mut render_state = Some(WorkerRenderState::new(
+        gpu,
+        Some(Arc::new(cache)),
+        Some(lod),
+    ));
     let mut backoff = Backoff::new();
     // Said once when the daemon cannot store frames, once when it can again.
     let mut daemon_full = false;
@@ -442,6 +455,7 @@ async fn complete_frame(client: &mut Client, task: &FrameTask, frame: RenderedFr
                 png_size_bytes: frame.png.len() as u64,
                 timings: timings_message(&frame.outcome.timings),
                 dataset_cache_hit: frame.outcome.dataset_cache_hit,
+                cut: frame.outcome.cut.as_ref().map(pb::FrameCut::from),
             })),
         };
         let chunks: Vec<pb::CompleteFrameRequest> = frame

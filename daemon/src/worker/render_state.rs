@@ -10,12 +10,14 @@ use std::time::Instant;
 use pointfarm_render::cache::{CacheOutcome, DatasetCache};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::{point_colors, ColorMode};
+use pointfarm_render::cut::{CutError, CutOptions, CutRenderer, StoredLod, RESIDENT_MAX_POINTS};
 use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
+use pointfarm_render::ingest::dataset_point_count;
 use pointfarm_render::raster::{Clock, GpuPointCloud, Renderer};
 
 use crate::lease::{FrameOutcome, FrameTask};
-use crate::model::StageTiming;
+use crate::model::{FrameCut, StageTiming};
 use crate::worker::failure::FrameFailure;
 
 /// The cloud currently on the GPU.
@@ -28,40 +30,112 @@ struct Resident {
     unreported_load: Option<(f64, CacheOutcome)>,
 }
 
+/// A dataset rendered from its level-of-detail store, cut by cut.
+struct Stored {
+    sha256: String,
+    lod: StoredLod,
+    cut: CutRenderer,
+    /// The pixel error the renderer was made for.
+    lod_error: f64,
+    /// How long the store took to build, until the next finished frame reports it.
+    unreported_build_ms: Option<f64>,
+}
+
+/// What the worker has loaded of its current dataset.
+enum Loaded {
+    Resident(Resident),
+    Stored(Box<Stored>),
+}
+
 /// A finished frame: the PNG and what to report with it.
 pub struct RenderedFrame {
     pub png: Vec<u8>,
     pub outcome: FrameOutcome,
 }
 
-/// One worker's renderer, dataset cache and resident cloud, which render its leased frames.
+/// Where a worker keeps level-of-detail stores, and the budgets of its node caches.
+#[derive(Debug, Clone)]
+pub struct LodConfig {
+    /// One folder per dataset, named by its content hash.
+    pub dir: PathBuf,
+    /// The pixel error and node-cache budgets; a request's own pixel error wins.
+    pub options: CutOptions,
+    /// The most disk one dataset's store may take while it is built (the worker's cache
+    /// bound); larger datasets are refused before their build starts.
+    pub disk_budget: Option<u64>,
+}
+
+/// One worker's renderer, dataset cache and loaded dataset, which render its leased frames.
 pub struct WorkerRenderState {
     renderer: Renderer,
     cache: Option<Arc<DatasetCache>>,
-    resident: Option<Resident>,
+    lod: Option<LodConfig>,
+    loaded: Option<Loaded>,
 }
 
 impl WorkerRenderState {
-    /// Without a cache every new dataset is decoded from its file.
-    pub fn new(gpu: Arc<GpuContext>, cache: Option<Arc<DatasetCache>>) -> Self {
+    /// Without a cache every new dataset is decoded from its file; without a level-of-detail
+    /// folder every dataset is rendered resident.
+    pub fn new(
+        gpu: Arc<GpuContext>,
+        cache: Option<Arc<DatasetCache>>,
+        lod: Option<LodConfig>,
+    ) -> Self {
         Self {
             renderer: Renderer::new(gpu),
             cache,
-            resident: None,
+            lod,
+            loaded: None,
         }
     }
 
-    fn is_resident(&self, task: &FrameTask) -> bool {
-        self.resident.as_ref().is_some_and(|r| {
-            r.sha256 == task.dataset.sha256 && r.color_mode == task.request.render.color_mode
-        })
+    fn store_folder(&self, task: &FrameTask) -> Option<PathBuf> {
+        self.lod
+            .as_ref()
+            .map(|lod| lod.dir.join(&task.dataset.sha256))
     }
 
-    /// Whether rendering `task` reads the dataset's files: its points are neither on the GPU
-    /// nor in the cache.
+    /// The pixel error of `task`'s cut, or `None` to render it resident: the request's own, else
+    /// the default for a dataset over [`RESIDENT_MAX_POINTS`] points or one already stored.
+    fn lod_error(&self, task: &FrameTask, points: Option<u64>) -> Option<f64> {
+        let lod = self.lod.as_ref()?;
+        if let Some(error) = task.request.render.lod_error {
+            return Some(error);
+        }
+        let stored = self
+            .store_folder(task)
+            .is_some_and(|folder| StoredLod::is_built(&folder));
+        let large = points.is_some_and(|p| p > RESIDENT_MAX_POINTS);
+        (stored || large).then_some(lod.options.lod_error)
+    }
+
+    fn is_loaded(&self, task: &FrameTask) -> bool {
+        match &self.loaded {
+            Some(Loaded::Resident(r)) => {
+                r.sha256 == task.dataset.sha256
+                    && r.color_mode == task.request.render.color_mode
+                    && self.lod_error(task, None).is_none()
+            }
+            Some(Loaded::Stored(s)) => {
+                s.sha256 == task.dataset.sha256 && self.lod_error(task, None) == Some(s.lod_error)
+            }
+            None => false,
+        }
+    }
+
+    /// Whether rendering `task` reads the dataset's files: its points are neither loaded, nor
+    /// in the cache, nor in a built store.
     pub fn needs_files(&self, task: &FrameTask) -> bool {
-        !self.is_resident(task)
-            && !self
+        if self.is_loaded(task) {
+            return false;
+        }
+        if let Some(folder) = self.store_folder(task) {
+            if StoredLod::is_built(&folder) && self.lod_error(task, None).is_some() {
+                return false;
+            }
+        }
+        task.request.render.lod_error.is_some()
+            || !self
                 .cache
                 .as_ref()
                 .is_some_and(|c| c.contains(&task.dataset.sha256))
@@ -74,32 +148,78 @@ impl WorkerRenderState {
         task: &FrameTask,
         files: &[PathBuf],
     ) -> Result<RenderedFrame, FrameFailure> {
-        if !self.is_resident(task) {
-            self.resident = None; // free the old cloud's GPU memory first
-            self.resident = Some(self.load(task, files)?);
-        }
-        let Some(current) = self.resident.as_mut() else {
-            return Err(FrameFailure::transient("no resident cloud"));
-        };
-        let settings = task
-            .request
-            .frame_settings(task.lease.index, &current.bounds);
-        let mut frame = self
-            .renderer
-            .render(&current.cloud, &settings)
-            .map_err(|e| FrameFailure::from(&e))?;
-        let png = encode::png_bytes(&mut frame)
-            .map_err(|e| FrameFailure::transient(format!("encoding the PNG: {e}")))?;
-
-        let mut timings: Vec<StageTiming> = Vec::new();
-        let load = current.unreported_load.take();
-        if let Some((ms, _)) = load {
-            timings.push(StageTiming {
-                stage: "load".into(),
-                ms,
-                gpu_clock: false,
+        if !self.is_loaded(task) {
+            self.loaded = None; // free the old dataset's memory first
+            let points = if files.is_empty() {
+                None
+            } else {
+                Some(dataset_point_count(files).map_err(|e| FrameFailure::from(&e))?)
+            };
+            self.loaded = Some(match self.lod_error(task, points) {
+                Some(lod_error) => {
+                    Loaded::Stored(Box::new(self.open_store(task, files, lod_error)?))
+                }
+                None => Loaded::Resident(self.load(task, files)?),
             });
         }
+        let (mut frame, mut timings, dataset_cache_hit, cut) = match self.loaded.as_mut() {
+            Some(Loaded::Resident(current)) => {
+                let settings = task
+                    .request
+                    .frame_settings(task.lease.index, &current.bounds);
+                let frame = self
+                    .renderer
+                    .render(&current.cloud, &settings)
+                    .map_err(|e| FrameFailure::from(&e))?;
+                let load = current.unreported_load.take();
+                let timings = load
+                    .map(|(ms, _)| stage("load", ms))
+                    .into_iter()
+                    .collect::<Vec<_>>();
+                let hit = load.map(|(_, outcome)| outcome == CacheOutcome::Hit);
+                (frame, timings, hit, None)
+            }
+            Some(Loaded::Stored(stored)) => {
+                let bounds = stored.lod.dataset.bounds();
+                let settings = task.request.frame_settings(task.lease.index, &bounds);
+                let color_mode = task.request.render.color_mode;
+                let rendered = stored.cut.render(
+                    &mut self.renderer,
+                    &stored.lod.dataset,
+                    &settings,
+                    color_mode,
+                );
+                let (frame, report) = match rendered {
+                    Ok(done) => done,
+                    Err(error) => {
+                        let failure = FrameFailure::from(&error);
+                        if matches!(error, CutError::Store(_)) {
+                            // A damaged store is built again by the next attempt.
+                            tracing::warn!(%error, folder = %stored.lod.folder.display(), "removing a damaged store");
+                            let folder = stored.lod.folder.clone();
+                            self.loaded = None;
+                            let _ = std::fs::remove_dir_all(folder);
+                        }
+                        return Err(failure);
+                    }
+                };
+                // The next frame of the job is likely this worker's next lease.
+                if task.lease.index + 1 < task.request.frames() {
+                    let next = task.request.frame_settings(task.lease.index + 1, &bounds);
+                    stored.cut.read_ahead(&stored.lod.dataset, &next);
+                }
+                let timings = stored
+                    .unreported_build_ms
+                    .take()
+                    .map(|ms| stage("build", ms))
+                    .into_iter()
+                    .collect::<Vec<_>>();
+                (frame, timings, None, Some(FrameCut::from(&report)))
+            }
+            None => return Err(FrameFailure::transient("no dataset loaded")),
+        };
+        let png = encode::png_bytes(&mut frame)
+            .map_err(|e| FrameFailure::transient(format!("encoding the PNG: {e}")))?;
         timings.extend(frame.timings.stages.iter().map(|t| StageTiming {
             stage: t.stage.name().to_string(),
             ms: t.ms,
@@ -113,8 +233,60 @@ impl WorkerRenderState {
             png,
             outcome: FrameOutcome {
                 timings,
-                dataset_cache_hit: load.map(|(_, outcome)| outcome == CacheOutcome::Hit),
+                dataset_cache_hit,
+                cut,
             },
+        })
+    }
+
+    /// Opens the dataset's store, building it from `files` first when it has none.
+    fn open_store(
+        &self,
+        task: &FrameTask,
+        files: &[PathBuf],
+        lod_error: f64,
+    ) -> Result<Stored, FrameFailure> {
+        let dataset = &task.dataset;
+        let in_dataset =
+            |failure: FrameFailure| failure.context(&format!("dataset {}", dataset.id));
+        let (Some(lod), Some(folder)) = (self.lod.as_ref(), self.store_folder(task)) else {
+            return Err(FrameFailure::transient("this worker keeps no stores"));
+        };
+        let options = CutOptions {
+            lod_error,
+            ..lod.options
+        };
+        options
+            .validate()
+            .map_err(|e| FrameFailure::permanent(e.to_string()))?;
+        let started = Instant::now();
+        let lod_store = StoredLod::open_or_build(
+            files,
+            &folder,
+            options.memory_budget_bytes,
+            lod.disk_budget,
+            &mut |_| {},
+        )
+        .map_err(|e| in_dataset(FrameFailure::from(&e)))?;
+        let build_ms = lod_store
+            .built
+            .as_ref()
+            .map(|_| started.elapsed().as_secs_f64() * 1e3);
+        let cut = CutRenderer::new(&self.renderer, &lod_store.dataset, options)
+            .map_err(|e| in_dataset(FrameFailure::from(&e)))?;
+        tracing::info!(
+            dataset = %dataset.id,
+            points = lod_store.dataset.point_count(),
+            lod_error,
+            built = build_ms.is_some(),
+            "rendering from levels of detail"
+        );
+        Ok(Stored {
+            sha256: dataset.sha256.clone(),
+            lod: lod_store,
+            cut,
+            lod_error,
+            unreported_build_ms: build_ms,
         })
     }
 
@@ -147,5 +319,13 @@ impl WorkerRenderState {
             cloud: gpu_cloud,
             unreported_load: Some((load_ms, outcome)),
         })
+    }
+}
+
+fn stage(name: &str, ms: f64) -> StageTiming {
+    StageTiming {
+        stage: name.into(),
+        ms,
+        gpu_clock: false,
     }
 }

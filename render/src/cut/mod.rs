@@ -25,6 +25,7 @@ mod host_cache;
 mod options;
 mod report;
 mod select;
+mod stored;
 
 #[cfg(test)]
 mod tests;
@@ -54,6 +55,7 @@ pub use options::{
 };
 pub use report::CutReport;
 pub use select::{select_cut, Cut, CutNode, CutView};
+pub use stored::StoredLod;
 
 use gpu_cache::GpuNodeCache;
 use host_cache::HostNodeCache;
@@ -71,11 +73,24 @@ pub enum CutError {
     #[error(transparent)]
     Options(#[from] CutOptionsError),
     #[error(transparent)]
+    Ingest(#[from] crate::ingest::IngestError),
+    #[error(transparent)]
     Store(#[from] LodError),
     #[error(transparent)]
     Render(#[from] RenderError),
     #[error("{0}")]
     Cache(String),
+    #[error(
+        "building the levels of detail of {points} points needs about {needed_mib} MiB of disk \
+         in {folder}, {limit}"
+    )]
+    DiskTooSmall {
+        points: u64,
+        needed_mib: u64,
+        folder: std::path::PathBuf,
+        /// What is short: the free space, or the budget.
+        limit: String,
+    },
 }
 
 /// A built store opened for rendering: its hierarchy (always resident), rendering origin,

@@ -21,6 +21,7 @@ mod chunks;
 pub mod codec;
 mod context;
 mod counting;
+pub mod disk;
 pub mod error;
 pub mod generated;
 pub mod hierarchy;

@@ -59,6 +59,7 @@ impl RenderRequest {
             fill,
             supersample,
             depth,
+            lod_error: _, // chooses what is drawn, not how (`cut/`)
         } = self.render;
         FrameSettings {
             width: self.width,

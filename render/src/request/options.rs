@@ -32,6 +32,11 @@ pub struct RenderOptions {
     /// Also produce the linear depth image of each frame.
     #[serde(default)]
     pub depth: bool,
+    /// Render from levels of detail, refining a node while its point spacing covers more
+    /// than this many pixels (0: every point); `None`: the dataset's points decide
+    /// ([`crate::cut::RESIDENT_MAX_POINTS`]), at [`crate::cut::DEFAULT_LOD_ERROR_PX`].
+    #[serde(default)]
+    pub lod_error: Option<f64>,
 }
 
 fn default_supersample() -> u32 {
@@ -49,6 +54,7 @@ impl Default for RenderOptions {
             fill: None,
             supersample: DEFAULT_SUPERSAMPLE,
             depth: false,
+            lod_error: None,
         }
     }
 }

@@ -185,6 +185,7 @@ fn frame_settings_carry_every_option() {
         fill: Some(FillSettings { kernel: 5 }),
         supersample: 2,
         depth: true,
+        lod_error: Some(0.5),
     };
     let s = r.frame_settings(0, &bounds());
     assert_eq!((s.width, s.height, s.point_size), (64, 48, 3));
@@ -213,6 +214,18 @@ fn invalid_requests_name_the_field() {
         })
     };
     assert_eq!(with(&|r| r.width = 0), "width");
+    assert_eq!(
+        with(&|r| r.render.lod_error = Some(f64::NAN)),
+        "render.lod_error"
+    );
+    assert_eq!(
+        with(&|r| r.render.lod_error = Some(-0.5)),
+        "render.lod_error"
+    );
+    assert_eq!(
+        with(&|r| r.render.lod_error = Some(1e6)),
+        "render.lod_error"
+    );
     assert_eq!(with(&|r| r.height = 0), "height");
     assert_eq!(turntable(&|t| t.frames = 0), "camera_path.turntable.frames");
     assert_eq!(

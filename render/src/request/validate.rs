@@ -10,6 +10,7 @@ use super::camera_path::{
     MIN_KEYFRAMES, TURNTABLE_DEGREES_RANGE, TURNTABLE_ELEVATION_RANGE,
 };
 use super::{RenderOptions, RenderRequest};
+use crate::cut::MAX_LOD_ERROR_PX;
 use crate::raster::{
     FillSettings, Quality, Shading, DEPTH_BAND_RANGE, EDL_RADIUS_RANGE, EDL_STRENGTH_RANGE,
     MAX_FILL_KERNEL, MAX_PINTUS_LEVELS, MAX_POINT_SIZE, MAX_SUPERSAMPLE, MIN_FILL_KERNEL,
@@ -345,6 +346,17 @@ impl RenderOptions {
                     format!(
                         "fill kernel {kernel} is invalid: it must be an odd number of pixels \
                          from {MIN_FILL_KERNEL} to {MAX_FILL_KERNEL}"
+                    ),
+                ));
+            }
+        }
+        if let Some(lod_error) = self.lod_error {
+            if !(lod_error.is_finite() && (0.0..=MAX_LOD_ERROR_PX).contains(&lod_error)) {
+                return Err(invalid(
+                    "render.lod_error",
+                    format!(
+                        "level-of-detail pixel error {lod_error} is invalid: it must be 0 to \
+                         {MAX_LOD_ERROR_PX} pixels"
                     ),
                 ));
             }
