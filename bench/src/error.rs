@@ -1,6 +1,7 @@
 //! The benchmark's errors.
 
 use pointfarm_render::cache::CacheError;
+use pointfarm_render::cut::CutError;
 use pointfarm_render::ingest::IngestError;
 use pointfarm_render::lod::LodError;
 use pointfarm_render::raster::RenderError;
@@ -14,6 +15,8 @@ pub enum BenchError {
     Ingest(#[from] IngestError),
     #[error(transparent)]
     Lod(#[from] LodError),
+    #[error(transparent)]
+    Cut(#[from] CutError),
     #[error("the benchmark needs at least one measured frame")]
     NoFrames,
     #[error("no workload matches --only {0}")]

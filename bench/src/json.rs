@@ -7,6 +7,7 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::campaign::CampaignResult;
+use crate::cuts::CutsResult;
 use crate::report::BenchReport;
 use crate::BenchError;
 
@@ -37,6 +38,12 @@ struct BenchFile<'a, R: Serialize> {
 #[derive(Serialize)]
 struct CampaignSection<'a> {
     campaign: &'a CampaignResult,
+}
+
+/// The cut benchmark's file: its figures as the `cuts` section.
+#[derive(Serialize)]
+struct CutsSection<'a> {
+    cuts: &'a CutsResult,
 }
 
 /// The machine the run was on.
@@ -79,6 +86,11 @@ pub fn write_campaign(
     context: &RunContext,
 ) -> Result<(), BenchError> {
     write_file(path, &CampaignSection { campaign }, context)
+}
+
+/// Writes `--cuts`' figures, as the file's `cuts` section, with `context`.
+pub fn write_cuts(path: &Path, cuts: &CutsResult, context: &RunContext) -> Result<(), BenchError> {
+    write_file(path, &CutsSection { cuts }, context)
 }
 
 fn write_file<R: Serialize>(

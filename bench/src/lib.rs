@@ -24,7 +24,8 @@
 //! generated [`clouds`]; `rounds` (warming and measuring the methods) and `huge` (the cloud
 //! uploaded chunk by chunk); [`ingest`] (decoding and the dataset cache); [`campaign`] (building
 //! the level-of-detail store of a campaign of many files, no GPU); [`scheduler`] (leasing a
-//! frame against the daemon's job history, no GPU); `memory` (the process's resident memory);
+//! frame against the daemon's job history, no GPU); [`cuts`] (rendering level-of-detail stores
+//! cut by cut: a cold turntable, frame time against points, fidelity, resident against cut); `memory` (the process's resident memory);
 //! [`report`] (what was measured), written as [`markdown`], [`json`] and a [`plot`].
 //!
 //! The `PointList` baseline is compiled into the renderer only here: this crate enables the
@@ -32,6 +33,7 @@
 
 pub mod campaign;
 pub mod clouds;
+pub mod cuts;
 mod error;
 mod huge;
 pub mod ingest;

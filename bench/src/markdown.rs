@@ -324,6 +324,13 @@ pub fn campaign_tables(c: &CampaignResult) -> String {
              process's since its start."
         );
     }
+    if let Some(turntable) = &c.turntable {
+        let _ = writeln!(
+            md,
+            "\n{}",
+            crate::cuts::markdown::turntable_table(turntable)
+        );
+    }
     md
 }
 

@@ -81,6 +81,48 @@ pub struct BenchArgs {
     /// Files (tiles) of the --campaign.
     #[arg(long, value_name = "N", default_value_t = bench::campaign::CAMPAIGN_FILES)]
     campaign_files: usize,
+    /// With --campaign: after the LAZ build, render a --size turntable of N frames (12 when
+    /// no count is given) of its store cut by cut, from a cold cache with read-ahead, within
+    /// --cut-memory-budget; needs a GPU (or lavapipe). With --cuts: the frames of the
+    /// out-of-core turntable (12, 6 with --quick).
+    #[arg(long, value_name = "N")]
+    cut_frames: Option<Option<usize>>,
+    /// The memory budget of the --cut-frames turntable and of --cuts' cuts (not the
+    /// out-of-core turntable's 512 MiB), in bytes (`4GiB`, `512MiB` accepted).
+    #[arg(long, value_name = "BYTES", value_parser = parse_bytes,
+          default_value_t = bench::cuts::TURNTABLE_MEMORY_BUDGET)]
+    cut_memory_budget: u64,
+    /// Measure rendering level-of-detail stores cut by cut: the full views of a 10M- and a
+    /// 100M-point terrain (2M and 20M with --quick), a turntable of the larger within 512 MiB,
+    /// the fidelity of the default pixel error against 0 in every mode (the real scans, the
+    /// smaller terrain, a 10M cube, 2M with --quick), and the cube resident against as a cut.
+    #[arg(long, conflicts_with_all = ["only", "huge", "modes", "basic_only", "plot", "scheduler", "campaign"])]
+    cuts: bool,
+    /// With --cuts: points of the smaller and the larger terrain, e.g. `10000000,100000000`.
+    #[arg(long, value_name = "SMALL,LARGE", value_delimiter = ',', value_parser = parse_point_count, requires = "cuts")]
+    cut_points: Vec<usize>,
+}
+
+/// A byte count: a number with an optional KiB, MiB or GiB suffix.
+fn parse_bytes(text: &str) -> Result<u64, String> {
+    let text = text.trim().replace('_', "");
+    let (number, unit) = match text.find(|c: char| c.is_ascii_alphabetic()) {
+        Some(i) => text.split_at(i),
+        None => (text.as_str(), ""),
+    };
+    let shift = match unit.to_ascii_lowercase().as_str() {
+        "" | "b" => 0,
+        "kib" | "k" => 10,
+        "mib" | "m" => 20,
+        "gib" | "g" => 30,
+        other => return Err(format!("unknown unit '{other}': use KiB, MiB or GiB")),
+    };
+    let n: u64 = number
+        .trim()
+        .parse()
+        .map_err(|e| format!("'{text}' is not a byte count: {e}"))?;
+    n.checked_mul(1 << shift)
+        .ok_or_else(|| format!("'{text}' is too large"))
 }
 
 /// A compute mode besides the basic one, as `--modes` names it.
@@ -124,6 +166,9 @@ pub fn run(args: BenchArgs) -> Result<()> {
     }
     if let Some(points) = args.campaign {
         return run_campaign(&args, points, started);
+    }
+    if args.cuts {
+        return run_cuts(&args, started);
     }
     let (width, height) = args.size;
     let defaults = if args.quick {
@@ -231,8 +276,26 @@ fn run_campaign(args: &BenchArgs, points: Option<usize>, started: Instant) -> Re
         CAMPAIGN_POINTS
     };
     let points = points.map_or(default, |n| n as u64);
-    let options = CampaignOptions::new(points, args.campaign_files);
-    let result = campaign::measure(&options, &mut |line| eprintln!("  {line}"))?;
+    let (width, height) = args.size;
+    let options = CampaignOptions {
+        turntable: args.cut_frames.map(|frames| bench::cuts::TurntableOptions {
+            width,
+            height,
+            memory_budget_bytes: args.cut_memory_budget,
+            ..bench::cuts::TurntableOptions::new(frames.unwrap_or(bench::cuts::TURNTABLE_FRAMES))
+        }),
+        ..CampaignOptions::new(points, args.campaign_files)
+    };
+    let gpu = match options.turntable {
+        Some(_) => {
+            let gpu = Arc::new(GpuContext::new(args.adapter)?);
+            println!("adapter: {}", gpu.describe());
+            Some(gpu)
+        }
+        None => None,
+    };
+    let result =
+        campaign::measure_with_frames(&options, gpu.as_ref(), &mut |line| eprintln!("  {line}"))?;
     let markdown = bench::markdown::campaign_tables(&result);
     println!("\n{markdown}");
     if let Some(path) = &args.markdown {
@@ -245,6 +308,49 @@ fn run_campaign(args: &BenchArgs, points: Option<usize>, started: Instant) -> Re
             started,
         };
         bench::json::write_campaign(path, &result, &context)?;
+    }
+    println!("done in {:.0} s", started.elapsed().as_secs_f64());
+    Ok(())
+}
+
+/// `--cuts`: rendering level-of-detail stores cut by cut.
+fn run_cuts(args: &BenchArgs, started: Instant) -> Result<()> {
+    use bench::cuts::{self, CutsOptions};
+    let (width, height) = args.size;
+    let defaults = if args.quick {
+        CutsOptions::quick(width, height, args.data.clone())
+    } else {
+        CutsOptions::full(width, height, args.data.clone())
+    };
+    let (small_points, large_points) = match args.cut_points.as_slice() {
+        [] => (defaults.small_points, defaults.large_points),
+        [small, large] => (*small as u64, *large as u64),
+        _ => anyhow::bail!("--cut-points takes two counts, SMALL,LARGE"),
+    };
+    let options = CutsOptions {
+        small_points,
+        large_points,
+        out_of_core_frames: args.cut_frames.map_or(defaults.out_of_core_frames, |n| {
+            n.unwrap_or(cuts::TURNTABLE_FRAMES)
+        }),
+        memory_budget_bytes: args.cut_memory_budget,
+        ..defaults
+    };
+    let gpu = Arc::new(GpuContext::new(args.adapter)?);
+    println!("adapter: {}", gpu.describe());
+    let result = cuts::measure(&gpu, &options, &mut |line| eprintln!("  {line}"))?;
+    let markdown = cuts::markdown::cuts_tables(&result);
+    println!("\n{markdown}");
+    if let Some(path) = &args.markdown {
+        std::fs::write(path, &markdown).with_context(|| format!("writing {}", path.display()))?;
+    }
+    if let Some(path) = &args.json {
+        let context = RunContext {
+            command: std::env::args().collect::<Vec<_>>().join(" "),
+            quick: args.quick,
+            started,
+        };
+        bench::json::write_cuts(path, &result, &context)?;
     }
     println!("done in {:.0} s", started.elapsed().as_secs_f64());
     Ok(())

@@ -18,13 +18,18 @@
 mod tiles;
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Instant;
+
+use pointfarm_render::cut::LodDataset;
+use pointfarm_render::gpu::GpuContext;
 
 use pointfarm_render::ingest::DatasetSource;
 use pointfarm_render::lod::PointSource;
 use pointfarm_render::lod::{build_lod, BuildTimings, LodBuildOptions, LodError, LodStore};
 use serde::Serialize;
 
+use crate::cuts::{render_turntable, TurntableOptions, TurntableResult};
 use crate::{memory, BenchError};
 pub use tiles::{grid, LAS_RECORD_BYTES, MIN_POINTS_PER_FILE};
 
@@ -51,6 +56,9 @@ pub struct CampaignOptions {
     pub las: bool,
     /// Where the scratch folder is made (the system's temporary folder by default).
     pub scratch_parent: Option<PathBuf>,
+    /// After the LAZ build, render a turntable of its store (needs the GPU of
+    /// [`measure_with_frames`]).
+    pub turntable: Option<TurntableOptions>,
 }
 
 impl CampaignOptions {
@@ -61,6 +69,7 @@ impl CampaignOptions {
             seed: 11,
             las: true,
             scratch_parent: None,
+            turntable: None,
         }
     }
 }
@@ -158,6 +167,9 @@ pub struct CampaignResult {
     /// Whether the peak resident memory could be reset before each build; when not, each
     /// peak is the process's since its start.
     pub peak_reset: bool,
+    /// The turntable of the LAZ build's store, when asked for.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub turntable: Option<TurntableResult>,
     /// The machine's 1-minute load average when the run started and when it ended (Linux):
     /// above the cores, other work shared them and the rates are lower bounds.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -176,12 +188,12 @@ impl CampaignResult {
 
 /// A fresh store under `dir`: the one place the benchmark makes one. Everything the store
 /// writes lives under `dir`, so that the folder's size is the store's disk.
-struct BenchStore {
+pub(crate) struct BenchStore {
     _db: sled::Db,
-    store: LodStore,
+    pub(crate) store: LodStore,
 }
 
-fn create_store(dir: &Path) -> Result<BenchStore, BenchError> {
+pub(crate) fn create_store(dir: &Path) -> Result<BenchStore, BenchError> {
     // sled's page cache is outside the builder's budget; small, as in the builder's own
     // throughput test, so that the peak shows the builder and the store's writes.
     let db = sled::Config::new()
@@ -293,6 +305,15 @@ pub fn measure(
     options: &CampaignOptions,
     progress: &mut dyn FnMut(&str),
 ) -> Result<CampaignResult, BenchError> {
+    measure_with_frames(options, None, progress)
+}
+
+/// [`measure`], and with a GPU the turntable of [`CampaignOptions::turntable`].
+pub fn measure_with_frames(
+    options: &CampaignOptions,
+    gpu: Option<&Arc<GpuContext>>,
+    progress: &mut dyn FnMut(&str),
+) -> Result<CampaignResult, BenchError> {
     let mut log = |line: String| {
         tracing::info!(target: "pointfarm_bench::campaign", "{line}");
         progress(&line);
@@ -346,6 +367,7 @@ pub fn measure(
     let mut decode = Vec::new();
     let mut builds = Vec::new();
     let mut peak_reset = true;
+    let mut turntable = None;
     for (input, paths) in inputs {
         let source = DatasetSource::open(paths)?;
         let read = read_all(input, &source, paths)?;
@@ -370,6 +392,21 @@ pub fn measure(
             build.peak_rss_bytes as f64 / (1u64 << 20) as f64,
             build.store_disk_bytes_per_point
         ));
+        if let (Some(frames), Some(gpu), "laz") = (&options.turntable, gpu, input) {
+            let store = create_store(&build_dir.join("store"))?;
+            let dataset = LodDataset::open(store.store.clone(), source.bounds())?;
+            let result = render_turntable(gpu, &dataset, frames, &mut |l| {
+                log(format!("campaign: {l}"))
+            })?;
+            log(format!(
+                "campaign: turntable: first frame {:.2} s, following median {:.2} s, peak RSS \
+                 {} MiB",
+                result.first_ms / 1e3,
+                result.following_median_ms / 1e3,
+                result.peak_rss_bytes >> 20
+            ));
+            turntable = Some(result);
+        }
         let _ = std::fs::remove_dir_all(&build_dir);
         decode.push(read);
         builds.push(build);
@@ -392,6 +429,7 @@ pub fn measure(
         builds,
         las_skipped: las_plan.err(),
         peak_reset,
+        turntable,
         load_average: load_before.zip(load_average()).map(|(a, b)| [a, b]),
     })
 }
