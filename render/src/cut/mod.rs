@@ -370,8 +370,8 @@ impl CutRenderer {
     }
 
     /// Starts reading the nodes of the frame of `settings` that neither cache holds into the
-    /// host cache, on another thread, largest on screen first, as far as the host cache has
-    /// room. The next [`CutRenderer::render`] waits for it.
+    /// host cache, on another thread, largest on screen first, up to half the host cache. The
+    /// next [`CutRenderer::render`] waits for it.
     pub fn read_ahead(&mut self, dataset: &LodDataset, settings: &FrameSettings) {
         if self.read_ahead.is_some() {
             return;
@@ -380,7 +380,9 @@ impl CutRenderer {
         let Ok(host) = self.host.lock() else {
             return;
         };
-        let mut room = host.capacity_bytes().saturating_sub(host.bytes());
+        // Up to half the cache: older nodes make way (least recently used first), and the
+        // frame being finished keeps the other half.
+        let mut room = host.capacity_bytes() / 2;
         let mut wanted = Vec::new();
         for node in &cut.nodes {
             if self.gpu_cache.contains(node.key) || host.contains(node.key) {
