@@ -47,6 +47,7 @@ mod rounds;
 mod run;
 pub mod scheduler;
 mod stats;
+mod store;
 pub mod workloads;
 
 pub use error::BenchError;

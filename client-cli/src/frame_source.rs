@@ -48,7 +48,7 @@ impl FrameSource {
         say: &dyn Fn(String),
     ) -> Result<Self> {
         let started = Instant::now();
-        let spinner = crate::render::spinner(match files {
+        let spinner = crate::progress::spinner(match files {
             [one] => format!("reading {}", one.display()),
             many => format!("reading {} files", many.len()),
         });

@@ -57,7 +57,7 @@ pub fn open_or_build(
     let folder = cache_dir.join("lod").join(store_name(files)?);
     let spinner = RefCell::new(None);
     let opened = StoredLod::open_or_build(files, &folder, memory_budget, None, &mut |points| {
-        *spinner.borrow_mut() = Some(crate::render::spinner(format!(
+        *spinner.borrow_mut() = Some(crate::progress::spinner(format!(
             "building levels of detail of {points} points (once; kept in {})",
             folder.display()
         )));

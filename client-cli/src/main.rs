@@ -7,6 +7,7 @@ mod demo;
 mod frame_source;
 mod lod_store;
 mod parse;
+mod progress;
 mod remote;
 mod remote_render;
 mod render;

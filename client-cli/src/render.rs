@@ -216,9 +216,3 @@ fn print_summary(dir: &Path, frames: &[StageTimings]) {
         println!("  {:<10} {:>9.2} ms", stage.name(), ms[ms.len() / 2]);
     }
 }
-
-pub(crate) fn spinner(message: String) -> ProgressBar {
-    let spinner = ProgressBar::new_spinner().with_message(message);
-    spinner.enable_steady_tick(std::time::Duration::from_millis(100));
-    spinner
-}

@@ -26,10 +26,11 @@ use pointfarm_render::gpu::GpuContext;
 
 use pointfarm_render::ingest::DatasetSource;
 use pointfarm_render::lod::PointSource;
-use pointfarm_render::lod::{build_lod, BuildTimings, LodBuildOptions, LodError, LodStore};
+use pointfarm_render::lod::{build_lod, BuildTimings, LodBuildOptions};
 use serde::Serialize;
 
 use crate::cuts::{render_turntable, TurntableOptions, TurntableResult};
+use crate::store::create_store;
 use crate::{memory, BenchError};
 pub use tiles::{grid, LAS_RECORD_BYTES, MIN_POINTS_PER_FILE};
 
@@ -184,29 +185,6 @@ impl CampaignResult {
     pub fn build_of(&self, input: &str) -> Option<&BuildResult> {
         self.builds.iter().find(|b| b.input == input)
     }
-}
-
-/// A fresh store under `dir`: the one place the benchmark makes one. Everything the store
-/// writes lives under `dir`, so that the folder's size is the store's disk.
-pub(crate) struct BenchStore {
-    _db: sled::Db,
-    pub(crate) store: LodStore,
-}
-
-pub(crate) fn create_store(dir: &Path) -> Result<BenchStore, BenchError> {
-    // sled's page cache is outside the builder's budget; small, as in the builder's own
-    // throughput test, so that the peak shows the builder and the store's writes.
-    let db = sled::Config::new()
-        .path(dir.join("sled"))
-        .cache_capacity(64 << 20)
-        .open()
-        .map_err(LodError::from)?;
-    // The payload file beside sled's folder, which sled's open has made `dir`.
-    let store = LodStore::open(
-        db.open_tree("lod").map_err(LodError::from)?,
-        dir.join("nodes.bin"),
-    )?;
-    Ok(BenchStore { _db: db, store })
 }
 
 /// Bytes the files under `path` take on disk (allocated blocks where the OS says).

@@ -32,8 +32,8 @@ use pointfarm_render::lod::{build_lod, GeneratedSource, LodBuildOptions, PointSo
 use pointfarm_render::raster::{FrameSettings, Renderer};
 use serde::Serialize;
 
-use crate::campaign::{create_store, BenchStore};
 use crate::stats::median;
+use crate::store::{create_store, BenchStore};
 use crate::{BenchError, REAL_SCANS};
 pub use fidelity::{FidelityResult, FIDELITY_TOLERANCE};
 pub use turntable::{
