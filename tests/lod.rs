@@ -262,4 +262,38 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
     }
     let text = text(&ok(&["jobs", "show", &id, "--server", &server.address]));
     assert!(text.contains("levels of detail, 2 frames"), "{text}");
+
+    // Restarted, the worker opens the store it built, without the dataset's files.
+    let mut server = server;
+    let address = server.address.clone();
+    let downloads = |log: &str| log.matches("dataset file downloaded").count();
+    let before = downloads(&server.log());
+    assert!(server
+        .terminate(std::time::Duration::from_secs(60))
+        .is_some_and(|s| s.success()));
+    let server = pointfarm_tests::ServeProcess::start_at(&address, &dir.path().join("data"));
+    let again = dir.path().join("again");
+    let mut args = vec![
+        "render",
+        arg(&whole),
+        "--out",
+        arg(&again),
+        "--server",
+        &server.address,
+    ];
+    args.extend(options);
+    ok(&args);
+    // The log goes on in the same file.
+    let log = server.log();
+    assert_eq!(downloads(&log), before, "downloaded again:\n{log}");
+    assert!(log.contains("built=false"), "{log}");
+    let image = |dir: &Path| {
+        image::open(dir.join("frame_00001.png"))
+            .expect("png")
+            .to_rgba8()
+    };
+    assert!(
+        image(&again) == image(&local),
+        "the reopened store renders differently\n{log}"
+    );
 }

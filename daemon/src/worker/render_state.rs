@@ -267,7 +267,15 @@ impl WorkerRenderState {
             lod.disk_budget,
             &mut |_| {},
         )
-        .map_err(|e| in_dataset(FrameFailure::from(&e)))?;
+        .map_err(|e| {
+            if files.is_empty() {
+                // Opened without its files and unusable: the next attempt downloads them and
+                // builds it again.
+                let _ = std::fs::remove_dir_all(&folder);
+                return in_dataset(FrameFailure::transient(e.to_string()));
+            }
+            in_dataset(FrameFailure::from(&e))
+        })?;
         let build_ms = lod_store
             .built
             .as_ref()

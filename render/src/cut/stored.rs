@@ -7,6 +7,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use super::{CutError, LodDataset};
+use crate::cloud::WorldBounds;
 use crate::ingest::DatasetSource;
 use crate::lod::disk::build_disk_bytes;
 use crate::lod::{build_lod, LodBuildOptions, LodBuildReport, LodError, LodStore, PointSource};
@@ -24,9 +25,9 @@ pub struct StoredLod {
 }
 
 impl StoredLod {
-    /// Whether `folder` holds a finished store (without opening the dataset's files).
+    /// Whether `folder` holds a finished store, which opens without the dataset's files.
     pub fn is_built(folder: &Path) -> bool {
-        folder.join("nodes.bin").is_file() && folder.join("index").is_dir()
+        read_finished(folder).is_some()
     }
 
     /// Opens the store in `folder`, building it from `files` first when it has none, an
@@ -41,6 +42,9 @@ impl StoredLod {
         disk_budget: Option<u64>,
         on_build: &mut dyn FnMut(u64),
     ) -> Result<Self, CutError> {
+        if files.is_empty() {
+            return Self::open_finished(folder);
+        }
         let source = DatasetSource::open(files)?;
         std::fs::create_dir_all(folder)
             .map_err(|e| CutError::Cache(format!("creating {}: {e}", folder.display())))?;
@@ -64,6 +68,7 @@ impl StoredLod {
         };
         let mut built = None;
         if !current {
+            let _ = std::fs::remove_file(folder.join(FINISHED_FILE));
             check_disk(folder, source.point_count(), disk_budget)?;
             on_build(source.point_count());
             let started = Instant::now();
@@ -80,6 +85,7 @@ impl StoredLod {
             );
             built = Some((report, seconds));
         }
+        write_finished(folder, source.point_count(), &source.bounds())?;
         let dataset = LodDataset::open(store, source.bounds())?;
         Ok(Self {
             dataset,
@@ -88,6 +94,82 @@ impl StoredLod {
             _db: db,
         })
     }
+}
+
+/// The file that marks a finished store: its points and the bounds of its files, so it opens
+/// without them (a worker's restart).
+const FINISHED_FILE: &str = "finished.json";
+
+impl StoredLod {
+    /// Opens a finished store from its folder alone.
+    fn open_finished(folder: &Path) -> Result<Self, CutError> {
+        let missing = || {
+            CutError::Cache(format!(
+                "{} holds no finished store, and no files were given to build one",
+                folder.display()
+            ))
+        };
+        let (points, bounds) = read_finished(folder).ok_or_else(missing)?;
+        let db = sled::Config::new()
+            .path(folder.join("index"))
+            .cache_capacity(INDEX_CACHE_BYTES)
+            .open()
+            .map_err(|e| {
+                CutError::Cache(format!("opening the store in {}: {e}", folder.display()))
+            })?;
+        let store = LodStore::open(
+            db.open_tree("lod").map_err(LodError::from)?,
+            folder.join("nodes.bin"),
+        )?;
+        let dataset = LodDataset::open(store, bounds)?;
+        if dataset.point_count() != points {
+            return Err(CutError::Cache(format!(
+                "the store in {} holds {} points, its marker says {points}",
+                folder.display(),
+                dataset.point_count()
+            )));
+        }
+        Ok(Self {
+            dataset,
+            folder: folder.to_owned(),
+            built: None,
+            _db: db,
+        })
+    }
+}
+
+fn write_finished(folder: &Path, points: u64, bounds: &WorldBounds) -> Result<(), CutError> {
+    let text = serde_json::json!({
+        "points": points,
+        "min": bounds.min.to_array(),
+        "max": bounds.max.to_array(),
+    })
+    .to_string();
+    let partial = folder.join(format!("{FINISHED_FILE}.partial"));
+    let write = std::fs::write(&partial, text)
+        .and_then(|()| std::fs::rename(&partial, folder.join(FINISHED_FILE)));
+    write.map_err(|e| {
+        CutError::Cache(format!(
+            "marking the store in {} finished: {e}",
+            folder.display()
+        ))
+    })
+}
+
+fn read_finished(folder: &Path) -> Option<(u64, WorldBounds)> {
+    let text = std::fs::read_to_string(folder.join(FINISHED_FILE)).ok()?;
+    let value: serde_json::Value = serde_json::from_str(&text).ok()?;
+    let vector = |name: &str| -> Option<glam::DVec3> {
+        let v = value[name].as_array()?;
+        let c: Vec<f64> = v.iter().filter_map(serde_json::Value::as_f64).collect();
+        (c.len() == 3 && c.iter().all(|x| x.is_finite()))
+            .then(|| glam::DVec3::new(c[0], c[1], c[2]))
+    };
+    let bounds = WorldBounds {
+        min: vector("min")?,
+        max: vector("max")?,
+    };
+    Some((value["points"].as_u64()?, bounds))
 }
 
 /// Refuses a build whose disk need exceeds the free space under `folder` or `budget`.
@@ -132,5 +214,35 @@ mod tests {
         let error = check_disk(dir.path(), u64::MAX / 64, None).expect_err("refused");
         assert!(error.to_string().contains("free there"), "{error}");
         assert!(check_disk(dir.path(), 1_000, None).is_ok());
+    }
+
+    #[test]
+    fn a_finished_store_opens_without_its_files() {
+        use crate::ingest::{write_las, LasWriteOptions};
+        let dir = tempfile::tempdir().expect("tempdir");
+        let file = dir.path().join("scene.las");
+        let scene = crate::sample::sample_scene(5_000, 2);
+        write_las(&file, &scene, &LasWriteOptions::default()).expect("write");
+        let folder = dir.path().join("store");
+        assert!(!StoredLod::is_built(&folder));
+        let first =
+            StoredLod::open_or_build(&[file], &folder, 64 << 20, None, &mut |_| {}).expect("built");
+        assert!(first.built.is_some());
+        let (bounds, points) = (first.dataset.bounds(), first.dataset.point_count());
+        drop(first);
+        assert!(StoredLod::is_built(&folder));
+        let again = StoredLod::open_or_build(&[], &folder, 64 << 20, None, &mut |_| {})
+            .expect("opened without files");
+        assert!(again.built.is_none());
+        assert_eq!(
+            (again.dataset.bounds(), again.dataset.point_count()),
+            (bounds, points)
+        );
+        drop(again);
+        let empty = dir.path().join("empty");
+        let error = StoredLod::open_or_build(&[], &empty, 64 << 20, None, &mut |_| {})
+            .err()
+            .expect("nothing to open");
+        assert!(error.to_string().contains("no finished store"), "{error}");
     }
 }
