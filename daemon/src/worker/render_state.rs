@@ -153,7 +153,9 @@ impl WorkerRenderState {
             let points = if files.is_empty() {
                 None
             } else {
-                Some(dataset_point_count(files).map_err(|e| FrameFailure::from(&e))?)
+                let failure =
+                    |e| FrameFailure::from(&e).context(&format!("dataset {}", task.dataset.id));
+                Some(dataset_point_count(files).map_err(failure)?)
             };
             self.loaded = Some(match self.lod_error(task, points) {
                 Some(lod_error) => {
