@@ -48,15 +48,7 @@ impl StoredLod {
         let source = DatasetSource::open(files)?;
         std::fs::create_dir_all(folder)
             .map_err(|e| CutError::Cache(format!("creating {}: {e}", folder.display())))?;
-        let db = sled::Config::new()
-            .path(folder.join("index"))
-            .cache_capacity(INDEX_CACHE_BYTES)
-            .open()
-            .map_err(|e| {
-                CutError::Cache(format!("opening the store in {}: {e}", folder.display()))
-            })?;
-        let tree = db.open_tree("lod").map_err(LodError::from)?;
-        let store = LodStore::open(tree, folder.join("nodes.bin"))?;
+        let (db, store) = open_index(folder)?;
         let current = match store.read_hierarchy() {
             Ok(hierarchy) => hierarchy.point_count == source.point_count(),
             Err(LodError::MissingHierarchy) => false,
@@ -110,17 +102,7 @@ impl StoredLod {
             ))
         };
         let (points, bounds) = read_finished(folder).ok_or_else(missing)?;
-        let db = sled::Config::new()
-            .path(folder.join("index"))
-            .cache_capacity(INDEX_CACHE_BYTES)
-            .open()
-            .map_err(|e| {
-                CutError::Cache(format!("opening the store in {}: {e}", folder.display()))
-            })?;
-        let store = LodStore::open(
-            db.open_tree("lod").map_err(LodError::from)?,
-            folder.join("nodes.bin"),
-        )?;
+        let (db, store) = open_index(folder)?;
         let dataset = LodDataset::open(store, bounds)?;
         if dataset.point_count() != points {
             return Err(CutError::Cache(format!(
@@ -170,6 +152,18 @@ fn read_finished(folder: &Path) -> Option<(u64, WorldBounds)> {
         max: vector("max")?,
     };
     Some((value["points"].as_u64()?, bounds))
+}
+
+/// The store's sled index (holding its hierarchy) and payload file in `folder`.
+fn open_index(folder: &Path) -> Result<(sled::Db, LodStore), CutError> {
+    let db = sled::Config::new()
+        .path(folder.join("index"))
+        .cache_capacity(INDEX_CACHE_BYTES)
+        .open()
+        .map_err(|e| CutError::Cache(format!("opening the store in {}: {e}", folder.display())))?;
+    let tree = db.open_tree("lod").map_err(LodError::from)?;
+    let store = LodStore::open(tree, folder.join("nodes.bin"))?;
+    Ok((db, store))
 }
 
 /// Refuses a build whose disk need exceeds the free space under `folder` or `budget`.
