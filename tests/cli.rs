@@ -3,7 +3,9 @@
 use std::path::Path;
 use std::process::Output;
 
-use pointfarm_tests::{own_stderr_lines, pointfarm, shared_data, ServeProcess, WorkerProcess};
+use pointfarm_tests::{
+    json_names, own_stderr_lines, pointfarm, shared_data, ServeProcess, WorkerProcess,
+};
 
 fn stdout(output: &Output) -> String {
     String::from_utf8_lossy(&output.stdout).into_owned()
@@ -545,12 +547,7 @@ fn bench_writes_its_figures_as_json_and_markdown() {
             "{method}"
         );
     }
-    let modes: Vec<&str> = workload["modes"]
-        .as_array()
-        .expect("modes")
-        .iter()
-        .filter_map(|m| m["method"].as_str())
-        .collect();
+    let modes = json_names(&workload["modes"], "method");
     assert_eq!(modes, ["compute-hq", "compute-basic-32"]);
     // The headline figure belongs to the 10M cloud, which this run left out.
     assert!(report["speedup_vs_pointlist"].is_null(), "{report}");
@@ -645,12 +642,7 @@ fn bench_streams_a_huge_cloud_of_the_size_asked() {
     // 4096-point batches, all in view of the automatic camera.
     assert_eq!(huge["batches"]["total"], 49);
     assert_eq!(huge["batches"]["listed"], 49);
-    let stages: Vec<&str> = huge["compute"]["stages"]
-        .as_array()
-        .expect("stages")
-        .iter()
-        .filter_map(|s| s["stage"].as_str())
-        .collect();
+    let stages = json_names(&huge["compute"]["stages"], "stage");
     assert!(stages.contains(&"cull"), "{stages:?}");
 
     let refused = pointfarm(&["bench", "--huge", "0"]);

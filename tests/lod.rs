@@ -8,7 +8,8 @@ use std::process::Output;
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::sample::sample_scene;
 use pointfarm_render::testing::compare_images_within;
-use pointfarm_tests::pointfarm;
+use pointfarm_tests::service::scratch_sample;
+use pointfarm_tests::{json_names, pointfarm};
 
 fn text(output: &Output) -> String {
     format!(
@@ -71,22 +72,17 @@ fn tiles_render_from_levels_of_detail_as_the_file_they_were_cut_from() {
     let size = "--size=200x150";
     let (resident, cut) = (dir.path().join("resident.png"), dir.path().join("cut.png"));
     ok(&["render", arg(&whole), "--out", arg(&resident), size]);
-    let first = ok(&[
-        "render",
-        arg(&tiles),
-        "--out",
-        arg(&cut),
-        size,
-        "--lod-error",
-        "0",
-        "--cache-dir",
-        arg(&cache),
-    ]);
-    assert!(
-        text(&first).contains("levels of detail:"),
-        "{}",
-        text(&first)
-    );
+    // Renders the tiles through their store; says whether the store was built first.
+    let render_tiles = |out: &Path, lod_error: &str, more: &[&str]| {
+        let mut args = vec!["render", arg(&tiles), "--out", arg(out), size];
+        args.extend(["--lod-error", lod_error, "--cache-dir", arg(&cache)]);
+        args.extend_from_slice(more);
+        let output = ok(&args);
+        let built = text(&output).contains("levels of detail:");
+        (output, built)
+    };
+    let (first, built) = render_tiles(&cut, "0", &[]);
+    assert!(built, "{}", text(&first));
     let image = |path: &Path| image::open(path).expect("png").to_rgba8();
     let diff = compare_images_within("lod-tiles", &image(&cut), &image(&resident), 8);
     assert!(
@@ -97,25 +93,8 @@ fn tiles_render_from_levels_of_detail_as_the_file_they_were_cut_from() {
 
     // The store is kept: a turntable reuses it, and each frame reports its cut.
     let frames = dir.path().join("frames");
-    let again = ok(&[
-        "render",
-        arg(&tiles),
-        "--out",
-        arg(&frames),
-        size,
-        "--turntable",
-        "3",
-        "--lod-error",
-        "0.5",
-        "--cache-dir",
-        arg(&cache),
-        "--json",
-    ]);
-    assert!(
-        !text(&again).contains("levels of detail:"),
-        "built again:\n{}",
-        text(&again)
-    );
+    let (again, built) = render_tiles(&frames, "0.5", &["--turntable", "3", "--json"]);
+    assert!(!built, "built again:\n{}", text(&again));
     let reports: Vec<serde_json::Value> = String::from_utf8_lossy(&again.stdout)
         .lines()
         .map(|line| serde_json::from_str(line).expect("one JSON object a line"))
@@ -143,29 +122,13 @@ fn tiles_render_from_levels_of_detail_as_the_file_they_were_cut_from() {
     let bytes = std::fs::read(&tile).expect("read tile");
     std::thread::sleep(std::time::Duration::from_millis(20));
     std::fs::write(&tile, bytes).expect("rewrite tile");
-    let rebuilt = ok(&[
-        "render",
-        arg(&tiles),
-        "--out",
-        arg(&cut),
-        size,
-        "--lod-error",
-        "1",
-        "--cache-dir",
-        arg(&cache),
-    ]);
-    assert!(
-        text(&rebuilt).contains("levels of detail:"),
-        "{}",
-        text(&rebuilt)
-    );
+    let (rebuilt, built) = render_tiles(&cut, "1", &[]);
+    assert!(built, "{}", text(&rebuilt));
 }
 
 #[test]
 fn level_of_detail_options_are_checked_and_refused_through_a_server() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let cloud = dir.path().join("scene.laz");
-    write_las(&cloud, &sample_scene(2_000, 3), &LasWriteOptions::default()).expect("write");
+    let (dir, cloud) = scratch_sample("scene.laz", 2_000, 3);
     let out = dir.path().join("out.png");
     let cache = dir.path().join("cache");
     let refused = |args: &[&str], expected: &str| {
@@ -251,12 +214,7 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
         assert_eq!(frame["cut"]["points_total"], 30_000, "{job}");
         assert!(frame["cut"]["nodes"].as_u64() > Some(0), "{job}");
     }
-    let stages: Vec<&str> = job["stages"]
-        .as_array()
-        .expect("stages")
-        .iter()
-        .filter_map(|s| s["stage"].as_str())
-        .collect();
+    let stages = json_names(&job["stages"], "stage");
     for stage in ["build", "select", "load"] {
         assert!(stages.contains(&stage), "{stage} missing from {stages:?}");
     }

@@ -114,3 +114,22 @@ fn write_file<R: Serialize>(
         source,
     })
 }
+
+/// Writes a result with `write` into `dir` as a test run would, and parses it back.
+#[cfg(test)]
+pub(crate) fn written_in<R>(
+    dir: &Path,
+    result: &R,
+    write: fn(&Path, &R, &RunContext) -> Result<(), BenchError>,
+) -> serde_json::Value {
+    let path = dir.join("result.json");
+    let context = RunContext {
+        command: "test".into(),
+        quick: true,
+        started: Instant::now(),
+    };
+    write(&path, result, &context).expect("json");
+    let bytes = std::fs::read(&path).expect("read");
+    std::fs::remove_file(&path).expect("removed");
+    serde_json::from_slice(&bytes).expect("parse")
+}

@@ -46,6 +46,7 @@ pub mod report;
 mod rounds;
 mod run;
 pub mod scheduler;
+mod scratch;
 mod stats;
 mod store;
 pub mod workloads;

@@ -19,11 +19,17 @@ fn significant(value: f64) -> String {
 /// Milliseconds to three significant digits where that takes more than one decimal: a GPU
 /// renders in a tenth of a millisecond what lavapipe renders in a hundred.
 fn ms(value: f64) -> String {
-    match value {
-        v if v < 1.0 => format!("{v:.3}"),
-        v if v < 10.0 => format!("{v:.2}"),
-        v => format!("{v:.1}"),
-    }
+    stepped(value, [(1.0, 3), (10.0, 2)], 1)
+}
+
+/// `value` with the decimals of the first `(below, decimals)` step it is below, else with
+/// `beyond` decimals.
+fn stepped(value: f64, steps: [(f64, usize); 2], beyond: usize) -> String {
+    let decimals = steps
+        .iter()
+        .find(|&&(below, _)| value < below)
+        .map_or(beyond, |&(_, decimals)| decimals);
+    format!("{value:.decimals$}")
 }
 
 /// The render tables (when any workload was rendered), the ingest table and what was skipped.
@@ -235,11 +241,7 @@ fn ingest_table(md: &mut String, report: &BenchReport) {
 
 /// Seconds to two decimals, or three below a tenth.
 fn seconds(value: f64) -> String {
-    match value {
-        v if v < 0.1 => format!("{v:.3}"),
-        v if v < 100.0 => format!("{v:.2}"),
-        v => format!("{v:.0}"),
-    }
+    stepped(value, [(0.1, 3), (100.0, 2)], 0)
 }
 
 /// The campaign benchmark: reading and building per kind of files, the builder's stages and

@@ -2,7 +2,7 @@
 //! workloads, in one run on one adapter; prints tables and writes JSON, markdown and a plot.
 //! The harness is the `pointfarm-bench` crate; this module parses the flags and prints.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -251,20 +251,11 @@ fn run_scheduler(args: &BenchArgs, started: Instant) -> Result<()> {
     let histories = [0, longest / 10, longest];
     let results = scheduler::measure(&histories, samples, &mut |line| eprintln!("  {line}"))?;
     let markdown = scheduler::markdown(&results);
-    println!("\n{markdown}");
-    if let Some(path) = &args.markdown {
-        std::fs::write(path, &markdown).with_context(|| format!("writing {}", path.display()))?;
-    }
-    if let Some(path) = &args.json {
-        let json = serde_json::json!({
-            "command": std::env::args().collect::<Vec<_>>().join(" "),
-            "scheduler": results,
-        });
+    finish(args, started, &markdown, |path, context| {
+        let json = serde_json::json!({ "command": context.command, "scheduler": results });
         std::fs::write(path, serde_json::to_vec_pretty(&json)?)
-            .with_context(|| format!("writing {}", path.display()))?;
-    }
-    println!("done in {:.0} s", started.elapsed().as_secs_f64());
-    Ok(())
+            .with_context(|| format!("writing {}", path.display()))
+    })
 }
 
 /// `--campaign`: building the level-of-detail store of a campaign of many files.
@@ -297,20 +288,9 @@ fn run_campaign(args: &BenchArgs, points: Option<usize>, started: Instant) -> Re
     let result =
         campaign::measure_with_frames(&options, gpu.as_ref(), &mut |line| eprintln!("  {line}"))?;
     let markdown = bench::markdown::campaign_tables(&result);
-    println!("\n{markdown}");
-    if let Some(path) = &args.markdown {
-        std::fs::write(path, &markdown).with_context(|| format!("writing {}", path.display()))?;
-    }
-    if let Some(path) = &args.json {
-        let context = RunContext {
-            command: std::env::args().collect::<Vec<_>>().join(" "),
-            quick: args.quick,
-            started,
-        };
-        bench::json::write_campaign(path, &result, &context)?;
-    }
-    println!("done in {:.0} s", started.elapsed().as_secs_f64());
-    Ok(())
+    finish(args, started, &markdown, |path, context| {
+        Ok(bench::json::write_campaign(path, &result, context)?)
+    })
 }
 
 /// `--cuts`: rendering level-of-detail stores cut by cut.
@@ -340,9 +320,22 @@ fn run_cuts(args: &BenchArgs, started: Instant) -> Result<()> {
     println!("adapter: {}", gpu.describe());
     let result = cuts::measure(&gpu, &options, &mut |line| eprintln!("  {line}"))?;
     let markdown = cuts::markdown::cuts_tables(&result);
+    finish(args, started, &markdown, |path, context| {
+        Ok(bench::json::write_cuts(path, &result, context)?)
+    })
+}
+
+/// Prints a benchmark's tables, writes them to `--markdown` and its results to `--json` (with
+/// `write_json`), and says how long it took.
+fn finish(
+    args: &BenchArgs,
+    started: Instant,
+    markdown: &str,
+    write_json: impl FnOnce(&Path, &RunContext) -> Result<()>,
+) -> Result<()> {
     println!("\n{markdown}");
     if let Some(path) = &args.markdown {
-        std::fs::write(path, &markdown).with_context(|| format!("writing {}", path.display()))?;
+        std::fs::write(path, markdown).with_context(|| format!("writing {}", path.display()))?;
     }
     if let Some(path) = &args.json {
         let context = RunContext {
@@ -350,7 +343,7 @@ fn run_cuts(args: &BenchArgs, started: Instant) -> Result<()> {
             quick: args.quick,
             started,
         };
-        bench::json::write_cuts(path, &result, &context)?;
+        write_json(path, &context)?;
     }
     println!("done in {:.0} s", started.elapsed().as_secs_f64());
     Ok(())

@@ -141,8 +141,8 @@ impl FrameSource {
                 let (frame, report) = cut.render(renderer, &lod.dataset, settings, *color_mode)?;
                 Ok(RenderedFrame {
                     frame,
-                    points_total: report.points_total,
-                    points_rendered: report.points_rendered,
+                    points_total: report.counts.points_total,
+                    points_rendered: report.counts.points_rendered,
                     cut: Some(report),
                 })
             }

@@ -132,7 +132,7 @@ fn report_frame(
         frame_json(index, path, settings, rendered).to_string()
     } else {
         let mut line = format!("{}  {}", path.display(), rendered.frame.timings);
-        if let Some(cut) = &rendered.cut {
+        if let Some(cut) = rendered.cut.as_ref().map(|c| &c.counts) {
             line.push_str(&format!(
                 "  | cut {} nodes, {} points; read {} nodes ({:.1} MiB), host hits {}, GPU hits {}",
                 cut.nodes,

@@ -188,52 +188,69 @@ mod tests {
 
     use super::*;
 
-    fn code(access: &Access, role: Role, given: Option<&str>) -> Option<Code> {
-        access.admit(role, given).err().map(|status| status.code())
+    /// Checks each `(role, token given, expected code)` against `access`; `None` admits.
+    fn assert_admits(access: &Access, cases: &[(Role, Option<&str>, Option<Code>)]) {
+        for &(role, given, expected) in cases {
+            let code = access.admit(role, given).err().map(|status| status.code());
+            assert_eq!(code, expected, "{role:?} with {given:?}");
+        }
     }
 
     #[test]
     fn each_token_opens_only_its_role() {
         let access = Access::new(Some("client-secret"), Some("worker-secret"));
-        assert_eq!(code(&access, Role::Client, Some("client-secret")), None);
-        assert_eq!(code(&access, Role::Worker, Some("worker-secret")), None);
-        assert_eq!(
-            code(&access, Role::Worker, Some("client-secret")),
-            Some(Code::PermissionDenied)
-        );
-        assert_eq!(
-            code(&access, Role::Client, Some("worker-secret")),
-            Some(Code::PermissionDenied)
-        );
-        assert_eq!(
-            code(&access, Role::Client, Some("client-secret2")),
-            Some(Code::Unauthenticated)
-        );
-        assert_eq!(
-            code(&access, Role::Worker, None),
-            Some(Code::Unauthenticated)
+        assert_admits(
+            &access,
+            &[
+                (Role::Client, Some("client-secret"), None),
+                (Role::Worker, Some("worker-secret"), None),
+                (
+                    Role::Worker,
+                    Some("client-secret"),
+                    Some(Code::PermissionDenied),
+                ),
+                (
+                    Role::Client,
+                    Some("worker-secret"),
+                    Some(Code::PermissionDenied),
+                ),
+                (
+                    Role::Client,
+                    Some("client-secret2"),
+                    Some(Code::Unauthenticated),
+                ),
+                (Role::Worker, None, Some(Code::Unauthenticated)),
+            ],
         );
     }
 
     #[test]
     fn a_client_token_alone_serves_no_remote_workers() {
-        let access = Access::new(Some("client-secret"), None);
-        assert_eq!(
-            code(&access, Role::Worker, Some("client-secret")),
-            Some(Code::PermissionDenied)
+        let client_only = Access::new(Some("client-secret"), None);
+        assert_admits(
+            &client_only,
+            &[
+                (
+                    Role::Worker,
+                    Some("client-secret"),
+                    Some(Code::PermissionDenied),
+                ),
+                (Role::Worker, None, Some(Code::PermissionDenied)),
+            ],
         );
-        assert_eq!(
-            code(&access, Role::Worker, None),
-            Some(Code::PermissionDenied)
+        assert_admits(
+            &Access::default(),
+            &[
+                (Role::Worker, None, None),
+                (Role::Client, Some("anything"), None),
+            ],
         );
-        let open = Access::default();
-        assert_eq!(code(&open, Role::Worker, None), None);
-        assert_eq!(code(&open, Role::Client, Some("anything")), None);
-        let workers_only = Access::new(None, Some("worker-secret"));
-        assert_eq!(code(&workers_only, Role::Client, None), None);
-        assert_eq!(
-            code(&workers_only, Role::Worker, None),
-            Some(Code::Unauthenticated)
+        assert_admits(
+            &Access::new(None, Some("worker-secret")),
+            &[
+                (Role::Client, None, None),
+                (Role::Worker, None, Some(Code::Unauthenticated)),
+            ],
         );
     }
 
@@ -255,12 +272,25 @@ mod tests {
         };
         let open = Access::default();
         let tokened = Access::new(Some("t"), None);
-        assert!(open
-            .check_exposure(exposure("127.0.0.1:1", false, false))
-            .is_ok());
-        assert!(open
-            .check_exposure(exposure("[::1]:1", false, false))
-            .is_ok());
+        // (access, address, TLS, --insecure, allowed)
+        let cases = [
+            (&open, "127.0.0.1:1", false, false, true),
+            (&open, "[::1]:1", false, false, true),
+            (&open, "0.0.0.0:1", false, false, false),
+            (&tokened, "10.0.0.1:1", false, false, false),
+            (&open, "0.0.0.0:1", true, false, false),
+            (&tokened, "0.0.0.0:1", true, false, true),
+            (&open, "0.0.0.0:1", false, true, true),
+        ];
+        for (access, address, tls, insecure, allowed) in cases {
+            let result = access.check_exposure(exposure(address, tls, insecure));
+            assert_eq!(
+                result.is_ok(),
+                allowed,
+                "{address} tls {tls} insecure {insecure}"
+            );
+        }
+        // The refusal names what is missing.
         let refused = open
             .check_exposure(exposure("0.0.0.0:1", false, false))
             .expect_err("open and plaintext");
@@ -275,14 +305,5 @@ mod tests {
             !refused.contains("--token)") && refused.contains("TLS"),
             "{refused}"
         );
-        assert!(open
-            .check_exposure(exposure("0.0.0.0:1", true, false))
-            .is_err());
-        assert!(tokened
-            .check_exposure(exposure("0.0.0.0:1", true, false))
-            .is_ok());
-        assert!(open
-            .check_exposure(exposure("0.0.0.0:1", false, true))
-            .is_ok());
     }
 }

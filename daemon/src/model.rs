@@ -138,43 +138,9 @@ pub struct FrameReport {
     pub cut: Option<FrameCut>,
 }
 
-/// What a frame rendered from levels of detail drew and loaded.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
-pub struct FrameCut {
-    pub nodes: u64,
-    pub points_rendered: u64,
-    pub points_total: u64,
-    /// The GPU node cache's size, not the pixel error, bounded the cut.
-    pub limited_by_budget: bool,
-    /// Cut nodes already on the GPU; written to it; evicted for them.
-    pub gpu_hits: u64,
-    pub gpu_uploaded: u64,
-    pub gpu_evicted: u64,
-    /// Of the written nodes: those the host cache held; those read from the store.
-    pub host_hits: u64,
-    pub nodes_read: u64,
-    /// Bytes read from the store for this frame, and ahead of it.
-    pub bytes_read: u64,
-    pub read_ahead_bytes: u64,
-}
-
-impl From<&pointfarm_render::cut::CutReport> for FrameCut {
-    fn from(r: &pointfarm_render::cut::CutReport) -> Self {
-        Self {
-            nodes: r.nodes,
-            points_rendered: r.points_rendered,
-            points_total: r.points_total,
-            limited_by_budget: r.limited_by_budget,
-            gpu_hits: r.gpu_hits,
-            gpu_uploaded: r.gpu_uploaded,
-            gpu_evicted: r.gpu_evicted,
-            host_hits: r.host_hits,
-            nodes_read: r.nodes_read,
-            bytes_read: r.bytes_read,
-            read_ahead_bytes: r.read_ahead_bytes,
-        }
-    }
-}
+/// What a frame rendered from levels of detail drew and loaded: the render crate's counts,
+/// stored with the frame as they are.
+pub use pointfarm_render::cut::CutCounts as FrameCut;
 
 /// One frame of a job.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -34,22 +34,52 @@ pub const CONSTANT_GREY_RGBA: u32 = u32::from_le_bytes([200, 200, 200, 255]);
 
 /// The colour of every point of `cloud` in `mode`.
 pub fn point_colors(cloud: &PointCloud, mode: ColorMode) -> Vec<u32> {
+    let points = PaletteAttributes {
+        classification: &cloud.classification,
+        return_number: &cloud.return_number,
+    };
     match mode {
         ColorMode::Rgb => cloud.colors.clone(),
         ColorMode::Intensity => intensity_grey(&cloud.intensity)
             .unwrap_or_else(|| vec![CONSTANT_GREY_RGBA; cloud.len()]),
         ColorMode::Elevation => elevation_colors(cloud),
-        ColorMode::Classification => cloud
-            .classification
-            .iter()
-            .map(|&c| classification_color(c))
-            .collect(),
-        ColorMode::ReturnNumber => cloud
-            .return_number
-            .iter()
-            .map(|&r| return_color(r))
-            .collect(),
-        ColorMode::Fixed([r, g, b]) => vec![pack_rgba8(r, g, b); cloud.len()],
+        ColorMode::Classification => Palette::Classification.colors(points),
+        ColorMode::ReturnNumber => Palette::ReturnNumber.colors(points),
+        ColorMode::Fixed(rgb) => Palette::Fixed(rgb).colors(points),
+    }
+}
+
+/// The attributes the palette modes colour by, one per point.
+#[derive(Debug, Clone, Copy)]
+pub struct PaletteAttributes<'a> {
+    pub classification: &'a [u8],
+    pub return_number: &'a [u8],
+}
+
+/// The modes that colour a point by its own attributes through a fixed table, needing no
+/// range of the dataset.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Palette {
+    Classification,
+    ReturnNumber,
+    Fixed([u8; 3]),
+}
+
+impl Palette {
+    pub fn colors(self, points: PaletteAttributes<'_>) -> Vec<u32> {
+        match self {
+            Palette::Classification => points
+                .classification
+                .iter()
+                .map(|&c| classification_color(c))
+                .collect(),
+            Palette::ReturnNumber => points
+                .return_number
+                .iter()
+                .map(|&r| return_color(r))
+                .collect(),
+            Palette::Fixed([r, g, b]) => vec![pack_rgba8(r, g, b); points.classification.len()],
+        }
     }
 }
 

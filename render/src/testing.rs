@@ -133,3 +133,9 @@ pub fn compare_images_within(
 pub fn test_output_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../target/test-output")
 }
+
+/// The world positions of the points `las` read, in f64, as the file stores them.
+pub fn las_world_positions(points: &las::PointData) -> Vec<DVec3> {
+    let xyz = points.x().zip(points.y()).zip(points.z());
+    xyz.map(|((x, y), z)| DVec3::new(x, y, z)).collect()
+}

@@ -51,6 +51,12 @@ pub fn pointfarm(args: &[&str]) -> Output {
 
 pub use pointfarm_render::testing::shared_data;
 
+/// The `key` of each object in the JSON array `array` (e.g. each stage's name), in order.
+pub fn json_names<'a>(array: &'a serde_json::Value, key: &str) -> Vec<&'a str> {
+    let items = array.as_array().map(Vec::as_slice).unwrap_or_default();
+    items.iter().filter_map(|item| item[key].as_str()).collect()
+}
+
 /// Lines of stderr that are pointfarm's own, without what the Vulkan loader or drivers print
 /// on their own (e.g. about XDG_RUNTIME_DIR on machines without a session).
 pub fn own_stderr_lines(output: &Output) -> Vec<String> {

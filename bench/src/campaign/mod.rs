@@ -30,6 +30,7 @@ use pointfarm_render::lod::{build_lod, BuildTimings, LodBuildOptions};
 use serde::Serialize;
 
 use crate::cuts::{render_turntable, TurntableOptions, TurntableResult};
+use crate::scratch::{progress_log, scratch_dir};
 use crate::store::create_store;
 use crate::{memory, BenchError};
 pub use tiles::{grid, LAS_RECORD_BYTES, MIN_POINTS_PER_FILE};
@@ -292,19 +293,8 @@ pub fn measure_with_frames(
     gpu: Option<&Arc<GpuContext>>,
     progress: &mut dyn FnMut(&str),
 ) -> Result<CampaignResult, BenchError> {
-    let mut log = |line: String| {
-        tracing::info!(target: "pointfarm_bench::campaign", "{line}");
-        progress(&line);
-    };
-    let scratch = match &options.scratch_parent {
-        Some(parent) => tempfile::Builder::new()
-            .prefix("pointfarm-campaign-")
-            .tempdir_in(parent),
-        None => tempfile::Builder::new()
-            .prefix("pointfarm-campaign-")
-            .tempdir(),
-    }
-    .map_err(|e| BenchError::Scratch(e.to_string()))?;
+    let mut log = progress_log("campaign", progress);
+    let scratch = scratch_dir(options.scratch_parent.as_deref(), "campaign")?;
     let dir = scratch.path();
     let load_before = load_average();
     let las_plan = plan_disk(options, dir)?;
@@ -488,13 +478,19 @@ fn build(
 mod tests {
     use super::*;
 
-    #[test]
-    fn a_small_campaign_is_read_and_built_from_laz_and_las_and_cleaned_up() {
+    /// A campaign of `points` in `files` with its scratch folder in a fresh folder.
+    fn scratched(points: u64, files: usize) -> (tempfile::TempDir, CampaignOptions) {
         let parent = tempfile::tempdir().expect("tempdir");
         let options = CampaignOptions {
             scratch_parent: Some(parent.path().to_path_buf()),
-            ..CampaignOptions::new(200_000, 4)
+            ..CampaignOptions::new(points, files)
         };
+        (parent, options)
+    }
+
+    #[test]
+    fn a_small_campaign_is_read_and_built_from_laz_and_las_and_cleaned_up() {
+        let (parent, options) = scratched(200_000, 4);
         let mut lines = Vec::new();
         let result = measure(&options, &mut |l| lines.push(l.to_string())).expect("measured");
         assert_eq!(
@@ -533,19 +529,10 @@ mod tests {
         let md = crate::markdown::campaign_tables(&result);
         assert!(md.contains("| LAZ |") && md.contains("| LAS |"), "{md}");
         println!("{md}");
-        let json_path = parent.path().join("campaign.json");
-        let context = crate::json::RunContext {
-            command: "test".into(),
-            quick: true,
-            started: Instant::now(),
-        };
-        crate::json::write_campaign(&json_path, &result, &context).expect("json");
-        let json: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(&json_path).expect("read")).expect("parse");
+        let json = crate::json::written_in(parent.path(), &result, crate::json::write_campaign);
         assert_eq!(json["campaign"]["points"], 200_000);
         assert_eq!(json["campaign"]["builds"][1]["input"], "las");
         assert!(json["machine"]["cores"].as_u64().is_some_and(|c| c >= 1));
-        std::fs::remove_file(&json_path).expect("removed");
         // The scratch folder is gone.
         let left: Vec<_> = std::fs::read_dir(parent.path()).expect("dir").collect();
         assert!(left.is_empty(), "{left:?}");
@@ -553,11 +540,7 @@ mod tests {
 
     #[test]
     fn too_few_points_for_the_files_is_an_error_before_anything_is_written() {
-        let parent = tempfile::tempdir().expect("tempdir");
-        let options = CampaignOptions {
-            scratch_parent: Some(parent.path().to_path_buf()),
-            ..CampaignOptions::new(500, 4)
-        };
+        let (parent, options) = scratched(500, 4);
         let error = measure(&options, &mut |_| {}).expect_err("too small");
         assert!(error.to_string().contains("1000 points a file"), "{error}");
         assert_eq!(std::fs::read_dir(parent.path()).expect("dir").count(), 0);

@@ -94,10 +94,11 @@ pub fn measure_fidelity(
             full.render(&mut renderer, dataset, &settings, ColorMode::Rgb)?;
         let (actual, cut_report) = cut.render(&mut renderer, dataset, &settings, ColorMode::Rgb)?;
         if mode.is_none() {
-            result.cut_points = cut_report.points_rendered;
-            result.full_points = full_report.points_rendered;
+            result.cut_points = cut_report.counts.points_rendered;
+            result.full_points = full_report.counts.points_rendered;
         }
-        result.limited_by_budget |= full_report.limited_by_budget || cut_report.limited_by_budget;
+        result.limited_by_budget |=
+            full_report.counts.limited_by_budget || cut_report.counts.limited_by_budget;
         let (covered, close) = close_pixels(&actual.image, &expected.image, settings.background);
         result.modes.push(ModeFidelity {
             mode: mode_name(mode),

@@ -32,6 +32,7 @@ use pointfarm_render::lod::{build_lod, GeneratedSource, LodBuildOptions, PointSo
 use pointfarm_render::raster::{FrameSettings, Renderer};
 use serde::Serialize;
 
+use crate::scratch::{progress_log, scratch_dir};
 use crate::stats::median;
 use crate::store::{create_store, BenchStore};
 use crate::{BenchError, REAL_SCANS};
@@ -233,9 +234,9 @@ pub fn warm_view(
     Ok(ViewFigure {
         workload: workload.to_string(),
         points: dataset.point_count(),
-        cut_nodes: report.nodes,
-        cut_points: report.points_rendered,
-        limited_by_budget: report.limited_by_budget,
+        cut_nodes: report.counts.nodes,
+        cut_points: report.counts.points_rendered,
+        limited_by_budget: report.counts.limited_by_budget,
         cold_ms,
         warm_ms: median(warm),
     })
@@ -299,17 +300,8 @@ pub fn measure(
     options: &CutsOptions,
     progress: &mut dyn FnMut(&str),
 ) -> Result<CutsResult, BenchError> {
-    let mut log = |line: String| {
-        tracing::info!(target: "pointfarm_bench::cuts", "{line}");
-        progress(&line);
-    };
-    let scratch = match &options.scratch_parent {
-        Some(parent) => tempfile::Builder::new()
-            .prefix("pointfarm-cuts-")
-            .tempdir_in(parent),
-        None => tempfile::Builder::new().prefix("pointfarm-cuts-").tempdir(),
-    }
-    .map_err(|e| BenchError::Scratch(e.to_string()))?;
+    let mut log = progress_log("cuts", progress);
+    let scratch = scratch_dir(options.scratch_parent.as_deref(), "cuts")?;
     let dir = scratch.path();
     let (w, h) = (options.width, options.height);
     let cut_options = |lod_error| CutOptions {
@@ -488,11 +480,11 @@ mod tests {
         let t = r.out_of_core.as_ref().expect("out of core");
         assert_eq!(t.frames.len(), 3);
         assert_eq!(t.host_budget_bytes + t.gpu_budget_bytes, OUT_OF_CORE_BUDGET);
-        let first = &t.frames[0].cut;
+        let first = &t.frames[0].cut.counts;
         assert_eq!(first.gpu_hits, 0, "a cold cache: {first:?}");
         assert!(first.nodes_read >= 1 && first.bytes_read > 0, "{first:?}");
         for f in &t.frames {
-            let c = &f.cut;
+            let c = &f.cut.counts;
             assert_eq!(c.gpu_hits + c.gpu_uploaded, c.nodes, "{c:?}");
             assert_eq!(c.host_hits + c.nodes_read, c.gpu_uploaded, "{c:?}");
             assert!(c.points_rendered <= c.points_total && c.points_total == 300_000);
@@ -531,21 +523,12 @@ mod tests {
             assert!(md.contains(needle), "{needle}: {md}");
         }
         println!("{md}");
-        let json_path = parent.path().join("cuts.json");
-        let context = crate::json::RunContext {
-            command: "test".into(),
-            quick: true,
-            started: Instant::now(),
-        };
-        crate::json::write_cuts(&json_path, &r, &context).expect("json");
-        let json: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(&json_path).expect("read")).expect("parse");
+        let json = crate::json::written_in(parent.path(), &r, crate::json::write_cuts);
         assert_eq!(json["cuts"]["scaling"][1]["points"], 300_000);
         assert_eq!(
             json["cuts"]["out_of_core"]["frames"][0]["stages"][0]["stage"],
             "select"
         );
-        std::fs::remove_file(&json_path).expect("removed");
         let left: Vec<_> = std::fs::read_dir(parent.path()).expect("dir").collect();
         assert!(left.is_empty(), "{left:?}");
     }

@@ -88,7 +88,7 @@ impl TurntableResult {
     pub fn bytes_read(&self) -> u64 {
         self.frames
             .iter()
-            .map(|f| f.cut.bytes_read + f.cut.read_ahead_bytes)
+            .map(|f| f.cut.counts.bytes_read + f.cut.counts.read_ahead_bytes)
             .sum()
     }
 }
@@ -148,12 +148,12 @@ pub fn render_turntable(
         progress(&format!(
             "cut frame {i}: {wall_ms:.0} ms, {} nodes, {} points; read {} nodes ({:.1} MiB), \
              host hits {}, GPU hits {}; {}",
-            report.nodes,
-            report.points_rendered,
-            report.nodes_read,
-            report.bytes_read as f64 / (1u64 << 20) as f64,
-            report.host_hits,
-            report.gpu_hits,
+            report.counts.nodes,
+            report.counts.points_rendered,
+            report.counts.nodes_read,
+            report.counts.bytes_read as f64 / (1u64 << 20) as f64,
+            report.counts.host_hits,
+            report.counts.gpu_hits,
             frame.timings
         ));
         frames.push(CutFrame {

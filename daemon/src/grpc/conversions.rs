@@ -138,46 +138,39 @@ impl From<&FrameReport> for pb::FrameFinished {
             timings: timings_message(&report.timings),
             dataset_cache_hit: report.dataset_cache_hit,
             failed_attempts: report.failed_attempts,
-            cut: report.cut.as_ref().map(pb::FrameCut::from),
+            cut: report.cut.as_ref().map(frame_cut_message),
         }
     }
 }
 
-impl From<&FrameCut> for pb::FrameCut {
-    fn from(c: &FrameCut) -> Self {
-        pb::FrameCut {
-            nodes: c.nodes,
-            points_rendered: c.points_rendered,
-            points_total: c.points_total,
-            limited_by_budget: c.limited_by_budget,
-            gpu_hits: c.gpu_hits,
-            gpu_uploaded: c.gpu_uploaded,
-            gpu_evicted: c.gpu_evicted,
-            host_hits: c.host_hits,
-            nodes_read: c.nodes_read,
-            bytes_read: c.bytes_read,
-            read_ahead_bytes: c.read_ahead_bytes,
+/// Both conversions of a message whose fields are a domain type's, one for one. They are
+/// functions, not `From`, where both types are other crates'.
+macro_rules! same_fields {
+    ($to_message:ident, $from_message:ident: $domain:path => $message:path {
+        $($field:ident),* $(,)?
+    }) => {
+        pub fn $to_message(v: &$domain) -> $message {
+            $message { $($field: v.$field),* }
         }
-    }
+        pub fn $from_message(v: &$message) -> $domain {
+            $domain { $($field: v.$field),* }
+        }
+    };
 }
 
-impl From<&pb::FrameCut> for FrameCut {
-    fn from(c: &pb::FrameCut) -> Self {
-        FrameCut {
-            nodes: c.nodes,
-            points_rendered: c.points_rendered,
-            points_total: c.points_total,
-            limited_by_budget: c.limited_by_budget,
-            gpu_hits: c.gpu_hits,
-            gpu_uploaded: c.gpu_uploaded,
-            gpu_evicted: c.gpu_evicted,
-            host_hits: c.host_hits,
-            nodes_read: c.nodes_read,
-            bytes_read: c.bytes_read,
-            read_ahead_bytes: c.read_ahead_bytes,
-        }
-    }
-}
+same_fields!(frame_cut_message, frame_cut_of_message: FrameCut => pb::FrameCut {
+    nodes,
+    points_rendered,
+    points_total,
+    limited_by_budget,
+    gpu_hits,
+    gpu_uploaded,
+    gpu_evicted,
+    host_hits,
+    nodes_read,
+    bytes_read,
+    read_ahead_bytes,
+});
 
 impl From<&Lease> for pb::Lease {
     fn from(lease: &Lease) -> Self {

@@ -24,7 +24,10 @@ mod status;
 pub mod streaming;
 mod workers;
 
-pub use conversions::{frame_task, frame_task_message, stage_timings, timings_message};
+pub use conversions::{
+    frame_cut_message, frame_cut_of_message, frame_task, frame_task_message, stage_timings,
+    timings_message,
+};
 pub use request::{camera_path_message, render_options_message, render_request};
 pub use workers::EmbeddedWorkerCall;
 

@@ -7,14 +7,15 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::worker_service_server::WorkerService;
 use tonic::{Request, Response, Status, Streaming};
 
-use super::conversions::{failure_kind, frame_task_message, invalid, stage_timings};
+use super::conversions::{
+    failure_kind, frame_cut_of_message, frame_task_message, invalid, stage_timings,
+};
 use super::lease_guard::LeaseGuard;
 use super::streaming::{first_part, read_chunk, spawn_stream, ResponseStream};
 use super::Api;
 use crate::error::DaemonError;
 use crate::lease::FrameOutcome;
 use crate::limits::{check_id, check_length, truncated, MAX_REASON_BYTES, MAX_WORKER_NAME_BYTES};
-use crate::model::FrameCut;
 
 /// Longest wait of a `LeaseFrame` long poll.
 const MAX_LEASE_WAIT_MS: u32 = 30_000;
@@ -55,6 +56,19 @@ impl Api {
         self.run(move |daemon| daemon.check_lease_holder(&id, embedded))
             .await?;
         Ok(lease_id)
+    }
+
+    /// A worker's call about a lease it holds, by its top-level `lease_id` field: the message,
+    /// and the lease id once [`Api::own_lease`] accepts it.
+    async fn about_own_lease<T: Send>(
+        &self,
+        request: Request<T>,
+        lease_id: fn(&T) -> &str,
+    ) -> Result<(T, String), Status> {
+        let (message, embedded) = self.heard(request);
+        let id = lease_id(&message).to_owned();
+        let id = self.own_lease("lease_id", id, embedded).await?;
+        Ok((message, id))
     }
 }
 
@@ -109,8 +123,7 @@ impl WorkerService for Api {
         &self,
         request: Request<pb::HeartbeatRequest>,
     ) -> Result<Response<pb::HeartbeatResponse>, Status> {
-        let (r, embedded) = self.heard(request);
-        let lease_id = self.own_lease("lease_id", r.lease_id, embedded).await?;
+        let (_, lease_id) = self.about_own_lease(request, |r| &r.lease_id).await?;
         let answer = self.run(move |daemon| daemon.heartbeat(&lease_id)).await?;
         Ok(Response::new(pb::HeartbeatResponse::from(answer)))
     }
@@ -167,7 +180,7 @@ impl WorkerService for Api {
         let outcome = FrameOutcome {
             timings: stage_timings(&result.timings),
             dataset_cache_hit: result.dataset_cache_hit,
-            cut: result.cut.as_ref().map(FrameCut::from),
+            cut: result.cut.as_ref().map(frame_cut_of_message),
         };
         let lease_id = result.lease_id;
         self.done(move |daemon| daemon.complete_frame(&lease_id, &png, outcome).map(drop))
@@ -178,8 +191,7 @@ impl WorkerService for Api {
         &self,
         request: Request<pb::FailFrameRequest>,
     ) -> Result<Response<pb::FailFrameResponse>, Status> {
-        let (r, embedded) = self.heard(request);
-        let lease_id = self.own_lease("lease_id", r.lease_id, embedded).await?;
+        let (r, lease_id) = self.about_own_lease(request, |r| &r.lease_id).await?;
         let reason = if r.reason.is_empty() {
             "the worker gave no reason".to_string()
         } else {
@@ -194,8 +206,7 @@ impl WorkerService for Api {
         &self,
         request: Request<pb::ReleaseFrameRequest>,
     ) -> Result<Response<pb::ReleaseFrameResponse>, Status> {
-        let (r, embedded) = self.heard(request);
-        let lease_id = self.own_lease("lease_id", r.lease_id, embedded).await?;
+        let (_, lease_id) = self.about_own_lease(request, |r| &r.lease_id).await?;
         self.done(move |daemon| daemon.release_frame(&lease_id))
             .await
     }

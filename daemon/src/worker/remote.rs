@@ -39,7 +39,7 @@ use tonic::{Code, Status};
 use tracing::Instrument;
 
 use crate::grpc::streaming::{HashingWriter, CHUNK_BYTES};
-use crate::grpc::{frame_task, timings_message};
+use crate::grpc::{frame_cut_message, frame_task, timings_message};
 use crate::lease::{FrameTask, TaskFile};
 use crate::worker::failure::FrameFailure;
 use crate::worker::render_state::{LodConfig, RenderedFrame, WorkerRenderState};
@@ -455,7 +455,7 @@ async fn complete_frame(client: &mut Client, task: &FrameTask, frame: RenderedFr
                 png_size_bytes: frame.png.len() as u64,
                 timings: timings_message(&frame.outcome.timings),
                 dataset_cache_hit: frame.outcome.dataset_cache_hit,
-                cut: frame.outcome.cut.as_ref().map(pb::FrameCut::from),
+                cut: frame.outcome.cut.as_ref().map(frame_cut_message),
             })),
         };
         let chunks: Vec<pb::CompleteFrameRequest> = frame

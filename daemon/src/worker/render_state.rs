@@ -17,7 +17,7 @@ use pointfarm_render::ingest::dataset_point_count;
 use pointfarm_render::raster::{Clock, GpuPointCloud, Renderer};
 
 use crate::lease::{FrameOutcome, FrameTask};
-use crate::model::{FrameCut, StageTiming};
+use crate::model::StageTiming;
 use crate::worker::failure::FrameFailure;
 
 /// The cloud currently on the GPU.
@@ -216,7 +216,7 @@ impl WorkerRenderState {
                     .map(|ms| stage("build", ms))
                     .into_iter()
                     .collect::<Vec<_>>();
-                (frame, timings, None, Some(FrameCut::from(&report)))
+                (frame, timings, None, Some(report.counts))
             }
             None => return Err(FrameFailure::transient("no dataset loaded")),
         };

@@ -9,8 +9,7 @@ use glam::DVec3;
 
 use crate::cloud::pack_rgba8;
 use crate::color::{
-    classification_color, return_color, ColorMode, ElevationRange, IntensityRange,
-    CONSTANT_GREY_RGBA,
+    ColorMode, ElevationRange, IntensityRange, Palette, PaletteAttributes, CONSTANT_GREY_RGBA,
 };
 use crate::lod::{DatasetStats, NodePoints};
 
@@ -40,6 +39,10 @@ impl DatasetColoring {
     /// The colours of `node`'s points (RGBA8), its positions relative to `origin` given.
     pub fn colors(&self, node: &NodePoints, heights: &[f32], mode: ColorMode) -> Vec<u32> {
         let n = node.len();
+        let points = PaletteAttributes {
+            classification: &node.classification,
+            return_number: &node.return_number,
+        };
         match mode {
             ColorMode::Rgb => match (&node.rgb, self.rgb_is_8_bit) {
                 (Some(rgb), Some(eight_bit)) => {
@@ -58,17 +61,9 @@ impl DatasetColoring {
                 Some(range) => heights.iter().map(|&z| range.color(z)).collect(),
                 None => vec![CONSTANT_GREY_RGBA; n],
             },
-            ColorMode::Classification => node
-                .classification
-                .iter()
-                .map(|&c| classification_color(c))
-                .collect(),
-            ColorMode::ReturnNumber => node
-                .return_number
-                .iter()
-                .map(|&r| return_color(r))
-                .collect(),
-            ColorMode::Fixed([r, g, b]) => vec![pack_rgba8(r, g, b); n],
+            ColorMode::Classification => Palette::Classification.colors(points),
+            ColorMode::ReturnNumber => Palette::ReturnNumber.colors(points),
+            ColorMode::Fixed(rgb) => Palette::Fixed(rgb).colors(points),
         }
     }
 

@@ -53,7 +53,7 @@ pub use options::{
     CacheBudgets, CutOptions, CutOptionsError, DEFAULT_GPU_BUDGET_BYTES, DEFAULT_LOD_ERROR_PX,
     DEFAULT_MEMORY_BUDGET_BYTES, MAX_LOD_ERROR_PX, MIN_BUDGET_BYTES, RESIDENT_MAX_POINTS,
 };
-pub use report::CutReport;
+pub use report::{CutCounts, CutReport};
 pub use select::{select_cut, Cut, CutNode, CutView};
 pub use stored::StoredLod;
 
@@ -264,7 +264,7 @@ impl CutRenderer {
                 Err(_) => tracing::warn!("read-ahead thread panicked"),
             }
         }
-        report.read_ahead_bytes = std::mem::take(&mut self.read_ahead_bytes);
+        report.counts.read_ahead_bytes = std::mem::take(&mut self.read_ahead_bytes);
         report.wait_ms = ms_since(started);
 
         self.gpu_cache.use_color_mode(color_mode);
@@ -275,7 +275,7 @@ impl CutRenderer {
             .iter()
             .filter(|n| !self.gpu_cache.touch(n.key))
             .collect();
-        report.gpu_hits = (cut.nodes.len() - missing.len()) as u64;
+        report.counts.gpu_hits = (cut.nodes.len() - missing.len()) as u64;
         let mut upload_ms = 0.0;
         for group in missing.chunks(LOAD_GROUP_NODES) {
             let started = Instant::now();
@@ -291,11 +291,11 @@ impl CutRenderer {
 
             let started = Instant::now();
             for (node, data) in nodes.iter().zip(&prepared) {
-                report.gpu_evicted += self
+                report.counts.gpu_evicted += self
                     .gpu_cache
                     .insert(renderer.gpu(), node.key, data, &keep)
                     .map_err(CutError::Cache)?;
-                report.gpu_uploaded += 1;
+                report.counts.gpu_uploaded += 1;
             }
             upload_ms += ms_since(started);
         }
@@ -340,7 +340,7 @@ impl CutRenderer {
             .filter(|(_, c)| c.is_none())
             .map(|(n, _)| *n)
             .collect();
-        report.host_hits += (group.len() - to_read.len()) as u64;
+        report.counts.host_hits += (group.len() - to_read.len()) as u64;
         let read: Vec<Arc<NodePoints>> = to_read
             .par_iter()
             .map(|n| {
@@ -350,8 +350,8 @@ impl CutRenderer {
                     .map(Arc::new)
             })
             .collect::<Result<_, _>>()?;
-        report.nodes_read += read.len() as u64;
-        report.bytes_read += to_read
+        report.counts.nodes_read += read.len() as u64;
+        report.counts.bytes_read += to_read
             .iter()
             .map(|n| dataset.stored_bytes(n.key))
             .sum::<u64>();

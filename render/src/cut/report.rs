@@ -1,11 +1,13 @@
 //! `CutReport`: what a frame's cut held and what loading it did.
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::select::Cut;
 
-#[derive(Debug, Clone, Default, PartialEq, Serialize)]
-pub struct CutReport {
+/// What a frame's cut drew and loaded, in counts: the part of a [`CutReport`] that a
+/// frame's record keeps (the daemon stores it with each frame).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CutCounts {
     /// Nodes and points the frame drew.
     pub nodes: u64,
     pub points_rendered: u64,
@@ -24,6 +26,12 @@ pub struct CutReport {
     /// Bytes read from the store by this frame, and by the read-ahead before it.
     pub bytes_read: u64,
     pub read_ahead_bytes: u64,
+}
+
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct CutReport {
+    #[serde(flatten)]
+    pub counts: CutCounts,
     /// Bytes the caches hold after the frame.
     pub host_cache_bytes: u64,
     pub gpu_cache_bytes: u64,
@@ -39,10 +47,13 @@ pub struct CutReport {
 impl CutReport {
     pub(crate) fn of_cut(cut: &Cut, points_total: u64) -> Self {
         Self {
-            nodes: cut.nodes.len() as u64,
-            points_rendered: cut.points(),
-            points_total,
-            limited_by_budget: cut.limited_by_budget,
+            counts: CutCounts {
+                nodes: cut.nodes.len() as u64,
+                points_rendered: cut.points(),
+                points_total,
+                limited_by_budget: cut.limited_by_budget,
+                ..Default::default()
+            },
             ..Default::default()
         }
     }

@@ -55,6 +55,25 @@ fn settings(fixture: &Fixture, options: &RenderOptions) -> FrameSettings {
     settings
 }
 
+/// A fixture of `points`, a renderer, and the default frame of its automatic camera.
+fn basic_frame(points: usize) -> (Fixture, Renderer, FrameSettings) {
+    let fixture = fixture(points);
+    let first = settings(&fixture, &RenderOptions::default());
+    (fixture, Renderer::new(gpu()), first)
+}
+
+/// A frame of `fixture` in RGB from a new cut renderer at `lod_error`, its caches cold.
+fn fresh_cut(
+    renderer: &mut Renderer,
+    fixture: &Fixture,
+    lod_error: f64,
+    settings: &FrameSettings,
+) -> (Frame, CutReport) {
+    let mut cut = cut_renderer(renderer, fixture, lod_error);
+    cut.render(renderer, &fixture.dataset, settings, ColorMode::Rgb)
+        .expect("cut frame")
+}
+
 fn resident_image(
     fixture: &Fixture,
     settings: &FrameSettings,
@@ -85,64 +104,47 @@ fn every_mode_at_lod_error_zero_renders_as_the_resident_cloud() {
     let fixture = fixture(60_000);
     let mut renderer = Renderer::new(gpu());
     let mut cut = cut_renderer(&renderer, &fixture, 0.0);
-    let modes: Vec<(&str, RenderOptions, ColorMode)> = vec![
-        ("basic", RenderOptions::default(), ColorMode::Rgb),
-        (
-            "high-quality",
-            RenderOptions {
-                quality: Quality::HIGH,
-                point_size: 2,
-                ..RenderOptions::default()
-            },
-            ColorMode::Rgb,
-        ),
-        (
-            "fill-edl",
-            RenderOptions {
-                fill: Some(FillSettings::default()),
-                shading: Shading::EDL,
-                ..RenderOptions::default()
-            },
-            ColorMode::Rgb,
-        ),
-        (
-            "pintus",
-            RenderOptions {
-                fill: Some(FillSettings::default()),
-                shading: Shading::PINTUS,
-                ..RenderOptions::default()
-            },
-            ColorMode::Rgb,
-        ),
+    let default = RenderOptions::default;
+    let filled = |shading| RenderOptions {
+        fill: Some(FillSettings::default()),
+        shading,
+        ..default()
+    };
+    let high_quality = RenderOptions {
+        quality: Quality::HIGH,
+        point_size: 2,
+        ..default()
+    };
+    let options_in_rgb = [
+        ("basic", default()),
+        ("high-quality", high_quality),
+        ("fill-edl", filled(Shading::EDL)),
+        ("pintus", filled(Shading::PINTUS)),
         (
             "supersampled",
             RenderOptions {
                 supersample: 2,
-                ..RenderOptions::default()
+                ..default()
             },
-            ColorMode::Rgb,
         ),
-        ("intensity", RenderOptions::default(), ColorMode::Intensity),
-        (
-            "classes",
-            RenderOptions::default(),
-            ColorMode::Classification,
-        ),
-        ("returns", RenderOptions::default(), ColorMode::ReturnNumber),
-        (
-            "fixed",
-            RenderOptions::default(),
-            ColorMode::Fixed([255, 128, 0]),
-        ),
-        ("elevation", RenderOptions::default(), ColorMode::Elevation),
     ];
+    let colors_by_default = [
+        ("intensity", ColorMode::Intensity),
+        ("classes", ColorMode::Classification),
+        ("returns", ColorMode::ReturnNumber),
+        ("fixed", ColorMode::Fixed([255, 128, 0])),
+        ("elevation", ColorMode::Elevation),
+    ];
+    let modes = (options_in_rgb.map(|(name, options)| (name, options, ColorMode::Rgb)))
+        .into_iter()
+        .chain(colors_by_default.map(|(name, mode)| (name, default(), mode)));
     for (name, options, color_mode) in modes {
         let settings = settings(&fixture, &options);
         let (frame, report) = cut
             .render(&mut renderer, &fixture.dataset, &settings, color_mode)
             .expect("cut");
         assert_eq!(
-            report.points_rendered, report.points_total,
+            report.counts.points_rendered, report.counts.points_total,
             "{name}: lod 0 draws all"
         );
         let expected = resident_image(&fixture, &settings, color_mode);
@@ -158,9 +160,7 @@ fn every_mode_at_lod_error_zero_renders_as_the_resident_cloud() {
 
 #[test]
 fn a_frame_is_the_same_from_a_cold_and_a_warm_cache() {
-    let fixture = fixture(40_000);
-    let mut renderer = Renderer::new(gpu());
-    let first = settings(&fixture, &RenderOptions::default());
+    let (fixture, mut renderer, first) = basic_frame(40_000);
     let mut other = first;
     other.camera = Camera::framing(
         &fixture.cloud.bounds,
@@ -173,15 +173,15 @@ fn a_frame_is_the_same_from_a_cold_and_a_warm_cache() {
     let (cold, cold_report) = cut
         .render(&mut renderer, &fixture.dataset, &first, ColorMode::Rgb)
         .expect("cold");
-    assert_eq!(cold_report.gpu_hits, 0);
-    assert!(cold_report.nodes_read > 0 && cold_report.bytes_read > 0);
+    assert_eq!(cold_report.counts.gpu_hits, 0);
+    assert!(cold_report.counts.nodes_read > 0 && cold_report.counts.bytes_read > 0);
     cut.render(&mut renderer, &fixture.dataset, &other, ColorMode::Rgb)
         .expect("other");
     let (warm, warm_report) = cut
         .render(&mut renderer, &fixture.dataset, &first, ColorMode::Rgb)
         .expect("warm");
-    assert_eq!(warm_report.nodes_read, 0, "{warm_report:?}");
-    assert_eq!(warm_report.gpu_hits, warm_report.nodes);
+    assert_eq!(warm_report.counts.nodes_read, 0, "{warm_report:?}");
+    assert_eq!(warm_report.counts.gpu_hits, warm_report.counts.nodes);
     assert!(
         cold.image == warm.image,
         "the warm frame differs from the cold one"
@@ -215,10 +215,10 @@ fn the_caches_stay_within_their_budgets_and_evict() {
         assert!(report.gpu_cache_bytes <= budgets.gpu_bytes, "{report:?}");
         assert!(report.host_cache_bytes <= budgets.host_bytes, "{report:?}");
         assert!(
-            report.points_rendered <= 30 * BATCH_POINTS_U64,
+            report.counts.points_rendered <= 30 * BATCH_POINTS_U64,
             "{report:?}"
         );
-        evicted += report.gpu_evicted;
+        evicted += report.counts.gpu_evicted;
         // The same view again, after whatever the budget evicted: the same image.
         let (repeat, _) = cut
             .render(&mut renderer, &fixture.dataset, &again, ColorMode::Rgb)
@@ -250,20 +250,14 @@ fn a_coarser_pixel_error_draws_fewer_points_and_the_default_keeps_the_image() {
     for (quality, least) in [(Quality::Basic, 0.96), (Quality::HIGH, 0.99)] {
         let mut settings = settings(&fixture, &RenderOptions::default());
         settings.quality = quality;
-        let mut full = cut_renderer(&renderer, &fixture, 0.0);
-        let (full_frame, full_report) = full
-            .render(&mut renderer, &fixture.dataset, &settings, ColorMode::Rgb)
-            .expect("full");
-        let mut default = cut_renderer(&renderer, &fixture, DEFAULT_LOD_ERROR_PX);
-        let (frame, report) = default
-            .render(&mut renderer, &fixture.dataset, &settings, ColorMode::Rgb)
-            .expect("default");
+        let (full_frame, full_report) = fresh_cut(&mut renderer, &fixture, 0.0, &settings);
+        let (frame, report) = fresh_cut(&mut renderer, &fixture, DEFAULT_LOD_ERROR_PX, &settings);
         let share = fidelity("cut-default-error", &frame.image, &full_frame.image);
         assert!(
             share >= least,
             "{quality:?}: {share:.4} of covered pixels within 8/255"
         );
-        assert!(report.points_rendered <= full_report.points_rendered);
+        assert!(report.counts.points_rendered <= full_report.counts.points_rendered);
     }
     // Far away, a coarser error draws fewer points.
     let mut settings = settings(&fixture, &RenderOptions::default());
@@ -275,7 +269,7 @@ fn a_coarser_pixel_error_draws_fewer_points_and_the_default_keeps_the_image() {
         cut.render(renderer, &fixture.dataset, &settings, ColorMode::Rgb)
             .expect("frame")
             .1
-            .points_rendered
+            .counts.points_rendered
     };
     let (full, default, coarse) = (
         points(0.0, &mut renderer),
@@ -290,16 +284,11 @@ fn a_coarser_pixel_error_draws_fewer_points_and_the_default_keeps_the_image() {
 
 #[test]
 fn a_read_ahead_fills_the_host_cache_and_changes_no_pixel() {
-    let fixture = fixture(40_000);
-    let mut renderer = Renderer::new(gpu());
-    let first = settings(&fixture, &RenderOptions::default());
+    let (fixture, mut renderer, first) = basic_frame(40_000);
     let mut next = first;
     next.camera.position =
         first.camera.target + (first.camera.position - first.camera.target) * 0.5;
-    let mut cold = cut_renderer(&renderer, &fixture, 0.0);
-    let (expected, _) = cold
-        .render(&mut renderer, &fixture.dataset, &next, ColorMode::Rgb)
-        .expect("cold");
+    let (expected, _) = fresh_cut(&mut renderer, &fixture, 0.0, &next);
 
     let mut cut = CutRenderer::with_budgets(
         &renderer,
@@ -325,12 +314,12 @@ fn a_read_ahead_fills_the_host_cache_and_changes_no_pixel() {
     let (frame, report) = cut
         .render(&mut renderer, &fixture.dataset, &next, ColorMode::Rgb)
         .expect("next");
-    assert_eq!(report.gpu_hits, 0);
+    assert_eq!(report.counts.gpu_hits, 0);
     assert_eq!(
-        report.nodes_read, 0,
+        report.counts.nodes_read, 0,
         "every node came from the host cache: {report:?}"
     );
-    assert!(report.host_hits > 0);
+    assert!(report.counts.host_hits > 0);
     assert!(frame.image == expected.image);
 }
 
@@ -387,19 +376,13 @@ fn fidelity_by_pixel_error() {
         let target = fixture.cloud.bounds.center();
         settings.camera.position = target + (settings.camera.position - target) * distance;
         settings.camera.far *= 4.0;
-        let mut full = cut_renderer(&renderer, &fixture, 0.0);
-        let (full_frame, _) = full
-            .render(&mut renderer, &fixture.dataset, &settings, ColorMode::Rgb)
-            .expect("full");
+        let (full_frame, _) = fresh_cut(&mut renderer, &fixture, 0.0, &settings);
         for error in [0.1, 0.25, 0.5, 1.0, 2.0] {
-            let mut cut = cut_renderer(&renderer, &fixture, error);
-            let (frame, report) = cut
-                .render(&mut renderer, &fixture.dataset, &settings, ColorMode::Rgb)
-                .expect("cut");
+            let (frame, report) = fresh_cut(&mut renderer, &fixture, error, &settings);
             let share = fidelity("fidelity", &frame.image, &full_frame.image);
             eprintln!(
                 "distance {distance} {quality:?} error {error}: {} of {} points, {share:.4}",
-                report.points_rendered, report.points_total
+                report.counts.points_rendered, report.counts.points_total
             );
         }
     }

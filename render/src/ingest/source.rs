@@ -10,7 +10,7 @@ use super::contain::contain_panics;
 use super::read::{usable, DatasetFile};
 use super::IngestError;
 use crate::cloud::WorldBounds;
-use crate::lod::{BatchColumns, LodError, PointBatch, PointSource};
+use crate::lod::{BatchColumns, BatchVisitor, LodError, PointSource};
 
 /// The files of a dataset, checked, as a source the level-of-detail builder reads twice.
 pub struct DatasetSource {
@@ -159,10 +159,7 @@ impl PointSource for DatasetSource {
         !self.files.iter().any(|file| file.facts.compressed)
     }
 
-    fn for_each_batch(
-        &self,
-        visit: &mut dyn FnMut(PointBatch<'_>) -> Result<(), LodError>,
-    ) -> Result<(), LodError> {
+    fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
         let mut columns = BatchColumns::default();
         for file in &self.files {
             // The visitor's error stops the read; it is kept apart from the file's errors.
@@ -292,12 +289,7 @@ mod tests {
             let points = reader.read_all().expect("read");
             let mut columns = BatchColumns::default();
             fill(&mut columns, &points, true);
-            let positions: Vec<DVec3> = points
-                .x()
-                .zip(points.y())
-                .zip(points.z())
-                .map(|((x, y), z)| DVec3::new(x, y, z))
-                .collect();
+            let positions = crate::testing::las_world_positions(&points);
             assert_eq!(columns.positions, positions, "format {format}");
             let intensity: Vec<u16> = points.intensity().collect();
             assert_eq!(columns.intensity, intensity, "format {format}");

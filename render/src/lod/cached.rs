@@ -8,7 +8,7 @@ use std::path::PathBuf;
 use super::error::LodError;
 use super::memory::{MemoryMeter, Reservation};
 use super::point::RawPoint;
-use super::source::{BatchColumns, PointBatch, PointSource};
+use super::source::{BatchColumns, BatchVisitor, PointBatch, PointSource};
 use super::spill::{self, SpillDir, SpillWriter, READ_BLOCK_BYTES};
 use crate::cloud::WorldBounds;
 
@@ -82,10 +82,7 @@ impl PointSource for SourceCopy<'_> {
         self.count
     }
 
-    fn for_each_batch(
-        &self,
-        visit: &mut dyn FnMut(PointBatch<'_>) -> Result<(), LodError>,
-    ) -> Result<(), LodError> {
+    fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
         let mut columns = BatchColumns::default();
         let mut flush = |columns: &mut BatchColumns| {
             let result = visit(columns.batch(self.has_rgb));

@@ -6,7 +6,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::error::LodError;
-use super::source::{BatchColumns, PointBatch, PointSource, SOURCE_BATCH_POINTS};
+use super::source::{BatchColumns, BatchVisitor, PointSource, SOURCE_BATCH_POINTS};
 use crate::cloud::WorldBounds;
 
 /// The corner of the generated clouds, at survey-like coordinates.
@@ -104,10 +104,7 @@ impl PointSource for GeneratedSource {
         self.points
     }
 
-    fn for_each_batch(
-        &self,
-        visit: &mut dyn FnMut(PointBatch<'_>) -> Result<(), LodError>,
-    ) -> Result<(), LodError> {
+    fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
         let mut columns = BatchColumns::default();
         let extent = self.terrain_extent();
         let batches = self.points.div_ceil(SOURCE_BATCH_POINTS as u64);

@@ -50,6 +50,6 @@ pub use generated::{GeneratedShape, GeneratedSource};
 pub use hierarchy::{LodHierarchy, NodeInfo};
 pub use key::{NodeKey, RootCube, MAX_LEVEL};
 pub use options::LodBuildOptions;
-pub use source::{BatchColumns, CloudSource, PointBatch, PointSource};
+pub use source::{BatchColumns, BatchVisitor, CloudSource, PointBatch, PointSource};
 pub use stats::DatasetStats;
 pub use store::LodStore;

@@ -80,6 +80,9 @@ impl BatchColumns {
     }
 }
 
+/// What a [`PointSource`] hands each batch to; an error it returns stops the walk.
+pub type BatchVisitor<'v> = dyn FnMut(PointBatch<'_>) -> Result<(), LodError> + 'v;
+
 /// Points that can be read (at least) twice, in the same order each time.
 pub trait PointSource: Sync {
     /// A box holding every point.
@@ -87,10 +90,7 @@ pub trait PointSource: Sync {
     fn point_count(&self) -> u64;
     /// Visits every point once, batch by batch; an error from `visit` stops the walk and is
     /// returned.
-    fn for_each_batch(
-        &self,
-        visit: &mut dyn FnMut(PointBatch<'_>) -> Result<(), LodError>,
-    ) -> Result<(), LodError>;
+    fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError>;
 
     /// Whether a second walk costs about what reading a spill file would: false for sources
     /// that decode (LAZ), whose points the builder then keeps in a spill file during the
@@ -129,10 +129,7 @@ impl PointSource for CloudSource<'_> {
         self.cloud.len() as u64
     }
 
-    fn for_each_batch(
-        &self,
-        visit: &mut dyn FnMut(PointBatch<'_>) -> Result<(), LodError>,
-    ) -> Result<(), LodError> {
+    fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
         let cloud = self.cloud;
         let mut world = Vec::with_capacity(SOURCE_BATCH_POINTS.min(cloud.len()));
         for start in (0..cloud.len()).step_by(SOURCE_BATCH_POINTS) {

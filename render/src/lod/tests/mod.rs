@@ -17,6 +17,14 @@ struct Built {
     report: LodBuildReport,
 }
 
+/// A store in `dir`: its sled index (kept open by the returned database) and payload file.
+fn temp_store(dir: &std::path::Path) -> (sled::Db, LodStore) {
+    let db = sled::open(dir.join("db")).expect("sled");
+    let tree = db.open_tree("lod").expect("tree");
+    let store = LodStore::open(tree, dir.join("lod.bin")).expect("store");
+    (db, store)
+}
+
 fn options(dir: &std::path::Path, max_leaf_points: usize) -> LodBuildOptions {
     let mut options = LodBuildOptions::new(dir.join("spill"));
     options.max_leaf_points = max_leaf_points;
@@ -26,12 +34,7 @@ fn options(dir: &std::path::Path, max_leaf_points: usize) -> LodBuildOptions {
 
 fn build_with(source: &dyn PointSource, tweak: impl FnOnce(&mut LodBuildOptions)) -> Built {
     let dir = tempfile::tempdir().expect("tempdir");
-    let db = sled::open(dir.path().join("db")).expect("sled");
-    let store = LodStore::open(
-        db.open_tree("lod").expect("tree"),
-        dir.path().join("lod.bin"),
-    )
-    .expect("store");
+    let (_db, store) = temp_store(dir.path());
     let mut options = options(dir.path(), 500);
     tweak(&mut options);
     // The smallest budget the options allow, so every test also checks the meter's bound.

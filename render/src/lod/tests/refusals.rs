@@ -2,7 +2,7 @@
 
 use glam::DVec3;
 
-use super::options;
+use super::{options, temp_store};
 use crate::cloud::WorldBounds;
 use crate::lod::*;
 
@@ -34,10 +34,7 @@ impl PointSource for Broken {
         self.declared
     }
 
-    fn for_each_batch(
-        &self,
-        visit: &mut dyn FnMut(PointBatch<'_>) -> Result<(), LodError>,
-    ) -> Result<(), LodError> {
+    fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
         let n = self.points.len();
         let intensity = vec![0; if self.short_intensity { n - 1 } else { n }];
         visit(PointBatch {
@@ -53,12 +50,7 @@ impl PointSource for Broken {
 #[test]
 fn bad_sources_are_refused_with_clear_errors() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let db = sled::open(dir.path().join("db")).expect("sled");
-    let store = LodStore::open(
-        db.open_tree("lod").expect("tree"),
-        dir.path().join("lod.bin"),
-    )
-    .expect("store");
+    let (_db, store) = temp_store(dir.path());
     let options = options(dir.path(), 500);
     let grid: Vec<DVec3> = (0..1000)
         .map(|i| DVec3::new(f64::from(i), 1.0, 2.0))

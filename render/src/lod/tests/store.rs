@@ -119,15 +119,10 @@ fn a_damaged_node_is_detected_by_its_checksum() {
         .expect_err("a shifted range");
     assert!(matches!(error, LodError::CorruptNode { .. }), "{error}");
 
-    let tree = built.store.tree();
-    let mut record = tree
-        .get("hierarchy")
-        .expect("get")
-        .expect("stored")
-        .to_vec();
-    let middle = record.len() / 2;
-    record[middle] ^= 1;
-    tree.insert("hierarchy", record).expect("insert");
+    edit_hierarchy_record(&built.store, |record| {
+        let middle = record.len() / 2;
+        record[middle] ^= 1;
+    });
     assert!(matches!(
         built.store.read_hierarchy(),
         Err(LodError::CorruptHierarchy(_))
@@ -211,17 +206,12 @@ fn a_store_reopened_from_disk_reads_every_node_equal() {
 #[test]
 fn a_hierarchy_of_the_earlier_layout_is_refused() {
     let built = one_big_leaf();
-    let tree = built.store.tree();
-    let mut record = tree
-        .get("hierarchy")
-        .expect("get")
-        .expect("stored")
-        .to_vec();
-    record[..4].copy_from_slice(b"PFH1");
-    let body = record.len() - 8;
-    let sum = super::super::checksum::checksum64(b"hierarchy", &record[..body]);
-    record[body..].copy_from_slice(&sum.to_le_bytes());
-    tree.insert("hierarchy", record).expect("insert");
+    edit_hierarchy_record(&built.store, |record| {
+        record[..4].copy_from_slice(b"PFH1");
+        let body = record.len() - 8;
+        let sum = super::super::checksum::checksum64(b"hierarchy", &record[..body]);
+        record[body..].copy_from_slice(&sum.to_le_bytes());
+    });
     let error = built.store.read_hierarchy().expect_err("refused");
     assert!(
         matches!(&error, LodError::CorruptHierarchy(reason) if reason.contains("rebuild")),
@@ -255,4 +245,16 @@ fn concurrent_reads_from_many_threads_agree() {
         .map(|&key| built.store.read_node(&hierarchy, key).expect("node").len())
         .sum();
     assert_eq!(sum, 60_000);
+}
+
+/// Rewrites the stored hierarchy record through `edit`, as damage or an old layout would.
+fn edit_hierarchy_record(store: &LodStore, edit: impl FnOnce(&mut Vec<u8>)) {
+    let tree = store.tree();
+    let mut record = tree
+        .get("hierarchy")
+        .expect("get")
+        .expect("stored")
+        .to_vec();
+    edit(&mut record);
+    tree.insert("hierarchy", record).expect("insert");
 }

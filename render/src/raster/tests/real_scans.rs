@@ -115,12 +115,7 @@ fn survey_coordinates_render_with_sub_pixel_accuracy_in_a_close_up() {
     let cloud = load_point_cloud(&path).expect("load");
     let mut reader = las::Reader::from_path(&path).expect("las reader");
     let file_points = reader.read_all().expect("read");
-    let world: Vec<DVec3> = file_points
-        .x()
-        .zip(file_points.y())
-        .zip(file_points.z())
-        .map(|((x, y), z)| DVec3::new(x, y, z))
-        .collect();
+    let world = crate::testing::las_world_positions(&file_points);
     assert_eq!(world.len(), cloud.len());
 
     // A close-up: 3 m from a point in the middle of the scan.
