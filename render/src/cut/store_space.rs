@@ -300,7 +300,7 @@ mod tests {
         report
             .removed
             .iter()
-            .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+            .map(|p| p.file_name().expect("name").to_string_lossy().into_owned())
             .collect()
     }
 
