@@ -346,7 +346,8 @@ mod tests {
         assert_eq!(a.dataset.point_count(), SMALL_POINTS);
         let total = bytes(&root);
         assert!(total <= budget, "{total} > {budget}");
-        // With both in use there is no room for another.
+        // Used as a later render uses it, `c` is as large as `b` was: with `a` and `c` in use
+        // there is no room for another.
         drop(c);
         let c = build_used(&file, &root.join("c"), Some(budget));
         let error = build(&file, &root.join("d"), Some(budget))
