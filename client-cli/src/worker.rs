@@ -38,7 +38,7 @@ pub struct WorkerArgs {
     /// Folder for this worker's dataset cache (processed points, kept across runs).
     #[arg(long, default_value = "pointfarm-worker-cache")]
     cache_dir: PathBuf,
-    /// Size bound of the dataset cache, in GiB.
+    /// Size bound of the dataset cache, in GiB, and of the levels-of-detail stores together.
     #[arg(long, default_value_t = 8)]
     cache_gib: u64,
     /// Name shown in the daemon's leases and logs (default: host name and process id).

@@ -60,8 +60,9 @@ pub struct LodConfig {
     pub dir: PathBuf,
     /// The pixel error and node-cache budgets; a request's own pixel error wins.
     pub options: CutOptions,
-    /// The most disk one dataset's store may take while it is built (the worker's cache
-    /// bound); larger datasets are refused before their build starts.
+    /// The most disk the stores in `dir` take together (the worker's cache bound): before a
+    /// build, the least recently used ones are removed until it fits; a dataset whose build
+    /// alone needs more is refused before it starts.
     pub disk_budget: Option<u64>,
 }
 

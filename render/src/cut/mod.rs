@@ -25,6 +25,7 @@ mod host_cache;
 mod options;
 mod report;
 mod select;
+mod store_space;
 mod stored;
 
 #[cfg(test)]

@@ -1,11 +1,13 @@
 //! `StoredLod`: a dataset's level-of-detail store in a folder of its own (a sled index
 //! holding the hierarchy, and the node payload file), built from the dataset's files when the
 //! folder has no finished store, then opened for rendering. The CLI keeps one per set of
-//! local files, a worker one per dataset it renders.
+//! local files, a worker one per dataset it renders; the stores beside one another share a
+//! disk budget (`store_space.rs`).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use super::store_space::{make_space, InUse};
 use super::{CutError, LodDataset};
 use crate::cloud::WorldBounds;
 use crate::ingest::DatasetSource;
@@ -22,6 +24,8 @@ pub struct StoredLod {
     /// The build this opening ran, and how long it took, when there was no finished store.
     pub built: Option<(LodBuildReport, f64)>,
     _db: sled::Db,
+    /// Keeps the store from being removed to make room for another; released last.
+    _in_use: InUse,
 }
 
 impl StoredLod {
@@ -32,9 +36,11 @@ impl StoredLod {
 
     /// Opens the store in `folder`, building it from `files` first when it has none, an
     /// unfinished or a damaged one, or one of another point count, within `memory_budget`
-    /// bytes of build buffers. A build that would not fit the disk's free space or
-    /// `disk_budget` is refused before it starts. `on_build` is told the points before a
-    /// build starts.
+    /// bytes of build buffers. `disk_budget` bounds the stores in `folder`'s parent together:
+    /// before a build, stores beside it that are not in use are removed, least recently used
+    /// first, until the build's disk need and the rest fit. A build that would not fit the
+    /// disk's free space or the budget is refused before it starts. `on_build` is told the
+    /// points before a build starts.
     pub fn open_or_build(
         files: &[PathBuf],
         folder: &Path,
@@ -46,8 +52,7 @@ impl StoredLod {
             return Self::open_finished(folder);
         }
         let source = DatasetSource::open(files)?;
-        std::fs::create_dir_all(folder)
-            .map_err(|e| CutError::Cache(format!("creating {}: {e}", folder.display())))?;
+        let in_use = InUse::take(folder)?;
         let (db, store) = open_index(folder)?;
         let current = match store.read_hierarchy() {
             Ok(hierarchy) => hierarchy.point_count == source.point_count(),
@@ -84,6 +89,7 @@ impl StoredLod {
             folder: folder.to_owned(),
             built,
             _db: db,
+            _in_use: in_use,
         })
     }
 }
@@ -101,6 +107,9 @@ impl StoredLod {
                 folder.display()
             ))
         };
+        read_finished(folder).ok_or_else(missing)?;
+        let in_use = InUse::take(folder)?;
+        // Read again once in use: it may have been removed meanwhile.
         let (points, bounds) = read_finished(folder).ok_or_else(missing)?;
         let (db, store) = open_index(folder)?;
         let dataset = LodDataset::open(store, bounds)?;
@@ -116,6 +125,7 @@ impl StoredLod {
             folder: folder.to_owned(),
             built: None,
             _db: db,
+            _in_use: in_use,
         })
     }
 }
@@ -166,29 +176,22 @@ fn open_index(folder: &Path) -> Result<(sled::Db, LodStore), CutError> {
     Ok((db, store))
 }
 
-/// Refuses a build whose disk need exceeds the free space under `folder` or `budget`.
+/// Refuses a build whose disk need exceeds `budget` or the free space under `folder`; within
+/// the budget, first makes room among the stores beside `folder`.
 fn check_disk(folder: &Path, points: u64, budget: Option<u64>) -> Result<(), CutError> {
     let needed = build_disk_bytes(points, true);
-    let mib = |bytes: u64| bytes >> 20;
-    let refuse = |limit: String| CutError::DiskTooSmall {
-        points,
-        needed_mib: mib(needed),
-        folder: folder.to_owned(),
-        limit,
-    };
-    if let Some(budget) = budget.filter(|&b| needed > b) {
-        return Err(refuse(format!(
-            "more than its budget of {} MiB",
-            mib(budget)
-        )));
+    if let Some(budget) = budget {
+        make_space(folder, points, needed, budget)?;
     }
     if let Ok(stat) = rustix::fs::statvfs(folder) {
         let free = stat.f_bavail.saturating_mul(stat.f_frsize);
         if needed > free {
-            return Err(refuse(format!(
-                "more than the {} MiB free there",
-                mib(free)
-            )));
+            return Err(CutError::DiskTooSmall {
+                points,
+                needed_mib: needed >> 20,
+                folder: folder.to_owned(),
+                limit: format!("more than the {} MiB free there", free >> 20),
+            });
         }
     }
     Ok(())
@@ -238,5 +241,143 @@ mod tests {
             .err()
             .expect("nothing to open");
         assert!(error.to_string().contains("no finished store"), "{error}");
+    }
+
+    /// A LAS file of a small scene in `dir`.
+    fn small_dataset(dir: &Path) -> PathBuf {
+        use crate::ingest::{write_las, LasWriteOptions};
+        let file = dir.join("scene.las");
+        let scene = crate::sample::sample_scene(SMALL_POINTS as usize, 3);
+        write_las(&file, &scene, &LasWriteOptions::default()).expect("write");
+        file
+    }
+
+    const SMALL_POINTS: u64 = 4_000;
+
+    fn build(file: &Path, folder: &Path, budget: Option<u64>) -> Result<StoredLod, CutError> {
+        // Stores are ordered by their use times: keep those apart.
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        StoredLod::open_or_build(&[file.to_owned()], folder, 64 << 20, budget, &mut |_| {})
+    }
+
+    /// Builds the store in `folder` and opens it again, as a later render does (its index
+    /// then takes its settled size).
+    fn build_used(file: &Path, folder: &Path, budget: Option<u64>) -> StoredLod {
+        drop(build(file, folder, budget).expect("built"));
+        let reopened = StoredLod::open_or_build(&[], folder, 64 << 20, None, &mut |_| {});
+        reopened.expect("opened")
+    }
+
+    fn bytes(folder: &Path) -> u64 {
+        super::super::store_space::folder_bytes(folder)
+    }
+
+    /// A budget that holds a build's disk need and one used store of the small dataset
+    /// beside it, not two.
+    fn budget_for_one_beside(file: &Path, dir: &Path) -> u64 {
+        let probe = dir.join("probe").join("store");
+        drop(build_used(file, &probe, None));
+        let store = bytes(&probe);
+        std::fs::remove_dir_all(dir.join("probe")).expect("remove");
+        assert!(store > 0);
+        build_disk_bytes(SMALL_POINTS, true) + store + store / 2
+    }
+
+    /// Asserts that `budget` holds the build's need and either store, not both.
+    fn assert_one_fits(budget: u64, a: &Path, b: &Path) {
+        let (a, b) = (bytes(a), bytes(b));
+        let need = build_disk_bytes(SMALL_POINTS, true);
+        assert!(
+            need + a.max(b) <= budget,
+            "{a} or {b} beside {need} > {budget}"
+        );
+        assert!(
+            need + a + b > budget,
+            "{a} and {b} beside {need} <= {budget}"
+        );
+    }
+
+    fn stores_in(root: &Path) -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(root)
+            .expect("list")
+            .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        names
+    }
+
+    #[test]
+    fn building_beyond_the_budget_removes_the_least_recently_used_store() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let file = small_dataset(dir.path());
+        let budget = budget_for_one_beside(&file, dir.path());
+        let root = dir.path().join("lod");
+        drop(build_used(&file, &root.join("a"), Some(budget)));
+        drop(build_used(&file, &root.join("b"), Some(budget)));
+        // `a` was built first but used last.
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        let a = build(&file, &root.join("a"), Some(budget)).expect("a again");
+        assert!(a.built.is_none());
+        drop(a);
+        assert_one_fits(budget, &root.join("a"), &root.join("b"));
+        drop(build(&file, &root.join("c"), Some(budget)).expect("c"));
+        assert_eq!(stores_in(&root), ["a", "c"]);
+        let total = bytes(&root);
+        assert!(total <= budget, "{total} > {budget}");
+        let reopened = build(&file, &root.join("a"), Some(budget)).expect("a kept");
+        assert!(
+            reopened.built.is_none(),
+            "the store used last was kept whole"
+        );
+    }
+
+    #[test]
+    fn a_store_in_use_is_never_removed_to_make_room() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let file = small_dataset(dir.path());
+        let budget = budget_for_one_beside(&file, dir.path());
+        let root = dir.path().join("lod");
+        // `a` is the least recently used, and in use throughout.
+        let a = build_used(&file, &root.join("a"), Some(budget));
+        drop(build_used(&file, &root.join("b"), Some(budget)));
+        assert_one_fits(budget, &root.join("a"), &root.join("b"));
+        let c = build(&file, &root.join("c"), Some(budget)).expect("c");
+        assert_eq!(stores_in(&root), ["a", "c"]);
+        assert_eq!(a.dataset.point_count(), SMALL_POINTS);
+        let total = bytes(&root);
+        assert!(total <= budget, "{total} > {budget}");
+        // Used as a later render uses it, `c` is as large as `b` was: with `a` and `c` in use
+        // there is no room for another.
+        drop(c);
+        let c = build_used(&file, &root.join("c"), Some(budget));
+        let error = build(&file, &root.join("d"), Some(budget))
+            .err()
+            .expect("refused");
+        assert!(matches!(error, CutError::DiskTooSmall { .. }), "{error}");
+        assert!(error.to_string().contains("stores in use"), "{error}");
+        assert_eq!(stores_in(&root), ["a", "c", "d"]);
+        drop((a, c));
+        drop(build(&file, &root.join("d"), Some(budget)).expect("d"));
+        let mut left = stores_in(&root);
+        left.retain(|name| name != "d");
+        assert_eq!(left.len(), 1, "one store beside d: {left:?}");
+    }
+
+    #[test]
+    fn a_store_larger_than_the_whole_budget_is_refused_and_removes_nothing() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let file = small_dataset(dir.path());
+        let root = dir.path().join("lod");
+        drop(build(&file, &root.join("a"), None).expect("a"));
+        let budget = build_disk_bytes(SMALL_POINTS, true) - 1;
+        let error = build(&file, &root.join("b"), Some(budget))
+            .err()
+            .expect("refused");
+        assert!(matches!(error, CutError::DiskTooSmall { .. }), "{error}");
+        assert!(
+            error.to_string().contains("more than its budget"),
+            "{error}"
+        );
+        assert!(StoredLod::is_built(&root.join("a")));
     }
 }
