@@ -203,6 +203,14 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
             server.log()
         );
     }
+    // The embedded worker read the daemon's store node by node, and no file.
+    let log = server.log();
+    assert!(log.contains("daemon_store=true"), "{log}");
+    assert_eq!(
+        log.matches("dataset file downloaded").count(),
+        0,
+        "files downloaded:\n{log}"
+    );
     let listed = ok(&["jobs", "list", "--server", &server.address, "--json"]);
     let jobs: serde_json::Value = serde_json::from_slice(&listed.stdout).expect("json");
     let id = jobs[0]["id"].as_str().expect("a job id").to_owned();
@@ -221,7 +229,7 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
     let text = text(&ok(&["jobs", "show", &id, "--server", &server.address]));
     assert!(text.contains("levels of detail, 2 frames"), "{text}");
 
-    // Restarted, the worker opens the store it built, without the dataset's files.
+    // Restarted, the daemon opens the store it built, and its worker reads it again.
     let mut server = server;
     let address = server.address.clone();
     let downloads = |log: &str| log.matches("dataset file downloaded").count();
@@ -253,5 +261,49 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
     assert!(
         image(&again) == image(&local),
         "the reopened store renders differently\n{log}"
+    );
+}
+
+/// A worker on another machine renders a dataset too large to render resident from the
+/// daemon's store, fetching the nodes its cuts need: no file downloaded, no store of its own,
+/// the same images as a local render.
+#[test]
+fn a_worker_process_reads_the_daemons_store_node_by_node() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (whole, _) = scene_and_tiles(dir.path(), 20_000);
+    let options = ["--size=120x90", "--turntable", "2", "--lod-error", "0.25"];
+    let (local, cache) = (dir.path().join("local"), dir.path().join("cache"));
+    let mut args = vec!["render", arg(&whole), "--out", arg(&local)];
+    args.extend(["--cache-dir", arg(&cache)]);
+    args.extend(options);
+    ok(&args);
+
+    let data = dir.path().join("data");
+    let server = pointfarm_tests::ServeProcess::start_with(&data, &["--no-embedded-worker"]);
+    let worker_cache = dir.path().join("worker-cache");
+    let worker = pointfarm_tests::WorkerProcess::start(&server.address, &worker_cache, "far");
+    let remote = dir.path().join("remote");
+    let mut args = vec!["render", arg(&whole), "--out", arg(&remote)];
+    args.extend(["--server", &server.address]);
+    args.extend(options);
+    ok(&args);
+    let log = worker.log();
+    for frame in ["frame_00000.png", "frame_00001.png"] {
+        let image = |dir: &Path| image::open(dir.join(frame)).expect("png").to_rgba8();
+        assert!(
+            image(&local) == image(&remote),
+            "{frame} differs through the daemon's store\n{log}"
+        );
+    }
+    assert!(log.contains("daemon_store=true"), "{log}");
+    assert!(!log.contains("dataset file downloaded"), "{log}");
+    let own_stores = std::fs::read_dir(worker_cache.join("lod")).map_or(0, Iterator::count);
+    assert_eq!(own_stores, 0, "the worker built a store of its own");
+    // The daemon built the store once, while the worker handed its frame back.
+    let served = server.log();
+    assert_eq!(
+        served.matches("store ready for workers").count(),
+        1,
+        "{served}"
     );
 }

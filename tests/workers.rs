@@ -552,3 +552,84 @@ async fn a_worker_reconnects_after_the_daemon_restarts() {
     assert_eq!(frames.len(), 2);
     assert!(worker.log().contains("unreachable"), "{}", worker.log());
 }
+
+/// The daemon's stores over the wire: nodes are served only from a store that was opened,
+/// requests for nodes are checked, and a client token does not open them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_daemons_stores_are_opened_before_their_nodes_are_served() {
+    let DaemonWithScan {
+        daemon, dataset, ..
+    } = DaemonWithScan::start(|_| {}).await;
+    let mut workers = daemon.workers().await;
+    let node = |level, x| pb::NodeKey {
+        level,
+        x,
+        y: 0,
+        z: 0,
+    };
+    let fetch = |nodes: Vec<pb::NodeKey>| pb::FetchNodesRequest {
+        dataset_id: dataset.id.clone(),
+        nodes,
+    };
+    let refused = workers
+        .fetch_nodes(fetch(vec![node(0, 0)]))
+        .await
+        .expect_err("not opened");
+    assert_eq!(refused.code(), Code::FailedPrecondition, "{refused:?}");
+    let unknown = workers
+        .open_dataset_store(pb::OpenDatasetStoreRequest {
+            dataset_id: "ds-0000".into(),
+            levels_of_detail: true,
+        })
+        .await
+        .expect_err("no such dataset");
+    assert_eq!(unknown.code(), Code::NotFound, "{unknown:?}");
+
+    // Asked for levels of detail, the store is built, then served.
+    let open = pb::OpenDatasetStoreRequest {
+        dataset_id: dataset.id.clone(),
+        levels_of_detail: true,
+    };
+    let started = std::time::Instant::now();
+    let ready = loop {
+        let answer = workers
+            .open_dataset_store(open.clone())
+            .await
+            .expect("open")
+            .into_inner();
+        if answer.state == pb::open_dataset_store_response::State::Ready as i32 {
+            break answer;
+        }
+        assert!(started.elapsed() < Duration::from_secs(120), "never built");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert!(
+        ready.point_count > 0 && ready.hierarchy_bytes > 0,
+        "{ready:?}"
+    );
+    let mut root = workers
+        .fetch_nodes(fetch(vec![node(0, 0)]))
+        .await
+        .expect("the root")
+        .into_inner();
+    let record = root.message().await.expect("stream").expect("a record");
+    assert!(!record.data.is_empty());
+    assert!(
+        root.message().await.expect("stream").is_none(),
+        "one node asked, one sent"
+    );
+
+    for (nodes, field) in [
+        (vec![node(25, 0)], "level"),
+        (vec![node(1, 2)], "outside level 1"),
+        (vec![node(0, 0); 257], "at most 256"),
+    ] {
+        let error = workers
+            .fetch_nodes(fetch(nodes))
+            .await
+            .expect_err("a bad request");
+        assert_eq!(error.code(), Code::InvalidArgument, "{error:?}");
+        assert!(error.message().contains(field), "{}", error.message());
+    }
+    daemon.stop().await;
+}

@@ -15,6 +15,7 @@ use pointfarm_daemon::worker::supervisor::WorkerCommand;
 use pointfarm_render::gpu::AdapterChoice;
 
 use crate::credentials::secret;
+use crate::parse;
 
 #[derive(Args)]
 pub struct ServeArgs {
@@ -70,6 +71,11 @@ pub struct ServeArgs {
     /// Run no embedded worker: only `pointfarm worker` processes render.
     #[arg(long, alias = "no-worker")]
     no_embedded_worker: bool,
+    /// Host memory the build of a dataset's level-of-detail store may hold, e.g. 4GiB. The
+    /// server builds each store once (one at a time, in DATA/lod) and its workers read the
+    /// nodes their frames need from it (default 2GiB).
+    #[arg(long, value_name = "SIZE", value_parser = parse::bytes)]
+    store_memory_budget: Option<u64>,
     /// Seconds a worker's lease on a frame lasts without a heartbeat; when it runs out (the
     /// worker died or was cut off) the frame goes back to the queue.
     #[arg(long, default_value_t = 30.0, value_parser = parse_lease_timeout)]
@@ -126,6 +132,9 @@ pub fn run(args: ServeArgs) -> Result<()> {
         config.recover_state = args.recover_state;
         config.lease_timeout = std::time::Duration::from_secs_f64(args.lease_timeout);
         config.max_frame_attempts = args.max_frame_attempts;
+        if let Some(bytes) = args.store_memory_budget {
+            config.store_build_memory_bytes = bytes;
+        }
         let daemon =
             Daemon::open(config).with_context(|| format!("opening {}", args.data_dir.display()))?;
         let embedded_worker = if args.no_embedded_worker {

@@ -9,6 +9,7 @@
 
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use pointfarm_render::ingest::dataset_files;
 
@@ -17,6 +18,7 @@ use crate::limits::{check_id, check_length, MAX_NAME_BYTES, MAX_PATH_BYTES};
 use crate::model::{content_sha256, now_unix_ms, Dataset, DatasetFile};
 use crate::service::{dataset_id, file_name, hash_file, lookup, unique_suffix, Daemon};
 use crate::store::Page;
+use crate::stores::{ReadyStore, StoreAnswer};
 
 /// Most files in one dataset: a campaign of hundreds of tiles fits, a record that breaks the
 /// listing does not.
@@ -256,13 +258,15 @@ impl Daemon {
             )));
         }
         self.store.delete_dataset(id)?;
-        let still_used: HashSet<PathBuf> = self
-            .store
-            .datasets()?
+        let remaining = self.store.datasets()?;
+        let still_used: HashSet<PathBuf> = remaining
             .iter()
             .flat_map(Dataset::files)
             .map(|file| file.path)
             .collect();
+        if !remaining.iter().any(|d| d.sha256 == dataset.sha256) {
+            self.stores.remove(&dataset.sha256);
+        }
         let uploads = self.config.uploads_dir();
         for file in dataset.files() {
             if file.path.starts_with(&uploads) && !still_used.contains(&file.path) {
@@ -270,6 +274,27 @@ impl Daemon {
             }
         }
         Ok(())
+    }
+}
+
+impl Daemon {
+    /// The level-of-detail store of dataset `id` for a worker's frame (see
+    /// [`DatasetStores::open`](crate::stores::DatasetStores::open)).
+    pub fn open_dataset_store(
+        &self,
+        id: &str,
+        levels_of_detail: bool,
+    ) -> Result<StoreAnswer, DaemonError> {
+        check_id("dataset_id", id)?;
+        let dataset = self.dataset(id)?;
+        self.stores.open(&dataset, levels_of_detail)
+    }
+
+    /// The opened store of dataset `id`, whose hierarchy and nodes workers fetch.
+    pub fn ready_dataset_store(&self, id: &str) -> Result<Arc<ReadyStore>, DaemonError> {
+        check_id("dataset_id", id)?;
+        let dataset = self.dataset(id)?;
+        self.stores.ready(&dataset.sha256)
     }
 }
 

@@ -28,6 +28,7 @@ pub mod model;
 pub mod server;
 pub mod service;
 pub mod store;
+pub mod stores;
 #[cfg(any(test, feature = "testing"))]
 pub mod testing;
 pub mod worker;

@@ -11,6 +11,7 @@ use crate::error::{DaemonError, StoreError};
 use crate::limits::{check_id, check_length, MAX_REQUEST_ID_BYTES};
 use crate::model::{now_unix_ms, FrameReport, Job, JobEvent, JobSpec, JobState};
 use crate::store::{Page, Store};
+use crate::stores::DatasetStores;
 use crate::worker_presence::WorkerPresence;
 
 /// The default bound of one upload.
@@ -37,6 +38,9 @@ pub struct DaemonConfig {
     pub lease_timeout: std::time::Duration,
     /// Size bound of the worker's processed-dataset cache.
     pub worker_cache_bytes: u64,
+    /// Host memory a build of a dataset's level-of-detail store may hold (one build at a
+    /// time; stores are kept in `data_dir/lod`).
+    pub store_build_memory_bytes: u64,
     /// Start on a damaged state database with what can be read, saying what was lost,
     /// rather than refusing to start.
     pub recover_state: bool,
@@ -56,6 +60,7 @@ impl DaemonConfig {
             max_frame_attempts: 3,
             lease_timeout: std::time::Duration::from_secs(30),
             worker_cache_bytes: 8 << 30,
+            store_build_memory_bytes: pointfarm_render::cut::DEFAULT_MEMORY_BUDGET_BYTES,
             event_buffer: 1024,
             recover_state: false,
             data_dir,
@@ -138,6 +143,8 @@ pub struct Daemon {
     stopping: std::sync::atomic::AtomicBool,
     /// Which workers can render now, for health checking.
     pub workers: WorkerPresence,
+    /// The datasets' level-of-detail stores, whose nodes workers read.
+    pub stores: DatasetStores,
 }
 
 impl Daemon {
@@ -159,8 +166,11 @@ impl Daemon {
         }
         remove_partial_frames(&config.data_dir.join("jobs"));
         let (events, _) = broadcast::channel(config.event_buffer.max(1));
+        let stores =
+            DatasetStores::new(config.data_dir.join("lod"), config.store_build_memory_bytes);
         let daemon = Arc::new(Self {
             config,
+            stores,
             store,
             events,
             work: WorkSignal::default(),

@@ -13,6 +13,8 @@ use crate::error::DaemonError;
 use crate::lease::{FailureKind, FrameTask, HeartbeatAnswer, TaskDataset, TaskFile};
 use crate::lease_record::Lease;
 use crate::model::{Dataset, FrameCut, FrameReport, Job, JobSpec, JobState, StageTiming};
+use crate::stores::StoreAnswer;
+use pointfarm_render::lod::{NodeKey, MAX_LEVEL};
 
 pub(super) fn invalid(field: &str, message: impl Into<String>) -> DaemonError {
     DaemonError::invalid(field, message)
@@ -307,6 +309,70 @@ pub fn frame_task(message: &pb::FrameTask, worker: &str) -> Result<FrameTask, Da
         )?,
         failed_attempts: message.failed_attempts,
     })
+}
+
+/// A node key as a worker asks for it: a level the octree can have, and a cell of it.
+pub(super) fn node_key(key: &pb::NodeKey) -> Result<NodeKey, DaemonError> {
+    let level = u8::try_from(key.level)
+        .ok()
+        .filter(|&level| level <= MAX_LEVEL)
+        .ok_or_else(|| {
+            invalid(
+                "nodes.level",
+                format!("{} is deeper than {MAX_LEVEL}", key.level),
+            )
+        })?;
+    let cells = 1u64 << level;
+    if [key.x, key.y, key.z].iter().any(|&c| u64::from(c) >= cells) {
+        return Err(invalid(
+            "nodes",
+            format!(
+                "cell {}-{}-{} is outside level {level}",
+                key.x, key.y, key.z
+            ),
+        ));
+    }
+    Ok(NodeKey::new(level, glam::UVec3::new(key.x, key.y, key.z)))
+}
+
+pub fn node_key_message(key: NodeKey) -> pb::NodeKey {
+    pb::NodeKey {
+        level: u32::from(key.level),
+        x: key.x,
+        y: key.y,
+        z: key.z,
+    }
+}
+
+impl From<&StoreAnswer> for pb::OpenDatasetStoreResponse {
+    fn from(answer: &StoreAnswer) -> Self {
+        use pb::open_dataset_store_response::State;
+        let vec3 = |v: glam::DVec3| pb::Vec3 {
+            x: v.x,
+            y: v.y,
+            z: v.z,
+        };
+        match answer {
+            StoreAnswer::NotNeeded { points } => Self {
+                state: State::NotNeeded as i32,
+                point_count: *points,
+                ..Self::default()
+            },
+            StoreAnswer::Building { points } => Self {
+                state: State::Building as i32,
+                point_count: *points,
+                ..Self::default()
+            },
+            StoreAnswer::Ready(store) => Self {
+                state: State::Ready as i32,
+                point_count: store.point_count(),
+                bounds_min: Some(vec3(store.bounds().min)),
+                bounds_max: Some(vec3(store.bounds().max)),
+                hierarchy_bytes: store.hierarchy_record.len() as u64,
+                build_ms: store.build_ms,
+            },
+        }
+    }
 }
 
 #[cfg(test)]

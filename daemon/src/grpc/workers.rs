@@ -8,14 +8,16 @@ use pointfarm_proto::v1::worker_service_server::WorkerService;
 use tonic::{Request, Response, Status, Streaming};
 
 use super::conversions::{
-    failure_kind, frame_cut_of_message, frame_task_message, invalid, stage_timings,
+    failure_kind, frame_cut_of_message, frame_task_message, invalid, node_key, stage_timings,
 };
 use super::lease_guard::LeaseGuard;
-use super::streaming::{first_part, read_chunk, spawn_stream, ResponseStream};
+use super::streaming::{chunks, first_part, read_chunk, spawn_stream, ResponseStream};
 use super::Api;
 use crate::error::DaemonError;
 use crate::lease::FrameOutcome;
 use crate::limits::{check_id, check_length, truncated, MAX_REASON_BYTES, MAX_WORKER_NAME_BYTES};
+use crate::stores::MAX_NODES_PER_REQUEST;
+use pointfarm_render::lod::NodeKey;
 
 /// Longest wait of a `LeaseFrame` long poll.
 const MAX_LEASE_WAIT_MS: u32 = 30_000;
@@ -239,6 +241,71 @@ impl WorkerService for Api {
                 };
                 let failed = message.is_err();
                 if sender.send(message).await.is_err() || failed {
+                    return;
+                }
+            }
+        });
+        Ok(Response::new(stream))
+    }
+
+    async fn open_dataset_store(
+        &self,
+        request: Request<pb::OpenDatasetStoreRequest>,
+    ) -> Result<Response<pb::OpenDatasetStoreResponse>, Status> {
+        let (r, _) = self.heard(request);
+        let answer = self
+            .run(move |daemon| daemon.open_dataset_store(&r.dataset_id, r.levels_of_detail))
+            .await?;
+        Ok(Response::new(pb::OpenDatasetStoreResponse::from(&answer)))
+    }
+
+    type FetchStoreHierarchyStream = ResponseStream<pb::StoreHierarchyChunk>;
+
+    async fn fetch_store_hierarchy(
+        &self,
+        request: Request<pb::FetchStoreHierarchyRequest>,
+    ) -> Result<Response<Self::FetchStoreHierarchyStream>, Status> {
+        let (r, _) = self.heard(request);
+        let store = self
+            .run(move |daemon| daemon.ready_dataset_store(&r.dataset_id))
+            .await?;
+        let stream = spawn_stream(4, move |sender| async move {
+            for (data, _) in chunks(&store.hierarchy_record) {
+                let chunk = pb::StoreHierarchyChunk {
+                    data: data.to_vec(),
+                };
+                if sender.send(Ok(chunk)).await.is_err() {
+                    return;
+                }
+            }
+        });
+        Ok(Response::new(stream))
+    }
+
+    type FetchNodesStream = ResponseStream<pb::NodeRecord>;
+
+    async fn fetch_nodes(
+        &self,
+        request: Request<pb::FetchNodesRequest>,
+    ) -> Result<Response<Self::FetchNodesStream>, Status> {
+        let (r, _) = self.heard(request);
+        if r.nodes.len() > MAX_NODES_PER_REQUEST {
+            return Err(invalid(
+                "nodes",
+                format!(
+                    "{} nodes asked for; at most {MAX_NODES_PER_REQUEST} a request",
+                    r.nodes.len()
+                ),
+            )
+            .into());
+        }
+        let keys: Vec<NodeKey> = r.nodes.iter().map(node_key).collect::<Result<_, _>>()?;
+        let records = self
+            .run(move |daemon| daemon.ready_dataset_store(&r.dataset_id)?.records(&keys))
+            .await?;
+        let stream = spawn_stream(4, move |sender| async move {
+            for data in records {
+                if sender.send(Ok(pb::NodeRecord { data })).await.is_err() {
                     return;
                 }
             }

@@ -41,8 +41,9 @@ use tracing::Instrument;
 use crate::grpc::streaming::{HashingWriter, CHUNK_BYTES};
 use crate::grpc::{frame_cut_message, frame_task, timings_message};
 use crate::lease::{FrameTask, TaskFile};
+use crate::worker::daemon_store::{self, DaemonStore};
 use crate::worker::failure::FrameFailure;
-use crate::worker::render_state::{LodConfig, RenderedFrame, WorkerRenderState};
+use crate::worker::render_state::{DatasetAccess, LodConfig, RenderedFrame, WorkerRenderState};
 
 /// How long one lease request waits for work on the daemon.
 const LEASE_WAIT_MS: u32 = 10_000;
@@ -63,7 +64,11 @@ pub struct RemoteWorkerConfig {
     pub cut: CutOptions,
 }
 
-type Client = WorkerServiceClient<InterceptedService<Channel, BearerToken>>;
+/// How long a worker waits to lease again after handing back a frame whose store the daemon
+/// is building.
+const STORE_BUILDING_WAIT: Duration = Duration::from_secs(1);
+
+pub(crate) type Client = WorkerServiceClient<InterceptedService<Channel, BearerToken>>;
 
 /// Exponential backoff between failed calls: 250 ms doubling to 5 s.
 struct Backoff(Duration);
@@ -111,6 +116,8 @@ enum TaskEnd {
     Finished,
     /// The daemon could not store the result (its disk is full): wait before the next lease.
     DaemonCannotStore,
+    /// The daemon is building the store the frame needs: wait before the next lease.
+    StoreBuilding,
 }
 
 /// Runs the worker until `shutdown` completes (and the current frame is handed in).
@@ -234,9 +241,15 @@ pub async fn run(
         let end = run_task(&mut client, &mut render_state, &downloads, task)
             .instrument(span)
             .await?;
-        if end == TaskEnd::DaemonCannotStore {
-            daemon_full = true;
-            let wait = backoff.next();
+        let wait = match end {
+            TaskEnd::Finished => None,
+            TaskEnd::DaemonCannotStore => {
+                daemon_full = true;
+                Some(backoff.next())
+            }
+            TaskEnd::StoreBuilding => Some(STORE_BUILDING_WAIT),
+        };
+        if let Some(wait) = wait {
             tokio::select! {
                 _ = stop.changed() => break,
                 _ = tokio::time::sleep(wait) => {}
@@ -275,10 +288,15 @@ async fn run_task(
         return result.map(|_| TaskEnd::Finished);
     }
     match result {
-        Ok(Ok(frame)) => Ok(complete_frame(client, &task, frame).await),
-        Ok(Err(failure)) => {
+        Ok(Attempt::Rendered(frame)) => Ok(complete_frame(client, &task, frame).await),
+        Ok(Attempt::Failed(failure)) => {
             tracing::warn!(reason = %failure.reason, kind = ?failure.kind, "frame failed");
             Ok(fail_frame(client, &task.lease.id, &failure).await)
+        }
+        Ok(Attempt::StoreBuilding) => {
+            tracing::info!(dataset = %task.dataset.id, "the daemon is building the dataset's store; frame handed back");
+            release_frame(client, &task.lease.id).await;
+            Ok(TaskEnd::StoreBuilding)
         }
         Err(lost) => {
             let failure = FrameFailure::transient(format!("{lost:#}"));
@@ -288,37 +306,76 @@ async fn run_task(
     }
 }
 
-/// The rendered frame, or why it could not be rendered. The outer error means the renderer
-/// itself was lost (it panicked).
+/// How an attempt at a leased frame went, short of the renderer being lost.
+enum Attempt {
+    Rendered(RenderedFrame),
+    Failed(FrameFailure),
+    /// The daemon is building the dataset's store: the frame goes back.
+    StoreBuilding,
+}
+
+/// Where the points of `task` come from: the daemon's store of its dataset where the daemon
+/// keeps one, else its files (downloaded unless the worker has the points).
+async fn dataset_access(
+    client: &mut Client,
+    state: &WorkerRenderState,
+    downloads: &Path,
+    task: &FrameTask,
+) -> Result<DatasetAccess, Attempt> {
+    if state.is_loaded(task) {
+        return Ok(DatasetAccess::Files(Vec::new()));
+    }
+    match daemon_store::open(client, task).await {
+        Ok(DaemonStore::Ready(store)) => return Ok(DatasetAccess::DaemonStore(store)),
+        Ok(DaemonStore::Building) => return Err(Attempt::StoreBuilding),
+        Ok(DaemonStore::NotNeeded) => {}
+        Err(status) if status.code() == Code::FailedPrecondition => {
+            return Err(Attempt::Failed(FrameFailure::permanent(status.message())));
+        }
+        Err(status) => {
+            return Err(Attempt::Failed(FrameFailure::transient(format!(
+                "opening the daemon's store of dataset {}: {}",
+                task.dataset.id,
+                status.message()
+            ))));
+        }
+    }
+    if !state.needs_files(task) {
+        return Ok(DatasetAccess::Files(Vec::new()));
+    }
+    match download(client, task, downloads).await {
+        Ok(files) => Ok(DatasetAccess::Files(files)),
+        Err(e) => Err(Attempt::Failed(FrameFailure::transient(format!(
+            "downloading dataset {}: {e:#}",
+            task.dataset.id
+        )))),
+    }
+}
+
+/// The attempt at the frame. The error means the renderer itself was lost (it panicked).
 async fn download_and_render(
     client: &mut Client,
     render_state: &mut Option<WorkerRenderState>,
     downloads: &Path,
     task: &FrameTask,
-) -> anyhow::Result<Result<RenderedFrame, FrameFailure>> {
-    let state = render_state.take().context("the renderer was lost")?;
-    let files = if state.needs_files(task) {
-        match download(client, task, downloads).await {
-            Ok(files) => files,
-            Err(e) => {
-                *render_state = Some(state);
-                return Ok(Err(FrameFailure::transient(format!(
-                    "downloading dataset {}: {e:#}",
-                    task.dataset.id
-                ))));
-            }
-        }
-    } else {
-        Vec::new()
+) -> anyhow::Result<Attempt> {
+    let state = render_state.as_ref().context("the renderer was lost")?;
+    let access = match dataset_access(client, state, downloads, task).await {
+        Ok(access) => access,
+        Err(attempt) => return Ok(attempt),
     };
+    let files = match &access {
+        DatasetAccess::Files(files) => files.clone(),
+        DatasetAccess::DaemonStore(_) => Vec::new(),
+    };
+    let state = render_state.take().context("the renderer was lost")?;
     // Rendering blocks on the GPU: off the async threads, so heartbeats go on meanwhile.
     let blocking_task = task.clone();
     let span = tracing::Span::current();
-    let paths = files.clone();
     let (state, rendered) = tokio::task::spawn_blocking(move || {
         let _entered = span.enter();
         let mut state = state;
-        let rendered = state.render(&blocking_task, &paths);
+        let rendered = state.render(&blocking_task, access);
         (state, rendered)
     })
     .await
@@ -328,7 +385,10 @@ async fn download_and_render(
     for file in files {
         let _ = tokio::fs::remove_file(file).await;
     }
-    Ok(rendered)
+    Ok(match rendered {
+        Ok(frame) => Attempt::Rendered(frame),
+        Err(failure) => Attempt::Failed(failure),
+    })
 }
 
 /// A third of the lease timeout keeps the lease through a lost heartbeat; at most 5 s apart,

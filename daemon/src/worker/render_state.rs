@@ -10,7 +10,9 @@ use std::time::Instant;
 use pointfarm_render::cache::{CacheOutcome, DatasetCache};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::{point_colors, ColorMode};
-use pointfarm_render::cut::{CutError, CutOptions, CutRenderer, StoredLod, RESIDENT_MAX_POINTS};
+use pointfarm_render::cut::{
+    CutError, CutOptions, CutRenderer, LodDataset, StoredLod, RESIDENT_MAX_POINTS,
+};
 use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::dataset_point_count;
@@ -18,6 +20,7 @@ use pointfarm_render::raster::{Clock, GpuPointCloud, Renderer};
 
 use crate::lease::{FrameOutcome, FrameTask};
 use crate::model::StageTiming;
+use crate::worker::daemon_store::RemoteStore;
 use crate::worker::failure::FrameFailure;
 
 /// The cloud currently on the GPU.
@@ -33,12 +36,38 @@ struct Resident {
 /// A dataset rendered from its level-of-detail store, cut by cut.
 struct Stored {
     sha256: String,
-    lod: StoredLod,
+    source: StoreSource,
     cut: CutRenderer,
     /// The pixel error the renderer was made for.
     lod_error: f64,
     /// How long the store took to build, until the next finished frame reports it.
     unreported_build_ms: Option<f64>,
+}
+
+/// Where a store's nodes are read from.
+enum StoreSource {
+    /// A store of this worker's, built from the dataset's files.
+    Local(Box<StoredLod>),
+    /// The daemon's store, read node by node.
+    Daemon(LodDataset),
+}
+
+impl StoreSource {
+    fn dataset(&self) -> &LodDataset {
+        match self {
+            StoreSource::Local(stored) => &stored.dataset,
+            StoreSource::Daemon(dataset) => dataset,
+        }
+    }
+}
+
+/// Where a frame's points come from.
+pub enum DatasetAccess {
+    /// The dataset's files: downloaded, or none when the worker has the points already (see
+    /// [`WorkerRenderState::needs_files`]).
+    Files(Vec<PathBuf>),
+    /// The daemon's store of the dataset.
+    DaemonStore(Box<RemoteStore>),
 }
 
 /// What the worker has loaded of its current dataset.
@@ -110,7 +139,20 @@ impl WorkerRenderState {
         (stored || large).then_some(lod.options.lod_error)
     }
 
-    fn is_loaded(&self, task: &FrameTask) -> bool {
+    /// The pixel error of `task`'s cut from the daemon's store: the request's own, else the
+    /// default.
+    fn daemon_lod_error(&self, task: &FrameTask) -> Option<f64> {
+        let lod = self.lod.as_ref()?;
+        Some(
+            task.request
+                .render
+                .lod_error
+                .unwrap_or(lod.options.lod_error),
+        )
+    }
+
+    /// Whether the dataset `task` renders is loaded as it needs it.
+    pub fn is_loaded(&self, task: &FrameTask) -> bool {
         match &self.loaded {
             Some(Loaded::Resident(r)) => {
                 r.sha256 == task.dataset.sha256
@@ -118,7 +160,11 @@ impl WorkerRenderState {
                     && self.lod_error(task, None).is_none()
             }
             Some(Loaded::Stored(s)) => {
-                s.sha256 == task.dataset.sha256 && self.lod_error(task, None) == Some(s.lod_error)
+                let wanted = match s.source {
+                    StoreSource::Local(_) => self.lod_error(task, None),
+                    StoreSource::Daemon(_) => self.daemon_lod_error(task),
+                };
+                s.sha256 == task.dataset.sha256 && wanted == Some(s.lod_error)
             }
             None => false,
         }
@@ -147,8 +193,18 @@ impl WorkerRenderState {
     pub fn render(
         &mut self,
         task: &FrameTask,
-        files: &[PathBuf],
+        access: DatasetAccess,
     ) -> Result<RenderedFrame, FrameFailure> {
+        let files = match access {
+            DatasetAccess::Files(files) => files,
+            DatasetAccess::DaemonStore(store) => {
+                self.loaded = None; // free the old dataset's memory first
+                let stored = self.open_daemon_store(task, store)?;
+                self.loaded = Some(Loaded::Stored(Box::new(stored)));
+                Vec::new()
+            }
+        };
+        let files = files.as_slice();
         if !self.is_loaded(task) {
             self.loaded = None; // free the old dataset's memory first
             let points = if files.is_empty() {
@@ -183,25 +239,30 @@ impl WorkerRenderState {
                 (frame, timings, hit, None)
             }
             Some(Loaded::Stored(stored)) => {
-                let bounds = stored.lod.dataset.bounds();
+                let dataset = stored.source.dataset();
+                let bounds = dataset.bounds();
                 let settings = task.request.frame_settings(task.lease.index, &bounds);
                 let color_mode = task.request.render.color_mode;
-                let rendered = stored.cut.render(
-                    &mut self.renderer,
-                    &stored.lod.dataset,
-                    &settings,
-                    color_mode,
-                );
+                let rendered =
+                    stored
+                        .cut
+                        .render(&mut self.renderer, dataset, &settings, color_mode);
                 let (frame, report) = match rendered {
                     Ok(done) => done,
                     Err(error) => {
                         let failure = FrameFailure::from(&error);
+                        let local_folder = match &stored.source {
+                            StoreSource::Local(lod) => Some(lod.folder.clone()),
+                            StoreSource::Daemon(_) => None,
+                        };
                         if matches!(error, CutError::Store(_)) {
-                            // A damaged store is built again by the next attempt.
-                            tracing::warn!(%error, folder = %stored.lod.folder.display(), "removing a damaged store");
-                            let folder = stored.lod.folder.clone();
                             self.loaded = None;
-                            let _ = std::fs::remove_dir_all(folder);
+                            // A damaged store of this worker's is built again by the next
+                            // attempt; the daemon's is opened again.
+                            if let Some(folder) = local_folder {
+                                tracing::warn!(%error, folder = %folder.display(), "removing a damaged store");
+                                let _ = std::fs::remove_dir_all(folder);
+                            }
                         }
                         return Err(failure);
                     }
@@ -209,7 +270,7 @@ impl WorkerRenderState {
                 // The next frame of the job is likely this worker's next lease.
                 if task.lease.index + 1 < task.request.frames() {
                     let next = task.request.frame_settings(task.lease.index + 1, &bounds);
-                    stored.cut.read_ahead(&stored.lod.dataset, &next);
+                    stored.cut.read_ahead(stored.source.dataset(), &next);
                 }
                 let timings = stored
                     .unreported_build_ms
@@ -255,13 +316,7 @@ impl WorkerRenderState {
         let (Some(lod), Some(folder)) = (self.lod.as_ref(), self.store_folder(task)) else {
             return Err(FrameFailure::transient("this worker keeps no stores"));
         };
-        let options = CutOptions {
-            lod_error,
-            ..lod.options
-        };
-        options
-            .validate()
-            .map_err(|e| FrameFailure::permanent(e.to_string()))?;
+        let options = self.cut_options(lod_error)?;
         let started = Instant::now();
         let lod_store = StoredLod::open_or_build(
             files,
@@ -283,20 +338,75 @@ impl WorkerRenderState {
             .built
             .as_ref()
             .map(|_| started.elapsed().as_secs_f64() * 1e3);
-        let cut = CutRenderer::new(&self.renderer, &lod_store.dataset, options)
-            .map_err(|e| in_dataset(FrameFailure::from(&e)))?;
+        self.stored(
+            task,
+            StoreSource::Local(Box::new(lod_store)),
+            options,
+            build_ms,
+        )
+    }
+
+    /// Opens the daemon's store of `task`'s dataset, whose nodes are fetched as cuts need them.
+    fn open_daemon_store(
+        &self,
+        task: &FrameTask,
+        store: Box<RemoteStore>,
+    ) -> Result<Stored, FrameFailure> {
+        let store = *store;
+        let lod_error = self
+            .daemon_lod_error(task)
+            .ok_or_else(|| FrameFailure::transient("this worker renders no levels of detail"))?;
+        let options = self.cut_options(lod_error)?;
+        let dataset = LodDataset::with_records(store.records, store.hierarchy, store.bounds)
+            .map_err(|e| {
+                FrameFailure::from(&CutError::Store(e))
+                    .context(&format!("dataset {}", task.dataset.id))
+            })?;
+        let build_ms = (store.build_ms > 0.0).then_some(store.build_ms);
+        self.stored(task, StoreSource::Daemon(dataset), options, build_ms)
+    }
+
+    /// The worker's cut options at `lod_error`, checked.
+    fn cut_options(&self, lod_error: f64) -> Result<CutOptions, FrameFailure> {
+        let lod = self
+            .lod
+            .as_ref()
+            .ok_or_else(|| FrameFailure::transient("this worker renders no levels of detail"))?;
+        let options = CutOptions {
+            lod_error,
+            ..lod.options
+        };
+        options
+            .validate()
+            .map_err(|e| FrameFailure::permanent(e.to_string()))?;
+        Ok(options)
+    }
+
+    /// A store opened from `source`, ready to render cuts with `options`; `build_ms` is how
+    /// long it took to build, when it was built for this opening.
+    fn stored(
+        &self,
+        task: &FrameTask,
+        source: StoreSource,
+        options: CutOptions,
+        build_ms: Option<f64>,
+    ) -> Result<Stored, FrameFailure> {
+        let dataset = &task.dataset;
+        let cut = CutRenderer::new(&self.renderer, source.dataset(), options)
+            .map_err(|e| FrameFailure::from(&e).context(&format!("dataset {}", dataset.id)))?;
         tracing::info!(
             dataset = %dataset.id,
-            points = lod_store.dataset.point_count(),
-            lod_error,
+            points = source.dataset().point_count(),
+            lod_error = options.lod_error,
             built = build_ms.is_some(),
+            daemon_store = matches!(source, StoreSource::Daemon(_)),
             "rendering from levels of detail"
         );
         Ok(Stored {
             sha256: dataset.sha256.clone(),
-            lod: lod_store,
+            source,
             cut,
-            lod_error,
+            lod_error: options.lod_error,
             unreported_build_ms: build_ms,
         })
     }

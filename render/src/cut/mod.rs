@@ -42,7 +42,7 @@ use thiserror::Error;
 
 use crate::cloud::WorldBounds;
 use crate::color::ColorMode;
-use crate::lod::{LodError, LodHierarchy, LodStore, NodeKey, NodePoints};
+use crate::lod::{read_nodes, LodError, LodHierarchy, LodStore, NodeKey, NodePoints, NodeRecords};
 use crate::raster::morton::morton_order;
 use crate::raster::points::ChunkData;
 use crate::raster::{Clock, Frame, FrameSettings, RenderError, Renderer, Stage, StageTiming};
@@ -94,10 +94,11 @@ pub enum CutError {
     },
 }
 
-/// A built store opened for rendering: its hierarchy (always resident), rendering origin,
-/// bounds and colour ranges.
+/// A built store opened for rendering: its hierarchy (always resident), where its node
+/// records are read from (the store's payload file, or a daemon that keeps it), rendering
+/// origin, bounds and colour ranges.
 pub struct LodDataset {
-    store: LodStore,
+    records: Arc<dyn NodeRecords>,
     hierarchy: Arc<LodHierarchy>,
     origin: DVec3,
     bounds: WorldBounds,
@@ -109,30 +110,51 @@ impl LodDataset {
     /// them); the origin is their centre.
     pub fn open(store: LodStore, bounds: WorldBounds) -> Result<Self, LodError> {
         let hierarchy = store.read_hierarchy()?;
+        Self::with_records(Arc::new(store), hierarchy, bounds)
+    }
+
+    /// A store whose hierarchy is `hierarchy` and whose records come from `records`.
+    pub fn with_records(
+        records: Arc<dyn NodeRecords>,
+        hierarchy: LodHierarchy,
+        bounds: WorldBounds,
+    ) -> Result<Self, LodError> {
         let origin = bounds.center();
         // The coarsest nodes, level by level, are an even sample of the whole dataset.
-        let mut heights = Vec::new();
         let mut levels: Vec<_> = hierarchy
             .nodes()
             .iter()
             .filter(|n| n.point_count > 0)
             .collect();
         levels.sort_by_key(|n| n.key);
+        let mut sample = Vec::new();
+        let mut sampled = 0;
         for node in levels {
-            if heights.len() as u64 >= colors::ELEVATION_SAMPLE_POINTS {
+            if sampled >= colors::ELEVATION_SAMPLE_POINTS {
                 break;
             }
-            let points = store.read_node(&hierarchy, node.key)?;
-            heights.extend(colors::node_heights(&points, origin));
+            sampled += u64::from(node.point_count);
+            sample.push(node.key);
+        }
+        let mut heights = Vec::new();
+        for group in sample.chunks(LOAD_GROUP_NODES) {
+            for points in read_nodes(records.as_ref(), &hierarchy, group)? {
+                heights.extend(colors::node_heights(&points, origin));
+            }
         }
         let coloring = DatasetColoring::new(&hierarchy.stats, heights);
         Ok(Self {
-            store,
+            records,
             hierarchy: Arc::new(hierarchy),
             origin,
             bounds,
             coloring,
         })
+    }
+
+    /// Where the node records are read from.
+    pub fn records(&self) -> &Arc<dyn NodeRecords> {
+        &self.records
     }
 
     pub fn hierarchy(&self) -> &LodHierarchy {
@@ -342,15 +364,12 @@ impl CutRenderer {
             .map(|(n, _)| *n)
             .collect();
         report.counts.host_hits += (group.len() - to_read.len()) as u64;
-        let read: Vec<Arc<NodePoints>> = to_read
-            .par_iter()
-            .map(|n| {
-                dataset
-                    .store
-                    .read_node(&dataset.hierarchy, n.key)
-                    .map(Arc::new)
-            })
-            .collect::<Result<_, _>>()?;
+        let keys: Vec<NodeKey> = to_read.iter().map(|n| n.key).collect();
+        let read: Vec<Arc<NodePoints>> =
+            read_nodes(dataset.records.as_ref(), &dataset.hierarchy, &keys)?
+                .into_iter()
+                .map(Arc::new)
+                .collect();
         report.counts.nodes_read += read.len() as u64;
         report.counts.bytes_read += to_read
             .iter()
@@ -400,7 +419,7 @@ impl CutRenderer {
         if wanted.is_empty() {
             return;
         }
-        let store = dataset.store.clone();
+        let records = Arc::clone(&dataset.records);
         let hierarchy = Arc::clone(&dataset.hierarchy);
         let host = Arc::clone(&self.host);
         let thread = std::thread::Builder::new()
@@ -408,10 +427,8 @@ impl CutRenderer {
             .spawn(move || {
                 let mut bytes = 0;
                 for group in wanted.chunks(LOAD_GROUP_NODES) {
-                    let read: Vec<NodePoints> = group
-                        .par_iter()
-                        .map(|n| store.read_node(&hierarchy, n.key))
-                        .collect::<Result<_, _>>()?;
+                    let keys: Vec<NodeKey> = group.iter().map(|n| n.key).collect();
+                    let read = read_nodes(records.as_ref(), &hierarchy, &keys)?;
                     bytes += group
                         .iter()
                         .map(|n| u64::from(hierarchy.node_byte_len(n.key)))

@@ -16,6 +16,7 @@ use crate::testing::{compare_images_within, gpu};
 struct Fixture {
     _dir: tempfile::TempDir,
     cloud: PointCloud,
+    store: LodStore,
     dataset: LodDataset,
 }
 
@@ -35,11 +36,12 @@ fn fixture(points: usize) -> Fixture {
     let mut options = LodBuildOptions::new(dir.path().join("spill"));
     options.max_leaf_points = 3_000;
     build_lod(&source, &store, &options).expect("build");
-    let dataset = LodDataset::open(store, source.bounds()).expect("open");
+    let dataset = LodDataset::open(store.clone(), source.bounds()).expect("open");
     assert_eq!(dataset.origin(), cloud.origin, "one origin for both paths");
     Fixture {
         _dir: dir,
         cloud,
+        store,
         dataset,
     }
 }
@@ -269,7 +271,8 @@ fn a_coarser_pixel_error_draws_fewer_points_and_the_default_keeps_the_image() {
         cut.render(renderer, &fixture.dataset, &settings, ColorMode::Rgb)
             .expect("frame")
             .1
-            .counts.points_rendered
+            .counts
+            .points_rendered
     };
     let (full, default, coarse) = (
         points(0.0, &mut renderer),
@@ -333,7 +336,7 @@ fn a_damaged_node_is_reported_not_drawn() {
         .find(|n| n.point_count > 100)
         .copied()
         .expect("a node");
-    let store = &fixture.dataset.store;
+    let store = &fixture.store;
     let mut bytes = store
         .node_bytes(hierarchy, node.key)
         .expect("read")

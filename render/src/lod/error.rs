@@ -65,6 +65,10 @@ pub enum LodError {
     UnknownNode { key: NodeKey },
     #[error("level-of-detail node {key} is damaged: {reason}")]
     CorruptNode { key: NodeKey, reason: String },
+    /// The node records could not be had from where they are kept (a daemon that did not
+    /// answer); worth another attempt, unlike a damaged node.
+    #[error("level-of-detail nodes: {0}")]
+    Records(String),
 }
 
 impl LodError {

@@ -16,10 +16,13 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
-use super::codec::{decode_node, NodePoints};
+use rayon::prelude::*;
+
+use super::codec::NodePoints;
 use super::error::LodError;
 use super::hierarchy::{LodHierarchy, NodeInfo};
 use super::key::NodeKey;
+use super::records::{read_nodes, NodeRecords};
 
 const HIERARCHY_KEY: &[u8] = b"hierarchy";
 
@@ -185,22 +188,8 @@ impl LodStore {
         hierarchy: &LodHierarchy,
         key: NodeKey,
     ) -> Result<NodePoints, LodError> {
-        let info = hierarchy.node(key).ok_or(LodError::UnknownNode { key })?;
-        if info.point_count == 0 {
-            return Ok(NodePoints {
-                key,
-                cube_min: hierarchy.cube.node_min(key),
-                step: hierarchy.cube.side_at(key.level)
-                    / f64::from(1u32 << super::codec::POSITION_BITS),
-                quantised: Vec::new(),
-                rgb: hierarchy.stats.has_rgb.then(Vec::new),
-                intensity: Vec::new(),
-                classification: Vec::new(),
-                return_number: Vec::new(),
-            });
-        }
-        let bytes = self.read_range(info)?;
-        decode_node(&hierarchy.cube, key, info.point_count, &bytes)
+        let mut nodes = read_nodes(self, hierarchy, &[key])?;
+        Ok(nodes.pop().expect("one node read"))
     }
 
     /// Replaces a node's stored bytes, to test that damage is detected: in place when the
@@ -224,5 +213,12 @@ impl LodStore {
         let offset = self.write_node(key, bytes)?;
         hierarchy.set_byte_range(key, offset, bytes.len() as u32);
         self.write_hierarchy(hierarchy).map(drop)
+    }
+}
+
+impl NodeRecords for LodStore {
+    /// Positioned reads of the payload file, on all cores.
+    fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError> {
+        nodes.par_iter().map(|info| self.read_range(info)).collect()
     }
 }

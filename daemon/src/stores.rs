@@ -1,0 +1,393 @@
+//! `DatasetStores`: the level-of-detail stores the daemon keeps, one per dataset content in
+//! `DATA/lod/SHA256`, so that workers read the nodes a frame needs instead of downloading
+//! and building from the dataset's files. A store is built once, when a request first needs
+//! it, on a thread of its own (one build at a time, within a memory budget); a finished store
+//! is opened again after a restart without a build.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+
+use pointfarm_render::cut::{StoredLod, RESIDENT_MAX_POINTS};
+use pointfarm_render::ingest::dataset_point_count;
+use pointfarm_render::lod::{LodHierarchy, NodeInfo, NodeKey};
+
+use crate::error::DaemonError;
+use crate::model::Dataset;
+
+/// Most nodes one request may ask for.
+pub const MAX_NODES_PER_REQUEST: usize = 256;
+
+/// A finished store, opened: what workers are sent of it.
+pub struct ReadyStore {
+    lod: StoredLod,
+    /// The hierarchy as stored (its own checksum included), sent to workers as it is.
+    pub hierarchy_record: Vec<u8>,
+    /// How long this daemon took to build it; 0 when it opened one built before.
+    pub build_ms: f64,
+}
+
+impl ReadyStore {
+    pub fn hierarchy(&self) -> &LodHierarchy {
+        self.lod.dataset.hierarchy()
+    }
+
+    pub fn point_count(&self) -> u64 {
+        self.lod.dataset.point_count()
+    }
+
+    pub fn bounds(&self) -> pointfarm_render::cloud::WorldBounds {
+        self.lod.dataset.bounds()
+    }
+
+    /// The stored records of `keys`, in order; each must be a node of the hierarchy with
+    /// points.
+    pub fn records(&self, keys: &[NodeKey]) -> Result<Vec<Vec<u8>>, DaemonError> {
+        let hierarchy = self.hierarchy();
+        let infos: Vec<NodeInfo> = keys
+            .iter()
+            .map(|&key| match hierarchy.node(key) {
+                Some(info) if info.point_count > 0 => Ok(*info),
+                _ => Err(DaemonError::invalid(
+                    "nodes",
+                    format!("node {key} holds no points of this store"),
+                )),
+            })
+            .collect::<Result<_, _>>()?;
+        self.lod
+            .dataset
+            .records()
+            .read_records(&infos)
+            .map_err(|e| DaemonError::Internal(format!("reading the store's nodes: {e}")))
+    }
+}
+
+/// What a worker is told of a dataset's store.
+pub enum StoreAnswer {
+    /// Rendered resident, from the dataset's files.
+    NotNeeded {
+        points: u64,
+    },
+    Building {
+        points: u64,
+    },
+    Ready(Arc<ReadyStore>),
+}
+
+enum Entry {
+    /// Points counted from the files' headers; no store asked for yet.
+    Counted(u64),
+    Building(u64),
+    Ready(Arc<ReadyStore>),
+    /// The build failed; said to every later request (the files do not change).
+    Failed(String),
+}
+
+pub struct DatasetStores {
+    dir: PathBuf,
+    build_memory_bytes: u64,
+    entries: Arc<Mutex<HashMap<String, Entry>>>,
+    /// Held by the build running, so builds take their memory one at a time.
+    building: Arc<Mutex<()>>,
+}
+
+impl DatasetStores {
+    pub fn new(dir: PathBuf, build_memory_bytes: u64) -> Self {
+        Self {
+            dir,
+            build_memory_bytes,
+            entries: Arc::default(),
+            building: Arc::default(),
+        }
+    }
+
+    fn folder(&self, sha256: &str) -> PathBuf {
+        self.dir.join(sha256)
+    }
+
+    /// The store of `dataset` when a frame needs one (`levels_of_detail`, or more points
+    /// than render resident, or a store already built): ready, or building (started here).
+    pub fn open(
+        &self,
+        dataset: &Dataset,
+        levels_of_detail: bool,
+    ) -> Result<StoreAnswer, DaemonError> {
+        let sha = dataset.sha256.clone();
+        let points = match self.entry(&sha, |entry| match entry {
+            Entry::Counted(points) => Ok(*points),
+            Entry::Building(points) => Err(Ok(StoreAnswer::Building { points: *points })),
+            Entry::Ready(store) => Err(Ok(StoreAnswer::Ready(Arc::clone(store)))),
+            Entry::Failed(reason) => Err(Err(DaemonError::FailedPrecondition(reason.clone()))),
+        }) {
+            Ok(Some(points)) => points,
+            Ok(None) => {
+                let paths: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
+                let points = dataset_point_count(&paths).map_err(|e| {
+                    DaemonError::FailedPrecondition(format!("dataset {}: {e}", dataset.id))
+                })?;
+                self.set(&sha, Entry::Counted(points));
+                points
+            }
+            Err(answer) => return answer,
+        };
+        let folder = self.folder(&sha);
+        let built = StoredLod::is_built(&folder);
+        if !levels_of_detail && points <= RESIDENT_MAX_POINTS && !built {
+            return Ok(StoreAnswer::NotNeeded { points });
+        }
+        let files: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
+        if built {
+            // Opening a finished store reads its hierarchy and a sample of its coarsest nodes.
+            let ready = self.finish(
+                &sha,
+                open_or_build(&files, &folder, self.build_memory_bytes),
+            );
+            return ready.map(StoreAnswer::Ready);
+        }
+        self.set(&sha, Entry::Building(points));
+        let (entries, building) = (Arc::clone(&self.entries), Arc::clone(&self.building));
+        let budget = self.build_memory_bytes;
+        let id = dataset.id.clone();
+        let spawned = std::thread::Builder::new()
+            .name("pointfarm-store-build".into())
+            .spawn(move || {
+                let _one_at_a_time = building.lock().unwrap_or_else(|e| e.into_inner());
+                tracing::info!(dataset = %id, points, "building the dataset's levels of detail");
+                let entry = match open_or_build(&files, &folder, budget) {
+                    Ok(ready) => Entry::Ready(Arc::new(ready)),
+                    Err(reason) => {
+                        tracing::warn!(dataset = %id, %reason, "the dataset's store was not built");
+                        Entry::Failed(format!("dataset {id}: {reason}"))
+                    }
+                };
+                entries
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .insert(sha, entry);
+            });
+        if let Err(e) = spawned {
+            self.set(&dataset.sha256, Entry::Counted(points));
+            return Err(DaemonError::Internal(format!(
+                "starting a store build: {e}"
+            )));
+        }
+        Ok(StoreAnswer::Building { points })
+    }
+
+    /// The ready store of content `sha256`, for the node requests that follow an open.
+    pub fn ready(&self, sha256: &str) -> Result<Arc<ReadyStore>, DaemonError> {
+        match self.entry(sha256, |entry| match entry {
+            Entry::Ready(store) => Err(Arc::clone(store)),
+            _ => Ok(()),
+        }) {
+            Err(store) => Ok(store),
+            Ok(_) => Err(DaemonError::FailedPrecondition(
+                "the dataset's store is not open: ask OpenDatasetStore first".into(),
+            )),
+        }
+    }
+
+    /// Forgets the store of content `sha256` and removes its folder (no dataset has that
+    /// content any more). A build under way finishes into a folder removed later.
+    pub fn remove(&self, sha256: &str) {
+        let mut entries = self.entries.lock().unwrap_or_else(|e| e.into_inner());
+        if matches!(entries.get(sha256), Some(Entry::Building(_))) {
+            return;
+        }
+        entries.remove(sha256);
+        drop(entries);
+        let folder = self.folder(sha256);
+        if folder.exists() {
+            match std::fs::remove_dir_all(&folder) {
+                Ok(()) => tracing::info!(folder = %folder.display(), "store removed"),
+                Err(error) => {
+                    tracing::warn!(%error, folder = %folder.display(), "removing a store")
+                }
+            }
+        }
+    }
+
+    /// Runs `look` on the entry of `sha256`; `Ok(None)` when there is none.
+    fn entry<T, E>(
+        &self,
+        sha256: &str,
+        look: impl FnOnce(&Entry) -> Result<T, E>,
+    ) -> Result<Option<T>, E> {
+        let entries = self.entries.lock().unwrap_or_else(|e| e.into_inner());
+        entries.get(sha256).map(look).transpose()
+    }
+
+    fn set(&self, sha256: &str, entry: Entry) {
+        self.entries
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(sha256.to_owned(), entry);
+    }
+
+    /// Records the outcome of opening a store synchronously.
+    fn finish(
+        &self,
+        sha256: &str,
+        opened: Result<ReadyStore, String>,
+    ) -> Result<Arc<ReadyStore>, DaemonError> {
+        match opened {
+            Ok(ready) => {
+                let ready = Arc::new(ready);
+                self.set(sha256, Entry::Ready(Arc::clone(&ready)));
+                Ok(ready)
+            }
+            Err(reason) => Err(DaemonError::FailedPrecondition(reason)),
+        }
+    }
+}
+
+/// Opens the store in `folder`, building it from `files` first when it has none.
+fn open_or_build(files: &[PathBuf], folder: &Path, budget: u64) -> Result<ReadyStore, String> {
+    let lod = StoredLod::open_or_build(files, folder, budget, None, &mut |_| {})
+        .map_err(|e| e.to_string())?;
+    let build_ms = lod.built.as_ref().map_or(0.0, |(_, seconds)| seconds * 1e3);
+    let hierarchy_record = lod.dataset.hierarchy().encode();
+    tracing::info!(
+        folder = %folder.display(),
+        points = lod.dataset.point_count(),
+        built = lod.built.is_some(),
+        "store ready for workers"
+    );
+    Ok(ReadyStore {
+        lod,
+        hierarchy_record,
+        build_ms,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::{Duration, Instant};
+
+    use pointfarm_render::ingest::{write_las, LasWriteOptions};
+    use pointfarm_render::lod::{read_nodes, NodeRecords};
+    use pointfarm_render::sample::sample_scene;
+
+    use super::*;
+    use crate::model::DatasetFile;
+
+    fn dataset_of(path: &Path, sha256: &str) -> Dataset {
+        let size_bytes = std::fs::metadata(path).map_or(0, |m| m.len());
+        Dataset {
+            id: format!("ds-{sha256}"),
+            name: "scene".into(),
+            size_bytes,
+            sha256: sha256.into(),
+            path: path.to_owned(),
+            files: vec![DatasetFile {
+                name: "scene.las".into(),
+                path: path.to_owned(),
+                size_bytes,
+                sha256: sha256.into(),
+            }],
+            created_unix_ms: 0,
+        }
+    }
+
+    /// Asks until the store is ready (or a minute has passed).
+    fn wait_ready(stores: &DatasetStores, dataset: &Dataset) -> Arc<ReadyStore> {
+        let started = Instant::now();
+        loop {
+            match stores.open(dataset, true).expect("open") {
+                StoreAnswer::Ready(store) => return store,
+                StoreAnswer::Building { .. } if started.elapsed() < Duration::from_secs(60) => {
+                    std::thread::sleep(Duration::from_millis(50));
+                }
+                _ => panic!("the store was not built"),
+            }
+        }
+    }
+
+    struct Records<'a>(&'a ReadyStore);
+
+    impl NodeRecords for Records<'_> {
+        fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError> {
+            let keys: Vec<NodeKey> = nodes.iter().map(|n| n.key).collect();
+            self.0
+                .records(&keys)
+                .map_err(|e| LodError::Records(e.to_string()))
+        }
+    }
+
+    use pointfarm_render::lod::LodError;
+
+    #[test]
+    fn a_store_is_built_once_served_by_node_and_removed_with_its_dataset() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("scene.las");
+        write_las(&path, &sample_scene(20_000, 3), &LasWriteOptions::default()).expect("write");
+        let dataset = dataset_of(&path, "aa11");
+        let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+
+        // Small and not asked for levels of detail: rendered resident, nothing built.
+        assert!(matches!(
+            stores.open(&dataset, false).expect("open"),
+            StoreAnswer::NotNeeded { points: 20_000 }
+        ));
+        assert!(!dir.path().join("lod").join("aa11").exists());
+        assert!(
+            stores.ready("aa11").is_err(),
+            "not open before it is asked for"
+        );
+
+        let store = wait_ready(&stores, &dataset);
+        assert_eq!(store.point_count(), 20_000);
+        assert!(store.build_ms > 0.0);
+        assert_eq!(
+            LodHierarchy::decode(&store.hierarchy_record).expect("decodes"),
+            *store.hierarchy()
+        );
+        // Once built, every request is served from the store.
+        assert!(matches!(
+            stores.open(&dataset, false).expect("open"),
+            StoreAnswer::Ready(_)
+        ));
+
+        // The records decode to every point of the store, each checked.
+        let keys: Vec<NodeKey> = store.hierarchy().nodes().iter().map(|n| n.key).collect();
+        let nodes = read_nodes(&Records(&store), store.hierarchy(), &keys).expect("read");
+        assert_eq!(nodes.iter().map(|n| n.len() as u64).sum::<u64>(), 20_000);
+
+        // A node the hierarchy does not hold is refused, naming it.
+        let outside = NodeKey::new(3, glam::UVec3::new(7, 7, 7));
+        if store.hierarchy().node(outside).is_none() {
+            let error = store.records(&[outside]).expect_err("not a node");
+            assert!(error.to_string().contains("3-7-7-7"), "{error}");
+        }
+
+        // A new daemon opens the finished store without a build (this one's closed first:
+        // sled locks its database).
+        let record = store.hierarchy_record.clone();
+        drop((store, stores));
+        let again = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+        let StoreAnswer::Ready(reopened) = again.open(&dataset, false).expect("open") else {
+            panic!("a finished store opens at once");
+        };
+        assert_eq!(reopened.build_ms, 0.0);
+        assert_eq!(reopened.hierarchy_record, record);
+        drop(reopened);
+
+        again.remove("aa11");
+        assert!(!dir.path().join("lod").join("aa11").exists());
+        assert!(again.ready("aa11").is_err());
+    }
+
+    #[test]
+    fn an_unreadable_file_is_named_and_nothing_is_built() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("broken.las");
+        std::fs::write(&path, b"LASF but not really a file").expect("write");
+        let dataset = dataset_of(&path, "bb22");
+        let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+        let Err(DaemonError::FailedPrecondition(reason)) = stores.open(&dataset, true) else {
+            panic!("a broken file is refused");
+        };
+        assert!(reason.contains("broken.las"), "{reason}");
+        assert!(!dir.path().join("lod").join("bb22").exists());
+    }
+}

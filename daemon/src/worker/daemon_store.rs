@@ -1,0 +1,185 @@
+//! The daemon's level-of-detail store of a dataset, read node by node over the worker
+//! service: the worker asks for the store, fetches its hierarchy once, and then reads only
+//! the nodes each frame's cut needs — checked against their own checksums as a local store's
+//! are — instead of downloading the dataset's files and building a store of its own.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use pointfarm_proto::v1 as pb;
+use pointfarm_render::cloud::WorldBounds;
+use pointfarm_render::lod::{LodError, LodHierarchy, NodeInfo, NodeRecords};
+use tonic::{Code, Status};
+
+use super::remote::Client;
+use crate::grpc::node_key_message;
+use crate::lease::FrameTask;
+use crate::stores::MAX_NODES_PER_REQUEST;
+
+/// The longest a fetch of one request's nodes may take before the frame fails (and is tried
+/// again): a daemon that stopped answering must not hold a frame for ever.
+const FETCH_TIMEOUT: Duration = Duration::from_secs(120);
+
+/// The most bytes of hierarchy a worker accepts; about 50 M nodes.
+const MAX_HIERARCHY_BYTES: u64 = 2 << 30;
+
+/// What the daemon says of a task's dataset.
+pub enum DaemonStore {
+    /// Rendered resident from the dataset's files, or a daemon that keeps no stores.
+    NotNeeded,
+    /// Being built: the frame goes back, and the worker asks again later.
+    Building,
+    Ready(Box<RemoteStore>),
+}
+
+/// A ready store of the daemon's, opened by this worker.
+pub struct RemoteStore {
+    pub hierarchy: LodHierarchy,
+    pub bounds: WorldBounds,
+    /// How long the daemon took to build it; 0 when it opened one built before.
+    pub build_ms: f64,
+    pub records: Arc<RemoteNodes>,
+}
+
+/// Asks the daemon for the store of `task`'s dataset, and fetches its hierarchy when it is
+/// ready. A status error is the daemon's refusal (FAILED_PRECONDITION: it cannot be built).
+pub async fn open(client: &mut Client, task: &FrameTask) -> Result<DaemonStore, Status> {
+    use pb::open_dataset_store_response::State;
+    let request = pb::OpenDatasetStoreRequest {
+        dataset_id: task.dataset.id.clone(),
+        levels_of_detail: task.request.render.lod_error.is_some(),
+    };
+    let answer = match client.open_dataset_store(request).await {
+        Ok(answer) => answer.into_inner(),
+        Err(status) if status.code() == Code::Unimplemented => return Ok(DaemonStore::NotNeeded),
+        Err(status) => return Err(status),
+    };
+    match State::try_from(answer.state) {
+        Ok(State::NotNeeded) => return Ok(DaemonStore::NotNeeded),
+        Ok(State::Building) => return Ok(DaemonStore::Building),
+        Ok(State::Ready) => {}
+        _ => {
+            return Err(Status::internal(
+                "the daemon's store answer has no known state",
+            ))
+        }
+    }
+    let bounds = match (answer.bounds_min, answer.bounds_max) {
+        (Some(min), Some(max)) => WorldBounds {
+            min: glam::DVec3::new(min.x, min.y, min.z),
+            max: glam::DVec3::new(max.x, max.y, max.z),
+        },
+        _ => return Err(Status::internal("the daemon's ready store has no bounds")),
+    };
+    if answer.hierarchy_bytes > MAX_HIERARCHY_BYTES {
+        return Err(Status::internal(format!(
+            "the daemon's store hierarchy of {} bytes is more than a worker takes",
+            answer.hierarchy_bytes
+        )));
+    }
+    let mut stream = client
+        .fetch_store_hierarchy(pb::FetchStoreHierarchyRequest {
+            dataset_id: task.dataset.id.clone(),
+        })
+        .await?
+        .into_inner();
+    let mut record = Vec::with_capacity(answer.hierarchy_bytes as usize);
+    while let Some(chunk) = stream.message().await? {
+        if (record.len() + chunk.data.len()) as u64 > answer.hierarchy_bytes {
+            return Err(Status::internal(
+                "the daemon sent more hierarchy than it announced",
+            ));
+        }
+        record.extend_from_slice(&chunk.data);
+    }
+    let hierarchy = LodHierarchy::decode(&record)
+        .map_err(|e| Status::internal(format!("the daemon's store: {e}")))?;
+    if hierarchy.point_count != answer.point_count {
+        return Err(Status::internal(format!(
+            "the daemon's store holds {} points, its answer says {}",
+            hierarchy.point_count, answer.point_count
+        )));
+    }
+    Ok(DaemonStore::Ready(Box::new(RemoteStore {
+        hierarchy,
+        bounds,
+        build_ms: answer.build_ms,
+        records: Arc::new(RemoteNodes {
+            client: client.clone(),
+            dataset_id: task.dataset.id.clone(),
+            runtime: tokio::runtime::Handle::current(),
+        }),
+    })))
+}
+
+/// Node records fetched from the daemon, a request per group of nodes. Called from the
+/// renderer's blocking threads (never an async one), it waits on the worker's runtime.
+pub struct RemoteNodes {
+    client: Client,
+    dataset_id: String,
+    runtime: tokio::runtime::Handle,
+}
+
+impl RemoteNodes {
+    async fn fetch(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, Status> {
+        let request = pb::FetchNodesRequest {
+            dataset_id: self.dataset_id.clone(),
+            nodes: nodes.iter().map(|n| node_key_message(n.key)).collect(),
+        };
+        let mut client = self.client.clone();
+        let mut stream = client.fetch_nodes(request).await?.into_inner();
+        let mut records = Vec::with_capacity(nodes.len());
+        while let Some(record) = stream.message().await? {
+            let Some(info) = nodes.get(records.len()) else {
+                return Err(Status::internal(
+                    "the daemon sent more nodes than asked for",
+                ));
+            };
+            if record.data.len() != info.byte_len as usize {
+                return Err(Status::internal(format!(
+                    "node {} came with {} bytes, its hierarchy says {}",
+                    info.key,
+                    record.data.len(),
+                    info.byte_len
+                )));
+            }
+            records.push(record.data);
+        }
+        Ok(records)
+    }
+}
+
+impl NodeRecords for RemoteNodes {
+    fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError> {
+        let mut records = Vec::with_capacity(nodes.len());
+        for group in nodes.chunks(MAX_NODES_PER_REQUEST) {
+            let fetched = self
+                .runtime
+                .block_on(tokio::time::timeout(FETCH_TIMEOUT, self.fetch(group)));
+            match fetched {
+                Ok(Ok(mut fetched)) if fetched.len() == group.len() => records.append(&mut fetched),
+                Ok(Ok(fetched)) => {
+                    return Err(LodError::Records(format!(
+                        "the daemon sent {} of {} nodes",
+                        fetched.len(),
+                        group.len()
+                    )))
+                }
+                Ok(Err(status)) => {
+                    return Err(LodError::Records(format!(
+                        "fetching nodes from the daemon: {:?}: {}",
+                        status.code(),
+                        status.message()
+                    )))
+                }
+                Err(_) => {
+                    return Err(LodError::Records(format!(
+                        "the daemon sent no nodes within {} s",
+                        FETCH_TIMEOUT.as_secs()
+                    )))
+                }
+            }
+        }
+        Ok(records)
+    }
+}
