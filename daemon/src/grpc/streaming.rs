@@ -36,6 +36,17 @@ where
     Box::pin(ReceiverStream::new(receiver))
 }
 
+/// A response stream of `messages`, made already; it stops when the client goes away.
+pub(super) fn stream_each<T: Send + 'static>(messages: Vec<T>) -> ResponseStream<T> {
+    spawn_stream(4, move |sender| async move {
+        for message in messages {
+            if sender.send(Ok(message)).await.is_err() {
+                return;
+            }
+        }
+    })
+}
+
 /// The first message of a client stream, which must carry the part `pick` takes from it
 /// (its header): an error naming `field` otherwise.
 pub(super) async fn first_part<M, P>(

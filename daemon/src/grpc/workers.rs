@@ -11,7 +11,7 @@ use super::conversions::{
     failure_kind, frame_cut_of_message, frame_task_message, invalid, node_key, stage_timings,
 };
 use super::lease_guard::LeaseGuard;
-use super::streaming::{chunks, first_part, read_chunk, spawn_stream, ResponseStream};
+use super::streaming::{chunks, first_part, read_chunk, spawn_stream, stream_each, ResponseStream};
 use super::Api;
 use crate::error::DaemonError;
 use crate::lease::FrameOutcome;
@@ -269,17 +269,12 @@ impl WorkerService for Api {
         let store = self
             .run(move |daemon| daemon.ready_dataset_store(&r.dataset_id))
             .await?;
-        let stream = spawn_stream(4, move |sender| async move {
-            for (data, _) in chunks(&store.hierarchy_record) {
-                let chunk = pb::StoreHierarchyChunk {
-                    data: data.to_vec(),
-                };
-                if sender.send(Ok(chunk)).await.is_err() {
-                    return;
-                }
-            }
-        });
-        Ok(Response::new(stream))
+        let chunks = chunks(&store.hierarchy_record)
+            .map(|(data, _)| pb::StoreHierarchyChunk {
+                data: data.to_vec(),
+            })
+            .collect();
+        Ok(Response::new(stream_each(chunks)))
     }
 
     type FetchNodesStream = ResponseStream<pb::NodeRecord>;
@@ -303,13 +298,7 @@ impl WorkerService for Api {
         let records = self
             .run(move |daemon| daemon.ready_dataset_store(&r.dataset_id)?.records(&keys))
             .await?;
-        let stream = spawn_stream(4, move |sender| async move {
-            for data in records {
-                if sender.send(Ok(pb::NodeRecord { data })).await.is_err() {
-                    return;
-                }
-            }
-        });
-        Ok(Response::new(stream))
+        let records = records.into_iter().map(|data| pb::NodeRecord { data });
+        Ok(Response::new(stream_each(records.collect())))
     }
 }

@@ -11,7 +11,7 @@ use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::lod::{LodError, LodHierarchy, NodeInfo, NodeRecords};
 use tonic::{Code, Status};
 
-use super::remote::Client;
+use super::client::Client;
 use crate::grpc::node_key_message;
 use crate::lease::FrameTask;
 use crate::stores::MAX_NODES_PER_REQUEST;

@@ -9,6 +9,7 @@
 //! - `failure`: why a frame failed, and whether another attempt may succeed.
 //! - `memory_limit`: the worker process's limit on its own memory.
 
+mod client;
 pub mod daemon_store;
 pub mod failure;
 pub mod memory_limit;

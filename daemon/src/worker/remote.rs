@@ -33,14 +33,13 @@ use pointfarm_render::cache::DatasetCache;
 use pointfarm_render::cut::CutOptions;
 use pointfarm_render::gpu::GpuContext;
 use tokio::sync::watch;
-use tonic::service::interceptor::InterceptedService;
-use tonic::transport::Channel;
 use tonic::{Code, Status};
 use tracing::Instrument;
 
 use crate::grpc::streaming::{HashingWriter, CHUNK_BYTES};
 use crate::grpc::{frame_cut_message, frame_task, timings_message};
 use crate::lease::{FrameTask, TaskFile};
+use crate::worker::client::Client;
 use crate::worker::daemon_store::{self, DaemonStore};
 use crate::worker::failure::FrameFailure;
 use crate::worker::render_state::{DatasetAccess, LodConfig, RenderedFrame, WorkerRenderState};
@@ -67,8 +66,6 @@ pub struct RemoteWorkerConfig {
 /// How long a worker waits to lease again after handing back a frame whose store the daemon
 /// is building.
 const STORE_BUILDING_WAIT: Duration = Duration::from_secs(1);
-
-pub(crate) type Client = WorkerServiceClient<InterceptedService<Channel, BearerToken>>;
 
 /// Exponential backoff between failed calls: 250 ms doubling to 5 s.
 struct Backoff(Duration);

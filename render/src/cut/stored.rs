@@ -283,6 +283,14 @@ mod tests {
         build_disk_bytes(SMALL_POINTS, true) + store + store / 2
     }
 
+    /// A folder with a small dataset, and the budget that holds one store of it beside a build.
+    fn small_dataset_and_budget() -> (tempfile::TempDir, PathBuf, u64) {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let file = small_dataset(dir.path());
+        let budget = budget_for_one_beside(&file, dir.path());
+        (dir, file, budget)
+    }
+
     /// Asserts that `budget` holds the build's need and either store, not both.
     fn assert_one_fits(budget: u64, a: &Path, b: &Path) {
         let (a, b) = (bytes(a), bytes(b));
@@ -308,9 +316,7 @@ mod tests {
 
     #[test]
     fn building_beyond_the_budget_removes_the_least_recently_used_store() {
-        let dir = tempfile::tempdir().expect("tempdir");
-        let file = small_dataset(dir.path());
-        let budget = budget_for_one_beside(&file, dir.path());
+        let (dir, file, budget) = small_dataset_and_budget();
         let root = dir.path().join("lod");
         drop(build_used(&file, &root.join("a"), Some(budget)));
         drop(build_used(&file, &root.join("b"), Some(budget)));
@@ -333,9 +339,7 @@ mod tests {
 
     #[test]
     fn a_store_in_use_is_never_removed_to_make_room() {
-        let dir = tempfile::tempdir().expect("tempdir");
-        let file = small_dataset(dir.path());
-        let budget = budget_for_one_beside(&file, dir.path());
+        let (dir, file, budget) = small_dataset_and_budget();
         let root = dir.path().join("lod");
         // `a` is the least recently used, and in use throughout.
         let a = build_used(&file, &root.join("a"), Some(budget));
