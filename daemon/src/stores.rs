@@ -174,16 +174,28 @@ impl DatasetStores {
         Ok(StoreAnswer::Building { points })
     }
 
-    /// The ready store of content `sha256`, for the node requests that follow an open.
+    /// The ready store of content `sha256`, for the node requests that follow an open. A
+    /// finished store not open yet (the daemon restarted under a worker reading it) is opened.
     pub fn ready(&self, sha256: &str) -> Result<Arc<ReadyStore>, DaemonError> {
-        match self.entry(sha256, |entry| match entry {
-            Entry::Ready(store) => Err(Arc::clone(store)),
-            _ => Ok(()),
-        }) {
-            Err(store) => Ok(store),
-            Ok(_) => Err(DaemonError::FailedPrecondition(
+        let not_open = || {
+            DaemonError::FailedPrecondition(
                 "the dataset's store is not open: ask OpenDatasetStore first".into(),
-            )),
+            )
+        };
+        match self.entry(sha256, |entry| match entry {
+            Entry::Ready(store) => Err(Some(Arc::clone(store))),
+            Entry::Counted(_) => Ok(()),
+            Entry::Building(_) | Entry::Failed(_) => Err(None),
+        }) {
+            Err(Some(store)) => Ok(store),
+            Err(None) => Err(not_open()),
+            Ok(_) => {
+                let folder = self.folder(sha256);
+                if !StoredLod::is_built(&folder) {
+                    return Err(not_open());
+                }
+                self.finish(sha256, open_or_build(&[], &folder, self.build_memory_bytes))
+            }
         }
     }
 
@@ -372,6 +384,13 @@ mod tests {
         assert_eq!(reopened.hierarchy_record, record);
         drop(reopened);
 
+        drop(again);
+        // A daemon restarted under a worker that reads the store serves it at once.
+        let restarted = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+        let served = restarted.ready("aa11").expect("opened on demand");
+        assert_eq!(served.hierarchy_record, record);
+        drop(served);
+        let again = restarted;
         again.remove("aa11");
         assert!(!dir.path().join("lod").join("aa11").exists());
         assert!(again.ready("aa11").is_err());
