@@ -307,3 +307,77 @@ fn a_worker_process_reads_the_daemons_store_node_by_node() {
         "{served}"
     );
 }
+
+/// The stores in `--cache-dir` within `--cache-size`: a new dataset's build removes the store
+/// used least recently, and a build that alone needs more than the size is refused.
+#[test]
+fn local_stores_are_kept_within_the_cache_size() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cache = dir.path().join("cache");
+    let out = dir.path().join("out.png");
+    let scene = |name: &str, seed: u64| {
+        let path = dir.path().join(name);
+        write_las(
+            &path,
+            &sample_scene(20_000, seed),
+            &LasWriteOptions::default(),
+        )
+        .expect("write");
+        path
+    };
+    let (first, second) = (scene("first.las", 1), scene("second.las", 2));
+    let render = |file: &Path, size: Option<&str>| {
+        let mut args = vec!["render", arg(file), "--out", arg(&out), "--size=64x48"];
+        args.extend(["--lod-error", "0", "--cache-dir", arg(&cache)]);
+        args.extend(size.map(|s| ["--cache-size", s]).into_iter().flatten());
+        pointfarm(&args)
+    };
+    let stores = || -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(cache.join("lod"))
+            .expect("stores")
+            .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        names
+    };
+    let folder_bytes = |folder: &Path| -> u64 { walkdir_bytes(folder) };
+    let built = render(&first, None);
+    assert!(built.status.success(), "{}", text(&built));
+    let [first_store] = stores().try_into().expect("one store");
+    let first_bytes = walkdir_bytes(&cache.join("lod").join(&first_store));
+
+    // Room for the second build's need, not for the first store beside it.
+    let need = pointfarm_render::lod::disk::build_disk_bytes(20_000, true);
+    let size = (need + first_bytes / 2).to_string();
+    let second_built = render(&second, Some(&size));
+    assert!(second_built.status.success(), "{}", text(&second_built));
+    let left = stores();
+    assert_eq!(left.len(), 1, "{left:?}");
+    assert_ne!(
+        left[0], first_store,
+        "the store used least recently was removed"
+    );
+
+    let refused = render(&first, Some("1KiB"));
+    assert!(!refused.status.success());
+    let message = text(&refused);
+    assert!(message.contains("budget"), "{message}");
+    assert_ne!(refused.status.code(), Some(101), "a panic:\n{message}");
+}
+
+/// Bytes of the files below `folder`.
+fn walkdir_bytes(folder: &Path) -> u64 {
+    std::fs::read_dir(folder)
+        .into_iter()
+        .flatten()
+        .map(|entry| {
+            let entry = entry.expect("entry");
+            let meta = entry.metadata().expect("metadata");
+            if meta.is_dir() {
+                walkdir_bytes(&entry.path())
+            } else {
+                meta.len()
+            }
+        })
+        .sum()
+}

@@ -13,7 +13,7 @@ use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::load_dataset;
 use pointfarm_render::raster::{Frame, FrameSettings, GpuPointCloud, Renderer};
 
-use crate::lod_store::open_or_build;
+use crate::lod_store::{open_or_build, StoreCache};
 use pointfarm_render::cut::StoredLod;
 
 /// A frame and what it drew.
@@ -78,13 +78,13 @@ impl FrameSource {
     pub fn cut(
         gpu: Arc<GpuContext>,
         files: &[PathBuf],
-        cache_dir: &std::path::Path,
+        cache: &StoreCache,
         options: CutOptions,
         color_mode: ColorMode,
         say: &dyn Fn(String),
     ) -> Result<Self> {
         let renderer = Renderer::new(gpu);
-        let lod = open_or_build(files, cache_dir, options.memory_budget_bytes, say)?;
+        let lod = open_or_build(files, cache, options.memory_budget_bytes, say)?;
         let cut = CutRenderer::new(&renderer, &lod.dataset, options)?;
         let budgets = cut.budgets();
         say(format!(

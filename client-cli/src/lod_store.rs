@@ -3,7 +3,7 @@
 //! it and a changed file gets a new one.
 
 use std::cell::RefCell;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::UNIX_EPOCH;
 
 use anyhow::{Context, Result};
@@ -46,17 +46,25 @@ fn store_name(files: &[PathBuf]) -> Result<String> {
         .collect())
 }
 
-/// Opens the store of `files` under `cache_dir`, building it first (with a spinner) when
-/// there is none, within `memory_budget` bytes of build buffers.
+/// Where local renders keep their stores, and the most disk they may take together.
+#[derive(Debug, Clone)]
+pub struct StoreCache {
+    pub dir: PathBuf,
+    pub size_bytes: Option<u64>,
+}
+
+/// Opens the store of `files` in `cache`, building it first (with a spinner) when there is
+/// none, within `memory_budget` bytes of build buffers.
 pub fn open_or_build(
     files: &[PathBuf],
-    cache_dir: &Path,
+    cache: &StoreCache,
     memory_budget: u64,
     say: &dyn Fn(String),
 ) -> Result<StoredLod> {
-    let folder = cache_dir.join("lod").join(store_name(files)?);
+    let folder = cache.dir.join("lod").join(store_name(files)?);
     let spinner = RefCell::new(None);
-    let opened = StoredLod::open_or_build(files, &folder, memory_budget, None, &mut |points| {
+    let budget = cache.size_bytes;
+    let opened = StoredLod::open_or_build(files, &folder, memory_budget, budget, &mut |points| {
         *spinner.borrow_mut() = Some(crate::progress::spinner(format!(
             "building levels of detail of {points} points (once; kept in {})",
             folder.display()

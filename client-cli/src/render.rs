@@ -12,7 +12,7 @@ use pointfarm_render::ingest::{dataset_files, dataset_point_count};
 use pointfarm_render::raster::{FrameSettings, Stage, StageTimings};
 
 use crate::frame_source::{FrameSource, RenderedFrame};
-use crate::lod_store::default_cache_dir;
+use crate::lod_store::{default_cache_dir, StoreCache};
 
 pub use crate::render_args::RenderArgs;
 
@@ -40,11 +40,14 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let mut source = match args.cut_options(points)? {
         None => FrameSource::resident(Arc::clone(&gpu), &files, color_mode, &say_input)?,
         Some(options) => {
-            let cache_dir = args.cache_dir.clone().unwrap_or_else(default_cache_dir);
+            let cache = StoreCache {
+                dir: args.cache_dir.clone().unwrap_or_else(default_cache_dir),
+                size_bytes: args.cache_size,
+            };
             FrameSource::cut(
                 Arc::clone(&gpu),
                 &files,
-                &cache_dir,
+                &cache,
                 options,
                 color_mode,
                 &say_input,

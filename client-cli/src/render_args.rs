@@ -158,6 +158,12 @@ pub struct RenderArgs {
     /// $XDG_CACHE_HOME/pointfarm or ~/.cache/pointfarm).
     #[arg(long, env = "POINTFARM_CACHE_DIR", value_name = "DIR")]
     pub(crate) cache_dir: Option<PathBuf>,
+    /// The most disk the stores in --cache-dir may take together, e.g. 200GiB: before a
+    /// build, the least recently used stores not in use are removed until it fits, and a
+    /// dataset whose store alone needs more is refused (default: only the free disk bounds
+    /// them).
+    #[arg(long, env = "POINTFARM_CACHE_SIZE", value_name = "SIZE", value_parser = parse::bytes)]
+    pub(crate) cache_size: Option<u64>,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
