@@ -8,7 +8,7 @@ use std::process::Output;
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::sample::sample_scene;
 use pointfarm_render::testing::compare_images_within;
-use pointfarm_tests::service::scratch_sample;
+use pointfarm_tests::service::{scratch_sample, write_sample};
 use pointfarm_tests::{json_names, pointfarm};
 
 fn text(output: &Output) -> String {
@@ -315,17 +315,9 @@ fn local_stores_are_kept_within_the_cache_size() {
     let dir = tempfile::tempdir().expect("tempdir");
     let cache = dir.path().join("cache");
     let out = dir.path().join("out.png");
-    let scene = |name: &str, seed: u64| {
-        let path = dir.path().join(name);
-        write_las(
-            &path,
-            &sample_scene(20_000, seed),
-            &LasWriteOptions::default(),
-        )
-        .expect("write");
-        path
-    };
-    let (first, second) = (scene("first.las", 1), scene("second.las", 2));
+    let (first, second) = (dir.path().join("first.las"), dir.path().join("second.las"));
+    write_sample(&first, 20_000, 1);
+    write_sample(&second, 20_000, 2);
     let render = |file: &Path, size: Option<&str>| {
         let mut args = vec!["render", arg(file), "--out", arg(&out), "--size=64x48"];
         args.extend(["--lod-error", "0", "--cache-dir", arg(&cache)]);
@@ -340,7 +332,6 @@ fn local_stores_are_kept_within_the_cache_size() {
         names.sort();
         names
     };
-    let folder_bytes = |folder: &Path| -> u64 { walkdir_bytes(folder) };
     let built = render(&first, None);
     assert!(built.status.success(), "{}", text(&built));
     let [first_store] = stores().try_into().expect("one store");
