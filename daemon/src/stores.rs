@@ -89,6 +89,9 @@ pub struct DatasetStores {
     entries: Arc<Mutex<HashMap<String, Entry>>>,
     /// Held by the build running, so builds take their memory one at a time.
     building: Arc<Mutex<()>>,
+    /// Held while a request decides what to do with a store and opens or starts it, so two
+    /// workers asking at once never open or build one store twice.
+    opening: Mutex<()>,
 }
 
 impl DatasetStores {
@@ -98,6 +101,7 @@ impl DatasetStores {
             build_memory_bytes,
             entries: Arc::default(),
             building: Arc::default(),
+            opening: Mutex::default(),
         }
     }
 
@@ -112,6 +116,7 @@ impl DatasetStores {
         dataset: &Dataset,
         levels_of_detail: bool,
     ) -> Result<StoreAnswer, DaemonError> {
+        let _one_decision = self.opening.lock().unwrap_or_else(|e| e.into_inner());
         let sha = dataset.sha256.clone();
         let points = match self.entry(&sha, |entry| match entry {
             Entry::Counted(points) => Ok(*points),
@@ -190,6 +195,10 @@ impl DatasetStores {
             Err(Some(store)) => Ok(store),
             Err(None) => Err(not_open()),
             Ok(_) => {
+                let _one_decision = self.opening.lock().unwrap_or_else(|e| e.into_inner());
+                if let Some(Entry::Ready(store)) = self.entries_now().get(sha256) {
+                    return Ok(Arc::clone(store));
+                }
                 let folder = self.folder(sha256);
                 if !StoredLod::is_built(&folder) {
                     return Err(not_open());
@@ -227,6 +236,10 @@ impl DatasetStores {
     ) -> Result<Option<T>, E> {
         let entries = self.entries.lock().unwrap_or_else(|e| e.into_inner());
         entries.get(sha256).map(look).transpose()
+    }
+
+    fn entries_now(&self) -> std::sync::MutexGuard<'_, HashMap<String, Entry>> {
+        self.entries.lock().unwrap_or_else(|e| e.into_inner())
     }
 
     fn set(&self, sha256: &str, entry: Entry) {
@@ -394,6 +407,32 @@ mod tests {
         again.remove("aa11");
         assert!(!dir.path().join("lod").join("aa11").exists());
         assert!(again.ready("aa11").is_err());
+    }
+
+    #[test]
+    fn workers_asking_at_once_share_one_build_and_one_opening() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("scene.las");
+        write_las(&path, &sample_scene(5_000, 4), &LasWriteOptions::default()).expect("write");
+        let dataset = dataset_of(&path, "cc33");
+        let asked_at_once = |stores: &DatasetStores| {
+            std::thread::scope(|scope| {
+                let asks: Vec<_> = (0..4)
+                    .map(|_| scope.spawn(|| stores.open(&dataset, true).map(|_| ())))
+                    .collect();
+                for ask in asks {
+                    ask.join().expect("no panic").expect("every ask answered");
+                }
+            });
+        };
+        let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+        asked_at_once(&stores);
+        let record = wait_ready(&stores, &dataset).hierarchy_record.clone();
+        drop(stores);
+        // A finished store, opened by four requests at once: one opening, shared.
+        let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+        asked_at_once(&stores);
+        assert_eq!(stores.ready("cc33").expect("open").hierarchy_record, record);
     }
 
     #[test]
