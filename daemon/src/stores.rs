@@ -290,11 +290,18 @@ mod tests {
     use std::time::{Duration, Instant};
 
     use pointfarm_render::ingest::{write_las, LasWriteOptions};
-    use pointfarm_render::lod::{read_nodes, NodeRecords};
+    use pointfarm_render::lod::{read_nodes, LodError, NodeRecords};
     use pointfarm_render::sample::sample_scene;
 
     use super::*;
     use crate::model::DatasetFile;
+
+    /// A dataset of the sample scene (`points` of it) written as LAS into `dir`.
+    fn scene_dataset(dir: &Path, points: usize, sha256: &str) -> Dataset {
+        let path = dir.join("scene.las");
+        write_las(&path, &sample_scene(points, 3), &LasWriteOptions::default()).expect("write");
+        dataset_of(&path, sha256)
+    }
 
     fn dataset_of(path: &Path, sha256: &str) -> Dataset {
         let size_bytes = std::fs::metadata(path).map_or(0, |m| m.len());
@@ -339,14 +346,10 @@ mod tests {
         }
     }
 
-    use pointfarm_render::lod::LodError;
-
     #[test]
     fn a_store_is_built_once_served_by_node_and_removed_with_its_dataset() {
         let dir = tempfile::tempdir().expect("tempdir");
-        let path = dir.path().join("scene.las");
-        write_las(&path, &sample_scene(20_000, 3), &LasWriteOptions::default()).expect("write");
-        let dataset = dataset_of(&path, "aa11");
+        let dataset = scene_dataset(dir.path(), 20_000, "aa11");
         let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
 
         // Small and not asked for levels of detail: rendered resident, nothing built.
@@ -412,9 +415,7 @@ mod tests {
     #[test]
     fn workers_asking_at_once_share_one_build_and_one_opening() {
         let dir = tempfile::tempdir().expect("tempdir");
-        let path = dir.path().join("scene.las");
-        write_las(&path, &sample_scene(5_000, 4), &LasWriteOptions::default()).expect("write");
-        let dataset = dataset_of(&path, "cc33");
+        let dataset = scene_dataset(dir.path(), 5_000, "cc33");
         let asked_at_once = |stores: &DatasetStores| {
             std::thread::scope(|scope| {
                 let asks: Vec<_> = (0..4)
