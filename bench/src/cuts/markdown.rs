@@ -128,6 +128,9 @@ pub fn cuts_tables(r: &CutsResult) -> String {
     if let Some(t) = &r.out_of_core {
         let _ = writeln!(md, "\nOut of core:\n\n{}", turntable_table(t));
     }
+    if let Some(t) = &r.turntable {
+        let _ = writeln!(md, "\nWithin the memory budget:\n\n{}", turntable_table(t));
+    }
     let modes: Vec<&str> = r
         .fidelity
         .first()

@@ -3,8 +3,9 @@
 //! 1. **scaling**: the full view of two terrains of one density ([`GeneratedSource::terrain`],
 //!    10 points a square metre), a small and a large one, at one image size and the default
 //!    pixel error, warm caches: frame time follows pixels, not points;
-//! 2. **out of core**: a turntable of the large terrain from a cold cache within a small
-//!    memory budget ([`OUT_OF_CORE_BUDGET`]), with the process's peak resident memory;
+//! 2. **turntables**: of the large terrain from a cold cache within a small memory budget
+//!    ([`OUT_OF_CORE_BUDGET`]), and within the cuts' budget, with the process's peak resident
+//!    memory;
 //! 3. **fidelity** ([`fidelity`]): the default pixel error against 0 on the real scans, the
 //!    small terrain and the uniform cube, per compute mode;
 //! 4. **resident against cut**: the uniform cube rendered resident (uploaded whole) and as a
@@ -154,8 +155,12 @@ pub struct CutsResult {
     pub builds: Vec<StoreBuild>,
     /// The small and the large terrain's full views.
     pub scaling: [ViewFigure; 2],
+    /// The large terrain's turntables from a cold cache: within [`OUT_OF_CORE_BUDGET`], and
+    /// within the memory budget of the other cuts.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub out_of_core: Option<TurntableResult>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub turntable: Option<TurntableResult>,
     pub fidelity: Vec<FidelityResult>,
     pub resident_vs_cut: ResidentVsCut,
     /// The real scans not found.
@@ -325,26 +330,29 @@ pub fn measure(
     let large_name = format!("terrain-{}", short_count(options.large_points));
     let large_source = GeneratedSource::terrain(options.large_points, options.seed);
     let large = built(&large_name, &large_source, &mut log)?;
-    let out_of_core = if options.out_of_core_frames > 0 {
+    let mut turntable_within = |budget: u64, label: &str| {
+        if options.out_of_core_frames == 0 {
+            return Ok::<_, BenchError>(None);
+        }
         let turntable = TurntableOptions {
-            memory_budget_bytes: OUT_OF_CORE_BUDGET,
+            memory_budget_bytes: budget,
             width: w,
             height: h,
             ..TurntableOptions::new(options.out_of_core_frames)
         };
         let result = render_turntable(gpu, &large.dataset, &turntable, &mut |l| {
-            log(format!("cuts: out of core: {l}"))
+            log(format!("cuts: {label}: {l}"))
         })?;
         log(format!(
-            "cuts: out of core: first frame {:.0} ms, following median {:.0} ms, peak RSS {} MiB",
+            "cuts: {label}: first frame {:.0} ms, following median {:.0} ms, peak RSS {} MiB",
             result.first_ms,
             result.following_median_ms,
             result.peak_rss_bytes >> 20
         ));
-        Some(result)
-    } else {
-        None
+        Ok(Some(result))
     };
+    let out_of_core = turntable_within(OUT_OF_CORE_BUDGET, "out of core")?;
+    let turntable = turntable_within(options.memory_budget_bytes, "turntable")?;
     let large_view = warm_view(
         gpu,
         &large_name,
@@ -436,6 +444,7 @@ pub fn measure(
         builds,
         scaling: [small_view, large_view],
         out_of_core,
+        turntable,
         fidelity,
         resident_vs_cut: ResidentVsCut {
             points: options.cube_points,
@@ -495,6 +504,12 @@ mod tests {
         assert_eq!(t.first_ms, t.frames[0].wall_ms);
         assert!(t.following_median_ms > 0.0 && t.following_max_ms >= t.following_median_ms);
         assert!(t.peak_rss_bytes > 0 && t.bytes_read() > 0);
+        let within = r.turntable.as_ref().expect("turntable within the budget");
+        assert_eq!(within.frames.len(), 3);
+        assert_eq!(
+            within.host_budget_bytes + within.gpu_budget_bytes,
+            options.memory_budget_bytes
+        );
 
         let names: Vec<_> = r.fidelity.iter().map(|f| f.workload.as_str()).collect();
         assert_eq!(names, ["terrain-100k", "uniform-100k"]);
@@ -518,6 +533,7 @@ mod tests {
             "| terrain-300k |",
             "| uniform-100k |",
             "Out of core",
+            "Within the memory budget",
             "| resident |",
         ] {
             assert!(md.contains(needle), "{needle}: {md}");

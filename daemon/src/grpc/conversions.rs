@@ -13,11 +13,17 @@ use crate::error::DaemonError;
 use crate::lease::{FailureKind, FrameTask, HeartbeatAnswer, TaskDataset, TaskFile};
 use crate::lease_record::Lease;
 use crate::model::{Dataset, FrameCut, FrameReport, Job, JobSpec, JobState, StageTiming};
+use crate::store::Page;
 use crate::stores::StoreAnswer;
 use pointfarm_render::lod::{NodeKey, MAX_LEVEL};
 
 pub(super) fn invalid(field: &str, message: impl Into<String>) -> DaemonError {
     DaemonError::invalid(field, message)
+}
+
+/// A page of a listing as its items' messages and the token of the page after it.
+pub(super) fn page_messages<T, M: for<'a> From<&'a T>>(page: Page<T>) -> (Vec<M>, String) {
+    (page.items.iter().map(M::from).collect(), page.next_token)
 }
 
 /// Validates a submission; limits that depend on the server are checked by the daemon.

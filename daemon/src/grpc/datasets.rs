@@ -10,7 +10,7 @@ use pointfarm_proto::v1::dataset_service_server::DatasetService;
 use pointfarm_render::ingest::LAS_SIGNATURE;
 use tonic::{Request, Response, Status, Streaming};
 
-use super::conversions::invalid;
+use super::conversions::{invalid, page_messages};
 use super::streaming::{first_part, HashingWriter};
 use super::Api;
 use crate::error::DaemonError;
@@ -100,10 +100,11 @@ impl DatasetService for Api {
         request: Request<pb::ListDatasetsRequest>,
     ) -> Result<Response<pb::ListDatasetsResponse>, Status> {
         let r = request.into_inner();
-        let page = self.daemon.list_datasets(r.page_size, &r.page_token)?;
+        let (datasets, next_page_token) =
+            page_messages(self.daemon.list_datasets(r.page_size, &r.page_token)?);
         Ok(Response::new(pb::ListDatasetsResponse {
-            datasets: page.items.iter().map(pb::Dataset::from).collect(),
-            next_page_token: page.next_token,
+            datasets,
+            next_page_token,
         }))
     }
 

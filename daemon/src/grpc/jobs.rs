@@ -9,8 +9,8 @@ use pointfarm_proto::v1::job_service_server::JobService;
 use tokio::sync::broadcast::error::RecvError;
 use tonic::{Request, Response, Status};
 
-use super::conversions::{invalid, state_filter};
-use super::streaming::{chunks, spawn_stream, ResponseStream};
+use super::conversions::{invalid, page_messages, state_filter};
+use super::streaming::{chunks, send_each, spawn_stream, ResponseStream};
 use super::Api;
 use crate::model::{FrameState, JobSpec};
 use crate::service::Daemon;
@@ -48,9 +48,10 @@ impl JobService for Api {
         let page = self
             .daemon
             .list_jobs(state_filter(r.state)?, r.page_size, &r.page_token)?;
+        let (jobs, next_page_token) = page_messages(page);
         Ok(Response::new(pb::ListJobsResponse {
-            jobs: page.items.iter().map(pb::Job::from).collect(),
-            next_page_token: page.next_token,
+            jobs,
+            next_page_token,
         }))
     }
 
@@ -155,15 +156,15 @@ impl JobService for Api {
                         return;
                     }
                 };
-                for (chunk, last) in chunks(&bytes) {
-                    let message = pb::FrameChunk {
+                let messages: Vec<_> = chunks(&bytes)
+                    .map(|(chunk, last)| pb::FrameChunk {
                         index,
                         png: chunk.to_vec(),
                         last,
-                    };
-                    if sender.send(Ok(message)).await.is_err() {
-                        return;
-                    }
+                    })
+                    .collect();
+                if !send_each(&sender, messages).await {
+                    return;
                 }
             }
         });

@@ -39,12 +39,21 @@ where
 /// A response stream of `messages`, made already; it stops when the client goes away.
 pub(super) fn stream_each<T: Send + 'static>(messages: Vec<T>) -> ResponseStream<T> {
     spawn_stream(4, move |sender| async move {
-        for message in messages {
-            if sender.send(Ok(message)).await.is_err() {
-                return;
-            }
-        }
+        send_each(&sender, messages).await;
     })
+}
+
+/// Sends `messages` in order; false as soon as the client has gone away.
+pub(super) async fn send_each<T>(
+    sender: &mpsc::Sender<Result<T, Status>>,
+    messages: impl IntoIterator<Item = T>,
+) -> bool {
+    for message in messages {
+        if sender.send(Ok(message)).await.is_err() {
+            return false;
+        }
+    }
+    true
 }
 
 /// The first message of a client stream, which must carry the part `pick` takes from it

@@ -21,9 +21,9 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use super::cached::SourceCopyWriter;
-use super::chunks::{build_chunks, chunk_bytes, distribute};
+use super::chunks::{build_chunks, chunk_bytes, distribute, DISTRIBUTION_BLOCKS_BYTES};
 use super::context::BuildContext;
-use super::counting::{count_points, CountGrid, CELL_BLOCK_POINTS, MAX_COUNT_LEVEL};
+use super::counting::{count_points, CountGrid, MAX_COUNT_LEVEL};
 use super::error::LodError;
 use super::hierarchy::LodHierarchy;
 use super::key::RootCube;
@@ -171,8 +171,7 @@ fn build_on_pool(
         chunks_split: AtomicUsize::new(0),
     };
     let distributing = Instant::now();
-    let index_bytes = CELL_BLOCK_POINTS as u64 * 8;
-    let buffer_bytes = (budget.saturating_sub(grid_bytes + index_bytes) / 4)
+    let buffer_bytes = (budget.saturating_sub(grid_bytes + DISTRIBUTION_BLOCKS_BYTES) / 4)
         .clamp(1 << 16, DISTRIBUTION_BUFFER_BYTES);
     let second: &dyn PointSource = match &copy {
         Some(copy) => copy,

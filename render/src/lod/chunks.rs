@@ -2,18 +2,20 @@
 //! local octrees, built in parallel with only as many chunks in memory as the budget allows;
 //! a chunk too large for the budget is split into its eight children on disk first.
 
+use std::ops::Range;
 use std::path::{Path, PathBuf};
+use std::sync::mpsc;
 
 use rayon::prelude::*;
 
 use super::context::BuildContext;
-use super::counting::{check_batch, CountGrid, CELL_BLOCK_POINTS};
+use super::counting::{check_batch, CountGrid};
 use super::error::LodError;
-use super::key::MAX_LEVEL;
+use super::key::{RootCube, MAX_LEVEL};
 use super::options::BUILD_BYTES_PER_POINT;
 use super::plan::{Chunk, ChunkPlan};
-use super::point::RawPoint;
-use super::source::PointSource;
+use super::point::{RawPoint, SPILL_RECORD_BYTES};
+use super::source::{PointBatch, PointSource};
 use super::spill::{self, SpillWriter, READ_BLOCK_BYTES};
 
 /// The most bytes of write buffers when a chunk is split further.
@@ -28,8 +30,52 @@ fn chunk_path(ctx: &BuildContext<'_>, chunk: &Chunk) -> PathBuf {
     ctx.spill.file(&format!("chunk-{}.bin", chunk.key))
 }
 
+/// Points a block of spill records holds on its way to the scattering thread.
+const RECORD_BLOCK_POINTS: usize = 1 << 13;
+/// What the distribution's blocks hold, three at most (one made, one queued, one
+/// scattered): each point's chunk and its record.
+pub const DISTRIBUTION_BLOCKS_BYTES: u64 =
+    3 * (RECORD_BLOCK_POINTS * (4 + SPILL_RECORD_BYTES)) as u64;
+
+/// Points of a batch with their chunks and their spill records, made on all cores.
+#[derive(Default)]
+struct RecordBlock {
+    targets: Vec<u32>,
+    records: Vec<u8>,
+}
+
+impl RecordBlock {
+    fn fill(
+        &mut self,
+        batch: &PointBatch<'_>,
+        range: Range<usize>,
+        plan: &ChunkPlan,
+        cube: &RootCube,
+    ) {
+        batch.positions[range.clone()]
+            .par_iter()
+            .map(|p| plan.lookup[CountGrid::index(plan.level, cube.cell_at(*p, plan.level))])
+            .collect_into_vec(&mut self.targets);
+        const PER_TASK: usize = 1 << 10;
+        self.records.resize(range.len() * SPILL_RECORD_BYTES, 0);
+        self.records
+            .par_chunks_mut(PER_TASK * SPILL_RECORD_BYTES)
+            .enumerate()
+            .for_each(|(task, out)| {
+                let first = range.start + task * PER_TASK;
+                for (j, record) in out.chunks_exact_mut(SPILL_RECORD_BYTES).enumerate() {
+                    record.copy_from_slice(&RawPoint::from_batch(batch, first + j).record());
+                }
+            });
+    }
+}
+
 /// Reads the source a second time and writes every point into its chunk's file; the
 /// points of each chunk must be those the counting pass saw.
+///
+/// The points' chunks and records are made on all cores, a block at a time; a thread of its
+/// own appends each block's records to the chunks' buffers (and hands full buffers to the
+/// spill writer's thread) while the next block is read and made.
 pub fn distribute(
     ctx: &BuildContext<'_>,
     source: &dyn PointSource,
@@ -40,39 +86,53 @@ pub fn distribute(
     let reservation = ctx
         .meter
         .try_reserve(2 * buffer_bytes, "distribution write buffers")?;
-    let mut writer = SpillWriter::new(ctx.spill, paths.clone(), buffer_bytes as usize, reservation);
-    let mut counts = vec![0u64; plan.chunks.len()];
-    let mut read = 0u64;
-    let bounds = source.bounds();
-    let _targets_buffer = ctx
+    let _blocks = ctx
         .meter
-        .try_reserve(CELL_BLOCK_POINTS as u64 * 4, "chunk indices")?;
-    let mut targets: Vec<u32> = Vec::with_capacity(CELL_BLOCK_POINTS);
-    source.for_each_batch(&mut |batch| {
-        check_batch(&batch, &bounds, &ctx.cube, read)?;
-        for (b, block) in batch.positions.chunks(CELL_BLOCK_POINTS).enumerate() {
-            block
-                .par_iter()
-                .map(|p| {
-                    plan.lookup[CountGrid::index(plan.level, ctx.cube.cell_at(*p, plan.level))]
-                })
-                .collect_into_vec(&mut targets);
-            for (j, &target) in targets.iter().enumerate() {
-                let i = b * CELL_BLOCK_POINTS + j;
-                let Some(count) = counts.get_mut(target as usize) else {
+        .try_reserve(DISTRIBUTION_BLOCKS_BYTES, "blocks of spill records")?;
+    let writer = SpillWriter::new(ctx.spill, paths.clone(), buffer_bytes as usize, reservation);
+    let chunk_count = plan.chunks.len();
+    let bounds = source.bounds();
+    let mut read = 0u64;
+    let (walked, scattered) = std::thread::scope(|scope| {
+        let (blocks, received) = mpsc::sync_channel::<RecordBlock>(1);
+        let (spare_sender, spare) = mpsc::channel::<RecordBlock>();
+        let scattering = scope.spawn(move || scatter(writer, chunk_count, received, spare_sender));
+        let walked = source.for_each_batch(&mut |batch| {
+            check_batch(&batch, &bounds, &ctx.cube, read)?;
+            for start in (0..batch.len()).step_by(RECORD_BLOCK_POINTS) {
+                let range = start..(start + RECORD_BLOCK_POINTS).min(batch.len());
+                let mut block = spare.try_recv().unwrap_or_default();
+                block.fill(&batch, range, plan, &ctx.cube);
+                if let Some(j) = block
+                    .targets
+                    .iter()
+                    .position(|&t| t as usize >= chunk_count)
+                {
                     return Err(LodError::SourceChanged(format!(
                         "point {} lies where the first pass counted none",
-                        read + i as u64
+                        read + (start + j) as u64
                     )));
-                };
-                *count += 1;
-                writer.push(target as usize, &RawPoint::from_batch(&batch, i))?;
+                }
+                if blocks.send(block).is_err() {
+                    // The scattering thread stopped on an error, which is returned below.
+                    return Err(LodError::Source("the spill writing stopped".into()));
+                }
             }
-        }
-        read += batch.len() as u64;
-        Ok(())
-    })?;
-    writer.finish()?;
+            read += batch.len() as u64;
+            Ok(())
+        });
+        drop(blocks);
+        let scattered = scattering.join().unwrap_or_else(|_| {
+            Err(LodError::spill(
+                ctx.spill.path(),
+                std::io::Error::other("the distribution's scattering thread panicked"),
+            ))
+        });
+        (walked, scattered)
+    });
+    // The scattering thread's error is the cause of any the walk returned after it.
+    let counts = scattered?;
+    walked?;
     if read != source.point_count() {
         return Err(LodError::CountMismatch {
             declared: source.point_count(),
@@ -89,6 +149,27 @@ pub fn distribute(
         }
     }
     Ok(plan.chunks.iter().copied().zip(paths).collect())
+}
+
+/// Appends every block's records to their chunks' files and counts them per chunk; each
+/// block goes back through `spare` to be filled again.
+fn scatter(
+    mut writer: SpillWriter<'_>,
+    chunks: usize,
+    blocks: mpsc::Receiver<RecordBlock>,
+    spare: mpsc::Sender<RecordBlock>,
+) -> Result<Vec<u64>, LodError> {
+    let mut counts = vec![0u64; chunks];
+    for block in blocks {
+        let records = block.records.chunks_exact(SPILL_RECORD_BYTES);
+        for (&target, record) in block.targets.iter().zip(records) {
+            counts[target as usize] += 1;
+            writer.push_record(target as usize, record)?;
+        }
+        let _ = spare.send(block);
+    }
+    writer.finish()?;
+    Ok(counts)
 }
 
 /// Builds every chunk, largest first, on the current rayon pool.

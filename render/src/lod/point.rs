@@ -32,6 +32,11 @@ impl RawPoint {
     }
 
     pub fn write_to(&self, out: &mut Vec<u8>) {
+        out.extend_from_slice(&self.record());
+    }
+
+    /// The point as one spill record.
+    pub fn record(&self) -> [u8; SPILL_RECORD_BYTES] {
         let mut record = [0u8; SPILL_RECORD_BYTES];
         for (i, c) in self.position.to_array().into_iter().enumerate() {
             record[8 * i..8 * i + 8].copy_from_slice(&c.to_le_bytes());
@@ -42,7 +47,7 @@ impl RawPoint {
         record[30..32].copy_from_slice(&self.intensity.to_le_bytes());
         record[32] = self.classification;
         record[33] = self.return_number;
-        out.extend_from_slice(&record);
+        record
     }
 
     /// Reads one record; `bytes` is exactly [`SPILL_RECORD_BYTES`] long.

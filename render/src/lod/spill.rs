@@ -5,6 +5,8 @@ use std::fs::{File, OpenOptions};
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::thread::JoinHandle;
 
 use super::error::LodError;
 use super::memory::Reservation;
@@ -82,13 +84,17 @@ impl Drop for SpillDir {
 }
 
 /// Appends points to one of many files, holding at most `limit` bytes of records in memory:
-/// when they are reached every buffer is appended to its file and freed.
+/// when half of them are buffered, the buffers go to a thread of their own that appends each
+/// to its file while the next half fills, so reading the source and writing spill overlap.
 pub struct SpillWriter<'a> {
     dir: &'a SpillDir,
-    paths: Vec<PathBuf>,
+    paths: Arc<[PathBuf]>,
     buffers: Vec<Vec<u8>>,
     buffered: usize,
-    limit: usize,
+    /// Bytes of records a set of buffers takes before it is handed to the writing thread.
+    set_limit: usize,
+    /// The set being appended to its files.
+    writing: Option<JoinHandle<Result<(), LodError>>>,
     _reservation: Reservation<'a>,
 }
 
@@ -104,50 +110,95 @@ impl<'a> SpillWriter<'a> {
     ) -> Self {
         let limit = limit.max(SPILL_RECORD_BYTES);
         debug_assert!(reservation.bytes() >= 2 * limit as u64);
+        let set_limit = (limit / 2).max(SPILL_RECORD_BYTES);
         Self {
             dir,
             buffers: vec![Vec::new(); paths.len()],
-            paths,
+            paths: paths.into(),
             buffered: 0,
-            limit,
+            set_limit,
+            writing: None,
             _reservation: reservation,
         }
     }
 
     pub fn push(&mut self, target: usize, point: &RawPoint) -> Result<(), LodError> {
-        point.write_to(&mut self.buffers[target]);
+        self.push_record(target, &point.record())
+    }
+
+    /// Appends one record, [`SPILL_RECORD_BYTES`] long, to file `target`.
+    pub fn push_record(&mut self, target: usize, record: &[u8]) -> Result<(), LodError> {
+        debug_assert_eq!(record.len(), SPILL_RECORD_BYTES);
+        self.buffers[target].extend_from_slice(record);
         self.buffered += SPILL_RECORD_BYTES;
-        if self.buffered + SPILL_RECORD_BYTES > self.limit {
+        if self.buffered + SPILL_RECORD_BYTES > self.set_limit {
             self.flush()?;
         }
         Ok(())
     }
 
+    /// Hands the buffers to the writing thread once it is done with the previous set.
     fn flush(&mut self) -> Result<(), LodError> {
-        for (buffer, path) in self.buffers.iter_mut().zip(&self.paths) {
-            if buffer.is_empty() {
-                continue;
-            }
-            // Opened per flush rather than kept open: a build may spill to more files than
-            // the process may hold open.
-            let mut file = OpenOptions::new()
-                .create(true)
-                .append(true)
-                .open(path)
-                .map_err(|e| LodError::spill(path, e))?;
-            file.write_all(buffer)
-                .map_err(|e| LodError::spill(path, e))?;
-            self.dir.count_written(buffer.len());
-            *buffer = Vec::new();
+        self.wait()?;
+        if self.buffered == 0 {
+            return Ok(());
         }
+        let buffers = std::mem::replace(&mut self.buffers, vec![Vec::new(); self.paths.len()]);
+        self.dir.count_written(self.buffered);
         self.buffered = 0;
+        let paths = Arc::clone(&self.paths);
+        let thread = std::thread::Builder::new()
+            .name("spill-writer".into())
+            .spawn(move || append_each(&paths, &buffers))
+            .map_err(|e| LodError::spill(self.dir.path(), e))?;
+        self.writing = Some(thread);
         Ok(())
+    }
+
+    /// Waits for the set being written, if any, and returns its error.
+    fn wait(&mut self) -> Result<(), LodError> {
+        match self.writing.take().map(JoinHandle::join) {
+            None => Ok(()),
+            Some(Ok(written)) => written,
+            Some(Err(_)) => Err(LodError::spill(
+                self.dir.path(),
+                std::io::Error::other("the spill writing thread panicked"),
+            )),
+        }
     }
 
     /// Writes what is left; every file now holds all its points.
     pub fn finish(mut self) -> Result<(), LodError> {
-        self.flush()
+        self.flush()?;
+        self.wait()
     }
+}
+
+impl Drop for SpillWriter<'_> {
+    /// A writer dropped on an error still waits for its thread, which writes into the folder
+    /// its owner is about to remove.
+    fn drop(&mut self) {
+        let _ = self.wait();
+    }
+}
+
+/// Appends each non-empty buffer to its file.
+fn append_each(paths: &[PathBuf], buffers: &[Vec<u8>]) -> Result<(), LodError> {
+    for (buffer, path) in buffers.iter().zip(paths) {
+        if buffer.is_empty() {
+            continue;
+        }
+        // Opened per set rather than kept open: a build may spill to more files than the
+        // process may hold open.
+        let mut file = OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(path)
+            .map_err(|e| LodError::spill(path, e))?;
+        file.write_all(buffer)
+            .map_err(|e| LodError::spill(path, e))?;
+    }
+    Ok(())
 }
 
 /// Streams the points of `path` in blocks of at most [`READ_BLOCK_POINTS`].

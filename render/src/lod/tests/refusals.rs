@@ -106,3 +106,71 @@ fn bad_sources_are_refused_with_clear_errors() {
         Err(LodError::MissingHierarchy)
     ));
 }
+
+/// A source whose second reading moves one point into space the first reading left empty.
+struct Moving {
+    points: Vec<DVec3>,
+    moved: usize,
+    to: DVec3,
+    readings: std::sync::atomic::AtomicU32,
+}
+
+impl PointSource for Moving {
+    fn bounds(&self) -> WorldBounds {
+        crate::cloud::bounds_of(self.points.iter().copied())
+    }
+
+    fn point_count(&self) -> u64 {
+        self.points.len() as u64
+    }
+
+    fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
+        let reading = self
+            .readings
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let mut points = self.points.clone();
+        if reading > 0 {
+            points[self.moved] = self.to;
+        }
+        let n = points.len();
+        // In two batches, so that the moved point's index counts the batch before it.
+        let zeros = vec![0u16; n];
+        let bytes = vec![0u8; n];
+        let half = n / 2;
+        for range in [0..half, half..n] {
+            visit(PointBatch {
+                positions: &points[range.clone()],
+                rgb: None,
+                intensity: &zeros[range.clone()],
+                classification: &bytes[range.clone()],
+                return_number: &bytes[range],
+            })?;
+        }
+        Ok(())
+    }
+}
+
+#[test]
+fn a_source_that_changes_between_its_readings_is_refused_naming_the_point() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (_db, store) = temp_store(dir.path());
+    let mut points: Vec<DVec3> = (0..3000)
+        .map(|i| DVec3::new(f64::from(i % 1000), 1.0, 2.0))
+        .collect();
+    points.push(DVec3::splat(999.0));
+    let moving = Moving {
+        points,
+        moved: 2100,
+        to: DVec3::new(200.0, 700.0, 200.0),
+        readings: Default::default(),
+    };
+    let error = build_lod(&moving, &store, &options(dir.path(), 500)).expect_err("moved");
+    assert!(
+        matches!(&error, LodError::SourceChanged(what) if what.contains("point 2100 ")),
+        "{error}"
+    );
+    let left = std::fs::read_dir(dir.path().join("spill"))
+        .map(|entries| entries.count())
+        .unwrap_or(0);
+    assert_eq!(left, 0, "no spill left behind");
+}
