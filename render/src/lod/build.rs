@@ -145,7 +145,11 @@ fn build_on_pool(
     let mut copy = if source.rereads_cheaply() {
         None
     } else {
-        Some(SourceCopyWriter::create(&spill, &meter)?)
+        Some(SourceCopyWriter::create(
+            &spill,
+            &meter,
+            source.point_count(),
+        )?)
     };
     let (grid, stats) = count_points(source, &cube, level, &meter, copy.as_mut())?;
     let copy = copy
