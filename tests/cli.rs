@@ -127,6 +127,27 @@ fn renders_a_turntable_into_a_directory() {
     assert_says(&output, "median per stage");
 }
 
+/// `pointfarm render … | head -1`: the reader goes away, the turntable is still rendered and
+/// the command ends without a panic.
+#[test]
+fn a_closed_output_pipe_does_not_stop_a_render() {
+    let scene = Scene::sampled("sample.las", 20_000);
+    let frames = scene.path("frames");
+    // A pipe whose reading end is closed before the command writes a line.
+    let (reader, writer) = std::io::pipe().expect("pipe");
+    drop(reader);
+    let output = std::process::Command::new(pointfarm_tests::pointfarm_bin())
+        .args(["render", &scene.cloud, "--out", &path_arg(&frames)])
+        .args(["--turntable", "3", "--size", "160x120", "--json"])
+        .stdout(writer)
+        .output()
+        .expect("run pointfarm");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{:?}: {stderr}", output.status);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert_frames(&frames, 3, (160, 120));
+}
+
 #[test]
 fn renders_a_real_scan_from_a_given_camera() {
     let Some(laz) = shared_data("autzen_trim.laz") else {

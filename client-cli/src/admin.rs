@@ -190,14 +190,14 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
                 })
                 .await?;
                 if server.json {
-                    println!(
+                    outln!(
                         "{}",
                         serde_json::Value::from(all.iter().map(dataset_json).collect::<Vec<_>>())
                     );
                 } else {
-                    println!("{:<20} {:>12}  name", "id", "bytes");
+                    outln!("{:<20} {:>12}  name", "id", "bytes");
                     for d in &all {
-                        println!("{:<20} {:>12}  {}", d.id, d.size_bytes, d.name);
+                        outln!("{:<20} {:>12}  {}", d.id, d.size_bytes, d.name);
                     }
                 }
             }
@@ -207,7 +207,7 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
                     .delete_dataset(pb::DeleteDatasetRequest { id: id.clone() })
                     .await
                     .map_err(status_error)?;
-                println!("deleted {id}");
+                outln!("deleted {id}");
             }
         }
         Ok(())
@@ -216,13 +216,13 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
 
 fn print_dataset(server: &ServerArgs, d: &pb::Dataset) {
     if server.json {
-        println!("{}", dataset_json(d));
+        outln!("{}", dataset_json(d));
     } else {
         let files = match d.files.len() {
             0 | 1 => String::new(),
             n => format!(", {n} files"),
         };
-        println!("{}  {} ({} bytes{files})", d.id, d.name, d.size_bytes);
+        outln!("{}  {} ({} bytes{files})", d.id, d.name, d.size_bytes);
     }
 }
 
@@ -271,12 +271,12 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                 })
                 .await?;
                 if server.json {
-                    println!("{}", serde_json::Value::from(all.iter().map(job_json).collect::<Vec<_>>()));
+                    outln!("{}", serde_json::Value::from(all.iter().map(job_json).collect::<Vec<_>>()));
                 } else {
-                    println!("{:<18} {:<10} {:>9} {:>8}  dataset", "id", "state", "frames", "priority");
+                    outln!("{:<18} {:<10} {:>9} {:>8}  dataset", "id", "state", "frames", "priority");
                     for j in &all {
                         let frames = format!("{}/{}", j.frames_done, j.frames_total);
-                        println!("{:<18} {:<10} {:>9} {:>8}  {}", j.id, state_name(j.state), frames, j.priority, j.dataset_id);
+                        outln!("{:<18} {:<10} {:>9} {:>8}  {}", j.id, state_name(j.state), frames, j.priority, j.dataset_id);
                     }
                 }
             }
@@ -287,38 +287,38 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                     let mut value = job_json(&job);
                     value["stages"] = stats.iter().map(|(s, median, p95)| json!({"stage": s, "median_ms": median, "p95_ms": p95})).collect();
                     value["frames"] = job.frames.iter().map(frame_json).collect();
-                    println!("{value}");
+                    outln!("{value}");
                 } else {
-                    println!("job {}  {}  {}/{} frames  dataset {}", job.id, state_name(job.state), job.frames_done, job.frames_total, job.dataset_id);
+                    outln!("job {}  {}  {}/{} frames  dataset {}", job.id, state_name(job.state), job.frames_done, job.frames_total, job.dataset_id);
                     if !job.error.is_empty() {
-                        println!("error: {}", job.error);
+                        outln!("error: {}", job.error);
                     }
                     let retried: Vec<String> = job.frames.iter().filter(|f| f.failed_attempts > 0)
                         .map(|f| format!("{} ({} failed)", f.index, f.failed_attempts)).collect();
                     if !retried.is_empty() {
-                        println!("frames that needed more than one attempt: {}", retried.join(", "));
+                        outln!("frames that needed more than one attempt: {}", retried.join(", "));
                     }
                     if let Some(line) = cut_summary(&job.frames) {
-                        println!("{line}");
+                        outln!("{line}");
                     }
                     if !stats.is_empty() {
-                        println!("{:<12} {:>10} {:>10}", "stage", "median ms", "p95 ms");
+                        outln!("{:<12} {:>10} {:>10}", "stage", "median ms", "p95 ms");
                         for (stage, median, p95) in &stats {
-                            println!("{stage:<12} {median:>10.2} {p95:>10.2}");
+                            outln!("{stage:<12} {median:>10.2} {p95:>10.2}");
                         }
                     }
                 }
             }
             JobsCommand::Cancel { id } => {
                 let job = answer(client.jobs.cancel_job(pb::CancelJobRequest { id }).await)?;
-                println!("job {} {}", job.id, state_name(job.state));
+                outln!("job {} {}", job.id, state_name(job.state));
             }
             JobsCommand::Watch { id } => {
                 let job = client.follow(&id, server.json).await?;
                 if server.json {
-                    println!("{}", job_json(&job));
+                    outln!("{}", job_json(&job));
                 } else {
-                    println!("job {} {} ({}/{} frames){}", job.id, state_name(job.state), job.frames_done, job.frames_total,
+                    outln!("job {} {} ({}/{} frames){}", job.id, state_name(job.state), job.frames_done, job.frames_total,
                         if job.error.is_empty() { String::new() } else { format!(": {}", job.error) });
                 }
             }
@@ -330,13 +330,13 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                         "lease_id": l.lease_id, "job_id": l.job_id, "frame": l.frame_index,
                         "worker": l.worker_name, "embedded": l.embedded, "expires_unix_ms": l.expires_unix_ms,
                     })).collect();
-                    println!("{}", serde_json::Value::from(values));
+                    outln!("{}", serde_json::Value::from(values));
                 } else {
-                    println!("{:<38} {:<18} {:>6}  {:<24} expires", "lease", "job", "frame", "worker");
+                    outln!("{:<38} {:<18} {:>6}  {:<24} expires", "lease", "job", "frame", "worker");
                     for l in &leases {
                         let expires = (l.expires_unix_ms - now) as f64 / 1e3;
                         let worker = if l.embedded { format!("{} (embedded)", l.worker_name) } else { l.worker_name.clone() };
-                        println!("{:<38} {:<18} {:>6}  {:<24} in {expires:.1} s", l.lease_id, l.job_id, l.frame_index, worker);
+                        outln!("{:<38} {:<18} {:>6}  {:<24} in {expires:.1} s", l.lease_id, l.job_id, l.frame_index, worker);
                     }
                 }
             }
@@ -351,7 +351,7 @@ pub fn frames(server: &ServerArgs, command: FramesCommand) -> Result<()> {
         match command {
             FramesCommand::Fetch { job, out, from } => {
                 let written = client.fetch_frames(&job, from, &out).await?;
-                println!("{} frames in {}", written.len(), out.display());
+                outln!("{} frames in {}", written.len(), out.display());
             }
         }
         Ok(())

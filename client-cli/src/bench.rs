@@ -194,7 +194,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         bench::plot::check_font()?;
     }
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
-    println!("adapter: {}", gpu.describe());
+    outln!("adapter: {}", gpu.describe());
     let settle = match bench::settle_after_baseline(gpu.adapter_info.device_type) {
         Some(settle) => format!(
             "; the first compute method after PointList for {} ms",
@@ -202,7 +202,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         ),
         None => String::new(),
     };
-    println!(
+    outln!(
         "{width}x{height}, {} warm-up + {} measured rounds per workload; in a round each method \
          renders unmeasured frames for {} ms (1 to {} frames{settle}), then the measured one",
         options.rounds.warmup_frames,
@@ -213,9 +213,9 @@ pub fn run(args: BenchArgs) -> Result<()> {
     let report = bench::run(gpu, &options, &mut |line| eprintln!("  {line}"))?;
 
     let markdown = bench::markdown::tables(&report);
-    println!("\n{markdown}");
+    outln!("\n{markdown}");
     if let Some(speedup) = report.speedup_vs_pointlist {
-        println!("speedup_vs_pointlist ({HEADLINE_WORKLOAD}): {speedup:.2}x");
+        outln!("speedup_vs_pointlist ({HEADLINE_WORKLOAD}): {speedup:.2}x");
     }
     if let Some(warning) = report.timestamp_warning() {
         eprintln!("warning: {warning}");
@@ -235,7 +235,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
     if let Some(path) = &args.plot {
         bench::plot::write(&report, path)?;
     }
-    println!("done in {:.0} s", started.elapsed().as_secs_f64());
+    outln!("done in {:.0} s", started.elapsed().as_secs_f64());
     Ok(())
 }
 
@@ -280,7 +280,7 @@ fn run_campaign(args: &BenchArgs, points: Option<usize>, started: Instant) -> Re
     let gpu = match options.turntable {
         Some(_) => {
             let gpu = Arc::new(GpuContext::new(args.adapter)?);
-            println!("adapter: {}", gpu.describe());
+            outln!("adapter: {}", gpu.describe());
             Some(gpu)
         }
         None => None,
@@ -317,7 +317,7 @@ fn run_cuts(args: &BenchArgs, started: Instant) -> Result<()> {
         ..defaults
     };
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
-    println!("adapter: {}", gpu.describe());
+    outln!("adapter: {}", gpu.describe());
     let result = cuts::measure(&gpu, &options, &mut |line| eprintln!("  {line}"))?;
     let markdown = cuts::markdown::cuts_tables(&result);
     finish(args, started, &markdown, |path, context| {
@@ -333,7 +333,7 @@ fn finish(
     markdown: &str,
     write_json: impl FnOnce(&Path, &RunContext) -> Result<()>,
 ) -> Result<()> {
-    println!("\n{markdown}");
+    outln!("\n{markdown}");
     if let Some(path) = &args.markdown {
         std::fs::write(path, markdown).with_context(|| format!("writing {}", path.display()))?;
     }
@@ -345,6 +345,6 @@ fn finish(
         };
         write_json(path, &context)?;
     }
-    println!("done in {:.0} s", started.elapsed().as_secs_f64());
+    outln!("done in {:.0} s", started.elapsed().as_secs_f64());
     Ok(())
 }

@@ -48,7 +48,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
                 &sample_scene(DEFAULT_SAMPLE_POINTS, 1),
                 &LasWriteOptions::default(),
             )?;
-            println!(
+            outln!(
                 "generated {} ({DEFAULT_SAMPLE_POINTS} points)",
                 file.display()
             );
@@ -80,7 +80,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
                 let _ = stopped.await;
             },
         ));
-        println!("daemon on {address}");
+        outln!("daemon on {address}");
 
         let result = async {
             let mut client =
@@ -107,18 +107,20 @@ pub fn run(args: DemoArgs) -> Result<()> {
             };
             let request = pb::SubmitJobRequest::from(&spec);
             let job = answer(client.jobs.submit_job(request).await)?;
-            println!(
+            outln!(
                 "job {} on dataset {}: {} frames",
-                job.id, dataset.id, job.frames_total
+                job.id,
+                dataset.id,
+                job.frames_total
             );
             let finished = client.follow(&job.id, false).await?;
             require_success(&finished)?;
             let written = client.fetch_frames(&job.id, 0, &args.out).await?;
             let details = answer(client.jobs.get_job(pb::GetJobRequest { id: job.id }).await)?;
             if let Some(frame) = details.frames.last() {
-                println!("last frame: {}", timings_line(&frame.timings));
+                outln!("last frame: {}", timings_line(&frame.timings));
             }
-            println!("{} frames in {}", written.len(), args.out.display());
+            outln!("{} frames in {}", written.len(), args.out.display());
             anyhow::Ok(())
         }
         .await;

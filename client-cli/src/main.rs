@@ -1,11 +1,19 @@
 //! `pointfarm`: render point clouds from a terminal or a script.
 
+/// `println!` for a command's output, which a closed pipe does not stop ([`output::line`]).
+macro_rules! outln {
+    ($($arg:tt)*) => {
+        $crate::output::line(format_args!($($arg)*))
+    };
+}
+
 mod admin;
 mod bench;
 mod credentials;
 mod demo;
 mod frame_source;
 mod lod_store;
+mod output;
 mod parse;
 mod progress;
 mod remote;

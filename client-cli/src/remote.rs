@@ -130,7 +130,7 @@ impl Client {
             for frame in job.frames.iter().chain(&event.frame) {
                 let line = format!("frame {:>5}  {}", frame.index, timings_line(&frame.timings));
                 if bar.is_hidden() && !quiet {
-                    println!("{line}");
+                    outln!("{line}");
                 } else {
                     bar.println(line);
                 }

@@ -68,7 +68,7 @@ pub fn run(server: &str, args: &RenderArgs, request: &RenderRequest) -> Result<(
         let files = dataset_files(&args.inputs)?;
         let mut client = Client::connect(server, &args.credentials).await?;
         let dataset = client.ensure_dataset(&files).await?;
-        println!(
+        outln!(
             "{}: dataset {} of {} file{} on {server}",
             args.inputs_label(),
             dataset.id,
@@ -81,15 +81,15 @@ pub fn run(server: &str, args: &RenderArgs, request: &RenderRequest) -> Result<(
             .await
             .map_err(crate::remote::status_error)?
             .into_inner();
-        println!("job {} submitted: {} frames", job.id, job.frames_total);
+        outln!("job {} submitted: {} frames", job.id, job.frames_total);
         let finished = client.follow(&job.id, false).await?;
         require_success(&finished)?;
         if args.turntable.is_some() {
             let written = client.fetch_frames(&job.id, 0, &args.out).await?;
-            println!("{} frames in {}", written.len(), args.out.display());
+            outln!("{} frames in {}", written.len(), args.out.display());
             if let Some(video) = &args.video {
                 crate::video::assemble(&args.out, video, args.fps)?;
-                println!("video: {}", video.display());
+                outln!("video: {}", video.display());
             }
         } else {
             let temp = tempdir_beside(&args.out)?;
@@ -98,7 +98,7 @@ pub fn run(server: &str, args: &RenderArgs, request: &RenderRequest) -> Result<(
             std::fs::rename(frame, &args.out)
                 .with_context(|| format!("writing {}", args.out.display()))?;
             let _ = std::fs::remove_dir_all(&temp);
-            println!("{}", args.out.display());
+            outln!("{}", args.out.display());
         }
         let details = client
             .jobs
@@ -107,7 +107,7 @@ pub fn run(server: &str, args: &RenderArgs, request: &RenderRequest) -> Result<(
             .map_err(crate::remote::status_error)?
             .into_inner();
         if let Some(first) = details.frames.first() {
-            println!(
+            outln!(
                 "frame {} on the server: {}",
                 first.index,
                 timings_line(&first.timings)

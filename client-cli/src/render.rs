@@ -29,7 +29,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         if args.json {
             eprintln!("{line}");
         } else {
-            println!("{line}");
+            outln!("{line}");
         }
     };
     let points = dataset_point_count(&files)?;
@@ -151,7 +151,7 @@ fn report_frame(
     match progress {
         // Not a terminal: plain lines for logs and scripts.
         Some(progress) if !progress.is_hidden() => progress.println(line),
-        _ => println!("{line}"),
+        _ => outln!("{line}"),
     }
 }
 
@@ -194,7 +194,7 @@ fn save_depth(
 }
 
 fn print_summary(dir: &Path, frames: &[StageTimings]) {
-    println!(
+    outln!(
         "{} frames in {}; median per stage:",
         frames.len(),
         dir.display()
@@ -216,6 +216,6 @@ fn print_summary(dir: &Path, frames: &[StageTimings]) {
             continue;
         }
         ms.sort_by(f64::total_cmp);
-        println!("  {:<10} {:>9.2} ms", stage.name(), ms[ms.len() / 2]);
+        outln!("  {:<10} {:>9.2} ms", stage.name(), ms[ms.len() / 2]);
     }
 }

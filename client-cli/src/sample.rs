@@ -26,6 +26,6 @@ pub fn run(args: SampleArgs) -> Result<()> {
             .with_context(|| format!("creating {}", parent.display()))?;
     }
     write_las(&args.out, &cloud, &LasWriteOptions::default())?;
-    println!("{}: {} points", args.out.display(), cloud.len());
+    outln!("{}: {} points", args.out.display(), cloud.len());
     Ok(())
 }

@@ -138,11 +138,11 @@ pub fn run(args: ServeArgs) -> Result<()> {
         let daemon =
             Daemon::open(config).with_context(|| format!("opening {}", args.data_dir.display()))?;
         let embedded_worker = if args.no_embedded_worker {
-            println!("no embedded worker: start `pointfarm worker --server ...` to render");
+            outln!("no embedded worker: start `pointfarm worker --server ...` to render");
             None
         } else {
             let command = embedded_worker_command(&args, &daemon.config)?;
-            println!("embedded worker: {}", command.program.display());
+            outln!("embedded worker: {}", command.program.display());
             Some(command)
         };
         let listener = tokio::net::TcpListener::bind(&args.listen)
@@ -150,7 +150,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
             .with_context(|| format!("listening on {}", args.listen))?;
         let address = listener.local_addr()?;
         options.check_exposure(address)?;
-        println!(
+        outln!(
             "pointfarm serving on {}{address} (data in {})",
             if options.tls.is_some() {
                 "https://"

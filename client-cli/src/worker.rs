@@ -98,7 +98,7 @@ pub fn run(args: WorkerArgs) -> Result<()> {
             .unwrap_or_else(|| "worker".into());
         format!("{host}-{}", std::process::id())
     });
-    println!(
+    outln!(
         "worker {name} on {} rendering for {}",
         gpu.describe(),
         server.url()
