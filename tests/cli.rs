@@ -127,6 +127,27 @@ fn renders_a_turntable_into_a_directory() {
     assert_says(&output, "median per stage");
 }
 
+/// An exported POINTFARM_SERVER makes `render` remote; `--local` renders here all the same.
+#[test]
+fn local_renders_here_whatever_the_environment_names() {
+    let scene = Scene::sampled("sample.las", 20_000);
+    let png = scene.path("frame.png");
+    let run = |local: bool| {
+        let mut command = std::process::Command::new(pointfarm_tests::pointfarm_bin());
+        command
+            .args(["render", &scene.cloud, "--out", &path_arg(&png)])
+            .args(["--size", "160x120"])
+            .env("POINTFARM_SERVER", "http://127.0.0.1:9");
+        if local {
+            command.arg("--local");
+        }
+        command.output().expect("run pointfarm")
+    };
+    assert!(!run(false).status.success(), "no server listens there");
+    assert_ok(&run(true));
+    assert_rendered(&png, 160, 120);
+}
+
 /// `pointfarm render … | head -1`: the reader goes away, the turntable is still rendered and
 /// the command ends without a panic.
 #[test]

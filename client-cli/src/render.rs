@@ -19,7 +19,7 @@ pub use crate::render_args::RenderArgs;
 pub fn run(args: RenderArgs) -> Result<()> {
     // Refuse bad options before anything is read, with the field at fault.
     let request = args.request()?;
-    if let Some(server) = args.server.clone() {
+    if let Some(server) = args.server.clone().filter(|_| !args.local) {
         return crate::remote_render::run(&server, &args, &request);
     }
 

@@ -32,6 +32,9 @@ pub struct RenderArgs {
     /// Render on this pointfarm server instead of here (uploading the file if needed).
     #[arg(long, env = "POINTFARM_SERVER")]
     pub(crate) server: Option<String>,
+    /// Render here, whatever --server or POINTFARM_SERVER say.
+    #[arg(long)]
+    pub(crate) local: bool,
     #[command(flatten)]
     pub(crate) credentials: ClientCredentials,
     /// Supersampling anti-aliasing: render at K times the size and average (1 = off).

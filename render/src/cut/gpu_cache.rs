@@ -58,7 +58,14 @@ pub struct GpuNodeCache {
     by_use: BTreeMap<u64, NodeKey>,
     tick: u64,
     color_mode: Option<ColorMode>,
+    /// Bytes written since the uploads were last submitted.
+    unsubmitted_bytes: u64,
 }
+
+/// Bytes of node uploads staged before they are submitted and waited for, so that the
+/// staging memory of a frame's uploads is bounded by this, not by its cut (on a CPU adapter it
+/// is host memory beside both caches).
+const UPLOAD_SUBMIT_BYTES: u64 = 64 << 20;
 
 impl GpuNodeCache {
     /// A cache of at most `budget_bytes`, in pages of at most `max_page_points` points.
@@ -83,6 +90,7 @@ impl GpuNodeCache {
             by_use: BTreeMap::new(),
             tick: 0,
             color_mode: None,
+            unsubmitted_bytes: 0,
         }
     }
 
@@ -213,6 +221,15 @@ impl GpuNodeCache {
                 last_used: self.tick,
             },
         );
+        self.unsubmitted_bytes +=
+            (data.positions.len() * position_bytes + data.colors.len()) as u64;
+        if self.unsubmitted_bytes >= UPLOAD_SUBMIT_BYTES {
+            self.unsubmitted_bytes = 0;
+            gpu.queue.submit([]);
+            gpu.device
+                .poll(wgpu::PollType::wait_indefinitely())
+                .map_err(|e| format!("uploading nodes: {e}"))?;
+        }
         Ok(evicted)
     }
 

@@ -52,7 +52,8 @@ pub use gpu_cache::SLOT_BYTES;
 pub use host_cache::node_heap_bytes;
 pub use options::{
     CacheBudgets, CutOptions, CutOptionsError, DEFAULT_GPU_BUDGET_BYTES, DEFAULT_LOD_ERROR_PX,
-    DEFAULT_MEMORY_BUDGET_BYTES, MAX_LOD_ERROR_PX, MIN_BUDGET_BYTES, RESIDENT_MAX_POINTS,
+    DEFAULT_MEMORY_BUDGET_BYTES, MAX_CUT_POINTS_PER_PIXEL, MAX_LOD_ERROR_PX, MIN_BUDGET_BYTES,
+    RESIDENT_MAX_POINTS,
 };
 pub use report::{CutCounts, CutReport};
 pub use select::{select_cut, Cut, CutNode, CutView};
@@ -248,16 +249,23 @@ impl CutRenderer {
     /// The cut a frame of `settings` draws.
     pub fn cut(&self, dataset: &LodDataset, settings: &FrameSettings) -> Cut {
         let k = settings.supersample.max(1);
+        let (width, height) = (
+            settings.width.saturating_mul(k),
+            settings.height.saturating_mul(k),
+        );
+        let pixels = u64::from(width) * u64::from(height);
         select_cut(
             &dataset.hierarchy,
             &CutView {
                 camera: &settings.camera,
                 origin: dataset.origin,
-                width: settings.width.saturating_mul(k),
-                height: settings.height.saturating_mul(k),
+                width,
+                height,
                 point_size: settings.point_size.saturating_mul(k),
                 lod_error: self.options.lod_error * f64::from(k),
                 max_batches: self.gpu_cache.capacity_batches(),
+                max_points: (self.options.lod_error > 0.0)
+                    .then(|| pixels.saturating_mul(MAX_CUT_POINTS_PER_PIXEL)),
             },
         )
     }

@@ -13,7 +13,8 @@ pub struct CutCounts {
     pub points_rendered: u64,
     /// Points of the whole dataset.
     pub points_total: u64,
-    /// Whether the GPU node cache's size, not the pixel error, bounded the cut.
+    /// Whether a bound, not the pixel error, stopped the cut: the GPU node cache's size or
+    /// the points the frame's pixels warrant (`MAX_CUT_POINTS_PER_PIXEL`).
     pub limited_by_budget: bool,
     /// Cut nodes already on the GPU.
     pub gpu_hits: u64,

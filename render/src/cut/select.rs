@@ -5,8 +5,8 @@
 //! ordered by how large the node's cube is on screen (nearest and largest first); the walk takes
 //! the first node, adds it to the cut, and queues the children in view when the node's spacing
 //! projected at its nearest depth is more than `lod_error` pixels. The cut stops growing when the
-//! next node would take it past the GPU node cache's batches, so a view too dense for the budget
-//! loses detail far away, never near. The order of the cut is the order its nodes are loaded in.
+//! next node would take it past the GPU node cache's batches or past the points its pixels
+//! warrant, so a view too dense for either loses detail far away, never near. The order of the cut is the order its nodes are loaded in.
 
 use std::cmp::Ordering;
 use std::collections::BinaryHeap;
@@ -67,6 +67,9 @@ pub struct CutView<'a> {
     pub lod_error: f64,
     /// The most batches the cut may take.
     pub max_batches: usize,
+    /// The most points the cut may draw (beyond its first node); `None`: as many as the
+    /// pixel error selects.
+    pub max_points: Option<u64>,
 }
 
 struct Queued {
@@ -168,17 +171,21 @@ pub fn select_cut(hierarchy: &LodHierarchy, view: &CutView<'_>) -> Cut {
             });
         }
     }
-    let mut batches = 0;
+    let (mut batches, mut points) = (0, 0u64);
     while let Some(Queued { priority, key }) = queue.pop() {
         let Some(node) = hierarchy.node(key) else {
             continue;
         };
         let node_batches = (node.point_count as usize).div_ceil(BATCH_POINTS);
-        if batches + node_batches > view.max_batches {
+        let over_points = view
+            .max_points
+            .is_some_and(|max| points + u64::from(node.point_count) > max);
+        if batches + node_batches > view.max_batches || (over_points && !cut.nodes.is_empty()) {
             cut.limited_by_budget = true;
             break;
         }
         batches += node_batches;
+        points += u64::from(node.point_count);
         if node.point_count > 0 {
             cut.nodes.push(CutNode {
                 key,

@@ -285,6 +285,27 @@ fn a_coarser_pixel_error_draws_fewer_points_and_the_default_keeps_the_image() {
     );
 }
 
+/// A small image of many points: the pixel error alone would draw them all, the cut stops at
+/// the points its pixels warrant; at 0 px every point is drawn all the same.
+#[test]
+fn a_cut_draws_at_most_its_pixels_worth_of_points_unless_asked_for_every_point() {
+    let fixture = fixture(60_000);
+    let mut renderer = Renderer::new(gpu());
+    let mut settings = settings(&fixture, &RenderOptions::default());
+    (settings.width, settings.height) = (40, 30);
+    let cap = 40 * 30 * crate::cut::MAX_CUT_POINTS_PER_PIXEL;
+    let (_, capped) = fresh_cut(&mut renderer, &fixture, 0.05, &settings);
+    assert!(capped.counts.limited_by_budget, "{:?}", capped.counts);
+    assert!(
+        capped.counts.points_rendered <= cap && capped.counts.points_rendered > cap / 2,
+        "{} points for a cap of {cap}",
+        capped.counts.points_rendered
+    );
+    let (_, full) = fresh_cut(&mut renderer, &fixture, 0.0, &settings);
+    assert!(!full.counts.limited_by_budget);
+    assert!(full.counts.points_rendered > 4 * cap, "{:?}", full.counts);
+}
+
 #[test]
 fn a_read_ahead_fills_the_host_cache_and_changes_no_pixel() {
     let (fixture, mut renderer, first) = basic_frame(40_000);
