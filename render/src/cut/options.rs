@@ -13,8 +13,9 @@ pub const MAX_LOD_ERROR_PX: f64 = 256.0;
 /// The most points a cut at a pixel error above 0 draws per pixel of the frame. Where the
 /// error alone would select more (a far view of a dense campaign, whose leaves hold points
 /// far finer than the error), the cut stops refining, far away first, so that a frame's time
-/// follows its pixels, not the dataset's points (docs/perf/cut-frames.md).
-pub const MAX_CUT_POINTS_PER_PIXEL: u64 = 8;
+/// follows its pixels, not the dataset's points. 32 kept every mode within the fidelity rule
+/// where 8 did not (docs/perf/cut-point-cap.md).
+pub const MAX_CUT_POINTS_PER_PIXEL: u64 = 32;
 /// The default bound of the host node cache.
 pub const DEFAULT_MEMORY_BUDGET_BYTES: u64 = 2 << 30;
 /// The default bound of the GPU node cache on a GPU with memory of its own.

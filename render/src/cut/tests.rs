@@ -292,8 +292,8 @@ fn a_cut_draws_at_most_its_pixels_worth_of_points_unless_asked_for_every_point()
     let fixture = fixture(60_000);
     let mut renderer = Renderer::new(gpu());
     let mut settings = settings(&fixture, &RenderOptions::default());
-    (settings.width, settings.height) = (40, 30);
-    let cap = 40 * 30 * crate::cut::MAX_CUT_POINTS_PER_PIXEL;
+    (settings.width, settings.height) = (20, 15);
+    let cap = 20 * 15 * crate::cut::MAX_CUT_POINTS_PER_PIXEL;
     let (_, capped) = fresh_cut(&mut renderer, &fixture, 0.05, &settings);
     assert!(capped.counts.limited_by_budget, "{:?}", capped.counts);
     assert!(
