@@ -144,8 +144,8 @@ pub struct RenderArgs {
     #[arg(long, value_enum, default_value = "auto")]
     atomics: AtomicsArg,
     /// Render from levels of detail: a node is refined while its point spacing covers more
-    /// than PX pixels on screen (0: every point). Datasets of more than 20M points use them
-    /// anyway, at 0.25 pixels. The store is built once and kept in --cache-dir (through a
+    /// than PX pixels on screen, up to 32 points a pixel of the image (0: every point).
+    /// Datasets of more than 20M points use them anyway, at 0.25 pixels. The store is built once and kept in --cache-dir (through a
     /// server, by the server, whose workers read the nodes they need from it).
     #[arg(long, value_name = "PX", value_parser = parse::non_negative)]
     lod_error: Option<f64>,
