@@ -6,7 +6,8 @@
 //! the first node, adds it to the cut, and queues the children in view when the node's spacing
 //! projected at its nearest depth is more than `lod_error` pixels. The cut stops growing when the
 //! next node would take it past the GPU node cache's batches or past the points its pixels
-//! warrant, so a view too dense for either loses detail far away, never near. The order of the cut is the order its nodes are loaded in.
+//! warrant, so a view too dense for either loses detail far away, never near. The order of the
+//! cut is the order its nodes are loaded in.
 
 use std::cmp::Ordering;
 use std::collections::BinaryHeap;
