@@ -6,6 +6,19 @@ cd "$(dirname "$0")/.."
 
 bash deploy/setup.sh
 
+# ffmpeg, for the tests that check the videos `render --video` makes (they skip, saying so,
+# where it cannot be installed).
+if ! command -v ffmpeg >/dev/null && command -v apt-get >/dev/null; then
+    sudo=""
+    if [ "$(id -u)" -ne 0 ]; then sudo="sudo"; fi
+    echo "pointfarm tests: installing ffmpeg for the video tests" >&2
+    install_ffmpeg() {
+        $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends ffmpeg >/dev/null
+    }
+    install_ffmpeg || { $sudo apt-get update -qq && install_ffmpeg; } ||
+        echo "pointfarm tests: ffmpeg could not be installed; the video tests will skip" >&2
+fi
+
 # Lints, where the toolchain has them (rustup's default profile does).
 if cargo fmt --version >/dev/null 2>&1; then
     cargo fmt --all -- --check

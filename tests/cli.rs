@@ -529,37 +529,6 @@ fn serve_without_an_embedded_worker_renders_through_a_worker_process() {
     );
 }
 
-#[test]
-fn turntable_video_needs_ffmpeg_and_says_so_when_it_is_missing() {
-    let scene = Scene::sampled("sample.laz", 10_000);
-    let (frames, video) = (scene.path("frames"), scene.path("turn.mp4"));
-    let (frames_arg, video_arg) = (path_arg(&frames), path_arg(&video));
-    let mut args = vec![
-        "render",
-        &scene.cloud,
-        "--out",
-        &frames_arg,
-        "--video",
-        &video_arg,
-    ];
-    args.extend(["--turntable", "2", "--size", "96x64"]);
-    let output = pointfarm(&args);
-    let has_ffmpeg = std::process::Command::new("ffmpeg")
-        .arg("-version")
-        .output()
-        .is_ok();
-    if has_ffmpeg {
-        assert_ok(&output);
-        assert!(std::fs::metadata(&video).expect("video written").len() > 0);
-    } else {
-        assert_fails_saying(&output, "ffmpeg is not installed");
-        assert!(
-            frames.join("frame_00001.png").is_file(),
-            "the frames are still there"
-        );
-    }
-}
-
 /// The JSON file a command wrote.
 fn read_json(path: &Path) -> serde_json::Value {
     serde_json::from_slice(&std::fs::read(path).expect("json written")).expect("valid json")

@@ -11,6 +11,7 @@ mod admin;
 mod bench;
 mod credentials;
 mod demo;
+mod frame_files;
 mod frame_source;
 mod lod_store;
 mod output;

@@ -11,6 +11,7 @@ use pointfarm_render::raster::AtomicsMode;
 use pointfarm_render::request::RenderRequest;
 
 use crate::remote::{require_success, timings_line, Client};
+use crate::render::Outputs;
 use crate::render_args::RenderArgs;
 
 /// Refuses what the service cannot do, so that no option is dropped on the way.
@@ -61,7 +62,12 @@ fn submission(
     pb::SubmitJobRequest::from(&spec)
 }
 
-pub fn run(server: &str, args: &RenderArgs, request: &RenderRequest) -> Result<()> {
+pub fn run(
+    server: &str,
+    args: &RenderArgs,
+    request: &RenderRequest,
+    outputs: &Outputs,
+) -> Result<()> {
     refuse_local_only_options(args, request)?;
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {
@@ -84,21 +90,28 @@ pub fn run(server: &str, args: &RenderArgs, request: &RenderRequest) -> Result<(
         outln!("job {} submitted: {} frames", job.id, job.frames_total);
         let finished = client.follow(&job.id, false).await?;
         require_success(&finished)?;
-        if args.turntable.is_some() {
-            let written = client.fetch_frames(&job.id, 0, &args.out).await?;
-            outln!("{} frames in {}", written.len(), args.out.display());
-            if let Some(video) = &args.video {
-                crate::video::assemble(&args.out, video, args.fps)?;
-                outln!("video: {}", video.display());
-            }
-        } else {
-            let temp = tempdir_beside(&args.out)?;
-            let written = client.fetch_frames(&job.id, 0, &temp).await?;
-            let frame = written.first().context("the server returned no frame")?;
-            std::fs::rename(frame, &args.out)
-                .with_context(|| format!("writing {}", args.out.display()))?;
-            let _ = std::fs::remove_dir_all(&temp);
-            outln!("{}", args.out.display());
+        // Fetched beside the frames' folder (one file system, so placing them is a rename),
+        // then named and converted as --out says.
+        let files = &outputs.files;
+        files.create_dir()?;
+        let temp = tempdir_in(files.dir())?;
+        let fetched = client.fetch_frames(&job.id, 0, &temp).await;
+        let placed = fetched.and_then(|fetched| {
+            (0..)
+                .zip(&fetched)
+                .map(|(index, png)| files.place_png(png, index))
+                .collect::<Result<Vec<_>>>()
+        });
+        let _ = std::fs::remove_dir_all(&temp);
+        let written = placed?;
+        match written.as_slice() {
+            [] => bail!("the server returned no frame"),
+            [one] => outln!("{}", one.display()),
+            many => outln!("{} frames in {}", many.len(), files.dir().display()),
+        }
+        if let Some(video) = &outputs.video {
+            video.assemble(&written)?;
+            outln!("video: {}", video.path().display());
         }
         let details = client
             .jobs
@@ -117,12 +130,8 @@ pub fn run(server: &str, args: &RenderArgs, request: &RenderRequest) -> Result<(
     })
 }
 
-/// A fresh folder next to `file` (same file system, so a rename can move frames into place).
-fn tempdir_beside(file: &std::path::Path) -> Result<std::path::PathBuf> {
-    let parent = file
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(std::path::Path::new("."));
+/// A fresh folder in `parent` (same file system, so a rename can move frames into place).
+fn tempdir_in(parent: &std::path::Path) -> Result<std::path::PathBuf> {
     let dir = parent.join(format!(".pointfarm-fetch-{}", std::process::id()));
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     Ok(dir)

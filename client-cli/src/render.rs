@@ -4,23 +4,28 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::{dataset_files, dataset_point_count};
 use pointfarm_render::raster::{FrameSettings, Stage, StageTimings};
+use pointfarm_render::request::RenderRequest;
 
+use crate::frame_files::{save_depth, FrameFiles};
 use crate::frame_source::{FrameSource, RenderedFrame};
 use crate::lod_store::{default_cache_dir, StoreCache};
+use crate::video::{VideoPlan, VideoRequest};
 
 pub use crate::render_args::RenderArgs;
 
 pub fn run(args: RenderArgs) -> Result<()> {
-    // Refuse bad options before anything is read, with the field at fault.
+    // Refuse bad options before anything is read, with the field at fault: the request, where
+    // the frames go, and the video.
     let request = args.request()?;
+    let outputs = Outputs::check(&args, &request)?;
     if let Some(server) = args.server.clone().filter(|_| !args.local) {
-        return crate::remote_render::run(&server, &args, &request);
+        return crate::remote_render::run(&server, &args, &request, &outputs);
     }
 
     let files = dataset_files(&args.inputs)?;
@@ -64,34 +69,18 @@ pub fn run(args: RenderArgs) -> Result<()> {
     // first frame.
     source.renderer().validate(&settings(0))?;
 
-    if args.turntable.is_none() {
-        if args.out.is_dir() {
-            bail!(
-                "{} is a directory; give a .png file (or use --turntable N)",
-                args.out.display()
-            );
-        }
-        let base = settings(0);
-        let mut rendered = source.render(&base)?;
-        encode::save_png(&mut rendered.frame, &args.out)
-            .with_context(|| format!("writing {}", args.out.display()))?;
-        if request.render.depth {
-            save_depth(
-                &rendered.frame,
-                &args.out.with_extension("depth.png"),
-                &base,
-            )?;
-        }
-        report_frame(&args, 0, &args.out, &base, &rendered, None);
-        return Ok(());
-    }
+    let files = &outputs.files;
     let frames = request.frames();
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
-    let progress = ProgressBar::new(frames as u64).with_style(
-        ProgressStyle::with_template("{bar:40} {pos}/{len} frames, {eta} left")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
+    files.create_dir()?;
+    let progress = if args.turntable.is_some() {
+        ProgressBar::new(u64::from(frames)).with_style(
+            ProgressStyle::with_template("{bar:40} {pos}/{len} frames, {eta} left")
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        )
+    } else {
+        ProgressBar::hidden()
+    };
+    let mut written = Vec::with_capacity(frames as usize);
     let mut all = Vec::with_capacity(frames as usize);
     for i in 0..frames {
         let frame_settings = settings(i);
@@ -100,26 +89,45 @@ pub fn run(args: RenderArgs) -> Result<()> {
         if i + 1 < frames {
             source.read_ahead(&settings(i + 1));
         }
-        let path = args.out.join(format!("frame_{i:05}.png"));
-        encode::save_png(&mut rendered.frame, &path)
+        let path = files.frame(i);
+        encode::save_frame(&mut rendered.frame, &path, files.format())
             .with_context(|| format!("writing {}", path.display()))?;
         if request.render.depth {
-            let depth = args.out.join(format!("depth_{i:05}.png"));
-            save_depth(&rendered.frame, &depth, &frame_settings)?;
+            save_depth(files, i, &rendered.frame, &frame_settings)?;
         }
-        report_frame(&args, i, &path, &frame_settings, &rendered, Some(&progress));
+        report_frame(&args, i, &path, &frame_settings, &rendered, &progress);
         all.push(rendered.frame.timings);
+        written.push(path);
         progress.inc(1);
     }
     progress.finish_and_clear();
-    if !args.json {
-        print_summary(&args.out, &all);
+    if args.turntable.is_some() && !args.json {
+        print_summary(files.dir(), &all);
     }
-    if let Some(video) = &args.video {
-        crate::video::assemble(&args.out, video, args.fps)?;
-        say(format!("video: {}", video.display()));
+    if let Some(video) = &outputs.video {
+        video.assemble(&written)?;
+        say(format!("video: {}", video.path().display()));
     }
     Ok(())
+}
+
+/// Where a render's frames and video go, checked before anything is rendered.
+pub(crate) struct Outputs {
+    pub files: FrameFiles,
+    pub video: Option<VideoPlan>,
+}
+
+impl Outputs {
+    fn check(args: &RenderArgs, request: &RenderRequest) -> Result<Self> {
+        let files = if args.turntable.is_some() {
+            FrameFiles::sequence(&args.out)?
+        } else {
+            FrameFiles::still(&args.out)?
+        };
+        files.check_background(request.render.background)?;
+        let video = args.video_request().map(VideoRequest::check).transpose()?;
+        Ok(Self { files, video })
+    }
 }
 
 /// A frame's line (or its JSON object with --json), above the progress bar if there is one.
@@ -129,7 +137,7 @@ fn report_frame(
     path: &Path,
     settings: &FrameSettings,
     rendered: &RenderedFrame,
-    progress: Option<&ProgressBar>,
+    progress: &ProgressBar,
 ) {
     let line = if args.json {
         frame_json(index, path, settings, rendered).to_string()
@@ -148,10 +156,11 @@ fn report_frame(
         }
         line
     };
-    match progress {
-        // Not a terminal: plain lines for logs and scripts.
-        Some(progress) if !progress.is_hidden() => progress.println(line),
-        _ => outln!("{line}"),
+    if progress.is_hidden() {
+        // Not a terminal, or a still: plain lines for logs and scripts.
+        outln!("{line}");
+    } else {
+        progress.println(line);
     }
 }
 
@@ -182,15 +191,6 @@ fn frame_json(
         object["cut"] = serde_json::to_value(cut).unwrap_or_default();
     }
     object
-}
-
-fn save_depth(
-    frame: &pointfarm_render::raster::Frame,
-    path: &Path,
-    settings: &FrameSettings,
-) -> Result<()> {
-    encode::save_depth_png16(frame, path, settings.camera.near, settings.camera.far)
-        .with_context(|| format!("writing {}", path.display()))
 }
 
 fn print_summary(dir: &Path, frames: &[StageTimings]) {

@@ -22,6 +22,7 @@ use pointfarm_render::request::{
 
 use crate::credentials::ClientCredentials;
 use crate::parse::{self, Rgba};
+use crate::video::{VideoCodec, VideoRequest, DEFAULT_VIDEO_QUALITY};
 
 #[derive(Args)]
 pub struct RenderArgs {
@@ -41,15 +42,23 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = DEFAULT_SUPERSAMPLE, value_name = "K")]
     supersample: u32,
     /// Also write each frame's linear depth as a 16-bit PNG (0 = no point, 1..65535 from
-    /// near to far): FRAME.depth.png, or depth_00000.png, ... with --turntable. Local only.
+    /// near to far) beside it, FRAME.depth.png, with FRAME.depth.json giving near, far and
+    /// the camera to turn it back into distances. Local only.
     #[arg(long)]
     depth: bool,
-    /// With --turntable: also assemble the frames into this video (needs ffmpeg).
-    #[arg(long, requires = "turntable")]
-    pub(crate) video: Option<PathBuf>,
+    /// With --turntable: also assemble this render's frames into a video (.mp4, .mov, .mkv,
+    /// .webm, or .gif for quick looks). Needs ffmpeg, which is checked before rendering.
+    #[arg(long, requires = "turntable", value_name = "FILE")]
+    video: Option<PathBuf>,
     /// Frames per second of --video.
-    #[arg(long, default_value_t = 30)]
-    pub(crate) fps: u32,
+    #[arg(long, default_value_t = 30, requires = "video")]
+    fps: u32,
+    /// Codec of --video [default: h264, vp9 for .webm].
+    #[arg(long, value_enum, requires = "video")]
+    video_codec: Option<VideoCodec>,
+    /// Constant quality of --video, 0 (best, largest) to 51; about 18 looks lossless.
+    #[arg(long, default_value_t = DEFAULT_VIDEO_QUALITY, value_name = "CRF", requires = "video")]
+    video_quality: u32,
     /// Print one JSON object per frame on standard output, and nothing else there: its file,
     /// size, the points of the dataset and those the point passes read, its stage timings.
     /// Local only.
@@ -58,8 +67,10 @@ pub struct RenderArgs {
     /// Server jobs: higher runs first.
     #[arg(long, default_value_t = 0)]
     pub(crate) priority: i32,
-    /// Output PNG file; with --turntable, a directory for frame_00000.png, frame_00001.png, ...
-    #[arg(short, long)]
+    /// Output image, in the format its extension names: .png, .jpg, .webp or .tif (16-bit).
+    /// With --turntable: a folder for frame_00000.png, frame_00001.png, ..., or a pattern
+    /// such as frames/orbit_{:04}.jpg ({} for unpadded numbers).
+    #[arg(short, long, value_name = "FILE|FOLDER|PATTERN")]
     pub(crate) out: PathBuf,
     /// Image size in pixels.
     #[arg(long, default_value = "1280x720", value_parser = parse::size)]
@@ -262,6 +273,16 @@ impl RenderArgs {
         };
         request.validate()?;
         Ok(request)
+    }
+
+    /// The video --video asks for, unchecked.
+    pub(crate) fn video_request(&self) -> Option<VideoRequest> {
+        self.video.clone().map(|path| VideoRequest {
+            path,
+            fps: self.fps,
+            codec: self.video_codec,
+            quality: self.video_quality,
+        })
     }
 
     /// The first option of this machine's node caches given, to name it where it does not

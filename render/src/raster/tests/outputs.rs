@@ -132,7 +132,12 @@ fn every_frame_reports_its_stage_timings() {
     // The point upload is reported once, by the first frame; later frames reuse the buffers.
     assert!(first.timings.get(Stage::Upload) > second.timings.get(Stage::Upload));
     let dir = tempfile::tempdir().expect("tempdir");
-    crate::encode::save_png(&mut first, &dir.path().join("frame.png")).expect("png");
+    crate::encode::save_frame(
+        &mut first,
+        &dir.path().join("frame.png"),
+        crate::encode::FrameFormat::Png,
+    )
+    .expect("png");
     assert!(first.timings.get(Stage::Encode).is_some());
     let line = first.timings.to_string();
     assert!(

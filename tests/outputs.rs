@@ -1,0 +1,263 @@
+//! What `pointfarm render` writes: images in the format their extension names, turntables
+//! into folders or patterns, depth images with what turns them back into distances, and
+//! videos of exactly the frames of the render (with ffmpeg, checked before rendering).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use pointfarm_tests::{pointfarm, pointfarm_bin};
+
+/// A temporary folder holding one small generated cloud.
+struct Scene {
+    dir: tempfile::TempDir,
+    cloud: String,
+}
+
+impl Scene {
+    fn new() -> Self {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let cloud = arg(&dir.path().join("sample.laz"));
+        ok(&pointfarm(&["sample", &cloud, "--points", "20000"]));
+        Self { dir, cloud }
+    }
+
+    fn path(&self, name: &str) -> PathBuf {
+        self.dir.path().join(name)
+    }
+
+    /// `render` of the scene at 96x64 with `options`.
+    fn render(&self, options: &[&str]) -> Output {
+        let mut args = vec!["render", &self.cloud, "--local", "--size", "96x64"];
+        args.extend(options);
+        pointfarm(&args)
+    }
+}
+
+fn arg(path: &Path) -> String {
+    path.to_str().expect("UTF-8 temporary paths").to_owned()
+}
+
+fn ok(output: &Output) {
+    assert!(
+        output.status.success(),
+        "pointfarm failed:\n{}\n{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
+
+fn fails_saying(output: &Output, needle: &str) {
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        !output.status.success(),
+        "expected a failure saying {needle}"
+    );
+    assert!(stderr.contains(needle), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+}
+
+/// The image format the file's bytes are in, whatever its name says.
+fn format_of(path: &Path) -> image::ImageFormat {
+    image::ImageReader::open(path)
+        .and_then(|r| r.with_guessed_format())
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .format()
+        .unwrap_or_else(|| panic!("{}: no known format", path.display()))
+}
+
+fn ffmpeg_installed() -> bool {
+    let found = Command::new("ffmpeg").arg("-version").output().is_ok();
+    if !found {
+        eprintln!("skipped: ffmpeg is not installed (deploy/test.sh installs it)");
+    }
+    found
+}
+
+/// The frames of a video, counted by ffprobe.
+fn video_frames(video: &Path) -> u64 {
+    let output = Command::new("ffprobe")
+        .args(["-v", "error", "-count_frames", "-select_streams", "v:0"])
+        .args(["-show_entries", "stream=nb_read_frames", "-of", "csv=p=0"])
+        .arg(video)
+        .output()
+        .expect("ffprobe runs");
+    let text = String::from_utf8_lossy(&output.stdout);
+    text.trim()
+        .parse()
+        .unwrap_or_else(|_| panic!("ffprobe said {text:?} of {}", video.display()))
+}
+
+#[test]
+fn a_still_is_written_in_the_format_its_extension_names() {
+    let scene = Scene::new();
+    for (name, format) in [
+        ("still.png", image::ImageFormat::Png),
+        ("still.JPG", image::ImageFormat::Jpeg),
+        ("still.webp", image::ImageFormat::WebP),
+        ("still.tiff", image::ImageFormat::Tiff),
+    ] {
+        let path = scene.path(name);
+        ok(&scene.render(&["--out", &arg(&path)]));
+        assert_eq!(format_of(&path), format, "{name}");
+        let image = image::open(&path).expect("readable");
+        assert_eq!((image.width(), image.height()), (96, 64), "{name}");
+        if format == image::ImageFormat::Tiff {
+            assert!(image.as_rgba16().is_some(), "16 bits a channel");
+        }
+    }
+    let bmp = scene.path("still.bmp");
+    fails_saying(&scene.render(&["--out", &arg(&bmp)]), ".jpg/.jpeg");
+    fails_saying(
+        &scene.render(&[
+            "--out",
+            &arg(&scene.path("t.jpg")),
+            "--background",
+            "transparent",
+        ]),
+        "JPEG has no alpha channel",
+    );
+}
+
+#[test]
+fn a_turntable_goes_to_a_folder_or_a_pattern_never_over_one_file() {
+    let scene = Scene::new();
+    let pattern = scene.path("shots/orbit_{:03}.jpg");
+    ok(&scene.render(&["--turntable", "2", "--out", &arg(&pattern)]));
+    for i in 0..2 {
+        let frame = scene.path(&format!("shots/orbit_{i:03}.jpg"));
+        assert_eq!(format_of(&frame), image::ImageFormat::Jpeg);
+    }
+    let file = scene.path("foo.png");
+    fails_saying(
+        &scene.render(&["--turntable", "2", "--out", &arg(&file)]),
+        "a turntable writes many frames",
+    );
+    assert!(!file.exists(), "nothing is made of a refused --out");
+}
+
+#[test]
+fn a_depth_image_comes_with_its_near_far_and_camera() {
+    let scene = Scene::new();
+    let out = scene.path("view.webp");
+    ok(&scene.render(&[
+        "--out",
+        &arg(&out),
+        "--depth",
+        "--near",
+        "10",
+        "--far",
+        "5000",
+    ]));
+    let depth_path = scene.path("view.depth.png");
+    let sidecar: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(scene.path("view.depth.json")).expect("sidecar"))
+            .expect("JSON");
+    assert_eq!(sidecar["near"], 10.0, "{sidecar}");
+    assert_eq!(sidecar["far"], 5000.0, "{sidecar}");
+    assert_eq!(sidecar["image"], "view.depth.png");
+    assert_eq!(
+        (sidecar["width"].as_u64(), sidecar["height"].as_u64()),
+        (Some(96), Some(64))
+    );
+    for key in ["position", "target", "up"] {
+        let vector = sidecar["camera"][key].as_array().expect(key);
+        assert_eq!(vector.len(), 3, "{sidecar}");
+    }
+    assert!(sidecar["camera"]["projection"]["perspective"]["fovYDeg"].is_number());
+
+    // Where the colour image shows a point the depth decodes to a distance, nearer at the
+    // bottom of this view from above than at the top.
+    let depth = image::open(&depth_path).expect("depth PNG");
+    let depth = depth.as_luma16().expect("16-bit grey");
+    let color = image::open(&out).expect("colour").to_rgba8();
+    let background = *color.get_pixel(0, 0);
+    let mut halves = [(0.0, 0u32); 2];
+    for (x, y, c) in color.enumerate_pixels() {
+        if *c == background {
+            continue;
+        }
+        let v = depth.get_pixel(x, y).0[0];
+        assert!(v > 0, "the point at ({x}, {y}) has a depth");
+        let distance = 10.0 + f64::from(v - 1) / 65534.0 * (5000.0 - 10.0);
+        let half = &mut halves[usize::from(y >= 32)];
+        half.0 += distance;
+        half.1 += 1;
+    }
+    let [(top, top_n), (bottom, bottom_n)] = halves;
+    assert!(
+        top_n > 50 && bottom_n > 50,
+        "{top_n} and {bottom_n} pixels lit"
+    );
+    let (top, bottom) = (top / f64::from(top_n), bottom / f64::from(bottom_n));
+    assert!(bottom < top, "bottom {bottom} nearer than top {top}");
+}
+
+#[test]
+fn a_video_holds_exactly_the_frames_of_its_render() {
+    if !ffmpeg_installed() {
+        return;
+    }
+    let scene = Scene::new();
+    let frames = scene.path("frames");
+    // Frames of an earlier, longer render in the same folder.
+    ok(&scene.render(&["--turntable", "6", "--out", &arg(&frames)]));
+    let video = scene.path("turn.mp4");
+    ok(&scene.render(&[
+        "--turntable",
+        "3",
+        "--out",
+        &arg(&frames),
+        "--video",
+        &arg(&video),
+        "--fps",
+        "10",
+        "--video-quality",
+        "28",
+    ]));
+    assert_eq!(video_frames(&video), 3);
+    let gif = scene.path("turn.gif");
+    ok(&scene.render(&[
+        "--turntable",
+        "4",
+        "--out",
+        &arg(&scene.path("jpegs/f_{}.jpg")),
+        "--video",
+        &arg(&gif),
+    ]));
+    assert_eq!(format_of(&gif), image::ImageFormat::Gif);
+    assert_eq!(video_frames(&gif), 4);
+}
+
+#[test]
+fn a_video_that_cannot_be_made_is_refused_before_any_frame_is_rendered() {
+    let scene = Scene::new();
+    let frames = scene.path("frames");
+    let video = arg(&scene.path("turn.mp4"));
+    // No ffmpeg on the PATH.
+    let output = Command::new(pointfarm_bin())
+        .args(["render", &scene.cloud, "--local", "--size", "96x64"])
+        .args([
+            "--turntable",
+            "2",
+            "--out",
+            &arg(&frames),
+            "--video",
+            &video,
+        ])
+        .env("PATH", scene.path("empty"))
+        .output()
+        .expect("run pointfarm");
+    fails_saying(&output, "ffmpeg is not installed");
+    assert!(!frames.exists(), "no frame rendered");
+    let elsewhere = arg(&scene.path("absent/turn.mp4"));
+    let output = scene.render(&[
+        "--turntable",
+        "2",
+        "--out",
+        &arg(&frames),
+        "--video",
+        &elsewhere,
+    ]);
+    fails_saying(&output, "does not exist");
+    assert!(!frames.exists(), "no frame rendered");
+}
