@@ -41,10 +41,14 @@ pub fn run(args: InfoArgs) -> Result<()> {
     for input in &args.inputs {
         match dataset_files(std::slice::from_ref(input)) {
             Ok(found) => files.extend(found),
-            Err(error) => reports.push(Report {
-                path: input.clone(),
-                outcome: Err(error),
-            }),
+            Err(error) => {
+                let report = Report {
+                    path: input.clone(),
+                    outcome: Err(error),
+                };
+                tell(&report, args.json);
+                reports.push(report);
+            }
         }
     }
     // Without repeats across inputs (a file named and inside a named folder): the files are
@@ -56,12 +60,7 @@ pub fn run(args: InfoArgs) -> Result<()> {
     };
     for path in files {
         let report = inspect(path, !args.no_points);
-        if let Err(error) = &report.outcome {
-            eprintln!("error: {error}");
-        }
-        if !args.json {
-            print_report(&report);
-        }
+        tell(&report, args.json);
         reports.push(report);
     }
     let summary = Summary::of(&reports);
@@ -73,6 +72,16 @@ pub fn run(args: InfoArgs) -> Result<()> {
     match summary.failed {
         0 => Ok(()),
         failed => anyhow::bail!("{failed} of {} files could not be read", reports.len()),
+    }
+}
+
+/// A report as soon as it is made: its error on stderr, its text unless JSON comes at the end.
+fn tell(report: &Report, json: bool) {
+    if let Err(error) = &report.outcome {
+        eprintln!("error: {error}");
+    }
+    if !json {
+        print_report(report);
     }
 }
 
