@@ -13,6 +13,8 @@ mod credentials;
 mod demo;
 mod frame_files;
 mod frame_source;
+mod info;
+mod info_json;
 mod lod_store;
 mod output;
 mod parse;
@@ -51,6 +53,10 @@ enum Command {
     Bench(bench::BenchArgs),
     /// Render frames of a LAS/LAZ file on this machine's GPU (or lavapipe).
     Render(Box<render::RenderArgs>),
+    /// What LAS/LAZ files hold, before rendering them: version, point format, counts, bounds,
+    /// scale and offset, CRS, attributes, and (reading the points once, in a stream)
+    /// classes, returns, intensity and whether the colours carry information.
+    Info(info::InfoArgs),
     /// Write a generated sample scene (survey-like coordinates, RGB) as LAS or LAZ.
     Sample(sample::SampleArgs),
     /// The service end to end in one process: daemon, worker, upload, turntable, frames.
@@ -101,6 +107,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Render(args) => render::run(*args),
         Command::Bench(args) => bench::run(args),
+        Command::Info(args) => info::run(args),
         Command::Sample(args) => sample::run(args),
         Command::Serve(args) => serve::run(*args),
         Command::Worker(args) => worker::run(*args),

@@ -48,6 +48,19 @@ pub enum ColorSource {
     Constant,
 }
 
+impl ColorSource {
+    /// The one RGB decision: the spec says 16-bit, but some writers store 8-bit values as they
+    /// are; if no channel of any point exceeds 255 (`max_channel`, over the whole dataset)
+    /// that is what the fields hold.
+    pub fn of_rgb(max_channel: u16) -> Self {
+        if max_channel <= 255 {
+            Self::Rgb8In16Bit
+        } else {
+            Self::Rgb16
+        }
+    }
+}
+
 /// Packs an opaque RGB colour into the renderer's RGBA8 word (red in the low byte, alpha 255).
 pub fn pack_rgba8(r: u8, g: u8, b: u8) -> u32 {
     u32::from_le_bytes([r, g, b, 255])

@@ -7,7 +7,7 @@
 
 use glam::DVec3;
 
-use crate::cloud::pack_rgba8;
+use crate::cloud::{pack_rgba8, ColorSource};
 use crate::color::{
     ColorMode, ElevationRange, IntensityRange, Palette, PaletteAttributes, CONSTANT_GREY_RGBA,
 };
@@ -30,7 +30,9 @@ impl DatasetColoring {
     /// From the store's statistics and the heights (relative to the origin) of a sample.
     pub fn new(stats: &DatasetStats, mut sample_heights: Vec<f32>) -> Self {
         Self {
-            rgb_is_8_bit: stats.has_rgb.then(|| stats.max_rgb_channel() <= 255),
+            rgb_is_8_bit: stats
+                .has_rgb
+                .then(|| ColorSource::of_rgb(stats.max_rgb_channel()) == ColorSource::Rgb8In16Bit),
             intensity: IntensityRange::from_histogram(&stats.intensity_histogram),
             elevation: ElevationRange::of(&mut sample_heights),
         }

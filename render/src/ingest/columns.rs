@@ -130,11 +130,10 @@ impl DecodedPoints {
     }
 }
 
-/// Display colours from the RGB fields. The spec says 16-bit, but some writers store 8-bit
-/// values as they are; if no channel of any point exceeds 255 that is what the file holds.
+/// Display colours from the RGB fields, decided by [`ColorSource::of_rgb`].
 fn colors_from_rgb(rgb: &[[u16; 3]]) -> (Vec<u32>, ColorSource) {
     let max_channel = rgb.iter().flatten().copied().max().unwrap_or(0);
-    if max_channel <= 255 {
+    if ColorSource::of_rgb(max_channel) == ColorSource::Rgb8In16Bit {
         let colors = rgb
             .iter()
             .map(|&[r, g, b]| pack_rgba8(r as u8, g as u8, b as u8))

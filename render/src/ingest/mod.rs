@@ -19,17 +19,21 @@
 //!   into one cloud;
 //! - `columns.rs`: the decoded points and the cloud made of them (origin, colours);
 //! - `files.rs`: the files of a dataset, from files and folders;
+//! - `info.rs`: what a file is, for `pointfarm info`: header facts, attributes, and a
+//!   summary of its points streamed; `crs.rs`: the CRS its records declare;
 //! - `source.rs`: a dataset's files as the level-of-detail builder's source, streamed;
 //! - `write.rs`: writing clouds as LAS or LAZ;
 //! - `error.rs`: [`IngestError`].
 
 mod columns;
 mod contain;
+mod crs;
 #[cfg(test)]
 mod dataset_tests;
 mod error;
 mod files;
 mod header;
+mod info;
 mod laz_layout;
 mod preparse;
 mod raw_file;
@@ -42,8 +46,10 @@ mod transforms;
 mod write;
 
 pub use crate::cloud::MAX_COORDINATE;
+pub use crs::{Crs, GeoKeys, USER_DEFINED as GEOTIFF_USER_DEFINED};
 pub use error::IngestError;
 pub use files::dataset_files;
+pub use info::{Attributes, FileInfo, PointSummary, RgbRange};
 pub use source::DatasetSource;
 
 /// The first four bytes of every LAS and LAZ file.

@@ -116,7 +116,7 @@ impl DatasetFile {
         paths.iter().map(|path| Self::check(path)).collect()
     }
 
-    fn check(path: &Path) -> Result<Self, IngestError> {
+    pub(super) fn check(path: &Path) -> Result<Self, IngestError> {
         let io_error = |error| IngestError::Io {
             path: path.to_owned(),
             error,
@@ -141,6 +141,24 @@ impl DatasetFile {
             header_bounds,
             has_color,
         })
+    }
+
+    /// The file's header as the `las` crate reads it, with every VLR and EVLR (each one's
+    /// extent checked by the pre-parse before it is allocated).
+    pub(super) fn header(&self) -> Result<las::Header, IngestError> {
+        let path = self.path.as_path();
+        let file = File::open(path).map_err(|error| IngestError::Io {
+            path: path.to_owned(),
+            error,
+        })?;
+        contain_panics(path, || {
+            Ok(open_reader(path, file, self.laz)?.header().clone())
+        })
+    }
+
+    /// Bytes of the file when it was checked.
+    pub(super) fn file_len(&self) -> u64 {
+        self.file_len
     }
 
     /// Decodes every declared point into `decoded`, relative to `origin` (fixed by the first
