@@ -337,14 +337,14 @@ pub(crate) fn color_words(points: &PointSummary) -> String {
     if !rgb.varies() {
         let [r, g, b] = rgb.min;
         return if rgb.min == [0; 3] {
-            "RGB fields, all zero: no colour information".to_owned()
+            "RGB fields, all zero: no colour information (rendered from intensity)".to_owned()
         } else {
             format!("RGB fields, one colour ({r}, {g}, {b}) for every point: no colour information")
         };
     }
     let [r, g, b] = rgb.max;
     match rgb.source() {
-        ColorSource::Rgb8In16Bit => format!(
+        Some(ColorSource::Rgb8In16Bit) => format!(
             "RGB, 8-bit values in 16-bit fields (highest {r}, {g}, {b}; rendered as they are)"
         ),
         _ => format!("RGB, 16-bit (highest {r}, {g}, {b})"),

@@ -101,7 +101,7 @@ fn points_json(points: &PointSummary) -> Value {
         Some(rgb) => json!({
             "rgb": true,
             "varies": rgb.varies(),
-            "eight_bit_in_16_bit_fields": rgb.source() == ColorSource::Rgb8In16Bit,
+            "eight_bit_in_16_bit_fields": rgb.source() == Some(ColorSource::Rgb8In16Bit),
             "min": rgb.min,
             "max": rgb.max,
             "description": color_words(points),

@@ -49,14 +49,16 @@ pub enum ColorSource {
 }
 
 impl ColorSource {
-    /// The one RGB decision: the spec says 16-bit, but some writers store 8-bit values as they
-    /// are; if no channel of any point exceeds 255 (`max_channel`, over the whole dataset)
-    /// that is what the fields hold.
-    pub fn of_rgb(max_channel: u16) -> Self {
-        if max_channel <= 255 {
-            Self::Rgb8In16Bit
-        } else {
-            Self::Rgb16
+    /// The one RGB decision, from the largest channel of any point of the whole dataset
+    /// (`max_channel`). `None` when every channel is 0: the fields exist but were never filled
+    /// (some writers do this), and the points are coloured from intensity instead of black.
+    /// The spec says 16-bit, but some writers store 8-bit values as they are; if no channel
+    /// exceeds 255 that is what the fields hold.
+    pub fn of_rgb(max_channel: u16) -> Option<Self> {
+        match max_channel {
+            0 => None,
+            1..=255 => Some(Self::Rgb8In16Bit),
+            _ => Some(Self::Rgb16),
         }
     }
 }

@@ -19,7 +19,8 @@ pub const ELEVATION_SAMPLE_POINTS: u64 = 1 << 20;
 /// What colouring needs of a dataset.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DatasetColoring {
-    /// Whether the RGB fields hold 8-bit values (no channel above 255); `None` without RGB.
+    /// Whether the RGB fields hold 8-bit values (no channel above 255); `None` without RGB,
+    /// or with RGB fields that are all zero ([`ColorSource::of_rgb`]).
     rgb_is_8_bit: Option<bool>,
     intensity: Option<IntensityRange>,
     /// Heights relative to the rendering origin.
@@ -32,7 +33,9 @@ impl DatasetColoring {
         Self {
             rgb_is_8_bit: stats
                 .has_rgb
-                .then(|| ColorSource::of_rgb(stats.max_rgb_channel()) == ColorSource::Rgb8In16Bit),
+                .then(|| ColorSource::of_rgb(stats.max_rgb_channel()))
+                .flatten()
+                .map(|source| source == ColorSource::Rgb8In16Bit),
             intensity: IntensityRange::from_histogram(&stats.intensity_histogram),
             elevation: ElevationRange::of(&mut sample_heights),
         }

@@ -99,8 +99,12 @@ impl DecodedPoints {
     }
 
     pub fn into_cloud(self, origin: DVec3) -> PointCloud {
-        let (colors, color_source) = match &self.rgb {
-            Some(rgb) => colors_from_rgb(rgb),
+        let rgb = self.rgb.as_ref().and_then(|rgb| {
+            let max_channel = rgb.iter().flatten().copied().max().unwrap_or(0);
+            ColorSource::of_rgb(max_channel).map(|source| (rgb, source))
+        });
+        let (colors, color_source) = match rgb {
+            Some((rgb, source)) => (colors_from_rgb(rgb, source), source),
             None => match intensity_grey(&self.intensity) {
                 Some(colors) => (colors, ColorSource::IntensityGrey),
                 None => (
@@ -130,23 +134,15 @@ impl DecodedPoints {
     }
 }
 
-/// Display colours from the RGB fields, decided by [`ColorSource::of_rgb`].
-fn colors_from_rgb(rgb: &[[u16; 3]]) -> (Vec<u32>, ColorSource) {
-    let max_channel = rgb.iter().flatten().copied().max().unwrap_or(0);
-    if ColorSource::of_rgb(max_channel) == ColorSource::Rgb8In16Bit {
-        let colors = rgb
-            .iter()
-            .map(|&[r, g, b]| pack_rgba8(r as u8, g as u8, b as u8))
-            .collect();
-        (colors, ColorSource::Rgb8In16Bit)
-    } else {
-        let high_byte = |channel: u16| (channel >> 8) as u8;
-        let colors = rgb
-            .iter()
-            .map(|&[r, g, b]| pack_rgba8(high_byte(r), high_byte(g), high_byte(b)))
-            .collect();
-        (colors, ColorSource::Rgb16)
-    }
+/// Display colours from the RGB fields, as [`ColorSource::of_rgb`] decided to read them.
+fn colors_from_rgb(rgb: &[[u16; 3]], source: ColorSource) -> Vec<u32> {
+    let shift = if source == ColorSource::Rgb16 { 8 } else { 0 };
+    rgb.iter()
+        .map(|c| {
+            let [r, g, b] = c.map(|v| (v >> shift) as u8);
+            pack_rgba8(r, g, b)
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -161,7 +157,8 @@ mod tests {
     use crate::ingest::test_files::*;
     use crate::ingest::{load_point_cloud, LasWriteOptions};
 
-    /// Writes points with the given raw 16-bit colours (write_las always widens 8-bit colours).
+    /// Writes points with the given raw 16-bit colours (write_las always widens 8-bit colours)
+    /// and intensities 100, 200, ...
     fn write_raw_rgb(path: &Path, rgb: &[[u16; 3]]) {
         let mut builder = las::Builder::from((1, 2));
         builder.point_format = las::point::Format::new(2).expect("format 2");
@@ -173,6 +170,7 @@ mod tests {
                 y: 2.0 * i as f64,
                 z: 1.0,
                 color: Some(Color::new(r, g, b)),
+                intensity: 100 * (i as u16 + 1),
                 ..Point::default()
             };
             writer.write_point(point).expect("write point");
@@ -206,6 +204,18 @@ mod tests {
                 pack_rgba8(255, 255, 255)
             ]
         );
+    }
+
+    #[test]
+    fn rgb_fields_that_are_all_zero_give_way_to_intensity() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join("unfilled.las");
+        write_raw_rgb(&path, &[[0, 0, 0]; 50]);
+        let cloud = load_point_cloud(&path).expect("load");
+        assert_eq!(cloud.color_source, ColorSource::IntensityGrey);
+        let greys: Vec<u8> = cloud.colors.iter().map(|c| c.to_le_bytes()[0]).collect();
+        assert!(greys.windows(2).all(|w| w[0] <= w[1]), "{greys:?}");
+        assert!(greys[0] < greys[49], "intensity 100 to 5000 spans greys");
     }
 
     #[test]

@@ -166,7 +166,7 @@ impl RgbRange {
     }
 
     /// How the renderer reads these fields: [`ColorSource::of_rgb`], the one RGB decision.
-    pub fn source(&self) -> ColorSource {
+    pub fn source(&self) -> Option<ColorSource> {
         ColorSource::of_rgb(self.max.into_iter().max().unwrap_or(0))
     }
 }
