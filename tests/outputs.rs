@@ -163,7 +163,7 @@ fn a_depth_image_comes_with_its_near_far_and_camera() {
         let vector = sidecar["camera"][key].as_array().expect(key);
         assert_eq!(vector.len(), 3, "{sidecar}");
     }
-    assert!(sidecar["camera"]["projection"]["perspective"]["fovYDeg"].is_number());
+    assert!(sidecar["camera"]["projection"]["perspective"]["fov_y_deg"].is_number());
 
     // Where the colour image shows a point the depth decodes to a distance, nearer at the
     // bottom of this view from above than at the top.
@@ -260,4 +260,29 @@ fn a_video_that_cannot_be_made_is_refused_before_any_frame_is_rendered() {
     ]);
     fails_saying(&output, "does not exist");
     assert!(!frames.exists(), "no frame rendered");
+}
+
+#[test]
+fn the_camera_a_render_prints_gives_the_same_picture_again() {
+    let scene = Scene::new();
+    let (first, again) = (scene.path("top.png"), scene.path("again.png"));
+    let output = scene.render(&["--out", &arg(&first), "--view", "top", "--ortho"]);
+    ok(&output);
+    let text = String::from_utf8_lossy(&output.stdout);
+    assert!(text.contains("bounds: x "), "{text}");
+    let flags = text
+        .lines()
+        .find_map(|line| line.strip_prefix("camera: "))
+        .unwrap_or_else(|| panic!("no camera line in {text}"));
+    assert!(flags.contains("--ortho --ortho-height"), "{flags}");
+    let mut options = vec!["--out", again.to_str().expect("UTF-8")];
+    options.extend(flags.split_whitespace());
+    ok(&scene.render(&options));
+    let (a, b) = (
+        image::open(&first).expect("first").to_rgba8(),
+        image::open(&again).expect("again").to_rgba8(),
+    );
+    // The printed decimals move a point across a pixel edge at most here and there.
+    let differing = a.pixels().zip(b.pixels()).filter(|(x, y)| x != y).count();
+    assert!(differing * 200 < a.len() / 4, "{differing} pixels differ");
 }

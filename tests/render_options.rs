@@ -163,6 +163,16 @@ fn cases(cloud: &PointCloud) -> Vec<(&'static str, RenderRequest)> {
                     z: 1.0,
                 },
                 fov_y_deg: 35.0,
+                ..StillCamera::default()
+            });
+            r
+        }),
+        ("the automatic view from above", {
+            let mut r = still();
+            r.camera_path = CameraPath::Still(StillCamera {
+                azimuth_deg: -90.0,
+                elevation_deg: 90.0,
+                ..StillCamera::default()
             });
             r
         }),

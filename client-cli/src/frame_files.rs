@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
-use pointfarm_render::camera::Projection;
+use pointfarm_render::camera::{Camera, Projection};
 use pointfarm_render::encode::{self, FrameFormat};
 use pointfarm_render::raster::FrameSettings;
 
@@ -149,6 +149,26 @@ impl FrameFiles {
     }
 }
 
+/// A camera as `render --json` and the depth sidecars report it, in the file's coordinates.
+pub fn camera_json(camera: &Camera) -> serde_json::Value {
+    let mut json = serde_json::json!({
+        "position": camera.position.to_array(),
+        "target": camera.target.to_array(),
+        "up": camera.up.to_array(),
+        "near": camera.near,
+        "far": camera.far,
+    });
+    json["projection"] = match camera.projection {
+        Projection::Perspective { fov_y_deg } => {
+            serde_json::json!({ "perspective": { "fov_y_deg": fov_y_deg } })
+        }
+        Projection::Orthographic { height } => {
+            serde_json::json!({ "orthographic": { "height": height } })
+        }
+    };
+    json
+}
+
 /// Writes frame `index`'s depth image and its sidecar JSON (`.depth.json`): the near and far
 /// distances its grey levels span, the camera and the image size, so that a pixel's value `v`
 /// (1 to 65535; 0 where no point landed) is the distance `near + (v - 1) / 65534 * (far - near)`
@@ -164,7 +184,7 @@ pub fn save_depth(
     encode::save_depth_png16(frame, &path, camera.near, camera.far)
         .with_context(|| format!("writing {}", path.display()))?;
     let sidecar = path.with_extension("json");
-    let mut json = serde_json::json!({
+    let json = serde_json::json!({
         "image": path.file_name().map(|n| n.to_string_lossy().into_owned()),
         "width": frame.image.width(),
         "height": frame.image.height(),
@@ -172,20 +192,8 @@ pub fn save_depth(
         "far": camera.far,
         "encoding": "16-bit grey, linear: 0 = no point; v in 1..65535 is the distance \
                      near + (v - 1) / 65534 * (far - near) along the viewing direction",
-        "camera": {
-            "position": camera.position.to_array(),
-            "target": camera.target.to_array(),
-            "up": camera.up.to_array(),
-        },
+        "camera": camera_json(camera),
     });
-    json["camera"]["projection"] = match camera.projection {
-        Projection::Perspective { fov_y_deg } => {
-            serde_json::json!({ "perspective": { "fovYDeg": fov_y_deg } })
-        }
-        Projection::Orthographic { height } => {
-            serde_json::json!({ "orthographic": { "height": height } })
-        }
-    };
     let text = serde_json::to_string_pretty(&json).context("encoding the depth sidecar")?;
     std::fs::write(&sidecar, text + "\n")
         .with_context(|| format!("writing {}", sidecar.display()))?;

@@ -57,11 +57,11 @@ impl FrameSource {
         let mut cloud = cloud?;
         cloud.colors = point_colors(&cloud, color_mode);
         say(format!(
-            "{} points in {} file{}, colour from {:?}, read in {:.0} ms",
+            "{} points in {} file{}, {}, read in {:.0} ms",
             cloud.len(),
             files.len(),
             if files.len() == 1 { "" } else { "s" },
-            cloud.color_source,
+            cloud.color_source.describe(),
             started.elapsed().as_secs_f64() * 1e3
         ));
         let renderer = Renderer::new(gpu);

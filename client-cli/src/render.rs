@@ -5,14 +5,17 @@ use std::path::Path;
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
+use glam::DVec3;
 use indicatif::{ProgressBar, ProgressStyle};
+use pointfarm_render::camera::{Camera, Projection};
+use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::{dataset_files, dataset_point_count};
 use pointfarm_render::raster::{FrameSettings, Stage, StageTimings};
 use pointfarm_render::request::RenderRequest;
 
-use crate::frame_files::{save_depth, FrameFiles};
+use crate::frame_files::{camera_json, save_depth, FrameFiles};
 use crate::frame_source::{FrameSource, RenderedFrame};
 use crate::lod_store::{default_cache_dir, StoreCache};
 use crate::video::{VideoPlan, VideoRequest};
@@ -68,6 +71,8 @@ pub fn run(args: RenderArgs) -> Result<()> {
     // Refuse sizes this adapter cannot hold, or cameras the cloud makes invalid, before the
     // first frame.
     source.renderer().validate(&settings(0))?;
+    say(format!("bounds: {}", bounds_text(&bounds)));
+    say(format!("camera: {}", camera_flags(&settings(0).camera)));
 
     let files = &outputs.files;
     let frames = request.frames();
@@ -95,7 +100,15 @@ pub fn run(args: RenderArgs) -> Result<()> {
         if request.render.depth {
             save_depth(files, i, &rendered.frame, &frame_settings)?;
         }
-        report_frame(&args, i, &path, &frame_settings, &rendered, &progress);
+        report_frame(
+            &args,
+            i,
+            &path,
+            &frame_settings,
+            &bounds,
+            &rendered,
+            &progress,
+        );
         all.push(rendered.frame.timings);
         written.push(path);
         progress.inc(1);
@@ -136,11 +149,12 @@ fn report_frame(
     index: u32,
     path: &Path,
     settings: &FrameSettings,
+    bounds: &WorldBounds,
     rendered: &RenderedFrame,
     progress: &ProgressBar,
 ) {
     let line = if args.json {
-        frame_json(index, path, settings, rendered).to_string()
+        frame_json(index, path, settings, bounds, rendered).to_string()
     } else {
         let mut line = format!("{}  {}", path.display(), rendered.frame.timings);
         if let Some(cut) = rendered.cut.as_ref().map(|c| &c.counts) {
@@ -164,11 +178,40 @@ fn report_frame(
     }
 }
 
+/// The bounds in the file's coordinates, to 3 decimals.
+fn bounds_text(bounds: &WorldBounds) -> String {
+    let axis = |name: &str, min: f64, max: f64| format!("{name} {min:.3} .. {max:.3}");
+    [
+        axis("x", bounds.min.x, bounds.max.x),
+        axis("y", bounds.min.y, bounds.max.y),
+        axis("z", bounds.min.z, bounds.max.z),
+    ]
+    .join(", ")
+}
+
+/// The camera as the flags that give it, to adjust from.
+fn camera_flags(camera: &Camera) -> String {
+    let vector = |v: DVec3| format!("{:.3},{:.3},{:.3}", v.x, v.y, v.z);
+    let lens = match camera.projection {
+        Projection::Perspective { fov_y_deg } => format!("--fov {fov_y_deg}"),
+        Projection::Orthographic { height } => format!("--ortho --ortho-height {height:.3}"),
+    };
+    format!(
+        "--camera-pos {} --camera-target {} --camera-up {} {lens} --near {:.3} --far {:.3}",
+        vector(camera.position),
+        vector(camera.target),
+        vector(camera.up),
+        camera.near,
+        camera.far
+    )
+}
+
 /// One frame as `render --json` reports it.
 fn frame_json(
     index: u32,
     path: &Path,
     settings: &FrameSettings,
+    bounds: &WorldBounds,
     rendered: &RenderedFrame,
 ) -> serde_json::Value {
     let timings: serde_json::Map<String, serde_json::Value> = rendered
@@ -186,6 +229,8 @@ fn frame_json(
         "points_total": rendered.points_total,
         "points_rendered": rendered.points_rendered,
         "timings_ms": timings,
+        "camera": camera_json(&settings.camera),
+        "bounds": { "min": bounds.min.to_array(), "max": bounds.max.to_array() },
     });
     if let Some(cut) = &rendered.cut {
         object["cut"] = serde_json::to_value(cut).unwrap_or_default();

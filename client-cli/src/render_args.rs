@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use anyhow::{bail, Result};
 use clap::{Args, ValueEnum};
 use glam::DVec3;
-use pointfarm_render::camera::DEFAULT_FOV_Y_DEG;
+use pointfarm_render::camera::{AUTO_AZIMUTH_DEG, AUTO_ELEVATION_DEG, DEFAULT_FOV_Y_DEG};
 use pointfarm_render::color::ColorMode;
 use pointfarm_render::cut::{CutOptions, RESIDENT_MAX_POINTS};
 use pointfarm_render::gpu::AdapterChoice;
@@ -17,7 +17,7 @@ use pointfarm_render::raster::{
 };
 use pointfarm_render::request::{
     CameraPath, Lens, Point3, RenderOptions, RenderRequest, StillCamera, Turntable,
-    DEFAULT_SUPERSAMPLE, DEFAULT_UP,
+    DEFAULT_SUPERSAMPLE, DEFAULT_UP, TURNTABLE_ELEVATION_RANGE,
 };
 
 use crate::credentials::ClientCredentials;
@@ -78,9 +78,16 @@ pub struct RenderArgs {
     /// Render N frames orbiting the cloud (around the vertical axis through the target).
     #[arg(long, value_name = "N")]
     pub(crate) turntable: Option<u32>,
-    /// Camera position in the file's coordinates (default: an oblique view of the whole cloud).
-    #[arg(long, value_parser = parse::vec3, value_name = "X,Y,Z")]
+    /// Camera position in the file's coordinates (default: the --view, framing the whole
+    /// cloud). Each render prints the camera it chose as flags to start from.
+    #[arg(long, value_parser = parse::vec3, value_name = "X,Y,Z", conflicts_with = "view")]
     camera_pos: Option<DVec3>,
+    /// The automatic view's direction: oblique (from the south-south-east, 30 degrees up),
+    /// top (from above, north up), front (from the south), side (from the east) or iso
+    /// (isometric, from the south-east). A still frames the cloud tightly and centred; a
+    /// turntable orbits its centre (from 89 degrees up at most).
+    #[arg(long, value_enum, default_value = "oblique")]
+    view: ViewArg,
     /// Point the camera looks at, in the file's coordinates (default: the cloud's centre).
     #[arg(long, value_parser = parse::vec3, value_name = "X,Y,Z")]
     camera_target: Option<DVec3>,
@@ -181,6 +188,29 @@ pub struct RenderArgs {
 }
 
 #[derive(Clone, Copy, ValueEnum)]
+enum ViewArg {
+    Oblique,
+    Top,
+    Front,
+    Side,
+    Iso,
+}
+
+impl ViewArg {
+    /// Azimuth (degrees counter-clockwise from +X, where the camera is) and elevation.
+    fn direction(self) -> (f64, f64) {
+        match self {
+            Self::Oblique => (AUTO_AZIMUTH_DEG, AUTO_ELEVATION_DEG),
+            Self::Top => (-90.0, 90.0),
+            Self::Front => (-90.0, 0.0),
+            Self::Side => (0.0, 0.0),
+            // The isometric elevation: atan(1 / sqrt(2)).
+            Self::Iso => (-45.0, 35.264_389_682_754_654),
+        }
+    }
+}
+
+#[derive(Clone, Copy, ValueEnum)]
 enum ShadingArg {
     None,
     Edl,
@@ -216,18 +246,26 @@ impl RenderArgs {
         }
         let point = |v: Option<DVec3>| v.map(Point3::from);
         let up = self.camera_up.map_or(DEFAULT_UP, Point3::from);
+        let (azimuth_deg, elevation_deg) = self.view.direction();
         let camera_path = match self.turntable {
             None => CameraPath::Still(StillCamera {
                 position: point(self.camera_pos),
                 target: point(self.camera_target),
                 up,
                 fov_y_deg: self.fov,
+                azimuth_deg,
+                elevation_deg,
             }),
             Some(frames) => CameraPath::Turntable(Turntable {
                 center: point(self.camera_target),
                 start: point(self.camera_pos),
                 fov_y_deg: self.fov,
                 up,
+                azimuth_deg,
+                elevation_deg: elevation_deg.clamp(
+                    *TURNTABLE_ELEVATION_RANGE.start(),
+                    *TURNTABLE_ELEVATION_RANGE.end(),
+                ),
                 ..Turntable::around_the_cloud(frames)
             }),
         };

@@ -161,6 +161,109 @@ impl Camera {
         }
     }
 
+    /// The automatic view: the box `bounds` seen from the given azimuth (degrees
+    /// counter-clockwise from +X) and elevation (degrees above the horizon, 90 straight down
+    /// with +Y, or the azimuth's far side, up the image), framed tightly: the camera looks
+    /// past the box's centre so that the box's projection is centred in the image, and comes
+    /// as close as the 5% margin lets every corner stay in view. [`Camera::framing`] looks
+    /// at the centre instead, which an orbit needs.
+    pub fn fitted(
+        bounds: &WorldBounds,
+        aspect: f64,
+        azimuth_deg: f64,
+        elevation_deg: f64,
+        projection: Projection,
+    ) -> Camera {
+        const MARGIN: f64 = 1.05;
+        let center = bounds.center();
+        let radius = bounds.radius().max(1e-3);
+        let (az, el) = (
+            azimuth_deg.to_radians(),
+            elevation_deg.clamp(-90.0, 90.0).to_radians(),
+        );
+        let to_camera = DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
+        let forward = -to_camera;
+        // From the horizontal direction the camera faces, so that a view straight down (or
+        // up) still has a right and an up.
+        let facing = -DVec3::new(az.cos(), az.sin(), 0.0);
+        let right = facing.cross(DVec3::Z);
+        let up = right.cross(forward).normalize();
+        let corners: Vec<DVec3> = (0..8)
+            .map(|i| {
+                let pick = |bit: usize, lo: f64, hi: f64| if i & bit == 0 { lo } else { hi };
+                DVec3::new(
+                    pick(1, bounds.min.x, bounds.max.x),
+                    pick(2, bounds.min.y, bounds.max.y),
+                    pick(4, bounds.min.z, bounds.max.z),
+                ) - center
+            })
+            .collect();
+        let max_of =
+            |f: &dyn Fn(DVec3) -> f64| corners.iter().map(|&c| f(c)).fold(f64::MIN, f64::max);
+        // The camera's offsets from the centre along right, up and forward.
+        let (sideways, upwards, along, projection) = match projection {
+            Projection::Perspective { fov_y_deg } => {
+                let tan_y = (fov_y_deg.to_radians() * 0.5).tan() / MARGIN;
+                let tan_x = tan_y * aspect;
+                // A corner c is in view when |(c - e)·axis| <= tan (c - e)·forward. With e's
+                // offsets a (along the axis) and b (along forward) that is two half-planes
+                // per axis, which meet at the b that just fits that axis; the camera goes
+                // back to the tighter axis's.
+                let fit = |axis: DVec3, tan: f64| {
+                    let high = max_of(&|c| c.dot(axis) - tan * c.dot(forward));
+                    let low = max_of(&|c| -c.dot(axis) - tan * c.dot(forward));
+                    -(high + low) / (2.0 * tan)
+                };
+                let b = fit(right, tan_x).min(fit(up, tan_y)).min(-radius * 0.01);
+                // From there, the offset along each axis that puts the box's projection in the
+                // middle: the widest tangent on one side falls as the offset grows and on the
+                // other rises, so halving the interval finds where they are equal.
+                let centred = |axis: DVec3| {
+                    let widest = |a: f64, side: f64| {
+                        max_of(&|c| side * (c.dot(axis) - a) / (c.dot(forward) - b))
+                    };
+                    let (mut lo, mut hi) = (-radius, radius);
+                    for _ in 0..64 {
+                        let mid = 0.5 * (lo + hi);
+                        if widest(mid, 1.0) > widest(mid, -1.0) {
+                            lo = mid;
+                        } else {
+                            hi = mid;
+                        }
+                    }
+                    0.5 * (lo + hi)
+                };
+                (centred(right), centred(up), b, projection)
+            }
+            Projection::Orthographic { .. } => {
+                let span = |axis: DVec3| {
+                    let high = max_of(&|c| c.dot(axis));
+                    let low = -max_of(&|c| -c.dot(axis));
+                    ((high + low) * 0.5, (high - low) * 0.5)
+                };
+                let (a, half_width) = span(right);
+                let (v, half_height) = span(up);
+                let height = 2.0 * half_height.max(half_width / aspect).max(radius * 0.01) * MARGIN;
+                (a, v, -radius * 2.0, Projection::Orthographic { height })
+            }
+        };
+        let target = center + right * sideways + up * upwards;
+        let distance = -along;
+        Camera {
+            position: target + forward * along,
+            target,
+            // Z is the world's up; only a view along it needs another.
+            up: if elevation_deg.abs() < 89.0 {
+                DVec3::Z
+            } else {
+                up
+            },
+            projection,
+            near: (distance - radius * MARGIN).max(distance * 1e-3),
+            far: distance + radius * MARGIN,
+        }
+    }
+
     /// A camera at `position` looking at `target`, with near and far planes that enclose
     /// `bounds` as seen from there.
     pub fn looking_at(
@@ -330,6 +433,52 @@ mod tests {
                     (0.0..w as f64).contains(&px) && (0.0..h as f64).contains(&py),
                     "{w}x{h}: corner {i} at ({px}, {py})"
                 );
+            }
+        }
+    }
+
+    #[test]
+    fn a_fitted_view_centres_the_bounds_and_fills_the_frame_to_its_margin() {
+        let b = bounds();
+        let perspective = Projection::Perspective { fov_y_deg: 50.0 };
+        let orthographic = Projection::Orthographic { height: 1.0 };
+        for (w, h) in [(1280, 720), (720, 1280)] {
+            for (azimuth, elevation) in [(-60.0, 30.0), (-90.0, 90.0), (0.0, 0.0), (-45.0, 35.26)] {
+                for projection in [perspective, orthographic] {
+                    let what = format!("{w}x{h} from {azimuth}/{elevation} {projection:?}");
+                    let camera =
+                        Camera::fitted(&b, w as f64 / h as f64, azimuth, elevation, projection);
+                    camera.validate().expect(&what);
+                    let transform = camera.transform(b.center(), w, h);
+                    let (mut lo, mut hi) = ([f64::MAX; 2], [f64::MIN; 2]);
+                    for i in 0..8 {
+                        let corner = DVec3::new(
+                            if i & 1 == 0 { b.min.x } else { b.max.x },
+                            if i & 2 == 0 { b.min.y } else { b.max.y },
+                            if i & 4 == 0 { b.min.z } else { b.max.z },
+                        );
+                        let (px, py, _) = transform
+                            .project(corner - b.center())
+                            .unwrap_or_else(|| panic!("{what}: corner {i} clipped"));
+                        lo = [lo[0].min(px), lo[1].min(py)];
+                        hi = [hi[0].max(px), hi[1].max(py)];
+                    }
+                    let size = [w as f64, h as f64];
+                    for axis in 0..2 {
+                        // Centred: as much room on both sides.
+                        let (before, after) = (lo[axis], size[axis] - hi[axis]);
+                        assert!(
+                            (before - after).abs() < 1e-6 * size[axis],
+                            "{what}: {lo:?} {hi:?}"
+                        );
+                        assert!(before > 0.0, "{what}: in view");
+                    }
+                    // Tight: the limiting axis leaves exactly the margin, 5% of the extent.
+                    let fill = (0..2)
+                        .map(|axis| (hi[axis] - lo[axis]) / size[axis])
+                        .fold(0.0, f64::max);
+                    assert!((fill - 1.0 / 1.05).abs() < 1e-6, "{what}: fills {fill}");
+                }
             }
         }
     }

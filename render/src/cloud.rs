@@ -49,6 +49,16 @@ pub enum ColorSource {
 }
 
 impl ColorSource {
+    /// What the RGB colour mode shows, in words for people.
+    pub fn describe(self) -> &'static str {
+        match self {
+            Self::Rgb16 => "colour from 16-bit RGB",
+            Self::Rgb8In16Bit => "colour from RGB (8-bit values in 16-bit fields)",
+            Self::IntensityGrey => "grey from intensity",
+            Self::Constant => "one grey (no colour or intensity)",
+        }
+    }
+
     /// The one RGB decision, from the largest channel of any point of the whole dataset
     /// (`max_channel`). `None` when every channel is 0: the fields exist but were never filled
     /// (some writers do this), and the points are coloured from intensity instead of black.

@@ -115,6 +115,8 @@ fn camera_path_and_lens(
                 target: s.target.as_ref().map(point),
                 up: s.up.as_ref().map_or(default.up, point),
                 fov_y_deg: s.fov_y_deg.unwrap_or(default.fov_y_deg),
+                azimuth_deg: s.azimuth_deg.unwrap_or(default.azimuth_deg),
+                elevation_deg: s.elevation_deg.unwrap_or(default.elevation_deg),
             })
         }
     };
@@ -246,6 +248,8 @@ pub fn camera_path_message(path: &CameraPath, lens: &Lens) -> pb::CameraPath {
             target: s.target.as_ref().map(vec3),
             up: Some(vec3(&s.up)),
             fov_y_deg: Some(s.fov_y_deg),
+            azimuth_deg: Some(s.azimuth_deg),
+            elevation_deg: Some(s.elevation_deg),
         }),
     };
     let Lens {

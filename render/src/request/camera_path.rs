@@ -15,6 +15,9 @@ pub const DEFAULT_TURNTABLE_DEGREES: f64 = 360.0;
 /// Elevations a turntable accepts, in degrees above the horizon (not straight up or down,
 /// where "around the vertical axis" has no direction).
 pub const TURNTABLE_ELEVATION_RANGE: RangeInclusive<f64> = -89.0..=89.0;
+/// Elevations of a still's automatic view, in degrees above the horizon (90: from straight
+/// above).
+pub const VIEW_ELEVATION_RANGE: RangeInclusive<f64> = -90.0..=90.0;
 /// Total angles a turntable accepts, in degrees (a hundred turns).
 pub const TURNTABLE_DEGREES_RANGE: RangeInclusive<f64> = -36000.0..=36000.0;
 /// Vertical fields of view accepted, in degrees (exclusive at both ends).
@@ -69,6 +72,13 @@ pub struct StillCamera {
     pub up: Point3,
     /// Vertical field of view (perspective lens).
     pub fov_y_deg: f64,
+    /// Direction of the automatic view, degrees counter-clockwise from +X (where the camera
+    /// is, seen from the target), when the position is absent.
+    #[serde(default = "default_azimuth")]
+    pub azimuth_deg: f64,
+    /// Degrees above the horizon of the automatic view (90: straight down).
+    #[serde(default = "default_elevation")]
+    pub elevation_deg: f64,
 }
 
 impl Default for StillCamera {
@@ -78,6 +88,8 @@ impl Default for StillCamera {
             target: None,
             up: DEFAULT_UP,
             fov_y_deg: DEFAULT_FOV_Y_DEG,
+            azimuth_deg: AUTO_AZIMUTH_DEG,
+            elevation_deg: AUTO_ELEVATION_DEG,
         }
     }
 }
@@ -109,6 +121,10 @@ pub struct Turntable {
 
 fn default_azimuth() -> f64 {
     AUTO_AZIMUTH_DEG
+}
+
+fn default_elevation() -> f64 {
+    AUTO_ELEVATION_DEG
 }
 
 fn default_up() -> Point3 {
@@ -250,21 +266,38 @@ pub fn camera_for_frame(
 
 fn still_camera(still: &StillCamera, lens: &Lens, bounds: &WorldBounds, aspect: f64) -> Camera {
     let projection = lens.projection(still.fov_y_deg, bounds, aspect);
-    let auto = Camera::framing(
+    let auto = Camera::fitted(
         bounds,
         aspect,
-        AUTO_AZIMUTH_DEG,
-        AUTO_ELEVATION_DEG,
+        still.azimuth_deg,
+        still.elevation_deg,
         projection,
     );
+    // A given orthographic height stays; otherwise the automatic view's fits the cloud.
+    let projection = if lens.ortho_height.is_some() {
+        projection
+    } else {
+        auto.projection
+    };
     let target = still.target.map_or(auto.target, DVec3::from);
     let position = still
         .position
         .map_or(target + (auto.position - auto.target), DVec3::from);
     let mut camera = Camera::looking_at(position, target, bounds, projection);
-    camera.up = still.up.into();
+    let up = DVec3::from(still.up);
+    // Looking along the given up (a view from straight above): the automatic view's up.
+    camera.up = if up.cross(target - position).length_squared()
+        > 1e-12 * up.length_squared() * (target - position).length_squared()
+    {
+        up
+    } else {
+        auto.up
+    };
     camera
 }
+
+/// Views of an orbit fitted to find its radius: every 22.5 degrees of a full turn.
+const ORBIT_FIT_VIEWS: u32 = 16;
 
 /// The one turntable: the camera of frame `index` on a circle around the vertical axis
 /// through the centre.
@@ -287,12 +320,18 @@ fn turntable_camera(
             (radius, elevation, offset.y.atan2(offset.x).to_degrees())
         }
         None => {
-            // One radius for the whole orbit, the fit of the first frame's view, so the
-            // cloud does not zoom in and out.
+            // One radius for the whole orbit, the largest any of its views needs to fit the
+            // cloud, so the cloud neither zooms in and out nor leaves the frame.
             let radius = t.radius.unwrap_or_else(|| {
-                let fitted =
-                    Camera::framing(bounds, aspect, t.azimuth_deg, t.elevation_deg, projection);
-                fitted.position.distance(fitted.target)
+                (0..=ORBIT_FIT_VIEWS)
+                    .map(|k| {
+                        let azimuth =
+                            t.azimuth_deg + t.degrees * f64::from(k) / f64::from(ORBIT_FIT_VIEWS);
+                        let fitted =
+                            Camera::framing(bounds, aspect, azimuth, t.elevation_deg, projection);
+                        fitted.position.distance(fitted.target)
+                    })
+                    .fold(0.0, f64::max)
             });
             (radius, t.elevation_deg, t.azimuth_deg)
         }

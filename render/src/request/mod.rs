@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 pub use camera_path::{
     camera_for_frame, CameraPath, Interpolation, Keyframe, Lens, Point3, StillCamera, Turntable,
     DEFAULT_TURNTABLE_DEGREES, DEFAULT_UP, FOV_Y_DEG_RANGE, MIN_KEYFRAMES, TURNTABLE_DEGREES_RANGE,
-    TURNTABLE_ELEVATION_RANGE,
+    TURNTABLE_ELEVATION_RANGE, VIEW_ELEVATION_RANGE,
 };
 pub use options::{RenderOptions, DEFAULT_SUPERSAMPLE};
 pub use validate::RequestError;

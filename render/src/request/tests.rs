@@ -1,7 +1,7 @@
 use glam::DVec3;
 
 use super::*;
-use crate::camera::Projection;
+use crate::camera::{Projection, AUTO_AZIMUTH_DEG, AUTO_ELEVATION_DEG, DEFAULT_FOV_Y_DEG};
 use crate::raster::{FillSettings, Quality, Shading};
 
 fn bounds() -> WorldBounds {
@@ -60,9 +60,12 @@ fn the_turntable_keeps_its_distance_and_goes_all_the_way_round() {
     let opposite = cams[frames as usize / 2].position - b.center();
     let first = cams[0].position - b.center();
     assert!((opposite.x + first.x).abs() < 1e-6 && (opposite.y + first.y).abs() < 1e-6);
-    // The first frame is the automatic view.
+    // The first frame looks from the automatic view's direction, from as far as the widest
+    // of the orbit's views needs.
     let auto = Camera::auto(&b, path.aspect());
-    assert!(cams[0].position.abs_diff_eq(auto.position, 1e-6 * d0));
+    let auto_offset = auto.position - auto.target;
+    assert!(first.normalize().abs_diff_eq(auto_offset.normalize(), 1e-9));
+    assert!(d0 >= auto_offset.length() - 1e-9 * d0);
 }
 
 #[test]
@@ -138,10 +141,18 @@ fn keyframe_paths_pass_through_their_keyframes() {
 }
 
 #[test]
-fn the_automatic_still_camera_is_the_automatic_view() {
+fn the_automatic_still_camera_is_the_fitted_automatic_view() {
     let r = request(CameraPath::Still(StillCamera::default()));
     let camera = r.camera(0, &bounds());
-    let auto = Camera::auto(&bounds(), r.aspect());
+    let auto = Camera::fitted(
+        &bounds(),
+        r.aspect(),
+        AUTO_AZIMUTH_DEG,
+        AUTO_ELEVATION_DEG,
+        Projection::Perspective {
+            fov_y_deg: DEFAULT_FOV_Y_DEG,
+        },
+    );
     assert!(camera.position.abs_diff_eq(auto.position, 1e-6));
     assert_eq!(camera.target, auto.target);
     assert_eq!(r.frames(), 1);

@@ -7,7 +7,7 @@ use std::ops::RangeInclusive;
 
 use super::camera_path::{
     CameraPath, Keyframe, Lens, Point3, StillCamera, Turntable, FOV_Y_DEG_RANGE, MAX_COORDINATE,
-    MIN_KEYFRAMES, TURNTABLE_DEGREES_RANGE, TURNTABLE_ELEVATION_RANGE,
+    MIN_KEYFRAMES, TURNTABLE_DEGREES_RANGE, TURNTABLE_ELEVATION_RANGE, VIEW_ELEVATION_RANGE,
 };
 use super::{RenderOptions, RenderRequest};
 use crate::cut::MAX_LOD_ERROR_PX;
@@ -194,6 +194,16 @@ impl StillCamera {
         direction(&f("up"), &self.up)?;
         if let (Some(position), Some(target)) = (&self.position, &self.target) {
             up_across_the_view(&f("up"), &self.up, position, target)?;
+        }
+        within(
+            &f("elevation_deg"),
+            "elevation",
+            self.elevation_deg,
+            &VIEW_ELEVATION_RANGE,
+            " degrees",
+        )?;
+        if !self.azimuth_deg.is_finite() {
+            return Err(invalid(f("azimuth_deg"), "must be finite"));
         }
         field_of_view(&f("fov_y_deg"), self.fov_y_deg)
     }
