@@ -57,11 +57,11 @@ impl FrameSource {
         let mut cloud = cloud?;
         cloud.colors = point_colors(&cloud, color_mode);
         say(format!(
-            "{} points in {} file{}, colour from {:?}, read in {:.0} ms",
+            "{} points in {} file{}, colour from {}, read in {:.0} ms",
             cloud.len(),
             files.len(),
             if files.len() == 1 { "" } else { "s" },
-            cloud.color_source,
+            color_source_words(cloud.color_source),
             started.elapsed().as_secs_f64() * 1e3
         ));
         let renderer = Renderer::new(gpu);
@@ -154,5 +154,16 @@ impl FrameSource {
         if let Self::Cut { cut, lod, .. } = self {
             cut.read_ahead(&lod.dataset, settings);
         }
+    }
+}
+
+/// Where the colours came from, in the words users read (not the enum's Rust name).
+fn color_source_words(source: pointfarm_render::cloud::ColorSource) -> &'static str {
+    use pointfarm_render::cloud::ColorSource;
+    match source {
+        ColorSource::Rgb16 => "16-bit RGB",
+        ColorSource::Rgb8In16Bit => "8-bit RGB in 16-bit fields",
+        ColorSource::IntensityGrey => "intensity",
+        ColorSource::Constant => "one grey (no RGB or intensity)",
     }
 }
