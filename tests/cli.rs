@@ -337,7 +337,7 @@ fn remote_render_uploads_submits_follows_and_downloads() {
     assert_ok(&listed);
     assert_says(&listed, "\"succeeded\"");
     let unknown = pointfarm(&["jobs", "show", "job-missing", "--server", &address]);
-    assert_fails_saying(&unknown, "NotFound");
+    assert_fails_saying(&unknown, "not found");
 }
 
 #[test]
@@ -479,7 +479,7 @@ fn serve_without_an_embedded_worker_renders_through_a_worker_process() {
         "--cache-dir",
         &path_arg(&dir.join("c0")),
     ]);
-    assert_fails_saying(&refused, "Unauthenticated");
+    assert_fails_saying(&refused, "unauthenticated");
     let refused = pointfarm(&[
         "worker",
         "--server",
@@ -489,7 +489,7 @@ fn serve_without_an_embedded_worker_renders_through_a_worker_process() {
         "--cache-dir",
         &path_arg(&dir.join("c0")),
     ]);
-    assert_fails_saying(&refused, "PermissionDenied");
+    assert_fails_saying(&refused, "permission denied");
     let worker = WorkerProcess::start_with(
         &url,
         &dir.join("cache"),

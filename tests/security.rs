@@ -180,7 +180,7 @@ fn tls_carries_clients_and_workers_and_plaintext_is_refused() {
         "--cache-dir",
         arg(&dir.join("cache-refused")),
     ]);
-    assert_fails_saying(&refused, "PermissionDenied");
+    assert_fails_saying(&refused, "permission denied");
     // Tokens never reach the logs.
     for log in [server.log(), worker.log()] {
         assert!(!log.contains("Secret-"), "a token in a log:\n{log}");

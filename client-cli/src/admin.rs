@@ -1,5 +1,6 @@
 //! `pointfarm dataset|jobs|frames`: managing a server's datasets and jobs. Human-readable
-//! tables by default, `--json` for scripts.
+//! tables by default, `--json` for scripts (one JSON value on stdout, its shapes in
+//! `admin_json.rs`).
 
 use std::path::PathBuf;
 
@@ -10,6 +11,7 @@ use serde_json::json;
 
 use pointfarm_render::ingest::dataset_files;
 
+use crate::admin_json::{dataset_json, fetched_json, frame_json, job_json, progress_json};
 use crate::credentials::ClientCredentials;
 use crate::remote::{answer, state_name, status_error, Client};
 
@@ -55,23 +57,29 @@ pub enum DatasetCommand {
     /// Upload LAS/LAZ files or folders of them as one dataset (a file the server already
     /// has is not sent again).
     Add {
+        /// LAS/LAZ files, or folders of them.
         #[arg(required = true, value_name = "INPUT")]
         inputs: Vec<PathBuf>,
     },
     /// Register files or folders that are already on the server, under its data roots, as
     /// one dataset.
     Register {
+        /// Files or folders on the server, under one of its `--data-root`s.
         #[arg(required = true, value_name = "PATH")]
         paths: Vec<String>,
     },
+    /// The server's datasets.
     List,
+    /// Delete a dataset (files other datasets share stay).
     Rm {
+        /// The dataset's id.
         id: String,
     },
 }
 
 #[derive(Subcommand)]
 pub enum JobsCommand {
+    /// The server's jobs, with their state and progress.
     List {
         /// Only jobs in this state: queued, running, succeeded, failed, cancelled.
         #[arg(long)]
@@ -79,13 +87,17 @@ pub enum JobsCommand {
     },
     /// A job with per-stage timing statistics (median and p95) over its frames.
     Show {
+        /// The job's id.
         id: String,
     },
+    /// Cancel a queued or running job; its workers drop their frames.
     Cancel {
+        /// The job's id.
         id: String,
     },
-    /// Follow a job until it ends.
+    /// Follow a job until it ends (with --json: one line per event, then the job).
     Watch {
+        /// The job's id.
         id: String,
     },
     /// Frames being rendered now: which worker holds each, and until when.
@@ -96,7 +108,9 @@ pub enum JobsCommand {
 pub enum FramesCommand {
     /// Download a job's finished frames.
     Fetch {
+        /// The job's id.
         job: String,
+        /// Folder to write the frames to (frame_00000.png, ...).
         #[arg(long, short)]
         out: PathBuf,
         /// First frame index to fetch (to resume a download).
@@ -107,37 +121,6 @@ pub enum FramesCommand {
 
 fn runtime() -> Result<tokio::runtime::Runtime> {
     tokio::runtime::Runtime::new().context("starting the async runtime")
-}
-
-fn dataset_json(d: &pb::Dataset) -> serde_json::Value {
-    let files: Vec<serde_json::Value> = d
-        .files
-        .iter()
-        .map(|f| json!({ "name": f.name, "size_bytes": f.size_bytes, "sha256": f.sha256, "path": f.path }))
-        .collect();
-    json!({ "id": d.id, "name": d.name, "size_bytes": d.size_bytes, "sha256": d.sha256, "path": d.path, "files": files })
-}
-
-fn job_json(j: &pb::Job) -> serde_json::Value {
-    json!({
-        "id": j.id, "dataset_id": j.dataset_id, "state": state_name(j.state),
-        "frames_total": j.frames_total, "frames_done": j.frames_done, "priority": j.priority,
-        "error": j.error, "created_unix_ms": j.created_unix_ms, "updated_unix_ms": j.updated_unix_ms,
-    })
-}
-
-/// A finished frame of `jobs show --json`: its attempts, cache and cut.
-fn frame_json(f: &pb::FrameFinished) -> serde_json::Value {
-    let mut value = json!({ "index": f.index, "failed_attempts": f.failed_attempts, "dataset_cache_hit": f.dataset_cache_hit });
-    if let Some(c) = &f.cut {
-        value["cut"] = json!({
-            "nodes": c.nodes, "points_rendered": c.points_rendered, "points_total": c.points_total,
-            "limited_by_budget": c.limited_by_budget, "gpu_hits": c.gpu_hits, "gpu_uploaded": c.gpu_uploaded,
-            "gpu_evicted": c.gpu_evicted, "host_hits": c.host_hits, "nodes_read": c.nodes_read,
-            "bytes_read": c.bytes_read, "read_ahead_bytes": c.read_ahead_bytes,
-        });
-    }
-    value
 }
 
 /// One line on the frames rendered from levels of detail: the median cut and what was read.
@@ -207,7 +190,11 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
                     .delete_dataset(pb::DeleteDatasetRequest { id: id.clone() })
                     .await
                     .map_err(status_error)?;
-                outln!("deleted {id}");
+                if server.json {
+                    outln!("{}", json!({ "deleted": id }));
+                } else {
+                    outln!("deleted {id}");
+                }
             }
         }
         Ok(())
@@ -311,12 +298,23 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
             }
             JobsCommand::Cancel { id } => {
                 let job = answer(client.jobs.cancel_job(pb::CancelJobRequest { id }).await)?;
-                outln!("job {} {}", job.id, state_name(job.state));
-            }
-            JobsCommand::Watch { id } => {
-                let job = client.follow(&id, server.json).await?;
                 if server.json {
                     outln!("{}", job_json(&job));
+                } else {
+                    outln!("job {} {}", job.id, state_name(job.state));
+                }
+            }
+            JobsCommand::Watch { id } => {
+                let job = if server.json {
+                    // One line per event as it comes, so a script sees the progress.
+                    client.watch(&id, |job, frames| outln!("{}", progress_json(job, frames))).await?
+                } else {
+                    client.follow(&id, false).await?
+                };
+                if server.json {
+                    let mut value = job_json(&job);
+                    value["event"] = "finished".into();
+                    outln!("{value}");
                 } else {
                     outln!("job {} {} ({}/{} frames){}", job.id, state_name(job.state), job.frames_done, job.frames_total,
                         if job.error.is_empty() { String::new() } else { format!(": {}", job.error) });
@@ -351,7 +349,11 @@ pub fn frames(server: &ServerArgs, command: FramesCommand) -> Result<()> {
         match command {
             FramesCommand::Fetch { job, out, from } => {
                 let written = client.fetch_frames(&job, from, &out).await?;
-                outln!("{} frames in {}", written.len(), out.display());
+                if server.json {
+                    outln!("{}", fetched_json(&job, &out, &written));
+                } else {
+                    outln!("{} frames in {}", written.len(), out.display());
+                }
             }
         }
         Ok(())

@@ -30,8 +30,10 @@ pub struct DemoArgs {
     /// Turntable frames.
     #[arg(long, default_value_t = 12)]
     frames: u32,
+    /// Frame size, WIDTHxHEIGHT.
     #[arg(long, default_value = "1280x720", value_parser = crate::parse::size)]
     size: (u32, u32),
+    /// The embedded worker's GPU adapter: auto, hardware or software (lavapipe).
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
     adapter: AdapterChoice,
 }

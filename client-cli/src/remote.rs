@@ -103,14 +103,6 @@ impl Client {
 
     /// Follows a job with a progress bar until it ends; returns the final job.
     pub async fn follow(&mut self, job_id: &str, quiet: bool) -> Result<pb::Job> {
-        let mut events = self
-            .jobs
-            .watch_job(pb::WatchJobRequest {
-                id: job_id.to_string(),
-            })
-            .await
-            .map_err(status_error)?
-            .into_inner();
         let bar = if quiet {
             ProgressBar::hidden()
         } else {
@@ -120,34 +112,60 @@ impl Client {
             ProgressStyle::with_template("{bar:40} {pos}/{len} frames {msg}")
                 .unwrap_or_else(|_| ProgressStyle::default_bar()),
         );
+        let last = self
+            .watch(job_id, |job, frames| {
+                bar.set_length(job.frames_total as u64);
+                bar.set_position(job.frames_done as u64);
+                bar.set_message(state_name(job.state).to_string());
+                for frame in frames {
+                    let line =
+                        format!("frame {:>5}  {}", frame.index, timings_line(&frame.timings));
+                    if bar.is_hidden() && !quiet {
+                        outln!("{line}");
+                    } else {
+                        bar.println(line);
+                    }
+                }
+            })
+            .await;
+        bar.finish_and_clear();
+        last
+    }
+
+    /// Follows a job until it ends, calling `each` with the job after every event and the
+    /// frames the event finished (the first event lists those finished before the watch
+    /// began); returns the final job.
+    pub async fn watch(
+        &mut self,
+        job_id: &str,
+        mut each: impl FnMut(&pb::Job, &[&pb::FrameFinished]),
+    ) -> Result<pb::Job> {
+        let mut events = self
+            .jobs
+            .watch_job(pb::WatchJobRequest {
+                id: job_id.to_string(),
+            })
+            .await
+            .map_err(status_error)?
+            .into_inner();
         let mut last = None;
         while let Some(event) = events.message().await.map_err(status_error)? {
             let Some(job) = event.job else { continue };
-            bar.set_length(job.frames_total as u64);
-            bar.set_position(job.frames_done as u64);
-            bar.set_message(state_name(job.state).to_string());
-            // The first event lists the frames finished before the watch began.
-            for frame in job.frames.iter().chain(&event.frame) {
-                let line = format!("frame {:>5}  {}", frame.index, timings_line(&frame.timings));
-                if bar.is_hidden() && !quiet {
-                    outln!("{line}");
-                } else {
-                    bar.println(line);
-                }
-            }
+            let frames: Vec<&pb::FrameFinished> = job.frames.iter().chain(&event.frame).collect();
+            each(&job, &frames);
             last = Some(job);
         }
-        bar.finish_and_clear();
         last.context("the server ended the watch without any event")
     }
 
-    /// Downloads the finished frames of a job into `out` (frame_00000.png, ...).
+    /// Downloads the finished frames of a job into `out` (frame_00000.png, ...); returns each
+    /// frame's index and file.
     pub async fn fetch_frames(
         &mut self,
         job_id: &str,
         from_index: u32,
         out: &Path,
-    ) -> Result<Vec<PathBuf>> {
+    ) -> Result<Vec<(u32, PathBuf)>> {
         tokio::fs::create_dir_all(out)
             .await
             .with_context(|| format!("creating {}", out.display()))?;
@@ -170,7 +188,7 @@ impl Client {
                     .await
                     .with_context(|| format!("writing {}", path.display()))?;
                 buffer.clear();
-                written.push(path);
+                written.push((chunk.index, path));
             }
         }
         Ok(written)
@@ -210,9 +228,13 @@ async fn upload_messages(
     Ok((ReceiverStream::new(receiver), sent))
 }
 
-/// A gRPC error as one readable line.
+/// A gRPC error as one readable line: what went wrong in words, then the server's message.
 pub fn status_error(status: Status) -> anyhow::Error {
-    anyhow::anyhow!("{:?}: {}", status.code(), status.message())
+    anyhow::anyhow!(
+        "{}: {}",
+        pointfarm_proto::code_words(status.code()),
+        status.message()
+    )
 }
 
 /// A unary call's answer, or its status as an error.

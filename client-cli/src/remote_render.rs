@@ -99,7 +99,7 @@ pub fn run(
         let placed = fetched.and_then(|fetched| {
             (0..)
                 .zip(&fetched)
-                .map(|(index, png)| files.place_png(png, index))
+                .map(|(index, (_, png))| files.place_png(png, index))
                 .collect::<Result<Vec<_>>>()
         });
         let _ = std::fs::remove_dir_all(&temp);

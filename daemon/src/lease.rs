@@ -181,11 +181,11 @@ impl Daemon {
             Some(job) if !job.state.is_terminal() => Ok((lease, job)),
             other => {
                 self.store.remove_lease(lease_id)?;
-                let state = other.map(|j| format!("{:?}", j.state).to_lowercase());
+                let state = other.map(|j| j.state.name());
                 Err(DaemonError::FailedPrecondition(format!(
                     "job {} has ended ({}); frame {} is no longer wanted",
                     lease.job_id,
-                    state.as_deref().unwrap_or("deleted"),
+                    state.unwrap_or("deleted"),
                     lease.index
                 )))
             }

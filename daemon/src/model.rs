@@ -96,6 +96,17 @@ pub enum JobState {
 }
 
 impl JobState {
+    /// The state as users read it: `queued`, `running`, `succeeded`, `failed`, `cancelled`.
+    pub fn name(self) -> &'static str {
+        match self {
+            JobState::Queued => "queued",
+            JobState::Running => "running",
+            JobState::Succeeded => "succeeded",
+            JobState::Failed => "failed",
+            JobState::Cancelled => "cancelled",
+        }
+    }
+
     pub fn is_terminal(self) -> bool {
         matches!(
             self,

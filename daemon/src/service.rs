@@ -270,8 +270,8 @@ impl Daemon {
         let job = self.job(id)?;
         if job.state.is_terminal() {
             return Err(DaemonError::FailedPrecondition(format!(
-                "job {id} has already ended ({:?})",
-                job.state
+                "job {id} has already ended ({})",
+                job.state.name()
             )));
         }
         let job = self

@@ -75,6 +75,30 @@ impl tonic::service::Interceptor for BearerToken {
     }
 }
 
+/// A gRPC status code as the words users read (`not found`, `permission denied`), not its Rust
+/// name. Shared by the CLI and worker processes.
+pub fn code_words(code: tonic::Code) -> &'static str {
+    match code {
+        tonic::Code::Ok => "ok",
+        tonic::Code::Cancelled => "cancelled",
+        tonic::Code::Unknown => "unknown error",
+        tonic::Code::InvalidArgument => "invalid argument",
+        tonic::Code::DeadlineExceeded => "deadline exceeded",
+        tonic::Code::NotFound => "not found",
+        tonic::Code::AlreadyExists => "already exists",
+        tonic::Code::PermissionDenied => "permission denied",
+        tonic::Code::ResourceExhausted => "resource exhausted",
+        tonic::Code::FailedPrecondition => "failed precondition",
+        tonic::Code::Aborted => "aborted",
+        tonic::Code::OutOfRange => "out of range",
+        tonic::Code::Unimplemented => "unimplemented",
+        tonic::Code::Internal => "internal error",
+        tonic::Code::Unavailable => "unavailable",
+        tonic::Code::DataLoss => "data loss",
+        tonic::Code::Unauthenticated => "unauthenticated",
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use tonic::service::Interceptor;

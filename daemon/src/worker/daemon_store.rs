@@ -167,8 +167,8 @@ impl NodeRecords for RemoteNodes {
                 }
                 Ok(Err(status)) => {
                     return Err(LodError::Records(format!(
-                        "fetching nodes from the daemon: {:?}: {}",
-                        status.code(),
+                        "fetching nodes from the daemon: {}: {}",
+                        pointfarm_proto::code_words(status.code()),
                         status.message()
                     )))
                 }

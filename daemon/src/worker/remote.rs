@@ -215,8 +215,8 @@ pub async fn run(
                 }
             }
             Err(status) => bail!(
-                "the daemon refused to lease frames: {:?}: {}",
-                status.code(),
+                "the daemon refused to lease frames: {}: {}",
+                pointfarm_proto::code_words(status.code()),
                 status.message()
             ),
         };
@@ -464,14 +464,14 @@ async fn download_file(
                 file_index: u32::try_from(index)?,
             })
             .await
-            .map_err(|s| anyhow::anyhow!("{:?}: {}", s.code(), s.message()))?
+            .map_err(|s| {
+                anyhow::anyhow!("{}: {}", pointfarm_proto::code_words(s.code()), s.message())
+            })?
             .into_inner();
         let mut file = HashingWriter::create(&partial).await?;
-        while let Some(chunk) = stream
-            .message()
-            .await
-            .map_err(|s| anyhow::anyhow!("{:?}: {}", s.code(), s.message()))?
-        {
+        while let Some(chunk) = stream.message().await.map_err(|s| {
+            anyhow::anyhow!("{}: {}", pointfarm_proto::code_words(s.code()), s.message())
+        })? {
             if file.received() + chunk.data.len() as u64 > dataset.size_bytes {
                 bail!("more than the {} bytes announced", dataset.size_bytes);
             }
