@@ -4,21 +4,9 @@ use std::path::Path;
 use std::process::Output;
 
 use pointfarm_tests::{
-    json_names, own_stderr_lines, pointfarm, shared_data, ServeProcess, WorkerProcess,
+    assert_fails_saying, assert_ok, json_names, own_stderr_lines, pointfarm,
+    run_into_a_closed_pipe, shared_data, stdout, ServeProcess, WorkerProcess,
 };
-
-fn stdout(output: &Output) -> String {
-    String::from_utf8_lossy(&output.stdout).into_owned()
-}
-
-fn assert_ok(output: &Output) {
-    assert!(
-        output.status.success(),
-        "pointfarm failed:\n{}\n{}",
-        stdout(output),
-        String::from_utf8_lossy(&output.stderr)
-    );
-}
 
 fn path_arg(path: &Path) -> String {
     path.to_str().expect("temporary paths are UTF-8").to_owned()
@@ -52,16 +40,6 @@ impl Scene {
     fn path(&self, name: &str) -> std::path::PathBuf {
         self.dir.path().join(name)
     }
-}
-
-/// Fails unless the command failed and its standard error says `needle`.
-fn assert_fails_saying(output: &Output, needle: &str) {
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(
-        !output.status.success(),
-        "expected a failure saying {needle}"
-    );
-    assert!(stderr.contains(needle), "{stderr}");
 }
 
 /// Fails unless the command's standard output says `needle`.
@@ -154,18 +132,18 @@ fn local_renders_here_whatever_the_environment_names() {
 fn a_closed_output_pipe_does_not_stop_a_render() {
     let scene = Scene::sampled("sample.las", 20_000);
     let frames = scene.path("frames");
-    // A pipe whose reading end is closed before the command writes a line.
-    let (reader, writer) = std::io::pipe().expect("pipe");
-    drop(reader);
-    let output = std::process::Command::new(pointfarm_tests::pointfarm_bin())
-        .args(["render", &scene.cloud, "--out", &path_arg(&frames)])
-        .args(["--turntable", "3", "--size", "160x120", "--json"])
-        .stdout(writer)
-        .output()
-        .expect("run pointfarm");
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(output.status.success(), "{:?}: {stderr}", output.status);
-    assert!(!stderr.contains("panicked"), "{stderr}");
+    let frames_arg = path_arg(&frames);
+    run_into_a_closed_pipe(&[
+        "render",
+        &scene.cloud,
+        "--out",
+        &frames_arg,
+        "--turntable",
+        "3",
+        "--size",
+        "160x120",
+        "--json",
+    ]);
     assert_frames(&frames, 3, (160, 120));
 }
 

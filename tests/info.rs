@@ -2,21 +2,12 @@
 //! own), on a truncated file and into a closed pipe.
 
 use std::path::Path;
-use std::process::{Command, Output};
 
-use pointfarm_tests::{pointfarm, pointfarm_bin, shared_data};
+use pointfarm_tests::{assert_ok, pointfarm, run_into_a_closed_pipe, shared_data};
 use serde_json::Value;
 
 fn path_arg(path: &Path) -> &str {
     path.to_str().expect("paths are UTF-8")
-}
-
-fn assert_ok(output: &Output) {
-    assert!(
-        output.status.success(),
-        "pointfarm info failed:\n{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
 }
 
 fn info_json(args: &[&str]) -> Value {
@@ -228,14 +219,5 @@ fn a_closed_output_pipe_ends_quietly() {
     let Some(las) = shared_data("autzen_trim.las") else {
         return;
     };
-    let (reader, writer) = std::io::pipe().expect("pipe");
-    drop(reader);
-    let output = Command::new(pointfarm_bin())
-        .args(["info", "--no-points", path_arg(&las), path_arg(&las)])
-        .stdout(writer)
-        .output()
-        .expect("run pointfarm");
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(output.status.success(), "{:?}: {stderr}", output.status);
-    assert!(!stderr.contains("panicked"), "{stderr}");
+    run_into_a_closed_pipe(&["info", "--no-points", path_arg(&las), path_arg(&las)]);
 }

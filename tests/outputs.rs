@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use pointfarm_tests::{pointfarm, pointfarm_bin};
+use pointfarm_tests::{assert_fails_saying, assert_ok, pointfarm, pointfarm_bin};
 
 /// A temporary folder holding one small generated cloud.
 struct Scene {
@@ -17,7 +17,7 @@ impl Scene {
     fn new() -> Self {
         let dir = tempfile::tempdir().expect("tempdir");
         let cloud = arg(&dir.path().join("sample.laz"));
-        ok(&pointfarm(&["sample", &cloud, "--points", "20000"]));
+        assert_ok(&pointfarm(&["sample", &cloud, "--points", "20000"]));
         Self { dir, cloud }
     }
 
@@ -35,25 +35,6 @@ impl Scene {
 
 fn arg(path: &Path) -> String {
     path.to_str().expect("UTF-8 temporary paths").to_owned()
-}
-
-fn ok(output: &Output) {
-    assert!(
-        output.status.success(),
-        "pointfarm failed:\n{}\n{}",
-        String::from_utf8_lossy(&output.stdout),
-        String::from_utf8_lossy(&output.stderr)
-    );
-}
-
-fn fails_saying(output: &Output, needle: &str) {
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(
-        !output.status.success(),
-        "expected a failure saying {needle}"
-    );
-    assert!(stderr.contains(needle), "{stderr}");
-    assert!(!stderr.contains("panicked"), "{stderr}");
 }
 
 /// The image format the file's bytes are in, whatever its name says.
@@ -97,7 +78,7 @@ fn a_still_is_written_in_the_format_its_extension_names() {
         ("still.tiff", image::ImageFormat::Tiff),
     ] {
         let path = scene.path(name);
-        ok(&scene.render(&["--out", &arg(&path)]));
+        assert_ok(&scene.render(&["--out", &arg(&path)]));
         assert_eq!(format_of(&path), format, "{name}");
         let image = image::open(&path).expect("readable");
         assert_eq!((image.width(), image.height()), (96, 64), "{name}");
@@ -106,8 +87,8 @@ fn a_still_is_written_in_the_format_its_extension_names() {
         }
     }
     let bmp = scene.path("still.bmp");
-    fails_saying(&scene.render(&["--out", &arg(&bmp)]), ".jpg/.jpeg");
-    fails_saying(
+    assert_fails_saying(&scene.render(&["--out", &arg(&bmp)]), ".jpg/.jpeg");
+    assert_fails_saying(
         &scene.render(&[
             "--out",
             &arg(&scene.path("t.jpg")),
@@ -122,13 +103,13 @@ fn a_still_is_written_in_the_format_its_extension_names() {
 fn a_turntable_goes_to_a_folder_or_a_pattern_never_over_one_file() {
     let scene = Scene::new();
     let pattern = scene.path("shots/orbit_{:03}.jpg");
-    ok(&scene.render(&["--turntable", "2", "--out", &arg(&pattern)]));
+    assert_ok(&scene.render(&["--turntable", "2", "--out", &arg(&pattern)]));
     for i in 0..2 {
         let frame = scene.path(&format!("shots/orbit_{i:03}.jpg"));
         assert_eq!(format_of(&frame), image::ImageFormat::Jpeg);
     }
     let file = scene.path("foo.png");
-    fails_saying(
+    assert_fails_saying(
         &scene.render(&["--turntable", "2", "--out", &arg(&file)]),
         "a turntable writes many frames",
     );
@@ -139,7 +120,7 @@ fn a_turntable_goes_to_a_folder_or_a_pattern_never_over_one_file() {
 fn a_depth_image_comes_with_its_near_far_and_camera() {
     let scene = Scene::new();
     let out = scene.path("view.webp");
-    ok(&scene.render(&[
+    assert_ok(&scene.render(&[
         "--out",
         &arg(&out),
         "--depth",
@@ -200,9 +181,9 @@ fn a_video_holds_exactly_the_frames_of_its_render() {
     let scene = Scene::new();
     let frames = scene.path("frames");
     // Frames of an earlier, longer render in the same folder.
-    ok(&scene.render(&["--turntable", "6", "--out", &arg(&frames)]));
+    assert_ok(&scene.render(&["--turntable", "6", "--out", &arg(&frames)]));
     let video = scene.path("turn.mp4");
-    ok(&scene.render(&[
+    assert_ok(&scene.render(&[
         "--turntable",
         "3",
         "--out",
@@ -216,7 +197,7 @@ fn a_video_holds_exactly_the_frames_of_its_render() {
     ]));
     assert_eq!(video_frames(&video), 3);
     let gif = scene.path("turn.gif");
-    ok(&scene.render(&[
+    assert_ok(&scene.render(&[
         "--turntable",
         "4",
         "--out",
@@ -247,7 +228,7 @@ fn a_video_that_cannot_be_made_is_refused_before_any_frame_is_rendered() {
         .env("PATH", scene.path("empty"))
         .output()
         .expect("run pointfarm");
-    fails_saying(&output, "ffmpeg is not installed");
+    assert_fails_saying(&output, "ffmpeg is not installed");
     assert!(!frames.exists(), "no frame rendered");
     let elsewhere = arg(&scene.path("absent/turn.mp4"));
     let output = scene.render(&[
@@ -258,7 +239,7 @@ fn a_video_that_cannot_be_made_is_refused_before_any_frame_is_rendered() {
         "--video",
         &elsewhere,
     ]);
-    fails_saying(&output, "does not exist");
+    assert_fails_saying(&output, "does not exist");
     assert!(!frames.exists(), "no frame rendered");
 }
 
@@ -267,7 +248,7 @@ fn the_camera_a_render_prints_gives_the_same_picture_again() {
     let scene = Scene::new();
     let (first, again) = (scene.path("top.png"), scene.path("again.png"));
     let output = scene.render(&["--out", &arg(&first), "--view", "top", "--ortho"]);
-    ok(&output);
+    assert_ok(&output);
     let text = String::from_utf8_lossy(&output.stdout);
     assert!(text.contains("bounds: x "), "{text}");
     let flags = text
@@ -277,7 +258,7 @@ fn the_camera_a_render_prints_gives_the_same_picture_again() {
     assert!(flags.contains("--ortho --ortho-height"), "{flags}");
     let mut options = vec!["--out", again.to_str().expect("UTF-8")];
     options.extend(flags.split_whitespace());
-    ok(&scene.render(&options));
+    assert_ok(&scene.render(&options));
     let (a, b) = (
         image::open(&first).expect("first").to_rgba8(),
         image::open(&again).expect("again").to_rgba8(),

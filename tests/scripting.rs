@@ -6,20 +6,9 @@ use std::path::Path;
 use std::process::{Command, Output, Stdio};
 use std::time::Duration;
 
-use pointfarm_tests::{pointfarm, pointfarm_bin, wait_for, ServeProcess, WorkerProcess};
-
-fn stdout(output: &Output) -> String {
-    String::from_utf8_lossy(&output.stdout).into_owned()
-}
-
-fn assert_ok(output: &Output) {
-    assert!(
-        output.status.success(),
-        "pointfarm failed:\n{}\n{}",
-        stdout(output),
-        String::from_utf8_lossy(&output.stderr)
-    );
-}
+use pointfarm_tests::{
+    assert_ok, pointfarm, pointfarm_bin, stdout, wait_for, ServeProcess, WorkerProcess,
+};
 
 fn arg(path: &Path) -> &str {
     path.to_str().expect("temporary paths are UTF-8")

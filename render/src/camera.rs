@@ -50,6 +50,8 @@ pub enum CameraError {
 pub const AUTO_AZIMUTH_DEG: f64 = -60.0;
 pub const AUTO_ELEVATION_DEG: f64 = 30.0;
 pub const DEFAULT_FOV_Y_DEG: f64 = 50.0;
+/// Room left around the framed box: 5% of its extent.
+const FRAMING_MARGIN: f64 = 1.05;
 
 impl Camera {
     /// Checks the camera for values that would give a meaningless or undefined transform.
@@ -107,23 +109,14 @@ impl Camera {
         elevation_deg: f64,
         projection: Projection,
     ) -> Camera {
-        const MARGIN: f64 = 1.05;
         let center = bounds.center();
         // Never zero, so a single point or a flat cloud still gives a valid camera.
         let radius = bounds.radius().max(1e-3);
-        let (az, el) = (azimuth_deg.to_radians(), elevation_deg.to_radians());
-        let to_camera = DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
+        let to_camera = view_direction(azimuth_deg, elevation_deg);
         let forward = -to_camera;
         let right = forward.cross(DVec3::Z).normalize();
         let up = right.cross(forward);
-        let corners = (0..8).map(|i| {
-            let pick = |bit: usize, lo: f64, hi: f64| if i & bit == 0 { lo } else { hi };
-            DVec3::new(
-                pick(1, bounds.min.x, bounds.max.x),
-                pick(2, bounds.min.y, bounds.max.y),
-                pick(4, bounds.min.z, bounds.max.z),
-            ) - center
-        });
+        let corners = corners_around_center(bounds).into_iter();
         let (distance, projection) = match projection {
             Projection::Perspective { fov_y_deg } => {
                 let tan_y = (fov_y_deg.to_radians() * 0.5).tan();
@@ -132,8 +125,8 @@ impl Camera {
                 // its depth, distance + c·forward.
                 let distance = corners
                     .map(|c| {
-                        let fit_x = c.dot(right).abs() * MARGIN / tan_x;
-                        let fit_y = c.dot(up).abs() * MARGIN / tan_y;
+                        let fit_x = c.dot(right).abs() * FRAMING_MARGIN / tan_x;
+                        let fit_y = c.dot(up).abs() * FRAMING_MARGIN / tan_y;
                         fit_x.max(fit_y) - c.dot(forward)
                     })
                     .fold(radius * 0.01, f64::max);
@@ -146,7 +139,7 @@ impl Camera {
                 (
                     radius * 2.0,
                     Projection::Orthographic {
-                        height: 2.0 * half_height * MARGIN,
+                        height: 2.0 * half_height * FRAMING_MARGIN,
                     },
                 )
             }
@@ -156,8 +149,8 @@ impl Camera {
             target: center,
             up: DVec3::Z,
             projection,
-            near: (distance - radius * MARGIN).max(distance * 1e-3),
-            far: distance + radius * MARGIN,
+            near: (distance - radius * FRAMING_MARGIN).max(distance * 1e-3),
+            far: distance + radius * FRAMING_MARGIN,
         }
     }
 
@@ -174,36 +167,21 @@ impl Camera {
         elevation_deg: f64,
         projection: Projection,
     ) -> Camera {
-        const MARGIN: f64 = 1.05;
         let center = bounds.center();
         let radius = bounds.radius().max(1e-3);
-        let (az, el) = (
-            azimuth_deg.to_radians(),
-            elevation_deg.clamp(-90.0, 90.0).to_radians(),
-        );
-        let to_camera = DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
-        let forward = -to_camera;
+        let forward = -view_direction(azimuth_deg, elevation_deg.clamp(-90.0, 90.0));
         // From the horizontal direction the camera faces, so that a view straight down (or
         // up) still has a right and an up.
-        let facing = -DVec3::new(az.cos(), az.sin(), 0.0);
+        let facing = -view_direction(azimuth_deg, 0.0);
         let right = facing.cross(DVec3::Z);
         let up = right.cross(forward).normalize();
-        let corners: Vec<DVec3> = (0..8)
-            .map(|i| {
-                let pick = |bit: usize, lo: f64, hi: f64| if i & bit == 0 { lo } else { hi };
-                DVec3::new(
-                    pick(1, bounds.min.x, bounds.max.x),
-                    pick(2, bounds.min.y, bounds.max.y),
-                    pick(4, bounds.min.z, bounds.max.z),
-                ) - center
-            })
-            .collect();
+        let corners = corners_around_center(bounds);
         let max_of =
             |f: &dyn Fn(DVec3) -> f64| corners.iter().map(|&c| f(c)).fold(f64::MIN, f64::max);
         // The camera's offsets from the centre along right, up and forward.
         let (sideways, upwards, along, projection) = match projection {
             Projection::Perspective { fov_y_deg } => {
-                let tan_y = (fov_y_deg.to_radians() * 0.5).tan() / MARGIN;
+                let tan_y = (fov_y_deg.to_radians() * 0.5).tan() / FRAMING_MARGIN;
                 let tan_x = tan_y * aspect;
                 // A corner c is in view when |(c - e)·axis| <= tan (c - e)·forward. With e's
                 // offsets a (along the axis) and b (along forward) that is two half-planes
@@ -243,7 +221,8 @@ impl Camera {
                 };
                 let (a, half_width) = span(right);
                 let (v, half_height) = span(up);
-                let height = 2.0 * half_height.max(half_width / aspect).max(radius * 0.01) * MARGIN;
+                let height =
+                    2.0 * half_height.max(half_width / aspect).max(radius * 0.01) * FRAMING_MARGIN;
                 (a, v, -radius * 2.0, Projection::Orthographic { height })
             }
         };
@@ -259,8 +238,8 @@ impl Camera {
                 up
             },
             projection,
-            near: (distance - radius * MARGIN).max(distance * 1e-3),
-            far: distance + radius * MARGIN,
+            near: (distance - radius * FRAMING_MARGIN).max(distance * 1e-3),
+            far: distance + radius * FRAMING_MARGIN,
         }
     }
 
@@ -360,6 +339,26 @@ impl Camera {
 }
 
 /// What a rasterizer needs of a camera, relative to the dataset origin, in f64.
+/// The unit vector from a target towards a camera at `azimuth_deg` (counter-clockwise from
+/// +X) and `elevation_deg` (above the horizon).
+fn view_direction(azimuth_deg: f64, elevation_deg: f64) -> DVec3 {
+    let (az, el) = (azimuth_deg.to_radians(), elevation_deg.to_radians());
+    DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin())
+}
+
+/// The corners of `bounds`, relative to its centre.
+fn corners_around_center(bounds: &WorldBounds) -> [DVec3; 8] {
+    let center = bounds.center();
+    std::array::from_fn(|i| {
+        let pick = |bit: usize, lo: f64, hi: f64| if i & bit == 0 { lo } else { hi };
+        DVec3::new(
+            pick(1, bounds.min.x, bounds.max.x),
+            pick(2, bounds.min.y, bounds.max.y),
+            pick(4, bounds.min.z, bounds.max.z),
+        ) - center
+    })
+}
+
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CameraTransform {
     pub view_proj: DMat4,

@@ -49,6 +49,48 @@ pub fn pointfarm(args: &[&str]) -> Output {
         .expect("run pointfarm")
 }
 
+/// What a command printed on standard output.
+pub fn stdout(output: &Output) -> String {
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+/// Fails, showing both outputs, unless the command succeeded.
+pub fn assert_ok(output: &Output) {
+    assert!(
+        output.status.success(),
+        "pointfarm failed:\n{}\n{}",
+        stdout(output),
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
+
+/// Fails unless the command failed, without a panic, and its standard error says `needle`.
+pub fn assert_fails_saying(output: &Output, needle: &str) {
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        !output.status.success(),
+        "expected a failure saying {needle}"
+    );
+    assert!(stderr.contains(needle), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+}
+
+/// Runs `pointfarm` with `args` writing into a pipe nobody reads (`| head` after it ended),
+/// and fails unless it still ends well and quietly.
+pub fn run_into_a_closed_pipe(args: &[&str]) -> Output {
+    let (reader, writer) = std::io::pipe().expect("pipe");
+    drop(reader);
+    let output = Command::new(pointfarm_bin())
+        .args(args)
+        .stdout(writer)
+        .output()
+        .expect("run pointfarm");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{:?}: {stderr}", output.status);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    output
+}
+
 pub use pointfarm_render::testing::shared_data;
 
 /// The `key` of each object in the JSON array `array` (e.g. each stage's name), in order.

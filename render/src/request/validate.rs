@@ -195,18 +195,34 @@ impl StillCamera {
         if let (Some(position), Some(target)) = (&self.position, &self.target) {
             up_across_the_view(&f("up"), &self.up, position, target)?;
         }
-        within(
-            &f("elevation_deg"),
-            "elevation",
+        view_angles(
+            &f,
+            self.azimuth_deg,
             self.elevation_deg,
             &VIEW_ELEVATION_RANGE,
-            " degrees",
         )?;
-        if !self.azimuth_deg.is_finite() {
-            return Err(invalid(f("azimuth_deg"), "must be finite"));
-        }
         field_of_view(&f("fov_y_deg"), self.fov_y_deg)
     }
+}
+
+/// A view's azimuth (any finite angle) and its elevation (within `elevations`), named by `f`.
+fn view_angles(
+    f: &dyn Fn(&str) -> String,
+    azimuth_deg: f64,
+    elevation_deg: f64,
+    elevations: &std::ops::RangeInclusive<f64>,
+) -> Checked {
+    within(
+        &f("elevation_deg"),
+        "elevation",
+        elevation_deg,
+        elevations,
+        " degrees",
+    )?;
+    if !azimuth_deg.is_finite() {
+        return Err(invalid(f("azimuth_deg"), "must be finite"));
+    }
+    Ok(())
 }
 
 impl Turntable {
@@ -231,13 +247,11 @@ impl Turntable {
                 return Err(invalid(f("start"), "is the centre of the orbit"));
             }
         }
-        let elevation = &f("elevation_deg");
-        within(
-            elevation,
-            "elevation",
+        view_angles(
+            &f,
+            self.azimuth_deg,
             self.elevation_deg,
             &TURNTABLE_ELEVATION_RANGE,
-            " degrees",
         )?;
         within(
             &f("degrees"),
@@ -246,9 +260,6 @@ impl Turntable {
             &TURNTABLE_DEGREES_RANGE,
             " degrees",
         )?;
-        if !self.azimuth_deg.is_finite() {
-            return Err(invalid(f("azimuth_deg"), "must be finite"));
-        }
         direction(&f("up"), &self.up)?;
         field_of_view(&f("fov_y_deg"), self.fov_y_deg)
     }
