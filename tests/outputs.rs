@@ -111,7 +111,7 @@ fn a_turntable_goes_to_a_folder_or_a_pattern_never_over_one_file() {
     let file = scene.path("foo.png");
     assert_fails_saying(
         &scene.render(&["--turntable", "2", "--out", &arg(&file)]),
-        "a turntable writes many frames",
+        "writes many frames",
     );
     assert!(!file.exists(), "nothing is made of a refused --out");
 }
@@ -255,7 +255,7 @@ fn the_camera_a_render_prints_gives_the_same_picture_again() {
         .lines()
         .find_map(|line| line.strip_prefix("camera: "))
         .unwrap_or_else(|| panic!("no camera line in {text}"));
-    assert!(flags.contains("--ortho --ortho-height"), "{flags}");
+    assert!(flags.contains("--ortho --ortho-height="), "{flags}");
     let mut options = vec!["--out", again.to_str().expect("UTF-8")];
     options.extend(flags.split_whitespace());
     assert_ok(&scene.render(&options));
@@ -266,4 +266,61 @@ fn the_camera_a_render_prints_gives_the_same_picture_again() {
     // The printed decimals move a point across a pixel edge at most here and there.
     let differing = a.pixels().zip(b.pixels()).filter(|(x, y)| x != y).count();
     assert!(differing * 200 < a.len() / 4, "{differing} pixels differ");
+}
+
+#[test]
+fn a_camera_path_file_renders_its_frames() {
+    let scene = Scene::new();
+    // The cloud's bounds, as a render reports them.
+    let still = scene.path("still.png");
+    let output = scene.render(&["--out", &arg(&still), "--json"]);
+    assert_ok(&output);
+    let frame: serde_json::Value = serde_json::from_slice(&output.stdout).expect("one JSON object");
+    let corner = |key: &str| -> Vec<f64> {
+        let values = frame["bounds"][key].as_array().expect(key);
+        values.iter().map(|v| v.as_f64().expect("number")).collect()
+    };
+    let (min, max) = (corner("min"), corner("max"));
+    let center: Vec<f64> = min.iter().zip(&max).map(|(a, b)| (a + b) / 2.0).collect();
+    let span = (max[0] - min[0]).max(max[1] - min[1]);
+    let path = scene.path("orbit.toml");
+    let keyframe = |dx: f64, dy: f64| {
+        format!(
+            "[[keyframes]]\nposition = [{}, {}, {}]\ntarget = [{}, {}, {}]\n",
+            center[0] + dx * span,
+            center[1] + dy * span,
+            max[2] + span,
+            center[0],
+            center[1],
+            center[2]
+        )
+    };
+    let text = format!(
+        "frames = 3\ninterpolation = \"linear\"\n{}{}",
+        keyframe(1.0, 0.0),
+        keyframe(0.0, 1.0)
+    );
+    std::fs::write(&path, text).expect("path file");
+    let frames = scene.path("path-frames");
+    assert_ok(&scene.render(&["--camera-path", &arg(&path), "--out", &arg(&frames)]));
+    let images: Vec<image::RgbaImage> = (0..3)
+        .map(|i| {
+            image::open(frames.join(format!("frame_{i:05}.png")))
+                .expect("frame")
+                .to_rgba8()
+        })
+        .collect();
+    assert_ne!(images[0], images[2], "the camera moved along the path");
+    assert!(!frames.join("frame_00003.png").exists());
+
+    let broken = scene.path("broken.json");
+    std::fs::write(&broken, "{\"frames\": 3, \"keyframes\": [], \"speed\": 1}").expect("file");
+    assert_fails_saying(
+        &scene.render(&["--camera-path", &arg(&broken), "--out", &arg(&frames)]),
+        "broken.json is not a camera path",
+    );
+    assert_fails_saying(
+        &scene.render(&["--out", &arg(&still), "--video", &arg(&scene.path("v.mp4"))]),
+        "--video needs frames",
+    );
 }

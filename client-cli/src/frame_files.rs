@@ -75,8 +75,9 @@ impl FrameFiles {
                 );
             }
             bail!(
-                "{} names one file, but a turntable writes many frames: give a folder \
-                 (frames/) or a pattern with the frame number (frames/frame_{{:05}}.png)",
+                "{} names one file, but a turntable or camera path writes many frames: give \
+                 a folder (frames/) or a pattern with the frame number \
+                 (frames/frame_{{:05}}.png)",
                 out.display()
             );
         };

@@ -10,6 +10,7 @@ macro_rules! outln {
 mod admin;
 mod admin_json;
 mod bench;
+mod camera_file;
 mod credentials;
 mod demo;
 mod frame_files;

@@ -4,7 +4,7 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use glam::DVec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_render::camera::{Camera, Projection};
@@ -77,7 +77,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let files = &outputs.files;
     let frames = request.frames();
     files.create_dir()?;
-    let progress = if args.turntable.is_some() {
+    let progress = if args.is_sequence() {
         ProgressBar::new(u64::from(frames)).with_style(
             ProgressStyle::with_template("{bar:40} {pos}/{len} frames, {eta} left")
                 .unwrap_or_else(|_| ProgressStyle::default_bar()),
@@ -114,7 +114,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         progress.inc(1);
     }
     progress.finish_and_clear();
-    if args.turntable.is_some() && !args.json {
+    if args.is_sequence() && !args.json {
         print_summary(files.dir(), &all);
     }
     if let Some(video) = &outputs.video {
@@ -132,12 +132,17 @@ pub(crate) struct Outputs {
 
 impl Outputs {
     fn check(args: &RenderArgs, request: &RenderRequest) -> Result<Self> {
-        let files = if args.turntable.is_some() {
+        let files = if args.is_sequence() {
             FrameFiles::sequence(&args.out)?
         } else {
             FrameFiles::still(&args.out)?
         };
         files.check_background(request.render.background)?;
+        if args.video_request().is_some() && !args.is_sequence() {
+            bail!(
+                "--video needs frames to make a video of: add --turntable N or --camera-path FILE"
+            );
+        }
         let video = args.video_request().map(VideoRequest::check).transpose()?;
         Ok(Self { files, video })
     }
@@ -189,15 +194,17 @@ fn bounds_text(bounds: &WorldBounds) -> String {
     .join(", ")
 }
 
-/// The camera as the flags that give it, to adjust from.
+/// The camera as the flags that give it, to adjust from (`--flag=value`, as a value may
+/// start with a minus sign).
 fn camera_flags(camera: &Camera) -> String {
-    let vector = |v: DVec3| format!("{:.3},{:.3},{:.3}", v.x, v.y, v.z);
+    // `+ 0.0` turns -0 into 0, which reads better.
+    let vector = |v: DVec3| format!("{:.3},{:.3},{:.3}", v.x + 0.0, v.y + 0.0, v.z + 0.0);
     let lens = match camera.projection {
-        Projection::Perspective { fov_y_deg } => format!("--fov {fov_y_deg}"),
-        Projection::Orthographic { height } => format!("--ortho --ortho-height {height:.3}"),
+        Projection::Perspective { fov_y_deg } => format!("--fov={fov_y_deg}"),
+        Projection::Orthographic { height } => format!("--ortho --ortho-height={height:.3}"),
     };
     format!(
-        "--camera-pos {} --camera-target {} --camera-up {} {lens} --near {:.3} --far {:.3}",
+        "--camera-pos={} --camera-target={} --camera-up={} {lens} --near={:.3} --far={:.3}",
         vector(camera.position),
         vector(camera.target),
         vector(camera.up),

@@ -2,7 +2,7 @@
 //! local rendering (`render`) and server rendering (`remote_render`) both start from. Every
 //! default comes from the render crate's constants.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Result};
 use clap::{Args, ValueEnum};
@@ -46,9 +46,10 @@ pub struct RenderArgs {
     /// the camera to turn it back into distances. Local only.
     #[arg(long)]
     depth: bool,
-    /// With --turntable: also assemble this render's frames into a video (.mp4, .mov, .mkv,
-    /// .webm, or .gif for quick looks). Needs ffmpeg, which is checked before rendering.
-    #[arg(long, requires = "turntable", value_name = "FILE")]
+    /// With --turntable or --camera-path: also assemble this render's frames into a video
+    /// (.mp4, .mov, .mkv, .webm, or .gif for quick looks). Needs ffmpeg, which is checked
+    /// before rendering.
+    #[arg(long, value_name = "FILE")]
     video: Option<PathBuf>,
     /// Frames per second of --video.
     #[arg(long, default_value_t = 30, requires = "video")]
@@ -78,6 +79,11 @@ pub struct RenderArgs {
     /// Render N frames orbiting the cloud (around the vertical axis through the target).
     #[arg(long, value_name = "N")]
     pub(crate) turntable: Option<u32>,
+    /// Render the frames of a keyframed camera path written as JSON or TOML: `frames`,
+    /// `interpolation` (spline or linear) and `keyframes`, each a `position` and `target` in
+    /// the file's coordinates, optionally `up` and `fov_y_deg`.
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["turntable", "camera_pos", "camera_target", "camera_up", "view"])]
+    camera_path: Option<PathBuf>,
     /// Camera position in the file's coordinates (default: the --view, framing the whole
     /// cloud). Each render prints the camera it chose as flags to start from.
     #[arg(long, value_parser = parse::vec3, value_name = "X,Y,Z", conflicts_with = "view")]
@@ -248,6 +254,9 @@ impl RenderArgs {
         let up = self.camera_up.map_or(DEFAULT_UP, Point3::from);
         let (azimuth_deg, elevation_deg) = self.view.direction();
         let camera_path = match self.turntable {
+            _ if self.camera_path.is_some() => {
+                crate::camera_file::read(self.camera_path.as_deref().unwrap_or(Path::new("")))?
+            }
             None => CameraPath::Still(StillCamera {
                 position: point(self.camera_pos),
                 target: point(self.camera_target),
@@ -311,6 +320,11 @@ impl RenderArgs {
         };
         request.validate()?;
         Ok(request)
+    }
+
+    /// Whether the render writes a sequence of frames (a turntable or a camera path), not one.
+    pub(crate) fn is_sequence(&self) -> bool {
+        self.turntable.is_some() || self.camera_path.is_some()
     }
 
     /// The video --video asks for, unchecked.
