@@ -97,9 +97,9 @@ pub fn run(
         let temp = tempdir_in(files.dir())?;
         let fetched = client.fetch_frames(&job.id, 0, &temp).await;
         let placed = fetched.and_then(|fetched| {
-            (0..)
-                .zip(&fetched)
-                .map(|(index, (_, png))| files.place_png(png, index))
+            fetched
+                .iter()
+                .map(|(index, png)| files.place_png(png, *index))
                 .collect::<Result<Vec<_>>>()
         });
         let _ = std::fs::remove_dir_all(&temp);

@@ -2,7 +2,7 @@
 //! local rendering (`render`) and server rendering (`remote_render`) both start from. Every
 //! default comes from the render crate's constants.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use anyhow::{bail, Result};
 use clap::{Args, ValueEnum};
@@ -253,11 +253,9 @@ impl RenderArgs {
         let point = |v: Option<DVec3>| v.map(Point3::from);
         let up = self.camera_up.map_or(DEFAULT_UP, Point3::from);
         let (azimuth_deg, elevation_deg) = self.view.direction();
-        let camera_path = match self.turntable {
-            _ if self.camera_path.is_some() => {
-                crate::camera_file::read(self.camera_path.as_deref().unwrap_or(Path::new("")))?
-            }
-            None => CameraPath::Still(StillCamera {
+        let camera_path = match (&self.camera_path, self.turntable) {
+            (Some(file), _) => crate::camera_file::read(file)?,
+            (None, None) => CameraPath::Still(StillCamera {
                 position: point(self.camera_pos),
                 target: point(self.camera_target),
                 up,
@@ -265,7 +263,7 @@ impl RenderArgs {
                 azimuth_deg,
                 elevation_deg,
             }),
-            Some(frames) => CameraPath::Turntable(Turntable {
+            (None, Some(frames)) => CameraPath::Turntable(Turntable {
                 center: point(self.camera_target),
                 start: point(self.camera_pos),
                 fov_y_deg: self.fov,
