@@ -9,9 +9,11 @@ use anyhow::Result;
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::{point_colors, ColorMode};
 use pointfarm_render::cut::{CutOptions, CutRenderer, CutReport};
+use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::load_dataset;
 use pointfarm_render::raster::{Frame, FrameSettings, GpuPointCloud, Renderer};
+use pointfarm_render::request::RenderOptions;
 
 use crate::lod_store::{open_or_build, StoreCache};
 use pointfarm_render::cut::StoredLod;
@@ -36,15 +38,18 @@ pub enum FrameSource {
         cut: Box<CutRenderer>,
         lod: Box<StoredLod>,
         color_mode: ColorMode,
+        filter: PointFilter,
+        /// What the automatic camera frames: the store's bounds within the filter's box.
+        bounds: WorldBounds,
     },
 }
 
 impl FrameSource {
-    /// The dataset read whole, coloured and uploaded.
+    /// The dataset read whole, coloured, filtered and uploaded.
     pub fn resident(
         gpu: Arc<GpuContext>,
         files: &[PathBuf],
-        color_mode: ColorMode,
+        options: &RenderOptions,
         say: &dyn Fn(String),
     ) -> Result<Self> {
         let started = Instant::now();
@@ -55,15 +60,19 @@ impl FrameSource {
         let cloud = load_dataset(files);
         spinner.finish_and_clear();
         let mut cloud = cloud?;
-        cloud.colors = point_colors(&cloud, color_mode);
+        cloud.colors = point_colors(&cloud, options.color_mode);
+        let points = cloud.len();
         say(format!(
-            "{} points in {} file{}, {}, read in {:.0} ms",
-            cloud.len(),
+            "{points} points in {} file{}, {}, read in {:.0} ms",
             files.len(),
             if files.len() == 1 { "" } else { "s" },
             cloud.color_source.describe(),
             started.elapsed().as_secs_f64() * 1e3
         ));
+        if !options.filter.keeps_everything() {
+            let kept = options.filter.apply(&mut cloud)?;
+            say(filtered_words(kept, points));
+        }
         let renderer = Renderer::new(gpu);
         let bounds = cloud.bounds;
         let resident = renderer.upload(&cloud)?;
@@ -80,11 +89,12 @@ impl FrameSource {
         files: &[PathBuf],
         cache: &StoreCache,
         options: CutOptions,
-        color_mode: ColorMode,
+        render: &RenderOptions,
         say: &dyn Fn(String),
     ) -> Result<Self> {
         let renderer = Renderer::new(gpu);
         let lod = open_or_build(files, cache, options.memory_budget_bytes, say)?;
+        let bounds = render.filter.framing_bounds(&lod.dataset.bounds())?;
         let cut = CutRenderer::new(&renderer, &lod.dataset, options)?;
         let budgets = cut.budgets();
         say(format!(
@@ -101,15 +111,16 @@ impl FrameSource {
             renderer,
             cut: Box::new(cut),
             lod: Box::new(lod),
-            color_mode,
+            color_mode: render.color_mode,
+            filter: render.filter,
+            bounds,
         })
     }
 
     /// The bounds the automatic camera frames.
     pub fn bounds(&self) -> WorldBounds {
         match self {
-            Self::Resident { bounds, .. } => *bounds,
-            Self::Cut { lod, .. } => lod.dataset.bounds(),
+            Self::Resident { bounds, .. } | Self::Cut { bounds, .. } => *bounds,
         }
     }
 
@@ -137,8 +148,11 @@ impl FrameSource {
                 cut,
                 lod,
                 color_mode,
+                filter,
+                ..
             } => {
-                let (frame, report) = cut.render(renderer, &lod.dataset, settings, *color_mode)?;
+                let (frame, report) =
+                    cut.render(renderer, &lod.dataset, settings, *color_mode, filter)?;
                 Ok(RenderedFrame {
                     frame,
                     points_total: report.counts.points_total,
@@ -151,8 +165,21 @@ impl FrameSource {
 
     /// Starts loading the nodes of the next frame while this one is written.
     pub fn read_ahead(&mut self, settings: &FrameSettings) {
-        if let Self::Cut { cut, lod, .. } = self {
-            cut.read_ahead(&lod.dataset, settings);
+        if let Self::Cut {
+            cut, lod, filter, ..
+        } = self
+        {
+            cut.read_ahead(&lod.dataset, settings, filter);
         }
+    }
+}
+
+/// What a filter kept of a dataset's points, in words; a warning when it kept none.
+fn filtered_words(kept: usize, points: usize) -> String {
+    if kept == 0 {
+        format!("the filter keeps none of the {points} points: the frames show only the background")
+    } else {
+        let percent = kept as f64 * 100.0 / points.max(1) as f64;
+        format!("the filter keeps {kept} of {points} points ({percent:.1}%)")
     }
 }

@@ -8,6 +8,7 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::Args;
+use pointfarm_render::classification;
 use pointfarm_render::cloud::{ColorSource, WorldBounds};
 use pointfarm_render::ingest::{
     dataset_files, Crs, FileInfo, IngestError, PointSummary, GEOTIFF_USER_DEFINED,
@@ -351,31 +352,11 @@ pub(crate) fn color_words(points: &PointSummary) -> String {
     }
 }
 
-/// The ASPRS name of a standard class (8 and 12 as LAS 1.1–1.3 name them; 1.4 reserves
-/// both).
+/// The ASPRS name of a standard class, by a histogram's index.
 pub(crate) fn class_name(class: usize) -> Option<&'static str> {
-    Some(match class {
-        0 => "never classified",
-        1 => "unclassified",
-        2 => "ground",
-        3 => "low vegetation",
-        4 => "medium vegetation",
-        5 => "high vegetation",
-        6 => "building",
-        7 => "low noise",
-        8 => "model key point",
-        9 => "water",
-        10 => "rail",
-        11 => "road surface",
-        12 => "overlap",
-        13 => "wire guard",
-        14 => "wire conductor",
-        15 => "transmission tower",
-        16 => "wire connector",
-        17 => "bridge deck",
-        18 => "high noise",
-        _ => return None,
-    })
+    u8::try_from(class)
+        .ok()
+        .and_then(classification::class_name)
 }
 
 #[cfg(test)]

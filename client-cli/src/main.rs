@@ -13,6 +13,7 @@ mod bench;
 mod camera_file;
 mod credentials;
 mod demo;
+mod filter_args;
 mod frame_files;
 mod frame_source;
 mod generate;

@@ -44,9 +44,8 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let label = args.inputs_label();
     let say_input = |line: String| say(format!("{label}: {line}"));
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
-    let color_mode = request.render.color_mode;
     let mut source = match args.cut_options(points)? {
-        None => FrameSource::resident(Arc::clone(&gpu), &files, color_mode, &say_input)?,
+        None => FrameSource::resident(Arc::clone(&gpu), &files, &request.render, &say_input)?,
         Some(options) => {
             let cache = StoreCache {
                 dir: args.cache_dir.clone().unwrap_or_else(default_cache_dir),
@@ -57,7 +56,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
                 &files,
                 &cache,
                 options,
-                color_mode,
+                &request.render,
                 &say_input,
             )?
         }

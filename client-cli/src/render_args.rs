@@ -21,6 +21,7 @@ use pointfarm_render::request::{
 };
 
 use crate::credentials::ClientCredentials;
+use crate::filter_args::FilterArgs;
 use crate::parse::{self, Rgba};
 use crate::video::{VideoCodec, VideoRequest, DEFAULT_VIDEO_QUALITY};
 
@@ -191,6 +192,8 @@ pub struct RenderArgs {
     /// them).
     #[arg(long, env = "POINTFARM_CACHE_SIZE", value_name = "SIZE", value_parser = parse::bytes)]
     pub(crate) cache_size: Option<u64>,
+    #[command(flatten, next_help_heading = "Filters")]
+    filter: FilterArgs,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -314,6 +317,7 @@ impl RenderArgs {
                 supersample: self.supersample,
                 depth: self.depth,
                 lod_error: self.lod_error,
+                filter: self.filter.filter(),
             },
         };
         request.validate()?;

@@ -6,10 +6,12 @@
 
 pub mod cache;
 pub mod camera;
+pub mod classification;
 pub mod cloud;
 pub mod color;
 pub mod cut;
 pub mod encode;
+pub mod filter;
 pub mod gpu;
 pub mod ingest;
 pub mod lod;

@@ -6,6 +6,7 @@ use std::sync::Arc;
 
 use pointfarm_render::color::ColorMode;
 use pointfarm_render::cut::{CutOptions, CutRenderer, LodDataset};
+use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::raster::{FrameSettings, Renderer};
 use serde::Serialize;
@@ -90,9 +91,20 @@ pub fn measure_fidelity(
     };
     for mode in FIDELITY_MODES {
         let settings = mode.map_or(*basic, |m| m.settings(basic));
-        let (expected, full_report) =
-            full.render(&mut renderer, dataset, &settings, ColorMode::Rgb)?;
-        let (actual, cut_report) = cut.render(&mut renderer, dataset, &settings, ColorMode::Rgb)?;
+        let (expected, full_report) = full.render(
+            &mut renderer,
+            dataset,
+            &settings,
+            ColorMode::Rgb,
+            &PointFilter::default(),
+        )?;
+        let (actual, cut_report) = cut.render(
+            &mut renderer,
+            dataset,
+            &settings,
+            ColorMode::Rgb,
+            &PointFilter::default(),
+        )?;
         if mode.is_none() {
             result.cut_points = cut_report.counts.points_rendered;
             result.full_points = full_report.counts.points_rendered;

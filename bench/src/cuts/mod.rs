@@ -27,6 +27,7 @@ use pointfarm_render::camera::Camera;
 use pointfarm_render::cloud::{pack_rgba8, ColorSource, PointCloud, WorldBounds};
 use pointfarm_render::color::ColorMode;
 use pointfarm_render::cut::{CutOptions, CutRenderer, LodDataset, DEFAULT_LOD_ERROR_PX};
+use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::DatasetSource;
 use pointfarm_render::lod::{build_lod, GeneratedSource, LodBuildOptions, PointSource};
@@ -227,7 +228,13 @@ pub fn warm_view(
     let mut cut = CutRenderer::new(&renderer, dataset, options)?;
     let mut frame = || -> Result<_, BenchError> {
         let started = Instant::now();
-        let (_, report) = cut.render(&mut renderer, dataset, settings, ColorMode::Rgb)?;
+        let (_, report) = cut.render(
+            &mut renderer,
+            dataset,
+            settings,
+            ColorMode::Rgb,
+            &PointFilter::default(),
+        )?;
         Ok((started.elapsed().as_secs_f64() * 1e3, report))
     };
     let (cold_ms, report) = frame()?;

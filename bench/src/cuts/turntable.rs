@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use pointfarm_render::color::ColorMode;
 use pointfarm_render::cut::{CutOptions, CutRenderer, CutReport, LodDataset};
+use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::raster::{FrameSettings, Renderer};
 use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
@@ -139,11 +140,16 @@ pub fn render_turntable(
     for i in 0..options.frames {
         let frame_settings = settings(i);
         let begun = Instant::now();
-        let (frame, report) =
-            cut.render(&mut renderer, dataset, &frame_settings, ColorMode::Rgb)?;
+        let (frame, report) = cut.render(
+            &mut renderer,
+            dataset,
+            &frame_settings,
+            ColorMode::Rgb,
+            &PointFilter::default(),
+        )?;
         let wall_ms = begun.elapsed().as_secs_f64() * 1e3;
         if i + 1 < options.frames {
-            cut.read_ahead(dataset, &settings(i + 1));
+            cut.read_ahead(dataset, &settings(i + 1), &PointFilter::default());
         }
         progress(&format!(
             "cut frame {i}: {wall_ms:.0} ms, {} nodes, {} points; read {} nodes ({:.1} MiB), \

@@ -451,7 +451,7 @@ mod tests {
         assert_eq!(field_of(&r), "camera_path");
         const PINTUS: i32 = pb::Shading::Pintus as i32;
         type Edit = fn(&mut pb::RenderOptions);
-        let render_cases: [(Edit, &str); 8] = [
+        let render_cases: [(Edit, &str); 13] = [
             (|o| o.point_size = 1000, "render.point_size"),
             (
                 |o| (o.quality, o.depth_band) = (pb::Quality::High as i32, Some(f32::NAN)),
@@ -469,6 +469,60 @@ mod tests {
             (|o| o.fill = Some(kernel(1)), "render.fill.kernel"),
             (|o| o.fill = Some(kernel(4)), "render.fill.kernel"),
             (|o| o.fill = Some(kernel(11)), "render.fill.kernel"),
+            (
+                |o| {
+                    o.filter = Some(pb::PointFilter {
+                        classes: vec![2, 256],
+                        ..Default::default()
+                    })
+                },
+                "render.filter.classes",
+            ),
+            (
+                |o| {
+                    o.filter = Some(pb::PointFilter {
+                        return_numbers: vec![16],
+                        ..Default::default()
+                    })
+                },
+                "render.filter.return_numbers",
+            ),
+            (
+                |o| {
+                    let intensity = Some(pb::IntensityRange { min: 9, max: 3 });
+                    o.filter = Some(pb::PointFilter {
+                        intensity,
+                        ..Default::default()
+                    })
+                },
+                "render.filter.intensity",
+            ),
+            (
+                |o| {
+                    let clip = Some(pb::ClipBox {
+                        min: vec3(0.0, 0.0, f64::NAN),
+                        max: vec3(1.0, 1.0, 1.0),
+                    });
+                    o.filter = Some(pb::PointFilter {
+                        clip,
+                        ..Default::default()
+                    })
+                },
+                "render.filter.clip",
+            ),
+            (
+                |o| {
+                    let clip = Some(pb::ClipBox {
+                        min: vec3(0.0, 0.0, 0.0),
+                        max: None,
+                    });
+                    o.filter = Some(pb::PointFilter {
+                        clip,
+                        ..Default::default()
+                    })
+                },
+                "render.filter.clip.max",
+            ),
         ];
         for (edit, field) in render_cases {
             let mut options = pb::RenderOptions::default();
@@ -515,6 +569,15 @@ mod tests {
             background: Some(pb::Color { rgba: 0x01020304 }),
             fill: Some(pb::FillOptions { kernel: 5 }),
             supersample: Some(2),
+            filter: Some(pb::PointFilter {
+                classes: vec![2, 6],
+                return_numbers: vec![1],
+                intensity: Some(pb::IntensityRange { min: 10, max: 900 }),
+                clip: Some(pb::ClipBox {
+                    min: vec3(-5.0, -6.0, -7.0),
+                    max: vec3(5.0, 6.0, 7.5),
+                }),
+            }),
             ..Default::default()
         });
         let key = |x: f64| pb::Keyframe {
@@ -552,6 +615,9 @@ mod tests {
         for path in [keyframes, turntable, still] {
             r.camera_path = Some(path);
             let spec = JobSpec::try_from(&r).expect("valid");
+            let filter = spec.request.render.filter;
+            assert_eq!(filter.classes.map(|c| c.codes()), Some(vec![2, 6]));
+            assert_eq!(filter.clip.map(|c| c.max), Some([5.0, 6.0, 7.5]));
             let task = FrameTask {
                 lease: Lease {
                     id: "lease-1".into(),

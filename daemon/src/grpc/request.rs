@@ -6,6 +6,7 @@
 
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::color::ColorMode;
+use pointfarm_render::filter::{ClipBox, CodeSet, IntensityRange, PointFilter};
 use pointfarm_render::raster::{FillSettings, Quality, Shading, DEFAULT_DEPTH_BAND};
 use pointfarm_render::request::{
     CameraPath, Interpolation, Keyframe, Lens, Point3, RenderOptions, RenderRequest, RequestError,
@@ -192,6 +193,96 @@ fn render_options(message: Option<&pb::RenderOptions>) -> Result<RenderOptions, 
         // The service has no depth output (the proto says so); the CLI refuses it there.
         depth: false,
         lod_error: o.lod_error,
+        filter: o
+            .filter
+            .as_ref()
+            .map(point_filter)
+            .transpose()?
+            .unwrap_or_default(),
+    })
+}
+
+/// A code list as a set: `None` when empty (every code), an error naming the field when a
+/// code does not fit in a byte.
+fn code_set(field: &str, codes: &[u32]) -> Result<Option<CodeSet>, DaemonError> {
+    if codes.is_empty() {
+        return Ok(None);
+    }
+    let bytes = codes
+        .iter()
+        .map(|&code| {
+            u8::try_from(code).map_err(|_| {
+                DaemonError::invalid(
+                    field,
+                    format!("code {code} is invalid: it must be 0 to 255"),
+                )
+            })
+        })
+        .collect::<Result<Vec<u8>, _>>()?;
+    Ok(Some(CodeSet::of(bytes)))
+}
+
+fn point_filter(f: &pb::PointFilter) -> Result<PointFilter, DaemonError> {
+    let intensity = |value: u32| {
+        u16::try_from(value).map_err(|_| {
+            DaemonError::invalid(
+                "render.filter.intensity",
+                format!("intensity {value} is invalid: it must be 0 to 65535"),
+            )
+        })
+    };
+    Ok(PointFilter {
+        classes: code_set("render.filter.classes", &f.classes)?,
+        return_numbers: code_set("render.filter.return_numbers", &f.return_numbers)?,
+        intensity: match &f.intensity {
+            Some(range) => Some(IntensityRange {
+                min: intensity(range.min)?,
+                max: intensity(range.max)?,
+            }),
+            None => None,
+        },
+        clip: match &f.clip {
+            Some(clip) => {
+                let corner = |name: &str, v: Option<&pb::Vec3>| {
+                    required_point(&format!("render.filter.clip.{name}"), v)
+                        .map(|p| [p.x, p.y, p.z])
+                };
+                Some(ClipBox {
+                    min: corner("min", clip.min.as_ref())?,
+                    max: corner("max", clip.max.as_ref())?,
+                })
+            }
+            None => None,
+        },
+    })
+}
+
+fn point_filter_message(filter: &PointFilter) -> Option<pb::PointFilter> {
+    let PointFilter {
+        classes,
+        return_numbers,
+        intensity,
+        clip,
+    } = *filter;
+    if filter.keeps_everything() {
+        return None;
+    }
+    let codes = |set: Option<CodeSet>| {
+        set.map(|s| s.codes().into_iter().map(u32::from).collect())
+            .unwrap_or_default()
+    };
+    let corner = |[x, y, z]: [f64; 3]| pb::Vec3 { x, y, z };
+    Some(pb::PointFilter {
+        classes: codes(classes),
+        return_numbers: codes(return_numbers),
+        intensity: intensity.map(|r| pb::IntensityRange {
+            min: r.min.into(),
+            max: r.max.into(),
+        }),
+        clip: clip.map(|c| pb::ClipBox {
+            min: Some(corner(c.min)),
+            max: Some(corner(c.max)),
+        }),
     })
 }
 
@@ -283,10 +374,12 @@ pub fn render_options_message(options: &RenderOptions) -> pb::RenderOptions {
         supersample,
         depth: _,
         lod_error,
+        filter,
     } = *options;
     let mut message = pb::RenderOptions {
         point_size,
         lod_error,
+        filter: point_filter_message(&filter),
         background: Some(color(background)),
         fill: fill.map(|FillSettings { kernel }| pb::FillOptions { kernel }),
         supersample: Some(supersample),

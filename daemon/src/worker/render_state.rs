@@ -14,6 +14,7 @@ use pointfarm_render::cut::{
     CutError, CutOptions, CutRenderer, LodDataset, StoredLod, RESIDENT_MAX_POINTS,
 };
 use pointfarm_render::encode;
+use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::dataset_point_count;
 use pointfarm_render::raster::{Clock, GpuPointCloud, Renderer};
@@ -27,6 +28,7 @@ use crate::worker::failure::FrameFailure;
 struct Resident {
     sha256: String,
     color_mode: ColorMode,
+    filter: PointFilter,
     bounds: WorldBounds,
     cloud: GpuPointCloud,
     /// How the cloud was loaded, until the next finished frame reports it.
@@ -72,7 +74,7 @@ pub enum DatasetAccess {
 
 /// What the worker has loaded of its current dataset.
 enum Loaded {
-    Resident(Resident),
+    Resident(Box<Resident>),
     Stored(Box<Stored>),
 }
 
@@ -157,6 +159,7 @@ impl WorkerRenderState {
             Some(Loaded::Resident(r)) => {
                 r.sha256 == task.dataset.sha256
                     && r.color_mode == task.request.render.color_mode
+                    && r.filter == task.request.render.filter
                     && self.lod_error(task, None).is_none()
             }
             Some(Loaded::Stored(s)) => {
@@ -218,7 +221,7 @@ impl WorkerRenderState {
                 Some(lod_error) => {
                     Loaded::Stored(Box::new(self.open_store(task, files, lod_error)?))
                 }
-                None => Loaded::Resident(self.load(task, files)?),
+                None => Loaded::Resident(Box::new(self.load(task, files)?)),
             });
         }
         let (mut frame, mut timings, dataset_cache_hit, cut) = match self.loaded.as_mut() {
@@ -240,13 +243,16 @@ impl WorkerRenderState {
             }
             Some(Loaded::Stored(stored)) => {
                 let dataset = stored.source.dataset();
-                let bounds = dataset.bounds();
+                let filter = &task.request.render.filter;
+                let bounds = filter
+                    .framing_bounds(&dataset.bounds())
+                    .map_err(|e| FrameFailure::permanent(e.to_string()))?;
                 let settings = task.request.frame_settings(task.lease.index, &bounds);
                 let color_mode = task.request.render.color_mode;
                 let rendered =
                     stored
                         .cut
-                        .render(&mut self.renderer, dataset, &settings, color_mode);
+                        .render(&mut self.renderer, dataset, &settings, color_mode, filter);
                 let (frame, report) = match rendered {
                     Ok(done) => done,
                     Err(error) => {
@@ -270,7 +276,9 @@ impl WorkerRenderState {
                 // The next frame of the job is likely this worker's next lease.
                 if task.lease.index + 1 < task.request.frames() {
                     let next = task.request.frame_settings(task.lease.index + 1, &bounds);
-                    stored.cut.read_ahead(stored.source.dataset(), &next);
+                    stored
+                        .cut
+                        .read_ahead(stored.source.dataset(), &next, filter);
                 }
                 let timings = stored
                     .unreported_build_ms
@@ -427,7 +435,16 @@ impl WorkerRenderState {
         };
         let (mut cloud, outcome) = loaded.map_err(in_dataset)?;
         let load_ms = started.elapsed().as_secs_f64() * 1e3;
-        cloud.colors = point_colors(&cloud, task.request.render.color_mode);
+        let render = &task.request.render;
+        cloud.colors = point_colors(&cloud, render.color_mode);
+        let points = cloud.len();
+        let kept = render
+            .filter
+            .apply(&mut cloud)
+            .map_err(|e| in_dataset(FrameFailure::permanent(e.to_string())))?;
+        if kept == 0 {
+            tracing::warn!(dataset = %dataset.id, points, "the filter keeps none of the points");
+        }
         let gpu_cloud = self
             .renderer
             .upload(&cloud)
@@ -435,7 +452,8 @@ impl WorkerRenderState {
         tracing::info!(dataset = %dataset.id, points = cloud.len(), load_ms, ?outcome, "cloud resident");
         Ok(Resident {
             sha256: dataset.sha256.clone(),
-            color_mode: task.request.render.color_mode,
+            color_mode: render.color_mode,
+            filter: render.filter,
             bounds: cloud.bounds,
             cloud: gpu_cloud,
             unreported_load: Some((load_ms, outcome)),

@@ -15,6 +15,7 @@
 use std::collections::{BTreeMap, HashMap, HashSet};
 
 use crate::color::ColorMode;
+use crate::filter::PointFilter;
 use crate::gpu::GpuContext;
 use crate::lod::NodeKey;
 use crate::raster::gpu_data::{GpuBatch, QuantisedPosition, COLOR_BYTES};
@@ -57,7 +58,8 @@ pub struct GpuNodeCache {
     resident: HashMap<NodeKey, ResidentNode>,
     by_use: BTreeMap<u64, NodeKey>,
     tick: u64,
-    color_mode: Option<ColorMode>,
+    /// How the resident nodes were prepared: their colours and the points they kept.
+    prepared_for: Option<(ColorMode, PointFilter)>,
     /// Bytes written since the uploads were last submitted.
     unsubmitted_bytes: u64,
 }
@@ -89,7 +91,7 @@ impl GpuNodeCache {
             resident: HashMap::new(),
             by_use: BTreeMap::new(),
             tick: 0,
-            color_mode: None,
+            prepared_for: None,
             unsubmitted_bytes: 0,
         }
     }
@@ -108,14 +110,15 @@ impl GpuNodeCache {
         self.resident.contains_key(&key)
     }
 
-    /// Empties the cache when `mode` is not the one its colours were written in.
-    pub fn use_color_mode(&mut self, mode: ColorMode) {
-        if self.color_mode != Some(mode) {
+    /// Empties the cache when its nodes were not prepared with these colours and this filter.
+    pub fn prepare_for(&mut self, color_mode: ColorMode, filter: PointFilter) {
+        let wanted = Some((color_mode, filter));
+        if self.prepared_for != wanted {
             let keys: Vec<NodeKey> = self.resident.keys().copied().collect();
             for key in keys {
                 self.evict(key);
             }
-            self.color_mode = Some(mode);
+            self.prepared_for = wanted;
         }
     }
 

@@ -42,6 +42,7 @@ use thiserror::Error;
 
 use crate::cloud::WorldBounds;
 use crate::color::ColorMode;
+use crate::filter::PointFilter;
 use crate::lod::{read_nodes, LodError, LodHierarchy, LodStore, NodeKey, NodePoints, NodeRecords};
 use crate::raster::morton::morton_order;
 use crate::raster::points::ChunkData;
@@ -247,7 +248,7 @@ impl CutRenderer {
     }
 
     /// The cut a frame of `settings` draws.
-    pub fn cut(&self, dataset: &LodDataset, settings: &FrameSettings) -> Cut {
+    pub fn cut(&self, dataset: &LodDataset, settings: &FrameSettings, filter: &PointFilter) -> Cut {
         let k = settings.supersample.max(1);
         let (width, height) = (
             settings.width.saturating_mul(k),
@@ -266,21 +267,24 @@ impl CutRenderer {
                 max_batches: self.gpu_cache.capacity_batches(),
                 max_points: (self.options.lod_error > 0.0)
                     .then(|| pixels.saturating_mul(MAX_CUT_POINTS_PER_PIXEL)),
+                clip: filter.clip,
             },
         )
     }
 
-    /// Renders one frame: its cut made resident, then drawn.
+    /// Renders one frame: its cut made resident, its points coloured in `color_mode` and
+    /// passed through `filter`, then drawn.
     pub fn render(
         &mut self,
         renderer: &mut Renderer,
         dataset: &LodDataset,
         settings: &FrameSettings,
         color_mode: ColorMode,
+        filter: &PointFilter,
     ) -> Result<(Frame, CutReport), CutError> {
         renderer.validate(settings)?;
         let started = Instant::now();
-        let cut = self.cut(dataset, settings);
+        let cut = self.cut(dataset, settings, filter);
         let select_ms = ms_since(started);
         let mut report = CutReport::of_cut(&cut, dataset.point_count());
         report.select_ms = select_ms;
@@ -298,7 +302,7 @@ impl CutRenderer {
         report.counts.read_ahead_bytes = std::mem::take(&mut self.read_ahead_bytes);
         report.wait_ms = ms_since(started);
 
-        self.gpu_cache.use_color_mode(color_mode);
+        self.gpu_cache.prepare_for(color_mode, *filter);
         let keys: Vec<NodeKey> = cut.nodes.iter().map(|n| n.key).collect();
         let keep: HashSet<NodeKey> = keys.iter().copied().collect();
         let missing: Vec<&CutNode> = cut
@@ -316,7 +320,7 @@ impl CutRenderer {
             let started = Instant::now();
             let prepared: Vec<ChunkData> = nodes
                 .par_iter()
-                .map(|node| prepare(dataset, node, color_mode))
+                .map(|node| prepare(dataset, node, color_mode, filter))
                 .collect();
             report.prepare_ms += ms_since(started);
 
@@ -331,6 +335,8 @@ impl CutRenderer {
             upload_ms += ms_since(started);
         }
         let cloud = self.gpu_cache.frame_cloud(renderer.gpu(), &keys, upload_ms);
+        // What the filter kept of the cut's points.
+        report.counts.points_rendered = cloud.len() as u64;
         let mut frame = renderer.render(cloud, settings)?;
         let load_ms = report.wait_ms + report.load_ms + report.prepare_ms;
         let mut stages = vec![
@@ -400,11 +406,16 @@ impl CutRenderer {
     /// Starts reading the nodes of the frame of `settings` that neither cache holds into the
     /// host cache, on another thread, largest on screen first, up to half the host cache. The
     /// next [`CutRenderer::render`] waits for it.
-    pub fn read_ahead(&mut self, dataset: &LodDataset, settings: &FrameSettings) {
+    pub fn read_ahead(
+        &mut self,
+        dataset: &LodDataset,
+        settings: &FrameSettings,
+        filter: &PointFilter,
+    ) {
         if self.read_ahead.is_some() {
             return;
         }
-        let cut = self.cut(dataset, settings);
+        let cut = self.cut(dataset, settings, filter);
         let Ok(host) = self.host.lock() else {
             return;
         };
@@ -456,12 +467,21 @@ impl CutRenderer {
     }
 }
 
-/// A node's points as the renderer takes them: relative to the origin, coloured, in Morton
-/// order, batched and quantised.
-fn prepare(dataset: &LodDataset, node: &NodePoints, color_mode: ColorMode) -> ChunkData {
-    let positions = node.positions_relative_to(dataset.origin);
+/// A node's points as the renderer takes them: relative to the origin, coloured, those that
+/// pass `filter` in Morton order, batched and quantised.
+fn prepare(
+    dataset: &LodDataset,
+    node: &NodePoints,
+    color_mode: ColorMode,
+    filter: &PointFilter,
+) -> ChunkData {
+    let mut positions = node.positions_relative_to(dataset.origin);
     let heights: Vec<f32> = positions.iter().map(|p| p.z).collect();
-    let colors = dataset.coloring.colors(node, &heights, color_mode);
+    let mut colors = dataset.coloring.colors(node, &heights, color_mode);
+    if let Some(kept) = filter.node_points(node) {
+        positions = kept.iter().map(|&i| positions[i as usize]).collect();
+        colors = kept.iter().map(|&i| colors[i as usize]).collect();
+    }
     let order = morton_order(&positions);
     let sorted: Vec<glam::Vec3> = order.iter().map(|&i| positions[i as usize]).collect();
     ChunkData::new(&sorted, order.iter().map(|&i| colors[i as usize]))

@@ -15,6 +15,7 @@ use std::collections::BinaryHeap;
 use glam::DVec3;
 
 use crate::camera::{Camera, CameraTransform, Projection};
+use crate::filter::ClipBox;
 use crate::lod::{LodHierarchy, NodeKey};
 use crate::raster::culling::Frustum;
 use crate::raster::gpu_data::GpuBatch;
@@ -71,6 +72,8 @@ pub struct CutView<'a> {
     /// The most points the cut may draw (beyond its first node); `None`: as many as the
     /// pixel error selects.
     pub max_points: Option<u64>,
+    /// Only nodes that meet this box (world coordinates) are drawn: a filter's clip box.
+    pub clip: Option<ClipBox>,
 }
 
 struct Queued {
@@ -142,6 +145,12 @@ pub fn select_cut(hierarchy: &LodHierarchy, view: &CutView<'_>) -> Cut {
         (min - view.origin, side)
     };
     let in_view = |key: NodeKey| {
+        if let Some(clip) = &view.clip {
+            let (min, side) = hierarchy.node_cube(key);
+            if !clip.meets_cube(min, side) {
+                return false;
+            }
+        }
         let (min, side) = cube(key);
         let pad = side * 1e-6 + 1e-6;
         let lo = (min - pad).as_vec3();

@@ -72,8 +72,14 @@ fn fresh_cut(
     settings: &FrameSettings,
 ) -> (Frame, CutReport) {
     let mut cut = cut_renderer(renderer, fixture, lod_error);
-    cut.render(renderer, &fixture.dataset, settings, ColorMode::Rgb)
-        .expect("cut frame")
+    cut.render(
+        renderer,
+        &fixture.dataset,
+        settings,
+        ColorMode::Rgb,
+        &PointFilter::default(),
+    )
+    .expect("cut frame")
 }
 
 fn resident_image(
@@ -143,7 +149,13 @@ fn every_mode_at_lod_error_zero_renders_as_the_resident_cloud() {
     for (name, options, color_mode) in modes {
         let settings = settings(&fixture, &options);
         let (frame, report) = cut
-            .render(&mut renderer, &fixture.dataset, &settings, color_mode)
+            .render(
+                &mut renderer,
+                &fixture.dataset,
+                &settings,
+                color_mode,
+                &PointFilter::default(),
+            )
             .expect("cut");
         assert_eq!(
             report.counts.points_rendered, report.counts.points_total,
@@ -161,6 +173,110 @@ fn every_mode_at_lod_error_zero_renders_as_the_resident_cloud() {
 }
 
 #[test]
+fn filtered_cuts_at_lod_error_zero_draw_the_filtered_resident_cloud() {
+    use crate::filter::{ClipBox, CodeSet, IntensityRange};
+    let fixture = fixture(60_000);
+    let mut renderer = Renderer::new(gpu());
+    let mut cut = cut_renderer(&renderer, &fixture, 0.0);
+    let bounds = fixture.cloud.bounds;
+    // The half of the scene with the lower x.
+    let half = ClipBox {
+        min: bounds.min.to_array(),
+        max: [bounds.center().x, bounds.max.y, bounds.max.z],
+    };
+    let classes = fixture.cloud.classification.iter().copied();
+    let common_class = classes.max_by_key(|&c| {
+        fixture
+            .cloud
+            .classification
+            .iter()
+            .filter(|&&d| d == c)
+            .count()
+    });
+    let mut intensities = fixture.cloud.intensity.clone();
+    intensities.sort_unstable();
+    let median_intensity = intensities[intensities.len() / 2];
+    let filters = [
+        (
+            "classes",
+            PointFilter {
+                classes: Some(CodeSet::of(common_class)),
+                ..Default::default()
+            },
+        ),
+        (
+            "intensity",
+            PointFilter {
+                intensity: Some(IntensityRange {
+                    min: 0,
+                    max: median_intensity - 1,
+                }),
+                ..Default::default()
+            },
+        ),
+        (
+            "clip",
+            PointFilter {
+                clip: Some(half),
+                ..Default::default()
+            },
+        ),
+    ];
+    let (_, everything) = cut
+        .render(
+            &mut renderer,
+            &fixture.dataset,
+            &settings(&fixture, &RenderOptions::default()),
+            ColorMode::Rgb,
+            &PointFilter::default(),
+        )
+        .expect("unfiltered");
+    for (name, filter) in filters {
+        let mut kept = fixture.cloud.clone();
+        let count = filter.apply(&mut kept).expect("inside");
+        assert!(
+            count > 0 && count < fixture.cloud.len(),
+            "{name}: {count} kept"
+        );
+        // Both paths frame the same bounds: the clip box's part of the dataset.
+        let framing = filter
+            .framing_bounds(&fixture.dataset.bounds())
+            .expect("inside");
+        let camera = Camera::auto(&framing, 4.0 / 3.0);
+        let settings = FrameSettings::new(200, 150, camera);
+        let (frame, report) = cut
+            .render(
+                &mut renderer,
+                &fixture.dataset,
+                &settings,
+                ColorMode::Rgb,
+                &filter,
+            )
+            .expect("filtered cut");
+        assert_eq!(
+            report.counts.points_rendered, count as u64,
+            "{name}: what the filter kept"
+        );
+        let mut resident = Renderer::new(gpu());
+        let uploaded = resident.upload(&kept).expect("upload");
+        let expected = resident.render(&uploaded, &settings).expect("render").image;
+        let share = close_share(&format!("cut-filter-{name}"), &frame.image, &expected);
+        assert!(
+            share >= 0.99,
+            "{name}: only {share:.4} of pixels within 8/255"
+        );
+        if name == "clip" {
+            assert!(
+                report.counts.nodes < everything.counts.nodes,
+                "the box leaves nodes outside it uncut: {} of {}",
+                report.counts.nodes,
+                everything.counts.nodes
+            );
+        }
+    }
+}
+
+#[test]
 fn a_frame_is_the_same_from_a_cold_and_a_warm_cache() {
     let (fixture, mut renderer, first) = basic_frame(40_000);
     let mut other = first;
@@ -173,14 +289,32 @@ fn a_frame_is_the_same_from_a_cold_and_a_warm_cache() {
     );
     let mut cut = cut_renderer(&renderer, &fixture, DEFAULT_LOD_ERROR_PX);
     let (cold, cold_report) = cut
-        .render(&mut renderer, &fixture.dataset, &first, ColorMode::Rgb)
+        .render(
+            &mut renderer,
+            &fixture.dataset,
+            &first,
+            ColorMode::Rgb,
+            &PointFilter::default(),
+        )
         .expect("cold");
     assert_eq!(cold_report.counts.gpu_hits, 0);
     assert!(cold_report.counts.nodes_read > 0 && cold_report.counts.bytes_read > 0);
-    cut.render(&mut renderer, &fixture.dataset, &other, ColorMode::Rgb)
-        .expect("other");
+    cut.render(
+        &mut renderer,
+        &fixture.dataset,
+        &other,
+        ColorMode::Rgb,
+        &PointFilter::default(),
+    )
+    .expect("other");
     let (warm, warm_report) = cut
-        .render(&mut renderer, &fixture.dataset, &first, ColorMode::Rgb)
+        .render(
+            &mut renderer,
+            &fixture.dataset,
+            &first,
+            ColorMode::Rgb,
+            &PointFilter::default(),
+        )
         .expect("warm");
     assert_eq!(warm_report.counts.nodes_read, 0, "{warm_report:?}");
     assert_eq!(warm_report.counts.gpu_hits, warm_report.counts.nodes);
@@ -212,7 +346,13 @@ fn the_caches_stay_within_their_budgets_and_evict() {
         );
         let again = settings;
         let (frame, report) = cut
-            .render(&mut renderer, &fixture.dataset, &settings, ColorMode::Rgb)
+            .render(
+                &mut renderer,
+                &fixture.dataset,
+                &settings,
+                ColorMode::Rgb,
+                &PointFilter::default(),
+            )
             .expect("frame");
         assert!(report.gpu_cache_bytes <= budgets.gpu_bytes, "{report:?}");
         assert!(report.host_cache_bytes <= budgets.host_bytes, "{report:?}");
@@ -223,7 +363,13 @@ fn the_caches_stay_within_their_budgets_and_evict() {
         evicted += report.counts.gpu_evicted;
         // The same view again, after whatever the budget evicted: the same image.
         let (repeat, _) = cut
-            .render(&mut renderer, &fixture.dataset, &again, ColorMode::Rgb)
+            .render(
+                &mut renderer,
+                &fixture.dataset,
+                &again,
+                ColorMode::Rgb,
+                &PointFilter::default(),
+            )
             .expect("repeat");
         assert!(
             repeat.image == frame.image,
@@ -268,11 +414,17 @@ fn a_coarser_pixel_error_draws_fewer_points_and_the_default_keeps_the_image() {
     settings.camera.far *= 4.0;
     let points = |lod_error: f64, renderer: &mut Renderer| {
         let mut cut = cut_renderer(renderer, &fixture, lod_error);
-        cut.render(renderer, &fixture.dataset, &settings, ColorMode::Rgb)
-            .expect("frame")
-            .1
-            .counts
-            .points_rendered
+        cut.render(
+            renderer,
+            &fixture.dataset,
+            &settings,
+            ColorMode::Rgb,
+            &PointFilter::default(),
+        )
+        .expect("frame")
+        .1
+        .counts
+        .points_rendered
     };
     let (full, default, coarse) = (
         points(0.0, &mut renderer),
@@ -331,12 +483,19 @@ fn a_read_ahead_fills_the_host_cache_and_changes_no_pixel() {
         &fixture.dataset,
         &first,
         ColorMode::Intensity,
+        &PointFilter::default(),
     )
     .expect("first");
     // Another colour mode empties the GPU cache, so the next frame needs every node.
-    cut.read_ahead(&fixture.dataset, &next);
+    cut.read_ahead(&fixture.dataset, &next, &PointFilter::default());
     let (frame, report) = cut
-        .render(&mut renderer, &fixture.dataset, &next, ColorMode::Rgb)
+        .render(
+            &mut renderer,
+            &fixture.dataset,
+            &next,
+            ColorMode::Rgb,
+            &PointFilter::default(),
+        )
         .expect("next");
     assert_eq!(report.counts.gpu_hits, 0);
     assert_eq!(
@@ -371,7 +530,13 @@ fn a_damaged_node_is_reported_not_drawn() {
     let mut renderer = Renderer::new(gpu());
     let mut cut = cut_renderer(&renderer, &fixture, 0.0);
     let settings = settings(&fixture, &RenderOptions::default());
-    let Err(error) = cut.render(&mut renderer, &fixture.dataset, &settings, ColorMode::Rgb) else {
+    let Err(error) = cut.render(
+        &mut renderer,
+        &fixture.dataset,
+        &settings,
+        ColorMode::Rgb,
+        &PointFilter::default(),
+    ) else {
         panic!("a damaged node fails the frame");
     };
     assert!(

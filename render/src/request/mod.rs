@@ -60,6 +60,7 @@ impl RenderRequest {
             supersample,
             depth,
             lod_error: _, // chooses what is drawn, not how (`cut/`)
+            filter: _,    // applied to the points before upload
         } = self.render;
         FrameSettings {
             width: self.width,

@@ -5,6 +5,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::color::ColorMode;
+use crate::filter::PointFilter;
 use crate::raster::{FillSettings, Quality, Shading, DEFAULT_BACKGROUND, DEFAULT_POINT_SIZE};
 
 /// No supersampling unless asked for.
@@ -37,6 +38,9 @@ pub struct RenderOptions {
     /// ([`crate::cut::RESIDENT_MAX_POINTS`]), at [`crate::cut::DEFAULT_LOD_ERROR_PX`].
     #[serde(default)]
     pub lod_error: Option<f64>,
+    /// Which points are drawn ([`crate::filter`]); every point by default.
+    #[serde(default)]
+    pub filter: PointFilter,
 }
 
 fn default_supersample() -> u32 {
@@ -55,6 +59,7 @@ impl Default for RenderOptions {
             supersample: DEFAULT_SUPERSAMPLE,
             depth: false,
             lod_error: None,
+            filter: PointFilter::default(),
         }
     }
 }

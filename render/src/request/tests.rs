@@ -197,6 +197,7 @@ fn frame_settings_carry_every_option() {
         supersample: 2,
         depth: true,
         lod_error: Some(0.5),
+        filter: crate::filter::PointFilter::default(),
     };
     let s = r.frame_settings(0, &bounds());
     assert_eq!((s.width, s.height, s.point_size), (64, 48, 3));

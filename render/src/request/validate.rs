@@ -11,6 +11,7 @@ use super::camera_path::{
 };
 use super::{RenderOptions, RenderRequest};
 use crate::cut::MAX_LOD_ERROR_PX;
+use crate::filter::{IntensityRange, PointFilter, MAX_RETURN_NUMBER};
 use crate::raster::{
     FillSettings, Quality, Shading, DEPTH_BAND_RANGE, EDL_RADIUS_RANGE, EDL_STRENGTH_RANGE,
     MAX_FILL_KERNEL, MAX_PINTUS_LEVELS, MAX_POINT_SIZE, MAX_SUPERSAMPLE, MIN_FILL_KERNEL,
@@ -388,6 +389,72 @@ impl RenderOptions {
             "supersampling factor",
             supersample,
             "",
-        )
+        )?;
+        self.filter.validate()
+    }
+}
+
+impl PointFilter {
+    fn validate(&self) -> Checked {
+        let sets = [
+            ("render.filter.classes", "class", self.classes, u8::MAX),
+            (
+                "render.filter.return_numbers",
+                "return number",
+                self.return_numbers,
+                MAX_RETURN_NUMBER,
+            ),
+        ];
+        for (field, what, set, max) in sets {
+            let Some(set) = set else { continue };
+            if set.is_empty() {
+                return Err(invalid(
+                    field,
+                    format!("lists no {what}: nothing would be drawn"),
+                ));
+            }
+            if let Some(highest) = set.max().filter(|&highest| highest > max) {
+                return Err(invalid(
+                    field,
+                    format!("{what} {highest} is invalid: it must be 0 to {max}"),
+                ));
+            }
+        }
+        if let Some(IntensityRange { min, max }) = self.intensity {
+            if min > max {
+                return Err(invalid(
+                    "render.filter.intensity",
+                    format!(
+                        "intensity range {min}..{max} is empty: its minimum is above its maximum"
+                    ),
+                ));
+            }
+        }
+        if let Some(clip) = self.clip {
+            let field = "render.filter.clip";
+            for (axis, (min, max)) in ["x", "y", "z"]
+                .iter()
+                .zip(clip.min.into_iter().zip(clip.max))
+            {
+                for value in [min, max] {
+                    if !value.is_finite() || value.abs() > MAX_COORDINATE {
+                        return Err(invalid(
+                            field,
+                            format!(
+                                "{axis} {value} is invalid: coordinates must be finite and at \
+                                 most {MAX_COORDINATE:e} in magnitude"
+                            ),
+                        ));
+                    }
+                }
+                if min >= max {
+                    return Err(invalid(
+                        field,
+                        format!("the box is empty along {axis}: {min} is not below {max}"),
+                    ));
+                }
+            }
+        }
+        Ok(())
     }
 }

@@ -7,6 +7,7 @@ mod atomics;
 mod basic;
 mod culling;
 mod fill_and_shading;
+mod filters;
 mod golden;
 mod high_quality;
 mod outputs;
