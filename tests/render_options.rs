@@ -11,12 +11,14 @@ use pointfarm_daemon::model::JobSpec;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::cloud::PointCloud;
 use pointfarm_render::color::{point_colors, ColorMode};
-use pointfarm_render::ingest::load_point_cloud;
+use pointfarm_render::filter::{ClipBox, CodeSet, IntensityRange};
+use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::raster::{FillSettings, Quality, Renderer, Shading};
 use pointfarm_render::request::{
     CameraPath, Interpolation, Keyframe, Lens, Point3, RenderOptions, RenderRequest, StillCamera,
     Turntable, DEFAULT_UP,
 };
+use pointfarm_render::sample::sample_scene;
 use pointfarm_tests::service::{fetch_images, gpu, upload, watch_to_end, write_sample, TestDaemon};
 
 const WIDTH: u32 = 64;
@@ -44,6 +46,9 @@ fn cases(cloud: &PointCloud) -> Vec<(&'static str, RenderRequest)> {
     let fitted = still().camera(0, bounds);
     let depth = fitted.far - fitted.near;
     let center = bounds.center();
+    let mut intensities = cloud.intensity.clone();
+    intensities.sort_unstable();
+    let median_intensity = intensities[intensities.len() / 2];
     let key = |dx: f64, fov_y_deg: f64| Keyframe {
         position: Point3 {
             x: center.x + dx,
@@ -167,6 +172,32 @@ fn cases(cloud: &PointCloud) -> Vec<(&'static str, RenderRequest)> {
             });
             r
         }),
+        (
+            "filter by class",
+            with_options(|o| o.filter.classes = Some(CodeSet::of([2, 11]))),
+        ),
+        (
+            "filter by return number",
+            with_options(|o| o.filter.return_numbers = Some(CodeSet::of([1, 3]))),
+        ),
+        (
+            "filter by intensity",
+            with_options(|o| {
+                o.filter.intensity = Some(IntensityRange {
+                    min: 0,
+                    max: median_intensity,
+                })
+            }),
+        ),
+        (
+            "filter by a clip box",
+            with_options(|o| {
+                o.filter.clip = Some(ClipBox {
+                    min: bounds.min.to_array(),
+                    max: [center.x, center.y, bounds.max.z],
+                })
+            }),
+        ),
         ("the automatic view from above", {
             let mut r = still();
             r.camera_path = CameraPath::Still(StillCamera {
@@ -189,10 +220,15 @@ fn render_here(
     request.validate().expect("a valid request");
     let mut colored = cloud.clone();
     colored.colors = point_colors(cloud, request.render.color_mode);
+    request
+        .render
+        .filter
+        .apply(&mut colored)
+        .expect("a filter inside the cloud");
     let resident = renderer.upload(&colored).expect("upload");
     (0..request.frames())
         .map(|index| {
-            let settings = request.frame_settings(index, &cloud.bounds);
+            let settings = request.frame_settings(index, &colored.bounds);
             renderer.render(&resident, &settings).expect("render").image
         })
         .collect()
@@ -202,7 +238,12 @@ fn render_here(
 async fn every_option_renders_the_same_here_and_through_the_service() {
     let scratch = tempfile::tempdir().expect("tempdir");
     let file = scratch.path().join("sample.las");
-    write_sample(&file, 20_000, 11);
+    let mut sample = sample_scene(20_000, 11);
+    // First to third returns, for the return filter.
+    for (i, number) in sample.return_number.iter_mut().enumerate() {
+        *number = 1 + (i % 3) as u8;
+    }
+    write_las(&file, &sample, &LasWriteOptions::default()).expect("write the sample");
     let cloud = load_point_cloud(&file).expect("load the sample");
     let daemon = TestDaemon::start(|_| {}, Access::default()).await;
     let bytes = std::fs::read(&file).expect("read the sample");
