@@ -286,7 +286,7 @@ fn a_camera_path_file_renders_its_frames() {
     let path = scene.path("orbit.toml");
     let keyframe = |dx: f64, dy: f64| {
         format!(
-            "[[keyframes]]\nposition = [{}, {}, {}]\ntarget = [{}, {}, {}]\n",
+            "[[keyframes]]\nposition = [{}, {}, {}]\ntarget = [{}, {}, {}]\nfov_y_deg = 55\n",
             center[0] + dx * span,
             center[1] + dy * span,
             max[2] + span,
@@ -312,6 +312,52 @@ fn a_camera_path_file_renders_its_frames() {
         .collect();
     assert_ne!(images[0], images[2], "the camera moved along the path");
     assert!(!frames.join("frame_00003.png").exists());
+
+    // The same two views as a Potree project's camera animation (JSON5, as Potree saves it):
+    // half a second at 6 frames a second is 3 frames, from the first view to the second.
+    let control_point = |dx: f64, dy: f64| {
+        format!(
+            "{{position: [{}, {}, {}], target: [{}, {}, {}]}}",
+            center[0] + dx * span,
+            center[1] + dy * span,
+            max[2] + span,
+            center[0],
+            center[1],
+            center[2]
+        )
+    };
+    let project = scene.path("potree.json5");
+    std::fs::write(
+        &project,
+        format!(
+            "{{type: 'Potree', version: 1.7, settings: {{fov: 55}},\n cameraAnimations: [{{name: 'orbit', duration: 0.5, curveType: 'centripetal', controlPoints: [{}, {}]}}]}}",
+            control_point(1.0, 0.0),
+            control_point(0.0, 1.0)
+        ),
+    )
+    .expect("project file");
+    let potree_frames = scene.path("potree-frames");
+    let output = scene.render(&[
+        "--camera-path",
+        &arg(&project),
+        "--fps",
+        "6",
+        "--out",
+        &arg(&potree_frames),
+    ]);
+    assert_ok(&output);
+    let said = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        said.contains("Potree animation 'orbit': 2 control points"),
+        "{said}"
+    );
+    for i in [0, 2] {
+        let frame = image::open(potree_frames.join(format!("frame_{i:05}.png")))
+            .expect("frame")
+            .to_rgba8();
+        assert!(frame == images[i], "frame {i} is the keyframe's view");
+    }
+    assert!(!potree_frames.join("frame_00003.png").exists());
 
     let broken = scene.path("broken.json");
     std::fs::write(&broken, "{\"frames\": 3, \"keyframes\": [], \"speed\": 1}").expect("file");

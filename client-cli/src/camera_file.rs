@@ -1,5 +1,6 @@
 //! `render --camera-path FILE`: a keyframed camera path written as JSON or TOML, the same path
-//! the API's `CameraPath.keyframes` carries.
+//! the API's `CameraPath.keyframes` carries, or the first camera animation of a Potree project
+//! (`.json5` or `.json`, see `potree_animation`).
 //!
 //! ```toml
 //! frames = 120
@@ -17,6 +18,8 @@ use anyhow::{bail, Context, Result};
 use pointfarm_render::camera::DEFAULT_FOV_Y_DEG;
 use pointfarm_render::request::{CameraPath, Interpolation, Keyframe, Point3, DEFAULT_UP};
 use serde::Deserialize;
+
+use crate::potree_animation::PotreeProject;
 
 /// The largest camera-path file read: a path of many thousand keyframes is far smaller.
 const MAX_FILE_BYTES: u64 = 16 << 20;
@@ -51,9 +54,10 @@ fn point([x, y, z]: [f64; 3]) -> Point3 {
     Point3 { x, y, z }
 }
 
-/// Reads the camera path in `path` (`.json` or `.toml`). Its values are checked with the rest
-/// of the request (`RenderRequest::validate`).
-pub fn read(path: &Path) -> Result<CameraPath> {
+/// Reads the camera path in `path` (`.json`, `.json5` or `.toml`); a Potree project's
+/// animation runs at `fps` frames a second. Its values are checked with the rest of the
+/// request (`RenderRequest::validate`).
+pub fn read(path: &Path, fps: u32) -> Result<CameraPath> {
     let size = std::fs::metadata(path)
         .with_context(|| format!("reading {}", path.display()))?
         .len();
@@ -69,13 +73,26 @@ pub fn read(path: &Path) -> Result<CameraPath> {
         .extension()
         .and_then(|e| e.to_str())
         .map(str::to_ascii_lowercase);
+    let not_a_path = || format!("{} is not a camera path", path.display());
     let file: PathFile = match extension.as_deref() {
-        Some("json") => serde_json::from_str(&text)
-            .with_context(|| format!("{} is not a camera path", path.display()))?,
-        Some("toml") => toml::from_str(&text)
-            .with_context(|| format!("{} is not a camera path", path.display()))?,
+        Some(json @ ("json" | "json5")) => {
+            let document: serde_json::Value = if json == "json" {
+                serde_json::from_str(&text).with_context(not_a_path)?
+            } else {
+                json5::from_str(&text).with_context(not_a_path)?
+            };
+            if PotreeProject::is_one(&document) {
+                let project: PotreeProject = serde_json::from_value(document)
+                    .with_context(|| format!("{} is not a Potree project", path.display()))?;
+                let (camera_path, words) = project.camera_path(fps)?;
+                eprintln!("camera path: {words}");
+                return Ok(camera_path);
+            }
+            serde_json::from_value(document).with_context(not_a_path)?
+        }
+        Some("toml") => toml::from_str(&text).with_context(not_a_path)?,
         _ => bail!(
-            "--camera-path {}: give a .json or .toml file",
+            "--camera-path {}: give a .json, .json5 (a Potree project) or .toml file",
             path.display()
         ),
     };
@@ -124,8 +141,8 @@ mod tests {
              [[keyframes]]\nposition = [10, 0, 5]\ntarget = [0, 0, 0]\n\
              [[keyframes]]\nposition = [0, 10, 5]\ntarget = [0, 0, 1]\nup = [0, 0, 1]\nfov_y_deg = 40\n",
         );
-        let from_json = read(&json).expect("json");
-        assert_eq!(from_json, read(&toml).expect("toml"));
+        let from_json = read(&json, 30).expect("json");
+        assert_eq!(from_json, read(&toml, 30).expect("toml"));
         let CameraPath::Keyframes {
             keyframes,
             frames,
@@ -149,12 +166,12 @@ mod tests {
                 "frames = 2\nkeyframes = []\nspeed = 3\n",
                 "not a camera path",
             ),
-            ("p.yaml", "frames: 2", ".json or .toml"),
+            ("p.yaml", "frames: 2", "or .toml file"),
         ] {
             let (_dir, path) = written(name, text);
-            let error = format!("{:#}", read(&path).expect_err(name));
+            let error = format!("{:#}", read(&path, 30).expect_err(name));
             assert!(error.contains(says), "{name}: {error}");
-            assert!(error.contains(name) || says == ".json or .toml", "{error}");
+            assert!(error.contains(name) || says == "or .toml file", "{error}");
         }
     }
 }

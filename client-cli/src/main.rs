@@ -22,6 +22,7 @@ mod info_json;
 mod lod_store;
 mod output;
 mod parse;
+mod potree_animation;
 mod progress;
 mod remote;
 mod remote_render;

@@ -52,8 +52,8 @@ pub struct RenderArgs {
     /// before rendering.
     #[arg(long, value_name = "FILE")]
     video: Option<PathBuf>,
-    /// Frames per second of --video.
-    #[arg(long, default_value_t = 30, requires = "video")]
+    /// Frames per second of --video, and of a Potree camera animation's frames.
+    #[arg(long, default_value_t = 30)]
     fps: u32,
     /// Codec of --video [default: h264, vp9 for .webm].
     #[arg(long, value_enum, requires = "video")]
@@ -82,7 +82,8 @@ pub struct RenderArgs {
     pub(crate) turntable: Option<u32>,
     /// Render the frames of a keyframed camera path written as JSON or TOML: `frames`,
     /// `interpolation` (spline or linear) and `keyframes`, each a `position` and `target` in
-    /// the file's coordinates, optionally `up` and `fov_y_deg`.
+    /// the file's coordinates, optionally `up` and `fov_y_deg`. Or a Potree project
+    /// (potree.json5): its first camera animation, its duration at --fps.
     #[arg(long, value_name = "FILE", conflicts_with_all = ["turntable", "camera_pos", "camera_target", "camera_up", "view"])]
     camera_path: Option<PathBuf>,
     /// Camera position in the file's coordinates (default: the --view, framing the whole
@@ -257,7 +258,7 @@ impl RenderArgs {
         let up = self.camera_up.map_or(DEFAULT_UP, Point3::from);
         let (azimuth_deg, elevation_deg) = self.view.direction();
         let camera_path = match (&self.camera_path, self.turntable) {
-            (Some(file), _) => crate::camera_file::read(file)?,
+            (Some(file), _) => crate::camera_file::read(file, self.fps)?,
             (None, None) => CameraPath::Still(StillCamera {
                 position: point(self.camera_pos),
                 target: point(self.camera_target),
