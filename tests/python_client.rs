@@ -232,7 +232,11 @@ fn a_refused_call_ends_the_python_example_with_one_line_and_a_non_zero_exit() {
     let Some(python) = python() else { return };
     let (scratch, scan) = scratch_sample("scan.las", 2_000, 8);
     let dir = scratch.path();
-    let mut server = ServeProcess::start_with(&dir.join("data"), &["--token", TOKEN]);
+    // Nothing renders here: no worker.
+    let mut server = ServeProcess::start_with(
+        &dir.join("data"),
+        &["--token", TOKEN, "--no-embedded-worker"],
+    );
     let out = dir.join("frames");
     // A wrong token is refused at the upload; a path of no frames at the submission.
     for (token, more, says) in [
