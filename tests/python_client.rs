@@ -1,6 +1,6 @@
 //! The Python client example (`examples/python/pointfarm_client.py`) against a real daemon:
-//! a LAZ file uploaded, keyframed jobs rendered and their frames downloaded, and a refused
-//! call reported in one line with a non-zero exit.
+//! a LAZ file uploaded, keyframed jobs rendered and their frames downloaded through TLS with
+//! a bearer token, and a refused call reported in one line with a non-zero exit.
 //!
 //! The example runs in the virtualenv `deploy/test.sh` makes (`POINTFARM_PYTHON`, else
 //! `target/python-venv`); where there is none the tests skip, saying so.
@@ -8,10 +8,12 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+use pointfarm_proto::endpoint::ServerEndpoint;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::BearerToken;
-use pointfarm_tests::service::{connect, scratch_sample};
+use pointfarm_tests::pki::TestPki;
+use pointfarm_tests::service::scratch_sample;
 use pointfarm_tests::ServeProcess;
 
 const TOKEN: &str = "surveyor-s3cret";
@@ -98,10 +100,17 @@ fn job_id(output: &Output) -> String {
         .to_owned()
 }
 
-/// The job as the daemon at `address` reports it.
-async fn daemon_job(address: &str, id: &str) -> pb::Job {
+/// The job as the daemon at `server` (trusting the CA in `ca`) reports it.
+async fn daemon_job(server: &str, ca: &Path, id: &str) -> pb::Job {
+    let endpoint = ServerEndpoint::new(server, Some(ca)).expect("endpoint");
+    let channel = endpoint
+        .endpoint()
+        .expect("endpoint")
+        .connect()
+        .await
+        .expect("connect");
     let auth = BearerToken::new(Some(TOKEN)).expect("token");
-    let mut jobs = JobServiceClient::with_interceptor(connect(address).await, auth);
+    let mut jobs = JobServiceClient::with_interceptor(channel, auth);
     jobs.get_job(pb::GetJobRequest { id: id.into() })
         .await
         .expect("GetJob")
@@ -141,8 +150,21 @@ async fn the_python_example_uploads_renders_a_camera_path_and_downloads_its_fram
     let dir = scratch.path();
     let token_file = dir.join("client.token");
     std::fs::write(&token_file, format!("{TOKEN}\n")).expect("token file");
-    let server = ServeProcess::start_with(&dir.join("data"), &["--token", TOKEN]);
-    let address = server.address.as_str();
+    let pki = TestPki::create(dir);
+    let server = ServeProcess::start_with(
+        &dir.join("data"),
+        &[
+            "--token",
+            TOKEN,
+            "--tls-cert",
+            arg(&pki.cert),
+            "--tls-key",
+            arg(&pki.key),
+        ],
+    );
+    // Through TLS, trusting the test's CA; the certificate names localhost.
+    let port = server.address.rsplit(':').next().expect("a port");
+    let https = format!("https://localhost:{port}");
 
     // A camera path file as `pointfarm render --camera-path` reads it, around the scan.
     let bounds = las::Reader::from_path(&scan)
@@ -179,7 +201,9 @@ async fn the_python_example_uploads_renders_a_camera_path_and_downloads_its_fram
         &[
             arg(&scan),
             "--server",
-            address,
+            &https,
+            "--tls-ca",
+            arg(&pki.ca),
             "--token-file",
             arg(&token_file),
             "--camera-path",
@@ -194,7 +218,7 @@ async fn the_python_example_uploads_renders_a_camera_path_and_downloads_its_fram
     let stdout = String::from_utf8_lossy(&output.stdout);
     assert!(stdout.contains("5/5 frames"), "progress printed:\n{stdout}");
     let id = job_id(&output);
-    let job = daemon_job(address, &id).await;
+    let job = daemon_job(&https, &pki.ca, &id).await;
     assert_eq!(job.state, pb::JobState::Succeeded as i32, "{}", job.error);
     assert_eq!(job.frames_total, 5);
     let names = frames_in(&out, (64, 48));
@@ -208,8 +232,11 @@ async fn the_python_example_uploads_renders_a_camera_path_and_downloads_its_fram
         dir,
         &[
             arg(&scan),
+            // A bare address with a CA means TLS.
             "--server",
-            &format!("http://{address}"),
+            &format!("localhost:{port}"),
+            "--tls-ca",
+            arg(&pki.ca),
             "--token",
             TOKEN,
             "--frames",
@@ -221,7 +248,7 @@ async fn the_python_example_uploads_renders_a_camera_path_and_downloads_its_fram
         ],
     );
     assert_succeeded(&output, &server);
-    let job = daemon_job(address, &job_id(&output)).await;
+    let job = daemon_job(&https, &pki.ca, &job_id(&output)).await;
     assert_eq!(job.state, pb::JobState::Succeeded as i32, "{}", job.error);
     assert_eq!(frames_in(&out, (40, 30)).len(), job.frames_total as usize);
     assert_eq!(job.frames_total, 3);

@@ -314,6 +314,7 @@ impl Drop for WorkerProcess {
     }
 }
 
+pub mod pki;
 pub mod service;
 
 /// Sends SIGTERM to `child` and waits up to `timeout` for its exit.
