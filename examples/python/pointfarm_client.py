@@ -19,8 +19,6 @@ Exits 0 when every frame was downloaded; otherwise prints one line saying what w
 (the gRPC status in words and the server's message) and exits 1.
 """
 
-from __future__ import annotations
-
 import argparse
 import hashlib
 import importlib.metadata
@@ -42,7 +40,7 @@ import grpc
 
 # Bytes per upload message: well under gRPC's default 4 MiB message limit.
 CHUNK_BYTES = 1 << 20
-# The service's defaults: a keyframe's field of view and a camera path's interpolation.
+# The service's vertical field of view, in degrees, where a keyframe gives none.
 DEFAULT_FOV_Y_DEG = 50.0
 # The proto of the repository this script lives in.
 DEFAULT_PROTO = Path(__file__).resolve().parents[2] / "proto/pointfarm/v1/pointfarm.proto"
@@ -145,9 +143,8 @@ def read_camera_path(path: Path) -> dict:
     parse = parsers.get(path.suffix.lower())
     if parse is None:
         raise ClientError(f"--camera-path {path}: give a .json or .toml file")
-    text = path.read_text()
     try:
-        return parse(text)
+        return parse(path.read_text())
     except ValueError as error:
         raise ClientError(f"{path} is not a camera path: {error}") from error
 
