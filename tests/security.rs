@@ -3,7 +3,7 @@
 //! listen beyond loopback without a token and TLS, reflection in both versions, and leases
 //! that only their holder can use.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
@@ -11,46 +11,11 @@ use pointfarm_daemon::access::Access;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
+use pointfarm_tests::pki::TestPki;
 use pointfarm_tests::service::{scratch_sample, submit, turntable_job, upload_file, TestDaemon};
 use pointfarm_tests::{pointfarm, pointfarm_bin, ServeProcess, WorkerProcess};
-use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, Issuer, KeyPair, KeyUsagePurpose};
 use tokio_stream::StreamExt;
 use tonic::Code;
-
-/// A private CA and a certificate it signed for `localhost` and 127.0.0.1, as PEM files.
-struct TestPki {
-    ca: PathBuf,
-    cert: PathBuf,
-    key: PathBuf,
-}
-
-impl TestPki {
-    fn create(dir: &Path) -> Self {
-        let ca_key = KeyPair::generate().expect("CA key");
-        let mut ca_params = CertificateParams::new(Vec::<String>::new()).expect("CA params");
-        ca_params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
-        ca_params
-            .distinguished_name
-            .push(DnType::CommonName, "pointfarm test CA");
-        ca_params.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::CrlSign];
-        let ca_cert = ca_params.self_signed(&ca_key).expect("CA certificate");
-        let issuer = Issuer::new(ca_params, ca_key);
-        let server_key = KeyPair::generate().expect("server key");
-        let server_cert = CertificateParams::new(vec!["localhost".into(), "127.0.0.1".into()])
-            .expect("server params")
-            .signed_by(&server_key, &issuer)
-            .expect("server certificate");
-        let pki = Self {
-            ca: dir.join("ca.pem"),
-            cert: dir.join("server.pem"),
-            key: dir.join("server.key"),
-        };
-        std::fs::write(&pki.ca, ca_cert.pem()).expect("write CA");
-        std::fs::write(&pki.cert, server_cert.pem()).expect("write certificate");
-        std::fs::write(&pki.key, server_key.serialize_pem()).expect("write key");
-        pki
-    }
-}
 
 fn arg(path: &Path) -> &str {
     path.to_str().expect("temporary paths are UTF-8")

@@ -22,6 +22,25 @@ pub fn pointfarm_bin() -> &'static Path {
         let release = profile_dir.file_name().is_some_and(|n| n == "release");
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let mut build = Command::new(cargo);
+        // The environment of the cargo that built this test, without the variables cargo
+        // gives a test of its package (CARGO_PKG_NAME, CARGO_MANIFEST_DIR, ...): a build
+        // script that reruns when one of them changes (ring's) would otherwise rebuild
+        // everything above it, here and again in the next `cargo test`.
+        for (name, _) in std::env::vars_os() {
+            let name = name.to_string_lossy();
+            let of_the_package = name.starts_with("CARGO_PKG_")
+                || [
+                    "CARGO_MANIFEST_DIR",
+                    "CARGO_MANIFEST_PATH",
+                    "CARGO_CRATE_NAME",
+                    "CARGO_PRIMARY_PACKAGE",
+                    "CARGO_TARGET_TMPDIR",
+                ]
+                .contains(&&*name);
+            if of_the_package {
+                build.env_remove(&*name);
+            }
+        }
         build.args([
             "build",
             "--quiet",
@@ -295,6 +314,7 @@ impl Drop for WorkerProcess {
     }
 }
 
+pub mod pki;
 pub mod service;
 
 /// Sends SIGTERM to `child` and waits up to `timeout` for its exit.
