@@ -340,7 +340,14 @@ pub(crate) fn color_words(points: &PointSummary) -> String {
         return if rgb.min == [0; 3] {
             "RGB fields, all zero: no colour information (rendered from intensity)".to_owned()
         } else {
-            format!("RGB fields, one colour ({r}, {g}, {b}) for every point: no colour information")
+            let shown = if points.intensity.is_some_and(|[_, max]| max > 0) {
+                "rendered from intensity"
+            } else {
+                "rendered in that colour"
+            };
+            format!(
+                "RGB fields, one colour ({r}, {g}, {b}) for every point: no colour information ({shown})"
+            )
         };
     }
     let [r, g, b] = rgb.max;

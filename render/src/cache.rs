@@ -18,7 +18,7 @@ use crate::cloud::{ColorSource, PointCloud, WorldBounds};
 use crate::ingest::{load_dataset, IngestError};
 
 /// Bump when the stored layout or the meaning of ingest's output changes.
-pub const FORMAT_VERSION: u32 = 2;
+pub const FORMAT_VERSION: u32 = 3;
 const CHUNK_POINTS: usize = 1 << 12;
 /// The chunk size of entries written before it was recorded in them.
 const FIRST_CHUNK_POINTS: usize = 1 << 20;

@@ -71,6 +71,17 @@ impl ColorSource {
             _ => Some(Self::Rgb16),
         }
     }
+
+    /// The RGB decision from the lowest and highest value of each channel over the whole
+    /// dataset: as [`of_rgb`](Self::of_rgb), and also `None` when every point has one colour
+    /// while the points carry intensity, which then says more than the RGB does (a writer's
+    /// placeholder colour).
+    pub fn of_rgb_range(min: [u16; 3], max: [u16; 3], has_intensity: bool) -> Option<Self> {
+        if min == max && has_intensity {
+            return None;
+        }
+        Self::of_rgb(max.into_iter().max().unwrap_or(0))
+    }
 }
 
 /// Packs an opaque RGB colour into the renderer's RGBA8 word (red in the low byte, alpha 255).

@@ -20,7 +20,7 @@ pub const ELEVATION_SAMPLE_POINTS: u64 = 1 << 20;
 #[derive(Debug, Clone, PartialEq)]
 pub struct DatasetColoring {
     /// Whether the RGB fields hold 8-bit values (no channel above 255); `None` without RGB,
-    /// or with RGB fields that are all zero ([`ColorSource::of_rgb`]).
+    /// or with RGB that says nothing ([`ColorSource::of_rgb_range`]).
     rgb_is_8_bit: Option<bool>,
     intensity: Option<IntensityRange>,
     /// Heights relative to the rendering origin.
@@ -30,13 +30,16 @@ pub struct DatasetColoring {
 impl DatasetColoring {
     /// From the store's statistics and the heights (relative to the origin) of a sample.
     pub fn new(stats: &DatasetStats, mut sample_heights: Vec<f32>) -> Self {
+        let intensity = IntensityRange::from_histogram(&stats.intensity_histogram);
         Self {
             rgb_is_8_bit: stats
                 .has_rgb
-                .then(|| ColorSource::of_rgb(stats.max_rgb_channel()))
+                .then(|| {
+                    ColorSource::of_rgb_range(stats.min_rgb, stats.max_rgb, intensity.is_some())
+                })
                 .flatten()
                 .map(|source| source == ColorSource::Rgb8In16Bit),
-            intensity: IntensityRange::from_histogram(&stats.intensity_histogram),
+            intensity,
             elevation: ElevationRange::of(&mut sample_heights),
         }
     }

@@ -99,9 +99,16 @@ impl DecodedPoints {
     }
 
     pub fn into_cloud(self, origin: DVec3) -> PointCloud {
+        let has_intensity = self.intensity.iter().any(|&i| i != 0);
         let rgb = self.rgb.as_ref().and_then(|rgb| {
-            let max_channel = rgb.iter().flatten().copied().max().unwrap_or(0);
-            ColorSource::of_rgb(max_channel).map(|source| (rgb, source))
+            let (mut min, mut max) = ([u16::MAX; 3], [0; 3]);
+            for color in rgb {
+                for c in 0..3 {
+                    min[c] = min[c].min(color[c]);
+                    max[c] = max[c].max(color[c]);
+                }
+            }
+            ColorSource::of_rgb_range(min, max, has_intensity).map(|source| (rgb, source))
         });
         let (colors, color_source) = match rgb {
             Some((rgb, source)) => (colors_from_rgb(rgb, source), source),
@@ -216,6 +223,27 @@ mod tests {
         let greys: Vec<u8> = cloud.colors.iter().map(|c| c.to_le_bytes()[0]).collect();
         assert!(greys.windows(2).all(|w| w[0] <= w[1]), "{greys:?}");
         assert!(greys[0] < greys[49], "intensity 100 to 5000 spans greys");
+    }
+
+    #[test]
+    fn one_colour_for_every_point_gives_way_to_intensity() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join("placeholder.las");
+        write_raw_rgb(&path, &[[65_535, 65_535, 65_535]; 50]);
+        let cloud = load_point_cloud(&path).expect("load");
+        assert_eq!(cloud.color_source, ColorSource::IntensityGrey);
+        let greys: Vec<u8> = cloud.colors.iter().map(|c| c.to_le_bytes()[0]).collect();
+        assert!(greys[0] < greys[49], "intensity 100 to 5000 spans greys");
+        // Without intensity the one colour is all there is, and it is drawn.
+        assert_eq!(
+            ColorSource::of_rgb_range([200; 3], [200; 3], false),
+            Some(ColorSource::Rgb8In16Bit)
+        );
+        assert_eq!(ColorSource::of_rgb_range([0; 3], [0; 3], false), None);
+        assert_eq!(
+            ColorSource::of_rgb_range([0, 0, 0], [0, 0, 300], true),
+            Some(ColorSource::Rgb16)
+        );
     }
 
     #[test]

@@ -18,7 +18,7 @@ use super::error::LodError;
 use super::key::{NodeKey, RootCube};
 use super::stats::{DatasetStats, INTENSITY_BINS};
 
-const MAGIC: &[u8; 4] = b"PFH2";
+const MAGIC: &[u8; 4] = b"PFH3";
 /// Bytes of one node in the record.
 const NODE_RECORD_BYTES: usize = 32;
 const CHECKSUM_SEED: &[u8] = b"hierarchy";
@@ -168,7 +168,7 @@ impl LodHierarchy {
         out.extend_from_slice(&self.point_count.to_le_bytes());
         out.extend_from_slice(&self.max_leaf_points.to_le_bytes());
         out.push(u8::from(self.stats.has_rgb));
-        for c in self.stats.max_rgb {
+        for c in self.stats.max_rgb.into_iter().chain(self.stats.min_rgb) {
             out.extend_from_slice(&c.to_le_bytes());
         }
         for z in self.stats.z_range {
@@ -220,6 +220,11 @@ impl LodHierarchy {
                 "a record of an earlier version (payloads in sled): rebuild the dataset",
             ));
         }
+        if magic == b"PFH2" {
+            return Err(corrupt(
+                "a record of an earlier version (no lowest RGB values): rebuild the dataset",
+            ));
+        }
         if magic != MAGIC {
             return Err(corrupt("not a hierarchy record"));
         }
@@ -230,6 +235,7 @@ impl LodHierarchy {
         let max_leaf_points = r.u32()?;
         let mut stats = DatasetStats::new(r.u8()? & 1 != 0);
         stats.max_rgb = [r.u16()?, r.u16()?, r.u16()?];
+        stats.min_rgb = [r.u16()?, r.u16()?, r.u16()?];
         stats.z_range = [r.f64()?, r.f64()?];
         for _ in 0..r.u32()? {
             let value = usize::from(r.u16()?);

@@ -11,6 +11,9 @@ pub struct DatasetStats {
     /// The largest raw value of each RGB channel (all 255 or less: 8-bit values in 16-bit
     /// fields).
     pub max_rgb: [u16; 3],
+    /// The smallest raw value of each RGB channel: equal to `max_rgb` when every point has one
+    /// colour.
+    pub min_rgb: [u16; 3],
     /// Points per intensity value.
     pub intensity_histogram: Vec<u64>,
     /// Points per classification code.
@@ -24,6 +27,7 @@ impl DatasetStats {
         Self {
             has_rgb,
             max_rgb: [0; 3],
+            min_rgb: [u16::MAX; 3],
             intensity_histogram: vec![0; INTENSITY_BINS],
             class_counts: vec![0; 256],
             z_range: [f64::INFINITY, f64::NEG_INFINITY],
@@ -41,8 +45,9 @@ impl DatasetStats {
     pub(crate) fn add(&mut self, batch: &super::source::PointBatch<'_>) {
         if let Some(rgb) = batch.rgb {
             for c in rgb {
-                for (max, &value) in self.max_rgb.iter_mut().zip(c) {
+                for ((max, min), &value) in self.max_rgb.iter_mut().zip(&mut self.min_rgb).zip(c) {
                     *max = (*max).max(value);
+                    *min = (*min).min(value);
                 }
             }
         }

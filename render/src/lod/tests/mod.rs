@@ -323,6 +323,11 @@ fn statistics_cover_the_whole_dataset() {
         .max()
         .unwrap_or(0);
     assert_eq!(stats.max_rgb_channel(), max);
+    let lowest = |c: usize| input.iter().map(|p| p.1[c]).min().unwrap_or(0);
+    assert_eq!(stats.min_rgb, [lowest(0), lowest(1), lowest(2)]);
+    // The record carries them, as the store reads it back.
+    let stored = LodHierarchy::decode(&built.report.hierarchy.encode()).expect("decode");
+    assert_eq!(stored.stats, *stats);
     assert_eq!(stats.intensity_histogram.iter().sum::<u64>(), 30_000);
     assert!(stats.intensity_histogram[usize::from(input[0].2)] > 0);
     assert_eq!(stats.class_counts[2] + stats.class_counts[5], 30_000);
