@@ -284,16 +284,14 @@ fn a_camera_path_file_renders_its_frames() {
     let center: Vec<f64> = min.iter().zip(&max).map(|(a, b)| (a + b) / 2.0).collect();
     let span = (max[0] - min[0]).max(max[1] - min[1]);
     let path = scene.path("orbit.toml");
+    // A view from above and beside the cloud, towards its centre: position and target.
+    let view = |dx: f64, dy: f64| {
+        let position = [center[0] + dx * span, center[1] + dy * span, max[2] + span];
+        (format!("{position:?}"), format!("{center:?}"))
+    };
     let keyframe = |dx: f64, dy: f64| {
-        format!(
-            "[[keyframes]]\nposition = [{}, {}, {}]\ntarget = [{}, {}, {}]\nfov_y_deg = 55\n",
-            center[0] + dx * span,
-            center[1] + dy * span,
-            max[2] + span,
-            center[0],
-            center[1],
-            center[2]
-        )
+        let (position, target) = view(dx, dy);
+        format!("[[keyframes]]\nposition = {position}\ntarget = {target}\nfov_y_deg = 55\n")
     };
     let text = format!(
         "frames = 3\ninterpolation = \"linear\"\n{}{}",
@@ -316,15 +314,8 @@ fn a_camera_path_file_renders_its_frames() {
     // The same two views as a Potree project's camera animation (JSON5, as Potree saves it):
     // half a second at 6 frames a second is 3 frames, from the first view to the second.
     let control_point = |dx: f64, dy: f64| {
-        format!(
-            "{{position: [{}, {}, {}], target: [{}, {}, {}]}}",
-            center[0] + dx * span,
-            center[1] + dy * span,
-            max[2] + span,
-            center[0],
-            center[1],
-            center[2]
-        )
+        let (position, target) = view(dx, dy);
+        format!("{{position: {position}, target: {target}}}")
     };
     let project = scene.path("potree.json5");
     std::fs::write(

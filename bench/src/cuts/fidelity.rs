@@ -91,20 +91,17 @@ pub fn measure_fidelity(
     };
     for mode in FIDELITY_MODES {
         let settings = mode.map_or(*basic, |m| m.settings(basic));
-        let (expected, full_report) = full.render(
-            &mut renderer,
-            dataset,
-            &settings,
-            ColorMode::Rgb,
-            &PointFilter::default(),
-        )?;
-        let (actual, cut_report) = cut.render(
-            &mut renderer,
-            dataset,
-            &settings,
-            ColorMode::Rgb,
-            &PointFilter::default(),
-        )?;
+        let mut draw = |cut: &mut CutRenderer| {
+            cut.render(
+                &mut renderer,
+                dataset,
+                &settings,
+                ColorMode::Rgb,
+                &PointFilter::default(),
+            )
+        };
+        let (expected, full_report) = draw(&mut full)?;
+        let (actual, cut_report) = draw(&mut cut)?;
         if mode.is_none() {
             result.cut_points = cut_report.counts.points_rendered;
             result.full_points = full_report.counts.points_rendered;
