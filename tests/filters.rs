@@ -1,11 +1,16 @@
 //! `pointfarm render`'s filters on a real scan: what they keep against the file's own
 //! attributes, the framing of a clip box in the resident and the level-of-detail paths, and
-//! filters refused with the reason.
+//! filters refused with the reason, over the command line and by the service.
 
 use std::path::Path;
 
+use pointfarm_daemon::access::Access;
+use pointfarm_daemon::model::JobSpec;
+use pointfarm_proto::v1 as pb;
+use pointfarm_render::filter::{ClipBox, PointFilter};
 use pointfarm_render::ingest::load_point_cloud;
-use pointfarm_tests::service::scan;
+use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, StillCamera};
+use pointfarm_tests::service::{scan, upload, watch_to_end, write_sample, TestDaemon};
 use pointfarm_tests::{assert_fails_saying, assert_ok, pointfarm, stdout};
 
 fn arg(path: &Path) -> String {
@@ -143,4 +148,66 @@ fn filters_that_cannot_apply_are_refused_with_the_reason() {
     for (options, reason) in cases {
         assert_fails_saying(&render(&file, dir.path(), "x.png", options), reason);
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_whose_clip_box_misses_the_dataset_fails_saying_so_and_the_next_one_renders() {
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let file = scratch.path().join("sample.las");
+    write_sample(&file, 5_000, 4);
+    let daemon = TestDaemon::start(|_| {}, Access::default()).await;
+    let bytes = std::fs::read(&file).expect("read the sample");
+    let dataset = upload(&mut daemon.datasets().await, "sample.las", &bytes).await;
+    let mut jobs = daemon.jobs().await;
+    let mut request = RenderRequest {
+        width: 64,
+        height: 48,
+        camera_path: CameraPath::Still(StillCamera::default()),
+        lens: Lens::default(),
+        render: RenderOptions::default(),
+    };
+    request.render.filter = PointFilter {
+        clip: Some(ClipBox {
+            min: [0.0, 0.0, 0.0],
+            max: [1.0, 1.0, 1.0],
+        }),
+        ..Default::default()
+    };
+    let outcomes = [
+        ("outside", request.clone()),
+        ("unfiltered", {
+            request.render.filter = PointFilter::default();
+            request
+        }),
+    ];
+    for (name, request) in outcomes {
+        let spec = JobSpec {
+            request_id: name.into(),
+            dataset_id: dataset.id.clone(),
+            request,
+            priority: 0,
+        };
+        let job = jobs
+            .submit_job(pb::SubmitJobRequest::from(&spec))
+            .await
+            .expect("submitted")
+            .into_inner();
+        let (finished, _) = watch_to_end(&mut jobs, &job.id).await;
+        if name == "outside" {
+            assert_eq!(finished.state, pb::JobState::Failed as i32);
+            assert!(
+                finished.error.contains("lies outside the dataset's bounds"),
+                "{}",
+                finished.error
+            );
+        } else {
+            assert_eq!(
+                finished.state,
+                pb::JobState::Succeeded as i32,
+                "{}",
+                finished.error
+            );
+        }
+    }
+    daemon.stop().await;
 }
