@@ -316,6 +316,37 @@ fn remote_render_uploads_submits_follows_and_downloads() {
     assert_says(&listed, "\"JOB_STATE_SUCCEEDED\"");
     let unknown = pointfarm(&["jobs", "show", "job-missing", "--server", &address]);
     assert_fails_saying(&unknown, "not found");
+
+    // --json through the server: one object per frame on stdout, its file and the frame as
+    // the API reports it (a FrameFinished in the proto3 JSON mapping).
+    let still = path_arg(&scene.path("remote.png"));
+    let output = pointfarm(&[
+        "render",
+        &scene.cloud,
+        "--server",
+        &address,
+        "--out",
+        &still,
+        "--size=96x64",
+        "--json",
+    ]);
+    assert_ok(&output);
+    let lines: Vec<serde_json::Value> = stdout(&output)
+        .lines()
+        .map(|line| serde_json::from_str(line).expect("each line is one JSON object"))
+        .collect();
+    let [frame] = lines.as_slice() else {
+        panic!("one object for one frame:\n{}", stdout(&output));
+    };
+    assert_eq!(frame["frame"], 0, "{frame}");
+    assert_eq!(frame["path"], still.as_str(), "{frame}");
+    assert!(frame["jobId"].is_string(), "{frame}");
+    let finished: pointfarm_proto::v1::FrameFinished =
+        serde_json::from_value(frame["finished"].clone()).expect("a FrameFinished");
+    assert!(
+        finished.timings.iter().any(|t| t.stage == "rasterize"),
+        "{frame}"
+    );
 }
 
 #[test]

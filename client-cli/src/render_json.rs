@@ -1,9 +1,11 @@
-//! The JSON of a local render: `render --json`'s object per frame, and the camera that it and
-//! the depth sidecars (`FRAME.depth.json`) report. No API message describes a local frame, so
-//! these are the CLI's own objects, with the lowerCamelCase keys of the API's JSON mapping.
+//! The JSON of `render --json`: a local render's object per frame, and the camera that it and
+//! the depth sidecars (`FRAME.depth.json`) report, which no API message describes, are the
+//! CLI's own objects with the lowerCamelCase keys of the API's JSON mapping; a render through
+//! a server reports each frame as the API's `FrameFinished`, beside the file it was written to.
 
 use std::path::Path;
 
+use pointfarm_proto::v1 as pb;
 use pointfarm_render::camera::{Camera, Projection};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::cut::{CutCounts, CutReport};
@@ -60,6 +62,30 @@ impl FrameJson {
                 max: bounds.max.to_array(),
             },
             cut: rendered.cut.as_ref().map(CutJson::of),
+        }
+    }
+}
+
+/// One frame of `render --server --json`: its file, as a local render reports it, and the
+/// frame as the API reports it (its stage timings and, from levels of detail, its cut).
+#[derive(Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct ServerFrameJson<'a> {
+    pub frame: u32,
+    pub path: String,
+    pub job_id: &'a str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub finished: Option<&'a pb::FrameFinished>,
+}
+
+impl<'a> ServerFrameJson<'a> {
+    /// Frame `index` of `job`, written to `path`.
+    pub fn new(index: u32, path: &Path, job: &'a pb::Job) -> Self {
+        Self {
+            frame: index,
+            path: path.display().to_string(),
+            job_id: &job.id,
+            finished: job.frames.iter().find(|f| f.index == index),
         }
     }
 }
