@@ -46,7 +46,7 @@ pub struct ServerArgs {
     pub server: String,
     #[command(flatten)]
     pub credentials: ClientCredentials,
-    /// Print JSON instead of tables.
+    /// Print JSON instead of tables: the API's messages in the proto3 JSON mapping.
     #[arg(long, global = true)]
     pub json: bool,
 }
@@ -94,7 +94,7 @@ pub enum JobsCommand {
         /// The job's id.
         id: String,
     },
-    /// Follow a job until it ends (with --json: one line per event, then the job).
+    /// Follow a job until it ends (with --json: each of its events on a line of its own).
     Watch {
         /// The job's id.
         id: String,
