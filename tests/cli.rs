@@ -313,9 +313,40 @@ fn remote_render_uploads_submits_follows_and_downloads() {
     assert_frames(&frames, 2, (160, 120));
     let listed = pointfarm(&["jobs", "list", "--server", &address, "--json"]);
     assert_ok(&listed);
-    assert_says(&listed, "\"succeeded\"");
+    assert_says(&listed, "\"JOB_STATE_SUCCEEDED\"");
     let unknown = pointfarm(&["jobs", "show", "job-missing", "--server", &address]);
     assert_fails_saying(&unknown, "not found");
+
+    // --json through the server: one object per frame on stdout, its file and the frame as
+    // the API reports it (a FrameFinished in the proto3 JSON mapping).
+    let still = path_arg(&scene.path("remote.png"));
+    let output = pointfarm(&[
+        "render",
+        &scene.cloud,
+        "--server",
+        &address,
+        "--out",
+        &still,
+        "--size=96x64",
+        "--json",
+    ]);
+    assert_ok(&output);
+    let lines: Vec<serde_json::Value> = stdout(&output)
+        .lines()
+        .map(|line| serde_json::from_str(line).expect("each line is one JSON object"))
+        .collect();
+    let [frame] = lines.as_slice() else {
+        panic!("one object for one frame:\n{}", stdout(&output));
+    };
+    assert_eq!(frame["frame"], 0, "{frame}");
+    assert_eq!(frame["path"], still.as_str(), "{frame}");
+    assert!(frame["jobId"].is_string(), "{frame}");
+    let finished: pointfarm_proto::v1::FrameFinished =
+        serde_json::from_value(frame["finished"].clone()).expect("a FrameFinished");
+    assert!(
+        finished.timings.iter().any(|t| t.stage == "rasterize"),
+        "{frame}"
+    );
 }
 
 #[test]
@@ -502,8 +533,8 @@ fn serve_without_an_embedded_worker_renders_through_a_worker_process() {
     assert_ok(&leases);
     assert_eq!(
         stdout(&leases).trim(),
-        "[]",
-        "no frame is in flight after the job"
+        "{}",
+        "no frame is in flight after the job (an empty ListLeasesResponse)"
     );
 }
 
@@ -683,7 +714,7 @@ fn a_folder_of_tiles_renders_as_the_file_they_were_cut_from() {
     let listed = pointfarm(&["dataset", "list", "--server", &server.address, "--json"]);
     assert_ok(&listed);
     let datasets: serde_json::Value = serde_json::from_str(&stdout(&listed)).expect("json");
-    let composed = datasets
+    let composed = datasets["datasets"]
         .as_array()
         .expect("a list")
         .iter()
@@ -716,11 +747,11 @@ fn render_json_reports_every_frame_and_its_points() {
     assert_eq!(lines.len(), 3, "one object per frame");
     for (i, frame) in lines.iter().enumerate() {
         assert_eq!(frame["frame"], i);
-        assert_eq!(frame["points_total"], 20_000);
-        let rendered = frame["points_rendered"].as_u64().expect("points_rendered");
+        assert_eq!(frame["pointsTotal"], 20_000);
+        let rendered = frame["pointsRendered"].as_u64().expect("pointsRendered");
         assert!(rendered > 0 && rendered <= 20_000, "{frame}");
         assert!(
-            frame["timings_ms"]["rasterize"].as_f64().is_some(),
+            frame["timingsMs"]["rasterize"].as_f64().is_some(),
             "{frame}"
         );
         assert_eq!(

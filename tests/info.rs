@@ -92,7 +92,7 @@ fn the_real_scans_report_their_header_points_and_colours() {
     let (autzen_las, autzen_laz, lone) = (&files[0], &files[1], &files[2]);
 
     assert_eq!(autzen_las["version"], "1.2");
-    assert_eq!(autzen_las["point_format"], 3);
+    assert_eq!(autzen_las["pointFormat"], 3);
     assert_eq!(autzen_las["points"], 110_000);
     assert_eq!(autzen_las["compressed"], false);
     assert_eq!(autzen_laz["compressed"], true);
@@ -104,7 +104,7 @@ fn the_real_scans_report_their_header_points_and_colours() {
         "NAD_1983_HARN_Lambert_Conformal_Conic"
     );
     assert_eq!(lone["version"], "1.1");
-    assert_eq!(lone["point_format"], 1);
+    assert_eq!(lone["pointFormat"], 1);
     assert_eq!(lone["points"], 518_862);
     assert_eq!(lone["attributes"]["rgb"], false);
     assert_eq!(lone["crs"]["source"], "geotiff");
@@ -112,7 +112,7 @@ fn the_real_scans_report_their_header_points_and_colours() {
     // The points' own bounds and histograms, against the las crate's reading.
     for (file, path) in [(autzen_las, &las), (lone, &lone_star)] {
         let expected = read_independently(path);
-        let stats = &file["point_stats"];
+        let stats = &file["pointStats"];
         let (min, max) = (
             array3(&stats["bounds"]["min"]),
             array3(&stats["bounds"]["max"]),
@@ -135,12 +135,12 @@ fn the_real_scans_report_their_header_points_and_colours() {
     assert!((min[0] - 636_000.0).abs() < 5_000.0 && (min[1] - 849_000.0).abs() < 5_000.0);
 
     // LAS and LAZ of the same points read the same.
-    assert_eq!(autzen_las["point_stats"], autzen_laz["point_stats"]);
-    let color = &autzen_las["point_stats"]["color"];
+    assert_eq!(autzen_las["pointStats"], autzen_laz["pointStats"]);
+    let color = &autzen_las["pointStats"]["color"];
     assert_eq!(color["rgb"], true);
     assert_eq!(color["varies"], true);
-    assert_eq!(color["eight_bit_in_16_bit_fields"], true);
-    assert_eq!(lone["point_stats"]["color"]["rgb"], false);
+    assert_eq!(color["eightBitIn16BitFields"], true);
+    assert_eq!(lone["pointStats"]["color"]["rgb"], false);
 
     let summary = &document["summary"];
     assert_eq!(summary["files"], 3);
@@ -171,7 +171,7 @@ fn text_names_the_facts_in_words_and_no_points_skips_the_points() {
 
     let document = info_json(&["--no-points", path_arg(&las)]);
     assert_eq!(document["files"][0]["points"], 110_000);
-    assert!(document["files"][0]["point_stats"].is_null());
+    assert!(document["files"][0]["pointStats"].is_null());
 }
 
 #[test]

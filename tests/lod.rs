@@ -102,17 +102,17 @@ fn tiles_render_from_levels_of_detail_as_the_file_they_were_cut_from() {
     assert_eq!(reports.len(), 3);
     for report in &reports {
         let cut = &report["cut"];
-        assert_eq!(report["points_total"], 40_000);
-        assert!(report["points_rendered"].as_u64() <= Some(40_000));
+        assert_eq!(report["pointsTotal"], 40_000);
+        assert!(report["pointsRendered"].as_u64() <= Some(40_000));
         assert!(cut["nodes"].as_u64() > Some(0), "{report}");
         for stage in ["select", "load", "rasterize"] {
-            assert!(report["timings_ms"][stage].is_number(), "{stage}: {report}");
+            assert!(report["timingsMs"][stage].is_number(), "{stage}: {report}");
         }
     }
-    assert!(reports[0]["cut"]["nodes_read"].as_u64() > Some(0));
-    assert!(reports[0]["cut"]["bytes_read"].as_u64() > Some(0));
+    assert!(reports[0]["cut"]["nodesRead"].as_u64() > Some(0));
+    assert!(reports[0]["cut"]["bytesRead"].as_u64() > Some(0));
     assert!(
-        reports[2]["cut"]["gpu_hits"].as_u64() > Some(0),
+        reports[2]["cut"]["gpuHits"].as_u64() > Some(0),
         "{}",
         reports[2]
     );
@@ -213,16 +213,23 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
     );
     let listed = ok(&["jobs", "list", "--server", &server.address, "--json"]);
     let jobs: serde_json::Value = serde_json::from_slice(&listed.stdout).expect("json");
-    let id = jobs[0]["id"].as_str().expect("a job id").to_owned();
+    let id = jobs["jobs"][0]["id"].as_str().expect("a job id").to_owned();
     let shown = ok(&["jobs", "show", &id, "--server", &server.address, "--json"]);
-    let job: serde_json::Value = serde_json::from_slice(&shown.stdout).expect("json");
-    let frames = job["frames"].as_array().expect("frames");
-    assert_eq!(frames.len(), 2, "{job}");
-    for frame in frames {
-        assert_eq!(frame["cut"]["points_total"], 30_000, "{job}");
-        assert!(frame["cut"]["nodes"].as_u64() > Some(0), "{job}");
+    let shown: serde_json::Value = serde_json::from_slice(&shown.stdout).expect("json");
+    // The job in the API's JSON mapping: each frame's cut, its 64-bit counts as strings.
+    let job: pointfarm_proto::v1::Job =
+        serde_json::from_value(shown["job"].clone()).expect("a Job");
+    assert_eq!(job.frames.len(), 2, "{shown}");
+    for frame in &job.frames {
+        let cut = frame.cut.expect("a cut");
+        assert_eq!(cut.points_total, 30_000, "{shown}");
+        assert!(cut.nodes > 0, "{shown}");
     }
-    let stages = json_names(&job["stages"], "stage");
+    assert_eq!(
+        shown["job"]["frames"][0]["cut"]["pointsTotal"], "30000",
+        "{shown}"
+    );
+    let stages = json_names(&shown["stageStatistics"], "stage");
     for stage in ["build", "select", "load"] {
         assert!(stages.contains(&stage), "{stage} missing from {stages:?}");
     }

@@ -144,7 +144,7 @@ fn a_depth_image_comes_with_its_near_far_and_camera() {
         let vector = sidecar["camera"][key].as_array().expect(key);
         assert_eq!(vector.len(), 3, "{sidecar}");
     }
-    assert!(sidecar["camera"]["projection"]["perspective"]["fov_y_deg"].is_number());
+    assert!(sidecar["camera"]["projection"]["perspective"]["fovYDeg"].is_number());
 
     // Where the colour image shows a point the depth decodes to a distance, nearer at the
     // bottom of this view from above than at the top.

@@ -1,11 +1,15 @@
 //! The command line for scripts: `--json` on every `dataset`, `jobs` and `frames` subcommand
-//! against a real daemon, `jobs watch --json` as a stream, completions, man pages and help.
+//! against a real daemon (the API's messages in their proto3 JSON mapping, parsed back into
+//! the messages the API returns), `jobs watch --json` as a stream, completions, man pages and
+//! help.
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
 use std::time::Duration;
 
+use pointfarm_proto::v1 as pb;
+use pointfarm_tests::service::clients;
 use pointfarm_tests::{
     assert_ok, pointfarm, pointfarm_bin, stdout, wait_for, ServeProcess, WorkerProcess,
 };
@@ -28,16 +32,29 @@ fn server_json(address: &str, args: &[&str]) -> serde_json::Value {
     json_of(&pointfarm(&all))
 }
 
+/// The ids of the jobs a `jobs list --json` printed (a `ListJobsResponse`, whose `jobs` is
+/// left out when there are none).
+fn job_ids(listed: &serde_json::Value) -> Vec<String> {
+    listed["jobs"]
+        .as_array()
+        .map(|jobs| {
+            jobs.iter()
+                .filter_map(|j| j["id"].as_str().map(str::to_owned))
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+/// `value` parsed with the proto3 JSON mapping into the message `T`.
+fn parsed<T: serde::de::DeserializeOwned>(value: &serde_json::Value) -> T {
+    serde_json::from_value(value.clone())
+        .unwrap_or_else(|e| panic!("not the message's JSON mapping ({e}): {value}"))
+}
+
 /// A `render --server` running in the background, which submits a turntable job and follows
 /// it; returns the process and the job's id once the job is listed.
 fn submit(address: &str, cloud: &Path, out: &Path, frames: u32) -> (std::process::Child, String) {
-    let before = server_json(address, &["jobs", "list"]);
-    let known: Vec<String> = before
-        .as_array()
-        .expect("a list")
-        .iter()
-        .map(|j| j["id"].as_str().unwrap_or_default().to_owned())
-        .collect();
+    let known = job_ids(&server_json(address, &["jobs", "list"]));
     let child = Command::new(pointfarm_bin())
         .args(["render", arg(cloud), "--server", address, "--out", arg(out)])
         .args([format!("--turntable={frames}").as_str(), "--size=64x48"])
@@ -46,12 +63,9 @@ fn submit(address: &str, cloud: &Path, out: &Path, frames: u32) -> (std::process
         .spawn()
         .expect("start render --server");
     let id = wait_for(Duration::from_secs(60), "the job to be submitted", || {
-        let jobs = server_json(address, &["jobs", "list"]);
-        jobs.as_array()?
-            .iter()
-            .filter_map(|j| j["id"].as_str())
-            .find(|id| !known.iter().any(|k| k == id))
-            .map(str::to_owned)
+        job_ids(&server_json(address, &["jobs", "list"]))
+            .into_iter()
+            .find(|id| !known.contains(id))
     });
     (child, id)
 }
@@ -75,33 +89,55 @@ fn dataset_jobs_and_frames_print_json_a_script_can_read() {
     // watch see them unfinished.
     let server = ServeProcess::start_with(&dir.join("data"), &["--no-embedded-worker"]);
     let address = server.address.clone();
+    // The API's own answers, to compare with what the CLI prints.
+    let api = tokio::runtime::Runtime::new().expect("runtime");
 
-    // dataset add, list, rm.
+    // No job yet: the ListJobsResponse has no field to print.
+    assert_eq!(
+        server_json(&address, &["jobs", "list"]),
+        serde_json::json!({})
+    );
+
+    // dataset add, list, rm: the Dataset, the ListDatasetsResponse as the API returns them.
     let added = server_json(&address, &["dataset", "add", arg(&other)]);
     let id = added["id"].as_str().expect("the dataset's id").to_owned();
+    assert!(
+        added["sizeBytes"].is_string(),
+        "uint64 as a string: {added}"
+    );
+    assert!(
+        added["createdUnixMs"].is_string(),
+        "int64 as a string: {added}"
+    );
+    assert!(added.get("size_bytes").is_none(), "{added}");
     let listed = server_json(&address, &["dataset", "list"]);
-    assert!(listed
-        .as_array()
-        .is_some_and(|l| l.iter().any(|d| d["id"] == id.as_str())));
+    let (mut datasets, _) = api.block_on(clients(&address));
+    let from_api = api
+        .block_on(datasets.list_datasets(pb::ListDatasetsRequest {
+            page_size: 0,
+            page_token: String::new(),
+        }))
+        .expect("ListDatasets")
+        .into_inner();
+    assert_eq!(parsed::<pb::ListDatasetsResponse>(&listed), from_api);
+    assert!(from_api.datasets.iter().any(|d| d.id == id));
     let removed = server_json(&address, &["dataset", "rm", &id]);
     assert_eq!(removed, serde_json::json!({ "deleted": id }));
 
-    // jobs cancel: the job object of `jobs show`, cancelled.
+    // jobs cancel: the Job, cancelled, with lowerCamelCase names and the state's enum name.
     let (mut first, job) = submit(&address, &cloud, &dir.join("cancelled"), 2);
     let cancelled = server_json(&address, &["jobs", "cancel", &job]);
     assert_eq!(cancelled["id"], job.as_str());
-    assert_eq!(cancelled["state"], "cancelled");
-    for field in [
-        "dataset_id",
-        "frames_total",
-        "frames_done",
-        "priority",
-        "error",
-    ] {
+    assert_eq!(cancelled["state"], "JOB_STATE_CANCELLED");
+    for field in ["datasetId", "framesTotal", "createdUnixMs", "updatedUnixMs"] {
         assert!(cancelled.get(field).is_some(), "no {field} in {cancelled}");
     }
+    // Default values are left out: no frame is done, there is no error.
+    for field in ["framesDone", "error", "frames_total"] {
+        assert!(cancelled.get(field).is_none(), "{field} in {cancelled}");
+    }
     let shown = server_json(&address, &["jobs", "show", &job]);
-    assert_eq!(shown["state"], "cancelled");
+    assert_eq!(shown["job"]["state"], "JOB_STATE_CANCELLED");
     // Cancelling again fails in words, never with the enum's Rust names.
     let again = pointfarm(&["jobs", "cancel", &job, "--server", &address]);
     assert!(!again.status.success());
@@ -114,7 +150,7 @@ fn dataset_jobs_and_frames_print_json_a_script_can_read() {
     );
     let _ = first.wait();
 
-    // jobs watch --json: one line per event as it comes, the finished job last.
+    // jobs watch --json: one JobEvent a line as it comes; the last one's job has ended.
     let frames = 3;
     let (mut second, job) = submit(&address, &cloud, &dir.join("rendered"), frames);
     let mut watch = Command::new(pointfarm_bin())
@@ -127,33 +163,56 @@ fn dataset_jobs_and_frames_print_json_a_script_can_read() {
     // The first event comes before any frame is rendered.
     let first_line = lines.next().expect("a first event").expect("a line");
     let first_event: serde_json::Value = serde_json::from_str(&first_line).expect("JSON");
-    assert_eq!(first_event["event"], "progress", "{first_line}");
-    assert_eq!(first_event["job"], job.as_str());
-    assert_eq!(first_event["frames_done"], 0);
-    assert_eq!(first_event["frames_total"], frames);
+    let first_job = parsed::<pb::JobEvent>(&first_event).job.expect("a job");
+    assert_eq!(first_job.id, job);
+    assert_eq!(first_job.frames_done, 0);
+    assert_eq!(first_job.frames_total, frames);
+    assert_eq!(first_event["job"]["framesTotal"], frames, "{first_line}");
     let worker = WorkerProcess::start(&format!("http://{address}"), &dir.join("cache"), "w");
-    let rest: Vec<serde_json::Value> = lines
-        .map(|l| serde_json::from_str(&l.expect("a line")).expect("every line is JSON"))
+    let rest: Vec<pb::JobEvent> = lines
+        .map(|l| parsed(&serde_json::from_str(&l.expect("a line")).expect("JSON")))
         .collect();
     assert!(watch.wait().expect("watch").success(), "{}", worker.log());
     let (last, progress) = rest.split_last().expect("more lines");
-    assert!(
-        !progress.is_empty(),
-        "no progress between the first and the last line"
-    );
-    for event in progress {
-        assert_eq!(event["event"], "progress", "{event}");
-    }
-    assert_eq!(last["event"], "finished");
-    assert_eq!(last["id"], job.as_str());
-    assert_eq!(last["state"], "succeeded", "{last}");
-    assert_eq!(last["frames_done"], frames);
+    // Every frame reported once: by the event that finished it, or in a catching-up job.
+    let mut finished: Vec<u32> = progress
+        .iter()
+        .chain([last])
+        .flat_map(|event| {
+            let listed = event.job.iter().flat_map(|job| &job.frames);
+            listed.chain(&event.frame).map(|f| f.index)
+        })
+        .collect();
+    finished.sort_unstable();
+    assert_eq!(finished, [0, 1, 2], "each frame once");
+    let last = last.job.as_ref().expect("the job");
+    assert_eq!(last.id, job);
+    assert_eq!(last.state(), pb::JobState::Succeeded, "{last:?}");
+    assert_eq!(last.frames_done, frames);
     assert!(second.wait().expect("render").success());
+
+    // jobs show --json: the Job exactly as GetJob returns it, with its stages' statistics.
+    let shown = server_json(&address, &["jobs", "show", &job]);
+    let (_, mut jobs) = api.block_on(clients(&address));
+    let from_api = api
+        .block_on(jobs.get_job(pb::GetJobRequest { id: job.clone() }))
+        .expect("GetJob")
+        .into_inner();
+    assert_eq!(parsed::<pb::Job>(&shown["job"]), from_api);
+    assert_eq!(from_api.frames.len(), frames as usize);
+    assert!(shown["job"]["frames"][1]["timings"].is_array(), "{shown}");
+    let stages = shown["stageStatistics"].as_array().expect("statistics");
+    assert!(
+        stages
+            .iter()
+            .any(|s| s["stage"] == "rasterize" && s["medianMs"].is_number()),
+        "{shown}"
+    );
 
     // frames fetch --json: every file written, with its frame.
     let out = dir.join("fetched");
     let fetched = server_json(&address, &["frames", "fetch", &job, "--out", arg(&out)]);
-    assert_eq!(fetched["job"], job.as_str());
+    assert_eq!(fetched["jobId"], job.as_str());
     let written = fetched["frames"].as_array().expect("frames");
     assert_eq!(written.len(), frames as usize);
     for (index, frame) in written.iter().enumerate() {
@@ -168,10 +227,16 @@ fn dataset_jobs_and_frames_print_json_a_script_can_read() {
     assert_eq!(from["frames"].as_array().map(Vec::len), Some(1));
     assert_eq!(from["frames"][0]["index"], 2);
 
-    // jobs list, show and leases parse too.
-    assert!(server_json(&address, &["jobs", "list"]).is_array());
-    assert!(server_json(&address, &["jobs", "show", &job])["stages"].is_array());
-    assert!(server_json(&address, &["jobs", "leases"]).is_array());
+    // jobs list and leases: the ListJobsResponse and ListLeasesResponse as the API returns them.
+    let listed = parsed::<pb::ListJobsResponse>(&server_json(&address, &["jobs", "list"]));
+    let from_api = api
+        .block_on(jobs.list_jobs(pb::ListJobsRequest::default()))
+        .expect("ListJobs")
+        .into_inner();
+    assert_eq!(listed, from_api);
+    assert_eq!(listed.jobs.len(), 2);
+    let leases = parsed::<pb::ListLeasesResponse>(&server_json(&address, &["jobs", "leases"]));
+    assert_eq!(leases, pb::ListLeasesResponse::default());
 }
 
 #[test]
@@ -192,10 +257,9 @@ fn a_closed_pipe_ends_jobs_watch_quietly() {
         "--size=64x48",
     ]);
     assert_ok(&rendered);
-    let job = server_json(&server.address, &["jobs", "list"])[0]["id"]
-        .as_str()
-        .expect("a job")
-        .to_owned();
+    let job = job_ids(&server_json(&server.address, &["jobs", "list"]))
+        .pop()
+        .expect("a job");
     let script = format!(
         "'{}' jobs watch {job} --server {} --json | head -1",
         pointfarm_bin().display(),
@@ -207,7 +271,7 @@ fn a_closed_pipe_ends_jobs_watch_quietly() {
         .expect("sh");
     assert!(output.status.success());
     let line: serde_json::Value = serde_json::from_str(stdout(&output).trim()).expect("JSON");
-    assert_eq!(line["job"], job.as_str());
+    assert_eq!(line["job"]["id"], job.as_str());
     assert!(
         output.stderr.is_empty(),
         "{}",

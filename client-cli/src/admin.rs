@@ -1,17 +1,16 @@
 //! `pointfarm dataset|jobs|frames`: managing a server's datasets and jobs. Human-readable
-//! tables by default, `--json` for scripts (one JSON value on stdout, its shapes in
-//! `admin_json.rs`).
+//! tables by default, `--json` for scripts (one JSON value on stdout: the API's messages in
+//! their proto3 JSON mapping, or the wrappers of `admin_json.rs`).
 
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use pointfarm_proto::v1 as pb;
-use serde_json::json;
 
 use pointfarm_render::ingest::dataset_files;
 
-use crate::admin_json::{dataset_json, fetched_json, frame_json, job_json, progress_json};
+use crate::admin_json::{json_line, Deleted, FetchedFrames, JobDetails, StageStatistics};
 use crate::credentials::ClientCredentials;
 use crate::remote::{answer, state_name, status_error, Client};
 
@@ -47,7 +46,7 @@ pub struct ServerArgs {
     pub server: String,
     #[command(flatten)]
     pub credentials: ClientCredentials,
-    /// Print JSON instead of tables.
+    /// Print JSON instead of tables: the API's messages in the proto3 JSON mapping.
     #[arg(long, global = true)]
     pub json: bool,
 }
@@ -95,7 +94,7 @@ pub enum JobsCommand {
         /// The job's id.
         id: String,
     },
-    /// Follow a job until it ends (with --json: one line per event, then the job).
+    /// Follow a job until it ends (with --json: each of its events on a line of its own).
     Watch {
         /// The job's id.
         id: String,
@@ -148,7 +147,7 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
         match command {
             DatasetCommand::Add { inputs } => {
                 let files = dataset_files(&inputs)?;
-                print_dataset(server, &client.ensure_dataset(&files).await?)
+                print_dataset(server, &client.ensure_dataset(&files).await?)?
             }
             DatasetCommand::Register { paths } => {
                 let request = pb::RegisterDatasetRequest {
@@ -157,7 +156,7 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
                     paths,
                 };
                 let dataset = answer(client.datasets.register_dataset(request).await)?;
-                print_dataset(server, &dataset)
+                print_dataset(server, &dataset)?
             }
             DatasetCommand::List => {
                 let all = every_page(|page_token| {
@@ -173,10 +172,12 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
                 })
                 .await?;
                 if server.json {
-                    outln!(
-                        "{}",
-                        serde_json::Value::from(all.iter().map(dataset_json).collect::<Vec<_>>())
-                    );
+                    // Every page in one response, as the API would return it with no limit.
+                    let response = pb::ListDatasetsResponse {
+                        datasets: all,
+                        next_page_token: String::new(),
+                    };
+                    outln!("{}", json_line(&response)?);
                 } else {
                     outln!("{:<20} {:>12}  name", "id", "bytes");
                     for d in &all {
@@ -191,7 +192,7 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
                     .await
                     .map_err(status_error)?;
                 if server.json {
-                    outln!("{}", json!({ "deleted": id }));
+                    outln!("{}", json_line(&Deleted { deleted: &id })?);
                 } else {
                     outln!("deleted {id}");
                 }
@@ -201,9 +202,9 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
     })
 }
 
-fn print_dataset(server: &ServerArgs, d: &pb::Dataset) {
+fn print_dataset(server: &ServerArgs, d: &pb::Dataset) -> Result<()> {
     if server.json {
-        outln!("{}", dataset_json(d));
+        outln!("{}", json_line(d)?);
     } else {
         let files = match d.files.len() {
             0 | 1 => String::new(),
@@ -211,6 +212,7 @@ fn print_dataset(server: &ServerArgs, d: &pb::Dataset) {
         };
         outln!("{}  {} ({} bytes{files})", d.id, d.name, d.size_bytes);
     }
+    Ok(())
 }
 
 fn parse_state(state: &str) -> Result<pb::JobState> {
@@ -227,7 +229,7 @@ fn parse_state(state: &str) -> Result<pb::JobState> {
 }
 
 /// Median and 95th percentile of each stage over a job's frames, in stage order.
-pub fn stage_statistics(frames: &[pb::FrameFinished]) -> Vec<(String, f64, f64)> {
+pub fn stage_statistics(frames: &[pb::FrameFinished]) -> Vec<StageStatistics> {
     let mut stages: Vec<(String, Vec<f64>)> = Vec::new();
     for timing in frames.iter().flat_map(|f| &f.timings) {
         match stages.iter_mut().find(|(name, _)| *name == timing.stage) {
@@ -240,7 +242,11 @@ pub fn stage_statistics(frames: &[pb::FrameFinished]) -> Vec<(String, f64, f64)>
         .map(|(name, mut values)| {
             values.sort_by(f64::total_cmp);
             let at = |q: f64| values[((values.len() - 1) as f64 * q).round() as usize];
-            (name, at(0.5), at(0.95))
+            StageStatistics {
+                stage: name,
+                median_ms: at(0.5),
+                p95_ms: at(0.95),
+            }
         })
         .collect()
 }
@@ -250,20 +256,50 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
         let mut client = Client::connect(&server.server, &server.credentials).await?;
         match command {
             JobsCommand::List { state } => {
-                let state = state.as_deref().map(parse_state).transpose()?.unwrap_or(pb::JobState::Unspecified);
+                let state = state
+                    .as_deref()
+                    .map(parse_state)
+                    .transpose()?
+                    .unwrap_or(pb::JobState::Unspecified);
                 let all = every_page(|page_token| {
                     let mut jobs = client.jobs.clone();
-                    let request = pb::ListJobsRequest { state: state as i32, page_size: PAGE_SIZE, page_token };
-                    async move { answer(jobs.list_jobs(request).await).map(|p| (p.jobs, p.next_page_token)) }
+                    let request = pb::ListJobsRequest {
+                        state: state as i32,
+                        page_size: PAGE_SIZE,
+                        page_token,
+                    };
+                    async move {
+                        answer(jobs.list_jobs(request).await).map(|p| (p.jobs, p.next_page_token))
+                    }
                 })
                 .await?;
                 if server.json {
-                    outln!("{}", serde_json::Value::from(all.iter().map(job_json).collect::<Vec<_>>()));
+                    // Every page in one response, as the API would return it with no limit.
+                    outln!(
+                        "{}",
+                        json_line(&pb::ListJobsResponse {
+                            jobs: all,
+                            next_page_token: String::new()
+                        })?
+                    );
                 } else {
-                    outln!("{:<18} {:<10} {:>9} {:>8}  dataset", "id", "state", "frames", "priority");
+                    outln!(
+                        "{:<18} {:<10} {:>9} {:>8}  dataset",
+                        "id",
+                        "state",
+                        "frames",
+                        "priority"
+                    );
                     for j in &all {
                         let frames = format!("{}/{}", j.frames_done, j.frames_total);
-                        outln!("{:<18} {:<10} {:>9} {:>8}  {}", j.id, state_name(j.state), frames, j.priority, j.dataset_id);
+                        outln!(
+                            "{:<18} {:<10} {:>9} {:>8}  {}",
+                            j.id,
+                            state_name(j.state),
+                            frames,
+                            j.priority,
+                            j.dataset_id
+                        );
                     }
                 }
             }
@@ -271,27 +307,44 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                 let job = answer(client.jobs.get_job(pb::GetJobRequest { id }).await)?;
                 let stats = stage_statistics(&job.frames);
                 if server.json {
-                    let mut value = job_json(&job);
-                    value["stages"] = stats.iter().map(|(s, median, p95)| json!({"stage": s, "median_ms": median, "p95_ms": p95})).collect();
-                    value["frames"] = job.frames.iter().map(frame_json).collect();
-                    outln!("{value}");
+                    outln!(
+                        "{}",
+                        json_line(&JobDetails {
+                            job: &job,
+                            stage_statistics: stats
+                        })?
+                    );
                 } else {
-                    outln!("job {}  {}  {}/{} frames  dataset {}", job.id, state_name(job.state), job.frames_done, job.frames_total, job.dataset_id);
+                    outln!(
+                        "job {}  {}  {}/{} frames  dataset {}",
+                        job.id,
+                        state_name(job.state),
+                        job.frames_done,
+                        job.frames_total,
+                        job.dataset_id
+                    );
                     if !job.error.is_empty() {
                         outln!("error: {}", job.error);
                     }
-                    let retried: Vec<String> = job.frames.iter().filter(|f| f.failed_attempts > 0)
-                        .map(|f| format!("{} ({} failed)", f.index, f.failed_attempts)).collect();
+                    let retried: Vec<String> = job
+                        .frames
+                        .iter()
+                        .filter(|f| f.failed_attempts > 0)
+                        .map(|f| format!("{} ({} failed)", f.index, f.failed_attempts))
+                        .collect();
                     if !retried.is_empty() {
-                        outln!("frames that needed more than one attempt: {}", retried.join(", "));
+                        outln!(
+                            "frames that needed more than one attempt: {}",
+                            retried.join(", ")
+                        );
                     }
                     if let Some(line) = cut_summary(&job.frames) {
                         outln!("{line}");
                     }
                     if !stats.is_empty() {
                         outln!("{:<12} {:>10} {:>10}", "stage", "median ms", "p95 ms");
-                        for (stage, median, p95) in &stats {
-                            outln!("{stage:<12} {median:>10.2} {p95:>10.2}");
+                        for s in &stats {
+                            outln!("{:<12} {:>10.2} {:>10.2}", s.stage, s.median_ms, s.p95_ms);
                         }
                     }
                 }
@@ -299,42 +352,68 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
             JobsCommand::Cancel { id } => {
                 let job = answer(client.jobs.cancel_job(pb::CancelJobRequest { id }).await)?;
                 if server.json {
-                    outln!("{}", job_json(&job));
+                    outln!("{}", json_line(&job)?);
                 } else {
                     outln!("job {} {}", job.id, state_name(job.state));
                 }
             }
             JobsCommand::Watch { id } => {
-                let job = if server.json {
-                    // One line per event as it comes, so a script sees the progress.
-                    client.watch(&id, |job, frames| outln!("{}", progress_json(job, frames))).await?
-                } else {
-                    client.follow(&id, false).await?
-                };
                 if server.json {
-                    let mut value = job_json(&job);
-                    value["event"] = "finished".into();
-                    outln!("{value}");
+                    // Each event as it comes, one line each, so a script sees the progress;
+                    // the last one's job has ended.
+                    client
+                        .watch(&id, |event| {
+                            outln!("{}", json_line(event)?);
+                            Ok(())
+                        })
+                        .await?;
                 } else {
-                    outln!("job {} {} ({}/{} frames){}", job.id, state_name(job.state), job.frames_done, job.frames_total,
-                        if job.error.is_empty() { String::new() } else { format!(": {}", job.error) });
+                    let job = client.follow(&id, false).await?;
+                    outln!(
+                        "job {} {} ({}/{} frames){}",
+                        job.id,
+                        state_name(job.state),
+                        job.frames_done,
+                        job.frames_total,
+                        if job.error.is_empty() {
+                            String::new()
+                        } else {
+                            format!(": {}", job.error)
+                        }
+                    );
                 }
             }
             JobsCommand::Leases => {
-                let leases = answer(client.jobs.list_leases(pb::ListLeasesRequest {}).await)?.leases;
-                let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis() as i64).unwrap_or(0);
+                let leases =
+                    answer(client.jobs.list_leases(pb::ListLeasesRequest {}).await)?.leases;
+                let now = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map(|d| d.as_millis() as i64)
+                    .unwrap_or(0);
                 if server.json {
-                    let values: Vec<serde_json::Value> = leases.iter().map(|l| json!({
-                        "lease_id": l.lease_id, "job_id": l.job_id, "frame": l.frame_index,
-                        "worker": l.worker_name, "embedded": l.embedded, "expires_unix_ms": l.expires_unix_ms,
-                    })).collect();
-                    outln!("{}", serde_json::Value::from(values));
+                    outln!("{}", json_line(&pb::ListLeasesResponse { leases })?);
                 } else {
-                    outln!("{:<38} {:<18} {:>6}  {:<24} expires", "lease", "job", "frame", "worker");
+                    outln!(
+                        "{:<38} {:<18} {:>6}  {:<24} expires",
+                        "lease",
+                        "job",
+                        "frame",
+                        "worker"
+                    );
                     for l in &leases {
                         let expires = (l.expires_unix_ms - now) as f64 / 1e3;
-                        let worker = if l.embedded { format!("{} (embedded)", l.worker_name) } else { l.worker_name.clone() };
-                        outln!("{:<38} {:<18} {:>6}  {:<24} in {expires:.1} s", l.lease_id, l.job_id, l.frame_index, worker);
+                        let worker = if l.embedded {
+                            format!("{} (embedded)", l.worker_name)
+                        } else {
+                            l.worker_name.clone()
+                        };
+                        outln!(
+                            "{:<38} {:<18} {:>6}  {:<24} in {expires:.1} s",
+                            l.lease_id,
+                            l.job_id,
+                            l.frame_index,
+                            worker
+                        );
                     }
                 }
             }
@@ -350,7 +429,7 @@ pub fn frames(server: &ServerArgs, command: FramesCommand) -> Result<()> {
             FramesCommand::Fetch { job, out, from } => {
                 let written = client.fetch_frames(&job, from, &out).await?;
                 if server.json {
-                    outln!("{}", fetched_json(&job, &out, &written));
+                    outln!("{}", json_line(&FetchedFrames::new(&job, &out, &written))?);
                 } else {
                     outln!("{} frames in {}", written.len(), out.display());
                 }
@@ -387,9 +466,16 @@ mod tests {
             })
             .collect();
         let stats = stage_statistics(&frames);
-        assert_eq!(stats[0].0, "rasterize");
-        assert_eq!(stats[0].1, 10.0);
-        assert_eq!(stats[0].2, 18.0);
-        assert_eq!(stats[1], ("encode".to_string(), 1.0, 1.0));
+        assert_eq!(stats[0].stage, "rasterize");
+        assert_eq!(stats[0].median_ms, 10.0);
+        assert_eq!(stats[0].p95_ms, 18.0);
+        assert_eq!(
+            stats[1],
+            StageStatistics {
+                stage: "encode".to_string(),
+                median_ms: 1.0,
+                p95_ms: 1.0
+            }
+        );
     }
 }

@@ -1,60 +1,114 @@
-//! The JSON that `dataset`, `jobs` and `frames` print with `--json`: one shape per thing,
-//! snake_case fields, the same object wherever the same thing is printed (`jobs show`,
-//! `jobs cancel`, the end of `jobs watch`).
+//! The JSON that `dataset`, `jobs` and `frames` print with `--json`. What the API returns is
+//! printed as its message in the proto3 JSON mapping (`pointfarm-proto`'s serde impls:
+//! lowerCamelCase names, enums by name, 64-bit integers as strings, default values left out),
+//! so a dataset, a job, a frame or a job event reads the same here as from the API. What the
+//! CLI adds, which no message holds, is in small wrapper objects with lowerCamelCase keys.
 
 use std::path::{Path, PathBuf};
 
+use anyhow::{Context, Result};
 use pointfarm_proto::v1 as pb;
-use serde_json::json;
+use serde::Serialize;
 
-use crate::remote::state_name;
-
-pub fn dataset_json(d: &pb::Dataset) -> serde_json::Value {
-    let files: Vec<serde_json::Value> = d
-        .files
-        .iter()
-        .map(|f| json!({ "name": f.name, "size_bytes": f.size_bytes, "sha256": f.sha256, "path": f.path }))
-        .collect();
-    json!({ "id": d.id, "name": d.name, "size_bytes": d.size_bytes, "sha256": d.sha256, "path": d.path, "files": files })
+/// `value` as one line of JSON.
+pub fn json_line<T: Serialize + ?Sized>(value: &T) -> Result<String> {
+    serde_json::to_string(value).context("encoding the JSON output")
 }
 
-pub fn job_json(j: &pb::Job) -> serde_json::Value {
-    json!({
-        "id": j.id, "dataset_id": j.dataset_id, "state": state_name(j.state),
-        "frames_total": j.frames_total, "frames_done": j.frames_done, "priority": j.priority,
-        "error": j.error, "created_unix_ms": j.created_unix_ms, "updated_unix_ms": j.updated_unix_ms,
-    })
+/// `dataset rm --json`: the id of the dataset deleted (the API answers a deletion with an
+/// empty message).
+#[derive(Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct Deleted<'a> {
+    pub deleted: &'a str,
 }
 
-/// A finished frame of `jobs show --json`: its attempts, cache and cut.
-pub fn frame_json(f: &pb::FrameFinished) -> serde_json::Value {
-    let mut value = json!({ "index": f.index, "failed_attempts": f.failed_attempts, "dataset_cache_hit": f.dataset_cache_hit });
-    if let Some(c) = &f.cut {
-        value["cut"] = json!({
-            "nodes": c.nodes, "points_rendered": c.points_rendered, "points_total": c.points_total,
-            "limited_by_budget": c.limited_by_budget, "gpu_hits": c.gpu_hits, "gpu_uploaded": c.gpu_uploaded,
-            "gpu_evicted": c.gpu_evicted, "host_hits": c.host_hits, "nodes_read": c.nodes_read,
-            "bytes_read": c.bytes_read, "read_ahead_bytes": c.read_ahead_bytes,
-        });
+/// `jobs show --json`: the job as the API returns it (its finished frames and their timings
+/// included), and the median and 95th percentile of each stage over those frames.
+#[derive(Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct JobDetails<'a> {
+    pub job: &'a pb::Job,
+    pub stage_statistics: Vec<StageStatistics>,
+}
+
+/// One stage's statistics over a job's frames.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct StageStatistics {
+    pub stage: String,
+    pub median_ms: f64,
+    pub p95_ms: f64,
+}
+
+/// `frames fetch --json`: where each frame was written (the API's `FrameChunk`s carry the
+/// image, which is in the file).
+#[derive(Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct FetchedFrames {
+    pub job_id: String,
+    pub out: String,
+    pub frames: Vec<FetchedFrame>,
+}
+
+#[derive(Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct FetchedFrame {
+    pub index: u32,
+    pub path: String,
+}
+
+impl FetchedFrames {
+    pub fn new(job_id: &str, out: &Path, written: &[(u32, PathBuf)]) -> Self {
+        Self {
+            job_id: job_id.to_string(),
+            out: out.display().to_string(),
+            frames: written
+                .iter()
+                .map(|(index, path)| FetchedFrame {
+                    index: *index,
+                    path: path.display().to_string(),
+                })
+                .collect(),
+        }
     }
-    value
 }
 
-/// One event of `jobs watch --json`: the job's state and progress after it, and the frames it
-/// finished (the first event lists those finished before the watch began).
-pub fn progress_json(job: &pb::Job, frames: &[&pb::FrameFinished]) -> serde_json::Value {
-    json!({
-        "event": "progress", "job": job.id, "state": state_name(job.state),
-        "frames_done": job.frames_done, "frames_total": job.frames_total, "error": job.error,
-        "frames": frames.iter().map(|f| frame_json(f)).collect::<Vec<_>>(),
-    })
-}
+#[cfg(test)]
+mod tests {
+    use super::*;
 
-/// What `frames fetch --json` wrote: each frame's index and file.
-pub fn fetched_json(job: &str, out: &Path, written: &[(u32, PathBuf)]) -> serde_json::Value {
-    let frames: Vec<serde_json::Value> = written
-        .iter()
-        .map(|(index, path)| json!({ "index": index, "path": path.display().to_string() }))
-        .collect();
-    json!({ "job": job, "out": out.display().to_string(), "frames": frames })
+    #[test]
+    fn wrappers_have_lower_camel_case_keys_around_the_messages() {
+        let job = pb::Job {
+            id: "job-1".into(),
+            state: pb::JobState::Running as i32,
+            updated_unix_ms: 5,
+            ..Default::default()
+        };
+        let details = JobDetails {
+            job: &job,
+            stage_statistics: vec![StageStatistics {
+                stage: "rasterize".into(),
+                median_ms: 2.0,
+                p95_ms: 3.5,
+            }],
+        };
+        let value: serde_json::Value =
+            serde_json::from_str(&json_line(&details).expect("encodes")).expect("JSON");
+        assert_eq!(
+            value,
+            serde_json::json!({
+                "job": { "id": "job-1", "state": "JOB_STATE_RUNNING", "updatedUnixMs": "5" },
+                "stageStatistics": [{ "stage": "rasterize", "medianMs": 2.0, "p95Ms": 3.5 }],
+            })
+        );
+        let fetched = FetchedFrames::new("job-1", Path::new("out"), &[(0, "out/f0.png".into())]);
+        assert_eq!(
+            serde_json::to_value(&fetched).expect("encodes"),
+            serde_json::json!({
+                "jobId": "job-1", "out": "out", "frames": [{ "index": 0, "path": "out/f0.png" }],
+            })
+        );
+    }
 }

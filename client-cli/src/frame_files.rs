@@ -6,9 +6,10 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
-use pointfarm_render::camera::{Camera, Projection};
 use pointfarm_render::encode::{self, FrameFormat};
 use pointfarm_render::raster::FrameSettings;
+
+use crate::render_json::CameraJson;
 
 /// The file name of a turntable's frames when `--out` is a folder.
 const FOLDER_PATTERN: &str = "frame_{:05}.png";
@@ -150,26 +151,6 @@ impl FrameFiles {
     }
 }
 
-/// A camera as `render --json` and the depth sidecars report it, in the file's coordinates.
-pub fn camera_json(camera: &Camera) -> serde_json::Value {
-    let mut json = serde_json::json!({
-        "position": camera.position.to_array(),
-        "target": camera.target.to_array(),
-        "up": camera.up.to_array(),
-        "near": camera.near,
-        "far": camera.far,
-    });
-    json["projection"] = match camera.projection {
-        Projection::Perspective { fov_y_deg } => {
-            serde_json::json!({ "perspective": { "fov_y_deg": fov_y_deg } })
-        }
-        Projection::Orthographic { height } => {
-            serde_json::json!({ "orthographic": { "height": height } })
-        }
-    };
-    json
-}
-
 /// Writes frame `index`'s depth image and its sidecar JSON (`.depth.json`): the near and far
 /// distances its grey levels span, the camera and the image size, so that a pixel's value `v`
 /// (1 to 65535; 0 where no point landed) is the distance `near + (v - 1) / 65534 * (far - near)`
@@ -193,7 +174,7 @@ pub fn save_depth(
         "far": camera.far,
         "encoding": "16-bit grey, linear: 0 = no point; v in 1..65535 is the distance \
                      near + (v - 1) / 65534 * (far - near) along the viewing direction",
-        "camera": camera_json(camera),
+        "camera": CameraJson::of(camera),
     });
     let text = serde_json::to_string_pretty(&json).context("encoding the depth sidecar")?;
     std::fs::write(&sidecar, text + "\n")

@@ -66,7 +66,7 @@ pub fn run(args: InfoArgs) -> Result<()> {
     }
     let summary = Summary::of(&reports);
     if args.json {
-        outln!("{}", crate::info_json::document(&reports, &summary));
+        outln!("{}", crate::info_json::document(&reports, &summary)?);
     } else if reports.len() > 1 {
         print_summary(&summary);
     }

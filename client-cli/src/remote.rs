@@ -113,7 +113,12 @@ impl Client {
                 .unwrap_or_else(|_| ProgressStyle::default_bar()),
         );
         let last = self
-            .watch(job_id, |job, frames| {
+            .watch(job_id, |event| {
+                let Some(job) = &event.job else {
+                    return Ok(());
+                };
+                // The first event lists the frames finished before the watch began.
+                let frames = job.frames.iter().chain(&event.frame);
                 bar.set_length(job.frames_total as u64);
                 bar.set_position(job.frames_done as u64);
                 bar.set_message(state_name(job.state).to_string());
@@ -126,19 +131,21 @@ impl Client {
                         bar.println(line);
                     }
                 }
+                Ok(())
             })
             .await;
         bar.finish_and_clear();
         last
     }
 
-    /// Follows a job until it ends, calling `each` with the job after every event and the
-    /// frames the event finished (the first event lists those finished before the watch
-    /// began); returns the final job.
+    /// Follows a job until it ends, calling `each` with every event that carries the job (its
+    /// state and progress after the event, and the frame the event finished; the first event
+    /// lists in its job the frames finished before the watch began); returns the final job.
+    /// An error from `each` ends the watch.
     pub async fn watch(
         &mut self,
         job_id: &str,
-        mut each: impl FnMut(&pb::Job, &[&pb::FrameFinished]),
+        mut each: impl FnMut(&pb::JobEvent) -> Result<()>,
     ) -> Result<pb::Job> {
         let mut events = self
             .jobs
@@ -150,10 +157,11 @@ impl Client {
             .into_inner();
         let mut last = None;
         while let Some(event) = events.message().await.map_err(status_error)? {
-            let Some(job) = event.job else { continue };
-            let frames: Vec<&pb::FrameFinished> = job.frames.iter().chain(&event.frame).collect();
-            each(&job, &frames);
-            last = Some(job);
+            if event.job.is_none() {
+                continue;
+            }
+            each(&event)?;
+            last = event.job;
         }
         last.context("the server ended the watch without any event")
     }

@@ -1,7 +1,8 @@
 //! `pointfarm render --server URL`: the request of the local render, carried out by a daemon
 //! (or refused, naming the option the service does not have).
 //! Uploads the file if the server lacks it, submits, follows with a progress bar and
-//! downloads the frames.
+//! downloads the frames. With `--json`, one object per frame on stdout: its file and the frame
+//! as the API reports it.
 
 use anyhow::{bail, Context, Result};
 use pointfarm_daemon::model::JobSpec;
@@ -13,6 +14,7 @@ use pointfarm_render::request::RenderRequest;
 use crate::remote::{require_success, timings_line, Client};
 use crate::render::Outputs;
 use crate::render_args::RenderArgs;
+use crate::render_json::ServerFrameJson;
 
 /// Refuses what the service cannot do, so that no option is dropped on the way.
 fn refuse_local_only_options(args: &RenderArgs, request: &RenderRequest) -> Result<()> {
@@ -20,12 +22,6 @@ fn refuse_local_only_options(args: &RenderArgs, request: &RenderRequest) -> Resu
         bail!(
             "--depth is not available through a server: the service returns colour frames \
              only; render locally for depth images"
-        );
-    }
-    if args.json {
-        bail!(
-            "--json reports the points each frame read, which a server does not report yet; \
-             use `jobs show --json` for a server job's frames"
         );
     }
     if let Some(flag) = args.cache_flag() {
@@ -70,25 +66,36 @@ pub fn run(
 ) -> Result<()> {
     refuse_local_only_options(args, request)?;
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
+    // With --json, standard output carries only the frames' objects.
+    let say = |line: String| {
+        if args.json {
+            eprintln!("{line}");
+        } else {
+            outln!("{line}");
+        }
+    };
     runtime.block_on(async {
         let files = dataset_files(&args.inputs)?;
         let mut client = Client::connect(server, &args.credentials).await?;
         let dataset = client.ensure_dataset(&files).await?;
-        outln!(
+        say(format!(
             "{}: dataset {} of {} file{} on {server}",
             args.inputs_label(),
             dataset.id,
             files.len(),
             if files.len() == 1 { "" } else { "s" }
-        );
+        ));
         let job = client
             .jobs
             .submit_job(submission(args, request, dataset.id))
             .await
             .map_err(crate::remote::status_error)?
             .into_inner();
-        outln!("job {} submitted: {} frames", job.id, job.frames_total);
-        let finished = client.follow(&job.id, false).await?;
+        say(format!(
+            "job {} submitted: {} frames",
+            job.id, job.frames_total
+        ));
+        let finished = client.follow(&job.id, args.json).await?;
         require_success(&finished)?;
         // Fetched beside the frames' folder (one file system, so placing them is a rename),
         // then named and converted as --out says.
@@ -99,32 +106,43 @@ pub fn run(
         let placed = fetched.and_then(|fetched| {
             fetched
                 .iter()
-                .map(|(index, png)| files.place_png(png, *index))
+                .map(|(index, png)| Ok((*index, files.place_png(png, *index)?)))
                 .collect::<Result<Vec<_>>>()
         });
         let _ = std::fs::remove_dir_all(&temp);
-        let written = placed?;
-        match written.as_slice() {
-            [] => bail!("the server returned no frame"),
-            [one] => outln!("{}", one.display()),
-            many => outln!("{} frames in {}", many.len(), files.dir().display()),
-        }
-        if let Some(video) = &outputs.video {
-            video.assemble(&written)?;
-            outln!("video: {}", video.path().display());
-        }
+        let placed = placed?;
+        let written: Vec<_> = placed.iter().map(|(_, path)| path.clone()).collect();
         let details = client
             .jobs
             .get_job(pb::GetJobRequest { id: job.id.clone() })
             .await
             .map_err(crate::remote::status_error)?
             .into_inner();
+        if args.json {
+            for (index, path) in &placed {
+                let frame = ServerFrameJson::new(*index, path, &details);
+                outln!("{}", crate::admin_json::json_line(&frame)?);
+            }
+        }
+        match written.as_slice() {
+            [] => bail!("the server returned no frame"),
+            [one] => say(one.display().to_string()),
+            many => say(format!(
+                "{} frames in {}",
+                many.len(),
+                files.dir().display()
+            )),
+        }
+        if let Some(video) = &outputs.video {
+            video.assemble(&written)?;
+            say(format!("video: {}", video.path().display()));
+        }
         if let Some(first) = details.frames.first() {
-            outln!(
+            say(format!(
                 "frame {} on the server: {}",
                 first.index,
                 timings_line(&first.timings)
-            );
+            ));
         }
         Ok(())
     })

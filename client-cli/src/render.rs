@@ -15,9 +15,10 @@ use pointfarm_render::ingest::{dataset_files, dataset_point_count};
 use pointfarm_render::raster::{FrameSettings, Stage, StageTimings};
 use pointfarm_render::request::RenderRequest;
 
-use crate::frame_files::{camera_json, save_depth, FrameFiles};
+use crate::frame_files::{save_depth, FrameFiles};
 use crate::frame_source::{FrameSource, RenderedFrame};
 use crate::lod_store::{default_cache_dir, StoreCache};
+use crate::render_json::FrameJson;
 use crate::video::{VideoPlan, VideoRequest};
 
 pub use crate::render_args::RenderArgs;
@@ -158,7 +159,8 @@ fn report_frame(
     progress: &ProgressBar,
 ) {
     let line = if args.json {
-        frame_json(index, path, settings, bounds, rendered).to_string()
+        serde_json::to_string(&FrameJson::new(index, path, settings, bounds, rendered))
+            .unwrap_or_default()
     } else {
         let mut line = format!("{}  {}", path.display(), rendered.frame.timings);
         if let Some(cut) = rendered.cut.as_ref().map(|c| &c.counts) {
@@ -210,38 +212,6 @@ fn camera_flags(camera: &Camera) -> String {
         camera.near,
         camera.far
     )
-}
-
-/// One frame as `render --json` reports it.
-fn frame_json(
-    index: u32,
-    path: &Path,
-    settings: &FrameSettings,
-    bounds: &WorldBounds,
-    rendered: &RenderedFrame,
-) -> serde_json::Value {
-    let timings: serde_json::Map<String, serde_json::Value> = rendered
-        .frame
-        .timings
-        .stages
-        .iter()
-        .map(|t| (t.stage.name().to_string(), serde_json::json!(t.ms)))
-        .collect();
-    let mut object = serde_json::json!({
-        "frame": index,
-        "path": path.display().to_string(),
-        "width": settings.width,
-        "height": settings.height,
-        "points_total": rendered.points_total,
-        "points_rendered": rendered.points_rendered,
-        "timings_ms": timings,
-        "camera": camera_json(&settings.camera),
-        "bounds": { "min": bounds.min.to_array(), "max": bounds.max.to_array() },
-    });
-    if let Some(cut) = &rendered.cut {
-        object["cut"] = serde_json::to_value(cut).unwrap_or_default();
-    }
-    object
 }
 
 fn print_summary(dir: &Path, frames: &[StageTimings]) {

@@ -62,8 +62,8 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = DEFAULT_VIDEO_QUALITY, value_name = "CRF", requires = "video")]
     video_quality: u32,
     /// Print one JSON object per frame on standard output, and nothing else there: its file,
-    /// size, the points of the dataset and those the point passes read, its stage timings.
-    /// Local only.
+    /// size, the points of the dataset and those the point passes read, its stage timings;
+    /// through a server, its file and the frame as the API reports it.
     #[arg(long)]
     pub(crate) json: bool,
     /// Server jobs: higher runs first.

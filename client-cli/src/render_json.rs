@@ -1,0 +1,234 @@
+//! The JSON of `render --json`: a local render's object per frame, and the camera that it and
+//! the depth sidecars (`FRAME.depth.json`) report, which no API message describes, are the
+//! CLI's own objects with the lowerCamelCase keys of the API's JSON mapping; a render through
+//! a server reports each frame as the API's `FrameFinished`, beside the file it was written to.
+
+use std::path::Path;
+
+use pointfarm_proto::v1 as pb;
+use pointfarm_render::camera::{Camera, Projection};
+use pointfarm_render::cloud::WorldBounds;
+use pointfarm_render::cut::{CutCounts, CutReport};
+use pointfarm_render::raster::FrameSettings;
+use serde::Serialize;
+
+use crate::frame_source::RenderedFrame;
+
+/// One frame as `render --json` reports it: its file and size, the points the point passes
+/// read after culling, each stage's milliseconds, the camera, the dataset's bounds and, for a
+/// frame from a level-of-detail store, its cut.
+#[derive(Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct FrameJson {
+    pub frame: u32,
+    pub path: String,
+    pub width: u32,
+    pub height: u32,
+    pub points_total: u64,
+    pub points_rendered: u64,
+    /// Milliseconds by stage name (`upload`, `rasterize`, ...).
+    pub timings_ms: serde_json::Map<String, serde_json::Value>,
+    pub camera: CameraJson,
+    pub bounds: BoundsJson,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cut: Option<CutJson>,
+}
+
+impl FrameJson {
+    pub fn new(
+        index: u32,
+        path: &Path,
+        settings: &FrameSettings,
+        bounds: &WorldBounds,
+        rendered: &RenderedFrame,
+    ) -> Self {
+        Self {
+            frame: index,
+            path: path.display().to_string(),
+            width: settings.width,
+            height: settings.height,
+            points_total: rendered.points_total,
+            points_rendered: rendered.points_rendered,
+            timings_ms: rendered
+                .frame
+                .timings
+                .stages
+                .iter()
+                .map(|t| (t.stage.name().to_string(), serde_json::json!(t.ms)))
+                .collect(),
+            camera: CameraJson::of(&settings.camera),
+            bounds: BoundsJson {
+                min: bounds.min.to_array(),
+                max: bounds.max.to_array(),
+            },
+            cut: rendered.cut.as_ref().map(CutJson::of),
+        }
+    }
+}
+
+/// One frame of `render --server --json`: its file, as a local render reports it, and the
+/// frame as the API reports it (its stage timings and, from levels of detail, its cut).
+#[derive(Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct ServerFrameJson<'a> {
+    pub frame: u32,
+    pub path: String,
+    pub job_id: &'a str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub finished: Option<&'a pb::FrameFinished>,
+}
+
+impl<'a> ServerFrameJson<'a> {
+    /// Frame `index` of `job`, written to `path`.
+    pub fn new(index: u32, path: &Path, job: &'a pb::Job) -> Self {
+        Self {
+            frame: index,
+            path: path.display().to_string(),
+            job_id: &job.id,
+            finished: job.frames.iter().find(|f| f.index == index),
+        }
+    }
+}
+
+#[derive(Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct BoundsJson {
+    pub min: [f64; 3],
+    pub max: [f64; 3],
+}
+
+/// A camera in the file's coordinates.
+#[derive(Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct CameraJson {
+    pub position: [f64; 3],
+    pub target: [f64; 3],
+    pub up: [f64; 3],
+    pub near: f64,
+    pub far: f64,
+    /// `{"perspective": {"fovYDeg": ...}}` or `{"orthographic": {"height": ...}}`.
+    pub projection: ProjectionJson,
+}
+
+#[derive(Serialize)]
+#[serde(rename_all = "camelCase", rename_all_fields = "camelCase")]
+pub enum ProjectionJson {
+    Perspective { fov_y_deg: f64 },
+    Orthographic { height: f64 },
+}
+
+impl CameraJson {
+    pub fn of(camera: &Camera) -> Self {
+        Self {
+            position: camera.position.to_array(),
+            target: camera.target.to_array(),
+            up: camera.up.to_array(),
+            near: camera.near,
+            far: camera.far,
+            projection: match camera.projection {
+                Projection::Perspective { fov_y_deg } => ProjectionJson::Perspective { fov_y_deg },
+                Projection::Orthographic { height } => ProjectionJson::Orthographic { height },
+            },
+        }
+    }
+}
+
+/// What a frame's cut drew and loaded (the render crate's `CutReport`).
+#[derive(Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct CutJson {
+    pub nodes: u64,
+    pub points_rendered: u64,
+    pub points_total: u64,
+    pub limited_by_budget: bool,
+    pub gpu_hits: u64,
+    pub gpu_uploaded: u64,
+    pub gpu_evicted: u64,
+    pub host_hits: u64,
+    pub nodes_read: u64,
+    pub bytes_read: u64,
+    pub read_ahead_bytes: u64,
+    pub host_cache_bytes: u64,
+    pub gpu_cache_bytes: u64,
+    pub select_ms: f64,
+    pub wait_ms: f64,
+    pub load_ms: f64,
+    pub prepare_ms: f64,
+}
+
+impl CutJson {
+    pub fn of(report: &CutReport) -> Self {
+        // Taken apart without `..`, so that a field added to the report is not left out here.
+        let CutReport {
+            counts:
+                CutCounts {
+                    nodes,
+                    points_rendered,
+                    points_total,
+                    limited_by_budget,
+                    gpu_hits,
+                    gpu_uploaded,
+                    gpu_evicted,
+                    host_hits,
+                    nodes_read,
+                    bytes_read,
+                    read_ahead_bytes,
+                },
+            host_cache_bytes,
+            gpu_cache_bytes,
+            select_ms,
+            wait_ms,
+            load_ms,
+            prepare_ms,
+        } = *report;
+        Self {
+            nodes,
+            points_rendered,
+            points_total,
+            limited_by_budget,
+            gpu_hits,
+            gpu_uploaded,
+            gpu_evicted,
+            host_hits,
+            nodes_read,
+            bytes_read,
+            read_ahead_bytes,
+            host_cache_bytes,
+            gpu_cache_bytes,
+            select_ms,
+            wait_ms,
+            load_ms,
+            prepare_ms,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::DVec3;
+
+    use super::*;
+
+    #[test]
+    fn cameras_and_cuts_have_lower_camel_case_keys() {
+        let camera = Camera {
+            position: DVec3::new(1.0, 2.0, 3.0),
+            target: DVec3::ZERO,
+            up: DVec3::Z,
+            projection: Projection::Perspective { fov_y_deg: 45.0 },
+            near: 0.5,
+            far: 100.0,
+        };
+        let json = serde_json::to_value(CameraJson::of(&camera)).expect("encodes");
+        assert_eq!(json["projection"]["perspective"]["fovYDeg"], 45.0, "{json}");
+        let cut = serde_json::to_value(CutJson::of(&CutReport::default())).expect("encodes");
+        for key in [
+            "pointsRendered",
+            "limitedByBudget",
+            "readAheadBytes",
+            "selectMs",
+        ] {
+            assert!(cut.get(key).is_some(), "{key} missing from {cut}");
+        }
+    }
+}
