@@ -12,6 +12,7 @@ pub mod cut;
 pub mod encode;
 pub mod gpu;
 pub mod ingest;
+pub mod legend;
 pub mod lod;
 pub mod raster;
 pub mod reference;

@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use pointfarm_render::cache::{CacheOutcome, DatasetCache};
 use pointfarm_render::cloud::WorldBounds;
-use pointfarm_render::color::{point_colors, ColorMode};
+use pointfarm_render::color::{point_colors, Coloring};
 use pointfarm_render::cut::{
     CutError, CutOptions, CutRenderer, LodDataset, StoredLod, RESIDENT_MAX_POINTS,
 };
@@ -26,7 +26,7 @@ use crate::worker::failure::FrameFailure;
 /// The cloud currently on the GPU.
 struct Resident {
     sha256: String,
-    color_mode: ColorMode,
+    coloring: Coloring,
     bounds: WorldBounds,
     cloud: GpuPointCloud,
     /// How the cloud was loaded, until the next finished frame reports it.
@@ -156,7 +156,7 @@ impl WorkerRenderState {
         match &self.loaded {
             Some(Loaded::Resident(r)) => {
                 r.sha256 == task.dataset.sha256
-                    && r.color_mode == task.request.render.color_mode
+                    && r.coloring == task.request.render.coloring()
                     && self.lod_error(task, None).is_none()
             }
             Some(Loaded::Stored(s)) => {
@@ -242,11 +242,10 @@ impl WorkerRenderState {
                 let dataset = stored.source.dataset();
                 let bounds = dataset.bounds();
                 let settings = task.request.frame_settings(task.lease.index, &bounds);
-                let color_mode = task.request.render.color_mode;
-                let rendered =
-                    stored
-                        .cut
-                        .render(&mut self.renderer, dataset, &settings, color_mode);
+                let coloring = task.request.render.coloring();
+                let rendered = stored
+                    .cut
+                    .render(&mut self.renderer, dataset, &settings, coloring);
                 let (frame, report) = match rendered {
                     Ok(done) => done,
                     Err(error) => {
@@ -427,7 +426,7 @@ impl WorkerRenderState {
         };
         let (mut cloud, outcome) = loaded.map_err(in_dataset)?;
         let load_ms = started.elapsed().as_secs_f64() * 1e3;
-        cloud.colors = point_colors(&cloud, task.request.render.color_mode);
+        cloud.colors = point_colors(&cloud, task.request.render.coloring());
         let gpu_cloud = self
             .renderer
             .upload(&cloud)
@@ -435,7 +434,7 @@ impl WorkerRenderState {
         tracing::info!(dataset = %dataset.id, points = cloud.len(), load_ms, ?outcome, "cloud resident");
         Ok(Resident {
             sha256: dataset.sha256.clone(),
-            color_mode: task.request.render.color_mode,
+            coloring: task.request.render.coloring(),
             bounds: cloud.bounds,
             cloud: gpu_cloud,
             unreported_load: Some((load_ms, outcome)),

@@ -14,7 +14,7 @@
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 
-use crate::color::ColorMode;
+use crate::color::Coloring;
 use crate::gpu::GpuContext;
 use crate::lod::NodeKey;
 use crate::raster::gpu_data::{GpuBatch, QuantisedPosition, COLOR_BYTES};
@@ -57,7 +57,7 @@ pub struct GpuNodeCache {
     resident: HashMap<NodeKey, ResidentNode>,
     by_use: BTreeMap<u64, NodeKey>,
     tick: u64,
-    color_mode: Option<ColorMode>,
+    coloring: Option<Coloring>,
     /// Bytes written since the uploads were last submitted.
     unsubmitted_bytes: u64,
 }
@@ -89,7 +89,7 @@ impl GpuNodeCache {
             resident: HashMap::new(),
             by_use: BTreeMap::new(),
             tick: 0,
-            color_mode: None,
+            coloring: None,
             unsubmitted_bytes: 0,
         }
     }
@@ -108,14 +108,14 @@ impl GpuNodeCache {
         self.resident.contains_key(&key)
     }
 
-    /// Empties the cache when `mode` is not the one its colours were written in.
-    pub fn use_color_mode(&mut self, mode: ColorMode) {
-        if self.color_mode != Some(mode) {
+    /// Empties the cache when `coloring` is not the one its colours were written in.
+    pub fn use_coloring(&mut self, coloring: Coloring) {
+        if self.coloring != Some(coloring) {
             let keys: Vec<NodeKey> = self.resident.keys().copied().collect();
             for key in keys {
                 self.evict(key);
             }
-            self.color_mode = Some(mode);
+            self.coloring = Some(coloring);
         }
     }
 

@@ -41,7 +41,7 @@ use rayon::prelude::*;
 use thiserror::Error;
 
 use crate::cloud::WorldBounds;
-use crate::color::ColorMode;
+use crate::color::Coloring;
 use crate::lod::{read_nodes, LodError, LodHierarchy, LodStore, NodeKey, NodePoints, NodeRecords};
 use crate::raster::morton::morton_order;
 use crate::raster::points::ChunkData;
@@ -143,7 +143,7 @@ impl LodDataset {
                 heights.extend(colors::node_heights(&points, origin));
             }
         }
-        let coloring = DatasetColoring::new(&hierarchy.stats, heights);
+        let coloring = DatasetColoring::new(&hierarchy.stats, heights, origin.z);
         Ok(Self {
             records,
             hierarchy: Arc::new(hierarchy),
@@ -168,6 +168,12 @@ impl LodDataset {
 
     pub fn bounds(&self) -> WorldBounds {
         self.bounds
+    }
+
+    /// The range elevation or intensity is drawn over in `coloring`, in the mode's units
+    /// (world Z, raw intensity): what a legend shows.
+    pub fn ramp_range(&self, coloring: Coloring) -> Option<crate::color::ColorRange> {
+        self.coloring.ramp_range(coloring)
     }
 
     pub fn point_count(&self) -> u64 {
@@ -276,8 +282,9 @@ impl CutRenderer {
         renderer: &mut Renderer,
         dataset: &LodDataset,
         settings: &FrameSettings,
-        color_mode: ColorMode,
+        coloring: impl Into<Coloring>,
     ) -> Result<(Frame, CutReport), CutError> {
+        let coloring = coloring.into();
         renderer.validate(settings)?;
         let started = Instant::now();
         let cut = self.cut(dataset, settings);
@@ -298,7 +305,7 @@ impl CutRenderer {
         report.counts.read_ahead_bytes = std::mem::take(&mut self.read_ahead_bytes);
         report.wait_ms = ms_since(started);
 
-        self.gpu_cache.use_color_mode(color_mode);
+        self.gpu_cache.use_coloring(coloring);
         let keys: Vec<NodeKey> = cut.nodes.iter().map(|n| n.key).collect();
         let keep: HashSet<NodeKey> = keys.iter().copied().collect();
         let missing: Vec<&CutNode> = cut
@@ -316,7 +323,7 @@ impl CutRenderer {
             let started = Instant::now();
             let prepared: Vec<ChunkData> = nodes
                 .par_iter()
-                .map(|node| prepare(dataset, node, color_mode))
+                .map(|node| prepare(dataset, node, coloring))
                 .collect();
             report.prepare_ms += ms_since(started);
 
@@ -458,10 +465,10 @@ impl CutRenderer {
 
 /// A node's points as the renderer takes them: relative to the origin, coloured, in Morton
 /// order, batched and quantised.
-fn prepare(dataset: &LodDataset, node: &NodePoints, color_mode: ColorMode) -> ChunkData {
+fn prepare(dataset: &LodDataset, node: &NodePoints, coloring: Coloring) -> ChunkData {
     let positions = node.positions_relative_to(dataset.origin);
     let heights: Vec<f32> = positions.iter().map(|p| p.z).collect();
-    let colors = dataset.coloring.colors(node, &heights, color_mode);
+    let colors = dataset.coloring.colors(node, &heights, coloring);
     let order = morton_order(&positions);
     let sorted: Vec<glam::Vec3> = order.iter().map(|&i| positions[i as usize]).collect();
     ChunkData::new(&sorted, order.iter().map(|&i| colors[i as usize]))
