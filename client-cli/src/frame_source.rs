@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use anyhow::Result;
 use pointfarm_render::cloud::WorldBounds;
-use pointfarm_render::color::{point_colors, ColorMode};
+use pointfarm_render::color::{point_colors, ramp_range, ColorRange, Coloring};
 use pointfarm_render::cut::{CutOptions, CutRenderer, CutReport};
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::load_dataset;
@@ -30,12 +30,13 @@ pub enum FrameSource {
         renderer: Renderer,
         cloud: GpuPointCloud,
         bounds: WorldBounds,
+        ramp_range: Option<ColorRange>,
     },
     Cut {
         renderer: Renderer,
         cut: Box<CutRenderer>,
         lod: Box<StoredLod>,
-        color_mode: ColorMode,
+        coloring: Coloring,
     },
 }
 
@@ -44,7 +45,7 @@ impl FrameSource {
     pub fn resident(
         gpu: Arc<GpuContext>,
         files: &[PathBuf],
-        color_mode: ColorMode,
+        coloring: Coloring,
         say: &dyn Fn(String),
     ) -> Result<Self> {
         let started = Instant::now();
@@ -55,7 +56,8 @@ impl FrameSource {
         let cloud = load_dataset(files);
         spinner.finish_and_clear();
         let mut cloud = cloud?;
-        cloud.colors = point_colors(&cloud, color_mode);
+        cloud.colors = point_colors(&cloud, coloring);
+        let ramp_range = ramp_range(&cloud, coloring);
         say(format!(
             "{} points in {} file{}, {}, read in {:.0} ms",
             cloud.len(),
@@ -71,6 +73,7 @@ impl FrameSource {
             renderer,
             cloud: resident,
             bounds,
+            ramp_range,
         })
     }
 
@@ -80,7 +83,7 @@ impl FrameSource {
         files: &[PathBuf],
         cache: &StoreCache,
         options: CutOptions,
-        color_mode: ColorMode,
+        coloring: Coloring,
         say: &dyn Fn(String),
     ) -> Result<Self> {
         let renderer = Renderer::new(gpu);
@@ -101,7 +104,7 @@ impl FrameSource {
             renderer,
             cut: Box::new(cut),
             lod: Box::new(lod),
-            color_mode,
+            coloring,
         })
     }
 
@@ -110,6 +113,15 @@ impl FrameSource {
         match self {
             Self::Resident { bounds, .. } => *bounds,
             Self::Cut { lod, .. } => lod.dataset.bounds(),
+        }
+    }
+
+    /// The range elevation or intensity is drawn over (the request's, or the data's robust
+    /// one); `None` for the other modes.
+    pub fn ramp_range(&self) -> Option<ColorRange> {
+        match self {
+            Self::Resident { ramp_range, .. } => *ramp_range,
+            Self::Cut { lod, coloring, .. } => lod.dataset.ramp_range(*coloring),
         }
     }
 
@@ -136,9 +148,9 @@ impl FrameSource {
                 renderer,
                 cut,
                 lod,
-                color_mode,
+                coloring,
             } => {
-                let (frame, report) = cut.render(renderer, &lod.dataset, settings, *color_mode)?;
+                let (frame, report) = cut.render(renderer, &lod.dataset, settings, *coloring)?;
                 Ok(RenderedFrame {
                     frame,
                     points_total: report.counts.points_total,
