@@ -176,6 +176,11 @@ fn draw_ramp(
             HPos::Right => x + 8,
             _ => x,
         };
+        // The ends are the range's own values: shown as given, to two decimals.
+        let decimals = match hpos {
+            HPos::Center => decimals,
+            _ => decimals.max(2),
+        };
         root.draw(&Text::new(
             number(value, decimals),
             (anchor, bottom + 7),
