@@ -399,7 +399,7 @@ fn table(stops: &[[u8; 3]], t: f32) -> [u8; 3] {
 
 /// Turbo (Mikhailov, Google, 2019) by its published polynomial approximation (Ruofei Du).
 fn turbo(t: f32) -> [u8; 3] {
-    const RED: [f32; 6] = [
+    const RED: [f64; 6] = [
         0.135_721_38,
         4.615_392_6,
         -42.660_322_58,
@@ -407,7 +407,7 @@ fn turbo(t: f32) -> [u8; 3] {
         -152.942_393_96,
         59.286_379_43,
     ];
-    const GREEN: [f32; 6] = [
+    const GREEN: [f64; 6] = [
         0.091_402_61,
         2.194_188_39,
         4.842_966_58,
@@ -415,7 +415,7 @@ fn turbo(t: f32) -> [u8; 3] {
         4.277_298_57,
         2.829_566_04,
     ];
-    const BLUE: [f32; 6] = [
+    const BLUE: [f64; 6] = [
         0.106_673_3,
         12.641_946_08,
         -60.582_048_36,
@@ -423,7 +423,8 @@ fn turbo(t: f32) -> [u8; 3] {
         -89.903_109_12,
         27.348_249_73,
     ];
-    let channel = |k: &[f32; 6]| {
+    let t = f64::from(t);
+    let channel = |k: &[f64; 6]| {
         let v = k.iter().rev().fold(0.0, |acc, &c| acc * t + c);
         (v.clamp(0.0, 1.0) * 255.0).round() as u8
     };
@@ -565,7 +566,7 @@ mod tests {
             assert_eq!(shifted_colors[i], colors[i], "point {i}");
         }
         assert_eq!(ramp_range(&cloud, coloring), coloring.range);
-        let robust = ramp_range(&cloud, Coloring::of_mode(ColorMode::Elevation)).unwrap();
+        let robust = ramp_range(&cloud, Coloring::of_mode(ColorMode::Elevation)).expect("a range");
         assert!((robust.min - 102.0).abs() < 0.01 && (robust.max - 197.9).abs() < 0.01);
     }
 
