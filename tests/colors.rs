@@ -229,7 +229,14 @@ fn ranges_and_ramps_are_checked_on_the_command_line() {
     ] {
         assert_fails_saying(&run(more), needle);
     }
-    assert!(!out.exists(), "no frame rendered");
+    // Through a server, the workers choose the robust range: a ramp's legend needs --range.
+    let server = ["--server", "http://127.0.0.1:9", "--color", "elevation"];
+    let legend = dir.path().join("legend.png");
+    assert_fails_saying(
+        &run(&[&server[..], &["--legend", arg(&legend)]].concat()),
+        "needs --range",
+    );
+    assert!(!out.exists() && !legend.exists(), "nothing written");
     assert_ok(&run(&[
         "--color",
         "elevation",
