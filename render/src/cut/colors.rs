@@ -80,12 +80,13 @@ impl DatasetColoring {
     /// The range elevation or intensity is drawn over, in the mode's units (world Z, raw
     /// intensity); `None` for the other modes or with nothing to colour by.
     pub fn ramp_range(&self, coloring: Coloring) -> Option<ColorRange> {
-        let robust = match coloring.mode {
+        let drawn = match coloring.mode {
             ColorMode::Elevation => self.elevation_stretch(coloring)?.in_units(self.origin_z),
             ColorMode::Intensity => coloring.intensity_stretch(self.intensity)?.in_units(0.0),
             _ => return None,
         };
-        Some(coloring.range.unwrap_or(robust))
+        // The request's own numbers where it gave a range, not their round trip through f32.
+        Some(coloring.range.unwrap_or(drawn))
     }
 
     fn elevation_stretch(&self, coloring: Coloring) -> Option<Stretch> {
