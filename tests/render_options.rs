@@ -10,7 +10,7 @@ use pointfarm_daemon::access::Access;
 use pointfarm_daemon::model::JobSpec;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::cloud::PointCloud;
-use pointfarm_render::color::{point_colors, ColorMode};
+use pointfarm_render::color::{point_colors, ColorMode, ColorRamp, ColorRange};
 use pointfarm_render::filter::{ClipBox, CodeSet, IntensityRange};
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::raster::{FillSettings, Quality, Renderer, Shading};
@@ -79,7 +79,30 @@ fn cases(cloud: &PointCloud) -> Vec<(&'static str, RenderRequest)> {
         .into_iter()
         .map(|(name, mode)| (name, with_options(|o| o.color_mode = mode)))
         .collect();
+    let low = bounds.min.z + 0.2 * (bounds.max.z - bounds.min.z);
     cases.extend([
+        (
+            "elevation over a fixed range through a ramp",
+            with_options(|o| {
+                o.color_mode = ColorMode::Elevation;
+                o.color_range = Some(ColorRange {
+                    min: low,
+                    max: bounds.max.z,
+                });
+                o.color_ramp = Some(ColorRamp::Turbo);
+            }),
+        ),
+        (
+            "intensity over a fixed range through a ramp",
+            with_options(|o| {
+                o.color_mode = ColorMode::Intensity;
+                o.color_range = Some(ColorRange {
+                    min: 100.0,
+                    max: 2000.0,
+                });
+                o.color_ramp = Some(ColorRamp::Inferno);
+            }),
+        ),
         ("point size", with_options(|o| o.point_size = 3)),
         (
             "background",
@@ -219,7 +242,7 @@ fn render_here(
 ) -> Vec<RgbaImage> {
     request.validate().expect("a valid request");
     let mut colored = cloud.clone();
-    colored.colors = point_colors(cloud, request.render.color_mode);
+    colored.colors = point_colors(cloud, request.render.coloring());
     request
         .render
         .filter

@@ -3,7 +3,6 @@
 //! backend and a TrueType font from the system (pure Rust; no system libraries).
 
 use std::path::Path;
-use std::sync::OnceLock;
 
 use plotters::prelude::*;
 
@@ -12,14 +11,6 @@ use crate::workloads::CUBOID_PLANES;
 use crate::BenchError;
 
 type Result<T> = std::result::Result<T, BenchError>;
-
-/// Where the label font is looked for, in order.
-const FONT_PATHS: [&str; 4] = [
-    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/TTF/DejaVuSans.ttf",
-    "/usr/share/fonts/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf",
-];
 
 /// One line of a panel: a method and its (x, frame ms) points.
 type Line = (String, Vec<(f64, f64)>);
@@ -159,26 +150,8 @@ pub fn check_font() -> Result<()> {
     register_font()
 }
 
-/// Registers the first font of `FONT_PATHS` found as plotters' "sans-serif", once.
+/// Registers the system font the legends use as plotters' "sans-serif", once.
 fn register_font() -> Result<()> {
-    static REGISTERED: OnceLock<std::result::Result<(), String>> = OnceLock::new();
-    REGISTERED
-        .get_or_init(|| {
-            let (path, bytes) = FONT_PATHS
-                .iter()
-                .find_map(|p| std::fs::read(p).ok().map(|b| (p, b)))
-                .ok_or_else(|| {
-                    format!(
-                        "no font for the plot's labels: looked for {} (Debian: apt-get install \
-                         fonts-dejavu-core)",
-                        FONT_PATHS.join(", ")
-                    )
-                })?;
-            // plotters keeps fonts for the life of the process.
-            let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-            plotters::style::register_font("sans-serif", FontStyle::Normal, bytes)
-                .map_err(|_| format!("{path} is not a usable TrueType font"))
-        })
-        .clone()
+    pointfarm_render::legend::register_font()
         .map_err(|e| BenchError::Plot(format!("writing the benchmark plot: {e}")))
 }

@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use anyhow::Result;
 use pointfarm_render::cloud::WorldBounds;
-use pointfarm_render::color::{point_colors, ColorMode};
+use pointfarm_render::color::{point_colors, ramp_range, ColorRange, Coloring};
 use pointfarm_render::cut::{CutOptions, CutRenderer, CutReport};
 use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
@@ -32,12 +32,13 @@ pub enum FrameSource {
         renderer: Renderer,
         cloud: GpuPointCloud,
         bounds: WorldBounds,
+        ramp_range: Option<ColorRange>,
     },
     Cut {
         renderer: Renderer,
         cut: Box<CutRenderer>,
         lod: Box<StoredLod>,
-        color_mode: ColorMode,
+        coloring: Coloring,
         filter: PointFilter,
         /// What the automatic camera frames: the store's bounds within the filter's box.
         bounds: WorldBounds,
@@ -60,7 +61,9 @@ impl FrameSource {
         let cloud = load_dataset(files);
         spinner.finish_and_clear();
         let mut cloud = cloud?;
-        cloud.colors = point_colors(&cloud, options.color_mode);
+        let coloring = options.coloring();
+        cloud.colors = point_colors(&cloud, coloring);
+        let ramp_range = ramp_range(&cloud, coloring);
         let points = cloud.len();
         say(format!(
             "{points} points in {} file{}, {}, read in {:.0} ms",
@@ -80,6 +83,7 @@ impl FrameSource {
             renderer,
             cloud: resident,
             bounds,
+            ramp_range,
         })
     }
 
@@ -111,7 +115,7 @@ impl FrameSource {
             renderer,
             cut: Box::new(cut),
             lod: Box::new(lod),
-            color_mode: render.color_mode,
+            coloring: render.coloring(),
             filter: render.filter,
             bounds,
         })
@@ -121,6 +125,15 @@ impl FrameSource {
     pub fn bounds(&self) -> WorldBounds {
         match self {
             Self::Resident { bounds, .. } | Self::Cut { bounds, .. } => *bounds,
+        }
+    }
+
+    /// The range elevation or intensity is drawn over (the request's, or the data's robust
+    /// one); `None` for the other modes.
+    pub fn ramp_range(&self) -> Option<ColorRange> {
+        match self {
+            Self::Resident { ramp_range, .. } => *ramp_range,
+            Self::Cut { lod, coloring, .. } => lod.dataset.ramp_range(*coloring),
         }
     }
 
@@ -147,12 +160,12 @@ impl FrameSource {
                 renderer,
                 cut,
                 lod,
-                color_mode,
+                coloring,
                 filter,
                 ..
             } => {
                 let (frame, report) =
-                    cut.render(renderer, &lod.dataset, settings, *color_mode, filter)?;
+                    cut.render(renderer, &lod.dataset, settings, *coloring, filter)?;
                 Ok(RenderedFrame {
                     frame,
                     points_total: report.counts.points_total,

@@ -1,7 +1,7 @@
 //! Parsers for command-line values.
 
 use glam::DVec3;
-use pointfarm_render::color::ColorMode;
+use pointfarm_render::color::{ColorMode, ColorRamp, ColorRange};
 
 /// `1280x720`.
 pub fn size(s: &str) -> Result<(u32, u32), String> {
@@ -84,6 +84,25 @@ pub fn color_mode(s: &str) -> Result<ColorMode, String> {
     }
 }
 
+/// `MIN..MAX`, e.g. `-12.5..340` (checked with the request: finite, MIN below MAX).
+pub fn color_range(s: &str) -> Result<ColorRange, String> {
+    let bad = || format!("'{s}' is not a range like 0..255 or -12.5..340");
+    let (min, max) = s.split_once("..").ok_or_else(bad)?;
+    let number = |v: &str| v.trim().parse::<f64>().map_err(|_| bad());
+    Ok(ColorRange {
+        min: number(min)?,
+        max: number(max)?,
+    })
+}
+
+/// A ramp's name: `viridis`, `inferno`, `turbo` or `grey`.
+pub fn color_ramp(s: &str) -> Result<ColorRamp, String> {
+    ColorRamp::from_name(s).ok_or_else(|| {
+        let names: Vec<&str> = ColorRamp::ALL.iter().map(|r| r.name()).collect();
+        format!("'{s}' is not a ramp ({})", names.join(", "))
+    })
+}
+
 /// A finite positive number.
 pub fn positive(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
@@ -143,6 +162,18 @@ mod tests {
         let background = Rgba([24, 24, 28, 255]);
         assert_eq!(rgba(&background.to_string()), Ok(background));
         assert_eq!(color_mode("Elevation"), Ok(ColorMode::Elevation));
+        let range = |min, max| Ok(ColorRange { min, max });
+        assert_eq!(color_range("-12.5..340"), range(-12.5, 340.0));
+        assert_eq!(color_range("0 .. 65535"), range(0.0, 65535.0));
+        assert_eq!(color_range("-20..-5.25"), range(-20.0, -5.25));
+        assert!(
+            color_range("NaN..1").is_ok_and(|r| r.min.is_nan()),
+            "checked by the request"
+        );
+        assert!(color_range("1-5").is_err());
+        assert!(color_range("a..5").is_err());
+        assert_eq!(color_ramp("Turbo"), Ok(ColorRamp::Turbo));
+        assert!(color_ramp("jet").is_err_and(|e| e.contains("viridis, inferno, turbo, grey")));
         assert_eq!(color_mode("#010203"), Ok(ColorMode::Fixed([1, 2, 3])));
         assert!(color_mode("rainbow").is_err());
         assert!(positive("0").is_err());

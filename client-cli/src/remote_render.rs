@@ -8,11 +8,12 @@ use anyhow::{bail, Context, Result};
 use pointfarm_daemon::model::JobSpec;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::ingest::dataset_files;
+use pointfarm_render::legend::Legend;
 use pointfarm_render::raster::AtomicsMode;
 use pointfarm_render::request::RenderRequest;
 
 use crate::remote::{require_success, timings_line, Client};
-use crate::render::Outputs;
+use crate::render::{write_legend, Outputs};
 use crate::render_args::RenderArgs;
 use crate::render_json::ServerFrameJson;
 
@@ -28,6 +29,14 @@ fn refuse_local_only_options(args: &RenderArgs, request: &RenderRequest) -> Resu
         bail!(
             "{flag} sizes this machine's node caches; a server's workers have their own \
              (`pointfarm worker --memory-budget`); render locally to use it"
+        );
+    }
+    let coloring = request.render.coloring();
+    if args.legend.is_some() && coloring.mode.is_ramped() && coloring.range.is_none() {
+        bail!(
+            "--legend through a server needs --range with --color {}: the server's workers \
+             choose the data's own range; give one, or render locally",
+            coloring.mode.name()
         );
     }
     if args.atomics() != AtomicsMode::Auto {
@@ -65,6 +74,13 @@ pub fn run(
     outputs: &Outputs,
 ) -> Result<()> {
     refuse_local_only_options(args, request)?;
+    if let Some(path) = &outputs.legend {
+        let coloring = request.render.coloring();
+        outln!(
+            "{}",
+            write_legend(path, Legend::of(coloring, coloring.range))?
+        );
+    }
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     // With --json, standard output carries only the frames' objects.
     let say = |line: String| {

@@ -1,7 +1,7 @@
 //! `pointfarm render`: the request the arguments describe, rendered here frame by frame, or
 //! handed to a server (`remote_render`).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
@@ -9,9 +9,11 @@ use glam::DVec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_render::camera::{Camera, Projection};
 use pointfarm_render::cloud::WorldBounds;
+use pointfarm_render::color::ColorMode;
 use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::{dataset_files, dataset_point_count};
+use pointfarm_render::legend::Legend;
 use pointfarm_render::raster::{FrameSettings, Stage, StageTimings};
 use pointfarm_render::request::RenderRequest;
 
@@ -45,6 +47,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let label = args.inputs_label();
     let say_input = |line: String| say(format!("{label}: {line}"));
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
+    let coloring = request.render.coloring();
     let mut source = match args.cut_options(points)? {
         None => FrameSource::resident(Arc::clone(&gpu), &files, &request.render, &say_input)?,
         Some(options) => {
@@ -62,6 +65,12 @@ pub fn run(args: RenderArgs) -> Result<()> {
             )?
         }
     };
+    if let Some(path) = &outputs.legend {
+        say(write_legend(
+            path,
+            Legend::of(coloring, source.ramp_range()),
+        )?);
+    }
     say(format!("adapter: {}", gpu.describe()));
     let bounds = source.bounds();
     let settings = |index: u32| FrameSettings {
@@ -128,6 +137,8 @@ pub fn run(args: RenderArgs) -> Result<()> {
 pub(crate) struct Outputs {
     pub files: FrameFiles,
     pub video: Option<VideoPlan>,
+    /// Where `--legend` goes, checked.
+    pub legend: Option<PathBuf>,
 }
 
 impl Outputs {
@@ -144,8 +155,38 @@ impl Outputs {
             );
         }
         let video = args.video_request().map(VideoRequest::check).transpose()?;
-        Ok(Self { files, video })
+        let legend = args.legend.clone();
+        if let Some(path) = &legend {
+            let mode = request.render.color_mode;
+            if !(mode.is_ramped()
+                || matches!(mode, ColorMode::Classification | ColorMode::ReturnNumber))
+            {
+                bail!(
+                    "--legend shows the colours of elevation, intensity, classification and                      return; --color {} has none to show",
+                    mode.name()
+                );
+            }
+            let png = path
+                .extension()
+                .is_some_and(|e| e.eq_ignore_ascii_case("png"));
+            if !png {
+                bail!("--legend {}: the legend is a .png file", path.display());
+            }
+        }
+        Ok(Self {
+            files,
+            video,
+            legend,
+        })
     }
+}
+
+/// Writes `legend` to `path`; the line that says so.
+pub(crate) fn write_legend(path: &Path, legend: Option<Legend>) -> Result<String> {
+    let legend = legend.context("--legend: the dataset has nothing to colour by in this mode")?;
+    legend.write(path)?;
+    let (width, height) = legend.size();
+    Ok(format!("legend: {} ({width}x{height})", path.display()))
 }
 
 /// A frame's line (or its JSON object with --json), above the progress bar if there is one.

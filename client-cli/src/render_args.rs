@@ -8,7 +8,7 @@ use anyhow::{bail, Result};
 use clap::{Args, ValueEnum};
 use glam::DVec3;
 use pointfarm_render::camera::{AUTO_AZIMUTH_DEG, AUTO_ELEVATION_DEG, DEFAULT_FOV_Y_DEG};
-use pointfarm_render::color::ColorMode;
+use pointfarm_render::color::{ColorMode, ColorRamp, ColorRange};
 use pointfarm_render::cut::{CutOptions, RESIDENT_MAX_POINTS};
 use pointfarm_render::gpu::AdapterChoice;
 use pointfarm_render::raster::{
@@ -127,6 +127,19 @@ pub struct RenderArgs {
     /// elevation, classification, return, or one colour like #ff8000.
     #[arg(long = "color", visible_alias = "colour", default_value = "rgb", value_parser = parse::color_mode)]
     color: ColorMode,
+    /// Elevation and intensity: colour over this fixed range instead of the robust one of the
+    /// data drawn, so tiles and frames rendered apart match: world Z in the file's units, or
+    /// raw intensity, e.g. --range -12.5..340.
+    #[arg(long, value_name = "MIN..MAX", value_parser = parse::color_range, allow_hyphen_values = true)]
+    range: Option<ColorRange>,
+    /// Elevation and intensity: the colour ramp, viridis, inferno, turbo or grey [default:
+    /// viridis for elevation, grey for intensity].
+    #[arg(long, value_name = "RAMP", value_parser = parse::color_ramp)]
+    ramp: Option<ColorRamp>,
+    /// Also write the legend of the colours as a PNG: the ramp with its range's numbers
+    /// (elevation, intensity), or the swatches and names of the classes or returns.
+    #[arg(long, value_name = "FILE.png")]
+    pub(crate) legend: Option<PathBuf>,
     /// basic: the nearest point's colour; high: the average colour of the points near the
     /// front surface (less aliasing, smoother turntables; about two passes more).
     #[arg(long, value_enum, default_value = "basic")]
@@ -310,6 +323,8 @@ impl RenderArgs {
                     },
                 },
                 color_mode: self.color,
+                color_range: self.range,
+                color_ramp: self.ramp,
                 background: self.background.0,
                 // --fill, or --fill-kernel alone.
                 fill: (self.fill || self.fill_kernel.is_some()).then(|| FillSettings {

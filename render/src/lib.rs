@@ -14,6 +14,7 @@ pub mod encode;
 pub mod filter;
 pub mod gpu;
 pub mod ingest;
+pub mod legend;
 pub mod lod;
 pub mod raster;
 pub mod reference;

@@ -653,4 +653,44 @@ mod tests {
             assert_eq!(JobSpec::try_from(&resubmitted).expect("valid"), spec);
         }
     }
+
+    #[test]
+    fn colour_ranges_and_ramps_convert_both_ways() {
+        use pointfarm_render::color::{ColorMode, ColorRamp, ColorRange};
+        let mut r = valid();
+        r.render = Some(pb::RenderOptions {
+            color_mode: pb::ColorMode::Elevation as i32,
+            color_range: Some(pb::ColorRange {
+                min: -12.5,
+                max: 340.0,
+            }),
+            color_ramp: pb::ColorRamp::Inferno as i32,
+            ..Default::default()
+        });
+        let spec = JobSpec::try_from(&r).expect("valid");
+        let render = &spec.request.render;
+        assert_eq!(render.color_mode, ColorMode::Elevation);
+        assert_eq!(
+            render.color_range,
+            Some(ColorRange {
+                min: -12.5,
+                max: 340.0
+            })
+        );
+        assert_eq!(render.color_ramp, Some(ColorRamp::Inferno));
+        let resubmitted = pb::SubmitJobRequest::from(&spec);
+        assert_eq!(JobSpec::try_from(&resubmitted).expect("valid"), spec);
+        // Absent: the robust range and the mode's default ramp.
+        r.render = Some(pb::RenderOptions {
+            color_mode: pb::ColorMode::Intensity as i32,
+            ..Default::default()
+        });
+        let spec = JobSpec::try_from(&r).expect("valid");
+        assert_eq!(spec.request.render.color_range, None);
+        assert_eq!(spec.request.render.color_ramp, None);
+        if let Some(render) = r.render.as_mut() {
+            render.color_range = Some(pb::ColorRange { min: 5.0, max: 1.0 });
+        }
+        assert_eq!(field_of(&r), "render.color_range");
+    }
 }

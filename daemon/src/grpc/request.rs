@@ -5,7 +5,7 @@
 //! sides are other crates' types; `JobSpec`'s conversions build on them.
 
 use pointfarm_proto::v1 as pb;
-use pointfarm_render::color::ColorMode;
+use pointfarm_render::color::{ColorMode, ColorRamp, ColorRange};
 use pointfarm_render::filter::{ClipBox, CodeSet, IntensityRange, PointFilter};
 use pointfarm_render::raster::{FillSettings, Quality, Shading, DEFAULT_DEPTH_BAND};
 use pointfarm_render::request::{
@@ -172,6 +172,13 @@ fn render_options(message: Option<&pb::RenderOptions>) -> Result<RenderOptions, 
             ColorMode::Fixed([r, g, b])
         }
     };
+    let color_ramp = match known_enum("render.color_ramp", o.color_ramp)? {
+        pb::ColorRamp::Unspecified => None,
+        pb::ColorRamp::Viridis => Some(ColorRamp::Viridis),
+        pb::ColorRamp::Inferno => Some(ColorRamp::Inferno),
+        pb::ColorRamp::Turbo => Some(ColorRamp::Turbo),
+        pb::ColorRamp::Grey => Some(ColorRamp::Grey),
+    };
     Ok(RenderOptions {
         point_size: if o.point_size == 0 {
             default.point_size
@@ -181,6 +188,11 @@ fn render_options(message: Option<&pb::RenderOptions>) -> Result<RenderOptions, 
         quality,
         shading,
         color_mode,
+        color_range: o.color_range.as_ref().map(|r| ColorRange {
+            min: r.min,
+            max: r.max,
+        }),
+        color_ramp,
         background: o.background.as_ref().map_or(default.background, rgba),
         fill: o.fill.as_ref().map(|f| FillSettings {
             kernel: if f.kernel == 0 {
@@ -369,6 +381,8 @@ pub fn render_options_message(options: &RenderOptions) -> pb::RenderOptions {
         quality,
         shading,
         color_mode,
+        color_range,
+        color_ramp,
         background,
         fill,
         supersample,
@@ -380,6 +394,14 @@ pub fn render_options_message(options: &RenderOptions) -> pb::RenderOptions {
         point_size,
         lod_error,
         filter: point_filter_message(&filter),
+        color_range: color_range.map(|ColorRange { min, max }| pb::ColorRange { min, max }),
+        color_ramp: match color_ramp {
+            None => pb::ColorRamp::Unspecified,
+            Some(ColorRamp::Viridis) => pb::ColorRamp::Viridis,
+            Some(ColorRamp::Inferno) => pb::ColorRamp::Inferno,
+            Some(ColorRamp::Turbo) => pb::ColorRamp::Turbo,
+            Some(ColorRamp::Grey) => pb::ColorRamp::Grey,
+        } as i32,
         background: Some(color(background)),
         fill: fill.map(|FillSettings { kernel }| pb::FillOptions { kernel }),
         supersample: Some(supersample),

@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use pointfarm_render::cache::{CacheOutcome, DatasetCache};
 use pointfarm_render::cloud::WorldBounds;
-use pointfarm_render::color::{point_colors, ColorMode};
+use pointfarm_render::color::{point_colors, Coloring};
 use pointfarm_render::cut::{
     CutError, CutOptions, CutRenderer, LodDataset, StoredLod, RESIDENT_MAX_POINTS,
 };
@@ -27,7 +27,7 @@ use crate::worker::failure::FrameFailure;
 /// The cloud currently on the GPU.
 struct Resident {
     sha256: String,
-    color_mode: ColorMode,
+    coloring: Coloring,
     filter: PointFilter,
     bounds: WorldBounds,
     cloud: GpuPointCloud,
@@ -158,7 +158,7 @@ impl WorkerRenderState {
         match &self.loaded {
             Some(Loaded::Resident(r)) => {
                 r.sha256 == task.dataset.sha256
-                    && r.color_mode == task.request.render.color_mode
+                    && r.coloring == task.request.render.coloring()
                     && r.filter == task.request.render.filter
                     && self.lod_error(task, None).is_none()
             }
@@ -248,11 +248,11 @@ impl WorkerRenderState {
                     .framing_bounds(&dataset.bounds())
                     .map_err(|e| FrameFailure::permanent(e.to_string()))?;
                 let settings = task.request.frame_settings(task.lease.index, &bounds);
-                let color_mode = task.request.render.color_mode;
+                let coloring = task.request.render.coloring();
                 let rendered =
                     stored
                         .cut
-                        .render(&mut self.renderer, dataset, &settings, color_mode, filter);
+                        .render(&mut self.renderer, dataset, &settings, coloring, filter);
                 let (frame, report) = match rendered {
                     Ok(done) => done,
                     Err(error) => {
@@ -436,7 +436,7 @@ impl WorkerRenderState {
         let (mut cloud, outcome) = loaded.map_err(in_dataset)?;
         let load_ms = started.elapsed().as_secs_f64() * 1e3;
         let render = &task.request.render;
-        cloud.colors = point_colors(&cloud, render.color_mode);
+        cloud.colors = point_colors(&cloud, render.coloring());
         let points = cloud.len();
         let kept = render
             .filter
@@ -452,7 +452,7 @@ impl WorkerRenderState {
         tracing::info!(dataset = %dataset.id, points = cloud.len(), load_ms, ?outcome, "cloud resident");
         Ok(Resident {
             sha256: dataset.sha256.clone(),
-            color_mode: render.color_mode,
+            coloring: render.coloring(),
             filter: render.filter,
             bounds: cloud.bounds,
             cloud: gpu_cloud,

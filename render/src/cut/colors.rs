@@ -4,12 +4,13 @@
 //! match: the RGB decision (8-bit values in 16-bit fields, or 16-bit) and the intensity
 //! percentiles come from the statistics of every point gathered while the store was built;
 //! the elevation percentiles from the coarsest nodes, a spatially even sample of the dataset.
+//! A request's fixed range replaces the percentiles, as it does for a resident cloud.
 
 use glam::DVec3;
 
 use crate::cloud::{pack_rgba8, ColorSource};
 use crate::color::{
-    ColorMode, ElevationRange, IntensityRange, Palette, PaletteAttributes, CONSTANT_GREY_RGBA,
+    ColorMode, ColorRange, Coloring, Palette, PaletteAttributes, Stretch, CONSTANT_GREY_RGBA,
 };
 use crate::lod::{DatasetStats, NodePoints};
 
@@ -22,15 +23,17 @@ pub struct DatasetColoring {
     /// Whether the RGB fields hold 8-bit values (no channel above 255); `None` without RGB,
     /// or with RGB that says nothing ([`ColorSource::of_rgb_range`]).
     rgb_is_8_bit: Option<bool>,
-    intensity: Option<IntensityRange>,
+    intensity: Option<Stretch>,
     /// Heights relative to the rendering origin.
-    elevation: Option<ElevationRange>,
+    elevation: Option<Stretch>,
+    /// The rendering origin's height, which the heights are relative to.
+    origin_z: f64,
 }
 
 impl DatasetColoring {
-    /// From the store's statistics and the heights (relative to the origin) of a sample.
-    pub fn new(stats: &DatasetStats, mut sample_heights: Vec<f32>) -> Self {
-        let intensity = IntensityRange::from_histogram(&stats.intensity_histogram);
+    /// From the store's statistics and the heights (relative to `origin_z`) of a sample.
+    pub fn new(stats: &DatasetStats, mut sample_heights: Vec<f32>, origin_z: f64) -> Self {
+        let intensity = Stretch::intensity_percentiles(&stats.intensity_histogram);
         Self {
             rgb_is_8_bit: stats
                 .has_rgb
@@ -40,18 +43,20 @@ impl DatasetColoring {
                 .flatten()
                 .map(|source| source == ColorSource::Rgb8In16Bit),
             intensity,
-            elevation: ElevationRange::of(&mut sample_heights),
+            elevation: Stretch::percentiles(&mut sample_heights),
+            origin_z,
         }
     }
 
-    /// The colours of `node`'s points (RGBA8), its positions relative to `origin` given.
-    pub fn colors(&self, node: &NodePoints, heights: &[f32], mode: ColorMode) -> Vec<u32> {
+    /// The colours of `node`'s points (RGBA8), their heights relative to the origin given.
+    pub fn colors(&self, node: &NodePoints, heights: &[f32], coloring: Coloring) -> Vec<u32> {
         let n = node.len();
         let points = PaletteAttributes {
             classification: &node.classification,
             return_number: &node.return_number,
         };
-        match mode {
+        let ramp = coloring.ramp();
+        match coloring.mode {
             ColorMode::Rgb => match (&node.rgb, self.rgb_is_8_bit) {
                 (Some(rgb), Some(eight_bit)) => {
                     let shift = if eight_bit { 0 } else { 8 };
@@ -62,11 +67,11 @@ impl DatasetColoring {
                         })
                         .collect()
                 }
-                _ => self.intensity_colors(node),
+                _ => self.intensity_colors(node, Coloring::of_mode(ColorMode::Intensity)),
             },
-            ColorMode::Intensity => self.intensity_colors(node),
-            ColorMode::Elevation => match self.elevation {
-                Some(range) => heights.iter().map(|&z| range.color(z)).collect(),
+            ColorMode::Intensity => self.intensity_colors(node, coloring),
+            ColorMode::Elevation => match self.elevation_stretch(coloring) {
+                Some(stretch) => heights.iter().map(|&z| ramp.packed(stretch.t(z))).collect(),
                 None => vec![CONSTANT_GREY_RGBA; n],
             },
             ColorMode::Classification => Palette::Classification.colors(points),
@@ -75,9 +80,30 @@ impl DatasetColoring {
         }
     }
 
-    fn intensity_colors(&self, node: &NodePoints) -> Vec<u32> {
-        match self.intensity {
-            Some(range) => node.intensity.iter().map(|&i| range.grey(i)).collect(),
+    /// The range elevation or intensity is drawn over, in the mode's units (world Z, raw
+    /// intensity); `None` for the other modes or with nothing to colour by.
+    pub fn ramp_range(&self, coloring: Coloring) -> Option<ColorRange> {
+        let drawn = match coloring.mode {
+            ColorMode::Elevation => self.elevation_stretch(coloring)?.in_units(self.origin_z),
+            ColorMode::Intensity => coloring.intensity_stretch(self.intensity)?.in_units(0.0),
+            _ => return None,
+        };
+        // The request's own numbers where it gave a range, not their round trip through f32.
+        Some(coloring.range.unwrap_or(drawn))
+    }
+
+    fn elevation_stretch(&self, coloring: Coloring) -> Option<Stretch> {
+        coloring.elevation_stretch(self.origin_z, || self.elevation)
+    }
+
+    fn intensity_colors(&self, node: &NodePoints, coloring: Coloring) -> Vec<u32> {
+        let ramp = coloring.ramp();
+        match coloring.intensity_stretch(self.intensity) {
+            Some(stretch) => node
+                .intensity
+                .iter()
+                .map(|&i| ramp.packed(stretch.t(f32::from(i))))
+                .collect(),
             None => vec![CONSTANT_GREY_RGBA; node.len()],
         }
     }

@@ -14,7 +14,7 @@
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 
-use crate::color::ColorMode;
+use crate::color::Coloring;
 use crate::filter::PointFilter;
 use crate::gpu::GpuContext;
 use crate::lod::NodeKey;
@@ -59,7 +59,7 @@ pub struct GpuNodeCache {
     by_use: BTreeMap<u64, NodeKey>,
     tick: u64,
     /// How the resident nodes were prepared: their colours and the points they kept.
-    prepared_for: Option<(ColorMode, PointFilter)>,
+    prepared_for: Option<(Coloring, PointFilter)>,
     /// Bytes written since the uploads were last submitted.
     unsubmitted_bytes: u64,
 }
@@ -111,8 +111,8 @@ impl GpuNodeCache {
     }
 
     /// Empties the cache when its nodes were not prepared with these colours and this filter.
-    pub fn prepare_for(&mut self, color_mode: ColorMode, filter: PointFilter) {
-        let wanted = Some((color_mode, filter));
+    pub fn prepare_for(&mut self, coloring: Coloring, filter: PointFilter) {
+        let wanted = Some((coloring, filter));
         if self.prepared_for != wanted {
             let keys: Vec<NodeKey> = self.resident.keys().copied().collect();
             for key in keys {

@@ -41,7 +41,7 @@ use rayon::prelude::*;
 use thiserror::Error;
 
 use crate::cloud::WorldBounds;
-use crate::color::ColorMode;
+use crate::color::Coloring;
 use crate::filter::PointFilter;
 use crate::lod::{read_nodes, LodError, LodHierarchy, LodStore, NodeKey, NodePoints, NodeRecords};
 use crate::raster::morton::morton_order;
@@ -144,7 +144,7 @@ impl LodDataset {
                 heights.extend(colors::node_heights(&points, origin));
             }
         }
-        let coloring = DatasetColoring::new(&hierarchy.stats, heights);
+        let coloring = DatasetColoring::new(&hierarchy.stats, heights, origin.z);
         Ok(Self {
             records,
             hierarchy: Arc::new(hierarchy),
@@ -169,6 +169,12 @@ impl LodDataset {
 
     pub fn bounds(&self) -> WorldBounds {
         self.bounds
+    }
+
+    /// The range elevation or intensity is drawn over in `coloring`, in the mode's units
+    /// (world Z, raw intensity): what a legend shows.
+    pub fn ramp_range(&self, coloring: Coloring) -> Option<crate::color::ColorRange> {
+        self.coloring.ramp_range(coloring)
     }
 
     pub fn point_count(&self) -> u64 {
@@ -279,9 +285,10 @@ impl CutRenderer {
         renderer: &mut Renderer,
         dataset: &LodDataset,
         settings: &FrameSettings,
-        color_mode: ColorMode,
+        coloring: impl Into<Coloring>,
         filter: &PointFilter,
     ) -> Result<(Frame, CutReport), CutError> {
+        let coloring = coloring.into();
         renderer.validate(settings)?;
         let started = Instant::now();
         let cut = self.cut(dataset, settings, filter);
@@ -302,7 +309,7 @@ impl CutRenderer {
         report.counts.read_ahead_bytes = std::mem::take(&mut self.read_ahead_bytes);
         report.wait_ms = ms_since(started);
 
-        self.gpu_cache.prepare_for(color_mode, *filter);
+        self.gpu_cache.prepare_for(coloring, *filter);
         let keys: Vec<NodeKey> = cut.nodes.iter().map(|n| n.key).collect();
         let keep: HashSet<NodeKey> = keys.iter().copied().collect();
         let missing: Vec<&CutNode> = cut
@@ -320,7 +327,7 @@ impl CutRenderer {
             let started = Instant::now();
             let prepared: Vec<ChunkData> = nodes
                 .par_iter()
-                .map(|node| prepare(dataset, node, color_mode, filter))
+                .map(|node| prepare(dataset, node, coloring, filter))
                 .collect();
             report.prepare_ms += ms_since(started);
 
@@ -472,12 +479,12 @@ impl CutRenderer {
 fn prepare(
     dataset: &LodDataset,
     node: &NodePoints,
-    color_mode: ColorMode,
+    coloring: Coloring,
     filter: &PointFilter,
 ) -> ChunkData {
     let mut positions = node.positions_relative_to(dataset.origin);
     let heights: Vec<f32> = positions.iter().map(|p| p.z).collect();
-    let mut colors = dataset.coloring.colors(node, &heights, color_mode);
+    let mut colors = dataset.coloring.colors(node, &heights, coloring);
     if let Some(kept) = filter.node_points(node) {
         positions = kept.iter().map(|&i| positions[i as usize]).collect();
         colors = kept.iter().map(|&i| colors[i as usize]).collect();

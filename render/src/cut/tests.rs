@@ -6,6 +6,7 @@ use std::path::Path;
 use super::*;
 use crate::camera::{Camera, Projection};
 use crate::cloud::PointCloud;
+use crate::color::ColorMode;
 use crate::ingest::{load_point_cloud, write_las, DatasetSource, LasWriteOptions};
 use crate::lod::{build_lod, LodBuildOptions, PointSource};
 use crate::raster::{FillSettings, Quality, Shading};
@@ -88,7 +89,7 @@ fn resident_image(
     mode: ColorMode,
 ) -> image::RgbaImage {
     let mut cloud = fixture.cloud.clone();
-    cloud.colors = crate::color::point_colors(&cloud, mode);
+    cloud.colors = crate::color::point_colors(&cloud, mode.into());
     let mut renderer = Renderer::new(gpu());
     let resident = renderer.upload(&cloud).expect("upload");
     renderer.render(&resident, settings).expect("render").image

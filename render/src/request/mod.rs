@@ -55,6 +55,8 @@ impl RenderRequest {
             quality,
             shading,
             color_mode: _, // applied to the cloud's colours before upload
+            color_range: _,
+            color_ramp: _,
             background,
             fill,
             supersample,

@@ -4,7 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::color::ColorMode;
+use crate::color::{ColorMode, ColorRamp, ColorRange, Coloring};
 use crate::filter::PointFilter;
 use crate::raster::{FillSettings, Quality, Shading, DEFAULT_BACKGROUND, DEFAULT_POINT_SIZE};
 
@@ -22,6 +22,13 @@ pub struct RenderOptions {
     pub quality: Quality,
     pub shading: Shading,
     pub color_mode: ColorMode,
+    /// Elevation and intensity: the values the ramp spans (world Z in the file's units, raw
+    /// intensity); `None`: the robust range of the dataset drawn.
+    #[serde(default)]
+    pub color_range: Option<ColorRange>,
+    /// Elevation and intensity: the ramp; `None`: viridis for elevation, grey for intensity.
+    #[serde(default)]
+    pub color_ramp: Option<ColorRamp>,
     /// RGBA written where no point landed.
     pub background: [u8; 4],
     /// Visibility and hole filling; `None` turns both off.
@@ -54,12 +61,25 @@ impl Default for RenderOptions {
             quality: Quality::Basic,
             shading: Shading::None,
             color_mode: ColorMode::Rgb,
+            color_range: None,
+            color_ramp: None,
             background: DEFAULT_BACKGROUND,
             fill: None,
             supersample: DEFAULT_SUPERSAMPLE,
             depth: false,
             lod_error: None,
             filter: PointFilter::default(),
+        }
+    }
+}
+
+impl RenderOptions {
+    /// How the points are coloured.
+    pub fn coloring(&self) -> Coloring {
+        Coloring {
+            mode: self.color_mode,
+            range: self.color_range,
+            ramp: self.color_ramp,
         }
     }
 }

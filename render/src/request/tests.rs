@@ -192,6 +192,11 @@ fn frame_settings_carry_every_option() {
             radius: 1.0,
         },
         color_mode: crate::color::ColorMode::Elevation,
+        color_range: Some(crate::color::ColorRange {
+            min: -12.5,
+            max: 340.0,
+        }),
+        color_ramp: Some(crate::color::ColorRamp::Turbo),
         background: [1, 2, 3, 4],
         fill: Some(FillSettings { kernel: 5 }),
         supersample: 2,
@@ -428,4 +433,52 @@ fn options_stored_before_supersampling_and_lenses_read_with_the_defaults() {
     let round_trip: RenderRequest =
         serde_json::from_str(&serde_json::to_string(&r).expect("encodes")).expect("decodes");
     assert_eq!(round_trip, r);
+}
+
+#[test]
+fn a_colour_range_is_finite_ordered_and_only_for_ramped_modes() {
+    use crate::color::{ColorMode, ColorRamp, ColorRange};
+    let mut valid = request(CameraPath::Still(StillCamera::default()));
+    valid.render.color_mode = ColorMode::Elevation;
+    valid.render.color_range = Some(ColorRange {
+        min: -12.5,
+        max: 340.0,
+    });
+    valid.render.color_ramp = Some(ColorRamp::Inferno);
+    assert_eq!(valid.validate(), Ok(()));
+    let range = |min, max| {
+        move |r: &mut RenderRequest| r.render.color_range = Some(ColorRange { min, max })
+    };
+    for (min, max) in [
+        (f64::NAN, 1.0),
+        (0.0, f64::INFINITY),
+        (5.0, 5.0),
+        (6.0, 5.0),
+    ] {
+        let mut r = valid.clone();
+        range(min, max)(&mut r);
+        assert_eq!(field_of(&r), "render.color_range", "{min}..{max}");
+    }
+    assert!(with_message(&valid, range(f64::NAN, 1.0)).contains("finite"));
+    assert!(with_message(&valid, range(6.0, 5.0)).contains("below"));
+    for mode in [
+        ColorMode::Rgb,
+        ColorMode::Classification,
+        ColorMode::ReturnNumber,
+        ColorMode::Fixed([1, 2, 3]),
+    ] {
+        let message = with_message(&valid, |r| r.render.color_mode = mode);
+        assert!(
+            message.starts_with("render.color_range:") && message.contains(mode.name()),
+            "{message}"
+        );
+        let message = with_message(&valid, |r| {
+            r.render.color_mode = mode;
+            r.render.color_range = None;
+        });
+        assert!(message.starts_with("render.color_ramp:"), "{message}");
+    }
+    let mut intensity = valid.clone();
+    intensity.render.color_mode = ColorMode::Intensity;
+    assert_eq!(intensity.validate(), Ok(()));
 }

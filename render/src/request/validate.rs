@@ -10,6 +10,7 @@ use super::camera_path::{
     MIN_KEYFRAMES, TURNTABLE_DEGREES_RANGE, TURNTABLE_ELEVATION_RANGE, VIEW_ELEVATION_RANGE,
 };
 use super::{RenderOptions, RenderRequest};
+use crate::color::ColorRange;
 use crate::cut::MAX_LOD_ERROR_PX;
 use crate::filter::{IntensityRange, PointFilter, MAX_RETURN_NUMBER};
 use crate::raster::{
@@ -311,9 +312,47 @@ impl Lens {
 }
 
 impl RenderOptions {
+    /// A colour range (finite, min below max) and ramp only with a mode drawn through them.
+    fn validate_color_ramp(&self) -> Checked {
+        let mode = self.color_mode;
+        let applies = |field: &str| {
+            if mode.is_ramped() {
+                Ok(())
+            } else {
+                Err(invalid(
+                    field,
+                    format!(
+                        "applies only to the elevation and intensity colour modes, not {}",
+                        mode.name()
+                    ),
+                ))
+            }
+        };
+        if let Some(ColorRange { min, max }) = self.color_range {
+            applies("render.color_range")?;
+            if !(min.is_finite() && max.is_finite()) {
+                return Err(invalid(
+                    "render.color_range",
+                    format!("colour range {min}..{max} is invalid: both ends must be finite"),
+                ));
+            }
+            if min >= max {
+                return Err(invalid(
+                    "render.color_range",
+                    format!("colour range {min}..{max} is invalid: min must be below max"),
+                ));
+            }
+        }
+        if self.color_ramp.is_some() {
+            applies("render.color_ramp")?;
+        }
+        Ok(())
+    }
+
     fn validate(&self) -> Checked {
         let point_size = (self.point_size, 1..=MAX_POINT_SIZE);
         counted("render.point_size", "point size", point_size, " pixels")?;
+        self.validate_color_ramp()?;
         if let Quality::High { depth_band } = self.quality {
             within(
                 "render.depth_band",
