@@ -31,6 +31,14 @@ else
     echo "pointfarm tests: no Python virtualenv with grpcio; the Python client test will skip" >&2
 fi
 
+# A font for the legends' and the benchmark plots' labels.
+if [ ! -f /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf ] && command -v apt-get >/dev/null; then
+    sudo=""
+    if [ "$(id -u)" -ne 0 ]; then sudo="sudo"; fi
+    $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends fonts-dejavu-core >/dev/null ||
+        echo "pointfarm tests: fonts-dejavu-core could not be installed; legend tests will fail" >&2
+fi
+
 # Lints, where the toolchain has them (rustup's default profile does).
 if cargo fmt --version >/dev/null 2>&1; then
     cargo fmt --all -- --check
