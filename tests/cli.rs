@@ -4,7 +4,7 @@ use std::path::Path;
 use std::process::Output;
 
 use pointfarm_tests::{
-    assert_fails_saying, assert_ok, json_names, own_stderr_lines, pointfarm,
+    assert_fails_saying, assert_ok, json_lines, json_names, own_stderr_lines, pointfarm,
     run_into_a_closed_pipe, shared_data, stdout, ServeProcess, WorkerProcess,
 };
 
@@ -331,10 +331,7 @@ fn remote_render_uploads_submits_follows_and_downloads() {
         "--json",
     ]);
     assert_ok(&output);
-    let lines: Vec<serde_json::Value> = stdout(&output)
-        .lines()
-        .map(|line| serde_json::from_str(line).expect("each line is one JSON object"))
-        .collect();
+    let lines = json_lines(&output);
     let [frame] = lines.as_slice() else {
         panic!("one object for one frame:\n{}", stdout(&output));
     };
@@ -740,10 +737,7 @@ fn render_json_reports_every_frame_and_its_points() {
         "--json",
     ]);
     assert_ok(&output);
-    let lines: Vec<serde_json::Value> = stdout(&output)
-        .lines()
-        .map(|line| serde_json::from_str(line).expect("each line is one JSON object"))
-        .collect();
+    let lines = json_lines(&output);
     assert_eq!(lines.len(), 3, "one object per frame");
     for (i, frame) in lines.iter().enumerate() {
         assert_eq!(frame["frame"], i);

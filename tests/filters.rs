@@ -5,12 +5,11 @@
 use std::path::Path;
 
 use pointfarm_daemon::access::Access;
-use pointfarm_daemon::model::JobSpec;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::filter::{ClipBox, PointFilter};
 use pointfarm_render::ingest::load_point_cloud;
 use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, StillCamera};
-use pointfarm_tests::service::{scan, upload, watch_to_end, write_sample, TestDaemon};
+use pointfarm_tests::service::{run_job, scan, upload, write_sample, TestDaemon};
 use pointfarm_tests::{assert_fails_saying, assert_ok, pointfarm, stdout};
 
 fn arg(path: &Path) -> String {
@@ -181,18 +180,7 @@ async fn a_job_whose_clip_box_misses_the_dataset_fails_saying_so_and_the_next_on
         }),
     ];
     for (name, request) in outcomes {
-        let spec = JobSpec {
-            request_id: name.into(),
-            dataset_id: dataset.id.clone(),
-            request,
-            priority: 0,
-        };
-        let job = jobs
-            .submit_job(pb::SubmitJobRequest::from(&spec))
-            .await
-            .expect("submitted")
-            .into_inner();
-        let (finished, _) = watch_to_end(&mut jobs, &job.id).await;
+        let finished = run_job(&mut jobs, &dataset.id, name, request).await;
         if name == "outside" {
             assert_eq!(finished.state, pb::JobState::Failed as i32);
             assert!(

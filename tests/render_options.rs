@@ -7,7 +7,6 @@
 
 use image::RgbaImage;
 use pointfarm_daemon::access::Access;
-use pointfarm_daemon::model::JobSpec;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::cloud::PointCloud;
 use pointfarm_render::color::{point_colors, ColorMode, ColorRamp, ColorRange};
@@ -19,7 +18,7 @@ use pointfarm_render::request::{
     Turntable, DEFAULT_UP,
 };
 use pointfarm_render::sample::sample_scene;
-use pointfarm_tests::service::{fetch_images, gpu, upload, watch_to_end, write_sample, TestDaemon};
+use pointfarm_tests::service::{fetch_images, gpu, run_job, upload, write_sample, TestDaemon};
 
 const WIDTH: u32 = 64;
 const HEIGHT: u32 = 48;
@@ -281,25 +280,14 @@ async fn every_option_renders_the_same_here_and_through_the_service() {
             here.iter().all(|image| *image != plain),
             "{name}: the option does not change the picture"
         );
-        let spec = JobSpec {
-            request_id: name.into(),
-            dataset_id: dataset.id.clone(),
-            request,
-            priority: 0,
-        };
-        let job = jobs
-            .submit_job(pb::SubmitJobRequest::from(&spec))
-            .await
-            .unwrap_or_else(|e| panic!("{name}: {e}"))
-            .into_inner();
-        let (finished, _) = watch_to_end(&mut jobs, &job.id).await;
+        let finished = run_job(&mut jobs, &dataset.id, name, request).await;
         assert_eq!(
             finished.state,
             pb::JobState::Succeeded as i32,
             "{name}: {}",
             finished.error
         );
-        let there = fetch_images(&mut jobs, &job.id, 0).await;
+        let there = fetch_images(&mut jobs, &finished.id, 0).await;
         assert_eq!(there.len(), here.len(), "{name}: frames");
         for ((index, image), local) in there.iter().zip(&here) {
             assert!(

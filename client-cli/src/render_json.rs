@@ -8,7 +8,7 @@ use std::path::Path;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::camera::{Camera, Projection};
 use pointfarm_render::cloud::WorldBounds;
-use pointfarm_render::cut::{CutCounts, CutReport};
+use pointfarm_render::cut::CutReport;
 use pointfarm_render::raster::FrameSettings;
 use serde::Serialize;
 
@@ -31,7 +31,7 @@ pub struct FrameJson {
     pub camera: CameraJson,
     pub bounds: BoundsJson,
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub cut: Option<CutJson>,
+    pub cut: Option<serde_json::Value>,
 }
 
 impl FrameJson {
@@ -61,7 +61,7 @@ impl FrameJson {
                 min: bounds.min.to_array(),
                 max: bounds.max.to_array(),
             },
-            cut: rendered.cut.as_ref().map(CutJson::of),
+            cut: rendered.cut.as_ref().map(cut_json),
         }
     }
 }
@@ -133,74 +133,32 @@ impl CameraJson {
     }
 }
 
-/// What a frame's cut drew and loaded (the render crate's `CutReport`).
-#[derive(Serialize)]
-#[serde(rename_all = "camelCase")]
-pub struct CutJson {
-    pub nodes: u64,
-    pub points_rendered: u64,
-    pub points_total: u64,
-    pub limited_by_budget: bool,
-    pub gpu_hits: u64,
-    pub gpu_uploaded: u64,
-    pub gpu_evicted: u64,
-    pub host_hits: u64,
-    pub nodes_read: u64,
-    pub bytes_read: u64,
-    pub read_ahead_bytes: u64,
-    pub host_cache_bytes: u64,
-    pub gpu_cache_bytes: u64,
-    pub select_ms: f64,
-    pub wait_ms: f64,
-    pub load_ms: f64,
-    pub prepare_ms: f64,
+/// What a frame's cut drew and loaded: the render crate's `CutReport` as it encodes itself,
+/// every field, with its keys in lowerCamelCase.
+pub fn cut_json(report: &CutReport) -> serde_json::Value {
+    camel_case_keys(serde_json::to_value(report).unwrap_or_default())
 }
 
-impl CutJson {
-    pub fn of(report: &CutReport) -> Self {
-        // Taken apart without `..`, so that a field added to the report is not left out here.
-        let CutReport {
-            counts:
-                CutCounts {
-                    nodes,
-                    points_rendered,
-                    points_total,
-                    limited_by_budget,
-                    gpu_hits,
-                    gpu_uploaded,
-                    gpu_evicted,
-                    host_hits,
-                    nodes_read,
-                    bytes_read,
-                    read_ahead_bytes,
-                },
-            host_cache_bytes,
-            gpu_cache_bytes,
-            select_ms,
-            wait_ms,
-            load_ms,
-            prepare_ms,
-        } = *report;
-        Self {
-            nodes,
-            points_rendered,
-            points_total,
-            limited_by_budget,
-            gpu_hits,
-            gpu_uploaded,
-            gpu_evicted,
-            host_hits,
-            nodes_read,
-            bytes_read,
-            read_ahead_bytes,
-            host_cache_bytes,
-            gpu_cache_bytes,
-            select_ms,
-            wait_ms,
-            load_ms,
-            prepare_ms,
-        }
+fn camel_case_keys(value: serde_json::Value) -> serde_json::Value {
+    match value {
+        serde_json::Value::Object(fields) => fields
+            .into_iter()
+            .map(|(key, value)| (lower_camel_case(&key), camel_case_keys(value)))
+            .collect(),
+        other => other,
     }
+}
+
+/// `points_rendered` as `pointsRendered`.
+fn lower_camel_case(snake: &str) -> String {
+    let mut words = snake.split('_');
+    let first = words.next().unwrap_or_default().to_string();
+    words.fold(first, |mut name, word| {
+        let mut letters = word.chars();
+        name.extend(letters.next().map(|c| c.to_ascii_uppercase()));
+        name.push_str(letters.as_str());
+        name
+    })
 }
 
 #[cfg(test)]
@@ -221,7 +179,7 @@ mod tests {
         };
         let json = serde_json::to_value(CameraJson::of(&camera)).expect("encodes");
         assert_eq!(json["projection"]["perspective"]["fovYDeg"], 45.0, "{json}");
-        let cut = serde_json::to_value(CutJson::of(&CutReport::default())).expect("encodes");
+        let cut = cut_json(&CutReport::default());
         for key in [
             "pointsRendered",
             "limitedByBudget",

@@ -74,6 +74,14 @@ pub fn stdout(output: &Output) -> String {
 }
 
 /// Fails, showing both outputs, unless the command succeeded.
+/// Standard output as JSON Lines: one object a line.
+pub fn json_lines(output: &Output) -> Vec<serde_json::Value> {
+    stdout(output)
+        .lines()
+        .map(|line| serde_json::from_str(line).expect("each line is one JSON object"))
+        .collect()
+}
+
 pub fn assert_ok(output: &Output) {
     assert!(
         output.status.success(),

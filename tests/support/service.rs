@@ -4,6 +4,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
 use pointfarm_daemon::access::Access;
+use pointfarm_daemon::model::JobSpec;
 use pointfarm_daemon::server::ServeOptions;
 use pointfarm_daemon::service::{Daemon, DaemonConfig};
 use pointfarm_daemon::worker::supervisor::WorkerCommand;
@@ -13,7 +14,7 @@ use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::raster::{FrameSettings, Renderer};
-use pointfarm_render::request::{camera_for_frame, CameraPath, Lens, Turntable};
+use pointfarm_render::request::{camera_for_frame, CameraPath, Lens, RenderRequest, Turntable};
 use sha2::{Digest, Sha256};
 use tonic::transport::Channel;
 
@@ -234,6 +235,28 @@ pub async fn watch_to_success(
         context()
     );
     (finished, frames)
+}
+
+/// Submits `request` on `dataset_id` as the job `name` (its request id) and watches it to its
+/// end; returns the final job.
+pub async fn run_job(
+    jobs: &mut JobServiceClient<Channel>,
+    dataset_id: &str,
+    name: &str,
+    request: RenderRequest,
+) -> pb::Job {
+    let spec = JobSpec {
+        request_id: name.into(),
+        dataset_id: dataset_id.into(),
+        request,
+        priority: 0,
+    };
+    let job = jobs
+        .submit_job(pb::SubmitJobRequest::from(&spec))
+        .await
+        .unwrap_or_else(|e| panic!("{name}: {e}"))
+        .into_inner();
+    watch_to_end(jobs, &job.id).await.0
 }
 
 /// Watches a job to its end; returns the final job and the finished-frame events.
