@@ -83,6 +83,22 @@ fn fresh_cut(
     .expect("cut frame")
 }
 
+/// A frame of `fixture` in RGB, every point kept, from `cut`.
+fn rgb_frame(
+    cut: &mut CutRenderer,
+    renderer: &mut Renderer,
+    fixture: &Fixture,
+    settings: &FrameSettings,
+) -> Result<(Frame, CutReport), CutError> {
+    cut.render(
+        renderer,
+        &fixture.dataset,
+        settings,
+        ColorMode::Rgb,
+        &PointFilter::default(),
+    )
+}
+
 fn resident_image(
     fixture: &Fixture,
     settings: &FrameSettings,
@@ -289,34 +305,11 @@ fn a_frame_is_the_same_from_a_cold_and_a_warm_cache() {
         Projection::Perspective { fov_y_deg: 40.0 },
     );
     let mut cut = cut_renderer(&renderer, &fixture, DEFAULT_LOD_ERROR_PX);
-    let (cold, cold_report) = cut
-        .render(
-            &mut renderer,
-            &fixture.dataset,
-            &first,
-            ColorMode::Rgb,
-            &PointFilter::default(),
-        )
-        .expect("cold");
+    let (cold, cold_report) = rgb_frame(&mut cut, &mut renderer, &fixture, &first).expect("cold");
     assert_eq!(cold_report.counts.gpu_hits, 0);
     assert!(cold_report.counts.nodes_read > 0 && cold_report.counts.bytes_read > 0);
-    cut.render(
-        &mut renderer,
-        &fixture.dataset,
-        &other,
-        ColorMode::Rgb,
-        &PointFilter::default(),
-    )
-    .expect("other");
-    let (warm, warm_report) = cut
-        .render(
-            &mut renderer,
-            &fixture.dataset,
-            &first,
-            ColorMode::Rgb,
-            &PointFilter::default(),
-        )
-        .expect("warm");
+    rgb_frame(&mut cut, &mut renderer, &fixture, &other).expect("other");
+    let (warm, warm_report) = rgb_frame(&mut cut, &mut renderer, &fixture, &first).expect("warm");
     assert_eq!(warm_report.counts.nodes_read, 0, "{warm_report:?}");
     assert_eq!(warm_report.counts.gpu_hits, warm_report.counts.nodes);
     assert!(
@@ -346,15 +339,8 @@ fn the_caches_stay_within_their_budgets_and_evict() {
             Projection::Perspective { fov_y_deg: 30.0 },
         );
         let again = settings;
-        let (frame, report) = cut
-            .render(
-                &mut renderer,
-                &fixture.dataset,
-                &settings,
-                ColorMode::Rgb,
-                &PointFilter::default(),
-            )
-            .expect("frame");
+        let (frame, report) =
+            rgb_frame(&mut cut, &mut renderer, &fixture, &settings).expect("frame");
         assert!(report.gpu_cache_bytes <= budgets.gpu_bytes, "{report:?}");
         assert!(report.host_cache_bytes <= budgets.host_bytes, "{report:?}");
         assert!(
@@ -363,15 +349,7 @@ fn the_caches_stay_within_their_budgets_and_evict() {
         );
         evicted += report.counts.gpu_evicted;
         // The same view again, after whatever the budget evicted: the same image.
-        let (repeat, _) = cut
-            .render(
-                &mut renderer,
-                &fixture.dataset,
-                &again,
-                ColorMode::Rgb,
-                &PointFilter::default(),
-            )
-            .expect("repeat");
+        let (repeat, _) = rgb_frame(&mut cut, &mut renderer, &fixture, &again).expect("repeat");
         assert!(
             repeat.image == frame.image,
             "step {step}: a repeated frame differs"
@@ -489,15 +467,7 @@ fn a_read_ahead_fills_the_host_cache_and_changes_no_pixel() {
     .expect("first");
     // Another colour mode empties the GPU cache, so the next frame needs every node.
     cut.read_ahead(&fixture.dataset, &next, &PointFilter::default());
-    let (frame, report) = cut
-        .render(
-            &mut renderer,
-            &fixture.dataset,
-            &next,
-            ColorMode::Rgb,
-            &PointFilter::default(),
-        )
-        .expect("next");
+    let (frame, report) = rgb_frame(&mut cut, &mut renderer, &fixture, &next).expect("next");
     assert_eq!(report.counts.gpu_hits, 0);
     assert_eq!(
         report.counts.nodes_read, 0,
@@ -531,13 +501,7 @@ fn a_damaged_node_is_reported_not_drawn() {
     let mut renderer = Renderer::new(gpu());
     let mut cut = cut_renderer(&renderer, &fixture, 0.0);
     let settings = settings(&fixture, &RenderOptions::default());
-    let Err(error) = cut.render(
-        &mut renderer,
-        &fixture.dataset,
-        &settings,
-        ColorMode::Rgb,
-        &PointFilter::default(),
-    ) else {
+    let Err(error) = rgb_frame(&mut cut, &mut renderer, &fixture, &settings) else {
         panic!("a damaged node fails the frame");
     };
     assert!(
