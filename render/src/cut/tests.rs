@@ -73,14 +73,7 @@ fn fresh_cut(
     settings: &FrameSettings,
 ) -> (Frame, CutReport) {
     let mut cut = cut_renderer(renderer, fixture, lod_error);
-    cut.render(
-        renderer,
-        &fixture.dataset,
-        settings,
-        ColorMode::Rgb,
-        &PointFilter::default(),
-    )
-    .expect("cut frame")
+    rgb_frame(&mut cut, renderer, fixture, settings).expect("cut frame")
 }
 
 /// A frame of `fixture` in RGB, every point kept, from `cut`.
