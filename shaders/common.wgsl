@@ -24,13 +24,20 @@ struct FrameUniforms {
     // The first tile of the frame's footprint, where the occlusion tiles are built from.
     occlusion_tile_x0: u32,
     occlusion_tile_y0: u32,
-    _pad: u32,
+    // Adaptive point size: a point's side in pixels times its linear depth.
+    point_size_scale: f32,
 }
 
 // Side of the square each point covers, in pixels. A pipeline constant, not a uniform: with a
 // constant trip count the compiler unrolls the per-pixel loop, which lavapipe runs much faster
-// (docs/perf/point-size-constant.md). One pipeline per size.
+// (docs/perf/point-size-constant.md). One pipeline per size. With ADAPTIVE_SIZE it is the
+// largest side, and each point masks its square down to its own.
 override POINT_SIZE: u32 = 1u;
+// Potree's adaptive size: a point's side is `point_size_scale` over its depth, rounded, from 1
+// to POINT_SIZE.
+override ADAPTIVE_SIZE: bool = false;
+// Round points: only the pixels whose centres lie in the disc the point's square bounds.
+override ROUND_POINTS: bool = false;
 
 // Points are grouped in batches of nearby points (Morton order), each with its bounding box.
 // Each frame the host lists the batches that can be in view and a point pass runs one
@@ -129,6 +136,8 @@ struct Splat {
     y0: i32,
     depth: f32,
     visible: bool,
+    // Side of the square: POINT_SIZE unless ADAPTIVE_SIZE.
+    side: u32,
 }
 
 // A batch's projection of its quantised points. Each row maps a point's quantised coordinates
@@ -180,7 +189,13 @@ fn project_quantised(frame: FrameUniforms, projection: BatchProjection, word: ve
     if !(px >= -margin && px < f32(frame.width) + margin && py >= -margin && py < f32(frame.height) + margin) {
         return s;
     }
-    let half = i32((POINT_SIZE - 1u) / 2u);
+    var side = POINT_SIZE;
+    if ADAPTIVE_SIZE {
+        // Rounded in f32 and clamped before the conversion, as `FrameSettings::point_side_at`.
+        side = u32(clamp(floor(frame.point_size_scale / depth + 0.5), 1.0, f32(POINT_SIZE)));
+    }
+    s.side = side;
+    let half = i32((side - 1u) / 2u);
     s.x0 = floor_to_i32(px) - half;
     s.y0 = floor_to_i32(py) - half;
     s.depth = depth;
@@ -233,10 +248,25 @@ fn batch_outside_view(frame: FrameUniforms, batch: Batch) -> bool {
 // Number of pixels a splat covers (before clipping to the image).
 override SPLAT_PIXELS: u32 = POINT_SIZE * POINT_SIZE;
 
-// Framebuffer index of the k-th pixel of the splat's square, or -1 when it is off-screen.
+// Framebuffer index of the k-th pixel of the splat's square, or -1 when it is off-screen or
+// outside the point's own square or disc.
 fn splat_pixel(frame: FrameUniforms, splat: Splat, k: u32) -> i32 {
-    let x = splat.x0 + i32(k % POINT_SIZE);
-    let y = splat.y0 + i32(k / POINT_SIZE);
+    let dx = k % POINT_SIZE;
+    let dy = k / POINT_SIZE;
+    if ADAPTIVE_SIZE && (dx >= splat.side || dy >= splat.side) {
+        return -1;
+    }
+    if ROUND_POINTS {
+        // Pixel centre to square centre, doubled to stay in integers: inside the disc when
+        // (2 dx + 1 - side)^2 + (2 dy + 1 - side)^2 <= side^2.
+        let cx = i32(2u * dx + 1u) - i32(splat.side);
+        let cy = i32(2u * dy + 1u) - i32(splat.side);
+        if cx * cx + cy * cy > i32(splat.side * splat.side) {
+            return -1;
+        }
+    }
+    let x = splat.x0 + i32(dx);
+    let y = splat.y0 + i32(dy);
     if x < 0 || y < 0 || x >= i32(frame.width) || y >= i32(frame.height) {
         return -1;
     }

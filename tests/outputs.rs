@@ -361,3 +361,50 @@ fn a_camera_path_file_renders_its_frames() {
         "--video needs frames",
     );
 }
+
+#[test]
+fn adaptive_points_close_a_sparse_cloud_and_say_their_size() {
+    let scene = Scene::new();
+    // 20,000 points at 320x240: sparse enough for gaps between one-pixel points.
+    let render = |options: &[&str]| {
+        let mut args = vec!["render", &scene.cloud, "--local", "--size", "320x240"];
+        args.extend(options);
+        pointfarm(&args)
+    };
+    let covered = |path: &Path| {
+        let image = image::open(path).expect("frame").to_rgba8();
+        let background = *image.get_pixel(0, 0);
+        image.pixels().filter(|p| **p != background).count()
+    };
+    let (auto, one) = (scene.path("auto.png"), scene.path("one.png"));
+    let output = render(&["--out", &arg(&auto)]);
+    assert_ok(&output);
+    let text = String::from_utf8_lossy(&output.stdout);
+    let line = text
+        .lines()
+        .find_map(|line| line.strip_prefix("point size: 1 to "))
+        .unwrap_or_else(|| panic!("no adaptive point size line in {text}"));
+    assert!(line.contains("pixels by depth (points about "), "{line}");
+    assert_ok(&render(&["--out", &arg(&one), "--point-size", "1"]));
+    let (auto_px, one_px) = (covered(&auto), covered(&one));
+    assert!(
+        auto_px > one_px * 3 / 2,
+        "adaptive points cover {auto_px} pixels, one-pixel points {one_px}"
+    );
+
+    let output = render(&["--out", &arg(&auto), "--json"]);
+    assert_ok(&output);
+    let frame: serde_json::Value = serde_json::from_slice(&output.stdout).expect("one JSON object");
+    assert_eq!(frame["adaptivePointSize"], true, "{frame}");
+    assert!(
+        frame["pointSize"].as_u64().expect("pointSize") > 1,
+        "{frame}"
+    );
+
+    let round = scene.path("round.png");
+    let options = ["--out", &arg(&round), "--point-size", "6", "--round-points"];
+    let output = render(&options);
+    assert_ok(&output);
+    let text = String::from_utf8_lossy(&output.stdout);
+    assert!(text.contains("point size: 6 pixels"), "{text}");
+}

@@ -14,8 +14,8 @@ use pointfarm_render::filter::{ClipBox, CodeSet, IntensityRange};
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::raster::{FillSettings, Quality, Renderer, Shading};
 use pointfarm_render::request::{
-    CameraPath, Interpolation, Keyframe, Lens, Point3, RenderOptions, RenderRequest, StillCamera,
-    Turntable, DEFAULT_UP,
+    CameraPath, Interpolation, Keyframe, Lens, Point3, PointSize, RenderOptions, RenderRequest,
+    StillCamera, Turntable, DEFAULT_UP,
 };
 use pointfarm_render::sample::sample_scene;
 use pointfarm_tests::service::{fetch_images, gpu, run_job, upload, write_sample, TestDaemon};
@@ -102,7 +102,17 @@ fn cases(cloud: &PointCloud) -> Vec<(&'static str, RenderRequest)> {
                 o.color_ramp = Some(ColorRamp::Inferno);
             }),
         ),
-        ("point size", with_options(|o| o.point_size = 3)),
+        (
+            "fixed point size",
+            with_options(|o| o.point_size = PointSize::Fixed(3)),
+        ),
+        (
+            "round points",
+            with_options(|o| {
+                o.point_size = PointSize::Fixed(6);
+                o.round_points = true;
+            }),
+        ),
         (
             "background",
             with_options(|o| o.background = [32, 64, 96, 255]),
@@ -114,7 +124,7 @@ fn cases(cloud: &PointCloud) -> Vec<(&'static str, RenderRequest)> {
         (
             "high quality with a depth band",
             with_options(|o| {
-                o.point_size = 2;
+                o.point_size = PointSize::Fixed(2);
                 o.quality = Quality::High { depth_band: 0.2 };
             }),
         ),
@@ -250,7 +260,7 @@ fn render_here(
     let resident = renderer.upload(&colored).expect("upload");
     (0..request.frames())
         .map(|index| {
-            let settings = request.frame_settings(index, &colored.bounds);
+            let settings = request.frame_settings(index, &colored.bounds, colored.spacing());
             renderer.render(&resident, &settings).expect("render").image
         })
         .collect()
@@ -311,7 +321,10 @@ fn the_depth_image_is_rendered_here() {
     let mut renderer = Renderer::new(gpu());
     let resident = renderer.upload(&cloud).expect("upload");
     let frame = renderer
-        .render(&resident, &request.frame_settings(0, &cloud.bounds))
+        .render(
+            &resident,
+            &request.frame_settings(0, &cloud.bounds, cloud.spacing()),
+        )
         .expect("render");
     let depth = frame.depth.expect("a depth image");
     assert_eq!(depth.len(), (WIDTH * HEIGHT) as usize);

@@ -100,7 +100,6 @@ pub fn run(args: DemoArgs) -> Result<()> {
                     camera_path: CameraPath::Turntable(Turntable::around_the_cloud(args.frames)),
                     lens: Lens::default(),
                     render: RenderOptions {
-                        point_size: 2,
                         quality: Quality::HIGH,
                         ..RenderOptions::default()
                     },

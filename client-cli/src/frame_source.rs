@@ -32,6 +32,7 @@ pub enum FrameSource {
         renderer: Renderer,
         cloud: GpuPointCloud,
         bounds: WorldBounds,
+        spacing: Option<f64>,
         ramp_range: Option<ColorRange>,
     },
     Cut {
@@ -78,11 +79,13 @@ impl FrameSource {
         }
         let renderer = Renderer::new(gpu);
         let bounds = cloud.bounds;
+        let spacing = cloud.spacing();
         let resident = renderer.upload(&cloud)?;
         Ok(Self::Resident {
             renderer,
             cloud: resident,
             bounds,
+            spacing,
             ramp_range,
         })
     }
@@ -125,6 +128,15 @@ impl FrameSource {
     pub fn bounds(&self) -> WorldBounds {
         match self {
             Self::Resident { bounds, .. } | Self::Cut { bounds, .. } => *bounds,
+        }
+    }
+
+    /// The typical distance between the points drawn, which sizes adaptive points: the
+    /// filtered cloud's, or the store's original points'.
+    pub fn spacing(&self) -> Option<f64> {
+        match self {
+            Self::Resident { spacing, .. } => *spacing,
+            Self::Cut { lod, .. } => lod.dataset.hierarchy().point_spacing(),
         }
     }
 

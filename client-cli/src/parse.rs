@@ -2,6 +2,7 @@
 
 use glam::DVec3;
 use pointfarm_render::color::{ColorMode, ColorRamp, ColorRange};
+use pointfarm_render::request::PointSize;
 
 /// `1280x720`.
 pub fn size(s: &str) -> Result<(u32, u32), String> {
@@ -104,6 +105,19 @@ pub fn color_ramp(s: &str) -> Result<ColorRamp, String> {
 }
 
 /// A finite positive number.
+/// `auto` or a side in pixels (the request's validation checks its range).
+pub fn point_size(s: &str) -> Result<PointSize, String> {
+    match s.trim() {
+        "auto" => Ok(PointSize::Adaptive),
+        side => match side.parse::<u32>() {
+            Ok(0) | Err(_) => Err(format!(
+                "point size {s:?} is invalid: use auto or a whole number of pixels from 1"
+            )),
+            Ok(side) => Ok(PointSize::Fixed(side)),
+        },
+    }
+}
+
 pub fn positive(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(v) if v.is_finite() && v > 0.0 => Ok(v),

@@ -73,15 +73,17 @@ pub fn run(args: RenderArgs) -> Result<()> {
     }
     say(format!("adapter: {}", gpu.describe()));
     let bounds = source.bounds();
+    let spacing = source.spacing();
     let settings = |index: u32| FrameSettings {
         atomics: args.atomics(),
-        ..request.frame_settings(index, &bounds)
+        ..request.frame_settings(index, &bounds, spacing)
     };
     // Refuse sizes this adapter cannot hold, or cameras the cloud makes invalid, before the
     // first frame.
     source.renderer().validate(&settings(0))?;
     say(format!("bounds: {}", bounds_text(&bounds)));
     say(format!("camera: {}", camera_flags(&settings(0).camera)));
+    say(point_size_text(&settings(0), spacing));
 
     let files = &outputs.files;
     let frames = request.frames();
@@ -226,6 +228,18 @@ fn report_frame(
 }
 
 /// The bounds in the file's coordinates, to 3 decimals.
+/// The first frame's point size, and for an adaptive one the spacing it came from.
+fn point_size_text(settings: &FrameSettings, spacing: Option<f64>) -> String {
+    let side = settings.point_size;
+    let unit = if side == 1 { "pixel" } else { "pixels" };
+    match (settings.adaptive_size, spacing) {
+        (Some(_), Some(spacing)) => {
+            format!("point size: 1 to {side} {unit} by depth (points about {spacing:.3} apart)")
+        }
+        _ => format!("point size: {side} {unit}"),
+    }
+}
+
 fn bounds_text(bounds: &WorldBounds) -> String {
     let axis = |name: &str, min: f64, max: f64| format!("{name} {min:.3} .. {max:.3}");
     [

@@ -13,10 +13,9 @@ use pointfarm_render::cut::{CutOptions, RESIDENT_MAX_POINTS};
 use pointfarm_render::gpu::AdapterChoice;
 use pointfarm_render::raster::{
     AtomicsMode, FillSettings, Quality, Shading, DEFAULT_BACKGROUND, DEFAULT_DEPTH_BAND,
-    DEFAULT_POINT_SIZE,
 };
 use pointfarm_render::request::{
-    CameraPath, Lens, Point3, RenderOptions, RenderRequest, StillCamera, Turntable,
+    CameraPath, Lens, Point3, PointSize, RenderOptions, RenderRequest, StillCamera, Turntable,
     DEFAULT_SUPERSAMPLE, DEFAULT_UP, TURNTABLE_ELEVATION_RANGE,
 };
 
@@ -117,9 +116,13 @@ pub struct RenderArgs {
     /// Far clipping distance (default: fitted to the cloud).
     #[arg(long, value_parser = parse::positive)]
     far: Option<f64>,
-    /// Side of the square drawn for each point, in pixels.
-    #[arg(long, default_value_t = DEFAULT_POINT_SIZE)]
-    point_size: u32,
+    /// Side of the square drawn for each point, in pixels, or auto: the cloud's point spacing
+    /// as it projects at each point's depth (1 to 8 pixels), so surfaces read closed.
+    #[arg(long, default_value = "auto", value_parser = parse::point_size)]
+    point_size: PointSize,
+    /// Draw each point as the disc its square bounds (from 4 pixels on).
+    #[arg(long)]
+    round_points: bool,
     /// Background colour: #rrggbb, #rrggbbaa or transparent.
     #[arg(long, default_value_t = Rgba(DEFAULT_BACKGROUND), value_parser = parse::rgba)]
     background: Rgba,
@@ -305,6 +308,7 @@ impl RenderArgs {
             },
             render: RenderOptions {
                 point_size: self.point_size,
+                round_points: self.round_points,
                 quality: match self.quality {
                     QualityArg::Basic => Quality::Basic,
                     QualityArg::High => Quality::High {

@@ -28,6 +28,9 @@ pub struct FrameJson {
     pub points_rendered: u64,
     /// Milliseconds by stage name (`upload`, `rasterize`, ...).
     pub timings_ms: serde_json::Map<String, serde_json::Value>,
+    /// The side of a point's square in pixels; with adaptive sizes, the largest.
+    pub point_size: u32,
+    pub adaptive_point_size: bool,
     pub camera: CameraJson,
     pub bounds: BoundsJson,
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -56,6 +59,8 @@ impl FrameJson {
                 .iter()
                 .map(|t| (t.stage.name().to_string(), serde_json::json!(t.ms)))
                 .collect(),
+            point_size: settings.point_size,
+            adaptive_point_size: settings.adaptive_size.is_some(),
             camera: CameraJson::of(&settings.camera),
             bounds: BoundsJson {
                 min: bounds.min.to_array(),

@@ -178,7 +178,7 @@ pub fn now_unix_ms() -> i64 {
 #[cfg(test)]
 mod tests {
     use pointfarm_render::raster::{FillSettings, Quality, Shading};
-    use pointfarm_render::request::{CameraPath, Interpolation, Lens, Point3};
+    use pointfarm_render::request::{CameraPath, Interpolation, Lens, Point3, PointSize};
 
     use super::*;
 
@@ -229,7 +229,7 @@ mod tests {
         );
         assert_eq!(request.lens, Lens::default());
         let render = &request.render;
-        assert_eq!(render.point_size, 3);
+        assert_eq!(render.point_size, PointSize::Fixed(3));
         assert_eq!(render.quality, Quality::High { depth_band: 0.02 });
         assert_eq!(render.shading, Shading::PINTUS);
         assert_eq!(

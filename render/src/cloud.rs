@@ -118,6 +118,11 @@ impl PointCloud {
         self.positions.is_empty()
     }
 
+    /// The typical distance between neighbouring points ([`crate::spacing::of_points`]).
+    pub fn spacing(&self) -> Option<f64> {
+        crate::spacing::of_points(&self.positions)
+    }
+
     /// Builds a cloud from world positions and colours (for generated and test clouds):
     /// recentres on the bounds' centre in f64. Intensity, classification and returns are zero.
     pub fn from_world_points(points: &[DVec3], colors: Vec<u32>) -> Self {

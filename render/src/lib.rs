@@ -20,6 +20,7 @@ pub mod raster;
 pub mod reference;
 pub mod request;
 pub mod sample;
+pub mod spacing;
 
 #[cfg(any(test, feature = "testing"))]
 pub mod testing;

@@ -2,7 +2,8 @@
 //!
 //! Written for clarity, not speed, and independently of the GPU passes: it shares only the
 //! camera convention (`camera::CameraTransform`) and computes in f64. Every point in the view
-//! covers a `point_size`-pixel square. Depths are compared as the f32 the GPU stores.
+//! covers a square of `FrameSettings::point_side_at` its depth (the pixels in its disc with
+//! round points). Depths are compared as the f32 the GPU stores.
 //!
 //! - Basic mode: per pixel, the point with the smallest (depth, colour) pair wins. That is the
 //!   documented contract of the GPU's basic mode, so where depths are distinct the images
@@ -344,15 +345,20 @@ fn for_each_covered_pixel(
     let transform = settings
         .camera
         .transform(cloud.origin, settings.width, settings.height);
-    let size = settings.point_size as i64;
     for (position, &color) in cloud.positions.iter().zip(&cloud.colors) {
         let Some((px, py, depth)) = transform.project(position.as_dvec3()) else {
             continue;
         };
+        let size = settings.point_side_at(depth as f32) as i64;
         let x0 = px.floor() as i64 - (size - 1) / 2;
         let y0 = py.floor() as i64 - (size - 1) / 2;
         for y in (y0..y0 + size).filter(|y| (0..height).contains(y)) {
             for x in (x0..x0 + size).filter(|x| (0..width).contains(x)) {
+                // Round points: pixel centres in the disc, as the shaders' `splat_pixel`.
+                let (cx, cy) = (2 * (x - x0) + 1 - size, 2 * (y - y0) + 1 - size);
+                if settings.round_points && cx * cx + cy * cy > size * size {
+                    continue;
+                }
                 visit((y * width + x) as usize, depth as f32, color);
             }
         }

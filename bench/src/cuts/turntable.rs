@@ -10,7 +10,9 @@ use pointfarm_render::cut::{CutOptions, CutRenderer, CutReport, LodDataset};
 use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::raster::{FrameSettings, Renderer};
-use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
+use pointfarm_render::request::{
+    CameraPath, Lens, PointSize, RenderOptions, RenderRequest, Turntable,
+};
 use serde::Serialize;
 
 use crate::stats::median;
@@ -95,7 +97,8 @@ impl TurntableResult {
 }
 
 /// The settings of frame `index` of an `frames`-frame turntable around `dataset`, with the
-/// request's defaults otherwise (as `pointfarm render --turntable`).
+/// request's defaults otherwise (as `pointfarm render --turntable`) but one-pixel points, the
+/// size the recorded figures were measured at.
 pub fn turntable_settings(
     dataset: &LodDataset,
     width: u32,
@@ -108,9 +111,12 @@ pub fn turntable_settings(
         height,
         camera_path: CameraPath::Turntable(Turntable::around_the_cloud(frames as u32)),
         lens: Lens::default(),
-        render: RenderOptions::default(),
+        render: RenderOptions {
+            point_size: PointSize::Fixed(1),
+            ..RenderOptions::default()
+        },
     };
-    request.frame_settings(index as u32, &dataset.bounds())
+    request.frame_settings(index as u32, &dataset.bounds(), None)
 }
 
 /// Renders the turntable of `options` of `dataset` from a cold cache.

@@ -9,8 +9,8 @@ use pointfarm_render::color::{ColorMode, ColorRamp, ColorRange};
 use pointfarm_render::filter::{ClipBox, CodeSet, IntensityRange, PointFilter};
 use pointfarm_render::raster::{FillSettings, Quality, Shading, DEFAULT_DEPTH_BAND};
 use pointfarm_render::request::{
-    CameraPath, Interpolation, Keyframe, Lens, Point3, RenderOptions, RenderRequest, RequestError,
-    StillCamera, Turntable, DEFAULT_UP,
+    CameraPath, Interpolation, Keyframe, Lens, Point3, PointSize, RenderOptions, RenderRequest,
+    RequestError, StillCamera, Turntable, DEFAULT_UP,
 };
 
 use crate::error::DaemonError;
@@ -180,11 +180,8 @@ fn render_options(message: Option<&pb::RenderOptions>) -> Result<RenderOptions, 
         pb::ColorRamp::Grey => Some(ColorRamp::Grey),
     };
     Ok(RenderOptions {
-        point_size: if o.point_size == 0 {
-            default.point_size
-        } else {
-            o.point_size
-        },
+        point_size: PointSize::from(o.point_size),
+        round_points: o.round_points,
         quality,
         shading,
         color_mode,
@@ -378,6 +375,7 @@ pub fn render_options_message(options: &RenderOptions) -> pb::RenderOptions {
     // Destructured so that a new option cannot be forgotten here.
     let RenderOptions {
         point_size,
+        round_points,
         quality,
         shading,
         color_mode,
@@ -391,7 +389,8 @@ pub fn render_options_message(options: &RenderOptions) -> pb::RenderOptions {
         filter,
     } = *options;
     let mut message = pb::RenderOptions {
-        point_size,
+        point_size: point_size.into(),
+        round_points,
         lod_error,
         filter: point_filter_message(&filter),
         color_range: color_range.map(|ColorRange { min, max }| pb::ColorRange { min, max }),

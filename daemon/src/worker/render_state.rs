@@ -30,6 +30,8 @@ struct Resident {
     coloring: Coloring,
     filter: PointFilter,
     bounds: WorldBounds,
+    /// The typical distance between the filtered points, which sizes adaptive points.
+    spacing: Option<f64>,
     cloud: GpuPointCloud,
     /// How the cloud was loaded, until the next finished frame reports it.
     unreported_load: Option<(f64, CacheOutcome)>,
@@ -226,9 +228,9 @@ impl WorkerRenderState {
         }
         let (mut frame, mut timings, dataset_cache_hit, cut) = match self.loaded.as_mut() {
             Some(Loaded::Resident(current)) => {
-                let settings = task
-                    .request
-                    .frame_settings(task.lease.index, &current.bounds);
+                let settings =
+                    task.request
+                        .frame_settings(task.lease.index, &current.bounds, current.spacing);
                 let frame = self
                     .renderer
                     .render(&current.cloud, &settings)
@@ -247,7 +249,10 @@ impl WorkerRenderState {
                 let bounds = filter
                     .framing_bounds(&dataset.bounds())
                     .map_err(|e| FrameFailure::permanent(e.to_string()))?;
-                let settings = task.request.frame_settings(task.lease.index, &bounds);
+                let spacing = dataset.hierarchy().point_spacing();
+                let settings = task
+                    .request
+                    .frame_settings(task.lease.index, &bounds, spacing);
                 let coloring = task.request.render.coloring();
                 let rendered =
                     stored
@@ -275,7 +280,9 @@ impl WorkerRenderState {
                 };
                 // The next frame of the job is likely this worker's next lease.
                 if task.lease.index + 1 < task.request.frames() {
-                    let next = task.request.frame_settings(task.lease.index + 1, &bounds);
+                    let next = task
+                        .request
+                        .frame_settings(task.lease.index + 1, &bounds, spacing);
                     stored
                         .cut
                         .read_ahead(stored.source.dataset(), &next, filter);
@@ -455,6 +462,7 @@ impl WorkerRenderState {
             coloring: render.coloring(),
             filter: render.filter,
             bounds: cloud.bounds,
+            spacing: cloud.spacing(),
             cloud: gpu_cloud,
             unreported_load: Some((load_ms, outcome)),
         })

@@ -10,7 +10,7 @@ use crate::color::ColorMode;
 use crate::ingest::{load_point_cloud, write_las, DatasetSource, LasWriteOptions};
 use crate::lod::{build_lod, LodBuildOptions, PointSource};
 use crate::raster::{FillSettings, Quality, Shading};
-use crate::request::RenderOptions;
+use crate::request::{PointSize, RenderOptions};
 use crate::sample::sample_scene;
 use crate::testing::{compare_images_within, gpu};
 
@@ -49,8 +49,11 @@ fn fixture(points: usize) -> Fixture {
 
 fn settings(fixture: &Fixture, options: &RenderOptions) -> FrameSettings {
     let camera = Camera::auto(&fixture.cloud.bounds, 4.0 / 3.0);
-    let mut settings = FrameSettings::new(200, 150, camera);
-    settings.point_size = options.point_size;
+    let mut settings = FrameSettings::new(200, 150, camera).with_point_size(
+        options.point_size,
+        &fixture.cloud.bounds,
+        None,
+    );
     settings.quality = options.quality;
     settings.shading = options.shading;
     settings.fill = options.fill;
@@ -130,7 +133,7 @@ fn every_mode_at_lod_error_zero_renders_as_the_resident_cloud() {
     };
     let high_quality = RenderOptions {
         quality: Quality::HIGH,
-        point_size: 2,
+        point_size: PointSize::Fixed(2),
         ..default()
     };
     let options_in_rgb = [

@@ -151,6 +151,13 @@ impl LodHierarchy {
         (self.cube.node_min(key), self.cube.side_at(key.level))
     }
 
+    /// The spacing of the original points, from the leaves ([`crate::spacing::of_leaves`]):
+    /// what sizes adaptive points where a cut reaches them.
+    pub fn point_spacing(&self) -> Option<f64> {
+        let leaves = self.nodes.iter().filter(|n| n.is_leaf());
+        crate::spacing::of_leaves(leaves.map(|n| (self.cube.side_at(n.key.level), n.point_count)))
+    }
+
     /// The spacing of an inner node's points (its side over its sampling grid); `None` for a
     /// leaf, whose points are simply all that is left.
     pub fn spacing(&self, key: NodeKey) -> Option<f64> {

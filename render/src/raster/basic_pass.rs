@@ -14,7 +14,7 @@ use pointfarm_shaders::Shader;
 use super::culling::FrameBatches;
 use super::occlusion::{OcclusionPass, MIN_POINTS_PER_PIXEL_FOR_FINAL_TILES};
 use super::pipeline::{bind_resources, dispatch_grid, shader_module};
-use super::point_pipelines::PointPipelines;
+use super::point_pipelines::{PointPipelines, SplatShape};
 use super::points::{GpuPointCloud, PointChunk};
 use super::targets::FrameTargets;
 
@@ -75,7 +75,7 @@ impl BasicPass {
                 // The colour pass needs every chunk's final depths: it runs after the depth
                 // pass over all of them, against the final tiles.
                 self.record_depth(device, pass, frame);
-                let pipeline = self.atomic32_color.get(device, frame.point_size);
+                let pipeline = self.atomic32_color.get(device, frame.shape);
                 pass.set_pipeline(&pipeline);
                 // Phase by phase, as the accumulation (`hq_pass.rs`).
                 for phase in 0..frame.batches.phase_count() {
@@ -121,7 +121,7 @@ impl BasicPass {
     ) {
         self.occlusion
             .record_clear(device, pass, &frame.targets.occlusion);
-        let pipeline = pipelines.get(device, frame.point_size);
+        let pipeline = pipelines.get(device, frame.shape);
         for phase in 0..frame.batches.phase_count() {
             if phase > 0 {
                 self.build_tiles(device, pass, frame);
@@ -150,12 +150,12 @@ impl BasicPass {
     }
 }
 
-/// What every point pass of a frame reads and writes: the frame's uniforms and point size,
+/// What every point pass of a frame reads and writes: the frame's uniforms and splat shape,
 /// the resident cloud with this frame's batch tables, and the frame's targets.
 #[derive(Clone, Copy)]
 pub(crate) struct PointFrame<'a> {
     pub uniforms: &'a wgpu::Buffer,
-    pub point_size: u32,
+    pub shape: SplatShape,
     pub cloud: &'a GpuPointCloud,
     pub batches: &'a FrameBatches,
     pub targets: &'a FrameTargets,

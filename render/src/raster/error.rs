@@ -23,6 +23,8 @@ pub enum RenderError {
         needed_mib: u64,
         limit_mib: u64,
     },
+    #[error("adaptive point size scale {0} is invalid: it must be a positive finite number")]
+    AdaptivePointSize(f32),
     #[error(
         "depth band {0} is invalid: it must be a finite number from {low} to {high}",
         low = DEPTH_BAND_RANGE.start(),

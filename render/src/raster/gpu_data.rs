@@ -24,7 +24,8 @@ pub struct FrameUniforms {
     /// The first occlusion tile of the frame's footprint (`occlusion.rs`).
     pub occlusion_tile_x0: u32,
     pub occlusion_tile_y0: u32,
-    pub _pad: u32,
+    /// Adaptive point size: a point's side in pixels times its depth (0 when fixed).
+    pub point_size_scale: f32,
 }
 
 /// A point's position as two u32 words, laid out as `pointfarm_shaders::layout::POSITION_BITS`

@@ -51,7 +51,7 @@ impl HqAccumulatePass {
             _ => None,
         };
         let pipelines = packed_sums.map_or(&self.atomic32, |(atomic64, _)| atomic64);
-        let pipeline = pipelines.get(device, frame.point_size);
+        let pipeline = pipelines.get(device, frame.shape);
         pass.set_pipeline(&pipeline);
         // One dispatch per phase of the depth pass (`phases.rs`): over the whole table, the
         // near phases' batches, where most points add colours, came first and the hidden far

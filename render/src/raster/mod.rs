@@ -67,6 +67,7 @@ use fill_pass::FillPass;
 use gpu_data::FrameUniforms;
 use hq_pass::HqAccumulatePass;
 use pintus_pass::PintusPass;
+use point_pipelines::SplatShape;
 use resolve_pass::{PixelRun, ResolveFrame, ResolvePass};
 use screen_params::{ScreenFrame, ScreenUniforms};
 use targets::FrameTargets;
@@ -233,6 +234,11 @@ impl Renderer {
         if settings.point_size == 0 || settings.point_size > MAX_POINT_SIZE {
             return Err(RenderError::PointSize(settings.point_size));
         }
+        if let Some(scale) = settings.adaptive_size {
+            if !(scale.is_finite() && scale > 0.0) {
+                return Err(RenderError::AdaptivePointSize(scale));
+            }
+        }
         if let Quality::High { depth_band } = settings.quality {
             if !(depth_band.is_finite() && DEPTH_BAND_RANGE.contains(&depth_band)) {
                 return Err(RenderError::DepthBand(depth_band));
@@ -393,7 +399,7 @@ impl Renderer {
         let uniforms = &self.uniforms;
         let points = PointFrame {
             uniforms,
-            point_size: settings.point_size,
+            shape: SplatShape::of(settings),
             cloud,
             batches: &self.batches,
             targets,

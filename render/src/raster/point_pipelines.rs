@@ -1,20 +1,52 @@
-//! The compute pipelines of one point-pass entry point, one per point size.
+//! The compute pipelines of one point-pass entry point, one per splat shape.
 //!
 //! The side of a point's square is the shaders' pipeline constant `POINT_SIZE`, not a uniform:
 //! with a constant trip count the shader compiler unrolls the per-pixel loop, and on lavapipe
-//! the runtime loop made the point pass much slower (docs/perf/point-size-constant.md). The default size 1
-//! is built with the renderer, other sizes on first use, then kept.
+//! the runtime loop made the point pass much slower (docs/perf/point-size-constant.md). An
+//! adaptive size keeps the loop constant at its largest side and masks each point's square.
+//! The default shape (1-pixel squares) is built with the renderer, others on first use, then
+//! kept.
 
 use std::collections::HashMap;
 use std::sync::{Mutex, PoisonError};
 
 use super::pipeline::compute_pipeline;
+use super::FrameSettings;
+
+/// What a point pass's pipeline is built for: the pixels a point may cover.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub(crate) struct SplatShape {
+    /// `POINT_SIZE`: the side of every point's square, or the largest with `adaptive`.
+    pub side: u32,
+    pub adaptive: bool,
+    pub round: bool,
+}
+
+impl SplatShape {
+    pub fn of(settings: &FrameSettings) -> Self {
+        Self {
+            side: settings.point_size,
+            adaptive: settings.adaptive_size.is_some(),
+            round: settings.round_points,
+        }
+    }
+}
+
+impl Default for SplatShape {
+    fn default() -> Self {
+        Self {
+            side: 1,
+            adaptive: false,
+            round: false,
+        }
+    }
+}
 
 pub(crate) struct PointPipelines {
     module: wgpu::ShaderModule,
     entry_point: &'static str,
     workgroup_size: u32,
-    by_point_size: Mutex<HashMap<u32, wgpu::ComputePipeline>>,
+    by_shape: Mutex<HashMap<SplatShape, wgpu::ComputePipeline>>,
 }
 
 impl PointPipelines {
@@ -29,33 +61,33 @@ impl PointPipelines {
             module: module.clone(),
             entry_point,
             workgroup_size,
-            by_point_size: Mutex::new(HashMap::new()),
+            by_shape: Mutex::new(HashMap::new()),
         };
-        pipelines.get(device, 1);
+        pipelines.get(device, SplatShape::default());
         pipelines
     }
 
-    /// The pipeline for points of `point_size` pixels, built if this is its first use.
-    pub fn get(&self, device: &wgpu::Device, point_size: u32) -> wgpu::ComputePipeline {
-        let mut built = self
-            .by_point_size
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner);
+    /// The pipeline for points of `shape`, built if this is its first use.
+    pub fn get(&self, device: &wgpu::Device, shape: SplatShape) -> wgpu::ComputePipeline {
+        let mut built = self.by_shape.lock().unwrap_or_else(PoisonError::into_inner);
         built
-            .entry(point_size)
+            .entry(shape)
             .or_insert_with(|| {
                 tracing::debug!(
                     entry_point = self.entry_point,
-                    point_size,
+                    ?shape,
                     "building point pipeline"
                 );
+                let flag = |on: bool| if on { 1.0 } else { 0.0 };
                 compute_pipeline(
                     device,
                     &self.module,
                     self.entry_point,
                     &[
                         ("WORKGROUP_SIZE", f64::from(self.workgroup_size)),
-                        ("POINT_SIZE", f64::from(point_size)),
+                        ("POINT_SIZE", f64::from(shape.side)),
+                        ("ADAPTIVE_SIZE", flag(shape.adaptive)),
+                        ("ROUND_POINTS", flag(shape.round)),
                     ],
                 )
             })

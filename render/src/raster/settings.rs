@@ -16,6 +16,9 @@ pub const MAX_SUPERSAMPLE: u32 = 4;
 pub const MAX_POINT_SIZE: u32 = 64;
 /// One-pixel points unless asked otherwise.
 pub const DEFAULT_POINT_SIZE: u32 = 1;
+/// The largest side an adaptive point takes, in pixels: a point nearer than its spacing
+/// allows keeps a hole rather than cost the point passes more than 64 pixels.
+pub const MAX_ADAPTIVE_POINT_SIZE: u32 = 8;
 /// Dark grey (#18181c), opaque: written where no point landed unless asked otherwise.
 pub const DEFAULT_BACKGROUND: [u8; 4] = [24, 24, 28, 255];
 /// High quality averages the points up to this fraction behind the nearest depth (the
@@ -146,8 +149,15 @@ pub struct FrameSettings {
     pub width: u32,
     pub height: u32,
     pub camera: Camera,
-    /// Side of the square each point covers, in pixels.
+    /// Side of the square each point covers, in pixels; with `adaptive_size`, the largest.
     pub point_size: u32,
+    /// Potree's adaptive point size: a point's side is this over its linear depth (the
+    /// cloud's point spacing times the focal length in pixels), rounded, from 1 to
+    /// `point_size`. `None`: every point covers `point_size`.
+    pub adaptive_size: Option<f32>,
+    /// Round points: a point covers the pixels of its square whose centres lie in the disc
+    /// the square bounds.
+    pub round_points: bool,
     /// RGBA written where no point landed.
     pub background: [u8; 4],
     pub atomics: AtomicsMode,
@@ -170,6 +180,8 @@ impl FrameSettings {
             height,
             camera,
             point_size: DEFAULT_POINT_SIZE,
+            adaptive_size: None,
+            round_points: false,
             background: DEFAULT_BACKGROUND,
             atomics: AtomicsMode::Auto,
             quality: Quality::Basic,
@@ -196,6 +208,17 @@ impl FrameSettings {
         Ok(self.camera.validate()?)
     }
 
+    /// The side of the square a point at linear depth `depth` covers, in pixels: the shaders'
+    /// `project_quantised` in f32, as the CPU reference needs it.
+    pub fn point_side_at(&self, depth: f32) -> u32 {
+        match self.adaptive_size {
+            None => self.point_size,
+            Some(scale) => (scale / depth + 0.5)
+                .floor()
+                .clamp(1.0, self.point_size as f32) as u32,
+        }
+    }
+
     /// Whether the frame needs the resolved depth image: to read it back, or for filling or
     /// shading, which work on it. Otherwise the resolve does not write it.
     pub fn needs_depth_image(&self) -> bool {
@@ -214,6 +237,7 @@ impl FrameSettings {
             width: self.width.saturating_mul(k),
             height: self.height.saturating_mul(k),
             point_size: self.point_size.saturating_mul(k),
+            adaptive_size: self.adaptive_size.map(|size| size * k as f32),
             shading: match self.shading {
                 Shading::Edl { strength, radius } => Shading::Edl {
                     strength,

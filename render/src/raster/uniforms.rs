@@ -40,6 +40,6 @@ pub(crate) fn frame_uniforms(
         resolve_pixels: resolve_run.count as u32,
         occlusion_tile_x0: footprint.x0 / occlusion::TILE,
         occlusion_tile_y0: footprint.y0 / occlusion::TILE,
-        _pad: 0,
+        point_size_scale: settings.adaptive_size.unwrap_or(0.0),
     }
 }

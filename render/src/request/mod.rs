@@ -5,6 +5,7 @@
 
 mod camera_path;
 mod options;
+mod point_size;
 mod validate;
 
 use serde::{Deserialize, Serialize};
@@ -14,12 +15,12 @@ pub use camera_path::{
     DEFAULT_TURNTABLE_DEGREES, DEFAULT_UP, FOV_Y_DEG_RANGE, MIN_KEYFRAMES, TURNTABLE_DEGREES_RANGE,
     TURNTABLE_ELEVATION_RANGE, VIEW_ELEVATION_RANGE,
 };
-pub use options::{RenderOptions, DEFAULT_SUPERSAMPLE};
+pub use options::{PointSize, RenderOptions, DEFAULT_SUPERSAMPLE};
 pub use validate::RequestError;
 
 use crate::camera::Camera;
 use crate::cloud::WorldBounds;
-use crate::raster::{AtomicsMode, FrameSettings};
+use crate::raster::{AtomicsMode, FrameSettings, DEFAULT_POINT_SIZE};
 
 /// Everything that decides the frames of a render, apart from the cloud.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -48,10 +49,17 @@ impl RenderRequest {
         camera_for_frame(&self.camera_path, &self.lens, index, bounds, self.aspect())
     }
 
-    /// The renderer's settings of frame `index` for a cloud with `bounds`.
-    pub fn frame_settings(&self, index: u32, bounds: &WorldBounds) -> FrameSettings {
+    /// The renderer's settings of frame `index` for a cloud with `bounds` whose points lie
+    /// `spacing` apart (world units; `None` when unknown), which sizes adaptive points.
+    pub fn frame_settings(
+        &self,
+        index: u32,
+        bounds: &WorldBounds,
+        spacing: Option<f64>,
+    ) -> FrameSettings {
         let RenderOptions {
             point_size,
+            round_points,
             quality,
             shading,
             color_mode: _, // applied to the cloud's colours before upload
@@ -68,7 +76,9 @@ impl RenderRequest {
             width: self.width,
             height: self.height,
             camera: self.camera(index, bounds),
-            point_size,
+            point_size: DEFAULT_POINT_SIZE,
+            adaptive_size: None,
+            round_points,
             background,
             atomics: AtomicsMode::Auto,
             quality,
@@ -77,6 +87,7 @@ impl RenderRequest {
             supersample,
             read_depth: depth,
         }
+        .with_point_size(point_size, bounds, spacing)
     }
 }
 

@@ -6,10 +6,44 @@ use serde::{Deserialize, Serialize};
 
 use crate::color::{ColorMode, ColorRamp, ColorRange, Coloring};
 use crate::filter::PointFilter;
-use crate::raster::{FillSettings, Quality, Shading, DEFAULT_BACKGROUND, DEFAULT_POINT_SIZE};
+use crate::raster::{FillSettings, Quality, Shading, DEFAULT_BACKGROUND};
 
 /// No supersampling unless asked for.
 pub const DEFAULT_SUPERSAMPLE: u32 = 1;
+
+/// How large each point is drawn.
+///
+/// Stored and sent as one number, 0 meaning adaptive, so that jobs stored with a plain size
+/// read as that fixed size.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(from = "u32", into = "u32")]
+pub enum PointSize {
+    /// Potree's adaptive size: the cloud's point spacing as it projects at each point's depth,
+    /// rounded, from 1 to [`crate::raster::MAX_ADAPTIVE_POINT_SIZE`] pixels, so that a
+    /// surface reads closed without hiding detail ([`super::point_size`]).
+    #[default]
+    Adaptive,
+    /// A square of this many pixels a side.
+    Fixed(u32),
+}
+
+impl From<u32> for PointSize {
+    fn from(size: u32) -> Self {
+        match size {
+            0 => PointSize::Adaptive,
+            side => PointSize::Fixed(side),
+        }
+    }
+}
+
+impl From<PointSize> for u32 {
+    fn from(size: PointSize) -> u32 {
+        match size {
+            PointSize::Adaptive => 0,
+            PointSize::Fixed(side) => side,
+        }
+    }
+}
 
 /// The options of a render request that do not move with the camera.
 ///
@@ -17,8 +51,10 @@ pub const DEFAULT_SUPERSAMPLE: u32 = 1;
 /// written before them still read.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct RenderOptions {
-    /// Side of the square each point covers, in pixels.
-    pub point_size: u32,
+    pub point_size: PointSize,
+    /// Draw each point as the disc its square bounds (sizes of 4 pixels and more).
+    #[serde(default)]
+    pub round_points: bool,
     pub quality: Quality,
     pub shading: Shading,
     pub color_mode: ColorMode,
@@ -57,7 +93,8 @@ fn default_supersample() -> u32 {
 impl Default for RenderOptions {
     fn default() -> Self {
         Self {
-            point_size: DEFAULT_POINT_SIZE,
+            point_size: PointSize::Adaptive,
+            round_points: false,
             quality: Quality::Basic,
             shading: Shading::None,
             color_mode: ColorMode::Rgb,

@@ -185,7 +185,8 @@ fn the_lens_sets_the_projection_and_the_clipping_planes() {
 fn frame_settings_carry_every_option() {
     let mut r = request(CameraPath::Still(StillCamera::default()));
     r.render = RenderOptions {
-        point_size: 3,
+        point_size: PointSize::Fixed(3),
+        round_points: true,
         quality: Quality::High { depth_band: 0.02 },
         shading: Shading::Edl {
             strength: 2.0,
@@ -204,8 +205,9 @@ fn frame_settings_carry_every_option() {
         lod_error: Some(0.5),
         filter: crate::filter::PointFilter::default(),
     };
-    let s = r.frame_settings(0, &bounds());
+    let s = r.frame_settings(0, &bounds(), Some(0.1));
     assert_eq!((s.width, s.height, s.point_size), (64, 48, 3));
+    assert_eq!((s.adaptive_size, s.round_points), (None, true));
     assert_eq!(s.quality, r.render.quality);
     assert_eq!(s.shading, r.render.shading);
     assert_eq!(s.fill, r.render.fill);
@@ -313,7 +315,10 @@ fn invalid_requests_name_the_field() {
         }),
         "camera_path.lens.far"
     );
-    assert_eq!(with(&|r| r.render.point_size = 0), "render.point_size");
+    assert_eq!(
+        with(&|r| r.render.point_size = PointSize::Fixed(0)),
+        "render.point_size"
+    );
     assert_eq!(
         with(&|r| r.render.quality = Quality::High {
             depth_band: f32::NAN
@@ -424,7 +429,12 @@ fn options_stored_before_supersampling_and_lenses_read_with_the_defaults() {
         "render":{"point_size":1,"quality":"Basic","shading":"None","color_mode":"Rgb",
             "background":[24,24,28,255]}}"#;
     let r: RenderRequest = serde_json::from_str(stored).expect("today's shape reads");
-    assert_eq!(r.render, RenderOptions::default());
+    // A stored size stays fixed; newer options take their defaults.
+    let render = RenderOptions {
+        point_size: PointSize::Fixed(1),
+        ..RenderOptions::default()
+    };
+    assert_eq!(r.render, render);
     assert_eq!(r.lens, Lens::default());
     assert_eq!(
         r.camera_path,

@@ -9,7 +9,7 @@ use super::camera_path::{
     CameraPath, Keyframe, Lens, Point3, StillCamera, Turntable, FOV_Y_DEG_RANGE, MAX_COORDINATE,
     MIN_KEYFRAMES, TURNTABLE_DEGREES_RANGE, TURNTABLE_ELEVATION_RANGE, VIEW_ELEVATION_RANGE,
 };
-use super::{RenderOptions, RenderRequest};
+use super::{PointSize, RenderOptions, RenderRequest};
 use crate::color::ColorRange;
 use crate::cut::MAX_LOD_ERROR_PX;
 use crate::filter::{IntensityRange, PointFilter, MAX_RETURN_NUMBER};
@@ -350,8 +350,14 @@ impl RenderOptions {
     }
 
     fn validate(&self) -> Checked {
-        let point_size = (self.point_size, 1..=MAX_POINT_SIZE);
-        counted("render.point_size", "point size", point_size, " pixels")?;
+        if let PointSize::Fixed(side) = self.point_size {
+            counted(
+                "render.point_size",
+                "point size",
+                (side, 1..=MAX_POINT_SIZE),
+                " pixels",
+            )?;
+        }
         self.validate_color_ramp()?;
         if let Quality::High { depth_band } = self.quality {
             within(

@@ -11,6 +11,7 @@ mod filters;
 mod golden;
 mod high_quality;
 mod outputs;
+mod point_shapes;
 mod real_scans;
 mod upload;
 
