@@ -54,6 +54,9 @@ pub enum ComputeMode {
     /// The basic mode on the 32-bit atomics path (depth pass, then colour pass), the fallback
     /// for adapters without 64-bit atomics: the same image by another route.
     BasicAtomic32,
+    /// The basic mode, then Eye-Dome Lighting (default strength and radius): what the
+    /// default shading costs.
+    Edl,
     /// The basic mode, then Pintus et al.'s visibility and filling (default kernel) and
     /// Eye-Dome Lighting (default strength and radius).
     FillEdl,
@@ -62,9 +65,10 @@ pub enum ComputeMode {
 }
 
 impl ComputeMode {
-    pub const ALL: [ComputeMode; 4] = [
+    pub const ALL: [ComputeMode; 5] = [
         ComputeMode::HighQuality,
         ComputeMode::BasicAtomic32,
+        ComputeMode::Edl,
         ComputeMode::FillEdl,
         ComputeMode::FillPintus,
     ];
@@ -73,6 +77,7 @@ impl ComputeMode {
         match self {
             ComputeMode::HighQuality => "compute-hq",
             ComputeMode::BasicAtomic32 => "compute-basic-32",
+            ComputeMode::Edl => "compute-edl",
             ComputeMode::FillEdl => "compute-fill-edl",
             ComputeMode::FillPintus => "compute-fill-pintus",
         }
@@ -87,6 +92,10 @@ impl ComputeMode {
             },
             ComputeMode::BasicAtomic32 => FrameSettings {
                 atomics: AtomicsMode::Force32,
+                ..*basic
+            },
+            ComputeMode::Edl => FrameSettings {
+                shading: Shading::EDL,
                 ..*basic
             },
             ComputeMode::FillEdl => FrameSettings {

@@ -133,6 +133,8 @@ enum BenchMode {
     /// The basic mode on the 32-bit atomics path.
     #[value(name = "basic-32")]
     Basic32,
+    /// Eye-Dome Lighting.
+    Edl,
     /// Fill (Pintus et al.) and Eye-Dome Lighting.
     FillEdl,
     /// Fill and Pintus et al.'s shading.
@@ -144,6 +146,7 @@ impl From<BenchMode> for ComputeMode {
         match mode {
             BenchMode::Hq => ComputeMode::HighQuality,
             BenchMode::Basic32 => ComputeMode::BasicAtomic32,
+            BenchMode::Edl => ComputeMode::Edl,
             BenchMode::FillEdl => ComputeMode::FillEdl,
             BenchMode::FillPintus => ComputeMode::FillPintus,
         }

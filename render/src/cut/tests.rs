@@ -537,3 +537,21 @@ fn fidelity_by_pixel_error() {
         }
     }
 }
+
+/// Adaptive points are as large from a store as from the whole cloud: the leaves' spacing is
+/// the points' spacing.
+#[test]
+fn a_store_and_its_cloud_have_one_spacing() {
+    let fixture = fixture(60_000);
+    let from_points = fixture.cloud.spacing().expect("the cloud's spacing");
+    let from_leaves = fixture
+        .dataset
+        .hierarchy()
+        .point_spacing()
+        .expect("the store's spacing");
+    let ratio = from_leaves / from_points;
+    assert!(
+        (0.7..1.5).contains(&ratio),
+        "leaves {from_leaves}, points {from_points}"
+    );
+}
