@@ -26,6 +26,20 @@ fn depth_at(x: i32, y: i32) -> f32 {
     return depth[u32(y) * frame.width + u32(x)];
 }
 
+// The eight sample directions, 45 degrees apart: constants rather than a cos and a sin per
+// sample, which cost lavapipe more than the rest of the pass (docs/perf/edl-constants.md).
+const DIAGONAL: f32 = 0.70710677;
+const DIRECTIONS = array<vec2<f32>, 8>(
+    vec2<f32>(1.0, 0.0),
+    vec2<f32>(DIAGONAL, DIAGONAL),
+    vec2<f32>(0.0, 1.0),
+    vec2<f32>(-DIAGONAL, DIAGONAL),
+    vec2<f32>(-1.0, 0.0),
+    vec2<f32>(-DIAGONAL, -DIAGONAL),
+    vec2<f32>(0.0, -1.0),
+    vec2<f32>(DIAGONAL, -DIAGONAL),
+);
+
 @compute @workgroup_size(SCREEN_TILE, SCREEN_TILE)
 fn shade(@builtin(global_invocation_id) id: vec3<u32>) {
     if id.x >= frame.width || id.y >= frame.height {
@@ -33,16 +47,17 @@ fn shade(@builtin(global_invocation_id) id: vec3<u32>) {
     }
     let pixel = id.y * frame.width + id.x;
     let here = depth[pixel];
+    let surface = is_surface(here);
+    let log_here = log2(here);
     var sum = 0.0;
     for (var i = 0u; i < 8u; i++) {
-        let angle = 6.2831855 * f32(i) / 8.0;
-        let offset = round(vec2<f32>(cos(angle), sin(angle)) * frame.edl_radius);
+        let offset = round(DIRECTIONS[i] * frame.edl_radius);
         let there = depth_at(i32(id.x) + i32(offset.x), i32(id.y) + i32(offset.y));
         if !is_surface(there) {
             continue;
         }
-        if is_surface(here) {
-            sum += max(0.0, log2(here) - log2(there));
+        if surface {
+            sum += max(0.0, log_here - log2(there));
         } else {
             sum += OUTLINE_RESPONSE;
         }
@@ -53,6 +68,6 @@ fn shade(@builtin(global_invocation_id) id: vec3<u32>) {
     }
     let rgba = unpack4x8unorm(color[pixel]);
     // Outlines on a transparent background become opaque as they darken.
-    let alpha = select(rgba.a, mix(1.0, rgba.a, shade), !is_surface(here));
+    let alpha = select(rgba.a, mix(1.0, rgba.a, shade), !surface);
     color[pixel] = pack_unorm4x8(vec4<f32>(rgba.rgb * shade, alpha));
 }
