@@ -12,6 +12,7 @@ mod golden;
 mod high_quality;
 mod outputs;
 mod real_scans;
+mod tiles;
 mod upload;
 
 use glam::{DVec3, DVec4};
