@@ -126,6 +126,7 @@ impl TileGrid {
         let mut best: Option<(u64, u64, TileGrid)> = None;
         for rows in 1..=height {
             let core_height = height.div_ceil(rows);
+            // Each core height once, at the fewest rows that give it.
             if rows > 1 && height.div_ceil(rows - 1) == core_height {
                 continue;
             }
@@ -143,8 +144,6 @@ impl TileGrid {
             // As many columns as needed, then cores of even width.
             let core_width = width.div_ceil(width.div_ceil(core_width));
             let tile_width = tile_side(core_width, drawn.width);
-            let tiles = u64::from(width.div_ceil(core_width)) * u64::from(rows);
-            let drawn_pixels = tiles * u64::from(tile_width) * u64::from(tile_height);
             let grid = TileGrid {
                 width,
                 height,
@@ -155,6 +154,9 @@ impl TileGrid {
                 tile_height,
                 apron,
             };
+            let tiles = u64::from(grid.columns()) * u64::from(grid.rows());
+            // Of as many tiles, the fewest pixels drawn twice.
+            let drawn_pixels = tiles * u64::from(tile_width) * u64::from(tile_height);
             if best.is_none_or(|(t, p, _)| (tiles, drawn_pixels) < (t, p)) {
                 best = Some((tiles, drawn_pixels, grid));
             }
