@@ -15,7 +15,7 @@
 @group(0) @binding(3) var<storage, read_write> shade_sum: array<f32>;
 
 fn pixel_footprint(d: f32) -> f32 {
-    let height = 2.0 * params.unproject.y / f32(params.height);
+    let height = 2.0 * params.unproject.y / f32(params.frame_size.y);
     return select(height, height * d, params.perspective == 1u);
 }
 

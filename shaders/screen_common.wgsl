@@ -9,7 +9,8 @@ struct ScreenParams {
     kernel_radius: u32,
     // 1 for a perspective camera, 0 for an orthographic one.
     perspective: u32,
-    // View-space x and y of a pixel: ndc * unproject, times the depth in perspective.
+    // View-space x and y of a pixel: ndc * unproject, times the depth in perspective (ndc of
+    // the whole frame, `frame_offset` and `frame_size`).
     unproject: vec2<f32>,
     // Visibility: a pixel is visible when the solid angle left open around its
     // point-to-camera ray is at least this (steradians).
@@ -28,6 +29,10 @@ struct ScreenParams {
     // Visibility: the pixels it classifies, x0, y0, x1, y1 (the footprint grown by the
     // kernel's radius and a pixel); all others are fixed background.
     visibility_area: vec4<u32>,
+    // Where these images lie in the frame they belong to: pixel (0, 0)'s position in it, and
+    // its size (a tile of a frame too large for one pass; else 0, 0 and width, height).
+    frame_offset: vec2<u32>,
+    frame_size: vec2<u32>,
 }
 
 @group(0) @binding(0) var<uniform> params: ScreenParams;
@@ -46,9 +51,12 @@ fn infinite_depth() -> f32 {
 // The view-space point of pixel (x, y) at linear depth d: camera at the origin, looking
 // along +z, x right and y up.
 fn view_point(params: ScreenParams, x: i32, y: i32, d: f32) -> vec3<f32> {
+    // The frame's pixel in integers first, so that a tile computes what the whole frame would.
+    let frame_x = x + i32(params.frame_offset.x);
+    let frame_y = y + i32(params.frame_offset.y);
     let ndc = vec2<f32>(
-        (f32(x) + 0.5) / f32(params.width) * 2.0 - 1.0,
-        1.0 - (f32(y) + 0.5) / f32(params.height) * 2.0,
+        (f32(frame_x) + 0.5) / f32(params.frame_size.x) * 2.0 - 1.0,
+        1.0 - (f32(frame_y) + 0.5) / f32(params.frame_size.y) * 2.0,
     );
     let scale = select(1.0, d, params.perspective == 1u);
     return vec3<f32>(ndc * params.unproject * scale, d);

@@ -408,3 +408,32 @@ fn adaptive_points_close_a_sparse_cloud_and_say_their_size() {
     let text = String::from_utf8_lossy(&output.stdout);
     assert!(text.contains("point size: 6 pixels"), "{text}");
 }
+
+#[test]
+fn an_image_wider_than_one_pass_allows_is_drawn_in_tiles() {
+    // 16384 x 1100 in basic quality needs a 137 MiB framebuffer, more than lavapipe binds at
+    // once (128 MiB): the frame is drawn in tiles and stitched.
+    let scene = Scene::new();
+    let path = scene.path("wide.png");
+    assert_ok(&pointfarm(&[
+        "render",
+        &scene.cloud,
+        "--local",
+        "--size",
+        "16384x1100",
+        "--out",
+        &arg(&path),
+    ]));
+    let image = image::open(&path).expect("read").into_rgba8();
+    assert_eq!(image.dimensions(), (16384, 1100));
+    let background = pointfarm_render::raster::DEFAULT_BACKGROUND;
+    let drawn_in = |columns: std::ops::Range<u32>| {
+        columns
+            .flat_map(|x| (0..1100).map(move |y| (x, y)))
+            .filter(|&(x, y)| image.get_pixel(x, y).0 != background)
+            .count()
+    };
+    // The scene sits in the middle, across the seam of two halves.
+    assert!(drawn_in(7900..8192) > 1000 && drawn_in(8192..8484) > 1000);
+    assert_eq!(drawn_in(0..2000) + drawn_in(14384..16384), 0);
+}

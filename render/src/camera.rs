@@ -336,9 +336,64 @@ impl Camera {
             height,
         }
     }
+
+    /// The transform of the `window` of the `frame_width` x `frame_height` image this camera
+    /// sees: the same frustum cut to that rectangle of pixels (an off-axis projection,
+    /// perspective or orthographic), so that a point lands in the window at its pixel in the
+    /// whole image less the window's corner. Tiled rendering draws a large image window by
+    /// window with it.
+    pub fn window_transform(
+        &self,
+        origin: DVec3,
+        frame_width: u32,
+        frame_height: u32,
+        window: ImageWindow,
+    ) -> CameraTransform {
+        let whole = self.transform(origin, frame_width, frame_height);
+        let (fw, fh) = (f64::from(frame_width), f64::from(frame_height));
+        let (x0, y0) = (f64::from(window.x0), f64::from(window.y0));
+        let (w, h) = (f64::from(window.width), f64::from(window.height));
+        // The window's NDC as an affine map of the whole image's, applied to clip space (x and
+        // y scale, w carries the shift): pixel x = (ndc + 1) / 2 * width in both, less x0 in
+        // the window; pixel y runs down, ndc y up.
+        let (scale_x, shift_x) = (fw / w, (fw - 2.0 * x0) / w - 1.0);
+        let (scale_y, shift_y) = (fh / h, 1.0 - (fh - 2.0 * y0) / h);
+        let crop = DMat4::from_cols(
+            DVec4::new(scale_x, 0.0, 0.0, 0.0),
+            DVec4::new(0.0, scale_y, 0.0, 0.0),
+            DVec4::new(0.0, 0.0, 1.0, 0.0),
+            DVec4::new(shift_x, shift_y, 0.0, 1.0),
+        );
+        CameraTransform {
+            view_proj: crop * whole.view_proj,
+            width: window.width,
+            height: window.height,
+            ..whole
+        }
+    }
 }
 
-/// What a rasterizer needs of a camera, relative to the dataset origin, in f64.
+/// A rectangle of an image's pixels: columns `x0..x0 + width`, rows `y0..y0 + height`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ImageWindow {
+    pub x0: u32,
+    pub y0: u32,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl ImageWindow {
+    /// All of a `width` x `height` image.
+    pub fn whole(width: u32, height: u32) -> Self {
+        Self {
+            x0: 0,
+            y0: 0,
+            width,
+            height,
+        }
+    }
+}
+
 /// The unit vector from a target towards a camera at `azimuth_deg` (counter-clockwise from
 /// +X) and `elevation_deg` (above the horizon).
 fn view_direction(azimuth_deg: f64, elevation_deg: f64) -> DVec3 {
@@ -359,6 +414,7 @@ fn corners_around_center(bounds: &WorldBounds) -> [DVec3; 8] {
     })
 }
 
+/// What a rasterizer needs of a camera, relative to the dataset origin, in f64.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CameraTransform {
     pub view_proj: DMat4,
@@ -497,6 +553,46 @@ mod tests {
                 "({px}, {py})"
             );
             assert!((depth - camera.position.distance(camera.target)).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn a_window_transform_puts_points_at_their_pixel_less_the_windows_corner() {
+        let b = bounds();
+        let origin = b.center();
+        let (width, height) = (1000, 600);
+        let window = ImageWindow {
+            x0: 730,
+            y0: 41,
+            width: 270,
+            height: 119,
+        };
+        for projection in [
+            Projection::Perspective { fov_y_deg: 50.0 },
+            Projection::Orthographic { height: 80.0 },
+        ] {
+            let camera = Camera::framing(&b, 1000.0 / 600.0, -60.0, 30.0, projection);
+            let whole = camera.transform(origin, width, height);
+            let part = camera.window_transform(origin, width, height, window);
+            assert_eq!((part.width, part.height), (270, 119));
+            for i in 0..8 {
+                let p = DVec3::new(
+                    if i & 1 == 0 { -40.0 } else { 45.0 },
+                    if i & 2 == 0 { -20.0 } else { 22.0 },
+                    if i & 4 == 0 { -12.0 } else { 14.0 },
+                );
+                let (x, y, depth) = whole.project(p).expect("in depth range");
+                let (wx, wy, window_depth) = part.project(p).expect("in depth range");
+                assert!(
+                    (wx - (x - 730.0)).abs() < 1e-9 && (wy - (y - 41.0)).abs() < 1e-9,
+                    "{projection:?}: ({x}, {y}) became ({wx}, {wy})"
+                );
+                assert_eq!(depth, window_depth);
+            }
+            // The whole image as its own window is the plain transform.
+            let same =
+                camera.window_transform(origin, width, height, ImageWindow::whole(width, height));
+            assert!(same.view_proj.abs_diff_eq(whole.view_proj, 1e-12));
         }
     }
 

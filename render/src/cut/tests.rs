@@ -315,6 +315,31 @@ fn a_frame_is_the_same_from_a_cold_and_a_warm_cache() {
 }
 
 #[test]
+fn a_cut_too_large_for_one_pass_is_drawn_in_tiles_as_in_one() {
+    let (fixture, mut renderer, first) = basic_frame(40_000);
+    let settings = FrameSettings {
+        shading: Shading::EDL,
+        ..first
+    };
+    let (whole, whole_report) = fresh_cut(&mut renderer, &fixture, DEFAULT_LOD_ERROR_PX, &settings);
+    let mut tiled = Renderer::new(gpu());
+    tiled.set_tile_limit_bytes(200 * 150 * 8 / 4);
+    assert!(tiled.tile_grid(&settings).is_some(), "drawn in tiles");
+    let (frame, report) = fresh_cut(&mut tiled, &fixture, DEFAULT_LOD_ERROR_PX, &settings);
+    assert_eq!(
+        report.counts.points_rendered,
+        whole_report.counts.points_rendered
+    );
+    // As in `raster/tests/tiles.rs`: a point within rounding of a pixel's edge may move.
+    let diff = compare_images_within("cut-tiles", &frame.image, &whole.image, 0);
+    assert!(
+        diff.differing <= 200 * 150 / 2000,
+        "{} pixels differ",
+        diff.differing
+    );
+}
+
+#[test]
 fn the_caches_stay_within_their_budgets_and_evict() {
     let fixture = fixture(120_000);
     let mut renderer = Renderer::new(gpu());

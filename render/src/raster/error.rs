@@ -13,9 +13,12 @@ pub enum RenderError {
         "image size {width}x{height} is invalid: each side must be 1 to {MAX_IMAGE_SIDE} pixels"
     )]
     ImageSize { width: u32, height: u32 },
+    /// Even the smallest tile (one pixel and the overlap its passes read around it) exceeds
+    /// the adapter's binding limit; larger frames are otherwise drawn in tiles.
     #[error(
-        "image size {width}x{height} needs a {needed_mib} MiB framebuffer, more than this \
-         adapter's {limit_mib} MiB storage binding limit"
+        "image size {width}x{height} cannot be drawn in tiles on this adapter: even the \
+         smallest tile needs a {needed_mib} MiB framebuffer, more than its {limit_mib} MiB \
+         storage binding limit"
     )]
     ImageTooLarge {
         width: u32,

@@ -37,6 +37,7 @@ mod resolve_pass;
 mod screen_params;
 mod settings;
 mod targets;
+mod tiles;
 mod timing;
 mod uniforms;
 mod visibility_pass;
@@ -71,6 +72,7 @@ use point_pipelines::SplatShape;
 use resolve_pass::{PixelRun, ResolveFrame, ResolvePass};
 use screen_params::{ScreenFrame, ScreenUniforms};
 use targets::FrameTargets;
+use tiles::{FrameWindow, TileGrid, TiledCounts};
 use timing::GpuTimer;
 use uniforms::frame_uniforms;
 use visibility_pass::VisibilityPass;
@@ -92,6 +94,10 @@ pub struct Renderer {
     timer: Option<GpuTimer>,
     targets: Option<FrameTargets>,
     max_chunk_points: usize,
+    /// The most bytes one per-pixel buffer may take: larger frames are drawn in tiles.
+    tile_limit_bytes: u64,
+    /// The last frame's counts when it was drawn in tiles, summed over them.
+    tiled: Option<TiledCounts>,
 }
 
 impl Renderer {
@@ -132,6 +138,8 @@ impl Renderer {
             timer: caps.timestamps.then(|| GpuTimer::new(device, &gpu.queue)),
             targets: None,
             max_chunk_points,
+            tile_limit_bytes: caps.max_storage_binding_bytes.min(caps.max_buffer_bytes),
+            tiled: None,
             gpu,
         }
     }
@@ -151,6 +159,13 @@ impl Renderer {
         self.max_chunk_points = self.max_chunk_points.min(points.max(1));
     }
 
+    /// Lowers the bytes a per-pixel buffer may take below the adapter's limits, so that tests
+    /// can draw small frames in tiles.
+    #[cfg(test)]
+    pub(crate) fn set_tile_limit_bytes(&mut self, bytes: u64) {
+        self.tile_limit_bytes = self.tile_limit_bytes.min(bytes);
+    }
+
     /// Times passes with host clocks even where the adapter has timestamp queries (for
     /// adapters whose timestamps are unreliable, and to test that path).
     pub fn use_host_clocks(&mut self) {
@@ -159,8 +174,11 @@ impl Renderer {
 
     /// Batches the last frame skipped whole because they were hidden behind points drawn
     /// before them (occlusion culling); zero before the first frame. A readback: for tests
-    /// and the benchmark, outside any timed frame.
+    /// and the benchmark, outside any timed frame. Summed over the tiles of a tiled frame.
     pub fn occlusion_skipped(&self) -> Result<OcclusionSkipped, RenderError> {
+        if let Some(tiled) = &self.tiled {
+            return Ok(tiled.occlusion_skipped);
+        }
         match &self.targets {
             Some(targets) => Ok(occlusion::read_skipped(&self.gpu, &targets.occlusion)?),
             None => Ok(OcclusionSkipped::default()),
@@ -168,14 +186,24 @@ impl Renderer {
     }
 
     /// Entries of the last frame's batch tables: the batches that could be in view, a batch
-    /// at the view's edge once per run of it listed; zero before the first frame.
+    /// at the view's edge once per run of it listed; zero before the first frame. Summed over
+    /// the tiles of a tiled frame (a batch in view of two tiles counts twice).
     pub fn listed_batches(&self) -> u32 {
-        self.batches.total()
+        self.tiled
+            .map_or_else(|| self.batches.total(), |tiled| tiled.listed_batches)
     }
 
-    /// Points of the last frame's listed entries: what the point passes read.
+    /// Points of the last frame's listed entries: what the point passes read (summed over the
+    /// tiles of a tiled frame).
     pub fn listed_points(&self) -> u64 {
-        self.batches.listed_points()
+        self.tiled
+            .map_or_else(|| self.batches.listed_points(), |tiled| tiled.listed_points)
+    }
+
+    /// How the frame of `settings` is split in tiles; `None` when it is drawn in one pass.
+    #[cfg(test)]
+    pub(crate) fn tile_grid(&self, settings: &FrameSettings) -> Option<TileGrid> {
+        TileGrid::plan(settings, self.tile_limit_bytes).expect("tileable")
     }
 
     /// Uploads a cloud; its buffers stay resident for as many frames as needed.
@@ -212,25 +240,9 @@ impl Renderer {
                 return Err(RenderError::Pintus { levels, exponent });
             }
         }
+        let unscaled = settings;
         let settings = &settings.scaled_for_supersampling();
         settings.validate_view(MAX_IMAGE_SIDE)?;
-        let (width, height) = (settings.width, settings.height);
-        // The largest per-pixel binding: the high-quality accumulator (4 words), else the point
-        // framebuffer (2 words).
-        let bytes_per_pixel = match settings.quality {
-            Quality::Basic => 8,
-            Quality::High { .. } => 16,
-        };
-        let needed = width as u64 * height as u64 * bytes_per_pixel;
-        let limit = self.gpu.capabilities.max_storage_binding_bytes;
-        if needed > limit {
-            return Err(RenderError::ImageTooLarge {
-                width,
-                height,
-                needed_mib: needed.div_ceil(1 << 20),
-                limit_mib: limit >> 20,
-            });
-        }
         if settings.point_size == 0 || settings.point_size > MAX_POINT_SIZE {
             return Err(RenderError::PointSize(settings.point_size));
         }
@@ -249,41 +261,52 @@ impl Renderer {
                 return Err(RenderError::Edl { strength, radius });
             }
         }
+        // A frame too large for one pass is drawn in tiles, unless not even they fit.
+        TileGrid::plan(unscaled, self.tile_limit_bytes)?;
         Ok(())
     }
 
-    /// Renders one frame of `cloud`.
+    /// Renders one frame of `cloud`: in one pass, or in tiles where its buffers would exceed
+    /// the adapter's binding limit (`tiles.rs`).
     pub fn render(
         &mut self,
         cloud: &GpuPointCloud,
         settings: &FrameSettings,
     ) -> Result<Frame, RenderError> {
         self.validate(settings)?;
+        self.tiled = None;
+        if let Some(grid) = TileGrid::plan(settings, self.tile_limit_bytes)? {
+            let (frame, counts) = tiles::render(self, cloud, settings, &grid)?;
+            self.tiled = Some(counts);
+            return Ok(frame);
+        }
         if settings.supersample > 1 {
-            let mut frame = self.render_once(cloud, &settings.scaled_for_supersampling())?;
+            let scaled = settings.scaled_for_supersampling();
+            let whole = FrameWindow::whole(scaled.width, scaled.height);
+            let mut frame = self.render_once(cloud, &scaled, whole)?;
             let started = Instant::now();
             frame = downsample(frame, settings.supersample);
             let ms = started.elapsed().as_secs_f64() * 1e3;
             frame.timings.push(Stage::Downsample, ms, Clock::Host);
             return Ok(frame);
         }
-        self.render_once(cloud, settings)
+        let whole = FrameWindow::whole(settings.width, settings.height);
+        self.render_once(cloud, settings, whole)
     }
 
-    /// Renders at the settings' own size.
+    /// Renders at the settings' own size: `view`, all of the frame or one of its tiles.
     fn render_once(
         &mut self,
         cloud: &GpuPointCloud,
         settings: &FrameSettings,
+        view: FrameWindow,
     ) -> Result<Frame, RenderError> {
         let _span = tracing::debug_span!("frame", width = settings.width, height = settings.height)
             .entered();
         let mut timings = StageTimings::default();
 
         let started = Instant::now();
-        let transform = settings
-            .camera
-            .transform(cloud.origin(), settings.width, settings.height);
+        let transform = view.transform(&settings.camera, cloud.origin());
         self.batches.update(
             &self.gpu.device,
             &self.gpu.queue,
@@ -312,7 +335,7 @@ impl Renderer {
         }
         if settings.fill.is_some() || matches!(settings.shading, Shading::Pintus { .. }) {
             self.screen_uniforms
-                .write(&self.gpu.queue, settings, self.batches.footprint());
+                .write(&self.gpu.queue, settings, self.batches.footprint(), view);
         }
         let footprint = self.batches.footprint();
         let Some(resolve_area) = self

@@ -7,6 +7,7 @@ use bytemuck::{Pod, Zeroable};
 use super::pipeline::bind_resources;
 use super::pixel_rect::PixelRect;
 use super::targets::FrameTargets;
+use super::tiles::FrameWindow;
 use super::{FrameSettings, Shading, MAX_PINTUS_LEVELS};
 use crate::camera::Projection;
 
@@ -27,6 +28,9 @@ pub(crate) struct ScreenParams {
     pub inverse_total_weight: f32,
     /// The pixels the visibility pass classifies (`x0, y0, x1, y1`); all others are fixed.
     pub visibility_area: [u32; 4],
+    /// Where these images lie in their frame: the first pixel's position, the frame's size.
+    pub frame_offset: [u32; 2],
+    pub frame_size: [u32; 2],
 }
 
 /// Uniform buffer offsets must be multiples of this (wgpu's default limit).
@@ -50,9 +54,15 @@ impl ScreenUniforms {
     }
 
     /// Writes the frame's parameters (before the frame's passes are submitted); the frame's
-    /// points can land only in `footprint`.
-    pub fn write(&self, queue: &wgpu::Queue, settings: &FrameSettings, footprint: PixelRect) {
-        let base = ScreenParams::new(settings, footprint);
+    /// points can land only in `footprint`; its images are `view` of the whole frame.
+    pub fn write(
+        &self,
+        queue: &wgpu::Queue,
+        settings: &FrameSettings,
+        footprint: PixelRect,
+        view: FrameWindow,
+    ) {
+        let base = ScreenParams::new(settings, footprint, view);
         queue.write_buffer(&self.buffer, 0, bytemuck::bytes_of(&base));
         if let Shading::Pintus { levels, exponent } = settings.shading {
             let levels = levels.min(MAX_PINTUS_LEVELS);
@@ -121,8 +131,9 @@ pub(crate) fn level_weight(k: u32, exponent: f32) -> f32 {
 }
 
 impl ScreenParams {
-    pub fn new(settings: &FrameSettings, footprint: PixelRect) -> Self {
-        let aspect = settings.width as f64 / settings.height as f64;
+    /// `settings` at the size of `view`'s window, which the projection's aspect is not.
+    pub fn new(settings: &FrameSettings, footprint: PixelRect, view: FrameWindow) -> Self {
+        let aspect = f64::from(view.frame_width) / f64::from(view.frame_height);
         let (perspective, half_height) = match settings.camera.projection {
             Projection::Perspective { fov_y_deg } => (1, (fov_y_deg.to_radians() * 0.5).tan()),
             Projection::Orthographic { height } => (0, height * 0.5),
@@ -142,6 +153,8 @@ impl ScreenParams {
             level_weight: 0.0,
             inverse_total_weight: 0.0,
             visibility_area: [area.x0, area.y0, area.x1, area.y1],
+            frame_offset: [view.window.x0, view.window.y0],
+            frame_size: [view.frame_width, view.frame_height],
         }
     }
 }

@@ -85,6 +85,22 @@ impl StageTimings {
         self.stages.push(StageTiming { stage, ms, clock });
     }
 
+    /// Adds `ms` to `stage`'s entry, or appends one: a frame drawn in tiles reports each stage
+    /// once, summed over its tiles.
+    pub(crate) fn add_ms(&mut self, stage: Stage, ms: f64, clock: Clock) {
+        match self.stages.iter_mut().find(|t| t.stage == stage) {
+            Some(timing) => timing.ms += ms,
+            None => self.push(stage, ms, clock),
+        }
+    }
+
+    /// Adds each stage of `other` ([`StageTimings::add_ms`]).
+    pub(crate) fn add(&mut self, other: &StageTimings) {
+        for timing in &other.stages {
+            self.add_ms(timing.stage, timing.ms, timing.clock);
+        }
+    }
+
     /// Milliseconds spent in `stage` (summed if it ran more than once), if it ran.
     pub fn get(&self, stage: Stage) -> Option<f64> {
         let mut found = None;

@@ -13,6 +13,7 @@ mod high_quality;
 mod outputs;
 mod point_shapes;
 mod real_scans;
+mod tiles;
 mod upload;
 
 use glam::{DVec3, DVec4};
