@@ -162,7 +162,7 @@ pub struct RenderArgs {
     /// Screen-space shading: edl (Eye-Dome Lighting, shapes read without colour or normals),
     /// pintus (Pintus et al.'s shape depiction: directional light, ambient occlusion and
     /// lines from depth alone; best with --fill) or none.
-    #[arg(long, value_enum, default_value = "none")]
+    #[arg(long, value_enum, default_value_t = ShadingArg::of(RenderOptions::default().shading))]
     shading: ShadingArg,
     /// Pintus shading: number of smoothing levels (1 to 32); more adds broader, softer
     /// ambient shading.
@@ -241,6 +241,17 @@ enum ShadingArg {
     None,
     Edl,
     Pintus,
+}
+
+impl ShadingArg {
+    /// The flag's value for `shading`'s kind (its parameters have flags of their own).
+    fn of(shading: Shading) -> Self {
+        match shading {
+            Shading::None => ShadingArg::None,
+            Shading::Edl { .. } => ShadingArg::Edl,
+            Shading::Pintus { .. } => ShadingArg::Pintus,
+        }
+    }
 }
 
 #[derive(Clone, Copy, ValueEnum)]

@@ -9,7 +9,7 @@ use pointfarm_render::color::ColorMode;
 use pointfarm_render::cut::{CutOptions, CutRenderer, CutReport, LodDataset};
 use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
-use pointfarm_render::raster::{FrameSettings, Renderer};
+use pointfarm_render::raster::{FrameSettings, Renderer, Shading};
 use pointfarm_render::request::{
     CameraPath, Lens, PointSize, RenderOptions, RenderRequest, Turntable,
 };
@@ -97,8 +97,8 @@ impl TurntableResult {
 }
 
 /// The settings of frame `index` of an `frames`-frame turntable around `dataset`, with the
-/// request's defaults otherwise (as `pointfarm render --turntable`) but one-pixel points, the
-/// size the recorded figures were measured at.
+/// request's defaults otherwise (as `pointfarm render --turntable`) but one-pixel points and
+/// no shading, as the recorded figures were measured.
 pub fn turntable_settings(
     dataset: &LodDataset,
     width: u32,
@@ -113,6 +113,7 @@ pub fn turntable_settings(
         lens: Lens::default(),
         render: RenderOptions {
             point_size: PointSize::Fixed(1),
+            shading: Shading::None,
             ..RenderOptions::default()
         },
     };

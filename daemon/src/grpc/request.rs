@@ -146,7 +146,16 @@ fn render_options(message: Option<&pb::RenderOptions>) -> Result<RenderOptions, 
         },
         pb::Quality::Basic | pb::Quality::Unspecified => Quality::Basic,
     };
-    let shading = match known_enum("render.shading", o.shading)? {
+    // Unset: the default's kind, with the parameters the message gives.
+    let kind = match known_enum("render.shading", o.shading)? {
+        pb::Shading::Unspecified => match default.shading {
+            Shading::None => pb::Shading::None,
+            Shading::Edl { .. } => pb::Shading::Edl,
+            Shading::Pintus { .. } => pb::Shading::Pintus,
+        },
+        kind => kind,
+    };
+    let shading = match kind {
         pb::Shading::Edl => Shading::Edl {
             strength: o.edl_strength.unwrap_or(Shading::DEFAULT_EDL_STRENGTH),
             radius: o.edl_radius.unwrap_or(Shading::DEFAULT_EDL_RADIUS),

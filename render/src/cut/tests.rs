@@ -47,6 +47,14 @@ fn fixture(points: usize) -> Fixture {
     }
 }
 
+/// The request's defaults without shading: what these tests compare is the points drawn.
+fn basic() -> RenderOptions {
+    RenderOptions {
+        shading: Shading::None,
+        ..RenderOptions::default()
+    }
+}
+
 fn settings(fixture: &Fixture, options: &RenderOptions) -> FrameSettings {
     let camera = Camera::auto(&fixture.cloud.bounds, 4.0 / 3.0);
     let mut settings = FrameSettings::new(200, 150, camera).with_point_size(
@@ -64,7 +72,7 @@ fn settings(fixture: &Fixture, options: &RenderOptions) -> FrameSettings {
 /// A fixture of `points`, a renderer, and the default frame of its automatic camera.
 fn basic_frame(points: usize) -> (Fixture, Renderer, FrameSettings) {
     let fixture = fixture(points);
-    let first = settings(&fixture, &RenderOptions::default());
+    let first = settings(&fixture, &basic());
     (fixture, Renderer::new(gpu()), first)
 }
 
@@ -125,7 +133,7 @@ fn every_mode_at_lod_error_zero_renders_as_the_resident_cloud() {
     let fixture = fixture(60_000);
     let mut renderer = Renderer::new(gpu());
     let mut cut = cut_renderer(&renderer, &fixture, 0.0);
-    let default = RenderOptions::default;
+    let default = basic;
     let filled = |shading| RenderOptions {
         fill: Some(FillSettings::default()),
         shading,
@@ -239,7 +247,7 @@ fn filtered_cuts_at_lod_error_zero_draw_the_filtered_resident_cloud() {
         .render(
             &mut renderer,
             &fixture.dataset,
-            &settings(&fixture, &RenderOptions::default()),
+            &settings(&fixture, &basic()),
             ColorMode::Rgb,
             &PointFilter::default(),
         )
@@ -351,7 +359,7 @@ fn the_caches_stay_within_their_budgets_and_evict() {
         CutRenderer::with_budgets(&renderer, &fixture.dataset, CutOptions::default(), budgets);
     let mut evicted = 0;
     for step in 0..6 {
-        let mut settings = settings(&fixture, &RenderOptions::default());
+        let mut settings = settings(&fixture, &basic());
         settings.camera = Camera::framing(
             &fixture.cloud.bounds,
             4.0 / 3.0,
@@ -396,7 +404,7 @@ fn a_coarser_pixel_error_draws_fewer_points_and_the_default_keeps_the_image() {
     let fixture = fixture(120_000);
     let mut renderer = Renderer::new(gpu());
     for (quality, least) in [(Quality::Basic, 0.96), (Quality::HIGH, 0.99)] {
-        let mut settings = settings(&fixture, &RenderOptions::default());
+        let mut settings = settings(&fixture, &basic());
         settings.quality = quality;
         let (full_frame, full_report) = fresh_cut(&mut renderer, &fixture, 0.0, &settings);
         let (frame, report) = fresh_cut(&mut renderer, &fixture, DEFAULT_LOD_ERROR_PX, &settings);
@@ -408,7 +416,7 @@ fn a_coarser_pixel_error_draws_fewer_points_and_the_default_keeps_the_image() {
         assert!(report.counts.points_rendered <= full_report.counts.points_rendered);
     }
     // Far away, a coarser error draws fewer points.
-    let mut settings = settings(&fixture, &RenderOptions::default());
+    let mut settings = settings(&fixture, &basic());
     let target = fixture.cloud.bounds.center();
     settings.camera.position = target + (settings.camera.position - target) * 3.0;
     settings.camera.far *= 4.0;
@@ -443,7 +451,7 @@ fn a_coarser_pixel_error_draws_fewer_points_and_the_default_keeps_the_image() {
 fn a_cut_draws_at_most_its_pixels_worth_of_points_unless_asked_for_every_point() {
     let fixture = fixture(60_000);
     let mut renderer = Renderer::new(gpu());
-    let mut settings = settings(&fixture, &RenderOptions::default());
+    let mut settings = settings(&fixture, &basic());
     (settings.width, settings.height) = (20, 15);
     let cap = 20 * 15 * crate::cut::MAX_CUT_POINTS_PER_PIXEL;
     let (_, capped) = fresh_cut(&mut renderer, &fixture, 0.05, &settings);
@@ -521,7 +529,7 @@ fn a_damaged_node_is_reported_not_drawn() {
         .expect("damage");
     let mut renderer = Renderer::new(gpu());
     let mut cut = cut_renderer(&renderer, &fixture, 0.0);
-    let settings = settings(&fixture, &RenderOptions::default());
+    let settings = settings(&fixture, &basic());
     let Err(error) = rgb_frame(&mut cut, &mut renderer, &fixture, &settings) else {
         panic!("a damaged node fails the frame");
     };
@@ -546,7 +554,7 @@ fn fidelity_by_pixel_error() {
         (3.0, Quality::HIGH),
     ];
     for (distance, quality) in views {
-        let mut settings = settings(&fixture, &RenderOptions::default());
+        let mut settings = settings(&fixture, &basic());
         settings.quality = quality;
         let target = fixture.cloud.bounds.center();
         settings.camera.position = target + (settings.camera.position - target) * distance;

@@ -96,7 +96,10 @@ impl Default for RenderOptions {
             point_size: PointSize::Adaptive,
             round_points: false,
             quality: Quality::Basic,
-            shading: Shading::None,
+            // Eye-Dome Lighting, as Potree: raw scans read as surfaces, and scans without
+            // colour show their shape, for about the cost of encoding the frame
+            // (docs/gallery.md, docs/perf/edl-constants.md).
+            shading: Shading::EDL,
             color_mode: ColorMode::Rgb,
             color_range: None,
             color_ramp: None,
