@@ -115,7 +115,7 @@ pub fn run(args: InfoArgs) -> Result<()> {
         _ => "",
     };
     let description = dataset_description(dataset_id, files);
-    let summary = description.summary.clone().unwrap_or_default();
+    let summary = description.summary.unwrap_or_default();
     if args.json {
         outln!("{}", crate::admin_json::json_line(&description)?);
     } else if description.files.len() > 1 {
@@ -217,7 +217,7 @@ fn print_report(file: &pb::FileDescription) {
     outln!("  records     {} VLRs, {} EVLRs", file.vlrs, file.evlrs);
     let scale = xyz(file.scale.as_ref());
     let decimals = decimals(scale.into_iter().fold(f64::NAN, f64::max));
-    let bounds = file.bounds.clone().unwrap_or_default();
+    let bounds = file.bounds.unwrap_or_default();
     let (min, max) = (xyz(bounds.min.as_ref()), xyz(bounds.max.as_ref()));
     let axes = ["x", "y", "z"];
     for (axis, label) in axes.iter().enumerate() {
