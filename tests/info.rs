@@ -1,21 +1,31 @@
 //! `pointfarm info` on the real scans (against what the `las` crate reads from them on its
-//! own), on a truncated file and into a closed pipe.
+//! own), on a truncated file and into a closed pipe; and on datasets through a real daemon,
+//! whose report is the one made here of the same files, as text and as the API's JSON.
 
 use std::path::Path;
 
-use pointfarm_tests::{assert_ok, pointfarm, run_into_a_closed_pipe, shared_data};
-use serde_json::Value;
+use pointfarm_proto::v1 as pb;
+use pointfarm_tests::{
+    assert_fails_saying, assert_ok, pointfarm, run_into_a_closed_pipe, shared_data, stdout,
+    ServeProcess,
+};
 
 fn path_arg(path: &Path) -> &str {
     path.to_str().expect("paths are UTF-8")
 }
 
-fn info_json(args: &[&str]) -> Value {
+/// `pointfarm info --json ARGS`, parsed back with the proto3 JSON mapping.
+fn info_json(args: &[&str]) -> pb::DatasetDescription {
     let mut all = vec!["info", "--json"];
     all.extend_from_slice(args);
     let output = pointfarm(&all);
     assert_ok(&output);
-    serde_json::from_slice(&output.stdout).expect("one JSON document")
+    description_of(&output)
+}
+
+fn description_of(output: &std::process::Output) -> pb::DatasetDescription {
+    serde_json::from_slice(&output.stdout)
+        .unwrap_or_else(|e| panic!("not a DatasetDescription ({e}):\n{}", stdout(output)))
 }
 
 /// What the `las` crate reads from a file by itself: the points' bounds, classes and returns.
@@ -59,22 +69,14 @@ fn read_independently(path: &Path) -> Independent {
     }
 }
 
-/// (key, points) pairs of a histogram in the JSON.
-fn histogram(stats: &Value, name: &str, key: &str) -> Vec<(u64, u64)> {
-    stats[name]
-        .as_array()
-        .expect("a histogram")
-        .iter()
-        .map(|entry| {
-            let field = |k: &str| entry[k].as_u64().expect("a count");
-            (field(key), field("points"))
-        })
-        .collect()
+fn xyz(v: Option<&pb::Vec3>) -> [f64; 3] {
+    let v = v.expect("a vector");
+    [v.x, v.y, v.z]
 }
 
-fn array3(value: &Value) -> [f64; 3] {
-    let number = |i: usize| value[i].as_f64().expect("a coordinate");
-    [number(0), number(1), number(2)]
+fn corners(bounds: Option<&pb::Bounds>) -> ([f64; 3], [f64; 3]) {
+    let bounds = bounds.expect("bounds");
+    (xyz(bounds.min.as_ref()), xyz(bounds.max.as_ref()))
 }
 
 #[test]
@@ -87,67 +89,98 @@ fn the_real_scans_report_their_header_points_and_colours() {
         return;
     };
     let document = info_json(&[path_arg(&las), path_arg(&laz), path_arg(&lone_star)]);
-    let files = document["files"].as_array().expect("files");
-    assert_eq!(files.len(), 3);
-    let (autzen_las, autzen_laz, lone) = (&files[0], &files[1], &files[2]);
+    assert_eq!(document.dataset_id, "");
+    let [autzen_las, autzen_laz, lone] = &document.files[..] else {
+        panic!("3 files: {document:?}");
+    };
 
-    assert_eq!(autzen_las["version"], "1.2");
-    assert_eq!(autzen_las["pointFormat"], 3);
-    assert_eq!(autzen_las["points"], 110_000);
-    assert_eq!(autzen_las["compressed"], false);
-    assert_eq!(autzen_laz["compressed"], true);
-    assert_eq!(autzen_las["scale"][0], 0.01);
-    assert_eq!(autzen_las["attributes"]["rgb"], true);
-    assert_eq!(autzen_las["crs"]["source"], "wkt");
-    assert_eq!(
-        autzen_las["crs"]["name"],
-        "NAD_1983_HARN_Lambert_Conformal_Conic"
-    );
-    assert_eq!(lone["version"], "1.1");
-    assert_eq!(lone["pointFormat"], 1);
-    assert_eq!(lone["points"], 518_862);
-    assert_eq!(lone["attributes"]["rgb"], false);
-    assert_eq!(lone["crs"]["source"], "geotiff");
+    assert_eq!((autzen_las.version_major, autzen_las.version_minor), (1, 2));
+    assert_eq!(autzen_las.point_format, 3);
+    assert_eq!(autzen_las.points, 110_000);
+    assert!(!autzen_las.compressed && autzen_laz.compressed);
+    assert_eq!(xyz(autzen_las.scale.as_ref())[0], 0.01);
+    assert!(autzen_las.attributes.as_ref().expect("attributes").rgb);
+    let crs = |file: &pb::FileDescription| file.crs.clone().and_then(|crs| crs.source);
+    match crs(autzen_las) {
+        Some(pb::crs::Source::Wkt(wkt)) => assert_eq!(
+            wkt.name.as_deref(),
+            Some("NAD_1983_HARN_Lambert_Conformal_Conic")
+        ),
+        other => panic!("not a WKT CRS: {other:?}"),
+    }
+    assert_eq!((lone.version_major, lone.version_minor), (1, 1));
+    assert_eq!(lone.point_format, 1);
+    assert_eq!(lone.points, 518_862);
+    assert!(!lone.attributes.as_ref().expect("attributes").rgb);
+    assert!(matches!(crs(lone), Some(pb::crs::Source::Geotiff(_))));
 
     // The points' own bounds and histograms, against the las crate's reading.
     for (file, path) in [(autzen_las, &las), (lone, &lone_star)] {
         let expected = read_independently(path);
-        let stats = &file["pointStats"];
-        let (min, max) = (
-            array3(&stats["bounds"]["min"]),
-            array3(&stats["bounds"]["max"]),
-        );
+        let stats = file.points_read.as_ref().expect("the points were read");
+        let (min, max) = corners(stats.bounds.as_ref());
         assert_eq!((min, max), (expected.min, expected.max), "{path:?}");
-        assert_eq!(histogram(stats, "classes", "class"), expected.classes);
-        assert_eq!(histogram(stats, "returns", "return"), expected.returns);
+        let classes: Vec<(u64, u64)> = stats
+            .classes
+            .iter()
+            .map(|c| (u64::from(c.code), c.points))
+            .collect();
+        assert_eq!(classes, expected.classes);
+        let returns: Vec<(u64, u64)> = stats
+            .returns
+            .iter()
+            .map(|r| (u64::from(r.return_number), r.points))
+            .collect();
+        assert_eq!(returns, expected.returns);
         // The header's bounds hold the points (rounded to the scale).
-        let (header_min, header_max) = (
-            array3(&file["bounds"]["min"]),
-            array3(&file["bounds"]["max"]),
-        );
+        let (header_min, header_max) = corners(file.bounds.as_ref());
         for axis in 0..3 {
             assert!(header_min[axis] <= min[axis] + 1e-6, "{path:?}");
             assert!(max[axis] <= header_max[axis] + 1e-6, "{path:?}");
         }
     }
     // Autzen around its state-plane position, in feet.
-    let min = array3(&autzen_las["bounds"]["min"]);
+    let (min, _) = corners(autzen_las.bounds.as_ref());
     assert!((min[0] - 636_000.0).abs() < 5_000.0 && (min[1] - 849_000.0).abs() < 5_000.0);
 
     // LAS and LAZ of the same points read the same.
-    assert_eq!(autzen_las["pointStats"], autzen_laz["pointStats"]);
-    let color = &autzen_las["pointStats"]["color"];
-    assert_eq!(color["rgb"], true);
-    assert_eq!(color["varies"], true);
-    assert_eq!(color["eightBitIn16BitFields"], true);
-    assert_eq!(lone["pointStats"]["color"]["rgb"], false);
+    assert_eq!(autzen_las.points_read, autzen_laz.points_read);
+    let stats = autzen_las.points_read.as_ref().expect("points");
+    assert_eq!(stats.classes[1].name, "ground");
+    let rgb = stats.rgb.as_ref().expect("RGB fields");
+    assert!(rgb.varies && rgb.eight_bit_values);
+    assert!(lone.points_read.as_ref().expect("points").rgb.is_none());
 
-    let summary = &document["summary"];
-    assert_eq!(summary["files"], 3);
-    assert_eq!(summary["unreadable"], 0);
-    assert_eq!(summary["points"], 110_000 + 110_000 + 518_862);
-    let union_max = array3(&summary["bounds"]["max"]);
-    assert_eq!(union_max[1], array3(&lone["bounds"]["max"])[1]);
+    let summary = document.summary.expect("summary");
+    assert_eq!((summary.files, summary.unreadable), (3, 0));
+    assert_eq!(summary.points, 110_000 + 110_000 + 518_862);
+    let (_, union_max) = corners(summary.bounds.as_ref());
+    assert_eq!(union_max[1], corners(lone.bounds.as_ref()).1[1]);
+}
+
+/// The API's JSON mapping: lowerCamelCase names, 64-bit integers as strings, defaults left out.
+#[test]
+fn json_is_the_api_message_in_its_json_mapping() {
+    let Some(las) = shared_data("autzen_trim.las") else {
+        return;
+    };
+    let output = pointfarm(&["info", "--json", path_arg(&las)]);
+    assert_ok(&output);
+    let value: serde_json::Value = serde_json::from_slice(&output.stdout).expect("JSON");
+    let file = &value["files"][0];
+    assert_eq!(file["points"], "110000");
+    assert_eq!(file["pointFormat"], 3);
+    assert_eq!(file["versionMinor"], 2);
+    assert!(
+        file.get("compressed").is_none(),
+        "false is left out: {file}"
+    );
+    assert_eq!(
+        file["crs"]["wkt"]["name"],
+        "NAD_1983_HARN_Lambert_Conformal_Conic"
+    );
+    assert_eq!(file["pointsRead"]["rgb"]["eightBitValues"], true);
+    assert_eq!(value["summary"]["files"], 1);
 }
 
 #[test]
@@ -170,8 +203,8 @@ fn text_names_the_facts_in_words_and_no_points_skips_the_points() {
     assert!(!text.contains("Rgb8In16Bit"), "{text}");
 
     let document = info_json(&["--no-points", path_arg(&las)]);
-    assert_eq!(document["files"][0]["points"], 110_000);
-    assert!(document["files"][0]["pointStats"].is_null());
+    assert_eq!(document.files[0].points, 110_000);
+    assert!(document.files[0].points_read.is_none());
 }
 
 #[test]
@@ -201,12 +234,10 @@ fn a_truncated_file_is_named_and_fails_the_command_after_the_others() {
         );
         let stdout = String::from_utf8_lossy(&output.stdout);
         if args.contains(&"--json") {
-            let document: Value = serde_json::from_str(&stdout).expect("JSON");
-            assert!(document["files"][0]["error"]
-                .as_str()
-                .is_some_and(|e| e.contains("cut_short.las")));
-            assert_eq!(document["files"][2]["points"], 110_000);
-            assert_eq!(document["summary"]["unreadable"], 2);
+            let document = description_of(&output);
+            assert!(document.files[0].error.contains("cut_short.las"));
+            assert_eq!(document.files[2].points, 110_000);
+            assert_eq!(document.summary.expect("summary").unreadable, 2);
         } else {
             assert!(stdout.contains("points      110000"), "{stdout}");
         }
@@ -220,4 +251,100 @@ fn a_closed_output_pipe_ends_quietly() {
         return;
     };
     run_into_a_closed_pipe(&["info", "--no-points", path_arg(&las), path_arg(&las)]);
+}
+
+/// `pointfarm info DATASET --server`: the server reads the dataset's files and reports them
+/// as `pointfarm info` reports the same files here, in text and in JSON; with or without the
+/// points; an unreadable file named while the others are reported; an unknown id refused.
+#[test]
+fn a_dataset_on_a_server_reports_as_its_files_do_here() {
+    let (Some(autzen), Some(lone_star)) =
+        (shared_data("autzen_trim.laz"), shared_data("lone-star.laz"))
+    else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let server = ServeProcess::start_with(&dir.path().join("data"), &["--no-embedded-worker"]);
+    let address = server.address.as_str();
+    let added = pointfarm(&[
+        "dataset",
+        "add",
+        path_arg(&autzen),
+        path_arg(&lone_star),
+        "--server",
+        address,
+        "--json",
+    ]);
+    assert_ok(&added);
+    let dataset: pb::Dataset = serde_json::from_slice(&added.stdout).expect("a Dataset");
+    // The same files here, where the server keeps them: the local report of the same paths.
+    let server_paths: Vec<&str> = dataset.files.iter().map(|f| f.path.as_str()).collect();
+    assert_eq!(server_paths.len(), 2);
+
+    for flags in [&[][..], &["--no-points"][..]] {
+        let remote = |json: bool| {
+            let mut args = vec!["info", dataset.id.as_str(), "--server", address];
+            args.extend(flags);
+            if json {
+                args.push("--json");
+            }
+            let output = pointfarm(&args);
+            assert_ok(&output);
+            output
+        };
+        let local = |json: bool| {
+            let mut args = vec!["info"];
+            args.extend(&server_paths);
+            args.extend(flags);
+            if json {
+                args.push("--json");
+            }
+            let output = pointfarm(&args);
+            assert_ok(&output);
+            output
+        };
+        let text = stdout(&remote(false));
+        assert_eq!(text, stdout(&local(false)), "{flags:?}");
+        assert!(text.contains("points      518862"), "{text}");
+        assert_eq!(text.contains("points read"), flags.is_empty(), "{text}");
+
+        let (remote, local) = (description_of(&remote(true)), description_of(&local(true)));
+        assert_eq!(remote.dataset_id, dataset.id);
+        assert_eq!(remote.files, local.files, "{flags:?}");
+        assert_eq!(remote.summary, local.summary, "{flags:?}");
+        assert_eq!(remote.files[0].points, 110_000);
+        assert_eq!(remote.files[0].points_read.is_some(), flags.is_empty());
+    }
+
+    // A file the server cannot read is named; the dataset's other file is still reported.
+    let bytes = std::fs::read(&autzen).expect("read autzen");
+    let cut = dir.path().join("cut_short.laz");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).expect("write the cut file");
+    let added = pointfarm(&[
+        "dataset",
+        "add",
+        path_arg(&cut),
+        path_arg(&lone_star),
+        "--server",
+        address,
+        "--json",
+    ]);
+    assert_ok(&added);
+    let damaged: pb::Dataset = serde_json::from_slice(&added.stdout).expect("a Dataset");
+    let output = pointfarm(&["info", &damaged.id, "--server", address]);
+    assert_fails_saying(&output, "1 of 2 files could not be read");
+    assert_fails_saying(&output, "truncated");
+    assert!(stdout(&output).contains("points      518862"));
+
+    // An unknown id: refused, saying so; an input that is neither a path nor, without a
+    // server, a dataset id: said so.
+    let output = pointfarm(&["info", "0123456789abcdef", "--server", address]);
+    assert_fails_saying(&output, "dataset 0123456789abcdef");
+    assert_fails_saying(&output, "not found");
+    let output = pointfarm(&["info", "0123456789abcdef", "--local"]);
+    assert_fails_saying(&output, "no such file or folder");
+
+    // The daemon is still there after the damaged file.
+    let output = pointfarm(&["info", &dataset.id, "--server", address, "--no-points"]);
+    assert_ok(&output);
 }

@@ -2,232 +2,278 @@
 //! it: header facts, CRS, attributes, and (unless `--no-points`) the points read once in a
 //! stream for their classes, returns, intensity and colour. Every file is reported; one that
 //! cannot be read is an error naming it, and the command then fails after the others.
-//! Text here, JSON in `info_json.rs`.
+//! Files here are read here; with `--server`, an input that is no path here is a dataset id
+//! whose files the server reads (`DescribeDataset`). Either way a file's report is the API's
+//! `FileDescription`, built here by the daemon's own conversion, so the text printed here and
+//! `--json` (the API's `DatasetDescription` in its proto3 JSON mapping) read the same for
+//! local files and for a server's.
 
-use std::path::PathBuf;
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::Args;
-use pointfarm_render::classification;
-use pointfarm_render::cloud::{ColorSource, WorldBounds};
-use pointfarm_render::ingest::{
-    dataset_files, Crs, FileInfo, IngestError, PointSummary, GEOTIFF_USER_DEFINED,
-};
+use pointfarm_daemon::describe::FileReport;
+use pointfarm_daemon::grpc::{dataset_description, file_description};
+use pointfarm_proto::v1 as pb;
+use pointfarm_render::ingest::{dataset_files, GEOTIFF_USER_DEFINED};
+
+use crate::credentials::ClientCredentials;
+use crate::remote::{answer, Client};
 
 #[derive(Args)]
 pub struct InfoArgs {
     /// LAS/LAZ files, or folders whose .las and .laz files (in subfolders too) are each
-    /// reported.
+    /// reported; with --server, also dataset ids (an input that is no path here).
     #[arg(required = true, value_name = "INPUT")]
     inputs: Vec<PathBuf>,
-    /// Print one JSON document (`files` and `summary`) instead of text.
+    /// Print one JSON document, the API's `DatasetDescription` in the proto3 JSON mapping
+    /// (`files` and `summary`), instead of text.
     #[arg(long)]
     json: bool,
     /// Only what the header and records say: do not read the points (fast on huge files;
     /// no classes, returns, intensity or colour).
     #[arg(long)]
     no_points: bool,
+    /// Describe datasets on this pointfarm server: an input that is no file or folder here is
+    /// a dataset id there.
+    #[arg(long, env = "POINTFARM_SERVER")]
+    server: Option<String>,
+    /// Only files here, whatever --server or POINTFARM_SERVER say.
+    #[arg(long)]
+    local: bool,
+    #[command(flatten)]
+    credentials: ClientCredentials,
 }
 
-/// One file's report: its header facts and, when read, its points; or why it could not be read.
-pub(crate) struct Report {
-    pub path: PathBuf,
-    pub outcome: Result<(FileInfo, Option<PointSummary>), IngestError>,
+/// What an input names.
+enum Input {
+    /// Files here: a file, or a folder's files.
+    Local(Vec<PathBuf>),
+    /// A dataset on the server.
+    Dataset(String),
+    /// Nothing that can be read, and why.
+    Unreadable(String),
 }
 
 pub fn run(args: InfoArgs) -> Result<()> {
-    let mut reports = Vec::new();
-    let mut files = Vec::new();
-    // Each input on its own, so a folder without point files does not hide the others.
+    let server = args.server.as_deref().filter(|_| !args.local);
+    let mut files: Vec<pb::FileDescription> = Vec::new();
+    let mut seen = HashSet::new();
+    let mut datasets = Vec::new();
+    let mut client = None;
+    let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     for input in &args.inputs {
-        match dataset_files(std::slice::from_ref(input)) {
-            Ok(found) => files.extend(found),
-            Err(error) => {
-                let report = Report {
-                    path: input.clone(),
-                    outcome: Err(error),
+        match classify(input, server) {
+            Input::Unreadable(error) => {
+                let unreadable = pb::FileDescription {
+                    path: input.display().to_string(),
+                    error,
+                    ..pb::FileDescription::default()
                 };
-                tell(&report, args.json);
-                reports.push(report);
+                tell(&unreadable, args.json);
+                files.push(unreadable);
+            }
+            Input::Local(found) => {
+                // Without repeats across inputs (a file named and inside a named folder).
+                for path in found {
+                    if !seen.insert(std::fs::canonicalize(&path).unwrap_or_else(|_| path.clone())) {
+                        continue;
+                    }
+                    let file = file_description(&inspect(path, !args.no_points));
+                    tell(&file, args.json);
+                    files.push(file);
+                }
+            }
+            Input::Dataset(id) => {
+                let server = server.unwrap_or_default();
+                let description = runtime.block_on(async {
+                    if client.is_none() {
+                        client = Some(Client::connect(server, &args.credentials).await?);
+                    }
+                    let client = client.as_mut().expect("connected above");
+                    let request = pb::DescribeDatasetRequest {
+                        dataset_id: id.clone(),
+                        read_points: !args.no_points,
+                    };
+                    let spinner = crate::progress::spinner(format!("describing dataset {id}"));
+                    let reply = client.datasets.describe_dataset(request).await;
+                    spinner.finish_and_clear();
+                    answer(reply).with_context(|| format!("dataset {id} on {server}"))
+                })?;
+                for file in description.files {
+                    tell(&file, args.json);
+                    files.push(file);
+                }
+                datasets.push(id);
             }
         }
     }
-    // Without repeats across inputs (a file named and inside a named folder): the files are
-    // files now, so this only drops repeats.
-    let files = if files.is_empty() {
-        files
-    } else {
-        dataset_files(&files)?
+    // The dataset's id when that is all the document describes.
+    let dataset_id = match (datasets.as_slice(), args.inputs.len()) {
+        ([id], 1) => id.as_str(),
+        _ => "",
     };
-    for path in files {
-        let report = inspect(path, !args.no_points);
-        tell(&report, args.json);
-        reports.push(report);
-    }
-    let summary = Summary::of(&reports);
+    let description = dataset_description(dataset_id, files);
+    let summary = description.summary.unwrap_or_default();
     if args.json {
-        outln!("{}", crate::info_json::document(&reports, &summary)?);
-    } else if reports.len() > 1 {
+        outln!("{}", crate::admin_json::json_line(&description)?);
+    } else if description.files.len() > 1 {
         print_summary(&summary);
     }
-    match summary.failed {
+    match summary.unreadable {
         0 => Ok(()),
-        failed => anyhow::bail!("{failed} of {} files could not be read", reports.len()),
+        failed => anyhow::bail!("{failed} of {} files could not be read", summary.files),
     }
 }
 
-/// A report as soon as it is made: its error on stderr, its text unless JSON comes at the end.
-fn tell(report: &Report, json: bool) {
-    if let Err(error) = &report.outcome {
-        eprintln!("error: {error}");
+/// A file or folder here is read here; anything else is a dataset id when there is a server.
+fn classify(input: &Path, server: Option<&str>) -> Input {
+    if input.exists() {
+        return match dataset_files(&[input.to_path_buf()]) {
+            Ok(files) => Input::Local(files),
+            Err(error) => Input::Unreadable(error.to_string()),
+        };
+    }
+    match (server, input.to_str()) {
+        (Some(_), Some(id)) => Input::Dataset(id.to_owned()),
+        (Some(_), None) => Input::Unreadable(format!(
+            "{}: no such file or folder, nor a dataset id",
+            input.display()
+        )),
+        (None, _) => Input::Unreadable(format!(
+            "{}: no such file or folder (a dataset id needs --server or POINTFARM_SERVER)",
+            input.display()
+        )),
+    }
+}
+
+/// A file's report as soon as it is made: its error on stderr, its text unless JSON comes at
+/// the end.
+fn tell(file: &pb::FileDescription, json: bool) {
+    if !file.error.is_empty() {
+        eprintln!("error: {}", file.error);
     }
     if !json {
-        print_report(report);
+        print_report(file);
     }
 }
 
-fn inspect(path: PathBuf, read_points: bool) -> Report {
-    let outcome = FileInfo::read(&path).and_then(|info| {
-        if !read_points {
-            return Ok((info, None));
-        }
-        let bar = crate::progress::counter(info.points, "points", file_name(&info.path));
-        let summary = info.read_points(|read| bar.set_position(read));
-        bar.finish_and_clear();
-        Ok((info, Some(summary?)))
+fn inspect(path: PathBuf, read_points: bool) -> FileReport {
+    let mut bar = None;
+    let report = FileReport::read(path, read_points, |info| {
+        let counter = crate::progress::counter(info.points, "points", file_name(&info.path));
+        bar = Some(counter.clone());
+        Box::new(move |read: u64| counter.set_position(read))
     });
-    Report { path, outcome }
+    if let Some(bar) = bar {
+        bar.finish_and_clear();
+    }
+    report
 }
 
-fn file_name(path: &std::path::Path) -> String {
+fn file_name(path: &Path) -> String {
     path.file_name()
         .map(|name| name.to_string_lossy().into_owned())
         .unwrap_or_else(|| path.display().to_string())
 }
 
-/// What the files have together.
-pub(crate) struct Summary {
-    pub files: usize,
-    pub failed: usize,
-    /// The points the headers declare.
-    pub points: u64,
-    /// The union of the header bounds (finite, not inverted ones).
-    pub bounds: Option<WorldBounds>,
+/// The three components of a vector.
+fn xyz(v: Option<&pb::Vec3>) -> [f64; 3] {
+    v.map_or([f64::NAN; 3], |v| [v.x, v.y, v.z])
 }
 
-impl Summary {
-    fn of(reports: &[Report]) -> Self {
-        let infos: Vec<&FileInfo> = reports
-            .iter()
-            .filter_map(|r| r.outcome.as_ref().ok().map(|(info, _)| info))
-            .collect();
-        let bounds = infos
-            .iter()
-            .map(|info| info.bounds)
-            .filter(|b| b.min.is_finite() && b.max.is_finite() && b.min.cmple(b.max).all())
-            .reduce(|a, b| WorldBounds {
-                min: a.min.min(b.min),
-                max: a.max.max(b.max),
-            });
-        Self {
-            files: reports.len(),
-            failed: reports.len() - infos.len(),
-            points: infos.iter().map(|info| info.points).sum(),
-            bounds,
-        }
-    }
+/// The three channels of an RGB range's end.
+fn rgb(channels: &[u32]) -> [u32; 3] {
+    let at = |i: usize| channels.get(i).copied().unwrap_or(0);
+    [at(0), at(1), at(2)]
 }
 
-fn print_report(report: &Report) {
-    outln!("{}", report.path.display());
-    let Ok((info, points)) = &report.outcome else {
+fn print_report(file: &pb::FileDescription) {
+    outln!("{}", file.path);
+    if !file.error.is_empty() {
         outln!("  unreadable (see the error above)");
         outln!("");
         return;
-    };
-    let (major, minor) = info.version;
+    }
     outln!(
-        "  LAS {major}.{minor}, point format {} ({}-byte records), {}, {} bytes",
-        info.point_format,
-        info.record_len,
-        if info.compressed {
+        "  LAS {}.{}, point format {} ({}-byte records), {}, {} bytes",
+        file.version_major,
+        file.version_minor,
+        file.point_format,
+        file.record_bytes,
+        if file.compressed {
             "LAZ"
         } else {
             "uncompressed"
         },
-        info.file_bytes
+        file.file_bytes
     );
-    let by_return = match info.points_by_return.as_slice() {
+    let by_return = match file.points_by_return.as_slice() {
         [] => String::new(),
         counts => format!("  (by return: {})", numbered(counts.iter().copied(), 1)),
     };
-    outln!("  points      {}{by_return}", info.points);
-    outln!("  records     {} VLRs, {} EVLRs", info.vlrs, info.evlrs);
-    let decimals = decimals(info.scale.max_element());
+    outln!("  points      {}{by_return}", file.points);
+    outln!("  records     {} VLRs, {} EVLRs", file.vlrs, file.evlrs);
+    let scale = xyz(file.scale.as_ref());
+    let decimals = decimals(scale.into_iter().fold(f64::NAN, f64::max));
+    let bounds = file.bounds.unwrap_or_default();
+    let (min, max) = (xyz(bounds.min.as_ref()), xyz(bounds.max.as_ref()));
     let axes = ["x", "y", "z"];
     for (axis, label) in axes.iter().enumerate() {
         let heading = if axis == 0 { "bounds" } else { "" };
         outln!(
             "  {heading:<11} {label} {:.decimals$} .. {:.decimals$}",
-            info.bounds.min[axis],
-            info.bounds.max[axis]
+            min[axis],
+            max[axis]
         );
     }
+    outln!("  scale       {} {} {}", scale[0], scale[1], scale[2]);
+    let offset = xyz(file.offset.as_ref());
+    outln!("  offset      {} {} {}", offset[0], offset[1], offset[2]);
+    outln!("  crs         {}", crs_words(file.crs.as_ref()));
     outln!(
-        "  scale       {} {} {}",
-        info.scale.x,
-        info.scale.y,
-        info.scale.z
+        "  attributes  {}",
+        attribute_words(&file.attributes.clone().unwrap_or_default())
     );
-    outln!(
-        "  offset      {} {} {}",
-        info.offset.x,
-        info.offset.y,
-        info.offset.z
-    );
-    outln!("  crs         {}", crs_words(&info.crs));
-    outln!("  attributes  {}", attribute_words(info));
-    if let Some(points) = points {
+    if let Some(points) = &file.points_read {
         print_points(points, decimals);
     }
     outln!("");
 }
 
-fn print_points(points: &PointSummary, decimals: usize) {
+fn print_points(points: &pb::PointStatistics, decimals: usize) {
     outln!("  points read {}", points.points);
-    if let Some(bounds) = points.bounds {
+    if let Some(bounds) = &points.bounds {
+        let (min, max) = (xyz(bounds.min.as_ref()), xyz(bounds.max.as_ref()));
         outln!(
             "  data bounds x {:.decimals$} .. {:.decimals$}, y {:.decimals$} .. {:.decimals$}, z {:.decimals$} .. {:.decimals$}",
-            bounds.min.x, bounds.max.x, bounds.min.y, bounds.max.y, bounds.min.z, bounds.max.z
+            min[0], max[0], min[1], max[1], min[2], max[2]
         );
     }
     let classes: Vec<String> = points
         .classes
         .iter()
-        .enumerate()
-        .filter(|(_, &count)| count > 0)
-        .map(|(class, count)| match class_name(class) {
-            Some(name) => format!("{class} {name}: {count}"),
-            None => format!("{class}: {count}"),
+        .map(|class| match class.name.as_str() {
+            "" => format!("{}: {}", class.code, class.points),
+            name => format!("{} {name}: {}", class.code, class.points),
         })
         .collect();
     outln!("  classes     {}", classes.join(", "));
     let returns: Vec<String> = points
         .returns
         .iter()
-        .enumerate()
-        .filter(|(_, &count)| count > 0)
-        .map(|(number, count)| format!("{number}: {count}"))
+        .map(|r| format!("{}: {}", r.return_number, r.points))
         .collect();
     outln!("  returns     {}", returns.join(", "));
-    if let Some([low, high]) = points.intensity {
-        outln!("  intensity   {low} .. {high}");
+    if let Some(intensity) = &points.intensity {
+        outln!("  intensity   {} .. {}", intensity.min, intensity.max);
     }
     outln!("  colour      {}", color_words(points));
 }
 
-fn print_summary(summary: &Summary) {
-    let unreadable = match summary.failed {
+fn print_summary(summary: &pb::DescriptionSummary) {
+    let unreadable = match summary.unreadable {
         0 => String::new(),
         failed => format!(" ({failed} unreadable)"),
     };
@@ -236,15 +282,16 @@ fn print_summary(summary: &Summary) {
         summary.files,
         summary.points
     );
-    if let Some(b) = summary.bounds {
+    if let Some(bounds) = &summary.bounds {
+        let (min, max) = (xyz(bounds.min.as_ref()), xyz(bounds.max.as_ref()));
         outln!(
             "  bounds x {:.3} .. {:.3}, y {:.3} .. {:.3}, z {:.3} .. {:.3}",
-            b.min.x,
-            b.max.x,
-            b.min.y,
-            b.max.y,
-            b.min.z,
-            b.max.z
+            min[0],
+            max[0],
+            min[1],
+            max[1],
+            min[2],
+            max[2]
         );
     }
 }
@@ -259,27 +306,28 @@ fn numbered(counts: impl Iterator<Item = u64>, first: usize) -> String {
 }
 
 /// Decimals that show a coordinate at `scale` (0.01: 2), from 0 to 9.
-pub(crate) fn decimals(scale: f64) -> usize {
+fn decimals(scale: f64) -> usize {
     if !(scale.is_finite() && scale > 0.0) {
         return 3;
     }
     (-scale.log10() - 1e-9).ceil().clamp(0.0, 9.0) as usize
 }
 
-pub(crate) fn crs_words(crs: &Crs) -> String {
-    let code = |code: u16| match code {
-        GEOTIFF_USER_DEFINED => "user-defined".to_owned(),
+fn crs_words(crs: Option<&pb::Crs>) -> String {
+    use pb::crs::Source;
+    let code = |code: u32| match code {
+        code if code == u32::from(GEOTIFF_USER_DEFINED) => "user-defined".to_owned(),
         code => format!("EPSG:{code}"),
     };
-    match crs {
-        Crs::Wkt { name, epsg, .. } => {
-            let name = name.as_deref().unwrap_or("unnamed");
-            match epsg {
+    match crs.and_then(|crs| crs.source.as_ref()) {
+        Some(Source::Wkt(wkt)) => {
+            let name = wkt.name.as_deref().unwrap_or("unnamed");
+            match wkt.epsg {
                 Some(epsg) => format!("{name} (EPSG:{epsg}, from the WKT record)"),
                 None => format!("{name} (from the WKT record)"),
             }
         }
-        Crs::GeoTiff(keys) => {
+        Some(Source::Geotiff(keys)) => {
             let mut parts = Vec::new();
             if let Some(projected) = keys.projected {
                 parts.push(format!("projected {}", code(projected)));
@@ -296,13 +344,12 @@ pub(crate) fn crs_words(crs: &Crs) -> String {
                 format!("{} (from the GeoTIFF keys)", parts.join(", "))
             }
         }
-        Crs::Unreadable(reason) => format!("unreadable: {reason}"),
-        Crs::None => "none".to_owned(),
+        Some(Source::Unreadable(reason)) => format!("unreadable: {reason}"),
+        None => "none".to_owned(),
     }
 }
 
-fn attribute_words(info: &FileInfo) -> String {
-    let a = &info.attributes;
+fn attribute_words(a: &pb::PointAttributes) -> String {
     let mut words: Vec<String> = [
         (a.gps_time, "GPS time"),
         (a.rgb, "RGB"),
@@ -328,19 +375,19 @@ fn attribute_words(info: &FileInfo) -> String {
 }
 
 /// What the colour fields hold, in words.
-pub(crate) fn color_words(points: &PointSummary) -> String {
-    let Some(rgb) = points.rgb else {
+fn color_words(points: &pb::PointStatistics) -> String {
+    let Some(range) = &points.rgb else {
         return "no RGB (rendered from intensity)".to_owned();
     };
     if points.points == 0 {
         return "RGB fields, no points".to_owned();
     }
-    if !rgb.varies() {
-        let [r, g, b] = rgb.min;
-        return if rgb.min == [0; 3] {
+    if !range.varies {
+        let [r, g, b] = rgb(&range.min);
+        return if [r, g, b] == [0; 3] {
             "RGB fields, all zero: no colour information (rendered from intensity)".to_owned()
         } else {
-            let shown = if points.intensity.is_some_and(|[_, max]| max > 0) {
+            let shown = if points.intensity.as_ref().is_some_and(|i| i.max > 0) {
                 "rendered from intensity"
             } else {
                 "rendered in that colour"
@@ -350,20 +397,12 @@ pub(crate) fn color_words(points: &PointSummary) -> String {
             )
         };
     }
-    let [r, g, b] = rgb.max;
-    match rgb.source() {
-        Some(ColorSource::Rgb8In16Bit) => format!(
-            "RGB, 8-bit values in 16-bit fields (highest {r}, {g}, {b}; rendered as they are)"
-        ),
-        _ => format!("RGB, 16-bit (highest {r}, {g}, {b})"),
+    let [r, g, b] = rgb(&range.max);
+    if range.eight_bit_values {
+        format!("RGB, 8-bit values in 16-bit fields (highest {r}, {g}, {b}; rendered as they are)")
+    } else {
+        format!("RGB, 16-bit (highest {r}, {g}, {b})")
     }
-}
-
-/// The ASPRS name of a standard class, by a histogram's index.
-pub(crate) fn class_name(class: usize) -> Option<&'static str> {
-    u8::try_from(class)
-        .ok()
-        .and_then(classification::class_name)
 }
 
 #[cfg(test)]

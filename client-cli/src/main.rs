@@ -18,7 +18,6 @@ mod frame_files;
 mod frame_source;
 mod generate;
 mod info;
-mod info_json;
 mod lod_store;
 mod output;
 mod parse;

@@ -1,6 +1,6 @@
 //! The client side of the render service: connecting, uploading, submitting, following and
-//! downloading. Used by `render --server`, `dataset`, `jobs` (`jobs leases` lists the frames
-//! workers hold) and `frames`: the client API only, never the workers'.
+//! downloading. Used by `render --server`, `info --server`, `dataset`, `jobs` (`jobs leases`
+//! lists the frames workers hold) and `frames`: the client API only, never the workers'.
 
 use std::path::{Path, PathBuf};
 

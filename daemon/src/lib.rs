@@ -7,8 +7,9 @@
 //! clients send), `lease_record` (the stored lease), `manifest` (the counts recorded beside
 //! the database), `store` (sled), `worker_presence` (which workers can render, for health),
 //! `service` (the `Daemon` and its job operations), `datasets` (datasets of one or more
-//! files: registered, uploaded, composed; more `Daemon` methods), `lease` (frame leases: the one
-//! scheduling path, more `Daemon` methods), `grpc` (validates, converts and delegates: one
+//! files: registered, uploaded, composed; more `Daemon` methods), `describe` (what a
+//! dataset's files hold, read with the render crate; more `Daemon` methods), `lease` (frame
+//! leases: the one scheduling path, more `Daemon` methods), `grpc` (validates, converts and delegates: one
 //! file per service, the conversions, the streaming of bytes), `worker` (what leases frames:
 //! the worker process — a gRPC client — with its render state, which renders with
 //! `pointfarm-render`, and the supervisor that runs it as the daemon's embedded worker),
@@ -18,6 +19,7 @@
 
 pub mod access;
 pub mod datasets;
+pub mod describe;
 pub mod error;
 pub mod grpc;
 pub mod lease;

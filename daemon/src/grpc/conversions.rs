@@ -9,12 +9,16 @@ use pointfarm_proto::v1 as pb;
 
 use super::request::{camera_path_message, known_enum, render_options_message, render_request};
 use crate::datasets::MAX_DATASET_FILES;
+use crate::describe::FileReport;
 use crate::error::DaemonError;
 use crate::lease::{FailureKind, FrameTask, HeartbeatAnswer, TaskDataset, TaskFile};
 use crate::lease_record::Lease;
 use crate::model::{Dataset, FrameCut, FrameReport, Job, JobSpec, JobState, StageTiming};
 use crate::store::Page;
 use crate::stores::StoreAnswer;
+use pointfarm_render::classification;
+use pointfarm_render::cloud::{ColorSource, WorldBounds};
+use pointfarm_render::ingest::{Crs, PointSummary};
 use pointfarm_render::lod::{NodeKey, MAX_LEVEL};
 
 pub(super) fn invalid(field: &str, message: impl Into<String>) -> DaemonError {
@@ -353,11 +357,7 @@ pub fn node_key_message(key: NodeKey) -> pb::NodeKey {
 impl From<&StoreAnswer> for pb::OpenDatasetStoreResponse {
     fn from(answer: &StoreAnswer) -> Self {
         use pb::open_dataset_store_response::State;
-        let vec3 = |v: glam::DVec3| pb::Vec3 {
-            x: v.x,
-            y: v.y,
-            z: v.z,
-        };
+        let vec3 = vec3_message;
         match answer {
             StoreAnswer::NotNeeded { points } => Self {
                 state: State::NotNeeded as i32,
@@ -378,6 +378,166 @@ impl From<&StoreAnswer> for pb::OpenDatasetStoreResponse {
                 build_ms: store.build_ms,
             },
         }
+    }
+}
+
+fn vec3_message(v: glam::DVec3) -> pb::Vec3 {
+    pb::Vec3 {
+        x: v.x,
+        y: v.y,
+        z: v.z,
+    }
+}
+
+fn bounds_message(bounds: &WorldBounds) -> pb::Bounds {
+    pb::Bounds {
+        min: Some(vec3_message(bounds.min)),
+        max: Some(vec3_message(bounds.max)),
+    }
+}
+
+/// A file's report as the API describes it; the one conversion of what `pointfarm info`
+/// reports, here and through a server.
+pub fn file_description(report: &FileReport) -> pb::FileDescription {
+    let path = report.path.display().to_string();
+    let (info, points) = match &report.outcome {
+        Ok((info, points)) => (info, points.as_ref()),
+        Err(error) => {
+            return pb::FileDescription {
+                path,
+                error: error.to_string(),
+                ..pb::FileDescription::default()
+            }
+        }
+    };
+    let (version_major, version_minor) = info.version;
+    let attributes = &info.attributes;
+    pb::FileDescription {
+        path,
+        error: String::new(),
+        file_bytes: info.file_bytes,
+        version_major: version_major.into(),
+        version_minor: version_minor.into(),
+        point_format: info.point_format.into(),
+        compressed: info.compressed,
+        record_bytes: info.record_len.into(),
+        points: info.points,
+        points_by_return: info.points_by_return.clone(),
+        vlrs: saturating_u32(info.vlrs),
+        evlrs: saturating_u32(info.evlrs),
+        bounds: Some(bounds_message(&info.bounds)),
+        scale: Some(vec3_message(info.scale)),
+        offset: Some(vec3_message(info.offset)),
+        crs: crs_message(&info.crs),
+        attributes: Some(pb::PointAttributes {
+            gps_time: attributes.gps_time,
+            rgb: attributes.rgb,
+            nir: attributes.nir,
+            waveform: attributes.waveform,
+            extra_bytes: attributes.extra_bytes.into(),
+            extra_names: attributes.extra_names.clone(),
+        }),
+        points_read: points.map(point_statistics_message),
+    }
+}
+
+fn saturating_u32(n: usize) -> u32 {
+    u32::try_from(n).unwrap_or(u32::MAX)
+}
+
+fn crs_message(crs: &Crs) -> Option<pb::Crs> {
+    use pb::crs::Source;
+    let source = match crs {
+        Crs::Wkt { wkt, name, epsg } => Source::Wkt(pb::WktCrs {
+            wkt: wkt.clone(),
+            name: name.clone(),
+            epsg: *epsg,
+        }),
+        Crs::GeoTiff(keys) => Source::Geotiff(pb::GeoTiffCrs {
+            projected: keys.projected.map(u32::from),
+            geographic: keys.geographic.map(u32::from),
+            vertical: keys.vertical.map(u32::from),
+        }),
+        Crs::Unreadable(reason) => Source::Unreadable(reason.clone()),
+        Crs::None => return None,
+    };
+    Some(pb::Crs {
+        source: Some(source),
+    })
+}
+
+fn point_statistics_message(points: &PointSummary) -> pb::PointStatistics {
+    let occurring = |counts: &[u64]| -> Vec<(u32, u64)> {
+        (0u32..)
+            .zip(counts.iter().copied())
+            .filter(|&(_, count)| count > 0)
+            .collect()
+    };
+    pb::PointStatistics {
+        points: points.points,
+        bounds: points.bounds.as_ref().map(bounds_message),
+        classes: occurring(&points.classes)
+            .into_iter()
+            .map(|(code, points)| pb::ClassCount {
+                code,
+                name: u8::try_from(code)
+                    .ok()
+                    .and_then(classification::class_name)
+                    .unwrap_or_default()
+                    .to_owned(),
+                points,
+            })
+            .collect(),
+        returns: occurring(&points.returns)
+            .into_iter()
+            .map(|(return_number, points)| pb::ReturnCount {
+                return_number,
+                points,
+            })
+            .collect(),
+        intensity: points.intensity.map(|[min, max]| pb::IntensityRange {
+            min: min.into(),
+            max: max.into(),
+        }),
+        rgb: points.rgb.map(|rgb| pb::RgbRange {
+            min: rgb.min.map(u32::from).to_vec(),
+            max: rgb.max.map(u32::from).to_vec(),
+            varies: rgb.varies(),
+            eight_bit_values: rgb.source() == Some(ColorSource::Rgb8In16Bit),
+        }),
+    }
+}
+
+/// The description of `files` (already described, in order) with what they have together.
+pub fn dataset_description(
+    dataset_id: &str,
+    files: Vec<pb::FileDescription>,
+) -> pb::DatasetDescription {
+    let read: Vec<&pb::FileDescription> = files.iter().filter(|f| f.error.is_empty()).collect();
+    let corners = |b: &pb::Bounds| {
+        let corner = |v: &Option<pb::Vec3>| {
+            v.as_ref()
+                .map(|v| glam::DVec3::new(v.x, v.y, v.z))
+                .unwrap_or(glam::DVec3::NAN)
+        };
+        (corner(&b.min), corner(&b.max))
+    };
+    let bounds = read
+        .iter()
+        .filter_map(|f| f.bounds.as_ref().map(corners))
+        .filter(|(min, max)| min.is_finite() && max.is_finite() && min.cmple(*max).all())
+        .reduce(|(min_a, max_a), (min_b, max_b)| (min_a.min(min_b), max_a.max(max_b)))
+        .map(|(min, max)| bounds_message(&WorldBounds { min, max }));
+    let summary = pb::DescriptionSummary {
+        files: saturating_u32(files.len()),
+        unreadable: saturating_u32(files.len() - read.len()),
+        points: read.iter().map(|f| f.points).sum(),
+        bounds,
+    };
+    pb::DatasetDescription {
+        dataset_id: dataset_id.to_owned(),
+        files,
+        summary: Some(summary),
     }
 }
 
@@ -692,5 +852,42 @@ mod tests {
             render.color_range = Some(pb::ColorRange { min: 5.0, max: 1.0 });
         }
         assert_eq!(field_of(&r), "render.color_range");
+    }
+
+    #[test]
+    fn a_description_sums_the_readable_files_and_names_the_others() {
+        let described = |min: [f64; 3], max: [f64; 3], points: u64| pb::FileDescription {
+            path: "a.las".into(),
+            points,
+            bounds: Some(pb::Bounds {
+                min: vec3(min[0], min[1], min[2]),
+                max: vec3(max[0], max[1], max[2]),
+            }),
+            ..Default::default()
+        };
+        let unreadable = file_description(&FileReport {
+            path: "gone.las".into(),
+            outcome: Err(pointfarm_render::ingest::IngestError::Io {
+                path: "gone.las".into(),
+                error: std::io::Error::from(std::io::ErrorKind::NotFound),
+            }),
+        });
+        assert!(unreadable.error.contains("gone.las"), "{unreadable:?}");
+        let files = vec![
+            described([0.0, 0.0, 0.0], [1.0, 2.0, 3.0], 10),
+            // Inverted bounds (an empty file's header) do not widen the union.
+            described([9.0, 9.0, 9.0], [-9.0, -9.0, -9.0], 0),
+            described([-1.0, 0.5, 0.0], [0.5, 0.5, 4.0], 5),
+            unreadable,
+        ];
+        let description = dataset_description("ds", files);
+        let summary = description.summary.expect("summary");
+        assert_eq!(
+            (summary.files, summary.unreadable, summary.points),
+            (4, 1, 15)
+        );
+        let bounds = summary.bounds.expect("bounds");
+        assert_eq!(bounds.min, vec3(-1.0, 0.0, 0.0));
+        assert_eq!(bounds.max, vec3(1.0, 2.0, 4.0));
     }
 }

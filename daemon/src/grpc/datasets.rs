@@ -1,6 +1,6 @@
 //! `DatasetService`: registering server-side files, receiving uploads (name, size and quota
 //! checked from the header, the LAS signature from the first bytes, SHA-256 while they
-//! arrive; nothing left behind when refused), listing and deleting datasets.
+//! arrive; nothing left behind when refused), listing, describing and deleting datasets.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -10,7 +10,7 @@ use pointfarm_proto::v1::dataset_service_server::DatasetService;
 use pointfarm_render::ingest::LAS_SIGNATURE;
 use tonic::{Request, Response, Status, Streaming};
 
-use super::conversions::{invalid, page_messages};
+use super::conversions::{dataset_description, file_description, invalid, page_messages};
 use super::streaming::{first_part, HashingWriter};
 use super::Api;
 use crate::error::DaemonError;
@@ -106,6 +106,20 @@ impl DatasetService for Api {
             datasets,
             next_page_token,
         }))
+    }
+
+    async fn describe_dataset(
+        &self,
+        request: Request<pb::DescribeDatasetRequest>,
+    ) -> Result<Response<pb::DatasetDescription>, Status> {
+        let r = request.into_inner();
+        let id = r.dataset_id.clone();
+        // Reading the files blocks (every point of them when asked): off the executor.
+        let reports = self
+            .run(move |daemon| daemon.describe_dataset(&id, r.read_points))
+            .await?;
+        let files = reports.iter().map(file_description).collect();
+        Ok(Response::new(dataset_description(&r.dataset_id, files)))
     }
 
     async fn delete_dataset(

@@ -2,7 +2,8 @@
 //! results. No domain logic lives here.
 //!
 //! - `conversions`: messages to domain types and back (`From`/`TryFrom`); the frame-task
-//!   conversions are public, for the remote worker's side of the wire.
+//!   conversions are public, for the remote worker's side of the wire, and so are those of
+//!   dataset descriptions, which `pointfarm info` builds from local files too.
 //! - `status`: the one map from [`crate::error::DaemonError`] to status codes.
 //! - `datasets`, `jobs`, `workers`: one file per service.
 //! - `lease_guard`: gives back the frame of an abandoned long-polling lease request.
@@ -25,8 +26,8 @@ pub mod streaming;
 mod workers;
 
 pub use conversions::{
-    frame_cut_message, frame_cut_of_message, frame_task, frame_task_message, node_key_message,
-    stage_timings, timings_message,
+    dataset_description, file_description, frame_cut_message, frame_cut_of_message, frame_task,
+    frame_task_message, node_key_message, stage_timings, timings_message,
 };
 pub use request::{camera_path_message, render_options_message, render_request};
 pub use workers::EmbeddedWorkerCall;

@@ -1,0 +1,53 @@
+//! What a dataset's files hold (`DescribeDataset`, `pointfarm info`): each file's header
+//! facts and, when asked, a summary of its points, read with the render crate's
+//! [`FileInfo`]. A file that cannot be read is reported with its error and the others still
+//! are. More `Daemon` methods.
+
+use std::path::PathBuf;
+
+use pointfarm_render::ingest::{FileInfo, IngestError, PointSummary};
+
+use crate::error::DaemonError;
+use crate::service::Daemon;
+
+/// One file's report: its header facts and, when read, its points; or why it could not be read.
+pub struct FileReport {
+    pub path: PathBuf,
+    pub outcome: Result<(FileInfo, Option<PointSummary>), IngestError>,
+}
+
+impl FileReport {
+    /// Reads `path`'s header and records and, with `read_points`, every point once, telling
+    /// `progress` the header's facts and then the points read so far.
+    pub fn read(
+        path: PathBuf,
+        read_points: bool,
+        progress: impl FnOnce(&FileInfo) -> Box<dyn FnMut(u64)>,
+    ) -> Self {
+        let outcome = FileInfo::read(&path).and_then(|info| {
+            if !read_points {
+                return Ok((info, None));
+            }
+            let summary = info.read_points(progress(&info))?;
+            Ok((info, Some(summary)))
+        });
+        Self { path, outcome }
+    }
+}
+
+impl Daemon {
+    /// The reports of every file of dataset `id`, in its order. Blocks for as long as the
+    /// files take to read.
+    pub fn describe_dataset(
+        &self,
+        id: &str,
+        read_points: bool,
+    ) -> Result<Vec<FileReport>, DaemonError> {
+        let dataset = self.dataset(id)?;
+        Ok(dataset
+            .files()
+            .into_iter()
+            .map(|file| FileReport::read(file.path, read_points, |_| Box::new(|_: u64| {})))
+            .collect())
+    }
+}
