@@ -8,40 +8,46 @@
 #   bash deploy/gallery-figures.sh [--pointfarm BIN] [--before OLD_BIN] [--size WxH] [--runs N]
 #       [--images DIR] [FILE|FOLDER ...]
 #
-# --pointfarm (or POINTFARM_BIN) is the binary measured, by default target/debug/pointfarm built
-# from this tree; --before (or POINTFARM_BEFORE) an older build to compare with, left out when
-# not given. Without inputs it renders the real scans of ${POINTFARM_DATA:-../shared/data}
-# and laspy's test files in ${LASPY_DATA:-../gallery-scratch/laspy/tests/data}; fetch those with
-#
-#   git clone --filter=blob:none --no-checkout https://github.com/laspy/laspy /tmp/laspy
-#   git -C /tmp/laspy archive HEAD $(git -C /tmp/laspy ls-tree -r --name-only HEAD tests/data |
-#       grep -iE '\.la[sz]$') | tar -x -C DIR        # then LASPY_DATA=DIR/tests/data
-#
-# (only the .las/.laz files: one of the folder's other files is missing from some mirrors).
+# --pointfarm (or POINTFARM_BIN) is the binary measured, by default this tree's, built in debug
+# (enough at 640x360); --before (or POINTFARM_BEFORE) an older build to compare with, left out when
+# not given. Without inputs it renders the two real scans of the gallery, autzen_trim.laz and
+# lone-star.laz in ${POINTFARM_DATA:-../shared/data}, and every .las/.laz file of laspy's tests
+# in ${LASPY_DATA:-../laspy/tests/data} (a laspy checkout beside this one:
+# `git clone --depth 1 https://github.com/laspy/laspy ../laspy`).
 # --images keeps the frames (NAME.after.png, NAME.before.png); otherwise they are discarded.
 set -euo pipefail
+here=$PWD
 cd "$(dirname "$0")/.."
+# Paths given on the command line are the caller's, from where it ran.
+abs() { case $1 in /*) echo "$1" ;; *) echo "$here/$1" ;; esac; }
 
-pointfarm=${POINTFARM_BIN:-target/debug/pointfarm}
+pointfarm=${POINTFARM_BIN:-}
 before=${POINTFARM_BEFORE:-}
 args=()
 inputs=()
 while [ $# -gt 0 ]; do
     case $1 in
-        --pointfarm) pointfarm=$2; shift 2 ;;
-        --before) before=$2; shift 2 ;;
-        --size | --runs | --images) args+=("$1" "$2"); shift 2 ;;
-        -h | --help) sed -n '2,23p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+        --pointfarm) pointfarm=$(abs "$2"); shift 2 ;;
+        --before) before=$(abs "$2"); shift 2 ;;
+        --images) args+=("$1" "$(abs "$2")"); shift 2 ;;
+        --size | --runs) args+=("$1" "$2"); shift 2 ;;
+        -h | --help) sed -n '2,17p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
         -*) echo "gallery-figures: unknown option $1" >&2; exit 2 ;;
-        *) inputs+=("$1"); shift ;;
+        *) inputs+=("$(abs "$1")"); shift ;;
     esac
 done
 if [ ${#inputs[@]} -eq 0 ]; then
-    inputs=("${POINTFARM_DATA:-../shared/data}" "${LASPY_DATA:-../gallery-scratch/laspy/tests/data}")
+    data=${POINTFARM_DATA:-../shared/data}
+    inputs=("$data/autzen_trim.laz" "$data/lone-star.laz" "${LASPY_DATA:-../laspy/tests/data}")
 fi
 for i in "${inputs[@]}"; do
     [ -e "$i" ] || { echo "gallery-figures: $i not found" >&2; exit 1; }
 done
+# The current tree's defaults unless told otherwise, so one command refreshes the table.
+if [ -z "$pointfarm" ]; then
+    cargo build --quiet --locked --bin pointfarm
+    pointfarm=${CARGO_TARGET_DIR:-target}/debug/pointfarm
+fi
 [ -x "$pointfarm" ] || { echo "gallery-figures: no pointfarm binary at $pointfarm (cargo build --bin pointfarm)" >&2; exit 1; }
 if [ -n "$before" ]; then
     [ -x "$before" ] || { echo "gallery-figures: no binary at $before" >&2; exit 1; }

@@ -177,7 +177,11 @@ fn figure_cells(r: &Result<Render, String>) -> [String; 4] {
             let centre = f
                 .centre()
                 .map_or("–".into(), |(x, y)| format!("{}, {}", pct(x), pct(y)));
-            let lit = f.lit_share().map_or("–".into(), pct);
+            // The silhouette's size tells a closed surface from a few isolated points, which
+            // are their own silhouette and so fully lit.
+            let lit = f.lit_share().map_or("–".into(), |l| {
+                format!("{} of {:.1}k px", pct(l), f.silhouette as f64 / 1000.0)
+            });
             [span, centre, lit, format!("{:.0}", r.wall_ms)]
         }
         Err(e) => [e.replace('|', "\\|"), "–".into(), "–".into(), "–".into()],
@@ -226,7 +230,8 @@ fn run(args: &Args) -> Result<(), String> {
     println!(
         "{} files rendered with default flags at {}; drawn = not exactly the default background \
          #{r:02x}{g:02x}{b:02x}; silhouette closed with a disc of radius {} px; box and centre as \
-         fractions of the frame's width × height; ms: wall time of the render command; none/edl: \
+         fractions of the frame's width × height; lit: drawn over silhouette pixels, of a silhouette \
+         of so many pixels; ms: wall time of the render command; none/edl: \
          median over {} runs of the frame's stages (upload to encode), and of its shade stage.\n",
         files.len(),
         args.size,
