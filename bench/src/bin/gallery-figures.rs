@@ -180,7 +180,11 @@ fn figure_cells(r: &Result<Render, String>) -> [String; 4] {
             // The silhouette's size tells a closed surface from a few isolated points, which
             // are their own silhouette and so fully lit.
             let lit = f.lit_share().map_or("–".into(), |l| {
-                format!("{} of {:.1}k px", pct(l), f.silhouette as f64 / 1000.0)
+                let px = match f.silhouette {
+                    n if n < 10_000 => format!("{n}"),
+                    n => format!("{:.0}k", n as f64 / 1000.0),
+                };
+                format!("{} of {px} px", pct(l))
             });
             [span, centre, lit, format!("{:.0}", r.wall_ms)]
         }
