@@ -26,7 +26,9 @@
 //! the level-of-detail store of a campaign of many files, no GPU); [`scheduler`] (leasing a
 //! frame against the daemon's job history, no GPU); [`cuts`] (rendering level-of-detail stores
 //! cut by cut: a cold turntable, frame time against points, fidelity, resident against cut); `memory` (the process's resident memory);
-//! [`report`] (what was measured), written as [`markdown`], [`json`] and a [`plot`].
+//! [`report`] (what was measured), written as [`markdown`], [`json`] and a [`plot`];
+//! [`frame_figures`] (how much of a rendered frame its subject fills and lights, for the
+//! gallery's default-render figures).
 //!
 //! The `PointList` baseline is compiled into the renderer only here: this crate enables the
 //! render crate's `pointlist-baseline` feature.
@@ -35,6 +37,7 @@ pub mod campaign;
 pub mod clouds;
 pub mod cuts;
 mod error;
+pub mod frame_figures;
 mod huge;
 pub mod ingest;
 pub mod json;
