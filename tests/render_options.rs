@@ -102,6 +102,7 @@ fn cases(cloud: &PointCloud) -> Vec<(&'static str, RenderRequest)> {
                 o.color_ramp = Some(ColorRamp::Inferno);
             }),
         ),
+        ("no shading", with_options(|o| o.shading = Shading::None)),
         (
             "fixed point size",
             with_options(|o| o.point_size = PointSize::Fixed(3)),

@@ -544,6 +544,7 @@ pub fn dataset_description(
 #[cfg(test)]
 mod tests {
     use pointfarm_render::raster::{FillSettings, Shading};
+    use pointfarm_render::request::{PointSize, RenderOptions};
 
     use super::*;
 
@@ -712,6 +713,29 @@ mod tests {
                 .fill,
             None
         );
+    }
+
+    #[test]
+    fn unset_options_are_the_requests_defaults() {
+        let mut r = valid();
+        r.render = Some(pb::RenderOptions::default());
+        let render = JobSpec::try_from(&r).expect("valid").request.render;
+        assert_eq!(render, RenderOptions::default());
+        assert_eq!(render.shading, Shading::EDL);
+        assert_eq!(render.point_size, PointSize::Adaptive);
+        // Unset shading with parameters: the default kind with them; none asked for: none.
+        r.render = Some(pb::RenderOptions {
+            edl_strength: Some(2.0),
+            ..Default::default()
+        });
+        let render = JobSpec::try_from(&r).expect("valid").request.render;
+        assert!(matches!(render.shading, Shading::Edl { strength, .. } if strength == 2.0));
+        r.render = Some(pb::RenderOptions {
+            shading: pb::Shading::None as i32,
+            ..Default::default()
+        });
+        let render = JobSpec::try_from(&r).expect("valid").request.render;
+        assert_eq!(render.shading, Shading::None);
     }
 
     #[test]
