@@ -429,9 +429,10 @@ fn options_stored_before_supersampling_and_lenses_read_with_the_defaults() {
         "render":{"point_size":1,"quality":"Basic","shading":"None","color_mode":"Rgb",
             "background":[24,24,28,255]}}"#;
     let r: RenderRequest = serde_json::from_str(stored).expect("today's shape reads");
-    // A stored size stays fixed; newer options take their defaults.
+    // A stored size and shading stay; newer options take their defaults.
     let render = RenderOptions {
         point_size: PointSize::Fixed(1),
+        shading: Shading::None,
         ..RenderOptions::default()
     };
     assert_eq!(r.render, render);
