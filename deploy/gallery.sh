@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Renders the gallery in docs/gallery/: the same real scan in every mode, so anyone can
-# compare them and rerun this after a change. Needs the real scans in ../shared/data/.
+# compare them and rerun this after a change. Needs the real scans in ../shared/data/. Each
+# image names its shading, so the default's does not blur the modes apart.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -25,15 +26,15 @@ render() { # name, file, options...
     echo "$out/$name.png"
 }
 
-render autzen-basic "$scan"
-render autzen-high "$scan" --quality high
+render autzen-basic "$scan" --shading none
+render autzen-high "$scan" --quality high --shading none
 render autzen-high-edl "$scan" --quality high --shading edl
-render autzen-ssaa "$scan" --quality high --supersample 2
-render autzen-intensity "$scan" --color intensity --quality high
-render autzen-elevation "$scan" --color elevation --quality high
-render autzen-classification "$scan" --color classification --quality high
-render autzen-return "$scan" --color return --quality high
-render lone-star-intensity "$tls" --quality high
+render autzen-ssaa "$scan" --quality high --supersample 2 --shading none
+render autzen-intensity "$scan" --color intensity --quality high --shading none
+render autzen-elevation "$scan" --color elevation --quality high --shading none
+render autzen-classification "$scan" --color classification --quality high --shading none
+render autzen-return "$scan" --color return --quality high --shading none
+render lone-star-intensity "$tls" --quality high --shading none
 render lone-star-edl "$tls" --quality high --shading edl --color "#d8d2c4"
 render autzen-fill-edl "$scan" --fill --shading edl
 render autzen-fill-pintus "$scan" --fill --shading pintus
