@@ -120,10 +120,13 @@ fn a_turntable_goes_to_a_folder_or_a_pattern_never_over_one_file() {
 fn a_depth_image_comes_with_its_near_far_and_camera() {
     let scene = Scene::new();
     let out = scene.path("view.webp");
+    // Unshaded: EDL darkens background pixels beside the points, which have no depth.
     assert_ok(&scene.render(&[
         "--out",
         &arg(&out),
         "--depth",
+        "--shading",
+        "none",
         "--near",
         "10",
         "--far",
@@ -241,6 +244,10 @@ fn a_video_that_cannot_be_made_is_refused_before_any_frame_is_rendered() {
     ]);
     assert_fails_saying(&output, "does not exist");
     assert!(!frames.exists(), "no frame rendered");
+    let tiff = scene.path("tiffs/f_{}.tif");
+    let output = scene.render(&["--turntable", "2", "--out", &arg(&tiff), "--video", &video]);
+    assert_fails_saying(&output, "16-bit TIFF frames cannot be piped");
+    assert!(!scene.path("tiffs").exists(), "no frame rendered");
 }
 
 #[test]
@@ -365,9 +372,11 @@ fn a_camera_path_file_renders_its_frames() {
 #[test]
 fn adaptive_points_close_a_sparse_cloud_and_say_their_size() {
     let scene = Scene::new();
-    // 20,000 points at 320x240: sparse enough for gaps between one-pixel points.
+    // 20,000 points at 320x240: sparse enough for gaps between one-pixel points. Unshaded,
+    // so that only points cover pixels.
     let render = |options: &[&str]| {
         let mut args = vec!["render", &scene.cloud, "--local", "--size", "320x240"];
+        args.extend(["--shading", "none"]);
         args.extend(options);
         pointfarm(&args)
     };

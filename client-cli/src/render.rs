@@ -10,7 +10,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_render::camera::{Camera, Projection};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::ColorMode;
-use pointfarm_render::encode;
+use pointfarm_render::encode::{self, FrameFormat};
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::{dataset_files, dataset_point_count};
 use pointfarm_render::legend::Legend;
@@ -155,6 +155,10 @@ impl Outputs {
             bail!(
                 "--video needs frames to make a video of: add --turntable N or --camera-path FILE"
             );
+        }
+        if args.video_request().is_some() && files.format() == FrameFormat::Tiff16 {
+            // ffmpeg reads piped frames in order and cannot seek back in a TIFF.
+            bail!("--video is made from PNG, JPEG or WebP frames; 16-bit TIFF frames cannot be piped to ffmpeg");
         }
         let video = args.video_request().map(VideoRequest::check).transpose()?;
         let legend = args.legend.clone();

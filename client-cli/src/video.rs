@@ -8,6 +8,7 @@ use std::process::{Command, Stdio};
 
 use anyhow::{bail, Context, Result};
 use clap::ValueEnum;
+use pointfarm_render::encode::FrameFormat;
 
 /// Video codecs, by the ffmpeg encoder each uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -170,11 +171,19 @@ impl VideoPlan {
             bail!("no frames to make a video of");
         }
         let request = &self.request;
+        // The frames' codec named, not probed: ffmpeg's probe of piped JPEGs rejected some of
+        // the image crate's.
+        let decoder = match FrameFormat::from_path(&frames[0])? {
+            FrameFormat::Png => "png",
+            FrameFormat::Jpeg => "mjpeg",
+            FrameFormat::WebP => "webp",
+            FrameFormat::Tiff16 => bail!("16-bit TIFF frames cannot be piped to ffmpeg"),
+        };
         let mut command = Command::new("ffmpeg");
         command
             .args(["-y", "-hide_banner", "-loglevel", "error"])
             .args(["-f", "image2pipe", "-framerate", &request.fps.to_string()])
-            .args(["-i", "-"]);
+            .args(["-c:v", decoder, "-i", "-"]);
         match (self.container, self.codec) {
             (Container::Gif, _) => {
                 command.args([

@@ -13,8 +13,8 @@ use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
-use pointfarm_render::raster::{FrameSettings, Renderer};
-use pointfarm_render::request::{camera_for_frame, CameraPath, Lens, RenderRequest, Turntable};
+use pointfarm_render::raster::Renderer;
+use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
 use sha2::{Digest, Sha256};
 use tonic::transport::Channel;
 
@@ -327,13 +327,16 @@ pub fn assert_equal_to_direct_renders(
     let cloud = load_point_cloud(file).expect("load");
     let mut renderer = Renderer::new(gpu());
     let resident = renderer.upload(&cloud).expect("upload");
-    let path = CameraPath::Turntable(Turntable::around_the_cloud(frames));
-    let aspect = width as f64 / height as f64;
+    let request = RenderRequest {
+        width,
+        height,
+        camera_path: CameraPath::Turntable(Turntable::around_the_cloud(frames)),
+        lens: Lens::default(),
+        render: RenderOptions::default(),
+    };
     for (index, image) in fetched {
-        let camera = camera_for_frame(&path, &Lens::default(), *index, &cloud.bounds, aspect);
-        let direct = renderer
-            .render(&resident, &FrameSettings::new(width, height, camera))
-            .expect("render");
+        let settings = request.frame_settings(*index, &cloud.bounds, cloud.spacing());
+        let direct = renderer.render(&resident, &settings).expect("render");
         assert!(
             direct.image == *image,
             "frame {index} differs from the direct rendering"
