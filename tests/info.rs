@@ -282,19 +282,9 @@ fn a_dataset_on_a_server_reports_as_its_files_do_here() {
     assert_eq!(server_paths.len(), 2);
 
     for flags in [&[][..], &["--no-points"][..]] {
-        let remote = |json: bool| {
-            let mut args = vec!["info", dataset.id.as_str(), "--server", address];
-            args.extend(flags);
-            if json {
-                args.push("--json");
-            }
-            let output = pointfarm(&args);
-            assert_ok(&output);
-            output
-        };
-        let local = |json: bool| {
+        let info = |inputs: &[&str], json: bool| {
             let mut args = vec!["info"];
-            args.extend(&server_paths);
+            args.extend(inputs);
             args.extend(flags);
             if json {
                 args.push("--json");
@@ -303,6 +293,8 @@ fn a_dataset_on_a_server_reports_as_its_files_do_here() {
             assert_ok(&output);
             output
         };
+        let remote = |json: bool| info(&[dataset.id.as_str(), "--server", address], json);
+        let local = |json: bool| info(&server_paths, json);
         let text = stdout(&remote(false));
         assert_eq!(text, stdout(&local(false)), "{flags:?}");
         assert!(text.contains("points      518862"), "{text}");
