@@ -560,14 +560,14 @@ fn bench_writes_its_figures_as_json_and_markdown() {
     assert_eq!(workload["points"], 110_000);
     for method in [&workload["pointlist"], &workload["compute"]] {
         assert!(
-            method["frame_ms"].as_f64().is_some_and(|ms| ms > 0.0),
+            method["frameMs"].as_f64().is_some_and(|ms| ms > 0.0),
             "{method}"
         );
     }
     let modes = json_names(&workload["modes"], "method");
     assert_eq!(modes, ["compute-hq", "compute-basic-32"]);
     // The headline figure belongs to the 10M cloud, which this run left out.
-    assert!(report["speedup_vs_pointlist"].is_null(), "{report}");
+    assert!(report["speedupVsPointlist"].is_null(), "{report}");
     assert!(table.contains("| autzen_trim.laz |"), "{table}");
 }
 
@@ -604,10 +604,10 @@ fn bench_measures_decoding_and_the_dataset_cache() {
     assert_eq!(generated["workload"], "ingest-uniform-30000.laz");
     assert_eq!(generated["points"], 30_000);
     for field in [
-        "decode_ms",
-        "decode_one_thread_ms",
-        "cache_hit_ms",
-        "cache_speedup",
+        "decodeMs",
+        "decodeOneThreadMs",
+        "cacheHitMs",
+        "cacheSpeedup",
     ] {
         assert!(
             generated[field].as_f64().is_some_and(|v| v > 0.0),
@@ -653,7 +653,7 @@ fn bench_streams_a_huge_cloud_of_the_size_asked() {
     let huge = &workloads[0];
     assert_eq!(huge["workload"], "uniform-200000");
     assert_eq!(huge["points"], 200_000);
-    assert!(huge["ingest_memory"]["peak_host_bytes"]
+    assert!(huge["ingestMemory"]["peakHostBytes"]
         .as_u64()
         .is_some_and(|b| b > 0));
     // 4096-point batches, all in view of the automatic camera.

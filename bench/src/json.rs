@@ -1,5 +1,6 @@
 //! The benchmark's JSON file: the report (or the campaign benchmark's `campaign` section), with
-//! the run's context (the command, when it ended, how long it took, the machine).
+//! the run's context (the command, when it ended, how long it took, the machine). Keys are
+//! lowerCamelCase, as in the API's JSON mapping and every other `--json` of the CLI.
 
 use std::path::Path;
 use std::time::Instant;
@@ -108,10 +109,38 @@ fn write_file<R: Serialize>(
         machine: Machine::this(),
         report,
     };
-    let json = serde_json::to_string_pretty(&file).map_err(|e| BenchError::Json(e.to_string()))?;
+    let json = serde_json::to_value(&file)
+        .map(camel_case_keys)
+        .and_then(|value| serde_json::to_string_pretty(&value))
+        .map_err(|e| BenchError::Json(e.to_string()))?;
     std::fs::write(path, json + "\n").map_err(|source| BenchError::Write {
         path: path.to_path_buf(),
         source,
+    })
+}
+
+/// `value` with every object's keys in lowerCamelCase (`points_rendered` as `pointsRendered`),
+/// as the proto3 JSON mapping writes the API's fields: the CLI's own JSON objects, made from
+/// snake_case Rust fields, read like its API messages.
+pub fn camel_case_keys(value: serde_json::Value) -> serde_json::Value {
+    match value {
+        serde_json::Value::Object(fields) => fields
+            .into_iter()
+            .map(|(key, value)| (lower_camel_case(&key), camel_case_keys(value)))
+            .collect(),
+        serde_json::Value::Array(items) => items.into_iter().map(camel_case_keys).collect(),
+        other => other,
+    }
+}
+
+fn lower_camel_case(snake: &str) -> String {
+    let mut words = snake.split('_');
+    let first = words.next().unwrap_or_default().to_string();
+    words.fold(first, |mut name, word| {
+        let mut letters = word.chars();
+        name.extend(letters.next().map(|c| c.to_ascii_uppercase()));
+        name.push_str(letters.as_str());
+        name
     })
 }
 

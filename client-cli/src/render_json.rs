@@ -5,6 +5,7 @@
 
 use std::path::Path;
 
+use pointfarm_bench::json::camel_case_keys;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::camera::{Camera, Projection};
 use pointfarm_render::cloud::WorldBounds;
@@ -142,28 +143,6 @@ impl CameraJson {
 /// every field, with its keys in lowerCamelCase.
 pub fn cut_json(report: &CutReport) -> serde_json::Value {
     camel_case_keys(serde_json::to_value(report).unwrap_or_default())
-}
-
-fn camel_case_keys(value: serde_json::Value) -> serde_json::Value {
-    match value {
-        serde_json::Value::Object(fields) => fields
-            .into_iter()
-            .map(|(key, value)| (lower_camel_case(&key), camel_case_keys(value)))
-            .collect(),
-        other => other,
-    }
-}
-
-/// `points_rendered` as `pointsRendered`.
-fn lower_camel_case(snake: &str) -> String {
-    let mut words = snake.split('_');
-    let first = words.next().unwrap_or_default().to_string();
-    words.fold(first, |mut name, word| {
-        let mut letters = word.chars();
-        name.extend(letters.next().map(|c| c.to_ascii_uppercase()));
-        name.push_str(letters.as_str());
-        name
-    })
 }
 
 #[cfg(test)]

@@ -549,7 +549,7 @@ mod tests {
         let json = crate::json::written_in(parent.path(), &r, crate::json::write_cuts);
         assert_eq!(json["cuts"]["scaling"][1]["points"], 300_000);
         assert_eq!(
-            json["cuts"]["out_of_core"]["frames"][0]["stages"][0]["stage"],
+            json["cuts"]["outOfCore"]["frames"][0]["stages"][0]["stage"],
             "select"
         );
         let left: Vec<_> = std::fs::read_dir(parent.path()).expect("dir").collect();
