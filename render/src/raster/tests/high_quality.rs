@@ -159,15 +159,7 @@ fn high_quality_averages_thousands_of_points_a_pixel_over_many_chunks() {
         };
         let expected = reference::render(&cloud, &settings);
         for atomics in [AtomicsMode::Auto, AtomicsMode::Force32, AtomicsMode::Auto] {
-            let frame = renderer
-                .render(
-                    &resident,
-                    &FrameSettings {
-                        atomics,
-                        ..settings
-                    },
-                )
-                .expect("render");
+            let frame = render_with_atomics(&mut renderer, &resident, &settings, atomics);
             let name = format!("hq-thousands-{points}-{atomics:?}");
             let difference = max_channel_difference(&frame.image, &expected.image);
             assert!(difference <= 1, "{name}: differs by {difference}/255");

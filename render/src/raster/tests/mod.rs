@@ -150,6 +150,20 @@ pub(super) fn render_gpu(cloud: &PointCloud, settings: &FrameSettings) -> Frame 
     renderer.render(&resident, settings).expect("render")
 }
 
+/// `settings`' frame of `resident` through the `atomics` path.
+fn render_with_atomics(
+    renderer: &mut Renderer,
+    resident: &GpuPointCloud,
+    settings: &FrameSettings,
+    atomics: AtomicsMode,
+) -> Frame {
+    let settings = FrameSettings {
+        atomics,
+        ..*settings
+    };
+    renderer.render(resident, &settings).expect("render")
+}
+
 fn assert_matches_reference(name: &str, cloud: &PointCloud, settings: &FrameSettings) -> Frame {
     let frame = render_gpu(cloud, settings);
     let expected = reference::render_basic(cloud, settings);

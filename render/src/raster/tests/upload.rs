@@ -61,15 +61,7 @@ fn a_cloud_larger_than_one_binding_renders_in_chunks() {
         resident.chunk_count()
     );
     for atomics in [AtomicsMode::Auto, AtomicsMode::Force32] {
-        let frame = renderer
-            .render(
-                &resident,
-                &FrameSettings {
-                    atomics,
-                    ..settings
-                },
-            )
-            .expect("render");
+        let frame = render_with_atomics(&mut renderer, &resident, &settings, atomics);
         let expected = reference::render_basic(&cloud, &settings);
         assert_eq!(
             compare_images("chunked", &frame.image, &expected.image).differing,
