@@ -46,7 +46,21 @@ struct Batch {
     min: vec3<f32>,
     first: u32,
     max: vec3<f32>,
+    // The batch's points in the low 16 bits; the high 16 bits are its point-size factor
+    // (`batch_size_factor`).
     count: u32,
+}
+
+fn batch_points(batch: Batch) -> u32 {
+    return batch.count & 0xffffu;
+}
+
+// What a batch's points' adaptive size is multiplied by: 8.8 fixed point, 0 meaning 1. A
+// level-of-detail cut sizes each node's batches by the node's spacing
+// (`GpuBatch::with_size_factor`).
+fn batch_size_factor(batch: Batch) -> f32 {
+    let code = batch.count >> 16u;
+    return select(1.0, f32(code) / 256.0, code != 0u);
 }
 
 // The batch a frame table's entry lists (`ListedEntry` in `raster/culling/listing.rs`): `batch`, the
@@ -55,8 +69,8 @@ struct Batch {
 fn listed_batch(entry: u32, batch: Batch) -> Batch {
     var listed = batch;
     listed.first = batch.first + ((entry >> 4u) & 15u) * SUB_BATCH_POINTS;
-    let end = min(listed.first + ((entry & 15u) + 1u) * SUB_BATCH_POINTS, batch.first + batch.count);
-    listed.count = end - listed.first;
+    let end = min(listed.first + ((entry & 15u) + 1u) * SUB_BATCH_POINTS, batch.first + batch_points(batch));
+    listed.count = (end - listed.first) | (batch.count & 0xffff0000u);
     return listed;
 }
 
@@ -152,6 +166,8 @@ struct BatchProjection {
     w: vec4<f32>,
     // Linear view depth (`FrameUniforms::depth_row`).
     depth: vec4<f32>,
+    // Adaptive point size: a point's side in pixels times its linear depth.
+    size_scale: f32,
 }
 
 fn quantised_row(row: vec4<f32>, origin: vec3<f32>, step: vec3<f32>) -> vec4<f32> {
@@ -169,6 +185,7 @@ fn batch_projection(frame: FrameUniforms, batch: Batch) -> BatchProjection {
     p.y_w = quantised_row(half.y * (m[3] - m[1]), batch.min, step);
     p.w = quantised_row(m[3], batch.min, step);
     p.depth = quantised_row(frame.depth_row, batch.min, step);
+    p.size_scale = frame.point_size_scale * batch_size_factor(batch);
     return p;
 }
 
@@ -192,7 +209,7 @@ fn project_quantised(frame: FrameUniforms, projection: BatchProjection, word: ve
     var side = POINT_SIZE;
     if ADAPTIVE_SIZE {
         // Rounded in f32 and clamped before the conversion, as `FrameSettings::point_side_at`.
-        side = u32(clamp(floor(frame.point_size_scale / depth + 0.5), 1.0, f32(POINT_SIZE)));
+        side = u32(clamp(floor(projection.size_scale / depth + 0.5), 1.0, f32(POINT_SIZE)));
     }
     s.side = side;
     let half = i32((side - 1u) / 2u);

@@ -24,7 +24,7 @@ fn color_of(i: u32) -> u32 {
 const WRITES_DEPTHS: u32 = 0u;
 const READS_DEPTHS: u32 = 1u;
 
-// The batch of this workgroup's listed entry, or none (`count` 0): past the end of the list,
+// The batch of this workgroup's listed entry, or none (no points): past the end of the list,
 // outside the view, or behind the occlusion tiles by `band` (`batch_occluded`), which counts
 // it as skipped by `pass_kind` (`count_skipped`).
 fn workgroup_batch(invocation: GridInvocation, band: f32, pass_kind: u32) -> Batch {
@@ -50,11 +50,12 @@ fn workgroup_batch(invocation: GridInvocation, band: f32, pass_kind: u32) -> Bat
 // points this way; the call is inlined, so each pass's loop is the one it had written out.
 fn draw_batch(invocation: GridInvocation, band: f32, pass_kind: u32) {
     let batch = workgroup_batch(invocation, band, pass_kind);
-    if batch.count == 0u {
+    let points = batch_points(batch);
+    if points == 0u {
         return;
     }
     let projection = batch_projection(frame, batch);
-    for (var i = batch.first + invocation.lane; i < batch.first + batch.count; i += WORKGROUP_SIZE) {
+    for (var i = batch.first + invocation.lane; i < batch.first + points; i += WORKGROUP_SIZE) {
         let splat = project_quantised(frame, projection, positions[i]);
         if !splat.visible {
             continue;

@@ -136,7 +136,7 @@ impl FrameSource {
     pub fn spacing(&self) -> Option<f64> {
         match self {
             Self::Resident { spacing, .. } => *spacing,
-            Self::Cut { lod, .. } => lod.dataset.hierarchy().point_spacing(),
+            Self::Cut { lod, .. } => lod.dataset.point_spacing(),
         }
     }
 

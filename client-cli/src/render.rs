@@ -237,7 +237,7 @@ fn point_size_text(settings: &FrameSettings, spacing: Option<f64>) -> String {
     let side = settings.point_size;
     let unit = if side == 1 { "pixel" } else { "pixels" };
     match (settings.adaptive_size, spacing) {
-        (Some(_), Some(spacing)) => {
+        (Some(_), Some(spacing)) if side > 1 => {
             format!("point size: 1 to {side} {unit} by depth (points about {spacing:.3} apart)")
         }
         _ => format!("point size: {side} {unit}"),

@@ -139,6 +139,10 @@ pub async fn serve(
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<DatasetServiceServer<Api>>().await;
     health.set_serving::<WorkerServiceServer<Api>>().await;
+    // Registered before the first connection, so a check never finds them unknown; the
+    // watch below sets them SERVING once a worker can render.
+    health.set_not_serving::<JobServiceServer<Api>>().await;
+    health.set_service_status("", ServingStatus::NotServing).await;
     let health_watch = tokio::spawn(report_health(daemon.clone(), health));
     // grpcurl and grpcio-reflection speak v1; older tools only v1alpha.
     let reflection = tonic_reflection::server::Builder::configure()

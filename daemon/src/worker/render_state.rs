@@ -249,7 +249,7 @@ impl WorkerRenderState {
                 let bounds = filter
                     .framing_bounds(&dataset.bounds())
                     .map_err(|e| FrameFailure::permanent(e.to_string()))?;
-                let spacing = dataset.hierarchy().point_spacing();
+                let spacing = dataset.point_spacing();
                 let settings = task
                     .request
                     .frame_settings(task.lease.index, &bounds, spacing);

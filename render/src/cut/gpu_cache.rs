@@ -39,6 +39,18 @@ struct Slot {
     index: u32,
 }
 
+/// The point-size factor of each batch of a frame, by its node (`point_sizes.rs`).
+pub(crate) type SizeFactors<'a> = &'a mut dyn FnMut(NodeKey, &GpuBatch) -> f32;
+
+/// One page's batch tables of a frame: its batches, their runs, and their point-size factors
+/// (empty: all 1).
+#[derive(Default)]
+struct PageTables {
+    batches: Vec<GpuBatch>,
+    sub_batches: Vec<GpuBatch>,
+    sizes: Vec<f32>,
+}
+
 struct ResidentNode {
     slots: Vec<Slot>,
     /// Per slot: its batch (`first` at the slot's first point) and its runs, padded to
@@ -243,13 +255,15 @@ impl GpuNodeCache {
         }
     }
 
-    /// Sets every page's batch table to the batches of `cut` (resident nodes, in key order)
-    /// and returns the cloud to render, with `upload_ms` to report as its transfers.
+    /// Sets every page's batch table to the batches of `cut` (resident nodes, in key order),
+    /// each with the point-size factor `size_factor` gives it (none: 1), and returns the
+    /// cloud to render, with `upload_ms` to report as its transfers.
     pub fn frame_cloud(
         &mut self,
         gpu: &GpuContext,
         cut: &[NodeKey],
         upload_ms: f64,
+        mut size_factor: Option<SizeFactors<'_>>,
     ) -> &GpuPointCloud {
         let mut keys: Vec<NodeKey> = cut
             .iter()
@@ -258,21 +272,25 @@ impl GpuNodeCache {
             .collect();
         keys.sort_unstable();
         let pages = self.cloud.chunks.len();
-        let mut tables: Vec<(Vec<GpuBatch>, Vec<GpuBatch>)> = vec![Default::default(); pages];
+        let mut tables: Vec<PageTables> = (0..pages).map(|_| PageTables::default()).collect();
         let mut points = 0;
         for key in keys {
             let node = &self.resident[&key];
             points += node.points as usize;
             for (s, slot) in node.slots.iter().enumerate() {
-                let (batches, subs) = &mut tables[slot.page as usize];
-                batches.push(node.batches[s]);
-                subs.extend_from_slice(
+                let table = &mut tables[slot.page as usize];
+                let batch = node.batches[s];
+                table.batches.push(batch);
+                if let Some(factor) = size_factor.as_mut() {
+                    table.sizes.push(factor(key, &batch));
+                }
+                table.sub_batches.extend_from_slice(
                     &node.sub_batches[s * SUBS_PER_SLOT..(s + 1) * SUBS_PER_SLOT],
                 );
             }
         }
-        for (page, (batches, subs)) in self.cloud.chunks.iter_mut().zip(tables) {
-            page.set_batches(&gpu.queue, batches, subs);
+        for (page, table) in self.cloud.chunks.iter_mut().zip(tables) {
+            page.set_batches(&gpu.queue, table.batches, table.sub_batches, &table.sizes);
         }
         self.cloud.set_frame_points(points, upload_ms);
         &self.cloud

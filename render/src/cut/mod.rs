@@ -12,8 +12,9 @@
 //!    (`colors.rs`), put in Morton order, batched and quantised as any cloud, and written into
 //!    free batch slots of the GPU cache's pages (`gpu_cache.rs`), the least recently used nodes
 //!    outside the cut evicted;
-//! 4. **draw**: the pages' batch tables are set to the cut's batches and the renderer draws
-//!    them with every mode it has.
+//! 4. **draw**: the pages' batch tables are set to the cut's batches, each with its point
+//!    size where the size is adaptive (`point_sizes.rs`), and the renderer draws them with
+//!    every mode it has.
 //!
 //! A frame renders only once its whole cut is resident, so the same request gives the same
 //! image from a cold or a warm cache. `read_ahead` loads the next frame's nodes into the host
@@ -23,6 +24,7 @@ mod colors;
 mod gpu_cache;
 mod host_cache;
 mod options;
+mod point_sizes;
 mod report;
 mod select;
 mod store_space;
@@ -44,6 +46,7 @@ use crate::cloud::WorldBounds;
 use crate::color::Coloring;
 use crate::filter::PointFilter;
 use crate::lod::{read_nodes, LodError, LodHierarchy, LodStore, NodeKey, NodePoints, NodeRecords};
+use crate::raster::gpu_data::GpuBatch;
 use crate::raster::morton::morton_order;
 use crate::raster::points::ChunkData;
 use crate::raster::{Clock, Frame, FrameSettings, RenderError, Renderer, Stage, StageTiming};
@@ -60,8 +63,10 @@ pub use report::{CutCounts, CutReport};
 pub use select::{select_cut, Cut, CutNode, CutView};
 pub use stored::StoredLod;
 
-use gpu_cache::GpuNodeCache;
+use gpu_cache::{GpuNodeCache, SizeFactors};
 use host_cache::HostNodeCache;
+use point_sizes::CutPointSizes;
+use select::NodesInView;
 
 /// The most points of a page of the GPU node cache: few pages keep a frame's dispatches few,
 /// small ones keep a small dataset's cache small.
@@ -105,6 +110,9 @@ pub struct LodDataset {
     origin: DVec3,
     bounds: WorldBounds,
     coloring: DatasetColoring,
+    /// The spacing of the original points (`LodHierarchy::point_spacing`), which a frame's
+    /// adaptive size is made for.
+    point_spacing: Option<f64>,
 }
 
 impl LodDataset {
@@ -147,6 +155,7 @@ impl LodDataset {
         let coloring = DatasetColoring::new(&hierarchy.stats, heights, origin.z);
         Ok(Self {
             records,
+            point_spacing: hierarchy.point_spacing(),
             hierarchy: Arc::new(hierarchy),
             origin,
             bounds,
@@ -179,6 +188,12 @@ impl LodDataset {
 
     pub fn point_count(&self) -> u64 {
         self.hierarchy.point_count
+    }
+
+    /// The spacing of the original points, from the leaves: what a frame's adaptive point
+    /// size is made for, and what a cut's batches are sized against.
+    pub fn point_spacing(&self) -> Option<f64> {
+        self.point_spacing
     }
 
     /// Bytes a node's record takes in the store.
@@ -255,27 +270,64 @@ impl CutRenderer {
 
     /// The cut a frame of `settings` draws.
     pub fn cut(&self, dataset: &LodDataset, settings: &FrameSettings, filter: &PointFilter) -> Cut {
+        select_cut(
+            &dataset.hierarchy,
+            &self.cut_view(dataset, settings, filter),
+        )
+    }
+
+    /// What the selection of a frame of `settings` needs, in the supersampled frame's pixels.
+    fn cut_view<'a>(
+        &self,
+        dataset: &LodDataset,
+        settings: &'a FrameSettings,
+        filter: &PointFilter,
+    ) -> CutView<'a> {
         let k = settings.supersample.max(1);
         let (width, height) = (
             settings.width.saturating_mul(k),
             settings.height.saturating_mul(k),
         );
         let pixels = u64::from(width) * u64::from(height);
-        select_cut(
+        CutView {
+            camera: &settings.camera,
+            origin: dataset.origin,
+            width,
+            height,
+            point_size: settings.point_size.saturating_mul(k),
+            lod_error: self.options.lod_error * f64::from(k),
+            max_batches: self.gpu_cache.capacity_batches(),
+            max_points: (self.options.lod_error > 0.0)
+                .then(|| pixels.saturating_mul(MAX_CUT_POINTS_PER_PIXEL)),
+            clip: filter.clip,
+        }
+    }
+
+    /// The point sizes of the cut of a frame of `settings`: with an adaptive size, each batch
+    /// sized by the spacing of the deepest nodes drawn where it lies (`point_sizes.rs`).
+    fn point_sizes<'a>(
+        &self,
+        dataset: &'a LodDataset,
+        settings: &FrameSettings,
+        filter: &PointFilter,
+        cut: &Cut,
+    ) -> Option<CutPointSizes<'a>> {
+        let scale = settings.adaptive_size?;
+        let reference = dataset.point_spacing?;
+        let view = self.cut_view(dataset, settings, filter);
+        // In the frame's own pixels: the renderer scales the sizes for supersampling.
+        let transform = settings
+            .camera
+            .transform(dataset.origin, settings.width, settings.height);
+        Some(CutPointSizes::new(
             &dataset.hierarchy,
-            &CutView {
-                camera: &settings.camera,
-                origin: dataset.origin,
-                width,
-                height,
-                point_size: settings.point_size.saturating_mul(k),
-                lod_error: self.options.lod_error * f64::from(k),
-                max_batches: self.gpu_cache.capacity_batches(),
-                max_points: (self.options.lod_error > 0.0)
-                    .then(|| pixels.saturating_mul(MAX_CUT_POINTS_PER_PIXEL)),
-                clip: filter.clip,
-            },
-        )
+            cut,
+            NodesInView::new(&dataset.hierarchy, &view, &transform),
+            &transform,
+            dataset.origin,
+            reference,
+            scale,
+        ))
     }
 
     /// Renders one frame: its cut made resident, its points coloured in `color_mode` and
@@ -341,7 +393,20 @@ impl CutRenderer {
             }
             upload_ms += ms_since(started);
         }
-        let cloud = self.gpu_cache.frame_cloud(renderer.gpu(), &keys, upload_ms);
+        let mut sizes = self.point_sizes(dataset, settings, filter, &cut);
+        let mut size_factor = sizes
+            .as_mut()
+            .map(|sizes| move |key: NodeKey, batch: &GpuBatch| sizes.factor(key, batch));
+        let cloud = self.gpu_cache.frame_cloud(
+            renderer.gpu(),
+            &keys,
+            upload_ms,
+            size_factor.as_mut().map(|f| f as SizeFactors<'_>),
+        );
+        let settings = &FrameSettings {
+            point_size: sizes.map_or(settings.point_size, |s| s.largest_side()),
+            ..*settings
+        };
         // What the filter kept of the cut's points.
         report.counts.points_rendered = cloud.len() as u64;
         let mut frame = renderer.render(cloud, settings)?;

@@ -134,33 +134,59 @@ fn contains(min: DVec3, side: f64, p: DVec3) -> bool {
     p.cmpge(min).all() && p.cmple(min + side).all()
 }
 
-/// The cut of `hierarchy` for `view`.
-pub fn select_cut(hierarchy: &LodHierarchy, view: &CutView<'_>) -> Cut {
-    let transform = view.camera.transform(view.origin, view.width, view.height);
-    let frustum = Frustum::new(&transform, view.point_size);
-    let eye = view.camera.position - view.origin;
-    // The cube of a node relative to the origin, widened by a hair for the f32 of the test.
-    let cube = |key: NodeKey| {
-        let (min, side) = hierarchy.node_cube(key);
-        (min - view.origin, side)
-    };
-    let in_view = |key: NodeKey| {
-        if let Some(clip) = &view.clip {
-            let (min, side) = hierarchy.node_cube(key);
+/// Which nodes of a hierarchy can show in a frame: their cube meets the frustum (widened for
+/// the point size) and the clip box. The cut's walk and its point sizes ask the same.
+pub(crate) struct NodesInView<'a> {
+    hierarchy: &'a LodHierarchy,
+    origin: DVec3,
+    frustum: Frustum,
+    clip: Option<ClipBox>,
+}
+
+impl<'a> NodesInView<'a> {
+    pub(crate) fn new(
+        hierarchy: &'a LodHierarchy,
+        view: &CutView<'_>,
+        transform: &CameraTransform,
+    ) -> Self {
+        Self {
+            hierarchy,
+            origin: view.origin,
+            frustum: Frustum::new(transform, view.point_size),
+            clip: view.clip,
+        }
+    }
+
+    pub(crate) fn contains(&self, key: NodeKey) -> bool {
+        let (min, side) = self.hierarchy.node_cube(key);
+        if let Some(clip) = &self.clip {
             if !clip.meets_cube(min, side) {
                 return false;
             }
         }
-        let (min, side) = cube(key);
+        // Relative to the origin, widened by a hair for the f32 of the test.
+        let min = min - self.origin;
         let pad = side * 1e-6 + 1e-6;
         let lo = (min - pad).as_vec3();
         let hi = (min + side + pad).as_vec3();
-        !frustum.excludes(&GpuBatch {
+        !self.frustum.excludes(&GpuBatch {
             min: lo.to_array(),
             first: 0,
             max: hi.to_array(),
             count: 0,
         })
+    }
+}
+
+/// The cut of `hierarchy` for `view`.
+pub fn select_cut(hierarchy: &LodHierarchy, view: &CutView<'_>) -> Cut {
+    let transform = view.camera.transform(view.origin, view.width, view.height);
+    let nodes_in_view = NodesInView::new(hierarchy, view, &transform);
+    let in_view = |key: NodeKey| nodes_in_view.contains(key);
+    let eye = view.camera.position - view.origin;
+    let cube = |key: NodeKey| {
+        let (min, side) = hierarchy.node_cube(key);
+        (min - view.origin, side)
     };
     let on_screen = |key: NodeKey| {
         let (min, side) = cube(key);

@@ -158,6 +158,20 @@ impl LodHierarchy {
         crate::spacing::of_leaves(leaves.map(|n| (self.cube.side_at(n.key.level), n.point_count)))
     }
 
+    /// How far apart `key`'s points lie where a cut stops at it: an inner node's sampling
+    /// cell (a surface through its cube leaves a point in every cell it crosses); a leaf's
+    /// `side / sqrt(count)` ([`crate::spacing::of_leaves`]), at most its parent's cell, whose
+    /// points lie among its own. `None` for a node without points.
+    pub fn points_spacing(&self, key: NodeKey) -> Option<f64> {
+        let node = self.node(key).filter(|n| n.point_count > 0)?;
+        if let Some(cell) = self.spacing(key) {
+            return Some(cell);
+        }
+        let surface = self.cube.side_at(key.level) / f64::from(node.point_count).sqrt();
+        let parent_cell = key.parent().and_then(|parent| self.spacing(parent));
+        Some(parent_cell.map_or(surface, |cell| surface.min(cell)))
+    }
+
     /// The spacing of an inner node's points (its side over its sampling grid); `None` for a
     /// leaf, whose points are simply all that is left.
     pub fn spacing(&self, key: NodeKey) -> Option<f64> {

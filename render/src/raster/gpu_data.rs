@@ -48,6 +48,27 @@ pub struct GpuBatch {
     pub count: u32,
 }
 
+impl GpuBatch {
+    /// This batch as a batch table on the GPU holds it with its points drawn `factor` times
+    /// the frame's adaptive size (`batch_size_factor` in common.wgsl): the factor in 8.8
+    /// fixed point in the high 16 bits of `count`, where 0 means 1. A level-of-detail cut
+    /// sizes each node's batches by its spacing; the host's copy keeps the plain count.
+    pub fn with_size_factor(self, factor: f32) -> GpuBatch {
+        let code = (factor * SIZE_FACTOR_ONE as f32)
+            .round()
+            .clamp(1.0, f32::from(u16::MAX)) as u32;
+        GpuBatch {
+            count: self.count | code << 16,
+            ..self
+        }
+    }
+}
+
+/// A size factor of 1 in `GpuBatch::with_size_factor`'s fixed point.
+const SIZE_FACTOR_ONE: u32 = 256;
+
+// The point count shares its word with the size factor.
+const _: () = assert!(crate::raster::BATCH_POINTS < 1 << 16);
 const _: () = assert!(std::mem::size_of::<FrameUniforms>() == 128);
 const _: () = assert!(std::mem::size_of::<QuantisedPosition>() == 8);
 const _: () = assert!(std::mem::size_of::<GpuBatch>() == 32);

@@ -26,7 +26,8 @@ impl SplatShape {
     pub fn of(settings: &FrameSettings) -> Self {
         Self {
             side: settings.point_size,
-            adaptive: settings.adaptive_size.is_some(),
+            // Points of one pixel at every depth need no per-point sizes.
+            adaptive: settings.adaptive_size.is_some() && settings.point_size > 1,
             round: settings.round_points,
         }
     }

@@ -97,15 +97,26 @@ impl PointChunk {
     }
 
     /// Sets the batches a frame draws from this chunk (their points already written), on the
-    /// host and in its GPU table.
+    /// host and in its GPU table, the latter with each batch's point-size factor from
+    /// `size_factors` (empty: all 1).
     pub(crate) fn set_batches(
         &mut self,
         queue: &wgpu::Queue,
         batches: Vec<GpuBatch>,
         sub_batches: Vec<GpuBatch>,
+        size_factors: &[f32],
     ) {
-        if !batches.is_empty() {
-            queue.write_buffer(&self.batches, 0, bytemuck::cast_slice(&batches));
+        if size_factors.is_empty() {
+            if !batches.is_empty() {
+                queue.write_buffer(&self.batches, 0, bytemuck::cast_slice(&batches));
+            }
+        } else {
+            let sized: Vec<GpuBatch> = batches
+                .iter()
+                .zip(size_factors)
+                .map(|(batch, &factor)| batch.with_size_factor(factor))
+                .collect();
+            queue.write_buffer(&self.batches, 0, bytemuck::cast_slice(&sized));
         }
         self.groups = batch_groups(&batches);
         self.draw_orders = DrawOrders::default();

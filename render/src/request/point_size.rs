@@ -36,10 +36,13 @@ pub(crate) fn resolve(
         Projection::Perspective { fov_y_deg } => {
             let focal_px = height as f64 / (2.0 * (fov_y_deg.to_radians() / 2.0).tan());
             let scale = spacing * focal_px;
-            let largest = side(scale / nearest_depth(camera, bounds));
-            // Points of one pixel at every depth need no per-point sizes.
-            let adaptive = (largest > 1).then_some(scale as f32);
-            (largest, adaptive)
+            // Kept when every point is one pixel: a level-of-detail cut sizes coarser nodes
+            // from it, and the point passes skip per-point sizes at one pixel anyway
+            // (`SplatShape`).
+            (
+                side(scale / nearest_depth(camera, bounds)),
+                Some(scale as f32),
+            )
         }
     }
 }
@@ -137,10 +140,11 @@ mod tests {
     }
 
     #[test]
-    fn dense_points_stay_one_pixel_without_per_point_sizes() {
+    fn dense_points_stay_one_pixel_and_keep_their_scale() {
         let (camera, bounds) = scene(PERSPECTIVE);
-        let resolved = resolve(PointSize::Adaptive, &camera, 400, &bounds, Some(0.01));
-        assert_eq!(resolved, (1, None));
+        let (largest, scale) = resolve(PointSize::Adaptive, &camera, 400, &bounds, Some(0.01));
+        assert_eq!(largest, 1);
+        assert!((scale.expect("adaptive") - 2.0).abs() < 1e-4, "{scale:?}");
     }
 
     #[test]
