@@ -48,7 +48,7 @@ use crate::raster::morton::morton_order;
 use crate::raster::points::ChunkData;
 use crate::raster::{Clock, Frame, FrameSettings, RenderError, Renderer, Stage, StageTiming};
 
-pub use colors::DatasetColoring;
+pub use colors::{DatasetColoring, ELEVATION_SAMPLE_POINTS};
 pub use gpu_cache::SLOT_BYTES;
 pub use host_cache::node_heap_bytes;
 pub use options::{
@@ -121,37 +121,59 @@ impl LodDataset {
         hierarchy: LodHierarchy,
         bounds: WorldBounds,
     ) -> Result<Self, LodError> {
-        let origin = bounds.center();
-        // The coarsest nodes, level by level, are an even sample of the whole dataset.
+        let sample = Self::coarse_sample(records.as_ref(), &hierarchy)?;
+        Ok(Self::with_sample(records, hierarchy, bounds, &sample))
+    }
+
+    /// The coarsest nodes, level by level, up to [`colors::ELEVATION_SAMPLE_POINTS`]: an even
+    /// sample of the whole dataset, which colour ranges are taken from.
+    pub fn coarse_sample(
+        records: &dyn NodeRecords,
+        hierarchy: &LodHierarchy,
+    ) -> Result<Vec<NodePoints>, LodError> {
         let mut levels: Vec<_> = hierarchy
             .nodes()
             .iter()
             .filter(|n| n.point_count > 0)
             .collect();
         levels.sort_by_key(|n| n.key);
-        let mut sample = Vec::new();
+        let mut keys = Vec::new();
         let mut sampled = 0;
         for node in levels {
             if sampled >= colors::ELEVATION_SAMPLE_POINTS {
                 break;
             }
             sampled += u64::from(node.point_count);
-            sample.push(node.key);
+            keys.push(node.key);
         }
-        let mut heights = Vec::new();
-        for group in sample.chunks(LOAD_GROUP_NODES) {
-            for points in read_nodes(records.as_ref(), &hierarchy, group)? {
-                heights.extend(colors::node_heights(&points, origin));
-            }
+        let mut sample = Vec::with_capacity(keys.len());
+        for group in keys.chunks(LOAD_GROUP_NODES) {
+            sample.extend(read_nodes(records, hierarchy, group)?);
         }
+        Ok(sample)
+    }
+
+    /// A store whose elevation range comes from `sample` ([`LodDataset::coarse_sample`]) and
+    /// whose other colour ranges come from its hierarchy's statistics.
+    pub fn with_sample(
+        records: Arc<dyn NodeRecords>,
+        hierarchy: LodHierarchy,
+        bounds: WorldBounds,
+        sample: &[NodePoints],
+    ) -> Self {
+        let origin = bounds.center();
+        let heights = sample
+            .iter()
+            .flat_map(|points| colors::node_heights(points, origin))
+            .collect();
         let coloring = DatasetColoring::new(&hierarchy.stats, heights, origin.z);
-        Ok(Self {
+        Self {
             records,
             hierarchy: Arc::new(hierarchy),
             origin,
             bounds,
             coloring,
-        })
+        }
     }
 
     /// Where the node records are read from.
