@@ -20,6 +20,9 @@ mod header;
 mod hierarchy;
 mod nodes;
 
+#[cfg(test)]
+mod tests;
+
 use std::fs::File;
 use std::path::Path;
 use std::sync::Arc;
