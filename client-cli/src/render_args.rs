@@ -388,6 +388,12 @@ impl RenderArgs {
         {
             return Ok(None);
         }
+        self.lod_options().map(Some)
+    }
+
+    /// The cut options the arguments describe, whatever the dataset's size: a COPC file is
+    /// always rendered cut by cut from its own hierarchy.
+    pub(crate) fn lod_options(&self) -> Result<CutOptions> {
         let defaults = CutOptions::default();
         let options = CutOptions {
             lod_error: self.lod_error.unwrap_or(defaults.lod_error),
@@ -395,7 +401,7 @@ impl RenderArgs {
             gpu_budget_bytes: self.gpu_budget,
         };
         options.validate()?;
-        Ok(Some(options))
+        Ok(options)
     }
 
     /// The atomics of the local point pass (a property of this machine's adapter, not of

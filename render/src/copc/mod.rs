@@ -13,7 +13,7 @@
 //!
 //! Colour ranges come from the coarsest nodes, the same even sample the elevation range of a
 //! store comes from: the RGB decision, the intensity percentiles and the class counts of up
-//! to [`crate::cut::ELEVATION_SAMPLE_POINTS`] points, not of every point.
+//! to [`crate::cut::ELEVATION_SAMPLE_POINTS`] points (1M), not of every point.
 
 mod error;
 mod header;
@@ -31,7 +31,7 @@ pub use error::CopcError;
 pub use header::{is_copc, CopcInfo};
 pub use nodes::CopcNodes;
 
-use crate::cut::LodDataset;
+use crate::cut::{for_each_coarse_node, node_heights, LodDataset};
 use crate::lod::{DatasetStats, LodError, LodHierarchy};
 
 /// A COPC file opened for rendering, and what opening it read.
@@ -63,27 +63,28 @@ pub fn open_copc(path: &Path) -> Result<CopcDataset, CopcError> {
         list.nodes,
     );
     let nodes = Arc::new(CopcNodes::new(path, file, &header));
-    let sample = LodDataset::coarse_sample(nodes.as_ref(), &hierarchy)
-        .map_err(|error| copc_error(path, error))?;
-    let mut hierarchy = hierarchy;
+    // The colour ranges from the coarsest nodes, and their heights for the elevation range.
+    let origin = header.bounds.center();
     let mut stats = DatasetStats::new(has_rgb);
-    for node in &sample {
-        stats.add_node(node);
-    }
+    let mut heights = Vec::new();
+    let mut sample_nodes = 0;
+    let sample_bytes = for_each_coarse_node(nodes.as_ref(), &hierarchy, |points| {
+        stats.add_node(points);
+        heights.extend(node_heights(points, origin));
+        sample_nodes += 1;
+    })
+    .map_err(|error| copc_error(path, error))?;
+    let mut hierarchy = hierarchy;
     hierarchy.stats = stats;
-    let sample_bytes = sample
-        .iter()
-        .map(|n| u64::from(hierarchy.node_byte_len(n.key)))
-        .sum();
     let node_count = hierarchy.nodes().len();
-    let dataset = LodDataset::with_sample(nodes, hierarchy, header.bounds, &sample);
+    let dataset = LodDataset::with_heights(nodes, hierarchy, header.bounds, heights);
     Ok(CopcDataset {
         dataset,
         info: header.info,
         pages: list.pages,
         page_bytes: list.page_bytes,
         nodes: node_count,
-        sample_nodes: sample.len(),
+        sample_nodes,
         sample_bytes,
     })
 }
