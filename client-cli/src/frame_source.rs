@@ -1,7 +1,8 @@
-//! What local frames are rendered from: the whole dataset resident on the GPU, or cuts of its
-//! level-of-detail store through bounded node caches. Both give a frame and what it drew.
+//! What local frames are rendered from: the whole dataset resident on the GPU, or cuts of
+//! levels of detail through bounded node caches: the dataset's store, or a COPC file's own
+//! hierarchy read node by node. Both give a frame and what it drew.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -16,7 +17,8 @@ use pointfarm_render::raster::{Frame, FrameSettings, GpuPointCloud, Renderer};
 use pointfarm_render::request::RenderOptions;
 
 use crate::lod_store::{open_or_build, StoreCache};
-use pointfarm_render::cut::StoredLod;
+use pointfarm_render::copc::{open_copc, CopcDataset};
+use pointfarm_render::cut::{LodDataset, StoredLod};
 
 /// A frame and what it drew.
 pub struct RenderedFrame {
@@ -38,12 +40,29 @@ pub enum FrameSource {
     Cut {
         renderer: Renderer,
         cut: Box<CutRenderer>,
-        lod: Box<StoredLod>,
+        lod: Levels,
         coloring: Coloring,
         filter: PointFilter,
         /// What the automatic camera frames: the store's bounds within the filter's box.
         bounds: WorldBounds,
     },
+}
+
+/// Where a cut's levels of detail come from.
+pub enum Levels {
+    /// The dataset's store in the cache folder.
+    Store(Box<StoredLod>),
+    /// A COPC file's own hierarchy, its nodes read from the file.
+    Copc(Box<CopcDataset>),
+}
+
+impl Levels {
+    pub fn dataset(&self) -> &LodDataset {
+        match self {
+            Self::Store(stored) => &stored.dataset,
+            Self::Copc(copc) => &copc.dataset,
+        }
+    }
 }
 
 impl FrameSource {
@@ -117,7 +136,44 @@ impl FrameSource {
         Ok(Self::Cut {
             renderer,
             cut: Box::new(cut),
-            lod: Box::new(lod),
+            lod: Levels::Store(Box::new(lod)),
+            coloring: render.coloring(),
+            filter: render.filter,
+            bounds,
+        })
+    }
+
+    /// A COPC file rendered cut by cut from its own hierarchy: no store is built, only the
+    /// nodes a frame's cut needs are read from the file.
+    pub fn copc(
+        gpu: Arc<GpuContext>,
+        file: &Path,
+        options: CutOptions,
+        render: &RenderOptions,
+        say: &dyn Fn(String),
+    ) -> Result<Self> {
+        let renderer = Renderer::new(gpu);
+        let started = Instant::now();
+        let copc = open_copc(file)?;
+        let bounds = render.filter.framing_bounds(&copc.dataset.bounds())?;
+        let cut = CutRenderer::new(&renderer, &copc.dataset, options)?;
+        let budgets = cut.budgets();
+        say(format!(
+            "{} points, COPC: reading its hierarchy node by node ({} nodes in {} page{}, {} nodes read for the colour ranges, {:.0} ms); node caches: host {} MiB, GPU {} MiB; pixel error {}",
+            copc.dataset.point_count(),
+            copc.nodes,
+            copc.pages,
+            if copc.pages == 1 { "" } else { "s" },
+            copc.sample_nodes,
+            started.elapsed().as_secs_f64() * 1e3,
+            budgets.host_bytes >> 20,
+            budgets.gpu_bytes >> 20,
+            options.lod_error,
+        ));
+        Ok(Self::Cut {
+            renderer,
+            cut: Box::new(cut),
+            lod: Levels::Copc(Box::new(copc)),
             coloring: render.coloring(),
             filter: render.filter,
             bounds,
@@ -136,7 +192,7 @@ impl FrameSource {
     pub fn spacing(&self) -> Option<f64> {
         match self {
             Self::Resident { spacing, .. } => *spacing,
-            Self::Cut { lod, .. } => lod.dataset.point_spacing(),
+            Self::Cut { lod, .. } => lod.dataset().point_spacing(),
         }
     }
 
@@ -145,7 +201,7 @@ impl FrameSource {
     pub fn ramp_range(&self) -> Option<ColorRange> {
         match self {
             Self::Resident { ramp_range, .. } => *ramp_range,
-            Self::Cut { lod, coloring, .. } => lod.dataset.ramp_range(*coloring),
+            Self::Cut { lod, coloring, .. } => lod.dataset().ramp_range(*coloring),
         }
     }
 
@@ -177,7 +233,7 @@ impl FrameSource {
                 ..
             } => {
                 let (frame, report) =
-                    cut.render(renderer, &lod.dataset, settings, *coloring, filter)?;
+                    cut.render(renderer, lod.dataset(), settings, *coloring, filter)?;
                 Ok(RenderedFrame {
                     frame,
                     points_total: report.counts.points_total,
@@ -194,7 +250,7 @@ impl FrameSource {
             cut, lod, filter, ..
         } = self
         {
-            cut.read_ahead(&lod.dataset, settings, filter);
+            cut.read_ahead(lod.dataset(), settings, filter);
         }
     }
 }

@@ -10,6 +10,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_render::camera::{Camera, Projection};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::ColorMode;
+use pointfarm_render::copc::is_copc;
 use pointfarm_render::encode::{self, FrameFormat};
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::{dataset_files, dataset_point_count};
@@ -48,9 +49,22 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let say_input = |line: String| say(format!("{label}: {line}"));
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
     let coloring = request.render.coloring();
-    let mut source = match args.cut_options(points)? {
-        None => FrameSource::resident(Arc::clone(&gpu), &files, &request.render, &say_input)?,
-        Some(options) => {
+    let copc = match files.as_slice() {
+        [one] if is_copc(one)? => Some(one),
+        _ => None,
+    };
+    let mut source = match (copc, args.cut_options(points)?) {
+        (Some(file), _) => FrameSource::copc(
+            Arc::clone(&gpu),
+            file,
+            args.lod_options()?,
+            &request.render,
+            &say_input,
+        )?,
+        (None, None) => {
+            FrameSource::resident(Arc::clone(&gpu), &files, &request.render, &say_input)?
+        }
+        (None, Some(options)) => {
             let cache = StoreCache {
                 dir: args.cache_dir.clone().unwrap_or_else(default_cache_dir),
                 size_bytes: args.cache_size,

@@ -188,7 +188,8 @@ pub struct RenderArgs {
     /// Render from levels of detail: a node is refined while its point spacing covers more
     /// than PX pixels on screen, up to 32 points a pixel of the image (0: every point).
     /// Datasets of more than 20M points use them anyway, at 0.25 pixels. The store is built once and kept in --cache-dir (through a
-    /// server, by the server, whose workers read the nodes they need from it).
+    /// server, by the server, whose workers read the nodes they need from it). A single COPC
+    /// file is always rendered this way, from its own hierarchy, without a store.
     #[arg(long, value_name = "PX", value_parser = parse::non_negative)]
     lod_error: Option<f64>,
     /// Levels of detail: host memory for the node cache and the store's build, e.g. 512MiB
@@ -388,6 +389,12 @@ impl RenderArgs {
         {
             return Ok(None);
         }
+        self.lod_options().map(Some)
+    }
+
+    /// The cut options the arguments describe, whatever the dataset's size: a COPC file is
+    /// always rendered cut by cut from its own hierarchy.
+    pub(crate) fn lod_options(&self) -> Result<CutOptions> {
         let defaults = CutOptions::default();
         let options = CutOptions {
             lod_error: self.lod_error.unwrap_or(defaults.lod_error),
@@ -395,7 +402,7 @@ impl RenderArgs {
             gpu_budget_bytes: self.gpu_budget,
         };
         options.validate()?;
-        Ok(Some(options))
+        Ok(options)
     }
 
     /// The atomics of the local point pass (a property of this machine's adapter, not of

@@ -9,6 +9,7 @@ pub mod camera;
 pub mod classification;
 pub mod cloud;
 pub mod color;
+pub mod copc;
 pub mod cut;
 pub mod encode;
 pub mod filter;

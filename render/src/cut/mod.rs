@@ -51,7 +51,7 @@ use crate::raster::morton::morton_order;
 use crate::raster::points::ChunkData;
 use crate::raster::{Clock, Frame, FrameSettings, RenderError, Renderer, Stage, StageTiming};
 
-pub use colors::DatasetColoring;
+pub use colors::{node_heights, DatasetColoring, ELEVATION_SAMPLE_POINTS};
 pub use gpu_cache::SLOT_BYTES;
 pub use host_cache::node_heap_bytes;
 pub use options::{
@@ -130,37 +130,32 @@ impl LodDataset {
         bounds: WorldBounds,
     ) -> Result<Self, LodError> {
         let origin = bounds.center();
-        // The coarsest nodes, level by level, are an even sample of the whole dataset.
-        let mut levels: Vec<_> = hierarchy
-            .nodes()
-            .iter()
-            .filter(|n| n.point_count > 0)
-            .collect();
-        levels.sort_by_key(|n| n.key);
-        let mut sample = Vec::new();
-        let mut sampled = 0;
-        for node in levels {
-            if sampled >= colors::ELEVATION_SAMPLE_POINTS {
-                break;
-            }
-            sampled += u64::from(node.point_count);
-            sample.push(node.key);
-        }
         let mut heights = Vec::new();
-        for group in sample.chunks(LOAD_GROUP_NODES) {
-            for points in read_nodes(records.as_ref(), &hierarchy, group)? {
-                heights.extend(colors::node_heights(&points, origin));
-            }
-        }
+        for_each_coarse_node(records.as_ref(), &hierarchy, |points| {
+            heights.extend(colors::node_heights(points, origin));
+        })?;
+        Ok(Self::with_heights(records, hierarchy, bounds, heights))
+    }
+
+    /// A store whose elevation range comes from `heights` (of its coarsest nodes, relative to
+    /// the centre of `bounds`, [`for_each_coarse_node`]) and whose other colour ranges come
+    /// from its hierarchy's statistics.
+    pub fn with_heights(
+        records: Arc<dyn NodeRecords>,
+        hierarchy: LodHierarchy,
+        bounds: WorldBounds,
+        heights: Vec<f32>,
+    ) -> Self {
+        let origin = bounds.center();
         let coloring = DatasetColoring::new(&hierarchy.stats, heights, origin.z);
-        Ok(Self {
+        Self {
             records,
             point_spacing: hierarchy.point_spacing(),
             hierarchy: Arc::new(hierarchy),
             origin,
             bounds,
             coloring,
-        })
+        }
     }
 
     /// Where the node records are read from.
@@ -200,6 +195,39 @@ impl LodDataset {
     fn stored_bytes(&self, key: NodeKey) -> u64 {
         u64::from(self.hierarchy.node_byte_len(key))
     }
+}
+
+/// Reads the coarsest nodes of `hierarchy`, level by level, up to
+/// [`ELEVATION_SAMPLE_POINTS`] (an even sample of the whole dataset, which colour ranges are
+/// taken from), a group at a time, handing each to `visit`; returns their record bytes.
+pub fn for_each_coarse_node(
+    records: &dyn NodeRecords,
+    hierarchy: &LodHierarchy,
+    mut visit: impl FnMut(&NodePoints),
+) -> Result<u64, LodError> {
+    let mut levels: Vec<_> = hierarchy
+        .nodes()
+        .iter()
+        .filter(|n| n.point_count > 0)
+        .collect();
+    levels.sort_by_key(|n| n.key);
+    let mut keys = Vec::new();
+    let mut sampled = 0;
+    let mut bytes = 0;
+    for node in levels {
+        if sampled >= ELEVATION_SAMPLE_POINTS {
+            break;
+        }
+        sampled += u64::from(node.point_count);
+        bytes += u64::from(node.byte_len);
+        keys.push(node.key);
+    }
+    for group in keys.chunks(LOAD_GROUP_NODES) {
+        for points in read_nodes(records, hierarchy, group)? {
+            visit(&points);
+        }
+    }
+    Ok(bytes)
 }
 
 /// The nodes a read-ahead is fetching, and the thread doing it.

@@ -8,7 +8,7 @@ use std::path::Path;
 use super::IngestError;
 
 /// Runs `decode`, turning a panic into [`IngestError::DecoderPanicked`].
-pub(super) fn contain_panics<T>(
+pub(crate) fn contain_panics<T>(
     path: &Path,
     decode: impl FnOnce() -> Result<T, IngestError>,
 ) -> Result<T, IngestError> {

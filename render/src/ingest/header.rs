@@ -13,7 +13,7 @@ use super::IngestError;
 
 /// The header fields that decide whether and how a file can be read, validated before the
 /// `las` crate parses it.
-pub(super) struct HeaderFacts {
+pub(crate) struct HeaderFacts {
     pub version: (u8, u8),
     /// Point format number without the LAZ compression bits.
     pub point_format: u8,

@@ -29,7 +29,7 @@ const MAX_CHUNK_POINTS_BEYOND_DECLARED: u64 = 1 << 20;
 
 /// How a LAZ file's points are compressed, as far as reading them is concerned.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(super) enum LazLayout {
+pub(crate) enum LazLayout {
     /// Pre-2011 LAZ without chunks: decoded sequentially.
     Unchunked,
     /// Chunked (point-wise or layered): decoded on all cores.
@@ -65,12 +65,18 @@ impl LazItem {
 
     /// How many layer sizes a layered chunk stores for this item.
     fn layer_count(&self) -> u64 {
-        match self.kind {
-            10 => 9,
-            12 => 2,
-            14 => u64::from(self.size),
-            _ => 1,
-        }
+        layer_count(self.kind, self.size)
+    }
+}
+
+/// How many layer sizes a layered chunk stores for an item of LASzip kind `kind` and `size`
+/// bytes.
+pub(crate) fn layer_count(kind: u16, size: u16) -> u64 {
+    match kind {
+        10 => 9,
+        12 => 2,
+        14 => u64::from(size),
+        _ => 1,
     }
 }
 

@@ -46,10 +46,13 @@ mod transforms;
 mod write;
 
 pub use crate::cloud::MAX_COORDINATE;
+pub(crate) use contain::contain_panics;
 pub use crs::{Crs, GeoKeys, USER_DEFINED as GEOTIFF_USER_DEFINED};
 pub use error::IngestError;
 pub use files::dataset_files;
 pub use info::{Attributes, FileInfo, PointSummary, RgbRange};
+pub(crate) use laz_layout::layer_count;
+pub(crate) use preparse::check_file;
 pub use source::DatasetSource;
 
 /// The first four bytes of every LAS and LAZ file.

@@ -14,12 +14,12 @@ use super::records::check_records;
 use super::IngestError;
 
 /// A file that passed the pre-parse: its header facts and, for LAZ, how it is compressed.
-pub(super) struct CheckedFile {
+pub(crate) struct CheckedFile {
     pub facts: HeaderFacts,
     pub laz: Option<LazLayout>,
 }
 
-pub(super) fn check_file(
+pub(crate) fn check_file(
     path: &Path,
     file: &mut File,
     file_len: u64,

@@ -69,6 +69,9 @@ pub enum LodError {
     /// answer); worth another attempt, unlike a damaged node.
     #[error("level-of-detail nodes: {0}")]
     Records(String),
+    /// A COPC file's node (its chunk unreadable or not what its entry says).
+    #[error(transparent)]
+    Copc(#[from] crate::copc::CopcError),
 }
 
 impl LodError {

@@ -56,6 +56,11 @@ pub struct LodHierarchy {
     pub point_count: u64,
     pub max_leaf_points: u32,
     pub stats: DatasetStats,
+    /// The spacing of the root's points, halved at each level below (COPC's rule), for a
+    /// hierarchy whose nodes were not sampled on grids of their own; `None`: each inner node's
+    /// spacing is its side over its sampling grid. Not part of the record: only hierarchies
+    /// read from a COPC file's own pages have it, and those are never stored.
+    level_spacing: Option<f64>,
     /// Sorted by key: level, then x, y, z.
     nodes: Vec<NodeInfo>,
     index: HashMap<NodeKey, usize>,
@@ -102,9 +107,33 @@ impl LodHierarchy {
             point_count,
             max_leaf_points,
             stats,
+            level_spacing: None,
             nodes,
             index,
         }
+    }
+
+    /// A hierarchy whose inner nodes' spacing is `root_spacing` halved at each level (a COPC
+    /// file's), from its nodes (any order; child masks are set here, empty nodes without
+    /// children dropped).
+    pub fn with_level_spacing(
+        cube: RootCube,
+        point_count: u64,
+        stats: DatasetStats,
+        root_spacing: f64,
+        nodes: Vec<NodeInfo>,
+    ) -> Self {
+        let mut hierarchy = Self::assemble(cube, point_count, 0, stats, nodes);
+        // Leaves are known only once the masks are set.
+        hierarchy.max_leaf_points = hierarchy
+            .nodes
+            .iter()
+            .filter(|n| n.is_leaf())
+            .map(|n| n.point_count)
+            .max()
+            .unwrap_or(0);
+        hierarchy.level_spacing = Some(root_spacing);
+        hierarchy
     }
 
     pub fn nodes(&self) -> &[NodeInfo] {
@@ -176,6 +205,9 @@ impl LodHierarchy {
     /// leaf, whose points are simply all that is left.
     pub fn spacing(&self, key: NodeKey) -> Option<f64> {
         let node = self.node(key)?;
+        if let Some(root) = self.level_spacing {
+            return (!node.is_leaf()).then(|| root / (1u64 << key.level) as f64);
+        }
         (node.sample_grid > 0).then(|| self.cube.side_at(key.level) / f64::from(node.sample_grid))
     }
 

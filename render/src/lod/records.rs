@@ -6,13 +6,25 @@ use rayon::prelude::*;
 use super::codec::{decode_node, NodePoints, POSITION_BITS};
 use super::error::LodError;
 use super::hierarchy::{LodHierarchy, NodeInfo};
-use super::key::NodeKey;
+use super::key::{NodeKey, RootCube};
 
 /// A source of stored node records, as the hierarchy lists them (byte ranges of one payload).
 /// A record is checked when decoded, wherever it came from.
 pub trait NodeRecords: Send + Sync {
     /// The stored bytes of each of `nodes`, in order; each listed with points.
     fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError>;
+
+    /// A record's points, checked against what the hierarchy says of its node. A store's
+    /// records are its own format ([`decode_node`]); a source whose records are another
+    /// format (a COPC file's LAZ chunks) decodes them itself.
+    fn decode(
+        &self,
+        cube: &RootCube,
+        info: &NodeInfo,
+        bytes: &[u8],
+    ) -> Result<NodePoints, LodError> {
+        decode_node(cube, info.key, info.point_count, bytes)
+    }
 }
 
 /// Reads and checks the nodes `keys` of `hierarchy` from `records` (one request for all of
@@ -51,7 +63,7 @@ pub fn read_nodes(
     let decoded: Vec<NodePoints> = stored
         .par_iter()
         .zip(bytes.par_iter())
-        .map(|(info, bytes)| decode_node(&hierarchy.cube, info.key, info.point_count, bytes))
+        .map(|(info, bytes)| records.decode(&hierarchy.cube, info, bytes))
         .collect::<Result<_, _>>()?;
     let mut decoded = decoded.into_iter();
     Ok(infos

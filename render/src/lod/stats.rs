@@ -23,7 +23,7 @@ pub struct DatasetStats {
 }
 
 impl DatasetStats {
-    pub(crate) fn new(has_rgb: bool) -> Self {
+    pub fn new(has_rgb: bool) -> Self {
         Self {
             has_rgb,
             max_rgb: [0; 3],
@@ -40,6 +40,29 @@ impl DatasetStats {
     /// The largest raw value of any RGB channel.
     pub fn max_rgb_channel(&self) -> u16 {
         self.max_rgb.into_iter().max().unwrap_or(0)
+    }
+
+    /// Adds a decoded node's points (statistics of a sample of nodes, where the points were
+    /// never streamed whole: a COPC file's coarsest nodes).
+    pub fn add_node(&mut self, node: &super::codec::NodePoints) {
+        if let Some(rgb) = &node.rgb {
+            for c in rgb {
+                for ((max, min), &value) in self.max_rgb.iter_mut().zip(&mut self.min_rgb).zip(c) {
+                    *max = (*max).max(value);
+                    *min = (*min).min(value);
+                }
+            }
+        }
+        for &i in &node.intensity {
+            self.intensity_histogram[usize::from(i)] += 1;
+        }
+        for &c in &node.classification {
+            self.class_counts[usize::from(c)] += 1;
+        }
+        for p in node.world_positions() {
+            self.z_range[0] = self.z_range[0].min(p.z);
+            self.z_range[1] = self.z_range[1].max(p.z);
+        }
     }
 
     pub(crate) fn add(&mut self, batch: &super::source::PointBatch<'_>) {

@@ -1,0 +1,203 @@
+//! `CopcNodes`: a COPC file's nodes as [`NodeRecords`]. A node's record is its LAZ chunk,
+//! read by byte range (positioned reads, many threads at once) and decoded here into
+//! [`NodePoints`] as a store's nodes are: positions quantised in the node's cube, raw RGB,
+//! intensity, classification and return number.
+//!
+//! A chunk is checked before the decoder sees it: its byte size is its entry's, its layer
+//! table fits in it, it holds its entry's point count, and the records it decodes to are
+//! bounded by its size (the decoder allocates what a chunk declares). What the decoder can
+//! still panic on is contained and reported naming the file and the node.
+
+use std::fs::File;
+use std::io::Cursor;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+use laz::record::{LayeredPointRecordDecompressor, RecordDecompressor};
+use rayon::prelude::*;
+
+use super::error::CopcError;
+use super::header::CopcHeader;
+use crate::ingest::{contain_panics, layer_count};
+use crate::lod::codec::POSITION_BITS;
+use crate::lod::{LodError, NodeInfo, NodePoints, NodeRecords, RootCube};
+
+/// The most bytes of records a chunk may decode to beyond [`MAX_DECODED_PER_BYTE`] times its
+/// own size: enough for any real node, never a huge allocation from a forged count.
+const MIN_DECODED_BOUND: u64 = 64 << 20;
+/// Decoded record bytes per compressed byte that a chunk may claim beyond the bound above.
+const MAX_DECODED_PER_BYTE: u64 = 1024;
+
+/// A COPC file's node records: its LAZ chunks.
+pub struct CopcNodes {
+    path: PathBuf,
+    file: File,
+    format: las::point::Format,
+    transforms: las::Vector<las::Transform>,
+    laz_items: Vec<laz::LazItem>,
+    /// Layer sizes a chunk stores after its first record and its point count.
+    layers: u64,
+}
+
+impl CopcNodes {
+    pub(crate) fn new(path: &Path, file: File, header: &CopcHeader) -> Self {
+        let layers = header
+            .laz_items
+            .iter()
+            .map(|item| layer_count(u16::from(item.item_type()), item.size()))
+            .sum();
+        Self {
+            path: path.to_owned(),
+            file,
+            format: header.format,
+            transforms: header.transforms,
+            laz_items: header.laz_items.clone(),
+            layers,
+        }
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    fn read_chunk(&self, node: &NodeInfo) -> Result<Vec<u8>, CopcError> {
+        // The hierarchy checked the range against the file's size when it was read.
+        let mut bytes = vec![0; node.byte_len as usize];
+        self.file
+            .read_exact_at(&mut bytes, node.offset)
+            .map_err(|e| CopcError::io(&self.path, e))?;
+        Ok(bytes)
+    }
+
+    fn decode_chunk(
+        &self,
+        cube: &RootCube,
+        info: &NodeInfo,
+        bytes: &[u8],
+    ) -> Result<NodePoints, CopcError> {
+        let bad = |reason: String| CopcError::Node {
+            path: self.path.clone(),
+            key: info.key,
+            reason,
+        };
+        let count = u64::from(info.point_count);
+        let record_len = u64::from(self.format.len());
+        let len = bytes.len() as u64;
+        if len != u64::from(info.byte_len) {
+            return Err(bad(format!(
+                "{len} bytes read, its entry says {}",
+                info.byte_len
+            )));
+        }
+        // A layered chunk: one raw record, the point count, then every layer's size.
+        let count_at = record_len as usize;
+        let prelude = record_len + 4 + 4 * self.layers;
+        if len < prelude {
+            return Err(bad(format!(
+                "its chunk of {len} bytes is shorter than its layer table ({prelude} bytes)"
+            )));
+        }
+        let chunk_count = u32::from_le_bytes([
+            bytes[count_at],
+            bytes[count_at + 1],
+            bytes[count_at + 2],
+            bytes[count_at + 3],
+        ]);
+        if u64::from(chunk_count) != count {
+            return Err(bad(format!(
+                "its chunk holds {chunk_count} points, its entry says {count}"
+            )));
+        }
+        let layers: u64 = bytes[count_at + 4..prelude as usize]
+            .chunks_exact(4)
+            .map(|s| u64::from(u32::from_le_bytes([s[0], s[1], s[2], s[3]])))
+            .sum();
+        if prelude + layers > len {
+            return Err(bad(format!(
+                "its layers take {layers} bytes but its chunk has {}",
+                len - prelude
+            )));
+        }
+        let decoded_len = count * record_len;
+        if decoded_len > MIN_DECODED_BOUND.max(len.saturating_mul(MAX_DECODED_PER_BYTE)) {
+            return Err(bad(format!(
+                "{count} points cannot be held in a chunk of {len} bytes"
+            )));
+        }
+
+        let mut records = vec![0u8; decoded_len as usize];
+        let decoded = contain_panics(&self.path, || {
+            let mut decompressor = LayeredPointRecordDecompressor::new(Cursor::new(bytes));
+            Ok(decompressor
+                .set_fields_from(&self.laz_items)
+                .map_err(|e| e.to_string())
+                .and_then(|()| {
+                    decompressor
+                        .decompress_many(&mut records)
+                        .map_err(|e| e.to_string())
+                }))
+        })?;
+        decoded.map_err(|error| bad(format!("its LAZ chunk does not decode: {error}")))?;
+        let points = las::PointDataBuilder::new()
+            .with_format(self.format)
+            .with_transforms(self.transforms)
+            .build_from_bytes(records)
+            .map_err(|error| bad(error.to_string()))?;
+        let (cube_min, step) = node_frame(cube, info);
+        let max = (1i64 << POSITION_BITS) - 1;
+        let mut quantised = Vec::with_capacity(points.len());
+        for ((x, y), z) in points.x().zip(points.y()).zip(points.z()) {
+            let p = DVec3::new(x, y, z);
+            let q = ((p - cube_min) / step).floor();
+            let cell = q.to_array().map(|v| v as i64);
+            if !q.is_finite() || cell.iter().any(|&c| !(0..=max).contains(&c)) {
+                return Err(bad(format!(
+                    "point {p} lies far outside the node's cube {}..{}",
+                    cube.node_min(info.key),
+                    cube.node_min(info.key) + DVec3::splat(cube.side_at(info.key.level))
+                )));
+            }
+            quantised.push(cell.map(|c| c as u32));
+        }
+        Ok(NodePoints {
+            key: info.key,
+            cube_min,
+            step,
+            quantised,
+            rgb: points
+                .rgb()
+                .map(|rgb| rgb.map(|(r, g, b)| [r, g, b]).collect()),
+            intensity: points.intensity().collect(),
+            classification: points.classification().collect(),
+            return_number: points.return_number().collect(),
+        })
+    }
+}
+
+/// Where a COPC node's points are quantised: its cube widened by half its side on every
+/// face, because writers place a point on a cell's face in either neighbour. 30 bits over
+/// twice the side keep a step far below any file's scale.
+fn node_frame(cube: &RootCube, info: &NodeInfo) -> (DVec3, f64) {
+    let side = cube.side_at(info.key.level);
+    let min = cube.node_min(info.key) - DVec3::splat(side / 2.0);
+    (min, 2.0 * side / f64::from(1u32 << POSITION_BITS))
+}
+
+impl NodeRecords for CopcNodes {
+    fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError> {
+        nodes
+            .par_iter()
+            .map(|node| self.read_chunk(node).map_err(LodError::from))
+            .collect()
+    }
+
+    fn decode(
+        &self,
+        cube: &RootCube,
+        info: &NodeInfo,
+        bytes: &[u8],
+    ) -> Result<NodePoints, LodError> {
+        self.decode_chunk(cube, info, bytes).map_err(LodError::from)
+    }
+}
