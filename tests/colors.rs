@@ -7,12 +7,11 @@ use std::path::{Path, PathBuf};
 use std::process::Output;
 
 use image::RgbaImage;
-use pointfarm_daemon::access::Access;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::cloud::PointCloud;
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::legend::RAMP_LEGEND_SIZE;
-use pointfarm_tests::service::{scan, turntable_job, upload, write_sample, TestDaemon};
+use pointfarm_tests::service::{daemon_with_sample, scan, turntable_job, write_sample};
 use pointfarm_tests::{assert_fails_saying, assert_ok, pointfarm, stdout};
 
 fn arg(path: &Path) -> &str {
@@ -326,12 +325,7 @@ fn the_legend_is_a_png_of_the_ramp_or_the_swatches() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_service_refuses_bad_ranges_and_ramps_naming_the_field() {
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let file = scratch.path().join("sample.las");
-    write_sample(&file, 2_000, 5);
-    let daemon = TestDaemon::start(|_| {}, Access::default()).await;
-    let bytes = std::fs::read(&file).expect("read the sample");
-    let dataset = upload(&mut daemon.datasets().await, "sample.las", &bytes).await;
+    let (daemon, dataset) = daemon_with_sample(2_000, 5).await;
     let mut jobs = daemon.jobs().await;
     let job = |name: &str, mode: pb::ColorMode, range: Option<(f64, f64)>, ramp: i32| {
         let mut request = turntable_job(name, &dataset.id, 1, 32, 24);

@@ -4,12 +4,11 @@
 
 use std::path::Path;
 
-use pointfarm_daemon::access::Access;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::filter::{ClipBox, PointFilter};
 use pointfarm_render::ingest::load_point_cloud;
 use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, StillCamera};
-use pointfarm_tests::service::{run_job, scan, upload, write_sample, TestDaemon};
+use pointfarm_tests::service::{daemon_with_sample, run_job, scan};
 use pointfarm_tests::{assert_fails_saying, assert_ok, pointfarm, stdout};
 
 fn arg(path: &Path) -> String {
@@ -151,12 +150,7 @@ fn filters_that_cannot_apply_are_refused_with_the_reason() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_job_whose_clip_box_misses_the_dataset_fails_saying_so_and_the_next_one_renders() {
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let file = scratch.path().join("sample.las");
-    write_sample(&file, 5_000, 4);
-    let daemon = TestDaemon::start(|_| {}, Access::default()).await;
-    let bytes = std::fs::read(&file).expect("read the sample");
-    let dataset = upload(&mut daemon.datasets().await, "sample.las", &bytes).await;
+    let (daemon, dataset) = daemon_with_sample(5_000, 4).await;
     let mut jobs = daemon.jobs().await;
     let mut request = RenderRequest {
         width: 64,

@@ -32,8 +32,9 @@ fn description_of(output: &std::process::Output) -> pb::DatasetDescription {
 struct Independent {
     min: [f64; 3],
     max: [f64; 3],
-    classes: Vec<(u64, u64)>,
-    returns: Vec<(u64, u64)>,
+    /// `(value, points)` as the API reports them.
+    classes: Vec<(u32, u64)>,
+    returns: Vec<(u32, u64)>,
 }
 
 fn read_independently(path: &Path) -> Independent {
@@ -58,7 +59,7 @@ fn read_independently(path: &Path) -> Independent {
             .into_iter()
             .enumerate()
             .filter(|(_, n)| *n > 0)
-            .map(|(i, n)| (i as u64, n))
+            .map(|(i, n)| (i as u32, n))
             .collect()
     };
     Independent {
@@ -120,16 +121,12 @@ fn the_real_scans_report_their_header_points_and_colours() {
         let stats = file.points_read.as_ref().expect("the points were read");
         let (min, max) = corners(stats.bounds.as_ref());
         assert_eq!((min, max), (expected.min, expected.max), "{path:?}");
-        let classes: Vec<(u64, u64)> = stats
-            .classes
-            .iter()
-            .map(|c| (u64::from(c.code), c.points))
-            .collect();
+        let classes: Vec<_> = stats.classes.iter().map(|c| (c.code, c.points)).collect();
         assert_eq!(classes, expected.classes);
-        let returns: Vec<(u64, u64)> = stats
+        let returns: Vec<_> = stats
             .returns
             .iter()
-            .map(|r| (u64::from(r.return_number), r.points))
+            .map(|r| (r.return_number, r.points))
             .collect();
         assert_eq!(returns, expected.returns);
         // The header's bounds hold the points (rounded to the scale).

@@ -194,27 +194,30 @@ async fn the_python_example_uploads_renders_a_camera_path_and_downloads_its_fram
     )
     .expect("camera path file");
 
+    // The example on the scan through `address`, trusting the test's CA, with `options`,
+    // writing into `out`; it must succeed.
+    let run_trusting_the_ca = |address: &str, options: &[&str], out: &Path| {
+        let mut args = vec![arg(&scan), "--server", address, "--tls-ca", arg(&pki.ca)];
+        args.extend(options);
+        args.extend(["--out", arg(out)]);
+        let output = run_example(&python, dir, &args);
+        assert_succeeded(&output, &server);
+        output
+    };
+
     let out = dir.join("flight");
-    let output = run_example(
-        &python,
-        dir,
+    let output = run_trusting_the_ca(
+        &https,
         &[
-            arg(&scan),
-            "--server",
-            &https,
-            "--tls-ca",
-            arg(&pki.ca),
             "--token-file",
             arg(&token_file),
             "--camera-path",
             arg(&camera_path),
             "--size",
             "64x48",
-            "--out",
-            arg(&out),
         ],
+        &out,
     );
-    assert_succeeded(&output, &server);
     let stdout = String::from_utf8_lossy(&output.stdout);
     assert!(stdout.contains("5/5 frames"), "progress printed:\n{stdout}");
     let id = job_id(&output);
@@ -227,27 +230,12 @@ async fn the_python_example_uploads_renders_a_camera_path_and_downloads_its_fram
 
     // Without a camera path file: the flyover made from the file's header, the count given.
     let out = dir.join("flyover");
-    let output = run_example(
-        &python,
-        dir,
-        &[
-            arg(&scan),
-            // A bare address with a CA means TLS.
-            "--server",
-            &format!("localhost:{port}"),
-            "--tls-ca",
-            arg(&pki.ca),
-            "--token",
-            TOKEN,
-            "--frames",
-            "3",
-            "--size",
-            "40x30",
-            "--out",
-            arg(&out),
-        ],
+    // A bare address with a CA means TLS.
+    let output = run_trusting_the_ca(
+        &format!("localhost:{port}"),
+        &["--token", TOKEN, "--frames", "3", "--size", "40x30"],
+        &out,
     );
-    assert_succeeded(&output, &server);
     let job = daemon_job(&https, &pki.ca, &job_id(&output)).await;
     assert_eq!(job.state, pb::JobState::Succeeded as i32, "{}", job.error);
     assert_eq!(frames_in(&out, (40, 30)).len(), job.frames_total as usize);

@@ -18,7 +18,7 @@ use pointfarm_render::request::{
     StillCamera, Turntable, DEFAULT_UP,
 };
 use pointfarm_render::sample::sample_scene;
-use pointfarm_tests::service::{fetch_images, gpu, run_job, upload, write_sample, TestDaemon};
+use pointfarm_tests::service::{fetch_images, gpu, run_job, upload_file, write_sample, TestDaemon};
 
 const WIDTH: u32 = 64;
 const HEIGHT: u32 = 48;
@@ -279,8 +279,7 @@ async fn every_option_renders_the_same_here_and_through_the_service() {
     write_las(&file, &sample, &LasWriteOptions::default()).expect("write the sample");
     let cloud = load_point_cloud(&file).expect("load the sample");
     let daemon = TestDaemon::start(|_| {}, Access::default()).await;
-    let bytes = std::fs::read(&file).expect("read the sample");
-    let dataset = upload(&mut daemon.datasets().await, "sample.las", &bytes).await;
+    let dataset = upload_file(&mut daemon.datasets().await, "sample.las", &file).await;
     let mut jobs = daemon.jobs().await;
     let mut renderer = Renderer::new(gpu());
     let plain = render_here(&mut renderer, &cloud, &still()).remove(0);

@@ -53,6 +53,13 @@ pub const DEFAULT_FOV_Y_DEG: f64 = 50.0;
 /// Room left around the framed box: 5% of its extent.
 const FRAMING_MARGIN: f64 = 1.05;
 
+/// The clip planes of a camera `distance` in front of the box it frames, of bounding radius
+/// `radius`: the whole box with the framing margin, the near plane kept in front of the camera.
+fn framed_clip(distance: f64, radius: f64) -> (f64, f64) {
+    let reach = radius * FRAMING_MARGIN;
+    ((distance - reach).max(distance * 1e-3), distance + reach)
+}
+
 impl Camera {
     /// Checks the camera for values that would give a meaningless or undefined transform.
     pub fn validate(&self) -> Result<(), CameraError> {
@@ -144,13 +151,14 @@ impl Camera {
                 )
             }
         };
+        let (near, far) = framed_clip(distance, radius);
         Camera {
             position: center + to_camera * distance,
             target: center,
             up: DVec3::Z,
             projection,
-            near: (distance - radius * FRAMING_MARGIN).max(distance * 1e-3),
-            far: distance + radius * FRAMING_MARGIN,
+            near,
+            far,
         }
     }
 
@@ -227,7 +235,7 @@ impl Camera {
             }
         };
         let target = center + right * sideways + up * upwards;
-        let distance = -along;
+        let (near, far) = framed_clip(-along, radius);
         Camera {
             position: target + forward * along,
             target,
@@ -238,8 +246,8 @@ impl Camera {
                 up
             },
             projection,
-            near: (distance - radius * FRAMING_MARGIN).max(distance * 1e-3),
-            far: distance + radius * FRAMING_MARGIN,
+            near,
+            far,
         }
     }
 

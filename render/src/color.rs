@@ -141,19 +141,11 @@ pub fn point_colors(cloud: &PointCloud, coloring: Coloring) -> Vec<u32> {
     match coloring.mode {
         ColorMode::Rgb => cloud.colors.clone(),
         ColorMode::Intensity => match resident_stretch(cloud, coloring) {
-            Some(stretch) => cloud
-                .intensity
-                .iter()
-                .map(|&i| ramp.packed(stretch.t(f32::from(i))))
-                .collect(),
+            Some(stretch) => ramp.packed_all(stretch, cloud.intensity.iter().map(|&i| i.into())),
             None => vec![CONSTANT_GREY_RGBA; cloud.len()],
         },
         ColorMode::Elevation => match resident_stretch(cloud, coloring) {
-            Some(stretch) => cloud
-                .positions
-                .iter()
-                .map(|p| ramp.packed(stretch.t(p.z)))
-                .collect(),
+            Some(stretch) => ramp.packed_all(stretch, cloud.positions.iter().map(|p| p.z)),
             None => Vec::new(),
         },
         ColorMode::Classification => Palette::Classification.colors(points),
@@ -357,6 +349,11 @@ impl ColorRamp {
         let [r, g, b] = self.color(t);
         pack_rgba8(r, g, b)
     }
+
+    /// The packed colour of each of `values` (heights, intensities) placed by `stretch`.
+    pub fn packed_all(self, stretch: Stretch, values: impl Iterator<Item = f32>) -> Vec<u32> {
+        values.map(|v| self.packed(stretch.t(v))).collect()
+    }
 }
 
 /// Viridis at eleven evenly spaced stops.
@@ -522,6 +519,15 @@ mod tests {
         point_colors(cloud, Coloring::of_mode(mode))
     }
 
+    /// `mode` over the request's range `min..max` through `ramp`.
+    fn fixed_range(mode: ColorMode, min: f64, max: f64, ramp: ColorRamp) -> Coloring {
+        Coloring {
+            mode,
+            range: Some(ColorRange { min, max }),
+            ramp: Some(ramp),
+        }
+    }
+
     fn packed([r, g, b]: [u8; 3]) -> u32 {
         pack_rgba8(r, g, b)
     }
@@ -543,14 +549,7 @@ mod tests {
     #[test]
     fn a_fixed_elevation_range_is_in_world_z_whatever_the_origin() {
         let cloud = ramp_cloud();
-        let coloring = Coloring {
-            mode: ColorMode::Elevation,
-            range: Some(ColorRange {
-                min: 100.0,
-                max: 200.0,
-            }),
-            ramp: Some(ColorRamp::Turbo),
-        };
+        let coloring = fixed_range(ColorMode::Elevation, 100.0, 200.0, ColorRamp::Turbo);
         let colors = point_colors(&cloud, coloring);
         // Heights 100 to 199.9: from the bottom of the ramp to just below its middle.
         assert_eq!(colors[0], ColorRamp::Turbo.packed(0.0));
@@ -628,14 +627,7 @@ mod tests {
     #[test]
     fn a_fixed_intensity_range_and_ramp() {
         let cloud = ramp_cloud();
-        let coloring = Coloring {
-            mode: ColorMode::Intensity,
-            range: Some(ColorRange {
-                min: 0.0,
-                max: 6000.0,
-            }),
-            ramp: Some(ColorRamp::Inferno),
-        };
+        let coloring = fixed_range(ColorMode::Intensity, 0.0, 6000.0, ColorRamp::Inferno);
         let colors = point_colors(&cloud, coloring);
         assert_eq!(colors[0], packed(INFERNO[0]));
         assert_eq!(colors[50], ColorRamp::Inferno.packed(0.5));

@@ -44,6 +44,19 @@ pub fn perspective_camera(
     }
 }
 
+/// An orthographic camera `altitude` above `target`, looking straight down with +Y up the
+/// image, `height` world units high, with the clip planes `(near, far)`.
+pub fn top_down_camera(target: DVec3, altitude: f64, height: f64, clip: (f64, f64)) -> Camera {
+    Camera {
+        position: target + DVec3::new(0.0, 0.0, altitude),
+        target,
+        up: DVec3::Y,
+        projection: Projection::Orthographic { height },
+        near: clip.0,
+        far: clip.1,
+    }
+}
+
 /// `../shared/data` next to the repository, or None (with a message) when it is absent.
 pub fn shared_data(file: &str) -> Option<PathBuf> {
     let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))

@@ -359,6 +359,15 @@ pub fn scratch_sample(name: &str, points: usize, seed: u64) -> (tempfile::TempDi
     (scratch, file)
 }
 
+/// A daemon with an embedded worker, and the generated sample scene (`points` of them, from
+/// `seed`) uploaded to it as `sample.las`.
+pub async fn daemon_with_sample(points: usize, seed: u64) -> (TestDaemon, pb::Dataset) {
+    let (_scratch, file) = scratch_sample("sample.las", points, seed);
+    let daemon = TestDaemon::start(|_| {}, Access::default()).await;
+    let dataset = upload_file(&mut daemon.datasets().await, "sample.las", &file).await;
+    (daemon, dataset)
+}
+
 /// autzen_trim.laz when the real scans are present, else a generated sample in `dir`.
 pub fn scan(dir: &Path) -> PathBuf {
     if let Some(path) = crate::shared_data("autzen_trim.laz") {

@@ -612,7 +612,7 @@ mod tests {
         assert_eq!(field_of(&r), "camera_path");
         const PINTUS: i32 = pb::Shading::Pintus as i32;
         type Edit = fn(&mut pb::RenderOptions);
-        let render_cases: [(Edit, &str); 13] = [
+        let render_cases: [(Edit, &str); 8] = [
             (|o| o.point_size = 1000, "render.point_size"),
             (
                 |o| (o.quality, o.depth_band) = (pb::Quality::High as i32, Some(f32::NAN)),
@@ -630,67 +630,56 @@ mod tests {
             (|o| o.fill = Some(kernel(1)), "render.fill.kernel"),
             (|o| o.fill = Some(kernel(4)), "render.fill.kernel"),
             (|o| o.fill = Some(kernel(11)), "render.fill.kernel"),
+        ];
+        type FilterEdit = fn(&mut pb::PointFilter);
+        let filter_cases: [(FilterEdit, &str); 5] = [
+            (|f| f.classes = vec![2, 256], "render.filter.classes"),
             (
-                |o| {
-                    o.filter = Some(pb::PointFilter {
-                        classes: vec![2, 256],
-                        ..Default::default()
-                    })
-                },
-                "render.filter.classes",
-            ),
-            (
-                |o| {
-                    o.filter = Some(pb::PointFilter {
-                        return_numbers: vec![16],
-                        ..Default::default()
-                    })
-                },
+                |f| f.return_numbers = vec![16],
                 "render.filter.return_numbers",
             ),
             (
-                |o| {
-                    let intensity = Some(pb::IntensityRange { min: 9, max: 3 });
-                    o.filter = Some(pb::PointFilter {
-                        intensity,
-                        ..Default::default()
-                    })
-                },
+                |f| f.intensity = Some(pb::IntensityRange { min: 9, max: 3 }),
                 "render.filter.intensity",
             ),
             (
-                |o| {
-                    let clip = Some(pb::ClipBox {
+                |f| {
+                    f.clip = Some(pb::ClipBox {
                         min: vec3(0.0, 0.0, f64::NAN),
                         max: vec3(1.0, 1.0, 1.0),
-                    });
-                    o.filter = Some(pb::PointFilter {
-                        clip,
-                        ..Default::default()
                     })
                 },
                 "render.filter.clip",
             ),
             (
-                |o| {
-                    let clip = Some(pb::ClipBox {
+                |f| {
+                    f.clip = Some(pb::ClipBox {
                         min: vec3(0.0, 0.0, 0.0),
                         max: None,
-                    });
-                    o.filter = Some(pb::PointFilter {
-                        clip,
-                        ..Default::default()
                     })
                 },
                 "render.filter.clip.max",
             ),
         ];
-        for (edit, field) in render_cases {
-            let mut options = pb::RenderOptions::default();
-            edit(&mut options);
+        let check = |options: pb::RenderOptions, field: &str| {
             let mut r = valid();
             r.render = Some(options);
             assert_eq!(field_of(&r), field);
+        };
+        for (edit, field) in render_cases {
+            let mut options = pb::RenderOptions::default();
+            edit(&mut options);
+            check(options, field);
+        }
+        // A filter case sets that filter and nothing else.
+        for (edit, field) in filter_cases {
+            let mut filter = pb::PointFilter::default();
+            edit(&mut filter);
+            let options = pb::RenderOptions {
+                filter: Some(filter),
+                ..Default::default()
+            };
+            check(options, field);
         }
     }
 

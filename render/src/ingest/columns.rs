@@ -185,6 +185,24 @@ mod tests {
         writer.close().expect("close");
     }
 
+    /// The points of [`write_raw_rgb`], written as `name` and loaded back.
+    fn load_raw_rgb(name: &str, rgb: &[[u16; 3]]) -> PointCloud {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join(name);
+        write_raw_rgb(&path, rgb);
+        load_point_cloud(&path).expect("load")
+    }
+
+    /// The greys of the points of [`write_raw_rgb`] loaded back, whose colours must have
+    /// given way to their intensity.
+    fn greys_instead_of_rgb(name: &str, rgb: &[[u16; 3]]) -> Vec<u8> {
+        let cloud = load_raw_rgb(name, rgb);
+        assert_eq!(cloud.color_source, ColorSource::IntensityGrey);
+        let greys: Vec<u8> = cloud.colors.iter().map(|c| c.to_le_bytes()[0]).collect();
+        assert!(greys[0] < greys[49], "intensity 100 to 5000 spans greys");
+        greys
+    }
+
     /// `cloud` written as `name` in a point format without colour fields (0 or 1), loaded back.
     fn written_without_color(cloud: &PointCloud, point_format: u8, name: &str) -> PointCloud {
         let dir = tempfile::tempdir().expect("temp dir");
@@ -198,10 +216,7 @@ mod tests {
 
     #[test]
     fn eight_bit_values_in_sixteen_bit_fields_are_used_as_they_are() {
-        let dir = tempfile::tempdir().expect("temp dir");
-        let path = dir.path().join("rgb8.las");
-        write_raw_rgb(&path, &[[0, 128, 255], [10, 20, 30], [255, 255, 255]]);
-        let cloud = load_point_cloud(&path).expect("load");
+        let cloud = load_raw_rgb("rgb8.las", &[[0, 128, 255], [10, 20, 30], [255, 255, 255]]);
         assert_eq!(cloud.color_source, ColorSource::Rgb8In16Bit);
         assert_eq!(
             cloud.colors,
@@ -215,25 +230,13 @@ mod tests {
 
     #[test]
     fn rgb_fields_that_are_all_zero_give_way_to_intensity() {
-        let dir = tempfile::tempdir().expect("temp dir");
-        let path = dir.path().join("unfilled.las");
-        write_raw_rgb(&path, &[[0, 0, 0]; 50]);
-        let cloud = load_point_cloud(&path).expect("load");
-        assert_eq!(cloud.color_source, ColorSource::IntensityGrey);
-        let greys: Vec<u8> = cloud.colors.iter().map(|c| c.to_le_bytes()[0]).collect();
+        let greys = greys_instead_of_rgb("unfilled.las", &[[0, 0, 0]; 50]);
         assert!(greys.windows(2).all(|w| w[0] <= w[1]), "{greys:?}");
-        assert!(greys[0] < greys[49], "intensity 100 to 5000 spans greys");
     }
 
     #[test]
     fn one_colour_for_every_point_gives_way_to_intensity() {
-        let dir = tempfile::tempdir().expect("temp dir");
-        let path = dir.path().join("placeholder.las");
-        write_raw_rgb(&path, &[[65_535, 65_535, 65_535]; 50]);
-        let cloud = load_point_cloud(&path).expect("load");
-        assert_eq!(cloud.color_source, ColorSource::IntensityGrey);
-        let greys: Vec<u8> = cloud.colors.iter().map(|c| c.to_le_bytes()[0]).collect();
-        assert!(greys[0] < greys[49], "intensity 100 to 5000 spans greys");
+        greys_instead_of_rgb("placeholder.las", &[[65_535, 65_535, 65_535]; 50]);
         // Without intensity the one colour is all there is, and it is drawn.
         assert_eq!(
             ColorSource::of_rgb_range([200; 3], [200; 3], false),
@@ -248,11 +251,8 @@ mod tests {
 
     #[test]
     fn sixteen_bit_colors_keep_their_high_byte() {
-        let dir = tempfile::tempdir().expect("temp dir");
-        let path = dir.path().join("rgb16.las");
         // One channel above 255 makes the whole file 16-bit, dark points included.
-        write_raw_rgb(&path, &[[65_535, 32_768, 256], [255, 100, 0]]);
-        let cloud = load_point_cloud(&path).expect("load");
+        let cloud = load_raw_rgb("rgb16.las", &[[65_535, 32_768, 256], [255, 100, 0]]);
         assert_eq!(cloud.color_source, ColorSource::Rgb16);
         assert_eq!(cloud.colors, [pack_rgba8(255, 128, 1), pack_rgba8(0, 0, 0)]);
     }

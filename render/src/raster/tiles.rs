@@ -352,18 +352,12 @@ fn paste(image: &mut RgbaImage, depth: Option<&mut [f32]>, core: &Frame, at: Ima
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::Projection;
     use crate::raster::{FillSettings, MAX_IMAGE_SIDE};
+    use crate::testing::perspective_camera;
 
     fn settings(width: u32, height: u32) -> FrameSettings {
-        let camera = Camera {
-            position: DVec3::new(10.0, 0.0, 5.0),
-            target: DVec3::ZERO,
-            up: DVec3::Z,
-            projection: Projection::Perspective { fov_y_deg: 50.0 },
-            near: 1.0,
-            far: 100.0,
-        };
+        let camera =
+            perspective_camera(DVec3::new(10.0, 0.0, 5.0), DVec3::ZERO, 50.0, (1.0, 100.0));
         FrameSettings::new(width, height, camera)
     }
 

@@ -320,13 +320,12 @@ impl FrameBatches {
 
 #[cfg(test)]
 mod tests {
-    use crate::testing::perspective_camera;
+    use crate::testing::{perspective_camera, top_down_camera};
     use glam::{DVec3, Vec3};
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
     use super::*;
-    use crate::camera::{Camera, Projection};
     use crate::gpu::GpuContext;
     use crate::raster::culling::{batch, decoded};
     use crate::raster::draw_order::DrawOrders;
@@ -362,15 +361,7 @@ mod tests {
 
     /// A 64 x 64 orthographic view down -z from z = 10, 2 units high: depth is 10 - z.
     fn looking_down_from_z_10() -> CameraTransform {
-        let camera = Camera {
-            position: DVec3::new(0.0, 0.0, 10.0),
-            target: DVec3::ZERO,
-            up: DVec3::Y,
-            projection: Projection::Orthographic { height: 2.0 },
-            near: 1.0,
-            far: 20.0,
-        };
-        camera.transform(DVec3::ZERO, 64, 64)
+        top_down_camera(DVec3::ZERO, 10.0, 2.0, (1.0, 20.0)).transform(DVec3::ZERO, 64, 64)
     }
 
     #[test]

@@ -145,13 +145,12 @@ impl Frustum {
 
 #[cfg(test)]
 mod tests {
-    use crate::testing::perspective_camera;
+    use crate::testing::{perspective_camera, top_down_camera};
     use glam::DVec3;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
     use super::*;
-    use crate::camera::{Camera, Projection};
     use crate::raster::culling::batch;
 
     /// The pixels that random points of the box project to, within the image (a culled batch
@@ -204,14 +203,7 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         let cameras = [
             perspective_camera(DVec3::new(0.0, -30.0, 10.0), DVec3::ZERO, 50.0, (1.0, 60.0)),
-            Camera {
-                position: DVec3::new(0.0, 0.0, 40.0),
-                target: DVec3::ZERO,
-                up: DVec3::Y,
-                projection: Projection::Orthographic { height: 12.0 },
-                near: 20.0,
-                far: 50.0,
-            },
+            top_down_camera(DVec3::ZERO, 40.0, 12.0, (20.0, 50.0)),
         ];
         for camera in cameras {
             let transform = camera.transform(DVec3::ZERO, 320, 200);

@@ -217,12 +217,12 @@ fn list_runs_in_view(
 
 #[cfg(test)]
 mod tests {
-    use crate::testing::perspective_camera;
+    use crate::testing::{perspective_camera, top_down_camera};
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
     use super::*;
-    use crate::camera::{Camera, Projection};
+    use crate::camera::Camera;
     use crate::raster::culling::{batch, decoded};
     use crate::raster::draw_order::DrawOrders;
 
@@ -277,14 +277,7 @@ mod tests {
                 (1.0, 100.0),
             ),
             // Orthographic from above, a quarter of the top face.
-            Camera {
-                position: DVec3::new(5.0, 5.0, 40.0),
-                target: DVec3::new(5.0, 5.0, 0.0),
-                up: DVec3::Y,
-                projection: Projection::Orthographic { height: 8.0 },
-                near: 20.0,
-                far: 60.0,
-            },
+            top_down_camera(DVec3::new(5.0, 5.0, 0.0), 40.0, 8.0, (20.0, 60.0)),
             // Perspective, the near plane cutting through the cube.
             perspective_camera(
                 DVec3::new(0.0, -5.0, 0.0),

@@ -2,7 +2,7 @@
 //! culling skips batches hidden behind a wall without changing the image.
 
 use super::*;
-use crate::testing::perspective_camera;
+use crate::testing::{perspective_camera, top_down_camera};
 
 #[test]
 fn batch_culling_keeps_every_point_that_is_in_view() {
@@ -48,14 +48,7 @@ fn batches_hidden_behind_a_wall_are_skipped_and_the_image_is_unchanged() {
     let base = FrameSettings::new(
         256,
         192,
-        Camera {
-            position: SURVEY_ORIGIN + DVec3::new(0.0, 0.0, 200.0),
-            target: SURVEY_ORIGIN,
-            up: DVec3::Y,
-            projection: Projection::Orthographic { height: 15.0 },
-            near: 5.0,
-            far: 300.0,
-        },
+        top_down_camera(SURVEY_ORIGIN, 200.0, 15.0, (5.0, 300.0)),
     );
     let window = |x: u32, y: u32| x < 40 && y < 30;
     let scene = pixel_centre_scene_by_pixel(&base, 17, |rng, x, y| {

@@ -103,63 +103,64 @@ fn tiled_basic_frames_match_one_pass_pixel_for_pixel_on_pixel_centres() {
     );
 }
 
-#[test]
-fn tiled_basic_and_high_quality_frames_match_one_pass() {
-    let (cloud, camera) = scene(150_000);
-    assert_tiles_match("tiles-basic", &cloud, &base(camera), ROUNDED);
-    let high = FrameSettings {
+/// A mode of the generated scene: its name, the scene's points, and its settings given the
+/// scene and the view of it.
+type Mode = (
+    &'static str,
+    usize,
+    fn(&PointCloud, Camera) -> FrameSettings,
+);
+
+const MODES: [Mode; 6] = [
+    ("tiles-basic", 150_000, |_, camera| base(camera)),
+    ("tiles-high", 150_000, |_, camera| FrameSettings {
         quality: Quality::HIGH,
         read_depth: true,
         ..base(camera)
-    };
-    assert_tiles_match("tiles-high", &cloud, &high, ROUNDED);
-}
-
-#[test]
-fn tiled_shaded_and_filled_frames_match_one_pass() {
-    let (cloud, camera) = scene(60_000);
-    let edl = FrameSettings {
+    }),
+    ("tiles-edl", 60_000, |_, camera| FrameSettings {
         shading: Shading::Edl {
             strength: 1.0,
             radius: 3.0,
         },
         ..base(camera)
-    };
-    assert_tiles_match("tiles-edl", &cloud, &edl, ROUNDED);
-    let filled = FrameSettings {
+    }),
+    ("tiles-fill-pintus", 60_000, |_, camera| FrameSettings {
         point_size: 1,
         fill: Some(FillSettings::default()),
         shading: Shading::PINTUS,
         read_depth: true,
         ..base(camera)
-    };
-    assert_tiles_match("tiles-fill-pintus", &cloud, &filled, ROUNDED);
-}
-
-#[test]
-fn tiled_orthographic_and_supersampled_frames_match_one_pass() {
-    let (cloud, camera) = scene(100_000);
-    let ortho = Camera::fitted(
-        &cloud.bounds,
-        1.5,
-        -60.0,
-        40.0,
-        Projection::Orthographic { height: 1.0 },
-    );
-    let orthographic = FrameSettings {
-        shading: Shading::EDL,
-        read_depth: true,
-        ..base(ortho)
-    };
-    assert_tiles_match("tiles-ortho", &cloud, &orthographic, ROUNDED);
-    let supersampled = FrameSettings {
+    }),
+    ("tiles-ortho", 100_000, |cloud, _| {
+        let ortho = Camera::fitted(
+            &cloud.bounds,
+            1.5,
+            -60.0,
+            40.0,
+            Projection::Orthographic { height: 1.0 },
+        );
+        FrameSettings {
+            shading: Shading::EDL,
+            read_depth: true,
+            ..base(ortho)
+        }
+    }),
+    ("tiles-ssaa", 100_000, |_, camera| FrameSettings {
         supersample: 2,
         quality: Quality::HIGH,
         shading: Shading::EDL,
         read_depth: true,
         ..base(camera)
-    };
-    assert_tiles_match("tiles-ssaa", &cloud, &supersampled, ROUNDED);
+    }),
+];
+
+#[test]
+fn tiled_frames_of_every_mode_match_one_pass() {
+    for (name, points, settings) in MODES {
+        let (cloud, camera) = scene(points);
+        assert_tiles_match(name, &cloud, &settings(&cloud, camera), ROUNDED);
+    }
 }
 
 #[test]
