@@ -142,7 +142,9 @@ pub async fn serve(
     // Registered before the first connection, so a check never finds them unknown; the
     // watch below sets them SERVING once a worker can render.
     health.set_not_serving::<JobServiceServer<Api>>().await;
-    health.set_service_status("", ServingStatus::NotServing).await;
+    health
+        .set_service_status("", ServingStatus::NotServing)
+        .await;
     let health_watch = tokio::spawn(report_health(daemon.clone(), health));
     // grpcurl and grpcio-reflection speak v1; older tools only v1alpha.
     let reflection = tonic_reflection::server::Builder::configure()
