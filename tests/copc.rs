@@ -7,25 +7,7 @@ use std::process::Output;
 
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::testing::compare_images_within;
-use pointfarm_tests::{assert_fails_saying, pointfarm};
-
-fn text(output: &Output) -> String {
-    format!(
-        "{}\n{}",
-        String::from_utf8_lossy(&output.stdout),
-        String::from_utf8_lossy(&output.stderr)
-    )
-}
-
-fn ok(args: &[&str]) -> Output {
-    let output = pointfarm(args);
-    assert!(
-        output.status.success(),
-        "pointfarm {args:?} failed:\n{}",
-        text(&output)
-    );
-    output
-}
+use pointfarm_tests::{assert_fails_saying, output_text, pointfarm, pointfarm_ok};
 
 fn arg(path: &Path) -> &str {
     path.to_str().expect("test paths are UTF-8")
@@ -54,7 +36,7 @@ fn a_copc_file_renders_node_by_node_as_its_points_read_whole() {
     let size = "--size=200x150";
     let points = "--point-size=3";
     let out = dir.path().join("copc.png");
-    let rendered = ok(&[
+    let rendered = pointfarm_ok(&[
         "render",
         arg(&copc),
         "--out",
@@ -67,7 +49,7 @@ fn a_copc_file_renders_node_by_node_as_its_points_read_whole() {
         arg(&cache),
         "--json",
     ]);
-    let said = text(&rendered);
+    let said = output_text(&rendered);
     assert!(
         said.contains("COPC: reading its hierarchy node by node (65 nodes in 1 page"),
         "{said}"
@@ -83,7 +65,7 @@ fn a_copc_file_renders_node_by_node_as_its_points_read_whole() {
     let cloud = load_point_cloud(&copc).expect("the file read whole");
     write_las(&plain, &cloud, &LasWriteOptions::default()).expect("write");
     let resident = dir.path().join("resident.png");
-    let said = text(&ok(&[
+    let said = output_text(&pointfarm_ok(&[
         "render",
         arg(&plain),
         "--out",
@@ -106,7 +88,7 @@ fn a_coarse_pixel_error_reads_less_than_the_file() {
     let dir = tempfile::tempdir().expect("tempdir");
     let copc = copc_file("simple_with_page.copc.laz");
     let out = dir.path().join("coarse.png");
-    let rendered = ok(&[
+    let rendered = pointfarm_ok(&[
         "render",
         arg(&copc),
         "--out",
@@ -117,9 +99,9 @@ fn a_coarse_pixel_error_reads_less_than_the_file() {
         "--json",
     ]);
     assert!(
-        text(&rendered).contains("in 2 pages"),
+        output_text(&rendered).contains("in 2 pages"),
         "{}",
-        text(&rendered)
+        output_text(&rendered)
     );
     let frame = report(&rendered);
     let file_len = std::fs::metadata(&copc).expect("size").len();

@@ -3,31 +3,12 @@
 //! reports, and the options refused where they do not apply.
 
 use std::path::Path;
-use std::process::Output;
 
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::sample::sample_scene;
 use pointfarm_render::testing::compare_images_within;
 use pointfarm_tests::service::{scratch_sample, write_sample};
-use pointfarm_tests::{json_names, pointfarm};
-
-fn text(output: &Output) -> String {
-    format!(
-        "{}\n{}",
-        String::from_utf8_lossy(&output.stdout),
-        String::from_utf8_lossy(&output.stderr)
-    )
-}
-
-fn ok(args: &[&str]) -> Output {
-    let output = pointfarm(args);
-    assert!(
-        output.status.success(),
-        "pointfarm {args:?} failed:\n{}",
-        text(&output)
-    );
-    output
-}
+use pointfarm_tests::{json_names, output_text, pointfarm, pointfarm_ok};
 
 fn arg(path: &Path) -> &str {
     path.to_str().expect("temporary paths are UTF-8")
@@ -71,18 +52,18 @@ fn tiles_render_from_levels_of_detail_as_the_file_they_were_cut_from() {
     let cache = dir.path().join("cache");
     let size = "--size=200x150";
     let (resident, cut) = (dir.path().join("resident.png"), dir.path().join("cut.png"));
-    ok(&["render", arg(&whole), "--out", arg(&resident), size]);
+    pointfarm_ok(&["render", arg(&whole), "--out", arg(&resident), size]);
     // Renders the tiles through their store; says whether the store was built first.
     let render_tiles = |out: &Path, lod_error: &str, more: &[&str]| {
         let mut args = vec!["render", arg(&tiles), "--out", arg(out), size];
         args.extend(["--lod-error", lod_error, "--cache-dir", arg(&cache)]);
         args.extend_from_slice(more);
-        let output = ok(&args);
-        let built = text(&output).contains("levels of detail:");
+        let output = pointfarm_ok(&args);
+        let built = output_text(&output).contains("levels of detail:");
         (output, built)
     };
     let (first, built) = render_tiles(&cut, "0", &[]);
-    assert!(built, "{}", text(&first));
+    assert!(built, "{}", output_text(&first));
     let image = |path: &Path| image::open(path).expect("png").to_rgba8();
     let diff = compare_images_within("lod-tiles", &image(&cut), &image(&resident), 8);
     assert!(
@@ -94,7 +75,7 @@ fn tiles_render_from_levels_of_detail_as_the_file_they_were_cut_from() {
     // The store is kept: a turntable reuses it, and each frame reports its cut.
     let frames = dir.path().join("frames");
     let (again, built) = render_tiles(&frames, "0.5", &["--turntable", "3", "--json"]);
-    assert!(!built, "built again:\n{}", text(&again));
+    assert!(!built, "built again:\n{}", output_text(&again));
     let reports: Vec<serde_json::Value> = String::from_utf8_lossy(&again.stdout)
         .lines()
         .map(|line| serde_json::from_str(line).expect("one JSON object a line"))
@@ -123,7 +104,7 @@ fn tiles_render_from_levels_of_detail_as_the_file_they_were_cut_from() {
     std::thread::sleep(std::time::Duration::from_millis(20));
     std::fs::write(&tile, bytes).expect("rewrite tile");
     let (rebuilt, built) = render_tiles(&cut, "1", &[]);
-    assert!(built, "{}", text(&rebuilt));
+    assert!(built, "{}", output_text(&rebuilt));
 }
 
 #[test]
@@ -144,15 +125,15 @@ fn level_of_detail_options_are_checked_and_refused_through_a_server() {
         let output = pointfarm(&all);
         assert!(!output.status.success(), "{args:?} was accepted");
         assert!(
-            text(&output).contains(expected),
+            output_text(&output).contains(expected),
             "{args:?}:\n{}",
-            text(&output)
+            output_text(&output)
         );
         assert_ne!(
             output.status.code(),
             Some(101),
             "a panic:\n{}",
-            text(&output)
+            output_text(&output)
         );
     };
     refused(&["--lod-error=-1"], "not a number from 0");
@@ -183,7 +164,7 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
         arg(&cache),
     ];
     args.extend(options);
-    ok(&args);
+    pointfarm_ok(&args);
     let server = pointfarm_tests::ServeProcess::start(&dir.path().join("data"));
     let mut args = vec![
         "render",
@@ -194,7 +175,7 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
         &server.address,
     ];
     args.extend(options);
-    ok(&args);
+    pointfarm_ok(&args);
     for frame in ["frame_00000.png", "frame_00001.png"] {
         let image = |dir: &Path| image::open(dir.join(frame)).expect("png").to_rgba8();
         assert!(
@@ -211,10 +192,10 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
         0,
         "files downloaded:\n{log}"
     );
-    let listed = ok(&["jobs", "list", "--server", &server.address, "--json"]);
+    let listed = pointfarm_ok(&["jobs", "list", "--server", &server.address, "--json"]);
     let jobs: serde_json::Value = serde_json::from_slice(&listed.stdout).expect("json");
     let id = jobs["jobs"][0]["id"].as_str().expect("a job id").to_owned();
-    let shown = ok(&["jobs", "show", &id, "--server", &server.address, "--json"]);
+    let shown = pointfarm_ok(&["jobs", "show", &id, "--server", &server.address, "--json"]);
     let shown: serde_json::Value = serde_json::from_slice(&shown.stdout).expect("json");
     // The job in the API's JSON mapping: each frame's cut, its 64-bit counts as strings.
     let job: pointfarm_proto::v1::Job =
@@ -233,7 +214,13 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
     for stage in ["build", "select", "load"] {
         assert!(stages.contains(&stage), "{stage} missing from {stages:?}");
     }
-    let text = text(&ok(&["jobs", "show", &id, "--server", &server.address]));
+    let text = output_text(&pointfarm_ok(&[
+        "jobs",
+        "show",
+        &id,
+        "--server",
+        &server.address,
+    ]));
     assert!(text.contains("levels of detail, 2 frames"), "{text}");
 
     // Restarted, the daemon opens the store it built, and its worker reads it again.
@@ -255,7 +242,7 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
         &server.address,
     ];
     args.extend(options);
-    ok(&args);
+    pointfarm_ok(&args);
     // The log goes on in the same file.
     let log = server.log();
     assert_eq!(downloads(&log), before, "downloaded again:\n{log}");
@@ -283,7 +270,7 @@ fn a_worker_process_reads_the_daemons_store_node_by_node() {
     let mut args = vec!["render", arg(&whole), "--out", arg(&local)];
     args.extend(["--cache-dir", arg(&cache)]);
     args.extend(options);
-    ok(&args);
+    pointfarm_ok(&args);
 
     let data = dir.path().join("data");
     let server = pointfarm_tests::ServeProcess::start_with(&data, &["--no-embedded-worker"]);
@@ -293,7 +280,7 @@ fn a_worker_process_reads_the_daemons_store_node_by_node() {
     let mut args = vec!["render", arg(&whole), "--out", arg(&remote)];
     args.extend(["--server", &server.address]);
     args.extend(options);
-    ok(&args);
+    pointfarm_ok(&args);
     let log = worker.log();
     for frame in ["frame_00000.png", "frame_00001.png"] {
         let image = |dir: &Path| image::open(dir.join(frame)).expect("png").to_rgba8();
@@ -340,7 +327,7 @@ fn local_stores_are_kept_within_the_cache_size() {
         names
     };
     let built = render(&first, None);
-    assert!(built.status.success(), "{}", text(&built));
+    assert!(built.status.success(), "{}", output_text(&built));
     let [first_store] = stores().try_into().expect("one store");
     let first_bytes = walkdir_bytes(&cache.join("lod").join(&first_store));
 
@@ -348,7 +335,11 @@ fn local_stores_are_kept_within_the_cache_size() {
     let need = pointfarm_render::lod::disk::build_disk_bytes(20_000, true);
     let size = (need + first_bytes / 2).to_string();
     let second_built = render(&second, Some(&size));
-    assert!(second_built.status.success(), "{}", text(&second_built));
+    assert!(
+        second_built.status.success(),
+        "{}",
+        output_text(&second_built)
+    );
     let left = stores();
     assert_eq!(left.len(), 1, "{left:?}");
     assert_ne!(
@@ -358,7 +349,7 @@ fn local_stores_are_kept_within_the_cache_size() {
 
     let refused = render(&first, Some("1KiB"));
     assert!(!refused.status.success());
-    let message = text(&refused);
+    let message = output_text(&refused);
     assert!(message.contains("budget"), "{message}");
     assert_ne!(refused.status.code(), Some(101), "a panic:\n{message}");
 }

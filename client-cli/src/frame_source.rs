@@ -118,29 +118,22 @@ impl FrameSource {
         render: &RenderOptions,
         say: &dyn Fn(String),
     ) -> Result<Self> {
-        let renderer = Renderer::new(gpu);
         let lod = open_or_build(files, cache, options.memory_budget_bytes, say)?;
-        let bounds = render.filter.framing_bounds(&lod.dataset.bounds())?;
-        let cut = CutRenderer::new(&renderer, &lod.dataset, options)?;
-        let budgets = cut.budgets();
-        say(format!(
-            "{} points in {} file{}, levels of detail from {}; node caches: host {} MiB, GPU {} MiB; pixel error {}",
+        let about = format!(
+            "{} points in {} file{}, levels of detail from {}",
             lod.dataset.point_count(),
             files.len(),
             if files.len() == 1 { "" } else { "s" },
             lod.folder.display(),
-            budgets.host_bytes >> 20,
-            budgets.gpu_bytes >> 20,
-            options.lod_error,
-        ));
-        Ok(Self::Cut {
-            renderer,
-            cut: Box::new(cut),
-            lod: Levels::Store(Box::new(lod)),
-            coloring: render.coloring(),
-            filter: render.filter,
-            bounds,
-        })
+        );
+        Self::of_levels(
+            gpu,
+            Levels::Store(Box::new(lod)),
+            options,
+            render,
+            &about,
+            say,
+        )
     }
 
     /// A COPC file rendered cut by cut from its own hierarchy: no store is built, only the
@@ -152,20 +145,42 @@ impl FrameSource {
         render: &RenderOptions,
         say: &dyn Fn(String),
     ) -> Result<Self> {
-        let renderer = Renderer::new(gpu);
         let started = Instant::now();
         let copc = open_copc(file)?;
-        let bounds = render.filter.framing_bounds(&copc.dataset.bounds())?;
-        let cut = CutRenderer::new(&renderer, &copc.dataset, options)?;
-        let budgets = cut.budgets();
-        say(format!(
-            "{} points, COPC: reading its hierarchy node by node ({} nodes in {} page{}, {} nodes read for the colour ranges, {:.0} ms); node caches: host {} MiB, GPU {} MiB; pixel error {}",
+        let about = format!(
+            "{} points, COPC: reading its hierarchy node by node ({} nodes in {} page{}, {} nodes read for the colour ranges, {:.0} ms)",
             copc.dataset.point_count(),
             copc.nodes,
             copc.pages,
             if copc.pages == 1 { "" } else { "s" },
             copc.sample_nodes,
             started.elapsed().as_secs_f64() * 1e3,
+        );
+        Self::of_levels(
+            gpu,
+            Levels::Copc(Box::new(copc)),
+            options,
+            render,
+            &about,
+            say,
+        )
+    }
+
+    /// `levels` rendered cut by cut, once `about` them and their node caches is said.
+    fn of_levels(
+        gpu: Arc<GpuContext>,
+        levels: Levels,
+        options: CutOptions,
+        render: &RenderOptions,
+        about: &str,
+        say: &dyn Fn(String),
+    ) -> Result<Self> {
+        let renderer = Renderer::new(gpu);
+        let bounds = render.filter.framing_bounds(&levels.dataset().bounds())?;
+        let cut = CutRenderer::new(&renderer, levels.dataset(), options)?;
+        let budgets = cut.budgets();
+        say(format!(
+            "{about}; node caches: host {} MiB, GPU {} MiB; pixel error {}",
             budgets.host_bytes >> 20,
             budgets.gpu_bytes >> 20,
             options.lod_error,
@@ -173,7 +188,7 @@ impl FrameSource {
         Ok(Self::Cut {
             renderer,
             cut: Box::new(cut),
-            lod: Levels::Copc(Box::new(copc)),
+            lod: levels,
             coloring: render.coloring(),
             filter: render.filter,
             bounds,

@@ -116,14 +116,10 @@ impl Camera {
         elevation_deg: f64,
         projection: Projection,
     ) -> Camera {
-        let center = bounds.center();
-        // Never zero, so a single point or a flat cloud still gives a valid camera.
-        let radius = bounds.radius().max(1e-3);
-        let to_camera = view_direction(azimuth_deg, elevation_deg);
-        let forward = -to_camera;
-        let right = forward.cross(DVec3::Z).normalize();
-        let up = right.cross(forward);
-        let corners = corners_around_center(bounds).into_iter();
+        let view = BoxView::new(bounds, azimuth_deg, elevation_deg);
+        let (center, radius, corners) = (view.center, view.radius, view.corners);
+        let (forward, right, up) = (view.forward, view.right, view.up);
+        let corners = corners.into_iter();
         let (distance, projection) = match projection {
             Projection::Perspective { fov_y_deg } => {
                 let tan_y = (fov_y_deg.to_radians() * 0.5).tan();
@@ -153,7 +149,7 @@ impl Camera {
         };
         let (near, far) = framed_clip(distance, radius);
         Camera {
-            position: center + to_camera * distance,
+            position: center - forward * distance,
             target: center,
             up: DVec3::Z,
             projection,
@@ -175,15 +171,9 @@ impl Camera {
         elevation_deg: f64,
         projection: Projection,
     ) -> Camera {
-        let center = bounds.center();
-        let radius = bounds.radius().max(1e-3);
-        let forward = -view_direction(azimuth_deg, elevation_deg.clamp(-90.0, 90.0));
-        // From the horizontal direction the camera faces, so that a view straight down (or
-        // up) still has a right and an up.
-        let facing = -view_direction(azimuth_deg, 0.0);
-        let right = facing.cross(DVec3::Z);
-        let up = right.cross(forward).normalize();
-        let corners = corners_around_center(bounds);
+        let view = BoxView::new(bounds, azimuth_deg, elevation_deg);
+        let (center, radius, corners) = (view.center, view.radius, view.corners);
+        let (forward, right, up) = (view.forward, view.right, view.up);
         let max_of =
             |f: &dyn Fn(DVec3) -> f64| corners.iter().map(|&c| f(c)).fold(f64::MIN, f64::max);
         // The camera's offsets from the centre along right, up and forward.
@@ -404,6 +394,36 @@ impl ImageWindow {
 
 /// The unit vector from a target towards a camera at `azimuth_deg` (counter-clockwise from
 /// +X) and `elevation_deg` (above the horizon).
+/// A box seen from an azimuth and elevation (degrees, as [`Camera::fitted`] takes them): its
+/// centre, its radius and corners around the centre, and the camera's axes.
+struct BoxView {
+    center: DVec3,
+    radius: f64,
+    forward: DVec3,
+    right: DVec3,
+    up: DVec3,
+    corners: [DVec3; 8],
+}
+
+impl BoxView {
+    fn new(bounds: &WorldBounds, azimuth_deg: f64, elevation_deg: f64) -> Self {
+        let forward = -view_direction(azimuth_deg, elevation_deg.clamp(-90.0, 90.0));
+        // From the horizontal direction the camera faces, so that a view straight down (or
+        // up) still has a right and an up.
+        let facing = -view_direction(azimuth_deg, 0.0);
+        let right = facing.cross(DVec3::Z);
+        Self {
+            center: bounds.center(),
+            // Never zero, so a single point or a flat cloud still gives a valid camera.
+            radius: bounds.radius().max(1e-3),
+            forward,
+            right,
+            up: right.cross(forward).normalize(),
+            corners: corners_around_center(bounds),
+        }
+    }
+}
+
 fn view_direction(azimuth_deg: f64, elevation_deg: f64) -> DVec3 {
     let (az, el) = (azimuth_deg.to_radians(), elevation_deg.to_radians());
     DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin())

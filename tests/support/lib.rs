@@ -73,7 +73,26 @@ pub fn stdout(output: &Output) -> String {
     String::from_utf8_lossy(&output.stdout).into_owned()
 }
 
-/// Fails, showing both outputs, unless the command succeeded.
+/// Both outputs of a command, for a failure's message.
+pub fn output_text(output: &Output) -> String {
+    format!(
+        "{}\n{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    )
+}
+
+/// Runs `pointfarm` with `args` and fails, showing both outputs, unless it succeeded.
+pub fn pointfarm_ok(args: &[&str]) -> Output {
+    let output = pointfarm(args);
+    assert!(
+        output.status.success(),
+        "pointfarm {args:?} failed:\n{}",
+        output_text(&output)
+    );
+    output
+}
+
 /// Standard output as JSON Lines: one object a line.
 pub fn json_lines(output: &Output) -> Vec<serde_json::Value> {
     stdout(output)
@@ -82,6 +101,7 @@ pub fn json_lines(output: &Output) -> Vec<serde_json::Value> {
         .collect()
 }
 
+/// Fails, showing both outputs, unless the command succeeded.
 pub fn assert_ok(output: &Output) {
     assert!(
         output.status.success(),

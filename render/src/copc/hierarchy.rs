@@ -114,18 +114,7 @@ pub(crate) fn read_pages(
                     ));
                 }
                 0 => {
-                    insert(
-                        &mut nodes,
-                        path,
-                        NodeInfo {
-                            key,
-                            point_count: 0,
-                            sample_grid: 0,
-                            child_mask: 0,
-                            offset: 0,
-                            byte_len: 0,
-                        },
-                    )?;
+                    insert(&mut nodes, path, NodeInfo::empty(key))?;
                 }
                 count if count > 0 => {
                     let count = count as u32;
@@ -178,14 +167,7 @@ pub(crate) fn read_pages(
     }
     // A page's own node may be left out of it when it has no points of its own.
     for key in page_keys {
-        nodes.entry(key).or_insert(NodeInfo {
-            key,
-            point_count: 0,
-            sample_grid: 0,
-            child_mask: 0,
-            offset: 0,
-            byte_len: 0,
-        });
+        nodes.entry(key).or_insert(NodeInfo::empty(key));
     }
     for key in nodes.keys() {
         if let Some(parent) = key.parent() {

@@ -40,6 +40,18 @@ pub struct NodeInfo {
 }
 
 impl NodeInfo {
+    /// A node listed without points of its own (its children hold them).
+    pub fn empty(key: NodeKey) -> Self {
+        Self {
+            key,
+            point_count: 0,
+            sample_grid: 0,
+            child_mask: 0,
+            offset: 0,
+            byte_len: 0,
+        }
+    }
+
     pub fn is_leaf(&self) -> bool {
         self.child_mask == 0
     }

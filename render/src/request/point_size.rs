@@ -117,15 +117,23 @@ mod tests {
     fn adaptive_points_are_the_spacing_over_the_depth() {
         let (camera, bounds) = scene(PERSPECTIVE);
         // 90 degrees over 400 pixels: 200 pixels at depth 1; 0.8 apart: 160 pixels at depth 1,
-        // 3.2 at the nearest corner's depth of 50.
-        let (largest, scale) = resolve(PointSize::Adaptive, &camera, 400, &bounds, Some(0.8));
-        assert_eq!(largest, 3);
-        assert!((scale.expect("adaptive") - 160.0).abs() < 1e-3, "{scale:?}");
-        let settings = FrameSettings {
-            point_size: largest,
-            adaptive_size: scale,
-            ..FrameSettings::new(400, 400, camera)
-        };
+        // 3.2 at the nearest corner's depth of 50. Points 0.01 apart stay one pixel and keep
+        // their scale, which sizes a cut's coarser nodes.
+        for (spacing, side, pixels_at_depth_1) in [(0.8, 3, 160.0), (0.01, 1, 2.0)] {
+            let (largest, scale) =
+                resolve(PointSize::Adaptive, &camera, 400, &bounds, Some(spacing));
+            assert_eq!(largest, side, "{spacing}");
+            let scale = scale.expect("adaptive");
+            assert!(
+                (scale - pixels_at_depth_1).abs() < 1e-3,
+                "{spacing}: {scale}"
+            );
+        }
+        let settings = FrameSettings::new(400, 400, camera).with_point_size(
+            PointSize::Adaptive,
+            &bounds,
+            Some(0.8),
+        );
         assert_eq!(settings.point_side_at(50.0), 3);
         assert_eq!(settings.point_side_at(100.0), 2);
         assert_eq!(settings.point_side_at(150.0), 1);
@@ -137,14 +145,6 @@ mod tests {
         camera.position = DVec3::new(0.0, 100.0, 0.0); // inside the box
         let (largest, scale) = resolve(PointSize::Adaptive, &camera, 400, &bounds, Some(0.8));
         assert_eq!((largest, scale.is_some()), (MAX_ADAPTIVE_POINT_SIZE, true));
-    }
-
-    #[test]
-    fn dense_points_stay_one_pixel_and_keep_their_scale() {
-        let (camera, bounds) = scene(PERSPECTIVE);
-        let (largest, scale) = resolve(PointSize::Adaptive, &camera, 400, &bounds, Some(0.01));
-        assert_eq!(largest, 1);
-        assert!((scale.expect("adaptive") - 2.0).abs() < 1e-4, "{scale:?}");
     }
 
     #[test]
