@@ -28,6 +28,7 @@ mod remote_render;
 mod render;
 mod render_args;
 mod render_json;
+mod render_outputs;
 mod sample;
 mod serve;
 mod video;

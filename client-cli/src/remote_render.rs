@@ -13,9 +13,9 @@ use pointfarm_render::raster::AtomicsMode;
 use pointfarm_render::request::RenderRequest;
 
 use crate::remote::{require_success, timings_line, Client};
-use crate::render::{write_legend, Outputs};
 use crate::render_args::RenderArgs;
 use crate::render_json::ServerFrameJson;
+use crate::render_outputs::{write_legend, Outputs};
 
 /// Refuses what the service cannot do, so that no option is dropped on the way.
 fn refuse_local_only_options(args: &RenderArgs, request: &RenderRequest) -> Result<()> {

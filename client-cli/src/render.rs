@@ -1,28 +1,26 @@
 //! `pointfarm render`: the request the arguments describe, rendered here frame by frame, or
 //! handed to a server (`remote_render`).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Arc;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use glam::DVec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_render::camera::{Camera, Projection};
 use pointfarm_render::cloud::WorldBounds;
-use pointfarm_render::color::ColorMode;
 use pointfarm_render::copc::is_copc;
-use pointfarm_render::encode::{self, FrameFormat};
+use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::{dataset_files, dataset_point_count};
 use pointfarm_render::legend::Legend;
 use pointfarm_render::raster::{FrameSettings, Stage, StageTimings};
-use pointfarm_render::request::RenderRequest;
 
-use crate::frame_files::{save_depth, FrameFiles};
+use crate::frame_files::save_depth;
 use crate::frame_source::{FrameSource, RenderedFrame};
 use crate::lod_store::{default_cache_dir, StoreCache};
 use crate::render_json::FrameJson;
-use crate::video::{VideoPlan, VideoRequest};
+use crate::render_outputs::{write_legend, Outputs};
 
 pub use crate::render_args::RenderArgs;
 
@@ -147,66 +145,6 @@ pub fn run(args: RenderArgs) -> Result<()> {
         say(format!("video: {}", video.path().display()));
     }
     Ok(())
-}
-
-/// Where a render's frames and video go, checked before anything is rendered.
-pub(crate) struct Outputs {
-    pub files: FrameFiles,
-    pub video: Option<VideoPlan>,
-    /// Where `--legend` goes, checked.
-    pub legend: Option<PathBuf>,
-}
-
-impl Outputs {
-    fn check(args: &RenderArgs, request: &RenderRequest) -> Result<Self> {
-        let files = if args.is_sequence() {
-            FrameFiles::sequence(&args.out)?
-        } else {
-            FrameFiles::still(&args.out)?
-        };
-        files.check_background(request.render.background)?;
-        if args.video_request().is_some() && !args.is_sequence() {
-            bail!(
-                "--video needs frames to make a video of: add --turntable N or --camera-path FILE"
-            );
-        }
-        if args.video_request().is_some() && files.format() == FrameFormat::Tiff16 {
-            // ffmpeg reads piped frames in order and cannot seek back in a TIFF.
-            bail!("--video is made from PNG, JPEG or WebP frames; 16-bit TIFF frames cannot be piped to ffmpeg");
-        }
-        let video = args.video_request().map(VideoRequest::check).transpose()?;
-        let legend = args.legend.clone();
-        if let Some(path) = &legend {
-            let mode = request.render.color_mode;
-            if !(mode.is_ramped()
-                || matches!(mode, ColorMode::Classification | ColorMode::ReturnNumber))
-            {
-                bail!(
-                    "--legend shows the colours of elevation, intensity, classification and                      return; --color {} has none to show",
-                    mode.name()
-                );
-            }
-            let png = path
-                .extension()
-                .is_some_and(|e| e.eq_ignore_ascii_case("png"));
-            if !png {
-                bail!("--legend {}: the legend is a .png file", path.display());
-            }
-        }
-        Ok(Self {
-            files,
-            video,
-            legend,
-        })
-    }
-}
-
-/// Writes `legend` to `path`; the line that says so.
-pub(crate) fn write_legend(path: &Path, legend: Option<Legend>) -> Result<String> {
-    let legend = legend.context("--legend: the dataset has nothing to colour by in this mode")?;
-    legend.write(path)?;
-    let (width, height) = legend.size();
-    Ok(format!("legend: {} ({width}x{height})", path.display()))
 }
 
 /// A frame's line (or its JSON object with --json), above the progress bar if there is one.

@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 
 use crate::ingest::IngestError;
-use crate::lod::NodeKey;
+use crate::lod::{LodError, NodeKey};
 
 #[derive(Debug, thiserror::Error)]
 pub enum CopcError {
@@ -50,5 +50,11 @@ impl CopcError {
             path: path.to_owned(),
             reason: reason.into(),
         }
+    }
+}
+
+impl From<CopcError> for LodError {
+    fn from(error: CopcError) -> Self {
+        LodError::RecordSource(Box::new(error))
     }
 }

@@ -92,7 +92,10 @@ pub fn open_copc(path: &Path) -> Result<CopcDataset, CopcError> {
 /// A failure reading nodes through the store's interface, as the COPC error it came from.
 fn copc_error(path: &Path, error: LodError) -> CopcError {
     match error {
-        LodError::Copc(error) => error,
+        LodError::RecordSource(source) => match source.downcast::<CopcError>() {
+            Ok(error) => *error,
+            Err(other) => CopcError::hierarchy(path, other.to_string()),
+        },
         other => CopcError::hierarchy(path, other.to_string()),
     }
 }

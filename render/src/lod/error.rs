@@ -69,9 +69,10 @@ pub enum LodError {
     /// answer); worth another attempt, unlike a damaged node.
     #[error("level-of-detail nodes: {0}")]
     Records(String),
-    /// A COPC file's node (its chunk unreadable or not what its entry says).
+    /// A record source's own failure, kept whole (a COPC file's chunk unreadable or not what
+    /// its entry says): sources depend on the store's types, not the other way round.
     #[error(transparent)]
-    Copc(#[from] crate::copc::CopcError),
+    RecordSource(Box<dyn std::error::Error + Send + Sync>),
 }
 
 impl LodError {
