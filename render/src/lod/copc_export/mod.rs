@@ -92,10 +92,10 @@ pub fn export_copc(
     written
 }
 
-/// `path` with `.partial` appended to its file name.
+/// `path` with `.part` appended to its file name.
 fn partial_path(path: &Path) -> PathBuf {
     let mut name = path.file_name().unwrap_or_default().to_os_string();
-    name.push(".partial");
+    name.push(".part");
     path.with_file_name(name)
 }
 

@@ -56,7 +56,7 @@ fn export_scan(file: &Path, max_leaf_points: usize) -> Exported {
     );
     assert_eq!(calls.last().copied(), Some(source.point_count()));
     assert!(calls.windows(2).all(|w| w[0] <= w[1]), "{calls:?}");
-    assert!(!dir.path().join("out.copc.laz.partial").exists());
+    assert!(!dir.path().join("out.copc.laz.part").exists());
     Exported {
         _dir: dir,
         _db: db,
