@@ -201,9 +201,7 @@ impl Client {
         }
         Ok(written)
     }
-}
 
-impl Client {
     /// Dataset `id` exported by the server as a COPC file, written to `out` through a
     /// temporary file beside it, renamed into place once every byte the summary announced
     /// has arrived; the summary.

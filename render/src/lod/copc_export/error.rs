@@ -3,6 +3,7 @@
 use std::path::PathBuf;
 
 use super::super::error::LodError;
+use super::super::key::NodeKey;
 
 #[derive(Debug, thiserror::Error)]
 pub enum CopcExportError {
@@ -28,10 +29,10 @@ pub enum CopcExportError {
     },
     /// A node holds more than one LAZ chunk may describe.
     #[error("node {key} is too large for one COPC chunk ({what})")]
-    NodeTooLarge { key: String, what: String },
+    NodeTooLarge { key: NodeKey, what: String },
     /// The LAZ compressor refused the data.
     #[error("compressing node {key}: {reason}")]
-    Compress { key: String, reason: String },
+    Compress { key: NodeKey, reason: String },
     /// The store holds no points: a COPC file needs at least its root.
     #[error("the store holds no points")]
     Empty,

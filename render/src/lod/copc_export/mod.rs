@@ -141,7 +141,7 @@ pub fn write_copc<W: Write + Seek>(
                     Vec::new()
                 } else {
                     compress(&bytes.bytes, &laz).map_err(|reason| CopcExportError::Compress {
-                        key: node.key.to_string(),
+                        key: node.key,
                         reason,
                     })?
                 };
@@ -150,10 +150,7 @@ pub fn write_copc<W: Write + Seek>(
             .collect::<Result<_, CopcExportError>>()?;
         for (info, (bytes, chunk)) in group.iter().zip(compressed) {
             let key = info.key;
-            let too_large = |what: String| CopcExportError::NodeTooLarge {
-                key: key.to_string(),
-                what,
-            };
+            let too_large = |what: String| CopcExportError::NodeTooLarge { key, what };
             let byte_size = i32::try_from(chunk.len())
                 .map_err(|_| too_large(format!("{} compressed bytes", chunk.len())))?;
             let point_count = i32::try_from(bytes.count)
