@@ -10,7 +10,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use pointfarm_render::cut::CutOptions;
 use pointfarm_render::ingest::dataset_files;
-use pointfarm_render::lod::copc_export::{export_copc, CopcExportReport, ExportTransform};
+use pointfarm_render::lod::copc_export::{export_copc, CopcExportReport, ExportSettings};
 use serde::Serialize;
 
 use crate::lod_store::{default_cache_dir, StoreCache};
@@ -123,17 +123,14 @@ pub fn run(args: ExportArgs) -> Result<()> {
         .unwrap_or(CutOptions::default().memory_budget_bytes);
     let stored = crate::lod_store::open_or_build(&files, &cache, budget, &say)?;
     let hierarchy = stored.dataset.hierarchy();
-    let transform = match ExportTransform::of_files(&files)? {
-        Some(transform) => transform,
-        None => ExportTransform::fixed(&hierarchy.cube),
-    };
+    let settings = ExportSettings::of_files(&files, &hierarchy.cube)?;
     let out = &args.output.copc;
     let bar = crate::progress::counter(hierarchy.point_count, "points", "exporting".into());
     let started = Instant::now();
     let report = export_copc(
         hierarchy,
         &**stored.dataset.records(),
-        transform,
+        &settings,
         out,
         &mut |points| bar.set_position(points),
     )

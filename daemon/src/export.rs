@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use pointfarm_render::lod::copc_export::{
-    export_copc, CopcExportError, CopcExportReport, ExportTransform,
+    export_copc, CopcExportError, CopcExportReport, ExportSettings,
 };
 
 use crate::error::DaemonError;
@@ -44,9 +44,7 @@ impl Daemon {
         };
         let files: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
         let hierarchy = store.hierarchy();
-        let transform = ExportTransform::of_files(&files)
-            .map_err(export_error)?
-            .unwrap_or_else(|| ExportTransform::fixed(&hierarchy.cube));
+        let settings = ExportSettings::of_files(&files, &hierarchy.cube).map_err(export_error)?;
         let path = self
             .config
             .uploads_dir()
@@ -54,7 +52,7 @@ impl Daemon {
         let report = export_copc(
             hierarchy,
             &**store.node_records(),
-            transform,
+            &settings,
             &path,
             &mut |_| {},
         )

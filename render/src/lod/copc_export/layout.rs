@@ -3,7 +3,7 @@
 //!
 //! ```text
 //! header (375) | VLR "copc" 1: info (54 + 160) | VLR "laszip encoded" 22204 (54 + 34 + 6n)
-//! | offset of the chunk table (8) | one LAZ chunk per node | chunk table
+//! | [VLR "LASF_Projection" 2112: the dataset's WKT] | offset of the chunk table (8) | one LAZ chunk per node | chunk table
 //! | EVLR "copc" 1000: hierarchy (60 + 32 per node)
 //! ```
 //!
@@ -42,9 +42,15 @@ pub fn laz_vlr(has_rgb: bool) -> LazVlr {
         .build()
 }
 
-/// Where the point data starts: after the header and the two VLRs.
-pub fn point_data_offset(laz: &LazVlr) -> u64 {
-    HEADER_BYTES + VLR_HEADER_BYTES + INFO_BYTES + VLR_HEADER_BYTES + laz_payload(laz).len() as u64
+/// Where the point data starts: after the header and the VLRs (the WKT's when there is one).
+pub fn point_data_offset(laz: &LazVlr, wkt: Option<&[u8]>) -> u64 {
+    let wkt = wkt.map_or(0, |w| VLR_HEADER_BYTES + w.len() as u64);
+    HEADER_BYTES
+        + VLR_HEADER_BYTES
+        + INFO_BYTES
+        + VLR_HEADER_BYTES
+        + laz_payload(laz).len() as u64
+        + wkt
 }
 
 fn laz_payload(laz: &LazVlr) -> Vec<u8> {
@@ -96,18 +102,21 @@ pub struct FileFacts {
     /// Where the hierarchy EVLR's header starts, and the entries' bytes after it.
     pub evlr_start: u64,
     pub hierarchy_bytes: u64,
+    /// The dataset's OGC WKT record, carried as it is.
+    pub wkt: Option<Vec<u8>>,
 }
 
-/// The header and both VLRs: every byte before the point data.
+/// The header and the VLRs: every byte before the point data.
 pub fn head(facts: &FileFacts, laz: &LazVlr) -> Vec<u8> {
+    let data_offset = point_data_offset(laz, facts.wkt.as_deref());
     let header = las::raw::Header {
         global_encoding: GLOBAL_ENCODING_WKT,
         version: las::Version::new(1, 4),
         system_identifier: fixed("pointfarm COPC export"),
         generating_software: fixed(concat!("pointfarm ", env!("CARGO_PKG_VERSION"))),
         header_size: HEADER_BYTES as u16,
-        offset_to_point_data: point_data_offset(laz) as u32,
-        number_of_variable_length_records: 2,
+        offset_to_point_data: data_offset as u32,
+        number_of_variable_length_records: 2 + u32::from(facts.wkt.is_some()),
         point_data_record_format: point_format(facts.has_rgb) | COMPRESSED_BIT,
         point_data_record_length: record_len(facts.has_rgb) as u16,
         // The legacy counts stay 0: PDRF 6 and up count in the 64-bit fields only.
@@ -136,7 +145,7 @@ pub fn head(facts: &FileFacts, laz: &LazVlr) -> Vec<u8> {
         }),
         ..Default::default()
     };
-    let mut out = Vec::with_capacity(point_data_offset(laz) as usize);
+    let mut out = Vec::with_capacity(data_offset as usize);
     header.write_to(&mut out).expect("writing to memory");
     debug_assert_eq!(out.len() as u64, HEADER_BYTES);
     out.extend(vlr("copc", 1, "COPC info VLR", info(facts), false));
@@ -147,6 +156,16 @@ pub fn head(facts: &FileFacts, laz: &LazVlr) -> Vec<u8> {
         laz_payload(laz),
         false,
     ));
+    if let Some(wkt) = &facts.wkt {
+        out.extend(vlr(
+            super::crs::PROJECTION_USER_ID,
+            super::crs::WKT_RECORD_ID,
+            "OGC WKT",
+            wkt.clone(),
+            false,
+        ));
+    }
+    debug_assert_eq!(out.len() as u64, data_offset);
     out
 }
 

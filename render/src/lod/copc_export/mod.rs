@@ -13,6 +13,7 @@
 //! A file is written under a temporary name beside its destination and renamed into place
 //! when complete, so an interrupted export leaves no half file under the real name.
 
+mod crs;
 mod error;
 mod layout;
 mod records;
@@ -35,6 +36,7 @@ pub use records::{point_format, PDRF6_BYTES, PDRF7_BYTES};
 pub use transform::{ExportTransform, DEFAULT_SCALE};
 
 use super::hierarchy::{LodHierarchy, NodeInfo};
+use super::key::RootCube;
 use super::records::{read_nodes, NodeRecords};
 use layout::{FileFacts, ENTRY_BYTES};
 use records::node_records;
@@ -48,6 +50,36 @@ const GROUP_NODES: usize = 256;
 const DEFAULT_GRID: f64 = 128.0;
 /// Bytes of the write buffer.
 const WRITE_BUFFER_BYTES: usize = 1 << 20;
+
+/// How an export writes its points beyond the store: the coordinates' scale and offset, and
+/// the CRS it declares.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ExportSettings {
+    pub transform: ExportTransform,
+    /// The OGC WKT record to carry, as its bytes.
+    pub wkt: Option<Vec<u8>>,
+}
+
+impl ExportSettings {
+    /// The settings a store of the files `paths` is exported with: their finest scale and
+    /// first offset (millimetres from the cube's corner without files) and the WKT record
+    /// they all declare.
+    pub fn of_files(paths: &[PathBuf], cube: &RootCube) -> Result<Self, CopcExportError> {
+        Ok(Self {
+            transform: ExportTransform::of_files(paths)?
+                .unwrap_or_else(|| ExportTransform::fixed(cube)),
+            wkt: crs::common_wkt(paths)?,
+        })
+    }
+
+    /// Millimetres from the cube's corner, no CRS: a store whose files are not at hand.
+    pub fn fixed(cube: &RootCube) -> Self {
+        Self {
+            transform: ExportTransform::fixed(cube),
+            wkt: None,
+        }
+    }
+}
 
 /// What an export wrote.
 #[derive(Debug, Clone, PartialEq)]
@@ -68,15 +100,15 @@ pub struct CopcExportReport {
 pub fn export_copc(
     hierarchy: &LodHierarchy,
     records: &dyn NodeRecords,
-    transform: ExportTransform,
+    settings: &ExportSettings,
     path: &Path,
     progress: &mut dyn FnMut(u64),
 ) -> Result<CopcExportReport, CopcExportError> {
     let partial = partial_path(path);
     let file = File::create(&partial).map_err(|e| CopcExportError::write(path, e))?;
     let mut out = BufWriter::with_capacity(WRITE_BUFFER_BYTES, file);
-    let written = write_copc(hierarchy, records, transform, &mut out, &partial, progress).and_then(
-        |report| {
+    let written =
+        write_copc(hierarchy, records, settings, &mut out, &partial, progress).and_then(|report| {
             let file = out
                 .into_inner()
                 .map_err(|e| CopcExportError::write(&partial, e.into_error()))?;
@@ -84,8 +116,7 @@ pub fn export_copc(
                 .map_err(|e| CopcExportError::write(&partial, e))?;
             std::fs::rename(&partial, path).map_err(|e| CopcExportError::write(path, e))?;
             Ok(report)
-        },
-    );
+        });
     if written.is_err() {
         let _ = std::fs::remove_file(&partial);
     }
@@ -103,7 +134,7 @@ fn partial_path(path: &Path) -> PathBuf {
 pub fn write_copc<W: Write + Seek>(
     hierarchy: &LodHierarchy,
     records: &dyn NodeRecords,
-    transform: ExportTransform,
+    settings: &ExportSettings,
     out: &mut W,
     name: &Path,
     progress: &mut dyn FnMut(u64),
@@ -113,10 +144,10 @@ pub fn write_copc<W: Write + Seek>(
     }
     let io = |e: std::io::Error| CopcExportError::write(name, e);
     let cube = hierarchy.cube;
-    let transform = transform.fitted(&cube)?;
+    let transform = settings.transform.fitted(&cube)?;
     let has_rgb = hierarchy.stats.has_rgb;
     let laz = layout::laz_vlr(has_rgb);
-    let data_start = layout::point_data_offset(&laz);
+    let data_start = layout::point_data_offset(&laz, settings.wkt.as_deref());
     // The head is written last, when its totals are known; the chunk table's offset too.
     out.seek(SeekFrom::Start(0)).map_err(io)?;
     out.write_all(&vec![
@@ -207,6 +238,7 @@ pub fn write_copc<W: Write + Seek>(
         spacing: cube.side / grid,
         evlr_start,
         hierarchy_bytes: entries.len() as u64 * ENTRY_BYTES,
+        wkt: settings.wkt.clone(),
     };
     out.seek(SeekFrom::Start(0)).map_err(io)?;
     out.write_all(&layout::head(&facts, &laz)).map_err(io)?;

@@ -38,13 +38,11 @@ fn export_scan(file: &Path, max_leaf_points: usize) -> Exported {
         .expect("build")
         .hierarchy;
     let build_s = started.elapsed().as_secs_f64();
-    let transform = ExportTransform::of_files(&[file.to_owned()])
-        .expect("header")
-        .expect("one file");
+    let settings = ExportSettings::of_files(&[file.to_owned()], &hierarchy.cube).expect("header");
     let path = dir.path().join("out.copc.laz");
     let mut calls = Vec::new();
     let started = Instant::now();
-    let report = export_copc(&hierarchy, &store, transform, &path, &mut |n| calls.push(n))
+    let report = export_copc(&hierarchy, &store, &settings, &path, &mut |n| calls.push(n))
         .expect("exported");
     let export_s = started.elapsed().as_secs_f64();
     eprintln!(
@@ -282,15 +280,15 @@ fn copc_export_into_a_missing_folder_is_a_clear_error_and_leaves_nothing() {
     let hierarchy = build_lod(&source, &store, &options)
         .expect("build")
         .hierarchy;
-    let transform = ExportTransform::fixed(&hierarchy.cube);
+    let settings = ExportSettings::fixed(&hierarchy.cube);
     let path = dir.path().join("missing").join("out.copc.laz");
     let error =
-        export_copc(&hierarchy, &store, transform, &path, &mut |_| {}).expect_err("no folder");
+        export_copc(&hierarchy, &store, &settings, &path, &mut |_| {}).expect_err("no folder");
     assert!(matches!(error, CopcExportError::Write { .. }), "{error}");
     assert!(error.to_string().contains("missing"), "{error}");
     // Generated points have no file scale: millimetres, within half a step.
     let path = dir.path().join("out.copc.laz");
-    let report = export_copc(&hierarchy, &store, transform, &path, &mut |_| {}).expect("export");
+    let report = export_copc(&hierarchy, &store, &settings, &path, &mut |_| {}).expect("export");
     assert_eq!(report.points, source.point_count());
     assert_eq!(report.transform.scale, glam::DVec3::splat(DEFAULT_SCALE));
     let mut reader = CopcReader::from_path(&path).expect("COPC");
