@@ -19,16 +19,17 @@ if ! command -v ffmpeg >/dev/null && command -v apt-get >/dev/null; then
         echo "pointfarm tests: ffmpeg could not be installed; the video tests will skip" >&2
 fi
 
-# A virtualenv with the Python client example's packages, for tests/python_client.rs (which
-# skips, saying so, where it cannot be made).
+# A virtualenv with the Python client example's packages, for tests/python_client.rs, and
+# laspy with lazrs, the independent COPC reader of tests/export.rs (both skip, saying so,
+# where it cannot be made).
 venv="${CARGO_TARGET_DIR:-target}/python-venv"
 if { [ -x "$venv/bin/python" ] || python3 -m venv "$venv"; } &&
     "$venv/bin/python" -m pip install --quiet --disable-pip-version-check \
-        -r examples/python/requirements.txt; then
+        -r examples/python/requirements.txt -r tests/python/requirements.txt; then
     POINTFARM_PYTHON="$(cd "$venv/bin" && pwd)/python"
     export POINTFARM_PYTHON
 else
-    echo "pointfarm tests: no Python virtualenv with grpcio; the Python client test will skip" >&2
+    echo "pointfarm tests: no Python virtualenv with grpcio and laspy; the Python tests will skip" >&2
 fi
 
 # A font for the legends' and the benchmark plots' labels.

@@ -10,7 +10,9 @@ use pointfarm_proto::v1 as pb;
 
 use pointfarm_render::ingest::dataset_files;
 
-use crate::admin_json::{json_line, Deleted, FetchedFrames, JobDetails, StageStatistics};
+use crate::admin_json::{
+    json_line, Deleted, ExportedDataset, FetchedFrames, JobDetails, StageStatistics,
+};
 use crate::credentials::ClientCredentials;
 use crate::remote::{answer, state_name, status_error, Client};
 
@@ -69,6 +71,14 @@ pub enum DatasetCommand {
     },
     /// The server's datasets.
     List,
+    /// Write a dataset as a COPC 1.0 file, made by the server from its levels of detail
+    /// (built first when it has none).
+    Export {
+        /// The dataset's id.
+        id: String,
+        #[command(flatten)]
+        output: crate::export::OutputArgs,
+    },
     /// Delete a dataset (files other datasets share stay).
     Rm {
         /// The dataset's id.
@@ -183,6 +193,25 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
                     for d in &all {
                         outln!("{:<20} {:>12}  {}", d.id, d.size_bytes, d.name);
                     }
+                }
+            }
+            DatasetCommand::Export { id, output } => {
+                output.check()?;
+                let summary = client.export_dataset(&id, &output.copc).await?;
+                if server.json {
+                    let file = output.copc.display().to_string();
+                    outln!("{}", json_line(&ExportedDataset { file, summary: &summary })?);
+                } else {
+                    outln!(
+                        "{}: {} points in {} nodes, {:.1} MB, COPC 1.0 (point format {}, scale {}), in {:.1} s on the server",
+                        output.copc.display(),
+                        summary.points,
+                        summary.nodes,
+                        summary.size_bytes as f64 / 1e6,
+                        summary.point_format,
+                        summary.scale.first().copied().unwrap_or_default(),
+                        summary.seconds,
+                    );
                 }
             }
             DatasetCommand::Rm { id } => {

@@ -23,6 +23,14 @@ pub struct Deleted<'a> {
     pub deleted: &'a str,
 }
 
+/// `dataset export --json`: where the file was written, and the API's summary of it.
+#[derive(Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct ExportedDataset<'a> {
+    pub file: String,
+    pub summary: &'a pb::ExportSummary,
+}
+
 /// `jobs show --json`: the job as the API returns it (its finished frames and their timings
 /// included), and the median and 95th percentile of each stage over those frames.
 #[derive(Serialize)]

@@ -13,6 +13,7 @@ mod bench;
 mod camera_file;
 mod credentials;
 mod demo;
+mod export;
 mod filter_args;
 mod frame_files;
 mod frame_source;
@@ -63,6 +64,10 @@ enum Command {
     /// scale and offset, CRS, attributes, and (reading the points once, in a stream)
     /// classes, returns, intensity and whether the colours carry information.
     Info(info::InfoArgs),
+    /// Write a dataset as a COPC 1.0 file (Cloud Optimized Point Cloud, a LAZ 1.4 file that
+    /// PDAL, QGIS and Potree open) from its levels of detail, built once and kept like
+    /// `render`'s.
+    Export(Box<export::ExportArgs>),
     /// Write a generated sample scene (survey-like coordinates, RGB) as LAS or LAZ.
     Sample(sample::SampleArgs),
     /// The service end to end in one process: daemon, worker, upload, turntable, frames.
@@ -119,6 +124,7 @@ fn main() -> ExitCode {
         Command::Bench(args) => bench::run(args),
         Command::Info(args) => info::run(args),
         Command::Sample(args) => sample::run(args),
+        Command::Export(args) => export::run(*args),
         Command::Serve(args) => serve::run(*args),
         Command::Worker(args) => worker::run(*args),
         Command::Demo(args) => demo::run(*args),

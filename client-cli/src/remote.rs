@@ -201,6 +201,69 @@ impl Client {
         }
         Ok(written)
     }
+
+    /// Dataset `id` exported by the server as a COPC file, written to `out` through a
+    /// temporary file beside it, renamed into place once every byte the summary announced
+    /// has arrived; the summary.
+    pub async fn export_dataset(&mut self, id: &str, out: &Path) -> Result<pb::ExportSummary> {
+        use pb::export_chunk::Part;
+        use tokio::io::AsyncWriteExt;
+        let spinner = crate::progress::spinner(format!("exporting {id} on the server"));
+        let stream = self
+            .datasets
+            .export_dataset(pb::ExportDatasetRequest {
+                dataset_id: id.to_string(),
+            })
+            .await;
+        spinner.finish_and_clear();
+        let mut stream = stream.map_err(status_error)?.into_inner();
+        let Some(Part::Summary(summary)) = stream
+            .message()
+            .await
+            .map_err(status_error)?
+            .and_then(|m| m.part)
+        else {
+            bail!("the server's export did not start with its summary");
+        };
+        let mut name = out.file_name().unwrap_or_default().to_os_string();
+        name.push(".part");
+        let partial = out.with_file_name(name);
+        let received = async {
+            let mut file = tokio::fs::File::create(&partial)
+                .await
+                .with_context(|| format!("writing {}", partial.display()))?;
+            let bar = crate::progress::counter(summary.size_bytes, "bytes", "downloading".into());
+            let mut bytes = 0u64;
+            while let Some(message) = stream.message().await.map_err(status_error)? {
+                let Some(Part::Data(data)) = message.part else {
+                    bail!("the server sent a second summary");
+                };
+                file.write_all(&data)
+                    .await
+                    .with_context(|| format!("writing {}", partial.display()))?;
+                bytes += data.len() as u64;
+                bar.set_position(bytes);
+            }
+            bar.finish_and_clear();
+            if bytes != summary.size_bytes {
+                bail!(
+                    "the server sent {bytes} bytes of a {}-byte file",
+                    summary.size_bytes
+                );
+            }
+            file.sync_all()
+                .await
+                .with_context(|| format!("writing {}", partial.display()))?;
+            tokio::fs::rename(&partial, out)
+                .await
+                .with_context(|| format!("writing {}", out.display()))
+        }
+        .await;
+        if received.is_err() {
+            let _ = tokio::fs::remove_file(&partial).await;
+        }
+        received.map(|()| summary)
+    }
 }
 
 /// The messages of an upload: `header`, then the file's bytes read chunk by chunk as the

@@ -21,6 +21,7 @@ pub mod access;
 pub mod datasets;
 pub mod describe;
 pub mod error;
+pub mod export;
 pub mod grpc;
 pub mod lease;
 pub mod lease_record;

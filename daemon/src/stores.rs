@@ -40,6 +40,11 @@ impl ReadyStore {
         self.lod.dataset.bounds()
     }
 
+    /// Where the store's node records are read from (an export reads them all).
+    pub fn node_records(&self) -> &std::sync::Arc<dyn pointfarm_render::lod::NodeRecords> {
+        self.lod.dataset.records()
+    }
+
     /// The stored records of `keys`, in order; each must be a node of the hierarchy with
     /// points.
     pub fn records(&self, keys: &[NodeKey]) -> Result<Vec<Vec<u8>>, DaemonError> {

@@ -11,7 +11,7 @@ use pointfarm_render::ingest::LAS_SIGNATURE;
 use tonic::{Request, Response, Status, Streaming};
 
 use super::conversions::{dataset_description, file_description, invalid, page_messages};
-use super::streaming::{first_part, HashingWriter};
+use super::streaming::{first_part, spawn_stream, HashingWriter, ResponseStream, CHUNK_BYTES};
 use super::Api;
 use crate::error::DaemonError;
 use crate::service::{dataset_id, Daemon};
@@ -122,12 +122,90 @@ impl DatasetService for Api {
         Ok(Response::new(dataset_description(&r.dataset_id, files)))
     }
 
+    type ExportDatasetStream = ResponseStream<pb::ExportChunk>;
+
+    async fn export_dataset(
+        &self,
+        request: Request<pb::ExportDatasetRequest>,
+    ) -> Result<Response<Self::ExportDatasetStream>, Status> {
+        let id = request.into_inner().dataset_id;
+        // Refused before any work: an unknown dataset is NOT_FOUND.
+        self.daemon.dataset(&id)?;
+        let exported = self.run(move |daemon| daemon.export_dataset(&id)).await?;
+        let summary = pb::ExportSummary {
+            points: exported.report.points,
+            nodes: exported.report.nodes as u32,
+            size_bytes: exported.report.bytes,
+            point_format: u32::from(exported.report.point_format),
+            scale: exported.report.transform.scale.to_array().to_vec(),
+            offset: exported.report.transform.offset.to_array().to_vec(),
+            min: exported.report.min.to_array().to_vec(),
+            max: exported.report.max.to_array().to_vec(),
+            seconds: exported.seconds,
+        };
+        let path = exported.path;
+        Ok(Response::new(spawn_stream(4, move |sender| async move {
+            send_file(&sender, summary, &path).await;
+            let _ = tokio::fs::remove_file(&path).await;
+        })))
+    }
+
     async fn delete_dataset(
         &self,
         request: Request<pb::DeleteDatasetRequest>,
     ) -> Result<Response<pb::DeleteDatasetResponse>, Status> {
         let id = request.into_inner().id;
         self.done(move |daemon| daemon.delete_dataset(&id)).await
+    }
+}
+
+/// Sends an export's summary, then its file in chunks of [`CHUNK_BYTES`]; stops when the
+/// client goes away.
+async fn send_file(
+    sender: &tokio::sync::mpsc::Sender<Result<pb::ExportChunk, Status>>,
+    summary: pb::ExportSummary,
+    path: &Path,
+) {
+    use pb::export_chunk::Part;
+    use tokio::io::AsyncReadExt;
+    let first = pb::ExportChunk {
+        part: Some(Part::Summary(summary)),
+    };
+    if sender.send(Ok(first)).await.is_err() {
+        return;
+    }
+    let mut file = match tokio::fs::File::open(path).await {
+        Ok(file) => file,
+        Err(e) => {
+            let _ = sender
+                .send(Err(Status::internal(format!("the export: {e}"))))
+                .await;
+            return;
+        }
+    };
+    loop {
+        let mut chunk = Vec::with_capacity(CHUNK_BYTES);
+        match (&mut file)
+            .take(CHUNK_BYTES as u64)
+            .read_to_end(&mut chunk)
+            .await
+        {
+            Ok(0) => return,
+            Ok(_) => {
+                let message = pb::ExportChunk {
+                    part: Some(Part::Data(chunk)),
+                };
+                if sender.send(Ok(message)).await.is_err() {
+                    return;
+                }
+            }
+            Err(e) => {
+                let _ = sender
+                    .send(Err(Status::internal(format!("the export: {e}"))))
+                    .await;
+                return;
+            }
+        }
     }
 }
 

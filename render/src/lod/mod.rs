@@ -21,6 +21,7 @@ mod checksum;
 mod chunks;
 pub mod codec;
 mod context;
+pub mod copc_export;
 mod counting;
 pub mod disk;
 pub mod error;

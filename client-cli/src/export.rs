@@ -1,0 +1,163 @@
+//! `pointfarm export FILES... --copc OUT`: a dataset written as one COPC 1.0 file, from its
+//! level-of-detail store (built once and kept in `--cache-dir`, as `render` keeps it), so
+//! PDAL, QGIS, Potree and laspy open what pointfarm built. `pointfarm dataset export` asks a
+//! server for the same file made from the store it keeps.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use pointfarm_render::cut::CutOptions;
+use pointfarm_render::ingest::dataset_files;
+use pointfarm_render::lod::copc_export::{export_copc, CopcExportReport, ExportSettings};
+use serde::Serialize;
+
+use crate::lod_store::{default_cache_dir, StoreCache};
+
+#[derive(Args)]
+pub struct ExportArgs {
+    /// LAS/LAZ files or folders of them, exported as one dataset.
+    #[arg(required = true, value_name = "INPUT")]
+    inputs: Vec<PathBuf>,
+    #[command(flatten)]
+    output: OutputArgs,
+    /// Host memory for the store's build when there is none yet, e.g. 512MiB or 4GiB.
+    #[arg(long, value_name = "SIZE", value_parser = crate::parse::bytes)]
+    memory_budget: Option<u64>,
+    /// Where level-of-detail stores are kept between commands (default
+    /// $XDG_CACHE_HOME/pointfarm or ~/.cache/pointfarm).
+    #[arg(long, env = "POINTFARM_CACHE_DIR", value_name = "DIR")]
+    cache_dir: Option<PathBuf>,
+    /// The most disk the stores in --cache-dir may take together, e.g. 200GiB.
+    #[arg(long, env = "POINTFARM_CACHE_SIZE", value_name = "SIZE", value_parser = crate::parse::bytes)]
+    cache_size: Option<u64>,
+    /// Print one JSON object (lowerCamelCase keys) instead of a line of text.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Where an export goes; shared by the local and the server command.
+#[derive(Args, Clone)]
+pub struct OutputArgs {
+    /// The COPC file to write (by convention NAME.copc.laz); its folder must exist.
+    #[arg(long, value_name = "FILE", required = true)]
+    pub copc: PathBuf,
+    /// Replace the file if it exists.
+    #[arg(long)]
+    pub force: bool,
+}
+
+impl OutputArgs {
+    /// Refuses an existing file without --force and a folder that does not exist, before any
+    /// work starts.
+    pub fn check(&self) -> Result<()> {
+        let out = &self.copc;
+        if out.is_dir() {
+            bail!("{} is a folder: name the COPC file to write", out.display());
+        }
+        if out.exists() && !self.force {
+            bail!("{} exists: pass --force to replace it", out.display());
+        }
+        let parent = out.parent().filter(|p| !p.as_os_str().is_empty());
+        if let Some(parent) = parent.filter(|p| !p.is_dir()) {
+            bail!(
+                "cannot write {}: the folder {} does not exist",
+                out.display(),
+                parent.display()
+            );
+        }
+        Ok(())
+    }
+}
+
+/// What `export --json` prints.
+#[derive(Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct ExportJson {
+    pub file: String,
+    pub points: u64,
+    pub nodes: usize,
+    pub bytes: u64,
+    pub point_format: u8,
+    pub scale: [f64; 3],
+    pub offset: [f64; 3],
+    pub min: [f64; 3],
+    pub max: [f64; 3],
+    pub seconds: f64,
+}
+
+impl ExportJson {
+    fn new(file: &Path, report: &CopcExportReport, seconds: f64) -> Self {
+        Self {
+            file: file.display().to_string(),
+            points: report.points,
+            nodes: report.nodes,
+            bytes: report.bytes,
+            point_format: report.point_format,
+            scale: report.transform.scale.to_array(),
+            offset: report.transform.offset.to_array(),
+            min: report.min.to_array(),
+            max: report.max.to_array(),
+            seconds,
+        }
+    }
+}
+
+pub fn run(args: ExportArgs) -> Result<()> {
+    args.output.check()?;
+    let files = dataset_files(&args.inputs)?;
+    let say = |line: String| {
+        if args.json {
+            eprintln!("{line}");
+        } else {
+            outln!("{line}");
+        }
+    };
+    let cache = StoreCache {
+        dir: args.cache_dir.clone().unwrap_or_else(default_cache_dir),
+        size_bytes: args.cache_size,
+    };
+    let budget = args
+        .memory_budget
+        .unwrap_or(CutOptions::default().memory_budget_bytes);
+    let stored = crate::lod_store::open_or_build(&files, &cache, budget, &say)?;
+    let hierarchy = stored.dataset.hierarchy();
+    let settings = ExportSettings::of_files(&files, &hierarchy.cube)?;
+    let out = &args.output.copc;
+    let bar = crate::progress::counter(hierarchy.point_count, "points", "exporting".into());
+    let started = Instant::now();
+    let report = export_copc(
+        hierarchy,
+        &**stored.dataset.records(),
+        &settings,
+        out,
+        &mut |points| bar.set_position(points),
+    )
+    .with_context(|| format!("exporting to {}", out.display()));
+    bar.finish_and_clear();
+    let report = report?;
+    let seconds = started.elapsed().as_secs_f64();
+    print_report(out, &report, seconds, args.json)
+}
+
+/// The line, or the JSON object, that says what an export wrote.
+pub fn print_report(out: &Path, report: &CopcExportReport, seconds: f64, json: bool) -> Result<()> {
+    if json {
+        outln!(
+            "{}",
+            serde_json::to_string(&ExportJson::new(out, report, seconds))?
+        );
+    } else {
+        outln!(
+            "{}: {} points in {} nodes, {:.1} MB, COPC 1.0 (point format {}, scale {}), in {seconds:.1} s",
+            out.display(),
+            report.points,
+            report.nodes,
+            report.bytes as f64 / 1e6,
+            report.point_format,
+            report.transform.scale.x,
+        );
+    }
+    Ok(())
+}
