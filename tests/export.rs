@@ -7,13 +7,16 @@
 //! `target/python-venv`), with `tests/python/requirements.txt`; where there is none that part
 //! skips, saying so, as the Python client test does.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
 use las::copc::{BoundsSelection, CopcReader, LodSelection};
 use pointfarm_proto::v1 as pb;
-use pointfarm_tests::ServeProcess;
-use pointfarm_tests::{assert_fails_saying, assert_ok, json_lines, pointfarm, shared_data, stdout};
+
+use pointfarm_tests::{
+    assert_fails_saying, assert_ok, json_lines, pointfarm, shared_data, stdout, test_python,
+    ServeProcess,
+};
 
 fn arg(path: &Path) -> &str {
     path.to_str().expect("temporary paths are UTF-8")
@@ -69,41 +72,9 @@ fn read_facts(path: &Path) -> Facts {
     }
 }
 
-/// The Python of the test virtualenv with laspy and lazrs: `POINTFARM_PYTHON`, else
-/// `python-venv` in this build's target folder. `None` (after saying so) when it is missing
-/// or lacks the packages; a `POINTFARM_PYTHON` given but unusable fails instead.
-fn python() -> Option<PathBuf> {
-    let given = std::env::var_os("POINTFARM_PYTHON").map(PathBuf::from);
-    let python = given.clone().unwrap_or_else(|| {
-        // The test executable lives in target/<profile>/deps/.
-        let exe = std::env::current_exe().expect("test executable path");
-        let target = exe.ancestors().nth(3).expect("the target folder");
-        target.join("python-venv/bin/python")
-    });
-    let usable = Command::new(&python)
-        .args(["-c", "import laspy, lazrs"])
-        .output()
-        .is_ok_and(|output| output.status.success());
-    match (usable, given) {
-        (true, _) => Some(python),
-        (false, Some(_)) => panic!(
-            "POINTFARM_PYTHON={} cannot import laspy and lazrs",
-            python.display()
-        ),
-        (false, None) => {
-            eprintln!(
-                "skipped: no Python with laspy and lazrs at {} (deploy/test.sh makes it from \
-                 tests/python/requirements.txt)",
-                python.display()
-            );
-            None
-        }
-    }
-}
-
 /// The file as laspy's COPC reader sees it, checked against the `las` crate's reading.
 fn check_with_laspy(path: &Path, facts: &Facts) {
-    let Some(python) = python() else {
+    let Some(python) = test_python(&["laspy", "lazrs"], "tests/python/requirements.txt") else {
         return;
     };
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("python/read_copc.py");
@@ -254,17 +225,15 @@ fn dataset_export_streams_the_servers_copc_file() {
     assert_ok(&added);
     let dataset: pb::Dataset = serde_json::from_str(stdout(&added).trim()).expect("a Dataset");
 
+    // `pointfarm dataset export ID --copc OUT` through the server, and `more` flags.
+    let export = |id: &str, out: &Path, more: &[&str]| {
+        let mut args = vec!["dataset", "export", id, "--copc", arg(out), "--server"];
+        args.push(&address);
+        args.extend_from_slice(more);
+        pointfarm(&args)
+    };
     let out = dir.path().join("lone-star.copc.laz");
-    let output = pointfarm(&[
-        "dataset",
-        "export",
-        &dataset.id,
-        "--copc",
-        arg(&out),
-        "--server",
-        &address,
-        "--json",
-    ]);
+    let output = export(&dataset.id, &out, &["--json"]);
     assert_ok(&output);
     let lines = json_lines(&output);
     let [report] = lines.as_slice() else {
@@ -291,26 +260,9 @@ fn dataset_export_streams_the_servers_copc_file() {
     );
 
     // Refusals: an existing file, an unknown dataset (NOT_FOUND through the API).
-    let again = [
-        "dataset",
-        "export",
-        &dataset.id,
-        "--copc",
-        arg(&out),
-        "--server",
-        &address,
-    ];
-    assert_fails_saying(&pointfarm(&again), "pass --force");
+    assert_fails_saying(&export(&dataset.id, &out, &[]), "pass --force");
     let unknown_out = dir.path().join("unknown.copc.laz");
-    let unknown = pointfarm(&[
-        "dataset",
-        "export",
-        "ds-0000000000000000",
-        "--copc",
-        arg(&unknown_out),
-        "--server",
-        &address,
-    ]);
+    let unknown = export("ds-0000000000000000", &unknown_out, &[]);
     assert_fails_saying(&unknown, "not found");
     assert!(!unknown_out.exists());
     let runtime = tokio::runtime::Runtime::new().expect("runtime");

@@ -14,41 +14,9 @@ use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::BearerToken;
 use pointfarm_tests::pki::TestPki;
 use pointfarm_tests::service::scratch_sample;
-use pointfarm_tests::ServeProcess;
+use pointfarm_tests::{test_python, ServeProcess};
 
 const TOKEN: &str = "surveyor-s3cret";
-
-/// The Python of the example's virtualenv: `POINTFARM_PYTHON`, else `python-venv` in this
-/// build's target folder. `None` (after saying so) when it is missing or lacks the packages;
-/// a `POINTFARM_PYTHON` given but unusable fails instead.
-fn python() -> Option<PathBuf> {
-    let given = std::env::var_os("POINTFARM_PYTHON").map(PathBuf::from);
-    let python = given.clone().unwrap_or_else(|| {
-        // The test executable lives in target/<profile>/deps/.
-        let exe = std::env::current_exe().expect("test executable path");
-        let target = exe.ancestors().nth(3).expect("the target folder");
-        target.join("python-venv/bin/python")
-    });
-    let usable = Command::new(&python)
-        .args(["-c", "import grpc, grpc_tools"])
-        .output()
-        .is_ok_and(|output| output.status.success());
-    match (usable, given) {
-        (true, _) => Some(python),
-        (false, Some(_)) => panic!(
-            "POINTFARM_PYTHON={} cannot import grpc and grpc_tools",
-            python.display()
-        ),
-        (false, None) => {
-            eprintln!(
-                "skipped: no Python with grpcio at {} (deploy/test.sh makes it from \
-                 examples/python/requirements.txt)",
-                python.display()
-            );
-            None
-        }
-    }
-}
 
 fn example() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/python/pointfarm_client.py")
@@ -145,7 +113,10 @@ fn frames_in(folder: &Path, size: (u32, u32)) -> Vec<String> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_python_example_uploads_renders_a_camera_path_and_downloads_its_frames() {
-    let Some(python) = python() else { return };
+    let Some(python) = test_python(&["grpc", "grpc_tools"], "examples/python/requirements.txt")
+    else {
+        return;
+    };
     let (scratch, scan) = scratch_sample("scan.laz", 20_000, 7);
     let dir = scratch.path();
     let token_file = dir.join("client.token");
@@ -244,7 +215,10 @@ async fn the_python_example_uploads_renders_a_camera_path_and_downloads_its_fram
 
 #[test]
 fn a_refused_call_ends_the_python_example_with_one_line_and_a_non_zero_exit() {
-    let Some(python) = python() else { return };
+    let Some(python) = test_python(&["grpc", "grpc_tools"], "examples/python/requirements.txt")
+    else {
+        return;
+    };
     let (scratch, scan) = scratch_sample("scan.las", 2_000, 8);
     let dir = scratch.path();
     // Nothing renders here: no worker.

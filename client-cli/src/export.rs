@@ -107,13 +107,7 @@ impl ExportJson {
 pub fn run(args: ExportArgs) -> Result<()> {
     args.output.check()?;
     let files = dataset_files(&args.inputs)?;
-    let say = |line: String| {
-        if args.json {
-            eprintln!("{line}");
-        } else {
-            outln!("{line}");
-        }
-    };
+    let say = |line: String| crate::output::say(args.json, line);
     let cache = StoreCache {
         dir: args.cache_dir.clone().unwrap_or_else(default_cache_dir),
         size_bytes: args.cache_size,

@@ -25,3 +25,13 @@ pub fn line(args: std::fmt::Arguments<'_>) {
         }
     }
 }
+
+/// A progress line of a command: on stdout, or with `--json` on stderr, so that stdout
+/// carries only the JSON objects.
+pub fn say(json: bool, line: String) {
+    if json {
+        eprintln!("{line}");
+    } else {
+        self::line(format_args!("{line}"));
+    }
+}

@@ -82,14 +82,7 @@ pub fn run(
         );
     }
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
-    // With --json, standard output carries only the frames' objects.
-    let say = |line: String| {
-        if args.json {
-            eprintln!("{line}");
-        } else {
-            outln!("{line}");
-        }
-    };
+    let say = |line: String| crate::output::say(args.json, line);
     runtime.block_on(async {
         let files = dataset_files(&args.inputs)?;
         let mut client = Client::connect(server, &args.credentials).await?;

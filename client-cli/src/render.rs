@@ -34,14 +34,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
     }
 
     let files = dataset_files(&args.inputs)?;
-    // With --json, standard output carries only the frames' objects.
-    let say = |line: String| {
-        if args.json {
-            eprintln!("{line}");
-        } else {
-            outln!("{line}");
-        }
-    };
+    let say = |line: String| crate::output::say(args.json, line);
     let points = dataset_point_count(&files)?;
     let label = args.inputs_label();
     let say_input = |line: String| say(format!("{label}: {line}"));

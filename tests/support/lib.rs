@@ -429,3 +429,37 @@ fn exit_within(
     }
     None
 }
+
+/// The Python of the tests' virtualenv that can import `modules`: `POINTFARM_PYTHON`, else
+/// `python-venv` in this build's target folder. `None` (after saying so) when it is missing
+/// or lacks them; a `POINTFARM_PYTHON` given but unusable fails instead. `requirements` names
+/// the file `deploy/test.sh` installs them from.
+pub fn test_python(modules: &[&str], requirements: &str) -> Option<PathBuf> {
+    let given = std::env::var_os("POINTFARM_PYTHON").map(PathBuf::from);
+    let python = given.clone().unwrap_or_else(|| {
+        // The test executable lives in target/<profile>/deps/.
+        let exe = std::env::current_exe().expect("test executable path");
+        let target = exe.ancestors().nth(3).expect("the target folder");
+        target.join("python-venv/bin/python")
+    });
+    let usable = Command::new(&python)
+        .args(["-c", &format!("import {}", modules.join(", "))])
+        .output()
+        .is_ok_and(|output| output.status.success());
+    match (usable, given) {
+        (true, _) => Some(python),
+        (false, Some(_)) => panic!(
+            "POINTFARM_PYTHON={} cannot import {}",
+            python.display(),
+            modules.join(" and ")
+        ),
+        (false, None) => {
+            eprintln!(
+                "skipped: no Python with {} at {} (deploy/test.sh makes it from {requirements})",
+                modules.join(" and "),
+                python.display()
+            );
+            None
+        }
+    }
+}

@@ -10,6 +10,7 @@ use las::copc::{BoundsSelection, CopcReader, LodSelection, VoxelKey};
 
 use super::*;
 use crate::ingest::DatasetSource;
+use crate::lod::tests::temp_store;
 use crate::lod::{build_lod, LodBuildOptions, LodStore, NodeKey, PointSource};
 
 struct Exported {
@@ -24,12 +25,7 @@ struct Exported {
 /// A store of `file` with leaves of at most `max_leaf_points`, exported beside it.
 fn export_scan(file: &Path, max_leaf_points: usize) -> Exported {
     let dir = tempfile::tempdir().expect("tempdir");
-    let db = sled::open(dir.path().join("db")).expect("sled");
-    let store = LodStore::open(
-        db.open_tree("lod").expect("tree"),
-        dir.path().join("lod.bin"),
-    )
-    .expect("store");
+    let (db, store) = temp_store(dir.path());
     let source = DatasetSource::open(&[file.to_owned()]).expect("source");
     let mut options = LodBuildOptions::new(dir.path().join("spill"));
     options.max_leaf_points = max_leaf_points;
@@ -270,12 +266,7 @@ fn copc_export_of_the_real_scans_is_within_1_3x_of_a_plain_laz() {
 fn copc_export_into_a_missing_folder_is_a_clear_error_and_leaves_nothing() {
     let source = crate::lod::GeneratedSource::terrain(5_000, 3);
     let dir = tempfile::tempdir().expect("tempdir");
-    let db = sled::open(dir.path().join("db")).expect("sled");
-    let store = LodStore::open(
-        db.open_tree("lod").expect("tree"),
-        dir.path().join("lod.bin"),
-    )
-    .expect("store");
+    let (_db, store) = temp_store(dir.path());
     let options = LodBuildOptions::new(dir.path().join("spill"));
     let hierarchy = build_lod(&source, &store, &options)
         .expect("build")

@@ -18,7 +18,7 @@ struct Built {
 }
 
 /// A store in `dir`: its sled index (kept open by the returned database) and payload file.
-fn temp_store(dir: &std::path::Path) -> (sled::Db, LodStore) {
+pub(crate) fn temp_store(dir: &std::path::Path) -> (sled::Db, LodStore) {
     let db = sled::open(dir.join("db")).expect("sled");
     let tree = db.open_tree("lod").expect("tree");
     let store = LodStore::open(tree, dir.join("lod.bin")).expect("store");
