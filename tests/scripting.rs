@@ -345,3 +345,56 @@ fn every_command_says_what_it_does() {
     }
     assert!(seen > 20, "only {seen} commands");
 }
+
+/// `-v --log-format json`: the daemon's own logs come out at info, one JSON object a line,
+/// for a log collector.
+#[test]
+fn the_daemon_logs_json_lines_at_the_level_v_asks_for() {
+    let data = tempfile::tempdir().expect("tempdir");
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|probe| probe.local_addr())
+        .expect("a free loopback port")
+        .port();
+    let address = format!("127.0.0.1:{port}");
+    let mut serve = Command::new(pointfarm_bin())
+        .args(["-v", "--log-format", "json", "serve", "--listen", &address])
+        .arg("--data-dir")
+        .arg(data.path())
+        .env_remove("RUST_LOG")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start serve");
+    let stderr = serve.stderr.take().expect("stderr");
+    let (lines, received) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if lines.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let mut seen = Vec::new();
+    let serving = loop {
+        let Ok(line) = received.recv_timeout(Duration::from_secs(60)) else {
+            break None;
+        };
+        let object: serde_json::Value =
+            serde_json::from_str(&line).unwrap_or_else(|e| panic!("not a JSON line ({e}): {line}"));
+        seen.push(line);
+        if object["fields"]["message"] == "serving pointfarm.v1" {
+            break Some(object);
+        }
+    };
+    let _ = serve.kill();
+    let _ = serve.wait();
+    let serving = serving.unwrap_or_else(|| panic!("no serving line in:\n{}", seen.join("\n")));
+    assert_eq!(serving["level"], "INFO", "{serving}");
+    assert!(
+        serving["target"]
+            .as_str()
+            .is_some_and(|t| t.starts_with("pointfarm_daemon")),
+        "{serving}"
+    );
+    assert_eq!(serving["fields"]["address"], address.as_str(), "{serving}");
+}

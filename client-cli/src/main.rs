@@ -20,6 +20,7 @@ mod frame_source;
 mod generate;
 mod info;
 mod lod_store;
+mod logging;
 mod output;
 mod parse;
 mod potree_animation;
@@ -38,7 +39,6 @@ mod worker;
 use std::process::ExitCode;
 
 use clap::{CommandFactory, Parser, Subcommand};
-use tracing_subscriber::EnvFilter;
 
 #[derive(Parser)]
 #[command(
@@ -50,6 +50,15 @@ struct Cli {
     /// Log more (-v: info, -vv: debug). RUST_LOG overrides this.
     #[arg(short, long, action = clap::ArgAction::Count, global = true)]
     verbose: u8,
+    /// How logs are written on stderr: text, or JSON lines for a log collector.
+    #[arg(
+        long,
+        value_enum,
+        default_value_t,
+        global = true,
+        env = "POINTFARM_LOG_FORMAT"
+    )]
+    log_format: logging::LogFormat,
     #[command(subcommand)]
     command: Command,
 }
@@ -105,19 +114,7 @@ enum Command {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    let default_level = match cli.verbose {
-        0 => "warn",
-        1 => "warn,pointfarm_render=info,pointfarm=info",
-        _ => "info,pointfarm_render=debug,pointfarm=debug",
-    };
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default_level)),
-        )
-        .with_writer(std::io::stderr)
-        // Colours only for a person at a terminal: logs written to files stay plain text.
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .init();
+    logging::init(cli.verbose, cli.log_format);
 
     let result = match cli.command {
         Command::Render(args) => render::run(*args),
