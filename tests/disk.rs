@@ -11,7 +11,7 @@ use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_tests::service::{
     clients, connect, get_job, scratch_sample, submit, turntable_job, upload_file, watch_to_success,
 };
-use pointfarm_tests::{wait_for, ServeProcess, WorkerProcess};
+use pointfarm_tests::{free_address, wait_for, ServeProcess, WorkerProcess};
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
 use tonic_health::pb::HealthCheckRequest;
@@ -53,11 +53,7 @@ async fn a_full_disk_holds_frames_back_and_the_daemon_resumes_when_space_returns
         return;
     };
     let outside = tempfile::tempdir().expect("tempdir");
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|probe| probe.local_addr())
-        .expect("a free loopback port")
-        .port();
-    let address = format!("127.0.0.1:{port}");
+    let address = free_address();
     // The log lies off the full disk, so that what the daemon says there is kept.
     let mut server = ServeProcess::start_logging_to(
         &address,

@@ -11,7 +11,8 @@ use std::time::Duration;
 use pointfarm_proto::v1 as pb;
 use pointfarm_tests::service::clients;
 use pointfarm_tests::{
-    assert_ok, pointfarm, pointfarm_bin, stdout, wait_for, ServeProcess, WorkerProcess,
+    assert_fails_saying, assert_ok, free_address, pointfarm, pointfarm_bin, stdout, wait_for,
+    ServeProcess, WorkerProcess,
 };
 
 fn arg(path: &Path) -> &str {
@@ -351,11 +352,7 @@ fn every_command_says_what_it_does() {
 #[test]
 fn the_daemon_logs_json_lines_at_the_level_v_asks_for() {
     let data = tempfile::tempdir().expect("tempdir");
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|probe| probe.local_addr())
-        .expect("a free loopback port")
-        .port();
-    let address = format!("127.0.0.1:{port}");
+    let address = free_address();
     let mut serve = Command::new(pointfarm_bin())
         .args(["-v", "--log-format", "json", "serve", "--listen", &address])
         .arg("--data-dir")
@@ -397,4 +394,89 @@ fn the_daemon_logs_json_lines_at_the_level_v_asks_for() {
         "{serving}"
     );
     assert_eq!(serving["fields"]["address"], address.as_str(), "{serving}");
+}
+
+/// Settings in layers: a TOML file (`--config`), then `POINTFARM_*` variables, then flags. A
+/// real daemon listens where the file says and keeps its data where the environment says;
+/// `--print-config` shows each setting's layer; a mistake in the file stops the command with
+/// the file's and the key's names.
+#[test]
+fn serve_and_worker_take_settings_from_a_file_the_environment_and_flags() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let address = free_address();
+    let (file_data, env_data) = (dir.path().join("from-file"), dir.path().join("from-env"));
+    let config = dir.path().join("pointfarm.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[serve]\nlisten = \"{address}\"\ndata_dir = {:?}\nno_embedded_worker = true\nmax_frames = 5\n\n[worker]\ncache_gib = 3\n",
+            arg(&file_data)
+        ),
+    )
+    .expect("write the configuration");
+
+    let mut serve = Command::new(pointfarm_bin())
+        .args(["serve", "--config", arg(&config), "--max-frames", "7"])
+        .env("POINTFARM_DATA_DIR", &env_data)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("start serve");
+    let lines: Vec<String> = BufReader::new(serve.stdout.take().expect("stdout"))
+        .lines()
+        .take(2)
+        .map(|line| line.expect("serve's output"))
+        .collect();
+    wait_for(Duration::from_secs(30), "the daemon to listen", || {
+        std::net::TcpStream::connect(&address).ok()
+    });
+    let _ = serve.kill();
+    let _ = serve.wait();
+    let said = lines.join("\n");
+    assert!(said.contains("no embedded worker"), "{said}");
+    assert!(
+        said.contains(&format!("serving on http://{address}")),
+        "{said}"
+    );
+    assert!(said.contains(arg(&env_data)), "{said}");
+    assert!(env_data.is_dir());
+    assert!(
+        !file_data.exists(),
+        "the environment's data folder wins over the file's"
+    );
+
+    let printed = pointfarm(&[
+        "serve",
+        "--config",
+        arg(&config),
+        "--max-frames",
+        "7",
+        "--print-config",
+    ]);
+    let printed = stdout(&printed);
+    assert!(
+        printed.contains(&format!("listen = \"{address}\"  # file")),
+        "{printed}"
+    );
+    assert!(printed.contains("max_frames = \"7\"  # flag"), "{printed}");
+    assert!(
+        printed.contains("lease_timeout = \"30\"  # default"),
+        "{printed}"
+    );
+    let worker = Command::new(pointfarm_bin())
+        .args(["worker", "--print-config"])
+        .env("POINTFARM_CONFIG", &config)
+        .env("POINTFARM_LOD_ERROR", "2.5")
+        .output()
+        .expect("worker --print-config");
+    let worker = stdout(&worker);
+    assert!(worker.contains("cache_gib = \"3\"  # file"), "{worker}");
+    assert!(worker.contains("lod_error = \"2.5\"  # env"), "{worker}");
+
+    std::fs::write(&config, "[worker]\nlod_error = -1\n").expect("write");
+    let refused = pointfarm(&["serve", "--config", arg(&config)]);
+    assert_fails_saying(
+        &refused,
+        "pointfarm.toml: [worker] lod_error: invalid value '-1'",
+    );
 }

@@ -9,7 +9,6 @@ use clap::Args;
 use pointfarm_daemon::model::JobSpec;
 use pointfarm_daemon::server::{serve, ServeOptions};
 use pointfarm_daemon::service::{Daemon, DaemonConfig};
-use pointfarm_daemon::worker::supervisor::WorkerCommand;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::gpu::AdapterChoice;
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
@@ -60,14 +59,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async move {
         let daemon = Daemon::open(DaemonConfig::new(args.out.join(".pointfarm-data")))?;
-        let worker = WorkerCommand {
-            program: std::env::current_exe().context("finding the pointfarm binary")?,
-            args: crate::serve::worker_args(
-                &daemon.config.data_dir.join("embedded-worker"),
-                daemon.config.worker_cache_bytes,
-                args.adapter,
-            ),
-        };
+        let worker = crate::serve::embedded_worker(&daemon.config, args.adapter)?;
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
             .await
             .context("binding a loopback port")?;

@@ -13,7 +13,8 @@ use pointfarm_render::ingest::dataset_files;
 use pointfarm_render::lod::copc_export::{export_copc, CopcExportReport, ExportSettings};
 use serde::Serialize;
 
-use crate::lod_store::{default_cache_dir, StoreCache};
+use crate::lod_store::StoreCache;
+use crate::paths::user_cache_dir;
 
 #[derive(Args)]
 pub struct ExportArgs {
@@ -109,7 +110,7 @@ pub fn run(args: ExportArgs) -> Result<()> {
     let files = dataset_files(&args.inputs)?;
     let say = |line: String| crate::output::say(args.json, line);
     let cache = StoreCache {
-        dir: args.cache_dir.clone().unwrap_or_else(default_cache_dir),
+        dir: args.cache_dir.clone().unwrap_or_else(user_cache_dir),
         size_bytes: args.cache_size,
     };
     let budget = args

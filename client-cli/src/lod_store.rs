@@ -10,15 +10,6 @@ use anyhow::{Context, Result};
 use pointfarm_render::cut::StoredLod;
 use sha2::{Digest, Sha256};
 
-/// The cache folder when neither `--cache-dir` nor `POINTFARM_CACHE_DIR` names one.
-pub fn default_cache_dir() -> PathBuf {
-    let base = std::env::var_os("XDG_CACHE_HOME")
-        .map(PathBuf::from)
-        .or_else(|| std::env::var_os("HOME").map(|home| PathBuf::from(home).join(".cache")))
-        .unwrap_or_else(std::env::temp_dir);
-    base.join("pointfarm")
-}
-
 /// The name of a dataset's store: a digest of each file's absolute path, size and
 /// modification time.
 fn store_name(files: &[PathBuf]) -> Result<String> {

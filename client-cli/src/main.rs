@@ -11,6 +11,7 @@ mod admin;
 mod admin_json;
 mod bench;
 mod camera_file;
+mod config_file;
 mod credentials;
 mod demo;
 mod export;
@@ -23,6 +24,7 @@ mod lod_store;
 mod logging;
 mod output;
 mod parse;
+mod paths;
 mod potree_animation;
 mod progress;
 mod remote;
@@ -113,7 +115,7 @@ enum Command {
 }
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let cli: Cli = config_file::parse(std::env::args_os().collect());
     logging::init(cli.verbose, cli.log_format);
 
     let result = match cli.command {

@@ -18,7 +18,8 @@ use pointfarm_render::raster::{FrameSettings, Stage, StageTimings};
 
 use crate::frame_files::save_depth;
 use crate::frame_source::{FrameSource, RenderedFrame};
-use crate::lod_store::{default_cache_dir, StoreCache};
+use crate::lod_store::StoreCache;
+use crate::paths::user_cache_dir;
 use crate::render_json::FrameJson;
 use crate::render_outputs::{write_legend, Outputs};
 
@@ -57,7 +58,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         }
         (None, Some(options)) => {
             let cache = StoreCache {
-                dir: args.cache_dir.clone().unwrap_or_else(default_cache_dir),
+                dir: args.cache_dir.clone().unwrap_or_else(user_cache_dir),
                 size_bytes: args.cache_size,
             };
             FrameSource::cut(

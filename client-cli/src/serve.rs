@@ -3,30 +3,37 @@
 //! worker never takes the daemon down. Separate `pointfarm worker` processes can render for it
 //! as well or instead.
 
-use std::ffi::OsString;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::server::{serve, ServeOptions, TlsIdentity};
-use pointfarm_daemon::service::{Daemon, DaemonConfig, DEFAULT_MAX_UPLOAD_BYTES};
+use pointfarm_daemon::service::{
+    Daemon, DaemonConfig, DEFAULT_LEASE_TIMEOUT, DEFAULT_MAX_FRAMES, DEFAULT_MAX_FRAME_ATTEMPTS,
+    DEFAULT_MAX_IMAGE_SIDE, DEFAULT_MAX_UPLOAD_BYTES, DEFAULT_WORKER_CACHE_BYTES,
+};
 use pointfarm_daemon::worker::supervisor::WorkerCommand;
 use pointfarm_render::gpu::AdapterChoice;
 
+use crate::config_file::ConfigArgs;
 use crate::credentials::secret;
-use crate::parse;
+use crate::{parse, paths};
 
 #[derive(Args)]
 pub struct ServeArgs {
+    #[command(flatten)]
+    config: ConfigArgs,
     /// Address to listen on.
-    #[arg(long, default_value = "127.0.0.1:50051")]
+    #[arg(long, env = "POINTFARM_LISTEN", default_value = "127.0.0.1:50051")]
     listen: String,
-    /// Folder for the state database, uploaded datasets and rendered frames.
-    #[arg(long, default_value = "pointfarm-data")]
+    /// Folder for the state database, uploaded datasets and rendered frames (default: the
+    /// unit's StateDirectory, /var/lib/pointfarm for root, else $XDG_DATA_HOME/pointfarm).
+    #[arg(long, env = "POINTFARM_DATA_DIR", default_value_os_t = paths::daemon_data_dir())]
     data_dir: PathBuf,
-    /// Folder whose files clients may register by path (repeatable).
-    #[arg(long = "data-root")]
+    /// Folder whose files clients may register by path (repeatable; in the environment,
+    /// separated by commas).
+    #[arg(long = "data-root", env = "POINTFARM_DATA_ROOT", value_delimiter = ',')]
     data_roots: Vec<PathBuf>,
     /// Require this bearer token of clients (datasets and jobs). Without it those services
     /// are open, which is refused beyond loopback unless --insecure.
@@ -44,50 +51,56 @@ pub struct ServeArgs {
     #[arg(long, value_name = "FILE", env = "POINTFARM_WORKER_TOKEN_FILE")]
     worker_token_file: Option<PathBuf>,
     /// Serve TLS with this certificate chain (PEM); needs --tls-key.
-    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    #[arg(long, value_name = "FILE", env = "POINTFARM_TLS_CERT")]
     tls_cert: Option<PathBuf>,
     /// The private key (PEM) of --tls-cert.
-    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    #[arg(long, value_name = "FILE", env = "POINTFARM_TLS_KEY")]
     tls_key: Option<PathBuf>,
     /// Listen beyond loopback without a client token or without TLS: anyone who reaches the
     /// port can then use the farm (or read it on the wire).
-    #[arg(long)]
+    #[arg(long, env = "POINTFARM_INSECURE")]
     insecure: bool,
     /// Largest image side accepted.
-    #[arg(long, default_value_t = 8192)]
+    #[arg(long, env = "POINTFARM_MAX_IMAGE_SIDE", default_value_t = DEFAULT_MAX_IMAGE_SIDE)]
     max_image_side: u32,
+    /// Most frames in one job.
+    #[arg(long, env = "POINTFARM_MAX_FRAMES", default_value_t = DEFAULT_MAX_FRAMES, value_parser = clap::value_parser!(u32).range(1..))]
+    max_frames: u32,
     /// Largest upload accepted, in bytes.
-    #[arg(long, default_value_t = DEFAULT_MAX_UPLOAD_BYTES)]
+    #[arg(long, env = "POINTFARM_MAX_UPLOAD_BYTES", default_value_t = DEFAULT_MAX_UPLOAD_BYTES)]
     max_upload_bytes: u64,
     /// Most bytes all uploaded datasets may take together; an upload past it is refused
     /// before its data is sent (default: no quota, only the disk bounds them).
-    #[arg(long)]
+    #[arg(long, env = "POINTFARM_UPLOAD_QUOTA_BYTES")]
     upload_quota_bytes: Option<u64>,
     /// Start even when the state database is damaged (truncated, bit-flipped, records
     /// missing): go on with what it still holds and log exactly what was lost. Without it
     /// the daemon refuses to start on such a state and says why.
-    #[arg(long)]
+    #[arg(long, env = "POINTFARM_RECOVER_STATE")]
     recover_state: bool,
     /// Run no embedded worker: only `pointfarm worker` processes render.
-    #[arg(long, alias = "no-worker")]
+    #[arg(long, alias = "no-worker", env = "POINTFARM_NO_EMBEDDED_WORKER")]
     no_embedded_worker: bool,
     /// Host memory the build of a dataset's level-of-detail store may hold, e.g. 4GiB. The
     /// server builds each store once (one at a time, in DATA/lod) and its workers read the
     /// nodes their frames need from it (default 2GiB).
-    #[arg(long, value_name = "SIZE", value_parser = parse::bytes)]
+    #[arg(long, value_name = "SIZE", env = "POINTFARM_STORE_MEMORY_BUDGET", value_parser = parse::bytes)]
     store_memory_budget: Option<u64>,
     /// Seconds a worker's lease on a frame lasts without a heartbeat; when it runs out (the
     /// worker died or was cut off) the frame goes back to the queue.
-    #[arg(long, default_value_t = 30.0, value_parser = parse_lease_timeout)]
+    #[arg(long, env = "POINTFARM_LEASE_TIMEOUT", default_value_t = DEFAULT_LEASE_TIMEOUT.as_secs_f64(), value_parser = parse_lease_timeout)]
     lease_timeout: f64,
     /// Attempts at a frame (failed, or lost with its worker) before its job fails.
-    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=100))]
+    #[arg(long, env = "POINTFARM_MAX_FRAME_ATTEMPTS", default_value_t = DEFAULT_MAX_FRAME_ATTEMPTS, value_parser = clap::value_parser!(u32).range(1..=100))]
     max_frame_attempts: u32,
     /// Cap the embedded worker process's memory (heap and other private writable memory) at
     /// this many MiB: a frame that needs more crashes that process, not the machine, and
     /// counts a failed attempt.
-    #[arg(long, value_name = "MIB")]
+    #[arg(long, value_name = "MIB", env = "POINTFARM_WORKER_MAX_MEMORY_MIB")]
     worker_max_memory_mib: Option<u64>,
+    /// Size bound of the embedded worker's dataset cache (in DATA/embedded-worker), e.g. 8GiB.
+    #[arg(long, value_name = "SIZE", env = "POINTFARM_WORKER_CACHE_SIZE", value_parser = parse::bytes, default_value_t = DEFAULT_WORKER_CACHE_BYTES)]
+    worker_cache_size: u64,
     /// GPU of the embedded worker: auto, hardware or software (lavapipe).
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
     adapter: AdapterChoice,
@@ -111,7 +124,9 @@ fn serve_options(args: &ServeArgs) -> Result<ServeOptions> {
             cert_pem: read(cert)?,
             key_pem: read(key)?,
         }),
-        _ => None,
+        (Some(_), None) => bail!("--tls-cert needs --tls-key, the certificate's private key"),
+        (None, Some(_)) => bail!("--tls-key needs --tls-cert, the key's certificate chain"),
+        (None, None) => None,
     };
     Ok(ServeOptions {
         access: Access::new(token.as_deref(), worker_token.as_deref()),
@@ -127,6 +142,8 @@ pub fn run(args: ServeArgs) -> Result<()> {
         let mut config = DaemonConfig::new(args.data_dir.clone());
         config.data_roots = args.data_roots.clone();
         config.max_image_side = args.max_image_side;
+        config.max_frames = args.max_frames;
+        config.worker_cache_bytes = args.worker_cache_size;
         config.max_upload_bytes = args.max_upload_bytes;
         config.upload_quota_bytes = args.upload_quota_bytes;
         config.recover_state = args.recover_state;
@@ -173,34 +190,35 @@ pub fn run(args: ServeArgs) -> Result<()> {
 /// This binary's `worker` command, rendering with the daemon's settings; its cache lives in
 /// the data folder.
 fn embedded_worker_command(args: &ServeArgs, config: &DaemonConfig) -> Result<WorkerCommand> {
-    let program = std::env::current_exe().context("finding the pointfarm binary")?;
-    let cache_dir = config.data_dir.join("embedded-worker");
-    let mut worker_args = worker_args(&cache_dir, config.worker_cache_bytes, args.adapter);
+    let mut command = embedded_worker(config, args.adapter)?;
     if let Some(mib) = args.worker_max_memory_mib {
-        worker_args.extend(["--max-memory-mib".into(), mib.to_string().into()]);
+        command
+            .args
+            .extend(["--max-memory-mib".into(), mib.to_string().into()]);
     }
-    Ok(WorkerCommand {
-        program,
-        args: worker_args,
-    })
+    Ok(command)
 }
 
-/// The arguments of `pointfarm worker` for an embedded worker (the supervisor adds the
-/// server, the name and the token).
-pub(crate) fn worker_args(
-    cache_dir: &Path,
-    cache_bytes: u64,
+/// `pointfarm worker` as the embedded worker of a daemon with `config` (the supervisor adds
+/// the server, the name and the token). Its settings are its arguments: the worker settings
+/// of the daemon's environment are not its own.
+pub(crate) fn embedded_worker(
+    config: &DaemonConfig,
     adapter: AdapterChoice,
-) -> Vec<OsString> {
-    vec![
-        "worker".into(),
-        "--cache-dir".into(),
-        cache_dir.into(),
-        "--cache-gib".into(),
-        (cache_bytes >> 30).max(1).to_string().into(),
-        "--adapter".into(),
-        adapter.to_string().into(),
-    ]
+) -> Result<WorkerCommand> {
+    Ok(WorkerCommand {
+        program: std::env::current_exe().context("finding the pointfarm binary")?,
+        args: vec![
+            "worker".into(),
+            "--cache-dir".into(),
+            config.data_dir.join("embedded-worker").into(),
+            "--cache-gib".into(),
+            (config.worker_cache_bytes >> 30).max(1).to_string().into(),
+            "--adapter".into(),
+            adapter.to_string().into(),
+        ],
+        env_removed: crate::worker::settings_env(),
+    })
 }
 
 fn parse_lease_timeout(value: &str) -> Result<f64, String> {

@@ -2,22 +2,27 @@
 //! what `pointfarm serve` runs as its embedded worker (`--supervised`).
 
 use pointfarm_render::cut::{CutOptions, DEFAULT_LOD_ERROR_PX, DEFAULT_MEMORY_BUDGET_BYTES};
+use std::ffi::{OsStr, OsString};
 use std::path::PathBuf;
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use clap::Args;
+use pointfarm_daemon::service::DEFAULT_WORKER_CACHE_BYTES;
 use pointfarm_daemon::worker::memory_limit;
 use pointfarm_daemon::worker::remote::{run as run_worker, RemoteWorkerConfig};
 use pointfarm_daemon::worker::supervisor::exit_when_supervisor_exits;
 use pointfarm_proto::endpoint::ServerEndpoint;
 use pointfarm_render::gpu::{AdapterChoice, GpuContext};
 
+use crate::config_file::ConfigArgs;
 use crate::credentials::secret;
-use crate::parse;
+use crate::{parse, paths};
 
 #[derive(Args)]
 pub struct WorkerArgs {
+    #[command(flatten)]
+    config: ConfigArgs,
     /// The daemon to render for.
     #[arg(
         long,
@@ -35,38 +40,48 @@ pub struct WorkerArgs {
     /// system's (a bare HOST:PORT then means https://).
     #[arg(long, value_name = "FILE", env = "POINTFARM_TLS_CA")]
     tls_ca: Option<PathBuf>,
-    /// Folder for this worker's dataset cache (processed points, kept across runs).
-    #[arg(long, default_value = "pointfarm-worker-cache")]
+    /// Folder for this worker's dataset cache, kept across runs (default: `worker` in the
+    /// unit's CacheDirectory, in /var/cache/pointfarm for root, else in
+    /// $XDG_CACHE_HOME/pointfarm).
+    #[arg(long, env = "POINTFARM_WORKER_CACHE_DIR", default_value_os_t = paths::worker_cache_dir())]
     cache_dir: PathBuf,
     /// Size bound of the dataset cache, in GiB, and of the levels-of-detail stores together.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, env = "POINTFARM_CACHE_GIB", default_value_t = DEFAULT_WORKER_CACHE_BYTES >> 30)]
     cache_gib: u64,
     /// Name shown in the daemon's leases and logs (default: host name and process id).
-    #[arg(long)]
+    #[arg(long, env = "POINTFARM_WORKER_NAME")]
     name: Option<String>,
     /// GPU to render on: auto, hardware or software (lavapipe).
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
     adapter: AdapterChoice,
     /// Cap this process's memory (heap and other private writable memory) at this many MiB:
     /// a frame that needs more aborts the worker instead of exhausting the machine.
-    #[arg(long, value_name = "MIB")]
+    #[arg(long, value_name = "MIB", env = "POINTFARM_MAX_MEMORY_MIB")]
     max_memory_mib: Option<u64>,
     /// Levels of detail: the pixel error of datasets of more than 20M points rendered by
     /// jobs that do not set one.
-    #[arg(long, value_name = "PX", value_parser = parse::non_negative, default_value_t = DEFAULT_LOD_ERROR_PX)]
+    #[arg(long, value_name = "PX", env = "POINTFARM_LOD_ERROR", value_parser = parse::non_negative, default_value_t = DEFAULT_LOD_ERROR_PX)]
     lod_error: f64,
     /// Levels of detail: host memory for the node cache and the stores' builds, e.g. 4GiB;
     /// on a software adapter the GPU node cache's share too.
-    #[arg(long, value_name = "SIZE", value_parser = parse::bytes, default_value_t = DEFAULT_MEMORY_BUDGET_BYTES)]
+    #[arg(long, value_name = "SIZE", env = "POINTFARM_MEMORY_BUDGET", value_parser = parse::bytes, default_value_t = DEFAULT_MEMORY_BUDGET_BYTES)]
     memory_budget: u64,
     /// Levels of detail: GPU memory for the node cache (default 2GiB; on a software adapter
     /// half of --memory-budget).
-    #[arg(long, value_name = "SIZE", value_parser = parse::bytes)]
+    #[arg(long, value_name = "SIZE", env = "POINTFARM_GPU_BUDGET", value_parser = parse::bytes)]
     gpu_budget: Option<u64>,
     /// Run as a daemon's embedded worker: exit as soon as standard input (a pipe from the
     /// daemon) closes.
     #[arg(long, hide = true)]
     supervised: bool,
+}
+
+/// The environment variables of the worker's settings (and of its configuration file).
+pub(crate) fn settings_env() -> Vec<OsString> {
+    WorkerArgs::augment_args(clap::Command::new("worker"))
+        .get_arguments()
+        .filter_map(|arg| arg.get_env().map(OsStr::to_os_string))
+        .collect()
 }
 
 pub fn run(args: WorkerArgs) -> Result<()> {

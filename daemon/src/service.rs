@@ -16,6 +16,16 @@ use crate::worker_presence::WorkerPresence;
 
 /// The default bound of one upload.
 pub const DEFAULT_MAX_UPLOAD_BYTES: u64 = 16 << 30;
+/// Most frames in one job, unless configured otherwise.
+pub const DEFAULT_MAX_FRAMES: u32 = 100_000;
+/// The size bound of a worker's dataset cache, unless configured otherwise.
+pub const DEFAULT_WORKER_CACHE_BYTES: u64 = 8 << 30;
+/// The largest image side a daemon accepts unless configured otherwise.
+pub const DEFAULT_MAX_IMAGE_SIDE: u32 = 8192;
+/// Attempts at a frame before its job fails, unless configured otherwise.
+pub const DEFAULT_MAX_FRAME_ATTEMPTS: u32 = 3;
+/// How long a lease lasts without a heartbeat, unless configured otherwise.
+pub const DEFAULT_LEASE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
 
 /// Limits and locations of a daemon.
 #[derive(Debug, Clone)]
@@ -53,13 +63,13 @@ impl DaemonConfig {
     pub fn new(data_dir: PathBuf) -> Self {
         Self {
             data_roots: Vec::new(),
-            max_image_side: 8192,
-            max_frames: 100_000,
+            max_image_side: DEFAULT_MAX_IMAGE_SIDE,
+            max_frames: DEFAULT_MAX_FRAMES,
             max_upload_bytes: DEFAULT_MAX_UPLOAD_BYTES,
             upload_quota_bytes: None,
-            max_frame_attempts: 3,
-            lease_timeout: std::time::Duration::from_secs(30),
-            worker_cache_bytes: 8 << 30,
+            max_frame_attempts: DEFAULT_MAX_FRAME_ATTEMPTS,
+            lease_timeout: DEFAULT_LEASE_TIMEOUT,
+            worker_cache_bytes: DEFAULT_WORKER_CACHE_BYTES,
             store_build_memory_bytes: pointfarm_render::cut::DEFAULT_MEMORY_BUDGET_BYTES,
             event_buffer: 1024,
             recover_state: false,

@@ -156,6 +156,15 @@ pub fn own_stderr_lines(output: &Output) -> Vec<String> {
         .collect()
 }
 
+/// `127.0.0.1:PORT` with a port that was free a moment ago.
+pub fn free_address() -> String {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|probe| probe.local_addr())
+        .expect("a free loopback port")
+        .port();
+    format!("127.0.0.1:{port}")
+}
+
 /// `pointfarm serve` as a child process on a loopback port; killed when dropped. Its log and
 /// its embedded worker's (at info level) are appended to `serve.log` in its data folder.
 pub struct ServeProcess {
@@ -167,11 +176,7 @@ pub struct ServeProcess {
 impl ServeProcess {
     /// Starts a daemon on a free port with its data in `data_dir`, and waits until it listens.
     pub fn start(data_dir: &Path) -> Self {
-        let port = std::net::TcpListener::bind("127.0.0.1:0")
-            .and_then(|probe| probe.local_addr())
-            .expect("a free loopback port")
-            .port();
-        Self::start_at(&format!("127.0.0.1:{port}"), data_dir)
+        Self::start_at(&free_address(), data_dir)
     }
 
     /// Starts a daemon on `address` (e.g. again after a kill) and waits until it listens.
@@ -181,11 +186,7 @@ impl ServeProcess {
 
     /// Starts a daemon on a free port with more `serve` arguments.
     pub fn start_with(data_dir: &Path, args: &[&str]) -> Self {
-        let port = std::net::TcpListener::bind("127.0.0.1:0")
-            .and_then(|probe| probe.local_addr())
-            .expect("a free loopback port")
-            .port();
-        Self::start_with_args(&format!("127.0.0.1:{port}"), data_dir, args)
+        Self::start_with_args(&free_address(), data_dir, args)
     }
 
     /// Starts a daemon on `address` with more `serve` arguments and waits until it listens.

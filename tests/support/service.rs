@@ -127,6 +127,7 @@ fn embedded_worker_command(config: &DaemonConfig) -> WorkerCommand {
             "--cache-dir".into(),
             config.data_dir.join("embedded-worker").into(),
         ],
+        env_removed: Vec::new(),
     }
 }
 

@@ -51,6 +51,9 @@ const HEALTHY_RUN: Duration = Duration::from_secs(60);
 pub struct WorkerCommand {
     pub program: PathBuf,
     pub args: Vec<OsString>,
+    /// Variables of the daemon's environment the worker does not inherit (its settings come
+    /// from `args`), besides those that are never the embedded worker's.
+    pub env_removed: Vec<OsString>,
 }
 
 /// The running supervisor; [`Supervisor::stop`] ends it and its worker. Dropped without a
@@ -112,6 +115,9 @@ impl Launch {
     fn spawn(&self) -> std::io::Result<Child> {
         let mut command = Command::new(&self.command.program);
         for name in NOT_INHERITED {
+            command.env_remove(name);
+        }
+        for name in &self.command.env_removed {
             command.env_remove(name);
         }
         command
