@@ -253,3 +253,32 @@ pub(crate) async fn shutdown_signal() {
         let _ = ctrl_c.await;
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The embedded worker is configured by its arguments alone: the configuration file and
+    /// the worker settings of the daemon's environment (meant for a separate worker on the
+    /// same host) are not passed on.
+    #[test]
+    fn the_embedded_worker_does_not_inherit_worker_settings() {
+        let config = DaemonConfig::new(PathBuf::from("/srv/pointfarm"));
+        let worker = embedded_worker(&config, AdapterChoice::Auto).expect("the command");
+        for variable in [
+            "POINTFARM_CONFIG",
+            "POINTFARM_WORKER_CACHE_DIR",
+            "POINTFARM_LOD_ERROR",
+            "POINTFARM_MAX_MEMORY_MIB",
+        ] {
+            assert!(
+                worker.env_removed.iter().any(|removed| removed == variable),
+                "{variable} is inherited"
+            );
+        }
+        assert!(worker
+            .args
+            .windows(2)
+            .any(|pair| pair[0] == "--cache-dir" && pair[1] == "/srv/pointfarm/embedded-worker"));
+    }
+}
