@@ -1,6 +1,7 @@
 //! `pointfarm render` of a COPC file, run as a user would: its own hierarchy read node by
 //! node (no store built), every node drawn as the same points read whole, a coarse pixel
-//! error reading less than the file, a damaged hierarchy refused naming the file.
+//! error reading less than the file, a damaged hierarchy refused naming the file; `info`
+//! describing a COPC file's octree.
 
 use std::path::{Path, PathBuf};
 use std::process::Output;
@@ -129,4 +130,45 @@ fn a_damaged_copc_hierarchy_is_refused_naming_the_file() {
         arg(&dir.path().join("x.png")),
     ]);
     assert_fails_saying(&output, "damaged.copc.laz: COPC hierarchy is inconsistent");
+
+    // `info` still describes the file, as plain LAZ, and says why its octree is not read.
+    let described = info_json(&damaged);
+    let error = described["copc"]["error"].as_str().expect("an error");
+    assert!(error.contains("damaged.copc.laz"), "{error}");
+    assert_eq!(described["points"], "1065");
+}
+
+/// The one file's `FileDescription` of `info --no-points --json`.
+fn info_json(file: &Path) -> serde_json::Value {
+    let output = pointfarm_ok(&["info", arg(file), "--no-points", "--json"]);
+    let description: serde_json::Value =
+        serde_json::from_slice(&output.stdout).expect("one JSON document");
+    description["files"][0].clone()
+}
+
+/// `info` reports a COPC file's octree from its hierarchy pages, as laspy's test data
+/// documents it (65 nodes over 4 levels, part of them in a child page); a plain LAZ has none.
+#[test]
+fn info_describes_a_copc_files_octree() {
+    let paged = info_json(&copc_file("simple_with_page.copc.laz"));
+    let copc = &paged["copc"];
+    assert_eq!(copc["nodes"], "65", "{copc}");
+    assert_eq!(copc["depth"], 3, "{copc}");
+    assert_eq!(copc["hierarchyPages"], 2, "{copc}");
+    assert!(copc["spacing"].as_f64().is_some_and(|s| s > 0.0), "{copc}");
+    assert!(copc.get("error").is_none(), "{copc}");
+    let one_page = info_json(&copc_file("simple.copc.laz"));
+    assert_eq!(one_page["copc"]["nodes"], "65");
+    assert_eq!(one_page["copc"]["hierarchyPages"], 1);
+    let text = output_text(&pointfarm_ok(&[
+        "info",
+        arg(&copc_file("simple.copc.laz")),
+        "--no-points",
+    ]));
+    assert!(text.contains("copc        65 nodes in 4 levels"), "{text}");
+
+    let plain = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/lone-star.laz");
+    if plain.exists() {
+        assert!(info_json(&plain).get("copc").is_none());
+    }
 }

@@ -1,5 +1,5 @@
 //! `pointfarm info`: what LAS/LAZ files hold, before rendering them, as `lasinfo` would say
-//! it: header facts, CRS, attributes, and (unless `--no-points`) the points read once in a
+//! it: header facts, CRS, attributes, a COPC file's octree, and (unless `--no-points`) the points read once in a
 //! stream for their classes, returns, intensity and colour. Every file is reported; one that
 //! cannot be read is an error naming it, and the command then fails after the others.
 //! Files here are read here; with `--server`, an input that is no path here is a dataset id
@@ -236,10 +236,34 @@ fn print_report(file: &pb::FileDescription) {
         "  attributes  {}",
         attribute_words(&file.attributes.clone().unwrap_or_default())
     );
+    if let Some(copc) = &file.copc {
+        outln!("  copc        {}", copc_words(copc, decimals));
+    }
     if let Some(points) = &file.points_read {
         print_points(points, decimals);
     }
     outln!("");
+}
+
+/// A COPC file's octree in a line, or why its hierarchy cannot be read.
+fn copc_words(copc: &pb::CopcDescription, decimals: usize) -> String {
+    if !copc.error.is_empty() {
+        return format!("hierarchy unreadable, read as plain LAZ: {}", copc.error);
+    }
+    let center = xyz(copc.center.as_ref());
+    format!(
+        "{} nodes in {} levels, {} hierarchy pages ({} bytes); cube centre {:.decimals$} \
+         {:.decimals$} {:.decimals$}, half side {:.decimals$}, root spacing {:.decimals$}",
+        copc.nodes,
+        copc.depth + 1,
+        copc.hierarchy_pages,
+        copc.hierarchy_bytes,
+        center[0],
+        center[1],
+        center[2],
+        copc.halfsize,
+        copc.spacing
+    )
 }
 
 fn print_points(points: &pb::PointStatistics, decimals: usize) {

@@ -1,10 +1,11 @@
 //! What a dataset's files hold (`DescribeDataset`, `pointfarm info`): each file's header
 //! facts and, when asked, a summary of its points, read with the render crate's
-//! [`FileInfo`]. A file that cannot be read is reported with its error and the others still
+//! [`FileInfo`], and a COPC file's octree. A file that cannot be read is reported with its error and the others still
 //! are. More `Daemon` methods.
 
 use std::path::PathBuf;
 
+use pointfarm_render::copc::{self, CopcError, CopcSummary};
 use pointfarm_render::ingest::{FileInfo, IngestError, PointSummary};
 
 use crate::error::DaemonError;
@@ -14,6 +15,8 @@ use crate::service::Daemon;
 pub struct FileReport {
     pub path: PathBuf,
     pub outcome: Result<(FileInfo, Option<PointSummary>), IngestError>,
+    /// For a COPC file: its octree, or why its hierarchy cannot be read.
+    pub copc: Option<Result<CopcSummary, CopcError>>,
 }
 
 impl FileReport {
@@ -31,7 +34,15 @@ impl FileReport {
             let summary = info.read_points(progress(&info))?;
             Ok((info, Some(summary)))
         });
-        Self { path, outcome }
+        let copc = match (&outcome, copc::is_copc(&path)) {
+            (Ok(_), Ok(true)) => Some(copc::describe(&path)),
+            _ => None,
+        };
+        Self {
+            path,
+            outcome,
+            copc,
+        }
     }
 }
 

@@ -21,6 +21,7 @@ use crate::store::Page;
 use crate::stores::StoreAnswer;
 use pointfarm_render::classification;
 use pointfarm_render::cloud::{ColorSource, WorldBounds};
+use pointfarm_render::copc::{CopcError, CopcSummary};
 use pointfarm_render::ingest::{Crs, PointSummary};
 use pointfarm_render::lod::{NodeKey, MAX_LEVEL};
 
@@ -401,6 +402,25 @@ fn bounds_message(bounds: &WorldBounds) -> pb::Bounds {
 
 /// A file's report as the API describes it; the one conversion of what `pointfarm info`
 /// reports, here and through a server.
+fn copc_description(copc: &Result<CopcSummary, CopcError>) -> pb::CopcDescription {
+    match copc {
+        Ok(summary) => pb::CopcDescription {
+            error: String::new(),
+            center: Some(vec3_message(summary.info.center)),
+            halfsize: summary.info.halfsize,
+            spacing: summary.info.spacing,
+            hierarchy_pages: saturating_u32(summary.pages),
+            hierarchy_bytes: summary.page_bytes,
+            nodes: summary.nodes as u64,
+            depth: summary.depth.into(),
+        },
+        Err(error) => pb::CopcDescription {
+            error: error.to_string(),
+            ..pb::CopcDescription::default()
+        },
+    }
+}
+
 pub fn file_description(report: &FileReport) -> pb::FileDescription {
     let path = report.path.display().to_string();
     let (info, points) = match &report.outcome {
@@ -441,6 +461,7 @@ pub fn file_description(report: &FileReport) -> pb::FileDescription {
             extra_names: attributes.extra_names.clone(),
         }),
         points_read: points.map(point_statistics_message),
+        copc: report.copc.as_ref().map(copc_description),
     }
 }
 
@@ -887,6 +908,7 @@ mod tests {
                 path: "gone.las".into(),
                 error: std::io::Error::from(std::io::ErrorKind::NotFound),
             }),
+            copc: None,
         });
         assert!(unreadable.error.contains("gone.las"), "{unreadable:?}");
         let files = vec![

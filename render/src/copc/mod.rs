@@ -89,6 +89,33 @@ pub fn open_copc(path: &Path) -> Result<CopcDataset, CopcError> {
     })
 }
 
+/// What a COPC file's header and hierarchy say, without reading a point.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CopcSummary {
+    pub info: CopcInfo,
+    /// Hierarchy pages, and their bytes.
+    pub pages: usize,
+    pub page_bytes: u64,
+    /// Nodes with points, and the levels below the root they reach (0: the root alone).
+    pub nodes: usize,
+    pub depth: u8,
+}
+
+/// Reads `path`'s header and every hierarchy page, checked as rendering checks them.
+pub fn describe(path: &Path) -> Result<CopcSummary, CopcError> {
+    let mut file = File::open(path).map_err(|e| CopcError::io(path, e))?;
+    let header = header::read_header(path, &mut file)?;
+    let list = hierarchy::read_pages(path, &file, &header)?;
+    let with_points = || list.nodes.iter().filter(|node| node.point_count > 0);
+    Ok(CopcSummary {
+        info: header.info,
+        pages: list.pages,
+        page_bytes: list.page_bytes,
+        nodes: with_points().count(),
+        depth: with_points().map(|node| node.key.level).max().unwrap_or(0),
+    })
+}
+
 /// A failure reading nodes through the store's interface, as the COPC error it came from.
 fn copc_error(path: &Path, error: LodError) -> CopcError {
     match error {
