@@ -5,10 +5,12 @@
 
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use pointfarm_daemon::access::Access;
+use pointfarm_daemon::metrics;
 use pointfarm_daemon::server::{serve, ServeOptions, TlsIdentity};
 use pointfarm_daemon::service::{Daemon, DaemonConfig, DEFAULT_MAX_UPLOAD_BYTES};
 use pointfarm_daemon::worker::supervisor::WorkerCommand;
@@ -91,6 +93,12 @@ pub struct ServeArgs {
     /// GPU of the embedded worker: auto, hardware or software (lavapipe).
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
     adapter: AdapterChoice,
+    /// Serve Prometheus metrics at http://ADDR/metrics (queue depth, frames completed and
+    /// failed, stage latencies, leases, workers, cache hits, bytes uploaded). Plain HTTP and
+    /// unauthenticated: it shows counts and timings only, but listen where only the
+    /// scrapers reach.
+    #[arg(long, value_name = "ADDR", env = "POINTFARM_METRICS_LISTEN")]
+    metrics_listen: Option<String>,
 }
 
 /// The tokens and TLS identity the flags give.
@@ -137,6 +145,15 @@ pub fn run(args: ServeArgs) -> Result<()> {
         }
         let daemon =
             Daemon::open(config).with_context(|| format!("opening {}", args.data_dir.display()))?;
+        if let Some(address) = &args.metrics_listen {
+            let source = daemon.clone();
+            let bound = metrics::http::listen(
+                address,
+                Arc::new(move || source.metrics_text().map_err(|e| e.to_string())),
+            )
+            .await?;
+            outln!("metrics on http://{bound}/metrics");
+        }
         let embedded_worker = if args.no_embedded_worker {
             outln!("no embedded worker: start `pointfarm worker --server ...` to render");
             None
