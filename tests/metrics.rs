@@ -12,7 +12,7 @@ use std::time::Duration;
 use pointfarm_tests::service::{
     clients, scratch_sample, submit, turntable_job, upload_file, watch_to_success,
 };
-use pointfarm_tests::{wait_for, ServeProcess, WorkerProcess};
+use pointfarm_tests::{pointfarm_bin, wait_for, ServeProcess, WorkerProcess};
 
 const PROMETHEUS: &str = "/usr/bin/prometheus";
 
@@ -60,6 +60,38 @@ fn value(metrics: &BTreeMap<String, f64>, series: &str) -> f64 {
     *metrics
         .get(series)
         .unwrap_or_else(|| panic!("no {series} in {metrics:#?}"))
+}
+
+/// A child process, killed when dropped.
+struct Killed(Child);
+
+impl Drop for Killed {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// `pointfarm serve` with its embedded worker, told the metrics address in the environment
+/// (`POINTFARM_METRICS_LISTEN`), which its embedded worker must not take for its own; once it
+/// listens: the process, its gRPC address, and its log file.
+fn serve_with_metrics_from_env(dir: &Path, metrics: &str) -> (Killed, String, std::path::PathBuf) {
+    let address = free_address();
+    let log = dir.join("serve.log");
+    let child = Command::new(pointfarm_bin())
+        .args(["serve", "--listen", &address, "--data-dir"])
+        .arg(dir.join("data"))
+        .env("POINTFARM_METRICS_LISTEN", metrics)
+        .env("RUST_LOG", "warn,pointfarm=info")
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).expect("serve log"))
+        .spawn()
+        .expect("start pointfarm serve");
+    let server = Killed(child);
+    wait_for(Duration::from_secs(30), "the daemon listening", || {
+        TcpStream::connect(&address).ok()
+    });
+    (server, address, log)
 }
 
 /// A Prometheus server of Debian's package, scraping `target` every second; killed when
@@ -133,7 +165,8 @@ impl Drop for Prometheus {
     }
 }
 
-/// Prometheus scrapes a daemon through a job; its API then counts the job's frames.
+/// Prometheus scrapes a daemon through a job rendered by its embedded worker; its API then
+/// counts the job's frames.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn prometheus_scrapes_the_frames_a_job_completed() {
     if !Path::new(PROMETHEUS).is_file() {
@@ -145,14 +178,11 @@ async fn prometheus_scrapes_the_frames_a_job_completed() {
     }
     let scratch = tempfile::tempdir().expect("tempdir");
     let metrics = free_address();
-    let server = ServeProcess::start_with(
-        &scratch.path().join("data"),
-        &["--metrics-listen", &metrics],
-    );
+    let (_server, address, log) = serve_with_metrics_from_env(scratch.path(), &metrics);
     let prometheus = Prometheus::start(scratch.path(), &metrics);
 
     let (_sample_dir, file) = scratch_sample("s.las", 20_000, 4);
-    let (mut datasets, mut jobs) = clients(&server.address).await;
+    let (mut datasets, mut jobs) = clients(&address).await;
     let dataset = upload_file(&mut datasets, "s.las", &file).await;
     let frames = 3;
     let job = submit(
@@ -160,7 +190,10 @@ async fn prometheus_scrapes_the_frames_a_job_completed() {
         turntable_job("scraped", &dataset.id, frames, 64, 48),
     )
     .await;
-    watch_to_success(&mut jobs, &job.id, || server.log()).await;
+    watch_to_success(&mut jobs, &job.id, || {
+        std::fs::read_to_string(&log).unwrap_or_default()
+    })
+    .await;
 
     let counted = wait_for(
         Duration::from_secs(60),
