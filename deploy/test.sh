@@ -19,6 +19,20 @@ if ! command -v ffmpeg >/dev/null && command -v apt-get >/dev/null; then
         echo "pointfarm tests: ffmpeg could not be installed; the video tests will skip" >&2
 fi
 
+# Prometheus, for the test that has a real Prometheus server scrape the daemon's metrics (it
+# skips, saying so, where it cannot be installed). Only its binary is used, on a port of the
+# test's own; a service the package may start does not matter.
+if [ ! -x /usr/bin/prometheus ] && command -v apt-get >/dev/null; then
+    sudo=""
+    if [ "$(id -u)" -ne 0 ]; then sudo="sudo"; fi
+    echo "pointfarm tests: installing prometheus for the metrics test" >&2
+    install_prometheus() {
+        $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends prometheus >/dev/null
+    }
+    install_prometheus || { $sudo apt-get update -qq && install_prometheus; } ||
+        echo "pointfarm tests: prometheus could not be installed; the metrics test will skip" >&2
+fi
+
 # A virtualenv with the Python client example's packages, for tests/python_client.rs, and
 # laspy with lazrs, the independent COPC reader of tests/export.rs (both skip, saying so,
 # where it cannot be made).

@@ -4,10 +4,12 @@
 //! as well or instead.
 
 use std::path::PathBuf;
+use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use pointfarm_daemon::access::Access;
+use pointfarm_daemon::metrics;
 use pointfarm_daemon::server::{serve, ServeOptions, TlsIdentity};
 use pointfarm_daemon::service::{
     Daemon, DaemonConfig, DEFAULT_LEASE_TIMEOUT, DEFAULT_MAX_FRAMES, DEFAULT_MAX_FRAME_ATTEMPTS,
@@ -104,6 +106,12 @@ pub struct ServeArgs {
     /// GPU of the embedded worker: auto, hardware or software (lavapipe).
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
     adapter: AdapterChoice,
+    /// Serve Prometheus metrics at http://ADDR/metrics (queue depth, frames completed and
+    /// failed, stage latencies, leases, workers, cache hits, bytes uploaded). Plain HTTP and
+    /// unauthenticated: it shows counts and timings only, but listen where only the
+    /// scrapers reach.
+    #[arg(long, value_name = "ADDR", env = "POINTFARM_METRICS_LISTEN")]
+    metrics_listen: Option<String>,
 }
 
 /// The tokens and TLS identity the flags give.
@@ -154,6 +162,15 @@ pub fn run(args: ServeArgs) -> Result<()> {
         }
         let daemon =
             Daemon::open(config).with_context(|| format!("opening {}", args.data_dir.display()))?;
+        if let Some(address) = &args.metrics_listen {
+            let source = daemon.clone();
+            let bound = metrics::http::listen(
+                address,
+                Arc::new(move || source.metrics_text().map_err(|e| e.to_string())),
+            )
+            .await?;
+            outln!("metrics on http://{bound}/metrics");
+        }
         let embedded_worker = if args.no_embedded_worker {
             outln!("no embedded worker: start `pointfarm worker --server ...` to render");
             None
@@ -270,6 +287,7 @@ mod tests {
             "POINTFARM_WORKER_CACHE_DIR",
             "POINTFARM_LOD_ERROR",
             "POINTFARM_MAX_MEMORY_MIB",
+            "POINTFARM_METRICS_LISTEN",
         ] {
             assert!(
                 worker.env_removed.iter().any(|removed| removed == variable),

@@ -8,6 +8,7 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use clap::Args;
+use pointfarm_daemon::metrics::{http, WorkerMetrics};
 use pointfarm_daemon::service::DEFAULT_WORKER_CACHE_BYTES;
 use pointfarm_daemon::worker::memory_limit;
 use pointfarm_daemon::worker::remote::{run as run_worker, RemoteWorkerConfig};
@@ -70,6 +71,12 @@ pub struct WorkerArgs {
     /// half of --memory-budget).
     #[arg(long, value_name = "SIZE", env = "POINTFARM_GPU_BUDGET", value_parser = parse::bytes)]
     gpu_budget: Option<u64>,
+    /// Serve this worker's Prometheus metrics at http://ADDR/metrics (frames rendered and
+    /// failed, stage latencies, dataset and node cache hits). Plain HTTP and
+    /// unauthenticated: it shows counts and timings only, but listen where only the
+    /// scrapers reach.
+    #[arg(long, value_name = "ADDR", env = "POINTFARM_METRICS_LISTEN")]
+    metrics_listen: Option<String>,
     /// Run as a daemon's embedded worker: exit as soon as standard input (a pipe from the
     /// daemon) closes.
     #[arg(long, hide = true)]
@@ -125,7 +132,15 @@ pub fn run(args: WorkerArgs) -> Result<()> {
         cache_dir: args.cache_dir,
         cache_bytes: args.cache_gib << 30,
         cut,
+        metrics: Arc::new(WorkerMetrics::new()),
     };
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
-    runtime.block_on(run_worker(config, gpu, crate::serve::shutdown_signal()))
+    runtime.block_on(async move {
+        if let Some(address) = &args.metrics_listen {
+            let metrics = config.metrics.clone();
+            let bound = http::listen(address, Arc::new(move || Ok(metrics.text()))).await?;
+            outln!("metrics on http://{bound}/metrics");
+        }
+        run_worker(config, gpu, crate::serve::shutdown_signal()).await
+    })
 }

@@ -289,6 +289,7 @@ impl Daemon {
         let job = self
             .unless_disk_refused(&lease, finished.map_err(DaemonError::from))?
             .ok_or_else(|| DaemonError::NotFound(format!("job {}", lease.job_id)))?;
+        self.metrics.frame_completed(&report);
         self.publish(&job, Some(report));
         Ok(job)
     }
@@ -349,6 +350,7 @@ impl Daemon {
         reason: &str,
         kind: FailureKind,
     ) -> Result<(), DaemonError> {
+        self.metrics.frame_failed();
         match kind {
             FailureKind::Transient => self.count_failed_attempt_locked(lease, reason),
             FailureKind::Permanent => {
@@ -410,6 +412,7 @@ impl Daemon {
             self.store.remove_lease(&lease.id)?;
             if self.is_wanted_locked(&lease)? {
                 tracing::warn!(job = %lease.job_id, frame = lease.index, %reason, "frame lost");
+                self.metrics.frame_failed();
                 self.count_failed_attempt_locked(&lease, &reason)?;
                 counted += 1;
             }
@@ -508,6 +511,8 @@ impl Daemon {
                     worker = %lease.worker,
                     "lease expired: the worker was lost; the frame goes back to the queue"
                 );
+                self.metrics.lease_expired();
+                self.metrics.frame_failed();
                 self.count_failed_attempt_locked(
                     &lease,
                     &format!(

@@ -14,7 +14,8 @@
 //! the worker process — a gRPC client — with its render state, which renders with
 //! `pointfarm-render`, and the supervisor that runs it as the daemon's embedded worker),
 //! `access` (the client and worker roles and their tokens), `server` (sockets, TLS, health,
-//! reflection, the lease sweep, shutdown); `testing` (a small real disk to fill, for tests).
+//! reflection, the lease sweep, shutdown), `metrics` (Prometheus metrics of the daemon and
+//! the worker, and their HTTP endpoint); `testing` (a small real disk to fill, for tests).
 //! Only `grpc`, `worker::remote` and `server` (which mounts the services) know protobuf.
 
 pub mod access;
@@ -27,6 +28,7 @@ pub mod lease;
 pub mod lease_record;
 pub mod limits;
 pub mod manifest;
+pub mod metrics;
 pub mod model;
 pub mod server;
 pub mod service;

@@ -9,6 +9,7 @@ use tokio::sync::broadcast;
 
 use crate::error::{DaemonError, StoreError};
 use crate::limits::{check_id, check_length, MAX_REQUEST_ID_BYTES};
+use crate::metrics::DaemonMetrics;
 use crate::model::{now_unix_ms, FrameReport, Job, JobEvent, JobSpec, JobState};
 use crate::store::{Page, Store};
 use crate::stores::DatasetStores;
@@ -155,6 +156,8 @@ pub struct Daemon {
     pub workers: WorkerPresence,
     /// The datasets' level-of-detail stores, whose nodes workers read.
     pub stores: DatasetStores,
+    /// The counters and histograms of what happens here, for Prometheus.
+    pub metrics: DaemonMetrics,
 }
 
 impl Daemon {
@@ -187,6 +190,7 @@ impl Daemon {
             scheduling: Mutex::new(()),
             stopping: std::sync::atomic::AtomicBool::new(false),
             workers: WorkerPresence::default(),
+            metrics: DaemonMetrics::new(),
         });
         daemon.count_leases_of_previous_run()?;
         Ok(daemon)

@@ -343,6 +343,12 @@ impl Store {
         self.with(|records| records.list_jobs(state, page_size, token))
     }
 
+    /// The unfinished jobs, highest priority first, then oldest: read from the scheduling
+    /// index, so finished jobs cost nothing.
+    pub fn unfinished_jobs(&self) -> Result<Vec<Job>, StoreError> {
+        self.with(Records::unfinished_jobs)
+    }
+
     /// Whether an unfinished job renders the dataset `dataset_id`: every job is looked at.
     pub fn dataset_in_use(&self, dataset_id: &str) -> Result<bool, StoreError> {
         self.with(|records| records.dataset_in_use(dataset_id))

@@ -1,7 +1,8 @@
 //! Which workers can render now, for health checking: the embedded worker while its process
 //! runs and has called in, remote workers while they wait for frames or were heard from
-//! within the lease timeout.
+//! within the lease timeout; and how many there are, for the metrics.
 
+use std::collections::{HashMap, HashSet};
 use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
@@ -11,7 +12,13 @@ struct State {
     embedded_called_in: bool,
     remote_polls: usize,
     remote_last_seen: Option<Instant>,
+    /// When each remote worker, by name, last asked for a frame.
+    remote_named: HashMap<String, Instant>,
 }
+
+/// A remote worker not heard of for this long is forgotten (it is long past any lease
+/// timeout), so that names of workers that came and went do not pile up.
+const FORGET_AFTER: Duration = Duration::from_secs(3600);
 
 /// The workers the daemon has heard from; the gRPC layer and the supervisor of the embedded
 /// worker keep it up to date.
@@ -88,6 +95,37 @@ impl WorkerPresence {
         }
     }
 
+    /// The remote worker `name` asks for a frame.
+    pub fn remote_named(&self, name: &str) {
+        let now = Instant::now();
+        let mut state = self.state();
+        state
+            .remote_named
+            .retain(|_, seen| now.duration_since(*seen) <= FORGET_AFTER);
+        state.remote_named.insert(name.to_owned(), now);
+    }
+
+    /// How many workers can render: the embedded one once it has called in, and the remote
+    /// ones that hold a lease (`remote_holders`, by name) or asked for a frame within
+    /// `remote_timeout`.
+    pub fn connected<'a>(
+        &self,
+        remote_timeout: Duration,
+        remote_holders: impl IntoIterator<Item = &'a str>,
+    ) -> usize {
+        let state = self.state();
+        let mut remote: HashSet<&str> = remote_holders.into_iter().collect();
+        remote.extend(
+            state
+                .remote_named
+                .iter()
+                .filter(|(_, seen)| seen.elapsed() <= remote_timeout)
+                .map(|(name, _)| name.as_str()),
+        );
+        let embedded = state.embedded_running && state.embedded_called_in;
+        usize::from(embedded) + remote.len()
+    }
+
     /// Whether some worker can render: the embedded one is up, or a remote one waits for
     /// work or was heard from within `remote_timeout`.
     pub fn can_render(&self, remote_timeout: Duration) -> bool {
@@ -123,6 +161,27 @@ mod tests {
             !presence.can_render(timeout),
             "a late call of the dead process"
         );
+    }
+
+    #[test]
+    fn workers_are_counted_by_name_while_they_ask_for_frames_or_hold_leases() {
+        let presence = WorkerPresence::default();
+        let timeout = Duration::from_millis(100);
+        assert_eq!(presence.connected(timeout, []), 0);
+        presence.embedded_started();
+        presence.heard_from(true);
+        presence.remote_named("a");
+        presence.remote_named("b");
+        presence.remote_named("a");
+        assert_eq!(presence.connected(timeout, ["a"]), 3);
+        std::thread::sleep(timeout * 2);
+        assert_eq!(
+            presence.connected(timeout, ["b"]),
+            2,
+            "a is no longer heard from; b holds a lease"
+        );
+        presence.embedded_exited();
+        assert_eq!(presence.connected(timeout, []), 0);
     }
 
     #[test]

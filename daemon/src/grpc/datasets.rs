@@ -64,7 +64,10 @@ impl DatasetService for Api {
         let temp = self.daemon.upload_path();
         let received = receive_upload(&mut stream, &temp, header.size_bytes, &sha).await;
         let received = match received {
-            Ok(received) => received,
+            Ok(received) => {
+                self.daemon.metrics.uploaded(received);
+                received
+            }
             Err(status) => {
                 let _ = tokio::fs::remove_file(&temp).await;
                 return Err(status);

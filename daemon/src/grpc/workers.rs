@@ -89,6 +89,9 @@ impl WorkerService for Api {
         if name.is_empty() {
             name = peer.map_or_else(|| "unnamed".into(), |a| a.to_string());
         }
+        if !embedded {
+            self.daemon.workers.remote_named(&name);
+        }
         let wait = std::time::Duration::from_millis(r.wait_ms.min(MAX_LEASE_WAIT_MS) as u64);
         let deadline = tokio::time::Instant::now() + wait;
         // Subscribed before looking, so work that arrives in between is not missed.

@@ -336,6 +336,19 @@ impl Records {
         Ok(None)
     }
 
+    pub(super) fn unfinished_jobs(&self) -> Result<Vec<Job>, StoreError> {
+        let mut jobs = Vec::new();
+        for entry in self.trees.queue.iter() {
+            let (_, job_id) = entry?;
+            if let Some(job) = self.job(&String::from_utf8_lossy(&job_id))? {
+                if !job.state.is_terminal() {
+                    jobs.push(job);
+                }
+            }
+        }
+        Ok(jobs)
+    }
+
     /// After a restart: jobs that were running go back to the queue (their finished frames
     /// stay finished). Returns how many.
     pub(super) fn requeue_running(&self) -> Result<usize, StoreError> {

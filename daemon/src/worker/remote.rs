@@ -39,6 +39,7 @@ use tracing::Instrument;
 use crate::grpc::streaming::{HashingWriter, CHUNK_BYTES};
 use crate::grpc::{frame_cut_message, frame_task, timings_message};
 use crate::lease::{FrameTask, TaskFile};
+use crate::metrics::WorkerMetrics;
 use crate::worker::client::Client;
 use crate::worker::daemon_store::{self, DaemonStore};
 use crate::worker::failure::FrameFailure;
@@ -61,6 +62,8 @@ pub struct RemoteWorkerConfig {
     /// The pixel error of datasets rendered from levels of detail without one of their own,
     /// and the node caches' budgets.
     pub cut: CutOptions,
+    /// What the worker counts of its frames (served when `worker --metrics-listen` asks).
+    pub metrics: Arc<WorkerMetrics>,
 }
 
 /// How long a worker waits to lease again after handing back a frame whose store the daemon
@@ -235,9 +238,15 @@ pub async fn run(
             frame = task.lease.index,
             lease = %task.lease.id
         );
-        let end = run_task(&mut client, &mut render_state, &downloads, task)
-            .instrument(span)
-            .await?;
+        let end = run_task(
+            &mut client,
+            &mut render_state,
+            &downloads,
+            task,
+            &config.metrics,
+        )
+        .instrument(span)
+        .await?;
         let wait = match end {
             TaskEnd::Finished => None,
             TaskEnd::DaemonCannotStore => {
@@ -264,6 +273,7 @@ async fn run_task(
     render_state: &mut Option<WorkerRenderState>,
     downloads: &Path,
     task: FrameTask,
+    metrics: &WorkerMetrics,
 ) -> anyhow::Result<TaskEnd> {
     tracing::info!(
         dataset = %task.dataset.id,
@@ -285,8 +295,12 @@ async fn run_task(
         return result.map(|_| TaskEnd::Finished);
     }
     match result {
-        Ok(Attempt::Rendered(frame)) => Ok(complete_frame(client, &task, frame).await),
+        Ok(Attempt::Rendered(frame)) => {
+            metrics.frame_rendered(&frame.outcome);
+            Ok(complete_frame(client, &task, frame).await)
+        }
         Ok(Attempt::Failed(failure)) => {
+            metrics.frame_failed();
             tracing::warn!(reason = %failure.reason, kind = ?failure.kind, "frame failed");
             Ok(fail_frame(client, &task.lease.id, &failure).await)
         }
@@ -296,6 +310,7 @@ async fn run_task(
             Ok(TaskEnd::StoreBuilding)
         }
         Err(lost) => {
+            metrics.frame_failed();
             let failure = FrameFailure::transient(format!("{lost:#}"));
             fail_frame(client, &task.lease.id, &failure).await;
             Err(lost)

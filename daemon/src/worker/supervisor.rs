@@ -32,11 +32,12 @@ pub const EMBEDDED_WORKER_NAME: &str = "embedded";
 /// The environment variable that hands the embedded worker its token (`worker --worker-token`).
 pub const TOKEN_ENV: &str = "POINTFARM_WORKER_TOKEN";
 /// Settings of the daemon's environment that are not the embedded worker's: it speaks
-/// plaintext to its own loopback listener.
-const NOT_INHERITED: [&str; 3] = [
+/// plaintext to its own loopback listener, and the daemon's metrics address is the daemon's.
+const NOT_INHERITED: [&str; 4] = [
     "POINTFARM_TLS_CA",
     "POINTFARM_SERVER",
     "POINTFARM_WORKER_TOKEN_FILE",
+    "POINTFARM_METRICS_LISTEN",
 ];
 
 /// The first wait before a restart; it doubles on each quick exit up to [`RESTART_MAX`].

@@ -1,0 +1,355 @@
+//! Prometheus metrics: every metric the daemon and the worker expose is defined here, and
+//! each has one owner. Counters and histograms are counted where the event happens, through
+//! the methods of [`DaemonMetrics`] and [`WorkerMetrics`]; gauges that mirror state (the
+//! queue, the leases, the workers) are read from the daemon's real state at each scrape
+//! ([`Daemon::metrics_text`]), so they cannot drift from it. Counters start at zero with the
+//! process, as Prometheus expects of them.
+//!
+//! - `worker`: the metrics of a `pointfarm worker` process (`pointfarm_worker_*`).
+//! - `http`: the unauthenticated `GET /metrics` endpoint that serves either in Prometheus's
+//!   text format (OpenMetrics).
+//!
+//! Nothing here knows about gRPC; the endpoint knows only a function that writes the text.
+
+use std::collections::{BTreeMap, HashSet};
+use std::sync::Mutex;
+
+use prometheus_client::encoding::text::{encode_eof, encode_registry};
+use prometheus_client::encoding::EncodeLabelSet;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
+use prometheus_client::registry::Registry;
+
+use crate::error::DaemonError;
+use crate::model::{FrameReport, StageTiming};
+use crate::service::Daemon;
+
+pub mod http;
+mod worker;
+
+pub use worker::WorkerMetrics;
+
+/// The `Content-Type` of the text that [`Daemon::metrics_text`] and
+/// [`WorkerMetrics::text`] write.
+pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
+
+/// The state of a frame in `pointfarm_queue_frames`: waiting for a worker, or leased to one.
+pub const QUEUED: &str = "queued";
+pub const LEASED: &str = "leased";
+
+/// Most distinct stage names a stage histogram keeps; the names come from workers, so a
+/// worker that sent new ones at every frame must not grow the scrape without bound. Later
+/// names count as [`OTHER_STAGE`].
+const MAX_STAGES: usize = 32;
+const OTHER_STAGE: &str = "other";
+
+/// The stages' label.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct StageLabels {
+    stage: String,
+}
+
+/// The queue's labels.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct QueueLabels {
+    state: &'static str,
+    priority: String,
+}
+
+type StageFamily = Family<StageLabels, Histogram, fn() -> Histogram>;
+
+/// Per-stage latencies in seconds: from half a millisecond (a GPU pass of a small frame)
+/// doubling to about nine minutes (the build of a large dataset's store).
+fn stage_histogram() -> Histogram {
+    Histogram::new(exponential_buckets(0.0005, 2.0, 21))
+}
+
+/// One histogram per stage; see [`MAX_STAGES`].
+#[derive(Debug)]
+struct StageSeconds {
+    family: StageFamily,
+    /// The stages with a histogram of their own.
+    named: Mutex<HashSet<String>>,
+}
+
+impl StageSeconds {
+    fn new() -> Self {
+        Self {
+            family: Family::new_with_constructor(stage_histogram),
+            named: Mutex::new(HashSet::new()),
+        }
+    }
+
+    fn observe(&self, timings: &[StageTiming]) {
+        for timing in timings {
+            if !timing.ms.is_finite() || timing.ms < 0.0 {
+                continue;
+            }
+            let stage = {
+                let mut named = self.named.lock().unwrap_or_else(|e| e.into_inner());
+                let name = stage_name(&timing.stage);
+                if named.contains(name) || named.len() < MAX_STAGES {
+                    named.insert(name.to_owned());
+                    name
+                } else {
+                    OTHER_STAGE
+                }
+            };
+            let labels = StageLabels {
+                stage: stage.to_owned(),
+            };
+            self.family.get_or_create(&labels).observe(timing.ms / 1e3);
+        }
+    }
+}
+
+/// A stage's name as a label: as the worker reports it when it is a short lower-case word,
+/// else [`OTHER_STAGE`].
+fn stage_name(stage: &str) -> &str {
+    let word = !stage.is_empty()
+        && stage.len() <= 32
+        && stage
+            .bytes()
+            .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'_');
+    if word {
+        stage
+    } else {
+        OTHER_STAGE
+    }
+}
+
+/// Frames of unfinished jobs of one priority.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct QueueDepth {
+    /// Waiting for a worker.
+    pub queued: u64,
+    /// Leased to a worker.
+    pub leased: u64,
+}
+
+/// The daemon's state as the gauges show it, read at a scrape.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct FarmState {
+    /// By job priority.
+    pub queue: BTreeMap<i32, QueueDepth>,
+    pub leases_held: u64,
+    pub workers_connected: u64,
+}
+
+/// The daemon's metrics (`pointfarm_*`).
+#[derive(Debug)]
+pub struct DaemonMetrics {
+    registry: Registry,
+    frames_completed: Counter,
+    frames_failed: Counter,
+    stage_seconds: StageSeconds,
+    leases_expired: Counter,
+    dataset_cache_hits: Counter,
+    dataset_cache_misses: Counter,
+    upload_bytes: Counter,
+    queue_frames: Family<QueueLabels, Gauge>,
+    leases_held: Gauge,
+    workers_connected: Gauge,
+    /// Held while the gauges are set from a state and encoded, so that two scrapes at once
+    /// each show the state they read.
+    scrape: Mutex<()>,
+}
+
+impl Default for DaemonMetrics {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl DaemonMetrics {
+    pub fn new() -> Self {
+        let mut metrics = Self {
+            registry: Registry::with_prefix("pointfarm"),
+            frames_completed: Counter::default(),
+            frames_failed: Counter::default(),
+            stage_seconds: StageSeconds::new(),
+            leases_expired: Counter::default(),
+            dataset_cache_hits: Counter::default(),
+            dataset_cache_misses: Counter::default(),
+            upload_bytes: Counter::default(),
+            queue_frames: Family::default(),
+            leases_held: Gauge::default(),
+            workers_connected: Gauge::default(),
+            scrape: Mutex::new(()),
+        };
+        let registry = &mut metrics.registry;
+        registry.register(
+            "queue_frames",
+            "Frames of unfinished jobs, by state (queued: waiting for a worker; leased: \
+             being rendered) and by their job's priority",
+            metrics.queue_frames.clone(),
+        );
+        registry.register(
+            "frames_completed",
+            "Frames rendered and stored",
+            metrics.frames_completed.clone(),
+        );
+        registry.register(
+            "frames_failed",
+            "Attempts at frames that ended without a result: failed on their worker, or lost \
+             with it (its lease ran out, or the embedded worker process died)",
+            metrics.frames_failed.clone(),
+        );
+        registry.register(
+            "frame_stage_seconds",
+            "Time of each stage of the completed frames, as their workers reported it",
+            metrics.stage_seconds.family.clone(),
+        );
+        registry.register(
+            "leases_held",
+            "Frame leases held by workers",
+            metrics.leases_held.clone(),
+        );
+        registry.register(
+            "leases_expired",
+            "Leases that ran out without a heartbeat while their frame was wanted (the \
+             worker was lost); each counts a failed attempt",
+            metrics.leases_expired.clone(),
+        );
+        registry.register(
+            "workers_connected",
+            "Workers that can render: the embedded worker once it has called in, and remote \
+             workers that hold a lease or asked for work within the lease timeout",
+            metrics.workers_connected.clone(),
+        );
+        registry.register(
+            "dataset_cache_hits",
+            "Completed frames whose worker found the dataset's points in its dataset cache",
+            metrics.dataset_cache_hits.clone(),
+        );
+        registry.register(
+            "dataset_cache_misses",
+            "Completed frames whose worker decoded the dataset's files (not in its cache)",
+            metrics.dataset_cache_misses.clone(),
+        );
+        registry.register(
+            "upload_bytes",
+            "Bytes of dataset uploads received whole and checked",
+            metrics.upload_bytes.clone(),
+        );
+        metrics
+    }
+
+    /// A frame was rendered and stored, with its worker's report.
+    pub fn frame_completed(&self, report: &FrameReport) {
+        self.frames_completed.inc();
+        self.stage_seconds.observe(&report.timings);
+        match report.dataset_cache_hit {
+            Some(true) => {
+                self.dataset_cache_hits.inc();
+            }
+            Some(false) => {
+                self.dataset_cache_misses.inc();
+            }
+            None => {}
+        }
+    }
+
+    /// An attempt at a frame ended without a result.
+    pub fn frame_failed(&self) {
+        self.frames_failed.inc();
+    }
+
+    /// The lease of a wanted frame ran out (its attempt is counted by
+    /// [`DaemonMetrics::frame_failed`]).
+    pub fn lease_expired(&self) {
+        self.leases_expired.inc();
+    }
+
+    /// An upload of `bytes` was received whole.
+    pub fn uploaded(&self, bytes: u64) {
+        self.upload_bytes.inc_by(bytes);
+    }
+
+    /// The metrics in Prometheus's text format, the gauges showing `state`.
+    pub fn text(&self, state: &FarmState) -> String {
+        let _scrape = self.scrape.lock().unwrap_or_else(|e| e.into_inner());
+        self.queue_frames.clear();
+        // The default priority's series are always there, so that a sum over the queue reads
+        // 0, not nothing, when it is empty.
+        let mut queue = state.queue.clone();
+        queue.entry(0).or_default();
+        for (priority, depth) in &queue {
+            for (label, frames) in [(QUEUED, depth.queued), (LEASED, depth.leased)] {
+                self.queue_frames
+                    .get_or_create(&QueueLabels {
+                        state: label,
+                        priority: priority.to_string(),
+                    })
+                    .set(gauge_value(frames));
+            }
+        }
+        self.leases_held.set(gauge_value(state.leases_held));
+        self.workers_connected
+            .set(gauge_value(state.workers_connected));
+        encode(&self.registry)
+    }
+}
+
+fn gauge_value(count: u64) -> i64 {
+    i64::try_from(count).unwrap_or(i64::MAX)
+}
+
+/// `registry` in Prometheus's text format, whole (with its end marker).
+fn encode(registry: &Registry) -> String {
+    let mut text = String::new();
+    // Writing to a String cannot fail, and the registry holds only well-formed metrics.
+    let _ = encode_registry(&mut text, registry).and_then(|()| encode_eof(&mut text));
+    text
+}
+
+impl Daemon {
+    /// The state the gauges show: the frames of unfinished jobs by priority, queued or
+    /// leased; the leases; the workers that can render.
+    pub fn farm_state(&self) -> Result<FarmState, DaemonError> {
+        // Under the scheduling lock: a frame is then either queued or leased, never both.
+        let _scheduling = self.scheduling()?;
+        let jobs = self.store.unfinished_jobs()?;
+        let leases = self.store.leases()?;
+        let mut leased_by_job: BTreeMap<&str, u64> = BTreeMap::new();
+        for lease in &leases {
+            *leased_by_job.entry(lease.job_id.as_str()).or_default() += 1;
+        }
+        let mut queue: BTreeMap<i32, QueueDepth> = BTreeMap::new();
+        for job in &jobs {
+            let pending = u64::from(job.frames_total.saturating_sub(job.frames_done));
+            let leased = leased_by_job
+                .get(job.id.as_str())
+                .copied()
+                .unwrap_or(0)
+                .min(pending);
+            let depth = queue.entry(job.spec.priority).or_default();
+            depth.queued += pending - leased;
+            depth.leased += leased;
+        }
+        let remote_holders: HashSet<&str> = leases
+            .iter()
+            .filter(|lease| !lease.embedded)
+            .map(|lease| lease.worker.as_str())
+            .collect();
+        let workers_connected = self
+            .workers
+            .connected(self.config.lease_timeout, remote_holders);
+        Ok(FarmState {
+            queue,
+            leases_held: leases.len() as u64,
+            workers_connected: workers_connected as u64,
+        })
+    }
+
+    /// The daemon's metrics in Prometheus's text format ([`CONTENT_TYPE`]).
+    pub fn metrics_text(&self) -> Result<String, DaemonError> {
+        let state = self.farm_state()?;
+        Ok(self.metrics.text(&state))
+    }
+}
+
+#[cfg(test)]
+mod tests;
