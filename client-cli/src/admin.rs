@@ -355,6 +355,9 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                     if !job.error.is_empty() {
                         outln!("error: {}", job.error);
                     }
+                    for line in scheduling_lines(&job) {
+                        outln!("{line}");
+                    }
                     let retried: Vec<String> = job
                         .frames
                         .iter()
@@ -449,6 +452,55 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
         }
         Ok(())
     })
+}
+
+/// What `jobs show` says of a job's workers: what it requires of them, who rendered its
+/// frames, who is blocklisted, and why it waits when no connected worker can render it.
+fn scheduling_lines(job: &pb::Job) -> Vec<String> {
+    let mut lines = Vec::new();
+    if let Some(required) = job.requirements.as_ref() {
+        let mut parts = Vec::new();
+        if required.gpu {
+            parts.push("a GPU".to_string());
+        }
+        if !required.tags.is_empty() {
+            parts.push(format!("tags {}", required.tags.join(", ")));
+        }
+        if !parts.is_empty() {
+            lines.push(format!("requires: {}", parts.join(" and ")));
+        }
+    }
+    let mut rendered: std::collections::BTreeMap<&str, u32> = Default::default();
+    for frame in &job.frames {
+        if !frame.worker_name.is_empty() {
+            *rendered.entry(frame.worker_name.as_str()).or_default() += 1;
+        }
+    }
+    if !rendered.is_empty() {
+        let by: Vec<String> = rendered
+            .iter()
+            .map(|(worker, frames)| format!("{worker} {frames}"))
+            .collect();
+        lines.push(format!("frames by worker: {}", by.join(", ")));
+    }
+    if !job.blocklisted_workers.is_empty() {
+        let listed: Vec<String> = job
+            .blocklisted_workers
+            .iter()
+            .map(|w| format!("{} ({} failed frames)", w.worker_name, w.failed_frames))
+            .collect();
+        lines.push(format!("blocklisted workers: {}", listed.join(", ")));
+    }
+    if !job.waiting_reason.is_empty() {
+        lines.push(format!("waiting: {}", job.waiting_reason));
+    }
+    for refusal in &job.refusals {
+        lines.push(format!(
+            "  worker {} cannot render it: {}",
+            refusal.worker_name, refusal.reason
+        ));
+    }
+    lines
 }
 
 pub fn frames(server: &ServerArgs, command: FramesCommand) -> Result<()> {

@@ -10,7 +10,9 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::server::{serve, ServeOptions, TlsIdentity};
-use pointfarm_daemon::service::{Daemon, DaemonConfig, DEFAULT_MAX_UPLOAD_BYTES};
+use pointfarm_daemon::service::{
+    Daemon, DaemonConfig, DEFAULT_MAX_UPLOAD_BYTES, DEFAULT_WORKER_FAILURES_BEFORE_BLOCKLIST,
+};
 use pointfarm_daemon::worker::supervisor::WorkerCommand;
 use pointfarm_render::gpu::AdapterChoice;
 
@@ -83,6 +85,15 @@ pub struct ServeArgs {
     /// Attempts at a frame (failed, or lost with its worker) before its job fails.
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=100))]
     max_frame_attempts: u32,
+    /// Frames of one job a worker may fail (reported failures, leases that ran out) before
+    /// it is leased no more of that job's frames; 0 keeps no blocklist.
+    #[arg(
+        long,
+        value_name = "N",
+        env = "POINTFARM_BLOCKLIST_AFTER",
+        default_value_t = DEFAULT_WORKER_FAILURES_BEFORE_BLOCKLIST
+    )]
+    blocklist_after: u32,
     /// Cap the embedded worker process's memory (heap and other private writable memory) at
     /// this many MiB: a frame that needs more crashes that process, not the machine, and
     /// counts a failed attempt.
@@ -132,6 +143,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
         config.recover_state = args.recover_state;
         config.lease_timeout = std::time::Duration::from_secs_f64(args.lease_timeout);
         config.max_frame_attempts = args.max_frame_attempts;
+        config.worker_failures_before_blocklist = args.blocklist_after;
         if let Some(bytes) = args.store_memory_budget {
             config.store_build_memory_bytes = bytes;
         }

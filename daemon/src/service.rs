@@ -18,6 +18,10 @@ use crate::worker_presence::WorkerPresence;
 pub const DEFAULT_MAX_UPLOAD_BYTES: u64 = 16 << 30;
 
 /// Limits and locations of a daemon.
+/// Frames of one job a worker may fail before it gets no more of them, as Flamenco's and
+/// Deadline's blocklists have it.
+pub const DEFAULT_WORKER_FAILURES_BEFORE_BLOCKLIST: u32 = 3;
+
 #[derive(Debug, Clone)]
 pub struct DaemonConfig {
     /// State database, uploaded datasets and rendered frames live here.
@@ -34,6 +38,9 @@ pub struct DaemonConfig {
     pub upload_quota_bytes: Option<u64>,
     /// Attempts per frame before its job fails.
     pub max_frame_attempts: u32,
+    /// Frames of one job a worker may fail before it is leased no more of them (the job's
+    /// blocklist); 0 keeps no blocklist.
+    pub worker_failures_before_blocklist: u32,
     /// A remote worker's lease on a frame ends unless renewed within this time.
     pub lease_timeout: std::time::Duration,
     /// Size bound of the worker's processed-dataset cache.
@@ -58,6 +65,7 @@ impl DaemonConfig {
             max_upload_bytes: DEFAULT_MAX_UPLOAD_BYTES,
             upload_quota_bytes: None,
             max_frame_attempts: 3,
+            worker_failures_before_blocklist: DEFAULT_WORKER_FAILURES_BEFORE_BLOCKLIST,
             lease_timeout: std::time::Duration::from_secs(30),
             worker_cache_bytes: 8 << 30,
             store_build_memory_bytes: pointfarm_render::cut::DEFAULT_MEMORY_BUDGET_BYTES,

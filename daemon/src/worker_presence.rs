@@ -1,9 +1,13 @@
 //! Which workers can render now, for health checking: the embedded worker while its process
 //! runs and has called in, remote workers while they wait for frames or were heard from
-//! within the lease timeout.
+//! within the lease timeout. Each worker that asked for frames is also known by name with the
+//! capabilities it sent, so that a job no connected worker can render says why.
 
+use std::collections::HashMap;
 use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
+
+use crate::capabilities::WorkerCapabilities;
 
 #[derive(Default)]
 struct State {
@@ -11,7 +15,28 @@ struct State {
     embedded_called_in: bool,
     remote_polls: usize,
     remote_last_seen: Option<Instant>,
+    /// The workers that asked for frames, by name.
+    named: HashMap<String, Named>,
 }
+
+/// A worker known by name: what it last said it can do, and when it was last heard from.
+struct Named {
+    embedded: bool,
+    capabilities: WorkerCapabilities,
+    polls: usize,
+    last_seen: Instant,
+}
+
+/// A worker connected now, as it last asked for frames.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ConnectedWorker {
+    pub name: String,
+    pub embedded: bool,
+    pub capabilities: WorkerCapabilities,
+}
+
+/// Names not heard from for this many times the timeout are forgotten.
+const FORGET_AFTER_TIMEOUTS: u32 = 10;
 
 /// The workers the daemon has heard from; the gRPC layer and the supervisor of the embedded
 /// worker keep it up to date.
@@ -26,14 +51,20 @@ pub struct WorkerPresence {
 pub struct PollGuard<'a> {
     presence: &'a WorkerPresence,
     remote: bool,
+    name: Option<String>,
 }
 
 impl Drop for PollGuard<'_> {
     fn drop(&mut self) {
+        let mut state = self.presence.state();
+        let now = Instant::now();
         if self.remote {
-            let mut state = self.presence.state();
             state.remote_polls = state.remote_polls.saturating_sub(1);
-            state.remote_last_seen = Some(Instant::now());
+            state.remote_last_seen = Some(now);
+        }
+        if let Some(named) = self.name.as_ref().and_then(|n| state.named.get_mut(n)) {
+            named.polls = named.polls.saturating_sub(1);
+            named.last_seen = now;
         }
     }
 }
@@ -85,7 +116,67 @@ impl WorkerPresence {
         PollGuard {
             presence: self,
             remote: !embedded,
+            name: None,
         }
+    }
+
+    /// The worker `name` asks for a frame, saying what it can render: as [`Self::poll`], and
+    /// it is known by name, connected while it waits and within `timeout` after.
+    pub fn poll_named(
+        &self,
+        embedded: bool,
+        name: &str,
+        capabilities: WorkerCapabilities,
+        timeout: Duration,
+    ) -> PollGuard<'_> {
+        let mut guard = self.poll(embedded);
+        let mut state = self.state();
+        let now = Instant::now();
+        let forget = timeout * FORGET_AFTER_TIMEOUTS;
+        state
+            .named
+            .retain(|_, n| n.polls > 0 || now.duration_since(n.last_seen) <= forget);
+        let named = state.named.entry(name.to_owned()).or_insert(Named {
+            embedded,
+            capabilities: WorkerCapabilities::default(),
+            polls: 0,
+            last_seen: now,
+        });
+        named.embedded = embedded;
+        named.capabilities = capabilities;
+        named.polls += 1;
+        named.last_seen = now;
+        guard.name = Some(name.to_owned());
+        guard
+    }
+
+    /// The worker `name` called about a frame it holds (a heartbeat).
+    pub fn heard_from_named(&self, name: &str) {
+        if let Some(named) = self.state().named.get_mut(name) {
+            named.last_seen = Instant::now();
+        }
+    }
+
+    /// The workers known by name that are connected now: waiting for a frame, or heard from
+    /// within `timeout` (the embedded one only while its process runs), by name.
+    pub fn connected(&self, timeout: Duration) -> Vec<ConnectedWorker> {
+        let state = self.state();
+        let embedded_up = state.embedded_running && state.embedded_called_in;
+        let mut connected: Vec<ConnectedWorker> = state
+            .named
+            .iter()
+            .filter(|(_, n)| {
+                let recent = n.polls > 0 || n.last_seen.elapsed() <= timeout;
+                recent && (!n.embedded || embedded_up)
+            })
+            .map(|(name, n)| ConnectedWorker {
+                name: name.clone(),
+                embedded: n.embedded,
+                capabilities: n.capabilities.clone(),
+            })
+            .collect();
+        connected.sort_by(|a, b| a.name.cmp(&b.name));
+        connected
     }
 
     /// Whether some worker can render: the embedded one is up, or a remote one waits for
@@ -123,6 +214,38 @@ mod tests {
             !presence.can_render(timeout),
             "a late call of the dead process"
         );
+    }
+
+    #[test]
+    fn named_workers_are_connected_while_they_poll_and_within_the_timeout_after() {
+        let presence = WorkerPresence::default();
+        let timeout = Duration::from_millis(100);
+        let tagged = WorkerCapabilities {
+            tags: ["a".to_string()].into(),
+            ..WorkerCapabilities::default()
+        };
+        let poll = presence.poll_named(false, "w1", tagged.clone(), timeout);
+        let embedded = presence.poll_named(true, "embedded", Default::default(), timeout);
+        drop(embedded);
+        let names = |p: &WorkerPresence| -> Vec<String> {
+            p.connected(timeout).into_iter().map(|w| w.name).collect()
+        };
+        assert_eq!(names(&presence), vec!["w1"], "the embedded process is not running");
+        presence.embedded_started();
+        presence.heard_from(true);
+        assert_eq!(names(&presence), vec!["embedded", "w1"]);
+        assert_eq!(presence.connected(timeout)[1].capabilities, tagged);
+        std::thread::sleep(timeout * 2);
+        assert_eq!(names(&presence), vec!["w1"], "w1 still waits for work");
+        drop(poll);
+        assert_eq!(names(&presence), vec!["w1"]);
+        std::thread::sleep(timeout * 2);
+        assert!(names(&presence).is_empty());
+        // A heartbeat keeps a worker rendering a long frame connected.
+        drop(presence.poll_named(false, "w2", Default::default(), timeout));
+        std::thread::sleep(timeout * 2);
+        presence.heard_from_named("w2");
+        assert_eq!(names(&presence), vec!["w2"]);
     }
 
     #[test]

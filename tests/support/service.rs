@@ -250,6 +250,7 @@ pub async fn run_job(
         dataset_id: dataset_id.into(),
         request,
         priority: 0,
+        requirements: Default::default(),
     };
     let job = jobs
         .submit_job(pb::SubmitJobRequest::from(&spec))

@@ -29,7 +29,7 @@ fn png(width: u32, height: u32) -> Vec<u8> {
 /// Leases the next frame, which there must be.
 fn lease(daemon: &Daemon, worker: &str, embedded: bool) -> FrameTask {
     daemon
-        .lease_frame(worker, embedded)
+        .lease_frame(worker, embedded, &WorkerCapabilities::default())
         .expect("lease")
         .expect("a frame to lease")
 }
@@ -193,7 +193,7 @@ fn a_full_disk_gives_frames_back_without_an_attempt_and_the_daemon_resumes_by_it
     assert!(partial_files(&daemon, &job.id).is_empty());
     assert!(daemon.store.outage().is_some());
     assert!(daemon.leases().expect("leases").is_empty(), "given back");
-    let leasing = daemon.lease_frame("w", false);
+    let leasing = daemon.lease_frame("w", false, &WorkerCapabilities::default());
     assert!(
         matches!(leasing, Err(DaemonError::ResourceExhausted(_))),
         "no frames are leased while the disk is full: {leasing:?}"
