@@ -649,6 +649,7 @@ mod tests {
             height: 48,
             render: None,
             priority: 0,
+            requirements: None,
         }
     }
 
@@ -665,6 +666,63 @@ mod tests {
 
     fn kernel(kernel: u32) -> pb::FillOptions {
         pb::FillOptions { kernel }
+    }
+
+    #[test]
+    fn requirements_are_checked_sorted_and_convert_both_ways() {
+        let mut r = valid();
+        r.requirements = Some(pb::WorkerRequirements {
+            tags: vec!["site-x".into(), "gpu:a100".into(), "site-x".into()],
+            gpu: true,
+        });
+        let spec = JobSpec::try_from(&r).expect("valid");
+        assert_eq!(
+            spec.requirements,
+            WorkerRequirements {
+                tags: vec!["gpu:a100".into(), "site-x".into()],
+                gpu: true
+            }
+        );
+        let resubmitted = pb::SubmitJobRequest::from(&spec);
+        assert_eq!(JobSpec::try_from(&resubmitted).expect("valid"), spec);
+        assert_eq!(
+            JobSpec::try_from(&valid()).expect("valid").requirements,
+            WorkerRequirements::default()
+        );
+        r.requirements = Some(pb::WorkerRequirements {
+            tags: vec!["two words".into()],
+            gpu: false,
+        });
+        assert_eq!(field_of(&r), "requirements.tags");
+    }
+
+    #[test]
+    fn capabilities_convert_both_ways_and_bad_tags_are_refused() {
+        let capabilities = WorkerCapabilities {
+            adapter: AdapterKind::Software,
+            adapter_name: "llvmpipe (LLVM 19)".into(),
+            device_memory_bytes: None,
+            int64_atomics: true,
+            max_storage_binding_bytes: 1 << 31,
+            max_buffer_bytes: 1 << 32,
+            max_frame_side: Some(4096),
+            tags: ["site-x".to_string()].into(),
+        };
+        let message = pb::WorkerCapabilities::from(&capabilities);
+        assert_eq!(
+            WorkerCapabilities::try_from(Some(&message)).expect("valid"),
+            capabilities
+        );
+        assert_eq!(
+            WorkerCapabilities::try_from(None).expect("none sent"),
+            WorkerCapabilities::default()
+        );
+        let bad = pb::WorkerCapabilities {
+            tags: vec![String::new()],
+            ..message
+        };
+        let error = WorkerCapabilities::try_from(Some(&bad)).expect_err("an empty tag");
+        assert!(error.to_string().contains("capabilities.tags"), "{error}");
     }
 
     #[test]
