@@ -532,6 +532,7 @@ mod tests {
                 dataset_cache_hit: None,
                 failed_attempts: 0,
                 cut: None,
+                worker_name: String::new(),
                 timings: vec![
                     pb::StageTiming {
                         stage: "rasterize".into(),

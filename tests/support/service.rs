@@ -200,6 +200,7 @@ pub fn turntable_job(
         height,
         render: None,
         priority: 0,
+        requirements: None,
     }
 }
 
