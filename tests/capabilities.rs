@@ -20,11 +20,10 @@ use tonic::transport::Channel;
 /// `pointfarm jobs show ID` against `url`, as text.
 async fn jobs_show(url: &str, id: &str) -> String {
     let (url, id) = (url.to_owned(), id.to_owned());
-    let output = tokio::task::spawn_blocking(move || {
-        pointfarm(&["jobs", "show", &id, "--server", &url])
-    })
-    .await
-    .expect("jobs show");
+    let output =
+        tokio::task::spawn_blocking(move || pointfarm(&["jobs", "show", &id, "--server", &url]))
+            .await
+            .expect("jobs show");
     assert!(output.status.success(), "{output:?}");
     stdout(&output)
 }
@@ -91,7 +90,14 @@ async fn frames_go_only_to_workers_that_can_render_them() {
         &daemon.url(),
         &scratch.path().join("small"),
         "small",
-        &["--max-frame-side", "100", "--tag", "site-x", "--adapter-index", "0"],
+        &[
+            "--max-frame-side",
+            "100",
+            "--tag",
+            "site-x",
+            "--adapter-index",
+            "0",
+        ],
     );
     let large = WorkerProcess::start_with(
         &daemon.url(),
@@ -147,7 +153,11 @@ async fn frames_go_only_to_workers_that_can_render_them() {
     .await;
     let tagged = submit(
         &mut jobs,
-        with_requirements(turntable_job("tagged", &dataset.id, 3, 64, 48), false, &["site-x"]),
+        with_requirements(
+            turntable_job("tagged", &dataset.id, 3, 64, 48),
+            false,
+            &["site-x"],
+        ),
     )
     .await;
     let (_, tagged_frames) = watch_to_success(&mut jobs, &tagged.id, logs).await;
@@ -223,7 +233,12 @@ async fn a_worker_that_fails_three_frames_of_a_job_is_blocklisted_for_it() {
             failed_frames: 3
         }]
     );
-    assert_eq!(blocked.state, pb::JobState::Running as i32, "{}", blocked.error);
+    assert_eq!(
+        blocked.state,
+        pb::JobState::Running as i32,
+        "{}",
+        blocked.error
+    );
     let waiting = job_when(
         &mut jobs,
         &job.id,
@@ -293,6 +308,12 @@ fn an_adapter_index_out_of_range_lists_the_adapters() {
     assert_fails_saying(&output, "adapter index 5 is out of range");
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("0: "), "the adapters are listed: {stderr}");
-    let bad_tag = pointfarm(&["worker", "--tag", "two words", "--server", "http://127.0.0.1:9"]);
+    let bad_tag = pointfarm(&[
+        "worker",
+        "--tag",
+        "two words",
+        "--server",
+        "http://127.0.0.1:9",
+    ]);
     assert_fails_saying(&bad_tag, "--tag");
 }

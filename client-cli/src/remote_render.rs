@@ -72,7 +72,10 @@ fn submission(
 /// What the job asks of its workers (`--require-tag`, `--require-gpu`), checked as the server
 /// checks it.
 fn requirements(args: &RenderArgs) -> Result<WorkerRequirements> {
-    let tags = checked_tags("--require-tag", args.require_tags.iter().map(String::as_str))?;
+    let tags = checked_tags(
+        "--require-tag",
+        args.require_tags.iter().map(String::as_str),
+    )?;
     Ok(WorkerRequirements {
         tags: tags.into_iter().collect(),
         gpu: args.require_gpu,

@@ -50,7 +50,12 @@ pub struct WorkerArgs {
     adapter: AdapterChoice,
     /// Which adapter of those --adapter allows, counting from 0, best first: one worker per
     /// GPU on a machine with several (an index out of range lists them).
-    #[arg(long, value_name = "N", env = "POINTFARM_ADAPTER_INDEX", default_value_t = 0)]
+    #[arg(
+        long,
+        value_name = "N",
+        env = "POINTFARM_ADAPTER_INDEX",
+        default_value_t = 0
+    )]
     adapter_index: usize,
     /// An operator tag this worker advertises (repeatable; the environment variable takes a
     /// comma-separated list): jobs that require tags are leased only to workers with all of

@@ -238,15 +238,22 @@ mod tests {
             lavapipe.refusal(&gpu, &small).as_deref(),
             Some("the job requires a GPU; the worker has a software adapter (llvmpipe)")
         );
-        assert!(old.refusal(&gpu, &small).is_some_and(|r| r.contains("no known GPU")));
+        assert!(old
+            .refusal(&gpu, &small)
+            .is_some_and(|r| r.contains("no known GPU")));
         assert_eq!(a100.refusal(&gpu, &small), None);
-        assert_eq!(lavapipe.refusal(&tagged, &small).as_deref(), Some("no tag a100"));
+        assert_eq!(
+            lavapipe.refusal(&tagged, &small).as_deref(),
+            Some("no tag a100")
+        );
         assert_eq!(a100.refusal(&tagged, &small), None);
         // The drawn side counts: 2048 at 2x supersampling is 4096, 2049 is not.
         assert_eq!(lavapipe.refusal(&none, &request(2048, 100, 2)), None);
         let refused = lavapipe.refusal(&none, &request(100, 2049, 2));
         assert!(
-            refused.as_deref().is_some_and(|r| r.contains("4098 pixels a side")),
+            refused
+                .as_deref()
+                .is_some_and(|r| r.contains("4098 pixels a side")),
             "{refused:?}"
         );
     }
@@ -258,7 +265,13 @@ mod tests {
             tags.into_iter().collect::<Vec<_>>(),
             vec!["gpu:a100".to_string(), "site-x".to_string()]
         );
-        for bad in ["", "has space", "comma,", "é", &"x".repeat(MAX_TAG_BYTES + 1)] {
+        for bad in [
+            "",
+            "has space",
+            "comma,",
+            "é",
+            &"x".repeat(MAX_TAG_BYTES + 1),
+        ] {
             let error = checked_tags("required_tags", [bad]).expect_err(bad);
             assert!(error.to_string().contains("required_tags"), "{error}");
         }

@@ -686,7 +686,11 @@ fn why_none_can(job: &Job, connected: &[ConnectedWorker]) -> String {
         return format!("no connected worker has tag {tag}");
     }
     let side = drawn_side(&job.spec.request);
-    if none(&|w| w.capabilities.max_frame_side.is_some_and(|m| side > u64::from(m))) {
+    if none(&|w| {
+        w.capabilities
+            .max_frame_side
+            .is_some_and(|m| side > u64::from(m))
+    }) {
         return format!("no connected worker draws images of {side} pixels a side");
     }
     "no connected worker can render it (each for a reason of its own)".into()

@@ -230,7 +230,11 @@ mod tests {
         let names = |p: &WorkerPresence| -> Vec<String> {
             p.connected(timeout).into_iter().map(|w| w.name).collect()
         };
-        assert_eq!(names(&presence), vec!["w1"], "the embedded process is not running");
+        assert_eq!(
+            names(&presence),
+            vec!["w1"],
+            "the embedded process is not running"
+        );
         presence.embedded_started();
         presence.heard_from(true);
         assert_eq!(names(&presence), vec!["embedded", "w1"]);

@@ -184,7 +184,10 @@ impl GpuContext {
                 .enumerate()
                 .map(|(i, a)| {
                     let info = a.get_info();
-                    format!("{i}: {} ({:?}, {:?})", info.name, info.device_type, info.backend)
+                    format!(
+                        "{i}: {} ({:?}, {:?})",
+                        info.name, info.device_type, info.backend
+                    )
                 })
                 .collect::<Vec<_>>()
                 .join(", ");
