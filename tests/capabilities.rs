@@ -135,6 +135,40 @@ async fn frames_go_only_to_workers_that_can_render_them() {
         shown.contains("worker small cannot render it: the job requires a GPU; the worker has a software adapter"),
         "{shown}"
     );
+    // What each connected worker advertises.
+    let mut listed = jobs
+        .list_workers(pb::ListWorkersRequest {})
+        .await
+        .expect("list workers")
+        .into_inner()
+        .workers;
+    listed.sort_by(|a, b| a.worker_name.cmp(&b.worker_name));
+    let advertised: Vec<(String, u32, Vec<String>)> = listed
+        .iter()
+        .map(|w| {
+            let caps = w.capabilities.clone().unwrap_or_default();
+            (w.worker_name.clone(), caps.max_frame_side, caps.tags)
+        })
+        .collect();
+    assert_eq!(
+        advertised,
+        vec![
+            ("large".to_string(), 16384, vec!["big-frames".to_string()]),
+            ("small".to_string(), 100, vec!["site-x".to_string()]),
+        ]
+    );
+    let url = daemon.url();
+    let table =
+        tokio::task::spawn_blocking(move || pointfarm(&["jobs", "workers", "--server", &url]))
+            .await
+            .expect("jobs workers");
+    let table = stdout(&table);
+    assert!(
+        table
+            .lines()
+            .any(|l| l.starts_with("small") && l.contains(" 100 ") && l.ends_with("site-x")),
+        "{table}"
+    );
     jobs.cancel_job(pb::CancelJobRequest {
         id: gpu_only.id.clone(),
     })

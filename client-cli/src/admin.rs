@@ -111,6 +111,8 @@ pub enum JobsCommand {
     },
     /// Frames being rendered now: which worker holds each, and until when.
     Leases,
+    /// Workers connected now: their adapters, the largest image side each draws, their tags.
+    Workers,
 }
 
 #[derive(Subcommand)]
@@ -413,6 +415,44 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                             format!(": {}", job.error)
                         }
                     );
+                }
+            }
+            JobsCommand::Workers => {
+                let workers =
+                    answer(client.jobs.list_workers(pb::ListWorkersRequest {}).await)?.workers;
+                if server.json {
+                    outln!("{}", json_line(&pb::ListWorkersResponse { workers })?);
+                } else {
+                    outln!(
+                        "{:<24} {:<9} {:>10}  {:<32} tags",
+                        "worker",
+                        "adapter",
+                        "max side",
+                        "name"
+                    );
+                    for w in &workers {
+                        let caps = w.capabilities.clone().unwrap_or_default();
+                        let kind = match pb::AdapterKind::try_from(caps.adapter_kind) {
+                            Ok(pb::AdapterKind::Hardware) => "GPU",
+                            Ok(pb::AdapterKind::Software) => "software",
+                            _ => "unknown",
+                        };
+                        let side = if caps.max_frame_side == 0 {
+                            "any".to_string()
+                        } else {
+                            caps.max_frame_side.to_string()
+                        };
+                        let name = if w.embedded {
+                            format!("{} (embedded)", w.worker_name)
+                        } else {
+                            w.worker_name.clone()
+                        };
+                        outln!(
+                            "{name:<24} {kind:<9} {side:>10}  {:<32} {}",
+                            caps.adapter_name,
+                            caps.tags.join(", ")
+                        );
+                    }
                 }
             }
             JobsCommand::Leases => {

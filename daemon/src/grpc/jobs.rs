@@ -181,6 +181,26 @@ impl JobService for Api {
         Ok(Response::new(stream))
     }
 
+    async fn list_workers(
+        &self,
+        _request: Request<pb::ListWorkersRequest>,
+    ) -> Result<Response<pb::ListWorkersResponse>, Status> {
+        let connected = self
+            .daemon
+            .workers
+            .connected(self.daemon.config.lease_timeout);
+        Ok(Response::new(pb::ListWorkersResponse {
+            workers: connected
+                .iter()
+                .map(|worker| pb::ConnectedWorker {
+                    worker_name: worker.name.clone(),
+                    embedded: worker.embedded,
+                    capabilities: Some(pb::WorkerCapabilities::from(&worker.capabilities)),
+                })
+                .collect(),
+        }))
+    }
+
     async fn list_leases(
         &self,
         _request: Request<pb::ListLeasesRequest>,
