@@ -342,6 +342,16 @@ fn an_adapter_index_out_of_range_lists_the_adapters() {
     assert_fails_saying(&output, "adapter index 5 is out of range");
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("0: "), "the adapters are listed: {stderr}");
+    // Requirements choose a server's workers: a local render refuses them.
+    let out = scratch.path().join("local.png");
+    let local = pointfarm(&[
+        "render",
+        "missing.las",
+        "--require-gpu",
+        "--out",
+        out.to_str().expect("utf-8"),
+    ]);
+    assert_fails_saying(&local, "they need --server");
     let bad_tag = pointfarm(&[
         "worker",
         "--tag",
