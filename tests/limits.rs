@@ -80,6 +80,7 @@ async fn long_names_and_ids_are_refused_and_never_echoed() {
     let request = pb::LeaseFrameRequest {
         worker_name: huge.clone(),
         wait_ms: 0,
+        capabilities: None,
     };
     let status = refused(workers.lease_frame(request).await);
     assert_eq!(status.code(), Code::InvalidArgument);

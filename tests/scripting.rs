@@ -238,6 +238,23 @@ fn dataset_jobs_and_frames_print_json_a_script_can_read() {
     assert_eq!(listed.jobs.len(), 2);
     let leases = parsed::<pb::ListLeasesResponse>(&server_json(&address, &["jobs", "leases"]));
     assert_eq!(leases, pb::ListLeasesResponse::default());
+    // jobs workers: the ListWorkersResponse, here the one worker with its adapter.
+    let workers = parsed::<pb::ListWorkersResponse>(&server_json(&address, &["jobs", "workers"]));
+    let from_api = api
+        .block_on(jobs.list_workers(pb::ListWorkersRequest::default()))
+        .expect("ListWorkers")
+        .into_inner();
+    assert_eq!(workers, from_api);
+    let adapters: Vec<bool> = workers
+        .workers
+        .iter()
+        .map(|w| {
+            w.capabilities
+                .as_ref()
+                .is_some_and(|c| !c.adapter_name.is_empty())
+        })
+        .collect();
+    assert_eq!(adapters, [true], "{workers:?}");
 }
 
 #[test]

@@ -195,6 +195,7 @@ async fn lease(workers: &mut Workers) -> Option<pb::FrameTask> {
         .lease_frame(pb::LeaseFrameRequest {
             worker_name: "test".into(),
             wait_ms: 0,
+            capabilities: None,
         })
         .await
         .expect("lease")

@@ -41,6 +41,7 @@ fn job(request_id: String, frames: u32) -> JobSpec {
             render: RenderOptions::default(),
         },
         priority: 0,
+        requirements: Default::default(),
     }
 }
 
@@ -70,6 +71,7 @@ pub fn measure(
         dataset_cache_hit: None,
         cut: None,
         failed_attempts: 0,
+        worker: String::new(),
     });
 
     let mut results: Vec<SchedulerResult> = Vec::new();
@@ -98,7 +100,9 @@ pub fn measure(
         let mut times = Vec::with_capacity(samples);
         for _ in 0..samples {
             let started = Instant::now();
-            let task = daemon.lease_frame("bench", false).map_err(daemon_error)?;
+            let task = daemon
+                .lease_frame("bench", false, &Default::default())
+                .map_err(daemon_error)?;
             times.push(started.elapsed().as_secs_f64() * 1e3);
             let task = task.ok_or_else(|| BenchError::Scheduler("no frame to lease".into()))?;
             daemon.release_frame(&task.lease.id).map_err(daemon_error)?;

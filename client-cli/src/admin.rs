@@ -111,6 +111,8 @@ pub enum JobsCommand {
     },
     /// Frames being rendered now: which worker holds each, and until when.
     Leases,
+    /// Workers connected now: their adapters, the largest image side each draws, their tags.
+    Workers,
 }
 
 #[derive(Subcommand)]
@@ -355,6 +357,9 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                     if !job.error.is_empty() {
                         outln!("error: {}", job.error);
                     }
+                    for line in scheduling_lines(&job) {
+                        outln!("{line}");
+                    }
                     let retried: Vec<String> = job
                         .frames
                         .iter()
@@ -412,6 +417,44 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                     );
                 }
             }
+            JobsCommand::Workers => {
+                let workers =
+                    answer(client.jobs.list_workers(pb::ListWorkersRequest {}).await)?.workers;
+                if server.json {
+                    outln!("{}", json_line(&pb::ListWorkersResponse { workers })?);
+                } else {
+                    outln!(
+                        "{:<24} {:<9} {:>10}  {:<32} tags",
+                        "worker",
+                        "adapter",
+                        "max side",
+                        "name"
+                    );
+                    for w in &workers {
+                        let caps = w.capabilities.clone().unwrap_or_default();
+                        let kind = match pb::AdapterKind::try_from(caps.adapter_kind) {
+                            Ok(pb::AdapterKind::Hardware) => "GPU",
+                            Ok(pb::AdapterKind::Software) => "software",
+                            _ => "unknown",
+                        };
+                        let side = if caps.max_frame_side == 0 {
+                            "any".to_string()
+                        } else {
+                            caps.max_frame_side.to_string()
+                        };
+                        let name = if w.embedded {
+                            format!("{} (embedded)", w.worker_name)
+                        } else {
+                            w.worker_name.clone()
+                        };
+                        outln!(
+                            "{name:<24} {kind:<9} {side:>10}  {:<32} {}",
+                            caps.adapter_name,
+                            caps.tags.join(", ")
+                        );
+                    }
+                }
+            }
             JobsCommand::Leases => {
                 let leases =
                     answer(client.jobs.list_leases(pb::ListLeasesRequest {}).await)?.leases;
@@ -451,6 +494,55 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
     })
 }
 
+/// What `jobs show` says of a job's workers: what it requires of them, who rendered its
+/// frames, who is blocklisted, and why it waits when no connected worker can render it.
+fn scheduling_lines(job: &pb::Job) -> Vec<String> {
+    let mut lines = Vec::new();
+    if let Some(required) = job.requirements.as_ref() {
+        let mut parts = Vec::new();
+        if required.gpu {
+            parts.push("a GPU".to_string());
+        }
+        if !required.tags.is_empty() {
+            parts.push(format!("tags {}", required.tags.join(", ")));
+        }
+        if !parts.is_empty() {
+            lines.push(format!("requires: {}", parts.join(" and ")));
+        }
+    }
+    let mut rendered: std::collections::BTreeMap<&str, u32> = Default::default();
+    for frame in &job.frames {
+        if !frame.worker_name.is_empty() {
+            *rendered.entry(frame.worker_name.as_str()).or_default() += 1;
+        }
+    }
+    if !rendered.is_empty() {
+        let by: Vec<String> = rendered
+            .iter()
+            .map(|(worker, frames)| format!("{worker} {frames}"))
+            .collect();
+        lines.push(format!("frames by worker: {}", by.join(", ")));
+    }
+    if !job.blocklisted_workers.is_empty() {
+        let listed: Vec<String> = job
+            .blocklisted_workers
+            .iter()
+            .map(|w| format!("{} ({} failed frames)", w.worker_name, w.failed_frames))
+            .collect();
+        lines.push(format!("blocklisted workers: {}", listed.join(", ")));
+    }
+    if !job.waiting_reason.is_empty() {
+        lines.push(format!("waiting: {}", job.waiting_reason));
+    }
+    for refusal in &job.refusals {
+        lines.push(format!(
+            "  worker {} cannot render it: {}",
+            refusal.worker_name, refusal.reason
+        ));
+    }
+    lines
+}
+
 pub fn frames(server: &ServerArgs, command: FramesCommand) -> Result<()> {
     runtime()?.block_on(async {
         let mut client = Client::connect(&server.server, &server.credentials).await?;
@@ -480,6 +572,7 @@ mod tests {
                 dataset_cache_hit: None,
                 failed_attempts: 0,
                 cut: None,
+                worker_name: String::new(),
                 timings: vec![
                     pb::StageTiming {
                         stage: "rasterize".into(),

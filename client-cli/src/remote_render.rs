@@ -5,6 +5,7 @@
 //! as the API reports it.
 
 use anyhow::{bail, Context, Result};
+use pointfarm_daemon::capabilities::{checked_tags, WorkerRequirements};
 use pointfarm_daemon::model::JobSpec;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::ingest::dataset_files;
@@ -53,7 +54,7 @@ fn submission(
     args: &RenderArgs,
     request: &RenderRequest,
     dataset_id: String,
-) -> pb::SubmitJobRequest {
+) -> Result<pb::SubmitJobRequest> {
     let nonce = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_nanos())
@@ -63,8 +64,22 @@ fn submission(
         dataset_id,
         request: request.clone(),
         priority: args.priority,
+        requirements: requirements(args)?,
     };
-    pb::SubmitJobRequest::from(&spec)
+    Ok(pb::SubmitJobRequest::from(&spec))
+}
+
+/// What the job asks of its workers (`--require-tag`, `--require-gpu`), checked as the server
+/// checks it.
+fn requirements(args: &RenderArgs) -> Result<WorkerRequirements> {
+    let tags = checked_tags(
+        "--require-tag",
+        args.require_tags.iter().map(String::as_str),
+    )?;
+    Ok(WorkerRequirements {
+        tags: tags.into_iter().collect(),
+        gpu: args.require_gpu,
+    })
 }
 
 pub fn run(
@@ -74,6 +89,9 @@ pub fn run(
     outputs: &Outputs,
 ) -> Result<()> {
     refuse_local_only_options(args, request)?;
+    let submitted = |dataset_id| submission(args, request, dataset_id);
+    // Bad tags are refused before anything is uploaded.
+    submitted(String::new())?;
     if let Some(path) = &outputs.legend {
         let coloring = request.render.coloring();
         outln!(
@@ -96,7 +114,7 @@ pub fn run(
         ));
         let job = client
             .jobs
-            .submit_job(submission(args, request, dataset.id))
+            .submit_job(submitted(dataset.id)?)
             .await
             .map_err(crate::remote::status_error)?
             .into_inner();
@@ -104,6 +122,17 @@ pub fn run(
             "job {} submitted: {} frames",
             job.id, job.frames_total
         ));
+        // A job that the connected workers all refuse waits for another: say why, once.
+        if let Ok(shown) = client
+            .jobs
+            .get_job(pb::GetJobRequest { id: job.id.clone() })
+            .await
+        {
+            let shown = shown.into_inner();
+            if !shown.waiting_reason.is_empty() && !shown.refusals.is_empty() {
+                say(format!("waiting: {}", shown.waiting_reason));
+            }
+        }
         let finished = client.follow(&job.id, args.json).await?;
         require_success(&finished)?;
         // Fetched beside the frames' folder (one file system, so placing them is a rename),

@@ -33,6 +33,12 @@ pub fn run(args: RenderArgs) -> Result<()> {
     if let Some(server) = args.server.clone().filter(|_| !args.local) {
         return crate::remote_render::run(&server, &args, &request, &outputs);
     }
+    if !args.require_tags.is_empty() || args.require_gpu {
+        anyhow::bail!(
+            "--require-tag and --require-gpu choose a server's workers for the job; they need \
+             --server (this render runs here)"
+        );
+    }
 
     let files = dataset_files(&args.inputs)?;
     let say = |line: String| crate::output::say(args.json, line);

@@ -68,6 +68,14 @@ pub struct RenderArgs {
     /// Server jobs: higher runs first.
     #[arg(long, default_value_t = 0)]
     pub(crate) priority: i32,
+    /// Server jobs: lease the frames only to workers with this tag (`worker --tag`;
+    /// repeatable, all required).
+    #[arg(long = "require-tag", value_name = "TAG")]
+    pub(crate) require_tags: Vec<String>,
+    /// Server jobs: lease the frames only to workers on a hardware GPU, never a software
+    /// rasterizer.
+    #[arg(long)]
+    pub(crate) require_gpu: bool,
     /// Output image, in the format its extension names: .png, .jpg, .webp or .tif (16-bit).
     /// With --turntable: a folder for frame_00000.png, frame_00001.png, ..., or a pattern
     /// such as frames/orbit_{:04}.jpg ({} for unpadded numbers).

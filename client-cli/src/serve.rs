@@ -14,6 +14,7 @@ use pointfarm_daemon::server::{serve, ServeOptions, TlsIdentity};
 use pointfarm_daemon::service::{
     Daemon, DaemonConfig, DEFAULT_LEASE_TIMEOUT, DEFAULT_MAX_FRAMES, DEFAULT_MAX_FRAME_ATTEMPTS,
     DEFAULT_MAX_IMAGE_SIDE, DEFAULT_MAX_UPLOAD_BYTES, DEFAULT_WORKER_CACHE_BYTES,
+    DEFAULT_WORKER_FAILURES_BEFORE_BLOCKLIST,
 };
 use pointfarm_daemon::worker::supervisor::WorkerCommand;
 use pointfarm_render::gpu::AdapterChoice;
@@ -95,6 +96,15 @@ pub struct ServeArgs {
     /// Attempts at a frame (failed, or lost with its worker) before its job fails.
     #[arg(long, env = "POINTFARM_MAX_FRAME_ATTEMPTS", default_value_t = DEFAULT_MAX_FRAME_ATTEMPTS, value_parser = clap::value_parser!(u32).range(1..=100))]
     max_frame_attempts: u32,
+    /// Frames of one job a worker may fail (reported failures, leases that ran out) before
+    /// it is leased no more of that job's frames; 0 keeps no blocklist.
+    #[arg(
+        long,
+        value_name = "N",
+        env = "POINTFARM_BLOCKLIST_AFTER",
+        default_value_t = DEFAULT_WORKER_FAILURES_BEFORE_BLOCKLIST
+    )]
+    blocklist_after: u32,
     /// Cap the embedded worker process's memory (heap and other private writable memory) at
     /// this many MiB: a frame that needs more crashes that process, not the machine, and
     /// counts a failed attempt.
@@ -157,6 +167,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
         config.recover_state = args.recover_state;
         config.lease_timeout = std::time::Duration::from_secs_f64(args.lease_timeout);
         config.max_frame_attempts = args.max_frame_attempts;
+        config.worker_failures_before_blocklist = args.blocklist_after;
         if let Some(bytes) = args.store_memory_budget {
             config.store_build_memory_bytes = bytes;
         }

@@ -8,6 +8,7 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use clap::Args;
+use pointfarm_daemon::capabilities::{checked_tags, WorkerCapabilities};
 use pointfarm_daemon::metrics::{http, WorkerMetrics};
 use pointfarm_daemon::service::DEFAULT_WORKER_CACHE_BYTES;
 use pointfarm_daemon::worker::memory_limit;
@@ -55,6 +56,30 @@ pub struct WorkerArgs {
     /// GPU to render on: auto, hardware or software (lavapipe).
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
     adapter: AdapterChoice,
+    /// Which adapter of those --adapter allows, counting from 0, best first: one worker per
+    /// GPU on a machine with several (an index out of range lists them).
+    #[arg(
+        long,
+        value_name = "N",
+        env = "POINTFARM_ADAPTER_INDEX",
+        default_value_t = 0
+    )]
+    adapter_index: usize,
+    /// An operator tag this worker advertises (repeatable; the environment variable takes a
+    /// comma-separated list): jobs that require tags are leased only to workers with all of
+    /// them. Letters, digits and -_.:/, at most 64 bytes each.
+    #[arg(
+        long = "tag",
+        value_name = "TAG",
+        env = "POINTFARM_WORKER_TAGS",
+        value_delimiter = ','
+    )]
+    tags: Vec<String>,
+    /// Draw no image larger than this many pixels a side (width or height times
+    /// supersampling): larger frames go to other workers. Default: the renderer's limit
+    /// (16384; frames beyond the adapter's binding limit are drawn in tiles).
+    #[arg(long, value_name = "PIXELS", env = "POINTFARM_MAX_FRAME_SIDE", value_parser = clap::value_parser!(u32).range(1..))]
+    max_frame_side: Option<u32>,
     /// Cap this process's memory (heap and other private writable memory) at this many MiB:
     /// a frame that needs more aborts the worker instead of exhausting the machine.
     #[arg(long, value_name = "MIB", env = "POINTFARM_MAX_MEMORY_MIB")]
@@ -108,7 +133,9 @@ pub fn run(args: WorkerArgs) -> Result<()> {
         gpu_budget_bytes: args.gpu_budget,
     };
     cut.validate()?;
-    let gpu = Arc::new(GpuContext::new(args.adapter)?);
+    let tags = checked_tags("--tag", args.tags.iter().map(|t| t.trim()))?;
+    let gpu = Arc::new(GpuContext::with_index(args.adapter, args.adapter_index)?);
+    let capabilities = WorkerCapabilities::of(&gpu, tags, args.max_frame_side);
     // After the GPU is set up: the limit is for the frames' data.
     if let Some(mib) = args.max_memory_mib {
         memory_limit::apply(mib << 20)?;
@@ -125,6 +152,7 @@ pub fn run(args: WorkerArgs) -> Result<()> {
         gpu.describe(),
         server.url()
     );
+    outln!("{}", describe_capabilities(&capabilities));
     let config = RemoteWorkerConfig {
         server,
         token,
@@ -133,6 +161,7 @@ pub fn run(args: WorkerArgs) -> Result<()> {
         cache_bytes: args.cache_gib << 30,
         cut,
         metrics: Arc::new(WorkerMetrics::new()),
+        capabilities,
     };
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async move {
@@ -143,4 +172,22 @@ pub fn run(args: WorkerArgs) -> Result<()> {
         }
         run_worker(config, gpu, crate::serve::shutdown_signal()).await
     })
+}
+
+/// What the worker advertises, in one line: the frame limit and the tags.
+fn describe_capabilities(capabilities: &WorkerCapabilities) -> String {
+    let side = capabilities
+        .max_frame_side
+        .map_or_else(|| "any".to_string(), |side| side.to_string());
+    let tags = if capabilities.tags.is_empty() {
+        "none".to_string()
+    } else {
+        capabilities
+            .tags
+            .iter()
+            .cloned()
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    format!("largest image side drawn: {side} pixels; tags: {tags}")
 }

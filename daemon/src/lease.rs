@@ -12,6 +12,14 @@
 //! previous daemon) count one too. A failure the worker reports as permanent (the dataset
 //! cannot be read, the request cannot render) fails the job at once.
 //!
+//! A worker is leased only frames it can render: of jobs whose requirements (tags, a GPU) it
+//! meets, whose images are no larger than it draws (`capabilities`), and that have not
+//! blocklisted it. A worker that fails `worker_failures_before_blocklist` frames of a job
+//! (reported failures and leases that ran out; not leases lost because the daemon stopped)
+//! gets no more of that job's frames, as Flamenco and Deadline do: the count is stored with
+//! the job. The frames' own attempts (`max_frame_attempts`) count as before, so a frame that
+//! fails everywhere still fails its job.
+//!
 //! Every change to leases, frames and job states made here happens under one scheduling lock,
 //! so two workers never get the same frame and a cancel never races a completion.
 
@@ -20,10 +28,12 @@ use std::time::Duration;
 
 use pointfarm_render::request::RenderRequest;
 
+use crate::capabilities::{drawn_side, AdapterKind, WorkerCapabilities};
 use crate::error::DaemonError;
 use crate::lease_record::Lease;
 use crate::model::{now_unix_ms, FrameCut, FrameReport, FrameState, Job, JobState, StageTiming};
 use crate::service::Daemon;
+use crate::worker_presence::ConnectedWorker;
 
 /// The dataset of a task, as a worker's cache knows it.
 #[derive(Debug, Clone, PartialEq)]
@@ -87,12 +97,14 @@ impl Daemon {
         self.config.lease_timeout.as_millis() as i64
     }
 
-    /// Leases the next frame (highest priority, oldest job, lowest index) to `worker`, or
-    /// None when there is nothing to render.
+    /// Leases the next frame (highest priority, oldest job, lowest index) that `worker`, with
+    /// `capabilities`, can render and has not been blocklisted for, or None when there is
+    /// nothing for it to render.
     pub fn lease_frame(
         &self,
         worker: &str,
         embedded: bool,
+        capabilities: &WorkerCapabilities,
     ) -> Result<Option<FrameTask>, DaemonError> {
         let _scheduling = self.scheduling()?;
         if let Some(outage) = self.store.outage() {
@@ -105,8 +117,14 @@ impl Daemon {
             .into_iter()
             .map(|l| (l.job_id, l.index))
             .collect();
+        let usable = |job: &Job| {
+            !job.blocklist.contains(worker)
+                && capabilities
+                    .refusal(&job.spec.requirements, &job.spec.request)
+                    .is_none()
+        };
         loop {
-            let Some((job, index)) = self.store.next_task(&leased)? else {
+            let Some((job, index)) = self.store.next_task(&leased, &usable)? else {
                 return Ok(None);
             };
             let Some(dataset) = self.store.dataset(&job.spec.dataset_id)? else {
@@ -206,6 +224,7 @@ impl Daemon {
         self.expire_leases_locked()?;
         match self.held_lease_locked(lease_id) {
             Ok((mut lease, _)) => {
+                self.workers.heard_from_named(&lease.worker);
                 lease.expires_unix_ms = now_unix_ms() + self.lease_timeout_ms();
                 // The disk takes no renewal now; every lease is renewed when it takes writes
                 // again, so the holder renders on.
@@ -277,6 +296,7 @@ impl Daemon {
             dataset_cache_hit: outcome.dataset_cache_hit,
             failed_attempts,
             cut: outcome.cut,
+            worker: lease.worker.clone(),
         };
         // A refused state write leaves the PNG in place: the write may yet have reached the
         // disk, and a frame marked done must have its image; rendered again, it is replaced.
@@ -352,7 +372,7 @@ impl Daemon {
     ) -> Result<(), DaemonError> {
         self.metrics.frame_failed();
         match kind {
-            FailureKind::Transient => self.count_failed_attempt_locked(lease, reason),
+            FailureKind::Transient => self.count_failed_attempt_locked(lease, reason, true),
             FailureKind::Permanent => {
                 let attempts = self.failed_attempts_locked(lease)? + 1;
                 self.fail_job_locked(
@@ -367,10 +387,11 @@ impl Daemon {
     }
 
     /// The embedded worker `worker` exited (`how`: its exit status): each frame it held
-    /// counts a failed attempt and goes back to the queue. Returns how many it held.
+    /// counts a failed attempt (and a failed frame of its job for the worker) and goes back
+    /// to the queue. Returns how many it held.
     pub fn embedded_worker_exited(&self, worker: &str, how: &str) -> Result<usize, DaemonError> {
         let _scheduling = self.scheduling()?;
-        self.count_embedded_leases_locked(|lease| {
+        self.count_embedded_leases_locked(true, |lease| {
             (lease.worker == worker).then(|| {
                 format!(
                     "worker {worker} died while rendering frame {} ({how})",
@@ -381,10 +402,11 @@ impl Daemon {
     }
 
     /// At start-up: the embedded worker died with the previous daemon, so each frame it held
-    /// counts a failed attempt, as if it had exited now. Returns how many it held.
+    /// counts a failed attempt, as if it had exited now; the worker is not to blame for it.
+    /// Returns how many it held.
     pub fn count_leases_of_previous_run(&self) -> Result<usize, DaemonError> {
         let _scheduling = self.scheduling()?;
-        let counted = self.count_embedded_leases_locked(|lease| {
+        let counted = self.count_embedded_leases_locked(false, |lease| {
             Some(format!(
                 "worker {} died while rendering frame {} (the daemon stopped)",
                 lease.worker, lease.index
@@ -399,9 +421,11 @@ impl Daemon {
         Ok(counted)
     }
 
-    /// Removes the embedded leases for which `reason` gives a reason, counting an attempt each.
+    /// Removes the embedded leases for which `reason` gives a reason, counting an attempt each
+    /// (and a failed frame for the worker when it is to `blame`).
     fn count_embedded_leases_locked(
         &self,
+        blame: bool,
         reason: impl Fn(&Lease) -> Option<String>,
     ) -> Result<usize, DaemonError> {
         let mut counted = 0;
@@ -413,7 +437,7 @@ impl Daemon {
             if self.is_wanted_locked(&lease)? {
                 tracing::warn!(job = %lease.job_id, frame = lease.index, %reason, "frame lost");
                 self.metrics.frame_failed();
-                self.count_failed_attempt_locked(&lease, &reason)?;
+                self.count_failed_attempt_locked(&lease, &reason, blame)?;
                 counted += 1;
             }
         }
@@ -519,6 +543,7 @@ impl Daemon {
                         "worker {} stopped renewing its lease (no heartbeat for {:?})",
                         lease.worker, self.config.lease_timeout
                     ),
+                    true,
                 )?;
                 expired += 1;
             }
@@ -542,7 +567,15 @@ impl Daemon {
         })
     }
 
-    fn count_failed_attempt_locked(&self, lease: &Lease, reason: &str) -> Result<(), DaemonError> {
+    /// Counts a failed attempt at the frame of `lease`, and when its worker is to `blame` a
+    /// failed frame of the job for the worker; the job fails when the frame has used up its
+    /// attempts.
+    fn count_failed_attempt_locked(
+        &self,
+        lease: &Lease,
+        reason: &str,
+        blame: bool,
+    ) -> Result<(), DaemonError> {
         if matches!(
             self.store.frame(&lease.job_id, lease.index)?,
             Some(FrameState::Done(_))
@@ -559,12 +592,25 @@ impl Daemon {
                 ),
             );
         }
-        self.store.set_frame(
-            &lease.job_id,
-            lease.index,
-            &FrameState::Pending { attempts },
-        )?;
+        let limit = self.config.worker_failures_before_blocklist;
+        let mut blocklisted = false;
+        let job = self
+            .store
+            .count_failed_attempt(&lease.job_id, lease.index, attempts, |job| {
+                if blame {
+                    blocklisted = job.count_worker_failure(&lease.worker, limit);
+                }
+            })?;
         self.store.flush()?;
+        if let Some(job) = job.filter(|_| blocklisted) {
+            tracing::warn!(
+                job = %job.id,
+                worker = %lease.worker,
+                failed_frames = limit,
+                "worker blocklisted for the job: it gets no more of its frames"
+            );
+            self.publish(&job, None);
+        }
         self.work.notify();
         Ok(())
     }
@@ -580,6 +626,79 @@ impl Daemon {
         }
         Ok(())
     }
+}
+
+/// Whether the frames of an unfinished job can be leased to a worker connected now.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct JobAvailability {
+    /// Why no connected worker can be leased a frame of it; None while one can, and for a job
+    /// that has ended.
+    pub waiting: Option<String>,
+    /// Each connected worker that cannot, by name, with why not.
+    pub refusals: Vec<(String, String)>,
+}
+
+impl Daemon {
+    /// Whether a worker connected now can be leased frames of `job`, and why each that cannot
+    /// cannot: the test `lease_frame` makes, against the workers `WorkerPresence` knows.
+    pub fn job_availability(&self, job: &Job) -> JobAvailability {
+        if job.state.is_terminal() {
+            return JobAvailability::default();
+        }
+        let connected = self.workers.connected(self.config.lease_timeout);
+        let refusal = |worker: &ConnectedWorker| {
+            if job.blocklist.contains(&worker.name) {
+                let failed = job.worker_failures.get(&worker.name).copied().unwrap_or(0);
+                return Some(format!(
+                    "blocklisted: it failed {failed} frames of this job"
+                ));
+            }
+            worker
+                .capabilities
+                .refusal(&job.spec.requirements, &job.spec.request)
+        };
+        let refusals: Vec<(String, String)> = connected
+            .iter()
+            .filter_map(|worker| refusal(worker).map(|why| (worker.name.clone(), why)))
+            .collect();
+        let waiting = if connected.is_empty() {
+            Some("no worker is connected".to_string())
+        } else if refusals.len() == connected.len() {
+            Some(why_none_can(job, &connected))
+        } else {
+            None
+        };
+        JobAvailability { waiting, refusals }
+    }
+}
+
+/// Why none of `connected` (each of which cannot) can render `job`: the one reason they
+/// share where there is one.
+fn why_none_can(job: &Job, connected: &[ConnectedWorker]) -> String {
+    let requirements = &job.spec.requirements;
+    let none = |lacks: &dyn Fn(&ConnectedWorker) -> bool| connected.iter().all(lacks);
+    if none(&|w| job.blocklist.contains(&w.name)) {
+        return "every connected worker is blocklisted for this job".into();
+    }
+    if requirements.gpu && none(&|w| w.capabilities.adapter != AdapterKind::Hardware) {
+        return "no connected worker has a GPU".into();
+    }
+    if let Some(tag) = requirements
+        .tags
+        .iter()
+        .find(|tag| none(&|w| !w.capabilities.tags.contains(*tag)))
+    {
+        return format!("no connected worker has tag {tag}");
+    }
+    let side = drawn_side(&job.spec.request);
+    if none(&|w| {
+        w.capabilities
+            .max_frame_side
+            .is_some_and(|m| side > u64::from(m))
+    }) {
+        return format!("no connected worker draws images of {side} pixels a side");
+    }
+    "no connected worker can render it (each for a reason of its own)".into()
 }
 
 /// A handed-in frame must be a PNG of the job's size.

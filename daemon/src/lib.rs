@@ -5,7 +5,7 @@
 //! From the bottom up: `model` and `camera_path` (domain types, the camera of each frame),
 //! `error` (the daemon's and the store's errors), `limits` (the bounds on names and ids
 //! clients send), `lease_record` (the stored lease), `manifest` (the counts recorded beside
-//! the database), `store` (sled), `worker_presence` (which workers can render, for health),
+//! the database), `capabilities` (what a worker can render, what a job requires of one), `store` (sled), `worker_presence` (which workers can render, for health),
 //! `service` (the `Daemon` and its job operations), `datasets` (datasets of one or more
 //! files: registered, uploaded, composed; more `Daemon` methods), `describe` (what a
 //! dataset's files hold, read with the render crate; more `Daemon` methods), `lease` (frame
@@ -19,6 +19,7 @@
 //! Only `grpc`, `worker::remote` and `server` (which mounts the services) know protobuf.
 
 pub mod access;
+pub mod capabilities;
 pub mod datasets;
 pub mod describe;
 pub mod error;

@@ -2,8 +2,12 @@
 //! from. Nothing here knows about protobuf. What a job renders is the render crate's
 //! [`RenderRequest`], stored as it is.
 
+use std::collections::{BTreeMap, BTreeSet};
+
 use pointfarm_render::request::RenderRequest;
 use serde::{Deserialize, Serialize};
+
+use crate::capabilities::WorkerRequirements;
 
 pub type DatasetId = String;
 pub type JobId = String;
@@ -84,6 +88,9 @@ pub struct JobSpec {
     #[serde(flatten)]
     pub request: RenderRequest,
     pub priority: i32,
+    /// What a worker must offer to be leased the job's frames.
+    #[serde(default, skip_serializing_if = "WorkerRequirements::is_empty")]
+    pub requirements: WorkerRequirements,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -125,6 +132,24 @@ pub struct Job {
     pub error: Option<String>,
     pub created_unix_ms: i64,
     pub updated_unix_ms: i64,
+    /// Frames of this job each worker (by name) failed: reported failures and leases that
+    /// ran out.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub worker_failures: BTreeMap<String, u32>,
+    /// The workers leased no more of its frames: each failed the daemon's
+    /// `worker_failures_before_blocklist` of them.
+    #[serde(default, skip_serializing_if = "BTreeSet::is_empty")]
+    pub blocklist: BTreeSet<String>,
+}
+
+impl Job {
+    /// Counts a failed frame for `worker`; it joins the blocklist at `limit` failures (never
+    /// when `limit` is 0). Returns whether it joined it now.
+    pub fn count_worker_failure(&mut self, worker: &str, limit: u32) -> bool {
+        let failed = self.worker_failures.entry(worker.to_owned()).or_default();
+        *failed += 1;
+        limit > 0 && *failed >= limit && self.blocklist.insert(worker.to_owned())
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -147,6 +172,9 @@ pub struct FrameReport {
     /// The frame's cut when it was rendered from levels of detail.
     #[serde(default)]
     pub cut: Option<FrameCut>,
+    /// The worker that rendered it; empty in frames stored before it was recorded.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub worker: String,
 }
 
 /// What a frame rendered from levels of detail drew and loaded: the render crate's counts,

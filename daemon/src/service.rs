@@ -29,6 +29,10 @@ pub const DEFAULT_MAX_FRAME_ATTEMPTS: u32 = 3;
 pub const DEFAULT_LEASE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
 
 /// Limits and locations of a daemon.
+/// Frames of one job a worker may fail before it gets no more of them, as Flamenco's and
+/// Deadline's blocklists have it.
+pub const DEFAULT_WORKER_FAILURES_BEFORE_BLOCKLIST: u32 = 3;
+
 #[derive(Debug, Clone)]
 pub struct DaemonConfig {
     /// State database, uploaded datasets and rendered frames live here.
@@ -45,6 +49,9 @@ pub struct DaemonConfig {
     pub upload_quota_bytes: Option<u64>,
     /// Attempts per frame before its job fails.
     pub max_frame_attempts: u32,
+    /// Frames of one job a worker may fail before it is leased no more of them (the job's
+    /// blocklist); 0 keeps no blocklist.
+    pub worker_failures_before_blocklist: u32,
     /// A remote worker's lease on a frame ends unless renewed within this time.
     pub lease_timeout: std::time::Duration,
     /// Size bound of the worker's processed-dataset cache.
@@ -71,6 +78,7 @@ impl DaemonConfig {
             max_frame_attempts: DEFAULT_MAX_FRAME_ATTEMPTS,
             lease_timeout: DEFAULT_LEASE_TIMEOUT,
             worker_cache_bytes: DEFAULT_WORKER_CACHE_BYTES,
+            worker_failures_before_blocklist: DEFAULT_WORKER_FAILURES_BEFORE_BLOCKLIST,
             store_build_memory_bytes: pointfarm_render::cut::DEFAULT_MEMORY_BUDGET_BYTES,
             event_buffer: 1024,
             recover_state: false,

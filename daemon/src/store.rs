@@ -390,13 +390,28 @@ impl Store {
     }
 
     /// The next frame to render: the first pending frame that is not `leased`, of the
-    /// unfinished job with the highest priority, the oldest first among equals. Reads the
-    /// scheduling index, so finished jobs cost nothing.
+    /// unfinished job with the highest priority that `usable` accepts (the asking worker can
+    /// render it), the oldest first among equals. Reads the scheduling index, so finished
+    /// jobs cost nothing.
     pub fn next_task(
         &self,
         leased: &HashSet<(String, u32)>,
+        usable: &dyn Fn(&Job) -> bool,
     ) -> Result<Option<(Job, u32)>, StoreError> {
-        self.with(|records| records.next_task(leased))
+        self.with(|records| records.next_task(leased, usable))
+    }
+
+    /// Sets frame `index` of job `job_id` pending after `attempts` failed attempts and applies
+    /// `change` to its job (the worker's failures), as one transaction. None if there is no
+    /// such job.
+    pub fn count_failed_attempt(
+        &self,
+        job_id: &str,
+        index: u32,
+        attempts: u32,
+        change: impl FnOnce(&mut Job),
+    ) -> Result<Option<Job>, StoreError> {
+        self.with(|records| records.count_failed_attempt(job_id, index, attempts, change))
     }
 
     /// After a restart: jobs that were running go back to the queue (their finished frames

@@ -1,10 +1,14 @@
 //! Which workers can render now, for health checking: the embedded worker while its process
 //! runs and has called in, remote workers while they wait for frames or were heard from
-//! within the lease timeout; and how many there are, for the metrics.
+//! within the lease timeout. Each worker that asked for frames is also known by name with the
+//! capabilities it sent, so that a job no connected worker can render says why, and counted,
+//! for the metrics.
 
 use std::collections::{HashMap, HashSet};
 use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
+
+use crate::capabilities::WorkerCapabilities;
 
 #[derive(Default)]
 struct State {
@@ -12,13 +16,28 @@ struct State {
     embedded_called_in: bool,
     remote_polls: usize,
     remote_last_seen: Option<Instant>,
-    /// When each remote worker, by name, last asked for a frame.
-    remote_named: HashMap<String, Instant>,
+    /// The workers that asked for frames, by name.
+    named: HashMap<String, Named>,
 }
 
-/// A remote worker not heard of for this long is forgotten (it is long past any lease
-/// timeout), so that names of workers that came and went do not pile up.
-const FORGET_AFTER: Duration = Duration::from_secs(3600);
+/// A worker known by name: what it last said it can do, and when it was last heard from.
+struct Named {
+    embedded: bool,
+    capabilities: WorkerCapabilities,
+    polls: usize,
+    last_seen: Instant,
+}
+
+/// A worker connected now, as it last asked for frames.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ConnectedWorker {
+    pub name: String,
+    pub embedded: bool,
+    pub capabilities: WorkerCapabilities,
+}
+
+/// Names not heard from for this many times the timeout are forgotten.
+const FORGET_AFTER_TIMEOUTS: u32 = 10;
 
 /// The workers the daemon has heard from; the gRPC layer and the supervisor of the embedded
 /// worker keep it up to date.
@@ -33,14 +52,20 @@ pub struct WorkerPresence {
 pub struct PollGuard<'a> {
     presence: &'a WorkerPresence,
     remote: bool,
+    name: Option<String>,
 }
 
 impl Drop for PollGuard<'_> {
     fn drop(&mut self) {
+        let mut state = self.presence.state();
+        let now = Instant::now();
         if self.remote {
-            let mut state = self.presence.state();
             state.remote_polls = state.remote_polls.saturating_sub(1);
-            state.remote_last_seen = Some(Instant::now());
+            state.remote_last_seen = Some(now);
+        }
+        if let Some(named) = self.name.as_ref().and_then(|n| state.named.get_mut(n)) {
+            named.polls = named.polls.saturating_sub(1);
+            named.last_seen = now;
         }
     }
 }
@@ -92,38 +117,83 @@ impl WorkerPresence {
         PollGuard {
             presence: self,
             remote: !embedded,
+            name: None,
         }
     }
 
-    /// The remote worker `name` asks for a frame.
-    pub fn remote_named(&self, name: &str) {
-        let now = Instant::now();
+    /// The worker `name` asks for a frame, saying what it can render: as [`Self::poll`], and
+    /// it is known by name, connected while it waits and within `timeout` after.
+    pub fn poll_named(
+        &self,
+        embedded: bool,
+        name: &str,
+        capabilities: WorkerCapabilities,
+        timeout: Duration,
+    ) -> PollGuard<'_> {
+        let mut guard = self.poll(embedded);
         let mut state = self.state();
+        let now = Instant::now();
+        let forget = timeout * FORGET_AFTER_TIMEOUTS;
         state
-            .remote_named
-            .retain(|_, seen| now.duration_since(*seen) <= FORGET_AFTER);
-        state.remote_named.insert(name.to_owned(), now);
+            .named
+            .retain(|_, n| n.polls > 0 || now.duration_since(n.last_seen) <= forget);
+        let named = state.named.entry(name.to_owned()).or_insert(Named {
+            embedded,
+            capabilities: WorkerCapabilities::default(),
+            polls: 0,
+            last_seen: now,
+        });
+        named.embedded = embedded;
+        named.capabilities = capabilities;
+        named.polls += 1;
+        named.last_seen = now;
+        guard.name = Some(name.to_owned());
+        guard
     }
 
-    /// How many workers can render: the embedded one once it has called in, and the remote
-    /// ones that hold a lease (`remote_holders`, by name) or asked for a frame within
-    /// `remote_timeout`.
-    pub fn connected<'a>(
+    /// The worker `name` called about a frame it holds (a heartbeat).
+    pub fn heard_from_named(&self, name: &str) {
+        if let Some(named) = self.state().named.get_mut(name) {
+            named.last_seen = Instant::now();
+        }
+    }
+
+    /// The workers known by name that are connected now: waiting for a frame, or heard from
+    /// within `timeout` (the embedded one only while its process runs), by name.
+    pub fn connected(&self, timeout: Duration) -> Vec<ConnectedWorker> {
+        let state = self.state();
+        let embedded_up = state.embedded_running && state.embedded_called_in;
+        let mut connected: Vec<ConnectedWorker> = state
+            .named
+            .iter()
+            .filter(|(_, n)| {
+                let recent = n.polls > 0 || n.last_seen.elapsed() <= timeout;
+                recent && (!n.embedded || embedded_up)
+            })
+            .map(|(name, n)| ConnectedWorker {
+                name: name.clone(),
+                embedded: n.embedded,
+                capabilities: n.capabilities.clone(),
+            })
+            .collect();
+        connected.sort_by(|a, b| a.name.cmp(&b.name));
+        connected
+    }
+
+    /// How many workers are connected: those of [`Self::connected`] and the remote ones that
+    /// hold a lease (`remote_holders`, by name) while rendering a long frame.
+    pub fn connected_count<'a>(
         &self,
-        remote_timeout: Duration,
+        timeout: Duration,
         remote_holders: impl IntoIterator<Item = &'a str>,
     ) -> usize {
-        let state = self.state();
-        let mut remote: HashSet<&str> = remote_holders.into_iter().collect();
-        remote.extend(
-            state
-                .remote_named
-                .iter()
-                .filter(|(_, seen)| seen.elapsed() <= remote_timeout)
-                .map(|(name, _)| name.as_str()),
-        );
-        let embedded = state.embedded_running && state.embedded_called_in;
-        usize::from(embedded) + remote.len()
+        let mut names: HashSet<String> = self
+            .connected(timeout)
+            .into_iter()
+            .map(|worker| worker.name)
+            .collect();
+        names.extend(remote_holders.into_iter().map(str::to_owned));
+        names.len()
     }
 
     /// Whether some worker can render: the embedded one is up, or a remote one waits for
@@ -167,21 +237,59 @@ mod tests {
     fn workers_are_counted_by_name_while_they_ask_for_frames_or_hold_leases() {
         let presence = WorkerPresence::default();
         let timeout = Duration::from_millis(100);
-        assert_eq!(presence.connected(timeout, []), 0);
+        assert_eq!(presence.connected_count(timeout, []), 0);
         presence.embedded_started();
         presence.heard_from(true);
-        presence.remote_named("a");
-        presence.remote_named("b");
-        presence.remote_named("a");
-        assert_eq!(presence.connected(timeout, ["a"]), 3);
+        drop(presence.poll_named(true, "embedded", Default::default(), timeout));
+        drop(presence.poll_named(false, "a", Default::default(), timeout));
+        drop(presence.poll_named(false, "b", Default::default(), timeout));
+        drop(presence.poll_named(false, "a", Default::default(), timeout));
+        assert_eq!(presence.connected_count(timeout, ["a"]), 3);
         std::thread::sleep(timeout * 2);
+        presence.heard_from_named("embedded");
         assert_eq!(
-            presence.connected(timeout, ["b"]),
+            presence.connected_count(timeout, ["b"]),
             2,
-            "a is no longer heard from; b holds a lease"
+            "the embedded worker sent a heartbeat, b holds a lease, a is no longer heard from"
         );
         presence.embedded_exited();
-        assert_eq!(presence.connected(timeout, []), 0);
+        assert_eq!(presence.connected_count(timeout, []), 0);
+    }
+
+    #[test]
+    fn named_workers_are_connected_while_they_poll_and_within_the_timeout_after() {
+        let presence = WorkerPresence::default();
+        let timeout = Duration::from_millis(100);
+        let tagged = WorkerCapabilities {
+            tags: ["a".to_string()].into(),
+            ..WorkerCapabilities::default()
+        };
+        let poll = presence.poll_named(false, "w1", tagged.clone(), timeout);
+        let embedded = presence.poll_named(true, "embedded", Default::default(), timeout);
+        drop(embedded);
+        let names = |p: &WorkerPresence| -> Vec<String> {
+            p.connected(timeout).into_iter().map(|w| w.name).collect()
+        };
+        assert_eq!(
+            names(&presence),
+            vec!["w1"],
+            "the embedded process is not running"
+        );
+        presence.embedded_started();
+        presence.heard_from(true);
+        assert_eq!(names(&presence), vec!["embedded", "w1"]);
+        assert_eq!(presence.connected(timeout)[1].capabilities, tagged);
+        std::thread::sleep(timeout * 2);
+        assert_eq!(names(&presence), vec!["w1"], "w1 still waits for work");
+        drop(poll);
+        assert_eq!(names(&presence), vec!["w1"]);
+        std::thread::sleep(timeout * 2);
+        assert!(names(&presence).is_empty());
+        // A heartbeat keeps a worker rendering a long frame connected.
+        drop(presence.poll_named(false, "w2", Default::default(), timeout));
+        std::thread::sleep(timeout * 2);
+        presence.heard_from_named("w2");
+        assert_eq!(names(&presence), vec!["w2"]);
     }
 
     #[test]

@@ -201,6 +201,7 @@ pub fn turntable_job(
         height,
         render: None,
         priority: 0,
+        requirements: None,
     }
 }
 
@@ -251,6 +252,7 @@ pub async fn run_job(
         dataset_id: dataset_id.into(),
         request,
         priority: 0,
+        requirements: Default::default(),
     };
     let job = jobs
         .submit_job(pb::SubmitJobRequest::from(&spec))

@@ -11,11 +11,13 @@
 use pointfarm_proto::v1 as pb;
 
 use super::request::{camera_path_message, known_enum, render_options_message, render_request};
+use crate::capabilities::{checked_tags, AdapterKind, WorkerCapabilities, WorkerRequirements};
 use crate::datasets::MAX_DATASET_FILES;
 use crate::describe::FileReport;
 use crate::error::DaemonError;
 use crate::lease::{FailureKind, FrameTask, HeartbeatAnswer, TaskDataset, TaskFile};
 use crate::lease_record::Lease;
+use crate::limits::{truncated, MAX_WORKER_NAME_BYTES};
 use crate::model::{Dataset, FrameCut, FrameReport, Job, JobSpec, JobState, StageTiming};
 use crate::store::Page;
 use crate::stores::StoreAnswer;
@@ -47,7 +49,81 @@ impl TryFrom<&pb::SubmitJobRequest> for JobSpec {
             dataset_id: r.dataset_id.clone(),
             request: render_request(r.width, r.height, r.camera_path.as_ref(), r.render.as_ref())?,
             priority: r.priority,
+            requirements: r
+                .requirements
+                .as_ref()
+                .map(WorkerRequirements::try_from)
+                .transpose()?
+                .unwrap_or_default(),
         })
+    }
+}
+
+/// Required tags are checked, sorted and kept once.
+impl TryFrom<&pb::WorkerRequirements> for WorkerRequirements {
+    type Error = DaemonError;
+
+    fn try_from(r: &pb::WorkerRequirements) -> Result<Self, DaemonError> {
+        let tags = checked_tags("requirements.tags", r.tags.iter().map(String::as_str))?;
+        Ok(WorkerRequirements {
+            tags: tags.into_iter().collect(),
+            gpu: r.gpu,
+        })
+    }
+}
+
+impl From<&WorkerRequirements> for pb::WorkerRequirements {
+    fn from(r: &WorkerRequirements) -> Self {
+        pb::WorkerRequirements {
+            tags: r.tags.clone(),
+            gpu: r.gpu,
+        }
+    }
+}
+
+/// A worker's capabilities as it sends them with a lease request; tags are checked (a worker
+/// with a bad tag is refused), none sent is a worker that says nothing of itself.
+impl TryFrom<Option<&pb::WorkerCapabilities>> for WorkerCapabilities {
+    type Error = DaemonError;
+
+    fn try_from(c: Option<&pb::WorkerCapabilities>) -> Result<Self, DaemonError> {
+        let Some(c) = c else {
+            return Ok(WorkerCapabilities::default());
+        };
+        let adapter = match pb::AdapterKind::try_from(c.adapter_kind) {
+            Ok(pb::AdapterKind::Hardware) => AdapterKind::Hardware,
+            Ok(pb::AdapterKind::Software) => AdapterKind::Software,
+            _ => AdapterKind::Unknown,
+        };
+        Ok(WorkerCapabilities {
+            adapter,
+            adapter_name: truncated(&c.adapter_name, MAX_WORKER_NAME_BYTES),
+            device_memory_bytes: (c.device_memory_bytes > 0).then_some(c.device_memory_bytes),
+            int64_atomics: c.shader_int64_atomics,
+            max_storage_binding_bytes: c.max_storage_buffer_binding_size,
+            max_buffer_bytes: c.max_buffer_size,
+            max_frame_side: (c.max_frame_side > 0).then_some(c.max_frame_side),
+            tags: checked_tags("capabilities.tags", c.tags.iter().map(String::as_str))?,
+        })
+    }
+}
+
+impl From<&WorkerCapabilities> for pb::WorkerCapabilities {
+    fn from(c: &WorkerCapabilities) -> Self {
+        pb::WorkerCapabilities {
+            adapter_kind: match c.adapter {
+                AdapterKind::Unknown => pb::AdapterKind::Unspecified,
+                AdapterKind::Hardware => pb::AdapterKind::Hardware,
+                AdapterKind::Software => pb::AdapterKind::Software,
+            } as i32,
+            adapter_name: c.adapter_name.clone(),
+            device_memory_bytes: c.device_memory_bytes.unwrap_or(0),
+            shader_int64_atomics: c.int64_atomics,
+            max_storage_buffer_binding_size: c.max_storage_binding_bytes,
+            max_buffer_size: c.max_buffer_bytes,
+            max_frame_side: c.max_frame_side.unwrap_or(0),
+            tags: c.tags.iter().cloned().collect(),
+        }
     }
 }
 
@@ -92,6 +168,18 @@ impl From<&Job> for pb::Job {
             updated_unix_ms: job.updated_unix_ms,
             spec: None,
             frames: Vec::new(),
+            requirements: (!job.spec.requirements.is_empty())
+                .then(|| pb::WorkerRequirements::from(&job.spec.requirements)),
+            blocklisted_workers: job
+                .blocklist
+                .iter()
+                .map(|worker| pb::BlocklistedWorker {
+                    worker_name: worker.clone(),
+                    failed_frames: job.worker_failures.get(worker).copied().unwrap_or(0),
+                })
+                .collect(),
+            waiting_reason: String::new(),
+            refusals: Vec::new(),
         }
     }
 }
@@ -155,6 +243,7 @@ impl From<&FrameReport> for pb::FrameFinished {
             dataset_cache_hit: report.dataset_cache_hit,
             failed_attempts: report.failed_attempts,
             cut: report.cut.as_ref().map(frame_cut_message),
+            worker_name: report.worker.clone(),
         }
     }
 }
@@ -581,6 +670,7 @@ mod tests {
             height: 48,
             render: None,
             priority: 0,
+            requirements: None,
         }
     }
 
@@ -597,6 +687,63 @@ mod tests {
 
     fn kernel(kernel: u32) -> pb::FillOptions {
         pb::FillOptions { kernel }
+    }
+
+    #[test]
+    fn requirements_are_checked_sorted_and_convert_both_ways() {
+        let mut r = valid();
+        r.requirements = Some(pb::WorkerRequirements {
+            tags: vec!["site-x".into(), "gpu:a100".into(), "site-x".into()],
+            gpu: true,
+        });
+        let spec = JobSpec::try_from(&r).expect("valid");
+        assert_eq!(
+            spec.requirements,
+            WorkerRequirements {
+                tags: vec!["gpu:a100".into(), "site-x".into()],
+                gpu: true
+            }
+        );
+        let resubmitted = pb::SubmitJobRequest::from(&spec);
+        assert_eq!(JobSpec::try_from(&resubmitted).expect("valid"), spec);
+        assert_eq!(
+            JobSpec::try_from(&valid()).expect("valid").requirements,
+            WorkerRequirements::default()
+        );
+        r.requirements = Some(pb::WorkerRequirements {
+            tags: vec!["two words".into()],
+            gpu: false,
+        });
+        assert_eq!(field_of(&r), "requirements.tags");
+    }
+
+    #[test]
+    fn capabilities_convert_both_ways_and_bad_tags_are_refused() {
+        let capabilities = WorkerCapabilities {
+            adapter: AdapterKind::Software,
+            adapter_name: "llvmpipe (LLVM 19)".into(),
+            device_memory_bytes: None,
+            int64_atomics: true,
+            max_storage_binding_bytes: 1 << 31,
+            max_buffer_bytes: 1 << 32,
+            max_frame_side: Some(4096),
+            tags: ["site-x".to_string()].into(),
+        };
+        let message = pb::WorkerCapabilities::from(&capabilities);
+        assert_eq!(
+            WorkerCapabilities::try_from(Some(&message)).expect("valid"),
+            capabilities
+        );
+        assert_eq!(
+            WorkerCapabilities::try_from(None).expect("none sent"),
+            WorkerCapabilities::default()
+        );
+        let bad = pb::WorkerCapabilities {
+            tags: vec![String::new()],
+            ..message
+        };
+        let error = WorkerCapabilities::try_from(Some(&bad)).expect_err("an empty tag");
+        assert!(error.to_string().contains("capabilities.tags"), "{error}");
     }
 
     #[test]

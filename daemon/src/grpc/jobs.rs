@@ -35,8 +35,18 @@ impl JobService for Api {
     ) -> Result<Response<pb::Job>, Status> {
         let id = request.into_inner().id;
         let (job, frames) = self.run(move |daemon| daemon.job_with_frames(&id)).await?;
+        let availability = self.daemon.job_availability(&job);
         let mut message = pb::Job::from(&job);
         message.frames = frames.iter().map(pb::FrameFinished::from).collect();
+        message.waiting_reason = availability.waiting.unwrap_or_default();
+        message.refusals = availability
+            .refusals
+            .into_iter()
+            .map(|(worker_name, reason)| pb::WorkerRefusal {
+                worker_name,
+                reason,
+            })
+            .collect();
         Ok(Response::new(message))
     }
 
@@ -169,6 +179,26 @@ impl JobService for Api {
             }
         });
         Ok(Response::new(stream))
+    }
+
+    async fn list_workers(
+        &self,
+        _request: Request<pb::ListWorkersRequest>,
+    ) -> Result<Response<pb::ListWorkersResponse>, Status> {
+        let connected = self
+            .daemon
+            .workers
+            .connected(self.daemon.config.lease_timeout);
+        Ok(Response::new(pb::ListWorkersResponse {
+            workers: connected
+                .iter()
+                .map(|worker| pb::ConnectedWorker {
+                    worker_name: worker.name.clone(),
+                    embedded: worker.embedded,
+                    capabilities: Some(pb::WorkerCapabilities::from(&worker.capabilities)),
+                })
+                .collect(),
+        }))
     }
 
     async fn list_leases(

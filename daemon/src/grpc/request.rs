@@ -462,6 +462,8 @@ impl From<&JobSpec> for pb::SubmitJobRequest {
             height: request.height,
             render: Some(render_options_message(&request.render)),
             priority: spec.priority,
+            requirements: (!spec.requirements.is_empty())
+                .then(|| pb::WorkerRequirements::from(&spec.requirements)),
         }
     }
 }

@@ -13,6 +13,7 @@ use super::conversions::{
 use super::lease_guard::LeaseGuard;
 use super::streaming::{chunks, first_part, read_chunk, spawn_stream, stream_each, ResponseStream};
 use super::Api;
+use crate::capabilities::WorkerCapabilities;
 use crate::error::DaemonError;
 use crate::lease::FrameOutcome;
 use crate::limits::{check_id, check_length, truncated, MAX_REASON_BYTES, MAX_WORKER_NAME_BYTES};
@@ -82,16 +83,20 @@ impl WorkerService for Api {
     ) -> Result<Response<pb::LeaseFrameResponse>, Status> {
         let peer = request.remote_addr();
         let embedded = is_embedded(&request);
-        let _present = self.daemon.workers.poll(embedded);
         let r = request.into_inner();
         check_length("worker_name", &r.worker_name, MAX_WORKER_NAME_BYTES)?;
+        let capabilities = WorkerCapabilities::try_from(r.capabilities.as_ref())?;
         let mut name = r.worker_name;
         if name.is_empty() {
             name = peer.map_or_else(|| "unnamed".into(), |a| a.to_string());
         }
-        if !embedded {
-            self.daemon.workers.remote_named(&name);
-        }
+        let _present = self.daemon.workers.poll_named(
+            embedded,
+            &name,
+            capabilities.clone(),
+            self.daemon.config.lease_timeout,
+        );
+        let capabilities = std::sync::Arc::new(capabilities);
         let wait = std::time::Duration::from_millis(r.wait_ms.min(MAX_LEASE_WAIT_MS) as u64);
         let deadline = tokio::time::Instant::now() + wait;
         // Subscribed before looking, so work that arrives in between is not missed.
@@ -103,9 +108,10 @@ impl WorkerService for Api {
             }
             let guard = LeaseGuard::new(self.daemon.clone());
             let (worker, slot) = (name.clone(), guard.slot.clone());
+            let capabilities = capabilities.clone();
             let leased = self
                 .run(move |daemon| {
-                    let task = daemon.lease_frame(&worker, embedded)?;
+                    let task = daemon.lease_frame(&worker, embedded, &capabilities)?;
                     Ok(task.and_then(|task| slot.keep(daemon, task)))
                 })
                 .await?;

@@ -29,7 +29,7 @@ fn png(width: u32, height: u32) -> Vec<u8> {
 /// Leases the next frame, which there must be.
 fn lease(daemon: &Daemon, worker: &str, embedded: bool) -> FrameTask {
     daemon
-        .lease_frame(worker, embedded)
+        .lease_frame(worker, embedded, &WorkerCapabilities::default())
         .expect("lease")
         .expect("a frame to lease")
 }
@@ -193,7 +193,7 @@ fn a_full_disk_gives_frames_back_without_an_attempt_and_the_daemon_resumes_by_it
     assert!(partial_files(&daemon, &job.id).is_empty());
     assert!(daemon.store.outage().is_some());
     assert!(daemon.leases().expect("leases").is_empty(), "given back");
-    let leasing = daemon.lease_frame("w", false);
+    let leasing = daemon.lease_frame("w", false, &WorkerCapabilities::default());
     assert!(
         matches!(leasing, Err(DaemonError::ResourceExhausted(_))),
         "no frames are leased while the disk is full: {leasing:?}"
@@ -233,4 +233,251 @@ fn a_full_disk_gives_frames_back_without_an_attempt_and_the_daemon_resumes_by_it
     // All of it durable: a restart finds the job done.
     let daemon = open(disk.path());
     assert_eq!(daemon.job(&job.id).expect("job").state, JobState::Succeeded);
+}
+
+/// A worker that says what it can render.
+fn worker(adapter: AdapterKind, tags: &[&str], max_frame_side: Option<u32>) -> WorkerCapabilities {
+    WorkerCapabilities {
+        adapter,
+        adapter_name: format!("{adapter:?}"),
+        max_frame_side,
+        tags: tags.iter().map(|t| t.to_string()).collect(),
+        ..WorkerCapabilities::default()
+    }
+}
+
+/// Submits a job of one frame of `width` x `height` at `supersample` on the daemon's dataset.
+fn submit_one(
+    daemon: &Daemon,
+    name: &str,
+    (width, height, supersample): (u32, u32, u32),
+    requirements: Option<pb::WorkerRequirements>,
+) -> crate::model::Job {
+    let dataset = daemon
+        .list_datasets(10, "")
+        .expect("datasets")
+        .items
+        .remove(0);
+    let request = pb::SubmitJobRequest {
+        request_id: name.into(),
+        dataset_id: dataset.id,
+        camera_path: Some(pb::CameraPath::turntable(pb::Turntable::of_frames(1))),
+        width,
+        height,
+        render: Some(pb::RenderOptions {
+            supersample: Some(supersample),
+            ..Default::default()
+        }),
+        requirements,
+        ..Default::default()
+    };
+    daemon
+        .submit_job(crate::model::JobSpec::try_from(&request).expect("spec"))
+        .expect("submit")
+}
+
+/// The jobs whose frames `worker` is leased, in order, until there is none for it.
+fn jobs_leased(daemon: &Daemon, name: &str, worker: &WorkerCapabilities) -> Vec<String> {
+    std::iter::from_fn(|| {
+        daemon
+            .lease_frame(name, false, worker)
+            .expect("lease")
+            .map(|task| task.lease.job_id)
+    })
+    .collect()
+}
+
+#[test]
+fn frames_are_leased_only_to_workers_that_meet_their_jobs_requirements_and_size() {
+    let (_dir, daemon, plain) = daemon_with_job(1);
+    let gpu = pb::WorkerRequirements {
+        gpu: true,
+        tags: Vec::new(),
+    };
+    let site = pb::WorkerRequirements {
+        gpu: false,
+        tags: vec!["site-x".into()],
+    };
+    let needs_gpu = submit_one(&daemon, "gpu", (8, 6, 1), Some(gpu));
+    let needs_tag = submit_one(&daemon, "tag", (8, 6, 1), Some(site));
+    // 2100 pixels at 2x supersampling draw 4200 a side.
+    let large = submit_one(&daemon, "large", (2100, 1000, 2), None);
+    let lavapipe = worker(AdapterKind::Software, &["site-x"], Some(4096));
+    let a100 = worker(AdapterKind::Hardware, &[], Some(16384));
+    assert_eq!(
+        jobs_leased(&daemon, "lavapipe", &lavapipe),
+        vec![plain.id.clone(), needs_tag.id.clone()],
+        "no GPU job, no 4200-pixel frame"
+    );
+    assert_eq!(
+        jobs_leased(&daemon, "a100", &a100),
+        vec![needs_gpu.id.clone(), large.id.clone()],
+        "no job that needs a tag it lacks"
+    );
+    // A worker that says nothing of itself renders only jobs without requirements.
+    let old = WorkerCapabilities::default();
+    let second_plain = submit_one(&daemon, "plain-2", (8, 6, 1), None);
+    let second_gpu = submit_one(
+        &daemon,
+        "gpu-2",
+        (8, 6, 1),
+        Some(pb::WorkerRequirements {
+            gpu: true,
+            tags: Vec::new(),
+        }),
+    );
+    assert_eq!(jobs_leased(&daemon, "old", &old), vec![second_plain.id]);
+    assert_eq!(jobs_leased(&daemon, "a100", &a100), vec![second_gpu.id]);
+}
+
+#[test]
+fn a_job_that_no_connected_worker_can_render_says_why() {
+    let (_dir, daemon, plain) = daemon_with_job(1);
+    let timeout = daemon.config.lease_timeout;
+    let waiting = |job: &crate::model::Job| daemon.job_availability(job).waiting;
+    assert_eq!(waiting(&plain).as_deref(), Some("no worker is connected"));
+    let tagged = submit_one(
+        &daemon,
+        "tagged",
+        (8, 6, 1),
+        Some(pb::WorkerRequirements {
+            gpu: false,
+            tags: vec!["site-x".into(), "a100".into()],
+        }),
+    );
+    let large = submit_one(&daemon, "large", (5000, 10, 1), None);
+    let lavapipe = worker(AdapterKind::Software, &["site-x"], Some(4096));
+    let _polling = daemon
+        .workers
+        .poll_named(false, "lavapipe", lavapipe, timeout);
+    assert_eq!(waiting(&plain), None);
+    assert_eq!(
+        waiting(&tagged).as_deref(),
+        Some("no connected worker has tag a100")
+    );
+    assert_eq!(
+        daemon.job_availability(&tagged).refusals,
+        vec![("lavapipe".to_string(), "no tag a100".to_string())]
+    );
+    assert_eq!(
+        waiting(&large).as_deref(),
+        Some("no connected worker draws images of 5000 pixels a side")
+    );
+    let a100 = worker(AdapterKind::Hardware, &["a100", "site-x"], None);
+    let _also = daemon.workers.poll_named(false, "a100", a100, timeout);
+    assert_eq!(waiting(&tagged), None);
+    assert_eq!(waiting(&large), None);
+    assert_eq!(daemon.job_availability(&large).refusals.len(), 1);
+}
+
+#[test]
+fn a_worker_that_fails_three_frames_of_a_job_gets_no_more_of_them() {
+    let (dir, daemon, job) = daemon_with_job(5);
+    assert_eq!(daemon.config.worker_failures_before_blocklist, 3);
+    let other = submit_one(&daemon, "other", (8, 6, 1), None);
+    let held: Vec<FrameTask> = (0..3).map(|_| lease(&daemon, "bad", false)).collect();
+    assert_eq!(
+        held.iter().map(|t| t.lease.index).collect::<Vec<_>>(),
+        [0, 1, 2]
+    );
+    for (n, task) in held.iter().enumerate() {
+        daemon
+            .fail_frame(&task.lease.id, "GPU lost", FailureKind::Transient)
+            .expect("fail");
+        let now = daemon.job(&job.id).expect("job");
+        assert_eq!(now.worker_failures.get("bad"), Some(&(n as u32 + 1)));
+        assert_eq!(now.blocklist.contains("bad"), n == 2);
+    }
+    // Each frame failed once: the job goes on, without "bad".
+    let blocked = daemon.job(&job.id).expect("job");
+    assert_eq!(blocked.state, JobState::Running);
+    let caps = WorkerCapabilities::default();
+    assert_eq!(
+        jobs_leased(&daemon, "bad", &caps),
+        vec![other.id.clone()],
+        "the other job's frames still go to it"
+    );
+    let good = lease(&daemon, "good", false);
+    assert_eq!((good.lease.index, good.failed_attempts), (0, 1));
+    let message = pb::Job::from(&blocked);
+    assert_eq!(
+        message.blocklisted_workers,
+        vec![pb::BlocklistedWorker {
+            worker_name: "bad".into(),
+            failed_frames: 3
+        }]
+    );
+    let timeout = daemon.config.lease_timeout;
+    {
+        let _bad = daemon
+            .workers
+            .poll_named(false, "bad", caps.clone(), timeout);
+        let availability = daemon.job_availability(&blocked);
+        assert_eq!(
+            availability.waiting.as_deref(),
+            Some("every connected worker is blocklisted for this job")
+        );
+        assert_eq!(
+            availability.refusals,
+            vec![(
+                "bad".to_string(),
+                "blocklisted: it failed 3 frames of this job".to_string()
+            )]
+        );
+    }
+    drop(daemon);
+
+    // Durable with the job.
+    let daemon = open(dir.path());
+    let reopened = daemon.job(&job.id).expect("job");
+    assert_eq!(reopened.blocklist, blocked.blocklist);
+    let for_bad = daemon
+        .lease_frame("bad", false, &caps)
+        .expect("lease")
+        .map(|task| task.lease.job_id);
+    assert_eq!(for_bad, None, "{reopened:?}");
+}
+
+#[test]
+fn lost_leases_count_against_their_worker_except_when_the_daemon_stopped() {
+    let (dir, daemon, job) = daemon_with_job(4);
+    lease(&daemon, "embedded", true);
+    daemon
+        .embedded_worker_exited("embedded", "killed by signal 9 (SIGKILL)")
+        .expect("exited");
+    let counted = daemon.job(&job.id).expect("job");
+    assert_eq!(counted.worker_failures.get("embedded"), Some(&1));
+    lease(&daemon, "embedded", true);
+    drop(daemon);
+    let daemon = open(dir.path());
+    let after = daemon.job(&job.id).expect("job");
+    assert_eq!(
+        after.worker_failures.get("embedded"),
+        Some(&1),
+        "the daemon's stop is not the worker's failure"
+    );
+    let again = lease(&daemon, "embedded", true);
+    assert_eq!((again.lease.index, again.failed_attempts), (0, 2));
+}
+
+#[test]
+fn no_blocklist_is_kept_when_its_limit_is_zero() {
+    let folder = tempfile::tempdir().expect("tempdir");
+    let (daemon, job) = daemon_with_job_in(folder.path(), 4);
+    drop(daemon);
+    let mut config = DaemonConfig::new(folder.path().join("data"));
+    config.data_roots = vec![folder.path().join("roots")];
+    config.worker_failures_before_blocklist = 0;
+    let daemon = Daemon::open(config).expect("open");
+    let held: Vec<FrameTask> = (0..3).map(|_| lease(&daemon, "bad", false)).collect();
+    for task in &held {
+        daemon
+            .fail_frame(&task.lease.id, "GPU lost", FailureKind::Transient)
+            .expect("fail");
+    }
+    let now = daemon.job(&job.id).expect("job");
+    assert_eq!(now.worker_failures.get("bad"), Some(&3));
+    assert!(now.blocklist.is_empty());
+    let again = lease(&daemon, "bad", false);
+    assert_eq!((again.lease.index, again.failed_attempts), (0, 1));
 }

@@ -336,7 +336,7 @@ impl Daemon {
             .collect();
         let workers_connected = self
             .workers
-            .connected(self.config.lease_timeout, remote_holders);
+            .connected_count(self.config.lease_timeout, remote_holders);
         Ok(FarmState {
             queue,
             leases_held: leases.len() as u64,

@@ -113,8 +113,17 @@ fn after_a_job_every_family_is_there_with_what_happened() {
         .lease_frame("w2", false)
         .expect("lease")
         .expect("task");
-    daemon.workers.remote_named("w1");
-    daemon.workers.remote_named("w2");
+    let timeout = daemon.config.lease_timeout;
+    drop(
+        daemon
+            .workers
+            .poll_named(false, "w1", Default::default(), timeout),
+    );
+    drop(
+        daemon
+            .workers
+            .poll_named(false, "w2", Default::default(), timeout),
+    );
     assert_eq!(first.lease.job_id, urgent.id);
     let state = daemon.farm_state().expect("state");
     assert_eq!(state.leases_held, 2);

@@ -108,6 +108,8 @@ impl Records {
             created_unix_ms: now,
             updated_unix_ms: now,
             spec,
+            worker_failures: Default::default(),
+            blocklist: Default::default(),
         };
         let pending = encode(&FrameState::Pending { attempts: 0 })?;
         let (mut frame_batch, mut pending_batch) = (sled::Batch::default(), sled::Batch::default());
@@ -309,11 +311,12 @@ impl Records {
     }
 
     /// The next frame to render: the first pending frame that is not `leased`, of the
-    /// unfinished job with the highest priority, the oldest first among equals. Reads the
-    /// scheduling index, so finished jobs cost nothing.
+    /// unfinished job with the highest priority that `usable` accepts, the oldest first among
+    /// equals. Reads the scheduling index, so finished jobs cost nothing.
     pub(super) fn next_task(
         &self,
         leased: &std::collections::HashSet<(String, u32)>,
+        usable: &dyn Fn(&Job) -> bool,
     ) -> Result<Option<(Job, u32)>, StoreError> {
         for entry in self.trees.queue.iter() {
             let (_, job_id) = entry?;
@@ -327,8 +330,11 @@ impl Records {
                 if leased.contains(&(job_id.clone(), index)) {
                     continue;
                 }
+                // Every frame of a job is alike to `usable`: one look decides for the job.
                 match self.job(&job_id)? {
-                    Some(job) if !job.state.is_terminal() => return Ok(Some((job, index))),
+                    Some(job) if !job.state.is_terminal() && usable(&job) => {
+                        return Ok(Some((job, index)))
+                    }
                     _ => break,
                 }
             }
@@ -347,6 +353,34 @@ impl Records {
             }
         }
         Ok(jobs)
+    }
+
+    /// Sets frame `index` of job `job_id` pending after `attempts` failed attempts and applies
+    /// `change` to its job, in one transaction. None if there is no such job.
+    pub(super) fn count_failed_attempt(
+        &self,
+        job_id: &str,
+        index: u32,
+        attempts: u32,
+        change: impl FnOnce(&mut Job),
+    ) -> Result<Option<Job>, StoreError> {
+        let Some(mut job) = self.job(job_id)? else {
+            return Ok(None);
+        };
+        change(&mut job);
+        job.updated_unix_ms = now_unix_ms();
+        let key = frame_key(job_id, index);
+        let frame = encode(&FrameState::Pending { attempts })?;
+        let encoded = encode(&job)?;
+        (&self.trees.frames, &self.trees.pending, &self.trees.jobs)
+            .transaction(|(frames, pending, jobs)| {
+                frames.insert(key.as_slice(), frame.as_slice())?;
+                pending.insert(key.as_slice(), &[])?;
+                jobs.insert(job.id.as_bytes(), encoded.as_slice())?;
+                Ok(())
+            })
+            .map_err(transaction_error)?;
+        Ok(Some(job))
     }
 
     /// After a restart: jobs that were running go back to the queue (their finished frames

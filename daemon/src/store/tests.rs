@@ -19,6 +19,7 @@ fn spec(request_id: &str, frames: u32, priority: i32) -> JobSpec {
             render: RenderOptions::default(),
         },
         priority,
+        requirements: Default::default(),
     }
 }
 
@@ -29,7 +30,7 @@ fn open(path: &std::path::Path) -> Store {
 /// The order in which frames are handed out while none is given back.
 fn schedule(store: &Store) -> Vec<(String, u32)> {
     let (mut order, mut leased) = (Vec::new(), HashSet::new());
-    while let Some((job, index)) = store.next_task(&leased).expect("next") {
+    while let Some((job, index)) = store.next_task(&leased, &|_| true).expect("next") {
         leased.insert((job.id.clone(), index));
         order.push((job.id, index));
     }
@@ -69,6 +70,7 @@ fn done_frames_and_ended_jobs_leave_the_schedule() {
         dataset_cache_hit: None,
         cut: None,
         failed_attempts: 0,
+        worker: String::new(),
     };
     store
         .set_frame(&first.id, 0, &FrameState::Done(report))

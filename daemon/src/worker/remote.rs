@@ -14,6 +14,9 @@
 //!   for another, saying so once, not per try.
 //! - Stopping (SIGTERM) lets the current frame finish and hands it in; a stop while waiting for
 //!   work exits at once.
+//! - Every lease request says what the worker can render (`WorkerCapabilities`: its adapter,
+//!   the largest image side it draws, the operator's tags), so the daemon leases it only frames
+//!   it can render.
 //! - A failed frame is reported with its kind: permanent (the dataset cannot be read, the
 //!   request cannot render) fails the job at once, transient is tried again. A panic while
 //!   rendering is reported, and then the worker exits: its renderer is lost.
@@ -36,6 +39,7 @@ use tokio::sync::watch;
 use tonic::{Code, Status};
 use tracing::Instrument;
 
+use crate::capabilities::WorkerCapabilities;
 use crate::grpc::streaming::{HashingWriter, CHUNK_BYTES};
 use crate::grpc::{frame_cut_message, frame_task, timings_message};
 use crate::lease::{FrameTask, TaskFile};
@@ -64,6 +68,9 @@ pub struct RemoteWorkerConfig {
     pub cut: CutOptions,
     /// What the worker counts of its frames (served when `worker --metrics-listen` asks).
     pub metrics: Arc<WorkerMetrics>,
+    /// What the worker says it can render, with every lease request: the daemon leases it
+    /// only frames of jobs it meets the requirements of, no larger than it draws.
+    pub capabilities: WorkerCapabilities,
 }
 
 /// How long a worker waits to lease again after handing back a frame whose store the daemon
@@ -160,6 +167,7 @@ pub async fn run(
         Some(Arc::new(cache)),
         Some(lod),
     ));
+    let capabilities = pb::WorkerCapabilities::from(&config.capabilities);
     let mut backoff = Backoff::new();
     // Said once when the daemon cannot store frames, once when it can again.
     let mut daemon_full = false;
@@ -168,6 +176,7 @@ pub async fn run(
         let request = pb::LeaseFrameRequest {
             worker_name: config.name.clone(),
             wait_ms: LEASE_WAIT_MS,
+            capabilities: Some(capabilities.clone()),
         };
         let mut lease_client = client.clone();
         let lease_call = lease_client.lease_frame(request);

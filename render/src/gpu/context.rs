@@ -75,6 +75,16 @@ pub enum GpuError {
          mesa-vulkan-drivers, for software rendering); adapters seen: {seen}"
     )]
     NoAdapter { choice: AdapterChoice, seen: String },
+    #[error(
+        "adapter index {index} is out of range: the {choice} choice has {count} adapter(s), \
+         numbered from 0 ({listed})"
+    )]
+    NoSuchIndex {
+        choice: AdapterChoice,
+        index: usize,
+        count: usize,
+        listed: String,
+    },
     #[error("could not open a device on {adapter}: {source}")]
     Device {
         adapter: String,
@@ -132,6 +142,13 @@ fn preference_rank(device_type: wgpu::DeviceType) -> u8 {
 impl GpuContext {
     /// Opens the best adapter that `choice` allows.
     pub fn new(choice: AdapterChoice) -> Result<Self, GpuError> {
+        Self::with_index(choice, 0)
+    }
+
+    /// Opens adapter number `index` of those `choice` allows, best first (discrete GPUs,
+    /// integrated, virtual, other, software; in the order the system lists them within each
+    /// kind): one worker per GPU on a machine with several. Index 0 is [`GpuContext::new`]'s.
+    pub fn with_index(choice: AdapterChoice, index: usize) -> Result<Self, GpuError> {
         // GL is left out on purpose: headless GL on llvmpipe is unreliable, and lavapipe
         // gives a software Vulkan device with 64-bit atomics.
         let backends = wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12;
@@ -148,14 +165,40 @@ impl GpuContext {
             })
             .collect::<Vec<_>>()
             .join(", ");
-        let adapter = adapters
+        let mut accepted: Vec<wgpu::Adapter> = adapters
             .into_iter()
             .filter(|a| choice.accepts(a.get_info().device_type))
-            .min_by_key(|a| preference_rank(a.get_info().device_type))
-            .ok_or_else(|| GpuError::NoAdapter {
+            .collect();
+        // Stable: adapters of one kind keep the system's order.
+        accepted.sort_by_key(|a| preference_rank(a.get_info().device_type));
+        if accepted.is_empty() {
+            return Err(GpuError::NoAdapter {
                 choice,
                 seen: if seen.is_empty() { "none".into() } else { seen },
-            })?;
+            });
+        }
+        let count = accepted.len();
+        if index >= count {
+            let listed = accepted
+                .iter()
+                .enumerate()
+                .map(|(i, a)| {
+                    let info = a.get_info();
+                    format!(
+                        "{i}: {} ({:?}, {:?})",
+                        info.name, info.device_type, info.backend
+                    )
+                })
+                .collect::<Vec<_>>()
+                .join(", ");
+            return Err(GpuError::NoSuchIndex {
+                choice,
+                index,
+                count,
+                listed,
+            });
+        }
+        let adapter = accepted.swap_remove(index);
         let adapter_info = adapter.get_info();
 
         let wanted = wgpu::Features::SHADER_INT64
@@ -205,6 +248,11 @@ impl GpuContext {
             queue,
             _instance: instance,
         })
+    }
+
+    /// Whether the adapter is a software rasterizer (lavapipe, llvmpipe), not a GPU.
+    pub fn is_software(&self) -> bool {
+        self.adapter_info.device_type == wgpu::DeviceType::Cpu
     }
 
     /// A one-line description for logs and CLI output.

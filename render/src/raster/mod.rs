@@ -57,6 +57,7 @@ pub use point_workgroup::WORKGROUP_SIZE_ENV;
 pub use pointlist_baseline::{PointListBaseline, PointListFrame};
 pub use points::{GpuPointCloud, BATCH_POINTS, POINT_BYTES};
 pub use settings::*;
+pub use tiles::largest_drawn_side;
 pub use timing::{Clock, Stage, StageTiming, StageTimings};
 
 use crate::cloud::PointCloud;

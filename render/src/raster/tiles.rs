@@ -17,8 +17,9 @@ use image::RgbaImage;
 
 use super::occlusion::{self, OcclusionSkipped};
 use super::{
-    downsample, Clock, FrameSettings, GpuPointCloud, Quality, RenderError, Renderer, Shading,
-    Stage, StageTimings,
+    downsample, Clock, FillSettings, FrameSettings, GpuPointCloud, Quality, RenderError, Renderer,
+    Shading, Stage, StageTimings, MAX_FILL_KERNEL, MAX_IMAGE_SIDE, MAX_PINTUS_LEVELS,
+    MAX_POINT_SIZE, MAX_SUPERSAMPLE,
 };
 use crate::camera::{Camera, CameraTransform, ImageWindow};
 use crate::raster::Frame;
@@ -95,6 +96,44 @@ pub(crate) struct TileGrid {
     pub tile_width: u32,
     pub tile_height: u32,
     pub apron: u32,
+}
+
+/// The largest side of a drawn (supersampled) image that an adapter whose storage bindings
+/// hold `limit` bytes renders whatever a request's options are. Tiles lift the binding limit, so
+/// this is [`MAX_IMAGE_SIDE`] unless not even a one-pixel tile with the widest apron fits (the
+/// high-quality accumulator at the largest point size, filling kernel and shading, about
+/// 10 MiB; wgpu's default limits promise 128 MiB): then the side of a square frame drawn whole.
+pub fn largest_drawn_side(limit: u64) -> u32 {
+    let camera = Camera {
+        position: DVec3::new(0.0, -10.0, 0.0),
+        target: DVec3::ZERO,
+        up: DVec3::Z,
+        projection: crate::camera::Projection::Perspective { fov_y_deg: 50.0 },
+        near: 1.0,
+        far: 100.0,
+    };
+    let widest = FrameSettings {
+        quality: Quality::HIGH,
+        point_size: MAX_POINT_SIZE,
+        fill: Some(FillSettings {
+            kernel: MAX_FILL_KERNEL,
+        }),
+        shading: Shading::Pintus {
+            levels: MAX_PINTUS_LEVELS,
+            exponent: 1.0,
+        },
+        supersample: MAX_SUPERSAMPLE,
+        ..FrameSettings::new(
+            MAX_IMAGE_SIDE / MAX_SUPERSAMPLE,
+            MAX_IMAGE_SIDE / MAX_SUPERSAMPLE,
+            camera,
+        )
+    };
+    if TileGrid::plan(&widest, limit).is_ok() {
+        return MAX_IMAGE_SIDE;
+    }
+    let whole = (limit / bytes_per_pixel(Quality::HIGH)).isqrt();
+    whole.min(u64::from(MAX_IMAGE_SIDE)) as u32
 }
 
 /// One tile: its core in output pixels, and the window of the drawn (supersampled) frame it
@@ -352,8 +391,15 @@ fn paste(image: &mut RgbaImage, depth: Option<&mut [f32]>, core: &Frame, at: Ima
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::raster::{FillSettings, MAX_IMAGE_SIDE};
     use crate::testing::perspective_camera;
+
+    #[test]
+    fn every_adapter_with_the_default_binding_limit_renders_the_largest_image() {
+        assert_eq!(largest_drawn_side(128 << 20), MAX_IMAGE_SIDE);
+        assert_eq!(largest_drawn_side(16 << 20), MAX_IMAGE_SIDE);
+        // Too small for the widest apron's one-pixel tile: only frames drawn whole.
+        assert_eq!(largest_drawn_side(1 << 20), 256);
+    }
 
     fn settings(width: u32, height: u32) -> FrameSettings {
         let camera =
