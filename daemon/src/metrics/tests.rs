@@ -8,6 +8,7 @@ use std::time::Duration;
 use pointfarm_proto::v1 as pb;
 
 use super::*;
+use crate::capabilities::WorkerCapabilities;
 use crate::lease::{FailureKind, FrameOutcome};
 use crate::model::{Job, JobSpec};
 use crate::service::DaemonConfig;
@@ -106,11 +107,11 @@ fn after_a_job_every_family_is_there_with_what_happened() {
 
     // Highest priority first: both frames of the urgent job, then the first of the other.
     let first = daemon
-        .lease_frame("w1", false)
+        .lease_frame("w1", false, &WorkerCapabilities::default())
         .expect("lease")
         .expect("task");
     let second = daemon
-        .lease_frame("w2", false)
+        .lease_frame("w2", false, &WorkerCapabilities::default())
         .expect("lease")
         .expect("task");
     let timeout = daemon.config.lease_timeout;
@@ -170,7 +171,10 @@ fn after_a_job_every_family_is_there_with_what_happened() {
         .expect("fail");
     // The failed frame again, then the other job.
     let mut frames = 1;
-    while let Some(task) = daemon.lease_frame("w1", false).expect("lease") {
+    while let Some(task) = daemon
+        .lease_frame("w1", false, &WorkerCapabilities::default())
+        .expect("lease")
+    {
         daemon
             .complete_frame(&task.lease.id, &png(), outcome(true))
             .expect("complete");
@@ -242,7 +246,7 @@ fn an_expired_lease_counts_an_expiry_and_a_failed_attempt() {
     let daemon = open(dir.path(), Duration::from_millis(50));
     submit(&daemon, 1, 0);
     daemon
-        .lease_frame("lost", false)
+        .lease_frame("lost", false, &WorkerCapabilities::default())
         .expect("lease")
         .expect("task");
     std::thread::sleep(Duration::from_millis(150));
