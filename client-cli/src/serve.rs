@@ -9,6 +9,7 @@ use std::sync::Arc;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use pointfarm_daemon::access::Access;
+use pointfarm_daemon::capabilities::checked_tags;
 use pointfarm_daemon::metrics;
 use pointfarm_daemon::server::{serve, ServeOptions, TlsIdentity};
 use pointfarm_daemon::service::{
@@ -110,6 +111,15 @@ pub struct ServeArgs {
     /// counts a failed attempt.
     #[arg(long, value_name = "MIB", env = "POINTFARM_WORKER_MAX_MEMORY_MIB")]
     worker_max_memory_mib: Option<u64>,
+    /// An operator tag the embedded worker advertises, as `worker --tag` (repeatable; in the
+    /// environment, separated by commas).
+    #[arg(
+        long = "worker-tag",
+        value_name = "TAG",
+        env = "POINTFARM_EMBEDDED_WORKER_TAGS",
+        value_delimiter = ','
+    )]
+    worker_tags: Vec<String>,
     /// Size bound of the embedded worker's dataset cache (in DATA/embedded-worker), e.g. 8GiB.
     #[arg(long, value_name = "SIZE", env = "POINTFARM_WORKER_CACHE_SIZE", value_parser = parse::bytes, default_value_t = DEFAULT_WORKER_CACHE_BYTES)]
     worker_cache_size: u64,
@@ -219,6 +229,11 @@ pub fn run(args: ServeArgs) -> Result<()> {
 /// the data folder.
 fn embedded_worker_command(args: &ServeArgs, config: &DaemonConfig) -> Result<WorkerCommand> {
     let mut command = embedded_worker(config, args.adapter)?;
+    // Checked here too, so that a bad tag stops the daemon rather than its worker's restarts.
+    checked_tags("--worker-tag", args.worker_tags.iter().map(String::as_str))?;
+    for tag in &args.worker_tags {
+        command.args.extend(["--tag".into(), tag.into()]);
+    }
     if let Some(mib) = args.worker_max_memory_mib {
         command
             .args
@@ -309,5 +324,35 @@ mod tests {
             .args
             .windows(2)
             .any(|pair| pair[0] == "--cache-dir" && pair[1] == "/srv/pointfarm/embedded-worker"));
+    }
+
+    /// `serve --worker-tag` reaches the embedded worker as its `--tag`s; a bad tag is
+    /// refused before the daemon starts.
+    #[test]
+    fn the_embedded_worker_advertises_the_tags_serve_gives_it() {
+        use clap::Parser;
+        let serve = |tags: &[&str]| {
+            let mut argv = vec!["pointfarm", "serve", "--data-dir", "/srv/pointfarm"];
+            for tag in tags {
+                argv.extend(["--worker-tag", tag]);
+            }
+            match crate::Cli::try_parse_from(argv).expect("parses").command {
+                crate::Command::Serve(args) => *args,
+                _ => unreachable!("a serve command"),
+            }
+        };
+        let args = serve(&["site-x", "gpu-a100"]);
+        let command = embedded_worker_command(&args, &DaemonConfig::new(args.data_dir.clone()))
+            .expect("the command");
+        let tags: Vec<&std::ffi::OsStr> = command
+            .args
+            .windows(2)
+            .filter(|pair| pair[0] == "--tag")
+            .map(|pair| pair[1].as_os_str())
+            .collect();
+        assert_eq!(tags, ["site-x", "gpu-a100"]);
+        let args = serve(&["no spaces"]);
+        let refused = embedded_worker_command(&args, &DaemonConfig::new(args.data_dir.clone()));
+        assert!(refused.is_err());
     }
 }
