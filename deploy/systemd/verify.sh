@@ -19,8 +19,10 @@ if [ -z "$binary" ]; then
         if [ -x "$candidate" ]; then binary=$candidate; break; fi
     done
 fi
-[ -n "$binary" ] && [ -x "$binary" ] ||
-    { echo "systemd: no pointfarm binary to check the units with; build one first (cargo build --bin pointfarm)" >&2; exit 1; }
+if [ -z "$binary" ] || [ ! -x "$binary" ]; then
+    echo "systemd: no pointfarm binary to check the units with; build one first (cargo build --bin pointfarm)" >&2
+    exit 1
+fi
 
 root=$(mktemp -d)
 trap 'rm -rf "$root"' EXIT
@@ -34,7 +36,7 @@ status=0
 output=$(cd "$root" && systemd-analyze verify --root="$root" "${units[@]}" 2>&1) || status=$?
 if [ "$status" -ne 0 ] || [ -n "$output" ]; then
     echo "systemd: the units do not verify:" >&2
-    echo "$output" | sed "s|$root||g" >&2
+    echo "${output//$root/}" >&2
     exit 1
 fi
 echo "systemd: ${units[*]} verify (systemd $(systemd-analyze --version | awk 'NR == 1 { print $2 }'))"
