@@ -70,4 +70,19 @@ cargo test --workspace --locked 2>&1 | tee "$log" || status=$?
 # doc-test run with nothing in it).
 awk '/^test result:/ { for (i = 1; i <= NF; i++) { if ($(i) ~ /^passed;?$/) p += $(i-1); if ($(i) ~ /^failed;?$/) f += $(i-1) } }
      END { printf "tests: %d passed, %d failed\n", p, f }' "$log"
+
+# The deployment (deploy/README.md): the Kubernetes manifests against the Kubernetes schemas,
+# the systemd units with systemd-analyze (on the binary the tests built), and the container
+# image built around that binary with the demo run inside it, where a container engine works
+# (skipped, saying so, where none does; deploy/container/build.sh alone makes the full
+# multi-stage build).
+bash deploy/kubernetes/validate.sh || status=1
+binary="${CARGO_TARGET_DIR:-target}/debug/pointfarm"
+if cargo build --locked --quiet --bin pointfarm; then
+    bash deploy/systemd/verify.sh "$binary" || status=1
+    POINTFARM_IMAGE=localhost/pointfarm:test \
+        bash deploy/container/build.sh --if-engine --binary "$binary" || status=1
+else
+    status=1
+fi
 exit "$status"
