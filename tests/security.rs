@@ -364,3 +364,79 @@ async fn a_lease_is_usable_only_by_its_holder() {
     );
     daemon.stop().await;
 }
+
+/// `serve --health-listen`: beside a TLS port with tokens, the health service alone in
+/// plaintext, for probes that cannot speak TLS (Kubernetes' gRPC probes); the API is not
+/// there.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_checks_answer_in_plaintext_on_a_port_of_their_own() {
+    use tonic_health::pb::health_check_response::ServingStatus;
+    use tonic_health::pb::health_client::HealthClient;
+    use tonic_health::pb::HealthCheckRequest;
+
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let dir = scratch.path();
+    let pki = TestPki::create(dir);
+    let token = dir.join("client.token");
+    std::fs::write(&token, "client-Secret-77d0\n").expect("token");
+    let health_address = pointfarm_tests::free_address();
+    let _server = ServeProcess::start_with(
+        &dir.join("data"),
+        &[
+            "--no-embedded-worker",
+            "--tls-cert",
+            arg(&pki.cert),
+            "--tls-key",
+            arg(&pki.key),
+            "--token-file",
+            arg(&token),
+            "--health-listen",
+            &health_address,
+        ],
+    );
+    let channel = wait_for_channel(&health_address).await;
+    let status = |service: &str| {
+        let mut health = HealthClient::new(channel.clone());
+        let request = HealthCheckRequest {
+            service: service.into(),
+        };
+        async move {
+            health
+                .check(request)
+                .await
+                .expect("a plaintext health check")
+                .into_inner()
+                .status
+        }
+    };
+    assert_eq!(
+        status("pointfarm.v1.WorkerService").await,
+        ServingStatus::Serving as i32
+    );
+    // No worker can render yet: the jobs' service says so here as on the main port.
+    assert_eq!(
+        status("pointfarm.v1.JobService").await,
+        ServingStatus::NotServing as i32
+    );
+    let api = JobServiceClient::new(channel)
+        .list_jobs(pb::ListJobsRequest::default())
+        .await
+        .expect_err("no API on the health port");
+    assert_eq!(api.code(), Code::Unimplemented, "{api}");
+}
+
+/// A plaintext channel to `address` once it accepts connections (within 30 s).
+async fn wait_for_channel(address: &str) -> tonic::transport::Channel {
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        match tonic::transport::Channel::from_shared(format!("http://{address}"))
+            .expect("an address")
+            .connect()
+            .await
+        {
+            Ok(channel) => return channel,
+            Err(e) if Instant::now() > deadline => panic!("no health port at {address}: {e}"),
+            Err(_) => tokio::time::sleep(Duration::from_millis(100)).await,
+        }
+    }
+}

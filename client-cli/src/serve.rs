@@ -60,6 +60,11 @@ pub struct ServeArgs {
     /// The private key (PEM) of --tls-cert.
     #[arg(long, value_name = "FILE", env = "POINTFARM_TLS_KEY")]
     tls_key: Option<PathBuf>,
+    /// Also serve the gRPC health service alone, in plaintext, on this address (e.g.
+    /// 0.0.0.0:8081): for Kubernetes' gRPC probes, which cannot speak TLS. It tells only
+    /// whether the daemon and its workers serve.
+    #[arg(long, value_name = "ADDR", env = "POINTFARM_HEALTH_LISTEN")]
+    health_listen: Option<std::net::SocketAddr>,
     /// Listen beyond loopback without a client token or without TLS: anyone who reaches the
     /// port can then use the farm (or read it on the wire).
     #[arg(long, env = "POINTFARM_INSECURE")]
@@ -160,6 +165,7 @@ fn serve_options(args: &ServeArgs) -> Result<ServeOptions> {
         access: Access::new(token.as_deref(), worker_token.as_deref()),
         tls,
         insecure: args.insecure,
+        health_listen: args.health_listen,
     })
 }
 

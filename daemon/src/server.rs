@@ -38,6 +38,9 @@ pub struct ServeOptions {
     pub tls: Option<TlsIdentity>,
     /// Listen beyond loopback without a client token or without TLS.
     pub insecure: bool,
+    /// Serve the health service alone, in plaintext, on this address too: Kubernetes' gRPC
+    /// probes cannot speak TLS, and health statuses are no secret.
+    pub health_listen: Option<std::net::SocketAddr>,
 }
 
 impl ServeOptions {
@@ -146,6 +149,23 @@ pub async fn serve(
         .set_service_status("", ServingStatus::NotServing)
         .await;
     let health_watch = tokio::spawn(report_health(daemon.clone(), health));
+    let health_only = match options.health_listen {
+        Some(address) => {
+            let listener = tokio::net::TcpListener::bind(address)
+                .await
+                .with_context(|| format!("listening for health checks on {address}"))?;
+            tracing::info!(address = %listener.local_addr()?, "serving health checks");
+            let server = tonic::transport::Server::builder()
+                .add_service(health_service.clone())
+                .serve_with_incoming(TcpListenerStream::new(listener));
+            Some(tokio::spawn(async move {
+                if let Err(e) = server.await {
+                    tracing::error!(error = %e, "the health checks' listener stopped");
+                }
+            }))
+        }
+        None => None,
+    };
     // grpcurl and grpcio-reflection speak v1; older tools only v1alpha.
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(FILE_DESCRIPTOR_SET)
@@ -191,6 +211,9 @@ pub async fn serve(
         .context("gRPC server")?;
     sweeper.abort();
     health_watch.abort();
+    if let Some(health_only) = health_only {
+        health_only.abort();
+    }
     daemon.store.flush()?;
     Ok(())
 }
