@@ -6,32 +6,24 @@ cd "$(dirname "$0")/.."
 
 bash deploy/setup.sh
 
-# ffmpeg, for the tests that check the videos `render --video` makes (they skip, saying so,
-# where it cannot be installed).
-if ! command -v ffmpeg >/dev/null && command -v apt-get >/dev/null; then
-    sudo=""
+# Installs Debian package $1 unless $2 exists, saying it is for $3, or what follows without
+# it ($4).
+install_for_tests() {
+    local package=$1 present=$2 purpose=$3 without=$4 sudo=""
+    if [ -e "$present" ] || ! command -v apt-get >/dev/null; then return 0; fi
     if [ "$(id -u)" -ne 0 ]; then sudo="sudo"; fi
-    echo "pointfarm tests: installing ffmpeg for the video tests" >&2
-    install_ffmpeg() {
-        $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends ffmpeg >/dev/null
-    }
-    install_ffmpeg || { $sudo apt-get update -qq && install_ffmpeg; } ||
-        echo "pointfarm tests: ffmpeg could not be installed; the video tests will skip" >&2
-fi
+    echo "pointfarm tests: installing $package for $purpose" >&2
+    local install=($sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "$package")
+    "${install[@]}" >/dev/null || { $sudo apt-get update -qq && "${install[@]}" >/dev/null; } ||
+        echo "pointfarm tests: $package could not be installed; $without" >&2
+}
 
-# Prometheus, for the test that has a real Prometheus server scrape the daemon's metrics (it
-# skips, saying so, where it cannot be installed). Only its binary is used, on a port of the
-# test's own; a service the package may start does not matter.
-if [ ! -x /usr/bin/prometheus ] && command -v apt-get >/dev/null; then
-    sudo=""
-    if [ "$(id -u)" -ne 0 ]; then sudo="sudo"; fi
-    echo "pointfarm tests: installing prometheus for the metrics test" >&2
-    install_prometheus() {
-        $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends prometheus >/dev/null
-    }
-    install_prometheus || { $sudo apt-get update -qq && install_prometheus; } ||
-        echo "pointfarm tests: prometheus could not be installed; the metrics test will skip" >&2
-fi
+# ffmpeg, for the tests that check the videos `render --video` makes.
+install_for_tests ffmpeg /usr/bin/ffmpeg "the video tests" "the video tests will skip"
+# Prometheus, for the test that has a real Prometheus server scrape the daemon's metrics. Only
+# its binary is used, on a port of the test's own; a service the package may start does not
+# matter.
+install_for_tests prometheus /usr/bin/prometheus "the metrics test" "the metrics test will skip"
 
 # A virtualenv with the Python client example's packages, for tests/python_client.rs, and
 # laspy with lazrs, the independent COPC reader of tests/export.rs (both skip, saying so,
@@ -47,12 +39,8 @@ else
 fi
 
 # A font for the legends' and the benchmark plots' labels.
-if [ ! -f /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf ] && command -v apt-get >/dev/null; then
-    sudo=""
-    if [ "$(id -u)" -ne 0 ]; then sudo="sudo"; fi
-    $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends fonts-dejavu-core >/dev/null ||
-        echo "pointfarm tests: fonts-dejavu-core could not be installed; legend tests will fail" >&2
-fi
+install_for_tests fonts-dejavu-core /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf \
+    "the legends' and plots' labels" "the legend tests will fail"
 
 # Lints, where the toolchain has them (rustup's default profile does).
 if cargo fmt --version >/dev/null 2>&1; then

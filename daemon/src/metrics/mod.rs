@@ -120,6 +120,40 @@ fn stage_name(stage: &str) -> &str {
     }
 }
 
+/// A cache's hits and misses, counted from whether something was found in it (`None`: no
+/// cache was involved).
+#[derive(Debug, Default)]
+pub(super) struct CacheCounters {
+    hits: Counter,
+    misses: Counter,
+}
+
+impl CacheCounters {
+    pub(super) fn count(&self, hit: Option<bool>) {
+        match hit {
+            Some(true) => {
+                self.hits.inc();
+            }
+            Some(false) => {
+                self.misses.inc();
+            }
+            None => {}
+        }
+    }
+
+    /// Registers `{name}_hits` and `{name}_misses`.
+    pub(super) fn register(
+        &self,
+        registry: &mut Registry,
+        name: &str,
+        hits_help: &str,
+        misses_help: &str,
+    ) {
+        registry.register(format!("{name}_hits"), hits_help, self.hits.clone());
+        registry.register(format!("{name}_misses"), misses_help, self.misses.clone());
+    }
+}
+
 /// Frames of unfinished jobs of one priority.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct QueueDepth {
@@ -146,8 +180,7 @@ pub struct DaemonMetrics {
     frames_failed: Counter,
     stage_seconds: StageSeconds,
     leases_expired: Counter,
-    dataset_cache_hits: Counter,
-    dataset_cache_misses: Counter,
+    dataset_cache: CacheCounters,
     upload_bytes: Counter,
     queue_frames: Family<QueueLabels, Gauge>,
     leases_held: Gauge,
@@ -171,8 +204,7 @@ impl DaemonMetrics {
             frames_failed: Counter::default(),
             stage_seconds: StageSeconds::new(),
             leases_expired: Counter::default(),
-            dataset_cache_hits: Counter::default(),
-            dataset_cache_misses: Counter::default(),
+            dataset_cache: CacheCounters::default(),
             upload_bytes: Counter::default(),
             queue_frames: Family::default(),
             leases_held: Gauge::default(),
@@ -219,15 +251,11 @@ impl DaemonMetrics {
              workers that hold a lease or asked for work within the lease timeout",
             metrics.workers_connected.clone(),
         );
-        registry.register(
-            "dataset_cache_hits",
+        metrics.dataset_cache.register(
+            registry,
+            "dataset_cache",
             "Completed frames whose worker found the dataset's points in its dataset cache",
-            metrics.dataset_cache_hits.clone(),
-        );
-        registry.register(
-            "dataset_cache_misses",
             "Completed frames whose worker decoded the dataset's files (not in its cache)",
-            metrics.dataset_cache_misses.clone(),
         );
         registry.register(
             "upload_bytes",
@@ -241,15 +269,7 @@ impl DaemonMetrics {
     pub fn frame_completed(&self, report: &FrameReport) {
         self.frames_completed.inc();
         self.stage_seconds.observe(&report.timings);
-        match report.dataset_cache_hit {
-            Some(true) => {
-                self.dataset_cache_hits.inc();
-            }
-            Some(false) => {
-                self.dataset_cache_misses.inc();
-            }
-            None => {}
-        }
+        self.dataset_cache.count(report.dataset_cache_hit);
     }
 
     /// An attempt at a frame ended without a result.

@@ -7,7 +7,7 @@ use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
 use prometheus_client::registry::Registry;
 
-use super::{encode, StageSeconds};
+use super::{encode, CacheCounters, StageSeconds};
 use crate::lease::FrameOutcome;
 
 /// Which node cache of a level-of-detail render.
@@ -27,8 +27,7 @@ pub struct WorkerMetrics {
     frames_rendered: Counter,
     frames_failed: Counter,
     stage_seconds: StageSeconds,
-    dataset_cache_hits: Counter,
-    dataset_cache_misses: Counter,
+    dataset_cache: CacheCounters,
     node_cache_hits: Family<CacheLabels, Counter>,
     node_cache_misses: Family<CacheLabels, Counter>,
 }
@@ -46,8 +45,7 @@ impl WorkerMetrics {
             frames_rendered: Counter::default(),
             frames_failed: Counter::default(),
             stage_seconds: StageSeconds::new(),
-            dataset_cache_hits: Counter::default(),
-            dataset_cache_misses: Counter::default(),
+            dataset_cache: CacheCounters::default(),
             node_cache_hits: Family::default(),
             node_cache_misses: Family::default(),
         };
@@ -72,15 +70,11 @@ impl WorkerMetrics {
             "Time of each stage of the frames this worker rendered",
             metrics.stage_seconds.family.clone(),
         );
-        registry.register(
-            "dataset_cache_hits",
+        metrics.dataset_cache.register(
+            registry,
+            "dataset_cache",
             "Datasets this worker loaded from its dataset cache",
-            metrics.dataset_cache_hits.clone(),
-        );
-        registry.register(
-            "dataset_cache_misses",
             "Datasets this worker decoded from their files (then kept in its cache)",
-            metrics.dataset_cache_misses.clone(),
         );
         registry.register(
             "node_cache_hits",
@@ -101,15 +95,7 @@ impl WorkerMetrics {
     pub fn frame_rendered(&self, outcome: &FrameOutcome) {
         self.frames_rendered.inc();
         self.stage_seconds.observe(&outcome.timings);
-        match outcome.dataset_cache_hit {
-            Some(true) => {
-                self.dataset_cache_hits.inc();
-            }
-            Some(false) => {
-                self.dataset_cache_misses.inc();
-            }
-            None => {}
-        }
+        self.dataset_cache.count(outcome.dataset_cache_hit);
         if let Some(cut) = &outcome.cut {
             self.node_cache_hits
                 .get_or_create(&GPU)
