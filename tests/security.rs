@@ -41,6 +41,22 @@ fn port_of(server: &ServeProcess) -> &str {
         .expect("the address has a port")
 }
 
+/// A daemon without an embedded worker, its data in `dir`, serving TLS with `pki`'s
+/// certificate and requiring the client token in `client_token`, with more `args`.
+fn tls_daemon(dir: &Path, pki: &TestPki, client_token: &Path, args: &[&str]) -> ServeProcess {
+    let mut all = vec![
+        "--no-embedded-worker",
+        "--tls-cert",
+        arg(&pki.cert),
+        "--tls-key",
+        arg(&pki.key),
+        "--token-file",
+        arg(client_token),
+    ];
+    all.extend_from_slice(args);
+    ServeProcess::start_with(&dir.join("data"), &all)
+}
+
 #[test]
 fn tls_carries_clients_and_workers_and_plaintext_is_refused() {
     let (scratch, scene) = scratch_sample("scene.las", 20_000, 5);
@@ -49,19 +65,11 @@ fn tls_carries_clients_and_workers_and_plaintext_is_refused() {
     let (client_token, worker_token) = (dir.join("client.token"), dir.join("worker.token"));
     std::fs::write(&client_token, "client-Secret-4f1c\n").expect("token");
     std::fs::write(&worker_token, "worker-Secret-9a2e\n").expect("token");
-    let server = ServeProcess::start_with(
-        &dir.join("data"),
-        &[
-            "--no-embedded-worker",
-            "--tls-cert",
-            arg(&pki.cert),
-            "--tls-key",
-            arg(&pki.key),
-            "--token-file",
-            arg(&client_token),
-            "--worker-token-file",
-            arg(&worker_token),
-        ],
+    let server = tls_daemon(
+        dir,
+        &pki,
+        &client_token,
+        &["--worker-token-file", arg(&worker_token)],
     );
     let https = format!("https://localhost:{}", port_of(&server));
     let worker = WorkerProcess::start_with(
@@ -380,20 +388,7 @@ async fn health_checks_answer_in_plaintext_on_a_port_of_their_own() {
     let token = dir.join("client.token");
     std::fs::write(&token, "client-Secret-77d0\n").expect("token");
     let health_address = pointfarm_tests::free_address();
-    let _server = ServeProcess::start_with(
-        &dir.join("data"),
-        &[
-            "--no-embedded-worker",
-            "--tls-cert",
-            arg(&pki.cert),
-            "--tls-key",
-            arg(&pki.key),
-            "--token-file",
-            arg(&token),
-            "--health-listen",
-            &health_address,
-        ],
-    );
+    let _server = tls_daemon(dir, &pki, &token, &["--health-listen", &health_address]);
     let channel = wait_for_channel(&health_address).await;
     let status = |service: &str| {
         let mut health = HealthClient::new(channel.clone());
