@@ -35,6 +35,7 @@ mod render_json;
 mod render_outputs;
 mod sample;
 mod serve;
+mod signals;
 mod video;
 mod worker;
 

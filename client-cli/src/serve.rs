@@ -225,7 +225,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
             embedded_worker,
             listener,
             options,
-            shutdown_signal(),
+            crate::signals::shutdown_signal(),
         )
         .await
     })
@@ -276,30 +276,6 @@ fn parse_lease_timeout(value: &str) -> Result<f64, String> {
         _ => Err(format!(
             "'{value}' is not a number of seconds from 0.1 to 3600"
         )),
-    }
-}
-
-/// Completes on SIGTERM or Ctrl-C.
-pub(crate) async fn shutdown_signal() {
-    let ctrl_c = tokio::signal::ctrl_c();
-    #[cfg(unix)]
-    {
-        let mut term =
-            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-                Ok(term) => term,
-                Err(_) => {
-                    let _ = ctrl_c.await;
-                    return;
-                }
-            };
-        tokio::select! {
-            _ = ctrl_c => {}
-            _ = term.recv() => {}
-        }
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = ctrl_c.await;
     }
 }
 

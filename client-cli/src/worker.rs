@@ -170,7 +170,7 @@ pub fn run(args: WorkerArgs) -> Result<()> {
             let bound = http::listen(address, Arc::new(move || Ok(metrics.text()))).await?;
             outln!("metrics on http://{bound}/metrics");
         }
-        run_worker(config, gpu, crate::serve::shutdown_signal()).await
+        run_worker(config, gpu, crate::signals::shutdown_signal()).await
     })
 }
 

@@ -24,6 +24,7 @@ pub mod datasets;
 pub mod describe;
 pub mod error;
 pub mod export;
+pub mod farm_state;
 pub mod grpc;
 pub mod lease;
 pub mod lease_record;

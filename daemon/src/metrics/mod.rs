@@ -2,7 +2,7 @@
 //! each has one owner. Counters and histograms are counted where the event happens, through
 //! the methods of [`DaemonMetrics`] and [`WorkerMetrics`]; gauges that mirror state (the
 //! queue, the leases, the workers) are read from the daemon's real state at each scrape
-//! ([`Daemon::metrics_text`]), so they cannot drift from it. Counters start at zero with the
+//! (`Daemon::metrics_text`, in `farm_state.rs`), so they cannot drift from it. Counters start at zero with the
 //! process, as Prometheus expects of them.
 //!
 //! - `worker`: the metrics of a `pointfarm worker` process (`pointfarm_worker_*`).
@@ -22,16 +22,14 @@ use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
 use prometheus_client::registry::Registry;
 
-use crate::error::DaemonError;
 use crate::model::{FrameReport, StageTiming};
-use crate::service::Daemon;
 
 pub mod http;
 mod worker;
 
 pub use worker::WorkerMetrics;
 
-/// The `Content-Type` of the text that [`Daemon::metrics_text`] and
+/// The `Content-Type` of the text that `Daemon::metrics_text` (in `farm_state.rs`) and
 /// [`WorkerMetrics::text`] write.
 pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
 
@@ -323,52 +321,6 @@ fn encode(registry: &Registry) -> String {
     // Writing to a String cannot fail, and the registry holds only well-formed metrics.
     let _ = encode_registry(&mut text, registry).and_then(|()| encode_eof(&mut text));
     text
-}
-
-impl Daemon {
-    /// The state the gauges show: the frames of unfinished jobs by priority, queued or
-    /// leased; the leases; the workers that can render.
-    pub fn farm_state(&self) -> Result<FarmState, DaemonError> {
-        // Under the scheduling lock: a frame is then either queued or leased, never both.
-        let _scheduling = self.scheduling()?;
-        let jobs = self.store.unfinished_jobs()?;
-        let leases = self.store.leases()?;
-        let mut leased_by_job: BTreeMap<&str, u64> = BTreeMap::new();
-        for lease in &leases {
-            *leased_by_job.entry(lease.job_id.as_str()).or_default() += 1;
-        }
-        let mut queue: BTreeMap<i32, QueueDepth> = BTreeMap::new();
-        for job in &jobs {
-            let pending = u64::from(job.frames_total.saturating_sub(job.frames_done));
-            let leased = leased_by_job
-                .get(job.id.as_str())
-                .copied()
-                .unwrap_or(0)
-                .min(pending);
-            let depth = queue.entry(job.spec.priority).or_default();
-            depth.queued += pending - leased;
-            depth.leased += leased;
-        }
-        let remote_holders: HashSet<&str> = leases
-            .iter()
-            .filter(|lease| !lease.embedded)
-            .map(|lease| lease.worker.as_str())
-            .collect();
-        let workers_connected = self
-            .workers
-            .connected_count(self.config.lease_timeout, remote_holders);
-        Ok(FarmState {
-            queue,
-            leases_held: leases.len() as u64,
-            workers_connected: workers_connected as u64,
-        })
-    }
-
-    /// The daemon's metrics in Prometheus's text format ([`CONTENT_TYPE`]).
-    pub fn metrics_text(&self) -> Result<String, DaemonError> {
-        let state = self.farm_state()?;
-        Ok(self.metrics.text(&state))
-    }
 }
 
 #[cfg(test)]

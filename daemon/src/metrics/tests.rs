@@ -11,7 +11,7 @@ use super::*;
 use crate::capabilities::WorkerCapabilities;
 use crate::lease::{FailureKind, FrameOutcome};
 use crate::model::{Job, JobSpec};
-use crate::service::DaemonConfig;
+use crate::service::{Daemon, DaemonConfig};
 
 /// A daemon in `dir` whose leases last `lease_timeout`, with a registered (never decoded)
 /// file.
