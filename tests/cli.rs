@@ -2,10 +2,12 @@
 
 use std::path::Path;
 use std::process::Output;
+use std::time::Duration;
 
 use pointfarm_tests::{
     assert_fails_saying, assert_ok, json_lines, json_names, own_stderr_lines, pointfarm,
-    run_into_a_closed_pipe, shared_data, stdout, ServeProcess, WorkerProcess,
+    pointfarm_bin, run_into_a_closed_pipe, shared_data, signal, stdout, wait_for, ServeProcess,
+    WorkerProcess,
 };
 
 fn path_arg(path: &Path) -> String {
@@ -300,6 +302,44 @@ fn demo_runs_the_service_end_to_end_in_one_process() {
     );
     assert_frames(&out, 2, (160, 120));
     assert_says(&output, "2 frames in");
+}
+
+/// SIGTERM (as a container engine sends its first process) stops the demo, its daemon and its
+/// worker, saying the job did not end, rather than being ignored.
+#[test]
+fn the_demo_stops_on_sigterm() {
+    use std::io::{BufRead, BufReader};
+    let scene = Scene::sampled("sample.laz", 20_000);
+    let out = path_arg(&scene.path("frames"));
+    let mut demo = std::process::Command::new(pointfarm_bin())
+        .args(["demo", &scene.cloud, "--out", &out])
+        .args(["--frames", "2000", "--size", "160x120"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("start the demo");
+    let stdout = BufReader::new(demo.stdout.take().expect("stdout"));
+    let mut said = Vec::new();
+    for line in stdout.lines().map_while(Result::ok) {
+        let started = line.starts_with("job ");
+        said.push(line);
+        if started {
+            break;
+        }
+    }
+    assert!(
+        said.last().is_some_and(|l| l.starts_with("job ")),
+        "{said:?}"
+    );
+    signal(demo.id(), "TERM");
+    let stopped = wait_for(Duration::from_secs(60), "the demo to stop", || {
+        demo.try_wait().expect("poll")
+    });
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(&mut demo.stderr.take().expect("stderr"), &mut stderr)
+        .expect("stderr");
+    assert!(!stopped.success());
+    assert!(stderr.contains("stopped before the job ended"), "{stderr}");
 }
 
 #[test]

@@ -60,6 +60,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
     runtime.block_on(async move {
         let daemon = Daemon::open(DaemonConfig::new(args.out.join(".pointfarm-data")))?;
         let worker = crate::serve::embedded_worker(&daemon.config, args.adapter)?;
+        let presence = daemon.clone();
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
             .await
             .context("binding a loopback port")?;
@@ -76,7 +77,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
         ));
         outln!("daemon on {address}");
 
-        let result = async {
+        let job = async {
             let mut client =
                 Client::connect(&address.to_string(), &ClientCredentials::default()).await?;
             let dataset = client.ensure_dataset(std::slice::from_ref(&input)).await?;
@@ -116,10 +117,35 @@ pub fn run(args: DemoArgs) -> Result<()> {
             }
             outln!("{} frames in {}", written.len(), args.out.display());
             anyhow::Ok(())
-        }
-        .await;
+        };
+        // The job ends, or the demo is stopped, or no worker ever starts (a worker that starts
+        // and then fails frames fails the job): never a wait without end.
+        let result = tokio::select! {
+            result = job => result,
+            () = crate::signals::shutdown_signal() => Err(anyhow::anyhow!("stopped before the job ended")),
+            () = worker_never_starts(&presence) => Err(anyhow::anyhow!(
+                "the embedded worker did not start within {} s (its error is above; \
+                 --adapter hardware needs a GPU)",
+                WORKER_START_LIMIT.as_secs()
+            )),
+        };
         let _ = stop.send(());
         server.await.context("daemon task")??;
         result
     })
+}
+
+/// How long the embedded worker may take to start and call in.
+const WORKER_START_LIMIT: std::time::Duration = std::time::Duration::from_secs(60);
+
+/// Completes when no worker has been able to render for [`WORKER_START_LIMIT`] since the
+/// start; pends forever once one could.
+async fn worker_never_starts(daemon: &Daemon) {
+    let deadline = tokio::time::Instant::now() + WORKER_START_LIMIT;
+    while tokio::time::Instant::now() < deadline {
+        if daemon.workers.can_render(daemon.config.lease_timeout) {
+            return std::future::pending().await;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+    }
 }
