@@ -28,12 +28,11 @@ use std::time::Duration;
 
 use pointfarm_render::request::RenderRequest;
 
-use crate::capabilities::{drawn_side, AdapterKind, WorkerCapabilities};
+use crate::capabilities::WorkerCapabilities;
 use crate::error::DaemonError;
 use crate::lease_record::Lease;
 use crate::model::{now_unix_ms, FrameCut, FrameReport, FrameState, Job, JobState, StageTiming};
 use crate::service::Daemon;
-use crate::worker_presence::ConnectedWorker;
 
 /// The dataset of a task, as a worker's cache knows it.
 #[derive(Debug, Clone, PartialEq)]
@@ -626,79 +625,6 @@ impl Daemon {
         }
         Ok(())
     }
-}
-
-/// Whether the frames of an unfinished job can be leased to a worker connected now.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct JobAvailability {
-    /// Why no connected worker can be leased a frame of it; None while one can, and for a job
-    /// that has ended.
-    pub waiting: Option<String>,
-    /// Each connected worker that cannot, by name, with why not.
-    pub refusals: Vec<(String, String)>,
-}
-
-impl Daemon {
-    /// Whether a worker connected now can be leased frames of `job`, and why each that cannot
-    /// cannot: the test `lease_frame` makes, against the workers `WorkerPresence` knows.
-    pub fn job_availability(&self, job: &Job) -> JobAvailability {
-        if job.state.is_terminal() {
-            return JobAvailability::default();
-        }
-        let connected = self.workers.connected(self.config.lease_timeout);
-        let refusal = |worker: &ConnectedWorker| {
-            if job.blocklist.contains(&worker.name) {
-                let failed = job.worker_failures.get(&worker.name).copied().unwrap_or(0);
-                return Some(format!(
-                    "blocklisted: it failed {failed} frames of this job"
-                ));
-            }
-            worker
-                .capabilities
-                .refusal(&job.spec.requirements, &job.spec.request)
-        };
-        let refusals: Vec<(String, String)> = connected
-            .iter()
-            .filter_map(|worker| refusal(worker).map(|why| (worker.name.clone(), why)))
-            .collect();
-        let waiting = if connected.is_empty() {
-            Some("no worker is connected".to_string())
-        } else if refusals.len() == connected.len() {
-            Some(why_none_can(job, &connected))
-        } else {
-            None
-        };
-        JobAvailability { waiting, refusals }
-    }
-}
-
-/// Why none of `connected` (each of which cannot) can render `job`: the one reason they
-/// share where there is one.
-fn why_none_can(job: &Job, connected: &[ConnectedWorker]) -> String {
-    let requirements = &job.spec.requirements;
-    let none = |lacks: &dyn Fn(&ConnectedWorker) -> bool| connected.iter().all(lacks);
-    if none(&|w| job.blocklist.contains(&w.name)) {
-        return "every connected worker is blocklisted for this job".into();
-    }
-    if requirements.gpu && none(&|w| w.capabilities.adapter != AdapterKind::Hardware) {
-        return "no connected worker has a GPU".into();
-    }
-    if let Some(tag) = requirements
-        .tags
-        .iter()
-        .find(|tag| none(&|w| !w.capabilities.tags.contains(*tag)))
-    {
-        return format!("no connected worker has tag {tag}");
-    }
-    let side = drawn_side(&job.spec.request);
-    if none(&|w| {
-        w.capabilities
-            .max_frame_side
-            .is_some_and(|m| side > u64::from(m))
-    }) {
-        return format!("no connected worker draws images of {side} pixels a side");
-    }
-    "no connected worker can render it (each for a reason of its own)".into()
 }
 
 /// A handed-in frame must be a PNG of the job's size.

@@ -19,6 +19,7 @@
 //! Only `grpc`, `worker::remote` and `server` (which mounts the services) know protobuf.
 
 pub mod access;
+pub mod availability;
 pub mod capabilities;
 pub mod datasets;
 pub mod describe;

@@ -6,6 +6,7 @@ use std::sync::Arc;
 use pointfarm_proto::v1 as pb;
 
 use super::*;
+use crate::capabilities::AdapterKind;
 use crate::service::DaemonConfig;
 
 fn open(dir: &Path) -> Arc<Daemon> {
