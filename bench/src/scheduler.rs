@@ -65,14 +65,7 @@ pub fn measure(
     let dataset = daemon
         .register_dataset(&["d.las".to_string()], "")
         .map_err(daemon_error)?;
-    let finished = FrameState::Done(FrameReport {
-        index: 0,
-        timings: Vec::new(),
-        dataset_cache_hit: None,
-        cut: None,
-        failed_attempts: 0,
-        worker: String::new(),
-    });
+    let finished = FrameState::Done(FrameReport::default());
 
     let mut results: Vec<SchedulerResult> = Vec::new();
     let mut history = 0;

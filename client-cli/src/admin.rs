@@ -442,11 +442,7 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                         } else {
                             caps.max_frame_side.to_string()
                         };
-                        let name = if w.embedded {
-                            format!("{} (embedded)", w.worker_name)
-                        } else {
-                            w.worker_name.clone()
-                        };
+                        let name = worker_label(&w.worker_name, w.embedded);
                         outln!(
                             "{name:<24} {kind:<9} {side:>10}  {:<32} {}",
                             caps.adapter_name,
@@ -474,11 +470,7 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                     );
                     for l in &leases {
                         let expires = (l.expires_unix_ms - now) as f64 / 1e3;
-                        let worker = if l.embedded {
-                            format!("{} (embedded)", l.worker_name)
-                        } else {
-                            l.worker_name.clone()
-                        };
+                        let worker = worker_label(&l.worker_name, l.embedded);
                         outln!(
                             "{:<38} {:<18} {:>6}  {:<24} in {expires:.1} s",
                             l.lease_id,
@@ -492,6 +484,15 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
         }
         Ok(())
     })
+}
+
+/// A worker's name as the tables show it, marked when it is the daemon's embedded worker.
+fn worker_label(name: &str, embedded: bool) -> String {
+    if embedded {
+        format!("{name} (embedded)")
+    } else {
+        name.to_string()
+    }
 }
 
 /// What `jobs show` says of a job's workers: what it requires of them, who rendered its

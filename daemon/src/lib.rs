@@ -37,6 +37,8 @@ pub mod server;
 pub mod service;
 pub mod store;
 pub mod stores;
+#[cfg(test)]
+mod test_daemon;
 #[cfg(any(test, feature = "testing"))]
 pub mod testing;
 pub mod worker;

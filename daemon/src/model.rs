@@ -160,7 +160,7 @@ pub struct StageTiming {
 }
 
 /// What the worker reports of a finished frame.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct FrameReport {
     pub index: u32,
     pub timings: Vec<StageTiming>,

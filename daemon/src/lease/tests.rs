@@ -7,24 +7,10 @@ use pointfarm_proto::v1 as pb;
 
 use super::*;
 use crate::capabilities::AdapterKind;
-use crate::service::DaemonConfig;
+use crate::test_daemon::{self, png};
 
 fn open(dir: &Path) -> Arc<Daemon> {
-    let mut config = DaemonConfig::new(dir.join("data"));
-    config.data_roots = vec![dir.join("roots")];
-    config.lease_timeout = Duration::from_secs(60);
-    Daemon::open(config).expect("open")
-}
-
-fn png(width: u32, height: u32) -> Vec<u8> {
-    let mut bytes = Vec::new();
-    image::RgbaImage::new(width, height)
-        .write_to(
-            &mut std::io::Cursor::new(&mut bytes),
-            image::ImageFormat::Png,
-        )
-        .expect("encode");
-    bytes
+    test_daemon::open(dir, Duration::from_secs(60))
 }
 
 /// Leases the next frame, which there must be.
@@ -140,22 +126,8 @@ fn an_exited_embedded_worker_counts_an_attempt_for_its_frames_only() {
 
 /// A daemon whose data lie on `dir`, with one job of `frames` frames on a registered file.
 fn daemon_with_job_in(dir: &Path, frames: u32) -> (Arc<Daemon>, crate::model::Job) {
-    std::fs::create_dir_all(dir.join("roots")).expect("roots");
-    std::fs::write(dir.join("roots/a.las"), b"points").expect("file");
     let daemon = open(dir);
-    let dataset = daemon
-        .register_dataset(&["a.las".to_string()], "")
-        .expect("register");
-    let request = pb::SubmitJobRequest {
-        dataset_id: dataset.id.clone(),
-        camera_path: Some(pb::CameraPath::turntable(pb::Turntable::of_frames(frames))),
-        width: 8,
-        height: 6,
-        ..Default::default()
-    };
-    let job = daemon
-        .submit_job(crate::model::JobSpec::try_from(&request).expect("spec"))
-        .expect("submit");
+    let job = test_daemon::submit(&daemon, frames, |_| {});
     (daemon, job)
 }
 
@@ -254,27 +226,15 @@ fn submit_one(
     (width, height, supersample): (u32, u32, u32),
     requirements: Option<pb::WorkerRequirements>,
 ) -> crate::model::Job {
-    let dataset = daemon
-        .list_datasets(10, "")
-        .expect("datasets")
-        .items
-        .remove(0);
-    let request = pb::SubmitJobRequest {
-        request_id: name.into(),
-        dataset_id: dataset.id,
-        camera_path: Some(pb::CameraPath::turntable(pb::Turntable::of_frames(1))),
-        width,
-        height,
-        render: Some(pb::RenderOptions {
+    test_daemon::submit(daemon, 1, |request| {
+        request.request_id = name.into();
+        (request.width, request.height) = (width, height);
+        request.render = Some(pb::RenderOptions {
             supersample: Some(supersample),
             ..Default::default()
-        }),
-        requirements,
-        ..Default::default()
-    };
-    daemon
-        .submit_job(crate::model::JobSpec::try_from(&request).expect("spec"))
-        .expect("submit")
+        });
+        request.requirements = requirements;
+    })
 }
 
 /// The jobs whose frames `worker` is leased, in order, until there is none for it.
@@ -466,10 +426,9 @@ fn no_blocklist_is_kept_when_its_limit_is_zero() {
     let folder = tempfile::tempdir().expect("tempdir");
     let (daemon, job) = daemon_with_job_in(folder.path(), 4);
     drop(daemon);
-    let mut config = DaemonConfig::new(folder.path().join("data"));
-    config.data_roots = vec![folder.path().join("roots")];
-    config.worker_failures_before_blocklist = 0;
-    let daemon = Daemon::open(config).expect("open");
+    let daemon = test_daemon::open_with(folder.path(), |config| {
+        config.worker_failures_before_blocklist = 0;
+    });
     let held: Vec<FrameTask> = (0..3).map(|_| lease(&daemon, "bad", false)).collect();
     for task in &held {
         daemon

@@ -1,56 +1,20 @@
 //! The metrics' text after real leases against a real store, read back as Prometheus would.
 
 use std::collections::BTreeMap;
-use std::path::Path;
-use std::sync::Arc;
 use std::time::Duration;
-
-use pointfarm_proto::v1 as pb;
 
 use super::*;
 use crate::capabilities::WorkerCapabilities;
 use crate::lease::{FailureKind, FrameOutcome};
-use crate::model::{Job, JobSpec};
-use crate::service::{Daemon, DaemonConfig};
-
-/// A daemon in `dir` whose leases last `lease_timeout`, with a registered (never decoded)
-/// file.
-fn open(dir: &Path, lease_timeout: Duration) -> Arc<Daemon> {
-    std::fs::create_dir_all(dir.join("roots")).expect("roots");
-    std::fs::write(dir.join("roots/a.las"), b"points").expect("file");
-    let mut config = DaemonConfig::new(dir.join("data"));
-    config.data_roots = vec![dir.join("roots")];
-    config.lease_timeout = lease_timeout;
-    Daemon::open(config).expect("open")
-}
+use crate::model::Job;
+use crate::service::Daemon;
+use crate::test_daemon;
 
 fn submit(daemon: &Daemon, frames: u32, priority: i32) -> Job {
-    let dataset = daemon
-        .register_dataset(&["a.las".to_string()], "")
-        .expect("register");
-    let request = pb::SubmitJobRequest {
-        dataset_id: dataset.id.clone(),
-        camera_path: Some(pb::CameraPath::turntable(pb::Turntable::of_frames(frames))),
-        width: 8,
-        height: 6,
-        priority,
-        request_id: format!("r-{frames}-{priority}"),
-        ..Default::default()
-    };
-    daemon
-        .submit_job(JobSpec::try_from(&request).expect("spec"))
-        .expect("submit")
-}
-
-fn png() -> Vec<u8> {
-    let mut bytes = Vec::new();
-    image::RgbaImage::new(8, 6)
-        .write_to(
-            &mut std::io::Cursor::new(&mut bytes),
-            image::ImageFormat::Png,
-        )
-        .expect("encode");
-    bytes
+    test_daemon::submit(daemon, frames, |request| {
+        request.priority = priority;
+        request.request_id = format!("r-{frames}-{priority}");
+    })
 }
 
 fn timing(stage: &str, ms: f64) -> StageTiming {
@@ -96,12 +60,22 @@ impl Scrape {
             .get(series)
             .unwrap_or_else(|| panic!("no {series} in {:#?}", self.samples))
     }
+
+    /// Checks each series' value, naming every one that differs.
+    fn assert_values(&self, expected: &[(&str, f64)]) {
+        let differing: Vec<String> = expected
+            .iter()
+            .filter(|(series, value)| self.value(series) != *value)
+            .map(|(series, value)| format!("{series}: {} not {value}", self.value(series)))
+            .collect();
+        assert!(differing.is_empty(), "{differing:#?}");
+    }
 }
 
 #[test]
 fn after_a_job_every_family_is_there_with_what_happened() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = open(dir.path(), Duration::from_secs(60));
+    let daemon = test_daemon::open(dir.path(), Duration::from_secs(60));
     let job = submit(&daemon, 3, 0);
     let urgent = submit(&daemon, 2, 5);
 
@@ -164,7 +138,7 @@ fn after_a_job_every_family_is_there_with_what_happened() {
         cut: None,
     };
     daemon
-        .complete_frame(&first.lease.id, &png(), outcome(false))
+        .complete_frame(&first.lease.id, &test_daemon::png(8, 6), outcome(false))
         .expect("complete");
     daemon
         .fail_frame(&second.lease.id, "GPU lost", FailureKind::Transient)
@@ -176,7 +150,7 @@ fn after_a_job_every_family_is_there_with_what_happened() {
         .expect("lease")
     {
         daemon
-            .complete_frame(&task.lease.id, &png(), outcome(true))
+            .complete_frame(&task.lease.id, &test_daemon::png(8, 6), outcome(true))
             .expect("complete");
         frames += 1;
     }
@@ -207,43 +181,39 @@ fn after_a_job_every_family_is_there_with_what_happened() {
             "{family} in {text}"
         );
     }
-    assert_eq!(after.value("pointfarm_frames_completed_total"), 5.0);
-    assert_eq!(after.value("pointfarm_frames_failed_total"), 1.0);
-    assert_eq!(after.value("pointfarm_leases_expired_total"), 0.0);
-    assert_eq!(after.value("pointfarm_leases_held"), 0.0);
-    assert_eq!(after.value("pointfarm_dataset_cache_hits_total"), 4.0);
-    assert_eq!(after.value("pointfarm_dataset_cache_misses_total"), 1.0);
-    assert_eq!(after.value("pointfarm_upload_bytes_total"), 1234.0);
-    assert_eq!(
-        after.value(r#"pointfarm_frame_stage_seconds_count{stage="load"}"#),
-        5.0
-    );
-    assert_eq!(
-        after.value(r#"pointfarm_frame_stage_seconds_sum{stage="load"}"#),
-        1.25
-    );
-    // Buckets double from half a millisecond: 2 ms is within the 4 ms one, 250 ms is not
-    // within the 128 ms one.
-    assert_eq!(
-        after.value(r#"pointfarm_frame_stage_seconds_bucket{le="0.004",stage="rasterize"}"#),
-        5.0
-    );
-    assert_eq!(
-        after.value(r#"pointfarm_frame_stage_seconds_bucket{le="0.128",stage="load"}"#),
-        0.0
-    );
-    // Nothing left: the default priority's series read 0, the finished job's are gone.
-    assert_eq!(
-        after.value(r#"pointfarm_queue_frames{state="queued",priority="0"}"#),
-        0.0
-    );
+    after.assert_values(&[
+        ("pointfarm_frames_completed_total", 5.0),
+        ("pointfarm_frames_failed_total", 1.0),
+        ("pointfarm_leases_expired_total", 0.0),
+        ("pointfarm_leases_held", 0.0),
+        ("pointfarm_dataset_cache_hits_total", 4.0),
+        ("pointfarm_dataset_cache_misses_total", 1.0),
+        ("pointfarm_upload_bytes_total", 1234.0),
+        (r#"pointfarm_frame_stage_seconds_count{stage="load"}"#, 5.0),
+        (r#"pointfarm_frame_stage_seconds_sum{stage="load"}"#, 1.25),
+        // Buckets double from half a millisecond: 2 ms is within the 4 ms one, 250 ms is
+        // not within the 128 ms one.
+        (
+            r#"pointfarm_frame_stage_seconds_bucket{le="0.004",stage="rasterize"}"#,
+            5.0,
+        ),
+        (
+            r#"pointfarm_frame_stage_seconds_bucket{le="0.128",stage="load"}"#,
+            0.0,
+        ),
+        // Nothing left: the default priority's series read 0, the finished job's are gone.
+        (
+            r#"pointfarm_queue_frames{state="queued",priority="0"}"#,
+            0.0,
+        ),
+    ]);
     assert!(!text.contains(r#"priority="5""#), "{text}");
 }
 
 #[test]
 fn an_expired_lease_counts_an_expiry_and_a_failed_attempt() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = open(dir.path(), Duration::from_millis(50));
+    let daemon = test_daemon::open(dir.path(), Duration::from_millis(50));
     submit(&daemon, 1, 0);
     daemon
         .lease_frame("lost", false, &WorkerCapabilities::default())
@@ -252,13 +222,15 @@ fn an_expired_lease_counts_an_expiry_and_a_failed_attempt() {
     std::thread::sleep(Duration::from_millis(150));
     assert_eq!(daemon.expire_leases().expect("expire"), 1);
     let scrape = parse(&daemon.metrics_text().expect("text"));
-    assert_eq!(scrape.value("pointfarm_leases_expired_total"), 1.0);
-    assert_eq!(scrape.value("pointfarm_frames_failed_total"), 1.0);
-    assert_eq!(
-        scrape.value(r#"pointfarm_queue_frames{state="queued",priority="0"}"#),
-        1.0
-    );
-    assert_eq!(scrape.value("pointfarm_workers_connected"), 0.0);
+    scrape.assert_values(&[
+        ("pointfarm_leases_expired_total", 1.0),
+        ("pointfarm_frames_failed_total", 1.0),
+        (
+            r#"pointfarm_queue_frames{state="queued",priority="0"}"#,
+            1.0,
+        ),
+        ("pointfarm_workers_connected", 0.0),
+    ]);
 }
 
 #[test]
@@ -304,26 +276,22 @@ fn a_worker_counts_its_frames_and_caches() {
     });
     metrics.frame_failed();
     let scrape = parse(&metrics.text());
-    assert_eq!(scrape.value("pointfarm_worker_frames_rendered_total"), 2.0);
-    assert_eq!(scrape.value("pointfarm_worker_frames_failed_total"), 1.0);
-    assert_eq!(
-        scrape.value("pointfarm_worker_dataset_cache_hits_total"),
-        1.0
-    );
-    assert_eq!(
-        scrape.value("pointfarm_worker_dataset_cache_misses_total"),
-        0.0
-    );
-    assert_eq!(
-        scrape.value(r#"pointfarm_worker_node_cache_hits_total{cache="gpu"}"#),
-        5.0
-    );
-    assert_eq!(
-        scrape.value(r#"pointfarm_worker_node_cache_misses_total{cache="host"}"#),
-        1.0
-    );
-    assert_eq!(
-        scrape.value(r#"pointfarm_worker_frame_stage_seconds_sum{stage="build"}"#),
-        1.5
-    );
+    scrape.assert_values(&[
+        ("pointfarm_worker_frames_rendered_total", 2.0),
+        ("pointfarm_worker_frames_failed_total", 1.0),
+        ("pointfarm_worker_dataset_cache_hits_total", 1.0),
+        ("pointfarm_worker_dataset_cache_misses_total", 0.0),
+        (
+            r#"pointfarm_worker_node_cache_hits_total{cache="gpu"}"#,
+            5.0,
+        ),
+        (
+            r#"pointfarm_worker_node_cache_misses_total{cache="host"}"#,
+            1.0,
+        ),
+        (
+            r#"pointfarm_worker_frame_stage_seconds_sum{stage="build"}"#,
+            1.5,
+        ),
+    ]);
 }

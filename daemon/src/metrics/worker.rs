@@ -97,18 +97,15 @@ impl WorkerMetrics {
         self.stage_seconds.observe(&outcome.timings);
         self.dataset_cache.count(outcome.dataset_cache_hit);
         if let Some(cut) = &outcome.cut {
-            self.node_cache_hits
-                .get_or_create(&GPU)
-                .inc_by(cut.gpu_hits);
-            self.node_cache_misses
-                .get_or_create(&GPU)
-                .inc_by(cut.gpu_uploaded);
-            self.node_cache_hits
-                .get_or_create(&HOST)
-                .inc_by(cut.host_hits);
-            self.node_cache_misses
-                .get_or_create(&HOST)
-                .inc_by(cut.nodes_read);
+            // A node missing from the GPU cache is uploaded; one missing from the host cache
+            // is read.
+            for (cache, hits, misses) in [
+                (&GPU, cut.gpu_hits, cut.gpu_uploaded),
+                (&HOST, cut.host_hits, cut.nodes_read),
+            ] {
+                self.node_cache_hits.get_or_create(cache).inc_by(hits);
+                self.node_cache_misses.get_or_create(cache).inc_by(misses);
+            }
         }
     }
 

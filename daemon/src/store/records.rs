@@ -175,13 +175,24 @@ impl Records {
         id: &str,
         change: impl FnOnce(&mut Job),
     ) -> Result<Option<Job>, StoreError> {
-        let Some(mut job) = self.job(id)? else {
+        let Some(job) = self.changed_job(id, change)? else {
             return Ok(None);
         };
-        change(&mut job);
-        job.updated_unix_ms = now_unix_ms();
         self.put_job(&job)?;
         Ok(Some(job))
+    }
+
+    /// The stored job `id` with `change` applied and its update time bumped, not yet written.
+    fn changed_job(
+        &self,
+        id: &str,
+        change: impl FnOnce(&mut Job),
+    ) -> Result<Option<Job>, StoreError> {
+        Ok(self.job(id)?.map(|mut job| {
+            change(&mut job);
+            job.updated_unix_ms = now_unix_ms();
+            job
+        }))
     }
 
     pub(super) fn list_jobs(
@@ -364,11 +375,9 @@ impl Records {
         attempts: u32,
         change: impl FnOnce(&mut Job),
     ) -> Result<Option<Job>, StoreError> {
-        let Some(mut job) = self.job(job_id)? else {
+        let Some(job) = self.changed_job(job_id, change)? else {
             return Ok(None);
         };
-        change(&mut job);
-        job.updated_unix_ms = now_unix_ms();
         let key = frame_key(job_id, index);
         let frame = encode(&FrameState::Pending { attempts })?;
         let encoded = encode(&job)?;

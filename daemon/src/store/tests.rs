@@ -64,14 +64,7 @@ fn done_frames_and_ended_jobs_leave_the_schedule() {
     let store = open(&dir.path().join("state.sled"));
     let (first, _) = store.submit_job(spec("a", 3, 0)).expect("submit");
     let (second, _) = store.submit_job(spec("b", 2, 0)).expect("submit");
-    let report = FrameReport {
-        index: 0,
-        timings: Vec::new(),
-        dataset_cache_hit: None,
-        cut: None,
-        failed_attempts: 0,
-        worker: String::new(),
-    };
+    let report = FrameReport::default();
     store
         .set_frame(&first.id, 0, &FrameState::Done(report))
         .expect("done");
