@@ -25,6 +25,9 @@ pub enum BenchError {
     DatasetCache(#[from] CacheError),
     #[error("{0}")]
     CacheMismatch(String),
+    /// Writing or reading the COPC benchmark's file; the message names it.
+    #[error("{0}")]
+    Copc(String),
     #[error("the scheduler's daemon: {0}")]
     Scheduler(String),
     #[error("benchmark scratch space: {0}")]

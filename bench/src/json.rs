@@ -8,6 +8,7 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::campaign::CampaignResult;
+use crate::copc::CopcResult;
 use crate::cuts::CutsResult;
 use crate::report::BenchReport;
 use crate::BenchError;
@@ -45,6 +46,12 @@ struct CampaignSection<'a> {
 #[derive(Serialize)]
 struct CutsSection<'a> {
     cuts: &'a CutsResult,
+}
+
+/// The COPC benchmark's file: its figures as the `copc` section.
+#[derive(Serialize)]
+struct CopcSection<'a> {
+    copc: &'a CopcResult,
 }
 
 /// The machine the run was on.
@@ -87,6 +94,11 @@ pub fn write_campaign(
     context: &RunContext,
 ) -> Result<(), BenchError> {
     write_file(path, &CampaignSection { campaign }, context)
+}
+
+/// Writes `--copc`'s figures, as the file's `copc` section, with `context`.
+pub fn write_copc(path: &Path, copc: &CopcResult, context: &RunContext) -> Result<(), BenchError> {
+    write_file(path, &CopcSection { copc }, context)
 }
 
 /// Writes `--cuts`' figures, as the file's `cuts` section, with `context`.

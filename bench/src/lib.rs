@@ -25,7 +25,9 @@
 //! uploaded chunk by chunk); [`ingest`] (decoding and the dataset cache); [`campaign`] (building
 //! the level-of-detail store of a campaign of many files, no GPU); [`scheduler`] (leasing a
 //! frame against the daemon's job history, no GPU); [`cuts`] (rendering level-of-detail stores
-//! cut by cut: a cold turntable, frame time against points, fidelity, resident against cut); `memory` (the process's resident memory);
+//! cut by cut: a cold turntable, frame time against points, fidelity, resident against cut);
+//! [`copc`] (a COPC file's first frame node by node against decoding it whole); `memory` (the
+//! process's resident memory);
 //! [`report`] (what was measured), written as [`markdown`], [`json`] and a [`plot`];
 //! [`frame_figures`] (how much of a rendered frame its subject fills and lights, for the
 //! gallery's default-render figures).
@@ -35,6 +37,7 @@
 
 pub mod campaign;
 pub mod clouds;
+pub mod copc;
 pub mod cuts;
 mod error;
 pub mod frame_figures;

@@ -101,6 +101,19 @@ pub struct BenchArgs {
     /// With --cuts: points of the smaller and the larger terrain, e.g. `10000000,100000000`.
     #[arg(long, value_name = "SMALL,LARGE", value_delimiter = ',', value_parser = parse_point_count, requires = "cuts")]
     cut_points: Vec<usize>,
+    /// Measure a COPC file's first frame against decoding it whole: POINTS points of generated
+    /// terrain (100 million when no count is given, 10 million with --quick) built and
+    /// exported as one COPC file; every point decoded as plain LAZ on all cores; the file
+    /// opened and one --size full view rendered node by node at the default pixel error from
+    /// empty caches (the file's pages dropped from the OS's cache before each), within
+    /// --cut-memory-budget; and that pixel error's fidelity against 0 in every mode.
+    #[arg(
+        long,
+        value_name = "POINTS",
+        value_parser = parse_point_count,
+        conflicts_with_all = ["only", "huge", "modes", "basic_only", "plot", "scheduler", "campaign", "cuts"]
+    )]
+    copc: Option<Option<usize>>,
 }
 
 /// A byte count: a number with an optional KiB, MiB or GiB suffix.
@@ -172,6 +185,9 @@ pub fn run(args: BenchArgs) -> Result<()> {
     }
     if args.cuts {
         return run_cuts(&args, started);
+    }
+    if let Some(points) = args.copc {
+        return run_copc(&args, points, started);
     }
     let (width, height) = args.size;
     let defaults = if args.quick {
@@ -325,6 +341,27 @@ fn run_cuts(args: &BenchArgs, started: Instant) -> Result<()> {
     let markdown = cuts::markdown::cuts_tables(&result);
     finish(args, started, &markdown, |path, context| {
         Ok(bench::json::write_cuts(path, &result, context)?)
+    })
+}
+
+/// `--copc`: a COPC file's first frame against decoding it whole.
+fn run_copc(args: &BenchArgs, points: Option<usize>, started: Instant) -> Result<()> {
+    use bench::copc::{self, CopcOptions};
+    let default_points = if args.quick {
+        copc::COPC_QUICK_POINTS
+    } else {
+        copc::COPC_POINTS
+    };
+    let (width, height) = args.size;
+    let options = CopcOptions {
+        memory_budget_bytes: args.cut_memory_budget,
+        ..CopcOptions::new(points.map_or(default_points, |n| n as u64), width, height)
+    };
+    let gpu = Arc::new(GpuContext::new(args.adapter)?);
+    outln!("adapter: {}", gpu.describe());
+    let result = copc::measure(&gpu, &options, &mut |line| eprintln!("  {line}"))?;
+    finish(args, started, &copc::markdown(&result), |path, context| {
+        Ok(bench::json::write_copc(path, &result, context)?)
     })
 }
 
