@@ -46,7 +46,10 @@ pub struct CopcOptions {
     pub width: u32,
     pub height: u32,
     pub seed: u64,
-    /// The node caches' memory budget of the first frame and of the fidelity renders.
+    /// The pixel errors whose first frames are measured, each from empty caches; the
+    /// fidelity is that of the first.
+    pub lod_errors: Vec<f64>,
+    /// The node caches' memory budget of the first frames and of the fidelity renders.
     pub memory_budget_bytes: u64,
     /// Where the scratch folder is made (the system's temporary folder by default).
     pub scratch_parent: Option<PathBuf>,
@@ -60,6 +63,7 @@ impl CopcOptions {
             width,
             height,
             seed: 11,
+            lod_errors: vec![DEFAULT_LOD_ERROR_PX],
             memory_budget_bytes: crate::cuts::TURNTABLE_MEMORY_BUDGET,
             scratch_parent: None,
         }
@@ -82,18 +86,26 @@ pub struct CopcResult {
     /// Every point decoded as plain LAZ, on all cores.
     pub decode_s: f64,
     pub decode_mpoints_per_s: f64,
-    /// Opening the file: header, hierarchy and the coarsest nodes for the colour ranges.
+    /// Opening the file (header, hierarchy, the coarsest nodes for the colour ranges), and
+    /// the chunks that read for the colour ranges.
     pub open_ms: f64,
-    /// From opening the file to the first frame's image, at the default pixel error.
-    pub first_frame_ms: f64,
-    pub first_frame_nodes: u64,
-    pub first_frame_points: u64,
-    /// Bytes of chunks the first frame read (the colour sample's besides).
-    pub first_frame_bytes_read: u64,
     pub sample_bytes: u64,
-    /// Decoding the whole file over the first frame.
-    pub speedup: f64,
+    pub first_frames: Vec<FirstFrame>,
     pub fidelity: FidelityResult,
+}
+
+/// The first frame at one pixel error, from opening the file to the image.
+#[derive(Debug, Clone, Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct FirstFrame {
+    pub lod_error: f64,
+    pub ms: f64,
+    pub nodes: u64,
+    pub points: u64,
+    /// Bytes of chunks the frame read (the colour ranges' besides).
+    pub bytes_read: u64,
+    /// Decoding the whole file over this first frame.
+    pub speedup: f64,
 }
 
 /// Runs `--copc`, removing every file afterwards.
@@ -124,40 +136,55 @@ pub fn measure(
         "copc: {decoded} points decoded whole in {decode_s:.2} s"
     ));
 
-    drop_page_cache(&path)?;
-    let started = Instant::now();
-    let copc = open_copc(&path).map_err(|e| BenchError::Copc(e.to_string()))?;
-    let open_ms = started.elapsed().as_secs_f64() * 1e3;
-    let dataset = &copc.dataset;
-    let settings = full_view(&dataset.bounds(), options.width, options.height);
-    let mut renderer = Renderer::new(Arc::clone(gpu));
-    let cut_options = |lod_error| CutOptions {
-        lod_error,
-        memory_budget_bytes: options.memory_budget_bytes,
-        gpu_budget_bytes: None,
+    let mut first_frames = Vec::with_capacity(options.lod_errors.len());
+    let mut opened = None;
+    for &lod_error in &options.lod_errors {
+        drop_page_cache(&path)?;
+        let started = Instant::now();
+        let copc = open_copc(&path).map_err(|e| BenchError::Copc(e.to_string()))?;
+        let open_ms = started.elapsed().as_secs_f64() * 1e3;
+        let dataset = &copc.dataset;
+        let settings = full_view(&dataset.bounds(), options.width, options.height);
+        let mut renderer = Renderer::new(Arc::clone(gpu));
+        let cut_options = CutOptions {
+            lod_error,
+            memory_budget_bytes: options.memory_budget_bytes,
+            gpu_budget_bytes: None,
+        };
+        let mut cut = CutRenderer::new(&renderer, dataset, cut_options)?;
+        let (_, report) = cut.render(
+            &mut renderer,
+            dataset,
+            &settings,
+            ColorMode::Rgb,
+            &PointFilter::default(),
+        )?;
+        let ms = started.elapsed().as_secs_f64() * 1e3;
+        log(format!(
+            "copc: first frame at {lod_error} px in {ms:.0} ms (open {open_ms:.0} ms), {} of {} points",
+            report.counts.points_rendered,
+            dataset.point_count()
+        ));
+        first_frames.push(FirstFrame {
+            lod_error,
+            ms,
+            nodes: report.counts.nodes,
+            points: report.counts.points_rendered,
+            bytes_read: report.counts.bytes_read,
+            speedup: decode_s * 1e3 / ms,
+        });
+        opened.get_or_insert((copc, open_ms, settings));
+    }
+    let Some((copc, open_ms, settings)) = opened else {
+        return Err(BenchError::NoFrames);
     };
-    let mut cut = CutRenderer::new(&renderer, dataset, cut_options(DEFAULT_LOD_ERROR_PX))?;
-    let (_, report) = cut.render(
-        &mut renderer,
-        dataset,
-        &settings,
-        ColorMode::Rgb,
-        &PointFilter::default(),
-    )?;
-    let first_frame_ms = started.elapsed().as_secs_f64() * 1e3;
-    drop(cut);
-    log(format!(
-        "copc: first frame in {first_frame_ms:.0} ms (open {open_ms:.0} ms), {} of {} points",
-        report.counts.points_rendered,
-        dataset.point_count()
-    ));
-
+    let dataset = &copc.dataset;
     let fidelity = measure_fidelity(
         gpu,
         "copc-terrain",
         dataset,
         &settings,
-        DEFAULT_LOD_ERROR_PX,
+        first_frames[0].lod_error,
         options.memory_budget_bytes,
     )?;
     Ok(CopcResult {
@@ -172,12 +199,8 @@ pub fn measure(
         decode_s,
         decode_mpoints_per_s: decoded as f64 / decode_s / 1e6,
         open_ms,
-        first_frame_ms,
-        first_frame_nodes: report.counts.nodes,
-        first_frame_points: report.counts.points_rendered,
-        first_frame_bytes_read: report.counts.bytes_read,
         sample_bytes: copc.sample_bytes,
-        speedup: decode_s * 1e3 / first_frame_ms,
+        first_frames,
         fidelity,
     })
 }
@@ -229,12 +252,37 @@ fn write_error(path: &Path, source: std::io::Error) -> BenchError {
     }
 }
 
-/// The result as a markdown table.
+/// The result as markdown tables.
 pub fn markdown(r: &CopcResult) -> String {
     let mut md = format!(
-        "| COPC file | decoded whole | first frame ({}x{}, cold) | speed-up | open | first frame's points | read by the first frame | fidelity at {} px |\n|---|---:|---:|---:|---:|---:|---:|---|\n",
-        r.width, r.height, r.fidelity.lod_error
+        "{} points of terrain, one COPC file of {:.1} MiB and {} nodes ({} hierarchy pages); \
+         decoded whole as LAZ in {:.2} s ({:.2} M points/s); opened in {:.0} ms, reading \
+         {:.1} MiB of coarse nodes for the colour ranges.\n\n\
+         | pixel error | first frame ({}x{}, cold) | decoding whole / first frame | nodes | points drawn | chunks read |\n\
+         |---:|---:|---:|---:|---:|---:|\n",
+        r.points,
+        mib(r.file_bytes),
+        r.nodes,
+        r.pages,
+        r.decode_s,
+        r.decode_mpoints_per_s,
+        r.open_ms,
+        mib(r.sample_bytes),
+        r.width,
+        r.height,
     );
+    for f in &r.first_frames {
+        md.push_str(&format!(
+            "| {} px | {:.2} s | {:.1}x | {} | {} ({:.1}%) | {:.1} MiB |\n",
+            f.lod_error,
+            f.ms / 1e3,
+            f.speedup,
+            f.nodes,
+            f.points,
+            f.points as f64 / r.points.max(1) as f64 * 100.0,
+            mib(f.bytes_read),
+        ));
+    }
     let fidelity: Vec<String> = r
         .fidelity
         .modes
@@ -242,21 +290,15 @@ pub fn markdown(r: &CopcResult) -> String {
         .map(|m| format!("{} {:.2}%", m.mode, m.close_share * 100.0))
         .collect();
     md.push_str(&format!(
-        "| {} points, {:.1} MiB, {} nodes | {:.2} s ({:.2} M points/s) | {:.0} ms | {:.1}x | {:.0} ms | {} | {:.1} MiB (+{:.1} MiB for the colour ranges) | {} |\n",
-        r.points,
-        r.file_bytes as f64 / (1 << 20) as f64,
-        r.nodes,
-        r.decode_s,
-        r.decode_mpoints_per_s,
-        r.first_frame_ms,
-        r.speedup,
-        r.open_ms,
-        r.first_frame_points,
-        r.first_frame_bytes_read as f64 / (1 << 20) as f64,
-        r.sample_bytes as f64 / (1 << 20) as f64,
+        "\nFidelity at {} px against 0: {}.\n",
+        r.fidelity.lod_error,
         fidelity.join(", ")
     ));
     md
+}
+
+fn mib(bytes: u64) -> f64 {
+    bytes as f64 / (1u64 << 20) as f64
 }
 
 #[cfg(test)]
@@ -273,18 +315,25 @@ mod tests {
             width: 160,
             height: 90,
             seed: 7,
+            lod_errors: vec![DEFAULT_LOD_ERROR_PX, 4.0],
             memory_budget_bytes: 256 << 20,
             scratch_parent: Some(parent.path().to_path_buf()),
         };
         let result = measure(&gpu(), &options, &mut |_| {}).expect("measured");
         assert_eq!(result.points, 300_000);
         assert!(result.nodes > 1, "{result:?}");
+        let [fine, coarse] = &result.first_frames[..] else {
+            panic!("a first frame per pixel error: {result:?}");
+        };
         assert!(
-            result.first_frame_points > 0 && result.first_frame_points <= result.points,
+            fine.points > 0 && fine.points <= result.points,
             "{result:?}"
         );
-        assert!(result.first_frame_bytes_read > 0, "{result:?}");
-        assert!(result.decode_s > 0.0 && result.first_frame_ms > 0.0);
+        assert!(
+            coarse.points < fine.points && coarse.bytes_read < fine.bytes_read,
+            "a coarser error reads and draws less: {result:?}"
+        );
+        assert!(result.decode_s > 0.0 && fine.ms > 0.0);
         assert_eq!(result.fidelity.modes.len(), FIDELITY_MODES.len());
         assert!(markdown(&result).contains("300000 points"));
         let left: Vec<_> = std::fs::read_dir(parent.path()).expect("list").collect();

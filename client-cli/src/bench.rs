@@ -114,6 +114,11 @@ pub struct BenchArgs {
         conflicts_with_all = ["only", "huge", "modes", "basic_only", "plot", "scheduler", "campaign", "cuts"]
     )]
     copc: Option<Option<usize>>,
+    /// With --copc: the pixel errors whose first frames are measured (comma-separated), each
+    /// from empty caches; the fidelity is measured at the first. The renderer's default alone
+    /// when not given.
+    #[arg(long, value_name = "PX,…", value_delimiter = ',', value_parser = parse::non_negative, requires = "copc")]
+    copc_lod_errors: Vec<f64>,
 }
 
 /// A byte count: a number with an optional KiB, MiB or GiB suffix.
@@ -353,9 +358,15 @@ fn run_copc(args: &BenchArgs, points: Option<usize>, started: Instant) -> Result
         copc::COPC_POINTS
     };
     let (width, height) = args.size;
+    let defaults = CopcOptions::new(points.map_or(default_points, |n| n as u64), width, height);
     let options = CopcOptions {
         memory_budget_bytes: args.cut_memory_budget,
-        ..CopcOptions::new(points.map_or(default_points, |n| n as u64), width, height)
+        lod_errors: if args.copc_lod_errors.is_empty() {
+            defaults.lod_errors.clone()
+        } else {
+            args.copc_lod_errors.clone()
+        },
+        ..defaults
     };
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
     outln!("adapter: {}", gpu.describe());
