@@ -203,8 +203,9 @@ pub struct RenderArgs {
     /// When the dataset's levels of detail must be built first, render every frame at once
     /// from a preview (the raw first point of each LAZ chunk, every 50,000th LAS record, read
     /// without decompressing) while the store builds on another thread, then render the
-    /// final frames over them, into the same files. Reports say which frames are previews and
-    /// how complete their data was. With nothing to build the final frames render at once.
+    /// final frames over them, into the same files (previews stop once the store is ready;
+    /// the first frame is always previewed). Reports say which frames are previews and how
+    /// complete their data was. With nothing to build the final frames render at once.
     /// Local only.
     #[arg(long)]
     pub(crate) preview: bool,
