@@ -450,6 +450,16 @@ fn a_preview_renders_from_chunk_starts_while_the_store_builds_then_the_final_fra
         "{}",
         output_text(&again)
     );
+    // A dataset rendered resident has no store to wait for either.
+    let still = dir.path().join("still.png");
+    let tile = tiles.join("t1.laz");
+    let resident = pointfarm_ok(&["render", arg(&tile), "--out", arg(&still), "--preview"]);
+    assert!(
+        output_text(&resident).contains("render resident, nothing to build"),
+        "{}",
+        output_text(&resident)
+    );
+    assert!(!output_text(&resident).contains("preview of"));
     let refused = pointfarm(&[
         "render",
         arg(&tiles),
