@@ -134,6 +134,68 @@ fn the_sample_cloud_has_the_loaded_datasets_origin_and_points() {
     assert_eq!(sample.cloud.color_source, full.color_source);
 }
 
+/// `las` (an uncompressed LAS 1.2 file without VLRs) compressed as point-wise LAZ in chunks
+/// of `chunks` points each (variable-size chunks, which the crate's writer does not make).
+fn variable_chunk_laz(las: &Path, chunks: &[usize]) -> PathBuf {
+    use std::io::{Cursor, Seek, SeekFrom};
+    let bytes = fs::read(las).expect("read LAS");
+    let u32_at = |at: usize| u32::from_le_bytes(bytes[at..at + 4].try_into().expect("4 bytes"));
+    let data_start = u32_at(96) as usize;
+    assert_eq!(u32_at(100), 0, "a file without VLRs");
+    let format = bytes[104];
+    let record_len = usize::from(u16::from_le_bytes([bytes[105], bytes[106]]));
+    let extra = u16::try_from(record_len - 34).expect("extra bytes");
+    let vlr = laz::LazVlrBuilder::default()
+        .with_point_format(format, extra)
+        .expect("items")
+        .with_variable_chunk_size()
+        .build();
+    let mut vlr_data = Vec::new();
+    vlr.write_to(&mut vlr_data).expect("VLR");
+    let mut prefix = bytes[..data_start].to_vec();
+    prefix.extend(0u16.to_le_bytes());
+    let mut user_id = [0u8; 16];
+    user_id[..14].copy_from_slice(b"laszip encoded");
+    prefix.extend(user_id);
+    prefix.extend(22204u16.to_le_bytes());
+    prefix.extend(
+        u16::try_from(vlr_data.len())
+            .expect("VLR size")
+            .to_le_bytes(),
+    );
+    prefix.extend([0u8; 32]);
+    prefix.extend(&vlr_data);
+    let new_start = u32::try_from(prefix.len()).expect("offset");
+    prefix[96..100].copy_from_slice(&new_start.to_le_bytes());
+    prefix[100..104].copy_from_slice(&1u32.to_le_bytes());
+    prefix[104] = format | 0x80;
+    // The compressor writes the chunk table's absolute offset: it starts after the prefix.
+    let mut out = Cursor::new(prefix);
+    out.seek(SeekFrom::End(0)).expect("seek");
+    let mut compressor = laz::LasZipCompressor::new(&mut out, vlr).expect("compressor");
+    let mut points = bytes[data_start..].chunks_exact(record_len);
+    for &count in chunks {
+        for point in points.by_ref().take(count) {
+            compressor.compress_one(point).expect("compress");
+        }
+        compressor.finish_current_chunk().expect("chunk");
+    }
+    compressor.done().expect("done");
+    drop(compressor);
+    let path = las.with_extension("laz");
+    fs::write(&path, out.into_inner()).expect("write LAZ");
+    path
+}
+
+#[test]
+fn variable_size_point_wise_chunks_match_the_decoder() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let las = write_default(dir.path(), "variable.las", &test_cloud(10_000));
+    let laz = variable_chunk_laz(&las, &[1_000, 3_000, 17, 5_983]);
+    let indices = sample_matches_decoder(&laz, LAS_PREVIEW_STRIDE);
+    assert_eq!(indices, vec![0, 1_000, 4_000, 4_017]);
+}
+
 /// Samples a file that must fail, and gives the message, which must name the file.
 fn sample_error(path: &Path) -> String {
     let message = match sample_chunk_starts(&[path.to_path_buf()]) {
