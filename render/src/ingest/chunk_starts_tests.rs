@@ -223,6 +223,11 @@ fn corrupt_chunk_tables_are_refused_naming_the_file() {
     // 2^32 - 1 chunks would reserve 64 GiB of table and 2^32 sampled records.
     patch(table as usize + 4, &u32::MAX.to_le_bytes());
     assert!(sample_error(&path).contains("declares 4294967295 chunks"));
+    // Two chunks more than the table holds, few enough to fit the compressed data: the
+    // table's entries run out of the file.
+    patch(table as usize + 4, &5u32.to_le_bytes());
+    let message = sample_error(&path);
+    assert!(message.contains("chunk"), "{message}");
     // The file cut in its second chunk: the table (at the end) is gone, and so are chunks.
     fs::write(&path, &original[..original.len() * 2 / 3]).expect("cut");
     sample_error(&path);
