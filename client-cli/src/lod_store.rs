@@ -101,7 +101,11 @@ pub fn build_in_background(
         .name("lod-build".into())
         .spawn(move || {
             StoredLod::open_or_build(&files, &folder, memory_budget, budget, &mut |points| {
-                tracing::info!(points, folder = %folder.display(), "building levels of detail for after the preview");
+                tracing::info!(
+                    points,
+                    folder = %folder.display(),
+                    "building levels of detail behind a preview"
+                );
             })
             .with_context(|| format!("the store in {}", folder.display()))
         })

@@ -1,7 +1,7 @@
 //! `pointfarm render`: the request the arguments describe, rendered here frame by frame, or
 //! handed to a server (`remote_render`).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
@@ -10,7 +10,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_render::camera::{Camera, Projection};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::copc::is_copc;
-use pointfarm_render::cut::StoredLod;
+use pointfarm_render::cut::{CutOptions, StoredLod};
 use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::{dataset_files, dataset_point_count};
@@ -68,54 +68,24 @@ pub fn run(args: RenderArgs) -> Result<()> {
             (None, Some(options)) => {
                 let folder = cache.folder(&files)?;
                 if !StoredLod::is_built(&folder) {
-                    say_input(format!(
-                        "building levels of detail of {points} points in the background (once; kept in {})",
-                        folder.display()
-                    ));
-                    let build = build_in_background(
-                        files.clone(),
-                        folder,
-                        &cache,
-                        options.memory_budget_bytes,
-                    )?;
-                    let mut preview =
-                        FrameSource::preview(Arc::clone(&gpu), &files, &request.render, &say_input)?;
-                    render_frames(&args, &request, &outputs, &gpu, &mut preview, &|| {
-                        !build.is_finished()
-                    })?;
-                    drop(preview);
-                    let spinner = (!build.is_finished())
-                        .then(|| crate::progress::spinner("waiting for the levels of detail".into()));
-                    let built = build.join();
-                    if let Some(spinner) = spinner {
-                        spinner.finish_and_clear();
-                    }
-                    let lod = built
-                        .map_err(|_| anyhow::anyhow!("the levels of detail's build panicked"))??;
-                    say_built(&lod, &say_input);
-                    let mut source = FrameSource::stored(
-                        Arc::clone(&gpu),
-                        lod,
-                        files.len(),
-                        options,
-                        &request.render,
-                        &say_input,
-                    )?;
-                    render_frames(&args, &request, &outputs, &gpu, &mut source, &|| true)?;
-                    say(format!(
-                        "final frames: {} (over the previews)",
-                        outputs.files.dir().display()
-                    ));
-                    return Ok(());
+                    let frames = FrameTarget {
+                        args: &args,
+                        request: &request,
+                        outputs: &outputs,
+                        gpu: &gpu,
+                    };
+                    return preview_then_final(
+                        &frames, &files, folder, &cache, options, points, &say_input,
+                    );
                 }
-                say("--preview: the levels of detail are built already; rendering the final frames".into());
+                say(format!("--preview: {BUILT_ALREADY}; {FINAL_AT_ONCE}"));
             }
-            (Some(_), _) => say(
-                "--preview: a COPC file renders from its own hierarchy, nothing to build; rendering the final frames"
-                    .into(),
-            ),
+            (Some(_), _) => say(format!(
+                "--preview: a COPC file renders from its own hierarchy, nothing to build; \
+                 {FINAL_AT_ONCE}"
+            )),
             (None, None) => say(format!(
-                "--preview: {points} points render resident, nothing to build; rendering the final frames"
+                "--preview: {points} points render resident, nothing to build; {FINAL_AT_ONCE}"
             )),
         }
     }
@@ -140,6 +110,72 @@ pub fn run(args: RenderArgs) -> Result<()> {
         )?,
     };
     render_frames(&args, &request, &outputs, &gpu, &mut source, &|| true)
+}
+
+const BUILT_ALREADY: &str = "the levels of detail are built already";
+const FINAL_AT_ONCE: &str = "rendering the final frames";
+
+/// What frames are rendered for and where they go.
+struct FrameTarget<'a> {
+    args: &'a RenderArgs,
+    request: &'a RenderRequest,
+    outputs: &'a Outputs,
+    gpu: &'a Arc<GpuContext>,
+}
+
+/// Renders the frames from the files' chunk starts while their store builds in `folder` on
+/// another thread, then the final frames from the store over them.
+fn preview_then_final(
+    target: &FrameTarget<'_>,
+    files: &[PathBuf],
+    folder: PathBuf,
+    cache: &StoreCache,
+    options: CutOptions,
+    points: u64,
+    say_input: &dyn Fn(String),
+) -> Result<()> {
+    let FrameTarget {
+        args,
+        request,
+        outputs,
+        gpu,
+    } = *target;
+    say_input(format!(
+        "building levels of detail of {points} points in the background (once; kept in {})",
+        folder.display()
+    ));
+    let build = build_in_background(files.to_vec(), folder, cache, options.memory_budget_bytes)?;
+    let mut preview = FrameSource::preview(Arc::clone(gpu), files, &request.render, say_input)?;
+    render_frames(args, request, outputs, gpu, &mut preview, &|| {
+        !build.is_finished()
+    })?;
+    // The preview's GPU memory is the final frames' node cache's.
+    drop(preview);
+    let spinner = (!build.is_finished())
+        .then(|| crate::progress::spinner("waiting for the levels of detail".into()));
+    let built = build.join();
+    if let Some(spinner) = spinner {
+        spinner.finish_and_clear();
+    }
+    let lod = built.map_err(|_| anyhow::anyhow!("the levels of detail's build panicked"))??;
+    say_built(&lod, say_input);
+    let mut source = FrameSource::stored(
+        Arc::clone(gpu),
+        lod,
+        files.len(),
+        options,
+        &request.render,
+        say_input,
+    )?;
+    render_frames(args, request, outputs, gpu, &mut source, &|| true)?;
+    crate::output::say(
+        args.json,
+        format!(
+            "final frames: {} (over the previews)",
+            outputs.files.dir().display()
+        ),
+    );
+    Ok(())
 }
 
 /// Renders the request's frames from `source` into the outputs, while `keep_going` says so
