@@ -8,7 +8,7 @@ use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::sample::sample_scene;
 use pointfarm_render::testing::compare_images_within;
 use pointfarm_tests::service::{scratch_sample, write_sample};
-use pointfarm_tests::{json_names, output_text, pointfarm, pointfarm_ok};
+use pointfarm_tests::{json_lines, json_names, output_text, pointfarm, pointfarm_ok};
 
 fn arg(path: &Path) -> &str {
     path.to_str().expect("temporary paths are UTF-8")
@@ -369,4 +369,110 @@ fn walkdir_bytes(folder: &Path) -> u64 {
             }
         })
         .sum()
+}
+
+#[test]
+fn a_preview_renders_from_chunk_starts_while_the_store_builds_then_the_final_frames() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    // Three LAZ tiles of three 50,000-point chunks each (a generated scene per seed).
+    let tiles = dir.path().join("tiles");
+    std::fs::create_dir_all(&tiles).expect("tiles");
+    for seed in 1..=3 {
+        write_las(
+            &tiles.join(format!("t{seed}.laz")),
+            &sample_scene(120_000, seed),
+            &LasWriteOptions::default(),
+        )
+        .expect("tile");
+    }
+    let size = "--size=160x120";
+    let render = |out: &Path, cache: &Path, more: &[&str]| {
+        let mut args = vec!["render", arg(&tiles), "--out", arg(out), size];
+        args.extend(["--turntable", "3", "--lod-error", "0.5", "--json"]);
+        args.extend(["--cache-dir", arg(cache)]);
+        args.extend_from_slice(more);
+        pointfarm_ok(&args)
+    };
+    let frames = dir.path().join("frames");
+    let cache = dir.path().join("cache");
+    let output = render(&frames, &cache, &["--preview"]);
+    let reports = json_lines(&output);
+    let previews = reports
+        .iter()
+        .take_while(|report| report["preview"] == true)
+        .count();
+    // The preview draws the first frame at least, then the final frames follow, all of them.
+    assert!(previews >= 1, "{}", output_text(&output));
+    let finals = &reports[previews..];
+    assert_eq!(finals.len(), 3, "{}", output_text(&output));
+    for (index, report) in reports[..previews].iter().enumerate() {
+        assert_eq!(report["frame"], index as u64);
+        assert_eq!(report["pointsTotal"], 360_000, "{report}");
+        // Nine chunk starts at most of 360,000 points.
+        let drawn = report["pointsRendered"].as_u64().expect("points");
+        assert!((1..=9).contains(&drawn), "{report}");
+        let completeness = report["completeness"].as_f64().expect("completeness");
+        assert!(
+            (completeness - drawn as f64 / 360_000.0).abs() < 1e-12,
+            "{report}"
+        );
+    }
+    for (index, report) in finals.iter().enumerate() {
+        assert_eq!(report["frame"], index as u64);
+        assert_eq!(report["preview"], false, "{report}");
+        assert!(report["cut"].is_object(), "{report}");
+        assert!(report["completeness"].as_f64() > Some(0.01), "{report}");
+        // A preview is framed as the final frame is.
+        if index < previews {
+            assert_eq!(report["camera"], reports[index]["camera"]);
+        }
+    }
+    assert!(output_text(&output).contains("final frames:"));
+
+    // The final frames are a normal render's, pixel for pixel (a store built apart).
+    let normal = dir.path().join("normal");
+    let plain = render(&normal, &dir.path().join("cache2"), &[]);
+    assert!(json_lines(&plain).iter().all(|r| r["preview"] == false));
+    for index in 0..3 {
+        let name = format!("frame_{index:05}.png");
+        let image = |folder: &Path| image::open(folder.join(&name)).expect("png").to_rgba8();
+        assert!(
+            image(&frames) == image(&normal),
+            "{name} differs from a normal render's"
+        );
+    }
+
+    // With the store built there is nothing to preview: final frames at once, and it says so.
+    let again = render(&frames, &cache, &["--preview"]);
+    assert!(json_lines(&again).iter().all(|r| r["preview"] == false));
+    assert!(
+        output_text(&again).contains("built already"),
+        "{}",
+        output_text(&again)
+    );
+    // A dataset rendered resident has no store to wait for either.
+    let still = dir.path().join("still.png");
+    let tile = tiles.join("t1.laz");
+    let resident = pointfarm_ok(&["render", arg(&tile), "--out", arg(&still), "--preview"]);
+    assert!(
+        output_text(&resident).contains("render resident, nothing to build"),
+        "{}",
+        output_text(&resident)
+    );
+    assert!(!output_text(&resident).contains("preview of"));
+    let refused = pointfarm(&[
+        "render",
+        arg(&tiles),
+        "--out",
+        arg(&dir.path().join("remote.png")),
+        "--preview",
+        "--server",
+        "https://127.0.0.1:1",
+    ]);
+    assert!(!refused.status.success());
+    assert!(
+        output_text(&refused).contains("--preview renders here"),
+        "{}",
+        output_text(&refused)
+    );
 }

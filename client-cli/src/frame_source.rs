@@ -7,12 +7,14 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::Result;
+use pointfarm_render::cloud::PointCloud;
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::{point_colors, ramp_range, ColorRange, Coloring};
 use pointfarm_render::cut::{CutOptions, CutRenderer, CutReport};
 use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
-use pointfarm_render::ingest::load_dataset;
+use pointfarm_render::ingest::{load_dataset, sample_chunk_starts, DatasetSource};
+use pointfarm_render::lod::PointSource;
 use pointfarm_render::raster::{Frame, FrameSettings, GpuPointCloud, Renderer};
 use pointfarm_render::request::RenderOptions;
 
@@ -23,8 +25,11 @@ use pointfarm_render::cut::{LodDataset, StoredLod};
 /// A frame and what it drew.
 pub struct RenderedFrame {
     pub frame: Frame,
+    /// The points of the dataset's files (of the cloud, for a resident one).
     pub points_total: u64,
     pub points_rendered: u64,
+    /// Whether the frame is a preview drawn from the files' chunk starts.
+    pub preview: bool,
     /// The cut's nodes, caches and loads, when the frame came from a store.
     pub cut: Option<CutReport>,
 }
@@ -36,6 +41,8 @@ pub enum FrameSource {
         bounds: WorldBounds,
         spacing: Option<f64>,
         ramp_range: Option<ColorRange>,
+        /// For a preview of the files' chunk starts, the points of the files.
+        preview_of: Option<u64>,
     },
     Cut {
         renderer: Renderer,
@@ -80,24 +87,69 @@ impl FrameSource {
         });
         let cloud = load_dataset(files);
         spinner.finish_and_clear();
-        let mut cloud = cloud?;
+        let cloud = cloud?;
+        let points = cloud.len();
+        let about = format!(
+            "{points} points in {} file{}, {}, read in {:.0} ms",
+            files.len(),
+            plural(files.len()),
+            cloud.color_source.describe(),
+            started.elapsed().as_secs_f64() * 1e3
+        );
+        Self::of_cloud(gpu, cloud, options, None, &about, say)
+    }
+
+    /// A preview: the first point of every LAZ chunk (every 50,000th record of a LAS file),
+    /// read without decompressing, resident, framed by the files' header bounds as the store
+    /// built from them will be.
+    pub fn preview(
+        gpu: Arc<GpuContext>,
+        files: &[PathBuf],
+        options: &RenderOptions,
+        say: &dyn Fn(String),
+    ) -> Result<Self> {
+        let started = Instant::now();
+        let sample = sample_chunk_starts(files)?;
+        let framed = options
+            .filter
+            .framing_bounds(&DatasetSource::open(files)?.bounds())?;
+        let about = format!(
+            "preview: {} of the {} points in {} file{} (chunk starts, read in {:.0} ms), {}",
+            sample.cloud.len(),
+            sample.points_in_files,
+            files.len(),
+            plural(files.len()),
+            started.elapsed().as_secs_f64() * 1e3,
+            sample.cloud.color_source.describe(),
+        );
+        let mut source = Self::of_cloud(gpu, sample.cloud, options, Some(framed), &about, say)?;
+        if let Self::Resident { preview_of, .. } = &mut source {
+            *preview_of = Some(sample.points_in_files);
+        }
+        Ok(source)
+    }
+
+    /// `cloud` coloured, filtered and uploaded, once `about` it is said; framed by its own
+    /// bounds unless `framed` says otherwise.
+    fn of_cloud(
+        gpu: Arc<GpuContext>,
+        mut cloud: PointCloud,
+        options: &RenderOptions,
+        framed: Option<WorldBounds>,
+        about: &str,
+        say: &dyn Fn(String),
+    ) -> Result<Self> {
         let coloring = options.coloring();
         cloud.colors = point_colors(&cloud, coloring);
         let ramp_range = ramp_range(&cloud, coloring);
         let points = cloud.len();
-        say(format!(
-            "{points} points in {} file{}, {}, read in {:.0} ms",
-            files.len(),
-            if files.len() == 1 { "" } else { "s" },
-            cloud.color_source.describe(),
-            started.elapsed().as_secs_f64() * 1e3
-        ));
+        say(about.to_string());
         if !options.filter.keeps_everything() {
             let kept = options.filter.apply(&mut cloud)?;
             say(filtered_words(kept, points));
         }
         let renderer = Renderer::new(gpu);
-        let bounds = cloud.bounds;
+        let bounds = framed.unwrap_or(cloud.bounds);
         let spacing = cloud.spacing();
         let resident = renderer.upload(&cloud)?;
         Ok(Self::Resident {
@@ -106,6 +158,7 @@ impl FrameSource {
             bounds,
             spacing,
             ramp_range,
+            preview_of: None,
         })
     }
 
@@ -119,11 +172,22 @@ impl FrameSource {
         say: &dyn Fn(String),
     ) -> Result<Self> {
         let lod = open_or_build(files, cache, options.memory_budget_bytes, say)?;
+        Self::stored(gpu, lod, files.len(), options, render, say)
+    }
+
+    /// An opened store of a dataset of `file_count` files, rendered cut by cut.
+    pub fn stored(
+        gpu: Arc<GpuContext>,
+        lod: StoredLod,
+        file_count: usize,
+        options: CutOptions,
+        render: &RenderOptions,
+        say: &dyn Fn(String),
+    ) -> Result<Self> {
         let about = format!(
-            "{} points in {} file{}, levels of detail from {}",
+            "{} points in {file_count} file{}, levels of detail from {}",
             lod.dataset.point_count(),
-            files.len(),
-            if files.len() == 1 { "" } else { "s" },
+            plural(file_count),
             lod.folder.display(),
         );
         Self::of_levels(
@@ -195,6 +259,17 @@ impl FrameSource {
         })
     }
 
+    /// Whether the frames are previews of the files' chunk starts.
+    pub fn is_preview(&self) -> bool {
+        matches!(
+            self,
+            Self::Resident {
+                preview_of: Some(_),
+                ..
+            }
+        )
+    }
+
     /// The bounds the automatic camera frames.
     pub fn bounds(&self) -> WorldBounds {
         match self {
@@ -229,13 +304,17 @@ impl FrameSource {
     pub fn render(&mut self, settings: &FrameSettings) -> Result<RenderedFrame> {
         match self {
             Self::Resident {
-                renderer, cloud, ..
+                renderer,
+                cloud,
+                preview_of,
+                ..
             } => {
                 let frame = renderer.render(cloud, settings)?;
                 Ok(RenderedFrame {
                     frame,
-                    points_total: cloud.len() as u64,
+                    points_total: preview_of.unwrap_or(cloud.len() as u64),
                     points_rendered: renderer.listed_points(),
+                    preview: preview_of.is_some(),
                     cut: None,
                 })
             }
@@ -253,6 +332,7 @@ impl FrameSource {
                     frame,
                     points_total: report.counts.points_total,
                     points_rendered: report.counts.points_rendered,
+                    preview: false,
                     cut: Some(report),
                 })
             }
@@ -267,6 +347,14 @@ impl FrameSource {
         {
             cut.read_ahead(lod.dataset(), settings, filter);
         }
+    }
+}
+
+fn plural(count: usize) -> &'static str {
+    if count == 1 {
+        ""
+    } else {
+        "s"
     }
 }
 

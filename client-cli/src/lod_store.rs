@@ -4,6 +4,7 @@
 
 use std::cell::RefCell;
 use std::path::PathBuf;
+use std::thread::JoinHandle;
 use std::time::UNIX_EPOCH;
 
 use anyhow::{Context, Result};
@@ -44,6 +45,13 @@ pub struct StoreCache {
     pub size_bytes: Option<u64>,
 }
 
+impl StoreCache {
+    /// The folder of the store of `files`.
+    pub fn folder(&self, files: &[PathBuf]) -> Result<PathBuf> {
+        Ok(self.dir.join("lod").join(store_name(files)?))
+    }
+}
+
 /// Opens the store of `files` in `cache`, building it first (with a spinner) when there is
 /// none, within `memory_budget` bytes of build buffers.
 pub fn open_or_build(
@@ -52,7 +60,7 @@ pub fn open_or_build(
     memory_budget: u64,
     say: &dyn Fn(String),
 ) -> Result<StoredLod> {
-    let folder = cache.dir.join("lod").join(store_name(files)?);
+    let folder = cache.folder(files)?;
     let spinner = RefCell::new(None);
     let budget = cache.size_bytes;
     let opened = StoredLod::open_or_build(files, &folder, memory_budget, budget, &mut |points| {
@@ -65,6 +73,12 @@ pub fn open_or_build(
         spinner.finish_and_clear();
     }
     let opened = opened.with_context(|| format!("the store in {}", folder.display()))?;
+    say_built(&opened, say);
+    Ok(opened)
+}
+
+/// Says how the store was built, when this opening built it.
+pub fn say_built(opened: &StoredLod, say: &dyn Fn(String)) {
     if let Some((report, seconds)) = &opened.built {
         say(format!(
             "levels of detail: {} nodes built in {seconds:.1} s, {:.2} M points/s",
@@ -72,5 +86,28 @@ pub fn open_or_build(
             opened.dataset.point_count() as f64 / seconds / 1e6
         ));
     }
-    Ok(opened)
+}
+
+/// Builds the store of `files` in `folder` (see [`StoreCache::folder`]) on a thread of its
+/// own, without a spinner: the preview rendered meanwhile has the terminal.
+pub fn build_in_background(
+    files: Vec<PathBuf>,
+    folder: PathBuf,
+    cache: &StoreCache,
+    memory_budget: u64,
+) -> Result<JoinHandle<Result<StoredLod>>> {
+    let budget = cache.size_bytes;
+    std::thread::Builder::new()
+        .name("lod-build".into())
+        .spawn(move || {
+            StoredLod::open_or_build(&files, &folder, memory_budget, budget, &mut |points| {
+                tracing::info!(
+                    points,
+                    folder = %folder.display(),
+                    "building levels of detail behind a preview"
+                );
+            })
+            .with_context(|| format!("the store in {}", folder.display()))
+        })
+        .context("starting the levels of detail's build")
 }

@@ -1,7 +1,7 @@
 //! `pointfarm render`: the request the arguments describe, rendered here frame by frame, or
 //! handed to a server (`remote_render`).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
@@ -10,15 +10,17 @@ use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_render::camera::{Camera, Projection};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::copc::is_copc;
+use pointfarm_render::cut::{CutOptions, StoredLod};
 use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::{dataset_files, dataset_point_count};
 use pointfarm_render::legend::Legend;
 use pointfarm_render::raster::{FrameSettings, Stage, StageTimings};
+use pointfarm_render::request::RenderRequest;
 
 use crate::frame_files::save_depth;
 use crate::frame_source::{FrameSource, RenderedFrame};
-use crate::lod_store::StoreCache;
+use crate::lod_store::{build_in_background, say_built, StoreCache};
 use crate::paths::user_cache_dir;
 use crate::render_json::FrameJson;
 use crate::render_outputs::{write_legend, Outputs};
@@ -31,6 +33,12 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let request = args.request()?;
     let outputs = Outputs::check(&args, &request)?;
     if let Some(server) = args.server.clone().filter(|_| !args.local) {
+        if args.preview {
+            anyhow::bail!(
+                "--preview renders here while the levels of detail build here; add --local \
+                 (a server builds its own store)"
+            );
+        }
         return crate::remote_render::run(&server, &args, &request, &outputs);
     }
     if !args.require_tags.is_empty() || args.require_gpu {
@@ -46,12 +54,42 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let label = args.inputs_label();
     let say_input = |line: String| say(format!("{label}: {line}"));
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
-    let coloring = request.render.coloring();
     let copc = match files.as_slice() {
         [one] if is_copc(one)? => Some(one),
         _ => None,
     };
-    let mut source = match (copc, args.cut_options(points)?) {
+    let cache = StoreCache {
+        dir: args.cache_dir.clone().unwrap_or_else(user_cache_dir),
+        size_bytes: args.cache_size,
+    };
+    let cut_options = args.cut_options(points)?;
+    if args.preview {
+        match (copc, cut_options) {
+            (None, Some(options)) => {
+                let folder = cache.folder(&files)?;
+                if !StoredLod::is_built(&folder) {
+                    let frames = FrameTarget {
+                        args: &args,
+                        request: &request,
+                        outputs: &outputs,
+                        gpu: &gpu,
+                    };
+                    return preview_then_final(
+                        &frames, &files, folder, &cache, options, points, &say_input,
+                    );
+                }
+                say(format!("--preview: {BUILT_ALREADY}; {FINAL_AT_ONCE}"));
+            }
+            (Some(_), _) => say(format!(
+                "--preview: a COPC file renders from its own hierarchy, nothing to build; \
+                 {FINAL_AT_ONCE}"
+            )),
+            (None, None) => say(format!(
+                "--preview: {points} points render resident, nothing to build; {FINAL_AT_ONCE}"
+            )),
+        }
+    }
+    let mut source = match (copc, cut_options) {
         (Some(file), _) => FrameSource::copc(
             Arc::clone(&gpu),
             file,
@@ -62,25 +100,101 @@ pub fn run(args: RenderArgs) -> Result<()> {
         (None, None) => {
             FrameSource::resident(Arc::clone(&gpu), &files, &request.render, &say_input)?
         }
-        (None, Some(options)) => {
-            let cache = StoreCache {
-                dir: args.cache_dir.clone().unwrap_or_else(user_cache_dir),
-                size_bytes: args.cache_size,
-            };
-            FrameSource::cut(
-                Arc::clone(&gpu),
-                &files,
-                &cache,
-                options,
-                &request.render,
-                &say_input,
-            )?
-        }
+        (None, Some(options)) => FrameSource::cut(
+            Arc::clone(&gpu),
+            &files,
+            &cache,
+            options,
+            &request.render,
+            &say_input,
+        )?,
     };
-    if let Some(path) = &outputs.legend {
+    render_frames(&args, &request, &outputs, &gpu, &mut source, &|| true)
+}
+
+const BUILT_ALREADY: &str = "the levels of detail are built already";
+const FINAL_AT_ONCE: &str = "rendering the final frames";
+
+/// What frames are rendered for and where they go.
+struct FrameTarget<'a> {
+    args: &'a RenderArgs,
+    request: &'a RenderRequest,
+    outputs: &'a Outputs,
+    gpu: &'a Arc<GpuContext>,
+}
+
+/// Renders the frames from the files' chunk starts while their store builds in `folder` on
+/// another thread, then the final frames from the store over them.
+fn preview_then_final(
+    target: &FrameTarget<'_>,
+    files: &[PathBuf],
+    folder: PathBuf,
+    cache: &StoreCache,
+    options: CutOptions,
+    points: u64,
+    say_input: &dyn Fn(String),
+) -> Result<()> {
+    let FrameTarget {
+        args,
+        request,
+        outputs,
+        gpu,
+    } = *target;
+    say_input(format!(
+        "building levels of detail of {points} points in the background (once; kept in {})",
+        folder.display()
+    ));
+    let build = build_in_background(files.to_vec(), folder, cache, options.memory_budget_bytes)?;
+    let mut preview = FrameSource::preview(Arc::clone(gpu), files, &request.render, say_input)?;
+    render_frames(args, request, outputs, gpu, &mut preview, &|| {
+        !build.is_finished()
+    })?;
+    // The preview's GPU memory is the final frames' node cache's.
+    drop(preview);
+    let spinner = (!build.is_finished())
+        .then(|| crate::progress::spinner("waiting for the levels of detail".into()));
+    let built = build.join();
+    if let Some(spinner) = spinner {
+        spinner.finish_and_clear();
+    }
+    let lod = built.map_err(|_| anyhow::anyhow!("the levels of detail's build panicked"))??;
+    say_built(&lod, say_input);
+    let mut source = FrameSource::stored(
+        Arc::clone(gpu),
+        lod,
+        files.len(),
+        options,
+        &request.render,
+        say_input,
+    )?;
+    render_frames(args, request, outputs, gpu, &mut source, &|| true)?;
+    crate::output::say(
+        args.json,
+        format!(
+            "final frames: {} (over the previews)",
+            outputs.files.dir().display()
+        ),
+    );
+    Ok(())
+}
+
+/// Renders the request's frames from `source` into the outputs, while `keep_going` says so
+/// after the first; a preview's frames are followed by final ones, so only final frames
+/// write the legend, the summary and the video.
+fn render_frames(
+    args: &RenderArgs,
+    request: &RenderRequest,
+    outputs: &Outputs,
+    gpu: &GpuContext,
+    source: &mut FrameSource,
+    keep_going: &dyn Fn() -> bool,
+) -> Result<()> {
+    let say = |line: String| crate::output::say(args.json, line);
+    let is_preview = source.is_preview();
+    if let (Some(path), false) = (&outputs.legend, is_preview) {
         say(write_legend(
             path,
-            Legend::of(coloring, source.ramp_range()),
+            Legend::of(request.render.coloring(), source.ramp_range()),
         )?);
     }
     say(format!("adapter: {}", gpu.describe()));
@@ -101,9 +215,16 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let frames = request.frames();
     files.create_dir()?;
     let progress = if args.is_sequence() {
+        let what = if is_preview {
+            "preview frames"
+        } else {
+            "frames"
+        };
         ProgressBar::new(u64::from(frames)).with_style(
-            ProgressStyle::with_template("{bar:40} {pos}/{len} frames, {eta} left")
-                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+            ProgressStyle::with_template(&format!(
+                "{{bar:40}} {{pos}}/{{len}} {what}, {{eta}} left"
+            ))
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
         )
     } else {
         ProgressBar::hidden()
@@ -111,6 +232,9 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let mut written = Vec::with_capacity(frames as usize);
     let mut all = Vec::with_capacity(frames as usize);
     for i in 0..frames {
+        if i > 0 && !keep_going() {
+            break;
+        }
         let frame_settings = settings(i);
         let mut rendered = source.render(&frame_settings)?;
         // The next frame's nodes load while this one is encoded and written.
@@ -124,7 +248,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
             save_depth(files, i, &rendered.frame, &frame_settings)?;
         }
         report_frame(
-            &args,
+            args,
             i,
             &path,
             &frame_settings,
@@ -137,6 +261,15 @@ pub fn run(args: RenderArgs) -> Result<()> {
         progress.inc(1);
     }
     progress.finish_and_clear();
+    if is_preview {
+        say(format!(
+            "preview: {} of {frames} frame{} in {}",
+            written.len(),
+            if frames == 1 { "" } else { "s" },
+            files.dir().display()
+        ));
+        return Ok(());
+    }
     if args.is_sequence() && !args.json {
         print_summary(files.dir(), &all);
     }
@@ -162,6 +295,14 @@ fn report_frame(
             .unwrap_or_default()
     } else {
         let mut line = format!("{}  {}", path.display(), rendered.frame.timings);
+        if rendered.preview {
+            line.push_str(&format!(
+                "  | preview of {} of {} points ({:.3}%)",
+                rendered.points_rendered,
+                rendered.points_total,
+                rendered.points_rendered as f64 * 100.0 / rendered.points_total.max(1) as f64
+            ));
+        }
         if let Some(cut) = rendered.cut.as_ref().map(|c| &c.counts) {
             line.push_str(&format!(
                 "  | cut {} nodes, {} points; read {} nodes ({:.1} MiB), host hits {}, GPU hits {}",

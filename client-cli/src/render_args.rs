@@ -200,6 +200,15 @@ pub struct RenderArgs {
     /// file is always rendered this way, from its own hierarchy, without a store.
     #[arg(long, value_name = "PX", value_parser = parse::non_negative)]
     lod_error: Option<f64>,
+    /// When the dataset's levels of detail must be built first, render every frame at once
+    /// from a preview (the raw first point of each LAZ chunk, every 50,000th LAS record, read
+    /// without decompressing) while the store builds on another thread, then render the
+    /// final frames over them, into the same files (previews stop once the store is ready;
+    /// the first frame is always previewed). Reports say which frames are previews and how
+    /// complete their data was. With nothing to build the final frames render at once.
+    /// Local only.
+    #[arg(long)]
+    pub(crate) preview: bool,
     /// Levels of detail: host memory for the node cache and the store's build, e.g. 512MiB
     /// or 4GiB; on a software adapter (lavapipe) the GPU node cache's share too. Local only.
     #[arg(long, value_name = "SIZE", value_parser = parse::bytes)]

@@ -27,6 +27,12 @@ pub struct FrameJson {
     pub height: u32,
     pub points_total: u64,
     pub points_rendered: u64,
+    /// Whether the frame is a preview of the files' chunk starts, drawn while their levels of
+    /// detail build (`render --preview`); a final frame follows it.
+    pub preview: bool,
+    /// How complete the data drawn was: `pointsRendered / pointsTotal`, the points of the
+    /// files.
+    pub completeness: f64,
     /// Milliseconds by stage name (`upload`, `rasterize`, ...).
     pub timings_ms: serde_json::Map<String, serde_json::Value>,
     /// The side of a point's square in pixels; with adaptive sizes, the largest.
@@ -53,6 +59,8 @@ impl FrameJson {
             height: settings.height,
             points_total: rendered.points_total,
             points_rendered: rendered.points_rendered,
+            preview: rendered.preview,
+            completeness: completeness(rendered.points_rendered, rendered.points_total),
             timings_ms: rendered
                 .frame
                 .timings
@@ -69,6 +77,15 @@ impl FrameJson {
             },
             cut: rendered.cut.as_ref().map(cut_json),
         }
+    }
+}
+
+/// `drawn / total`, and 1 for a dataset without points (nothing is missing from it).
+fn completeness(drawn: u64, total: u64) -> f64 {
+    if total == 0 {
+        1.0
+    } else {
+        drawn as f64 / total as f64
     }
 }
 

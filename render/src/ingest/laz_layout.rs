@@ -80,12 +80,14 @@ pub(crate) fn layer_count(kind: u16, size: u16) -> u64 {
     }
 }
 
-/// Checks the LASzip VLR and, for chunked files, the chunk table and every chunk's extent.
+/// Checks the LASzip VLR and, for chunked files, the chunk table and every chunk's extent;
+/// gives the layout and the checked table (empty for unchunked files), which previews read
+/// chunk starts from.
 pub(super) fn check_laz(
     raw: &mut RawFile<'_>,
     facts: &HeaderFacts,
     laszip: Option<RecordSpan>,
-) -> Result<LazLayout, IngestError> {
+) -> Result<(LazLayout, ChunkTable), IngestError> {
     let Some(vlr_span) = laszip else {
         return Err(raw.corrupt("compressed points but no LASzip VLR"));
     };
@@ -106,7 +108,7 @@ pub(super) fn check_laz(
     };
     laszip.check_items(raw, facts)?;
     if laszip.compressor == 1 {
-        return Ok(LazLayout::Unchunked);
+        return Ok((LazLayout::Unchunked, ChunkTable::default()));
     }
     let vlr = laz::LazVlr::from_buffer(&vlr_bytes)
         .map_err(|error| raw.corrupt(format!("the LASzip VLR cannot be parsed: {error}")))?;
@@ -115,7 +117,7 @@ pub(super) fn check_laz(
     if laszip.items.iter().all(LazItem::is_layered) {
         check_layers(raw, facts, &laszip.items, chunks.as_ref())?;
     }
-    Ok(LazLayout::Chunked)
+    Ok((LazLayout::Chunked, chunks))
 }
 
 fn u16_in(bytes: &[u8], offset: u64) -> u16 {

@@ -17,6 +17,8 @@
 //! - `contain.rs`: a decoder panic turned into an error;
 //! - `read.rs`: reading checked files batch by batch (LAZ on all cores), a dataset's files
 //!   into one cloud;
+//! - `chunk_starts.rs`: a preview sample without decompressing: the raw first point of
+//!   every LAZ chunk, every k-th LAS record;
 //! - `columns.rs`: the decoded points and the cloud made of them (origin, colours);
 //! - `files.rs`: the files of a dataset, from files and folders;
 //! - `info.rs`: what a file is, for `pointfarm info`: header facts, attributes, and a
@@ -25,6 +27,7 @@
 //! - `write.rs`: writing clouds as LAS or LAZ;
 //! - `error.rs`: [`IngestError`].
 
+mod chunk_starts;
 mod columns;
 mod contain;
 mod crs;
@@ -46,6 +49,7 @@ mod transforms;
 mod write;
 
 pub use crate::cloud::MAX_COORDINATE;
+pub use chunk_starts::{sample_chunk_starts, PreviewSample, LAS_PREVIEW_STRIDE};
 pub(crate) use contain::contain_panics;
 pub use crs::{Crs, GeoKeys, USER_DEFINED as GEOTIFF_USER_DEFINED};
 pub use error::IngestError;

@@ -7,16 +7,20 @@
 use std::fs::File;
 use std::path::Path;
 
+use laz::laszip::ChunkTable;
+
 use super::header::HeaderFacts;
 use super::laz_layout::{check_laz, LazLayout};
 use super::raw_file::RawFile;
 use super::records::check_records;
 use super::IngestError;
 
-/// A file that passed the pre-parse: its header facts and, for LAZ, how it is compressed.
+/// A file that passed the pre-parse: its header facts and, for LAZ, how it is compressed and
+/// its chunk table (every entry inside the compressed data).
 pub(crate) struct CheckedFile {
     pub facts: HeaderFacts,
     pub laz: Option<LazLayout>,
+    pub chunks: ChunkTable,
 }
 
 pub(crate) fn check_file(
@@ -27,10 +31,11 @@ pub(crate) fn check_file(
     let facts = HeaderFacts::read(path, file, file_len)?;
     let mut raw = RawFile::new(path, file, file_len);
     let laszip = check_records(&mut raw, &facts)?;
-    let laz = if facts.compressed {
-        Some(check_laz(&mut raw, &facts, laszip)?)
+    let (laz, chunks) = if facts.compressed {
+        let (layout, chunks) = check_laz(&mut raw, &facts, laszip)?;
+        (Some(layout), chunks)
     } else {
-        None
+        (None, ChunkTable::default())
     };
-    Ok(CheckedFile { facts, laz })
+    Ok(CheckedFile { facts, laz, chunks })
 }

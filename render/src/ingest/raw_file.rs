@@ -96,7 +96,13 @@ impl<'a> RawFile<'a> {
         Ok(self.file)
     }
 
-    fn read_into(&mut self, offset: u64, buf: &mut [u8], what: &str) -> Result<(), IngestError> {
+    /// Fills `buf` from `offset`, once the span is known to lie inside the file.
+    pub fn read_into(
+        &mut self,
+        offset: u64,
+        buf: &mut [u8],
+        what: &str,
+    ) -> Result<(), IngestError> {
         self.check_span(offset, buf.len() as u64, what)?;
         let path = self.path;
         let file = self.file_at(offset)?;

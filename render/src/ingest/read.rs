@@ -9,6 +9,7 @@ use std::time::Instant;
 
 use glam::DVec3;
 use las::{PointDataBuilder, Reader};
+use laz::laszip::ChunkTable;
 
 use super::columns::{choose_origin, world_bounds, DecodedPoints};
 use super::contain::contain_panics;
@@ -43,15 +44,7 @@ pub fn load_point_cloud(path: &Path) -> Result<PointCloud, IngestError> {
 pub fn load_dataset(paths: &[PathBuf]) -> Result<PointCloud, IngestError> {
     let started = Instant::now();
     let files = DatasetFile::check_all(paths)?;
-    let header_bounds = files
-        .iter()
-        .map(|file| file.header_bounds)
-        .filter(usable)
-        .reduce(|a, b| WorldBounds {
-            min: a.min.min(b.min),
-            max: a.max.max(b.max),
-        })
-        .unwrap_or(files[0].header_bounds);
+    let header_bounds = dataset_header_bounds(&files);
     let has_color = files.iter().all(|file| file.has_color);
     let capacity = files
         .iter()
@@ -83,6 +76,20 @@ pub fn load_dataset(paths: &[PathBuf]) -> Result<PointCloud, IngestError> {
     Ok(cloud)
 }
 
+/// The union of the files' usable header bounds (the first file's when none is), which the
+/// dataset's origin is chosen against.
+pub(super) fn dataset_header_bounds(files: &[DatasetFile]) -> WorldBounds {
+    files
+        .iter()
+        .map(|file| file.header_bounds)
+        .filter(usable)
+        .reduce(|a, b| WorldBounds {
+            min: a.min.min(b.min),
+            max: a.max.max(b.max),
+        })
+        .unwrap_or(files[0].header_bounds)
+}
+
 /// Header bounds worth taking into the union: finite and not inverted.
 pub(super) fn usable(bounds: &WorldBounds) -> bool {
     bounds.min.is_finite() && bounds.max.is_finite() && bounds.min.cmple(bounds.max).all()
@@ -102,7 +109,9 @@ pub(super) struct DatasetFile {
     pub path: PathBuf,
     file_len: u64,
     pub facts: HeaderFacts,
-    laz: Option<LazLayout>,
+    pub laz: Option<LazLayout>,
+    /// The checked chunk table of chunked LAZ (empty otherwise).
+    pub chunks: ChunkTable,
     pub header_bounds: WorldBounds,
     pub has_color: bool,
 }
@@ -123,7 +132,7 @@ impl DatasetFile {
         };
         let mut file = File::open(path).map_err(io_error)?;
         let file_len = file.metadata().map_err(io_error)?.len();
-        let CheckedFile { facts, laz } = check_file(path, &mut file, file_len)?;
+        let CheckedFile { facts, laz, chunks } = check_file(path, &mut file, file_len)?;
         file.seek(SeekFrom::Start(0)).map_err(io_error)?;
         let (header_bounds, has_color) = contain_panics(path, || {
             let reader = open_reader(path, file, laz)?;
@@ -138,6 +147,7 @@ impl DatasetFile {
             file_len,
             facts,
             laz,
+            chunks,
             header_bounds,
             has_color,
         })

@@ -1,0 +1,197 @@
+//! A preview sample of a dataset read without decompressing anything: the first point of
+//! every LAZ chunk, and every k-th record of a LAS file.
+//!
+//! LASzip writes the first point of each chunk as raw record bytes before the arithmetic
+//! coder starts (point-wise chunks: the items' raw bytes, then the coder's init bytes;
+//! layered chunks: the raw record, then the chunk's point count and its layer sizes), so the
+//! checked chunk table gives an evenly spread subsample of a file of any size in one small
+//! read per chunk (as LidarScout does). An old unchunked LAZ file gives its first point only.
+//! The sample becomes a cloud as a dataset's load makes one: the same origin (the first
+//! sampled point is the file's first point) and the same colour rule, decided on the sample.
+
+use std::fs::File;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use glam::DVec3;
+use las::PointDataBuilder;
+
+use super::columns::{choose_origin, DecodedPoints};
+use super::contain::contain_panics;
+use super::laz_layout::LazLayout;
+use super::raw_file::RawFile;
+use super::read::{dataset_header_bounds, DatasetFile};
+use super::IngestError;
+use crate::cloud::PointCloud;
+
+/// Records between two sampled records of a LAS file: LASzip's default chunk size, so LAS and
+/// LAZ files give previews of one density.
+pub const LAS_PREVIEW_STRIDE: u64 = 50_000;
+
+/// A dataset's preview sample as one cloud, and the points its files declare.
+pub struct PreviewSample {
+    pub cloud: PointCloud,
+    pub points_in_files: u64,
+}
+
+/// The chunk starts of a dataset's LAZ files and every [`LAS_PREVIEW_STRIDE`]-th record of
+/// its LAS files, as one cloud (one origin, bounds and colour decision, as
+/// [`load_dataset`](super::load_dataset) decides them). Every file is pre-parsed as a load
+/// pre-parses it; every offset read lies inside the checked chunk table's extent.
+pub fn sample_chunk_starts(paths: &[PathBuf]) -> Result<PreviewSample, IngestError> {
+    sample_dataset(paths, LAS_PREVIEW_STRIDE)
+}
+
+fn sample_dataset(paths: &[PathBuf], las_stride: u64) -> Result<PreviewSample, IngestError> {
+    let started = Instant::now();
+    let files = DatasetFile::check_all(paths)?;
+    let header_bounds = dataset_header_bounds(&files);
+    let has_color = files.iter().all(|file| file.has_color);
+    let samples = files
+        .iter()
+        .map(|file| contain_panics(&file.path, || sample_file(file, las_stride)))
+        .collect::<Result<Vec<_>, _>>()?;
+    let sampled = samples.iter().map(las::PointData::len).sum();
+    let mut decoded = DecodedPoints::with_capacity(sampled, has_color);
+    let mut origin = None;
+    for (file, sample) in files.iter().zip(&samples) {
+        // A load fixes the origin with the first file that has points; so does the sample.
+        if sample.is_empty() {
+            continue;
+        }
+        let origin = *origin.get_or_insert_with(|| choose_origin(&header_bounds, sample));
+        decoded.append(sample, origin);
+        if let Some(extreme) = decoded.implausible_extreme() {
+            return Err(IngestError::ImplausibleCoordinates {
+                path: file.path.clone(),
+                extreme,
+            });
+        }
+    }
+    let cloud = decoded.into_cloud(origin.unwrap_or(DVec3::ZERO));
+    let points_in_files = files.iter().map(|file| file.facts.declared_points).sum();
+    tracing::info!(
+        files = files.len(),
+        sampled = cloud.len(),
+        points = points_in_files,
+        elapsed_ms = started.elapsed().as_secs_f64() * 1e3,
+        "sampled chunk starts"
+    );
+    Ok(PreviewSample {
+        cloud,
+        points_in_files,
+    })
+}
+
+/// Reads `file`'s sampled records by offset, each span checked against the file's size.
+fn sample_file(file: &DatasetFile, las_stride: u64) -> Result<las::PointData, IngestError> {
+    let path = file.path.as_path();
+    let io_error = |error| IngestError::Io {
+        path: path.to_owned(),
+        error,
+    };
+    let mut handle = File::open(path).map_err(io_error)?;
+    let mut raw = RawFile::new(path, &mut handle, file.file_len());
+    let starts = record_starts(&raw, file, las_stride)?;
+    let record_len = usize::from(file.facts.record_len);
+    // Each start was checked to lie in the file with a record after it, so this is at most
+    // the file's size.
+    let mut bytes = vec![0u8; starts.len() * record_len];
+    for (start, record) in starts.iter().zip(bytes.chunks_exact_mut(record_len)) {
+        raw.read_into(start.offset, record, "a sampled point record")?;
+    }
+    let header = file.header()?;
+    PointDataBuilder::new()
+        .for_header(&header)
+        .build_from_bytes(bytes)
+        .map_err(|error| IngestError::Malformed {
+            path: path.to_owned(),
+            error,
+        })
+}
+
+/// A sampled record: its index in the file's point order and its byte offset.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct RecordStart {
+    index: u64,
+    offset: u64,
+}
+
+/// Where the sampled records of `file` lie: LAZ chunk starts after the chunk table's offset
+/// field (or the first point of an unchunked file), or every `las_stride`-th LAS record.
+fn record_starts(
+    raw: &RawFile<'_>,
+    file: &DatasetFile,
+    las_stride: u64,
+) -> Result<Vec<RecordStart>, IngestError> {
+    let facts = &file.facts;
+    let record_len = u64::from(facts.record_len);
+    let declared = facts.declared_points;
+    let data_start = facts.offset_to_point_data;
+    let mut starts = Vec::new();
+    match file.laz {
+        None => {
+            let stride = las_stride.max(1);
+            // The pre-parse checked that the declared records fit in the file.
+            starts.extend((0..declared.div_ceil(stride)).map(|k| RecordStart {
+                index: k * stride,
+                offset: data_start + k * stride * record_len,
+            }));
+        }
+        Some(LazLayout::Unchunked) => {
+            if declared > 0 {
+                starts.push(RecordStart {
+                    index: 0,
+                    offset: data_start,
+                });
+            }
+        }
+        Some(LazLayout::Chunked) => {
+            // The chunks follow the 8-byte offset of the chunk table.
+            let mut offset = data_start + 8;
+            let mut index = 0u64;
+            for (chunk_index, chunk) in file.chunks.as_ref().iter().enumerate() {
+                if index >= declared {
+                    break;
+                }
+                if chunk.point_count > 0 {
+                    if chunk.byte_count < record_len {
+                        return Err(raw.corrupt(format!(
+                            "LAZ chunk {chunk_index} of {} bytes cannot hold its first point ({record_len}-byte records)",
+                            chunk.byte_count
+                        )));
+                    }
+                    starts.push(RecordStart { index, offset });
+                }
+                index = index.saturating_add(chunk.point_count);
+                offset = offset.saturating_add(chunk.byte_count);
+            }
+        }
+    }
+    for start in &starts {
+        raw.check_span(start.offset, record_len, "a sampled point record")?;
+    }
+    Ok(starts)
+}
+
+/// The sample of one file and the sampled points' indices in the file's point order, for
+/// tests that compare it with the file decoded whole.
+#[cfg(test)]
+fn sample_one(
+    path: &std::path::Path,
+    las_stride: u64,
+) -> Result<(Vec<u64>, las::PointData), IngestError> {
+    let file = DatasetFile::check(path)?;
+    let mut handle = File::open(path).expect("open");
+    let raw = RawFile::new(path, &mut handle, file.file_len());
+    let indices = record_starts(&raw, &file, las_stride)?
+        .iter()
+        .map(|start| start.index)
+        .collect();
+    let points = contain_panics(path, || sample_file(&file, las_stride))?;
+    Ok((indices, points))
+}
+
+#[cfg(test)]
+#[path = "chunk_starts_tests.rs"]
+mod tests;
