@@ -762,6 +762,51 @@ mod tests {
     }
 
     #[test]
+    fn copc_chunks_convert_both_ways_and_bad_fields_are_named() {
+        let path = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("../tests/data/copc/simple.copc.laz");
+        let opened = pointfarm_render::copc::open_copc(&path).expect("opens");
+        let served = CopcServed {
+            file_name: "simple.copc.laz".into(),
+            decoder: opened.decoder,
+            root_spacing: opened.info.spacing,
+            elevation: opened.dataset.elevation(),
+        };
+        let message = copc_chunks_message(&served);
+        let back = copc_chunks(&message).expect("valid");
+        assert_eq!(back.file_name, served.file_name);
+        assert_eq!(back.root_spacing, served.root_spacing);
+        assert_eq!(back.elevation, served.elevation);
+        assert_eq!(back.decoder.scale(), served.decoder.scale());
+        assert_eq!(back.decoder.laszip_vlr(), served.decoder.laszip_vlr());
+        assert_eq!(copc_chunks_message(&back), message);
+
+        type Damage = fn(&mut pb::CopcChunks);
+        let bad: [(&str, Damage); 7] = [
+            ("copc.file_name", |m| m.file_name.clear()),
+            ("copc.point_format", |m| m.point_format = 300),
+            ("copc.point_record_length", |m| {
+                m.point_record_length = 70_000
+            }),
+            ("copc.scale", |m| m.scale = None),
+            ("copc.root_spacing", |m| m.root_spacing = -1.0),
+            ("copc.elevation", |m| {
+                m.elevation = Some(pb::ElevationStretch {
+                    low: 2.0,
+                    high: 1.0,
+                })
+            }),
+            ("copc.laszip_vlr", |m| m.laszip_vlr.truncate(10)),
+        ];
+        for (field, damage) in bad {
+            let mut damaged = message.clone();
+            damage(&mut damaged);
+            let error = copc_chunks(&damaged).err().expect("refused");
+            assert!(error.to_string().contains(field), "{field}: {error}");
+        }
+    }
+
+    #[test]
     fn requirements_are_checked_sorted_and_convert_both_ways() {
         let mut r = valid();
         r.requirements = Some(pb::WorkerRequirements {
