@@ -189,12 +189,7 @@ impl DatasetStores {
     /// Called under `opening`.
     fn open_copc(&self, dataset: &Dataset) -> Result<Option<Arc<ReadyStore>>, DaemonError> {
         let lock = || self.copc.lock().unwrap_or_else(|e| e.into_inner());
-        let known = lock().get(&dataset.sha256).map(|entry| match entry {
-            CopcEntry::Plain => Ok(None),
-            CopcEntry::Ready(store) => Ok(Some(Arc::clone(store))),
-            CopcEntry::Failed(reason) => Err(DaemonError::FailedPrecondition(reason.clone())),
-        });
-        if let Some(answer) = known {
+        if let Some(answer) = self.copc_known(&dataset.sha256) {
             return answer;
         }
         let files = dataset.files();
@@ -226,6 +221,16 @@ impl DatasetStores {
         };
         lock().insert(dataset.sha256.clone(), entry);
         opened.map(Some).map_err(DaemonError::FailedPrecondition)
+    }
+
+    /// What is known of content `sha256` as a COPC file: `None` before it was looked at.
+    fn copc_known(&self, sha256: &str) -> Option<Result<Option<Arc<ReadyStore>>, DaemonError>> {
+        let copc = self.copc.lock().unwrap_or_else(|e| e.into_inner());
+        copc.get(sha256).map(|entry| match entry {
+            CopcEntry::Plain => Ok(None),
+            CopcEntry::Ready(store) => Ok(Some(Arc::clone(store))),
+            CopcEntry::Failed(reason) => Err(DaemonError::FailedPrecondition(reason.clone())),
+        })
     }
 
     /// [`Self::open_store`], called under `opening`.
@@ -300,10 +305,14 @@ impl DatasetStores {
     /// file's hierarchy, or a finished store, not open yet (the daemon restarted under a
     /// worker reading it) is opened.
     pub fn ready(&self, dataset: &Dataset) -> Result<Arc<ReadyStore>, DaemonError> {
-        // A COPC file's hierarchy is opened here as an open would (it needs no build).
-        let copc = {
-            let _one_decision = self.opening.lock().unwrap_or_else(|e| e.into_inner());
-            self.open_copc(dataset)?
+        // A COPC file's hierarchy is opened here as an open would (it needs no build); only
+        // a dataset not looked at yet waits for `opening`, not every node request.
+        let copc = match self.copc_known(&dataset.sha256) {
+            Some(known) => known?,
+            None => {
+                let _one_decision = self.opening.lock().unwrap_or_else(|e| e.into_inner());
+                self.open_copc(dataset)?
+            }
         };
         if let Some(store) = copc {
             return Ok(store);
