@@ -1,14 +1,17 @@
 //! `pointfarm render` of a COPC file, run as a user would: its own hierarchy read node by
 //! node (no store built), every node drawn as the same points read whole, a coarse pixel
-//! error reading less than the file, a damaged hierarchy refused naming the file; `info`
-//! describing a COPC file's octree.
+//! error reading less than the file, a damaged hierarchy refused naming the file; the same
+//! through a daemon and a worker process, which fetches the file's chunks node by node;
+//! `info` describing a COPC file's octree.
 
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::testing::compare_images_within;
-use pointfarm_tests::{assert_fails_saying, output_text, pointfarm, pointfarm_ok};
+use pointfarm_tests::{
+    assert_fails_saying, assert_ok, json_lines, output_text, pointfarm, pointfarm_ok,
+};
 
 fn arg(path: &Path) -> &str {
     path.to_str().expect("test paths are UTF-8")
@@ -112,17 +115,23 @@ fn a_coarse_pixel_error_reads_less_than_the_file() {
     assert!(frame["pointsRendered"].as_u64() < Some(1065), "{frame}");
 }
 
-#[test]
-fn a_damaged_copc_hierarchy_is_refused_naming_the_file() {
-    let dir = tempfile::tempdir().expect("tempdir");
+/// `simple.copc.laz` written into `dir` with the chunk of its root page's second entry moved
+/// past the end of the file.
+fn damaged_copc(dir: &Path) -> PathBuf {
     let mut bytes = std::fs::read(copc_file("simple.copc.laz")).expect("read");
-    // The root page's second entry: its chunk moved past the end of the file.
     let info = 375 + 54;
     let page = u64::from_le_bytes(bytes[info + 40..info + 48].try_into().expect("8")) as usize;
     let beyond = bytes.len() as u64 + 1_000;
     bytes[page + 32 + 16..page + 32 + 24].copy_from_slice(&beyond.to_le_bytes());
-    let damaged = dir.path().join("damaged.copc.laz");
+    let damaged = dir.join("damaged.copc.laz");
     std::fs::write(&damaged, &bytes).expect("write");
+    damaged
+}
+
+#[test]
+fn a_damaged_copc_hierarchy_is_refused_naming_the_file() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let damaged = damaged_copc(dir.path());
     let output = pointfarm(&[
         "render",
         arg(&damaged),
@@ -136,6 +145,81 @@ fn a_damaged_copc_hierarchy_is_refused_naming_the_file() {
     let error = described["copc"]["error"].as_str().expect("an error");
     assert!(error.contains("damaged.copc.laz"), "{error}");
     assert_eq!(described["points"], "1065");
+}
+
+/// A count of the API's JSON mapping, where 64-bit counts are strings.
+fn count(value: &serde_json::Value) -> u64 {
+    value
+        .as_u64()
+        .or_else(|| value.as_str().and_then(|s| s.parse().ok()))
+        .unwrap_or(0)
+}
+
+/// Through a daemon and a worker process, a COPC dataset is rendered from the file's own
+/// hierarchy: no store is built, the worker fetches the chunks its cuts need (less than the
+/// file at a coarse pixel error) and draws what a local render draws; a damaged file fails
+/// its job naming the file, and the daemon goes on rendering.
+#[test]
+fn a_copc_dataset_renders_through_the_service_from_its_own_hierarchy() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let copc = copc_file("simple_with_page.copc.laz");
+    let data = dir.path().join("data");
+    let server = pointfarm_tests::ServeProcess::start_with(&data, &["--no-embedded-worker"]);
+    let worker_cache = dir.path().join("worker-cache");
+    let worker = pointfarm_tests::WorkerProcess::start(&server.address, &worker_cache, "far");
+    let remote_render = |file: &Path, out: &str, more: &[&str]| {
+        let out = dir.path().join(out);
+        let mut args = vec!["render", arg(file), "--out", arg(&out), "--json"];
+        args.extend(["--server", &server.address, "--size=200x150"]);
+        args.extend(more);
+        pointfarm(&args)
+    };
+
+    let failed = remote_render(&damaged_copc(dir.path()), "damaged.png", &["--lod-error=1"]);
+    assert_fails_saying(&failed, "damaged.copc.laz");
+    assert_fails_saying(&failed, "COPC hierarchy is inconsistent");
+
+    // A coarse pixel error: the frame's cut fetched less than half the file.
+    let coarse = remote_render(&copc, "coarse.png", &["--lod-error=8"]);
+    assert_ok(&coarse);
+    let frames = json_lines(&coarse);
+    let cut = &frames[0]["finished"]["cut"];
+    let fetched = count(&cut["bytesRead"]) + count(&cut["readAheadBytes"]);
+    let file_len = std::fs::metadata(&copc).expect("size").len();
+    assert!(
+        fetched > 0 && fetched < file_len / 2,
+        "{fetched} of {file_len} bytes fetched: {cut}"
+    );
+    assert!(count(&cut["pointsRendered"]) < 1065, "{cut}");
+
+    // Every node: the same image as the file rendered here.
+    let options = ["--point-size=3", "--lod-error=0"];
+    let remote = remote_render(&copc, "remote.png", &options);
+    assert_ok(&remote);
+    let local = dir.path().join("local.png");
+    let mut args = vec!["render", arg(&copc), "--out", arg(&local), "--size=200x150"];
+    args.extend(options);
+    pointfarm_ok(&args);
+    let image = |name: &str| image::open(dir.path().join(name)).expect("png").to_rgba8();
+    let diff = compare_images_within("copc-service", &image("remote.png"), &image("local.png"), 8);
+    assert!(
+        diff.equal_fraction() >= 0.99,
+        "the COPC file renders differently through the service: {} pixels\n{}",
+        diff.differing,
+        worker.log()
+    );
+
+    // Read from the file's own hierarchy: no store built, no file downloaded.
+    let served = server.log();
+    assert!(served.contains("no store built"), "{served}");
+    assert!(!served.contains("store ready for workers"), "{served}");
+    let stores = std::fs::read_dir(data.join("lod")).map_or(0, Iterator::count);
+    assert_eq!(stores, 0, "the daemon built a store");
+    let log = worker.log();
+    assert!(log.contains("daemon_store=true"), "{log}");
+    assert!(!log.contains("dataset file downloaded"), "{log}");
+    let own_stores = std::fs::read_dir(worker_cache.join("lod")).map_or(0, Iterator::count);
+    assert_eq!(own_stores, 0, "the worker built a store of its own");
 }
 
 /// The one file's `FileDescription` of `info --no-points --json`.

@@ -294,7 +294,7 @@ impl Daemon {
     pub fn ready_dataset_store(&self, id: &str) -> Result<Arc<ReadyStore>, DaemonError> {
         check_id("dataset_id", id)?;
         let dataset = self.dataset(id)?;
-        self.stores.ready(&dataset.sha256)
+        self.stores.ready(&dataset)
     }
 }
 

@@ -32,7 +32,7 @@ impl Daemon {
         let dataset = self.dataset(id)?;
         let started = Instant::now();
         let store = loop {
-            match self.stores.open(&dataset, true)? {
+            match self.stores.open_store(&dataset, true)? {
                 StoreAnswer::Ready(store) => break store,
                 StoreAnswer::Building { .. } => std::thread::sleep(BUILD_POLL),
                 StoreAnswer::NotNeeded { .. } => {

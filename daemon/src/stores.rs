@@ -8,7 +8,9 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
-use pointfarm_render::cut::{StoredLod, RESIDENT_MAX_POINTS};
+use pointfarm_render::color::Stretch;
+use pointfarm_render::copc::{is_copc, open_copc, CopcDecoder};
+use pointfarm_render::cut::{LodDataset, StoredLod, RESIDENT_MAX_POINTS};
 use pointfarm_render::ingest::dataset_point_count;
 use pointfarm_render::lod::{LodHierarchy, NodeInfo, NodeKey};
 
@@ -18,35 +20,65 @@ use crate::model::Dataset;
 /// Most nodes one request may ask for.
 pub const MAX_NODES_PER_REQUEST: usize = 256;
 
-/// A finished store, opened: what workers are sent of it.
+/// An opened store, or a COPC file's own hierarchy: what workers are sent of it.
 pub struct ReadyStore {
-    lod: StoredLod,
+    kept: Kept,
     /// The hierarchy as stored (its own checksum included), sent to workers as it is.
     pub hierarchy_record: Vec<u8>,
-    /// How long this daemon took to build it; 0 when it opened one built before.
+    /// How long this daemon took to build it; 0 when it opened one built before (or a COPC
+    /// file, which needs no build).
     pub build_ms: f64,
+    /// Set when the records are a COPC file's LAZ chunks, not a store's.
+    pub copc: Option<CopcServed>,
+}
+
+/// What nodes are read from.
+enum Kept {
+    Store(Box<StoredLod>),
+    /// A dataset of one COPC file, read through its own hierarchy.
+    Copc(LodDataset),
+}
+
+/// What a worker needs, beyond the hierarchy record, to render a COPC file's chunks as the
+/// file is rendered here.
+pub struct CopcServed {
+    /// The dataset file's name, which errors about its chunks give.
+    pub file_name: String,
+    pub decoder: CopcDecoder,
+    /// The root's point spacing (the record leaves it out).
+    pub root_spacing: f64,
+    /// The coarsest nodes' elevation range, read when the file was opened, so a worker need
+    /// not read them again.
+    pub elevation: Option<Stretch>,
 }
 
 impl ReadyStore {
+    fn dataset(&self) -> &LodDataset {
+        match &self.kept {
+            Kept::Store(lod) => &lod.dataset,
+            Kept::Copc(dataset) => dataset,
+        }
+    }
+
     pub fn hierarchy(&self) -> &LodHierarchy {
-        self.lod.dataset.hierarchy()
+        self.dataset().hierarchy()
     }
 
     pub fn point_count(&self) -> u64 {
-        self.lod.dataset.point_count()
+        self.dataset().point_count()
     }
 
     pub fn bounds(&self) -> pointfarm_render::cloud::WorldBounds {
-        self.lod.dataset.bounds()
+        self.dataset().bounds()
     }
 
     /// Where the store's node records are read from (an export reads them all).
     pub fn node_records(&self) -> &std::sync::Arc<dyn pointfarm_render::lod::NodeRecords> {
-        self.lod.dataset.records()
+        self.dataset().records()
     }
 
     /// The stored records of `keys`, in order; each must be a node of the hierarchy with
-    /// points.
+    /// points. A COPC file's records are its LAZ chunks, byte ranges of the file.
     pub fn records(&self, keys: &[NodeKey]) -> Result<Vec<Vec<u8>>, DaemonError> {
         let hierarchy = self.hierarchy();
         let infos: Vec<NodeInfo> = keys
@@ -59,8 +91,7 @@ impl ReadyStore {
                 )),
             })
             .collect::<Result<_, _>>()?;
-        self.lod
-            .dataset
+        self.dataset()
             .records()
             .read_records(&infos)
             .map_err(|e| DaemonError::Internal(format!("reading the store's nodes: {e}")))
@@ -88,10 +119,21 @@ enum Entry {
     Failed(String),
 }
 
+/// What a dataset's content is as a COPC dataset.
+enum CopcEntry {
+    /// Not one COPC file: its store is built.
+    Plain,
+    Ready(Arc<ReadyStore>),
+    /// Its hierarchy is inconsistent (named); said to every later request.
+    Failed(String),
+}
+
 pub struct DatasetStores {
     dir: PathBuf,
     build_memory_bytes: u64,
     entries: Arc<Mutex<HashMap<String, Entry>>>,
+    /// Datasets by content, as COPC files or not.
+    copc: Mutex<HashMap<String, CopcEntry>>,
     /// Held by the build running, so builds take their memory one at a time.
     building: Arc<Mutex<()>>,
     /// Held while a request decides what to do with a store and opens or starts it, so two
@@ -105,6 +147,7 @@ impl DatasetStores {
             dir,
             build_memory_bytes,
             entries: Arc::default(),
+            copc: Mutex::default(),
             building: Arc::default(),
             opening: Mutex::default(),
         }
@@ -114,14 +157,88 @@ impl DatasetStores {
         self.dir.join(sha256)
     }
 
-    /// The store of `dataset` when a frame needs one (`levels_of_detail`, or more points
-    /// than render resident, or a store already built): ready, or building (started here).
+    /// The levels of detail of `dataset` for a worker's frame: a dataset of one COPC file
+    /// through its own hierarchy (no build), any other through its store ([`Self::open_store`]).
     pub fn open(
         &self,
         dataset: &Dataset,
         levels_of_detail: bool,
     ) -> Result<StoreAnswer, DaemonError> {
         let _one_decision = self.opening.lock().unwrap_or_else(|e| e.into_inner());
+        match self.open_copc(dataset)? {
+            Some(ready) => Ok(StoreAnswer::Ready(ready)),
+            None => self.open_store_decided(dataset, levels_of_detail),
+        }
+    }
+
+    /// The store of `dataset` when a frame needs one (`levels_of_detail`, or more points
+    /// than render resident, or a store already built): ready, or building (started here).
+    /// An export asks for the store whatever the files are.
+    pub fn open_store(
+        &self,
+        dataset: &Dataset,
+        levels_of_detail: bool,
+    ) -> Result<StoreAnswer, DaemonError> {
+        let _one_decision = self.opening.lock().unwrap_or_else(|e| e.into_inner());
+        self.open_store_decided(dataset, levels_of_detail)
+    }
+
+    /// `dataset` through its own COPC hierarchy when it is one COPC file (whatever its size
+    /// and the request, as a local render of the file); `None` otherwise. Several COPC files
+    /// keep the store build: each has its own cube, and their nodes do not make one octree.
+    /// Called under `opening`.
+    fn open_copc(&self, dataset: &Dataset) -> Result<Option<Arc<ReadyStore>>, DaemonError> {
+        let lock = || self.copc.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(answer) = self.copc_known(&dataset.sha256) {
+            return answer;
+        }
+        let files = dataset.files();
+        // A file that cannot be read as COPC is reported by the store's build.
+        let [file] = files.as_slice() else {
+            lock().insert(dataset.sha256.clone(), CopcEntry::Plain);
+            return Ok(None);
+        };
+        if !is_copc(&file.path).unwrap_or(false) {
+            lock().insert(dataset.sha256.clone(), CopcEntry::Plain);
+            return Ok(None);
+        }
+        let opened = open_copc_file(&file.path, &file.name)
+            .map(Arc::new)
+            // Refused rather than built as plain LAZ: a file whose hierarchy disagrees with
+            // itself or the file is damaged, and the job should say so.
+            .map_err(|reason| format!("dataset {}: {reason}", dataset.id));
+        let entry = match &opened {
+            Ok(ready) => {
+                tracing::info!(dataset = %dataset.id, file = %file.name,
+                    points = ready.point_count(),
+                    "COPC hierarchy ready for workers: no store built");
+                CopcEntry::Ready(Arc::clone(ready))
+            }
+            Err(reason) => {
+                tracing::warn!(%reason, "the dataset's COPC hierarchy is refused");
+                CopcEntry::Failed(reason.clone())
+            }
+        };
+        lock().insert(dataset.sha256.clone(), entry);
+        opened.map(Some).map_err(DaemonError::FailedPrecondition)
+    }
+
+    /// What is known of content `sha256` as a COPC file: `None` before it was looked at.
+    fn copc_known(&self, sha256: &str) -> Option<Result<Option<Arc<ReadyStore>>, DaemonError>> {
+        let copc = self.copc.lock().unwrap_or_else(|e| e.into_inner());
+        copc.get(sha256).map(|entry| match entry {
+            CopcEntry::Plain => Ok(None),
+            CopcEntry::Ready(store) => Ok(Some(Arc::clone(store))),
+            CopcEntry::Failed(reason) => Err(DaemonError::FailedPrecondition(reason.clone())),
+        })
+    }
+
+    /// [`Self::open_store`], called under `opening`.
+    fn open_store_decided(
+        &self,
+        dataset: &Dataset,
+        levels_of_detail: bool,
+    ) -> Result<StoreAnswer, DaemonError> {
         let sha = dataset.sha256.clone();
         let points = match self.entry(&sha, |entry| match entry {
             Entry::Counted(points) => Ok(*points),
@@ -184,9 +301,23 @@ impl DatasetStores {
         Ok(StoreAnswer::Building { points })
     }
 
-    /// The ready store of content `sha256`, for the node requests that follow an open. A
-    /// finished store not open yet (the daemon restarted under a worker reading it) is opened.
-    pub fn ready(&self, sha256: &str) -> Result<Arc<ReadyStore>, DaemonError> {
+    /// The ready store of `dataset`, for the node requests that follow an open. A COPC
+    /// file's hierarchy, or a finished store, not open yet (the daemon restarted under a
+    /// worker reading it) is opened.
+    pub fn ready(&self, dataset: &Dataset) -> Result<Arc<ReadyStore>, DaemonError> {
+        // A COPC file's hierarchy is opened here as an open would (it needs no build); only
+        // a dataset not looked at yet waits for `opening`, not every node request.
+        let copc = match self.copc_known(&dataset.sha256) {
+            Some(known) => known?,
+            None => {
+                let _one_decision = self.opening.lock().unwrap_or_else(|e| e.into_inner());
+                self.open_copc(dataset)?
+            }
+        };
+        if let Some(store) = copc {
+            return Ok(store);
+        }
+        let sha256 = dataset.sha256.as_str();
         let not_open = || {
             DaemonError::FailedPrecondition(
                 "the dataset's store is not open: ask OpenDatasetStore first".into(),
@@ -222,6 +353,10 @@ impl DatasetStores {
         }
         entries.remove(sha256);
         drop(entries);
+        self.copc
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(sha256);
         let folder = self.folder(sha256);
         if folder.exists() {
             match std::fs::remove_dir_all(&folder) {
@@ -284,9 +419,28 @@ fn open_or_build(files: &[PathBuf], folder: &Path, budget: u64) -> Result<ReadyS
         "store ready for workers"
     );
     Ok(ReadyStore {
-        lod,
+        kept: Kept::Store(Box::new(lod)),
         hierarchy_record,
         build_ms,
+        copc: None,
+    })
+}
+
+/// Opens the COPC file `path` (the dataset's file `name`) through its own hierarchy.
+fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
+    let opened = open_copc(path).map_err(|e| format!("COPC file {name}: {e}"))?;
+    let hierarchy = opened.dataset.hierarchy();
+    let copc = CopcServed {
+        file_name: name.to_owned(),
+        decoder: opened.decoder,
+        root_spacing: opened.info.spacing,
+        elevation: opened.dataset.elevation(),
+    };
+    Ok(ReadyStore {
+        hierarchy_record: hierarchy.encode(),
+        kept: Kept::Copc(opened.dataset),
+        build_ms: 0.0,
+        copc: Some(copc),
     })
 }
 
@@ -364,7 +518,7 @@ mod tests {
         ));
         assert!(!dir.path().join("lod").join("aa11").exists());
         assert!(
-            stores.ready("aa11").is_err(),
+            stores.ready(&dataset).is_err(),
             "not open before it is asked for"
         );
 
@@ -408,13 +562,13 @@ mod tests {
         drop(again);
         // A daemon restarted under a worker that reads the store serves it at once.
         let restarted = DatasetStores::new(dir.path().join("lod"), 64 << 20);
-        let served = restarted.ready("aa11").expect("opened on demand");
+        let served = restarted.ready(&dataset).expect("opened on demand");
         assert_eq!(served.hierarchy_record, record);
         drop(served);
         let again = restarted;
         again.remove("aa11");
         assert!(!dir.path().join("lod").join("aa11").exists());
-        assert!(again.ready("aa11").is_err());
+        assert!(again.ready(&dataset).is_err());
     }
 
     #[test]
@@ -438,7 +592,133 @@ mod tests {
         // A finished store, opened by four requests at once: one opening, shared.
         let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
         asked_at_once(&stores);
-        assert_eq!(stores.ready("cc33").expect("open").hierarchy_record, record);
+        assert_eq!(
+            stores.ready(&dataset).expect("open").hierarchy_record,
+            record
+        );
+    }
+
+    /// A COPC file of the repository's test data (`tests/data/copc`), as a dataset.
+    fn copc_dataset(path: &Path, sha256: &str) -> Dataset {
+        let mut dataset = dataset_of(path, sha256);
+        let name = path.file_name().expect("a name").to_string_lossy();
+        dataset.files[0].name = name.into_owned();
+        dataset
+    }
+
+    fn copc_file(name: &str) -> PathBuf {
+        PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("../tests/data/copc")
+            .join(name)
+    }
+
+    #[test]
+    fn a_copc_file_is_served_from_its_own_hierarchy_without_a_build() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = copc_file("simple_with_page.copc.laz");
+        let dataset = copc_dataset(&path, "dd44");
+        let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+        // Ready at once, even unasked for levels of detail, as a local render of the file.
+        let StoreAnswer::Ready(store) = stores.open(&dataset, false).expect("open") else {
+            panic!("a COPC file needs no build");
+        };
+        assert!(!dir.path().join("lod").exists(), "a store was built");
+        assert_eq!(store.point_count(), 1065);
+        assert_eq!(store.build_ms, 0.0);
+        let copc = store.copc.as_ref().expect("served as COPC");
+        assert_eq!(copc.file_name, "simple_with_page.copc.laz");
+        assert!(copc.elevation.is_some());
+        // The record leaves the COPC spacing out; it is sent beside it.
+        let record = LodHierarchy::decode(&store.hierarchy_record).expect("decodes");
+        assert_eq!(record.level_spacing(), None);
+        assert_eq!(
+            record.with_root_spacing(copc.root_spacing),
+            *store.hierarchy()
+        );
+
+        // Its records are byte ranges of the file, which the decoder sent reads back.
+        let file = std::fs::read(&path).expect("read");
+        let stored: Vec<NodeInfo> = store
+            .hierarchy()
+            .nodes()
+            .iter()
+            .filter(|n| n.point_count > 0)
+            .copied()
+            .collect();
+        let keys: Vec<NodeKey> = stored.iter().map(|n| n.key).collect();
+        let records = store.records(&keys).expect("records");
+        let mut points = 0;
+        for (info, record) in stored.iter().zip(&records) {
+            let range = info.byte_range();
+            assert_eq!(record[..], file[range.start as usize..range.end as usize]);
+            let node = copc
+                .decoder
+                .decode_chunk(&store.hierarchy().cube, info, record)
+                .expect("decodes");
+            points += node.len();
+        }
+        assert_eq!(points, 1065);
+
+        // A daemon restarted under a worker fetching nodes opens the file again, unbuilt.
+        drop((store, stores));
+        let restarted = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+        let served = restarted.ready(&dataset).expect("opened on demand");
+        assert!(served.copc.is_some());
+        assert!(!dir.path().join("lod").exists());
+    }
+
+    #[test]
+    fn several_copc_files_and_an_export_build_a_store() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut two = copc_dataset(&copc_file("simple.copc.laz"), "ee55");
+        two.files
+            .push(copc_dataset(&copc_file("simple_with_page.copc.laz"), "ee55").files[0].clone());
+        let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+        let store = wait_ready(&stores, &two);
+        assert!(store.copc.is_none(), "two cubes are not one octree");
+        assert_eq!(store.point_count(), 2 * 1065);
+
+        let one = copc_dataset(&copc_file("simple.copc.laz"), "ff66");
+        assert!(matches!(stores.open(&one, true), Ok(StoreAnswer::Ready(s)) if s.copc.is_some()));
+        let started = Instant::now();
+        let exported = loop {
+            match stores.open_store(&one, true).expect("open") {
+                StoreAnswer::Ready(store) => break store,
+                _ if started.elapsed() < Duration::from_secs(60) => {
+                    std::thread::sleep(Duration::from_millis(50))
+                }
+                _ => panic!("the store was not built"),
+            }
+        };
+        assert!(exported.copc.is_none(), "an export reads a built store");
+        assert!(dir.path().join("lod").join("ff66").exists());
+    }
+
+    #[test]
+    fn a_damaged_copc_file_is_refused_naming_it_and_nothing_is_built() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut bytes = std::fs::read(copc_file("simple.copc.laz")).expect("read");
+        // The root page's second entry: its chunk moved past the end of the file.
+        let info = 375 + 54;
+        let page = u64::from_le_bytes(bytes[info + 40..info + 48].try_into().expect("8")) as usize;
+        let beyond = bytes.len() as u64 + 1_000;
+        bytes[page + 32 + 16..page + 32 + 24].copy_from_slice(&beyond.to_le_bytes());
+        let path = dir.path().join("damaged.copc.laz");
+        std::fs::write(&path, &bytes).expect("write");
+        let dataset = copc_dataset(&path, "ab12");
+        let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+        for _ in 0..2 {
+            let Err(DaemonError::FailedPrecondition(reason)) = stores.open(&dataset, true) else {
+                panic!("a damaged COPC file is refused");
+            };
+            assert!(reason.contains("damaged.copc.laz"), "{reason}");
+            assert!(
+                reason.contains("COPC hierarchy is inconsistent"),
+                "{reason}"
+            );
+        }
+        assert!(stores.ready(&dataset).is_err());
+        assert!(!dir.path().join("lod").exists(), "built as plain LAZ");
     }
 
     #[test]

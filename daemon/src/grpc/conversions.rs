@@ -20,10 +20,11 @@ use crate::lease_record::Lease;
 use crate::limits::{truncated, MAX_WORKER_NAME_BYTES};
 use crate::model::{Dataset, FrameCut, FrameReport, Job, JobSpec, JobState, StageTiming};
 use crate::store::Page;
-use crate::stores::StoreAnswer;
+use crate::stores::{CopcServed, StoreAnswer};
 use pointfarm_render::classification;
 use pointfarm_render::cloud::{ColorSource, WorldBounds};
-use pointfarm_render::copc::{CopcError, CopcSummary};
+use pointfarm_render::color::Stretch;
+use pointfarm_render::copc::{CopcDecoder, CopcError, CopcSummary};
 use pointfarm_render::ingest::{Crs, PointSummary};
 use pointfarm_render::lod::{NodeKey, MAX_LEVEL};
 
@@ -469,9 +470,80 @@ impl From<&StoreAnswer> for pb::OpenDatasetStoreResponse {
                 bounds_max: Some(vec3(store.bounds().max)),
                 hierarchy_bytes: store.hierarchy_record.len() as u64,
                 build_ms: store.build_ms,
+                copc: store.copc.as_ref().map(copc_chunks_message),
             },
         }
     }
+}
+
+fn copc_chunks_message(copc: &CopcServed) -> pb::CopcChunks {
+    let decoder = &copc.decoder;
+    let [x, y, z] = decoder.scale();
+    let [ox, oy, oz] = decoder.offset();
+    pb::CopcChunks {
+        file_name: copc.file_name.clone(),
+        point_format: u32::from(decoder.point_format()),
+        point_record_length: u32::from(decoder.record_len()),
+        scale: Some(pb::Vec3 { x, y, z }),
+        offset: Some(pb::Vec3 {
+            x: ox,
+            y: oy,
+            z: oz,
+        }),
+        laszip_vlr: decoder.laszip_vlr().to_vec(),
+        root_spacing: copc.root_spacing,
+        elevation: copc.elevation.map(|e| pb::ElevationStretch {
+            low: e.low,
+            high: e.high,
+        }),
+    }
+}
+
+/// What a worker is sent to decode a COPC file's chunks, checked as the file's header is.
+pub fn copc_chunks(message: &pb::CopcChunks) -> Result<CopcServed, DaemonError> {
+    let field = |name: &str| format!("copc.{name}");
+    if message.file_name.is_empty() || message.file_name.len() > 4096 {
+        return Err(invalid(&field("file_name"), "not a file name"));
+    }
+    let point_format = u8::try_from(message.point_format)
+        .map_err(|_| invalid(&field("point_format"), "not a LAS point format"))?;
+    let record_len = u16::try_from(message.point_record_length)
+        .map_err(|_| invalid(&field("point_record_length"), "longer than a LAS record"))?;
+    let axes = |v: &Option<pb::Vec3>, name: &str| {
+        v.as_ref()
+            .map(|v| [v.x, v.y, v.z])
+            .ok_or_else(|| invalid(&field(name), "missing"))
+    };
+    let (scale, offset) = (
+        axes(&message.scale, "scale")?,
+        axes(&message.offset, "offset")?,
+    );
+    if !(message.root_spacing.is_finite() && message.root_spacing > 0.0) {
+        return Err(invalid(&field("root_spacing"), "not a positive size"));
+    }
+    let elevation = match &message.elevation {
+        Some(e) if e.low.is_finite() && e.high.is_finite() && e.low <= e.high => Some(Stretch {
+            low: e.low,
+            high: e.high,
+        }),
+        Some(_) => return Err(invalid(&field("elevation"), "not a range")),
+        None => None,
+    };
+    let decoder = CopcDecoder::from_parts(
+        std::path::Path::new(&message.file_name),
+        point_format,
+        record_len,
+        scale,
+        offset,
+        &message.laszip_vlr,
+    )
+    .map_err(|e| invalid(&field("laszip_vlr"), e.to_string()))?;
+    Ok(CopcServed {
+        file_name: message.file_name.clone(),
+        decoder,
+        root_spacing: message.root_spacing,
+        elevation,
+    })
 }
 
 fn vec3_message(v: glam::DVec3) -> pb::Vec3 {
@@ -687,6 +759,51 @@ mod tests {
 
     fn kernel(kernel: u32) -> pb::FillOptions {
         pb::FillOptions { kernel }
+    }
+
+    #[test]
+    fn copc_chunks_convert_both_ways_and_bad_fields_are_named() {
+        let path = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("../tests/data/copc/simple.copc.laz");
+        let opened = pointfarm_render::copc::open_copc(&path).expect("opens");
+        let served = CopcServed {
+            file_name: "simple.copc.laz".into(),
+            decoder: opened.decoder,
+            root_spacing: opened.info.spacing,
+            elevation: opened.dataset.elevation(),
+        };
+        let message = copc_chunks_message(&served);
+        let back = copc_chunks(&message).expect("valid");
+        assert_eq!(back.file_name, served.file_name);
+        assert_eq!(back.root_spacing, served.root_spacing);
+        assert_eq!(back.elevation, served.elevation);
+        assert_eq!(back.decoder.scale(), served.decoder.scale());
+        assert_eq!(back.decoder.laszip_vlr(), served.decoder.laszip_vlr());
+        assert_eq!(copc_chunks_message(&back), message);
+
+        type Damage = fn(&mut pb::CopcChunks);
+        let bad: [(&str, Damage); 7] = [
+            ("copc.file_name", |m| m.file_name.clear()),
+            ("copc.point_format", |m| m.point_format = 300),
+            ("copc.point_record_length", |m| {
+                m.point_record_length = 70_000
+            }),
+            ("copc.scale", |m| m.scale = None),
+            ("copc.root_spacing", |m| m.root_spacing = -1.0),
+            ("copc.elevation", |m| {
+                m.elevation = Some(pb::ElevationStretch {
+                    low: 2.0,
+                    high: 1.0,
+                })
+            }),
+            ("copc.laszip_vlr", |m| m.laszip_vlr.truncate(10)),
+        ];
+        for (field, damage) in bad {
+            let mut damaged = message.clone();
+            damage(&mut damaged);
+            let error = copc_chunks(&damaged).err().expect("refused");
+            assert!(error.to_string().contains(field), "{field}: {error}");
+        }
     }
 
     #[test]

@@ -26,8 +26,8 @@ pub mod streaming;
 mod workers;
 
 pub use conversions::{
-    dataset_description, file_description, frame_cut_message, frame_cut_of_message, frame_task,
-    frame_task_message, node_key_message, stage_timings, timings_message,
+    copc_chunks, dataset_description, file_description, frame_cut_message, frame_cut_of_message,
+    frame_task, frame_task_message, node_key_message, stage_timings, timings_message,
 };
 pub use request::{camera_path_message, render_options_message, render_request};
 pub use workers::EmbeddedWorkerCall;

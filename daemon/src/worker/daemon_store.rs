@@ -1,20 +1,23 @@
 //! The daemon's level-of-detail store of a dataset, read node by node over the worker
 //! service: the worker asks for the store, fetches its hierarchy once, and then reads only
 //! the nodes each frame's cut needs — checked against their own checksums as a local store's
-//! are — instead of downloading the dataset's files and building a store of its own.
+//! are — instead of downloading the dataset's files and building a store of its own. A
+//! dataset of one COPC file comes the same way, its records the file's LAZ chunks, decoded
+//! here with what the daemon sends of its header.
 
 use std::sync::Arc;
 use std::time::Duration;
 
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::cloud::WorldBounds;
-use pointfarm_render::lod::{LodError, LodHierarchy, NodeInfo, NodeRecords};
+use pointfarm_render::copc::CopcDecoder;
+use pointfarm_render::lod::{LodError, LodHierarchy, NodeInfo, NodePoints, NodeRecords, RootCube};
 use tonic::{Code, Status};
 
 use super::client::Client;
-use crate::grpc::node_key_message;
+use crate::grpc::{copc_chunks, node_key_message};
 use crate::lease::FrameTask;
-use crate::stores::MAX_NODES_PER_REQUEST;
+use crate::stores::{CopcServed, MAX_NODES_PER_REQUEST};
 
 /// The longest a fetch of one request's nodes may take before the frame fails (and is tried
 /// again): a daemon that stopped answering must not hold a frame for ever.
@@ -39,6 +42,8 @@ pub struct RemoteStore {
     /// How long the daemon took to build it; 0 when it opened one built before.
     pub build_ms: f64,
     pub records: Arc<RemoteNodes>,
+    /// Set when the dataset is one COPC file read through its own hierarchy.
+    pub copc: Option<CopcServed>,
 }
 
 /// Asks the daemon for the store of `task`'s dataset, and fetches its hierarchy when it is
@@ -94,6 +99,16 @@ pub async fn open(client: &mut Client, task: &FrameTask) -> Result<DaemonStore, 
     }
     let hierarchy = LodHierarchy::decode(&record)
         .map_err(|e| Status::internal(format!("the daemon's store: {e}")))?;
+    let copc = answer
+        .copc
+        .as_ref()
+        .map(copc_chunks)
+        .transpose()
+        .map_err(|e| Status::internal(format!("the daemon's COPC answer: {e}")))?;
+    let hierarchy = match &copc {
+        Some(copc) => hierarchy.with_root_spacing(copc.root_spacing),
+        None => hierarchy,
+    };
     if hierarchy.point_count != answer.point_count {
         return Err(Status::internal(format!(
             "the daemon's store holds {} points, its answer says {}",
@@ -108,7 +123,9 @@ pub async fn open(client: &mut Client, task: &FrameTask) -> Result<DaemonStore, 
             client: client.clone(),
             dataset_id: task.dataset.id.clone(),
             runtime: tokio::runtime::Handle::current(),
+            decoder: copc.as_ref().map(|copc| copc.decoder.clone()),
         }),
+        copc,
     })))
 }
 
@@ -118,6 +135,8 @@ pub struct RemoteNodes {
     client: Client,
     dataset_id: String,
     runtime: tokio::runtime::Handle,
+    /// How a COPC file's chunks decode; `None` for a store's records.
+    decoder: Option<CopcDecoder>,
 }
 
 impl RemoteNodes {
@@ -181,5 +200,21 @@ impl NodeRecords for RemoteNodes {
             }
         }
         Ok(records)
+    }
+
+    fn decode(
+        &self,
+        cube: &RootCube,
+        info: &NodeInfo,
+        bytes: &[u8],
+    ) -> Result<NodePoints, LodError> {
+        match &self.decoder {
+            Some(decoder) => decoder
+                .decode_chunk(cube, info, bytes)
+                .map_err(LodError::from),
+            None => {
+                pointfarm_render::lod::codec::decode_node(cube, info.key, info.point_count, bytes)
+            }
+        }
     }
 }

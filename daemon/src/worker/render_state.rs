@@ -372,11 +372,20 @@ impl WorkerRenderState {
             .daemon_lod_error(task)
             .ok_or_else(|| FrameFailure::transient("this worker renders no levels of detail"))?;
         let options = self.cut_options(lod_error)?;
-        let dataset = LodDataset::with_records(store.records, store.hierarchy, store.bounds)
-            .map_err(|e| {
-                FrameFailure::from(&CutError::Store(e))
-                    .context(&format!("dataset {}", task.dataset.id))
-            })?;
+        let dataset = match &store.copc {
+            // The daemon read the coarsest nodes when it opened the file.
+            Some(copc) => LodDataset::with_elevation(
+                store.records,
+                store.hierarchy,
+                store.bounds,
+                copc.elevation,
+            ),
+            None => LodDataset::with_records(store.records, store.hierarchy, store.bounds)
+                .map_err(|e| {
+                    FrameFailure::from(&CutError::Store(e))
+                        .context(&format!("dataset {}", task.dataset.id))
+                })?,
+        };
         let build_ms = (store.build_ms > 0.0).then_some(store.build_ms);
         self.stored(task, StoreSource::Daemon(dataset), options, build_ms)
     }

@@ -64,6 +64,8 @@ pub(crate) struct CopcHeader {
     pub bounds: WorldBounds,
     pub offset_to_point_data: u64,
     pub laz_items: Vec<laz::LazItem>,
+    /// The LASzip VLR's data as stored, which a worker decoding this file's chunks is sent.
+    pub laszip_vlr: Vec<u8>,
     pub info: CopcInfo,
 }
 
@@ -149,6 +151,7 @@ pub(crate) fn read_header(path: &Path, file: &mut File) -> Result<CopcHeader, Co
     // The VLRs, whose extents the pre-parse checked: the info VLR first, and LASzip's.
     let mut info = None;
     let mut laz_items = None;
+    let mut laszip_vlr = Vec::new();
     let mut offset = u64::from(facts.header_size);
     for index in 0..facts.vlr_count {
         let mut vlr_header = [0u8; VLR_HEADER_LEN as usize];
@@ -173,6 +176,7 @@ pub(crate) fn read_header(path: &Path, file: &mut File) -> Result<CopcHeader, Co
             let vlr = laz::LazVlr::from_buffer(&data)
                 .map_err(|error| not_copc(path, format!("its LASzip VLR: {error}")))?;
             laz_items = Some(vlr.items().clone());
+            laszip_vlr = data;
         }
         offset = data_at + len;
     }
@@ -196,6 +200,7 @@ pub(crate) fn read_header(path: &Path, file: &mut File) -> Result<CopcHeader, Co
         bounds,
         offset_to_point_data: facts.offset_to_point_data,
         laz_items,
+        laszip_vlr,
         info,
     };
     check_info(path, &header)?;

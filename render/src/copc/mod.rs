@@ -29,7 +29,7 @@ use std::sync::Arc;
 
 pub use error::CopcError;
 pub use header::{is_copc, CopcInfo};
-pub use nodes::CopcNodes;
+pub use nodes::{CopcDecoder, CopcNodes};
 
 use crate::cut::{for_each_coarse_node, node_heights, LodDataset};
 use crate::lod::{DatasetStats, LodError, LodHierarchy};
@@ -38,6 +38,8 @@ use crate::lod::{DatasetStats, LodError, LodHierarchy};
 pub struct CopcDataset {
     pub dataset: LodDataset,
     pub info: CopcInfo,
+    /// How its chunks decode, for a reader that is sent them instead of opening the file.
+    pub decoder: CopcDecoder,
     /// Hierarchy pages read, and their bytes.
     pub pages: usize,
     pub page_bytes: u64,
@@ -77,10 +79,12 @@ pub fn open_copc(path: &Path) -> Result<CopcDataset, CopcError> {
     let mut hierarchy = hierarchy;
     hierarchy.stats = stats;
     let node_count = hierarchy.nodes().len();
+    let decoder = nodes.decoder().clone();
     let dataset = LodDataset::with_heights(nodes, hierarchy, header.bounds, heights);
     Ok(CopcDataset {
         dataset,
         info: header.info,
+        decoder,
         pages: list.pages,
         page_bytes: list.page_bytes,
         nodes: node_count,

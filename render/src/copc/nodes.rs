@@ -29,48 +29,144 @@ const MIN_DECODED_BOUND: u64 = 64 << 20;
 /// Decoded record bytes per compressed byte that a chunk may claim beyond the bound above.
 const MAX_DECODED_PER_BYTE: u64 = 1024;
 
-/// A COPC file's node records: its LAZ chunks.
-pub struct CopcNodes {
+/// What decoding a COPC file's LAZ chunks needs, wherever they were read (the file here, or
+/// a daemon that keeps it): the point layout, transforms and LASzip items of its header.
+#[derive(Clone)]
+pub struct CopcDecoder {
+    /// Names the file in every error.
     path: PathBuf,
-    file: File,
+    point_format: u8,
     format: las::point::Format,
     transforms: las::Vector<las::Transform>,
     laz_items: Vec<laz::LazItem>,
+    /// The LASzip VLR's data, from which `laz_items` were read.
+    laszip_vlr: Vec<u8>,
     /// Layer sizes a chunk stores after its first record and its point count.
     layers: u64,
 }
 
-impl CopcNodes {
-    pub(crate) fn new(path: &Path, file: File, header: &CopcHeader) -> Self {
-        let layers = header
-            .laz_items
+impl CopcDecoder {
+    fn of_header(path: &Path, header: &CopcHeader) -> Self {
+        Self::new(
+            path,
+            header.format,
+            header.transforms,
+            header.laz_items.clone(),
+            header.laszip_vlr.clone(),
+        )
+    }
+
+    fn new(
+        path: &Path,
+        format: las::point::Format,
+        transforms: las::Vector<las::Transform>,
+        laz_items: Vec<laz::LazItem>,
+        laszip_vlr: Vec<u8>,
+    ) -> Self {
+        let layers = laz_items
             .iter()
             .map(|item| layer_count(u16::from(item.item_type()), item.size()))
             .sum();
         Self {
             path: path.to_owned(),
-            file,
-            format: header.format,
-            transforms: header.transforms,
-            laz_items: header.laz_items.clone(),
+            point_format: format.to_u8().unwrap_or(0),
+            format,
+            transforms,
+            laz_items,
+            laszip_vlr,
             layers,
         }
     }
 
-    pub fn path(&self) -> &Path {
-        &self.path
+    /// A decoder from what a COPC file's header says, sent apart from the file (`path` names
+    /// it in errors), checked as the file's header is: a point format COPC allows, records
+    /// as long as their LAZ items, usable transforms, a LASzip VLR of layered items.
+    pub fn from_parts(
+        path: &Path,
+        point_format: u8,
+        record_len: u16,
+        scale: [f64; 3],
+        offset: [f64; 3],
+        laszip_vlr: &[u8],
+    ) -> Result<Self, CopcError> {
+        let not_copc = |reason: String| CopcError::NotCopc {
+            path: path.to_owned(),
+            reason,
+        };
+        if !(6..=8).contains(&point_format) {
+            return Err(not_copc(format!(
+                "point format {point_format} (COPC allows 6, 7 and 8)"
+            )));
+        }
+        let mut format =
+            las::point::Format::new(point_format).map_err(|e| not_copc(e.to_string()))?;
+        format.extra_bytes = record_len
+            .checked_sub(format.len())
+            .ok_or_else(|| not_copc("records shorter than their point format".into()))?;
+        if scale.iter().any(|s| !s.is_finite() || *s == 0.0)
+            || offset.iter().any(|o| !o.is_finite())
+        {
+            return Err(not_copc(format!(
+                "scale {scale:?} and offset {offset:?} are not usable transforms"
+            )));
+        }
+        let vlr = laz::LazVlr::from_buffer(laszip_vlr)
+            .map_err(|error| not_copc(format!("its LASzip VLR: {error}")))?;
+        let items = vlr.items().clone();
+        if items.iter().any(|item| u16::from(item.item_type()) < 10) {
+            return Err(not_copc(
+                "its LAZ items are not LAS 1.4's layered ones".into(),
+            ));
+        }
+        let items_len: u64 = items.iter().map(|item| u64::from(item.size())).sum();
+        if items_len != u64::from(record_len) {
+            return Err(not_copc(format!(
+                "its LAZ items take {items_len} bytes a point, its records {record_len}"
+            )));
+        }
+        let transform = |axis: usize| las::Transform {
+            scale: scale[axis],
+            offset: offset[axis],
+        };
+        let transforms = las::Vector {
+            x: transform(0),
+            y: transform(1),
+            z: transform(2),
+        };
+        Ok(Self::new(
+            path,
+            format,
+            transforms,
+            items,
+            laszip_vlr.to_vec(),
+        ))
     }
 
-    fn read_chunk(&self, node: &NodeInfo) -> Result<Vec<u8>, CopcError> {
-        // The hierarchy checked the range against the file's size when it was read.
-        let mut bytes = vec![0; node.byte_len as usize];
-        self.file
-            .read_exact_at(&mut bytes, node.offset)
-            .map_err(|e| CopcError::io(&self.path, e))?;
-        Ok(bytes)
+    pub fn point_format(&self) -> u8 {
+        self.point_format
     }
 
-    fn decode_chunk(
+    /// Bytes of one point record, extra bytes included.
+    pub fn record_len(&self) -> u16 {
+        self.format.len()
+    }
+
+    pub fn scale(&self) -> [f64; 3] {
+        let t = &self.transforms;
+        [t.x.scale, t.y.scale, t.z.scale]
+    }
+
+    pub fn offset(&self) -> [f64; 3] {
+        let t = &self.transforms;
+        [t.x.offset, t.y.offset, t.z.offset]
+    }
+
+    pub fn laszip_vlr(&self) -> &[u8] {
+        &self.laszip_vlr
+    }
+
+    /// A chunk's points, checked against its entry.
+    pub fn decode_chunk(
         &self,
         cube: &RootCube,
         info: &NodeInfo,
@@ -175,6 +271,39 @@ impl CopcNodes {
     }
 }
 
+/// A COPC file's node records: its LAZ chunks.
+pub struct CopcNodes {
+    file: File,
+    decoder: CopcDecoder,
+}
+
+impl CopcNodes {
+    pub(crate) fn new(path: &Path, file: File, header: &CopcHeader) -> Self {
+        Self {
+            file,
+            decoder: CopcDecoder::of_header(path, header),
+        }
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.decoder.path
+    }
+
+    /// How its chunks decode, for a reader elsewhere that is sent them.
+    pub fn decoder(&self) -> &CopcDecoder {
+        &self.decoder
+    }
+
+    fn read_chunk(&self, node: &NodeInfo) -> Result<Vec<u8>, CopcError> {
+        // The hierarchy checked the range against the file's size when it was read.
+        let mut bytes = vec![0; node.byte_len as usize];
+        self.file
+            .read_exact_at(&mut bytes, node.offset)
+            .map_err(|e| CopcError::io(self.path(), e))?;
+        Ok(bytes)
+    }
+}
+
 /// Where a COPC node's points are quantised: its cube widened by half its side on every
 /// face, because writers place a point on a cell's face in either neighbour. 30 bits over
 /// twice the side keep a step far below any file's scale.
@@ -198,6 +327,8 @@ impl NodeRecords for CopcNodes {
         info: &NodeInfo,
         bytes: &[u8],
     ) -> Result<NodePoints, LodError> {
-        self.decode_chunk(cube, info, bytes).map_err(LodError::from)
+        self.decoder
+            .decode_chunk(cube, info, bytes)
+            .map_err(LodError::from)
     }
 }

@@ -159,6 +159,70 @@ fn inner_nodes_take_the_info_spacing_halved_per_level() {
 /// Where the info VLR's data starts: after the 375-byte header and the VLR's 54-byte header.
 const INFO_AT: usize = 375 + 54;
 
+/// What a daemon sends of a COPC file's header decodes its chunks as the file does, and
+/// parts that cannot be a COPC file's are refused naming the file.
+#[test]
+fn a_decoder_sent_apart_from_the_file_decodes_its_chunks_as_the_file_does() {
+    let opened = open_copc(&copc_file("simple_with_page.copc.laz")).expect("opens");
+    let d = &opened.decoder;
+    let name = Path::new("sent.copc.laz");
+    let rebuild = |format: u8, record_len: u16, scale: [f64; 3], vlr: &[u8]| {
+        CopcDecoder::from_parts(name, format, record_len, scale, d.offset(), vlr)
+    };
+    let sent = rebuild(d.point_format(), d.record_len(), d.scale(), d.laszip_vlr())
+        .expect("the file's own parts");
+    let hierarchy = opened.dataset.hierarchy();
+    let records = opened.dataset.records();
+    let stored: Vec<_> = hierarchy
+        .nodes()
+        .iter()
+        .filter(|n| n.point_count > 0)
+        .copied()
+        .collect();
+    let chunks = records.read_records(&stored).expect("read");
+    for (info, bytes) in stored.iter().zip(&chunks) {
+        let here = records
+            .decode(&hierarchy.cube, info, bytes)
+            .expect("decodes");
+        let there = sent
+            .decode_chunk(&hierarchy.cube, info, bytes)
+            .expect("decodes");
+        assert_eq!(here, there, "node {}", info.key);
+    }
+    // A chunk of another node is an error naming the file, not other points.
+    let error = sent
+        .decode_chunk(&hierarchy.cube, &stored[1], &chunks[0])
+        .expect_err("another node's chunk");
+    assert!(error.to_string().contains("sent.copc.laz"), "{error}");
+
+    let vlr = d.laszip_vlr();
+    let refused = [
+        rebuild(3, d.record_len(), d.scale(), vlr),
+        rebuild(d.point_format(), 10, d.scale(), vlr),
+        rebuild(d.point_format(), d.record_len() + 4, d.scale(), vlr),
+        rebuild(d.point_format(), d.record_len(), [0.0, 0.01, 0.01], vlr),
+        rebuild(
+            d.point_format(),
+            d.record_len(),
+            [f64::NAN, 0.01, 0.01],
+            vlr,
+        ),
+        rebuild(
+            d.point_format(),
+            d.record_len(),
+            d.scale(),
+            &vlr[..vlr.len() / 2],
+        ),
+        rebuild(d.point_format(), d.record_len(), d.scale(), &[]),
+    ];
+    for (case, result) in refused.into_iter().enumerate() {
+        let error = result
+            .err()
+            .unwrap_or_else(|| panic!("case {case} accepted"));
+        assert!(error.to_string().contains("sent.copc.laz"), "{error}");
+    }
+}
+
 fn u64_at(bytes: &[u8], at: usize) -> u64 {
     u64::from_le_bytes(bytes[at..at + 8].try_into().expect("8 bytes"))
 }

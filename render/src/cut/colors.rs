@@ -48,6 +48,20 @@ impl DatasetColoring {
         }
     }
 
+    /// From the store's statistics and an elevation stretch already taken from a sample (a
+    /// daemon's, sent with the hierarchy so a worker need not read the sample again).
+    pub fn with_elevation(stats: &DatasetStats, elevation: Option<Stretch>, origin_z: f64) -> Self {
+        Self {
+            elevation,
+            ..Self::new(stats, Vec::new(), origin_z)
+        }
+    }
+
+    /// The elevation stretch, relative to the origin.
+    pub fn elevation(&self) -> Option<Stretch> {
+        self.elevation
+    }
+
     /// The colours of `node`'s points (RGBA8), their heights relative to the origin given.
     pub fn colors(&self, node: &NodePoints, heights: &[f32], coloring: Coloring) -> Vec<u32> {
         let n = node.len();

@@ -158,6 +158,31 @@ impl LodDataset {
         }
     }
 
+    /// A store whose elevation range is `elevation` (relative to the centre of `bounds`),
+    /// taken from a sample where the hierarchy was opened, so no node is read here.
+    pub fn with_elevation(
+        records: Arc<dyn NodeRecords>,
+        hierarchy: LodHierarchy,
+        bounds: WorldBounds,
+        elevation: Option<crate::color::Stretch>,
+    ) -> Self {
+        let origin = bounds.center();
+        let coloring = DatasetColoring::with_elevation(&hierarchy.stats, elevation, origin.z);
+        Self {
+            records,
+            point_spacing: hierarchy.point_spacing(),
+            hierarchy: Arc::new(hierarchy),
+            origin,
+            bounds,
+            coloring,
+        }
+    }
+
+    /// The elevation range of its coarsest nodes, relative to the origin.
+    pub fn elevation(&self) -> Option<crate::color::Stretch> {
+        self.coloring.elevation()
+    }
+
     /// Where the node records are read from.
     pub fn records(&self) -> &Arc<dyn NodeRecords> {
         &self.records

@@ -148,6 +148,18 @@ impl LodHierarchy {
         hierarchy
     }
 
+    /// The root spacing a COPC file's hierarchy halves per level (not part of the record).
+    pub fn level_spacing(&self) -> Option<f64> {
+        self.level_spacing
+    }
+
+    /// This hierarchy with `root_spacing` halved per level: a COPC hierarchy sent as a record,
+    /// which leaves the spacing out, gets it back.
+    pub fn with_root_spacing(mut self, root_spacing: f64) -> Self {
+        self.level_spacing = Some(root_spacing);
+        self
+    }
+
     pub fn nodes(&self) -> &[NodeInfo] {
         &self.nodes
     }
