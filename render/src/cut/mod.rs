@@ -144,18 +144,10 @@ impl LodDataset {
         records: Arc<dyn NodeRecords>,
         hierarchy: LodHierarchy,
         bounds: WorldBounds,
-        heights: Vec<f32>,
+        mut heights: Vec<f32>,
     ) -> Self {
-        let origin = bounds.center();
-        let coloring = DatasetColoring::new(&hierarchy.stats, heights, origin.z);
-        Self {
-            records,
-            point_spacing: hierarchy.point_spacing(),
-            hierarchy: Arc::new(hierarchy),
-            origin,
-            bounds,
-            coloring,
-        }
+        let elevation = crate::color::Stretch::percentiles(&mut heights);
+        Self::with_elevation(records, hierarchy, bounds, elevation)
     }
 
     /// A store whose elevation range is `elevation` (relative to the centre of `bounds`),
