@@ -527,7 +527,7 @@ impl CutRenderer {
             if self.gpu_cache.contains(node.key) || host.contains(node.key) {
                 continue;
             }
-            let bytes = 128 + u64::from(node.points) * 22;
+            let bytes = 128 + u64::from(node.points) * 24;
             if bytes > room {
                 break;
             }
