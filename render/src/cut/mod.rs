@@ -286,6 +286,13 @@ impl CutRenderer {
         self.budgets
     }
 
+    /// Whether high quality weighs each point by the original points it stands for (the
+    /// default); without, every point counts once, as cuts drew it before points had weights
+    /// (docs/perf/hq-band-on-cuts.md compares the two).
+    pub fn set_weighted_high_quality(&mut self, weighted: bool) {
+        self.gpu_cache.weighted = weighted;
+    }
+
     /// Bytes of the GPU node cache's pages so far.
     pub fn gpu_bytes(&self) -> u64 {
         self.gpu_cache.gpu_bytes()
