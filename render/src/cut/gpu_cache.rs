@@ -292,7 +292,15 @@ impl GpuNodeCache {
         let pages = self.cloud.chunks.len();
         let mut tables: Vec<PageTables> = (0..pages).map(|_| PageTables::default()).collect();
         let mut drawn_children = vec![vec![0u32; self.slots_per_page]; pages];
-        let in_cut: HashSet<NodeKey> = cut.iter().copied().collect();
+        // A child counts as drawn when it or a node below it is: the selection walks through
+        // nodes left without points (their parents took them all) but does not list them.
+        let mut in_cut: HashSet<NodeKey> = HashSet::with_capacity(cut.len());
+        for &key in cut {
+            let mut at = Some(key);
+            while let Some(k) = at.filter(|k| in_cut.insert(*k)) {
+                at = k.parent();
+            }
+        }
         let mut points = 0;
         for key in keys {
             let node = &self.resident[&key];

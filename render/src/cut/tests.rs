@@ -813,8 +813,8 @@ fn a_batch_takes_the_spacing_of_the_deepest_nodes_drawn_where_it_lies() {
 /// node's child below it is not drawn, once where it is: the frame matches the weighted
 /// reference within a level, on the packed sums (light points, pixels under and over their
 /// 256) and the wide ones (heavy points), and the 64-bit path matches the 32-bit one to the
-/// bit. A parent and one of its children are drawn; the parent's points in that child's
-/// octant count once.
+/// bit. The root and a grandchild are drawn, the child between them left without points (its
+/// parent took them all), so not listed: the root's points in that child's octant count once.
 #[test]
 fn weighted_high_quality_matches_the_weighted_reference() {
     use super::gpu_cache::GpuNodeCache;
@@ -869,11 +869,11 @@ fn weighted_high_quality_matches_the_weighted_reference() {
         .map(|_| crate::cloud::pack_rgba8(next(256) as u8, next(256) as u8, next(256) as u8))
         .collect();
     let cloud = PointCloud::from_world_points(&world, colors);
-    // The parent holds the first half of the points, its child 0 the rest.
+    // The root holds the first half of the points, a node below its child 0 the rest.
     let half = world.len() / 2;
     let parts = [
         (NodeKey::ROOT, 0..half),
-        (NodeKey::ROOT.child(0), half..world.len()),
+        (NodeKey::ROOT.child(0).child(3), half..world.len()),
     ];
     let renderer = &mut Renderer::new(gpu());
     let mut cache = GpuNodeCache::new(cloud.origin, 64 << 20, 1 << 16);
@@ -891,7 +891,7 @@ fn weighted_high_quality_matches_the_weighted_reference() {
             .insert(renderer.gpu(), *key, &data, &keep)
             .expect("insert");
     }
-    // What each point counts for: the parent's points in octant 0 once (child 0 is drawn).
+    // What each point counts for: the root's points in octant 0 once (drawn below child 0).
     let weights: Vec<u32> = bits
         .iter()
         .enumerate()
