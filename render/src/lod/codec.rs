@@ -6,7 +6,7 @@
 //! at 10 or 20 bits reads 4 or 8 of the 12 bytes. Layout, little-endian:
 //!
 //! ```text
-//! "PFN1" | count u32 | flags u8 (bit 0: RGB) | 3 zero bytes
+//! "PFN2" | count u32 | flags u8 (bit 0: RGB) | 3 zero bytes
 //! stream 0, 1, 2 (count x u32 each) | RGB (count x 3 x u16, if flagged)
 //! intensity (count x u16) | classification (count x u8) | return number (count x u8)
 //! weight codes (count x u16, `weights.rs`)
