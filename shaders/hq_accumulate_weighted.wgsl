@@ -2,7 +2,8 @@
 // hq_accumulate.wgsl, but each point adds its colour and count as many times as the original
 // points it stands for. Where its node is drawn without the child below it, that is its
 // weight (`lod/weights.rs`); where that child is drawn too, the child's points stand for the
-// region and the point counts once (docs/perf/hq-band-on-cuts.md).
+// region and the point counts once (docs/perf/hq-band-on-cuts.md). The 32-bit sums of 8-bit
+// channels stay exact while a pixel's weights add up to less than 16 million points.
 
 @group(0) @binding(3) var<storage, read> framebuffer: array<vec2<u32>>;
 // 16 bits a point, two to a word: the weight's 13-bit code and the point's child octant in
