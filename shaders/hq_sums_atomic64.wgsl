@@ -37,3 +37,31 @@ fn add_to_sums(pixel: i32, color: u32) {
     atomicAdd(&accumulator[base], red | (green << 32u));
     atomicAdd(&accumulator[base + 1], blue | (1lu << 32u));
 }
+
+// The most a weighted point may add to the packed word's count: the word still holds at most
+// PACKED_POINTS points' worth once the add is kept, and only some 2000 such adds in flight on
+// one pixel at once could carry into the flag bit.
+const PACKED_MAX_WEIGHT: u32 = 16u;
+
+// The same for a point that stands for `weight` points (a level-of-detail cut's,
+// hq_accumulate_weighted.wgsl): its colour and count `weight` times. The packed word keeps
+// an add only while its count stays within PACKED_POINTS, so no channel's sum can overflow
+// its 16 bits; a heavier point goes to the wide sums at once.
+fn add_weighted_to_sums(pixel: i32, color: u32, weight: u32) {
+    let red = u64(color & 0xffu);
+    let green = u64((color >> 8u) & 0xffu);
+    let blue = u64((color >> 16u) & 0xffu);
+    if weight <= PACKED_MAX_WEIGHT {
+        let packed = (red | (green << 16u) | (blue << 32u) | (1lu << PACKED_COUNT_SHIFT)) * u64(weight);
+        let before = atomicAdd(&packed_sums[pixel], packed);
+        if (u32(before >> PACKED_COUNT_SHIFT) & PACKED_COUNT_MASK) + weight <= PACKED_POINTS {
+            return;
+        }
+        atomicSub(&packed_sums[pixel], packed);
+    }
+    atomicOr(&packed_sums[pixel], WIDE_SUMS_USED);
+    let base = 2 * pixel;
+    let w = u64(weight);
+    atomicAdd(&accumulator[base], (red | (green << 32u)) * w);
+    atomicAdd(&accumulator[base + 1], (blue | (1lu << 32u)) * w);
+}

@@ -21,6 +21,11 @@ pub enum Shader {
     HqAccumulate,
     /// The same with 64-bit atomicAdd (`SHADER_INT64_ATOMIC_ALL_OPS`), two atomics a point.
     HqAccumulate64,
+    /// High-quality accumulation of a level-of-detail cut's pages, each point weighted by the
+    /// original points it stands for, with 32-bit atomics: entry point `accumulate`.
+    HqAccumulateWeighted,
+    /// The same with 64-bit atomicAdd.
+    HqAccumulateWeighted64,
     /// Eye-Dome Lighting on the resolved images: entry point `shade`.
     Edl,
     /// Framebuffer clear and resolve: entry points `clear`, `resolve`, and `resolve_average`
@@ -50,6 +55,8 @@ const OCCLUSION: &str = include_str!("occlusion.wgsl");
 const POINT_PASS: &str = include_str!("point_pass.wgsl");
 /// The high-quality accumulation, after its per-pixel sums (one of the two below).
 const HQ_ACCUMULATE: &str = include_str!("hq_accumulate.wgsl");
+/// The weighted high-quality accumulation of a cut's pages, after its per-pixel sums.
+const HQ_ACCUMULATE_WEIGHTED: &str = include_str!("hq_accumulate_weighted.wgsl");
 const HQ_SUMS_ATOMIC32: &str = include_str!("hq_sums_atomic32.wgsl");
 const HQ_SUMS_ATOMIC64: &str = include_str!("hq_sums_atomic64.wgsl");
 /// Parameters and helpers of the passes on the resolved images, after `common.wgsl`.
@@ -65,6 +72,8 @@ impl Shader {
         Shader::RasterAtomic32,
         Shader::HqAccumulate,
         Shader::HqAccumulate64,
+        Shader::HqAccumulateWeighted,
+        Shader::HqAccumulateWeighted64,
         Shader::Edl,
         Shader::Resolve,
         Shader::ResolvePacked,
@@ -83,6 +92,8 @@ impl Shader {
             Shader::RasterAtomic32 => "raster_atomic32",
             Shader::HqAccumulate => "hq_accumulate",
             Shader::HqAccumulate64 => "hq_accumulate64",
+            Shader::HqAccumulateWeighted => "hq_accumulate_weighted",
+            Shader::HqAccumulateWeighted64 => "hq_accumulate_weighted64",
             Shader::Edl => "edl",
             Shader::Resolve => "resolve",
             Shader::ResolvePacked => "resolve_packed",
@@ -101,6 +112,7 @@ impl Shader {
             Shader::RasterAtomic64 => include_str!("raster_atomic64.wgsl"),
             Shader::RasterAtomic32 => include_str!("raster_atomic32.wgsl"),
             Shader::HqAccumulate | Shader::HqAccumulate64 => HQ_ACCUMULATE,
+            Shader::HqAccumulateWeighted | Shader::HqAccumulateWeighted64 => HQ_ACCUMULATE_WEIGHTED,
             Shader::Edl => include_str!("edl.wgsl"),
             Shader::Resolve | Shader::ResolvePacked => include_str!("resolve.wgsl"),
             Shader::Visibility => include_str!("visibility.wgsl"),
@@ -118,10 +130,10 @@ impl Shader {
             Shader::RasterAtomic64 | Shader::RasterAtomic32 => {
                 format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{own}")
             }
-            Shader::HqAccumulate => {
+            Shader::HqAccumulate | Shader::HqAccumulateWeighted => {
                 format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{HQ_SUMS_ATOMIC32}\n{own}")
             }
-            Shader::HqAccumulate64 => {
+            Shader::HqAccumulate64 | Shader::HqAccumulateWeighted64 => {
                 format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{HQ_SUMS_ATOMIC64}\n{own}")
             }
             Shader::Resolve => format!("{COMMON}\n{own}\n{RESOLVE_SUMS}"),
@@ -148,7 +160,10 @@ mod tests {
 
     /// The shaders that need 64-bit integer atomics; every other one must run without them.
     fn needs_int64(shader: Shader) -> bool {
-        matches!(shader, Shader::RasterAtomic64 | Shader::HqAccumulate64)
+        matches!(
+            shader,
+            Shader::RasterAtomic64 | Shader::HqAccumulate64 | Shader::HqAccumulateWeighted64
+        )
     }
 
     fn parse(shader: Shader) -> naga::Module {

@@ -467,3 +467,42 @@ pub fn render_high_quality(
         .collect();
     frame_from(settings, colors, nearest)
 }
+
+/// High quality where point `i` stands for `weights[i]` points (a level-of-detail cut's,
+/// `shaders/hq_accumulate_weighted.wgsl`): its colour and count added that many times.
+pub fn render_high_quality_weighted(
+    cloud: &PointCloud,
+    settings: &FrameSettings,
+    depth_band: f32,
+    weights: &[u32],
+) -> ReferenceFrame {
+    assert_eq!(weights.len(), cloud.len(), "one weight a point");
+    let nearest = nearest_depths(cloud, settings);
+    let band = 1.0f32 + depth_band;
+    // The same walk over the pixels, each point known by its index.
+    let indexed = PointCloud {
+        colors: (0..cloud.len() as u32).collect(),
+        ..cloud.clone()
+    };
+    let mut sums = vec![[0u64; 4]; nearest.len()];
+    for_each_covered_pixel(&indexed, settings, |pixel, depth, i| {
+        if depth <= nearest[pixel] * band {
+            let [r, g, b, _] = cloud.colors[i as usize].to_le_bytes();
+            let w = u64::from(weights[i as usize]);
+            let sum = &mut sums[pixel];
+            sum[0] += r as u64 * w;
+            sum[1] += g as u64 * w;
+            sum[2] += b as u64 * w;
+            sum[3] += w;
+        }
+    });
+    let average = |sum: &[u64; 4]| {
+        let channel = |total: u64| (total as f64 / sum[3] as f64).round() as u8;
+        u32::from_le_bytes([channel(sum[0]), channel(sum[1]), channel(sum[2]), 255])
+    };
+    let colors = sums
+        .iter()
+        .map(|s| (s[3] > 0).then(|| average(s)))
+        .collect();
+    frame_from(settings, colors, nearest)
+}

@@ -33,6 +33,8 @@ pub struct ModeFidelity {
     pub covered_pixels: u64,
     /// Of those, the share within the tolerance in the cut at the pixel error.
     pub close_share: f64,
+    /// The cut's frame at the pixel error drawn again from its warm caches, in milliseconds.
+    pub cut_warm_ms: f64,
 }
 
 /// One workload's fidelity in every mode.
@@ -89,6 +91,7 @@ pub fn measure_fidelity(
         limited_by_budget: false,
         modes: Vec::new(),
     };
+    let mut high_quality = None;
     for mode in FIDELITY_MODES {
         let settings = mode.map_or(*basic, |m| m.settings(basic));
         let mut draw = |cut: &mut CutRenderer| {
@@ -102,6 +105,9 @@ pub fn measure_fidelity(
         };
         let (expected, full_report) = draw(&mut full)?;
         let (actual, cut_report) = draw(&mut cut)?;
+        let started = std::time::Instant::now();
+        draw(&mut cut)?;
+        let cut_warm_ms = started.elapsed().as_secs_f64() * 1e3;
         if mode.is_none() {
             result.cut_points = cut_report.counts.points_rendered;
             result.full_points = full_report.counts.points_rendered;
@@ -109,6 +115,9 @@ pub fn measure_fidelity(
         result.limited_by_budget |=
             full_report.counts.limited_by_budget || cut_report.counts.limited_by_budget;
         let (covered, close) = close_pixels(&actual.image, &expected.image, settings.background);
+        if mode == Some(ComputeMode::HighQuality) {
+            high_quality = Some((settings, expected.image.clone()));
+        }
         result.modes.push(ModeFidelity {
             mode: mode_name(mode),
             covered_pixels: covered,
@@ -117,10 +126,42 @@ pub fn measure_fidelity(
             } else {
                 close as f64 / covered as f64
             },
+            cut_warm_ms,
+        });
+    }
+    // High quality again with every point counting once, as before points had weights.
+    if let Some((settings, expected)) = high_quality {
+        cut.set_weighted_high_quality(false);
+        let mut draw = || {
+            cut.render(
+                &mut renderer,
+                dataset,
+                &settings,
+                ColorMode::Rgb,
+                &PointFilter::default(),
+            )
+        };
+        let (actual, _) = draw()?;
+        let started = std::time::Instant::now();
+        draw()?;
+        let cut_warm_ms = started.elapsed().as_secs_f64() * 1e3;
+        let (covered, close) = close_pixels(&actual.image, &expected, settings.background);
+        result.modes.push(ModeFidelity {
+            mode: UNWEIGHTED_HIGH_QUALITY,
+            covered_pixels: covered,
+            close_share: if covered == 0 {
+                1.0
+            } else {
+                close as f64 / covered as f64
+            },
+            cut_warm_ms,
         });
     }
     Ok(result)
 }
+
+/// The high-quality cut drawn with every point counting once (`set_weighted_high_quality`).
+pub const UNWEIGHTED_HIGH_QUALITY: &str = "compute-high-quality-unweighted";
 
 /// The pixels not `background` in `expected`, and of those the ones within
 /// [`FIDELITY_TOLERANCE`] of `expected` in every channel of `actual`.

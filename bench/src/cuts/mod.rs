@@ -404,7 +404,12 @@ pub fn measure(
             result
                 .modes
                 .iter()
-                .map(|m| format!("{} {:.2}%", m.mode, m.close_share * 100.0))
+                .map(|m| format!(
+                    "{} {:.2}% ({:.0} ms warm)",
+                    m.mode,
+                    m.close_share * 100.0,
+                    m.cut_warm_ms
+                ))
                 .collect::<Vec<_>>()
                 .join(", ")
         ));
@@ -521,7 +526,7 @@ mod tests {
         let names: Vec<_> = r.fidelity.iter().map(|f| f.workload.as_str()).collect();
         assert_eq!(names, ["terrain-100k", "uniform-100k"]);
         for f in &r.fidelity {
-            assert_eq!(f.modes.len(), fidelity::FIDELITY_MODES.len());
+            assert_eq!(f.modes.len(), fidelity::FIDELITY_MODES.len() + 1);
             assert!(
                 f.cut_points <= f.full_points && f.full_points <= f.points,
                 "{f:?}"

@@ -267,6 +267,8 @@ impl CopcDecoder {
             intensity: points.intensity().collect(),
             classification: points.classification().collect(),
             return_number: points.return_number().collect(),
+            // A COPC file says nothing of what its points stand for: each counts once.
+            weights: Vec::new(),
         })
     }
 }

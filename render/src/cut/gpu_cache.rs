@@ -10,7 +10,9 @@
 //! the nodes unchanged.
 //!
 //! Colours are written with the points, so the cache holds one colour mode: a frame in another
-//! mode empties it.
+//! mode empties it. Each point also has 16 bits of weight for the high-quality mode (its
+//! code and child octant), and each slot the children of its node that the frame draws.
+//! The resident cloud's chunks carry neither.
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 
@@ -19,16 +21,18 @@ use crate::filter::PointFilter;
 use crate::gpu::GpuContext;
 use crate::lod::NodeKey;
 use crate::raster::gpu_data::{GpuBatch, QuantisedPosition, COLOR_BYTES};
-use crate::raster::points::{ChunkData, GpuPointCloud, PointChunk, SUB_BATCH_POINTS};
+use crate::raster::points::{ChunkData, GpuPointCloud, PointChunk, SUB_BATCH_POINTS, WEIGHT_BYTES};
 use crate::raster::BATCH_POINTS;
 
 /// Sub-batches per batch slot: a batch's runs are found at `slot * SUBS_PER_SLOT`.
 const SUBS_PER_SLOT: usize = BATCH_POINTS / SUB_BATCH_POINTS;
 
-/// Bytes one batch slot takes on the GPU: its points' positions and colours and its entry.
+/// Bytes one batch slot takes on the GPU: its points' positions, colours and weights, its
+/// entry and its node's drawn children.
 pub const SLOT_BYTES: u64 = BATCH_POINTS as u64
-    * (std::mem::size_of::<QuantisedPosition>() as u64 + COLOR_BYTES)
-    + std::mem::size_of::<GpuBatch>() as u64;
+    * (std::mem::size_of::<QuantisedPosition>() as u64 + COLOR_BYTES + WEIGHT_BYTES)
+    + std::mem::size_of::<GpuBatch>() as u64
+    + 4;
 
 /// Bytes a page has beyond its slots: its colours' spare words (`PointChunk::page`).
 const PAGE_SPARE_BYTES: u64 = 8;
@@ -74,6 +78,9 @@ pub struct GpuNodeCache {
     prepared_for: Option<(Coloring, PointFilter)>,
     /// Bytes written since the uploads were last submitted.
     unsubmitted_bytes: u64,
+    /// Whether high quality weighs each point (else every point counts once, as a cut did
+    /// before it had weights: the benchmark's comparison).
+    pub(crate) weighted: bool,
 }
 
 /// Bytes of node uploads staged before they are submitted and waited for, so that the
@@ -105,6 +112,7 @@ impl GpuNodeCache {
             tick: 0,
             prepared_for: None,
             unsubmitted_bytes: 0,
+            weighted: true,
         }
     }
 
@@ -208,6 +216,15 @@ impl GpuNodeCache {
                 (base * COLOR_BYTES as usize) as u64,
                 &data.colors[color_start..color_end],
             );
+            if let (Some(weights), false) = (&page.weights, data.weights.is_empty()) {
+                // Whole words: the slot starts on one and a node's codes are padded to one.
+                let end = (first + count).next_multiple_of(2).min(data.weights.len());
+                gpu.queue.write_buffer(
+                    &weights.codes,
+                    base as u64 * WEIGHT_BYTES,
+                    bytemuck::cast_slice(&data.weights[first..end]),
+                );
+            }
             let shift = |mut entry: GpuBatch| {
                 entry.first = entry.first - batch.first + base as u32;
                 entry
@@ -236,8 +253,9 @@ impl GpuNodeCache {
                 last_used: self.tick,
             },
         );
-        self.unsubmitted_bytes +=
-            (data.positions.len() * position_bytes + data.colors.len()) as u64;
+        self.unsubmitted_bytes += (data.positions.len() * position_bytes
+            + data.colors.len()
+            + data.weights.len() * WEIGHT_BYTES as usize) as u64;
         if self.unsubmitted_bytes >= UPLOAD_SUBMIT_BYTES {
             self.unsubmitted_bytes = 0;
             gpu.queue.submit([]);
@@ -273,11 +291,26 @@ impl GpuNodeCache {
         keys.sort_unstable();
         let pages = self.cloud.chunks.len();
         let mut tables: Vec<PageTables> = (0..pages).map(|_| PageTables::default()).collect();
+        let mut drawn_children = vec![vec![0u32; self.slots_per_page]; pages];
+        // A child counts as drawn when it or a node below it is: the selection walks through
+        // nodes left without points (their parents took them all) but does not list them.
+        let mut in_cut: HashSet<NodeKey> = HashSet::with_capacity(cut.len());
+        for &key in cut {
+            let mut at = Some(key);
+            while let Some(k) = at.filter(|k| in_cut.insert(*k)) {
+                at = k.parent();
+            }
+        }
         let mut points = 0;
         for key in keys {
             let node = &self.resident[&key];
             points += node.points as usize;
+            // Every child "drawn" makes every point count once.
+            let children = (0..8)
+                .filter(|&c| !self.weighted || in_cut.contains(&key.child(c)))
+                .fold(0u32, |mask, c| mask | 1 << c);
             for (s, slot) in node.slots.iter().enumerate() {
+                drawn_children[slot.page as usize][slot.index as usize] = children;
                 let table = &mut tables[slot.page as usize];
                 let batch = node.batches[s];
                 table.batches.push(batch);
@@ -289,8 +322,14 @@ impl GpuNodeCache {
                 );
             }
         }
-        for (page, table) in self.cloud.chunks.iter_mut().zip(tables) {
+        for ((page, table), children) in
+            self.cloud.chunks.iter_mut().zip(tables).zip(drawn_children)
+        {
             page.set_batches(&gpu.queue, table.batches, table.sub_batches, &table.sizes);
+            if let Some(weights) = &page.weights {
+                gpu.queue
+                    .write_buffer(&weights.drawn_children, 0, bytemuck::cast_slice(&children));
+            }
         }
         self.cloud.set_frame_points(points, upload_ms);
         &self.cloud

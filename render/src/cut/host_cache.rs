@@ -13,7 +13,7 @@ use crate::lod::{NodeKey, NodePoints};
 /// The bytes a decoded node holds on the host.
 pub fn node_heap_bytes(node: &NodePoints) -> u64 {
     let per_point = 12 + if node.rgb.is_some() { 6 } else { 0 } + 2 + 1 + 1;
-    (node.len() * per_point) as u64 + 128
+    (node.len() * per_point + node.weights.len() * 2) as u64 + 128
 }
 
 pub struct HostNodeCache {
@@ -116,6 +116,7 @@ mod tests {
             intensity: vec![0; points],
             classification: vec![0; points],
             return_number: vec![0; points],
+            weights: vec![0; points],
         })
     }
 

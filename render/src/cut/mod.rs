@@ -303,6 +303,13 @@ impl CutRenderer {
         self.budgets
     }
 
+    /// Whether high quality weighs each point by the original points it stands for (the
+    /// default); without, every point counts once, as cuts drew it before points had weights
+    /// (docs/perf/hq-band-on-cuts.md compares the two).
+    pub fn set_weighted_high_quality(&mut self, weighted: bool) {
+        self.gpu_cache.weighted = weighted;
+    }
+
     /// Bytes of the GPU node cache's pages so far.
     pub fn gpu_bytes(&self) -> u64 {
         self.gpu_cache.gpu_bytes()
@@ -544,7 +551,7 @@ impl CutRenderer {
             if self.gpu_cache.contains(node.key) || host.contains(node.key) {
                 continue;
             }
-            let bytes = 128 + u64::from(node.points) * 22;
+            let bytes = 128 + u64::from(node.points) * 24;
             if bytes > room {
                 break;
             }
@@ -585,7 +592,7 @@ impl CutRenderer {
 }
 
 /// A node's points as the renderer takes them: relative to the origin, coloured, those that
-/// pass `filter` in Morton order, batched and quantised.
+/// pass `filter` in Morton order, batched and quantised, with their weight bits.
 fn prepare(
     dataset: &LodDataset,
     node: &NodePoints,
@@ -595,13 +602,36 @@ fn prepare(
     let mut positions = node.positions_relative_to(dataset.origin);
     let heights: Vec<f32> = positions.iter().map(|p| p.z).collect();
     let mut colors = dataset.coloring.colors(node, &heights, coloring);
+    let mut weights = weight_bits(node);
     if let Some(kept) = filter.node_points(node) {
         positions = kept.iter().map(|&i| positions[i as usize]).collect();
         colors = kept.iter().map(|&i| colors[i as usize]).collect();
+        weights = kept.iter().map(|&i| weights[i as usize]).collect();
     }
     let order = morton_order(&positions);
     let sorted: Vec<glam::Vec3> = order.iter().map(|&i| positions[i as usize]).collect();
-    ChunkData::new(&sorted, order.iter().map(|&i| colors[i as usize]))
+    let mut data = ChunkData::new(&sorted, order.iter().map(|&i| colors[i as usize]));
+    data.weights = order.iter().map(|&i| weights[i as usize]).collect();
+    data.weights
+        .resize(data.weights.len().next_multiple_of(2), 0);
+    data
+}
+
+/// Each point's 16 weight bits on the GPU: its weight's code (1 where the node has none) and,
+/// above it, its child octant in the node, from the top bit of its 30-bit coordinates (a
+/// store's nodes are quantised in their own cube; a COPC node's weights are all 1, so its
+/// octant is never read).
+pub(crate) fn weight_bits(node: &NodePoints) -> Vec<u16> {
+    let top = crate::lod::codec::POSITION_BITS - 1;
+    node.quantised
+        .iter()
+        .enumerate()
+        .map(|(i, q)| {
+            let code = node.weights.get(i).copied().unwrap_or(1);
+            let octant = (q[0] >> top) & 1 | ((q[1] >> top) & 1) << 1 | ((q[2] >> top) & 1) << 2;
+            code | (octant as u16) << crate::lod::weights::WEIGHT_CODE_BITS
+        })
+        .collect()
 }
 
 fn ms_since(started: Instant) -> f64 {

@@ -6,9 +6,10 @@
 //! at 10 or 20 bits reads 4 or 8 of the 12 bytes. Layout, little-endian:
 //!
 //! ```text
-//! "PFN1" | count u32 | flags u8 (bit 0: RGB) | 3 zero bytes
+//! "PFN2" | count u32 | flags u8 (bit 0: RGB) | 3 zero bytes
 //! stream 0, 1, 2 (count x u32 each) | RGB (count x 3 x u16, if flagged)
 //! intensity (count x u16) | classification (count x u8) | return number (count x u8)
+//! weight codes (count x u16, `weights.rs`)
 //! checksum u64 of the key and everything before it
 //! ```
 
@@ -18,8 +19,9 @@ use super::checksum::checksum64;
 use super::error::LodError;
 use super::key::{NodeKey, RootCube};
 use super::point::RawPoint;
+use super::weights::encode_weight;
 
-const MAGIC: &[u8; 4] = b"PFN1";
+const MAGIC: &[u8; 4] = b"PFN2";
 const HEADER_BYTES: usize = 12;
 const FLAG_RGB: u8 = 1;
 /// Bits per axis of a stored position, relative to the node's cube.
@@ -31,7 +33,7 @@ pub const POSITION_BYTES: usize = 12;
 
 /// The bytes a node of `count` points takes.
 pub fn encoded_len(count: usize, has_rgb: bool) -> usize {
-    let per_point = POSITION_BYTES + if has_rgb { 6 } else { 0 } + 2 + 1 + 1;
+    let per_point = POSITION_BYTES + if has_rgb { 6 } else { 0 } + 2 + 1 + 1 + 2;
     HEADER_BYTES + count * per_point + 8
 }
 
@@ -81,6 +83,9 @@ pub fn encode_node(cube: &RootCube, key: NodeKey, points: &[RawPoint], has_rgb: 
     }
     out.extend(points.iter().map(|p| p.classification));
     out.extend(points.iter().map(|p| p.return_number));
+    for p in points {
+        out.extend_from_slice(&encode_weight(p.weight).to_le_bytes());
+    }
     let sum = checksum64(&key.to_bytes(), &out);
     out.extend_from_slice(&sum.to_le_bytes());
     out
@@ -100,6 +105,9 @@ pub struct NodePoints {
     pub intensity: Vec<u16>,
     pub classification: Vec<u8>,
     pub return_number: Vec<u8>,
+    /// Each point's weight code (`weights.rs`); empty where the points carry none (a COPC
+    /// file's), which counts as 1 each.
+    pub weights: Vec<u16>,
 }
 
 impl NodePoints {
@@ -222,6 +230,7 @@ pub fn decode_node(
     let intensity = halves(take(2 * n));
     let classification = take(n).to_vec();
     let return_number = take(n).to_vec();
+    let weights = halves(take(2 * n));
     Ok(NodePoints {
         key,
         cube_min: cube.node_min(key),
@@ -231,6 +240,7 @@ pub fn decode_node(
         intensity,
         classification,
         return_number,
+        weights,
     })
 }
 
@@ -259,6 +269,7 @@ mod tests {
                 intensity: i as u16 * 3,
                 classification: (i % 7) as u8,
                 return_number: (i % 3) as u8,
+                weight: i as u32 * 40,
             })
             .collect();
         let bytes = encode_node(&cube, key, &points, true);
@@ -269,6 +280,7 @@ mod tests {
         }
         assert_eq!(node.intensity[7], 21);
         assert_eq!(node.rgb.as_ref().map(|c| c[9]), Some([9, 2, 3]));
+        assert_eq!(super::super::weights::decode_weight(node.weights[7]), 280);
         assert!(decode_node(&cube, key, 499, &bytes).is_err());
         assert!(
             decode_node(&cube, key.child(0), 500, &bytes).is_err(),

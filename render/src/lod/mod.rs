@@ -41,6 +41,7 @@ mod spill;
 pub mod stats;
 pub mod store;
 mod upper;
+pub mod weights;
 
 #[cfg(test)]
 mod tests;

@@ -1,5 +1,5 @@
-//! `RawPoint`: one original point as the builder carries it, and its fixed 34-byte spill
-//! record.
+//! `RawPoint`: one original point as the builder carries it, with its weight, and its fixed
+//! 38-byte spill record.
 
 use std::cmp::Ordering;
 
@@ -8,8 +8,8 @@ use glam::DVec3;
 use super::source::PointBatch;
 
 /// Bytes of one point in a spill file: position (3 x f64), RGB (3 x u16), intensity (u16),
-/// classification, return number.
-pub const SPILL_RECORD_BYTES: usize = 34;
+/// classification, return number, weight (u32).
+pub const SPILL_RECORD_BYTES: usize = 38;
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RawPoint {
@@ -18,6 +18,9 @@ pub struct RawPoint {
     pub intensity: u16,
     pub classification: u8,
     pub return_number: u8,
+    /// The original points this one stands for where its node is drawn without the child
+    /// below it (`sampling.rs`): 1 from the source, more once an inner node samples it.
+    pub weight: u32,
 }
 
 impl RawPoint {
@@ -28,6 +31,7 @@ impl RawPoint {
             intensity: batch.intensity[i],
             classification: batch.classification[i],
             return_number: batch.return_number[i],
+            weight: 1,
         }
     }
 
@@ -47,6 +51,7 @@ impl RawPoint {
         record[30..32].copy_from_slice(&self.intensity.to_le_bytes());
         record[32] = self.classification;
         record[33] = self.return_number;
+        record[34..38].copy_from_slice(&self.weight.to_le_bytes());
         record
     }
 
@@ -64,6 +69,7 @@ impl RawPoint {
             intensity: h(30),
             classification: bytes[32],
             return_number: bytes[33],
+            weight: u32::from_le_bytes([bytes[34], bytes[35], bytes[36], bytes[37]]),
         }
     }
 
@@ -79,6 +85,7 @@ impl RawPoint {
             .then(self.intensity.cmp(&other.intensity))
             .then(self.classification.cmp(&other.classification))
             .then(self.return_number.cmp(&other.return_number))
+            .then(self.weight.cmp(&other.weight))
     }
 }
 
@@ -94,6 +101,7 @@ mod tests {
             intensity: 4242,
             classification: 7,
             return_number: 3,
+            weight: 70_000,
         };
         let mut out = Vec::new();
         p.write_to(&mut out);

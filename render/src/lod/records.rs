@@ -86,5 +86,6 @@ fn empty_node(hierarchy: &LodHierarchy, key: NodeKey) -> NodePoints {
         intensity: Vec::new(),
         classification: Vec::new(),
         return_number: Vec::new(),
+        weights: Vec::new(),
     }
 }

@@ -139,6 +139,8 @@ pub fn sample(
         bits -= 1;
     }
     drop((keyed, dense));
+    let mut children = children;
+    weigh(cube, key, bits, &mut children, &chosen);
     let mut parent = Vec::new();
     let kept = std::array::from_fn(|c| {
         let mut kept = Vec::with_capacity(children[c].len());
@@ -156,6 +158,149 @@ pub fn sample(
         kept,
         grid: 1 << bits,
     }
+}
+
+/// Where a sampled point's weight is summed (its cell of `key`'s grid, `bits` per axis) and
+/// where its child's weight may go when its cell's point is taken (that cell within the same
+/// octant of the child, so that the weight counts exactly where the grandchild is not drawn).
+#[derive(Clone, Copy, PartialEq, Eq, Hash)]
+struct WeighCell {
+    cell: glam::UVec3,
+    child: u8,
+    grandchild: u8,
+}
+
+/// Sets the weights of `key`'s sample (`chosen` of `children`): each chosen point stands for
+/// the children's weights in its cell, and what it stood for in its child beyond itself goes
+/// to the child's nearest remaining point in the same cell and grandchild octant, so that a
+/// cut that draws the child but not that grandchild still counts every original point once
+/// (`docs/perf/hq-band-on-cuts.md`). Runs after the choice: it never changes which points
+/// are chosen.
+fn weigh(
+    cube: &RootCube,
+    key: NodeKey,
+    bits: u32,
+    children: &mut [Vec<RawPoint>; 8],
+    chosen: &[Vec<bool>; 8],
+) {
+    use std::collections::HashMap;
+    let child_level = u32::from(key.level) + 1;
+    let place = |c: usize, p: &RawPoint| {
+        let grandchild = cube.cell_at(p.position, child_level + 1) - key.child(c).cell() * 2;
+        WeighCell {
+            cell: sampling_cell(cube, key, bits, p.position),
+            child: c as u8,
+            grandchild: (grandchild.x | (grandchild.y << 1) | (grandchild.z << 2)) as u8,
+        }
+    };
+    // A cell's weight sum, and its chosen point (child, index).
+    let mut cells: HashMap<glam::UVec3, (u64, Option<(usize, usize)>)> = HashMap::new();
+    for (c, points) in children.iter().enumerate() {
+        for (i, p) in points.iter().enumerate() {
+            let entry = cells
+                .entry(sampling_cell(cube, key, bits, p.position))
+                .or_default();
+            entry.0 += u64::from(p.weight);
+            if chosen[c][i] {
+                entry.1 = Some((c, i));
+            }
+        }
+    }
+    // Each chosen point's weight in its child beyond itself, by where it may go.
+    let mut orphans: HashMap<WeighCell, (usize, usize)> = HashMap::new();
+    for (c, points) in children.iter().enumerate() {
+        for (i, p) in points.iter().enumerate() {
+            if chosen[c][i] && p.weight > 1 {
+                orphans.insert(place(c, p), (c, i));
+            }
+        }
+    }
+    // The nearest remaining point to each taken one, ties broken by content.
+    let mut heirs: HashMap<(usize, usize), (usize, f64)> = HashMap::new();
+    if !orphans.is_empty() {
+        for (c, points) in children.iter().enumerate() {
+            for (i, p) in points.iter().enumerate() {
+                if chosen[c][i] {
+                    continue;
+                }
+                let Some(&(oc, oi)) = orphans.get(&place(c, p)) else {
+                    continue;
+                };
+                let d = p.position.distance_squared(children[oc][oi].position);
+                let better = heirs.get(&(oc, oi)).is_none_or(|&(h, hd)| {
+                    d < hd || (d == hd && p.content_cmp(&points[h]).is_lt())
+                });
+                if better {
+                    heirs.insert((oc, oi), (i, d));
+                }
+            }
+        }
+    }
+    // A taken point whose cell has no other point of its grandchild octant: the remaining
+    // point of that octant nearest along the Morton order of the cells (rare, so cheap).
+    let lacking: Vec<(usize, usize)> = orphans
+        .values()
+        .copied()
+        .filter(|o| !heirs.contains_key(o))
+        .collect();
+    if !lacking.is_empty() {
+        let mut groups: HashMap<(u8, u8), Vec<(u32, usize)>> = HashMap::new();
+        for (c, points) in children.iter().enumerate() {
+            for (i, p) in points.iter().enumerate() {
+                if !chosen[c][i] {
+                    let at = place(c, p);
+                    groups
+                        .entry((at.child, at.grandchild))
+                        .or_default()
+                        .push((morton(at.cell), i));
+                }
+            }
+        }
+        groups.values_mut().for_each(|g| g.sort_unstable());
+        for (oc, oi) in lacking {
+            let p = &children[oc][oi];
+            let at = place(oc, p);
+            let Some(group) = groups.get(&(at.child, at.grandchild)) else {
+                continue;
+            };
+            let code = morton(at.cell);
+            let k = group.partition_point(|&(m, _)| m < code);
+            let near = [k.checked_sub(1), (k < group.len()).then_some(k)];
+            let best = near.into_iter().flatten().min_by(|&a, &b| {
+                let (pa, pb) = (&children[oc][group[a].1], &children[oc][group[b].1]);
+                let (da, db) = (
+                    pa.position.distance_squared(p.position),
+                    pb.position.distance_squared(p.position),
+                );
+                da.total_cmp(&db).then(pa.content_cmp(pb))
+            });
+            if let Some(b) = best {
+                heirs.insert((oc, oi), (group[b].1, 0.0));
+            }
+        }
+    }
+    for ((oc, oi), (heir, _)) in heirs {
+        let extra = children[oc][oi].weight - 1;
+        let p = &mut children[oc][heir];
+        p.weight = p.weight.saturating_add(extra);
+    }
+    for (sum, taken) in cells.into_values() {
+        if let Some((c, i)) = taken {
+            children[c][i].weight = sum.min(u64::from(u32::MAX)) as u32;
+        }
+    }
+}
+
+/// The Morton code of a cell of a grid of at most 2^10 cells per axis.
+fn morton(cell: glam::UVec3) -> u32 {
+    let spread = |v: u32| {
+        let mut v = v & 0x3ff;
+        v = (v | (v << 16)) & 0x0300_00ff;
+        v = (v | (v << 8)) & 0x0300_f00f;
+        v = (v | (v << 4)) & 0x030c_30c3;
+        (v | (v << 2)) & 0x0924_9249
+    };
+    spread(cell.x) | (spread(cell.y) << 1) | (spread(cell.z) << 2)
 }
 
 #[cfg(test)]
@@ -188,6 +333,7 @@ mod tests {
                 intensity: i,
                 classification: 0,
                 return_number: 0,
+                weight: 1,
             })
             .collect();
         for grid in [8u32, 128] {

@@ -1,6 +1,8 @@
 //! The high-quality mode's accumulation pass (`shaders/hq_accumulate.wgsl`): after the depth
 //! pass, every point within the depth band behind its pixel's nearest depth adds its colour and
-//! a count; the resolve pass (`resolve_average`) divides.
+//! a count; the resolve pass (`resolve_average`) divides. A level-of-detail cut's pages add
+//! each point as many times as the points it stands for (`hq_accumulate_weighted.wgsl`); a
+//! resident cloud's chunks keep the unweighted shader.
 
 use pointfarm_shaders::Shader;
 
@@ -13,6 +15,9 @@ pub(crate) struct HqAccumulatePass {
     atomic32: PointPipelines,
     /// Two 64-bit atomics a point, where the device has 64-bit atomicAdd.
     atomic64: Option<PointPipelines>,
+    /// The same two for a cut's pages, each point weighted.
+    weighted32: PointPipelines,
+    weighted64: Option<PointPipelines>,
 }
 
 impl HqAccumulatePass {
@@ -24,6 +29,8 @@ impl HqAccumulatePass {
         Self {
             atomic32: pipelines(Shader::HqAccumulate),
             atomic64: int64_atomic_add.then(|| pipelines(Shader::HqAccumulate64)),
+            weighted32: pipelines(Shader::HqAccumulateWeighted),
+            weighted64: int64_atomic_add.then(|| pipelines(Shader::HqAccumulateWeighted64)),
         }
     }
 
@@ -52,7 +59,16 @@ impl HqAccumulatePass {
         };
         let pipelines = packed_sums.map_or(&self.atomic32, |(atomic64, _)| atomic64);
         let pipeline = pipelines.get(device, frame.shape);
-        pass.set_pipeline(&pipeline);
+        let weighted_pipelines = match (&packed_sums, &self.weighted64) {
+            (Some(_), Some(weighted64)) => weighted64,
+            _ => &self.weighted32,
+        };
+        let weighted_pipeline = frame
+            .cloud
+            .chunks
+            .iter()
+            .any(|c| c.weights.is_some())
+            .then(|| weighted_pipelines.get(device, frame.shape));
         // One dispatch per phase of the depth pass (`phases.rs`): over the whole table, the
         // near phases' batches, where most points add colours, came first and the hidden far
         // ones last, and lavapipe's threads shared that work unevenly
@@ -61,6 +77,11 @@ impl HqAccumulatePass {
             (0..frame.batches.phase_count()).flat_map(|phase| frame.batches.phase_parts(phase));
         for (index, (table, entries)) in parts {
             let chunk = &frame.cloud.chunks[index];
+            let pipeline = match (&chunk.weights, &weighted_pipeline) {
+                (Some(_), Some(weighted)) => weighted,
+                _ => &pipeline,
+            };
+            pass.set_pipeline(pipeline);
             let mut resources = vec![
                 (0, frame.uniforms.as_entire_binding()),
                 (1, chunk.positions.as_entire_binding()),
@@ -76,7 +97,11 @@ impl HqAccumulatePass {
             if let Some((_, packed_sums)) = packed_sums {
                 resources.push((10, packed_sums.as_entire_binding()));
             }
-            let bind_group = bind_resources(device, &pipeline, "accumulate", resources);
+            if let Some(weights) = &chunk.weights {
+                resources.push((11, weights.codes.as_entire_binding()));
+                resources.push((12, weights.drawn_children.as_entire_binding()));
+            }
+            let bind_group = bind_resources(device, pipeline, "accumulate", resources);
             pass.set_bind_group(0, &bind_group, &[]);
             let (x, y) = dispatch_grid(entries);
             pass.dispatch_workgroups(x, y, 1);

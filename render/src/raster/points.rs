@@ -65,7 +65,22 @@ pub(crate) struct PointChunk {
     pub groups: Vec<GpuBatch>,
     /// Host only: the batch table's near-to-far orders, built as views need them.
     pub draw_orders: DrawOrders,
+    /// A node-cache page's point weights for the high-quality mode; none for a resident
+    /// cloud, whose points each count once.
+    pub weights: Option<PageWeights>,
 }
+
+/// What a page of the GPU node cache holds beside its points for the weighted high-quality
+/// accumulation (`shaders/hq_accumulate_weighted.wgsl`).
+pub(crate) struct PageWeights {
+    /// 16 bits a point: its weight's code (`lod/weights.rs`) and its child octant above it.
+    pub codes: wgpu::Buffer,
+    /// Per batch slot: the children of its node that the frame draws, one bit per octant.
+    pub drawn_children: wgpu::Buffer,
+}
+
+/// Bytes a page's weights take per point.
+pub const WEIGHT_BYTES: u64 = 2;
 
 impl PointChunk {
     /// An empty page of the GPU node cache: room for `capacity` points (a multiple of
@@ -93,6 +108,11 @@ impl PointChunk {
             sub_batches: Vec::new(),
             groups: Vec::new(),
             draw_orders: DrawOrders::default(),
+            weights: Some(PageWeights {
+                // Rounded up to whole words, as the shader reads them.
+                codes: buffer("weights", (capacity * WEIGHT_BYTES).next_multiple_of(4)),
+                drawn_children: buffer("drawn children", slots * 4),
+            }),
         }
     }
 
@@ -206,7 +226,13 @@ impl GpuPointCloud {
     pub fn gpu_bytes(&self) -> u64 {
         self.chunks
             .iter()
-            .map(|c| c.positions.size() + c.colors.size() + c.batches.size())
+            .map(|c| {
+                let weights = c
+                    .weights
+                    .as_ref()
+                    .map_or(0, |w| w.codes.size() + w.drawn_children.size());
+                c.positions.size() + c.colors.size() + c.batches.size() + weights
+            })
             .sum()
     }
 
@@ -341,6 +367,9 @@ pub(crate) struct ChunkData {
     /// `first` counts from the chunk's first point.
     pub batches: Vec<GpuBatch>,
     pub sub_batches: Vec<GpuBatch>,
+    /// A level-of-detail node's weight bits per point (`PageWeights::codes`), padded to an
+    /// even count; empty for a resident cloud's chunk.
+    pub weights: Vec<u16>,
 }
 
 impl ChunkData {
@@ -373,6 +402,7 @@ impl ChunkData {
             colors: rgb,
             batches,
             sub_batches,
+            weights: Vec::new(),
         }
     }
 
@@ -394,6 +424,7 @@ impl ChunkData {
             draw_orders: DrawOrders::default(),
             batch_table: self.batches,
             sub_batches: self.sub_batches,
+            weights: None,
         }
     }
 }
