@@ -304,7 +304,7 @@ fn mib(bytes: u64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cuts::fidelity::FIDELITY_MODES;
+    use crate::cuts::fidelity::{mode_name, FIDELITY_MODES};
     use pointfarm_render::testing::gpu;
 
     #[test]
@@ -334,7 +334,13 @@ mod tests {
             "a coarser error reads and draws less: {result:?}"
         );
         assert!(result.decode_s > 0.0 && fine.ms > 0.0);
-        assert_eq!(result.fidelity.modes.len(), FIDELITY_MODES.len());
+        for mode in FIDELITY_MODES {
+            let name = mode_name(mode);
+            assert!(
+                result.fidelity.modes.iter().any(|m| m.mode == name),
+                "{name} measured: {result:?}"
+            );
+        }
         assert!(markdown(&result).contains("300000 points"));
         let left: Vec<_> = std::fs::read_dir(parent.path()).expect("list").collect();
         assert!(left.is_empty(), "the scratch folder is removed: {left:?}");

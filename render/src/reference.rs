@@ -443,29 +443,7 @@ pub fn render_high_quality(
     settings: &FrameSettings,
     depth_band: f32,
 ) -> ReferenceFrame {
-    let nearest = nearest_depths(cloud, settings);
-    // The band test in f32, as the GPU does it.
-    let band = 1.0f32 + depth_band;
-    let mut sums = vec![[0u64; 4]; nearest.len()];
-    for_each_covered_pixel(cloud, settings, |pixel, depth, color| {
-        if depth <= nearest[pixel] * band {
-            let [r, g, b, _] = color.to_le_bytes();
-            let sum = &mut sums[pixel];
-            sum[0] += r as u64;
-            sum[1] += g as u64;
-            sum[2] += b as u64;
-            sum[3] += 1;
-        }
-    });
-    let average = |sum: &[u64; 4]| {
-        let channel = |total: u64| (total as f64 / sum[3] as f64).round() as u8;
-        u32::from_le_bytes([channel(sum[0]), channel(sum[1]), channel(sum[2]), 255])
-    };
-    let colors = sums
-        .iter()
-        .map(|s| (s[3] > 0).then(|| average(s)))
-        .collect();
-    frame_from(settings, colors, nearest)
+    render_high_quality_weighted(cloud, settings, depth_band, &vec![1; cloud.len()])
 }
 
 /// High quality where point `i` stands for `weights[i]` points (a level-of-detail cut's,
@@ -478,6 +456,7 @@ pub fn render_high_quality_weighted(
 ) -> ReferenceFrame {
     assert_eq!(weights.len(), cloud.len(), "one weight a point");
     let nearest = nearest_depths(cloud, settings);
+    // The band test in f32, as the GPU does it.
     let band = 1.0f32 + depth_band;
     // The same walk over the pixels, each point known by its index.
     let indexed = PointCloud {

@@ -5,10 +5,10 @@
 use std::sync::Arc;
 
 use pointfarm_render::color::ColorMode;
-use pointfarm_render::cut::{CutOptions, CutRenderer, LodDataset};
+use pointfarm_render::cut::{CutOptions, CutRenderer, CutReport, LodDataset};
 use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
-use pointfarm_render::raster::{FrameSettings, Renderer};
+use pointfarm_render::raster::{Frame, FrameSettings, Renderer};
 use serde::Serialize;
 
 use crate::{BenchError, ComputeMode};
@@ -35,6 +35,22 @@ pub struct ModeFidelity {
     pub close_share: f64,
     /// The cut's frame at the pixel error drawn again from its warm caches, in milliseconds.
     pub cut_warm_ms: f64,
+}
+
+impl ModeFidelity {
+    /// From the covered pixels and those of them within the tolerance ([`close_pixels`]).
+    fn new(mode: &'static str, (covered, close): (u64, u64), cut_warm_ms: f64) -> Self {
+        Self {
+            mode,
+            covered_pixels: covered,
+            close_share: if covered == 0 {
+                1.0
+            } else {
+                close as f64 / covered as f64
+            },
+            cut_warm_ms,
+        }
+    }
 }
 
 /// One workload's fidelity in every mode.
@@ -94,20 +110,9 @@ pub fn measure_fidelity(
     let mut high_quality = None;
     for mode in FIDELITY_MODES {
         let settings = mode.map_or(*basic, |m| m.settings(basic));
-        let mut draw = |cut: &mut CutRenderer| {
-            cut.render(
-                &mut renderer,
-                dataset,
-                &settings,
-                ColorMode::Rgb,
-                &PointFilter::default(),
-            )
-        };
-        let (expected, full_report) = draw(&mut full)?;
-        let (actual, cut_report) = draw(&mut cut)?;
-        let started = std::time::Instant::now();
-        draw(&mut cut)?;
-        let cut_warm_ms = started.elapsed().as_secs_f64() * 1e3;
+        let (expected, full_report) = draw(&mut full, &mut renderer, dataset, &settings)?;
+        let (actual, cut_report, cut_warm_ms) =
+            draw_then_warm(&mut cut, &mut renderer, dataset, &settings)?;
         if mode.is_none() {
             result.cut_points = cut_report.counts.points_rendered;
             result.full_points = full_report.counts.points_rendered;
@@ -118,50 +123,57 @@ pub fn measure_fidelity(
         if mode == Some(ComputeMode::HighQuality) {
             high_quality = Some((settings, expected.image.clone()));
         }
-        result.modes.push(ModeFidelity {
-            mode: mode_name(mode),
-            covered_pixels: covered,
-            close_share: if covered == 0 {
-                1.0
-            } else {
-                close as f64 / covered as f64
-            },
+        result.modes.push(ModeFidelity::new(
+            mode_name(mode),
+            (covered, close),
             cut_warm_ms,
-        });
+        ));
     }
     // High quality again with every point counting once, as before points had weights.
     if let Some((settings, expected)) = high_quality {
         cut.set_weighted_high_quality(false);
-        let mut draw = || {
-            cut.render(
-                &mut renderer,
-                dataset,
-                &settings,
-                ColorMode::Rgb,
-                &PointFilter::default(),
-            )
-        };
-        let (actual, _) = draw()?;
-        let started = std::time::Instant::now();
-        draw()?;
-        let cut_warm_ms = started.elapsed().as_secs_f64() * 1e3;
+        let (actual, _, cut_warm_ms) = draw_then_warm(&mut cut, &mut renderer, dataset, &settings)?;
         let (covered, close) = close_pixels(&actual.image, &expected, settings.background);
-        result.modes.push(ModeFidelity {
-            mode: UNWEIGHTED_HIGH_QUALITY,
-            covered_pixels: covered,
-            close_share: if covered == 0 {
-                1.0
-            } else {
-                close as f64 / covered as f64
-            },
+        result.modes.push(ModeFidelity::new(
+            UNWEIGHTED_HIGH_QUALITY,
+            (covered, close),
             cut_warm_ms,
-        });
+        ));
     }
     Ok(result)
 }
 
 /// The high-quality cut drawn with every point counting once (`set_weighted_high_quality`).
 pub const UNWEIGHTED_HIGH_QUALITY: &str = "compute-high-quality-unweighted";
+
+/// `cut`'s full-colour frame of `settings`.
+fn draw(
+    cut: &mut CutRenderer,
+    renderer: &mut Renderer,
+    dataset: &LodDataset,
+    settings: &FrameSettings,
+) -> Result<(Frame, CutReport), BenchError> {
+    Ok(cut.render(
+        renderer,
+        dataset,
+        settings,
+        ColorMode::Rgb,
+        &PointFilter::default(),
+    )?)
+}
+
+/// [`draw`], then the same frame again from the warm caches, in milliseconds.
+fn draw_then_warm(
+    cut: &mut CutRenderer,
+    renderer: &mut Renderer,
+    dataset: &LodDataset,
+    settings: &FrameSettings,
+) -> Result<(Frame, CutReport, f64), BenchError> {
+    let (frame, report) = draw(cut, renderer, dataset, settings)?;
+    let started = std::time::Instant::now();
+    draw(cut, renderer, dataset, settings)?;
+    Ok((frame, report, started.elapsed().as_secs_f64() * 1e3))
+}
 
 /// The pixels not `background` in `expected`, and of those the ones within
 /// [`FIDELITY_TOLERANCE`] of `expected` in every channel of `actual`.

@@ -622,6 +622,18 @@ fn pixel_centre_points(
     points
 }
 
+/// A 96 x 64 frame's camera 10 m in front of the origin, looking at it along +Y.
+fn side_view() -> Camera {
+    Camera {
+        position: glam::DVec3::new(0.0, -10.0, 0.0),
+        target: glam::DVec3::ZERO,
+        up: glam::DVec3::Z,
+        projection: Projection::Perspective { fov_y_deg: 50.0 },
+        near: 1.0,
+        far: 100.0,
+    }
+}
+
 /// Batches drawn with a size factor are sized as the reference sizes their points at that
 /// factor times the frame's adaptive size: two nodes side by side, the right one at twice the
 /// left's size, match the references of each half.
@@ -629,15 +641,7 @@ fn pixel_centre_points(
 fn batches_take_their_own_point_size_factor() {
     use super::gpu_cache::GpuNodeCache;
 
-    let camera = Camera {
-        position: glam::DVec3::new(0.0, -10.0, 0.0),
-        target: glam::DVec3::ZERO,
-        up: glam::DVec3::Z,
-        projection: Projection::Perspective { fov_y_deg: 50.0 },
-        near: 1.0,
-        far: 100.0,
-    };
-    let mut settings = FrameSettings::new(96, 64, camera);
+    let mut settings = FrameSettings::new(96, 64, side_view());
     settings.background = [0, 0, 0, 0];
     settings.adaptive_size = Some(16.0);
     settings.point_size = crate::raster::MAX_ADAPTIVE_POINT_SIZE;
@@ -821,14 +825,7 @@ fn weighted_high_quality_matches_the_weighted_reference() {
     use crate::lod::weights::{decode_weight, encode_weight, WEIGHT_CODE_BITS};
     use crate::raster::AtomicsMode;
 
-    let camera = Camera {
-        position: glam::DVec3::new(0.0, -10.0, 0.0),
-        target: glam::DVec3::ZERO,
-        up: glam::DVec3::Z,
-        projection: Projection::Perspective { fov_y_deg: 50.0 },
-        near: 1.0,
-        far: 100.0,
-    };
+    let camera = side_view();
     let mut settings = FrameSettings::new(96, 64, camera);
     settings.quality = Quality::High { depth_band: 0.5 };
     settings.point_size = 1;
