@@ -1,0 +1,291 @@
+//! The daemon's stores against real files: built once, COPC files served from their own
+//! hierarchy, damaged files refused.
+
+use std::time::{Duration, Instant};
+
+use pointfarm_render::ingest::{write_las, LasWriteOptions};
+use pointfarm_render::lod::{read_nodes, LodError, NodeRecords};
+use pointfarm_render::sample::sample_scene;
+
+use super::*;
+use crate::model::DatasetFile;
+
+/// A dataset of the sample scene (`points` of it) written as LAS into `dir`.
+fn scene_dataset(dir: &Path, points: usize, sha256: &str) -> Dataset {
+    let path = dir.join("scene.las");
+    write_las(&path, &sample_scene(points, 3), &LasWriteOptions::default()).expect("write");
+    dataset_of(&path, sha256)
+}
+
+fn dataset_of(path: &Path, sha256: &str) -> Dataset {
+    let size_bytes = std::fs::metadata(path).map_or(0, |m| m.len());
+    Dataset {
+        id: format!("ds-{sha256}"),
+        name: "scene".into(),
+        size_bytes,
+        sha256: sha256.into(),
+        path: path.to_owned(),
+        files: vec![DatasetFile {
+            name: "scene.las".into(),
+            path: path.to_owned(),
+            size_bytes,
+            sha256: sha256.into(),
+        }],
+        created_unix_ms: 0,
+    }
+}
+
+/// Asks until the store is ready (or a minute has passed).
+fn wait_ready(stores: &DatasetStores, dataset: &Dataset) -> Arc<ReadyStore> {
+    let started = Instant::now();
+    loop {
+        match stores.open(dataset, true).expect("open") {
+            StoreAnswer::Ready(store) => return store,
+            StoreAnswer::Building { .. } if started.elapsed() < Duration::from_secs(60) => {
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            _ => panic!("the store was not built"),
+        }
+    }
+}
+
+struct Records<'a>(&'a ReadyStore);
+
+impl NodeRecords for Records<'_> {
+    fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError> {
+        let keys: Vec<NodeKey> = nodes.iter().map(|n| n.key).collect();
+        self.0
+            .records(&keys)
+            .map_err(|e| LodError::Records(e.to_string()))
+    }
+}
+
+#[test]
+fn a_store_is_built_once_served_by_node_and_removed_with_its_dataset() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let dataset = scene_dataset(dir.path(), 20_000, "aa11");
+    let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+
+    // Small and not asked for levels of detail: rendered resident, nothing built.
+    assert!(matches!(
+        stores.open(&dataset, false).expect("open"),
+        StoreAnswer::NotNeeded { points: 20_000 }
+    ));
+    assert!(!dir.path().join("lod").join("aa11").exists());
+    assert!(
+        stores.ready(&dataset).is_err(),
+        "not open before it is asked for"
+    );
+
+    let store = wait_ready(&stores, &dataset);
+    assert_eq!(store.point_count(), 20_000);
+    assert!(store.build_ms > 0.0);
+    assert_eq!(
+        LodHierarchy::decode(&store.hierarchy_record).expect("decodes"),
+        *store.hierarchy()
+    );
+    // Once built, every request is served from the store.
+    assert!(matches!(
+        stores.open(&dataset, false).expect("open"),
+        StoreAnswer::Ready(_)
+    ));
+
+    // The records decode to every point of the store, each checked.
+    let keys: Vec<NodeKey> = store.hierarchy().nodes().iter().map(|n| n.key).collect();
+    let nodes = read_nodes(&Records(&store), store.hierarchy(), &keys).expect("read");
+    assert_eq!(nodes.iter().map(|n| n.len() as u64).sum::<u64>(), 20_000);
+
+    // A node the hierarchy does not hold is refused, naming it.
+    let outside = NodeKey::new(3, glam::UVec3::new(7, 7, 7));
+    if store.hierarchy().node(outside).is_none() {
+        let error = store.records(&[outside]).expect_err("not a node");
+        assert!(error.to_string().contains("3-7-7-7"), "{error}");
+    }
+
+    // A new daemon opens the finished store without a build (this one's closed first:
+    // sled locks its database).
+    let record = store.hierarchy_record.clone();
+    drop((store, stores));
+    let again = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+    let StoreAnswer::Ready(reopened) = again.open(&dataset, false).expect("open") else {
+        panic!("a finished store opens at once");
+    };
+    assert_eq!(reopened.build_ms, 0.0);
+    assert_eq!(reopened.hierarchy_record, record);
+    drop(reopened);
+
+    drop(again);
+    // A daemon restarted under a worker that reads the store serves it at once.
+    let restarted = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+    let served = restarted.ready(&dataset).expect("opened on demand");
+    assert_eq!(served.hierarchy_record, record);
+    drop(served);
+    let again = restarted;
+    again.remove("aa11");
+    assert!(!dir.path().join("lod").join("aa11").exists());
+    assert!(again.ready(&dataset).is_err());
+}
+
+#[test]
+fn workers_asking_at_once_share_one_build_and_one_opening() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let dataset = scene_dataset(dir.path(), 5_000, "cc33");
+    let asked_at_once = |stores: &DatasetStores| {
+        std::thread::scope(|scope| {
+            let asks: Vec<_> = (0..4)
+                .map(|_| scope.spawn(|| stores.open(&dataset, true).map(|_| ())))
+                .collect();
+            for ask in asks {
+                ask.join().expect("no panic").expect("every ask answered");
+            }
+        });
+    };
+    let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+    asked_at_once(&stores);
+    let record = wait_ready(&stores, &dataset).hierarchy_record.clone();
+    drop(stores);
+    // A finished store, opened by four requests at once: one opening, shared.
+    let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+    asked_at_once(&stores);
+    assert_eq!(
+        stores.ready(&dataset).expect("open").hierarchy_record,
+        record
+    );
+}
+
+/// A COPC file of the repository's test data (`tests/data/copc`), as a dataset.
+fn copc_dataset(path: &Path, sha256: &str) -> Dataset {
+    let mut dataset = dataset_of(path, sha256);
+    let name = path.file_name().expect("a name").to_string_lossy();
+    dataset.files[0].name = name.into_owned();
+    dataset
+}
+
+fn copc_file(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../tests/data/copc")
+        .join(name)
+}
+
+#[test]
+fn a_copc_file_is_served_from_its_own_hierarchy_without_a_build() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = copc_file("simple_with_page.copc.laz");
+    let dataset = copc_dataset(&path, "dd44");
+    let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+    // Ready at once, even unasked for levels of detail, as a local render of the file.
+    let StoreAnswer::Ready(store) = stores.open(&dataset, false).expect("open") else {
+        panic!("a COPC file needs no build");
+    };
+    assert!(!dir.path().join("lod").exists(), "a store was built");
+    assert_eq!(store.point_count(), 1065);
+    assert_eq!(store.build_ms, 0.0);
+    let copc = store.copc.as_ref().expect("served as COPC");
+    assert_eq!(copc.file_name, "simple_with_page.copc.laz");
+    assert!(copc.elevation.is_some());
+    // The record leaves the COPC spacing out; it is sent beside it.
+    let record = LodHierarchy::decode(&store.hierarchy_record).expect("decodes");
+    assert_eq!(record.level_spacing(), None);
+    assert_eq!(
+        record.with_root_spacing(copc.root_spacing),
+        *store.hierarchy()
+    );
+
+    // Its records are byte ranges of the file, which the decoder sent reads back.
+    let file = std::fs::read(&path).expect("read");
+    let stored: Vec<NodeInfo> = store
+        .hierarchy()
+        .nodes()
+        .iter()
+        .filter(|n| n.point_count > 0)
+        .copied()
+        .collect();
+    let keys: Vec<NodeKey> = stored.iter().map(|n| n.key).collect();
+    let records = store.records(&keys).expect("records");
+    let mut points = 0;
+    for (info, record) in stored.iter().zip(&records) {
+        let range = info.byte_range();
+        assert_eq!(record[..], file[range.start as usize..range.end as usize]);
+        let node = copc
+            .decoder
+            .decode_chunk(&store.hierarchy().cube, info, record)
+            .expect("decodes");
+        points += node.len();
+    }
+    assert_eq!(points, 1065);
+
+    // A daemon restarted under a worker fetching nodes opens the file again, unbuilt.
+    drop((store, stores));
+    let restarted = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+    let served = restarted.ready(&dataset).expect("opened on demand");
+    assert!(served.copc.is_some());
+    assert!(!dir.path().join("lod").exists());
+}
+
+#[test]
+fn several_copc_files_and_an_export_build_a_store() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut two = copc_dataset(&copc_file("simple.copc.laz"), "ee55");
+    two.files
+        .push(copc_dataset(&copc_file("simple_with_page.copc.laz"), "ee55").files[0].clone());
+    let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+    let store = wait_ready(&stores, &two);
+    assert!(store.copc.is_none(), "two cubes are not one octree");
+    assert_eq!(store.point_count(), 2 * 1065);
+
+    let one = copc_dataset(&copc_file("simple.copc.laz"), "ff66");
+    assert!(matches!(stores.open(&one, true), Ok(StoreAnswer::Ready(s)) if s.copc.is_some()));
+    let started = Instant::now();
+    let exported = loop {
+        match stores.open_store(&one, true).expect("open") {
+            StoreAnswer::Ready(store) => break store,
+            _ if started.elapsed() < Duration::from_secs(60) => {
+                std::thread::sleep(Duration::from_millis(50))
+            }
+            _ => panic!("the store was not built"),
+        }
+    };
+    assert!(exported.copc.is_none(), "an export reads a built store");
+    assert!(dir.path().join("lod").join("ff66").exists());
+}
+
+#[test]
+fn a_damaged_copc_file_is_refused_naming_it_and_nothing_is_built() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut bytes = std::fs::read(copc_file("simple.copc.laz")).expect("read");
+    // The root page's second entry: its chunk moved past the end of the file.
+    let info = 375 + 54;
+    let page = u64::from_le_bytes(bytes[info + 40..info + 48].try_into().expect("8")) as usize;
+    let beyond = bytes.len() as u64 + 1_000;
+    bytes[page + 32 + 16..page + 32 + 24].copy_from_slice(&beyond.to_le_bytes());
+    let path = dir.path().join("damaged.copc.laz");
+    std::fs::write(&path, &bytes).expect("write");
+    let dataset = copc_dataset(&path, "ab12");
+    let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+    for _ in 0..2 {
+        let Err(DaemonError::FailedPrecondition(reason)) = stores.open(&dataset, true) else {
+            panic!("a damaged COPC file is refused");
+        };
+        assert!(reason.contains("damaged.copc.laz"), "{reason}");
+        assert!(
+            reason.contains("COPC hierarchy is inconsistent"),
+            "{reason}"
+        );
+    }
+    assert!(stores.ready(&dataset).is_err());
+    assert!(!dir.path().join("lod").exists(), "built as plain LAZ");
+}
+
+#[test]
+fn an_unreadable_file_is_named_and_nothing_is_built() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("broken.las");
+    std::fs::write(&path, b"LASF but not really a file").expect("write");
+    let dataset = dataset_of(&path, "bb22");
+    let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+    let Err(DaemonError::FailedPrecondition(reason)) = stores.open(&dataset, true) else {
+        panic!("a broken file is refused");
+    };
+    assert!(reason.contains("broken.las"), "{reason}");
+    assert!(!dir.path().join("lod").join("bb22").exists());
+}
