@@ -240,6 +240,8 @@ async fn complete(
             }],
             dataset_cache_hit: None,
             cut: None,
+            preview: false,
+            completeness: 0.0,
         })),
     };
     let chunks: Vec<pb::CompleteFrameRequest> = png

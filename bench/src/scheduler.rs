@@ -42,6 +42,7 @@ fn job(request_id: String, frames: u32) -> JobSpec {
         },
         priority: 0,
         requirements: Default::default(),
+        preview: false,
     }
 }
 

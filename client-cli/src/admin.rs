@@ -134,6 +134,27 @@ fn runtime() -> Result<tokio::runtime::Runtime> {
     tokio::runtime::Runtime::new().context("starting the async runtime")
 }
 
+/// One line on a job's preview frames (drawn from the dataset's chunk starts while the
+/// server builds its store), which final frames replace: how many, and how complete.
+fn preview_summary(job: &pb::Job) -> Option<String> {
+    let previews: Vec<&pb::FrameFinished> = job.frames.iter().filter(|f| f.preview).collect();
+    let first = previews.first()?;
+    let (low, high) = previews
+        .iter()
+        .fold((first.completeness, first.completeness), |(l, h), f| {
+            (l.min(f.completeness), h.max(f.completeness))
+        });
+    Some(format!(
+        "previews: {} of {} frames, {:.3}% to {:.3}% of the points; final: {}/{}",
+        previews.len(),
+        job.frames_total,
+        low * 100.0,
+        high * 100.0,
+        job.frames_done,
+        job.frames_total
+    ))
+}
+
 /// One line on the frames rendered from levels of detail: the median cut and what was read.
 fn cut_summary(frames: &[pb::FrameFinished]) -> Option<String> {
     let cuts: Vec<&pb::FrameCut> = frames.iter().filter_map(|f| f.cut.as_ref()).collect();
@@ -375,6 +396,9 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                     if let Some(line) = cut_summary(&job.frames) {
                         outln!("{line}");
                     }
+                    if let Some(line) = preview_summary(&job) {
+                        outln!("{line}");
+                    }
                     if !stats.is_empty() {
                         outln!("{:<12} {:>10} {:>10}", "stage", "median ms", "p95 ms");
                         for s in &stats {
@@ -574,6 +598,8 @@ mod tests {
                 failed_attempts: 0,
                 cut: None,
                 worker_name: String::new(),
+                preview: false,
+                completeness: 0.0,
                 timings: vec![
                     pb::StageTiming {
                         stage: "rasterize".into(),

@@ -99,6 +99,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
                 },
                 priority: 0,
                 requirements: Default::default(),
+                preview: false,
             };
             let request = pb::SubmitJobRequest::from(&spec);
             let job = answer(client.jobs.submit_job(request).await)?;

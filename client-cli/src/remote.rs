@@ -123,8 +123,11 @@ impl Client {
                 bar.set_position(job.frames_done as u64);
                 bar.set_message(state_name(job.state).to_string());
                 for frame in frames {
-                    let line =
+                    let mut line =
                         format!("frame {:>5}  {}", frame.index, timings_line(&frame.timings));
+                    if frame.preview {
+                        line.push_str(&preview_words(frame.completeness));
+                    }
                     if bar.is_hidden() && !quiet {
                         outln!("{line}");
                     } else {
@@ -348,4 +351,12 @@ pub fn require_success(job: &pb::Job) -> Result<()> {
         }
         _ => bail!("job {} {}", job.id, state_name(job.state)),
     }
+}
+
+/// How a preview frame is told apart in a listing: what it drew of the dataset.
+pub fn preview_words(completeness: f64) -> String {
+    format!(
+        "  | preview ({:.3}% of the points; the final frame follows)",
+        completeness * 100.0
+    )
 }

@@ -65,6 +65,7 @@ fn submission(
         request: request.clone(),
         priority: args.priority,
         requirements: requirements(args)?,
+        preview: args.preview,
     };
     Ok(pb::SubmitJobRequest::from(&spec))
 }
@@ -162,11 +163,14 @@ pub fn run(
                 outln!("{}", crate::admin_json::json_line(&frame)?);
             }
         }
+        let previewed = args.preview;
+        let what = if previewed { "final frames" } else { "frames" };
         match written.as_slice() {
             [] => bail!("the server returned no frame"),
+            [one] if previewed => say(format!("final frame: {}", one.display())),
             [one] => say(one.display().to_string()),
             many => say(format!(
-                "{} frames in {}",
+                "{} {what} in {}",
                 many.len(),
                 files.dir().display()
             )),

@@ -33,12 +33,6 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let request = args.request()?;
     let outputs = Outputs::check(&args, &request)?;
     if let Some(server) = args.server.clone().filter(|_| !args.local) {
-        if args.preview {
-            anyhow::bail!(
-                "--preview renders here while the levels of detail build here; add --local \
-                 (a server builds its own store)"
-            );
-        }
         return crate::remote_render::run(&server, &args, &request, &outputs);
     }
     if !args.require_tags.is_empty() || args.require_gpu {

@@ -18,7 +18,7 @@ use crate::limits::{check_id, check_length, MAX_NAME_BYTES, MAX_PATH_BYTES};
 use crate::model::{content_sha256, now_unix_ms, Dataset, DatasetFile};
 use crate::service::{dataset_id, file_name, hash_file, lookup, unique_suffix, Daemon};
 use crate::store::Page;
-use crate::stores::{ReadyStore, StoreAnswer};
+use crate::stores::{PreviewBytes, ReadyStore, StoreAnswer};
 
 /// Most files in one dataset: a campaign of hundreds of tiles fits, a record that breaks the
 /// listing does not.
@@ -288,6 +288,13 @@ impl Daemon {
         check_id("dataset_id", id)?;
         let dataset = self.dataset(id)?;
         self.stores.open(&dataset, levels_of_detail)
+    }
+
+    /// The preview sample of dataset `id`, which workers render while its store builds.
+    pub fn preview_sample(&self, id: &str) -> Result<Arc<PreviewBytes>, DaemonError> {
+        check_id("dataset_id", id)?;
+        let dataset = self.dataset(id)?;
+        self.stores.preview_sample(&dataset)
     }
 
     /// The opened store of dataset `id`, whose hierarchy and nodes workers fetch.

@@ -62,6 +62,9 @@ pub struct FrameTask {
     pub request: RenderRequest,
     /// Attempts at this frame that ended without a result.
     pub failed_attempts: u32,
+    /// The job asks for previews and the frame has none yet: while the daemon builds the
+    /// dataset's store, the worker renders it from the preview sample.
+    pub preview: bool,
 }
 
 /// What a worker reports with a finished frame's PNG.
@@ -70,6 +73,8 @@ pub struct FrameOutcome {
     pub timings: Vec<StageTiming>,
     pub dataset_cache_hit: Option<bool>,
     pub cut: Option<FrameCut>,
+    /// Set on a preview: its completeness (0 to 1).
+    pub preview: Option<f64>,
 }
 
 /// Whether a failed frame is worth another attempt.
@@ -122,8 +127,18 @@ impl Daemon {
                     .refusal(&job.spec.requirements, &job.spec.request)
                     .is_none()
         };
+        // A frame with a preview waits while its dataset's store builds: it is rendered
+        // again, as a final frame, once the store is ready.
+        let building = |job: &Job| {
+            self.store
+                .dataset(&job.spec.dataset_id)
+                .ok()
+                .flatten()
+                .is_some_and(|dataset| self.stores.is_building(&dataset.sha256))
+        };
+        let waits = |job: &Job, has_preview: bool| has_preview && building(job);
         loop {
-            let Some((job, index)) = self.store.next_task(&leased, &usable)? else {
+            let Some((job, index)) = self.store.next_task(&leased, &usable, &waits)? else {
                 return Ok(None);
             };
             let Some(dataset) = self.store.dataset(&job.spec.dataset_id)? else {
@@ -137,6 +152,7 @@ impl Daemon {
                 Some(FrameState::Pending { attempts }) => attempts,
                 _ => 0,
             };
+            let preview = job.spec.preview && !self.store.has_preview(&job.id, index)?;
             let job = if job.state == JobState::Queued {
                 let running = self
                     .store
@@ -181,6 +197,7 @@ impl Daemon {
                 },
                 request: job.spec.request.clone(),
                 failed_attempts,
+                preview,
             }));
         }
     }
@@ -251,6 +268,12 @@ impl Daemon {
     ) -> Result<Job, DaemonError> {
         let (lease, width, height) = self.held_lease(lease_id)?;
         check_png(png, width, height)?;
+        if outcome.preview.is_some() && !self.job_asks_previews(&lease.job_id)? {
+            return Err(DaemonError::invalid(
+                "result.preview",
+                format!("job {} asked for no previews", lease.job_id),
+            ));
+        }
         // Written outside the lock under a name of this lease; renamed into place only if the
         // lease is still held then.
         let path = self.config.frame_path(&lease.job_id, lease.index);
@@ -296,7 +319,18 @@ impl Daemon {
             failed_attempts,
             cut: outcome.cut,
             worker: lease.worker.clone(),
+            preview: outcome.preview,
         };
+        if report.preview.is_some() {
+            // A preview is kept beside the pending frame, whose final render replaces it.
+            let kept = self.store.keep_preview(&lease, &report);
+            let job = self
+                .unless_disk_refused(&lease, kept.map_err(DaemonError::from))?
+                .ok_or_else(|| DaemonError::NotFound(format!("job {}", lease.job_id)))?;
+            self.work.notify();
+            self.publish(&job, Some(report));
+            return Ok(job);
+        }
         // A refused state write leaves the PNG in place: the write may yet have reached the
         // disk, and a frame marked done must have its image; rendered again, it is replaced.
         let finished = self.store.finish_frame(&lease, &report, |j| {
@@ -311,6 +345,10 @@ impl Daemon {
         self.metrics.frame_completed(&report);
         self.publish(&job, Some(report));
         Ok(job)
+    }
+
+    fn job_asks_previews(&self, job_id: &str) -> Result<bool, DaemonError> {
+        Ok(self.store.job(job_id)?.is_some_and(|job| job.spec.preview))
     }
 
     /// `result` of storing something of `lease`'s frame; when the disk refused it, the lease

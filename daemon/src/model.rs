@@ -91,6 +91,10 @@ pub struct JobSpec {
     /// What a worker must offer to be leased the job's frames.
     #[serde(default, skip_serializing_if = "WorkerRequirements::is_empty")]
     pub requirements: WorkerRequirements,
+    /// While the dataset's store is being built, render every frame from the preview sample
+    /// first (kept as the frame's preview), then again as a final frame once it is ready.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub preview: bool,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -175,13 +179,18 @@ pub struct FrameReport {
     /// The worker that rendered it; empty in frames stored before it was recorded.
     #[serde(default, skip_serializing_if = "String::is_empty")]
     pub worker: String,
+    /// Set on a preview drawn from the dataset's chunk starts: its completeness, the points
+    /// drawn over the points of the dataset's files. The frame's final report replaces it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub preview: Option<f64>,
 }
 
 /// What a frame rendered from levels of detail drew and loaded: the render crate's counts,
 /// stored with the frame as they are.
 pub use pointfarm_render::cut::CutCounts as FrameCut;
 
-/// One frame of a job.
+/// One frame of a job. A frame of a job with `preview` may also have a preview (kept apart,
+/// see `Store::preview`) while it is pending; it is done only when final.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum FrameState {
     Pending { attempts: u32 },

@@ -12,7 +12,7 @@ use crate::limits::{check_id, check_length, MAX_REQUEST_ID_BYTES};
 use crate::metrics::DaemonMetrics;
 use crate::model::{now_unix_ms, FrameReport, Job, JobEvent, JobSpec, JobState};
 use crate::store::{Page, Store};
-use crate::stores::DatasetStores;
+use crate::stores::{DatasetStores, StoreBuildGate};
 use crate::worker_presence::WorkerPresence;
 
 /// The default bound of one upload.
@@ -65,6 +65,8 @@ pub struct DaemonConfig {
     /// Job events buffered for watchers; one that falls further behind catches up from the
     /// store instead.
     pub event_buffer: usize,
+    /// Held closed, store builds wait until it opens (tests look at a build under way).
+    pub store_build_gate: Option<StoreBuildGate>,
 }
 
 impl DaemonConfig {
@@ -82,6 +84,7 @@ impl DaemonConfig {
             store_build_memory_bytes: pointfarm_render::cut::DEFAULT_MEMORY_BUDGET_BYTES,
             event_buffer: 1024,
             recover_state: false,
+            store_build_gate: None,
             data_dir,
         }
     }
@@ -156,7 +159,7 @@ pub struct Daemon {
     pub config: DaemonConfig,
     pub store: Store,
     events: broadcast::Sender<JobEvent>,
-    pub work: WorkSignal,
+    pub work: Arc<WorkSignal>,
     /// Held while leases, frame states and job states change together (see `lease`).
     pub(crate) scheduling: Mutex<()>,
     stopping: std::sync::atomic::AtomicBool,
@@ -187,14 +190,19 @@ impl Daemon {
         }
         remove_partial_frames(&config.data_dir.join("jobs"));
         let (events, _) = broadcast::channel(config.event_buffer.max(1));
+        let work = Arc::new(WorkSignal::default());
+        let built = Arc::clone(&work);
         let stores =
-            DatasetStores::new(config.data_dir.join("lod"), config.store_build_memory_bytes);
+            DatasetStores::new(config.data_dir.join("lod"), config.store_build_memory_bytes)
+                .gated(config.store_build_gate.clone())
+                // Frames that waited for the store (previews among them) are leased again.
+                .notifying(Arc::new(move || built.notify()));
         let daemon = Arc::new(Self {
             config,
             stores,
             store,
             events,
-            work: WorkSignal::default(),
+            work,
             scheduling: Mutex::new(()),
             stopping: std::sync::atomic::AtomicBool::new(false),
             workers: WorkerPresence::default(),

@@ -393,12 +393,29 @@ impl Store {
     /// unfinished job with the highest priority that `usable` accepts (the asking worker can
     /// render it), the oldest first among equals. Reads the scheduling index, so finished
     /// jobs cost nothing.
+    /// A preview job's frame is passed over while `waits(job, has_preview)`.
     pub fn next_task(
         &self,
         leased: &HashSet<(String, u32)>,
         usable: &dyn Fn(&Job) -> bool,
+        waits: &dyn Fn(&Job, bool) -> bool,
     ) -> Result<Option<(Job, u32)>, StoreError> {
-        self.with(|records| records.next_task(leased, usable))
+        self.with(|records| records.next_task(leased, usable, waits))
+    }
+
+    /// Keeps `report` as the preview of the pending frame of `lease` and removes the lease,
+    /// as one flushed transaction. None if there is no such job.
+    pub fn keep_preview(
+        &self,
+        lease: &Lease,
+        report: &FrameReport,
+    ) -> Result<Option<Job>, StoreError> {
+        self.with(|records| records.keep_preview(lease, report))
+    }
+
+    /// Whether frame `index` of job `job_id` has a preview (and is not done).
+    pub fn has_preview(&self, job_id: &str, index: u32) -> Result<bool, StoreError> {
+        self.with(|records| records.has_preview(job_id, index))
     }
 
     /// Sets frame `index` of job `job_id` pending after `attempts` failed attempts and applies
@@ -420,7 +437,8 @@ impl Store {
         self.with(Records::requeue_running)
     }
 
-    /// The reports of the finished frames of a job, by frame index.
+    /// The reports of the finished frames of a job and the previews of its pending ones, by
+    /// frame index.
     pub fn frame_reports(&self, job_id: &str) -> Result<Vec<FrameReport>, StoreError> {
         self.with(|records| records.frame_reports(job_id))
     }

@@ -3,16 +3,25 @@
 //! and building from the dataset's files. A store is built once, when a request first needs
 //! it, on a thread of its own (one build at a time, within a memory budget); a finished store
 //! is opened again after a restart without a build.
+//!
+//! While a store builds, the daemon serves a preview sample of the dataset (the raw first
+//! point of every LAZ chunk, every 50,000th LAS record: `ingest::sample_chunk_starts`), read
+//! once per content and kept in memory, with the files' header bounds that frame it, so a
+//! preview job's workers render what `render --preview` renders of the same files without
+//! downloading them. A file whose chunk table is damaged is named in the refusal, and the
+//! job fails saying so (its store would not build either).
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
+use pointfarm_render::cache::encode_cloud;
+use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::Stretch;
 use pointfarm_render::copc::{is_copc, open_copc, CopcDecoder};
 use pointfarm_render::cut::{LodDataset, StoredLod, RESIDENT_MAX_POINTS};
-use pointfarm_render::ingest::dataset_point_count;
-use pointfarm_render::lod::{LodHierarchy, NodeInfo, NodeKey};
+use pointfarm_render::ingest::{dataset_point_count, sample_chunk_starts, DatasetSource};
+use pointfarm_render::lod::{LodHierarchy, NodeInfo, NodeKey, PointSource};
 
 use crate::error::DaemonError;
 use crate::model::Dataset;
@@ -98,6 +107,51 @@ impl ReadyStore {
     }
 }
 
+/// A dataset's preview sample as workers are sent it.
+pub struct PreviewBytes {
+    /// The sample's cloud, `pointfarm_render::cache::encode_cloud`'s bytes.
+    pub cloud: Vec<u8>,
+    pub points_in_files: u64,
+    /// The files' header bounds, which frame the camera as the store's bounds will.
+    pub framed: WorldBounds,
+}
+
+/// Holds every store build until opened: what tests use to look at a daemon while a build
+/// is under way, without a build slow enough to race.
+#[derive(Clone, Default)]
+pub struct StoreBuildGate(Arc<(Mutex<bool>, std::sync::Condvar)>);
+
+impl std::fmt::Debug for StoreBuildGate {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let open = *self.0 .0.lock().unwrap_or_else(|e| e.into_inner());
+        f.debug_struct("StoreBuildGate")
+            .field("open", &open)
+            .finish()
+    }
+}
+
+impl StoreBuildGate {
+    /// A closed gate: builds wait at it.
+    pub fn closed() -> Self {
+        Self::default()
+    }
+
+    /// Lets every build waiting, and every later one, go on.
+    pub fn open(&self) {
+        let (open, opened) = &*self.0;
+        *open.lock().unwrap_or_else(|e| e.into_inner()) = true;
+        opened.notify_all();
+    }
+
+    fn wait(&self) {
+        let (open, opened) = &*self.0;
+        let mut is_open = open.lock().unwrap_or_else(|e| e.into_inner());
+        while !*is_open {
+            is_open = opened.wait(is_open).unwrap_or_else(|e| e.into_inner());
+        }
+    }
+}
+
 /// What a worker is told of a dataset's store.
 pub enum StoreAnswer {
     /// Rendered resident, from the dataset's files.
@@ -139,6 +193,12 @@ pub struct DatasetStores {
     /// Held while a request decides what to do with a store and opens or starts it, so two
     /// workers asking at once never open or build one store twice.
     opening: Mutex<()>,
+    /// Preview samples by content, read once (or the file at fault, said to every request).
+    previews: Mutex<HashMap<String, Result<Arc<PreviewBytes>, String>>>,
+    /// Builds wait here first when set.
+    gate: Option<StoreBuildGate>,
+    /// Called when a build ends, so that frames waiting for the store are leased again.
+    on_built: Option<Arc<dyn Fn() + Send + Sync>>,
 }
 
 impl DatasetStores {
@@ -150,7 +210,55 @@ impl DatasetStores {
             copc: Mutex::default(),
             building: Arc::default(),
             opening: Mutex::default(),
+            previews: Mutex::default(),
+            gate: None,
+            on_built: None,
         }
+    }
+
+    /// Builds wait at `gate` until it is opened.
+    pub fn gated(mut self, gate: Option<StoreBuildGate>) -> Self {
+        self.gate = gate;
+        self
+    }
+
+    /// `on_built` is called when a build ends, ready or failed.
+    pub fn notifying(mut self, on_built: Arc<dyn Fn() + Send + Sync>) -> Self {
+        self.on_built = Some(on_built);
+        self
+    }
+
+    /// Whether the store of content `sha256` is being built now.
+    pub fn is_building(&self, sha256: &str) -> bool {
+        matches!(self.entries_now().get(sha256), Some(Entry::Building(_)))
+    }
+
+    /// The preview sample of `dataset`, read from its files on first use and kept. A file
+    /// that cannot be sampled (a damaged chunk table) is refused, named, now and later.
+    pub fn preview_sample(&self, dataset: &Dataset) -> Result<Arc<PreviewBytes>, DaemonError> {
+        let mut previews = self.previews.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(known) = previews.get(&dataset.sha256) {
+            return known.clone().map_err(DaemonError::FailedPrecondition);
+        }
+        let paths: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
+        let sampled = sample_chunk_starts(&paths)
+            .and_then(|sample| {
+                let framed = DatasetSource::open(&paths)?.bounds();
+                Ok(PreviewBytes {
+                    cloud: encode_cloud(&sample.cloud),
+                    points_in_files: sample.points_in_files,
+                    framed,
+                })
+            })
+            .map(Arc::new)
+            .map_err(|e| format!("dataset {}: no preview: {e}", dataset.id));
+        match &sampled {
+            Ok(sample) => tracing::info!(dataset = %dataset.id, bytes = sample.cloud.len(),
+                points_in_files = sample.points_in_files, "preview sample read"),
+            Err(reason) => tracing::warn!(%reason, "the dataset's preview sample is refused"),
+        }
+        previews.insert(dataset.sha256.clone(), sampled.clone());
+        sampled.map_err(DaemonError::FailedPrecondition)
     }
 
     fn folder(&self, sha256: &str) -> PathBuf {
@@ -275,9 +383,13 @@ impl DatasetStores {
         let (entries, building) = (Arc::clone(&self.entries), Arc::clone(&self.building));
         let budget = self.build_memory_bytes;
         let id = dataset.id.clone();
+        let (gate, on_built) = (self.gate.clone(), self.on_built.clone());
         let spawned = std::thread::Builder::new()
             .name("pointfarm-store-build".into())
             .spawn(move || {
+                if let Some(gate) = gate {
+                    gate.wait();
+                }
                 let _one_at_a_time = building.lock().unwrap_or_else(|e| e.into_inner());
                 tracing::info!(dataset = %id, points, "building the dataset's levels of detail");
                 let entry = match open_or_build(&files, &folder, budget) {
@@ -291,6 +403,9 @@ impl DatasetStores {
                     .lock()
                     .unwrap_or_else(|e| e.into_inner())
                     .insert(sha, entry);
+                if let Some(on_built) = on_built {
+                    on_built();
+                }
             });
         if let Err(e) = spawned {
             self.set(&dataset.sha256, Entry::Counted(points));
@@ -353,6 +468,10 @@ impl DatasetStores {
         }
         entries.remove(sha256);
         drop(entries);
+        self.previews
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(sha256);
         self.copc
             .lock()
             .unwrap_or_else(|e| e.into_inner())

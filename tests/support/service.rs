@@ -202,6 +202,7 @@ pub fn turntable_job(
         render: None,
         priority: 0,
         requirements: None,
+        preview: false,
     }
 }
 
@@ -253,6 +254,7 @@ pub async fn run_job(
         request,
         priority: 0,
         requirements: Default::default(),
+        preview: false,
     };
     let job = jobs
         .submit_job(pb::SubmitJobRequest::from(&spec))

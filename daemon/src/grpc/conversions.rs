@@ -20,7 +20,7 @@ use crate::lease_record::Lease;
 use crate::limits::{truncated, MAX_WORKER_NAME_BYTES};
 use crate::model::{Dataset, FrameCut, FrameReport, Job, JobSpec, JobState, StageTiming};
 use crate::store::Page;
-use crate::stores::{CopcServed, StoreAnswer};
+use crate::stores::{CopcServed, PreviewBytes, StoreAnswer};
 use pointfarm_render::classification;
 use pointfarm_render::cloud::{ColorSource, WorldBounds};
 use pointfarm_render::color::Stretch;
@@ -56,6 +56,7 @@ impl TryFrom<&pb::SubmitJobRequest> for JobSpec {
                 .map(WorkerRequirements::try_from)
                 .transpose()?
                 .unwrap_or_default(),
+            preview: r.preview,
         })
     }
 }
@@ -245,6 +246,8 @@ impl From<&FrameReport> for pb::FrameFinished {
             failed_attempts: report.failed_attempts,
             cut: report.cut.as_ref().map(frame_cut_message),
             worker_name: report.worker.clone(),
+            preview: report.preview.is_some(),
+            completeness: report.preview.unwrap_or(0.0),
         }
     }
 }
@@ -326,6 +329,45 @@ pub(super) fn failure_kind(kind: i32) -> FailureKind {
     }
 }
 
+/// A frame result's preview: its completeness when it is one, checked to lie in 0 to 1.
+pub(super) fn preview_completeness(result: &pb::FrameResult) -> Result<Option<f64>, DaemonError> {
+    if !result.preview {
+        return Ok(None);
+    }
+    if !(0.0..=1.0).contains(&result.completeness) {
+        return Err(invalid(
+            "result.completeness",
+            format!("{} is not within 0 to 1", result.completeness),
+        ));
+    }
+    Ok(Some(result.completeness))
+}
+
+/// What a worker is told of a preview sample before its bytes.
+pub(super) fn preview_sample_header(sample: &PreviewBytes) -> pb::PreviewSampleHeader {
+    pb::PreviewSampleHeader {
+        points_in_files: sample.points_in_files,
+        bounds_min: Some(vec3_message(sample.framed.min)),
+        bounds_max: Some(vec3_message(sample.framed.max)),
+        sample_bytes: sample.cloud.len() as u64,
+    }
+}
+
+/// A preview sample's header as a worker receives it: the files' bounds, present and finite.
+pub fn preview_sample_bounds(header: &pb::PreviewSampleHeader) -> Result<WorldBounds, DaemonError> {
+    let (Some(min), Some(max)) = (&header.bounds_min, &header.bounds_max) else {
+        return Err(invalid("header.bounds_min", "bounds are required"));
+    };
+    let (min, max) = (
+        glam::DVec3::new(min.x, min.y, min.z),
+        glam::DVec3::new(max.x, max.y, max.z),
+    );
+    if !(min.is_finite() && max.is_finite()) {
+        return Err(invalid("header.bounds_min", "bounds must be finite"));
+    }
+    Ok(WorldBounds { min, max })
+}
+
 pub fn frame_task_message(task: &FrameTask) -> pb::FrameTask {
     pb::FrameTask {
         lease_id: task.lease.id.clone(),
@@ -355,6 +397,7 @@ pub fn frame_task_message(task: &FrameTask) -> pb::FrameTask {
         height: task.request.height,
         render: Some(render_options_message(&task.request.render)),
         failed_attempts: task.failed_attempts,
+        preview: task.preview,
     }
 }
 
@@ -412,6 +455,7 @@ pub fn frame_task(message: &pb::FrameTask, worker: &str) -> Result<FrameTask, Da
             message.render.as_ref(),
         )?,
         failed_attempts: message.failed_attempts,
+        preview: message.preview,
     })
 }
 

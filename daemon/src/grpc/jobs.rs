@@ -12,7 +12,7 @@ use tonic::{Request, Response, Status};
 use super::conversions::{invalid, page_messages, state_filter};
 use super::streaming::{chunks, send_each, spawn_stream, ResponseStream};
 use super::Api;
-use crate::model::{FrameState, JobSpec};
+use crate::model::{FrameReport, FrameState, JobSpec};
 use crate::service::Daemon;
 
 #[tonic::async_trait]
@@ -99,7 +99,7 @@ impl JobService for Api {
                         let frame = event
                             .frame
                             .as_ref()
-                            .filter(|frame| reported.insert(frame.index))
+                            .filter(|frame| reported.insert(report_key(frame)))
                             .map(pb::FrameFinished::from);
                         Ok(pb::JobEvent {
                             job: Some(pb::Job::from(&event.job)),
@@ -154,7 +154,8 @@ impl JobService for Api {
                     daemon.store.frame(&job.id, index),
                     Ok(Some(FrameState::Done { .. }))
                 );
-                if !done {
+                // A pending frame's preview is its latest image until the final one.
+                if !done && !daemon.store.has_preview(&job.id, index).unwrap_or(false) {
                     continue;
                 }
                 let bytes = match tokio::fs::read(daemon.config.frame_path(&job.id, index)).await {
@@ -216,16 +217,21 @@ impl JobService for Api {
 /// it has not been sent yet.
 struct CaughtUp {
     event: pb::JobEvent,
-    reported: HashSet<u32>,
+    reported: HashSet<(u32, bool)>,
     ended: bool,
 }
 
 /// Reads job `id` and its finished frames under the scheduling lock (as a crash would leave
 /// them) and adds the frames not in `reported` to one event.
+/// What a watcher is told once: a frame's preview, and its final report.
+fn report_key(frame: &FrameReport) -> (u32, bool) {
+    (frame.index, frame.preview.is_some())
+}
+
 async fn catch_up(
     daemon: Arc<Daemon>,
     id: String,
-    mut reported: HashSet<u32>,
+    mut reported: HashSet<(u32, bool)>,
 ) -> Result<CaughtUp, Status> {
     let (job, finished) = tokio::task::spawn_blocking(move || daemon.job_with_frames(&id))
         .await
@@ -233,7 +239,7 @@ async fn catch_up(
     let mut snapshot = pb::Job::from(&job);
     snapshot.frames = finished
         .iter()
-        .filter(|frame| reported.insert(frame.index))
+        .filter(|frame| reported.insert(report_key(frame)))
         .map(pb::FrameFinished::from)
         .collect();
     Ok(CaughtUp {

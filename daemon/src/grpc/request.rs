@@ -464,6 +464,7 @@ impl From<&JobSpec> for pb::SubmitJobRequest {
             priority: spec.priority,
             requirements: (!spec.requirements.is_empty())
                 .then(|| pb::WorkerRequirements::from(&spec.requirements)),
+            preview: spec.preview,
         }
     }
 }

@@ -8,7 +8,8 @@ use pointfarm_proto::v1::worker_service_server::WorkerService;
 use tonic::{Request, Response, Status, Streaming};
 
 use super::conversions::{
-    failure_kind, frame_cut_of_message, frame_task_message, invalid, node_key, stage_timings,
+    failure_kind, frame_cut_of_message, frame_task_message, invalid, node_key,
+    preview_completeness, preview_sample_header, stage_timings,
 };
 use super::lease_guard::LeaseGuard;
 use super::streaming::{chunks, first_part, read_chunk, spawn_stream, stream_each, ResponseStream};
@@ -192,6 +193,7 @@ impl WorkerService for Api {
             timings: stage_timings(&result.timings),
             dataset_cache_hit: result.dataset_cache_hit,
             cut: result.cut.as_ref().map(frame_cut_of_message),
+            preview: preview_completeness(&result)?,
         };
         let lease_id = result.lease_id;
         self.done(move |daemon| daemon.complete_frame(&lease_id, &png, outcome).map(drop))
@@ -284,6 +286,33 @@ impl WorkerService for Api {
             })
             .collect();
         Ok(Response::new(stream_each(chunks)))
+    }
+
+    type FetchPreviewSampleStream = ResponseStream<pb::PreviewSampleChunk>;
+
+    async fn fetch_preview_sample(
+        &self,
+        request: Request<pb::FetchPreviewSampleRequest>,
+    ) -> Result<Response<Self::FetchPreviewSampleStream>, Status> {
+        let (r, _) = self.heard(request);
+        let sample = self
+            .run(move |daemon| daemon.preview_sample(&r.dataset_id))
+            .await?;
+        let mut header = Some(preview_sample_header(&sample));
+        let mut messages: Vec<pb::PreviewSampleChunk> = chunks(&sample.cloud)
+            .map(|(data, _)| pb::PreviewSampleChunk {
+                header: header.take(),
+                data: data.to_vec(),
+            })
+            .collect();
+        if let Some(header) = header {
+            // An empty sample: the header alone.
+            messages.push(pb::PreviewSampleChunk {
+                header: Some(header),
+                data: Vec::new(),
+            });
+        }
+        Ok(Response::new(stream_each(messages)))
     }
 
     type FetchNodesStream = ResponseStream<pb::NodeRecord>;

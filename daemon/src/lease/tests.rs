@@ -26,6 +26,7 @@ fn outcome() -> FrameOutcome {
         timings: Vec::new(),
         dataset_cache_hit: None,
         cut: None,
+        preview: None,
     }
 }
 
@@ -440,4 +441,67 @@ fn no_blocklist_is_kept_when_its_limit_is_zero() {
     assert!(now.blocklist.is_empty());
     let again = lease(&daemon, "bad", false);
     assert_eq!((again.lease.index, again.failed_attempts), (0, 1));
+}
+
+/// A preview is kept beside its pending frame, durably; the frame is leased again for its
+/// final render, which alone counts and ends the job; a job without previews refuses one.
+#[test]
+fn a_preview_keeps_its_frame_pending_until_the_final_frame_replaces_it() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let daemon = open(dir.path());
+    let job = test_daemon::submit(&daemon, 1, |r| r.preview = true);
+    assert!(job.spec.preview);
+    let first = lease(&daemon, "w", false);
+    assert!(first.preview, "a frame without a preview is offered one");
+    let preview = FrameOutcome {
+        preview: Some(0.25),
+        ..outcome()
+    };
+    let after = daemon
+        .complete_frame(&first.lease.id, &png(8, 6), preview)
+        .expect("a preview");
+    assert_eq!((after.frames_done, after.state), (0, JobState::Running));
+    assert!(daemon.config.frame_path(&job.id, 0).is_file());
+    drop(daemon);
+
+    // As after a kill -9: the preview is in the flushed state, the frame still pending.
+    let daemon = open(dir.path());
+    let reports = daemon.store.frame_reports(&job.id).expect("reports");
+    assert_eq!(reports.len(), 1);
+    assert_eq!(reports[0].preview, Some(0.25));
+    // No store is building here, so the frame is leased again at once, for its final render.
+    let again = lease(&daemon, "w", false);
+    assert_eq!(again.lease.index, 0);
+    assert!(
+        !again.preview,
+        "a frame with a preview is not previewed again"
+    );
+    let done = daemon
+        .complete_frame(&again.lease.id, &png(8, 6), outcome())
+        .expect("final");
+    assert_eq!((done.frames_done, done.state), (1, JobState::Succeeded));
+    let reports = daemon.store.frame_reports(&job.id).expect("reports");
+    assert_eq!(reports.len(), 1);
+    assert_eq!(
+        reports[0].preview, None,
+        "the final report replaced the preview"
+    );
+
+    // A job without previews takes none.
+    let plain = test_daemon::submit(&daemon, 1, |r| r.request_id = "plain".into());
+    let task = lease(&daemon, "w", false);
+    assert_eq!(task.lease.job_id, plain.id);
+    assert!(!task.preview);
+    let refused = daemon.complete_frame(
+        &task.lease.id,
+        &png(8, 6),
+        FrameOutcome {
+            preview: Some(0.5),
+            ..outcome()
+        },
+    );
+    assert!(
+        matches!(refused, Err(DaemonError::InvalidArgument { .. })),
+        "{refused:?}"
+    );
 }

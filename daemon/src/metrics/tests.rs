@@ -136,6 +136,7 @@ fn after_a_job_every_family_is_there_with_what_happened() {
         timings: vec![timing("load", 250.0), timing("rasterize", 2.0)],
         dataset_cache_hit: Some(hit),
         cut: None,
+        preview: None,
     };
     daemon
         .complete_frame(&first.lease.id, &test_daemon::png(8, 6), outcome(false))
@@ -268,11 +269,13 @@ fn a_worker_counts_its_frames_and_caches() {
             nodes_read: 1,
             ..Default::default()
         }),
+        preview: None,
     });
     metrics.frame_rendered(&FrameOutcome {
         timings: vec![timing("load", 10.0)],
         dataset_cache_hit: Some(true),
         cut: None,
+        preview: None,
     });
     metrics.frame_failed();
     let scrape = parse(&metrics.text());

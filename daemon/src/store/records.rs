@@ -281,11 +281,13 @@ impl Records {
             &self.trees.leases,
             &self.trees.jobs,
             &self.trees.queue,
+            &self.trees.previews,
         );
         trees
-            .transaction(|(frames, pending, leases, jobs, queue)| {
+            .transaction(|(frames, pending, leases, jobs, queue, previews)| {
                 frames.insert(key.as_slice(), frame.as_slice())?;
                 pending.remove(key.as_slice())?;
+                previews.remove(key.as_slice())?;
                 leases.remove(lease.id.as_bytes())?;
                 jobs.insert(job.id.as_bytes(), encoded.as_slice())?;
                 if ended {
@@ -297,6 +299,38 @@ impl Records {
             .map_err(transaction_error)?;
         self.db.flush()?;
         Ok(Some(job))
+    }
+
+    /// Keeps `report` as the preview of the (still pending) frame of `lease` and removes the
+    /// lease, in one flushed transaction; the job's update time is set. None if there is no
+    /// such job.
+    pub(super) fn keep_preview(
+        &self,
+        lease: &Lease,
+        report: &FrameReport,
+    ) -> Result<Option<Job>, StoreError> {
+        let Some(mut job) = self.job(&lease.job_id)? else {
+            return Ok(None);
+        };
+        job.updated_unix_ms = now_unix_ms();
+        let key = frame_key(&lease.job_id, lease.index);
+        let preview = encode(report)?;
+        let encoded = encode(&job)?;
+        (&self.trees.previews, &self.trees.leases, &self.trees.jobs)
+            .transaction(|(previews, leases, jobs)| {
+                previews.insert(key.as_slice(), preview.as_slice())?;
+                leases.remove(lease.id.as_bytes())?;
+                jobs.insert(job.id.as_bytes(), encoded.as_slice())?;
+                Ok(())
+            })
+            .map_err(transaction_error)?;
+        self.db.flush()?;
+        Ok(Some(job))
+    }
+
+    /// Whether frame `index` of job `job_id` has a preview.
+    pub(super) fn has_preview(&self, job_id: &str, index: u32) -> Result<bool, StoreError> {
+        Ok(self.trees.previews.contains_key(frame_key(job_id, index))?)
     }
 
     pub(super) fn set_frame(
@@ -328,12 +362,14 @@ impl Records {
         &self,
         leased: &std::collections::HashSet<(String, u32)>,
         usable: &dyn Fn(&Job) -> bool,
+        waits: &dyn Fn(&Job, bool) -> bool,
     ) -> Result<Option<(Job, u32)>, StoreError> {
         for entry in self.trees.queue.iter() {
             let (_, job_id) = entry?;
             let mut prefix = job_id.to_vec();
             prefix.push(b'/');
             let job_id = String::from_utf8_lossy(&job_id).into_owned();
+            let mut job: Option<Job> = None;
             for key in self.trees.pending.scan_prefix(&prefix).keys() {
                 let key = key?;
                 let index_bytes: [u8; 4] = key[prefix.len()..].try_into().unwrap_or([0; 4]);
@@ -342,12 +378,20 @@ impl Records {
                     continue;
                 }
                 // Every frame of a job is alike to `usable`: one look decides for the job.
-                match self.job(&job_id)? {
-                    Some(job) if !job.state.is_terminal() && usable(&job) => {
-                        return Ok(Some((job, index)))
+                if job.is_none() {
+                    match self.job(&job_id)? {
+                        Some(found) if !found.state.is_terminal() && usable(&found) => {
+                            job = Some(found)
+                        }
+                        _ => break,
                     }
-                    _ => break,
                 }
+                let Some(found) = &job else { break };
+                // A preview job's previewed frames wait while its store builds.
+                if found.spec.preview && waits(found, self.has_preview(&job_id, index)?) {
+                    continue;
+                }
+                return Ok(Some((found.clone(), index)));
             }
         }
         Ok(None)
@@ -437,7 +481,8 @@ impl Records {
         Ok(self.db.generate_id()?)
     }
 
-    /// The reports of the finished frames of a job, by frame index.
+    /// The reports of the finished frames of a job and the previews of its pending ones, by
+    /// frame index.
     pub(super) fn frame_reports(&self, job_id: &str) -> Result<Vec<FrameReport>, StoreError> {
         let mut prefix = job_id.as_bytes().to_vec();
         prefix.push(b'/');
@@ -447,6 +492,14 @@ impl Records {
             if let FrameState::Done(report) = decode::<FrameState>(&value)? {
                 out.push(report);
             }
+        }
+        let finals = out.len();
+        for entry in self.trees.previews.scan_prefix(&prefix) {
+            let (_, value) = entry?;
+            out.push(decode::<FrameReport>(&value)?);
+        }
+        if out.len() > finals {
+            out.sort_by_key(|report| report.index);
         }
         Ok(out)
     }

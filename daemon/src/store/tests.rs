@@ -20,6 +20,7 @@ fn spec(request_id: &str, frames: u32, priority: i32) -> JobSpec {
         },
         priority,
         requirements: Default::default(),
+        preview: false,
     }
 }
 
@@ -30,7 +31,10 @@ fn open(path: &std::path::Path) -> Store {
 /// The order in which frames are handed out while none is given back.
 fn schedule(store: &Store) -> Vec<(String, u32)> {
     let (mut order, mut leased) = (Vec::new(), HashSet::new());
-    while let Some((job, index)) = store.next_task(&leased, &|_| true).expect("next") {
+    while let Some((job, index)) = store
+        .next_task(&leased, &|_| true, &|_, _| false)
+        .expect("next")
+    {
         leased.insert((job.id.clone(), index));
         order.push((job.id, index));
     }

@@ -4,7 +4,7 @@ use super::{decode, INDEX_VERSION_KEY};
 use crate::error::StoreError;
 use crate::lease_record::Lease;
 use crate::manifest::Counts;
-use crate::model::{Dataset, FrameState, Job};
+use crate::model::{Dataset, FrameReport, FrameState, Job};
 
 /// A tree of records by name, with the test that a record decodes.
 type RecordTree<'a> = (&'static str, &'a sled::Tree, fn(&[u8]) -> bool);
@@ -21,6 +21,9 @@ pub(super) struct Trees {
     pub(super) queue: sled::Tree,
     /// The pending frames, keyed as in `frames`; the values are empty.
     pub(super) pending: sled::Tree,
+    /// The latest preview of a pending frame of a preview job, keyed as in `frames`; removed
+    /// when the frame is done.
+    pub(super) previews: sled::Tree,
     /// The database's own facts (the version of the scheduling index).
     pub(super) meta: sled::Tree,
 }
@@ -35,17 +38,21 @@ impl Trees {
             leases: db.open_tree("leases")?,
             queue: db.open_tree("queue")?,
             pending: db.open_tree("pending")?,
+            previews: db.open_tree("previews")?,
             meta: db.open_tree("meta")?,
         })
     }
 
     /// The trees whose records must decode, by name.
-    fn records(&self) -> [RecordTree<'_>; 4] {
+    fn records(&self) -> [RecordTree<'_>; 5] {
         [
             ("datasets", &self.datasets, |v| decode::<Dataset>(v).is_ok()),
             ("jobs", &self.jobs, |v| decode::<Job>(v).is_ok()),
             ("frames", &self.frames, |v| decode::<FrameState>(v).is_ok()),
             ("leases", &self.leases, |v| decode::<Lease>(v).is_ok()),
+            ("previews", &self.previews, |v| {
+                decode::<FrameReport>(v).is_ok()
+            }),
         ]
     }
 

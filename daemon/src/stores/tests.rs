@@ -289,3 +289,49 @@ fn an_unreadable_file_is_named_and_nothing_is_built() {
     assert!(reason.contains("broken.las"), "{reason}");
     assert!(!dir.path().join("lod").join("bb22").exists());
 }
+
+/// The preview sample is read once per content; a file whose chunk table is damaged is
+/// refused, named, and the stores go on serving others.
+#[test]
+fn a_preview_sample_is_served_and_a_damaged_chunk_table_is_named() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let good = dir.path().join("good.laz");
+    write_las(
+        &good,
+        &sample_scene(120_000, 5),
+        &LasWriteOptions::default(),
+    )
+    .expect("write");
+    let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+    let sample = stores
+        .preview_sample(&dataset_of(&good, "good"))
+        .expect("a sample");
+    assert_eq!(sample.points_in_files, 120_000);
+    let cloud = pointfarm_render::cache::decode_cloud(&sample.cloud).expect("decodes");
+    // Three 50,000-point chunks: three chunk starts.
+    assert_eq!(cloud.len(), 3);
+
+    // The chunk table's count (after its version, at the offset the points start with)
+    // made far larger than the file holds.
+    let damaged = dir.path().join("damaged.laz");
+    let mut bytes = std::fs::read(&good).expect("read");
+    let at = |offset: usize, len: usize| {
+        let mut value = [0u8; 8];
+        value[..len].copy_from_slice(&bytes[offset..offset + len]);
+        u64::from_le_bytes(value) as usize
+    };
+    let table = at(at(96, 4), 8);
+    bytes[table + 4..table + 8].copy_from_slice(&0x7fff_fff0u32.to_le_bytes());
+    std::fs::write(&damaged, &bytes).expect("write");
+    let refused = stores.preview_sample(&dataset_of(&damaged, "damaged"));
+    let Err(DaemonError::FailedPrecondition(reason)) = refused else {
+        panic!("not refused: {:?}", refused.map(|s| s.points_in_files));
+    };
+    assert!(reason.contains("damaged.laz"), "{reason}");
+    assert!(reason.contains("chunk"), "{reason}");
+    // Said again without reading the file again, and the good dataset is still served.
+    std::fs::remove_file(&damaged).expect("remove");
+    let again = stores.preview_sample(&dataset_of(&damaged, "damaged"));
+    assert!(matches!(again, Err(DaemonError::FailedPrecondition(r)) if r == reason));
+    assert!(stores.preview_sample(&dataset_of(&good, "good")).is_ok());
+}

@@ -3,7 +3,8 @@
 //! the nodes each frame's cut needs — checked against their own checksums as a local store's
 //! are — instead of downloading the dataset's files and building a store of its own. A
 //! dataset of one COPC file comes the same way, its records the file's LAZ chunks, decoded
-//! here with what the daemon sends of its header.
+//! here with what the daemon sends of its header. While the daemon builds a store, a preview
+//! job's frames render from the daemon's preview sample of the dataset (`fetch_preview`).
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -15,9 +16,10 @@ use pointfarm_render::lod::{LodError, LodHierarchy, NodeInfo, NodePoints, NodeRe
 use tonic::{Code, Status};
 
 use super::client::Client;
-use crate::grpc::{copc_chunks, node_key_message};
+use crate::grpc::{copc_chunks, node_key_message, preview_sample_bounds};
 use crate::lease::FrameTask;
 use crate::stores::{CopcServed, MAX_NODES_PER_REQUEST};
+use crate::worker::render_state::PreviewSample;
 
 /// The longest a fetch of one request's nodes may take before the frame fails (and is tried
 /// again): a daemon that stopped answering must not hold a frame for ever.
@@ -129,6 +131,62 @@ pub async fn open(client: &mut Client, task: &FrameTask) -> Result<DaemonStore, 
     })))
 }
 
+/// The most bytes of preview sample a worker accepts: 31 bytes a point, about 2 M chunk
+/// starts (a dataset of 100 G points).
+const MAX_PREVIEW_BYTES: u64 = 64 << 20;
+
+/// The daemon's preview sample of `task`'s dataset. A status error is the daemon's refusal
+/// (FAILED_PRECONDITION naming the file whose chunks cannot be sampled).
+pub async fn fetch_preview(client: &mut Client, task: &FrameTask) -> Result<PreviewSample, Status> {
+    let request = pb::FetchPreviewSampleRequest {
+        dataset_id: task.dataset.id.clone(),
+    };
+    let mut stream = client.fetch_preview_sample(request).await?.into_inner();
+    let mut header = None;
+    let mut bytes = Vec::new();
+    while let Some(chunk) = stream.message().await? {
+        if let Some(first) = chunk.header {
+            if header.is_some() {
+                return Err(Status::internal(
+                    "the daemon's preview sample has two headers",
+                ));
+            }
+            if first.sample_bytes > MAX_PREVIEW_BYTES {
+                return Err(Status::internal(format!(
+                    "the daemon's preview sample of {} bytes is more than a worker takes",
+                    first.sample_bytes
+                )));
+            }
+            bytes.reserve(first.sample_bytes as usize);
+            header = Some(first);
+        }
+        let Some(announced) = &header else {
+            return Err(Status::internal(
+                "the daemon's preview sample has no header",
+            ));
+        };
+        if (bytes.len() + chunk.data.len()) as u64 > announced.sample_bytes {
+            return Err(Status::internal(
+                "the daemon sent more preview sample than it announced",
+            ));
+        }
+        bytes.extend_from_slice(&chunk.data);
+    }
+    let header = header.ok_or_else(|| Status::internal("the daemon sent no preview sample"))?;
+    if bytes.len() as u64 != header.sample_bytes {
+        return Err(Status::internal("the daemon's preview sample ended short"));
+    }
+    let bounds = preview_sample_bounds(&header)
+        .map_err(|e| Status::internal(format!("the daemon's preview sample: {e}")))?;
+    let cloud = pointfarm_render::cache::decode_cloud(&bytes)
+        .map_err(|e| Status::internal(format!("the daemon's preview sample: {e}")))?;
+    Ok(PreviewSample {
+        cloud,
+        points_in_files: header.points_in_files,
+        bounds,
+    })
+}
+
 /// Node records fetched from the daemon, a request per group of nodes. Called from the
 /// renderer's blocking threads (never an async one), it waits on the worker's runtime.
 pub struct RemoteNodes {
@@ -172,9 +230,11 @@ impl NodeRecords for RemoteNodes {
     fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError> {
         let mut records = Vec::with_capacity(nodes.len());
         for group in nodes.chunks(MAX_NODES_PER_REQUEST) {
+            // The timeout is made inside the runtime: a thread of the renderer's own (the
+            // read-ahead) is outside any.
             let fetched = self
                 .runtime
-                .block_on(tokio::time::timeout(FETCH_TIMEOUT, self.fetch(group)));
+                .block_on(async { tokio::time::timeout(FETCH_TIMEOUT, self.fetch(group)).await });
             match fetched {
                 Ok(Ok(mut fetched)) if fetched.len() == group.len() => records.append(&mut fetched),
                 Ok(Ok(fetched)) => {

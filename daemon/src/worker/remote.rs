@@ -3,6 +3,10 @@
 //!
 //! - The dataset's points come from the worker's own `DatasetCache`; a dataset it has never
 //!   seen is downloaded once (`FetchDataset`, SHA-256 checked) and decoded into the cache.
+//!   A dataset that needs a store is read from the daemon's; while the daemon builds it, a
+//!   frame is handed back, or, of a job that asks for previews, rendered from the daemon's
+//!   preview sample and handed in as a preview (the daemon leases it again once the store
+//!   is ready).
 //!   The cloud stays resident on the GPU across frames of the same dataset.
 //! - While a frame renders, heartbeats renew the lease every third of the lease timeout (at
 //!   most 5 s apart); when the daemon answers "stop" (job cancelled, lease lost) the frame is
@@ -348,6 +352,23 @@ async fn dataset_access(
     }
     match daemon_store::open(client, task).await {
         Ok(DaemonStore::Ready(store)) => return Ok(DatasetAccess::DaemonStore(store)),
+        Ok(DaemonStore::Building) if task.preview => {
+            if state.has_preview(task) {
+                return Ok(DatasetAccess::Preview(None));
+            }
+            return match daemon_store::fetch_preview(client, task).await {
+                Ok(sample) => Ok(DatasetAccess::Preview(Some(Box::new(sample)))),
+                // The file at fault is named; its store would not build either.
+                Err(status) if status.code() == Code::FailedPrecondition => {
+                    Err(Attempt::Failed(FrameFailure::permanent(status.message())))
+                }
+                Err(status) => Err(Attempt::Failed(FrameFailure::transient(format!(
+                    "fetching the preview sample of dataset {}: {}",
+                    task.dataset.id,
+                    status.message()
+                )))),
+            };
+        }
         Ok(DaemonStore::Building) => return Err(Attempt::StoreBuilding),
         Ok(DaemonStore::NotNeeded) => {}
         Err(status) if status.code() == Code::FailedPrecondition => {
@@ -387,7 +408,7 @@ async fn download_and_render(
     };
     let files = match &access {
         DatasetAccess::Files(files) => files.clone(),
-        DatasetAccess::DaemonStore(_) => Vec::new(),
+        DatasetAccess::DaemonStore(_) | DatasetAccess::Preview(_) => Vec::new(),
     };
     let state = render_state.take().context("the renderer was lost")?;
     // Rendering blocks on the GPU: off the async threads, so heartbeats go on meanwhile.
@@ -537,6 +558,8 @@ async fn complete_frame(client: &mut Client, task: &FrameTask, frame: RenderedFr
                 timings: timings_message(&frame.outcome.timings),
                 dataset_cache_hit: frame.outcome.dataset_cache_hit,
                 cut: frame.outcome.cut.as_ref().map(frame_cut_message),
+                preview: frame.outcome.preview.is_some(),
+                completeness: frame.outcome.preview.unwrap_or(0.0),
             })),
         };
         let chunks: Vec<pb::CompleteFrameRequest> = frame

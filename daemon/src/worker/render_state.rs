@@ -1,14 +1,16 @@
 //! A worker's render state and the rendering of one leased frame (`pointfarm worker`, also
 //! as the daemon's embedded worker): load the dataset (through the worker's
 //! `DatasetCache`), colour it, keep it resident on the GPU across frames, render with the
-//! job's settings and encode the PNG, with the stage timings of every step.
+//! job's settings and encode the PNG, with the stage timings of every step. A preview job's
+//! frame whose store the daemon is still building renders from the daemon's preview sample
+//! instead, resident as `render --preview` renders it here, and says how complete it is.
 
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
 use pointfarm_render::cache::{CacheOutcome, DatasetCache};
-use pointfarm_render::cloud::WorldBounds;
+use pointfarm_render::cloud::{PointCloud, WorldBounds};
 use pointfarm_render::color::{point_colors, Coloring};
 use pointfarm_render::cut::{
     CutError, CutOptions, CutRenderer, LodDataset, StoredLod, RESIDENT_MAX_POINTS,
@@ -35,6 +37,27 @@ struct Resident {
     cloud: GpuPointCloud,
     /// How the cloud was loaded, until the next finished frame reports it.
     unreported_load: Option<(f64, CacheOutcome)>,
+}
+
+/// A dataset's preview sample on the GPU, while the daemon builds its store.
+struct Preview {
+    sha256: String,
+    coloring: Coloring,
+    filter: PointFilter,
+    /// The files' header bounds within the filter's box: what the store's frames frame.
+    bounds: WorldBounds,
+    spacing: Option<f64>,
+    cloud: GpuPointCloud,
+    /// The points of the dataset's files, of which the sample is a few.
+    points_in_files: u64,
+}
+
+/// A preview sample as the daemon sends it.
+pub struct PreviewSample {
+    pub cloud: PointCloud,
+    pub points_in_files: u64,
+    /// The files' header bounds.
+    pub bounds: WorldBounds,
 }
 
 /// A dataset rendered from its level-of-detail store, cut by cut.
@@ -72,12 +95,16 @@ pub enum DatasetAccess {
     Files(Vec<PathBuf>),
     /// The daemon's store of the dataset.
     DaemonStore(Box<RemoteStore>),
+    /// The daemon's preview sample of the dataset, whose store it is building; none when the
+    /// worker has it loaded (see [`WorkerRenderState::has_preview`]).
+    Preview(Option<Box<PreviewSample>>),
 }
 
 /// What the worker has loaded of its current dataset.
 enum Loaded {
     Resident(Box<Resident>),
     Stored(Box<Stored>),
+    Preview(Box<Preview>),
 }
 
 /// A finished frame: the PNG and what to report with it.
@@ -171,8 +198,17 @@ impl WorkerRenderState {
                 };
                 s.sha256 == task.dataset.sha256 && wanted == Some(s.lod_error)
             }
-            None => false,
+            // A preview is asked for again: the store may be ready by now.
+            Some(Loaded::Preview(_)) | None => false,
         }
+    }
+
+    /// Whether the preview sample of `task`'s dataset is loaded as `task` needs it.
+    pub fn has_preview(&self, task: &FrameTask) -> bool {
+        matches!(&self.loaded, Some(Loaded::Preview(p))
+            if p.sha256 == task.dataset.sha256
+                && p.coloring == task.request.render.coloring()
+                && p.filter == task.request.render.filter)
     }
 
     /// Whether rendering `task` reads the dataset's files: its points are neither loaded, nor
@@ -201,6 +237,7 @@ impl WorkerRenderState {
         access: DatasetAccess,
     ) -> Result<RenderedFrame, FrameFailure> {
         let files = match access {
+            DatasetAccess::Preview(sample) => return self.render_preview(task, sample),
             DatasetAccess::Files(files) => files,
             DatasetAccess::DaemonStore(store) => {
                 self.loaded = None; // free the old dataset's memory first
@@ -226,7 +263,7 @@ impl WorkerRenderState {
                 None => Loaded::Resident(Box::new(self.load(task, files)?)),
             });
         }
-        let (mut frame, mut timings, dataset_cache_hit, cut) = match self.loaded.as_mut() {
+        let (mut frame, timings, dataset_cache_hit, cut) = match self.loaded.as_mut() {
             Some(Loaded::Resident(current)) => {
                 let settings =
                     task.request
@@ -295,26 +332,82 @@ impl WorkerRenderState {
                     .collect::<Vec<_>>();
                 (frame, timings, None, Some(report.counts))
             }
-            None => return Err(FrameFailure::transient("no dataset loaded")),
+            Some(Loaded::Preview(_)) | None => {
+                return Err(FrameFailure::transient("no dataset loaded"))
+            }
         };
-        let png = encode::png_bytes(&mut frame)
-            .map_err(|e| FrameFailure::transient(format!("encoding the PNG: {e}")))?;
-        timings.extend(frame.timings.stages.iter().map(|t| StageTiming {
-            stage: t.stage.name().to_string(),
-            ms: t.ms,
-            gpu_clock: t.clock == Clock::Gpu,
-        }));
-        tracing::info!(
-            total_ms = timings.iter().map(|t| t.ms).sum::<f64>(),
-            "frame rendered"
-        );
-        Ok(RenderedFrame {
-            png,
-            outcome: FrameOutcome {
-                timings,
-                dataset_cache_hit,
-                cut,
-            },
+        finished(&mut frame, timings, dataset_cache_hit, cut, None)
+    }
+
+    /// Renders `task`'s frame from its dataset's preview sample: `sample` loaded first, or the
+    /// one loaded already. Coloured, filtered and framed as `render --preview` does here.
+    fn render_preview(
+        &mut self,
+        task: &FrameTask,
+        sample: Option<Box<PreviewSample>>,
+    ) -> Result<RenderedFrame, FrameFailure> {
+        let mut timings = Vec::new();
+        if let Some(sample) = sample {
+            self.loaded = None; // free the old dataset's memory first
+            let started = Instant::now();
+            let preview = self.load_preview(task, *sample)?;
+            timings.push(stage("load", started.elapsed().as_secs_f64() * 1e3));
+            self.loaded = Some(Loaded::Preview(Box::new(preview)));
+        }
+        let loaded = self.has_preview(task);
+        let (true, Some(Loaded::Preview(preview))) = (loaded, self.loaded.as_ref()) else {
+            return Err(FrameFailure::transient("no preview sample loaded"));
+        };
+        let settings =
+            task.request
+                .frame_settings(task.lease.index, &preview.bounds, preview.spacing);
+        let mut frame = self
+            .renderer
+            .render(&preview.cloud, &settings)
+            .map_err(|e| FrameFailure::from(&e))?;
+        let drawn = self.renderer.listed_points();
+        let completeness = if preview.points_in_files == 0 {
+            1.0
+        } else {
+            (drawn as f64 / preview.points_in_files as f64).min(1.0)
+        };
+        finished(&mut frame, timings, None, None, Some(completeness))
+    }
+
+    /// The preview sample coloured, filtered and uploaded.
+    fn load_preview(
+        &self,
+        task: &FrameTask,
+        sample: PreviewSample,
+    ) -> Result<Preview, FrameFailure> {
+        let dataset = &task.dataset;
+        let in_dataset =
+            |failure: FrameFailure| failure.context(&format!("dataset {}", dataset.id));
+        let render = &task.request.render;
+        let mut cloud = sample.cloud;
+        cloud.colors = point_colors(&cloud, render.coloring());
+        render
+            .filter
+            .apply(&mut cloud)
+            .map_err(|e| in_dataset(FrameFailure::permanent(e.to_string())))?;
+        let bounds = render
+            .filter
+            .framing_bounds(&sample.bounds)
+            .map_err(|e| in_dataset(FrameFailure::permanent(e.to_string())))?;
+        let gpu_cloud = self
+            .renderer
+            .upload(&cloud)
+            .map_err(|e| in_dataset(FrameFailure::from(&e)))?;
+        tracing::info!(dataset = %dataset.id, points = cloud.len(),
+            points_in_files = sample.points_in_files, "preview sample resident");
+        Ok(Preview {
+            sha256: dataset.sha256.clone(),
+            coloring: render.coloring(),
+            filter: render.filter,
+            bounds,
+            spacing: cloud.spacing(),
+            cloud: gpu_cloud,
+            points_in_files: sample.points_in_files,
         })
     }
 
@@ -476,6 +569,37 @@ impl WorkerRenderState {
             unreported_load: Some((load_ms, outcome)),
         })
     }
+}
+
+/// A rendered frame encoded, with its timings and what to report of it.
+fn finished(
+    frame: &mut pointfarm_render::raster::Frame,
+    mut timings: Vec<StageTiming>,
+    dataset_cache_hit: Option<bool>,
+    cut: Option<crate::model::FrameCut>,
+    preview: Option<f64>,
+) -> Result<RenderedFrame, FrameFailure> {
+    let png = encode::png_bytes(frame)
+        .map_err(|e| FrameFailure::transient(format!("encoding the PNG: {e}")))?;
+    timings.extend(frame.timings.stages.iter().map(|t| StageTiming {
+        stage: t.stage.name().to_string(),
+        ms: t.ms,
+        gpu_clock: t.clock == Clock::Gpu,
+    }));
+    tracing::info!(
+        total_ms = timings.iter().map(|t| t.ms).sum::<f64>(),
+        preview = preview.is_some(),
+        "frame rendered"
+    );
+    Ok(RenderedFrame {
+        png,
+        outcome: FrameOutcome {
+            timings,
+            dataset_cache_hit,
+            cut,
+            preview,
+        },
+    })
 }
 
 fn stage(name: &str, ms: f64) -> StageTiming {

@@ -15,6 +15,7 @@ fn valid() -> pb::SubmitJobRequest {
         render: None,
         priority: 0,
         requirements: None,
+        preview: false,
     }
 }
 
@@ -378,6 +379,7 @@ fn tasks_carry_the_job_spec_unchanged_across_the_wire() {
             },
             request: spec.request.clone(),
             failed_attempts: 2,
+            preview: true,
         };
         let received = frame_task(&frame_task_message(&task), "w").expect("valid task");
         assert_eq!(received, task);

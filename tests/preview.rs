@@ -1,0 +1,205 @@
+//! Previews through the service: a job with `preview` on a dataset of LAZ tiles whose store
+//! the daemon is still building (its build held at a gate) renders every frame at once from
+//! the daemon's chunk-start sample, reported as previews with their completeness and drawn
+//! as a local `render --preview` draws them; once the store is ready the same job renders
+//! the frames again as final frames, equal to a job without previews.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use pointfarm_daemon::access::Access;
+use pointfarm_daemon::stores::StoreBuildGate;
+use pointfarm_proto::v1 as pb;
+use pointfarm_render::color::point_colors;
+use pointfarm_render::ingest::{sample_chunk_starts, write_las, DatasetSource, LasWriteOptions};
+use pointfarm_render::lod::PointSource;
+use pointfarm_render::raster::Renderer;
+use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
+use pointfarm_render::sample::sample_scene;
+use pointfarm_tests::service::{fetch_images, get_job, gpu, submit, turntable_job, TestDaemon};
+use tonic::transport::Channel;
+
+const FRAMES: u32 = 3;
+const SIZE: (u32, u32) = (160, 120);
+
+/// Three LAZ tiles of three 50,000-point chunks each (a generated scene per seed).
+fn tiles(dir: &Path) -> Vec<PathBuf> {
+    (1..=3)
+        .map(|seed| {
+            let path = dir.join(format!("t{seed}.laz"));
+            write_las(
+                &path,
+                &sample_scene(120_000, seed),
+                &LasWriteOptions::default(),
+            )
+            .expect("tile");
+            path
+        })
+        .collect()
+}
+
+/// A turntable from levels of detail (the dataset needs a store), with or without previews.
+fn job(name: &str, dataset_id: &str, preview: bool) -> pb::SubmitJobRequest {
+    pb::SubmitJobRequest {
+        render: Some(pb::RenderOptions {
+            lod_error: Some(0.5),
+            ..Default::default()
+        }),
+        preview,
+        ..turntable_job(name, dataset_id, FRAMES, SIZE.0, SIZE.1)
+    }
+}
+
+/// What `render --preview` draws of `files` (`FrameSource::preview`): their chunk starts
+/// coloured, resident, framed by the files' header bounds.
+fn local_previews(files: &[PathBuf]) -> Vec<image::RgbaImage> {
+    let sample = sample_chunk_starts(files).expect("sample");
+    let bounds = DatasetSource::open(files).expect("files").bounds();
+    let mut cloud = sample.cloud;
+    let options = RenderOptions {
+        lod_error: Some(0.5),
+        ..RenderOptions::default()
+    };
+    cloud.colors = point_colors(&cloud, options.coloring());
+    let request = RenderRequest {
+        width: SIZE.0,
+        height: SIZE.1,
+        camera_path: CameraPath::Turntable(Turntable::around_the_cloud(FRAMES)),
+        lens: Lens::default(),
+        render: options,
+    };
+    let mut renderer = Renderer::new(gpu());
+    let resident = renderer.upload(&cloud).expect("upload");
+    (0..FRAMES)
+        .map(|index| {
+            let settings = request.frame_settings(index, &bounds, cloud.spacing());
+            renderer.render(&resident, &settings).expect("render").image
+        })
+        .collect()
+}
+
+/// Events of job `id` until `enough` says the frames seen are enough; returns those frames.
+async fn watch_until(
+    jobs: &mut pointfarm_proto::v1::job_service_client::JobServiceClient<Channel>,
+    id: &str,
+    enough: impl Fn(&[pb::FrameFinished]) -> bool,
+) -> Vec<pb::FrameFinished> {
+    let mut stream = jobs
+        .watch_job(pb::WatchJobRequest { id: id.into() })
+        .await
+        .expect("watch")
+        .into_inner();
+    let mut frames = Vec::new();
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(300);
+    while !enough(&frames) {
+        let event = tokio::time::timeout_at(deadline, stream.message())
+            .await
+            .expect("frames within 5 minutes")
+            .expect("an event")
+            .expect("the watch goes on");
+        if let Some(job) = &event.job {
+            frames.extend(job.frames.iter().cloned());
+            assert_ne!(job.state, pb::JobState::Failed as i32, "{}", job.error);
+        }
+        frames.extend(event.frame);
+    }
+    frames
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_preview_job_renders_chunk_starts_while_the_store_builds_then_final_frames() {
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let files = tiles(scratch.path());
+    let gate = StoreBuildGate::closed();
+    let roots = scratch.path().to_path_buf();
+    let held = gate.clone();
+    let daemon = TestDaemon::start(
+        move |config| {
+            config.data_roots = vec![roots];
+            config.store_build_gate = Some(held);
+        },
+        Access::default(),
+    )
+    .await;
+    let dataset = daemon
+        .datasets()
+        .await
+        .register_dataset(pb::RegisterDatasetRequest {
+            path: scratch.path().display().to_string(),
+            ..Default::default()
+        })
+        .await
+        .expect("register")
+        .into_inner();
+    assert_eq!(dataset.files.len(), 3);
+    let mut jobs = daemon.jobs().await;
+    let previewed = submit(&mut jobs, job("previewed", &dataset.id, true)).await;
+
+    // The build waits at the gate: every frame comes as a preview.
+    let previews = watch_until(&mut jobs, &previewed.id, |frames| {
+        frames.iter().filter(|f| f.preview).count() == FRAMES as usize
+    })
+    .await;
+    for frame in &previews {
+        assert!(frame.preview, "{frame:?}");
+        // Nine chunk starts at most of 360,000 points.
+        assert!(
+            frame.completeness > 0.0 && frame.completeness <= 9.0 / 360_000.0,
+            "{frame:?}"
+        );
+        assert!(frame.cut.is_none(), "{frame:?}");
+    }
+    let shown = get_job(&mut jobs, &previewed.id).await;
+    assert_eq!(shown.state, pb::JobState::Running as i32, "{shown:?}");
+    assert_eq!(shown.frames_done, 0, "previews are not final: {shown:?}");
+    assert_eq!(shown.frames.len(), FRAMES as usize);
+    assert!(shown.frames.iter().all(|f| f.preview), "{shown:?}");
+    // The latest images are the previews, as `render --preview` draws them here.
+    let fetched = fetch_images(&mut jobs, &previewed.id, 0).await;
+    assert_eq!(fetched.len(), FRAMES as usize);
+    for ((index, image), local) in fetched.iter().zip(local_previews(&files)) {
+        assert!(
+            *image == local,
+            "preview {index} differs from the local preview"
+        );
+    }
+
+    // A job without previews on the same dataset waits for the store meanwhile.
+    let normal = submit(&mut jobs, job("normal", &dataset.id, false)).await;
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let waiting = get_job(&mut jobs, &normal.id).await;
+    assert!(waiting.frames.is_empty(), "{waiting:?}");
+
+    gate.open();
+    let (finished, frames) =
+        pointfarm_tests::service::watch_to_success(&mut jobs, &previewed.id, String::new).await;
+    assert_eq!(finished.frames_done, FRAMES);
+    let finals: Vec<_> = frames.iter().filter(|f| !f.preview).collect();
+    assert_eq!(finals.len(), FRAMES as usize, "{frames:?}");
+    for frame in &finals {
+        assert_eq!(frame.completeness, 0.0);
+        assert!(frame.cut.is_some(), "{frame:?}");
+    }
+    let shown = get_job(&mut jobs, &previewed.id).await;
+    assert!(shown.frames.iter().all(|f| !f.preview), "{shown:?}");
+
+    // The normal job: no previews, and its frames are the previewed job's final ones.
+    let (_, normal_frames) =
+        pointfarm_tests::service::watch_to_success(&mut jobs, &normal.id, String::new).await;
+    assert!(normal_frames
+        .iter()
+        .all(|f| !f.preview && f.completeness == 0.0));
+    let final_images = fetch_images(&mut jobs, &previewed.id, 0).await;
+    let normal_images = fetch_images(&mut jobs, &normal.id, 0).await;
+    assert_eq!(final_images.len(), FRAMES as usize);
+    for ((index, final_image), (_, normal)) in final_images.iter().zip(&normal_images) {
+        assert!(
+            final_image == normal,
+            "final frame {index} differs from the job's without previews"
+        );
+    }
+    for ((index, image), local) in final_images.iter().zip(local_previews(&files)) {
+        assert!(*image != local, "frame {index} is still the preview");
+    }
+    daemon.stop().await;
+}
