@@ -486,6 +486,14 @@ fn a_preview_keeps_its_frame_pending_until_the_final_frame_replaces_it() {
         reports[0].preview, None,
         "the final report replaced the preview"
     );
+    drop(daemon);
+    // Reopened, the final frame stays final: nothing is leased again.
+    let daemon = open(dir.path());
+    let none = daemon
+        .lease_frame("w", false, &WorkerCapabilities::default())
+        .expect("lease");
+    assert!(none.is_none(), "a final frame leased again: {none:?}");
+    assert_eq!(daemon.job(&job.id).expect("job").state, JobState::Succeeded);
 
     // A job without previews takes none.
     let plain = test_daemon::submit(&daemon, 1, |r| r.request_id = "plain".into());
