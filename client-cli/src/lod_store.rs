@@ -4,6 +4,7 @@
 
 use std::cell::RefCell;
 use std::path::PathBuf;
+use std::sync::mpsc::Receiver;
 use std::thread::JoinHandle;
 use std::time::UNIX_EPOCH;
 
@@ -89,17 +90,21 @@ pub fn say_built(opened: &StoredLod, say: &dyn Fn(String)) {
 }
 
 /// Builds the store of `files` in `folder` (see [`StoreCache::folder`]) on a thread of its
-/// own, without a spinner: the preview rendered meanwhile has the terminal.
+/// own once `start` is sent to or dropped, without a spinner: the preview rendered meanwhile
+/// has the terminal.
 pub fn build_in_background(
     files: Vec<PathBuf>,
     folder: PathBuf,
     cache: &StoreCache,
     memory_budget: u64,
+    start: Receiver<()>,
 ) -> Result<JoinHandle<Result<StoredLod>>> {
     let budget = cache.size_bytes;
     std::thread::Builder::new()
         .name("lod-build".into())
         .spawn(move || {
+            // Sent or dropped: either way the build goes on.
+            let _ = start.recv();
             StoredLod::open_or_build(&files, &folder, memory_budget, budget, &mut |points| {
                 tracing::info!(
                     points,

@@ -2,7 +2,7 @@
 //! handed to a server (`remote_render`).
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::{mpsc, Arc};
 
 use anyhow::{Context, Result};
 use glam::DVec3;
@@ -138,11 +138,22 @@ fn preview_then_final(
         "building levels of detail of {points} points in the background (once; kept in {})",
         folder.display()
     ));
-    let build = build_in_background(files.to_vec(), folder, cache, options.memory_budget_bytes)?;
+    // The build waits for the first preview frame, whose time to screen it would otherwise
+    // share the cores with (docs/perf/preview-first-frame.md).
+    let (start_build, build_gate) = mpsc::channel();
+    let build = build_in_background(
+        files.to_vec(),
+        folder,
+        cache,
+        options.memory_budget_bytes,
+        build_gate,
+    )?;
     let mut preview = FrameSource::preview(Arc::clone(gpu), files, &request.render, say_input)?;
     render_frames(args, request, outputs, gpu, &mut preview, &|| {
+        let _ = start_build.send(());
         !build.is_finished()
     })?;
+    drop(start_build);
     // The preview's GPU memory is the final frames' node cache's.
     drop(preview);
     let spinner = (!build.is_finished())

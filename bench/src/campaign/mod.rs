@@ -25,6 +25,7 @@ use pointfarm_render::cut::LodDataset;
 use pointfarm_render::gpu::GpuContext;
 
 use pointfarm_render::ingest::DatasetSource;
+use pointfarm_render::lod::disk::build_disk_bytes;
 use pointfarm_render::lod::PointSource;
 use pointfarm_render::lod::{build_lod, BuildTimings, LodBuildOptions};
 use serde::Serialize;
@@ -41,11 +42,9 @@ pub const CAMPAIGN_POINTS: u64 = 20_000_000;
 pub const CAMPAIGN_QUICK_POINTS: u64 = 4_000_000;
 /// Files of a campaign unless `--campaign-files` says otherwise.
 pub const CAMPAIGN_FILES: usize = 20;
-/// Disk a point is expected to take besides its LAS file: its LAZ file (about 14.5 B for the
-/// terrain, whose points are in random order within a tile) and, during a build, its spill
-/// record (34 B; with a LAZ source, its record in the copy until the distribution reads it,
-/// then in its chunk), which its stored node (22 B) replaces chunk by chunk, with some slack.
-const DISK_BYTES_PER_POINT: u64 = 16 + 40;
+/// Disk a point's LAZ file is expected to take (15.4 B for the terrain, whose points are in
+/// random order within a tile); its build's peak is [`build_disk_bytes`]'s.
+const LAZ_BYTES_PER_POINT: u64 = 16;
 /// Disk left free by the benchmark, beyond what it expects to write.
 const DISK_MARGIN_BYTES: u64 = 4 << 30;
 
@@ -252,7 +251,9 @@ fn plan_disk(options: &CampaignOptions, dir: &Path) -> Result<Result<(), String>
             Err("not asked for".into())
         });
     };
-    let needed = options.points.saturating_mul(DISK_BYTES_PER_POINT) + DISK_MARGIN_BYTES;
+    let needed = options.points.saturating_mul(LAZ_BYTES_PER_POINT)
+        + build_disk_bytes(options.points, true)
+        + DISK_MARGIN_BYTES;
     if needed > free {
         return Err(BenchError::Scratch(format!(
             "{}: {} points need about {:.1} GiB of disk (LAZ, the build's spill and store, a \

@@ -15,6 +15,7 @@ use std::time::Instant;
 
 use glam::DVec3;
 use las::PointDataBuilder;
+use rayon::prelude::*;
 
 use super::columns::{choose_origin, DecodedPoints};
 use super::contain::contain_panics;
@@ -47,8 +48,10 @@ fn sample_dataset(paths: &[PathBuf], las_stride: u64) -> Result<PreviewSample, I
     let files = DatasetFile::check_all(paths)?;
     let header_bounds = dataset_header_bounds(&files);
     let has_color = files.iter().all(|file| file.has_color);
+    // The reads are small and scattered (one a chunk): files in parallel keep the disk's
+    // queue full where the campaign is not in the page cache.
     let samples = files
-        .iter()
+        .par_iter()
         .map(|file| contain_panics(&file.path, || sample_file(file, las_stride)))
         .collect::<Result<Vec<_>, _>>()?;
     let sampled = samples.iter().map(las::PointData::len).sum();

@@ -7,15 +7,24 @@ use super::point::SPILL_RECORD_BYTES;
 
 /// Bytes a build of `points` points needs on disk at its peak: a spill record a point (the
 /// chunks' spill, or while the distribution runs that and what is left of the copy of a
-/// source costly to read again, LAZ), the stored nodes, which replace the chunks' spill as
-/// the chunks are built, one segment of the copy, and a margin for the hierarchy and partial
-/// pages.
+/// source costly to read again, LAZ, whose segments go as they are read), which the stored
+/// nodes replace chunk by chunk (a stored point takes less than its record), with a tenth
+/// of slack; a segment's records and stored points for the copy and the chunks in flight;
+/// and a margin for the hierarchy and partial pages. The store itself stays after the build,
+/// at less than its spill (docs/perf/campaign-1b.md).
 pub fn build_disk_bytes(points: u64, has_rgb: bool) -> u64 {
     let record = SPILL_RECORD_BYTES as u64;
+    let stored = stored_bytes_per_point(has_rgb);
+    let per_point = record.max(stored) + record.max(stored).div_ceil(10);
     points
-        .saturating_mul(record + encoded_len(1, has_rgb) as u64)
-        .saturating_add(points.min(COPY_SEGMENT_POINTS) * record)
+        .saturating_mul(per_point)
+        .saturating_add(points.min(COPY_SEGMENT_POINTS) * (record + stored))
         .saturating_add(64 << 20)
+}
+
+/// A stored point's bytes, its node's header and checksum left out.
+fn stored_bytes_per_point(has_rgb: bool) -> u64 {
+    (encoded_len(1, has_rgb) - encoded_len(0, has_rgb)) as u64
 }
 
 #[cfg(test)]
@@ -23,18 +32,23 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_estimate_covers_spill_store_and_one_segment_of_the_copy() {
+    fn the_estimate_covers_the_spill_with_slack_and_one_segment_in_flight() {
         let margin = 64 << 20;
         let record = SPILL_RECORD_BYTES as u64;
-        let stored = encoded_len(1, true) as u64;
+        let stored = stored_bytes_per_point(true);
+        assert!(
+            stored < record,
+            "a stored point replaces its record in less"
+        );
+        let slack = record.div_ceil(10);
         assert_eq!(
             build_disk_bytes(1_000_000, true) - margin,
-            1_000_000 * (2 * record + stored)
+            1_000_000 * (record + slack + record + stored)
         );
         let large = 1_000_000_000;
         let per_point = (build_disk_bytes(large, true) - margin) as f64 / large as f64;
         assert!(
-            per_point > (record + stored) as f64 && per_point < (record + stored) as f64 + 2.0,
+            per_point > (record + slack) as f64 && per_point < (record + slack) as f64 + 3.0,
             "{per_point}"
         );
         assert_eq!(build_disk_bytes(u64::MAX, true), u64::MAX);
