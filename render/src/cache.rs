@@ -177,20 +177,16 @@ impl DatasetCache {
         let mut meta: EntryMeta =
             serde_json::from_slice(&raw).map_err(|e| CacheError::Corrupt(e.to_string()))?;
         let n = meta.points;
-        let mut cloud = PointCloud {
-            origin: DVec3::from_array(meta.origin),
-            positions: Vec::with_capacity(n),
-            colors: Vec::with_capacity(n),
-            intensity: Vec::with_capacity(n),
-            classification: Vec::with_capacity(n),
-            return_number: Vec::with_capacity(n),
-            bounds: WorldBounds {
+        let mut cloud = PointCloud::with_capacity(
+            DVec3::from_array(meta.origin),
+            WorldBounds {
                 min: DVec3::from_array(meta.bounds_min),
                 max: DVec3::from_array(meta.bounds_max),
             },
-            color_source: source_from(&meta.color_source)
+            source_from(&meta.color_source)
                 .ok_or_else(|| CacheError::Corrupt(meta.color_source.clone()))?,
-        };
+            n,
+        );
         let chunk_points = meta.chunk_points;
         if chunk_points == 0 {
             return Err(CacheError::Corrupt(format!("{key}: chunks of no points")));
@@ -344,19 +340,11 @@ pub fn decode_cloud(bytes: &[u8]) -> Result<PointCloud, CacheError> {
         other => return Err(corrupt(&format!("colour source {other}"))),
     };
     let n = count as usize;
-    let mut cloud = PointCloud {
-        origin: vec_at(16),
-        positions: Vec::with_capacity(n),
-        colors: Vec::with_capacity(n),
-        intensity: Vec::with_capacity(n),
-        classification: Vec::with_capacity(n),
-        return_number: Vec::with_capacity(n),
-        bounds: WorldBounds {
-            min: vec_at(40),
-            max: vec_at(64),
-        },
-        color_source,
+    let bounds = WorldBounds {
+        min: vec_at(40),
+        max: vec_at(64),
     };
+    let mut cloud = PointCloud::with_capacity(vec_at(16), bounds, color_source, n);
     decode_chunk(body, n, &mut cloud).ok_or_else(|| corrupt("wrong size"))?;
     Ok(cloud)
 }

@@ -110,6 +110,25 @@ pub struct PointCloud {
 }
 
 impl PointCloud {
+    /// No points yet, room for `points` of them (a count already checked against its source).
+    pub fn with_capacity(
+        origin: DVec3,
+        bounds: WorldBounds,
+        color_source: ColorSource,
+        points: usize,
+    ) -> Self {
+        Self {
+            origin,
+            positions: Vec::with_capacity(points),
+            colors: Vec::with_capacity(points),
+            intensity: Vec::with_capacity(points),
+            classification: Vec::with_capacity(points),
+            return_number: Vec::with_capacity(points),
+            bounds,
+            color_source,
+        }
+    }
+
     pub fn len(&self) -> usize {
         self.positions.len()
     }

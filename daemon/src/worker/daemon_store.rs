@@ -10,7 +10,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use pointfarm_proto::v1 as pb;
-use pointfarm_render::cloud::WorldBounds;
+use pointfarm_render::cloud::{PointCloud, WorldBounds};
 use pointfarm_render::copc::CopcDecoder;
 use pointfarm_render::lod::{LodError, LodHierarchy, NodeInfo, NodePoints, NodeRecords, RootCube};
 use tonic::{Code, Status};
@@ -19,7 +19,6 @@ use super::client::Client;
 use crate::grpc::{copc_chunks, node_key_message, preview_sample_bounds};
 use crate::lease::FrameTask;
 use crate::stores::{CopcServed, MAX_NODES_PER_REQUEST};
-use crate::worker::render_state::PreviewSample;
 
 /// The longest a fetch of one request's nodes may take before the frame fails (and is tried
 /// again): a daemon that stopped answering must not hold a frame for ever.
@@ -134,6 +133,14 @@ pub async fn open(client: &mut Client, task: &FrameTask) -> Result<DaemonStore, 
 /// The most bytes of preview sample a worker accepts: 31 bytes a point, about 2 M chunk
 /// starts (a dataset of 100 G points).
 const MAX_PREVIEW_BYTES: u64 = 64 << 20;
+
+/// A preview sample as the daemon sends it.
+pub struct PreviewSample {
+    pub cloud: PointCloud,
+    pub points_in_files: u64,
+    /// The files' header bounds.
+    pub bounds: WorldBounds,
+}
 
 /// The daemon's preview sample of `task`'s dataset. A status error is the daemon's refusal
 /// (FAILED_PRECONDITION naming the file whose chunks cannot be sampled).

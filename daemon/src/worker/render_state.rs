@@ -10,7 +10,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use pointfarm_render::cache::{CacheOutcome, DatasetCache};
-use pointfarm_render::cloud::{PointCloud, WorldBounds};
+use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::{point_colors, Coloring};
 use pointfarm_render::cut::{
     CutError, CutOptions, CutRenderer, LodDataset, StoredLod, RESIDENT_MAX_POINTS,
@@ -23,7 +23,7 @@ use pointfarm_render::raster::{Clock, GpuPointCloud, Renderer};
 
 use crate::lease::{FrameOutcome, FrameTask};
 use crate::model::StageTiming;
-use crate::worker::daemon_store::RemoteStore;
+use crate::worker::daemon_store::{PreviewSample, RemoteStore};
 use crate::worker::failure::FrameFailure;
 
 /// The cloud currently on the GPU.
@@ -50,14 +50,6 @@ struct Preview {
     cloud: GpuPointCloud,
     /// The points of the dataset's files, of which the sample is a few.
     points_in_files: u64,
-}
-
-/// A preview sample as the daemon sends it.
-pub struct PreviewSample {
-    pub cloud: PointCloud,
-    pub points_in_files: u64,
-    /// The files' header bounds.
-    pub bounds: WorldBounds,
 }
 
 /// A dataset rendered from its level-of-detail store, cut by cut.
