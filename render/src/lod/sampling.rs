@@ -211,7 +211,7 @@ fn choose(
     let mut cells = cells;
     if shift > 0 {
         for cell in cells.iter_mut().flatten() {
-            *cell = *cell >> shift;
+            *cell >>= shift;
         }
     }
     Choice {
@@ -498,11 +498,11 @@ mod tests {
             let mut general = children.clone();
             weigh(&cube, key, choice.bits, &mut general, &choice.chosen);
             let mut per_child = children.clone();
-            for c in 0..8 {
+            for (c, points) in per_child.iter_mut().enumerate() {
                 weigh_child(
                     c,
                     choice.bits,
-                    &mut per_child[c],
+                    points,
                     &choice.chosen[c],
                     &choice.cells[c],
                     &choice.owner[c],
