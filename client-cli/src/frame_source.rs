@@ -13,8 +13,8 @@ use pointfarm_render::color::{point_colors, ramp_range, ColorRange, Coloring};
 use pointfarm_render::cut::{CutOptions, CutRenderer, CutReport};
 use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
-use pointfarm_render::ingest::{load_dataset, sample_chunk_starts, DatasetSource};
-use pointfarm_render::lod::PointSource;
+use pointfarm_render::ingest::{load_dataset, sample_chunk_starts, DatasetSource, PreviewSample};
+use pointfarm_render::lod::{NodePoints, PointSource};
 use pointfarm_render::raster::{Frame, FrameSettings, GpuPointCloud, Renderer};
 use pointfarm_render::request::RenderOptions;
 
@@ -28,10 +28,37 @@ pub struct RenderedFrame {
     /// The points of the dataset's files (of the cloud, for a resident one).
     pub points_total: u64,
     pub points_rendered: u64,
-    /// Whether the frame is a preview drawn from the files' chunk starts.
+    /// Whether the frame is a preview drawn from the files' chunk starts (and the nodes
+    /// stored so far).
     pub preview: bool,
     /// The cut's nodes, caches and loads, when the frame came from a store.
     pub cut: Option<CutReport>,
+}
+
+/// What a preview is drawn from besides the stored nodes: the first point of every LAZ chunk
+/// (every 50,000th record of a LAS file), read once without decompressing, and the files'
+/// header bounds.
+pub struct PreviewData {
+    sample: PreviewSample,
+    framed: WorldBounds,
+    files: usize,
+    read_ms: f64,
+}
+
+impl PreviewData {
+    pub fn read(files: &[PathBuf], options: &RenderOptions) -> Result<Self> {
+        let started = Instant::now();
+        let sample = sample_chunk_starts(files)?;
+        let framed = options
+            .filter
+            .framing_bounds(&DatasetSource::open(files)?.bounds())?;
+        Ok(Self {
+            sample,
+            framed,
+            files: files.len(),
+            read_ms: started.elapsed().as_secs_f64() * 1e3,
+        })
+    }
 }
 
 pub enum FrameSource {
@@ -99,32 +126,37 @@ impl FrameSource {
         Self::of_cloud(gpu, cloud, options, None, &about, say)
     }
 
-    /// A preview: the first point of every LAZ chunk (every 50,000th record of a LAS file),
-    /// read without decompressing, resident, framed by the files' header bounds as the store
-    /// built from them will be.
+    /// A preview: `data`'s chunk starts and `stored`, the nodes a build has stored so far,
+    /// resident, framed by the files' header bounds as the store built from them will be.
     pub fn preview(
         gpu: Arc<GpuContext>,
-        files: &[PathBuf],
+        data: &PreviewData,
+        stored: &[NodePoints],
         options: &RenderOptions,
         say: &dyn Fn(String),
     ) -> Result<Self> {
-        let started = Instant::now();
-        let sample = sample_chunk_starts(files)?;
-        let framed = options
-            .filter
-            .framing_bounds(&DatasetSource::open(files)?.bounds())?;
+        let cloud = data.sample.cloud_with_nodes(stored);
+        let stored_points: usize = stored.iter().map(NodePoints::len).sum();
+        let what = if stored.is_empty() {
+            format!("chunk starts, read in {:.0} ms", data.read_ms)
+        } else {
+            format!(
+                "{} chunk starts and {stored_points} points of {} stored nodes",
+                data.sample.cloud.len(),
+                stored.len()
+            )
+        };
         let about = format!(
-            "preview: {} of the {} points in {} file{} (chunk starts, read in {:.0} ms), {}",
-            sample.cloud.len(),
-            sample.points_in_files,
-            files.len(),
-            plural(files.len()),
-            started.elapsed().as_secs_f64() * 1e3,
-            sample.cloud.color_source.describe(),
+            "preview: {} of the {} points in {} file{} ({what}), {}",
+            cloud.len(),
+            data.sample.points_in_files,
+            data.files,
+            plural(data.files),
+            cloud.color_source.describe(),
         );
-        let mut source = Self::of_cloud(gpu, sample.cloud, options, Some(framed), &about, say)?;
+        let mut source = Self::of_cloud(gpu, cloud, options, Some(data.framed), &about, say)?;
         if let Self::Resident { preview_of, .. } = &mut source {
-            *preview_of = Some(sample.points_in_files);
+            *preview_of = Some(data.sample.points_in_files);
         }
         Ok(source)
     }

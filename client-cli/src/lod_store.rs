@@ -5,11 +5,13 @@
 use std::cell::RefCell;
 use std::path::PathBuf;
 use std::sync::mpsc::Receiver;
+use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::UNIX_EPOCH;
 
 use anyhow::{Context, Result};
 use pointfarm_render::cut::StoredLod;
+use pointfarm_render::lod::BuildProgress;
 use sha2::{Digest, Sha256};
 
 /// The name of a dataset's store: a digest of each file's absolute path, size and
@@ -91,13 +93,14 @@ pub fn say_built(opened: &StoredLod, say: &dyn Fn(String)) {
 
 /// Builds the store of `files` in `folder` (see [`StoreCache::folder`]) on a thread of its
 /// own once `start` is sent to or dropped, without a spinner: the preview rendered meanwhile
-/// has the terminal.
+/// has the terminal, and draws the nodes `progress` lists as they are stored.
 pub fn build_in_background(
     files: Vec<PathBuf>,
     folder: PathBuf,
     cache: &StoreCache,
     memory_budget: u64,
     start: Receiver<()>,
+    progress: Arc<BuildProgress>,
 ) -> Result<JoinHandle<Result<StoredLod>>> {
     let budget = cache.size_bytes;
     std::thread::Builder::new()
@@ -105,13 +108,20 @@ pub fn build_in_background(
         .spawn(move || {
             // Sent or dropped: either way the build goes on.
             let _ = start.recv();
-            StoredLod::open_or_build(&files, &folder, memory_budget, budget, &mut |points| {
-                tracing::info!(
-                    points,
-                    folder = %folder.display(),
-                    "building levels of detail behind a preview"
-                );
-            })
+            StoredLod::open_or_build_watched(
+                &files,
+                &folder,
+                memory_budget,
+                budget,
+                &mut |points| {
+                    tracing::info!(
+                        points,
+                        folder = %folder.display(),
+                        "building levels of detail behind a preview"
+                    );
+                },
+                &progress,
+            )
             .with_context(|| format!("the store in {}", folder.display()))
         })
         .context("starting the levels of detail's build")

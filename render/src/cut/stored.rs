@@ -12,7 +12,10 @@ use super::{CutError, LodDataset};
 use crate::cloud::WorldBounds;
 use crate::ingest::DatasetSource;
 use crate::lod::disk::build_disk_bytes;
-use crate::lod::{build_lod, LodBuildOptions, LodBuildReport, LodError, LodStore, PointSource};
+use crate::lod::{
+    build_lod_watched, BuildProgress, LodBuildOptions, LodBuildReport, LodError, LodStore,
+    PointSource,
+};
 
 /// sled's page cache for the index: it holds one small hierarchy record.
 const INDEX_CACHE_BYTES: u64 = 16 << 20;
@@ -48,6 +51,27 @@ impl StoredLod {
         disk_budget: Option<u64>,
         on_build: &mut dyn FnMut(u64),
     ) -> Result<Self, CutError> {
+        let progress = BuildProgress::new();
+        Self::open_or_build_watched(
+            files,
+            folder,
+            memory_budget,
+            disk_budget,
+            on_build,
+            &progress,
+        )
+    }
+
+    /// [`StoredLod::open_or_build`], listing in `progress` the nodes a build stores as it
+    /// stores them (a preview draws them meanwhile).
+    pub fn open_or_build_watched(
+        files: &[PathBuf],
+        folder: &Path,
+        memory_budget: u64,
+        disk_budget: Option<u64>,
+        on_build: &mut dyn FnMut(u64),
+        progress: &BuildProgress,
+    ) -> Result<Self, CutError> {
         if files.is_empty() {
             return Self::open_finished(folder);
         }
@@ -71,7 +95,7 @@ impl StoredLod {
             let started = Instant::now();
             let mut options = LodBuildOptions::new(folder.join("spill"));
             options.memory_budget_bytes = memory_budget.max(options.min_memory_budget_bytes());
-            let report = build_lod(&source, &store, &options)?;
+            let report = build_lod_watched(&source, &store, &options, progress)?;
             let seconds = started.elapsed().as_secs_f64();
             tracing::info!(
                 folder = %folder.display(),

@@ -24,6 +24,7 @@ use super::raw_file::RawFile;
 use super::read::{dataset_header_bounds, DatasetFile};
 use super::IngestError;
 use crate::cloud::PointCloud;
+use crate::lod::NodePoints;
 
 /// Records between two sampled records of a LAS file: LASzip's default chunk size, so LAS and
 /// LAZ files give previews of one density.
@@ -33,6 +34,20 @@ pub const LAS_PREVIEW_STRIDE: u64 = 50_000;
 pub struct PreviewSample {
     pub cloud: PointCloud,
     pub points_in_files: u64,
+    /// The sampled records before their colours were decided, for [`Self::cloud_with_nodes`].
+    decoded: DecodedPoints,
+}
+
+impl PreviewSample {
+    /// The sample and `nodes` of the dataset's store (those a build has stored so far) as one
+    /// cloud: the sample's origin, bounds over both and one colour decision over both.
+    pub fn cloud_with_nodes(&self, nodes: &[NodePoints]) -> PointCloud {
+        let mut decoded = self.decoded.clone();
+        for node in nodes {
+            decoded.append_node(node, self.cloud.origin);
+        }
+        decoded.into_cloud(self.cloud.origin)
+    }
 }
 
 /// The chunk starts of a dataset's LAZ files and every [`LAS_PREVIEW_STRIDE`]-th record of
@@ -71,7 +86,7 @@ fn sample_dataset(paths: &[PathBuf], las_stride: u64) -> Result<PreviewSample, I
             });
         }
     }
-    let cloud = decoded.into_cloud(origin.unwrap_or(DVec3::ZERO));
+    let cloud = decoded.clone().into_cloud(origin.unwrap_or(DVec3::ZERO));
     let points_in_files = files.iter().map(|file| file.facts.declared_points).sum();
     tracing::info!(
         files = files.len(),
@@ -83,6 +98,7 @@ fn sample_dataset(paths: &[PathBuf], las_stride: u64) -> Result<PreviewSample, I
     Ok(PreviewSample {
         cloud,
         points_in_files,
+        decoded,
     })
 }
 

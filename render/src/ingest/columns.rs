@@ -7,6 +7,7 @@ use las::PointData;
 
 use crate::cloud::{bounds_of, pack_rgba8, ColorSource, PointCloud, WorldBounds, MAX_COORDINATE};
 use crate::color::{intensity_grey, CONSTANT_GREY_RGBA};
+use crate::lod::NodePoints;
 
 pub(super) fn world_bounds(bounds: las::Bounds) -> WorldBounds {
     let vector = |v: las::Vector<f64>| DVec3::new(v.x, v.y, v.z);
@@ -44,6 +45,7 @@ pub(super) fn choose_origin(header_bounds: &WorldBounds, first_batch: &PointData
 
 /// Per-point columns accumulated batch by batch, before colours can be decided (that needs
 /// the whole file: 8-bit detection and intensity percentiles are global).
+#[derive(Clone)]
 pub(super) struct DecodedPoints {
     positions: Vec<Vec3>,
     bounds_min: DVec3,
@@ -96,6 +98,25 @@ impl DecodedPoints {
         self.intensity.extend(batch.intensity());
         self.classification.extend(batch.classification());
         self.return_number.extend(batch.return_number());
+    }
+
+    /// Appends a stored node's points: the centres of their quantisation steps, and their raw
+    /// attributes (black where the node has no RGB and the points have).
+    pub fn append_node(&mut self, node: &NodePoints, origin: DVec3) {
+        for world in node.world_positions() {
+            self.bounds_min = self.bounds_min.min(world);
+            self.bounds_max = self.bounds_max.max(world);
+            self.positions.push((world - origin).as_vec3());
+        }
+        if let Some(rgb) = self.rgb.as_mut() {
+            match &node.rgb {
+                Some(node_rgb) => rgb.extend_from_slice(node_rgb),
+                None => rgb.resize(rgb.len() + node.len(), [0; 3]),
+            }
+        }
+        self.intensity.extend_from_slice(&node.intensity);
+        self.classification.extend_from_slice(&node.classification);
+        self.return_number.extend_from_slice(&node.return_number);
     }
 
     pub fn into_cloud(self, origin: DVec3) -> PointCloud {

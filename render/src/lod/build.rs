@@ -30,6 +30,7 @@ use super::key::RootCube;
 use super::memory::MemoryMeter;
 use super::options::{LodBuildOptions, BUILD_BYTES_PER_POINT};
 use super::plan::plan_chunks;
+use super::progress::BuildProgress;
 use super::sink::NodeSink;
 use super::source::PointSource;
 use super::spill::SpillDir;
@@ -87,14 +88,24 @@ pub fn build_lod(
     store: &LodStore,
     options: &LodBuildOptions,
 ) -> Result<LodBuildReport, LodError> {
+    build_lod_watched(source, store, options, &BuildProgress::new())
+}
+
+/// [`build_lod`], listing each node in `progress` as it is stored.
+pub fn build_lod_watched(
+    source: &dyn PointSource,
+    store: &LodStore,
+    options: &LodBuildOptions,
+    progress: &BuildProgress,
+) -> Result<LodBuildReport, LodError> {
     options.validate()?;
     match options.threads {
         Some(threads) => rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .build()
             .map_err(|e| LodError::InvalidOptions(format!("threads: {e}")))?
-            .install(|| build_on_pool(source, store, options)),
-        None => build_on_pool(source, store, options),
+            .install(|| build_on_pool(source, store, options, progress)),
+        None => build_on_pool(source, store, options, progress),
     }
 }
 
@@ -116,6 +127,7 @@ fn build_on_pool(
     source: &dyn PointSource,
     store: &LodStore,
     options: &LodBuildOptions,
+    progress: &BuildProgress,
 ) -> Result<LodBuildReport, LodError> {
     let start = Instant::now();
     let mut timings = BuildTimings::default();
@@ -164,7 +176,8 @@ fn build_on_pool(
         "counted"
     );
 
-    let sink = NodeSink::new(store, cube, stats.has_rgb);
+    progress.begin(store, cube, source.point_count());
+    let sink = NodeSink::new(store, cube, stats.has_rgb, progress);
     let ctx = BuildContext {
         cube,
         options,

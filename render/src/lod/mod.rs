@@ -33,6 +33,7 @@ pub mod memory;
 pub mod options;
 mod plan;
 mod point;
+pub mod progress;
 pub mod records;
 pub mod sampling;
 mod sink;
@@ -46,13 +47,14 @@ pub mod weights;
 #[cfg(test)]
 mod tests;
 
-pub use build::{build_lod, BuildTimings, LodBuildReport};
+pub use build::{build_lod, build_lod_watched, BuildTimings, LodBuildReport};
 pub use codec::NodePoints;
 pub use error::LodError;
 pub use generated::{GeneratedShape, GeneratedSource};
 pub use hierarchy::{LodHierarchy, NodeInfo};
 pub use key::{NodeKey, RootCube, MAX_LEVEL};
 pub use options::LodBuildOptions;
+pub use progress::BuildProgress;
 pub use records::{read_nodes, NodeRecords};
 pub use source::{BatchColumns, BatchVisitor, CloudSource, PointBatch, PointSource};
 pub use stats::DatasetStats;

@@ -9,23 +9,31 @@ use super::error::LodError;
 use super::hierarchy::NodeInfo;
 use super::key::{NodeKey, RootCube};
 use super::point::RawPoint;
+use super::progress::BuildProgress;
 use super::store::LodStore;
 
 pub struct NodeSink<'a> {
     store: &'a LodStore,
     cube: RootCube,
     has_rgb: bool,
+    progress: &'a BuildProgress,
     nodes: Mutex<Vec<NodeInfo>>,
     points: AtomicU64,
     bytes: AtomicU64,
 }
 
 impl<'a> NodeSink<'a> {
-    pub fn new(store: &'a LodStore, cube: RootCube, has_rgb: bool) -> Self {
+    pub fn new(
+        store: &'a LodStore,
+        cube: RootCube,
+        has_rgb: bool,
+        progress: &'a BuildProgress,
+    ) -> Self {
         Self {
             store,
             cube,
             has_rgb,
+            progress,
             nodes: Mutex::new(Vec::new()),
             points: AtomicU64::new(0),
             bytes: AtomicU64::new(0),
@@ -61,6 +69,7 @@ impl<'a> NodeSink<'a> {
             .lock()
             .unwrap_or_else(|poisoned| poisoned.into_inner())
             .push(info);
+        self.progress.stored(info);
         Ok(())
     }
 

@@ -367,3 +367,65 @@ fn a_single_chunk_dataset_is_one_tree_from_the_root() {
         assert!((r.as_dvec3() - (w - scene.origin)).abs().max_element() < 1e-3);
     }
 }
+
+/// A build lists each node in its progress once the node is stored: whatever a watcher reads
+/// during the build decodes whole (checked as a render reads it); at the end the progress holds
+/// every stored node and point, and a point budget takes coarse levels first.
+#[test]
+fn a_build_lists_its_stored_nodes_as_it_goes() {
+    let source = GeneratedSource::terrain(200_000, 5);
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (_db, store) = temp_store(dir.path());
+    let options = options(dir.path(), 500);
+    let progress = BuildProgress::new();
+    let mut partial_reads = 0;
+    let report = std::thread::scope(|scope| {
+        let build = scope.spawn(|| build_lod_watched(&source, &store, &options, &progress));
+        while !build.is_finished() {
+            let (stored, total) = progress.points();
+            let nodes = progress
+                .read_points(u64::MAX)
+                .expect("stored nodes read whole");
+            let read: u64 = nodes.iter().map(|n| n.len() as u64).sum();
+            assert!(
+                read >= stored && read <= total.max(read),
+                "{read} of {stored}"
+            );
+            if stored > 0 && stored < total {
+                partial_reads += 1;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(2));
+        }
+        build.join().expect("build thread").expect("build")
+    });
+    eprintln!("{partial_reads} reads of a partial build");
+    let total = source.point_count();
+    assert_eq!(progress.points(), (total, total));
+
+    let built = Built {
+        _dir: dir,
+        store,
+        report,
+    };
+    let by_key = |mut nodes: Vec<NodePoints>| {
+        nodes.retain(|n| !n.is_empty());
+        nodes.sort_by_key(|n| n.key.to_bytes());
+        nodes
+    };
+    let everything = by_key(progress.read_points(u64::MAX).expect("all nodes"));
+    assert_eq!(everything, by_key(read_all_nodes(&built)));
+
+    let budget = total / 10;
+    let coarse = progress.read_points(budget).expect("coarse nodes");
+    let taken: u64 = coarse.iter().map(|n| n.len() as u64).sum();
+    assert!(taken <= budget && taken > 0, "{taken} of {budget}");
+    let deepest = coarse.iter().map(|n| n.key.level).max().expect("a node");
+    let shallower_left = everything
+        .iter()
+        .filter(|n| n.key.level < deepest)
+        .any(|n| !coarse.iter().any(|c| c.key == n.key));
+    assert!(
+        !shallower_left,
+        "every level above the deepest taken is whole"
+    );
+}
