@@ -1,5 +1,7 @@
 """Seconds from a `pointfarm render ... --json` command's start to its first preview and its
-first final frame line on standard output (BENCHMARKS.md, "Time to the first preview frame").
+first final frame line on standard output, and to the first frame of each later preview pass
+(the preview redrawn with the nodes stored so far) (BENCHMARKS.md, "Previews and COPC first
+frames").
 
     python3 bench/first_frame.py pointfarm render campaign/ --preview --out x.png --json
 """
@@ -19,6 +21,11 @@ def main() -> int:
         frame = json.loads(line)
         kind = "preview" if frame.get("preview") else "final"
         counts[kind] += 1
+        if kind == "preview" and frame["frame"] == 0 and counts[kind] > 1:
+            print(
+                f"preview redrawn: {seconds:.2f} s ({frame['pointsRendered']} points)",
+                flush=True,
+            )
         if counts[kind] == 1:
             print(
                 f"first {kind} frame: {seconds:.2f} s "

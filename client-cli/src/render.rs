@@ -186,7 +186,14 @@ fn preview_then_final(
         drawn = stored;
         // The preview's GPU memory is the next one's.
         drop(preview);
+        let reading = std::time::Instant::now();
         let nodes = progress.read_points(PREVIEW_STORED_POINTS)?;
+        tracing::info!(
+            stored,
+            nodes = nodes.len(),
+            read_ms = format!("{:.0}", reading.elapsed().as_secs_f64() * 1e3),
+            "preview redrawn with the nodes stored so far"
+        );
         preview = FrameSource::preview(Arc::clone(gpu), &data, &nodes, &request.render, say_input)?;
         render_frames(args, request, outputs, gpu, &mut preview, &building)?;
     }

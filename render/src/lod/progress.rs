@@ -12,7 +12,6 @@ use super::codec::{decode_node, NodePoints};
 use super::error::LodError;
 use super::hierarchy::NodeInfo;
 use super::key::RootCube;
-use super::records::NodeRecords;
 use super::store::LodStore;
 
 /// Shared between a build and whoever watches it; empty until the build has counted its
@@ -104,11 +103,14 @@ impl BuildProgress {
             }
             break;
         }
-        let records = store.read_records(&chosen)?;
+        // On the calling thread: the build keeps the shared thread pool busy with chunks that
+        // take seconds each, so work queued there would wait for them.
         chosen
             .iter()
-            .zip(records)
-            .map(|(info, bytes)| decode_node(&cube, info.key, info.point_count, &bytes))
+            .map(|info| {
+                let bytes = store.read_range(info)?;
+                decode_node(&cube, info.key, info.point_count, &bytes)
+            })
             .collect()
     }
 }

@@ -147,7 +147,7 @@ impl LodStore {
 
     /// Reads a node's byte range from the payload file, after checking that the file holds it
     /// (a damaged hierarchy or a truncated file must not cause a huge allocation).
-    fn read_range(&self, info: &NodeInfo) -> Result<Vec<u8>, LodError> {
+    pub(super) fn read_range(&self, info: &NodeInfo) -> Result<Vec<u8>, LodError> {
         let key = info.key;
         let corrupt = |reason: String| LodError::CorruptNode { key, reason };
         let file_len = self.payload.len()?;
