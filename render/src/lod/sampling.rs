@@ -454,6 +454,17 @@ mod tests {
 
     use super::*;
 
+    /// A repeatable sequence of numbers in [0, 1) (a linear congruential generator).
+    fn unit_random(seed: u64) -> impl FnMut() -> f64 {
+        let mut state = seed;
+        move || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+
     /// The per-child weighing gives the general one's weights on grids of four to 128 cells per
     /// axis, with points that already stand for others (as in upper levels), crowded cells and
     /// cells holding one point alone, and a grid halved to keep the sample small.
@@ -465,13 +476,7 @@ mod tests {
         };
         let key = NodeKey::new(2, UVec3::new(3, 1, 2));
         let (min, side) = (cube.node_min(key), cube.side_at(2));
-        let mut state = 777u64;
-        let mut next = || {
-            state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut next = unit_random(777);
         let mut points = Vec::new();
         for i in 0..6000u32 {
             // Half spread through the node, half crowded into a corner of it.
@@ -523,13 +528,7 @@ mod tests {
         };
         let key = NodeKey::new(1, UVec3::new(1, 0, 1));
         let (min, side) = (cube.node_min(key), cube.side_at(1));
-        let mut state = 12345u64;
-        let mut next = || {
-            state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut next = unit_random(12345);
         let points: Vec<RawPoint> = (0..3000)
             .map(|i| RawPoint {
                 position: min + DVec3::new(next(), next(), next()) * side,
