@@ -2,7 +2,8 @@
 //! the daemon is still building (its build held at a gate) renders every frame at once from
 //! the daemon's chunk-start sample, reported as previews with their completeness and drawn
 //! as a local `render --preview` draws them; once the store is ready the same job renders
-//! the frames again as final frames, equal to a job without previews.
+//! the frames again as final frames, equal to a job without previews. A real daemon killed
+//! (`kill -9`) while the store builds keeps its previews and finishes the job.
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -16,7 +17,10 @@ use pointfarm_render::lod::PointSource;
 use pointfarm_render::raster::Renderer;
 use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
 use pointfarm_render::sample::sample_scene;
-use pointfarm_tests::service::{fetch_images, get_job, gpu, submit, turntable_job, TestDaemon};
+use pointfarm_tests::service::{
+    clients, fetch_images, get_job, gpu, submit, turntable_job, TestDaemon,
+};
+use pointfarm_tests::ServeProcess;
 use tonic::transport::Channel;
 
 const FRAMES: u32 = 3;
@@ -202,4 +206,86 @@ async fn a_preview_job_renders_chunk_starts_while_the_store_builds_then_final_fr
         assert!(*image != local, "frame {index} is still the preview");
     }
     daemon.stop().await;
+}
+
+/// `kill -9` of a real daemon while a preview job's store builds: after the restart the
+/// previews are still the job's frames, none is previewed again while the store builds anew,
+/// and the job ends with every frame final.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_killed_daemon_keeps_its_previews_and_finishes_the_job() {
+    let scratch = tempfile::tempdir().expect("tempdir");
+    // Eight tiles of 1M points: a build that outlasts three small previews by seconds.
+    for seed in 1..=8 {
+        write_las(
+            &scratch.path().join(format!("t{seed}.laz")),
+            &sample_scene(1_000_000, seed),
+            &LasWriteOptions::default(),
+        )
+        .expect("tile");
+    }
+    let root = scratch.path().display().to_string();
+    let data = tempfile::tempdir().expect("data");
+    let mut server = ServeProcess::start_with(data.path(), &["--data-root", &root]);
+    let address = server.address.clone();
+    let (mut datasets, mut jobs) = clients(&address).await;
+    let dataset = datasets
+        .register_dataset(pb::RegisterDatasetRequest {
+            path: root.clone(),
+            ..Default::default()
+        })
+        .await
+        .expect("register")
+        .into_inner();
+    let job = submit(&mut jobs, job("killed", &dataset.id, true)).await;
+    watch_until(&mut jobs, &job.id, |frames| {
+        frames.iter().filter(|f| f.preview).count() == FRAMES as usize
+    })
+    .await;
+    let before = get_job(&mut jobs, &job.id).await;
+    assert_eq!(
+        before.frames_done, 0,
+        "the store was built too soon: {before:?}"
+    );
+    server.kill();
+
+    let server = ServeProcess::start_with_args(&address, data.path(), &["--data-root", &root]);
+    let (_, mut jobs) = clients(&address).await;
+    let after = get_job(&mut jobs, &job.id).await;
+    assert_eq!(after.frames.len(), FRAMES as usize, "{after:?}");
+    assert!(after.frames.iter().all(|f| f.preview), "{after:?}");
+
+    let mut stream = jobs
+        .watch_job(pb::WatchJobRequest { id: job.id.clone() })
+        .await
+        .expect("watch")
+        .into_inner();
+    let mut rendered = Vec::new();
+    let mut state = None;
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(300);
+    while let Some(event) = tokio::time::timeout_at(deadline, stream.message())
+        .await
+        .expect("the job ends within 5 minutes")
+        .expect("the watch goes on")
+    {
+        rendered.extend(event.frame);
+        state = event.job.map(|j| (j.state, j.error)).or(state);
+    }
+    let (state, error) = state.expect("a job event");
+    assert_eq!(
+        state,
+        pb::JobState::Succeeded as i32,
+        "{error}\n{}",
+        server.log()
+    );
+    assert!(
+        rendered.iter().all(|f| !f.preview),
+        "previewed again: {rendered:?}"
+    );
+    let mut finals: Vec<u32> = rendered.iter().map(|f| f.index).collect();
+    finals.sort_unstable();
+    assert_eq!(
+        finals,
+        (0..FRAMES).collect::<Vec<_>>(),
+        "each frame final once"
+    );
 }
