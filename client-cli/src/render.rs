@@ -195,6 +195,7 @@ fn preview_then_final(
             "preview redrawn with the nodes stored so far"
         );
         preview = FrameSource::preview(Arc::clone(gpu), &data, &nodes, &request.render, say_input)?;
+        drop(nodes);
         render_frames(args, request, outputs, gpu, &mut preview, &building)?;
     }
     // The preview's GPU memory is the final frames' node cache's.
