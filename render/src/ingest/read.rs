@@ -5,7 +5,6 @@
 use std::fs::File;
 use std::io::{BufReader, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
-use std::sync::mpsc;
 use std::time::Instant;
 
 use glam::DVec3;
@@ -196,9 +195,7 @@ impl DatasetFile {
     }
 
     /// Decodes every declared point, handing `visit` one batch at a time; an error of
-    /// `visit` stops the reading and is returned. The next batch is read and decoded on a
-    /// thread of its own while `visit` works on the current one, so the serial parts of each
-    /// (the file's reads, a visitor's bookkeeping) overlap: two batch buffers at most.
+    /// `visit` stops the reading and is returned.
     pub(super) fn for_each_batch(
         &self,
         mut visit: impl FnMut(&las::PointData) -> Result<(), IngestError>,
@@ -209,75 +206,24 @@ impl DatasetFile {
             path: path.to_owned(),
             error,
         })?;
-        let laz = self.laz;
+        let mut reader = open_reader(path, file, self.laz)?;
         let malformed = |error| IngestError::Malformed {
             path: path.to_owned(),
             error,
         };
+        let mut batch = PointDataBuilder::new().for_header(reader.header()).build();
         let batch_points =
             (BYTES_PER_BATCH / u64::from(facts.record_len)).clamp(1, POINTS_PER_BATCH);
         let mut read = 0;
-        std::thread::scope(|scope| {
-            // Made in here so that a visitor's panic drops them as it unwinds, which ends the
-            // reading thread the scope then waits for.
-            let (filled_tx, filled_rx) = mpsc::sync_channel(1);
-            let (spare_tx, spare_rx) = mpsc::channel::<las::PointData>();
-            let reading = std::thread::Builder::new()
-                .name("las-read".into())
-                .spawn_scoped(scope, move || {
-                    // The reader stays on this thread: it is not `Send`.
-                    let mut reader = match open_reader(path, file, laz) {
-                        Ok(reader) => reader,
-                        Err(error) => {
-                            let _ = filled_tx.send(Err(error));
-                            return;
-                        }
-                    };
-                    let empty = || PointDataBuilder::new().for_header(reader.header()).build();
-                    let mut unused = vec![empty(), empty()];
-                    let mut read = 0;
-                    while read < facts.declared_points {
-                        let Some(mut batch) = unused.pop().or_else(|| spare_rx.recv().ok()) else {
-                            return;
-                        };
-                        let wanted = batch_points.min(facts.declared_points - read);
-                        let filled = match reader.fill_points(wanted, &mut batch) {
-                            Ok(0) => return,
-                            Ok(filled) => filled,
-                            Err(error) => {
-                                let _ = filled_tx.send(Err(malformed(error)));
-                                return;
-                            }
-                        };
-                        read += filled;
-                        // A send fails when the visitor stopped: nothing more to read.
-                        if filled_tx.send(Ok((batch, filled))).is_err() {
-                            return;
-                        }
-                    }
-                })
-                .map_err(|error| IngestError::Io {
-                    path: path.to_owned(),
-                    error,
-                })?;
-            let mut visit_all = || {
-                for message in &filled_rx {
-                    let (batch, filled) = message?;
-                    visit(&batch)?;
-                    read += filled;
-                    let _ = spare_tx.send(batch);
-                }
-                Ok(())
-            };
-            let visited = visit_all();
-            // Whatever stopped the visits stops the reading too.
-            drop(filled_rx);
-            drop(spare_tx);
-            if let Err(panic) = reading.join() {
-                std::panic::resume_unwind(panic);
+        while read < facts.declared_points {
+            let wanted = batch_points.min(facts.declared_points - read);
+            let filled = reader.fill_points(wanted, &mut batch).map_err(malformed)?;
+            if filled == 0 {
+                break;
             }
-            visited
-        })?;
+            visit(&batch)?;
+            read += filled;
+        }
         // Unreachable after the checks above unless the file changes while we read it.
         if read < facts.declared_points {
             return Err(IngestError::Truncated {
@@ -330,48 +276,6 @@ mod tests {
             started.elapsed()
         );
         Some((path, cloud))
-    }
-
-    /// Batches are read ahead on a thread of their own: every batch reaches the visitor, in
-    /// order, and a visitor that stops (an error) or panics at the first of several batches
-    /// ends the reading instead of waiting on it.
-    #[test]
-    fn batches_are_read_ahead_in_order_and_stop_with_their_visitor() {
-        let dir = tempfile::tempdir().expect("temp dir");
-        // Format 0 records: 1M points a batch, so three whole batches and five points.
-        let points = (3 << 20) + 5;
-        let (path, _) = written_1_4(dir.path(), "many.las", points, 0);
-        let file = DatasetFile::check(&path).expect("check");
-        let all = las::Reader::from_path(&path)
-            .expect("reader")
-            .read_all()
-            .expect("read");
-        let mut sizes = Vec::new();
-        let mut first_x = Vec::new();
-        file.for_each_batch(|batch| {
-            sizes.push(batch.len());
-            first_x.push(batch.x().next().expect("a point"));
-            Ok(())
-        })
-        .expect("read");
-        assert_eq!(sizes, [1 << 20, 1 << 20, 1 << 20, 5]);
-        let expected: Vec<f64> = all.x().step_by(1 << 20).collect();
-        assert_eq!(first_x, expected);
-
-        let mut visits = 0;
-        let stopped = file.for_each_batch(|_| {
-            visits += 1;
-            Err(IngestError::Corrupt {
-                path: path.clone(),
-                what: "stopped".into(),
-            })
-        });
-        assert!(matches!(stopped, Err(IngestError::Corrupt { .. })));
-        assert_eq!(visits, 1);
-        let panicked = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            file.for_each_batch(|_| panic!("a visitor's bug"))
-        }));
-        assert!(panicked.is_err());
     }
 
     #[test]
