@@ -168,38 +168,8 @@ fn preview_then_final(
         building()
     })?;
     drop(start_build);
-    let mut drawn = 0;
-    loop {
-        let spinner = crate::progress::spinner("waiting for the levels of detail".into());
-        let stored = loop {
-            let (stored, total) = progress.points();
-            let step = (PREVIEW_REDRAW_SHARE * total as f64).max(1.0);
-            if !building() || (total > 0 && stored as f64 >= drawn as f64 + step) {
-                break stored;
-            }
-            std::thread::sleep(std::time::Duration::from_millis(200));
-        };
-        spinner.finish_and_clear();
-        if !building() {
-            break;
-        }
-        drawn = stored;
-        // The preview's GPU memory is the next one's.
-        drop(preview);
-        let reading = std::time::Instant::now();
-        let nodes = progress.read_points(PREVIEW_STORED_POINTS)?;
-        tracing::info!(
-            stored,
-            nodes = nodes.len(),
-            read_ms = format!("{:.0}", reading.elapsed().as_secs_f64() * 1e3),
-            "preview redrawn with the nodes stored so far"
-        );
-        preview = FrameSource::preview(Arc::clone(gpu), &data, &nodes, &request.render, say_input)?;
-        drop(nodes);
-        render_frames(args, request, outputs, gpu, &mut preview, &building)?;
-    }
-    // The preview's GPU memory is the final frames' node cache's.
-    drop(preview);
+    // The preview's GPU memory is the final frames' node cache's: dropped before them.
+    redraw_while_building(target, &data, &progress, &building, preview, say_input)?;
     let built = build.join();
     let lod = built.map_err(|_| anyhow::anyhow!("the levels of detail's build panicked"))??;
     say_built(&lod, say_input);
@@ -220,6 +190,54 @@ fn preview_then_final(
         ),
     );
     Ok(())
+}
+
+/// Draws the preview frames again, each time the build has stored another tenth of the
+/// points, from the chunk starts and the nodes stored so far, until `building` says it is done.
+fn redraw_while_building(
+    target: &FrameTarget<'_>,
+    data: &PreviewData,
+    progress: &BuildProgress,
+    building: &dyn Fn() -> bool,
+    mut preview: FrameSource,
+    say_input: &dyn Fn(String),
+) -> Result<()> {
+    let FrameTarget {
+        args,
+        request,
+        outputs,
+        gpu,
+    } = *target;
+    let mut drawn = 0;
+    loop {
+        let spinner = crate::progress::spinner("waiting for the levels of detail".into());
+        let stored = loop {
+            let (stored, total) = progress.points();
+            let step = (PREVIEW_REDRAW_SHARE * total as f64).max(1.0);
+            if !building() || (total > 0 && stored as f64 >= drawn as f64 + step) {
+                break stored;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(200));
+        };
+        spinner.finish_and_clear();
+        if !building() {
+            return Ok(());
+        }
+        drawn = stored;
+        // The preview's GPU memory is the next one's.
+        drop(preview);
+        let reading = std::time::Instant::now();
+        let nodes = progress.read_points(PREVIEW_STORED_POINTS)?;
+        tracing::info!(
+            stored,
+            nodes = nodes.len(),
+            read_ms = format!("{:.0}", reading.elapsed().as_secs_f64() * 1e3),
+            "preview redrawn with the nodes stored so far"
+        );
+        preview = FrameSource::preview(Arc::clone(gpu), data, &nodes, &request.render, say_input)?;
+        drop(nodes);
+        render_frames(args, request, outputs, gpu, &mut preview, building)?;
+    }
 }
 
 /// Renders the request's frames from `source` into the outputs, while `keep_going` says so
