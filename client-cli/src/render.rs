@@ -125,6 +125,19 @@ const PREVIEW_STORED_POINTS: u64 = 4_000_000;
 /// The share of the dataset a build stores between two redraws of the preview.
 const PREVIEW_REDRAW_SHARE: f64 = 0.1;
 
+impl FrameTarget<'_> {
+    fn render(&self, source: &mut FrameSource, keep_going: &dyn Fn() -> bool) -> Result<()> {
+        render_frames(
+            self.args,
+            self.request,
+            self.outputs,
+            self.gpu,
+            source,
+            keep_going,
+        )
+    }
+}
+
 /// Renders the frames from the files' chunk starts while their store builds in `folder` on
 /// another thread, again with the nodes stored so far each time another tenth of the points
 /// is stored, then the final frames from the store over them.
@@ -202,12 +215,7 @@ fn redraw_while_building(
     mut preview: FrameSource,
     say_input: &dyn Fn(String),
 ) -> Result<()> {
-    let FrameTarget {
-        args,
-        request,
-        outputs,
-        gpu,
-    } = *target;
+    let FrameTarget { request, gpu, .. } = *target;
     let mut drawn = 0;
     loop {
         let spinner = crate::progress::spinner("waiting for the levels of detail".into());
@@ -236,7 +244,7 @@ fn redraw_while_building(
         );
         preview = FrameSource::preview(Arc::clone(gpu), data, &nodes, &request.render, say_input)?;
         drop(nodes);
-        render_frames(args, request, outputs, gpu, &mut preview, building)?;
+        target.render(&mut preview, building)?;
     }
 }
 
