@@ -426,7 +426,7 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                         })
                         .await?;
                 } else {
-                    let job = client.follow(&id, false).await?;
+                    let job = client.follow(&id, false, |_| {}).await?;
                     outln!(
                         "job {} {} ({}/{} frames){}",
                         job.id,

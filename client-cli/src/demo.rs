@@ -109,7 +109,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
                 dataset.id,
                 job.frames_total
             );
-            let finished = client.follow(&job.id, false).await?;
+            let finished = client.follow(&job.id, false, |_| {}).await?;
             require_success(&finished)?;
             let written = client.fetch_frames(&job.id, 0, &args.out).await?;
             let details = answer(client.jobs.get_job(pb::GetJobRequest { id: job.id }).await)?;

@@ -7,6 +7,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_daemon::grpc::streaming::read_chunk;
+use pointfarm_daemon::model::content_sha256_of;
 use pointfarm_daemon::service::{dataset_id, hash_file};
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
@@ -43,19 +44,29 @@ impl Client {
         })
     }
 
-    /// The dataset of `files` (in this order), each uploaded first if the server does not
-    /// have it, and composed into one when there are several.
+    /// The dataset of `files` (in this order): the server's own when it has these files as
+    /// one dataset already (registered under its data roots, or uploaded before), otherwise
+    /// each file uploaded unless the server has it, and the files composed into one.
     pub async fn ensure_dataset(&mut self, files: &[PathBuf]) -> Result<pb::Dataset> {
-        let [first, rest @ ..] = files else {
+        if files.is_empty() {
             bail!("a dataset needs at least one LAS/LAZ file");
-        };
-        if rest.is_empty() {
-            return self.ensure_file(first).await;
         }
-        let mut dataset_ids = Vec::with_capacity(files.len());
-        for file in files {
-            dataset_ids.push(self.ensure_file(file).await?.id);
+        let hashed = hash_files(files).await?;
+        let hashes: Vec<&str> = hashed.iter().map(|(sha256, _)| sha256.as_str()).collect();
+        if let Some(found) = self.find_dataset(&content_sha256_of(&hashes)).await? {
+            return Ok(found);
         }
+        let mut datasets = Vec::with_capacity(files.len());
+        for (file, (sha256, size_bytes)) in files.iter().zip(hashed.iter().cloned()) {
+            datasets.push(match self.find_dataset(&sha256).await? {
+                Some(found) => found,
+                None => self.upload_file(file, sha256, size_bytes).await?,
+            });
+        }
+        if datasets.len() == 1 {
+            return Ok(datasets.remove(0));
+        }
+        let dataset_ids = datasets.into_iter().map(|dataset| dataset.id).collect();
         let request = pb::ComposeDatasetRequest {
             dataset_ids,
             name: String::new(),
@@ -63,20 +74,25 @@ impl Client {
         answer(self.datasets.compose_dataset(request).await)
     }
 
-    /// The dataset with the content of `file`, uploaded first if the server does not have it.
-    async fn ensure_file(&mut self, file: &Path) -> Result<pb::Dataset> {
-        let path = file.to_path_buf();
-        let (sha256, size_bytes) = tokio::task::spawn_blocking(move || hash_file(&path))
-            .await?
-            .with_context(|| format!("reading {}", file.display()))?;
+    /// The server's dataset with content `sha256`, if it has one.
+    async fn find_dataset(&mut self, sha256: &str) -> Result<Option<pb::Dataset>> {
         let request = pb::GetDatasetRequest {
-            id: dataset_id(&sha256),
+            id: dataset_id(sha256),
         };
         match self.datasets.get_dataset(request).await {
-            Ok(found) => return Ok(found.into_inner()),
-            Err(status) if status.code() == Code::NotFound => {}
-            Err(status) => return Err(status_error(status)),
+            Ok(found) => Ok(Some(found.into_inner())),
+            Err(status) if status.code() == Code::NotFound => Ok(None),
+            Err(status) => Err(status_error(status)),
         }
+    }
+
+    /// Uploads `file`, whose content hashes to `sha256`, as a dataset of its own.
+    async fn upload_file(
+        &mut self,
+        file: &Path,
+        sha256: String,
+        size_bytes: u64,
+    ) -> Result<pb::Dataset> {
         let name = file
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
@@ -101,8 +117,14 @@ impl Client {
         Ok(uploaded.map_err(status_error)?.into_inner())
     }
 
-    /// Follows a job with a progress bar until it ends; returns the final job.
-    pub async fn follow(&mut self, job_id: &str, quiet: bool) -> Result<pb::Job> {
+    /// Follows a job with a progress bar until it ends, calling `on_frame` with every frame
+    /// reported (previews too); returns the final job.
+    pub async fn follow(
+        &mut self,
+        job_id: &str,
+        quiet: bool,
+        mut on_frame: impl FnMut(&pb::FrameFinished),
+    ) -> Result<pb::Job> {
         let bar = if quiet {
             ProgressBar::hidden()
         } else {
@@ -123,6 +145,7 @@ impl Client {
                 bar.set_position(job.frames_done as u64);
                 bar.set_message(state_name(job.state).to_string());
                 for frame in frames {
+                    on_frame(frame);
                     let mut line =
                         format!("frame {:>5}  {}", frame.index, timings_line(&frame.timings));
                     if frame.preview {
@@ -267,6 +290,64 @@ impl Client {
         }
         received.map(|()| summary)
     }
+}
+
+/// Writes the latest image of frame `index` of job `job_id` (its preview while the
+/// final frame is pending) to `path`; false when the server has no image of it.
+pub async fn fetch_frame(
+    jobs: &mut JobServiceClient<Authed>,
+    job_id: &str,
+    index: u32,
+    path: &Path,
+) -> Result<bool> {
+    let mut stream = jobs
+        .fetch_frames(pb::FetchFramesRequest {
+            job_id: job_id.to_string(),
+            from_index: index,
+        })
+        .await
+        .map_err(status_error)?
+        .into_inner();
+    let mut png = Vec::new();
+    // Frames come in order from `index`: a later frame first means it has no image.
+    while let Some(chunk) = stream.message().await.map_err(status_error)? {
+        if chunk.index != index {
+            return Ok(false);
+        }
+        png.extend_from_slice(&chunk.png);
+        if chunk.last {
+            tokio::fs::write(path, &png)
+                .await
+                .with_context(|| format!("writing {}", path.display()))?;
+            return Ok(true);
+        }
+    }
+    Ok(false)
+}
+
+/// The SHA-256 and size of each of `files`, in order, read off the async threads with a bar
+/// over their bytes (a campaign of many gigabytes takes a while).
+async fn hash_files(files: &[PathBuf]) -> Result<Vec<(String, u64)>> {
+    let files = files.to_vec();
+    tokio::task::spawn_blocking(move || {
+        let total = files
+            .iter()
+            .map(|file| std::fs::metadata(file).map_or(0, |m| m.len()))
+            .sum();
+        let bar = crate::progress::counter(total, "bytes", "hashing".into());
+        let hashed = files
+            .iter()
+            .map(|file| {
+                let hashed =
+                    hash_file(file).with_context(|| format!("reading {}", file.display()))?;
+                bar.inc(hashed.1);
+                Ok(hashed)
+            })
+            .collect();
+        bar.finish_and_clear();
+        hashed
+    })
+    .await?
 }
 
 /// The messages of an upload: `header`, then the file's bytes read chunk by chunk as the

@@ -1,8 +1,9 @@
 //! `pointfarm render --server URL`: the request of the local render, carried out by a daemon
 //! (or refused, naming the option the service does not have).
 //! Uploads the file if the server lacks it, submits, follows with a progress bar and
-//! downloads the frames. With `--json`, one object per frame on stdout: its file and the frame
-//! as the API reports it.
+//! downloads the frames. A job with previews has each preview downloaded as it comes, where
+//! its final frame will be written over it. With `--json`, one object per frame on stdout:
+//! its file and the frame as the API reports it.
 
 use anyhow::{bail, Context, Result};
 use pointfarm_daemon::capabilities::{checked_tags, WorkerRequirements};
@@ -13,7 +14,7 @@ use pointfarm_render::legend::Legend;
 use pointfarm_render::raster::AtomicsMode;
 use pointfarm_render::request::RenderRequest;
 
-use crate::remote::{require_success, timings_line, Client};
+use crate::remote::{answer, require_success, timings_line, Client};
 use crate::render_args::RenderArgs;
 use crate::render_json::ServerFrameJson;
 use crate::render_outputs::{write_legend, Outputs};
@@ -103,15 +104,22 @@ pub fn run(
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     let say = |line: String| crate::output::say(args.json, line);
     runtime.block_on(async {
-        let files = dataset_files(&args.inputs)?;
         let mut client = Client::connect(server, &args.credentials).await?;
-        let dataset = client.ensure_dataset(&files).await?;
+        let dataset = match &args.dataset {
+            Some(id) => answer(
+                client
+                    .datasets
+                    .get_dataset(pb::GetDatasetRequest { id: id.clone() })
+                    .await,
+            )?,
+            None => client.ensure_dataset(&dataset_files(&args.inputs)?).await?,
+        };
+        let file_count = dataset.files.len().max(1);
         say(format!(
-            "{}: dataset {} of {} file{} on {server}",
+            "{}: dataset {} of {file_count} file{} on {server}",
             args.inputs_label(),
             dataset.id,
-            files.len(),
-            if files.len() == 1 { "" } else { "s" }
+            if file_count == 1 { "" } else { "s" }
         ));
         let job = client
             .jobs
@@ -134,7 +142,21 @@ pub fn run(
                 say(format!("waiting: {}", shown.waiting_reason));
             }
         }
-        let finished = client.follow(&job.id, args.json).await?;
+        let previews = args
+            .preview
+            .then(|| PreviewFetcher::start(&client, &job, args.json, outputs));
+        let finished = client
+            .follow(&job.id, args.json, |frame| {
+                if let Some(previews) = &previews {
+                    previews.fetch(frame);
+                }
+            })
+            .await;
+        // Every preview is in place before a final frame is written over it.
+        if let Some(previews) = previews {
+            previews.finish().await?;
+        }
+        let finished = finished?;
         require_success(&finished)?;
         // Fetched beside the frames' folder (one file system, so placing them is a rename),
         // then named and converted as --out says.
@@ -195,4 +217,78 @@ fn tempdir_in(parent: &std::path::Path) -> Result<std::path::PathBuf> {
     let dir = parent.join(format!(".pointfarm-fetch-{}", std::process::id()));
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     Ok(dir)
+}
+
+/// Downloads a preview job's preview frames as the server reports them, in order, into the
+/// frames' files (where the final frames replace them), each reported as a local preview is.
+struct PreviewFetcher {
+    frames: tokio::sync::mpsc::UnboundedSender<pb::FrameFinished>,
+    task: tokio::task::JoinHandle<Result<()>>,
+}
+
+impl PreviewFetcher {
+    fn start(client: &Client, job: &pb::Job, json: bool, outputs: &Outputs) -> Self {
+        let frames_total = job.frames_total;
+        let (frames, mut reported) = tokio::sync::mpsc::unbounded_channel::<pb::FrameFinished>();
+        let mut jobs = client.jobs.clone();
+        let job_id = job.id.clone();
+        let files = outputs.files.clone();
+        let task = tokio::spawn(async move {
+            files.create_dir()?;
+            let temp = tempdir_in(files.dir())?;
+            let mut placed = std::collections::BTreeSet::new();
+            let mut result = Ok(());
+            while let Some(frame) = reported.recv().await {
+                let png = temp.join(format!("preview_{:05}.png", frame.index));
+                let fetched = crate::remote::fetch_frame(&mut jobs, &job_id, frame.index, &png)
+                    .await
+                    .and_then(|found| {
+                        found
+                            .then(|| files.place_png(&png, frame.index))
+                            .transpose()
+                    });
+                let path = match fetched {
+                    Ok(Some(path)) => path,
+                    // The frame went on to its final render meanwhile: nothing to show.
+                    Ok(None) => continue,
+                    Err(e) => {
+                        result = Err(e);
+                        break;
+                    }
+                };
+                if json {
+                    let line = ServerFrameJson::of_frame(&path, &job_id, &frame);
+                    outln!("{}", crate::admin_json::json_line(&line)?);
+                }
+                if placed.insert(frame.index) && placed.len() == frames_total as usize {
+                    crate::output::say(
+                        json,
+                        format!(
+                            "previews: {frames_total} frame{} in {}; the final frames replace \
+                             them once the server's store is built",
+                            if frames_total == 1 { "" } else { "s" },
+                            files.dir().display()
+                        ),
+                    );
+                }
+            }
+            let _ = std::fs::remove_dir_all(&temp);
+            result
+        });
+        Self { frames, task }
+    }
+
+    /// Fetches `frame` when it is a preview.
+    fn fetch(&self, frame: &pb::FrameFinished) {
+        if frame.preview {
+            // Sending fails only once the fetcher stopped on an error, which `finish` returns.
+            let _ = self.frames.send(frame.clone());
+        }
+    }
+
+    /// Waits for the previews reported so far to be in place.
+    async fn finish(self) -> Result<()> {
+        drop(self.frames);
+        self.task.await.context("the preview download stopped")?
+    }
 }

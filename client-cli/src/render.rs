@@ -36,6 +36,9 @@ pub fn run(args: RenderArgs) -> Result<()> {
     if let Some(server) = args.server.clone().filter(|_| !args.local) {
         return crate::remote_render::run(&server, &args, &request, &outputs);
     }
+    if let Some(id) = &args.dataset {
+        anyhow::bail!("--dataset {id} names a server's dataset; it needs --server URL");
+    }
     if !args.require_tags.is_empty() || args.require_gpu {
         anyhow::bail!(
             "--require-tag and --require-gpu choose a server's workers for the job; they need \

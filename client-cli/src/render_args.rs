@@ -28,11 +28,15 @@ use crate::video::{VideoCodec, VideoRequest, DEFAULT_VIDEO_QUALITY};
 pub struct RenderArgs {
     /// LAS/LAZ files or folders of them, rendered as one dataset (tiles or scan positions of
     /// one campaign: one origin, bounds and colour decision).
-    #[arg(required = true, value_name = "INPUT")]
+    #[arg(required_unless_present = "dataset", value_name = "INPUT")]
     pub(crate) inputs: Vec<PathBuf>,
-    /// Render on this pointfarm server instead of here (uploading the file if needed).
+    /// Render on this pointfarm server instead of here (uploading the files it lacks).
     #[arg(long, env = "POINTFARM_SERVER")]
     pub(crate) server: Option<String>,
+    /// Render a dataset the server already has, by its id (`dataset register` or `dataset
+    /// upload` print it), instead of files: nothing is read or sent from here.
+    #[arg(long, value_name = "ID", conflicts_with_all = ["inputs", "local"])]
+    pub(crate) dataset: Option<String>,
     /// Render here, whatever --server or POINTFARM_SERVER say.
     #[arg(long)]
     pub(crate) local: bool,
@@ -292,9 +296,10 @@ impl RenderArgs {
     /// The request these arguments describe, validated.
     /// What the inputs are called in messages: the one file or folder, or how many.
     pub(crate) fn inputs_label(&self) -> String {
-        match self.inputs.as_slice() {
-            [one] => one.display().to_string(),
-            many => format!("{} inputs", many.len()),
+        match (&self.dataset, self.inputs.as_slice()) {
+            (Some(id), _) => format!("dataset {id}"),
+            (None, [one]) => one.display().to_string(),
+            (None, many) => format!("{} inputs", many.len()),
         }
     }
 

@@ -111,6 +111,16 @@ impl<'a> ServerFrameJson<'a> {
             finished: job.frames.iter().find(|f| f.index == index),
         }
     }
+
+    /// `frame` of job `job_id`, as reported while the job runs, written to `path`.
+    pub fn of_frame(path: &Path, job_id: &'a str, frame: &'a pb::FrameFinished) -> Self {
+        Self {
+            frame: frame.index,
+            path: path.display().to_string(),
+            job_id,
+            finished: Some(frame),
+        }
+    }
 }
 
 #[derive(Serialize)]

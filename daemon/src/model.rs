@@ -64,13 +64,19 @@ pub fn hex(bytes: &[u8]) -> String {
 /// The content hash of files with these hashes, in this order: a single file's own hash, so
 /// a one-file dataset keeps the id it always had.
 pub fn content_sha256(files: &[DatasetFile]) -> String {
+    let hashes: Vec<&str> = files.iter().map(|file| file.sha256.as_str()).collect();
+    content_sha256_of(&hashes)
+}
+
+/// [`content_sha256`] of files known by their SHA-256s alone (a client's, before it uploads).
+pub fn content_sha256_of(file_sha256s: &[&str]) -> String {
     use sha2::{Digest, Sha256};
-    match files {
-        [one] => one.sha256.clone(),
+    match file_sha256s {
+        [one] => (*one).to_owned(),
         many => {
             let mut hasher = Sha256::new();
-            for file in many {
-                hasher.update(file.sha256.as_bytes());
+            for sha256 in many {
+                hasher.update(sha256.as_bytes());
                 hasher.update(b"\n");
             }
             hex(&hasher.finalize())
