@@ -86,7 +86,12 @@ fn a_registered_campaign_renders_with_its_previews_and_is_never_uploaded() {
         .iter()
         .map(|d| d["id"].as_str().unwrap_or_default().to_owned())
         .collect();
-    assert_eq!(ids, std::slice::from_ref(&id), "a file was uploaded\n{}", server.log());
+    assert_eq!(
+        ids,
+        std::slice::from_ref(&id),
+        "a file was uploaded\n{}",
+        server.log()
+    );
 
     // The first frame is leased as the store's build starts: it comes as a preview,
     // downloaded and reported before the final frames, which come last and all final.

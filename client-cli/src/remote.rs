@@ -8,7 +8,7 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_daemon::grpc::streaming::read_chunk;
 use pointfarm_daemon::model::content_sha256_of;
-use pointfarm_daemon::service::{dataset_id, hash_file};
+use pointfarm_daemon::service::{dataset_id, hash_files};
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
@@ -51,7 +51,7 @@ impl Client {
         if files.is_empty() {
             bail!("a dataset needs at least one LAS/LAZ file");
         }
-        let hashed = hash_files(files).await?;
+        let hashed = hash_all(files).await?;
         let hashes: Vec<&str> = hashed.iter().map(|(sha256, _)| sha256.as_str()).collect();
         if let Some(found) = self.find_dataset(&content_sha256_of(&hashes)).await? {
             return Ok(found);
@@ -327,7 +327,7 @@ pub async fn fetch_frame(
 
 /// The SHA-256 and size of each of `files`, in order, read off the async threads with a bar
 /// over their bytes (a campaign of many gigabytes takes a while).
-async fn hash_files(files: &[PathBuf]) -> Result<Vec<(String, u64)>> {
+async fn hash_all(files: &[PathBuf]) -> Result<Vec<(String, u64)>> {
     let files = files.to_vec();
     tokio::task::spawn_blocking(move || {
         let total = files
@@ -335,17 +335,13 @@ async fn hash_files(files: &[PathBuf]) -> Result<Vec<(String, u64)>> {
             .map(|file| std::fs::metadata(file).map_or(0, |m| m.len()))
             .sum();
         let bar = crate::progress::counter(total, "bytes", "hashing".into());
-        let hashed = files
-            .iter()
-            .map(|file| {
-                let hashed =
-                    hash_file(file).with_context(|| format!("reading {}", file.display()))?;
-                bar.inc(hashed.1);
-                Ok(hashed)
-            })
-            .collect();
+        let hashed = hash_files(&files, &|size| bar.inc(size));
         bar.finish_and_clear();
-        hashed
+        files
+            .iter()
+            .zip(hashed)
+            .map(|(file, hashed)| hashed.with_context(|| format!("reading {}", file.display())))
+            .collect()
     })
     .await?
 }

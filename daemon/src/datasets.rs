@@ -16,7 +16,7 @@ use pointfarm_render::ingest::dataset_files;
 use crate::error::DaemonError;
 use crate::limits::{check_id, check_length, MAX_NAME_BYTES, MAX_PATH_BYTES};
 use crate::model::{content_sha256, now_unix_ms, Dataset, DatasetFile};
-use crate::service::{dataset_id, file_name, hash_file, lookup, unique_suffix, Daemon};
+use crate::service::{dataset_id, file_name, hash_files, lookup, unique_suffix, Daemon};
 use crate::store::Page;
 use crate::stores::{PreviewBytes, ReadyStore, StoreAnswer};
 
@@ -51,10 +51,12 @@ impl Daemon {
         let found = dataset_files(&resolved)
             .map_err(|e| DaemonError::invalid("path", self.without_roots(&e.to_string())))?;
         check_count("path", found.len())?;
+        let hashed = hash_files(&found, &|_| {});
         let files = found
             .into_iter()
-            .map(|path| {
-                let (sha256, size_bytes) = hash_file(&path)?;
+            .zip(hashed)
+            .map(|(path, hashed)| {
+                let (sha256, size_bytes) = hashed?;
                 Ok(DatasetFile {
                     name: file_name(&path),
                     path,

@@ -99,3 +99,36 @@ fn uploads_compose_and_share_their_files_until_the_last_dataset_goes() {
     assert!(!a.path.exists(), "no dataset has it any more");
     assert!(b.path.is_file(), "b is still its own dataset");
 }
+
+/// Files hashed together come back in their order, each as hashed alone, a missing one as
+/// an error in its place, and every size counted once.
+#[test]
+fn files_hashed_together_are_each_hashed_as_alone() {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    let folder = tempfile::tempdir().expect("tempdir");
+    let mut paths: Vec<_> = (0..7u8)
+        .map(|i| {
+            let path = folder.path().join(format!("f{i}"));
+            std::fs::write(&path, vec![i; 1000 + usize::from(i) * 4099]).expect("file");
+            path
+        })
+        .collect();
+    paths.insert(3, folder.path().join("missing"));
+    let counted = AtomicU64::new(0);
+    let together = crate::service::hash_files(&paths, &|size| {
+        counted.fetch_add(size, Ordering::Relaxed);
+    });
+    assert_eq!(together.len(), paths.len());
+    let mut total = 0;
+    for (path, hashed) in paths.iter().zip(&together) {
+        match (hash_file(path), hashed) {
+            (Ok(alone), Ok(hashed)) => {
+                assert_eq!(&alone, hashed, "{}", path.display());
+                total += alone.1;
+            }
+            (Err(_), Err(_)) => {}
+            (alone, hashed) => panic!("{}: {alone:?} alone, {hashed:?} together", path.display()),
+        }
+    }
+    assert_eq!(counted.load(Ordering::Relaxed), total);
+}
