@@ -115,12 +115,15 @@ pub fn run(
             None => client.ensure_dataset(&dataset_files(&args.inputs)?).await?,
         };
         let file_count = dataset.files.len().max(1);
-        say(format!(
-            "{}: dataset {} of {file_count} file{} on {server}",
-            args.inputs_label(),
+        let found = format!(
+            "dataset {} of {file_count} file{} on {server}",
             dataset.id,
             if file_count == 1 { "" } else { "s" }
-        ));
+        );
+        match args.dataset {
+            Some(_) => say(found),
+            None => say(format!("{}: {found}", args.inputs_label())),
+        }
         let job = client
             .jobs
             .submit_job(submitted(dataset.id)?)
