@@ -222,8 +222,9 @@ fn tempdir_in(parent: &std::path::Path) -> Result<std::path::PathBuf> {
     Ok(dir)
 }
 
-/// Downloads a preview job's preview frames as the server reports them, in order, into the
-/// frames' files (where the final frames replace them), each reported as a local preview is.
+/// Downloads a preview job's preview frames as the server reports them (each frame's latest
+/// image) into the frames' files, where the final frames replace them, each reported as a
+/// local preview is.
 struct PreviewFetcher {
     frames: tokio::sync::mpsc::UnboundedSender<pb::FrameFinished>,
     task: tokio::task::JoinHandle<Result<()>>,
@@ -239,7 +240,7 @@ impl PreviewFetcher {
         let task = tokio::spawn(async move {
             files.create_dir()?;
             let temp = tempdir_in(files.dir())?;
-            let mut placed = std::collections::BTreeSet::new();
+            let mut placed = std::collections::HashSet::new();
             let mut result = Ok(());
             while let Some(frame) = reported.recv().await {
                 let png = temp.join(format!("preview_{:05}.png", frame.index));
@@ -252,7 +253,7 @@ impl PreviewFetcher {
                     });
                 let path = match fetched {
                     Ok(Some(path)) => path,
-                    // The frame went on to its final render meanwhile: nothing to show.
+                    // The server has no image of the frame (any more): nothing to show.
                     Ok(None) => continue,
                     Err(e) => {
                         result = Err(e);
@@ -261,7 +262,13 @@ impl PreviewFetcher {
                 };
                 if json {
                     let line = ServerFrameJson::of_frame(&path, &job_id, &frame);
-                    outln!("{}", crate::admin_json::json_line(&line)?);
+                    match crate::admin_json::json_line(&line) {
+                        Ok(line) => outln!("{line}"),
+                        Err(e) => {
+                            result = Err(e);
+                            break;
+                        }
+                    }
                 }
                 if placed.insert(frame.index) && placed.len() == frames_total as usize {
                     crate::output::say(
