@@ -6,14 +6,15 @@
 //!
 //! While a store builds, the daemon serves a preview sample of the dataset (the raw first
 //! point of every LAZ chunk, every 50,000th LAS record: `ingest::sample_chunk_starts`), read
-//! once per content and kept in memory, with the files' header bounds that frame it, so a
-//! preview job's workers render what `render --preview` renders of the same files without
-//! downloading them. The build is watched (`BuildProgress`): each time it has stored another
-//! tenth of the points, the sample is read again with the nodes stored so far (coarse levels
-//! first, at most `PREVIEW_STORED_POINTS`), and its version (the whole tenths stored) moves,
-//! so that leases offer the frames for a redraw. Only the latest sample of a content is
-//! kept. A file whose chunk table is damaged is named in the refusal, and the job fails
-//! saying so (its store would not build either).
+//! once per content and kept in memory until the store is ready, with the files' header
+//! bounds that frame it, so a preview job's workers render what `render --preview` renders
+//! of the same files without downloading them. The build is watched (`BuildProgress`): each
+//! time it has stored another tenth of the points, its version (the whole tenths stored)
+//! moves, so that leases offer the previewed frames for a redraw, and the next request reads
+//! the sample again with the nodes stored so far (coarse levels first, at most
+//! `PREVIEW_STORED_POINTS`); only the latest sample of a content is kept. A file whose chunk
+//! table is damaged is named in the refusal, and the job fails saying so (its store would
+//! not build either).
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -142,8 +143,9 @@ struct PreviewState {
     latest: Option<Arc<PreviewBytes>>,
 }
 
-/// Holds every store build until opened: what tests use to look at a daemon while a build
-/// is under way, without a build slow enough to race.
+/// Holds every store build until opened, at its start or at its end before its store is
+/// ready: what tests use to look at a daemon while a build is under way, without a build
+/// slow enough to race.
 #[derive(Clone, Default)]
 pub struct StoreBuildGate(Arc<(Mutex<bool>, std::sync::Condvar)>);
 
@@ -223,9 +225,10 @@ pub struct DatasetStores {
     /// Held while a request decides what to do with a store and opens or starts it, so two
     /// workers asking at once never open or build one store twice.
     opening: Mutex<()>,
-    /// Preview samples by content. Each content's state is locked while a request reads its
-    /// sample, so that requests at once read it once; no other request takes it.
-    previews: Mutex<HashMap<String, Arc<Mutex<PreviewState>>>>,
+    /// Preview samples by content, while their stores build. Each content's state is locked
+    /// while a request reads its sample, so that requests at once read it once; no other
+    /// request takes it.
+    previews: Arc<Mutex<HashMap<String, Arc<Mutex<PreviewState>>>>>,
     /// Builds wait here first when set.
     gate: Option<StoreBuildGate>,
     /// Finished builds wait here, still building, when set.
@@ -244,7 +247,7 @@ impl DatasetStores {
             copc: Mutex::default(),
             building: Arc::default(),
             opening: Mutex::default(),
-            previews: Mutex::default(),
+            previews: Arc::default(),
             gate: None,
             ready_gate: None,
             on_change: None,
@@ -315,7 +318,7 @@ impl DatasetStores {
         let sample = match progress.filter(|_| version > 0) {
             Some(progress) => {
                 let started = std::time::Instant::now();
-                // On this thread: the build keeps the shared thread pool busy.
+                // Read on this request's thread: the build keeps the shared thread pool busy.
                 let nodes = progress.read_points(PREVIEW_STORED_POINTS).map_err(|e| {
                     DaemonError::Internal(format!(
                         "dataset {}: reading the nodes stored so far: {e}",
@@ -479,6 +482,7 @@ impl DatasetStores {
         let budget = self.build_memory_bytes;
         let id = dataset.id.clone();
         let (gate, ready_gate) = (self.gate.clone(), self.ready_gate.clone());
+        let previews = Arc::clone(&self.previews);
         let spawned = std::thread::Builder::new()
             .name("pointfarm-store-build".into())
             .spawn(move || {
@@ -492,7 +496,14 @@ impl DatasetStores {
                     gate.wait();
                 }
                 let entry = match built {
-                    Ok(ready) => Entry::Ready(Arc::new(ready)),
+                    Ok(ready) => {
+                        // Frames render from the store now: the sample's memory is freed.
+                        previews
+                            .lock()
+                            .unwrap_or_else(|e| e.into_inner())
+                            .remove(&sha);
+                        Entry::Ready(Arc::new(ready))
+                    }
                     Err(reason) => {
                         tracing::warn!(dataset = %id, %reason, "the dataset's store was not built");
                         Entry::Failed(format!("dataset {id}: {reason}"))

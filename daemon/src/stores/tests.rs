@@ -402,4 +402,12 @@ fn the_preview_sample_carries_the_nodes_stored_so_far_and_their_version() {
     gate.open();
     wait_ready(&stores, &dataset);
     assert_eq!(stores.building_version("cc33"), None);
+    assert!(
+        !stores
+            .previews
+            .lock()
+            .expect("previews")
+            .contains_key("cc33"),
+        "the sample's memory is freed once the store is ready"
+    );
 }
