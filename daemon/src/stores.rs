@@ -12,25 +12,19 @@
 //! time it has stored another tenth of the points, its version (the whole tenths stored)
 //! moves, so that leases offer the previewed frames for a redraw, and the next request reads
 //! the sample again with the nodes stored so far (coarse levels first, at most
-//! `PREVIEW_STORED_POINTS`); only the latest sample of a content is kept. A file whose chunk
-//! table is damaged is named in the refusal, and the job fails saying so (its store would
-//! not build either).
+//! `PREVIEW_STORED_POINTS`, `preview`); only the latest sample of a content is kept. A file
+//! whose chunk table is damaged is named in the refusal, and the job fails saying so (its
+//! store would not build either).
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
-use pointfarm_render::cache::encode_cloud;
-use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::Stretch;
 use pointfarm_render::copc::{is_copc, open_copc, CopcDecoder};
 use pointfarm_render::cut::{LodDataset, StoredLod, RESIDENT_MAX_POINTS};
-use pointfarm_render::ingest::{
-    dataset_point_count, sample_chunk_starts, DatasetSource, PreviewSample,
-};
-use pointfarm_render::lod::{
-    BuildProgress, LodHierarchy, NodeInfo, NodeKey, PointSource, PREVIEW_STORED_POINTS,
-};
+use pointfarm_render::ingest::dataset_point_count;
+use pointfarm_render::lod::{BuildProgress, LodHierarchy, NodeInfo, NodeKey};
 
 use crate::error::DaemonError;
 use crate::model::Dataset;
@@ -114,33 +108,6 @@ impl ReadyStore {
             .read_records(&infos)
             .map_err(|e| DaemonError::Internal(format!("reading the store's nodes: {e}")))
     }
-}
-
-/// A dataset's preview sample as workers are sent it.
-pub struct PreviewBytes {
-    /// The sample's cloud, `pointfarm_render::cache::encode_cloud`'s bytes.
-    pub cloud: Vec<u8>,
-    pub points_in_files: u64,
-    /// The files' header bounds, which frame the camera as the store's bounds will.
-    pub framed: WorldBounds,
-    /// The whole tenths of the points the build had stored when the sample was read
-    /// (`lod::preview_version`): 0 for the chunk starts alone.
-    pub version: u32,
-}
-
-/// The chunk starts of a dataset and the files' header bounds, read once.
-struct ChunkStarts {
-    sample: PreviewSample,
-    framed: WorldBounds,
-}
-
-/// What is known of a content's preview.
-#[derive(Default)]
-struct PreviewState {
-    /// Read on first use (or the file at fault, said to every request).
-    chunk_starts: Option<Result<Arc<ChunkStarts>, String>>,
-    /// The latest sample served.
-    latest: Option<Arc<PreviewBytes>>,
 }
 
 /// Holds every store build until opened, at its start or at its end before its store is
@@ -286,61 +253,6 @@ impl DatasetStores {
             Some(Entry::Building { progress, .. }) => Some(Arc::clone(progress)),
             _ => None,
         }
-    }
-
-    /// The preview sample of `dataset`: its chunk starts, read from its files on first use
-    /// and kept, with the nodes its build has stored so far, read again when the build's
-    /// version has moved past the latest sample's. A file that cannot be sampled (a damaged
-    /// chunk table) is refused, named, now and later.
-    pub fn preview_sample(&self, dataset: &Dataset) -> Result<Arc<PreviewBytes>, DaemonError> {
-        let state = Arc::clone(
-            self.previews
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .entry(dataset.sha256.clone())
-                .or_default(),
-        );
-        let mut state = state.lock().unwrap_or_else(|e| e.into_inner());
-        let chunk_starts = match &state.chunk_starts {
-            Some(known) => known.clone(),
-            None => {
-                let read = read_chunk_starts(dataset);
-                state.chunk_starts = Some(read.clone());
-                read
-            }
-        }
-        .map_err(DaemonError::FailedPrecondition)?;
-        let progress = self.building_progress(&dataset.sha256);
-        let version = progress.as_ref().map_or(0, |p| p.preview_version());
-        if let Some(latest) = state.latest.as_ref().filter(|l| l.version >= version) {
-            return Ok(Arc::clone(latest));
-        }
-        let sample = match progress.filter(|_| version > 0) {
-            Some(progress) => {
-                let started = std::time::Instant::now();
-                // Read on this request's thread: the build keeps the shared thread pool busy.
-                let nodes = progress.read_points(PREVIEW_STORED_POINTS).map_err(|e| {
-                    DaemonError::Internal(format!(
-                        "dataset {}: reading the nodes stored so far: {e}",
-                        dataset.id
-                    ))
-                })?;
-                let cloud = chunk_starts.sample.cloud_with_nodes(&nodes);
-                tracing::info!(dataset = %dataset.id, version, nodes = nodes.len(),
-                    points = cloud.len(), read_ms = started.elapsed().as_secs_f64() * 1e3,
-                    "preview sample read again with the nodes stored so far");
-                encode_cloud(&cloud)
-            }
-            None => encode_cloud(&chunk_starts.sample.cloud),
-        };
-        let sample = Arc::new(PreviewBytes {
-            cloud: sample,
-            points_in_files: chunk_starts.sample.points_in_files,
-            framed: chunk_starts.framed,
-            version,
-        });
-        state.latest = Some(Arc::clone(&sample));
-        Ok(sample)
     }
 
     fn folder(&self, sha256: &str) -> PathBuf {
@@ -672,24 +584,6 @@ fn open_or_build(
     })
 }
 
-/// The chunk starts of `dataset`'s files and the files' header bounds, or why there are none.
-fn read_chunk_starts(dataset: &Dataset) -> Result<Arc<ChunkStarts>, String> {
-    let paths: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
-    let read = sample_chunk_starts(&paths)
-        .and_then(|sample| {
-            let framed = DatasetSource::open(&paths)?.bounds();
-            Ok(ChunkStarts { sample, framed })
-        })
-        .map(Arc::new)
-        .map_err(|e| format!("dataset {}: no preview: {e}", dataset.id));
-    match &read {
-        Ok(read) => tracing::info!(dataset = %dataset.id, points = read.sample.cloud.len(),
-            points_in_files = read.sample.points_in_files, "preview sample read"),
-        Err(reason) => tracing::warn!(%reason, "the dataset's preview sample is refused"),
-    }
-    read
-}
-
 /// Opens the COPC file `path` (the dataset's file `name`) through its own hierarchy.
 fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
     let opened = open_copc(path).map_err(|e| format!("COPC file {name}: {e}"))?;
@@ -708,5 +602,9 @@ fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
     })
 }
 
+mod preview;
 #[cfg(test)]
 mod tests;
+
+pub use preview::PreviewBytes;
+use preview::PreviewState;
