@@ -1,9 +1,11 @@
 //! Previews through the service: a job with `preview` on a dataset of LAZ tiles whose store
 //! the daemon is still building (its build held at a gate) renders every frame at once from
 //! the daemon's chunk-start sample, reported as previews with their completeness and drawn
-//! as a local `render --preview` draws them; once the store is ready the same job renders
-//! the frames again as final frames, equal to a job without previews. A real daemon killed
-//! (`kill -9`) while the store builds keeps its previews and finishes the job.
+//! as a local `render --preview` draws them; as the build stores the points (its end held at
+//! a second gate) the frames are drawn again with the nodes stored so far, more complete;
+//! once the store is ready the same job renders the frames again as final frames, equal to
+//! a job without previews. A real daemon killed (`kill -9`) while the store builds keeps its
+//! previews, draws them again only as the new build stores more, and finishes the job.
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -82,6 +84,18 @@ fn local_previews(files: &[PathBuf]) -> Vec<image::RgbaImage> {
         .collect()
 }
 
+/// Whether every frame has a preview among `frames` that `counts`.
+fn every_frame_previewed(
+    frames: &[pb::FrameFinished],
+    counts: impl Fn(&pb::FrameFinished) -> bool,
+) -> bool {
+    (0..FRAMES).all(|index| {
+        frames
+            .iter()
+            .any(|f| f.index == index && f.preview && counts(f))
+    })
+}
+
 /// Events of job `id` until `enough` says the frames seen are enough; returns those frames.
 async fn watch_until(
     jobs: &mut pointfarm_proto::v1::job_service_client::JobServiceClient<Channel>,
@@ -115,12 +129,14 @@ async fn a_preview_job_renders_chunk_starts_while_the_store_builds_then_final_fr
     let scratch = tempfile::tempdir().expect("tempdir");
     let files = tiles(scratch.path());
     let gate = StoreBuildGate::closed();
+    let ready = StoreBuildGate::closed();
     let roots = scratch.path().to_path_buf();
-    let held = gate.clone();
+    let (held, held_ready) = (gate.clone(), ready.clone());
     let daemon = TestDaemon::start(
         move |config| {
             config.data_roots = vec![roots];
             config.store_build_gate = Some(held);
+            config.store_ready_gate = Some(held_ready);
         },
         Access::default(),
     )
@@ -141,7 +157,7 @@ async fn a_preview_job_renders_chunk_starts_while_the_store_builds_then_final_fr
 
     // The build waits at the gate: every frame comes as a preview.
     let previews = watch_until(&mut jobs, &previewed.id, |frames| {
-        frames.iter().filter(|f| f.preview).count() == FRAMES as usize
+        every_frame_previewed(frames, |_| true)
     })
     .await;
     for frame in &previews {
@@ -174,7 +190,27 @@ async fn a_preview_job_renders_chunk_starts_while_the_store_builds_then_final_fr
     let waiting = get_job(&mut jobs, &normal.id).await;
     assert!(waiting.frames.is_empty(), "{waiting:?}");
 
+    // The build stores every node and waits at its end, still building: each frame is drawn
+    // again from the chunk starts and the nodes stored so far, more complete.
     gate.open();
+    let chunk_starts_share = 9.0 / 360_000.0;
+    let redrawn = watch_until(&mut jobs, &previewed.id, |frames| {
+        every_frame_previewed(frames, |f| f.completeness > chunk_starts_share)
+    })
+    .await;
+    for frame in redrawn
+        .iter()
+        .filter(|f| f.completeness > chunk_starts_share)
+    {
+        assert!(frame.preview && frame.cut.is_none(), "{frame:?}");
+        assert!(frame.completeness <= 1.0, "{frame:?}");
+    }
+    let shown = get_job(&mut jobs, &previewed.id).await;
+    assert_eq!(shown.frames_done, 0, "redraws are not final: {shown:?}");
+    let waiting = get_job(&mut jobs, &normal.id).await;
+    assert!(waiting.frames.is_empty(), "{waiting:?}");
+
+    ready.open();
     let (finished, frames) =
         pointfarm_tests::service::watch_to_success(&mut jobs, &previewed.id, String::new).await;
     assert_eq!(finished.frames_done, FRAMES);
@@ -238,7 +274,7 @@ async fn a_killed_daemon_keeps_its_previews_and_finishes_the_job() {
         .into_inner();
     let job = submit(&mut jobs, job("killed", &dataset.id, true)).await;
     watch_until(&mut jobs, &job.id, |frames| {
-        frames.iter().filter(|f| f.preview).count() == FRAMES as usize
+        every_frame_previewed(frames, |_| true)
     })
     .await;
     let before = get_job(&mut jobs, &job.id).await;
@@ -277,11 +313,20 @@ async fn a_killed_daemon_keeps_its_previews_and_finishes_the_job() {
         "{error}\n{}",
         server.log()
     );
+    // The new build counts its tenths from 0 again: a frame is drawn again only once it has
+    // stored one, with stored nodes, never from the chunk starts alone (160 of 8M points).
+    let chunk_starts_share = 160.0 / 8_000_000.0;
     assert!(
-        rendered.iter().all(|f| !f.preview),
-        "previewed again: {rendered:?}"
+        rendered
+            .iter()
+            .all(|f| !f.preview || f.completeness > chunk_starts_share),
+        "previewed again from the chunk starts: {rendered:?}"
     );
-    let mut finals: Vec<u32> = rendered.iter().map(|f| f.index).collect();
+    let mut finals: Vec<u32> = rendered
+        .iter()
+        .filter(|f| !f.preview)
+        .map(|f| f.index)
+        .collect();
     finals.sort_unstable();
     assert_eq!(
         finals,

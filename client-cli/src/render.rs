@@ -15,7 +15,7 @@ use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::{dataset_files, dataset_point_count};
 use pointfarm_render::legend::Legend;
-use pointfarm_render::lod::BuildProgress;
+use pointfarm_render::lod::{BuildProgress, PREVIEW_REDRAW_SHARE, PREVIEW_STORED_POINTS};
 use pointfarm_render::raster::{FrameSettings, Stage, StageTimings};
 use pointfarm_render::request::RenderRequest;
 
@@ -120,13 +120,6 @@ struct FrameTarget<'a> {
     outputs: &'a Outputs,
     gpu: &'a Arc<GpuContext>,
 }
-
-/// The most points of stored nodes a preview draws: a resident cloud of about 100 MB that
-/// renders in tens of milliseconds at 1080p on lavapipe.
-const PREVIEW_STORED_POINTS: u64 = 4_000_000;
-
-/// The share of the dataset a build stores between two redraws of the preview.
-const PREVIEW_REDRAW_SHARE: f64 = 0.1;
 
 impl FrameTarget<'_> {
     fn render(&self, source: &mut FrameSource, keep_going: &dyn Fn() -> bool) -> Result<()> {

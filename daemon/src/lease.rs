@@ -62,9 +62,15 @@ pub struct FrameTask {
     pub request: RenderRequest,
     /// Attempts at this frame that ended without a result.
     pub failed_attempts: u32,
-    /// The job asks for previews and the frame has none yet: while the daemon builds the
-    /// dataset's store, the worker renders it from the preview sample.
-    pub preview: bool,
+}
+
+impl FrameTask {
+    /// Set when the job asks for previews and the frame has none yet, or one older than the
+    /// build's version: while the daemon builds the dataset's store, the worker renders it
+    /// from the preview sample, of this version at least.
+    pub fn preview(&self) -> Option<u32> {
+        self.lease.preview_version
+    }
 }
 
 /// What a worker reports with a finished frame's PNG.
@@ -127,16 +133,20 @@ impl Daemon {
                     .refusal(&job.spec.requirements, &job.spec.request)
                     .is_none()
         };
-        // A frame with a preview waits while its dataset's store builds: it is rendered
-        // again, as a final frame, once the store is ready.
+        // The preview version of the job's dataset's store while it builds.
         let building = |job: &Job| {
             self.store
                 .dataset(&job.spec.dataset_id)
                 .ok()
                 .flatten()
-                .is_some_and(|dataset| self.stores.is_building(&dataset.sha256))
+                .and_then(|dataset| self.stores.building_version(&dataset.sha256))
         };
-        let waits = |job: &Job, has_preview: bool| has_preview && building(job);
+        // A frame with a preview of the build's version waits while its dataset's store
+        // builds: it is drawn again when the build has stored another tenth of the points,
+        // and rendered as a final frame once the store is ready.
+        let waits = |job: &Job, drawn: Option<u32>| {
+            drawn.is_some_and(|drawn| building(job).is_some_and(|current| drawn >= current))
+        };
         loop {
             let Some((job, index)) = self.store.next_task(&leased, &usable, &waits)? else {
                 return Ok(None);
@@ -152,7 +162,15 @@ impl Daemon {
                 Some(FrameState::Pending { attempts }) => attempts,
                 _ => 0,
             };
-            let preview = job.spec.preview && !self.store.has_preview(&job.id, index)?;
+            let preview_version = if job.spec.preview {
+                match (self.store.preview_version(&job.id, index)?, building(&job)) {
+                    (None, current) => Some(current.unwrap_or(0)),
+                    (Some(drawn), Some(current)) if drawn < current => Some(current),
+                    _ => None,
+                }
+            } else {
+                None
+            };
             let job = if job.state == JobState::Queued {
                 let running = self
                     .store
@@ -170,6 +188,7 @@ impl Daemon {
                 worker: worker.to_string(),
                 embedded,
                 expires_unix_ms: now_unix_ms() + self.lease_timeout_ms(),
+                preview_version,
             };
             // Durable before the worker starts: a crash of the daemon while the frame renders
             // then still counts the attempt at the next start.
@@ -197,7 +216,6 @@ impl Daemon {
                 },
                 request: job.spec.request.clone(),
                 failed_attempts,
-                preview,
             }));
         }
     }
@@ -320,6 +338,11 @@ impl Daemon {
             cut: outcome.cut,
             worker: lease.worker.clone(),
             preview: outcome.preview,
+            // A preview handed in under a lease that asked for none was drawn from what the
+            // worker had: counted as the chunk starts alone.
+            preview_version: outcome
+                .preview
+                .map_or(0, |_| lease.preview_version.unwrap_or(0)),
         };
         if report.preview.is_some() {
             // A preview is kept beside the pending frame, whose final render replaces it.

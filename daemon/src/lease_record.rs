@@ -1,5 +1,6 @@
 //! The stored record of a frame lease: which worker holds which frame of which job, until
-//! when. The store keeps these; `lease` decides when they are made, renewed and dropped.
+//! when, and for a preview the version of the preview sample it is drawn from at least. The
+//! store keeps these; `lease` decides when they are made, renewed and dropped.
 
 use rand::Rng;
 use serde::{Deserialize, Serialize};
@@ -17,6 +18,10 @@ pub struct Lease {
     /// Held by a worker thread of the daemon itself.
     pub embedded: bool,
     pub expires_unix_ms: i64,
+    /// Set on a lease for a preview: the version of the preview sample the daemon's build was
+    /// at when the frame was leased, which the preview handed in under it is kept with.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub preview_version: Option<u32>,
 }
 
 impl Lease {

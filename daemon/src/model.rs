@@ -98,7 +98,8 @@ pub struct JobSpec {
     #[serde(default, skip_serializing_if = "WorkerRequirements::is_empty")]
     pub requirements: WorkerRequirements,
     /// While the dataset's store is being built, render every frame from the preview sample
-    /// first (kept as the frame's preview), then again as a final frame once it is ready.
+    /// first (kept as the frame's preview), again each time the build has stored another
+    /// tenth of the points, then as a final frame once it is ready.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub preview: bool,
 }
@@ -189,6 +190,15 @@ pub struct FrameReport {
     /// drawn over the points of the dataset's files. The frame's final report replaces it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub preview: Option<f64>,
+    /// Set on a preview: the version of the preview sample it was leased to be drawn from (the
+    /// whole tenths of the points the build had stored); previews stored before versions
+    /// were kept read as 0, the chunk starts alone.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub preview_version: u32,
+}
+
+fn is_zero(n: &u32) -> bool {
+    *n == 0
 }
 
 /// What a frame rendered from levels of detail drew and loaded: the render crate's counts,

@@ -67,6 +67,9 @@ pub struct DaemonConfig {
     pub event_buffer: usize,
     /// Held closed, store builds wait until it opens (tests look at a build under way).
     pub store_build_gate: Option<StoreBuildGate>,
+    /// Held closed, a finished build waits until it opens before its store is ready, its
+    /// nodes all stored (tests look at previews redrawn while a build is under way).
+    pub store_ready_gate: Option<StoreBuildGate>,
 }
 
 impl DaemonConfig {
@@ -85,6 +88,7 @@ impl DaemonConfig {
             event_buffer: 1024,
             recover_state: false,
             store_build_gate: None,
+            store_ready_gate: None,
             data_dir,
         }
     }
@@ -195,7 +199,9 @@ impl Daemon {
         let stores =
             DatasetStores::new(config.data_dir.join("lod"), config.store_build_memory_bytes)
                 .gated(config.store_build_gate.clone())
-                // Frames that waited for the store (previews among them) are leased again.
+                .held_before_ready(config.store_ready_gate.clone())
+                // Frames that wait for the store are leased again: previews for a redraw when
+                // the build's version moves, every frame for its final render when it ends.
                 .notifying(Arc::new(move || built.notify()));
         let daemon = Arc::new(Self {
             config,

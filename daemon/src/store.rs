@@ -393,12 +393,13 @@ impl Store {
     /// unfinished job with the highest priority that `usable` accepts (the asking worker can
     /// render it), the oldest first among equals. Reads the scheduling index, so finished
     /// jobs cost nothing.
-    /// A preview job's frame is passed over while `waits(job, has_preview)`.
+    /// A preview job's frame is passed over while `waits(job, preview_version)`, the version
+    /// of its preview when it has one.
     pub fn next_task(
         &self,
         leased: &HashSet<(String, u32)>,
         usable: &dyn Fn(&Job) -> bool,
-        waits: &dyn Fn(&Job, bool) -> bool,
+        waits: &dyn Fn(&Job, Option<u32>) -> bool,
     ) -> Result<Option<(Job, u32)>, StoreError> {
         self.with(|records| records.next_task(leased, usable, waits))
     }
@@ -416,6 +417,12 @@ impl Store {
     /// Whether frame `index` of job `job_id` has a preview (and is not done).
     pub fn has_preview(&self, job_id: &str, index: u32) -> Result<bool, StoreError> {
         self.with(|records| records.has_preview(job_id, index))
+    }
+
+    /// The version of the preview of frame `index` of job `job_id`, when it has one (and is
+    /// not done).
+    pub fn preview_version(&self, job_id: &str, index: u32) -> Result<Option<u32>, StoreError> {
+        self.with(|records| records.preview_version(job_id, index))
     }
 
     /// Sets frame `index` of job `job_id` pending after `attempts` failed attempts and applies

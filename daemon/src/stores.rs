@@ -6,22 +6,25 @@
 //!
 //! While a store builds, the daemon serves a preview sample of the dataset (the raw first
 //! point of every LAZ chunk, every 50,000th LAS record: `ingest::sample_chunk_starts`), read
-//! once per content and kept in memory, with the files' header bounds that frame it, so a
-//! preview job's workers render what `render --preview` renders of the same files without
-//! downloading them. A file whose chunk table is damaged is named in the refusal, and the
-//! job fails saying so (its store would not build either).
+//! once per content and kept in memory until the store is ready, with the files' header
+//! bounds that frame it, so a preview job's workers render what `render --preview` renders
+//! of the same files without downloading them. The build is watched (`BuildProgress`): each
+//! time it has stored another tenth of the points, its version (the whole tenths stored)
+//! moves, so that leases offer the previewed frames for a redraw, and the next request reads
+//! the sample again with the nodes stored so far (coarse levels first, at most
+//! `PREVIEW_STORED_POINTS`, `preview`); only the latest sample of a content is kept. A file
+//! whose chunk table is damaged is named in the refusal, and the job fails saying so (its
+//! store would not build either).
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
-use pointfarm_render::cache::encode_cloud;
-use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::Stretch;
 use pointfarm_render::copc::{is_copc, open_copc, CopcDecoder};
 use pointfarm_render::cut::{LodDataset, StoredLod, RESIDENT_MAX_POINTS};
-use pointfarm_render::ingest::{dataset_point_count, sample_chunk_starts, DatasetSource};
-use pointfarm_render::lod::{LodHierarchy, NodeInfo, NodeKey, PointSource};
+use pointfarm_render::ingest::dataset_point_count;
+use pointfarm_render::lod::{BuildProgress, LodHierarchy, NodeInfo, NodeKey};
 
 use crate::error::DaemonError;
 use crate::model::Dataset;
@@ -107,17 +110,9 @@ impl ReadyStore {
     }
 }
 
-/// A dataset's preview sample as workers are sent it.
-pub struct PreviewBytes {
-    /// The sample's cloud, `pointfarm_render::cache::encode_cloud`'s bytes.
-    pub cloud: Vec<u8>,
-    pub points_in_files: u64,
-    /// The files' header bounds, which frame the camera as the store's bounds will.
-    pub framed: WorldBounds,
-}
-
-/// Holds every store build until opened: what tests use to look at a daemon while a build
-/// is under way, without a build slow enough to race.
+/// Holds every store build until opened, at its start or at its end before its store is
+/// ready: what tests use to look at a daemon while a build is under way, without a build
+/// slow enough to race.
 #[derive(Clone, Default)]
 pub struct StoreBuildGate(Arc<(Mutex<bool>, std::sync::Condvar)>);
 
@@ -167,7 +162,11 @@ pub enum StoreAnswer {
 enum Entry {
     /// Points counted from the files' headers; no store asked for yet.
     Counted(u64),
-    Building(u64),
+    /// Being built: its points, and the nodes the build has stored so far.
+    Building {
+        points: u64,
+        progress: Arc<BuildProgress>,
+    },
     Ready(Arc<ReadyStore>),
     /// The build failed; said to every later request (the files do not change).
     Failed(String),
@@ -193,12 +192,17 @@ pub struct DatasetStores {
     /// Held while a request decides what to do with a store and opens or starts it, so two
     /// workers asking at once never open or build one store twice.
     opening: Mutex<()>,
-    /// Preview samples by content, read once (or the file at fault, said to every request).
-    previews: Mutex<HashMap<String, Result<Arc<PreviewBytes>, String>>>,
+    /// Preview samples by content, while their stores build. Each content's state is locked
+    /// while a request reads its sample, so that requests at once read it once; no other
+    /// request takes it.
+    previews: Arc<Mutex<HashMap<String, Arc<Mutex<PreviewState>>>>>,
     /// Builds wait here first when set.
     gate: Option<StoreBuildGate>,
-    /// Called when a build ends, so that frames waiting for the store are leased again.
-    on_built: Option<Arc<dyn Fn() + Send + Sync>>,
+    /// Finished builds wait here, still building, when set.
+    ready_gate: Option<StoreBuildGate>,
+    /// Called when a build's preview version moves and when it ends, so that frames waiting
+    /// for the store are leased again (for a redraw, or for their final render).
+    on_change: Option<Arc<dyn Fn() + Send + Sync>>,
 }
 
 impl DatasetStores {
@@ -210,9 +214,10 @@ impl DatasetStores {
             copc: Mutex::default(),
             building: Arc::default(),
             opening: Mutex::default(),
-            previews: Mutex::default(),
+            previews: Arc::default(),
             gate: None,
-            on_built: None,
+            ready_gate: None,
+            on_change: None,
         }
     }
 
@@ -222,43 +227,32 @@ impl DatasetStores {
         self
     }
 
-    /// `on_built` is called when a build ends, ready or failed.
-    pub fn notifying(mut self, on_built: Arc<dyn Fn() + Send + Sync>) -> Self {
-        self.on_built = Some(on_built);
+    /// Finished builds wait at `gate` until it is opened before their stores are ready.
+    pub fn held_before_ready(mut self, gate: Option<StoreBuildGate>) -> Self {
+        self.ready_gate = gate;
         self
     }
 
-    /// Whether the store of content `sha256` is being built now.
-    pub fn is_building(&self, sha256: &str) -> bool {
-        matches!(self.entries_now().get(sha256), Some(Entry::Building(_)))
+    /// `on_change` is called when a build's preview version moves, and when it ends, ready
+    /// or failed.
+    pub fn notifying(mut self, on_change: Arc<dyn Fn() + Send + Sync>) -> Self {
+        self.on_change = Some(on_change);
+        self
     }
 
-    /// The preview sample of `dataset`, read from its files on first use and kept. A file
-    /// that cannot be sampled (a damaged chunk table) is refused, named, now and later.
-    pub fn preview_sample(&self, dataset: &Dataset) -> Result<Arc<PreviewBytes>, DaemonError> {
-        let mut previews = self.previews.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some(known) = previews.get(&dataset.sha256) {
-            return known.clone().map_err(DaemonError::FailedPrecondition);
+    /// The preview version of the store of content `sha256` being built now (the whole
+    /// tenths of its points stored so far); `None` when it is not being built.
+    pub fn building_version(&self, sha256: &str) -> Option<u32> {
+        self.building_progress(sha256)
+            .map(|progress| progress.preview_version())
+    }
+
+    /// What the build of content `sha256` has stored so far, while it builds.
+    fn building_progress(&self, sha256: &str) -> Option<Arc<BuildProgress>> {
+        match self.entries_now().get(sha256) {
+            Some(Entry::Building { progress, .. }) => Some(Arc::clone(progress)),
+            _ => None,
         }
-        let paths: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
-        let sampled = sample_chunk_starts(&paths)
-            .and_then(|sample| {
-                let framed = DatasetSource::open(&paths)?.bounds();
-                Ok(PreviewBytes {
-                    cloud: encode_cloud(&sample.cloud),
-                    points_in_files: sample.points_in_files,
-                    framed,
-                })
-            })
-            .map(Arc::new)
-            .map_err(|e| format!("dataset {}: no preview: {e}", dataset.id));
-        match &sampled {
-            Ok(sample) => tracing::info!(dataset = %dataset.id, bytes = sample.cloud.len(),
-                points_in_files = sample.points_in_files, "preview sample read"),
-            Err(reason) => tracing::warn!(%reason, "the dataset's preview sample is refused"),
-        }
-        previews.insert(dataset.sha256.clone(), sampled.clone());
-        sampled.map_err(DaemonError::FailedPrecondition)
     }
 
     fn folder(&self, sha256: &str) -> PathBuf {
@@ -350,7 +344,7 @@ impl DatasetStores {
         let sha = dataset.sha256.clone();
         let points = match self.entry(&sha, |entry| match entry {
             Entry::Counted(points) => Ok(*points),
-            Entry::Building(points) => Err(Ok(StoreAnswer::Building { points: *points })),
+            Entry::Building { points, .. } => Err(Ok(StoreAnswer::Building { points: *points })),
             Entry::Ready(store) => Err(Ok(StoreAnswer::Ready(Arc::clone(store)))),
             Entry::Failed(reason) => Err(Err(DaemonError::FailedPrecondition(reason.clone()))),
         }) {
@@ -375,15 +369,32 @@ impl DatasetStores {
             // Opening a finished store reads its hierarchy and a sample of its coarsest nodes.
             let ready = self.finish(
                 &sha,
-                open_or_build(&files, &folder, self.build_memory_bytes),
+                open_or_build(
+                    &files,
+                    &folder,
+                    self.build_memory_bytes,
+                    &BuildProgress::new(),
+                ),
             );
             return ready.map(StoreAnswer::Ready);
         }
-        self.set(&sha, Entry::Building(points));
+        let on_change = self.on_change.clone();
+        let progress = Arc::new(match on_change.clone() {
+            Some(on_change) => BuildProgress::notifying(move |_| on_change()),
+            None => BuildProgress::new(),
+        });
+        self.set(
+            &sha,
+            Entry::Building {
+                points,
+                progress: Arc::clone(&progress),
+            },
+        );
         let (entries, building) = (Arc::clone(&self.entries), Arc::clone(&self.building));
         let budget = self.build_memory_bytes;
         let id = dataset.id.clone();
-        let (gate, on_built) = (self.gate.clone(), self.on_built.clone());
+        let (gate, ready_gate) = (self.gate.clone(), self.ready_gate.clone());
+        let previews = Arc::clone(&self.previews);
         let spawned = std::thread::Builder::new()
             .name("pointfarm-store-build".into())
             .spawn(move || {
@@ -392,8 +403,19 @@ impl DatasetStores {
                 }
                 let _one_at_a_time = building.lock().unwrap_or_else(|e| e.into_inner());
                 tracing::info!(dataset = %id, points, "building the dataset's levels of detail");
-                let entry = match open_or_build(&files, &folder, budget) {
-                    Ok(ready) => Entry::Ready(Arc::new(ready)),
+                let built = open_or_build(&files, &folder, budget, &progress);
+                if let Some(gate) = ready_gate {
+                    gate.wait();
+                }
+                let entry = match built {
+                    Ok(ready) => {
+                        // Frames render from the store now: the sample's memory is freed.
+                        previews
+                            .lock()
+                            .unwrap_or_else(|e| e.into_inner())
+                            .remove(&sha);
+                        Entry::Ready(Arc::new(ready))
+                    }
                     Err(reason) => {
                         tracing::warn!(dataset = %id, %reason, "the dataset's store was not built");
                         Entry::Failed(format!("dataset {id}: {reason}"))
@@ -403,8 +425,8 @@ impl DatasetStores {
                     .lock()
                     .unwrap_or_else(|e| e.into_inner())
                     .insert(sha, entry);
-                if let Some(on_built) = on_built {
-                    on_built();
+                if let Some(on_change) = on_change {
+                    on_change();
                 }
             });
         if let Err(e) = spawned {
@@ -441,7 +463,7 @@ impl DatasetStores {
         match self.entry(sha256, |entry| match entry {
             Entry::Ready(store) => Err(Some(Arc::clone(store))),
             Entry::Counted(_) => Ok(()),
-            Entry::Building(_) | Entry::Failed(_) => Err(None),
+            Entry::Building { .. } | Entry::Failed(_) => Err(None),
         }) {
             Err(Some(store)) => Ok(store),
             Err(None) => Err(not_open()),
@@ -454,7 +476,11 @@ impl DatasetStores {
                 if !StoredLod::is_built(&folder) {
                     return Err(not_open());
                 }
-                self.finish(sha256, open_or_build(&[], &folder, self.build_memory_bytes))
+                let progress = BuildProgress::new();
+                self.finish(
+                    sha256,
+                    open_or_build(&[], &folder, self.build_memory_bytes, &progress),
+                )
             }
         }
     }
@@ -463,7 +489,7 @@ impl DatasetStores {
     /// content any more). A build under way finishes into a folder removed later.
     pub fn remove(&self, sha256: &str) {
         let mut entries = self.entries.lock().unwrap_or_else(|e| e.into_inner());
-        if matches!(entries.get(sha256), Some(Entry::Building(_))) {
+        if matches!(entries.get(sha256), Some(Entry::Building { .. })) {
             return;
         }
         entries.remove(sha256);
@@ -485,6 +511,13 @@ impl DatasetStores {
                 }
             }
         }
+    }
+
+    /// Marks the store of content `sha256` as building, having stored what `progress` lists:
+    /// tests move a build's version with a build run to its end beforehand, not one racing.
+    #[cfg(test)]
+    pub(crate) fn hold_building(&self, sha256: &str, points: u64, progress: Arc<BuildProgress>) {
+        self.set(sha256, Entry::Building { points, progress });
     }
 
     /// Runs `look` on the entry of `sha256`; `Ok(None)` when there is none.
@@ -525,9 +558,15 @@ impl DatasetStores {
     }
 }
 
-/// Opens the store in `folder`, building it from `files` first when it has none.
-fn open_or_build(files: &[PathBuf], folder: &Path, budget: u64) -> Result<ReadyStore, String> {
-    let lod = StoredLod::open_or_build(files, folder, budget, None, &mut |_| {})
+/// Opens the store in `folder`, building it from `files` first when it has none, listing in
+/// `progress` the nodes the build stores.
+fn open_or_build(
+    files: &[PathBuf],
+    folder: &Path,
+    budget: u64,
+    progress: &BuildProgress,
+) -> Result<ReadyStore, String> {
+    let lod = StoredLod::open_or_build_watched(files, folder, budget, None, &mut |_| {}, progress)
         .map_err(|e| e.to_string())?;
     let build_ms = lod.built.as_ref().map_or(0.0, |(_, seconds)| seconds * 1e3);
     let hierarchy_record = lod.dataset.hierarchy().encode();
@@ -563,5 +602,9 @@ fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
     })
 }
 
+mod preview;
 #[cfg(test)]
 mod tests;
+
+pub use preview::PreviewBytes;
+use preview::PreviewState;

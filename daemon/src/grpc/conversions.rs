@@ -350,6 +350,7 @@ pub(super) fn preview_sample_header(sample: &PreviewBytes) -> pb::PreviewSampleH
         bounds_min: Some(vec3_message(sample.framed.min)),
         bounds_max: Some(vec3_message(sample.framed.max)),
         sample_bytes: sample.cloud.len() as u64,
+        version: sample.version,
     }
 }
 
@@ -397,7 +398,8 @@ pub fn frame_task_message(task: &FrameTask) -> pb::FrameTask {
         height: task.request.height,
         render: Some(render_options_message(&task.request.render)),
         failed_attempts: task.failed_attempts,
-        preview: task.preview,
+        preview: task.preview().is_some(),
+        preview_version: task.preview().unwrap_or(0),
     }
 }
 
@@ -440,6 +442,7 @@ pub fn frame_task(message: &pb::FrameTask, worker: &str) -> Result<FrameTask, Da
             worker: worker.to_string(),
             embedded: false,
             expires_unix_ms: message.lease_expires_unix_ms,
+            preview_version: message.preview.then_some(message.preview_version),
         },
         lease_timeout: std::time::Duration::from_millis(message.lease_timeout_ms as u64),
         dataset: TaskDataset {
@@ -455,7 +458,6 @@ pub fn frame_task(message: &pb::FrameTask, worker: &str) -> Result<FrameTask, Da
             message.render.as_ref(),
         )?,
         failed_attempts: message.failed_attempts,
-        preview: message.preview,
     })
 }
 

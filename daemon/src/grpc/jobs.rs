@@ -217,21 +217,22 @@ impl JobService for Api {
 /// it has not been sent yet.
 struct CaughtUp {
     event: pb::JobEvent,
-    reported: HashSet<(u32, bool)>,
+    reported: HashSet<(u32, Option<u32>)>,
     ended: bool,
 }
 
 /// Reads job `id` and its finished frames under the scheduling lock (as a crash would leave
 /// them) and adds the frames not in `reported` to one event.
-/// What a watcher is told once: a frame's preview, and its final report.
-fn report_key(frame: &FrameReport) -> (u32, bool) {
-    (frame.index, frame.preview.is_some())
+/// What a watcher is told once: a frame's preview of each version (a redraw is news), and
+/// its final report.
+fn report_key(frame: &FrameReport) -> (u32, Option<u32>) {
+    (frame.index, frame.preview.map(|_| frame.preview_version))
 }
 
 async fn catch_up(
     daemon: Arc<Daemon>,
     id: String,
-    mut reported: HashSet<(u32, bool)>,
+    mut reported: HashSet<(u32, Option<u32>)>,
 ) -> Result<CaughtUp, Status> {
     let (job, finished) = tokio::task::spawn_blocking(move || daemon.job_with_frames(&id))
         .await

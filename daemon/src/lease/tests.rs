@@ -452,7 +452,11 @@ fn a_preview_keeps_its_frame_pending_until_the_final_frame_replaces_it() {
     let job = test_daemon::submit(&daemon, 1, |r| r.preview = true);
     assert!(job.spec.preview);
     let first = lease(&daemon, "w", false);
-    assert!(first.preview, "a frame without a preview is offered one");
+    assert_eq!(
+        first.preview(),
+        Some(0),
+        "a frame without a preview is offered one"
+    );
     let preview = FrameOutcome {
         preview: Some(0.25),
         ..outcome()
@@ -473,7 +477,7 @@ fn a_preview_keeps_its_frame_pending_until_the_final_frame_replaces_it() {
     let again = lease(&daemon, "w", false);
     assert_eq!(again.lease.index, 0);
     assert!(
-        !again.preview,
+        again.preview().is_none(),
         "a frame with a preview is not previewed again"
     );
     let done = daemon
@@ -499,7 +503,7 @@ fn a_preview_keeps_its_frame_pending_until_the_final_frame_replaces_it() {
     let plain = test_daemon::submit(&daemon, 1, |r| r.request_id = "plain".into());
     let task = lease(&daemon, "w", false);
     assert_eq!(task.lease.job_id, plain.id);
-    assert!(!task.preview);
+    assert!(task.preview().is_none());
     let refused = daemon.complete_frame(
         &task.lease.id,
         &png(8, 6),
@@ -512,4 +516,119 @@ fn a_preview_keeps_its_frame_pending_until_the_final_frame_replaces_it() {
         matches!(refused, Err(DaemonError::InvalidArgument { .. })),
         "{refused:?}"
     );
+}
+
+/// What a build of a small scene has stored when it ends: every tenth of its points.
+fn whole_build_progress(dir: &Path) -> Arc<pointfarm_render::lod::BuildProgress> {
+    use pointfarm_render::cut::StoredLod;
+    use pointfarm_render::ingest::{write_las, LasWriteOptions};
+    let path = dir.join("scene.las");
+    let scene = pointfarm_render::sample::sample_scene(20_000, 3);
+    write_las(&path, &scene, &LasWriteOptions::default()).expect("write");
+    let progress = Arc::new(pointfarm_render::lod::BuildProgress::new());
+    StoredLod::open_or_build_watched(
+        &[path],
+        &dir.join("lod"),
+        64 << 20,
+        None,
+        &mut |_| {},
+        &progress,
+    )
+    .expect("build");
+    progress
+}
+
+/// While the store builds, a frame whose preview is of the build's version waits; once the
+/// build's version moves past it, the frame is offered again for a preview of the new
+/// version, which is kept with it (across a restart too); a frame is leased for its final
+/// render once nothing builds.
+#[test]
+fn a_preview_is_drawn_again_once_the_build_has_stored_more() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let build = tempfile::tempdir().expect("tempdir");
+    let daemon = open(dir.path());
+    let job = test_daemon::submit(&daemon, 2, |r| r.preview = true);
+    let sha256 = daemon
+        .store
+        .dataset(&job.spec.dataset_id)
+        .expect("read")
+        .expect("dataset")
+        .sha256;
+    // A build that has stored nothing yet: the chunk starts alone, version 0.
+    let started = Arc::new(pointfarm_render::lod::BuildProgress::new());
+    let hold = |daemon: &Daemon, progress: &Arc<pointfarm_render::lod::BuildProgress>| {
+        daemon
+            .stores
+            .hold_building(&sha256, 20_000, Arc::clone(progress))
+    };
+    hold(&daemon, &started);
+    let preview = |completeness| FrameOutcome {
+        preview: Some(completeness),
+        ..outcome()
+    };
+    for index in 0..2 {
+        let task = lease(&daemon, "w", false);
+        assert_eq!((task.lease.index, task.preview()), (index, Some(0)));
+        daemon
+            .complete_frame(&task.lease.id, &png(8, 6), preview(0.01))
+            .expect("a preview");
+    }
+    let none = daemon
+        .lease_frame("w", false, &WorkerCapabilities::default())
+        .expect("lease");
+    assert!(
+        none.is_none(),
+        "previews of the build's version wait: {none:?}"
+    );
+
+    // The build has stored every tenth: each frame is offered for a redraw at version 10.
+    let stored = whole_build_progress(build.path());
+    assert_eq!(stored.preview_version(), 10);
+    hold(&daemon, &stored);
+    let redraw = lease(&daemon, "w", false);
+    assert_eq!((redraw.lease.index, redraw.preview()), (0, Some(10)));
+    daemon
+        .complete_frame(&redraw.lease.id, &png(8, 6), preview(0.5))
+        .expect("a redrawn preview");
+    let other = lease(&daemon, "w", false);
+    assert_eq!(
+        (other.lease.index, other.preview()),
+        (1, Some(10)),
+        "the redrawn frame waits, the other is redrawn"
+    );
+    daemon.release_frame(&other.lease.id).expect("release");
+    drop(daemon);
+
+    // As after a kill -9: the previews keep their versions; the build, counting again from
+    // 0, redraws nothing until it moves past them.
+    let daemon = open(dir.path());
+    hold(&daemon, &started);
+    let none = daemon
+        .lease_frame("w", false, &WorkerCapabilities::default())
+        .expect("lease");
+    assert!(none.is_none(), "nothing is previewed again: {none:?}");
+    let reports = daemon.store.frame_reports(&job.id).expect("reports");
+    let kept: Vec<(Option<f64>, u32)> = reports
+        .iter()
+        .map(|r| (r.preview, r.preview_version))
+        .collect();
+    assert_eq!(kept, [(Some(0.5), 10), (Some(0.01), 0)]);
+    hold(&daemon, &stored);
+    let redraw = lease(&daemon, "w", false);
+    assert_eq!((redraw.lease.index, redraw.preview()), (1, Some(10)));
+    daemon
+        .complete_frame(&redraw.lease.id, &png(8, 6), preview(0.5))
+        .expect("a redrawn preview");
+    let none = daemon
+        .lease_frame("w", false, &WorkerCapabilities::default())
+        .expect("lease");
+    assert!(none.is_none(), "every preview is current: {none:?}");
+    drop(daemon);
+
+    // Nothing builds (the store is ready): every frame is leased for its final render.
+    let daemon = open(dir.path());
+    for index in 0..2 {
+        let task = lease(&daemon, "w", false);
+        assert_eq!((task.lease.index, task.preview()), (index, None));
+    }
 }

@@ -333,6 +333,17 @@ impl Records {
         Ok(self.trees.previews.contains_key(frame_key(job_id, index))?)
     }
 
+    /// The version of the preview of frame `index` of job `job_id`, when it has one.
+    pub(super) fn preview_version(
+        &self,
+        job_id: &str,
+        index: u32,
+    ) -> Result<Option<u32>, StoreError> {
+        let preview: Option<FrameReport> =
+            decode_stored(self.trees.previews.get(frame_key(job_id, index))?)?;
+        Ok(preview.map(|report| report.preview_version))
+    }
+
     pub(super) fn set_frame(
         &self,
         job_id: &str,
@@ -362,7 +373,7 @@ impl Records {
         &self,
         leased: &std::collections::HashSet<(String, u32)>,
         usable: &dyn Fn(&Job) -> bool,
-        waits: &dyn Fn(&Job, bool) -> bool,
+        waits: &dyn Fn(&Job, Option<u32>) -> bool,
     ) -> Result<Option<(Job, u32)>, StoreError> {
         for entry in self.trees.queue.iter() {
             let (_, job_id) = entry?;
@@ -387,8 +398,9 @@ impl Records {
                     }
                 }
                 let Some(found) = &job else { break };
-                // A preview job's previewed frames wait while its store builds.
-                if found.spec.preview && waits(found, self.has_preview(&job_id, index)?) {
+                // A preview job's previewed frames wait while its store builds, until the
+                // build's version moves past their previews'.
+                if found.spec.preview && waits(found, self.preview_version(&job_id, index)?) {
                     continue;
                 }
                 return Ok(Some((found.clone(), index)));

@@ -151,3 +151,68 @@ fn a_database_the_full_disk_failed_is_opened_again_with_all_it_had_flushed() {
     let reopened = open(&disk.path().join("state.sled"));
     assert!(reopened.job(&after.id).expect("read").is_some());
 }
+
+/// A preview kept by a daemon from before preview versions opens as version 0 (the chunk
+/// starts alone); a versioned one keeps its version across a reopening.
+#[test]
+fn a_preview_record_without_a_version_opens_as_version_0() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("state.sled");
+    let job_id = {
+        let store = open(&path);
+        let (job, _) = store
+            .submit_job(JobSpec {
+                preview: true,
+                ..spec("a", 2, 0)
+            })
+            .expect("submit");
+        // The record as an older daemon wrote it.
+        let old = br#"{"index":0,"timings":[],"dataset_cache_hit":null,"failed_attempts":0,"cut":null,"worker":"w","preview":0.25}"#;
+        store
+            .with(|records| {
+                records
+                    .trees
+                    .previews
+                    .insert(frame_key(&job.id, 0), &old[..])?;
+                Ok(())
+            })
+            .expect("old record");
+        let lease = Lease {
+            id: "lease-1".into(),
+            job_id: job.id.clone(),
+            index: 1,
+            worker: "w".into(),
+            embedded: false,
+            expires_unix_ms: 0,
+            preview_version: Some(4),
+        };
+        store.put_lease(&lease).expect("lease");
+        let report = FrameReport {
+            index: 1,
+            preview: Some(0.5),
+            preview_version: 4,
+            ..FrameReport::default()
+        };
+        store.keep_preview(&lease, &report).expect("preview");
+        job.id
+    };
+    let (store, loss) = Store::open(&path, false).expect("reopen");
+    assert!(loss.is_empty(), "every record is readable: {loss:?}");
+    assert_eq!(store.preview_version(&job_id, 0).expect("read"), Some(0));
+    assert_eq!(store.preview_version(&job_id, 1).expect("read"), Some(4));
+    let reports = store.frame_reports(&job_id).expect("reports");
+    let versions: Vec<(Option<f64>, u32)> = reports
+        .iter()
+        .map(|r| (r.preview, r.preview_version))
+        .collect();
+    assert_eq!(versions, [(Some(0.25), 0), (Some(0.5), 4)]);
+    // The scheduler is told each frame's preview version.
+    let told = std::cell::RefCell::new(Vec::new());
+    let waits = |_: &Job, version: Option<u32>| {
+        told.borrow_mut().push(version);
+        true
+    };
+    let next = store.next_task(&HashSet::new(), &|_| true, &waits);
+    assert!(next.expect("next").is_none(), "both frames wait");
+    assert_eq!(*told.borrow(), [Some(0), Some(4)]);
+}

@@ -335,3 +335,79 @@ fn a_preview_sample_is_served_and_a_damaged_chunk_table_is_named() {
     assert!(matches!(again, Err(DaemonError::FailedPrecondition(r)) if r == reason));
     assert!(stores.preview_sample(&dataset_of(&good, "good")).is_ok());
 }
+
+/// While a store builds, the preview sample carries the nodes the build has stored so far
+/// and their version; it is read again only when the version moves, and the build's version
+/// is what leases compare previews with.
+#[test]
+fn the_preview_sample_carries_the_nodes_stored_so_far_and_their_version() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let laz = dir.path().join("scene.laz");
+    write_las(&laz, &sample_scene(120_000, 5), &LasWriteOptions::default()).expect("write");
+    let dataset = dataset_of(&laz, "cc33");
+    let gate = StoreBuildGate::closed();
+    let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20).gated(Some(gate.clone()));
+    assert_eq!(stores.building_version("cc33"), None, "nothing builds yet");
+    assert!(matches!(
+        stores.open(&dataset, true).expect("open"),
+        StoreAnswer::Building { points: 120_000 }
+    ));
+    assert_eq!(
+        stores.building_version("cc33"),
+        Some(0),
+        "held at the gate: nothing stored"
+    );
+    let starts = stores.preview_sample(&dataset).expect("a sample");
+    assert_eq!(starts.version, 0);
+    let decoded = |sample: &PreviewBytes| {
+        pointfarm_render::cache::decode_cloud(&sample.cloud)
+            .expect("decodes")
+            .len()
+    };
+    assert_eq!(decoded(&starts), 3, "the chunk starts alone");
+
+    // A build of the same files run to its end beside it: every tenth stored.
+    let progress = Arc::new(BuildProgress::new());
+    StoredLod::open_or_build_watched(
+        std::slice::from_ref(&laz),
+        &dir.path().join("beside"),
+        64 << 20,
+        None,
+        &mut |_| {},
+        &progress,
+    )
+    .expect("build");
+    stores.hold_building("cc33", 120_000, Arc::clone(&progress));
+    assert_eq!(stores.building_version("cc33"), Some(10));
+    let redrawn = stores.preview_sample(&dataset).expect("a sample");
+    assert_eq!(redrawn.version, 10);
+    let (stored, total) = progress.points();
+    assert_eq!((stored, total), (120_000, 120_000));
+    assert_eq!(
+        decoded(&redrawn),
+        3 + 120_000,
+        "the chunk starts and every stored point (within the preview's budget)"
+    );
+    assert_eq!(
+        (redrawn.points_in_files, redrawn.framed),
+        (starts.points_in_files, starts.framed)
+    );
+    let again = stores.preview_sample(&dataset).expect("a sample");
+    assert!(
+        Arc::ptr_eq(&again, &redrawn),
+        "kept while the version stands"
+    );
+
+    // The gated build goes on and ends: the store is ready, nothing builds.
+    gate.open();
+    wait_ready(&stores, &dataset);
+    assert_eq!(stores.building_version("cc33"), None);
+    assert!(
+        !stores
+            .previews
+            .lock()
+            .expect("previews")
+            .contains_key("cc33"),
+        "the sample's memory is freed once the store is ready"
+    );
+}

@@ -4,7 +4,8 @@
 //! are — instead of downloading the dataset's files and building a store of its own. A
 //! dataset of one COPC file comes the same way, its records the file's LAZ chunks, decoded
 //! here with what the daemon sends of its header. While the daemon builds a store, a preview
-//! job's frames render from the daemon's preview sample of the dataset (`fetch_preview`).
+//! job's frames render from the daemon's preview sample of the dataset (`fetch_preview`),
+//! fetched again when a task asks for a later version of it than the one loaded.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -140,6 +141,9 @@ pub struct PreviewSample {
     pub points_in_files: u64,
     /// The files' header bounds.
     pub bounds: WorldBounds,
+    /// The build's version when the daemon read it: the whole tenths of the points whose
+    /// stored nodes it carries beyond the chunk starts.
+    pub version: u32,
 }
 
 /// The daemon's preview sample of `task`'s dataset. A status error is the daemon's refusal
@@ -191,6 +195,7 @@ pub async fn fetch_preview(client: &mut Client, task: &FrameTask) -> Result<Prev
         cloud,
         points_in_files: header.points_in_files,
         bounds,
+        version: header.version,
     })
 }
 

@@ -5,8 +5,9 @@
 //!   seen is downloaded once (`FetchDataset`, SHA-256 checked) and decoded into the cache.
 //!   A dataset that needs a store is read from the daemon's; while the daemon builds it, a
 //!   frame is handed back, or, of a job that asks for previews, rendered from the daemon's
-//!   preview sample and handed in as a preview (the daemon leases it again once the store
-//!   is ready).
+//!   preview sample and handed in as a preview (the daemon leases it again for a redraw when
+//!   its build has stored another tenth of the points, the sample fetched again then, and
+//!   for its final render once the store is ready).
 //!   The cloud stays resident on the GPU across frames of the same dataset.
 //! - While a frame renders, heartbeats renew the lease every third of the lease timeout (at
 //!   most 5 s apart); when the daemon answers "stop" (job cancelled, lease lost) the frame is
@@ -352,7 +353,7 @@ async fn dataset_access(
     }
     match daemon_store::open(client, task).await {
         Ok(DaemonStore::Ready(store)) => return Ok(DatasetAccess::DaemonStore(store)),
-        Ok(DaemonStore::Building) if task.preview => {
+        Ok(DaemonStore::Building) if task.preview().is_some() => {
             if state.has_preview(task) {
                 return Ok(DatasetAccess::Preview(None));
             }

@@ -3,7 +3,8 @@
 //! `DatasetCache`), colour it, keep it resident on the GPU across frames, render with the
 //! job's settings and encode the PNG, with the stage timings of every step. A preview job's
 //! frame whose store the daemon is still building renders from the daemon's preview sample
-//! instead, resident as `render --preview` renders it here, and says how complete it is.
+//! instead, resident as `render --preview` renders it here, and says how complete it is; a
+//! task asking for a later version of the sample than the one loaded replaces it.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -50,6 +51,8 @@ struct Preview {
     cloud: GpuPointCloud,
     /// The points of the dataset's files, of which the sample is a few.
     points_in_files: u64,
+    /// The sample's version: the whole tenths of the points whose stored nodes it carries.
+    version: u32,
 }
 
 /// A dataset rendered from its level-of-detail store, cut by cut.
@@ -195,12 +198,14 @@ impl WorkerRenderState {
         }
     }
 
-    /// Whether the preview sample of `task`'s dataset is loaded as `task` needs it.
+    /// Whether the preview sample of `task`'s dataset is loaded as `task` needs it: of its
+    /// version or a later one.
     pub fn has_preview(&self, task: &FrameTask) -> bool {
         matches!(&self.loaded, Some(Loaded::Preview(p))
             if p.sha256 == task.dataset.sha256
                 && p.coloring == task.request.render.coloring()
-                && p.filter == task.request.render.filter)
+                && p.filter == task.request.render.filter
+                && p.version >= task.preview().unwrap_or(0))
     }
 
     /// Whether rendering `task` reads the dataset's files: its points are neither loaded, nor
@@ -339,6 +344,9 @@ impl WorkerRenderState {
         sample: Option<Box<PreviewSample>>,
     ) -> Result<RenderedFrame, FrameFailure> {
         let mut timings = Vec::new();
+        // A sample just fetched is the daemon's latest, drawn whatever its version (a
+        // restarted daemon's build counts again from 0).
+        let fetched = sample.is_some();
         if let Some(sample) = sample {
             self.loaded = None; // free the old dataset's memory first
             let started = Instant::now();
@@ -346,7 +354,7 @@ impl WorkerRenderState {
             timings.push(stage("load", started.elapsed().as_secs_f64() * 1e3));
             self.loaded = Some(Loaded::Preview(Box::new(preview)));
         }
-        let loaded = self.has_preview(task);
+        let loaded = fetched || self.has_preview(task);
         let (true, Some(Loaded::Preview(preview))) = (loaded, self.loaded.as_ref()) else {
             return Err(FrameFailure::transient("no preview sample loaded"));
         };
@@ -391,7 +399,8 @@ impl WorkerRenderState {
             .upload(&cloud)
             .map_err(|e| in_dataset(FrameFailure::from(&e)))?;
         tracing::info!(dataset = %dataset.id, points = cloud.len(),
-            points_in_files = sample.points_in_files, "preview sample resident");
+            points_in_files = sample.points_in_files, version = sample.version,
+            "preview sample resident");
         Ok(Preview {
             sha256: dataset.sha256.clone(),
             coloring: render.coloring(),
@@ -400,6 +409,7 @@ impl WorkerRenderState {
             spacing: cloud.spacing(),
             cloud: gpu_cloud,
             points_in_files: sample.points_in_files,
+            version: sample.version,
         })
     }
 

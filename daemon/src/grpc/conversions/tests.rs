@@ -360,6 +360,7 @@ fn tasks_carry_the_job_spec_unchanged_across_the_wire() {
                 worker: "w".into(),
                 embedded: false,
                 expires_unix_ms: 1234,
+                preview_version: Some(3),
             },
             lease_timeout: std::time::Duration::from_secs(30),
             dataset: TaskDataset {
@@ -379,7 +380,6 @@ fn tasks_carry_the_job_spec_unchanged_across_the_wire() {
             },
             request: spec.request.clone(),
             failed_attempts: 2,
-            preview: true,
         };
         let received = frame_task(&frame_task_message(&task), "w").expect("valid task");
         assert_eq!(received, task);

@@ -429,3 +429,28 @@ fn a_build_lists_its_stored_nodes_as_it_goes() {
         "every level above the deepest taken is whole"
     );
 }
+
+/// A progress made to notify is told each preview version as the build reaches it, on the
+/// build's threads, up to every tenth stored.
+#[test]
+fn a_watched_build_tells_each_preview_version_as_it_moves() {
+    let source = GeneratedSource::terrain(200_000, 5);
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (_db, store) = temp_store(dir.path());
+    let options = options(dir.path(), 500);
+    let told = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+    let seen = std::sync::Arc::clone(&told);
+    let progress = BuildProgress::notifying(move |version| {
+        seen.lock().expect("versions").push(version);
+    });
+    build_lod_watched(&source, &store, &options, &progress).expect("build");
+    let mut told = told.lock().expect("versions").clone();
+    assert!(told.contains(&10), "{told:?}");
+    assert_eq!(progress.preview_version(), 10);
+    // Threads storing at once may tell theirs out of order, never one twice.
+    let count = told.len();
+    told.sort_unstable();
+    told.dedup();
+    assert_eq!(told.len(), count, "a version told twice");
+    assert!(told.iter().all(|v| (1..=10).contains(v)), "{told:?}");
+}
