@@ -288,6 +288,11 @@ const CLOUD_MAGIC: &[u8; 8] = b"PFCLOUD1";
 /// The magic, the point count, the origin and the bounds (seven f64), the colour source.
 const CLOUD_HEADER_BYTES: usize = 8 + 8 + 9 * 8 + 1;
 
+/// The length of [`encode_cloud`]'s bytes for a cloud of `points` points.
+pub const fn encoded_cloud_bytes(points: u64) -> u64 {
+    CLOUD_HEADER_BYTES as u64 + points * BYTES_PER_POINT
+}
+
 /// A whole cloud as bytes in the cache's column layout, after a header of its count, origin,
 /// bounds and colour decision: what a daemon sends a worker of a preview sample, decoded to
 /// the bit by [`decode_cloud`].

@@ -13,7 +13,9 @@ use std::time::Duration;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::cloud::{PointCloud, WorldBounds};
 use pointfarm_render::copc::CopcDecoder;
-use pointfarm_render::lod::{LodError, LodHierarchy, NodeInfo, NodePoints, NodeRecords, RootCube};
+use pointfarm_render::lod::{
+    LodError, LodHierarchy, NodeInfo, NodePoints, NodeRecords, RootCube, PREVIEW_STORED_POINTS,
+};
 use tonic::{Code, Status};
 
 use super::client::Client;
@@ -131,9 +133,10 @@ pub async fn open(client: &mut Client, task: &FrameTask) -> Result<DaemonStore, 
     })))
 }
 
-/// The most bytes of preview sample a worker accepts: 31 bytes a point, about 2 M chunk
-/// starts (a dataset of 100 G points).
-const MAX_PREVIEW_BYTES: u64 = 64 << 20;
+/// The most bytes of preview sample a worker accepts: about 2 M chunk starts (a dataset of
+/// 100 G points) and the most points of stored nodes a redraw carries.
+const MAX_PREVIEW_BYTES: u64 =
+    pointfarm_render::cache::encoded_cloud_bytes(2_000_000 + PREVIEW_STORED_POINTS);
 
 /// A preview sample as the daemon sends it.
 pub struct PreviewSample {

@@ -363,11 +363,13 @@ async fn dataset_access(
                 Err(status) if status.code() == Code::FailedPrecondition => {
                     Err(Attempt::Failed(FrameFailure::permanent(status.message())))
                 }
-                Err(status) => Err(Attempt::Failed(FrameFailure::transient(format!(
-                    "fetching the preview sample of dataset {}: {}",
-                    task.dataset.id,
-                    status.message()
-                )))),
+                // A preview is never worth one of the frame's attempts: it goes back uncounted
+                // and this worker waits before its next lease, as for a store being built.
+                Err(status) => {
+                    tracing::warn!(dataset = %task.dataset.id, reason = %status.message(),
+                        "no preview sample; frame handed back");
+                    Err(Attempt::StoreBuilding)
+                }
             };
         }
         Ok(DaemonStore::Building) => return Err(Attempt::StoreBuilding),
