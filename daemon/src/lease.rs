@@ -143,12 +143,15 @@ impl Daemon {
         };
         // A frame with a preview of the build's version waits while its dataset's store
         // builds: it is drawn again when the build has stored another tenth of the points,
-        // and rendered as a final frame once the store is ready.
-        let waits = |job: &Job, drawn: Option<u32>| {
-            drawn.is_some_and(|drawn| building(job).is_some_and(|current| drawn >= current))
+        // frames without a preview first, then the oldest previews, and rendered as a final
+        // frame once the store is ready.
+        let turn = |job: &Job, drawn: Option<u32>| match (drawn, building(job)) {
+            (Some(drawn), Some(current)) if drawn >= current => None,
+            (Some(drawn), Some(_)) => Some(drawn + 1),
+            (None, _) | (_, None) => Some(0),
         };
         loop {
-            let Some((job, index)) = self.store.next_task(&leased, &usable, &waits)? else {
+            let Some((job, index)) = self.store.next_task(&leased, &usable, &turn)? else {
                 return Ok(None);
             };
             let Some(dataset) = self.store.dataset(&job.spec.dataset_id)? else {

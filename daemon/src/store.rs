@@ -393,15 +393,16 @@ impl Store {
     /// unfinished job with the highest priority that `usable` accepts (the asking worker can
     /// render it), the oldest first among equals. Reads the scheduling index, so finished
     /// jobs cost nothing.
-    /// A preview job's frame is passed over while `waits(job, preview_version)`, the version
-    /// of its preview when it has one.
+    /// A preview job's frame has its turn by `turn(job, preview_version)`, the version of its
+    /// preview when it has one: `None` passes it over, `Some(0)` takes it at once, and among
+    /// higher turns the job's lowest is taken (the first frame of it).
     pub fn next_task(
         &self,
         leased: &HashSet<(String, u32)>,
         usable: &dyn Fn(&Job) -> bool,
-        waits: &dyn Fn(&Job, Option<u32>) -> bool,
+        turn: &dyn Fn(&Job, Option<u32>) -> Option<u32>,
     ) -> Result<Option<(Job, u32)>, StoreError> {
-        self.with(|records| records.next_task(leased, usable, waits))
+        self.with(|records| records.next_task(leased, usable, turn))
     }
 
     /// Keeps `report` as the preview of the pending frame of `lease` and removes the lease,

@@ -632,3 +632,66 @@ fn a_preview_is_drawn_again_once_the_build_has_stored_more() {
         assert_eq!((task.lease.index, task.preview()), (index, None));
     }
 }
+
+/// When the build's version moves, a frame without a preview is drawn first, then the frame
+/// whose preview is oldest, whatever their order in the job: every frame sharpens in turn.
+#[test]
+fn redraws_take_the_frames_without_a_preview_then_the_oldest_previews_first() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let build = tempfile::tempdir().expect("tempdir");
+    let daemon = open(dir.path());
+    let job = test_daemon::submit(&daemon, 3, |r| r.preview = true);
+    let sha256 = daemon
+        .store
+        .dataset(&job.spec.dataset_id)
+        .expect("read")
+        .expect("dataset")
+        .sha256;
+    let hold = |progress: &Arc<pointfarm_render::lod::BuildProgress>| {
+        daemon
+            .stores
+            .hold_building(&sha256, 20_000, Arc::clone(progress))
+    };
+    let preview = FrameOutcome {
+        preview: Some(0.01),
+        ..outcome()
+    };
+    // Version 0: frames 0 and 2 previewed, frame 1 held by another worker.
+    hold(&Arc::new(pointfarm_render::lod::BuildProgress::new()));
+    let first = lease(&daemon, "w", false);
+    let held = lease(&daemon, "other", false);
+    let third = lease(&daemon, "w", false);
+    assert_eq!(
+        (first.lease.index, held.lease.index, third.lease.index),
+        (0, 1, 2)
+    );
+    for task in [&first, &third] {
+        daemon
+            .complete_frame(&task.lease.id, &png(8, 6), preview.clone())
+            .expect("a preview");
+    }
+    daemon.release_frame(&held.lease.id).expect("release");
+
+    // The build moves on: frame 1, which has no preview, comes first.
+    hold(&whole_build_progress(build.path()));
+    let next = lease(&daemon, "w", false);
+    assert_eq!((next.lease.index, next.preview()), (1, Some(10)));
+    daemon
+        .complete_frame(&next.lease.id, &png(8, 6), preview.clone())
+        .expect("a preview");
+    // Then the older previews, in the job's order.
+    let redraws: Vec<u32> = (0..2)
+        .map(|_| {
+            let task = lease(&daemon, "w", false);
+            daemon
+                .complete_frame(&task.lease.id, &png(8, 6), preview.clone())
+                .expect("a redraw");
+            task.lease.index
+        })
+        .collect();
+    assert_eq!(redraws, [0, 2]);
+    let none = daemon
+        .lease_frame("w", false, &WorkerCapabilities::default())
+        .expect("lease");
+    assert!(none.is_none(), "every preview is current: {none:?}");
+}

@@ -368,12 +368,13 @@ impl Records {
 
     /// The next frame to render: the first pending frame that is not `leased`, of the
     /// unfinished job with the highest priority that `usable` accepts, the oldest first among
-    /// equals. Reads the scheduling index, so finished jobs cost nothing.
+    /// equals; of a preview job, the frame of the lowest `turn`. Reads the scheduling index,
+    /// so finished jobs cost nothing.
     pub(super) fn next_task(
         &self,
         leased: &std::collections::HashSet<(String, u32)>,
         usable: &dyn Fn(&Job) -> bool,
-        waits: &dyn Fn(&Job, Option<u32>) -> bool,
+        turn: &dyn Fn(&Job, Option<u32>) -> Option<u32>,
     ) -> Result<Option<(Job, u32)>, StoreError> {
         for entry in self.trees.queue.iter() {
             let (_, job_id) = entry?;
@@ -381,6 +382,8 @@ impl Records {
             prefix.push(b'/');
             let job_id = String::from_utf8_lossy(&job_id).into_owned();
             let mut job: Option<Job> = None;
+            // The preview job's frame of the lowest turn so far, and that turn.
+            let mut later: Option<(u32, u32)> = None;
             for key in self.trees.pending.scan_prefix(&prefix).keys() {
                 let key = key?;
                 let index_bytes: [u8; 4] = key[prefix.len()..].try_into().unwrap_or([0; 4]);
@@ -399,11 +402,24 @@ impl Records {
                 }
                 let Some(found) = &job else { break };
                 // A preview job's previewed frames wait while its store builds, until the
-                // build's version moves past their previews'.
-                if found.spec.preview && waits(found, self.preview_version(&job_id, index)?) {
-                    continue;
+                // build's version moves past their previews'; then the oldest preview is
+                // drawn again first, so that every frame sharpens, not only the first ones.
+                if found.spec.preview {
+                    match turn(found, self.preview_version(&job_id, index)?) {
+                        None => continue,
+                        Some(0) => {}
+                        Some(turn) => {
+                            if later.is_none_or(|(best, _)| turn < best) {
+                                later = Some((turn, index));
+                            }
+                            continue;
+                        }
+                    }
                 }
                 return Ok(Some((found.clone(), index)));
+            }
+            if let (Some(job), Some((_, index))) = (job, later) {
+                return Ok(Some((job, index)));
             }
         }
         Ok(None)
