@@ -538,6 +538,35 @@ fn whole_build_progress(dir: &Path) -> Arc<pointfarm_render::lod::BuildProgress>
     progress
 }
 
+/// The content hash of `job`'s dataset, whose build a test holds.
+fn dataset_sha256(daemon: &Daemon, job: &crate::model::Job) -> String {
+    daemon
+        .store
+        .dataset(&job.spec.dataset_id)
+        .expect("read")
+        .expect("dataset")
+        .sha256
+}
+
+/// Holds `sha256`'s store as building, at `progress`.
+fn hold_building(
+    daemon: &Daemon,
+    sha256: &str,
+    progress: &Arc<pointfarm_render::lod::BuildProgress>,
+) {
+    daemon
+        .stores
+        .hold_building(sha256, 20_000, Arc::clone(progress))
+}
+
+/// A preview of `completeness`, as a worker hands one in.
+fn preview_of(completeness: f64) -> FrameOutcome {
+    FrameOutcome {
+        preview: Some(completeness),
+        ..outcome()
+    }
+}
+
 /// While the store builds, a frame whose preview is of the build's version waits; once the
 /// build's version moves past it, the frame is offered again for a preview of the new
 /// version, which is kept with it (across a restart too); a frame is leased for its final
@@ -548,24 +577,14 @@ fn a_preview_is_drawn_again_once_the_build_has_stored_more() {
     let build = tempfile::tempdir().expect("tempdir");
     let daemon = open(dir.path());
     let job = test_daemon::submit(&daemon, 2, |r| r.preview = true);
-    let sha256 = daemon
-        .store
-        .dataset(&job.spec.dataset_id)
-        .expect("read")
-        .expect("dataset")
-        .sha256;
+    let sha256 = dataset_sha256(&daemon, &job);
     // A build that has stored nothing yet: the chunk starts alone, version 0.
     let started = Arc::new(pointfarm_render::lod::BuildProgress::new());
     let hold = |daemon: &Daemon, progress: &Arc<pointfarm_render::lod::BuildProgress>| {
-        daemon
-            .stores
-            .hold_building(&sha256, 20_000, Arc::clone(progress))
+        hold_building(daemon, &sha256, progress)
     };
     hold(&daemon, &started);
-    let preview = |completeness| FrameOutcome {
-        preview: Some(completeness),
-        ..outcome()
-    };
+    let preview = preview_of;
     for index in 0..2 {
         let task = lease(&daemon, "w", false);
         assert_eq!((task.lease.index, task.preview()), (index, Some(0)));
@@ -641,21 +660,11 @@ fn redraws_take_the_frames_without_a_preview_then_the_oldest_previews_first() {
     let build = tempfile::tempdir().expect("tempdir");
     let daemon = open(dir.path());
     let job = test_daemon::submit(&daemon, 3, |r| r.preview = true);
-    let sha256 = daemon
-        .store
-        .dataset(&job.spec.dataset_id)
-        .expect("read")
-        .expect("dataset")
-        .sha256;
+    let sha256 = dataset_sha256(&daemon, &job);
     let hold = |progress: &Arc<pointfarm_render::lod::BuildProgress>| {
-        daemon
-            .stores
-            .hold_building(&sha256, 20_000, Arc::clone(progress))
+        hold_building(&daemon, &sha256, progress)
     };
-    let preview = FrameOutcome {
-        preview: Some(0.01),
-        ..outcome()
-    };
+    let preview = preview_of(0.01);
     // Version 0: frames 0 and 2 previewed, frame 1 held by another worker.
     hold(&Arc::new(pointfarm_render::lod::BuildProgress::new()));
     let first = lease(&daemon, "w", false);
