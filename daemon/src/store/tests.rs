@@ -216,3 +216,68 @@ fn a_preview_record_without_a_version_opens_as_version_0() {
     assert!(next.expect("next").is_none(), "both frames wait");
     assert_eq!(*told.borrow(), [Some(0), Some(4)]);
 }
+
+/// Of a preview job, the frame of the lowest turn is taken (the first of equal turns), a
+/// frame of turn 0 at once, and one without a turn never; a job without previews is taken in
+/// order whatever the turns say.
+#[test]
+fn a_preview_jobs_frames_are_taken_by_turn() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let store = open(&dir.path().join("state.sled"));
+    let (job, _) = store
+        .submit_job(JobSpec {
+            preview: true,
+            ..spec("a", 4, 0)
+        })
+        .expect("submit");
+    for (index, version) in [(0, 2), (1, 0), (2, 1), (3, 0)] {
+        let lease = Lease {
+            id: format!("lease-{index}"),
+            job_id: job.id.clone(),
+            index,
+            worker: "w".into(),
+            embedded: false,
+            expires_unix_ms: 0,
+            preview_version: Some(version),
+        };
+        store.put_lease(&lease).expect("lease");
+        let report = FrameReport {
+            index,
+            preview: Some(0.5),
+            preview_version: version,
+            ..FrameReport::default()
+        };
+        store.keep_preview(&lease, &report).expect("preview");
+    }
+    // The oldest preview first: the turn is its version and one.
+    let oldest_first = |_: &Job, drawn: Option<u32>| drawn.map(|version| version + 1);
+    let mut order = Vec::new();
+    let mut leased = HashSet::new();
+    while let Some((job, index)) = store
+        .next_task(&leased, &|_| true, &oldest_first)
+        .expect("next")
+    {
+        leased.insert((job.id, index));
+        order.push(index);
+    }
+    assert_eq!(order, [1, 3, 2, 0]);
+    // Frame 2's turn 0 takes it at once, over frame 1 found before it with a later turn;
+    // no turn passes a frame over.
+    let turns = |_: &Job, drawn: Option<u32>| match drawn {
+        Some(2) => None,
+        Some(1) => Some(0),
+        _ => Some(5),
+    };
+    let next = store.next_task(&HashSet::new(), &|_| true, &turns);
+    assert_eq!(next.expect("next").map(|(_, index)| index), Some(2));
+    let only_passed = |_: &Job, _: Option<u32>| None;
+    let next = store.next_task(&HashSet::new(), &|_| true, &only_passed);
+    assert!(next.expect("next").is_none());
+
+    let (plain, _) = store.submit_job(spec("b", 2, 1)).expect("submit");
+    let next = store.next_task(&HashSet::new(), &|_| true, &only_passed);
+    assert_eq!(
+        next.expect("next").map(|(job, index)| (job.id, index)),
+        Some((plain.id, 0))
+    );
+}
