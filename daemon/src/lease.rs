@@ -24,83 +24,16 @@
 //! so two workers never get the same frame and a cancel never races a completion.
 
 use std::collections::HashSet;
-use std::time::Duration;
-
-use pointfarm_render::request::RenderRequest;
 
 use crate::capabilities::WorkerCapabilities;
 use crate::error::DaemonError;
 use crate::lease_record::Lease;
-use crate::model::{now_unix_ms, FrameCut, FrameReport, FrameState, Job, JobState, StageTiming};
+use crate::model::{now_unix_ms, FrameReport, FrameState, Job, JobState};
 use crate::service::Daemon;
 
-/// The dataset of a task, as a worker's cache knows it.
-#[derive(Debug, Clone, PartialEq)]
-pub struct TaskDataset {
-    pub id: String,
-    /// The content's hash: the key of the worker's cache.
-    pub sha256: String,
-    pub size_bytes: u64,
-    /// Its files in order, fetched one by one.
-    pub files: Vec<TaskFile>,
-}
+mod task;
 
-/// One file of a task's dataset.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct TaskFile {
-    pub sha256: String,
-    pub size_bytes: u64,
-}
-
-/// One leased frame with everything needed to render it.
-#[derive(Debug, Clone, PartialEq)]
-pub struct FrameTask {
-    pub lease: Lease,
-    pub lease_timeout: Duration,
-    pub dataset: TaskDataset,
-    /// The job's request; the frame is `lease.index` of its camera path.
-    pub request: RenderRequest,
-    /// Attempts at this frame that ended without a result.
-    pub failed_attempts: u32,
-}
-
-impl FrameTask {
-    /// Set when the job asks for previews and the frame has none yet, or one older than the
-    /// build's version: while the daemon builds the dataset's store, the worker renders it
-    /// from the preview sample, of this version at least.
-    pub fn preview(&self) -> Option<u32> {
-        self.lease.preview_version
-    }
-}
-
-/// What a worker reports with a finished frame's PNG.
-#[derive(Debug, Clone, PartialEq)]
-pub struct FrameOutcome {
-    pub timings: Vec<StageTiming>,
-    pub dataset_cache_hit: Option<bool>,
-    pub cut: Option<FrameCut>,
-    /// Set on a preview: its completeness (0 to 1).
-    pub preview: Option<f64>,
-}
-
-/// Whether a failed frame is worth another attempt.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum FailureKind {
-    /// May succeed next time: a lost GPU, an I/O error, a dead worker.
-    Transient,
-    /// Fails the same way every time: an unreadable dataset, a request that cannot render.
-    Permanent,
-}
-
-/// The answer to a heartbeat.
-#[derive(Debug, Clone, PartialEq)]
-pub enum HeartbeatAnswer {
-    Continue {
-        expires_unix_ms: i64,
-    },
-    /// Drop the frame, for this reason.
-    Stop(String),
-}
+pub use task::{FailureKind, FrameOutcome, FrameTask, HeartbeatAnswer, TaskDataset, TaskFile};
 
 impl Daemon {
     fn lease_timeout_ms(&self) -> i64 {
