@@ -66,22 +66,34 @@ impl Daemon {
                     .refusal(&job.spec.requirements, &job.spec.request)
                     .is_none()
         };
-        // The preview version of the job's dataset's store while it builds.
+        // The preview version of the job's dataset's store while it builds, looked up once
+        // per job of this scan (the scan asks for every previewed frame of a job).
+        let versions = std::cell::RefCell::new(std::collections::HashMap::new());
         let building = |job: &Job| {
-            self.store
-                .dataset(&job.spec.dataset_id)
-                .ok()
-                .flatten()
-                .and_then(|dataset| self.stores.building_version(&dataset.sha256))
+            *versions
+                .borrow_mut()
+                .entry(job.id.clone())
+                .or_insert_with(|| {
+                    self.store
+                        .dataset(&job.spec.dataset_id)
+                        .ok()
+                        .flatten()
+                        .and_then(|dataset| self.stores.building_version(&dataset.sha256))
+                })
         };
         // A frame with a preview of the build's version waits while its dataset's store
         // builds: it is drawn again when the build has stored another tenth of the points,
         // frames without a preview first, then the oldest previews, and rendered as a final
         // frame once the store is ready.
-        let turn = |job: &Job, drawn: Option<u32>| match (drawn, building(job)) {
-            (Some(drawn), Some(current)) if drawn >= current => None,
-            (Some(drawn), Some(_)) => Some(drawn + 1),
-            (None, _) | (_, None) => Some(0),
+        let turn = |job: &Job, drawn: Option<u32>| {
+            let Some(drawn) = drawn else {
+                return Some(0);
+            };
+            match building(job) {
+                Some(current) if drawn >= current => None,
+                Some(_) => Some(drawn + 1),
+                None => Some(0),
+            }
         };
         loop {
             let Some((job, index)) = self.store.next_task(&leased, &usable, &turn)? else {
