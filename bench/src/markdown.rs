@@ -287,14 +287,14 @@ pub fn campaign_tables(c: &CampaignResult) -> String {
         md,
         "\nThe builder's stages (s), the chunks, the nodes, what was spilled and stored:\n\n\
          | input | counting | distribution | chunks | upper levels | total | chunks | nodes | \
-         spilled MiB | node records MiB | store on disk MiB | RSS before MiB |\n\
+         spilled MiB (B a record) | node records MiB | store on disk MiB | RSS before MiB |\n\
          |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     );
     for b in &c.builds {
         let s = &b.stages;
         let _ = writeln!(
             md,
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {:.0} | {:.0} | {:.0} | {:.0} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {:.0} ({}) | {:.0} | {:.0} | {:.0} |",
             b.input.to_uppercase(),
             seconds(s.counting_s),
             seconds(s.distribution_s),
@@ -304,6 +304,7 @@ pub fn campaign_tables(c: &CampaignResult) -> String {
             b.chunks,
             thousands(b.nodes),
             mib(b.spilled_bytes),
+            b.spill_record_bytes,
             mib(b.stored_bytes),
             mib(b.store_disk_bytes),
             mib(b.before_rss_bytes)

@@ -141,6 +141,8 @@ pub struct BuildResult {
     pub chunks: usize,
     pub nodes: usize,
     pub spilled_bytes: u64,
+    /// Bytes of a point's spill record (26 on one LAS grid, 38 in f64).
+    pub spill_record_bytes: usize,
     /// Bytes of node records written.
     pub stored_bytes: u64,
     /// Bytes the store's folder (sled's hierarchy and the node payload file) takes on disk
@@ -468,6 +470,7 @@ fn build(
             chunks: report.chunks,
             nodes: report.hierarchy.nodes().len(),
             spilled_bytes: report.spilled_bytes,
+            spill_record_bytes: report.spill_record_bytes,
             stored_bytes: report.stored_bytes,
             store_disk_bytes,
             store_disk_bytes_per_point: store_disk_bytes as f64 / points.max(1) as f64,

@@ -114,6 +114,9 @@ pub(super) struct DatasetFile {
     pub chunks: ChunkTable,
     pub header_bounds: WorldBounds,
     pub has_color: bool,
+    /// The header's scale factors and offsets: world = scale * integer + offset per axis.
+    pub scale: DVec3,
+    pub offset: DVec3,
 }
 
 impl DatasetFile {
@@ -134,12 +137,15 @@ impl DatasetFile {
         let file_len = file.metadata().map_err(io_error)?.len();
         let CheckedFile { facts, laz, chunks } = check_file(path, &mut file, file_len)?;
         file.seek(SeekFrom::Start(0)).map_err(io_error)?;
-        let (header_bounds, has_color) = contain_panics(path, || {
+        let (header_bounds, has_color, scale, offset) = contain_panics(path, || {
             let reader = open_reader(path, file, laz)?;
             let header = reader.header();
+            let t = header.transforms();
             Ok((
                 world_bounds(header.bounds()),
                 header.point_format().has_color,
+                DVec3::new(t.x.scale, t.y.scale, t.z.scale),
+                DVec3::new(t.x.offset, t.y.offset, t.z.offset),
             ))
         })?;
         Ok(Self {
@@ -150,6 +156,8 @@ impl DatasetFile {
             chunks,
             header_bounds,
             has_color,
+            scale,
+            offset,
         })
     }
 

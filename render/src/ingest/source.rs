@@ -10,7 +10,7 @@ use super::contain::contain_panics;
 use super::read::{usable, DatasetFile};
 use super::IngestError;
 use crate::cloud::WorldBounds;
-use crate::lod::{BatchColumns, BatchVisitor, LodError, PointSource};
+use crate::lod::{BatchColumns, BatchVisitor, LodError, PointSource, PositionGrid};
 
 /// The files of a dataset, checked, as a source the level-of-detail builder reads twice.
 pub struct DatasetSource {
@@ -18,6 +18,7 @@ pub struct DatasetSource {
     bounds: WorldBounds,
     points: u64,
     has_rgb: bool,
+    grid: Option<SharedGrid>,
 }
 
 impl DatasetSource {
@@ -42,16 +43,52 @@ impl DatasetSource {
             .unwrap_or(files[0].header_bounds);
         // Header bounds are rounded to the files' scales; allow for that and a little more.
         let slack = DVec3::splat(1e-3) + union.size().abs() * 1e-9;
+        let bounds = WorldBounds {
+            min: union.min - slack,
+            max: union.max + slack,
+        };
         Ok(Self {
+            grid: shared_grid(&files, &bounds),
             points: files.iter().map(|file| file.facts.declared_points).sum(),
             has_rgb: files.iter().all(|file| file.has_color),
-            bounds: WorldBounds {
-                min: union.min - slack,
-                max: union.max + slack,
-            },
+            bounds,
             files,
         })
     }
+}
+
+/// One grid for all of a dataset's files: the first file's, and for each file the integers
+/// that move its coordinates onto it.
+#[derive(Debug, Clone)]
+struct SharedGrid {
+    grid: PositionGrid,
+    shifts: Vec<[i64; 3]>,
+}
+
+/// The shared grid of files with one scale whose offsets lie on each other's grids (tiles of
+/// one survey: one offset, or offsets a whole number of steps apart), and whose bounds fit
+/// i32 integers on it. A file's points then read as `scale * (i + shift) + offset` of the
+/// first file: the same coordinates, at most an f64 step apart, on one grid.
+fn shared_grid(files: &[DatasetFile], bounds: &WorldBounds) -> Option<SharedGrid> {
+    let first = files.first()?;
+    let grid = PositionGrid::new(first.scale, first.offset)?;
+    let same_scale = |file: &DatasetFile| {
+        file.scale.to_array().map(f64::to_bits) == first.scale.to_array().map(f64::to_bits)
+    };
+    let shift = |file: &DatasetFile| -> Option<[i64; 3]> {
+        let steps = (file.offset - first.offset) / first.scale;
+        let whole = steps.round();
+        let on_grid = (steps - whole).abs().max_element() <= 1e-6;
+        (same_scale(file) && on_grid && whole.abs().max_element() < 2f64.powi(40))
+            .then(|| whole.to_array().map(|v| v as i64))
+    };
+    let shifts = files.iter().map(shift).collect::<Option<Vec<_>>>()?;
+    // Every point inside the bounds (the batches' check) must have an i32 on the grid.
+    let limit = f64::from(i32::MAX) - 1.0;
+    let lo = (bounds.min - first.offset) / first.scale;
+    let hi = (bounds.max - first.offset) / first.scale;
+    let fits = lo.cmpge(DVec3::splat(-limit)).all() && hi.cmple(DVec3::splat(limit)).all();
+    fits.then_some(SharedGrid { grid, shifts })
 }
 
 /// Records decoded per task when a batch is turned into columns on all cores.
@@ -92,8 +129,14 @@ fn i32_at(record: &[u8], at: usize) -> i32 {
 }
 
 /// Fills `columns` with a decoded batch (its RGB only `with_rgb`), blocks of records decoded
-/// in parallel: the same values as the `las` crate's column iterators.
-fn fill(columns: &mut BatchColumns, batch: &las::PointData, with_rgb: bool) {
+/// in parallel: the same values as the `las` crate's column iterators, positions on `grid`
+/// (with the file's shift) where the dataset has one.
+fn fill(
+    columns: &mut BatchColumns,
+    batch: &las::PointData,
+    with_rgb: bool,
+    grid: Option<(&PositionGrid, [i64; 3])>,
+) {
     let fields = RecordFields::of(batch);
     let n = batch.len();
     let bytes = &batch.raw_bytes()[..n * fields.len];
@@ -115,11 +158,18 @@ fn fill(columns: &mut BatchColumns, batch: &las::PointData, with_rgb: bool) {
         .for_each(|((((positions, intensity), classes), returns), block)| {
             let records = block.chunks_exact(fields.len);
             for (i, r) in records.enumerate() {
-                positions[i] = DVec3::new(
-                    tx.direct(i32_at(r, 0)),
-                    ty.direct(i32_at(r, 4)),
-                    tz.direct(i32_at(r, 8)),
-                );
+                positions[i] = match grid {
+                    Some((grid, shift)) => grid.position([
+                        i64::from(i32_at(r, 0)) + shift[0],
+                        i64::from(i32_at(r, 4)) + shift[1],
+                        i64::from(i32_at(r, 8)) + shift[2],
+                    ]),
+                    None => DVec3::new(
+                        tx.direct(i32_at(r, 0)),
+                        ty.direct(i32_at(r, 4)),
+                        tz.direct(i32_at(r, 8)),
+                    ),
+                };
                 intensity[i] = u16_at(r, 12);
                 if fields.extended {
                     returns[i] = r[14] & 15;
@@ -159,14 +209,23 @@ impl PointSource for DatasetSource {
         !self.files.iter().any(|file| file.facts.compressed)
     }
 
+    /// Positions are decoded on the shared grid (`fill`), exactly as it computes them.
+    fn position_grid(&self) -> Option<PositionGrid> {
+        self.grid.as_ref().map(|shared| shared.grid)
+    }
+
     fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
         let mut columns = BatchColumns::default();
-        for file in &self.files {
+        for (k, file) in self.files.iter().enumerate() {
+            let grid = self
+                .grid
+                .as_ref()
+                .map(|shared| (&shared.grid, shared.shifts[k]));
             // The visitor's error stops the read; it is kept apart from the file's errors.
             let mut stopped = None;
             let read = contain_panics(&file.path, || {
                 file.for_each_batch(|batch| {
-                    fill(&mut columns, batch, self.has_rgb);
+                    fill(&mut columns, batch, self.has_rgb, grid);
                     match visit(columns.batch(self.has_rgb)) {
                         Ok(()) => Ok(()),
                         Err(error) => {
@@ -288,9 +347,26 @@ mod tests {
             let mut reader = las::Reader::from_path(&path).expect("reader");
             let points = reader.read_all().expect("read");
             let mut columns = BatchColumns::default();
-            fill(&mut columns, &points, true);
+            fill(&mut columns, &points, true, None);
             let positions = crate::testing::las_world_positions(&points);
             assert_eq!(columns.positions, positions, "format {format}");
+            // On the file's own grid, the same positions bit for bit.
+            let t = points.transforms();
+            let grid = PositionGrid::new(
+                DVec3::new(t.x.scale, t.y.scale, t.z.scale),
+                DVec3::new(t.x.offset, t.y.offset, t.z.offset),
+            )
+            .expect("a grid");
+            let mut on_grid = BatchColumns::default();
+            fill(&mut on_grid, &points, true, Some((&grid, [0; 3])));
+            let bits = |p: &[DVec3]| -> Vec<[u64; 3]> {
+                p.iter().map(|p| p.to_array().map(f64::to_bits)).collect()
+            };
+            assert_eq!(
+                bits(&on_grid.positions),
+                bits(&positions),
+                "format {format}"
+            );
             let intensity: Vec<u16> = points.intensity().collect();
             assert_eq!(columns.intensity, intensity, "format {format}");
             let classes: Vec<u8> = points.classification().collect();
@@ -303,6 +379,148 @@ mod tests {
                 .unwrap_or_default();
             assert_eq!(columns.rgb, rgb, "format {format}");
         }
+    }
+
+    /// The same points with no grid declared: the builder spills world records.
+    struct WithoutGrid<'a>(&'a DatasetSource);
+
+    impl PointSource for WithoutGrid<'_> {
+        fn bounds(&self) -> WorldBounds {
+            self.0.bounds()
+        }
+        fn point_count(&self) -> u64 {
+            self.0.point_count()
+        }
+        fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
+            self.0.for_each_batch(visit)
+        }
+        fn rereads_cheaply(&self) -> bool {
+            self.0.rereads_cheaply()
+        }
+    }
+
+    /// Tiles written with offsets of their own share one grid: their points read onto it
+    /// within an f64 step of their own decoding, and the build from grid records stores
+    /// exactly what the build from f64 records stores, in less spill.
+    #[test]
+    fn tiles_on_one_grid_spill_grid_records_and_build_the_same_store() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let scene = sample_scene(24_000, 5);
+        let mut files = Vec::new();
+        for (k, shift) in [0.0, 137.0, -2_041.0].into_iter().enumerate() {
+            let mut tile = scene.select(&(k * 8_000..(k + 1) * 8_000).collect::<Vec<_>>());
+            // Another origin gives the tile another offset, a whole number of metres away.
+            tile.origin += DVec3::new(shift, -shift, 0.0);
+            for p in &mut tile.positions {
+                *p -= glam::Vec3::new(shift as f32, -shift as f32, 0.0);
+            }
+            let path = dir
+                .path()
+                .join(format!("t{k}.{}", if k == 1 { "laz" } else { "las" }));
+            write_las(&path, &tile, &LasWriteOptions::default()).expect("write");
+            files.push(path);
+        }
+        let source = DatasetSource::open(&files).expect("open");
+        let shared = source.grid.clone().expect("one grid");
+        assert!(shared.shifts.iter().any(|s| *s != [0; 3]), "{shared:?}");
+
+        for (k, file) in files.iter().enumerate() {
+            let mut reader = las::Reader::from_path(file).expect("reader");
+            let points = reader.read_all().expect("read");
+            let own = crate::testing::las_world_positions(&points);
+            let mut columns = BatchColumns::default();
+            fill(
+                &mut columns,
+                &points,
+                true,
+                Some((&shared.grid, shared.shifts[k])),
+            );
+            for (a, b) in columns.positions.iter().zip(&own) {
+                let step = b.abs().max_element() * f64::EPSILON;
+                assert!((*a - *b).abs().max_element() <= step, "{a} against {b}");
+            }
+        }
+
+        let db = sled::Config::new().temporary(true).open().expect("sled");
+        let mut built = Vec::new();
+        let grid_source: &dyn PointSource = &source;
+        let world_source: &dyn PointSource = &WithoutGrid(&source);
+        for (name, source) in [("grid", grid_source), ("world", world_source)] {
+            let store = LodStore::open(
+                db.open_tree(name).expect("tree"),
+                dir.path().join(format!("{name}.bin")),
+            )
+            .expect("store");
+            let mut options = LodBuildOptions::new(dir.path().join("spill"));
+            options.max_leaf_points = 2_000;
+            let report = build_lod(source, &store, &options).expect("build");
+            let hierarchy = store.read_hierarchy().expect("hierarchy");
+            let nodes: Vec<_> = hierarchy
+                .nodes()
+                .iter()
+                .map(|node| store.read_node(&hierarchy, node.key).expect("node"))
+                .collect();
+            let infos: Vec<_> = hierarchy
+                .nodes()
+                .iter()
+                .map(|n| crate::lod::NodeInfo { offset: 0, ..*n })
+                .collect();
+            built.push((
+                report.spill_record_bytes,
+                report.spilled_bytes,
+                infos,
+                nodes,
+            ));
+        }
+        let (grid, world) = (&built[0], &built[1]);
+        assert_eq!((grid.0, world.0), (26, 38));
+        assert!(
+            grid.1 * 38 == world.1 * 26,
+            "{} and {} bytes spilled",
+            grid.1,
+            world.1
+        );
+        assert!(grid.2.len() > 1);
+        assert!(grid.2 == world.2 && grid.3 == world.3, "the stores differ");
+    }
+
+    #[test]
+    fn files_of_other_scales_or_offsets_off_the_grid_share_none() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let scene = sample_scene(4_000, 2);
+        let write = |name: &str, scale: f64, shift: f64| {
+            let mut tile = scene.clone();
+            tile.origin += DVec3::splat(shift);
+            for p in &mut tile.positions {
+                *p -= glam::Vec3::splat(shift as f32);
+            }
+            let path = dir.path().join(name);
+            let options = LasWriteOptions {
+                scale,
+                ..LasWriteOptions::default()
+            };
+            write_las(&path, &tile, &options).expect("write");
+            path
+        };
+        let mm = write("mm.las", 0.001, 0.0);
+        let cm = write("cm.las", 0.01, 0.0);
+        let one = DatasetSource::open(std::slice::from_ref(&mm)).expect("open");
+        assert!(one.position_grid().is_some());
+        let mixed = DatasetSource::open(&[mm.clone(), cm]).expect("open");
+        assert!(mixed.position_grid().is_none(), "two scales");
+        // write_las rounds its offset to whole metres: a 0.4 m shift stays on the grid only
+        // if the rounding does, so build the off-grid case from the headers directly.
+        let mut files = DatasetFile::check_all(&[mm.clone(), mm]).expect("files");
+        files[1].offset.x += 0.000_5;
+        assert!(
+            shared_grid(&files, &one.bounds()).is_none(),
+            "half a step off"
+        );
+        files[1].offset.x += 0.000_5;
+        assert!(
+            shared_grid(&files, &one.bounds()).is_some(),
+            "a whole step off"
+        );
     }
 
     #[test]

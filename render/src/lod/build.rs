@@ -30,6 +30,7 @@ use super::key::RootCube;
 use super::memory::MemoryMeter;
 use super::options::{LodBuildOptions, BUILD_BYTES_PER_POINT};
 use super::plan::plan_chunks;
+use super::point::RecordLayout;
 use super::progress::BuildProgress;
 use super::sink::NodeSink;
 use super::source::PointSource;
@@ -61,6 +62,8 @@ pub struct LodBuildReport {
     pub count_level: u32,
     /// Bytes written to spill files.
     pub spilled_bytes: u64,
+    /// Bytes of a point's spill record: smaller where every point lies on one LAS grid.
+    pub spill_record_bytes: usize,
     /// Bytes of node records written to the store's payload file.
     pub stored_bytes: u64,
     /// Bytes of the hierarchy's record in sled.
@@ -150,7 +153,8 @@ fn build_on_pool(
         .min((budget - chunk_bytes(0)) / BUILD_BYTES_PER_POINT);
     let level = count_level(source.point_count(), max_chunk, budget);
     store.clear()?;
-    let spill = SpillDir::create(&options.spill_dir)?;
+    let layout = RecordLayout::for_grid(source.position_grid());
+    let spill = SpillDir::create(&options.spill_dir, layout)?;
 
     let grid_bytes = CountGrid::planning_bytes(level);
     let grid_reservation = meter.try_reserve(grid_bytes, "the counting grid")?;
@@ -163,7 +167,7 @@ fn build_on_pool(
             source.point_count(),
         )?)
     };
-    let (grid, stats) = count_points(source, &cube, level, &meter, copy.as_mut())?;
+    let (grid, stats) = count_points(source, &cube, level, layout, &meter, copy.as_mut())?;
     let copy = copy
         .map(|copy| copy.finish(bounds, source.point_count(), stats.has_rgb, &meter))
         .transpose()?;
@@ -236,6 +240,7 @@ fn build_on_pool(
         chunks_split,
         count_level: level,
         spilled_bytes,
+        spill_record_bytes: layout.record_bytes(),
         stored_bytes,
         hierarchy_bytes,
         peak_memory_bytes: meter.peak(),

@@ -9,7 +9,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use super::error::LodError;
 use super::memory::{MemoryMeter, Reservation};
-use super::point::RawPoint;
+use super::point::{RawPoint, RecordLayout};
 use super::source::{BatchColumns, BatchVisitor, PointBatch, PointSource};
 use super::spill::{self, SpillDir, SpillWriter, READ_BLOCK_BYTES};
 use crate::cloud::WorldBounds;
@@ -26,6 +26,7 @@ pub const COPY_SEGMENT_POINTS: u64 = 1 << 25;
 /// Where the counting pass writes its copy of the source.
 pub struct SourceCopyWriter<'a> {
     writer: SpillWriter<'a>,
+    layout: RecordLayout,
     segments: Vec<PathBuf>,
     segment_points: u64,
     written: u64,
@@ -57,6 +58,7 @@ impl<'a> SourceCopyWriter<'a> {
         let writer = SpillWriter::new(spill, segments.clone(), buffer as usize, reservation);
         Ok(Self {
             writer,
+            layout: spill.layout(),
             segments,
             segment_points,
             written: 0,
@@ -90,6 +92,7 @@ impl<'a> SourceCopyWriter<'a> {
         segments.truncate(self.written.div_ceil(self.segment_points) as usize);
         Ok(SourceCopy {
             segments,
+            layout: self.layout,
             bounds,
             count,
             has_rgb,
@@ -103,6 +106,7 @@ impl<'a> SourceCopyWriter<'a> {
 /// the copy is dropped.
 pub struct SourceCopy<'a> {
     segments: Vec<PathBuf>,
+    layout: RecordLayout,
     bounds: WorldBounds,
     count: u64,
     has_rgb: bool,
@@ -137,7 +141,7 @@ impl PointSource for SourceCopy<'_> {
             result
         };
         for segment in &self.segments {
-            spill::for_each_block(segment, |block| {
+            spill::for_each_block(segment, self.layout, |block| {
                 for p in block {
                     columns.positions.push(p.position);
                     columns.rgb.push(p.rgb);
@@ -176,7 +180,7 @@ mod tests {
     #[test]
     fn the_copy_reads_back_every_point_in_order_and_removes_each_segment_once_read() {
         let dir = tempfile::tempdir().expect("tempdir");
-        let spill = SpillDir::create(dir.path()).expect("spill");
+        let spill = SpillDir::create(dir.path(), RecordLayout::World).expect("spill");
         let meter = MemoryMeter::new(64 << 20);
         let source = GeneratedSource::cube(12_000, 3);
         let mut expected = Vec::new();

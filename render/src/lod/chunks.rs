@@ -14,7 +14,7 @@ use super::error::LodError;
 use super::key::{RootCube, MAX_LEVEL};
 use super::options::BUILD_BYTES_PER_POINT;
 use super::plan::{Chunk, ChunkPlan};
-use super::point::{RawPoint, SPILL_RECORD_BYTES};
+use super::point::{RawPoint, RecordLayout, MAX_RECORD_BYTES};
 use super::source::{PointBatch, PointSource};
 use super::spill::{self, SpillWriter, READ_BLOCK_BYTES};
 
@@ -35,7 +35,7 @@ const RECORD_BLOCK_POINTS: usize = 1 << 13;
 /// What the distribution's blocks hold, three at most (one made, one queued, one
 /// scattered): each point's chunk and its record.
 pub const DISTRIBUTION_BLOCKS_BYTES: u64 =
-    3 * (RECORD_BLOCK_POINTS * (4 + SPILL_RECORD_BYTES)) as u64;
+    3 * (RECORD_BLOCK_POINTS * (4 + MAX_RECORD_BYTES)) as u64;
 
 /// Points of a batch with their chunks and their spill records, made on all cores.
 #[derive(Default)]
@@ -51,22 +51,25 @@ impl RecordBlock {
         range: Range<usize>,
         plan: &ChunkPlan,
         cube: &RootCube,
-    ) {
+        layout: RecordLayout,
+    ) -> Result<(), LodError> {
         batch.positions[range.clone()]
             .par_iter()
             .map(|p| plan.lookup[CountGrid::index(plan.level, cube.cell_at(*p, plan.level))])
             .collect_into_vec(&mut self.targets);
         const PER_TASK: usize = 1 << 10;
-        self.records.resize(range.len() * SPILL_RECORD_BYTES, 0);
+        let record_bytes = layout.record_bytes();
+        self.records.resize(range.len() * record_bytes, 0);
         self.records
-            .par_chunks_mut(PER_TASK * SPILL_RECORD_BYTES)
+            .par_chunks_mut(PER_TASK * record_bytes)
             .enumerate()
-            .for_each(|(task, out)| {
+            .try_for_each(|(task, out)| {
                 let first = range.start + task * PER_TASK;
-                for (j, record) in out.chunks_exact_mut(SPILL_RECORD_BYTES).enumerate() {
-                    record.copy_from_slice(&RawPoint::from_batch(batch, first + j).record());
+                for (j, record) in out.chunks_exact_mut(record_bytes).enumerate() {
+                    layout.write(&RawPoint::from_batch(batch, first + j), record)?;
                 }
-            });
+                Ok(())
+            })
     }
 }
 
@@ -92,17 +95,20 @@ pub fn distribute(
     let writer = SpillWriter::new(ctx.spill, paths.clone(), buffer_bytes as usize, reservation);
     let chunk_count = plan.chunks.len();
     let bounds = source.bounds();
+    let layout = ctx.spill.layout();
     let mut read = 0u64;
     let (walked, scattered) = std::thread::scope(|scope| {
         let (blocks, received) = mpsc::sync_channel::<RecordBlock>(1);
         let (spare_sender, spare) = mpsc::channel::<RecordBlock>();
-        let scattering = scope.spawn(move || scatter(writer, chunk_count, received, spare_sender));
+        let record_bytes = layout.record_bytes();
+        let scattering =
+            scope.spawn(move || scatter(writer, chunk_count, record_bytes, received, spare_sender));
         let walked = source.for_each_batch(&mut |batch| {
-            check_batch(&batch, &bounds, &ctx.cube, read)?;
+            check_batch(&batch, &bounds, &ctx.cube, layout, read)?;
             for start in (0..batch.len()).step_by(RECORD_BLOCK_POINTS) {
                 let range = start..(start + RECORD_BLOCK_POINTS).min(batch.len());
                 let mut block = spare.try_recv().unwrap_or_default();
-                block.fill(&batch, range, plan, &ctx.cube);
+                block.fill(&batch, range, plan, &ctx.cube, layout)?;
                 if let Some(j) = block
                     .targets
                     .iter()
@@ -156,12 +162,13 @@ pub fn distribute(
 fn scatter(
     mut writer: SpillWriter<'_>,
     chunks: usize,
+    record_bytes: usize,
     blocks: mpsc::Receiver<RecordBlock>,
     spare: mpsc::Sender<RecordBlock>,
 ) -> Result<Vec<u64>, LodError> {
     let mut counts = vec![0u64; chunks];
     for block in blocks {
-        let records = block.records.chunks_exact(SPILL_RECORD_BYTES);
+        let records = block.records.chunks_exact(record_bytes);
         for (&target, record) in block.targets.iter().zip(records) {
             counts[target as usize] += 1;
             writer.push_record(target as usize, record)?;
@@ -200,7 +207,7 @@ fn build_chunk(ctx: &BuildContext<'_>, chunk: Chunk, path: PathBuf) -> Result<()
         return build_chunks(ctx, parts);
     }
     let _reservation = ctx.meter.reserve(needed, "a chunk built in memory")?;
-    let points = spill::read_all(&path, chunk.count)?;
+    let points = spill::read_all(&path, ctx.spill.layout(), chunk.count)?;
     spill::remove(&path)?;
     let root = ctx.local_builder().build(chunk.key, points)?;
     ctx.finish_subtree(chunk.key, &root.points, root.sample_grid)
@@ -227,7 +234,7 @@ fn split_chunk(
     let mut counts = [0u64; 8];
     let level = u32::from(chunk.key.level) + 1;
     let base = chunk.key.cell() * 2;
-    spill::for_each_block(path, |block| {
+    spill::for_each_block(path, ctx.spill.layout(), |block| {
         for p in block {
             let c = ctx.cube.cell_at(p.position, level) - base;
             let i = (c.x | (c.y << 1) | (c.z << 2)) as usize;

@@ -3,9 +3,10 @@
 
 use super::cached::COPY_SEGMENT_POINTS;
 use super::codec::encoded_len;
-use super::point::SPILL_RECORD_BYTES;
+use super::point::MAX_RECORD_BYTES;
 
-/// Bytes a build of `points` points needs on disk at its peak: a spill record a point (the
+/// Bytes a build of `points` points needs on disk at its peak, in records of the larger
+/// layout (the grid's is known only once the files are open): a spill record a point (the
 /// chunks' spill, or while the distribution runs that and what is left of the copy of a
 /// source costly to read again, LAZ, whose segments go as they are read), which the stored
 /// nodes replace chunk by chunk (a stored point takes less than its record), with a tenth
@@ -13,7 +14,7 @@ use super::point::SPILL_RECORD_BYTES;
 /// and a margin for the hierarchy and partial pages. The store itself stays after the build,
 /// at less than its spill (docs/perf/campaign-1b.md).
 pub fn build_disk_bytes(points: u64, has_rgb: bool) -> u64 {
-    let record = SPILL_RECORD_BYTES as u64;
+    let record = MAX_RECORD_BYTES as u64;
     let stored = stored_bytes_per_point(has_rgb);
     let per_point = record.max(stored) + record.max(stored).div_ceil(10);
     points
@@ -34,7 +35,7 @@ mod tests {
     #[test]
     fn the_estimate_covers_the_spill_with_slack_and_one_segment_in_flight() {
         let margin = 64 << 20;
-        let record = SPILL_RECORD_BYTES as u64;
+        let record = MAX_RECORD_BYTES as u64;
         let stored = stored_bytes_per_point(true);
         assert!(
             stored < record,

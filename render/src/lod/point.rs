@@ -1,15 +1,181 @@
-//! `RawPoint`: one original point as the builder carries it, with its weight, and its fixed
-//! 38-byte spill record.
+//! `RawPoint`: one original point as the builder carries it, with its weight, and its spill
+//! record in one of two layouts: world positions as f64 (38 B), or, where every point of the
+//! source lies on one LAS grid, the grid's integers (26 B), which give the same f64 back bit
+//! for bit. Spill is most of a build's disk and much of its time (docs/perf/lod-build.md).
 
 use std::cmp::Ordering;
 
 use glam::DVec3;
 
+use super::error::LodError;
 use super::source::PointBatch;
 
-/// Bytes of one point in a spill file: position (3 x f64), RGB (3 x u16), intensity (u16),
+/// Bytes of a point in the world layout: position (3 x f64), RGB (3 x u16), intensity (u16),
 /// classification, return number, weight (u32).
-pub const SPILL_RECORD_BYTES: usize = 38;
+pub const WORLD_RECORD_BYTES: usize = 38;
+/// Bytes of a point in the grid layout: the position's three i32, then as the world layout.
+pub const GRID_RECORD_BYTES: usize = 26;
+/// The largest record of any layout, for buffers sized before the layout is known.
+pub const MAX_RECORD_BYTES: usize = WORLD_RECORD_BYTES;
+/// Bytes of a record after its position.
+const ATTRIBUTE_BYTES: usize = 14;
+
+/// The grid of LAS integer coordinates every point of a source lies on: world =
+/// scale * i + offset per axis, i an i32, computed in f64 exactly as the LAS reader does, so
+/// a position and its integers convert both ways without loss.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PositionGrid {
+    scale: DVec3,
+    offset: DVec3,
+}
+
+impl PositionGrid {
+    /// The grid of files sharing this scale and offset, if every i32 on it converts back
+    /// exactly: positive normal scales and coordinates (|offset| + 2^31 scale) below
+    /// 2^50 scale, where f64 spacing is under a quarter of the scale, so rounding never
+    /// reaches the next integer.
+    pub fn new(scale: DVec3, offset: DVec3) -> Option<Self> {
+        let usable = (0..3).all(|a| {
+            let (s, o) = (scale[a], offset[a]);
+            s.is_normal()
+                && s > 0.0
+                && o.is_finite()
+                && o.abs() + s * 2f64.powi(31) < s * 2f64.powi(50)
+        });
+        usable.then_some(Self { scale, offset })
+    }
+
+    pub fn scale(&self) -> DVec3 {
+        self.scale
+    }
+
+    pub fn offset(&self) -> DVec3 {
+        self.offset
+    }
+
+    /// The position of the integers `i`, as the LAS reader computes it (`scale * i + offset`;
+    /// wider than i32 for integers shifted onto this grid from another file's offset, which
+    /// convert to f64 exactly below 2^53).
+    pub fn position(&self, i: [i64; 3]) -> DVec3 {
+        DVec3::new(
+            self.scale.x * i[0] as f64 + self.offset.x,
+            self.scale.y * i[1] as f64 + self.offset.y,
+            self.scale.z * i[2] as f64 + self.offset.z,
+        )
+    }
+
+    /// The integers of `p`, if `p` lies exactly on the grid.
+    pub fn index(&self, p: DVec3) -> Option<[i32; 3]> {
+        let q = ((p - self.offset) / self.scale).round();
+        let fits = |v: f64| v >= f64::from(i32::MIN) && v <= f64::from(i32::MAX);
+        if !(fits(q.x) && fits(q.y) && fits(q.z)) {
+            return None;
+        }
+        let i = [q.x as i32, q.y as i32, q.z as i32];
+        let back = self.position(i.map(i64::from));
+        let same = |a: f64, b: f64| a.to_bits() == b.to_bits();
+        (same(back.x, p.x) && same(back.y, p.y) && same(back.z, p.z)).then_some(i)
+    }
+}
+
+/// How a build's spill records hold positions; one layout for all of a build's files.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum RecordLayout {
+    World,
+    Grid(PositionGrid),
+}
+
+impl RecordLayout {
+    /// The grid layout where the source has a grid, the world layout otherwise.
+    pub fn for_grid(grid: Option<PositionGrid>) -> Self {
+        grid.map_or(Self::World, Self::Grid)
+    }
+
+    pub fn record_bytes(&self) -> usize {
+        match self {
+            Self::World => WORLD_RECORD_BYTES,
+            Self::Grid(_) => GRID_RECORD_BYTES,
+        }
+    }
+
+    /// Writes `p` as one record into `out`, exactly [`Self::record_bytes`] long. A point off
+    /// the grid is an error: the counting pass checks every point first, so it means the
+    /// source changed between reads.
+    pub fn write(&self, p: &RawPoint, out: &mut [u8]) -> Result<(), LodError> {
+        debug_assert_eq!(out.len(), self.record_bytes());
+        let attributes = match self {
+            Self::World => {
+                for (a, c) in p.position.to_array().into_iter().enumerate() {
+                    out[8 * a..8 * a + 8].copy_from_slice(&c.to_le_bytes());
+                }
+                &mut out[24..]
+            }
+            Self::Grid(grid) => {
+                let i = grid.index(p.position).ok_or_else(|| off_grid(p.position))?;
+                for (a, c) in i.into_iter().enumerate() {
+                    out[4 * a..4 * a + 4].copy_from_slice(&c.to_le_bytes());
+                }
+                &mut out[12..]
+            }
+        };
+        for (i, c) in p.rgb.into_iter().enumerate() {
+            attributes[2 * i..2 * i + 2].copy_from_slice(&c.to_le_bytes());
+        }
+        attributes[6..8].copy_from_slice(&p.intensity.to_le_bytes());
+        attributes[8] = p.classification;
+        attributes[9] = p.return_number;
+        attributes[10..ATTRIBUTE_BYTES].copy_from_slice(&p.weight.to_le_bytes());
+        Ok(())
+    }
+
+    /// Appends `p`'s record to `out`.
+    pub fn append(&self, p: &RawPoint, out: &mut Vec<u8>) -> Result<(), LodError> {
+        let at = out.len();
+        out.resize(at + self.record_bytes(), 0);
+        self.write(p, &mut out[at..])
+    }
+
+    /// Reads one record; `bytes` is exactly [`Self::record_bytes`] long.
+    pub fn read(&self, bytes: &[u8]) -> RawPoint {
+        let (position, attributes) = match self {
+            Self::World => {
+                let f = |a: usize| {
+                    let mut b = [0; 8];
+                    b.copy_from_slice(&bytes[8 * a..8 * a + 8]);
+                    f64::from_le_bytes(b)
+                };
+                (DVec3::new(f(0), f(1), f(2)), &bytes[24..])
+            }
+            Self::Grid(grid) => {
+                let i = |a: usize| {
+                    let b = &bytes[4 * a..4 * a + 4];
+                    i32::from_le_bytes([b[0], b[1], b[2], b[3]])
+                };
+                (
+                    grid.position([i(0), i(1), i(2)].map(i64::from)),
+                    &bytes[12..],
+                )
+            }
+        };
+        let h = |i: usize| u16::from_le_bytes([attributes[i], attributes[i + 1]]);
+        let w = &attributes[10..ATTRIBUTE_BYTES];
+        RawPoint {
+            position,
+            rgb: [h(0), h(2), h(4)],
+            intensity: h(6),
+            classification: attributes[8],
+            return_number: attributes[9],
+            weight: u32::from_le_bytes([w[0], w[1], w[2], w[3]]),
+        }
+    }
+}
+
+fn off_grid(p: DVec3) -> LodError {
+    LodError::SourceChanged(format!(
+        "point {:?} is not on the files' coordinate grid the first read found it on",
+        p.to_array()
+    ))
+}
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RawPoint {
@@ -35,44 +201,6 @@ impl RawPoint {
         }
     }
 
-    pub fn write_to(&self, out: &mut Vec<u8>) {
-        out.extend_from_slice(&self.record());
-    }
-
-    /// The point as one spill record.
-    pub fn record(&self) -> [u8; SPILL_RECORD_BYTES] {
-        let mut record = [0u8; SPILL_RECORD_BYTES];
-        for (i, c) in self.position.to_array().into_iter().enumerate() {
-            record[8 * i..8 * i + 8].copy_from_slice(&c.to_le_bytes());
-        }
-        for (i, c) in self.rgb.into_iter().enumerate() {
-            record[24 + 2 * i..26 + 2 * i].copy_from_slice(&c.to_le_bytes());
-        }
-        record[30..32].copy_from_slice(&self.intensity.to_le_bytes());
-        record[32] = self.classification;
-        record[33] = self.return_number;
-        record[34..38].copy_from_slice(&self.weight.to_le_bytes());
-        record
-    }
-
-    /// Reads one record; `bytes` is exactly [`SPILL_RECORD_BYTES`] long.
-    pub fn read_from(bytes: &[u8]) -> Self {
-        let f = |i: usize| {
-            let mut b = [0; 8];
-            b.copy_from_slice(&bytes[i..i + 8]);
-            f64::from_le_bytes(b)
-        };
-        let h = |i: usize| u16::from_le_bytes([bytes[i], bytes[i + 1]]);
-        Self {
-            position: DVec3::new(f(0), f(8), f(16)),
-            rgb: [h(24), h(26), h(28)],
-            intensity: h(30),
-            classification: bytes[32],
-            return_number: bytes[33],
-            weight: u32::from_le_bytes([bytes[34], bytes[35], bytes[36], bytes[37]]),
-        }
-    }
-
     /// A total order on everything a point holds, so that choices between points at the same
     /// distance never depend on the order they arrived in.
     pub fn content_cmp(&self, other: &Self) -> Ordering {
@@ -93,20 +221,94 @@ impl RawPoint {
 mod tests {
     use super::*;
 
-    #[test]
-    fn spill_records_round_trip() {
-        let p = RawPoint {
-            position: DVec3::new(515_000.125, -4.5e6, 1e-300),
+    fn point(position: DVec3) -> RawPoint {
+        RawPoint {
+            position,
             rgb: [1, 65_535, 300],
             intensity: 4242,
             classification: 7,
             return_number: 3,
             weight: 70_000,
-        };
+        }
+    }
+
+    fn round_trip(layout: RecordLayout, p: &RawPoint) -> RawPoint {
         let mut out = Vec::new();
-        p.write_to(&mut out);
-        assert_eq!(out.len(), SPILL_RECORD_BYTES);
-        assert_eq!(RawPoint::read_from(&out), p);
+        layout.append(p, &mut out).expect("written");
+        assert_eq!(out.len(), layout.record_bytes());
+        layout.read(&out)
+    }
+
+    #[test]
+    fn world_records_round_trip() {
+        let p = point(DVec3::new(515_000.125, -4.5e6, 1e-300));
+        assert_eq!(round_trip(RecordLayout::World, &p), p);
         assert_eq!(p.content_cmp(&p), Ordering::Equal);
+    }
+
+    #[test]
+    fn grid_records_give_back_every_position_of_the_grid_bit_for_bit() {
+        let scales = [0.01, 0.001, 0.000_25, 1e-7];
+        let offsets = [0.0, 515_000.0, -4_500_000.37, 6.1e6];
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state as i32
+        };
+        for scale in scales {
+            for offset in offsets {
+                let Some(grid) = PositionGrid::new(DVec3::splat(scale), DVec3::splat(offset))
+                else {
+                    assert!(offset.abs() + scale * 2f64.powi(31) >= scale * 2f64.powi(50));
+                    continue;
+                };
+                let layout = RecordLayout::Grid(grid);
+                for k in 0..2_000 {
+                    let i = match k {
+                        0 => [i32::MIN, i32::MAX, 0],
+                        1 => [-1, 1, i32::MAX - 1],
+                        _ => [next(), next() >> 8, next() >> 20],
+                    };
+                    let p = point(grid.position(i.map(i64::from)));
+                    assert_eq!(grid.index(p.position), Some(i));
+                    let back = round_trip(layout, &p);
+                    assert_eq!(
+                        back.position.to_array().map(f64::to_bits),
+                        p.position.to_array().map(f64::to_bits)
+                    );
+                    assert_eq!(back, p);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_point_off_the_grid_is_an_error_not_a_moved_point() {
+        let grid = PositionGrid::new(DVec3::splat(0.01), DVec3::splat(500_000.0)).expect("grid");
+        let layout = RecordLayout::Grid(grid);
+        let mut out = vec![0; GRID_RECORD_BYTES];
+        for p in [
+            DVec3::new(500_000.005, 500_000.0, 500_000.0),
+            DVec3::new(500_000.0, 500_000.0, 1e12),
+            DVec3::new(f64::NAN, 500_000.0, 500_000.0),
+        ] {
+            assert!(matches!(
+                layout.write(&point(p), &mut out),
+                Err(LodError::SourceChanged(_))
+            ));
+        }
+    }
+
+    #[test]
+    fn grids_whose_integers_could_round_to_a_neighbour_are_refused() {
+        let ok = DVec3::splat(0.001);
+        assert!(PositionGrid::new(ok, DVec3::new(500_000.0, 4_500_000.0, 0.0)).is_some());
+        // At 5e6, f64 steps are about 1e-9: a scale of 1e-9 cannot be resolved there.
+        assert!(PositionGrid::new(DVec3::splat(1e-9), DVec3::splat(5e6)).is_none());
+        assert!(PositionGrid::new(DVec3::new(-0.001, 0.001, 0.001), DVec3::ZERO).is_none());
+        assert!(PositionGrid::new(ok, DVec3::new(f64::NAN, 0.0, 0.0)).is_none());
+        assert!(PositionGrid::new(DVec3::new(0.0, 0.001, 0.001), DVec3::ZERO).is_none());
     }
 }

@@ -4,6 +4,7 @@
 use glam::DVec3;
 
 use super::error::LodError;
+use super::point::PositionGrid;
 use crate::cloud::{PointCloud, WorldBounds};
 
 /// One batch of original points in world coordinates (f64) with their raw attributes.
@@ -97,6 +98,12 @@ pub trait PointSource: Sync {
     /// counting pass and distributes from there, decoding them once.
     fn rereads_cheaply(&self) -> bool {
         true
+    }
+
+    /// The one LAS grid every point lies on, if there is one: the builder's spill records then
+    /// hold the grid's integers instead of f64 positions.
+    fn position_grid(&self) -> Option<PositionGrid> {
+        None
     }
 }
 

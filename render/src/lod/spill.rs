@@ -10,23 +10,25 @@ use std::thread::JoinHandle;
 
 use super::error::LodError;
 use super::memory::Reservation;
-use super::point::{RawPoint, SPILL_RECORD_BYTES};
+use super::point::{RawPoint, RecordLayout, MAX_RECORD_BYTES};
 
 /// Records read per block when a spill file is streamed back.
 const READ_BLOCK_POINTS: usize = 1 << 12;
 /// What streaming a file back holds: a block of records and the block decoded. Callers
 /// include it in their own reservation: a holder that reserved again could wait forever.
-pub const READ_BLOCK_BYTES: u64 = (READ_BLOCK_POINTS * (SPILL_RECORD_BYTES + 40)) as u64;
+pub const READ_BLOCK_BYTES: u64 = (READ_BLOCK_POINTS * (MAX_RECORD_BYTES + 40)) as u64;
 
-/// The build's spill folder inside the caller's one; removed with everything in it on drop.
+/// The build's spill folder inside the caller's one, and the layout of every record in it;
+/// removed with everything in it on drop.
 #[derive(Debug)]
 pub struct SpillDir {
     path: PathBuf,
+    layout: RecordLayout,
     written: AtomicU64,
 }
 
 impl SpillDir {
-    pub fn create(parent: &Path) -> Result<Self, LodError> {
+    pub fn create(parent: &Path, layout: RecordLayout) -> Result<Self, LodError> {
         static NEXT: AtomicU64 = AtomicU64::new(0);
         std::fs::create_dir_all(parent).map_err(|e| LodError::spill(parent, e))?;
         loop {
@@ -36,6 +38,7 @@ impl SpillDir {
                 Ok(()) => {
                     return Ok(Self {
                         path,
+                        layout,
                         written: AtomicU64::new(0),
                     })
                 }
@@ -48,6 +51,10 @@ impl SpillDir {
 
     pub fn path(&self) -> &Path {
         &self.path
+    }
+
+    pub fn layout(&self) -> RecordLayout {
+        self.layout
     }
 
     pub fn file(&self, name: &str) -> PathBuf {
@@ -65,9 +72,9 @@ impl SpillDir {
 
     /// Writes `points` as one new file.
     pub fn write_file(&self, path: &Path, points: &[RawPoint]) -> Result<(), LodError> {
-        let mut bytes = Vec::with_capacity(points.len() * SPILL_RECORD_BYTES);
+        let mut bytes = Vec::with_capacity(points.len() * self.layout.record_bytes());
         for p in points {
-            p.write_to(&mut bytes);
+            self.layout.append(p, &mut bytes)?;
         }
         std::fs::write(path, &bytes).map_err(|e| LodError::spill(path, e))?;
         self.count_written(bytes.len());
@@ -91,6 +98,8 @@ pub struct SpillWriter<'a> {
     paths: Arc<[PathBuf]>,
     buffers: Vec<Vec<u8>>,
     buffered: usize,
+    layout: RecordLayout,
+    record_bytes: usize,
     /// Bytes of records a set of buffers takes before it is handed to the writing thread.
     set_limit: usize,
     /// The set being appended to its files.
@@ -108,14 +117,18 @@ impl<'a> SpillWriter<'a> {
         limit: usize,
         reservation: Reservation<'a>,
     ) -> Self {
-        let limit = limit.max(SPILL_RECORD_BYTES);
+        let layout = dir.layout();
+        let record_bytes = layout.record_bytes();
+        let limit = limit.max(record_bytes);
         debug_assert!(reservation.bytes() >= 2 * limit as u64);
-        let set_limit = (limit / 2).max(SPILL_RECORD_BYTES);
+        let set_limit = (limit / 2).max(record_bytes);
         Self {
             dir,
             buffers: vec![Vec::new(); paths.len()],
             paths: paths.into(),
             buffered: 0,
+            layout,
+            record_bytes,
             set_limit,
             writing: None,
             _reservation: reservation,
@@ -123,15 +136,20 @@ impl<'a> SpillWriter<'a> {
     }
 
     pub fn push(&mut self, target: usize, point: &RawPoint) -> Result<(), LodError> {
-        self.push_record(target, &point.record())
+        self.layout.append(point, &mut self.buffers[target])?;
+        self.pushed()
     }
 
-    /// Appends one record, [`SPILL_RECORD_BYTES`] long, to file `target`.
+    /// Appends one record, in the spill folder's layout, to file `target`.
     pub fn push_record(&mut self, target: usize, record: &[u8]) -> Result<(), LodError> {
-        debug_assert_eq!(record.len(), SPILL_RECORD_BYTES);
+        debug_assert_eq!(record.len(), self.record_bytes);
         self.buffers[target].extend_from_slice(record);
-        self.buffered += SPILL_RECORD_BYTES;
-        if self.buffered + SPILL_RECORD_BYTES > self.set_limit {
+        self.pushed()
+    }
+
+    fn pushed(&mut self) -> Result<(), LodError> {
+        self.buffered += self.record_bytes;
+        if self.buffered + self.record_bytes > self.set_limit {
             self.flush()?;
         }
         Ok(())
@@ -201,13 +219,16 @@ fn append_each(paths: &[PathBuf], buffers: &[Vec<u8>]) -> Result<(), LodError> {
     Ok(())
 }
 
-/// Streams the points of `path` in blocks of at most [`READ_BLOCK_POINTS`].
+/// Streams the points of `path`, records in `layout`, in blocks of at most
+/// [`READ_BLOCK_POINTS`].
 pub fn for_each_block(
     path: &Path,
+    layout: RecordLayout,
     mut visit: impl FnMut(&[RawPoint]) -> Result<(), LodError>,
 ) -> Result<u64, LodError> {
     let mut reader = File::open(path).map_err(|e| LodError::spill(path, e))?;
-    let mut bytes = vec![0; READ_BLOCK_POINTS * SPILL_RECORD_BYTES];
+    let record_bytes = layout.record_bytes();
+    let mut bytes = vec![0; READ_BLOCK_POINTS * record_bytes];
     let mut points = Vec::with_capacity(READ_BLOCK_POINTS);
     let mut total = 0;
     loop {
@@ -221,7 +242,7 @@ pub fn for_each_block(
             }
             filled += n;
         }
-        if filled % SPILL_RECORD_BYTES != 0 {
+        if filled % record_bytes != 0 {
             let error = std::io::Error::new(
                 std::io::ErrorKind::UnexpectedEof,
                 "the file ends inside a point record",
@@ -234,18 +255,22 @@ pub fn for_each_block(
         points.clear();
         points.extend(
             bytes[..filled]
-                .chunks_exact(SPILL_RECORD_BYTES)
-                .map(RawPoint::read_from),
+                .chunks_exact(record_bytes)
+                .map(|record| layout.read(record)),
         );
         total += points.len() as u64;
         visit(&points)?;
     }
 }
 
-/// Reads all points of `path`, which must hold exactly `expected`.
-pub fn read_all(path: &Path, expected: u64) -> Result<Vec<RawPoint>, LodError> {
+/// Reads all points of `path`, records in `layout`, which must hold exactly `expected`.
+pub fn read_all(
+    path: &Path,
+    layout: RecordLayout,
+    expected: u64,
+) -> Result<Vec<RawPoint>, LodError> {
     let mut points = Vec::with_capacity(expected as usize);
-    for_each_block(path, |block| {
+    for_each_block(path, layout, |block| {
         points.extend_from_slice(block);
         Ok(())
     })?;
