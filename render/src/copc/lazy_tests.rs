@@ -303,21 +303,40 @@ fn a_damaged_child_page_read_lazily_fails_the_frame_naming_the_file() {
         }
         bytes[child..child + 16].copy_from_slice(&key[..16]);
     };
-    for (case, damage, reason) in [
+    let looped = |bytes: &mut Vec<u8>, child: usize, _| {
+        // An entry with points turned into a link back to the root page.
+        let (root, size) = root_page(bytes);
+        let at = first_with_points(bytes, child);
+        bytes[at + 16..at + 24].copy_from_slice(&(root as u64).to_le_bytes());
+        bytes[at + 24..at + 28].copy_from_slice(&(size as i32).to_le_bytes());
+        bytes[at + 28..at + 32].copy_from_slice(&(-1i32).to_le_bytes());
+    };
+    // Each damage, what the error says, and the pages merged before it (the child page
+    // whose link is damaged is whole).
+    for (case, damage, reason, merged) in [
         (
             "more points",
             &more_points as &dyn Fn(&mut Vec<u8>, usize, usize),
             "hold more points than the header's 1065",
+            0,
         ),
         (
             "a chunk beyond the file",
             &beyond,
             "lies beyond the point data",
+            0,
         ),
         (
             "an entry outside its subtree",
             &outside,
             "outside the subtree",
+            0,
+        ),
+        (
+            "a page linking to the root",
+            &looped,
+            "the pages form a loop",
+            1,
         ),
     ] {
         let path = damaged_child_page(dir, damage);
@@ -352,6 +371,10 @@ fn a_damaged_child_page_read_lazily_fails_the_frame_naming_the_file() {
                 "{case}, attempt {attempt}: {error}"
             );
         }
-        assert_eq!(lazy.dataset.pages_read().pages, 0, "{case}: nothing merged");
+        assert_eq!(
+            lazy.dataset.pages_read().pages,
+            merged,
+            "{case}: pages merged"
+        );
     }
 }

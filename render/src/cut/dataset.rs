@@ -30,7 +30,8 @@ pub struct LodDataset {
     bounds: WorldBounds,
     pub(super) coloring: DatasetColoring,
     /// The spacing of the original points (`LodHierarchy::point_spacing`), which a frame's
-    /// adaptive size is made for.
+    /// adaptive size is made for: of the hierarchy as opened, so that it stays the same
+    /// whatever pages frames read later.
     pub(super) point_spacing: Option<f64>,
 }
 

@@ -63,7 +63,7 @@ pub use options::{
 };
 pub use pages::{HierarchyPages, PagesRead};
 pub use report::{CutCounts, CutReport};
-pub use select::{select_cut, walk_cut, Cut, CutNode, CutView, Walk};
+pub use select::{select_cut, Cut, CutNode, CutView};
 pub use stored::StoredLod;
 
 use dataset::LOAD_GROUP_NODES;

@@ -25,8 +25,9 @@ impl PagesRead {
 /// Where the pages of a hierarchy with unread pages are read from.
 pub trait HierarchyPages: Send + Sync {
     /// `current` with the pages of `keys` (unread pages of it) read, checked and merged in,
-    /// and what reading them took. A page that fails its checks fails the whole call, which
-    /// leaves what was read before as it was.
+    /// and what reading them took: at least one page, none read before (a page listed again
+    /// is an error). A page that fails its checks fails the whole call, which leaves what was
+    /// read before as it was.
     fn read_pages(
         &self,
         current: &LodHierarchy,
@@ -96,10 +97,13 @@ impl LazyLevels {
                 continue;
             }
             let (merged, round) = self.pages.read_pages(&latest, &keys)?;
-            // Each round must read what it was asked, or the walk would ask again forever.
-            if let Some(key) = keys.iter().find(|&&key| merged.is_unread_page(key)) {
+            // Each round must read a page, or the walk would ask for them forever; a source
+            // reads each page once, so the rounds end.
+            if round.pages == 0 {
+                let keys: Vec<String> = keys.iter().map(NodeKey::to_string).collect();
                 return Err(LodError::CorruptHierarchy(format!(
-                    "the page of node {key} was read but is still listed as unread"
+                    "the pages of nodes {} were asked for but none was read",
+                    keys.join(", ")
                 )));
             }
             *self.current.write().unwrap_or_else(|e| e.into_inner()) = Arc::new(merged);

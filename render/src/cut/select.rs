@@ -10,7 +10,7 @@
 //! cut is the order its nodes are loaded in.
 //!
 //! A hierarchy read lazily has nodes whose page is not read yet: the walk stops at the first it
-//! takes from the queue and names every such node it queued ([`Walk::unread_pages`]), so
+//! takes from the queue and names every such node it queued (`Walk::unread_pages`), so
 //! that their pages are read and the walk run again; a walk that takes none from the queue is
 //! the walk over the whole hierarchy, since what it visits does not depend on nodes it never
 //! takes.
@@ -186,22 +186,22 @@ impl<'a> NodesInView<'a> {
 
 /// A walk over a hierarchy: the cut, unless it reached a page not read yet.
 #[derive(Debug, Clone, Default, PartialEq)]
-pub struct Walk {
+pub(crate) struct Walk {
     /// The cut; only part of it where `unread_pages` is not empty.
-    pub cut: Cut,
+    pub(crate) cut: Cut,
     /// The nodes whose pages are not read yet that the walk queued (in view, under a node it
     /// refined), by key; empty when the walk never took one from its queue.
-    pub unread_pages: Vec<NodeKey>,
+    pub(crate) unread_pages: Vec<NodeKey>,
 }
 
 /// The cut of `hierarchy` for `view`; of a hierarchy with pages not read yet, the cut up to
-/// the first of them the walk takes ([`walk_cut`] says which they are).
+/// the first of them the walk takes (`walk_cut` says which they are).
 pub fn select_cut(hierarchy: &LodHierarchy, view: &CutView<'_>) -> Cut {
     walk_cut(hierarchy, view).cut
 }
 
 /// The walk of `hierarchy` for `view`: its cut, or the unread pages it needs first.
-pub fn walk_cut(hierarchy: &LodHierarchy, view: &CutView<'_>) -> Walk {
+pub(crate) fn walk_cut(hierarchy: &LodHierarchy, view: &CutView<'_>) -> Walk {
     let transform = view.camera.transform(view.origin, view.width, view.height);
     let nodes_in_view = NodesInView::new(hierarchy, view, &transform);
     let in_view = |key: NodeKey| nodes_in_view.contains(key);
