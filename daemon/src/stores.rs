@@ -21,7 +21,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
 use pointfarm_render::color::Stretch;
-use pointfarm_render::copc::{is_copc, open_copc, CopcDecoder};
+use pointfarm_render::copc::{is_copc, open_copc_whole, CopcDecoder};
 use pointfarm_render::cut::{LodDataset, StoredLod, RESIDENT_MAX_POINTS};
 use pointfarm_render::ingest::dataset_point_count;
 use pointfarm_render::lod::{BuildProgress, LodHierarchy, NodeInfo, NodeKey};
@@ -586,7 +586,7 @@ fn open_or_build(
 
 /// Opens the COPC file `path` (the dataset's file `name`) through its own hierarchy.
 fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
-    let opened = open_copc(path).map_err(|e| format!("COPC file {name}: {e}"))?;
+    let opened = open_copc_whole(path).map_err(|e| format!("COPC file {name}: {e}"))?;
     let hierarchy = opened.dataset.hierarchy();
     let copc = CopcServed {
         file_name: name.to_owned(),

@@ -284,6 +284,24 @@ pub(crate) fn check_page(
     page: PageRef,
     what: &str,
 ) -> Result<(), CopcError> {
+    check_page_bounds(
+        path,
+        header.offset_to_point_data,
+        header.file_len,
+        page,
+        what,
+    )
+}
+
+/// [`check_page`] against a file of `file_len` bytes whose point data starts at
+/// `offset_to_point_data`.
+pub(crate) fn check_page_bounds(
+    path: &Path,
+    offset_to_point_data: u64,
+    file_len: u64,
+    page: PageRef,
+    what: &str,
+) -> Result<(), CopcError> {
     if page.size == 0 || !page.size.is_multiple_of(ENTRY_BYTES) {
         return Err(CopcError::hierarchy(
             path,
@@ -294,12 +312,12 @@ pub(crate) fn check_page(
         ));
     }
     let end = page.offset.checked_add(page.size);
-    if page.offset < header.offset_to_point_data || end.is_none_or(|end| end > header.file_len) {
+    if page.offset < offset_to_point_data || end.is_none_or(|end| end > file_len) {
         return Err(CopcError::hierarchy(
             path,
             format!(
                 "{what} ({} bytes at offset {}) lies outside the file's {} bytes after the point data at {}",
-                page.size, page.offset, header.file_len, header.offset_to_point_data
+                page.size, page.offset, file_len, offset_to_point_data
             ),
         ));
     }

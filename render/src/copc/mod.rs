@@ -8,8 +8,15 @@
 //!   header, LASzip and info VLRs, after the checks every LAS/LAZ file passes;
 //! - `hierarchy.rs`: the hierarchy pages walked into nodes, every entry checked against the
 //!   file and the header;
+//! - `lazy.rs`: child pages read as they are needed, by a frame's cut or the colour ranges;
 //! - `nodes.rs`: a node's chunk read by byte range and decoded into `NodePoints`;
 //! - `error.rs`: [`CopcError`].
+//!
+//! For rendering ([`open_copc`]) only the root hierarchy page is read when the file is opened
+//! (and the child pages the colour sample reaches); a frame's cut reads the pages it reaches,
+//! so a large file's first frame reads a few pages, not the whole hierarchy. A daemon, which
+//! sends its workers the whole hierarchy, opens the file with every page read
+//! ([`open_copc_whole`]); so does [`describe`].
 //!
 //! Colour ranges come from the coarsest nodes, the same even sample the elevation range of a
 //! store comes from: the RGB decision, the intensity percentiles and the class counts of up
@@ -18,8 +25,11 @@
 mod error;
 mod header;
 mod hierarchy;
+mod lazy;
 mod nodes;
 
+#[cfg(test)]
+mod lazy_tests;
 #[cfg(test)]
 mod tests;
 
@@ -31,8 +41,9 @@ pub use error::CopcError;
 pub use header::{is_copc, CopcInfo};
 pub use nodes::{CopcDecoder, CopcNodes};
 
-use crate::cut::{for_each_coarse_node, node_heights, LodDataset};
-use crate::lod::{DatasetStats, LodError, LodHierarchy};
+use crate::cut::{for_each_coarse_node_up_to, node_heights, LodDataset, ELEVATION_SAMPLE_POINTS};
+use crate::lod::{DatasetStats, LodError};
+use lazy::CopcPageReader;
 
 /// A COPC file opened for rendering, and what opening it read.
 pub struct CopcDataset {
@@ -40,53 +51,91 @@ pub struct CopcDataset {
     pub info: CopcInfo,
     /// How its chunks decode, for a reader that is sent them instead of opening the file.
     pub decoder: CopcDecoder,
-    /// Hierarchy pages read, and their bytes.
+    /// Hierarchy pages read at open, and their bytes (frames read others:
+    /// [`LodDataset::pages_read`]).
     pub pages: usize,
     pub page_bytes: u64,
-    /// Nodes of the hierarchy (with points or children).
+    /// Child pages left for frames to read.
+    pub unread_pages: usize,
+    /// Nodes of the hierarchy read at open (with points or children).
     pub nodes: usize,
     /// Nodes and bytes of chunks read for the colour ranges.
     pub sample_nodes: usize,
     pub sample_bytes: u64,
 }
 
-/// Opens the COPC file `path`: its header and every hierarchy page, checked, then the
-/// coarsest nodes for the colour ranges.
+/// Opens the COPC file `path` for rendering: its header and root hierarchy page, checked, the
+/// coarsest nodes for the colour ranges (and the child pages they lie in); the other pages
+/// are read as frames reach them.
 pub fn open_copc(path: &Path) -> Result<CopcDataset, CopcError> {
+    open(path, PageReads::AsNeeded, ELEVATION_SAMPLE_POINTS)
+}
+
+/// Opens the COPC file `path` as [`open_copc`] does, with every hierarchy page read and the
+/// entries' points checked against the header's count: for a reader that needs the whole
+/// hierarchy (a daemon sends it to its workers).
+pub fn open_copc_whole(path: &Path) -> Result<CopcDataset, CopcError> {
+    open(path, PageReads::All, ELEVATION_SAMPLE_POINTS)
+}
+
+/// Which hierarchy pages opening a file reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum PageReads {
+    /// The root page and those the colour sample needs.
+    AsNeeded,
+    All,
+}
+
+/// Opens `path` reading the pages `reads` says, its colour ranges from its coarsest
+/// `sample_points` points.
+fn open(path: &Path, reads: PageReads, sample_points: u64) -> Result<CopcDataset, CopcError> {
     let mut file = File::open(path).map_err(|e| CopcError::io(path, e))?;
     let header = header::read_header(path, &mut file)?;
-    let list = hierarchy::read_pages(path, &file, &header)?;
+    let mut pages = match reads {
+        PageReads::AsNeeded => hierarchy::read_root_page(path, &file, &header)?,
+        PageReads::All => hierarchy::read_all_pages(path, &file, &header)?,
+    };
     let has_rgb = header.format.has_color;
-    let hierarchy = LodHierarchy::with_level_spacing(
-        header.info.cube(),
-        header.point_count,
-        DatasetStats::new(has_rgb),
-        header.info.spacing,
-        list.nodes,
-    );
+    let (cube, spacing) = (header.info.cube(), header.info.spacing);
+    let mut hierarchy = pages.hierarchy(cube, DatasetStats::new(has_rgb), spacing);
+    loop {
+        let needed = lazy::coarse_pages(&hierarchy, sample_points);
+        if needed.is_empty() {
+            break;
+        }
+        pages.read(&file, &needed)?;
+        hierarchy = pages.hierarchy(cube, DatasetStats::new(has_rgb), spacing);
+    }
+    let page_file = file.try_clone().map_err(|e| CopcError::io(path, e))?;
     let nodes = Arc::new(CopcNodes::new(path, file, &header));
     // The colour ranges from the coarsest nodes, and their heights for the elevation range.
     let origin = header.bounds.center();
     let mut stats = DatasetStats::new(has_rgb);
     let mut heights = Vec::new();
     let mut sample_nodes = 0;
-    let sample_bytes = for_each_coarse_node(nodes.as_ref(), &hierarchy, |points| {
-        stats.add_node(points);
-        heights.extend(node_heights(points, origin));
-        sample_nodes += 1;
-    })
-    .map_err(|error| copc_error(path, error))?;
-    let mut hierarchy = hierarchy;
+    let sample_bytes =
+        for_each_coarse_node_up_to(nodes.as_ref(), &hierarchy, sample_points, |points| {
+            stats.add_node(points);
+            heights.extend(node_heights(points, origin));
+            sample_nodes += 1;
+        })
+        .map_err(|error| copc_error(path, error))?;
     hierarchy.stats = stats;
     let node_count = hierarchy.nodes().len();
+    let unread_pages = hierarchy.unread_pages().len();
     let decoder = nodes.decoder().clone();
-    let dataset = LodDataset::with_heights(nodes, hierarchy, header.bounds, heights);
+    let mut dataset = LodDataset::with_heights(nodes, hierarchy, header.bounds, heights);
+    let (read, read_bytes) = (pages.pages, pages.page_bytes);
+    if !pages.all_read() {
+        dataset = dataset.with_pages(Arc::new(CopcPageReader::new(page_file, spacing, pages)));
+    }
     Ok(CopcDataset {
         dataset,
         info: header.info,
         decoder,
-        pages: list.pages,
-        page_bytes: list.page_bytes,
+        pages: read,
+        page_bytes: read_bytes,
+        unread_pages,
         nodes: node_count,
         sample_nodes,
         sample_bytes,
@@ -109,12 +158,12 @@ pub struct CopcSummary {
 pub fn describe(path: &Path) -> Result<CopcSummary, CopcError> {
     let mut file = File::open(path).map_err(|e| CopcError::io(path, e))?;
     let header = header::read_header(path, &mut file)?;
-    let list = hierarchy::read_pages(path, &file, &header)?;
-    let with_points = || list.nodes.iter().filter(|node| node.point_count > 0);
+    let pages = hierarchy::read_all_pages(path, &file, &header)?;
+    let with_points = || pages.nodes_with_points();
     Ok(CopcSummary {
         info: header.info,
-        pages: list.pages,
-        page_bytes: list.page_bytes,
+        pages: pages.pages,
+        page_bytes: pages.page_bytes,
         nodes: with_points().count(),
         depth: with_points().map(|node| node.key.level).max().unwrap_or(0),
     })

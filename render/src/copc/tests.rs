@@ -21,7 +21,7 @@ const FILES: [&str; 3] = [
 ];
 
 /// A COPC file of the repository's test data (`tests/data/copc`).
-fn copc_file(name: &str) -> PathBuf {
+pub(super) fn copc_file(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("../tests/data/copc")
         .join(name)
@@ -157,7 +157,7 @@ fn inner_nodes_take_the_info_spacing_halved_per_level() {
 // Damaged files.
 
 /// Where the info VLR's data starts: after the 375-byte header and the VLR's 54-byte header.
-const INFO_AT: usize = 375 + 54;
+pub(super) const INFO_AT: usize = 375 + 54;
 
 /// What a daemon sends of a COPC file's header decodes its chunks as the file does, and
 /// parts that cannot be a COPC file's are refused naming the file.
@@ -223,12 +223,12 @@ fn a_decoder_sent_apart_from_the_file_decodes_its_chunks_as_the_file_does() {
     }
 }
 
-fn u64_at(bytes: &[u8], at: usize) -> u64 {
+pub(super) fn u64_at(bytes: &[u8], at: usize) -> u64 {
     u64::from_le_bytes(bytes[at..at + 8].try_into().expect("8 bytes"))
 }
 
 /// The root page's offset and size.
-fn root_page(bytes: &[u8]) -> (usize, usize) {
+pub(super) fn root_page(bytes: &[u8]) -> (usize, usize) {
     (
         u64_at(bytes, INFO_AT + 40) as usize,
         u64_at(bytes, INFO_AT + 48) as usize,
@@ -236,17 +236,17 @@ fn root_page(bytes: &[u8]) -> (usize, usize) {
 }
 
 /// Offsets of the entries of the page at `page` of `size` bytes.
-fn entries(page: usize, size: usize) -> impl Iterator<Item = usize> {
+pub(super) fn entries(page: usize, size: usize) -> impl Iterator<Item = usize> {
     (page..page + size).step_by(32)
 }
 
-fn set_entry(bytes: &mut [u8], at: usize, offset: u64, byte_size: i32, count: i32) {
+pub(super) fn set_entry(bytes: &mut [u8], at: usize, offset: u64, byte_size: i32, count: i32) {
     bytes[at + 16..at + 24].copy_from_slice(&offset.to_le_bytes());
     bytes[at + 24..at + 28].copy_from_slice(&byte_size.to_le_bytes());
     bytes[at + 28..at + 32].copy_from_slice(&count.to_le_bytes());
 }
 
-fn count_of(bytes: &[u8], at: usize) -> i32 {
+pub(super) fn count_of(bytes: &[u8], at: usize) -> i32 {
     i32::from_le_bytes(bytes[at + 28..at + 32].try_into().expect("4 bytes"))
 }
 
@@ -382,7 +382,7 @@ fn any_byte_of_the_hierarchy_flipped_opens_or_is_an_error_never_a_panic() {
 
 // On the GPU.
 
-fn frame_settings(bounds: &crate::cloud::WorldBounds) -> FrameSettings {
+pub(super) fn frame_settings(bounds: &crate::cloud::WorldBounds) -> FrameSettings {
     let camera = Camera::auto(bounds, 4.0 / 3.0);
     let mut settings =
         FrameSettings::new(200, 150, camera).with_point_size(PointSize::Fixed(3), bounds, None);

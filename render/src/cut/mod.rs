@@ -21,9 +21,11 @@
 //! cache on another thread while the caller encodes this one.
 
 mod colors;
+mod dataset;
 mod gpu_cache;
 mod host_cache;
 mod options;
+mod pages;
 mod point_sizes;
 mod report;
 mod select;
@@ -38,20 +40,20 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Instant;
 
-use glam::DVec3;
 use rayon::prelude::*;
 use thiserror::Error;
 
-use crate::cloud::WorldBounds;
 use crate::color::Coloring;
 use crate::filter::PointFilter;
-use crate::lod::{read_nodes, LodError, LodHierarchy, LodStore, NodeKey, NodePoints, NodeRecords};
+use crate::lod::{read_nodes, LodError, LodHierarchy, NodeKey, NodePoints};
 use crate::raster::gpu_data::GpuBatch;
 use crate::raster::morton::morton_order;
 use crate::raster::points::ChunkData;
 use crate::raster::{Clock, Frame, FrameSettings, RenderError, Renderer, Stage, StageTiming};
 
 pub use colors::{node_heights, DatasetColoring, ELEVATION_SAMPLE_POINTS};
+pub(crate) use dataset::for_each_coarse_node_up_to;
+pub use dataset::{for_each_coarse_node, LodDataset};
 pub use gpu_cache::SLOT_BYTES;
 pub use host_cache::node_heap_bytes;
 pub use options::{
@@ -59,22 +61,21 @@ pub use options::{
     DEFAULT_MEMORY_BUDGET_BYTES, MAX_CUT_POINTS_PER_PIXEL, MAX_LOD_ERROR_PX, MIN_BUDGET_BYTES,
     RESIDENT_MAX_POINTS,
 };
+pub use pages::{HierarchyPages, PagesRead};
 pub use report::{CutCounts, CutReport};
 pub use select::{select_cut, Cut, CutNode, CutView};
 pub use stored::StoredLod;
 
+use dataset::LOAD_GROUP_NODES;
 use gpu_cache::{GpuNodeCache, SizeFactors};
 use host_cache::HostNodeCache;
+use pages::Selected;
 use point_sizes::CutPointSizes;
 use select::NodesInView;
 
 /// The most points of a page of the GPU node cache: few pages keep a frame's dispatches few,
 /// small ones keep a small dataset's cache small.
 const MAX_PAGE_POINTS: usize = 1 << 22;
-
-/// Nodes read, prepared and written to the GPU together: bounds the transient memory of a
-/// frame's loads to this many nodes' decoded and prepared points.
-const LOAD_GROUP_NODES: usize = 32;
 
 #[derive(Debug, Error)]
 pub enum CutError {
@@ -99,152 +100,6 @@ pub enum CutError {
         /// What is short: the free space, or the budget.
         limit: String,
     },
-}
-
-/// A built store opened for rendering: its hierarchy (always resident), where its node
-/// records are read from (the store's payload file, or a daemon that keeps it), rendering
-/// origin, bounds and colour ranges.
-pub struct LodDataset {
-    records: Arc<dyn NodeRecords>,
-    hierarchy: Arc<LodHierarchy>,
-    origin: DVec3,
-    bounds: WorldBounds,
-    coloring: DatasetColoring,
-    /// The spacing of the original points (`LodHierarchy::point_spacing`), which a frame's
-    /// adaptive size is made for.
-    point_spacing: Option<f64>,
-}
-
-impl LodDataset {
-    /// Opens a built store whose points lie in `bounds` (the dataset's, as the camera frames
-    /// them); the origin is their centre.
-    pub fn open(store: LodStore, bounds: WorldBounds) -> Result<Self, LodError> {
-        let hierarchy = store.read_hierarchy()?;
-        Self::with_records(Arc::new(store), hierarchy, bounds)
-    }
-
-    /// A store whose hierarchy is `hierarchy` and whose records come from `records`.
-    pub fn with_records(
-        records: Arc<dyn NodeRecords>,
-        hierarchy: LodHierarchy,
-        bounds: WorldBounds,
-    ) -> Result<Self, LodError> {
-        let origin = bounds.center();
-        let mut heights = Vec::new();
-        for_each_coarse_node(records.as_ref(), &hierarchy, |points| {
-            heights.extend(colors::node_heights(points, origin));
-        })?;
-        Ok(Self::with_heights(records, hierarchy, bounds, heights))
-    }
-
-    /// A store whose elevation range comes from `heights` (of its coarsest nodes, relative to
-    /// the centre of `bounds`, [`for_each_coarse_node`]) and whose other colour ranges come
-    /// from its hierarchy's statistics.
-    pub fn with_heights(
-        records: Arc<dyn NodeRecords>,
-        hierarchy: LodHierarchy,
-        bounds: WorldBounds,
-        mut heights: Vec<f32>,
-    ) -> Self {
-        let elevation = crate::color::Stretch::percentiles(&mut heights);
-        Self::with_elevation(records, hierarchy, bounds, elevation)
-    }
-
-    /// A store whose elevation range is `elevation` (relative to the centre of `bounds`),
-    /// taken from a sample where the hierarchy was opened, so no node is read here.
-    pub fn with_elevation(
-        records: Arc<dyn NodeRecords>,
-        hierarchy: LodHierarchy,
-        bounds: WorldBounds,
-        elevation: Option<crate::color::Stretch>,
-    ) -> Self {
-        let origin = bounds.center();
-        let coloring = DatasetColoring::with_elevation(&hierarchy.stats, elevation, origin.z);
-        Self {
-            records,
-            point_spacing: hierarchy.point_spacing(),
-            hierarchy: Arc::new(hierarchy),
-            origin,
-            bounds,
-            coloring,
-        }
-    }
-
-    /// The elevation range of its coarsest nodes, relative to the origin.
-    pub fn elevation(&self) -> Option<crate::color::Stretch> {
-        self.coloring.elevation()
-    }
-
-    /// Where the node records are read from.
-    pub fn records(&self) -> &Arc<dyn NodeRecords> {
-        &self.records
-    }
-
-    pub fn hierarchy(&self) -> &LodHierarchy {
-        &self.hierarchy
-    }
-
-    pub fn origin(&self) -> DVec3 {
-        self.origin
-    }
-
-    pub fn bounds(&self) -> WorldBounds {
-        self.bounds
-    }
-
-    /// The range elevation or intensity is drawn over in `coloring`, in the mode's units
-    /// (world Z, raw intensity): what a legend shows.
-    pub fn ramp_range(&self, coloring: Coloring) -> Option<crate::color::ColorRange> {
-        self.coloring.ramp_range(coloring)
-    }
-
-    pub fn point_count(&self) -> u64 {
-        self.hierarchy.point_count
-    }
-
-    /// The spacing of the original points, from the leaves: what a frame's adaptive point
-    /// size is made for, and what a cut's batches are sized against.
-    pub fn point_spacing(&self) -> Option<f64> {
-        self.point_spacing
-    }
-
-    /// Bytes a node's record takes in the store.
-    fn stored_bytes(&self, key: NodeKey) -> u64 {
-        u64::from(self.hierarchy.node_byte_len(key))
-    }
-}
-
-/// Reads the coarsest nodes of `hierarchy`, level by level, up to
-/// [`ELEVATION_SAMPLE_POINTS`] (an even sample of the whole dataset, which colour ranges are
-/// taken from), a group at a time, handing each to `visit`; returns their record bytes.
-pub fn for_each_coarse_node(
-    records: &dyn NodeRecords,
-    hierarchy: &LodHierarchy,
-    mut visit: impl FnMut(&NodePoints),
-) -> Result<u64, LodError> {
-    let mut levels: Vec<_> = hierarchy
-        .nodes()
-        .iter()
-        .filter(|n| n.point_count > 0)
-        .collect();
-    levels.sort_by_key(|n| n.key);
-    let mut keys = Vec::new();
-    let mut sampled = 0;
-    let mut bytes = 0;
-    for node in levels {
-        if sampled >= ELEVATION_SAMPLE_POINTS {
-            break;
-        }
-        sampled += u64::from(node.point_count);
-        bytes += u64::from(node.byte_len);
-        keys.push(node.key);
-    }
-    for group in keys.chunks(LOAD_GROUP_NODES) {
-        for points in read_nodes(records, hierarchy, group)? {
-            visit(&points);
-        }
-    }
-    Ok(bytes)
 }
 
 /// The nodes a read-ahead is fetching, and the thread doing it.
@@ -321,11 +176,13 @@ impl CutRenderer {
     }
 
     /// The cut a frame of `settings` draws.
-    pub fn cut(&self, dataset: &LodDataset, settings: &FrameSettings, filter: &PointFilter) -> Cut {
-        select_cut(
-            &dataset.hierarchy,
-            &self.cut_view(dataset, settings, filter),
-        )
+    pub fn cut(
+        &self,
+        dataset: &LodDataset,
+        settings: &FrameSettings,
+        filter: &PointFilter,
+    ) -> Result<Cut, LodError> {
+        dataset.select_cut(&self.cut_view(dataset, settings, filter))
     }
 
     /// What the selection of a frame of `settings` needs, in the supersampled frame's pixels.
@@ -359,7 +216,8 @@ impl CutRenderer {
     /// sized by the spacing of the deepest nodes drawn where it lies (`point_sizes.rs`).
     fn point_sizes<'a>(
         &self,
-        dataset: &'a LodDataset,
+        dataset: &LodDataset,
+        hierarchy: &'a LodHierarchy,
         settings: &FrameSettings,
         filter: &PointFilter,
         cut: &Cut,
@@ -372,9 +230,9 @@ impl CutRenderer {
             .camera
             .transform(dataset.origin, settings.width, settings.height);
         Some(CutPointSizes::new(
-            &dataset.hierarchy,
+            hierarchy,
             cut,
-            NodesInView::new(&dataset.hierarchy, &view, &transform),
+            NodesInView::new(hierarchy, &view, &transform),
             &transform,
             dataset.origin,
             reference,
@@ -395,10 +253,16 @@ impl CutRenderer {
         let coloring = coloring.into();
         renderer.validate(settings)?;
         let started = Instant::now();
-        let cut = self.cut(dataset, settings, filter);
+        let Selected {
+            cut,
+            hierarchy,
+            pages_read,
+        } = dataset.select(&self.cut_view(dataset, settings, filter))?;
         let select_ms = ms_since(started);
         let mut report = CutReport::of_cut(&cut, dataset.point_count());
         report.select_ms = select_ms;
+        report.hierarchy_pages_read = pages_read.pages;
+        report.hierarchy_page_bytes = pages_read.bytes;
 
         let started = Instant::now();
         if let Some(ahead) = self.read_ahead.take() {
@@ -425,7 +289,7 @@ impl CutRenderer {
         let mut upload_ms = 0.0;
         for group in missing.chunks(LOAD_GROUP_NODES) {
             let started = Instant::now();
-            let nodes = self.load_group(dataset, group, &mut report)?;
+            let nodes = self.load_group(dataset, &hierarchy, group, &mut report)?;
             report.load_ms += ms_since(started);
 
             let started = Instant::now();
@@ -445,7 +309,7 @@ impl CutRenderer {
             }
             upload_ms += ms_since(started);
         }
-        let mut sizes = self.point_sizes(dataset, settings, filter, &cut);
+        let mut sizes = self.point_sizes(dataset, &hierarchy, settings, filter, &cut);
         let mut size_factor = sizes
             .as_mut()
             .map(|sizes| move |key: NodeKey, batch: &GpuBatch| sizes.factor(key, batch));
@@ -486,6 +350,7 @@ impl CutRenderer {
     fn load_group(
         &self,
         dataset: &LodDataset,
+        hierarchy: &LodHierarchy,
         group: &[&CutNode],
         report: &mut CutReport,
     ) -> Result<Vec<Arc<NodePoints>>, CutError> {
@@ -503,15 +368,14 @@ impl CutRenderer {
             .collect();
         report.counts.host_hits += (group.len() - to_read.len()) as u64;
         let keys: Vec<NodeKey> = to_read.iter().map(|n| n.key).collect();
-        let read: Vec<Arc<NodePoints>> =
-            read_nodes(dataset.records.as_ref(), &dataset.hierarchy, &keys)?
-                .into_iter()
-                .map(Arc::new)
-                .collect();
+        let read: Vec<Arc<NodePoints>> = read_nodes(dataset.records.as_ref(), hierarchy, &keys)?
+            .into_iter()
+            .map(Arc::new)
+            .collect();
         report.counts.nodes_read += read.len() as u64;
         report.counts.bytes_read += to_read
             .iter()
-            .map(|n| dataset.stored_bytes(n.key))
+            .map(|n| u64::from(hierarchy.node_byte_len(n.key)))
             .sum::<u64>();
         let mut host = self
             .host
@@ -539,7 +403,15 @@ impl CutRenderer {
         if self.read_ahead.is_some() {
             return;
         }
-        let cut = self.cut(dataset, settings, filter);
+        let view = self.cut_view(dataset, settings, filter);
+        let Selected { cut, hierarchy, .. } = match dataset.select(&view) {
+            Ok(selected) => selected,
+            // The frame selects again and reports the error.
+            Err(error) => {
+                tracing::debug!(%error, "no read-ahead");
+                return;
+            }
+        };
         let Ok(host) = self.host.lock() else {
             return;
         };
@@ -563,7 +435,6 @@ impl CutRenderer {
             return;
         }
         let records = Arc::clone(&dataset.records);
-        let hierarchy = Arc::clone(&dataset.hierarchy);
         let host = Arc::clone(&self.host);
         let thread = std::thread::Builder::new()
             .name("pointfarm-read-ahead".into())

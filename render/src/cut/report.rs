@@ -36,6 +36,10 @@ pub struct CutReport {
     /// Bytes the caches hold after the frame.
     pub host_cache_bytes: u64,
     pub gpu_cache_bytes: u64,
+    /// Hierarchy pages the frame's selection read, and their bytes: a dataset whose pages
+    /// are read lazily reads those its cuts reach.
+    pub hierarchy_pages_read: u64,
+    pub hierarchy_page_bytes: u64,
     /// The load stages: selecting the cut, waiting for the read-ahead, reading and decoding
     /// nodes, preparing them (colours, order, quantisation); their transfer to the GPU is the
     /// frame's "upload" stage.

@@ -8,6 +8,12 @@
 //! next node would take it past the GPU node cache's batches or past the points its pixels
 //! warrant, so a view too dense for either loses detail far away, never near. The order of the
 //! cut is the order its nodes are loaded in.
+//!
+//! A hierarchy read lazily has nodes whose page is not read yet: the walk stops at the first it
+//! takes from the queue and names every such node it queued (`Walk::unread_pages`), so
+//! that their pages are read and the walk run again; a walk that takes none from the queue is
+//! the walk over the whole hierarchy, since what it visits does not depend on nodes it never
+//! takes.
 
 use std::cmp::Ordering;
 use std::collections::BinaryHeap;
@@ -178,8 +184,24 @@ impl<'a> NodesInView<'a> {
     }
 }
 
-/// The cut of `hierarchy` for `view`.
+/// A walk over a hierarchy: the cut, unless it reached a page not read yet.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub(crate) struct Walk {
+    /// The cut; only part of it where `unread_pages` is not empty.
+    pub(crate) cut: Cut,
+    /// The nodes whose pages are not read yet that the walk queued (in view, under a node it
+    /// refined), by key; empty when the walk never took one from its queue.
+    pub(crate) unread_pages: Vec<NodeKey>,
+}
+
+/// The cut of `hierarchy` for `view`; of a hierarchy with pages not read yet, the cut up to
+/// the first of them the walk takes (`walk_cut` says which they are).
 pub fn select_cut(hierarchy: &LodHierarchy, view: &CutView<'_>) -> Cut {
+    walk_cut(hierarchy, view).cut
+}
+
+/// The walk of `hierarchy` for `view`: its cut, or the unread pages it needs first.
+pub(crate) fn walk_cut(hierarchy: &LodHierarchy, view: &CutView<'_>) -> Walk {
     let transform = view.camera.transform(view.origin, view.width, view.height);
     let nodes_in_view = NodesInView::new(hierarchy, view, &transform);
     let in_view = |key: NodeKey| nodes_in_view.contains(key);
@@ -199,12 +221,20 @@ pub fn select_cut(hierarchy: &LodHierarchy, view: &CutView<'_>) -> Cut {
 
     let mut cut = Cut::default();
     let mut queue = BinaryHeap::new();
+    // Unread pages queued so far: all are read together if the walk takes one.
+    let mut unread = Vec::new();
+    let enqueue = |queue: &mut BinaryHeap<Queued>, unread: &mut Vec<NodeKey>, key: NodeKey| {
+        if hierarchy.is_unread_page(key) {
+            unread.push(key);
+        }
+        queue.push(Queued {
+            priority: on_screen(key),
+            key,
+        });
+    };
     if let Some(root) = hierarchy.root() {
         if in_view(root.key) {
-            queue.push(Queued {
-                priority: on_screen(root.key),
-                key: root.key,
-            });
+            enqueue(&mut queue, &mut unread, root.key);
         }
     }
     let (mut batches, mut points) = (0, 0u64);
@@ -212,6 +242,15 @@ pub fn select_cut(hierarchy: &LodHierarchy, view: &CutView<'_>) -> Cut {
         let Some(node) = hierarchy.node(key) else {
             continue;
         };
+        if hierarchy.is_unread_page(key) {
+            // Its points and children are unknown: the rest of the walk depends on them.
+            unread.sort_unstable();
+            unread.dedup();
+            return Walk {
+                cut,
+                unread_pages: unread,
+            };
+        }
         let node_batches = (node.point_count as usize).div_ceil(BATCH_POINTS);
         let over_points = view
             .max_points
@@ -240,13 +279,13 @@ pub fn select_cut(hierarchy: &LodHierarchy, view: &CutView<'_>) -> Cut {
         if refine || node.point_count == 0 {
             for child in hierarchy.children(key) {
                 if in_view(child.key) {
-                    queue.push(Queued {
-                        priority: on_screen(child.key),
-                        key: child.key,
-                    });
+                    enqueue(&mut queue, &mut unread, child.key);
                 }
             }
         }
     }
-    cut
+    Walk {
+        cut,
+        unread_pages: Vec::new(),
+    }
 }

@@ -8,7 +8,7 @@ use crate::camera::{Camera, Projection};
 use crate::cloud::PointCloud;
 use crate::color::ColorMode;
 use crate::ingest::{load_point_cloud, write_las, DatasetSource, LasWriteOptions};
-use crate::lod::{build_lod, LodBuildOptions, PointSource};
+use crate::lod::{build_lod, LodBuildOptions, LodStore, PointSource};
 use crate::raster::{FillSettings, Quality, Shading};
 use crate::request::{PointSize, RenderOptions};
 use crate::sample::sample_scene;

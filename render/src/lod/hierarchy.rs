@@ -10,7 +10,7 @@
 //! A record of another version is refused (the dataset is then rebuilt): "PFH4" marks stores
 //! whose node records carry point weights ("PFN2", `codec.rs`).
 
-use std::collections::HashMap;
+use std::collections::{BTreeSet, HashMap, HashSet};
 
 use glam::DVec3;
 
@@ -74,6 +74,10 @@ pub struct LodHierarchy {
     /// spacing is its side over its sampling grid. Not part of the record: only hierarchies
     /// read from a COPC file's own pages have it, and those are never stored.
     level_spacing: Option<f64>,
+    /// Nodes whose entries and subtree lie in a hierarchy page not read yet (a COPC file read
+    /// lazily): each listed as a node without points or children until its page is read. Not
+    /// part of the record: a hierarchy that is sent or stored has every page read.
+    unread_pages: BTreeSet<NodeKey>,
     /// Sorted by key: level, then x, y, z.
     nodes: Vec<NodeInfo>,
     index: HashMap<NodeKey, usize>,
@@ -87,7 +91,27 @@ impl LodHierarchy {
         point_count: u64,
         max_leaf_points: u32,
         stats: DatasetStats,
+        emitted: Vec<NodeInfo>,
+    ) -> Self {
+        Self::assemble_keeping(
+            cube,
+            point_count,
+            max_leaf_points,
+            stats,
+            emitted,
+            &HashSet::new(),
+        )
+    }
+
+    /// [`LodHierarchy::assemble`], keeping the nodes of `kept` even when they are empty and
+    /// have no children.
+    fn assemble_keeping(
+        cube: RootCube,
+        point_count: u64,
+        max_leaf_points: u32,
+        stats: DatasetStats,
         mut emitted: Vec<NodeInfo>,
+        kept: &HashSet<NodeKey>,
     ) -> Self {
         // Deepest first, so a node's children are settled before it is.
         emitted.sort_by_key(|n| std::cmp::Reverse(n.key));
@@ -95,7 +119,7 @@ impl LodHierarchy {
         let mut nodes = Vec::with_capacity(emitted.len());
         for mut node in emitted {
             node.child_mask = masks.get(&node.key).copied().unwrap_or(0);
-            if node.point_count == 0 && node.child_mask == 0 {
+            if node.point_count == 0 && node.child_mask == 0 && !kept.contains(&node.key) {
                 continue;
             }
             if let Some(parent) = node.key.parent() {
@@ -121,6 +145,7 @@ impl LodHierarchy {
             max_leaf_points,
             stats,
             level_spacing: None,
+            unread_pages: BTreeSet::new(),
             nodes,
             index,
         }
@@ -136,7 +161,31 @@ impl LodHierarchy {
         root_spacing: f64,
         nodes: Vec<NodeInfo>,
     ) -> Self {
-        let mut hierarchy = Self::assemble(cube, point_count, 0, stats, nodes);
+        Self::of_pages(
+            cube,
+            point_count,
+            stats,
+            root_spacing,
+            nodes,
+            &HashSet::new(),
+            BTreeSet::new(),
+        )
+    }
+
+    /// [`LodHierarchy::with_level_spacing`] for a COPC file whose entries come in pages: the
+    /// nodes of `page_keys` (whose subtrees have pages of their own) are kept even when empty,
+    /// so the hierarchy has the same nodes whether their pages are read or not yet; those of
+    /// `unread_pages` wait for their page ([`LodHierarchy::is_unread_page`]).
+    pub fn of_pages(
+        cube: RootCube,
+        point_count: u64,
+        stats: DatasetStats,
+        root_spacing: f64,
+        nodes: Vec<NodeInfo>,
+        page_keys: &HashSet<NodeKey>,
+        unread_pages: BTreeSet<NodeKey>,
+    ) -> Self {
+        let mut hierarchy = Self::assemble_keeping(cube, point_count, 0, stats, nodes, page_keys);
         // Leaves are known only once the masks are set.
         hierarchy.max_leaf_points = hierarchy
             .nodes
@@ -146,7 +195,18 @@ impl LodHierarchy {
             .max()
             .unwrap_or(0);
         hierarchy.level_spacing = Some(root_spacing);
+        hierarchy.unread_pages = unread_pages;
         hierarchy
+    }
+
+    /// Whether `key`'s entry and subtree lie in a page not read yet.
+    pub fn is_unread_page(&self, key: NodeKey) -> bool {
+        self.unread_pages.contains(&key)
+    }
+
+    /// The nodes whose pages are not read yet, by key.
+    pub fn unread_pages(&self) -> &BTreeSet<NodeKey> {
+        &self.unread_pages
     }
 
     /// The root spacing a COPC file's hierarchy halves per level (not part of the record).
