@@ -15,13 +15,12 @@ use std::path::{Path, PathBuf};
 
 use glam::DVec3;
 use laz::record::{LayeredPointRecordDecompressor, RecordDecompressor};
-use rayon::prelude::*;
 
 use super::error::CopcError;
 use super::header::CopcHeader;
 use crate::ingest::{contain_panics, layer_count};
 use crate::lod::codec::POSITION_BITS;
-use crate::lod::{LodError, NodeInfo, NodePoints, NodeRecords, RootCube};
+use crate::lod::{read_concurrently, LodError, NodeInfo, NodePoints, NodeRecords, RootCube};
 
 /// The most bytes of records a chunk may decode to beyond [`MAX_DECODED_PER_BYTE`] times its
 /// own size: enough for any real node, never a huge allocation from a forged count.
@@ -317,10 +316,7 @@ fn node_frame(cube: &RootCube, info: &NodeInfo) -> (DVec3, f64) {
 
 impl NodeRecords for CopcNodes {
     fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError> {
-        nodes
-            .par_iter()
-            .map(|node| self.read_chunk(node).map_err(LodError::from))
-            .collect()
+        read_concurrently(nodes, |node| self.read_chunk(node)).map_err(LodError::from)
     }
 
     fn decode(

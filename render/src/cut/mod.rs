@@ -6,8 +6,9 @@
 //! 1. **select** (`select.rs`): the nodes in view whose parent's spacing on screen exceeds the
 //!    pixel error, largest on screen first, as many as the GPU node cache holds;
 //! 2. **load**: the cut's nodes the GPU cache lacks are taken from the host cache
-//!    (`host_cache.rs`) or read from the store on all cores, in the cut's order (the load
-//!    queue, by priority), a group at a time so the transient memory stays small;
+//!    (`host_cache.rs`) or read from the store, in the cut's order (the load queue, by
+//!    priority), a group at a time so the transient memory stays small, the next group read
+//!    while this one is uploaded;
 //! 3. **upload**: each is coloured for the frame's colour mode with the dataset's ranges
 //!    (`colors.rs`), put in Morton order, batched and quantised as any cloud, and written into
 //!    free batch slots of the GPU cache's pages (`gpu_cache.rs`), the least recently used nodes
@@ -287,28 +288,57 @@ impl CutRenderer {
             .collect();
         report.counts.gpu_hits = (cut.nodes.len() - missing.len()) as u64;
         let mut upload_ms = 0.0;
-        for group in missing.chunks(LOAD_GROUP_NODES) {
-            let started = Instant::now();
-            let nodes = self.load_group(dataset, &hierarchy, group, &mut report)?;
-            report.load_ms += ms_since(started);
+        let host = &self.host;
+        let gpu_cache = &mut self.gpu_cache;
+        std::thread::scope(|scope| -> Result<(), CutError> {
+            // Groups are read on a thread of their own, one ahead of the group being prepared
+            // and uploaded, so the disk and the cores work at once
+            // (docs/perf/cold-first-frame.md).
+            let (sender, receiver) = std::sync::mpsc::sync_channel(1);
+            let (missing, hierarchy) = (&missing, &hierarchy);
+            scope.spawn(move || {
+                for group in missing.chunks(LOAD_GROUP_NODES) {
+                    let loaded = load_group(host, dataset, hierarchy, group);
+                    let failed = loaded.is_err();
+                    // A closed channel: the frame stopped on an error of its own.
+                    if sender.send(loaded).is_err() || failed {
+                        break;
+                    }
+                }
+            });
+            loop {
+                let started = Instant::now();
+                let Ok(loaded) = receiver.recv() else {
+                    return Ok(());
+                };
+                report.load_ms += ms_since(started);
+                let LoadedGroup {
+                    nodes,
+                    host_hits,
+                    nodes_read,
+                    bytes_read,
+                } = loaded?;
+                report.counts.host_hits += host_hits;
+                report.counts.nodes_read += nodes_read;
+                report.counts.bytes_read += bytes_read;
 
-            let started = Instant::now();
-            let prepared: Vec<ChunkData> = nodes
-                .par_iter()
-                .map(|node| prepare(dataset, node, coloring, filter))
-                .collect();
-            report.prepare_ms += ms_since(started);
+                let started = Instant::now();
+                let prepared: Vec<ChunkData> = nodes
+                    .par_iter()
+                    .map(|node| prepare(dataset, node, coloring, filter))
+                    .collect();
+                report.prepare_ms += ms_since(started);
 
-            let started = Instant::now();
-            for (node, data) in nodes.iter().zip(&prepared) {
-                report.counts.gpu_evicted += self
-                    .gpu_cache
-                    .insert(renderer.gpu(), node.key, data, &keep)
-                    .map_err(CutError::Cache)?;
-                report.counts.gpu_uploaded += 1;
+                let started = Instant::now();
+                for (node, data) in nodes.iter().zip(&prepared) {
+                    report.counts.gpu_evicted += gpu_cache
+                        .insert(renderer.gpu(), node.key, data, &keep)
+                        .map_err(CutError::Cache)?;
+                    report.counts.gpu_uploaded += 1;
+                }
+                upload_ms += ms_since(started);
             }
-            upload_ms += ms_since(started);
-        }
+        })?;
         let mut sizes = self.point_sizes(dataset, &hierarchy, settings, filter, &cut);
         let mut size_factor = sizes
             .as_mut()
@@ -344,51 +374,6 @@ impl CutRenderer {
         report.host_cache_bytes = self.host_bytes();
         report.gpu_cache_bytes = self.gpu_cache.gpu_bytes();
         Ok((frame, report))
-    }
-
-    /// The group's nodes from the host cache, or read from the store on all cores.
-    fn load_group(
-        &self,
-        dataset: &LodDataset,
-        hierarchy: &LodHierarchy,
-        group: &[&CutNode],
-        report: &mut CutReport,
-    ) -> Result<Vec<Arc<NodePoints>>, CutError> {
-        let mut host = self
-            .host
-            .lock()
-            .map_err(|_| CutError::Cache("the host node cache is poisoned".into()))?;
-        let cached: Vec<Option<Arc<NodePoints>>> = group.iter().map(|n| host.get(n.key)).collect();
-        drop(host);
-        let to_read: Vec<&CutNode> = group
-            .iter()
-            .zip(&cached)
-            .filter(|(_, c)| c.is_none())
-            .map(|(n, _)| *n)
-            .collect();
-        report.counts.host_hits += (group.len() - to_read.len()) as u64;
-        let keys: Vec<NodeKey> = to_read.iter().map(|n| n.key).collect();
-        let read: Vec<Arc<NodePoints>> = read_nodes(dataset.records.as_ref(), hierarchy, &keys)?
-            .into_iter()
-            .map(Arc::new)
-            .collect();
-        report.counts.nodes_read += read.len() as u64;
-        report.counts.bytes_read += to_read
-            .iter()
-            .map(|n| u64::from(hierarchy.node_byte_len(n.key)))
-            .sum::<u64>();
-        let mut host = self
-            .host
-            .lock()
-            .map_err(|_| CutError::Cache("the host node cache is poisoned".into()))?;
-        for node in &read {
-            host.insert(Arc::clone(node));
-        }
-        let mut read = read.into_iter();
-        Ok(cached
-            .into_iter()
-            .map(|c| c.or_else(|| read.next()).expect("one read per miss"))
-            .collect())
     }
 
     /// Starts reading the nodes of the frame of `settings` that neither cache holds into the
@@ -460,6 +445,61 @@ impl CutRenderer {
             Err(error) => tracing::debug!(%error, "no read-ahead thread"),
         }
     }
+}
+
+/// A group of a cut's nodes made resident on the host, in the group's order, with what it
+/// took for the frame's report.
+struct LoadedGroup {
+    nodes: Vec<Arc<NodePoints>>,
+    host_hits: u64,
+    nodes_read: u64,
+    bytes_read: u64,
+}
+
+/// The group's nodes from the host cache, or read from the store (several reads in flight,
+/// decoded on all cores) and put in the host cache.
+fn load_group(
+    host: &Mutex<HostNodeCache>,
+    dataset: &LodDataset,
+    hierarchy: &LodHierarchy,
+    group: &[&CutNode],
+) -> Result<LoadedGroup, CutError> {
+    let poisoned = || CutError::Cache("the host node cache is poisoned".into());
+    let cached: Vec<Option<Arc<NodePoints>>> = {
+        let mut host = host.lock().map_err(|_| poisoned())?;
+        group.iter().map(|n| host.get(n.key)).collect()
+    };
+    let to_read: Vec<NodeKey> = group
+        .iter()
+        .zip(&cached)
+        .filter(|(_, c)| c.is_none())
+        .map(|(n, _)| n.key)
+        .collect();
+    let read: Vec<Arc<NodePoints>> = read_nodes(dataset.records.as_ref(), hierarchy, &to_read)?
+        .into_iter()
+        .map(Arc::new)
+        .collect();
+    let loaded = LoadedGroup {
+        nodes: Vec::with_capacity(group.len()),
+        host_hits: (group.len() - to_read.len()) as u64,
+        nodes_read: read.len() as u64,
+        bytes_read: to_read
+            .iter()
+            .map(|&key| u64::from(hierarchy.node_byte_len(key)))
+            .sum(),
+    };
+    let mut host = host.lock().map_err(|_| poisoned())?;
+    for node in &read {
+        host.insert(Arc::clone(node));
+    }
+    let mut read = read.into_iter();
+    Ok(LoadedGroup {
+        nodes: cached
+            .into_iter()
+            .map(|c| c.or_else(|| read.next()).expect("one read per miss"))
+            .collect(),
+        ..loaded
+    })
 }
 
 /// A node's points as the renderer takes them: relative to the origin, coloured, those that

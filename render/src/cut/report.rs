@@ -40,8 +40,9 @@ pub struct CutReport {
     /// are read lazily reads those its cuts reach.
     pub hierarchy_pages_read: u64,
     pub hierarchy_page_bytes: u64,
-    /// The load stages: selecting the cut, waiting for the read-ahead, reading and decoding
-    /// nodes, preparing them (colours, order, quantisation); their transfer to the GPU is the
+    /// The load stages: selecting the cut, waiting for the read-ahead, waiting for nodes to be
+    /// read and decoded (the part that preparing and uploading the group before did not
+    /// hide), preparing them (colours, order, quantisation); their transfer to the GPU is the
     /// frame's "upload" stage.
     pub select_ms: f64,
     pub wait_ms: f64,

@@ -1,6 +1,8 @@
 //! `NodeRecords`: where a store's node records are read from — its payload file here, or a
 //! daemon that keeps the store — and the one way records become checked [`NodePoints`].
 
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
 use rayon::prelude::*;
 
 use super::codec::{decode_node, NodePoints, POSITION_BITS};
@@ -87,5 +89,84 @@ fn empty_node(hierarchy: &LodHierarchy, key: NodeKey) -> NodePoints {
         classification: Vec::new(),
         return_number: Vec::new(),
         weights: Vec::new(),
+    }
+}
+
+/// Positioned reads in flight at once. A read waits on the disk, not on a core, and a disk
+/// answers several requests at once, so a cold cut reads with more threads than cores
+/// (docs/perf/cold-first-frame.md).
+pub const READS_IN_FLIGHT: usize = 8;
+
+/// `read` of each of `items`, in order, with up to [`READS_IN_FLIGHT`] reads at once; the
+/// first failure (in `items`' order among those read) stops the others taking more.
+pub fn read_concurrently<T: Sync, E: Send>(
+    items: &[T],
+    read: impl Fn(&T) -> Result<Vec<u8>, E> + Sync,
+) -> Result<Vec<Vec<u8>>, E> {
+    let threads = items.len().min(READS_IN_FLIGHT);
+    if threads <= 1 {
+        return items.iter().map(read).collect();
+    }
+    let next = AtomicUsize::new(0);
+    let failed = AtomicBool::new(false);
+    let mut done: Vec<(usize, Result<Vec<u8>, E>)> = std::thread::scope(|scope| {
+        let workers: Vec<_> = (0..threads)
+            .map(|_| {
+                scope.spawn(|| {
+                    let mut done = Vec::new();
+                    while !failed.load(Ordering::Relaxed) {
+                        let i = next.fetch_add(1, Ordering::Relaxed);
+                        let Some(item) = items.get(i) else { break };
+                        let result = read(item);
+                        if result.is_err() {
+                            failed.store(true, Ordering::Relaxed);
+                        }
+                        done.push((i, result));
+                    }
+                    done
+                })
+            })
+            .collect();
+        workers
+            .into_iter()
+            .flat_map(|worker| match worker.join() {
+                Ok(done) => done,
+                Err(panic) => std::panic::resume_unwind(panic),
+            })
+            .collect()
+    });
+    done.sort_unstable_by_key(|(i, _)| *i);
+    done.into_iter().map(|(_, result)| result).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Many more items than reads in flight come back in order, and a failure is the first
+    /// failing item's, however the threads interleave.
+    #[test]
+    fn concurrent_reads_keep_the_order_and_report_the_first_failure() {
+        let items: Vec<u32> = (0..1_000).collect();
+        let read = |&i: &u32| -> Result<Vec<u8>, String> { Ok(i.to_le_bytes().to_vec()) };
+        let bytes = read_concurrently(&items, read).expect("read");
+        let back: Vec<u32> = bytes
+            .iter()
+            .map(|b| u32::from_le_bytes(b[..4].try_into().expect("4 bytes")))
+            .collect();
+        assert_eq!(back, items);
+
+        let failing = |&i: &u32| -> Result<Vec<u8>, String> {
+            if i % 100 == 37 {
+                Err(format!("item {i}"))
+            } else {
+                Ok(vec![0; 16])
+            }
+        };
+        for _ in 0..20 {
+            assert_eq!(read_concurrently(&items, failing), Err("item 37".into()));
+        }
+        assert_eq!(read_concurrently(&items[..1], read), Ok(vec![vec![0; 4]]));
+        assert_eq!(read_concurrently(&items[..0], read), Ok(Vec::new()));
     }
 }

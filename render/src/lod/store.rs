@@ -16,13 +16,11 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
-use rayon::prelude::*;
-
 use super::codec::NodePoints;
 use super::error::LodError;
 use super::hierarchy::{LodHierarchy, NodeInfo};
 use super::key::NodeKey;
-use super::records::{read_nodes, NodeRecords};
+use super::records::{read_concurrently, read_nodes, NodeRecords};
 
 const HIERARCHY_KEY: &[u8] = b"hierarchy";
 
@@ -217,8 +215,8 @@ impl LodStore {
 }
 
 impl NodeRecords for LodStore {
-    /// Positioned reads of the payload file, on all cores.
+    /// Positioned reads of the payload file, several in flight.
     fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError> {
-        nodes.par_iter().map(|info| self.read_range(info)).collect()
+        read_concurrently(nodes, |info| self.read_range(info))
     }
 }
