@@ -55,7 +55,7 @@ fn a_copc_file_renders_node_by_node_as_its_points_read_whole() {
     ]);
     let said = output_text(&rendered);
     assert!(
-        said.contains("COPC: reading its hierarchy node by node (65 nodes in 1 page"),
+        said.contains("COPC: reading its hierarchy node by node (65 nodes in the 1 page read;"),
         "{said}"
     );
     assert!(!cache.exists(), "no store is built for a COPC file");
@@ -103,7 +103,7 @@ fn a_coarse_pixel_error_reads_less_than_the_file() {
         "--json",
     ]);
     assert!(
-        output_text(&rendered).contains("in 2 pages"),
+        output_text(&rendered).contains("in the 2 pages read"),
         "{}",
         output_text(&rendered)
     );

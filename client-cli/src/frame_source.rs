@@ -243,12 +243,17 @@ impl FrameSource {
     ) -> Result<Self> {
         let started = Instant::now();
         let copc = open_copc(file)?;
+        let plural = |n: usize| if n == 1 { "" } else { "s" };
+        let unread = match copc.unread_pages {
+            0 => String::new(),
+            n => format!(", {n} more page{} read as frames reach them", plural(n)),
+        };
         let about = format!(
-            "{} points, COPC: reading its hierarchy node by node ({} nodes in {} page{}, {} nodes read for the colour ranges, {:.0} ms)",
+            "{} points, COPC: reading its hierarchy node by node ({} nodes in the {} page{} read{unread}; {} nodes read for the colour ranges, {:.0} ms)",
             copc.dataset.point_count(),
             copc.nodes,
             copc.pages,
-            if copc.pages == 1 { "" } else { "s" },
+            plural(copc.pages),
             copc.sample_nodes,
             started.elapsed().as_secs_f64() * 1e3,
         );

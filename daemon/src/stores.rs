@@ -62,6 +62,9 @@ pub struct CopcServed {
     /// The coarsest nodes' elevation range, read when the file was opened, so a worker need
     /// not read them again.
     pub elevation: Option<Stretch>,
+    /// The points' spacing, measured from the same nodes, so every renderer of the file
+    /// sizes adaptive points alike.
+    pub point_spacing: Option<f64>,
 }
 
 impl ReadyStore {
@@ -593,6 +596,7 @@ fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
         decoder: opened.decoder,
         root_spacing: opened.info.spacing,
         elevation: opened.dataset.elevation(),
+        point_spacing: opened.dataset.point_spacing(),
     };
     Ok(ReadyStore {
         hierarchy_record: hierarchy.encode(),

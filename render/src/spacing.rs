@@ -28,9 +28,18 @@ pub fn of_points(positions: &[Vec3]) -> Option<f64> {
     let sample: Vec<Vec3> = positions
         .iter()
         .enumerate()
-        .filter(|&(i, p)| p.is_finite() && u128::from(mix(i as u64) >> 32) < keep)
+        .filter(|&(i, _)| u128::from(mix(i as u64) >> 32) < keep)
         .map(|(_, p)| *p)
         .collect();
+    of_sample(&sample, n as u64)
+}
+
+/// The spacing of a cloud of `points` points of which `sample` is an even sample (a random
+/// one, or the coarsest levels of a level-of-detail hierarchy, which are spatially even): the
+/// area the sample's surface covers, measured by box counting, shared among all the points.
+/// `None` for fewer than two distinct finite points.
+pub fn of_sample(sample: &[Vec3], points: u64) -> Option<f64> {
+    let sample: Vec<Vec3> = sample.iter().copied().filter(|p| p.is_finite()).collect();
     let (min, max) = sample.iter().fold(
         (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
         |(lo, hi), p| (lo.min(*p), hi.max(*p)),
@@ -39,6 +48,7 @@ pub fn of_points(positions: &[Vec3]) -> Option<f64> {
     if sample.len() < 2 || extent.is_nan() || extent <= 0.0 {
         return None;
     }
+    let points = points.max(sample.len() as u64);
     let mut grid = FINEST_GRID;
     let mut cells = Vec::with_capacity(sample.len());
     loop {
@@ -46,7 +56,7 @@ pub fn of_points(positions: &[Vec3]) -> Option<f64> {
         let occupied = occupied_cells(&sample, min, cell, &mut cells);
         if sample.len() as f64 / occupied as f64 >= MIN_POINTS_PER_CELL || grid == 1 {
             let area = occupied as f64 * cell * cell;
-            return Some((area / n as f64).sqrt());
+            return Some((area / points as f64).sqrt());
         }
         grid /= 2;
     }
@@ -120,6 +130,25 @@ mod tests {
                 "normal {normal}, step {step}: spacing {spacing}"
             );
         }
+    }
+
+    #[test]
+    fn a_coarse_level_of_a_grid_gives_the_whole_grids_step() {
+        // Every eighth point each way, as a level-of-detail's coarse level keeps them.
+        let side = 1000;
+        let points = plane(side, 0.5, Vec3::Z);
+        let coarse: Vec<Vec3> = points
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| {
+                (i % side as usize).is_multiple_of(8) && (i / side as usize).is_multiple_of(8)
+            })
+            .map(|(_, p)| *p)
+            .collect();
+        let spacing = of_sample(&coarse, points.len() as u64).expect("a spacing");
+        assert!((0.45..0.55).contains(&spacing), "{spacing}");
+        assert_eq!(of_sample(&coarse[..1], 10), None);
+        assert_eq!(of_sample(&[Vec3::NAN, Vec3::ONE], 10), None);
     }
 
     #[test]

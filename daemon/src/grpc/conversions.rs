@@ -542,6 +542,7 @@ fn copc_chunks_message(copc: &CopcServed) -> pb::CopcChunks {
             low: e.low,
             high: e.high,
         }),
+        point_spacing: copc.point_spacing,
     }
 }
 
@@ -575,6 +576,12 @@ pub fn copc_chunks(message: &pb::CopcChunks) -> Result<CopcServed, DaemonError> 
         Some(_) => return Err(invalid(&field("elevation"), "not a range")),
         None => None,
     };
+    if message
+        .point_spacing
+        .is_some_and(|s| !(s.is_finite() && s > 0.0))
+    {
+        return Err(invalid(&field("point_spacing"), "not a positive size"));
+    }
     let decoder = CopcDecoder::from_parts(
         std::path::Path::new(&message.file_name),
         point_format,
@@ -589,6 +596,7 @@ pub fn copc_chunks(message: &pb::CopcChunks) -> Result<CopcServed, DaemonError> 
         decoder,
         root_spacing: message.root_spacing,
         elevation,
+        point_spacing: message.point_spacing,
     })
 }
 

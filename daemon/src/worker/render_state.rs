@@ -474,7 +474,8 @@ impl WorkerRenderState {
                 store.hierarchy,
                 store.bounds,
                 copc.elevation,
-            ),
+            )
+            .with_point_spacing(copc.point_spacing),
             None => LodDataset::with_records(store.records, store.hierarchy, store.bounds)
                 .map_err(|e| {
                     FrameFailure::from(&CutError::Store(e))

@@ -213,6 +213,25 @@ fn a_cut_read_lazily_is_the_cut_of_every_page() {
     }
 }
 
+/// Adaptive points are made for one spacing whichever pages are read: the coarse sample's,
+/// close to what the whole hierarchy's leaves say (the leaves known with the root page alone
+/// are its page links' coarse nodes).
+#[test]
+fn a_file_read_lazily_has_the_spacing_of_the_whole_file() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = repaged(&exported_terrain(dir.path()), dir.path());
+    let lazy = open(&path, PageReads::AsNeeded, 4_000).expect("opens lazily");
+    let whole = open(&path, PageReads::All, 4_000).expect("opens whole");
+    assert!(lazy.unread_pages > 0, "pages left unread");
+    let spacing = lazy.dataset.point_spacing().expect("a spacing");
+    assert_eq!(whole.dataset.point_spacing(), Some(spacing));
+    let leaves = whole.dataset.hierarchy().point_spacing().expect("leaves");
+    assert!(
+        (0.7..1.5).contains(&(spacing / leaves)),
+        "sample {spacing}, leaves {leaves}"
+    );
+}
+
 #[test]
 fn frames_read_the_pages_they_reach_once_and_draw_what_the_whole_file_draws() {
     let dir = tempfile::tempdir().expect("tempdir");

@@ -108,23 +108,30 @@ fn open(path: &Path, reads: PageReads, sample_points: u64) -> Result<CopcDataset
     }
     let page_file = file.try_clone().map_err(|e| CopcError::io(path, e))?;
     let nodes = Arc::new(CopcNodes::new(path, file, &header));
-    // The colour ranges from the coarsest nodes, and their heights for the elevation range.
+    // The colour ranges from the coarsest nodes, their heights for the elevation range, and
+    // their positions for the points' spacing: the leaves that would give it may lie in pages
+    // not read yet, and the sample is the same whichever pages are read.
     let origin = header.bounds.center();
     let mut stats = DatasetStats::new(has_rgb);
     let mut heights = Vec::new();
+    let mut positions = Vec::new();
     let mut sample_nodes = 0;
     let sample_bytes =
         for_each_coarse_node_up_to(nodes.as_ref(), &hierarchy, sample_points, |points| {
             stats.add_node(points);
             heights.extend(node_heights(points, origin));
+            positions.extend(points.positions_relative_to(origin));
             sample_nodes += 1;
         })
         .map_err(|error| copc_error(path, error))?;
+    let point_spacing = crate::spacing::of_sample(&positions, hierarchy.point_count);
+    drop(positions);
     hierarchy.stats = stats;
     let node_count = hierarchy.nodes().len();
     let unread_pages = hierarchy.unread_pages().len();
     let decoder = nodes.decoder().clone();
-    let mut dataset = LodDataset::with_heights(nodes, hierarchy, header.bounds, heights);
+    let mut dataset = LodDataset::with_heights(nodes, hierarchy, header.bounds, heights)
+        .with_point_spacing(point_spacing);
     let (read, read_bytes) = (pages.pages, pages.page_bytes);
     if !pages.all_read() {
         dataset = dataset.with_pages(Arc::new(CopcPageReader::new(page_file, spacing, pages)));

@@ -29,9 +29,9 @@ pub struct LodDataset {
     pub(super) origin: DVec3,
     bounds: WorldBounds,
     pub(super) coloring: DatasetColoring,
-    /// The spacing of the original points (`LodHierarchy::point_spacing`), which a frame's
-    /// adaptive size is made for: of the hierarchy as opened, so that it stays the same
-    /// whatever pages frames read later.
+    /// The spacing of the original points, which a frame's adaptive size is made for: a
+    /// store's from its leaves (`LodHierarchy::point_spacing`), a COPC file's from its
+    /// coarsest nodes, so that it stays the same whatever pages frames read later.
     pub(super) point_spacing: Option<f64>,
 }
 
@@ -89,6 +89,13 @@ impl LodDataset {
             bounds,
             coloring,
         }
+    }
+
+    /// This dataset with its adaptive points made for `spacing` instead of its leaves' (a
+    /// hierarchy read a page at a time does not know its leaves when it is opened).
+    pub fn with_point_spacing(mut self, spacing: Option<f64>) -> Self {
+        self.point_spacing = spacing;
+        self
     }
 
     /// This dataset with its unread hierarchy pages read from `pages` as frames reach them

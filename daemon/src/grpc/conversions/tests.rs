@@ -44,18 +44,21 @@ fn copc_chunks_convert_both_ways_and_bad_fields_are_named() {
         decoder: opened.decoder,
         root_spacing: opened.info.spacing,
         elevation: opened.dataset.elevation(),
+        point_spacing: opened.dataset.point_spacing(),
     };
+    assert!(served.point_spacing.is_some());
     let message = copc_chunks_message(&served);
     let back = copc_chunks(&message).expect("valid");
     assert_eq!(back.file_name, served.file_name);
     assert_eq!(back.root_spacing, served.root_spacing);
     assert_eq!(back.elevation, served.elevation);
+    assert_eq!(back.point_spacing, served.point_spacing);
     assert_eq!(back.decoder.scale(), served.decoder.scale());
     assert_eq!(back.decoder.laszip_vlr(), served.decoder.laszip_vlr());
     assert_eq!(copc_chunks_message(&back), message);
 
     type Damage = fn(&mut pb::CopcChunks);
-    let bad: [(&str, Damage); 7] = [
+    let bad: [(&str, Damage); 8] = [
         ("copc.file_name", |m| m.file_name.clear()),
         ("copc.point_format", |m| m.point_format = 300),
         ("copc.point_record_length", |m| {
@@ -70,6 +73,7 @@ fn copc_chunks_convert_both_ways_and_bad_fields_are_named() {
             })
         }),
         ("copc.laszip_vlr", |m| m.laszip_vlr.truncate(10)),
+        ("copc.point_spacing", |m| m.point_spacing = Some(f64::NAN)),
     ];
     for (field, damage) in bad {
         let mut damaged = message.clone();
