@@ -297,6 +297,52 @@ mod tests {
         assert!(report.hierarchy.nodes().len() > 1);
     }
 
+    /// What a build stored, to compare builds: nodes, their records without the offsets
+    /// (which follow the order threads finished nodes in), and the statistics.
+    #[derive(Debug, PartialEq)]
+    struct Stored {
+        infos: Vec<crate::lod::NodeInfo>,
+        nodes: Vec<crate::lod::NodePoints>,
+        stats: crate::lod::DatasetStats,
+    }
+
+    /// `source` built into the store `name` of `db` (payload in `dir`), with small leaves.
+    fn built_store(
+        source: &dyn PointSource,
+        db: &sled::Db,
+        dir: &std::path::Path,
+        name: &str,
+    ) -> (crate::lod::LodBuildReport, Stored) {
+        let store = LodStore::open(
+            db.open_tree(name).expect("tree"),
+            dir.join(format!("{name}.bin")),
+        )
+        .expect("store");
+        let mut options = LodBuildOptions::new(dir.join("spill"));
+        options.max_leaf_points = 2_000;
+        let report = build_lod(source, &store, &options).expect("build");
+        let hierarchy = store.read_hierarchy().expect("hierarchy");
+        let nodes = hierarchy
+            .nodes()
+            .iter()
+            .map(|node| store.read_node(&hierarchy, node.key).expect("node"))
+            .collect();
+        let infos = hierarchy
+            .nodes()
+            .iter()
+            .map(|n| crate::lod::NodeInfo { offset: 0, ..*n })
+            .collect();
+        let stats = hierarchy.stats.clone();
+        (
+            report,
+            Stored {
+                infos,
+                nodes,
+                stats,
+            },
+        )
+    }
+
     /// LAZ, distributed from the counting pass's copy, builds the store LAS builds by
     /// reading its files twice.
     #[test]
@@ -310,29 +356,10 @@ mod tests {
             write_las(&path, &scene, &LasWriteOptions::default()).expect("write");
             let source = DatasetSource::open(&[path]).expect("open");
             assert_eq!(source.rereads_cheaply(), name.ends_with(".las"));
-            let store = LodStore::open(
-                db.open_tree(name).expect("tree"),
-                dir.path().join(format!("{name}.bin")),
-            )
-            .expect("store");
-            let mut options = LodBuildOptions::new(dir.path().join("spill"));
-            options.max_leaf_points = 2_000;
-            build_lod(&source, &store, &options).expect("build");
-            let hierarchy = store.read_hierarchy().expect("hierarchy");
-            let nodes: Vec<_> = hierarchy
-                .nodes()
-                .iter()
-                .map(|node| store.read_node(&hierarchy, node.key).expect("node"))
-                .collect();
-            // Offsets follow the order nodes were finished in, which threads decide.
-            let infos: Vec<_> = hierarchy
-                .nodes()
-                .iter()
-                .map(|n| crate::lod::NodeInfo { offset: 0, ..*n })
-                .collect();
-            built.push((infos, nodes, hierarchy.stats));
+            let (_, store) = built_store(&source, &db, dir.path(), name);
+            built.push(store);
         }
-        assert!(built[0].0.len() > 1);
+        assert!(built[0].infos.len() > 1);
         assert!(built[0] == built[1], "LAS and LAZ built different stores");
     }
 
@@ -446,42 +473,24 @@ mod tests {
         let grid_source: &dyn PointSource = &source;
         let world_source: &dyn PointSource = &WithoutGrid(&source);
         for (name, source) in [("grid", grid_source), ("world", world_source)] {
-            let store = LodStore::open(
-                db.open_tree(name).expect("tree"),
-                dir.path().join(format!("{name}.bin")),
-            )
-            .expect("store");
-            let mut options = LodBuildOptions::new(dir.path().join("spill"));
-            options.max_leaf_points = 2_000;
-            let report = build_lod(source, &store, &options).expect("build");
-            let hierarchy = store.read_hierarchy().expect("hierarchy");
-            let nodes: Vec<_> = hierarchy
-                .nodes()
-                .iter()
-                .map(|node| store.read_node(&hierarchy, node.key).expect("node"))
-                .collect();
-            let infos: Vec<_> = hierarchy
-                .nodes()
-                .iter()
-                .map(|n| crate::lod::NodeInfo { offset: 0, ..*n })
-                .collect();
-            built.push((
-                report.spill_record_bytes,
-                report.spilled_bytes,
-                infos,
-                nodes,
-            ));
+            built.push(built_store(source, &db, dir.path(), name));
         }
-        let (grid, world) = (&built[0], &built[1]);
-        assert_eq!((grid.0, world.0), (26, 38));
-        assert!(
-            grid.1 * 38 == world.1 * 26,
-            "{} and {} bytes spilled",
-            grid.1,
-            world.1
+        let ((grid_report, grid), (world_report, world)) = (&built[0], &built[1]);
+        let record_bytes = (
+            grid_report.spill_record_bytes,
+            world_report.spill_record_bytes,
         );
-        assert!(grid.2.len() > 1);
-        assert!(grid.2 == world.2 && grid.3 == world.3, "the stores differ");
+        assert_eq!(record_bytes, (26, 38));
+        let spilled = (grid_report.spilled_bytes, world_report.spilled_bytes);
+        assert!(
+            spilled.0 * 38 == spilled.1 * 26,
+            "{spilled:?} bytes spilled"
+        );
+        assert!(grid.infos.len() > 1);
+        assert!(
+            grid.infos == world.infos && grid.nodes == world.nodes,
+            "the stores differ"
+        );
     }
 
     #[test]
