@@ -4,7 +4,7 @@
 use glam::DVec3;
 
 use super::error::LodError;
-use super::point::PositionGrid;
+use super::grid::PositionGrid;
 use crate::cloud::{PointCloud, WorldBounds};
 
 /// One batch of original points in world coordinates (f64) with their raw attributes.
