@@ -85,8 +85,10 @@ pub struct GpuNodeCache {
 
 /// Bytes of node uploads staged before they are submitted and waited for, so that the
 /// staging memory of a frame's uploads is bounded by this, not by its cut (on a CPU adapter it
-/// is host memory beside both caches).
-const UPLOAD_SUBMIT_BYTES: u64 = 64 << 20;
+/// is host memory beside both caches). Small enough for the staging to fit the one block of
+/// host memory the allocator keeps, so it is reused rather than allocated again
+/// (docs/perf/cold-first-frame.md).
+const UPLOAD_SUBMIT_BYTES: u64 = 16 << 20;
 
 impl GpuNodeCache {
     /// A cache of at most `budget_bytes`, in pages of at most `max_page_points` points.
