@@ -335,7 +335,10 @@ fn local_stores_are_kept_within_the_cache_size() {
     let first_bytes = walkdir_bytes(&cache.join("lod").join(&first_store));
 
     // Room for the second build's need, not for the first store beside it.
-    let need = pointfarm_render::lod::disk::build_disk_bytes(20_000, true);
+    let source =
+        pointfarm_render::ingest::DatasetSource::open(std::slice::from_ref(&second)).expect("open");
+    let record = pointfarm_render::lod::disk::spill_record_bytes(&source);
+    let need = pointfarm_render::lod::disk::build_disk_bytes(20_000, true, record);
     let size = (need + first_bytes / 2).to_string();
     let second_built = render(&second, Some(&size));
     assert!(

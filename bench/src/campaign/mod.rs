@@ -25,7 +25,7 @@ use pointfarm_render::cut::LodDataset;
 use pointfarm_render::gpu::GpuContext;
 
 use pointfarm_render::ingest::DatasetSource;
-use pointfarm_render::lod::disk::build_disk_bytes;
+use pointfarm_render::lod::disk::{build_disk_bytes, MAX_SPILL_RECORD_BYTES};
 use pointfarm_render::lod::PointSource;
 use pointfarm_render::lod::{build_lod, BuildTimings, LodBuildOptions};
 use serde::Serialize;
@@ -254,7 +254,7 @@ fn plan_disk(options: &CampaignOptions, dir: &Path) -> Result<Result<(), String>
         });
     };
     let needed = options.points.saturating_mul(LAZ_BYTES_PER_POINT)
-        + build_disk_bytes(options.points, true)
+        + build_disk_bytes(options.points, true, MAX_SPILL_RECORD_BYTES)
         + DISK_MARGIN_BYTES;
     if needed > free {
         return Err(BenchError::Scratch(format!(

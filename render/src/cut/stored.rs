@@ -11,7 +11,7 @@ use super::store_space::{make_space, InUse};
 use super::{CutError, LodDataset};
 use crate::cloud::WorldBounds;
 use crate::ingest::DatasetSource;
-use crate::lod::disk::build_disk_bytes;
+use crate::lod::disk::{build_disk_bytes, spill_record_bytes};
 use crate::lod::{
     build_lod_watched, BuildProgress, LodBuildOptions, LodBuildReport, LodError, LodStore,
     PointSource,
@@ -90,7 +90,8 @@ impl StoredLod {
         let mut built = None;
         if !current {
             let _ = std::fs::remove_file(folder.join(FINISHED_FILE));
-            check_disk(folder, source.point_count(), disk_budget)?;
+            let needed = build_disk_bytes(source.point_count(), true, spill_record_bytes(&source));
+            check_disk(folder, source.point_count(), needed, disk_budget)?;
             on_build(source.point_count());
             let started = Instant::now();
             let mut options = LodBuildOptions::new(folder.join("spill"));
@@ -200,10 +201,15 @@ fn open_index(folder: &Path) -> Result<(sled::Db, LodStore), CutError> {
     Ok((db, store))
 }
 
-/// Refuses a build whose disk need exceeds `budget` or the free space under `folder`; within
-/// the budget, first makes room among the stores beside `folder`.
-fn check_disk(folder: &Path, points: u64, budget: Option<u64>) -> Result<(), CutError> {
-    let needed = build_disk_bytes(points, true);
+/// Refuses a build of `points` points that needs `needed` bytes of disk, more than `budget`
+/// or the free space under `folder`; within the budget, first makes room among the stores
+/// beside `folder`.
+fn check_disk(
+    folder: &Path,
+    points: u64,
+    needed: u64,
+    budget: Option<u64>,
+) -> Result<(), CutError> {
     if let Some(budget) = budget {
         make_space(folder, points, needed, budget)?;
     }
@@ -224,17 +230,21 @@ fn check_disk(folder: &Path, points: u64, budget: Option<u64>) -> Result<(), Cut
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::lod::disk::MAX_SPILL_RECORD_BYTES;
 
     #[test]
     fn a_build_larger_than_its_disk_budget_is_refused_before_it_starts() {
         let dir = tempfile::tempdir().expect("tempdir");
-        let error = check_disk(dir.path(), 10_000_000, Some(100 << 20)).expect_err("refused");
+        let need = |points| build_disk_bytes(points, true, MAX_SPILL_RECORD_BYTES);
+        let error = check_disk(dir.path(), 10_000_000, need(10_000_000), Some(100 << 20))
+            .expect_err("refused");
         assert!(matches!(error, CutError::DiskTooSmall { .. }));
         assert!(error.to_string().contains("budget of 100 MiB"), "{error}");
         // More than any disk has free.
-        let error = check_disk(dir.path(), u64::MAX / 64, None).expect_err("refused");
+        let error =
+            check_disk(dir.path(), u64::MAX / 64, need(u64::MAX / 64), None).expect_err("refused");
         assert!(error.to_string().contains("free there"), "{error}");
-        assert!(check_disk(dir.path(), 1_000, None).is_ok());
+        assert!(check_disk(dir.path(), 1_000, need(1_000), None).is_ok());
     }
 
     #[test]
@@ -278,6 +288,14 @@ mod tests {
 
     const SMALL_POINTS: u64 = 4_000;
 
+    /// The disk a build of the small dataset `file` needs, in the records it spills.
+    fn small_need(file: &Path) -> u64 {
+        let source = DatasetSource::open(&[file.to_owned()]).expect("open");
+        let record = spill_record_bytes(&source);
+        assert!(record < MAX_SPILL_RECORD_BYTES, "one file, one grid");
+        build_disk_bytes(SMALL_POINTS, true, record)
+    }
+
     fn build(file: &Path, folder: &Path, budget: Option<u64>) -> Result<StoredLod, CutError> {
         // Stores are ordered by their use times: keep those apart.
         std::thread::sleep(std::time::Duration::from_millis(20));
@@ -304,7 +322,7 @@ mod tests {
         let store = bytes(&probe);
         std::fs::remove_dir_all(dir.join("probe")).expect("remove");
         assert!(store > 0);
-        build_disk_bytes(SMALL_POINTS, true) + store + store / 2
+        small_need(file) + store + store / 2
     }
 
     /// A folder with a small dataset, and the budget that holds one store of it beside a build.
@@ -316,9 +334,9 @@ mod tests {
     }
 
     /// Asserts that `budget` holds the build's need and either store, not both.
-    fn assert_one_fits(budget: u64, a: &Path, b: &Path) {
+    fn assert_one_fits(budget: u64, file: &Path, a: &Path, b: &Path) {
         let (a, b) = (bytes(a), bytes(b));
-        let need = build_disk_bytes(SMALL_POINTS, true);
+        let need = small_need(file);
         assert!(
             need + a.max(b) <= budget,
             "{a} or {b} beside {need} > {budget}"
@@ -349,7 +367,7 @@ mod tests {
         let a = build(&file, &root.join("a"), Some(budget)).expect("a again");
         assert!(a.built.is_none());
         drop(a);
-        assert_one_fits(budget, &root.join("a"), &root.join("b"));
+        assert_one_fits(budget, &file, &root.join("a"), &root.join("b"));
         drop(build(&file, &root.join("c"), Some(budget)).expect("c"));
         assert_eq!(stores_in(&root), ["a", "c"]);
         let total = bytes(&root);
@@ -368,7 +386,7 @@ mod tests {
         // `a` is the least recently used, and in use throughout.
         let a = build_used(&file, &root.join("a"), Some(budget));
         drop(build_used(&file, &root.join("b"), Some(budget)));
-        assert_one_fits(budget, &root.join("a"), &root.join("b"));
+        assert_one_fits(budget, &file, &root.join("a"), &root.join("b"));
         let c = build(&file, &root.join("c"), Some(budget)).expect("c");
         assert_eq!(stores_in(&root), ["a", "c"]);
         assert_eq!(a.dataset.point_count(), SMALL_POINTS);
@@ -397,7 +415,7 @@ mod tests {
         let file = small_dataset(dir.path());
         let root = dir.path().join("lod");
         drop(build(&file, &root.join("a"), None).expect("a"));
-        let budget = build_disk_bytes(SMALL_POINTS, true) - 1;
+        let budget = small_need(&file) - 1;
         let error = build(&file, &root.join("b"), Some(budget))
             .err()
             .expect("refused");

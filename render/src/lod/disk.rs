@@ -3,18 +3,27 @@
 
 use super::cached::COPY_SEGMENT_POINTS;
 use super::codec::encoded_len;
-use super::point::MAX_RECORD_BYTES;
+use super::point::{RecordLayout, MAX_RECORD_BYTES};
+use super::source::PointSource;
 
-/// Bytes a build of `points` points needs on disk at its peak, in records of the larger
-/// layout (the grid's is known only once the files are open): a spill record a point (the
+/// The largest spill record, for an estimate made before the files are open.
+pub const MAX_SPILL_RECORD_BYTES: u64 = MAX_RECORD_BYTES as u64;
+
+/// Bytes of a spill record of `source`'s build: smaller where its files share one grid.
+pub fn spill_record_bytes(source: &dyn PointSource) -> u64 {
+    RecordLayout::for_grid(source.position_grid()).record_bytes() as u64
+}
+
+/// Bytes a build of `points` points needs on disk at its peak, in spill records of
+/// `record_bytes` ([`spill_record_bytes`]): a spill record a point (the
 /// chunks' spill, or while the distribution runs that and what is left of the copy of a
 /// source costly to read again, LAZ, whose segments go as they are read), which the stored
 /// nodes replace chunk by chunk (a stored point takes less than its record), with a tenth
 /// of slack; a segment's records and stored points for the copy and the chunks in flight;
 /// and a margin for the hierarchy and partial pages. The store itself stays after the build,
 /// at less than its spill (docs/perf/campaign-1b.md).
-pub fn build_disk_bytes(points: u64, has_rgb: bool) -> u64 {
-    let record = MAX_RECORD_BYTES as u64;
+pub fn build_disk_bytes(points: u64, has_rgb: bool, record_bytes: u64) -> u64 {
+    let record = record_bytes;
     let stored = stored_bytes_per_point(has_rgb);
     let per_point = record.max(stored) + record.max(stored).div_ceil(10);
     points
@@ -35,7 +44,7 @@ mod tests {
     #[test]
     fn the_estimate_covers_the_spill_with_slack_and_one_segment_in_flight() {
         let margin = 64 << 20;
-        let record = MAX_RECORD_BYTES as u64;
+        let record = MAX_SPILL_RECORD_BYTES;
         let stored = stored_bytes_per_point(true);
         assert!(
             stored < record,
@@ -43,15 +52,22 @@ mod tests {
         );
         let slack = record.div_ceil(10);
         assert_eq!(
-            build_disk_bytes(1_000_000, true) - margin,
+            build_disk_bytes(1_000_000, true, record) - margin,
             1_000_000 * (record + slack + record + stored)
         );
         let large = 1_000_000_000;
-        let per_point = (build_disk_bytes(large, true) - margin) as f64 / large as f64;
+        let per_point = (build_disk_bytes(large, true, record) - margin) as f64 / large as f64;
         assert!(
             per_point > (record + slack) as f64 && per_point < (record + slack) as f64 + 3.0,
             "{per_point}"
         );
-        assert_eq!(build_disk_bytes(u64::MAX, true), u64::MAX);
+        assert_eq!(build_disk_bytes(u64::MAX, true, record), u64::MAX);
+        // Grid records: less disk by their difference a point, and the store still fits.
+        let grid = super::super::point::GRID_RECORD_BYTES as u64;
+        assert!(stored < grid);
+        assert_eq!(
+            build_disk_bytes(1_000_000, true, record) - build_disk_bytes(1_000_000, true, grid),
+            1_000_000 * (2 * (record - grid) + slack - grid.div_ceil(10))
+        );
     }
 }
