@@ -3,24 +3,32 @@
 
 use glam::Vec3;
 
-/// Indices of `positions` in Z-order over their bounding box (21 bits per axis).
+/// Indices of `positions` in Z-order over their bounding box.
 pub(crate) fn morton_order(positions: &[Vec3]) -> Vec<u32> {
     let (min, max) = positions.iter().fold(
         (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
         |(lo, hi), p| (lo.min(*p), hi.max(*p)),
     );
     let scale = (max - min).max_element().max(f32::MIN_POSITIVE);
-    let cells = ((1u32 << 21) - 1) as f32;
-    let mut keyed: Vec<(u64, u32)> = positions
+    // One u64 a point, sorted as plain integers (faster than pairs): the point's index in
+    // the low bits, its Morton code above with as many bits an axis as are left (at most
+    // 21; at least 10, for 2^32 points), far finer than the points' spacing.
+    let index_bits = (u64::BITS - (positions.len().max(2) as u64 - 1).leading_zeros()).max(1);
+    let axis_bits = ((u64::BITS - index_bits) / 3).min(21);
+    let cells = ((1u32 << axis_bits) - 1) as f32;
+    let mut keys: Vec<u64> = positions
         .iter()
         .enumerate()
         .map(|(i, p)| {
             let q = ((*p - min) / scale * cells).clamp(Vec3::ZERO, Vec3::splat(cells));
-            (morton3(q.x as u32, q.y as u32, q.z as u32), i as u32)
+            morton3(q.x as u32, q.y as u32, q.z as u32) << index_bits | i as u64
         })
         .collect();
-    keyed.sort_unstable();
-    keyed.into_iter().map(|(_, i)| i).collect()
+    keys.sort_unstable();
+    let index_mask = (1u64 << index_bits) - 1;
+    keys.into_iter()
+        .map(|key| (key & index_mask) as u32)
+        .collect()
 }
 
 /// Interleaves the low 21 bits of x, y and z.
@@ -48,6 +56,26 @@ mod tests {
         assert_eq!(morton3(0, 0, 1), 0b100);
         assert_eq!(morton3(3, 0, 0), 0b001_001);
         assert_eq!(morton3(0x1f_ffff, 0x1f_ffff, 0x1f_ffff), (1u64 << 63) - 1);
+    }
+
+    /// Clouds of every size keep a permutation, and points in one cell keep their order.
+    #[test]
+    fn morton_order_is_a_permutation_at_every_size() {
+        for n in [0usize, 1, 2, 3, 1000, 70_000] {
+            let positions: Vec<Vec3> = (0..n)
+                .map(|i| Vec3::new((i % 37) as f32, (i % 11) as f32, 0.0))
+                .collect();
+            let order = morton_order(&positions);
+            let mut sorted = order.clone();
+            sorted.sort_unstable();
+            assert_eq!(sorted, (0..n as u32).collect::<Vec<u32>>(), "{n} points");
+            for pair in order.windows(2) {
+                let (a, b) = (pair[0] as usize, pair[1] as usize);
+                if positions[a] == positions[b] {
+                    assert!(a < b, "{n} points: equal positions in index order");
+                }
+            }
+        }
     }
 
     #[test]
