@@ -479,26 +479,23 @@ fn load_group(
         .into_iter()
         .map(Arc::new)
         .collect();
-    let loaded = LoadedGroup {
-        nodes: Vec::with_capacity(group.len()),
-        host_hits: (group.len() - to_read.len()) as u64,
-        nodes_read: read.len() as u64,
-        bytes_read: to_read
-            .iter()
-            .map(|&key| u64::from(hierarchy.node_byte_len(key)))
-            .sum(),
-    };
     let mut host = host.lock().map_err(|_| poisoned())?;
     for node in &read {
         host.insert(Arc::clone(node));
     }
+    let nodes_read = read.len() as u64;
     let mut read = read.into_iter();
     Ok(LoadedGroup {
         nodes: cached
             .into_iter()
             .map(|c| c.or_else(|| read.next()).expect("one read per miss"))
             .collect(),
-        ..loaded
+        host_hits: (group.len() - to_read.len()) as u64,
+        nodes_read,
+        bytes_read: to_read
+            .iter()
+            .map(|&key| u64::from(hierarchy.node_byte_len(key)))
+            .sum(),
     })
 }
 

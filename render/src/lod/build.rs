@@ -167,7 +167,7 @@ fn build_on_pool(
             source.point_count(),
         )?)
     };
-    let (grid, stats) = count_points(source, &cube, level, layout, &meter, copy.as_mut())?;
+    let (grid, stats) = count_points(source, &cube, level, &meter, copy.as_mut())?;
     let copy = copy
         .map(|copy| copy.finish(bounds, source.point_count(), stats.has_rgb, &meter))
         .transpose()?;

@@ -104,7 +104,7 @@ pub fn distribute(
         let scattering =
             scope.spawn(move || scatter(writer, chunk_count, record_bytes, received, spare_sender));
         let walked = source.for_each_batch(&mut |batch| {
-            check_batch(&batch, &bounds, &ctx.cube, layout, read)?;
+            check_batch(&batch, &bounds, &ctx.cube, read)?;
             for start in (0..batch.len()).step_by(RECORD_BLOCK_POINTS) {
                 let range = start..(start + RECORD_BLOCK_POINTS).min(batch.len());
                 let mut block = spare.try_recv().unwrap_or_default();

@@ -7,7 +7,6 @@ use super::cached::SourceCopyWriter;
 use super::error::LodError;
 use super::key::RootCube;
 use super::memory::MemoryMeter;
-use super::point::RecordLayout;
 use super::source::{PointBatch, PointSource};
 use super::stats::DatasetStats;
 use crate::cloud::WorldBounds;
@@ -40,27 +39,23 @@ fn tolerance(cube: &RootCube) -> f64 {
     cube.side * 1e-9
 }
 
-/// Checks a batch's columns and that its points are finite, inside the declared bounds (the
-/// cube holds those) and, for the grid layout, on the grid its records hold them on; `first`
-/// is the index of its first point overall.
+/// Checks a batch's columns and that its points are finite and inside the declared bounds
+/// (the cube holds those); `first` is the index of its first point overall. Whether a point
+/// lies on the grid its records hold it on is the record's write to check.
 pub fn check_batch(
     batch: &PointBatch<'_>,
     bounds: &WorldBounds,
     cube: &RootCube,
-    layout: RecordLayout,
     first: u64,
 ) -> Result<(), LodError> {
     batch.check_lengths()?;
     let tol = tolerance(cube);
     let lo = bounds.min - tol;
     let hi = bounds.max + tol;
-    let off_grid = |p: &glam::DVec3| match layout {
-        RecordLayout::World => false,
-        RecordLayout::Grid(grid) => grid.index(*p).is_none(),
-    };
-    let bad = batch.positions.par_iter().position_first(|p| {
-        !p.is_finite() || p.cmplt(lo).any() || p.cmpgt(hi).any() || off_grid(p)
-    });
+    let bad = batch
+        .positions
+        .par_iter()
+        .position_first(|p| !p.is_finite() || p.cmplt(lo).any() || p.cmpgt(hi).any());
     let Some(i) = bad else {
         return Ok(());
     };
@@ -68,12 +63,6 @@ pub fn check_batch(
     let index = first + i as u64;
     if !p.is_finite() {
         return Err(LodError::NonFinitePoint {
-            index,
-            position: p.to_array(),
-        });
-    }
-    if off_grid(&p) && !(p.cmplt(lo).any() || p.cmpgt(hi).any()) {
-        return Err(LodError::PointOffGrid {
             index,
             position: p.to_array(),
         });
@@ -92,7 +81,6 @@ pub fn count_points(
     source: &dyn PointSource,
     cube: &RootCube,
     level: u32,
-    layout: RecordLayout,
     meter: &MemoryMeter,
     mut copy: Option<&mut SourceCopyWriter<'_>>,
 ) -> Result<(CountGrid, DatasetStats), LodError> {
@@ -103,7 +91,7 @@ pub fn count_points(
     let mut cells: Vec<usize> = Vec::with_capacity(CELL_BLOCK_POINTS);
     let bounds = source.bounds();
     source.for_each_batch(&mut |batch| {
-        check_batch(&batch, &bounds, cube, layout, read)?;
+        check_batch(&batch, &bounds, cube, read)?;
         let stats = stats.get_or_insert_with(|| DatasetStats::new(batch.rgb.is_some()));
         if stats.has_rgb != batch.rgb.is_some() {
             return Err(LodError::Source(format!(

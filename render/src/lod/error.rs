@@ -25,8 +25,8 @@ pub enum LodError {
         min: [f64; 3],
         max: [f64; 3],
     },
-    #[error("point source: point {index} at {position:?} is not on the coordinate grid (scale and offset) its files declare")]
-    PointOffGrid { index: u64, position: [f64; 3] },
+    #[error("point source: a point at {position:?} is not on the coordinate grid (scale and offset) its files declare")]
+    PointOffGrid { position: [f64; 3] },
     #[error("point source: bounds {min:?}..{max:?} are not finite, inverted or beyond the coordinate limit")]
     InvalidBounds { min: [f64; 3], max: [f64; 3] },
     #[error("point source: it declared {declared} points but gave {read} on pass {pass}")]

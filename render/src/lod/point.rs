@@ -114,10 +114,9 @@ impl RecordLayout {
 }
 
 fn off_grid(p: DVec3) -> LodError {
-    LodError::SourceChanged(format!(
-        "point {:?} is not on the files' coordinate grid the first read found it on",
-        p.to_array()
-    ))
+    LodError::PointOffGrid {
+        position: p.to_array(),
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -239,7 +238,7 @@ mod tests {
         ] {
             assert!(matches!(
                 layout.write(&point(p), &mut out),
-                Err(LodError::SourceChanged(_))
+                Err(LodError::PointOffGrid { .. })
             ));
         }
     }
