@@ -120,6 +120,15 @@ fn check_with_laspy(path: &Path, facts: &Facts) {
         .map(|i| seen["sum"][i].as_i64().expect("sum"))
         .collect();
     assert_eq!(sum, facts.sum);
+    // Each point's weight, an extra dimension other readers see by its name: at least 1,
+    // and more for the inner nodes' points, which stand for others.
+    assert_eq!(
+        seen["extraDimensions"],
+        serde_json::json!(["pointfarm_weight"])
+    );
+    let weights = &seen["weightRange"];
+    assert_eq!(weights[0], 1, "{seen}");
+    assert!(weights[1].as_u64().expect("a weight") > 1, "{seen}");
     // The info VLR's cube holds the header's bounds.
     let (centre, half) = (
         triple(&seen["center"]),

@@ -1,7 +1,8 @@
 """Reads a COPC file with laspy's COPC reader (an implementation independent of pointfarm's
 Rust crates) and prints what the export tests compare, as one JSON object: the header's
 counts, bounds, scale and offset; the info VLR's cube; the hierarchy's nodes; every point
-queried, summed and its extremes in sorted order."""
+queried, summed and its extremes in sorted order; the extra dimensions, and the range of
+pointfarm's weight where the file has it."""
 
 import json
 import sys
@@ -21,6 +22,10 @@ def main(path):
         order = np.lexsort((xyz[:, 2], xyz[:, 1], xyz[:, 0]))
         ordered = xyz[order]
         entries = list(reader.root_page.entries.values())
+        extra = list(header.point_format.extra_dimension_names)
+        weights = (
+            np.asarray(points["pointfarm_weight"]) if "pointfarm_weight" in extra else None
+        )
         print(
             json.dumps(
                 {
@@ -39,6 +44,10 @@ def main(path):
                     "sum": [int(v) for v in xyz.sum(axis=0)],
                     "first": ordered[:3].tolist(),
                     "last": ordered[-3:].tolist(),
+                    "extraDimensions": extra,
+                    "weightRange": None
+                    if weights is None
+                    else [int(weights.min()), int(weights.max())],
                 }
             )
         )

@@ -543,6 +543,7 @@ fn copc_chunks_message(copc: &CopcServed) -> pb::CopcChunks {
             high: e.high,
         }),
         point_spacing: copc.point_spacing,
+        weight_offset: decoder.weight_at().map(u32::from),
     }
 }
 
@@ -582,6 +583,12 @@ pub fn copc_chunks(message: &pb::CopcChunks) -> Result<CopcServed, DaemonError> 
     {
         return Err(invalid(&field("point_spacing"), "not a positive size"));
     }
+    let weight_at = message
+        .weight_offset
+        .map(|at| {
+            u16::try_from(at).map_err(|_| invalid(&field("weight_offset"), "beyond a LAS record"))
+        })
+        .transpose()?;
     let decoder = CopcDecoder::from_parts(
         std::path::Path::new(&message.file_name),
         point_format,
@@ -589,6 +596,7 @@ pub fn copc_chunks(message: &pb::CopcChunks) -> Result<CopcServed, DaemonError> 
         scale,
         offset,
         &message.laszip_vlr,
+        weight_at,
     )
     .map_err(|e| invalid(&field("laszip_vlr"), e.to_string()))?;
     Ok(CopcServed {

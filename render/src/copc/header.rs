@@ -13,7 +13,8 @@ use glam::DVec3;
 
 use super::error::CopcError;
 use crate::cloud::{WorldBounds, MAX_COORDINATE};
-use crate::ingest::{check_file, IngestError};
+use crate::ingest::{check_file, extra_bytes, IngestError};
+use crate::lod::weights::WEIGHT_ATTRIBUTE;
 use crate::lod::RootCube;
 
 /// A LAS 1.4 header's size: where COPC's info VLR must start.
@@ -66,6 +67,9 @@ pub(crate) struct CopcHeader {
     pub laz_items: Vec<laz::LazItem>,
     /// The LASzip VLR's data as stored, which a worker decoding this file's chunks is sent.
     pub laszip_vlr: Vec<u8>,
+    /// Where a record holds its point's weight (a pointfarm export's extra bytes attribute),
+    /// in bytes from the record's start; `None` for files without one.
+    pub weight_at: Option<u16>,
     pub info: CopcInfo,
 }
 
@@ -152,6 +156,7 @@ pub(crate) fn read_header(path: &Path, file: &mut File) -> Result<CopcHeader, Co
     let mut info = None;
     let mut laz_items = None;
     let mut laszip_vlr = Vec::new();
+    let mut extra_bytes_vlr = None;
     let mut offset = u64::from(facts.header_size);
     for index in 0..facts.vlr_count {
         let mut vlr_header = [0u8; VLR_HEADER_LEN as usize];
@@ -177,6 +182,11 @@ pub(crate) fn read_header(path: &Path, file: &mut File) -> Result<CopcHeader, Co
                 .map_err(|error| not_copc(path, format!("its LASzip VLR: {error}")))?;
             laz_items = Some(vlr.items().clone());
             laszip_vlr = data;
+        } else if is_extra_bytes(&vlr_header) {
+            let mut data = vec![0u8; len as usize];
+            file.read_exact_at(&mut data, data_at)
+                .map_err(|e| CopcError::io(path, e))?;
+            extra_bytes_vlr = Some(data);
         }
         offset = data_at + len;
     }
@@ -192,6 +202,7 @@ pub(crate) fn read_header(path: &Path, file: &mut File) -> Result<CopcHeader, Co
         ));
     }
 
+    let weight_at = extra_bytes_vlr.and_then(|data| weight_offset(&format, &data));
     let header = CopcHeader {
         file_len,
         point_count: facts.declared_points,
@@ -201,10 +212,30 @@ pub(crate) fn read_header(path: &Path, file: &mut File) -> Result<CopcHeader, Co
         offset_to_point_data: facts.offset_to_point_data,
         laz_items,
         laszip_vlr,
+        weight_at,
         info,
     };
     check_info(path, &header)?;
     Ok(header)
+}
+
+fn is_extra_bytes(vlr_header: &[u8]) -> bool {
+    let user_id = &vlr_header[2..18];
+    let end = user_id
+        .iter()
+        .position(|&b| b == 0)
+        .unwrap_or(user_id.len());
+    &user_id[..end] == extra_bytes::USER_ID.as_bytes()
+        && u16::from_le_bytes([vlr_header[18], vlr_header[19]]) == extra_bytes::RECORD_ID
+}
+
+/// Where the weight attribute lies in a record of `format`, when the extra bytes VLR `data`
+/// describes one that fits the record's extra bytes.
+fn weight_offset(format: &las::point::Format, data: &[u8]) -> Option<u16> {
+    let descriptors = extra_bytes::parse(data);
+    let at = extra_bytes::offset_of(&descriptors, WEIGHT_ATTRIBUTE, extra_bytes::DATA_TYPE_U32)?;
+    let at = u16::try_from(at).ok()?;
+    (at.checked_add(4)? <= format.extra_bytes).then(|| format.len() - format.extra_bytes + at)
 }
 
 fn transform(scale: f64, offset: f64) -> las::Transform {

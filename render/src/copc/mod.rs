@@ -32,6 +32,8 @@ mod nodes;
 mod lazy_tests;
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod weights_tests;
 
 use std::fs::File;
 use std::path::Path;

@@ -20,6 +20,7 @@ use super::error::CopcError;
 use super::header::CopcHeader;
 use crate::ingest::{contain_panics, layer_count};
 use crate::lod::codec::POSITION_BITS;
+use crate::lod::weights::encode_weight;
 use crate::lod::{read_concurrently, LodError, NodeInfo, NodePoints, NodeRecords, RootCube};
 
 /// The most bytes of records a chunk may decode to beyond [`MAX_DECODED_PER_BYTE`] times its
@@ -42,6 +43,8 @@ pub struct CopcDecoder {
     laszip_vlr: Vec<u8>,
     /// Layer sizes a chunk stores after its first record and its point count.
     layers: u64,
+    /// Where a record holds its point's weight, when the file keeps weights.
+    weight_at: Option<u16>,
 }
 
 impl CopcDecoder {
@@ -52,6 +55,7 @@ impl CopcDecoder {
             header.transforms,
             header.laz_items.clone(),
             header.laszip_vlr.clone(),
+            header.weight_at,
         )
     }
 
@@ -61,6 +65,7 @@ impl CopcDecoder {
         transforms: las::Vector<las::Transform>,
         laz_items: Vec<laz::LazItem>,
         laszip_vlr: Vec<u8>,
+        weight_at: Option<u16>,
     ) -> Self {
         let layers = laz_items
             .iter()
@@ -74,12 +79,14 @@ impl CopcDecoder {
             laz_items,
             laszip_vlr,
             layers,
+            weight_at,
         }
     }
 
     /// A decoder from what a COPC file's header says, sent apart from the file (`path` names
     /// it in errors), checked as the file's header is: a point format COPC allows, records
-    /// as long as their LAZ items, usable transforms, a LASzip VLR of layered items.
+    /// as long as their LAZ items, usable transforms, a LASzip VLR of layered items, and a
+    /// weight, if any, within the records' extra bytes.
     pub fn from_parts(
         path: &Path,
         point_format: u8,
@@ -87,6 +94,7 @@ impl CopcDecoder {
         scale: [f64; 3],
         offset: [f64; 3],
         laszip_vlr: &[u8],
+        weight_at: Option<u16>,
     ) -> Result<Self, CopcError> {
         let not_copc = |reason: String| CopcError::NotCopc {
             path: path.to_owned(),
@@ -123,6 +131,14 @@ impl CopcDecoder {
                 "its LAZ items take {items_len} bytes a point, its records {record_len}"
             )));
         }
+        if let Some(at) = weight_at {
+            let fields = format.len() - format.extra_bytes;
+            if at < fields || u32::from(at) + 4 > u32::from(record_len) {
+                return Err(not_copc(format!(
+                    "a weight at byte {at} lies outside the extra bytes ({fields} to {record_len})"
+                )));
+            }
+        }
         let transform = |axis: usize| las::Transform {
             scale: scale[axis],
             offset: offset[axis],
@@ -138,6 +154,7 @@ impl CopcDecoder {
             transforms,
             items,
             laszip_vlr.to_vec(),
+            weight_at,
         ))
     }
 
@@ -162,6 +179,11 @@ impl CopcDecoder {
 
     pub fn laszip_vlr(&self) -> &[u8] {
         &self.laszip_vlr
+    }
+
+    /// Where a record holds its point's weight; `None` where the file keeps none.
+    pub fn weight_at(&self) -> Option<u16> {
+        self.weight_at
     }
 
     /// A chunk's points, checked against its entry.
@@ -234,6 +256,18 @@ impl CopcDecoder {
                 }))
         })?;
         decoded.map_err(|error| bad(format!("its LAZ chunk does not decode: {error}")))?;
+        // A point stands for itself at least, whatever a damaged attribute says.
+        let weights = match self.weight_at {
+            Some(at) => records
+                .chunks_exact(record_len as usize)
+                .map(|r| {
+                    let at = usize::from(at);
+                    let w = u32::from_le_bytes([r[at], r[at + 1], r[at + 2], r[at + 3]]);
+                    encode_weight(w.max(1))
+                })
+                .collect(),
+            None => Vec::new(),
+        };
         let points = las::PointDataBuilder::new()
             .with_format(self.format)
             .with_transforms(self.transforms)
@@ -266,8 +300,8 @@ impl CopcDecoder {
             intensity: points.intensity().collect(),
             classification: points.classification().collect(),
             return_number: points.return_number().collect(),
-            // A COPC file says nothing of what its points stand for: each counts once.
-            weights: Vec::new(),
+            // A foreign COPC file says nothing of what its points stand for: each counts once.
+            weights,
         })
     }
 }

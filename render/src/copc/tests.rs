@@ -167,7 +167,7 @@ fn a_decoder_sent_apart_from_the_file_decodes_its_chunks_as_the_file_does() {
     let d = &opened.decoder;
     let name = Path::new("sent.copc.laz");
     let rebuild = |format: u8, record_len: u16, scale: [f64; 3], vlr: &[u8]| {
-        CopcDecoder::from_parts(name, format, record_len, scale, d.offset(), vlr)
+        CopcDecoder::from_parts(name, format, record_len, scale, d.offset(), vlr, None)
     };
     let sent = rebuild(d.point_format(), d.record_len(), d.scale(), d.laszip_vlr())
         .expect("the file's own parts");
@@ -214,6 +214,25 @@ fn a_decoder_sent_apart_from_the_file_decodes_its_chunks_as_the_file_does() {
             &vlr[..vlr.len() / 2],
         ),
         rebuild(d.point_format(), d.record_len(), d.scale(), &[]),
+        // A weight must lie in the records' extra bytes, which this file's have none of.
+        CopcDecoder::from_parts(
+            name,
+            d.point_format(),
+            d.record_len(),
+            d.scale(),
+            d.offset(),
+            vlr,
+            Some(d.record_len() - 4),
+        ),
+        CopcDecoder::from_parts(
+            name,
+            d.point_format(),
+            d.record_len(),
+            d.scale(),
+            d.offset(),
+            vlr,
+            Some(d.record_len()),
+        ),
     ];
     for (case, result) in refused.into_iter().enumerate() {
         let error = result

@@ -527,8 +527,8 @@ fn prepare(
 
 /// Each point's 16 weight bits on the GPU: its weight's code (1 where the node has none) and,
 /// above it, its child octant in the node, from the top bit of its 30-bit coordinates (a
-/// store's nodes are quantised in their own cube; a COPC node's weights are all 1, so its
-/// octant is never read).
+/// store's nodes are quantised in their own cube, a COPC node's in its cube widened by half
+/// its side on every face: in both the top bit is set from the node's centre on).
 pub(crate) fn weight_bits(node: &NodePoints) -> Vec<u16> {
     let top = crate::lod::codec::POSITION_BITS - 1;
     node.quantised

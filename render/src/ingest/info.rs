@@ -10,15 +10,10 @@ use glam::DVec3;
 use super::columns::world_bounds;
 use super::contain::contain_panics;
 use super::crs::{crs_of, Crs};
+use super::extra_bytes;
 use super::read::DatasetFile;
 use super::IngestError;
 use crate::cloud::{ColorSource, WorldBounds};
-
-/// The extra bytes VLR: one 192-byte descriptor per attribute, its name at 4..36.
-const EXTRA_BYTES_USER_ID: &str = "LASF_Spec";
-const EXTRA_BYTES_RECORD_ID: u16 = 4;
-const EXTRA_BYTES_DESCRIPTOR_LEN: usize = 192;
-const EXTRA_BYTES_NAME: std::ops::Range<usize> = 4..36;
 
 /// What a file's header and records say.
 pub struct FileInfo {
@@ -119,20 +114,16 @@ impl FileInfo {
 
 /// The attribute names of the extra bytes VLR; a descriptor cut short is left out.
 fn extra_byte_names(header: &las::Header) -> Vec<String> {
-    let Some(vlr) = header
+    header
         .all_vlrs()
-        .find(|vlr| vlr.user_id == EXTRA_BYTES_USER_ID && vlr.record_id == EXTRA_BYTES_RECORD_ID)
-    else {
-        return Vec::new();
-    };
-    vlr.data
-        .chunks_exact(EXTRA_BYTES_DESCRIPTOR_LEN)
-        .map(|descriptor| {
-            let name = &descriptor[EXTRA_BYTES_NAME];
-            let end = name.iter().position(|&b| b == 0).unwrap_or(name.len());
-            String::from_utf8_lossy(&name[..end]).trim().to_owned()
+        .find(|vlr| vlr.user_id == extra_bytes::USER_ID && vlr.record_id == extra_bytes::RECORD_ID)
+        .map(|vlr| {
+            extra_bytes::parse(&vlr.data)
+                .into_iter()
+                .map(|d| d.name)
+                .collect()
         })
-        .collect()
+        .unwrap_or_default()
 }
 
 /// What the points of a file hold, gathered in one pass.

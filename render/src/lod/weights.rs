@@ -8,6 +8,11 @@
 //! err by percents on every coarse point; 1/1024 moves an average of 8-bit colours by far less
 //! than one level.
 
+/// The extra bytes attribute (an unsigned 32-bit integer) in which a COPC export keeps each
+/// point's weight, and from which a COPC file's points take theirs: a foreign file has none,
+/// and its points count once.
+pub const WEIGHT_ATTRIBUTE: &str = "pointfarm_weight";
+
 /// Bits of a weight's code.
 pub const WEIGHT_CODE_BITS: u32 = 13;
 const MANTISSA_BITS: u32 = 9;

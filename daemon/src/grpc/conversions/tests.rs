@@ -58,7 +58,7 @@ fn copc_chunks_convert_both_ways_and_bad_fields_are_named() {
     assert_eq!(copc_chunks_message(&back), message);
 
     type Damage = fn(&mut pb::CopcChunks);
-    let bad: [(&str, Damage); 8] = [
+    let bad: [(&str, Damage); 9] = [
         ("copc.file_name", |m| m.file_name.clear()),
         ("copc.point_format", |m| m.point_format = 300),
         ("copc.point_record_length", |m| {
@@ -74,6 +74,7 @@ fn copc_chunks_convert_both_ways_and_bad_fields_are_named() {
         }),
         ("copc.laszip_vlr", |m| m.laszip_vlr.truncate(10)),
         ("copc.point_spacing", |m| m.point_spacing = Some(f64::NAN)),
+        ("copc.weight_offset", |m| m.weight_offset = Some(70_000)),
     ];
     for (field, damage) in bad {
         let mut damaged = message.clone();
@@ -81,6 +82,52 @@ fn copc_chunks_convert_both_ways_and_bad_fields_are_named() {
         let error = copc_chunks(&damaged).err().expect("refused");
         assert!(error.to_string().contains(field), "{field}: {error}");
     }
+}
+
+/// A file pointfarm exported keeps each point's weight; a worker is told where.
+#[test]
+fn copc_chunks_carry_where_an_exported_file_keeps_its_weights() {
+    use pointfarm_render::lod::copc_export::{export_copc, ExportSettings};
+    use pointfarm_render::lod::{build_lod, GeneratedSource, LodBuildOptions, LodStore};
+    let dir = tempfile::tempdir().expect("tempdir");
+    let db = sled::open(dir.path().join("db")).expect("sled");
+    let store = LodStore::open(
+        db.open_tree("lod").expect("tree"),
+        dir.path().join("lod.bin"),
+    )
+    .expect("store");
+    let mut options = LodBuildOptions::new(dir.path().join("spill"));
+    options.max_leaf_points = 1_000;
+    let source = GeneratedSource::terrain(20_000, 3);
+    let hierarchy = build_lod(&source, &store, &options)
+        .expect("build")
+        .hierarchy;
+    let path = dir.path().join("terrain.copc.laz");
+    export_copc(
+        &hierarchy,
+        &store,
+        &ExportSettings::fixed(&hierarchy.cube),
+        &path,
+        &mut |_| {},
+    )
+    .expect("export");
+    let opened = pointfarm_render::copc::open_copc(&path).expect("opens");
+    let served = CopcServed {
+        file_name: "terrain.copc.laz".into(),
+        decoder: opened.decoder,
+        root_spacing: opened.info.spacing,
+        elevation: None,
+        point_spacing: None,
+    };
+    let message = copc_chunks_message(&served);
+    let at = served.decoder.weight_at().expect("a weight");
+    assert_eq!(message.weight_offset, Some(u32::from(at)));
+    let back = copc_chunks(&message).expect("valid");
+    assert_eq!(back.decoder.weight_at(), Some(at));
+    let mut beyond = message.clone();
+    beyond.weight_offset = Some(message.point_record_length - 2);
+    let error = copc_chunks(&beyond).err().expect("refused");
+    assert!(error.to_string().contains("terrain.copc.laz"), "{error}");
 }
 
 #[test]

@@ -3,6 +3,7 @@
 //!
 //! ```text
 //! header (375) | VLR "copc" 1: info (54 + 160) | VLR "laszip encoded" 22204 (54 + 34 + 6n)
+//! | VLR "LASF_Spec" 4: extra bytes, the weight (54 + 192)
 //! | [VLR "LASF_Projection" 2112: the dataset's WKT] | offset of the chunk table (8) | one LAZ chunk per node | chunk table
 //! | EVLR "copc" 1000: hierarchy (60 + 32 per node)
 //! ```
@@ -14,8 +15,9 @@
 use glam::DVec3;
 use laz::LazVlr;
 
-use super::records::{point_format, record_len};
+use super::records::{extra_bytes_vlr, point_format, record_len, WEIGHT_BYTES};
 use super::transform::ExportTransform;
+use crate::ingest::extra_bytes;
 
 /// Bytes of a LAS 1.4 header.
 pub const HEADER_BYTES: u64 = 375;
@@ -35,8 +37,11 @@ const COMPRESSED_BIT: u8 = 0x80;
 /// The LASzip description of an export's points: layered (LAZ 1.4) items, variable-size
 /// chunks (one a node).
 pub fn laz_vlr(has_rgb: bool) -> LazVlr {
-    let items = laz::LazItemRecordBuilder::default_for_point_format_id(point_format(has_rgb), 0)
-        .expect("PDRF 6 and 7 are LAZ point formats");
+    let items = laz::LazItemRecordBuilder::default_for_point_format_id(
+        point_format(has_rgb),
+        WEIGHT_BYTES as u16,
+    )
+    .expect("PDRF 6 and 7 with extra bytes are LAZ point formats");
     laz::LazVlrBuilder::new(items)
         .with_variable_chunk_size()
         .build()
@@ -50,6 +55,8 @@ pub fn point_data_offset(laz: &LazVlr, wkt: Option<&[u8]>) -> u64 {
         + INFO_BYTES
         + VLR_HEADER_BYTES
         + laz_payload(laz).len() as u64
+        + VLR_HEADER_BYTES
+        + extra_bytes::DESCRIPTOR_BYTES as u64
         + wkt
 }
 
@@ -116,7 +123,7 @@ pub fn head(facts: &FileFacts, laz: &LazVlr) -> Vec<u8> {
         generating_software: fixed(concat!("pointfarm ", env!("CARGO_PKG_VERSION"))),
         header_size: HEADER_BYTES as u16,
         offset_to_point_data: data_offset as u32,
-        number_of_variable_length_records: 2 + u32::from(facts.wkt.is_some()),
+        number_of_variable_length_records: 3 + u32::from(facts.wkt.is_some()),
         point_data_record_format: point_format(facts.has_rgb) | COMPRESSED_BIT,
         point_data_record_length: record_len(facts.has_rgb) as u16,
         // The legacy counts stay 0: PDRF 6 and up count in the 64-bit fields only.
@@ -154,6 +161,13 @@ pub fn head(facts: &FileFacts, laz: &LazVlr) -> Vec<u8> {
         LazVlr::RECORD_ID,
         LazVlr::DESCRIPTION,
         laz_payload(laz),
+        false,
+    ));
+    out.extend(vlr(
+        extra_bytes::USER_ID,
+        extra_bytes::RECORD_ID,
+        "Extra Bytes Record",
+        extra_bytes_vlr(),
         false,
     ));
     if let Some(wkt) = &facts.wkt {

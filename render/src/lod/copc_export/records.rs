@@ -1,5 +1,11 @@
 //! A node's points as LAS 1.4 point records: PDRF 6 (30 bytes), or 7 (36 bytes) with RGB,
-//! in the store's order.
+//! and each point's weight after them as an extra bytes attribute (4 bytes,
+//! [`WEIGHT_ATTRIBUTE`]), in the store's order.
+//!
+//! The weight is how many original points the point stands for where its node is drawn
+//! without the child below it (`lod/weights.rs`), so that high quality on a cut of the file
+//! averages what full detail would; other readers ignore it. A node without weights (one
+//! read from a COPC file without them) writes 1.
 //!
 //! The order matters for size, not for COPC. The store keeps a node's points in the order its
 //! build met them, which keeps runs of the files' scan order; LAZ predicts each point from
@@ -14,12 +20,17 @@
 use glam::DVec3;
 
 use super::transform::ExportTransform;
+use crate::lod::weights::{decode_weight, WEIGHT_ATTRIBUTE};
 use crate::lod::NodePoints;
 
 /// Bytes of a PDRF 6 record.
 pub const PDRF6_BYTES: usize = 30;
 /// Bytes of a PDRF 7 record (PDRF 6 and three 16-bit colour channels).
 pub const PDRF7_BYTES: usize = 36;
+/// Bytes of the weight after a record's fields.
+pub const WEIGHT_BYTES: usize = 4;
+/// What the extra bytes VLR says of the weight.
+pub const WEIGHT_DESCRIPTION: &str = "original points it stands for";
 
 /// The point data record format of an export with or without colour.
 pub fn point_format(has_rgb: bool) -> u8 {
@@ -30,12 +41,27 @@ pub fn point_format(has_rgb: bool) -> u8 {
     }
 }
 
+/// Bytes of a record: the point format's fields, then the weight.
 pub fn record_len(has_rgb: bool) -> usize {
+    fields_len(has_rgb) + WEIGHT_BYTES
+}
+
+fn fields_len(has_rgb: bool) -> usize {
     if has_rgb {
         PDRF7_BYTES
     } else {
         PDRF6_BYTES
     }
+}
+
+/// The extra bytes VLR's data: the weight's descriptor.
+pub fn extra_bytes_vlr() -> Vec<u8> {
+    crate::ingest::extra_bytes::descriptor(
+        WEIGHT_ATTRIBUTE,
+        crate::ingest::extra_bytes::DATA_TYPE_U32,
+        WEIGHT_DESCRIPTION,
+    )
+    .to_vec()
 }
 
 /// A node's records and what the header needs of them.
@@ -58,6 +84,7 @@ pub fn node_records(
 ) -> NodeRecordBytes {
     let n = node.len();
     let len = record_len(has_rgb);
+    let weight_at = fields_len(has_rgb);
     let mut bytes = vec![0u8; n * len];
     let mut low = [i32::MAX; 3];
     let mut high = [i32::MIN; 3];
@@ -83,6 +110,8 @@ pub fn node_records(
                 record[30 + 2 * c..32 + 2 * c].copy_from_slice(&value.to_le_bytes());
             }
         }
+        let weight = node.weights.get(i).map_or(1, |&code| decode_weight(code));
+        record[weight_at..weight_at + WEIGHT_BYTES].copy_from_slice(&weight.to_le_bytes());
     }
     NodeRecordBytes {
         bytes,

@@ -11,6 +11,7 @@ use las::copc::{BoundsSelection, CopcReader, LodSelection, VoxelKey};
 use super::*;
 use crate::ingest::DatasetSource;
 use crate::lod::tests::temp_store;
+use crate::lod::weights::decode_weight;
 use crate::lod::{build_lod, LodBuildOptions, LodStore, NodeKey, PointSource};
 
 struct Exported {
@@ -126,6 +127,16 @@ fn check_against_store_and_file(exported: &Exported, file: &Path) {
             node.classification
         );
         assert_eq!(data.return_number().collect::<Vec<_>>(), node.return_number);
+        // Each point's weight, in the 4 extra bytes after its fields.
+        let weights: Vec<u32> = data
+            .points()
+            .map(|p| {
+                let extra = p.expect("point").extra_bytes;
+                u32::from_le_bytes(extra[..4].try_into().expect("4 extra bytes"))
+            })
+            .collect();
+        let stored: Vec<u32> = node.weights.iter().map(|&c| decode_weight(c)).collect();
+        assert_eq!(weights, stored, "node {}", info.key);
         if let Some(rgb) = &node.rgb {
             let read: Vec<[u16; 3]> = data
                 .points()
