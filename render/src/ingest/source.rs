@@ -2,6 +2,7 @@
 //! file, in world coordinates with their raw attributes, never held whole.
 
 use std::path::PathBuf;
+use std::sync::mpsc;
 
 use glam::DVec3;
 use rayon::prelude::*;
@@ -214,32 +215,65 @@ impl PointSource for DatasetSource {
         self.grid.as_ref().map(|shared| shared.grid)
     }
 
+    /// The files are decoded on a thread of their own, a batch ahead of `visit`: what the
+    /// visitor does on one core (a build's spill copy, its statistics) overlaps the decoding
+    /// of the next batch instead of leaving the other cores idle (docs/perf/lod-build.md). At
+    /// most two batches of columns exist at once: one visited, one handed over.
     fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
-        let mut columns = BatchColumns::default();
+        let (filled, batches) = mpsc::sync_channel::<BatchColumns>(0);
+        let (spare, spares) = mpsc::channel::<BatchColumns>();
+        std::thread::scope(|scope| {
+            let reader = scope.spawn(move || self.decode_into(&filled, &spares));
+            let mut visited = Ok(());
+            for columns in &batches {
+                visited = visit(columns.batch(self.has_rgb));
+                if visited.is_err() {
+                    break;
+                }
+                let _ = spare.send(columns);
+            }
+            // A reader still decoding finds no one to hand its batch to, and stops.
+            drop(batches);
+            let read = reader.join().unwrap_or_else(|_| {
+                Err(LodError::Source(
+                    "the thread reading the files panicked".into(),
+                ))
+            });
+            // The visitor's error is the cause of the reader's stop after it.
+            visited.and(read)
+        })
+    }
+}
+
+impl DatasetSource {
+    /// Decodes every file into columns (taken from `spares` where one is back), handing each
+    /// batch to `filled`; stops without an error when no one takes it.
+    fn decode_into(
+        &self,
+        filled: &mpsc::SyncSender<BatchColumns>,
+        spares: &mpsc::Receiver<BatchColumns>,
+    ) -> Result<(), LodError> {
         for (k, file) in self.files.iter().enumerate() {
             let grid = self
                 .grid
                 .as_ref()
                 .map(|shared| (&shared.grid, shared.shifts[k]));
-            // The visitor's error stops the read; it is kept apart from the file's errors.
-            let mut stopped = None;
+            let mut stopped = false;
             let read = contain_panics(&file.path, || {
                 file.for_each_batch(|batch| {
+                    let mut columns = spares.try_recv().unwrap_or_default();
                     fill(&mut columns, batch, self.has_rgb, grid);
-                    match visit(columns.batch(self.has_rgb)) {
-                        Ok(()) => Ok(()),
-                        Err(error) => {
-                            stopped = Some(error);
-                            Err(IngestError::Corrupt {
-                                path: file.path.clone(),
-                                what: "reading stopped".into(),
-                            })
+                    filled.send(columns).map_err(|_| {
+                        stopped = true;
+                        IngestError::Corrupt {
+                            path: file.path.clone(),
+                            what: "reading stopped".into(),
                         }
-                    }
+                    })
                 })
             });
-            if let Some(error) = stopped {
-                return Err(error);
+            if stopped {
+                return Ok(());
             }
             read.map_err(|error| LodError::Source(error.to_string()))?;
         }
@@ -539,5 +573,57 @@ mod tests {
         std::fs::write(&bad, b"LASF and nothing else").expect("write");
         let error = DatasetSource::open(&[bad]).err().expect("a bad file");
         assert!(error.to_string().contains("bad.las"), "{error}");
+    }
+
+    /// The visitor runs while the next batch decodes: every batch reaches it in order, its
+    /// error stops the reading and is what the read returns, and a file that fails while
+    /// the visitor works is named.
+    #[test]
+    fn batches_decoded_ahead_reach_the_visitor_in_order_and_errors_stop_the_read() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let scene = sample_scene(9_000, 6);
+        let files: Vec<PathBuf> = (0..3)
+            .map(|k| {
+                let path = dir.path().join(format!("{k}.laz"));
+                let part: Vec<usize> = (k * 3_000..(k + 1) * 3_000).collect();
+                write_las(&path, &scene.select(&part), &LasWriteOptions::default()).expect("write");
+                path
+            })
+            .collect();
+        let source = DatasetSource::open(&files).expect("open");
+        let mut firsts = Vec::new();
+        source
+            .for_each_batch(&mut |batch| {
+                firsts.push(batch.positions[0]);
+                Ok(())
+            })
+            .expect("read");
+        let loaded = load_dataset(&files).expect("load");
+        let expected: Vec<DVec3> = [0, 3_000, 6_000]
+            .iter()
+            .map(|&i| loaded.origin + loaded.positions[i].as_dvec3())
+            .collect();
+        assert_eq!(firsts.len(), 3, "a batch a file");
+        for (got, want) in firsts.iter().zip(&expected) {
+            assert!((*got - *want).abs().max_element() < 1e-3, "{got} vs {want}");
+        }
+
+        let mut visits = 0;
+        let error = source
+            .for_each_batch(&mut |_| {
+                visits += 1;
+                Err(LodError::Source("the visitor stopped".into()))
+            })
+            .expect_err("the visitor's error");
+        assert_eq!(visits, 1);
+        assert!(error.to_string().contains("the visitor stopped"), "{error}");
+
+        // The last file cut short after the source was opened: its error names it.
+        let bytes = std::fs::read(&files[2]).expect("read");
+        std::fs::write(&files[2], &bytes[..bytes.len() / 2]).expect("truncate");
+        let error = source
+            .for_each_batch(&mut |_| Ok(()))
+            .expect_err("a truncated file");
+        assert!(error.to_string().contains("2.laz"), "{error}");
     }
 }
