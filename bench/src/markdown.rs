@@ -286,18 +286,17 @@ pub fn campaign_tables(c: &CampaignResult) -> String {
     let _ = writeln!(
         md,
         "\nThe builder's stages (s), the chunks, the nodes, what was spilled and stored:\n\n\
-         | input | counting | distribution | chunks | upper levels | total | chunks | nodes | \
+         | input | counting | chunks | upper levels | total | chunks | nodes | \
          spilled MiB (B a record) | node records MiB | store on disk MiB | RSS before MiB |\n\
-         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+         |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     );
     for b in &c.builds {
         let s = &b.stages;
         let _ = writeln!(
             md,
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {:.0} ({}) | {:.0} | {:.0} | {:.0} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {:.0} ({}) | {:.0} | {:.0} | {:.0} |",
             b.input.to_uppercase(),
             seconds(s.counting_s),
-            seconds(s.distribution_s),
             seconds(s.chunks_s),
             seconds(s.upper_levels_s),
             seconds(s.total_s),

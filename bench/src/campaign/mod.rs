@@ -92,7 +92,6 @@ pub struct DecodeResult {
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct BuildStages {
     pub counting_s: f64,
-    pub distribution_s: f64,
     pub chunks_s: f64,
     pub upper_levels_s: f64,
     pub total_s: f64,
@@ -102,7 +101,6 @@ impl From<BuildTimings> for BuildStages {
     fn from(t: BuildTimings) -> Self {
         Self {
             counting_s: t.counting.as_secs_f64(),
-            distribution_s: t.distribution.as_secs_f64(),
             chunks_s: t.chunks.as_secs_f64(),
             upper_levels_s: t.upper_levels.as_secs_f64(),
             total_s: t.total.as_secs_f64(),
@@ -127,8 +125,8 @@ pub struct BuildResult {
     pub stages: BuildStages,
     /// The build's rate over the rate of reading the same files ([`DecodeResult`]).
     pub over_decode: f64,
-    /// Twice the read time over the build time: the share of the build that reading its
-    /// source twice (counting, distribution) would take at the decode-only rate.
+    /// The read time over the build time: the share of the build that its one reading of the
+    /// source takes at the decode-only rate.
     pub reads_share: f64,
     /// The process's resident memory just before the build.
     pub before_rss_bytes: u64,
@@ -352,13 +350,12 @@ pub fn measure_with_frames(
         peak_reset &= reset;
         log(format!(
             "campaign: {input}: built in {:.1} s, {:.2} M points/s ({:.0}% of reading's rate; \
-             counting {:.1} s, distribution {:.1} s, chunks {:.1} s, upper levels {:.1} s), peak \
+             counting {:.1} s, chunks {:.1} s, upper levels {:.1} s), peak \
              RSS {:.0} MiB, store {:.1} B/point",
             build.build_s,
             build.mpoints_per_s,
             build.over_decode * 100.0,
             build.stages.counting_s,
-            build.stages.distribution_s,
             build.stages.chunks_s,
             build.stages.upper_levels_s,
             build.peak_rss_bytes as f64 / (1u64 << 20) as f64,
@@ -462,7 +459,7 @@ fn build(
             mpoints_per_s,
             stages: report.timings.into(),
             over_decode: mpoints_per_s / read.mpoints_per_s,
-            reads_share: 2.0 * read.read_s / build_s,
+            reads_share: read.read_s / build_s,
             before_rss_bytes,
             peak_rss_bytes,
             builder_peak_bytes: report.peak_memory_bytes,
@@ -520,10 +517,7 @@ mod tests {
                 "{build:?}"
             );
             let s = build.stages;
-            assert!(
-                s.total_s >= s.counting_s + s.distribution_s + s.chunks_s,
-                "{s:?}"
-            );
+            assert!(s.total_s >= s.counting_s + s.chunks_s, "{s:?}");
             assert!(build.build_s >= s.total_s);
             assert!(build.nodes >= 1 && build.chunks >= 1);
             assert!(build.store_disk_bytes_per_point > 0.0, "{build:?}");

@@ -13,7 +13,7 @@ use super::IngestError;
 use crate::cloud::WorldBounds;
 use crate::lod::{BatchColumns, BatchVisitor, LodError, PointSource, PositionGrid};
 
-/// The files of a dataset, checked, as a source the level-of-detail builder reads twice.
+/// The files of a dataset, checked, as a source the level-of-detail builder reads once.
 pub struct DatasetSource {
     files: Vec<DatasetFile>,
     bounds: WorldBounds,
@@ -204,12 +204,6 @@ impl PointSource for DatasetSource {
         self.points
     }
 
-    /// LAZ is decoded at a fraction of the speed a spill file is read back: a dataset with a
-    /// compressed file is decoded once.
-    fn rereads_cheaply(&self) -> bool {
-        !self.files.iter().any(|file| file.facts.compressed)
-    }
-
     /// Positions are decoded on the shared grid (`fill`), exactly as it computes them.
     fn position_grid(&self) -> Option<PositionGrid> {
         self.grid.as_ref().map(|shared| shared.grid)
@@ -377,10 +371,9 @@ mod tests {
         )
     }
 
-    /// LAZ, distributed from the counting pass's copy, builds the store LAS builds by
-    /// reading its files twice.
+    /// LAZ, decoded once like every source, builds the store LAS builds.
     #[test]
-    fn laz_from_its_copy_builds_what_las_builds() {
+    fn laz_builds_what_las_builds() {
         let dir = tempfile::tempdir().expect("tempdir");
         let scene = sample_scene(20_000, 3);
         let db = sled::Config::new().temporary(true).open().expect("sled");
@@ -389,7 +382,6 @@ mod tests {
             let path = dir.path().join(name);
             write_las(&path, &scene, &LasWriteOptions::default()).expect("write");
             let source = DatasetSource::open(&[path]).expect("open");
-            assert_eq!(source.rereads_cheaply(), name.ends_with(".las"));
             let (_, store) = built_store(&source, &db, dir.path(), name);
             built.push(store);
         }
@@ -454,9 +446,6 @@ mod tests {
         }
         fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
             self.0.for_each_batch(visit)
-        }
-        fn rereads_cheaply(&self) -> bool {
-            self.0.rereads_cheaply()
         }
     }
 

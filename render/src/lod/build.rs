@@ -1,15 +1,16 @@
 //! `build_lod`: the whole build, PotreeConverter-2-like and streaming:
 //!
-//! 1. counting: the source read once, every point checked and counted into a coarse grid of
-//!    the root cube, with the dataset's statistics;
-//! 2. planning: grid cells merged into chunks of at most a budget-derived number of points;
-//! 3. distribution: the source read again (or, for a source costly to read again such as
-//!    LAZ, the copy of it the counting pass wrote), every point appended to its chunk's spill
-//!    file through bounded buffers;
-//! 4. chunks: each chunk's local octree built in memory, in parallel, as many at once as the
-//!    budget holds (a chunk too large is split on disk first);
-//! 5. upper levels: the nodes above the chunks sampled from their children up to the root;
-//! 6. the hierarchy written last.
+//! 1. counting: the source read once, every point checked, counted into a coarse grid of the
+//!    root cube (its buckets) and written to its bucket's spill files through bounded
+//!    buffers, with the dataset's statistics;
+//! 2. planning: buckets merged into chunks of at most a budget-derived number of points, so
+//!    that a chunk's points are its buckets' files and the source is never read again (LAZ is
+//!    decoded once);
+//! 3. chunks: each chunk's local octree built in memory, in parallel, as many at once as the
+//!    budget holds (a chunk too large, or a dense bucket far above the plan's size, is split
+//!    on disk first);
+//! 4. upper levels: the nodes above the chunks sampled from their children up to the root;
+//! 5. the hierarchy written last.
 //!
 //! Every buffer the builder holds is reserved from one [`MemoryMeter`] first; the source's
 //! own batches are outside it. Node payloads go to the store's payload file, not to sled,
@@ -20,10 +21,9 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
-use super::cached::SourceCopyWriter;
-use super::chunks::{build_chunks, chunk_bytes, distribute, DISTRIBUTION_BLOCKS_BYTES};
+use super::chunks::{build_chunks, chunk_bytes, chunk_files};
 use super::context::BuildContext;
-use super::counting::{count_points, CountGrid, MAX_COUNT_LEVEL};
+use super::counting::{count_points, CountGrid, COUNTING_BLOCKS_BYTES, MAX_COUNT_LEVEL};
 use super::error::LodError;
 use super::hierarchy::LodHierarchy;
 use super::key::RootCube;
@@ -39,14 +39,14 @@ use super::stats::DatasetStats;
 use super::store::LodStore;
 use super::upper::build_upper_levels;
 
-/// The most bytes of records the distribution pass buffers before it appends them to files.
-const DISTRIBUTION_BUFFER_BYTES: u64 = 64 << 20;
+/// The most bytes of records the counting pass buffers before it appends them to files.
+const BUCKET_BUFFER_BYTES: u64 = 64 << 20;
 
 /// Seconds each stage took.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct BuildTimings {
+    /// Reading the source, with every point written to its bucket.
     pub counting: Duration,
-    pub distribution: Duration,
     pub chunks: Duration,
     pub upper_levels: Duration,
     pub total: Duration,
@@ -58,7 +58,7 @@ pub struct LodBuildReport {
     pub chunks: usize,
     /// Chunks too large for the budget, split on disk before they were built.
     pub chunks_split: usize,
-    /// The counting grid's level (cells per axis = 2^level).
+    /// The bucket grid's level (cells per axis = 2^level).
     pub count_level: u32,
     /// Bytes written to spill files.
     pub spilled_bytes: u64,
@@ -112,8 +112,9 @@ pub fn build_lod_watched(
     }
 }
 
-/// The counting grid's level: fine enough that merged cells make chunks well below the
-/// chunk size on surfaces (which fill about 4^level cells), within a quarter of the budget.
+/// The bucket grid's level: fine enough that merged buckets make chunks well below the chunk
+/// size on surfaces (which fill about 4^level cells), at most [`MAX_COUNT_LEVEL`], within a
+/// quarter of the budget.
 fn count_level(points: u64, max_chunk_points: u64, budget: u64) -> u32 {
     let wanted = 64.0 * points as f64 / max_chunk_points as f64;
     let mut level = 0;
@@ -158,24 +159,19 @@ fn build_on_pool(
 
     let grid_bytes = CountGrid::planning_bytes(level);
     let grid_reservation = meter.try_reserve(grid_bytes, "the counting grid")?;
-    let mut copy = if source.rereads_cheaply() {
-        None
-    } else {
-        Some(SourceCopyWriter::create(
-            &spill,
-            &meter,
-            source.point_count(),
-        )?)
-    };
-    let (grid, stats) = count_points(source, &cube, level, &meter, copy.as_mut())?;
-    let copy = copy
-        .map(|copy| copy.finish(bounds, source.point_count(), stats.has_rgb, &meter))
-        .transpose()?;
-    let plan = plan_chunks(grid, max_chunk);
+    let buffer_bytes = (budget.saturating_sub(grid_bytes + COUNTING_BLOCKS_BYTES) / 4)
+        .clamp(1 << 16, BUCKET_BUFFER_BYTES);
+    let (grid, stats) = count_points(source, &cube, level, &meter, &spill, buffer_bytes)?;
+    let plan = plan_chunks(&grid, max_chunk);
+    let chunks = chunk_files(&plan, &grid, &spill);
+    let chunk_count = chunks.len();
+    drop(plan);
+    drop(grid);
+    drop(grid_reservation);
     timings.counting = start.elapsed();
     tracing::info!(
         points = source.point_count(),
-        chunks = plan.chunks.len(),
+        chunks = chunk_count,
         level,
         "counted"
     );
@@ -188,23 +184,10 @@ fn build_on_pool(
         meter: &meter,
         spill: &spill,
         sink: &sink,
+        max_chunk_points: max_chunk,
         pending: Mutex::new(Default::default()),
         chunks_split: AtomicUsize::new(0),
     };
-    let distributing = Instant::now();
-    let buffer_bytes = (budget.saturating_sub(grid_bytes + DISTRIBUTION_BLOCKS_BYTES) / 4)
-        .clamp(1 << 16, DISTRIBUTION_BUFFER_BYTES);
-    let second: &dyn PointSource = match &copy {
-        Some(copy) => copy,
-        None => source,
-    };
-    let chunks = distribute(&ctx, second, &plan, buffer_bytes)?;
-    drop(copy);
-    let chunk_count = chunks.len();
-    drop(plan);
-    drop(grid_reservation);
-    timings.distribution = distributing.elapsed();
-
     let building = Instant::now();
     build_chunks(&ctx, chunks)?;
     timings.chunks = building.elapsed();

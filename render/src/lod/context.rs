@@ -29,6 +29,8 @@ pub struct BuildContext<'a> {
     pub meter: &'a MemoryMeter,
     pub spill: &'a SpillDir,
     pub sink: &'a NodeSink<'a>,
+    /// The plan's chunk size: a chunk far above it is split before it is built.
+    pub max_chunk_points: u64,
     pub pending: Mutex<BTreeMap<NodeKey, Pending>>,
     /// Chunks that were too large for the budget and split on disk.
     pub chunks_split: AtomicUsize,

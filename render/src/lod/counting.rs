@@ -1,22 +1,41 @@
-//! The counting pass: every point checked and counted into a coarse grid of the root cube,
-//! with the dataset's statistics.
+//! The counting pass, the only pass over the source: every point checked, counted into a
+//! coarse grid of the root cube (the buckets) and written as a spill record to its bucket's
+//! files, with the dataset's statistics. Chunks are then unions of whole buckets
+//! (`plan.rs`), so the points are not read, or decoded, a second time.
+//!
+//! A block of points has its buckets and records made on all cores; a thread of its own
+//! appends each block's records to the buckets' buffers (and hands full buffers to the spill
+//! writer's thread) while the next block is made: reading, scattering and writing overlap.
+//! A bucket's records go to files of at most [`BUCKET_SEGMENT_POINTS`], so that a chunk split
+//! on disk holds one segment beside its children at a time.
+
+use std::ops::Range;
+use std::path::PathBuf;
+use std::sync::mpsc;
 
 use rayon::prelude::*;
 
-use super::cached::SourceCopyWriter;
 use super::error::LodError;
 use super::key::RootCube;
 use super::memory::MemoryMeter;
+use super::point::{RawPoint, RecordLayout, MAX_RECORD_BYTES};
 use super::source::{PointBatch, PointSource};
+use super::spill::{SpillDir, SpillWriter};
 use super::stats::DatasetStats;
 use crate::cloud::WorldBounds;
 
-/// The finest counting grid: 128 cells per axis, as PotreeConverter's.
-pub const MAX_COUNT_LEVEL: u32 = 7;
-/// Points whose cells are computed at once (in parallel) when a pass walks a batch.
-pub const CELL_BLOCK_POINTS: usize = 1 << 14;
+/// The finest bucket grid: 16 cells per axis, at most 4,096 buckets (each a file at least,
+/// and a buffer while the pass writes them).
+pub const MAX_COUNT_LEVEL: u32 = 4;
+/// Points a bucket's file holds at most (about 0.9 GB of grid records); more go to another.
+pub const BUCKET_SEGMENT_POINTS: u64 = 1 << 25;
+/// Points whose buckets and records are made at once, on all cores.
+const RECORD_BLOCK_POINTS: usize = 1 << 13;
+/// What the pass's blocks hold, three at most (one made, one queued, one scattered): each
+/// point's bucket and its record.
+pub const COUNTING_BLOCKS_BYTES: u64 = 3 * (RECORD_BLOCK_POINTS * (4 + MAX_RECORD_BYTES)) as u64;
 
-/// Points per cell of the counting grid at `level`, cells in x-fastest order.
+/// Points per cell of the bucket grid at `level`, cells in x-fastest order.
 pub struct CountGrid {
     pub level: u32,
     pub counts: Vec<u64>,
@@ -31,6 +50,22 @@ impl CountGrid {
     pub fn planning_bytes(level: u32) -> u64 {
         (1u64 << (3 * level)) * 14
     }
+
+    /// The files bucket `bucket` was written to, in the order its points were.
+    pub fn bucket_files(&self, spill: &SpillDir, bucket: usize) -> Vec<PathBuf> {
+        let segments = self.counts[bucket].div_ceil(BUCKET_SEGMENT_POINTS);
+        (0..segments)
+            .map(|segment| bucket_path(spill, bucket, segment))
+            .collect()
+    }
+}
+
+fn bucket_path(spill: &SpillDir, bucket: usize, segment: u64) -> PathBuf {
+    spill.file(&bucket_name(bucket, segment))
+}
+
+fn bucket_name(bucket: usize, segment: u64) -> String {
+    format!("bucket-{bucket}-{segment}.bin")
 }
 
 /// How far outside the declared bounds a point may lie and still count as inside: bounds from
@@ -75,46 +110,118 @@ pub fn check_batch(
     })
 }
 
-/// Counts every point of `source` into a grid of `level` and gathers the statistics; with
-/// `copy`, every point is also written to the copy of the source.
+/// Points of a batch with their buckets and their spill records, made on all cores.
+#[derive(Default)]
+struct RecordBlock {
+    buckets: Vec<u32>,
+    records: Vec<u8>,
+}
+
+impl RecordBlock {
+    fn fill(
+        &mut self,
+        batch: &PointBatch<'_>,
+        range: Range<usize>,
+        level: u32,
+        cube: &RootCube,
+        layout: RecordLayout,
+    ) -> Result<(), LodError> {
+        batch.positions[range.clone()]
+            .par_iter()
+            .map(|p| CountGrid::index(level, cube.cell_at(*p, level)) as u32)
+            .collect_into_vec(&mut self.buckets);
+        const PER_TASK: usize = 1 << 10;
+        let record_bytes = layout.record_bytes();
+        self.records.resize(range.len() * record_bytes, 0);
+        self.records
+            .par_chunks_mut(PER_TASK * record_bytes)
+            .enumerate()
+            .try_for_each(|(task, out)| {
+                let first = range.start + task * PER_TASK;
+                for (j, record) in out.chunks_exact_mut(record_bytes).enumerate() {
+                    layout.write(&RawPoint::from_batch(batch, first + j), record)?;
+                }
+                Ok(())
+            })
+    }
+}
+
+/// Reads `source` once: checks every point, counts it into the bucket grid of `level`, writes
+/// its record to its bucket's files through buffers of at most `buffer_bytes`, and gathers
+/// the statistics.
 pub fn count_points(
     source: &dyn PointSource,
     cube: &RootCube,
     level: u32,
     meter: &MemoryMeter,
-    mut copy: Option<&mut SourceCopyWriter<'_>>,
+    spill: &SpillDir,
+    buffer_bytes: u64,
 ) -> Result<(CountGrid, DatasetStats), LodError> {
-    let mut counts = vec![0u64; 1 << (3 * level)];
+    let reservation = meter.try_reserve(2 * buffer_bytes, "the buckets' write buffers")?;
+    let _blocks = meter.try_reserve(COUNTING_BLOCKS_BYTES, "blocks of spill records")?;
+    let buckets = 1usize << (3 * level);
+    // Every bucket can take every point: as many segments each as the whole source fills.
+    let segments = source.point_count().div_ceil(BUCKET_SEGMENT_POINTS).max(1) as usize;
+    let folder = spill.path().to_path_buf();
+    let writer = SpillWriter::named(
+        spill,
+        buckets * segments,
+        move |target| folder.join(bucket_name(target / segments, (target % segments) as u64)),
+        buffer_bytes as usize,
+        reservation,
+    );
+    let bounds = source.bounds();
+    let layout = spill.layout();
     let mut stats: Option<DatasetStats> = None;
     let mut read = 0u64;
-    let _cells_buffer = meter.try_reserve(CELL_BLOCK_POINTS as u64 * 8, "cell indices")?;
-    let mut cells: Vec<usize> = Vec::with_capacity(CELL_BLOCK_POINTS);
-    let bounds = source.bounds();
-    source.for_each_batch(&mut |batch| {
-        check_batch(&batch, &bounds, cube, read)?;
-        let stats = stats.get_or_insert_with(|| DatasetStats::new(batch.rgb.is_some()));
-        if stats.has_rgb != batch.rgb.is_some() {
-            return Err(LodError::Source(format!(
-                "batch at point {read} {} RGB unlike the batches before it",
-                if batch.rgb.is_some() { "has" } else { "lacks" }
-            )));
-        }
-        for block in batch.positions.chunks(CELL_BLOCK_POINTS) {
-            block
-                .par_iter()
-                .map(|p| CountGrid::index(level, cube.cell_at(*p, level)))
-                .collect_into_vec(&mut cells);
-            for &c in &cells {
-                counts[c] += 1;
+    let (walked, scattered) = std::thread::scope(|scope| {
+        let (blocks, received) = mpsc::sync_channel::<RecordBlock>(1);
+        let (spare_sender, spare) = mpsc::channel::<RecordBlock>();
+        let record_bytes = layout.record_bytes();
+        let scattering = scope.spawn(move || {
+            scatter(
+                writer,
+                buckets,
+                segments,
+                record_bytes,
+                received,
+                spare_sender,
+            )
+        });
+        let walked = source.for_each_batch(&mut |batch| {
+            check_batch(&batch, &bounds, cube, read)?;
+            let stats = stats.get_or_insert_with(|| DatasetStats::new(batch.rgb.is_some()));
+            if stats.has_rgb != batch.rgb.is_some() {
+                return Err(LodError::Source(format!(
+                    "batch at point {read} {} RGB unlike the batches before it",
+                    if batch.rgb.is_some() { "has" } else { "lacks" }
+                )));
             }
-        }
-        stats.add(&batch);
-        if let Some(copy) = copy.as_deref_mut() {
-            copy.push_batch(&batch)?;
-        }
-        read += batch.len() as u64;
-        Ok(())
-    })?;
+            for start in (0..batch.len()).step_by(RECORD_BLOCK_POINTS) {
+                let range = start..(start + RECORD_BLOCK_POINTS).min(batch.len());
+                let mut block = spare.try_recv().unwrap_or_default();
+                block.fill(&batch, range, level, cube, layout)?;
+                if blocks.send(block).is_err() {
+                    // The scattering thread stopped on an error, which is returned below.
+                    return Err(LodError::Source("the spill writing stopped".into()));
+                }
+            }
+            stats.add(&batch);
+            read += batch.len() as u64;
+            Ok(())
+        });
+        drop(blocks);
+        let scattered = scattering.join().unwrap_or_else(|_| {
+            Err(LodError::spill(
+                spill.path(),
+                std::io::Error::other("the counting pass's scattering thread panicked"),
+            ))
+        });
+        (walked, scattered)
+    });
+    // The scattering thread's error is the cause of any the walk returned after it.
+    let counts = scattered?;
+    walked?;
     if read != source.point_count() {
         return Err(LodError::CountMismatch {
             declared: source.point_count(),
@@ -126,4 +233,32 @@ pub fn count_points(
         CountGrid { level, counts },
         stats.unwrap_or_else(|| DatasetStats::new(false)),
     ))
+}
+
+/// Appends every block's records to their buckets' files (a bucket's next segment once one
+/// holds [`BUCKET_SEGMENT_POINTS`]) and counts them per bucket; each block goes back through
+/// `spare` to be filled again.
+fn scatter(
+    mut writer: SpillWriter<'_>,
+    buckets: usize,
+    segments: usize,
+    record_bytes: usize,
+    blocks: mpsc::Receiver<RecordBlock>,
+    spare: mpsc::Sender<RecordBlock>,
+) -> Result<Vec<u64>, LodError> {
+    let mut counts = vec![0u64; buckets];
+    for block in blocks {
+        let records = block.records.chunks_exact(record_bytes);
+        for (&bucket, record) in block.buckets.iter().zip(records) {
+            let count = &mut counts[bucket as usize];
+            // Points beyond the declared count stay in the last segment; the pass refuses the
+            // source once it has read them.
+            let segment = ((*count / BUCKET_SEGMENT_POINTS) as usize).min(segments - 1);
+            *count += 1;
+            writer.push_record(bucket as usize * segments + segment, record)?;
+        }
+        let _ = spare.send(block);
+    }
+    writer.finish()?;
+    Ok(counts)
 }

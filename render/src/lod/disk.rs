@@ -1,8 +1,8 @@
 //! The disk a build takes, known before it starts, so that a dataset too large for the disk
 //! is refused before a point is read.
 
-use super::cached::COPY_SEGMENT_POINTS;
 use super::codec::encoded_len;
+use super::counting::BUCKET_SEGMENT_POINTS;
 use super::point::{RecordLayout, MAX_RECORD_BYTES};
 use super::source::PointSource;
 
@@ -15,20 +15,19 @@ pub fn spill_record_bytes(source: &dyn PointSource) -> u64 {
 }
 
 /// Bytes a build of `points` points needs on disk at its peak, in spill records of
-/// `record_bytes` ([`spill_record_bytes`]): a spill record a point (the
-/// chunks' spill, or while the distribution runs that and what is left of the copy of a
-/// source costly to read again, LAZ, whose segments go as they are read), which the stored
-/// nodes replace chunk by chunk (a stored point takes less than its record), with a tenth
-/// of slack; a segment's records and stored points for the copy and the chunks in flight;
-/// and a margin for the hierarchy and partial pages. The store itself stays after the build,
-/// at less than its spill (docs/perf/campaign-1b.md).
+/// `record_bytes` ([`spill_record_bytes`]): a spill record a point (the buckets the counting
+/// pass writes), which the stored nodes replace chunk by chunk (a stored point takes less
+/// than its record), with a tenth of slack; a bucket segment's records and stored points in
+/// flight (a chunk split on disk removes each segment once it has read it); and a margin for
+/// the hierarchy and partial pages. The store itself stays after the build, at less than its
+/// spill (docs/perf/campaign-1b.md).
 pub fn build_disk_bytes(points: u64, has_rgb: bool, record_bytes: u64) -> u64 {
     let record = record_bytes;
     let stored = stored_bytes_per_point(has_rgb);
     let per_point = record.max(stored) + record.max(stored).div_ceil(10);
     points
         .saturating_mul(per_point)
-        .saturating_add(points.min(COPY_SEGMENT_POINTS) * (record + stored))
+        .saturating_add(points.min(BUCKET_SEGMENT_POINTS) * (record + stored))
         .saturating_add(64 << 20)
 }
 

@@ -16,7 +16,6 @@
 //! sled holds memory in proportion to what it stores.
 
 pub mod build;
-mod cached;
 mod checksum;
 mod chunks;
 pub mod codec;

@@ -1,4 +1,4 @@
-//! Chunk planning: the counting grid's cells merged into chunks of at most `max_points`
+//! Chunk planning: the bucket grid's cells merged into chunks of at most `max_points`
 //! points, as PotreeConverter 2 does: a pyramid of counts, and from the root down every cell
 //! that holds few enough points (or is a cell of the grid itself) becomes one chunk.
 
@@ -22,10 +22,10 @@ pub struct ChunkPlan {
     pub lookup: Vec<u32>,
 }
 
-pub fn plan_chunks(grid: CountGrid, max_points: u64) -> ChunkPlan {
+pub fn plan_chunks(grid: &CountGrid, max_points: u64) -> ChunkPlan {
     let top = grid.level;
     let mut pyramid: Vec<Vec<u64>> = vec![Vec::new(); top as usize + 1];
-    pyramid[top as usize] = grid.counts;
+    pyramid[top as usize] = grid.counts.clone();
     for level in (0..top).rev() {
         let finer = &pyramid[level as usize + 1];
         let n = 1u32 << level;
@@ -94,7 +94,7 @@ mod tests {
         counts[CountGrid::index(level, UVec3::new(3, 3, 3))] = 100;
         counts[CountGrid::index(level, UVec3::new(0, 0, 0))] = 3;
         counts[CountGrid::index(level, UVec3::new(1, 0, 0))] = 4;
-        let plan = plan_chunks(CountGrid { level, counts }, 10);
+        let plan = plan_chunks(&CountGrid { level, counts }, 10);
         assert_eq!(
             plan.chunks,
             vec![

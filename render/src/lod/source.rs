@@ -84,7 +84,7 @@ impl BatchColumns {
 /// What a [`PointSource`] hands each batch to; an error it returns stops the walk.
 pub type BatchVisitor<'v> = dyn FnMut(PointBatch<'_>) -> Result<(), LodError> + 'v;
 
-/// Points that can be read (at least) twice, in the same order each time.
+/// Points read batch by batch, in the same order each time (the builder reads them once).
 pub trait PointSource: Sync {
     /// A box holding every point.
     fn bounds(&self) -> WorldBounds;
@@ -92,13 +92,6 @@ pub trait PointSource: Sync {
     /// Visits every point once, batch by batch; an error from `visit` stops the walk and is
     /// returned.
     fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError>;
-
-    /// Whether a second walk costs about what reading a spill file would: false for sources
-    /// that decode (LAZ), whose points the builder then keeps in a spill file during the
-    /// counting pass and distributes from there, decoding them once.
-    fn rereads_cheaply(&self) -> bool {
-        true
-    }
 
     /// The one LAS grid every point lies on, if there is one: the builder's spill records then
     /// hold the grid's integers instead of f64 positions.

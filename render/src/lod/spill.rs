@@ -95,7 +95,8 @@ impl Drop for SpillDir {
 /// to its file while the next half fills, so reading the source and writing spill overlap.
 pub struct SpillWriter<'a> {
     dir: &'a SpillDir,
-    paths: Arc<[PathBuf]>,
+    paths: Arc<dyn Fn(usize) -> PathBuf + Send + Sync>,
+    targets: usize,
     buffers: Vec<Vec<u8>>,
     buffered: usize,
     layout: RecordLayout,
@@ -117,6 +118,25 @@ impl<'a> SpillWriter<'a> {
         limit: usize,
         reservation: Reservation<'a>,
     ) -> Self {
+        let targets = paths.len();
+        Self::named(
+            dir,
+            targets,
+            move |target| paths[target].clone(),
+            limit,
+            reservation,
+        )
+    }
+
+    /// A writer to `targets` files, file `target` at `path(target)` (made when it is first
+    /// written to), holding at most `limit` bytes of records, as [`Self::new`].
+    pub fn named(
+        dir: &'a SpillDir,
+        targets: usize,
+        path: impl Fn(usize) -> PathBuf + Send + Sync + 'static,
+        limit: usize,
+        reservation: Reservation<'a>,
+    ) -> Self {
         let layout = dir.layout();
         let record_bytes = layout.record_bytes();
         let limit = limit.max(record_bytes);
@@ -124,8 +144,9 @@ impl<'a> SpillWriter<'a> {
         let set_limit = (limit / 2).max(record_bytes);
         Self {
             dir,
-            buffers: vec![Vec::new(); paths.len()],
-            paths: paths.into(),
+            buffers: vec![Vec::new(); targets],
+            paths: Arc::new(path),
+            targets,
             buffered: 0,
             layout,
             record_bytes,
@@ -161,13 +182,13 @@ impl<'a> SpillWriter<'a> {
         if self.buffered == 0 {
             return Ok(());
         }
-        let buffers = std::mem::replace(&mut self.buffers, vec![Vec::new(); self.paths.len()]);
+        let buffers = std::mem::replace(&mut self.buffers, vec![Vec::new(); self.targets]);
         self.dir.count_written(self.buffered);
         self.buffered = 0;
         let paths = Arc::clone(&self.paths);
         let thread = std::thread::Builder::new()
             .name("spill-writer".into())
-            .spawn(move || append_each(&paths, &buffers))
+            .spawn(move || append_each(paths.as_ref(), &buffers))
             .map_err(|e| LodError::spill(self.dir.path(), e))?;
         self.writing = Some(thread);
         Ok(())
@@ -201,11 +222,12 @@ impl Drop for SpillWriter<'_> {
 }
 
 /// Appends each non-empty buffer to its file.
-fn append_each(paths: &[PathBuf], buffers: &[Vec<u8>]) -> Result<(), LodError> {
-    for (buffer, path) in buffers.iter().zip(paths) {
+fn append_each(paths: &dyn Fn(usize) -> PathBuf, buffers: &[Vec<u8>]) -> Result<(), LodError> {
+    for (target, buffer) in buffers.iter().enumerate() {
         if buffer.is_empty() {
             continue;
         }
+        let path = &paths(target);
         // Opened per set rather than kept open: a build may spill to more files than the
         // process may hold open.
         let mut file = OpenOptions::new()
@@ -263,22 +285,33 @@ pub fn for_each_block(
     }
 }
 
-/// Reads all points of `path`, records in `layout`, which must hold exactly `expected`.
+/// Reads all points of the files `paths`, in order, records in `layout`; together they must
+/// hold exactly `expected`.
 pub fn read_all(
-    path: &Path,
+    paths: &[PathBuf],
     layout: RecordLayout,
     expected: u64,
 ) -> Result<Vec<RawPoint>, LodError> {
     let mut points = Vec::with_capacity(expected as usize);
-    for_each_block(path, layout, |block| {
-        points.extend_from_slice(block);
-        Ok(())
-    })?;
+    for path in paths {
+        for_each_block(path, layout, |block| {
+            if (points.len() + block.len()) as u64 > expected {
+                let error = std::io::Error::new(
+                    std::io::ErrorKind::InvalidData,
+                    format!("holds more than the {expected} points written"),
+                );
+                return Err(LodError::spill(path, error));
+            }
+            points.extend_from_slice(block);
+            Ok(())
+        })?;
+    }
     if points.len() as u64 != expected {
         let error = std::io::Error::new(
             std::io::ErrorKind::InvalidData,
-            format!("holds {} points, {expected} were written", points.len()),
+            format!("hold {} points, {expected} were written", points.len()),
         );
+        let path = paths.last().map_or(Path::new(""), PathBuf::as_path);
         return Err(LodError::spill(path, error));
     }
     Ok(points)

@@ -65,7 +65,11 @@ fn build_parent(
     let mut present = [false; 8];
     for (key, child) in &children {
         let i = key.child_index();
-        own[i] = spill::read_all(&child.path, ctx.spill.layout(), child.count)?;
+        own[i] = spill::read_all(
+            std::slice::from_ref(&child.path),
+            ctx.spill.layout(),
+            child.count,
+        )?;
         spill::remove(&child.path)?;
         grids[i] = child.sample_grid;
         present[i] = true;
