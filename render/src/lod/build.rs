@@ -40,7 +40,7 @@ use super::store::LodStore;
 use super::upper::build_upper_levels;
 
 /// The most bytes of records the counting pass buffers before it appends them to files.
-const BUCKET_BUFFER_BYTES: u64 = 64 << 20;
+const BUCKET_BUFFER_BYTES: u64 = 16 << 20;
 
 /// Seconds each stage took.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
