@@ -23,7 +23,9 @@ use std::time::{Duration, Instant};
 
 use super::chunks::{build_chunks, chunk_bytes, chunk_files};
 use super::context::BuildContext;
-use super::counting::{count_points, CountGrid, COUNTING_BLOCKS_BYTES, MAX_COUNT_LEVEL};
+use super::counting::{
+    count_points, CountGrid, BUCKET_SEGMENT_POINTS, COUNTING_BLOCKS_BYTES, MAX_COUNT_LEVEL,
+};
 use super::error::LodError;
 use super::hierarchy::LodHierarchy;
 use super::key::RootCube;
@@ -161,7 +163,15 @@ fn build_on_pool(
     let grid_reservation = meter.try_reserve(grid_bytes, "the counting grid")?;
     let buffer_bytes = (budget.saturating_sub(grid_bytes + COUNTING_BLOCKS_BYTES) / 4)
         .clamp(1 << 16, BUCKET_BUFFER_BYTES);
-    let (grid, stats) = count_points(source, &cube, level, &meter, &spill, buffer_bytes)?;
+    let (grid, stats) = count_points(
+        source,
+        &cube,
+        level,
+        &meter,
+        &spill,
+        buffer_bytes,
+        BUCKET_SEGMENT_POINTS,
+    )?;
     let plan = plan_chunks(&grid, max_chunk);
     let chunks = chunk_files(&plan, &grid, &spill);
     let chunk_count = chunks.len();

@@ -39,6 +39,8 @@ pub const COUNTING_BLOCKS_BYTES: u64 = 3 * (RECORD_BLOCK_POINTS * (4 + MAX_RECOR
 pub struct CountGrid {
     pub level: u32,
     pub counts: Vec<u64>,
+    /// Points a bucket's file holds at most ([`BUCKET_SEGMENT_POINTS`] in a build).
+    pub segment_points: u64,
 }
 
 impl CountGrid {
@@ -53,7 +55,7 @@ impl CountGrid {
 
     /// The files bucket `bucket` was written to, in the order its points were.
     pub fn bucket_files(&self, spill: &SpillDir, bucket: usize) -> Vec<PathBuf> {
-        let segments = self.counts[bucket].div_ceil(BUCKET_SEGMENT_POINTS);
+        let segments = self.counts[bucket].div_ceil(self.segment_points);
         (0..segments)
             .map(|segment| bucket_path(spill, bucket, segment))
             .collect()
@@ -147,8 +149,8 @@ impl RecordBlock {
 }
 
 /// Reads `source` once: checks every point, counts it into the bucket grid of `level`, writes
-/// its record to its bucket's files through buffers of at most `buffer_bytes`, and gathers
-/// the statistics.
+/// its record to its bucket's files (of at most `segment_points` each) through buffers of at
+/// most `buffer_bytes`, and gathers the statistics.
 pub fn count_points(
     source: &dyn PointSource,
     cube: &RootCube,
@@ -156,12 +158,17 @@ pub fn count_points(
     meter: &MemoryMeter,
     spill: &SpillDir,
     buffer_bytes: u64,
+    segment_points: u64,
 ) -> Result<(CountGrid, DatasetStats), LodError> {
     let reservation = meter.try_reserve(2 * buffer_bytes, "the buckets' write buffers")?;
     let _blocks = meter.try_reserve(COUNTING_BLOCKS_BYTES, "blocks of spill records")?;
     let buckets = 1usize << (3 * level);
     // Every bucket can take every point: as many segments each as the whole source fills.
-    let segments = source.point_count().div_ceil(BUCKET_SEGMENT_POINTS).max(1) as usize;
+    let segments = source.point_count().div_ceil(segment_points).max(1) as usize;
+    let targets = Targets {
+        segments,
+        segment_points,
+    };
     let folder = spill.path().to_path_buf();
     let writer = SpillWriter::named(
         spill,
@@ -182,7 +189,7 @@ pub fn count_points(
             scatter(
                 writer,
                 buckets,
-                segments,
+                targets,
                 record_bytes,
                 received,
                 spare_sender,
@@ -230,18 +237,29 @@ pub fn count_points(
         });
     }
     Ok((
-        CountGrid { level, counts },
+        CountGrid {
+            level,
+            counts,
+            segment_points,
+        },
         stats.unwrap_or_else(|| DatasetStats::new(false)),
     ))
 }
 
+/// How the writer's files are numbered: `segments` a bucket, bucket by bucket.
+#[derive(Clone, Copy)]
+struct Targets {
+    segments: usize,
+    segment_points: u64,
+}
+
 /// Appends every block's records to their buckets' files (a bucket's next segment once one
-/// holds [`BUCKET_SEGMENT_POINTS`]) and counts them per bucket; each block goes back through
-/// `spare` to be filled again.
+/// is full) and counts them per bucket; each block goes back through `spare` to be filled
+/// again.
 fn scatter(
     mut writer: SpillWriter<'_>,
     buckets: usize,
-    segments: usize,
+    targets: Targets,
     record_bytes: usize,
     blocks: mpsc::Receiver<RecordBlock>,
     spare: mpsc::Sender<RecordBlock>,
@@ -253,12 +271,53 @@ fn scatter(
             let count = &mut counts[bucket as usize];
             // Points beyond the declared count stay in the last segment; the pass refuses the
             // source once it has read them.
-            let segment = ((*count / BUCKET_SEGMENT_POINTS) as usize).min(segments - 1);
+            let segment = ((*count / targets.segment_points) as usize).min(targets.segments - 1);
             *count += 1;
-            writer.push_record(bucket as usize * segments + segment, record)?;
+            writer.push_record(bucket as usize * targets.segments + segment, record)?;
         }
         let _ = spare.send(block);
     }
     writer.finish()?;
     Ok(counts)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::lod::GeneratedSource;
+
+    /// Every point is written once, to its bucket's files in segments of the size asked,
+    /// and the counts are the records the files hold.
+    #[test]
+    fn every_point_goes_to_its_buckets_segments() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let source = GeneratedSource::terrain(10_000, 1);
+        let cube = RootCube::around(&source.bounds()).expect("cube");
+        let meter = MemoryMeter::new(64 << 20);
+        let spill = SpillDir::create(dir.path(), RecordLayout::for_grid(None)).expect("spill");
+        let (grid, stats) =
+            count_points(&source, &cube, 1, &meter, &spill, 1 << 16, 1_000).expect("counted");
+        assert_eq!(grid.counts.len(), 8);
+        assert_eq!(grid.counts.iter().sum::<u64>(), 10_000);
+        assert_eq!(stats.class_counts.iter().sum::<u64>(), 10_000, "every point seen");
+        let record = spill.layout().record_bytes() as u64;
+        let mut segmented = 0;
+        for (bucket, &count) in grid.counts.iter().enumerate() {
+            let files = grid.bucket_files(&spill, bucket);
+            assert_eq!(files.len() as u64, count.div_ceil(1_000));
+            segmented += usize::from(files.len() > 1);
+            let mut left = count;
+            for file in &files {
+                let bytes = std::fs::metadata(file).expect("a segment").len();
+                assert_eq!(bytes, left.min(1_000) * record, "{}", file.display());
+                left -= left.min(1_000);
+            }
+            // Each point in its bucket's cell.
+            let points = crate::lod::spill::read_all(&files, spill.layout(), count).expect("read");
+            for p in points {
+                assert_eq!(CountGrid::index(1, cube.cell_at(p.position, 1)), bucket);
+            }
+        }
+        assert!(segmented > 0, "a bucket over a segment");
+    }
 }

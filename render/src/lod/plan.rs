@@ -94,7 +94,12 @@ mod tests {
         counts[CountGrid::index(level, UVec3::new(3, 3, 3))] = 100;
         counts[CountGrid::index(level, UVec3::new(0, 0, 0))] = 3;
         counts[CountGrid::index(level, UVec3::new(1, 0, 0))] = 4;
-        let plan = plan_chunks(&CountGrid { level, counts }, 10);
+        let grid = CountGrid {
+            level,
+            counts,
+            segment_points: 1,
+        };
+        let plan = plan_chunks(&grid, 10);
         assert_eq!(
             plan.chunks,
             vec![
