@@ -10,8 +10,6 @@ use crate::camera::{Camera, Projection};
 use crate::color::ColorMode;
 use crate::cut::{select_cut, CutOptions, CutRenderer, CutView};
 use crate::filter::PointFilter;
-use crate::lod::copc_export::{export_copc, ExportSettings};
-use crate::lod::{build_lod, GeneratedSource, LodBuildOptions, LodStore};
 use crate::raster::Renderer;
 use crate::testing::{compare_images_within, gpu};
 
@@ -183,19 +181,7 @@ fn check_cuts(path: &Path) {
 /// A generated terrain built into a store with small leaves and exported as a COPC file (in
 /// one page, as the export writes it).
 fn exported_terrain(dir: &Path) -> PathBuf {
-    let source = GeneratedSource::terrain(60_000, 7);
-    let db = sled::open(dir.join("db")).expect("sled");
-    let tree = db.open_tree("lod").expect("tree");
-    let store = LodStore::open(tree, dir.join("lod.bin")).expect("store");
-    let mut options = LodBuildOptions::new(dir.join("spill"));
-    options.max_leaf_points = 1_000;
-    let hierarchy = build_lod(&source, &store, &options)
-        .expect("build")
-        .hierarchy;
-    let path = dir.join("terrain.copc.laz");
-    let settings = ExportSettings::fixed(&hierarchy.cube);
-    export_copc(&hierarchy, &store, &settings, &path, &mut |_| {}).expect("export");
-    path
+    super::weights_tests::exported_terrain(dir, 60_000, 1_000).path
 }
 
 #[test]

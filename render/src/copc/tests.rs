@@ -169,6 +169,18 @@ fn a_decoder_sent_apart_from_the_file_decodes_its_chunks_as_the_file_does() {
     let rebuild = |format: u8, record_len: u16, scale: [f64; 3], vlr: &[u8]| {
         CopcDecoder::from_parts(name, format, record_len, scale, d.offset(), vlr, None)
     };
+    let weighed_at = |at: u16| {
+        let (format, len) = (d.point_format(), d.record_len());
+        CopcDecoder::from_parts(
+            name,
+            format,
+            len,
+            d.scale(),
+            d.offset(),
+            d.laszip_vlr(),
+            Some(at),
+        )
+    };
     let sent = rebuild(d.point_format(), d.record_len(), d.scale(), d.laszip_vlr())
         .expect("the file's own parts");
     let hierarchy = opened.dataset.hierarchy();
@@ -215,24 +227,8 @@ fn a_decoder_sent_apart_from_the_file_decodes_its_chunks_as_the_file_does() {
         ),
         rebuild(d.point_format(), d.record_len(), d.scale(), &[]),
         // A weight must lie in the records' extra bytes, which this file's have none of.
-        CopcDecoder::from_parts(
-            name,
-            d.point_format(),
-            d.record_len(),
-            d.scale(),
-            d.offset(),
-            vlr,
-            Some(d.record_len() - 4),
-        ),
-        CopcDecoder::from_parts(
-            name,
-            d.point_format(),
-            d.record_len(),
-            d.scale(),
-            d.offset(),
-            vlr,
-            Some(d.record_len()),
-        ),
+        weighed_at(d.record_len() - 4),
+        weighed_at(d.record_len()),
     ];
     for (case, result) in refused.into_iter().enumerate() {
         let error = result

@@ -16,16 +16,16 @@ use crate::raster::{FrameSettings, Quality, Renderer, Shading};
 use crate::request::PointSize;
 use crate::testing::{compare_images_within, gpu};
 
-struct Exported {
+pub(super) struct Exported {
     _db: sled::Db,
     store: LodStore,
     hierarchy: LodHierarchy,
-    path: PathBuf,
+    pub path: PathBuf,
 }
 
 /// A generated terrain of `points` built with leaves of at most `max_leaf_points` and
 /// exported as a COPC file.
-fn exported_terrain(dir: &Path, points: u64, max_leaf_points: usize) -> Exported {
+pub(super) fn exported_terrain(dir: &Path, points: u64, max_leaf_points: usize) -> Exported {
     let source = GeneratedSource::terrain(points, 7);
     let db = sled::open(dir.join("db")).expect("sled");
     let store =

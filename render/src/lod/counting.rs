@@ -299,7 +299,11 @@ mod tests {
             count_points(&source, &cube, 1, &meter, &spill, 1 << 16, 1_000).expect("counted");
         assert_eq!(grid.counts.len(), 8);
         assert_eq!(grid.counts.iter().sum::<u64>(), 10_000);
-        assert_eq!(stats.class_counts.iter().sum::<u64>(), 10_000, "every point seen");
+        assert_eq!(
+            stats.class_counts.iter().sum::<u64>(),
+            10_000,
+            "every point seen"
+        );
         let record = spill.layout().record_bytes() as u64;
         let mut segmented = 0;
         for (bucket, &count) in grid.counts.iter().enumerate() {
