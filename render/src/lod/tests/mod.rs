@@ -263,6 +263,43 @@ fn a_chunk_larger_than_the_budget_is_split_on_disk() {
     assert!(!report.spill_path.exists());
 }
 
+/// Points over 2 km with two outliers 10 km away: the buckets (1.25 km at the finest bucket
+/// grid) each hold far more than the chunk size, so the builder splits them on disk before
+/// it builds them, though each would fit the budget.
+#[test]
+fn a_bucket_far_above_the_chunk_size_is_split_though_it_fits() {
+    let mut points: Vec<DVec3> = (0..60_000u32)
+        .map(|i| {
+            let f = |k: u32| f64::from((i.wrapping_mul(k) >> 7) % 2000);
+            DVec3::new(600_000.0, 5_000_000.0, 10.0)
+                + DVec3::new(f(2_654_435_761), f(40_503), f(1_103_515_245) / 100.0)
+        })
+        .collect();
+    points.push(DVec3::new(610_000.0, 5_010_000.0, 10.0));
+    points.push(DVec3::new(590_000.0, 4_990_000.0, 10.0));
+    let cloud = PointCloud::from_world_points(&points, vec![0; points.len()]);
+    let source = CloudSource::new(&cloud);
+    let built = build_with(&source, |o| {
+        o.memory_budget_bytes = 256 << 20;
+        o.max_chunk_points = 2_000;
+    });
+    let report = &built.report;
+    assert!(report.chunks_split > 0, "split: {}", report.chunks_split);
+    assert!(
+        report.peak_memory_bytes < report.memory_budget_bytes / 4,
+        "split for their size, not for the budget: {} of {}",
+        report.peak_memory_bytes,
+        report.memory_budget_bytes
+    );
+    assert_eq!(
+        read_all_nodes(&built)
+            .iter()
+            .map(NodePoints::len)
+            .sum::<usize>(),
+        points.len()
+    );
+}
+
 fn stored_nodes(built: &Built) -> Vec<(NodeKey, Vec<u8>)> {
     let hierarchy = &built.report.hierarchy;
     hierarchy
