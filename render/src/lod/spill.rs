@@ -96,8 +96,10 @@ impl Drop for SpillDir {
 pub struct SpillWriter<'a> {
     dir: &'a SpillDir,
     paths: Arc<dyn Fn(usize) -> PathBuf + Send + Sync>,
-    targets: usize,
     buffers: Vec<Vec<u8>>,
+    /// The targets whose buffers hold records, in the order they were first written: a set
+    /// is handed over by these alone, whatever the number of targets.
+    filled: Vec<usize>,
     buffered: usize,
     layout: RecordLayout,
     record_bytes: usize,
@@ -146,7 +148,7 @@ impl<'a> SpillWriter<'a> {
             dir,
             buffers: vec![Vec::new(); targets],
             paths: Arc::new(path),
-            targets,
+            filled: Vec::new(),
             buffered: 0,
             layout,
             record_bytes,
@@ -157,6 +159,9 @@ impl<'a> SpillWriter<'a> {
     }
 
     pub fn push(&mut self, target: usize, point: &RawPoint) -> Result<(), LodError> {
+        if self.buffers[target].is_empty() {
+            self.filled.push(target);
+        }
         self.layout.append(point, &mut self.buffers[target])?;
         self.pushed()
     }
@@ -164,6 +169,9 @@ impl<'a> SpillWriter<'a> {
     /// Appends one record, in the spill folder's layout, to file `target`.
     pub fn push_record(&mut self, target: usize, record: &[u8]) -> Result<(), LodError> {
         debug_assert_eq!(record.len(), self.record_bytes);
+        if self.buffers[target].is_empty() {
+            self.filled.push(target);
+        }
         self.buffers[target].extend_from_slice(record);
         self.pushed()
     }
@@ -182,7 +190,11 @@ impl<'a> SpillWriter<'a> {
         if self.buffered == 0 {
             return Ok(());
         }
-        let buffers = std::mem::replace(&mut self.buffers, vec![Vec::new(); self.targets]);
+        let buffers: Vec<(usize, Vec<u8>)> = self
+            .filled
+            .drain(..)
+            .map(|target| (target, std::mem::take(&mut self.buffers[target])))
+            .collect();
         self.dir.count_written(self.buffered);
         self.buffered = 0;
         let paths = Arc::clone(&self.paths);
@@ -222,8 +234,11 @@ impl Drop for SpillWriter<'_> {
 }
 
 /// Appends each non-empty buffer to its file.
-fn append_each(paths: &dyn Fn(usize) -> PathBuf, buffers: &[Vec<u8>]) -> Result<(), LodError> {
-    for (target, buffer) in buffers.iter().enumerate() {
+fn append_each(
+    paths: &dyn Fn(usize) -> PathBuf,
+    buffers: &[(usize, Vec<u8>)],
+) -> Result<(), LodError> {
+    for &(target, ref buffer) in buffers {
         if buffer.is_empty() {
             continue;
         }
