@@ -58,7 +58,8 @@ pub struct BuildTimings {
 pub struct LodBuildReport {
     pub hierarchy: LodHierarchy,
     pub chunks: usize,
-    /// Chunks too large for the budget, split on disk before they were built.
+    /// Chunks split on disk before they were built: too large for the budget, or a dense
+    /// bucket far above the chunk size.
     pub chunks_split: usize,
     /// The bucket grid's level (cells per axis = 2^level).
     pub count_level: u32,
