@@ -55,35 +55,96 @@ const TREES: [(f64, f64, f64, f64); 11] = [
 
 /// Generates the demo scene with exactly `points` points; the same seed gives the same cloud.
 pub fn sample_scene(points: usize, seed: u64) -> PointCloud {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let house = house_facets();
-    let house_area: f64 = house.iter().map(Facet::area).sum();
-    let tree_areas: Vec<f64> = TREES
-        .iter()
-        .map(|&(_, _, trunk_height, crown_radius)| {
-            TAU * TRUNK_RADIUS * trunk_height + 2.0 * TAU * crown_radius * crown_radius
-        })
-        .collect();
-    let terrain_area = (2.0 * HALF_EXTENT).powi(2);
-    let object_area = (house_area + tree_areas.iter().sum::<f64>()) * OBJECT_DENSITY_BOOST;
-    let points_per_area = points as f64 / (terrain_area + object_area);
-    let share = |area: f64| (area * OBJECT_DENSITY_BOOST * points_per_area) as usize;
+    SampleScene::new(points, seed).next_block(points)
+}
 
-    let mut scene = SceneBuilder::with_capacity(points);
-    for _ in 0..share(house_area) {
-        let facet = pick_by_area(&house, house_area, &mut rng);
-        facet.sample(&mut rng, &mut scene);
-    }
-    for (&tree, &area) in TREES.iter().zip(&tree_areas) {
-        for _ in 0..share(area) {
-            sample_tree(tree, &mut rng, &mut scene);
+/// What one generated point is sampled from.
+#[derive(Debug, Clone, Copy)]
+enum Part {
+    House,
+    Tree(usize),
+    Terrain,
+}
+
+/// The demo scene generated block by block, so a scene of any size is written within a
+/// block's memory: the points of [`sample_scene`], in its order (the house's, each tree's, then
+/// the terrain's, from one random stream).
+pub struct SampleScene {
+    rng: ChaCha8Rng,
+    house: Vec<Facet>,
+    house_area: f64,
+    /// Each part and the points it gets, in order.
+    parts: Vec<(Part, usize)>,
+    /// The part being sampled and the points it has left.
+    part: usize,
+    left_in_part: usize,
+    remaining: usize,
+}
+
+impl SampleScene {
+    pub fn new(points: usize, seed: u64) -> Self {
+        let house = house_facets();
+        let house_area: f64 = house.iter().map(Facet::area).sum();
+        let tree_areas: Vec<f64> = TREES
+            .iter()
+            .map(|&(_, _, trunk_height, crown_radius)| {
+                TAU * TRUNK_RADIUS * trunk_height + 2.0 * TAU * crown_radius * crown_radius
+            })
+            .collect();
+        let terrain_area = (2.0 * HALF_EXTENT).powi(2);
+        let object_area = (house_area + tree_areas.iter().sum::<f64>()) * OBJECT_DENSITY_BOOST;
+        let points_per_area = points as f64 / (terrain_area + object_area);
+        let share = |area: f64| (area * OBJECT_DENSITY_BOOST * points_per_area) as usize;
+        let mut parts = vec![(Part::House, share(house_area))];
+        parts.extend(
+            tree_areas
+                .iter()
+                .enumerate()
+                .map(|(i, &area)| (Part::Tree(i), share(area))),
+        );
+        // Terrain takes the remainder, so the count is exact whatever the rounding above.
+        let objects: usize = parts.iter().map(|&(_, n)| n).sum();
+        parts.push((Part::Terrain, points.saturating_sub(objects)));
+        let left_in_part = parts[0].1;
+        Self {
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            house,
+            house_area,
+            parts,
+            part: 0,
+            left_in_part,
+            remaining: points,
         }
     }
-    // Terrain takes the remainder, so the count is exact whatever the rounding above.
-    while scene.len() < points {
-        sample_terrain(&mut rng, &mut scene);
+
+    /// Points not generated yet.
+    pub fn remaining(&self) -> usize {
+        self.remaining
     }
-    scene.into_cloud()
+
+    /// The next `max` points (fewer at the end; none once every point was generated).
+    pub fn next_block(&mut self, max: usize) -> PointCloud {
+        let count = max.min(self.remaining);
+        let mut scene = SceneBuilder::with_capacity(count);
+        while scene.len() < count {
+            while self.left_in_part == 0 {
+                self.part += 1;
+                self.left_in_part = self.parts[self.part].1;
+            }
+            let rng = &mut self.rng;
+            match self.parts[self.part].0 {
+                Part::House => {
+                    let facet = pick_by_area(&self.house, self.house_area, rng);
+                    facet.sample(rng, &mut scene);
+                }
+                Part::Tree(i) => sample_tree(TREES[i], rng, &mut scene),
+                Part::Terrain => sample_terrain(rng, &mut scene),
+            }
+            self.left_in_part -= 1;
+        }
+        self.remaining -= count;
+        scene.into_cloud()
+    }
 }
 
 /// Accumulates world points and their attributes.
@@ -386,6 +447,49 @@ mod tests {
         let first = sample_scene(20_000, 7);
         assert!(first == sample_scene(20_000, 7));
         assert!(first != sample_scene(20_000, 8));
+    }
+
+    #[test]
+    fn blocks_are_the_whole_scene_in_order() {
+        let whole = sample_scene(25_000, 5);
+        let mut scene = SampleScene::new(25_000, 5);
+        let mut blocks = Vec::new();
+        while scene.remaining() > 0 {
+            blocks.push(scene.next_block(4_096));
+        }
+        assert_eq!(blocks.len(), 7);
+        assert_eq!(scene.next_block(4_096).len(), 0);
+        let world: Vec<DVec3> = blocks
+            .iter()
+            .flat_map(|b| b.positions.iter().map(|p| b.origin + p.as_dvec3()))
+            .collect();
+        assert_eq!(world.len(), whole.len());
+        for (i, (a, p)) in world.iter().zip(&whole.positions).enumerate() {
+            let b = whole.origin + p.as_dvec3();
+            // Each cloud keeps f32 offsets from its own centre: the same point within 10 µm.
+            assert!(
+                (*a - b).abs().max_element() < 1e-5,
+                "point {i}: {a} against {b}"
+            );
+        }
+        let joined = |f: fn(&PointCloud) -> Vec<u32>| blocks.iter().flat_map(f).collect::<Vec<_>>();
+        assert_eq!(joined(|b| b.colors.clone()), whole.colors);
+        assert_eq!(
+            joined(|b| b.classification.iter().map(|&c| u32::from(c)).collect()),
+            whole
+                .classification
+                .iter()
+                .map(|&c| u32::from(c))
+                .collect::<Vec<_>>()
+        );
+        assert_eq!(
+            joined(|b| b.intensity.iter().map(|&c| u32::from(c)).collect()),
+            whole
+                .intensity
+                .iter()
+                .map(|&c| u32::from(c))
+                .collect::<Vec<_>>()
+        );
     }
 
     #[test]

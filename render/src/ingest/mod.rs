@@ -64,4 +64,4 @@ pub use source::DatasetSource;
 /// The first four bytes of every LAS and LAZ file.
 pub const LAS_SIGNATURE: &[u8; 4] = b"LASF";
 pub use read::{dataset_point_count, load_dataset, load_point_cloud};
-pub use write::{write_las, LasWriteOptions, WriteLasError};
+pub use write::{write_las, LasStreamWriter, LasWriteOptions, WriteLasError};

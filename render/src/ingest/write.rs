@@ -36,6 +36,10 @@ pub struct WriteLasError {
     pub error: las::Error,
 }
 
+/// Points encoded and written at a time: the writer's memory is about 150 B a point of a
+/// block (the `las` crate's points, then their encoding), whatever the cloud's size.
+const WRITE_BLOCK_POINTS: usize = 1 << 16;
+
 /// Writes `cloud` in world coordinates (`origin + position`) as LAS, or LAZ when the path ends
 /// in `.laz`. Colours become 16-bit by `v * 257` (so 255 maps to 65535); formats with GPS time,
 /// waveforms or NIR get zeros there.
@@ -44,56 +48,103 @@ pub fn write_las(
     cloud: &PointCloud,
     options: &LasWriteOptions,
 ) -> Result<(), WriteLasError> {
-    write_las_inner(path, cloud, options).map_err(|error| WriteLasError {
-        path: path.to_owned(),
-        error,
-    })
+    let mut writer = LasStreamWriter::create(path, cloud.origin, options)?;
+    writer.write(cloud)?;
+    writer.finish()
 }
 
-fn write_las_inner(path: &Path, cloud: &PointCloud, options: &LasWriteOptions) -> las::Result<()> {
-    let format = las::point::Format::new(options.point_format)?;
-    let mut builder = las::Builder::from(options.version);
-    builder.point_format = format;
-    // Offset on whole units near the cloud keeps the stored integers small.
-    let axis = |origin: f64| las::Transform {
-        scale: options.scale,
-        offset: origin.round(),
-    };
-    builder.transforms = las::Vector {
-        x: axis(cloud.origin.x),
-        y: axis(cloud.origin.y),
-        z: axis(cloud.origin.z),
-    };
-    builder.generating_software = "pointfarm".to_owned();
-    let mut writer = las::Writer::from_path(path, builder.into_header()?)?;
+/// A LAS or LAZ file written cloud by cloud, holding one block of points at a time; the header's
+/// counts and bounds are those of everything written, set by [`LasStreamWriter::finish`].
+pub struct LasStreamWriter {
+    path: PathBuf,
+    format: las::point::Format,
+    writer: las::Writer<std::io::BufWriter<std::fs::File>>,
+}
 
-    let points = (0..cloud.len()).map(|i| {
-        let world = cloud.origin + cloud.positions[i].as_dvec3();
-        let [r, g, b, _alpha] = cloud.colors[i].to_le_bytes();
-        let widen = |channel: u8| u16::from(channel) * 257;
-        Ok(Point {
-            x: world.x,
-            y: world.y,
-            z: world.z,
-            intensity: cloud.intensity[i],
-            return_number: cloud.return_number[i],
-            number_of_returns: cloud.return_number[i],
-            classification: Classification::new(cloud.classification[i])?,
-            gps_time: format.has_gps_time.then_some(0.0),
-            color: format
-                .has_color
-                .then(|| Color::new(widen(r), widen(g), widen(b))),
-            waveform: format.has_waveform.then(Default::default),
-            nir: format.has_nir.then_some(0),
-            ..Point::default()
+impl LasStreamWriter {
+    /// Creates `path` (LAZ when it ends in `.laz`), its coordinates offset by `near` rounded to
+    /// whole units, so the stored integers stay small for points around it.
+    pub fn create(
+        path: &Path,
+        near: glam::DVec3,
+        options: &LasWriteOptions,
+    ) -> Result<Self, WriteLasError> {
+        let error = |error| WriteLasError {
+            path: path.to_owned(),
+            error,
+        };
+        let format = las::point::Format::new(options.point_format).map_err(error)?;
+        let mut builder = las::Builder::from(options.version);
+        builder.point_format = format;
+        let axis = |origin: f64| las::Transform {
+            scale: options.scale,
+            offset: origin.round(),
+        };
+        builder.transforms = las::Vector {
+            x: axis(near.x),
+            y: axis(near.y),
+            z: axis(near.z),
+        };
+        builder.generating_software = "pointfarm".to_owned();
+        let header = builder.into_header().map_err(error)?;
+        let writer = las::Writer::from_path(path, header).map_err(error)?;
+        Ok(Self {
+            path: path.to_owned(),
+            format,
+            writer,
         })
-    });
-    let points = points.collect::<las::Result<Vec<_>>>()?;
-    let data = PointDataBuilder::new()
-        .for_header(writer.header())
-        .build_from_points(points)?;
-    writer.write_points(&data)?;
-    writer.close()
+    }
+
+    /// Appends the points of `cloud`, in world coordinates, a block at a time.
+    pub fn write(&mut self, cloud: &PointCloud) -> Result<(), WriteLasError> {
+        let format = self.format;
+        for first in (0..cloud.len()).step_by(WRITE_BLOCK_POINTS) {
+            let block = first..(first + WRITE_BLOCK_POINTS).min(cloud.len());
+            let points = block.map(|i| {
+                let world = cloud.origin + cloud.positions[i].as_dvec3();
+                let [r, g, b, _alpha] = cloud.colors[i].to_le_bytes();
+                let widen = |channel: u8| u16::from(channel) * 257;
+                Ok(Point {
+                    x: world.x,
+                    y: world.y,
+                    z: world.z,
+                    intensity: cloud.intensity[i],
+                    return_number: cloud.return_number[i],
+                    number_of_returns: cloud.return_number[i],
+                    classification: Classification::new(cloud.classification[i])?,
+                    gps_time: format.has_gps_time.then_some(0.0),
+                    color: format
+                        .has_color
+                        .then(|| Color::new(widen(r), widen(g), widen(b))),
+                    waveform: format.has_waveform.then(Default::default),
+                    nir: format.has_nir.then_some(0),
+                    ..Point::default()
+                })
+            });
+            let written = points
+                .collect::<las::Result<Vec<_>>>()
+                .and_then(|points| {
+                    PointDataBuilder::new()
+                        .for_header(self.writer.header())
+                        .build_from_points(points)
+                })
+                .and_then(|data| self.writer.write_points(&data));
+            written.map_err(|error| self.error(error))?;
+        }
+        Ok(())
+    }
+
+    /// Writes the header's final counts and bounds and closes the file.
+    pub fn finish(mut self) -> Result<(), WriteLasError> {
+        self.writer.close().map_err(|error| self.error(error))
+    }
+
+    fn error(&self, error: las::Error) -> WriteLasError {
+        WriteLasError {
+            path: self.path.clone(),
+            error,
+        }
+    }
 }
 
 #[cfg(test)]
