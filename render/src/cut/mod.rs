@@ -291,46 +291,54 @@ impl CutRenderer {
         let host = &self.host;
         let gpu_cache = &mut self.gpu_cache;
         std::thread::scope(|scope| -> Result<(), CutError> {
-            // Groups are read on a thread of their own, one ahead of the group being prepared
-            // and uploaded, so the disk and the cores work at once
-            // (docs/perf/cold-first-frame.md).
-            let (sender, receiver) = std::sync::mpsc::sync_channel(1);
+            // Three stages run at once, a group apart: one thread reads groups, another
+            // prepares them (on all cores), and this one uploads, so the disk, the cores and
+            // the transfers overlap (docs/perf/cold-first-frame.md,
+            // docs/perf/prepare-pipeline.md).
+            let (read_sender, read_receiver) = std::sync::mpsc::sync_channel(1);
+            let (prepared_sender, prepared_receiver) = std::sync::mpsc::sync_channel(1);
             let (missing, hierarchy) = (&missing, &hierarchy);
             scope.spawn(move || {
                 for group in missing.chunks(LOAD_GROUP_NODES) {
                     let loaded = load_group(host, dataset, hierarchy, group);
                     let failed = loaded.is_err();
-                    // A closed channel: the frame stopped on an error of its own.
-                    if sender.send(loaded).is_err() || failed {
+                    // A closed channel: a later stage stopped on an error.
+                    if read_sender.send(loaded).is_err() || failed {
+                        break;
+                    }
+                }
+            });
+            scope.spawn(move || {
+                for loaded in read_receiver {
+                    let prepared = loaded.map(|group| {
+                        let started = Instant::now();
+                        let data: Vec<ChunkData> = group
+                            .nodes
+                            .par_iter()
+                            .map(|node| prepare(dataset, node, coloring, filter))
+                            .collect();
+                        (group, data, ms_since(started))
+                    });
+                    let failed = prepared.is_err();
+                    if prepared_sender.send(prepared).is_err() || failed {
                         break;
                     }
                 }
             });
             loop {
                 let started = Instant::now();
-                let Ok(loaded) = receiver.recv() else {
+                let Ok(prepared) = prepared_receiver.recv() else {
                     return Ok(());
                 };
                 report.load_ms += ms_since(started);
-                let LoadedGroup {
-                    nodes,
-                    host_hits,
-                    nodes_read,
-                    bytes_read,
-                } = loaded?;
-                report.counts.host_hits += host_hits;
-                report.counts.nodes_read += nodes_read;
-                report.counts.bytes_read += bytes_read;
+                let (loaded, prepared, prepare_ms) = prepared?;
+                report.counts.host_hits += loaded.host_hits;
+                report.counts.nodes_read += loaded.nodes_read;
+                report.counts.bytes_read += loaded.bytes_read;
+                report.prepare_ms += prepare_ms;
 
                 let started = Instant::now();
-                let prepared: Vec<ChunkData> = nodes
-                    .par_iter()
-                    .map(|node| prepare(dataset, node, coloring, filter))
-                    .collect();
-                report.prepare_ms += ms_since(started);
-
-                let started = Instant::now();
-                for (node, data) in nodes.iter().zip(&prepared) {
+                for (node, data) in loaded.nodes.iter().zip(&prepared) {
                     report.counts.gpu_evicted += gpu_cache
                         .insert(renderer.gpu(), node.key, data, &keep)
                         .map_err(CutError::Cache)?;
@@ -356,7 +364,8 @@ impl CutRenderer {
         // What the filter kept of the cut's points.
         report.counts.points_rendered = cloud.len() as u64;
         let mut frame = renderer.render(cloud, settings)?;
-        let load_ms = report.wait_ms + report.load_ms + report.prepare_ms;
+        // Preparing overlapped the waits and the uploads: the waits are what it did not hide.
+        let load_ms = report.wait_ms + report.load_ms;
         let mut stages = vec![
             StageTiming {
                 stage: Stage::Select,
