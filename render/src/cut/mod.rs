@@ -44,11 +44,11 @@ use std::time::Instant;
 use rayon::prelude::*;
 use thiserror::Error;
 
-use crate::color::Coloring;
+use crate::color::{ColorMode, Coloring};
 use crate::filter::PointFilter;
 use crate::lod::{read_nodes, LodError, LodHierarchy, NodeKey, NodePoints};
 use crate::raster::gpu_data::GpuBatch;
-use crate::raster::morton::morton_order;
+use crate::raster::morton::morton_order_of_cells;
 use crate::raster::points::ChunkData;
 use crate::raster::{Clock, Frame, FrameSettings, RenderError, Renderer, Stage, StageTiming};
 
@@ -509,25 +509,33 @@ fn load_group(
 }
 
 /// A node's points as the renderer takes them: relative to the origin, coloured, those that
-/// pass `filter` in Morton order, batched and quantised, with their weight bits.
+/// pass `filter` in Morton order over the node's own grid, batched and quantised, with their
+/// weight bits. Each attribute is computed once, straight into that order.
 fn prepare(
     dataset: &LodDataset,
     node: &NodePoints,
     coloring: Coloring,
     filter: &PointFilter,
 ) -> ChunkData {
-    let mut positions = node.positions_relative_to(dataset.origin);
-    let heights: Vec<f32> = positions.iter().map(|p| p.z).collect();
-    let mut colors = dataset.coloring.colors(node, &heights, coloring);
-    let mut weights = weight_bits(node);
-    if let Some(kept) = filter.node_points(node) {
-        positions = kept.iter().map(|&i| positions[i as usize]).collect();
-        colors = kept.iter().map(|&i| colors[i as usize]).collect();
-        weights = kept.iter().map(|&i| weights[i as usize]).collect();
-    }
-    let order = morton_order(&positions);
-    let sorted: Vec<glam::Vec3> = order.iter().map(|&i| positions[i as usize]).collect();
-    let mut data = ChunkData::new(&sorted, order.iter().map(|&i| colors[i as usize]));
+    let kept = filter.node_points(node);
+    let order = morton_order_of_cells(
+        &node.quantised,
+        crate::lod::codec::POSITION_BITS,
+        kept.as_deref(),
+    );
+    let positions = node.positions_at(dataset.origin, order.iter().copied());
+    // Only elevation colours by height: the other modes skip the pass.
+    let heights: Vec<f32> = match coloring.mode {
+        ColorMode::Elevation => node
+            .positions_relative_to(dataset.origin)
+            .iter()
+            .map(|p| p.z)
+            .collect(),
+        _ => Vec::new(),
+    };
+    let colors = dataset.coloring.colors(node, &heights, coloring);
+    let weights = weight_bits(node);
+    let mut data = ChunkData::new(&positions, order.iter().map(|&i| colors[i as usize]));
     data.weights = order.iter().map(|&i| weights[i as usize]).collect();
     data.weights
         .resize(data.weights.len().next_multiple_of(2), 0);

@@ -130,10 +130,18 @@ impl NodePoints {
 
     /// Positions relative to `origin`, computed in f64 and only then rounded to f32.
     pub fn positions_relative_to(&self, origin: DVec3) -> Vec<Vec3> {
+        self.positions_at(origin, 0..self.len() as u32)
+    }
+
+    /// The positions of the points at `indices`, in that order, relative to `origin` (computed
+    /// in f64 and only then rounded to f32).
+    pub fn positions_at(&self, origin: DVec3, indices: impl Iterator<Item = u32>) -> Vec<Vec3> {
         let corner = self.cube_min - origin;
-        self.quantised
-            .iter()
-            .map(|q| (corner + (DVec3::from(q.map(f64::from)) + 0.5) * self.step).as_vec3())
+        indices
+            .map(|i| {
+                let q = self.quantised[i as usize];
+                (corner + (DVec3::from(q.map(f64::from)) + 0.5) * self.step).as_vec3()
+            })
             .collect()
     }
 }

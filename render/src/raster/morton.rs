@@ -31,6 +31,40 @@ pub(crate) fn morton_order(positions: &[Vec3]) -> Vec<u32> {
         .collect()
 }
 
+/// `indices` (every point where `None`) in Z-order over the grid of their `bits`-bit integer
+/// `cells` (a level-of-detail node's quantised coordinates): no bounding box or float
+/// arithmetic, the keys made as [`morton_order`] makes them.
+pub(crate) fn morton_order_of_cells(
+    cells: &[[u32; 3]],
+    bits: u32,
+    indices: Option<&[u32]>,
+) -> Vec<u32> {
+    let count = indices.map_or(cells.len(), <[u32]>::len);
+    let index_bits = (u64::BITS - (count.max(2) as u64 - 1).leading_zeros()).max(1);
+    let axis_bits = ((u64::BITS - index_bits) / 3).min(21).min(bits);
+    let shift = bits - axis_bits;
+    let key = |j: usize, i: u32| {
+        let [x, y, z] = cells[i as usize].map(|c| c >> shift);
+        morton3(x, y, z) << index_bits | j as u64
+    };
+    let mut keys: Vec<u64> = match indices {
+        Some(indices) => indices
+            .iter()
+            .enumerate()
+            .map(|(j, &i)| key(j, i))
+            .collect(),
+        None => (0..count as u32).map(|i| key(i as usize, i)).collect(),
+    };
+    keys.sort_unstable();
+    let index_mask = (1u64 << index_bits) - 1;
+    keys.into_iter()
+        .map(|key| {
+            let j = (key & index_mask) as usize;
+            indices.map_or(j as u32, |indices| indices[j])
+        })
+        .collect()
+}
+
 /// Interleaves the low 21 bits of x, y and z.
 pub(crate) fn morton3(x: u32, y: u32, z: u32) -> u64 {
     fn spread(v: u32) -> u64 {
@@ -59,6 +93,37 @@ mod tests {
     }
 
     /// Clouds of every size keep a permutation, and points in one cell keep their order.
+    #[test]
+    fn cells_are_ordered_by_their_morton_codes_keeping_only_the_indices() {
+        let cells: Vec<[u32; 3]> = (0..500u32)
+            .map(|i| [i * 7919 % 1024, i * 104_729 % 1024, i * 1_299_709 % 1024])
+            .collect();
+        let by_code = |indices: Vec<u32>| {
+            let mut sorted = indices;
+            sorted.sort_by_key(|&i| {
+                let [x, y, z] = cells[i as usize];
+                (morton3(x, y, z), i)
+            });
+            sorted
+        };
+        // 10-bit cells: every bit counts (500 points leave 18 bits an axis).
+        assert_eq!(
+            morton_order_of_cells(&cells, 10, None),
+            by_code((0..500).collect())
+        );
+        let kept: Vec<u32> = (0..500).filter(|i| i % 3 != 0).collect();
+        assert_eq!(
+            morton_order_of_cells(&cells, 10, Some(&kept)),
+            by_code(kept.clone())
+        );
+        // 30-bit cells as a node stores them: the top 18 bits order them, the same order.
+        let wide: Vec<[u32; 3]> = cells
+            .iter()
+            .map(|c| c.map(|v| v << 20 | 0x5_5555))
+            .collect();
+        assert_eq!(morton_order_of_cells(&wide, 30, Some(&kept)), by_code(kept));
+    }
+
     #[test]
     fn morton_order_is_a_permutation_at_every_size() {
         for n in [0usize, 1, 2, 3, 1000, 70_000] {
