@@ -472,24 +472,16 @@ mod tests {
                 "point {i}: {a} against {b}"
             );
         }
-        let joined = |f: fn(&PointCloud) -> Vec<u32>| blocks.iter().flat_map(f).collect::<Vec<_>>();
-        assert_eq!(joined(|b| b.colors.clone()), whole.colors);
-        assert_eq!(
-            joined(|b| b.classification.iter().map(|&c| u32::from(c)).collect()),
-            whole
-                .classification
+        let attributes = |clouds: &[&PointCloud]| -> Vec<(u32, u16, u8)> {
+            clouds
                 .iter()
-                .map(|&c| u32::from(c))
-                .collect::<Vec<_>>()
-        );
-        assert_eq!(
-            joined(|b| b.intensity.iter().map(|&c| u32::from(c)).collect()),
-            whole
-                .intensity
-                .iter()
-                .map(|&c| u32::from(c))
-                .collect::<Vec<_>>()
-        );
+                .flat_map(|c| {
+                    (0..c.len()).map(|i| (c.colors[i], c.intensity[i], c.classification[i]))
+                })
+                .collect()
+        };
+        let blocks: Vec<&PointCloud> = blocks.iter().collect();
+        assert_eq!(attributes(&blocks), attributes(&[&whole]));
     }
 
     #[test]

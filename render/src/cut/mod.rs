@@ -534,9 +534,8 @@ fn prepare(
         _ => Vec::new(),
     };
     let colors = dataset.coloring.colors(node, &heights, coloring);
-    let weights = weight_bits(node);
     let mut data = ChunkData::new(&positions, order.iter().map(|&i| colors[i as usize]));
-    data.weights = order.iter().map(|&i| weights[i as usize]).collect();
+    data.weights = weight_bits(node, &order);
     data.weights
         .resize(data.weights.len().next_multiple_of(2), 0);
     data
@@ -545,13 +544,14 @@ fn prepare(
 /// Each point's 16 weight bits on the GPU: its weight's code (1 where the node has none) and,
 /// above it, its child octant in the node, from the top bit of its 30-bit coordinates (a
 /// store's nodes are quantised in their own cube, a COPC node's in its cube widened by half
-/// its side on every face: in both the top bit is set from the node's centre on).
-pub(crate) fn weight_bits(node: &NodePoints) -> Vec<u16> {
+/// its side on every face: in both the top bit is set from the node's centre on); those of the
+/// points at `indices`, in that order.
+fn weight_bits(node: &NodePoints, indices: &[u32]) -> Vec<u16> {
     let top = crate::lod::codec::POSITION_BITS - 1;
-    node.quantised
+    indices
         .iter()
-        .enumerate()
-        .map(|(i, q)| {
+        .map(|&i| {
+            let (i, q) = (i as usize, node.quantised[i as usize]);
             let code = node.weights.get(i).copied().unwrap_or(1);
             let octant = (q[0] >> top) & 1 | ((q[1] >> top) & 1) << 1 | ((q[2] >> top) & 1) << 2;
             code | (octant as u16) << crate::lod::weights::WEIGHT_CODE_BITS

@@ -10,59 +10,73 @@ pub(crate) fn morton_order(positions: &[Vec3]) -> Vec<u32> {
         |(lo, hi), p| (lo.min(*p), hi.max(*p)),
     );
     let scale = (max - min).max_element().max(f32::MIN_POSITIVE);
-    // One u64 a point, sorted as plain integers (faster than pairs): the point's index in
-    // the low bits, its Morton code above with as many bits an axis as are left (at most
-    // 21; at least 10, for 2^32 points), far finer than the points' spacing.
-    let index_bits = (u64::BITS - (positions.len().max(2) as u64 - 1).leading_zeros()).max(1);
-    let axis_bits = ((u64::BITS - index_bits) / 3).min(21);
-    let cells = ((1u32 << axis_bits) - 1) as f32;
-    let mut keys: Vec<u64> = positions
-        .iter()
-        .enumerate()
-        .map(|(i, p)| {
-            let q = ((*p - min) / scale * cells).clamp(Vec3::ZERO, Vec3::splat(cells));
-            morton3(q.x as u32, q.y as u32, q.z as u32) << index_bits | i as u64
-        })
-        .collect();
-    keys.sort_unstable();
-    let index_mask = (1u64 << index_bits) - 1;
-    keys.into_iter()
-        .map(|key| (key & index_mask) as u32)
-        .collect()
+    let keys = SortKeys::for_count(positions.len(), 21);
+    let cells = ((1u32 << keys.axis_bits) - 1) as f32;
+    keys.order(positions.iter().map(|p| {
+        let q = ((*p - min) / scale * cells).clamp(Vec3::ZERO, Vec3::splat(cells));
+        morton3(q.x as u32, q.y as u32, q.z as u32)
+    }))
+    .map(|j| j as u32)
+    .collect()
 }
 
 /// `indices` (every point where `None`) in Z-order over the grid of their `bits`-bit integer
 /// `cells` (a level-of-detail node's quantised coordinates): no bounding box or float
-/// arithmetic, the keys made as [`morton_order`] makes them.
+/// arithmetic.
 pub(crate) fn morton_order_of_cells(
     cells: &[[u32; 3]],
     bits: u32,
     indices: Option<&[u32]>,
 ) -> Vec<u32> {
     let count = indices.map_or(cells.len(), <[u32]>::len);
-    let index_bits = (u64::BITS - (count.max(2) as u64 - 1).leading_zeros()).max(1);
-    let axis_bits = ((u64::BITS - index_bits) / 3).min(21).min(bits);
-    let shift = bits - axis_bits;
-    let key = |j: usize, i: u32| {
+    let keys = SortKeys::for_count(count, bits);
+    let shift = bits - keys.axis_bits;
+    let code = |i: u32| {
         let [x, y, z] = cells[i as usize].map(|c| c >> shift);
-        morton3(x, y, z) << index_bits | j as u64
+        morton3(x, y, z)
     };
-    let mut keys: Vec<u64> = match indices {
-        Some(indices) => indices
-            .iter()
-            .enumerate()
-            .map(|(j, &i)| key(j, i))
+    match indices {
+        Some(indices) => keys
+            .order(indices.iter().map(|&i| code(i)))
+            .map(|j| indices[j])
             .collect(),
-        None => (0..count as u32).map(|i| key(i as usize, i)).collect(),
-    };
-    keys.sort_unstable();
-    let index_mask = (1u64 << index_bits) - 1;
-    keys.into_iter()
-        .map(|key| {
-            let j = (key & index_mask) as usize;
-            indices.map_or(j as u32, |indices| indices[j])
-        })
-        .collect()
+        None => keys
+            .order((0..count as u32).map(code))
+            .map(|j| j as u32)
+            .collect(),
+    }
+}
+
+/// One u64 a point, sorted as plain integers (faster than pairs): the point's position in the
+/// list in the low bits, its Morton code above with as many bits an axis as are left (at most
+/// 21, at most the coordinates' own; at least 10, for 2^32 points), far finer than the points'
+/// spacing.
+struct SortKeys {
+    index_bits: u32,
+    axis_bits: u32,
+}
+
+impl SortKeys {
+    fn for_count(count: usize, coordinate_bits: u32) -> Self {
+        let index_bits = (u64::BITS - (count.max(2) as u64 - 1).leading_zeros()).max(1);
+        let axis_bits = ((u64::BITS - index_bits) / 3).min(21).min(coordinate_bits);
+        Self {
+            index_bits,
+            axis_bits,
+        }
+    }
+
+    /// The positions in the list of `codes` (each of `axis_bits` an axis), in code order.
+    fn order(&self, codes: impl Iterator<Item = u64>) -> impl Iterator<Item = usize> {
+        let index_bits = self.index_bits;
+        let mut keys: Vec<u64> = codes
+            .enumerate()
+            .map(|(j, code)| code << index_bits | j as u64)
+            .collect();
+        keys.sort_unstable();
+        let index_mask = (1u64 << index_bits) - 1;
+        keys.into_iter().map(move |key| (key & index_mask) as usize)
+    }
 }
 
 /// Interleaves the low 21 bits of x, y and z.
@@ -92,7 +106,6 @@ mod tests {
         assert_eq!(morton3(0x1f_ffff, 0x1f_ffff, 0x1f_ffff), (1u64 << 63) - 1);
     }
 
-    /// Clouds of every size keep a permutation, and points in one cell keep their order.
     #[test]
     fn cells_are_ordered_by_their_morton_codes_keeping_only_the_indices() {
         let cells: Vec<[u32; 3]> = (0..500u32)
@@ -124,6 +137,7 @@ mod tests {
         assert_eq!(morton_order_of_cells(&wide, 30, Some(&kept)), by_code(kept));
     }
 
+    /// Clouds of every size keep a permutation, and points in one cell keep their order.
     #[test]
     fn morton_order_is_a_permutation_at_every_size() {
         for n in [0usize, 1, 2, 3, 1000, 70_000] {
