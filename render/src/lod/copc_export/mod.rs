@@ -221,10 +221,15 @@ pub fn write_copc<W: Write + Seek>(
     let end = out.stream_position().map_err(io)?;
 
     let halfsize = cube.side / 2.0;
+    // COPC has one spacing, halved at each level, where a store samples each node on a grid
+    // of its own (halved where a node would be too full): the coarsest grid's spacing bounds
+    // every node's, so a reader that refines by it never stops at a node too sparse.
     let grid = hierarchy
-        .root()
-        .map(|r| r.sample_grid)
+        .nodes()
+        .iter()
+        .map(|n| n.sample_grid)
         .filter(|&g| g > 0)
+        .min()
         .map_or(DEFAULT_GRID, f64::from);
     let facts = FileFacts {
         has_rgb,
