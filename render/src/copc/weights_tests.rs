@@ -173,7 +173,7 @@ fn high_quality_on_a_cut_of_an_exported_file_keeps_the_fidelity_rule() {
 /// this terrain's root keeps a grid of 128 and the nodes below grids of 8: the export
 /// declares the coarsest grid's spacing, so no node is sparser than the file says and a
 /// reader's cut refines where it must (declaring the root's, a cut at 0.5 px drew 2% of the
-/// points and kept a quarter of the covered pixels within 8/255 of full detail).
+/// points and kept 27% of the covered pixels within 8/255 of full detail).
 #[test]
 fn an_export_declares_a_spacing_no_node_is_sparser_than() {
     let dir = tempfile::tempdir().expect("tempdir");
