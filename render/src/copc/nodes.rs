@@ -19,7 +19,7 @@ use laz::record::{LayeredPointRecordDecompressor, RecordDecompressor};
 use super::error::CopcError;
 use super::header::CopcHeader;
 use crate::ingest::{contain_panics, layer_count};
-use crate::lod::codec::POSITION_BITS;
+use crate::lod::codec::{Detail, POSITION_BITS};
 use crate::lod::weights::encode_weight;
 use crate::lod::{read_concurrently, LodError, NodeInfo, NodePoints, NodeRecords, RootCube};
 
@@ -302,6 +302,7 @@ impl CopcDecoder {
             return_number: points.return_number().collect(),
             // A foreign COPC file says nothing of what its points stand for: each counts once.
             weights,
+            detail: Detail::Full,
         })
     }
 }

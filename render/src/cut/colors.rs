@@ -63,6 +63,16 @@ impl DatasetColoring {
     }
 
     /// The colours of `node`'s points (RGBA8), their heights relative to the origin given.
+    /// Whether `mode` colours a node from its RGB or its heights alone: what a node read
+    /// coarse keeps (`codec::Detail`).
+    pub fn needs_only_coarse(&self, mode: ColorMode) -> bool {
+        match mode {
+            ColorMode::Rgb => self.rgb_is_8_bit.is_some(),
+            ColorMode::Elevation => true,
+            _ => false,
+        }
+    }
+
     pub fn colors(&self, node: &NodePoints, heights: &[f32], coloring: Coloring) -> Vec<u32> {
         let n = node.len();
         let points = PaletteAttributes {

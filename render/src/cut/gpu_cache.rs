@@ -19,6 +19,7 @@ use std::collections::{BTreeMap, HashMap, HashSet};
 use crate::color::Coloring;
 use crate::filter::PointFilter;
 use crate::gpu::GpuContext;
+use crate::lod::codec::Detail;
 use crate::lod::NodeKey;
 use crate::raster::gpu_data::{GpuBatch, QuantisedPosition, COLOR_BYTES};
 use crate::raster::points::{ChunkData, GpuPointCloud, PointChunk, SUB_BATCH_POINTS, WEIGHT_BYTES};
@@ -63,6 +64,9 @@ struct ResidentNode {
     sub_batches: Vec<GpuBatch>,
     points: u32,
     last_used: u64,
+    /// The positions it was prepared from: a node drawn coarse is drawn so wherever it was
+    /// read from.
+    detail: Detail,
 }
 
 pub struct GpuNodeCache {
@@ -128,8 +132,9 @@ impl GpuNodeCache {
         self.cloud.gpu_bytes()
     }
 
-    pub fn contains(&self, key: NodeKey) -> bool {
-        self.resident.contains_key(&key)
+    /// Whether it holds the node prepared at `detail`.
+    pub fn contains(&self, key: NodeKey, detail: Detail) -> bool {
+        self.resident.get(&key).is_some_and(|n| n.detail == detail)
     }
 
     /// Empties the cache when its nodes were not prepared with these colours and this filter.
@@ -144,11 +149,17 @@ impl GpuNodeCache {
         }
     }
 
-    /// Marks a resident node as used by this frame.
-    pub fn touch(&mut self, key: NodeKey) -> bool {
+    /// Marks a resident node as used by this frame, if it was prepared at `detail`; else drops
+    /// it.
+    pub fn touch(&mut self, key: NodeKey, detail: Detail) -> bool {
         let Some(node) = self.resident.get_mut(&key) else {
             return false;
         };
+        if node.detail != detail {
+            // Prepared at the other detail: it is prepared again.
+            self.evict(key);
+            return false;
+        }
         self.by_use.remove(&node.last_used);
         self.tick += 1;
         node.last_used = self.tick;
@@ -163,6 +174,7 @@ impl GpuNodeCache {
         &mut self,
         gpu: &GpuContext,
         key: NodeKey,
+        detail: Detail,
         data: &ChunkData,
         keep: &HashSet<NodeKey>,
     ) -> Result<u64, String> {
@@ -253,6 +265,7 @@ impl GpuNodeCache {
                 sub_batches,
                 points: data.positions.len() as u32,
                 last_used: self.tick,
+                detail,
             },
         );
         self.unsubmitted_bytes += (data.positions.len() * position_bytes

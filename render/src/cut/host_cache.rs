@@ -8,12 +8,15 @@
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
+use crate::lod::codec::Detail;
 use crate::lod::{NodeKey, NodePoints};
 
 /// The bytes a decoded node holds on the host.
 pub fn node_heap_bytes(node: &NodePoints) -> u64 {
-    let per_point = 12 + if node.rgb.is_some() { 6 } else { 0 } + 2 + 1 + 1;
-    (node.len() * per_point + node.weights.len() * 2) as u64 + 128
+    let per_point = 12 + if node.rgb.is_some() { 6 } else { 0 };
+    let attributes =
+        2 * node.intensity.len() + node.classification.len() + node.return_number.len();
+    (node.len() * per_point + attributes + node.weights.len() * 2) as u64 + 128
 }
 
 pub struct HostNodeCache {
@@ -55,13 +58,19 @@ impl HostNodeCache {
         self.nodes.is_empty()
     }
 
-    pub fn contains(&self, key: NodeKey) -> bool {
-        self.nodes.contains_key(&key)
+    /// Whether it holds the node read at `detail` at least.
+    pub fn contains(&self, key: NodeKey, detail: Detail) -> bool {
+        self.nodes
+            .get(&key)
+            .is_some_and(|(n, _)| n.detail >= detail)
     }
 
-    /// The node, marked as just used.
-    pub fn get(&mut self, key: NodeKey) -> Option<Arc<NodePoints>> {
+    /// The node read at `detail` at least, marked as just used.
+    pub fn get(&mut self, key: NodeKey, detail: Detail) -> Option<Arc<NodePoints>> {
         let (node, used) = self.nodes.get_mut(&key)?;
+        if node.detail < detail {
+            return None;
+        }
         self.by_use.remove(used);
         self.tick += 1;
         *used = self.tick;
@@ -117,6 +126,7 @@ mod tests {
             classification: vec![0; points],
             return_number: vec![0; points],
             weights: vec![0; points],
+            detail: Detail::Full,
         })
     }
 
@@ -129,10 +139,12 @@ mod tests {
         }
         assert_eq!(cache.len(), 3);
         // Node 0 used again: node 1 is now the oldest.
-        assert!(cache.get(NodeKey::new(3, UVec3::new(0, 0, 0))).is_some());
+        assert!(cache
+            .get(NodeKey::new(3, UVec3::new(0, 0, 0)), Detail::Full)
+            .is_some());
         cache.insert(node(3, 3, 100));
-        assert!(cache.contains(NodeKey::new(3, UVec3::new(0, 0, 0))));
-        assert!(!cache.contains(NodeKey::new(3, UVec3::new(1, 0, 0))));
+        assert!(cache.contains(NodeKey::new(3, UVec3::new(0, 0, 0)), Detail::Full));
+        assert!(!cache.contains(NodeKey::new(3, UVec3::new(1, 0, 0)), Detail::Coarse));
         assert!(cache.bytes() <= cache.capacity_bytes());
         for x in 4..40 {
             cache.insert(node(3, x, 100));

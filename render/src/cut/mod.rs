@@ -46,7 +46,8 @@ use thiserror::Error;
 
 use crate::color::{ColorMode, Coloring};
 use crate::filter::PointFilter;
-use crate::lod::{read_nodes, LodError, LodHierarchy, NodeKey, NodePoints};
+use crate::lod::codec::{coarse_len, Detail, COARSE_MAX_PIXELS};
+use crate::lod::{read_nodes_at, LodError, LodHierarchy, NodeKey, NodePoints, NodeRecords};
 use crate::raster::gpu_data::GpuBatch;
 use crate::raster::morton::morton_order_of_cells;
 use crate::raster::points::ChunkData;
@@ -117,6 +118,9 @@ pub struct CutRenderer {
     read_ahead: Option<ReadAhead>,
     /// Bytes read by a read-ahead, reported by the next frame.
     read_ahead_bytes: u64,
+    /// How the last frame was coloured: a read-ahead reads the next frame's nodes at the
+    /// detail it will draw them at.
+    last_coloring: Option<Coloring>,
 }
 
 impl CutRenderer {
@@ -148,6 +152,7 @@ impl CutRenderer {
             ),
             read_ahead: None,
             read_ahead_bytes: 0,
+            last_coloring: None,
         }
     }
 
@@ -281,10 +286,12 @@ impl CutRenderer {
         self.gpu_cache.prepare_for(coloring, *filter);
         let keys: Vec<NodeKey> = cut.nodes.iter().map(|n| n.key).collect();
         let keep: HashSet<NodeKey> = keys.iter().copied().collect();
+        let details = FrameDetails::new(&self.options, dataset, coloring, filter);
+        self.last_coloring = Some(coloring);
         let missing: Vec<&CutNode> = cut
             .nodes
             .iter()
-            .filter(|n| !self.gpu_cache.touch(n.key))
+            .filter(|n| !self.gpu_cache.touch(n.key, details.of(n)))
             .collect();
         report.counts.gpu_hits = (cut.nodes.len() - missing.len()) as u64;
         let mut upload_ms = 0.0;
@@ -297,10 +304,10 @@ impl CutRenderer {
             // docs/perf/prepare-pipeline.md).
             let (read_sender, read_receiver) = std::sync::mpsc::sync_channel(1);
             let (prepared_sender, prepared_receiver) = std::sync::mpsc::sync_channel(1);
-            let (missing, hierarchy) = (&missing, &hierarchy);
+            let (missing, hierarchy, details) = (&missing, &hierarchy, &details);
             scope.spawn(move || {
                 for group in missing.chunks(LOAD_GROUP_NODES) {
-                    let loaded = load_group(host, dataset, hierarchy, group);
+                    let loaded = load_group(host, dataset, hierarchy, details, group);
                     let failed = loaded.is_err();
                     // A closed channel: a later stage stopped on an error.
                     if read_sender.send(loaded).is_err() || failed {
@@ -315,7 +322,8 @@ impl CutRenderer {
                         let data: Vec<ChunkData> = group
                             .nodes
                             .par_iter()
-                            .map(|node| prepare(dataset, node, coloring, filter))
+                            .zip(&group.details)
+                            .map(|(node, &detail)| prepare(dataset, node, detail, coloring, filter))
                             .collect();
                         (group, data, ms_since(started))
                     });
@@ -338,9 +346,11 @@ impl CutRenderer {
                 report.prepare_ms += prepare_ms;
 
                 let started = Instant::now();
-                for (node, data) in loaded.nodes.iter().zip(&prepared) {
+                for ((node, &detail), data) in
+                    loaded.nodes.iter().zip(&loaded.details).zip(&prepared)
+                {
                     report.counts.gpu_evicted += gpu_cache
-                        .insert(renderer.gpu(), node.key, data, &keep)
+                        .insert(renderer.gpu(), node.key, detail, data, &keep)
                         .map_err(CutError::Cache)?;
                     report.counts.gpu_uploaded += 1;
                 }
@@ -413,8 +423,14 @@ impl CutRenderer {
         // frame being finished keeps the other half.
         let mut room = host.capacity_bytes() / 2;
         let mut wanted = Vec::new();
+        // The next frame of a job colours as this one did.
+        let details = match self.last_coloring {
+            Some(coloring) => FrameDetails::new(&self.options, dataset, coloring, filter),
+            None => FrameDetails::FULL,
+        };
         for node in &cut.nodes {
-            if self.gpu_cache.contains(node.key) || host.contains(node.key) {
+            let detail = details.of(node);
+            if self.gpu_cache.contains(node.key, detail) || host.contains(node.key, detail) {
                 continue;
             }
             let bytes = 128 + u64::from(node.points) * 24;
@@ -435,12 +451,10 @@ impl CutRenderer {
             .spawn(move || {
                 let mut bytes = 0;
                 for group in wanted.chunks(LOAD_GROUP_NODES) {
-                    let keys: Vec<NodeKey> = group.iter().map(|n| n.key).collect();
-                    let read = read_nodes(records.as_ref(), &hierarchy, &keys)?;
-                    bytes += group
-                        .iter()
-                        .map(|n| u64::from(hierarchy.node_byte_len(n.key)))
-                        .sum::<u64>();
+                    let group: Vec<&CutNode> = group.iter().collect();
+                    let (read, read_bytes) =
+                        read_at_details(records.as_ref(), &hierarchy, &details, &group)?;
+                    bytes += read_bytes;
                     if let Ok(mut host) = host.lock() {
                         for node in read {
                             host.insert(Arc::new(node));
@@ -456,10 +470,86 @@ impl CutRenderer {
     }
 }
 
+/// Which detail a frame reads each node of its cut at (`lod::codec::Detail`): coarse where
+/// the node spans at most [`COARSE_MAX_PIXELS`] and the frame draws nothing the coarse section
+/// lacks (colours from RGB or heights, no attribute filter, a pixel error above 0), so a cold
+/// frame reads about half the bytes (docs/perf/coarse-reads.md).
+#[derive(Debug, Clone, Copy)]
+struct FrameDetails {
+    coarse: bool,
+}
+
+impl FrameDetails {
+    /// Every node read whole.
+    const FULL: Self = Self { coarse: false };
+
+    fn new(
+        options: &CutOptions,
+        dataset: &LodDataset,
+        coloring: Coloring,
+        filter: &PointFilter,
+    ) -> Self {
+        let attributes = filter.classes.is_some()
+            || filter.return_numbers.is_some()
+            || filter.intensity.is_some();
+        Self {
+            coarse: options.lod_error > 0.0
+                && dataset.coloring.needs_only_coarse(coloring.mode)
+                && !attributes,
+        }
+    }
+
+    fn of(&self, node: &CutNode) -> Detail {
+        if self.coarse && node.priority <= COARSE_MAX_PIXELS {
+            Detail::Coarse
+        } else {
+            Detail::Full
+        }
+    }
+}
+
+/// Reads `nodes` at their details, in their order, and the bytes that took.
+fn read_at_details(
+    records: &dyn NodeRecords,
+    hierarchy: &LodHierarchy,
+    details: &FrameDetails,
+    nodes: &[&CutNode],
+) -> Result<(Vec<NodePoints>, u64), LodError> {
+    let mut read: Vec<Option<NodePoints>> = (0..nodes.len()).map(|_| None).collect();
+    let mut bytes = 0;
+    for detail in [Detail::Coarse, Detail::Full] {
+        let at: Vec<usize> = (0..nodes.len())
+            .filter(|&i| details.of(nodes[i]) == detail)
+            .collect();
+        if at.is_empty() {
+            continue;
+        }
+        let keys: Vec<NodeKey> = at.iter().map(|&i| nodes[i].key).collect();
+        for (&i, node) in at
+            .iter()
+            .zip(read_nodes_at(records, hierarchy, &keys, detail)?)
+        {
+            bytes += match node.detail {
+                Detail::Coarse => coarse_len(node.len(), node.rgb.is_some()) as u64,
+                Detail::Full => u64::from(hierarchy.node_byte_len(node.key)),
+            };
+            read[i] = Some(node);
+        }
+    }
+    Ok((
+        read.into_iter()
+            .map(|n| n.expect("every node read"))
+            .collect(),
+        bytes,
+    ))
+}
+
 /// A group of a cut's nodes made resident on the host, in the group's order, with what it
 /// took for the frame's report.
 struct LoadedGroup {
     nodes: Vec<Arc<NodePoints>>,
+    /// The detail the frame draws each at.
+    details: Vec<Detail>,
     host_hits: u64,
     nodes_read: u64,
     bytes_read: u64,
@@ -471,23 +561,26 @@ fn load_group(
     host: &Mutex<HostNodeCache>,
     dataset: &LodDataset,
     hierarchy: &LodHierarchy,
+    details: &FrameDetails,
     group: &[&CutNode],
 ) -> Result<LoadedGroup, CutError> {
     let poisoned = || CutError::Cache("the host node cache is poisoned".into());
     let cached: Vec<Option<Arc<NodePoints>>> = {
         let mut host = host.lock().map_err(|_| poisoned())?;
-        group.iter().map(|n| host.get(n.key)).collect()
+        group
+            .iter()
+            .map(|n| host.get(n.key, details.of(n)))
+            .collect()
     };
-    let to_read: Vec<NodeKey> = group
+    let to_read: Vec<&CutNode> = group
         .iter()
         .zip(&cached)
         .filter(|(_, c)| c.is_none())
-        .map(|(n, _)| n.key)
+        .map(|(n, _)| *n)
         .collect();
-    let read: Vec<Arc<NodePoints>> = read_nodes(dataset.records.as_ref(), hierarchy, &to_read)?
-        .into_iter()
-        .map(Arc::new)
-        .collect();
+    let (read, bytes_read) =
+        read_at_details(dataset.records.as_ref(), hierarchy, details, &to_read)?;
+    let read: Vec<Arc<NodePoints>> = read.into_iter().map(Arc::new).collect();
     let mut host = host.lock().map_err(|_| poisoned())?;
     for node in &read {
         host.insert(Arc::clone(node));
@@ -499,12 +592,10 @@ fn load_group(
             .into_iter()
             .map(|c| c.or_else(|| read.next()).expect("one read per miss"))
             .collect(),
+        details: group.iter().map(|n| details.of(n)).collect(),
         host_hits: (group.len() - to_read.len()) as u64,
         nodes_read,
-        bytes_read: to_read
-            .iter()
-            .map(|&key| u64::from(hierarchy.node_byte_len(key)))
-            .sum(),
+        bytes_read,
     })
 }
 
@@ -514,9 +605,20 @@ fn load_group(
 fn prepare(
     dataset: &LodDataset,
     node: &NodePoints,
+    detail: Detail,
     coloring: Coloring,
     filter: &PointFilter,
 ) -> ChunkData {
+    // A node drawn coarse is drawn from its coarse positions even where it was read whole, so
+    // the frame is the same whatever the caches held.
+    let coarsened;
+    let node = match (detail, node.detail) {
+        (Detail::Coarse, Detail::Full) => {
+            coarsened = node.coarsened();
+            &coarsened
+        }
+        _ => node,
+    };
     let kept = filter.node_points(node);
     let order = morton_order_of_cells(
         &node.quantised,

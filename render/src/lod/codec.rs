@@ -1,15 +1,18 @@
-//! A node's stored bytes: quantised positions, the raw attributes, a checksum.
+//! A node's stored bytes: quantised positions, the raw attributes, a checksum per section.
 //!
 //! Positions are 30 bits per axis relative to the node's cube, stored as three streams of one
 //! 4-byte word per point (after Schütz et al. 2022): the first holds the top 10 bits of x, y
-//! and z, the second the next 10, the third the last 10. A reader that needs a coarse node only
-//! at 10 or 20 bits reads 4 or 8 of the 12 bytes. Layout, little-endian:
+//! and z, the second the next 10, the third the last 10. The first stream, the colours and the
+//! weights come first, with a checksum of their own: what a frame draws of a node that spans
+//! few pixels, read alone ([`Detail::Coarse`], 12 of the 24 bytes a point with RGB). Layout,
+//! little-endian:
 //!
 //! ```text
-//! "PFN2" | count u32 | flags u8 (bit 0: RGB) | 3 zero bytes
-//! stream 0, 1, 2 (count x u32 each) | RGB (count x 3 x u16, if flagged)
-//! intensity (count x u16) | classification (count x u8) | return number (count x u8)
-//! weight codes (count x u16, `weights.rs`)
+//! "PFN3" | count u32 | flags u8 (bit 0: RGB) | 3 zero bytes
+//! stream 0 (count x u32) | RGB (count x 3 x u16, if flagged) | weight codes (count x u16)
+//! checksum u64 of the key and everything before it          (the coarse section ends here)
+//! stream 1, 2 (count x u32 each) | intensity (count x u16) | classification (count x u8)
+//! return number (count x u8)
 //! checksum u64 of the key and everything before it
 //! ```
 
@@ -21,7 +24,7 @@ use super::key::{NodeKey, RootCube};
 use super::point::RawPoint;
 use super::weights::encode_weight;
 
-const MAGIC: &[u8; 4] = b"PFN2";
+const MAGIC: &[u8; 4] = b"PFN3";
 const HEADER_BYTES: usize = 12;
 const FLAG_RGB: u8 = 1;
 /// Bits per axis of a stored position, relative to the node's cube.
@@ -31,10 +34,37 @@ pub const STREAM_BITS: u32 = 10;
 /// Bytes of a stored point's position: three 4-byte streams.
 pub const POSITION_BYTES: usize = 12;
 
+/// How much of a node a read takes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Detail {
+    /// Positions to 10 bits a side of the node's cube, colours and weights: a node a frame
+    /// draws at most [`COARSE_MAX_PIXELS`] wide, in RGB or elevation colours.
+    Coarse,
+    /// Everything.
+    Full,
+}
+
+/// The widest a node may be on screen, in pixels, for its 10-bit positions: a step of its
+/// cube's side over 1,024 is then at most an eighth of a pixel.
+pub const COARSE_MAX_PIXELS: f64 = 128.0;
+
+/// Bits below the coarse section's 10 a side.
+const FINE_BITS: u32 = POSITION_BITS - STREAM_BITS;
+
+/// The bytes of a node's coarse section, its checksum included.
+pub fn coarse_len(count: usize, has_rgb: bool) -> usize {
+    HEADER_BYTES + count * (4 + if has_rgb { 6 } else { 0 } + 2) + 8
+}
+
 /// The bytes a node of `count` points takes.
 pub fn encoded_len(count: usize, has_rgb: bool) -> usize {
-    let per_point = POSITION_BYTES + if has_rgb { 6 } else { 0 } + 2 + 1 + 1 + 2;
-    HEADER_BYTES + count * per_point + 8
+    coarse_len(count, has_rgb) + count * (8 + 2 + 1 + 1) + 8
+}
+
+/// `q` at the coarse section's precision: its top 10 bits a side, at the centre of their
+/// step, so that a node drawn coarse is the same whether read whole or not.
+pub fn coarse_position(q: [u32; 3]) -> [u32; 3] {
+    q.map(|c| (c >> FINE_BITS << FINE_BITS) | (1 << (FINE_BITS - 1)))
 }
 
 /// The 30-bit coordinates of `p` in `key`'s cube, from the one cell formula at level + 30.
@@ -62,7 +92,7 @@ pub fn encode_node(cube: &RootCube, key: NodeKey, points: &[RawPoint], has_rgb: 
         .map(|p| quantise(cube, key, p.position))
         .collect();
     let mask = (1u32 << STREAM_BITS) - 1;
-    for stream in 0..3 {
+    let stream = |out: &mut Vec<u8>, stream: u32| {
         let shift = POSITION_BITS - STREAM_BITS * (stream + 1);
         for q in &quantised {
             let word = ((q[0] >> shift) & mask)
@@ -70,7 +100,12 @@ pub fn encode_node(cube: &RootCube, key: NodeKey, points: &[RawPoint], has_rgb: 
                 | (((q[2] >> shift) & mask) << (2 * STREAM_BITS));
             out.extend_from_slice(&word.to_le_bytes());
         }
-    }
+    };
+    let checksum = |out: &mut Vec<u8>| {
+        let sum = checksum64(&key.to_bytes(), out);
+        out.extend_from_slice(&sum.to_le_bytes());
+    };
+    stream(&mut out, 0);
     if has_rgb {
         for p in points {
             for c in p.rgb {
@@ -79,15 +114,17 @@ pub fn encode_node(cube: &RootCube, key: NodeKey, points: &[RawPoint], has_rgb: 
         }
     }
     for p in points {
+        out.extend_from_slice(&encode_weight(p.weight).to_le_bytes());
+    }
+    checksum(&mut out);
+    stream(&mut out, 1);
+    stream(&mut out, 2);
+    for p in points {
         out.extend_from_slice(&p.intensity.to_le_bytes());
     }
     out.extend(points.iter().map(|p| p.classification));
     out.extend(points.iter().map(|p| p.return_number));
-    for p in points {
-        out.extend_from_slice(&encode_weight(p.weight).to_le_bytes());
-    }
-    let sum = checksum64(&key.to_bytes(), &out);
-    out.extend_from_slice(&sum.to_le_bytes());
+    checksum(&mut out);
     out
 }
 
@@ -108,6 +145,9 @@ pub struct NodePoints {
     /// Each point's weight code (`weights.rs`); empty where the points carry none (a COPC
     /// file's), which counts as 1 each.
     pub weights: Vec<u16>,
+    /// What was read: coarse positions (their top 10 bits, at the centre of their step) and
+    /// no intensity, classification or return number, or everything.
+    pub detail: Detail,
 }
 
 impl NodePoints {
@@ -126,6 +166,23 @@ impl NodePoints {
             .iter()
             .map(|q| self.cube_min + (DVec3::from(q.map(f64::from)) + 0.5) * self.step)
             .collect()
+    }
+
+    /// The node as a coarse read gives it: positions to the coarse section's precision
+    /// ([`coarse_position`]), no intensity, classification or return number.
+    pub fn coarsened(&self) -> NodePoints {
+        NodePoints {
+            key: self.key,
+            cube_min: self.cube_min,
+            step: self.step,
+            quantised: self.quantised.iter().map(|&q| coarse_position(q)).collect(),
+            rgb: self.rgb.clone(),
+            intensity: Vec::new(),
+            classification: Vec::new(),
+            return_number: Vec::new(),
+            weights: self.weights.clone(),
+            detail: Detail::Coarse,
+        }
     }
 
     /// Positions relative to `origin`, computed in f64 and only then rounded to f32.
@@ -153,7 +210,8 @@ fn corrupt(key: NodeKey, reason: impl Into<String>) -> LodError {
     }
 }
 
-/// Decodes a node, checking its checksum, its layout and that it holds `expected` points.
+/// Decodes a node, its coarse section (`bytes` of [`coarse_len`]) or all of it, checking each
+/// section's checksum, its layout and that it holds `expected` points.
 pub fn decode_node(
     cube: &RootCube,
     key: NodeKey,
@@ -166,44 +224,40 @@ pub fn decode_node(
             format!("{} bytes is shorter than a node's header", bytes.len()),
         ));
     }
-    let (body, sum) = bytes.split_at(bytes.len() - 8);
-    let mut stored = [0; 8];
-    stored.copy_from_slice(sum);
-    let computed = checksum64(&key.to_bytes(), body);
-    if u64::from_le_bytes(stored) != computed {
-        return Err(corrupt(
-            key,
-            format!(
-                "checksum mismatch (stored {:016x}, computed {computed:016x})",
-                u64::from_le_bytes(stored)
-            ),
-        ));
-    }
-    if &body[..4] != MAGIC {
+    if &bytes[..4] != MAGIC {
+        // The checksum below tells damage from another format where the magic is intact.
+        check_sum(key, bytes, bytes.len())?;
         return Err(corrupt(key, "not a node record"));
     }
-    let count = u32::from_le_bytes([body[4], body[5], body[6], body[7]]);
+    let count = u32::from_le_bytes([bytes[4], bytes[5], bytes[6], bytes[7]]);
+    let has_rgb = bytes[8] & FLAG_RGB != 0;
+    let n = count as usize;
+    let (coarse, full) = (coarse_len(n, has_rgb), encoded_len(n, has_rgb));
+    let detail = match bytes.len() {
+        len if len == full => Detail::Full,
+        len if len == coarse => Detail::Coarse,
+        len => {
+            // A damaged count or flag: the checksum names it as damage.
+            check_sum(key, bytes, len)?;
+            return Err(corrupt(
+                key,
+                format!("{len} bytes, {full} (or {coarse} read coarse) expected for {n} points"),
+            ));
+        }
+    };
+    check_sum(key, bytes, coarse)?;
+    if detail == Detail::Full {
+        check_sum(key, bytes, full)?;
+    }
     if count != expected {
         return Err(corrupt(
             key,
             format!("holds {count} points, the hierarchy says {expected}"),
         ));
     }
-    let has_rgb = body[8] & FLAG_RGB != 0;
-    let n = count as usize;
-    if bytes.len() != encoded_len(n, has_rgb) {
-        return Err(corrupt(
-            key,
-            format!(
-                "{} bytes, {} expected for {n} points",
-                bytes.len(),
-                encoded_len(n, has_rgb)
-            ),
-        ));
-    }
     let mut at = HEADER_BYTES;
     let mut take = |len: usize| {
-        let slice = &body[at..at + len];
+        let slice = &bytes[at..at + len];
         at += len;
         slice
     };
@@ -213,32 +267,52 @@ pub fn decode_node(
             .map(|w| u32::from_le_bytes([w[0], w[1], w[2], w[3]]))
             .collect()
     };
-    let streams = [words(take(4 * n)), words(take(4 * n)), words(take(4 * n))];
-    let mask = (1u32 << STREAM_BITS) - 1;
-    let quantised = (0..n)
-        .map(|i| {
-            std::array::from_fn(|axis| {
-                let part = |s: usize| (streams[s][i] >> (axis as u32 * STREAM_BITS)) & mask;
-                (part(0) << (2 * STREAM_BITS)) | (part(1) << STREAM_BITS) | part(2)
-            })
-        })
-        .collect();
     let halves = |slice: &[u8]| -> Vec<u16> {
         slice
             .chunks_exact(2)
             .map(|h| u16::from_le_bytes([h[0], h[1]]))
             .collect()
     };
+    let first = words(take(4 * n));
     let rgb = has_rgb.then(|| {
         halves(take(6 * n))
             .chunks_exact(3)
             .map(|c| [c[0], c[1], c[2]])
             .collect()
     });
-    let intensity = halves(take(2 * n));
-    let classification = take(n).to_vec();
-    let return_number = take(n).to_vec();
     let weights = halves(take(2 * n));
+    take(8);
+    let mask = (1u32 << STREAM_BITS) - 1;
+    let part =
+        |stream: &[u32], i: usize, axis: usize| (stream[i] >> (axis as u32 * STREAM_BITS)) & mask;
+    let (quantised, intensity, classification, return_number) = match detail {
+        Detail::Coarse => {
+            let quantised = (0..n)
+                .map(|i| {
+                    coarse_position(std::array::from_fn(|axis| {
+                        part(&first, i, axis) << FINE_BITS
+                    }))
+                })
+                .collect();
+            (quantised, Vec::new(), Vec::new(), Vec::new())
+        }
+        Detail::Full => {
+            let (second, third) = (words(take(4 * n)), words(take(4 * n)));
+            let quantised = (0..n)
+                .map(|i| {
+                    std::array::from_fn(|axis| {
+                        (part(&first, i, axis) << (2 * STREAM_BITS))
+                            | (part(&second, i, axis) << STREAM_BITS)
+                            | part(&third, i, axis)
+                    })
+                })
+                .collect();
+            let intensity = halves(take(2 * n));
+            let classification = take(n).to_vec();
+            let return_number = take(n).to_vec();
+            (quantised, intensity, classification, return_number)
+        }
+    };
     Ok(NodePoints {
         key,
         cube_min: cube.node_min(key),
@@ -249,7 +323,22 @@ pub fn decode_node(
         classification,
         return_number,
         weights,
+        detail,
     })
+}
+
+/// Checks the checksum in the 8 bytes before `end` against the key and the bytes before it.
+fn check_sum(key: NodeKey, bytes: &[u8], end: usize) -> Result<(), LodError> {
+    let (body, sum) = bytes[..end].split_at(end - 8);
+    let stored = u64::from_le_bytes(sum.try_into().expect("8 bytes"));
+    let computed = checksum64(&key.to_bytes(), body);
+    if stored != computed {
+        return Err(corrupt(
+            key,
+            format!("checksum mismatch (stored {stored:016x}, computed {computed:016x})"),
+        ));
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -294,5 +383,53 @@ mod tests {
             decode_node(&cube, key.child(0), 500, &bytes).is_err(),
             "another key's node"
         );
+        assert_eq!(node.detail, Detail::Full);
+
+        // The coarse section alone: the same colours and weights, positions to 10 bits at the
+        // centre of their step, no other attributes.
+        let coarse_bytes = &bytes[..coarse_len(points.len(), true)];
+        let coarse = decode_node(&cube, key, 500, coarse_bytes).expect("decodes coarse");
+        assert_eq!(coarse.detail, Detail::Coarse);
+        assert_eq!((&coarse.rgb, &coarse.weights), (&node.rgb, &node.weights));
+        assert!(coarse.intensity.is_empty() && coarse.classification.is_empty());
+        let whole: Vec<[u32; 3]> = node.quantised.iter().map(|&q| coarse_position(q)).collect();
+        assert_eq!(coarse.quantised, whole);
+        let step = side / 1024.0;
+        for (p, q) in points.iter().zip(coarse.world_positions()) {
+            assert!((p.position - q).abs().max_element() <= step * 0.5 + node.step);
+        }
+    }
+
+    /// Each section's checksum finds damage in it: the coarse section's when it is read alone,
+    /// the record's when the rest is; damage past the coarse section does not fail a coarse read.
+    #[test]
+    fn each_section_finds_its_damage() {
+        let cube = cube();
+        let key = NodeKey::new(2, glam::UVec3::new(1, 0, 3));
+        let min = cube.node_min(key);
+        let points: Vec<RawPoint> = (0..64)
+            .map(|i| RawPoint {
+                position: min + DVec3::splat(f64::from(i) * 3.0),
+                rgb: [1, 2, 3],
+                intensity: 9,
+                classification: 2,
+                return_number: 1,
+                weight: 1,
+            })
+            .collect();
+        let bytes = encode_node(&cube, key, &points, true);
+        let coarse = coarse_len(points.len(), true);
+        for at in [HEADER_BYTES + 5, coarse - 3, coarse + 7, bytes.len() - 20] {
+            let mut damaged = bytes.clone();
+            damaged[at] ^= 0x10;
+            let whole = decode_node(&cube, key, 64, &damaged).expect_err("damage found");
+            assert!(whole.to_string().contains("checksum"), "{whole}");
+            let read_coarse = decode_node(&cube, key, 64, &damaged[..coarse]);
+            assert_eq!(read_coarse.is_err(), at < coarse, "byte {at}");
+        }
+        let mut count = bytes.clone();
+        count[4] ^= 1;
+        let error = decode_node(&cube, key, 64, &count).expect_err("a damaged count");
+        assert!(error.to_string().contains("checksum"), "{error}");
     }
 }

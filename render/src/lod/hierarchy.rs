@@ -2,13 +2,13 @@
 //! node's key, point count, sampling grid and byte range in the payload file, and the
 //! dataset's statistics), and its record.
 //!
-//! Layout, little-endian: "PFH4" | cube min 3 x f64 | side f64 | points u64 |
+//! Layout, little-endian: "PFH5" | cube min 3 x f64 | side f64 | points u64 |
 //! max leaf points u32 | flags u8 (bit 0: RGB) | max RGB 3 x u16 | z range 2 x f64 |
 //! intensity bins used u32, then (value u16, count u64) each | classes used u16, then
 //! (class u8, count u64) each | nodes u32, then per node: level u8, x, y, z u32, points u32,
 //! sampling grid u16, child mask u8, payload offset u64, payload bytes u32 | checksum u64.
-//! A record of another version is refused (the dataset is then rebuilt): "PFH4" marks stores
-//! whose node records carry point weights ("PFN2", `codec.rs`).
+//! A record of another version is refused (the dataset is then rebuilt): "PFH5" marks stores
+//! whose node records keep a coarse section with a checksum of its own ("PFN3", `codec.rs`).
 
 use std::collections::{BTreeSet, HashMap, HashSet};
 
@@ -19,7 +19,7 @@ use super::error::LodError;
 use super::key::{NodeKey, RootCube};
 use super::stats::{DatasetStats, INTENSITY_BINS};
 
-const MAGIC: &[u8; 4] = b"PFH4";
+const MAGIC: &[u8; 4] = b"PFH5";
 /// Bytes of one node in the record.
 const NODE_RECORD_BYTES: usize = 32;
 const CHECKSUM_SEED: &[u8] = b"hierarchy";

@@ -5,7 +5,7 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use rayon::prelude::*;
 
-use super::codec::{decode_node, NodePoints, POSITION_BITS};
+use super::codec::{decode_node, Detail, NodePoints, POSITION_BITS};
 use super::error::LodError;
 use super::hierarchy::{LodHierarchy, NodeInfo};
 use super::key::{NodeKey, RootCube};
@@ -15,6 +15,17 @@ use super::key::{NodeKey, RootCube};
 pub trait NodeRecords: Send + Sync {
     /// The stored bytes of each of `nodes`, in order; each listed with points.
     fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError>;
+
+    /// The coarse sections of `nodes`' records (`codec::coarse_len`, for a dataset with or
+    /// without RGB), in order, where this source reads parts of records; `None` where it
+    /// reads them whole.
+    fn read_coarse_records(
+        &self,
+        _nodes: &[NodeInfo],
+        _has_rgb: bool,
+    ) -> Option<Result<Vec<Vec<u8>>, LodError>> {
+        None
+    }
 
     /// A record's points, checked against what the hierarchy says of its node. A store's
     /// records are its own format ([`decode_node`]); a source whose records are another
@@ -36,6 +47,17 @@ pub fn read_nodes(
     hierarchy: &LodHierarchy,
     keys: &[NodeKey],
 ) -> Result<Vec<NodePoints>, LodError> {
+    read_nodes_at(records, hierarchy, keys, Detail::Full)
+}
+
+/// [`read_nodes`] at `detail`: the coarse sections alone where `detail` is coarse and the
+/// source reads parts of records, else whole records (their nodes then at [`Detail::Full`]).
+pub fn read_nodes_at(
+    records: &dyn NodeRecords,
+    hierarchy: &LodHierarchy,
+    keys: &[NodeKey],
+    detail: Detail,
+) -> Result<Vec<NodePoints>, LodError> {
     let infos: Vec<NodeInfo> = keys
         .iter()
         .map(|&key| {
@@ -50,10 +72,16 @@ pub fn read_nodes(
         .filter(|i| i.point_count > 0)
         .copied()
         .collect();
-    let bytes = if stored.is_empty() {
-        Vec::new()
-    } else {
-        records.read_records(&stored)?
+    let coarse = match detail {
+        Detail::Coarse if !stored.is_empty() => {
+            records.read_coarse_records(&stored, hierarchy.stats.has_rgb)
+        }
+        _ => None,
+    };
+    let bytes = match coarse {
+        Some(read) => read?,
+        None if stored.is_empty() => Vec::new(),
+        None => records.read_records(&stored)?,
     };
     if bytes.len() != stored.len() {
         return Err(LodError::Records(format!(
@@ -89,6 +117,7 @@ fn empty_node(hierarchy: &LodHierarchy, key: NodeKey) -> NodePoints {
         classification: Vec::new(),
         return_number: Vec::new(),
         weights: Vec::new(),
+        detail: Detail::Full,
     }
 }
 

@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
-use super::codec::NodePoints;
+use super::codec::{coarse_len, NodePoints};
 use super::error::LodError;
 use super::hierarchy::{LodHierarchy, NodeInfo};
 use super::key::NodeKey;
@@ -146,6 +146,11 @@ impl LodStore {
     /// Reads a node's byte range from the payload file, after checking that the file holds it
     /// (a damaged hierarchy or a truncated file must not cause a huge allocation).
     pub(super) fn read_range(&self, info: &NodeInfo) -> Result<Vec<u8>, LodError> {
+        self.read_prefix(info, info.byte_len)
+    }
+
+    /// The first `len` bytes of `info`'s record (at most its length).
+    fn read_prefix(&self, info: &NodeInfo, len: u32) -> Result<Vec<u8>, LodError> {
         let key = info.key;
         let corrupt = |reason: String| LodError::CorruptNode { key, reason };
         let file_len = self.payload.len()?;
@@ -156,7 +161,7 @@ impl LodStore {
                 info.byte_len, info.offset
             )));
         }
-        let mut bytes = vec![0; info.byte_len as usize];
+        let mut bytes = vec![0; len.min(info.byte_len) as usize];
         match self.payload.file.read_exact_at(&mut bytes, info.offset) {
             Ok(()) => Ok(bytes),
             Err(e) if e.kind() == io::ErrorKind::UnexpectedEof => Err(corrupt(format!(
@@ -218,5 +223,18 @@ impl NodeRecords for LodStore {
     /// Positioned reads of the payload file, several in flight.
     fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError> {
         read_concurrently(nodes, |info| self.read_range(info))
+    }
+
+    /// The records' coarse sections: their first bytes, as long as the record's point count
+    /// and colours make that section.
+    fn read_coarse_records(
+        &self,
+        nodes: &[NodeInfo],
+        has_rgb: bool,
+    ) -> Option<Result<Vec<Vec<u8>>, LodError>> {
+        Some(read_concurrently(nodes, |info| {
+            let len = coarse_len(info.point_count as usize, has_rgb);
+            self.read_prefix(info, u32::try_from(len).unwrap_or(u32::MAX))
+        }))
     }
 }

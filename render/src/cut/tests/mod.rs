@@ -3,6 +3,7 @@
 //! share.
 
 mod caches;
+mod coarse;
 mod exact;
 mod pixel_error;
 mod point_sizes;

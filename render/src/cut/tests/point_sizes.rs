@@ -37,7 +37,13 @@ fn batches_take_their_own_point_size_factor() {
     for (key, half) in keys.iter().zip(&halves) {
         let data = ChunkData::new(&half.positions, half.colors.iter().copied());
         cache
-            .insert(renderer.gpu(), *key, &data, &keep)
+            .insert(
+                renderer.gpu(),
+                *key,
+                crate::lod::codec::Detail::Full,
+                &data,
+                &keep,
+            )
             .expect("insert");
     }
     let factor_of = |key: NodeKey| if key == keys[0] { 1.0 } else { 2.0 };

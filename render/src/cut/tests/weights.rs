@@ -74,7 +74,13 @@ fn weighted_high_quality_matches_the_weighted_reference() {
         data.weights
             .resize(data.weights.len().next_multiple_of(2), 0);
         cache
-            .insert(renderer.gpu(), *key, &data, &keep)
+            .insert(
+                renderer.gpu(),
+                *key,
+                crate::lod::codec::Detail::Full,
+                &data,
+                &keep,
+            )
             .expect("insert");
     }
     // What each point counts for: the root's points in octant 0 once (drawn below child 0).

@@ -1,0 +1,88 @@
+//! Nodes a frame draws a few pixels wide are read coarse (positions to 10 bits a side, colours,
+//! weights): about half their bytes, and the same image whether the caches held them whole.
+
+use super::*;
+
+fn frame(
+    cut: &mut CutRenderer,
+    renderer: &mut Renderer,
+    fixture: &Fixture,
+    settings: &FrameSettings,
+    mode: ColorMode,
+) -> (Frame, CutReport) {
+    cut.render(
+        renderer,
+        &fixture.dataset,
+        settings,
+        mode,
+        &PointFilter::default(),
+    )
+    .expect("frame")
+}
+
+/// A cold RGB frame at the default pixel error reads the coarse sections of the nodes it draws
+/// small, far fewer bytes than the intensity frame of the same cut, which reads every record
+/// whole. Drawn again after that intensity frame, from the whole records it left in the host
+/// cache, the RGB frame reads nothing and is the same image. At pixel error 0 every record is
+/// read whole.
+#[test]
+fn nodes_drawn_small_are_read_coarse_and_drawn_alike_from_whole_records() {
+    let (fixture, mut renderer, settings) = basic_frame(120_000);
+    let mut cold = cut_renderer(&renderer, &fixture, DEFAULT_LOD_ERROR_PX);
+    let (cold_frame, coarse) = frame(
+        &mut cold,
+        &mut renderer,
+        &fixture,
+        &settings,
+        ColorMode::Rgb,
+    );
+
+    let mut cut = cut_renderer(&renderer, &fixture, DEFAULT_LOD_ERROR_PX);
+    let (_, whole) = frame(
+        &mut cut,
+        &mut renderer,
+        &fixture,
+        &settings,
+        ColorMode::Intensity,
+    );
+    assert_eq!(
+        coarse.counts.nodes_read, whole.counts.nodes_read,
+        "the same cut"
+    );
+    let share = coarse.counts.bytes_read as f64 / whole.counts.bytes_read as f64;
+    eprintln!(
+        "{} nodes: {} bytes read coarse, {} whole ({share:.3})",
+        coarse.counts.nodes_read, coarse.counts.bytes_read, whole.counts.bytes_read
+    );
+    assert!(share < 0.6, "{share:.3} of the whole records' bytes");
+
+    let (warm_frame, warm) = frame(&mut cut, &mut renderer, &fixture, &settings, ColorMode::Rgb);
+    assert_eq!(warm.counts.nodes_read, 0, "{warm:?}");
+    assert_eq!(
+        compare_images_within("coarse-from-whole", &warm_frame.image, &cold_frame.image, 0)
+            .differing,
+        0,
+        "drawn from whole records, the frame differs from the cold one"
+    );
+
+    let mut exact = cut_renderer(&renderer, &fixture, 0.0);
+    let (_, rgb) = frame(
+        &mut exact,
+        &mut renderer,
+        &fixture,
+        &settings,
+        ColorMode::Rgb,
+    );
+    let mut exact = cut_renderer(&renderer, &fixture, 0.0);
+    let (_, intensity) = frame(
+        &mut exact,
+        &mut renderer,
+        &fixture,
+        &settings,
+        ColorMode::Intensity,
+    );
+    assert_eq!(
+        rgb.counts.bytes_read, intensity.counts.bytes_read,
+        "every record whole at 0"
+    );
+}
