@@ -2,16 +2,17 @@
 //!
 //! Positions are 30 bits per axis relative to the node's cube, stored as three streams of one
 //! 4-byte word per point (after Schütz et al. 2022): the first holds the top 10 bits of x, y
-//! and z, the second the next 10, the third the last 10. The first stream, the colours and the
-//! weights come first, with a checksum of their own: what a frame draws of a node that spans
-//! few pixels, read alone ([`Detail::Coarse`], 12 of the 24 bytes a point with RGB). Layout,
-//! little-endian:
+//! and z, the second the next 10, the third the last 10. The first two streams, the colours and
+//! the weights come first, with a checksum of their own: what a frame draws of a node that
+//! spans at most [`COARSE_MAX_PIXELS`], read alone ([`Detail::Coarse`], 16 of the 24 bytes a
+//! point with RGB). Layout, little-endian:
 //!
 //! ```text
 //! "PFN3" | count u32 | flags u8 (bit 0: RGB) | 3 zero bytes
-//! stream 0 (count x u32) | RGB (count x 3 x u16, if flagged) | weight codes (count x u16)
+//! stream 0, 1 (count x u32 each) | RGB (count x 3 x u16, if flagged)
+//! weight codes (count x u16)
 //! checksum u64 of the key and everything before it          (the coarse section ends here)
-//! stream 1, 2 (count x u32 each) | intensity (count x u16) | classification (count x u8)
+//! stream 2 (count x u32) | intensity (count x u16) | classification (count x u8)
 //! return number (count x u8)
 //! checksum u64 of the key and everything before it
 //! ```
@@ -37,31 +38,33 @@ pub const POSITION_BYTES: usize = 12;
 /// How much of a node a read takes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum Detail {
-    /// Positions to 10 bits a side of the node's cube, colours and weights: a node a frame
+    /// Positions to 20 bits a side of the node's cube, colours and weights: a node a frame
     /// draws at most [`COARSE_MAX_PIXELS`] wide, in RGB or elevation colours.
     Coarse,
     /// Everything.
     Full,
 }
 
-/// The widest a node may be on screen, in pixels, for its 10-bit positions: a step of its
-/// cube's side over 1,024 is then at most an eighth of a pixel.
-pub const COARSE_MAX_PIXELS: f64 = 128.0;
+/// The widest a node may be on screen, in pixels, for its 20-bit positions: a step of its
+/// cube's side over 2^20 is then at most a thousandth of a pixel, in depth as across. Ten bits
+/// (an eighth of a pixel at 128 pixels) were too few: eye-dome lighting and Pintus shading
+/// drew the depth steps (docs/perf/coarse-reads.md).
+pub const COARSE_MAX_PIXELS: f64 = 1024.0;
 
-/// Bits below the coarse section's 10 a side.
-const FINE_BITS: u32 = POSITION_BITS - STREAM_BITS;
+/// Bits below the coarse section's 20 a side.
+const FINE_BITS: u32 = STREAM_BITS;
 
 /// The bytes of a node's coarse section, its checksum included.
 pub fn coarse_len(count: usize, has_rgb: bool) -> usize {
-    HEADER_BYTES + count * (4 + if has_rgb { 6 } else { 0 } + 2) + 8
+    HEADER_BYTES + count * (8 + if has_rgb { 6 } else { 0 } + 2) + 8
 }
 
 /// The bytes a node of `count` points takes.
 pub fn encoded_len(count: usize, has_rgb: bool) -> usize {
-    coarse_len(count, has_rgb) + count * (8 + 2 + 1 + 1) + 8
+    coarse_len(count, has_rgb) + count * (4 + 2 + 1 + 1) + 8
 }
 
-/// `q` at the coarse section's precision: its top 10 bits a side, at the centre of their
+/// `q` at the coarse section's precision: its top 20 bits a side, at the centre of their
 /// step, so that a node drawn coarse is the same whether read whole or not.
 pub fn coarse_position(q: [u32; 3]) -> [u32; 3] {
     q.map(|c| (c >> FINE_BITS << FINE_BITS) | (1 << (FINE_BITS - 1)))
@@ -106,6 +109,7 @@ pub fn encode_node(cube: &RootCube, key: NodeKey, points: &[RawPoint], has_rgb: 
         out.extend_from_slice(&sum.to_le_bytes());
     };
     stream(&mut out, 0);
+    stream(&mut out, 1);
     if has_rgb {
         for p in points {
             for c in p.rgb {
@@ -117,7 +121,6 @@ pub fn encode_node(cube: &RootCube, key: NodeKey, points: &[RawPoint], has_rgb: 
         out.extend_from_slice(&encode_weight(p.weight).to_le_bytes());
     }
     checksum(&mut out);
-    stream(&mut out, 1);
     stream(&mut out, 2);
     for p in points {
         out.extend_from_slice(&p.intensity.to_le_bytes());
@@ -145,7 +148,7 @@ pub struct NodePoints {
     /// Each point's weight code (`weights.rs`); empty where the points carry none (a COPC
     /// file's), which counts as 1 each.
     pub weights: Vec<u16>,
-    /// What was read: coarse positions (their top 10 bits, at the centre of their step) and
+    /// What was read: coarse positions (their top 20 bits, at the centre of their step) and
     /// no intensity, classification or return number, or everything.
     pub detail: Detail,
 }
@@ -273,7 +276,7 @@ pub fn decode_node(
             .map(|h| u16::from_le_bytes([h[0], h[1]]))
             .collect()
     };
-    let first = words(take(4 * n));
+    let (first, second) = (words(take(4 * n)), words(take(4 * n)));
     let rgb = has_rgb.then(|| {
         halves(take(6 * n))
             .chunks_exact(3)
@@ -290,14 +293,15 @@ pub fn decode_node(
             let quantised = (0..n)
                 .map(|i| {
                     coarse_position(std::array::from_fn(|axis| {
-                        part(&first, i, axis) << FINE_BITS
+                        (part(&first, i, axis) << (2 * STREAM_BITS))
+                            | (part(&second, i, axis) << STREAM_BITS)
                     }))
                 })
                 .collect();
             (quantised, Vec::new(), Vec::new(), Vec::new())
         }
         Detail::Full => {
-            let (second, third) = (words(take(4 * n)), words(take(4 * n)));
+            let third = words(take(4 * n));
             let quantised = (0..n)
                 .map(|i| {
                     std::array::from_fn(|axis| {
@@ -385,7 +389,7 @@ mod tests {
         );
         assert_eq!(node.detail, Detail::Full);
 
-        // The coarse section alone: the same colours and weights, positions to 10 bits at the
+        // The coarse section alone: the same colours and weights, positions to 20 bits at the
         // centre of their step, no other attributes.
         let coarse_bytes = &bytes[..coarse_len(points.len(), true)];
         let coarse = decode_node(&cube, key, 500, coarse_bytes).expect("decodes coarse");
@@ -394,7 +398,7 @@ mod tests {
         assert!(coarse.intensity.is_empty() && coarse.classification.is_empty());
         let whole: Vec<[u32; 3]> = node.quantised.iter().map(|&q| coarse_position(q)).collect();
         assert_eq!(coarse.quantised, whole);
-        let step = side / 1024.0;
+        let step = side / f64::from(1u32 << 20);
         for (p, q) in points.iter().zip(coarse.world_positions()) {
             assert!((p.position - q).abs().max_element() <= step * 0.5 + node.step);
         }

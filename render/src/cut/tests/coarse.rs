@@ -1,5 +1,6 @@
-//! Nodes a frame draws a few pixels wide are read coarse (positions to 10 bits a side, colours,
-//! weights): about half their bytes, and the same image whether the caches held them whole.
+//! Nodes a frame draws at most 1,024 pixels wide are read coarse (positions to 20 bits a side,
+//! colours, weights): two thirds of their bytes, and the same image whether the caches held
+//! them whole.
 
 use super::*;
 
@@ -54,7 +55,7 @@ fn nodes_drawn_small_are_read_coarse_and_drawn_alike_from_whole_records() {
         "{} nodes: {} bytes read coarse, {} whole ({share:.3})",
         coarse.counts.nodes_read, coarse.counts.bytes_read, whole.counts.bytes_read
     );
-    assert!(share < 0.6, "{share:.3} of the whole records' bytes");
+    assert!(share < 0.7, "{share:.3} of the whole records' bytes");
 
     let (warm_frame, warm) = frame(&mut cut, &mut renderer, &fixture, &settings, ColorMode::Rgb);
     assert_eq!(warm.counts.nodes_read, 0, "{warm:?}");
