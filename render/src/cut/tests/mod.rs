@@ -200,3 +200,22 @@ fn covered(image: &image::RgbaImage) -> usize {
         .filter(|p| p.0 != crate::raster::DEFAULT_BACKGROUND)
         .count()
 }
+
+/// Writes `data` into `cache` as node `key`, prepared from its whole record.
+fn insert_whole(
+    cache: &mut super::gpu_cache::GpuNodeCache,
+    renderer: &Renderer,
+    key: NodeKey,
+    data: &ChunkData,
+    keep: &HashSet<NodeKey>,
+) {
+    cache
+        .insert(
+            renderer.gpu(),
+            key,
+            crate::lod::codec::Detail::Full,
+            data,
+            keep,
+        )
+        .expect("insert");
+}

@@ -36,15 +36,7 @@ fn batches_take_their_own_point_size_factor() {
     let keep: HashSet<NodeKey> = keys.into_iter().collect();
     for (key, half) in keys.iter().zip(&halves) {
         let data = ChunkData::new(&half.positions, half.colors.iter().copied());
-        cache
-            .insert(
-                renderer.gpu(),
-                *key,
-                crate::lod::codec::Detail::Full,
-                &data,
-                &keep,
-            )
-            .expect("insert");
+        insert_whole(&mut cache, renderer, *key, &data, &keep);
     }
     let factor_of = |key: NodeKey| if key == keys[0] { 1.0 } else { 2.0 };
     let mut factor = |key: NodeKey, _: &GpuBatch| factor_of(key);

@@ -73,15 +73,7 @@ fn weighted_high_quality_matches_the_weighted_reference() {
         data.weights = bits[range.clone()].to_vec();
         data.weights
             .resize(data.weights.len().next_multiple_of(2), 0);
-        cache
-            .insert(
-                renderer.gpu(),
-                *key,
-                crate::lod::codec::Detail::Full,
-                &data,
-                &keep,
-            )
-            .expect("insert");
+        insert_whole(&mut cache, renderer, *key, &data, &keep);
     }
     // What each point counts for: the root's points in octant 0 once (drawn below child 0).
     let weights: Vec<u32> = bits
