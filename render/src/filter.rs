@@ -134,6 +134,12 @@ impl PointFilter {
         *self == Self::default()
     }
 
+    /// Whether it reads a point's classification, return number or intensity (a clip box
+    /// reads only its position).
+    pub fn reads_attributes(&self) -> bool {
+        self.classes.is_some() || self.return_numbers.is_some() || self.intensity.is_some()
+    }
+
     /// Whether a point with these attributes passes the classification, return and intensity
     /// filters.
     fn keeps_attributes(&self, classification: u8, return_number: u8, intensity: u16) -> bool {

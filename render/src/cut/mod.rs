@@ -489,13 +489,10 @@ impl FrameDetails {
         coloring: Coloring,
         filter: &PointFilter,
     ) -> Self {
-        let attributes = filter.classes.is_some()
-            || filter.return_numbers.is_some()
-            || filter.intensity.is_some();
         Self {
             coarse: options.lod_error > 0.0
                 && dataset.coloring.needs_only_coarse(coloring.mode)
-                && !attributes,
+                && !filter.reads_attributes(),
         }
     }
 

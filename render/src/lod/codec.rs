@@ -32,8 +32,8 @@ const FLAG_RGB: u8 = 1;
 pub const POSITION_BITS: u32 = 30;
 /// Bits per axis in each of the three position streams.
 pub const STREAM_BITS: u32 = 10;
-/// Bytes of a stored point's position: three 4-byte streams.
-pub const POSITION_BYTES: usize = 12;
+/// Bytes of a point in one position stream.
+const STREAM_BYTES: usize = 4;
 
 /// How much of a node a read takes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
@@ -56,12 +56,12 @@ const FINE_BITS: u32 = STREAM_BITS;
 
 /// The bytes of a node's coarse section, its checksum included.
 pub fn coarse_len(count: usize, has_rgb: bool) -> usize {
-    HEADER_BYTES + count * (8 + if has_rgb { 6 } else { 0 } + 2) + 8
+    HEADER_BYTES + count * (2 * STREAM_BYTES + if has_rgb { 6 } else { 0 } + 2) + 8
 }
 
 /// The bytes a node of `count` points takes.
 pub fn encoded_len(count: usize, has_rgb: bool) -> usize {
-    coarse_len(count, has_rgb) + count * (4 + 2 + 1 + 1) + 8
+    coarse_len(count, has_rgb) + count * (STREAM_BYTES + 2 + 1 + 1) + 8
 }
 
 /// `q` at the coarse section's precision: its top 20 bits a side, at the centre of their
