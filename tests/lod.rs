@@ -162,9 +162,14 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
         arg(&local),
         "--cache-dir",
         arg(&cache),
+        "--json",
     ];
     args.extend(options);
-    pointfarm_ok(&args);
+    let rendered = pointfarm_ok(&args);
+    let local_frames: Vec<serde_json::Value> = String::from_utf8_lossy(&rendered.stdout)
+        .lines()
+        .map(|line| serde_json::from_str(line).expect("a JSON frame"))
+        .collect();
     let server = pointfarm_tests::ServeProcess::start(&dir.path().join("data"));
     let mut args = vec![
         "render",
@@ -208,6 +213,17 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
     }
     assert_eq!(
         shown["job"]["frames"][0]["cut"]["pointsTotal"], "30000",
+        "{shown}"
+    );
+    // A cold first frame fetched what a local one reads: the coarse sections alone of the
+    // nodes it draws small.
+    let local_read = local_frames[0]["cut"]["bytesRead"].as_u64();
+    let first = job.frames[0].cut.expect("a cut");
+    assert_eq!(Some(first.bytes_read), local_read, "{shown}");
+    // 16 B a point and 20 a node coarse, 24 and 28 whole.
+    let (nodes, points) = (first.nodes_read, first.points_rendered);
+    assert!(
+        nodes > 0 && first.bytes_read <= 17 * points + 32 * nodes,
         "{shown}"
     );
     let stages = json_names(&shown["stageStatistics"], "stage");

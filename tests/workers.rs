@@ -573,6 +573,7 @@ async fn the_daemons_stores_are_opened_before_their_nodes_are_served() {
     let fetch = |nodes: Vec<pb::NodeKey>| pb::FetchNodesRequest {
         dataset_id: dataset.id.clone(),
         nodes,
+        coarse: false,
     };
     let refused = workers
         .fetch_nodes(fetch(vec![node(0, 0)]))
@@ -621,6 +622,23 @@ async fn the_daemons_stores_are_opened_before_their_nodes_are_served() {
         root.message().await.expect("stream").is_none(),
         "one node asked, one sent"
     );
+    // Asked coarse, the record's coarse section: its first bytes, and fewer of them.
+    let mut coarse = workers
+        .fetch_nodes(pb::FetchNodesRequest {
+            coarse: true,
+            ..fetch(vec![node(0, 0)])
+        })
+        .await
+        .expect("the root, coarse")
+        .into_inner();
+    let section = coarse.message().await.expect("stream").expect("a record");
+    assert!(
+        !section.data.is_empty() && section.data.len() < record.data.len(),
+        "{} of {} bytes",
+        section.data.len(),
+        record.data.len()
+    );
+    assert!(record.data.starts_with(&section.data));
 
     for (nodes, field) in [
         (vec![node(25, 0)], "level"),

@@ -92,9 +92,10 @@ impl ReadyStore {
         self.dataset().records()
     }
 
-    /// The stored records of `keys`, in order; each must be a node of the hierarchy with
-    /// points. A COPC file's records are its LAZ chunks, byte ranges of the file.
-    pub fn records(&self, keys: &[NodeKey]) -> Result<Vec<Vec<u8>>, DaemonError> {
+    /// The stored records of `keys`, in order, or only their coarse sections where `coarse`
+    /// and the store keeps them apart; each must be a node of the hierarchy with points. A
+    /// COPC file's records are its LAZ chunks, byte ranges of the file, always whole.
+    pub fn records(&self, keys: &[NodeKey], coarse: bool) -> Result<Vec<Vec<u8>>, DaemonError> {
         let hierarchy = self.hierarchy();
         let infos: Vec<NodeInfo> = keys
             .iter()
@@ -106,9 +107,12 @@ impl ReadyStore {
                 )),
             })
             .collect::<Result<_, _>>()?;
-        self.dataset()
-            .records()
-            .read_records(&infos)
+        let records = self.dataset().records();
+        let read = match coarse {
+            true => records.read_coarse_records(&infos),
+            false => None,
+        };
+        read.unwrap_or_else(|| records.read_records(&infos))
             .map_err(|e| DaemonError::Internal(format!("reading the store's nodes: {e}")))
     }
 }

@@ -86,6 +86,16 @@ impl ImageDiff {
     }
 }
 
+/// Largest difference of any channel of any pixel.
+pub fn max_channel_difference(a: &RgbaImage, b: &RgbaImage) -> u8 {
+    a.as_raw()
+        .iter()
+        .zip(b.as_raw())
+        .map(|(x, y)| x.abs_diff(*y))
+        .max()
+        .unwrap_or(0)
+}
+
 /// Compares two images pixel by pixel. When they differ, writes `<name>-actual.png`,
 /// `<name>-expected.png` and `<name>-diff.png` (differing pixels in magenta) to
 /// `target/test-output/` so a failure can be looked at.

@@ -334,7 +334,11 @@ impl WorkerService for Api {
         }
         let keys: Vec<NodeKey> = r.nodes.iter().map(node_key).collect::<Result<_, _>>()?;
         let records = self
-            .run(move |daemon| daemon.ready_dataset_store(&r.dataset_id)?.records(&keys))
+            .run(move |daemon| {
+                daemon
+                    .ready_dataset_store(&r.dataset_id)?
+                    .records(&keys, r.coarse)
+            })
             .await?;
         let records = records.into_iter().map(|data| pb::NodeRecord { data });
         Ok(Response::new(stream_each(records.collect())))

@@ -4,6 +4,8 @@
 use std::time::{Duration, Instant};
 
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
+use pointfarm_render::lod::codec::Detail;
+use pointfarm_render::lod::records::read_nodes_at;
 use pointfarm_render::lod::{read_nodes, LodError, NodeRecords};
 use pointfarm_render::sample::sample_scene;
 
@@ -49,14 +51,36 @@ fn wait_ready(stores: &DatasetStores, dataset: &Dataset) -> Arc<ReadyStore> {
     }
 }
 
+/// The nodes of `store`'s hierarchy with points, and their keys.
+fn stored_nodes(store: &ReadyStore) -> (Vec<NodeInfo>, Vec<NodeKey>) {
+    let stored: Vec<NodeInfo> = store
+        .hierarchy()
+        .nodes()
+        .iter()
+        .filter(|n| n.point_count > 0)
+        .copied()
+        .collect();
+    let keys = stored.iter().map(|n| n.key).collect();
+    (stored, keys)
+}
+
 struct Records<'a>(&'a ReadyStore);
 
 impl NodeRecords for Records<'_> {
     fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError> {
         let keys: Vec<NodeKey> = nodes.iter().map(|n| n.key).collect();
         self.0
-            .records(&keys)
+            .records(&keys, false)
             .map_err(|e| LodError::Records(e.to_string()))
+    }
+
+    fn read_coarse_records(&self, nodes: &[NodeInfo]) -> Option<Result<Vec<Vec<u8>>, LodError>> {
+        let keys: Vec<NodeKey> = nodes.iter().map(|n| n.key).collect();
+        Some(
+            self.0
+                .records(&keys, true)
+                .map_err(|e| LodError::Records(e.to_string())),
+        )
     }
 }
 
@@ -94,11 +118,24 @@ fn a_store_is_built_once_served_by_node_and_removed_with_its_dataset() {
     let keys: Vec<NodeKey> = store.hierarchy().nodes().iter().map(|n| n.key).collect();
     let nodes = read_nodes(&Records(&store), store.hierarchy(), &keys).expect("read");
     assert_eq!(nodes.iter().map(|n| n.len() as u64).sum::<u64>(), 20_000);
+    // Asked coarse, each record is its coarse section alone, which decodes to the node as a
+    // coarse read of the store's own file gives it.
+    let coarse =
+        read_nodes_at(&Records(&store), store.hierarchy(), &keys, Detail::Coarse).expect("read");
+    for (whole, coarse) in nodes.iter().zip(&coarse) {
+        assert_eq!(coarse, &whole.coarsened(), "node {}", whole.key);
+    }
+    let (stored, stored_keys) = stored_nodes(&store);
+    let sections = store.records(&stored_keys, true).expect("coarse");
+    for (info, section) in stored.iter().zip(&sections) {
+        assert_eq!(section.len(), info.head_len as usize, "node {}", info.key);
+        assert!(section.len() < info.byte_len as usize, "node {}", info.key);
+    }
 
     // A node the hierarchy does not hold is refused, naming it.
     let outside = NodeKey::new(3, glam::UVec3::new(7, 7, 7));
     if store.hierarchy().node(outside).is_none() {
-        let error = store.records(&[outside]).expect_err("not a node");
+        let error = store.records(&[outside], false).expect_err("not a node");
         assert!(error.to_string().contains("3-7-7-7"), "{error}");
     }
 
@@ -191,20 +228,16 @@ fn a_copc_file_is_served_from_its_own_hierarchy_without_a_build() {
         *store.hierarchy()
     );
 
-    // Its records are byte ranges of the file, which the decoder sent reads back.
+    // Its records are byte ranges of the file, which the decoder sent reads back; asked for
+    // coarse sections, it sends them whole (a chunk has none).
     let file = std::fs::read(&path).expect("read");
-    let stored: Vec<NodeInfo> = store
-        .hierarchy()
-        .nodes()
-        .iter()
-        .filter(|n| n.point_count > 0)
-        .copied()
-        .collect();
-    let keys: Vec<NodeKey> = stored.iter().map(|n| n.key).collect();
-    let records = store.records(&keys).expect("records");
+    let (stored, keys) = stored_nodes(&store);
+    let records = store.records(&keys, true).expect("records");
     let mut points = 0;
     for (info, record) in stored.iter().zip(&records) {
-        let range = info.byte_range();
+        let pieces: Vec<_> = info.pieces(info.byte_len).collect();
+        assert_eq!(pieces.len(), 1, "a COPC chunk is stored in one piece");
+        let range = &pieces[0];
         assert_eq!(record[..], file[range.start as usize..range.end as usize]);
         let node = copc
             .decoder

@@ -213,10 +213,12 @@ pub struct RemoteNodes {
 }
 
 impl RemoteNodes {
-    async fn fetch(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, Status> {
+    /// `nodes`' records, or only their coarse sections where `coarse`.
+    async fn fetch(&self, nodes: &[NodeInfo], coarse: bool) -> Result<Vec<Vec<u8>>, Status> {
         let request = pb::FetchNodesRequest {
             dataset_id: self.dataset_id.clone(),
             nodes: nodes.iter().map(|n| node_key_message(n.key)).collect(),
+            coarse,
         };
         let mut client = self.client.clone();
         let mut stream = client.fetch_nodes(request).await?.into_inner();
@@ -227,12 +229,12 @@ impl RemoteNodes {
                     "the daemon sent more nodes than asked for",
                 ));
             };
-            if record.data.len() != info.byte_len as usize {
+            let expected = if coarse { info.head_len } else { info.byte_len };
+            if record.data.len() != expected as usize {
                 return Err(Status::internal(format!(
-                    "node {} came with {} bytes, its hierarchy says {}",
+                    "node {} came with {} bytes, its hierarchy says {expected}",
                     info.key,
                     record.data.len(),
-                    info.byte_len
                 )));
             }
             records.push(record.data);
@@ -241,15 +243,16 @@ impl RemoteNodes {
     }
 }
 
-impl NodeRecords for RemoteNodes {
-    fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError> {
+impl RemoteNodes {
+    /// `nodes`' records (or coarse sections), a request per group of nodes.
+    fn fetch_all(&self, nodes: &[NodeInfo], coarse: bool) -> Result<Vec<Vec<u8>>, LodError> {
         let mut records = Vec::with_capacity(nodes.len());
         for group in nodes.chunks(MAX_NODES_PER_REQUEST) {
             // The timeout is made inside the runtime: a thread of the renderer's own (the
             // read-ahead) is outside any.
-            let fetched = self
-                .runtime
-                .block_on(async { tokio::time::timeout(FETCH_TIMEOUT, self.fetch(group)).await });
+            let fetched = self.runtime.block_on(async {
+                tokio::time::timeout(FETCH_TIMEOUT, self.fetch(group, coarse)).await
+            });
             match fetched {
                 Ok(Ok(mut fetched)) if fetched.len() == group.len() => records.append(&mut fetched),
                 Ok(Ok(fetched)) => {
@@ -275,6 +278,20 @@ impl NodeRecords for RemoteNodes {
             }
         }
         Ok(records)
+    }
+}
+
+impl NodeRecords for RemoteNodes {
+    fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError> {
+        self.fetch_all(nodes, false)
+    }
+
+    /// A store's coarse sections, sent alone; a COPC file's chunks have none.
+    fn read_coarse_records(&self, nodes: &[NodeInfo]) -> Option<Result<Vec<Vec<u8>>, LodError>> {
+        match self.decoder {
+            Some(_) => None,
+            None => Some(self.fetch_all(nodes, true)),
+        }
     }
 
     fn decode(

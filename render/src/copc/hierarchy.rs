@@ -267,14 +267,11 @@ impl CopcPages {
                         self.point_count
                     )));
                 }
-                self.insert(NodeInfo {
-                    key,
+                let node = NodeInfo {
                     point_count: count,
-                    sample_grid: 0,
-                    child_mask: 0,
-                    offset: entry.offset,
-                    byte_len,
-                })?;
+                    ..NodeInfo::empty(key)
+                };
+                self.insert(node.in_one_piece(entry.offset, byte_len))?;
             }
             other => {
                 return Err(self.bad(format!("node {key} has a point count of {other}")));

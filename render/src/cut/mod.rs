@@ -7,8 +7,9 @@
 //!    pixel error, largest on screen first, as many as the GPU node cache holds;
 //! 2. **load**: the cut's nodes the GPU cache lacks are taken from the host cache
 //!    (`host_cache.rs`) or read from the store, in the cut's order (the load queue, by
-//!    priority), a group at a time so the transient memory stays small, the next group read
-//!    while this one is uploaded;
+//!    priority) a window at a time and by where they lie within it (`read_order.rs`), a group
+//!    at a time so the transient memory stays small, the next group read while this one is
+//!    uploaded;
 //! 3. **upload**: each is coloured for the frame's colour mode with the dataset's ranges
 //!    (`colors.rs`), put in Morton order, batched and quantised as any cloud, and written into
 //!    free batch slots of the GPU cache's pages (`gpu_cache.rs`), the least recently used nodes
@@ -28,6 +29,7 @@ mod host_cache;
 mod options;
 mod pages;
 mod point_sizes;
+mod read_order;
 mod report;
 mod select;
 mod store_space;
@@ -46,7 +48,7 @@ use thiserror::Error;
 
 use crate::color::{ColorMode, Coloring};
 use crate::filter::PointFilter;
-use crate::lod::codec::{coarse_len, Detail, COARSE_MAX_PIXELS};
+use crate::lod::codec::{Detail, COARSE_MAX_PIXELS};
 use crate::lod::{read_nodes_at, LodError, LodHierarchy, NodeKey, NodePoints, NodeRecords};
 use crate::raster::gpu_data::GpuBatch;
 use crate::raster::morton::morton_order_of_cells;
@@ -73,6 +75,7 @@ use gpu_cache::{GpuNodeCache, SizeFactors};
 use host_cache::HostNodeCache;
 use pages::Selected;
 use point_sizes::CutPointSizes;
+use read_order::in_read_order;
 use select::NodesInView;
 
 /// The most points of a page of the GPU node cache: few pages keep a frame's dispatches few,
@@ -294,6 +297,7 @@ impl CutRenderer {
             .filter(|n| !self.gpu_cache.touch(n.key, details.of(n)))
             .collect();
         report.counts.gpu_hits = (cut.nodes.len() - missing.len()) as u64;
+        let missing = in_read_order(missing, &hierarchy);
         let mut upload_ms = 0.0;
         let host = &self.host;
         let gpu_cache = &mut self.gpu_cache;
@@ -444,6 +448,7 @@ impl CutRenderer {
         if wanted.is_empty() {
             return;
         }
+        let wanted = in_read_order(wanted, &hierarchy);
         let records = Arc::clone(&dataset.records);
         let host = Arc::clone(&self.host);
         let thread = std::thread::Builder::new()
@@ -526,10 +531,12 @@ fn read_at_details(
             .iter()
             .zip(read_nodes_at(records, hierarchy, &keys, detail)?)
         {
-            bytes += match node.detail {
-                Detail::Coarse => coarse_len(node.len(), node.rgb.is_some()) as u64,
-                Detail::Full => u64::from(hierarchy.node_byte_len(node.key)),
-            };
+            // The bytes the hierarchy says were read: the record's head, or all of it.
+            let info = hierarchy.node(node.key);
+            bytes += u64::from(match node.detail {
+                Detail::Coarse => info.map_or(0, |n| n.head_len),
+                Detail::Full => info.map_or(0, |n| n.byte_len),
+            });
             read[i] = Some(node);
         }
     }

@@ -358,7 +358,11 @@ mod tests {
         let infos = hierarchy
             .nodes()
             .iter()
-            .map(|n| crate::lod::NodeInfo { offset: 0, ..*n })
+            .map(|n| crate::lod::NodeInfo {
+                offset: 0,
+                rest_offset: 0,
+                ..*n
+            })
             .collect();
         let stats = hierarchy.stats.clone();
         (

@@ -83,7 +83,9 @@ fn build_chunk(ctx: &BuildContext<'_>, chunk: Chunk, files: Vec<PathBuf>) -> Res
     for path in &files {
         spill::remove(path)?;
     }
-    let root = ctx.local_builder().build(chunk.key, points)?;
+    let mut group = Vec::new();
+    let root = ctx.local_builder().build(chunk.key, points, &mut group)?;
+    ctx.sink.store(group)?;
     ctx.finish_subtree(chunk.key, &root.points, root.sample_grid)
 }
 

@@ -1,14 +1,15 @@
 //! `LodHierarchy`: the small, always-resident description of a built dataset (its cube, every
-//! node's key, point count, sampling grid and byte range in the payload file, and the
+//! node's key, point count, sampling grid and where its record lies in the payload file, and the
 //! dataset's statistics), and its record.
 //!
 //! Layout, little-endian: "PFH5" | cube min 3 x f64 | side f64 | points u64 |
 //! max leaf points u32 | flags u8 (bit 0: RGB) | max RGB 3 x u16 | z range 2 x f64 |
 //! intensity bins used u32, then (value u16, count u64) each | classes used u16, then
 //! (class u8, count u64) each | nodes u32, then per node: level u8, x, y, z u32, points u32,
-//! sampling grid u16, child mask u8, payload offset u64, payload bytes u32 | checksum u64.
-//! A record of another version is refused (the dataset is then rebuilt): "PFH5" marks stores
-//! whose node records keep a coarse section with a checksum of its own ("PFN3", `codec.rs`).
+//! sampling grid u16, child mask u8, payload offset u64, payload bytes u32, head bytes u32,
+//! rest offset u64 | checksum u64. A record of another version is refused (the dataset is
+//! then rebuilt): "PFH6" marks stores whose node records keep a coarse section with a checksum
+//! of its own ("PFN3", `codec.rs`), stored apart from the rest of the record (`sink.rs`).
 
 use std::collections::{BTreeSet, HashMap, HashSet};
 
@@ -19,9 +20,9 @@ use super::error::LodError;
 use super::key::{NodeKey, RootCube};
 use super::stats::{DatasetStats, INTENSITY_BINS};
 
-const MAGIC: &[u8; 4] = b"PFH5";
+const MAGIC: &[u8; 4] = b"PFH6";
 /// Bytes of one node in the record.
-const NODE_RECORD_BYTES: usize = 32;
+const NODE_RECORD_BYTES: usize = 44;
 const CHECKSUM_SEED: &[u8] = b"hierarchy";
 
 /// One node of the hierarchy.
@@ -38,6 +39,13 @@ pub struct NodeInfo {
     /// Bytes of the node's record in the payload file (what reading it costs); 0 for a node
     /// without points.
     pub byte_len: u32,
+    /// The record's first bytes stored at `offset` (a store's coarse section); the other
+    /// `byte_len - head_len` lie at `rest_offset`. A record stored in one piece (every COPC
+    /// chunk) has `head_len == byte_len`.
+    pub head_len: u32,
+    /// Where the record's bytes after its head lie; `offset + head_len` when it is stored in
+    /// one piece.
+    pub rest_offset: u64,
 }
 
 impl NodeInfo {
@@ -50,16 +58,36 @@ impl NodeInfo {
             child_mask: 0,
             offset: 0,
             byte_len: 0,
+            head_len: 0,
+            rest_offset: 0,
         }
+    }
+
+    /// A record stored in one piece: `byte_len` bytes at `offset`.
+    pub fn in_one_piece(self, offset: u64, byte_len: u32) -> Self {
+        Self {
+            offset,
+            byte_len,
+            head_len: byte_len,
+            rest_offset: offset.saturating_add(u64::from(byte_len)),
+            ..self
+        }
+    }
+
+    /// The pieces of the record's first `len` bytes (at most all of them) in the payload
+    /// file: its head's, then its rest's where `len` reaches past the head.
+    pub fn pieces(&self, len: u32) -> impl Iterator<Item = std::ops::Range<u64>> {
+        let len = len.min(self.byte_len);
+        let head = len.min(self.head_len);
+        let rest = len - head;
+        [(self.offset, head), (self.rest_offset, rest)]
+            .into_iter()
+            .filter(|&(_, n)| n > 0)
+            .map(|(at, n)| at..at.saturating_add(u64::from(n)))
     }
 
     pub fn is_leaf(&self) -> bool {
         self.child_mask == 0
-    }
-
-    /// The node's record's bytes in the payload file.
-    pub fn byte_range(&self) -> std::ops::Range<u64> {
-        self.offset..self.offset + u64::from(self.byte_len)
     }
 }
 
@@ -229,12 +257,6 @@ impl LodHierarchy {
         self.index.get(&key).map(|&i| &self.nodes[i])
     }
 
-    /// Bytes of `key`'s record in the payload file: what reading it costs (0 for a node without
-    /// points or one the hierarchy does not list).
-    pub fn node_byte_len(&self, key: NodeKey) -> u32 {
-        self.node(key).map_or(0, |n| n.byte_len)
-    }
-
     /// Bytes of every node's record: the payload file's size after the build.
     pub fn payload_bytes(&self) -> u64 {
         self.nodes.iter().map(|n| u64::from(n.byte_len)).sum()
@@ -244,8 +266,7 @@ impl LodHierarchy {
     #[cfg(test)]
     pub(crate) fn set_byte_range(&mut self, key: NodeKey, offset: u64, byte_len: u32) {
         if let Some(&i) = self.index.get(&key) {
-            self.nodes[i].offset = offset;
-            self.nodes[i].byte_len = byte_len;
+            self.nodes[i] = self.nodes[i].in_one_piece(offset, byte_len);
         }
     }
 
@@ -334,6 +355,8 @@ impl LodHierarchy {
             out.push(n.child_mask);
             out.extend_from_slice(&n.offset.to_le_bytes());
             out.extend_from_slice(&n.byte_len.to_le_bytes());
+            out.extend_from_slice(&n.head_len.to_le_bytes());
+            out.extend_from_slice(&n.rest_offset.to_le_bytes());
         }
         let sum = checksum64(CHECKSUM_SEED, &out);
         out.extend_from_slice(&sum.to_le_bytes());
@@ -366,6 +389,11 @@ impl LodHierarchy {
         if magic == b"PFH3" {
             return Err(corrupt(
                 "a record of an earlier version (no point weights): rebuild the dataset",
+            ));
+        }
+        if magic == b"PFH5" {
+            return Err(corrupt(
+                "a record of an earlier version (records stored in one piece): rebuild the dataset",
             ));
         }
         if magic != MAGIC {
@@ -401,14 +429,20 @@ impl LodHierarchy {
                 y: r.u32()?,
                 z: r.u32()?,
             };
-            nodes.push(NodeInfo {
+            let node = NodeInfo {
                 key,
                 point_count: r.u32()?,
                 sample_grid: u32::from(r.u16()?),
                 child_mask: r.u8()?,
                 offset: r.u64()?,
                 byte_len: r.u32()?,
-            });
+                head_len: r.u32()?,
+                rest_offset: r.u64()?,
+            };
+            if node.head_len > node.byte_len {
+                return Err(corrupt("a node's head is longer than its record"));
+            }
+            nodes.push(node);
         }
         if r.at != body.len() {
             return Err(corrupt("trailing bytes"));

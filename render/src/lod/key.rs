@@ -53,6 +53,15 @@ impl NodeKey {
         UVec3::new(self.x, self.y, self.z)
     }
 
+    /// The node's place along a Z curve through its level: nodes near in it are near in space,
+    /// and siblings are next to each other.
+    pub fn morton(&self) -> u128 {
+        (0..u32::from(MAX_LEVEL)).fold(0, |code, bit| {
+            let at = |v: u32, axis: u32| u128::from((v >> bit) & 1) << (3 * bit + axis);
+            code | at(self.x, 0) | at(self.y, 1) | at(self.z, 2)
+        })
+    }
+
     /// The parent, or `None` for the root.
     pub fn parent(&self) -> Option<NodeKey> {
         (self.level > 0).then(|| NodeKey::new(self.level - 1, self.cell() / 2))

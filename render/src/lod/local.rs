@@ -1,13 +1,14 @@
 //! A chunk's local octree, built in memory: a node above the leaf bound splits its points into
 //! its children, the children are built, then the node samples its own points from theirs
-//! (bottom-up, as PotreeConverter 2 does) and every child is finished. The chunk's root is
+//! (bottom-up, as PotreeConverter 2 does) and every child is finished, into the chunk's group
+//! of nodes, stored together once the chunk is built (`sink.rs`). The chunk's root is
 //! returned unfinished: the levels above the chunks still sample from it.
 
 use super::error::LodError;
 use super::key::{NodeKey, RootCube, MAX_LEVEL};
 use super::point::RawPoint;
 use super::sampling::sample;
-use super::sink::NodeSink;
+use super::sink::{EncodedNode, NodeSink};
 
 /// A built subtree's root: its own points and its sampling grid (0 for a leaf).
 pub struct SubtreeRoot {
@@ -23,7 +24,12 @@ pub struct LocalBuilder<'a> {
 }
 
 impl LocalBuilder<'_> {
-    pub fn build(&self, key: NodeKey, points: Vec<RawPoint>) -> Result<SubtreeRoot, LodError> {
+    pub fn build(
+        &self,
+        key: NodeKey,
+        points: Vec<RawPoint>,
+        group: &mut Vec<EncodedNode>,
+    ) -> Result<SubtreeRoot, LodError> {
         if points.len() <= self.max_leaf_points || key.level >= MAX_LEVEL {
             return Ok(SubtreeRoot {
                 points,
@@ -38,7 +44,7 @@ impl LocalBuilder<'_> {
             if child_points.is_empty() {
                 continue;
             }
-            let child = self.build(key.child(i), child_points)?;
+            let child = self.build(key.child(i), child_points, group)?;
             own[i] = child.points;
             grids[i] = child.sample_grid;
             present[i] = true;
@@ -46,7 +52,7 @@ impl LocalBuilder<'_> {
         let sampled = sample(&self.cube, key, own, self.sample_grid, self.max_leaf_points);
         for (i, kept) in sampled.kept.iter().enumerate() {
             if present[i] {
-                self.sink.emit(key.child(i), kept, grids[i])?;
+                group.push(self.sink.encode(key.child(i), kept, grids[i])?);
             }
         }
         Ok(SubtreeRoot {

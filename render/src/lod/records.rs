@@ -16,14 +16,9 @@ pub trait NodeRecords: Send + Sync {
     /// The stored bytes of each of `nodes`, in order; each listed with points.
     fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError>;
 
-    /// The coarse sections of `nodes`' records (`codec::coarse_len`, for a dataset with or
-    /// without RGB), in order, where this source reads parts of records; `None` where it
-    /// reads them whole.
-    fn read_coarse_records(
-        &self,
-        _nodes: &[NodeInfo],
-        _has_rgb: bool,
-    ) -> Option<Result<Vec<Vec<u8>>, LodError>> {
+    /// The coarse sections of `nodes`' records (their heads), in order, where this source
+    /// reads parts of records; `None` where it reads them whole.
+    fn read_coarse_records(&self, _nodes: &[NodeInfo]) -> Option<Result<Vec<Vec<u8>>, LodError>> {
         None
     }
 
@@ -73,9 +68,7 @@ pub fn read_nodes_at(
         .copied()
         .collect();
     let coarse = match detail {
-        Detail::Coarse if !stored.is_empty() => {
-            records.read_coarse_records(&stored, hierarchy.stats.has_rgb)
-        }
+        Detail::Coarse if !stored.is_empty() => records.read_coarse_records(&stored),
         _ => None,
     };
     let bytes = match coarse {
@@ -128,17 +121,17 @@ pub const READS_IN_FLIGHT: usize = 8;
 
 /// `read` of each of `items`, in order, with up to [`READS_IN_FLIGHT`] reads at once; the
 /// first failure (in `items`' order among those read) stops the others taking more.
-pub fn read_concurrently<T: Sync, E: Send>(
+pub fn read_concurrently<T: Sync, R: Send, E: Send>(
     items: &[T],
-    read: impl Fn(&T) -> Result<Vec<u8>, E> + Sync,
-) -> Result<Vec<Vec<u8>>, E> {
+    read: impl Fn(&T) -> Result<R, E> + Sync,
+) -> Result<Vec<R>, E> {
     let threads = items.len().min(READS_IN_FLIGHT);
     if threads <= 1 {
         return items.iter().map(read).collect();
     }
     let next = AtomicUsize::new(0);
     let failed = AtomicBool::new(false);
-    let mut done: Vec<(usize, Result<Vec<u8>, E>)> = std::thread::scope(|scope| {
+    let mut done: Vec<(usize, Result<R, E>)> = std::thread::scope(|scope| {
         let workers: Vec<_> = (0..threads)
             .map(|_| {
                 scope.spawn(|| {

@@ -1,10 +1,16 @@
-//! `NodeSink`: where finished nodes go: encoded, appended to the store's payload file and
-//! listed, with their byte ranges, for the hierarchy.
+//! `NodeSink`: where finished nodes go: encoded, stored in the payload file a group at a time
+//! and listed, with where their records lie, for the hierarchy.
+//!
+//! A group (a chunk's octree, or the children of a node above the chunks) is one region of the
+//! payload file: the coarse sections of its nodes, shallow levels first and each level along a
+//! Z curve, then the rest of their records in the same order. A cut takes a chunk's nodes from
+//! the top down and reads most of them coarse, so it reads a few long ranges where it would
+//! read one range a node (docs/perf/payload-layout.md).
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
 
-use super::codec::encode_node;
+use super::codec::{coarse_len, encode_node};
 use super::error::LodError;
 use super::hierarchy::NodeInfo;
 use super::key::{NodeKey, RootCube};
@@ -20,6 +26,12 @@ pub struct NodeSink<'a> {
     nodes: Mutex<Vec<NodeInfo>>,
     points: AtomicU64,
     bytes: AtomicU64,
+}
+
+/// A finished node, encoded, waiting to be stored with the rest of its group.
+pub struct EncodedNode {
+    info: NodeInfo,
+    record: Vec<u8>,
 }
 
 impl<'a> NodeSink<'a> {
@@ -40,36 +52,76 @@ impl<'a> NodeSink<'a> {
         }
     }
 
-    /// Stores a finished node; `sample_grid` is 0 for a leaf. An empty node is only listed:
+    /// Encodes a finished node; `sample_grid` is 0 for a leaf. An empty node is only listed:
     /// the hierarchy keeps it if it has children.
+    pub fn encode(
+        &self,
+        key: NodeKey,
+        points: &[RawPoint],
+        sample_grid: u32,
+    ) -> Result<EncodedNode, LodError> {
+        let record = match points.is_empty() {
+            true => Vec::new(),
+            false => encode_node(&self.cube, key, points, self.has_rgb),
+        };
+        let byte_len = u32::try_from(record.len()).map_err(|_| LodError::CorruptNode {
+            key,
+            reason: format!("{} bytes is more than a node may hold", record.len()),
+        })?;
+        let head_len = match points.is_empty() {
+            true => 0,
+            false => coarse_len(points.len(), self.has_rgb) as u32,
+        };
+        let info = NodeInfo {
+            point_count: points.len() as u32,
+            sample_grid,
+            byte_len,
+            head_len,
+            ..NodeInfo::empty(key)
+        };
+        Ok(EncodedNode { info, record })
+    }
+
+    /// Stores one finished node.
     pub fn emit(
         &self,
         key: NodeKey,
         points: &[RawPoint],
         sample_grid: u32,
     ) -> Result<(), LodError> {
-        let (mut offset, mut byte_len) = (0, 0);
-        if !points.is_empty() {
-            let bytes = encode_node(&self.cube, key, points, self.has_rgb);
-            offset = self.store.write_node(key, &bytes)?;
-            byte_len = bytes.len() as u32;
-            self.bytes.fetch_add(bytes.len() as u64, Ordering::Relaxed);
-            self.points
-                .fetch_add(points.len() as u64, Ordering::Relaxed);
+        self.store(vec![self.encode(key, points, sample_grid)?])
+    }
+
+    /// Stores `group` as one region of the payload file (the module's layout) and lists its
+    /// nodes.
+    pub fn store(&self, mut group: Vec<EncodedNode>) -> Result<(), LodError> {
+        group.sort_unstable_by_key(|n| (n.info.key.level, n.info.key.morton()));
+        let (heads, rests): (Vec<&[u8]>, Vec<&[u8]>) = group
+            .iter()
+            .map(|n| n.record.split_at(n.info.head_len as usize))
+            .unzip();
+        let pieces: Vec<&[u8]> = heads.into_iter().chain(rests).collect();
+        let mut at = self.store.write_region(&pieces)?;
+        let mut infos: Vec<NodeInfo> = group.iter().map(|n| n.info).collect();
+        for info in infos.iter_mut().filter(|n| n.byte_len > 0) {
+            info.offset = at;
+            at += u64::from(info.head_len);
         }
-        let info = NodeInfo {
-            key,
-            point_count: points.len() as u32,
-            sample_grid,
-            child_mask: 0,
-            offset,
-            byte_len,
-        };
+        for info in infos.iter_mut().filter(|n| n.byte_len > 0) {
+            info.rest_offset = at;
+            at += u64::from(info.byte_len - info.head_len);
+        }
+        for info in &infos {
+            self.bytes
+                .fetch_add(u64::from(info.byte_len), Ordering::Relaxed);
+            self.points
+                .fetch_add(u64::from(info.point_count), Ordering::Relaxed);
+            self.progress.stored(*info);
+        }
         self.nodes
             .lock()
             .unwrap_or_else(|poisoned| poisoned.into_inner())
-            .push(info);
-        self.progress.stored(info);
+            .extend(infos);
         Ok(())
     }
 

@@ -1,22 +1,23 @@
 //! `LodStore`: a built dataset in two places. The node payloads are appended to one file (as
-//! Potree 2's `octree.bin`), each addressed by the byte range its [`NodeInfo`] records; the
-//! hierarchy is one record in a `sled::Tree` the caller owns (so it can live in the dataset
-//! cache). Payloads are kept out of sled because sled holds process memory in proportion to
-//! the bytes it stores (docs/perf/lod-build.md).
+//! Potree 2's `octree.bin`), each record in two pieces its [`NodeInfo`] locates (`sink.rs`
+//! lays them out); the hierarchy is one record in a `sled::Tree` the caller owns (so it can
+//! live in the dataset cache). Payloads are kept out of sled because sled holds process memory
+//! in proportion to the bytes it stores (docs/perf/lod-build.md).
 //!
 //! The hierarchy is written last, after the payload file is synced, so a build that did not
-//! finish leaves no hierarchy and is never read as complete. Nodes are appended from many
-//! threads at offsets reserved from an atomic counter, and read with positioned reads on one
-//! shared handle: reads need no lock and may run on many threads at once.
+//! finish leaves no hierarchy and is never read as complete. Regions are appended from many
+//! threads at offsets reserved from an atomic counter. Reads join nearby pieces into runs,
+//! positioned reads on one shared handle: they need no lock and run several at once.
 
 use std::fs::{File, OpenOptions};
 use std::io;
+use std::ops::Range;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
-use super::codec::{coarse_len, NodePoints};
+use super::codec::NodePoints;
 use super::error::LodError;
 use super::hierarchy::{LodHierarchy, NodeInfo};
 use super::key::NodeKey;
@@ -65,6 +66,12 @@ impl LodStore {
             .metadata()
             .map_err(|e| LodError::payload(&path, e))?
             .len();
+        // Reads are whole runs of pieces, planned here; the kernel's read-ahead would take
+        // what follows a run as well, mostly rests a coarse cut leaves out
+        // (docs/perf/payload-layout.md). Advice only: a file system without it reads as asked.
+        if let Err(error) = rustix::fs::fadvise(&file, 0, None, rustix::fs::Advice::Random) {
+            tracing::debug!(path = %path.display(), %error, "no read-ahead advice");
+        }
         let payload = Payload {
             path,
             file,
@@ -103,22 +110,20 @@ impl LodStore {
         Ok(())
     }
 
-    /// Appends a node's record to the payload file and returns its offset; callable from many
-    /// threads at once (each write goes to a range reserved for it alone).
-    pub(crate) fn write_node(&self, key: NodeKey, bytes: &[u8]) -> Result<u64, LodError> {
-        u32::try_from(bytes.len()).map_err(|_| LodError::CorruptNode {
-            key,
-            reason: format!("{} bytes is more than a node may hold", bytes.len()),
-        })?;
-        let offset = self
-            .payload
-            .end
-            .fetch_add(bytes.len() as u64, Ordering::Relaxed);
-        self.payload
-            .file
-            .write_all_at(bytes, offset)
-            .map_err(|e| self.payload.error(e))?;
-        Ok(offset)
+    /// Appends `pieces` one after another to the payload file and returns where the first
+    /// starts; callable from many threads at once (each region is reserved for one caller).
+    pub(crate) fn write_region(&self, pieces: &[&[u8]]) -> Result<u64, LodError> {
+        let len: u64 = pieces.iter().map(|p| p.len() as u64).sum();
+        let start = self.payload.end.fetch_add(len, Ordering::Relaxed);
+        let mut at = start;
+        for piece in pieces {
+            self.payload
+                .file
+                .write_all_at(piece, at)
+                .map_err(|e| self.payload.error(e))?;
+            at += piece.len() as u64;
+        }
+        Ok(start)
     }
 
     /// Syncs the payload file, then writes the hierarchy and flushes sled: a hierarchy on disk
@@ -143,33 +148,78 @@ impl LodStore {
         LodHierarchy::decode(&bytes)
     }
 
-    /// Reads a node's byte range from the payload file, after checking that the file holds it
+    /// Reads a node's record from the payload file, after checking that the file holds it
     /// (a damaged hierarchy or a truncated file must not cause a huge allocation).
     pub(super) fn read_range(&self, info: &NodeInfo) -> Result<Vec<u8>, LodError> {
-        self.read_prefix(info, info.byte_len)
+        let mut records = self.read_parts(std::slice::from_ref(info), |n| n.byte_len)?;
+        Ok(records.pop().expect("one record read"))
     }
 
-    /// The first `len` bytes of `info`'s record (at most its length).
-    fn read_prefix(&self, info: &NodeInfo, len: u32) -> Result<Vec<u8>, LodError> {
-        let key = info.key;
-        let corrupt = |reason: String| LodError::CorruptNode { key, reason };
+    /// The first `len(node)` bytes of each of `nodes`' records, in order. Every piece is
+    /// checked against the file before anything is allocated; the pieces are then read in
+    /// runs ([`read_runs`]), several runs in flight.
+    fn read_parts(
+        &self,
+        nodes: &[NodeInfo],
+        len: impl Fn(&NodeInfo) -> u32,
+    ) -> Result<Vec<Vec<u8>>, LodError> {
         let file_len = self.payload.len()?;
-        let end = info.offset.checked_add(u64::from(info.byte_len));
-        if end.is_none_or(|end| end > file_len) {
-            return Err(corrupt(format!(
-                "its {} bytes at offset {} run past the end of the payload file ({file_len} bytes)",
-                info.byte_len, info.offset
-            )));
+        for info in nodes {
+            check_within(info, file_len)?;
         }
-        let mut bytes = vec![0; len.min(info.byte_len) as usize];
-        match self.payload.file.read_exact_at(&mut bytes, info.offset) {
-            Ok(()) => Ok(bytes),
-            Err(e) if e.kind() == io::ErrorKind::UnexpectedEof => Err(corrupt(format!(
-                "the payload file ended within its {} bytes at offset {}",
-                info.byte_len, info.offset
-            ))),
-            Err(e) => Err(self.payload.error(e)),
+        let (mut pieces, lens) = pieces_of(nodes, len);
+        let runs = read_runs(&mut pieces);
+        let read = read_concurrently(&runs, |run| self.read_run(nodes, &pieces, run))?;
+        let mut records: Vec<Vec<u8>> = (0..nodes.len()).map(|_| Vec::new()).collect();
+        let mut rests = Vec::new();
+        for (piece, bytes) in pieces.iter().zip(read.into_iter().flatten()) {
+            match piece.part {
+                0 => records[piece.node] = bytes,
+                _ => rests.push((piece.node, bytes)),
+            }
         }
+        for (node, rest) in rests {
+            let record = &mut records[node];
+            record.reserve_exact(lens[node] - record.len());
+            record.extend_from_slice(&rest);
+        }
+        Ok(records)
+    }
+
+    /// One run's pieces, each its own buffer: read straight into it where the run is one
+    /// piece, else cut from the run's bytes.
+    fn read_run(
+        &self,
+        nodes: &[NodeInfo],
+        pieces: &[Piece],
+        run: &Run,
+    ) -> Result<Vec<Vec<u8>>, LodError> {
+        let first = &pieces[run.pieces.start];
+        let key = nodes[first.node].key;
+        let mut bytes = vec![0; (run.range.end - run.range.start) as usize];
+        match self.payload.file.read_exact_at(&mut bytes, run.range.start) {
+            Ok(()) => {}
+            Err(e) if e.kind() == io::ErrorKind::UnexpectedEof => {
+                return Err(LodError::CorruptNode {
+                    key,
+                    reason: format!(
+                        "the payload file ended within bytes {}..{}",
+                        run.range.start, run.range.end
+                    ),
+                })
+            }
+            Err(e) => return Err(self.payload.error(e)),
+        }
+        if run.pieces.len() == 1 && first.range == run.range {
+            return Ok(vec![bytes]);
+        }
+        Ok(pieces[run.pieces.clone()]
+            .iter()
+            .map(|p| {
+                let start = (p.range.start - run.range.start) as usize;
+                bytes[start..start + (p.range.end - p.range.start) as usize].to_vec()
+            })
+            .collect())
     }
 
     /// The raw stored bytes of a node of `hierarchy` (tests and tools that check the store);
@@ -207,13 +257,16 @@ impl LodStore {
     ) -> Result<(), LodError> {
         let info = *hierarchy.node(key).ok_or(LodError::UnknownNode { key })?;
         if bytes.len() == info.byte_len as usize {
-            return self
-                .payload
-                .file
-                .write_all_at(bytes, info.offset)
-                .map_err(|e| self.payload.error(e));
+            let (head, rest) = bytes.split_at(info.head_len as usize);
+            for (piece, at) in [(head, info.offset), (rest, info.rest_offset)] {
+                self.payload
+                    .file
+                    .write_all_at(piece, at)
+                    .map_err(|e| self.payload.error(e))?;
+            }
+            return Ok(());
         }
-        let offset = self.write_node(key, bytes)?;
+        let offset = self.write_region(&[bytes])?;
         hierarchy.set_byte_range(key, offset, bytes.len() as u32);
         self.write_hierarchy(hierarchy).map(drop)
     }
@@ -222,19 +275,141 @@ impl LodStore {
 impl NodeRecords for LodStore {
     /// Positioned reads of the payload file, several in flight.
     fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError> {
-        read_concurrently(nodes, |info| self.read_range(info))
+        self.read_parts(nodes, |n| n.byte_len)
     }
 
-    /// The records' coarse sections: their first bytes, as long as the record's point count
-    /// and colours make that section.
-    fn read_coarse_records(
-        &self,
-        nodes: &[NodeInfo],
-        has_rgb: bool,
-    ) -> Option<Result<Vec<Vec<u8>>, LodError>> {
-        Some(read_concurrently(nodes, |info| {
-            let len = coarse_len(info.point_count as usize, has_rgb);
-            self.read_prefix(info, u32::try_from(len).unwrap_or(u32::MAX))
-        }))
+    /// The records' coarse sections: their heads, which the build stores apart from the rest.
+    fn read_coarse_records(&self, nodes: &[NodeInfo]) -> Option<Result<Vec<Vec<u8>>, LodError>> {
+        Some(self.read_parts(nodes, |n| n.head_len))
+    }
+}
+
+/// Ranges of the payload file closer than this are read as one, the bytes between them read
+/// and dropped: a disk spends longer on a second request than on this many more bytes of one
+/// (docs/perf/payload-layout.md).
+const MERGE_GAP: u64 = 64 << 10;
+
+/// The longest read a run makes: long enough that a disk streams, short enough that a group
+/// of nodes stored together still spreads over the reads in flight.
+const MAX_RUN: u64 = 1 << 20;
+
+/// A piece of a record to read: `part` 0 is the first the record has, 1 the second.
+struct Piece {
+    node: usize,
+    part: usize,
+    range: Range<u64>,
+}
+
+/// One read: `range` of the payload file, covering `pieces` (indices into the sorted pieces).
+struct Run {
+    range: Range<u64>,
+    pieces: Range<usize>,
+}
+
+/// The pieces of the first `len(node)` bytes of each of `nodes`' records, and those lengths.
+fn pieces_of(nodes: &[NodeInfo], len: impl Fn(&NodeInfo) -> u32) -> (Vec<Piece>, Vec<usize>) {
+    let mut pieces = Vec::new();
+    let mut lens = Vec::with_capacity(nodes.len());
+    for (node, info) in nodes.iter().enumerate() {
+        let len = len(info).min(info.byte_len);
+        lens.push(len as usize);
+        for (part, range) in info.pieces(len).enumerate() {
+            pieces.push(Piece { node, part, range });
+        }
+    }
+    (pieces, lens)
+}
+
+/// Sorts `pieces` by where they lie and joins those at most [`MERGE_GAP`] apart into runs of
+/// at most [`MAX_RUN`] bytes (a longer piece is a run of its own).
+fn read_runs(pieces: &mut [Piece]) -> Vec<Run> {
+    pieces.sort_unstable_by_key(|p| p.range.start);
+    let mut runs: Vec<Run> = Vec::new();
+    for (i, piece) in pieces.iter().enumerate() {
+        match runs.last_mut() {
+            Some(run)
+                if piece.range.start <= run.range.end + MERGE_GAP
+                    && piece.range.end.max(run.range.end) - run.range.start <= MAX_RUN =>
+            {
+                run.range.end = run.range.end.max(piece.range.end);
+                run.pieces.end = i + 1;
+            }
+            _ => runs.push(Run {
+                range: piece.range.clone(),
+                pieces: i..i + 1,
+            }),
+        }
+    }
+    runs
+}
+
+/// Fails unless both pieces of `info`'s record lie within a payload file of `file_len` bytes.
+fn check_within(info: &NodeInfo, file_len: u64) -> Result<(), LodError> {
+    for range in info.pieces(info.byte_len) {
+        if range.end > file_len {
+            return Err(LodError::CorruptNode {
+                key: info.key,
+                reason: format!(
+                    "its bytes {}..{} run past the end of the payload file ({file_len} bytes)",
+                    range.start, range.end
+                ),
+            });
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pieces(ranges: &[Range<u64>]) -> Vec<Piece> {
+        ranges
+            .iter()
+            .enumerate()
+            .map(|(node, range)| Piece {
+                node,
+                part: 0,
+                range: range.clone(),
+            })
+            .collect()
+    }
+
+    fn runs(ranges: &[Range<u64>]) -> Vec<(Range<u64>, Vec<usize>)> {
+        let mut pieces = pieces(ranges);
+        read_runs(&mut pieces)
+            .into_iter()
+            .map(|run| {
+                let nodes = pieces[run.pieces].iter().map(|p| p.node).collect();
+                (run.range, nodes)
+            })
+            .collect()
+    }
+
+    /// Pieces join while the gap between them is at most `MERGE_GAP` and the run stays within
+    /// `MAX_RUN`; they are taken in file order whatever order they are asked in, and a piece
+    /// inside another's range (a damaged hierarchy) still reads.
+    #[test]
+    fn pieces_join_into_runs_by_gap_and_length() {
+        let gap = MERGE_GAP;
+        assert_eq!(
+            runs(&[100..200, 0..100, 200 + gap..300 + gap]),
+            vec![(0..300 + gap, vec![1, 0, 2])]
+        );
+        assert_eq!(
+            runs(&[0..100, 101 + gap..200 + gap]),
+            vec![(0..100, vec![0]), (101 + gap..200 + gap, vec![1])]
+        );
+        let half = MAX_RUN / 2;
+        assert_eq!(
+            runs(&[0..half, half..2 * half, 2 * half..2 * half + 1]),
+            vec![(0..MAX_RUN, vec![0, 1]), (MAX_RUN..MAX_RUN + 1, vec![2])]
+        );
+        assert_eq!(
+            runs(&[0..3 * MAX_RUN, 10..20]),
+            vec![(0..3 * MAX_RUN, vec![0]), (10..20, vec![1])]
+        );
+        assert_eq!(runs(&[0..1_000, 10..20]), vec![(0..1_000, vec![0, 1])]);
+        assert!(runs(&[]).is_empty());
     }
 }

@@ -81,10 +81,12 @@ fn build_parent(
         ctx.options.sample_grid,
         ctx.options.max_leaf_points,
     );
+    let mut group = Vec::new();
     for (i, kept) in sampled.kept.iter().enumerate() {
         if present[i] {
-            ctx.sink.emit(parent.child(i), kept, grids[i])?;
+            group.push(ctx.sink.encode(parent.child(i), kept, grids[i])?);
         }
     }
+    ctx.sink.store(group)?;
     ctx.finish_subtree(parent, &sampled.parent, sampled.grid)
 }

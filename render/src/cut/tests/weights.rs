@@ -1,6 +1,7 @@
 //! High quality on a cut weighs each point by the original points it stands for.
 
 use super::*;
+use crate::testing::max_channel_difference;
 
 /// High quality on a cut's pages adds each point as many times as its weight where its
 /// node's child below it is not drawn, once where it is: the frame matches the weighted
@@ -99,19 +100,15 @@ fn weighted_high_quality_matches_the_weighted_reference() {
         ..settings
     };
     let with_32 = renderer.render(gpu_cloud, &forced).expect("render").image;
-    let difference = |a: &image::RgbaImage, b: &image::RgbaImage| {
-        a.as_raw()
-            .iter()
-            .zip(b.as_raw())
-            .map(|(x, y)| x.abs_diff(*y))
-            .max()
-            .unwrap_or(0)
-    };
     assert!(
-        difference(&expected, &unweighted) > 32,
+        max_channel_difference(&expected, &unweighted) > 32,
         "the weights matter"
     );
-    assert_eq!(difference(&auto, &with_32), 0, "64-bit against 32-bit sums");
-    let off = difference(&auto, &expected);
+    assert_eq!(
+        max_channel_difference(&auto, &with_32),
+        0,
+        "64-bit against 32-bit sums"
+    );
+    let off = max_channel_difference(&auto, &expected);
     assert!(off <= 1, "differs from the weighted reference by {off}/255");
 }

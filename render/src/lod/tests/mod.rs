@@ -323,7 +323,11 @@ fn without_offsets(hierarchy: &LodHierarchy) -> (RootCube, u64, DatasetStats, Ve
     let nodes = hierarchy
         .nodes()
         .iter()
-        .map(|n| NodeInfo { offset: 0, ..*n })
+        .map(|n| NodeInfo {
+            offset: 0,
+            rest_offset: 0,
+            ..*n
+        })
         .collect();
     (
         hierarchy.cube,

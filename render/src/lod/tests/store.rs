@@ -29,8 +29,7 @@ fn every_node_has_its_own_byte_range_in_the_payload_file() {
     let mut ranges: Vec<_> = hierarchy
         .nodes()
         .iter()
-        .filter(|n| n.point_count > 0)
-        .map(NodeInfo::byte_range)
+        .flat_map(|n| n.pieces(n.byte_len))
         .collect();
     ranges.sort_by_key(|r| r.start);
     assert_eq!(ranges[0].start, 0);
@@ -46,7 +45,6 @@ fn every_node_has_its_own_byte_range_in_the_payload_file() {
             "node {}",
             node.key
         );
-        assert_eq!(hierarchy.node_byte_len(node.key), node.byte_len);
     }
     let report = &built.report;
     assert!(report.hierarchy_bytes > 0);
@@ -143,7 +141,8 @@ fn a_truncated_payload_file_gives_corrupt_nodes_naming_them() {
     for node in hierarchy.nodes().iter().filter(|n| n.point_count > 0) {
         match built.store.read_node(&hierarchy, node.key) {
             Ok(points) => {
-                assert!(node.byte_range().end <= length / 2, "node {}", node.key);
+                let end = node.pieces(node.byte_len).map(|r| r.end).max();
+                assert!(end <= Some(length / 2), "node {}", node.key);
                 assert_eq!(points.len(), node.point_count as usize);
                 whole += 1;
             }
@@ -206,17 +205,58 @@ fn a_store_reopened_from_disk_reads_every_node_equal() {
 #[test]
 fn a_hierarchy_of_the_earlier_layout_is_refused() {
     let built = one_big_leaf();
-    edit_hierarchy_record(&built.store, |record| {
-        record[..4].copy_from_slice(b"PFH1");
-        let body = record.len() - 8;
-        let sum = super::super::checksum::checksum64(b"hierarchy", &record[..body]);
-        record[body..].copy_from_slice(&sum.to_le_bytes());
+    for magic in [b"PFH1", b"PFH5"] {
+        edit_hierarchy_record(&built.store, |record| {
+            record[..4].copy_from_slice(magic);
+            let body = record.len() - 8;
+            let sum = super::super::checksum::checksum64(b"hierarchy", &record[..body]);
+            record[body..].copy_from_slice(&sum.to_le_bytes());
+        });
+        let error = built.store.read_hierarchy().expect_err("refused");
+        assert!(
+            matches!(&error, LodError::CorruptHierarchy(reason) if reason.contains("rebuild")),
+            "{error}"
+        );
+    }
+}
+
+/// A chunk's nodes are stored together, their coarse sections first, shallow levels first
+/// (as are the children of each node above the chunks): the coarse sections of the top levels,
+/// as a far view's cut takes them, fill a few stretches of the file, where records stored
+/// whole, each coarse section followed by its rest, leave a stretch a node.
+#[test]
+fn the_top_levels_coarse_sections_are_read_in_few_runs() {
+    let built = build_with(&GeneratedSource::terrain(200_000, 7), |o| {
+        o.max_chunk_points = 25_000;
     });
-    let error = built.store.read_hierarchy().expect_err("refused");
+    let hierarchy = &built.report.hierarchy;
+    let top: Vec<NodeInfo> = hierarchy
+        .nodes()
+        .iter()
+        .filter(|n| n.point_count > 0 && n.key.level <= 4)
+        .copied()
+        .collect();
+    // Stretches of the file the top levels' coarse sections fill without a byte between.
+    let mut heads: Vec<_> = top.iter().flat_map(|n| n.pieces(n.head_len)).collect();
+    heads.sort_by_key(|r| r.start);
+    let stretches = 1 + heads.windows(2).filter(|w| w[0].end != w[1].start).count();
     assert!(
-        matches!(&error, LodError::CorruptHierarchy(reason) if reason.contains("rebuild")),
-        "{error}"
+        top.len() >= 4 * stretches,
+        "{} nodes in {stretches} stretches",
+        top.len()
     );
+    for node in &top {
+        assert!(node.head_len < node.byte_len, "node {}", node.key);
+    }
+    // Read together, the pieces come back as each node's record.
+    let keys: Vec<NodeKey> = top.iter().map(|n| n.key).collect();
+    let read = read_nodes(&built.store, hierarchy, &keys).expect("read");
+    for (node, points) in top.iter().zip(&read) {
+        assert_eq!(
+            points,
+            &built.store.read_node(hierarchy, node.key).expect("node")
+        );
+    }
 }
 
 #[test]

@@ -26,7 +26,7 @@ use crate::camera::Camera;
 use crate::camera::Projection;
 use crate::cloud::pack_rgba8;
 use crate::reference;
-use crate::testing::{compare_images, gpu};
+use crate::testing::{compare_images, gpu, max_channel_difference};
 
 /// Survey-like coordinates, far from zero, so that the recentring path is always exercised.
 const SURVEY_ORIGIN: DVec3 = DVec3::new(515_370.0, 4_918_340.0, 2_200.0);
@@ -187,14 +187,4 @@ fn surface_with_depth_noise(settings: &FrameSettings, seed: u64) -> PointCloud {
         depths.extend((0..rng.random_range(0..4)).map(|_| front * rng.random_range(1.02..1.3)));
         depths
     })
-}
-
-/// Largest difference of any channel of any pixel.
-fn max_channel_difference(a: &image::RgbaImage, b: &image::RgbaImage) -> u8 {
-    a.as_raw()
-        .iter()
-        .zip(b.as_raw())
-        .map(|(x, y)| x.abs_diff(*y))
-        .max()
-        .unwrap_or(0)
 }
