@@ -106,7 +106,7 @@ pub async fn serve(
 ) -> anyhow::Result<()> {
     let address = listener.local_addr()?;
     options.check_exposure(address)?;
-    let mut server = tonic::transport::Server::builder();
+    let mut server = pointfarm_proto::endpoint::server_builder();
     if let Some(tls) = &options.tls {
         server = server
             .tls_config(
@@ -236,7 +236,7 @@ impl EmbeddedListener {
         let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
         let gate = EmbeddedGate(Arc::from(token.as_str()));
         let server = tokio::spawn(
-            tonic::transport::Server::builder()
+            pointfarm_proto::endpoint::server_builder()
                 .add_service(WorkerServiceServer::with_interceptor(api, gate))
                 .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async {
                     let _ = stopped.await;

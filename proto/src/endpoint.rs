@@ -9,6 +9,25 @@ use std::time::Duration;
 
 use tonic::transport::{Certificate, ClientTlsConfig, Endpoint};
 
+/// HTTP/2 flow control: the bytes a peer may send on a stream, and on a whole connection,
+/// before the receiver reads them. h2's defaults (64 KiB windows of 16 KiB frames) held a
+/// worker's node fetches from the daemon to a fraction of the loopback's speed
+/// (docs/perf/grpc-windows.md); a few MiB keep a fetch of node records moving while what may
+/// wait unread stays small.
+pub const HTTP2_STREAM_WINDOW_BYTES: u32 = 4 << 20;
+pub const HTTP2_CONNECTION_WINDOW_BYTES: u32 = 16 << 20;
+/// The largest HTTP/2 frame a peer may send: fewer frames for the same bytes.
+pub const HTTP2_MAX_FRAME_BYTES: u32 = 1 << 20;
+
+/// A tonic server with the HTTP/2 windows and frame size clients get, for what they send: a
+/// dataset's files, the frames workers hand in.
+pub fn server_builder() -> tonic::transport::Server {
+    tonic::transport::Server::builder()
+        .initial_stream_window_size(HTTP2_STREAM_WINDOW_BYTES)
+        .initial_connection_window_size(HTTP2_CONNECTION_WINDOW_BYTES)
+        .max_frame_size(HTTP2_MAX_FRAME_BYTES)
+}
+
 /// A daemon's address with its TLS settings.
 #[derive(Debug, Clone)]
 pub struct ServerEndpoint {
@@ -77,7 +96,10 @@ impl ServerEndpoint {
         };
         let endpoint = Endpoint::from_shared(self.url.clone())
             .map_err(|e| invalid(e.to_string()))?
-            .connect_timeout(Duration::from_secs(10));
+            .connect_timeout(Duration::from_secs(10))
+            .initial_stream_window_size(HTTP2_STREAM_WINDOW_BYTES)
+            .initial_connection_window_size(HTTP2_CONNECTION_WINDOW_BYTES)
+            .max_frame_size(HTTP2_MAX_FRAME_BYTES);
         if !self.is_tls() {
             return Ok(endpoint);
         }
