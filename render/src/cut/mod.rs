@@ -8,8 +8,8 @@
 //! 2. **load**: the cut's nodes the GPU cache lacks are taken from the host cache
 //!    (`host_cache.rs`) or read from the store, in the cut's order (the load queue, by
 //!    priority) a window at a time and by where they lie within it (`read_order.rs`), a group
-//!    at a time so the transient memory stays small, the next group read while this one is
-//!    uploaded;
+//!    at a time so the transient memory stays small (`load.rs`): the next group's records
+//!    read while this one's are decoded, and the one before prepared and uploaded;
 //! 3. **upload**: each is coloured for the frame's colour mode with the dataset's ranges
 //!    (`colors.rs`), put in Morton order, batched and quantised as any cloud, and written into
 //!    free batch slots of the GPU cache's pages (`gpu_cache.rs`), the least recently used nodes
@@ -26,6 +26,7 @@ mod colors;
 mod dataset;
 mod gpu_cache;
 mod host_cache;
+mod load;
 mod options;
 mod pages;
 mod point_sizes;
@@ -48,8 +49,8 @@ use thiserror::Error;
 
 use crate::color::{ColorMode, Coloring};
 use crate::filter::PointFilter;
-use crate::lod::codec::{Detail, COARSE_MAX_PIXELS};
-use crate::lod::{read_nodes_at, LodError, LodHierarchy, NodeKey, NodePoints, NodeRecords};
+use crate::lod::codec::Detail;
+use crate::lod::{LodError, LodHierarchy, NodeKey, NodePoints};
 use crate::raster::gpu_data::GpuBatch;
 use crate::raster::morton::morton_order_of_cells;
 use crate::raster::points::ChunkData;
@@ -73,6 +74,7 @@ pub use stored::StoredLod;
 use dataset::LOAD_GROUP_NODES;
 use gpu_cache::{GpuNodeCache, SizeFactors};
 use host_cache::HostNodeCache;
+use load::{fetch_at_details, fetch_group, FrameDetails};
 use pages::Selected;
 use point_sizes::CutPointSizes;
 use read_order::in_read_order;
@@ -302,18 +304,29 @@ impl CutRenderer {
         let host = &self.host;
         let gpu_cache = &mut self.gpu_cache;
         std::thread::scope(|scope| -> Result<(), CutError> {
-            // Three stages run at once, a group apart: one thread reads groups, another
-            // prepares them (on all cores), and this one uploads, so the disk, the cores and
-            // the transfers overlap (docs/perf/cold-first-frame.md,
-            // docs/perf/prepare-pipeline.md).
+            // Four stages run at once, a group apart: one thread reads groups' records,
+            // another decodes them (on all cores), a third prepares them (on all cores), and
+            // this one uploads, so the disk or the daemon, the cores and the transfers overlap
+            // (docs/perf/cold-first-frame.md, docs/perf/prepare-pipeline.md,
+            // docs/perf/fetch-decode-stages.md).
+            let (fetched_sender, fetched_receiver) = std::sync::mpsc::sync_channel(1);
             let (read_sender, read_receiver) = std::sync::mpsc::sync_channel(1);
             let (prepared_sender, prepared_receiver) = std::sync::mpsc::sync_channel(1);
             let (missing, hierarchy, details) = (&missing, &hierarchy, &details);
             scope.spawn(move || {
                 for group in missing.chunks(LOAD_GROUP_NODES) {
-                    let loaded = load_group(host, dataset, hierarchy, details, group);
-                    let failed = loaded.is_err();
+                    let fetched = fetch_group(host, dataset, hierarchy, details, group);
+                    let failed = fetched.is_err();
                     // A closed channel: a later stage stopped on an error.
+                    if fetched_sender.send(fetched).is_err() || failed {
+                        break;
+                    }
+                }
+            });
+            scope.spawn(move || {
+                for fetched in fetched_receiver {
+                    let loaded = fetched.and_then(|group| group.decode(host, dataset, hierarchy));
+                    let failed = loaded.is_err();
                     if read_sender.send(loaded).is_err() || failed {
                         break;
                     }
@@ -457,9 +470,9 @@ impl CutRenderer {
                 let mut bytes = 0;
                 for group in wanted.chunks(LOAD_GROUP_NODES) {
                     let group: Vec<&CutNode> = group.iter().collect();
-                    let (read, read_bytes) =
-                        read_at_details(records.as_ref(), &hierarchy, &details, &group)?;
-                    bytes += read_bytes;
+                    let fetched = fetch_at_details(records.as_ref(), &hierarchy, &details, &group)?;
+                    bytes += fetched.bytes_read();
+                    let read = fetched.decode(records.as_ref(), &hierarchy)?;
                     if let Ok(mut host) = host.lock() {
                         for node in read {
                             host.insert(Arc::new(node));
@@ -473,134 +486,6 @@ impl CutRenderer {
             Err(error) => tracing::debug!(%error, "no read-ahead thread"),
         }
     }
-}
-
-/// Which detail a frame reads each node of its cut at (`lod::codec::Detail`): coarse where
-/// the node spans at most [`COARSE_MAX_PIXELS`] and the frame draws nothing the coarse section
-/// lacks (colours from RGB or heights, no attribute filter, a pixel error above 0), so a cold
-/// frame reads about half the bytes (docs/perf/coarse-reads.md).
-#[derive(Debug, Clone, Copy)]
-struct FrameDetails {
-    coarse: bool,
-}
-
-impl FrameDetails {
-    /// Every node read whole.
-    const FULL: Self = Self { coarse: false };
-
-    fn new(
-        options: &CutOptions,
-        dataset: &LodDataset,
-        coloring: Coloring,
-        filter: &PointFilter,
-    ) -> Self {
-        Self {
-            coarse: options.lod_error > 0.0
-                && dataset.coloring.needs_only_coarse(coloring.mode)
-                && !filter.reads_attributes(),
-        }
-    }
-
-    fn of(&self, node: &CutNode) -> Detail {
-        if self.coarse && node.priority <= COARSE_MAX_PIXELS {
-            Detail::Coarse
-        } else {
-            Detail::Full
-        }
-    }
-}
-
-/// Reads `nodes` at their details, in their order, and the bytes that took.
-fn read_at_details(
-    records: &dyn NodeRecords,
-    hierarchy: &LodHierarchy,
-    details: &FrameDetails,
-    nodes: &[&CutNode],
-) -> Result<(Vec<NodePoints>, u64), LodError> {
-    let mut read: Vec<Option<NodePoints>> = (0..nodes.len()).map(|_| None).collect();
-    let mut bytes = 0;
-    for detail in [Detail::Coarse, Detail::Full] {
-        let at: Vec<usize> = (0..nodes.len())
-            .filter(|&i| details.of(nodes[i]) == detail)
-            .collect();
-        if at.is_empty() {
-            continue;
-        }
-        let keys: Vec<NodeKey> = at.iter().map(|&i| nodes[i].key).collect();
-        for (&i, node) in at
-            .iter()
-            .zip(read_nodes_at(records, hierarchy, &keys, detail)?)
-        {
-            // The bytes the hierarchy says were read: the record's head, or all of it.
-            let info = hierarchy.node(node.key);
-            bytes += u64::from(match node.detail {
-                Detail::Coarse => info.map_or(0, |n| n.head_len),
-                Detail::Full => info.map_or(0, |n| n.byte_len),
-            });
-            read[i] = Some(node);
-        }
-    }
-    Ok((
-        read.into_iter()
-            .map(|n| n.expect("every node read"))
-            .collect(),
-        bytes,
-    ))
-}
-
-/// A group of a cut's nodes made resident on the host, in the group's order, with what it
-/// took for the frame's report.
-struct LoadedGroup {
-    nodes: Vec<Arc<NodePoints>>,
-    /// The detail the frame draws each at.
-    details: Vec<Detail>,
-    host_hits: u64,
-    nodes_read: u64,
-    bytes_read: u64,
-}
-
-/// The group's nodes from the host cache, or read from the store (several reads in flight,
-/// decoded on all cores) and put in the host cache.
-fn load_group(
-    host: &Mutex<HostNodeCache>,
-    dataset: &LodDataset,
-    hierarchy: &LodHierarchy,
-    details: &FrameDetails,
-    group: &[&CutNode],
-) -> Result<LoadedGroup, CutError> {
-    let poisoned = || CutError::Cache("the host node cache is poisoned".into());
-    let cached: Vec<Option<Arc<NodePoints>>> = {
-        let mut host = host.lock().map_err(|_| poisoned())?;
-        group
-            .iter()
-            .map(|n| host.get(n.key, details.of(n)))
-            .collect()
-    };
-    let to_read: Vec<&CutNode> = group
-        .iter()
-        .zip(&cached)
-        .filter(|(_, c)| c.is_none())
-        .map(|(n, _)| *n)
-        .collect();
-    let (read, bytes_read) =
-        read_at_details(dataset.records.as_ref(), hierarchy, details, &to_read)?;
-    let read: Vec<Arc<NodePoints>> = read.into_iter().map(Arc::new).collect();
-    let mut host = host.lock().map_err(|_| poisoned())?;
-    for node in &read {
-        host.insert(Arc::clone(node));
-    }
-    let nodes_read = read.len() as u64;
-    let mut read = read.into_iter();
-    Ok(LoadedGroup {
-        nodes: cached
-            .into_iter()
-            .map(|c| c.or_else(|| read.next()).expect("one read per miss"))
-            .collect(),
-        details: group.iter().map(|n| details.of(n)).collect(),
-        host_hits: (group.len() - to_read.len()) as u64,
-        nodes_read,
-        bytes_read,
-    })
 }
 
 /// A node's points as the renderer takes them: relative to the origin, coloured, those that

@@ -56,7 +56,9 @@ pub use hierarchy::{LodHierarchy, NodeInfo};
 pub use key::{NodeKey, RootCube, MAX_LEVEL};
 pub use options::LodBuildOptions;
 pub use progress::{preview_version, BuildProgress, PREVIEW_REDRAW_SHARE, PREVIEW_STORED_POINTS};
-pub use records::{read_concurrently, read_nodes, read_nodes_at, NodeRecords};
+pub use records::{
+    fetch_nodes_at, read_concurrently, read_nodes, read_nodes_at, FetchedNodes, NodeRecords,
+};
 pub use source::{BatchColumns, BatchVisitor, CloudSource, PointBatch, PointSource};
 pub use stats::DatasetStats;
 pub use store::LodStore;

@@ -53,6 +53,26 @@ pub fn read_nodes_at(
     keys: &[NodeKey],
     detail: Detail,
 ) -> Result<Vec<NodePoints>, LodError> {
+    fetch_nodes_at(records, hierarchy, keys, detail)?.decode(records, hierarchy)
+}
+
+/// The records of some nodes as read, not yet decoded: what a reader hands to the thread that
+/// decodes them, so the next read overlaps this decoding.
+pub struct FetchedNodes {
+    /// Every node asked for, in order.
+    infos: Vec<NodeInfo>,
+    /// The bytes of each node with points, in order.
+    bytes: Vec<Vec<u8>>,
+}
+
+/// The first half of [`read_nodes_at`]: reads the records of `keys` (one request for all of
+/// them), leaving the decoding to [`FetchedNodes::decode`].
+pub fn fetch_nodes_at(
+    records: &dyn NodeRecords,
+    hierarchy: &LodHierarchy,
+    keys: &[NodeKey],
+    detail: Detail,
+) -> Result<FetchedNodes, LodError> {
     let infos: Vec<NodeInfo> = keys
         .iter()
         .map(|&key| {
@@ -83,19 +103,38 @@ pub fn read_nodes_at(
             stored.len()
         )));
     }
-    let decoded: Vec<NodePoints> = stored
-        .par_iter()
-        .zip(bytes.par_iter())
-        .map(|(info, bytes)| records.decode(&hierarchy.cube, info, bytes))
-        .collect::<Result<_, _>>()?;
-    let mut decoded = decoded.into_iter();
-    Ok(infos
-        .iter()
-        .map(|info| match info.point_count {
-            0 => empty_node(hierarchy, info.key),
-            _ => decoded.next().expect("one record per stored node"),
-        })
-        .collect())
+    Ok(FetchedNodes { infos, bytes })
+}
+
+impl FetchedNodes {
+    /// The bytes of the records read.
+    pub fn bytes_read(&self) -> u64 {
+        self.bytes.iter().map(|b| b.len() as u64).sum()
+    }
+
+    /// The nodes' points, checked, decoded on all cores, in the order they were asked for.
+    pub fn decode(
+        self,
+        records: &dyn NodeRecords,
+        hierarchy: &LodHierarchy,
+    ) -> Result<Vec<NodePoints>, LodError> {
+        let stored = self.infos.iter().filter(|i| i.point_count > 0);
+        let decoded: Vec<NodePoints> = stored
+            .collect::<Vec<_>>()
+            .par_iter()
+            .zip(self.bytes.par_iter())
+            .map(|(info, bytes)| records.decode(&hierarchy.cube, info, bytes))
+            .collect::<Result<_, _>>()?;
+        let mut decoded = decoded.into_iter();
+        Ok(self
+            .infos
+            .iter()
+            .map(|info| match info.point_count {
+                0 => empty_node(hierarchy, info.key),
+                _ => decoded.next().expect("one record per stored node"),
+            })
+            .collect())
+    }
 }
 
 /// A node the hierarchy lists without points.
