@@ -118,9 +118,8 @@ impl FetchedNodes {
         records: &dyn NodeRecords,
         hierarchy: &LodHierarchy,
     ) -> Result<Vec<NodePoints>, LodError> {
-        let stored = self.infos.iter().filter(|i| i.point_count > 0);
+        let stored: Vec<&NodeInfo> = self.infos.iter().filter(|i| i.point_count > 0).collect();
         let decoded: Vec<NodePoints> = stored
-            .collect::<Vec<_>>()
             .par_iter()
             .zip(self.bytes.par_iter())
             .map(|(info, bytes)| records.decode(&hierarchy.cube, info, bytes))
