@@ -8,10 +8,12 @@ use std::fs::File;
 use std::io::Read;
 use std::os::unix::fs::FileExt;
 use std::path::Path;
+use std::sync::Arc;
 
 use glam::DVec3;
 
 use super::error::CopcError;
+use super::node_grids::{read_node_grids, NodeGrids};
 use crate::cloud::{WorldBounds, MAX_COORDINATE};
 use crate::ingest::{check_file, extra_bytes, IngestError};
 use crate::lod::weights::WEIGHT_ATTRIBUTE;
@@ -71,6 +73,8 @@ pub(crate) struct CopcHeader {
     /// in bytes from the record's start; `None` for files without one.
     pub weight_at: Option<u16>,
     pub info: CopcInfo,
+    /// Inner nodes' sampling grids, where a pointfarm export records them.
+    pub node_grids: Arc<NodeGrids>,
 }
 
 /// Whether `path` is a COPC file: LAS 1.4 whose first VLR is COPC's info VLR (where the
@@ -203,6 +207,7 @@ pub(crate) fn read_header(path: &Path, file: &mut File) -> Result<CopcHeader, Co
     }
 
     let weight_at = extra_bytes_vlr.and_then(|data| weight_offset(&format, &data));
+    let node_grids = Arc::new(read_node_grids(path, file, facts.evlrs)?);
     let header = CopcHeader {
         file_len,
         point_count: facts.declared_points,
@@ -214,6 +219,7 @@ pub(crate) fn read_header(path: &Path, file: &mut File) -> Result<CopcHeader, Co
         laszip_vlr,
         weight_at,
         info,
+        node_grids,
     };
     check_info(path, &header)?;
     Ok(header)

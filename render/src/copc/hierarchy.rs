@@ -16,11 +16,13 @@ use std::collections::{BTreeMap, HashMap, HashSet};
 use std::fs::File;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use rayon::prelude::*;
 
 use super::error::CopcError;
 use super::header::{check_page, check_page_bounds, CopcHeader, PageRef, ENTRY_BYTES};
+use super::node_grids::NodeGrids;
 use crate::lod::{DatasetStats, LodHierarchy, NodeInfo, NodeKey, RootCube, MAX_LEVEL};
 
 /// What the hierarchy pages read so far list, and what reading them took.
@@ -41,6 +43,8 @@ pub(crate) struct CopcPages {
     unread: BTreeMap<NodeKey, PageRef>,
     /// Points of the entries read.
     points: u64,
+    /// Inner nodes' sampling grids, where the file records them.
+    grids: Arc<NodeGrids>,
 }
 
 /// One raw entry.
@@ -100,6 +104,7 @@ pub(crate) fn read_root_page(
         page_keys: HashSet::new(),
         unread: BTreeMap::new(),
         points: 0,
+        grids: Arc::clone(&header.node_grids),
     };
     let root = header.info.root_page;
     check_page(path, header, root, "the root hierarchy page")?;
@@ -269,6 +274,7 @@ impl CopcPages {
                 }
                 let node = NodeInfo {
                     point_count: count,
+                    sample_grid: self.grids.get(&key).copied().unwrap_or(0),
                     ..NodeInfo::empty(key)
                 };
                 self.insert(node.in_one_piece(entry.offset, byte_len))?;
@@ -362,7 +368,7 @@ fn in_subtree(key: NodeKey, owner: NodeKey) -> bool {
 }
 
 /// A voxel key as a node key: a level the octree may have and a cell inside it.
-fn node_key([level, x, y, z]: [i32; 4]) -> Option<NodeKey> {
+pub(crate) fn node_key([level, x, y, z]: [i32; 4]) -> Option<NodeKey> {
     let level = u8::try_from(level).ok().filter(|&l| l <= MAX_LEVEL)?;
     let cells = 1i64 << level;
     let cell = |v: i32| (0..cells).contains(&i64::from(v)).then_some(v as u32);

@@ -1,7 +1,7 @@
 //! COPC files rendered node by node, without a store of their own: a COPC file (LAZ 1.4 with
 //! an octree's hierarchy in an EVLR) already is a level-of-detail structure, so its
 //! hierarchy becomes a [`LodHierarchy`] (voxel keys are node keys, each inner node's spacing
-//! the info VLR's halved per level) and its LAZ chunks the node records ([`CopcNodes`]), which
+//! the info VLR's halved per level, or its own grid's where a pointfarm export records it) and its LAZ chunks the node records ([`CopcNodes`]), which
 //! a [`LodDataset`] renders cut by cut through the same caches as a built store.
 //!
 //! - `header.rs`: detection (the info VLR first, where the specification puts it) and the
@@ -10,6 +10,8 @@
 //!   file and the header;
 //! - `lazy.rs`: child pages read as they are needed, by a frame's cut or the colour ranges;
 //! - `nodes.rs`: a node's chunk read by byte range and decoded into `NodePoints`;
+//! - `node_grids.rs`: the inner nodes' sampling grids a pointfarm export records, which a cut
+//!   refines by where the file has them;
 //! - `error.rs`: [`CopcError`].
 //!
 //! For rendering ([`open_copc`]) only the root hierarchy page is read when the file is opened
@@ -26,6 +28,7 @@ mod error;
 mod header;
 mod hierarchy;
 mod lazy;
+mod node_grids;
 mod nodes;
 
 #[cfg(test)]

@@ -1,7 +1,7 @@
 //! What a COPC export carries for readers. Its points' weights: a file pointfarm wrote gives
 //! its points the weights of the store it was written from, so high quality on its cuts
 //! averages what full detail would, as on the store; a foreign file's points count once. Its
-//! spacing: one that no node is sparser than.
+//! spacing: one that no node is sparser than, and each node's own grid for pointfarm's cuts.
 
 use std::path::{Path, PathBuf};
 
@@ -9,10 +9,10 @@ use super::tests::copc_file;
 use super::*;
 use crate::camera::Camera;
 use crate::color::ColorMode;
-use crate::cut::{CutOptions, CutRenderer};
+use crate::cut::{select_cut, Cut, CutOptions, CutRenderer, CutView};
 use crate::filter::PointFilter;
 use crate::lod::copc_export::{export_copc, ExportSettings};
-use crate::lod::{build_lod, GeneratedSource, LodBuildOptions, LodHierarchy, LodStore};
+use crate::lod::{build_lod, GeneratedSource, LodBuildOptions, LodHierarchy, LodStore, NodeKey};
 use crate::raster::{FrameSettings, Quality, Renderer, Shading};
 use crate::request::PointSize;
 use crate::testing::{compare_images_within, gpu};
@@ -173,12 +173,13 @@ fn high_quality_on_a_cut_of_an_exported_file_keeps_the_fidelity_rule() {
 /// this terrain's root keeps a grid of 128 and the nodes below grids of 8: the export
 /// declares the coarsest grid's spacing, so no node is sparser than the file says and a
 /// reader's cut refines where it must (declaring the root's, a cut at 0.5 px drew 2% of the
-/// points and kept 27% of the covered pixels within 8/255 of full detail).
+/// points and kept 27% of the covered pixels within 8/255 of full detail). The cut is drawn
+/// as a reader that knows only the declared spacing draws it.
 #[test]
 fn an_export_declares_a_spacing_no_node_is_sparser_than() {
     let dir = tempfile::tempdir().expect("tempdir");
     let exported = exported_terrain(dir.path(), 300_000, 1_000);
-    let opened = open_copc(&exported.path).expect("opens");
+    let opened = open_copc(&without_node_grids(&exported.path)).expect("opens");
     let grids: std::collections::BTreeSet<u32> = exported
         .hierarchy
         .nodes()
@@ -235,4 +236,119 @@ fn an_export_declares_a_spacing_no_node_is_sparser_than() {
         opened.dataset.point_count()
     );
     assert!(close >= 0.97, "{close:.4} of covered pixels within 8/255");
+}
+
+/// An export records each inner node's grid (the node grids EVLR), so pointfarm's cuts of the
+/// file are the store's: the same nodes at every pixel error, from two sides. Without the
+/// record a reader refines by the declared spacing, the coarsest grid's, and draws more.
+#[test]
+fn cuts_of_an_exported_file_are_the_stores() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let exported = exported_terrain(dir.path(), 300_000, 1_000);
+    let opened = open_copc(&exported.path).expect("opens");
+    let without = open_copc(&without_node_grids(&exported.path)).expect("opens");
+
+    let bounds = opened.dataset.bounds();
+    let origin = opened.dataset.origin();
+    let cameras = [Camera::auto(&bounds, 4.0 / 3.0), across(&bounds).camera];
+    let mut fewer = 0;
+    for camera in &cameras {
+        for lod_error in [8.0, 2.0, 1.0, 0.5, 0.25] {
+            let view = CutView {
+                camera,
+                origin,
+                width: 200,
+                height: 150,
+                point_size: 2,
+                lod_error,
+                max_batches: usize::MAX,
+                max_points: None,
+                clip: None,
+            };
+            let nodes = |cut: Cut| -> Vec<(NodeKey, u32)> {
+                cut.nodes.iter().map(|n| (n.key, n.points)).collect()
+            };
+            let store = nodes(select_cut(&exported.hierarchy, &view));
+            let file = nodes(opened.dataset.select_cut(&view).expect("cut"));
+            assert_eq!(file, store, "{lod_error} px");
+            let declared = without.dataset.select_cut(&view).expect("cut").points();
+            let points: u64 = store.iter().map(|&(_, p)| u64::from(p)).sum();
+            assert!(
+                declared >= points,
+                "{lod_error} px: {declared} against {points}"
+            );
+            fewer += usize::from(declared > points);
+        }
+    }
+    assert!(
+        fewer > 0,
+        "the nodes' own grids are finer than the declared one somewhere"
+    );
+}
+
+/// A copy of the exported file `path` whose node grids EVLR is another writer's (its user id
+/// changed), as a reader that does not know the record sees the file.
+pub(super) fn without_node_grids(path: &Path) -> PathBuf {
+    let mut bytes = std::fs::read(path).expect("read");
+    let description = b"pointfarm node grids";
+    let at = bytes
+        .windows(description.len())
+        .rposition(|w| w == description)
+        .expect("the node grids EVLR");
+    // The user id lies at 2 of the EVLR's header, the description at 28.
+    bytes[at - 28 + 2] = b'q';
+    let copy = path.with_file_name("without-grids.copc.laz");
+    std::fs::write(&copy, &bytes).expect("write");
+    copy
+}
+
+/// A damaged node grids record is an error naming the file and the record, whatever is wrong
+/// in it: a length that is not whole entries, a key that is no cell, a grid of no cells, a
+/// node listed twice.
+#[test]
+fn a_damaged_node_grids_record_is_an_error_naming_the_file() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let exported = exported_terrain(dir.path(), 60_000, 1_000);
+    let bytes = std::fs::read(&exported.path).expect("read");
+    let description = b"pointfarm node grids";
+    let header = bytes
+        .windows(description.len())
+        .rposition(|w| w == description)
+        .expect("the node grids EVLR")
+        - 28;
+    let data = header + 60;
+    assert!(data + 40 <= bytes.len(), "two entries at least");
+    let damaged = |name: &str, damage: &dyn Fn(&mut Vec<u8>)| -> String {
+        let mut copy = bytes.clone();
+        damage(&mut copy);
+        let path = dir.path().join(name);
+        std::fs::write(&path, &copy).expect("write");
+        let Err(error) = open_copc(&path) else {
+            panic!("{name} opened");
+        };
+        let message = error.to_string();
+        assert!(message.contains(name), "{message}");
+        assert!(message.contains("its node grids"), "{message}");
+        message
+    };
+    let length = damaged("length.copc.laz", &|b| {
+        let len = u64::from_le_bytes(b[header + 20..header + 28].try_into().expect("8"));
+        b[header + 20..header + 28].copy_from_slice(&(len - 1).to_le_bytes());
+    });
+    assert!(
+        length.contains("not a whole number of 20-byte entries"),
+        "{length}"
+    );
+    let key = damaged("key.copc.laz", &|b| {
+        b[data..data + 4].copy_from_slice(&30i32.to_le_bytes());
+    });
+    assert!(key.contains("is not a cell of its level"), "{key}");
+    let grid = damaged("grid.copc.laz", &|b| {
+        b[data + 16..data + 20].copy_from_slice(&0u32.to_le_bytes());
+    });
+    assert!(grid.contains("grid of 0 cells"), "{grid}");
+    let twice = damaged("twice.copc.laz", &|b| {
+        b.copy_within(data..data + 20, data + 20);
+    });
+    assert!(twice.contains("is listed twice"), "{twice}");
 }

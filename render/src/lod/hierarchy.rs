@@ -307,14 +307,16 @@ impl LodHierarchy {
         Some(parent_cell.map_or(surface, |cell| surface.min(cell)))
     }
 
-    /// The spacing of an inner node's points (its side over its sampling grid); `None` for a
-    /// leaf, whose points are simply all that is left.
+    /// The spacing of an inner node's points: its side over its sampling grid, else (a COPC
+    /// file that does not record grids) the root spacing halved per level; `None` for a leaf,
+    /// whose points are simply all that is left.
     pub fn spacing(&self, key: NodeKey) -> Option<f64> {
-        let node = self.node(key)?;
-        if let Some(root) = self.level_spacing {
-            return (!node.is_leaf()).then(|| root / (1u64 << key.level) as f64);
+        let node = self.node(key).filter(|node| !node.is_leaf())?;
+        if node.sample_grid > 0 {
+            return Some(self.cube.side_at(key.level) / f64::from(node.sample_grid));
         }
-        (node.sample_grid > 0).then(|| self.cube.side_at(key.level) / f64::from(node.sample_grid))
+        self.level_spacing
+            .map(|root| root / (1u64 << key.level) as f64)
     }
 
     pub fn encode(&self) -> Vec<u8> {

@@ -1,11 +1,13 @@
 //! The bytes around the points of a COPC 1.0 file: the LAS 1.4 header, the `copc` info VLR
-//! (first, at byte 375), the LASzip VLR, and the hierarchy EVLR after the chunk table.
+//! (first, at byte 375), the LASzip VLR, and after the chunk table the hierarchy EVLR and the
+//! export's node grids.
 //!
 //! ```text
 //! header (375) | VLR "copc" 1: info (54 + 160) | VLR "laszip encoded" 22204 (54 + 34 + 6n)
 //! | VLR "LASF_Spec" 4: extra bytes, the weight (54 + 192)
 //! | [VLR "LASF_Projection" 2112: the dataset's WKT] | offset of the chunk table (8) | one LAZ chunk per node | chunk table
 //! | EVLR "copc" 1000: hierarchy (60 + 32 per node)
+//! | EVLR "pointfarm" 1: node grids (60 + 20 per inner node, `node_grids.rs`)
 //! ```
 //!
 //! The hierarchy is one page: every node's entry (key, chunk offset, chunk bytes, points),
@@ -144,7 +146,8 @@ pub fn head(facts: &FileFacts, laz: &LazVlr) -> Vec<u8> {
         start_of_waveform_data_packet_record: Some(0),
         evlr: Some(las::raw::header::Evlr {
             start_of_first_evlr: facts.evlr_start,
-            number_of_evlrs: 1,
+            // The hierarchy and the node grids.
+            number_of_evlrs: 2,
         }),
         large_file: Some(las::raw::header::LargeFile {
             number_of_point_records: facts.points,
@@ -228,4 +231,10 @@ pub fn hierarchy_evlr(entries: &[HierarchyEntry]) -> Vec<u8> {
         data.extend_from_slice(&e.point_count.to_le_bytes());
     }
     vlr("copc", 1000, "EPT hierarchy", data, true)
+}
+
+/// The node grids EVLR: its header and `data` (`node_grids::encode`).
+pub fn node_grids_evlr(data: Vec<u8>) -> Vec<u8> {
+    use super::node_grids::{DESCRIPTION, RECORD_ID, USER_ID};
+    vlr(USER_ID, RECORD_ID, DESCRIPTION, data, true)
 }

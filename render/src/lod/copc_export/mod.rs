@@ -16,6 +16,7 @@
 mod crs;
 mod error;
 mod layout;
+pub mod node_grids;
 mod records;
 mod transform;
 
@@ -218,12 +219,17 @@ pub fn write_copc<W: Write + Seek>(
     let evlr_start = out.stream_position().map_err(io)?;
     out.write_all(&layout::hierarchy_evlr(&entries))
         .map_err(io)?;
+    out.write_all(&layout::node_grids_evlr(node_grids::encode(
+        hierarchy.nodes(),
+    )))
+    .map_err(io)?;
     let end = out.stream_position().map_err(io)?;
 
     let halfsize = cube.side / 2.0;
     // COPC has one spacing, halved at each level, where a store samples each node on a grid
     // of its own (halved where a node would be too full): the coarsest grid's spacing bounds
-    // every node's, so a reader that refines by it never stops at a node too sparse.
+    // every node's, so a reader that refines by it never stops at a node too sparse. Each
+    // node's own grid is in the node grids EVLR, for pointfarm's reader.
     let grid = hierarchy
         .nodes()
         .iter()
