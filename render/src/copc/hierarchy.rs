@@ -207,7 +207,7 @@ impl CopcPages {
         owner: Option<NodeKey>,
         entry: Entry,
     ) -> Result<(), CopcError> {
-        let key = node_key(entry.key).ok_or_else(|| {
+        let key = NodeKey::from_voxel_key(entry.key).ok_or_else(|| {
             self.bad(format!(
                 "{what} lists voxel key {:?}, not a cell of its level (0 to {MAX_LEVEL})",
                 entry.key
@@ -365,17 +365,4 @@ fn in_subtree(key: NodeKey, owner: NodeKey) -> bool {
         let shift = u32::from(key.level - owner.level);
         [key.x >> shift, key.y >> shift, key.z >> shift] == [owner.x, owner.y, owner.z]
     }
-}
-
-/// A voxel key as a node key: a level the octree may have and a cell inside it.
-pub(crate) fn node_key([level, x, y, z]: [i32; 4]) -> Option<NodeKey> {
-    let level = u8::try_from(level).ok().filter(|&l| l <= MAX_LEVEL)?;
-    let cells = 1i64 << level;
-    let cell = |v: i32| (0..cells).contains(&i64::from(v)).then_some(v as u32);
-    Some(NodeKey {
-        level,
-        x: cell(x)?,
-        y: cell(y)?,
-        z: cell(z)?,
-    })
 }

@@ -9,7 +9,6 @@ use std::os::unix::fs::FileExt;
 use std::path::Path;
 
 use super::error::CopcError;
-use super::hierarchy::node_key;
 use crate::lod::copc_export::node_grids::{self, ENTRY_BYTES, RECORD_ID, USER_ID};
 use crate::lod::NodeKey;
 
@@ -77,7 +76,7 @@ fn is_node_grids(header: &[u8]) -> bool {
 fn grids(data: &[u8]) -> Result<NodeGrids, String> {
     let mut grids = NodeGrids::with_capacity(data.len() / ENTRY_BYTES);
     for entry in node_grids::decode(data)? {
-        let key = node_key(entry.key)
+        let key = NodeKey::from_voxel_key(entry.key)
             .ok_or_else(|| format!("voxel key {:?} is not a cell of its level", entry.key))?;
         if !(1..=MAX_GRID).contains(&entry.grid) {
             return Err(format!(

@@ -62,6 +62,20 @@ impl NodeKey {
         })
     }
 
+    /// A COPC voxel key (level, x, y, z) as a node key: a level the octree may have and a
+    /// cell inside it, else `None`.
+    pub fn from_voxel_key([level, x, y, z]: [i32; 4]) -> Option<NodeKey> {
+        let level = u8::try_from(level).ok().filter(|&l| l <= MAX_LEVEL)?;
+        let cells = 1i64 << level;
+        let cell = |v: i32| (0..cells).contains(&i64::from(v)).then_some(v as u32);
+        Some(NodeKey {
+            level,
+            x: cell(x)?,
+            y: cell(y)?,
+            z: cell(z)?,
+        })
+    }
+
     /// The parent, or `None` for the root.
     pub fn parent(&self) -> Option<NodeKey> {
         (self.level > 0).then(|| NodeKey::new(self.level - 1, self.cell() / 2))
