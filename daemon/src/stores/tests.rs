@@ -204,6 +204,62 @@ fn copc_file(name: &str) -> PathBuf {
         .join(name)
 }
 
+/// A COPC file pointfarm exported records its inner nodes' grids: the hierarchy record a
+/// worker is sent keeps them, so a worker's cuts of the file are its store's, as a local
+/// render's are.
+#[test]
+fn an_exported_copc_files_node_grids_reach_the_record_workers_are_sent() {
+    use pointfarm_render::lod::copc_export::{export_copc, ExportSettings};
+    use pointfarm_render::lod::{build_lod, GeneratedSource, LodBuildOptions, LodStore};
+
+    let dir = tempfile::tempdir().expect("tempdir");
+    let db = sled::open(dir.path().join("db")).expect("sled");
+    let store = LodStore::open(
+        db.open_tree("lod").expect("tree"),
+        dir.path().join("lod.bin"),
+    )
+    .expect("store");
+    let mut options = LodBuildOptions::new(dir.path().join("spill"));
+    options.max_leaf_points = 1_000;
+    let built = build_lod(&GeneratedSource::terrain(60_000, 7), &store, &options)
+        .expect("build")
+        .hierarchy;
+    let path = dir.path().join("terrain.copc.laz");
+    let settings = ExportSettings::fixed(&built.cube);
+    export_copc(&built, &store, &settings, &path, &mut |_| {}).expect("export");
+
+    let stores = DatasetStores::new(dir.path().join("stores"), 64 << 20);
+    let StoreAnswer::Ready(served) = stores
+        .open(&copc_dataset(&path, "ee55"), false)
+        .expect("open")
+    else {
+        panic!("a COPC file needs no build");
+    };
+    let copc = served.copc.as_ref().expect("served as COPC");
+    let record = LodHierarchy::decode(&served.hierarchy_record)
+        .expect("decodes")
+        .with_root_spacing(copc.root_spacing);
+    let mut grids = std::collections::BTreeSet::new();
+    for node in built.nodes() {
+        let (sent, stored) = (record.spacing(node.key), built.spacing(node.key));
+        match (sent, stored) {
+            (Some(sent), Some(stored)) => {
+                assert!(
+                    (sent / stored - 1.0).abs() < 1e-9,
+                    "node {}: {sent} against {stored}",
+                    node.key
+                );
+                grids.insert(node.sample_grid);
+            }
+            _ => assert_eq!(sent, stored, "node {}", node.key),
+        }
+    }
+    assert!(
+        grids.len() > 1,
+        "inner nodes on grids of several sizes: {grids:?}"
+    );
+}
+
 #[test]
 fn a_copc_file_is_served_from_its_own_hierarchy_without_a_build() {
     let dir = tempfile::tempdir().expect("tempdir");
