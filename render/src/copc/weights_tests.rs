@@ -352,3 +352,49 @@ fn a_damaged_node_grids_record_is_an_error_naming_the_file() {
     });
     assert!(twice.contains("is listed twice"), "{twice}");
 }
+
+/// Any byte of the node grids record flipped, its header's included, opens (the record is
+/// then another writer's, or says other grids, which a cut refines by) or is an error naming
+/// the file: never a panic.
+#[test]
+fn any_byte_of_the_node_grids_flipped_opens_or_is_an_error_never_a_panic() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let exported = exported_terrain(dir.path(), 60_000, 1_000);
+    let original = std::fs::read(&exported.path).expect("read");
+    let description = b"pointfarm node grids";
+    let header = original
+        .windows(description.len())
+        .rposition(|w| w == description)
+        .expect("the node grids EVLR")
+        - 28;
+    let path = dir.path().join("flipped.copc.laz");
+    let end = original.len();
+    for at in (header..header + 60 + 60).chain(end - 20..end) {
+        let mut bytes = original.clone();
+        bytes[at] ^= 0x80;
+        std::fs::write(&path, &bytes).expect("write");
+        match open_copc(&path) {
+            Ok(opened) => {
+                let bounds = opened.dataset.bounds();
+                let camera = Camera::auto(&bounds, 4.0 / 3.0);
+                let view = CutView {
+                    camera: &camera,
+                    origin: opened.dataset.origin(),
+                    width: 200,
+                    height: 150,
+                    point_size: 2,
+                    lod_error: 1.0,
+                    max_batches: usize::MAX,
+                    max_points: None,
+                    clip: None,
+                };
+                let cut = opened.dataset.select_cut(&view).expect("cut");
+                assert!(cut.points() > 0, "byte {at}: a cut of the file");
+            }
+            Err(error) => assert!(
+                error.to_string().contains("flipped.copc.laz"),
+                "byte {at}: {error}"
+            ),
+        }
+    }
+}
