@@ -2,7 +2,8 @@
 //! node (no store built), every node drawn as the same points read whole, a coarse pixel
 //! error reading less than the file, a damaged hierarchy refused naming the file; the same
 //! through a daemon and a worker process, which fetches the file's chunks node by node;
-//! `info` describing a COPC file's octree.
+//! `info` describing a COPC file's octree; `render --preview` of a COPC file, coarse cuts
+//! first.
 
 use std::path::{Path, PathBuf};
 use std::process::Output;
@@ -113,6 +114,94 @@ fn a_coarse_pixel_error_reads_less_than_the_file() {
     assert!(bytes_read > 0 && bytes_read < file_len / 2, "{frame}");
     assert!(frame["cut"]["nodes"].as_u64() < Some(65), "{frame}");
     assert!(frame["pointsRendered"].as_u64() < Some(1065), "{frame}");
+}
+
+/// `render --preview` of a COPC file: every frame first from coarse cuts of its hierarchy,
+/// reported as previews with their completeness, then the final frames over them, equal to a
+/// render without previews; a pixel error as coarse as a preview's renders final frames at
+/// once.
+#[test]
+fn a_copc_file_is_previewed_from_coarse_cuts_then_rendered_final() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let scene = dir.path().join("scene.laz");
+    pointfarm_ok(&["sample", arg(&scene), "--points", "300000"]);
+    let copc = dir.path().join("scene.copc.laz");
+    let cache = dir.path().join("cache");
+    pointfarm_ok(&[
+        "export",
+        arg(&scene),
+        "--copc",
+        arg(&copc),
+        "--cache-dir",
+        arg(&cache),
+    ]);
+    let render = |out: &Path, more: &[&str]| {
+        let mut args = vec!["render", arg(&copc), "--out", arg(out), "--size=160x120"];
+        args.extend(["--turntable", "3", "--lod-error", "0.5", "--json"]);
+        args.extend_from_slice(more);
+        pointfarm_ok(&args)
+    };
+    let frames = dir.path().join("frames");
+    let output = render(&frames, &["--preview"]);
+    let reports = json_lines(&output);
+    assert_eq!(reports.len(), 6, "{}", output_text(&output));
+    let (previews, finals) = reports.split_at(3);
+    for (index, (preview, last)) in previews.iter().zip(finals).enumerate() {
+        assert_eq!(preview["frame"], index as u64);
+        assert_eq!(last["frame"], index as u64);
+        assert_eq!(preview["preview"], true, "{preview}");
+        assert_eq!(last["preview"], false, "{last}");
+        assert_eq!(
+            preview["camera"], last["camera"],
+            "framed as the final frame"
+        );
+        assert_eq!(preview["pointsTotal"], 300_000, "{preview}");
+        let drawn = |report: &serde_json::Value| report["pointsRendered"].as_u64().expect("drawn");
+        assert!(
+            drawn(preview) > 0 && drawn(preview) < drawn(last),
+            "{preview} {last}"
+        );
+        let completeness = preview["completeness"].as_f64().expect("completeness");
+        assert!((completeness - drawn(preview) as f64 / 300_000.0).abs() < 1e-12);
+        assert!(preview["cut"].is_object() && last["cut"].is_object());
+    }
+    // The final frames find the previews' nodes cached.
+    let hits = |report: &serde_json::Value| {
+        let cut = &report["cut"];
+        cut["gpuHits"].as_u64().unwrap_or(0) + cut["hostHits"].as_u64().unwrap_or(0)
+    };
+    assert!(hits(&finals[0]) > 0, "{}", finals[0]);
+    assert!(output_text(&output).contains("final frames:"));
+
+    let normal = dir.path().join("normal");
+    let plain = render(&normal, &[]);
+    assert!(json_lines(&plain).iter().all(|r| r["preview"] == false));
+    for index in 0..3 {
+        let name = format!("frame_{index:05}.png");
+        let image = |folder: &Path| image::open(folder.join(&name)).expect("png").to_rgba8();
+        assert!(
+            image(&frames) == image(&normal),
+            "{name} differs from a render without previews"
+        );
+    }
+
+    let coarse = pointfarm_ok(&[
+        "render",
+        arg(&copc),
+        "--out",
+        arg(&dir.path().join("coarse.png")),
+        "--size=160x120",
+        "--lod-error",
+        "8",
+        "--preview",
+        "--json",
+    ]);
+    assert!(json_lines(&coarse).iter().all(|r| r["preview"] == false));
+    assert!(
+        output_text(&coarse).contains("is a preview's already"),
+        "{}",
+        output_text(&coarse)
+    );
 }
 
 /// `simple.copc.laz` written into `dir` with the chunk of its root page's second entry moved

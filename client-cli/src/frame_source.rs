@@ -10,7 +10,7 @@ use anyhow::Result;
 use pointfarm_render::cloud::PointCloud;
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::{point_colors, ramp_range, ColorRange, Coloring};
-use pointfarm_render::cut::{CutOptions, CutRenderer, CutReport};
+use pointfarm_render::cut::{CutOptions, CutRenderer, CutReport, PREVIEW_LOD_ERROR_PX};
 use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::{load_dataset, sample_chunk_starts, DatasetSource, PreviewSample};
@@ -28,8 +28,8 @@ pub struct RenderedFrame {
     /// The points of the dataset's files (of the cloud, for a resident one).
     pub points_total: u64,
     pub points_rendered: u64,
-    /// Whether the frame is a preview drawn from the files' chunk starts (and the nodes
-    /// stored so far).
+    /// Whether the frame is a preview: drawn from the files' chunk starts (and the nodes
+    /// stored so far), or a COPC file's coarse cut.
     pub preview: bool,
     /// The cut's nodes, caches and loads, when the frame came from a store.
     pub cut: Option<CutReport>,
@@ -79,6 +79,8 @@ pub enum FrameSource {
         filter: PointFilter,
         /// What the automatic camera frames: the store's bounds within the filter's box.
         bounds: WorldBounds,
+        /// Whether the cuts are a preview's, at a coarser pixel error than the final frames'.
+        preview: bool,
     },
 }
 
@@ -293,18 +295,47 @@ impl FrameSource {
             coloring: render.coloring(),
             filter: render.filter,
             bounds,
+            preview: false,
         })
     }
 
-    /// Whether the frames are previews of the files' chunk starts.
+    /// A COPC file's preview: [`FrameSource::copc`] drawing its cuts at
+    /// [`PREVIEW_LOD_ERROR_PX`] until [`FrameSource::finish_preview`].
+    pub fn copc_preview(
+        gpu: Arc<GpuContext>,
+        file: &Path,
+        options: CutOptions,
+        render: &RenderOptions,
+        say: &dyn Fn(String),
+    ) -> Result<Self> {
+        let preview_options = CutOptions {
+            lod_error: PREVIEW_LOD_ERROR_PX,
+            ..options
+        };
+        let mut source = Self::copc(gpu, file, preview_options, render, say)?;
+        if let Self::Cut { preview, .. } = &mut source {
+            *preview = true;
+        }
+        Ok(source)
+    }
+
+    /// The final frames after a preview's, at `lod_error` pixels, with the nodes the preview
+    /// cached.
+    pub fn finish_preview(&mut self, lod_error: f64) -> Result<()> {
+        if let Self::Cut { cut, preview, .. } = self {
+            cut.set_lod_error(lod_error)?;
+            *preview = false;
+        }
+        Ok(())
+    }
+
+    /// Whether the frames are previews: of the files' chunk starts, or a COPC file's coarse
+    /// cuts.
     pub fn is_preview(&self) -> bool {
-        matches!(
-            self,
-            Self::Resident {
-                preview_of: Some(_),
-                ..
-            }
-        )
+        match self {
+            Self::Resident { preview_of, .. } => preview_of.is_some(),
+            Self::Cut { preview, .. } => *preview,
+        }
     }
 
     /// The bounds the automatic camera frames.
@@ -361,6 +392,7 @@ impl FrameSource {
                 lod,
                 coloring,
                 filter,
+                preview,
                 ..
             } => {
                 let (frame, report) =
@@ -369,7 +401,7 @@ impl FrameSource {
                     frame,
                     points_total: report.counts.points_total,
                     points_rendered: report.counts.points_rendered,
-                    preview: false,
+                    preview: *preview,
                     cut: Some(report),
                 })
             }

@@ -10,7 +10,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_render::camera::{Camera, Projection};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::copc::is_copc;
-use pointfarm_render::cut::{CutOptions, StoredLod};
+use pointfarm_render::cut::{CutOptions, StoredLod, PREVIEW_LOD_ERROR_PX};
 use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::{dataset_files, dataset_point_count};
@@ -78,10 +78,22 @@ pub fn run(args: RenderArgs) -> Result<()> {
                 }
                 say(format!("--preview: {BUILT_ALREADY}; {FINAL_AT_ONCE}"));
             }
-            (Some(_), _) => say(format!(
-                "--preview: a COPC file renders from its own hierarchy, nothing to build; \
-                 {FINAL_AT_ONCE}"
-            )),
+            (Some(file), _) => {
+                let options = args.lod_options()?;
+                if options.lod_error < PREVIEW_LOD_ERROR_PX {
+                    let frames = FrameTarget {
+                        args: &args,
+                        request: &request,
+                        outputs: &outputs,
+                        gpu: &gpu,
+                    };
+                    return copc_preview_then_final(&frames, file, options, &say_input);
+                }
+                say(format!(
+                    "--preview: the pixel error ({}) is a preview's already; {FINAL_AT_ONCE}",
+                    options.lod_error
+                ));
+            }
             (None, None) => say(format!(
                 "--preview: {points} points render resident, nothing to build; {FINAL_AT_ONCE}"
             )),
@@ -190,6 +202,40 @@ fn preview_then_final(
         &request.render,
         say_input,
     )?;
+    render_frames(args, request, outputs, gpu, &mut source, &|| true)?;
+    crate::output::say(
+        args.json,
+        format!(
+            "final frames: {} (over the previews)",
+            outputs.files.dir().display()
+        ),
+    );
+    Ok(())
+}
+
+/// Renders a COPC file's frames from coarse cuts at [`PREVIEW_LOD_ERROR_PX`], then the final
+/// frames at `options`' pixel error over them, into the same files, with the nodes the
+/// previews read still cached.
+fn copc_preview_then_final(
+    target: &FrameTarget<'_>,
+    file: &Path,
+    options: CutOptions,
+    say_input: &dyn Fn(String),
+) -> Result<()> {
+    let FrameTarget {
+        args,
+        request,
+        outputs,
+        gpu,
+    } = *target;
+    let mut source =
+        FrameSource::copc_preview(Arc::clone(gpu), file, options, &request.render, say_input)?;
+    target.render(&mut source, &|| true)?;
+    source.finish_preview(options.lod_error)?;
+    say_input(format!(
+        "final frames at a pixel error of {}",
+        options.lod_error
+    ));
     render_frames(args, request, outputs, gpu, &mut source, &|| true)?;
     crate::output::say(
         args.json,

@@ -209,8 +209,10 @@ pub struct RenderArgs {
     /// without decompressing) while the store builds on another thread, then render the
     /// final frames over them, into the same files (previews stop once the store is ready;
     /// the first frame is always previewed). Reports say which frames are previews and how
-    /// complete their data was. With nothing to build the final frames render at once.
-    /// Through --server the job asks for previews: while the server builds the store, its
+    /// complete their data was. A single COPC file, which needs no build, is previewed from
+    /// coarse cuts of its own hierarchy, then its final frames are drawn
+    /// with the nodes the previews read. With nothing else to build the final frames render
+    /// at once. Through --server the job asks for previews: while the server builds the store, its
     /// workers render every frame from the server's chunk-start sample and report them as
     /// previews with their completeness; the same job then renders each frame again as a
     /// final frame and succeeds only when all are final, which are the frames downloaded.

@@ -64,7 +64,7 @@ pub use host_cache::node_heap_bytes;
 pub use options::{
     CacheBudgets, CutOptions, CutOptionsError, DEFAULT_GPU_BUDGET_BYTES, DEFAULT_LOD_ERROR_PX,
     DEFAULT_MEMORY_BUDGET_BYTES, MAX_CUT_POINTS_PER_PIXEL, MAX_LOD_ERROR_PX, MIN_BUDGET_BYTES,
-    RESIDENT_MAX_POINTS,
+    PREVIEW_LOD_ERROR_PX, RESIDENT_MAX_POINTS,
 };
 pub use pages::{HierarchyPages, PagesRead};
 pub use report::{CutCounts, CutReport};
@@ -163,6 +163,18 @@ impl CutRenderer {
 
     pub fn options(&self) -> &CutOptions {
         &self.options
+    }
+
+    /// Draws the next frames at `lod_error` pixels (checked as [`CutOptions`] are), with the
+    /// nodes cached so far: a COPC file's final frames after its previews.
+    pub fn set_lod_error(&mut self, lod_error: f64) -> Result<(), CutError> {
+        let options = CutOptions {
+            lod_error,
+            ..self.options
+        };
+        options.validate()?;
+        self.options = options;
+        Ok(())
     }
 
     pub fn budgets(&self) -> CacheBudgets {

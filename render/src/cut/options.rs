@@ -10,6 +10,10 @@ use thiserror::Error;
 pub const DEFAULT_LOD_ERROR_PX: f64 = 0.25;
 /// The largest pixel error accepted.
 pub const MAX_LOD_ERROR_PX: f64 = 256.0;
+/// The pixel error of a COPC file's preview frames, drawn before its final ones: on the 100M
+/// terrain at 1920x1080 a hundredth of the points, its first frame 20x sooner than decoding
+/// the whole file, where the default's is 1.5x (docs/perf/copc-first-frame.md).
+pub const PREVIEW_LOD_ERROR_PX: f64 = 4.0;
 /// The most points a cut at a pixel error above 0 draws per pixel of the frame. Where the
 /// error alone would select more (a far view of a dense campaign, whose leaves hold points
 /// far finer than the error), the cut stops refining, far away first, so that a frame's time
