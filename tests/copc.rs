@@ -281,6 +281,34 @@ fn a_copc_dataset_renders_through_the_service_from_its_own_hierarchy() {
     );
     assert!(count(&cut["pointsRendered"]) < 1065, "{cut}");
 
+    // A preview job: every frame first from a coarse cut, reported as a preview with its
+    // completeness, then every frame final.
+    let previewed = remote_render(
+        &copc,
+        "previewed",
+        &["--preview", "--turntable=3", "--lod-error=0"],
+    );
+    assert_ok(&previewed);
+    let reports = json_lines(&previewed);
+    let is_preview = |report: &serde_json::Value| report["finished"]["preview"] == true;
+    assert_eq!(reports.len(), 6, "{reports:?}\n{}", server.log());
+    let (previews, finals) = reports.split_at(3);
+    let drawn = |report: &serde_json::Value| count(&report["finished"]["cut"]["pointsRendered"]);
+    for report in previews {
+        assert!(is_preview(report), "{report}");
+        let completeness = report["finished"]["completeness"].as_f64().unwrap_or(0.0);
+        assert!(completeness > 0.0 && completeness < 1.0, "{report}");
+        assert!(
+            (completeness - drawn(report) as f64 / 1065.0).abs() < 1e-9,
+            "{report}"
+        );
+    }
+    for (index, report) in finals.iter().enumerate() {
+        assert_eq!(report["frame"], index, "{report}");
+        assert!(!is_preview(report), "{report}");
+        assert_eq!(drawn(report), 1065, "{report}");
+    }
+
     // Every node: the same image as the file rendered here.
     let options = ["--point-size=3", "--lod-error=0"];
     let remote = remote_render(&copc, "remote.png", &options);

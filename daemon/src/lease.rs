@@ -84,7 +84,8 @@ impl Daemon {
         // A frame with a preview of the build's version waits while its dataset's store
         // builds: it is drawn again when the build has stored another tenth of the points,
         // frames without a preview first, then the oldest previews, and rendered as a final
-        // frame once the store is ready.
+        // frame once the store is ready (or, for a COPC file's coarse previews, at once),
+        // after the frames without a preview.
         let turn = |job: &Job, drawn: Option<u32>| {
             let Some(drawn) = drawn else {
                 return Some(0);
@@ -92,7 +93,7 @@ impl Daemon {
             match building(job) {
                 Some(current) if drawn >= current => None,
                 Some(_) => Some(drawn + 1),
-                None => Some(0),
+                None => Some(1),
             }
         };
         loop {

@@ -4,7 +4,9 @@
 //! job's settings and encode the PNG, with the stage timings of every step. A preview job's
 //! frame whose store the daemon is still building renders from the daemon's preview sample
 //! instead, resident as `render --preview` renders it here, and says how complete it is; a
-//! task asking for a later version of the sample than the one loaded replaces it.
+//! task asking for a later version of the sample than the one loaded replaces it. A preview
+//! job's first frames of a COPC dataset, which has nothing to build, are its coarse cuts, as
+//! `render --preview` draws them here.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -14,7 +16,8 @@ use pointfarm_render::cache::{CacheOutcome, DatasetCache};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::{point_colors, Coloring};
 use pointfarm_render::cut::{
-    CutError, CutOptions, CutRenderer, LodDataset, StoredLod, RESIDENT_MAX_POINTS,
+    CutError, CutOptions, CutRenderer, LodDataset, StoredLod, PREVIEW_LOD_ERROR_PX,
+    RESIDENT_MAX_POINTS,
 };
 use pointfarm_render::encode;
 use pointfarm_render::filter::PointFilter;
@@ -64,6 +67,8 @@ struct Stored {
     lod_error: f64,
     /// How long the store took to build, until the next finished frame reports it.
     unreported_build_ms: Option<f64>,
+    /// Whether the store is a COPC file's own hierarchy, previewed from coarse cuts.
+    copc: bool,
 }
 
 /// Where a store's nodes are read from.
@@ -260,7 +265,7 @@ impl WorkerRenderState {
                 None => Loaded::Resident(Box::new(self.load(task, files)?)),
             });
         }
-        let (mut frame, timings, dataset_cache_hit, cut) = match self.loaded.as_mut() {
+        let (mut frame, timings, dataset_cache_hit, cut, preview) = match self.loaded.as_mut() {
             Some(Loaded::Resident(current)) => {
                 let settings =
                     task.request
@@ -275,7 +280,7 @@ impl WorkerRenderState {
                     .into_iter()
                     .collect::<Vec<_>>();
                 let hit = load.map(|(_, outcome)| outcome == CacheOutcome::Hit);
-                (frame, timings, hit, None)
+                (frame, timings, hit, None, None)
             }
             Some(Loaded::Stored(stored)) => {
                 let dataset = stored.source.dataset();
@@ -288,6 +293,19 @@ impl WorkerRenderState {
                     .request
                     .frame_settings(task.lease.index, &bounds, spacing);
                 let coloring = task.request.render.coloring();
+                // A COPC file's preview is a coarse cut, its final frame the job's.
+                let preview = stored.copc
+                    && task.preview().is_some()
+                    && stored.lod_error < PREVIEW_LOD_ERROR_PX;
+                let lod_error = if preview {
+                    PREVIEW_LOD_ERROR_PX
+                } else {
+                    stored.lod_error
+                };
+                stored
+                    .cut
+                    .set_lod_error(lod_error)
+                    .map_err(|e| FrameFailure::from(&e))?;
                 let rendered =
                     stored
                         .cut
@@ -327,13 +345,17 @@ impl WorkerRenderState {
                     .map(|ms| stage("build", ms))
                     .into_iter()
                     .collect::<Vec<_>>();
-                (frame, timings, None, Some(report.counts))
+                let counts = &report.counts;
+                let completeness = preview.then(|| {
+                    (counts.points_rendered as f64 / counts.points_total.max(1) as f64).min(1.0)
+                });
+                (frame, timings, None, Some(report.counts), completeness)
             }
             Some(Loaded::Preview(_)) | None => {
                 return Err(FrameFailure::transient("no dataset loaded"))
             }
         };
-        finished(&mut frame, timings, dataset_cache_hit, cut, None)
+        finished(&mut frame, timings, dataset_cache_hit, cut, preview)
     }
 
     /// Renders `task`'s frame from its dataset's preview sample: `sample` loaded first, or the
@@ -483,7 +505,9 @@ impl WorkerRenderState {
                 })?,
         };
         let build_ms = (store.build_ms > 0.0).then_some(store.build_ms);
-        self.stored(task, StoreSource::Daemon(dataset), options, build_ms)
+        let copc = store.copc.is_some();
+        let stored = self.stored(task, StoreSource::Daemon(dataset), options, build_ms)?;
+        Ok(Stored { copc, ..stored })
     }
 
     /// The worker's cut options at `lod_error`, checked.
@@ -528,6 +552,7 @@ impl WorkerRenderState {
             cut,
             lod_error: options.lod_error,
             unreported_build_ms: build_ms,
+            copc: false,
         })
     }
 
