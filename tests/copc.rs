@@ -11,7 +11,8 @@ use std::process::Output;
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::testing::compare_images_within;
 use pointfarm_tests::{
-    assert_fails_saying, assert_ok, json_lines, output_text, pointfarm, pointfarm_ok,
+    assert_fails_saying, assert_ok, assert_same_frames, json_lines, output_text, pointfarm,
+    pointfarm_ok,
 };
 
 fn arg(path: &Path) -> &str {
@@ -176,14 +177,7 @@ fn a_copc_file_is_previewed_from_coarse_cuts_then_rendered_final() {
     let normal = dir.path().join("normal");
     let plain = render(&normal, &[]);
     assert!(json_lines(&plain).iter().all(|r| r["preview"] == false));
-    for index in 0..3 {
-        let name = format!("frame_{index:05}.png");
-        let image = |folder: &Path| image::open(folder.join(&name)).expect("png").to_rgba8();
-        assert!(
-            image(&frames) == image(&normal),
-            "{name} differs from a render without previews"
-        );
-    }
+    assert_same_frames(&normal, &frames, 3, "the render with previews");
 
     let coarse = pointfarm_ok(&[
         "render",

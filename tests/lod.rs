@@ -8,7 +8,9 @@ use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::sample::sample_scene;
 use pointfarm_render::testing::compare_images_within;
 use pointfarm_tests::service::{scratch_sample, write_sample};
-use pointfarm_tests::{json_lines, json_names, output_text, pointfarm, pointfarm_ok};
+use pointfarm_tests::{
+    assert_same_frames, json_lines, json_names, output_text, pointfarm, pointfarm_ok,
+};
 
 fn arg(path: &Path) -> &str {
     path.to_str().expect("temporary paths are UTF-8")
@@ -474,14 +476,7 @@ fn a_preview_renders_from_chunk_starts_while_the_store_builds_then_the_final_fra
     let normal = dir.path().join("normal");
     let plain = render(&normal, &dir.path().join("cache2"), &[]);
     assert!(json_lines(&plain).iter().all(|r| r["preview"] == false));
-    for index in 0..3 {
-        let name = format!("frame_{index:05}.png");
-        let image = |folder: &Path| image::open(folder.join(&name)).expect("png").to_rgba8();
-        assert!(
-            image(&frames) == image(&normal),
-            "{name} differs from a normal render's"
-        );
-    }
+    assert_same_frames(&normal, &frames, 3, "the render with previews");
 
     // With the store built there is nothing to preview: final frames at once, and it says so.
     let again = render(&frames, &cache, &["--preview"]);

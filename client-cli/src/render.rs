@@ -144,6 +144,19 @@ impl FrameTarget<'_> {
             keep_going,
         )
     }
+
+    /// Renders every final frame from `source` over the previews, and says where they are.
+    fn render_final(&self, source: &mut FrameSource) -> Result<()> {
+        self.render(source, &|| true)?;
+        crate::output::say(
+            self.args.json,
+            format!(
+                "final frames: {} (over the previews)",
+                self.outputs.files.dir().display()
+            ),
+        );
+        Ok(())
+    }
 }
 
 /// Renders the frames from the files' chunk starts while their store builds in `folder` on
@@ -202,15 +215,7 @@ fn preview_then_final(
         &request.render,
         say_input,
     )?;
-    render_frames(args, request, outputs, gpu, &mut source, &|| true)?;
-    crate::output::say(
-        args.json,
-        format!(
-            "final frames: {} (over the previews)",
-            outputs.files.dir().display()
-        ),
-    );
-    Ok(())
+    target.render_final(&mut source)
 }
 
 /// Renders a COPC file's frames from coarse cuts at [`PREVIEW_LOD_ERROR_PX`], then the final
@@ -222,12 +227,7 @@ fn copc_preview_then_final(
     options: CutOptions,
     say_input: &dyn Fn(String),
 ) -> Result<()> {
-    let FrameTarget {
-        args,
-        request,
-        outputs,
-        gpu,
-    } = *target;
+    let FrameTarget { request, gpu, .. } = *target;
     let mut source =
         FrameSource::copc_preview(Arc::clone(gpu), file, options, &request.render, say_input)?;
     target.render(&mut source, &|| true)?;
@@ -236,15 +236,7 @@ fn copc_preview_then_final(
         "final frames at a pixel error of {}",
         options.lod_error
     ));
-    render_frames(args, request, outputs, gpu, &mut source, &|| true)?;
-    crate::output::say(
-        args.json,
-        format!(
-            "final frames: {} (over the previews)",
-            outputs.files.dir().display()
-        ),
-    );
-    Ok(())
+    target.render_final(&mut source)
 }
 
 /// Draws the preview frames again, each time the build has stored another tenth of the

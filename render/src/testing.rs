@@ -1,7 +1,8 @@
 //! Helpers for tests, this crate's and (with the `testing` feature) other crates': one shared
-//! GPU, image comparison with diff output, and the location of the real scans.
+//! GPU, image comparison with diff output, the location of the real scans, and a generated
+//! terrain exported as a COPC file.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
 
 use image::RgbaImage;
@@ -161,4 +162,38 @@ pub fn test_output_dir() -> PathBuf {
 pub fn las_world_positions(points: &las::PointData) -> Vec<DVec3> {
     let xyz = points.x().zip(points.y()).zip(points.z());
     xyz.map(|((x, y), z)| DVec3::new(x, y, z)).collect()
+}
+
+/// A generated terrain's store and the COPC file exported from it.
+pub struct ExportedTerrain {
+    _db: sled::Db,
+    pub store: crate::lod::LodStore,
+    pub hierarchy: crate::lod::LodHierarchy,
+    pub path: PathBuf,
+}
+
+/// A generated terrain of `points` built in `dir` with leaves of at most `max_leaf_points`
+/// and exported as `dir/terrain.copc.laz`.
+pub fn exported_terrain(dir: &Path, points: u64, max_leaf_points: usize) -> ExportedTerrain {
+    use crate::lod::copc_export::{export_copc, ExportSettings};
+    use crate::lod::{build_lod, GeneratedSource, LodBuildOptions, LodStore};
+
+    let source = GeneratedSource::terrain(points, 7);
+    let db = sled::open(dir.join("db")).expect("sled");
+    let store =
+        LodStore::open(db.open_tree("lod").expect("tree"), dir.join("lod.bin")).expect("store");
+    let mut options = LodBuildOptions::new(dir.join("spill"));
+    options.max_leaf_points = max_leaf_points;
+    let hierarchy = build_lod(&source, &store, &options)
+        .expect("build")
+        .hierarchy;
+    let path = dir.join("terrain.copc.laz");
+    let settings = ExportSettings::fixed(&hierarchy.cube);
+    export_copc(&hierarchy, &store, &settings, &path, &mut |_| {}).expect("export");
+    ExportedTerrain {
+        _db: db,
+        store,
+        hierarchy,
+        path,
+    }
 }

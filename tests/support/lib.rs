@@ -122,6 +122,16 @@ pub fn assert_fails_saying(output: &Output, needle: &str) {
     assert!(!stderr.contains("panicked"), "{stderr}");
 }
 
+/// Asserts that the folders `expected` and `actual` hold the same `frames` frame files
+/// (`frame_00000.png` on), pixel for pixel; `what` says what `actual` is.
+pub fn assert_same_frames(expected: &Path, actual: &Path, frames: u32, what: &str) {
+    for index in 0..frames {
+        let name = format!("frame_{index:05}.png");
+        let image = |folder: &Path| image::open(folder.join(&name)).expect("png").to_rgba8();
+        assert!(image(expected) == image(actual), "{name} differs in {what}");
+    }
+}
+
 /// Runs `pointfarm` with `args` writing into a pipe nobody reads (`| head` after it ended),
 /// and fails unless it still ends well and quietly.
 pub fn run_into_a_closed_pipe(args: &[&str]) -> Output {

@@ -209,28 +209,12 @@ fn copc_file(name: &str) -> PathBuf {
 /// render's are.
 #[test]
 fn an_exported_copc_files_node_grids_reach_the_record_workers_are_sent() {
-    use pointfarm_render::lod::copc_export::{export_copc, ExportSettings};
-    use pointfarm_render::lod::{build_lod, GeneratedSource, LodBuildOptions, LodStore};
-
     let dir = tempfile::tempdir().expect("tempdir");
-    let db = sled::open(dir.path().join("db")).expect("sled");
-    let store = LodStore::open(
-        db.open_tree("lod").expect("tree"),
-        dir.path().join("lod.bin"),
-    )
-    .expect("store");
-    let mut options = LodBuildOptions::new(dir.path().join("spill"));
-    options.max_leaf_points = 1_000;
-    let built = build_lod(&GeneratedSource::terrain(60_000, 7), &store, &options)
-        .expect("build")
-        .hierarchy;
-    let path = dir.path().join("terrain.copc.laz");
-    let settings = ExportSettings::fixed(&built.cube);
-    export_copc(&built, &store, &settings, &path, &mut |_| {}).expect("export");
-
+    let exported = pointfarm_render::testing::exported_terrain(dir.path(), 60_000, 1_000);
+    let (built, path) = (&exported.hierarchy, &exported.path);
     let stores = DatasetStores::new(dir.path().join("stores"), 64 << 20);
     let StoreAnswer::Ready(served) = stores
-        .open(&copc_dataset(&path, "ee55"), false)
+        .open(&copc_dataset(path, "ee55"), false)
         .expect("open")
     else {
         panic!("a COPC file needs no build");

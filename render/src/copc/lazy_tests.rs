@@ -181,7 +181,7 @@ fn check_cuts(path: &Path) {
 /// A generated terrain built into a store with small leaves and exported as a COPC file (in
 /// one page, as the export writes it).
 fn exported_terrain(dir: &Path) -> PathBuf {
-    super::weights_tests::exported_terrain(dir, 60_000, 1_000).path
+    crate::testing::exported_terrain(dir, 60_000, 1_000).path
 }
 
 #[test]

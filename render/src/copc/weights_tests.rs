@@ -11,41 +11,10 @@ use crate::camera::Camera;
 use crate::color::ColorMode;
 use crate::cut::{select_cut, Cut, CutOptions, CutRenderer, CutView};
 use crate::filter::PointFilter;
-use crate::lod::copc_export::{export_copc, ExportSettings};
-use crate::lod::{build_lod, GeneratedSource, LodBuildOptions, LodHierarchy, LodStore, NodeKey};
+use crate::lod::NodeKey;
 use crate::raster::{FrameSettings, Quality, Renderer, Shading};
 use crate::request::PointSize;
-use crate::testing::{compare_images_within, gpu};
-
-pub(super) struct Exported {
-    _db: sled::Db,
-    store: LodStore,
-    hierarchy: LodHierarchy,
-    pub path: PathBuf,
-}
-
-/// A generated terrain of `points` built with leaves of at most `max_leaf_points` and
-/// exported as a COPC file.
-pub(super) fn exported_terrain(dir: &Path, points: u64, max_leaf_points: usize) -> Exported {
-    let source = GeneratedSource::terrain(points, 7);
-    let db = sled::open(dir.join("db")).expect("sled");
-    let store =
-        LodStore::open(db.open_tree("lod").expect("tree"), dir.join("lod.bin")).expect("store");
-    let mut options = LodBuildOptions::new(dir.join("spill"));
-    options.max_leaf_points = max_leaf_points;
-    let hierarchy = build_lod(&source, &store, &options)
-        .expect("build")
-        .hierarchy;
-    let path = dir.join("terrain.copc.laz");
-    let settings = ExportSettings::fixed(&hierarchy.cube);
-    export_copc(&hierarchy, &store, &settings, &path, &mut |_| {}).expect("export");
-    Exported {
-        _db: db,
-        store,
-        hierarchy,
-        path,
-    }
-}
+use crate::testing::{compare_images_within, exported_terrain, gpu};
 
 #[test]
 fn an_exported_files_nodes_carry_the_weights_of_its_store() {
@@ -290,13 +259,9 @@ fn cuts_of_an_exported_file_are_the_stores() {
 /// changed), as a reader that does not know the record sees the file.
 pub(super) fn without_node_grids(path: &Path) -> PathBuf {
     let mut bytes = std::fs::read(path).expect("read");
-    let description = b"pointfarm node grids";
-    let at = bytes
-        .windows(description.len())
-        .rposition(|w| w == description)
-        .expect("the node grids EVLR");
-    // The user id lies at 2 of the EVLR's header, the description at 28.
-    bytes[at - 28 + 2] = b'q';
+    // The user id lies at 2 of the EVLR's header.
+    let header = node_grids_header(&bytes);
+    bytes[header + 2] = b'q';
     let copy = path.with_file_name("without-grids.copc.laz");
     std::fs::write(&copy, &bytes).expect("write");
     copy
@@ -310,12 +275,7 @@ fn a_damaged_node_grids_record_is_an_error_naming_the_file() {
     let dir = tempfile::tempdir().expect("tempdir");
     let exported = exported_terrain(dir.path(), 60_000, 1_000);
     let bytes = std::fs::read(&exported.path).expect("read");
-    let description = b"pointfarm node grids";
-    let header = bytes
-        .windows(description.len())
-        .rposition(|w| w == description)
-        .expect("the node grids EVLR")
-        - 28;
+    let header = node_grids_header(&bytes);
     let data = header + 60;
     assert!(data + 40 <= bytes.len(), "two entries at least");
     let damaged = |name: &str, damage: &dyn Fn(&mut Vec<u8>)| -> String {
@@ -361,12 +321,7 @@ fn any_byte_of_the_node_grids_flipped_opens_or_is_an_error_never_a_panic() {
     let dir = tempfile::tempdir().expect("tempdir");
     let exported = exported_terrain(dir.path(), 60_000, 1_000);
     let original = std::fs::read(&exported.path).expect("read");
-    let description = b"pointfarm node grids";
-    let header = original
-        .windows(description.len())
-        .rposition(|w| w == description)
-        .expect("the node grids EVLR")
-        - 28;
+    let header = node_grids_header(&original);
     let path = dir.path().join("flipped.copc.laz");
     let end = original.len();
     for at in (header..header + 60 + 60).chain(end - 20..end) {
@@ -397,4 +352,15 @@ fn any_byte_of_the_node_grids_flipped_opens_or_is_an_error_never_a_panic() {
             ),
         }
     }
+}
+
+/// Where the node grids EVLR's header starts in an exported file's `bytes` (its description
+/// lies at 28 of the header).
+fn node_grids_header(bytes: &[u8]) -> usize {
+    let description = b"pointfarm node grids";
+    bytes
+        .windows(description.len())
+        .rposition(|w| w == description)
+        .expect("the node grids EVLR")
+        - 28
 }

@@ -87,30 +87,8 @@ fn copc_chunks_convert_both_ways_and_bad_fields_are_named() {
 /// A file pointfarm exported keeps each point's weight; a worker is told where.
 #[test]
 fn copc_chunks_carry_where_an_exported_file_keeps_its_weights() {
-    use pointfarm_render::lod::copc_export::{export_copc, ExportSettings};
-    use pointfarm_render::lod::{build_lod, GeneratedSource, LodBuildOptions, LodStore};
     let dir = tempfile::tempdir().expect("tempdir");
-    let db = sled::open(dir.path().join("db")).expect("sled");
-    let store = LodStore::open(
-        db.open_tree("lod").expect("tree"),
-        dir.path().join("lod.bin"),
-    )
-    .expect("store");
-    let mut options = LodBuildOptions::new(dir.path().join("spill"));
-    options.max_leaf_points = 1_000;
-    let source = GeneratedSource::terrain(20_000, 3);
-    let hierarchy = build_lod(&source, &store, &options)
-        .expect("build")
-        .hierarchy;
-    let path = dir.path().join("terrain.copc.laz");
-    export_copc(
-        &hierarchy,
-        &store,
-        &ExportSettings::fixed(&hierarchy.cube),
-        &path,
-        &mut |_| {},
-    )
-    .expect("export");
+    let path = pointfarm_render::testing::exported_terrain(dir.path(), 20_000, 1_000).path;
     let opened = pointfarm_render::copc::open_copc(&path).expect("opens");
     let served = CopcServed {
         file_name: "terrain.copc.laz".into(),
