@@ -275,7 +275,7 @@ impl PreviewFetcher {
                         json,
                         format!(
                             "previews: {frames_total} frame{} in {}; the final frames replace \
-                             them once the server's store is built",
+                             them as the server renders them",
                             if frames_total == 1 { "" } else { "s" },
                             files.dir().display()
                         ),
