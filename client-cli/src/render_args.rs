@@ -210,12 +210,13 @@ pub struct RenderArgs {
     /// final frames over them, into the same files (previews stop once the store is ready;
     /// the first frame is always previewed). Reports say which frames are previews and how
     /// complete their data was. A single COPC file, which needs no build, is previewed from
-    /// coarse cuts of its own hierarchy, then its final frames are drawn
-    /// with the nodes the previews read. With nothing else to build the final frames render
-    /// at once. Through --server the job asks for previews: while the server builds the store, its
-    /// workers render every frame from the server's chunk-start sample and report them as
-    /// previews with their completeness; the same job then renders each frame again as a
-    /// final frame and succeeds only when all are final, which are the frames downloaded.
+    /// coarse cuts of its own hierarchy, then its final frames are drawn with the nodes the
+    /// previews read. With nothing else to build the final frames render at once. Through
+    /// --server the job asks for previews: while the server builds the store, its workers
+    /// render every frame from the server's chunk-start sample (of a COPC dataset, from its
+    /// coarse cuts) and report them as previews with their completeness; the same job then
+    /// renders each frame again as a final frame and succeeds only when all are final, which
+    /// are the frames downloaded.
     #[arg(long)]
     pub(crate) preview: bool,
     /// Levels of detail: host memory for the node cache and the store's build, e.g. 512MiB
