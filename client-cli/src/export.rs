@@ -116,7 +116,7 @@ pub fn run(args: ExportArgs) -> Result<()> {
     let budget = args
         .memory_budget
         .unwrap_or(CutOptions::default().memory_budget_bytes);
-    let stored = crate::lod_store::open_or_build(&files, &cache, budget, &say)?;
+    let stored = crate::lod_store::open_or_build(&files, &cache, budget, &say)?.stored;
     let hierarchy = stored.dataset.hierarchy();
     let settings = ExportSettings::of_files(&files, &hierarchy.cube)?;
     let out = &args.output.copc;

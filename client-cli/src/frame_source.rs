@@ -18,9 +18,9 @@ use pointfarm_render::lod::{NodePoints, PointSource};
 use pointfarm_render::raster::{Frame, FrameSettings, GpuPointCloud, Renderer};
 use pointfarm_render::request::RenderOptions;
 
-use crate::lod_store::{open_or_build, StoreCache};
+use crate::lod_store::{open_or_build, LocalStore, StoreCache};
 use pointfarm_render::copc::{open_copc, CopcDataset};
-use pointfarm_render::cut::{LodDataset, StoredLod};
+use pointfarm_render::cut::LodDataset;
 
 /// A frame and what it drew.
 pub struct RenderedFrame {
@@ -86,8 +86,9 @@ pub enum FrameSource {
 
 /// Where a cut's levels of detail come from.
 pub enum Levels {
-    /// The dataset's store in the cache folder.
-    Store(Box<StoredLod>),
+    /// The dataset's store in the cache folder, built again once if its bytes fail their
+    /// checks.
+    Store(Box<LocalStore>),
     /// A COPC file's own hierarchy, its nodes read from the file.
     Copc(Box<CopcDataset>),
 }
@@ -95,7 +96,7 @@ pub enum Levels {
 impl Levels {
     pub fn dataset(&self) -> &LodDataset {
         match self {
-            Self::Store(stored) => &stored.dataset,
+            Self::Store(store) => &store.stored.dataset,
             Self::Copc(copc) => &copc.dataset,
         }
     }
@@ -212,7 +213,7 @@ impl FrameSource {
     /// An opened store of a dataset of `file_count` files, rendered cut by cut.
     pub fn stored(
         gpu: Arc<GpuContext>,
-        lod: StoredLod,
+        lod: LocalStore,
         file_count: usize,
         options: CutOptions,
         render: &RenderOptions,
@@ -220,9 +221,9 @@ impl FrameSource {
     ) -> Result<Self> {
         let about = format!(
             "{} points in {file_count} file{}, levels of detail from {}",
-            lod.dataset.point_count(),
+            lod.stored.dataset.point_count(),
             plural(file_count),
-            lod.folder.display(),
+            lod.stored.folder.display(),
         );
         Self::of_levels(
             gpu,
@@ -369,7 +370,13 @@ impl FrameSource {
         }
     }
 
-    pub fn render(&mut self, settings: &FrameSettings) -> Result<RenderedFrame> {
+    /// Renders the frame of `settings`. A store whose bytes fail their checks is built again
+    /// (once, `say`ing so) and the frame rendered from the new one.
+    pub fn render(
+        &mut self,
+        settings: &FrameSettings,
+        say: &dyn Fn(String),
+    ) -> Result<RenderedFrame> {
         match self {
             Self::Resident {
                 renderer,
@@ -395,8 +402,22 @@ impl FrameSource {
                 preview,
                 ..
             } => {
-                let (frame, report) =
-                    cut.render(renderer, lod.dataset(), settings, *coloring, filter)?;
+                let (frame, report) = loop {
+                    let error =
+                        match cut.render(renderer, lod.dataset(), settings, *coloring, filter) {
+                            Ok(rendered) => break rendered,
+                            Err(error) => error,
+                        };
+                    let Levels::Store(store) = lod else {
+                        return Err(error.into());
+                    };
+                    if !error.is_store_damage() {
+                        return Err(error.into());
+                    }
+                    store.rebuild_after(&error, say)?;
+                    // The caches hold the old store's nodes: a new renderer starts empty.
+                    **cut = CutRenderer::new(renderer, &store.stored.dataset, *cut.options())?;
+                };
                 Ok(RenderedFrame {
                     frame,
                     points_total: report.counts.points_total,

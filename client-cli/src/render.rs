@@ -21,7 +21,7 @@ use pointfarm_render::request::RenderRequest;
 
 use crate::frame_files::save_depth;
 use crate::frame_source::{FrameSource, PreviewData, RenderedFrame};
-use crate::lod_store::{build_in_background, say_built, StoreCache};
+use crate::lod_store::{build_in_background, say_built, LocalStore, StoreCache};
 use crate::paths::user_cache_dir;
 use crate::render_json::FrameJson;
 use crate::render_outputs::{write_legend, Outputs};
@@ -207,6 +207,12 @@ fn preview_then_final(
     let built = build.join();
     let lod = built.map_err(|_| anyhow::anyhow!("the levels of detail's build panicked"))??;
     say_built(&lod, say_input);
+    let lod = LocalStore::new(
+        lod,
+        files.to_vec(),
+        options.memory_budget_bytes,
+        cache.size_bytes,
+    );
     let mut source = FrameSource::stored(
         Arc::clone(gpu),
         lod,
@@ -340,7 +346,7 @@ fn render_frames(
             break;
         }
         let frame_settings = settings(i);
-        let mut rendered = source.render(&frame_settings)?;
+        let mut rendered = source.render(&frame_settings, &say)?;
         // The next frame's nodes load while this one is encoded and written.
         if i + 1 < frames {
             source.read_ahead(&settings(i + 1));

@@ -1,5 +1,6 @@
 //! What the metrics' gauges show, read from the daemon's state at each scrape so that they
-//! cannot drift from it: the frames of unfinished jobs by priority, the leases, the workers.
+//! cannot drift from it: the frames of unfinished jobs by priority, the leases, the workers;
+//! and the stores rebuilt after damage, which the stores count.
 //! More `Daemon` methods.
 
 use std::collections::{BTreeMap, HashSet};
@@ -44,6 +45,7 @@ impl Daemon {
             queue,
             leases_held: leases.len() as u64,
             workers_connected: workers_connected as u64,
+            store_rebuilds: self.stores.rebuilds(),
         })
     }
 

@@ -15,16 +15,25 @@
 //! `PREVIEW_STORED_POINTS`, `preview`); only the latest sample of a content is kept. A file
 //! whose chunk table is damaged is named in the refusal, and the job fails saying so (its
 //! store would not build either).
+//!
+//! Every record served is checked first as a worker checks it (`codec::check_node`). A store
+//! whose bytes fail their checks (a record's checksum or layout, a payload file cut short),
+//! as records are served or as a finished store opens, is removed and built again from its
+//! files, once in a run, logged and counted (`rebuilds`); its frames are tried again once it
+//! is ready. A second failure after that rebuild is not built again: every later request is
+//! refused naming the dataset by its id and file names, and the job fails saying so.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use pointfarm_render::color::Stretch;
 use pointfarm_render::copc::{is_copc, open_copc_whole, CopcDecoder};
-use pointfarm_render::cut::{LodDataset, StoredLod, RESIDENT_MAX_POINTS};
+use pointfarm_render::cut::{CutError, LodDataset, StoredLod, RESIDENT_MAX_POINTS};
 use pointfarm_render::ingest::dataset_point_count;
-use pointfarm_render::lod::{BuildProgress, LodHierarchy, NodeInfo, NodeKey};
+use pointfarm_render::lod::codec::check_node;
+use pointfarm_render::lod::{BuildProgress, LodError, LodHierarchy, NodeInfo, NodeKey};
 
 use crate::error::DaemonError;
 use crate::model::Dataset;
@@ -94,17 +103,35 @@ impl ReadyStore {
 
     /// The stored records of `keys`, in order, or only their coarse sections where `coarse`
     /// and the store keeps them apart; each must be a node of the hierarchy with points. A
-    /// COPC file's records are its LAZ chunks, byte ranges of the file, always whole.
+    /// COPC file's records are its LAZ chunks, byte ranges of the file, always whole. A
+    /// store's records are checked as a worker checks them; one that fails is an error here
+    /// ([`DatasetStores::node_records`] builds the store again).
     pub fn records(&self, keys: &[NodeKey], coarse: bool) -> Result<Vec<Vec<u8>>, DaemonError> {
+        self.checked_records(keys, coarse)
+            .map_err(|failure| match failure {
+                RecordsFailure::Refused(error) => error,
+                RecordsFailure::Damaged(damage) => {
+                    DaemonError::Internal(format!("reading the store's nodes: {damage}"))
+                }
+            })
+    }
+
+    /// [`ReadyStore::records`], telling a store whose bytes failed their checks from the
+    /// other failures.
+    fn checked_records(
+        &self,
+        keys: &[NodeKey],
+        coarse: bool,
+    ) -> Result<Vec<Vec<u8>>, RecordsFailure> {
         let hierarchy = self.hierarchy();
         let infos: Vec<NodeInfo> = keys
             .iter()
             .map(|&key| match hierarchy.node(key) {
                 Some(info) if info.point_count > 0 => Ok(*info),
-                _ => Err(DaemonError::invalid(
+                _ => Err(RecordsFailure::Refused(DaemonError::invalid(
                     "nodes",
                     format!("node {key} holds no points of this store"),
-                )),
+                ))),
             })
             .collect::<Result<_, _>>()?;
         let records = self.dataset().records();
@@ -112,9 +139,31 @@ impl ReadyStore {
             true => records.read_coarse_records(&infos),
             false => None,
         };
-        read.unwrap_or_else(|| records.read_records(&infos))
-            .map_err(|e| DaemonError::Internal(format!("reading the store's nodes: {e}")))
+        let failed = |error: LodError| match error.is_damage() {
+            true => RecordsFailure::Damaged(error),
+            false => RecordsFailure::Refused(DaemonError::Internal(format!(
+                "reading the store's nodes: {error}"
+            ))),
+        };
+        let read = read
+            .unwrap_or_else(|| records.read_records(&infos))
+            .map_err(failed)?;
+        // A COPC file's chunks are checked as they decode, on the worker.
+        if let Kept::Store(_) = self.kept {
+            for (info, bytes) in infos.iter().zip(&read) {
+                check_node(info.key, info.point_count, bytes).map_err(RecordsFailure::Damaged)?;
+            }
+        }
+        Ok(read)
     }
+}
+
+/// Why records were not served.
+enum RecordsFailure {
+    /// The request, or the read (named).
+    Refused(DaemonError),
+    /// The store's bytes failed their checks.
+    Damaged(LodError),
 }
 
 /// Holds every store build until opened, at its start or at its end before its store is
@@ -207,6 +256,11 @@ pub struct DatasetStores {
     gate: Option<StoreBuildGate>,
     /// Finished builds wait here, still building, when set.
     ready_gate: Option<StoreBuildGate>,
+    /// Contents whose store this run built again after it failed its checks: once each, so
+    /// a second failure is reported instead of built again.
+    rebuilt: Mutex<HashSet<String>>,
+    /// Stores this run built again after they failed their checks.
+    rebuilds: AtomicU64,
     /// Called when a build's preview version moves and when it ends, so that frames waiting
     /// for the store are leased again (for a redraw, or for their final render).
     on_change: Option<Arc<dyn Fn() + Send + Sync>>,
@@ -224,8 +278,15 @@ impl DatasetStores {
             previews: Arc::default(),
             gate: None,
             ready_gate: None,
+            rebuilt: Mutex::default(),
+            rebuilds: AtomicU64::new(0),
             on_change: None,
         }
+    }
+
+    /// How many stores this run built again after they failed their checks.
+    pub fn rebuilds(&self) -> u64 {
+        self.rebuilds.load(Ordering::Relaxed)
     }
 
     /// Builds wait at `gate` until it is opened.
@@ -371,20 +432,33 @@ impl DatasetStores {
         if !levels_of_detail && points <= RESIDENT_MAX_POINTS && !built {
             return Ok(StoreAnswer::NotNeeded { points });
         }
-        let files: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
         if built {
+            let files: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
             // Opening a finished store reads its hierarchy and a sample of its coarsest nodes.
-            let ready = self.finish(
-                &sha,
-                open_or_build(
-                    &files,
-                    &folder,
-                    self.build_memory_bytes,
-                    &BuildProgress::new(),
-                ),
+            let opened = open_or_build(
+                &files,
+                &folder,
+                self.build_memory_bytes,
+                &BuildProgress::new(),
             );
-            return ready.map(StoreAnswer::Ready);
+            return match opened {
+                Err(damage) if damage.is_store_damage() => self
+                    .rebuild_damaged(dataset, None, &damage.to_string())
+                    .map(|points| StoreAnswer::Building { points }),
+                opened => self
+                    .finish(&sha, opened.map_err(|e| e.to_string()))
+                    .map(StoreAnswer::Ready),
+            };
         }
+        self.start_build(dataset, points)
+    }
+
+    /// Starts building the store of `dataset`, of `points` points, on a thread of its own.
+    /// Called under `opening`.
+    fn start_build(&self, dataset: &Dataset, points: u64) -> Result<StoreAnswer, DaemonError> {
+        let sha = dataset.sha256.clone();
+        let folder = self.folder(&sha);
+        let files: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
         let on_change = self.on_change.clone();
         let progress = Arc::new(match on_change.clone() {
             Some(on_change) => BuildProgress::notifying(move |_| on_change()),
@@ -411,6 +485,7 @@ impl DatasetStores {
                 let _one_at_a_time = building.lock().unwrap_or_else(|e| e.into_inner());
                 tracing::info!(dataset = %id, points, "building the dataset's levels of detail");
                 let built = open_or_build(&files, &folder, budget, &progress);
+                let built = built.map_err(|e| e.to_string());
                 if let Some(gate) = ready_gate {
                     gate.wait();
                 }
@@ -484,12 +559,103 @@ impl DatasetStores {
                     return Err(not_open());
                 }
                 let progress = BuildProgress::new();
-                self.finish(
-                    sha256,
-                    open_or_build(&[], &folder, self.build_memory_bytes, &progress),
-                )
+                match open_or_build(&[], &folder, self.build_memory_bytes, &progress) {
+                    Err(damage) if damage.is_store_damage() => {
+                        let rebuilding = self.rebuild_damaged(dataset, None, &damage.to_string());
+                        Err(rebuilding.map_or_else(|e| e, |_| being_rebuilt(dataset)))
+                    }
+                    opened => self.finish(sha256, opened.map_err(|e| e.to_string())),
+                }
             }
         }
+    }
+
+    /// The records of `keys` of `dataset`'s ready store ([`ReadyStore::records`]), each
+    /// checked as a worker checks it. A store whose bytes fail their checks is built again,
+    /// once in this run: the request is refused meanwhile (its frame is tried again, and
+    /// finds the store building); after that one rebuild, a second failure is reported to
+    /// this and every later request.
+    pub fn node_records(
+        &self,
+        dataset: &Dataset,
+        keys: &[NodeKey],
+        coarse: bool,
+    ) -> Result<Vec<Vec<u8>>, DaemonError> {
+        let store = self.ready(dataset)?;
+        match store.checked_records(keys, coarse) {
+            Ok(records) => Ok(records),
+            Err(RecordsFailure::Refused(error)) => Err(error),
+            Err(RecordsFailure::Damaged(damage)) => {
+                let _one_decision = self.opening.lock().unwrap_or_else(|e| e.into_inner());
+                let rebuilding = self.rebuild_damaged(dataset, Some(&store), &damage.to_string());
+                Err(rebuilding.map_or_else(|e| e, |_| being_rebuilt(dataset)))
+            }
+        }
+    }
+
+    /// Removes the store of `dataset`, whose bytes failed their checks (`damage`, found in
+    /// `seen` when it was open), and starts building it again, the first time in this run:
+    /// its points then. A second time, or when it cannot be removed, the dataset's later
+    /// requests are refused saying so, and so is this one. Called under `opening`.
+    fn rebuild_damaged(
+        &self,
+        dataset: &Dataset,
+        seen: Option<&Arc<ReadyStore>>,
+        damage: &str,
+    ) -> Result<u64, DaemonError> {
+        let sha = dataset.sha256.as_str();
+        let points = match self.entries_now().get(sha) {
+            // Another request found the damage first: its rebuild is under way, or done.
+            Some(Entry::Ready(current)) if seen.is_some_and(|seen| !Arc::ptr_eq(seen, current)) => {
+                return Err(being_rebuilt(dataset));
+            }
+            Some(Entry::Ready(current)) => Some(current.point_count()),
+            Some(Entry::Building { .. }) => return Err(being_rebuilt(dataset)),
+            Some(Entry::Failed(reason)) => {
+                return Err(DaemonError::FailedPrecondition(reason.clone()))
+            }
+            Some(Entry::Counted(points)) => Some(*points),
+            None => None,
+        };
+        let about = dataset_words(dataset);
+        let folder = self.folder(sha);
+        let refuse = |reason: String| {
+            self.set(sha, Entry::Failed(reason.clone()));
+            DaemonError::FailedPrecondition(reason)
+        };
+        let first = self
+            .rebuilt
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(sha.to_owned());
+        if !first {
+            tracing::warn!(dataset = %dataset.id, folder = %folder.display(), reason = %damage,
+                "a store built again after it failed its checks failed them again; not built again");
+            return Err(refuse(format!(
+                "{about}: its level-of-detail store failed its checks again after it was \
+                 rebuilt ({damage}); it is not rebuilt again"
+            )));
+        }
+        tracing::warn!(dataset = %dataset.id, folder = %folder.display(), reason = %damage,
+            "rebuilding a damaged store");
+        if let Err(error) = StoredLod::remove_damaged(&folder) {
+            tracing::warn!(dataset = %dataset.id, %error, "the damaged store could not be removed");
+            return Err(refuse(format!(
+                "{about}: its level-of-detail store failed its checks ({damage}) and could not \
+                 be removed to build it again"
+            )));
+        }
+        self.rebuilds.fetch_add(1, Ordering::Relaxed);
+        let points = match points {
+            Some(points) => points,
+            None => {
+                let paths: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
+                dataset_point_count(&paths).map_err(|e| {
+                    DaemonError::FailedPrecondition(format!("dataset {}: {e}", dataset.id))
+                })?
+            }
+        };
+        self.start_build(dataset, points).map(|_| points)
     }
 
     /// Forgets the store of content `sha256` and removes its folder (no dataset has that
@@ -501,6 +667,11 @@ impl DatasetStores {
         }
         entries.remove(sha256);
         drop(entries);
+        // A dataset uploaded again later gets a rebuild of its own.
+        self.rebuilt
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(sha256);
         self.previews
             .lock()
             .unwrap_or_else(|e| e.into_inner())
@@ -565,6 +736,30 @@ impl DatasetStores {
     }
 }
 
+/// A dataset as its errors name it: its id and its files' names (never a path of this server).
+fn dataset_words(dataset: &Dataset) -> String {
+    let names: Vec<String> = dataset.files().into_iter().map(|f| f.name).collect();
+    let files = match names.as_slice() {
+        [] => String::new(),
+        [one] => one.clone(),
+        [first, rest @ ..] => format!(
+            "{first} and {} more file{}",
+            rest.len(),
+            if rest.len() == 1 { "" } else { "s" }
+        ),
+    };
+    format!("dataset {} ({files})", dataset.id)
+}
+
+/// The refusal of a request for the records of `dataset`'s store while it is built again.
+fn being_rebuilt(dataset: &Dataset) -> DaemonError {
+    DaemonError::FailedPrecondition(format!(
+        "{}: its level-of-detail store failed its checks and is being built again; ask \
+         OpenDatasetStore again",
+        dataset_words(dataset)
+    ))
+}
+
 /// Opens the store in `folder`, building it from `files` first when it has none, listing in
 /// `progress` the nodes the build stores.
 fn open_or_build(
@@ -572,9 +767,8 @@ fn open_or_build(
     folder: &Path,
     budget: u64,
     progress: &BuildProgress,
-) -> Result<ReadyStore, String> {
-    let lod = StoredLod::open_or_build_watched(files, folder, budget, None, &mut |_| {}, progress)
-        .map_err(|e| e.to_string())?;
+) -> Result<ReadyStore, CutError> {
+    let lod = StoredLod::open_or_build_watched(files, folder, budget, None, &mut |_| {}, progress)?;
     let build_ms = lod.built.as_ref().map_or(0.0, |(_, seconds)| seconds * 1e3);
     let hierarchy_record = lod.dataset.hierarchy().encode();
     tracing::info!(

@@ -333,11 +333,12 @@ impl WorkerService for Api {
             .into());
         }
         let keys: Vec<NodeKey> = r.nodes.iter().map(node_key).collect::<Result<_, _>>()?;
+        // Checked as they are read: a store whose bytes fail their checks is built again.
         let records = self
             .run(move |daemon| {
-                daemon
-                    .ready_dataset_store(&r.dataset_id)?
-                    .records(&keys, r.coarse)
+                check_id("dataset_id", &r.dataset_id)?;
+                let dataset = daemon.dataset(&r.dataset_id)?;
+                daemon.stores.node_records(&dataset, &keys, r.coarse)
             })
             .await?;
         let records = records.into_iter().map(|data| pb::NodeRecord { data });

@@ -3,7 +3,9 @@
 //! the methods of [`DaemonMetrics`] and [`WorkerMetrics`]; gauges that mirror state (the
 //! queue, the leases, the workers) are read from the daemon's real state at each scrape
 //! (`Daemon::metrics_text`, in `farm_state.rs`), so they cannot drift from it. Counters start at zero with the
-//! process, as Prometheus expects of them.
+//! process, as Prometheus expects of them. The one counter kept where its event happens outside
+//! the daemon's reach of metrics, the stores rebuilt after damage (`stores.rs`), is read with
+//! the state at each scrape and only ever moves up.
 //!
 //! - `worker`: the metrics of a `pointfarm worker` process (`pointfarm_worker_*`).
 //! - `http`: the unauthenticated `GET /metrics` endpoint that serves either in Prometheus's
@@ -168,6 +170,9 @@ pub struct FarmState {
     pub queue: BTreeMap<i32, QueueDepth>,
     pub leases_held: u64,
     pub workers_connected: u64,
+    /// Level-of-detail stores built again since the start because their bytes failed their
+    /// checks (`DatasetStores::rebuilds`).
+    pub store_rebuilds: u64,
 }
 
 /// The daemon's metrics (`pointfarm_*`).
@@ -180,6 +185,7 @@ pub struct DaemonMetrics {
     leases_expired: Counter,
     dataset_cache: CacheCounters,
     upload_bytes: Counter,
+    store_rebuilds: Counter,
     queue_frames: Family<QueueLabels, Gauge>,
     leases_held: Gauge,
     workers_connected: Gauge,
@@ -204,6 +210,7 @@ impl DaemonMetrics {
             leases_expired: Counter::default(),
             dataset_cache: CacheCounters::default(),
             upload_bytes: Counter::default(),
+            store_rebuilds: Counter::default(),
             queue_frames: Family::default(),
             leases_held: Gauge::default(),
             workers_connected: Gauge::default(),
@@ -260,6 +267,13 @@ impl DaemonMetrics {
             "Bytes of dataset uploads received whole and checked",
             metrics.upload_bytes.clone(),
         );
+        registry.register(
+            "store_rebuilds",
+            "Level-of-detail stores built again from their datasets' files because their bytes \
+             failed their checks (a node record's checksum or layout, a payload file cut \
+             short); each store at most once a run",
+            metrics.store_rebuilds.clone(),
+        );
         metrics
     }
 
@@ -304,6 +318,11 @@ impl DaemonMetrics {
                     .set(gauge_value(frames));
             }
         }
+        // Counted by the stores; a scrape catches up with them, never goes back.
+        let shown = self.store_rebuilds.get();
+        if state.store_rebuilds > shown {
+            self.store_rebuilds.inc_by(state.store_rebuilds - shown);
+        }
         self.leases_held.set(gauge_value(state.leases_held));
         self.workers_connected
             .set(gauge_value(state.workers_connected));
@@ -325,3 +344,51 @@ fn encode(registry: &Registry) -> String {
 
 #[cfg(test)]
 mod tests;
+
+#[cfg(test)]
+mod store_rebuild_tests {
+    use super::*;
+
+    /// The value of `series` in `text`, as Prometheus reads it.
+    fn value(text: &str, series: &str) -> Option<f64> {
+        text.lines()
+            .filter(|line| !line.starts_with('#'))
+            .filter_map(|line| line.rsplit_once(' '))
+            .find(|(name, _)| *name == series)
+            .and_then(|(_, value)| value.parse().ok())
+    }
+
+    #[test]
+    fn store_rebuilds_are_a_counter_that_follows_the_stores_and_never_goes_back() {
+        let metrics = DaemonMetrics::new();
+        let scrape = |rebuilds| {
+            metrics.text(&FarmState {
+                store_rebuilds: rebuilds,
+                ..FarmState::default()
+            })
+        };
+        let first = scrape(0);
+        assert!(
+            first.contains("# TYPE pointfarm_store_rebuilds counter"),
+            "{first}"
+        );
+        assert_eq!(value(&first, "pointfarm_store_rebuilds_total"), Some(0.0));
+        assert_eq!(
+            value(&scrape(1), "pointfarm_store_rebuilds_total"),
+            Some(1.0)
+        );
+        assert_eq!(
+            value(&scrape(1), "pointfarm_store_rebuilds_total"),
+            Some(1.0)
+        );
+        // A state read before the last scrape's does not take it back.
+        assert_eq!(
+            value(&scrape(0), "pointfarm_store_rebuilds_total"),
+            Some(1.0)
+        );
+        assert_eq!(
+            value(&scrape(3), "pointfarm_store_rebuilds_total"),
+            Some(3.0)
+        );
+    }
+}

@@ -484,3 +484,83 @@ fn the_preview_sample_carries_the_nodes_stored_so_far_and_their_version() {
         "the sample's memory is freed once the store is ready"
     );
 }
+
+/// Flips bits all along the payload file of the store of content `sha256`.
+fn damage_payload(dir: &Path, sha256: &str) {
+    let payload = dir.join("lod").join(sha256).join("nodes.bin");
+    let mut bytes = std::fs::read(&payload).expect("payload");
+    for byte in bytes.iter_mut().step_by(53) {
+        *byte ^= 0x24;
+    }
+    std::fs::write(&payload, bytes).expect("damage");
+}
+
+/// A store whose records fail their checks as they are served is built again once, and
+/// served whole; damage after that rebuild is reported to every request, naming the dataset
+/// by its id and file name, and nothing more is built.
+#[test]
+fn a_damaged_store_is_built_again_once_then_its_damage_is_reported() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let dataset = scene_dataset(dir.path(), 20_000, "dd44");
+    let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+    let store = wait_ready(&stores, &dataset);
+    let (_, keys) = stored_nodes(&store);
+    let whole = stores.node_records(&dataset, &keys, false).expect("served");
+    drop(store);
+
+    damage_payload(dir.path(), "dd44");
+    let error = stores
+        .node_records(&dataset, &keys, true)
+        .expect_err("damage found");
+    assert!(error.to_string().contains("being built again"), "{error}");
+    assert_eq!(stores.rebuilds(), 1);
+    // Another request meanwhile finds it building, or built: one rebuild.
+    let _ = stores.node_records(&dataset, &keys, false);
+    assert_eq!(stores.rebuilds(), 1);
+    let rebuilt = wait_ready(&stores, &dataset);
+    assert!(rebuilt.build_ms > 0.0, "built again");
+    let (_, rebuilt_keys) = stored_nodes(&rebuilt);
+    assert_eq!(rebuilt_keys, keys);
+    assert_eq!(
+        stores.node_records(&dataset, &keys, false).expect("served"),
+        whole
+    );
+    drop(rebuilt);
+
+    damage_payload(dir.path(), "dd44");
+    let error = stores
+        .node_records(&dataset, &keys, false)
+        .expect_err("damaged again");
+    let message = error.to_string();
+    assert!(message.contains("failed its checks again"), "{message}");
+    assert!(message.contains("dataset ds-dd44 (scene.las)"), "{message}");
+    assert!(
+        !message.contains(&dir.path().display().to_string()),
+        "{message}"
+    );
+    assert!(matches!(error, DaemonError::FailedPrecondition(_)));
+    // Every later request is told so; nothing is built again.
+    let opened = stores.open(&dataset, true).err().expect("refused");
+    assert_eq!(opened.to_string(), message);
+    assert_eq!(stores.rebuilds(), 1);
+}
+
+/// A finished store damaged while the daemon was down is built again as it opens.
+#[test]
+fn a_finished_store_damaged_before_it_opens_is_built_again() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let dataset = scene_dataset(dir.path(), 20_000, "ee55");
+    let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+    drop(wait_ready(&stores, &dataset));
+    drop(stores);
+    damage_payload(dir.path(), "ee55");
+    let restarted = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+    assert!(matches!(
+        restarted.open(&dataset, true).expect("open"),
+        StoreAnswer::Building { points: 20_000 }
+    ));
+    assert_eq!(restarted.rebuilds(), 1);
+    let store = wait_ready(&restarted, &dataset);
+    let (_, keys) = stored_nodes(&store);
+    assert!(restarted.node_records(&dataset, &keys, false).is_ok());
+}

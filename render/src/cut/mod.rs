@@ -109,6 +109,14 @@ pub enum CutError {
     },
 }
 
+impl CutError {
+    /// Whether a store's own bytes failed their checks ([`LodError::is_damage`]): the store
+    /// is built again from its dataset's files, once.
+    pub fn is_store_damage(&self) -> bool {
+        matches!(self, Self::Store(error) if error.is_damage())
+    }
+}
+
 /// The nodes a read-ahead is fetching, and the thread doing it.
 struct ReadAhead {
     thread: JoinHandle<Result<u64, LodError>>,

@@ -265,6 +265,34 @@ fn remove_unused(root: &Path, folder: &Path) -> io::Result<bool> {
     Ok(true)
 }
 
+/// Removes the store in `folder` now, in use or not (a damaged store is of no use to anyone):
+/// renamed away first, so that its name is free at once for the store built in its place,
+/// while what still reads the old files reads them until it lets go. Nothing there is fine.
+pub(crate) fn remove_now(folder: &Path) -> io::Result<()> {
+    let Some(root) = folder.parent() else {
+        return Err(io::Error::other("a store's folder has a parent"));
+    };
+    let name = folder.file_name().unwrap_or_default().to_string_lossy();
+    let stamp = SystemTime::now()
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos());
+    let removing = root.join(format!(
+        "{REMOVING_PREFIX}{name}-{}-{stamp}",
+        std::process::id()
+    ));
+    match std::fs::rename(folder, &removing) {
+        Ok(()) => {}
+        Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => return Err(e),
+    }
+    // Whoever waits on its lock finds the folder gone and makes it anew. What cannot be
+    // removed now (a file written meanwhile) is removed with the stores beside a later build.
+    if let Err(error) = std::fs::remove_dir_all(&removing) {
+        tracing::warn!(%error, folder = %removing.display(), "removing a damaged store's files");
+    }
+    Ok(())
+}
+
 /// Whether `folder` holds a store, finished or not, or one being removed: other folders are
 /// neither counted nor removed.
 fn is_store(folder: &Path) -> bool {

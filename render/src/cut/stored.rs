@@ -119,6 +119,20 @@ impl StoredLod {
     }
 }
 
+impl StoredLod {
+    /// Removes the store in `folder` whose bytes failed their checks, in use or not, so that
+    /// the next [`StoredLod::open_or_build`] builds it anew from the dataset's files; what
+    /// still reads the old store reads its removed files until it lets go of them.
+    pub fn remove_damaged(folder: &Path) -> Result<(), CutError> {
+        super::store_space::remove_now(folder).map_err(|e| {
+            CutError::Cache(format!(
+                "removing the damaged store in {}: {e}",
+                folder.display()
+            ))
+        })
+    }
+}
+
 /// The file that marks a finished store: its points and the bounds of its files, so it opens
 /// without them (a worker's restart).
 const FINISHED_FILE: &str = "finished.json";

@@ -213,14 +213,20 @@ fn corrupt(key: NodeKey, reason: impl Into<String>) -> LodError {
     }
 }
 
-/// Decodes a node, its coarse section (`bytes` of [`coarse_len`]) or all of it, checking each
-/// section's checksum, its layout and that it holds `expected` points.
-pub fn decode_node(
-    cube: &RootCube,
+/// Checks a node's stored bytes, its coarse section (`bytes` of [`coarse_len`]) or all of it,
+/// as [`decode_node`] does (each section's checksum, the layout, `expected` points) without
+/// decoding them: what a daemon checks of the records it serves.
+pub fn check_node(key: NodeKey, expected: u32, bytes: &[u8]) -> Result<(), LodError> {
+    checked_layout(key, expected, bytes).map(drop)
+}
+
+/// The detail, point count and RGB flag of a node's stored bytes, once each section's
+/// checksum, the layout and the `expected` points are checked.
+fn checked_layout(
     key: NodeKey,
     expected: u32,
     bytes: &[u8],
-) -> Result<NodePoints, LodError> {
+) -> Result<(Detail, usize, bool), LodError> {
     if bytes.len() < HEADER_BYTES + 8 {
         return Err(corrupt(
             key,
@@ -258,6 +264,18 @@ pub fn decode_node(
             format!("holds {count} points, the hierarchy says {expected}"),
         ));
     }
+    Ok((detail, n, has_rgb))
+}
+
+/// Decodes a node, its coarse section (`bytes` of [`coarse_len`]) or all of it, checking each
+/// section's checksum, its layout and that it holds `expected` points.
+pub fn decode_node(
+    cube: &RootCube,
+    key: NodeKey,
+    expected: u32,
+    bytes: &[u8],
+) -> Result<NodePoints, LodError> {
+    let (detail, n, has_rgb) = checked_layout(key, expected, bytes)?;
     let mut at = HEADER_BYTES;
     let mut take = |len: usize| {
         let slice = &bytes[at..at + len];
@@ -430,7 +448,18 @@ mod tests {
             assert!(whole.to_string().contains("checksum"), "{whole}");
             let read_coarse = decode_node(&cube, key, 64, &damaged[..coarse]);
             assert_eq!(read_coarse.is_err(), at < coarse, "byte {at}");
+            // A check without decoding finds what decoding finds.
+            assert!(check_node(key, 64, &damaged).is_err(), "byte {at}");
+            let checked_coarse = check_node(key, 64, &damaged[..coarse]);
+            assert_eq!(checked_coarse.is_err(), at < coarse, "byte {at}");
         }
+        assert!(check_node(key, 64, &bytes).is_ok());
+        assert!(check_node(key, 64, &bytes[..coarse]).is_ok());
+        assert!(check_node(key, 63, &bytes).is_err(), "another count");
+        assert!(
+            check_node(key, 64, &bytes[..bytes.len() - 1]).is_err(),
+            "cut short"
+        );
         let mut count = bytes.clone();
         count[4] ^= 1;
         let error = decode_node(&cube, key, 64, &count).expect_err("a damaged count");

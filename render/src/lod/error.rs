@@ -78,6 +78,16 @@ pub enum LodError {
 }
 
 impl LodError {
+    /// Whether this says the store's own bytes failed their checks (a node record's checksum
+    /// or layout, a payload file cut short, a damaged hierarchy): a store so damaged is a
+    /// cache to build again from its dataset's files, unlike a read that failed.
+    pub fn is_damage(&self) -> bool {
+        matches!(
+            self,
+            Self::CorruptNode { .. } | Self::CorruptHierarchy(_) | Self::MissingHierarchy
+        )
+    }
+
     pub(crate) fn spill(path: impl Into<PathBuf>, error: std::io::Error) -> Self {
         Self::Spill {
             path: path.into(),
