@@ -15,7 +15,7 @@ use glam::DVec3;
 use super::error::CopcError;
 use super::node_grids::{read_node_grids, NodeGrids};
 use crate::cloud::{WorldBounds, MAX_COORDINATE};
-use crate::ingest::{check_file, extra_bytes, IngestError};
+use crate::ingest::{check_file, extra_bytes, open_dataset_file, IngestError, Symlinks};
 use crate::lod::weights::WEIGHT_ATTRIBUTE;
 use crate::lod::RootCube;
 
@@ -81,7 +81,7 @@ pub(crate) struct CopcHeader {
 /// specification puts it). A file too short to say is not; ingest reports what is wrong
 /// with it.
 pub fn is_copc(path: &Path) -> Result<bool, CopcError> {
-    let mut file = File::open(path).map_err(|e| CopcError::io(path, e))?;
+    let mut file = open_dataset_file(path, Symlinks::Follow).map_err(|e| CopcError::io(path, e))?;
     let mut head = Vec::with_capacity((COPC_INFO_OFFSET + VLR_HEADER_LEN) as usize);
     (&mut file)
         .take(COPC_INFO_OFFSET + VLR_HEADER_LEN)

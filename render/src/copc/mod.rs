@@ -38,7 +38,6 @@ mod tests;
 #[cfg(test)]
 mod weights_tests;
 
-use std::fs::File;
 use std::path::Path;
 use std::sync::Arc;
 
@@ -47,6 +46,7 @@ pub use header::{is_copc, CopcInfo};
 pub use nodes::{CopcDecoder, CopcNodes};
 
 use crate::cut::{for_each_coarse_node_up_to, node_heights, LodDataset, ELEVATION_SAMPLE_POINTS};
+use crate::ingest::{open_dataset_file, Symlinks};
 use crate::lod::{DatasetStats, LodError};
 use lazy::CopcPageReader;
 
@@ -94,7 +94,7 @@ enum PageReads {
 /// Opens `path` reading the pages `reads` says, its colour ranges from its coarsest
 /// `sample_points` points.
 fn open(path: &Path, reads: PageReads, sample_points: u64) -> Result<CopcDataset, CopcError> {
-    let mut file = File::open(path).map_err(|e| CopcError::io(path, e))?;
+    let mut file = open_dataset_file(path, Symlinks::Follow).map_err(|e| CopcError::io(path, e))?;
     let header = header::read_header(path, &mut file)?;
     let mut pages = match reads {
         PageReads::AsNeeded => hierarchy::read_root_page(path, &file, &header)?,
@@ -168,7 +168,7 @@ pub struct CopcSummary {
 
 /// Reads `path`'s header and every hierarchy page, checked as rendering checks them.
 pub fn describe(path: &Path) -> Result<CopcSummary, CopcError> {
-    let mut file = File::open(path).map_err(|e| CopcError::io(path, e))?;
+    let mut file = open_dataset_file(path, Symlinks::Follow).map_err(|e| CopcError::io(path, e))?;
     let header = header::read_header(path, &mut file)?;
     let pages = hierarchy::read_all_pages(path, &file, &header)?;
     let with_points = || pages.nodes_with_points();

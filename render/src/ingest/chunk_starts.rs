@@ -19,6 +19,7 @@ use rayon::prelude::*;
 
 use super::columns::{choose_origin, DecodedPoints};
 use super::contain::contain_panics;
+use super::files::{open_dataset_file, Symlinks};
 use super::laz_layout::LazLayout;
 use super::raw_file::RawFile;
 use super::read::{dataset_header_bounds, DatasetFile};
@@ -109,7 +110,7 @@ fn sample_file(file: &DatasetFile, las_stride: u64) -> Result<las::PointData, In
         path: path.to_owned(),
         error,
     };
-    let mut handle = File::open(path).map_err(io_error)?;
+    let mut handle = open_dataset_file(path, Symlinks::Follow).map_err(io_error)?;
     let mut raw = RawFile::new(path, &mut handle, file.file_len());
     let starts = record_starts(&raw, file, las_stride)?;
     let record_len = usize::from(file.facts.record_len);

@@ -66,6 +66,15 @@ pub enum IngestError {
     #[error("{}: the folder holds no .las or .laz file", path.display())]
     NoFilesInFolder { path: PathBuf },
 
+    /// A symbolic link that leads outside the folders a dataset's files may come from (a
+    /// server's data roots); where it leads is not said.
+    #[error("{}: a symbolic link that leads outside the data roots", path.display())]
+    OutsideRoots { path: PathBuf },
+
+    /// A `.las`/`.laz` name that is a FIFO, a socket, a device: never opened.
+    #[error("{}: not a regular file ({kind})", path.display())]
+    NotRegularFile { path: PathBuf, kind: &'static str },
+
     #[error("{}: the file contains no points", path.display())]
     NoPoints { path: PathBuf },
 

@@ -21,7 +21,8 @@
 //!   every LAZ chunk, every k-th LAS record;
 //! - `columns.rs`: the decoded points and the cloud made of them (origin, colours);
 //! - `extra_bytes.rs`: LAS 1.4's extra bytes descriptors, read and written;
-//! - `files.rs`: the files of a dataset, from files and folders;
+//! - `files.rs`: the files of a dataset, from files and folders (anywhere, or only inside a
+//!   server's data roots), and `open_dataset_file`, the one open of a dataset's file;
 //! - `info.rs`: what a file is, for `pointfarm info`: header facts, attributes, and a
 //!   summary of its points streamed; `crs.rs`: the CRS its records declare;
 //! - `source.rs`: a dataset's files as the level-of-detail builder's source, streamed;
@@ -55,7 +56,7 @@ pub use chunk_starts::{sample_chunk_starts, PreviewSample, LAS_PREVIEW_STRIDE};
 pub(crate) use contain::contain_panics;
 pub use crs::{Crs, GeoKeys, USER_DEFINED as GEOTIFF_USER_DEFINED};
 pub use error::IngestError;
-pub use files::dataset_files;
+pub use files::{dataset_files, dataset_files_in, open_dataset_file, FileScope, Symlinks};
 pub use info::{Attributes, FileInfo, PointSummary, RgbRange};
 pub(crate) use laz_layout::layer_count;
 pub(crate) use preparse::check_file;

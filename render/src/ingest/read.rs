@@ -13,6 +13,7 @@ use laz::laszip::ChunkTable;
 
 use super::columns::{choose_origin, world_bounds, DecodedPoints};
 use super::contain::contain_panics;
+use super::files::{open_dataset_file, Symlinks};
 use super::header::HeaderFacts;
 use super::laz_layout::LazLayout;
 use super::preparse::{check_file, CheckedFile};
@@ -133,7 +134,7 @@ impl DatasetFile {
             path: path.to_owned(),
             error,
         };
-        let mut file = File::open(path).map_err(io_error)?;
+        let mut file = open_dataset_file(path, Symlinks::Follow).map_err(io_error)?;
         let file_len = file.metadata().map_err(io_error)?.len();
         let CheckedFile { facts, laz, chunks } = check_file(path, &mut file, file_len)?;
         file.seek(SeekFrom::Start(0)).map_err(io_error)?;
@@ -165,7 +166,7 @@ impl DatasetFile {
     /// extent checked by the pre-parse before it is allocated).
     pub(super) fn header(&self) -> Result<las::Header, IngestError> {
         let path = self.path.as_path();
-        let file = File::open(path).map_err(|error| IngestError::Io {
+        let file = open_dataset_file(path, Symlinks::Follow).map_err(|error| IngestError::Io {
             path: path.to_owned(),
             error,
         })?;
@@ -210,7 +211,7 @@ impl DatasetFile {
     ) -> Result<(), IngestError> {
         let path = self.path.as_path();
         let facts = &self.facts;
-        let file = File::open(path).map_err(|error| IngestError::Io {
+        let file = open_dataset_file(path, Symlinks::Follow).map_err(|error| IngestError::Io {
             path: path.to_owned(),
             error,
         })?;
