@@ -11,13 +11,15 @@ use clap::Args;
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::capabilities::checked_tags;
 use pointfarm_daemon::metrics;
-use pointfarm_daemon::server::{serve, ServeOptions, TlsIdentity};
+use pointfarm_daemon::open_files;
+use pointfarm_daemon::server::{serve, ServeOptions, TlsIdentity, DEFAULT_SHUTDOWN_GRACE};
 use pointfarm_daemon::service::{
     Daemon, DaemonConfig, DEFAULT_LEASE_TIMEOUT, DEFAULT_MAX_FRAMES, DEFAULT_MAX_FRAME_ATTEMPTS,
     DEFAULT_MAX_IMAGE_SIDE, DEFAULT_MAX_UPLOAD_BYTES, DEFAULT_WORKER_CACHE_BYTES,
     DEFAULT_WORKER_FAILURES_BEFORE_BLOCKLIST,
 };
 use pointfarm_daemon::worker::supervisor::WorkerCommand;
+use pointfarm_proto::endpoint::connections::ConnectionLimits;
 use pointfarm_render::gpu::AdapterChoice;
 
 use crate::config_file::ConfigArgs;
@@ -132,11 +134,37 @@ pub struct ServeArgs {
     #[arg(long, env = "POINTFARM_ADAPTER", default_value = "auto")]
     adapter: AdapterChoice,
     /// Serve Prometheus metrics at http://ADDR/metrics (queue depth, frames completed and
-    /// failed, stage latencies, leases, workers, cache hits, bytes uploaded). Plain HTTP and
-    /// unauthenticated: it shows counts and timings only, but listen where only the
-    /// scrapers reach.
+    /// failed, stage latencies, leases, workers, cache hits, bytes uploaded); a bare port
+    /// listens on loopback. Plain HTTP and unauthenticated: it shows counts and timings
+    /// only, but listen where only the scrapers reach.
     #[arg(long, value_name = "ADDR", env = "POINTFARM_METRICS_LISTEN")]
     metrics_listen: Option<String>,
+    /// Most connections open at once on each listener (default: half the open-file limit,
+    /// which the daemon raises to its hard limit at start). Connections that make no
+    /// authenticated call within 10 s, or sit idle for 5 minutes, are closed.
+    #[arg(long, value_name = "N", env = "POINTFARM_MAX_CONNECTIONS", value_parser = clap::value_parser!(u32).range(16..))]
+    max_connections: Option<u32>,
+    /// Seconds stopping (SIGTERM, Ctrl-C) waits for calls in flight and the embedded
+    /// worker's frame before the daemon exits without them.
+    #[arg(long, value_name = "SECONDS", env = "POINTFARM_SHUTDOWN_GRACE", default_value_t = DEFAULT_SHUTDOWN_GRACE.as_secs_f64(), value_parser = parse_shutdown_grace)]
+    shutdown_grace: f64,
+}
+
+/// Each listener's connection bounds: sized by the open-file limit (raised first), or the
+/// operator's `--max-connections`.
+fn connection_limits(max_connections: Option<u32>) -> ConnectionLimits {
+    let limits = ConnectionLimits::for_open_files(open_files::raise_soft_limit());
+    match max_connections {
+        Some(max) => {
+            let max = max as usize;
+            ConnectionLimits {
+                max_connections: max,
+                max_unadmitted: (max / 4).max(4),
+                ..limits
+            }
+        }
+        None => limits,
+    }
 }
 
 /// The tokens and TLS identity the flags give.
@@ -166,6 +194,8 @@ fn serve_options(args: &ServeArgs) -> Result<ServeOptions> {
         tls,
         insecure: args.insecure,
         health_listen: args.health_listen,
+        connection_limits: connection_limits(args.max_connections),
+        shutdown_grace: std::time::Duration::from_secs_f64(args.shutdown_grace),
     })
 }
 
@@ -193,6 +223,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
             let source = daemon.clone();
             let bound = metrics::http::listen(
                 address,
+                options.connection_limits,
                 Arc::new(move || source.metrics_text().map_err(|e| e.to_string())),
             )
             .await?;
@@ -268,6 +299,15 @@ pub(crate) fn embedded_worker(
         ],
         env_removed: crate::worker::settings_env(),
     })
+}
+
+fn parse_shutdown_grace(value: &str) -> Result<f64, String> {
+    match value.parse::<f64>() {
+        Ok(seconds) if seconds.is_finite() && (0.0..=3600.0).contains(&seconds) => Ok(seconds),
+        _ => Err(format!(
+            "'{value}' is not a number of seconds from 0 to 3600"
+        )),
+    }
 }
 
 fn parse_lease_timeout(value: &str) -> Result<f64, String> {

@@ -10,10 +10,12 @@ use anyhow::{Context, Result};
 use clap::Args;
 use pointfarm_daemon::capabilities::{checked_tags, WorkerCapabilities};
 use pointfarm_daemon::metrics::{http, WorkerMetrics};
+use pointfarm_daemon::open_files;
 use pointfarm_daemon::service::DEFAULT_WORKER_CACHE_BYTES;
 use pointfarm_daemon::worker::memory_limit;
 use pointfarm_daemon::worker::remote::{run as run_worker, RemoteWorkerConfig};
 use pointfarm_daemon::worker::supervisor::exit_when_supervisor_exits;
+use pointfarm_proto::endpoint::connections::ConnectionLimits;
 use pointfarm_proto::endpoint::ServerEndpoint;
 use pointfarm_render::gpu::{AdapterChoice, GpuContext};
 
@@ -97,7 +99,8 @@ pub struct WorkerArgs {
     #[arg(long, value_name = "SIZE", env = "POINTFARM_GPU_BUDGET", value_parser = parse::bytes)]
     gpu_budget: Option<u64>,
     /// Serve this worker's Prometheus metrics at http://ADDR/metrics (frames rendered and
-    /// failed, stage latencies, dataset and node cache hits). Plain HTTP and
+    /// failed, stage latencies, dataset and node cache hits); a bare port listens on
+    /// loopback. Plain HTTP and
     /// unauthenticated: it shows counts and timings only, but listen where only the
     /// scrapers reach.
     #[arg(long, value_name = "ADDR", env = "POINTFARM_METRICS_LISTEN")]
@@ -120,6 +123,8 @@ pub fn run(args: WorkerArgs) -> Result<()> {
     if args.supervised {
         exit_when_supervisor_exits().context("watching the supervising daemon")?;
     }
+    // A worker holds dataset files, cache entries and connections open at once.
+    let open_files = open_files::raise_soft_limit();
     // Before the GPU is set up: a wrong address or credential is reported at once.
     let server = ServerEndpoint::new(&args.server, args.tls_ca.as_deref())?;
     let token = secret(
@@ -167,7 +172,8 @@ pub fn run(args: WorkerArgs) -> Result<()> {
     runtime.block_on(async move {
         if let Some(address) = &args.metrics_listen {
             let metrics = config.metrics.clone();
-            let bound = http::listen(address, Arc::new(move || Ok(metrics.text()))).await?;
+            let limits = ConnectionLimits::for_open_files(open_files);
+            let bound = http::listen(address, limits, Arc::new(move || Ok(metrics.text()))).await?;
             outln!("metrics on http://{bound}/metrics");
         }
         run_worker(config, gpu, crate::signals::shutdown_signal()).await

@@ -178,6 +178,7 @@ pub fn bearer_token<T>(request: &Request<T>) -> Option<&str> {
 impl tonic::service::Interceptor for Gate {
     fn call(&mut self, request: Request<()>) -> Result<Request<()>, Status> {
         self.access.admit(self.role, bearer_token(&request))?;
+        pointfarm_proto::endpoint::connections::admit_connection(&request);
         Ok(request)
     }
 }

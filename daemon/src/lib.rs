@@ -33,6 +33,7 @@ pub mod limits;
 pub mod manifest;
 pub mod metrics;
 pub mod model;
+pub mod open_files;
 pub mod server;
 pub mod service;
 pub mod store;

@@ -3,6 +3,15 @@
 //! embedded worker process on a loopback listener of its own, the sweep that expires the
 //! leases of lost workers, and a graceful shutdown that lets the current frame finish.
 //!
+//! Every listener accepts through `pointfarm_proto::endpoint::connections`: TCP_NODELAY and
+//! keepalive on each socket, and bounds on connections that make no admitted call or sit idle.
+//! The interceptors that check tokens mark a connection admitted. Reflection needs the
+//! client token where one is set: it maps the whole API for whoever asks.
+//!
+//! Stopping: once asked, the daemon stops accepting, lets calls in flight and the embedded
+//! worker's frame finish for at most its shutdown grace, then stops whatever still runs (a
+//! call blocked on a hung disk or a stalled upload never holds the process).
+//!
 //! Health: the overall service ("") and `JobService` are SERVING while some worker can render
 //! (the embedded worker is up, or a remote worker was heard from within the lease timeout)
 //! and NOT_SERVING otherwise; `DatasetService` and `WorkerService` answer whenever the daemon
@@ -14,13 +23,13 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
+use pointfarm_proto::endpoint::connections::{self, ConnectionLimits};
 use pointfarm_proto::v1::dataset_service_server::DatasetServiceServer;
 use pointfarm_proto::v1::job_service_server::JobServiceServer;
 use pointfarm_proto::v1::worker_service_server::WorkerServiceServer;
 use pointfarm_proto::v1::FILE_DESCRIPTOR_SET;
 use rand::Rng;
-use tokio_stream::wrappers::TcpListenerStream;
-use tonic::transport::{Identity, ServerTlsConfig};
+use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Status};
 use tonic_health::server::HealthReporter;
 use tonic_health::ServingStatus;
@@ -32,7 +41,7 @@ use crate::worker::supervisor::{Supervisor, WorkerCommand};
 
 /// How the daemon is reached: who may call (tokens per role), TLS, and whether to serve
 /// beyond loopback without them.
-#[derive(Clone, Default)]
+#[derive(Clone)]
 pub struct ServeOptions {
     pub access: Access,
     pub tls: Option<TlsIdentity>,
@@ -41,6 +50,27 @@ pub struct ServeOptions {
     /// Serve the health service alone, in plaintext, on this address too: Kubernetes' gRPC
     /// probes cannot speak TLS, and health statuses are no secret.
     pub health_listen: Option<std::net::SocketAddr>,
+    /// The bounds on each listener's connections.
+    pub connection_limits: ConnectionLimits,
+    /// How long stopping waits for calls in flight and the embedded worker's frame.
+    pub shutdown_grace: Duration,
+}
+
+/// How long stopping waits by default: longer than a typical frame, shorter than a service
+/// manager's stop timeout.
+pub const DEFAULT_SHUTDOWN_GRACE: Duration = Duration::from_secs(30);
+
+impl Default for ServeOptions {
+    fn default() -> Self {
+        Self {
+            access: Access::default(),
+            tls: None,
+            insecure: false,
+            health_listen: None,
+            connection_limits: ConnectionLimits::default(),
+            shutdown_grace: DEFAULT_SHUTDOWN_GRACE,
+        }
+    }
 }
 
 impl ServeOptions {
@@ -78,6 +108,7 @@ impl tonic::service::Interceptor for EmbeddedGate {
                 "this listener serves only the daemon's embedded worker",
             ));
         }
+        connections::admit_connection(&request);
         request.extensions_mut().insert(EmbeddedWorkerCall);
         Ok(request)
     }
@@ -109,14 +140,18 @@ pub async fn serve(
     let mut server = pointfarm_proto::endpoint::server_builder();
     if let Some(tls) = &options.tls {
         server = server
-            .tls_config(
-                ServerTlsConfig::new().identity(Identity::from_pem(&tls.cert_pem, &tls.key_pem)),
-            )
+            .tls_config(pointfarm_proto::endpoint::server_tls(
+                &tls.cert_pem,
+                &tls.key_pem,
+            ))
             .context("the TLS certificate and key")?;
     }
+    let limits = options.connection_limits;
     let api = Api::new(daemon.clone());
     let embedded = match embedded_worker {
-        Some(command) => Some(EmbeddedListener::start(daemon.clone(), api.clone(), command).await?),
+        Some(command) => {
+            Some(EmbeddedListener::start(daemon.clone(), api.clone(), command, limits).await?)
+        }
         None => None,
     };
 
@@ -155,9 +190,9 @@ pub async fn serve(
                 .await
                 .with_context(|| format!("listening for health checks on {address}"))?;
             tracing::info!(address = %listener.local_addr()?, "serving health checks");
-            let server = tonic::transport::Server::builder()
+            let server = pointfarm_proto::endpoint::server_builder()
                 .add_service(health_service.clone())
-                .serve_with_incoming(TcpListenerStream::new(listener));
+                .serve_with_incoming(connections::Listener::new(listener, limits));
             Some(tokio::spawn(async move {
                 if let Err(e) = server.await {
                     tracing::error!(error = %e, "the health checks' listener stopped");
@@ -176,24 +211,38 @@ pub async fn serve(
         .build_v1alpha()
         .context("building the reflection service")?;
     // Long-polling lease requests answer at once when the server begins to stop; the server
-    // serves on until the embedded worker has handed in its current frame.
+    // serves on until the embedded worker has handed in its current frame, within the grace.
+    let (stopping, stopped) = tokio::sync::oneshot::channel::<()>();
     let shutdown = {
         let daemon = daemon.clone();
+        let grace = options.shutdown_grace;
         async move {
             shutdown.await;
-            tracing::info!("shutting down: finishing the current frame");
+            let _ = stopping.send(());
+            tracing::info!(
+                grace_s = grace.as_secs_f64(),
+                "shutting down: finishing the current frame"
+            );
             daemon.begin_shutdown();
             if let Some(embedded) = embedded {
-                embedded.stop().await;
+                if tokio::time::timeout(grace, embedded.stop()).await.is_err() {
+                    tracing::warn!("the embedded worker did not stop within the shutdown grace");
+                }
             }
         }
     };
     let access = &options.access;
     tracing::info!(%address, tls = options.tls.is_some(), "serving pointfarm.v1");
-    server
+    let served = server
         .add_service(health_service)
-        .add_service(reflection)
-        .add_service(reflection_v1alpha)
+        .add_service(InterceptedService::new(
+            reflection,
+            access.gate(Role::Client),
+        ))
+        .add_service(InterceptedService::new(
+            reflection_v1alpha,
+            access.gate(Role::Client),
+        ))
         .add_service(DatasetServiceServer::with_interceptor(
             api.clone(),
             access.gate(Role::Client),
@@ -206,9 +255,23 @@ pub async fn serve(
             api,
             access.gate(Role::Worker),
         ))
-        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
-        .await
-        .context("gRPC server")?;
+        .serve_with_incoming_shutdown(connections::Listener::new(listener, limits), shutdown);
+    // Stopping waits for the calls in flight, but never past the grace after it began.
+    let grace = options.shutdown_grace;
+    let past_grace = async move {
+        if stopped.await.is_ok() {
+            tokio::time::sleep(grace).await;
+        } else {
+            std::future::pending::<()>().await;
+        }
+    };
+    tokio::select! {
+        served = served => served.context("gRPC server")?,
+        () = past_grace => tracing::warn!(
+            grace_s = grace.as_secs_f64(),
+            "calls were still in flight at the end of the shutdown grace: stopping without them"
+        ),
+    }
     sweeper.abort();
     health_watch.abort();
     if let Some(health_only) = health_only {
@@ -227,7 +290,12 @@ struct EmbeddedListener {
 }
 
 impl EmbeddedListener {
-    async fn start(daemon: Arc<Daemon>, api: Api, command: WorkerCommand) -> anyhow::Result<Self> {
+    async fn start(
+        daemon: Arc<Daemon>,
+        api: Api,
+        command: WorkerCommand,
+        limits: ConnectionLimits,
+    ) -> anyhow::Result<Self> {
         let listener = tokio::net::TcpListener::bind((Ipv4Addr::LOCALHOST, 0))
             .await
             .context("listening on loopback for the embedded worker")?;
@@ -238,9 +306,12 @@ impl EmbeddedListener {
         let server = tokio::spawn(
             pointfarm_proto::endpoint::server_builder()
                 .add_service(WorkerServiceServer::with_interceptor(api, gate))
-                .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async {
-                    let _ = stopped.await;
-                }),
+                .serve_with_incoming_shutdown(
+                    connections::Listener::new(listener, limits),
+                    async {
+                        let _ = stopped.await;
+                    },
+                ),
         );
         let supervisor = Supervisor::start(daemon, command, address, token);
         Ok(Self {

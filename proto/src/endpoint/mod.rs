@@ -1,13 +1,17 @@
-//! Where a daemon is and how to reach it, for the CLI and worker processes alike: its URL, and
-//! for `https://` the certificate authorities to trust. An `https://` server is only ever
-//! reached over TLS (tonic refuses such a URL without a TLS configuration; here every one gets
-//! one), and a CA given for a plaintext URL is an error, not a silent downgrade.
+//! How pointfarm's processes reach each other: a daemon's URL, and for `https://` the
+//! certificate authorities to trust (an `https://` server is only ever reached over TLS, and
+//! a CA given for a plaintext URL is an error, not a silent downgrade); and the one set of
+//! transport settings every server and client endpoint is made with: HTTP/2 windows,
+//! keepalive, `TCP_NODELAY` on every socket, and the bounds on the connections a server
+//! accepts ([`connections`]).
+
+pub mod connections;
 
 use std::fmt;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use tonic::transport::{Certificate, ClientTlsConfig, Endpoint};
+use tonic::transport::{Certificate, ClientTlsConfig, Endpoint, Identity, Server, ServerTlsConfig};
 
 /// HTTP/2 flow control: the bytes a peer may send on a stream, and on a whole connection,
 /// before the receiver reads them. h2's defaults (64 KiB windows of 16 KiB frames) held a
@@ -19,13 +23,36 @@ pub const HTTP2_CONNECTION_WINDOW_BYTES: u32 = 16 << 20;
 /// The largest HTTP/2 frame a peer may send: fewer frames for the same bytes.
 pub const HTTP2_MAX_FRAME_BYTES: u32 = 1 << 20;
 
-/// A tonic server with the HTTP/2 windows and frame size clients get, for what they send: a
-/// dataset's files, the frames workers hand in.
-pub fn server_builder() -> tonic::transport::Server {
-    tonic::transport::Server::builder()
+/// How often an HTTP/2 peer is pinged, and how long its answer may take before the
+/// connection is dropped: a worker or client that vanished mid-call frees its connection and
+/// its lease within a minute, not at TCP's retransmission timeout.
+pub const HTTP2_KEEPALIVE_INTERVAL: Duration = Duration::from_secs(30);
+pub const HTTP2_KEEPALIVE_TIMEOUT: Duration = Duration::from_secs(20);
+
+/// How long a client waits for a TCP (and TLS) connection to a daemon.
+pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// A tonic server made as every pointfarm server is: the HTTP/2 windows and frame size
+/// clients get, for what they send (a dataset's files, the frames workers hand in),
+/// keepalive pings, and the requests counted on their connections for the bounds of
+/// [`connections`]. Serve it with `serve_with_incoming*` on a [`connections::Listener`].
+pub fn server_builder(
+) -> Server<tower_layer::Stack<connections::ConnectionLayer, tower_layer::Identity>> {
+    Server::builder()
         .initial_stream_window_size(HTTP2_STREAM_WINDOW_BYTES)
         .initial_connection_window_size(HTTP2_CONNECTION_WINDOW_BYTES)
         .max_frame_size(HTTP2_MAX_FRAME_BYTES)
+        .http2_keepalive_interval(Some(HTTP2_KEEPALIVE_INTERVAL))
+        .http2_keepalive_timeout(Some(HTTP2_KEEPALIVE_TIMEOUT))
+        .layer(connections::ConnectionLayer)
+}
+
+/// A server's TLS settings: its identity, and a handshake bounded as a connection's first
+/// call is.
+pub fn server_tls(cert_pem: &[u8], key_pem: &[u8]) -> ServerTlsConfig {
+    ServerTlsConfig::new()
+        .identity(Identity::from_pem(cert_pem, key_pem))
+        .timeout(connections::ConnectionLimits::default().first_request_timeout)
 }
 
 /// A daemon's address with its TLS settings.
@@ -96,7 +123,11 @@ impl ServerEndpoint {
         };
         let endpoint = Endpoint::from_shared(self.url.clone())
             .map_err(|e| invalid(e.to_string()))?
-            .connect_timeout(Duration::from_secs(10))
+            .connect_timeout(CONNECT_TIMEOUT)
+            .tcp_nodelay(true)
+            .tcp_keepalive(Some(connections::TCP_KEEPALIVE_IDLE))
+            .http2_keep_alive_interval(HTTP2_KEEPALIVE_INTERVAL)
+            .keep_alive_timeout(HTTP2_KEEPALIVE_TIMEOUT)
             .initial_stream_window_size(HTTP2_STREAM_WINDOW_BYTES)
             .initial_connection_window_size(HTTP2_CONNECTION_WINDOW_BYTES)
             .max_frame_size(HTTP2_MAX_FRAME_BYTES);
