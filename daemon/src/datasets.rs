@@ -11,12 +11,12 @@ use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use pointfarm_render::ingest::dataset_files;
+use pointfarm_render::ingest::{dataset_files_in, open_dataset_file, FileScope, Symlinks};
 
 use crate::error::DaemonError;
 use crate::limits::{check_id, check_length, MAX_NAME_BYTES, MAX_PATH_BYTES};
 use crate::model::{content_sha256, now_unix_ms, Dataset, DatasetFile};
-use crate::service::{dataset_id, file_name, hash_files, lookup, unique_suffix, Daemon};
+use crate::service::{dataset_id, file_name, hash_files_opened_by, lookup, unique_suffix, Daemon};
 use crate::store::Page;
 use crate::stores::{PreviewBytes, ReadyStore, StoreAnswer};
 
@@ -37,26 +37,66 @@ fn check_count(field: &str, count: usize) -> Result<(), DaemonError> {
     }
 }
 
+/// What a registration found under the data roots, before its files are hashed.
+pub struct Registration {
+    /// Every file, resolved (canonical) and inside the data roots, in the dataset's order.
+    pub files: Vec<PathBuf>,
+    /// The dataset's name.
+    pub name: String,
+}
+
 impl Daemon {
-    /// Registers files already on the server, under its data roots, as one dataset: each
-    /// path a file or a folder of `.las`/`.laz` files (relative paths are taken from the
-    /// first data root).
+    /// Registers files already on the server, under its data roots, as one dataset
+    /// ([`Daemon::find_registration`], then [`Daemon::register`]).
     pub fn register_dataset(&self, paths: &[String], name: &str) -> Result<Dataset, DaemonError> {
+        let registration = self.find_registration(paths, name)?;
+        self.register(registration)
+    }
+
+    /// The files `paths` name under the data roots: each path a file or a folder of
+    /// `.las`/`.laz` files (relative paths are taken from the first data root). Every symbolic
+    /// link is resolved, and a file or folder it leads to outside the data roots is refused
+    /// naming the link, as is a `.las`/`.laz` name that is not a regular file (a FIFO, a
+    /// socket, a device: never opened); a link loop is walked once. Errors name files by their
+    /// path under their data root; the log has the full path.
+    pub fn find_registration(
+        &self,
+        paths: &[String],
+        name: &str,
+    ) -> Result<Registration, DaemonError> {
         check_count("paths", paths.len())?;
         check_length("name", name, MAX_NAME_BYTES)?;
         let resolved = paths
             .iter()
             .map(|path| self.resolve_under_data_roots(path))
             .collect::<Result<Vec<_>, _>>()?;
-        let found = dataset_files(&resolved)
-            .map_err(|e| DaemonError::invalid("path", self.without_roots(&e.to_string())))?;
-        check_count("path", found.len())?;
-        let hashed = hash_files(&found, &|_| {});
-        let files = found
+        let files = dataset_files_in(&resolved, FileScope::Within(&self.config.data_roots))
+            .map_err(|e| {
+                tracing::warn!(error = %e, "a registration is refused");
+                DaemonError::invalid("path", self.without_roots(&e.to_string()))
+            })?;
+        check_count("path", files.len())?;
+        let name = match (name, paths) {
+            ("", [one]) => file_name(Path::new(one)),
+            ("", many) => format!("{} paths", many.len()),
+            (name, _) => name.to_string(),
+        };
+        Ok(Registration { files, name })
+    }
+
+    /// Adds the dataset of a registration's files, each hashed (read whole: this takes as
+    /// long as the files are large).
+    pub fn register(&self, registration: Registration) -> Result<Dataset, DaemonError> {
+        let Registration { files, name } = registration;
+        let hashed = hash_files_opened_by(&files, &|path| self.open_dataset_file(path), &|_| {});
+        let files = files
             .into_iter()
             .zip(hashed)
             .map(|(path, hashed)| {
-                let (sha256, size_bytes) = hashed?;
+                let (sha256, size_bytes) = hashed.map_err(|error| {
+                    tracing::warn!(path = %path.display(), %error, "a registered file cannot be read");
+                    DaemonError::invalid("path", format!("{}: {error}", self.shown_path(&path)))
+                })?;
                 Ok(DatasetFile {
                     name: file_name(&path),
                     path,
@@ -65,12 +105,50 @@ impl Daemon {
                 })
             })
             .collect::<Result<Vec<_>, DaemonError>>()?;
-        let name = match (name, paths) {
-            ("", [one]) => file_name(Path::new(one)),
-            ("", many) => format!("{} paths", many.len()),
-            (name, _) => name.to_string(),
-        };
         self.add_dataset(name, files)
+    }
+
+    /// Opens a dataset's stored file to read it ([`open_dataset_file`]: a regular file only,
+    /// never blocking on a special one), refusing it unless it still is what registration or
+    /// upload stored: the path itself no symbolic link, and the file opened inside a data root
+    /// or the uploads folder, so that a link put in place of a folder since is not followed out.
+    pub fn open_dataset_file(&self, path: &Path) -> std::io::Result<std::fs::File> {
+        let file = open_dataset_file(path, Symlinks::Refuse)?;
+        let opened = opened_path(&file).or_else(|_| path.canonicalize())?;
+        let allowed = self
+            .config
+            .data_roots
+            .iter()
+            .chain(std::iter::once(&self.config.uploads_dir()))
+            .filter_map(|folder| folder.canonicalize().ok())
+            .any(|folder| opened.starts_with(folder));
+        if !allowed {
+            tracing::warn!(
+                path = %path.display(),
+                opened = %opened.display(),
+                "refused to read a dataset's file: it now lies outside the data roots"
+            );
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::PermissionDenied,
+                "now lies outside the server's data roots",
+            ));
+        }
+        Ok(file)
+    }
+
+    /// How a client is shown the server's file `path`: its path under the data root it lies
+    /// in, else (an uploaded file) its name.
+    pub(crate) fn shown_path(&self, path: &Path) -> String {
+        self.config
+            .data_roots
+            .iter()
+            .filter_map(|root| root.canonicalize().ok())
+            .find_map(|root| {
+                path.strip_prefix(root)
+                    .ok()
+                    .map(|p| p.display().to_string())
+            })
+            .unwrap_or_else(|| file_name(path))
     }
 
     /// `path` as a canonical path under one of the data roots.
@@ -309,3 +387,15 @@ impl Daemon {
 
 #[cfg(test)]
 mod tests;
+
+/// Where the opened `file` lies, as the kernel knows it (no race with a path changed since).
+#[cfg(target_os = "linux")]
+fn opened_path(file: &std::fs::File) -> std::io::Result<PathBuf> {
+    use std::os::fd::AsRawFd;
+    std::fs::read_link(format!("/proc/self/fd/{}", file.as_raw_fd()))
+}
+
+#[cfg(not(target_os = "linux"))]
+fn opened_path(_: &std::fs::File) -> std::io::Result<PathBuf> {
+    Err(std::io::ErrorKind::Unsupported.into())
+}

@@ -4,6 +4,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 
+use pointfarm_render::ingest::{open_dataset_file, Symlinks};
 use sha2::{Digest, Sha256};
 use tokio::sync::broadcast;
 
@@ -426,13 +427,25 @@ pub(crate) fn file_name(path: &Path) -> String {
         .unwrap_or_default()
 }
 
-/// The SHA-256 (hex) and size of the file at `path`, read in a stream.
 /// [`hash_file`] of each of `paths`, in order, several files at once (a campaign's files
 /// hash in parallel; each is read once, sequentially). `done` is told each file's size as
 /// it is hashed. On threads of their own, so a store build busy on rayon's pool does not
 /// hold a registration up.
 pub fn hash_files(
     paths: &[PathBuf],
+    done: &(dyn Fn(u64) + Sync),
+) -> Vec<std::io::Result<(String, u64)>> {
+    hash_files_opened_by(
+        paths,
+        &|path| open_dataset_file(path, Symlinks::Follow),
+        done,
+    )
+}
+
+/// [`hash_files`], each file opened by `open`.
+pub(crate) fn hash_files_opened_by(
+    paths: &[PathBuf],
+    open: &(dyn Fn(&Path) -> std::io::Result<std::fs::File> + Sync),
     done: &(dyn Fn(u64) + Sync),
 ) -> Vec<std::io::Result<(String, u64)>> {
     use std::sync::atomic::{AtomicUsize, Ordering};
@@ -450,7 +463,7 @@ pub fn hash_files(
                         let Some(path) = paths.get(index) else {
                             return mine;
                         };
-                        let result = hash_file(path);
+                        let result = open(path).and_then(hash_opened);
                         if let Ok((_, size)) = &result {
                             done(*size);
                         }
@@ -468,8 +481,13 @@ pub fn hash_files(
     hashed.into_iter().map(|(_, result)| result).collect()
 }
 
+/// The SHA-256 (hex) and size of the file at `path`, read in a stream; only a regular file is
+/// opened ([`open_dataset_file`]).
 pub fn hash_file(path: &Path) -> std::io::Result<(String, u64)> {
-    let mut file = std::fs::File::open(path)?;
+    hash_opened(open_dataset_file(path, Symlinks::Follow)?)
+}
+
+fn hash_opened(mut file: std::fs::File) -> std::io::Result<(String, u64)> {
     let mut hasher = Sha256::new();
     let size = std::io::copy(&mut file, &mut hasher)?;
     Ok((crate::model::hex(&hasher.finalize()), size))

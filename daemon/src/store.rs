@@ -307,7 +307,13 @@ impl Store {
 
     /// Creates a job with all its frames pending, or returns the job that an earlier
     /// submission with the same request id created (`false`).
+    /// A disk in an outage or without room refuses the job before it is written, so that no
+    /// reader sees a job whose write then fails.
     pub fn submit_job(&self, spec: JobSpec) -> Result<(Job, bool), StoreError> {
+        if let Some(job) = self.with(|records| records.requested_job(&spec.request_id))? {
+            return Ok((job, false));
+        }
+        self.disk.check_room().map_err(StoreError::Unwritable)?;
         let (job, created) = self.with(|records| records.submit_job(spec))?;
         if created {
             self.count(|counts| counts.jobs += 1)?;

@@ -27,8 +27,13 @@ impl DatasetService for Api {
             .filter(|path| !path.is_empty())
             .chain(r.paths)
             .collect();
+        // The walk is quick and bounded in time; the hashing takes as long as the files are
+        // large, and reads regular files only.
+        let registration = self
+            .run(move |daemon| daemon.find_registration(&paths, &r.name))
+            .await?;
         let dataset = self
-            .run(move |daemon| daemon.register_dataset(&paths, &r.name))
+            .run_scaled(move |daemon| daemon.register(registration))
             .await?;
         Ok(Response::new(pb::Dataset::from(&dataset)))
     }
@@ -119,9 +124,23 @@ impl DatasetService for Api {
         let id = r.dataset_id.clone();
         // Reading the files blocks (every point of them when asked): off the executor.
         let reports = self
-            .run(move |daemon| daemon.describe_dataset(&id, r.read_points))
+            .run_scaled(move |daemon| daemon.describe_dataset(&id, r.read_points))
             .await?;
-        let files = reports.iter().map(file_description).collect();
+        let files = reports
+            .iter()
+            .map(|report| {
+                let mut description = file_description(report);
+                // The client is shown where the file lies under its data root, not the
+                // server's full path, in the errors too.
+                let full = report.path.display().to_string();
+                let shown = self.daemon.shown_path(&report.path);
+                description.error = description.error.replace(&full, &shown);
+                if let Some(copc) = description.copc.as_mut() {
+                    copc.error = copc.error.replace(&full, &shown);
+                }
+                description
+            })
+            .collect();
         Ok(Response::new(dataset_description(&r.dataset_id, files)))
     }
 
@@ -134,7 +153,9 @@ impl DatasetService for Api {
         let id = request.into_inner().dataset_id;
         // Refused before any work: an unknown dataset is NOT_FOUND.
         self.daemon.dataset(&id)?;
-        let exported = self.run(move |daemon| daemon.export_dataset(&id)).await?;
+        let exported = self
+            .run_scaled(move |daemon| daemon.export_dataset(&id))
+            .await?;
         let summary = pb::ExportSummary {
             points: exported.report.points,
             nodes: exported.report.nodes as u32,

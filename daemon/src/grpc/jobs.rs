@@ -234,9 +234,10 @@ async fn catch_up(
     id: String,
     mut reported: HashSet<(u32, Option<u32>)>,
 ) -> Result<CaughtUp, Status> {
-    let (job, finished) = tokio::task::spawn_blocking(move || daemon.job_with_frames(&id))
-        .await
-        .map_err(|e| Status::internal(e.to_string()))??;
+    let (job, finished) = super::blocking_within(super::BLOCKING_CALL_BOUND, move || {
+        daemon.job_with_frames(&id)
+    })
+    .await??;
     let mut snapshot = pb::Job::from(&job);
     snapshot.frames = finished
         .iter()

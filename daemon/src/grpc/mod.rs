@@ -10,6 +10,7 @@
 //! - `streaming`: the one chunk size and the helpers for every stream of bytes.
 
 use std::sync::Arc;
+use std::time::Duration;
 
 use tonic::Status;
 
@@ -53,8 +54,23 @@ impl Api {
         Ok(tonic::Response::new(R::default()))
     }
 
-    /// Runs `work` on the daemon off the async executor: store work blocks.
+    /// Runs `work` on the daemon off the async executor (store work and filesystem calls
+    /// block), within [`BLOCKING_CALL_BOUND`].
     async fn run<T: Send + 'static>(
+        &self,
+        work: impl FnOnce(&Arc<Daemon>) -> Result<T, DaemonError> + Send + 'static,
+    ) -> Result<T, Status> {
+        let daemon = self.daemon.clone();
+        blocking_within(BLOCKING_CALL_BOUND, move || work(&daemon))
+            .await?
+            .map_err(Status::from)
+    }
+
+    /// Runs `work` as [`Api::run`] does, without a time bound: for work that takes as long as
+    /// the data is large (hashing a registration's files, reading every point of a dataset,
+    /// building its store for an export), which reads regular files only, each opened without
+    /// blocking (`pointfarm_render::ingest::open_dataset_file`).
+    async fn run_scaled<T: Send + 'static>(
         &self,
         work: impl FnOnce(&Arc<Daemon>) -> Result<T, DaemonError> + Send + 'static,
     ) -> Result<T, Status> {
@@ -63,5 +79,56 @@ impl Api {
             .await
             .map_err(|e| Status::internal(e.to_string()))?
             .map_err(Status::from)
+    }
+}
+
+/// How long a request waits for its blocking work (a store transaction, a folder's walk, a
+/// file's open): each takes milliseconds on a working disk, so a minute means a hung one (a
+/// network filesystem gone away), and the client is answered rather than held forever.
+pub const BLOCKING_CALL_BOUND: Duration = Duration::from_secs(60);
+
+/// Runs `work` on tokio's blocking threads; DEADLINE_EXCEEDED when it has not finished
+/// within `bound`, its thread left behind to finish (or stay stuck) on its own.
+pub(crate) async fn blocking_within<T: Send + 'static>(
+    bound: Duration,
+    work: impl FnOnce() -> T + Send + 'static,
+) -> Result<T, Status> {
+    match tokio::time::timeout(bound, tokio::task::spawn_blocking(work)).await {
+        Ok(done) => done.map_err(|e| Status::internal(e.to_string())),
+        Err(_) => {
+            tracing::error!(
+                bound_s = bound.as_secs_f64(),
+                "a request's blocking work has not finished in time: the disk or filesystem \
+                 under the daemon's data or data roots may hang"
+            );
+            Err(Status::deadline_exceeded(format!(
+                "the daemon's disk did not answer within {} s; the call may still take \
+                 effect",
+                bound.as_secs_f64()
+            )))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn blocking_work_past_its_bound_is_answered_deadline_exceeded() {
+        let (release, stuck) = std::sync::mpsc::channel::<()>();
+        let started = std::time::Instant::now();
+        let status = blocking_within(Duration::from_millis(50), move || {
+            let _ = stuck.recv_timeout(Duration::from_secs(30));
+        })
+        .await
+        .expect_err("past its bound");
+        assert_eq!(status.code(), tonic::Code::DeadlineExceeded);
+        assert!(started.elapsed() < Duration::from_secs(10));
+        let _ = release.send(());
+        let done = blocking_within(Duration::from_secs(10), || 7)
+            .await
+            .expect("in time");
+        assert_eq!(done, 7);
     }
 }

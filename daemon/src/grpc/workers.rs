@@ -240,15 +240,29 @@ impl WorkerService for Api {
             )
             .into());
         };
-        let mut file = tokio::fs::File::open(&wanted.path)
-            .await
-            .map_err(|e| Status::internal(format!("dataset {}: {e}", dataset.id)))?;
+        // Named to the worker by the dataset's id and the file's name; the log has its path.
+        let about = format!("dataset {}, file {}", dataset.id, wanted.name);
+        let path = wanted.path.clone();
+        let opened = self
+            .run(move |daemon| Ok(daemon.open_dataset_file(&path)))
+            .await?;
+        let mut file = match opened {
+            Ok(file) => tokio::fs::File::from_std(file),
+            Err(error) => {
+                tracing::warn!(path = %wanted.path.display(), %error, "a dataset's file cannot be served");
+                return Err(Status::failed_precondition(format!("{about}: {error}")));
+            }
+        };
         let stream = spawn_stream(4, move |sender| async move {
             loop {
-                let message = match read_chunk(&mut file).await {
-                    Ok(None) => return,
-                    Ok(Some(data)) => Ok(pb::DatasetChunk { data }),
-                    Err(e) => Err(Status::internal(format!("dataset {}: {e}", dataset.id))),
+                let read = tokio::time::timeout(super::BLOCKING_CALL_BOUND, read_chunk(&mut file));
+                let message = match read.await {
+                    Ok(Ok(None)) => return,
+                    Ok(Ok(Some(data))) => Ok(pb::DatasetChunk { data }),
+                    Ok(Err(e)) => Err(Status::internal(format!("{about}: {e}"))),
+                    Err(_) => Err(Status::deadline_exceeded(format!(
+                        "{about}: the daemon's disk did not answer in time"
+                    ))),
                 };
                 let failed = message.is_err();
                 if sender.send(message).await.is_err() || failed {

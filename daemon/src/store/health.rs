@@ -73,6 +73,24 @@ impl DiskHealth {
         }
     }
 
+    /// Whether the disk takes a new record now: an error (what callers are told) during an
+    /// outage, or when the free space under the database is below [`PROBE_BYTES`], which starts
+    /// one. Checked before a record that must not be seen unless it is stored (a submitted
+    /// job) is written: sled keeps a write in memory, visible to readers, even when flushing
+    /// it fails.
+    pub(super) fn check_room(&self) -> Result<(), String> {
+        if let Some(message) = self.outage() {
+            return Err(message);
+        }
+        match free_bytes(&self.probe_path) {
+            Some(free) if free < PROBE_BYTES as u64 => Err(self.refused(
+                &std::io::Error::from(std::io::ErrorKind::StorageFull),
+                false,
+            )),
+            _ => Ok(()),
+        }
+    }
+
     /// What the disk refused, while the outage lasts.
     pub(super) fn outage(&self) -> Option<String> {
         self.failure().as_ref().map(|f| f.message.clone())
@@ -105,4 +123,18 @@ impl DiskHealth {
             );
         }
     }
+}
+
+/// The bytes an unprivileged writer may still use on the filesystem of the folder holding
+/// `beside`; None where that cannot be told.
+#[cfg(unix)]
+fn free_bytes(beside: &Path) -> Option<u64> {
+    let folder = beside.parent()?;
+    let stats = rustix::fs::statvfs(folder).ok()?;
+    Some(stats.f_bavail.saturating_mul(stats.f_frsize))
+}
+
+#[cfg(not(unix))]
+fn free_bytes(_: &Path) -> Option<u64> {
+    None
 }

@@ -86,14 +86,20 @@ impl Records {
 
     /// Creates a job with all its frames pending, or returns the job that an earlier
     /// submission with the same request id created (`false`).
+    /// The job an earlier submission with `request_id` created, if any.
+    pub(super) fn requested_job(&self, request_id: &str) -> Result<Option<Job>, StoreError> {
+        if request_id.is_empty() {
+            return Ok(None);
+        }
+        match self.trees.requests.get(request_id.as_bytes())? {
+            Some(id) => self.job(&String::from_utf8_lossy(&id)),
+            None => Ok(None),
+        }
+    }
+
     pub(super) fn submit_job(&self, spec: JobSpec) -> Result<(Job, bool), StoreError> {
-        if !spec.request_id.is_empty() {
-            if let Some(id) = self.trees.requests.get(spec.request_id.as_bytes())? {
-                let id = String::from_utf8_lossy(&id).into_owned();
-                if let Some(job) = self.job(&id)? {
-                    return Ok((job, false));
-                }
-            }
+        if let Some(job) = self.requested_job(&spec.request_id)? {
+            return Ok((job, false));
         }
         // Ids sort by creation: a monotonic counter, zero-padded.
         let id = format!("job-{:012}", self.db.generate_id()?);

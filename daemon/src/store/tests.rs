@@ -120,9 +120,13 @@ fn a_database_the_full_disk_failed_is_opened_again_with_all_it_had_flushed() {
     let store = open(&disk.path().join("state.sled"));
     let (before, _) = store.submit_job(spec("before", 4, 0)).expect("submit");
     let filler = disk.fill("filler");
-    // Requests ids of a few KiB: the log needs new pages within a few writes.
+    // Requests ids of a few KiB: the log needs new pages within a few writes. Written past
+    // the room check a submission makes, as a frame's records are.
     let refused = (0..1000)
-        .map(|i| store.submit_job(spec(&format!("{i:04}{}", "x".repeat(4000)), 1, 0)))
+        .map(|i| {
+            let spec = spec(&format!("{i:04}{}", "x".repeat(4000)), 1, 0);
+            store.with(|records| records.submit_job(spec))
+        })
         .find_map(Result::err)
         .expect("the full disk refuses a write");
     assert!(
@@ -150,6 +154,45 @@ fn a_database_the_full_disk_failed_is_opened_again_with_all_it_had_flushed() {
     drop(store);
     let reopened = open(&disk.path().join("state.sled"));
     assert!(reopened.job(&after.id).expect("read").is_some());
+}
+
+#[test]
+fn a_job_submitted_to_a_full_disk_is_refused_before_anyone_sees_it() {
+    let Some(disk) = crate::testing::SmallDisk::mount(16) else {
+        return;
+    };
+    let store = open(&disk.path().join("state.sled"));
+    let (before, _) = store.submit_job(spec("before", 2, 0)).expect("submit");
+    let filler = disk.fill("filler");
+    let refused = store
+        .submit_job(spec("refused", 3, 0))
+        .expect_err("no room for the job");
+    assert!(
+        matches!(&refused, StoreError::Unwritable(m) if m.contains("disk is full")),
+        "{refused}"
+    );
+    assert!(store.outage().is_some(), "the refusal starts an outage");
+    assert!(
+        !store.disk.database_failed(),
+        "sled never met the full disk"
+    );
+    let listed: Vec<String> = store
+        .list_jobs(None, 100, "")
+        .expect("list")
+        .items
+        .into_iter()
+        .map(|job| job.id)
+        .collect();
+    assert_eq!(listed, [before.id.clone()], "the refused job is nowhere");
+    // The same request again, once the disk has room, is a new job.
+    std::fs::remove_file(filler).expect("free the disk");
+    assert!(store.end_outage().expect("probe"), "space is back");
+    let (after, created) = store.submit_job(spec("refused", 3, 0)).expect("room again");
+    assert!(created);
+    assert_eq!(
+        store.job(&after.id).expect("read").map(|j| j.frames_total),
+        Some(3)
+    );
 }
 
 /// A preview kept by a daemon from before preview versions opens as version 0 (the chunk

@@ -9,7 +9,6 @@
 //! The sample becomes a cloud as a dataset's load makes one: the same origin (the first
 //! sampled point is the file's first point) and the same colour rule, decided on the sample.
 
-use std::fs::File;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -202,7 +201,7 @@ fn sample_one(
     las_stride: u64,
 ) -> Result<(Vec<u64>, las::PointData), IngestError> {
     let file = DatasetFile::check(path)?;
-    let mut handle = File::open(path).expect("open");
+    let mut handle = std::fs::File::open(path).expect("open");
     let raw = RawFile::new(path, &mut handle, file.file_len());
     let indices = record_starts(&raw, &file, las_stride)?
         .iter()
