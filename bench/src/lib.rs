@@ -24,7 +24,8 @@
 //! generated [`clouds`]; `rounds` (warming and measuring the methods) and `huge` (the cloud
 //! uploaded chunk by chunk); [`ingest`] (decoding and the dataset cache); [`campaign`] (building
 //! the level-of-detail store of a campaign of many files, no GPU); [`scheduler`] (leasing a
-//! frame against the daemon's job history, no GPU); [`cuts`] (rendering level-of-detail stores
+//! frame against the daemon's job history, no GPU); [`service_load`] (real daemon processes
+//! under many clients' submissions, and leasing as a worker, through gRPC); [`cuts`] (rendering level-of-detail stores
 //! cut by cut: a cold turntable, frame time against points, fidelity, resident against cut);
 //! [`copc`] (a COPC file's first frame node by node against decoding it whole); `memory` (the
 //! process's resident memory);
@@ -53,6 +54,7 @@ mod rounds;
 mod run;
 pub mod scheduler;
 mod scratch;
+pub mod service_load;
 mod stats;
 mod store;
 pub mod workloads;

@@ -49,9 +49,9 @@ pub struct BenchArgs {
     /// The compute modes measured besides the basic mode (comma-separated); all by default.
     #[arg(long, value_delimiter = ',', value_name = "MODES")]
     modes: Vec<BenchMode>,
-    /// Image size in pixels.
-    #[arg(long, default_value = "1920x1080", value_parser = parse::size)]
-    size: (u32, u32),
+    /// Image size in pixels (default 1920x1080; 64x48 with --service-load).
+    #[arg(long, value_parser = parse::size)]
+    size: Option<(u32, u32)>,
     /// Directory of the real scans (lone-star.laz, autzen_trim.laz); missing ones are skipped.
     #[arg(long, default_value = "../shared/data")]
     data: PathBuf,
@@ -119,7 +119,39 @@ pub struct BenchArgs {
     /// when not given.
     #[arg(long, value_name = "PX,…", value_delimiter = ',', value_parser = parse::non_negative, requires = "copc")]
     copc_lod_errors: Vec<f64>,
+    /// Measure the service instead of the renderer: a real `pointfarm serve` on loopback with
+    /// its embedded worker, a generated dataset registered, --service-jobs jobs of
+    /// --service-frames-per-job frames (at --size, 64x48 by default) submitted from
+    /// --service-clients clients, each with a connection of its own, and polled with GetJob
+    /// until done: frames a second, SubmitJob and GetJob latency. Then a daemon without a
+    /// worker, and this command leasing frames from it as a worker and handing them back:
+    /// LeaseFrame latency. The daemons are stopped (SIGTERM) and their folders removed.
+    #[arg(long, conflicts_with_all = ["only", "huge", "modes", "basic_only", "plot", "scheduler", "campaign", "cuts", "copc"])]
+    service_load: bool,
+    /// With --service-load: jobs submitted.
+    #[arg(long, value_name = "N", default_value_t = bench::service_load::DEFAULT_JOBS, requires = "service_load")]
+    service_jobs: u32,
+    /// With --service-load: frames of each job (a turntable).
+    #[arg(long, value_name = "N", default_value_t = bench::service_load::DEFAULT_FRAMES_PER_JOB, requires = "service_load")]
+    service_frames_per_job: u32,
+    /// With --service-load: clients submitting and polling at once.
+    #[arg(long, value_name = "N", default_value_t = bench::service_load::DEFAULT_CLIENTS, requires = "service_load")]
+    service_clients: u32,
+    /// With --service-load: measured leases.
+    #[arg(long, value_name = "N", default_value_t = bench::service_load::DEFAULT_LEASES, requires = "service_load")]
+    service_leases: u32,
+    /// With --service-load: runs of each daemon binary, the binaries in turn.
+    #[arg(long, value_name = "N", default_value_t = 1, requires = "service_load")]
+    service_runs: u32,
+    /// With --service-load: the `pointfarm` binary whose `serve` is measured (repeatable: the
+    /// binaries are run alternately, each against the same load generator, and compared with
+    /// the first); this binary when not given.
+    #[arg(long, value_name = "PATH", requires = "service_load")]
+    daemon_binary: Vec<PathBuf>,
 }
+
+/// The image size of the renderer's benchmarks when --size is not given.
+const DEFAULT_SIZE: (u32, u32) = (1920, 1080);
 
 /// A byte count: a number with an optional KiB, MiB or GiB suffix.
 fn parse_bytes(text: &str) -> Result<u64, String> {
@@ -194,7 +226,10 @@ pub fn run(args: BenchArgs) -> Result<()> {
     if let Some(points) = args.copc {
         return run_copc(&args, points, started);
     }
-    let (width, height) = args.size;
+    if args.service_load {
+        return run_service_load(&args, started);
+    }
+    let (width, height) = args.size.unwrap_or(DEFAULT_SIZE);
     let defaults = if args.quick {
         BenchOptions::quick(width, height, args.data.clone())
     } else {
@@ -291,7 +326,7 @@ fn run_campaign(args: &BenchArgs, points: Option<usize>, started: Instant) -> Re
         CAMPAIGN_POINTS
     };
     let points = points.map_or(default, |n| n as u64);
-    let (width, height) = args.size;
+    let (width, height) = args.size.unwrap_or(DEFAULT_SIZE);
     let options = CampaignOptions {
         turntable: args.cut_frames.map(|frames| bench::cuts::TurntableOptions {
             width,
@@ -320,7 +355,7 @@ fn run_campaign(args: &BenchArgs, points: Option<usize>, started: Instant) -> Re
 /// `--cuts`: rendering level-of-detail stores cut by cut.
 fn run_cuts(args: &BenchArgs, started: Instant) -> Result<()> {
     use bench::cuts::{self, CutsOptions};
-    let (width, height) = args.size;
+    let (width, height) = args.size.unwrap_or(DEFAULT_SIZE);
     let defaults = if args.quick {
         CutsOptions::quick(width, height, args.data.clone())
     } else {
@@ -357,7 +392,7 @@ fn run_copc(args: &BenchArgs, points: Option<usize>, started: Instant) -> Result
     } else {
         copc::COPC_POINTS
     };
-    let (width, height) = args.size;
+    let (width, height) = args.size.unwrap_or(DEFAULT_SIZE);
     let defaults = CopcOptions::new(points.map_or(default_points, |n| n as u64), width, height);
     let options = CopcOptions {
         memory_budget_bytes: args.cut_memory_budget,
@@ -374,6 +409,35 @@ fn run_copc(args: &BenchArgs, points: Option<usize>, started: Instant) -> Result
     finish(args, started, &copc::markdown(&result), |path, context| {
         Ok(bench::json::write_copc(path, &result, context)?)
     })
+}
+
+/// `--service-load`: real daemon processes under many clients, and leasing as a worker.
+fn run_service_load(args: &BenchArgs, started: Instant) -> Result<()> {
+    use bench::service_load::{self, ServiceLoadOptions};
+    let this = std::env::current_exe().context("finding the pointfarm binary")?;
+    let (width, height) = args.size.unwrap_or(service_load::DEFAULT_SIZE);
+    let options = ServiceLoadOptions {
+        daemon_binaries: if args.daemon_binary.is_empty() {
+            vec![this]
+        } else {
+            args.daemon_binary.clone()
+        },
+        runs: args.service_runs,
+        jobs: args.service_jobs,
+        frames_per_job: args.service_frames_per_job,
+        clients: args.service_clients,
+        leases: args.service_leases,
+        width,
+        height,
+        adapter: args.adapter.to_string(),
+    };
+    let result = service_load::measure(&options, &mut |line| eprintln!("  {line}"))?;
+    finish(
+        args,
+        started,
+        &service_load::markdown(&result),
+        |path, context| Ok(service_load::write_json(path, &result, context)?),
+    )
 }
 
 /// Prints a benchmark's tables, writes them to `--markdown` and its results to `--json` (with

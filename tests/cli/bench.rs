@@ -127,3 +127,53 @@ fn bench_streams_a_huge_cloud_of_the_size_asked() {
     let refused = pointfarm(&["bench", "--huge", "0"]);
     assert_fails_saying(&refused, "at least one point");
 }
+
+/// `--service-load` with tiny numbers: a real daemon with its embedded worker renders every
+/// frame submitted, a second daemon leases as many frames as asked, both are stopped after
+/// SIGTERM and the scratch folder is gone.
+#[test]
+fn bench_measures_the_service_under_load() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let json = dir.path().join("service.json");
+    let output = pointfarm(&[
+        "bench",
+        "--service-load",
+        "--service-jobs",
+        "4",
+        "--service-frames-per-job",
+        "1",
+        "--service-clients",
+        "2",
+        "--service-leases",
+        "5",
+        "--json",
+        &path_arg(&json),
+    ]);
+    assert_ok(&output);
+    let report = read_json(&json);
+    let runs = report["serviceLoad"]["runs"].as_array().expect("runs");
+    assert_eq!(runs.len(), 1, "{report}");
+    let run = &runs[0];
+    assert_eq!(run["frames"], 4, "{run}");
+    assert_eq!(run["leases"], 5, "{run}");
+    assert_eq!(run["stoppedCleanly"], true, "{run}");
+    for figure in [
+        "framesPerS",
+        "submitMedianMs",
+        "getJobMedianMs",
+        "leaseMedianMs",
+        "leaseP95Ms",
+    ] {
+        assert!(
+            run[figure].as_f64().is_some_and(|v| v > 0.0),
+            "{figure}: {run}"
+        );
+    }
+    assert_says(&output, "| LeaseFrame median (ms) |");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    let scratch = stderr
+        .lines()
+        .find_map(|line| line.trim().strip_prefix("scratch: "))
+        .expect("the scratch folder is named");
+    assert!(!Path::new(scratch).exists(), "{scratch} is left behind");
+}
