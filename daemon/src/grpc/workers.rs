@@ -240,8 +240,13 @@ impl WorkerService for Api {
             )
             .into());
         };
-        // Named to the worker by the dataset's id and the file's name; the log has its path.
-        let about = format!("dataset {}, file {}", dataset.id, wanted.name);
+        // Named to the worker by the dataset's id and where the file lies under its data root
+        // (an upload by its name); the log has its full path.
+        let about = format!(
+            "dataset {}, file {}",
+            dataset.id,
+            self.daemon.shown_path(&wanted.path)
+        );
         let path = wanted.path.clone();
         let opened = self
             .run(move |daemon| Ok(daemon.open_dataset_file(&path)))
