@@ -1,7 +1,8 @@
 //! A full disk under the daemon's data: the frames it refuses go back to the queue without an
 //! attempt counted, the worker waits instead of spinning, health is NOT_SERVING and the
-//! daemon says so once; when space returns the job finishes, without a restart. A real tmpfs
-//! filled to its last byte, a real daemon and a real `pointfarm worker` process.
+//! daemon says so once; when space returns the job finishes, without a restart. A job
+//! submitted to the full disk is refused before it is written: no one ever sees it listed.
+//! A real tmpfs filled to its last byte, a real daemon and a real `pointfarm worker` process.
 
 use std::time::Duration;
 
@@ -133,4 +134,74 @@ async fn a_full_disk_holds_frames_back_and_the_daemon_resumes_when_space_returns
         server.log()
     );
     wait_for_health(&address, ServingStatus::Serving).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_submitted_to_a_full_disk_is_refused_before_anyone_sees_it() {
+    // Declared first, so dropped last: the daemon on it stops before it is unmounted.
+    let Some(disk) = SmallDisk::mount(64) else {
+        eprintln!("skipped: no tmpfs could be mounted (see above)");
+        return;
+    };
+    let outside = tempfile::tempdir().expect("tempdir");
+    let address = free_address();
+    let server = ServeProcess::start_logging_to(
+        &address,
+        &disk.path().join("data"),
+        &outside.path().join("serve.log"),
+        &["--no-embedded-worker"],
+    );
+    let (mut datasets, mut jobs) = clients(&address).await;
+    let (_scratch, file) = scratch_sample("s.las", 20_000, 7);
+    let dataset = upload_file(&mut datasets, "s.las", &file).await;
+
+    let filler = disk.fill("filler");
+    let refused = jobs
+        .submit_job(turntable_job("on-a-full-disk", &dataset.id, 4, 64, 48))
+        .await
+        .expect_err("no room for the job");
+    assert_eq!(refused.code(), tonic::Code::ResourceExhausted, "{refused}");
+    assert!(
+        refused.message().contains("the daemon's disk is full"),
+        "{refused}"
+    );
+    let listed = jobs
+        .list_jobs(pb::ListJobsRequest::default())
+        .await
+        .expect("list")
+        .into_inner()
+        .jobs;
+    assert!(listed.is_empty(), "the refused job is listed: {listed:?}");
+
+    // Once the daemon's probe finds room again, the same submission makes the job.
+    std::fs::remove_file(filler).expect("free the disk");
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    let job = loop {
+        let submitted = jobs
+            .submit_job(turntable_job("on-a-full-disk", &dataset.id, 4, 64, 48))
+            .await;
+        match submitted {
+            Ok(job) => break job.into_inner(),
+            Err(status) if status.code() == tonic::Code::ResourceExhausted => {
+                assert!(
+                    tokio::time::Instant::now() < deadline,
+                    "still refused 30 s after space returned: {status}"
+                );
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+            Err(status) => panic!("{status}"),
+        }
+    };
+    let listed = jobs
+        .list_jobs(pb::ListJobsRequest::default())
+        .await
+        .expect("list")
+        .into_inner()
+        .jobs;
+    assert_eq!(
+        listed.iter().map(|j| j.id.as_str()).collect::<Vec<_>>(),
+        [job.id.as_str()],
+        "{}",
+        server.log()
+    );
 }

@@ -73,7 +73,7 @@ impl Daemon {
         let files = dataset_files_in(&resolved, FileScope::Within(&self.config.data_roots))
             .map_err(|e| {
                 tracing::warn!(error = %e, "a registration is refused");
-                DaemonError::invalid("path", self.without_roots(&e.to_string()))
+                DaemonError::invalid("path", self.without_server_folders(&e.to_string()))
             })?;
         check_count("path", files.len())?;
         let name = match (name, paths) {
@@ -192,15 +192,21 @@ impl Daemon {
         Ok(resolved)
     }
 
-    /// A message about the server's own files, with the data roots left out of their paths.
-    fn without_roots(&self, message: &str) -> String {
-        self.config
+    /// A message about the server's own files as a client is shown it: paths under a data
+    /// root relative to it, uploaded files by their name (as [`Daemon::shown_path`] shows
+    /// them), so that no client learns where the server keeps its files.
+    pub(crate) fn without_server_folders(&self, message: &str) -> String {
+        let uploads = self.config.uploads_dir();
+        let folders = self
+            .config
             .data_roots
             .iter()
-            .filter_map(|root| root.canonicalize().ok())
-            .fold(message.to_string(), |message, root| {
-                message.replace(&format!("{}/", root.display()), "")
-            })
+            .chain(std::iter::once(&uploads))
+            .flat_map(|folder| [folder.canonicalize().ok(), Some(folder.clone())])
+            .flatten();
+        folders.fold(message.to_string(), |message, folder| {
+            message.replace(&format!("{}/", folder.display()), "")
+        })
     }
 
     /// One dataset of the files of `ids`, in that order (a campaign uploaded file by file).

@@ -63,7 +63,15 @@ impl Api {
         let daemon = self.daemon.clone();
         blocking_within(BLOCKING_CALL_BOUND, move || work(&daemon))
             .await?
-            .map_err(Status::from)
+            .map_err(|e| self.client_status(e))
+    }
+
+    /// The status a client is told for `error`, without the server's folders in its message
+    /// (an error of a store build quotes its files' paths; the log has them whole).
+    fn client_status(&self, error: DaemonError) -> Status {
+        let status = Status::from(error);
+        let message = self.daemon.without_server_folders(status.message());
+        Status::new(status.code(), message)
     }
 
     /// Runs `work` as [`Api::run`] does, without a time bound: for work that takes as long as
@@ -78,7 +86,7 @@ impl Api {
         tokio::task::spawn_blocking(move || work(&daemon))
             .await
             .map_err(|e| Status::internal(e.to_string()))?
-            .map_err(Status::from)
+            .map_err(|e| self.client_status(e))
     }
 }
 
