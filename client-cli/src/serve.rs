@@ -202,7 +202,7 @@ fn serve_options(args: &ServeArgs) -> Result<ServeOptions> {
 pub fn run(args: ServeArgs) -> Result<()> {
     let options = serve_options(&args)?;
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
-    runtime.block_on(async move {
+    let served = runtime.block_on(async move {
         let mut config = DaemonConfig::new(args.data_dir.clone());
         config.data_roots = args.data_roots.clone();
         config.max_image_side = args.max_image_side;
@@ -259,7 +259,11 @@ pub fn run(args: ServeArgs) -> Result<()> {
             crate::signals::shutdown_signal(),
         )
         .await
-    })
+    });
+    // A call still blocked in a thread (a hung disk) must not hold the exit: the server has
+    // already waited its shutdown grace.
+    runtime.shutdown_timeout(std::time::Duration::from_secs(1));
+    served
 }
 
 /// This binary's `worker` command, rendering with the daemon's settings; its cache lives in

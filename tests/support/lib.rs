@@ -207,6 +207,28 @@ impl ServeProcess {
     /// Starts a daemon as [`ServeProcess::start_with_args`] does, its log in `log` (e.g. off a
     /// data folder on a disk that fills up).
     pub fn start_logging_to(address: &str, data_dir: &Path, log: &Path, args: &[&str]) -> Self {
+        Self::start_command(Command::new(pointfarm_bin()), address, data_dir, log, args)
+    }
+
+    /// Starts a daemon on a free port whose open-file limit, soft and hard, is `open_files`
+    /// (so that it cannot raise it), with more `serve` arguments.
+    pub fn start_with_open_file_limit(data_dir: &Path, open_files: u32, args: &[&str]) -> Self {
+        let mut shell = Command::new("sh");
+        shell
+            .arg("-c")
+            .arg(format!("ulimit -n {open_files} && exec \"$0\" \"$@\""))
+            .arg(pointfarm_bin());
+        let log = data_dir.join("serve.log");
+        Self::start_command(shell, &free_address(), data_dir, &log, args)
+    }
+
+    fn start_command(
+        mut command: Command,
+        address: &str,
+        data_dir: &Path,
+        log: &Path,
+        args: &[&str],
+    ) -> Self {
         std::fs::create_dir_all(data_dir).expect("data folder");
         let log = log.to_path_buf();
         let log_file = std::fs::OpenOptions::new()
@@ -214,7 +236,7 @@ impl ServeProcess {
             .append(true)
             .open(&log)
             .expect("serve log file");
-        let child = Command::new(pointfarm_bin())
+        let child = command
             .args(["serve", "--listen", address, "--data-dir"])
             .arg(data_dir)
             .args(args)
