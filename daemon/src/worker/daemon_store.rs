@@ -1,7 +1,10 @@
 //! The daemon's level-of-detail store of a dataset, read node by node over the worker
 //! service: the worker asks for the store, fetches its hierarchy once, and then reads only
 //! the nodes each frame's cut needs — checked against their own checksums as a local store's
-//! are — instead of downloading the dataset's files and building a store of its own. A
+//! are — instead of downloading the dataset's files and building a store of its own. The
+//! daemon checks each record before it sends it, and builds a store that fails its checks
+//! again itself (`stores.rs`): a record failing here was damaged on the way, and the frame
+//! fails and is tried again with the store opened anew. A
 //! dataset of one COPC file comes the same way, its records the file's LAZ chunks, decoded
 //! here with what the daemon sends of its header. While the daemon builds a store, a preview
 //! job's frames render from the daemon's preview sample of the dataset (`fetch_preview`),
