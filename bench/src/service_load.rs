@@ -28,9 +28,11 @@ use std::time::{Duration, Instant};
 use pb::dataset_service_client::DatasetServiceClient;
 use pb::job_service_client::JobServiceClient;
 use pb::worker_service_client::WorkerServiceClient;
+use pointfarm_daemon::model::JobSpec;
 use pointfarm_proto::endpoint::ServerEndpoint;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
+use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
 use serde::Serialize;
 use tonic::transport::Channel;
 
@@ -540,21 +542,27 @@ async fn register(endpoint: &ServerEndpoint) -> Result<String, String> {
     Ok(dataset.into_inner().id)
 }
 
+/// A turntable job as `pointfarm render --server` submits one: every render option spelled out.
 fn job_request(
     request_id: String,
     dataset_id: &str,
     options: &ServiceLoadOptions,
 ) -> pb::SubmitJobRequest {
-    pb::SubmitJobRequest {
+    let spec = JobSpec {
         request_id,
         dataset_id: dataset_id.into(),
-        camera_path: Some(pb::CameraPath::turntable(pb::Turntable::of_frames(
-            options.frames_per_job,
-        ))),
-        width: options.width,
-        height: options.height,
-        ..Default::default()
-    }
+        request: RenderRequest {
+            width: options.width,
+            height: options.height,
+            camera_path: CameraPath::Turntable(Turntable::around_the_cloud(options.frames_per_job)),
+            lens: Lens::default(),
+            render: RenderOptions::default(),
+        },
+        priority: 0,
+        requirements: Default::default(),
+        preview: false,
+    };
+    pb::SubmitJobRequest::from(&spec)
 }
 
 fn ms_since(started: Instant) -> f64 {
