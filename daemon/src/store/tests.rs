@@ -183,7 +183,7 @@ fn a_job_submitted_to_a_full_disk_is_refused_before_anyone_sees_it() {
         .into_iter()
         .map(|job| job.id)
         .collect();
-    assert_eq!(listed, [before.id.clone()], "the refused job is nowhere");
+    assert_eq!(listed, [before.id], "the refused job is nowhere");
     // The same request again, once the disk has room, is a new job.
     std::fs::remove_file(filler).expect("free the disk");
     assert!(store.end_outage().expect("probe"), "space is back");

@@ -356,7 +356,7 @@ mod tests {
         std::fs::remove_file(root.join("tiles/b.las")).expect("remove");
 
         symlink(&outside, root.join("tiles/more")).expect("folder link");
-        let error = dataset_files_in(&[root.clone()], FileScope::Within(&roots))
+        let error = dataset_files_in(std::slice::from_ref(&root), FileScope::Within(&roots))
             .expect_err("a folder link out of the roots");
         assert!(error.to_string().contains("tiles/more"), "{error}");
         // Named directly, a link out of the roots is refused too.
@@ -368,7 +368,7 @@ mod tests {
         assert!(matches!(error, IngestError::OutsideRoots { .. }), "{error}");
 
         // The CLI follows the same links wherever they lead, keeping the names it was given.
-        let files = dataset_files(&[root.clone()]).expect("anywhere");
+        let files = dataset_files(std::slice::from_ref(&root)).expect("anywhere");
         assert_eq!(
             names(&files, &root),
             ["tiles/a.las", "tiles/more/secret.las"]
