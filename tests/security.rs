@@ -1,7 +1,7 @@
 //! Transport and roles, with real processes and sockets: TLS with a certificate made for the
 //! test (clients and workers through it, plaintext and unknown CAs refused), the refusal to
-//! listen beyond loopback without a token and TLS, reflection in both versions, and leases
-//! that only their holder can use.
+//! listen beyond loopback without a token and TLS, reflection in both versions (behind the
+//! client token where one is set), and leases that only their holder can use.
 
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
@@ -257,22 +257,56 @@ async fn reflection_answers_in_v1_and_v1alpha() {
         "{names:?}"
     );
 
-    let request = v1::ServerReflectionRequest {
+    let answer = list_services_v1(channel, None)
+        .await
+        .expect("v1 reflection");
+    assert!(matches!(
+        answer.message_response,
+        Some(v1::server_reflection_response::MessageResponse::ListServicesResponse(_))
+    ));
+    daemon.stop().await;
+}
+
+/// The first answer of v1 reflection to a ListServices request on `channel`, with the bearer
+/// `token` if given.
+async fn list_services_v1(
+    channel: tonic::transport::Channel,
+    token: Option<&str>,
+) -> Result<tonic_reflection::pb::v1::ServerReflectionResponse, tonic::Status> {
+    use tonic_reflection::pb::v1;
+    let list = v1::ServerReflectionRequest {
         host: String::new(),
         message_request: Some(v1::server_reflection_request::MessageRequest::ListServices(
             String::new(),
         )),
     };
+    let mut request = tonic::Request::new(tokio_stream::iter([list]));
+    if let Some(token) = token {
+        let value = format!("Bearer {token}").parse().expect("a header value");
+        request.metadata_mut().insert("authorization", value);
+    }
     let mut answers = v1::server_reflection_client::ServerReflectionClient::new(channel)
-        .server_reflection_info(tokio_stream::iter([request]))
-        .await
-        .expect("v1 reflection")
+        .server_reflection_info(request)
+        .await?
         .into_inner();
-    let answer = answers.next().await.expect("an answer").expect("ok");
-    assert!(matches!(
-        answer.message_response,
-        Some(v1::server_reflection_response::MessageResponse::ListServicesResponse(_))
-    ));
+    answers.next().await.expect("an answer")
+}
+
+/// Reflection maps the whole API: where a client token is set, it needs one.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn reflection_needs_the_client_token_where_one_is_set() {
+    let daemon = TestDaemon::start_without_worker(|_| {}, Access::new(Some("client"), None)).await;
+    let refused = list_services_v1(daemon.channel().await, None)
+        .await
+        .expect_err("reflection without the token");
+    assert_eq!(refused.code(), Code::Unauthenticated, "{refused}");
+    let refused = list_services_v1(daemon.channel().await, Some("wrong"))
+        .await
+        .expect_err("reflection with another token");
+    assert_eq!(refused.code(), Code::Unauthenticated, "{refused}");
+    list_services_v1(daemon.channel().await, Some("client"))
+        .await
+        .expect("reflection with the token");
     daemon.stop().await;
 }
 

@@ -1,21 +1,16 @@
 //! The transport under load and attack, with real processes and sockets: TCP_NODELAY read
 //! back from every connected socket of a daemon and its worker, a flood of idle connections
-//! against a daemon held to 1,024 open files, SIGTERM with a call stalled in flight, and
-//! reflection behind the client token.
+//! against a daemon held to 1,024 open files, and SIGTERM with a call stalled in flight.
 
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::os::fd::OwnedFd;
 use std::time::{Duration, Instant};
 
-use pointfarm_daemon::access::Access;
 use pointfarm_tests::service::{
     clients, scratch_sample, submit, turntable_job, upload_file, upload_messages, watch_to_success,
-    TestDaemon,
 };
 use pointfarm_tests::{free_address, signal, wait_for, ServeProcess};
-use tokio_stream::StreamExt;
-use tonic::Code;
 
 /// The TCP sockets of process `pid` that have a peer, each with its local and peer address,
 /// duplicated out of the process (`pidfd_getfd`) so that their options can be read.
@@ -82,6 +77,18 @@ fn get_metrics(stream: &mut TcpStream) -> String {
         .to_string()
 }
 
+/// A two-frame job through `server`'s API, uploaded, rendered and watched to its end, then a
+/// scrape of its metrics at `metrics`: every listener and the worker's sockets in use.
+async fn a_job_and_a_scrape(server: &ServeProcess, metrics: &str, seed: u64) {
+    let (_scratch, scene) = scratch_sample("scene.las", 20_000, seed);
+    let (mut datasets, mut jobs) = clients(&server.address).await;
+    let dataset = upload_file(&mut datasets, "scene.las", &scene).await;
+    let job = submit(&mut jobs, turntable_job("two", &dataset.id, 2, 64, 48)).await;
+    watch_to_success(&mut jobs, &job.id, || server.log()).await;
+    let mut scrape = TcpStream::connect(metrics).expect("connect to the metrics");
+    assert!(get_metrics(&mut scrape).contains("200"));
+}
+
 /// Every socket a daemon accepted (its API, its embedded worker's listener, its metrics) and
 /// every socket its embedded worker opened answer TCP_NODELAY: a response in several
 /// segments never waits for the peer's delayed ACK.
@@ -93,14 +100,8 @@ async fn every_connected_socket_of_a_daemon_and_its_worker_has_nodelay() {
         ServeProcess::start_with(&dir.path().join("data"), &["--metrics-listen", &metrics]);
     let worker_pid = server.embedded_worker_pid();
 
-    // A job through the API, so the worker has leased, fetched and handed in over its sockets.
-    let (_scratch, scene) = scratch_sample("scene.las", 20_000, 3);
-    let (mut datasets, mut jobs) = clients(&server.address).await;
-    let dataset = upload_file(&mut datasets, "scene.las", &scene).await;
-    let job = submit(&mut jobs, turntable_job("nodelay", &dataset.id, 2, 64, 48)).await;
-    watch_to_success(&mut jobs, &job.id, || server.log()).await;
-    let mut scrape = TcpStream::connect(&metrics).expect("connect to the metrics");
-    assert!(get_metrics(&mut scrape).contains("200"));
+    // The worker has leased, fetched and handed in over its sockets.
+    a_job_and_a_scrape(&server, &metrics, 3).await;
 
     let api = port(&server.address);
     let metrics_port = port(&metrics);
@@ -179,13 +180,7 @@ async fn a_flood_of_idle_connections_starves_nothing_at_1024_open_files() {
         }
     }
 
-    let (_scratch, scene) = scratch_sample("scene.las", 20_000, 5);
-    let (mut datasets, mut jobs) = clients(&server.address).await;
-    let dataset = upload_file(&mut datasets, "scene.las", &scene).await;
-    let job = submit(&mut jobs, turntable_job("flooded", &dataset.id, 2, 64, 48)).await;
-    watch_to_success(&mut jobs, &job.id, || server.log()).await;
-    let mut scrape = TcpStream::connect(&metrics).expect("connect to the metrics");
-    assert!(get_metrics(&mut scrape).contains("200"));
+    a_job_and_a_scrape(&server, &metrics, 5).await;
 
     let descriptors = || {
         std::fs::read_dir(format!("/proc/{}/fd", server.pid()))
@@ -244,41 +239,4 @@ async fn sigterm_stops_the_daemon_within_its_grace_with_a_call_stalled() {
         server.log()
     );
     drop(sender);
-}
-
-/// Reflection maps the whole API: where a client token is set, it needs one.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn reflection_needs_the_client_token_where_one_is_set() {
-    use tonic_reflection::pb::v1;
-    let daemon = TestDaemon::start_without_worker(|_| {}, Access::new(Some("client"), None)).await;
-    let channel = daemon.channel().await;
-    let list = || v1::ServerReflectionRequest {
-        host: String::new(),
-        message_request: Some(v1::server_reflection_request::MessageRequest::ListServices(
-            String::new(),
-        )),
-    };
-    let mut reflection = v1::server_reflection_client::ServerReflectionClient::new(channel);
-    let refused = reflection
-        .server_reflection_info(tokio_stream::iter([list()]))
-        .await
-        .expect_err("reflection without the token");
-    assert_eq!(refused.code(), Code::Unauthenticated, "{refused}");
-
-    let mut request = tonic::Request::new(tokio_stream::iter([list()]));
-    request.metadata_mut().insert(
-        "authorization",
-        "Bearer client".parse().expect("a header value"),
-    );
-    let mut answers = reflection
-        .server_reflection_info(request)
-        .await
-        .expect("reflection with the token")
-        .into_inner();
-    let answer = answers.next().await.expect("an answer").expect("ok");
-    assert!(matches!(
-        answer.message_response,
-        Some(v1::server_reflection_response::MessageResponse::ListServicesResponse(_))
-    ));
-    daemon.stop().await;
 }
