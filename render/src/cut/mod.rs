@@ -30,6 +30,7 @@ mod load;
 mod options;
 mod pages;
 mod point_sizes;
+mod point_source;
 mod read_order;
 mod report;
 mod select;
@@ -67,6 +68,7 @@ pub use options::{
     PREVIEW_LOD_ERROR_PX, RESIDENT_MAX_POINTS,
 };
 pub use pages::{HierarchyPages, PagesRead};
+pub use point_source::{frame_points, FramePoints, PointSourceFacts};
 pub use report::{CutCounts, CutReport};
 pub use select::{select_cut, Cut, CutNode, CutView};
 pub use stored::StoredLod;
