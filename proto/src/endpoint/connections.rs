@@ -272,6 +272,36 @@ pub struct Listener {
     /// Set after the process ran out of descriptors: accepting waits a moment rather than
     /// spinning on the error.
     backoff: Option<Pin<Box<Sleep>>>,
+    refusals: Refusals,
+}
+
+/// Connections refused at the limit, logged at most once a second: a flood must not flood
+/// the log too.
+#[derive(Debug, Default)]
+struct Refusals {
+    unlogged: u64,
+    logged_at: Option<Instant>,
+}
+
+impl Refusals {
+    fn count(&mut self, peer: SocketAddr, limit: usize) {
+        self.unlogged += 1;
+        let now = Instant::now();
+        if self
+            .logged_at
+            .is_some_and(|at| now.duration_since(at) < Duration::from_secs(1))
+        {
+            return;
+        }
+        tracing::warn!(
+            %peer,
+            limit,
+            refused = self.unlogged,
+            "refusing connections: the listener's connections are at their limit"
+        );
+        self.unlogged = 0;
+        self.logged_at = Some(now);
+    }
 }
 
 /// How long accepting pauses after the process ran out of descriptors.
@@ -287,6 +317,7 @@ impl Listener {
                 unadmitted: Mutex::new(VecDeque::new()),
             }),
             backoff: None,
+            refusals: Refusals::default(),
         }
     }
 
@@ -317,11 +348,8 @@ impl Listener {
                 }
             };
             let Some((state, open)) = self.registry.admit_new() else {
-                tracing::warn!(
-                    %peer,
-                    limit = self.registry.limits.max_connections,
-                    "refusing a connection: the listener's connections are at their limit"
-                );
+                self.refusals
+                    .count(peer, self.registry.limits.max_connections);
                 continue;
             };
             if let Err(error) = set_up(&stream) {
