@@ -12,7 +12,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use super::conversions::{dataset_description, file_description, invalid, page_messages};
 use super::streaming::{first_part, spawn_stream, HashingWriter, ResponseStream, CHUNK_BYTES};
-use super::Api;
+use super::{io_within, Api};
 use crate::error::DaemonError;
 use crate::service::{dataset_id, Daemon};
 
@@ -198,7 +198,7 @@ async fn send_file(
     if sender.send(Ok(first)).await.is_err() {
         return;
     }
-    let mut file = match tokio::fs::File::open(path).await {
+    let mut file = match io_within(tokio::fs::File::open(path)).await {
         Ok(file) => file,
         Err(e) => {
             let _ = sender
@@ -209,11 +209,7 @@ async fn send_file(
     };
     loop {
         let mut chunk = Vec::with_capacity(CHUNK_BYTES);
-        match (&mut file)
-            .take(CHUNK_BYTES as u64)
-            .read_to_end(&mut chunk)
-            .await
-        {
+        match io_within((&mut file).take(CHUNK_BYTES as u64).read_to_end(&mut chunk)).await {
             Ok(0) => return,
             Ok(_) => {
                 let message = pb::ExportChunk {
@@ -243,7 +239,9 @@ async fn receive_upload(
     sha256: &str,
 ) -> Result<u64, Status> {
     let internal = |e: std::io::Error| Status::internal(e.to_string());
-    let mut file = HashingWriter::create(temp).await.map_err(internal)?;
+    let mut file = io_within(HashingWriter::create(temp))
+        .await
+        .map_err(internal)?;
     let mut signature = Vec::with_capacity(LAS_SIGNATURE.len());
     while let Some(message) = stream.message().await? {
         let Some(pb::upload_dataset_request::Part::Data(data)) = message.part else {
@@ -267,10 +265,10 @@ async fn receive_upload(
                 .into());
             }
         }
-        file.write(&data).await.map_err(internal)?;
+        io_within(file.write(&data)).await.map_err(internal)?;
     }
     let received = file.received();
-    let sha = file.finish().await.map_err(internal)?;
+    let sha = io_within(file.finish()).await.map_err(internal)?;
     if received != size_bytes {
         return Err(invalid(
             "header.size_bytes",

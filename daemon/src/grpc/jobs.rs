@@ -158,7 +158,8 @@ impl JobService for Api {
                 if !done && !daemon.store.has_preview(&job.id, index).unwrap_or(false) {
                     continue;
                 }
-                let bytes = match tokio::fs::read(daemon.config.frame_path(&job.id, index)).await {
+                let read = tokio::fs::read(daemon.config.frame_path(&job.id, index));
+                let bytes = match super::io_within(read).await {
                     Ok(bytes) => bytes,
                     Err(e) => {
                         let _ = sender

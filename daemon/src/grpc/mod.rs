@@ -95,6 +95,24 @@ impl Api {
 /// network filesystem gone away), and the client is answered rather than held forever.
 pub const BLOCKING_CALL_BOUND: Duration = Duration::from_secs(60);
 
+/// `io`, an asynchronous filesystem call (tokio runs it on a blocking thread), within
+/// [`BLOCKING_CALL_BOUND`]: past it an error of kind `TimedOut`, the thread left behind.
+pub(crate) async fn io_within<T>(
+    io: impl std::future::Future<Output = std::io::Result<T>>,
+) -> std::io::Result<T> {
+    tokio::time::timeout(BLOCKING_CALL_BOUND, io)
+        .await
+        .unwrap_or_else(|_| {
+            Err(std::io::Error::new(
+                std::io::ErrorKind::TimedOut,
+                format!(
+                    "the daemon's disk did not answer within {} s",
+                    BLOCKING_CALL_BOUND.as_secs_f64()
+                ),
+            ))
+        })
+}
+
 /// Runs `work` on tokio's blocking threads; DEADLINE_EXCEEDED when it has not finished
 /// within `bound`, its thread left behind to finish (or stay stuck) on its own.
 pub(crate) async fn blocking_within<T: Send + 'static>(

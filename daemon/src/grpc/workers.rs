@@ -260,14 +260,10 @@ impl WorkerService for Api {
         };
         let stream = spawn_stream(4, move |sender| async move {
             loop {
-                let read = tokio::time::timeout(super::BLOCKING_CALL_BOUND, read_chunk(&mut file));
-                let message = match read.await {
-                    Ok(Ok(None)) => return,
-                    Ok(Ok(Some(data))) => Ok(pb::DatasetChunk { data }),
-                    Ok(Err(e)) => Err(Status::internal(format!("{about}: {e}"))),
-                    Err(_) => Err(Status::deadline_exceeded(format!(
-                        "{about}: the daemon's disk did not answer in time"
-                    ))),
+                let message = match super::io_within(read_chunk(&mut file)).await {
+                    Ok(None) => return,
+                    Ok(Some(data)) => Ok(pb::DatasetChunk { data }),
+                    Err(e) => Err(Status::internal(format!("{about}: {e}"))),
                 };
                 let failed = message.is_err();
                 if sender.send(message).await.is_err() || failed {
