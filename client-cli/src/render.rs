@@ -10,7 +10,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_render::camera::{Camera, Projection};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::copc::is_copc;
-use pointfarm_render::cut::{CutOptions, StoredLod, PREVIEW_LOD_ERROR_PX};
+use pointfarm_render::cut::{
+    frame_points, CutOptions, FramePoints, PointSourceFacts, StoredLod, PREVIEW_LOD_ERROR_PX,
+};
 use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::{dataset_files, dataset_point_count};
@@ -60,25 +62,21 @@ pub fn run(args: RenderArgs) -> Result<()> {
         dir: args.cache_dir.clone().unwrap_or_else(user_cache_dir),
         size_bytes: args.cache_size,
     };
-    let cut_options = args.cut_options(points)?;
+    // A store already built in the cache is cut, as a server cuts it, whatever the size.
+    let store_folder = match copc {
+        Some(_) => None,
+        None => Some(cache.folder(&files)?),
+    };
+    let facts = PointSourceFacts {
+        points: Some(points),
+        one_copc_file: copc.is_some(),
+        store_built: store_folder.as_deref().is_some_and(StoredLod::is_built),
+        levels_of_detail_asked: args.levels_of_detail_asked(),
+    };
+    let frame_points = frame_points(&facts);
     if args.preview {
-        match (copc, cut_options) {
-            (None, Some(options)) => {
-                let folder = cache.folder(&files)?;
-                if !StoredLod::is_built(&folder) {
-                    let frames = FrameTarget {
-                        args: &args,
-                        request: &request,
-                        outputs: &outputs,
-                        gpu: &gpu,
-                    };
-                    return preview_then_final(
-                        &frames, &files, folder, &cache, options, points, &say_input,
-                    );
-                }
-                say(format!("--preview: {BUILT_ALREADY}; {FINAL_AT_ONCE}"));
-            }
-            (Some(file), _) => {
+        match (copc, frame_points, store_folder) {
+            (Some(file), _, _) => {
                 let options = args.lod_options()?;
                 if options.lod_error < PREVIEW_LOD_ERROR_PX {
                     let frames = FrameTarget {
@@ -94,12 +92,25 @@ pub fn run(args: RenderArgs) -> Result<()> {
                     options.lod_error
                 ));
             }
-            (None, None) => say(format!(
+            (None, FramePoints::Resident, _) => say(format!(
                 "--preview: {points} points render resident, nothing to build; {FINAL_AT_ONCE}"
             )),
+            (None, _, Some(folder)) if !facts.store_built => {
+                let options = args.lod_options()?;
+                let frames = FrameTarget {
+                    args: &args,
+                    request: &request,
+                    outputs: &outputs,
+                    gpu: &gpu,
+                };
+                return preview_then_final(
+                    &frames, &files, folder, &cache, options, points, &say_input,
+                );
+            }
+            (None, _, _) => say(format!("--preview: {BUILT_ALREADY}; {FINAL_AT_ONCE}")),
         }
     }
-    let mut source = match (copc, cut_options) {
+    let mut source = match (copc, frame_points) {
         (Some(file), _) => FrameSource::copc(
             Arc::clone(&gpu),
             file,
@@ -107,14 +118,14 @@ pub fn run(args: RenderArgs) -> Result<()> {
             &request.render,
             &say_input,
         )?,
-        (None, None) => {
+        (None, FramePoints::Resident) => {
             FrameSource::resident(Arc::clone(&gpu), &files, &request.render, &say_input)?
         }
-        (None, Some(options)) => FrameSource::cut(
+        (None, _) => FrameSource::cut(
             Arc::clone(&gpu),
             &files,
             &cache,
-            options,
+            args.lod_options()?,
             &request.render,
             &say_input,
         )?,

@@ -9,7 +9,7 @@ use clap::{Args, ValueEnum};
 use glam::DVec3;
 use pointfarm_render::camera::{AUTO_AZIMUTH_DEG, AUTO_ELEVATION_DEG, DEFAULT_FOV_Y_DEG};
 use pointfarm_render::color::{ColorMode, ColorRamp, ColorRange};
-use pointfarm_render::cut::{CutOptions, RESIDENT_MAX_POINTS};
+use pointfarm_render::cut::CutOptions;
 use pointfarm_render::gpu::AdapterChoice;
 use pointfarm_render::raster::{
     AtomicsMode, FillSettings, Quality, Shading, DEFAULT_BACKGROUND, DEFAULT_DEPTH_BAND,
@@ -410,18 +410,14 @@ impl RenderArgs {
         .find_map(|(flag, given)| given.then_some(flag))
     }
 
-    /// The cut options when the arguments ask for levels of detail, or a dataset of
-    /// `points` needs them; `None` renders the dataset resident.
-    pub(crate) fn cut_options(&self, points: u64) -> Result<Option<CutOptions>> {
-        if self.lod_error.is_none() && self.cache_flag().is_none() && points <= RESIDENT_MAX_POINTS
-        {
-            return Ok(None);
-        }
-        self.lod_options().map(Some)
+    /// Whether the arguments ask for levels of detail: a pixel error, or this machine's node
+    /// caches' budgets, which only a cut has.
+    pub(crate) fn levels_of_detail_asked(&self) -> bool {
+        self.lod_error.is_some() || self.cache_flag().is_some()
     }
 
-    /// The cut options the arguments describe, whatever the dataset's size: a COPC file is
-    /// always rendered cut by cut from its own hierarchy.
+    /// The cut options the arguments describe, for a dataset whose frames are cuts
+    /// ([`pointfarm_render::cut::frame_points`]).
     pub(crate) fn lod_options(&self) -> Result<CutOptions> {
         let defaults = CutOptions::default();
         let options = CutOptions {

@@ -30,7 +30,9 @@ use std::sync::{Arc, Mutex};
 
 use pointfarm_render::color::Stretch;
 use pointfarm_render::copc::{is_copc, open_copc_whole, CopcDecoder};
-use pointfarm_render::cut::{CutError, LodDataset, StoredLod, RESIDENT_MAX_POINTS};
+use pointfarm_render::cut::{
+    frame_points, CutError, FramePoints, LodDataset, PointSourceFacts, StoredLod,
+};
 use pointfarm_render::ingest::dataset_point_count;
 use pointfarm_render::lod::codec::check_node;
 use pointfarm_render::lod::{BuildProgress, LodError, LodHierarchy, NodeInfo, NodeKey};
@@ -429,7 +431,14 @@ impl DatasetStores {
         };
         let folder = self.folder(&sha);
         let built = StoredLod::is_built(&folder);
-        if !levels_of_detail && points <= RESIDENT_MAX_POINTS && !built {
+        // One COPC file never comes here: `open` answers it with its own hierarchy first.
+        let facts = PointSourceFacts {
+            points: Some(points),
+            one_copc_file: false,
+            store_built: built,
+            levels_of_detail_asked: levels_of_detail,
+        };
+        if frame_points(&facts) == FramePoints::Resident {
             return Ok(StoreAnswer::NotNeeded { points });
         }
         if built {

@@ -59,6 +59,8 @@ pub async fn open(client: &mut Client, task: &FrameTask) -> Result<DaemonStore, 
     use pb::open_dataset_store_response::State;
     let request = pb::OpenDatasetStoreRequest {
         dataset_id: task.dataset.id.clone(),
+        // What the request asks; the daemon adds the dataset's facts and decides with
+        // `frame_points`, as a local render does.
         levels_of_detail: task.request.render.lod_error.is_some(),
     };
     let answer = match client.open_dataset_store(request).await {

@@ -16,8 +16,8 @@ use pointfarm_render::cache::{CacheOutcome, DatasetCache};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::{point_colors, Coloring};
 use pointfarm_render::cut::{
-    CutError, CutOptions, CutRenderer, LodDataset, StoredLod, PREVIEW_LOD_ERROR_PX,
-    RESIDENT_MAX_POINTS,
+    frame_points, CutError, CutOptions, CutRenderer, LodDataset, PointSourceFacts, StoredLod,
+    PREVIEW_LOD_ERROR_PX,
 };
 use pointfarm_render::encode;
 use pointfarm_render::filter::PointFilter;
@@ -156,18 +156,26 @@ impl WorkerRenderState {
             .map(|lod| lod.dir.join(&task.dataset.sha256))
     }
 
-    /// The pixel error of `task`'s cut, or `None` to render it resident: the request's own, else
-    /// the default for a dataset over [`RESIDENT_MAX_POINTS`] points or one already stored.
+    /// The pixel error of `task`'s cut through a store of this worker's own, or `None` to
+    /// render it resident, as [`frame_points`] decides for a dataset of `points` (unknown:
+    /// `None`): the request's own error, else the default.
     fn lod_error(&self, task: &FrameTask, points: Option<u64>) -> Option<f64> {
         let lod = self.lod.as_ref()?;
-        if let Some(error) = task.request.render.lod_error {
-            return Some(error);
-        }
-        let stored = self
-            .store_folder(task)
-            .is_some_and(|folder| StoredLod::is_built(&folder));
-        let large = points.is_some_and(|p| p > RESIDENT_MAX_POINTS);
-        (stored || large).then_some(lod.options.lod_error)
+        let facts = PointSourceFacts {
+            points,
+            // This worker builds a store of a COPC file's points as of any other file's.
+            one_copc_file: false,
+            store_built: self
+                .store_folder(task)
+                .is_some_and(|folder| StoredLod::is_built(&folder)),
+            levels_of_detail_asked: task.request.render.lod_error.is_some(),
+        };
+        frame_points(&facts).is_cut().then(|| {
+            task.request
+                .render
+                .lod_error
+                .unwrap_or(lod.options.lod_error)
+        })
     }
 
     /// The pixel error of `task`'s cut from the daemon's store: the request's own, else the
