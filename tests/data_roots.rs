@@ -172,6 +172,22 @@ async fn links_out_of_the_data_roots_are_never_registered_and_never_served() {
         status.message()
     );
     farm.assert_no_server_path(status.message());
+    // Nor is it described: not even the outside file's header is read.
+    let described = farm
+        .datasets()
+        .await
+        .describe_dataset(pb::DescribeDatasetRequest {
+            dataset_id: dataset.id.clone(),
+            read_points: false,
+        })
+        .await
+        .expect("described")
+        .into_inner();
+    let file = &described.files[0];
+    assert_eq!(
+        (file.error.as_str(), file.file_bytes),
+        ("tiles/a.las: is not a regular file (a symbolic link)", 0)
+    );
     std::fs::remove_file(tiles.join("a.las")).expect("remove the link");
 
     // or of the folder it lies in.

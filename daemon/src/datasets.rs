@@ -136,6 +136,23 @@ impl Daemon {
         Ok(file)
     }
 
+    /// Refuses dataset `dataset` unless every file of it still opens as
+    /// [`Daemon::open_dataset_file`] opens it, before the render crate's readers (which follow
+    /// links, as the CLI's must) read them; the error names the dataset and the file.
+    pub(crate) fn check_dataset_files(&self, dataset: &Dataset) -> Result<(), DaemonError> {
+        for file in dataset.files() {
+            self.open_dataset_file(&file.path).map_err(|error| {
+                tracing::warn!(path = %file.path.display(), %error, "a dataset's file cannot be read");
+                DaemonError::FailedPrecondition(format!(
+                    "dataset {}, file {}: {error}",
+                    dataset.id,
+                    self.shown_path(&file.path)
+                ))
+            })?;
+        }
+        Ok(())
+    }
+
     /// How a client is shown the server's file `path`: its path under the data root it lies
     /// in, else (an uploaded file) its name.
     pub(crate) fn shown_path(&self, path: &Path) -> String {

@@ -58,7 +58,18 @@ impl Daemon {
         Ok(dataset
             .files()
             .into_iter()
-            .map(|file| FileReport::read(file.path, read_points, |_| Box::new(|_: u64| {})))
+            .map(|file| match self.open_dataset_file(&file.path) {
+                // Read only while it still is the regular file inside the data roots it was.
+                Ok(_) => FileReport::read(file.path, read_points, |_| Box::new(|_: u64| {})),
+                Err(error) => FileReport {
+                    outcome: Err(IngestError::Io {
+                        path: file.path.clone(),
+                        error,
+                    }),
+                    path: file.path,
+                    copc: None,
+                },
+            })
             .collect())
     }
 }

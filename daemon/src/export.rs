@@ -30,6 +30,7 @@ impl Daemon {
     /// dataset's store is built.
     pub fn export_dataset(&self, id: &str) -> Result<ExportedFile, DaemonError> {
         let dataset = self.dataset(id)?;
+        self.check_dataset_files(&dataset)?;
         let started = Instant::now();
         let store = loop {
             match self.stores.open_store(&dataset, true)? {
