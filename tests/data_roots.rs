@@ -186,7 +186,7 @@ async fn links_out_of_the_data_roots_are_never_registered_and_never_served() {
     let file = &described.files[0];
     assert_eq!(
         (file.error.as_str(), file.file_bytes),
-        ("tiles/a.las: is not a regular file (a symbolic link)", 0)
+        ("tiles/a.las: now lies outside the server's data roots", 0)
     );
     std::fs::remove_file(tiles.join("a.las")).expect("remove the link");
 

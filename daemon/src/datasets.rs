@@ -109,11 +109,12 @@ impl Daemon {
     }
 
     /// Opens a dataset's stored file to read it ([`open_dataset_file`]: a regular file only,
-    /// never blocking on a special one), refusing it unless it still is what registration or
-    /// upload stored: the path itself no symbolic link, and the file opened inside a data root
-    /// or the uploads folder, so that a link put in place of a folder since is not followed out.
+    /// never blocking on a special one), refusing it unless the file opened lies inside a data
+    /// root or the uploads folder: a link put in place of the file or a folder since
+    /// registration is followed only as far as the roots. (Links inside the roots stay
+    /// readable, as records registered through them store the link's path.)
     pub fn open_dataset_file(&self, path: &Path) -> std::io::Result<std::fs::File> {
-        let file = open_dataset_file(path, Symlinks::Refuse)?;
+        let file = open_dataset_file(path, Symlinks::Follow)?;
         let opened = opened_path(&file).or_else(|_| path.canonicalize())?;
         let allowed = self
             .config
