@@ -43,6 +43,8 @@ pub struct Registration {
     pub files: Vec<PathBuf>,
     /// The dataset's name.
     pub name: String,
+    /// The files' bytes together, as the walk found them: what hashing them reads.
+    pub bytes: u64,
 }
 
 impl Daemon {
@@ -81,13 +83,18 @@ impl Daemon {
             ("", many) => format!("{} paths", many.len()),
             (name, _) => name.to_string(),
         };
-        Ok(Registration { files, name })
+        let bytes = files
+            .iter()
+            .filter_map(|file| std::fs::metadata(file).ok())
+            .map(|metadata| metadata.len())
+            .sum();
+        Ok(Registration { files, name, bytes })
     }
 
     /// Adds the dataset of a registration's files, each hashed (read whole: this takes as
     /// long as the files are large).
     pub fn register(&self, registration: Registration) -> Result<Dataset, DaemonError> {
-        let Registration { files, name } = registration;
+        let Registration { files, name, .. } = registration;
         let hashed = hash_files_opened_by(&files, &|path| self.open_dataset_file(path), &|_| {});
         let files = files
             .into_iter()

@@ -33,7 +33,9 @@ impl DatasetService for Api {
             .run(move |daemon| daemon.find_registration(&paths, &r.name))
             .await?;
         let dataset = self
-            .run_scaled(move |daemon| daemon.register(registration))
+            .run_scaled(registration.bytes, move |daemon| {
+                daemon.register(registration)
+            })
             .await?;
         Ok(Response::new(pb::Dataset::from(&dataset)))
     }
@@ -122,9 +124,12 @@ impl DatasetService for Api {
     ) -> Result<Response<pb::DatasetDescription>, Status> {
         let r = request.into_inner();
         let id = r.dataset_id.clone();
+        let bytes = self.dataset_bytes(&id).await?;
         // Reading the files blocks (every point of them when asked): off the executor.
         let reports = self
-            .run_scaled(move |daemon| daemon.describe_dataset(&id, r.read_points))
+            .run_scaled(bytes, move |daemon| {
+                daemon.describe_dataset(&id, r.read_points)
+            })
             .await?;
         let files = reports
             .iter()
@@ -152,9 +157,9 @@ impl DatasetService for Api {
     ) -> Result<Response<Self::ExportDatasetStream>, Status> {
         let id = request.into_inner().dataset_id;
         // Refused before any work: an unknown dataset is NOT_FOUND.
-        self.daemon.dataset(&id)?;
+        let bytes = self.dataset_bytes(&id).await?;
         let exported = self
-            .run_scaled(move |daemon| daemon.export_dataset(&id))
+            .run_scaled(bytes, move |daemon| daemon.export_dataset(&id))
             .await?;
         let summary = pb::ExportSummary {
             points: exported.report.points,

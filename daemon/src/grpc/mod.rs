@@ -74,20 +74,41 @@ impl Api {
         Status::new(status.code(), message)
     }
 
-    /// Runs `work` as [`Api::run`] does, without a time bound: for work that takes as long as
-    /// the data is large (hashing a registration's files, reading every point of a dataset,
-    /// building its store for an export), which reads regular files only, each opened without
-    /// blocking (`pointfarm_render::ingest::open_dataset_file`).
+    /// Runs `work` as [`Api::run`] does, for work that takes as long as the data is large
+    /// (hashing a registration's files, reading every point of a dataset, building its store
+    /// for an export): its bound grows with the `bytes` it reads ([`scaled_bound`]). It reads
+    /// regular files only, each opened without blocking
+    /// (`pointfarm_render::ingest::open_dataset_file`).
     async fn run_scaled<T: Send + 'static>(
         &self,
+        bytes: u64,
         work: impl FnOnce(&Arc<Daemon>) -> Result<T, DaemonError> + Send + 'static,
     ) -> Result<T, Status> {
         let daemon = self.daemon.clone();
-        tokio::task::spawn_blocking(move || work(&daemon))
-            .await
-            .map_err(|e| Status::internal(e.to_string()))?
+        blocking_within(scaled_bound(bytes), move || work(&daemon))
+            .await?
             .map_err(|e| self.client_status(e))
     }
+
+    /// The bytes of dataset `id`'s files, from its record (NOT_FOUND for an unknown one).
+    async fn dataset_bytes(&self, id: &str) -> Result<u64, Status> {
+        let id = id.to_string();
+        self.run(move |daemon| {
+            let dataset = daemon.dataset(&id)?;
+            Ok(dataset.files().iter().map(|file| file.size_bytes).sum())
+        })
+        .await
+    }
+}
+
+/// The slowest a dataset's files are read before the daemon takes the disk for hung: a
+/// tenth of a hard disk's speed, and below the slowest decoding or store build per byte.
+const SLOWEST_READ_BYTES_PER_SECOND: f64 = 10.0 * 1024.0 * 1024.0;
+
+/// The bound of work that reads `bytes` of a dataset's files: [`BLOCKING_CALL_BOUND`] and the
+/// time to read them at [`SLOWEST_READ_BYTES_PER_SECOND`].
+fn scaled_bound(bytes: u64) -> Duration {
+    BLOCKING_CALL_BOUND + Duration::from_secs_f64(bytes as f64 / SLOWEST_READ_BYTES_PER_SECOND)
 }
 
 /// How long a request waits for its blocking work (a store transaction, a folder's walk, a
@@ -156,5 +177,12 @@ mod tests {
             .await
             .expect("in time");
         assert_eq!(done, 7);
+    }
+
+    #[test]
+    fn work_on_a_dataset_is_bounded_by_its_size() {
+        assert_eq!(scaled_bound(0), BLOCKING_CALL_BOUND);
+        let ten_gib = scaled_bound(10 << 30);
+        assert_eq!(ten_gib, BLOCKING_CALL_BOUND + Duration::from_secs(1024));
     }
 }
