@@ -60,7 +60,10 @@ impl FrameJson {
             points_total: rendered.points_total,
             points_rendered: rendered.points_rendered,
             preview: rendered.preview,
-            completeness: completeness(rendered.points_rendered, rendered.points_total),
+            completeness: pointfarm_render::cut::completeness(
+                rendered.points_rendered,
+                rendered.points_total,
+            ),
             timings_ms: rendered
                 .frame
                 .timings
@@ -77,15 +80,6 @@ impl FrameJson {
             },
             cut: rendered.cut.as_ref().map(cut_json),
         }
-    }
-}
-
-/// `drawn / total`, and 1 for a dataset without points (nothing is missing from it).
-fn completeness(drawn: u64, total: u64) -> f64 {
-    if total == 0 {
-        1.0
-    } else {
-        drawn as f64 / total as f64
     }
 }
 

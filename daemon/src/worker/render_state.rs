@@ -16,8 +16,8 @@ use pointfarm_render::cache::{CacheOutcome, DatasetCache};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::{point_colors, Coloring};
 use pointfarm_render::cut::{
-    frame_points, CutError, CutOptions, CutRenderer, LodDataset, PointSourceFacts, StoredLod,
-    PREVIEW_LOD_ERROR_PX,
+    completeness, frame_points, CutError, CutOptions, CutRenderer, LodDataset, PointSourceFacts,
+    StoredLod, PREVIEW_LOD_ERROR_PX,
 };
 use pointfarm_render::encode;
 use pointfarm_render::filter::PointFilter;
@@ -354,9 +354,8 @@ impl WorkerRenderState {
                     .into_iter()
                     .collect::<Vec<_>>();
                 let counts = &report.counts;
-                let completeness = preview.then(|| {
-                    (counts.points_rendered as f64 / counts.points_total.max(1) as f64).min(1.0)
-                });
+                let completeness =
+                    preview.then(|| completeness(counts.points_rendered, counts.points_total));
                 (frame, timings, None, Some(report.counts), completeness)
             }
             Some(Loaded::Preview(_)) | None => {
@@ -396,11 +395,7 @@ impl WorkerRenderState {
             .render(&preview.cloud, &settings)
             .map_err(|e| FrameFailure::from(&e))?;
         let drawn = self.renderer.listed_points();
-        let completeness = if preview.points_in_files == 0 {
-            1.0
-        } else {
-            (drawn as f64 / preview.points_in_files as f64).min(1.0)
-        };
+        let completeness = completeness(drawn, preview.points_in_files);
         finished(&mut frame, timings, None, None, Some(completeness))
     }
 

@@ -69,7 +69,7 @@ pub use options::{
 };
 pub use pages::{HierarchyPages, PagesRead};
 pub use point_source::{frame_points, FramePoints, PointSourceFacts};
-pub use report::{CutCounts, CutReport};
+pub use report::{completeness, CutCounts, CutReport};
 pub use select::{select_cut, Cut, CutNode, CutView};
 pub use stored::StoredLod;
 

@@ -4,6 +4,17 @@ use serde::{Deserialize, Serialize};
 
 use super::select::Cut;
 
+/// How complete a frame is that drew `drawn` of a dataset's `total` points (a preview's from
+/// a sample or a coarse cut, or a cut's): their share, at most 1, and 1 for a dataset without
+/// points (nothing is missing from it).
+pub fn completeness(drawn: u64, total: u64) -> f64 {
+    if total == 0 {
+        1.0
+    } else {
+        (drawn as f64 / total as f64).min(1.0)
+    }
+}
+
 /// What a frame's cut drew and loaded, in counts: the part of a [`CutReport`] that a
 /// frame's record keeps (the daemon stores it with each frame).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -63,5 +74,19 @@ impl CutReport {
             },
             ..Default::default()
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::completeness;
+
+    #[test]
+    fn completeness_is_the_share_drawn_at_most_one() {
+        assert_eq!(completeness(25, 100), 0.25);
+        assert_eq!(completeness(100, 100), 1.0);
+        // A cut may draw more points than the files hold (a node's points stand for others).
+        assert_eq!(completeness(120, 100), 1.0);
+        assert_eq!(completeness(0, 0), 1.0);
     }
 }
