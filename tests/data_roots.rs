@@ -188,6 +188,34 @@ async fn links_out_of_the_data_roots_are_never_registered_and_never_served() {
         (file.error.as_str(), file.file_bytes),
         ("tiles/a.las: now lies outside the server's data roots", 0)
     );
+    // Nor does a store build or a preview sample read it.
+    let mut workers = WorkerServiceClient::new(connect(&farm.server.address).await);
+    let store = workers
+        .open_dataset_store(pb::OpenDatasetStoreRequest {
+            dataset_id: dataset.id.clone(),
+            levels_of_detail: true,
+        })
+        .await
+        .expect_err("no store of a file outside the roots");
+    assert_eq!(store.code(), Code::FailedPrecondition);
+    assert!(
+        store.message().contains("a.las: now lies outside"),
+        "{}",
+        store.message()
+    );
+    farm.assert_no_server_path(store.message());
+    let sample = workers
+        .fetch_preview_sample(pb::FetchPreviewSampleRequest {
+            dataset_id: dataset.id.clone(),
+        })
+        .await
+        .map(|_| ())
+        .expect_err("no preview sample of a file outside the roots");
+    assert!(
+        sample.message().contains("now lies outside"),
+        "{}",
+        sample.message()
+    );
     std::fs::remove_file(tiles.join("a.las")).expect("remove the link");
 
     // or of the folder it lies in.

@@ -47,6 +47,84 @@ pub struct Registration {
     pub bytes: u64,
 }
 
+/// The folders a dataset's files are read from: the data roots and the uploads folder.
+#[derive(Debug, Clone)]
+pub struct DatasetFolders {
+    data_roots: Vec<PathBuf>,
+    uploads: PathBuf,
+}
+
+impl DatasetFolders {
+    pub fn of(config: &crate::service::DaemonConfig) -> Self {
+        Self {
+            data_roots: config.data_roots.clone(),
+            uploads: config.uploads_dir(),
+        }
+    }
+
+    fn folders(&self) -> impl Iterator<Item = &PathBuf> {
+        self.data_roots.iter().chain(std::iter::once(&self.uploads))
+    }
+
+    /// How a client is shown the server's file `path`: its path under the data root it lies
+    /// in, else (an uploaded file) its name.
+    pub fn shown(&self, path: &Path) -> String {
+        self.data_roots
+            .iter()
+            .filter_map(|root| root.canonicalize().ok())
+            .find_map(|root| {
+                path.strip_prefix(root)
+                    .ok()
+                    .map(|under| under.display().to_string())
+            })
+            .unwrap_or_else(|| file_name(path))
+    }
+
+    /// Opens a dataset's stored file to read it ([`open_dataset_file`]: a regular file only,
+    /// never blocking on a special one), refusing it unless the file opened lies inside one
+    /// of the folders: a link put in place of the file or a folder since registration is
+    /// followed only as far as the roots. (Links inside the roots stay readable, as records
+    /// registered through them store the link's path.)
+    pub fn open(&self, path: &Path) -> std::io::Result<std::fs::File> {
+        let file = open_dataset_file(path, Symlinks::Follow)?;
+        let opened = opened_path(&file).or_else(|_| path.canonicalize())?;
+        let allowed = self
+            .folders()
+            .filter_map(|folder| folder.canonicalize().ok())
+            .any(|folder| opened.starts_with(folder));
+        if !allowed {
+            tracing::warn!(
+                path = %path.display(),
+                opened = %opened.display(),
+                "refused to read a dataset's file: it now lies outside the data roots"
+            );
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::PermissionDenied,
+                "now lies outside the server's data roots",
+            ));
+        }
+        Ok(file)
+    }
+
+    /// Refuses `dataset` unless every file of it still opens as [`DatasetFolders::open`]
+    /// opens it: checked before the render crate's readers (which follow links, as the CLI's
+    /// must) read the files for a store or a preview. The error names the file as a client
+    /// sees it.
+    pub fn check(&self, dataset: &Dataset) -> Result<(), DaemonError> {
+        for file in dataset.files() {
+            self.open(&file.path).map_err(|error| {
+                tracing::warn!(path = %file.path.display(), %error, "a dataset's file cannot be read");
+                DaemonError::FailedPrecondition(format!(
+                    "dataset {}, file {}: {error}",
+                    dataset.id,
+                    self.shown(&file.path)
+                ))
+            })?;
+        }
+        Ok(())
+    }
+}
+
 impl Daemon {
     /// Registers files already on the server, under its data roots, as one dataset
     /// ([`Daemon::find_registration`], then [`Daemon::register`]).
@@ -115,65 +193,21 @@ impl Daemon {
         self.add_dataset(name, files)
     }
 
-    /// Opens a dataset's stored file to read it ([`open_dataset_file`]: a regular file only,
-    /// never blocking on a special one), refusing it unless the file opened lies inside a data
-    /// root or the uploads folder: a link put in place of the file or a folder since
-    /// registration is followed only as far as the roots. (Links inside the roots stay
-    /// readable, as records registered through them store the link's path.)
+    /// Opens a dataset's stored file to read it, as [`DatasetFolders::open`] does.
     pub fn open_dataset_file(&self, path: &Path) -> std::io::Result<std::fs::File> {
-        let file = open_dataset_file(path, Symlinks::Follow)?;
-        let opened = opened_path(&file).or_else(|_| path.canonicalize())?;
-        let allowed = self
-            .config
-            .data_roots
-            .iter()
-            .chain(std::iter::once(&self.config.uploads_dir()))
-            .filter_map(|folder| folder.canonicalize().ok())
-            .any(|folder| opened.starts_with(folder));
-        if !allowed {
-            tracing::warn!(
-                path = %path.display(),
-                opened = %opened.display(),
-                "refused to read a dataset's file: it now lies outside the data roots"
-            );
-            return Err(std::io::Error::new(
-                std::io::ErrorKind::PermissionDenied,
-                "now lies outside the server's data roots",
-            ));
-        }
-        Ok(file)
+        DatasetFolders::of(&self.config).open(path)
     }
 
     /// Refuses dataset `dataset` unless every file of it still opens as
     /// [`Daemon::open_dataset_file`] opens it, before the render crate's readers (which follow
     /// links, as the CLI's must) read them; the error names the dataset and the file.
     pub(crate) fn check_dataset_files(&self, dataset: &Dataset) -> Result<(), DaemonError> {
-        for file in dataset.files() {
-            self.open_dataset_file(&file.path).map_err(|error| {
-                tracing::warn!(path = %file.path.display(), %error, "a dataset's file cannot be read");
-                DaemonError::FailedPrecondition(format!(
-                    "dataset {}, file {}: {error}",
-                    dataset.id,
-                    self.shown_path(&file.path)
-                ))
-            })?;
-        }
-        Ok(())
+        DatasetFolders::of(&self.config).check(dataset)
     }
 
-    /// How a client is shown the server's file `path`: its path under the data root it lies
-    /// in, else (an uploaded file) its name.
+    /// How a client is shown the server's file `path` ([`DatasetFolders::shown`]).
     pub(crate) fn shown_path(&self, path: &Path) -> String {
-        self.config
-            .data_roots
-            .iter()
-            .filter_map(|root| root.canonicalize().ok())
-            .find_map(|root| {
-                path.strip_prefix(root)
-                    .ok()
-                    .map(|p| p.display().to_string())
-            })
-            .unwrap_or_else(|| file_name(path))
+        DatasetFolders::of(&self.config).shown(path)
     }
 
     /// `path` as a canonical path under one of the data roots.

@@ -8,6 +8,7 @@ use pointfarm_render::ingest::{open_dataset_file, Symlinks};
 use sha2::{Digest, Sha256};
 use tokio::sync::broadcast;
 
+use crate::datasets::DatasetFolders;
 use crate::error::{DaemonError, StoreError};
 use crate::limits::{check_id, check_length, MAX_REQUEST_ID_BYTES};
 use crate::metrics::DaemonMetrics;
@@ -201,6 +202,7 @@ impl Daemon {
             DatasetStores::new(config.data_dir.join("lod"), config.store_build_memory_bytes)
                 .gated(config.store_build_gate.clone())
                 .held_before_ready(config.store_ready_gate.clone())
+                .reading_within(DatasetFolders::of(&config))
                 // Frames that wait for the store are leased again: previews for a redraw when
                 // the build's version moves, every frame for its final render when it ends.
                 .notifying(Arc::new(move || built.notify()));

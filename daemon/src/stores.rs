@@ -37,6 +37,7 @@ use pointfarm_render::ingest::dataset_point_count;
 use pointfarm_render::lod::codec::check_node;
 use pointfarm_render::lod::{BuildProgress, LodError, LodHierarchy, NodeInfo, NodeKey};
 
+use crate::datasets::DatasetFolders;
 use crate::error::DaemonError;
 use crate::model::Dataset;
 
@@ -266,6 +267,9 @@ pub struct DatasetStores {
     /// Called when a build's preview version moves and when it ends, so that frames waiting
     /// for the store are leased again (for a redraw, or for their final render).
     on_change: Option<Arc<dyn Fn() + Send + Sync>>,
+    /// Where the datasets' files may be read from, checked before a build, a count or a
+    /// preview sample reads them; `None` reads them where they are (tests).
+    folders: Option<DatasetFolders>,
 }
 
 impl DatasetStores {
@@ -283,6 +287,7 @@ impl DatasetStores {
             rebuilt: Mutex::default(),
             rebuilds: AtomicU64::new(0),
             on_change: None,
+            folders: None,
         }
     }
 
@@ -301,6 +306,21 @@ impl DatasetStores {
     pub fn held_before_ready(mut self, gate: Option<StoreBuildGate>) -> Self {
         self.ready_gate = gate;
         self
+    }
+
+    /// The datasets' files are read only while they lie in `folders` (a link swapped in since
+    /// registration is not followed out of the data roots).
+    pub fn reading_within(mut self, folders: DatasetFolders) -> Self {
+        self.folders = Some(folders);
+        self
+    }
+
+    /// Refuses `dataset` when a file of it no longer lies where it may be read.
+    fn check_files(&self, dataset: &Dataset) -> Result<(), DaemonError> {
+        match &self.folders {
+            Some(folders) => folders.check(dataset),
+            None => Ok(()),
+        }
     }
 
     /// `on_change` is called when a build's preview version moves, and when it ends, ready
@@ -364,6 +384,7 @@ impl DatasetStores {
         if let Some(answer) = self.copc_known(&dataset.sha256) {
             return answer;
         }
+        self.check_files(dataset)?;
         let files = dataset.files();
         // A file that cannot be read as COPC is reported by the store's build.
         let [file] = files.as_slice() else {
@@ -420,6 +441,7 @@ impl DatasetStores {
         }) {
             Ok(Some(points)) => points,
             Ok(None) => {
+                self.check_files(dataset)?;
                 let paths: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
                 let points = dataset_point_count(&paths).map_err(|e| {
                     DaemonError::FailedPrecondition(format!("dataset {}: {e}", dataset.id))
@@ -465,6 +487,7 @@ impl DatasetStores {
     /// Starts building the store of `dataset`, of `points` points, on a thread of its own.
     /// Called under `opening`.
     fn start_build(&self, dataset: &Dataset, points: u64) -> Result<StoreAnswer, DaemonError> {
+        self.check_files(dataset)?;
         let sha = dataset.sha256.clone();
         let folder = self.folder(&sha);
         let files: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();

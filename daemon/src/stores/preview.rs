@@ -59,6 +59,7 @@ impl DatasetStores {
         let chunk_starts = match &state.chunk_starts {
             Some(known) => known.clone(),
             None => {
+                self.check_files(dataset)?;
                 let read = read_chunk_starts(dataset);
                 state.chunk_starts = Some(read.clone());
                 read
