@@ -7,10 +7,13 @@ use std::net::{SocketAddr, TcpStream};
 use std::os::fd::OwnedFd;
 use std::time::{Duration, Instant};
 
+use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
+use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_tests::service::{
     clients, scratch_sample, submit, turntable_job, upload_file, upload_messages, watch_to_success,
 };
 use pointfarm_tests::{free_address, signal, wait_for, ServeProcess};
+use tonic::transport::Channel;
 
 /// The TCP sockets of process `pid` that have a peer, each with its local and peer address,
 /// duplicated out of the process (`pidfd_getfd`) so that their options can be read.
@@ -78,8 +81,9 @@ fn get_metrics(stream: &mut TcpStream) -> String {
 }
 
 /// A two-frame job through `server`'s API, uploaded, rendered and watched to its end, then a
-/// scrape of its metrics at `metrics`: every listener and the worker's sockets in use.
-async fn a_job_and_a_scrape(server: &ServeProcess, metrics: &str, seed: u64) {
+/// scrape of its metrics at `metrics`: every listener and the worker's sockets in use. The
+/// client's gRPC channel and the scrape's connection are returned open.
+async fn a_job_and_a_scrape(server: &ServeProcess, metrics: &str, seed: u64) -> OpenClient {
     let (_scratch, scene) = scratch_sample("scene.las", 20_000, seed);
     let (mut datasets, mut jobs) = clients(&server.address).await;
     let dataset = upload_file(&mut datasets, "scene.las", &scene).await;
@@ -87,6 +91,18 @@ async fn a_job_and_a_scrape(server: &ServeProcess, metrics: &str, seed: u64) {
     watch_to_success(&mut jobs, &job.id, || server.log()).await;
     let mut scrape = TcpStream::connect(metrics).expect("connect to the metrics");
     assert!(get_metrics(&mut scrape).contains("200"));
+    OpenClient {
+        _datasets: datasets,
+        _jobs: jobs,
+        _scrape: scrape,
+    }
+}
+
+/// A client's connections to a daemon, open until dropped.
+struct OpenClient {
+    _datasets: DatasetServiceClient<Channel>,
+    _jobs: JobServiceClient<Channel>,
+    _scrape: TcpStream,
 }
 
 /// Every socket a daemon accepted (its API, its embedded worker's listener, its metrics) and
@@ -101,7 +117,7 @@ async fn every_connected_socket_of_a_daemon_and_its_worker_has_nodelay() {
     let worker_pid = server.embedded_worker_pid();
 
     // The worker has leased, fetched and handed in over its sockets.
-    a_job_and_a_scrape(&server, &metrics, 3).await;
+    let _open = a_job_and_a_scrape(&server, &metrics, 3).await;
 
     let api = port(&server.address);
     let metrics_port = port(&metrics);
@@ -180,7 +196,7 @@ async fn a_flood_of_idle_connections_starves_nothing_at_1024_open_files() {
         }
     }
 
-    a_job_and_a_scrape(&server, &metrics, 5).await;
+    let _open = a_job_and_a_scrape(&server, &metrics, 5).await;
 
     let descriptors = || {
         std::fs::read_dir(format!("/proc/{}/fd", server.pid()))
