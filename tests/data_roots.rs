@@ -105,6 +105,34 @@ impl Farm {
             .expect("FetchDataset answers")
     }
 
+    /// How DescribeDataset reports the first file of dataset `id`, without reading points.
+    async fn described_first_file(&self, id: &str) -> pb::FileDescription {
+        let described = self
+            .datasets()
+            .await
+            .describe_dataset(pb::DescribeDatasetRequest {
+                dataset_id: id.into(),
+                read_points: false,
+            })
+            .await
+            .expect("described")
+            .into_inner();
+        described.files.into_iter().next().expect("a file")
+    }
+
+    /// `status` names `tiles/a.las` of dataset `id` by the dataset's id and the file's path
+    /// under the root, and no server path.
+    fn assert_names_the_tile(&self, status: &Status, id: &str) {
+        assert!(
+            status
+                .message()
+                .starts_with(&format!("dataset {id}, file tiles/a.las: ")),
+            "named by the dataset's id and the file's name: {}",
+            status.message()
+        );
+        self.assert_no_server_path(status.message());
+    }
+
     fn assert_no_server_path(&self, message: &str) {
         assert!(
             !message.contains(arg(&self.base)),
@@ -164,26 +192,9 @@ async fn links_out_of_the_data_roots_are_never_registered_and_never_served() {
     symlink(farm.outside.join("secret.las"), tiles.join("a.las")).expect("swapped file");
     let status = farm.fetch(&dataset.id, 0).await.expect_err("a link now");
     assert_eq!(status.code(), Code::FailedPrecondition);
-    assert!(
-        status
-            .message()
-            .starts_with(&format!("dataset {}, file tiles/a.las: ", dataset.id)),
-        "named by the dataset's id and the file's name: {}",
-        status.message()
-    );
-    farm.assert_no_server_path(status.message());
+    farm.assert_names_the_tile(&status, &dataset.id);
     // Nor is it described: not even the outside file's header is read.
-    let described = farm
-        .datasets()
-        .await
-        .describe_dataset(pb::DescribeDatasetRequest {
-            dataset_id: dataset.id.clone(),
-            read_points: false,
-        })
-        .await
-        .expect("described")
-        .into_inner();
-    let file = &described.files[0];
+    let file = farm.described_first_file(&dataset.id).await;
     assert_eq!(
         (file.error.as_str(), file.file_bytes),
         ("tiles/a.las: now lies outside the server's data roots", 0)
@@ -352,26 +363,10 @@ async fn errors_about_a_registered_files_name_it_by_dataset_and_name() {
     std::fs::remove_file(farm.root.join("tiles/a.las")).expect("remove the file");
 
     let status = farm.fetch(&dataset.id, 0).await.expect_err("gone");
-    assert!(
-        status
-            .message()
-            .starts_with(&format!("dataset {}, file tiles/a.las: ", dataset.id)),
-        "{}",
-        status.message()
-    );
-    farm.assert_no_server_path(status.message());
+    farm.assert_names_the_tile(&status, &dataset.id);
 
-    let description = farm
-        .datasets()
-        .await
-        .describe_dataset(pb::DescribeDatasetRequest {
-            dataset_id: dataset.id.clone(),
-            read_points: false,
-        })
-        .await
-        .expect("described")
-        .into_inner();
-    let error = &description.files[0].error;
+    let description = farm.described_first_file(&dataset.id).await;
+    let error = &description.error;
     assert!(error.starts_with("tiles/a.las: "), "{error}");
     farm.assert_no_server_path(error);
     assert!(
