@@ -1,4 +1,4 @@
-//! The render service end to end: real gRPC over loopback sockets, a real sled store on disk,
+//! The render service end to end: real gRPC over loopback sockets, a real sled state on disk,
 //! the embedded worker rendering on lavapipe.
 
 use std::time::Duration;

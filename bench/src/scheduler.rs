@@ -73,15 +73,15 @@ pub fn measure(
     for &target in histories {
         progress(&format!("scheduler: {target} finished jobs"));
         while history < target {
-            // A finished job as the store holds one: its frame done, its state ended.
+            // A finished job as the state database holds one: its frame done, its state ended.
             let mut spec = job(format!("history-{history}"), 1);
             spec.dataset_id = dataset.id.clone();
             let done = daemon.submit_job(spec).map_err(daemon_error)?;
-            let store = &daemon.store;
+            let state = &daemon.state;
             let stored =
-                |e: pointfarm_daemon::error::StoreError| BenchError::Scheduler(e.to_string());
-            store.set_frame(&done.id, 0, &finished).map_err(stored)?;
-            store
+                |e: pointfarm_daemon::error::StateError| BenchError::Scheduler(e.to_string());
+            state.set_frame(&done.id, 0, &finished).map_err(stored)?;
+            state
                 .update_job(&done.id, |j| {
                     (j.frames_done, j.state) = (1, JobState::Succeeded)
                 })

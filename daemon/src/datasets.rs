@@ -17,7 +17,7 @@ use crate::error::DaemonError;
 use crate::limits::{check_id, check_length, MAX_NAME_BYTES, MAX_PATH_BYTES};
 use crate::model::{content_sha256, now_unix_ms, Dataset, DatasetFile};
 use crate::service::{dataset_id, file_name, hash_files_opened_by, lookup, unique_suffix, Daemon};
-use crate::store::Page;
+use crate::state::Page;
 use crate::stores::{PreviewBytes, ReadyStore, StoreAnswer};
 
 /// Most files in one dataset: a campaign of hundreds of tiles fits, a record that breaks the
@@ -275,7 +275,7 @@ impl Daemon {
         let mut files = Vec::new();
         let mut seen = HashSet::new();
         for id in ids {
-            let dataset = lookup("dataset_ids", "dataset", id, |id| self.store.dataset(id))?;
+            let dataset = lookup("dataset_ids", "dataset", id, |id| self.state.dataset(id))?;
             files.extend(
                 dataset
                     .files()
@@ -325,7 +325,7 @@ impl Daemon {
         let Some(quota) = self.config.upload_quota_bytes else {
             return Ok(());
         };
-        let used = self.store.uploaded_bytes(&self.config.uploads_dir())?;
+        let used = self.state.uploaded_bytes(&self.config.uploads_dir())?;
         if used.saturating_add(size_bytes) > quota {
             return Err(DaemonError::ResourceExhausted(format!(
                 "an upload of {size_bytes} bytes exceeds the quota: {used} of {quota} bytes \
@@ -335,7 +335,7 @@ impl Daemon {
         Ok(())
     }
 
-    /// Takes a completely received upload at `temp` into the store.
+    /// Takes a completely received upload at `temp` into the datasets.
     pub fn finish_upload(
         &self,
         temp: &Path,
@@ -359,7 +359,7 @@ impl Daemon {
     fn add_dataset(&self, name: String, files: Vec<DatasetFile>) -> Result<Dataset, DaemonError> {
         let sha256 = content_sha256(&files);
         let id = dataset_id(&sha256);
-        if let Some(existing) = self.store.dataset(&id)? {
+        if let Some(existing) = self.state.dataset(&id)? {
             return Ok(existing);
         }
         let Some(first) = files.first() else {
@@ -374,7 +374,7 @@ impl Daemon {
             files: if files.len() > 1 { files } else { Vec::new() },
             created_unix_ms: now_unix_ms(),
         };
-        self.store.put_dataset(&dataset)?;
+        self.state.put_dataset(&dataset)?;
         tracing::info!(
             dataset = %dataset.id,
             files = dataset.files().len(),
@@ -385,11 +385,11 @@ impl Daemon {
     }
 
     pub fn dataset(&self, id: &str) -> Result<Dataset, DaemonError> {
-        lookup("dataset_id", "dataset", id, |id| self.store.dataset(id))
+        lookup("dataset_id", "dataset", id, |id| self.state.dataset(id))
     }
 
     pub fn list_datasets(&self, page_size: u32, token: &str) -> Result<Page<Dataset>, DaemonError> {
-        Ok(self.store.list_datasets(page_size as usize, token)?)
+        Ok(self.state.list_datasets(page_size as usize, token)?)
     }
 
     /// Deletes a dataset, and those of its uploaded files that no other dataset has. Refused
@@ -397,13 +397,13 @@ impl Daemon {
     pub fn delete_dataset(&self, id: &str) -> Result<(), DaemonError> {
         check_id("dataset_id", id)?;
         let dataset = self.dataset(id)?;
-        if self.store.dataset_in_use(id)? {
+        if self.state.dataset_in_use(id)? {
             return Err(DaemonError::FailedPrecondition(format!(
                 "dataset {id} is used by unfinished jobs"
             )));
         }
-        self.store.delete_dataset(id)?;
-        let remaining = self.store.datasets()?;
+        self.state.delete_dataset(id)?;
+        let remaining = self.state.datasets()?;
         let still_used: HashSet<PathBuf> = remaining
             .iter()
             .flat_map(Dataset::files)

@@ -5,7 +5,7 @@ use thiserror::Error;
 
 /// The state database failed, or holds what it cannot read.
 #[derive(Debug, Error)]
-pub enum StoreError {
+pub enum StateError {
     #[error("state database: {0}")]
     Db(#[from] sled::Error),
     #[error("state database holds a record it cannot read: {0}")]
@@ -53,12 +53,12 @@ impl DaemonError {
     }
 }
 
-impl From<StoreError> for DaemonError {
-    fn from(e: StoreError) -> Self {
+impl From<StateError> for DaemonError {
+    fn from(e: StateError) -> Self {
         match e {
-            StoreError::Damaged(message) => DaemonError::FailedPrecondition(message),
+            StateError::Damaged(message) => DaemonError::FailedPrecondition(message),
             // Not the request's fault, and it passes: the client should back off and retry.
-            StoreError::Unwritable(message) => DaemonError::ResourceExhausted(message),
+            StateError::Unwritable(message) => DaemonError::ResourceExhausted(message),
             other => DaemonError::Internal(other.to_string()),
         }
     }

@@ -15,8 +15,8 @@ impl Daemon {
     pub fn farm_state(&self) -> Result<FarmState, DaemonError> {
         // Under the scheduling lock: a frame is then either queued or leased, never both.
         let _scheduling = self.scheduling()?;
-        let jobs = self.store.unfinished_jobs()?;
-        let leases = self.store.leases()?;
+        let jobs = self.state.unfinished_jobs()?;
+        let leases = self.state.leases()?;
         let mut leased_by_job: BTreeMap<&str, u64> = BTreeMap::new();
         for lease in &leases {
             *leased_by_job.entry(lease.job_id.as_str()).or_default() += 1;

@@ -50,12 +50,12 @@ impl Daemon {
         capabilities: &WorkerCapabilities,
     ) -> Result<Option<FrameTask>, DaemonError> {
         let _scheduling = self.scheduling()?;
-        if let Some(outage) = self.store.outage() {
+        if let Some(outage) = self.state.outage() {
             return Err(DaemonError::ResourceExhausted(outage));
         }
         self.expire_leases_locked()?;
         let leased: HashSet<(String, u32)> = self
-            .store
+            .state
             .leases()?
             .into_iter()
             .map(|l| (l.job_id, l.index))
@@ -74,7 +74,7 @@ impl Daemon {
                 .borrow_mut()
                 .entry(job.id.clone())
                 .or_insert_with(|| {
-                    self.store
+                    self.state
                         .dataset(&job.spec.dataset_id)
                         .ok()
                         .flatten()
@@ -97,22 +97,22 @@ impl Daemon {
             }
         };
         loop {
-            let Some((job, index)) = self.store.next_task(&leased, &usable, &turn)? else {
+            let Some((job, index)) = self.state.next_task(&leased, &usable, &turn)? else {
                 return Ok(None);
             };
-            let Some(dataset) = self.store.dataset(&job.spec.dataset_id)? else {
+            let Some(dataset) = self.state.dataset(&job.spec.dataset_id)? else {
                 self.fail_job_locked(
                     &job.id,
                     format!("dataset {} no longer exists", job.spec.dataset_id),
                 )?;
                 continue;
             };
-            let failed_attempts = match self.store.frame(&job.id, index)? {
+            let failed_attempts = match self.state.frame(&job.id, index)? {
                 Some(FrameState::Pending { attempts }) => attempts,
                 _ => 0,
             };
             let preview_version = if job.spec.preview {
-                match (self.store.preview_version(&job.id, index)?, building(&job)) {
+                match (self.state.preview_version(&job.id, index)?, building(&job)) {
                     (None, current) => Some(current.unwrap_or(0)),
                     (Some(drawn), Some(current)) if drawn < current => Some(current),
                     _ => None,
@@ -122,7 +122,7 @@ impl Daemon {
             };
             let job = if job.state == JobState::Queued {
                 let running = self
-                    .store
+                    .state
                     .update_job(&job.id, |j| j.state = JobState::Running)?
                     .unwrap_or(job);
                 self.publish(&running, None);
@@ -142,9 +142,9 @@ impl Daemon {
             // Durable before the worker starts: a crash of the daemon while the frame renders
             // then still counts the attempt at the next start.
             let recorded = self
-                .store
+                .state
                 .put_lease(&lease)
-                .and_then(|()| self.store.flush());
+                .and_then(|()| self.state.flush());
             self.unless_disk_refused(&lease, recorded.map_err(DaemonError::from))?;
             tracing::debug!(job = %job.id, frame = index, lease = %lease.id, worker, "frame leased");
             return Ok(Some(FrameTask {
@@ -172,16 +172,16 @@ impl Daemon {
     /// The lease `lease_id` and its job, if the lease is still held and the job still wants
     /// the frame; FailedPrecondition otherwise (a lease of an ended job is dropped).
     fn held_lease_locked(&self, lease_id: &str) -> Result<(Lease, Job), DaemonError> {
-        let lease = self.store.lease(lease_id)?.ok_or_else(|| {
+        let lease = self.state.lease(lease_id)?.ok_or_else(|| {
             DaemonError::FailedPrecondition(format!(
                 "lease {lease_id} is not held (it expired, or its frame was given to another worker)"
             ))
         })?;
-        let job = self.store.job(&lease.job_id)?;
+        let job = self.state.job(&lease.job_id)?;
         match job {
             Some(job) if !job.state.is_terminal() => Ok((lease, job)),
             other => {
-                self.store.remove_lease(lease_id)?;
+                self.state.remove_lease(lease_id)?;
                 let state = other.map(|j| j.state.name());
                 Err(DaemonError::FailedPrecondition(format!(
                     "job {} has ended ({}); frame {} is no longer wanted",
@@ -211,8 +211,8 @@ impl Daemon {
                 lease.expires_unix_ms = now_unix_ms() + self.lease_timeout_ms();
                 // The disk takes no renewal now; every lease is renewed when it takes writes
                 // again, so the holder renders on.
-                if self.store.outage().is_none() {
-                    self.store.put_lease(&lease)?;
+                if self.state.outage().is_none() {
+                    self.state.put_lease(&lease)?;
                 }
                 Ok(HeartbeatAnswer::Continue {
                     expires_unix_ms: lease.expires_unix_ms,
@@ -249,7 +249,7 @@ impl Daemon {
             .and_then(|()| std::fs::write(&partial, png));
         if let Err(e) = written {
             let _ = std::fs::remove_file(&partial);
-            let refused = self.store.frame_write_refused(&e);
+            let refused = self.state.frame_write_refused(&e);
             let _scheduling = self.scheduling()?;
             return Err(self.give_back_refused_locked(&lease, refused));
         }
@@ -258,7 +258,7 @@ impl Daemon {
         let checked = (|| {
             self.expire_leases_locked()?;
             self.held_lease_locked(lease_id)?;
-            match self.store.frame(&lease.job_id, lease.index)? {
+            match self.state.frame(&lease.job_id, lease.index)? {
                 Some(FrameState::Pending { attempts }) => Ok(attempts),
                 _ => Err(DaemonError::FailedPrecondition(format!(
                     "frame {} of job {} is already done",
@@ -276,7 +276,7 @@ impl Daemon {
         // The rename makes the frame appear whole or not at all; it is marked done only after.
         if let Err(e) = std::fs::rename(&partial, &path) {
             let _ = std::fs::remove_file(&partial);
-            let refused = self.store.frame_write_refused(&e);
+            let refused = self.state.frame_write_refused(&e);
             return Err(self.give_back_refused_locked(&lease, refused));
         }
         let report = FrameReport {
@@ -295,7 +295,7 @@ impl Daemon {
         };
         if report.preview.is_some() {
             // A preview is kept beside the pending frame, whose final render replaces it.
-            let kept = self.store.keep_preview(&lease, &report);
+            let kept = self.state.keep_preview(&lease, &report);
             let job = self
                 .unless_disk_refused(&lease, kept.map_err(DaemonError::from))?
                 .ok_or_else(|| DaemonError::NotFound(format!("job {}", lease.job_id)))?;
@@ -305,7 +305,7 @@ impl Daemon {
         }
         // A refused state write leaves the PNG in place: the write may yet have reached the
         // disk, and a frame marked done must have its image; rendered again, it is replaced.
-        let finished = self.store.finish_frame(&lease, &report, |j| {
+        let finished = self.state.finish_frame(&lease, &report, |j| {
             j.frames_done += 1;
             if j.frames_done >= j.frames_total {
                 j.state = JobState::Succeeded;
@@ -320,7 +320,7 @@ impl Daemon {
     }
 
     fn job_asks_previews(&self, job_id: &str) -> Result<bool, DaemonError> {
-        Ok(self.store.job(job_id)?.is_some_and(|job| job.spec.preview))
+        Ok(self.state.job(job_id)?.is_some_and(|job| job.spec.preview))
     }
 
     /// `result` of storing something of `lease`'s frame; when the disk refused it, the lease
@@ -331,7 +331,7 @@ impl Daemon {
         result: Result<T, DaemonError>,
     ) -> Result<T, DaemonError> {
         match result {
-            Err(DaemonError::ResourceExhausted(refused)) if self.store.outage().is_some() => {
+            Err(DaemonError::ResourceExhausted(refused)) if self.state.outage().is_some() => {
                 Err(self.give_back_refused_locked(lease, refused))
             }
             other => other,
@@ -342,8 +342,8 @@ impl Daemon {
     /// fault, so it goes back to the queue without an attempt counted. Returns the error that
     /// tells its worker to back off.
     fn give_back_refused_locked(&self, lease: &Lease, refused: String) -> DaemonError {
-        if let Err(e) = self.store.give_back_lease(&lease.id) {
-            // Then the lease runs out and counts an attempt: the store cannot do better.
+        if let Err(e) = self.state.give_back_lease(&lease.id) {
+            // Then the lease runs out and counts an attempt: the state database cannot do better.
             tracing::warn!(lease = %lease.id, error = %e, "giving back a lease the disk refused");
         }
         tracing::debug!(job = %lease.job_id, frame = lease.index, worker = %lease.worker, "the disk refused the frame: back in the queue, no attempt counted");
@@ -366,7 +366,7 @@ impl Daemon {
         let (lease, _) = self.held_lease_locked(lease_id)?;
         tracing::warn!(job = %lease.job_id, frame = lease.index, worker = %lease.worker, %reason, ?kind, "frame failed");
         let counted = self
-            .store
+            .state
             .remove_lease(lease_id)
             .map_err(DaemonError::from)
             .and_then(|()| self.count_failure_locked(&lease, reason, kind));
@@ -438,11 +438,11 @@ impl Daemon {
         reason: impl Fn(&Lease) -> Option<String>,
     ) -> Result<usize, DaemonError> {
         let mut counted = 0;
-        for lease in self.store.leases()? {
+        for lease in self.state.leases()? {
             let Some(reason) = lease.embedded.then(|| reason(&lease)).flatten() else {
                 continue;
             };
-            self.store.remove_lease(&lease.id)?;
+            self.state.remove_lease(&lease.id)?;
             if self.is_wanted_locked(&lease)? {
                 tracing::warn!(job = %lease.job_id, frame = lease.index, %reason, "frame lost");
                 self.metrics.frame_failed();
@@ -450,7 +450,7 @@ impl Daemon {
                 counted += 1;
             }
         }
-        self.store.flush()?;
+        self.state.flush()?;
         Ok(counted)
     }
 
@@ -458,8 +458,8 @@ impl Daemon {
     /// that is no longer held does nothing.
     pub fn release_frame(&self, lease_id: &str) -> Result<(), DaemonError> {
         let _scheduling = self.scheduling()?;
-        if let Some(lease) = self.store.lease(lease_id)? {
-            self.store.give_back_lease(lease_id)?;
+        if let Some(lease) = self.state.lease(lease_id)? {
+            self.state.give_back_lease(lease_id)?;
             tracing::info!(job = %lease.job_id, frame = lease.index, worker = %lease.worker, "frame handed back");
             self.work.notify();
         }
@@ -467,14 +467,14 @@ impl Daemon {
     }
 
     pub fn leases(&self) -> Result<Vec<Lease>, DaemonError> {
-        Ok(self.store.leases()?)
+        Ok(self.state.leases()?)
     }
 
     /// Refuses (PermissionDenied) a call on `lease_id` from the other kind of worker than the
     /// one holding it: the embedded worker's leases are only its own, and no remote worker's
     /// are. A lease that is not held passes, for the call itself to answer.
     pub fn check_lease_holder(&self, lease_id: &str, embedded: bool) -> Result<(), DaemonError> {
-        match self.store.lease(lease_id)? {
+        match self.state.lease(lease_id)? {
             Some(lease) if lease.embedded != embedded => {
                 Err(DaemonError::PermissionDenied(format!(
                     "lease {lease_id} is held by {}",
@@ -494,16 +494,16 @@ impl Daemon {
     /// that refused writes and ends the outage when it takes them again.
     pub fn expire_leases(&self) -> Result<usize, DaemonError> {
         let _scheduling = self.scheduling()?;
-        if self.store.outage().is_some() && !self.end_outage_locked()? {
+        if self.state.outage().is_some() && !self.end_outage_locked()? {
             return Ok(0);
         }
         self.expire_leases_locked()
     }
 
-    /// Ends a disk outage if the disk takes writes again (see `Store::end_outage`); every
+    /// Ends a disk outage if the disk takes writes again (see `StateDb::end_outage`); every
     /// lease is renewed, since no holder could renew it meanwhile. Returns whether it ended.
     fn end_outage_locked(&self) -> Result<bool, DaemonError> {
-        match self.store.end_outage() {
+        match self.state.end_outage() {
             Ok(true) => {}
             Ok(false) => return Ok(false),
             Err(e) => {
@@ -512,29 +512,29 @@ impl Daemon {
             }
         }
         let renewed = now_unix_ms() + self.lease_timeout_ms();
-        for mut lease in self.store.leases()? {
+        for mut lease in self.state.leases()? {
             if lease.expires_unix_ms < renewed {
                 lease.expires_unix_ms = renewed;
-                self.store.put_lease(&lease)?;
+                self.state.put_lease(&lease)?;
             }
         }
-        self.store.flush()?;
+        self.state.flush()?;
         self.work.notify();
         Ok(true)
     }
 
     fn expire_leases_locked(&self) -> Result<usize, DaemonError> {
         // No holder can renew while the disk refuses writes: nothing runs out meanwhile.
-        if self.store.outage().is_some() {
+        if self.state.outage().is_some() {
             return Ok(0);
         }
         let now = now_unix_ms();
         let mut expired = 0;
-        for lease in self.store.leases()? {
+        for lease in self.state.leases()? {
             if lease.expires_unix_ms >= now {
                 continue;
             }
-            self.store.remove_lease(&lease.id)?;
+            self.state.remove_lease(&lease.id)?;
             // A lease of an ended job is kept until it runs out, so that its holder's
             // heartbeat learns why to stop; its expiry counts nothing.
             if self.is_wanted_locked(&lease)? {
@@ -563,14 +563,14 @@ impl Daemon {
     /// Whether the job of `lease` still wants its frame.
     fn is_wanted_locked(&self, lease: &Lease) -> Result<bool, DaemonError> {
         Ok(self
-            .store
+            .state
             .job(&lease.job_id)?
             .is_some_and(|j| !j.state.is_terminal()))
     }
 
     /// The failed attempts so far at the frame of `lease`.
     fn failed_attempts_locked(&self, lease: &Lease) -> Result<u32, DaemonError> {
-        Ok(match self.store.frame(&lease.job_id, lease.index)? {
+        Ok(match self.state.frame(&lease.job_id, lease.index)? {
             Some(FrameState::Pending { attempts }) => attempts,
             _ => 0,
         })
@@ -586,7 +586,7 @@ impl Daemon {
         blame: bool,
     ) -> Result<(), DaemonError> {
         if matches!(
-            self.store.frame(&lease.job_id, lease.index)?,
+            self.state.frame(&lease.job_id, lease.index)?,
             Some(FrameState::Done(_))
         ) {
             return Ok(());
@@ -604,13 +604,13 @@ impl Daemon {
         let limit = self.config.worker_failures_before_blocklist;
         let mut blocklisted = false;
         let job = self
-            .store
+            .state
             .count_failed_attempt(&lease.job_id, lease.index, attempts, |job| {
                 if blame {
                     blocklisted = job.count_worker_failure(&lease.worker, limit);
                 }
             })?;
-        self.store.flush()?;
+        self.state.flush()?;
         if let Some(job) = job.filter(|_| blocklisted) {
             tracing::warn!(
                 job = %job.id,
@@ -626,11 +626,11 @@ impl Daemon {
 
     fn fail_job_locked(&self, job_id: &str, reason: String) -> Result<(), DaemonError> {
         tracing::warn!(job = %job_id, %reason, "job failed");
-        if let Some(failed) = self.store.update_job(job_id, |j| {
+        if let Some(failed) = self.state.update_job(job_id, |j| {
             j.state = JobState::Failed;
             j.error = Some(reason);
         })? {
-            self.store.flush()?;
+            self.state.flush()?;
             self.publish(&failed, None);
         }
         Ok(())

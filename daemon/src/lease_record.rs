@@ -1,6 +1,6 @@
 //! The stored record of a frame lease: which worker holds which frame of which job, until
 //! when, and for a preview the version of the preview sample it is drawn from at least. The
-//! store keeps these; `lease` decides when they are made, renewed and dropped.
+//! state database keeps these; `lease` decides when they are made, renewed and dropped.
 
 use rand::Rng;
 use serde::{Deserialize, Serialize};

@@ -2,20 +2,21 @@
 //! workers (the embedded worker process and `pointfarm worker` processes), and the
 //! `pointfarm.v1` gRPC API over all of it.
 //!
-//! From the bottom up: `model` and `camera_path` (domain types, the camera of each frame),
-//! `error` (the daemon's and the store's errors), `limits` (the bounds on names and ids
-//! clients send), `lease_record` (the stored lease), `manifest` (the counts recorded beside
-//! the database), `capabilities` (what a worker can render, what a job requires of one), `store` (sled), `worker_presence` (which workers can render, for health),
-//! `service` (the `Daemon` and its job operations), `datasets` (datasets of one or more
-//! files: registered, uploaded, composed; more `Daemon` methods), `describe` (what a
-//! dataset's files hold, read with the render crate; more `Daemon` methods), `lease` (frame
-//! leases: the one scheduling path, more `Daemon` methods), `grpc` (validates, converts and delegates: one
-//! file per service, the conversions, the streaming of bytes), `worker` (what leases frames:
-//! the worker process — a gRPC client — with its render state, which renders with
-//! `pointfarm-render`, and the supervisor that runs it as the daemon's embedded worker),
+//! From the bottom up: `model` and `camera_path` (domain types, the camera of each frame), `error`
+//! (the daemon's and the state database's errors), `limits` (the bounds on names and ids clients
+//! send), `lease_record` (the stored lease), `manifest` (the counts recorded beside the database),
+//! `capabilities` (what a worker can render, what a job requires of one), `state` (the sled state
+//! database, `StateDb`), `stores` (the datasets' level-of-detail stores), `worker_presence` (which
+//! workers can render, for health), `service` (the `Daemon` and its job operations), `datasets`
+//! (datasets of one or more files: registered, uploaded, composed; more `Daemon` methods),
+//! `describe` (what a dataset's files hold, read with the render crate; more `Daemon` methods),
+//! `lease` (frame leases: the one scheduling path, more `Daemon` methods), `grpc` (validates,
+//! converts and delegates: one file per service, the conversions, the streaming of bytes), `worker`
+//! (what leases frames: the worker process — a gRPC client — with its render state, which renders
+//! with `pointfarm-render`, and the supervisor that runs it as the daemon's embedded worker),
 //! `access` (the client and worker roles and their tokens), `server` (sockets, TLS, health,
-//! reflection, the lease sweep, shutdown), `metrics` (Prometheus metrics of the daemon and
-//! the worker, and their HTTP endpoint); `testing` (a small real disk to fill, for tests).
+//! reflection, the lease sweep, shutdown), `metrics` (Prometheus metrics of the daemon and the
+//! worker, and their HTTP endpoint); `testing` (a small real disk to fill, for tests).
 //! Only `grpc`, `worker::remote` and `server` (which mounts the services) know protobuf.
 
 pub mod access;
@@ -36,7 +37,7 @@ pub mod model;
 pub mod open_files;
 pub mod server;
 pub mod service;
-pub mod store;
+pub mod state;
 pub mod stores;
 #[cfg(test)]
 mod test_daemon;

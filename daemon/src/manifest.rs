@@ -9,7 +9,7 @@ use std::sync::Mutex;
 
 use serde::{Deserialize, Serialize};
 
-use crate::error::StoreError;
+use crate::error::StateError;
 
 /// What the manifest records.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -32,21 +32,21 @@ impl Manifest {
 
     /// The counts recorded at `path`; None where there is no manifest yet (a new database,
     /// or one written before manifests existed).
-    pub fn read(path: &Path) -> Result<Option<Counts>, StoreError> {
+    pub fn read(path: &Path) -> Result<Option<Counts>, StateError> {
         match std::fs::read(path) {
             Ok(bytes) => Ok(Some(serde_json::from_slice(&bytes).map_err(|e| {
-                StoreError::Damaged(format!(
+                StateError::Damaged(format!(
                     "the manifest {} is unreadable: {e}",
                     path.display()
                 ))
             })?)),
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
-            Err(e) => Err(StoreError::Io(e)),
+            Err(e) => Err(StateError::Io(e)),
         }
     }
 
     /// Starts the manifest at `path` from `counts` (what the database holds now).
-    pub fn create(path: PathBuf, counts: Counts) -> Result<Self, StoreError> {
+    pub fn create(path: PathBuf, counts: Counts) -> Result<Self, StateError> {
         let manifest = Self {
             path,
             counts: Mutex::new(counts),
@@ -56,17 +56,17 @@ impl Manifest {
     }
 
     /// Applies `change` to the counts and writes them.
-    pub fn update(&self, change: impl FnOnce(&mut Counts)) -> Result<(), StoreError> {
+    pub fn update(&self, change: impl FnOnce(&mut Counts)) -> Result<(), StateError> {
         let mut counts = self
             .counts
             .lock()
-            .map_err(|_| StoreError::Damaged("the manifest's lock is poisoned".into()))?;
+            .map_err(|_| StateError::Damaged("the manifest's lock is poisoned".into()))?;
         change(&mut counts);
         self.write(*counts)
     }
 
     /// Replaces the file whole: a crash leaves the old counts or the new, never half of them.
-    fn write(&self, counts: Counts) -> Result<(), StoreError> {
+    fn write(&self, counts: Counts) -> Result<(), StateError> {
         let partial = self.path.with_extension("json.part");
         let written = std::fs::write(&partial, serde_json::to_vec(&counts)?)
             .and_then(|()| std::fs::rename(&partial, &self.path));

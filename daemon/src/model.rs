@@ -206,7 +206,7 @@ fn is_zero(n: &u32) -> bool {
 pub use pointfarm_render::cut::CutCounts as FrameCut;
 
 /// One frame of a job. A frame of a job with `preview` may also have a preview (kept apart,
-/// see `Store::preview`) while it is pending; it is done only when final.
+/// see `StateDb::preview`) while it is pending; it is done only when final.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum FrameState {
     Pending { attempts: u32 },

@@ -277,7 +277,7 @@ pub async fn serve(
     if let Some(health_only) = health_only {
         health_only.abort();
     }
-    daemon.store.flush()?;
+    daemon.state.flush()?;
     Ok(())
 }
 
@@ -345,9 +345,9 @@ async fn report_health(daemon: Arc<Daemon>, health: HealthReporter) {
             _ = tick.tick() => {}
             _ = daemon.workers.changed() => {}
         }
-        // A full disk stores no frames: the store logs it once, health follows it.
+        // A full disk stores no frames: the state database logs it once, health follows it.
         let workers = daemon.workers.can_render(timeout);
-        let disk = daemon.store.outage().is_none();
+        let disk = daemon.state.outage().is_none();
         let can_render = workers && disk && !daemon.is_stopping();
         if reported == Some(can_render) {
             continue;

@@ -9,11 +9,11 @@ use sha2::{Digest, Sha256};
 use tokio::sync::broadcast;
 
 use crate::datasets::DatasetFolders;
-use crate::error::{DaemonError, StoreError};
+use crate::error::{DaemonError, StateError};
 use crate::limits::{check_id, check_length, MAX_REQUEST_ID_BYTES};
 use crate::metrics::DaemonMetrics;
 use crate::model::{now_unix_ms, FrameReport, Job, JobEvent, JobSpec, JobState};
-use crate::store::{Page, Store};
+use crate::state::{Page, StateDb};
 use crate::stores::{DatasetStores, StoreBuildGate};
 use crate::worker_presence::WorkerPresence;
 
@@ -163,7 +163,7 @@ impl WorkSignal {
 /// The state and behaviour of one daemon, shared by the gRPC handlers and the workers.
 pub struct Daemon {
     pub config: DaemonConfig,
-    pub store: Store,
+    pub state: StateDb,
     events: broadcast::Sender<JobEvent>,
     pub work: Arc<WorkSignal>,
     /// Held while leases, frame states and job states change together (see `lease`).
@@ -185,12 +185,13 @@ impl Daemon {
         std::fs::create_dir_all(config.uploads_dir())?;
         std::fs::create_dir_all(config.data_dir.join("jobs"))?;
         remove_unfinished_uploads(&config.uploads_dir());
-        let (store, loss) = Store::open(&config.data_dir.join("state.sled"), config.recover_state)?;
+        let (state, loss) =
+            StateDb::open(&config.data_dir.join("state.sled"), config.recover_state)?;
         if !loss.is_empty() {
             tracing::warn!(%loss, "started on a damaged state database with what it still holds");
         }
-        check_frames_have_jobs(&store, &config.data_dir.join("jobs"), config.recover_state)?;
-        let requeued = store.requeue_running()?;
+        check_frames_have_jobs(&state, &config.data_dir.join("jobs"), config.recover_state)?;
+        let requeued = state.requeue_running()?;
         if requeued > 0 {
             tracing::info!(requeued, "resuming jobs that were running");
         }
@@ -209,7 +210,7 @@ impl Daemon {
         let daemon = Arc::new(Self {
             config,
             stores,
-            store,
+            state,
             events,
             work,
             scheduling: Mutex::new(()),
@@ -271,7 +272,7 @@ impl Daemon {
             ));
         }
         self.dataset(&spec.dataset_id)?;
-        let (job, created) = self.store.submit_job(spec)?;
+        let (job, created) = self.state.submit_job(spec)?;
         if created {
             tracing::info!(job = %job.id, frames = job.frames_total, "job submitted");
             self.publish(&job, None);
@@ -281,7 +282,7 @@ impl Daemon {
     }
 
     pub fn job(&self, id: &str) -> Result<Job, DaemonError> {
-        lookup("id", "job", id, |id| self.store.job(id))
+        lookup("id", "job", id, |id| self.state.job(id))
     }
 
     /// A job and the reports of its finished frames, as a crash would leave them: read under
@@ -290,7 +291,7 @@ impl Daemon {
     pub fn job_with_frames(&self, id: &str) -> Result<(Job, Vec<FrameReport>), DaemonError> {
         let _scheduling = self.scheduling()?;
         let job = self.job(id)?;
-        let frames = self.store.frame_reports(id)?;
+        let frames = self.state.frame_reports(id)?;
         Ok((job, frames))
     }
 
@@ -300,7 +301,7 @@ impl Daemon {
         page_size: u32,
         token: &str,
     ) -> Result<Page<Job>, DaemonError> {
-        Ok(self.store.list_jobs(state, page_size as usize, token)?)
+        Ok(self.state.list_jobs(state, page_size as usize, token)?)
     }
 
     pub fn cancel_job(&self, id: &str) -> Result<Job, DaemonError> {
@@ -314,10 +315,10 @@ impl Daemon {
             )));
         }
         let job = self
-            .store
+            .state
             .update_job(id, |j| j.state = JobState::Cancelled)?
             .ok_or_else(|| DaemonError::NotFound(format!("job {id}")))?;
-        self.store.flush()?;
+        self.state.flush()?;
         tracing::info!(job = %id, "job cancelled");
         self.publish(&job, None);
         Ok(job)
@@ -330,7 +331,7 @@ pub(crate) fn lookup<T>(
     field: &str,
     what: &str,
     id: &str,
-    find: impl FnOnce(&str) -> Result<Option<T>, StoreError>,
+    find: impl FnOnce(&str) -> Result<Option<T>, StateError>,
 ) -> Result<T, DaemonError> {
     check_id(field, id)?;
     find(id)?.ok_or_else(|| DaemonError::NotFound(format!("{what} {id}")))
@@ -339,7 +340,7 @@ pub(crate) fn lookup<T>(
 /// Every folder of rendered frames belongs to a stored job: one that does not is the trace of
 /// a job the state database lost (with or without a manifest to tell it).
 fn check_frames_have_jobs(
-    store: &Store,
+    state: &StateDb,
     jobs_dir: &Path,
     recover: bool,
 ) -> Result<(), DaemonError> {
@@ -349,7 +350,7 @@ fn check_frames_have_jobs(
     let mut orphaned = Vec::new();
     for entry in entries.flatten() {
         let id = entry.file_name().to_string_lossy().into_owned();
-        if entry.path().is_dir() && store.job(&id)?.is_none() {
+        if entry.path().is_dir() && state.job(&id)?.is_none() {
             orphaned.push(id);
         }
     }

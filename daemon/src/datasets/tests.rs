@@ -1,5 +1,5 @@
-//! Datasets of several files against a real store: folders registered, uploads composed,
-//! shared files kept until their last dataset goes.
+//! Datasets of several files against a real state database: folders registered, uploads
+//! composed, shared files kept until their last dataset goes.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -83,7 +83,7 @@ fn uploads_compose_and_share_their_files_until_the_last_dataset_goes() {
     assert_eq!(both.size_bytes, a.size_bytes + b.size_bytes);
     assert_eq!(
         daemon
-            .store
+            .state
             .uploaded_bytes(&daemon.config.uploads_dir())
             .expect("bytes"),
         a.size_bytes + b.size_bytes,

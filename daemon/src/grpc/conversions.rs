@@ -19,7 +19,7 @@ use crate::lease::{FailureKind, FrameTask, HeartbeatAnswer, TaskDataset, TaskFil
 use crate::lease_record::Lease;
 use crate::limits::{truncated, MAX_WORKER_NAME_BYTES};
 use crate::model::{Dataset, FrameCut, FrameReport, Job, JobSpec, JobState, StageTiming};
-use crate::store::Page;
+use crate::state::Page;
 use crate::stores::{CopcServed, PreviewBytes, StoreAnswer};
 use pointfarm_render::classification;
 use pointfarm_render::cloud::{ColorSource, WorldBounds};

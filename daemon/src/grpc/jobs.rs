@@ -108,7 +108,7 @@ impl JobService for Api {
                     }
                     Ok(_) => continue,
                     // A reader too slow for the event channel is brought up to date from the
-                    // store: it misses no frame, whatever it skipped.
+                    // state database: it misses no frame, whatever it skipped.
                     Err(RecvError::Lagged(missed)) => {
                         tracing::debug!(job = %id, missed, "a watcher fell behind; catching up");
                         match catch_up(daemon.clone(), id.clone(), reported).await {
@@ -151,11 +151,11 @@ impl JobService for Api {
         let stream = spawn_stream(4, move |sender| async move {
             for index in r.from_index..job.frames_total {
                 let done = matches!(
-                    daemon.store.frame(&job.id, index),
+                    daemon.state.frame(&job.id, index),
                     Ok(Some(FrameState::Done { .. }))
                 );
                 // A pending frame's preview is its latest image until the final one.
-                if !done && !daemon.store.has_preview(&job.id, index).unwrap_or(false) {
+                if !done && !daemon.state.has_preview(&job.id, index).unwrap_or(false) {
                     continue;
                 }
                 let read = tokio::fs::read(daemon.config.frame_path(&job.id, index));

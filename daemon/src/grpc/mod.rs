@@ -54,8 +54,8 @@ impl Api {
         Ok(tonic::Response::new(R::default()))
     }
 
-    /// Runs `work` on the daemon off the async executor (store work and filesystem calls
-    /// block), within [`BLOCKING_CALL_BOUND`].
+    /// Runs `work` on the daemon off the async executor (state database work and
+    /// filesystem calls block), within [`BLOCKING_CALL_BOUND`].
     async fn run<T: Send + 'static>(
         &self,
         work: impl FnOnce(&Arc<Daemon>) -> Result<T, DaemonError> + Send + 'static,
@@ -111,7 +111,7 @@ fn scaled_bound(bytes: u64) -> Duration {
     BLOCKING_CALL_BOUND + Duration::from_secs_f64(bytes as f64 / SLOWEST_READ_BYTES_PER_SECOND)
 }
 
-/// How long a request waits for its blocking work (a store transaction, a folder's walk, a
+/// How long a request waits for its blocking work (a state transaction, a folder's walk, a
 /// file's open): each takes milliseconds on a working disk, so a minute means a hung one (a
 /// network filesystem gone away), and the client is answered rather than held forever.
 pub const BLOCKING_CALL_BOUND: Duration = Duration::from_secs(60);

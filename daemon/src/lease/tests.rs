@@ -1,4 +1,5 @@
-//! Leases against a real store: restarts, failures, dead embedded workers, a full disk.
+//! Leases against a real state database: restarts, failures, dead embedded workers, a full
+//! disk.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -166,7 +167,7 @@ fn a_full_disk_gives_frames_back_without_an_attempt_and_the_daemon_resumes_by_it
     assert!(message.contains("disk is full"), "{message}");
     assert!(message.contains("no attempt counted"), "{message}");
     assert!(partial_files(&daemon, &job.id).is_empty());
-    assert!(daemon.store.outage().is_some());
+    assert!(daemon.state.outage().is_some());
     assert!(daemon.leases().expect("leases").is_empty(), "given back");
     let leasing = daemon.lease_frame("w", false, &WorkerCapabilities::default());
     assert!(
@@ -174,12 +175,12 @@ fn a_full_disk_gives_frames_back_without_an_attempt_and_the_daemon_resumes_by_it
         "no frames are leased while the disk is full: {leasing:?}"
     );
     assert_eq!(daemon.expire_leases().expect("sweep"), 0);
-    assert!(daemon.store.outage().is_some(), "the probe fails");
+    assert!(daemon.state.outage().is_some(), "the probe fails");
 
     std::fs::remove_file(filler).expect("free the disk");
     daemon.expire_leases().expect("sweep");
     assert!(
-        daemon.store.outage().is_none(),
+        daemon.state.outage().is_none(),
         "the sweep ended the outage"
     );
     let again = lease(&daemon, "w", false);
@@ -196,7 +197,7 @@ fn a_full_disk_gives_frames_back_without_an_attempt_and_the_daemon_resumes_by_it
         .complete_frame(&last.lease.id, &png(8, 6), outcome())
         .expect("complete");
     assert_eq!(done.state, JobState::Succeeded);
-    let reports = daemon.store.frame_reports(&job.id).expect("reports");
+    let reports = daemon.state.frame_reports(&job.id).expect("reports");
     assert_eq!(
         reports
             .iter()
@@ -471,7 +472,7 @@ fn a_preview_keeps_its_frame_pending_until_the_final_frame_replaces_it() {
 
     // As after a kill -9: the preview is in the flushed state, the frame still pending.
     let daemon = open(dir.path());
-    let reports = daemon.store.frame_reports(&job.id).expect("reports");
+    let reports = daemon.state.frame_reports(&job.id).expect("reports");
     assert_eq!(reports.len(), 1);
     assert_eq!(reports[0].preview, Some(0.25));
     // No store is building here, so the frame is leased again at once, for its final render.
@@ -485,7 +486,7 @@ fn a_preview_keeps_its_frame_pending_until_the_final_frame_replaces_it() {
         .complete_frame(&again.lease.id, &png(8, 6), outcome())
         .expect("final");
     assert_eq!((done.frames_done, done.state), (1, JobState::Succeeded));
-    let reports = daemon.store.frame_reports(&job.id).expect("reports");
+    let reports = daemon.state.frame_reports(&job.id).expect("reports");
     assert_eq!(reports.len(), 1);
     assert_eq!(
         reports[0].preview, None,
@@ -542,7 +543,7 @@ fn whole_build_progress(dir: &Path) -> Arc<pointfarm_render::lod::BuildProgress>
 /// The content hash of `job`'s dataset, whose build a test holds.
 fn dataset_sha256(daemon: &Daemon, job: &crate::model::Job) -> String {
     daemon
-        .store
+        .state
         .dataset(&job.spec.dataset_id)
         .expect("read")
         .expect("dataset")
@@ -627,7 +628,7 @@ fn a_preview_is_drawn_again_once_the_build_has_stored_more() {
         .lease_frame("w", false, &WorkerCapabilities::default())
         .expect("lease");
     assert!(none.is_none(), "nothing is previewed again: {none:?}");
-    let reports = daemon.store.frame_reports(&job.id).expect("reports");
+    let reports = daemon.state.frame_reports(&job.id).expect("reports");
     let kept: Vec<(Option<f64>, u32)> = reports
         .iter()
         .map(|r| (r.preview, r.preview_version))

@@ -23,7 +23,7 @@ use tokio::task::JoinHandle;
 use super::CONTENT_TYPE;
 
 /// Writes the metrics' text, or says why it cannot. It may block (the daemon reads its
-/// store), so it runs off the async threads.
+/// state database), so it runs off the async threads.
 pub type MetricsSource = Arc<dyn Fn() -> Result<String, String> + Send + Sync>;
 
 /// Listens on `address` (`HOST:PORT`, or a bare port on loopback) and serves `GET /metrics`

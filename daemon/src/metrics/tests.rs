@@ -1,4 +1,5 @@
-//! The metrics' text after real leases against a real store, read back as Prometheus would.
+//! The metrics' text after real leases against a real state database, read back as
+//! Prometheus would.
 
 use std::collections::BTreeMap;
 use std::time::Duration;

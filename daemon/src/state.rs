@@ -1,6 +1,6 @@
 //! The durable state of the daemon, in sled: datasets, jobs, the frames of each job, and the
 //! request ids that make submission idempotent, and the leases of frames being rendered. One
-//! `Store` owns the database.
+//! `StateDb` owns the database.
 //!
 //! A frame is marked done only after its PNG is on disk, so after a crash (even `kill -9`)
 //! every frame is either done and written, or pending and rendered again. Changes of several
@@ -11,9 +11,9 @@
 //! with one job in the history or ten thousand (`docs/perf/lease-index.md`).
 //!
 //! A disk that refuses a write (full, over quota, failing) starts an outage: callers get
-//! [`StoreError::Unwritable`], the first refusal is logged, and sled (0.34), which keeps the
+//! [`StateError::Unwritable`], the first refusal is logged, and sled (0.34), which keeps the
 //! I/O error and refuses every later write until it is opened again, is closed and reopened
-//! by [`Store::end_outage`] once a probe write succeeds.
+//! by [`StateDb::end_outage`] once a probe write succeeds.
 
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
@@ -24,7 +24,7 @@ use serde::de::DeserializeOwned;
 use serde::Serialize;
 use sled::transaction::TransactionError;
 
-use crate::error::StoreError;
+use crate::error::StateError;
 use crate::lease_record::Lease;
 use crate::manifest::{Counts, Manifest};
 use crate::model::{Dataset, FrameReport, FrameState, Job, JobSpec, JobState};
@@ -37,10 +37,10 @@ use health::DiskHealth;
 use records::Records;
 use trees::Trees;
 
-pub struct Store {
+pub struct StateDb {
     path: PathBuf,
     /// The open database. sled refuses every write after one failed until it is opened
-    /// again, so after a disk outage [`Store::end_outage`] swaps in a new one; None only
+    /// again, so after a disk outage [`StateDb::end_outage`] swaps in a new one; None only
     /// while that failed.
     records: RwLock<Option<Records>>,
     /// How many jobs and datasets the database holds, recorded beside it.
@@ -101,11 +101,11 @@ fn queue_key(job: &Job) -> Vec<u8> {
     key
 }
 
-/// A transaction's error as the store's.
-fn transaction_error(e: TransactionError<StoreError>) -> StoreError {
+/// A transaction's error as the state database's.
+fn transaction_error(e: TransactionError<StateError>) -> StateError {
     match e {
         TransactionError::Abort(e) => e,
-        TransactionError::Storage(e) => StoreError::Db(e),
+        TransactionError::Storage(e) => StateError::Db(e),
     }
 }
 
@@ -115,16 +115,16 @@ pub struct Page<T> {
     pub next_token: String,
 }
 
-fn encode<T: Serialize>(value: &T) -> Result<Vec<u8>, StoreError> {
+fn encode<T: Serialize>(value: &T) -> Result<Vec<u8>, StateError> {
     Ok(serde_json::to_vec(value)?)
 }
 
-fn decode<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, StoreError> {
+fn decode<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, StateError> {
     Ok(serde_json::from_slice(bytes)?)
 }
 
 /// The record stored under a key, if there is one.
-fn decode_stored<T: DeserializeOwned>(value: Option<sled::IVec>) -> Result<Option<T>, StoreError> {
+fn decode_stored<T: DeserializeOwned>(value: Option<sled::IVec>) -> Result<Option<T>, StateError> {
     value.map(|v| decode(&v)).transpose()
 }
 
@@ -136,11 +136,11 @@ fn frame_key(job_id: &str, index: u32) -> Vec<u8> {
     key
 }
 
-impl Store {
+impl StateDb {
     /// Opens the database at `path`, after checking every record and the counts in its
     /// manifest: a damaged database is refused with what it lost, unless `recover`, which
-    /// drops the unreadable records and returns what was lost with the store.
-    pub fn open(path: &Path, recover: bool) -> Result<(Self, StateLoss), StoreError> {
+    /// drops the unreadable records and returns what was lost with the database.
+    pub fn open(path: &Path, recover: bool) -> Result<(Self, StateLoss), StateError> {
         let db = open_database_waiting(path, OPEN_WAIT)?;
         let manifest_path = Manifest::beside(path);
         let recorded = Manifest::read(&manifest_path)?;
@@ -155,7 +155,7 @@ impl Store {
             unreadable,
         };
         if !loss.is_empty() && !recover {
-            return Err(StoreError::Damaged(format!(
+            return Err(StateError::Damaged(format!(
                 "the state database {} is damaged: {loss}",
                 path.display()
             )));
@@ -166,26 +166,26 @@ impl Store {
         if records.trees.meta.get(INDEX_VERSION_KEY)?.as_deref() != Some(INDEX_VERSION) {
             records.rebuild_index()?;
         }
-        let store = Self {
+        let state = Self {
             path: path.to_owned(),
             records: RwLock::new(Some(records)),
             manifest,
             disk: DiskHealth::new(path),
             given_back: Mutex::new(HashSet::new()),
         };
-        Ok((store, loss))
+        Ok((state, loss))
     }
 
     /// Runs `work` on the open database; a write the disk refused is remembered (logged
-    /// once) and told as [`StoreError::Unwritable`].
+    /// once) and told as [`StateError::Unwritable`].
     fn with<T>(
         &self,
-        work: impl FnOnce(&Records) -> Result<T, StoreError>,
-    ) -> Result<T, StoreError> {
+        work: impl FnOnce(&Records) -> Result<T, StateError>,
+    ) -> Result<T, StateError> {
         // The records are replaced whole or not at all, so a panic elsewhere leaves them usable.
         let records = self.records.read().unwrap_or_else(|e| e.into_inner());
         let Some(records) = records.as_ref() else {
-            return Err(StoreError::Unwritable(self.disk.outage().unwrap_or_else(
+            return Err(StateError::Unwritable(self.disk.outage().unwrap_or_else(
                 || "the state database is being opened again after a failed write".into(),
             )));
         };
@@ -193,23 +193,23 @@ impl Store {
     }
 
     /// `error` as callers should see it: a refused write becomes part of the outage.
-    fn noted(&self, error: StoreError) -> StoreError {
+    fn noted(&self, error: StateError) -> StateError {
         match &error {
-            StoreError::Db(sled::Error::Io(io)) => {
-                StoreError::Unwritable(self.disk.refused(io, true))
+            StateError::Db(sled::Error::Io(io)) => {
+                StateError::Unwritable(self.disk.refused(io, true))
             }
-            StoreError::Io(io) => StoreError::Unwritable(self.disk.refused(io, false)),
+            StateError::Io(io) => StateError::Unwritable(self.disk.refused(io, false)),
             _ => error,
         }
     }
 
     /// Applies `change` to the manifest's counts; a refused write is part of the outage.
-    fn count(&self, change: impl FnOnce(&mut Counts)) -> Result<(), StoreError> {
+    fn count(&self, change: impl FnOnce(&mut Counts)) -> Result<(), StateError> {
         self.manifest.update(change).map_err(|e| self.noted(e))
     }
 
     /// Writes everything to disk.
-    pub fn flush(&self) -> Result<(), StoreError> {
+    pub fn flush(&self) -> Result<(), StateError> {
         self.with(Records::flush)
     }
 
@@ -233,8 +233,8 @@ impl Store {
     /// the write that failed and what had not been flushed when it failed: the daemon flushes
     /// after every change it reports as done, so that is at most the change the caller was
     /// told had failed, and lease renewals (which `Daemon` makes again after an outage).
-    /// Leases given back meanwhile ([`Store::give_back_lease`]) are removed again here.
-    pub fn end_outage(&self) -> Result<bool, StoreError> {
+    /// Leases given back meanwhile ([`StateDb::give_back_lease`]) are removed again here.
+    pub fn end_outage(&self) -> Result<bool, StateError> {
         if self.disk.outage().is_none() || self.disk.probe().is_err() {
             return Ok(false);
         }
@@ -257,7 +257,7 @@ impl Store {
     }
 
     /// Closes the failed database and opens it again (sled resets its failure only then).
-    fn reopen(&self) -> Result<(), StoreError> {
+    fn reopen(&self) -> Result<(), StateError> {
         let mut slot = self.records.write().unwrap_or_else(|e| e.into_inner());
         // Dropped first: sled holds a lock on its files until then.
         drop(slot.take());
@@ -275,18 +275,18 @@ impl Store {
 
     // ------------------------------------------------------------------ datasets
 
-    pub fn put_dataset(&self, dataset: &Dataset) -> Result<(), StoreError> {
+    pub fn put_dataset(&self, dataset: &Dataset) -> Result<(), StateError> {
         if self.with(|records| records.put_dataset(dataset))? {
             self.count(|counts| counts.datasets += 1)?;
         }
         Ok(())
     }
 
-    pub fn dataset(&self, id: &str) -> Result<Option<Dataset>, StoreError> {
+    pub fn dataset(&self, id: &str) -> Result<Option<Dataset>, StateError> {
         self.with(|records| records.dataset(id))
     }
 
-    pub fn delete_dataset(&self, id: &str) -> Result<Option<Dataset>, StoreError> {
+    pub fn delete_dataset(&self, id: &str) -> Result<Option<Dataset>, StateError> {
         if self.dataset(id)?.is_none() {
             return Ok(None);
         }
@@ -299,7 +299,7 @@ impl Store {
         &self,
         page_size: usize,
         token: &str,
-    ) -> Result<Page<Dataset>, StoreError> {
+    ) -> Result<Page<Dataset>, StateError> {
         self.with(|records| records.list_datasets(page_size, token))
     }
 
@@ -309,11 +309,11 @@ impl Store {
     /// submission with the same request id created (`false`).
     /// A disk in an outage or without room refuses the job before it is written, so that no
     /// reader sees a job whose write then fails.
-    pub fn submit_job(&self, spec: JobSpec) -> Result<(Job, bool), StoreError> {
+    pub fn submit_job(&self, spec: JobSpec) -> Result<(Job, bool), StateError> {
         if let Some(job) = self.with(|records| records.requested_job(&spec.request_id))? {
             return Ok((job, false));
         }
-        self.disk.check_room().map_err(StoreError::Unwritable)?;
+        self.disk.check_room().map_err(StateError::Unwritable)?;
         let (job, created) = self.with(|records| records.submit_job(spec))?;
         if created {
             self.count(|counts| counts.jobs += 1)?;
@@ -321,12 +321,12 @@ impl Store {
         Ok((job, created))
     }
 
-    pub fn job(&self, id: &str) -> Result<Option<Job>, StoreError> {
+    pub fn job(&self, id: &str) -> Result<Option<Job>, StateError> {
         self.with(|records| records.job(id))
     }
 
     /// Stores `job`; a job that has ended leaves the scheduling index, with its frames.
-    pub fn put_job(&self, job: &Job) -> Result<(), StoreError> {
+    pub fn put_job(&self, job: &Job) -> Result<(), StateError> {
         self.with(|records| records.put_job(job))
     }
 
@@ -336,7 +336,7 @@ impl Store {
         &self,
         id: &str,
         change: impl FnOnce(&mut Job),
-    ) -> Result<Option<Job>, StoreError> {
+    ) -> Result<Option<Job>, StateError> {
         self.with(|records| records.update_job(id, change))
     }
 
@@ -345,33 +345,33 @@ impl Store {
         state: Option<JobState>,
         page_size: usize,
         token: &str,
-    ) -> Result<Page<Job>, StoreError> {
+    ) -> Result<Page<Job>, StateError> {
         self.with(|records| records.list_jobs(state, page_size, token))
     }
 
     /// The unfinished jobs, highest priority first, then oldest: read from the scheduling
     /// index, so finished jobs cost nothing.
-    pub fn unfinished_jobs(&self) -> Result<Vec<Job>, StoreError> {
+    pub fn unfinished_jobs(&self) -> Result<Vec<Job>, StateError> {
         self.with(Records::unfinished_jobs)
     }
 
     /// Whether an unfinished job renders the dataset `dataset_id`: every job is looked at.
-    pub fn dataset_in_use(&self, dataset_id: &str) -> Result<bool, StoreError> {
+    pub fn dataset_in_use(&self, dataset_id: &str) -> Result<bool, StateError> {
         self.with(|records| records.dataset_in_use(dataset_id))
     }
 
     /// The bytes of the datasets whose files lie in `uploads` (the ones uploaded, not
     /// registered from a data root).
     /// Every dataset (they are few: files, not points).
-    pub fn datasets(&self) -> Result<Vec<Dataset>, StoreError> {
+    pub fn datasets(&self) -> Result<Vec<Dataset>, StateError> {
         self.with(|records| records.datasets())
     }
 
-    pub fn uploaded_bytes(&self, uploads: &Path) -> Result<u64, StoreError> {
+    pub fn uploaded_bytes(&self, uploads: &Path) -> Result<u64, StateError> {
         self.with(|records| records.uploaded_bytes(uploads))
     }
 
-    pub fn frame(&self, job_id: &str, index: u32) -> Result<Option<FrameState>, StoreError> {
+    pub fn frame(&self, job_id: &str, index: u32) -> Result<Option<FrameState>, StateError> {
         self.with(|records| records.frame(job_id, index))
     }
 
@@ -380,7 +380,7 @@ impl Store {
         job_id: &str,
         index: u32,
         state: &FrameState,
-    ) -> Result<(), StoreError> {
+    ) -> Result<(), StateError> {
         self.with(|records| records.set_frame(job_id, index, state))
     }
 
@@ -391,7 +391,7 @@ impl Store {
         lease: &Lease,
         report: &FrameReport,
         change: impl FnOnce(&mut Job),
-    ) -> Result<Option<Job>, StoreError> {
+    ) -> Result<Option<Job>, StateError> {
         self.with(|records| records.finish_frame(lease, report, change))
     }
 
@@ -407,7 +407,7 @@ impl Store {
         leased: &HashSet<(String, u32)>,
         usable: &dyn Fn(&Job) -> bool,
         turn: &dyn Fn(&Job, Option<u32>) -> Option<u32>,
-    ) -> Result<Option<(Job, u32)>, StoreError> {
+    ) -> Result<Option<(Job, u32)>, StateError> {
         self.with(|records| records.next_task(leased, usable, turn))
     }
 
@@ -417,18 +417,18 @@ impl Store {
         &self,
         lease: &Lease,
         report: &FrameReport,
-    ) -> Result<Option<Job>, StoreError> {
+    ) -> Result<Option<Job>, StateError> {
         self.with(|records| records.keep_preview(lease, report))
     }
 
     /// Whether frame `index` of job `job_id` has a preview (and is not done).
-    pub fn has_preview(&self, job_id: &str, index: u32) -> Result<bool, StoreError> {
+    pub fn has_preview(&self, job_id: &str, index: u32) -> Result<bool, StateError> {
         self.with(|records| records.has_preview(job_id, index))
     }
 
     /// The version of the preview of frame `index` of job `job_id`, when it has one (and is
     /// not done).
-    pub fn preview_version(&self, job_id: &str, index: u32) -> Result<Option<u32>, StoreError> {
+    pub fn preview_version(&self, job_id: &str, index: u32) -> Result<Option<u32>, StateError> {
         self.with(|records| records.preview_version(job_id, index))
     }
 
@@ -441,55 +441,55 @@ impl Store {
         index: u32,
         attempts: u32,
         change: impl FnOnce(&mut Job),
-    ) -> Result<Option<Job>, StoreError> {
+    ) -> Result<Option<Job>, StateError> {
         self.with(|records| records.count_failed_attempt(job_id, index, attempts, change))
     }
 
     /// After a restart: jobs that were running go back to the queue (their finished frames
     /// stay finished). Returns how many.
-    pub fn requeue_running(&self) -> Result<usize, StoreError> {
+    pub fn requeue_running(&self) -> Result<usize, StateError> {
         self.with(Records::requeue_running)
     }
 
     /// The reports of the finished frames of a job and the previews of its pending ones, by
     /// frame index.
-    pub fn frame_reports(&self, job_id: &str) -> Result<Vec<FrameReport>, StoreError> {
+    pub fn frame_reports(&self, job_id: &str) -> Result<Vec<FrameReport>, StateError> {
         self.with(|records| records.frame_reports(job_id))
     }
 
     /// A new id, unique in this database (also across restarts).
-    pub fn generate_id(&self) -> Result<u64, StoreError> {
+    pub fn generate_id(&self) -> Result<u64, StateError> {
         self.with(Records::generate_id)
     }
 
     // ------------------------------------------------------------------ leases
 
-    pub fn put_lease(&self, lease: &Lease) -> Result<(), StoreError> {
+    pub fn put_lease(&self, lease: &Lease) -> Result<(), StateError> {
         self.with(|records| records.put_lease(lease))
     }
 
     /// The lease `id`; one given back during an outage is not held any more.
-    pub fn lease(&self, id: &str) -> Result<Option<Lease>, StoreError> {
+    pub fn lease(&self, id: &str) -> Result<Option<Lease>, StateError> {
         if self.given_back().contains(id) {
             return Ok(None);
         }
         self.with(|records| records.lease(id))
     }
 
-    pub fn remove_lease(&self, id: &str) -> Result<(), StoreError> {
+    pub fn remove_lease(&self, id: &str) -> Result<(), StateError> {
         self.with(|records| records.remove_lease(id))
     }
 
     /// Removes the lease `id` durably; while the disk refuses writes its removal is kept in
     /// memory and done again when the outage ends, so that its frame counts no attempt when
     /// the lease would have run out.
-    pub fn give_back_lease(&self, id: &str) -> Result<(), StoreError> {
+    pub fn give_back_lease(&self, id: &str) -> Result<(), StateError> {
         let removed = self.with(|records| {
             records.remove_lease(id)?;
             records.flush()
         });
         match removed {
-            Err(StoreError::Unwritable(_)) => {
+            Err(StateError::Unwritable(_)) => {
                 self.given_back().insert(id.to_owned());
                 Ok(())
             }
@@ -498,7 +498,7 @@ impl Store {
     }
 
     /// Every lease held, without those given back during an outage.
-    pub fn leases(&self) -> Result<Vec<Lease>, StoreError> {
+    pub fn leases(&self) -> Result<Vec<Lease>, StateError> {
         let mut leases = self.with(Records::leases)?;
         let given_back = self.given_back();
         leases.retain(|lease| !given_back.contains(&lease.id));
@@ -514,11 +514,11 @@ const OPEN_WAIT: Duration = Duration::from_secs(2);
 
 /// Opens the sled database at `path`, waiting up to `wait` while its lock is held: sled's
 /// last threads of a database just dropped may still hold its files.
-fn open_database_waiting(path: &Path, wait: Duration) -> Result<sled::Db, StoreError> {
+fn open_database_waiting(path: &Path, wait: Duration) -> Result<sled::Db, StateError> {
     let deadline = Instant::now() + wait;
     loop {
         match open_database(path) {
-            Err(StoreError::Locked(_)) if Instant::now() < deadline => {
+            Err(StateError::Locked(_)) if Instant::now() < deadline => {
                 std::thread::sleep(Duration::from_millis(20))
             }
             opened => return opened,
@@ -527,13 +527,13 @@ fn open_database_waiting(path: &Path, wait: Duration) -> Result<sled::Db, StoreE
 }
 
 /// Opens the sled database at `path`.
-fn open_database(path: &Path) -> Result<sled::Db, StoreError> {
+fn open_database(path: &Path) -> Result<sled::Db, StateError> {
     sled::open(path).map_err(|e| match e {
         // sled reports the lock held by another process only in its message.
         sled::Error::Io(io) if io.to_string().contains("could not acquire lock") => {
-            StoreError::Locked(path.to_owned())
+            StateError::Locked(path.to_owned())
         }
-        e => StoreError::Damaged(format!(
+        e => StateError::Damaged(format!(
             "the state database {} cannot be opened: {e}",
             path.display()
         )),
@@ -547,7 +547,7 @@ fn page<T: DeserializeOwned>(
     token: &str,
     keep: impl Fn(&T) -> bool,
     key_of: impl Fn(&T) -> String,
-) -> Result<Page<T>, StoreError> {
+) -> Result<Page<T>, StateError> {
     let page_size = if page_size == 0 {
         100
     } else {

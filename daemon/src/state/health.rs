@@ -23,7 +23,7 @@ struct Failure {
     database: bool,
 }
 
-/// The disk's state as the store knows it.
+/// The disk's state as the state database knows it.
 pub(super) struct DiskHealth {
     /// The probe file, beside the database (the frames live on the same data folder).
     probe_path: PathBuf,

@@ -1,7 +1,7 @@
 //! The trees of the state database, and the start-up census of their records.
 
 use super::{decode, INDEX_VERSION_KEY};
-use crate::error::StoreError;
+use crate::error::StateError;
 use crate::lease_record::Lease;
 use crate::manifest::Counts;
 use crate::model::{Dataset, FrameReport, FrameState, Job};
@@ -29,7 +29,7 @@ pub(super) struct Trees {
 }
 
 impl Trees {
-    pub(super) fn open(db: &sled::Db) -> Result<Self, StoreError> {
+    pub(super) fn open(db: &sled::Db) -> Result<Self, StateError> {
         Ok(Self {
             datasets: db.open_tree("datasets")?,
             jobs: db.open_tree("jobs")?,
@@ -57,7 +57,7 @@ impl Trees {
     }
 
     /// Counts the readable jobs and datasets and lists the records that do not decode.
-    pub(super) fn census(&self) -> Result<(Counts, Vec<String>), StoreError> {
+    pub(super) fn census(&self) -> Result<(Counts, Vec<String>), StateError> {
         let mut unreadable = Vec::new();
         for (name, tree, readable) in self.records() {
             for entry in tree.iter() {
@@ -76,7 +76,7 @@ impl Trees {
     }
 
     /// Drops the records listed as `tree/key`; the scheduling index is rebuilt after it.
-    pub(super) fn remove_unreadable(&self, unreadable: &[String]) -> Result<(), StoreError> {
+    pub(super) fn remove_unreadable(&self, unreadable: &[String]) -> Result<(), StateError> {
         for record in unreadable {
             let Some((name, key)) = record.split_once('/') else {
                 continue;

@@ -24,14 +24,14 @@ fn spec(request_id: &str, frames: u32, priority: i32) -> JobSpec {
     }
 }
 
-fn open(path: &std::path::Path) -> Store {
-    Store::open(path, false).expect("open").0
+fn open(path: &std::path::Path) -> StateDb {
+    StateDb::open(path, false).expect("open").0
 }
 
 /// The order in which frames are handed out while none is given back.
-fn schedule(store: &Store) -> Vec<(String, u32)> {
+fn schedule(state: &StateDb) -> Vec<(String, u32)> {
     let (mut order, mut leased) = (Vec::new(), HashSet::new());
-    while let Some((job, index)) = store
+    while let Some((job, index)) = state
         .next_task(&leased, &|_| true, &|_, _| Some(0))
         .expect("next")
     {
@@ -44,13 +44,13 @@ fn schedule(store: &Store) -> Vec<(String, u32)> {
 #[test]
 fn frames_are_scheduled_by_priority_then_age_then_index() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let store = open(&dir.path().join("state.sled"));
-    let (low, _) = store.submit_job(spec("low", 2, -5)).expect("submit");
-    let (old, _) = store.submit_job(spec("old", 2, 0)).expect("submit");
-    let (high, _) = store.submit_job(spec("high", 1, 7)).expect("submit");
-    let (new, _) = store.submit_job(spec("new", 1, 0)).expect("submit");
+    let state = open(&dir.path().join("state.sled"));
+    let (low, _) = state.submit_job(spec("low", 2, -5)).expect("submit");
+    let (old, _) = state.submit_job(spec("old", 2, 0)).expect("submit");
+    let (high, _) = state.submit_job(spec("high", 1, 7)).expect("submit");
+    let (new, _) = state.submit_job(spec("new", 1, 0)).expect("submit");
     assert_eq!(
-        schedule(&store),
+        schedule(&state),
         [
             (high.id, 0),
             (old.id.clone(), 0),
@@ -65,25 +65,25 @@ fn frames_are_scheduled_by_priority_then_age_then_index() {
 #[test]
 fn done_frames_and_ended_jobs_leave_the_schedule() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let store = open(&dir.path().join("state.sled"));
-    let (first, _) = store.submit_job(spec("a", 3, 0)).expect("submit");
-    let (second, _) = store.submit_job(spec("b", 2, 0)).expect("submit");
+    let state = open(&dir.path().join("state.sled"));
+    let (first, _) = state.submit_job(spec("a", 3, 0)).expect("submit");
+    let (second, _) = state.submit_job(spec("b", 2, 0)).expect("submit");
     let report = FrameReport::default();
-    store
+    state
         .set_frame(&first.id, 0, &FrameState::Done(report))
         .expect("done");
-    store
+    state
         .update_job(&second.id, |j| j.state = JobState::Cancelled)
         .expect("cancel");
     assert_eq!(
-        schedule(&store),
+        schedule(&state),
         [(first.id.clone(), 1), (first.id.clone(), 2)]
     );
     // A failed attempt keeps the frame pending.
-    store
+    state
         .set_frame(&first.id, 1, &FrameState::Pending { attempts: 1 })
         .expect("retry");
-    assert_eq!(schedule(&store), [(first.id.clone(), 1), (first.id, 2)]);
+    assert_eq!(schedule(&state), [(first.id.clone(), 1), (first.id, 2)]);
 }
 
 #[test]
@@ -91,12 +91,12 @@ fn a_database_without_the_index_gets_it_when_opened() {
     let dir = tempfile::tempdir().expect("tempdir");
     let path = dir.path().join("state.sled");
     let scheduled = {
-        let store = open(&path);
-        store.submit_job(spec("a", 2, 0)).expect("submit");
-        store.submit_job(spec("b", 1, 3)).expect("submit");
-        let scheduled = schedule(&store);
+        let state = open(&path);
+        state.submit_job(spec("a", 2, 0)).expect("submit");
+        state.submit_job(spec("b", 1, 3)).expect("submit");
+        let scheduled = schedule(&state);
         // As a database written before the index existed.
-        store
+        state
             .with(|records| {
                 let trees = &records.trees;
                 for tree in [&trees.queue, &trees.pending, &trees.meta] {
@@ -105,8 +105,8 @@ fn a_database_without_the_index_gets_it_when_opened() {
                 Ok(())
             })
             .expect("clear");
-        store.flush().expect("flush");
-        assert!(schedule(&store).is_empty());
+        state.flush().expect("flush");
+        assert!(schedule(&state).is_empty());
         scheduled
     };
     assert_eq!(schedule(&open(&path)), scheduled);
@@ -117,41 +117,41 @@ fn a_database_the_full_disk_failed_is_opened_again_with_all_it_had_flushed() {
     let Some(disk) = crate::testing::SmallDisk::mount(16) else {
         return;
     };
-    let store = open(&disk.path().join("state.sled"));
-    let (before, _) = store.submit_job(spec("before", 4, 0)).expect("submit");
+    let state = open(&disk.path().join("state.sled"));
+    let (before, _) = state.submit_job(spec("before", 4, 0)).expect("submit");
     let filler = disk.fill("filler");
     // Requests ids of a few KiB: the log needs new pages within a few writes. Written past
     // the room check a submission makes, as a frame's records are.
     let refused = (0..1000)
         .map(|i| {
             let spec = spec(&format!("{i:04}{}", "x".repeat(4000)), 1, 0);
-            store.with(|records| records.submit_job(spec))
+            state.with(|records| records.submit_job(spec))
         })
         .find_map(Result::err)
         .expect("the full disk refuses a write");
     assert!(
-        matches!(&refused, StoreError::Unwritable(m) if m.contains("disk is full")),
+        matches!(&refused, StateError::Unwritable(m) if m.contains("disk is full")),
         "{refused}"
     );
-    assert!(store.outage().is_some());
-    assert!(store.disk.database_failed(), "sled met the error");
+    assert!(state.outage().is_some());
+    assert!(state.disk.database_failed(), "sled met the error");
     assert!(
-        !store.end_outage().expect("probe"),
+        !state.end_outage().expect("probe"),
         "the disk is still full"
     );
 
     std::fs::remove_file(filler).expect("free the disk");
-    assert!(store.end_outage().expect("reopen"), "space is back");
-    assert!(store.outage().is_none());
+    assert!(state.end_outage().expect("reopen"), "space is back");
+    assert!(state.outage().is_none());
     assert_eq!(
-        store.job(&before.id).expect("read").map(|j| j.frames_total),
+        state.job(&before.id).expect("read").map(|j| j.frames_total),
         Some(4),
         "what was flushed before the outage is kept"
     );
-    let (after, created) = store.submit_job(spec("after", 1, 0)).expect("writes again");
+    let (after, created) = state.submit_job(spec("after", 1, 0)).expect("writes again");
     assert!(created);
     assert!(after.id > before.id, "ids still sort by creation");
-    drop(store);
+    drop(state);
     let reopened = open(&disk.path().join("state.sled"));
     assert!(reopened.job(&after.id).expect("read").is_some());
 }
@@ -161,22 +161,22 @@ fn a_job_submitted_to_a_full_disk_is_refused_before_anyone_sees_it() {
     let Some(disk) = crate::testing::SmallDisk::mount(16) else {
         return;
     };
-    let store = open(&disk.path().join("state.sled"));
-    let (before, _) = store.submit_job(spec("before", 2, 0)).expect("submit");
+    let state = open(&disk.path().join("state.sled"));
+    let (before, _) = state.submit_job(spec("before", 2, 0)).expect("submit");
     let filler = disk.fill("filler");
-    let refused = store
+    let refused = state
         .submit_job(spec("refused", 3, 0))
         .expect_err("no room for the job");
     assert!(
-        matches!(&refused, StoreError::Unwritable(m) if m.contains("disk is full")),
+        matches!(&refused, StateError::Unwritable(m) if m.contains("disk is full")),
         "{refused}"
     );
-    assert!(store.outage().is_some(), "the refusal starts an outage");
+    assert!(state.outage().is_some(), "the refusal starts an outage");
     assert!(
-        !store.disk.database_failed(),
+        !state.disk.database_failed(),
         "sled never met the full disk"
     );
-    let listed: Vec<String> = store
+    let listed: Vec<String> = state
         .list_jobs(None, 100, "")
         .expect("list")
         .items
@@ -186,11 +186,11 @@ fn a_job_submitted_to_a_full_disk_is_refused_before_anyone_sees_it() {
     assert_eq!(listed, [before.id], "the refused job is nowhere");
     // The same request again, once the disk has room, is a new job.
     std::fs::remove_file(filler).expect("free the disk");
-    assert!(store.end_outage().expect("probe"), "space is back");
-    let (after, created) = store.submit_job(spec("refused", 3, 0)).expect("room again");
+    assert!(state.end_outage().expect("probe"), "space is back");
+    let (after, created) = state.submit_job(spec("refused", 3, 0)).expect("room again");
     assert!(created);
     assert_eq!(
-        store.job(&after.id).expect("read").map(|j| j.frames_total),
+        state.job(&after.id).expect("read").map(|j| j.frames_total),
         Some(3)
     );
 }
@@ -202,8 +202,8 @@ fn a_preview_record_without_a_version_opens_as_version_0() {
     let dir = tempfile::tempdir().expect("tempdir");
     let path = dir.path().join("state.sled");
     let job_id = {
-        let store = open(&path);
-        let (job, _) = store
+        let state = open(&path);
+        let (job, _) = state
             .submit_job(JobSpec {
                 preview: true,
                 ..spec("a", 2, 0)
@@ -211,7 +211,7 @@ fn a_preview_record_without_a_version_opens_as_version_0() {
             .expect("submit");
         // The record as an older daemon wrote it.
         let old = br#"{"index":0,"timings":[],"dataset_cache_hit":null,"failed_attempts":0,"cut":null,"worker":"w","preview":0.25}"#;
-        store
+        state
             .with(|records| {
                 records
                     .trees
@@ -229,21 +229,21 @@ fn a_preview_record_without_a_version_opens_as_version_0() {
             expires_unix_ms: 0,
             preview_version: Some(4),
         };
-        store.put_lease(&lease).expect("lease");
+        state.put_lease(&lease).expect("lease");
         let report = FrameReport {
             index: 1,
             preview: Some(0.5),
             preview_version: 4,
             ..FrameReport::default()
         };
-        store.keep_preview(&lease, &report).expect("preview");
+        state.keep_preview(&lease, &report).expect("preview");
         job.id
     };
-    let (store, loss) = Store::open(&path, false).expect("reopen");
+    let (state, loss) = StateDb::open(&path, false).expect("reopen");
     assert!(loss.is_empty(), "every record is readable: {loss:?}");
-    assert_eq!(store.preview_version(&job_id, 0).expect("read"), Some(0));
-    assert_eq!(store.preview_version(&job_id, 1).expect("read"), Some(4));
-    let reports = store.frame_reports(&job_id).expect("reports");
+    assert_eq!(state.preview_version(&job_id, 0).expect("read"), Some(0));
+    assert_eq!(state.preview_version(&job_id, 1).expect("read"), Some(4));
+    let reports = state.frame_reports(&job_id).expect("reports");
     let versions: Vec<(Option<f64>, u32)> = reports
         .iter()
         .map(|r| (r.preview, r.preview_version))
@@ -255,7 +255,7 @@ fn a_preview_record_without_a_version_opens_as_version_0() {
         told.borrow_mut().push(version);
         None
     };
-    let next = store.next_task(&HashSet::new(), &|_| true, &waits);
+    let next = state.next_task(&HashSet::new(), &|_| true, &waits);
     assert!(next.expect("next").is_none(), "both frames wait");
     assert_eq!(*told.borrow(), [Some(0), Some(4)]);
 }
@@ -266,8 +266,8 @@ fn a_preview_record_without_a_version_opens_as_version_0() {
 #[test]
 fn a_preview_jobs_frames_are_taken_by_turn() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let store = open(&dir.path().join("state.sled"));
-    let (job, _) = store
+    let state = open(&dir.path().join("state.sled"));
+    let (job, _) = state
         .submit_job(JobSpec {
             preview: true,
             ..spec("a", 4, 0)
@@ -283,20 +283,20 @@ fn a_preview_jobs_frames_are_taken_by_turn() {
             expires_unix_ms: 0,
             preview_version: Some(version),
         };
-        store.put_lease(&lease).expect("lease");
+        state.put_lease(&lease).expect("lease");
         let report = FrameReport {
             index,
             preview: Some(0.5),
             preview_version: version,
             ..FrameReport::default()
         };
-        store.keep_preview(&lease, &report).expect("preview");
+        state.keep_preview(&lease, &report).expect("preview");
     }
     // The oldest preview first: the turn is its version and one.
     let oldest_first = |_: &Job, drawn: Option<u32>| drawn.map(|version| version + 1);
     let mut order = Vec::new();
     let mut leased = HashSet::new();
-    while let Some((job, index)) = store
+    while let Some((job, index)) = state
         .next_task(&leased, &|_| true, &oldest_first)
         .expect("next")
     {
@@ -311,14 +311,14 @@ fn a_preview_jobs_frames_are_taken_by_turn() {
         Some(1) => Some(0),
         _ => Some(5),
     };
-    let next = store.next_task(&HashSet::new(), &|_| true, &turns);
+    let next = state.next_task(&HashSet::new(), &|_| true, &turns);
     assert_eq!(next.expect("next").map(|(_, index)| index), Some(2));
     let only_passed = |_: &Job, _: Option<u32>| None;
-    let next = store.next_task(&HashSet::new(), &|_| true, &only_passed);
+    let next = state.next_task(&HashSet::new(), &|_| true, &only_passed);
     assert!(next.expect("next").is_none());
 
-    let (plain, _) = store.submit_job(spec("b", 2, 1)).expect("submit");
-    let next = store.next_task(&HashSet::new(), &|_| true, &only_passed);
+    let (plain, _) = state.submit_job(spec("b", 2, 1)).expect("submit");
+    let next = state.next_task(&HashSet::new(), &|_| true, &only_passed);
     assert_eq!(
         next.expect("next").map(|(job, index)| (job.id, index)),
         Some((plain.id, 0))

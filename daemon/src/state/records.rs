@@ -1,4 +1,4 @@
-//! The records of one opened database and what is done with them; the `Store` around it
+//! The records of one opened database and what is done with them; the `StateDb` around it
 //! adds the manifest, the disk's health and reopening.
 
 use sled::Transactional;
@@ -8,7 +8,7 @@ use super::{
     decode, decode_stored, encode, frame_key, page, queue_key, transaction_error, Page,
     INDEX_VERSION, INDEX_VERSION_KEY,
 };
-use crate::error::StoreError;
+use crate::error::StateError;
 use crate::lease_record::Lease;
 use crate::model::{now_unix_ms, Dataset, FrameReport, FrameState, Job, JobSpec, JobState};
 
@@ -21,7 +21,7 @@ pub(super) struct Records {
 impl Records {
     /// Builds the scheduling index from the jobs and frames (a database written before the
     /// index existed).
-    pub(super) fn rebuild_index(&self) -> Result<(), StoreError> {
+    pub(super) fn rebuild_index(&self) -> Result<(), StateError> {
         self.trees.queue.clear()?;
         self.trees.pending.clear()?;
         for entry in self.trees.jobs.iter() {
@@ -44,12 +44,12 @@ impl Records {
     }
 
     /// Writes everything to disk.
-    pub(super) fn flush(&self) -> Result<(), StoreError> {
+    pub(super) fn flush(&self) -> Result<(), StateError> {
         self.db.flush()?;
         Ok(())
     }
 
-    pub(super) fn put_dataset(&self, dataset: &Dataset) -> Result<bool, StoreError> {
+    pub(super) fn put_dataset(&self, dataset: &Dataset) -> Result<bool, StateError> {
         let replaced = self
             .trees
             .datasets
@@ -60,11 +60,11 @@ impl Records {
         Ok(replaced.is_none())
     }
 
-    pub(super) fn dataset(&self, id: &str) -> Result<Option<Dataset>, StoreError> {
+    pub(super) fn dataset(&self, id: &str) -> Result<Option<Dataset>, StateError> {
         decode_stored(self.trees.datasets.get(id.as_bytes())?)
     }
 
-    pub(super) fn delete_dataset(&self, id: &str) -> Result<Option<Dataset>, StoreError> {
+    pub(super) fn delete_dataset(&self, id: &str) -> Result<Option<Dataset>, StateError> {
         let removed = decode_stored(self.trees.datasets.remove(id.as_bytes())?);
         self.db.flush()?;
         removed
@@ -74,7 +74,7 @@ impl Records {
         &self,
         page_size: usize,
         token: &str,
-    ) -> Result<Page<Dataset>, StoreError> {
+    ) -> Result<Page<Dataset>, StateError> {
         page(
             &self.trees.datasets,
             page_size,
@@ -87,7 +87,7 @@ impl Records {
     /// Creates a job with all its frames pending, or returns the job that an earlier
     /// submission with the same request id created (`false`).
     /// The job an earlier submission with `request_id` created, if any.
-    pub(super) fn requested_job(&self, request_id: &str) -> Result<Option<Job>, StoreError> {
+    pub(super) fn requested_job(&self, request_id: &str) -> Result<Option<Job>, StateError> {
         if request_id.is_empty() {
             return Ok(None);
         }
@@ -97,7 +97,7 @@ impl Records {
         }
     }
 
-    pub(super) fn submit_job(&self, spec: JobSpec) -> Result<(Job, bool), StoreError> {
+    pub(super) fn submit_job(&self, spec: JobSpec) -> Result<(Job, bool), StateError> {
         if let Some(job) = self.requested_job(&spec.request_id)? {
             return Ok((job, false));
         }
@@ -147,12 +147,12 @@ impl Records {
         Ok((job, true))
     }
 
-    pub(super) fn job(&self, id: &str) -> Result<Option<Job>, StoreError> {
+    pub(super) fn job(&self, id: &str) -> Result<Option<Job>, StateError> {
         decode_stored(self.trees.jobs.get(id.as_bytes())?)
     }
 
     /// Stores `job`; a job that has ended leaves the scheduling index, with its frames.
-    pub(super) fn put_job(&self, job: &Job) -> Result<(), StoreError> {
+    pub(super) fn put_job(&self, job: &Job) -> Result<(), StateError> {
         let encoded = encode(job)?;
         if !job.state.is_terminal() {
             self.trees.jobs.insert(job.id.as_bytes(), encoded)?;
@@ -180,7 +180,7 @@ impl Records {
         &self,
         id: &str,
         change: impl FnOnce(&mut Job),
-    ) -> Result<Option<Job>, StoreError> {
+    ) -> Result<Option<Job>, StateError> {
         let Some(job) = self.changed_job(id, change)? else {
             return Ok(None);
         };
@@ -193,7 +193,7 @@ impl Records {
         &self,
         id: &str,
         change: impl FnOnce(&mut Job),
-    ) -> Result<Option<Job>, StoreError> {
+    ) -> Result<Option<Job>, StateError> {
         Ok(self.job(id)?.map(|mut job| {
             change(&mut job);
             job.updated_unix_ms = now_unix_ms();
@@ -206,7 +206,7 @@ impl Records {
         state: Option<JobState>,
         page_size: usize,
         token: &str,
-    ) -> Result<Page<Job>, StoreError> {
+    ) -> Result<Page<Job>, StateError> {
         page(
             &self.trees.jobs,
             page_size,
@@ -217,7 +217,7 @@ impl Records {
     }
 
     /// Whether an unfinished job renders the dataset `dataset_id`: every job is looked at.
-    pub(super) fn dataset_in_use(&self, dataset_id: &str) -> Result<bool, StoreError> {
+    pub(super) fn dataset_in_use(&self, dataset_id: &str) -> Result<bool, StateError> {
         for entry in self.trees.jobs.iter() {
             let job: Job = decode(&entry?.1)?;
             if job.spec.dataset_id == dataset_id && !job.state.is_terminal() {
@@ -230,7 +230,7 @@ impl Records {
     /// The bytes of the datasets whose files lie in `uploads` (the ones uploaded, not
     /// registered from a data root).
     /// Bytes of the distinct uploaded files (several datasets may share one).
-    pub(super) fn uploaded_bytes(&self, uploads: &std::path::Path) -> Result<u64, StoreError> {
+    pub(super) fn uploaded_bytes(&self, uploads: &std::path::Path) -> Result<u64, StateError> {
         let mut counted = std::collections::HashSet::new();
         let mut total = 0u64;
         for dataset in self.datasets()? {
@@ -243,7 +243,7 @@ impl Records {
         Ok(total)
     }
 
-    pub(super) fn datasets(&self) -> Result<Vec<Dataset>, StoreError> {
+    pub(super) fn datasets(&self) -> Result<Vec<Dataset>, StateError> {
         self.trees
             .datasets
             .iter()
@@ -251,7 +251,7 @@ impl Records {
             .collect()
     }
 
-    pub(super) fn frame(&self, job_id: &str, index: u32) -> Result<Option<FrameState>, StoreError> {
+    pub(super) fn frame(&self, job_id: &str, index: u32) -> Result<Option<FrameState>, StateError> {
         decode_stored(self.trees.frames.get(frame_key(job_id, index))?)
     }
 
@@ -263,7 +263,7 @@ impl Records {
         lease: &Lease,
         report: &FrameReport,
         change: impl FnOnce(&mut Job),
-    ) -> Result<Option<Job>, StoreError> {
+    ) -> Result<Option<Job>, StateError> {
         let Some(mut job) = self.job(&lease.job_id)? else {
             return Ok(None);
         };
@@ -314,7 +314,7 @@ impl Records {
         &self,
         lease: &Lease,
         report: &FrameReport,
-    ) -> Result<Option<Job>, StoreError> {
+    ) -> Result<Option<Job>, StateError> {
         let Some(mut job) = self.job(&lease.job_id)? else {
             return Ok(None);
         };
@@ -335,7 +335,7 @@ impl Records {
     }
 
     /// Whether frame `index` of job `job_id` has a preview.
-    pub(super) fn has_preview(&self, job_id: &str, index: u32) -> Result<bool, StoreError> {
+    pub(super) fn has_preview(&self, job_id: &str, index: u32) -> Result<bool, StateError> {
         Ok(self.trees.previews.contains_key(frame_key(job_id, index))?)
     }
 
@@ -344,7 +344,7 @@ impl Records {
         &self,
         job_id: &str,
         index: u32,
-    ) -> Result<Option<u32>, StoreError> {
+    ) -> Result<Option<u32>, StateError> {
         let preview: Option<FrameReport> =
             decode_stored(self.trees.previews.get(frame_key(job_id, index))?)?;
         Ok(preview.map(|report| report.preview_version))
@@ -355,7 +355,7 @@ impl Records {
         job_id: &str,
         index: u32,
         state: &FrameState,
-    ) -> Result<(), StoreError> {
+    ) -> Result<(), StateError> {
         let key = frame_key(job_id, index);
         let encoded = encode(state)?;
         let is_pending = matches!(state, FrameState::Pending { .. });
@@ -381,7 +381,7 @@ impl Records {
         leased: &std::collections::HashSet<(String, u32)>,
         usable: &dyn Fn(&Job) -> bool,
         turn: &dyn Fn(&Job, Option<u32>) -> Option<u32>,
-    ) -> Result<Option<(Job, u32)>, StoreError> {
+    ) -> Result<Option<(Job, u32)>, StateError> {
         for entry in self.trees.queue.iter() {
             let (_, job_id) = entry?;
             let mut prefix = job_id.to_vec();
@@ -431,7 +431,7 @@ impl Records {
         Ok(None)
     }
 
-    pub(super) fn unfinished_jobs(&self) -> Result<Vec<Job>, StoreError> {
+    pub(super) fn unfinished_jobs(&self) -> Result<Vec<Job>, StateError> {
         let mut jobs = Vec::new();
         for entry in self.trees.queue.iter() {
             let (_, job_id) = entry?;
@@ -452,7 +452,7 @@ impl Records {
         index: u32,
         attempts: u32,
         change: impl FnOnce(&mut Job),
-    ) -> Result<Option<Job>, StoreError> {
+    ) -> Result<Option<Job>, StateError> {
         let Some(job) = self.changed_job(job_id, change)? else {
             return Ok(None);
         };
@@ -472,7 +472,7 @@ impl Records {
 
     /// After a restart: jobs that were running go back to the queue (their finished frames
     /// stay finished). Returns how many.
-    pub(super) fn requeue_running(&self) -> Result<usize, StoreError> {
+    pub(super) fn requeue_running(&self) -> Result<usize, StateError> {
         let mut requeued = 0;
         for entry in self.trees.jobs.iter() {
             let (_, value) = entry?;
@@ -486,23 +486,23 @@ impl Records {
         Ok(requeued)
     }
 
-    pub(super) fn put_lease(&self, lease: &Lease) -> Result<(), StoreError> {
+    pub(super) fn put_lease(&self, lease: &Lease) -> Result<(), StateError> {
         self.trees
             .leases
             .insert(lease.id.as_bytes(), encode(lease)?)?;
         Ok(())
     }
 
-    pub(super) fn lease(&self, id: &str) -> Result<Option<Lease>, StoreError> {
+    pub(super) fn lease(&self, id: &str) -> Result<Option<Lease>, StateError> {
         decode_stored(self.trees.leases.get(id.as_bytes())?)
     }
 
-    pub(super) fn remove_lease(&self, id: &str) -> Result<(), StoreError> {
+    pub(super) fn remove_lease(&self, id: &str) -> Result<(), StateError> {
         self.trees.leases.remove(id.as_bytes())?;
         Ok(())
     }
 
-    pub(super) fn leases(&self) -> Result<Vec<Lease>, StoreError> {
+    pub(super) fn leases(&self) -> Result<Vec<Lease>, StateError> {
         self.trees
             .leases
             .iter()
@@ -511,13 +511,13 @@ impl Records {
     }
 
     /// A new id, unique in this database (also across restarts).
-    pub(super) fn generate_id(&self) -> Result<u64, StoreError> {
+    pub(super) fn generate_id(&self) -> Result<u64, StateError> {
         Ok(self.db.generate_id()?)
     }
 
     /// The reports of the finished frames of a job and the previews of its pending ones, by
     /// frame index.
-    pub(super) fn frame_reports(&self, job_id: &str) -> Result<Vec<FrameReport>, StoreError> {
+    pub(super) fn frame_reports(&self, job_id: &str) -> Result<Vec<FrameReport>, StateError> {
         let mut prefix = job_id.as_bytes().to_vec();
         prefix.push(b'/');
         let mut out = Vec::new();
