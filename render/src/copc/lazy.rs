@@ -6,8 +6,7 @@ use std::fs::File;
 use std::sync::Mutex;
 
 use super::hierarchy::CopcPages;
-use crate::cut::{HierarchyPages, PagesRead};
-use crate::lod::{LodError, LodHierarchy, NodeKey};
+use crate::lod::{HierarchyPages, LodError, LodHierarchy, NodeKey, PagesRead};
 
 /// Reads a COPC file's unread hierarchy pages, each checked as the pages read at open were.
 pub(crate) struct CopcPageReader {
@@ -54,7 +53,7 @@ impl HierarchyPages for CopcPageReader {
 }
 
 /// The unread pages of `hierarchy` whose nodes could be among the coarsest `sample_points`
-/// points that the colour ranges are sampled from (`cut::for_each_coarse_node`): those whose
+/// points that the colour ranges are sampled from (`lod::for_each_coarse_node`): those whose
 /// key comes before the sample is full, in key order, since a page's nodes all sort after its
 /// own key. Once none is left, the sample is the one the whole hierarchy gives.
 pub(crate) fn coarse_pages(hierarchy: &LodHierarchy, sample_points: u64) -> Vec<NodeKey> {

@@ -22,7 +22,7 @@
 //!
 //! Colour ranges come from the coarsest nodes, the same even sample the elevation range of a
 //! store comes from: the RGB decision, the intensity percentiles and the class counts of up
-//! to [`crate::cut::ELEVATION_SAMPLE_POINTS`] points (1M), not of every point.
+//! to [`crate::lod::ELEVATION_SAMPLE_POINTS`] points (1M), not of every point.
 
 mod error;
 mod header;
@@ -45,9 +45,11 @@ pub use error::CopcError;
 pub use header::{is_copc, CopcInfo};
 pub use nodes::{CopcDecoder, CopcNodes};
 
-use crate::cut::{for_each_coarse_node_up_to, node_heights, LodDataset, ELEVATION_SAMPLE_POINTS};
 use crate::ingest::{open_dataset_file, Symlinks};
-use crate::lod::{DatasetStats, LodError};
+use crate::lod::{
+    for_each_coarse_node_up_to, node_heights, DatasetStats, LodDataset, LodError,
+    ELEVATION_SAMPLE_POINTS,
+};
 use lazy::CopcPageReader;
 
 /// A COPC file opened for rendering, and what opening it read.

@@ -4,7 +4,6 @@
 
 use std::sync::{Arc, Mutex};
 
-use super::dataset::LodDataset;
 use super::host_cache::HostNodeCache;
 use super::options::CutOptions;
 use super::select::CutNode;
@@ -13,7 +12,8 @@ use crate::color::Coloring;
 use crate::filter::PointFilter;
 use crate::lod::codec::{Detail, COARSE_MAX_PIXELS};
 use crate::lod::{
-    fetch_nodes_at, FetchedNodes, LodError, LodHierarchy, NodeKey, NodePoints, NodeRecords,
+    fetch_nodes_at, FetchedNodes, LodDataset, LodError, LodHierarchy, NodeKey, NodePoints,
+    NodeRecords,
 };
 
 /// Which detail a frame reads each node of its cut at (`lod::codec::Detail`): coarse where

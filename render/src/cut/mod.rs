@@ -11,7 +11,7 @@
 //!    at a time so the transient memory stays small (`load.rs`): the next group's records
 //!    read while this one's are decoded, and the one before prepared and uploaded;
 //! 3. **upload**: each is coloured for the frame's colour mode with the dataset's ranges
-//!    (`colors.rs`), put in Morton order, batched and quantised as any cloud, and written into
+//!    (`lod/colors.rs`), put in Morton order, batched and quantised as any cloud, and written into
 //!    free batch slots of the GPU cache's pages (`gpu_cache.rs`), the least recently used nodes
 //!    outside the cut evicted;
 //! 4. **draw**: the pages' batch tables are set to the cut's batches, each with its point
@@ -22,13 +22,11 @@
 //! image from a cold or a warm cache. `read_ahead` loads the next frame's nodes into the host
 //! cache on another thread while the caller encodes this one.
 
-mod colors;
 mod dataset;
 mod gpu_cache;
 mod host_cache;
 mod load;
 mod options;
-mod pages;
 mod point_sizes;
 mod point_source;
 mod read_order;
@@ -51,15 +49,15 @@ use thiserror::Error;
 use crate::color::{ColorMode, Coloring};
 use crate::filter::PointFilter;
 use crate::lod::codec::Detail;
-use crate::lod::{LodError, LodHierarchy, NodeKey, NodePoints};
+use crate::lod::{LodError, LodHierarchy, NodeKey, NodePoints, LOAD_GROUP_NODES};
 use crate::raster::gpu_data::GpuBatch;
 use crate::raster::morton::morton_order_of_cells;
 use crate::raster::points::ChunkData;
 use crate::raster::{Clock, Frame, FrameSettings, RenderError, Renderer, Stage, StageTiming};
 
-pub use colors::{node_heights, DatasetColoring, ELEVATION_SAMPLE_POINTS};
-pub(crate) use dataset::for_each_coarse_node_up_to;
-pub use dataset::{for_each_coarse_node, LodDataset};
+// The dataset a cut reads lives in lod/; re-exported for the daemon, the CLI, the bench and the
+// tests that name them from here.
+pub use crate::lod::{LodDataset, ELEVATION_SAMPLE_POINTS};
 pub use gpu_cache::SLOT_BYTES;
 pub use host_cache::node_heap_bytes;
 pub use options::{
@@ -67,17 +65,15 @@ pub use options::{
     DEFAULT_MEMORY_BUDGET_BYTES, MAX_CUT_POINTS_PER_PIXEL, MAX_LOD_ERROR_PX, MIN_BUDGET_BYTES,
     PREVIEW_LOD_ERROR_PX, RESIDENT_MAX_POINTS,
 };
-pub use pages::{HierarchyPages, PagesRead};
 pub use point_source::{frame_points, FramePoints, PointSourceFacts};
 pub use report::{completeness, CutCounts, CutReport};
 pub use select::{select_cut, Cut, CutNode, CutView};
 pub use stored::StoredLod;
 
-use dataset::LOAD_GROUP_NODES;
+use dataset::Selected;
 use gpu_cache::{GpuNodeCache, SizeFactors};
 use host_cache::HostNodeCache;
 use load::{fetch_at_details, fetch_group, FrameDetails};
-use pages::Selected;
 use point_sizes::CutPointSizes;
 use read_order::in_read_order;
 use select::NodesInView;

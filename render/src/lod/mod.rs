@@ -14,14 +14,20 @@
 //! of threads; the hierarchy, small and always resident, is one sled record written last,
 //! after the payload file is synced ([`hierarchy`], [`store`]). Payloads are not sled values:
 //! sled holds memory in proportion to what it stores.
+//!
+//! Opened for rendering, a store or a COPC file is a [`LodDataset`] (`dataset.rs`: its
+//! hierarchy, with pages read as frames reach them, `pages.rs`, and its colour ranges,
+//! `colors.rs`), what both the COPC reader and the cut renderer build on.
 
 pub mod build;
 mod checksum;
 mod chunks;
 pub mod codec;
+mod colors;
 mod context;
 pub mod copc_export;
 mod counting;
+mod dataset;
 pub mod disk;
 pub mod error;
 pub mod generated;
@@ -31,6 +37,7 @@ pub mod key;
 mod local;
 pub mod memory;
 pub mod options;
+mod pages;
 mod plan;
 mod point;
 pub mod progress;
@@ -49,12 +56,16 @@ mod tests;
 
 pub use build::{build_lod, build_lod_watched, BuildTimings, LodBuildReport};
 pub use codec::NodePoints;
+pub use colors::DatasetColoring;
+pub use dataset::{for_each_coarse_node, node_heights, LodDataset, ELEVATION_SAMPLE_POINTS};
+pub(crate) use dataset::{for_each_coarse_node_up_to, LOAD_GROUP_NODES};
 pub use error::LodError;
 pub use generated::{GeneratedShape, GeneratedSource};
 pub use grid::PositionGrid;
 pub use hierarchy::{LodHierarchy, NodeInfo};
 pub use key::{NodeKey, RootCube, MAX_LEVEL};
 pub use options::LodBuildOptions;
+pub use pages::{HierarchyPages, PagesRead};
 pub use progress::{preview_version, BuildProgress, PREVIEW_REDRAW_SHARE, PREVIEW_STORED_POINTS};
 pub use records::{
     fetch_nodes_at, read_concurrently, read_nodes, read_nodes_at, FetchedNodes, NodeRecords,

@@ -6,16 +6,11 @@
 //! the elevation percentiles from the coarsest nodes, a spatially even sample of the dataset.
 //! A request's fixed range replaces the percentiles, as it does for a resident cloud.
 
-use glam::DVec3;
-
+use super::{DatasetStats, NodePoints};
 use crate::cloud::{pack_rgba8, ColorSource};
 use crate::color::{
     ColorMode, ColorRange, Coloring, Palette, PaletteAttributes, Stretch, CONSTANT_GREY_RGBA,
 };
-use crate::lod::{DatasetStats, NodePoints};
-
-/// Points of the coarsest nodes the elevation range is taken from, at least.
-pub const ELEVATION_SAMPLE_POINTS: u64 = 1 << 20;
 
 /// What colouring needs of a dataset.
 #[derive(Debug, Clone, PartialEq)]
@@ -131,13 +126,4 @@ impl DatasetColoring {
             None => vec![CONSTANT_GREY_RGBA; node.len()],
         }
     }
-}
-
-/// Heights of a node's points relative to `origin` (f64, then f32, as positions are).
-pub fn node_heights(node: &NodePoints, origin: DVec3) -> Vec<f32> {
-    let base = node.cube_min.z - origin.z;
-    node.quantised
-        .iter()
-        .map(|q| (base + (f64::from(q[2]) + 0.5) * node.step) as f32)
-        .collect()
 }

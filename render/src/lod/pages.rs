@@ -1,12 +1,12 @@
 //! Hierarchies read a page at a time (a COPC file's, read lazily): a frame's walk names the
 //! unread pages it reaches, they are read together, merged into a new hierarchy that replaces
 //! the dataset's, and the walk runs again until it reaches none. The cut is then the one the
-//! whole hierarchy gives, so the same request gives the same image whatever was read before.
+//! whole hierarchy gives, so the same request gives the same image whatever was read before
+//! (the walk is the cut renderer's: `cut/dataset.rs`).
 
 use std::sync::{Arc, Mutex, RwLock};
 
-use super::select::{walk_cut, Cut, CutView};
-use crate::lod::{LodError, LodHierarchy, NodeKey};
+use super::{LodError, LodHierarchy, NodeKey};
 
 /// Hierarchy pages read, and their bytes.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -33,14 +33,6 @@ pub trait HierarchyPages: Send + Sync {
         current: &LodHierarchy,
         keys: &[NodeKey],
     ) -> Result<(LodHierarchy, PagesRead), LodError>;
-}
-
-/// A frame's cut and the hierarchy it was selected in (the one its nodes are read with).
-pub(crate) struct Selected {
-    pub cut: Cut,
-    pub hierarchy: Arc<LodHierarchy>,
-    /// Pages this selection read.
-    pub pages_read: PagesRead,
 }
 
 /// A hierarchy whose pages are read as frames reach them.
@@ -72,24 +64,24 @@ impl LazyLevels {
         *self.read.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// The cut for `view`, reading the pages each walk reaches until a walk reaches none.
-    pub(crate) fn select(&self, view: &CutView<'_>) -> Result<Selected, LodError> {
+    /// What `walk` gives over the hierarchy (and that hierarchy, and the pages read), reading
+    /// the unread pages each walk reaches (the second of what it returns) until a walk
+    /// reaches none.
+    pub(crate) fn walk_until_read<T>(
+        &self,
+        mut walk: impl FnMut(&LodHierarchy) -> (T, Vec<NodeKey>),
+    ) -> Result<(T, Arc<LodHierarchy>, PagesRead), LodError> {
         let mut pages_read = PagesRead::default();
         loop {
             let hierarchy = self.current();
-            let walk = walk_cut(&hierarchy, view);
-            if walk.unread_pages.is_empty() {
-                return Ok(Selected {
-                    cut: walk.cut,
-                    hierarchy,
-                    pages_read,
-                });
+            let (walked, unread_pages) = walk(&hierarchy);
+            if unread_pages.is_empty() {
+                return Ok((walked, hierarchy, pages_read));
             }
             let mut read = self.read.lock().unwrap_or_else(|e| e.into_inner());
             // Another frame may have read some of them meanwhile.
             let latest = self.current();
-            let keys: Vec<NodeKey> = walk
-                .unread_pages
+            let keys: Vec<NodeKey> = unread_pages
                 .into_iter()
                 .filter(|&key| latest.is_unread_page(key))
                 .collect();
