@@ -15,7 +15,8 @@ use glam::DVec3;
 use super::error::CopcError;
 use super::node_grids::{read_node_grids, NodeGrids};
 use crate::cloud::{WorldBounds, MAX_COORDINATE};
-use crate::ingest::{check_file, extra_bytes, open_dataset_file, IngestError, Symlinks};
+use crate::extra_bytes;
+use crate::ingest::{check_file, open_dataset_file, IngestError, Symlinks};
 use crate::lod::weights::WEIGHT_ATTRIBUTE;
 use crate::lod::RootCube;
 

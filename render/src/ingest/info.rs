@@ -10,10 +10,10 @@ use glam::DVec3;
 use super::columns::world_bounds;
 use super::contain::contain_panics;
 use super::crs::{crs_of, Crs};
-use super::extra_bytes;
 use super::read::DatasetFile;
 use super::IngestError;
 use crate::cloud::{ColorSource, WorldBounds};
+use crate::extra_bytes;
 
 /// What a file's header and records say.
 pub struct FileInfo {

@@ -20,7 +20,6 @@
 //! - `chunk_starts.rs`: a preview sample without decompressing: the raw first point of
 //!   every LAZ chunk, every k-th LAS record;
 //! - `columns.rs`: the decoded points and the cloud made of them (origin, colours);
-//! - `extra_bytes.rs`: LAS 1.4's extra bytes descriptors, read and written;
 //! - `files.rs`: the files of a dataset, from files and folders (anywhere, or only inside a
 //!   server's data roots), and `open_dataset_file`, the one open of a dataset's file;
 //! - `info.rs`: what a file is, for `pointfarm info`: header facts, attributes, and a
@@ -36,7 +35,6 @@ mod crs;
 #[cfg(test)]
 mod dataset_tests;
 mod error;
-pub mod extra_bytes;
 mod files;
 mod header;
 mod info;

@@ -19,7 +19,7 @@ use laz::LazVlr;
 
 use super::records::{extra_bytes_vlr, point_format, record_len, WEIGHT_BYTES};
 use super::transform::ExportTransform;
-use crate::ingest::extra_bytes;
+use crate::extra_bytes;
 
 /// Bytes of a LAS 1.4 header.
 pub const HEADER_BYTES: u64 = 375;

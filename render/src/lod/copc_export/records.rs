@@ -56,9 +56,9 @@ fn fields_len(has_rgb: bool) -> usize {
 
 /// The extra bytes VLR's data: the weight's descriptor.
 pub fn extra_bytes_vlr() -> Vec<u8> {
-    crate::ingest::extra_bytes::descriptor(
+    crate::extra_bytes::descriptor(
         WEIGHT_ATTRIBUTE,
-        crate::ingest::extra_bytes::DATA_TYPE_U32,
+        crate::extra_bytes::DATA_TYPE_U32,
         WEIGHT_DESCRIPTION,
     )
     .to_vec()
