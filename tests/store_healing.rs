@@ -52,6 +52,26 @@ fn flip_bytes(path: &Path) {
     std::fs::write(path, bytes).expect("damage the payload");
 }
 
+/// `pointfarm render` of `file` into `out` from its store in `cache`, at `lod_error` pixels.
+fn render_from_a_store(
+    file: &Path,
+    cache: &Path,
+    lod_error: &str,
+    out: &Path,
+) -> std::process::Output {
+    pointfarm_ok(&[
+        "render",
+        arg(file),
+        "--out",
+        arg(out),
+        "--size=160x120",
+        "--lod-error",
+        lod_error,
+        "--cache-dir",
+        arg(cache),
+    ])
+}
+
 fn image(path: &Path) -> image::RgbaImage {
     image::open(path).expect("png").to_rgba8()
 }
@@ -62,19 +82,7 @@ fn a_local_store_that_fails_its_checks_is_built_again_and_draws_the_same_frame()
     let file = scene(dir.path());
     let cache = dir.path().join("cache");
     // A pixel error asks for levels of detail: a store, not a resident cloud.
-    let render = |out: &Path| {
-        pointfarm_ok(&[
-            "render",
-            arg(&file),
-            "--out",
-            arg(out),
-            "--size=160x120",
-            "--lod-error",
-            "0.5",
-            "--cache-dir",
-            arg(&cache),
-        ])
-    };
+    let render = |out: &Path| render_from_a_store(&file, &cache, "0.5", out);
     let first = dir.path().join("first.png");
     let built = output_text(&render(&first));
     assert!(built.contains("levels of detail:"), "{built}");
@@ -131,19 +139,7 @@ fn damage_a_frame_reads_builds_the_store_again_and_draws_the_frame_from_it() {
         .expect("write the scene");
     let cache = dir.path().join("cache");
     // Every node read whole: no coarse reads at a pixel error of 0.
-    let render = |out: &Path| {
-        pointfarm_ok(&[
-            "render",
-            arg(&file),
-            "--out",
-            arg(out),
-            "--size=160x120",
-            "--lod-error",
-            "0",
-            "--cache-dir",
-            arg(&cache),
-        ])
-    };
+    let render = |out: &Path| render_from_a_store(&file, &cache, "0", out);
     let first = dir.path().join("first.png");
     render(&first);
     let payload = payload_of_the_store_in(&cache.join("lod"));
