@@ -11,12 +11,13 @@ use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use pointfarm_render::ingest::{dataset_files_in, open_dataset_file, FileScope, Symlinks};
+use pointfarm_render::ingest::{dataset_files_in, FileScope};
 
+use crate::dataset_files::{file_name, DatasetFolders};
 use crate::error::DaemonError;
 use crate::limits::{check_id, check_length, MAX_NAME_BYTES, MAX_PATH_BYTES};
 use crate::model::{content_sha256, now_unix_ms, Dataset, DatasetFile};
-use crate::service::{dataset_id, file_name, hash_files_opened_by, lookup, unique_suffix, Daemon};
+use crate::service::{dataset_id, hash_files_opened_by, lookup, unique_suffix, Daemon};
 use crate::state::Page;
 use crate::stores::{PreviewBytes, ReadyStore, StoreAnswer};
 
@@ -45,84 +46,6 @@ pub struct Registration {
     pub name: String,
     /// The files' bytes together, as the walk found them: what hashing them reads.
     pub bytes: u64,
-}
-
-/// The folders a dataset's files are read from: the data roots and the uploads folder.
-#[derive(Debug, Clone)]
-pub struct DatasetFolders {
-    data_roots: Vec<PathBuf>,
-    uploads: PathBuf,
-}
-
-impl DatasetFolders {
-    pub fn of(config: &crate::service::DaemonConfig) -> Self {
-        Self {
-            data_roots: config.data_roots.clone(),
-            uploads: config.uploads_dir(),
-        }
-    }
-
-    fn folders(&self) -> impl Iterator<Item = &PathBuf> {
-        self.data_roots.iter().chain(std::iter::once(&self.uploads))
-    }
-
-    /// How a client is shown the server's file `path`: its path under the data root it lies
-    /// in, else (an uploaded file) its name.
-    pub fn shown(&self, path: &Path) -> String {
-        self.data_roots
-            .iter()
-            .filter_map(|root| root.canonicalize().ok())
-            .find_map(|root| {
-                path.strip_prefix(root)
-                    .ok()
-                    .map(|under| under.display().to_string())
-            })
-            .unwrap_or_else(|| file_name(path))
-    }
-
-    /// Opens a dataset's stored file to read it ([`open_dataset_file`]: a regular file only,
-    /// never blocking on a special one), refusing it unless the file opened lies inside one
-    /// of the folders: a link put in place of the file or a folder since registration is
-    /// followed only as far as the roots. (Links inside the roots stay readable, as records
-    /// registered through them store the link's path.)
-    pub fn open(&self, path: &Path) -> std::io::Result<std::fs::File> {
-        let file = open_dataset_file(path, Symlinks::Follow)?;
-        let opened = opened_path(&file).or_else(|_| path.canonicalize())?;
-        let allowed = self
-            .folders()
-            .filter_map(|folder| folder.canonicalize().ok())
-            .any(|folder| opened.starts_with(folder));
-        if !allowed {
-            tracing::warn!(
-                path = %path.display(),
-                opened = %opened.display(),
-                "refused to read a dataset's file: it now lies outside the data roots"
-            );
-            return Err(std::io::Error::new(
-                std::io::ErrorKind::PermissionDenied,
-                "now lies outside the server's data roots",
-            ));
-        }
-        Ok(file)
-    }
-
-    /// Refuses `dataset` unless every file of it still opens as [`DatasetFolders::open`]
-    /// opens it: checked before the render crate's readers (which follow links, as the CLI's
-    /// must) read the files for a store or a preview. The error names the file as a client
-    /// sees it.
-    pub fn check(&self, dataset: &Dataset) -> Result<(), DaemonError> {
-        for file in dataset.files() {
-            self.open(&file.path).map_err(|error| {
-                tracing::warn!(path = %file.path.display(), %error, "a dataset's file cannot be read");
-                DaemonError::FailedPrecondition(format!(
-                    "dataset {}, file {}: {error}",
-                    dataset.id,
-                    self.shown(&file.path)
-                ))
-            })?;
-        }
-        Ok(())
-    }
 }
 
 impl Daemon {
@@ -193,21 +116,26 @@ impl Daemon {
         self.add_dataset(name, files)
     }
 
+    /// The folders this daemon reads datasets' files from.
+    pub fn dataset_folders(&self) -> DatasetFolders {
+        DatasetFolders::new(self.config.data_roots.clone(), self.config.uploads_dir())
+    }
+
     /// Opens a dataset's stored file to read it, as [`DatasetFolders::open`] does.
     pub fn open_dataset_file(&self, path: &Path) -> std::io::Result<std::fs::File> {
-        DatasetFolders::of(&self.config).open(path)
+        self.dataset_folders().open(path)
     }
 
     /// Refuses dataset `dataset` unless every file of it still opens as
     /// [`Daemon::open_dataset_file`] opens it, before the render crate's readers (which follow
     /// links, as the CLI's must) read them; the error names the dataset and the file.
     pub(crate) fn check_dataset_files(&self, dataset: &Dataset) -> Result<(), DaemonError> {
-        DatasetFolders::of(&self.config).check(dataset)
+        self.dataset_folders().check(dataset)
     }
 
     /// How a client is shown the server's file `path` ([`DatasetFolders::shown`]).
     pub(crate) fn shown_path(&self, path: &Path) -> String {
-        DatasetFolders::of(&self.config).shown(path)
+        self.dataset_folders().shown(path)
     }
 
     /// `path` as a canonical path under one of the data roots.
@@ -452,15 +380,3 @@ impl Daemon {
 
 #[cfg(test)]
 mod tests;
-
-/// Where the opened `file` lies, as the kernel knows it (no race with a path changed since).
-#[cfg(target_os = "linux")]
-fn opened_path(file: &std::fs::File) -> std::io::Result<PathBuf> {
-    use std::os::fd::AsRawFd;
-    std::fs::read_link(format!("/proc/self/fd/{}", file.as_raw_fd()))
-}
-
-#[cfg(not(target_os = "linux"))]
-fn opened_path(_: &std::fs::File) -> std::io::Result<PathBuf> {
-    Err(std::io::ErrorKind::Unsupported.into())
-}

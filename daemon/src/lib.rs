@@ -22,6 +22,7 @@
 pub mod access;
 pub mod availability;
 pub mod capabilities;
+pub mod dataset_files;
 pub mod datasets;
 pub mod describe;
 pub mod error;

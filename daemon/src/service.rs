@@ -8,7 +8,7 @@ use pointfarm_render::ingest::{open_dataset_file, Symlinks};
 use sha2::{Digest, Sha256};
 use tokio::sync::broadcast;
 
-use crate::datasets::DatasetFolders;
+use crate::dataset_files::DatasetFolders;
 use crate::error::{DaemonError, StateError};
 use crate::limits::{check_id, check_length, MAX_REQUEST_ID_BYTES};
 use crate::metrics::DaemonMetrics;
@@ -203,7 +203,10 @@ impl Daemon {
             DatasetStores::new(config.data_dir.join("lod"), config.store_build_memory_bytes)
                 .gated(config.store_build_gate.clone())
                 .held_before_ready(config.store_ready_gate.clone())
-                .reading_within(DatasetFolders::of(&config))
+                .reading_within(DatasetFolders::new(
+                    config.data_roots.clone(),
+                    config.uploads_dir(),
+                ))
                 // Frames that wait for the store are leased again: previews for a redraw when
                 // the build's version moves, every frame for its final render when it ends.
                 .notifying(Arc::new(move || built.notify()));
@@ -422,12 +425,6 @@ pub(crate) fn unique_suffix() -> String {
 /// Dataset ids are derived from the content, so the same file always has the same id.
 pub fn dataset_id(sha256: &str) -> String {
     format!("ds-{}", &sha256[..sha256.len().min(16)])
-}
-
-pub(crate) fn file_name(path: &Path) -> String {
-    path.file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default()
 }
 
 /// [`hash_file`] of each of `paths`, in order, several files at once (a campaign's files

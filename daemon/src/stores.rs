@@ -37,7 +37,7 @@ use pointfarm_render::ingest::dataset_point_count;
 use pointfarm_render::lod::codec::check_node;
 use pointfarm_render::lod::{BuildProgress, LodError, LodHierarchy, NodeInfo, NodeKey};
 
-use crate::datasets::DatasetFolders;
+use crate::dataset_files::DatasetFolders;
 use crate::error::DaemonError;
 use crate::model::Dataset;
 
