@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::lod::codec::Detail;
 use pointfarm_render::lod::records::read_nodes_at;
-use pointfarm_render::lod::{read_nodes, LodError, NodeRecords};
+use pointfarm_render::lod::{read_nodes, LodError, NodeInfo, NodeKey, NodeRecords};
 use pointfarm_render::sample::sample_scene;
 
 use super::*;
