@@ -451,8 +451,9 @@ fn a_preview_renders_from_chunk_starts_while_the_store_builds_then_the_final_fra
             }
         }
         let completeness = report["completeness"].as_f64().expect("completeness");
+        // The share drawn, at most 1: a cut's points may stand for more than the files hold.
         assert!(
-            (completeness - drawn as f64 / 360_000.0).abs() < 1e-12,
+            (completeness - (drawn as f64 / 360_000.0).min(1.0)).abs() < 1e-12,
             "{report}"
         );
     }
