@@ -4,12 +4,12 @@
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
-use super::tests::{copc_file, count_of, entries, frame_settings, root_page, u64_at, INFO_AT};
+use super::tests::{
+    copc_file, count_of, cut_at, entries, frame_settings, rgb_frame, root_page, u64_at, INFO_AT,
+};
 use super::*;
 use crate::camera::{Camera, Projection};
-use crate::color::ColorMode;
-use crate::cut::{select_cut, CutOptions, CutRenderer, CutView};
-use crate::filter::PointFilter;
+use crate::cut::{select_cut, CutRenderer, CutView};
 use crate::raster::Renderer;
 use crate::testing::{compare_images_within, gpu};
 
@@ -225,21 +225,10 @@ fn frames_read_the_pages_they_reach_once_and_draw_what_the_whole_file_draws() {
     let (lazy, whole) = lazy_and_whole(&path);
     let settings = frame_settings(&lazy.dataset.bounds());
     let mut renderer = Renderer::new(gpu());
-    let options = CutOptions {
-        lod_error: 0.0,
-        ..CutOptions::default()
-    };
     let mut frame = |opened: &CopcDataset| {
-        let mut cut = CutRenderer::new(&renderer, &opened.dataset, options).expect("cut");
+        let mut cut = cut_at(&renderer, &opened.dataset, 0.0);
         let render = |cut: &mut CutRenderer, renderer: &mut Renderer| {
-            cut.render(
-                renderer,
-                &opened.dataset,
-                &settings,
-                ColorMode::Rgb,
-                &PointFilter::default(),
-            )
-            .expect("frame")
+            rgb_frame(cut, renderer, &opened.dataset, &settings).expect("frame")
         };
         let first = render(&mut cut, &mut renderer);
         let again = render(&mut cut, &mut renderer);
@@ -354,20 +343,9 @@ fn a_damaged_child_page_read_lazily_fails_the_frame_naming_the_file() {
         );
         let settings = frame_settings(&lazy.dataset.bounds());
         let mut renderer = Renderer::new(gpu());
-        let options = CutOptions {
-            lod_error: 0.0,
-            ..CutOptions::default()
-        };
-        let mut cut = CutRenderer::new(&renderer, &lazy.dataset, options).expect("cut");
+        let mut cut = cut_at(&renderer, &lazy.dataset, 0.0);
         for attempt in 0..2 {
-            let error = cut
-                .render(
-                    &mut renderer,
-                    &lazy.dataset,
-                    &settings,
-                    ColorMode::Rgb,
-                    &PointFilter::default(),
-                )
+            let error = rgb_frame(&mut cut, &mut renderer, &lazy.dataset, &settings)
                 .err()
                 .unwrap_or_else(|| panic!("{case}: the damaged page went unnoticed"))
                 .to_string();

@@ -6,11 +6,11 @@ use std::path::{Path, PathBuf};
 use super::*;
 use crate::camera::Camera;
 use crate::color::ColorMode;
-use crate::cut::{CutOptions, CutRenderer};
+use crate::cut::{CutError, CutOptions, CutRenderer, CutReport};
 use crate::filter::PointFilter;
 use crate::ingest::load_point_cloud;
 use crate::lod::{read_nodes, NodeKey};
-use crate::raster::{FrameSettings, Renderer, Shading};
+use crate::raster::{Frame, FrameSettings, Renderer, Shading};
 use crate::request::PointSize;
 use crate::testing::{compare_images_within, gpu};
 
@@ -265,6 +265,23 @@ pub(super) fn count_of(bytes: &[u8], at: usize) -> i32 {
     i32::from_le_bytes(bytes[at + 28..at + 32].try_into().expect("4 bytes"))
 }
 
+/// The byte size of the chunk or page the entry at `at` points to.
+fn byte_size_of(bytes: &[u8], at: usize) -> i32 {
+    i32::from_le_bytes(bytes[at + 24..at + 28].try_into().expect("4 bytes"))
+}
+
+/// The error opening `simple.copc.laz` with the point count of its root page's second entry
+/// moved by `by`, so that the nodes no longer add up to the header's count.
+fn miscounted(dir: &Path, by: i32) -> String {
+    damaged(dir, "simple.copc.laz", |bytes| {
+        let (page, _) = root_page(bytes);
+        let at = page + 32;
+        let (offset, size) = (u64_at(bytes, at + 16), byte_size_of(bytes, at));
+        let count = count_of(bytes, at) + by;
+        set_entry(bytes, at, offset, size, count);
+    })
+}
+
 /// `name` changed by `damage`, written to `dir`, and the error opening it, which must name it.
 fn damaged(dir: &Path, name: &str, damage: impl FnOnce(&mut Vec<u8>)) -> String {
     let mut bytes = std::fs::read(copc_file(name)).expect("read");
@@ -315,36 +332,18 @@ fn damaged_hierarchies_are_errors_naming_the_file() {
             .find(|&at| count_of(bytes, at) == -1)
             .expect("a child page");
         let child = u64_at(bytes, link + 16);
-        let child_size = i32::from_le_bytes(bytes[link + 24..link + 28].try_into().expect("4"));
+        let child_size = byte_size_of(bytes, link);
         set_entry(bytes, child as usize, child, child_size, -1);
     });
     assert!(child_loop.contains("the pages form a loop"), "{child_loop}");
 
-    let more = damaged(dir, "simple.copc.laz", |bytes| {
-        let (page, _) = root_page(bytes);
-        let at = page + 32;
-        let (offset, size) = (
-            u64_at(bytes, at + 16),
-            i32::from_le_bytes(bytes[at + 24..at + 28].try_into().expect("4")),
-        );
-        let count = count_of(bytes, at) + 1;
-        set_entry(bytes, at, offset, size, count);
-    });
+    let more = miscounted(dir, 1);
     assert!(
         more.contains("hold more points than the header's 1065"),
         "{more}"
     );
 
-    let fewer = damaged(dir, "simple.copc.laz", |bytes| {
-        let (page, _) = root_page(bytes);
-        let at = page + 32;
-        let (offset, size) = (
-            u64_at(bytes, at + 16),
-            i32::from_le_bytes(bytes[at + 24..at + 28].try_into().expect("4")),
-        );
-        let count = count_of(bytes, at) - 1;
-        set_entry(bytes, at, offset, size, count);
-    });
+    let fewer = miscounted(dir, -1);
     assert!(fewer.contains("the header says 1065"), "{fewer}");
 
     // Two nodes' counts swapped: the sum holds, the chunks do not.
@@ -405,6 +404,26 @@ pub(super) fn frame_settings(bounds: &crate::cloud::WorldBounds) -> FrameSetting
     settings
 }
 
+/// A cut renderer of `dataset` refining to `lod_error` pixels, the one option these tests vary.
+pub(super) fn cut_at(renderer: &Renderer, dataset: &LodDataset, lod_error: f64) -> CutRenderer {
+    let options = CutOptions {
+        lod_error,
+        ..CutOptions::default()
+    };
+    CutRenderer::new(renderer, dataset, options).expect("cut renderer")
+}
+
+/// A frame of `dataset` in its own colours with every point passing, as these tests draw.
+pub(super) fn rgb_frame(
+    cut: &mut CutRenderer,
+    renderer: &mut Renderer,
+    dataset: &LodDataset,
+    settings: &FrameSettings,
+) -> Result<(Frame, CutReport), CutError> {
+    let filter = PointFilter::default();
+    cut.render(renderer, dataset, settings, ColorMode::Rgb, &filter)
+}
+
 #[test]
 fn every_node_drawn_is_the_file_read_whole() {
     let path = copc_file("simple.copc.laz");
@@ -413,11 +432,7 @@ fn every_node_drawn_is_the_file_read_whole() {
     assert_eq!(opened.dataset.origin(), cloud.origin, "one origin");
     let settings = frame_settings(&cloud.bounds);
     let mut renderer = Renderer::new(gpu());
-    let options = CutOptions {
-        lod_error: 0.0,
-        ..CutOptions::default()
-    };
-    let mut cut = CutRenderer::new(&renderer, &opened.dataset, options).expect("cut renderer");
+    let mut cut = cut_at(&renderer, &opened.dataset, 0.0);
     for mode in [
         ColorMode::Rgb,
         ColorMode::Classification,
@@ -461,20 +476,9 @@ fn a_coarse_cut_reads_only_the_nodes_it_draws() {
     let settings = frame_settings(&opened.dataset.bounds());
     let mut renderer = Renderer::new(gpu());
     let mut read = |lod_error: f64| {
-        let options = CutOptions {
-            lod_error,
-            ..CutOptions::default()
-        };
-        let mut cut = CutRenderer::new(&renderer, &opened.dataset, options).expect("cut");
-        let (_, report) = cut
-            .render(
-                &mut renderer,
-                &opened.dataset,
-                &settings,
-                ColorMode::Rgb,
-                &PointFilter::default(),
-            )
-            .expect("frame");
+        let mut cut = cut_at(&renderer, &opened.dataset, lod_error);
+        let (_, report) =
+            rgb_frame(&mut cut, &mut renderer, &opened.dataset, &settings).expect("frame");
         report.counts
     };
     let every = read(0.0);

@@ -5,12 +5,10 @@
 
 use std::path::{Path, PathBuf};
 
-use super::tests::copc_file;
+use super::tests::{copc_file, cut_at, rgb_frame};
 use super::*;
 use crate::camera::Camera;
-use crate::color::ColorMode;
-use crate::cut::{select_cut, Cut, CutOptions, CutRenderer, CutView};
-use crate::filter::PointFilter;
+use crate::cut::{select_cut, Cut, CutView};
 use crate::lod::NodeKey;
 use crate::raster::{FrameSettings, Quality, Renderer, Shading};
 use crate::request::PointSize;
@@ -88,21 +86,10 @@ fn high_quality_on_a_cut_of_an_exported_file_keeps_the_fidelity_rule() {
     let settings = across(&opened.dataset.bounds());
     let mut renderer = Renderer::new(gpu());
     let mut frame = |lod_error: f64, weighted: bool| {
-        let options = CutOptions {
-            lod_error,
-            ..CutOptions::default()
-        };
-        let mut cut = CutRenderer::new(&renderer, &opened.dataset, options).expect("cut");
+        let mut cut = cut_at(&renderer, &opened.dataset, lod_error);
         cut.set_weighted_high_quality(weighted);
-        let (frame, report) = cut
-            .render(
-                &mut renderer,
-                &opened.dataset,
-                &settings,
-                ColorMode::Rgb,
-                &PointFilter::default(),
-            )
-            .expect("frame");
+        let (frame, report) =
+            rgb_frame(&mut cut, &mut renderer, &opened.dataset, &settings).expect("frame");
         (frame.image, report.counts.points_rendered)
     };
     let (full, all) = frame(0.0, true);
@@ -175,19 +162,8 @@ fn an_export_declares_a_spacing_no_node_is_sparser_than() {
     settings.quality = Quality::Basic;
     let mut renderer = Renderer::new(gpu());
     let mut frame = |lod_error: f64| {
-        let options = CutOptions {
-            lod_error,
-            ..CutOptions::default()
-        };
-        let mut cut = CutRenderer::new(&renderer, &opened.dataset, options).expect("cut");
-        cut.render(
-            &mut renderer,
-            &opened.dataset,
-            &settings,
-            ColorMode::Rgb,
-            &PointFilter::default(),
-        )
-        .expect("frame")
+        let mut cut = cut_at(&renderer, &opened.dataset, lod_error);
+        rgb_frame(&mut cut, &mut renderer, &opened.dataset, &settings).expect("frame")
     };
     let (full, _) = frame(0.0);
     let (cut, report) = frame(0.5);
@@ -273,9 +249,7 @@ pub(super) fn without_node_grids(path: &Path) -> PathBuf {
 #[test]
 fn a_damaged_node_grids_record_is_an_error_naming_the_file() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let exported = exported_terrain(dir.path(), 60_000, 1_000);
-    let bytes = std::fs::read(&exported.path).expect("read");
-    let header = node_grids_header(&bytes);
+    let (bytes, header) = exported_grids(dir.path());
     let data = header + 60;
     assert!(data + 40 <= bytes.len(), "two entries at least");
     let damaged = |name: &str, damage: &dyn Fn(&mut Vec<u8>)| -> String {
@@ -319,9 +293,7 @@ fn a_damaged_node_grids_record_is_an_error_naming_the_file() {
 #[test]
 fn any_byte_of_the_node_grids_flipped_opens_or_is_an_error_never_a_panic() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let exported = exported_terrain(dir.path(), 60_000, 1_000);
-    let original = std::fs::read(&exported.path).expect("read");
-    let header = node_grids_header(&original);
+    let (original, header) = exported_grids(dir.path());
     let path = dir.path().join("flipped.copc.laz");
     let end = original.len();
     for at in (header..header + 60 + 60).chain(end - 20..end) {
@@ -352,6 +324,15 @@ fn any_byte_of_the_node_grids_flipped_opens_or_is_an_error_never_a_panic() {
             ),
         }
     }
+}
+
+/// The bytes of a small terrain exported in `dir`, and where its node grids EVLR's header
+/// starts: what the damage tests change.
+fn exported_grids(dir: &Path) -> (Vec<u8>, usize) {
+    let exported = exported_terrain(dir, 60_000, 1_000);
+    let bytes = std::fs::read(&exported.path).expect("read");
+    let header = node_grids_header(&bytes);
+    (bytes, header)
 }
 
 /// Where the node grids EVLR's header starts in an exported file's `bytes` (its description

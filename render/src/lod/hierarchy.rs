@@ -21,6 +21,14 @@ use super::key::{NodeKey, RootCube};
 use super::stats::{DatasetStats, INTENSITY_BINS};
 
 const MAGIC: &[u8; 4] = b"PFH6";
+/// The magics of earlier versions of the record, with what each lacks, so a store built by an
+/// earlier version is refused with a reason rather than read wrong.
+const EARLIER_VERSIONS: [(&[u8; 4], &str); 4] = [
+    (b"PFH1", "payloads in sled"),
+    (b"PFH2", "no lowest RGB values"),
+    (b"PFH3", "no point weights"),
+    (b"PFH5", "records stored in one piece"),
+];
 /// Bytes of one node in the record.
 const NODE_RECORD_BYTES: usize = 44;
 const CHECKSUM_SEED: &[u8] = b"hierarchy";
@@ -378,25 +386,13 @@ impl LodHierarchy {
         }
         let mut r = Reader { bytes: body, at: 0 };
         let magic = r.take(4)?;
-        if magic == b"PFH1" {
-            return Err(corrupt(
-                "a record of an earlier version (payloads in sled): rebuild the dataset",
-            ));
-        }
-        if magic == b"PFH2" {
-            return Err(corrupt(
-                "a record of an earlier version (no lowest RGB values): rebuild the dataset",
-            ));
-        }
-        if magic == b"PFH3" {
-            return Err(corrupt(
-                "a record of an earlier version (no point weights): rebuild the dataset",
-            ));
-        }
-        if magic == b"PFH5" {
-            return Err(corrupt(
-                "a record of an earlier version (records stored in one piece): rebuild the dataset",
-            ));
+        if let Some((_, missing)) = EARLIER_VERSIONS
+            .iter()
+            .find(|(earlier, _)| magic == earlier.as_slice())
+        {
+            return Err(corrupt(&format!(
+                "a record of an earlier version ({missing}): rebuild the dataset"
+            )));
         }
         if magic != MAGIC {
             return Err(corrupt("not a hierarchy record"));

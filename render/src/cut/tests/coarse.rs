@@ -4,21 +4,35 @@
 
 use super::*;
 
-fn frame(
-    cut: &mut CutRenderer,
-    renderer: &mut Renderer,
-    fixture: &Fixture,
-    settings: &FrameSettings,
-    mode: ColorMode,
-) -> (Frame, CutReport) {
-    cut.render(
-        renderer,
-        &fixture.dataset,
-        settings,
-        mode,
-        &PointFilter::default(),
-    )
-    .expect("frame")
+/// The fixture, renderer and settings that every frame of these tests shares.
+struct Scene {
+    fixture: Fixture,
+    renderer: Renderer,
+    settings: FrameSettings,
+}
+
+impl Scene {
+    fn new(points: usize) -> Self {
+        let (fixture, renderer, settings) = basic_frame(points);
+        Self {
+            fixture,
+            renderer,
+            settings,
+        }
+    }
+
+    /// A new cut renderer at `lod_error`, its caches cold.
+    fn cut(&self, lod_error: f64) -> CutRenderer {
+        cut_renderer(&self.renderer, &self.fixture, lod_error)
+    }
+
+    /// A frame by `cut` in `mode`, every point kept.
+    fn frame(&mut self, cut: &mut CutRenderer, mode: ColorMode) -> (Frame, CutReport) {
+        let filter = PointFilter::default();
+        let dataset = &self.fixture.dataset;
+        cut.render(&mut self.renderer, dataset, &self.settings, mode, &filter)
+            .expect("frame")
+    }
 }
 
 /// A cold RGB frame at the default pixel error reads the coarse sections of the nodes it draws
@@ -28,24 +42,12 @@ fn frame(
 /// read whole.
 #[test]
 fn nodes_drawn_small_are_read_coarse_and_drawn_alike_from_whole_records() {
-    let (fixture, mut renderer, settings) = basic_frame(120_000);
-    let mut cold = cut_renderer(&renderer, &fixture, DEFAULT_LOD_ERROR_PX);
-    let (cold_frame, coarse) = frame(
-        &mut cold,
-        &mut renderer,
-        &fixture,
-        &settings,
-        ColorMode::Rgb,
-    );
+    let mut scene = Scene::new(120_000);
+    let mut cold = scene.cut(DEFAULT_LOD_ERROR_PX);
+    let (cold_frame, coarse) = scene.frame(&mut cold, ColorMode::Rgb);
 
-    let mut cut = cut_renderer(&renderer, &fixture, DEFAULT_LOD_ERROR_PX);
-    let (_, whole) = frame(
-        &mut cut,
-        &mut renderer,
-        &fixture,
-        &settings,
-        ColorMode::Intensity,
-    );
+    let mut cut = scene.cut(DEFAULT_LOD_ERROR_PX);
+    let (_, whole) = scene.frame(&mut cut, ColorMode::Intensity);
     assert_eq!(
         coarse.counts.nodes_read, whole.counts.nodes_read,
         "the same cut"
@@ -57,7 +59,7 @@ fn nodes_drawn_small_are_read_coarse_and_drawn_alike_from_whole_records() {
     );
     assert!(share < 0.7, "{share:.3} of the whole records' bytes");
 
-    let (warm_frame, warm) = frame(&mut cut, &mut renderer, &fixture, &settings, ColorMode::Rgb);
+    let (warm_frame, warm) = scene.frame(&mut cut, ColorMode::Rgb);
     assert_eq!(warm.counts.nodes_read, 0, "{warm:?}");
     assert_eq!(
         compare_images_within("coarse-from-whole", &warm_frame.image, &cold_frame.image, 0)
@@ -66,22 +68,8 @@ fn nodes_drawn_small_are_read_coarse_and_drawn_alike_from_whole_records() {
         "drawn from whole records, the frame differs from the cold one"
     );
 
-    let mut exact = cut_renderer(&renderer, &fixture, 0.0);
-    let (_, rgb) = frame(
-        &mut exact,
-        &mut renderer,
-        &fixture,
-        &settings,
-        ColorMode::Rgb,
-    );
-    let mut exact = cut_renderer(&renderer, &fixture, 0.0);
-    let (_, intensity) = frame(
-        &mut exact,
-        &mut renderer,
-        &fixture,
-        &settings,
-        ColorMode::Intensity,
-    );
+    let (_, rgb) = scene.frame(&mut scene.cut(0.0), ColorMode::Rgb);
+    let (_, intensity) = scene.frame(&mut scene.cut(0.0), ColorMode::Intensity);
     assert_eq!(
         rgb.counts.bytes_read, intensity.counts.bytes_read,
         "every record whole at 0"

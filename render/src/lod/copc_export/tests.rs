@@ -164,21 +164,23 @@ fn check_against_store_and_file(exported: &Exported, file: &Path) {
     let source = las::Reader::from_path(file)
         .and_then(|mut r| r.read_all())
         .expect("original");
-    let mut original: Vec<[i32; 3]> = source
+    assert!(
+        sorted_raw_xyz(&source) == sorted_raw_xyz(&all),
+        "the same integer coordinates"
+    );
+}
+
+/// The integer coordinates of `points`, sorted, so that two files' points compare whatever
+/// their order.
+fn sorted_raw_xyz(points: &las::PointData) -> Vec<[i32; 3]> {
+    let mut xyz: Vec<[i32; 3]> = points
         .x_raw()
-        .zip(source.y_raw())
-        .zip(source.z_raw())
+        .zip(points.y_raw())
+        .zip(points.z_raw())
         .map(|((x, y), z)| [x, y, z])
         .collect();
-    let mut exported_raw: Vec<[i32; 3]> = all
-        .x_raw()
-        .zip(all.y_raw())
-        .zip(all.z_raw())
-        .map(|((x, y), z)| [x, y, z])
-        .collect();
-    original.sort_unstable();
-    exported_raw.sort_unstable();
-    assert!(original == exported_raw, "the same integer coordinates");
+    xyz.sort_unstable();
+    xyz
 }
 
 /// The same points as the export, in the file's own order, written as a plain LAZ (fixed

@@ -34,6 +34,15 @@ fn options(dir: &std::path::Path, max_leaf_points: usize) -> LodBuildOptions {
 }
 
 fn build_with(source: &dyn PointSource, tweak: impl FnOnce(&mut LodBuildOptions)) -> Built {
+    build_watched_with(source, &BuildProgress::new(), tweak)
+}
+
+/// [`build_with`], the build listing its stored nodes in `progress` as the daemon's builds do.
+fn build_watched_with(
+    source: &dyn PointSource,
+    progress: &BuildProgress,
+    tweak: impl FnOnce(&mut LodBuildOptions),
+) -> Built {
     let dir = tempfile::tempdir().expect("tempdir");
     let (_db, store) = temp_store(dir.path());
     let mut options = options(dir.path(), 500);
@@ -42,7 +51,7 @@ fn build_with(source: &dyn PointSource, tweak: impl FnOnce(&mut LodBuildOptions)
     options.memory_budget_bytes = options
         .memory_budget_bytes
         .max(options.min_memory_budget_bytes());
-    let report = build_lod(source, &store, &options).expect("build");
+    let report = build_lod_watched(source, &store, &options, progress).expect("build");
     Built {
         _dir: dir,
         store,
@@ -415,13 +424,10 @@ fn a_single_chunk_dataset_is_one_tree_from_the_root() {
 #[test]
 fn a_build_lists_its_stored_nodes_as_it_goes() {
     let source = GeneratedSource::terrain(200_000, 5);
-    let dir = tempfile::tempdir().expect("tempdir");
-    let (_db, store) = temp_store(dir.path());
-    let options = options(dir.path(), 500);
     let progress = BuildProgress::new();
     let mut partial_reads = 0;
-    let report = std::thread::scope(|scope| {
-        let build = scope.spawn(|| build_lod_watched(&source, &store, &options, &progress));
+    let built = std::thread::scope(|scope| {
+        let build = scope.spawn(|| build_watched_with(&source, &progress, |_| {}));
         while !build.is_finished() {
             let (stored, total) = progress.points();
             let nodes = progress
@@ -437,17 +443,12 @@ fn a_build_lists_its_stored_nodes_as_it_goes() {
             }
             std::thread::sleep(std::time::Duration::from_millis(2));
         }
-        build.join().expect("build thread").expect("build")
+        build.join().expect("build thread")
     });
     eprintln!("{partial_reads} reads of a partial build");
     let total = source.point_count();
     assert_eq!(progress.points(), (total, total));
 
-    let built = Built {
-        _dir: dir,
-        store,
-        report,
-    };
     let by_key = |mut nodes: Vec<NodePoints>| {
         nodes.retain(|n| !n.is_empty());
         nodes.sort_by_key(|n| n.key.to_bytes());
@@ -475,16 +476,12 @@ fn a_build_lists_its_stored_nodes_as_it_goes() {
 /// build's threads, up to every tenth stored.
 #[test]
 fn a_watched_build_tells_each_preview_version_as_it_moves() {
-    let source = GeneratedSource::terrain(200_000, 5);
-    let dir = tempfile::tempdir().expect("tempdir");
-    let (_db, store) = temp_store(dir.path());
-    let options = options(dir.path(), 500);
     let told = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
     let seen = std::sync::Arc::clone(&told);
     let progress = BuildProgress::notifying(move |version| {
         seen.lock().expect("versions").push(version);
     });
-    build_lod_watched(&source, &store, &options, &progress).expect("build");
+    build_watched_with(&GeneratedSource::terrain(200_000, 5), &progress, |_| {});
     let mut told = told.lock().expect("versions").clone();
     assert!(told.contains(&10), "{told:?}");
     assert_eq!(progress.preview_version(), 10);

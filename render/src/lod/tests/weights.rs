@@ -29,6 +29,17 @@ fn tree(built: &Built) -> Tree {
     Tree { nodes, subtree }
 }
 
+impl Tree {
+    /// The nodes of levels 0 to `level`: the cut that stops at one depth everywhere.
+    fn levels_to(&self, level: u8) -> HashSet<NodeKey> {
+        self.nodes
+            .keys()
+            .copied()
+            .filter(|k| k.level <= level)
+            .collect()
+    }
+}
+
 /// The child octant of a point of a node, from the top bit of its 30-bit coordinates.
 fn octant(q: &[u32; 3]) -> usize {
     let bit = |a: usize| ((q[a] >> (codec::POSITION_BITS - 1)) & 1) as usize;
@@ -93,12 +104,7 @@ fn every_cut_counts_every_point_once() {
         .count();
     assert!(heavy > 100, "{heavy} points stand for more than themselves");
     for level in 0..=deepest {
-        let drawn: HashSet<NodeKey> = tree
-            .nodes
-            .keys()
-            .copied()
-            .filter(|k| k.level <= level)
-            .collect();
+        let drawn = tree.levels_to(level);
         assert_counts(
             cut_total(&tree, &drawn),
             total,
@@ -170,12 +176,7 @@ fn a_coarse_cut_weighs_vegetation_nearly_as_full_detail_does() {
         .count();
     let full_share = full as f64 / source.point_count() as f64;
     for level in 0..=4 {
-        let drawn: HashSet<NodeKey> = tree
-            .nodes
-            .keys()
-            .copied()
-            .filter(|k| k.level <= level)
-            .collect();
+        let drawn = tree.levels_to(level);
         let (mut plain, mut plain_vegetation) = (0u64, 0u64);
         let (mut weighted, mut weighted_vegetation) = (0u64, 0u64);
         for key in &drawn {
