@@ -85,6 +85,17 @@ impl Farm {
         status
     }
 
+    /// The datasets ListDatasets answers, so a test sees what is registered.
+    async fn listed(&self) -> Vec<pb::Dataset> {
+        self.datasets()
+            .await
+            .list_datasets(pb::ListDatasetsRequest::default())
+            .await
+            .expect("list")
+            .into_inner()
+            .datasets
+    }
+
     /// The bytes FetchDataset serves of a dataset's file, as a worker downloads them.
     async fn fetch(&self, dataset_id: &str, file_index: u32) -> Result<Vec<u8>, Status> {
         let mut workers = WorkerServiceClient::new(connect(&self.server.address).await);
@@ -141,6 +152,11 @@ impl Farm {
     }
 }
 
+/// Asserts that `status` says `needle`, showing what it says instead where it does not.
+fn assert_says(status: &Status, needle: &str) {
+    assert!(status.message().contains(needle), "{}", status.message());
+}
+
 fn secret_bytes(farm: &Farm) -> Vec<u8> {
     std::fs::read(farm.outside.join("secret.las")).expect("the outside file")
 }
@@ -155,29 +171,18 @@ async fn links_out_of_the_data_roots_are_never_registered_and_never_served() {
     symlink(farm.outside.join("secret.las"), tiles.join("leak.las")).expect("file link");
     let status = farm.refused(&["tiles"]).await;
     assert_eq!(status.code(), Code::InvalidArgument);
-    assert!(
-        status
-            .message()
-            .contains("tiles/leak.las: a symbolic link that leads outside the data roots"),
-        "{}",
-        status.message()
+    assert_says(
+        &status,
+        "tiles/leak.las: a symbolic link that leads outside the data roots",
     );
     let status = farm.refused(&["tiles/leak.las"]).await;
-    assert!(
-        status.message().contains("outside the server's data roots"),
-        "{}",
-        status.message()
-    );
+    assert_says(&status, "outside the server's data roots");
     std::fs::remove_file(tiles.join("leak.las")).expect("remove the link");
 
     // A folder link out of the roots.
     symlink(&farm.outside, tiles.join("more")).expect("folder link");
     let status = farm.refused(&["tiles"]).await;
-    assert!(
-        status.message().contains("tiles/more: a symbolic link"),
-        "{}",
-        status.message()
-    );
+    assert_says(&status, "tiles/more: a symbolic link");
     farm.refused(&["tiles/more/secret.las"]).await;
     std::fs::remove_file(tiles.join("more")).expect("remove the link");
 
@@ -209,11 +214,7 @@ async fn links_out_of_the_data_roots_are_never_registered_and_never_served() {
         .await
         .expect_err("no store of a file outside the roots");
     assert_eq!(store.code(), Code::FailedPrecondition);
-    assert!(
-        store.message().contains("a.las: now lies outside"),
-        "{}",
-        store.message()
-    );
+    assert_says(&store, "a.las: now lies outside");
     farm.assert_no_server_path(store.message());
     let sample = workers
         .fetch_preview_sample(pb::FetchPreviewSampleRequest {
@@ -222,11 +223,7 @@ async fn links_out_of_the_data_roots_are_never_registered_and_never_served() {
         .await
         .map(|_| ())
         .expect_err("no preview sample of a file outside the roots");
-    assert!(
-        sample.message().contains("now lies outside"),
-        "{}",
-        sample.message()
-    );
+    assert_says(&sample, "now lies outside");
     std::fs::remove_file(tiles.join("a.las")).expect("remove the link");
 
     // or of the folder it lies in.
@@ -234,23 +231,12 @@ async fn links_out_of_the_data_roots_are_never_registered_and_never_served() {
     std::fs::copy(farm.outside.join("secret.las"), farm.outside.join("a.las")).expect("copy");
     symlink(&farm.outside, &tiles).expect("swapped folder");
     let status = farm.fetch(&dataset.id, 0).await.expect_err("outside now");
-    assert!(
-        status.message().contains("outside the server's data roots"),
-        "{}",
-        status.message()
-    );
+    assert_says(&status, "outside the server's data roots");
     farm.assert_no_server_path(status.message());
 
     // Nothing registered holds the outside file's bytes.
     let secret = secret_bytes(&farm);
-    let listed = farm
-        .datasets()
-        .await
-        .list_datasets(pb::ListDatasetsRequest::default())
-        .await
-        .expect("list")
-        .into_inner()
-        .datasets;
+    let listed = farm.listed().await;
     for dataset in &listed {
         for index in 0..dataset.files.len() as u32 {
             if let Ok(bytes) = farm.fetch(&dataset.id, index).await {
@@ -284,30 +270,13 @@ async fn a_fifo_named_las_is_refused_at_once_and_the_daemon_goes_on() {
         started.elapsed()
     );
     assert_eq!(status.code(), Code::InvalidArgument);
-    assert!(
-        status
-            .message()
-            .contains("tiles/x.las: not a regular file (a FIFO)"),
-        "{}",
-        status.message()
-    );
+    assert_says(&status, "tiles/x.las: not a regular file (a FIFO)");
     let status = farm.refused(&["tiles/x.las"]).await;
-    assert!(
-        status.message().contains("is not a file or a folder"),
-        "{}",
-        status.message()
-    );
+    assert_says(&status, "is not a file or a folder");
 
     // The daemon answers other calls, and registers the folder's real file.
     let dataset = farm.register(&["tiles/a.las"]).await.expect("registered");
-    let listed = farm
-        .datasets()
-        .await
-        .list_datasets(pb::ListDatasetsRequest::default())
-        .await
-        .expect("list")
-        .into_inner()
-        .datasets;
+    let listed = farm.listed().await;
     assert_eq!(
         listed.iter().map(|d| d.id.as_str()).collect::<Vec<_>>(),
         [dataset.id.as_str()]

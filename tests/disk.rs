@@ -13,6 +13,7 @@ use pointfarm_tests::service::{
     clients, connect, get_job, scratch_sample, submit, turntable_job, upload_file, watch_to_success,
 };
 use pointfarm_tests::{free_address, wait_for, ServeProcess, WorkerProcess};
+use tonic::transport::Channel;
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
 use tonic_health::pb::HealthCheckRequest;
@@ -41,6 +42,61 @@ async fn wait_for_health(address: &str, status: ServingStatus) {
     }
 }
 
+/// A daemon without an embedded worker whose data lies on a small tmpfs, which both tests fill.
+struct DaemonOnSmallDisk {
+    server: ServeProcess,
+    address: String,
+    /// Where the daemon's log lies, off the full disk, so that what it says there is kept.
+    outside: tempfile::TempDir,
+    disk: SmallDisk,
+}
+
+impl DaemonOnSmallDisk {
+    /// Mounts the disk and starts the daemon on it with `args`; None, said on stderr, where no
+    /// tmpfs can be mounted.
+    fn start(args: &[&str]) -> Option<Self> {
+        let Some(disk) = SmallDisk::mount(64) else {
+            eprintln!("skipped: no tmpfs could be mounted (see above)");
+            return None;
+        };
+        let outside = tempfile::tempdir().expect("tempdir");
+        let address = free_address();
+        let args: Vec<&str> = ["--no-embedded-worker"]
+            .iter()
+            .chain(args)
+            .copied()
+            .collect();
+        let server = ServeProcess::start_logging_to(
+            &address,
+            &disk.path().join("data"),
+            &outside.path().join("serve.log"),
+            &args,
+        );
+        Some(Self {
+            server,
+            address,
+            outside,
+            disk,
+        })
+    }
+}
+
+/// A small sample uploaded to the daemon at `address`, with a job client of it.
+async fn sample_dataset(address: &str) -> (pb::Dataset, JobServiceClient<Channel>) {
+    let (mut datasets, jobs) = clients(address).await;
+    let (_scratch, file) = scratch_sample("s.las", 20_000, 7);
+    (upload_file(&mut datasets, "s.las", &file).await, jobs)
+}
+
+/// The jobs ListJobs answers, so a test sees which the daemon took.
+async fn listed_jobs(jobs: &mut JobServiceClient<Channel>) -> Vec<pb::Job> {
+    jobs.list_jobs(pb::ListJobsRequest::default())
+        .await
+        .expect("list")
+        .into_inner()
+        .jobs
+}
+
 /// How many lines of `log` say `message`.
 fn count(log: &str, message: &str) -> usize {
     log.lines().filter(|l| l.contains(message)).count()
@@ -48,44 +104,32 @@ fn count(log: &str, message: &str) -> usize {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_full_disk_holds_frames_back_and_the_daemon_resumes_when_space_returns() {
-    // Declared first, so dropped last: the processes on it stop before it is unmounted.
-    let Some(disk) = SmallDisk::mount(64) else {
-        eprintln!("skipped: no tmpfs could be mounted (see above)");
+    // Declared first, so dropped last: the worker on the disk stops before it is unmounted.
+    let Some(mut farm) = DaemonOnSmallDisk::start(&["--lease-timeout", "5"]) else {
         return;
     };
-    let outside = tempfile::tempdir().expect("tempdir");
-    let address = free_address();
-    // The log lies off the full disk, so that what the daemon says there is kept.
-    let mut server = ServeProcess::start_logging_to(
-        &address,
-        &disk.path().join("data"),
-        &outside.path().join("serve.log"),
-        &["--no-embedded-worker", "--lease-timeout", "5"],
-    );
-    let (mut datasets, mut jobs) = clients(&address).await;
-    let (_scratch, file) = scratch_sample("s.las", 20_000, 7);
-    let dataset = upload_file(&mut datasets, "s.las", &file).await;
+    let (dataset, mut jobs) = sample_dataset(&farm.address).await;
     let job = submit(&mut jobs, turntable_job("full", &dataset.id, 4, 64, 48)).await;
 
-    let filler = disk.fill("filler");
+    let filler = farm.disk.fill("filler");
     // The worker's own cache is elsewhere: only the daemon's disk is full.
     let worker = WorkerProcess::start(
-        &format!("http://{address}"),
-        &outside.path().join("worker"),
+        &format!("http://{}", farm.address),
+        &farm.outside.path().join("worker"),
         "w",
     );
     wait_for(Duration::from_secs(120), "disk-full report", || {
-        server
+        farm.server
             .log()
             .contains("the daemon's disk is full")
             .then_some(())
     });
-    wait_for_health(&address, ServingStatus::NotServing).await;
+    wait_for_health(&farm.address, ServingStatus::NotServing).await;
     // A few rounds of the worker's backoff while the disk stays full.
     tokio::time::sleep(Duration::from_secs(4)).await;
     let held_back = get_job(&mut jobs, &job.id).await;
-    assert_eq!(held_back.frames_done, 0, "{}", server.log());
-    let leases = JobServiceClient::new(connect(&address).await)
+    assert_eq!(held_back.frames_done, 0, "{}", farm.server.log());
+    let leases = JobServiceClient::new(connect(&farm.address).await)
         .list_leases(pb::ListLeasesRequest {})
         .await
         .expect("leases")
@@ -95,12 +139,12 @@ async fn a_full_disk_holds_frames_back_and_the_daemon_resumes_when_space_returns
         leases.is_empty(),
         "refused frames are given back: {leases:?}"
     );
-    let frames_dir = disk.path().join("data/jobs").join(&job.id);
+    let frames_dir = farm.disk.path().join("data/jobs").join(&job.id);
     let partial: Vec<_> = std::fs::read_dir(&frames_dir)
         .map(|entries| entries.flatten().map(|e| e.file_name()).collect())
         .unwrap_or_default();
     assert!(partial.is_empty(), "files left behind: {partial:?}");
-    let log = server.log();
+    let log = farm.server.log();
     assert_eq!(
         count(&log, "the daemon's disk is full"),
         1,
@@ -115,7 +159,7 @@ async fn a_full_disk_holds_frames_back_and_the_daemon_resumes_when_space_returns
 
     std::fs::remove_file(filler).expect("free the disk");
     let (_, frames) = watch_to_success(&mut jobs, &job.id, || {
-        format!("{}\n{}", server.log(), worker.log())
+        format!("{}\n{}", farm.server.log(), worker.log())
     })
     .await;
     let attempts: Vec<(u32, u32)> = frames
@@ -127,35 +171,23 @@ async fn a_full_disk_holds_frames_back_and_the_daemon_resumes_when_space_returns
         [(0, 0), (1, 0), (2, 0), (3, 0)],
         "every frame once, no attempt counted against any"
     );
-    assert!(server.is_running(), "no restart");
+    assert!(farm.server.is_running(), "no restart");
     assert!(
-        server.log().contains("takes writes again"),
+        farm.server.log().contains("takes writes again"),
         "{}",
-        server.log()
+        farm.server.log()
     );
-    wait_for_health(&address, ServingStatus::Serving).await;
+    wait_for_health(&farm.address, ServingStatus::Serving).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_job_submitted_to_a_full_disk_is_refused_before_anyone_sees_it() {
-    // Declared first, so dropped last: the daemon on it stops before it is unmounted.
-    let Some(disk) = SmallDisk::mount(64) else {
-        eprintln!("skipped: no tmpfs could be mounted (see above)");
+    let Some(farm) = DaemonOnSmallDisk::start(&[]) else {
         return;
     };
-    let outside = tempfile::tempdir().expect("tempdir");
-    let address = free_address();
-    let server = ServeProcess::start_logging_to(
-        &address,
-        &disk.path().join("data"),
-        &outside.path().join("serve.log"),
-        &["--no-embedded-worker"],
-    );
-    let (mut datasets, mut jobs) = clients(&address).await;
-    let (_scratch, file) = scratch_sample("s.las", 20_000, 7);
-    let dataset = upload_file(&mut datasets, "s.las", &file).await;
+    let (dataset, mut jobs) = sample_dataset(&farm.address).await;
 
-    let filler = disk.fill("filler");
+    let filler = farm.disk.fill("filler");
     let refused = jobs
         .submit_job(turntable_job("on-a-full-disk", &dataset.id, 4, 64, 48))
         .await
@@ -165,12 +197,7 @@ async fn a_job_submitted_to_a_full_disk_is_refused_before_anyone_sees_it() {
         refused.message().contains("the daemon's disk is full"),
         "{refused}"
     );
-    let listed = jobs
-        .list_jobs(pb::ListJobsRequest::default())
-        .await
-        .expect("list")
-        .into_inner()
-        .jobs;
+    let listed = listed_jobs(&mut jobs).await;
     assert!(listed.is_empty(), "the refused job is listed: {listed:?}");
 
     // Once the daemon's probe finds room again, the same submission makes the job.
@@ -192,16 +219,11 @@ async fn a_job_submitted_to_a_full_disk_is_refused_before_anyone_sees_it() {
             Err(status) => panic!("{status}"),
         }
     };
-    let listed = jobs
-        .list_jobs(pb::ListJobsRequest::default())
-        .await
-        .expect("list")
-        .into_inner()
-        .jobs;
+    let listed = listed_jobs(&mut jobs).await;
     assert_eq!(
         listed.iter().map(|j| j.id.as_str()).collect::<Vec<_>>(),
         [job.id.as_str()],
         "{}",
-        server.log()
+        farm.server.log()
     );
 }

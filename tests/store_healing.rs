@@ -148,14 +148,7 @@ fn damage_a_frame_reads_builds_the_store_again_and_draws_the_frame_from_it() {
     // The nodes past the coarse sample (taken by key, up to its points) as it opens.
     let store = StoredLod::open_or_build(&[], &folder, 64 << 20, None, &mut |_| {})
         .expect("open the store");
-    let mut nodes: Vec<NodeInfo> = store
-        .dataset
-        .hierarchy()
-        .nodes()
-        .iter()
-        .filter(|n| n.point_count > 0)
-        .copied()
-        .collect();
+    let mut nodes: Vec<NodeInfo> = store.dataset.hierarchy().stored_nodes().copied().collect();
     drop(store);
     nodes.sort_by_key(|n| n.key);
     let mut sampled = 0;

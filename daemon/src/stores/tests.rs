@@ -53,13 +53,7 @@ fn wait_ready(stores: &DatasetStores, dataset: &Dataset) -> Arc<ReadyStore> {
 
 /// The nodes of `store`'s hierarchy with points, and their keys.
 fn stored_nodes(store: &ReadyStore) -> (Vec<NodeInfo>, Vec<NodeKey>) {
-    let stored: Vec<NodeInfo> = store
-        .hierarchy()
-        .nodes()
-        .iter()
-        .filter(|n| n.point_count > 0)
-        .copied()
-        .collect();
+    let stored: Vec<NodeInfo> = store.hierarchy().stored_nodes().copied().collect();
     let keys = stored.iter().map(|n| n.key).collect();
     (stored, keys)
 }

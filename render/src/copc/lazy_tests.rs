@@ -5,7 +5,8 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use super::tests::{
-    copc_file, count_of, cut_at, entries, frame_settings, rgb_frame, root_page, u64_at, INFO_AT,
+    copc_file, count_of, cut_at, entries, frame_settings, rgb_frame, root_page, small_view, u64_at,
+    INFO_AT,
 };
 use super::*;
 use crate::camera::{Camera, Projection};
@@ -132,15 +133,9 @@ fn check_cuts(path: &Path) {
         for camera in &cameras {
             for (max_batches, max_points) in [(usize::MAX, None), (2, None), (64, Some(300))] {
                 views.push(CutView {
-                    camera,
-                    origin,
-                    width: 200,
-                    height: 150,
-                    point_size: 2,
-                    lod_error,
                     max_batches,
                     max_points,
-                    clip: None,
+                    ..small_view(camera, origin, lod_error)
                 });
             }
         }

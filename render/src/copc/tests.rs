@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use super::*;
 use crate::camera::Camera;
 use crate::color::ColorMode;
-use crate::cut::{CutError, CutOptions, CutRenderer, CutReport};
+use crate::cut::{CutError, CutOptions, CutRenderer, CutReport, CutView};
 use crate::filter::PointFilter;
 use crate::ingest::load_point_cloud;
 use crate::lod::{read_nodes, NodeKey};
@@ -185,12 +185,7 @@ fn a_decoder_sent_apart_from_the_file_decodes_its_chunks_as_the_file_does() {
         .expect("the file's own parts");
     let hierarchy = opened.dataset.hierarchy();
     let records = opened.dataset.records();
-    let stored: Vec<_> = hierarchy
-        .nodes()
-        .iter()
-        .filter(|n| n.point_count > 0)
-        .copied()
-        .collect();
+    let stored: Vec<_> = hierarchy.stored_nodes().copied().collect();
     let chunks = records.read_records(&stored).expect("read");
     for (info, bytes) in stored.iter().zip(&chunks) {
         let here = records
@@ -402,6 +397,22 @@ pub(super) fn frame_settings(bounds: &crate::cloud::WorldBounds) -> FrameSetting
         FrameSettings::new(200, 150, camera).with_point_size(PointSize::Fixed(3), bounds, None);
     settings.shading = Shading::None;
     settings
+}
+
+/// A 200 by 150 view from `camera` with 2-pixel points at `lod_error` pixels and no budget:
+/// the view the cut selection tests compare files by.
+pub(super) fn small_view(camera: &Camera, origin: glam::DVec3, lod_error: f64) -> CutView<'_> {
+    CutView {
+        camera,
+        origin,
+        width: 200,
+        height: 150,
+        point_size: 2,
+        lod_error,
+        max_batches: usize::MAX,
+        max_points: None,
+        clip: None,
+    }
 }
 
 /// A cut renderer of `dataset` refining to `lod_error` pixels, the one option these tests vary.

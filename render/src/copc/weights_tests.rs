@@ -5,10 +5,10 @@
 
 use std::path::{Path, PathBuf};
 
-use super::tests::{copc_file, cut_at, rgb_frame};
+use super::tests::{copc_file, cut_at, rgb_frame, small_view};
 use super::*;
 use crate::camera::Camera;
-use crate::cut::{select_cut, Cut, CutView};
+use crate::cut::{select_cut, Cut};
 use crate::lod::NodeKey;
 use crate::raster::{FrameSettings, Quality, Renderer, Shading};
 use crate::request::PointSize;
@@ -27,12 +27,7 @@ fn an_exported_files_nodes_carry_the_weights_of_its_store() {
     let hierarchy = opened.dataset.hierarchy();
     let records = opened.dataset.records();
     let mut heavier = 0;
-    for info in exported
-        .hierarchy
-        .nodes()
-        .iter()
-        .filter(|n| n.point_count > 0)
-    {
+    for info in exported.hierarchy.stored_nodes() {
         let stored = exported
             .store
             .read_node(&exported.hierarchy, info.key)
@@ -199,17 +194,7 @@ fn cuts_of_an_exported_file_are_the_stores() {
     let mut fewer = 0;
     for camera in &cameras {
         for lod_error in [8.0, 2.0, 1.0, 0.5, 0.25] {
-            let view = CutView {
-                camera,
-                origin,
-                width: 200,
-                height: 150,
-                point_size: 2,
-                lod_error,
-                max_batches: usize::MAX,
-                max_points: None,
-                clip: None,
-            };
+            let view = small_view(camera, origin, lod_error);
             let nodes = |cut: Cut| -> Vec<(NodeKey, u32)> {
                 cut.nodes.iter().map(|n| (n.key, n.points)).collect()
             };
@@ -304,17 +289,7 @@ fn any_byte_of_the_node_grids_flipped_opens_or_is_an_error_never_a_panic() {
             Ok(opened) => {
                 let bounds = opened.dataset.bounds();
                 let camera = Camera::auto(&bounds, 4.0 / 3.0);
-                let view = CutView {
-                    camera: &camera,
-                    origin: opened.dataset.origin(),
-                    width: 200,
-                    height: 150,
-                    point_size: 2,
-                    lod_error: 1.0,
-                    max_batches: usize::MAX,
-                    max_points: None,
-                    clip: None,
-                };
+                let view = small_view(&camera, opened.dataset.origin(), 1.0);
                 let cut = opened.dataset.select_cut(&view).expect("cut");
                 assert!(cut.points() > 0, "byte {at}: a cut of the file");
             }

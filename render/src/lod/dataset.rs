@@ -183,11 +183,7 @@ pub(crate) fn for_each_coarse_node_up_to(
     sample_points: u64,
     mut visit: impl FnMut(&NodePoints),
 ) -> Result<u64, LodError> {
-    let mut levels: Vec<_> = hierarchy
-        .nodes()
-        .iter()
-        .filter(|n| n.point_count > 0)
-        .collect();
+    let mut levels: Vec<_> = hierarchy.stored_nodes().collect();
     levels.sort_by_key(|n| n.key);
     let mut keys = Vec::new();
     let mut sampled = 0;

@@ -261,6 +261,11 @@ impl LodHierarchy {
         &self.nodes
     }
 
+    /// The nodes that hold points: those with a record to read (an empty node has none).
+    pub fn stored_nodes(&self) -> impl Iterator<Item = &NodeInfo> {
+        self.nodes.iter().filter(|n| n.point_count > 0)
+    }
+
     pub fn node(&self, key: NodeKey) -> Option<&NodeInfo> {
         self.index.get(&key).map(|&i| &self.nodes[i])
     }

@@ -150,14 +150,7 @@ fn a_batch_takes_the_spacing_of_the_deepest_nodes_drawn_where_it_lies() {
     assert!((coarse - root_cell / reference).abs() < 1e-5, "{coarse}");
 
     let (nodes, full) = root_factor(0.0);
-    assert_eq!(
-        nodes,
-        hierarchy
-            .nodes()
-            .iter()
-            .filter(|n| n.point_count > 0)
-            .count()
-    );
+    assert_eq!(nodes, hierarchy.stored_nodes().count());
     let coarsest_leaf = hierarchy
         .nodes()
         .iter()

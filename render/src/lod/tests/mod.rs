@@ -312,9 +312,7 @@ fn a_bucket_far_above_the_chunk_size_is_split_though_it_fits() {
 fn stored_nodes(built: &Built) -> Vec<(NodeKey, Vec<u8>)> {
     let hierarchy = &built.report.hierarchy;
     hierarchy
-        .nodes()
-        .iter()
-        .filter(|n| n.point_count > 0)
+        .stored_nodes()
         .map(|n| {
             let bytes = built
                 .store

@@ -138,7 +138,7 @@ fn a_truncated_payload_file_gives_corrupt_nodes_naming_them() {
         .expect("open");
     file.set_len(length / 2).expect("truncate");
     let (mut whole, mut cut) = (0, 0);
-    for node in hierarchy.nodes().iter().filter(|n| n.point_count > 0) {
+    for node in hierarchy.stored_nodes() {
         match built.store.read_node(&hierarchy, node.key) {
             Ok(points) => {
                 let end = node.pieces(node.byte_len).map(|r| r.end).max();
@@ -231,9 +231,8 @@ fn the_top_levels_coarse_sections_are_read_in_few_runs() {
     });
     let hierarchy = &built.report.hierarchy;
     let top: Vec<NodeInfo> = hierarchy
-        .nodes()
-        .iter()
-        .filter(|n| n.point_count > 0 && n.key.level <= 4)
+        .stored_nodes()
+        .filter(|n| n.key.level <= 4)
         .copied()
         .collect();
     // Stretches of the file the top levels' coarse sections fill without a byte between.
