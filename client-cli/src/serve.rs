@@ -18,7 +18,7 @@ use pointfarm_daemon::service::{
     DEFAULT_MAX_IMAGE_SIDE, DEFAULT_MAX_UPLOAD_BYTES, DEFAULT_WORKER_CACHE_BYTES,
     DEFAULT_WORKER_FAILURES_BEFORE_BLOCKLIST,
 };
-use pointfarm_daemon::worker::supervisor::WorkerCommand;
+use pointfarm_daemon::supervisor::WorkerCommand;
 use pointfarm_proto::endpoint::connections::ConnectionLimits;
 use pointfarm_render::gpu::AdapterChoice;
 

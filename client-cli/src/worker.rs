@@ -12,12 +12,12 @@ use pointfarm_daemon::capabilities::{checked_tags, WorkerCapabilities};
 use pointfarm_daemon::metrics::{http, WorkerMetrics};
 use pointfarm_daemon::open_files;
 use pointfarm_daemon::service::DEFAULT_WORKER_CACHE_BYTES;
-use pointfarm_daemon::worker::memory_limit;
-use pointfarm_daemon::worker::remote::{run as run_worker, RemoteWorkerConfig};
-use pointfarm_daemon::worker::supervisor::exit_when_supervisor_exits;
 use pointfarm_proto::endpoint::connections::ConnectionLimits;
 use pointfarm_proto::endpoint::ServerEndpoint;
 use pointfarm_render::gpu::{AdapterChoice, GpuContext};
+use pointfarm_worker::lease_loop::{run as run_worker, RemoteWorkerConfig};
+use pointfarm_worker::memory_limit;
+use pointfarm_worker::supervised::exit_when_supervisor_exits;
 
 use crate::config_file::ConfigArgs;
 use crate::credentials::secret;

@@ -11,13 +11,15 @@
 //! (datasets of one or more files: registered, uploaded, composed; more `Daemon` methods),
 //! `describe` (what a dataset's files hold, read with the render crate; more `Daemon` methods),
 //! `lease` (frame leases: the one scheduling path, more `Daemon` methods), `grpc` (validates,
-//! converts and delegates: one file per service, the conversions, the streaming of bytes), `worker`
-//! (what leases frames: the worker process — a gRPC client — with its render state, which renders
-//! with `pointfarm-render`, and the supervisor that runs it as the daemon's embedded worker),
-//! `access` (the client and worker roles and their tokens), `server` (sockets, TLS, health,
-//! reflection, the lease sweep, shutdown), `metrics` (Prometheus metrics of the daemon and the
-//! worker, and their HTTP endpoint); `testing` (a small real disk to fill, for tests).
-//! Only `grpc`, `worker::remote` and `server` (which mounts the services) know protobuf.
+//! converts and delegates: one file per service, the conversions, the streaming of bytes; the
+//! frame-task conversions are public for the worker's side of the wire), `supervisor` (runs the
+//! embedded worker as a child process, a `pointfarm worker` whose code is the `pointfarm-worker`
+//! crate's, never linked here), `access` (the client and worker roles and their tokens),
+//! `server` (sockets, TLS, health, reflection, the lease sweep, shutdown), `metrics` (Prometheus
+//! metrics of the daemon and the worker, and their HTTP endpoint); `testing` (a small real disk
+//! to fill, for tests).
+//! Only `grpc` and `server` (which mounts the services) know protobuf here; the worker crate's
+//! lease loop is the other side of the wire.
 
 pub mod access;
 pub mod availability;
@@ -40,9 +42,9 @@ pub mod server;
 pub mod service;
 pub mod state;
 pub mod stores;
+pub mod supervisor;
 #[cfg(test)]
 mod test_daemon;
 #[cfg(any(test, feature = "testing"))]
 pub mod testing;
-pub mod worker;
 pub mod worker_presence;

@@ -37,7 +37,7 @@ use tonic_health::ServingStatus;
 use crate::access::{bearer_token, Access, Exposure, Role};
 use crate::grpc::{Api, EmbeddedWorkerCall};
 use crate::service::Daemon;
-use crate::worker::supervisor::{Supervisor, WorkerCommand};
+use crate::supervisor::{Supervisor, WorkerCommand};
 
 /// How the daemon is reached: who may call (tokens per role), TLS, and whether to serve
 /// beyond loopback without them.

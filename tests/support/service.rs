@@ -7,7 +7,7 @@ use pointfarm_daemon::access::Access;
 use pointfarm_daemon::model::JobSpec;
 use pointfarm_daemon::server::ServeOptions;
 use pointfarm_daemon::service::{Daemon, DaemonConfig};
-use pointfarm_daemon::worker::supervisor::WorkerCommand;
+use pointfarm_daemon::supervisor::WorkerCommand;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;

@@ -2,8 +2,9 @@
 //! results. No domain logic lives here.
 //!
 //! - `conversions`: messages to domain types and back (`From`/`TryFrom`); the frame-task
-//!   conversions are public, for the remote worker's side of the wire, and so are those of
-//!   dataset descriptions, which `pointfarm info` builds from local files too.
+//!   conversions are public, for the worker's side of the wire (the `pointfarm-worker`
+//!   crate), and so are those of dataset descriptions, which `pointfarm info` builds from
+//!   local files too.
 //! - `status`: the one map from [`crate::error::DaemonError`] to status codes.
 //! - `datasets`, `jobs`, `workers`: one file per service.
 //! - `lease_guard`: gives back the frame of an abandoned long-polling lease request.

@@ -33,6 +33,11 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::{bail, Context};
+use pointfarm_daemon::capabilities::WorkerCapabilities;
+use pointfarm_daemon::grpc::streaming::{HashingWriter, CHUNK_BYTES};
+use pointfarm_daemon::grpc::{frame_cut_message, frame_task, timings_message};
+use pointfarm_daemon::lease::{FrameTask, TaskFile};
+use pointfarm_daemon::metrics::WorkerMetrics;
 use pointfarm_proto::endpoint::ServerEndpoint;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
@@ -44,15 +49,10 @@ use tokio::sync::watch;
 use tonic::{Code, Status};
 use tracing::Instrument;
 
-use crate::capabilities::WorkerCapabilities;
-use crate::grpc::streaming::{HashingWriter, CHUNK_BYTES};
-use crate::grpc::{frame_cut_message, frame_task, timings_message};
-use crate::lease::{FrameTask, TaskFile};
-use crate::metrics::WorkerMetrics;
-use crate::worker::client::Client;
-use crate::worker::daemon_store::{self, DaemonStore};
-use crate::worker::failure::FrameFailure;
-use crate::worker::render_state::{DatasetAccess, LodConfig, RenderedFrame, WorkerRenderState};
+use crate::client::Client;
+use crate::daemon_store::{self, DaemonStore};
+use crate::failure::FrameFailure;
+use crate::render_state::{DatasetAccess, LodConfig, RenderedFrame, WorkerRenderState};
 
 /// How long one lease request waits for work on the daemon.
 const LEASE_WAIT_MS: u32 = 10_000;

@@ -6,8 +6,8 @@
 //!   is made for each daemon start and handed over in the environment, never on the command
 //!   line; the server knows the embedded worker's calls by it.
 //! - Its standard input is a pipe from the daemon: when the daemon exits, however it dies, the
-//!   pipe closes and the worker exits at once ([`exit_when_supervisor_exits`]), so no orphan
-//!   goes on rendering.
+//!   pipe closes and the worker exits at once (the worker crate's
+//!   `supervised::exit_when_supervisor_exits`), so no orphan goes on rendering.
 //! - Every exit is logged with its status or signal; each frame the process held counts a
 //!   failed attempt (`Daemon::embedded_worker_exited`); it is started again after a backoff
 //!   that grows while it keeps dying.
@@ -280,19 +280,6 @@ fn loopback(address: SocketAddr) -> SocketAddr {
         ip => ip,
     };
     SocketAddr::new(ip, address.port())
-}
-
-/// In the worker process started by a supervisor: exits the process as soon as its standard
-/// input closes, which happens when the daemon exits, however it ends.
-pub fn exit_when_supervisor_exits() -> std::io::Result<()> {
-    std::thread::Builder::new()
-        .name("supervisor-watch".into())
-        .spawn(|| {
-            let _ = std::io::copy(&mut std::io::stdin(), &mut std::io::sink());
-            eprintln!("the daemon that supervised this worker is gone: exiting");
-            std::process::exit(1);
-        })
-        .map(|_| ())
 }
 
 #[cfg(test)]

@@ -12,6 +12,8 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
+use pointfarm_daemon::lease::{FrameOutcome, FrameTask};
+use pointfarm_daemon::model::StageTiming;
 use pointfarm_render::cache::{CacheOutcome, DatasetCache};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::{point_colors, Coloring};
@@ -25,10 +27,8 @@ use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::dataset_point_count;
 use pointfarm_render::raster::{Clock, GpuPointCloud, Renderer};
 
-use crate::lease::{FrameOutcome, FrameTask};
-use crate::model::StageTiming;
-use crate::worker::daemon_store::{PreviewSample, RemoteStore};
-use crate::worker::failure::FrameFailure;
+use crate::daemon_store::{PreviewSample, RemoteStore};
+use crate::failure::FrameFailure;
 
 /// The cloud currently on the GPU.
 struct Resident {
@@ -607,7 +607,7 @@ fn finished(
     frame: &mut pointfarm_render::raster::Frame,
     mut timings: Vec<StageTiming>,
     dataset_cache_hit: Option<bool>,
-    cut: Option<crate::model::FrameCut>,
+    cut: Option<pointfarm_daemon::model::FrameCut>,
     preview: Option<f64>,
 ) -> Result<RenderedFrame, FrameFailure> {
     let png = encode::png_bytes(frame)

@@ -2,12 +2,11 @@
 //! cannot be read or rendered fails the same way every time, while lost GPUs, I/O errors and
 //! cut downloads may not.
 
+use pointfarm_daemon::lease::FailureKind;
 use pointfarm_render::cache::CacheError;
 use pointfarm_render::cut::CutError;
 use pointfarm_render::ingest::IngestError;
 use pointfarm_render::raster::RenderError;
-
-use crate::lease::FailureKind;
 
 /// A frame's failure as the worker reports it.
 #[derive(Debug, Clone, PartialEq)]

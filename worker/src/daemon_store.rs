@@ -3,16 +3,19 @@
 //! the nodes each frame's cut needs — checked against their own checksums as a local store's
 //! are — instead of downloading the dataset's files and building a store of its own. The
 //! daemon checks each record before it sends it, and builds a store that fails its checks
-//! again itself (`stores.rs`): a record failing here was damaged on the way, and the frame
-//! fails and is tried again with the store opened anew. A
-//! dataset of one COPC file comes the same way, its records the file's LAZ chunks, decoded
-//! here with what the daemon sends of its header. While the daemon builds a store, a preview
-//! job's frames render from the daemon's preview sample of the dataset (`fetch_preview`),
-//! fetched again when a task asks for a later version of it than the one loaded.
+//! again itself (the daemon's `stores.rs`): a record failing here was damaged on the way, and
+//! the frame fails and is tried again with the store opened anew. A dataset of one COPC file
+//! comes the same way, its records the file's LAZ chunks, decoded here with what the daemon
+//! sends of its header. While the daemon builds a store, a preview job's frames render from
+//! the daemon's preview sample of the dataset (`fetch_preview`), fetched again when a task
+//! asks for a later version of it than the one loaded.
 
 use std::sync::Arc;
 use std::time::Duration;
 
+use pointfarm_daemon::grpc::{copc_chunks, node_key_message, preview_sample_bounds};
+use pointfarm_daemon::lease::FrameTask;
+use pointfarm_daemon::stores::{CopcServed, MAX_NODES_PER_REQUEST};
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::cloud::{PointCloud, WorldBounds};
 use pointfarm_render::copc::CopcDecoder;
@@ -21,10 +24,7 @@ use pointfarm_render::lod::{
 };
 use tonic::{Code, Status};
 
-use super::client::Client;
-use crate::grpc::{copc_chunks, node_key_message, preview_sample_bounds};
-use crate::lease::FrameTask;
-use crate::stores::{CopcServed, MAX_NODES_PER_REQUEST};
+use crate::client::Client;
 
 /// The longest a fetch of one request's nodes may take before the frame fails (and is tried
 /// again): a daemon that stopped answering must not hold a frame for ever.
