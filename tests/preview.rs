@@ -13,12 +13,11 @@ use std::time::Duration;
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::stores::StoreBuildGate;
 use pointfarm_proto::v1 as pb;
-use pointfarm_render::color::point_colors;
-use pointfarm_render::ingest::{sample_chunk_starts, write_las, DatasetSource, LasWriteOptions};
-use pointfarm_render::lod::PointSource;
+use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::raster::Renderer;
 use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
 use pointfarm_render::sample::sample_scene;
+use pointfarm_render::source::{quiet, ChunkStarts, FrameSource};
 use pointfarm_tests::service::{
     clients, fetch_images, get_job, gpu, submit, turntable_job, TestDaemon,
 };
@@ -56,30 +55,33 @@ fn job(name: &str, dataset_id: &str, preview: bool) -> pb::SubmitJobRequest {
     }
 }
 
-/// What `render --preview` draws of `files` (`FrameSource::preview`): their chunk starts
-/// coloured, resident, framed by the files' header bounds.
+/// What `render --preview` draws of `files`, through the frame source it draws with: their
+/// chunk starts coloured, resident, framed by the files' header bounds.
 fn local_previews(files: &[PathBuf]) -> Vec<image::RgbaImage> {
-    let sample = sample_chunk_starts(files).expect("sample");
-    let bounds = DatasetSource::open(files).expect("files").bounds();
-    let mut cloud = sample.cloud;
-    let options = RenderOptions {
-        lod_error: Some(0.5),
-        ..RenderOptions::default()
-    };
-    cloud.colors = point_colors(&cloud, options.coloring());
+    let chunk_starts = ChunkStarts::read(files).expect("chunk starts");
     let request = RenderRequest {
         width: SIZE.0,
         height: SIZE.1,
         camera_path: CameraPath::Turntable(Turntable::around_the_cloud(FRAMES)),
         lens: Lens::default(),
-        render: options,
+        render: RenderOptions {
+            lod_error: Some(0.5),
+            ..RenderOptions::default()
+        },
     };
-    let mut renderer = Renderer::new(gpu());
-    let resident = renderer.upload(&cloud).expect("upload");
+    let mut source = FrameSource::preview(
+        Renderer::new(gpu()),
+        chunk_starts.with_nodes(&[]),
+        &request.render,
+        &quiet,
+    )
+    .expect("a preview");
     (0..FRAMES)
         .map(|index| {
-            let settings = request.frame_settings(index, &bounds, cloud.spacing());
-            renderer.render(&resident, &settings).expect("render").image
+            let settings = source.frame_settings(&request, index);
+            let rendered = source.render(&settings, &quiet).expect("render");
+            assert!(rendered.preview.is_some(), "a preview's frame");
+            rendered.frame.image
         })
         .collect()
 }

@@ -5,11 +5,13 @@
 //! or changed on the way. Each option must also change the picture, so that a dropped option
 //! cannot pass.
 
+use std::path::Path;
+
 use image::RgbaImage;
 use pointfarm_daemon::access::Access;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::cloud::PointCloud;
-use pointfarm_render::color::{point_colors, ColorMode, ColorRamp, ColorRange};
+use pointfarm_render::color::{ColorMode, ColorRamp, ColorRange};
 use pointfarm_render::filter::{ClipBox, CodeSet, IntensityRange};
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::raster::{FillSettings, Quality, Renderer, Shading};
@@ -18,6 +20,7 @@ use pointfarm_render::request::{
     StillCamera, Turntable, DEFAULT_UP,
 };
 use pointfarm_render::sample::sample_scene;
+use pointfarm_render::source::{quiet, FrameSource};
 use pointfarm_tests::service::{fetch_images, gpu, run_job, upload_file, write_sample, TestDaemon};
 
 const WIDTH: u32 = 64;
@@ -244,27 +247,28 @@ fn cases(cloud: &PointCloud) -> Vec<(&'static str, RenderRequest)> {
     cases
 }
 
-/// Every frame of `request`, rendered here.
+/// Every frame of `request` of the dataset of `file`, rendered here as `pointfarm render`
+/// renders it: through the frame source, resident.
 fn render_here(
-    renderer: &mut Renderer,
-    cloud: &PointCloud,
+    renderer: Renderer,
+    file: &Path,
     request: &RenderRequest,
-) -> Vec<RgbaImage> {
+) -> (Vec<RgbaImage>, Renderer) {
     request.validate().expect("a valid request");
-    let mut colored = cloud.clone();
-    colored.colors = point_colors(cloud, request.render.coloring());
-    request
-        .render
-        .filter
-        .apply(&mut colored)
-        .expect("a filter inside the cloud");
-    let resident = renderer.upload(&colored).expect("upload");
-    (0..request.frames())
+    let files = [file.to_path_buf()];
+    let mut source = FrameSource::resident(renderer, &files, None, &request.render, &quiet)
+        .expect("the dataset resident");
+    let images = (0..request.frames())
         .map(|index| {
-            let settings = request.frame_settings(index, &colored.bounds, colored.spacing());
-            renderer.render(&resident, &settings).expect("render").image
+            let settings = source.frame_settings(request, index);
+            source
+                .render(&settings, &quiet)
+                .expect("render")
+                .frame
+                .image
         })
-        .collect()
+        .collect();
+    (images, source.into_renderer())
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -281,11 +285,12 @@ async fn every_option_renders_the_same_here_and_through_the_service() {
     let daemon = TestDaemon::start(|_| {}, Access::default()).await;
     let dataset = upload_file(&mut daemon.datasets().await, "sample.las", &file).await;
     let mut jobs = daemon.jobs().await;
-    let mut renderer = Renderer::new(gpu());
-    let plain = render_here(&mut renderer, &cloud, &still()).remove(0);
+    let (mut plain, mut renderer) = render_here(Renderer::new(gpu()), &file, &still());
+    let plain = plain.remove(0);
 
     for (name, request) in cases(&cloud) {
-        let here = render_here(&mut renderer, &cloud, &request);
+        let (here, used) = render_here(renderer, &file, &request);
+        renderer = used;
         assert!(
             here.iter().all(|image| *image != plain),
             "{name}: the option does not change the picture"

@@ -13,8 +13,10 @@ use pointfarm_render::ingest::dataset_files;
 use pointfarm_render::lod::copc_export::{export_copc, CopcExportReport, ExportSettings};
 use serde::Serialize;
 
-use crate::lod_store::StoreCache;
-use crate::paths::user_cache_dir;
+use pointfarm_render::source::{LocalStore, SourceEvent};
+
+use crate::paths::store_cache;
+use crate::source_words::SourceWords;
 
 #[derive(Args)]
 pub struct ExportArgs {
@@ -108,15 +110,15 @@ impl ExportJson {
 pub fn run(args: ExportArgs) -> Result<()> {
     args.output.check()?;
     let files = dataset_files(&args.inputs)?;
-    let say = |line: String| crate::output::say(args.json, line);
-    let cache = StoreCache {
-        dir: args.cache_dir.clone().unwrap_or_else(user_cache_dir),
-        size_bytes: args.cache_size,
-    };
+    let stores = store_cache(args.cache_dir.as_ref(), args.cache_size);
     let budget = args
         .memory_budget
         .unwrap_or(CutOptions::default().memory_budget_bytes);
-    let stored = crate::lod_store::open_or_build(&files, &cache, budget, &say)?.stored;
+    let folder = stores.folder_of_files(&files)?;
+    let words = SourceWords::new(args.json, "export".into());
+    let events = |event: SourceEvent<'_>| words.tell(event);
+    let stored =
+        LocalStore::open_or_build(&files, &folder, budget, stores.disk_budget, &events)?.stored;
     let hierarchy = stored.dataset.hierarchy();
     let settings = ExportSettings::of_files(&files, &hierarchy.cube)?;
     let out = &args.output.copc;

@@ -17,10 +17,8 @@ mod demo;
 mod export;
 mod filter_args;
 mod frame_files;
-mod frame_source;
 mod generate;
 mod info;
-mod lod_store;
 mod logging;
 mod output;
 mod parse;
@@ -36,6 +34,7 @@ mod render_outputs;
 mod sample;
 mod serve;
 mod signals;
+mod source_words;
 mod video;
 mod worker;
 

@@ -4,6 +4,8 @@
 
 use std::path::PathBuf;
 
+use pointfarm_render::source::StoreCache;
+
 /// The daemon's state database, uploaded datasets and rendered frames.
 pub fn daemon_data_dir() -> PathBuf {
     service_dir("STATE_DIRECTORY", "/var/lib/pointfarm")
@@ -20,6 +22,18 @@ pub fn worker_cache_dir() -> PathBuf {
 /// The levels-of-detail stores of local `render` and `export`.
 pub fn user_cache_dir() -> PathBuf {
     xdg_dir("XDG_CACHE_HOME", ".cache").join("pointfarm")
+}
+
+/// The levels-of-detail stores of local `render` and `export`: in `cache_dir` (default
+/// [`user_cache_dir`]), at most `disk_budget` bytes together.
+pub fn store_cache(cache_dir: Option<&PathBuf>, disk_budget: Option<u64>) -> StoreCache {
+    StoreCache {
+        dir: cache_dir
+            .cloned()
+            .unwrap_or_else(user_cache_dir)
+            .join("lod"),
+        disk_budget,
+    }
 }
 
 /// The folder systemd made for the unit (`variable`, the first of a colon-separated list),

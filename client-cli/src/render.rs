@@ -10,23 +10,24 @@ use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_render::camera::{Camera, Projection};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::copc::is_copc;
-use pointfarm_render::cut::{
-    frame_points, CutOptions, FramePoints, PointSourceFacts, StoredLod, PREVIEW_LOD_ERROR_PX,
-};
+use pointfarm_render::cut::{CutOptions, StoredLod, PREVIEW_LOD_ERROR_PX};
 use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::{dataset_files, dataset_point_count};
 use pointfarm_render::legend::Legend;
 use pointfarm_render::lod::{BuildProgress, PREVIEW_REDRAW_SHARE, PREVIEW_STORED_POINTS};
-use pointfarm_render::raster::{FrameSettings, Stage, StageTimings};
+use pointfarm_render::raster::{FrameSettings, Renderer, Stage, StageTimings};
 use pointfarm_render::request::RenderRequest;
+use pointfarm_render::source::{
+    frame_points, ChunkStarts, FramePoints, FrameSource, Levels, LocalStore, PointSourceFacts,
+    SourceEvent, SourceFrame, StoreCache,
+};
 
 use crate::frame_files::save_depth;
-use crate::frame_source::{FrameSource, PreviewData, RenderedFrame};
-use crate::lod_store::{build_in_background, say_built, LocalStore, StoreCache};
-use crate::paths::user_cache_dir;
+use crate::paths::store_cache;
 use crate::render_json::FrameJson;
 use crate::render_outputs::{write_legend, Outputs};
+use crate::source_words::SourceWords;
 
 pub use crate::render_args::RenderArgs;
 
@@ -51,21 +52,19 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let files = dataset_files(&args.inputs)?;
     let say = |line: String| crate::output::say(args.json, line);
     let points = dataset_point_count(&files)?;
-    let label = args.inputs_label();
-    let say_input = |line: String| say(format!("{label}: {line}"));
+    let words = SourceWords::new(args.json, args.inputs_label());
+    let events = |event: SourceEvent<'_>| words.tell(event);
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
+    let renderer = Renderer::new(Arc::clone(&gpu));
     let copc = match files.as_slice() {
         [one] if is_copc(one)? => Some(one),
         _ => None,
     };
-    let cache = StoreCache {
-        dir: args.cache_dir.clone().unwrap_or_else(user_cache_dir),
-        size_bytes: args.cache_size,
-    };
+    let stores = store_cache(args.cache_dir.as_ref(), args.cache_size);
     // A store already built in the cache is cut, as a server cuts it, whatever the size.
     let store_folder = match copc {
         Some(_) => None,
-        None => Some(cache.folder(&files)?),
+        None => Some(stores.folder_of_files(&files)?),
     };
     let facts = PointSourceFacts {
         points: Some(points),
@@ -74,18 +73,19 @@ pub fn run(args: RenderArgs) -> Result<()> {
         levels_of_detail_asked: args.levels_of_detail_asked(),
     };
     let frame_points = frame_points(&facts);
+    let target = FrameTarget {
+        args: &args,
+        request: &request,
+        outputs: &outputs,
+        gpu: &gpu,
+        words: &words,
+    };
     if args.preview {
-        match (copc, frame_points, store_folder) {
+        match (copc, frame_points, &store_folder) {
             (Some(file), _, _) => {
                 let options = args.lod_options()?;
                 if options.lod_error < PREVIEW_LOD_ERROR_PX {
-                    let frames = FrameTarget {
-                        args: &args,
-                        request: &request,
-                        outputs: &outputs,
-                        gpu: &gpu,
-                    };
-                    return copc_preview_then_final(&frames, file, options, &say_input);
+                    return copc_preview_then_final(&target, renderer, file, options);
                 }
                 say(format!(
                     "--preview: the pixel error ({}) is a preview's already; {FINAL_AT_ONCE}",
@@ -96,64 +96,54 @@ pub fn run(args: RenderArgs) -> Result<()> {
                 "--preview: {points} points render resident, nothing to build; {FINAL_AT_ONCE}"
             )),
             (None, _, Some(folder)) if !facts.store_built => {
-                let options = args.lod_options()?;
-                let frames = FrameTarget {
-                    args: &args,
-                    request: &request,
-                    outputs: &outputs,
-                    gpu: &gpu,
+                let build = Build {
+                    files: &files,
+                    folder: folder.clone(),
+                    stores: &stores,
+                    options: args.lod_options()?,
+                    points,
                 };
-                return preview_then_final(
-                    &frames, &files, folder, &cache, options, points, &say_input,
-                );
+                return preview_then_final(&target, renderer, build);
             }
             (None, _, _) => say(format!("--preview: {BUILT_ALREADY}; {FINAL_AT_ONCE}")),
         }
     }
-    let mut source = match (copc, frame_points) {
-        (Some(file), _) => FrameSource::copc(
-            Arc::clone(&gpu),
-            file,
-            args.lod_options()?,
-            &request.render,
-            &say_input,
-        )?,
-        (None, FramePoints::Resident) => {
-            FrameSource::resident(Arc::clone(&gpu), &files, &request.render, &say_input)?
+    let render = &request.render;
+    let mut source = match (copc, frame_points, store_folder) {
+        (Some(file), _, _) => {
+            FrameSource::copc(renderer, file, args.lod_options()?, render, &events)?
         }
-        (None, _) => FrameSource::cut(
-            Arc::clone(&gpu),
+        (None, FramePoints::Resident, _) | (None, _, None) => {
+            FrameSource::resident(renderer, &files, None, render, &events)?
+        }
+        (None, _, Some(folder)) => FrameSource::local_store(
+            renderer,
             &files,
-            &cache,
+            &folder,
+            stores.disk_budget,
             args.lod_options()?,
-            &request.render,
-            &say_input,
+            render,
+            &events,
         )?,
     };
-    render_frames(&args, &request, &outputs, &gpu, &mut source, &|| true)
+    target.render(&mut source, &|| true)
 }
 
 const BUILT_ALREADY: &str = "the levels of detail are built already";
 const FINAL_AT_ONCE: &str = "rendering the final frames";
 
-/// What frames are rendered for and where they go.
+/// What frames are rendered for, where they go, and who tells their source's steps.
 struct FrameTarget<'a> {
     args: &'a RenderArgs,
     request: &'a RenderRequest,
     outputs: &'a Outputs,
     gpu: &'a Arc<GpuContext>,
+    words: &'a SourceWords,
 }
 
 impl FrameTarget<'_> {
     fn render(&self, source: &mut FrameSource, keep_going: &dyn Fn() -> bool) -> Result<()> {
-        render_frames(
-            self.args,
-            self.request,
-            self.outputs,
-            self.gpu,
-            source,
-            keep_going,
-        )
+        render_frames(self, source, keep_going)
     }
 
     /// Renders every final frame from `source` over the previews, and says where they are.
@@ -168,27 +158,38 @@ impl FrameTarget<'_> {
         );
         Ok(())
     }
+
+    fn events(&self) -> impl Fn(SourceEvent<'_>) + '_ {
+        |event| self.words.tell(event)
+    }
 }
 
-/// Renders the frames from the files' chunk starts while their store builds in `folder` on
-/// another thread, again with the nodes stored so far each time another tenth of the points
-/// is stored, then the final frames from the store over them.
-fn preview_then_final(
-    target: &FrameTarget<'_>,
-    files: &[PathBuf],
+/// The store a preview is drawn in front of: of `files`, built in `folder`.
+struct Build<'a> {
+    files: &'a [PathBuf],
     folder: PathBuf,
-    cache: &StoreCache,
+    stores: &'a StoreCache,
     options: CutOptions,
     points: u64,
-    say_input: &dyn Fn(String),
+}
+
+/// Renders the frames from the files' chunk starts while their store builds on another
+/// thread, again with the nodes stored so far each time another tenth of the points is
+/// stored, then the final frames from the store over them.
+fn preview_then_final(
+    target: &FrameTarget<'_>,
+    renderer: Renderer,
+    build: Build<'_>,
 ) -> Result<()> {
-    let FrameTarget {
-        args,
-        request,
-        outputs,
-        gpu,
-    } = *target;
-    say_input(format!(
+    let Build {
+        files,
+        folder,
+        stores,
+        options,
+        points,
+    } = build;
+    let events = target.events();
+    target.words.say(&format!(
         "building levels of detail of {points} points in the background (once; kept in {})",
         folder.display()
     ));
@@ -196,41 +197,41 @@ fn preview_then_final(
     // share the cores with (docs/perf/preview-first-frame.md).
     let (start_build, build_gate) = mpsc::channel();
     let progress = Arc::new(BuildProgress::new());
-    let build = build_in_background(
+    let build = LocalStore::build_in_background(
         files.to_vec(),
         folder,
-        cache,
         options.memory_budget_bytes,
+        stores.disk_budget,
         build_gate,
         Arc::clone(&progress),
     )?;
-    let data = PreviewData::read(files, &request.render)?;
+    let chunk_starts = ChunkStarts::read(files)?;
+    let render = &target.request.render;
     let mut preview =
-        FrameSource::preview(Arc::clone(gpu), &data, &[], &request.render, say_input)?;
+        FrameSource::preview(renderer, chunk_starts.with_nodes(&[]), render, &events)?;
     let building = || !build.is_finished();
-    render_frames(args, request, outputs, gpu, &mut preview, &|| {
+    target.render(&mut preview, &|| {
         let _ = start_build.send(());
         building()
     })?;
     drop(start_build);
-    // The preview's GPU memory is the final frames' node cache's: dropped before them.
-    redraw_while_building(target, &data, &progress, &building, preview, say_input)?;
+    // The preview's GPU memory is the final frames' node cache's: let go of before them.
+    let renderer = redraw_while_building(target, &chunk_starts, &progress, &building, preview)?;
     let built = build.join();
-    let lod = built.map_err(|_| anyhow::anyhow!("the levels of detail's build panicked"))??;
-    say_built(&lod, say_input);
-    let lod = LocalStore::new(
-        lod,
-        files.to_vec(),
+    let stored = built.map_err(|_| anyhow::anyhow!("the levels of detail's build panicked"))??;
+    let store = LocalStore::of_built(
+        stored,
+        files,
         options.memory_budget_bytes,
-        cache.size_bytes,
+        stores.disk_budget,
+        &events,
     );
-    let mut source = FrameSource::stored(
-        Arc::clone(gpu),
-        lod,
-        files.len(),
+    let mut source = FrameSource::levels(
+        renderer,
+        Levels::Store(Box::new(store)),
         options,
-        &request.render,
-        say_input,
+        render,
+        &events,
     )?;
     target.render_final(&mut source)
 }
@@ -240,16 +241,16 @@ fn preview_then_final(
 /// previews read still cached.
 fn copc_preview_then_final(
     target: &FrameTarget<'_>,
+    renderer: Renderer,
     file: &Path,
     options: CutOptions,
-    say_input: &dyn Fn(String),
 ) -> Result<()> {
-    let FrameTarget { request, gpu, .. } = *target;
-    let mut source =
-        FrameSource::copc_preview(Arc::clone(gpu), file, options, &request.render, say_input)?;
+    let render = &target.request.render;
+    let mut source = FrameSource::copc(renderer, file, options, render, &target.events())?;
+    source.preview_cuts(true)?;
     target.render(&mut source, &|| true)?;
-    source.finish_preview(options.lod_error)?;
-    say_input(format!(
+    source.preview_cuts(false)?;
+    target.words.say(&format!(
         "final frames at a pixel error of {}",
         options.lod_error
     ));
@@ -257,16 +258,15 @@ fn copc_preview_then_final(
 }
 
 /// Draws the preview frames again, each time the build has stored another tenth of the
-/// points, from the chunk starts and the nodes stored so far, until `building` says it is done.
+/// points, from the chunk starts and the nodes stored so far, until `building` says it is
+/// done; gives back the renderer.
 fn redraw_while_building(
     target: &FrameTarget<'_>,
-    data: &PreviewData,
+    chunk_starts: &ChunkStarts,
     progress: &BuildProgress,
     building: &dyn Fn() -> bool,
     mut preview: FrameSource,
-    say_input: &dyn Fn(String),
-) -> Result<()> {
-    let FrameTarget { request, gpu, .. } = *target;
+) -> Result<Renderer> {
     let mut drawn = 0;
     loop {
         let spinner = crate::progress::spinner("waiting for the levels of detail".into());
@@ -280,11 +280,11 @@ fn redraw_while_building(
         };
         spinner.finish_and_clear();
         if !building() {
-            return Ok(());
+            return Ok(preview.into_renderer());
         }
         drawn = stored;
         // The preview's GPU memory is the next one's.
-        drop(preview);
+        let renderer = preview.into_renderer();
         let reading = std::time::Instant::now();
         let nodes = progress.read_points(PREVIEW_STORED_POINTS)?;
         tracing::info!(
@@ -293,8 +293,9 @@ fn redraw_while_building(
             read_ms = format!("{:.0}", reading.elapsed().as_secs_f64() * 1e3),
             "preview redrawn with the nodes stored so far"
         );
-        preview = FrameSource::preview(Arc::clone(gpu), data, &nodes, &request.render, say_input)?;
+        let points = chunk_starts.with_nodes(&nodes);
         drop(nodes);
+        preview = FrameSource::preview(renderer, points, &target.request.render, &target.events())?;
         target.render(&mut preview, building)?;
     }
 }
@@ -303,13 +304,18 @@ fn redraw_while_building(
 /// after the first; a preview's frames are followed by final ones, so only final frames
 /// write the legend, the summary and the video.
 fn render_frames(
-    args: &RenderArgs,
-    request: &RenderRequest,
-    outputs: &Outputs,
-    gpu: &GpuContext,
+    target: &FrameTarget<'_>,
     source: &mut FrameSource,
     keep_going: &dyn Fn() -> bool,
 ) -> Result<()> {
+    let FrameTarget {
+        args,
+        request,
+        outputs,
+        gpu,
+        ..
+    } = *target;
+    let events = target.events();
     let say = |line: String| crate::output::say(args.json, line);
     let is_preview = source.is_preview();
     if let (Some(path), false) = (&outputs.legend, is_preview) {
@@ -357,7 +363,7 @@ fn render_frames(
             break;
         }
         let frame_settings = settings(i);
-        let mut rendered = source.render(&frame_settings, &say)?;
+        let mut rendered = source.render(&frame_settings, &events)?;
         // The next frame's nodes load while this one is encoded and written.
         if i + 1 < frames {
             source.read_ahead(&settings(i + 1));
@@ -408,7 +414,7 @@ fn report_frame(
     path: &Path,
     settings: &FrameSettings,
     bounds: &WorldBounds,
-    rendered: &RenderedFrame,
+    rendered: &SourceFrame,
     progress: &ProgressBar,
 ) {
     let line = if args.json {
@@ -416,7 +422,7 @@ fn report_frame(
             .unwrap_or_default()
     } else {
         let mut line = format!("{}  {}", path.display(), rendered.frame.timings);
-        if rendered.preview {
+        if rendered.preview.is_some() {
             line.push_str(&format!(
                 "  | preview of {} of {} points ({:.3}%)",
                 rendered.points_rendered,

@@ -13,7 +13,7 @@ use pointfarm_render::cut::CutReport;
 use pointfarm_render::raster::FrameSettings;
 use serde::Serialize;
 
-use crate::frame_source::RenderedFrame;
+use pointfarm_render::source::SourceFrame;
 
 /// One frame as `render --json` reports it: its file and size, the points the point passes
 /// read after culling, each stage's milliseconds, the camera, the dataset's bounds and, for a
@@ -50,7 +50,7 @@ impl FrameJson {
         path: &Path,
         settings: &FrameSettings,
         bounds: &WorldBounds,
-        rendered: &RenderedFrame,
+        rendered: &SourceFrame,
     ) -> Self {
         Self {
             frame: index,
@@ -59,7 +59,7 @@ impl FrameJson {
             height: settings.height,
             points_total: rendered.points_total,
             points_rendered: rendered.points_rendered,
-            preview: rendered.preview,
+            preview: rendered.preview.is_some(),
             completeness: pointfarm_render::cut::completeness(
                 rendered.points_rendered,
                 rendered.points_total,

@@ -30,11 +30,10 @@ use std::sync::{Arc, Mutex};
 
 use pointfarm_render::color::Stretch;
 use pointfarm_render::copc::{is_copc, open_copc_whole, CopcDecoder};
-use pointfarm_render::cut::{
-    frame_points, CutError, FramePoints, LodDataset, PointSourceFacts, StoredLod,
-};
+use pointfarm_render::cut::{CutError, LodDataset, StoredLod};
 use pointfarm_render::ingest::dataset_point_count;
 use pointfarm_render::lod::{BuildProgress, LodHierarchy};
+use pointfarm_render::source::{frame_points, FramePoints, PointSourceFacts};
 
 use crate::dataset_files::DatasetFolders;
 use crate::error::DaemonError;

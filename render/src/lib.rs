@@ -22,6 +22,7 @@ pub mod raster;
 pub mod reference;
 pub mod request;
 pub mod sample;
+pub mod source;
 pub mod spacing;
 
 #[cfg(any(test, feature = "testing"))]

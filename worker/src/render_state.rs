@@ -18,14 +18,14 @@ use pointfarm_render::cache::{CacheOutcome, DatasetCache};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::{point_colors, Coloring};
 use pointfarm_render::cut::{
-    completeness, frame_points, CutError, CutOptions, CutRenderer, LodDataset, PointSourceFacts,
-    StoredLod, PREVIEW_LOD_ERROR_PX,
+    completeness, CutError, CutOptions, CutRenderer, LodDataset, StoredLod, PREVIEW_LOD_ERROR_PX,
 };
 use pointfarm_render::encode;
 use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::dataset_point_count;
 use pointfarm_render::raster::{Clock, GpuPointCloud, Renderer};
+use pointfarm_render::source::{frame_points, PointSourceFacts};
 
 use crate::daemon_store::{PreviewSample, RemoteStore};
 use crate::failure::FrameFailure;

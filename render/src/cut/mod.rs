@@ -28,7 +28,6 @@ mod host_cache;
 mod load;
 mod options;
 mod point_sizes;
-mod point_source;
 mod read_order;
 mod report;
 mod select;
@@ -65,7 +64,6 @@ pub use options::{
     DEFAULT_MEMORY_BUDGET_BYTES, MAX_CUT_POINTS_PER_PIXEL, MAX_LOD_ERROR_PX, MIN_BUDGET_BYTES,
     PREVIEW_LOD_ERROR_PX, RESIDENT_MAX_POINTS,
 };
-pub use point_source::{frame_points, FramePoints, PointSourceFacts};
 pub use report::{completeness, CutCounts, CutReport};
 pub use select::{select_cut, Cut, CutNode, CutView};
 pub use stored::StoredLod;

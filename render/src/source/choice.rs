@@ -3,7 +3,7 @@
 //! daemon and a worker that keeps its own stores all make, so a dataset renders the same way
 //! here and through a server.
 
-use super::options::RESIDENT_MAX_POINTS;
+use crate::cut::RESIDENT_MAX_POINTS;
 
 /// The ways a frame's points come.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

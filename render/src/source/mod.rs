@@ -1,0 +1,554 @@
+//! Where a frame's points come from, and the frames drawn from them: the one assembly that a
+//! local render and a worker share, so a dataset renders the same way here and through a
+//! server.
+//!
+//! [`frame_points`] decides from a dataset's facts and the request whether its frames are
+//! drawn from the whole dataset resident on the GPU, from cuts through its level-of-detail
+//! store, or from cuts through a COPC file's own hierarchy. A [`FrameSource`] is opened from
+//! local files (through a dataset cache or not), a store of this machine, a COPC file, node
+//! records a daemon serves, or a preview's points; it renders each frame and reports what it
+//! drew. What happens on the way (files read, a store built or built again, a filter's share)
+//! goes out as [`SourceEvent`]s: the command line says them, a worker logs them.
+//!
+//! - `choice`: the rule, resident or a cut.
+//! - `events`: what a source tells as it opens and renders.
+//! - `local_store`: stores in folders of this machine, built again once when damaged.
+//! - `preview`: what a preview draws while a store builds.
+
+mod choice;
+mod events;
+mod local_store;
+mod preview;
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use thiserror::Error;
+
+use crate::cache::{CacheError, CacheOutcome, DatasetCache};
+use crate::cloud::{PointCloud, WorldBounds};
+use crate::color::{point_colors, ramp_range, ColorRange, Coloring};
+use crate::copc::{open_copc, CopcDataset, CopcError};
+use crate::cut::{
+    completeness, CutError, CutOptions, CutRenderer, CutReport, LodDataset, PREVIEW_LOD_ERROR_PX,
+};
+use crate::filter::{FilterError, PointFilter};
+use crate::ingest::{load_dataset, IngestError};
+use crate::raster::{Frame, FrameSettings, GpuPointCloud, RenderError, Renderer};
+use crate::request::{RenderOptions, RenderRequest};
+
+pub use choice::{frame_points, FramePoints, PointSourceFacts};
+pub use events::{quiet, LevelsFrom, SourceEvent};
+pub use local_store::{LocalStore, StoreCache};
+pub use preview::{ChunkStarts, PreviewPoints};
+
+/// Why a frame source could not open or render.
+#[derive(Debug, Error)]
+pub enum SourceError {
+    #[error(transparent)]
+    Ingest(#[from] IngestError),
+    #[error(transparent)]
+    Cache(#[from] CacheError),
+    #[error(transparent)]
+    Copc(#[from] CopcError),
+    #[error(transparent)]
+    Cut(#[from] CutError),
+    #[error(transparent)]
+    Render(#[from] RenderError),
+    #[error(transparent)]
+    Filter(#[from] FilterError),
+    #[error("{}: {error}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        error: std::io::Error,
+    },
+    /// A store failed its checks again after this opening had built it again.
+    #[error(
+        "the levels of detail in {} failed their checks again after they were rebuilt: {damage}",
+        folder.display()
+    )]
+    DamagedAgain { folder: PathBuf, damage: CutError },
+}
+
+/// A frame and what it drew.
+pub struct SourceFrame {
+    pub frame: Frame,
+    /// The dataset's points (a resident cloud's after the filter; a preview's dataset's).
+    pub points_total: u64,
+    pub points_rendered: u64,
+    /// For a preview, the share of the dataset's points it drew ([`completeness`]).
+    pub preview: Option<f64>,
+    /// The cut's nodes, caches and loads, for a frame of levels of detail.
+    pub cut: Option<CutReport>,
+    /// What opening the source took, with its first frame.
+    pub opened: Option<Opened>,
+}
+
+/// What opening a source took, reported with its first frame.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Opened {
+    /// Reading the dataset's points, in ms, and whether a dataset cache held them.
+    pub load_ms: Option<f64>,
+    pub cache: Option<CacheOutcome>,
+    /// Building the store, in ms, when this opening built it (or the daemon did for it).
+    pub build_ms: Option<f64>,
+}
+
+/// Where a cut's levels of detail come from.
+pub enum Levels {
+    /// A store of this machine.
+    Store(Box<LocalStore>),
+    /// A COPC file of this machine, its nodes read from it.
+    Copc(Box<CopcDataset>),
+    /// Node records another machine serves (a daemon's store, or its COPC file's chunks).
+    Served {
+        dataset: Box<LodDataset>,
+        /// How long the daemon took to build the store, when it built it for this opening.
+        build_ms: Option<f64>,
+    },
+}
+
+impl Levels {
+    pub fn dataset(&self) -> &LodDataset {
+        match self {
+            Self::Store(store) => &store.stored.dataset,
+            Self::Copc(copc) => &copc.dataset,
+            Self::Served { dataset, .. } => dataset,
+        }
+    }
+}
+
+/// How a source's points are on the GPU.
+enum Points {
+    /// One cloud drawn whole every frame.
+    Resident {
+        cloud: GpuPointCloud,
+        spacing: Option<f64>,
+        ramp_range: Option<ColorRange>,
+        /// For a preview, the points of the dataset it previews.
+        preview_of: Option<u64>,
+    },
+    /// Cuts of levels of detail through bounded node caches.
+    Cut {
+        cut: Box<CutRenderer>,
+        levels: Levels,
+        /// The pixel error of the final frames.
+        lod_error: f64,
+        /// Whether the cuts are a preview's, at [`PREVIEW_LOD_ERROR_PX`].
+        preview: bool,
+    },
+}
+
+/// A dataset's points ready to render, and the renderer that draws them.
+pub struct FrameSource {
+    renderer: Renderer,
+    coloring: Coloring,
+    filter: PointFilter,
+    /// What the automatic camera frames.
+    bounds: WorldBounds,
+    points: Points,
+    /// How the source was opened, until the first frame reports it.
+    unreported: Option<Opened>,
+}
+
+impl FrameSource {
+    /// The dataset of `files` read whole (from `cache`, under its content hash, when there is
+    /// one), coloured, filtered and uploaded.
+    pub fn resident(
+        renderer: Renderer,
+        files: &[PathBuf],
+        cache: Option<(&DatasetCache, &str)>,
+        options: &RenderOptions,
+        events: &dyn Fn(SourceEvent<'_>),
+    ) -> Result<Self, SourceError> {
+        let started = Instant::now();
+        events(SourceEvent::Reading { files });
+        let (cloud, outcome) = match cache {
+            Some((cache, sha256)) => {
+                let (cloud, outcome) = cache.load(sha256, files)?;
+                (cloud, Some(outcome))
+            }
+            None => (load_dataset(files)?, None),
+        };
+        let load_ms = started.elapsed().as_secs_f64() * 1e3;
+        events(SourceEvent::Read {
+            points: cloud.len(),
+            files: files.len(),
+            colors: cloud.color_source.describe(),
+            ms: load_ms,
+            cache: outcome,
+        });
+        let mut source = Self::of_cloud(renderer, cloud, options, None, events)?;
+        source.unreported = Some(Opened {
+            load_ms: Some(load_ms),
+            cache: outcome,
+            build_ms: None,
+        });
+        Ok(source)
+    }
+
+    /// A preview of `points`, resident, framed by the dataset files' header bounds as its
+    /// store's frames will be; each frame says how complete it is.
+    pub fn preview(
+        renderer: Renderer,
+        points: PreviewPoints,
+        options: &RenderOptions,
+        events: &dyn Fn(SourceEvent<'_>),
+    ) -> Result<Self, SourceError> {
+        events(SourceEvent::Preview {
+            points: points.cloud.len(),
+            points_in_files: points.points_in_files,
+            stored_nodes: points.stored_nodes,
+            stored_points: points.stored_points,
+            colors: points.cloud.color_source.describe(),
+        });
+        let framed = options.filter.framing_bounds(&points.files_bounds)?;
+        let mut source = Self::of_cloud(renderer, points.cloud, options, Some(framed), events)?;
+        if let Points::Resident { preview_of, .. } = &mut source.points {
+            *preview_of = Some(points.points_in_files);
+        }
+        Ok(source)
+    }
+
+    /// `cloud` coloured, filtered and uploaded; framed by its own bounds unless `framed` says
+    /// otherwise.
+    fn of_cloud(
+        renderer: Renderer,
+        mut cloud: PointCloud,
+        options: &RenderOptions,
+        framed: Option<WorldBounds>,
+        events: &dyn Fn(SourceEvent<'_>),
+    ) -> Result<Self, SourceError> {
+        let coloring = options.coloring();
+        cloud.colors = point_colors(&cloud, coloring);
+        let ramp_range = ramp_range(&cloud, coloring);
+        let points = cloud.len();
+        let kept = options.filter.apply(&mut cloud)?;
+        if !options.filter.keeps_everything() || kept == 0 {
+            events(SourceEvent::Filtered { kept, points });
+        }
+        let cloud_on_gpu = renderer.upload(&cloud)?;
+        Ok(Self {
+            renderer,
+            coloring,
+            filter: options.filter,
+            bounds: framed.unwrap_or(cloud.bounds),
+            points: Points::Resident {
+                cloud: cloud_on_gpu,
+                spacing: cloud.spacing(),
+                ramp_range,
+                preview_of: None,
+            },
+            unreported: None,
+        })
+    }
+
+    /// The store of `files` in `folder` (built first when there is none, or opened without
+    /// `files` when it is built), rendered cut by cut.
+    pub fn local_store(
+        renderer: Renderer,
+        files: &[PathBuf],
+        folder: &Path,
+        disk_budget: Option<u64>,
+        cut_options: CutOptions,
+        options: &RenderOptions,
+        events: &dyn Fn(SourceEvent<'_>),
+    ) -> Result<Self, SourceError> {
+        let store = LocalStore::open_or_build(
+            files,
+            folder,
+            cut_options.memory_budget_bytes,
+            disk_budget,
+            events,
+        )?;
+        Self::levels(
+            renderer,
+            Levels::Store(Box::new(store)),
+            cut_options,
+            options,
+            events,
+        )
+    }
+
+    /// A COPC file rendered cut by cut from its own hierarchy: no store is built, only the
+    /// nodes a frame's cut needs are read from the file.
+    pub fn copc(
+        renderer: Renderer,
+        file: &Path,
+        cut_options: CutOptions,
+        options: &RenderOptions,
+        events: &dyn Fn(SourceEvent<'_>),
+    ) -> Result<Self, SourceError> {
+        let copc = open_copc(file)?;
+        Self::levels(
+            renderer,
+            Levels::Copc(Box::new(copc)),
+            cut_options,
+            options,
+            events,
+        )
+    }
+
+    /// `levels` rendered cut by cut with `cut_options`, coloured and filtered as `options`
+    /// ask.
+    pub fn levels(
+        renderer: Renderer,
+        levels: Levels,
+        cut_options: CutOptions,
+        options: &RenderOptions,
+        events: &dyn Fn(SourceEvent<'_>),
+    ) -> Result<Self, SourceError> {
+        let dataset = levels.dataset();
+        let bounds = options.filter.framing_bounds(&dataset.bounds())?;
+        let cut = CutRenderer::new(&renderer, dataset, cut_options)?;
+        let budgets = cut.budgets();
+        let from = match &levels {
+            Levels::Store(store) => LevelsFrom::Store {
+                folder: store.folder(),
+                files: store.file_count(),
+            },
+            Levels::Copc(copc) => LevelsFrom::Copc {
+                nodes: copc.nodes,
+                pages: copc.pages,
+                unread_pages: copc.unread_pages,
+                sample_nodes: copc.sample_nodes,
+            },
+            Levels::Served { .. } => LevelsFrom::Served,
+        };
+        events(SourceEvent::Levels {
+            points: dataset.point_count(),
+            from,
+            host_cache_bytes: budgets.host_bytes,
+            gpu_cache_bytes: budgets.gpu_bytes,
+            lod_error: cut_options.lod_error,
+        });
+        let build_ms = match &levels {
+            Levels::Store(store) => store.stored.built.as_ref().map(|(_, s)| s * 1e3),
+            Levels::Copc(_) => None,
+            Levels::Served { build_ms, .. } => *build_ms,
+        };
+        Ok(Self {
+            renderer,
+            coloring: options.coloring(),
+            filter: options.filter,
+            bounds,
+            points: Points::Cut {
+                cut: Box::new(cut),
+                levels,
+                lod_error: cut_options.lod_error,
+                preview: false,
+            },
+            unreported: build_ms.map(|ms| Opened {
+                build_ms: Some(ms),
+                ..Opened::default()
+            }),
+        })
+    }
+
+    /// Draws the cuts that follow at [`PREVIEW_LOD_ERROR_PX`] (a preview, when that is
+    /// coarser than the final frames' error) or at the final frames' error, with the nodes
+    /// cached so far. Returns whether the frames are now previews; a resident source's are
+    /// what they are.
+    pub fn preview_cuts(&mut self, on: bool) -> Result<bool, SourceError> {
+        match &mut self.points {
+            Points::Resident { preview_of, .. } => Ok(preview_of.is_some()),
+            Points::Cut {
+                cut,
+                lod_error,
+                preview,
+                ..
+            } => {
+                let coarser = on && *lod_error < PREVIEW_LOD_ERROR_PX;
+                if coarser != *preview {
+                    cut.set_lod_error(if coarser {
+                        PREVIEW_LOD_ERROR_PX
+                    } else {
+                        *lod_error
+                    })?;
+                    *preview = coarser;
+                }
+                Ok(coarser)
+            }
+        }
+    }
+
+    /// Takes `options`' colours, filter and pixel error for the frames that follow, when this
+    /// source can draw them as a source opened anew would; otherwise `false`, and the caller
+    /// opens one anew. A resident cloud was coloured and filtered as it was uploaded; a cut
+    /// colours and filters each node as it loads, and changes its pixel error in place.
+    pub fn reuse_for(&mut self, options: &RenderOptions, lod_error: Option<f64>) -> bool {
+        match &mut self.points {
+            Points::Resident { .. } => {
+                self.coloring == options.coloring() && self.filter == options.filter
+            }
+            Points::Cut {
+                cut,
+                levels,
+                lod_error: current,
+                preview,
+            } => {
+                let Ok(bounds) = options.filter.framing_bounds(&levels.dataset().bounds()) else {
+                    return false;
+                };
+                let wanted = lod_error.unwrap_or(*current);
+                if wanted != *current {
+                    let error = if *preview {
+                        PREVIEW_LOD_ERROR_PX
+                    } else {
+                        wanted
+                    };
+                    if cut.set_lod_error(error).is_err() {
+                        return false;
+                    }
+                    *current = wanted;
+                }
+                self.coloring = options.coloring();
+                self.filter = options.filter;
+                self.bounds = bounds;
+                true
+            }
+        }
+    }
+
+    /// How this source's frames get their points.
+    pub fn frame_points(&self) -> FramePoints {
+        match &self.points {
+            Points::Resident { .. } => FramePoints::Resident,
+            Points::Cut {
+                levels: Levels::Copc(_),
+                ..
+            } => FramePoints::CopcCut,
+            Points::Cut { .. } => FramePoints::StoreCut,
+        }
+    }
+
+    /// The final frames' pixel error, for cuts.
+    pub fn lod_error(&self) -> Option<f64> {
+        match &self.points {
+            Points::Resident { .. } => None,
+            Points::Cut { lod_error, .. } => Some(*lod_error),
+        }
+    }
+
+    /// Whether the frames are previews: of a few of the dataset's points, or coarse cuts.
+    pub fn is_preview(&self) -> bool {
+        match &self.points {
+            Points::Resident { preview_of, .. } => preview_of.is_some(),
+            Points::Cut { preview, .. } => *preview,
+        }
+    }
+
+    /// The bounds the automatic camera frames.
+    pub fn bounds(&self) -> WorldBounds {
+        self.bounds
+    }
+
+    /// The typical distance between the points drawn, which sizes adaptive points: the
+    /// filtered cloud's, or the levels of detail's original points'.
+    pub fn spacing(&self) -> Option<f64> {
+        match &self.points {
+            Points::Resident { spacing, .. } => *spacing,
+            Points::Cut { levels, .. } => levels.dataset().point_spacing(),
+        }
+    }
+
+    /// The range elevation or intensity is drawn over (the request's, or the data's robust
+    /// one); `None` for the other modes.
+    pub fn ramp_range(&self) -> Option<ColorRange> {
+        match &self.points {
+            Points::Resident { ramp_range, .. } => *ramp_range,
+            Points::Cut { levels, .. } => levels.dataset().ramp_range(self.coloring),
+        }
+    }
+
+    pub fn renderer(&self) -> &Renderer {
+        &self.renderer
+    }
+
+    /// The renderer, for the next source: its pipelines are made once.
+    pub fn into_renderer(self) -> Renderer {
+        self.renderer
+    }
+
+    /// The settings of `request`'s frame `index`, framed and sized for these points.
+    pub fn frame_settings(&self, request: &RenderRequest, index: u32) -> FrameSettings {
+        request.frame_settings(index, &self.bounds, self.spacing())
+    }
+
+    /// Renders the frame of `settings`. A store of this machine whose bytes fail their checks
+    /// is built again (once) and the frame rendered from the new one.
+    pub fn render(
+        &mut self,
+        settings: &FrameSettings,
+        events: &dyn Fn(SourceEvent<'_>),
+    ) -> Result<SourceFrame, SourceError> {
+        let opened = self.unreported.take();
+        let renderer = &mut self.renderer;
+        match &mut self.points {
+            Points::Resident {
+                cloud, preview_of, ..
+            } => {
+                let frame = renderer.render(cloud, settings)?;
+                let points_total = preview_of.unwrap_or(cloud.len() as u64);
+                let points_rendered = renderer.listed_points();
+                Ok(SourceFrame {
+                    frame,
+                    points_total,
+                    points_rendered,
+                    preview: preview_of.map(|_| completeness(points_rendered, points_total)),
+                    cut: None,
+                    opened,
+                })
+            }
+            Points::Cut {
+                cut,
+                levels,
+                preview,
+                ..
+            } => {
+                let (frame, report) = loop {
+                    let rendered = cut.render(
+                        renderer,
+                        levels.dataset(),
+                        settings,
+                        self.coloring,
+                        &self.filter,
+                    );
+                    let damage = match rendered {
+                        Ok(rendered) => break rendered,
+                        Err(error) if error.is_store_damage() => error,
+                        Err(error) => return Err(error.into()),
+                    };
+                    let Levels::Store(store) = levels else {
+                        return Err(damage.into());
+                    };
+                    store.rebuild_after(damage, events)?;
+                    // The caches hold the old store's nodes: a new cut renderer starts empty.
+                    **cut = CutRenderer::new(renderer, &store.stored.dataset, *cut.options())?;
+                };
+                let counts = &report.counts;
+                Ok(SourceFrame {
+                    frame,
+                    points_total: counts.points_total,
+                    points_rendered: counts.points_rendered,
+                    preview: preview
+                        .then(|| completeness(counts.points_rendered, counts.points_total)),
+                    cut: Some(report),
+                    opened,
+                })
+            }
+        }
+    }
+
+    /// Starts loading the nodes of the frame of `settings` (the next one) while this one is
+    /// written.
+    pub fn read_ahead(&mut self, settings: &FrameSettings) {
+        if let Points::Cut { cut, levels, .. } = &mut self.points {
+            cut.read_ahead(levels.dataset(), settings, &self.filter);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,270 @@
+//! A frame source renders the same frames however its points come, says what it drew, and
+//! builds a damaged store of this machine again without losing the frame.
+
+use std::cell::RefCell;
+use std::sync::Arc;
+
+use super::*;
+use crate::ingest::{write_las, LasWriteOptions};
+use crate::request::{CameraPath, Lens, Turntable};
+use crate::testing::gpu;
+
+const FRAMES: u32 = 3;
+
+/// The events a source tells, each as its debug line.
+#[derive(Default)]
+pub(in crate::source) struct Told(RefCell<Vec<String>>);
+
+impl Told {
+    pub(in crate::source) fn tell(&self, event: SourceEvent<'_>) {
+        self.0.borrow_mut().push(format!("{event:?}"));
+    }
+
+    /// How many lines start with `kind` (an event's name).
+    pub(in crate::source) fn count(&self, kind: &str) -> usize {
+        self.0
+            .borrow()
+            .iter()
+            .filter(|l| l.starts_with(kind))
+            .count()
+    }
+
+    pub(in crate::source) fn lines(&self) -> String {
+        self.0.borrow().join("\n")
+    }
+}
+
+/// A turntable of `FRAMES` small frames with `options`.
+fn request(options: RenderOptions) -> RenderRequest {
+    RenderRequest {
+        width: 96,
+        height: 72,
+        camera_path: CameraPath::Turntable(Turntable::around_the_cloud(FRAMES)),
+        lens: Lens::default(),
+        render: options,
+    }
+}
+
+/// A dataset of `points` in a LAS file of `dir`.
+fn dataset(dir: &Path, points: usize) -> Vec<PathBuf> {
+    let file = dir.join("scene.las");
+    let scene = crate::sample::sample_scene(points, 7);
+    write_las(&file, &scene, &LasWriteOptions::default()).expect("write");
+    vec![file]
+}
+
+/// Every frame of `request` from `source`.
+fn frames(source: &mut FrameSource, request: &RenderRequest) -> Vec<SourceFrame> {
+    (0..request.frames())
+        .map(|index| {
+            let settings = source.frame_settings(request, index);
+            let frame = source.render(&settings, &quiet).expect("a frame");
+            if index + 1 < request.frames() {
+                source.read_ahead(&source.frame_settings(request, index + 1));
+            }
+            frame
+        })
+        .collect()
+}
+
+fn images(frames: &[SourceFrame]) -> Vec<image::RgbaImage> {
+    frames.iter().map(|f| f.frame.image.clone()).collect()
+}
+
+fn cut_options(lod_error: f64) -> CutOptions {
+    CutOptions {
+        lod_error,
+        ..CutOptions::default()
+    }
+}
+
+#[test]
+fn a_store_and_its_records_served_from_elsewhere_give_the_same_frames() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let files = dataset(dir.path(), 40_000);
+    let request = request(RenderOptions::default());
+    let folder = dir.path().join("store");
+    let mut local = FrameSource::local_store(
+        Renderer::new(gpu()),
+        &files,
+        &folder,
+        None,
+        cut_options(1.0),
+        &request.render,
+        &quiet,
+    )
+    .expect("the store");
+    assert_eq!(local.frame_points(), FramePoints::StoreCut);
+    let here = frames(&mut local, &request);
+    assert!(here[0].opened.and_then(|o| o.build_ms).is_some(), "built");
+    assert!(here[1].opened.is_none(), "told once");
+
+    // The same records through the `NodeRecords` a daemon's store is read through.
+    let Points::Cut { levels, .. } = &local.points else {
+        panic!("a cut")
+    };
+    let stored = levels.dataset();
+    let dataset = LodDataset::with_records(
+        Arc::clone(stored.records()),
+        stored.hierarchy().clone(),
+        stored.bounds(),
+    )
+    .expect("served");
+    let served = Levels::Served {
+        dataset: Box::new(dataset),
+        build_ms: Some(12.0),
+    };
+    let mut served = FrameSource::levels(
+        Renderer::new(gpu()),
+        served,
+        cut_options(1.0),
+        &request.render,
+        &quiet,
+    )
+    .expect("served");
+    let there = frames(&mut served, &request);
+    assert_eq!(there[0].opened.and_then(|o| o.build_ms), Some(12.0));
+    assert_eq!(images(&here), images(&there), "pixel for pixel");
+    for (a, b) in here.iter().zip(&there) {
+        assert_eq!(a.points_rendered, b.points_rendered);
+        assert_eq!(a.points_total, 40_000);
+        assert!(a.cut.is_some() && a.preview.is_none());
+    }
+}
+
+#[test]
+fn coarse_cuts_are_previews_that_say_how_complete_they_are() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let files = dataset(dir.path(), 400_000);
+    let request = request(RenderOptions::default());
+    let mut source = FrameSource::local_store(
+        Renderer::new(gpu()),
+        &files,
+        &dir.path().join("store"),
+        None,
+        cut_options(0.5),
+        &request.render,
+        &quiet,
+    )
+    .expect("the store");
+    let finals = images(&frames(&mut source, &request));
+    assert!(source.preview_cuts(true).expect("coarse"));
+    assert!(source.is_preview());
+    let previews = frames(&mut source, &request);
+    for frame in &previews {
+        let completeness = frame.preview.expect("a preview");
+        assert!(completeness > 0.0 && completeness < 1.0, "{completeness}");
+        assert!(frame.points_rendered < frame.points_total);
+    }
+    assert!(!source.preview_cuts(false).expect("final"));
+    assert_eq!(images(&frames(&mut source, &request)), finals);
+
+    // A final error coarser than a preview's leaves nothing to preview.
+    let mut coarse = FrameSource::local_store(
+        source.into_renderer(),
+        &files,
+        &dir.path().join("store"),
+        None,
+        cut_options(PREVIEW_LOD_ERROR_PX * 2.0),
+        &request.render,
+        &quiet,
+    )
+    .expect("the store");
+    assert!(!coarse.preview_cuts(true).expect("no coarser cut"));
+}
+
+#[test]
+fn a_preview_frames_the_files_and_counts_the_dataset() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let files = dataset(dir.path(), 120_000);
+    let request = request(RenderOptions::default());
+    let chunk_starts = ChunkStarts::read(&files).expect("chunk starts");
+    let told = Told::default();
+    let events = |event: SourceEvent<'_>| told.tell(event);
+    let mut preview = FrameSource::preview(
+        Renderer::new(gpu()),
+        chunk_starts.with_nodes(&[]),
+        &request.render,
+        &events,
+    )
+    .expect("a preview");
+    assert!(preview.is_preview());
+    // Framed as the frames of the files' store are, though only a few of their points are
+    // drawn.
+    let store = FrameSource::local_store(
+        Renderer::new(gpu()),
+        &files,
+        &dir.path().join("store"),
+        None,
+        cut_options(1.0),
+        &request.render,
+        &quiet,
+    )
+    .expect("the store");
+    assert_eq!(preview.bounds(), store.bounds());
+    for frame in frames(&mut preview, &request) {
+        assert_eq!(frame.points_total, 120_000);
+        let completeness = frame.preview.expect("a preview");
+        assert!(completeness > 0.0 && completeness < 0.1, "{completeness}");
+    }
+    assert!(told.lines().starts_with("Preview"), "{}", told.lines());
+}
+
+#[test]
+fn a_resident_source_is_reused_only_for_its_own_colours_and_filter() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let files = dataset(dir.path(), 5_000);
+    let options = RenderOptions::default();
+    let told = Told::default();
+    let events = |event: SourceEvent<'_>| told.tell(event);
+    let mut source =
+        FrameSource::resident(Renderer::new(gpu()), &files, None, &options, &events).expect("read");
+    assert_eq!(source.frame_points(), FramePoints::Resident);
+    assert!(told.lines().starts_with("Reading"), "{}", told.lines());
+    assert_eq!(told.count("Read "), 1, "{}", told.lines());
+    assert!(source.reuse_for(&options, None));
+    let mut other = options;
+    other.color_mode = crate::color::ColorMode::Elevation;
+    assert!(!source.reuse_for(&other, None));
+    let frame = source
+        .render(&source.frame_settings(&request(options), 0), &quiet)
+        .expect("a frame");
+    let opened = frame.opened.expect("told with the first frame");
+    assert!(opened.load_ms.is_some() && opened.cache.is_none());
+    assert_eq!(frame.points_total, 5_000);
+}
+
+#[test]
+fn a_store_damaged_between_frames_is_built_again_and_the_frame_drawn() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let files = dataset(dir.path(), 40_000);
+    let request = request(RenderOptions::default());
+    let folder = dir.path().join("store");
+    let open = |renderer| {
+        FrameSource::local_store(
+            renderer,
+            &files,
+            &folder,
+            None,
+            cut_options(1.0),
+            &request.render,
+            &quiet,
+        )
+        .expect("the store")
+    };
+    let mut source = open(Renderer::new(gpu()));
+    let before = images(&frames(&mut source, &request));
+    let mut source = open(source.into_renderer());
+    let payload = folder.join("nodes.bin");
+    let mut bytes = std::fs::read(&payload).expect("payload");
+    for byte in bytes.iter_mut().step_by(17) {
+        *byte ^= 0x5a;
+    }
+    std::fs::write(&payload, bytes).expect("damage");
+    let told = Told::default();
+    let events = |event: SourceEvent<'_>| told.tell(event);
+    let settings = source.frame_settings(&request, 0);
+    let frame = source.render(&settings, &events).expect("built again");
+    assert_eq!(frame.frame.image, before[0]);
+    assert_eq!(told.count("Rebuilding"), 1, "{}", told.lines());
+}
