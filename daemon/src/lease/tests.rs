@@ -495,10 +495,7 @@ fn a_preview_keeps_its_frame_pending_until_the_final_frame_replaces_it() {
     drop(daemon);
     // Reopened, the final frame stays final: nothing is leased again.
     let daemon = open(dir.path());
-    let none = daemon
-        .lease_frame("w", false, &WorkerCapabilities::default())
-        .expect("lease");
-    assert!(none.is_none(), "a final frame leased again: {none:?}");
+    assert_nothing_leased(&daemon, "a final frame leased again");
     assert_eq!(daemon.job(&job.id).expect("job").state, JobState::Succeeded);
 
     // A job without previews takes none.
@@ -540,6 +537,31 @@ fn whole_build_progress(dir: &Path) -> Arc<pointfarm_render::lod::BuildProgress>
     progress
 }
 
+/// A daemon in `dir` with a previewed job of `frames` frames, and the content hash of the job's
+/// dataset, whose build the preview tests hold.
+fn previewed_job(dir: &Path, frames: u32) -> (Arc<Daemon>, crate::model::Job, String) {
+    let daemon = open(dir);
+    let job = test_daemon::submit(&daemon, frames, |r| r.preview = true);
+    let sha256 = dataset_sha256(&daemon, &job);
+    (daemon, job, sha256)
+}
+
+/// Hands in `task`'s frame with `outcome`, as a worker does, expecting it taken (`what` says
+/// what it is).
+fn hand_in(daemon: &Daemon, task: &FrameTask, outcome: FrameOutcome, what: &str) {
+    daemon
+        .complete_frame(&task.lease.id, &png(8, 6), outcome)
+        .expect(what);
+}
+
+/// Asserts that no frame is leased now, `why` saying what that shows.
+fn assert_nothing_leased(daemon: &Daemon, why: &str) {
+    let none = daemon
+        .lease_frame("w", false, &WorkerCapabilities::default())
+        .expect("lease");
+    assert!(none.is_none(), "{why}: {none:?}");
+}
+
 /// The content hash of `job`'s dataset, whose build a test holds.
 fn dataset_sha256(daemon: &Daemon, job: &crate::model::Job) -> String {
     daemon
@@ -577,9 +599,7 @@ fn preview_of(completeness: f64) -> FrameOutcome {
 fn a_preview_is_drawn_again_once_the_build_has_stored_more() {
     let dir = tempfile::tempdir().expect("tempdir");
     let build = tempfile::tempdir().expect("tempdir");
-    let daemon = open(dir.path());
-    let job = test_daemon::submit(&daemon, 2, |r| r.preview = true);
-    let sha256 = dataset_sha256(&daemon, &job);
+    let (daemon, job, sha256) = previewed_job(dir.path(), 2);
     // A build that has stored nothing yet: the chunk starts alone, version 0.
     let started = Arc::new(pointfarm_render::lod::BuildProgress::new());
     let hold = |daemon: &Daemon, progress: &Arc<pointfarm_render::lod::BuildProgress>| {
@@ -590,17 +610,9 @@ fn a_preview_is_drawn_again_once_the_build_has_stored_more() {
     for index in 0..2 {
         let task = lease(&daemon, "w", false);
         assert_eq!((task.lease.index, task.preview()), (index, Some(0)));
-        daemon
-            .complete_frame(&task.lease.id, &png(8, 6), preview(0.01))
-            .expect("a preview");
+        hand_in(&daemon, &task, preview(0.01), "a preview");
     }
-    let none = daemon
-        .lease_frame("w", false, &WorkerCapabilities::default())
-        .expect("lease");
-    assert!(
-        none.is_none(),
-        "previews of the build's version wait: {none:?}"
-    );
+    assert_nothing_leased(&daemon, "previews of the build's version wait");
 
     // The build has stored every tenth: each frame is offered for a redraw at version 10.
     let stored = whole_build_progress(build.path());
@@ -608,9 +620,7 @@ fn a_preview_is_drawn_again_once_the_build_has_stored_more() {
     hold(&daemon, &stored);
     let redraw = lease(&daemon, "w", false);
     assert_eq!((redraw.lease.index, redraw.preview()), (0, Some(10)));
-    daemon
-        .complete_frame(&redraw.lease.id, &png(8, 6), preview(0.5))
-        .expect("a redrawn preview");
+    hand_in(&daemon, &redraw, preview(0.5), "a redrawn preview");
     let other = lease(&daemon, "w", false);
     assert_eq!(
         (other.lease.index, other.preview()),
@@ -624,10 +634,7 @@ fn a_preview_is_drawn_again_once_the_build_has_stored_more() {
     // 0, redraws nothing until it moves past them.
     let daemon = open(dir.path());
     hold(&daemon, &started);
-    let none = daemon
-        .lease_frame("w", false, &WorkerCapabilities::default())
-        .expect("lease");
-    assert!(none.is_none(), "nothing is previewed again: {none:?}");
+    assert_nothing_leased(&daemon, "nothing is previewed again");
     let reports = daemon.state.frame_reports(&job.id).expect("reports");
     let kept: Vec<(Option<f64>, u32)> = reports
         .iter()
@@ -637,13 +644,8 @@ fn a_preview_is_drawn_again_once_the_build_has_stored_more() {
     hold(&daemon, &stored);
     let redraw = lease(&daemon, "w", false);
     assert_eq!((redraw.lease.index, redraw.preview()), (1, Some(10)));
-    daemon
-        .complete_frame(&redraw.lease.id, &png(8, 6), preview(0.5))
-        .expect("a redrawn preview");
-    let none = daemon
-        .lease_frame("w", false, &WorkerCapabilities::default())
-        .expect("lease");
-    assert!(none.is_none(), "every preview is current: {none:?}");
+    hand_in(&daemon, &redraw, preview(0.5), "a redrawn preview");
+    assert_nothing_leased(&daemon, "every preview is current");
     drop(daemon);
 
     // Nothing builds (the store is ready): every frame is leased for its final render.
@@ -660,9 +662,7 @@ fn a_preview_is_drawn_again_once_the_build_has_stored_more() {
 fn redraws_take_the_frames_without_a_preview_then_the_oldest_previews_first() {
     let dir = tempfile::tempdir().expect("tempdir");
     let build = tempfile::tempdir().expect("tempdir");
-    let daemon = open(dir.path());
-    let job = test_daemon::submit(&daemon, 3, |r| r.preview = true);
-    let sha256 = dataset_sha256(&daemon, &job);
+    let (daemon, _, sha256) = previewed_job(dir.path(), 3);
     let hold = |progress: &Arc<pointfarm_render::lod::BuildProgress>| {
         hold_building(&daemon, &sha256, progress)
     };
@@ -677,9 +677,7 @@ fn redraws_take_the_frames_without_a_preview_then_the_oldest_previews_first() {
         (0, 1, 2)
     );
     for task in [&first, &third] {
-        daemon
-            .complete_frame(&task.lease.id, &png(8, 6), preview.clone())
-            .expect("a preview");
+        hand_in(&daemon, &task, preview.clone(), "a preview");
     }
     daemon.release_frame(&held.lease.id).expect("release");
 
@@ -687,22 +685,15 @@ fn redraws_take_the_frames_without_a_preview_then_the_oldest_previews_first() {
     hold(&whole_build_progress(build.path()));
     let next = lease(&daemon, "w", false);
     assert_eq!((next.lease.index, next.preview()), (1, Some(10)));
-    daemon
-        .complete_frame(&next.lease.id, &png(8, 6), preview.clone())
-        .expect("a preview");
+    hand_in(&daemon, &next, preview.clone(), "a preview");
     // Then the older previews, in the job's order.
     let redraws: Vec<u32> = (0..2)
         .map(|_| {
             let task = lease(&daemon, "w", false);
-            daemon
-                .complete_frame(&task.lease.id, &png(8, 6), preview.clone())
-                .expect("a redraw");
+            hand_in(&daemon, &task, preview.clone(), "a redraw");
             task.lease.index
         })
         .collect();
     assert_eq!(redraws, [0, 2]);
-    let none = daemon
-        .lease_frame("w", false, &WorkerCapabilities::default())
-        .expect("lease");
-    assert!(none.is_none(), "every preview is current: {none:?}");
+    assert_nothing_leased(&daemon, "every preview is current");
 }

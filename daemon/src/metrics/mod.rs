@@ -373,22 +373,14 @@ mod store_rebuild_tests {
             "{first}"
         );
         assert_eq!(value(&first, "pointfarm_store_rebuilds_total"), Some(0.0));
-        assert_eq!(
-            value(&scrape(1), "pointfarm_store_rebuilds_total"),
-            Some(1.0)
-        );
-        assert_eq!(
-            value(&scrape(1), "pointfarm_store_rebuilds_total"),
-            Some(1.0)
-        );
-        // A state read before the last scrape's does not take it back.
-        assert_eq!(
-            value(&scrape(0), "pointfarm_store_rebuilds_total"),
-            Some(1.0)
-        );
-        assert_eq!(
-            value(&scrape(3), "pointfarm_store_rebuilds_total"),
-            Some(3.0)
-        );
+        // Scrapes in turn, each with the rebuilds its state read and the total it shows: a
+        // state read before the last scrape's does not take it back.
+        for (rebuilds, shown) in [(1, 1.0), (1, 1.0), (0, 1.0), (3, 3.0)] {
+            assert_eq!(
+                value(&scrape(rebuilds), "pointfarm_store_rebuilds_total"),
+                Some(shown),
+                "after a state of {rebuilds} rebuilds"
+            );
+        }
     }
 }

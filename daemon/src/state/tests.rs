@@ -112,14 +112,45 @@ fn a_database_without_the_index_gets_it_when_opened() {
     assert_eq!(schedule(&open(&path)), scheduled);
 }
 
+/// A state database on a small tmpfs that holds one job, the disk then filled: where the
+/// full-disk tests start.
+struct FullDisk {
+    state: StateDb,
+    /// The job submitted while there was room.
+    before: Job,
+    /// The file that fills the disk; removing it makes room again.
+    filler: std::path::PathBuf,
+    disk: crate::testing::SmallDisk,
+}
+
+impl FullDisk {
+    /// The job has `frames` frames; None where no tmpfs can be mounted.
+    fn after_a_job_of(frames: u32) -> Option<Self> {
+        let disk = crate::testing::SmallDisk::mount(16)?;
+        let state = open(&disk.path().join("state.sled"));
+        let (before, _) = state.submit_job(spec("before", frames, 0)).expect("submit");
+        let filler = disk.fill("filler");
+        Some(Self {
+            state,
+            before,
+            filler,
+            disk,
+        })
+    }
+}
+
 #[test]
 fn a_database_the_full_disk_failed_is_opened_again_with_all_it_had_flushed() {
-    let Some(disk) = crate::testing::SmallDisk::mount(16) else {
+    // The disk first, so dropped last: the database on it closes before it is unmounted.
+    let Some(FullDisk {
+        disk,
+        state,
+        before,
+        filler,
+    }) = FullDisk::after_a_job_of(4)
+    else {
         return;
     };
-    let state = open(&disk.path().join("state.sled"));
-    let (before, _) = state.submit_job(spec("before", 4, 0)).expect("submit");
-    let filler = disk.fill("filler");
     // Requests ids of a few KiB: the log needs new pages within a few writes. Written past
     // the room check a submission makes, as a frame's records are.
     let refused = (0..1000)
@@ -158,12 +189,16 @@ fn a_database_the_full_disk_failed_is_opened_again_with_all_it_had_flushed() {
 
 #[test]
 fn a_job_submitted_to_a_full_disk_is_refused_before_anyone_sees_it() {
-    let Some(disk) = crate::testing::SmallDisk::mount(16) else {
+    // The disk first, so dropped last: the database on it closes before it is unmounted.
+    let Some(FullDisk {
+        disk: _disk,
+        state,
+        before,
+        filler,
+    }) = FullDisk::after_a_job_of(2)
+    else {
         return;
     };
-    let state = open(&disk.path().join("state.sled"));
-    let (before, _) = state.submit_job(spec("before", 2, 0)).expect("submit");
-    let filler = disk.fill("filler");
     let refused = state
         .submit_job(spec("refused", 3, 0))
         .expect_err("no room for the job");
