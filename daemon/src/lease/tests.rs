@@ -677,7 +677,7 @@ fn redraws_take_the_frames_without_a_preview_then_the_oldest_previews_first() {
         (0, 1, 2)
     );
     for task in [&first, &third] {
-        hand_in(&daemon, &task, preview.clone(), "a preview");
+        hand_in(&daemon, task, preview.clone(), "a preview");
     }
     daemon.release_frame(&held.lease.id).expect("release");
 
