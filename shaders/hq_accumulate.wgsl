@@ -7,28 +7,16 @@
 // The per-pixel sums and `add_to_sums` come before this file: `hq_sums_atomic64.wgsl` where
 // the adapter has 64-bit atomicAdd (two atomics a point), else `hq_sums_atomic32.wgsl` (four).
 // Both hold the same words, so the resolve reads either. Sums of 8-bit channels overflow a
-// u32 only beyond 16 million points in one pixel.
-
-// The point framebuffer after the depth pass: y is the nearest depth's bits.
-@group(0) @binding(3) var<storage, read> framebuffer: array<vec2<u32>>;
-
-@compute @workgroup_size(WORKGROUP_SIZE)
-fn accumulate(invocation: GridInvocation) {
-    draw_batch(invocation, 1.0 + frame.depth_band, READS_DEPTHS);
-}
+// u32 only beyond 16 million points in one pixel. The framebuffer, the entry point and the
+// depth band's test come before this file too (hq_band.wgsl).
 
 // Adds point `i`'s colour to every pixel of its splat where it lies within `band` times the
 // nearest depth.
 fn draw_splat(i: u32, splat: Splat, band: f32, pass_kind: u32) {
     for (var k = 0u; k < SPLAT_PIXELS; k++) {
-        let pixel = splat_pixel(frame, splat, k);
-        if pixel < 0 {
-            continue;
+        let pixel = pixel_in_band(splat, k, band);
+        if pixel >= 0 {
+            add_to_sums(pixel, color_of(i));
         }
-        let nearest = bitcast<f32>(framebuffer[pixel].y);
-        if splat.depth > nearest * band {
-            continue;
-        }
-        add_to_sums(pixel, color_of(i));
     }
 }

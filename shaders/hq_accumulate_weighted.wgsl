@@ -3,20 +3,15 @@
 // points it stands for. Where its node is drawn without the child below it, that is its
 // weight (`lod/weights.rs`); where that child is drawn too, the child's points stand for the
 // region and the point counts once (docs/perf/hq-band-on-cuts.md). The 32-bit sums of 8-bit
-// channels stay exact while a pixel's weights add up to less than 16 million points.
+// channels stay exact while a pixel's weights add up to less than 16 million points. The
+// framebuffer, the entry point and the depth band's test come before this file (hq_band.wgsl).
 
-@group(0) @binding(3) var<storage, read> framebuffer: array<vec2<u32>>;
 // 16 bits a point, two to a word: the weight's 13-bit code and the point's child octant in
 // its node above them.
 @group(0) @binding(11) var<storage, read> weights: array<u32>;
 // Per batch slot of the page (BATCH_POINTS points each): the children of its node this
 // frame draws, one bit per octant.
 @group(0) @binding(12) var<storage, read> drawn_children: array<u32>;
-
-@compute @workgroup_size(WORKGROUP_SIZE)
-fn accumulate(invocation: GridInvocation) {
-    draw_batch(invocation, 1.0 + frame.depth_band, READS_DEPTHS);
-}
 
 // The weight a 13-bit code holds: 4 bits of exponent, 9 of mantissa (`lod/weights.rs`).
 fn decode_weight(code: u32) -> u32 {
@@ -40,12 +35,8 @@ fn weight_of(i: u32) -> u32 {
 fn draw_splat(i: u32, splat: Splat, band: f32, pass_kind: u32) {
     var weight = 0u;
     for (var k = 0u; k < SPLAT_PIXELS; k++) {
-        let pixel = splat_pixel(frame, splat, k);
+        let pixel = pixel_in_band(splat, k, band);
         if pixel < 0 {
-            continue;
-        }
-        let nearest = bitcast<f32>(framebuffer[pixel].y);
-        if splat.depth > nearest * band {
             continue;
         }
         if weight == 0u {

@@ -57,6 +57,9 @@ const POINT_PASS: &str = include_str!("point_pass.wgsl");
 const HQ_ACCUMULATE: &str = include_str!("hq_accumulate.wgsl");
 /// The weighted high-quality accumulation of a cut's pages, after its per-pixel sums.
 const HQ_ACCUMULATE_WEIGHTED: &str = include_str!("hq_accumulate_weighted.wgsl");
+/// What both high-quality accumulations share, between their sums and their own file: the
+/// framebuffer, the entry point and the depth band's test.
+const HQ_BAND: &str = include_str!("hq_band.wgsl");
 const HQ_SUMS_ATOMIC32: &str = include_str!("hq_sums_atomic32.wgsl");
 const HQ_SUMS_ATOMIC64: &str = include_str!("hq_sums_atomic64.wgsl");
 /// Parameters and helpers of the passes on the resolved images, after `common.wgsl`.
@@ -131,10 +134,10 @@ impl Shader {
                 format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{own}")
             }
             Shader::HqAccumulate | Shader::HqAccumulateWeighted => {
-                format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{HQ_SUMS_ATOMIC32}\n{own}")
+                format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{HQ_SUMS_ATOMIC32}\n{HQ_BAND}\n{own}")
             }
             Shader::HqAccumulate64 | Shader::HqAccumulateWeighted64 => {
-                format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{HQ_SUMS_ATOMIC64}\n{own}")
+                format!("{COMMON}\n{OCCLUSION}\n{POINT_PASS}\n{HQ_SUMS_ATOMIC64}\n{HQ_BAND}\n{own}")
             }
             Shader::Resolve => format!("{COMMON}\n{own}\n{RESOLVE_SUMS}"),
             Shader::ResolvePacked => format!("{COMMON}\n{own}\n{RESOLVE_SUMS_PACKED}"),
