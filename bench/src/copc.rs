@@ -18,19 +18,18 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
-use pointfarm_render::color::ColorMode;
 use pointfarm_render::copc::open_copc;
 use pointfarm_render::cut::{CutOptions, CutRenderer, DEFAULT_LOD_ERROR_PX};
-use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::DatasetSource;
 use pointfarm_render::lod::copc_export::{export_copc, ExportSettings};
-use pointfarm_render::lod::{GeneratedSource, PointSource};
+use pointfarm_render::lod::GeneratedSource;
 use pointfarm_render::raster::Renderer;
 use serde::Serialize;
 
+use crate::campaign::points_read;
 use crate::cuts::fidelity::measure_fidelity;
-use crate::cuts::{build_and_open, full_view, FidelityResult};
+use crate::cuts::{build_and_open, draw, full_view, FidelityResult};
 use crate::scratch::{progress_log, scratch_dir};
 use crate::BenchError;
 
@@ -126,11 +125,7 @@ pub fn measure(
     drop_page_cache(&path)?;
     let started = Instant::now();
     let source = DatasetSource::open(std::slice::from_ref(&path))?;
-    let mut decoded = 0u64;
-    source.for_each_batch(&mut |batch| {
-        decoded += batch.len() as u64;
-        Ok(())
-    })?;
+    let decoded = points_read(&source)?;
     let decode_s = started.elapsed().as_secs_f64();
     log(format!(
         "copc: {decoded} points decoded whole in {decode_s:.2} s"
@@ -152,13 +147,7 @@ pub fn measure(
             gpu_budget_bytes: None,
         };
         let mut cut = CutRenderer::new(&renderer, dataset, cut_options)?;
-        let (_, report) = cut.render(
-            &mut renderer,
-            dataset,
-            &settings,
-            ColorMode::Rgb,
-            &PointFilter::default(),
-        )?;
+        let (_, report) = draw(&mut cut, &mut renderer, dataset, &settings)?;
         let ms = started.elapsed().as_secs_f64() * 1e3;
         log(format!(
             "copc: first frame at {lod_error} px in {ms:.0} ms (open {open_ms:.0} ms), {} of {} points",

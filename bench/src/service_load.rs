@@ -74,14 +74,33 @@ pub struct ServiceLoadOptions {
     pub daemon_binaries: Vec<PathBuf>,
     /// Runs of each binary.
     pub runs: u32,
+    pub load: ServiceLoad,
+    /// The embedded worker's `--adapter` (auto, hardware, software).
+    pub adapter: String,
+}
+
+/// The load each run puts on a daemon: what the options ask for and the result reports.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct ServiceLoad {
     pub jobs: u32,
     pub frames_per_job: u32,
     pub clients: u32,
     pub leases: u32,
     pub width: u32,
     pub height: u32,
-    /// The embedded worker's `--adapter` (auto, hardware, software).
-    pub adapter: String,
+}
+
+impl Default for ServiceLoad {
+    fn default() -> Self {
+        Self {
+            jobs: DEFAULT_JOBS,
+            frames_per_job: DEFAULT_FRAMES_PER_JOB,
+            clients: DEFAULT_CLIENTS,
+            leases: DEFAULT_LEASES,
+            width: DEFAULT_SIZE.0,
+            height: DEFAULT_SIZE.1,
+        }
+    }
 }
 
 impl ServiceLoadOptions {
@@ -90,12 +109,7 @@ impl ServiceLoadOptions {
         Self {
             daemon_binaries: vec![daemon_binary],
             runs: 1,
-            jobs: DEFAULT_JOBS,
-            frames_per_job: DEFAULT_FRAMES_PER_JOB,
-            clients: DEFAULT_CLIENTS,
-            leases: DEFAULT_LEASES,
-            width: DEFAULT_SIZE.0,
-            height: DEFAULT_SIZE.1,
+            load: ServiceLoad::default(),
             adapter: "auto".into(),
         }
     }
@@ -169,12 +183,8 @@ pub struct ServiceLoadSummary {
 /// The benchmark's figures.
 #[derive(Debug, Clone, Serialize)]
 pub struct ServiceLoadResult {
-    pub jobs: u32,
-    pub frames_per_job: u32,
-    pub clients: u32,
-    pub leases: u32,
-    pub width: u32,
-    pub height: u32,
+    #[serde(flatten)]
+    pub load: ServiceLoad,
     pub dataset_points: usize,
     /// In the order run: each binary in turn, round after round.
     pub runs: Vec<ServiceLoadRun>,
@@ -233,12 +243,7 @@ pub fn measure(
         .close()
         .map_err(|e| setup("removing the scratch folder", &e))?;
     Ok(ServiceLoadResult {
-        jobs: options.jobs,
-        frames_per_job: options.frames_per_job,
-        clients: options.clients,
-        leases: options.leases,
-        width: options.width,
-        height: options.height,
+        load: options.load,
         dataset_points: DATASET_POINTS,
         summaries: summarise(&options.daemon_binaries, &runs),
         runs,
@@ -249,10 +254,10 @@ fn check(options: &ServiceLoadOptions) -> Result<(), ServiceLoadError> {
     let counts = [
         ("daemon binaries", options.daemon_binaries.len()),
         ("runs", options.runs as usize),
-        ("jobs", options.jobs as usize),
-        ("frames per job", options.frames_per_job as usize),
-        ("clients", options.clients as usize),
-        ("leases", options.leases as usize),
+        ("jobs", options.load.jobs as usize),
+        ("frames per job", options.load.frames_per_job as usize),
+        ("clients", options.load.clients as usize),
+        ("leases", options.load.leases as usize),
     ];
     if let Some((what, _)) = counts.iter().find(|(_, n)| *n == 0) {
         return Err(ServiceLoadError::Setup(format!(
@@ -303,7 +308,7 @@ fn measure_run(
         run,
         load_average,
         adapter,
-        jobs: options.jobs,
+        jobs: options.load.jobs,
         frames: load.frames,
         wall_s,
         frames_per_s: load.frames as f64 / wall_s,

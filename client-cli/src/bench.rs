@@ -413,7 +413,7 @@ fn run_copc(args: &BenchArgs, points: Option<usize>, started: Instant) -> Result
 
 /// `--service-load`: real daemon processes under many clients, and leasing as a worker.
 fn run_service_load(args: &BenchArgs, started: Instant) -> Result<()> {
-    use bench::service_load::{self, ServiceLoadOptions};
+    use bench::service_load::{self, ServiceLoad, ServiceLoadOptions};
     let this = std::env::current_exe().context("finding the pointfarm binary")?;
     let (width, height) = args.size.unwrap_or(service_load::DEFAULT_SIZE);
     let options = ServiceLoadOptions {
@@ -423,12 +423,14 @@ fn run_service_load(args: &BenchArgs, started: Instant) -> Result<()> {
             args.daemon_binary.clone()
         },
         runs: args.service_runs,
-        jobs: args.service_jobs,
-        frames_per_job: args.service_frames_per_job,
-        clients: args.service_clients,
-        leases: args.service_leases,
-        width,
-        height,
+        load: ServiceLoad {
+            jobs: args.service_jobs,
+            frames_per_job: args.service_frames_per_job,
+            clients: args.service_clients,
+            leases: args.service_leases,
+            width,
+            height,
+        },
         adapter: args.adapter.to_string(),
     };
     let result = service_load::measure(&options, &mut |line| eprintln!("  {line}"))?;

@@ -403,6 +403,16 @@ pub fn measure_with_frames(
     })
 }
 
+/// The points of `source`, each read once and counted: what a decode measurement times.
+pub(crate) fn points_read(source: &DatasetSource) -> Result<u64, BenchError> {
+    let mut points = 0u64;
+    source.for_each_batch(&mut |batch| {
+        points += batch.len() as u64;
+        Ok(())
+    })?;
+    Ok(points)
+}
+
 /// Reads every point of `source` once, building nothing.
 fn read_all(
     input: &'static str,
@@ -410,11 +420,7 @@ fn read_all(
     paths: &[PathBuf],
 ) -> Result<DecodeResult, BenchError> {
     let started = Instant::now();
-    let mut points = 0u64;
-    source.for_each_batch(&mut |batch| {
-        points += batch.len() as u64;
-        Ok(())
-    })?;
+    let points = points_read(source)?;
     let read_s = started.elapsed().as_secs_f64();
     let bytes = file_bytes(paths);
     Ok(DecodeResult {

@@ -4,13 +4,12 @@
 
 use std::sync::Arc;
 
-use pointfarm_render::color::ColorMode;
 use pointfarm_render::cut::{CutOptions, CutRenderer, CutReport, LodDataset};
-use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::raster::{Frame, FrameSettings, Renderer};
 use serde::Serialize;
 
+use super::draw;
 use crate::{BenchError, ComputeMode};
 
 /// Per channel, out of 255.
@@ -145,22 +144,6 @@ pub fn measure_fidelity(
 
 /// The high-quality cut drawn with every point counting once (`set_weighted_high_quality`).
 pub const UNWEIGHTED_HIGH_QUALITY: &str = "compute-high-quality-unweighted";
-
-/// `cut`'s full-colour frame of `settings`.
-fn draw(
-    cut: &mut CutRenderer,
-    renderer: &mut Renderer,
-    dataset: &LodDataset,
-    settings: &FrameSettings,
-) -> Result<(Frame, CutReport), BenchError> {
-    Ok(cut.render(
-        renderer,
-        dataset,
-        settings,
-        ColorMode::Rgb,
-        &PointFilter::default(),
-    )?)
-}
 
 /// [`draw`], then the same frame again from the warm caches, in milliseconds.
 fn draw_then_warm(

@@ -5,7 +5,6 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use pointfarm_render::color::ColorMode;
 use pointfarm_render::cut::{CutOptions, CutRenderer, CutReport, LodDataset};
 use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
@@ -15,6 +14,7 @@ use pointfarm_render::request::{
 };
 use serde::Serialize;
 
+use super::draw;
 use crate::stats::median;
 use crate::{memory, BenchError};
 
@@ -147,13 +147,7 @@ pub fn render_turntable(
     for i in 0..options.frames {
         let frame_settings = settings(i);
         let begun = Instant::now();
-        let (frame, report) = cut.render(
-            &mut renderer,
-            dataset,
-            &frame_settings,
-            ColorMode::Rgb,
-            &PointFilter::default(),
-        )?;
+        let (frame, report) = draw(&mut cut, &mut renderer, dataset, &frame_settings)?;
         let wall_ms = begun.elapsed().as_secs_f64() * 1e3;
         if i + 1 < options.frames {
             cut.read_ahead(dataset, &settings(i + 1), &PointFilter::default());

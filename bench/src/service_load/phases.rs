@@ -13,9 +13,11 @@ fn job_request(
         request_id,
         dataset_id: dataset_id.into(),
         request: RenderRequest {
-            width: options.width,
-            height: options.height,
-            camera_path: CameraPath::Turntable(Turntable::around_the_cloud(options.frames_per_job)),
+            width: options.load.width,
+            height: options.load.height,
+            camera_path: CameraPath::Turntable(Turntable::around_the_cloud(
+                options.load.frames_per_job,
+            )),
             lens: Lens::default(),
             render: RenderOptions::default(),
         },
@@ -53,9 +55,9 @@ pub(super) async fn load_phase(
 ) -> Result<LoadFigures, String> {
     // Connected before the clock starts: a connection's set-up is not the service's work.
     let mut clients = Vec::new();
-    for client in 0..options.clients.min(options.jobs) {
-        let jobs: Vec<String> = (client..options.jobs)
-            .step_by(options.clients as usize)
+    for client in 0..options.load.clients.min(options.load.jobs) {
+        let jobs: Vec<String> = (client..options.load.jobs)
+            .step_by(options.load.clients as usize)
             .map(|job| format!("service-load-{job}"))
             .collect();
         clients.push((JobServiceClient::new(connect(endpoint).await?), jobs));
@@ -178,10 +180,10 @@ pub(super) async fn lease_phase(
         capabilities: Some(capabilities()),
     };
     let mut figures = LeaseFigures {
-        lease_ms: Vec::with_capacity(options.leases as usize),
-        release_ms: Vec::with_capacity(options.leases as usize),
+        lease_ms: Vec::with_capacity(options.load.leases as usize),
+        release_ms: Vec::with_capacity(options.load.leases as usize),
     };
-    for lease in 0..WARM_LEASES + options.leases as usize {
+    for lease in 0..WARM_LEASES + options.load.leases as usize {
         let started = Instant::now();
         let task = worker
             .lease_frame(request.clone())

@@ -46,13 +46,13 @@ pub fn markdown(result: &ServiceLoadResult) -> String {
          | daemon | run | load | adapter | frames/s | SubmitJob median (ms) | p95 (ms) | \
          GetJob median (ms) | LeaseFrame median (ms) | p95 (ms) | ReleaseFrame median (ms) |\n\
          |---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|\n",
-        result.jobs,
-        result.frames_per_job,
-        result.width,
-        result.height,
-        result.clients,
+        result.load.jobs,
+        result.load.frames_per_job,
+        result.load.width,
+        result.load.height,
+        result.load.clients,
         result.dataset_points,
-        result.leases,
+        result.load.leases,
     );
     for r in &result.runs {
         let load = r

@@ -42,12 +42,14 @@ fn binaries_are_summarised_against_the_first() {
     assert_eq!(after.lease_speedup, 21.0);
 
     let result = ServiceLoadResult {
-        jobs: 4,
-        frames_per_job: 2,
-        clients: 2,
-        leases: 5,
-        width: 64,
-        height: 48,
+        load: ServiceLoad {
+            jobs: 4,
+            frames_per_job: 2,
+            clients: 2,
+            leases: 5,
+            width: 64,
+            height: 48,
+        },
         dataset_points: DATASET_POINTS,
         runs: runs.to_vec(),
         summaries,
@@ -66,7 +68,7 @@ fn binaries_are_summarised_against_the_first() {
 #[test]
 fn nothing_to_run_is_refused_before_any_work() {
     let mut options = ServiceLoadOptions::new(PathBuf::from("pointfarm"));
-    options.clients = 0;
+    options.load.clients = 0;
     let refused = measure(&options, &mut |_| {}).expect_err("no clients");
     assert!(refused.to_string().contains("clients"), "{refused}");
 }
