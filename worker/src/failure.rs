@@ -4,9 +4,11 @@
 
 use pointfarm_daemon::lease::FailureKind;
 use pointfarm_render::cache::CacheError;
+use pointfarm_render::copc::CopcError;
 use pointfarm_render::cut::CutError;
 use pointfarm_render::ingest::IngestError;
 use pointfarm_render::raster::RenderError;
+use pointfarm_render::source::SourceError;
 
 /// A frame's failure as the worker reports it.
 #[derive(Debug, Clone, PartialEq)]
@@ -80,6 +82,25 @@ impl From<&RenderError> for FrameFailure {
         match e {
             RenderError::Gpu(_) => Self::transient(e.to_string()),
             _ => Self::permanent(e.to_string()),
+        }
+    }
+}
+
+/// A frame source's failure is its part's: the files, the cache, the store, the GPU. A store
+/// that failed its checks again, or could not be read or built again, is built anew by the
+/// next attempt.
+impl From<&SourceError> for FrameFailure {
+    fn from(e: &SourceError) -> Self {
+        match e {
+            SourceError::Ingest(ingest) => ingest.into(),
+            SourceError::Cache(cache) => cache.into(),
+            SourceError::Cut(cut) => cut.into(),
+            SourceError::Render(render) => render.into(),
+            SourceError::Copc(CopcError::Ingest(ingest)) => ingest.into(),
+            SourceError::Copc(CopcError::Io { .. })
+            | SourceError::Io { .. }
+            | SourceError::DamagedAgain { .. } => Self::transient(e.to_string()),
+            SourceError::Copc(_) | SourceError::Filter(_) => Self::permanent(e.to_string()),
         }
     }
 }

@@ -45,6 +45,7 @@ use pointfarm_proto::BearerToken;
 use pointfarm_render::cache::DatasetCache;
 use pointfarm_render::cut::CutOptions;
 use pointfarm_render::gpu::GpuContext;
+use pointfarm_render::source::StoreCache;
 use tokio::sync::watch;
 use tonic::{Code, Status};
 use tracing::Instrument;
@@ -163,9 +164,11 @@ pub async fn run(
     });
 
     let lod = LodConfig {
-        dir: config.cache_dir.join("lod"),
+        stores: StoreCache {
+            dir: config.cache_dir.join("lod"),
+            disk_budget: Some(config.cache_bytes),
+        },
         options: config.cut,
-        disk_budget: Some(config.cache_bytes),
     };
     let mut render_state = Some(WorkerRenderState::new(
         gpu,

@@ -88,7 +88,8 @@ pub struct SourceFrame {
 /// What opening a source took, reported with its first frame.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Opened {
-    /// Reading the dataset's points, in ms, and whether a dataset cache held them.
+    /// Reading the dataset's points (a preview's: preparing them), in ms, and whether a
+    /// dataset cache held them.
     pub load_ms: Option<f64>,
     pub cache: Option<CacheOutcome>,
     /// Building the store, in ms, when this opening built it (or the daemon did for it).
@@ -196,6 +197,7 @@ impl FrameSource {
         options: &RenderOptions,
         events: &dyn Fn(SourceEvent<'_>),
     ) -> Result<Self, SourceError> {
+        let started = Instant::now();
         events(SourceEvent::Preview {
             points: points.cloud.len(),
             points_in_files: points.points_in_files,
@@ -208,6 +210,10 @@ impl FrameSource {
         if let Points::Resident { preview_of, .. } = &mut source.points {
             *preview_of = Some(points.points_in_files);
         }
+        source.unreported = Some(Opened {
+            load_ms: Some(started.elapsed().as_secs_f64() * 1e3),
+            ..Opened::default()
+        });
         Ok(source)
     }
 
