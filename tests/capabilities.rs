@@ -10,6 +10,7 @@ use std::time::Duration;
 use pointfarm_daemon::access::Access;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
+use pointfarm_tests::datasets::register_path;
 use pointfarm_tests::service::{
     get_job, scratch_sample, submit, turntable_job, upload_file, watch_to_success, write_sample,
     TestDaemon,
@@ -234,16 +235,7 @@ async fn a_worker_that_fails_three_frames_of_a_job_is_blocklisted_for_it() {
         Access::default(),
     )
     .await;
-    let dataset = daemon
-        .datasets()
-        .await
-        .register_dataset(pb::RegisterDatasetRequest {
-            path: "scan.las".into(),
-            ..Default::default()
-        })
-        .await
-        .expect("register")
-        .into_inner();
+    let dataset = register_path(&mut daemon.datasets().await, "scan.las").await;
     let mut jobs = daemon.jobs().await;
     let scratch = tempfile::tempdir().expect("tempdir");
 

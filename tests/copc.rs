@@ -9,10 +9,9 @@ use std::path::{Path, PathBuf};
 use std::process::Output;
 
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
-use pointfarm_render::testing::compare_images_within;
 use pointfarm_tests::{
-    assert_fails_saying, assert_ok, assert_same_frames, json_lines, output_text, pointfarm,
-    pointfarm_ok,
+    assert_fails_saying, assert_ok, assert_pngs_alike, assert_same_frames, json_lines, output_text,
+    pointfarm, pointfarm_ok,
 };
 
 fn arg(path: &Path) -> &str {
@@ -80,12 +79,11 @@ fn a_copc_file_renders_node_by_node_as_its_points_read_whole() {
         points,
     ]));
     assert!(!said.contains("COPC"), "{said}");
-    let image = |path: &Path| image::open(path).expect("png").to_rgba8();
-    let diff = compare_images_within("copc-cli", &image(&out), &image(&resident), 8);
-    assert!(
-        diff.equal_fraction() >= 0.99,
-        "the COPC file's every node differs from its points read whole: {} pixels",
-        diff.differing
+    assert_pngs_alike(
+        "copc-cli",
+        &out,
+        &resident,
+        "the COPC file's every node differs from its points read whole",
     );
 }
 
@@ -311,13 +309,14 @@ fn a_copc_dataset_renders_through_the_service_from_its_own_hierarchy() {
     let mut args = vec!["render", arg(&copc), "--out", arg(&local), "--size=200x150"];
     args.extend(options);
     pointfarm_ok(&args);
-    let image = |name: &str| image::open(dir.path().join(name)).expect("png").to_rgba8();
-    let diff = compare_images_within("copc-service", &image("remote.png"), &image("local.png"), 8);
-    assert!(
-        diff.equal_fraction() >= 0.99,
-        "the COPC file renders differently through the service: {} pixels\n{}",
-        diff.differing,
-        worker.log()
+    assert_pngs_alike(
+        "copc-service",
+        &dir.path().join("remote.png"),
+        &local,
+        &format!(
+            "the COPC file renders differently through the service ({})",
+            worker.log()
+        ),
     );
 
     // Read from the file's own hierarchy: no store built, no file downloaded.

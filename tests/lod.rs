@@ -6,10 +6,11 @@ use std::path::Path;
 
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::sample::sample_scene;
-use pointfarm_render::testing::compare_images_within;
+use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::service::{scratch_sample, write_sample};
 use pointfarm_tests::{
-    assert_same_frames, json_lines, json_names, output_text, pointfarm, pointfarm_ok,
+    assert_pngs_alike, assert_same_frames, json_lines, json_names, output_text, pointfarm,
+    pointfarm_ok,
 };
 
 fn arg(path: &Path) -> &str {
@@ -66,12 +67,11 @@ fn tiles_render_from_levels_of_detail_as_the_file_they_were_cut_from() {
     };
     let (first, built) = render_tiles(&cut, "0", &[]);
     assert!(built, "{}", output_text(&first));
-    let image = |path: &Path| image::open(path).expect("png").to_rgba8();
-    let diff = compare_images_within("lod-tiles", &image(&cut), &image(&resident), 8);
-    assert!(
-        diff.equal_fraction() >= 0.99,
-        "the tiles' cut at --lod-error 0 differs from the whole file: {} pixels",
-        diff.differing
+    assert_pngs_alike(
+        "lod-tiles",
+        &cut,
+        &resident,
+        "the tiles' cut at --lod-error 0 differs from the whole file",
     );
 
     // The store is kept: a turntable reuses it, and each frame reports its cut.
@@ -400,15 +400,7 @@ fn a_preview_renders_from_chunk_starts_while_the_store_builds_then_the_final_fra
     let dir = tempfile::tempdir().expect("tempdir");
     // Three LAZ tiles of three 50,000-point chunks each (a generated scene per seed).
     let tiles = dir.path().join("tiles");
-    std::fs::create_dir_all(&tiles).expect("tiles");
-    for seed in 1..=3 {
-        write_las(
-            &tiles.join(format!("t{seed}.laz")),
-            &sample_scene(120_000, seed),
-            &LasWriteOptions::default(),
-        )
-        .expect("tile");
-    }
+    write_scene_tiles(&tiles, 120_000, 3);
     let size = "--size=160x120";
     let render = |out: &Path, cache: &Path, more: &[&str]| {
         let mut args = vec!["render", arg(&tiles), "--out", arg(out), size];

@@ -13,11 +13,11 @@ use std::time::Duration;
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::stores::StoreBuildGate;
 use pointfarm_proto::v1 as pb;
-use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::raster::Renderer;
 use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
-use pointfarm_render::sample::sample_scene;
 use pointfarm_render::source::{quiet, ChunkStarts, FrameSource};
+use pointfarm_render::testing::write_scene_tiles;
+use pointfarm_tests::datasets::register_path;
 use pointfarm_tests::service::{
     clients, fetch_images, get_job, gpu, submit, turntable_job, TestDaemon,
 };
@@ -29,18 +29,7 @@ const SIZE: (u32, u32) = (160, 120);
 
 /// Three LAZ tiles of three 50,000-point chunks each (a generated scene per seed).
 fn tiles(dir: &Path) -> Vec<PathBuf> {
-    (1..=3)
-        .map(|seed| {
-            let path = dir.join(format!("t{seed}.laz"));
-            write_las(
-                &path,
-                &sample_scene(120_000, seed),
-                &LasWriteOptions::default(),
-            )
-            .expect("tile");
-            path
-        })
-        .collect()
+    write_scene_tiles(dir, 120_000, 3)
 }
 
 /// A turntable from levels of detail (the dataset needs a store), with or without previews.
@@ -143,16 +132,8 @@ async fn a_preview_job_renders_chunk_starts_while_the_store_builds_then_final_fr
         Access::default(),
     )
     .await;
-    let dataset = daemon
-        .datasets()
-        .await
-        .register_dataset(pb::RegisterDatasetRequest {
-            path: scratch.path().display().to_string(),
-            ..Default::default()
-        })
-        .await
-        .expect("register")
-        .into_inner();
+    let root = scratch.path().display().to_string();
+    let dataset = register_path(&mut daemon.datasets().await, &root).await;
     assert_eq!(dataset.files.len(), 3);
     let mut jobs = daemon.jobs().await;
     let previewed = submit(&mut jobs, job("previewed", &dataset.id, true)).await;
@@ -253,27 +234,13 @@ async fn a_preview_job_renders_chunk_starts_while_the_store_builds_then_final_fr
 async fn a_killed_daemon_keeps_its_previews_and_finishes_the_job() {
     let scratch = tempfile::tempdir().expect("tempdir");
     // Eight tiles of 1M points: a build that outlasts three small previews by seconds.
-    for seed in 1..=8 {
-        write_las(
-            &scratch.path().join(format!("t{seed}.laz")),
-            &sample_scene(1_000_000, seed),
-            &LasWriteOptions::default(),
-        )
-        .expect("tile");
-    }
+    write_scene_tiles(scratch.path(), 1_000_000, 8);
     let root = scratch.path().display().to_string();
     let data = tempfile::tempdir().expect("data");
     let mut server = ServeProcess::start_with(data.path(), &["--data-root", &root]);
     let address = server.address.clone();
     let (mut datasets, mut jobs) = clients(&address).await;
-    let dataset = datasets
-        .register_dataset(pb::RegisterDatasetRequest {
-            path: root.clone(),
-            ..Default::default()
-        })
-        .await
-        .expect("register")
-        .into_inner();
+    let dataset = register_path(&mut datasets, &root).await;
     let job = submit(&mut jobs, job("killed", &dataset.id, true)).await;
     watch_until(&mut jobs, &job.id, |frames| {
         every_frame_previewed(frames, |_| true)

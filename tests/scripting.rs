@@ -46,6 +46,16 @@ fn job_ids(listed: &serde_json::Value) -> Vec<String> {
         .unwrap_or_default()
 }
 
+/// The message the API answers `call` with, the call run to its end on `api`; `what` names
+/// the call where it fails.
+fn answer<T>(
+    api: &tokio::runtime::Runtime,
+    call: impl std::future::Future<Output = Result<tonic::Response<T>, tonic::Status>>,
+    what: &str,
+) -> T {
+    api.block_on(call).expect(what).into_inner()
+}
+
 /// `value` parsed with the proto3 JSON mapping into the message `T`.
 fn parsed<T: serde::de::DeserializeOwned>(value: &serde_json::Value) -> T {
     serde_json::from_value(value.clone())
@@ -113,13 +123,14 @@ fn dataset_jobs_and_frames_print_json_a_script_can_read() {
     assert!(added.get("size_bytes").is_none(), "{added}");
     let listed = server_json(&address, &["dataset", "list"]);
     let (mut datasets, _) = api.block_on(clients(&address));
-    let from_api = api
-        .block_on(datasets.list_datasets(pb::ListDatasetsRequest {
+    let from_api = answer(
+        &api,
+        datasets.list_datasets(pb::ListDatasetsRequest {
             page_size: 0,
             page_token: String::new(),
-        }))
-        .expect("ListDatasets")
-        .into_inner();
+        }),
+        "ListDatasets",
+    );
     assert_eq!(parsed::<pb::ListDatasetsResponse>(&listed), from_api);
     assert!(from_api.datasets.iter().any(|d| d.id == id));
     let removed = server_json(&address, &["dataset", "rm", &id]);
@@ -195,10 +206,11 @@ fn dataset_jobs_and_frames_print_json_a_script_can_read() {
     // jobs show --json: the Job exactly as GetJob returns it, with its stages' statistics.
     let shown = server_json(&address, &["jobs", "show", &job]);
     let (_, mut jobs) = api.block_on(clients(&address));
-    let from_api = api
-        .block_on(jobs.get_job(pb::GetJobRequest { id: job.clone() }))
-        .expect("GetJob")
-        .into_inner();
+    let from_api = answer(
+        &api,
+        jobs.get_job(pb::GetJobRequest { id: job.clone() }),
+        "GetJob",
+    );
     assert_eq!(parsed::<pb::Job>(&shown["job"]), from_api);
     assert_eq!(from_api.frames.len(), frames as usize);
     assert!(shown["job"]["frames"][1]["timings"].is_array(), "{shown}");
@@ -230,20 +242,22 @@ fn dataset_jobs_and_frames_print_json_a_script_can_read() {
 
     // jobs list and leases: the ListJobsResponse and ListLeasesResponse as the API returns them.
     let listed = parsed::<pb::ListJobsResponse>(&server_json(&address, &["jobs", "list"]));
-    let from_api = api
-        .block_on(jobs.list_jobs(pb::ListJobsRequest::default()))
-        .expect("ListJobs")
-        .into_inner();
+    let from_api = answer(
+        &api,
+        jobs.list_jobs(pb::ListJobsRequest::default()),
+        "ListJobs",
+    );
     assert_eq!(listed, from_api);
     assert_eq!(listed.jobs.len(), 2);
     let leases = parsed::<pb::ListLeasesResponse>(&server_json(&address, &["jobs", "leases"]));
     assert_eq!(leases, pb::ListLeasesResponse::default());
     // jobs workers: the ListWorkersResponse, here the one worker with its adapter.
     let workers = parsed::<pb::ListWorkersResponse>(&server_json(&address, &["jobs", "workers"]));
-    let from_api = api
-        .block_on(jobs.list_workers(pb::ListWorkersRequest::default()))
-        .expect("ListWorkers")
-        .into_inner();
+    let from_api = answer(
+        &api,
+        jobs.list_workers(pb::ListWorkersRequest::default()),
+        "ListWorkers",
+    );
     assert_eq!(workers, from_api);
     let adapters: Vec<bool> = workers
         .workers

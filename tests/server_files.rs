@@ -4,8 +4,7 @@
 
 use std::path::Path;
 
-use pointfarm_render::ingest::{write_las, LasWriteOptions};
-use pointfarm_render::sample::sample_scene;
+use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::{assert_ok, json_lines, pointfarm, stdout, ServeProcess};
 
 const FRAMES: usize = 3;
@@ -45,16 +44,8 @@ fn frame_image(dir: &Path, index: usize) -> image::RgbaImage {
 fn a_registered_campaign_renders_with_its_previews_and_is_never_uploaded() {
     let scratch = tempfile::tempdir().expect("tempdir");
     let campaign = scratch.path().join("campaign");
-    std::fs::create_dir_all(&campaign).expect("campaign");
     // Four tiles of 1M points: a store whose build outlasts the download of a small preview.
-    for seed in 1..=4 {
-        write_las(
-            &campaign.join(format!("t{seed}.laz")),
-            &sample_scene(1_000_000, seed),
-            &LasWriteOptions::default(),
-        )
-        .expect("tile");
-    }
+    write_scene_tiles(&campaign, 1_000_000, 4);
     let server = ServeProcess::start_with(
         &scratch.path().join("data"),
         &["--data-root", arg(&campaign)],

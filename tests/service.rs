@@ -5,6 +5,7 @@ use std::time::Duration;
 
 use pointfarm_daemon::access::Access;
 use pointfarm_proto::v1 as pb;
+use pointfarm_tests::datasets::register_path;
 use pointfarm_tests::service::{
     assert_equal_to_direct_renders, clients, fetch_images, get_job, scan, scratch_sample, submit,
     turntable_job, upload, upload_messages, watch_to_end, watch_to_success, write_sample,
@@ -143,14 +144,7 @@ async fn invalid_requests_get_their_status_codes() {
     // A real dataset for the rest.
     let file = roots.path().join("tiny.las");
     write_sample(&file, 2_000, 1);
-    let registered = datasets
-        .register_dataset(pb::RegisterDatasetRequest {
-            path: "tiny.las".into(),
-            ..Default::default()
-        })
-        .await
-        .expect("register under the data root")
-        .into_inner();
+    let registered = register_path(&mut datasets, "tiny.las").await;
 
     let (code, message) = code_and_message(
         jobs.submit_job(turntable_job("b", &registered.id, 0, 64, 64))

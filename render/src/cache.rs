@@ -404,7 +404,7 @@ fn decode_chunk(bytes: &[u8], count: usize, cloud: &mut PointCloud) -> Option<()
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ingest::{load_point_cloud, write_las, LasWriteOptions};
+    use crate::ingest::load_point_cloud;
     use crate::sample::sample_scene;
 
     /// Entries written before the chunk size was recorded (and made smaller) still load.
@@ -503,18 +503,7 @@ mod tests {
     #[test]
     fn a_cached_cloud_equals_the_decoded_one_and_the_cache_evicts_the_least_recent() {
         let dir = tempfile::tempdir().expect("tempdir");
-        let files: Vec<std::path::PathBuf> = (0..3)
-            .map(|seed| {
-                let path = dir.path().join(format!("s{seed}.laz"));
-                write_las(
-                    &path,
-                    &sample_scene(3_000, seed),
-                    &LasWriteOptions::default(),
-                )
-                .expect("write");
-                path
-            })
-            .collect();
+        let files = crate::testing::write_scene_tiles(dir.path(), 3_000, 3);
         // Room for two of the three clouds.
         let cache = DatasetCache::open(&dir.path().join("cache"), 2 * 3_000 * BYTES_PER_POINT + 10)
             .expect("open");

@@ -197,3 +197,20 @@ pub fn exported_terrain(dir: &Path, points: u64, max_leaf_points: usize) -> Expo
         path,
     }
 }
+
+/// Writes `count` LAZ tiles `t1.laz`, `t2.laz`, ... of `points`-point generated scenes (one
+/// seed a tile) into `dir`, made if missing: a generated campaign of several files.
+pub fn write_scene_tiles(dir: &Path, points: usize, count: u64) -> Vec<PathBuf> {
+    use crate::ingest::{write_las, LasWriteOptions};
+    use crate::sample::sample_scene;
+
+    std::fs::create_dir_all(dir).expect("the tiles' folder");
+    (1..=count)
+        .map(|seed| {
+            let path = dir.join(format!("t{seed}.laz"));
+            let scene = sample_scene(points, seed);
+            write_las(&path, &scene, &LasWriteOptions::default()).expect("tile");
+            path
+        })
+        .collect()
+}

@@ -132,6 +132,20 @@ pub fn assert_same_frames(expected: &Path, actual: &Path, frames: u32, what: &st
     }
 }
 
+/// Asserts that the PNG files `actual` and `expected` agree within 8/255 on at least 99% of
+/// their pixels, as two renders of the same points by different paths do; `what` says what
+/// differs where they do not. `name` names the difference image kept for a look.
+pub fn assert_pngs_alike(name: &str, actual: &Path, expected: &Path, what: &str) {
+    let image = |path: &Path| image::open(path).expect("png").to_rgba8();
+    let diff =
+        pointfarm_render::testing::compare_images_within(name, &image(actual), &image(expected), 8);
+    assert!(
+        diff.equal_fraction() >= 0.99,
+        "{what}: {} pixels",
+        diff.differing
+    );
+}
+
 /// Runs `pointfarm` with `args` writing into a pipe nobody reads (`| head` after it ended),
 /// and fails unless it still ends well and quietly.
 pub fn run_into_a_closed_pipe(args: &[&str]) -> Output {
@@ -375,6 +389,7 @@ impl Drop for WorkerProcess {
     }
 }
 
+pub mod datasets;
 pub mod pki;
 pub mod service;
 
