@@ -8,8 +8,8 @@ use std::sync::Arc;
 
 use pointfarm_render::cache::encode_cloud;
 use pointfarm_render::cloud::WorldBounds;
-use pointfarm_render::ingest::{sample_chunk_starts, DatasetSource, PreviewSample};
-use pointfarm_render::lod::{PointSource, PREVIEW_STORED_POINTS};
+use pointfarm_render::lod::PREVIEW_STORED_POINTS;
+use pointfarm_render::source::ChunkStarts;
 
 use super::DatasetStores;
 use crate::error::DaemonError;
@@ -27,16 +27,11 @@ pub struct PreviewBytes {
     pub version: u32,
 }
 
-/// The chunk starts of a dataset and the files' header bounds, read once.
-struct ChunkStarts {
-    sample: PreviewSample,
-    framed: WorldBounds,
-}
-
 /// What is known of a content's preview.
 #[derive(Default)]
 pub(super) struct PreviewState {
-    /// Read on first use (or the file at fault, said to every request).
+    /// The chunk starts of the dataset's files and their header bounds, read on first use
+    /// (or the file at fault, said to every request).
     chunk_starts: Option<Result<Arc<ChunkStarts>, String>>,
     /// The latest sample served.
     latest: Option<Arc<PreviewBytes>>,
@@ -71,28 +66,29 @@ impl DatasetStores {
         if let Some(latest) = state.latest.as_ref().filter(|l| l.version >= version) {
             return Ok(Arc::clone(latest));
         }
-        let sample = match progress.filter(|_| version > 0) {
+        let started = std::time::Instant::now();
+        let nodes = match progress.filter(|_| version > 0) {
             Some(progress) => {
-                let started = std::time::Instant::now();
                 // Read on this request's thread: the build keeps the shared thread pool busy.
-                let nodes = progress.read_points(PREVIEW_STORED_POINTS).map_err(|e| {
+                progress.read_points(PREVIEW_STORED_POINTS).map_err(|e| {
                     DaemonError::Internal(format!(
                         "dataset {}: reading the nodes stored so far: {e}",
                         dataset.id
                     ))
-                })?;
-                let cloud = chunk_starts.sample.cloud_with_nodes(&nodes);
-                tracing::info!(dataset = %dataset.id, version, nodes = nodes.len(),
-                    points = cloud.len(), read_ms = started.elapsed().as_secs_f64() * 1e3,
-                    "preview sample read again with the nodes stored so far");
-                encode_cloud(&cloud)
+                })?
             }
-            None => encode_cloud(&chunk_starts.sample.cloud),
+            None => Vec::new(),
         };
+        let points = chunk_starts.with_nodes(&nodes);
+        if !nodes.is_empty() {
+            tracing::info!(dataset = %dataset.id, version, nodes = nodes.len(),
+                points = points.cloud.len(), read_ms = started.elapsed().as_secs_f64() * 1e3,
+                "preview sample read again with the nodes stored so far");
+        }
         let sample = Arc::new(PreviewBytes {
-            cloud: sample,
-            points_in_files: chunk_starts.sample.points_in_files,
-            framed: chunk_starts.framed,
+            cloud: encode_cloud(&points.cloud),
+            points_in_files: points.points_in_files,
+            framed: points.files_bounds,
             version,
         });
         state.latest = Some(Arc::clone(&sample));
@@ -103,16 +99,12 @@ impl DatasetStores {
 /// The chunk starts of `dataset`'s files and the files' header bounds, or why there are none.
 fn read_chunk_starts(dataset: &Dataset) -> Result<Arc<ChunkStarts>, String> {
     let paths: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
-    let read = sample_chunk_starts(&paths)
-        .and_then(|sample| {
-            let framed = DatasetSource::open(&paths)?.bounds();
-            Ok(ChunkStarts { sample, framed })
-        })
+    let read = ChunkStarts::read(&paths)
         .map(Arc::new)
         .map_err(|e| format!("dataset {}: no preview: {e}", dataset.id));
     match &read {
-        Ok(read) => tracing::info!(dataset = %dataset.id, points = read.sample.cloud.len(),
-            points_in_files = read.sample.points_in_files, "preview sample read"),
+        Ok(read) => tracing::info!(dataset = %dataset.id, files = read.files,
+            read_ms = read.read_ms, "preview sample read"),
         Err(reason) => tracing::warn!(%reason, "the dataset's preview sample is refused"),
     }
     read
