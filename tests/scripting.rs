@@ -56,6 +56,19 @@ fn answer<T>(
     api.block_on(call).expect(what).into_inner()
 }
 
+/// Asserts that `pointfarm ARGS --server ADDRESS --json` printed the very message the API
+/// answers `call` with, and returns it.
+fn printed_as_answered<T: serde::de::DeserializeOwned + PartialEq + std::fmt::Debug>(
+    api: &tokio::runtime::Runtime,
+    address: &str,
+    args: &[&str],
+    call: impl std::future::Future<Output = Result<tonic::Response<T>, tonic::Status>>,
+) -> T {
+    let printed = parsed::<T>(&server_json(address, args));
+    assert_eq!(printed, answer(api, call, &args.join(" ")), "{args:?}");
+    printed
+}
+
 /// `value` parsed with the proto3 JSON mapping into the message `T`.
 fn parsed<T: serde::de::DeserializeOwned>(value: &serde_json::Value) -> T {
     serde_json::from_value(value.clone())
@@ -121,18 +134,17 @@ fn dataset_jobs_and_frames_print_json_a_script_can_read() {
         "int64 as a string: {added}"
     );
     assert!(added.get("size_bytes").is_none(), "{added}");
-    let listed = server_json(&address, &["dataset", "list"]);
     let (mut datasets, _) = api.block_on(clients(&address));
-    let from_api = answer(
+    let listed = printed_as_answered(
         &api,
+        &address,
+        &["dataset", "list"],
         datasets.list_datasets(pb::ListDatasetsRequest {
             page_size: 0,
             page_token: String::new(),
         }),
-        "ListDatasets",
     );
-    assert_eq!(parsed::<pb::ListDatasetsResponse>(&listed), from_api);
-    assert!(from_api.datasets.iter().any(|d| d.id == id));
+    assert!(listed.datasets.iter().any(|d| d.id == id));
     let removed = server_json(&address, &["dataset", "rm", &id]);
     assert_eq!(removed, serde_json::json!({ "deleted": id }));
 
@@ -241,24 +253,14 @@ fn dataset_jobs_and_frames_print_json_a_script_can_read() {
     assert_eq!(from["frames"][0]["index"], 2);
 
     // jobs list and leases: the ListJobsResponse and ListLeasesResponse as the API returns them.
-    let listed = parsed::<pb::ListJobsResponse>(&server_json(&address, &["jobs", "list"]));
-    let from_api = answer(
-        &api,
-        jobs.list_jobs(pb::ListJobsRequest::default()),
-        "ListJobs",
-    );
-    assert_eq!(listed, from_api);
+    let list_jobs = jobs.list_jobs(pb::ListJobsRequest::default());
+    let listed = printed_as_answered(&api, &address, &["jobs", "list"], list_jobs);
     assert_eq!(listed.jobs.len(), 2);
     let leases = parsed::<pb::ListLeasesResponse>(&server_json(&address, &["jobs", "leases"]));
     assert_eq!(leases, pb::ListLeasesResponse::default());
     // jobs workers: the ListWorkersResponse, here the one worker with its adapter.
-    let workers = parsed::<pb::ListWorkersResponse>(&server_json(&address, &["jobs", "workers"]));
-    let from_api = answer(
-        &api,
-        jobs.list_workers(pb::ListWorkersRequest::default()),
-        "ListWorkers",
-    );
-    assert_eq!(workers, from_api);
+    let list_workers = jobs.list_workers(pb::ListWorkersRequest::default());
+    let workers = printed_as_answered(&api, &address, &["jobs", "workers"], list_workers);
     let adapters: Vec<bool> = workers
         .workers
         .iter()
