@@ -1,5 +1,5 @@
 //! What a long benchmark runs with: the scratch folder it writes its files into (removed when
-//! dropped), and its log of progress lines.
+//! dropped), its log of progress lines, and the machine's load it reports beside its figures.
 
 use std::path::Path;
 
@@ -28,4 +28,15 @@ pub(crate) fn progress_log<'p>(
         tracing::info!(benchmark = name, "{line}");
         progress(&line);
     }
+}
+
+/// The 1-minute load average (Linux; None elsewhere), which a benchmark reports so that a
+/// busy machine's figures are read as such.
+pub(crate) fn load_average() -> Option<f64> {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
 }

@@ -37,6 +37,7 @@ use serde::Serialize;
 use tonic::transport::Channel;
 
 use crate::clouds::uniform_cube;
+use crate::scratch::load_average;
 use crate::stats::{median, percentile};
 
 /// Jobs submitted in the load phase.
@@ -482,16 +483,6 @@ fn free_address() -> std::io::Result<String> {
         .local_addr()?
         .port();
     Ok(format!("127.0.0.1:{port}"))
-}
-
-/// The 1-minute load average, on Linux.
-fn load_average() -> Option<f64> {
-    std::fs::read_to_string("/proc/loadavg")
-        .ok()?
-        .split_whitespace()
-        .next()?
-        .parse()
-        .ok()
 }
 
 async fn connect(endpoint: &ServerEndpoint) -> Result<Channel, String> {

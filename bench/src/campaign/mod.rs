@@ -31,7 +31,7 @@ use pointfarm_render::lod::{build_lod, BuildTimings, LodBuildOptions};
 use serde::Serialize;
 
 use crate::cuts::{render_turntable, TurntableOptions, TurntableResult};
-use crate::scratch::{progress_log, scratch_dir};
+use crate::scratch::{load_average, progress_log, scratch_dir};
 use crate::store::create_store;
 use crate::{memory, BenchError};
 pub use tiles::{grid, LAS_RECORD_BYTES, MIN_POINTS_PER_FILE};
@@ -225,16 +225,6 @@ fn file_bytes(paths: &[PathBuf]) -> u64 {
 fn free_disk_bytes(path: &Path) -> Option<u64> {
     let stat = rustix::fs::statvfs(path).ok()?;
     Some(stat.f_bavail.saturating_mul(stat.f_frsize))
-}
-
-/// The 1-minute load average (Linux).
-fn load_average() -> Option<f64> {
-    std::fs::read_to_string("/proc/loadavg")
-        .ok()?
-        .split_whitespace()
-        .next()?
-        .parse()
-        .ok()
 }
 
 fn gib(bytes: u64) -> f64 {
