@@ -11,6 +11,15 @@ fn limits(max_connections: usize, max_unadmitted: usize) -> ConnectionLimits {
     }
 }
 
+/// [`limits`] under which a connection waits a minute for its first call: long enough that
+/// only the limits on connections close one during a test.
+fn patient_limits(max_connections: usize, max_unadmitted: usize) -> ConnectionLimits {
+    ConnectionLimits {
+        first_request_timeout: Duration::from_secs(60),
+        ..limits(max_connections, max_unadmitted)
+    }
+}
+
 async fn listener(limits: ConnectionLimits) -> (Listener, SocketAddr) {
     let tcp = TcpListener::bind(("127.0.0.1", 0)).await.expect("bind");
     let address = tcp.local_addr().expect("address");
@@ -88,11 +97,7 @@ async fn an_admitted_connection_lives_while_a_request_is_in_flight_then_idles_ou
 
 #[tokio::test]
 async fn a_new_connection_displaces_the_oldest_waiting_one() {
-    let (mut listener, address) = listener(ConnectionLimits {
-        first_request_timeout: Duration::from_secs(60),
-        ..limits(8, 2)
-    })
-    .await;
+    let (mut listener, address) = listener(patient_limits(8, 2)).await;
     let mut clients = Vec::new();
     let mut connections = Vec::new();
     for _ in 0..3 {
@@ -115,11 +120,7 @@ async fn a_new_connection_displaces_the_oldest_waiting_one() {
 
 #[tokio::test]
 async fn past_the_connection_limit_admitted_connections_are_kept_and_new_ones_refused() {
-    let (mut listener, address) = listener(ConnectionLimits {
-        first_request_timeout: Duration::from_secs(60),
-        ..limits(2, 2)
-    })
-    .await;
+    let (mut listener, address) = listener(patient_limits(2, 2)).await;
     let mut kept = Vec::new();
     for _ in 0..2 {
         let client = TcpStream::connect(address).await.expect("connect");
