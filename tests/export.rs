@@ -14,8 +14,8 @@ use las::copc::{BoundsSelection, CopcReader, LodSelection};
 use pointfarm_proto::v1 as pb;
 
 use pointfarm_tests::{
-    assert_fails_saying, assert_ok, json_lines, pointfarm, shared_data, stdout, test_python,
-    ServeProcess,
+    assert_fails_saying, assert_ok, json_lines, pointfarm, run_ok, shared_data, stdout,
+    test_python, ServeProcess,
 };
 
 fn arg(path: &Path) -> &str {
@@ -78,16 +78,7 @@ fn check_with_laspy(path: &Path, facts: &Facts) {
         return;
     };
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("python/read_copc.py");
-    let output = Command::new(python)
-        .arg(script)
-        .arg(path)
-        .output()
-        .expect("run laspy");
-    assert!(
-        output.status.success(),
-        "laspy failed: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    let output = run_ok(Command::new(python).arg(script).arg(path), "laspy");
     let seen: serde_json::Value = serde_json::from_slice(&output.stdout).expect("one JSON object");
     assert_eq!(seen["version"], "1.4", "{seen}");
     assert_eq!(seen["pointFormat"], facts.point_format, "{seen}");

@@ -5,23 +5,19 @@
 use std::path::Path;
 use std::process::Command;
 
+use pointfarm_tests::run_ok;
+
 /// Runs one of the script's functions with `args`, returning its standard output.
 fn setup_function(function: &str, args: &[&str]) -> String {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/setup.sh");
-    let output = Command::new("bash")
-        .arg("-c")
+    let mut bash = Command::new("bash");
+    bash.arg("-c")
         // $0 is not the script, so sourcing it defines its functions without running it.
         .arg(format!("source \"$1\"; shift; {function} \"$@\""))
         .arg("pointfarm-setup-test")
         .arg(&script)
-        .args(args)
-        .output()
-        .expect("bash runs");
-    assert!(
-        output.status.success(),
-        "{function} failed: {}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+        .args(args);
+    let output = run_ok(&mut bash, function);
     String::from_utf8(output.stdout).expect("UTF-8 output")
 }
 

@@ -111,6 +111,20 @@ pub fn assert_ok(output: &Output) {
     );
 }
 
+/// Runs `command`, a program other than `pointfarm` that `what` names, and fails with its
+/// standard error unless it succeeded; its output.
+pub fn run_ok(command: &mut Command, what: &str) -> Output {
+    let output = command
+        .output()
+        .unwrap_or_else(|e| panic!("{what} does not run: {e}"));
+    assert!(
+        output.status.success(),
+        "{what} failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    output
+}
+
 /// Fails unless the command failed, without a panic, and its standard error says `needle`.
 pub fn assert_fails_saying(output: &Output, needle: &str) {
     let stderr = String::from_utf8_lossy(&output.stderr);
