@@ -21,7 +21,7 @@ use super::contain::contain_panics;
 use super::files::{open_dataset_file, Symlinks};
 use super::laz_layout::LazLayout;
 use super::raw_file::RawFile;
-use super::read::{dataset_header_bounds, DatasetFile};
+use super::read::{checked_dataset, DatasetFile};
 use super::IngestError;
 use crate::cloud::PointCloud;
 use crate::lod::NodePoints;
@@ -60,9 +60,7 @@ pub fn sample_chunk_starts(paths: &[PathBuf]) -> Result<PreviewSample, IngestErr
 
 fn sample_dataset(paths: &[PathBuf], las_stride: u64) -> Result<PreviewSample, IngestError> {
     let started = Instant::now();
-    let files = DatasetFile::check_all(paths)?;
-    let header_bounds = dataset_header_bounds(&files);
-    let has_color = files.iter().all(|file| file.has_color);
+    let (files, header_bounds, has_color) = checked_dataset(paths)?;
     // The reads are small and scattered (one a chunk): files in parallel keep the disk's
     // queue full where the campaign is not in the page cache.
     let samples = files

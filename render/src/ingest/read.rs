@@ -44,9 +44,7 @@ pub fn load_point_cloud(path: &Path) -> Result<PointCloud, IngestError> {
 /// file that cannot be read fails the whole load with that file named.
 pub fn load_dataset(paths: &[PathBuf]) -> Result<PointCloud, IngestError> {
     let started = Instant::now();
-    let files = DatasetFile::check_all(paths)?;
-    let header_bounds = dataset_header_bounds(&files);
-    let has_color = files.iter().all(|file| file.has_color);
+    let (files, header_bounds, has_color) = checked_dataset(paths)?;
     let capacity = files
         .iter()
         .map(|file| file.facts.capacity_hint(file.file_len))
@@ -75,6 +73,18 @@ pub fn load_dataset(paths: &[PathBuf]) -> Result<PointCloud, IngestError> {
         "loaded point cloud"
     );
     Ok(cloud)
+}
+
+/// Every file of a dataset checked, with what a load decides from their headers before it
+/// reads a point: the bounds its origin is chosen against, and whether it keeps RGB (only
+/// when every file has it). A sample of the dataset decides both alike.
+pub(super) fn checked_dataset(
+    paths: &[PathBuf],
+) -> Result<(Vec<DatasetFile>, WorldBounds, bool), IngestError> {
+    let files = DatasetFile::check_all(paths)?;
+    let header_bounds = dataset_header_bounds(&files);
+    let has_color = files.iter().all(|file| file.has_color);
+    Ok((files, header_bounds, has_color))
 }
 
 /// The union of the files' usable header bounds (the first file's when none is), which the
