@@ -240,6 +240,14 @@ fn submit_one(
     })
 }
 
+/// What a job asks of its workers: a GPU where `gpu`, and every one of `tags`.
+fn requiring(gpu: bool, tags: &[&str]) -> Option<pb::WorkerRequirements> {
+    Some(pb::WorkerRequirements {
+        gpu,
+        tags: tags.iter().map(|&tag| tag.into()).collect(),
+    })
+}
+
 /// The jobs whose frames `worker` is leased, in order, until there is none for it.
 fn jobs_leased(daemon: &Daemon, name: &str, worker: &WorkerCapabilities) -> Vec<String> {
     std::iter::from_fn(|| {
@@ -254,16 +262,8 @@ fn jobs_leased(daemon: &Daemon, name: &str, worker: &WorkerCapabilities) -> Vec<
 #[test]
 fn frames_are_leased_only_to_workers_that_meet_their_jobs_requirements_and_size() {
     let (_dir, daemon, plain) = daemon_with_job(1);
-    let gpu = pb::WorkerRequirements {
-        gpu: true,
-        tags: Vec::new(),
-    };
-    let site = pb::WorkerRequirements {
-        gpu: false,
-        tags: vec!["site-x".into()],
-    };
-    let needs_gpu = submit_one(&daemon, "gpu", (8, 6, 1), Some(gpu));
-    let needs_tag = submit_one(&daemon, "tag", (8, 6, 1), Some(site));
+    let needs_gpu = submit_one(&daemon, "gpu", (8, 6, 1), requiring(true, &[]));
+    let needs_tag = submit_one(&daemon, "tag", (8, 6, 1), requiring(false, &["site-x"]));
     // 2100 pixels at 2x supersampling draw 4200 a side.
     let large = submit_one(&daemon, "large", (2100, 1000, 2), None);
     let lavapipe = worker(AdapterKind::Software, &["site-x"], Some(4096));
@@ -281,15 +281,7 @@ fn frames_are_leased_only_to_workers_that_meet_their_jobs_requirements_and_size(
     // A worker that says nothing of itself renders only jobs without requirements.
     let old = WorkerCapabilities::default();
     let second_plain = submit_one(&daemon, "plain-2", (8, 6, 1), None);
-    let second_gpu = submit_one(
-        &daemon,
-        "gpu-2",
-        (8, 6, 1),
-        Some(pb::WorkerRequirements {
-            gpu: true,
-            tags: Vec::new(),
-        }),
-    );
+    let second_gpu = submit_one(&daemon, "gpu-2", (8, 6, 1), requiring(true, &[]));
     assert_eq!(jobs_leased(&daemon, "old", &old), vec![second_plain.id]);
     assert_eq!(jobs_leased(&daemon, "a100", &a100), vec![second_gpu.id]);
 }
@@ -304,10 +296,7 @@ fn a_job_that_no_connected_worker_can_render_says_why() {
         &daemon,
         "tagged",
         (8, 6, 1),
-        Some(pb::WorkerRequirements {
-            gpu: false,
-            tags: vec!["site-x".into(), "a100".into()],
-        }),
+        requiring(false, &["site-x", "a100"]),
     );
     let large = submit_one(&daemon, "large", (5000, 10, 1), None);
     let lavapipe = worker(AdapterKind::Software, &["site-x"], Some(4096));
