@@ -18,6 +18,13 @@ fn arg(path: &Path) -> &str {
     path.to_str().expect("test paths are UTF-8")
 }
 
+/// `pointfarm render INPUT --out OUT ARGS...`, which must succeed.
+fn render_ok(input: &Path, out: &Path, args: &[&str]) -> Output {
+    let mut all = vec!["render", arg(input), "--out", arg(out)];
+    all.extend_from_slice(args);
+    pointfarm_ok(&all)
+}
+
 fn copc_file(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("data/copc")
@@ -41,19 +48,19 @@ fn a_copc_file_renders_node_by_node_as_its_points_read_whole() {
     let size = "--size=200x150";
     let points = "--point-size=3";
     let out = dir.path().join("copc.png");
-    let rendered = pointfarm_ok(&[
-        "render",
-        arg(&copc),
-        "--out",
-        arg(&out),
-        size,
-        points,
-        "--lod-error",
-        "0",
-        "--cache-dir",
-        arg(&cache),
-        "--json",
-    ]);
+    let rendered = render_ok(
+        &copc,
+        &out,
+        &[
+            size,
+            points,
+            "--lod-error",
+            "0",
+            "--cache-dir",
+            arg(&cache),
+            "--json",
+        ],
+    );
     let said = output_text(&rendered);
     assert!(
         said.contains("COPC: reading its hierarchy node by node (65 nodes in the 1 page read;"),
@@ -70,14 +77,7 @@ fn a_copc_file_renders_node_by_node_as_its_points_read_whole() {
     let cloud = load_point_cloud(&copc).expect("the file read whole");
     write_las(&plain, &cloud, &LasWriteOptions::default()).expect("write");
     let resident = dir.path().join("resident.png");
-    let said = output_text(&pointfarm_ok(&[
-        "render",
-        arg(&plain),
-        "--out",
-        arg(&resident),
-        size,
-        points,
-    ]));
+    let said = output_text(&render_ok(&plain, &resident, &[size, points]));
     assert!(!said.contains("COPC"), "{said}");
     assert_pngs_alike(
         "copc-cli",
@@ -92,16 +92,11 @@ fn a_coarse_pixel_error_reads_less_than_the_file() {
     let dir = tempfile::tempdir().expect("tempdir");
     let copc = copc_file("simple_with_page.copc.laz");
     let out = dir.path().join("coarse.png");
-    let rendered = pointfarm_ok(&[
-        "render",
-        arg(&copc),
-        "--out",
-        arg(&out),
-        "--size=200x150",
-        "--lod-error",
-        "8",
-        "--json",
-    ]);
+    let rendered = render_ok(
+        &copc,
+        &out,
+        &["--size=200x150", "--lod-error", "8", "--json"],
+    );
     assert!(
         output_text(&rendered).contains("in the 2 pages read"),
         "{}",
@@ -177,17 +172,11 @@ fn a_copc_file_is_previewed_from_coarse_cuts_then_rendered_final() {
     assert!(json_lines(&plain).iter().all(|r| r["preview"] == false));
     assert_same_frames(&normal, &frames, 3, "the render with previews");
 
-    let coarse = pointfarm_ok(&[
-        "render",
-        arg(&copc),
-        "--out",
-        arg(&dir.path().join("coarse.png")),
-        "--size=160x120",
-        "--lod-error",
-        "8",
-        "--preview",
-        "--json",
-    ]);
+    let coarse = render_ok(
+        &copc,
+        &dir.path().join("coarse.png"),
+        &["--size=160x120", "--lod-error", "8", "--preview", "--json"],
+    );
     assert!(json_lines(&coarse).iter().all(|r| r["preview"] == false));
     assert!(
         output_text(&coarse).contains("is a preview's already"),
@@ -306,9 +295,7 @@ fn a_copc_dataset_renders_through_the_service_from_its_own_hierarchy() {
     let remote = remote_render(&copc, "remote.png", &options);
     assert_ok(&remote);
     let local = dir.path().join("local.png");
-    let mut args = vec!["render", arg(&copc), "--out", arg(&local), "--size=200x150"];
-    args.extend(options);
-    pointfarm_ok(&args);
+    render_ok(&copc, &local, &[&["--size=200x150"], &options[..]].concat());
     assert_pngs_alike(
         "copc-service",
         &dir.path().join("remote.png"),
