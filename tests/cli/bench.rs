@@ -21,10 +21,7 @@ fn bench_writes_its_figures_as_json_and_markdown() {
     assert_eq!(workload["workload"], "autzen_trim.laz");
     assert_eq!(workload["points"], 110_000);
     for method in [&workload["pointlist"], &workload["compute"]] {
-        assert!(
-            method["frameMs"].as_f64().is_some_and(|ms| ms > 0.0),
-            "{method}"
-        );
+        assert_positive(method, &["frameMs"]);
     }
     let modes = json_names(&workload["modes"], "method");
     assert_eq!(modes, ["compute-hq", "compute-basic-32"]);
@@ -47,6 +44,31 @@ fn quick_bench(data: &Path, options: &[&str]) -> (serde_json::Value, String) {
     (read_json(&json), table)
 }
 
+/// Asserts that each of `fields` of the report's `object` is a number above 0: a figure
+/// that was measured.
+fn assert_positive(object: &serde_json::Value, fields: &[&str]) {
+    for field in fields {
+        assert!(
+            object[field].as_f64().is_some_and(|v| v > 0.0),
+            "{field}: {object}"
+        );
+    }
+}
+
+/// Runs `pointfarm bench ARGS --json FILE`, which must succeed, and returns its output and
+/// the report it wrote.
+fn bench_json(args: &[&str]) -> (Output, serde_json::Value) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let json = dir.path().join("bench.json");
+    let json_arg = path_arg(&json);
+    let mut all = vec!["bench"];
+    all.extend(args);
+    all.extend(["--json", &json_arg]);
+    let output = pointfarm(&all);
+    assert_ok(&output);
+    (output, read_json(&json))
+}
+
 /// `--only ingest` measures loading alone: the real scans found and a generated LAZ file of
 /// the size asked, each decoded on all cores and on one and given back by the dataset cache.
 #[test]
@@ -65,17 +87,15 @@ fn bench_measures_decoding_and_the_dataset_cache() {
     let generated = ingest.last().expect("the generated file");
     assert_eq!(generated["workload"], "ingest-uniform-30000.laz");
     assert_eq!(generated["points"], 30_000);
-    for field in [
-        "decodeMs",
-        "decodeOneThreadMs",
-        "cacheHitMs",
-        "cacheSpeedup",
-    ] {
-        assert!(
-            generated[field].as_f64().is_some_and(|v| v > 0.0),
-            "{field}: {generated}"
-        );
-    }
+    assert_positive(
+        generated,
+        &[
+            "decodeMs",
+            "decodeOneThreadMs",
+            "cacheHitMs",
+            "cacheSpeedup",
+        ],
+    );
     assert!(table.contains("| uniform-30000.laz | 30,000 |"), "{table}");
     if shared_data("autzen_trim.laz").is_some() {
         assert_eq!(ingest.len(), 3, "{report}");
@@ -94,10 +114,7 @@ fn bench_measures_decoding_and_the_dataset_cache() {
 /// and a count of nothing is refused before any work.
 #[test]
 fn bench_streams_a_huge_cloud_of_the_size_asked() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let json = dir.path().join("bench.json");
-    let output = pointfarm(&[
-        "bench",
+    let (_, report) = bench_json(&[
         "--huge",
         "200_000",
         "--only",
@@ -105,11 +122,7 @@ fn bench_streams_a_huge_cloud_of_the_size_asked() {
         "--basic-only",
         "--size",
         "64x48",
-        "--json",
-        &path_arg(&json),
     ]);
-    assert_ok(&output);
-    let report = read_json(&json);
     let workloads = report["workloads"].as_array().expect("workloads");
     assert_eq!(workloads.len(), 1, "{report}");
     let huge = &workloads[0];
@@ -133,10 +146,7 @@ fn bench_streams_a_huge_cloud_of_the_size_asked() {
 /// SIGTERM and the scratch folder is gone.
 #[test]
 fn bench_measures_the_service_under_load() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let json = dir.path().join("service.json");
-    let output = pointfarm(&[
-        "bench",
+    let (output, report) = bench_json(&[
         "--service-load",
         "--service-jobs",
         "4",
@@ -146,29 +156,23 @@ fn bench_measures_the_service_under_load() {
         "2",
         "--service-leases",
         "5",
-        "--json",
-        &path_arg(&json),
     ]);
-    assert_ok(&output);
-    let report = read_json(&json);
     let runs = report["serviceLoad"]["runs"].as_array().expect("runs");
     assert_eq!(runs.len(), 1, "{report}");
     let run = &runs[0];
     assert_eq!(run["frames"], 4, "{run}");
     assert_eq!(run["leases"], 5, "{run}");
     assert_eq!(run["stoppedCleanly"], true, "{run}");
-    for figure in [
-        "framesPerS",
-        "submitMedianMs",
-        "getJobMedianMs",
-        "leaseMedianMs",
-        "leaseP95Ms",
-    ] {
-        assert!(
-            run[figure].as_f64().is_some_and(|v| v > 0.0),
-            "{figure}: {run}"
-        );
-    }
+    assert_positive(
+        run,
+        &[
+            "framesPerS",
+            "submitMedianMs",
+            "getJobMedianMs",
+            "leaseMedianMs",
+            "leaseP95Ms",
+        ],
+    );
     assert_says(&output, "| LeaseFrame median (ms) |");
     let stderr = String::from_utf8_lossy(&output.stderr);
     let scratch = stderr
