@@ -78,22 +78,44 @@ fn cut_options(lod_error: f64) -> CutOptions {
     }
 }
 
+/// Flips bits of every 61st byte of the payload of the store in `folder`: its checks fail.
+pub(in crate::source) fn damage_payload(folder: &Path) {
+    let payload = folder.join("nodes.bin");
+    let mut bytes = std::fs::read(&payload).expect("payload");
+    for byte in bytes.iter_mut().step_by(61) {
+        *byte ^= 0x33;
+    }
+    std::fs::write(&payload, bytes).expect("damage");
+}
+
+/// The store of `files` in `folder`, built when missing, cut at `lod_error` for `request`.
+fn open_store(
+    renderer: Renderer,
+    files: &[PathBuf],
+    folder: &Path,
+    lod_error: f64,
+    request: &RenderRequest,
+) -> FrameSource {
+    let options = cut_options(lod_error);
+    FrameSource::local_store(
+        renderer,
+        files,
+        folder,
+        None,
+        options,
+        &request.render,
+        &quiet,
+    )
+    .expect("the store")
+}
+
 #[test]
 fn a_store_and_its_records_served_from_elsewhere_give_the_same_frames() {
     let dir = tempfile::tempdir().expect("tempdir");
     let files = dataset(dir.path(), 40_000);
     let request = request(RenderOptions::default());
     let folder = dir.path().join("store");
-    let mut local = FrameSource::local_store(
-        Renderer::new(gpu()),
-        &files,
-        &folder,
-        None,
-        cut_options(1.0),
-        &request.render,
-        &quiet,
-    )
-    .expect("the store");
+    let mut local = open_store(Renderer::new(gpu()), &files, &folder, 1.0, &request);
     assert_eq!(local.frame_points(), FramePoints::StoreCut);
     let here = frames(&mut local, &request);
     assert!(here[0].opened.and_then(|o| o.build_ms).is_some(), "built");
@@ -137,16 +159,13 @@ fn coarse_cuts_are_previews_that_say_how_complete_they_are() {
     let dir = tempfile::tempdir().expect("tempdir");
     let files = dataset(dir.path(), 400_000);
     let request = request(RenderOptions::default());
-    let mut source = FrameSource::local_store(
+    let mut source = open_store(
         Renderer::new(gpu()),
         &files,
         &dir.path().join("store"),
-        None,
-        cut_options(0.5),
-        &request.render,
-        &quiet,
-    )
-    .expect("the store");
+        0.5,
+        &request,
+    );
     let finals = images(&frames(&mut source, &request));
     assert!(source.preview_cuts(true).expect("coarse"));
     assert!(source.is_preview());
@@ -160,16 +179,13 @@ fn coarse_cuts_are_previews_that_say_how_complete_they_are() {
     assert_eq!(images(&frames(&mut source, &request)), finals);
 
     // A final error coarser than a preview's leaves nothing to preview.
-    let mut coarse = FrameSource::local_store(
+    let mut coarse = open_store(
         source.into_renderer(),
         &files,
         &dir.path().join("store"),
-        None,
-        cut_options(PREVIEW_LOD_ERROR_PX * 2.0),
-        &request.render,
-        &quiet,
-    )
-    .expect("the store");
+        PREVIEW_LOD_ERROR_PX * 2.0,
+        &request,
+    );
     assert!(!coarse.preview_cuts(true).expect("no coarser cut"));
 }
 
@@ -191,16 +207,13 @@ fn a_preview_frames_the_files_and_counts_the_dataset() {
     assert!(preview.is_preview());
     // Framed as the frames of the files' store are, though only a few of their points are
     // drawn.
-    let store = FrameSource::local_store(
+    let store = open_store(
         Renderer::new(gpu()),
         &files,
         &dir.path().join("store"),
-        None,
-        cut_options(1.0),
-        &request.render,
-        &quiet,
-    )
-    .expect("the store");
+        1.0,
+        &request,
+    );
     assert_eq!(preview.bounds(), store.bounds());
     for frame in frames(&mut preview, &request) {
         assert_eq!(frame.points_total, 120_000);
@@ -240,27 +253,11 @@ fn a_store_damaged_between_frames_is_built_again_and_the_frame_drawn() {
     let files = dataset(dir.path(), 40_000);
     let request = request(RenderOptions::default());
     let folder = dir.path().join("store");
-    let open = |renderer| {
-        FrameSource::local_store(
-            renderer,
-            &files,
-            &folder,
-            None,
-            cut_options(1.0),
-            &request.render,
-            &quiet,
-        )
-        .expect("the store")
-    };
+    let open = |renderer| open_store(renderer, &files, &folder, 1.0, &request);
     let mut source = open(Renderer::new(gpu()));
     let before = images(&frames(&mut source, &request));
     let mut source = open(source.into_renderer());
-    let payload = folder.join("nodes.bin");
-    let mut bytes = std::fs::read(&payload).expect("payload");
-    for byte in bytes.iter_mut().step_by(17) {
-        *byte ^= 0x5a;
-    }
-    std::fs::write(&payload, bytes).expect("damage");
+    damage_payload(&folder);
     let told = Told::default();
     let events = |event: SourceEvent<'_>| told.tell(event);
     let settings = source.frame_settings(&request, 0);

@@ -1,7 +1,7 @@
 use super::*;
 use crate::ingest::{write_las, LasWriteOptions};
 use crate::lod::{LodError, NodeKey};
-use crate::source::tests::Told;
+use crate::source::tests::{damage_payload, Told};
 
 /// The damage a frame's read reports.
 fn damage() -> CutError {
@@ -74,12 +74,7 @@ fn a_store_damaged_before_it_opens_is_built_again_as_it_opens() {
     let folder = cache.folder_of_files(&files).expect("folder");
     LocalStore::open_or_build(&files, &folder, 64 << 20, None, &super::super::quiet)
         .expect("built");
-    let payload = folder.join("nodes.bin");
-    let mut bytes = std::fs::read(&payload).expect("payload");
-    for byte in bytes.iter_mut().step_by(61) {
-        *byte ^= 0x33;
-    }
-    std::fs::write(&payload, bytes).expect("damage");
+    damage_payload(&folder);
     let told = Told::default();
     let events = |event: SourceEvent<'_>| told.tell(event);
     let mut store =
