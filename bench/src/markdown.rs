@@ -285,8 +285,8 @@ pub fn campaign_tables(c: &CampaignResult) -> String {
     }
     let _ = writeln!(
         md,
-        "\nThe builder's stages (s), the chunks, the nodes, what was spilled and stored:\n\n\
-         | input | counting | chunks | upper levels | total | chunks | nodes | \
+        "\nThe builder's stages (s), the partitions, the nodes, what was spilled and stored:\n\n\
+         | input | counting | partitions | upper levels | total | partitions | nodes | \
          spilled MiB (B a record) | node records MiB | store on disk MiB | RSS before MiB |\n\
          |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     );
@@ -297,10 +297,10 @@ pub fn campaign_tables(c: &CampaignResult) -> String {
             "| {} | {} | {} | {} | {} | {} | {} | {:.0} ({}) | {:.0} | {:.0} | {:.0} |",
             b.input.to_uppercase(),
             seconds(s.counting_s),
-            seconds(s.chunks_s),
+            seconds(s.partitions_s),
             seconds(s.upper_levels_s),
             seconds(s.total_s),
-            b.chunks,
+            b.partitions,
             thousands(b.nodes),
             mib(b.spilled_bytes),
             b.spill_record_bytes,

@@ -92,7 +92,7 @@ pub struct DecodeResult {
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct BuildStages {
     pub counting_s: f64,
-    pub chunks_s: f64,
+    pub partitions_s: f64,
     pub upper_levels_s: f64,
     pub total_s: f64,
 }
@@ -101,7 +101,7 @@ impl From<BuildTimings> for BuildStages {
     fn from(t: BuildTimings) -> Self {
         Self {
             counting_s: t.counting.as_secs_f64(),
-            chunks_s: t.chunks.as_secs_f64(),
+            partitions_s: t.partitions.as_secs_f64(),
             upper_levels_s: t.upper_levels.as_secs_f64(),
             total_s: t.total.as_secs_f64(),
         }
@@ -136,7 +136,7 @@ pub struct BuildResult {
     /// The most bytes the builder's tracked buffers held, and their budget.
     pub builder_peak_bytes: u64,
     pub memory_budget_bytes: u64,
-    pub chunks: usize,
+    pub partitions: usize,
     pub nodes: usize,
     pub spilled_bytes: u64,
     /// Bytes of a point's spill record (26 on one LAS grid, 38 in f64).
@@ -340,13 +340,13 @@ pub fn measure_with_frames(
         peak_reset &= reset;
         log(format!(
             "campaign: {input}: built in {:.1} s, {:.2} M points/s ({:.0}% of reading's rate; \
-             counting {:.1} s, chunks {:.1} s, upper levels {:.1} s), peak \
+             counting {:.1} s, partitions {:.1} s, upper levels {:.1} s), peak \
              RSS {:.0} MiB, store {:.1} B/point",
             build.build_s,
             build.mpoints_per_s,
             build.over_decode * 100.0,
             build.stages.counting_s,
-            build.stages.chunks_s,
+            build.stages.partitions_s,
             build.stages.upper_levels_s,
             build.peak_rss_bytes as f64 / (1u64 << 20) as f64,
             build.store_disk_bytes_per_point
@@ -460,7 +460,7 @@ fn build(
             peak_rss_bytes,
             builder_peak_bytes: report.peak_memory_bytes,
             memory_budget_bytes: report.memory_budget_bytes,
-            chunks: report.chunks,
+            partitions: report.partitions,
             nodes: report.hierarchy.nodes().len(),
             spilled_bytes: report.spilled_bytes,
             spill_record_bytes: report.spill_record_bytes,
@@ -513,9 +513,9 @@ mod tests {
                 "{build:?}"
             );
             let s = build.stages;
-            assert!(s.total_s >= s.counting_s + s.chunks_s, "{s:?}");
+            assert!(s.total_s >= s.counting_s + s.partitions_s, "{s:?}");
             assert!(build.build_s >= s.total_s);
-            assert!(build.nodes >= 1 && build.chunks >= 1);
+            assert!(build.nodes >= 1 && build.partitions >= 1);
             assert!(build.store_disk_bytes_per_point > 0.0, "{build:?}");
             assert!(build.peak_rss_bytes > 0 && build.builder_peak_bytes > 0);
             assert!(build.builder_peak_bytes <= build.memory_budget_bytes);

@@ -1,6 +1,6 @@
 //! The order a frame reads the nodes it lacks: the load queue's (the cut's, by priority) a
 //! window of records at a time, and within a window by where the records lie, so that nodes
-//! stored together (a chunk's top levels, `lod/sink.rs`) are read together, in long runs, and
+//! stored together (a partition's top levels, `lod/sink.rs`) are read together, in long runs, and
 //! not one read a node (docs/perf/payload-layout.md). A frame waits for its whole cut either
 //! way; the windows keep the nearest, largest nodes read first.
 

@@ -3,13 +3,13 @@
 //! 1. counting: the source read once, every point checked, counted into a coarse grid of the
 //!    root cube (its buckets) and written to its bucket's spill files through bounded
 //!    buffers, with the dataset's statistics;
-//! 2. planning: buckets merged into chunks of at most a budget-derived number of points, so
-//!    that a chunk's points are its buckets' files and the source is never read again (LAZ is
+//! 2. planning: buckets merged into partitions of at most a budget-derived number of points, so
+//!    that a partition's points are its buckets' files and the source is never read again (LAZ is
 //!    decoded once);
-//! 3. chunks: each chunk's local octree built in memory, in parallel, as many at once as the
-//!    budget holds (a chunk too large, or a dense bucket far above the plan's size, is split
-//!    on disk first);
-//! 4. upper levels: the nodes above the chunks sampled from their children up to the root;
+//! 3. partitions: each partition's local octree built in memory, in parallel, as many at once
+//!    as the budget holds (a partition too large, or a dense bucket far above the plan's size, is
+//!    split on disk first);
+//! 4. upper levels: the nodes above the partitions sampled from their children up to the root;
 //! 5. the hierarchy written last.
 //!
 //! Every buffer the builder holds is reserved from one [`MemoryMeter`] first; the source's
@@ -21,7 +21,6 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
-use super::chunks::{build_chunks, chunk_bytes, chunk_files};
 use super::context::BuildContext;
 use super::counting::{
     count_points, CountGrid, BUCKET_SEGMENT_POINTS, COUNTING_BLOCKS_BYTES, MAX_COUNT_LEVEL,
@@ -31,7 +30,8 @@ use super::hierarchy::LodHierarchy;
 use super::key::RootCube;
 use super::memory::MemoryMeter;
 use super::options::{LodBuildOptions, BUILD_BYTES_PER_POINT};
-use super::plan::plan_chunks;
+use super::partitions::{build_partitions, partition_bytes, partition_files};
+use super::plan::plan_partitions;
 use super::point::RecordLayout;
 use super::progress::BuildProgress;
 use super::sink::NodeSink;
@@ -49,7 +49,7 @@ const BUCKET_BUFFER_BYTES: u64 = 16 << 20;
 pub struct BuildTimings {
     /// Reading the source, with every point written to its bucket.
     pub counting: Duration,
-    pub chunks: Duration,
+    pub partitions: Duration,
     pub upper_levels: Duration,
     pub total: Duration,
 }
@@ -57,10 +57,10 @@ pub struct BuildTimings {
 #[derive(Debug, Clone)]
 pub struct LodBuildReport {
     pub hierarchy: LodHierarchy,
-    pub chunks: usize,
-    /// Chunks split on disk before they were built: too large for the budget, or a dense
-    /// bucket far above the chunk size.
-    pub chunks_split: usize,
+    pub partitions: usize,
+    /// Partitions split on disk before they were built: too large for the budget, or a dense
+    /// bucket far above the partition size.
+    pub partitions_split: usize,
     /// The bucket grid's level (cells per axis = 2^level).
     pub count_level: u32,
     /// Bytes written to spill files.
@@ -115,11 +115,11 @@ pub fn build_lod_watched(
     }
 }
 
-/// The bucket grid's level: fine enough that merged buckets make chunks well below the chunk
-/// size on surfaces (which fill about 4^level cells), at most [`MAX_COUNT_LEVEL`], within a
-/// quarter of the budget.
-fn count_level(points: u64, max_chunk_points: u64, budget: u64) -> u32 {
-    let wanted = 64.0 * points as f64 / max_chunk_points as f64;
+/// The bucket grid's level: fine enough that merged buckets make partitions well below the
+/// partition size on surfaces (which fill about 4^level cells), at most [`MAX_COUNT_LEVEL`], within
+/// a quarter of the budget.
+fn count_level(points: u64, max_partition_points: u64, budget: u64) -> u32 {
+    let wanted = 64.0 * points as f64 / max_partition_points as f64;
     let mut level = 0;
     while level < MAX_COUNT_LEVEL && 4f64.powi(level as i32) < wanted {
         level += 1;
@@ -148,14 +148,14 @@ fn build_on_pool(
     let budget = meter.largest_possible();
     let threads = rayon::current_num_threads() as u64;
     let leaf = options.max_leaf_points as u64;
-    // Small enough that every thread can hold a chunk and has several to build, never below
+    // Small enough that every thread can hold a partition and has several to build, never below
     // a few leaves, and always within the budget.
-    let max_chunk = (budget / (BUILD_BYTES_PER_POINT * threads))
-        .min(options.max_chunk_points)
+    let max_partition = (budget / (BUILD_BYTES_PER_POINT * threads))
+        .min(options.max_partition_points)
         .min(source.point_count() / (4 * threads))
         .max(4 * leaf)
-        .min((budget - chunk_bytes(0)) / BUILD_BYTES_PER_POINT);
-    let level = count_level(source.point_count(), max_chunk, budget);
+        .min((budget - partition_bytes(0)) / BUILD_BYTES_PER_POINT);
+    let level = count_level(source.point_count(), max_partition, budget);
     store.clear()?;
     let layout = RecordLayout::for_grid(source.position_grid());
     let spill = SpillDir::create(&options.spill_dir, layout)?;
@@ -173,16 +173,16 @@ fn build_on_pool(
         buffer_bytes,
         BUCKET_SEGMENT_POINTS,
     )?;
-    let plan = plan_chunks(&grid, max_chunk);
-    let chunks = chunk_files(&plan, &grid, &spill);
-    let chunk_count = chunks.len();
+    let plan = plan_partitions(&grid, max_partition);
+    let partitions = partition_files(&plan, &grid, &spill);
+    let partition_count = partitions.len();
     drop(plan);
     drop(grid);
     drop(grid_reservation);
     timings.counting = start.elapsed();
     tracing::info!(
         points = source.point_count(),
-        chunks = chunk_count,
+        partitions = partition_count,
         level,
         "counted"
     );
@@ -195,17 +195,17 @@ fn build_on_pool(
         meter: &meter,
         spill: &spill,
         sink: &sink,
-        max_chunk_points: max_chunk,
+        max_partition_points: max_partition,
         pending: Mutex::new(Default::default()),
-        chunks_split: AtomicUsize::new(0),
+        partitions_split: AtomicUsize::new(0),
     };
     let building = Instant::now();
-    build_chunks(&ctx, chunks)?;
-    timings.chunks = building.elapsed();
+    build_partitions(&ctx, partitions)?;
+    timings.partitions = building.elapsed();
     let upper = Instant::now();
     build_upper_levels(&ctx)?;
     timings.upper_levels = upper.elapsed();
-    let chunks_split = ctx.chunks_split.load(Ordering::Relaxed);
+    let partitions_split = ctx.partitions_split.load(Ordering::Relaxed);
     drop(ctx);
 
     let stored_points = sink.points();
@@ -230,8 +230,8 @@ fn build_on_pool(
     drop(spill);
     Ok(LodBuildReport {
         hierarchy,
-        chunks: chunk_count,
-        chunks_split,
+        partitions: partition_count,
+        partitions_split,
         count_level: level,
         spilled_bytes,
         spill_record_bytes: layout.record_bytes(),

@@ -29,11 +29,11 @@ pub struct BuildContext<'a> {
     pub meter: &'a MemoryMeter,
     pub spill: &'a SpillDir,
     pub sink: &'a NodeSink<'a>,
-    /// The plan's chunk size: a chunk far above it is split before it is built.
-    pub max_chunk_points: u64,
+    /// The plan's partition size: a partition far above it is split before it is built.
+    pub max_partition_points: u64,
     pub pending: Mutex<BTreeMap<NodeKey, Pending>>,
-    /// Chunks that were too large for the budget and split on disk.
-    pub chunks_split: AtomicUsize,
+    /// Partitions that were too large for the budget and split on disk.
+    pub partitions_split: AtomicUsize,
 }
 
 impl BuildContext<'_> {

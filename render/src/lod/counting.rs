@@ -1,12 +1,12 @@
 //! The counting pass, the only pass over the source: every point checked, counted into a
 //! coarse grid of the root cube (the buckets) and written as a spill record to its bucket's
-//! files, with the dataset's statistics. Chunks are then unions of whole buckets
+//! files, with the dataset's statistics. Partitions are then unions of whole buckets
 //! (`plan.rs`), so the points are not read, or decoded, a second time.
 //!
 //! A block of points has its buckets and records made on all cores; a thread of its own
 //! appends each block's records to the buckets' buffers (and hands full buffers to the spill
 //! writer's thread) while the next block is made: reading, scattering and writing overlap.
-//! A bucket's records go to files of at most [`BUCKET_SEGMENT_POINTS`], so that a chunk split
+//! A bucket's records go to files of at most [`BUCKET_SEGMENT_POINTS`], so that a partition split
 //! on disk holds one segment beside its children at a time.
 
 use std::ops::Range;
@@ -48,7 +48,8 @@ impl CountGrid {
         (cell.x as usize) | ((cell.y as usize) << level) | ((cell.z as usize) << (2 * level))
     }
 
-    /// Bytes of a grid of `level` with its planning pyramid and chunk lookup (8 + 8/7 + 4 a cell).
+    /// Bytes of a grid of `level` with its planning pyramid and partition lookup (8 + 8/7 + 4 a
+    /// cell).
     pub fn planning_bytes(level: u32) -> u64 {
         (1u64 << (3 * level)) * 14
     }

@@ -16,9 +16,9 @@ pub fn spill_record_bytes(source: &dyn PointSource) -> u64 {
 
 /// Bytes a build of `points` points needs on disk at its peak, in spill records of
 /// `record_bytes` ([`spill_record_bytes`]): a spill record a point (the buckets the counting
-/// pass writes), which the stored nodes replace chunk by chunk (a stored point takes less
+/// pass writes), which the stored nodes replace partition by partition (a stored point takes less
 /// than its record), with a tenth of slack; a bucket segment's records and stored points in
-/// flight (a chunk split on disk removes each segment once it has read it); and a margin for
+/// flight (a partition split on disk removes each segment once it has read it); and a margin for
 /// the hierarchy and partial pages. The store itself stays after the build, at less than its
 /// spill (docs/perf/campaign-1b.md).
 pub fn build_disk_bytes(points: u64, has_rgb: bool, record_bytes: u64) -> u64 {

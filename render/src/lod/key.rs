@@ -3,7 +3,7 @@
 //! Keys are COPC's voxel keys (level, x, y, z), so a COPC export needs no renumbering. Every
 //! cell index at every level comes from one formula, [`RootCube::cell_at`], which scales the
 //! offset from the cube's corner by an exact power of two: a point's cell at level `l + 1`
-//! halved is always its cell at level `l`, so the counting grid, the chunks, the local octrees
+//! halved is always its cell at level `l`, so the counting grid, the partitions, the local octrees
 //! and the sampling grids agree on where a point lies whatever the rounding.
 
 use std::fmt;

@@ -1,8 +1,8 @@
-//! A chunk's local octree, built in memory: a node above the leaf bound splits its points into
+//! A partition's local octree, built in memory: a node above the leaf bound splits its points into
 //! its children, the children are built, then the node samples its own points from theirs
-//! (bottom-up, as PotreeConverter 2 does) and every child is finished, into the chunk's group
-//! of nodes, stored together once the chunk is built (`sink.rs`). The chunk's root is
-//! returned unfinished: the levels above the chunks still sample from it.
+//! (bottom-up, as PotreeConverter 2 does) and every child is finished, into the nodes of the
+//! partition's region, stored together once the partition is built (`sink.rs`). The partition's
+//! root is returned unfinished: the levels above the partitions still sample from it.
 
 use super::error::LodError;
 use super::key::{NodeKey, RootCube, MAX_LEVEL};
@@ -28,7 +28,7 @@ impl LocalBuilder<'_> {
         &self,
         key: NodeKey,
         points: Vec<RawPoint>,
-        group: &mut Vec<EncodedNode>,
+        region: &mut Vec<EncodedNode>,
     ) -> Result<SubtreeRoot, LodError> {
         if points.len() <= self.max_leaf_points || key.level >= MAX_LEVEL {
             return Ok(SubtreeRoot {
@@ -44,7 +44,7 @@ impl LocalBuilder<'_> {
             if child_points.is_empty() {
                 continue;
             }
-            let child = self.build(key.child(i), child_points, group)?;
+            let child = self.build(key.child(i), child_points, region)?;
             own[i] = child.points;
             grids[i] = child.sample_grid;
             present[i] = true;
@@ -52,7 +52,7 @@ impl LocalBuilder<'_> {
         let sampled = sample(&self.cube, key, own, self.sample_grid, self.max_leaf_points);
         for (i, kept) in sampled.kept.iter().enumerate() {
             if present[i] {
-                group.push(self.sink.encode(key.child(i), kept, grids[i])?);
+                region.push(self.sink.encode(key.child(i), kept, grids[i])?);
             }
         }
         Ok(SubtreeRoot {

@@ -6,8 +6,8 @@
 //! one point per cell of a grid over its cube (the point closest to the cell's centre), chosen
 //! from its children's points, which keep the rest ([`sampling`]). Keys are COPC's voxel keys
 //! (level, x, y, z) in a cube around the bounds ([`key`]). The build follows PotreeConverter 2
-//! ([`build`]): a counting pass, chunks of bounded size spilled to disk, each chunk's octree
-//! built in memory in parallel, then the levels above. Nodes are stored quantised to 30 bits
+//! ([`build`]): a counting pass, partitions of bounded size spilled to disk, each partition's
+//! octree built in memory in parallel, then the levels above. Nodes are stored quantised to 30 bits
 //! per axis in their cube, 12 bytes a position in three coarse-to-fine streams, with the raw
 //! attributes and a checksum ([`codec`]). Each node's record lies in one append-only payload
 //! file at the byte range its [`NodeInfo`] records, read with positioned reads from any number
@@ -21,7 +21,6 @@
 
 pub mod build;
 mod checksum;
-mod chunks;
 pub mod codec;
 mod colors;
 mod context;
@@ -38,6 +37,7 @@ mod local;
 pub mod memory;
 pub mod options;
 mod pages;
+mod partitions;
 mod plan;
 mod point;
 pub mod progress;

@@ -11,8 +11,8 @@ pub const DEFAULT_MAX_LEAF_POINTS: usize = 50_000;
 pub const DEFAULT_SAMPLE_GRID: u32 = 128;
 /// The default host-memory budget of a build.
 pub const DEFAULT_MEMORY_BUDGET_BYTES: u64 = 1 << 30;
-/// The most points the counting pass puts in one chunk (PotreeConverter uses about 10M).
-pub const DEFAULT_MAX_CHUNK_POINTS: u64 = 4_000_000;
+/// The most points the counting pass puts in one partition (PotreeConverter uses about 10M).
+pub const DEFAULT_MAX_PARTITION_POINTS: u64 = 4_000_000;
 
 /// What the builder reserves from the budget per point it holds in memory: the point (40 B),
 /// its copy while a node is split into children, the sampling map and the encoded node.
@@ -28,8 +28,8 @@ pub struct LodBuildOptions {
     pub max_leaf_points: usize,
     /// Cells per axis of an inner node's sampling grid; a power of two, 1 to 128.
     pub sample_grid: u32,
-    /// The most points of a chunk the counting pass makes; the budget may lower it.
-    pub max_chunk_points: u64,
+    /// The most points of a partition the counting pass makes; the budget may lower it.
+    pub max_partition_points: u64,
     /// Rayon threads for the build; `None` uses the global pool (every core).
     pub threads: Option<usize>,
 }
@@ -41,7 +41,7 @@ impl LodBuildOptions {
             spill_dir: spill_dir.into(),
             max_leaf_points: DEFAULT_MAX_LEAF_POINTS,
             sample_grid: DEFAULT_SAMPLE_GRID,
-            max_chunk_points: DEFAULT_MAX_CHUNK_POINTS,
+            max_partition_points: DEFAULT_MAX_PARTITION_POINTS,
             threads: None,
         }
     }
@@ -67,10 +67,10 @@ impl LodBuildOptions {
                 self.sample_grid
             ));
         }
-        if self.max_chunk_points < self.max_leaf_points as u64 {
+        if self.max_partition_points < self.max_leaf_points as u64 {
             return fail(format!(
-                "max_chunk_points ({}) is below max_leaf_points ({})",
-                self.max_chunk_points, self.max_leaf_points
+                "max_partition_points ({}) is below max_leaf_points ({})",
+                self.max_partition_points, self.max_leaf_points
             ));
         }
         if self.threads == Some(0) {

@@ -1,6 +1,6 @@
-//! Chunk planning: the bucket grid's cells merged into chunks of at most `max_points`
+//! Partition planning: the bucket grid's cells merged into partitions of at most `max_points`
 //! points, as PotreeConverter 2 does: a pyramid of counts, and from the root down every cell
-//! that holds few enough points (or is a cell of the grid itself) becomes one chunk.
+//! that holds few enough points (or is a cell of the grid itself) becomes one partition.
 
 use glam::UVec3;
 
@@ -9,20 +9,20 @@ use super::key::NodeKey;
 
 /// A subtree whose points are spilled into one file and built in memory at once.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Chunk {
+pub struct Partition {
     pub key: NodeKey,
     pub count: u64,
 }
 
-/// The chunks and, for every cell of the counting grid, the index of its chunk.
-pub struct ChunkPlan {
+/// The partitions and, for every cell of the counting grid, the index of its partition.
+pub struct PartitionPlan {
     pub level: u32,
-    pub chunks: Vec<Chunk>,
+    pub partitions: Vec<Partition>,
     /// `u32::MAX` for an empty cell.
     pub lookup: Vec<u32>,
 }
 
-pub fn plan_chunks(grid: &CountGrid, max_points: u64) -> ChunkPlan {
+pub fn plan_partitions(grid: &CountGrid, max_points: u64) -> PartitionPlan {
     let top = grid.level;
     let mut pyramid: Vec<Vec<u64>> = vec![Vec::new(); top as usize + 1];
     pyramid[top as usize] = grid.counts.clone();
@@ -45,9 +45,9 @@ pub fn plan_chunks(grid: &CountGrid, max_points: u64) -> ChunkPlan {
         }
         pyramid[level as usize] = counts;
     }
-    let mut plan = ChunkPlan {
+    let mut plan = PartitionPlan {
         level: top,
-        chunks: Vec::new(),
+        partitions: Vec::new(),
         lookup: vec![u32::MAX; 1 << (3 * top)],
     };
     let mut stack = vec![NodeKey::ROOT];
@@ -58,19 +58,19 @@ pub fn plan_chunks(grid: &CountGrid, max_points: u64) -> ChunkPlan {
             continue;
         }
         if count <= max_points || level == top {
-            let index = plan.chunks.len() as u32;
+            let index = plan.partitions.len() as u32;
             mark(&mut plan, key, index);
-            plan.chunks.push(Chunk { key, count });
+            plan.partitions.push(Partition { key, count });
         } else {
-            // Pushed in reverse so chunks come out in child order, the same on every run.
+            // Pushed in reverse so partitions come out in child order, the same on every run.
             stack.extend((0..8).rev().map(|i| key.child(i)));
         }
     }
     plan
 }
 
-/// Points every grid cell inside `key` at chunk `index`.
-fn mark(plan: &mut ChunkPlan, key: NodeKey, index: u32) {
+/// Points every grid cell inside `key` at partition `index`.
+fn mark(plan: &mut PartitionPlan, key: NodeKey, index: u32) {
     let span = 1u32 << (plan.level - u32::from(key.level));
     let base = key.cell() * span;
     for z in 0..span {
@@ -87,7 +87,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn cells_merge_into_chunks_below_the_limit() {
+    fn cells_merge_into_partitions_below_the_limit() {
         let level = 2;
         let mut counts = vec![0u64; 64];
         // One dense cell, and a sparse corner that merges.
@@ -99,15 +99,15 @@ mod tests {
             counts,
             segment_points: 1,
         };
-        let plan = plan_chunks(&grid, 10);
+        let plan = plan_partitions(&grid, 10);
         assert_eq!(
-            plan.chunks,
+            plan.partitions,
             vec![
-                Chunk {
+                Partition {
                     key: NodeKey::new(1, UVec3::ZERO),
                     count: 7
                 },
-                Chunk {
+                Partition {
                     key: NodeKey::new(2, UVec3::splat(3)),
                     count: 100
                 },

@@ -3,8 +3,8 @@
 //!
 //! A node is listed only once its record is in the payload file, which is written with
 //! positioned writes and no buffer, so every listed node reads back whole while the build
-//! goes on. The nodes come chunk by chunk, each chunk's subtree but its root (the levels above
-//! still sample from it), then the levels above the chunks at the end.
+//! goes on. The nodes come partition by partition, each partition's subtree but its root (the
+//! levels above still sample from it), then the levels above the partitions at the end.
 //!
 //! A preview is drawn again each time the build has stored another share of the points
 //! ([`PREVIEW_REDRAW_SHARE`]); the number of whole shares stored is the preview's version, which
@@ -151,7 +151,7 @@ impl BuildProgress {
             }
             break;
         }
-        // On the calling thread: the build keeps the shared thread pool busy with chunks that
+        // On the calling thread: the build keeps the shared thread pool busy with partitions that
         // take seconds each, so work queued there would wait for them.
         chosen
             .iter()

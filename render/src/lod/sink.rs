@@ -1,11 +1,11 @@
-//! `NodeSink`: where finished nodes go: encoded, stored in the payload file a group at a time
+//! `NodeSink`: where finished nodes go: encoded, stored in the payload file a region at a time
 //! and listed, with where their records lie, for the hierarchy.
 //!
-//! A group (a chunk's octree, or the children of a node above the chunks) is one region of the
-//! payload file: the coarse sections of its nodes, shallow levels first and each level along a
-//! Z curve, then the rest of their records in the same order. A cut takes a chunk's nodes from
-//! the top down and reads most of them coarse, so it reads a few long ranges where it would
-//! read one range a node (docs/perf/payload-layout.md).
+//! A region (a partition's octree, or the children of a node above the partitions) is one
+//! contiguous range of the payload file: the coarse sections of its nodes, shallow levels first and
+//! each level along a Z curve, then the rest of their records in the same order. A cut takes a
+//! partition's nodes from the top down and reads most of them coarse, so it reads a few long ranges
+//! where it would read one range a node (docs/perf/payload-layout.md).
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
@@ -28,7 +28,7 @@ pub struct NodeSink<'a> {
     bytes: AtomicU64,
 }
 
-/// A finished node, encoded, waiting to be stored with the rest of its group.
+/// A finished node, encoded, waiting to be stored with the rest of its region.
 pub struct EncodedNode {
     info: NodeInfo,
     record: Vec<u8>,
@@ -92,17 +92,17 @@ impl<'a> NodeSink<'a> {
         self.store(vec![self.encode(key, points, sample_grid)?])
     }
 
-    /// Stores `group` as one region of the payload file (the module's layout) and lists its
-    /// nodes.
-    pub fn store(&self, mut group: Vec<EncodedNode>) -> Result<(), LodError> {
-        group.sort_unstable_by_key(|n| (n.info.key.level, n.info.key.morton()));
-        let (heads, rests): (Vec<&[u8]>, Vec<&[u8]>) = group
+    /// Stores `region` as one contiguous range of the payload file (the module's layout) and lists
+    /// its nodes.
+    pub fn store(&self, mut region: Vec<EncodedNode>) -> Result<(), LodError> {
+        region.sort_unstable_by_key(|n| (n.info.key.level, n.info.key.morton()));
+        let (heads, rests): (Vec<&[u8]>, Vec<&[u8]>) = region
             .iter()
             .map(|n| n.record.split_at(n.info.head_len as usize))
             .unzip();
         let pieces: Vec<&[u8]> = heads.into_iter().chain(rests).collect();
         let mut at = self.store.write_region(&pieces)?;
-        let mut infos: Vec<NodeInfo> = group.iter().map(|n| n.info).collect();
+        let mut infos: Vec<NodeInfo> = region.iter().map(|n| n.info).collect();
         for info in infos.iter_mut().filter(|n| n.byte_len > 0) {
             info.offset = at;
             at += u64::from(info.head_len);

@@ -1,5 +1,5 @@
-//! The levels above the chunks: from the deepest waiting subtree roots up, each parent loads
-//! its waiting children, samples its own points from them by the same rule as inside a chunk,
+//! The levels above the partitions: from the deepest waiting subtree roots up, each parent loads
+//! its waiting children, samples its own points from them by the same rule as inside a partition,
 //! finishes the children and waits in turn, until the root is finished. Parents of one level
 //! are built in parallel, each holding its reservation while it works.
 
@@ -58,7 +58,7 @@ fn build_parent(
     let total: u64 = children.iter().map(|(_, c)| c.count).sum();
     let _reservation = ctx.meter.reserve(
         total * BUILD_BYTES_PER_POINT + READ_BLOCK_BYTES,
-        "a node above the chunks with its children",
+        "a node above the partitions with its children",
     )?;
     let mut own: [Vec<RawPoint>; 8] = Default::default();
     let mut grids = [0u32; 8];
@@ -81,12 +81,12 @@ fn build_parent(
         ctx.options.sample_grid,
         ctx.options.max_leaf_points,
     );
-    let mut group = Vec::new();
+    let mut region = Vec::new();
     for (i, kept) in sampled.kept.iter().enumerate() {
         if present[i] {
-            group.push(ctx.sink.encode(parent.child(i), kept, grids[i])?);
+            region.push(ctx.sink.encode(parent.child(i), kept, grids[i])?);
         }
     }
-    ctx.sink.store(group)?;
+    ctx.sink.store(region)?;
     ctx.finish_subtree(parent, &sampled.parent, sampled.grid)
 }

@@ -221,7 +221,7 @@ fn a_small_memory_budget_is_respected_and_spill_files_removed() {
         report.peak_memory_bytes > report.memory_budget_bytes / 4,
         "the meter saw the buffers"
     );
-    assert!(report.chunks > 4, "{} chunks", report.chunks);
+    assert!(report.partitions > 4, "{} partitions", report.partitions);
     assert!(
         report.spilled_bytes >= 200_000 * 34,
         "every point spilled: {}",
@@ -242,9 +242,9 @@ fn a_small_memory_budget_is_respected_and_spill_files_removed() {
 }
 
 /// Dense points in a 1 m cube with two outliers 10 km away: the counting grid cannot separate
-/// them, so the builder must split their chunk on disk to stay in the budget.
+/// them, so the builder must split their partition on disk to stay in the budget.
 #[test]
-fn a_chunk_larger_than_the_budget_is_split_on_disk() {
+fn a_partition_larger_than_the_budget_is_split_on_disk() {
     let mut points: Vec<DVec3> = (0..60_000u32)
         .map(|i| {
             let f = |k: u32| f64::from((i.wrapping_mul(k) >> 7) % 1000) / 1000.0;
@@ -258,7 +258,11 @@ fn a_chunk_larger_than_the_budget_is_split_on_disk() {
     let source = CloudSource::new(&cloud);
     let built = build_with(&source, |_| {});
     let report = &built.report;
-    assert!(report.chunks_split > 0, "split: {}", report.chunks_split);
+    assert!(
+        report.partitions_split > 0,
+        "split: {}",
+        report.partitions_split
+    );
     assert!(report.peak_memory_bytes <= report.memory_budget_bytes);
     let nodes = read_all_nodes(&built);
     assert_eq!(
@@ -273,10 +277,10 @@ fn a_chunk_larger_than_the_budget_is_split_on_disk() {
 }
 
 /// Points over 2 km with two outliers 10 km away: the buckets (1.25 km at the finest bucket
-/// grid) each hold far more than the chunk size, so the builder splits them on disk before
+/// grid) each hold far more than the partition size, so the builder splits them on disk before
 /// it builds them, though each would fit the budget.
 #[test]
-fn a_bucket_far_above_the_chunk_size_is_split_though_it_fits() {
+fn a_bucket_far_above_the_partition_size_is_split_though_it_fits() {
     let mut points: Vec<DVec3> = (0..60_000u32)
         .map(|i| {
             let f = |k: u32| f64::from((i.wrapping_mul(k) >> 7) % 2000);
@@ -290,10 +294,14 @@ fn a_bucket_far_above_the_chunk_size_is_split_though_it_fits() {
     let source = CloudSource::new(&cloud);
     let built = build_with(&source, |o| {
         o.memory_budget_bytes = 256 << 20;
-        o.max_chunk_points = 2_000;
+        o.max_partition_points = 2_000;
     });
     let report = &built.report;
-    assert!(report.chunks_split > 0, "split: {}", report.chunks_split);
+    assert!(
+        report.partitions_split > 0,
+        "split: {}",
+        report.partitions_split
+    );
     assert!(
         report.peak_memory_bytes < report.memory_budget_bytes / 4,
         "split for their size, not for the budget: {} of {}",
@@ -350,7 +358,7 @@ fn builds_are_deterministic_whatever_the_thread_count() {
     let one = build_with(&source, |o| o.threads = Some(1));
     let three = build_with(&source, |o| o.threads = Some(3));
     let again = build_with(&source, |o| o.threads = Some(3));
-    assert!(one.report.chunks > 2, "several chunks in parallel");
+    assert!(one.report.partitions > 2, "several partitions in parallel");
     let shape = without_offsets(&one.report.hierarchy);
     assert_eq!(shape, without_offsets(&three.report.hierarchy));
     assert_eq!(shape, without_offsets(&again.report.hierarchy));
@@ -396,7 +404,7 @@ fn an_empty_source_builds_an_empty_hierarchy() {
 }
 
 #[test]
-fn a_single_chunk_dataset_is_one_tree_from_the_root() {
+fn a_single_partition_dataset_is_one_tree_from_the_root() {
     let scene = crate::sample::sample_scene(3_000, 1);
     let built = build_with(&CloudSource::new(&scene), |o| o.max_leaf_points = 1_000);
     let hierarchy = &built.report.hierarchy;

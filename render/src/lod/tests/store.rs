@@ -220,14 +220,14 @@ fn a_hierarchy_of_the_earlier_layout_is_refused() {
     }
 }
 
-/// A chunk's nodes are stored together, their coarse sections first, shallow levels first
-/// (as are the children of each node above the chunks): the coarse sections of the top levels,
+/// A partition's nodes are stored together, their coarse sections first, shallow levels first
+/// (as are the children of each node above the partitions): the coarse sections of the top levels,
 /// as a far view's cut takes them, fill a few stretches of the file, where records stored
 /// whole, each coarse section followed by its rest, leave a stretch a node.
 #[test]
 fn the_top_levels_coarse_sections_are_read_in_few_runs() {
     let built = build_with(&GeneratedSource::terrain(200_000, 7), |o| {
-        o.max_chunk_points = 25_000;
+        o.max_partition_points = 25_000;
     });
     let hierarchy = &built.report.hierarchy;
     let top: Vec<NodeInfo> = hierarchy

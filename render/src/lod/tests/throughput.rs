@@ -53,15 +53,15 @@ fn throughput_of_a_20m_point_terrain() {
         })
         .unwrap_or_default();
     println!(
-        "lod build: {points} points, {} threads, {:.2} M points/s ({:.1} s: counting {:.1}, chunks {:.1}, upper {:.1}); \
-         {} chunks, {} nodes; tracked peak {:.0} MiB of {:.0} MiB; spilled {:.0} MiB; stored {:.0} MiB ({:.1} B/point on disk, sled's files {:.1} MiB); {vm_hwm}",
+        "lod build: {points} points, {} threads, {:.2} M points/s ({:.1} s: counting {:.1}, partitions {:.1}, upper {:.1}); \
+         {} partitions, {} nodes; tracked peak {:.0} MiB of {:.0} MiB; spilled {:.0} MiB; stored {:.0} MiB ({:.1} B/point on disk, sled's files {:.1} MiB); {vm_hwm}",
         rayon::current_num_threads(),
         rate / 1e6,
         t.total.as_secs_f64(),
         t.counting.as_secs_f64(),
-        t.chunks.as_secs_f64(),
+        t.partitions.as_secs_f64(),
         t.upper_levels.as_secs_f64(),
-        report.chunks,
+        report.partitions,
         report.hierarchy.nodes().len(),
         report.peak_memory_bytes as f64 / 1048576.0,
         report.memory_budget_bytes as f64 / 1048576.0,

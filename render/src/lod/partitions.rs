@@ -1,0 +1,148 @@
+//! The partitions' local octrees, each built in memory from its buckets' files, in parallel with
+//! only as many partitions in memory as the budget allows; a partition too large for the budget, or
+//! much larger than the plan's partitions (a dense bucket), is split into its eight children on
+//! disk first.
+
+use std::path::PathBuf;
+
+use rayon::prelude::*;
+
+use super::context::BuildContext;
+use super::counting::CountGrid;
+use super::error::LodError;
+use super::key::MAX_LEVEL;
+use super::options::BUILD_BYTES_PER_POINT;
+use super::plan::{Partition, PartitionPlan};
+use super::spill::{self, SpillDir, SpillWriter, READ_BLOCK_BYTES};
+
+/// The most bytes of write buffers when a partition is split further.
+const SPLIT_BUFFER_BYTES: u64 = 8 << 20;
+
+/// The finest level a partition that fits the budget is still split at for its size alone: that
+/// of PotreeConverter's finest counting grid (128 cells an axis). Points too close together
+/// for it are built as one partition when they fit, however many.
+const FINEST_SPLIT_LEVEL: u8 = 7;
+
+/// Bytes a partition of `count` points reserves while it is built.
+pub fn partition_bytes(count: u64) -> u64 {
+    count * BUILD_BYTES_PER_POINT + READ_BLOCK_BYTES
+}
+
+fn partition_path(ctx: &BuildContext<'_>, partition: &Partition) -> PathBuf {
+    ctx.spill.file(&format!("partition-{}.bin", partition.key))
+}
+
+/// Each partition of `plan` with the files of its buckets, in bucket order: the counting pass
+/// wrote every point to its bucket, and a partition is a union of whole buckets.
+pub fn partition_files(
+    plan: &PartitionPlan,
+    grid: &CountGrid,
+    spill: &SpillDir,
+) -> Vec<(Partition, Vec<PathBuf>)> {
+    let mut files = vec![Vec::new(); plan.partitions.len()];
+    for (bucket, &count) in grid.counts.iter().enumerate() {
+        if count > 0 {
+            files[plan.lookup[bucket] as usize].extend(grid.bucket_files(spill, bucket));
+        }
+    }
+    plan.partitions.iter().copied().zip(files).collect()
+}
+
+/// Builds every partition, largest first, on the current rayon pool.
+pub fn build_partitions(
+    ctx: &BuildContext<'_>,
+    mut partitions: Vec<(Partition, Vec<PathBuf>)>,
+) -> Result<(), LodError> {
+    partitions.sort_by(|a, b| b.0.count.cmp(&a.0.count).then(a.0.key.cmp(&b.0.key)));
+    partitions
+        .into_par_iter()
+        .with_max_len(1)
+        .try_for_each(|(partition, files)| build_partition(ctx, partition, files))
+}
+
+fn build_partition(
+    ctx: &BuildContext<'_>,
+    partition: Partition,
+    files: Vec<PathBuf>,
+) -> Result<(), LodError> {
+    let needed = partition_bytes(partition.count);
+    let fits = needed <= ctx.meter.largest_possible();
+    // A dense bucket is a partition far above the plan's size: split, it keeps the cores busy.
+    let oversized =
+        partition.count > 2 * ctx.max_partition_points && partition.key.level < FINEST_SPLIT_LEVEL;
+    if !fits || oversized {
+        if partition.key.level >= MAX_LEVEL {
+            return Err(LodError::TooDense {
+                key: partition.key,
+                count: partition.count,
+            });
+        }
+        let parts = split_partition(ctx, partition, &files)?;
+        ctx.partitions_split
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        // No reservation is held here: a task that waits for memory must hold none.
+        return build_partitions(ctx, parts);
+    }
+    let _reservation = ctx.meter.reserve(needed, "a partition built in memory")?;
+    let points = spill::read_all(&files, ctx.spill.layout(), partition.count)?;
+    for path in &files {
+        spill::remove(path)?;
+    }
+    let mut region = Vec::new();
+    let root = ctx
+        .local_builder()
+        .build(partition.key, points, &mut region)?;
+    ctx.sink.store(region)?;
+    ctx.finish_subtree(partition.key, &root.points, root.sample_grid)
+}
+
+/// Streams a partition's files into eight files, one per child, each removed once read.
+fn split_partition(
+    ctx: &BuildContext<'_>,
+    partition: Partition,
+    files: &[PathBuf],
+) -> Result<Vec<(Partition, Vec<PathBuf>)>, LodError> {
+    let children: Vec<Partition> = (0..8)
+        .map(|i| Partition {
+            key: partition.key.child(i),
+            count: 0,
+        })
+        .collect();
+    let paths: Vec<PathBuf> = children.iter().map(|c| partition_path(ctx, c)).collect();
+    let buffer = SPLIT_BUFFER_BYTES.min(ctx.meter.largest_possible() / 8);
+    let reservation = ctx
+        .meter
+        .reserve(2 * buffer + READ_BLOCK_BYTES, "splitting a partition")?;
+    let mut writer = SpillWriter::new(ctx.spill, paths.clone(), buffer as usize, reservation);
+    let mut counts = [0u64; 8];
+    let level = u32::from(partition.key.level) + 1;
+    let base = partition.key.cell() * 2;
+    for path in files {
+        spill::for_each_block(path, ctx.spill.layout(), |block| {
+            for p in block {
+                let c = ctx.cube.cell_at(p.position, level) - base;
+                let i = (c.x | (c.y << 1) | (c.z << 2)) as usize;
+                counts[i] += 1;
+                writer.push(i, p)?;
+            }
+            Ok(())
+        })?;
+        spill::remove(path)?;
+    }
+    writer.finish()?;
+    if counts.iter().sum::<u64>() != partition.count {
+        return Err(LodError::SourceChanged(format!(
+            "partition {} holds {} points, the counting pass counted {}",
+            partition.key,
+            counts.iter().sum::<u64>(),
+            partition.count
+        )));
+    }
+    Ok(children
+        .into_iter()
+        .zip(paths)
+        .zip(counts)
+        .filter(|(_, count)| *count > 0)
+        .map(|((child, path), count)| (Partition { count, ..child }, vec![path]))
+        .collect())
+}
