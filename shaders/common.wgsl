@@ -64,7 +64,7 @@ fn batch_size_factor(batch: Batch) -> f32 {
 }
 
 // The batch a frame table's entry lists (`ListedEntry` in `raster/culling/listing.rs`): `batch`, the
-// chunk's table entry at `entry >> 8`, narrowed to the run of its sub-batches from
+// segment's table entry at `entry >> 8`, narrowed to the run of its sub-batches from
 // `(entry >> 4) & 15` for `(entry & 15) + 1` of them (the whole batch: 0 and 15).
 fn listed_batch(entry: u32, batch: Batch) -> Batch {
     var listed = batch;
@@ -74,7 +74,7 @@ fn listed_batch(entry: u32, batch: Batch) -> Batch {
     return listed;
 }
 
-// Points are stored quantised (Kanzok et al.), 11 bytes each, in two arrays per chunk:
+// Points are stored quantised (Kanzok et al.), 11 bytes each, in two arrays per segment:
 // - positions: array<vec2<u32>>, `POSITION_BITS` of x/y/z as a fraction of the batch's box
 //   (bit layout in `quantised_coordinates`);
 // - colours: array<u32> holding 3 RGB bytes per point back to back, plus one spare word.

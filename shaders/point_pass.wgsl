@@ -9,7 +9,7 @@ override WORKGROUP_SIZE: u32;
 
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
 @group(0) @binding(1) var<storage, read> positions: array<vec2<u32>>;
-// This frame's entries for the chunk (`listed_batch`), and the chunk's batch table.
+// This frame's entries for the segment (`listed_batch`), and the segment's batch table.
 @group(0) @binding(2) var<storage, read> listed: array<u32>;
 @group(0) @binding(8) var<storage, read> batches: array<Batch>;
 @group(0) @binding(5) var<storage, read> colors: array<u32>;

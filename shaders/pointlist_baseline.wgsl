@@ -2,7 +2,7 @@
 // points, read from the same storage buffers as the compute passes, drawn as a PointList with
 // a hardware depth test. One-pixel points only: WebGPU has no point size.
 //
-// The vertex index is the point's index within its chunk. Points outside near..far are
+// The vertex index is the point's index within its segment. Points outside near..far are
 // clipped by the hardware against clip-space z in [0, 1] (the DirectX-style projection of
 // `camera.rs`), which matches `project_quantised`'s depth test up to rounding.
 

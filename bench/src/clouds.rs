@@ -85,7 +85,7 @@ impl CellCubeGenerator {
     }
 
     /// Whole cells of at most `max_points` points (at least one cell), or `None` when done.
-    pub(crate) fn next_chunk(&mut self, max_points: usize) -> Option<(Vec<Vec3>, Vec<u32>)> {
+    pub(crate) fn next_segment(&mut self, max_points: usize) -> Option<(Vec<Vec3>, Vec<u32>)> {
         if self.next_cell >= self.cells {
             return None;
         }
@@ -148,16 +148,16 @@ mod tests {
     #[test]
     fn cell_generator_yields_every_point_once_in_compact_cells() {
         let mut generator = CellCubeGenerator::new(100_000, 3);
-        let (mut total, mut chunks) = (0, 0);
-        while let Some((positions, colors)) = generator.next_chunk(3 * BATCH_POINTS) {
+        let (mut total, mut segments) = (0, 0);
+        while let Some((positions, colors)) = generator.next_segment(3 * BATCH_POINTS) {
             assert!(positions.len() <= 3 * BATCH_POINTS && positions.len() == colors.len());
             let half = CUBE_SIDE as f32 / 2.0;
             assert!(positions.iter().all(|p| p.abs().max_element() <= half));
             total += positions.len();
-            chunks += 1;
+            segments += 1;
         }
         assert_eq!(total, 100_000);
-        assert!(chunks >= 100_000 / (3 * BATCH_POINTS));
+        assert!(segments >= 100_000 / (3 * BATCH_POINTS));
         assert_eq!(demorton3(0b111_000), [2, 2, 2]);
         assert_eq!(demorton3(0b100), [0, 0, 1]);
     }

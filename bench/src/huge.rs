@@ -1,5 +1,5 @@
 //! The huge workload: a cube of a hundred million points or more, generated cell by cell and
-//! uploaded chunk by chunk, rendered like any other workload, with the host's memory peak
+//! uploaded segment by segment, rendered like any other workload, with the host's memory peak
 //! during its ingest.
 
 use pointfarm_render::camera::Camera;
@@ -13,7 +13,7 @@ use crate::workloads::{uniform_workload, View};
 use crate::{BenchError, BenchOptions, FrameRounds};
 
 /// A cube of `points` (the run's is [`HUGE_POINTS`](crate::HUGE_POINTS)), generated in
-/// Morton-ordered cells and uploaded chunk by chunk: the host never holds the whole cloud. Its
+/// Morton-ordered cells and uploaded segment by segment: the host never holds the whole cloud. Its
 /// ingest's memory is the peak above the process's size before it ([`IngestMemory`]).
 pub(crate) struct HugeCloud {
     resident: GpuPointCloud,
@@ -31,7 +31,9 @@ impl HugeCloud {
         progress: &mut dyn FnMut(&str),
     ) -> Result<Self, BenchError> {
         let name = uniform_workload(points);
-        progress(&format!("{name}: generating and uploading chunk by chunk"));
+        progress(&format!(
+            "{name}: generating and uploading segment by segment"
+        ));
         let aspect = options.rounds.width as f64 / options.rounds.height as f64;
         let (origin, bounds) = cube_bounds();
         let camera = Camera::auto(&bounds, aspect);
@@ -43,9 +45,9 @@ impl HugeCloud {
         memory::reset_peak();
         let mut generator = CellCubeGenerator::new(points, 7);
         let mut in_view = 0usize;
-        let resident = methods.compute[0].upload_chunks(origin, &mut |n| {
-            let chunk = generator.next_chunk(n)?;
-            in_view += chunk
+        let resident = methods.compute[0].upload_segments(origin, &mut |n| {
+            let segment = generator.next_segment(n)?;
+            in_view += segment
                 .0
                 .iter()
                 .filter(|p| {
@@ -54,7 +56,7 @@ impl HugeCloud {
                         .is_some_and(|(x, y, _)| x >= 0.0 && y >= 0.0 && x < w && y < h)
                 })
                 .count();
-            Some(chunk)
+            Some(segment)
         })?;
         let peak_host_bytes = memory::peak_resident_bytes();
         let gpu_bytes = resident.gpu_bytes();
@@ -62,7 +64,7 @@ impl HugeCloud {
             workload: name,
             description: format!(
                 "{points} uniform random points in a cube, all in view, generated and uploaded \
-                 chunk by chunk"
+                 segment by segment"
             ),
             camera,
         };
@@ -122,15 +124,15 @@ mod tests {
     use pointfarm_render::testing::gpu;
 
     #[test]
-    fn huge_workload_streams_many_chunks_and_reports_its_memory_peak() {
+    fn huge_workload_streams_many_segments_and_reports_its_memory_peak() {
         let gpu = gpu();
         let options = BenchOptions {
             modes: vec![ComputeMode::HighQuality],
             ..BenchOptions::quick(96, 54, PathBuf::new())
         };
         let mut methods = Methods::new(&gpu, options.modes.len(), false);
-        // Chunks of 8 batches, so that 300,000 points arrive in ten chunks.
-        methods.compute[0].set_max_chunk_points(8 * BATCH_POINTS);
+        // Segments of 8 batches, so that 300,000 points arrive in ten segments.
+        methods.compute[0].set_max_segment_points(8 * BATCH_POINTS);
         let result = HugeCloud::ingest(&methods, &options, 300_000, &mut |_| {})
             .and_then(|huge| huge.measure(&mut methods, &options, &mut |_| {}))
             .expect("measure");

@@ -18,11 +18,11 @@
 //!
 //! Series: uniform cubes of 1M to 30M points (frame time against points in view, with a
 //! least-squares line per method) and the k-plane cuboid (against overdraw); `huge` adds a
-//! 100M-point cube generated and uploaded chunk by chunk, with the host's peak memory.
+//! 100M-point cube generated and uploaded segment by segment, with the host's peak memory.
 //!
 //! The crate's modules, one job each: [`workloads`] (the scenes and their views) from the
 //! generated [`clouds`]; `rounds` (warming and measuring the methods) and `huge` (the cloud
-//! uploaded chunk by chunk); [`ingest`] (decoding and the dataset cache); [`campaign`] (building
+//! uploaded segment by segment); [`ingest`] (decoding and the dataset cache); [`campaign`] (building
 //! the level-of-detail store of a campaign of many files, no GPU); [`scheduler`] (leasing a
 //! frame against the daemon's job history, no GPU); [`service_load`] (real daemon processes
 //! under many clients' submissions, and leasing as a worker, through gRPC); [`cuts`] (rendering level-of-detail stores

@@ -37,7 +37,7 @@ pub struct BenchOptions {
     /// (`uniform-10m` selects `uniform-10m-corner` and `uniform-10m-partial`).
     pub only: Vec<String>,
     /// Also render a cube of this many points ([`HUGE_POINTS`](crate::HUGE_POINTS) by
-    /// default), generated and uploaded chunk by chunk, with its host memory peak.
+    /// default), generated and uploaded segment by segment, with its host memory peak.
     pub huge: Option<usize>,
     /// Points of the cube written as LAZ for the ingest figures (none: only the real scans).
     pub ingest_points: Option<usize>,

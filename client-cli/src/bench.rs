@@ -33,7 +33,7 @@ pub struct BenchArgs {
     #[arg(long, value_delimiter = ',', value_name = "NAMES")]
     only: Vec<String>,
     /// Also render a cube of POINTS points (100 million when no count is given), generated and
-    /// uploaded chunk by chunk, and report the host's memory peak during its ingest (100M
+    /// uploaded segment by segment, and report the host's memory peak during its ingest (100M
     /// points need about 4 GiB on a software adapter). Accepts `1000000000`, `1_000_000_000`.
     #[arg(long, value_name = "POINTS", value_parser = parse_point_count)]
     huge: Option<Option<usize>>,

@@ -1,7 +1,7 @@
 //! `GpuNodeCache`: nodes resident on the GPU, in pages of batch slots, least recently used
 //! first out, within a byte bound.
 //!
-//! A page is one chunk of the renderer's cloud (`raster/points.rs`): a positions, a colours
+//! A page is one segment of the renderer's cloud (`raster/points.rs`): a positions, a colours
 //! and a batch buffer of a fixed number of batch slots. A node takes one slot per batch of its
 //! points (a node is at most tens of thousands of points, a batch 4096), anywhere in any page,
 //! so the cache never fragments. Each frame every page's batch table is set to the batches of
@@ -12,7 +12,7 @@
 //! Colours are written with the points, so the cache holds one colour mode: a frame in another
 //! mode empties it. Each point also has 16 bits of weight for the high-quality mode (its
 //! code and child octant), and each slot the children of its node that the frame draws.
-//! The resident cloud's chunks carry neither.
+//! The resident cloud's segments carry neither.
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 
@@ -22,7 +22,9 @@ use crate::gpu::GpuContext;
 use crate::lod::codec::Detail;
 use crate::lod::NodeKey;
 use crate::raster::gpu_data::{GpuBatch, QuantisedPosition, COLOR_BYTES};
-use crate::raster::points::{ChunkData, GpuPointCloud, PointChunk, SUB_BATCH_POINTS, WEIGHT_BYTES};
+use crate::raster::points::{
+    GpuPointCloud, PointSegment, SegmentData, SUB_BATCH_POINTS, WEIGHT_BYTES,
+};
 use crate::raster::BATCH_POINTS;
 
 /// Sub-batches per batch slot: a batch's runs are found at `slot * SUBS_PER_SLOT`.
@@ -35,7 +37,7 @@ pub const SLOT_BYTES: u64 = BATCH_POINTS as u64
     + std::mem::size_of::<GpuBatch>() as u64
     + 4;
 
-/// Bytes a page has beyond its slots: its colours' spare words (`PointChunk::page`).
+/// Bytes a page has beyond its slots: its colours' spare words (`PointSegment::page`).
 const PAGE_SPARE_BYTES: u64 = 8;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -175,15 +177,15 @@ impl GpuNodeCache {
         gpu: &GpuContext,
         key: NodeKey,
         detail: Detail,
-        data: &ChunkData,
+        data: &SegmentData,
         keep: &HashSet<NodeKey>,
     ) -> Result<u64, String> {
         let needed = data.batches.len();
         let mut evicted = 0;
         while self.free.len() < needed {
-            if self.cloud.chunks.len() < self.max_pages {
-                let page = self.cloud.chunks.len();
-                self.cloud.chunks.push(PointChunk::page(
+            if self.cloud.segments.len() < self.max_pages {
+                let page = self.cloud.segments.len();
+                self.cloud.segments.push(PointSegment::page(
                     gpu,
                     page,
                     self.slots_per_page * BATCH_POINTS,
@@ -212,7 +214,7 @@ impl GpuNodeCache {
         let mut sub_batches = Vec::with_capacity(needed * SUBS_PER_SLOT);
         let position_bytes = std::mem::size_of::<QuantisedPosition>();
         for (b, (slot, batch)) in slots.iter().zip(&data.batches).enumerate() {
-            let page = &self.cloud.chunks[slot.page as usize];
+            let page = &self.cloud.segments[slot.page as usize];
             let base = slot.index as usize * BATCH_POINTS;
             let (first, count) = (batch.first as usize, batch.count as usize);
             gpu.queue.write_buffer(
@@ -304,7 +306,7 @@ impl GpuNodeCache {
             .filter(|k| self.resident.contains_key(k))
             .collect();
         keys.sort_unstable();
-        let pages = self.cloud.chunks.len();
+        let pages = self.cloud.segments.len();
         let mut tables: Vec<PageTables> = (0..pages).map(|_| PageTables::default()).collect();
         let mut drawn_children = vec![vec![0u32; self.slots_per_page]; pages];
         // A child counts as drawn when it or a node below it is: the selection walks through
@@ -337,8 +339,12 @@ impl GpuNodeCache {
                 );
             }
         }
-        for ((page, table), children) in
-            self.cloud.chunks.iter_mut().zip(tables).zip(drawn_children)
+        for ((page, table), children) in self
+            .cloud
+            .segments
+            .iter_mut()
+            .zip(tables)
+            .zip(drawn_children)
         {
             page.set_batches(&gpu.queue, table.batches, table.sub_batches, &table.sizes);
             if let Some(weights) = &page.weights {

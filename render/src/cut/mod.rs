@@ -51,7 +51,7 @@ use crate::lod::codec::Detail;
 use crate::lod::{LodError, LodHierarchy, NodeKey, NodePoints, LOAD_GROUP_NODES};
 use crate::raster::gpu_data::GpuBatch;
 use crate::raster::morton::morton_order_of_cells;
-use crate::raster::points::ChunkData;
+use crate::raster::points::SegmentData;
 use crate::raster::{Clock, Frame, FrameSettings, RenderError, Renderer, Stage, StageTiming};
 
 // The dataset a cut reads lives in lod/; re-exported for the daemon, the CLI, the bench and the
@@ -157,7 +157,7 @@ impl CutRenderer {
             gpu_cache: GpuNodeCache::new(
                 dataset.origin,
                 budgets.gpu_bytes,
-                renderer.max_chunk_points().min(MAX_PAGE_POINTS),
+                renderer.max_segment_points().min(MAX_PAGE_POINTS),
             ),
             read_ahead: None,
             read_ahead_bytes: 0,
@@ -352,7 +352,7 @@ impl CutRenderer {
                 for loaded in read_receiver {
                     let prepared = loaded.map(|group| {
                         let started = Instant::now();
-                        let data: Vec<ChunkData> = group
+                        let data: Vec<SegmentData> = group
                             .nodes
                             .par_iter()
                             .zip(&group.details)
@@ -513,7 +513,7 @@ fn prepare(
     detail: Detail,
     coloring: Coloring,
     filter: &PointFilter,
-) -> ChunkData {
+) -> SegmentData {
     // A node drawn coarse is drawn from its coarse positions even where it was read whole, so
     // the frame is the same whatever the caches held.
     let coarsened;
@@ -541,7 +541,7 @@ fn prepare(
         _ => Vec::new(),
     };
     let colors = dataset.coloring.colors(node, &heights, coloring);
-    let mut data = ChunkData::new(&positions, order.iter().map(|&i| colors[i as usize]));
+    let mut data = SegmentData::new(&positions, order.iter().map(|&i| colors[i as usize]));
     data.weights = weight_bits(node, &order);
     data.weights
         .resize(data.weights.len().next_multiple_of(2), 0);

@@ -2,7 +2,7 @@
 //!
 //! It prefers a hardware adapter and falls back to a software one (Mesa's lavapipe), and
 //! records what the renderer may use: 64-bit atomics, timestamp queries and the storage
-//! binding limit that decides how points are split into chunks.
+//! binding limit that decides how points are split into segments.
 
 use std::fmt;
 use std::str::FromStr;

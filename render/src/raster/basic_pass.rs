@@ -15,7 +15,7 @@ use super::culling::FrameBatches;
 use super::occlusion::{OcclusionPass, MIN_POINTS_PER_PIXEL_FOR_FINAL_TILES};
 use super::pipeline::{bind_resources, dispatch_grid, shader_module};
 use super::point_pipelines::{PointPipelines, SplatShape};
-use super::points::{GpuPointCloud, PointChunk};
+use super::points::{GpuPointCloud, PointSegment};
 use super::targets::FrameTargets;
 
 /// Which atomics the point pass uses.
@@ -59,7 +59,7 @@ impl BasicPass {
         }
     }
 
-    /// Records the point dispatches for every chunk of the frame's cloud into `pass`.
+    /// Records the point dispatches for every segment of the frame's cloud into `pass`.
     pub fn record(
         &self,
         device: &wgpu::Device,
@@ -72,7 +72,7 @@ impl BasicPass {
                 self.record_phased(device, pass, pipelines, AtomicsPath::Atomic64, frame);
             }
             _ => {
-                // The colour pass needs every chunk's final depths: it runs after the depth
+                // The colour pass needs every segment's final depths: it runs after the depth
                 // pass over all of them, against the final tiles.
                 self.record_depth(device, pass, frame);
                 let pipeline = self.atomic32_color.get(device, frame.shape);
@@ -108,9 +108,9 @@ impl BasicPass {
         }
     }
 
-    /// The depth-writing pass over every chunk, in phases with the occlusion tiles built
+    /// The depth-writing pass over every segment, in phases with the occlusion tiles built
     /// before each but the first. A phase is the listed batches within a band of depths
-    /// (`phases.rs`), the nearest first, chunk after chunk near to far.
+    /// (`phases.rs`), the nearest first, segment after segment near to far.
     fn record_phased(
         &self,
         device: &wgpu::Device,
@@ -161,7 +161,7 @@ pub(crate) struct PointFrame<'a> {
     pub targets: &'a FrameTargets,
 }
 
-/// Dispatches one workgroup per entry of a part of chunk `chunk`'s batch table; the pipeline
+/// Dispatches one workgroup per entry of a part of segment `segment`'s batch table; the pipeline
 /// is set.
 fn dispatch_part(
     device: &wgpu::Device,
@@ -169,14 +169,14 @@ fn dispatch_part(
     pipeline: &wgpu::ComputePipeline,
     path: AtomicsPath,
     frame: PointFrame<'_>,
-    (chunk, (table, batches)): (usize, (wgpu::BufferBinding<'_>, u32)),
+    (segment, (table, batches)): (usize, (wgpu::BufferBinding<'_>, u32)),
 ) {
     let bind_group = bind_group(
         device,
         pipeline,
         path,
         frame,
-        (&frame.cloud.chunks[chunk], table),
+        (&frame.cloud.segments[segment], table),
     );
     pass.set_bind_group(0, &bind_group, &[]);
     let (x, y) = dispatch_grid(batches);
@@ -188,16 +188,16 @@ fn bind_group(
     pipeline: &wgpu::ComputePipeline,
     path: AtomicsPath,
     frame: PointFrame<'_>,
-    (chunk, batch_table): (&PointChunk, wgpu::BufferBinding<'_>),
+    (segment, batch_table): (&PointSegment, wgpu::BufferBinding<'_>),
 ) -> wgpu::BindGroup {
     let framebuffer = &frame.targets.framebuffer;
     let mut resources = vec![
         (0, frame.uniforms.as_entire_binding()),
-        (1, chunk.positions.as_entire_binding()),
+        (1, segment.positions.as_entire_binding()),
         (2, wgpu::BindingResource::Buffer(batch_table)),
-        (8, chunk.batches.as_entire_binding()),
+        (8, segment.batches.as_entire_binding()),
         (3, framebuffer.as_entire_binding()),
-        (5, chunk.colors.as_entire_binding()),
+        (5, segment.colors.as_entire_binding()),
         (6, frame.targets.occlusion.tiles.as_entire_binding()),
         (7, frame.targets.occlusion.skipped.as_entire_binding()),
     ];

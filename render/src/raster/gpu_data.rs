@@ -37,12 +37,12 @@ pub type QuantisedPosition = [u32; 2];
 /// opaque; the shaders put alpha 255 back).
 pub const COLOR_BYTES: u64 = 3;
 
-/// `Batch` in common.wgsl: a run of points in one chunk, with their bounding box.
+/// `Batch` in common.wgsl: a run of points in one segment, with their bounding box.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Pod, Zeroable)]
 pub struct GpuBatch {
     pub min: [f32; 3],
-    /// Index of the batch's first point within its chunk.
+    /// Index of the batch's first point within its segment.
     pub first: u32,
     pub max: [f32; 3],
     pub count: u32,

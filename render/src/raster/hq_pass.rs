@@ -2,7 +2,7 @@
 //! pass, every point within the depth band behind its pixel's nearest depth adds its colour and
 //! a count; the resolve pass (`resolve_average`) divides. A level-of-detail cut's pages add
 //! each point as many times as the points it stands for (`hq_accumulate_weighted.wgsl`); a
-//! resident cloud's chunks keep the unweighted shader.
+//! resident cloud's segments keep the unweighted shader.
 
 use pointfarm_shaders::Shader;
 
@@ -40,7 +40,7 @@ impl HqAccumulatePass {
         allow_64 && self.atomic64.is_some()
     }
 
-    /// Records the accumulation over every chunk, with 64-bit atomics where the device has
+    /// Records the accumulation over every segment, with 64-bit atomics where the device has
     /// them and `allow_64`. `targets.accumulator` must exist and be cleared, and the depth pass
     /// must have run.
     pub fn record(
@@ -65,7 +65,7 @@ impl HqAccumulatePass {
         };
         let weighted_pipeline = frame
             .cloud
-            .chunks
+            .segments
             .iter()
             .any(|c| c.weights.is_some())
             .then(|| weighted_pipelines.get(device, frame.shape));
@@ -76,20 +76,20 @@ impl HqAccumulatePass {
         let parts =
             (0..frame.batches.phase_count()).flat_map(|phase| frame.batches.phase_parts(phase));
         for (index, (table, entries)) in parts {
-            let chunk = &frame.cloud.chunks[index];
-            let pipeline = match (&chunk.weights, &weighted_pipeline) {
+            let segment = &frame.cloud.segments[index];
+            let pipeline = match (&segment.weights, &weighted_pipeline) {
                 (Some(_), Some(weighted)) => weighted,
                 _ => &pipeline,
             };
             pass.set_pipeline(pipeline);
             let mut resources = vec![
                 (0, frame.uniforms.as_entire_binding()),
-                (1, chunk.positions.as_entire_binding()),
+                (1, segment.positions.as_entire_binding()),
                 (2, wgpu::BindingResource::Buffer(table)),
-                (8, chunk.batches.as_entire_binding()),
+                (8, segment.batches.as_entire_binding()),
                 (3, frame.targets.framebuffer.as_entire_binding()),
                 (4, accumulator.as_entire_binding()),
-                (5, chunk.colors.as_entire_binding()),
+                (5, segment.colors.as_entire_binding()),
                 // The tiles after the depth pass: batches behind the depth band are skipped.
                 (6, frame.targets.occlusion.tiles.as_entire_binding()),
                 (7, frame.targets.occlusion.skipped.as_entire_binding()),
@@ -97,7 +97,7 @@ impl HqAccumulatePass {
             if let Some((_, packed_sums)) = packed_sums {
                 resources.push((10, packed_sums.as_entire_binding()));
             }
-            if let Some(weights) = &chunk.weights {
+            if let Some(weights) = &segment.weights {
                 resources.push((11, weights.codes.as_entire_binding()));
                 resources.push((12, weights.drawn_children.as_entire_binding()));
             }

@@ -1,6 +1,6 @@
 //! The compute-shader rasterizer (Schütz & Wimmer; Günther et al.).
 //!
-//! A frame is: write the frame uniforms; run the point pass over every chunk of the resident
+//! A frame is: write the frame uniforms; run the point pass over every segment of the resident
 //! cloud (batch frustum culling, dequantisation, per-point projection, early depth test,
 //! atomic minimum of depth and colour); resolve the framebuffer into an RGBA8 image and a
 //! depth image, emptying it for the next frame (only a new framebuffer is cleared first), over
@@ -88,13 +88,13 @@ pub struct Renderer {
     fill: FillPass,
     pintus: PintusPass,
     resolve: ResolvePass,
-    /// This frame's batch tables: the batches that can be in view, per chunk.
+    /// This frame's batch tables: the batches that can be in view, per segment.
     batches: FrameBatches,
     uniforms: wgpu::Buffer,
     screen_uniforms: ScreenUniforms,
     timer: Option<GpuTimer>,
     targets: Option<FrameTargets>,
-    max_chunk_points: usize,
+    max_segment_points: usize,
     /// The most bytes one per-pixel buffer may take: larger frames are drawn in tiles.
     tile_limit_bytes: u64,
     /// The last frame's counts when it was drawn in tiles, summed over them.
@@ -116,7 +116,7 @@ impl Renderer {
         let device = &gpu.device;
         let caps = gpu.capabilities;
         // The largest per-point binding is the positions buffer.
-        let max_chunk_points = (caps.max_storage_binding_bytes.min(caps.max_buffer_bytes)
+        let max_segment_points = (caps.max_storage_binding_bytes.min(caps.max_buffer_bytes)
             / std::mem::size_of::<gpu_data::QuantisedPosition>() as u64)
             as usize;
         tracing::debug!(workgroup_size, "point pass workgroups");
@@ -138,26 +138,26 @@ impl Renderer {
             }),
             timer: caps.timestamps.then(|| GpuTimer::new(device, &gpu.queue)),
             targets: None,
-            max_chunk_points,
+            max_segment_points,
             tile_limit_bytes: caps.max_storage_binding_bytes.min(caps.max_buffer_bytes),
             tiled: None,
             gpu,
         }
     }
 
-    /// The most points one chunk (one storage binding) may hold on this adapter.
-    pub(crate) fn max_chunk_points(&self) -> usize {
-        self.max_chunk_points
+    /// The most points one segment (one storage binding) may hold on this adapter.
+    pub(crate) fn max_segment_points(&self) -> usize {
+        self.max_segment_points
     }
 
     pub fn gpu(&self) -> &GpuContext {
         &self.gpu
     }
 
-    /// Lowers the number of points per chunk below what the binding limit allows, so that
-    /// tests can exercise many chunks with small clouds. Affects later uploads only.
-    pub fn set_max_chunk_points(&mut self, points: usize) {
-        self.max_chunk_points = self.max_chunk_points.min(points.max(1));
+    /// Lowers the number of points per segment below what the binding limit allows, so that
+    /// tests can exercise many segments with small clouds. Affects later uploads only.
+    pub fn set_max_segment_points(&mut self, points: usize) {
+        self.max_segment_points = self.max_segment_points.min(points.max(1));
     }
 
     /// Lowers the bytes a per-pixel buffer may take below the adapter's limits, so that tests
@@ -209,19 +209,19 @@ impl Renderer {
 
     /// Uploads a cloud; its buffers stay resident for as many frames as needed.
     pub fn upload(&self, cloud: &PointCloud) -> Result<GpuPointCloud, RenderError> {
-        GpuPointCloud::upload(&self.gpu, cloud, self.max_chunk_points)
+        GpuPointCloud::upload(&self.gpu, cloud, self.max_segment_points)
     }
 
-    /// Uploads a cloud that arrives chunk by chunk, already in a spatially coherent order (a
-    /// generator or a streaming reader), holding at most one chunk on the host at a time.
-    /// `next_chunk(n)` returns up to `n` points (positions relative to `origin`, RGBA8
+    /// Uploads a cloud that arrives segment by segment, already in a spatially coherent order (a
+    /// generator or a streaming reader), holding at most one segment on the host at a time.
+    /// `next_segment(n)` returns up to `n` points (positions relative to `origin`, RGBA8
     /// colours) or `None` at the end.
-    pub fn upload_chunks(
+    pub fn upload_segments(
         &self,
         origin: glam::DVec3,
-        next_chunk: &mut dyn FnMut(usize) -> Option<(Vec<glam::Vec3>, Vec<u32>)>,
+        next_segment: &mut dyn FnMut(usize) -> Option<(Vec<glam::Vec3>, Vec<u32>)>,
     ) -> Result<GpuPointCloud, RenderError> {
-        GpuPointCloud::upload_chunks(&self.gpu, origin, self.max_chunk_points, next_chunk)
+        GpuPointCloud::upload_segments(&self.gpu, origin, self.max_segment_points, next_segment)
     }
 
     /// Checks settings before any GPU work, so bad requests fail with a clear reason.
@@ -311,7 +311,7 @@ impl Renderer {
         self.batches.update(
             &self.gpu.device,
             &self.gpu.queue,
-            cloud.chunks.iter().map(|chunk| chunk.tables()),
+            cloud.segments.iter().map(|segment| segment.tables()),
             &transform,
             settings.point_size,
         );

@@ -14,7 +14,7 @@ use pointfarm_shaders::Shader;
 
 use super::gpu_data::{FrameUniforms, QuantisedPosition};
 use super::pipeline::shader_module;
-use super::points::{GpuPointCloud, PointChunk};
+use super::points::{GpuPointCloud, PointSegment};
 use super::timing::GpuTimer;
 use super::{Clock, FrameSettings, RenderError, Stage, StageTimings};
 use crate::gpu::{read_buffer, GpuContext};
@@ -211,7 +211,7 @@ impl PointListBaseline {
         Ok(PointListFrame { image, timings })
     }
 
-    /// Clears the targets and draws every chunk in one render pass, timed as "rasterize"
+    /// Clears the targets and draws every segment in one render pass, timed as "rasterize"
     /// (clear included, as in the compute path) by GPU timestamps or the host clock.
     fn draw(
         &self,
@@ -222,9 +222,9 @@ impl PointListBaseline {
     ) -> Result<(), RenderError> {
         let device = &self.gpu.device;
         let bind_groups: Vec<(wgpu::BindGroup, u32)> = cloud
-            .chunks
+            .segments
             .iter()
-            .map(|chunk| (self.bind_group(chunk), chunk_points(chunk)))
+            .map(|segment| (self.bind_group(segment), segment_points(segment)))
             .collect();
         let color_view = targets.color.create_view(&Default::default());
         let depth_view = targets.depth.create_view(&Default::default());
@@ -292,7 +292,7 @@ impl PointListBaseline {
         Ok(())
     }
 
-    fn bind_group(&self, chunk: &PointChunk) -> wgpu::BindGroup {
+    fn bind_group(&self, segment: &PointSegment) -> wgpu::BindGroup {
         self.gpu
             .device
             .create_bind_group(&wgpu::BindGroupDescriptor {
@@ -305,15 +305,15 @@ impl PointListBaseline {
                     },
                     wgpu::BindGroupEntry {
                         binding: 1,
-                        resource: chunk.positions.as_entire_binding(),
+                        resource: segment.positions.as_entire_binding(),
                     },
                     wgpu::BindGroupEntry {
                         binding: 2,
-                        resource: chunk.batches.as_entire_binding(),
+                        resource: segment.batches.as_entire_binding(),
                     },
                     wgpu::BindGroupEntry {
                         binding: 5,
-                        resource: chunk.colors.as_entire_binding(),
+                        resource: segment.colors.as_entire_binding(),
                     },
                 ],
             })
@@ -352,9 +352,9 @@ impl PointListBaseline {
     }
 }
 
-/// Points of `chunk`: its positions buffer holds exactly one quantised position per point.
-fn chunk_points(chunk: &PointChunk) -> u32 {
-    (chunk.positions.size() / std::mem::size_of::<QuantisedPosition>() as u64) as u32
+/// Points of `segment`: its positions buffer holds exactly one quantised position per point.
+fn segment_points(segment: &PointSegment) -> u32 {
+    (segment.positions.size() / std::mem::size_of::<QuantisedPosition>() as u64) as u32
 }
 
 #[cfg(test)]

@@ -1,5 +1,5 @@
 //! A point cloud resident on the GPU: Morton-ordered batches with bounding boxes, split into
-//! chunks whose storage bindings respect the adapter's limit.
+//! segments whose storage bindings respect the adapter's limit.
 //!
 //! Points are sorted along a Z-order (Morton) curve so that each batch of consecutive points
 //! is spatially compact: its box is small, which makes per-batch frustum culling effective,
@@ -36,17 +36,17 @@ pub const BATCH_POINTS: usize = layout::BATCH_POINTS as usize;
 /// the view (`culling/listing.rs`; [`layout::SUB_BATCH_POINTS`]).
 pub const SUB_BATCH_POINTS: usize = layout::SUB_BATCH_POINTS as usize;
 
-/// Bytes one point adds to a chunk's point buffers (position and colour).
+/// Bytes one point adds to a segment's point buffers (position and colour).
 pub const POINT_BYTES: u64 = std::mem::size_of::<QuantisedPosition>() as u64 + COLOR_BYTES;
 
-/// Points per chunk when a cloud is streamed in. A chunk's host copy takes about 27 bytes a
+/// Points per segment when a cloud is streamed in. A segment's host copy takes about 27 bytes a
 /// point while it is sorted and quantised (measured on an H200, where the 4 GiB binding let
-/// a 100M-point cloud come in as one chunk: 2.7 GB of host memory for 1.1 GB on the GPU);
+/// a 100M-point cloud come in as one segment: 2.7 GB of host memory for 1.1 GB on the GPU);
 /// this keeps it near 430 MiB whatever the adapter's binding limit.
-pub const STREAM_CHUNK_POINTS: usize = 1 << 24;
+pub const STREAM_SEGMENT_POINTS: usize = 1 << 24;
 
 /// One storage binding's worth of points and the batches that index into it.
-pub(crate) struct PointChunk {
+pub(crate) struct PointSegment {
     /// `QuantisedPosition` per point.
     pub positions: wgpu::Buffer,
     /// RGB bytes per point, back to back, padded with one spare word so that a shader can
@@ -82,7 +82,7 @@ pub(crate) struct PageWeights {
 /// Bytes a page's weights take per point.
 pub const WEIGHT_BYTES: u64 = 2;
 
-impl PointChunk {
+impl PointSegment {
     /// An empty page of the GPU node cache: room for `capacity` points (a multiple of
     /// [`BATCH_POINTS`]), written batch slot by batch slot, its batch table set per frame
     /// (`cut/gpu_cache.rs`).
@@ -116,7 +116,7 @@ impl PointChunk {
         }
     }
 
-    /// Sets the batches a frame draws from this chunk (their points already written), on the
+    /// Sets the batches a frame draws from this segment (their points already written), on the
     /// host and in its GPU table, the latter with each batch's point-size factor from
     /// `size_factors` (empty: all 1).
     pub(crate) fn set_batches(
@@ -154,12 +154,12 @@ impl PointChunk {
     }
 }
 
-/// A chunk's batches and sub-batches, as the host's culling reads them.
+/// A segment's batches and sub-batches, as the host's culling reads them.
 #[derive(Clone, Copy)]
 pub(crate) struct BatchTables<'a> {
     pub batches: &'a [GpuBatch],
     pub sub_batches: &'a [GpuBatch],
-    /// Group `g` bounds batches `g * GROUP_BATCHES..`; empty when the chunk has none.
+    /// Group `g` bounds batches `g * GROUP_BATCHES..`; empty when the segment has none.
     pub groups: &'a [GpuBatch],
     /// The batches' near-to-far orders (`draw_order.rs`).
     pub draw_orders: &'a DrawOrders,
@@ -192,7 +192,7 @@ pub(crate) fn batch_groups(batches: &[GpuBatch]) -> Vec<GpuBatch> {
 
 /// A cloud uploaded for rendering. Create it with [`super::Renderer::upload`].
 pub struct GpuPointCloud {
-    pub(crate) chunks: Vec<PointChunk>,
+    pub(crate) segments: Vec<PointSegment>,
     pub(crate) origin: glam::DVec3,
     point_count: usize,
     /// Upload time not yet reported by a frame: the first frame rendered from this cloud
@@ -209,13 +209,13 @@ impl GpuPointCloud {
         self.point_count == 0
     }
 
-    pub fn chunk_count(&self) -> usize {
-        self.chunks.len()
+    pub fn segment_count(&self) -> usize {
+        self.segments.len()
     }
 
-    /// Batches of all chunks.
+    /// Batches of all segments.
     pub fn batch_count(&self) -> usize {
-        self.chunks.iter().map(|c| c.batch_table.len()).sum()
+        self.segments.iter().map(|c| c.batch_table.len()).sum()
     }
 
     pub fn origin(&self) -> glam::DVec3 {
@@ -224,7 +224,7 @@ impl GpuPointCloud {
 
     /// Bytes of every GPU buffer that holds this cloud: positions, colours and batch tables.
     pub fn gpu_bytes(&self) -> u64 {
-        self.chunks
+        self.segments
             .iter()
             .map(|c| {
                 let weights = c
@@ -244,7 +244,7 @@ impl GpuPointCloud {
     /// A cloud of node-cache pages, filled and given its batches frame by frame.
     pub(crate) fn of_pages(origin: glam::DVec3) -> Self {
         Self {
-            chunks: Vec::new(),
+            segments: Vec::new(),
             origin,
             point_count: 0,
             unreported_upload_ms: Mutex::new(None),
@@ -266,57 +266,57 @@ impl GpuPointCloud {
             .unwrap_or(0.0)
     }
 
-    /// Sorts, batches and uploads `cloud`, with at most `max_chunk_points` points per chunk.
+    /// Sorts, batches and uploads `cloud`, with at most `max_segment_points` points per segment.
     pub(crate) fn upload(
         gpu: &GpuContext,
         cloud: &PointCloud,
-        max_chunk_points: usize,
+        max_segment_points: usize,
     ) -> Result<Self, RenderError> {
         if cloud.is_empty() {
             return Err(RenderError::EmptyCloud);
         }
         let started = Instant::now();
         let order = morton_order(&cloud.positions);
-        let max_chunk_points = (max_chunk_points / BATCH_POINTS).max(1) * BATCH_POINTS;
+        let max_segment_points = (max_segment_points / BATCH_POINTS).max(1) * BATCH_POINTS;
 
-        let mut chunks = Vec::new();
-        for chunk_order in order.chunks(max_chunk_points) {
-            let positions: Vec<Vec3> = chunk_order
+        let mut segments = Vec::new();
+        for segment_order in order.chunks(max_segment_points) {
+            let positions: Vec<Vec3> = segment_order
                 .iter()
                 .map(|&i| cloud.positions[i as usize])
                 .collect();
-            let colors = chunk_order.iter().map(|&i| cloud.colors[i as usize]);
-            chunks.push(ChunkData::new(&positions, colors).upload(gpu, chunks.len()));
+            let colors = segment_order.iter().map(|&i| cloud.colors[i as usize]);
+            segments.push(SegmentData::new(&positions, colors).upload(gpu, segments.len()));
         }
-        Self::finish(gpu, chunks, cloud.origin, cloud.len(), started)
+        Self::finish(gpu, segments, cloud.origin, cloud.len(), started)
     }
 
-    /// Uploads points that are already in their final order, one chunk at a time, so that a
-    /// caller generating or streaming a huge cloud never holds more than one chunk on the host.
-    /// `next_chunk` returns the positions (relative to `origin`) and RGBA8 colours of up to
-    /// `chunk_points` points, or `None` when done; `chunk_points` is a multiple of
+    /// Uploads points that are already in their final order, one segment at a time, so that a
+    /// caller generating or streaming a huge cloud never holds more than one segment on the host.
+    /// `next_segment` returns the positions (relative to `origin`) and RGBA8 colours of up to
+    /// `segment_points` points, or `None` when done; `segment_points` is a multiple of
     /// [`BATCH_POINTS`].
-    pub(crate) fn upload_chunks(
+    pub(crate) fn upload_segments(
         gpu: &GpuContext,
         origin: glam::DVec3,
-        max_chunk_points: usize,
-        next_chunk: &mut dyn FnMut(usize) -> Option<(Vec<Vec3>, Vec<u32>)>,
+        max_segment_points: usize,
+        next_segment: &mut dyn FnMut(usize) -> Option<(Vec<Vec3>, Vec<u32>)>,
     ) -> Result<Self, RenderError> {
         let started = Instant::now();
-        let chunk_points =
-            (max_chunk_points.min(STREAM_CHUNK_POINTS) / BATCH_POINTS).max(1) * BATCH_POINTS;
-        let mut chunks = Vec::new();
+        let segment_points =
+            (max_segment_points.min(STREAM_SEGMENT_POINTS) / BATCH_POINTS).max(1) * BATCH_POINTS;
+        let mut segments = Vec::new();
         let mut points = 0;
-        while let Some((positions, colors)) = next_chunk(chunk_points) {
+        while let Some((positions, colors)) = next_segment(segment_points) {
             if positions.is_empty() {
                 break;
             }
             points += positions.len();
-            let data = ChunkData::new(&positions, colors.into_iter());
+            let data = SegmentData::new(&positions, colors.into_iter());
             drop(positions);
-            chunks.push(data.upload(gpu, chunks.len()));
-            // Submit the chunk's pending copy and wait for it before the next chunk is
-            // generated, so that at most one chunk's staging memory is alive at a time.
+            segments.push(data.upload(gpu, segments.len()));
+            // Submit the segment's pending copy and wait for it before the next segment is
+            // generated, so that at most one segment's staging memory is alive at a time.
             gpu.queue.submit([]);
             gpu.device
                 .poll(wgpu::PollType::wait_indefinitely())
@@ -325,12 +325,12 @@ impl GpuPointCloud {
         if points == 0 {
             return Err(RenderError::EmptyCloud);
         }
-        Self::finish(gpu, chunks, origin, points, started)
+        Self::finish(gpu, segments, origin, points, started)
     }
 
     fn finish(
         gpu: &GpuContext,
-        chunks: Vec<PointChunk>,
+        segments: Vec<PointSegment>,
         origin: glam::DVec3,
         point_count: usize,
         started: Instant,
@@ -342,14 +342,14 @@ impl GpuPointCloud {
             .map_err(|e| RenderError::Gpu(e.to_string()))?;
         let upload_ms = started.elapsed().as_secs_f64() * 1e3;
         let cloud = Self {
-            chunks,
+            segments,
             origin,
             point_count,
             unreported_upload_ms: Mutex::new(Some(upload_ms)),
         };
         tracing::info!(
             points = point_count,
-            chunks = cloud.chunks.len(),
+            segments = cloud.segments.len(),
             bytes_per_point = format!("{:.3}", cloud.gpu_bytes_per_point()),
             upload_ms = format!("{upload_ms:.1}"),
             "points resident on the GPU"
@@ -358,21 +358,21 @@ impl GpuPointCloud {
     }
 }
 
-/// One chunk's buffers, built on the host (also a level-of-detail node's, before it is
+/// One segment's buffers, built on the host (also a level-of-detail node's, before it is
 /// written into the pages of the GPU node cache, `cut/gpu_cache.rs`).
-pub(crate) struct ChunkData {
+pub(crate) struct SegmentData {
     pub positions: Vec<QuantisedPosition>,
-    /// RGB bytes per point and one spare word (see [`PointChunk::colors`]).
+    /// RGB bytes per point and one spare word (see [`PointSegment::colors`]).
     pub colors: Vec<u8>,
-    /// `first` counts from the chunk's first point.
+    /// `first` counts from the segment's first point.
     pub batches: Vec<GpuBatch>,
     pub sub_batches: Vec<GpuBatch>,
     /// A level-of-detail node's weight bits per point (`PageWeights::codes`), padded to an
-    /// even count; empty for a resident cloud's chunk.
+    /// even count; empty for a resident cloud's segment.
     pub weights: Vec<u16>,
 }
 
-impl ChunkData {
+impl SegmentData {
     /// Batches, bounds and quantises points in their final order.
     pub(crate) fn new(positions: &[Vec3], colors: impl Iterator<Item = u32>) -> Self {
         let mut quantised = Vec::with_capacity(positions.len());
@@ -391,7 +391,7 @@ impl ChunkData {
             }
             batches.push(gpu_batch);
         }
-        // Three bytes per point and one spare word (see `PointChunk::colors`).
+        // Three bytes per point and one spare word (see `PointSegment::colors`).
         let mut rgb = Vec::with_capacity(positions.len() * 3 + 8);
         for color in colors.take(positions.len()) {
             rgb.extend_from_slice(&color.to_le_bytes()[..3]);
@@ -406,8 +406,8 @@ impl ChunkData {
         }
     }
 
-    fn upload(self, gpu: &GpuContext, index: usize) -> PointChunk {
-        let label = format!("points chunk {index}");
+    fn upload(self, gpu: &GpuContext, index: usize) -> PointSegment {
+        let label = format!("points segment {index}");
         let buffer = |what: &str, contents: &[u8]| {
             gpu.device
                 .create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -416,7 +416,7 @@ impl ChunkData {
                     usage: wgpu::BufferUsages::STORAGE,
                 })
         };
-        PointChunk {
+        PointSegment {
             positions: buffer("positions", bytemuck::cast_slice(&self.positions)),
             colors: buffer("colors", &self.colors),
             batches: buffer("batches", bytemuck::cast_slice(&self.batches)),
@@ -523,7 +523,7 @@ pub(crate) fn host_tables(positions: &[Vec3]) -> (Vec<GpuBatch>, Vec<GpuBatch>, 
         .into_iter()
         .map(|i| positions[i as usize])
         .collect();
-    let data = ChunkData::new(&sorted, std::iter::repeat(0));
+    let data = SegmentData::new(&sorted, std::iter::repeat(0));
     let dequantised = data
         .positions
         .iter()
@@ -618,24 +618,24 @@ mod tests {
     }
 
     #[test]
-    fn chunk_data_packs_rgb_bytes_and_a_spare_word() {
+    fn segment_data_packs_rgb_bytes_and_a_spare_word() {
         let positions = vec![Vec3::ZERO; 5];
         let colors = (0..5u32).map(|i| u32::from_le_bytes([i as u8, 10 + i as u8, 20, 255]));
-        let data = ChunkData::new(&positions, colors);
+        let data = SegmentData::new(&positions, colors);
         assert_eq!(data.colors.len(), 20);
         assert_eq!(&data.colors[3..6], &[1, 11, 20]);
         assert_eq!(data.positions.len(), 5);
         assert_eq!(data.batches.len(), 1);
     }
 
-    /// However large the adapter's binding limit, a streamed cloud is asked for in chunks of
-    /// at most `STREAM_CHUNK_POINTS`, which bounds the host's memory during ingest.
+    /// However large the adapter's binding limit, a streamed cloud is asked for in segments of
+    /// at most `STREAM_SEGMENT_POINTS`, which bounds the host's memory during ingest.
     #[test]
-    fn streamed_chunks_are_capped_whatever_the_binding_limit() {
+    fn streamed_segments_are_capped_whatever_the_binding_limit() {
         let gpu = crate::testing::gpu();
         let mut asked = Vec::new();
         let mut left = 3;
-        let cloud = GpuPointCloud::upload_chunks(&gpu, glam::DVec3::ZERO, usize::MAX, &mut |n| {
+        let cloud = GpuPointCloud::upload_segments(&gpu, glam::DVec3::ZERO, usize::MAX, &mut |n| {
             asked.push(n);
             left -= 1;
             (left >= 0).then(|| {
@@ -647,9 +647,9 @@ mod tests {
         })
         .expect("upload");
         assert_eq!(cloud.len(), 15);
-        assert_eq!(cloud.chunks.len(), 3);
+        assert_eq!(cloud.segments.len(), 3);
         assert!(
-            asked.iter().all(|&n| n == STREAM_CHUNK_POINTS),
+            asked.iter().all(|&n| n == STREAM_SEGMENT_POINTS),
             "asked for {asked:?}"
         );
     }

@@ -206,7 +206,7 @@ fn insert_whole(
     cache: &mut super::gpu_cache::GpuNodeCache,
     renderer: &Renderer,
     key: NodeKey,
-    data: &ChunkData,
+    data: &SegmentData,
     keep: &HashSet<NodeKey>,
 ) {
     cache

@@ -35,7 +35,7 @@ fn batches_take_their_own_point_size_factor() {
     let keys = [NodeKey::ROOT.child(0), NodeKey::ROOT.child(7)];
     let keep: HashSet<NodeKey> = keys.into_iter().collect();
     for (key, half) in keys.iter().zip(&halves) {
-        let data = ChunkData::new(&half.positions, half.colors.iter().copied());
+        let data = SegmentData::new(&half.positions, half.colors.iter().copied());
         insert_whole(&mut cache, renderer, *key, &data, &keep);
     }
     let factor_of = |key: NodeKey| if key == keys[0] { 1.0 } else { 2.0 };

@@ -67,7 +67,7 @@ fn weighted_high_quality_matches_the_weighted_reference() {
     let keys: Vec<NodeKey> = parts.iter().map(|(k, _)| *k).collect();
     let keep: HashSet<NodeKey> = keys.iter().copied().collect();
     for (key, range) in &parts {
-        let mut data = ChunkData::new(
+        let mut data = SegmentData::new(
             &cloud.positions[range.clone()],
             cloud.colors[range.clone()].iter().copied(),
         );

@@ -1,7 +1,7 @@
-//! The frame's batch tables: every chunk's listed entries (`listing.rs`) back to back in one
-//! GPU buffer, each chunk's from a multiple of the storage-binding offset alignment; a cloud
-//! of many chunks culled on all cores, a chunk per task; the chunks ordered near to far; each
-//! chunk's entries split in the phases of the depth-writing pass; the frame's footprint.
+//! The frame's batch tables: every segment's listed entries (`listing.rs`) back to back in one
+//! GPU buffer, each segment's from a multiple of the storage-binding offset alignment; a cloud
+//! of many segments culled on all cores, a segment per task; the segments ordered near to far; each
+//! segment's entries split in the phases of the depth-writing pass; the frame's footprint.
 
 use rayon::prelude::*;
 
@@ -11,24 +11,24 @@ use crate::camera::CameraTransform;
 use crate::raster::draw_order::sort_near_to_far;
 use crate::raster::gpu_data::GpuBatch;
 use crate::raster::occlusion::phase_cuts;
-use crate::raster::phases::{split_by_depth, ChunkEntries};
+use crate::raster::phases::{split_by_depth, SegmentEntries};
 use crate::raster::pixel_rect::{PixelCoverage, PixelRect};
 use crate::raster::points::BatchTables;
 
-/// One frame's batch tables of a cloud's chunks, in one GPU buffer.
+/// One frame's batch tables of a cloud's segments, in one GPU buffer.
 pub(crate) struct FrameBatches {
-    /// Per chunk, its batches that can be in view; each chunk's table starts at a multiple of
+    /// Per segment, its batches that can be in view; each segment's table starts at a multiple of
     /// the storage-binding offset alignment.
     buffer: Option<wgpu::Buffer>,
-    /// Per chunk: byte offset of its table in `buffer` and its number of batches.
+    /// Per segment: byte offset of its table in `buffer` and its number of batches.
     ranges: Vec<(u64, u32)>,
-    /// The chunks with batches in view, near to far (by their listed batches' boxes).
-    chunk_order: Vec<usize>,
+    /// The segments with batches in view, near to far (by their listed batches' boxes).
+    segment_order: Vec<usize>,
     /// Host copy reused from frame to frame: [`ListedEntry`] words.
     staging: Vec<u32>,
-    /// Per chunk (as `ranges`): what its listed entries hold.
+    /// Per segment (as `ranges`): what its listed entries hold.
     listings: Vec<Listing>,
-    /// Per chunk (as `ranges`): the end of each phase's entries in its table, the nearest
+    /// Per segment (as `ranges`): the end of each phase's entries in its table, the nearest
     /// phase first (`phases.rs`).
     phase_ends: Vec<Vec<u32>>,
     /// The pixels that points of the listed batches can touch this frame.
@@ -39,12 +39,12 @@ pub(crate) struct FrameBatches {
     alignment_entries: u32,
     /// Whether batches that straddle the view's edge are culled again run by run.
     refine_straddlers: bool,
-    /// Batches from which a cloud of several chunks is culled in parallel: always
+    /// Batches from which a cloud of several segments is culled in parallel: always
     /// [`PARALLEL_CULL_BATCHES`], except in the test that compares both paths.
     parallel_from_batches: usize,
 }
 
-/// Batches from which a cloud of several chunks is culled on all cores: one chunk per task.
+/// Batches from which a cloud of several segments is culled on all cores: one segment per task.
 const PARALLEL_CULL_BATCHES: usize = 16_384;
 
 impl FrameBatches {
@@ -56,7 +56,7 @@ impl FrameBatches {
         Self {
             buffer: None,
             ranges: Vec::new(),
-            chunk_order: Vec::new(),
+            segment_order: Vec::new(),
             staging: Vec::new(),
             listings: Vec::new(),
             phase_ends: Vec::new(),
@@ -68,13 +68,13 @@ impl FrameBatches {
         }
     }
 
-    /// Builds the tables of `chunks` (each its full batch table) for a frame seen through
+    /// Builds the tables of `segments` (each its full batch table) for a frame seen through
     /// `transform` with points of `point_size` pixels, and uploads them.
     pub fn update<'a>(
         &mut self,
         device: &wgpu::Device,
         queue: &wgpu::Queue,
-        chunks: impl Iterator<Item = BatchTables<'a>>,
+        segments: impl Iterator<Item = BatchTables<'a>>,
         transform: &CameraTransform,
         point_size: u32,
     ) {
@@ -88,41 +88,42 @@ impl FrameBatches {
         self.listings.clear();
         let mut coverage = PixelCoverage::new(transform.width, transform.height);
         let refine = self.refine_straddlers;
-        let chunks: Vec<BatchTables<'a>> = chunks
+        let segments: Vec<BatchTables<'a>> = segments
             .map(|tables| BatchTables {
                 sub_batches: if refine { tables.sub_batches } else { &[] },
                 ..tables
             })
             .collect();
         let depth_gradient = transform.depth_row.truncate();
-        let batches: usize = chunks.iter().map(|tables| tables.batches.len()).sum();
-        if chunks.len() > 1 && batches >= self.parallel_from_batches {
-            // Every chunk on its own core, then their tables back to back.
-            let culled: Vec<(Vec<u32>, Listing, PixelCoverage)> = chunks
+        let batches: usize = segments.iter().map(|tables| tables.batches.len()).sum();
+        if segments.len() > 1 && batches >= self.parallel_from_batches {
+            // Every segment on its own core, then their tables back to back.
+            let culled: Vec<(Vec<u32>, Listing, PixelCoverage)> = segments
                 .par_iter()
                 .map(|&tables| {
                     let mut entries = Vec::new();
-                    let mut chunk_coverage = PixelCoverage::new(transform.width, transform.height);
+                    let mut segment_coverage =
+                        PixelCoverage::new(transform.width, transform.height);
                     let listing = list_in_view(
                         &frustum,
                         tables,
                         depth_gradient,
                         &mut entries,
-                        &mut chunk_coverage,
+                        &mut segment_coverage,
                     );
-                    (entries, listing, chunk_coverage)
+                    (entries, listing, segment_coverage)
                 })
                 .collect();
-            for (entries, listing, chunk_coverage) in culled {
+            for (entries, listing, segment_coverage) in culled {
                 let start = self.pad_to_alignment(alignment);
                 self.staging.extend_from_slice(&entries);
                 self.ranges
                     .push(((start * entry_bytes) as u64, entries.len() as u32));
                 self.listings.push(listing);
-                coverage.merge(&chunk_coverage);
+                coverage.merge(&segment_coverage);
             }
         } else {
-            for &tables in &chunks {
+            for &tables in &segments {
                 let start = self.pad_to_alignment(alignment);
                 let listing = list_in_view(
                     &frustum,
@@ -138,10 +139,10 @@ impl FrameBatches {
                 self.listings.push(listing);
             }
         }
-        self.order_chunks(transform);
+        self.order_segments(transform);
         self.footprint = coverage.union();
         self.covered_pixels = coverage.pixels();
-        self.split_in_phases(&chunks, transform);
+        self.split_in_phases(&segments, transform);
         if self.staging.is_empty() {
             return;
         }
@@ -160,7 +161,7 @@ impl FrameBatches {
         }
     }
 
-    /// Pads the staged tables to a multiple of `alignment` entries, where the next chunk's
+    /// Pads the staged tables to a multiple of `alignment` entries, where the next segment's
     /// table starts; returns that start.
     fn pad_to_alignment(&mut self, alignment: usize) -> usize {
         let padding = self.staging.len().next_multiple_of(alignment) - self.staging.len();
@@ -168,20 +169,20 @@ impl FrameBatches {
         self.staging.len()
     }
 
-    /// Splits each chunk's entries in the phases of the depth-writing pass, where its points
+    /// Splits each segment's entries in the phases of the depth-writing pass, where its points
     /// lie deep enough for occlusion culling to pay (`occlusion::phase_cuts`).
-    fn split_in_phases(&mut self, chunks: &[BatchTables<'_>], transform: &CameraTransform) {
+    fn split_in_phases(&mut self, segments: &[BatchTables<'_>], transform: &CameraTransform) {
         let cuts = phase_cuts(self.total(), self.points_per_pixel());
         let mut rest = self.staging.as_mut_slice();
         let mut taken = 0;
-        let mut entries = Vec::with_capacity(chunks.len());
-        for (tables, &(offset, count)) in chunks.iter().zip(&self.ranges) {
+        let mut entries = Vec::with_capacity(segments.len());
+        for (tables, &(offset, count)) in segments.iter().zip(&self.ranges) {
             let start = offset as usize / std::mem::size_of::<u32>();
             let (_, tail) = std::mem::take(&mut rest).split_at_mut(start - taken);
             let (table, tail) = tail.split_at_mut(count as usize);
             rest = tail;
             taken = start + count as usize;
-            entries.push(ChunkEntries {
+            entries.push(SegmentEntries {
                 entries: table,
                 batches: tables.batches,
             });
@@ -194,15 +195,15 @@ impl FrameBatches {
         );
     }
 
-    /// Orders the chunks that have batches in view near to far, as their batches are: a
-    /// cloud larger than one binding comes in chunks of neighbouring points (Morton order or
-    /// a streaming reader's), so this draws the near chunks' points first.
-    fn order_chunks(&mut self, transform: &CameraTransform) {
-        self.chunk_order.clear();
+    /// Orders the segments that have batches in view near to far, as their batches are: a
+    /// cloud larger than one binding comes in segments of neighbouring points (Morton order or
+    /// a streaming reader's), so this draws the near segments' points first.
+    fn order_segments(&mut self, transform: &CameraTransform) {
+        self.segment_order.clear();
         let listed = self.ranges.iter().filter(|&&(_, count)| count > 0).count();
         if listed < 2 {
-            // Nothing to order (most clouds are one chunk).
-            self.chunk_order
+            // Nothing to order (most clouds are one segment).
+            self.segment_order
                 .extend(self.ranges.iter().position(|&(_, count)| count > 0));
             return;
         }
@@ -212,16 +213,16 @@ impl FrameBatches {
             .zip(&self.listings)
             .enumerate()
             .filter(|(_, (&(_, count), _))| count > 0)
-            .map(|(chunk, (&(_, count), listing))| GpuBatch {
+            .map(|(segment, (&(_, count), listing))| GpuBatch {
                 min: listing.min.to_array(),
-                first: chunk as u32,
+                first: segment as u32,
                 max: listing.max.to_array(),
                 count,
             })
             .collect();
         sort_near_to_far(&mut boxes, transform.depth_row.truncate());
-        self.chunk_order
-            .extend(boxes.iter().map(|chunk_box| chunk_box.first as usize));
+        self.segment_order
+            .extend(boxes.iter().map(|segment_box| segment_box.first as usize));
     }
 
     /// Phases of the depth-writing pass: at least one.
@@ -240,7 +241,7 @@ impl FrameBatches {
         self.listings.iter().map(|listing| listing.points).sum()
     }
 
-    /// Number of batches of all chunks in this frame's tables.
+    /// Number of batches of all segments in this frame's tables.
     pub fn total(&self) -> u32 {
         self.ranges.iter().map(|&(_, count)| count).sum()
     }
@@ -251,28 +252,28 @@ impl FrameBatches {
         self.listed_points() as f64 / self.covered_pixels.max(1) as f64
     }
 
-    /// Phase `phase`'s entries of every chunk that has some, chunk after chunk near to far:
-    /// the chunk, its entries as a storage binding and their number.
+    /// Phase `phase`'s entries of every segment that has some, segment after segment near to far:
+    /// the segment, its entries as a storage binding and their number.
     pub fn phase_parts(
         &self,
         phase: usize,
     ) -> impl Iterator<Item = (usize, (wgpu::BufferBinding<'_>, u32))> + '_ {
-        self.chunk_order
+        self.segment_order
             .iter()
-            .filter_map(move |&chunk| Some((chunk, self.phase_part(chunk, phase)?)))
+            .filter_map(move |&segment| Some((segment, self.phase_part(segment, phase)?)))
     }
 
-    /// The entries of chunk `chunk`'s table in phase `phase` as a storage binding and their
+    /// The entries of segment `segment`'s table in phase `phase` as a storage binding and their
     /// number; `None` when there are none.
-    fn phase_part(&self, chunk: usize, phase: usize) -> Option<(wgpu::BufferBinding<'_>, u32)> {
-        let entries = self.phase_entries(chunk, phase);
-        self.entries_binding(chunk, entries)
+    fn phase_part(&self, segment: usize, phase: usize) -> Option<(wgpu::BufferBinding<'_>, u32)> {
+        let entries = self.phase_entries(segment, phase);
+        self.entries_binding(segment, entries)
     }
 
-    /// The entries of chunk `chunk`'s table in phase `phase`: consecutive phases hold the
+    /// The entries of segment `segment`'s table in phase `phase`: consecutive phases hold the
     /// table in order, each from a multiple of the binding alignment.
-    fn phase_entries(&self, chunk: usize, phase: usize) -> std::ops::Range<u32> {
-        let Some(ends) = self.phase_ends.get(chunk) else {
+    fn phase_entries(&self, segment: usize, phase: usize) -> std::ops::Range<u32> {
+        let Some(ends) = self.phase_ends.get(segment) else {
             return 0..0;
         };
         let start = if phase == 0 {
@@ -283,13 +284,13 @@ impl FrameBatches {
         start..ends.get(phase).copied().unwrap_or(start).max(start)
     }
 
-    /// `entries` of chunk `chunk`'s table as a storage binding and their number.
+    /// `entries` of segment `segment`'s table as a storage binding and their number.
     fn entries_binding(
         &self,
-        chunk: usize,
+        segment: usize,
         entries: std::ops::Range<u32>,
     ) -> Option<(wgpu::BufferBinding<'_>, u32)> {
-        let (offset, _) = *self.ranges.get(chunk)?;
+        let (offset, _) = *self.ranges.get(segment)?;
         let buffer = self.buffer.as_ref()?;
         let entry = std::mem::size_of::<u32>() as u64;
         (!entries.is_empty()).then(|| {
@@ -304,16 +305,16 @@ impl FrameBatches {
         })
     }
 
-    /// Number of batches of chunk `chunk` in this frame's table.
+    /// Number of batches of segment `segment` in this frame's table.
     #[cfg(test)]
-    fn count(&self, chunk: usize) -> u32 {
-        self.ranges.get(chunk).map_or(0, |&(_, count)| count)
+    fn count(&self, segment: usize) -> u32 {
+        self.ranges.get(segment).map_or(0, |&(_, count)| count)
     }
 
-    /// The table of chunk `chunk` as a storage binding; `None` when no batch is in view.
+    /// The table of segment `segment` as a storage binding; `None` when no batch is in view.
     #[cfg(test)]
-    fn binding(&self, chunk: usize) -> Option<wgpu::BufferBinding<'_>> {
-        self.entries_binding(chunk, 0..self.count(chunk))
+    fn binding(&self, segment: usize) -> Option<wgpu::BufferBinding<'_>> {
+        self.entries_binding(segment, 0..self.count(segment))
             .map(|(binding, _)| binding)
     }
 }
@@ -332,7 +333,7 @@ mod tests {
     use crate::raster::occlusion::MIN_PHASES;
     use crate::raster::points::{BATCH_POINTS, SUB_BATCH_POINTS};
 
-    /// A chunk's tables with batches only: no sub-batches or groups to refine them.
+    /// A segment's tables with batches only: no sub-batches or groups to refine them.
     fn whole_batches<'a>(batches: &'a [GpuBatch], draw_orders: &'a DrawOrders) -> BatchTables<'a> {
         BatchTables {
             batches,
@@ -342,16 +343,16 @@ mod tests {
         }
     }
 
-    /// The frame's tables for `chunks` of whole batches, straddlers refined.
+    /// The frame's tables for `segments` of whole batches, straddlers refined.
     fn tables_of_whole_batches(
         gpu: &GpuContext,
-        chunks: &[impl AsRef<[GpuBatch]>],
+        segments: &[impl AsRef<[GpuBatch]>],
         transform: &CameraTransform,
     ) -> FrameBatches {
-        // One cache of draw orders per chunk: a cache serves one batch table only.
-        let orders: Vec<DrawOrders> = chunks.iter().map(|_| DrawOrders::default()).collect();
+        // One cache of draw orders per segment: a cache serves one batch table only.
+        let orders: Vec<DrawOrders> = segments.iter().map(|_| DrawOrders::default()).collect();
         let mut tables = FrameBatches::new(true);
-        let tables_of = chunks
+        let tables_of = segments
             .iter()
             .zip(&orders)
             .map(|(batches, draw_orders)| whole_batches(batches.as_ref(), draw_orders));
@@ -372,8 +373,8 @@ mod tests {
         let near = batch(Vec3::new(-0.1, -0.1, 4.9), Vec3::new(0.1, 0.1, 5.1));
         let beside = batch(Vec3::splat(50.0), Vec3::splat(51.0));
         let behind = batch(Vec3::new(-0.1, -0.1, 10.5), Vec3::new(0.1, 0.1, 11.0));
-        let chunks: [&[GpuBatch]; 3] = [&[far, beside, near, behind], &[beside], &[beside, far]];
-        let tables = tables_of_whole_batches(&gpu, &chunks, &transform);
+        let segments: [&[GpuBatch]; 3] = [&[far, beside, near, behind], &[beside], &[beside, far]];
+        let tables = tables_of_whole_batches(&gpu, &segments, &transform);
 
         assert_eq!(
             (tables.count(0), tables.count(1), tables.count(2)),
@@ -391,25 +392,25 @@ mod tests {
         let (offset, _) = tables.ranges[0];
         let first = offset as usize / std::mem::size_of::<GpuBatch>();
         assert_eq!(
-            decoded(&tables.staging[first..first + 2], chunks[0]),
+            decoded(&tables.staging[first..first + 2], segments[0]),
             [near, far],
             "near to far"
         );
         let alignment = u64::from(gpu.device.limits().min_storage_buffer_offset_alignment);
-        for chunk in [0, 2] {
-            let binding = tables.binding(chunk).expect("batches in view");
+        for segment in [0, 2] {
+            let binding = tables.binding(segment).expect("batches in view");
             assert_eq!(binding.offset % alignment, 0);
         }
     }
 
-    /// The depth pass's phases split the listed batches by depth across the chunks: the first
-    /// holds the nearest batches, and together they hold every listed batch once, each chunk's
+    /// The depth pass's phases split the listed batches by depth across the segments: the first
+    /// holds the nearest batches, and together they hold every listed batch once, each segment's
     /// phases one after the other in its table.
     #[test]
-    fn phases_split_the_chunks_by_depth_and_hold_every_batch_once() {
+    fn phases_split_the_segments_by_depth_and_hold_every_batch_once() {
         let gpu = crate::testing::gpu();
         let transform = looking_down_from_z_10();
-        // Batch b of a chunk at `depth` lies 0.01 b deeper.
+        // Batch b of a segment at `depth` lies 0.01 b deeper.
         let at_depth = |depth: f32, n: usize| -> Vec<GpuBatch> {
             (0..n)
                 .map(|b| {
@@ -424,41 +425,46 @@ mod tests {
                 })
                 .collect()
         };
-        // Chunk 0 far, chunk 1 near, chunk 2 between; 200 full batches each, deep enough on
+        // Segment 0 far, segment 1 near, segment 2 between; 200 full batches each, deep enough on
         // the 64 x 64 image for phases.
-        let chunks = [at_depth(8.0, 200), at_depth(2.0, 200), at_depth(5.0, 200)];
-        let tables = tables_of_whole_batches(&gpu, &chunks, &transform);
-        assert_eq!(tables.chunk_order, [1, 2, 0]);
+        let segments = [at_depth(8.0, 200), at_depth(2.0, 200), at_depth(5.0, 200)];
+        let tables = tables_of_whole_batches(&gpu, &segments, &transform);
+        assert_eq!(tables.segment_order, [1, 2, 0]);
         let phase_count = tables.phase_count();
         assert!(phase_count >= MIN_PHASES, "{phase_count}");
         let phases: Vec<Vec<(usize, std::ops::Range<u32>)>> = (0..tables.phase_count())
             .map(|phase| {
                 tables
-                    .chunk_order
+                    .segment_order
                     .iter()
-                    .map(|&chunk| (chunk, tables.phase_entries(chunk, phase)))
+                    .map(|&segment| (segment, tables.phase_entries(segment, phase)))
                     .filter(|(_, entries)| !entries.is_empty())
                     .collect()
             })
             .collect();
-        // Equal shares of 600 batches: the first from the nearest chunk, the last from the
+        // Equal shares of 600 batches: the first from the nearest segment, the last from the
         // farthest (alignment moves a few batches to the phase before theirs, in their own
-        // chunk).
-        assert!(phases[0].iter().all(|(chunk, _)| *chunk == 1), "{phases:?}");
+        // segment).
         assert!(
-            phases[phase_count - 1].iter().all(|(chunk, _)| *chunk == 0),
+            phases[0].iter().all(|(segment, _)| *segment == 1),
+            "{phases:?}"
+        );
+        assert!(
+            phases[phase_count - 1]
+                .iter()
+                .all(|(segment, _)| *segment == 0),
             "{phases:?}"
         );
         let mut seen = [0u32; 3];
-        for (chunk, entries) in phases.iter().flatten() {
-            assert_eq!(entries.start, seen[*chunk], "{phases:?}");
+        for (segment, entries) in phases.iter().flatten() {
+            assert_eq!(entries.start, seen[*segment], "{phases:?}");
             assert_eq!(entries.start % tables.alignment_entries, 0, "{phases:?}");
-            seen[*chunk] = entries.end;
+            seen[*segment] = entries.end;
         }
         assert_eq!(seen, [200, 200, 200]);
-        // Each chunk's table holds its batches once.
-        for chunk in 0..3 {
-            let (offset, count) = tables.ranges[chunk];
+        // Each segment's table holds its batches once.
+        for segment in 0..3 {
+            let (offset, count) = tables.ranges[segment];
             let start = offset as usize / 4;
             let mut batches: Vec<u32> = tables.staging[start..start + count as usize]
                 .iter()
@@ -469,12 +475,12 @@ mod tests {
         }
     }
 
-    /// Synthetic chunks of `batches` boxes each, scattered in a 20-unit cube, each batch with
+    /// Synthetic segments of `batches` boxes each, scattered in a 20-unit cube, each batch with
     /// its 16 runs as slabs along x.
-    fn scattered_chunks(chunks: usize, batches: usize) -> Vec<(Vec<GpuBatch>, Vec<GpuBatch>)> {
+    fn scattered_segments(segments: usize, batches: usize) -> Vec<(Vec<GpuBatch>, Vec<GpuBatch>)> {
         let mut rng = ChaCha8Rng::seed_from_u64(21);
         let runs = (BATCH_POINTS / SUB_BATCH_POINTS) as u32;
-        (0..chunks)
+        (0..segments)
             .map(|_| {
                 let mut table = Vec::new();
                 let mut subs = Vec::new();
@@ -504,7 +510,7 @@ mod tests {
             .collect()
     }
 
-    /// A cloud of many chunks is culled on all cores into the very tables one core builds;
+    /// A cloud of many segments is culled on all cores into the very tables one core builds;
     /// on a GPU adapter, batches at the view's edge are listed whole.
     #[test]
     fn parallel_culling_builds_the_same_tables_and_gpus_list_straddlers_whole() {
@@ -516,13 +522,13 @@ mod tests {
             (1.0, 100.0),
         );
         let transform = camera.transform(DVec3::ZERO, 320, 200);
-        let chunks = scattered_chunks(5, 1000);
-        let orders: Vec<DrawOrders> = chunks.iter().map(|_| DrawOrders::default()).collect();
+        let segments = scattered_segments(5, 1000);
+        let orders: Vec<DrawOrders> = segments.iter().map(|_| DrawOrders::default()).collect();
         let build = |refine: bool, parallel_from: usize| {
             let mut tables = FrameBatches::new(refine);
             tables.parallel_from_batches = parallel_from;
             let tables_of =
-                chunks
+                segments
                     .iter()
                     .zip(&orders)
                     .map(|((batches, sub_batches), draw_orders)| BatchTables {
@@ -535,12 +541,12 @@ mod tests {
         let (parallel, serial) = (build(true, 0), build(true, usize::MAX));
         assert_eq!(parallel.staging, serial.staging);
         assert_eq!(parallel.ranges, serial.ranges);
-        assert_eq!(parallel.chunk_order, serial.chunk_order);
+        assert_eq!(parallel.segment_order, serial.segment_order);
         assert_eq!(parallel.footprint, serial.footprint);
         assert_eq!(parallel.covered_pixels, serial.covered_pixels);
         let narrowed = |t: &FrameBatches| {
             let mut narrowed = 0;
-            for (&(offset, count), (batches, _)) in t.ranges.iter().zip(&chunks) {
+            for (&(offset, count), (batches, _)) in t.ranges.iter().zip(&segments) {
                 let start = offset as usize / std::mem::size_of::<u32>();
                 let entries = decoded(&t.staging[start..][..count as usize], batches);
                 narrowed += entries

@@ -1,4 +1,4 @@
-//! One chunk's entries that can be in view, near to far: groups of batches wholly in view
+//! One segment's entries that can be in view, near to far: groups of batches wholly in view
 //! are listed without testing their batches, batches wholly in view are listed whole, and of
 //! a batch that straddles the view's edge only its runs of sub-batches that can be in view.
 //! Each entry is one word (`ListedEntry`).
@@ -10,9 +10,9 @@ use crate::raster::gpu_data::GpuBatch;
 use crate::raster::pixel_rect::{PixelCoverage, PixelRect};
 use crate::raster::points::{BatchTables, BATCH_POINTS, GROUP_BATCHES, SUB_BATCH_POINTS};
 
-/// A frame table's entry: batch `index` of its chunk's resident table and the run of that
+/// A frame table's entry: batch `index` of its segment's resident table and the run of that
 /// batch's sub-batches to draw, in one word (the shaders' `listed_batch` in common.wgsl):
-/// the index in the upper 24 bits (a chunk's point indices are u32, so it holds at most
+/// the index in the upper 24 bits (a segment's point indices are u32, so it holds at most
 /// 2^20 batches), then the run's first sub-batch and its length - 1, 4 bits each. A frame
 /// uploads 4 bytes per listed batch instead of a copy of its 32-byte entry.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -48,7 +48,7 @@ impl ListedEntry {
     }
 }
 
-/// What one chunk's listed entries hold.
+/// What one segment's listed entries hold.
 #[derive(Clone, Copy, Debug)]
 pub(super) struct Listing {
     pub points: u64,

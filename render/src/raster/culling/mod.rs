@@ -1,6 +1,6 @@
 //! The frame's batch table: the batches that can be in view.
 //!
-//! Every frame, on the host, before any GPU work, each chunk's batches are culled against the
+//! Every frame, on the host, before any GPU work, each segment's batches are culled against the
 //! view frustum (Günther et al.'s frustum culling, per batch): a batch is left out when all
 //! eight corners of its box lie beyond the same plane of the frustum, widened by the point
 //! size and a pixel of margin for the shaders' f32 arithmetic. The point passes read this
@@ -15,21 +15,21 @@
 //!   in view are listed, which shortens the point pass on lavapipe
 //!   (docs/perf/batch-culling.md). A GPU draws the whole batch faster than the host tests
 //!   them.
-//! - A cloud of many chunks is culled on all cores, a chunk per task.
+//! - A cloud of many segments is culled on all cores, a segment per task.
 //!
 //! The same pass over the boxes bounds the frame's footprint: the pixels any listed point can
 //! touch. The resolve skips the rest of the image when it is known to be empty (`targets.rs`).
 //!
-//! The table holds a word per listed batch (`ListedEntry`: the batch's index in its chunk's
+//! The table holds a word per listed batch (`ListedEntry`: the batch's index in its segment's
 //! resident table and the run of its sub-batches to draw), not a copy of its 32-byte entry.
-//! Each chunk's entries are listed near to far along a mirrored Z-order curve
-//! (`draw_order.rs`: the order is kept per chunk and octant of view directions, so a frame
-//! walks it instead of sorting), and the chunks themselves are ordered near to far. This is
+//! Each segment's entries are listed near to far along a mirrored Z-order curve
+//! (`draw_order.rs`: the order is kept per segment and octant of view directions, so a frame
+//! walks it instead of sorting), and the segments themselves are ordered near to far. This is
 //! the stage "cull" of a frame's timings, part of its frame time.
 //!
 //! - `frustum.rs`: the frustum and the test of one box against it;
-//! - `listing.rs`: a chunk's entries that can be in view, near to far;
-//! - `batch_table.rs`: the frame's tables of every chunk in one GPU buffer.
+//! - `listing.rs`: a segment's entries that can be in view, near to far;
+//! - `batch_table.rs`: the frame's tables of every segment in one GPU buffer.
 
 mod batch_table;
 mod frustum;
@@ -43,7 +43,7 @@ use crate::raster::gpu_data::GpuBatch;
 #[cfg(test)]
 use glam::Vec3;
 
-/// Entries of a frame table as the shaders see them, from their chunk's `batches`.
+/// Entries of a frame table as the shaders see them, from their segment's `batches`.
 #[cfg(test)]
 pub(crate) fn decoded(entries: &[u32], batches: &[GpuBatch]) -> Vec<GpuBatch> {
     entries

@@ -66,7 +66,7 @@ fn fallback_32_bit_path_renders_the_same_image_as_the_64_bit_path() {
 
 /// The point passes' workgroup size depends on the adapter (one subgroup on lavapipe, 128 on
 /// GPUs: `point_workgroup.rs`). Every size renders the same image, in both modes and on both
-/// atomics paths, with several chunks and point sizes.
+/// atomics paths, with several segments and point sizes.
 #[test]
 fn every_point_workgroup_size_renders_the_same_image() {
     let gpu = gpu();
@@ -78,12 +78,12 @@ fn every_point_workgroup_size_renders_the_same_image() {
         .iter()
         .map(|&size| {
             let mut renderer = Renderer::with_point_workgroup_size(gpu.clone(), size);
-            renderer.set_max_chunk_points(2 * BATCH_POINTS);
+            renderer.set_max_segment_points(2 * BATCH_POINTS);
             let resident = renderer.upload(&cloud).expect("upload");
             (renderer, resident)
         })
         .collect();
-    assert!(renderers[0].1.chunk_count() > 1);
+    assert!(renderers[0].1.segment_count() > 1);
     for quality in [Quality::Basic, Quality::HIGH] {
         for atomics in [AtomicsMode::Auto, AtomicsMode::Force32] {
             for point_size in [1, 2] {

@@ -124,13 +124,13 @@ fn high_quality_band_is_configurable() {
 }
 
 /// Many thousands of points in one pixel's band, with the colours of vegetation, drawn from
-/// many chunks: the packed sums hold the first 256, the wide sums the rest, and the average is
+/// many segments: the packed sums hold the first 256, the wide sums the rest, and the average is
 /// the reference's whichever path adds them, frame after frame.
 #[test]
-fn high_quality_averages_thousands_of_points_a_pixel_over_many_chunks() {
+fn high_quality_averages_thousands_of_points_a_pixel_over_many_segments() {
     let base = perspective_settings(8, 6);
     let (near, far) = (base.camera.near, base.camera.far);
-    for (points, chunk_points) in [(5_000, None), (20_000, Some(4 * BATCH_POINTS))] {
+    for (points, segment_points) in [(5_000, None), (20_000, Some(4 * BATCH_POINTS))] {
         let mut cloud = pixel_centre_scene_by_pixel(&base, 7, |rng, x, y| {
             if (x + y) % 3 != 0 {
                 return Vec::new();
@@ -149,8 +149,8 @@ fn high_quality_averages_thousands_of_points_a_pixel_over_many_chunks() {
             );
         }
         let mut renderer = Renderer::new(gpu());
-        if let Some(chunk_points) = chunk_points {
-            renderer.set_max_chunk_points(chunk_points);
+        if let Some(segment_points) = segment_points {
+            renderer.set_max_segment_points(segment_points);
         }
         let resident = renderer.upload(&cloud).expect("upload");
         let settings = FrameSettings {
@@ -193,7 +193,7 @@ fn high_quality_matches_the_reference_on_a_terrain_where_the_band_reaches_the_gr
     let cloud = PointCloud::from_world_points(&points, colors);
     let bounds = source.bounds();
     let mut renderer = Renderer::new(gpu());
-    renderer.set_max_chunk_points(64 * BATCH_POINTS);
+    renderer.set_max_segment_points(64 * BATCH_POINTS);
     let resident = renderer.upload(&cloud).expect("upload");
     // From above one corner, 40 m up, towards the far one: the far half at a grazing angle.
     let oblique = Camera {

@@ -1,5 +1,5 @@
 //! Uploading clouds: the bytes a point takes on the GPU, streamed uploads, and clouds larger
-//! than one storage binding rendered in chunks.
+//! than one storage binding rendered in segments.
 
 use super::*;
 
@@ -9,19 +9,19 @@ use super::*;
 fn points_take_at_most_12_bytes_each_on_the_gpu() {
     let mut renderer = Renderer::new(gpu());
     let cloud = crate::sample::sample_scene(50_000, 7);
-    for chunk_points in [usize::MAX, 3 * BATCH_POINTS] {
-        renderer.set_max_chunk_points(chunk_points);
+    for segment_points in [usize::MAX, 3 * BATCH_POINTS] {
+        renderer.set_max_segment_points(segment_points);
         let resident = renderer.upload(&cloud).expect("upload");
         let per_point = resident.gpu_bytes_per_point();
         assert!(
             (POINT_BYTES as f64..=12.0).contains(&per_point),
-            "{per_point} bytes per point in {} chunks",
-            resident.chunk_count()
+            "{per_point} bytes per point in {} segments",
+            resident.segment_count()
         );
     }
 }
 
-/// A cloud uploaded chunk by chunk renders like the same points uploaded whole.
+/// A cloud uploaded segment by segment renders like the same points uploaded whole.
 #[test]
 fn a_streamed_upload_renders_like_a_whole_one() {
     let settings = perspective_settings(96, 64);
@@ -29,7 +29,7 @@ fn a_streamed_upload_renders_like_a_whole_one() {
     let (mut renderer, whole) = uploaded(&cloud);
     let mut next = 0;
     let streamed = renderer
-        .upload_chunks(cloud.origin, &mut |n| {
+        .upload_segments(cloud.origin, &mut |n| {
             let range = next..(next + n.min(5000)).min(cloud.len());
             next = range.end;
             (!range.is_empty()).then(|| {
@@ -48,23 +48,23 @@ fn a_streamed_upload_renders_like_a_whole_one() {
 }
 
 #[test]
-fn a_cloud_larger_than_one_binding_renders_in_chunks() {
+fn a_cloud_larger_than_one_binding_renders_in_segments() {
     let settings = perspective_settings(160, 120);
     let cloud = pixel_centre_scene(&settings, 3, 5);
     let mut renderer = Renderer::new(gpu());
-    // Lower the binding limit to two batches per chunk.
-    renderer.set_max_chunk_points(2 * BATCH_POINTS);
+    // Lower the binding limit to two batches per segment.
+    renderer.set_max_segment_points(2 * BATCH_POINTS);
     let resident = renderer.upload(&cloud).expect("upload");
     assert!(
-        resident.chunk_count() >= 4,
-        "only {} chunks",
-        resident.chunk_count()
+        resident.segment_count() >= 4,
+        "only {} segments",
+        resident.segment_count()
     );
     for atomics in [AtomicsMode::Auto, AtomicsMode::Force32] {
         let frame = render_with_atomics(&mut renderer, &resident, &settings, atomics);
         let expected = reference::render_basic(&cloud, &settings);
         assert_eq!(
-            compare_images("chunked", &frame.image, &expected.image).differing,
+            compare_images("segmented", &frame.image, &expected.image).differing,
             0
         );
     }
