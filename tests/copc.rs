@@ -217,6 +217,35 @@ fn a_damaged_copc_hierarchy_is_refused_naming_the_file() {
     assert_eq!(described["points"], "1065");
 }
 
+/// `simple.copc.laz` written into `dir` with every byte of its LAZ chunk table's entries set to
+/// 0xFF, which the laz crate's table decoder indexes out of bounds with.
+fn copc_with_a_chunk_table_of_ones(dir: &Path) -> PathBuf {
+    let mut bytes = std::fs::read(copc_file("simple.copc.laz")).expect("read");
+    let data_start = u32::from_le_bytes(bytes[96..100].try_into().expect("4")) as usize;
+    let table = u64::from_le_bytes(bytes[data_start..data_start + 8].try_into().expect("8"));
+    let first_evlr = u64::from_le_bytes(bytes[235..243].try_into().expect("8"));
+    bytes[table as usize + 8..first_evlr as usize].fill(0xFF);
+    let damaged = dir.join("ones.copc.laz");
+    std::fs::write(&damaged, &bytes).expect("write");
+    damaged
+}
+
+#[test]
+fn a_chunk_table_of_ones_is_an_error_naming_the_file_on_every_path() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let damaged = copc_with_a_chunk_table_of_ones(dir.path());
+    let out = dir.path().join("x.png");
+    for args in [
+        vec!["info", arg(&damaged)],
+        vec!["render", arg(&damaged), "--out", arg(&out)],
+        vec!["render", arg(&damaged), "--out", arg(&out), "--preview"],
+    ] {
+        let output = pointfarm(&args);
+        assert_fails_saying(&output, "ones.copc.laz");
+        assert_eq!(output.status.code(), Some(1), "{args:?}");
+    }
+}
+
 /// A count of the API's JSON mapping, where 64-bit counts are strings.
 fn count(value: &serde_json::Value) -> u64 {
     value

@@ -443,4 +443,15 @@ fn chunk_table(mutants: &mut Mutants<'_>, layout: &Layout, table: usize, seed: u
     );
     let entries_end = layout.first_evlr.unwrap_or(mutants.source.len());
     mutants.flips(Kind::ChunkTable, table + 8..entries_end, 8, seed ^ 4);
+    // Entries of all ones decode to offsets the laz crate indexes with unchecked.
+    if table + 8 < entries_end {
+        let mut filled = mutants.source.to_vec();
+        filled[table + 8..entries_end].fill(0xFF);
+        mutants.push(
+            Kind::ChunkTable,
+            "entries-all-ones".to_owned(),
+            true,
+            filled,
+        );
+    }
 }

@@ -15,6 +15,13 @@ use crate::CorpusError;
 /// The real scans next to the repository, used when present.
 pub const REAL_SCANS: [&str; 3] = ["autzen_trim.las", "autzen_trim.laz", "lone-star.laz"];
 
+/// The COPC file in the repository's test data, written by another tool (laspy's test data):
+/// a layered LAZ whose chunks are the octree's nodes.
+pub const COPC_SOURCE: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/../tests/data/copc/simple.copc.laz"
+);
+
 /// A source file: its name (with extension) and bytes.
 pub struct Source {
     pub name: String,
@@ -77,8 +84,8 @@ const fn written(minor: u8, point_format: u8, extension: &'static str, points: u
     }
 }
 
-/// Writes the written sources into `dir` and gives them with the real scans found in
-/// `real_dir`.
+/// Writes the written sources into `dir` and gives them with the repository's COPC file and
+/// the real scans found in `real_dir`.
 pub fn sources(
     dir: &Path,
     real_dir: Option<&Path>,
@@ -90,17 +97,19 @@ pub fn sources(
     for (index, spec) in specs.iter().enumerate() {
         sources.push(write_source(dir, index as u64, spec)?);
     }
-    for name in REAL_SCANS {
-        let Some(path) = real_dir.map(|real| real.join(name)).filter(|p| p.is_file()) else {
-            continue;
-        };
+    let real = REAL_SCANS
+        .iter()
+        .filter_map(|name| real_dir.map(|real| real.join(name)))
+        .filter(|path| path.is_file());
+    for path in std::iter::once(PathBuf::from(COPC_SOURCE)).chain(real) {
+        let name = path
+            .file_name()
+            .map(|name| name.to_string_lossy().into_owned())
+            .unwrap_or_default();
         let bytes = fs::read(&path).map_err(|error| CorpusError::io(&path, error))?;
-        let copy = dir.join(name);
+        let copy = dir.join(&name);
         fs::write(&copy, &bytes).map_err(|error| CorpusError::io(&copy, error))?;
-        sources.push(Source {
-            name: name.to_owned(),
-            bytes,
-        });
+        sources.push(Source { name, bytes });
     }
     Ok(sources)
 }

@@ -275,10 +275,14 @@ fn check_chunk_table(
             "the LAZ chunk table declares {chunk_count} chunks but the {data_len} bytes of compressed points hold at most {max_chunks}"
         )));
     }
+    let path = raw.path;
     let file = raw.file_at(data_start)?;
-    let table = ChunkTable::read_from(file, vlr).map_err(|error| IngestError::LazChunkTable {
-        path: raw.path.to_owned(),
-        error,
+    // The table's entries are compressed: garbage in them can panic the laz crate's decoder.
+    let table = super::contain_panics(path, || {
+        ChunkTable::read_from(file, vlr).map_err(|error| IngestError::LazChunkTable {
+            path: path.to_owned(),
+            error,
+        })
     })?;
     let mut bytes = 0u64;
     for (index, chunk) in table.as_ref().iter().enumerate() {
