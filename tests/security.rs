@@ -1,7 +1,8 @@
 //! Transport and roles, with real processes and sockets: TLS with a certificate made for the
-//! test (clients and workers through it, plaintext and unknown CAs refused), the refusal to
-//! listen beyond loopback without a token and TLS, reflection in both versions (behind the
-//! client token where one is set), and leases that only their holder can use.
+//! test (clients and workers through it, plaintext and unknown CAs refused; a CA certificate
+//! served named at start and by the client), the refusal to listen beyond loopback without a
+//! token and TLS, reflection in both versions (behind the client token where one is set), and
+//! leases that only their holder can use.
 
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
@@ -13,7 +14,9 @@ use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_tests::pki::TestPki;
 use pointfarm_tests::service::{scratch_sample, submit, turntable_job, upload_file, TestDaemon};
-use pointfarm_tests::{pointfarm, pointfarm_bin, ServeProcess, WorkerProcess};
+use pointfarm_tests::{
+    own_stderr_lines, pointfarm, pointfarm_bin, wait_for, ServeProcess, WorkerProcess,
+};
 use tokio_stream::StreamExt;
 use tonic::Code;
 
@@ -154,10 +157,83 @@ fn tls_carries_clients_and_workers_and_plaintext_is_refused() {
         arg(&dir.join("cache-refused")),
     ]);
     assert_fails_saying(&refused, "permission denied");
+    // A certificate signed by a CA is a server's own: nothing to warn of.
+    assert!(!server.log().contains("CA certificate"), "{}", server.log());
     // Tokens never reach the logs.
     for log in [server.log(), worker.log()] {
         assert!(!log.contains("Secret-"), "a token in a log:\n{log}");
     }
+}
+
+/// A certificate made the quickest way, `openssl req -x509` without extensions, is marked as
+/// a CA: `serve` says so at start with how to make a server certificate, and a client that
+/// trusts it fails in one sentence naming the cause and the fix, never the TLS library's
+/// words, and says it once.
+#[test]
+fn a_ca_certificate_served_is_named_at_start_and_by_the_client() {
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let dir = scratch.path();
+    let (cert, key) = (dir.join("c.pem"), dir.join("k.pem"));
+    let made = Command::new("openssl")
+        .args(["req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout"])
+        .arg(&key)
+        .arg("-out")
+        .arg(&cert)
+        .args(["-days", "30", "-subj", "/CN=localhost"])
+        .output();
+    let Ok(made) = made else {
+        eprintln!("skipped: openssl is not installed");
+        return;
+    };
+    assert!(made.status.success(), "{}", stderr(&made));
+    let server = ServeProcess::start_with(
+        &dir.join("data"),
+        &[
+            "--no-embedded-worker",
+            "--tls-cert",
+            arg(&cert),
+            "--tls-key",
+            arg(&key),
+        ],
+    );
+    let log = wait_for(Duration::from_secs(10), "the certificate warning", || {
+        let log = server.log();
+        log.contains("is a CA certificate").then_some(log)
+    });
+    assert!(log.contains("WARN"), "{log}");
+    assert!(
+        log.contains("-addext basicConstraints=critical,CA:FALSE")
+            && log.contains("-addext subjectAltName=DNS:localhost,IP:127.0.0.1"),
+        "{log}"
+    );
+
+    let https = format!("https://localhost:{}", port_of(&server));
+    let refused = pointfarm(&[
+        "dataset",
+        "list",
+        "--server",
+        &https,
+        "--tls-ca",
+        arg(&cert),
+    ]);
+    assert_fails_saying(&refused, "is a CA certificate (basicConstraints CA:TRUE)");
+    let message = stderr(&refused);
+    for needle in [
+        "basicConstraints CA:TRUE",
+        "-addext basicConstraints=critical,CA:FALSE",
+    ] {
+        assert_eq!(message.matches(needle).count(), 1, "{message}");
+    }
+    for words in [
+        "CaUsedAsEndEntity",
+        "invalid peer certificate",
+        "error: error:",
+    ] {
+        assert!(!message.contains(words), "{message}");
+    }
+    let lines = own_stderr_lines(&refused);
+    assert_eq!(lines.len(), 1, "one line: {message}");
+    assert!(lines[0].starts_with("error: cannot connect to https://localhost:"));
 }
 
 /// Runs `pointfarm serve` with `args`; its output if it exits within 30 s (it is killed and

@@ -99,7 +99,8 @@ pub enum JobsCommand {
         /// The job's id.
         id: String,
     },
-    /// Cancel a queued or running job; its workers drop their frames.
+    /// Cancel a queued or running job; its workers drop their frames. A job that has ended
+    /// is left as it is (exit status 0).
     Cancel {
         /// The job's id.
         id: String,
@@ -408,11 +409,31 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                 }
             }
             JobsCommand::Cancel { id } => {
-                let job = answer(client.jobs.cancel_job(pb::CancelJobRequest { id }).await)?;
+                let request = pb::CancelJobRequest { id: id.clone() };
+                let (job, cancelled) = match client.jobs.cancel_job(request).await {
+                    Ok(reply) => (reply.into_inner(), true),
+                    // A job that has ended has nothing left to cancel: it is shown as it is.
+                    Err(status) if status.code() == tonic::Code::FailedPrecondition => {
+                        let mut job = answer(client.jobs.get_job(pb::GetJobRequest { id }).await)?;
+                        if !has_ended(job.state) {
+                            return Err(status_error(status));
+                        }
+                        // Shown as a cancel answers: the job, without its frames.
+                        job.frames.clear();
+                        (job, false)
+                    }
+                    Err(status) => return Err(status_error(status)),
+                };
                 if server.json {
                     outln!("{}", json_line(&job)?);
-                } else {
+                } else if cancelled {
                     outln!("job {} {}", job.id, state_name(job.state));
+                } else {
+                    outln!(
+                        "job {} already {}; nothing to cancel",
+                        job.id,
+                        state_name(job.state)
+                    );
                 }
             }
             JobsCommand::Watch { id } => {
@@ -566,6 +587,14 @@ fn scheduling_lines(job: &pb::Job) -> Vec<String> {
         ));
     }
     lines
+}
+
+/// Whether a job in `state` has ended (succeeded, failed or cancelled).
+fn has_ended(state: i32) -> bool {
+    matches!(
+        pb::JobState::try_from(state),
+        Ok(pb::JobState::Succeeded | pb::JobState::Failed | pb::JobState::Cancelled)
+    )
 }
 
 pub fn frames(server: &ServerArgs, command: FramesCommand) -> Result<()> {

@@ -33,11 +33,7 @@ impl Client {
     pub async fn connect(server: &str, credentials: &ClientCredentials) -> Result<Self> {
         let endpoint = credentials.endpoint(server)?;
         let auth = BearerToken::new(credentials.token()?.as_deref())?;
-        let channel = endpoint
-            .endpoint()?
-            .connect()
-            .await
-            .with_context(|| format!("cannot connect to {}", endpoint.url()))?;
+        let channel = endpoint.connect().await?;
         Ok(Self {
             datasets: DatasetServiceClient::with_interceptor(channel.clone(), auth.clone()),
             jobs: JobServiceClient::with_interceptor(channel, auth),
@@ -200,9 +196,6 @@ impl Client {
         from_index: u32,
         out: &Path,
     ) -> Result<Vec<(u32, PathBuf)>> {
-        tokio::fs::create_dir_all(out)
-            .await
-            .with_context(|| format!("creating {}", out.display()))?;
         let mut stream = self
             .jobs
             .fetch_frames(pb::FetchFramesRequest {
@@ -212,6 +205,10 @@ impl Client {
             .await
             .map_err(status_error)?
             .into_inner();
+        // Made only once the server has the job, so that a refused fetch leaves no folder.
+        tokio::fs::create_dir_all(out)
+            .await
+            .with_context(|| format!("creating {}", out.display()))?;
         let mut written = Vec::new();
         let mut buffer = Vec::new();
         while let Some(chunk) = stream.message().await.map_err(status_error)? {

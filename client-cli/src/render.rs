@@ -499,23 +499,72 @@ fn print_summary(dir: &Path, frames: &[StageTimings]) {
         frames.len(),
         dir.display()
     );
-    for stage in [
-        Stage::Select,
-        Stage::Load,
-        Stage::Upload,
-        Stage::Cull,
-        Stage::Rasterize,
-        Stage::Resolve,
-        Stage::Shade,
-        Stage::Downsample,
-        Stage::Readback,
-        Stage::Encode,
-    ] {
-        let mut ms: Vec<f64> = frames.iter().filter_map(|t| t.get(stage)).collect();
-        if ms.is_empty() {
-            continue;
+    for (name, ms) in summary_rows(frames) {
+        outln!("  {name:<10} {ms:>9.2} ms");
+    }
+}
+
+/// The median milliseconds of every stage the frames report, in the order they first ran,
+/// then of the frames' totals.
+fn summary_rows(frames: &[StageTimings]) -> Vec<(&'static str, f64)> {
+    let mut stages: Vec<Stage> = Vec::new();
+    for timing in frames.iter().flat_map(|t| &t.stages) {
+        if !stages.contains(&timing.stage) {
+            stages.push(timing.stage);
         }
-        ms.sort_by(f64::total_cmp);
-        outln!("  {:<10} {:>9.2} ms", stage.name(), ms[ms.len() / 2]);
+    }
+    let mut rows: Vec<(&'static str, f64)> = stages
+        .into_iter()
+        .map(|stage| {
+            let ms = frames.iter().filter_map(|t| t.get(stage)).collect();
+            (stage.name(), median(ms))
+        })
+        .collect();
+    if !frames.is_empty() {
+        rows.push((
+            "total",
+            median(frames.iter().map(StageTimings::total_ms).collect()),
+        ));
+    }
+    rows
+}
+
+fn median(mut ms: Vec<f64>) -> f64 {
+    ms.sort_by(f64::total_cmp);
+    ms.get(ms.len() / 2).copied().unwrap_or(0.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use pointfarm_render::raster::Clock;
+
+    #[test]
+    fn the_summary_lists_every_stage_the_frames_report_and_a_total() {
+        let frame = |fill: f64| {
+            let mut timings = StageTimings::default();
+            timings.push(Stage::Rasterize, 2.0, Clock::Gpu);
+            timings.push(Stage::Accumulate, 1.0, Clock::Gpu);
+            timings.push(Stage::Visibility, 0.5, Clock::Gpu);
+            timings.push(Stage::Fill, fill, Clock::Gpu);
+            timings.push(Stage::Encode, 3.0, Clock::Host);
+            timings
+        };
+        let rows = summary_rows(&[frame(1.0), frame(2.0), frame(4.0)]);
+        let names: Vec<&str> = rows.iter().map(|(name, _)| *name).collect();
+        assert_eq!(
+            names,
+            [
+                "rasterize",
+                "accumulate",
+                "visibility",
+                "fill",
+                "encode",
+                "total"
+            ]
+        );
+        assert_eq!(rows[3].1, 2.0);
+        assert_eq!(rows[5].1, 8.5);
+        assert!(summary_rows(&[]).is_empty());
     }
 }

@@ -104,6 +104,7 @@ impl Daemon {
                 self.fail_job_locked(
                     &job.id,
                     format!("dataset {} no longer exists", job.spec.dataset_id),
+                    0,
                 )?;
                 continue;
             };
@@ -315,6 +316,9 @@ impl Daemon {
             .unless_disk_refused(&lease, finished.map_err(DaemonError::from))?
             .ok_or_else(|| DaemonError::NotFound(format!("job {}", lease.job_id)))?;
         self.metrics.frame_completed(&report);
+        if job.state == JobState::Succeeded {
+            self.log_job_end(&job, 0);
+        }
         self.publish(&job, Some(report));
         Ok(job)
     }
@@ -390,6 +394,7 @@ impl Daemon {
                         "frame {} cannot be rendered (attempt {attempts}, not retried): {reason}",
                         lease.index
                     ),
+                    1,
                 )
             }
         }
@@ -599,6 +604,7 @@ impl Daemon {
                     "frame {} failed {attempts} times; last: {reason}",
                     lease.index
                 ),
+                1,
             );
         }
         let limit = self.config.worker_failures_before_blocklist;
@@ -624,13 +630,24 @@ impl Daemon {
         Ok(())
     }
 
-    fn fail_job_locked(&self, job_id: &str, reason: String) -> Result<(), DaemonError> {
-        tracing::warn!(job = %job_id, %reason, "job failed");
+    /// Fails the job for `reason`; `unstored_attempts` failed attempts at its frame led to
+    /// it and were not stored.
+    fn fail_job_locked(
+        &self,
+        job_id: &str,
+        reason: String,
+        unstored_attempts: u32,
+    ) -> Result<(), DaemonError> {
+        let mut had_ended = false;
         if let Some(failed) = self.state.update_job(job_id, |j| {
+            had_ended = j.state.is_terminal();
             j.state = JobState::Failed;
             j.error = Some(reason);
         })? {
             self.state.flush()?;
+            if !had_ended {
+                self.log_job_end(&failed, unstored_attempts);
+            }
             self.publish(&failed, None);
         }
         Ok(())

@@ -94,6 +94,21 @@ pub struct TlsIdentity {
     pub key_pem: Vec<u8>,
 }
 
+/// Says at start when clients will refuse the server's certificate: one marked as a
+/// certificate authority is never accepted as a server's own, whoever trusts it.
+fn warn_of_unusable_certificate(cert_pem: &[u8]) {
+    use pointfarm_proto::endpoint::certificate;
+    match certificate::is_ca_certificate(cert_pem) {
+        Ok(false) => {}
+        Ok(true) => tracing::warn!(
+            "the TLS certificate (--tls-cert) is a CA certificate (basicConstraints CA:TRUE), \
+             which clients refuse as a server's own: {}",
+            certificate::SERVER_CERTIFICATE_HOWTO
+        ),
+        Err(reason) => tracing::warn!("the TLS certificate (--tls-cert) {reason}"),
+    }
+}
+
 /// The embedded worker's listener admits only calls with the token made for it at start-up;
 /// they carry [`EmbeddedWorkerCall`].
 #[derive(Clone)]
@@ -139,6 +154,7 @@ pub async fn serve(
     options.check_exposure(address)?;
     let mut server = pointfarm_proto::endpoint::server_builder();
     if let Some(tls) = &options.tls {
+        warn_of_unusable_certificate(&tls.cert_pem);
         server = server
             .tls_config(pointfarm_proto::endpoint::server_tls(
                 &tls.cert_pem,

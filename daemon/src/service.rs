@@ -322,9 +322,36 @@ impl Daemon {
             .update_job(id, |j| j.state = JobState::Cancelled)?
             .ok_or_else(|| DaemonError::NotFound(format!("job {id}")))?;
         self.state.flush()?;
-        tracing::info!(job = %id, "job cancelled");
+        self.log_job_end(&job, 0);
         self.publish(&job, None);
         Ok(job)
+    }
+
+    /// Logs that `job` ended, once, with its counts; `unstored_attempts` failed attempts
+    /// ended it before they were stored at its frame.
+    pub(crate) fn log_job_end(&self, job: &Job, unstored_attempts: u32) {
+        let failed_attempts = match self.state.failed_attempts(&job.id) {
+            Ok(stored) => (stored + u64::from(unstored_attempts)).to_string(),
+            Err(e) => format!("unknown ({e})"),
+        };
+        let elapsed_s = job.updated_unix_ms.saturating_sub(job.created_unix_ms) as f64 / 1000.0;
+        let (id, frames_done, frames_total) = (&job.id, job.frames_done, job.frames_total);
+        match job.state {
+            JobState::Succeeded => tracing::info!(
+                job = %id, frames_done, frames_total, %failed_attempts, elapsed_s,
+                "job succeeded"
+            ),
+            JobState::Failed => tracing::info!(
+                job = %id, frames_done, frames_total, %failed_attempts, elapsed_s,
+                error = job.error.as_deref().unwrap_or_default(),
+                "job failed"
+            ),
+            JobState::Cancelled => tracing::info!(
+                job = %id, frames_done, frames_total, %failed_attempts, elapsed_s,
+                "job cancelled"
+            ),
+            JobState::Queued | JobState::Running => {}
+        }
     }
 }
 

@@ -451,6 +451,11 @@ impl StateDb {
         self.with(Records::requeue_running)
     }
 
+    /// The failed attempts recorded at a job's frames, finished or pending.
+    pub fn failed_attempts(&self, job_id: &str) -> Result<u64, StateError> {
+        self.with(|records| records.failed_attempts(job_id))
+    }
+
     /// The reports of the finished frames of a job and the previews of its pending ones, by
     /// frame index.
     pub fn frame_reports(&self, job_id: &str) -> Result<Vec<FrameReport>, StateError> {

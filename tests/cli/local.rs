@@ -76,6 +76,59 @@ fn renders_a_turntable_into_a_directory() {
     assert_says(&output, "median per stage");
 }
 
+/// The summary at the end of a turntable lists every stage its frames report, those of high
+/// quality, filling and shading too, and their total.
+#[test]
+fn a_turntable_s_summary_lists_every_stage_and_a_total() {
+    let scene = Scene::sampled("sample.las", 20_000);
+    let frames = scene.path("frames");
+    let options = [
+        "--turntable",
+        "2",
+        "--size",
+        "96x64",
+        "--quality",
+        "high",
+        "--fill",
+        "--shading",
+        "pintus",
+    ];
+    let output = render_into(&scene.cloud, &frames, None, &options);
+    let text = stdout(&output);
+    let (_, summary) = text
+        .split_once("median per stage:")
+        .unwrap_or_else(|| panic!("no summary in:\n{text}"));
+    let listed: Vec<&str> = summary
+        .lines()
+        .filter_map(|line| line.split_whitespace().next())
+        .collect();
+    for stage in [
+        "upload",
+        "cull",
+        "rasterize",
+        "accumulate",
+        "resolve",
+        "visibility",
+        "fill",
+        "shade",
+        "readback",
+        "encode",
+    ] {
+        assert!(
+            listed.contains(&stage),
+            "no {stage} in the summary:\n{text}"
+        );
+    }
+    assert_eq!(listed.last(), Some(&"total"), "{text}");
+    assert!(
+        summary
+            .lines()
+            .filter(|l| !l.trim().is_empty())
+            .all(|l| l.ends_with(" ms")),
+        "{text}"
+    );
+}
+
 /// An exported POINTFARM_SERVER makes `render` remote; `--local` renders here all the same.
 #[test]
 fn local_renders_here_whatever_the_environment_names() {

@@ -69,6 +69,61 @@ fn remote_render_uploads_submits_follows_and_downloads() {
     assert_says(&listed, "\"JOB_STATE_SUCCEEDED\"");
     let unknown = pointfarm(&["jobs", "show", "job-missing", "--server", &address]);
     assert_fails_saying(&unknown, "not found");
+    let job = json_lines(&listed)[0]["jobs"][0]["id"]
+        .as_str()
+        .expect("the job's id")
+        .to_owned();
+
+    // The daemon logs the job's end once, with its counts.
+    let ended = wait_for(Duration::from_secs(10), "the job's end in the log", || {
+        let log = server.log();
+        let lines: Vec<String> = log
+            .lines()
+            .filter(|l| l.contains("job succeeded") && l.contains(&job))
+            .map(str::to_owned)
+            .collect();
+        (!lines.is_empty()).then_some(lines)
+    });
+    let [line] = ended.as_slice() else {
+        panic!("the end logged once: {ended:?}");
+    };
+    for count in [
+        "frames_done=2",
+        "frames_total=2",
+        "failed_attempts=0",
+        "elapsed_s=",
+    ] {
+        assert!(line.contains(count), "{line}");
+    }
+    assert!(line.contains(" INFO "), "{line}");
+
+    // Cancelling a job that has ended leaves it as it is, says so and succeeds.
+    let cancel = pointfarm(&["jobs", "cancel", &job, "--server", &address]);
+    assert_ok(&cancel);
+    assert_eq!(
+        stdout(&cancel).trim(),
+        format!("job {job} already succeeded; nothing to cancel")
+    );
+    let shown = pointfarm(&["jobs", "show", &job, "--server", &address, "--json"]);
+    assert_says(&shown, "\"JOB_STATE_SUCCEEDED\"");
+
+    // Fetching the frames of a job the server does not have leaves no folder behind.
+    let nowhere = scene.path("fetched-nothing");
+    let fetched = pointfarm(&[
+        "frames",
+        "fetch",
+        "job-missing",
+        "--out",
+        &path_arg(&nowhere),
+        "--server",
+        &address,
+    ]);
+    assert_fails_saying(&fetched, "not found");
+    assert!(
+        !nowhere.exists(),
+        "a refused fetch made {}",
+        nowhere.display()
+    );
 
     // --json through the server: one object per frame on stdout, its file and the frame as
     // the API reports it (a FrameFinished in the proto3 JSON mapping).

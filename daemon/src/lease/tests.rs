@@ -90,6 +90,9 @@ fn a_permanent_failure_fails_the_job_at_once_and_a_transient_one_retries() {
         failed.error.as_deref(),
         Some("frame 0 cannot be rendered (attempt 2, not retried): not a LAS file")
     );
+    // The transient attempt is stored at the frame; the permanent one ended the job first
+    // (the job's end counts both).
+    assert_eq!(daemon.state.failed_attempts(&job.id).expect("attempts"), 1);
 }
 
 #[test]

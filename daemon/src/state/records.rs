@@ -515,6 +515,21 @@ impl Records {
         Ok(self.db.generate_id()?)
     }
 
+    /// The failed attempts recorded at a job's frames, finished or pending.
+    pub(super) fn failed_attempts(&self, job_id: &str) -> Result<u64, StateError> {
+        let mut prefix = job_id.as_bytes().to_vec();
+        prefix.push(b'/');
+        let mut failed = 0u64;
+        for entry in self.trees.frames.scan_prefix(&prefix) {
+            let (_, value) = entry?;
+            failed += u64::from(match decode::<FrameState>(&value)? {
+                FrameState::Pending { attempts } => attempts,
+                FrameState::Done(report) => report.failed_attempts,
+            });
+        }
+        Ok(failed)
+    }
+
     /// The reports of the finished frames of a job and the previews of its pending ones, by
     /// frame index.
     pub(super) fn frame_reports(&self, job_id: &str) -> Result<Vec<FrameReport>, StateError> {

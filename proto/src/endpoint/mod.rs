@@ -5,13 +5,16 @@
 //! keepalive, `TCP_NODELAY` on every socket, and the bounds on the connections a server
 //! accepts ([`connections`]).
 
+pub mod certificate;
 pub mod connections;
 
 use std::fmt;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use tonic::transport::{Certificate, ClientTlsConfig, Endpoint, Identity, Server, ServerTlsConfig};
+use tonic::transport::{
+    Certificate, Channel, ClientTlsConfig, Endpoint, Identity, Server, ServerTlsConfig,
+};
 
 /// HTTP/2 flow control: the bytes a peer may send on a stream, and on a whole connection,
 /// before the receiver reads them. h2's defaults (64 KiB windows of 16 KiB frames) held a
@@ -72,6 +75,11 @@ pub enum EndpointError {
     CaForPlaintext { server: String },
     /// The CA file cannot be read, or holds no certificate.
     Ca { path: PathBuf, reason: String },
+    /// No connection could be made.
+    Connect { server: String, reason: String },
+    /// The server presents a certificate marked as a certificate authority, which TLS
+    /// refuses as a server's own.
+    CaAsServerCertificate { server: String },
 }
 
 impl fmt::Display for EndpointError {
@@ -87,6 +95,16 @@ impl fmt::Display for EndpointError {
             EndpointError::Ca { path, reason } => {
                 write!(f, "the CA certificate {}: {reason}", path.display())
             }
+            EndpointError::Connect { server, reason } => {
+                write!(f, "cannot connect to {server}: {reason}")
+            }
+            EndpointError::CaAsServerCertificate { server } => write!(
+                f,
+                "cannot connect to {server}: its certificate is a CA certificate \
+                 (basicConstraints CA:TRUE), which TLS refuses as a server's own; on the \
+                 server, {}",
+                certificate::SERVER_CERTIFICATE_HOWTO
+            ),
         }
     }
 }
@@ -140,6 +158,43 @@ impl ServerEndpoint {
         };
         endpoint.tls_config(tls).map_err(|e| invalid(e.to_string()))
     }
+
+    /// A connection to the server, or why there is none in one sentence: each cause said
+    /// once, and a server certificate that is a CA certificate named with its fix.
+    pub async fn connect(&self) -> Result<Channel, EndpointError> {
+        self.endpoint()?
+            .connect()
+            .await
+            .map_err(|e| self.connect_error(&e))
+    }
+
+    /// What keeps a call from reaching the server, as [`ServerEndpoint::connect`] tells it.
+    pub fn connect_error(&self, error: &(dyn std::error::Error + 'static)) -> EndpointError {
+        let server = self.url.clone();
+        if certificate::is_ca_used_as_server_certificate(error) {
+            return EndpointError::CaAsServerCertificate { server };
+        }
+        EndpointError::Connect {
+            server,
+            reason: causes(error),
+        }
+    }
+}
+
+/// `error` and its causes joined with ": ", each said once: an error that shows its cause in
+/// its own message is not followed by that cause again.
+pub fn causes(error: &(dyn std::error::Error + 'static)) -> String {
+    let mut said = error.to_string();
+    let mut next = error.source();
+    while let Some(cause) = next {
+        let text = cause.to_string();
+        if !text.is_empty() && !said.contains(&text) {
+            said.push_str(": ");
+            said.push_str(&text);
+        }
+        next = cause.source();
+    }
+    said
 }
 
 /// The URL of `server`: a bare `host:port` is plaintext, or TLS when a CA is given.
