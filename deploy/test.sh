@@ -24,6 +24,8 @@ install_for_tests ffmpeg /usr/bin/ffmpeg "the video tests" "the video tests will
 # its binary is used, on a port of the test's own; a service the package may start does not
 # matter.
 install_for_tests prometheus /usr/bin/prometheus "the metrics test" "the metrics test will skip"
+# GDAL, whose gdalinfo checks that GeoTIFF frames are placed where the camera saw them.
+install_for_tests gdal-bin /usr/bin/gdalinfo "the GeoTIFF tests" "the GeoTIFF tests will skip"
 
 # A virtualenv with the Python client example's packages, for tests/python_client.rs, and
 # laspy with lazrs, the independent COPC reader of tests/export.rs (both skip, saying so,

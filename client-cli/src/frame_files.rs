@@ -6,6 +6,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
+use pointfarm_render::encode::geotiff::Georeference;
 use pointfarm_render::encode::{self, FrameFormat};
 use pointfarm_render::raster::FrameSettings;
 
@@ -117,9 +118,13 @@ impl FrameFiles {
     }
 
     /// The 16-bit depth image of frame `index`: the frame's file with `.depth.png` for its
-    /// extension, beside the frame.
+    /// extension, or `.depth.tif` beside a TIFF frame, beside the frame.
     pub fn depth(&self, index: u32) -> PathBuf {
-        self.frame(index).with_extension("depth.png")
+        let extension = match self.format {
+            FrameFormat::Tiff => "depth.tif",
+            _ => "depth.png",
+        };
+        self.frame(index).with_extension(extension)
     }
 
     /// Refuses what this format cannot hold of the frames: a transparent background in JPEG.
@@ -155,16 +160,23 @@ impl FrameFiles {
 /// distances its grey levels span, the camera and the image size, so that a pixel's value `v`
 /// (1 to 65535; 0 where no point landed) is the distance `near + (v - 1) / 65534 * (far - near)`
 /// along the viewing direction, in the dataset's units.
+/// Beside a TIFF frame the depth image is a TIFF too, placed by `georeference` as its frame is.
 pub fn save_depth(
     files: &FrameFiles,
     index: u32,
     frame: &pointfarm_render::raster::Frame,
     settings: &FrameSettings,
+    georeference: Option<&Georeference>,
 ) -> Result<PathBuf> {
     let camera = &settings.camera;
     let path = files.depth(index);
-    encode::save_depth_png16(frame, &path, camera.near, camera.far)
-        .with_context(|| format!("writing {}", path.display()))?;
+    match files.format {
+        FrameFormat::Tiff => {
+            encode::save_depth_tiff16(frame, &path, camera.near, camera.far, georeference)
+        }
+        _ => encode::save_depth_png16(frame, &path, camera.near, camera.far),
+    }
+    .with_context(|| format!("writing {}", path.display()))?;
     let sidecar = path.with_extension("json");
     let json = serde_json::json!({
         "image": path.file_name().map(|n| n.to_string_lossy().into_owned()),

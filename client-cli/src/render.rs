@@ -4,14 +4,13 @@
 use std::path::{Path, PathBuf};
 use std::sync::{mpsc, Arc};
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use glam::DVec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use pointfarm_render::camera::{Camera, Projection};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::copc::is_copc;
 use pointfarm_render::cut::{CutOptions, StoredLod, PREVIEW_LOD_ERROR_PX};
-use pointfarm_render::encode;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::{dataset_files, dataset_point_count};
 use pointfarm_render::legend::Legend;
@@ -23,7 +22,6 @@ use pointfarm_render::source::{
     SourceEvent, SourceFrame, StoreCache,
 };
 
-use crate::frame_files::save_depth;
 use crate::paths::store_cache;
 use crate::render_json::FrameJson;
 use crate::render_outputs::{write_legend, Outputs};
@@ -369,10 +367,9 @@ fn render_frames(
             source.read_ahead(&settings(i + 1));
         }
         let path = files.frame(i);
-        encode::save_frame(&mut rendered.frame, &path, files.format())
-            .with_context(|| format!("writing {}", path.display()))?;
+        outputs.save_frame(&mut rendered.frame, &path, &frame_settings.camera)?;
         if request.render.depth {
-            save_depth(files, i, &rendered.frame, &frame_settings)?;
+            outputs.save_depth(i, &rendered.frame, &frame_settings)?;
         }
         report_frame(
             args,

@@ -177,7 +177,7 @@ impl VideoPlan {
             FrameFormat::Png => "png",
             FrameFormat::Jpeg => "mjpeg",
             FrameFormat::WebP => "webp",
-            FrameFormat::Tiff16 => bail!("16-bit TIFF frames cannot be piped to ffmpeg"),
+            FrameFormat::Tiff => bail!("TIFF frames cannot be piped to ffmpeg"),
         };
         let mut command = Command::new("ffmpeg");
         command
