@@ -26,6 +26,9 @@ struct FrameUniforms {
     occlusion_tile_y0: u32,
     // Adaptive point size: a point's side in pixels times its linear depth.
     point_size_scale: f32,
+    // The pixels frame-wide statistics count (a tile's core, not its apron), end exclusive.
+    counted_min: vec2<u32>,
+    counted_end: vec2<u32>,
 }
 
 // Side of the square each point covers, in pixels. A pipeline constant, not a uniform: with a

@@ -117,7 +117,7 @@ fn render_tables(md: &mut String, report: &BenchReport) {
         }
     }
     // In the order a frame runs them.
-    const ORDER: [&str; 9] = [
+    const ORDER: [&str; 10] = [
         "upload",
         "cull",
         "rasterize",
@@ -125,6 +125,7 @@ fn render_tables(md: &mut String, report: &BenchReport) {
         "resolve",
         "shade",
         "downsample",
+        "expose",
         "readback",
         "encode",
     ];

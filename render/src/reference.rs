@@ -18,6 +18,7 @@ use image::RgbaImage;
 
 use crate::camera::Projection;
 use crate::cloud::PointCloud;
+use crate::raster::exposure::{self, LumaHistograms};
 use crate::raster::{
     FrameSettings, Quality, Shading, FILL_DEPTH_TOLERANCE, VISIBILITY_MIN_SOLID_ANGLE,
 };
@@ -281,10 +282,11 @@ pub fn shade_pintus(
     }
 }
 
-/// Eye-Dome Lighting as Potree does it: for each pixel, over 8 neighbours on a circle of
-/// `radius` pixels, response = (1/8) sum max(0, log2 d - log2 d_neighbour), or 100 per
-/// surface neighbour for a background pixel (the outline); colour *= exp(-300 strength
-/// response). Computed in f32 like the GPU.
+/// Eye-Dome Lighting as `shaders/edl.wgsl` describes it: over 4 pairs of opposite neighbours
+/// on a circle of `radius` pixels, how far the pixel lies behind the plane through a pair (in
+/// inverse depth), or behind a lone neighbour; 100 per surface neighbour for a background
+/// pixel (the outline); colour *= exp(-300 strength response / 8). Then the exposure that
+/// brings the surface's median luma back (`raster::exposure`). Computed in f32 like the GPU.
 pub fn shade_edl(frame: &mut ReferenceFrame, strength: f32, radius: f32) {
     let (width, height) = (frame.image.width() as i64, frame.image.height() as i64);
     let depth_at = |x: i64, y: i64| {
@@ -294,7 +296,7 @@ pub fn shade_edl(frame: &mut ReferenceFrame, strength: f32, radius: f32) {
             f32::INFINITY
         }
     };
-    let offsets: Vec<(i64, i64)> = (0..8)
+    let offsets: Vec<(i64, i64)> = (0..4)
         .map(|i| {
             let angle = std::f32::consts::TAU * i as f32 / 8.0;
             (
@@ -304,34 +306,39 @@ pub fn shade_edl(frame: &mut ReferenceFrame, strength: f32, radius: f32) {
         })
         .collect();
     let mut shaded = frame.image.clone();
+    let mut histograms = LumaHistograms::default();
     for (x, y, pixel) in shaded.enumerate_pixels_mut() {
-        let here = depth_at(x as i64, y as i64);
+        let (x, y) = (x as i64, y as i64);
+        let here = depth_at(x, y);
         let mut sum = 0.0f32;
         for &(dx, dy) in &offsets {
-            let there = depth_at(x as i64 + dx, y as i64 + dy);
-            if there.is_infinite() {
-                continue;
-            }
-            sum += if here.is_infinite() {
-                100.0
-            } else {
-                (here.log2() - there.log2()).max(0.0)
+            let (a, b) = (depth_at(x + dx, y + dy), depth_at(x - dx, y - dy));
+            sum += match (here.is_finite(), a.is_finite(), b.is_finite()) {
+                (false, a, b) => 100.0 * (f32::from(u8::from(a)) + f32::from(u8::from(b))),
+                (true, true, true) => 2.0 * (here * (1.0 / a + 1.0 / b) * 0.5).log2().max(0.0),
+                (true, true, false) => (here.log2() - a.log2()).max(0.0),
+                (true, false, true) => (here.log2() - b.log2()).max(0.0),
+                (true, false, false) => 0.0,
             };
         }
         let shade = (-300.0 * strength * sum / 8.0).exp();
-        if shade >= 1.0 {
-            continue;
-        }
         let [r, g, b, a] = pixel.0;
-        let scale = |c: u8| (c as f32 * shade).round() as u8;
-        let alpha = if here.is_infinite() {
-            let a = a as f32 / 255.0;
-            ((1.0 + (a - 1.0) * shade) * 255.0).round() as u8
-        } else {
-            a
-        };
-        pixel.0 = [scale(r), scale(g), scale(b), alpha];
+        if shade < 1.0 {
+            let scale = |c: u8| (c as f32 * shade).round() as u8;
+            let alpha = if here.is_infinite() {
+                let a = a as f32 / 255.0;
+                ((1.0 + (a - 1.0) * shade) * 255.0).round() as u8
+            } else {
+                a
+            };
+            pixel.0 = [scale(r), scale(g), scale(b), alpha];
+        }
+        if here.is_finite() {
+            let [r2, g2, b2, _] = pixel.0;
+            histograms.count([r, g, b], [r2, g2, b2]);
+        }
     }
+    exposure::expose(&mut shaded, &frame.depth, histograms.gain());
     frame.image = shaded;
 }
 

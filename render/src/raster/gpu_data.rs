@@ -26,6 +26,10 @@ pub struct FrameUniforms {
     pub occlusion_tile_y0: u32,
     /// Adaptive point size: a point's side in pixels times its depth (0 when fixed).
     pub point_size_scale: f32,
+    /// The pixels frame-wide statistics count, from `counted_min` to before `counted_end`
+    /// (`FrameWindow::counted`).
+    pub counted_min: [u32; 2],
+    pub counted_end: [u32; 2],
 }
 
 /// A point's position as two u32 words, laid out as `pointfarm_shaders::layout::POSITION_BITS`
@@ -69,6 +73,6 @@ const SIZE_FACTOR_ONE: u32 = 256;
 
 // The point count shares its word with the size factor.
 const _: () = assert!(crate::raster::BATCH_POINTS < 1 << 16);
-const _: () = assert!(std::mem::size_of::<FrameUniforms>() == 128);
+const _: () = assert!(std::mem::size_of::<FrameUniforms>() == 144);
 const _: () = assert!(std::mem::size_of::<QuantisedPosition>() == 8);
 const _: () = assert!(std::mem::size_of::<GpuBatch>() == 32);

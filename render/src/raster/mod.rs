@@ -18,6 +18,7 @@ mod downsample;
 mod draw_order;
 mod edl_pass;
 mod error;
+pub mod exposure;
 mod fill_pass;
 mod frame;
 pub(crate) mod gpu_data;
@@ -275,6 +276,36 @@ impl Renderer {
         settings: &FrameSettings,
     ) -> Result<Frame, RenderError> {
         self.validate(settings)?;
+        let Shading::Edl { .. } = settings.shading else {
+            return self.render_shaded(cloud, settings);
+        };
+        // The exposure brightens the surface only, which the depth image tells apart.
+        self.edl.clear_luma_counts(&self.gpu.queue);
+        let with_depth = FrameSettings {
+            read_depth: true,
+            ..*settings
+        };
+        let mut frame = self.render_shaded(cloud, &with_depth)?;
+        let started = Instant::now();
+        let gain = self.edl.read_luma_counts(&self.gpu)?.gain();
+        if let Some(depth) = &frame.depth {
+            exposure::expose(&mut frame.image, depth, gain);
+        }
+        if !settings.read_depth {
+            frame.depth = None;
+        }
+        let ms = started.elapsed().as_secs_f64() * 1e3;
+        frame.timings.push(Stage::Expose, ms, Clock::Host);
+        tracing::debug!(gain, "frame exposed after eye-dome lighting");
+        Ok(frame)
+    }
+
+    /// Renders and shades one frame, before any exposure.
+    fn render_shaded(
+        &mut self,
+        cloud: &GpuPointCloud,
+        settings: &FrameSettings,
+    ) -> Result<Frame, RenderError> {
         self.tiled = None;
         if let Some(grid) = TileGrid::plan(settings, self.tile_limit_bytes)? {
             let (frame, counts) = tiles::render(self, cloud, settings, &grid)?;
@@ -351,7 +382,7 @@ impl Renderer {
             settings.width,
             u64::from(self.gpu.device.limits().min_storage_buffer_offset_alignment),
         );
-        let uniforms = frame_uniforms(&transform, settings, resolve_run, footprint);
+        let uniforms = frame_uniforms(&transform, settings, resolve_run, footprint, view.counted);
         self.gpu
             .queue
             .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));

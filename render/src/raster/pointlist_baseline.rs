@@ -182,6 +182,7 @@ impl PointListBaseline {
             settings,
             super::resolve_pass::PixelRun { first: 0, count: 0 },
             super::pixel_rect::PixelRect::EMPTY,
+            crate::camera::ImageWindow::whole(settings.width, settings.height),
         );
         self.gpu
             .queue

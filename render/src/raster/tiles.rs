@@ -30,6 +30,9 @@ pub(crate) struct FrameWindow {
     pub frame_width: u32,
     pub frame_height: u32,
     pub window: ImageWindow,
+    /// The pixels of the drawn window that frame-wide statistics count (the exposure's
+    /// histograms): all of a whole frame, a tile's core without its apron.
+    pub counted: ImageWindow,
 }
 
 impl FrameWindow {
@@ -39,6 +42,7 @@ impl FrameWindow {
             frame_width: width,
             frame_height: height,
             window: ImageWindow::whole(width, height),
+            counted: ImageWindow::whole(width, height),
         }
     }
 
@@ -295,6 +299,7 @@ pub(super) fn render(
             frame_width: drawn.width,
             frame_height: drawn.height,
             window: tile.drawn,
+            counted: core_in_tile(tile, grid.scale),
         };
         let tile_settings = FrameSettings {
             width: tile.drawn.width,

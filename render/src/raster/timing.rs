@@ -32,6 +32,9 @@ pub enum Stage {
     Shade,
     /// Supersampling: averaging blocks of the larger image.
     Downsample,
+    /// After Eye-Dome Lighting, on the host: the surface's median brightness brought back to
+    /// the unshaded one (`exposure.rs`).
+    Expose,
     /// GPU-to-host copy of the images.
     Readback,
     /// Image file encoding (PNG).
@@ -52,6 +55,7 @@ impl Stage {
             Stage::Fill => "fill",
             Stage::Shade => "shade",
             Stage::Downsample => "downsample",
+            Stage::Expose => "expose",
             Stage::Readback => "readback",
             Stage::Encode => "encode",
         }

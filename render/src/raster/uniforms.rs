@@ -6,15 +6,16 @@ use super::occlusion;
 use super::pixel_rect::PixelRect;
 use super::resolve_pass::PixelRun;
 use super::{FrameSettings, Quality, Shading};
-use crate::camera::CameraTransform;
+use crate::camera::{CameraTransform, ImageWindow};
 
 /// The uniforms of a frame seen through `t` with `settings`, whose resolve visits
-/// `resolve_run` and whose points can touch `footprint`.
+/// `resolve_run`, whose points can touch `footprint` and whose statistics count `counted`.
 pub(crate) fn frame_uniforms(
     t: &CameraTransform,
     settings: &FrameSettings,
     resolve_run: PixelRun,
     footprint: PixelRect,
+    counted: ImageWindow,
 ) -> FrameUniforms {
     FrameUniforms {
         view_proj: t.view_proj.as_mat4().to_cols_array_2d(),
@@ -41,5 +42,7 @@ pub(crate) fn frame_uniforms(
         occlusion_tile_x0: footprint.x0 / occlusion::TILE,
         occlusion_tile_y0: footprint.y0 / occlusion::TILE,
         point_size_scale: settings.adaptive_size.unwrap_or(0.0),
+        counted_min: [counted.x0, counted.y0],
+        counted_end: [counted.x0 + counted.width, counted.y0 + counted.height],
     }
 }

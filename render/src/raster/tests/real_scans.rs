@@ -250,3 +250,47 @@ fn filling_and_pintus_shading_of_real_scans_agree_with_the_reference() {
         assert!(diff.equal_fraction() >= 0.995, "{name}");
     });
 }
+
+/// The median luma of the surface (pixels with a depth) of a frame rendered with its depth.
+fn surface_median_luma(frame: &Frame) -> usize {
+    let depth = frame.depth.as_ref().expect("rendered with its depth");
+    let mut lumas: Vec<usize> = frame
+        .image
+        .pixels()
+        .zip(depth)
+        .filter(|(_, depth)| depth.is_finite())
+        .map(|(pixel, _)| crate::raster::exposure::luma_bin(pixel[0], pixel[1], pixel[2]))
+        .collect();
+    assert!(!lumas.is_empty(), "the scan is in view");
+    let middle = lumas.len() / 2;
+    *lumas.select_nth_unstable(middle).1
+}
+
+/// Eye-Dome Lighting darkens edges, not the picture: after the exposure the surface's median
+/// luma stays within 15% of the unshaded render's, the colourless terrestrial scan included;
+/// and the GPU's shaded frame is the reference's.
+#[test]
+fn eye_dome_lighting_keeps_the_median_brightness_of_real_scans() {
+    each_real_scan(DISTINCT_SCANS, |file, cloud, renderer, resident| {
+        let (w, h) = (640, 360);
+        let unshaded = FrameSettings {
+            read_depth: true,
+            ..FrameSettings::new(w, h, Camera::auto(&cloud.bounds, w as f64 / h as f64))
+        };
+        let shaded = FrameSettings {
+            shading: Shading::EDL,
+            ..unshaded
+        };
+        let plain = renderer.render(resident, &unshaded).expect("render");
+        let lit = renderer.render(resident, &shaded).expect("render");
+        let (before, after) = (surface_median_luma(&plain), surface_median_luma(&lit));
+        let ratio = (after as f64 + 0.5) / (before as f64 + 0.5);
+        eprintln!("{file}: surface median luma {before} unshaded, {after} with EDL ({ratio:.2})");
+        assert!((0.85..=1.15).contains(&ratio), "{file}: {ratio:.2}");
+
+        let expected = reference::render(cloud, &shaded);
+        let name = format!("{file}-edl");
+        let diff = crate::testing::compare_images_within(&name, &lit.image, &expected.image, 2);
+        assert!(diff.equal_fraction() >= 0.995, "{name}: {diff:?}");
+    });
+}
