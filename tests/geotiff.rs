@@ -179,7 +179,21 @@ fn a_top_view_of_a_scan_with_epsg_keys_carries_its_code() {
         depth["metadata"]["IMAGE_STRUCTURE"]["COMPRESSION"], "DEFLATE",
         "{depth}"
     );
-    assert!(dir.path().join("top.depth.json").is_file());
+    // GDAL's scale and offset give the distance of a level as the sidecar's formula does.
+    let sidecar = std::fs::read_to_string(dir.path().join("top.depth.json")).expect("sidecar");
+    let sidecar: Value = serde_json::from_str(&sidecar).expect("JSON");
+    let (near, far) = (sidecar["near"].as_f64(), sidecar["far"].as_f64());
+    let (near, far) = (near.expect("near"), far.expect("far"));
+    let scale = bands[0]["scale"].as_f64().expect("a scale");
+    let offset = bands[0]["offset"].as_f64().expect("an offset");
+    assert!(
+        (offset + scale - near).abs() < 1e-9,
+        "{offset} {scale} {near}"
+    );
+    assert!(
+        (offset + 65535.0 * scale - far).abs() < 1e-6,
+        "{offset} {scale} {far}"
+    );
 }
 
 #[test]

@@ -39,7 +39,7 @@ pub enum EncodeError {
     /// The TIFF encoder or the file system failed.
     #[error("encoding the TIFF: {0}")]
     Tiff(#[from] tiff::TiffError),
-    /// A file written beside a georeferenced TIFF (its world file, WKT) could not be written.
+    /// A file beside a TIFF (its world file, WKT) could not be written or removed.
     #[error("writing {path}: {source}", path = path.display())]
     Sidecar {
         path: PathBuf,
@@ -228,26 +228,33 @@ fn write_georeference_tags<W: Write + Seek, K: TiffKind>(
 }
 
 /// The world file, `.prj` and GDAL `.aux.xml` beside the TIFF at `path` when its CRS is known
-/// only as WKT, which no GeoTIFF key holds.
+/// only as WKT, which no GeoTIFF key holds; otherwise those an earlier image of that name left
+/// are removed, since GDAL would place the new image by them.
 fn write_georeference_sidecars(
     path: &Path,
     georeference: Option<&Georeference>,
 ) -> Result<(), EncodeError> {
-    let Some(Georeference {
-        transform,
-        crs: GeoCrs::Wkt(wkt),
-    }) = georeference
-    else {
-        return Ok(());
+    let texts = match georeference {
+        Some(Georeference {
+            transform,
+            crs: GeoCrs::Wkt(wkt),
+        }) => Some([
+            transform.world_file(),
+            format!("{wkt}\n"),
+            geotiff::aux_xml(wkt),
+        ]),
+        _ => None,
     };
-    let [world, prj, aux] = geotiff::sidecar_paths(path);
-    for (sidecar, text) in [
-        (world, transform.world_file()),
-        (prj, format!("{wkt}\n")),
-        (aux, geotiff::aux_xml(wkt)),
-    ] {
-        std::fs::write(&sidecar, text).map_err(|source| EncodeError::Sidecar {
-            path: sidecar.clone(),
+    for (at, sidecar) in geotiff::sidecar_paths(path).into_iter().enumerate() {
+        let done = match &texts {
+            Some(texts) => std::fs::write(&sidecar, &texts[at]),
+            None => match std::fs::remove_file(&sidecar) {
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+                removed => removed,
+            },
+        };
+        done.map_err(|source| EncodeError::Sidecar {
+            path: sidecar,
             source,
         })?;
     }
@@ -278,8 +285,12 @@ pub fn save_depth_png16(
     Ok(image.save_with_format(path, ImageFormat::Png)?)
 }
 
+/// GDAL's TIFF tag of band metadata (XML), where it reads a band's scale and offset.
+const GDAL_METADATA_TAG: u16 = 42112;
+
 /// Writes the frame's depth image as a 16-bit grey TIFF, with the levels of
-/// [`save_depth_png16`] (0, no point, declared GDAL's no-data value), Deflate-compressed and
+/// [`save_depth_png16`] (0, no point, declared GDAL's no-data value; the scale and offset that
+/// turn a level into its distance in GDAL's metadata), Deflate-compressed and
 /// placed by `georeference` as [`save_georeferenced_frame`] places a frame: the 16 bits a GIS
 /// tool reads of a top view, where depth is the height below the camera.
 pub fn save_depth_tiff16(
@@ -294,6 +305,18 @@ pub fn save_depth_tiff16(
     let (width, height) = frame.image.dimensions();
     let mut tiff = encoder.new_image::<colortype::Gray16>(width, height)?;
     tiff.encoder().write_tag(Tag::GdalNodata, "0")?;
+    // GDAL's scale and offset turn a level back into its distance, as the sidecar says.
+    let scale = (far - near).max(f64::MIN_POSITIVE) / 65534.0;
+    let metadata = format!(
+        "<GDALMetadata>\n\
+         <Item name=\"DESCRIPTION\" sample=\"0\" role=\"description\">depth</Item>\n\
+         <Item name=\"SCALE\" sample=\"0\" role=\"scale\">{scale:e}</Item>\n\
+         <Item name=\"OFFSET\" sample=\"0\" role=\"offset\">{offset:e}</Item>\n\
+         </GDALMetadata>",
+        offset = near - scale,
+    );
+    tiff.encoder()
+        .write_tag(Tag::Unknown(GDAL_METADATA_TAG), metadata.as_str())?;
     write_georeference_tags(tiff.encoder(), georeference)?;
     tiff.write_data(&levels)?;
     write_georeference_sidecars(path, georeference)
@@ -474,6 +497,10 @@ mod tests {
             .map(|l| l.parse().expect("number"))
             .collect();
         assert_eq!(lines, [0.5, 0.0, 0.0, -0.5, 637_000.75, 851_064.0]);
+
+        // An image written over it without a place takes none from the old one's files.
+        save_frame(&mut gradient_frame(), &path, FrameFormat::Tiff).expect("written");
+        assert!(![world, prj, aux].iter().any(|p| p.exists()));
     }
 
     #[test]
@@ -507,6 +534,10 @@ mod tests {
         );
         let nodata = value(Tag::GdalNodata).map(|v| v.into_string().expect("text"));
         assert_eq!(nodata.as_deref(), Some("0"));
+        let metadata = value(Tag::Unknown(GDAL_METADATA_TAG))
+            .map(|v| v.into_string().expect("text"))
+            .expect("GDAL metadata");
+        assert!(metadata.contains("role=\"scale\""), "{metadata}");
     }
 
     #[test]
