@@ -646,7 +646,7 @@ fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
     let copc = CopcServed {
         file_name: name.to_owned(),
         decoder: opened.decoder,
-        root_spacing: opened.info.spacing,
+        root_spacing: opened.root_spacing,
         elevation: opened.dataset.elevation(),
         point_spacing: opened.dataset.point_spacing(),
     };

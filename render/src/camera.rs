@@ -116,7 +116,7 @@ impl Camera {
         elevation_deg: f64,
         projection: Projection,
     ) -> Camera {
-        let view = BoxView::new(bounds, azimuth_deg, elevation_deg);
+        let view = BoxView::new(bounds, &box_corners(bounds), azimuth_deg, elevation_deg);
         let (center, radius, corners) = (view.center, view.radius, view.corners);
         let (forward, right, up) = (view.forward, view.right, view.up);
         let corners = corners.into_iter();
@@ -171,7 +171,28 @@ impl Camera {
         elevation_deg: f64,
         projection: Projection,
     ) -> Camera {
-        let view = BoxView::new(bounds, azimuth_deg, elevation_deg);
+        Camera::fitted_to(
+            bounds,
+            &box_corners(bounds),
+            aspect,
+            azimuth_deg,
+            elevation_deg,
+            projection,
+        )
+    }
+
+    /// [`Camera::fitted`] to the points `outline` (world coordinates) of a cloud in `bounds`
+    /// instead of the box's corners: the points that lie outermost in any direction frame the
+    /// cloud itself, whose box's corners may be empty.
+    pub fn fitted_to(
+        bounds: &WorldBounds,
+        outline: &[DVec3],
+        aspect: f64,
+        azimuth_deg: f64,
+        elevation_deg: f64,
+        projection: Projection,
+    ) -> Camera {
+        let view = BoxView::new(bounds, outline, azimuth_deg, elevation_deg);
         let (center, radius, corners) = (view.center, view.radius, view.corners);
         let (forward, right, up) = (view.forward, view.right, view.up);
         let max_of =
@@ -371,6 +392,102 @@ impl Camera {
     }
 }
 
+/// Where a turntable's camera circles: the point on the vertical axis it looks at, and its
+/// distance from there.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Orbit {
+    pub target: DVec3,
+    pub distance: f64,
+}
+
+/// The orbit around the vertical axis through `center` (the centre of `bounds` when absent)
+/// that sees all of `outline` (points of a cloud in `bounds`, world coordinates: its box's
+/// corners, or its outermost points) from each of `azimuths` (degrees counter-clockwise from
+/// +X) at `elevation_deg`, as close as the widest of those views lets every point stay in the
+/// image with the 5% margin. Without a given centre, the camera looks at the height on the
+/// axis that centres the outline vertically in the tallest view, as [`Camera::fitted`] centres
+/// a still, rather than at the box's centre, which perspective puts low in the image.
+pub fn fitted_orbit(
+    bounds: &WorldBounds,
+    outline: &[DVec3],
+    center: Option<DVec3>,
+    aspect: f64,
+    azimuths: &[f64],
+    elevation_deg: f64,
+    projection: Projection,
+) -> Orbit {
+    let axis = center.unwrap_or(bounds.center());
+    let radius = bounds.radius().max(1e-3);
+    let Projection::Perspective { fov_y_deg } = projection else {
+        // An orthographic image's scale does not depend on the distance: only the clip planes
+        // need the camera outside the box.
+        return Orbit {
+            target: axis,
+            distance: radius * 2.0,
+        };
+    };
+    let tan_y = (fov_y_deg.to_radians() * 0.5).tan() / FRAMING_MARGIN;
+    let tan_x = tan_y * aspect;
+    let views: Vec<BoxView> = azimuths
+        .iter()
+        .map(|&azimuth| BoxView::new(bounds, outline, azimuth, elevation_deg))
+        .collect();
+    let views = views.as_slice();
+    let offset = bounds.center() - axis;
+    // Each point relative to a target `height` above the axis point, in each view.
+    let relative = move |height: f64| {
+        let lift = DVec3::Z * height;
+        views.iter().flat_map(move |view| {
+            view.corners
+                .iter()
+                .map(move |&c| (view.forward, view.right, view.up, c + offset - lift))
+        })
+    };
+    // The distance from the target at which every point fits every view: its lateral offsets
+    // within the field of view at its depth, c·forward plus the distance.
+    let needed = |height: f64| {
+        relative(height)
+            .map(|(forward, right, up, c)| {
+                let fit = (c.dot(up).abs() / tan_y).max(c.dot(right).abs() / tan_x);
+                fit - c.dot(forward)
+            })
+            .fold(radius * 0.01, f64::max)
+    };
+    // How tall the tallest view is from `distance`, as the tangent of its farthest point
+    // above or below the image's centre: quasi-convex in the height, so a ternary search finds
+    // the height that balances it.
+    let tallest = |height: f64, distance: f64| {
+        relative(height)
+            .map(|(forward, _, up, c)| c.dot(up).abs() / (c.dot(forward) + distance).max(1e-9))
+            .fold(0.0, f64::max)
+    };
+    let balanced = |distance: f64| {
+        let (mut lo, mut hi) = (-radius, radius);
+        for _ in 0..60 {
+            let (a, b) = (lo + (hi - lo) / 3.0, hi - (hi - lo) / 3.0);
+            if tallest(a, distance) <= tallest(b, distance) {
+                hi = b;
+            } else {
+                lo = a;
+            }
+        }
+        0.5 * (lo + hi)
+    };
+    let mut height = 0.0;
+    let mut distance = needed(height);
+    if center.is_none() {
+        // The balance depends on the distance, and the distance a little on the height.
+        for _ in 0..3 {
+            height = balanced(distance);
+            distance = needed(height);
+        }
+    }
+    Orbit {
+        target: axis + DVec3::Z * height,
+        distance,
+    }
+}
+
 /// A rectangle of an image's pixels: columns `x0..x0 + width`, rows `y0..y0 + height`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ImageWindow {
@@ -395,31 +512,37 @@ impl ImageWindow {
 /// The unit vector from a target towards a camera at `azimuth_deg` (counter-clockwise from
 /// +X) and `elevation_deg` (above the horizon).
 /// A box seen from an azimuth and elevation (degrees, as [`Camera::fitted`] takes them): its
-/// centre, its radius and corners around the centre, and the camera's axes.
+/// centre, its radius, the points framed (its corners, or a cloud's outermost points) around
+/// the centre, and the camera's axes.
 struct BoxView {
     center: DVec3,
     radius: f64,
     forward: DVec3,
     right: DVec3,
     up: DVec3,
-    corners: [DVec3; 8],
+    corners: Vec<DVec3>,
 }
 
 impl BoxView {
-    fn new(bounds: &WorldBounds, azimuth_deg: f64, elevation_deg: f64) -> Self {
+    fn new(bounds: &WorldBounds, outline: &[DVec3], azimuth_deg: f64, elevation_deg: f64) -> Self {
+        let center = bounds.center();
         let forward = -view_direction(azimuth_deg, elevation_deg.clamp(-90.0, 90.0));
         // From the horizontal direction the camera faces, so that a view straight down (or
         // up) still has a right and an up.
         let facing = -view_direction(azimuth_deg, 0.0);
         let right = facing.cross(DVec3::Z);
         Self {
-            center: bounds.center(),
+            center,
             // Never zero, so a single point or a flat cloud still gives a valid camera.
             radius: bounds.radius().max(1e-3),
             forward,
             right,
             up: right.cross(forward).normalize(),
-            corners: corners_around_center(bounds),
+            corners: if outline.is_empty() {
+                box_corners(bounds).iter().map(|&c| c - center).collect()
+            } else {
+                outline.iter().map(|&c| c - center).collect()
+            },
         }
     }
 }
@@ -429,16 +552,15 @@ fn view_direction(azimuth_deg: f64, elevation_deg: f64) -> DVec3 {
     DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin())
 }
 
-/// The corners of `bounds`, relative to its centre.
-fn corners_around_center(bounds: &WorldBounds) -> [DVec3; 8] {
-    let center = bounds.center();
+/// The corners of `bounds`.
+pub fn box_corners(bounds: &WorldBounds) -> [DVec3; 8] {
     std::array::from_fn(|i| {
         let pick = |bit: usize, lo: f64, hi: f64| if i & bit == 0 { lo } else { hi };
         DVec3::new(
             pick(1, bounds.min.x, bounds.max.x),
             pick(2, bounds.min.y, bounds.max.y),
             pick(4, bounds.min.z, bounds.max.z),
-        ) - center
+        )
     })
 }
 

@@ -22,16 +22,21 @@ const FINEST_GRID: u32 = 1 << 12;
 
 /// The spacing of `positions`, in their units; `None` for fewer than two distinct points.
 pub fn of_points(positions: &[Vec3]) -> Option<f64> {
-    let n = positions.len();
+    of_sample(&sample_of(positions), positions.len() as u64)
+}
+
+/// The random sample of about [`SAMPLE_POINTS`] of `positions` that [`of_points`] measures
+/// (all of them when there are fewer), in their order; what else is taken from a cloud's
+/// spread, such as the box the automatic camera frames, is taken from it too.
+pub fn sample_of(positions: &[Vec3]) -> Vec<Vec3> {
     // Each point is kept with probability SAMPLE_POINTS / n, decided by a hash of its index.
-    let keep = ((SAMPLE_POINTS as u128) << 32) / n.max(1) as u128;
-    let sample: Vec<Vec3> = positions
+    let keep = ((SAMPLE_POINTS as u128) << 32) / positions.len().max(1) as u128;
+    positions
         .iter()
         .enumerate()
         .filter(|&(i, _)| u128::from(mix(i as u64) >> 32) < keep)
         .map(|(_, p)| *p)
-        .collect();
-    of_sample(&sample, n as u64)
+        .collect()
 }
 
 /// The spacing of a cloud of `points` points of which `sample` is an even sample (a random

@@ -1,7 +1,8 @@
 //! COPC files rendered node by node, without a store of their own: a COPC file (LAZ 1.4 with
 //! an octree's hierarchy in an EVLR) already is a level-of-detail structure, so its
 //! hierarchy becomes a [`LodHierarchy`] (voxel keys are node keys, each inner node's spacing
-//! the info VLR's halved per level, or its own grid's where a pointfarm export records it) and its LAZ chunks the node records ([`CopcNodes`]), which
+//! the root's halved per level, or its own grid's where a pointfarm export records it) and its
+//! LAZ chunks the node records ([`CopcNodes`]), which
 //! a [`LodDataset`] renders cut by cut through the same caches as a built store.
 //!
 //! - `header.rs`: detection (the info VLR first, where the specification puts it) and the
@@ -19,6 +20,12 @@
 //! so a large file's first frame reads a few pages, not the whole hierarchy. A daemon, which
 //! sends its workers the whole hierarchy, opens the file with every page read
 //! ([`open_copc_whole`]); so does [`describe`].
+//!
+//! The root's spacing is measured, from the area the coarsest nodes cover by box counting, as a
+//! resident cloud's spacing is measured ([`crate::spacing::of_sample`]), and the info VLR's is
+//! taken only where it is larger: writers declare it differently, and adaptive points sized by
+//! a declared spacing smaller than the points' own leave a cut's surfaces open where the same
+//! points read whole are closed.
 //!
 //! Colour ranges come from the coarsest nodes, the same even sample the elevation range of a
 //! store comes from: the RGB decision, the intensity percentiles and the class counts of up
@@ -47,7 +54,7 @@ pub use nodes::{CopcDecoder, CopcNodes};
 
 use crate::ingest::{open_dataset_file, Symlinks};
 use crate::lod::{
-    for_each_coarse_node_up_to, node_heights, DatasetStats, LodDataset, LodError,
+    for_each_coarse_node_up_to, node_heights, DatasetStats, LodDataset, LodError, LodHierarchy,
     ELEVATION_SAMPLE_POINTS,
 };
 use lazy::CopcPageReader;
@@ -56,6 +63,9 @@ use lazy::CopcPageReader;
 pub struct CopcDataset {
     pub dataset: LodDataset,
     pub info: CopcInfo,
+    /// The root's spacing, which its hierarchy halves per level: as measured, or the info VLR's
+    /// where that is larger (a declared spacing can only make points larger, never leave holes).
+    pub root_spacing: f64,
     /// How its chunks decode, for a reader that is sent them instead of opening the file.
     pub decoder: CopcDecoder,
     /// Hierarchy pages read at open, and their bytes (frames read others:
@@ -133,6 +143,9 @@ fn open(path: &Path, reads: PageReads, sample_points: u64) -> Result<CopcDataset
         .map_err(|error| copc_error(path, error))?;
     let point_spacing = crate::spacing::of_sample(&positions, hierarchy.point_count);
     drop(positions);
+    let root_spacing =
+        measured_root_spacing(&hierarchy, point_spacing).map_or(spacing, |m| m.max(spacing));
+    hierarchy = hierarchy.with_root_spacing(root_spacing);
     hierarchy.stats = stats;
     let node_count = hierarchy.nodes().len();
     let unread_pages = hierarchy.unread_pages().len();
@@ -141,11 +154,16 @@ fn open(path: &Path, reads: PageReads, sample_points: u64) -> Result<CopcDataset
         .with_point_spacing(point_spacing);
     let (read, read_bytes) = (pages.pages, pages.page_bytes);
     if !pages.all_read() {
-        dataset = dataset.with_pages(Arc::new(CopcPageReader::new(page_file, spacing, pages)));
+        dataset = dataset.with_pages(Arc::new(CopcPageReader::new(
+            page_file,
+            root_spacing,
+            pages,
+        )));
     }
     Ok(CopcDataset {
         dataset,
         info: header.info,
+        root_spacing,
         decoder,
         pages: read,
         page_bytes: read_bytes,
@@ -154,6 +172,18 @@ fn open(path: &Path, reads: PageReads, sample_points: u64) -> Result<CopcDataset
         sample_nodes,
         sample_bytes,
     })
+}
+
+/// The spacing of the root's points, from the area the coarse sample measured
+/// (`point_spacing`, of all the hierarchy's points, squared times their count) shared among the
+/// root's points; `None` without a spacing or a root with points.
+fn measured_root_spacing(hierarchy: &LodHierarchy, point_spacing: Option<f64>) -> Option<f64> {
+    let root_points = hierarchy
+        .root()
+        .map(|root| root.point_count)
+        .filter(|&n| n > 0)?;
+    let spacing = point_spacing?;
+    Some(spacing * (hierarchy.point_count as f64 / f64::from(root_points)).sqrt())
 }
 
 /// What a COPC file's header and hierarchy say, without reading a point.

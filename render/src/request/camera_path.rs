@@ -1,14 +1,19 @@
 //! Where the camera is in each frame of a request: a still camera, a turntable or keyframes,
 //! seen through a lens (perspective or orthographic, with optional near and far planes).
-//! [`camera_for_frame`] is the one place that turns them into a [`Camera`].
+//! [`camera_for_frame`] is the one place that turns them into a [`Camera`]: the automatic
+//! views (a still without a position, a turntable without a start) frame the robust box of the
+//! points ([`Extent`]), cameras placed by hand only take their clip planes from every point's box.
 
 use std::ops::RangeInclusive;
 
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
-use crate::camera::{Camera, Projection, AUTO_AZIMUTH_DEG, AUTO_ELEVATION_DEG, DEFAULT_FOV_Y_DEG};
+use crate::camera::{
+    fitted_orbit, Camera, Projection, AUTO_AZIMUTH_DEG, AUTO_ELEVATION_DEG, DEFAULT_FOV_Y_DEG,
+};
 use crate::cloud::WorldBounds;
+use crate::source::Extent;
 
 /// A turntable covers a full circle unless asked otherwise.
 pub const DEFAULT_TURNTABLE_DEGREES: f64 = 360.0;
@@ -233,19 +238,19 @@ impl Lens {
     }
 }
 
-/// The camera of frame `index` of `path` through `lens`, for a cloud with `bounds` and
-/// images of `aspect` (width / height).
+/// The camera of frame `index` of `path` through `lens`, for a cloud whose points lie in
+/// `extent`, and images of `aspect` (width / height).
 pub fn camera_for_frame(
     path: &CameraPath,
     lens: &Lens,
     index: u32,
-    bounds: &WorldBounds,
+    extent: &Extent,
     aspect: f64,
 ) -> Camera {
     let camera = match path {
-        CameraPath::Still(still) => still_camera(still, lens, bounds, aspect),
+        CameraPath::Still(still) => still_camera(still, lens, extent, aspect),
         CameraPath::Turntable(turntable) => {
-            turntable_camera(turntable, lens, index, bounds, aspect)
+            turntable_camera(turntable, lens, index, extent, aspect)
         }
         CameraPath::Keyframes {
             keyframes,
@@ -257,17 +262,19 @@ pub fn camera_for_frame(
             *interpolation,
             lens,
             index,
-            bounds,
+            &extent.all,
             aspect,
         ),
     };
     lens.clip(camera)
 }
 
-fn still_camera(still: &StillCamera, lens: &Lens, bounds: &WorldBounds, aspect: f64) -> Camera {
+fn still_camera(still: &StillCamera, lens: &Lens, extent: &Extent, aspect: f64) -> Camera {
+    let bounds = &extent.robust;
     let projection = lens.projection(still.fov_y_deg, bounds, aspect);
-    let auto = Camera::fitted(
+    let auto = Camera::fitted_to(
         bounds,
+        &extent.outline,
         aspect,
         still.azimuth_deg,
         still.elevation_deg,
@@ -283,7 +290,12 @@ fn still_camera(still: &StillCamera, lens: &Lens, bounds: &WorldBounds, aspect: 
     let position = still
         .position
         .map_or(target + (auto.position - auto.target), DVec3::from);
-    let mut camera = Camera::looking_at(position, target, bounds, projection);
+    let enclosed = if still.position.is_some() {
+        &extent.all
+    } else {
+        bounds
+    };
+    let mut camera = Camera::looking_at(position, target, enclosed, projection);
     let up = DVec3::from(still.up);
     // Looking along the given up (a view from straight above): the automatic view's up.
     camera.up = if up.cross(target - position).length_squared()
@@ -296,8 +308,9 @@ fn still_camera(still: &StillCamera, lens: &Lens, bounds: &WorldBounds, aspect: 
     camera
 }
 
-/// Views of an orbit fitted to find its radius: every 22.5 degrees of a full turn.
-const ORBIT_FIT_VIEWS: u32 = 16;
+/// Views of an orbit fitted to find its radius: every 5.625 degrees of a full turn, close
+/// enough that the box's widest view between two of them is wider by far less than the margin.
+const ORBIT_FIT_VIEWS: u32 = 64;
 
 /// The one turntable: the camera of frame `index` on a circle around the vertical axis
 /// through the centre.
@@ -305,11 +318,17 @@ fn turntable_camera(
     t: &Turntable,
     lens: &Lens,
     index: u32,
-    bounds: &WorldBounds,
+    extent: &Extent,
     aspect: f64,
 ) -> Camera {
+    let bounds = &extent.robust;
     let projection = lens.projection(t.fov_y_deg, bounds, aspect);
-    let center = t.center.map_or(bounds.center(), DVec3::from);
+    // A start placed by hand orbits the centre of every point, as it always has.
+    let default_center = match t.start {
+        Some(_) => extent.all.center(),
+        None => bounds.center(),
+    };
+    let mut center = t.center.map_or(default_center, DVec3::from);
     let (radius, elevation_deg, azimuth_deg) = match t.start {
         Some(start) => {
             let offset = DVec3::from(start) - center;
@@ -320,26 +339,37 @@ fn turntable_camera(
             (radius, elevation, offset.y.atan2(offset.x).to_degrees())
         }
         None => {
-            // One radius for the whole orbit, the largest any of its views needs to fit the
-            // cloud, so the cloud neither zooms in and out nor leaves the frame.
-            let radius = t.radius.unwrap_or_else(|| {
-                (0..=ORBIT_FIT_VIEWS)
-                    .map(|k| {
-                        let azimuth =
-                            t.azimuth_deg + t.degrees * f64::from(k) / f64::from(ORBIT_FIT_VIEWS);
-                        let fitted =
-                            Camera::framing(bounds, aspect, azimuth, t.elevation_deg, projection);
-                        fitted.position.distance(fitted.target)
-                    })
-                    .fold(0.0, f64::max)
-            });
-            (radius, t.elevation_deg, t.azimuth_deg)
+            // One orbit for all its views, as close as the widest of them lets the cloud's box
+            // stay in view, so the cloud neither zooms in and out nor leaves the frame.
+            let azimuths: Vec<f64> = (0..=ORBIT_FIT_VIEWS)
+                .map(|k| t.azimuth_deg + t.degrees * f64::from(k) / f64::from(ORBIT_FIT_VIEWS))
+                .collect();
+            let orbit = fitted_orbit(
+                bounds,
+                &extent.outline,
+                t.center.map(DVec3::from),
+                aspect,
+                &azimuths,
+                t.elevation_deg,
+                projection,
+            );
+            center = orbit.target;
+            (
+                t.radius.unwrap_or(orbit.distance),
+                t.elevation_deg,
+                t.azimuth_deg,
+            )
         }
     };
     let azimuth = azimuth_deg + t.degrees * index as f64 / t.frames.max(1) as f64;
     let (az, el) = (azimuth.to_radians(), elevation_deg.to_radians());
     let direction = DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
-    let mut camera = Camera::looking_at(center + direction * radius, center, bounds, projection);
+    let enclosed = if t.start.is_some() {
+        &extent.all
+    } else {
+        bounds
+    };
+    let mut camera = Camera::looking_at(center + direction * radius, center, enclosed, projection);
     camera.up = t.up.into();
     camera
 }

@@ -19,8 +19,8 @@ pub use options::{PointSize, RenderOptions, DEFAULT_SUPERSAMPLE};
 pub use validate::RequestError;
 
 use crate::camera::Camera;
-use crate::cloud::WorldBounds;
 use crate::raster::{AtomicsMode, FrameSettings, DEFAULT_POINT_SIZE};
+use crate::source::Framed;
 
 /// Everything that decides the frames of a render, apart from the cloud.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -44,19 +44,23 @@ impl RenderRequest {
         self.width as f64 / self.height.max(1) as f64
     }
 
-    /// The camera of frame `index` for a cloud with `bounds`.
-    pub fn camera(&self, index: u32, bounds: &WorldBounds) -> Camera {
-        camera_for_frame(&self.camera_path, &self.lens, index, bounds, self.aspect())
+    /// The camera of frame `index` for a cloud whose points lie in `extent` (its bounds, or
+    /// an [`Extent`](crate::source::Extent) with the robust box the automatic camera frames).
+    pub fn camera(&self, index: u32, extent: &impl Framed) -> Camera {
+        let extent = extent.extent();
+        camera_for_frame(&self.camera_path, &self.lens, index, &extent, self.aspect())
     }
 
-    /// The renderer's settings of frame `index` for a cloud with `bounds` whose points lie
-    /// `spacing` apart (world units; `None` when unknown), which sizes adaptive points.
+    /// The renderer's settings of frame `index` for a cloud whose points lie in `extent` (as
+    /// [`RenderRequest::camera`] takes it) and `spacing` apart (world units; `None` when
+    /// unknown), which sizes adaptive points.
     pub fn frame_settings(
         &self,
         index: u32,
-        bounds: &WorldBounds,
+        extent: &impl Framed,
         spacing: Option<f64>,
     ) -> FrameSettings {
+        let extent = extent.extent();
         let RenderOptions {
             point_size,
             round_points,
@@ -75,7 +79,7 @@ impl RenderRequest {
         FrameSettings {
             width: self.width,
             height: self.height,
-            camera: self.camera(index, bounds),
+            camera: self.camera(index, &extent),
             point_size: DEFAULT_POINT_SIZE,
             adaptive_size: None,
             round_points,
@@ -87,7 +91,7 @@ impl RenderRequest {
             supersample,
             read_depth: depth,
         }
-        .with_point_size(point_size, bounds, spacing)
+        .with_point_size(point_size, &extent.robust, spacing)
     }
 }
 

@@ -2,6 +2,7 @@ use glam::DVec3;
 
 use super::*;
 use crate::camera::{Projection, AUTO_AZIMUTH_DEG, AUTO_ELEVATION_DEG, DEFAULT_FOV_Y_DEG};
+use crate::cloud::WorldBounds;
 use crate::raster::{FillSettings, Quality, Shading};
 
 fn bounds() -> WorldBounds {
@@ -51,21 +52,40 @@ fn the_turntable_keeps_its_distance_and_goes_all_the_way_round() {
     let frames = 8;
     let path = request(CameraPath::Turntable(Turntable::around_the_cloud(frames)));
     let cams: Vec<Camera> = (0..frames).map(|i| path.camera(i, &b)).collect();
-    let d0 = cams[0].position.distance(b.center());
+    // One target for the whole orbit, on the vertical axis through the box's centre, at the
+    // height that centres the box vertically (checked below with the corners).
+    let target = cams[0].target;
+    assert!(target.truncate().abs_diff_eq(b.center().truncate(), 1e-9));
+    assert!((target.z - b.center().z).abs() < b.radius(), "{target}");
+    let d0 = cams[0].position.distance(target);
     for c in &cams {
         c.validate().expect("valid camera");
-        assert!((c.position.distance(b.center()) - d0).abs() < 1e-6 * d0);
-        assert_eq!(c.target, b.center());
+        assert!((c.position.distance(target) - d0).abs() < 1e-6 * d0);
+        assert_eq!(c.target, target);
     }
-    let opposite = cams[frames as usize / 2].position - b.center();
-    let first = cams[0].position - b.center();
+    let opposite = cams[frames as usize / 2].position - target;
+    let first = cams[0].position - target;
     assert!((opposite.x + first.x).abs() < 1e-6 && (opposite.y + first.y).abs() < 1e-6);
-    // The first frame looks from the automatic view's direction, from as far as the widest
-    // of the orbit's views needs.
+    // The first frame looks from the automatic view's direction.
     let auto = Camera::auto(&b, path.aspect());
     let auto_offset = auto.position - auto.target;
     assert!(first.normalize().abs_diff_eq(auto_offset.normalize(), 1e-9));
-    assert!(d0 >= auto_offset.length() - 1e-9 * d0);
+    // Every corner is in every frame, and the widest frame is filled to the 5% margin.
+    let (w, h) = (path.width, path.height);
+    let mut widest: f64 = 0.0;
+    for c in &cams {
+        let transform = c.transform(b.center(), w, h);
+        let (mut lo, mut hi) = ([f64::MAX; 2], [f64::MIN; 2]);
+        for corner in crate::camera::box_corners(&b) {
+            let (x, y, _) = transform.project(corner - b.center()).expect("in depth");
+            assert!(x > 0.0 && x < f64::from(w) && y > 0.0 && y < f64::from(h));
+            lo = [lo[0].min(x), lo[1].min(y)];
+            hi = [hi[0].max(x), hi[1].max(y)];
+        }
+        let fill = ((hi[0] - lo[0]) / f64::from(w)).max((hi[1] - lo[1]) / f64::from(h));
+        widest = widest.max(fill);
+    }
+    assert!(widest > 0.9, "the widest frame fills {widest}");
 }
 
 #[test]

@@ -12,11 +12,13 @@
 //!
 //! - `choice`: the rule, resident or a cut.
 //! - `events`: what a source tells as it opens and renders.
+//! - `extent`: where the points lie, and the robust box the automatic camera frames.
 //! - `local_store`: stores in folders of this machine, built again once when damaged.
 //! - `preview`: what a preview draws while a store builds.
 
 mod choice;
 mod events;
+mod extent;
 mod local_store;
 mod preview;
 
@@ -34,11 +36,13 @@ use crate::cut::{
 };
 use crate::filter::{FilterError, PointFilter};
 use crate::ingest::{load_dataset, IngestError};
+use crate::lod::for_each_coarse_node_up_to;
 use crate::raster::{Frame, FrameSettings, GpuPointCloud, RenderError, Renderer};
 use crate::request::{RenderOptions, RenderRequest};
 
 pub use choice::{frame_points, FramePoints, PointSourceFacts};
 pub use events::{quiet, LevelsFrom, SourceEvent};
+pub use extent::{Extent, Framed};
 pub use local_store::{LocalStore, StoreCache};
 pub use preview::{ChunkStarts, PreviewPoints};
 
@@ -134,6 +138,8 @@ enum Points {
     Cut {
         cut: Box<CutRenderer>,
         levels: Levels,
+        /// The dataset's extent before a clip box, from its coarsest nodes.
+        unclipped: Extent,
         /// The pixel error of the final frames.
         lod_error: f64,
         /// Whether the cuts are a preview's, at [`PREVIEW_LOD_ERROR_PX`].
@@ -146,8 +152,9 @@ pub struct FrameSource {
     renderer: Renderer,
     coloring: Coloring,
     filter: PointFilter,
-    /// What the automatic camera frames.
-    bounds: WorldBounds,
+    /// Where the points lie: what the automatic camera frames, and what explicit cameras'
+    /// clip planes enclose.
+    extent: Extent,
     points: Points,
     /// How the source was opened, until the first frame reports it.
     unreported: Option<Opened>,
@@ -189,8 +196,9 @@ impl FrameSource {
         Ok(source)
     }
 
-    /// A preview of `points`, resident, framed by the dataset files' header bounds as its
-    /// store's frames will be; each frame says how complete it is.
+    /// A preview of `points`, resident, within the dataset files' header bounds as its
+    /// store's frames will be, and framed by the robust box of its points (which sample the
+    /// dataset evenly, as the store's coarsest nodes do); each frame says how complete it is.
     pub fn preview(
         renderer: Renderer,
         points: PreviewPoints,
@@ -217,13 +225,13 @@ impl FrameSource {
         Ok(source)
     }
 
-    /// `cloud` coloured, filtered and uploaded; framed by its own bounds unless `framed` says
-    /// otherwise.
+    /// `cloud` coloured, filtered and uploaded; within its own bounds unless `within` says
+    /// otherwise, framed by the robust box of its points.
     fn of_cloud(
         renderer: Renderer,
         mut cloud: PointCloud,
         options: &RenderOptions,
-        framed: Option<WorldBounds>,
+        within: Option<WorldBounds>,
         events: &dyn Fn(SourceEvent<'_>),
     ) -> Result<Self, SourceError> {
         let coloring = options.coloring();
@@ -235,14 +243,19 @@ impl FrameSource {
             events(SourceEvent::Filtered { kept, points });
         }
         let cloud_on_gpu = renderer.upload(&cloud)?;
+        // One sample of the filtered points for their spacing and their robust box.
+        let sample = crate::spacing::sample_of(&cloud.positions);
+        let spacing = crate::spacing::of_sample(&sample, cloud.len() as u64);
+        let all = within.unwrap_or(cloud.bounds);
+        let extent = Extent::of_points(all, cloud.origin, &sample, &cloud.positions);
         Ok(Self {
             renderer,
             coloring,
             filter: options.filter,
-            bounds: framed.unwrap_or(cloud.bounds),
+            extent,
             points: Points::Resident {
                 cloud: cloud_on_gpu,
-                spacing: cloud.spacing(),
+                spacing,
                 ramp_range,
                 preview_of: None,
             },
@@ -306,7 +319,8 @@ impl FrameSource {
         events: &dyn Fn(SourceEvent<'_>),
     ) -> Result<Self, SourceError> {
         let dataset = levels.dataset();
-        let bounds = options.filter.framing_bounds(&dataset.bounds())?;
+        let unclipped = coarse_extent(dataset)?;
+        let extent = unclipped.clipped(&options.filter)?;
         let cut = CutRenderer::new(&renderer, dataset, cut_options)?;
         let budgets = cut.budgets();
         let from = match &levels {
@@ -338,10 +352,11 @@ impl FrameSource {
             renderer,
             coloring: options.coloring(),
             filter: options.filter,
-            bounds,
+            extent,
             points: Points::Cut {
                 cut: Box::new(cut),
                 levels,
+                unclipped,
                 lod_error: cut_options.lod_error,
                 preview: false,
             },
@@ -390,11 +405,12 @@ impl FrameSource {
             }
             Points::Cut {
                 cut,
-                levels,
+                unclipped,
                 lod_error: current,
                 preview,
+                ..
             } => {
-                let Ok(bounds) = options.filter.framing_bounds(&levels.dataset().bounds()) else {
+                let Ok(extent) = unclipped.clipped(&options.filter) else {
                     return false;
                 };
                 let wanted = lod_error.unwrap_or(*current);
@@ -411,7 +427,7 @@ impl FrameSource {
                 }
                 self.coloring = options.coloring();
                 self.filter = options.filter;
-                self.bounds = bounds;
+                self.extent = extent;
                 true
             }
         }
@@ -445,9 +461,10 @@ impl FrameSource {
         }
     }
 
-    /// The bounds the automatic camera frames.
-    pub fn bounds(&self) -> WorldBounds {
-        self.bounds
+    /// Where the points lie: the robust box the automatic camera frames, and the box of every
+    /// point that explicit cameras' clip planes enclose.
+    pub fn bounds(&self) -> Extent {
+        self.extent.clone()
     }
 
     /// The typical distance between the points drawn, which sizes adaptive points: the
@@ -479,7 +496,7 @@ impl FrameSource {
 
     /// The settings of `request`'s frame `index`, framed and sized for these points.
     pub fn frame_settings(&self, request: &RenderRequest, index: u32) -> FrameSettings {
-        request.frame_settings(index, &self.bounds, self.spacing())
+        request.frame_settings(index, &self.extent, self.spacing())
     }
 
     /// Renders the frame of `settings`. A store of this machine whose bytes fail their checks
@@ -554,6 +571,24 @@ impl FrameSource {
             cut.read_ahead(levels.dataset(), settings, &self.filter);
         }
     }
+}
+
+/// Points of a level-of-detail dataset's coarsest nodes its robust box is taken from: an even
+/// sample, as the spacing's is, small enough to read in milliseconds.
+const EXTENT_SAMPLE_POINTS: u64 = 1 << 16;
+
+/// The extent of `dataset`: its bounds, and the robust box of its coarsest nodes' points.
+fn coarse_extent(dataset: &LodDataset) -> Result<Extent, SourceError> {
+    let origin = dataset.origin();
+    let mut sample = Vec::new();
+    for_each_coarse_node_up_to(
+        dataset.records().as_ref(),
+        dataset.hierarchy(),
+        EXTENT_SAMPLE_POINTS,
+        |points| sample.extend(points.positions_relative_to(origin)),
+    )
+    .map_err(CutError::from)?;
+    Ok(Extent::of_sample(dataset.bounds(), origin, &sample))
 }
 
 #[cfg(test)]
