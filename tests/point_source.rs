@@ -1,6 +1,7 @@
 //! Where a frame's points come from, decided once for a local render and a server: a small
 //! dataset renders resident until a render with a pixel error builds its store, and from that
-//! store's cut afterwards, here as through a server, with the same images.
+//! store's cut afterwards, here as through a server, with the same images; a worker holding
+//! the resident cloud follows the server once it has built the store.
 
 use std::path::Path;
 
@@ -36,21 +37,24 @@ fn local_cuts(frames: &[serde_json::Value]) -> Vec<bool> {
     frames.iter().map(|f| f.get("cut").is_some()).collect()
 }
 
+/// The job of the frames a server reports, as `jobs show` lists it.
+fn job_of(frames: &[serde_json::Value], server: &ServeProcess) -> pointfarm_proto::v1::Job {
+    let id = frames[0]["jobId"].as_str().expect("a job id");
+    let shown = pointfarm_ok(&["jobs", "show", id, "--server", &server.address, "--json"]);
+    let shown: serde_json::Value = serde_json::from_slice(&shown.stdout).expect("json");
+    serde_json::from_value(shown["job"].clone()).expect("a Job")
+}
+
 /// Whether each frame a server reports was drawn from a cut, as `jobs show` lists the job.
 fn server_cuts(frames: &[serde_json::Value], server: &ServeProcess) -> Vec<bool> {
     let from_render: Vec<bool> = frames
         .iter()
         .map(|f| f["finished"].get("cut").is_some())
         .collect();
-    let id = frames[0]["jobId"].as_str().expect("a job id");
-    let shown = pointfarm_ok(&["jobs", "show", id, "--server", &server.address, "--json"]);
-    let shown: serde_json::Value = serde_json::from_slice(&shown.stdout).expect("json");
-    let job: pointfarm_proto::v1::Job =
-        serde_json::from_value(shown["job"].clone()).expect("a Job");
-    let mut frames = job.frames;
+    let mut frames = job_of(frames, server).frames;
     frames.sort_by_key(|f| f.index);
     let from_job: Vec<bool> = frames.iter().map(|f| f.cut.is_some()).collect();
-    assert_eq!(from_render, from_job, "{shown}");
+    assert_eq!(from_render, from_job);
     from_job
 }
 
@@ -76,6 +80,22 @@ fn a_small_dataset_whose_store_is_built_renders_from_its_cut_here_and_through_a_
     assert_eq!(local_cuts(&here("local_resident", &[])), [false, false]);
     let resident = there("remote_resident", &[]);
     assert_eq!(server_cuts(&resident, &server), [false, false]);
+
+    // The server builds the store for an export while its worker holds the resident cloud:
+    // the worker asks again, and the next job is cut as the server decides.
+    let dataset = job_of(&resident, &server).dataset_id;
+    let exported = dir.path().join("export.copc.laz");
+    pointfarm_ok(&[
+        "dataset",
+        "export",
+        &dataset,
+        "--copc",
+        arg(&exported),
+        "--server",
+        &server.address,
+    ]);
+    let after_export = there("remote_after_export", &[]);
+    assert_eq!(server_cuts(&after_export, &server), [true, true]);
 
     // A pixel error builds the store, here and on the server.
     assert_eq!(

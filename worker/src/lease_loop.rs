@@ -351,7 +351,7 @@ async fn dataset_access(
     downloads: &Path,
     task: &FrameTask,
 ) -> Result<DatasetAccess, Attempt> {
-    if state.is_loaded(task) {
+    if state.is_loaded(task) && !state.is_loaded_resident(task) {
         return Ok(DatasetAccess::Files(Vec::new()));
     }
     match daemon_store::open(client, task).await {

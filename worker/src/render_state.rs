@@ -168,6 +168,13 @@ impl WorkerRenderState {
         }
     }
 
+    /// Whether `task`'s dataset is open resident from its files: the daemon is asked again
+    /// whether it keeps a store, so that every worker draws a job's frames as the daemon
+    /// decides, whatever this one had open before.
+    pub fn is_loaded_resident(&self, task: &FrameTask) -> bool {
+        self.is_loaded(task) && matches!(&self.loaded, Some(loaded) if loaded.from == Opened::Files)
+    }
+
     /// Whether the preview sample of `task`'s dataset is open as `task` needs it: of its
     /// version or a later one.
     pub fn has_preview(&self, task: &FrameTask) -> bool {
