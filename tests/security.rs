@@ -234,6 +234,24 @@ fn a_ca_certificate_served_is_named_at_start_and_by_the_client() {
     let lines = own_stderr_lines(&refused);
     assert_eq!(lines.len(), 1, "one line: {message}");
     assert!(lines[0].starts_with("error: cannot connect to https://localhost:"));
+
+    // A file without a certificate, and a key that is not the certificate's, are refused in
+    // words at start.
+    let listen = ["--listen", "127.0.0.1:0", "--tls-key", arg(&key)];
+    let no_certificate = serve_exits(
+        &dir.join("d1"),
+        &[&listen[..], &["--tls-cert", arg(&key)]].concat(),
+    );
+    assert_fails_saying(
+        &no_certificate,
+        "the TLS certificate (--tls-cert) holds no PEM certificate",
+    );
+    let pki = TestPki::create(dir);
+    let other_key = serve_exits(
+        &dir.join("d2"),
+        &[&listen[..], &["--tls-cert", arg(&pki.cert)]].concat(),
+    );
+    assert_fails_saying(&other_key, "the key is not the certificate's");
 }
 
 /// Runs `pointfarm serve` with `args`; its output if it exits within 30 s (it is killed and

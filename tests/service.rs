@@ -183,11 +183,18 @@ async fn invalid_requests_get_their_status_codes() {
         "{message}"
     );
 
-    // Finished jobs cannot be cancelled.
+    // Finished jobs cannot be cancelled, and the answer says why.
     let job = submit(&mut jobs, turntable_job("e", &registered.id, 1, 32, 32)).await;
     watch_to_success(&mut jobs, &job.id, String::new).await;
-    let (code, _) = code_and_message(jobs.cancel_job(pb::CancelJobRequest { id: job.id }).await);
+    let (code, message) = code_and_message(
+        jobs.cancel_job(pb::CancelJobRequest { id: job.id.clone() })
+            .await,
+    );
     assert_eq!(code, Code::FailedPrecondition);
+    assert_eq!(
+        message,
+        format!("job {} already succeeded; nothing to cancel", job.id)
+    );
 
     // Uploads over the size limit.
     let big = vec![7u8; 10_000];

@@ -23,6 +23,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
+use pointfarm_proto::endpoint::certificate;
 use pointfarm_proto::endpoint::connections::{self, ConnectionLimits};
 use pointfarm_proto::v1::dataset_service_server::DatasetServiceServer;
 use pointfarm_proto::v1::job_service_server::JobServiceServer;
@@ -94,19 +95,20 @@ pub struct TlsIdentity {
     pub key_pem: Vec<u8>,
 }
 
-/// Says at start when clients will refuse the server's certificate: one marked as a
-/// certificate authority is never accepted as a server's own, whoever trusts it.
-fn warn_of_unusable_certificate(cert_pem: &[u8]) {
-    use pointfarm_proto::endpoint::certificate;
-    match certificate::is_ca_certificate(cert_pem) {
-        Ok(false) => {}
-        Ok(true) => tracing::warn!(
+/// Refuses a certificate file without a certificate, and says at start when clients will
+/// refuse the server's certificate: one marked as a certificate authority is never accepted as
+/// a server's own, whoever trusts it.
+fn check_certificate(cert_pem: &[u8]) -> anyhow::Result<()> {
+    let is_ca = certificate::is_ca_certificate(cert_pem)
+        .map_err(|reason| anyhow::anyhow!("the TLS certificate (--tls-cert) {reason}"))?;
+    if is_ca {
+        tracing::warn!(
             "the TLS certificate (--tls-cert) is a CA certificate (basicConstraints CA:TRUE), \
              which clients refuse as a server's own: {}",
             certificate::SERVER_CERTIFICATE_HOWTO
-        ),
-        Err(reason) => tracing::warn!("the TLS certificate (--tls-cert) {reason}"),
+        );
     }
+    Ok(())
 }
 
 /// The embedded worker's listener admits only calls with the token made for it at start-up;
@@ -154,13 +156,18 @@ pub async fn serve(
     options.check_exposure(address)?;
     let mut server = pointfarm_proto::endpoint::server_builder();
     if let Some(tls) = &options.tls {
-        warn_of_unusable_certificate(&tls.cert_pem);
+        check_certificate(&tls.cert_pem)?;
         server = server
             .tls_config(pointfarm_proto::endpoint::server_tls(
                 &tls.cert_pem,
                 &tls.key_pem,
             ))
-            .context("the TLS certificate and key")?;
+            .map_err(|e| {
+                anyhow::anyhow!(
+                    "the TLS certificate and key (--tls-cert, --tls-key): {}",
+                    certificate::identity_error(&e)
+                )
+            })?;
     }
     let limits = options.connection_limits;
     let api = Api::new(daemon.clone());

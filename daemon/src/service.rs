@@ -313,7 +313,7 @@ impl Daemon {
         let job = self.job(id)?;
         if job.state.is_terminal() {
             return Err(DaemonError::FailedPrecondition(format!(
-                "job {id} has already ended ({})",
+                "job {id} already {}; nothing to cancel",
                 job.state.name()
             )));
         }

@@ -75,18 +75,7 @@ fn remote_render_uploads_submits_follows_and_downloads() {
         .to_owned();
 
     // The daemon logs the job's end once, with its counts.
-    let ended = wait_for(Duration::from_secs(10), "the job's end in the log", || {
-        let log = server.log();
-        let lines: Vec<String> = log
-            .lines()
-            .filter(|l| l.contains("job succeeded") && l.contains(&job))
-            .map(str::to_owned)
-            .collect();
-        (!lines.is_empty()).then_some(lines)
-    });
-    let [line] = ended.as_slice() else {
-        panic!("the end logged once: {ended:?}");
-    };
+    let line = logged_once(&server, "job succeeded", &job);
     for count in [
         "frames_done=2",
         "frames_total=2",
@@ -152,6 +141,66 @@ fn remote_render_uploads_submits_follows_and_downloads() {
         finished.timings.iter().any(|t| t.stage == "rasterize"),
         "{frame}"
     );
+}
+
+/// The one line of `server`'s log that says `what` of `job`, once it is there.
+fn logged_once(server: &ServeProcess, what: &str, job: &str) -> String {
+    let lines = wait_for(Duration::from_secs(10), what, || {
+        let lines: Vec<String> = server
+            .log()
+            .lines()
+            .filter(|l| l.contains(what) && l.contains(job))
+            .map(str::to_owned)
+            .collect();
+        (!lines.is_empty()).then_some(lines)
+    });
+    // A moment more, for a second line that should not come.
+    std::thread::sleep(Duration::from_millis(200));
+    let again = server.log();
+    let count = again
+        .lines()
+        .filter(|l| l.contains(what) && l.contains(job))
+        .count();
+    assert_eq!(count, 1, "{what} logged {count} times:\n{again}");
+    lines[0].clone()
+}
+
+/// A file the server cannot read fails its job at once; the daemon logs the job's end once,
+/// with the attempt that failed it.
+#[test]
+fn a_failed_job_s_end_is_logged_once_with_its_attempts() {
+    let scene = Scene::sampled("sample.las", 5_000);
+    let bytes = std::fs::read(&scene.cloud).expect("read the sample");
+    let cut = scene.path("cut.las");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).expect("write the cut file");
+    let server = ServeProcess::start(&scene.path("data"));
+    let out = path_arg(&scene.path("cut.png"));
+    let rendered = pointfarm(&[
+        "render",
+        &path_arg(&cut),
+        "--server",
+        &server.address,
+        "--out",
+        &out,
+        "--size=64x48",
+    ]);
+    assert_fails_saying(&rendered, "truncated");
+    let message = String::from_utf8_lossy(&rendered.stderr);
+    assert!(!message.contains("error: error:"), "{message}");
+    let listed = pointfarm(&["jobs", "list", "--server", &server.address, "--json"]);
+    let job = json_lines(&listed)[0]["jobs"][0]["id"]
+        .as_str()
+        .expect("the job's id")
+        .to_owned();
+    let line = logged_once(&server, "job failed", &job);
+    for count in [
+        "frames_done=0",
+        "frames_total=1",
+        "failed_attempts=1",
+        "truncated",
+    ] {
+        assert!(line.contains(count), "{line}");
+    }
 }
 
 #[test]

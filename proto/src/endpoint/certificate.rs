@@ -17,15 +17,32 @@ pub const SERVER_CERTIFICATE_HOWTO: &str = "make a server certificate with `open
 /// it) is marked as a certificate authority; an error when it holds no certificate that
 /// parses.
 pub fn is_ca_certificate(cert_pem: &[u8]) -> Result<bool, String> {
-    let (_, pem) = x509_parser::pem::parse_x509_pem(cert_pem)
-        .map_err(|e| format!("holds no PEM certificate: {e}"))?;
+    let pem = x509_parser::pem::Pem::iter_from_buffer(cert_pem)
+        .map_while(Result::ok)
+        .find(|pem| pem.label == "CERTIFICATE")
+        .ok_or("holds no PEM certificate")?;
     let certificate = pem
         .parse_x509()
-        .map_err(|e| format!("is no X.509 certificate: {e}"))?;
+        .map_err(|e| format!("is no X.509 certificate ({e})"))?;
     let constraints = certificate
         .basic_constraints()
-        .map_err(|e| format!("has a malformed basicConstraints extension: {e}"))?;
+        .map_err(|e| format!("has a malformed basicConstraints extension ({e})"))?;
     Ok(constraints.is_some_and(|c| c.value.ca))
+}
+
+/// Why a server's certificate and key cannot make its TLS identity, in words: a key that is
+/// not the certificate's named as such, anything else as its causes say it.
+pub fn identity_error(error: &(dyn Error + 'static)) -> String {
+    let mut next = Some(error);
+    while let Some(error) = next {
+        if let Some(rustls::Error::InconsistentKeys(_)) = error.downcast_ref::<rustls::Error>() {
+            return "the key is not the certificate's: give the private key the certificate \
+                    was made with"
+                .into();
+        }
+        next = error.source();
+    }
+    super::causes(error)
 }
 
 /// Whether `error`, or an error it was caused by, is a TLS handshake's refusal of a server
@@ -80,6 +97,9 @@ mod tests {
         // The server's own certificate comes first; a CA after it is its chain.
         let chain = format!("{leaf}{ca}");
         assert!(!is_ca_certificate(chain.as_bytes()).expect("parses"));
+        // A key before the certificate in the same file is passed over.
+        let together = format!("{}{ca}", key.serialize_pem());
+        assert!(is_ca_certificate(together.as_bytes()).expect("parses"));
     }
 
     #[test]
