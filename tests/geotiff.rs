@@ -38,7 +38,7 @@ fn gdalinfo(path: &Path) -> Value {
 }
 
 /// A top view of `scan` looking straight down at (x, y), `height` file units tall, rendered
-/// at `size` into `out`, with `extra` options.
+/// at `size` into `out`, with `extra` options (north up the image unless they give an up).
 fn render_top(
     scan: &Path,
     out: &Path,
@@ -62,11 +62,13 @@ fn render_top(
         &target,
         "--camera-pos",
         &position,
-        "--camera-up",
-        "0,1,0",
         "--out",
         arg(out),
     ];
+    // North up the image unless `extra` says otherwise.
+    if !extra.contains(&"--camera-up") {
+        args.extend(["--camera-up", "0,1,0"]);
+    }
     args.extend(extra);
     let output = pointfarm(&args);
     assert_ok(&output);
@@ -232,5 +234,56 @@ fn only_a_top_view_is_placed_and_a_cloud_without_a_crs_says_so() {
     assert!(
         wkt.is_empty() || wkt.starts_with("ENGCRS[\"unnamed\""),
         "{wkt}"
+    );
+}
+
+#[test]
+fn a_top_view_whose_up_is_not_north_is_placed_with_its_rotation() {
+    let Some(scan) = shared_data("lone-star.laz") else {
+        return;
+    };
+    if !gdal_installed() {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("rotated.tif");
+    let center = (515_384.5, 4_918_360.25);
+    render_top(
+        &scan,
+        &out,
+        "96x64",
+        center,
+        32.0,
+        &["--camera-up", "1,1,0"],
+    );
+    let info = gdalinfo(&out);
+    let read: Vec<f64> = info["geoTransform"]
+        .as_array()
+        .unwrap_or_else(|| panic!("no geotransform: {info}"))
+        .iter()
+        .map(|v| v.as_f64().expect("number"))
+        .collect();
+    let [x0, col_x, row_x, y0, col_y, row_y] = read[..] else {
+        panic!("{read:?}");
+    };
+    // Half a unit a pixel, the image's up north-east: a column steps south-east, a row
+    // south-west.
+    let half_diagonal = 0.5 / 2f64.sqrt();
+    for (read, expected) in [
+        (col_x, half_diagonal),
+        (col_y, -half_diagonal),
+        (row_x, -half_diagonal),
+        (row_y, -half_diagonal),
+    ] {
+        assert!((read - expected).abs() < 1e-9, "{read} != {expected}");
+    }
+    // The image's centre is the target.
+    let (cx, cy) = (
+        x0 + 48.0 * col_x + 32.0 * row_x,
+        y0 + 48.0 * col_y + 32.0 * row_y,
+    );
+    assert!(
+        (cx - center.0).abs() < 1e-6 && (cy - center.1).abs() < 1e-6,
+        "{cx} {cy}"
     );
 }
