@@ -279,3 +279,236 @@ fn dataset_export_streams_the_servers_copc_file() {
     });
     assert_eq!(code, Some(tonic::Code::NotFound));
 }
+
+/// The formats whose points have RGB, near-infrared, GPS time and wave packets.
+fn has_color(format: u8) -> bool {
+    matches!(format, 2 | 3 | 5 | 7 | 8 | 10)
+}
+
+fn has_gps_time(format: u8) -> bool {
+    format != 0 && format != 2
+}
+
+fn has_waveform(format: u8) -> bool {
+    matches!(format, 4 | 5 | 9 | 10)
+}
+
+/// An extra bytes descriptor (LAS 1.4 record 4) of a plain attribute.
+fn descriptor(name: &str, data_type: u8) -> Vec<u8> {
+    let mut out = vec![0u8; 192];
+    out[2] = data_type;
+    out[4..4 + name.len()].copy_from_slice(name.as_bytes());
+    out
+}
+
+/// The formats whose test files carry extra bytes: an `amplitude` (u16) and a `reflectance`
+/// (f32), 6 bytes a point.
+fn has_extra_bytes(format: u8) -> bool {
+    matches!(format, 1 | 3 | 5 | 6 | 7 | 10)
+}
+
+/// A small LAS file of point format `format` whose points vary every attribute the format
+/// has, at unique positions.
+fn write_format(dir: &Path, format: u8) -> std::path::PathBuf {
+    use las::point::{Classification, ScanDirection};
+    let path = dir.join(format!("format-{format}.las"));
+    let mut builder = las::Builder::from(match format {
+        0..=3 => (1, 2),
+        4 | 5 => (1, 3),
+        _ => (1, 4),
+    });
+    builder.point_format = las::point::Format::new(format).expect("a point format");
+    builder.transforms = las::Vector {
+        x: las::Transform {
+            scale: 0.01,
+            offset: 500_000.0,
+        },
+        y: las::Transform {
+            scale: 0.01,
+            offset: 4_000_000.0,
+        },
+        z: las::Transform {
+            scale: 0.001,
+            offset: 0.0,
+        },
+    };
+    if has_extra_bytes(format) {
+        builder.point_format.extra_bytes = 6;
+        let data = [descriptor("amplitude", 3), descriptor("reflectance", 9)].concat();
+        builder.vlrs.push(las::Vlr {
+            user_id: "LASF_Spec".into(),
+            record_id: 4,
+            description: "Extra Bytes Record".into(),
+            data,
+        });
+    }
+    let extended = format >= 6;
+    let header = builder.into_header().expect("a header");
+    let mut writer = las::Writer::from_path(&path, header).expect("a writer");
+    let legacy_classes = [0u8, 1, 2, 7, 9, 17, 31];
+    let extended_classes = [1u8, 2, 6, 40, 77, 200, 255];
+    let mut state = 0x2545_f491_4f6c_dd1du64 ^ u64::from(format);
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state
+    };
+    for i in 0..3_000u32 {
+        let r = next();
+        // The header of LAS 1.0 to 1.3 counts five returns.
+        let max_returns = if extended { 15 } else { 5 };
+        let returns = (r % max_returns) as u8 + 1;
+        let return_number = ((r >> 8) % u64::from(returns)) as u8 + 1;
+        let classes = if extended {
+            &extended_classes
+        } else {
+            &legacy_classes
+        };
+        let class = classes[(r >> 16) as usize % classes.len()];
+        let bit = |k: u32| (r >> (24 + k)) & 1 == 1;
+        let scan_angle = if extended {
+            ((r >> 32) % 20_000) as f32 * 0.006 - 60.0
+        } else {
+            ((r >> 32) % 61) as f32 - 30.0
+        };
+        let amplitude = (i as u16).wrapping_mul(37);
+        let reflectance = -(i as f32) * 0.25;
+        let point = las::Point {
+            x: 500_000.0 + f64::from(i % 60) * 0.5,
+            y: 4_000_000.0 + f64::from(i / 60) * 0.5,
+            z: f64::from((i * 7) % 13) + 0.125,
+            intensity: (r >> 40) as u16,
+            return_number,
+            number_of_returns: returns,
+            scan_direction: if bit(0) {
+                ScanDirection::LeftToRight
+            } else {
+                ScanDirection::RightToLeft
+            },
+            is_edge_of_flight_line: bit(1),
+            classification: Classification::new(class).expect("a class"),
+            is_synthetic: bit(2),
+            is_key_point: bit(3),
+            is_withheld: bit(4),
+            is_overlap: extended && bit(5),
+            scanner_channel: if extended { (r >> 56) as u8 & 3 } else { 0 },
+            scan_angle,
+            user_data: (r >> 48) as u8,
+            point_source_id: (r >> 20) as u16,
+            gps_time: has_gps_time(format).then(|| 3.0e8 + f64::from(i) * 0.001 + 1e-6),
+            color: has_color(format)
+                .then(|| las::Color::new((r >> 3) as u16, (r >> 19) as u16, (r >> 35) as u16)),
+            waveform: has_waveform(format).then(|| las::raw::point::Waveform {
+                wave_packet_descriptor_index: (r >> 7) as u8,
+                byte_offset_to_waveform_data: r >> 5,
+                waveform_packet_size_in_bytes: (r >> 11) as u32,
+                return_point_waveform_location: i as f32 * 1.5,
+                x_t: 0.25,
+                y_t: -(i as f32),
+                z_t: 1e-3 * i as f32,
+            }),
+            nir: matches!(format, 8 | 10).then(|| (r >> 27) as u16),
+            extra_bytes: if has_extra_bytes(format) {
+                [
+                    amplitude.to_le_bytes().as_slice(),
+                    &reflectance.to_le_bytes(),
+                ]
+                .concat()
+            } else {
+                Vec::new()
+            },
+        };
+        writer.write_point(point).expect("a point");
+    }
+    writer.close().expect("closed");
+    path
+}
+
+/// Exports `source` as COPC and compares every point of the two files with laspy: the same
+/// points, every attribute, in point format `expected_format`.
+fn assert_round_trip(python: &Path, source: &Path, dir: &Path, expected_format: u8) {
+    let name = source.file_name().expect("a file name").to_string_lossy();
+    let out = dir.join(format!("{name}.copc.laz"));
+    let cache = dir.join("cache");
+    let output = pointfarm(&[
+        "export",
+        arg(source),
+        "--copc",
+        arg(&out),
+        "--cache-dir",
+        arg(&cache),
+        "--json",
+    ]);
+    assert_ok(&output);
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("python/compare_points.py");
+    let compared = run_ok(
+        Command::new(python).arg(script).arg(source).arg(&out),
+        "laspy",
+    );
+    let seen: serde_json::Value =
+        serde_json::from_slice(&compared.stdout).expect("one JSON object");
+    assert_eq!(
+        seen["sourcePoints"], seen["exportedPoints"],
+        "{name}: {seen}"
+    );
+    assert_eq!(seen["exportedFormat"], expected_format, "{name}: {seen}");
+    assert_eq!(seen["mismatched"], serde_json::json!({}), "{name}: {seen}");
+    // Every extra dimension of the source is in the export, after the weight.
+    let exported = seen["exportedExtra"].as_array().expect("names");
+    assert_eq!(exported[0], "pointfarm_weight", "{name}: {seen}");
+    for extra in seen["sourceExtra"].as_array().expect("names") {
+        assert!(exported.contains(extra), "{name}: {extra} lost: {seen}");
+    }
+    let compared: Vec<&str> = seen["compared"]
+        .as_array()
+        .expect("names")
+        .iter()
+        .filter_map(|v| v.as_str())
+        .collect();
+    for dimension in [
+        "gps_time",
+        "scan_angle",
+        "point_source_id",
+        "user_data",
+        "overlap",
+    ] {
+        assert!(compared.contains(&dimension), "{name}: {seen}");
+    }
+}
+
+/// The export of a file of each point format pointfarm reads (0 to 10) gives back every
+/// attribute of every point, as laspy reads both files: the format that holds them (6, 7 with
+/// RGB, 8 with near-infrared), wave packets and extra bytes as extra dimensions.
+#[test]
+fn export_gives_back_every_attribute_in_every_point_format() {
+    let Some(python) = test_python(&["laspy", "lazrs"], "tests/python/requirements.txt") else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    for format in 0..=10u8 {
+        let source = write_format(dir.path(), format);
+        let expected = match format {
+            8 | 10 => 8,
+            f if has_color(f) => 7,
+            _ => 6,
+        };
+        assert_round_trip(&python, &source, dir.path(), expected);
+    }
+}
+
+/// The real scans (autzen, format 3; lone star, format 1) come back point for point with
+/// every attribute.
+#[test]
+fn export_gives_back_every_attribute_of_the_real_scans() {
+    let Some(python) = test_python(&["laspy", "lazrs"], "tests/python/requirements.txt") else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    for (file, format) in [("autzen_trim.laz", 7), ("lone-star.laz", 6)] {
+        let Some(scan) = shared_data(file) else {
+            return;
+        };
+        assert_round_trip(&python, &scan, dir.path(), format);
+    }
+}

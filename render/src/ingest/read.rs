@@ -128,6 +128,10 @@ pub(super) struct DatasetFile {
     /// The header's scale factors and offsets: world = scale * integer + offset per axis.
     pub scale: DVec3,
     pub offset: DVec3,
+    /// Bytes of a record's point format fields, before its extra bytes.
+    pub format_len: usize,
+    /// The data of the file's extra bytes VLR (or EVLR), when it has one.
+    pub extra_bytes_vlr: Option<Vec<u8>>,
 }
 
 impl DatasetFile {
@@ -148,17 +152,28 @@ impl DatasetFile {
         let file_len = file.metadata().map_err(io_error)?.len();
         let CheckedFile { facts, laz, chunks } = check_file(path, &mut file, file_len)?;
         file.seek(SeekFrom::Start(0)).map_err(io_error)?;
-        let (header_bounds, has_color, scale, offset) = contain_panics(path, || {
-            let reader = open_reader(path, file, laz)?;
-            let header = reader.header();
-            let t = header.transforms();
-            Ok((
-                world_bounds(header.bounds()),
-                header.point_format().has_color,
-                DVec3::new(t.x.scale, t.y.scale, t.z.scale),
-                DVec3::new(t.x.offset, t.y.offset, t.z.offset),
-            ))
-        })?;
+        let (header_bounds, has_color, scale, offset, format_len, extra_bytes_vlr) =
+            contain_panics(path, || {
+                let reader = open_reader(path, file, laz)?;
+                let header = reader.header();
+                let t = header.transforms();
+                let format = header.point_format();
+                let extra_bytes_vlr = header
+                    .all_vlrs()
+                    .find(|vlr| {
+                        vlr.user_id == crate::extra_bytes::USER_ID
+                            && vlr.record_id == crate::extra_bytes::RECORD_ID
+                    })
+                    .map(|vlr| vlr.data.clone());
+                Ok((
+                    world_bounds(header.bounds()),
+                    format.has_color,
+                    DVec3::new(t.x.scale, t.y.scale, t.z.scale),
+                    DVec3::new(t.x.offset, t.y.offset, t.z.offset),
+                    usize::from(format.len() - format.extra_bytes),
+                    extra_bytes_vlr,
+                ))
+            })?;
         Ok(Self {
             path: path.to_owned(),
             file_len,
@@ -169,6 +184,8 @@ impl DatasetFile {
             has_color,
             scale,
             offset,
+            format_len,
+            extra_bytes_vlr,
         })
     }
 

@@ -11,7 +11,10 @@ use super::contain::contain_panics;
 use super::read::{usable, DatasetFile};
 use super::IngestError;
 use crate::cloud::WorldBounds;
-use crate::lod::{BatchColumns, BatchVisitor, LodError, PointSource, PositionGrid};
+use crate::lod::attributes::{extra_descriptors, RowFiller};
+use crate::lod::{
+    AttributeSchema, BatchColumns, BatchVisitor, LodError, PointSource, PositionGrid,
+};
 
 /// The files of a dataset, checked, as a source the level-of-detail builder reads once.
 pub struct DatasetSource {
@@ -20,6 +23,10 @@ pub struct DatasetSource {
     points: u64,
     has_rgb: bool,
     grid: Option<SharedGrid>,
+    /// Every attribute of the files' points, kept in the store for an export.
+    attributes: AttributeSchema,
+    /// How each file's records become attribute rows.
+    fillers: Vec<RowFiller>,
 }
 
 impl DatasetSource {
@@ -48,13 +55,66 @@ impl DatasetSource {
             min: union.min - slack,
             max: union.max + slack,
         };
+        let attributes = attribute_schema(&files);
+        let fillers = files
+            .iter()
+            .map(|file| {
+                let keep_extra = attributes.extra_bytes > 0;
+                RowFiller::new(
+                    file.facts.point_format,
+                    file.format_len,
+                    keep_extra,
+                    &attributes,
+                )
+            })
+            .collect();
         Ok(Self {
+            attributes,
+            fillers,
             grid: shared_grid(&files, &bounds),
             points: files.iter().map(|file| file.facts.declared_points).sum(),
             has_rgb: files.iter().all(|file| file.has_color),
             bounds,
             files,
         })
+    }
+}
+
+/// The attributes the files' points hold: near-infrared where every file has it, wave
+/// packets where one has them, and the extra bytes where every file declares the same ones
+/// (else they are dropped, and the schema says so, for the export to tell).
+fn attribute_schema(files: &[DatasetFile]) -> AttributeSchema {
+    let descriptors: Vec<Vec<u8>> = files
+        .iter()
+        .map(|file| {
+            let extra = usize::from(file.facts.record_len).saturating_sub(file.format_len);
+            extra_descriptors(file.extra_bytes_vlr.as_deref(), extra)
+        })
+        .collect();
+    let shared = descriptors.windows(2).all(|pair| pair[0] == pair[1]);
+    let extra_descriptors = match shared {
+        true => descriptors.first().cloned().unwrap_or_default(),
+        false => Vec::new(),
+    };
+    let extra_bytes = crate::lod::attributes::declared_bytes(&extra_descriptors)
+        .and_then(|n| u16::try_from(n).ok())
+        .unwrap_or(0);
+    let format = |file: &DatasetFile| file.facts.point_format;
+    AttributeSchema {
+        has_nir: files.iter().all(|file| matches!(format(file), 8 | 10)),
+        has_waveform: files
+            .iter()
+            .any(|file| matches!(format(file), 4 | 5 | 9 | 10)),
+        extra_descriptors: if extra_bytes > 0 {
+            extra_descriptors
+        } else {
+            Vec::new()
+        },
+        extra_bytes,
+        source_formats: files
+            .iter()
+            .fold(0, |bits, file| bits | 1u16 << format(file).min(15)),
+        extra_bytes_dropped: !shared,
     }
 }
 
@@ -137,6 +197,7 @@ fn fill(
     batch: &las::PointData,
     with_rgb: bool,
     grid: Option<(&PositionGrid, [i64; 3])>,
+    rows: &RowFiller,
 ) {
     let fields = RecordFields::of(batch);
     let n = batch.len();
@@ -181,6 +242,22 @@ fn fill(
                 }
             }
         });
+    let row_bytes = rows.row_bytes();
+    if row_bytes > 0 {
+        columns.rows.resize(n * row_bytes, 0);
+        columns
+            .rows
+            .par_chunks_mut(FILL_BLOCK_POINTS * row_bytes)
+            .zip(bytes.par_chunks(block_bytes))
+            .for_each(|(out, block)| {
+                for (row, r) in out
+                    .chunks_exact_mut(row_bytes)
+                    .zip(block.chunks_exact(fields.len))
+                {
+                    rows.fill(r, row);
+                }
+            });
+    }
     if let (true, Some(at)) = (with_rgb, fields.rgb) {
         columns.rgb.resize(n, [0; 3]);
         columns
@@ -207,6 +284,11 @@ impl PointSource for DatasetSource {
     /// Positions are decoded on the shared grid (`fill`), exactly as it computes them.
     fn position_grid(&self) -> Option<PositionGrid> {
         self.grid.as_ref().map(|shared| shared.grid)
+    }
+
+    /// Every attribute of the files' points, which the export writes back.
+    fn attributes(&self) -> Option<AttributeSchema> {
+        Some(self.attributes.clone())
     }
 
     /// The files are decoded on a thread of their own, a batch ahead of `visit`: what the
@@ -256,7 +338,7 @@ impl DatasetSource {
             let read = contain_panics(&file.path, || {
                 file.for_each_batch(|batch| {
                     let mut columns = spares.try_recv().unwrap_or_default();
-                    fill(&mut columns, batch, self.has_rgb, grid);
+                    fill(&mut columns, batch, self.has_rgb, grid, &self.fillers[k]);
                     filled.send(columns).map_err(|_| {
                         stopped = true;
                         IngestError::Corrupt {
@@ -361,6 +443,7 @@ mod tests {
             .map(|n| crate::lod::NodeInfo {
                 offset: 0,
                 rest_offset: 0,
+                attributes_offset: 0,
                 ..*n
             })
             .collect();
@@ -393,6 +476,14 @@ mod tests {
         assert!(built[0] == built[1], "LAS and LAZ built different stores");
     }
 
+    /// The attribute rows of `points`' format, without their extra bytes.
+    fn no_extra_rows(points: &las::PointData) -> RowFiller {
+        let format = points.format();
+        let len = usize::from(format.len() - format.extra_bytes);
+        let number = format.to_u8().expect("a format number");
+        RowFiller::new(number, len, false, &AttributeSchema::default())
+    }
+
     /// The parallel fill gives what the `las` crate's column iterators give, in every point
     /// format, over more than one block.
     #[test]
@@ -404,7 +495,8 @@ mod tests {
             let mut reader = las::Reader::from_path(&path).expect("reader");
             let points = reader.read_all().expect("read");
             let mut columns = BatchColumns::default();
-            fill(&mut columns, &points, true, None);
+            let rows = no_extra_rows(&points);
+            fill(&mut columns, &points, true, None, &rows);
             let positions = crate::testing::las_world_positions(&points);
             assert_eq!(columns.positions, positions, "format {format}");
             // On the file's own grid, the same positions bit for bit.
@@ -415,7 +507,8 @@ mod tests {
             )
             .expect("a grid");
             let mut on_grid = BatchColumns::default();
-            fill(&mut on_grid, &points, true, Some((&grid, [0; 3])));
+            fill(&mut on_grid, &points, true, Some((&grid, [0; 3])), &rows);
+            assert_eq!(on_grid.rows, columns.rows, "format {format}");
             let bits = |p: &[DVec3]| -> Vec<[u64; 3]> {
                 p.iter().map(|p| p.to_array().map(f64::to_bits)).collect()
             };
@@ -451,6 +544,57 @@ mod tests {
         fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
             self.0.for_each_batch(visit)
         }
+        fn attributes(&self) -> Option<AttributeSchema> {
+            self.0.attributes()
+        }
+    }
+
+    /// A source's batches without their attribute rows, as a source that keeps none.
+    struct WithoutAttributes<'a>(&'a DatasetSource);
+
+    impl PointSource for WithoutAttributes<'_> {
+        fn bounds(&self) -> WorldBounds {
+            self.0.bounds()
+        }
+        fn point_count(&self) -> u64 {
+            self.0.point_count()
+        }
+        fn position_grid(&self) -> Option<PositionGrid> {
+            self.0.position_grid()
+        }
+        fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
+            self.0
+                .for_each_batch(&mut |batch| visit(crate::lod::PointBatch { rows: &[], ..batch }))
+        }
+    }
+
+    /// The attributes sections change nothing a frame reads: a build that keeps them stores
+    /// the same nodes, records and statistics as one that does not, and only it lists
+    /// attributes sections, whose rows give back each point's GPS time.
+    #[test]
+    fn attributes_sections_leave_what_frames_read_unchanged() {
+        use crate::ingest::test_files::written_1_4;
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (path, _) = written_1_4(dir.path(), "f3.las", 30_000, 3);
+        let source = DatasetSource::open(&[path]).expect("open");
+        let db = sled::Config::new().temporary(true).open().expect("sled");
+        let (_, with) = built_store(&source, &db, dir.path(), "with");
+        let (_, without) = built_store(&WithoutAttributes(&source), &db, dir.path(), "without");
+        let records = |stored: &Stored| -> Vec<crate::lod::NodeInfo> {
+            let no_attributes = |n: &crate::lod::NodeInfo| crate::lod::NodeInfo {
+                attributes_len: 0,
+                ..*n
+            };
+            stored.infos.iter().map(no_attributes).collect()
+        };
+        assert!(with.infos.len() > 1);
+        assert_eq!(records(&with), records(&without));
+        assert!(with.nodes == without.nodes && with.stats == without.stats);
+        assert!(with
+            .infos
+            .iter()
+            .all(|n| n.attributes_len > 0 || n.point_count == 0));
+        assert!(without.infos.iter().all(|n| n.attributes_len == 0));
     }
 
     /// Tiles written with offsets of their own share one grid: their points read onto it
@@ -488,6 +632,7 @@ mod tests {
                 &points,
                 true,
                 Some((&shared.grid, shared.shifts[k])),
+                &no_extra_rows(&points),
             );
             for (a, b) in columns.positions.iter().zip(&own) {
                 let step = b.abs().max_element() * f64::EPSILON;
@@ -507,10 +652,11 @@ mod tests {
             grid_report.spill_record_bytes,
             world_report.spill_record_bytes,
         );
-        assert_eq!(record_bytes, (26, 38));
+        // The positions' 26 or 38 bytes, then the 16 of a row of format 1's attributes.
+        assert_eq!(record_bytes, (26 + 16, 38 + 16));
         let spilled = (grid_report.spilled_bytes, world_report.spilled_bytes);
         assert!(
-            spilled.0 * 38 == spilled.1 * 26,
+            spilled.0 * (38 + 16) == spilled.1 * (26 + 16),
             "{spilled:?} bytes spilled"
         );
         assert!(grid.infos.len() > 1);

@@ -23,14 +23,16 @@ use std::time::{Duration, Instant};
 
 use super::context::BuildContext;
 use super::counting::{
-    count_points, CountGrid, BUCKET_SEGMENT_POINTS, COUNTING_BLOCKS_BYTES, MAX_COUNT_LEVEL,
+    count_points, counting_blocks_bytes, CountGrid, BUCKET_SEGMENT_POINTS, MAX_COUNT_LEVEL,
 };
 use super::error::LodError;
 use super::hierarchy::LodHierarchy;
 use super::key::RootCube;
 use super::memory::MemoryMeter;
-use super::options::{LodBuildOptions, BUILD_BYTES_PER_POINT};
-use super::partitions::{build_partitions, partition_bytes, partition_files};
+use super::options::LodBuildOptions;
+use super::partitions::{
+    build_bytes_per_point, build_partitions, partition_bytes, partition_files,
+};
 use super::plan::plan_partitions;
 use super::point::RecordLayout;
 use super::progress::BuildProgress;
@@ -148,22 +150,27 @@ fn build_on_pool(
     let budget = meter.largest_possible();
     let threads = rayon::current_num_threads() as u64;
     let leaf = options.max_leaf_points as u64;
+    let attributes = source.attributes();
+    let row_bytes = attributes.as_ref().map_or(0, |a| a.row_bytes());
+    let layout = RecordLayout::for_grid(source.position_grid(), row_bytes);
+    let point_bytes = build_bytes_per_point(layout);
     // Small enough that every thread can hold a partition and has several to build, never below
     // a few leaves, and always within the budget.
-    let max_partition = (budget / (BUILD_BYTES_PER_POINT * threads))
+    let max_partition = (budget / (point_bytes * threads))
         .min(options.max_partition_points)
         .min(source.point_count() / (4 * threads))
         .max(4 * leaf)
-        .min((budget - partition_bytes(0)) / BUILD_BYTES_PER_POINT);
+        .min(budget.saturating_sub(partition_bytes(0, layout)) / point_bytes)
+        .max(1);
     let level = count_level(source.point_count(), max_partition, budget);
     store.clear()?;
-    let layout = RecordLayout::for_grid(source.position_grid());
     let spill = SpillDir::create(&options.spill_dir, layout)?;
 
     let grid_bytes = CountGrid::planning_bytes(level);
     let grid_reservation = meter.try_reserve(grid_bytes, "the counting grid")?;
-    let buffer_bytes = (budget.saturating_sub(grid_bytes + COUNTING_BLOCKS_BYTES) / 4)
-        .clamp(1 << 16, BUCKET_BUFFER_BYTES);
+    let blocks_bytes = counting_blocks_bytes(layout.record_bytes());
+    let buffer_bytes =
+        (budget.saturating_sub(grid_bytes + blocks_bytes) / 4).clamp(1 << 16, BUCKET_BUFFER_BYTES);
     let (grid, stats) = count_points(
         source,
         &cube,
@@ -222,7 +229,8 @@ fn build_on_pool(
         options.max_leaf_points as u32,
         stats,
         sink.into_nodes(),
-    );
+    )
+    .with_attributes(attributes);
     let hierarchy_bytes = store.write_hierarchy(&hierarchy)?;
     timings.total = start.elapsed();
     let spilled_bytes = spill.written_bytes();

@@ -389,6 +389,7 @@ mod tests {
                 classification: (i % 7) as u8,
                 return_number: (i % 3) as u8,
                 weight: i as u32 * 40,
+                row: 0,
             })
             .collect();
         let bytes = encode_node(&cube, key, &points, true);
@@ -437,6 +438,7 @@ mod tests {
                 classification: 2,
                 return_number: 1,
                 weight: 1,
+                row: 0,
             })
             .collect();
         let bytes = encode_node(&cube, key, &points, true);

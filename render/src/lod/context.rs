@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use std::sync::atomic::AtomicUsize;
 use std::sync::Mutex;
 
+use super::attributes::AttributeRows;
 use super::error::LodError;
 use super::key::{NodeKey, RootCube};
 use super::local::LocalBuilder;
@@ -37,27 +38,31 @@ pub struct BuildContext<'a> {
 }
 
 impl BuildContext<'_> {
-    pub fn local_builder(&self) -> LocalBuilder<'_> {
+    /// A builder of points whose attribute rows are `rows`.
+    pub fn local_builder<'r>(&'r self, rows: &'r AttributeRows) -> LocalBuilder<'r> {
         LocalBuilder {
             cube: self.cube,
             max_leaf_points: self.options.max_leaf_points,
             sample_grid: self.options.sample_grid,
             sink: self.sink,
+            rows,
         }
     }
 
-    /// Finishes the root, or parks a subtree root for the level above.
+    /// Finishes the root, or parks a subtree root for the level above; `rows` are the
+    /// points' attribute rows.
     pub fn finish_subtree(
         &self,
         key: NodeKey,
         points: &[RawPoint],
         sample_grid: u32,
+        rows: &AttributeRows,
     ) -> Result<(), LodError> {
         if key.level == 0 {
-            return self.sink.emit(key, points, sample_grid);
+            return self.sink.emit(key, points, sample_grid, rows);
         }
         let path = self.spill.file(&format!("root-{key}.bin"));
-        self.spill.write_file(&path, points)?;
+        self.spill.write_file(&path, points, rows)?;
         let pending = Pending {
             count: points.len() as u64,
             sample_grid,

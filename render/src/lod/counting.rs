@@ -32,8 +32,10 @@ pub const BUCKET_SEGMENT_POINTS: u64 = 1 << 25;
 /// Points whose buckets and records are made at once, on all cores.
 const RECORD_BLOCK_POINTS: usize = 1 << 13;
 /// What the pass's blocks hold, three at most (one made, one queued, one scattered): each
-/// point's bucket and its record.
-pub const COUNTING_BLOCKS_BYTES: u64 = 3 * (RECORD_BLOCK_POINTS * (4 + MAX_RECORD_BYTES)) as u64;
+/// point's bucket and its record of `record_bytes`.
+pub fn counting_blocks_bytes(record_bytes: usize) -> u64 {
+    3 * (RECORD_BLOCK_POINTS * (4 + record_bytes.max(MAX_RECORD_BYTES))) as u64
+}
 
 /// Points per cell of the bucket grid at `level`, cells in x-fastest order.
 pub struct CountGrid {
@@ -85,8 +87,9 @@ pub fn check_batch(
     bounds: &WorldBounds,
     cube: &RootCube,
     first: u64,
+    row_bytes: usize,
 ) -> Result<(), LodError> {
-    batch.check_lengths()?;
+    batch.check_lengths(row_bytes)?;
     let tol = tolerance(cube);
     let lo = bounds.min - tol;
     let hi = bounds.max + tol;
@@ -142,7 +145,9 @@ impl RecordBlock {
             .try_for_each(|(task, out)| {
                 let first = range.start + task * PER_TASK;
                 for (j, record) in out.chunks_exact_mut(record_bytes).enumerate() {
-                    layout.write(&RawPoint::from_batch(batch, first + j), record)?;
+                    let i = first + j;
+                    let row = batch.row(i, layout.row_bytes);
+                    layout.write(&RawPoint::from_batch(batch, i), row, record)?;
                 }
                 Ok(())
             })
@@ -162,7 +167,8 @@ pub fn count_points(
     segment_points: u64,
 ) -> Result<(CountGrid, DatasetStats), LodError> {
     let reservation = meter.try_reserve(2 * buffer_bytes, "the buckets' write buffers")?;
-    let _blocks = meter.try_reserve(COUNTING_BLOCKS_BYTES, "blocks of spill records")?;
+    let blocks_bytes = counting_blocks_bytes(spill.layout().record_bytes());
+    let _blocks = meter.try_reserve(blocks_bytes, "blocks of spill records")?;
     let buckets = 1usize << (3 * level);
     // Every bucket can take every point: as many segments each as the whole source fills.
     let segments = source.point_count().div_ceil(segment_points).max(1) as usize;
@@ -197,7 +203,7 @@ pub fn count_points(
             )
         });
         let walked = source.for_each_batch(&mut |batch| {
-            check_batch(&batch, &bounds, cube, read)?;
+            check_batch(&batch, &bounds, cube, read, layout.row_bytes)?;
             let stats = stats.get_or_insert_with(|| DatasetStats::new(batch.rgb.is_some()));
             if stats.has_rgb != batch.rgb.is_some() {
                 return Err(LodError::Source(format!(
@@ -295,7 +301,7 @@ mod tests {
         let source = GeneratedSource::terrain(10_000, 1);
         let cube = RootCube::around(&source.bounds()).expect("cube");
         let meter = MemoryMeter::new(64 << 20);
-        let spill = SpillDir::create(dir.path(), RecordLayout::for_grid(None)).expect("spill");
+        let spill = SpillDir::create(dir.path(), RecordLayout::for_grid(None, 0)).expect("spill");
         let (grid, stats) =
             count_points(&source, &cube, 1, &meter, &spill, 1 << 16, 1_000).expect("counted");
         assert_eq!(grid.counts.len(), 8);
@@ -318,7 +324,9 @@ mod tests {
                 left -= left.min(1_000);
             }
             // Each point in its bucket's cell.
-            let points = crate::lod::spill::read_all(&files, spill.layout(), count).expect("read");
+            let mut rows = crate::lod::attributes::AttributeRows::new(0);
+            let points = crate::lod::spill::read_all(&files, spill.layout(), count, &mut rows)
+                .expect("read");
             for p in points {
                 assert_eq!(CountGrid::index(1, cube.cell_at(p.position, 1)), bucket);
             }

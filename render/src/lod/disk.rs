@@ -9,9 +9,11 @@ use super::source::PointSource;
 /// The largest spill record, for an estimate made before the files are open.
 pub const MAX_SPILL_RECORD_BYTES: u64 = MAX_RECORD_BYTES as u64;
 
-/// Bytes of a spill record of `source`'s build: smaller where its files share one grid.
+/// Bytes of a spill record of `source`'s build: smaller where its files share one grid,
+/// larger by the attribute row where the source keeps every attribute.
 pub fn spill_record_bytes(source: &dyn PointSource) -> u64 {
-    RecordLayout::for_grid(source.position_grid()).record_bytes() as u64
+    let row_bytes = source.attributes().map_or(0, |a| a.row_bytes());
+    RecordLayout::for_grid(source.position_grid(), row_bytes).record_bytes() as u64
 }
 
 /// Bytes a build of `points` points needs on disk at its peak, in spill records of

@@ -7,30 +7,34 @@
 //! intensity bins used u32, then (value u16, count u64) each | classes used u16, then
 //! (class u8, count u64) each | nodes u32, then per node: level u8, x, y, z u32, points u32,
 //! sampling grid u16, child mask u8, payload offset u64, payload bytes u32, head bytes u32,
-//! rest offset u64 | checksum u64. A record of another version is refused (the dataset is
-//! then rebuilt): "PFH6" marks stores whose node records keep a coarse section with a checksum
-//! of its own ("PFN3", `codec.rs`), stored apart from the rest of the record (`sink.rs`).
+//! rest offset u64, attributes offset u64, attributes bytes u32 | attribute schema present u8,
+//! then the schema (`attributes.rs`) | checksum u64. A record of another version is refused
+//! (the dataset is then rebuilt): "PFH7" marks stores whose nodes keep every attribute of
+//! their points in an attributes section of their own, beside the coarse section and the
+//! rest ("PFN3", `codec.rs`; `sink.rs`).
 
 use std::collections::{BTreeSet, HashMap, HashSet};
 
 use glam::DVec3;
 
+use super::attributes::AttributeSchema;
 use super::checksum::checksum64;
 use super::error::LodError;
 use super::key::{NodeKey, RootCube};
 use super::stats::{DatasetStats, INTENSITY_BINS};
 
-const MAGIC: &[u8; 4] = b"PFH6";
+const MAGIC: &[u8; 4] = b"PFH7";
 /// The magics of earlier versions of the record, with what each lacks, so a store built by an
 /// earlier version is refused with a reason rather than read wrong.
-const EARLIER_VERSIONS: [(&[u8; 4], &str); 4] = [
+const EARLIER_VERSIONS: [(&[u8; 4], &str); 5] = [
     (b"PFH1", "payloads in sled"),
     (b"PFH2", "no lowest RGB values"),
     (b"PFH3", "no point weights"),
     (b"PFH5", "records stored in one piece"),
+    (b"PFH6", "no attributes sections"),
 ];
 /// Bytes of one node in the record.
-const NODE_RECORD_BYTES: usize = 44;
+const NODE_RECORD_BYTES: usize = 56;
 const CHECKSUM_SEED: &[u8] = b"hierarchy";
 
 /// One node of the hierarchy.
@@ -54,6 +58,11 @@ pub struct NodeInfo {
     /// Where the record's bytes after its head lie; `offset + head_len` when it is stored in
     /// one piece.
     pub rest_offset: u64,
+    /// Where the node's attributes section lies (`attributes.rs`), which only an export reads;
+    /// 0 for a node without one.
+    pub attributes_offset: u64,
+    /// Bytes of the attributes section; 0 where the store keeps none.
+    pub attributes_len: u32,
 }
 
 impl NodeInfo {
@@ -68,7 +77,20 @@ impl NodeInfo {
             byte_len: 0,
             head_len: 0,
             rest_offset: 0,
+            attributes_offset: 0,
+            attributes_len: 0,
         }
+    }
+
+    /// Bytes the node takes in the payload file: its record and its attributes section.
+    pub fn stored_bytes(&self) -> u64 {
+        u64::from(self.byte_len) + u64::from(self.attributes_len)
+    }
+
+    /// Where the node's attributes section lies in the payload file.
+    pub fn attributes_range(&self) -> std::ops::Range<u64> {
+        let start = self.attributes_offset;
+        start..start.saturating_add(u64::from(self.attributes_len))
     }
 
     /// A record stored in one piece: `byte_len` bytes at `offset`.
@@ -114,6 +136,8 @@ pub struct LodHierarchy {
     /// lazily): each listed as a node without points or children until its page is read. Not
     /// part of the record: a hierarchy that is sent or stored has every page read.
     unread_pages: BTreeSet<NodeKey>,
+    /// What the nodes' attributes sections hold, where the build kept them.
+    attributes: Option<AttributeSchema>,
     /// Sorted by key: level, then x, y, z.
     nodes: Vec<NodeInfo>,
     index: HashMap<NodeKey, usize>,
@@ -182,9 +206,22 @@ impl LodHierarchy {
             stats,
             level_spacing: None,
             unread_pages: BTreeSet::new(),
+            attributes: None,
             nodes,
             index,
         }
+    }
+
+    /// This hierarchy with its nodes' attributes sections holding rows of `attributes`.
+    pub(crate) fn with_attributes(mut self, attributes: Option<AttributeSchema>) -> Self {
+        self.attributes = attributes;
+        self
+    }
+
+    /// What the nodes' attributes sections hold; `None` where the store keeps none (a store
+    /// of generated points, a COPC file).
+    pub fn attributes(&self) -> Option<&AttributeSchema> {
+        self.attributes.as_ref()
     }
 
     /// A hierarchy whose inner nodes' spacing is `root_spacing` halved at each level (a COPC
@@ -270,9 +307,10 @@ impl LodHierarchy {
         self.index.get(&key).map(|&i| &self.nodes[i])
     }
 
-    /// Bytes of every node's record: the payload file's size after the build.
+    /// Bytes of every node's record and attributes section: the payload file's size after
+    /// the build.
     pub fn payload_bytes(&self) -> u64 {
-        self.nodes.iter().map(|n| u64::from(n.byte_len)).sum()
+        self.nodes.iter().map(NodeInfo::stored_bytes).sum()
     }
 
     /// Points a node to another copy of its record (the damage tests' hook).
@@ -372,6 +410,15 @@ impl LodHierarchy {
             out.extend_from_slice(&n.byte_len.to_le_bytes());
             out.extend_from_slice(&n.head_len.to_le_bytes());
             out.extend_from_slice(&n.rest_offset.to_le_bytes());
+            out.extend_from_slice(&n.attributes_offset.to_le_bytes());
+            out.extend_from_slice(&n.attributes_len.to_le_bytes());
+        }
+        match &self.attributes {
+            Some(schema) => {
+                out.push(1);
+                schema.encode(&mut out);
+            }
+            None => out.push(0),
         }
         let sum = checksum64(CHECKSUM_SEED, &out);
         out.extend_from_slice(&sum.to_le_bytes());
@@ -441,23 +488,27 @@ impl LodHierarchy {
                 byte_len: r.u32()?,
                 head_len: r.u32()?,
                 rest_offset: r.u64()?,
+                attributes_offset: r.u64()?,
+                attributes_len: r.u32()?,
             };
             if node.head_len > node.byte_len {
                 return Err(corrupt("a node's head is longer than its record"));
             }
             nodes.push(node);
         }
+        let attributes = match r.u8()? {
+            0 => None,
+            1 => Some(AttributeSchema::decode(body, &mut r.at).map_err(|e| corrupt(&e))?),
+            other => return Err(corrupt(&format!("attribute schema marker {other}"))),
+        };
         if r.at != body.len() {
             return Err(corrupt("trailing bytes"));
         }
         debug_assert_eq!(stats.intensity_histogram.len(), INTENSITY_BINS);
-        Ok(Self::from_nodes(
-            cube,
-            point_count,
-            max_leaf_points,
-            stats,
-            nodes,
-        ))
+        Ok(
+            Self::from_nodes(cube, point_count, max_leaf_points, stats, nodes)
+                .with_attributes(attributes),
+        )
     }
 }
 

@@ -4,6 +4,7 @@
 //! partition's region, stored together once the partition is built (`sink.rs`). The partition's
 //! root is returned unfinished: the levels above the partitions still sample from it.
 
+use super::attributes::AttributeRows;
 use super::error::LodError;
 use super::key::{NodeKey, RootCube, MAX_LEVEL};
 use super::point::RawPoint;
@@ -21,6 +22,8 @@ pub struct LocalBuilder<'a> {
     pub max_leaf_points: usize,
     pub sample_grid: u32,
     pub sink: &'a NodeSink<'a>,
+    /// The attribute rows of the points built.
+    pub rows: &'a AttributeRows,
 }
 
 impl LocalBuilder<'_> {
@@ -52,7 +55,7 @@ impl LocalBuilder<'_> {
         let sampled = sample(&self.cube, key, own, self.sample_grid, self.max_leaf_points);
         for (i, kept) in sampled.kept.iter().enumerate() {
             if present[i] {
-                region.push(self.sink.encode(key.child(i), kept, grids[i])?);
+                region.push(self.sink.encode(key.child(i), kept, grids[i], self.rows)?);
             }
         }
         Ok(SubtreeRoot {

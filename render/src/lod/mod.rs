@@ -19,6 +19,7 @@
 //! hierarchy, with pages read as frames reach them, `pages.rs`, and its colour ranges,
 //! `colors.rs`), what both the COPC reader and the cut renderer build on.
 
+pub mod attributes;
 pub mod build;
 mod checksum;
 pub mod codec;
@@ -54,6 +55,7 @@ pub mod weights;
 #[cfg(test)]
 mod tests;
 
+pub use attributes::AttributeSchema;
 pub use build::{build_lod, build_lod_watched, BuildTimings, LodBuildReport};
 pub use codec::NodePoints;
 pub use colors::DatasetColoring;

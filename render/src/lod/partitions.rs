@@ -7,13 +7,15 @@ use std::path::PathBuf;
 
 use rayon::prelude::*;
 
+use super::attributes::AttributeRows;
 use super::context::BuildContext;
 use super::counting::CountGrid;
 use super::error::LodError;
 use super::key::MAX_LEVEL;
 use super::options::BUILD_BYTES_PER_POINT;
 use super::plan::{Partition, PartitionPlan};
-use super::spill::{self, SpillDir, SpillWriter, READ_BLOCK_BYTES};
+use super::point::RecordLayout;
+use super::spill::{self, read_block_bytes, SpillDir, SpillWriter};
 
 /// The most bytes of write buffers when a partition is split further.
 const SPLIT_BUFFER_BYTES: u64 = 8 << 20;
@@ -23,9 +25,14 @@ const SPLIT_BUFFER_BYTES: u64 = 8 << 20;
 /// for it are built as one partition when they fit, however many.
 const FINEST_SPLIT_LEVEL: u8 = 7;
 
-/// Bytes a partition of `count` points reserves while it is built.
-pub fn partition_bytes(count: u64) -> u64 {
-    count * BUILD_BYTES_PER_POINT + READ_BLOCK_BYTES
+/// Bytes a point takes while it is built, with its attribute row (held once, beside it).
+pub fn build_bytes_per_point(layout: RecordLayout) -> u64 {
+    BUILD_BYTES_PER_POINT + layout.row_bytes as u64
+}
+
+/// Bytes a partition of `count` points, records in `layout`, reserves while it is built.
+pub fn partition_bytes(count: u64, layout: RecordLayout) -> u64 {
+    count * build_bytes_per_point(layout) + read_block_bytes(layout)
 }
 
 fn partition_path(ctx: &BuildContext<'_>, partition: &Partition) -> PathBuf {
@@ -65,7 +72,7 @@ fn build_partition(
     partition: Partition,
     files: Vec<PathBuf>,
 ) -> Result<(), LodError> {
-    let needed = partition_bytes(partition.count);
+    let needed = partition_bytes(partition.count, ctx.spill.layout());
     let fits = needed <= ctx.meter.largest_possible();
     // A dense bucket is a partition far above the plan's size: split, it keeps the cores busy.
     let oversized =
@@ -84,16 +91,18 @@ fn build_partition(
         return build_partitions(ctx, parts);
     }
     let _reservation = ctx.meter.reserve(needed, "a partition built in memory")?;
-    let points = spill::read_all(&files, ctx.spill.layout(), partition.count)?;
+    let layout = ctx.spill.layout();
+    let mut rows = AttributeRows::new(layout.row_bytes);
+    let points = spill::read_all(&files, layout, partition.count, &mut rows)?;
     for path in &files {
         spill::remove(path)?;
     }
     let mut region = Vec::new();
     let root = ctx
-        .local_builder()
+        .local_builder(&rows)
         .build(partition.key, points, &mut region)?;
     ctx.sink.store(region)?;
-    ctx.finish_subtree(partition.key, &root.points, root.sample_grid)
+    ctx.finish_subtree(partition.key, &root.points, root.sample_grid, &rows)
 }
 
 /// Streams a partition's files into eight files, one per child, each removed once read.
@@ -110,20 +119,22 @@ fn split_partition(
         .collect();
     let paths: Vec<PathBuf> = children.iter().map(|c| partition_path(ctx, c)).collect();
     let buffer = SPLIT_BUFFER_BYTES.min(ctx.meter.largest_possible() / 8);
-    let reservation = ctx
-        .meter
-        .reserve(2 * buffer + READ_BLOCK_BYTES, "splitting a partition")?;
+    let reservation = ctx.meter.reserve(
+        2 * buffer + read_block_bytes(ctx.spill.layout()),
+        "splitting a partition",
+    )?;
     let mut writer = SpillWriter::new(ctx.spill, paths.clone(), buffer as usize, reservation);
     let mut counts = [0u64; 8];
     let level = u32::from(partition.key.level) + 1;
     let base = partition.key.cell() * 2;
     for path in files {
-        spill::for_each_block(path, ctx.spill.layout(), |block| {
-            for p in block {
+        let record_bytes = ctx.spill.layout().record_bytes();
+        spill::for_each_block(path, ctx.spill.layout(), |block, records| {
+            for (p, record) in block.iter().zip(records.chunks_exact(record_bytes)) {
                 let c = ctx.cube.cell_at(p.position, level) - base;
                 let i = (c.x | (c.y << 1) | (c.z << 2)) as usize;
                 counts[i] += 1;
-                writer.push(i, p)?;
+                writer.push_record(i, record)?;
             }
             Ok(())
         })?;

@@ -22,6 +22,16 @@ pub trait NodeRecords: Send + Sync {
         None
     }
 
+    /// The attributes sections of `nodes` (`attributes.rs`), in order, checked, as rows;
+    /// `None` where this source does not keep them (a COPC file, the daemon's records).
+    fn read_attribute_rows(
+        &self,
+        _hierarchy: &LodHierarchy,
+        _nodes: &[NodeInfo],
+    ) -> Option<Result<Vec<Vec<u8>>, LodError>> {
+        None
+    }
+
     /// A record's points, checked against what the hierarchy says of its node. A store's
     /// records are its own format ([`decode_node`]); a source whose records are another
     /// format (a COPC file's LAZ chunks) decodes them itself.

@@ -488,6 +488,7 @@ mod tests {
                 classification: 0,
                 return_number: 0,
                 weight: 1 + (next() * 4.0) as u32,
+                row: 0,
             });
         }
         for (grid, max_points) in [
@@ -537,6 +538,7 @@ mod tests {
                 classification: 0,
                 return_number: 0,
                 weight: 1,
+                row: 0,
             })
             .collect();
         for grid in [8u32, 128] {

@@ -5,11 +5,14 @@
 //! contiguous range of the payload file: the coarse sections of its nodes, shallow levels first and
 //! each level along a Z curve, then the rest of their records in the same order. A cut takes a
 //! partition's nodes from the top down and reads most of them coarse, so it reads a few long ranges
-//! where it would read one range a node (docs/perf/payload-layout.md).
+//! where it would read one range a node (docs/perf/payload-layout.md). The nodes' attributes
+//! sections, which only an export reads, follow the rests, so no frame's read runs through
+//! them.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
 
+use super::attributes::{encode_section, AttributeRows};
 use super::codec::{coarse_len, encode_node};
 use super::error::LodError;
 use super::hierarchy::NodeInfo;
@@ -32,6 +35,7 @@ pub struct NodeSink<'a> {
 pub struct EncodedNode {
     info: NodeInfo,
     record: Vec<u8>,
+    attributes: Vec<u8>,
 }
 
 impl<'a> NodeSink<'a> {
@@ -52,13 +56,15 @@ impl<'a> NodeSink<'a> {
         }
     }
 
-    /// Encodes a finished node; `sample_grid` is 0 for a leaf. An empty node is only listed:
-    /// the hierarchy keeps it if it has children.
+    /// Encodes a finished node, with its points' attribute `rows` where the build keeps
+    /// them; `sample_grid` is 0 for a leaf. An empty node is only listed: the hierarchy keeps
+    /// it if it has children.
     pub fn encode(
         &self,
         key: NodeKey,
         points: &[RawPoint],
         sample_grid: u32,
+        rows: &AttributeRows,
     ) -> Result<EncodedNode, LodError> {
         let record = match points.is_empty() {
             true => Vec::new(),
@@ -72,14 +78,28 @@ impl<'a> NodeSink<'a> {
             true => 0,
             false => coarse_len(points.len(), self.has_rgb) as u32,
         };
+        let attributes = encode_section(key, points, rows);
+        let attributes_len =
+            u32::try_from(attributes.len()).map_err(|_| LodError::CorruptNode {
+                key,
+                reason: format!(
+                    "{} bytes of attributes is more than a node may hold",
+                    attributes.len()
+                ),
+            })?;
         let info = NodeInfo {
             point_count: points.len() as u32,
             sample_grid,
             byte_len,
             head_len,
+            attributes_len,
             ..NodeInfo::empty(key)
         };
-        Ok(EncodedNode { info, record })
+        Ok(EncodedNode {
+            info,
+            record,
+            attributes,
+        })
     }
 
     /// Stores one finished node.
@@ -88,8 +108,9 @@ impl<'a> NodeSink<'a> {
         key: NodeKey,
         points: &[RawPoint],
         sample_grid: u32,
+        rows: &AttributeRows,
     ) -> Result<(), LodError> {
-        self.store(vec![self.encode(key, points, sample_grid)?])
+        self.store(vec![self.encode(key, points, sample_grid, rows)?])
     }
 
     /// Stores `region` as one contiguous range of the payload file (the module's layout) and lists
@@ -100,7 +121,8 @@ impl<'a> NodeSink<'a> {
             .iter()
             .map(|n| n.record.split_at(n.info.head_len as usize))
             .unzip();
-        let pieces: Vec<&[u8]> = heads.into_iter().chain(rests).collect();
+        let attributes = region.iter().map(|n| n.attributes.as_slice());
+        let pieces: Vec<&[u8]> = heads.into_iter().chain(rests).chain(attributes).collect();
         let mut at = self.store.write_region(&pieces)?;
         let mut infos: Vec<NodeInfo> = region.iter().map(|n| n.info).collect();
         for info in infos.iter_mut().filter(|n| n.byte_len > 0) {
@@ -111,9 +133,12 @@ impl<'a> NodeSink<'a> {
             info.rest_offset = at;
             at += u64::from(info.byte_len - info.head_len);
         }
+        for info in infos.iter_mut().filter(|n| n.attributes_len > 0) {
+            info.attributes_offset = at;
+            at += u64::from(info.attributes_len);
+        }
         for info in &infos {
-            self.bytes
-                .fetch_add(u64::from(info.byte_len), Ordering::Relaxed);
+            self.bytes.fetch_add(info.stored_bytes(), Ordering::Relaxed);
             self.points
                 .fetch_add(u64::from(info.point_count), Ordering::Relaxed);
             self.progress.stored(*info);

@@ -3,6 +3,7 @@
 
 use glam::DVec3;
 
+use super::attributes::AttributeSchema;
 use super::error::LodError;
 use super::grid::PositionGrid;
 use crate::cloud::{PointCloud, WorldBounds};
@@ -16,6 +17,9 @@ pub struct PointBatch<'a> {
     pub intensity: &'a [u16],
     pub classification: &'a [u8],
     pub return_number: &'a [u8],
+    /// Each point's attribute row, one after another (`attributes.rs`); empty where the
+    /// source has no [`PointSource::attributes`].
+    pub rows: &'a [u8],
 }
 
 impl PointBatch<'_> {
@@ -27,14 +31,23 @@ impl PointBatch<'_> {
         self.positions.is_empty()
     }
 
-    /// Every column as long as `positions`.
-    pub(crate) fn check_lengths(&self) -> Result<(), LodError> {
+    /// The attribute row of point `i`, rows being `row_bytes` long.
+    pub fn row(&self, i: usize, row_bytes: usize) -> &[u8] {
+        &self.rows[i * row_bytes..(i + 1) * row_bytes]
+    }
+
+    /// Every column as long as `positions`, and rows of `row_bytes` for each point.
+    pub(crate) fn check_lengths(&self, row_bytes: usize) -> Result<(), LodError> {
         let positions = self.positions.len();
         let columns = [
             ("rgb", self.rgb.map_or(positions, <[_]>::len)),
             ("intensity", self.intensity.len()),
             ("classification", self.classification.len()),
             ("return_number", self.return_number.len()),
+            (
+                "rows",
+                self.rows.len().checked_div(row_bytes).unwrap_or(positions),
+            ),
         ];
         for (field, len) in columns {
             if len != positions {
@@ -58,6 +71,7 @@ pub struct BatchColumns {
     pub intensity: Vec<u16>,
     pub classification: Vec<u8>,
     pub return_number: Vec<u8>,
+    pub rows: Vec<u8>,
 }
 
 impl BatchColumns {
@@ -67,6 +81,7 @@ impl BatchColumns {
         self.intensity.clear();
         self.classification.clear();
         self.return_number.clear();
+        self.rows.clear();
     }
 
     /// The batch of these columns; its RGB only `with_rgb`.
@@ -77,6 +92,7 @@ impl BatchColumns {
             intensity: &self.intensity,
             classification: &self.classification,
             return_number: &self.return_number,
+            rows: &self.rows,
         }
     }
 }
@@ -96,6 +112,12 @@ pub trait PointSource: Sync {
     /// The one LAS grid every point lies on, if there is one: the builder's spill records then
     /// hold the grid's integers instead of f64 positions.
     fn position_grid(&self) -> Option<PositionGrid> {
+        None
+    }
+
+    /// What each point's attribute row holds, where the source has every attribute of its
+    /// points to keep (its files'): the builder then stores the rows for an export.
+    fn attributes(&self) -> Option<AttributeSchema> {
         None
     }
 }
@@ -146,6 +168,7 @@ impl PointSource for CloudSource<'_> {
                 intensity: &cloud.intensity[start..end],
                 classification: &cloud.classification[start..end],
                 return_number: &cloud.return_number[start..end],
+                rows: &[],
             })?;
         }
         Ok(())

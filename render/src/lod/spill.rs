@@ -8,15 +8,20 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::thread::JoinHandle;
 
+use super::attributes::AttributeRows;
 use super::error::LodError;
 use super::memory::Reservation;
 use super::point::{RawPoint, RecordLayout, MAX_RECORD_BYTES};
 
 /// Records read per block when a spill file is streamed back.
 const READ_BLOCK_POINTS: usize = 1 << 12;
-/// What streaming a file back holds: a block of records and the block decoded. Callers
-/// include it in their own reservation: a holder that reserved again could wait forever.
-pub const READ_BLOCK_BYTES: u64 = (READ_BLOCK_POINTS * (MAX_RECORD_BYTES + 40)) as u64;
+
+/// What streaming a file of `layout` back holds: a block of records and the block decoded.
+/// Callers include it in their own reservation: a holder that reserved again could wait
+/// forever.
+pub fn read_block_bytes(layout: RecordLayout) -> u64 {
+    (READ_BLOCK_POINTS * (layout.record_bytes().max(MAX_RECORD_BYTES) + 48)) as u64
+}
 
 /// The build's spill folder inside the caller's one, and the layout of every record in it;
 /// removed with everything in it on drop.
@@ -70,11 +75,16 @@ impl SpillDir {
         self.written.fetch_add(bytes as u64, Ordering::Relaxed);
     }
 
-    /// Writes `points` as one new file.
-    pub fn write_file(&self, path: &Path, points: &[RawPoint]) -> Result<(), LodError> {
+    /// Writes `points`, with their attribute `rows`, as one new file.
+    pub fn write_file(
+        &self,
+        path: &Path,
+        points: &[RawPoint],
+        rows: &AttributeRows,
+    ) -> Result<(), LodError> {
         let mut bytes = Vec::with_capacity(points.len() * self.layout.record_bytes());
         for p in points {
-            self.layout.append(p, &mut bytes)?;
+            self.layout.append(p, rows.of(p), &mut bytes)?;
         }
         std::fs::write(path, &bytes).map_err(|e| LodError::spill(path, e))?;
         self.count_written(bytes.len());
@@ -101,7 +111,6 @@ pub struct SpillWriter<'a> {
     /// is handed over by these alone, whatever the number of targets.
     filled: Vec<usize>,
     buffered: usize,
-    layout: RecordLayout,
     record_bytes: usize,
     /// Bytes of records a set of buffers takes before it is handed to the writing thread.
     set_limit: usize,
@@ -139,8 +148,7 @@ impl<'a> SpillWriter<'a> {
         limit: usize,
         reservation: Reservation<'a>,
     ) -> Self {
-        let layout = dir.layout();
-        let record_bytes = layout.record_bytes();
+        let record_bytes = dir.layout().record_bytes();
         let limit = limit.max(record_bytes);
         debug_assert!(reservation.bytes() >= 2 * limit as u64);
         let set_limit = (limit / 2).max(record_bytes);
@@ -150,20 +158,11 @@ impl<'a> SpillWriter<'a> {
             paths: Arc::new(path),
             filled: Vec::new(),
             buffered: 0,
-            layout,
             record_bytes,
             set_limit,
             writing: None,
             _reservation: reservation,
         }
-    }
-
-    pub fn push(&mut self, target: usize, point: &RawPoint) -> Result<(), LodError> {
-        if self.buffers[target].is_empty() {
-            self.filled.push(target);
-        }
-        self.layout.append(point, &mut self.buffers[target])?;
-        self.pushed()
     }
 
     /// Appends one record, in the spill folder's layout, to file `target`.
@@ -257,11 +256,11 @@ fn append_each(
 }
 
 /// Streams the points of `path`, records in `layout`, in blocks of at most
-/// [`READ_BLOCK_POINTS`].
+/// [`READ_BLOCK_POINTS`]: each block's points with their records.
 pub fn for_each_block(
     path: &Path,
     layout: RecordLayout,
-    mut visit: impl FnMut(&[RawPoint]) -> Result<(), LodError>,
+    mut visit: impl FnMut(&[RawPoint], &[u8]) -> Result<(), LodError>,
 ) -> Result<u64, LodError> {
     let mut reader = File::open(path).map_err(|e| LodError::spill(path, e))?;
     let record_bytes = layout.record_bytes();
@@ -296,20 +295,24 @@ pub fn for_each_block(
                 .map(|record| layout.read(record)),
         );
         total += points.len() as u64;
-        visit(&points)?;
+        visit(&points, &bytes[..filled])?;
     }
 }
 
-/// Reads all points of the files `paths`, in order, records in `layout`; together they must
-/// hold exactly `expected`.
+/// Reads all points of the files `paths`, in order, records in `layout`, their attribute
+/// rows appended to `rows` (each point's `row` its index there); together they must hold
+/// exactly `expected`.
 pub fn read_all(
     paths: &[PathBuf],
     layout: RecordLayout,
     expected: u64,
+    rows: &mut AttributeRows,
 ) -> Result<Vec<RawPoint>, LodError> {
     let mut points = Vec::with_capacity(expected as usize);
+    rows.reserve(expected as usize);
+    let record_bytes = layout.record_bytes();
     for path in paths {
-        for_each_block(path, layout, |block| {
+        for_each_block(path, layout, |block, records| {
             if (points.len() + block.len()) as u64 > expected {
                 let error = std::io::Error::new(
                     std::io::ErrorKind::InvalidData,
@@ -317,7 +320,10 @@ pub fn read_all(
                 );
                 return Err(LodError::spill(path, error));
             }
-            points.extend_from_slice(block);
+            for (p, record) in block.iter().zip(records.chunks_exact(record_bytes)) {
+                let row = rows.push(layout.row(record));
+                points.push(RawPoint { row, ..*p });
+            }
             Ok(())
         })?;
     }

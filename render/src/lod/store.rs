@@ -17,6 +17,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
+use super::attributes::decode_section;
 use super::codec::NodePoints;
 use super::error::LodError;
 use super::hierarchy::{LodHierarchy, NodeInfo};
@@ -222,6 +223,44 @@ impl LodStore {
             .collect())
     }
 
+    /// The checked rows of `nodes`' attributes sections, `row_bytes` a row; each section is
+    /// checked to lie within the payload file before it is read.
+    fn read_attribute_sections(
+        &self,
+        row_bytes: usize,
+        nodes: &[NodeInfo],
+    ) -> Result<Vec<Vec<u8>>, LodError> {
+        let file_len = self.payload.len()?;
+        let path = self.payload.path.as_path();
+        for info in nodes.iter().filter(|n| n.point_count > 0) {
+            let range = info.attributes_range();
+            if info.attributes_len == 0 || range.end > file_len {
+                return Err(LodError::CorruptNode {
+                    key: info.key,
+                    reason: format!(
+                        "its attributes section {}..{} is not within {} ({file_len} bytes)",
+                        range.start,
+                        range.end,
+                        path.display()
+                    ),
+                });
+            }
+        }
+        let read = |info: &NodeInfo| -> Result<Vec<u8>, LodError> {
+            if info.point_count == 0 {
+                return Ok(Vec::new());
+            }
+            let mut bytes = vec![0; info.attributes_len as usize];
+            self.payload
+                .file
+                .read_exact_at(&mut bytes, info.attributes_offset)
+                .map_err(|e| self.payload.error(e))?;
+            let rows = decode_section(info.key, info.point_count, row_bytes, &bytes, path)?;
+            Ok(rows.to_vec())
+        };
+        read_concurrently(nodes, read)
+    }
+
     /// The raw stored bytes of a node of `hierarchy` (tests and tools that check the store);
     /// `None` when the hierarchy does not list it or it stores no points.
     pub fn node_bytes(
@@ -281,6 +320,16 @@ impl NodeRecords for LodStore {
     /// The records' coarse sections: their heads, which the build stores apart from the rest.
     fn read_coarse_records(&self, nodes: &[NodeInfo]) -> Option<Result<Vec<Vec<u8>>, LodError>> {
         Some(self.read_parts(nodes, |n| n.head_len))
+    }
+
+    /// The nodes' attributes sections, one positioned read each, several in flight.
+    fn read_attribute_rows(
+        &self,
+        hierarchy: &LodHierarchy,
+        nodes: &[NodeInfo],
+    ) -> Option<Result<Vec<Vec<u8>>, LodError>> {
+        let schema = hierarchy.attributes()?;
+        Some(self.read_attribute_sections(schema.row_bytes(), nodes))
     }
 }
 

@@ -7,13 +7,14 @@ use std::collections::BTreeMap;
 
 use rayon::prelude::*;
 
+use super::attributes::AttributeRows;
 use super::context::{BuildContext, Pending};
 use super::error::LodError;
 use super::key::NodeKey;
-use super::options::BUILD_BYTES_PER_POINT;
+use super::partitions::build_bytes_per_point;
 use super::point::RawPoint;
 use super::sampling::sample;
-use super::spill::{self, READ_BLOCK_BYTES};
+use super::spill::{self, read_block_bytes};
 
 pub fn build_upper_levels(ctx: &BuildContext<'_>) -> Result<(), LodError> {
     loop {
@@ -56,19 +57,22 @@ fn build_parent(
     children: Vec<(NodeKey, Pending)>,
 ) -> Result<(), LodError> {
     let total: u64 = children.iter().map(|(_, c)| c.count).sum();
+    let layout = ctx.spill.layout();
     let _reservation = ctx.meter.reserve(
-        total * BUILD_BYTES_PER_POINT + READ_BLOCK_BYTES,
+        total * build_bytes_per_point(layout) + read_block_bytes(layout),
         "a node above the partitions with its children",
     )?;
     let mut own: [Vec<RawPoint>; 8] = Default::default();
     let mut grids = [0u32; 8];
     let mut present = [false; 8];
+    let mut rows = AttributeRows::new(layout.row_bytes);
     for (key, child) in &children {
         let i = key.child_index();
         own[i] = spill::read_all(
             std::slice::from_ref(&child.path),
-            ctx.spill.layout(),
+            layout,
             child.count,
+            &mut rows,
         )?;
         spill::remove(&child.path)?;
         grids[i] = child.sample_grid;
@@ -84,9 +88,9 @@ fn build_parent(
     let mut region = Vec::new();
     for (i, kept) in sampled.kept.iter().enumerate() {
         if present[i] {
-            region.push(ctx.sink.encode(parent.child(i), kept, grids[i])?);
+            region.push(ctx.sink.encode(parent.child(i), kept, grids[i], &rows)?);
         }
     }
     ctx.sink.store(region)?;
-    ctx.finish_subtree(parent, &sampled.parent, sampled.grid)
+    ctx.finish_subtree(parent, &sampled.parent, sampled.grid, &rows)
 }

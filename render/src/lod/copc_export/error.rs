@@ -33,6 +33,12 @@ pub enum CopcExportError {
     /// The LAZ compressor refused the data.
     #[error("compressing node {key}: {reason}")]
     Compress { key: NodeKey, reason: String },
+    /// The files' extra bytes are more than one LAS record or VLR may hold beside the export's.
+    #[error("the points' attributes take {record_bytes} bytes a record and {descriptor_bytes} bytes of descriptors, more than LAS allows (65,535)")]
+    TooManyAttributes {
+        record_bytes: usize,
+        descriptor_bytes: usize,
+    },
     /// The store holds no points: a COPC file needs at least its root.
     #[error("the store holds no points")]
     Empty,

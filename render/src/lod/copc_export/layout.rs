@@ -4,7 +4,7 @@
 //!
 //! ```text
 //! header (375) | VLR "copc" 1: info (54 + 160) | VLR "laszip encoded" 22204 (54 + 34 + 6n)
-//! | VLR "LASF_Spec" 4: extra bytes, the weight (54 + 192)
+//! | VLR "LASF_Spec" 4: extra bytes, the weight and what the files had (54 + 192 each)
 //! | [VLR "LASF_Projection" 2112: the dataset's WKT] | offset of the chunk table (8) | one LAZ chunk per node | chunk table
 //! | EVLR "copc" 1000: hierarchy (60 + 32 per node)
 //! | EVLR "pointfarm" 1: node grids (60 + 20 per inner node, `node_grids.rs`)
@@ -17,7 +17,7 @@
 use glam::DVec3;
 use laz::LazVlr;
 
-use super::records::{extra_bytes_vlr, point_format, record_len, WEIGHT_BYTES};
+use super::records::RecordFormat;
 use super::transform::ExportTransform;
 use crate::extra_bytes;
 
@@ -38,19 +38,19 @@ const COMPRESSED_BIT: u8 = 0x80;
 
 /// The LASzip description of an export's points: layered (LAZ 1.4) items, variable-size
 /// chunks (one a node).
-pub fn laz_vlr(has_rgb: bool) -> LazVlr {
+pub fn laz_vlr(format: &RecordFormat) -> LazVlr {
     let items = laz::LazItemRecordBuilder::default_for_point_format_id(
-        point_format(has_rgb),
-        WEIGHT_BYTES as u16,
+        format.point_format(),
+        format.extra_len() as u16,
     )
-    .expect("PDRF 6 and 7 with extra bytes are LAZ point formats");
+    .expect("PDRF 6, 7 and 8 with extra bytes are LAZ point formats");
     laz::LazVlrBuilder::new(items)
         .with_variable_chunk_size()
         .build()
 }
 
 /// Where the point data starts: after the header and the VLRs (the WKT's when there is one).
-pub fn point_data_offset(laz: &LazVlr, wkt: Option<&[u8]>) -> u64 {
+pub fn point_data_offset(laz: &LazVlr, format: &RecordFormat, wkt: Option<&[u8]>) -> u64 {
     let wkt = wkt.map_or(0, |w| VLR_HEADER_BYTES + w.len() as u64);
     HEADER_BYTES
         + VLR_HEADER_BYTES
@@ -58,7 +58,7 @@ pub fn point_data_offset(laz: &LazVlr, wkt: Option<&[u8]>) -> u64 {
         + VLR_HEADER_BYTES
         + laz_payload(laz).len() as u64
         + VLR_HEADER_BYTES
-        + extra_bytes::DESCRIPTOR_BYTES as u64
+        + format.extra_bytes_vlr().len() as u64
         + wkt
 }
 
@@ -97,7 +97,9 @@ fn vlr(user_id: &str, record_id: u16, description: &str, data: Vec<u8>, extended
 
 /// What the header and the info VLR say of the file once its points are written.
 pub struct FileFacts {
-    pub has_rgb: bool,
+    pub format: RecordFormat,
+    /// Lowest and highest GPS time of the points, where they carry it.
+    pub gps_range: Option<[f64; 2]>,
     pub transform: ExportTransform,
     pub points: u64,
     pub by_return: [u64; 15],
@@ -117,7 +119,7 @@ pub struct FileFacts {
 
 /// The header and the VLRs: every byte before the point data.
 pub fn head(facts: &FileFacts, laz: &LazVlr) -> Vec<u8> {
-    let data_offset = point_data_offset(laz, facts.wkt.as_deref());
+    let data_offset = point_data_offset(laz, &facts.format, facts.wkt.as_deref());
     let header = las::raw::Header {
         global_encoding: GLOBAL_ENCODING_WKT,
         version: las::Version::new(1, 4),
@@ -126,8 +128,8 @@ pub fn head(facts: &FileFacts, laz: &LazVlr) -> Vec<u8> {
         header_size: HEADER_BYTES as u16,
         offset_to_point_data: data_offset as u32,
         number_of_variable_length_records: 3 + u32::from(facts.wkt.is_some()),
-        point_data_record_format: point_format(facts.has_rgb) | COMPRESSED_BIT,
-        point_data_record_length: record_len(facts.has_rgb) as u16,
+        point_data_record_format: facts.format.point_format() | COMPRESSED_BIT,
+        point_data_record_length: facts.format.record_len() as u16,
         // The legacy counts stay 0: PDRF 6 and up count in the 64-bit fields only.
         number_of_point_records: 0,
         number_of_points_by_return: [0; 5],
@@ -170,7 +172,7 @@ pub fn head(facts: &FileFacts, laz: &LazVlr) -> Vec<u8> {
         extra_bytes::USER_ID,
         extra_bytes::RECORD_ID,
         "Extra Bytes Record",
-        extra_bytes_vlr(),
+        facts.format.extra_bytes_vlr(),
         false,
     ));
     if let Some(wkt) = &facts.wkt {
@@ -200,9 +202,9 @@ fn info(facts: &FileFacts) -> Vec<u8> {
     }
     out.extend_from_slice(&(facts.evlr_start + EVLR_HEADER_BYTES).to_le_bytes());
     out.extend_from_slice(&facts.hierarchy_bytes.to_le_bytes());
-    // GPS time range: the store keeps no GPS time.
-    out.extend_from_slice(&0f64.to_le_bytes());
-    out.extend_from_slice(&0f64.to_le_bytes());
+    let [gps_min, gps_max] = facts.gps_range.unwrap_or([0.0; 2]);
+    out.extend_from_slice(&gps_min.to_le_bytes());
+    out.extend_from_slice(&gps_max.to_le_bytes());
     out.resize(INFO_BYTES as usize, 0);
     out
 }

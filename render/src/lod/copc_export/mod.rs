@@ -4,7 +4,9 @@
 //! The store's octree is already COPC's: its node keys are COPC voxel keys, its cube is the
 //! root's, and every point lies in exactly one node. So each store node becomes one COPC
 //! node and one variable-size LAZ chunk, with no resampling: the file holds exactly the
-//! store's points. Points are LAS 1.4 PDRF 6, or 7 when the dataset has RGB ([`records`]);
+//! store's points, each with every attribute its file gave it where the store keeps them.
+//! Points are LAS 1.4 PDRF 6, 7 when the dataset has RGB, 8 with near-infrared too (COPC
+//! allows no other), the files' wave packets and extra bytes as extra bytes ([`records`]);
 //! the scale and offset come from the dataset's files when known ([`transform`]); the header's
 //! bounds are those of the written coordinates. Nodes are read, converted and compressed a
 //! group at a time on all cores and written in the store's key order, so memory stays within
@@ -33,7 +35,7 @@ use rayon::prelude::*;
 
 pub use error::CopcExportError;
 pub use layout::HierarchyEntry;
-pub use records::{point_format, PDRF6_BYTES, PDRF7_BYTES};
+pub use records::{point_format, RecordFormat, PDRF6_BYTES, PDRF7_BYTES, PDRF8_BYTES};
 pub use transform::{ExportTransform, DEFAULT_SCALE};
 
 use super::hierarchy::{LodHierarchy, NodeInfo};
@@ -147,8 +149,37 @@ pub fn write_copc<W: Write + Seek>(
     let cube = hierarchy.cube;
     let transform = settings.transform.fitted(&cube)?;
     let has_rgb = hierarchy.stats.has_rgb;
-    let laz = layout::laz_vlr(has_rgb);
-    let data_start = layout::point_data_offset(&laz, settings.wkt.as_deref());
+    // The attributes sections are read only where both the store keeps them and its records
+    // source serves them: probed once, on the first node with points.
+    let probe: Vec<NodeInfo> = hierarchy.stored_nodes().take(1).copied().collect();
+    let keeps_rows = match records.read_attribute_rows(hierarchy, &probe) {
+        Some(read) => {
+            read?;
+            true
+        }
+        None => false,
+    };
+    let attributes = hierarchy.attributes().filter(|_| keeps_rows);
+    match attributes {
+        Some(schema) if schema.extra_bytes_dropped => tracing::warn!(
+            "the dataset's files declare different extra bytes; the export leaves them out"
+        ),
+        Some(_) => {}
+        None => tracing::warn!(
+            "the store keeps no attributes beyond intensity, classification and return \
+             number; the export writes the others as unknown"
+        ),
+    }
+    let format = RecordFormat::new(has_rgb, attributes);
+    let vlr_bytes = format.extra_bytes_vlr().len();
+    if vlr_bytes > usize::from(u16::MAX) || format.record_len() > usize::from(u16::MAX) {
+        return Err(CopcExportError::TooManyAttributes {
+            record_bytes: format.record_len(),
+            descriptor_bytes: vlr_bytes,
+        });
+    }
+    let laz = layout::laz_vlr(&format);
+    let data_start = layout::point_data_offset(&laz, &format, settings.wkt.as_deref());
     // The head is written last, when its totals are known; the chunk table's offset too.
     out.seek(SeekFrom::Start(0)).map_err(io)?;
     out.write_all(&vec![
@@ -165,10 +196,18 @@ pub fn write_copc<W: Write + Seek>(
     for group in groups(hierarchy.nodes()) {
         let keys: Vec<_> = group.iter().map(|n| n.key).collect();
         let nodes = read_nodes(records, hierarchy, &keys)?;
+        let rows = match format.attributes {
+            Some(_) => records
+                .read_attribute_rows(hierarchy, group)
+                .unwrap_or_else(|| Ok(vec![Vec::new(); group.len()]))?,
+            None => vec![Vec::new(); group.len()],
+        };
         let compressed: Vec<_> = nodes
             .par_iter()
-            .map(|node| {
-                let bytes = node_records(node, &transform, has_rgb);
+            .zip(&rows)
+            .map(|(node, rows)| {
+                let rows = format.attributes.as_ref().map(|_| rows.as_slice());
+                let bytes = node_records(node, rows, &transform, &format);
                 let chunk = if bytes.count == 0 {
                     Vec::new()
                 } else {
@@ -237,8 +276,10 @@ pub fn write_copc<W: Write + Seek>(
         .filter(|&g| g > 0)
         .min()
         .map_or(DEFAULT_GRID, f64::from);
+    let point_format = format.point_format();
     let facts = FileFacts {
-        has_rgb,
+        format,
+        gps_range: totals.gps_range,
         transform,
         points: totals.points,
         by_return: totals.by_return,
@@ -264,7 +305,7 @@ pub fn write_copc<W: Write + Seek>(
         transform,
         min: totals.min,
         max: totals.max,
-        point_format: point_format(has_rgb),
+        point_format,
     })
 }
 
@@ -308,12 +349,14 @@ struct Totals {
     by_return: [u64; 15],
     min: DVec3,
     max: DVec3,
+    gps_range: Option<[f64; 2]>,
 }
 
 impl Default for Totals {
     fn default() -> Self {
         Self {
             points: 0,
+            gps_range: None,
             by_return: [0; 15],
             min: DVec3::splat(f64::INFINITY),
             max: DVec3::splat(f64::NEG_INFINITY),
@@ -329,5 +372,11 @@ impl Totals {
         }
         self.min = self.min.min(node.min);
         self.max = self.max.max(node.max);
+        if let Some([lo, hi]) = node.gps_range {
+            self.gps_range = Some(match self.gps_range {
+                Some([low, high]) => [low.min(lo), high.max(hi)],
+                None => [lo, hi],
+            });
+        }
     }
 }

@@ -43,6 +43,7 @@ impl PointSource for Broken {
             intensity: &intensity,
             classification: &vec![0; n],
             return_number: &vec![0; n],
+            rows: &[],
         })
     }
 }
