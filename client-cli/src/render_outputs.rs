@@ -71,11 +71,20 @@ impl Outputs {
             }
         }
         let renders_here = (args.server.is_none() || args.local) && args.dataset.is_none();
-        let crs = if files.format() == FrameFormat::Tiff && renders_here {
+        let tiff = files.format() == FrameFormat::Tiff;
+        let crs = if tiff && renders_here {
             Some(GeoCrs::of_files(&dataset_files(&args.inputs)?)?)
         } else {
             None
         };
+        if tiff && !renders_here {
+            crate::output::say(
+                args.json,
+                "note: TIFF frames rendered by a server are not georeferenced: it sends each \
+                 frame as a PNG image without its camera"
+                    .to_owned(),
+            );
+        }
         Ok(Self {
             files,
             video,
