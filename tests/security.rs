@@ -235,6 +235,18 @@ fn a_ca_certificate_served_is_named_at_start_and_by_the_client() {
     assert_eq!(lines.len(), 1, "one line: {message}");
     assert!(lines[0].starts_with("error: cannot connect to https://localhost:"));
 
+    // A worker stops with the same sentence rather than retrying what cannot succeed.
+    let mut worker =
+        WorkerProcess::start_with(&https, &dir.join("worker"), "w", &["--tls-ca", arg(&cert)]);
+    let log = wait_for(Duration::from_secs(60), "the worker's refusal", || {
+        let log = worker.log();
+        log.contains("is a CA certificate").then_some(log)
+    });
+    assert_eq!(log.matches("basicConstraints CA:TRUE").count(), 1, "{log}");
+    assert!(!log.contains("CaUsedAsEndEntity"), "{log}");
+    let status = worker.terminate(Duration::from_secs(10)).expect("an exit");
+    assert_eq!(status.code(), Some(1), "{log}");
+
     // A file without a certificate, and a key that is not the certificate's, are refused in
     // words at start.
     let listen = ["--listen", "127.0.0.1:0", "--tls-key", arg(&key)];

@@ -38,7 +38,7 @@ use pointfarm_daemon::grpc::streaming::{HashingWriter, CHUNK_BYTES};
 use pointfarm_daemon::grpc::{frame_cut_message, frame_task, timings_message};
 use pointfarm_daemon::lease::{FrameTask, TaskFile};
 use pointfarm_daemon::metrics::WorkerMetrics;
-use pointfarm_proto::endpoint::ServerEndpoint;
+use pointfarm_proto::endpoint::{certificate, ServerEndpoint};
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_proto::BearerToken;
@@ -225,6 +225,10 @@ pub async fn run(
                     _ = stop.changed() => break,
                     _ = tokio::time::sleep(wait) => continue,
                 }
+            }
+            // Retrying cannot help: the daemon's certificate has to be replaced.
+            Err(status) if certificate::is_ca_used_as_server_certificate(&status) => {
+                return Err(config.server.connect_error(&status).into());
             }
             Err(status) if is_transient(&status) => {
                 let wait = backoff.next();
