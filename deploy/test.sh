@@ -26,6 +26,9 @@ install_for_tests ffmpeg /usr/bin/ffmpeg "the video tests" "the video tests will
 install_for_tests prometheus /usr/bin/prometheus "the metrics test" "the metrics test will skip"
 # GDAL, whose gdalinfo checks that GeoTIFF frames are placed where the camera saw them.
 install_for_tests gdal-bin /usr/bin/gdalinfo "the GeoTIFF tests" "the GeoTIFF tests will skip"
+# nginx, the real HTTP server (ranges, ETags, If-Match) the remote-storage tests read from, on
+# a port and in a folder of each test's own.
+install_for_tests nginx-light /usr/sbin/nginx "the remote-storage tests" "the remote-storage tests will skip"
 
 # A virtualenv with the Python client example's packages, for tests/python_client.rs, and
 # laspy with lazrs, the independent COPC reader of tests/export.rs (both skip, saying so,

@@ -20,6 +20,7 @@ pub mod legend;
 pub mod lod;
 pub mod raster;
 pub mod reference;
+pub mod remote;
 pub mod request;
 pub mod sample;
 pub mod source;

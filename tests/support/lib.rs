@@ -404,6 +404,7 @@ impl Drop for WorkerProcess {
 }
 
 pub mod datasets;
+pub mod nginx;
 pub mod pki;
 pub mod service;
 

@@ -1,0 +1,117 @@
+//! What can go wrong reading a dataset by URL, each error naming the URL it concerns.
+
+use std::ops::Range;
+use std::time::Duration;
+
+/// A failure of the remote storage layer; URLs never carry credentials (they are refused at
+/// parse time), so every message can be logged as it is.
+#[derive(Debug, thiserror::Error)]
+pub enum RemoteError {
+    #[error("{url}: not a dataset URL: {reason}")]
+    InvalidUrl { url: String, reason: String },
+    #[error(
+        "{url}: the scheme {scheme}:// is not supported (use s3://, http://, https:// or file://)"
+    )]
+    UnsupportedScheme { url: String, scheme: String },
+    #[error("{url}: not under an allowed prefix: {rule}")]
+    NotAllowed { url: String, rule: String },
+    #[error("{url}: a file:// URL is read as a local path, not through object storage")]
+    LocalUrl { url: String },
+    #[error("{url}: no such object")]
+    NotFound { url: String },
+    #[error("{url}: access denied ({reason})")]
+    Denied { url: String, reason: String },
+    #[error("{url}: the object changed while it was being read (it no longer matches version {version})")]
+    ObjectChanged { url: String, version: String },
+    #[error("{url}: no answer within {after:?}")]
+    TimedOut { url: String, after: Duration },
+    #[error("{url}: bytes {}..{} are outside the object's {size} bytes", range.start, range.end)]
+    RangeOutOfBounds {
+        url: String,
+        range: Range<u64>,
+        size: u64,
+    },
+    #[error("{url}: a read of {requested} bytes exceeds the limit of {limit} bytes per read")]
+    ReadTooLarge {
+        url: String,
+        requested: u64,
+        limit: u64,
+    },
+    #[error("{url}: asked for bytes {}..{}, the server answered {got} bytes", range.start, range.end)]
+    ShortRead {
+        url: String,
+        range: Range<u64>,
+        got: u64,
+    },
+    #[error("{url}: listing failed: {reason}")]
+    Listing { url: String, reason: String },
+    #[error("{url}: more than {limit} objects under this prefix")]
+    TooManyObjects { url: String, limit: usize },
+    #[error("{url}: {message}")]
+    Transport { url: String, message: String },
+    #[error("{url}: the storage client could not be set up: {message}")]
+    Client { url: String, message: String },
+    #[error("the remote reader's runtime stopped: {message}")]
+    Runtime { message: String },
+}
+
+impl RemoteError {
+    /// Sorts an object_store error by what the caller can act on.
+    pub(crate) fn from_store(url: &str, error: object_store::Error) -> Self {
+        let url = url.to_owned();
+        match error {
+            object_store::Error::NotFound { .. } => RemoteError::NotFound { url },
+            object_store::Error::PermissionDenied { .. } => RemoteError::Denied {
+                url,
+                reason: "the server refused these credentials (403)".to_owned(),
+            },
+            object_store::Error::Unauthenticated { .. } => RemoteError::Denied {
+                url,
+                reason: "no valid credentials (401); object storage reads them from the \
+                         environment (AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, ...)"
+                    .to_owned(),
+            },
+            other => {
+                if is_timeout(&other) {
+                    RemoteError::Transport {
+                        url,
+                        message: format!("timed out, after retries: {other}"),
+                    }
+                } else {
+                    RemoteError::Transport {
+                        url,
+                        message: other.to_string(),
+                    }
+                }
+            }
+        }
+    }
+
+    /// Whether this error is a stall, so callers can retry later rather than give up on the dataset.
+    pub fn is_timeout(&self) -> bool {
+        match self {
+            RemoteError::TimedOut { .. } => true,
+            RemoteError::Transport { message, .. } => message.starts_with("timed out"),
+            _ => false,
+        }
+    }
+}
+
+/// Whether a timeout is somewhere in the error's chain of causes.
+fn is_timeout(error: &object_store::Error) -> bool {
+    let mut source: Option<&(dyn std::error::Error + 'static)> = Some(error);
+    while let Some(cause) = source {
+        if let Some(http) = cause.downcast_ref::<object_store::client::HttpError>() {
+            if matches!(http.kind(), object_store::client::HttpErrorKind::Timeout) {
+                return true;
+            }
+        }
+        if let Some(io) = cause.downcast_ref::<std::io::Error>() {
+            if io.kind() == std::io::ErrorKind::TimedOut {
+                return true;
+            }
+        }
+        source = cause.source();
+    }
+    false
+}

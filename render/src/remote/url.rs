@@ -1,0 +1,297 @@
+//! `ObjectUrl`: a dataset's address, checked once so that everything after it can trust it.
+
+use std::fmt;
+use std::path::PathBuf;
+
+use object_store::path::Path as ObjectPath;
+use url::Url;
+
+use super::error::RemoteError;
+
+/// Longest URL accepted, so that a client cannot make the daemon store or log arbitrary text.
+pub const MAX_URL_LEN: usize = 2048;
+
+/// Where an `ObjectUrl` points.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum UrlKind {
+    /// An S3 or S3-compatible bucket; the endpoint and credentials come from the environment.
+    S3 { bucket: String },
+    /// A plain HTTP(S) server that answers range requests.
+    Http,
+    /// A local file or folder, read by the local path rather than through object storage.
+    File { path: PathBuf },
+}
+
+/// A validated `s3://bucket/key`, `http(s)://host/path` or `file:///path`. It never holds
+/// credentials, a query or a fragment, so it can be shown and logged as it is.
+#[derive(Clone, PartialEq, Eq)]
+pub struct ObjectUrl {
+    url: Url,
+    kind: UrlKind,
+}
+
+impl ObjectUrl {
+    /// Parses and validates a URL, with an error that says what is wrong with it.
+    pub fn parse(text: &str) -> Result<Self, RemoteError> {
+        let text = text.trim();
+        let invalid = |reason: &str| RemoteError::InvalidUrl {
+            url: shown(text),
+            reason: reason.to_owned(),
+        };
+        if text.len() > MAX_URL_LEN {
+            return Err(invalid(&format!("longer than {MAX_URL_LEN} bytes")));
+        }
+        let url = Url::parse(text).map_err(|error| match error {
+            url::ParseError::RelativeUrlWithoutBase => {
+                invalid("no scheme (use s3://, http://, https:// or file://)")
+            }
+            other => invalid(&other.to_string()),
+        })?;
+        if !url.username().is_empty() || url.password().is_some() {
+            return Err(invalid(
+                "credentials in a URL are refused; give them through the environment",
+            ));
+        }
+        if url.query().is_some() {
+            return Err(invalid(
+                "a query string is refused (it may carry a signature)",
+            ));
+        }
+        if url.fragment().is_some() {
+            return Err(invalid("a fragment is refused"));
+        }
+        // Checked on the text, since the parser would resolve them silently into another key.
+        if text.split('/').skip(3).any(|segment| {
+            let lowered = segment.to_ascii_lowercase();
+            matches!(
+                lowered.as_str(),
+                "." | ".." | "%2e" | "%2e%2e" | ".%2e" | "%2e."
+            )
+        }) {
+            return Err(invalid("a path with . or .. segments is refused"));
+        }
+        let kind = match url.scheme() {
+            "s3" => {
+                if url.port().is_some() {
+                    return Err(invalid(
+                        "an s3:// URL names a bucket, not a port; set AWS_ENDPOINT for another server",
+                    ));
+                }
+                let bucket = url.host_str().unwrap_or_default();
+                check_bucket(bucket).map_err(|reason| invalid(&reason))?;
+                UrlKind::S3 {
+                    bucket: bucket.to_owned(),
+                }
+            }
+            "http" | "https" => {
+                if url.host_str().is_none_or(str::is_empty) {
+                    return Err(invalid("no host"));
+                }
+                UrlKind::Http
+            }
+            "file" => {
+                if url
+                    .host_str()
+                    .is_some_and(|host| !host.is_empty() && host != "localhost")
+                {
+                    return Err(invalid("a file:// URL names a local path, not a host"));
+                }
+                let path = url
+                    .to_file_path()
+                    .map_err(|()| invalid("not an absolute local path"))?;
+                UrlKind::File { path }
+            }
+            scheme => {
+                return Err(RemoteError::UnsupportedScheme {
+                    url: shown(text),
+                    scheme: scheme.to_owned(),
+                })
+            }
+        };
+        Ok(Self { url, kind })
+    }
+
+    pub fn kind(&self) -> &UrlKind {
+        &self.kind
+    }
+
+    pub fn as_str(&self) -> &str {
+        self.url.as_str()
+    }
+
+    /// The local path of a `file://` URL.
+    pub fn local_path(&self) -> Option<&std::path::Path> {
+        match &self.kind {
+            UrlKind::File { path } => Some(path),
+            _ => None,
+        }
+    }
+
+    /// Whether the URL names a prefix (a folder of objects) rather than one object.
+    pub fn is_prefix(&self) -> bool {
+        self.url.path().ends_with('/') || self.object_path().as_ref().is_empty()
+    }
+
+    /// The key of the store this URL is read through: one per bucket or per origin, so that
+    /// connections are shared.
+    pub(crate) fn store_key(&self) -> String {
+        match &self.kind {
+            UrlKind::S3 { bucket } => format!("s3://{bucket}"),
+            UrlKind::Http | UrlKind::File { .. } => self.url.origin().ascii_serialization(),
+        }
+    }
+
+    /// The object's path within its store, percent-decoded.
+    pub(crate) fn object_path(&self) -> ObjectPath {
+        let path = self.url.path().trim_start_matches('/');
+        ObjectPath::from_url_path(path).unwrap_or_else(|_| ObjectPath::from(path))
+    }
+
+    /// The scheme, host and port, and the path: what allow-list rules compare.
+    pub(crate) fn origin_and_path(&self) -> (String, &str) {
+        let origin = match &self.kind {
+            UrlKind::S3 { bucket } => format!("s3://{bucket}"),
+            UrlKind::Http => self.url.origin().ascii_serialization(),
+            UrlKind::File { .. } => "file://".to_owned(),
+        };
+        (origin, self.url.path())
+    }
+
+    /// The URL of an object found by listing this URL's store.
+    pub(crate) fn with_object_path(&self, location: &ObjectPath) -> Result<Self, RemoteError> {
+        let mut url = self.url.clone();
+        url.set_path(&format!("/{}", location.as_ref()));
+        Self::parse(url.as_str())
+    }
+}
+
+impl fmt::Display for ObjectUrl {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.url.as_str())
+    }
+}
+
+impl fmt::Debug for ObjectUrl {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "ObjectUrl({})", self.url.as_str())
+    }
+}
+
+impl std::str::FromStr for ObjectUrl {
+    type Err = RemoteError;
+
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        Self::parse(text)
+    }
+}
+
+/// S3's bucket naming rules, checked here so that a typo is named before any request.
+fn check_bucket(bucket: &str) -> Result<(), String> {
+    if bucket.is_empty() {
+        return Err("no bucket (s3://bucket/prefix)".to_owned());
+    }
+    if !(3..=63).contains(&bucket.len()) {
+        return Err(format!(
+            "the bucket name {bucket:?} is not 3 to 63 characters"
+        ));
+    }
+    let valid = bucket.bytes().all(|byte| {
+        byte.is_ascii_lowercase() || byte.is_ascii_digit() || byte == b'.' || byte == b'-'
+    });
+    let ends_valid = bucket
+        .bytes()
+        .next()
+        .zip(bucket.bytes().last())
+        .is_some_and(|(first, last)| first.is_ascii_alphanumeric() && last.is_ascii_alphanumeric());
+    if !valid || !ends_valid {
+        return Err(format!(
+            "the bucket name {bucket:?} may hold only lowercase letters, digits, dots and hyphens, \
+             starting and ending with a letter or digit"
+        ));
+    }
+    Ok(())
+}
+
+/// A rejected URL as shown in its error: without anything after an `@` before the host, and cut
+/// to a bound, so that a credential typed into a URL is not echoed.
+fn shown(text: &str) -> String {
+    let without_userinfo = match (text.find("://"), text.find('@')) {
+        (Some(scheme_end), Some(at)) if at > scheme_end => {
+            let host_start = scheme_end + 3;
+            let path_start = text[host_start..]
+                .find('/')
+                .map_or(text.len(), |offset| host_start + offset);
+            if at < path_start {
+                format!("{}***@{}", &text[..host_start], &text[at + 1..])
+            } else {
+                text.to_owned()
+            }
+        }
+        _ => text.to_owned(),
+    };
+    let without_query = match without_userinfo.find('?') {
+        Some(query) => format!("{}?***", &without_userinfo[..query]),
+        None => without_userinfo,
+    };
+    if without_query.len() > 200 {
+        let mut end = 200;
+        while !without_query.is_char_boundary(end) {
+            end -= 1;
+        }
+        format!("{}...", &without_query[..end])
+    } else {
+        without_query
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_each_scheme() {
+        let s3 = ObjectUrl::parse("s3://my-bucket/campaign/").expect("s3");
+        assert_eq!(
+            s3.kind(),
+            &UrlKind::S3 {
+                bucket: "my-bucket".to_owned()
+            }
+        );
+        assert!(s3.is_prefix());
+        assert_eq!(s3.object_path().as_ref(), "campaign");
+        let http =
+            ObjectUrl::parse("https://host.example:8443/scans/a%20b.copc.laz").expect("http");
+        assert_eq!(http.kind(), &UrlKind::Http);
+        assert!(!http.is_prefix());
+        assert_eq!(http.object_path().as_ref(), "scans/a b.copc.laz");
+        assert_eq!(http.store_key(), "https://host.example:8443");
+        let file = ObjectUrl::parse("file:///data/scan.laz").expect("file");
+        assert_eq!(
+            file.local_path(),
+            Some(std::path::Path::new("/data/scan.laz"))
+        );
+    }
+
+    #[test]
+    fn refuses_with_a_reason() {
+        let cases = [
+            ("/data/scan.laz", "no scheme"),
+            ("ftp://host/scan.laz", "ftp"),
+            ("s3:///key", "no bucket"),
+            ("s3://Bad_Bucket/key", "lowercase"),
+            ("s3://bucket:9000/key", "port"),
+            ("https://user:secret@host/scan.laz", "credentials"),
+            ("https://host/scan.laz?X-Amz-Signature=abc", "query"),
+            ("https://host/scan.laz#part", "fragment"),
+            ("s3://bucket/a/../b", ".."),
+            ("s3://bucket/a/%2E%2E/b", ".."),
+            ("file://otherhost/data", "local path"),
+        ];
+        for (text, expected) in cases {
+            let error = ObjectUrl::parse(text).expect_err(text).to_string();
+            assert!(error.contains(expected), "{text}: {error}");
+            assert!(!error.contains("secret"), "{error}");
+            assert!(!error.contains("Signature=abc"), "{error}");
+        }
+    }
+}

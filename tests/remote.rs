@@ -1,0 +1,286 @@
+//! The remote storage layer against a real nginx on loopback: ranges, coalescing, versions
+//! pinned by ETag, missing objects, stalls and the operator's allow-list. Each test skips,
+//! saying so, where nginx is not installed.
+
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant, SystemTime};
+
+use pointfarm_render::remote::{
+    AllowedPrefixes, ObjectUrl, RemoteClient, RemoteError, RemoteSettings,
+};
+use pointfarm_tests::nginx::NginxServer;
+
+/// The LAS header of a COPC file (LAS 1.4).
+const LAS_HEADER_LEN: u64 = 375;
+
+fn copc_file() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("data/copc/simple.copc.laz")
+}
+
+/// A folder holding a copy of the COPC file, served by nginx.
+fn served_copc() -> Option<(tempfile::TempDir, NginxServer)> {
+    NginxServer::binary()?;
+    let root = tempfile::tempdir().expect("root");
+    std::fs::create_dir(root.path().join("scans")).expect("scans folder");
+    std::fs::copy(copc_file(), root.path().join("scans/simple.copc.laz")).expect("copy");
+    let server = NginxServer::start_or_skip(root.path())?;
+    Some((root, server))
+}
+
+fn skip_without_nginx() -> bool {
+    if NginxServer::binary().is_none() {
+        eprintln!("skipped: nginx is not installed (deploy/test.sh installs nginx-light)");
+        return true;
+    }
+    false
+}
+
+fn client() -> RemoteClient {
+    RemoteClient::new(RemoteSettings::default()).expect("client")
+}
+
+#[test]
+fn reads_the_las_header_by_range() {
+    if skip_without_nginx() {
+        return;
+    }
+    let (_root, server) = served_copc().expect("nginx");
+    let local = std::fs::read(copc_file()).expect("local file");
+    let client = client();
+    let url = ObjectUrl::parse(&server.url("scans/simple.copc.laz")).expect("url");
+    let object = client.open(&url).expect("open");
+    assert_eq!(object.size(), local.len() as u64);
+    assert!(object.version().is_some(), "nginx sends an ETag");
+    let header = object.read_range(0..LAS_HEADER_LEN).expect("header");
+    assert_eq!(&header[..4], b"LASF");
+    assert_eq!(header, local[..LAS_HEADER_LEN as usize]);
+    let tail = object
+        .read_range(object.size() - 100..object.size())
+        .expect("tail");
+    assert_eq!(tail, local[local.len() - 100..]);
+    let counts = client.counts();
+    assert_eq!(counts.requests, 3, "a HEAD and two GETs");
+    assert_eq!(counts.bytes, LAS_HEADER_LEN + 100);
+    let log = server.access_log(3);
+    assert_eq!(log.len(), 3, "{log:?}");
+}
+
+#[test]
+fn coalesces_near_ranges_into_parallel_requests() {
+    if skip_without_nginx() {
+        return;
+    }
+    let (_root, server) = served_copc().expect("nginx");
+    let local = std::fs::read(copc_file()).expect("local file");
+    let size = local.len() as u64;
+    let client = RemoteClient::new(RemoteSettings {
+        coalesce_gap: 1000,
+        ..RemoteSettings::default()
+    })
+    .expect("client");
+    let object = client
+        .open(&ObjectUrl::parse(&server.url("scans/simple.copc.laz")).expect("url"))
+        .expect("open");
+    // Two groups of near ranges, far apart, asked out of order, one of them empty.
+    let ranges = [
+        size - 200..size - 100,
+        0..LAS_HEADER_LEN,
+        400..900,
+        size - 50..size,
+        1200..1300,
+        10_000..10_000,
+    ];
+    let parts = object.read_ranges(&ranges).expect("ranges");
+    for (range, part) in ranges.iter().zip(&parts) {
+        assert_eq!(
+            part[..],
+            local[range.start as usize..range.end as usize],
+            "{range:?}"
+        );
+    }
+    let counts = client.counts();
+    assert_eq!(counts.requests, 3, "a HEAD and one GET per group");
+    assert_eq!(counts.bytes, 1300 + 200);
+    let log = server.access_log(3);
+    let gets: Vec<&String> = log.iter().filter(|line| line.contains("\"GET ")).collect();
+    assert_eq!(gets.len(), 2, "{log:?}");
+    assert!(
+        gets.iter().all(|line| line.contains(" 206 ")),
+        "only partial answers: {log:?}"
+    );
+}
+
+#[test]
+fn a_read_past_the_end_is_refused_before_any_request() {
+    if skip_without_nginx() {
+        return;
+    }
+    let (_root, server) = served_copc().expect("nginx");
+    let client = client();
+    let object = client
+        .open(&ObjectUrl::parse(&server.url("scans/simple.copc.laz")).expect("url"))
+        .expect("open");
+    let size = object.size();
+    let error = object
+        .read_range(size - 10..size + 1)
+        .expect_err("past the end");
+    assert!(
+        matches!(error, RemoteError::RangeOutOfBounds { .. }),
+        "{error}"
+    );
+    assert!(error.to_string().contains("simple.copc.laz"), "{error}");
+    assert_eq!(client.counts().requests, 1, "only the HEAD");
+}
+
+#[test]
+fn a_missing_object_is_named() {
+    if skip_without_nginx() {
+        return;
+    }
+    let (_root, server) = served_copc().expect("nginx");
+    let url = server.url("scans/absent.copc.laz");
+    let error = client()
+        .open(&ObjectUrl::parse(&url).expect("url"))
+        .expect_err("missing");
+    assert!(matches!(error, RemoteError::NotFound { .. }), "{error}");
+    assert!(error.to_string().contains(&url), "{error}");
+}
+
+#[test]
+fn an_object_replaced_after_open_is_object_changed() {
+    if skip_without_nginx() {
+        return;
+    }
+    let (root, server) = served_copc().expect("nginx");
+    let url = server.url("scans/simple.copc.laz");
+    let client = client();
+    let object = client
+        .open(&ObjectUrl::parse(&url).expect("url"))
+        .expect("open");
+    object
+        .read_range(0..LAS_HEADER_LEN)
+        .expect("before the change");
+    // Another version of the same size, so only the version tells them apart.
+    let path = root.path().join("scans/simple.copc.laz");
+    let replacement = root.path().join("scans/replacement.tmp");
+    let mut bytes = std::fs::read(&path).expect("bytes");
+    bytes[LAS_HEADER_LEN as usize] ^= 0xff;
+    std::fs::write(&replacement, &bytes).expect("replacement");
+    let file = std::fs::File::options()
+        .write(true)
+        .open(&replacement)
+        .expect("open replacement");
+    file.set_modified(SystemTime::now() + Duration::from_secs(60))
+        .expect("newer modification time");
+    drop(file);
+    std::fs::rename(&replacement, &path).expect("replace");
+    let error = object
+        .read_ranges(&[0..LAS_HEADER_LEN, 1000..2000])
+        .expect_err("changed");
+    assert!(
+        matches!(error, RemoteError::ObjectChanged { .. }),
+        "{error}"
+    );
+    assert!(error.to_string().contains(&url), "{error}");
+    // Opened again, the new version reads.
+    let reopened = client
+        .open(&ObjectUrl::parse(&url).expect("url"))
+        .expect("reopen");
+    assert_ne!(reopened.version(), object.version());
+    let after = reopened
+        .read_range(LAS_HEADER_LEN..LAS_HEADER_LEN + 1)
+        .expect("new version");
+    assert_eq!(after[0], bytes[LAS_HEADER_LEN as usize]);
+}
+
+#[test]
+fn a_plain_http_server_cannot_be_listed_and_says_why() {
+    if skip_without_nginx() {
+        return;
+    }
+    let (_root, server) = served_copc().expect("nginx");
+    let prefix = ObjectUrl::parse(&server.url("scans/")).expect("url");
+    let error = client().list_point_files(&prefix).expect_err("no WebDAV");
+    assert!(matches!(error, RemoteError::Listing { .. }), "{error}");
+    assert!(error.to_string().contains("WebDAV"), "{error}");
+    assert!(error.to_string().contains(prefix.as_str()), "{error}");
+}
+
+/// A server that accepts connections and never answers.
+fn stalled_server() -> (TcpListener, std::thread::JoinHandle<()>, String) {
+    let listener = TcpListener::bind("127.0.0.1:0").expect("bind");
+    let address = listener.local_addr().expect("address").to_string();
+    let accepting = listener.try_clone().expect("listener");
+    let handle = std::thread::spawn(move || {
+        let mut held = Vec::new();
+        while let Ok((stream, _)) = accepting.accept() {
+            held.push(stream);
+            if held.len() > 16 {
+                break;
+            }
+        }
+    });
+    (listener, handle, address)
+}
+
+#[test]
+fn a_stalled_server_times_out_after_the_retries() {
+    let (_listener, _handle, address) = stalled_server();
+    let settings = RemoteSettings {
+        connect_timeout: Duration::from_millis(300),
+        request_timeout: Duration::from_millis(300),
+        max_retries: 2,
+        retry_timeout: Duration::from_secs(2),
+        initial_backoff: Duration::from_millis(20),
+        max_backoff: Duration::from_millis(100),
+        operation_deadline: Duration::from_secs(20),
+        ..RemoteSettings::default()
+    };
+    let client = RemoteClient::new(settings).expect("client");
+    let url = format!("http://{address}/stalled.copc.laz");
+    let started = Instant::now();
+    let error = client
+        .open(&ObjectUrl::parse(&url).expect("url"))
+        .expect_err("stalled");
+    let took = started.elapsed();
+    assert!(error.is_timeout(), "{error}");
+    assert!(error.to_string().contains(&url), "{error}");
+    // Three attempts of 300 ms and two short backoffs, well inside the deadline.
+    assert!(took >= Duration::from_millis(600), "{took:?}");
+    assert!(took < Duration::from_secs(5), "{took:?}");
+}
+
+#[test]
+fn the_operation_deadline_bounds_a_stall_whatever_the_retries() {
+    let (_listener, _handle, address) = stalled_server();
+    let settings = RemoteSettings {
+        operation_deadline: Duration::from_secs(1),
+        ..RemoteSettings::default()
+    };
+    let client = RemoteClient::new(settings).expect("client");
+    let url = format!("http://{address}/stalled.copc.laz");
+    let started = Instant::now();
+    let error = client
+        .open(&ObjectUrl::parse(&url).expect("url"))
+        .expect_err("stalled");
+    let took = started.elapsed();
+    assert!(matches!(error, RemoteError::TimedOut { .. }), "{error}");
+    assert!(error.to_string().contains(&url), "{error}");
+    assert!(took < Duration::from_secs(3), "{took:?}");
+}
+
+#[test]
+fn urls_outside_the_allowed_prefixes_are_refused_naming_the_rule() {
+    let allowed = AllowedPrefixes::new(&["s3://campaigns/site-a/", "https://data.example/scans"])
+        .expect("rules");
+    let inside = ObjectUrl::parse("https://data.example/scans/tile.copc.laz").expect("url");
+    assert!(allowed.check(&inside).is_ok());
+    let outside = ObjectUrl::parse("s3://campaigns/site-b/tile.laz").expect("url");
+    let error = allowed.check(&outside).expect_err("outside").to_string();
+    assert!(error.contains("s3://campaigns/site-b/tile.laz"), "{error}");
+    assert!(
+        error.contains("allows only s3://campaigns/site-a/, https://data.example/scans"),
+        "{error}"
+    );
+}

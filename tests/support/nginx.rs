@@ -1,0 +1,152 @@
+//! A real nginx serving a folder on a loopback port, for the tests that read datasets over
+//! HTTP: ranges, ETags and `If-Match` as a production server answers them.
+
+use std::net::TcpStream;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use crate::free_address;
+
+/// Where Debian's nginx packages put the binary.
+const NGINX: &str = "/usr/sbin/nginx";
+
+/// How long nginx may take to listen.
+const START_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// An nginx child process serving `root` on `address`; killed when dropped. Its config, pid,
+/// logs and temporary folders are in a folder of its own, so it needs no privileges.
+pub struct NginxServer {
+    pub address: String,
+    pub root: PathBuf,
+    dir: tempfile::TempDir,
+    child: Child,
+}
+
+impl NginxServer {
+    /// The nginx binary, or None where it is not installed (deploy/test.sh installs it).
+    pub fn binary() -> Option<PathBuf> {
+        let path = Path::new(NGINX);
+        path.is_file().then(|| path.to_owned())
+    }
+
+    /// Starts nginx serving `root`, or None, having said why, where nginx is not installed.
+    pub fn start_or_skip(root: &Path) -> Option<Self> {
+        let Some(binary) = Self::binary() else {
+            eprintln!("skipped: nginx is not installed (deploy/test.sh installs nginx-light)");
+            return None;
+        };
+        Some(Self::start(&binary, root))
+    }
+
+    fn start(binary: &Path, root: &Path) -> Self {
+        let dir = tempfile::tempdir().expect("nginx folder");
+        let address = free_address();
+        let config = config(dir.path(), &address, root);
+        let config_path = dir.path().join("nginx.conf");
+        std::fs::write(&config_path, config).expect("nginx.conf");
+        let error_log = dir.path().join("error.log");
+        let child = Command::new(binary)
+            .arg("-p")
+            .arg(dir.path())
+            .arg("-c")
+            .arg(&config_path)
+            .arg("-e")
+            .arg(&error_log)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(dir.path().join("stderr.log")).expect("nginx stderr"))
+            .spawn()
+            .expect("start nginx");
+        let mut server = Self {
+            address,
+            root: root.to_owned(),
+            dir,
+            child,
+        };
+        server.wait_until_listening();
+        server
+    }
+
+    /// `http://ADDRESS/` followed by `path`.
+    pub fn url(&self, path: &str) -> String {
+        format!("http://{}/{}", self.address, path.trim_start_matches('/'))
+    }
+
+    /// The requests nginx answered, one access-log line each, once there are at least
+    /// `expected` of them or a few seconds passed: nginx logs a request after its answer
+    /// left, so a client can read the answer before the line is written.
+    pub fn access_log(&self, expected: usize) -> Vec<String> {
+        let started = Instant::now();
+        loop {
+            let lines: Vec<String> = std::fs::read_to_string(self.dir.path().join("access.log"))
+                .unwrap_or_default()
+                .lines()
+                .map(str::to_owned)
+                .collect();
+            if lines.len() >= expected || started.elapsed() > START_TIMEOUT {
+                return lines;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    fn wait_until_listening(&mut self) {
+        let started = Instant::now();
+        while TcpStream::connect(&self.address).is_err() {
+            if let Ok(Some(status)) = self.child.try_wait() {
+                panic!("nginx exited with {status}: {}", self.logs());
+            }
+            assert!(
+                started.elapsed() < START_TIMEOUT,
+                "nginx did not listen on {} within {START_TIMEOUT:?}: {}",
+                self.address,
+                self.logs()
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    fn logs(&self) -> String {
+        ["stderr.log", "error.log"]
+            .iter()
+            .map(|name| std::fs::read_to_string(self.dir.path().join(name)).unwrap_or_default())
+            .collect::<Vec<_>>()
+            .join("\n")
+    }
+}
+
+impl Drop for NginxServer {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// One process (no master, so a kill ends it), in the foreground, every path in `dir`.
+fn config(dir: &Path, address: &str, root: &Path) -> String {
+    let dir = dir.display();
+    let root = root.display();
+    format!(
+        "daemon off;
+master_process off;
+worker_processes 1;
+pid {dir}/nginx.pid;
+error_log {dir}/error.log info;
+events {{ worker_connections 64; }}
+http {{
+    access_log {dir}/access.log;
+    client_body_temp_path {dir}/client_body;
+    proxy_temp_path {dir}/proxy;
+    fastcgi_temp_path {dir}/fastcgi;
+    uwsgi_temp_path {dir}/uwsgi;
+    scgi_temp_path {dir}/scgi;
+    default_type application/octet-stream;
+    server {{
+        listen {address};
+        root {root};
+    }}
+}}
+"
+    )
+}
