@@ -139,10 +139,40 @@ impl RecordFormat {
             }
         }
         if let Some(a) = &self.attributes {
-            out.extend_from_slice(&a.extra_descriptors);
+            let ours: Vec<&str> = std::iter::once(WEIGHT_ATTRIBUTE)
+                .chain(
+                    self.has_waveform()
+                        .then_some(WAVE_FIELDS.map(|(name, _)| name))
+                        .into_iter()
+                        .flatten(),
+                )
+                .collect();
+            for d in a
+                .extra_descriptors
+                .chunks_exact(crate::extra_bytes::DESCRIPTOR_BYTES)
+            {
+                out.extend_from_slice(&renamed_apart(d, &ours));
+            }
         }
         out
     }
+}
+
+/// A file's descriptor `d`, its name prefixed with `source_` where it is one of the
+/// export's own (`ours`: a file that is itself an export), so that no two attributes share
+/// a name.
+fn renamed_apart(d: &[u8], ours: &[&str]) -> Vec<u8> {
+    let mut d = d.to_vec();
+    let name = &d[4..36];
+    let end = name.iter().position(|&b| b == 0).unwrap_or(name.len());
+    let text = String::from_utf8_lossy(&name[..end]).trim().to_owned();
+    if ours.contains(&text.as_str()) {
+        let renamed = format!("source_{text}");
+        let n = renamed.len().min(32);
+        d[4..36].fill(0);
+        d[4..4 + n].copy_from_slice(&renamed.as_bytes()[..n]);
+    }
+    d
 }
 
 /// A node's records and what the header needs of them.
@@ -232,5 +262,33 @@ pub fn node_records(
         max: transform.to_world(high),
         by_return,
         gps_range,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A file that is itself an export keeps its weight, renamed apart from the new one's.
+    #[test]
+    fn a_sources_attribute_named_as_the_exports_own_is_renamed_apart() {
+        let weight = crate::extra_bytes::descriptor(WEIGHT_ATTRIBUTE, 5, "");
+        let amplitude = crate::extra_bytes::descriptor("amplitude", 3, "");
+        let schema = AttributeSchema {
+            extra_descriptors: [weight, amplitude].concat(),
+            extra_bytes: 6,
+            has_waveform: true,
+            ..AttributeSchema::default()
+        };
+        let format = RecordFormat::new(true, Some(&schema));
+        assert_eq!(format.point_format(), 7);
+        assert_eq!(format.record_len(), PDRF7_BYTES + 4 + WAVE_BYTES + 6);
+        let names: Vec<String> = crate::extra_bytes::parse(&format.extra_bytes_vlr())
+            .into_iter()
+            .map(|d| d.name)
+            .collect();
+        assert_eq!(names[0], WEIGHT_ATTRIBUTE);
+        assert_eq!(names[1..8], WAVE_FIELDS.map(|(name, _)| name.to_string()));
+        assert_eq!(names[8..], ["source_pointfarm_weight", "amplitude"]);
     }
 }
