@@ -148,6 +148,21 @@ fn a_missing_object_is_named() {
 }
 
 #[test]
+fn a_refused_object_is_denied_and_named() {
+    if skip_without_nginx() {
+        return;
+    }
+    let (_root, server) = served_copc().expect("nginx");
+    let url = server.url("denied/simple.copc.laz");
+    let error = client()
+        .open(&ObjectUrl::parse(&url).expect("url"))
+        .expect_err("denied");
+    assert!(matches!(error, RemoteError::Denied { .. }), "{error}");
+    assert!(error.to_string().contains(&url), "{error}");
+    assert!(error.to_string().contains("403"), "{error}");
+}
+
+#[test]
 fn an_object_replaced_after_open_is_object_changed() {
     if skip_without_nginx() {
         return;

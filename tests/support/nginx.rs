@@ -123,7 +123,8 @@ impl Drop for NginxServer {
     }
 }
 
-/// One process (no master, so a kill ends it), in the foreground, every path in `dir`.
+/// One process (no master, so a kill ends it), in the foreground, every path in `dir`;
+/// everything under `/denied/` is refused with 403.
 fn config(dir: &Path, address: &str, root: &Path) -> String {
     let dir = dir.display();
     let root = root.display();
@@ -145,6 +146,8 @@ http {{
     server {{
         listen {address};
         root {root};
+        # What a server answers a request it refuses.
+        location /denied/ {{ return 403; }}
     }}
 }}
 "
