@@ -91,7 +91,8 @@ impl RenderRequest {
             supersample,
             read_depth: depth,
         }
-        .with_point_size(point_size, &extent.robust, spacing)
+        // The largest side at every point's box, as a camera placed by hand always had it.
+        .with_point_size(point_size, &extent.all, spacing)
     }
 }
 

@@ -196,9 +196,9 @@ impl FrameSource {
         Ok(source)
     }
 
-    /// A preview of `points`, resident, within the dataset files' header bounds as its
-    /// store's frames will be, and framed by the robust box of its points (which sample the
-    /// dataset evenly, as the store's coarsest nodes do); each frame says how complete it is.
+    /// A preview of `points`, resident, framed by the dataset files' header bounds: its few
+    /// points cannot say where the dataset's lie, so it frames the box its store's frames lie
+    /// in, seen from where they are; each frame says how complete it is.
     pub fn preview(
         renderer: Renderer,
         points: PreviewPoints,
@@ -225,13 +225,13 @@ impl FrameSource {
         Ok(source)
     }
 
-    /// `cloud` coloured, filtered and uploaded; within its own bounds unless `within` says
-    /// otherwise, framed by the robust box of its points.
+    /// `cloud` coloured, filtered and uploaded; framed by the robust box of its points unless
+    /// `framed` gives the box to frame.
     fn of_cloud(
         renderer: Renderer,
         mut cloud: PointCloud,
         options: &RenderOptions,
-        within: Option<WorldBounds>,
+        framed: Option<WorldBounds>,
         events: &dyn Fn(SourceEvent<'_>),
     ) -> Result<Self, SourceError> {
         let coloring = options.coloring();
@@ -246,8 +246,10 @@ impl FrameSource {
         // One sample of the filtered points for their spacing and their robust box.
         let sample = crate::spacing::sample_of(&cloud.positions);
         let spacing = crate::spacing::of_sample(&sample, cloud.len() as u64);
-        let all = within.unwrap_or(cloud.bounds);
-        let extent = Extent::of_points(all, cloud.origin, &sample, &cloud.positions);
+        let extent = match framed {
+            Some(bounds) => Extent::whole(bounds),
+            None => Extent::of_points(cloud.bounds, cloud.origin, &sample, &cloud.positions),
+        };
         Ok(Self {
             renderer,
             coloring,
