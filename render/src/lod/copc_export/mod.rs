@@ -164,7 +164,20 @@ pub fn write_copc<W: Write + Seek>(
         Some(schema) if schema.extra_bytes_dropped => tracing::warn!(
             "the dataset's files declare different extra bytes; the export leaves them out"
         ),
-        Some(_) => {}
+        Some(schema) => {
+            let some =
+                |formats: &[u8]| formats.iter().any(|&f| schema.source_formats & 1 << f != 0);
+            if !has_rgb && some(&[2, 3, 5, 7, 8, 10]) {
+                tracing::warn!(
+                    "only some of the dataset's files have RGB; the export leaves it out"
+                );
+            }
+            if has_rgb && !schema.has_nir && some(&[8, 10]) {
+                tracing::warn!(
+                    "only some of the dataset's files have near-infrared; the export leaves it out"
+                );
+            }
+        }
         None => tracing::warn!(
             "the store keeps no attributes beyond intensity, classification and return \
              number; the export writes the others as unknown"
