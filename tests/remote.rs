@@ -299,3 +299,135 @@ fn urls_outside_the_allowed_prefixes_are_refused_naming_the_rule() {
         "{error}"
     );
 }
+
+/// Where an S3-compatible server for the S3 test is: the path of a `moto_server` binary (PyPI's
+/// `moto[server]`), which deploy/test.sh does not install yet.
+const S3_SERVER_VARIABLE: &str = "POINTFARM_TEST_MOTO_SERVER";
+
+/// The URL the S3 test's child process reads.
+const S3_URL_VARIABLE: &str = "POINTFARM_TEST_S3_URL";
+
+/// One request to the S3 server without a signature, which moto accepts for its first
+/// requests, for setting up the bucket; the status code.
+fn unsigned_request(address: &str, method: &str, path: &str, body: &[u8]) -> u16 {
+    use std::io::{Read, Write};
+    let mut stream = std::net::TcpStream::connect(address).expect("connect");
+    let head = format!(
+        "{method} {path} HTTP/1.1\r\nHost: {address}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+        body.len()
+    );
+    stream.write_all(head.as_bytes()).expect("head");
+    stream.write_all(body).expect("body");
+    let mut answer = String::new();
+    let _ = stream.read_to_string(&mut answer);
+    answer
+        .split_whitespace()
+        .nth(1)
+        .and_then(|code| code.parse().ok())
+        .unwrap_or(0)
+}
+
+/// A server process that ends with the test, whether it passes or not.
+struct KillOnDrop(std::process::Child);
+
+impl Drop for KillOnDrop {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+#[test]
+fn reads_from_an_s3_compatible_server() {
+    let Some(server) =
+        std::env::var_os(S3_SERVER_VARIABLE).filter(|path| Path::new(path).is_file())
+    else {
+        eprintln!("skipped: {S3_SERVER_VARIABLE} names no S3-compatible server binary");
+        return;
+    };
+    let address = pointfarm_tests::free_address();
+    let (host, port) = address.split_once(':').expect("host:port");
+    let _server = KillOnDrop(
+        std::process::Command::new(server)
+            .args(["-H", host, "-p", port])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .expect("start the S3 server"),
+    );
+    let started = Instant::now();
+    while std::net::TcpStream::connect(&address).is_err() {
+        assert!(
+            started.elapsed() < Duration::from_secs(20),
+            "the S3 server did not listen"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let bytes = std::fs::read(copc_file()).expect("local file");
+    assert_eq!(
+        unsigned_request(&address, "PUT", "/pointfarm-test", &[]),
+        200
+    );
+    assert_eq!(
+        unsigned_request(
+            &address,
+            "PUT",
+            "/pointfarm-test/scans/simple.copc.laz",
+            &bytes
+        ),
+        200
+    );
+    // Credentials reach object_store only through the environment, so the reads run in a
+    // child process of this test binary with the server's.
+    let output = std::process::Command::new(std::env::current_exe().expect("test binary"))
+        .args([
+            "--exact",
+            "s3_reads_in_a_child_process",
+            "--ignored",
+            "--nocapture",
+        ])
+        .env("AWS_ENDPOINT", format!("http://{address}"))
+        .env("AWS_ALLOW_HTTP", "true")
+        .env("AWS_ACCESS_KEY_ID", "pointfarm-test-key")
+        .env("AWS_SECRET_ACCESS_KEY", "pointfarm-test-secret")
+        .env("AWS_REGION", "us-east-1")
+        .env(S3_URL_VARIABLE, "s3://pointfarm-test/scans/simple.copc.laz")
+        .output()
+        .expect("run the child");
+    let text = format!(
+        "{}\n{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert!(output.status.success(), "{text}");
+    assert!(text.contains("1 passed"), "{text}");
+    assert!(!text.contains("pointfarm-test-secret"), "{text}");
+}
+
+#[test]
+#[ignore = "run by reads_from_an_s3_compatible_server, with a server's credentials"]
+fn s3_reads_in_a_child_process() {
+    let url = std::env::var(S3_URL_VARIABLE).expect("the URL");
+    let local = std::fs::read(copc_file()).expect("local file");
+    let client = client();
+    let object = client
+        .open(&ObjectUrl::parse(&url).expect("url"))
+        .expect("open");
+    assert_eq!(object.size(), local.len() as u64);
+    let parts = object
+        .read_ranges(&[0..LAS_HEADER_LEN, 1000..1100])
+        .expect("ranges");
+    assert_eq!(parts[0], local[..LAS_HEADER_LEN as usize]);
+    assert_eq!(parts[1], local[1000..1100]);
+    let listed = client
+        .list_point_files(&ObjectUrl::parse("s3://pointfarm-test/scans/").expect("prefix"))
+        .expect("list");
+    assert_eq!(listed.len(), 1, "{listed:?}");
+    assert_eq!(listed[0].url.as_str(), url);
+    assert_eq!(listed[0].size, local.len() as u64);
+    let missing = client
+        .open(&ObjectUrl::parse("s3://pointfarm-test/scans/absent.laz").expect("url"))
+        .expect_err("missing");
+    assert!(matches!(missing, RemoteError::NotFound { .. }), "{missing}");
+    assert!(!format!("{client:?} {object:?}").contains("pointfarm-test-secret"));
+}
