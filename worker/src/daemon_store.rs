@@ -207,7 +207,7 @@ pub async fn fetch_preview(client: &mut Client, task: &FrameTask) -> Result<Prev
     })
 }
 
-/// Node records fetched from the daemon, a request per group of nodes. Called from the
+/// Node records fetched from the daemon, a request per wave of nodes. Called from the
 /// renderer's blocking threads (never an async one), it waits on the worker's runtime.
 pub struct RemoteNodes {
     client: Client,
@@ -249,22 +249,22 @@ impl RemoteNodes {
 }
 
 impl RemoteNodes {
-    /// `nodes`' records (or coarse sections), a request per group of nodes.
+    /// `nodes`' records (or coarse sections), a request per wave of nodes.
     fn fetch_all(&self, nodes: &[NodeInfo], coarse: bool) -> Result<Vec<Vec<u8>>, LodError> {
         let mut records = Vec::with_capacity(nodes.len());
-        for group in nodes.chunks(MAX_NODES_PER_REQUEST) {
+        for wave in nodes.chunks(MAX_NODES_PER_REQUEST) {
             // The timeout is made inside the runtime: a thread of the renderer's own (the
             // read-ahead) is outside any.
             let fetched = self.runtime.block_on(async {
-                tokio::time::timeout(FETCH_TIMEOUT, self.fetch(group, coarse)).await
+                tokio::time::timeout(FETCH_TIMEOUT, self.fetch(wave, coarse)).await
             });
             match fetched {
-                Ok(Ok(mut fetched)) if fetched.len() == group.len() => records.append(&mut fetched),
+                Ok(Ok(mut fetched)) if fetched.len() == wave.len() => records.append(&mut fetched),
                 Ok(Ok(fetched)) => {
                     return Err(LodError::Records(format!(
                         "the daemon sent {} of {} nodes",
                         fetched.len(),
-                        group.len()
+                        wave.len()
                     )))
                 }
                 Ok(Err(status)) => {

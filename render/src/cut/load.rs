@@ -1,4 +1,4 @@
-//! Loading a cut's nodes onto the host: which detail each is read at, and a group at a time
+//! Loading a cut's nodes onto the host: which detail each is read at, and a wave at a time
 //! from the host cache or the store, in two halves (reading the records, then decoding them
 //! into the host cache) so a frame's next read overlaps this one's decoding.
 
@@ -114,9 +114,9 @@ impl FetchedAtDetails {
     }
 }
 
-/// A group of a cut's nodes made resident on the host, in the group's order, with what it
+/// A wave of a cut's nodes made resident on the host, in the wave's order, with what it
 /// took for the frame's report.
-pub(super) struct LoadedGroup {
+pub(super) struct LoadedWave {
     pub(super) nodes: Vec<Arc<NodePoints>>,
     /// The detail the frame draws each at.
     pub(super) details: Vec<Detail>,
@@ -125,9 +125,9 @@ pub(super) struct LoadedGroup {
     pub(super) bytes_read: u64,
 }
 
-/// A group of a cut's nodes half loaded: those the host cache held, and the records of the
+/// A wave of a cut's nodes half loaded: those the host cache held, and the records of the
 /// rest read but not decoded.
-pub(super) struct FetchedGroup {
+pub(super) struct FetchedWave {
     cached: Vec<Option<Arc<NodePoints>>>,
     details: Vec<Detail>,
     read: FetchedAtDetails,
@@ -137,44 +137,43 @@ fn poisoned() -> CutError {
     CutError::Cache("the host node cache is poisoned".into())
 }
 
-/// The group's nodes from the host cache, and the records of the others read from the store
+/// The wave's nodes from the host cache, and the records of the others read from the store
 /// (several reads in flight).
-pub(super) fn fetch_group(
+pub(super) fn fetch_wave(
     host: &Mutex<HostNodeCache>,
     dataset: &LodDataset,
     hierarchy: &LodHierarchy,
     details: &FrameDetails,
-    group: &[&CutNode],
-) -> Result<FetchedGroup, CutError> {
+    wave: &[&CutNode],
+) -> Result<FetchedWave, CutError> {
     let cached: Vec<Option<Arc<NodePoints>>> = {
         let mut host = host.lock().map_err(|_| poisoned())?;
-        group
-            .iter()
+        wave.iter()
             .map(|n| host.get(n.key, details.of(n)))
             .collect()
     };
-    let to_read: Vec<&CutNode> = group
+    let to_read: Vec<&CutNode> = wave
         .iter()
         .zip(&cached)
         .filter(|(_, c)| c.is_none())
         .map(|(n, _)| *n)
         .collect();
     let read = fetch_at_details(dataset.records.as_ref(), hierarchy, details, &to_read)?;
-    Ok(FetchedGroup {
+    Ok(FetchedWave {
         cached,
-        details: group.iter().map(|n| details.of(n)).collect(),
+        details: wave.iter().map(|n| details.of(n)).collect(),
         read,
     })
 }
 
-impl FetchedGroup {
-    /// The group resident: the records read decoded on all cores and put in the host cache.
+impl FetchedWave {
+    /// The wave resident: the records read decoded on all cores and put in the host cache.
     pub(super) fn decode(
         self,
         host: &Mutex<HostNodeCache>,
         dataset: &LodDataset,
         hierarchy: &LodHierarchy,
-    ) -> Result<LoadedGroup, CutError> {
+    ) -> Result<LoadedWave, CutError> {
         let bytes_read = self.read.bytes_read();
         let read: Vec<Arc<NodePoints>> = self
             .read
@@ -189,7 +188,7 @@ impl FetchedGroup {
         let nodes_read = read.len() as u64;
         let host_hits = self.cached.len() as u64 - nodes_read;
         let mut read = read.into_iter();
-        Ok(LoadedGroup {
+        Ok(LoadedWave {
             nodes: self
                 .cached
                 .into_iter()

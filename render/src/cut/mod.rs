@@ -7,8 +7,8 @@
 //!    pixel error, largest on screen first, as many as the GPU node cache holds;
 //! 2. **load**: the cut's nodes the GPU cache lacks are taken from the host cache
 //!    (`host_cache.rs`) or read from the store, in the cut's order (the load queue, by
-//!    priority) a window at a time and by where they lie within it (`read_order.rs`), a group
-//!    at a time so the transient memory stays small (`load.rs`): the next group's records
+//!    priority) a window at a time and by where they lie within it (`read_order.rs`), a wave
+//!    at a time so the transient memory stays small (`load.rs`): the next wave's records
 //!    read while this one's are decoded, and the one before prepared and uploaded;
 //! 3. **upload**: each is coloured for the frame's colour mode with the dataset's ranges
 //!    (`lod/colors.rs`), put in Morton order, batched and quantised as any cloud, and written into
@@ -48,7 +48,7 @@ use thiserror::Error;
 use crate::color::{ColorMode, Coloring};
 use crate::filter::PointFilter;
 use crate::lod::codec::Detail;
-use crate::lod::{LodError, LodHierarchy, NodeKey, NodePoints, LOAD_GROUP_NODES};
+use crate::lod::{LodError, LodHierarchy, NodeKey, NodePoints, LOAD_WAVE_NODES};
 use crate::raster::gpu_data::GpuBatch;
 use crate::raster::morton::morton_order_of_cells;
 use crate::raster::points::SegmentData;
@@ -71,7 +71,7 @@ pub use stored::StoredLod;
 use dataset::Selected;
 use gpu_cache::{GpuNodeCache, SizeFactors};
 use host_cache::HostNodeCache;
-use load::{fetch_at_details, fetch_group, FrameDetails};
+use load::{fetch_at_details, fetch_wave, FrameDetails};
 use point_sizes::CutPointSizes;
 use read_order::in_read_order;
 use select::NodesInView;
@@ -320,7 +320,7 @@ impl CutRenderer {
         let host = &self.host;
         let gpu_cache = &mut self.gpu_cache;
         std::thread::scope(|scope| -> Result<(), CutError> {
-            // Four stages run at once, a group apart: one thread reads groups' records,
+            // Four stages run at once, a wave apart: one thread reads waves' records,
             // another decodes them (on all cores), a third prepares them (on all cores), and
             // this one uploads, so the disk or the daemon, the cores and the transfers overlap
             // (docs/perf/cold-first-frame.md, docs/perf/prepare-pipeline.md,
@@ -330,8 +330,8 @@ impl CutRenderer {
             let (prepared_sender, prepared_receiver) = std::sync::mpsc::sync_channel(1);
             let (missing, hierarchy, details) = (&missing, &hierarchy, &details);
             scope.spawn(move || {
-                for group in missing.chunks(LOAD_GROUP_NODES) {
-                    let fetched = fetch_group(host, dataset, hierarchy, details, group);
+                for wave in missing.chunks(LOAD_WAVE_NODES) {
+                    let fetched = fetch_wave(host, dataset, hierarchy, details, wave);
                     let failed = fetched.is_err();
                     // A closed channel: a later stage stopped on an error.
                     if fetched_sender.send(fetched).is_err() || failed {
@@ -341,7 +341,7 @@ impl CutRenderer {
             });
             scope.spawn(move || {
                 for fetched in fetched_receiver {
-                    let loaded = fetched.and_then(|group| group.decode(host, dataset, hierarchy));
+                    let loaded = fetched.and_then(|wave| wave.decode(host, dataset, hierarchy));
                     let failed = loaded.is_err();
                     if read_sender.send(loaded).is_err() || failed {
                         break;
@@ -350,15 +350,15 @@ impl CutRenderer {
             });
             scope.spawn(move || {
                 for loaded in read_receiver {
-                    let prepared = loaded.map(|group| {
+                    let prepared = loaded.map(|wave| {
                         let started = Instant::now();
-                        let data: Vec<SegmentData> = group
+                        let data: Vec<SegmentData> = wave
                             .nodes
                             .par_iter()
-                            .zip(&group.details)
+                            .zip(&wave.details)
                             .map(|(node, &detail)| prepare(dataset, node, detail, coloring, filter))
                             .collect();
-                        (group, data, ms_since(started))
+                        (wave, data, ms_since(started))
                     });
                     let failed = prepared.is_err();
                     if prepared_sender.send(prepared).is_err() || failed {
@@ -484,9 +484,9 @@ impl CutRenderer {
             .name("pointfarm-read-ahead".into())
             .spawn(move || {
                 let mut bytes = 0;
-                for group in wanted.chunks(LOAD_GROUP_NODES) {
-                    let group: Vec<&CutNode> = group.iter().collect();
-                    let fetched = fetch_at_details(records.as_ref(), &hierarchy, &details, &group)?;
+                for wave in wanted.chunks(LOAD_WAVE_NODES) {
+                    let wave: Vec<&CutNode> = wave.iter().collect();
+                    let fetched = fetch_at_details(records.as_ref(), &hierarchy, &details, &wave)?;
                     bytes += fetched.bytes_read();
                     let read = fetched.decode(records.as_ref(), &hierarchy)?;
                     if let Ok(mut host) = host.lock() {

@@ -51,10 +51,10 @@ pub struct CutReport {
     /// are read lazily reads those its cuts reach.
     pub hierarchy_pages_read: u64,
     pub hierarchy_page_bytes: u64,
-    /// The load stages: selecting the cut, waiting for the read-ahead, waiting for groups of
-    /// nodes to be read, decoded and prepared (the part that uploading the group before did not
+    /// The load stages: selecting the cut, waiting for the read-ahead, waiting for waves of
+    /// nodes to be read, decoded and prepared (the part that uploading the wave before did not
     /// hide; the frame's "load" stage is the two waits), and the time spent preparing them
-    /// (colours, order, quantisation), on a thread of its own while groups are read and
+    /// (colours, order, quantisation), on a thread of its own while waves are read and
     /// uploaded; their transfer to the GPU is the frame's "upload" stage.
     pub select_ms: f64,
     pub wait_ms: f64,

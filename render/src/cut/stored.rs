@@ -305,9 +305,8 @@ mod tests {
     /// The disk a build of the small dataset `file` needs, in the records it spills.
     fn small_need(file: &Path) -> u64 {
         let source = DatasetSource::open(&[file.to_owned()]).expect("open");
-        let record = spill_record_bytes(&source);
-        assert!(record < MAX_SPILL_RECORD_BYTES, "one file, one grid");
-        build_disk_bytes(SMALL_POINTS, true, record)
+        assert!(source.position_grid().is_some(), "one file, one grid");
+        build_disk_bytes(SMALL_POINTS, true, spill_record_bytes(&source))
     }
 
     fn build(file: &Path, folder: &Path, budget: Option<u64>) -> Result<StoredLod, CutError> {

@@ -13,7 +13,7 @@ use crate::color::Coloring;
 
 /// Nodes read, prepared and written to the GPU together: bounds the transient memory of a
 /// frame's loads to this many nodes' decoded and prepared points.
-pub(crate) const LOAD_GROUP_NODES: usize = 32;
+pub(crate) const LOAD_WAVE_NODES: usize = 32;
 
 /// Points of the coarsest nodes the elevation range is taken from, at least.
 pub const ELEVATION_SAMPLE_POINTS: u64 = 1 << 20;
@@ -167,7 +167,7 @@ impl LodDataset {
 
 /// Reads the coarsest nodes of `hierarchy`, level by level, up to
 /// [`ELEVATION_SAMPLE_POINTS`] (an even sample of the whole dataset, which colour ranges are
-/// taken from), a group at a time, handing each to `visit`; returns their record bytes.
+/// taken from), a wave at a time, handing each to `visit`; returns their record bytes.
 pub fn for_each_coarse_node(
     records: &dyn NodeRecords,
     hierarchy: &LodHierarchy,
@@ -196,8 +196,8 @@ pub(crate) fn for_each_coarse_node_up_to(
         bytes += u64::from(node.byte_len);
         keys.push(node.key);
     }
-    for group in keys.chunks(LOAD_GROUP_NODES) {
-        for points in read_nodes(records, hierarchy, group)? {
+    for wave in keys.chunks(LOAD_WAVE_NODES) {
+        for points in read_nodes(records, hierarchy, wave)? {
             visit(&points);
         }
     }

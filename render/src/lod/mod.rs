@@ -60,7 +60,7 @@ pub use build::{build_lod, build_lod_watched, BuildTimings, LodBuildReport};
 pub use codec::NodePoints;
 pub use colors::DatasetColoring;
 pub use dataset::{for_each_coarse_node, node_heights, LodDataset, ELEVATION_SAMPLE_POINTS};
-pub(crate) use dataset::{for_each_coarse_node_up_to, LOAD_GROUP_NODES};
+pub(crate) use dataset::{for_each_coarse_node_up_to, LOAD_WAVE_NODES};
 pub use error::LodError;
 pub use generated::{GeneratedShape, GeneratedSource};
 pub use grid::PositionGrid;

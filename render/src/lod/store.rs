@@ -338,7 +338,7 @@ impl NodeRecords for LodStore {
 /// (docs/perf/payload-layout.md).
 const MERGE_GAP: u64 = 64 << 10;
 
-/// The longest read a run makes: long enough that a disk streams, short enough that a group
+/// The longest read a run makes: long enough that a disk streams, short enough that a wave
 /// of nodes stored together still spreads over the reads in flight.
 const MAX_RUN: u64 = 1 << 20;
 

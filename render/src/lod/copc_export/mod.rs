@@ -9,8 +9,8 @@
 //! allows no other), the files' wave packets and extra bytes as extra bytes ([`records`]);
 //! the scale and offset come from the dataset's files when known ([`transform`]); the header's
 //! bounds are those of the written coordinates. Nodes are read, converted and compressed a
-//! group at a time on all cores and written in the store's key order, so memory stays within
-//! a group's points whatever the dataset's size; the header and info VLR, which need the
+//! wave at a time on all cores and written in the store's key order, so memory stays within
+//! a wave's points whatever the dataset's size; the header and info VLR, which need the
 //! totals and the hierarchy's offset, are written last over their reserved bytes ([`layout`]).
 //! A file is written under a temporary name beside its destination and renamed into place
 //! when complete, so an interrupted export leaves no half file under the real name.
@@ -46,9 +46,9 @@ use records::node_records;
 
 /// Points read and compressed together: the export's memory is about this many points'
 /// decoded, record and compressed bytes (about 80 B a point), plus its largest node.
-const GROUP_POINTS: u64 = 1 << 21;
+const WAVE_POINTS: u64 = 1 << 21;
 /// Most nodes read in one request (the daemon's limit on a node request).
-const GROUP_NODES: usize = 256;
+const WAVE_NODES: usize = 256;
 /// The sampling grid assumed for the root spacing of a store whose root is a leaf.
 const DEFAULT_GRID: f64 = 128.0;
 /// Bytes of the write buffer.
@@ -99,7 +99,7 @@ pub struct CopcExportReport {
 
 /// Exports the store (`hierarchy` and its node `records`) as a COPC file at `path`, through a
 /// temporary file beside it that is renamed into place when complete (an existing file is
-/// replaced). `progress` is told the points written so far after each group.
+/// replaced). `progress` is told the points written so far after each wave.
 pub fn export_copc(
     hierarchy: &LodHierarchy,
     records: &dyn NodeRecords,
@@ -206,14 +206,14 @@ pub fn write_copc<W: Write + Seek>(
     let mut totals = Totals::default();
     let mut entries = Vec::with_capacity(hierarchy.nodes().len());
     let mut chunks = laz::laszip::ChunkTable::with_capacity(hierarchy.nodes().len());
-    for group in groups(hierarchy.nodes()) {
-        let keys: Vec<_> = group.iter().map(|n| n.key).collect();
+    for wave in waves(hierarchy.nodes()) {
+        let keys: Vec<_> = wave.iter().map(|n| n.key).collect();
         let nodes = read_nodes(records, hierarchy, &keys)?;
         let rows = match format.attributes {
             Some(_) => records
-                .read_attribute_rows(hierarchy, group)
-                .unwrap_or_else(|| Ok(vec![Vec::new(); group.len()]))?,
-            None => vec![Vec::new(); group.len()],
+                .read_attribute_rows(hierarchy, wave)
+                .unwrap_or_else(|| Ok(vec![Vec::new(); wave.len()]))?,
+            None => vec![Vec::new(); wave.len()],
         };
         let compressed: Vec<_> = nodes
             .par_iter()
@@ -232,7 +232,7 @@ pub fn write_copc<W: Write + Seek>(
                 Ok((bytes, chunk))
             })
             .collect::<Result<_, CopcExportError>>()?;
-        for (info, (bytes, chunk)) in group.iter().zip(compressed) {
+        for (info, (bytes, chunk)) in wave.iter().zip(compressed) {
             let key = info.key;
             let too_large = |what: String| CopcExportError::NodeTooLarge { key, what };
             let byte_size = i32::try_from(chunk.len())
@@ -322,9 +322,9 @@ pub fn write_copc<W: Write + Seek>(
     })
 }
 
-/// The nodes in consecutive groups of at most [`GROUP_POINTS`] points (or one node) and
-/// [`GROUP_NODES`] nodes.
-fn groups(nodes: &[NodeInfo]) -> impl Iterator<Item = &[NodeInfo]> {
+/// The nodes in consecutive waves of at most [`WAVE_POINTS`] points (or one node) and
+/// [`WAVE_NODES`] nodes.
+fn waves(nodes: &[NodeInfo]) -> impl Iterator<Item = &[NodeInfo]> {
     let mut rest = nodes;
     std::iter::from_fn(move || {
         if rest.is_empty() {
@@ -332,13 +332,13 @@ fn groups(nodes: &[NodeInfo]) -> impl Iterator<Item = &[NodeInfo]> {
         }
         let mut points = 0u64;
         let mut n = 0;
-        while n < rest.len() && n < GROUP_NODES && (n == 0 || points < GROUP_POINTS) {
+        while n < rest.len() && n < WAVE_NODES && (n == 0 || points < WAVE_POINTS) {
             points += u64::from(rest[n].point_count);
             n += 1;
         }
-        let (group, tail) = rest.split_at(n);
+        let (wave, tail) = rest.split_at(n);
         rest = tail;
-        Some(group)
+        Some(wave)
     })
 }
 
