@@ -92,10 +92,11 @@ fn a_coarse_pixel_error_reads_less_than_the_file() {
     let dir = tempfile::tempdir().expect("tempdir");
     let copc = copc_file("simple_with_page.copc.laz");
     let out = dir.path().join("coarse.png");
+    // Its points lie far apart for their 200x150 frame: at 8 pixels most nodes are needed.
     let rendered = render_ok(
         &copc,
         &out,
-        &["--size=200x150", "--lod-error", "8", "--json"],
+        &["--size=200x150", "--lod-error", "32", "--json"],
     );
     assert!(
         output_text(&rendered).contains("in the 2 pages read"),
@@ -269,7 +270,10 @@ fn a_copc_dataset_renders_through_the_service_from_its_own_hierarchy() {
     let remote_render = |file: &Path, out: &str, more: &[&str]| {
         let out = dir.path().join(out);
         let mut args = vec!["render", arg(file), "--out", arg(&out), "--json"];
-        args.extend(["--server", &server.address, "--size=200x150"]);
+        args.extend(["--server", &server.address]);
+        if !more.iter().any(|arg| arg.starts_with("--size")) {
+            args.push("--size=200x150");
+        }
         args.extend(more);
         pointfarm(&args)
     };
@@ -279,7 +283,7 @@ fn a_copc_dataset_renders_through_the_service_from_its_own_hierarchy() {
     assert_fails_saying(&failed, "COPC hierarchy is inconsistent");
 
     // A coarse pixel error: the frame's cut fetched less than half the file.
-    let coarse = remote_render(&copc, "coarse.png", &["--lod-error=8"]);
+    let coarse = remote_render(&copc, "coarse.png", &["--lod-error=32"]);
     assert_ok(&coarse);
     let frames = json_lines(&coarse);
     let cut = &frames[0]["finished"]["cut"];
@@ -292,11 +296,17 @@ fn a_copc_dataset_renders_through_the_service_from_its_own_hierarchy() {
     assert!(count(&cut["pointsRendered"]) < 1065, "{cut}");
 
     // A preview job: every frame first from a coarse cut, reported as a preview with its
-    // completeness, then every frame final.
+    // completeness, then every frame final. The file's points lie so far apart that a
+    // preview's cut of a larger frame draws all of them.
     let previewed = remote_render(
         &copc,
         "previewed",
-        &["--preview", "--turntable=3", "--lod-error=0"],
+        &[
+            "--preview",
+            "--turntable=3",
+            "--lod-error=0",
+            "--size=48x36",
+        ],
     );
     assert_ok(&previewed);
     let reports = json_lines(&previewed);

@@ -56,9 +56,11 @@ fn tiles_render_from_levels_of_detail_as_the_file_they_were_cut_from() {
     let size = "--size=200x150";
     let (resident, cut) = (dir.path().join("resident.png"), dir.path().join("cut.png"));
     // The automatic camera frames each source's own sample of the points, the resident
-    // cloud's and the store's coarsest nodes: the two are compared through one camera.
+    // cloud's and the store's coarsest nodes, and adaptive points take each one's measured
+    // spacing: the two are compared through one camera with points of one size.
     let auto = pointfarm_ok(&["render", arg(&whole), "--out", arg(&resident), size]);
-    let camera = camera_flags_of(&auto);
+    let mut camera = camera_flags_of(&auto);
+    camera.push("--point-size=2".to_owned());
     let mut args = vec!["render", arg(&whole), "--out", arg(&resident), size];
     args.extend(camera.iter().map(String::as_str));
     pointfarm_ok(&args);
