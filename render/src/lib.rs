@@ -12,6 +12,7 @@ pub mod color;
 pub mod copc;
 pub mod cut;
 pub mod encode;
+pub mod extent;
 pub mod extra_bytes;
 pub mod filter;
 pub mod gpu;

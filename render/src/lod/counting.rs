@@ -18,7 +18,7 @@ use rayon::prelude::*;
 use super::error::LodError;
 use super::key::RootCube;
 use super::memory::MemoryMeter;
-use super::point::{RawPoint, RecordLayout, MAX_RECORD_BYTES};
+use super::point::{RecordLayout, MAX_RECORD_BYTES};
 use super::source::{PointBatch, PointSource};
 use super::spill::{SpillDir, SpillWriter};
 use super::stats::DatasetStats;
@@ -147,7 +147,7 @@ impl RecordBlock {
                 for (j, record) in out.chunks_exact_mut(record_bytes).enumerate() {
                     let i = first + j;
                     let row = batch.row(i, layout.row_bytes);
-                    layout.write(&RawPoint::from_batch(batch, i), row, record)?;
+                    layout.write(&batch.raw_point(i), row, record)?;
                 }
                 Ok(())
             })

@@ -10,7 +10,6 @@ use glam::DVec3;
 
 use super::error::LodError;
 use super::grid::PositionGrid;
-use super::source::PointBatch;
 
 /// Bytes of a point in the world layout: position (3 x f64), RGB (3 x u16), intensity (u16),
 /// classification, return number, weight (u32).
@@ -157,18 +156,6 @@ pub struct RawPoint {
 }
 
 impl RawPoint {
-    pub fn from_batch(batch: &PointBatch<'_>, i: usize) -> Self {
-        Self {
-            position: batch.positions[i],
-            rgb: batch.rgb.map_or([0; 3], |rgb| rgb[i]),
-            intensity: batch.intensity[i],
-            classification: batch.classification[i],
-            return_number: batch.return_number[i],
-            weight: 1,
-            row: 0,
-        }
-    }
-
     /// A total order on everything a point holds, so that choices between points at the same
     /// distance never depend on the order they arrived in.
     pub fn content_cmp(&self, other: &Self) -> Ordering {

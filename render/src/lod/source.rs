@@ -6,6 +6,7 @@ use glam::DVec3;
 use super::attributes::AttributeSchema;
 use super::error::LodError;
 use super::grid::PositionGrid;
+use super::point::RawPoint;
 use crate::cloud::{PointCloud, WorldBounds};
 
 /// One batch of original points in world coordinates (f64) with their raw attributes.
@@ -29,6 +30,19 @@ impl PointBatch<'_> {
 
     pub fn is_empty(&self) -> bool {
         self.positions.is_empty()
+    }
+
+    /// Point `i` as the builder holds it, standing for itself, its row not yet numbered.
+    pub fn raw_point(&self, i: usize) -> RawPoint {
+        RawPoint {
+            position: self.positions[i],
+            rgb: self.rgb.map_or([0; 3], |rgb| rgb[i]),
+            intensity: self.intensity[i],
+            classification: self.classification[i],
+            return_number: self.return_number[i],
+            weight: 1,
+            row: 0,
+        }
     }
 
     /// The attribute row of point `i`, rows being `row_bytes` long.

@@ -13,7 +13,7 @@ use crate::camera::{
     fitted_orbit, Camera, Projection, AUTO_AZIMUTH_DEG, AUTO_ELEVATION_DEG, DEFAULT_FOV_Y_DEG,
 };
 use crate::cloud::WorldBounds;
-use crate::source::Extent;
+use crate::extent::Extent;
 
 /// A turntable covers a full circle unless asked otherwise.
 pub const DEFAULT_TURNTABLE_DEGREES: f64 = 360.0;

@@ -19,8 +19,8 @@ pub use options::{PointSize, RenderOptions, DEFAULT_SUPERSAMPLE};
 pub use validate::RequestError;
 
 use crate::camera::Camera;
+use crate::extent::Framed;
 use crate::raster::{AtomicsMode, FrameSettings, DEFAULT_POINT_SIZE};
-use crate::source::Framed;
 
 /// Everything that decides the frames of a render, apart from the cloud.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -45,7 +45,7 @@ impl RenderRequest {
     }
 
     /// The camera of frame `index` for a cloud whose points lie in `extent` (its bounds, or
-    /// an [`Extent`](crate::source::Extent) with the robust box the automatic camera frames).
+    /// an [`Extent`](crate::extent::Extent) with the robust box the automatic camera frames).
     pub fn camera(&self, index: u32, extent: &impl Framed) -> Camera {
         let extent = extent.extent();
         camera_for_frame(&self.camera_path, &self.lens, index, &extent, self.aspect())

@@ -18,7 +18,6 @@
 
 mod choice;
 mod events;
-mod extent;
 mod local_store;
 mod preview;
 
@@ -40,9 +39,9 @@ use crate::lod::for_each_coarse_node_up_to;
 use crate::raster::{Frame, FrameSettings, GpuPointCloud, RenderError, Renderer};
 use crate::request::{RenderOptions, RenderRequest};
 
+pub use crate::extent::{Extent, Framed};
 pub use choice::{frame_points, FramePoints, PointSourceFacts};
 pub use events::{quiet, LevelsFrom, SourceEvent};
-pub use extent::{Extent, Framed};
 pub use local_store::{LocalStore, StoreCache};
 pub use preview::{ChunkStarts, PreviewPoints};
 
