@@ -3,7 +3,7 @@
 //! it), with four 8-bit bands whose fourth is alpha, compressed, and its depth image beside it
 //! in 16 bits; other views are not placed.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use pointfarm_tests::{assert_ok, pointfarm, shared_data, stdout};
@@ -105,15 +105,18 @@ fn assert_placed_rgba(info: &Value, (width, height): (u64, u64), geotransform: [
     }
 }
 
+/// The real scan `name` and a scratch folder, where the scan and GDAL are both here (each
+/// missing one is said where it is looked for).
+fn scan_with_gdal(name: &str) -> Option<(PathBuf, tempfile::TempDir)> {
+    let scan = shared_data(name)?;
+    gdal_installed().then(|| (scan, tempfile::tempdir().expect("tempdir")))
+}
+
 #[test]
 fn a_top_view_of_a_scan_with_a_wkt_crs_is_placed_in_it_by_gdal() {
-    let Some(scan) = shared_data("autzen_trim.laz") else {
+    let Some((scan, dir)) = scan_with_gdal("autzen_trim.laz") else {
         return;
     };
-    if !gdal_installed() {
-        return;
-    }
-    let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("top.tif");
     let center = (636_590.49, 849_216.55);
     render_top(&scan, &out, "200x150", center, 600.0, &[]);
@@ -151,13 +154,9 @@ fn a_top_view_of_a_scan_with_a_wkt_crs_is_placed_in_it_by_gdal() {
 
 #[test]
 fn a_top_view_of_a_scan_with_epsg_keys_carries_its_code() {
-    let Some(scan) = shared_data("lone-star.laz") else {
+    let Some((scan, dir)) = scan_with_gdal("lone-star.laz") else {
         return;
     };
-    if !gdal_installed() {
-        return;
-    }
-    let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("top.tiff");
     let center = (515_384.5, 4_918_360.25);
     render_top(&scan, &out, "96x64", center, 32.0, &["--depth"]);
@@ -239,13 +238,9 @@ fn only_a_top_view_is_placed_and_a_cloud_without_a_crs_says_so() {
 
 #[test]
 fn a_top_view_whose_up_is_not_north_is_placed_with_its_rotation() {
-    let Some(scan) = shared_data("lone-star.laz") else {
+    let Some((scan, dir)) = scan_with_gdal("lone-star.laz") else {
         return;
     };
-    if !gdal_installed() {
-        return;
-    }
-    let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("rotated.tif");
     let center = (515_384.5, 4_918_360.25);
     render_top(

@@ -29,12 +29,7 @@ fn auto_camera_sees_every_corner_of_the_bounds() {
         let camera = Camera::auto(&b, w as f64 / h as f64);
         camera.validate().expect("auto camera is valid");
         let transform = camera.transform(b.center(), w, h);
-        for i in 0..8 {
-            let corner = DVec3::new(
-                if i & 1 == 0 { b.min.x } else { b.max.x },
-                if i & 2 == 0 { b.min.y } else { b.max.y },
-                if i & 4 == 0 { b.min.z } else { b.max.z },
-            );
+        for (i, corner) in box_corners(&b).into_iter().enumerate() {
             let (px, py, _) = transform
                 .project(corner - b.center())
                 .expect("inside near/far");
@@ -60,12 +55,7 @@ fn a_fitted_view_centres_the_bounds_and_fills_the_frame_to_its_margin() {
                 camera.validate().expect(&what);
                 let transform = camera.transform(b.center(), w, h);
                 let (mut lo, mut hi) = ([f64::MAX; 2], [f64::MIN; 2]);
-                for i in 0..8 {
-                    let corner = DVec3::new(
-                        if i & 1 == 0 { b.min.x } else { b.max.x },
-                        if i & 2 == 0 { b.min.y } else { b.max.y },
-                        if i & 4 == 0 { b.min.z } else { b.max.z },
-                    );
+                for (i, corner) in box_corners(&b).into_iter().enumerate() {
                     let (px, py, _) = transform
                         .project(corner - b.center())
                         .unwrap_or_else(|| panic!("{what}: corner {i} clipped"));
