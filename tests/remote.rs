@@ -300,32 +300,14 @@ fn urls_outside_the_allowed_prefixes_are_refused_naming_the_rule() {
     );
 }
 
-/// Where an S3-compatible server for the S3 test is: the path of a `moto_server` binary (PyPI's
-/// `moto[server]`), which deploy/test.sh does not install yet.
-const S3_SERVER_VARIABLE: &str = "POINTFARM_TEST_MOTO_SERVER";
+/// Where an S3-compatible server for the S3 test is: the path of an `s3s-fs` binary
+/// (crates.io's `s3s-fs` with its `binary` feature, which serves a folder as buckets of
+/// files), which deploy/test.sh does not install yet.
+const S3_SERVER_VARIABLE: &str = "POINTFARM_TEST_S3S_FS";
 
-/// The URL the S3 test's child process reads.
+/// The URL the S3 test's child process reads, and the file behind it that it replaces.
 const S3_URL_VARIABLE: &str = "POINTFARM_TEST_S3_URL";
-
-/// One request to the S3 server without a signature, which moto accepts for its first
-/// requests, for setting up the bucket; the status code.
-fn unsigned_request(address: &str, method: &str, path: &str, body: &[u8]) -> u16 {
-    use std::io::{Read, Write};
-    let mut stream = std::net::TcpStream::connect(address).expect("connect");
-    let head = format!(
-        "{method} {path} HTTP/1.1\r\nHost: {address}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
-        body.len()
-    );
-    stream.write_all(head.as_bytes()).expect("head");
-    stream.write_all(body).expect("body");
-    let mut answer = String::new();
-    let _ = stream.read_to_string(&mut answer);
-    answer
-        .split_whitespace()
-        .nth(1)
-        .and_then(|code| code.parse().ok())
-        .unwrap_or(0)
-}
+const S3_FILE_VARIABLE: &str = "POINTFARM_TEST_S3_FILE";
 
 /// A server process that ends with the test, whether it passes or not.
 struct KillOnDrop(std::process::Child);
@@ -342,14 +324,22 @@ fn reads_from_an_s3_compatible_server() {
     let Some(server) =
         std::env::var_os(S3_SERVER_VARIABLE).filter(|path| Path::new(path).is_file())
     else {
-        eprintln!("skipped: {S3_SERVER_VARIABLE} names no S3-compatible server binary");
+        eprintln!("skipped: {S3_SERVER_VARIABLE} names no s3s-fs binary");
         return;
     };
+    let root = tempfile::tempdir().expect("root");
+    let scans = root.path().join("pointfarm-test/scans");
+    std::fs::create_dir_all(&scans).expect("bucket folder");
+    let file = scans.join("simple.copc.laz");
+    std::fs::copy(copc_file(), &file).expect("copy");
     let address = pointfarm_tests::free_address();
     let (host, port) = address.split_once(':').expect("host:port");
     let _server = KillOnDrop(
         std::process::Command::new(server)
-            .args(["-H", host, "-p", port])
+            .args(["--host", host, "--port", port])
+            .args(["--access-key", "pointfarm-test-key"])
+            .args(["--secret-key", "pointfarm-test-secret"])
+            .arg(root.path())
             .stdout(std::process::Stdio::null())
             .stderr(std::process::Stdio::null())
             .spawn()
@@ -363,20 +353,6 @@ fn reads_from_an_s3_compatible_server() {
         );
         std::thread::sleep(Duration::from_millis(50));
     }
-    let bytes = std::fs::read(copc_file()).expect("local file");
-    assert_eq!(
-        unsigned_request(&address, "PUT", "/pointfarm-test", &[]),
-        200
-    );
-    assert_eq!(
-        unsigned_request(
-            &address,
-            "PUT",
-            "/pointfarm-test/scans/simple.copc.laz",
-            &bytes
-        ),
-        200
-    );
     // Credentials reach object_store only through the environment, so the reads run in a
     // child process of this test binary with the server's.
     let output = std::process::Command::new(std::env::current_exe().expect("test binary"))
@@ -392,6 +368,7 @@ fn reads_from_an_s3_compatible_server() {
         .env("AWS_SECRET_ACCESS_KEY", "pointfarm-test-secret")
         .env("AWS_REGION", "us-east-1")
         .env(S3_URL_VARIABLE, "s3://pointfarm-test/scans/simple.copc.laz")
+        .env(S3_FILE_VARIABLE, &file)
         .output()
         .expect("run the child");
     let text = format!(
@@ -408,6 +385,7 @@ fn reads_from_an_s3_compatible_server() {
 #[ignore = "run by reads_from_an_s3_compatible_server, with a server's credentials"]
 fn s3_reads_in_a_child_process() {
     let url = std::env::var(S3_URL_VARIABLE).expect("the URL");
+    let file = std::env::var(S3_FILE_VARIABLE).expect("the file");
     let local = std::fs::read(copc_file()).expect("local file");
     let client = client();
     let object = client
@@ -429,5 +407,18 @@ fn s3_reads_in_a_child_process() {
         .open(&ObjectUrl::parse("s3://pointfarm-test/scans/absent.laz").expect("url"))
         .expect_err("missing");
     assert!(matches!(missing, RemoteError::NotFound { .. }), "{missing}");
+    // Another version of the same size, written where the server keeps the object.
+    let mut replaced = local.clone();
+    replaced[LAS_HEADER_LEN as usize] ^= 0xff;
+    let replacement = format!("{file}.new");
+    std::fs::write(&replacement, &replaced).expect("replacement");
+    std::fs::rename(&replacement, &file).expect("replace");
+    let error = object
+        .read_range(LAS_HEADER_LEN..LAS_HEADER_LEN + 10)
+        .expect_err("changed");
+    assert!(
+        matches!(error, RemoteError::ObjectChanged { .. }),
+        "{error}"
+    );
     assert!(!format!("{client:?} {object:?}").contains("pointfarm-test-secret"));
 }
