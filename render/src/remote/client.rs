@@ -11,7 +11,6 @@ use object_store::ObjectStore;
 use super::counters::{FetchCounters, FetchCounts};
 use super::error::RemoteError;
 use super::list::{list_point_files, ListedObject};
-use super::object::RemoteObject;
 use super::runtime::RemoteRuntime;
 use super::settings::RemoteSettings;
 use super::store::build_store;
@@ -50,12 +49,6 @@ impl RemoteClient {
     /// What this client has fetched so far, over all its objects.
     pub fn counts(&self) -> FetchCounts {
         self.inner.counters.snapshot()
-    }
-
-    /// Opens one object: a HEAD request for its size and version, which every later read
-    /// of it is pinned to.
-    pub fn open(&self, url: &ObjectUrl) -> Result<RemoteObject, RemoteError> {
-        RemoteObject::open(self.clone(), url)
     }
 
     /// The `.las` and `.laz` objects under a prefix, sorted by URL.

@@ -31,8 +31,16 @@ struct Pin {
     meta: ObjectMeta,
 }
 
+impl RemoteClient {
+    /// Opens one object: a HEAD request for its size and version, which every later read
+    /// of it is pinned to.
+    pub fn open(&self, url: &ObjectUrl) -> Result<RemoteObject, RemoteError> {
+        RemoteObject::open(self.clone(), url)
+    }
+}
+
 impl RemoteObject {
-    pub(crate) fn open(client: RemoteClient, url: &ObjectUrl) -> Result<Self, RemoteError> {
+    fn open(client: RemoteClient, url: &ObjectUrl) -> Result<Self, RemoteError> {
         if url.is_prefix() {
             return Err(RemoteError::InvalidUrl {
                 url: url.to_string(),
