@@ -12,6 +12,7 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
+use pointfarm_render::extent::Extent;
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::raster::Renderer;
 use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
@@ -339,8 +340,12 @@ pub fn assert_equal_to_direct_renders(
         lens: Lens::default(),
         render: RenderOptions::default(),
     };
+    // Framed as a frame source frames a resident cloud: by the robust extent of a sample.
+    let sample = pointfarm_render::spacing::sample_of(&cloud.positions);
+    let extent = Extent::of_points(cloud.bounds, cloud.origin, &sample, &cloud.positions);
+    let spacing = pointfarm_render::spacing::of_sample(&sample, cloud.len() as u64);
     for (index, image) in fetched {
-        let settings = request.frame_settings(*index, &cloud.bounds, cloud.spacing());
+        let settings = request.frame_settings(*index, &extent, spacing);
         let direct = renderer.render(&resident, &settings).expect("render");
         assert!(
             direct.image == *image,

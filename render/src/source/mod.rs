@@ -237,18 +237,28 @@ impl FrameSource {
         cloud.colors = point_colors(&cloud, coloring);
         let ramp_range = ramp_range(&cloud, coloring);
         let points = cloud.len();
+        // Framed by the points a clip box keeps, all of them else: a render filtered by class
+        // or return lines up with the whole one.
+        let clip = PointFilter {
+            clip: options.filter.clip,
+            ..PointFilter::default()
+        };
+        clip.apply(&mut cloud)?;
+        let extent = match framed {
+            Some(bounds) => Extent::whole(bounds),
+            None => {
+                let sample = crate::spacing::sample_of(&cloud.positions);
+                Extent::of_points(cloud.bounds, cloud.origin, &sample, &cloud.positions)
+            }
+        };
         let kept = options.filter.apply(&mut cloud)?;
         if !options.filter.keeps_everything() || kept == 0 {
             events(SourceEvent::Filtered { kept, points });
         }
         let cloud_on_gpu = renderer.upload(&cloud)?;
-        // One sample of the filtered points for their spacing and their robust box.
+        // The spacing of the points drawn sizes them.
         let sample = crate::spacing::sample_of(&cloud.positions);
         let spacing = crate::spacing::of_sample(&sample, cloud.len() as u64);
-        let extent = match framed {
-            Some(bounds) => Extent::whole(bounds),
-            None => Extent::of_points(cloud.bounds, cloud.origin, &sample, &cloud.positions),
-        };
         Ok(Self {
             renderer,
             coloring,
