@@ -152,14 +152,24 @@ fn a_top_view_of_a_scan_with_a_wkt_crs_is_placed_in_it_by_gdal() {
     );
 }
 
+/// A point near the middle of lone-star's extent, in its CRS (metres), where its top views look.
+const LONE_STAR_CENTER: (f64, f64) = (515_384.5, 4_918_360.25);
+
+/// A 96x64 top view of lone-star, 32 m high around [`LONE_STAR_CENTER`], written to `file_name`
+/// in a scratch folder with `extra` options; `None` where the scan or GDAL is missing.
+fn lone_star_top(file_name: &str, extra: &[&str]) -> Option<(tempfile::TempDir, PathBuf)> {
+    let (scan, dir) = scan_with_gdal("lone-star.laz")?;
+    let out = dir.path().join(file_name);
+    render_top(&scan, &out, "96x64", LONE_STAR_CENTER, 32.0, extra);
+    Some((dir, out))
+}
+
 #[test]
 fn a_top_view_of_a_scan_with_epsg_keys_carries_its_code() {
-    let Some((scan, dir)) = scan_with_gdal("lone-star.laz") else {
+    let Some((dir, out)) = lone_star_top("top.tiff", &["--depth"]) else {
         return;
     };
-    let out = dir.path().join("top.tiff");
-    let center = (515_384.5, 4_918_360.25);
-    render_top(&scan, &out, "96x64", center, 32.0, &["--depth"]);
+    let center = LONE_STAR_CENTER;
     let info = gdalinfo(&out);
     let origin = (center.0 - 48.0 * 0.5, center.1 + 32.0 * 0.5);
     assert_placed_rgba(&info, (96, 64), [origin.0, 0.5, 0.0, origin.1, 0.0, -0.5]);
@@ -238,19 +248,10 @@ fn only_a_top_view_is_placed_and_a_cloud_without_a_crs_says_so() {
 
 #[test]
 fn a_top_view_whose_up_is_not_north_is_placed_with_its_rotation() {
-    let Some((scan, dir)) = scan_with_gdal("lone-star.laz") else {
+    let Some((_dir, out)) = lone_star_top("rotated.tif", &["--camera-up", "1,1,0"]) else {
         return;
     };
-    let out = dir.path().join("rotated.tif");
-    let center = (515_384.5, 4_918_360.25);
-    render_top(
-        &scan,
-        &out,
-        "96x64",
-        center,
-        32.0,
-        &["--camera-up", "1,1,0"],
-    );
+    let center = LONE_STAR_CENTER;
     let info = gdalinfo(&out);
     let read: Vec<f64> = info["geoTransform"]
         .as_array()

@@ -19,7 +19,7 @@ use pointfarm_render::source::{quiet, ChunkStarts, FrameSource};
 use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::datasets::register_path;
 use pointfarm_tests::service::{
-    clients, fetch_images, get_job, gpu, submit, turntable_job, TestDaemon,
+    clients, fetch_images, get_job, gpu, submit, turntable_job, watch, TestDaemon,
 };
 use pointfarm_tests::ServeProcess;
 use tonic::transport::Channel;
@@ -93,11 +93,7 @@ async fn watch_until(
     id: &str,
     enough: impl Fn(&[pb::FrameFinished]) -> bool,
 ) -> Vec<pb::FrameFinished> {
-    let mut stream = jobs
-        .watch_job(pb::WatchJobRequest { id: id.into() })
-        .await
-        .expect("watch")
-        .into_inner();
+    let mut stream = watch(jobs, id).await;
     let mut frames = Vec::new();
     let deadline = tokio::time::Instant::now() + Duration::from_secs(300);
     while !enough(&frames) {
@@ -259,11 +255,7 @@ async fn a_killed_daemon_keeps_its_previews_and_finishes_the_job() {
     assert_eq!(after.frames.len(), FRAMES as usize, "{after:?}");
     assert!(after.frames.iter().all(|f| f.preview), "{after:?}");
 
-    let mut stream = jobs
-        .watch_job(pb::WatchJobRequest { id: job.id.clone() })
-        .await
-        .expect("watch")
-        .into_inner();
+    let mut stream = watch(&mut jobs, &job.id).await;
     let mut rendered = Vec::new();
     let mut state = None;
     let deadline = tokio::time::Instant::now() + Duration::from_secs(300);

@@ -265,16 +265,24 @@ pub async fn run_job(
     watch_to_end(jobs, &job.id).await.0
 }
 
+/// The event stream of job `id`: its state first (with the frames already finished), then an
+/// event per change.
+pub async fn watch(
+    jobs: &mut JobServiceClient<Channel>,
+    id: &str,
+) -> tonic::Streaming<pb::JobEvent> {
+    jobs.watch_job(pb::WatchJobRequest { id: id.into() })
+        .await
+        .expect("watch")
+        .into_inner()
+}
+
 /// Watches a job to its end; returns the final job and the finished-frame events.
 pub async fn watch_to_end(
     jobs: &mut JobServiceClient<Channel>,
     id: &str,
 ) -> (pb::Job, Vec<pb::FrameFinished>) {
-    let mut stream = jobs
-        .watch_job(pb::WatchJobRequest { id: id.into() })
-        .await
-        .expect("watch")
-        .into_inner();
+    let mut stream = watch(jobs, id).await;
     let mut frames = Vec::new();
     let mut last = None;
     let deadline = tokio::time::Instant::now() + std::time::Duration::from_secs(300);
