@@ -11,8 +11,9 @@
 # --pointfarm (or POINTFARM_BIN) is the binary measured, by default this tree's, built in debug
 # (enough at 640x360); --before (or POINTFARM_BEFORE) an older build to compare with, left out when
 # not given. Without inputs it renders the two real scans of the gallery, autzen_trim.laz and
-# lone-star.laz in ${POINTFARM_DATA:-../shared/data}, and every .las/.laz file of laspy's tests
-# in ${LASPY_DATA:-../laspy/tests/data} (a laspy checkout beside this one:
+# lone-star.laz in ${POINTFARM_DATA:-../shared/data}, and every .las/.laz file of laspy's tests:
+# in $POINTFARM_LASPY_DATA when set (`bash deploy/test.sh` fetches them into target/laspy-data),
+# else in ${LASPY_DATA:-../laspy/tests/data} (a laspy checkout beside this one:
 # `git clone --depth 1 https://github.com/laspy/laspy ../laspy`).
 # --images keeps the frames (NAME.after.png, NAME.before.png); otherwise they are discarded.
 set -euo pipefail
@@ -31,14 +32,15 @@ while [ $# -gt 0 ]; do
         --before) before=$(abs "$2"); shift 2 ;;
         --images) args+=("$1" "$(abs "$2")"); shift 2 ;;
         --size | --runs) args+=("$1" "$2"); shift 2 ;;
-        -h | --help) sed -n '2,17p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+        -h | --help) sed -n '2,18p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
         -*) echo "gallery-figures: unknown option $1" >&2; exit 2 ;;
         *) inputs+=("$(abs "$1")"); shift ;;
     esac
 done
 if [ ${#inputs[@]} -eq 0 ]; then
     data=${POINTFARM_DATA:-../shared/data}
-    inputs=("$data/autzen_trim.laz" "$data/lone-star.laz" "${LASPY_DATA:-../laspy/tests/data}")
+    laspy=${POINTFARM_LASPY_DATA:-${LASPY_DATA:-../laspy/tests/data}}
+    inputs=("$data/autzen_trim.laz" "$data/lone-star.laz" "$laspy")
 fi
 for i in "${inputs[@]}"; do
     [ -e "$i" ] || { echo "gallery-figures: $i not found" >&2; exit 1; }

@@ -43,6 +43,46 @@ else
     echo "pointfarm tests: no Python virtualenv with grpcio and laspy; the Python tests will skip" >&2
 fi
 
+# laspy's test files, for the framing test that renders each with the defaults
+# (tests/framing.rs): 21 LAS/LAZ files of other writers (a few points, old versions and point
+# formats, COPC, extra bytes), from laspy's source distribution, fetched once with the
+# virtualenv's pip.
+laspy_data="${CARGO_TARGET_DIR:-target}/laspy-data"
+fetch_laspy_data() {
+    local scratch status=0
+    [ -x "$venv/bin/python" ] || return 1
+    echo "pointfarm tests: fetching laspy's test files for the framing test" >&2
+    mkdir -p "$(dirname "$laspy_data")"
+    scratch=$(mktemp -d "$laspy_data.XXXXXX")
+    "$venv/bin/python" -m pip download --quiet --disable-pip-version-check --no-deps \
+        --no-binary :all: --dest "$scratch" laspy==2.7.0 &&
+        mkdir "$scratch/data" &&
+        tar -xzf "$scratch/laspy-2.7.0.tar.gz" -C "$scratch/data" --strip-components=3 \
+            laspy-2.7.0/tests/data &&
+        mv "$scratch/data" "$laspy_data" || status=1
+    rm -rf "$scratch"
+    return "$status"
+}
+if [ -d "$laspy_data" ] || fetch_laspy_data; then
+    POINTFARM_LASPY_DATA="$(cd "$laspy_data" && pwd)"
+    export POINTFARM_LASPY_DATA
+else
+    echo "pointfarm tests: laspy's test files could not be fetched; the framing test of them will skip" >&2
+fi
+
+# s3s-fs, an S3-compatible server over a folder, for the test that reads datasets from S3
+# (tests/remote.rs), built once from crates.io into the target folder (a few minutes).
+tools="${CARGO_TARGET_DIR:-target}/tools"
+if [ ! -x "$tools/bin/s3s-fs" ]; then
+    echo "pointfarm tests: installing s3s-fs for the S3 tests (a few minutes, once)" >&2
+    cargo install s3s-fs@0.14.0 --features binary --locked --quiet --root "$tools" ||
+        echo "pointfarm tests: s3s-fs could not be installed; the S3 tests will skip" >&2
+fi
+if [ -x "$tools/bin/s3s-fs" ]; then
+    POINTFARM_TEST_S3S_FS="$(cd "$tools/bin" && pwd)/s3s-fs"
+    export POINTFARM_TEST_S3S_FS
+fi
+
 # A font for the legends' and the benchmark plots' labels.
 install_for_tests fonts-dejavu-core /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf \
     "the legends' and plots' labels" "the legend tests will fail"

@@ -1,10 +1,11 @@
 //! The automatic camera frames the points, not their header's box: real scans, the COPC files
-//! of other writers and a generated cloud with a few far stray points, rendered with the
-//! default options at 320x180 through the frame source as `pointfarm render` and the workers
-//! render them. From the image alone: the drawn pixels' box fills at least 80% of the frame
-//! along the side that limits it and is centred within 6%; enough of the frame is lit for
-//! adaptive points to close the surface; over a turntable of 8 frames the widest fills 80%
-//! and none touches the image's border.
+//! of other writers, every file of laspy's tests and a generated cloud with a few far stray
+//! points, rendered with the default options at 320x180 through the frame source as
+//! `pointfarm render` and the workers render them. From the image alone: the drawn pixels' box
+//! fills at least 80% of the frame along the side that limits it and is centred within 6%;
+//! enough of the frame is lit for adaptive points to close the surface (for laspy's files of a
+//! few points, to show them); over a turntable of 8 frames the widest fills 80% and none
+//! touches the image's border.
 
 use std::path::{Path, PathBuf};
 
@@ -25,6 +26,9 @@ const TURNTABLE_FRAMES: u32 = 8;
 const MIN_FILL: f64 = 0.8;
 /// How far the drawn box's centre may lie from the frame's, as a share of each side.
 const MAX_OFF_CENTRE: f64 = 0.06;
+/// The share of the frame the still of a file of a few points lights, at least: enough for its
+/// points to show (laspy's file of 4 points lights 0.7%).
+const MIN_LIT_OF_FEW_POINTS: f64 = 0.005;
 
 /// Where a frame's drawn pixels lie.
 #[derive(Debug, Clone, Copy)]
@@ -137,15 +141,23 @@ fn figures(renderer: Renderer, file: &Path, request: &RenderRequest) -> (Vec<Fig
     (figures, source.into_renderer())
 }
 
-/// Checks the still and the turntable of `file`, whose still must light at least `min_lit` of
-/// the frame; adds what fails to `failures`.
-fn check(renderer: Renderer, file: &Path, min_lit: f64, failures: &mut Vec<String>) -> Renderer {
+/// Adds `what` to `failures` unless `ok`.
+fn expect(failures: &mut Vec<String>, ok: bool, what: String) {
+    if !ok {
+        failures.push(what);
+    }
+}
+
+/// Checks the still of `file`, which must light at least `min_lit` of the frame; adds what
+/// fails to `failures`.
+fn check_still(
+    renderer: Renderer,
+    file: &Path,
+    min_lit: f64,
+    failures: &mut Vec<String>,
+) -> Renderer {
     let name = file.file_name().expect("a name").to_string_lossy();
-    let mut expect = |ok: bool, what: String| {
-        if !ok {
-            failures.push(what);
-        }
-    };
+    let mut expect = |ok: bool, what: String| expect(failures, ok, what);
     let still = request(CameraPath::Still(StillCamera::default()));
     let (figures_of_still, renderer) = figures(renderer, file, &still);
     let f = figures_of_still[0];
@@ -170,7 +182,15 @@ fn check(renderer: Renderer, file: &Path, min_lit: f64, failures: &mut Vec<Strin
         f.lit() >= min_lit,
         format!("{name}: the still lights {:.4}", f.lit()),
     );
+    renderer
+}
 
+/// Checks the still and the turntable of `file`, whose still must light at least `min_lit` of
+/// the frame; adds what fails to `failures`.
+fn check(renderer: Renderer, file: &Path, min_lit: f64, failures: &mut Vec<String>) -> Renderer {
+    let renderer = check_still(renderer, file, min_lit, failures);
+    let name = file.file_name().expect("a name").to_string_lossy();
+    let mut expect = |ok: bool, what: String| expect(failures, ok, what);
     let turntable = request(CameraPath::Turntable(Turntable::around_the_cloud(
         TURNTABLE_FRAMES,
     )));
@@ -248,6 +268,49 @@ fn copc_files_of_other_writers_are_framed_and_sized_as_their_points() {
             ));
         }
         renderer = check(renderer, &path, 0.08, &mut failures);
+    }
+    assert!(failures.is_empty(), "{failures:#?}");
+}
+
+/// The LAS and LAZ files of `folder`, by name.
+fn point_files(folder: &Path) -> Vec<PathBuf> {
+    let entries =
+        std::fs::read_dir(folder).unwrap_or_else(|e| panic!("reading {}: {e}", folder.display()));
+    let mut files: Vec<PathBuf> = entries
+        .map(|entry| entry.expect("a folder entry").path())
+        .filter(|path| {
+            path.extension().is_some_and(|ext| {
+                ext.eq_ignore_ascii_case("las") || ext.eq_ignore_ascii_case("laz")
+            })
+        })
+        .collect();
+    files.sort();
+    files
+}
+
+/// Every file of laspy's tests, as `deploy/test.sh` fetches them into `$POINTFARM_LASPY_DATA`
+/// from laspy's source distribution: files of a few points, old versions and point formats,
+/// COPC, extra bytes, a file with stray points far from two clusters. Their stills are held to
+/// what the gallery measures of its default renders (docs/gallery.md).
+#[test]
+fn laspy_test_files_are_framed_by_their_points() {
+    let Some(folder) = std::env::var_os("POINTFARM_LASPY_DATA") else {
+        eprintln!(
+            "skipping: POINTFARM_LASPY_DATA names no folder of laspy's test files \
+             (bash deploy/test.sh fetches them)"
+        );
+        return;
+    };
+    let files = point_files(Path::new(&folder));
+    assert!(
+        !files.is_empty(),
+        "{}: no .las or .laz file",
+        Path::new(&folder).display()
+    );
+    let mut renderer = Renderer::new(gpu());
+    let mut failures = Vec::new();
+    for file in &files {
+        renderer = check_still(renderer, file, MIN_LIT_OF_FEW_POINTS, &mut failures);
     }
     assert!(failures.is_empty(), "{failures:#?}");
 }
