@@ -1,10 +1,11 @@
 //! `CopcError`: what can be wrong with a COPC file read node by node. Every message names
-//! the file.
+//! the file: its path, or the URL it was opened by.
 
 use std::path::PathBuf;
 
 use crate::ingest::IngestError;
 use crate::lod::{LodError, NodeKey};
+use crate::remote::RemoteError;
 
 #[derive(Debug, thiserror::Error)]
 pub enum CopcError {
@@ -28,6 +29,10 @@ pub enum CopcError {
     /// file, a page visited twice, counts that do not add up.
     #[error("{}: COPC hierarchy is inconsistent: {reason}", path.display())]
     Hierarchy { path: PathBuf, reason: String },
+    /// An object read by URL that could not be read: missing, refused, replaced since it was
+    /// opened, cut short. The error names the URL.
+    #[error(transparent)]
+    Remote(#[from] RemoteError),
     /// A node's LAZ chunk that does not decode to what its entry says.
     #[error("{}: COPC node {key}: {reason}", path.display())]
     Node {

@@ -4,19 +4,17 @@
 //! lies). The info VLR's fields are read here rather than through `las::copc::CopcInfoVlr`,
 //! whose page offset and size are private.
 
-use std::fs::File;
-use std::io::Read;
-use std::os::unix::fs::FileExt;
 use std::path::Path;
 use std::sync::Arc;
 
 use glam::DVec3;
 
+use super::bytes::{CopcBytes, RangeReader};
 use super::error::CopcError;
 use super::node_grids::{read_node_grids, NodeGrids};
 use crate::cloud::{WorldBounds, MAX_COORDINATE};
 use crate::extra_bytes;
-use crate::ingest::{check_file, open_dataset_file, IngestError, Symlinks};
+use crate::ingest::{check_file, IngestError};
 use crate::lod::weights::WEIGHT_ATTRIBUTE;
 use crate::lod::RootCube;
 
@@ -82,14 +80,18 @@ pub(crate) struct CopcHeader {
 /// specification puts it). A file too short to say is not; ingest reports what is wrong
 /// with it.
 pub fn is_copc(path: &Path) -> Result<bool, CopcError> {
-    let mut file = open_dataset_file(path, Symlinks::Follow).map_err(|e| CopcError::io(path, e))?;
-    let mut head = Vec::with_capacity((COPC_INFO_OFFSET + VLR_HEADER_LEN) as usize);
-    (&mut file)
-        .take(COPC_INFO_OFFSET + VLR_HEADER_LEN)
-        .read_to_end(&mut head)
-        .map_err(|e| CopcError::io(path, e))?;
-    Ok(head.len() as u64 == COPC_INFO_OFFSET + VLR_HEADER_LEN
-        && head.starts_with(crate::ingest::LAS_SIGNATURE)
+    starts_as_copc(&mut CopcBytes::file(path)?.reader())
+}
+
+/// Whether the bytes `reader` reads start as a COPC file's do; a file too short to say
+/// does not.
+pub(crate) fn starts_as_copc(reader: &mut RangeReader<'_>) -> Result<bool, CopcError> {
+    let head_len = COPC_INFO_OFFSET + VLR_HEADER_LEN;
+    if reader.size() < head_len {
+        return Ok(false);
+    }
+    let head = reader.read_at(0, head_len)?;
+    Ok(head.starts_with(crate::ingest::LAS_SIGNATURE)
         && head[24..26] == [1, 4]
         && u16::from_le_bytes([head[94], head[95]]) as u64 == COPC_INFO_OFFSET
         && is_copc_info(&head[COPC_INFO_OFFSET as usize..]))
@@ -114,10 +116,16 @@ fn bad_info(path: &Path, reason: impl Into<String>) -> CopcError {
     }
 }
 
-/// Reads and checks the header of the COPC file `path`, open as `file`.
-pub(crate) fn read_header(path: &Path, file: &mut File) -> Result<CopcHeader, CopcError> {
-    let file_len = file.metadata().map_err(|e| CopcError::io(path, e))?.len();
-    let checked = check_file(path, file, file_len)?;
+/// Reads and checks the header of the COPC file `bytes`.
+pub(crate) fn read_header(bytes: &CopcBytes) -> Result<CopcHeader, CopcError> {
+    let mut reader = bytes.reader();
+    read_header_from(&mut reader).map_err(|error| reader.error(error))
+}
+
+fn read_header_from(reader: &mut RangeReader<'_>) -> Result<CopcHeader, CopcError> {
+    let (path, file_len) = (reader.name(), reader.size());
+    let checked = check_file(&path, reader, file_len)?;
+    let path = path.as_path();
     let facts = &checked.facts;
     if !facts.compressed {
         return Err(not_copc(path, "its points are not LAZ-compressed"));
@@ -139,9 +147,7 @@ pub(crate) fn read_header(path: &Path, file: &mut File) -> Result<CopcHeader, Co
         .ok_or_else(|| not_copc(path, "records shorter than their point format"))?;
 
     // The header block itself: inside the file, as the pre-parse checked.
-    let mut block = vec![0; usize::from(facts.header_size)];
-    file.read_exact_at(&mut block, 0)
-        .map_err(|e| CopcError::io(path, e))?;
+    let block = reader.read_at(0, u64::from(facts.header_size))?;
     let raw =
         las::raw::Header::read_from(block.as_slice()).map_err(|error| IngestError::Malformed {
             path: path.to_owned(),
@@ -164,34 +170,25 @@ pub(crate) fn read_header(path: &Path, file: &mut File) -> Result<CopcHeader, Co
     let mut extra_bytes_vlr = None;
     let mut offset = u64::from(facts.header_size);
     for index in 0..facts.vlr_count {
-        let mut vlr_header = [0u8; VLR_HEADER_LEN as usize];
-        file.read_exact_at(&mut vlr_header, offset)
-            .map_err(|e| CopcError::io(path, e))?;
+        let vlr_header = reader.read_at(offset, VLR_HEADER_LEN)?;
         let len = u64::from(u16::from_le_bytes([vlr_header[20], vlr_header[21]]));
         let data_at = offset + VLR_HEADER_LEN;
         if index == 0 && is_copc_info(&vlr_header) {
             if len < COPC_INFO_LEN {
                 return Err(bad_info(path, format!("{len} bytes, 160 expected")));
             }
-            let mut data = [0u8; COPC_INFO_LEN as usize];
-            file.read_exact_at(&mut data, data_at)
-                .map_err(|e| CopcError::io(path, e))?;
+            let data = reader.read_at(data_at, COPC_INFO_LEN)?;
             info = Some(parse_info(path, &data)?);
         } else if vlr_header[2..18] == LASZIP_USER_ID[..]
             && u16::from_le_bytes([vlr_header[18], vlr_header[19]]) == LASZIP_RECORD_ID
         {
-            let mut data = vec![0u8; len as usize];
-            file.read_exact_at(&mut data, data_at)
-                .map_err(|e| CopcError::io(path, e))?;
+            let data = reader.read_at(data_at, len)?;
             let vlr = laz::LazVlr::from_buffer(&data)
                 .map_err(|error| not_copc(path, format!("its LASzip VLR: {error}")))?;
             laz_items = Some(vlr.items().clone());
             laszip_vlr = data;
         } else if is_extra_bytes(&vlr_header) {
-            let mut data = vec![0u8; len as usize];
-            file.read_exact_at(&mut data, data_at)
-                .map_err(|e| CopcError::io(path, e))?;
-            extra_bytes_vlr = Some(data);
+            extra_bytes_vlr = Some(reader.read_at(data_at, len)?);
         }
         offset = data_at + len;
     }
@@ -208,7 +205,7 @@ pub(crate) fn read_header(path: &Path, file: &mut File) -> Result<CopcHeader, Co
     }
 
     let weight_at = extra_bytes_vlr.and_then(|data| weight_offset(&format, &data));
-    let node_grids = Arc::new(read_node_grids(path, file, facts.evlrs)?);
+    let node_grids = Arc::new(read_node_grids(reader, facts.evlrs)?);
     let header = CopcHeader {
         file_len,
         point_count: facts.declared_points,
@@ -249,7 +246,8 @@ fn transform(scale: f64, offset: f64) -> las::Transform {
     las::Transform { scale, offset }
 }
 
-fn parse_info(path: &Path, data: &[u8; COPC_INFO_LEN as usize]) -> Result<CopcInfo, CopcError> {
+/// The info VLR's fields, from its [`COPC_INFO_LEN`] bytes.
+fn parse_info(path: &Path, data: &[u8]) -> Result<CopcInfo, CopcError> {
     let f64_at = |at: usize| f64::from_le_bytes(data[at..at + 8].try_into().unwrap_or([0; 8]));
     let u64_at = |at: usize| u64::from_le_bytes(data[at..at + 8].try_into().unwrap_or([0; 8]));
     let center = DVec3::new(f64_at(0), f64_at(8), f64_at(16));

@@ -13,13 +13,11 @@
 //! header's count, and once every page is read they must add up to it.
 
 use std::collections::{BTreeMap, HashMap, HashSet};
-use std::fs::File;
-use std::os::unix::fs::FileExt;
-use std::path::{Path, PathBuf};
+use std::ops::Range;
+use std::path::PathBuf;
 use std::sync::Arc;
 
-use rayon::prelude::*;
-
+use super::bytes::CopcBytes;
 use super::error::CopcError;
 use super::header::{check_page, check_page_bounds, CopcHeader, PageRef, ENTRY_BYTES};
 use super::node_grids::NodeGrids;
@@ -71,27 +69,26 @@ impl Entry {
     }
 }
 
-/// Reads every hierarchy page of `file`, checked, the points of all entries against the
+/// Reads every hierarchy page of `bytes`, checked, the points of all entries against the
 /// header's count.
 pub(crate) fn read_all_pages(
-    path: &Path,
-    file: &File,
+    bytes: &CopcBytes,
     header: &CopcHeader,
 ) -> Result<CopcPages, CopcError> {
-    let mut pages = read_root_page(path, file, header)?;
+    let mut pages = read_root_page(bytes, header)?;
     while !pages.unread.is_empty() {
         let keys: Vec<NodeKey> = pages.unread.keys().copied().collect();
-        pages.read(file, &keys)?;
+        pages.read(bytes, &keys)?;
     }
     Ok(pages)
 }
 
-/// Reads the root hierarchy page of `file`, checked; child pages are left unread.
+/// Reads the root hierarchy page of `bytes`, checked; child pages are left unread.
 pub(crate) fn read_root_page(
-    path: &Path,
-    file: &File,
+    bytes: &CopcBytes,
     header: &CopcHeader,
 ) -> Result<CopcPages, CopcError> {
+    let path = bytes.name();
     let mut pages = CopcPages {
         path: path.to_owned(),
         file_len: header.file_len,
@@ -108,8 +105,8 @@ pub(crate) fn read_root_page(
     };
     let root = header.info.root_page;
     check_page(path, header, root, "the root hierarchy page")?;
-    let bytes = read_bytes(path, file, root)?;
-    pages.add_page(root, None, &bytes)?;
+    let read = bytes.read_at(root.offset, root.size)?;
+    pages.add_page(root, None, &read)?;
     pages.check_parents()?;
     pages.check_total()?;
     Ok(pages)
@@ -126,9 +123,9 @@ impl CopcPages {
     }
 
     /// Reads the child pages of `keys` (unread pages; others are passed over) together: their
-    /// bytes on all cores, their entries checked in key order. An error leaves this part way
-    /// through: a caller that goes on after one reads into a copy.
-    pub fn read(&mut self, file: &File, keys: &[NodeKey]) -> Result<(), CopcError> {
+    /// bytes in one read of many ranges, their entries checked in key order. An error leaves
+    /// this part way through: a caller that goes on after one reads into a copy.
+    pub fn read(&mut self, bytes: &CopcBytes, keys: &[NodeKey]) -> Result<(), CopcError> {
         let mut wanted: Vec<(NodeKey, PageRef)> = keys
             .iter()
             .filter_map(|key| self.unread.get(key).map(|&page| (*key, page)))
@@ -139,14 +136,14 @@ impl CopcPages {
         // hold more bytes than the file either, checked before any is read.
         let round: u64 = wanted.iter().map(|(_, page)| page.size).sum();
         self.check_page_bytes(self.page_bytes.saturating_add(round))?;
-        let path = self.path.clone();
-        let read: Vec<Result<Vec<u8>, CopcError>> = wanted
-            .par_iter()
-            .map(|&(_, page)| read_bytes(&path, file, page))
+        let ranges: Vec<Range<u64>> = wanted
+            .iter()
+            .map(|(_, page)| page.offset..page.offset + page.size)
             .collect();
-        for ((key, page), bytes) in wanted.into_iter().zip(read) {
+        let read = bytes.read_many(&ranges)?;
+        for ((key, page), page_bytes) in wanted.into_iter().zip(read) {
             self.unread.remove(&key);
-            self.add_page(page, Some(key), &bytes?)?;
+            self.add_page(page, Some(key), &page_bytes)?;
         }
         self.check_parents()?;
         self.check_total()
@@ -348,15 +345,6 @@ impl CopcPages {
     pub fn nodes_with_points(&self) -> impl Iterator<Item = &NodeInfo> + '_ {
         self.nodes.values().filter(|node| node.point_count > 0)
     }
-}
-
-/// The bytes of `page`, whose bounds are checked.
-fn read_bytes(path: &Path, file: &File, page: PageRef) -> Result<Vec<u8>, CopcError> {
-    // Bounded by the file's size, as checked.
-    let mut bytes = vec![0u8; page.size as usize];
-    file.read_exact_at(&mut bytes, page.offset)
-        .map_err(|e| CopcError::io(path, e))?;
-    Ok(bytes)
 }
 
 /// Whether `key` is `owner` or lies below it.

@@ -2,15 +2,15 @@
 //! ([`CopcPageReader`], the dataset's [`HierarchyPages`]), and at open by the colour ranges'
 //! sample of the coarsest nodes ([`coarse_pages`]).
 
-use std::fs::File;
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
+use super::bytes::CopcBytes;
 use super::hierarchy::CopcPages;
 use crate::lod::{HierarchyPages, LodError, LodHierarchy, NodeKey, PagesRead};
 
 /// Reads a COPC file's unread hierarchy pages, each checked as the pages read at open were.
 pub(crate) struct CopcPageReader {
-    file: File,
+    bytes: Arc<CopcBytes>,
     /// The file's root spacing, which every merged hierarchy halves per level.
     root_spacing: f64,
     /// What the pages read so far list.
@@ -18,9 +18,9 @@ pub(crate) struct CopcPageReader {
 }
 
 impl CopcPageReader {
-    pub(crate) fn new(file: File, root_spacing: f64, pages: CopcPages) -> Self {
+    pub(crate) fn new(bytes: Arc<CopcBytes>, root_spacing: f64, pages: CopcPages) -> Self {
         Self {
-            file,
+            bytes,
             root_spacing,
             pages: Mutex::new(pages),
         }
@@ -41,7 +41,7 @@ impl HierarchyPages for CopcPageReader {
         // Read into a copy, so that a page that fails its checks fails every frame that
         // reaches it the same way.
         let mut next = pages.clone();
-        next.read(&self.file, keys)?;
+        next.read(&self.bytes, keys)?;
         let read = PagesRead {
             pages: (next.pages - pages.pages) as u64,
             bytes: next.page_bytes - pages.page_bytes,

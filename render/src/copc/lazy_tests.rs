@@ -14,11 +14,17 @@ use crate::cut::{select_cut, CutRenderer, CutView};
 use crate::raster::Renderer;
 use crate::testing::{compare_images_within, gpu};
 
+/// The file `path` opened reading the pages `reads` says, its colour ranges from its coarsest
+/// `sample_points` points.
+fn open_at(path: &Path, reads: PageReads, sample_points: u64) -> Result<CopcDataset, CopcError> {
+    open(CopcBytes::file(path)?, reads, sample_points)
+}
+
 /// A file opened for frames with only its root page read (its colour ranges from the root
 /// alone, so no child page is read for them), and the same file with every page read.
 fn lazy_and_whole(path: &Path) -> (CopcDataset, CopcDataset) {
-    let lazy = open(path, PageReads::AsNeeded, 1).expect("opens lazily");
-    let whole = open(path, PageReads::All, 1).expect("opens whole");
+    let lazy = open_at(path, PageReads::AsNeeded, 1).expect("opens lazily");
+    let whole = open_at(path, PageReads::All, 1).expect("opens whole");
     assert!(
         lazy.unread_pages > 0,
         "{}: pages left unread",
@@ -201,8 +207,8 @@ fn a_cut_read_lazily_is_the_cut_of_every_page() {
 fn a_file_read_lazily_has_the_spacing_of_the_whole_file() {
     let dir = tempfile::tempdir().expect("tempdir");
     let path = repaged(&exported_terrain(dir.path()), dir.path());
-    let lazy = open(&path, PageReads::AsNeeded, 4_000).expect("opens lazily");
-    let whole = open(&path, PageReads::All, 4_000).expect("opens whole");
+    let lazy = open_at(&path, PageReads::AsNeeded, 4_000).expect("opens lazily");
+    let whole = open_at(&path, PageReads::All, 4_000).expect("opens whole");
     assert!(lazy.unread_pages > 0, "pages left unread");
     let spacing = lazy.dataset.point_spacing().expect("a spacing");
     assert_eq!(whole.dataset.point_spacing(), Some(spacing));
@@ -330,7 +336,7 @@ fn a_damaged_child_page_read_lazily_fails_the_frame_naming_the_file() {
     ] {
         let path = damaged_child_page(dir, damage);
         let name = path.display().to_string();
-        let lazy = open(&path, PageReads::AsNeeded, 1).expect("the root page is whole");
+        let lazy = open_at(&path, PageReads::AsNeeded, 1).expect("the root page is whole");
         let eager = describe(&path).expect_err("every page read").to_string();
         assert!(
             eager.contains(&name) && eager.contains(reason),

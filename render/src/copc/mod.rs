@@ -31,6 +31,7 @@
 //! store comes from: the RGB decision, the intensity percentiles and the class counts of up
 //! to [`crate::lod::ELEVATION_SAMPLE_POINTS`] points (1M), not of every point.
 
+mod bytes;
 mod error;
 mod header;
 mod hierarchy;
@@ -52,11 +53,12 @@ pub use error::CopcError;
 pub use header::{is_copc, CopcInfo};
 pub use nodes::{CopcDecoder, CopcNodes};
 
-use crate::ingest::{open_dataset_file, Symlinks};
 use crate::lod::{
     for_each_coarse_node_up_to, node_heights, DatasetStats, LodDataset, LodError, LodHierarchy,
     ELEVATION_SAMPLE_POINTS,
 };
+use crate::remote::{ObjectUrl, RemoteClient};
+use bytes::CopcBytes;
 use lazy::CopcPageReader;
 
 /// A COPC file opened for rendering, and what opening it read.
@@ -85,14 +87,49 @@ pub struct CopcDataset {
 /// coarsest nodes for the colour ranges (and the child pages they lie in); the other pages
 /// are read as frames reach them.
 pub fn open_copc(path: &Path) -> Result<CopcDataset, CopcError> {
-    open(path, PageReads::AsNeeded, ELEVATION_SAMPLE_POINTS)
+    open(
+        CopcBytes::file(path)?,
+        PageReads::AsNeeded,
+        ELEVATION_SAMPLE_POINTS,
+    )
+}
+
+/// Opens the COPC object at `url` for rendering as [`open_copc`] opens a file: a HEAD for its
+/// size and version (every later read is pinned to it), then its header, root page and
+/// coarsest nodes by range. Frames read the other pages and the nodes they need through
+/// `client`, whose counters tell what was fetched.
+pub fn open_copc_url(client: &RemoteClient, url: &ObjectUrl) -> Result<CopcDataset, CopcError> {
+    open(
+        open_object(client, url)?,
+        PageReads::AsNeeded,
+        ELEVATION_SAMPLE_POINTS,
+    )
 }
 
 /// Opens the COPC file `path` as [`open_copc`] does, with every hierarchy page read and the
 /// entries' points checked against the header's count: for a reader that needs the whole
 /// hierarchy (a daemon sends it to its workers).
 pub fn open_copc_whole(path: &Path) -> Result<CopcDataset, CopcError> {
-    open(path, PageReads::All, ELEVATION_SAMPLE_POINTS)
+    open(
+        CopcBytes::file(path)?,
+        PageReads::All,
+        ELEVATION_SAMPLE_POINTS,
+    )
+}
+
+/// The object at `url`, opened, once its first bytes say it is a COPC file: anything else
+/// (a plain LAS or LAZ file) is `NotCopc`, before its header is read further.
+fn open_object(client: &RemoteClient, url: &ObjectUrl) -> Result<CopcBytes, CopcError> {
+    let bytes = CopcBytes::remote(client.open(url)?);
+    let mut reader = bytes.reader();
+    if !header::starts_as_copc(&mut reader)? {
+        return Err(CopcError::NotCopc {
+            path: bytes.name().to_owned(),
+            reason: "it does not start as one (LAS 1.4 with COPC's info VLR first)".into(),
+        });
+    }
+    drop(reader);
+    Ok(bytes)
 }
 
 /// Which hierarchy pages opening a file reads.
@@ -103,14 +140,15 @@ enum PageReads {
     All,
 }
 
-/// Opens `path` reading the pages `reads` says, its colour ranges from its coarsest
+/// Opens `bytes` reading the pages `reads` says, its colour ranges from its coarsest
 /// `sample_points` points.
-fn open(path: &Path, reads: PageReads, sample_points: u64) -> Result<CopcDataset, CopcError> {
-    let mut file = open_dataset_file(path, Symlinks::Follow).map_err(|e| CopcError::io(path, e))?;
-    let header = header::read_header(path, &mut file)?;
+fn open(bytes: CopcBytes, reads: PageReads, sample_points: u64) -> Result<CopcDataset, CopcError> {
+    let bytes = Arc::new(bytes);
+    let path = bytes.name();
+    let header = header::read_header(&bytes)?;
     let mut pages = match reads {
-        PageReads::AsNeeded => hierarchy::read_root_page(path, &file, &header)?,
-        PageReads::All => hierarchy::read_all_pages(path, &file, &header)?,
+        PageReads::AsNeeded => hierarchy::read_root_page(&bytes, &header)?,
+        PageReads::All => hierarchy::read_all_pages(&bytes, &header)?,
     };
     let has_rgb = header.format.has_color;
     let (cube, spacing) = (header.info.cube(), header.info.spacing);
@@ -120,11 +158,10 @@ fn open(path: &Path, reads: PageReads, sample_points: u64) -> Result<CopcDataset
         if needed.is_empty() {
             break;
         }
-        pages.read(&file, &needed)?;
+        pages.read(&bytes, &needed)?;
         hierarchy = pages.hierarchy(cube, DatasetStats::new(has_rgb), spacing);
     }
-    let page_file = file.try_clone().map_err(|e| CopcError::io(path, e))?;
-    let nodes = Arc::new(CopcNodes::new(path, file, &header));
+    let nodes = Arc::new(CopcNodes::new(Arc::clone(&bytes), &header));
     // The colour ranges from the coarsest nodes, their heights for the elevation range, and
     // their positions for the points' spacing: the leaves that would give it may lie in pages
     // not read yet, and the sample is the same whichever pages are read.
@@ -155,7 +192,7 @@ fn open(path: &Path, reads: PageReads, sample_points: u64) -> Result<CopcDataset
     let (read, read_bytes) = (pages.pages, pages.page_bytes);
     if !pages.all_read() {
         dataset = dataset.with_pages(Arc::new(CopcPageReader::new(
-            page_file,
+            Arc::clone(&bytes),
             root_spacing,
             pages,
         )));
@@ -200,9 +237,18 @@ pub struct CopcSummary {
 
 /// Reads `path`'s header and every hierarchy page, checked as rendering checks them.
 pub fn describe(path: &Path) -> Result<CopcSummary, CopcError> {
-    let mut file = open_dataset_file(path, Symlinks::Follow).map_err(|e| CopcError::io(path, e))?;
-    let header = header::read_header(path, &mut file)?;
-    let pages = hierarchy::read_all_pages(path, &file, &header)?;
+    summarize(&CopcBytes::file(path)?)
+}
+
+/// Reads the header and every hierarchy page of the COPC object at `url`, by range, checked
+/// as [`describe`] checks a file's.
+pub fn describe_url(client: &RemoteClient, url: &ObjectUrl) -> Result<CopcSummary, CopcError> {
+    summarize(&open_object(client, url)?)
+}
+
+fn summarize(bytes: &CopcBytes) -> Result<CopcSummary, CopcError> {
+    let header = header::read_header(bytes)?;
+    let pages = hierarchy::read_all_pages(bytes, &header)?;
     let with_points = || pages.nodes_with_points();
     Ok(CopcSummary {
         info: header.info,

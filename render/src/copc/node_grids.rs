@@ -4,10 +4,8 @@
 //! without the record refine by the info VLR's spacing.
 
 use std::collections::HashMap;
-use std::fs::File;
-use std::os::unix::fs::FileExt;
-use std::path::Path;
 
+use super::bytes::RangeReader;
 use super::error::CopcError;
 use crate::lod::copc_export::node_grids::{self, ENTRY_BYTES, RECORD_ID, USER_ID};
 use crate::lod::NodeKey;
@@ -25,26 +23,25 @@ const MAX_ENTRIES: u64 = 1 << 22;
 /// The largest grid a node record keeps (`LodHierarchy::encode` stores it in 16 bits).
 const MAX_GRID: u32 = u16::MAX as u32;
 
-/// The grids of `file`'s node grids EVLR, if it has one; `evlrs` is where its EVLRs start and
-/// how many there are, whose extents `ingest::check_file` checked against the file.
+/// The grids of the node grids EVLR of the file `reader` reads, if it has one; `evlrs` is
+/// where its EVLRs start and how many there are, whose extents `ingest::check_file` checked
+/// against the file.
 pub(crate) fn read_node_grids(
-    path: &Path,
-    file: &File,
+    reader: &mut RangeReader<'_>,
     evlrs: Option<(u64, u32)>,
 ) -> Result<NodeGrids, CopcError> {
+    let path = reader.name();
     let Some((mut offset, count)) = evlrs else {
         return Ok(NodeGrids::new());
     };
     let bad = |reason: String| {
         CopcError::hierarchy(
-            path,
+            &path,
             format!("its node grids (EVLR \"{USER_ID}\" {RECORD_ID}): {reason}"),
         )
     };
     for _ in 0..count {
-        let mut header = [0u8; EVLR_HEADER_BYTES as usize];
-        file.read_exact_at(&mut header, offset)
-            .map_err(|e| CopcError::io(path, e))?;
+        let header = reader.read_at(offset, EVLR_HEADER_BYTES)?;
         let mut len = [0u8; 8];
         len.copy_from_slice(&header[LENGTH_AT..LENGTH_AT + 8]);
         let len = u64::from_le_bytes(len);
@@ -53,10 +50,8 @@ pub(crate) fn read_node_grids(
             if len / ENTRY_BYTES as u64 > MAX_ENTRIES {
                 return Err(bad(format!("{len} bytes, more than {MAX_ENTRIES} entries")));
             }
-            // Inside the file, as checked.
-            let mut data = vec![0u8; len as usize];
-            file.read_exact_at(&mut data, data_at)
-                .map_err(|e| CopcError::io(path, e))?;
+            // Inside the file, as checked (and as the read checks again).
+            let data = reader.read_at(data_at, len)?;
             return grids(&data).map_err(bad);
         }
         offset = data_at + len;

@@ -1,5 +1,6 @@
 //! `CopcNodes`: a COPC file's nodes as [`NodeRecords`]. A node's record is its LAZ chunk,
-//! read by byte range (positioned reads, many threads at once) and decoded here into
+//! read by byte range (a wave's chunks in one read of many ranges: positioned reads on many
+//! threads for a file, coalesced parallel requests for an object) and decoded here into
 //! [`NodePoints`] as a store's nodes are: positions quantised in the node's cube, raw RGB,
 //! intensity, classification and return number.
 //!
@@ -8,20 +9,21 @@
 //! bounded by its size (the decoder allocates what a chunk declares). What the decoder can
 //! still panic on is contained and reported naming the file and the node.
 
-use std::fs::File;
 use std::io::Cursor;
-use std::os::unix::fs::FileExt;
+use std::ops::Range;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use glam::DVec3;
 use laz::record::{LayeredPointRecordDecompressor, RecordDecompressor};
 
+use super::bytes::CopcBytes;
 use super::error::CopcError;
 use super::header::CopcHeader;
 use crate::ingest::{contain_panics, layer_count};
 use crate::lod::codec::{Detail, POSITION_BITS};
 use crate::lod::weights::encode_weight;
-use crate::lod::{read_concurrently, LodError, NodeInfo, NodePoints, NodeRecords, RootCube};
+use crate::lod::{LodError, NodeInfo, NodePoints, NodeRecords, RootCube};
 
 /// The most bytes of records a chunk may decode to beyond [`MAX_DECODED_PER_BYTE`] times its
 /// own size: enough for any real node, never a huge allocation from a forged count.
@@ -309,18 +311,17 @@ impl CopcDecoder {
 
 /// A COPC file's node records: its LAZ chunks.
 pub struct CopcNodes {
-    file: File,
+    bytes: Arc<CopcBytes>,
     decoder: CopcDecoder,
 }
 
 impl CopcNodes {
-    pub(crate) fn new(path: &Path, file: File, header: &CopcHeader) -> Self {
-        Self {
-            file,
-            decoder: CopcDecoder::of_header(path, header),
-        }
+    pub(crate) fn new(bytes: Arc<CopcBytes>, header: &CopcHeader) -> Self {
+        let decoder = CopcDecoder::of_header(bytes.name(), header);
+        Self { bytes, decoder }
     }
 
+    /// The file's path, or the URL it was opened by.
     pub fn path(&self) -> &Path {
         &self.decoder.path
     }
@@ -328,15 +329,6 @@ impl CopcNodes {
     /// How its chunks decode, for a reader elsewhere that is sent them.
     pub fn decoder(&self) -> &CopcDecoder {
         &self.decoder
-    }
-
-    fn read_chunk(&self, node: &NodeInfo) -> Result<Vec<u8>, CopcError> {
-        // The hierarchy checked the range against the file's size when it was read.
-        let mut bytes = vec![0; node.byte_len as usize];
-        self.file
-            .read_exact_at(&mut bytes, node.offset)
-            .map_err(|e| CopcError::io(self.path(), e))?;
-        Ok(bytes)
     }
 }
 
@@ -350,8 +342,14 @@ fn node_frame(cube: &RootCube, info: &NodeInfo) -> (DVec3, f64) {
 }
 
 impl NodeRecords for CopcNodes {
+    /// A wave's chunks in one read, so that an object's near chunks are fetched together;
+    /// the hierarchy checked each range against the file's size when it was read.
     fn read_records(&self, nodes: &[NodeInfo]) -> Result<Vec<Vec<u8>>, LodError> {
-        read_concurrently(nodes, |node| self.read_chunk(node)).map_err(LodError::from)
+        let ranges: Vec<Range<u64>> = nodes
+            .iter()
+            .map(|node| node.offset..node.offset + u64::from(node.byte_len))
+            .collect();
+        self.bytes.read_many(&ranges).map_err(LodError::from)
     }
 
     fn decode(

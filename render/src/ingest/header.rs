@@ -4,10 +4,10 @@
 //! The crate trusts the declared count: it sizes its read buffer from it, and it computes
 //! `offset + count * record_length` unchecked.
 
-use std::fs::File;
-use std::io::{self, BufReader, Read, Seek, SeekFrom};
+use std::io::{self, BufReader, Read, SeekFrom};
 use std::path::Path;
 
+use super::raw_file::ReadSeek;
 use super::transforms::check_transforms;
 use super::IngestError;
 
@@ -30,7 +30,7 @@ pub(crate) struct HeaderFacts {
 }
 
 impl HeaderFacts {
-    pub fn read(path: &Path, file: &mut File, file_len: u64) -> Result<Self, IngestError> {
+    pub fn read(path: &Path, file: &mut dyn ReadSeek, file_len: u64) -> Result<Self, IngestError> {
         let mut signature = [0u8; 4];
         let signature_len = read_up_to(file, &mut signature).map_err(|error| IngestError::Io {
             path: path.to_owned(),
@@ -177,7 +177,7 @@ fn point_record_len(point_format: u8) -> Option<u16> {
 }
 
 /// Like `read_exact`, but returns how many bytes there were instead of failing on a short file.
-fn read_up_to(read: &mut impl Read, buf: &mut [u8]) -> io::Result<usize> {
+fn read_up_to(read: &mut (impl Read + ?Sized), buf: &mut [u8]) -> io::Result<usize> {
     let mut filled = 0;
     while filled < buf.len() {
         match read.read(&mut buf[filled..]) {

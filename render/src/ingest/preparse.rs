@@ -4,14 +4,13 @@
 //! before anything is allocated from it, so what the crates then allocate is bounded by the
 //! data actually present.
 
-use std::fs::File;
 use std::path::Path;
 
 use laz::laszip::ChunkTable;
 
 use super::header::HeaderFacts;
 use super::laz_layout::{check_laz, LazLayout};
-use super::raw_file::RawFile;
+use super::raw_file::{RawFile, ReadSeek};
 use super::records::check_records;
 use super::IngestError;
 
@@ -25,7 +24,7 @@ pub(crate) struct CheckedFile {
 
 pub(crate) fn check_file(
     path: &Path,
-    file: &mut File,
+    file: &mut dyn ReadSeek,
     file_len: u64,
 ) -> Result<CheckedFile, IngestError> {
     let facts = HeaderFacts::read(path, file, file_len)?;

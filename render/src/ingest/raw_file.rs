@@ -2,7 +2,6 @@
 //! that would run past the end of the file is a [`IngestError::Corrupt`] before any buffer
 //! is allocated for it.
 
-use std::fs::File;
 use std::io::{Read, Seek, SeekFrom};
 use std::path::Path;
 
@@ -15,15 +14,21 @@ pub(super) struct RecordSpan {
     pub len: u64,
 }
 
+/// Bytes that can be checked as a file: a local file, or an object by URL read through a
+/// buffer of ranges (`copc::bytes`), so that both pass the one pre-parse.
+pub(crate) trait ReadSeek: Read + Seek {}
+
+impl<T: Read + Seek> ReadSeek for T {}
+
 /// The file under inspection, its path (for errors) and its size (the bound of every read).
 pub(super) struct RawFile<'a> {
     pub path: &'a Path,
     pub len: u64,
-    file: &'a mut File,
+    file: &'a mut dyn ReadSeek,
 }
 
 impl<'a> RawFile<'a> {
-    pub fn new(path: &'a Path, file: &'a mut File, len: u64) -> Self {
+    pub fn new(path: &'a Path, file: &'a mut dyn ReadSeek, len: u64) -> Self {
         Self { path, len, file }
     }
 
@@ -89,7 +94,7 @@ impl<'a> RawFile<'a> {
     }
 
     /// The underlying file, positioned at `offset`, for a reader of the `laz` crate.
-    pub fn file_at(&mut self, offset: u64) -> Result<&mut File, IngestError> {
+    pub fn file_at(&mut self, offset: u64) -> Result<&mut dyn ReadSeek, IngestError> {
         self.file
             .seek(SeekFrom::Start(offset))
             .map_err(|error| self.io(error))?;

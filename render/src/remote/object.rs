@@ -12,6 +12,7 @@ use super::client::RemoteClient;
 use super::coalesce::{coalesce, locate};
 use super::counters::FetchCounters;
 use super::error::RemoteError;
+use super::settings::RemoteSettings;
 use super::url::ObjectUrl;
 
 /// An object whose size and version were read by a HEAD request; every range read of it asks
@@ -70,6 +71,11 @@ impl RemoteObject {
 
     pub fn url(&self) -> &ObjectUrl {
         &self.url
+    }
+
+    /// The settings of the client that opened it, which bound its reads.
+    pub fn settings(&self) -> &RemoteSettings {
+        self.client.settings()
     }
 
     /// The object's size in bytes, as the server reported it at open.

@@ -1,0 +1,251 @@
+//! Where a COPC file's bytes come from: a file here, or an object by URL ([`RemoteObject`]),
+//! read by byte ranges through one face, so that the header, the hierarchy pages, the node
+//! grids and the chunks are read, and checked, by the same code either way.
+//!
+//! A file is read with positioned reads, many at once; an object with ranged requests, near
+//! ranges coalesced into one and the requests in parallel, every one pinned to the version
+//! opened. The small reads of the header and its records go through a [`RangeReader`], which
+//! fetches an object in blocks so that they cost a few requests, not one each.
+
+use std::fs::File;
+use std::io::{self, Read, Seek, SeekFrom};
+use std::ops::Range;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+
+use super::error::CopcError;
+use crate::ingest::{open_dataset_file, Symlinks};
+use crate::lod::read_concurrently;
+use crate::remote::{RemoteError, RemoteObject};
+
+/// Bytes an object is fetched in by a [`RangeReader`]: a LAS header and its VLRs fit one
+/// block, a chunk table or the EVLRs' headers another.
+const BLOCK_BYTES: u64 = 16 * 1024;
+/// Blocks a [`RangeReader`] keeps.
+const BLOCKS_KEPT: usize = 8;
+
+/// A COPC file's bytes, read by range.
+pub(crate) struct CopcBytes {
+    /// What errors name it by: the file's path, or the object's URL (which never holds
+    /// credentials).
+    name: PathBuf,
+    size: u64,
+    origin: Origin,
+}
+
+enum Origin {
+    File(File),
+    Remote(Box<RemoteObject>),
+}
+
+impl CopcBytes {
+    /// The file at `path`, opened as every dataset file is (symbolic links followed).
+    pub fn file(path: &Path) -> Result<Self, CopcError> {
+        let file = open_dataset_file(path, Symlinks::Follow).map_err(|e| CopcError::io(path, e))?;
+        let size = file.metadata().map_err(|e| CopcError::io(path, e))?.len();
+        Ok(Self {
+            name: path.to_owned(),
+            size,
+            origin: Origin::File(file),
+        })
+    }
+
+    /// An object opened by URL, at the size and version its HEAD reported.
+    pub fn remote(object: RemoteObject) -> Self {
+        Self {
+            name: PathBuf::from(object.url().to_string()),
+            size: object.size(),
+            origin: Origin::Remote(Box::new(object)),
+        }
+    }
+
+    /// The path or URL that errors name.
+    pub fn name(&self) -> &Path {
+        &self.name
+    }
+
+    /// Bytes in the file or object.
+    pub fn size(&self) -> u64 {
+        self.size
+    }
+
+    /// `len` bytes at `offset`, allocated only once they are known to lie inside.
+    pub fn read_at(&self, offset: u64, len: u64) -> Result<Vec<u8>, CopcError> {
+        let range = self.checked(offset, len)?;
+        match &self.origin {
+            Origin::File(file) => {
+                let mut bytes = vec![0u8; (range.end - range.start) as usize];
+                file.read_exact_at(&mut bytes, range.start)
+                    .map_err(|e| CopcError::io(&self.name, e))?;
+                Ok(bytes)
+            }
+            Origin::Remote(object) => Ok(object.read_range(range)?),
+        }
+    }
+
+    /// The bytes of every range, in the order asked: a file's read concurrently, an object's
+    /// near ones fetched as one request and the requests in parallel.
+    pub fn read_many(&self, ranges: &[Range<u64>]) -> Result<Vec<Vec<u8>>, CopcError> {
+        for range in ranges {
+            self.checked(range.start, range.end.saturating_sub(range.start))?;
+        }
+        match &self.origin {
+            Origin::File(_) => read_concurrently(ranges, |range| {
+                self.read_at(range.start, range.end - range.start)
+            }),
+            Origin::Remote(object) => {
+                // Within the client's bound on one read, batch by batch.
+                let limit = object.settings().max_read_bytes.max(1);
+                let mut read = Vec::with_capacity(ranges.len());
+                let mut batch_start = 0;
+                let mut batch_bytes = 0u64;
+                for (i, range) in ranges.iter().enumerate() {
+                    let len = range.end - range.start;
+                    if i > batch_start && batch_bytes + len > limit {
+                        read.extend(object.read_ranges(&ranges[batch_start..i])?);
+                        (batch_start, batch_bytes) = (i, 0);
+                    }
+                    batch_bytes += len;
+                }
+                read.extend(object.read_ranges(&ranges[batch_start..])?);
+                Ok(read)
+            }
+        }
+    }
+
+    /// A reader of small pieces from the start, for the header's checks.
+    pub fn reader(&self) -> RangeReader<'_> {
+        RangeReader {
+            bytes: self,
+            position: 0,
+            blocks: Vec::new(),
+            failed: None,
+        }
+    }
+
+    /// `offset..offset + len`, when it lies inside.
+    fn checked(&self, offset: u64, len: u64) -> Result<Range<u64>, CopcError> {
+        match offset.checked_add(len) {
+            Some(end) if end <= self.size => Ok(offset..end),
+            _ => Err(CopcError::io(
+                &self.name,
+                io::Error::new(
+                    io::ErrorKind::UnexpectedEof,
+                    format!(
+                        "{len} bytes at offset {offset} lie past the end of its {} bytes",
+                        self.size
+                    ),
+                ),
+            )),
+        }
+    }
+}
+
+/// [`CopcBytes`] read as a stream with a position, for the checks every LAS/LAZ file passes
+/// (`ingest::check_file`) and the header's small reads: a file's bytes are read where they
+/// lie, an object's a block at a time, the last few blocks kept.
+pub(crate) struct RangeReader<'a> {
+    bytes: &'a CopcBytes,
+    position: u64,
+    /// Blocks fetched, by their index, the oldest first.
+    blocks: Vec<(u64, Vec<u8>)>,
+    /// What failed a read of an object, which the stream could only report as an I/O error.
+    failed: Option<RemoteError>,
+}
+
+impl RangeReader<'_> {
+    /// The path or URL that errors name.
+    pub fn name(&self) -> PathBuf {
+        self.bytes.name.clone()
+    }
+
+    pub fn size(&self) -> u64 {
+        self.bytes.size()
+    }
+
+    /// `len` bytes at `offset`: from the kept blocks where they are small.
+    pub fn read_at(&mut self, offset: u64, len: u64) -> Result<Vec<u8>, CopcError> {
+        if matches!(self.bytes.origin, Origin::File(_)) || len >= BLOCK_BYTES {
+            return self.bytes.read_at(offset, len);
+        }
+        let range = self.bytes.checked(offset, len)?;
+        let mut out = Vec::with_capacity(len as usize);
+        let mut at = range.start;
+        while at < range.end {
+            let piece = self.in_blocks(at, range.end)?;
+            at += piece.len() as u64;
+            out.extend_from_slice(piece);
+        }
+        Ok(out)
+    }
+
+    /// The error a failed read of the stream stands for: the object's, where one failed
+    /// (it names the URL), else `error`.
+    pub fn error(&mut self, error: CopcError) -> CopcError {
+        self.failed.take().map_or(error, CopcError::Remote)
+    }
+
+    /// The bytes from `at` up to `end` or the end of its block, whichever comes first.
+    fn in_blocks(&mut self, at: u64, end: u64) -> Result<&[u8], CopcError> {
+        let index = at / BLOCK_BYTES;
+        let kept = match self.blocks.iter().position(|(i, _)| *i == index) {
+            Some(kept) => kept,
+            None => {
+                let start = index * BLOCK_BYTES;
+                let len = BLOCK_BYTES.min(self.bytes.size - start);
+                let block = self.bytes.read_at(start, len)?;
+                if self.blocks.len() == BLOCKS_KEPT {
+                    self.blocks.remove(0);
+                }
+                self.blocks.push((index, block));
+                self.blocks.len() - 1
+            }
+        };
+        let block = &self.blocks[kept].1;
+        let from = (at - index * BLOCK_BYTES) as usize;
+        let to = (end - index * BLOCK_BYTES).min(block.len() as u64) as usize;
+        Ok(&block[from..to])
+    }
+}
+
+impl Read for RangeReader<'_> {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        let size = self.bytes.size;
+        if buf.is_empty() || self.position >= size {
+            return Ok(0);
+        }
+        let n = match &self.bytes.origin {
+            Origin::File(file) => file.read_at(buf, self.position)?,
+            Origin::Remote(_) => {
+                let end = size.min(self.position + buf.len() as u64);
+                match self.in_blocks(self.position, end) {
+                    Ok(piece) => {
+                        buf[..piece.len()].copy_from_slice(piece);
+                        piece.len()
+                    }
+                    Err(CopcError::Remote(error)) => {
+                        self.failed = Some(error);
+                        return Err(io::Error::other("the object could not be read"));
+                    }
+                    Err(other) => return Err(io::Error::other(other.to_string())),
+                }
+            }
+        };
+        self.position += n as u64;
+        Ok(n)
+    }
+}
+
+impl Seek for RangeReader<'_> {
+    fn seek(&mut self, to: SeekFrom) -> io::Result<u64> {
+        let position = match to {
+            SeekFrom::Start(at) => Some(at),
+            SeekFrom::End(delta) => self.bytes.size.checked_add_signed(delta),
+            SeekFrom::Current(delta) => self.position.checked_add_signed(delta),
+        };
+        self.position = position.ok_or_else(|| {
+            io::Error::new(io::ErrorKind::InvalidInput, "a seek before the start")
+        })?;
+        Ok(self.position)
+    }
+}
