@@ -375,6 +375,7 @@ mod tests {
             depth: None,
             timings: StageTimings::default(),
             atomics: AtomicsPath::Atomic64,
+            gain: None,
         }
     }
 

@@ -20,7 +20,7 @@ use crate::camera::Projection;
 use crate::cloud::PointCloud;
 use crate::raster::exposure::{self, LumaHistograms};
 use crate::raster::{
-    FrameSettings, Quality, Shading, FILL_DEPTH_TOLERANCE, VISIBILITY_MIN_SOLID_ANGLE,
+    Exposure, FrameSettings, Quality, Shading, FILL_DEPTH_TOLERANCE, VISIBILITY_MIN_SOLID_ANGLE,
 };
 
 /// The reference's output: an image and the depth of the nearest point of each pixel.
@@ -29,6 +29,9 @@ pub struct ReferenceFrame {
     pub image: RgbaImage,
     /// Linear depth per pixel, row-major; +infinity where no point landed.
     pub depth: Vec<f32>,
+    /// The gain exposed with after Eye-Dome Lighting, as [`Frame::gain`](crate::raster::Frame)
+    /// reports it; `None` without EDL.
+    pub gain: Option<f32>,
 }
 
 /// Renders `cloud` as `settings` define it: quality mode, then shading.
@@ -43,7 +46,9 @@ pub fn render(cloud: &PointCloud, settings: &FrameSettings) -> ReferenceFrame {
     }
     match settings.shading {
         Shading::None => {}
-        Shading::Edl { strength, radius } => shade_edl(&mut frame, strength, radius),
+        Shading::Edl { strength, radius } => {
+            frame.gain = Some(shade_edl(&mut frame, strength, radius, settings.exposure));
+        }
         Shading::Pintus { levels, exponent } => {
             shade_pintus(&mut frame, settings, levels, exponent)
         }
@@ -286,8 +291,9 @@ pub fn shade_pintus(
 /// on a circle of `radius` pixels, how far the pixel lies behind the plane through a pair (in
 /// inverse depth), or behind a lone neighbour; 100 per surface neighbour for a background
 /// pixel (the outline); colour *= exp(-300 strength response / 8). Then the exposure that
-/// brings the surface's median luma back (`raster::exposure`). Computed in f32 like the GPU.
-pub fn shade_edl(frame: &mut ReferenceFrame, strength: f32, radius: f32) {
+/// brings the surface's median luma back (`raster::exposure`), or the gain `setting` holds;
+/// returns the gain. Computed in f32 like the GPU.
+pub fn shade_edl(frame: &mut ReferenceFrame, strength: f32, radius: f32, setting: Exposure) -> f32 {
     let (width, height) = (frame.image.width() as i64, frame.image.height() as i64);
     let depth_at = |x: i64, y: i64| {
         if (0..width).contains(&x) && (0..height).contains(&y) {
@@ -338,8 +344,13 @@ pub fn shade_edl(frame: &mut ReferenceFrame, strength: f32, radius: f32) {
             histograms.count([r, g, b], [r2, g2, b2]);
         }
     }
-    exposure::expose(&mut shaded, &frame.depth, histograms.gain());
+    let gain = match setting {
+        Exposure::Measured => histograms.gain(),
+        Exposure::Held(gain) => gain,
+    };
+    exposure::expose(&mut shaded, &frame.depth, gain);
     frame.image = shaded;
+    gain
 }
 
 /// Calls `visit(pixel index, depth, colour)` for every pixel that every visible point covers.
@@ -391,7 +402,11 @@ fn frame_from(
     for (pixel, color) in image.pixels_mut().zip(colors) {
         pixel.0 = color.unwrap_or(background).to_le_bytes();
     }
-    ReferenceFrame { image, depth }
+    ReferenceFrame {
+        image,
+        depth,
+        gain: None,
+    }
 }
 
 /// Basic mode: the nearest point's colour; at equal depths the smallest colour word.

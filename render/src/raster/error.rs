@@ -1,5 +1,6 @@
 use thiserror::Error;
 
+use super::exposure::GAIN_RANGE;
 use super::settings::{
     DEPTH_BAND_RANGE, EDL_RADIUS_RANGE, EDL_STRENGTH_RANGE, MAX_FILL_KERNEL, MAX_IMAGE_SIDE,
     MAX_PINTUS_LEVELS, MAX_POINT_SIZE, MAX_SUPERSAMPLE, MIN_FILL_KERNEL, PINTUS_EXPONENT_RANGE,
@@ -43,6 +44,12 @@ pub enum RenderError {
         r_high = EDL_RADIUS_RANGE.end()
     )]
     Edl { strength: f32, radius: f32 },
+    #[error(
+        "held exposure gain {0} is invalid: it must be a finite number from {low} to {high}",
+        low = GAIN_RANGE.start(),
+        high = GAIN_RANGE.end()
+    )]
+    ExposureGain(f32),
     #[error(
         "fill kernel {0} is invalid: it must be an odd number of pixels from {MIN_FILL_KERNEL} to {MAX_FILL_KERNEL}"
     )]

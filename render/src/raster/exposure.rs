@@ -3,7 +3,11 @@
 //! pass counts the luma of every surface pixel before and after shading
 //! (`shaders/edl.wgsl`); a gain brings the shaded median back to the unshaded one, so edges
 //! stay darker than their surroundings and the picture keeps its brightness
-//! (docs/perf/edl-exposure.md). The GPU and the CPU reference share this code.
+//! (docs/perf/edl-exposure.md). A frame's settings may instead hold a gain measured on
+//! another frame ([`Exposure::Held`](super::Exposure::Held)), so that the frames of a job share
+//! one; a frame reports the gain it applied. The GPU and the CPU reference share this code.
+
+use std::ops::RangeInclusive;
 
 use image::RgbaImage;
 
@@ -12,6 +16,10 @@ pub const LUMA_BINS: usize = 256;
 
 /// The largest gain: a frame shaded almost black is not stretched into noise.
 pub const MAX_GAIN: f32 = 4.0;
+
+/// The gains a frame is exposed with, measured or held: at least 1, since the shading never
+/// brightens.
+pub const GAIN_RANGE: RangeInclusive<f32> = 1.0..=MAX_GAIN;
 
 /// The luma of an RGB pixel, 0 to 255, as the shader bins it (Rec. 709 weights).
 pub fn luma_bin(r: u8, g: u8, b: u8) -> usize {
@@ -51,13 +59,14 @@ impl LumaHistograms {
         self.after[luma_bin(after[0], after[1], after[2])] += 1;
     }
 
-    /// The gain that brings the shaded median luma back to the unshaded one: at least 1 (the
-    /// shading never brightens), at most [`MAX_GAIN`]; 1 for a frame without surface.
+    /// The gain that brings the shaded median luma back to the unshaded one, within
+    /// [`GAIN_RANGE`]; 1 for a frame without surface.
     pub fn gain(&self) -> f32 {
         match (median_bin(&self.before), median_bin(&self.after)) {
             (Some(before), Some(after)) => {
                 // Half a level up on both sides: bins hold the levels from their lower edge.
-                ((before as f32 + 0.5) / (after as f32 + 0.5)).clamp(1.0, MAX_GAIN)
+                ((before as f32 + 0.5) / (after as f32 + 0.5))
+                    .clamp(*GAIN_RANGE.start(), *GAIN_RANGE.end())
             }
             _ => 1.0,
         }

@@ -13,4 +13,8 @@ pub struct Frame {
     pub depth: Option<Vec<f32>>,
     pub timings: StageTimings,
     pub atomics: AtomicsPath,
+    /// The gain the frame was exposed with after Eye-Dome Lighting, measured or held: a
+    /// caller holds it for the frames that follow. `None` when the frame is not shaded
+    /// with EDL.
+    pub gain: Option<f32>,
 }

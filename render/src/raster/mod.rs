@@ -263,6 +263,11 @@ impl Renderer {
                 return Err(RenderError::Edl { strength, radius });
             }
         }
+        if let Exposure::Held(gain) = settings.exposure {
+            if !(gain.is_finite() && exposure::GAIN_RANGE.contains(&gain)) {
+                return Err(RenderError::ExposureGain(gain));
+            }
+        }
         // A frame too large for one pass is drawn in tiles, unless not even they fit.
         TileGrid::plan(unscaled, self.tile_limit_bytes)?;
         Ok(())
@@ -287,7 +292,11 @@ impl Renderer {
         };
         let mut frame = self.render_shaded(cloud, &with_depth)?;
         let started = Instant::now();
-        let gain = self.edl.read_luma_counts(&self.gpu)?.gain();
+        let gain = match settings.exposure {
+            Exposure::Measured => self.edl.read_luma_counts(&self.gpu)?.gain(),
+            Exposure::Held(gain) => gain,
+        };
+        frame.gain = Some(gain);
         if let Some(depth) = &frame.depth {
             exposure::expose(&mut frame.image, depth, gain);
         }
@@ -296,7 +305,7 @@ impl Renderer {
         }
         let ms = started.elapsed().as_secs_f64() * 1e3;
         frame.timings.push(Stage::Expose, ms, Clock::Host);
-        tracing::debug!(gain, "frame exposed after eye-dome lighting");
+        tracing::debug!(gain, exposure = ?settings.exposure, "frame exposed after eye-dome lighting");
         Ok(frame)
     }
 
@@ -433,6 +442,7 @@ impl Renderer {
             depth,
             timings,
             atomics: path,
+            gain: None,
         })
     }
 

@@ -115,6 +115,19 @@ impl Shading {
     };
 }
 
+/// How the gain after Eye-Dome Lighting is chosen (`raster::exposure`).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub enum Exposure {
+    /// Measured on this frame: the gain that brings its shaded median luma back to the
+    /// unshaded one.
+    #[default]
+    Measured,
+    /// Held at this gain (finite, within [`GAIN_RANGE`](super::exposure::GAIN_RANGE)), measured on another frame: the
+    /// frames of a turntable or a job share their first frame's, so their brightness does
+    /// not drift from frame to frame.
+    Held(f32),
+}
+
 /// Pintus et al.'s visibility and anisotropic filling, run after the resolve: points seen
 /// through holes of a nearer surface are removed, then the holes (and background pixels
 /// enclosed by points) get the depth and colour of the surface around them. Pixels outside
@@ -165,6 +178,8 @@ pub struct FrameSettings {
     /// Visibility and filling; `None` turns both off.
     pub fill: Option<FillSettings>,
     pub shading: Shading,
+    /// The gain after Eye-Dome Lighting; ignored by the other shadings.
+    pub exposure: Exposure,
     /// Supersampling anti-aliasing: render at this many times the size in each direction
     /// (points and shading radius scaled with it) and average k x k blocks. 1 turns it off.
     pub supersample: u32,
@@ -187,6 +202,7 @@ impl FrameSettings {
             quality: Quality::Basic,
             fill: None,
             shading: Shading::None,
+            exposure: Exposure::Measured,
             supersample: 1,
             read_depth: false,
         }

@@ -325,6 +325,7 @@ pub(super) fn render(
             depth: frame.depth.as_deref().map(|d| crop_depth(d, tile, k)),
             timings: StageTimings::default(),
             atomics: frame.atomics,
+            gain: None,
         };
         let mut readback_ms = started.elapsed().as_secs_f64() * 1e3;
         if k > 1 {
@@ -345,6 +346,7 @@ pub(super) fn render(
             depth,
             timings,
             atomics,
+            gain: None,
         },
         counts,
     ))

@@ -20,7 +20,7 @@ pub use validate::RequestError;
 
 use crate::camera::Camera;
 use crate::extent::Framed;
-use crate::raster::{AtomicsMode, FrameSettings, DEFAULT_POINT_SIZE};
+use crate::raster::{AtomicsMode, Exposure, FrameSettings, DEFAULT_POINT_SIZE};
 
 /// Everything that decides the frames of a render, apart from the cloud.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -88,6 +88,8 @@ impl RenderRequest {
             quality,
             fill,
             shading,
+            // Measured here; a frame source holds its first frame's gain for the others.
+            exposure: Exposure::Measured,
             supersample,
             read_depth: depth,
         }

@@ -6,6 +6,7 @@
 mod atomics;
 mod basic;
 mod culling;
+mod exposure;
 mod fill_and_shading;
 mod filters;
 mod golden;

@@ -75,6 +75,7 @@ fn supersampling_renders_larger_and_averages_blocks() {
             depth: Some(reference.depth),
             timings: StageTimings::default(),
             atomics: AtomicsPath::Atomic32,
+            gain: None,
         },
         2,
     );
