@@ -63,14 +63,20 @@ pub enum DatasetCommand {
         inputs: Vec<PathBuf>,
     },
     /// Register files or folders that are already on the server, under its data roots, as
-    /// one dataset.
+    /// one dataset; or one COPC object by its URL (s3://, http://, https://) under a prefix
+    /// the server allows (`serve --allow-url-prefix`), which the server never copies.
     Register {
-        /// Files or folders on the server, under one of its `--data-root`s.
-        #[arg(required = true, value_name = "PATH")]
+        /// Files or folders on the server, under one of its `--data-root`s, or one URL.
+        #[arg(required = true, value_name = "PATH|URL")]
         paths: Vec<String>,
     },
     /// The server's datasets.
     List,
+    /// One dataset: its size, files, and URL where it is read by one.
+    Get {
+        /// The dataset's id.
+        id: String,
+    },
     /// Write a dataset as a COPC 1.0 file, made by the server from its levels of detail
     /// (built first when it has none).
     Export {
@@ -192,6 +198,11 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
                 let dataset = answer(client.datasets.register_dataset(request).await)?;
                 print_dataset(server, &dataset)?
             }
+            DatasetCommand::Get { id } => {
+                let request = pb::GetDatasetRequest { id };
+                let dataset = answer(client.datasets.get_dataset(request).await)?;
+                print_dataset(server, &dataset)?
+            }
             DatasetCommand::List => {
                 let all = every_page(|page_token| {
                     let mut datasets = client.datasets.clone();
@@ -215,7 +226,7 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
                 } else {
                     outln!("{:<20} {:>12}  name", "id", "bytes");
                     for d in &all {
-                        outln!("{:<20} {:>12}  {}", d.id, d.size_bytes, d.name);
+                        outln!("{:<20} {:>12}  {}{}", d.id, d.size_bytes, d.name, source(d));
                     }
                 }
             }
@@ -263,9 +274,24 @@ fn print_dataset(server: &ServerArgs, d: &pb::Dataset) -> Result<()> {
             0 | 1 => String::new(),
             n => format!(", {n} files"),
         };
-        outln!("{}  {} ({} bytes{files})", d.id, d.name, d.size_bytes);
+        outln!(
+            "{}  {} ({} bytes{files}){}",
+            d.id,
+            d.name,
+            d.size_bytes,
+            source(d)
+        );
     }
     Ok(())
+}
+
+/// Where a dataset by URL is read from, after its name; nothing for files on the server.
+fn source(d: &pb::Dataset) -> String {
+    match (d.url.as_str(), d.version.as_str()) {
+        ("", _) => String::new(),
+        (url, "") => format!("  {url}"),
+        (url, version) => format!("  {url} (version {version})"),
+    }
 }
 
 fn parse_state(state: &str) -> Result<pb::JobState> {

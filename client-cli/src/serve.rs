@@ -12,6 +12,7 @@ use pointfarm_daemon::access::Access;
 use pointfarm_daemon::capabilities::checked_tags;
 use pointfarm_daemon::metrics;
 use pointfarm_daemon::open_files;
+use pointfarm_daemon::remote_datasets::url_prefixes;
 use pointfarm_daemon::server::{serve, ServeOptions, TlsIdentity, DEFAULT_SHUTDOWN_GRACE};
 use pointfarm_daemon::service::{
     Daemon, DaemonConfig, DEFAULT_LEASE_TIMEOUT, DEFAULT_MAX_FRAMES, DEFAULT_MAX_FRAME_ATTEMPTS,
@@ -41,6 +42,16 @@ pub struct ServeArgs {
     /// separated by commas).
     #[arg(long = "data-root", env = "POINTFARM_DATA_ROOT", value_delimiter = ',')]
     data_roots: Vec<PathBuf>,
+    /// A URL prefix (s3://bucket/prefix, https://host/path) clients may register COPC
+    /// objects from by URL, compared by whole path segments (repeatable; in the environment,
+    /// separated by commas). Without one, no dataset by URL is accepted.
+    #[arg(
+        long = "allow-url-prefix",
+        value_name = "URL",
+        env = "POINTFARM_ALLOW_URL_PREFIX",
+        value_delimiter = ','
+    )]
+    allowed_url_prefixes: Vec<String>,
     /// Require this bearer token of clients (datasets and jobs). Without it those services
     /// are open, which is refused beyond loopback unless --insecure.
     #[arg(long, env = "POINTFARM_TOKEN", hide_env_values = true)]
@@ -205,6 +216,9 @@ pub fn run(args: ServeArgs) -> Result<()> {
     let served = runtime.block_on(async move {
         let mut config = DaemonConfig::new(args.data_dir.clone());
         config.data_roots = args.data_roots.clone();
+        // Checked here rather than by clap, whose error would repeat a prefix's credentials.
+        config.allowed_url_prefixes =
+            url_prefixes(&args.allowed_url_prefixes).context("--allow-url-prefix")?;
         config.max_image_side = args.max_image_side;
         config.max_frames = args.max_frames;
         config.worker_cache_bytes = args.worker_cache_size;

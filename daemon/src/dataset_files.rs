@@ -74,6 +74,7 @@ impl DatasetFolders {
     /// must) read the files for a store or a preview. The error names the file as a client
     /// sees it.
     pub fn check(&self, dataset: &Dataset) -> Result<(), DaemonError> {
+        dataset.check_local("reading the files of")?;
         for file in dataset.files() {
             self.open(&file.path).map_err(|error| {
                 tracing::warn!(path = %file.path.display(), %error, "a dataset's file cannot be read");

@@ -17,6 +17,7 @@ use crate::dataset_files::{file_name, DatasetFolders};
 use crate::error::DaemonError;
 use crate::limits::{check_id, check_length, MAX_NAME_BYTES, MAX_PATH_BYTES};
 use crate::model::{content_sha256, now_unix_ms, Dataset, DatasetFile};
+use crate::remote_datasets::local_path;
 use crate::service::{dataset_id, hash_files_opened_by, lookup, unique_suffix, Daemon};
 use crate::state::Page;
 use crate::stores::{PreviewBytes, ReadyStore, StoreAnswer};
@@ -144,6 +145,7 @@ impl Daemon {
             return Err(DaemonError::invalid("path", "is empty"));
         }
         check_length("path", path, MAX_PATH_BYTES)?;
+        let path = &local_path(path)?;
         let Some(first_root) = self.config.data_roots.first() else {
             return Err(DaemonError::FailedPrecondition(
                 "this server has no data roots configured; upload the file instead".into(),
@@ -301,6 +303,7 @@ impl Daemon {
             path: first.path.clone(),
             files: if files.len() > 1 { files } else { Vec::new() },
             created_unix_ms: now_unix_ms(),
+            remote: None,
         };
         self.state.put_dataset(&dataset)?;
         tracing::info!(

@@ -55,6 +55,7 @@ impl Daemon {
         read_points: bool,
     ) -> Result<Vec<FileReport>, DaemonError> {
         let dataset = self.dataset(id)?;
+        dataset.check_local("describing")?;
         Ok(dataset
             .files()
             .into_iter()

@@ -1,6 +1,7 @@
 //! The daemon's errors, by what the caller should do about them (the gRPC layer maps each
 //! kind to one status code), and the state database's errors they wrap.
 
+use pointfarm_render::remote::RemoteError;
 use thiserror::Error;
 
 /// The state database failed, or holds what it cannot read.
@@ -40,6 +41,10 @@ pub enum DaemonError {
     /// A size limit was exceeded.
     #[error("{0}")]
     ResourceExhausted(String),
+    /// Something the daemon depends on (an object store, an HTTP server) cannot be reached
+    /// or gave no answer in time; the same request may succeed later.
+    #[error("{0}")]
+    Unavailable(String),
     #[error("internal error: {0}")]
     Internal(String),
 }
@@ -86,5 +91,34 @@ pub fn disk_error_message(error: &std::io::Error) -> String {
         ErrorKind::StorageFull => format!("the daemon's disk is full ({error})"),
         ErrorKind::QuotaExceeded => format!("the daemon's disk quota is used up ({error})"),
         _ => format!("the daemon's disk refused a write ({error})"),
+    }
+}
+
+impl From<RemoteError> for DaemonError {
+    /// Sorts a failure to read a dataset by URL by what the client can do about it; every
+    /// message names the URL, and URLs never carry credentials.
+    fn from(e: RemoteError) -> Self {
+        let message = e.to_string();
+        match e {
+            RemoteError::InvalidUrl { .. }
+            | RemoteError::UnsupportedScheme { .. }
+            | RemoteError::LocalUrl { .. } => DaemonError::invalid("path", message),
+            RemoteError::NotAllowed { .. } | RemoteError::Denied { .. } => {
+                DaemonError::PermissionDenied(message)
+            }
+            RemoteError::NotFound { url } => DaemonError::NotFound(format!("object {url}")),
+            RemoteError::ReadTooLarge { .. } | RemoteError::TooManyObjects { .. } => {
+                DaemonError::ResourceExhausted(message)
+            }
+            // Asking again reads the object as it is then, or finds its server back.
+            RemoteError::ObjectChanged { .. }
+            | RemoteError::TimedOut { .. }
+            | RemoteError::ShortRead { .. }
+            | RemoteError::Transport { .. } => DaemonError::Unavailable(message),
+            RemoteError::RangeOutOfBounds { .. }
+            | RemoteError::Listing { .. }
+            | RemoteError::Client { .. } => DaemonError::FailedPrecondition(message),
+            RemoteError::Runtime { .. } => DaemonError::Internal(message),
+        }
     }
 }

@@ -9,6 +9,8 @@
 //! database, `StateDb`), `stores` (the datasets' level-of-detail stores), `worker_presence` (which
 //! workers can render, for health), `service` (the `Daemon` and its job operations), `datasets`
 //! (datasets of one or more files: registered, uploaded, composed; more `Daemon` methods),
+//! `remote_datasets` (datasets by URL: one COPC object under the operator's allowed prefixes;
+//! more `Daemon` methods),
 //! `describe` (what a dataset's files hold, read with the render crate; more `Daemon` methods),
 //! `lease` (frame leases: the one scheduling path, more `Daemon` methods), `grpc` (validates,
 //! converts and delegates: one file per service, the conversions, the streaming of bytes; the
@@ -38,6 +40,7 @@ pub mod manifest;
 pub mod metrics;
 pub mod model;
 pub mod open_files;
+pub mod remote_datasets;
 pub mod server;
 pub mod service;
 pub mod state;

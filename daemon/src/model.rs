@@ -8,6 +8,7 @@ use pointfarm_render::request::RenderRequest;
 use serde::{Deserialize, Serialize};
 
 use crate::capabilities::WorkerRequirements;
+use crate::error::DaemonError;
 
 pub type DatasetId = String;
 pub type JobId = String;
@@ -20,15 +21,44 @@ pub struct Dataset {
     /// Bytes of all its files.
     pub size_bytes: u64,
     /// The content's SHA-256: the file's own for one file, else that of its files' hashes in
-    /// order ([`content_sha256`]).
+    /// order ([`content_sha256`]). For a dataset by URL, whose content is never read whole,
+    /// the SHA-256 of its URL, version and size ([`RemoteSource::key`]): it keys the stores
+    /// and caches as a content hash does, and clients are not shown it.
     pub sha256: String,
-    /// The first file.
+    /// The first file; empty for a dataset by URL.
     pub path: std::path::PathBuf,
     /// Every file, in order. Empty in records written when a dataset was one file: that file
     /// is then `path` (see [`Dataset::files`]).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub files: Vec<DatasetFile>,
     pub created_unix_ms: i64,
+    /// The object a dataset by URL is read from; none for files on the server.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub remote: Option<RemoteSource>,
+}
+
+/// The object of a dataset by URL, as its registration found it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RemoteSource {
+    /// A checked `s3://` or `http(s)://` URL, which never holds credentials.
+    pub url: String,
+    /// The ETag or version id its reads are pinned to.
+    pub version: String,
+}
+
+impl RemoteSource {
+    /// What identifies this version of the object, in place of a content hash that would
+    /// need the whole object read: the SHA-256 (hex) of the URL, the version and the size.
+    pub fn key(&self, size_bytes: u64) -> String {
+        use sha2::{Digest, Sha256};
+        let mut hasher = Sha256::new();
+        for part in [self.url.as_bytes(), self.version.as_bytes()] {
+            hasher.update((part.len() as u64).to_le_bytes());
+            hasher.update(part);
+        }
+        hasher.update(size_bytes.to_le_bytes());
+        hex(&hasher.finalize())
+    }
 }
 
 /// One file of a dataset.
@@ -41,6 +71,18 @@ pub struct DatasetFile {
 }
 
 impl Dataset {
+    /// Refuses `work` that reads a dataset's files on the server (a store build, a
+    /// description, an export, a job) for a dataset by URL, which has none, saying why.
+    pub fn check_local(&self, work: &str) -> Result<(), DaemonError> {
+        match &self.remote {
+            Some(remote) => Err(DaemonError::FailedPrecondition(format!(
+                "dataset {} is read by URL ({}): {work} a dataset by URL is not supported yet",
+                self.id, remote.url
+            ))),
+            None => Ok(()),
+        }
+    }
+
     /// Every file of the dataset, in order.
     pub fn files(&self) -> Vec<DatasetFile> {
         if self.files.is_empty() {

@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 
 use pointfarm_render::ingest::{open_dataset_file, Symlinks};
+use pointfarm_render::remote::{AllowedPrefixes, RemoteClient, RemoteSettings};
 use sha2::{Digest, Sha256};
 use tokio::sync::broadcast;
 
@@ -30,6 +31,10 @@ pub const DEFAULT_MAX_FRAME_ATTEMPTS: u32 = 3;
 /// How long a lease lasts without a heartbeat, unless configured otherwise.
 pub const DEFAULT_LEASE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
 
+/// The longest a read of a dataset by URL may take (a registration's HEAD and header), well
+/// within the bound of a blocking call, so that a stalled server is told as such.
+pub const REMOTE_OPERATION_DEADLINE: std::time::Duration = std::time::Duration::from_secs(45);
+
 /// Limits and locations of a daemon.
 /// Frames of one job a worker may fail before it gets no more of them, as Flamenco's and
 /// Deadline's blocklists have it.
@@ -41,6 +46,11 @@ pub struct DaemonConfig {
     pub data_dir: PathBuf,
     /// Server-side files may only be registered from below these folders.
     pub data_roots: Vec<PathBuf>,
+    /// The URL prefixes datasets may be registered from (`s3://`, `http(s)://`); empty, no
+    /// dataset by URL is accepted.
+    pub allowed_url_prefixes: AllowedPrefixes,
+    /// Timeouts and retries of the reads of datasets by URL.
+    pub remote_settings: RemoteSettings,
     /// Largest image side accepted, in pixels.
     pub max_image_side: u32,
     /// Most frames in one job.
@@ -78,6 +88,11 @@ impl DaemonConfig {
     pub fn new(data_dir: PathBuf) -> Self {
         Self {
             data_roots: Vec::new(),
+            allowed_url_prefixes: AllowedPrefixes::default(),
+            remote_settings: RemoteSettings {
+                operation_deadline: REMOTE_OPERATION_DEADLINE,
+                ..RemoteSettings::default()
+            },
             max_image_side: DEFAULT_MAX_IMAGE_SIDE,
             max_frames: DEFAULT_MAX_FRAMES,
             max_upload_bytes: DEFAULT_MAX_UPLOAD_BYTES,
@@ -175,6 +190,8 @@ pub struct Daemon {
     pub stores: DatasetStores,
     /// The counters and histograms of what happens here, for Prometheus.
     pub metrics: DaemonMetrics,
+    /// Reads datasets by URL; none while no URL prefix is allowed.
+    pub(crate) remote: Option<RemoteClient>,
 }
 
 impl Daemon {
@@ -196,6 +213,14 @@ impl Daemon {
             tracing::info!(requeued, "resuming jobs that were running");
         }
         remove_partial_frames(&config.data_dir.join("jobs"));
+        let remote = match config.allowed_url_prefixes.prefixes() {
+            [] => None,
+            prefixes => {
+                let shown: Vec<&str> = prefixes.iter().map(|prefix| prefix.as_str()).collect();
+                tracing::info!(prefixes = %shown.join(", "), "datasets by URL are allowed");
+                Some(RemoteClient::new(config.remote_settings.clone())?)
+            }
+        };
         let (events, _) = broadcast::channel(config.event_buffer.max(1));
         let work = Arc::new(WorkSignal::default());
         let built = Arc::clone(&work);
@@ -220,6 +245,7 @@ impl Daemon {
             stopping: std::sync::atomic::AtomicBool::new(false),
             workers: WorkerPresence::default(),
             metrics: DaemonMetrics::new(),
+            remote,
         });
         daemon.count_leases_of_previous_run()?;
         Ok(daemon)
@@ -274,7 +300,7 @@ impl Daemon {
                 format!("more than {} frames", self.config.max_frames),
             ));
         }
-        self.dataset(&spec.dataset_id)?;
+        self.dataset(&spec.dataset_id)?.check_local("rendering")?;
         let (job, created) = self.state.submit_job(spec)?;
         if created {
             tracing::info!(job = %job.id, frames = job.frames_total, "job submitted");

@@ -18,7 +18,7 @@ use crate::error::DaemonError;
 use crate::lease::{FailureKind, FrameTask, HeartbeatAnswer, TaskDataset, TaskFile};
 use crate::lease_record::Lease;
 use crate::limits::{truncated, MAX_WORKER_NAME_BYTES};
-use crate::model::{Dataset, FrameCut, FrameReport, Job, JobSpec, JobState, StageTiming};
+use crate::model::{FrameCut, FrameReport, Job, JobSpec, JobState, StageTiming};
 use crate::state::Page;
 use crate::stores::{CopcServed, PreviewBytes, StoreAnswer};
 use pointfarm_render::classification;
@@ -182,29 +182,6 @@ impl From<&Job> for pb::Job {
                 .collect(),
             waiting_reason: String::new(),
             refusals: Vec::new(),
-        }
-    }
-}
-
-impl From<&Dataset> for pb::Dataset {
-    fn from(d: &Dataset) -> Self {
-        pb::Dataset {
-            id: d.id.clone(),
-            name: d.name.clone(),
-            size_bytes: d.size_bytes,
-            sha256: d.sha256.clone(),
-            path: d.path.display().to_string(),
-            created_unix_ms: d.created_unix_ms,
-            files: d
-                .files()
-                .iter()
-                .map(|f| pb::DatasetFile {
-                    name: f.name.clone(),
-                    size_bytes: f.size_bytes,
-                    sha256: f.sha256.clone(),
-                    path: f.path.display().to_string(),
-                })
-                .collect(),
         }
     }
 }
@@ -788,5 +765,6 @@ pub fn dataset_description(
     }
 }
 
+mod datasets;
 #[cfg(test)]
 mod tests;

@@ -1,4 +1,4 @@
-//! `DatasetService`: registering server-side files, receiving uploads (name, size and quota
+//! `DatasetService`: registering server-side files and objects by URL, receiving uploads (name, size and quota
 //! checked from the header, the LAS signature from the first bytes, SHA-256 while they
 //! arrive; nothing left behind when refused), listing, describing and deleting datasets.
 
@@ -14,6 +14,7 @@ use super::conversions::{dataset_description, file_description, invalid, page_me
 use super::streaming::{first_part, spawn_stream, HashingWriter, ResponseStream, CHUNK_BYTES};
 use super::{io_within, Api};
 use crate::error::DaemonError;
+use crate::remote_datasets::requested_url;
 use crate::service::{dataset_id, Daemon};
 
 #[tonic::async_trait]
@@ -27,6 +28,14 @@ impl DatasetService for Api {
             .filter(|path| !path.is_empty())
             .chain(r.paths)
             .collect();
+        // An object by URL is registered from a HEAD and its header, within the remote
+        // reads' own deadline.
+        if let Some(url) = requested_url(&paths)? {
+            let dataset = self
+                .run(move |daemon| daemon.register_url(&url, &r.name))
+                .await?;
+            return Ok(Response::new(pb::Dataset::from(&dataset)));
+        }
         // The walk is quick and bounded in time; the hashing takes as long as the files are
         // large, and reads regular files only.
         let registration = self

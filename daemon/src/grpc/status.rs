@@ -15,6 +15,7 @@ impl From<DaemonError> for Status {
             DaemonError::FailedPrecondition(_) => Code::FailedPrecondition,
             DaemonError::PermissionDenied(_) => Code::PermissionDenied,
             DaemonError::ResourceExhausted(_) => Code::ResourceExhausted,
+            DaemonError::Unavailable(_) => Code::Unavailable,
             DaemonError::Internal(_) => Code::Internal,
         };
         Status::new(code, message)
@@ -48,10 +49,53 @@ mod tests {
                 DaemonError::ResourceExhausted("x".into()),
                 Code::ResourceExhausted,
             ),
+            (DaemonError::Unavailable("x".into()), Code::Unavailable),
             (DaemonError::Internal("x".into()), Code::Internal),
         ];
         for (error, code) in cases {
             assert_eq!(Status::from(error).code(), code);
+        }
+    }
+
+    #[test]
+    fn remote_errors_have_the_status_a_client_can_act_on() {
+        use pointfarm_render::remote::RemoteError;
+        let url = || "https://data.example/scans/a.copc.laz".to_owned();
+        let cases = [
+            (
+                RemoteError::InvalidUrl {
+                    url: url(),
+                    reason: "r".into(),
+                },
+                Code::InvalidArgument,
+            ),
+            (
+                RemoteError::NotAllowed {
+                    url: url(),
+                    rule: "the operator allows only s3://b".into(),
+                },
+                Code::PermissionDenied,
+            ),
+            (RemoteError::NotFound { url: url() }, Code::NotFound),
+            (
+                RemoteError::Transport {
+                    url: url(),
+                    message: "connection refused".into(),
+                },
+                Code::Unavailable,
+            ),
+            (
+                RemoteError::TimedOut {
+                    url: url(),
+                    after: std::time::Duration::from_secs(1),
+                },
+                Code::Unavailable,
+            ),
+        ];
+        for (error, code) in cases {
+            let status = Status::from(DaemonError::from(error));
+            assert_eq!(status.code(), code, "{status:?}");
+            assert!(status.message().contains(&url()), "{status:?}");
         }
     }
 }

@@ -34,6 +34,7 @@ fn dataset_of(path: &Path, sha256: &str) -> Dataset {
             sha256: sha256.into(),
         }],
         created_unix_ms: 0,
+        remote: None,
     }
 }
 

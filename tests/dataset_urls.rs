@@ -1,0 +1,355 @@
+//! Datasets registered by URL: a real nginx on loopback serves COPC files, a real daemon
+//! registers them under its operator's allowed prefixes, from a HEAD and the header read by
+//! range. Refusals carry the status a client can act on, and the daemon keeps serving after
+//! each. Each test skips, saying so, where nginx is not installed.
+
+use std::path::{Path, PathBuf};
+
+use pointfarm_daemon::access::Access;
+use pointfarm_daemon::service::DaemonConfig;
+use pointfarm_proto::v1 as pb;
+use pointfarm_tests::nginx::NginxServer;
+use pointfarm_tests::service::{write_sample, TestDaemon};
+use pointfarm_tests::{free_address, pointfarm, pointfarm_ok, stdout, ServeProcess};
+use tonic::Code;
+
+const OBJECT: &str = "scans/simple.copc.laz";
+
+fn copc_data(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("data/copc")
+        .join(name)
+}
+
+/// nginx serving a folder with `scans/simple.copc.laz`; none, having said why, without nginx.
+fn served_scans() -> Option<(tempfile::TempDir, NginxServer)> {
+    let root = tempfile::tempdir().expect("root");
+    std::fs::create_dir(root.path().join("scans")).expect("scans folder");
+    std::fs::copy(copc_data("simple.copc.laz"), root.path().join(OBJECT)).expect("copy");
+    let server = NginxServer::start_or_skip(root.path())?;
+    Some((root, server))
+}
+
+/// A daemon without a worker that allows datasets by URL under `prefixes`.
+async fn daemon_allowing(prefixes: &[String]) -> TestDaemon {
+    let allowed =
+        pointfarm_daemon::remote_datasets::url_prefixes(prefixes).expect("valid prefixes");
+    TestDaemon::start_without_worker(
+        move |config: &mut DaemonConfig| config.allowed_url_prefixes = allowed,
+        Access::default(),
+    )
+    .await
+}
+
+async fn register(daemon: &TestDaemon, path: &str) -> Result<pb::Dataset, tonic::Status> {
+    let request = pb::RegisterDatasetRequest {
+        path: path.to_owned(),
+        ..Default::default()
+    };
+    daemon
+        .datasets()
+        .await
+        .register_dataset(request)
+        .await
+        .map(tonic::Response::into_inner)
+}
+
+/// The refusal of registering `path`, checked for its code and for every text it must hold.
+async fn refused(daemon: &TestDaemon, path: &str, code: Code, says: &[&str]) -> tonic::Status {
+    let status = register(daemon, path).await.expect_err(path);
+    assert_eq!(status.code(), code, "{path}: {status:?}");
+    for needle in says {
+        assert!(
+            status.message().contains(needle),
+            "{path}: {needle:?} not in {:?}",
+            status.message()
+        );
+    }
+    status
+}
+
+/// The daemon still answers, and holds exactly `expected` datasets.
+async fn still_serving(daemon: &TestDaemon, expected: usize) {
+    let listed = daemon
+        .datasets()
+        .await
+        .list_datasets(pb::ListDatasetsRequest::default())
+        .await
+        .expect("the daemon still serves")
+        .into_inner();
+    assert_eq!(listed.datasets.len(), expected, "{listed:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_allowed_url_registers_by_its_version_without_being_downloaded() {
+    let Some((root, server)) = served_scans() else {
+        return;
+    };
+    let daemon = daemon_allowing(&[server.url("scans/")]).await;
+    let url = server.url(OBJECT);
+    let size = std::fs::metadata(root.path().join(OBJECT))
+        .expect("size")
+        .len();
+
+    let dataset = register(&daemon, &url).await.expect("registered");
+    assert_eq!(dataset.url, url);
+    assert!(!dataset.version.is_empty(), "nginx sends an ETag");
+    assert_eq!(dataset.size_bytes, size);
+    assert_eq!(dataset.name, "simple.copc.laz");
+    assert!(
+        dataset.path.is_empty() && dataset.sha256.is_empty(),
+        "{dataset:?}"
+    );
+    let [file] = dataset.files.as_slice() else {
+        panic!("one object: {dataset:?}");
+    };
+    assert_eq!((file.url.as_str(), file.size_bytes), (url.as_str(), size));
+    // A HEAD and the header by range: never a whole answer.
+    let log = server.access_log(2);
+    assert!(log.iter().any(|line| line.contains("\"HEAD ")), "{log:?}");
+    let gets: Vec<&String> = log.iter().filter(|line| line.contains("\"GET ")).collect();
+    assert!(!gets.is_empty(), "{log:?}");
+    assert!(gets.iter().all(|line| line.contains(" 206 ")), "{log:?}");
+
+    let again = register(&daemon, &url).await.expect("registered again");
+    assert_eq!(again.id, dataset.id);
+    let got = daemon
+        .datasets()
+        .await
+        .get_dataset(pb::GetDatasetRequest {
+            id: dataset.id.clone(),
+        })
+        .await
+        .expect("get")
+        .into_inner();
+    assert_eq!(
+        (got.url, got.version),
+        (url.clone(), dataset.version.clone())
+    );
+    still_serving(&daemon, 1).await;
+
+    // Another object at the same URL is another dataset.
+    std::fs::copy(
+        copc_data("simple_with_page.copc.laz"),
+        root.path().join(OBJECT),
+    )
+    .expect("replace");
+    let replaced = register(&daemon, &url).await.expect("the new object");
+    assert_ne!(replaced.id, dataset.id);
+    assert_ne!(replaced.version, dataset.version);
+    still_serving(&daemon, 2).await;
+
+    // Its files are not on the server: work that reads them says so.
+    let described = daemon
+        .datasets()
+        .await
+        .describe_dataset(pb::DescribeDatasetRequest {
+            dataset_id: replaced.id.clone(),
+            ..Default::default()
+        })
+        .await
+        .expect_err("not described");
+    assert_eq!(described.code(), Code::FailedPrecondition, "{described:?}");
+    assert!(described.message().contains(&url), "{described:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_url_outside_the_allowed_prefixes_is_refused_naming_the_rule() {
+    let Some((root, server)) = served_scans() else {
+        return;
+    };
+    std::fs::create_dir(root.path().join("scans-other")).expect("folder");
+    std::fs::copy(
+        copc_data("simple.copc.laz"),
+        root.path().join("scans-other/simple.copc.laz"),
+    )
+    .expect("copy");
+    let allowed = server.url("scans");
+    let daemon = daemon_allowing(std::slice::from_ref(&allowed)).await;
+    for outside in [
+        server.url("scans-other/simple.copc.laz"),
+        server.url("simple.copc.laz"),
+        format!("https://{}/{OBJECT}", server.address),
+    ] {
+        let rule = format!("the operator allows only {allowed}");
+        refused(
+            &daemon,
+            &outside,
+            Code::PermissionDenied,
+            &[&outside, &rule],
+        )
+        .await;
+    }
+    // Refused before any request reaches the server.
+    assert!(server.access_log(0).is_empty());
+    still_serving(&daemon, 0).await;
+
+    let none_allowed = daemon_allowing(&[]).await;
+    refused(
+        &none_allowed,
+        &server.url(OBJECT),
+        Code::PermissionDenied,
+        &[&server.url(OBJECT), "allow-list is empty"],
+    )
+    .await;
+    still_serving(&none_allowed, 0).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn missing_unreachable_and_malformed_urls_have_their_status() {
+    let Some((_root, server)) = served_scans() else {
+        return;
+    };
+    let unreachable = format!("http://{}/scans/", free_address());
+    let daemon = daemon_allowing(&[server.url("scans/"), unreachable.clone()]).await;
+
+    let missing = server.url("scans/missing.copc.laz");
+    refused(&daemon, &missing, Code::NotFound, &[&missing]).await;
+    let away = format!("{unreachable}simple.copc.laz");
+    refused(&daemon, &away, Code::Unavailable, &[&away]).await;
+    let with_credentials = format!("http://reader:hunter2@{}/{OBJECT}", server.address);
+    let status = refused(
+        &daemon,
+        &with_credentials,
+        Code::InvalidArgument,
+        &["credentials"],
+    )
+    .await;
+    assert!(!status.message().contains("hunter2"), "{status:?}");
+    refused(
+        &daemon,
+        "gs://bucket/simple.copc.laz",
+        Code::InvalidArgument,
+        &["gs://"],
+    )
+    .await;
+    still_serving(&daemon, 0).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn only_a_single_copc_object_registers_by_url() {
+    let Some((root, server)) = served_scans() else {
+        return;
+    };
+    write_sample(&root.path().join("scans/plain.las"), 2_000, 7);
+    std::fs::write(root.path().join("scans/notes.laz"), "not a point cloud").expect("notes");
+    let daemon = daemon_allowing(&[server.url("scans/")]).await;
+    let only_copc = "only a single COPC object (.copc.laz) registers by URL yet";
+    let plain = server.url("scans/plain.las");
+    refused(
+        &daemon,
+        &plain,
+        Code::InvalidArgument,
+        &[&plain, "not COPC", only_copc],
+    )
+    .await;
+    let notes = server.url("scans/notes.laz");
+    refused(&daemon, &notes, Code::InvalidArgument, &[&notes, only_copc]).await;
+    let prefix = server.url("scans/");
+    refused(
+        &daemon,
+        &prefix,
+        Code::InvalidArgument,
+        &[&prefix, "a prefix", only_copc],
+    )
+    .await;
+    let mixed = daemon
+        .datasets()
+        .await
+        .register_dataset(pb::RegisterDatasetRequest {
+            path: server.url(OBJECT),
+            paths: vec!["scans/plain.las".into()],
+            ..Default::default()
+        })
+        .await
+        .expect_err("a URL with a path");
+    assert_eq!(mixed.code(), Code::InvalidArgument, "{mixed:?}");
+    assert!(mixed.message().contains("URL alone"), "{mixed:?}");
+    still_serving(&daemon, 0).await;
+    assert!(register(&daemon, &server.url(OBJECT)).await.is_ok());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_file_url_is_a_path_under_the_data_roots() {
+    let roots = tempfile::tempdir().expect("roots");
+    let inside = roots.path().join("inside");
+    let outside = roots.path().join("outside");
+    for folder in [&inside, &outside] {
+        std::fs::create_dir(folder).expect("folder");
+        write_sample(&folder.join("scan.las"), 1_000, 3);
+    }
+    let root = inside.clone();
+    let daemon = TestDaemon::start_without_worker(
+        move |config: &mut DaemonConfig| config.data_roots = vec![root],
+        Access::default(),
+    )
+    .await;
+    let by_path = register(&daemon, "scan.las").await.expect("by path");
+    let file_url = format!("file://{}", inside.join("scan.las").display());
+    let by_url = register(&daemon, &file_url).await.expect("by file:// URL");
+    assert_eq!(by_url.id, by_path.id);
+    assert!(by_url.url.is_empty(), "{by_url:?}");
+    let elsewhere = format!("file://{}", outside.join("scan.las").display());
+    refused(
+        &daemon,
+        &elsewhere,
+        Code::InvalidArgument,
+        &["outside the server's data roots"],
+    )
+    .await;
+    still_serving(&daemon, 1).await;
+}
+
+/// The operator's flag and the CLI, as a user runs them: `serve --allow-url-prefix`, then
+/// `dataset register URL`, `dataset get` and `dataset list` showing the URL.
+#[test]
+fn the_cli_registers_a_url_the_operator_allows() {
+    let Some((_root, server)) = served_scans() else {
+        return;
+    };
+    let refused = pointfarm(&[
+        "serve",
+        "--allow-url-prefix",
+        "https://reader:hunter2@data.example/scans/",
+    ]);
+    assert!(!refused.status.success());
+    let said = String::from_utf8_lossy(&refused.stderr).into_owned();
+    assert!(said.contains("--allow-url-prefix"), "{said}");
+    assert!(
+        said.contains("credentials") && !said.contains("hunter2"),
+        "{said}"
+    );
+
+    let data = tempfile::tempdir().expect("data");
+    let serve = ServeProcess::start_with(
+        data.path(),
+        &[
+            "--no-embedded-worker",
+            "--allow-url-prefix",
+            &server.url("scans/"),
+        ],
+    );
+    let address = format!("http://{}", serve.address);
+    let url = server.url(OBJECT);
+    let registered = pointfarm_ok(&["dataset", "register", &url, "--server", &address, "--json"]);
+    let dataset: serde_json::Value =
+        serde_json::from_str(stdout(&registered).trim()).expect("one JSON line");
+    assert_eq!(dataset["url"], url.as_str());
+    let id = dataset["id"].as_str().expect("an id").to_owned();
+    let got = stdout(&pointfarm_ok(&[
+        "dataset", "get", &id, "--server", &address,
+    ]));
+    assert!(got.contains(&id) && got.contains(&url), "{got}");
+    let listed = stdout(&pointfarm_ok(&["dataset", "list", "--server", &address]));
+    assert!(listed.contains(&id) && listed.contains(&url), "{listed}");
+    let outside = pointfarm(&[
+        "dataset",
+        "register",
+        &server.url("simple.copc.laz"),
+        "--server",
+        &address,
+    ]);
+    assert!(!outside.status.success());
+    let said = String::from_utf8_lossy(&outside.stderr).into_owned();
+    assert!(said.contains("allows only"), "{said}");
+}
