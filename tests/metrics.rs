@@ -3,58 +3,18 @@
 //! daemon's and a `pointfarm worker`'s `/metrics`, read directly after a job.
 
 use std::collections::BTreeMap;
-use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
+use pointfarm_tests::prometheus::{
+    free_address, http_get, prometheus_installed, scrape, Prometheus,
+};
 use pointfarm_tests::service::{
     clients, scratch_sample, submit, turntable_job, upload_file, watch_to_success,
 };
 use pointfarm_tests::{pointfarm_bin, wait_for, ServeProcess, WorkerProcess};
-
-const PROMETHEUS: &str = "/usr/bin/prometheus";
-
-/// A free loopback address.
-fn free_address() -> String {
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|probe| probe.local_addr())
-        .expect("a free loopback port")
-        .port();
-    format!("127.0.0.1:{port}")
-}
-
-/// `GET http://{address}{path}`: the status code and the body. HTTP/1.0, so that the answer
-/// is the plain body up to the end of the connection.
-fn http_get(address: &str, path: &str) -> std::io::Result<(u16, String)> {
-    let mut stream = TcpStream::connect(address)?;
-    stream.set_read_timeout(Some(Duration::from_secs(10)))?;
-    write!(stream, "GET {path} HTTP/1.0\r\nHost: {address}\r\n\r\n")?;
-    let mut answer = String::new();
-    stream.read_to_string(&mut answer)?;
-    let (head, body) = answer.split_once("\r\n\r\n").unwrap_or((&answer, ""));
-    let status = head
-        .split_whitespace()
-        .nth(1)
-        .and_then(|code| code.parse().ok())
-        .unwrap_or(0);
-    Ok((status, body.to_owned()))
-}
-
-/// The metrics at `http://{address}/metrics`, by series (`name{labels}` as written).
-fn scrape(address: &str) -> BTreeMap<String, f64> {
-    let (status, body) = http_get(address, "/metrics").expect("GET /metrics");
-    assert_eq!(status, 200, "{body}");
-    assert!(body.ends_with("# EOF\n"), "{body}");
-    body.lines()
-        .filter(|line| !line.starts_with('#') && !line.is_empty())
-        .map(|line| {
-            let (series, value) = line.rsplit_once(' ').expect("series value");
-            (series.to_owned(), value.parse().expect("a number"))
-        })
-        .collect()
-}
 
 fn value(metrics: &BTreeMap<String, f64>, series: &str) -> f64 {
     *metrics
@@ -94,92 +54,17 @@ fn serve_with_metrics_from_env(dir: &Path, metrics: &str) -> (Killed, String, st
     (server, address, log)
 }
 
-/// A Prometheus server of Debian's package, scraping `target` every second; killed when
-/// dropped.
-struct Prometheus {
-    address: String,
-    child: Child,
-    log: std::path::PathBuf,
-}
-
-impl Prometheus {
-    fn start(dir: &Path, target: &str) -> Self {
-        let config = dir.join("prometheus.yml");
-        std::fs::write(
-            &config,
-            format!(
-                "global:\n  scrape_interval: 1s\n  scrape_timeout: 1s\n\
-                 scrape_configs:\n  - job_name: pointfarm\n    static_configs:\n      \
-                 - targets: ['{target}']\n"
-            ),
-        )
-        .expect("prometheus.yml");
-        let address = free_address();
-        let log = dir.join("prometheus.log");
-        let child = Command::new(PROMETHEUS)
-            .arg(format!("--config.file={}", config.display()))
-            .arg(format!(
-                "--storage.tsdb.path={}",
-                dir.join("tsdb").display()
-            ))
-            .arg(format!("--web.listen-address={address}"))
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(&log).expect("prometheus log"))
-            .spawn()
-            .expect("start prometheus");
-        let prometheus = Self {
-            address,
-            child,
-            log,
-        };
-        wait_for(Duration::from_secs(60), "a ready Prometheus", || {
-            matches!(http_get(&prometheus.address, "/-/ready"), Ok((200, _))).then_some(())
-        });
-        prometheus
-    }
-
-    /// The value of the instant query `query`'s single series, if it has one.
-    fn query(&self, query: &str) -> Option<f64> {
-        let (status, body) = http_get(&self.address, &format!("/api/v1/query?query={query}"))
-            .expect("query Prometheus");
-        assert_eq!(status, 200, "{body}");
-        let answer: serde_json::Value = serde_json::from_str(&body).expect("JSON");
-        assert_eq!(answer["status"], "success", "{body}");
-        let result = answer["data"]["result"].as_array().expect("a vector");
-        match result.as_slice() {
-            [] => None,
-            [series] => series["value"][1].as_str()?.parse().ok(),
-            more => panic!("{} series for {query}: {body}", more.len()),
-        }
-    }
-
-    fn log(&self) -> String {
-        std::fs::read_to_string(&self.log).unwrap_or_default()
-    }
-}
-
-impl Drop for Prometheus {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
 /// Prometheus scrapes a daemon through a job rendered by its embedded worker; its API then
 /// counts the job's frames.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn prometheus_scrapes_the_frames_a_job_completed() {
-    if !Path::new(PROMETHEUS).is_file() {
-        eprintln!(
-            "skipped: {PROMETHEUS} is missing (Debian's `prometheus` package; deploy/test.sh \
-             installs it)"
-        );
+    if !prometheus_installed() {
         return;
     }
     let scratch = tempfile::tempdir().expect("tempdir");
     let metrics = free_address();
     let (_server, address, log) = serve_with_metrics_from_env(scratch.path(), &metrics);
-    let prometheus = Prometheus::start(scratch.path(), &metrics);
+    let prometheus = Prometheus::start(scratch.path(), &[&metrics]);
 
     let (_sample_dir, file) = scratch_sample("s.las", 20_000, 4);
     let (mut datasets, mut jobs) = clients(&address).await;
@@ -287,4 +172,137 @@ async fn the_daemon_and_a_worker_serve_what_they_counted() {
     );
     let (status, _) = http_get(&worker_metrics, "/elsewhere").expect("GET");
     assert_eq!(status, 404);
+}
+
+/// The Grafana dashboard `deploy/grafana/pointfarm.json`, parsed.
+fn grafana_dashboard() -> serde_json::Value {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/grafana/pointfarm.json");
+    let text = std::fs::read_to_string(&path).expect("the Grafana dashboard");
+    serde_json::from_str(&text).expect("the dashboard is JSON")
+}
+
+/// The dashboard's panels that query (rows only group them), with their queries.
+fn queried_panels(dashboard: &serde_json::Value) -> Vec<(&str, Vec<&str>)> {
+    let panels = dashboard["panels"].as_array().expect("panels");
+    panels
+        .iter()
+        .filter(|panel| panel["type"] != "row")
+        .map(|panel| {
+            let title = panel["title"].as_str().expect("a title");
+            let targets = panel["targets"].as_array().expect("targets");
+            let queries = targets
+                .iter()
+                .map(|t| t["expr"].as_str().expect("a query"))
+                .collect();
+            (title, queries)
+        })
+        .collect()
+}
+
+/// The dashboard is one Grafana imports as it is: a Prometheus data source chosen on import,
+/// every panel on the 24-column grid without overlapping another, each with a query.
+#[test]
+fn the_grafana_dashboard_is_laid_out_for_grafana() {
+    let dashboard = grafana_dashboard();
+    assert_eq!(dashboard["uid"], "pointfarm-farm");
+    assert!(
+        dashboard["schemaVersion"].as_u64() >= Some(36),
+        "{dashboard}"
+    );
+    let variables = dashboard["templating"]["list"]
+        .as_array()
+        .expect("variables");
+    assert!(
+        variables
+            .iter()
+            .any(|v| v["name"] == "datasource" && v["query"] == "prometheus"),
+        "no Prometheus data source variable"
+    );
+    let panels = dashboard["panels"].as_array().expect("panels");
+    let mut ids = std::collections::BTreeSet::new();
+    let mut cells = std::collections::BTreeMap::new();
+    for panel in panels {
+        let title = panel["title"].as_str().expect("a title");
+        assert!(!title.is_empty() && ids.insert(panel["id"].as_u64().expect("an id")));
+        let place = &panel["gridPos"];
+        let [x, y, w, h] = ["x", "y", "w", "h"].map(|k| place[k].as_u64().expect("gridPos"));
+        assert!(w > 0 && h > 0 && x + w <= 24, "{title}: {place}");
+        for cell in (x..x + w).flat_map(|x| (y..y + h).map(move |y| (x, y))) {
+            if let Some(other) = cells.insert(cell, title) {
+                panic!("{title} overlaps {other} at {cell:?}");
+            }
+        }
+        if panel["type"] == "row" {
+            continue;
+        }
+        assert_eq!(panel["datasource"]["uid"], "${datasource}", "{title}");
+        let targets = panel["targets"].as_array().expect("targets");
+        assert!(!targets.is_empty(), "{title} has no query");
+        for target in targets {
+            assert_eq!(target["datasource"]["uid"], "${datasource}", "{title}");
+            assert!(target["expr"].as_str().is_some_and(|e| !e.is_empty()));
+        }
+    }
+    assert!(queried_panels(&dashboard).len() >= 12);
+}
+
+/// Every query of the dashboard is valid PromQL that a real Prometheus, scraping a daemon and
+/// a worker process through a job, answers with series: no panel of a working farm stays
+/// empty for a misspelt metric or label.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_grafana_panel_shows_a_farm_that_rendered_a_job() {
+    if !prometheus_installed() {
+        return;
+    }
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let daemon_metrics = free_address();
+    let server = ServeProcess::start_with(
+        &scratch.path().join("data"),
+        &["--no-embedded-worker", "--metrics-listen", &daemon_metrics],
+    );
+    let worker_metrics = free_address();
+    let worker = WorkerProcess::start_with(
+        &format!("http://{}", server.address),
+        &scratch.path().join("cache"),
+        "charted",
+        &["--metrics-listen", &worker_metrics],
+    );
+    let prometheus = Prometheus::start(scratch.path(), &[&daemon_metrics, &worker_metrics]);
+    let (_sample_dir, file) = scratch_sample("s.las", 20_000, 6);
+    let (mut datasets, mut jobs) = clients(&server.address).await;
+    let dataset = upload_file(&mut datasets, "s.las", &file).await;
+    let job = submit(&mut jobs, turntable_job("charted", &dataset.id, 2, 64, 48)).await;
+    watch_to_success(&mut jobs, &job.id, || worker.log()).await;
+
+    let dashboard = grafana_dashboard();
+    let queries: Vec<(&str, String)> = queried_panels(&dashboard)
+        .into_iter()
+        .flat_map(|(title, queries)| {
+            // Grafana's interval for rates: at least four scrapes; one minute here.
+            queries
+                .into_iter()
+                .map(move |query| (title, query.replace("$__rate_interval", "1m")))
+        })
+        .collect();
+    // Rates need two samples after the job's counts moved: scrapes come every second.
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    let empty = loop {
+        let empty: Vec<String> = queries
+            .iter()
+            .filter_map(|(title, query)| match prometheus.query_series(query) {
+                Ok(series) if !series.is_empty() => None,
+                Ok(_) => Some(format!("{title}: {query}")),
+                Err(error) => panic!("{title}: {query}: {error}"),
+            })
+            .collect();
+        if empty.is_empty() || std::time::Instant::now() > deadline {
+            break empty;
+        }
+        std::thread::sleep(Duration::from_millis(500));
+    };
+    assert!(
+        empty.is_empty(),
+        "panels without series:\n{}",
+        empty.join("\n")
+    );
 }

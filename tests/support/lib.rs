@@ -406,6 +406,7 @@ impl Drop for WorkerProcess {
 pub mod datasets;
 pub mod nginx;
 pub mod pki;
+pub mod prometheus;
 pub mod service;
 
 /// Sends SIGTERM to `child` and waits up to `timeout` for its exit.
