@@ -246,24 +246,6 @@ fn a_ca_certificate_served_is_named_at_start_and_by_the_client() {
     assert!(!log.contains("CaUsedAsEndEntity"), "{log}");
     let status = worker.terminate(Duration::from_secs(10)).expect("an exit");
     assert_eq!(status.code(), Some(1), "{log}");
-
-    // A file without a certificate, and a key that is not the certificate's, are refused in
-    // words at start.
-    let listen = ["--listen", "127.0.0.1:0", "--tls-key", arg(&key)];
-    let no_certificate = serve_exits(
-        &dir.join("d1"),
-        &[&listen[..], &["--tls-cert", arg(&key)]].concat(),
-    );
-    assert_fails_saying(
-        &no_certificate,
-        "the TLS certificate (--tls-cert) holds no PEM certificate",
-    );
-    let pki = TestPki::create(dir);
-    let other_key = serve_exits(
-        &dir.join("d2"),
-        &[&listen[..], &["--tls-cert", arg(&pki.cert)]].concat(),
-    );
-    assert_fails_saying(&other_key, "the key is not the certificate's");
 }
 
 /// Runs `pointfarm serve` with `args`; its output if it exits within 30 s (it is killed and
@@ -286,6 +268,53 @@ fn serve_exits(data_dir: &Path, args: &[&str]) -> Output {
         std::thread::sleep(Duration::from_millis(50));
     }
     child.wait_with_output().expect("output")
+}
+
+/// A certificate that cannot be read, a file that holds no certificate and a key that is not
+/// the certificate's each stop `pointfarm serve` with one line that names the fault, before it
+/// says anything of what it would serve.
+#[test]
+fn a_refused_certificate_stops_serve_before_it_says_it_serves() {
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let dir = scratch.path();
+    let pki = TestPki::create(dir);
+    let other = dir.join("other");
+    std::fs::create_dir(&other).expect("a folder");
+    let other_key = TestPki::create(&other).key;
+    let missing = dir.join("missing.pem");
+    let refusals = [
+        (&missing, &pki.key, "reading "),
+        (
+            &pki.key,
+            &pki.key,
+            "the TLS certificate (--tls-cert) holds no PEM certificate",
+        ),
+        (&pki.cert, &other_key, "the key is not the certificate's"),
+    ];
+    for (index, (cert, key, needle)) in refusals.into_iter().enumerate() {
+        let data_dir = dir.join(format!("data-{index}"));
+        let refused = serve_exits(
+            &data_dir,
+            &[
+                "--listen",
+                "127.0.0.1:0",
+                "--tls-cert",
+                arg(cert),
+                "--tls-key",
+                arg(key),
+            ],
+        );
+        assert_fails_saying(&refused, needle);
+        let lines = own_stderr_lines(&refused);
+        assert_eq!(lines.len(), 1, "one line: {lines:#?}");
+        assert!(lines[0].starts_with("error: "), "{}", lines[0]);
+        let said = String::from_utf8_lossy(&refused.stdout);
+        assert!(said.is_empty(), "it said before refusing: {said}");
+        assert!(
+            !data_dir.exists(),
+            "the state was opened before the certificate was checked"
+        );
+    }
 }
 
 #[test]

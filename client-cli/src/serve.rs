@@ -6,7 +6,7 @@
 use std::path::PathBuf;
 use std::sync::Arc;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::capabilities::checked_tags;
@@ -21,6 +21,7 @@ use pointfarm_daemon::service::{
 };
 use pointfarm_daemon::supervisor::WorkerCommand;
 use pointfarm_proto::endpoint::connections::ConnectionLimits;
+use pointfarm_proto::endpoint::{self, certificate};
 use pointfarm_render::gpu::AdapterChoice;
 
 use crate::config_file::ConfigArgs;
@@ -192,10 +193,14 @@ fn serve_options(args: &ServeArgs) -> Result<ServeOptions> {
     let read =
         |path: &PathBuf| std::fs::read(path).with_context(|| format!("reading {}", path.display()));
     let tls = match (&args.tls_cert, &args.tls_key) {
-        (Some(cert), Some(key)) => Some(TlsIdentity {
-            cert_pem: read(cert)?,
-            key_pem: read(key)?,
-        }),
+        (Some(cert), Some(key)) => {
+            let identity = TlsIdentity {
+                cert_pem: read(cert)?,
+                key_pem: read(key)?,
+            };
+            check_identity(&identity)?;
+            Some(identity)
+        }
         (Some(_), None) => bail!("--tls-cert needs --tls-key, the certificate's private key"),
         (None, Some(_)) => bail!("--tls-key needs --tls-cert, the key's certificate chain"),
         (None, None) => None,
@@ -210,6 +215,25 @@ fn serve_options(args: &ServeArgs) -> Result<ServeOptions> {
     })
 }
 
+/// Refuses a certificate file that holds no certificate, and a key that is not the
+/// certificate's, in the words the server would use when it sets up TLS: before anything says
+/// the daemon serves.
+fn check_identity(identity: &TlsIdentity) -> Result<()> {
+    certificate::is_ca_certificate(&identity.cert_pem)
+        .map_err(|reason| anyhow!("the TLS certificate (--tls-cert) {reason}"))?;
+    endpoint::server_builder()
+        .tls_config(endpoint::server_tls(&identity.cert_pem, &identity.key_pem))
+        .map_err(|e| {
+            anyhow!(
+                "the TLS certificate and key (--tls-cert, --tls-key): {}",
+                certificate::identity_error(&e)
+            )
+        })?;
+    Ok(())
+}
+
+/// Everything that can refuse the start is checked, and every listener bound, before the
+/// first line that says what the daemon serves: a refused start prints only its error.
 pub fn run(args: ServeArgs) -> Result<()> {
     let options = serve_options(&args)?;
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
@@ -231,8 +255,20 @@ pub fn run(args: ServeArgs) -> Result<()> {
         if let Some(bytes) = args.store_memory_budget {
             config.store_build_memory_bytes = bytes;
         }
+        // Checked before the state is opened, so that a bad tag stops the daemon rather
+        // than its worker's restarts.
+        let embedded_worker = if args.no_embedded_worker {
+            None
+        } else {
+            Some(embedded_worker_command(&args, &config)?)
+        };
         let daemon =
             Daemon::open(config).with_context(|| format!("opening {}", args.data_dir.display()))?;
+        let listener = tokio::net::TcpListener::bind(&args.listen)
+            .await
+            .with_context(|| format!("listening on {}", args.listen))?;
+        let address = listener.local_addr()?;
+        options.check_exposure(address)?;
         if let Some(address) = &args.metrics_listen {
             let source = daemon.clone();
             let bound = metrics::http::listen(
@@ -243,19 +279,10 @@ pub fn run(args: ServeArgs) -> Result<()> {
             .await?;
             outln!("metrics on http://{bound}/metrics");
         }
-        let embedded_worker = if args.no_embedded_worker {
-            outln!("no embedded worker: start `pointfarm worker --server ...` to render");
-            None
-        } else {
-            let command = embedded_worker_command(&args, &daemon.config)?;
-            outln!("embedded worker: {}", command.program.display());
-            Some(command)
-        };
-        let listener = tokio::net::TcpListener::bind(&args.listen)
-            .await
-            .with_context(|| format!("listening on {}", args.listen))?;
-        let address = listener.local_addr()?;
-        options.check_exposure(address)?;
+        match &embedded_worker {
+            Some(command) => outln!("embedded worker: {}", command.program.display()),
+            None => outln!("no embedded worker: start `pointfarm worker --server ...` to render"),
+        }
         outln!(
             "pointfarm serving on {}{address} (data in {})",
             if options.tls.is_some() {
@@ -284,7 +311,6 @@ pub fn run(args: ServeArgs) -> Result<()> {
 /// the data folder.
 fn embedded_worker_command(args: &ServeArgs, config: &DaemonConfig) -> Result<WorkerCommand> {
     let mut command = embedded_worker(config, args.adapter)?;
-    // Checked here too, so that a bad tag stops the daemon rather than its worker's restarts.
     checked_tags("--worker-tag", args.worker_tags.iter().map(String::as_str))?;
     for tag in &args.worker_tags {
         command.args.extend(["--tag".into(), tag.into()]);
