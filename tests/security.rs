@@ -1,8 +1,9 @@
 //! Transport and roles, with real processes and sockets: TLS with a certificate made for the
 //! test (clients and workers through it, plaintext and unknown CAs refused; a CA certificate
-//! served named at start and by the client), the refusal to listen beyond loopback without a
-//! token and TLS, reflection in both versions (behind the client token where one is set), and
-//! leases that only their holder can use.
+//! served named at start and by the client; a certificate that cannot serve refused before
+//! the daemon says it serves), the refusal to listen beyond loopback without a token and TLS,
+//! reflection in both versions (behind the client token where one is set), and leases that
+//! only their holder can use.
 
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
