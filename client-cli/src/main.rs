@@ -35,6 +35,7 @@ mod sample;
 mod serve;
 mod signals;
 mod source_words;
+mod url_input;
 mod video;
 mod worker;
 

@@ -16,6 +16,7 @@ use pointfarm_render::ingest::{dataset_files, dataset_point_count};
 use pointfarm_render::legend::Legend;
 use pointfarm_render::lod::{BuildProgress, PREVIEW_REDRAW_SHARE, PREVIEW_STORED_POINTS};
 use pointfarm_render::raster::{FrameSettings, Renderer, Stage, StageTimings};
+use pointfarm_render::remote::{FetchCounts, ObjectUrl, RemoteClient};
 use pointfarm_render::request::RenderRequest;
 use pointfarm_render::source::{
     frame_points, ChunkStarts, FramePoints, FrameSource, Levels, LocalStore, PointSourceFacts,
@@ -26,6 +27,7 @@ use crate::paths::store_cache;
 use crate::render_json::FrameJson;
 use crate::render_outputs::{write_legend, Outputs};
 use crate::source_words::SourceWords;
+use crate::url_input::{self, Inputs};
 
 pub use crate::render_args::RenderArgs;
 
@@ -47,7 +49,10 @@ pub fn run(args: RenderArgs) -> Result<()> {
         );
     }
 
-    let files = dataset_files(&args.inputs)?;
+    let files = match url_input::classify(&args.inputs)? {
+        Inputs::Url(url) => return render_url(&args, &request, &outputs, &url),
+        Inputs::Paths(paths) => dataset_files(&paths)?,
+    };
     let say = |line: String| crate::output::say(args.json, line);
     let points = dataset_point_count(&files)?;
     let words = SourceWords::new(args.json, args.inputs_label());
@@ -77,13 +82,16 @@ pub fn run(args: RenderArgs) -> Result<()> {
         outputs: &outputs,
         gpu: &gpu,
         words: &words,
+        fetched: None,
     };
     if args.preview {
         match (copc, frame_points, &store_folder) {
             (Some(file), _, _) => {
                 let options = args.lod_options()?;
                 if options.lod_error < PREVIEW_LOD_ERROR_PX {
-                    return copc_preview_then_final(&target, renderer, file, options);
+                    let render = &request.render;
+                    let source = FrameSource::copc(renderer, file, options, render, &events)?;
+                    return copc_preview_then_final(&target, source, options);
                 }
                 say(format!(
                     "--preview: the pixel error ({}) is a preview's already; {FINAL_AT_ONCE}",
@@ -130,6 +138,54 @@ pub fn run(args: RenderArgs) -> Result<()> {
 const BUILT_ALREADY: &str = "the levels of detail are built already";
 const FINAL_AT_ONCE: &str = "rendering the final frames";
 
+/// Renders the COPC file at `url` as a file here is rendered, cut by cut, its header,
+/// hierarchy pages and nodes read by range as the frames reach them; says what was fetched.
+fn render_url(
+    args: &RenderArgs,
+    request: &RenderRequest,
+    outputs: &Outputs,
+    url: &ObjectUrl,
+) -> Result<()> {
+    let client = url_input::client()?;
+    let words = SourceWords::new(args.json, args.inputs_label());
+    let events = |event: SourceEvent<'_>| words.tell(event);
+    let copc = url_input::open(&client, url)?;
+    let gpu = Arc::new(GpuContext::new(args.adapter)?);
+    let renderer = Renderer::new(Arc::clone(&gpu));
+    let target = FrameTarget {
+        args,
+        request,
+        outputs,
+        gpu: &gpu,
+        words: &words,
+        fetched: Some(&client),
+    };
+    let options = args.lod_options()?;
+    let levels = Levels::Copc(Box::new(copc));
+    let mut source = FrameSource::levels(renderer, levels, options, &request.render, &events)?;
+    match (args.preview, options.lod_error < PREVIEW_LOD_ERROR_PX) {
+        (true, true) => copc_preview_then_final(&target, source, options)?,
+        (preview, _) => {
+            if preview {
+                words.say(&format!(
+                    "--preview: the pixel error ({}) is a preview's already; {FINAL_AT_ONCE}",
+                    options.lod_error
+                ));
+            }
+            target.render(&mut source, &|| true)?;
+        }
+    }
+    let counts = client.counts();
+    crate::output::say(
+        args.json,
+        format!(
+            "fetched {} bytes in {} requests from {url}",
+            counts.bytes, counts.requests
+        ),
+    );
+    Ok(())
+}
+
 /// What frames are rendered for, where they go, and who tells their source's steps.
 struct FrameTarget<'a> {
     args: &'a RenderArgs,
@@ -137,6 +193,8 @@ struct FrameTarget<'a> {
     outputs: &'a Outputs,
     gpu: &'a Arc<GpuContext>,
     words: &'a SourceWords,
+    /// The client frames are read through by URL, whose counts each frame's JSON reports.
+    fetched: Option<&'a RemoteClient>,
 }
 
 impl FrameTarget<'_> {
@@ -234,17 +292,14 @@ fn preview_then_final(
     target.render_final(&mut source)
 }
 
-/// Renders a COPC file's frames from coarse cuts at [`PREVIEW_LOD_ERROR_PX`], then the final
-/// frames at `options`' pixel error over them, into the same files, with the nodes the
-/// previews read still cached.
+/// Renders a COPC file's frames (`source`, opened at `options`) from coarse cuts at
+/// [`PREVIEW_LOD_ERROR_PX`], then the final frames at `options`' pixel error over them, into
+/// the same files, with the nodes the previews read still cached.
 fn copc_preview_then_final(
     target: &FrameTarget<'_>,
-    renderer: Renderer,
-    file: &Path,
+    mut source: FrameSource,
     options: CutOptions,
 ) -> Result<()> {
-    let render = &target.request.render;
-    let mut source = FrameSource::copc(renderer, file, options, render, &target.events())?;
     source.preview_cuts(true)?;
     target.render(&mut source, &|| true)?;
     source.preview_cuts(false)?;
@@ -371,15 +426,15 @@ fn render_frames(
         if request.render.depth {
             outputs.save_depth(i, &rendered.frame, &frame_settings)?;
         }
-        report_frame(
-            args,
-            i,
-            &path,
-            &frame_settings,
-            &bounds,
-            &rendered,
-            &progress,
-        );
+        let fetched = target.fetched.map(RemoteClient::counts);
+        let frame = ReportedFrame {
+            index: i,
+            path: &path,
+            settings: &frame_settings,
+            rendered: &rendered,
+            fetched,
+        };
+        report_frame(args, &frame, &bounds, &progress);
         all.push(rendered.frame.timings);
         written.push(path);
         progress.inc(1);
@@ -404,19 +459,41 @@ fn render_frames(
     Ok(())
 }
 
+/// A frame rendered, as its line reports it.
+struct ReportedFrame<'a> {
+    index: u32,
+    path: &'a Path,
+    settings: &'a FrameSettings,
+    rendered: &'a SourceFrame,
+    /// What reading by URL has fetched so far, where the frames are read by URL.
+    fetched: Option<FetchCounts>,
+}
+
 /// A frame's line (or its JSON object with --json), above the progress bar if there is one.
 fn report_frame(
     args: &RenderArgs,
-    index: u32,
-    path: &Path,
-    settings: &FrameSettings,
+    frame: &ReportedFrame<'_>,
     bounds: &WorldBounds,
-    rendered: &SourceFrame,
     progress: &ProgressBar,
 ) {
+    let ReportedFrame {
+        index,
+        path,
+        settings,
+        rendered,
+        fetched,
+    } = *frame;
     let line = if args.json {
-        serde_json::to_string(&FrameJson::new(index, path, settings, bounds, rendered))
-            .unwrap_or_default()
+        let json = FrameJson::new(index, path, settings, bounds, rendered);
+        let mut value = serde_json::to_value(json).unwrap_or_default();
+        if let (Some(counts), Some(object)) = (fetched, value.as_object_mut()) {
+            // So far, over every frame: opening the file's reads included.
+            object.insert(
+                "fetched".into(),
+                serde_json::json!({ "requests": counts.requests, "bytes": counts.bytes }),
+            );
+        }
+        value.to_string()
     } else {
         let mut line = format!("{}  {}", path.display(), rendered.frame.timings);
         if rendered.preview.is_some() {

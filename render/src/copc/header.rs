@@ -1,5 +1,6 @@
 //! What a COPC file's header and VLRs say, read after the checks every LAS/LAZ file passes
-//! (`ingest::check_file`): the point layout, the transforms and bounds, the LASzip items and
+//! (`ingest::check_file_with`, the chunk table but not each chunk, which is checked as it is
+//! decoded): the point layout, the transforms and bounds, the LASzip items and
 //! the COPC info VLR (the octree's cube, the root spacing, where the first hierarchy page
 //! lies). The info VLR's fields are read here rather than through `las::copc::CopcInfoVlr`,
 //! whose page offset and size are private.
@@ -14,7 +15,7 @@ use super::error::CopcError;
 use super::node_grids::{read_node_grids, NodeGrids};
 use crate::cloud::{WorldBounds, MAX_COORDINATE};
 use crate::extra_bytes;
-use crate::ingest::{check_file, IngestError};
+use crate::ingest::{check_file_with, ChunkChecks, IngestError};
 use crate::lod::weights::WEIGHT_ATTRIBUTE;
 use crate::lod::RootCube;
 
@@ -124,8 +125,16 @@ pub(crate) fn read_header(bytes: &CopcBytes) -> Result<CopcHeader, CopcError> {
 
 fn read_header_from(reader: &mut RangeReader<'_>) -> Result<CopcHeader, CopcError> {
     let (path, file_len) = (reader.name(), reader.size());
-    let checked = check_file(&path, reader, file_len)?;
+    // Each chunk's layer table is checked as the chunk is decoded (`CopcDecoder`).
+    let checked = check_file_with(&path, reader, file_len, ChunkChecks::Table)?;
     let path = path.as_path();
+    // Its first bytes are read already: a plain LAS/LAZ file is told apart without a request.
+    if !starts_as_copc(reader)? {
+        return Err(not_copc(
+            path,
+            "it does not start as one (LAS 1.4 with COPC's info VLR first)",
+        ));
+    }
     let facts = &checked.facts;
     if !facts.compressed {
         return Err(not_copc(path, "its points are not LAZ-compressed"));

@@ -117,19 +117,9 @@ pub fn open_copc_whole(path: &Path) -> Result<CopcDataset, CopcError> {
     )
 }
 
-/// The object at `url`, opened, once its first bytes say it is a COPC file: anything else
-/// (a plain LAS or LAZ file) is `NotCopc`, before its header is read further.
+/// The object at `url`, opened: a HEAD for its size and the version every read is pinned to.
 fn open_object(client: &RemoteClient, url: &ObjectUrl) -> Result<CopcBytes, CopcError> {
-    let bytes = CopcBytes::remote(client.open(url)?);
-    let mut reader = bytes.reader();
-    if !header::starts_as_copc(&mut reader)? {
-        return Err(CopcError::NotCopc {
-            path: bytes.name().to_owned(),
-            reason: "it does not start as one (LAS 1.4 with COPC's info VLR first)".into(),
-        });
-    }
-    drop(reader);
-    Ok(bytes)
+    Ok(CopcBytes::remote(client.open(url)?))
 }
 
 /// Which hierarchy pages opening a file reads.

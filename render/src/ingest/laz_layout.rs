@@ -80,13 +80,14 @@ pub(crate) fn layer_count(kind: u16, size: u16) -> u64 {
     }
 }
 
-/// Checks the LASzip VLR and, for chunked files, the chunk table and every chunk's extent;
-/// gives the layout and the checked table (empty for unchunked files), which previews read
-/// chunk starts from.
+/// Checks the LASzip VLR and, for chunked files, the chunk table and every chunk's extent
+/// (and, with `layers`, every layered chunk's layer table); gives the layout and the checked
+/// table (empty for unchunked files), which previews read chunk starts from.
 pub(super) fn check_laz(
     raw: &mut RawFile<'_>,
     facts: &HeaderFacts,
     laszip: Option<RecordSpan>,
+    layers: bool,
 ) -> Result<(LazLayout, ChunkTable), IngestError> {
     let Some(vlr_span) = laszip else {
         return Err(raw.corrupt("compressed points but no LASzip VLR"));
@@ -114,7 +115,7 @@ pub(super) fn check_laz(
         .map_err(|error| raw.corrupt(format!("the LASzip VLR cannot be parsed: {error}")))?;
     let chunks = check_chunk_table(raw, facts, &vlr)?;
     laszip.check_chunk_points(raw, facts, chunks.as_ref())?;
-    if laszip.items.iter().all(LazItem::is_layered) {
+    if layers && laszip.items.iter().all(LazItem::is_layered) {
         check_layers(raw, facts, &laszip.items, chunks.as_ref())?;
     }
     Ok((LazLayout::Chunked, chunks))

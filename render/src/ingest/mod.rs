@@ -57,7 +57,7 @@ pub use error::IngestError;
 pub use files::{dataset_files, dataset_files_in, open_dataset_file, FileScope, Symlinks};
 pub use info::{Attributes, FileInfo, PointSummary, RgbRange};
 pub(crate) use laz_layout::layer_count;
-pub(crate) use preparse::check_file;
+pub(crate) use preparse::{check_file_with, ChunkChecks};
 pub use source::DatasetSource;
 
 /// The first four bytes of every LAS and LAZ file.

@@ -1,0 +1,230 @@
+//! COPC files rendered and described straight from a URL, as a user runs `pointfarm render URL`
+//! and `pointfarm info URL`, against a real nginx on loopback: the same image as the same file
+//! here, a coarse cut fetching less than the file, an object replaced after open refused as
+//! changed, a missing or truncated object and a plain LAZ file refused in one line naming the
+//! URL. Where `POINTFARM_TEST_S3S_FS` names an `s3s-fs` binary, the same file renders from
+//! `s3://` too. Each test skips, saying so, where nginx is not installed.
+
+use std::path::{Path, PathBuf};
+use std::process::Output;
+
+use pointfarm_render::copc::{open_copc_url, CopcError};
+use pointfarm_render::lod::{LodError, NodeInfo};
+use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteError, RemoteSettings};
+use pointfarm_tests::nginx::NginxServer;
+use pointfarm_tests::{assert_fails_saying, json_lines, output_text, pointfarm, pointfarm_ok};
+
+fn arg(path: &Path) -> &str {
+    path.to_str().expect("test paths are UTF-8")
+}
+
+fn copc_file(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("data/copc")
+        .join(name)
+}
+
+/// A folder whose `scans/` holds `files` (name, bytes), served by nginx; None, having said
+/// so, where nginx is not installed.
+fn serve(files: &[(&str, Vec<u8>)]) -> Option<(tempfile::TempDir, NginxServer)> {
+    NginxServer::binary().or_else(|| {
+        eprintln!("skipped: nginx is not installed (deploy/test.sh installs nginx-light)");
+        None
+    })?;
+    let root = tempfile::tempdir().expect("root");
+    std::fs::create_dir(root.path().join("scans")).expect("scans folder");
+    for (name, bytes) in files {
+        std::fs::write(root.path().join("scans").join(name), bytes).expect("served file");
+    }
+    let server = NginxServer::start_or_skip(root.path())?;
+    Some((root, server))
+}
+
+/// `pointfarm render INPUT --out OUT --json ARGS...`, which must succeed, and its one frame's
+/// report.
+fn render_json(input: &str, out: &Path, args: &[&str]) -> serde_json::Value {
+    let mut all = vec!["render", input, "--out", arg(out), "--json"];
+    all.extend_from_slice(args);
+    let output = pointfarm_ok(&all);
+    let mut frames = json_lines(&output);
+    assert_eq!(frames.len(), 1, "{}", output_text(&output));
+    frames.remove(0)
+}
+
+fn same_pixels(a: &Path, b: &Path) -> bool {
+    let image = |path: &Path| image::open(path).expect("png").to_rgba8();
+    image(a) == image(b)
+}
+
+/// What a frame's report says was fetched by URL: (requests, bytes).
+fn fetched(report: &serde_json::Value) -> (u64, u64) {
+    let count = |key: &str| report["fetched"][key].as_u64().expect("fetched counts");
+    (count("requests"), count("bytes"))
+}
+
+/// A one-line failure: an error line on stderr, no panic, naming `url`.
+fn assert_one_line_error_naming(output: &Output, url: &str) {
+    assert_fails_saying(output, url);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    let errors: Vec<&str> = stderr.lines().filter(|l| l.starts_with("error:")).collect();
+    assert_eq!(errors.len(), 1, "{stderr}");
+}
+
+#[test]
+fn a_copc_file_by_url_renders_pixel_for_pixel_as_the_file_here() {
+    let local = copc_file("simple_with_page.copc.laz");
+    let bytes = std::fs::read(&local).expect("COPC file");
+    let Some((_root, server)) = serve(&[("scan.copc.laz", bytes)]) else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let url = server.url("scans/scan.copc.laz");
+    // Every node, the child pages included.
+    let args = ["--size=200x150", "--point-size=3", "--lod-error", "0"];
+    let here = dir.path().join("here.png");
+    let by_url = dir.path().join("url.png");
+    let cache = ["--cache-dir", arg(dir.path())];
+    let local_report = render_json(arg(&local), &here, &[&args[..], &cache[..]].concat());
+    let report = render_json(&url, &by_url, &args);
+    assert!(same_pixels(&here, &by_url), "{report}");
+    assert_eq!(report["pointsRendered"], local_report["pointsRendered"]);
+    assert_eq!(report["cut"]["nodes"], local_report["cut"]["nodes"]);
+    let (requests, bytes) = fetched(&report);
+    assert!(requests > 1 && bytes > 0, "{report}");
+    assert!(local_report.get("fetched").is_none(), "{local_report}");
+}
+
+#[test]
+fn a_coarse_cut_by_url_fetches_less_than_the_file() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let scene = dir.path().join("scene.laz");
+    // More points than the colour ranges' sample (1M) reads at open, so that a coarse cut
+    // leaves most of the file unread.
+    pointfarm_ok(&["sample", arg(&scene), "--points", "2500000"]);
+    let local = dir.path().join("scene.copc.laz");
+    let cache = dir.path().join("cache");
+    let export = ["export", arg(&scene), "--copc", arg(&local)];
+    pointfarm_ok(&[&export[..], &["--cache-dir", arg(&cache)]].concat());
+    let bytes = std::fs::read(&local).expect("COPC file");
+    let size = bytes.len() as u64;
+    let Some((_root, server)) = serve(&[("scene.copc.laz", bytes)]) else {
+        return;
+    };
+    let url = server.url("scans/scene.copc.laz");
+    let args = ["--size=160x120", "--lod-error", "8"];
+    let here = dir.path().join("here.png");
+    let by_url = dir.path().join("url.png");
+    let local_report = render_json(arg(&local), &here, &args);
+    let report = render_json(&url, &by_url, &args);
+    assert!(same_pixels(&here, &by_url), "{report}");
+    let (requests, fetched_bytes) = fetched(&report);
+    eprintln!("{url}: {requests} requests, {fetched_bytes} of {size} bytes");
+    assert!(requests > 1, "{report}");
+    assert!(
+        fetched_bytes > 0 && fetched_bytes < size * 3 / 4,
+        "fetched {fetched_bytes} of {size} bytes: {report}"
+    );
+    assert_eq!(report["pointsRendered"], local_report["pointsRendered"]);
+    assert!(
+        report["pointsRendered"].as_u64() < Some(100_000),
+        "a coarse cut: {report}"
+    );
+}
+
+#[test]
+fn an_object_replaced_after_open_is_object_changed_naming_the_url() {
+    let first = std::fs::read(copc_file("simple_with_page.copc.laz")).expect("COPC file");
+    let Some((root, server)) = serve(&[("scan.copc.laz", first)]) else {
+        return;
+    };
+    let client = RemoteClient::new(RemoteSettings::default()).expect("client");
+    let text = server.url("scans/scan.copc.laz");
+    let url = ObjectUrl::parse(&text).expect("url");
+    let copc = open_copc_url(&client, &url).expect("opens by URL");
+    // Another file in its place: another size and modification time, so another ETag.
+    let second = std::fs::read(copc_file("autzen.copc.laz")).expect("COPC file");
+    std::fs::write(root.path().join("scans/scan.copc.laz"), second).expect("replace");
+    let nodes: Vec<NodeInfo> = copc
+        .dataset
+        .hierarchy()
+        .nodes()
+        .iter()
+        .filter(|node| node.point_count > 0)
+        .copied()
+        .collect();
+    let error = copc
+        .dataset
+        .records()
+        .read_records(&nodes)
+        .expect_err("the object changed since it was opened");
+    assert!(error.to_string().contains(&text), "{error}");
+    let LodError::RecordSource(source) = error else {
+        panic!("not the reader's error: {error}");
+    };
+    let copc_error = source.downcast::<CopcError>().expect("a COPC error");
+    assert!(
+        matches!(
+            *copc_error,
+            CopcError::Remote(RemoteError::ObjectChanged { .. })
+        ),
+        "{copc_error}"
+    );
+}
+
+#[test]
+fn a_missing_object_is_one_line_naming_its_url() {
+    let Some((_root, server)) = serve(&[]) else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let url = server.url("scans/absent.copc.laz");
+    let output = pointfarm(&["render", &url, "--out", arg(&dir.path().join("a.png"))]);
+    assert_one_line_error_naming(&output, &url);
+    assert_fails_saying(&output, "no such object");
+    let output = pointfarm(&["info", &url]);
+    assert_fails_saying(&output, &url);
+}
+
+#[test]
+fn a_truncated_copc_object_is_a_clear_error_never_a_panic() {
+    let whole = std::fs::read(copc_file("simple_with_page.copc.laz")).expect("COPC file");
+    let cuts = [400, 2_000, whole.len() / 2, whole.len() - 100];
+    let files: Vec<(String, Vec<u8>)> = cuts
+        .iter()
+        .map(|&len| (format!("cut{len}.copc.laz"), whole[..len].to_vec()))
+        .collect();
+    let served: Vec<(&str, Vec<u8>)> = files
+        .iter()
+        .map(|(name, bytes)| (name.as_str(), bytes.clone()))
+        .collect();
+    let Some((_root, server)) = serve(&served) else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    for (name, _) in &files {
+        let url = server.url(&format!("scans/{name}"));
+        let out = dir.path().join(format!("{name}.png"));
+        let output = pointfarm(&["render", &url, "--out", arg(&out), "--lod-error", "0"]);
+        assert_one_line_error_naming(&output, &url);
+        assert!(!out.exists(), "{name}: no frame from a truncated file");
+    }
+}
+
+#[test]
+fn a_plain_laz_file_or_a_prefix_by_url_is_refused_saying_only_copc_renders_by_url() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let scene = dir.path().join("scene.laz");
+    pointfarm_ok(&["sample", arg(&scene), "--points", "2000"]);
+    let bytes = std::fs::read(&scene).expect("LAZ file");
+    let Some((_root, server)) = serve(&[("scene.laz", bytes)]) else {
+        return;
+    };
+    let out = dir.path().join("a.png");
+    let url = server.url("scans/scene.laz");
+    let output = pointfarm(&["render", &url, "--out", arg(&out)]);
+    assert_one_line_error_naming(&output, &url);
+    assert_fails_saying(&output, "only COPC files");
+    let prefix = server.url("scans/");
+    let output = pointfarm(&["render", &prefix, "--out", arg(&out)]);
+    assert_fails_saying(&output, "only COPC files");
+}
