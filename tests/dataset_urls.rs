@@ -9,7 +9,9 @@ use pointfarm_daemon::access::Access;
 use pointfarm_daemon::service::DaemonConfig;
 use pointfarm_proto::v1 as pb;
 use pointfarm_tests::nginx::NginxServer;
-use pointfarm_tests::service::{write_sample, TestDaemon};
+use pointfarm_tests::service::{
+    fetch_images, submit, turntable_job, watch_to_end, watch_to_success, write_sample, TestDaemon,
+};
 use pointfarm_tests::{free_address, pointfarm, pointfarm_ok, stdout, ServeProcess};
 use tonic::Code;
 
@@ -298,6 +300,75 @@ async fn a_file_url_is_a_path_under_the_data_roots() {
     )
     .await;
     still_serving(&daemon, 1).await;
+}
+
+/// The worker reads a dataset by URL itself, by range: its frames are those of the same
+/// file registered by path, and an object replaced since registration fails the job saying so.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_on_a_url_dataset_renders_as_the_same_file_by_path() {
+    let Some((root, server)) = served_scans() else {
+        return;
+    };
+    let allowed = pointfarm_daemon::remote_datasets::url_prefixes(&[server.url("scans/")])
+        .expect("valid prefix");
+    let data_root = root.path().to_path_buf();
+    let daemon = TestDaemon::start(
+        move |config: &mut DaemonConfig| {
+            config.allowed_url_prefixes = allowed;
+            config.data_roots = vec![data_root];
+        },
+        Access::default(),
+    )
+    .await;
+    let by_path = register(&daemon, OBJECT).await.expect("by path");
+    let by_url = register(&daemon, &server.url(OBJECT))
+        .await
+        .expect("by URL");
+    assert_ne!(by_path.id, by_url.id);
+    std::fs::copy(
+        copc_data("simple.copc.laz"),
+        root.path().join("scans/second.copc.laz"),
+    )
+    .expect("copy");
+    let second = register(&daemon, &server.url("scans/second.copc.laz"))
+        .await
+        .expect("a second object");
+    let mut jobs = daemon.jobs().await;
+    let mut frames = Vec::new();
+    for (name, dataset) in [("by-path", &by_path), ("by-url", &by_url)] {
+        let job = submit(&mut jobs, turntable_job(name, &dataset.id, 3, 160, 120)).await;
+        watch_to_success(&mut jobs, &job.id, || format!("the {name} job")).await;
+        frames.push(fetch_images(&mut jobs, &job.id, 0).await);
+    }
+    assert_eq!(frames[0].len(), 3);
+    let (_, first) = &frames[0][0];
+    assert!(
+        first.pixels().any(|pixel| pixel != first.get_pixel(0, 0)),
+        "frame 0 shows the points"
+    );
+    assert!(
+        frames[0] == frames[1],
+        "the frames by URL differ from those by path"
+    );
+    let log = server.access_log(3);
+    let gets: Vec<&String> = log.iter().filter(|line| line.contains("\"GET ")).collect();
+    assert!(gets.len() > 1, "{log:?}");
+    assert!(gets.iter().all(|line| line.contains(" 206 ")), "{log:?}");
+
+    // Another object, registered but not yet rendered, is replaced meanwhile.
+    std::fs::copy(
+        copc_data("simple_with_page.copc.laz"),
+        root.path().join("scans/second.copc.laz"),
+    )
+    .expect("replace");
+    let job = submit(
+        &mut jobs,
+        turntable_job("replaced", &second.id, 1, 160, 120),
+    )
+    .await;
+    let (ended, _) = watch_to_end(&mut jobs, &job.id).await;
+    assert_eq!(ended.state, pb::JobState::Failed as i32, "{ended:?}");
+    assert!(ended.error.contains("register it again"), "{}", ended.error);
 }
 
 /// The operator's flag and the CLI, as a user runs them: `serve --allow-url-prefix`, then

@@ -152,14 +152,18 @@ impl Daemon {
                 lease,
                 lease_timeout: self.config.lease_timeout,
                 dataset: TaskDataset {
-                    files: dataset
-                        .files()
-                        .into_iter()
-                        .map(|file| TaskFile {
-                            sha256: file.sha256,
-                            size_bytes: file.size_bytes,
-                        })
-                        .collect(),
+                    files: match dataset.remote {
+                        Some(_) => Vec::new(),
+                        None => dataset
+                            .files()
+                            .into_iter()
+                            .map(|file| TaskFile {
+                                sha256: file.sha256,
+                                size_bytes: file.size_bytes,
+                            })
+                            .collect(),
+                    },
+                    remote: dataset.remote,
                     id: dataset.id,
                     sha256: dataset.sha256,
                     size_bytes: dataset.size_bytes,

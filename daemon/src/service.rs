@@ -300,7 +300,7 @@ impl Daemon {
                 format!("more than {} frames", self.config.max_frames),
             ));
         }
-        self.dataset(&spec.dataset_id)?.check_local("rendering")?;
+        self.dataset(&spec.dataset_id)?;
         let (job, created) = self.state.submit_job(spec)?;
         if created {
             tracing::info!(job = %job.id, frames = job.frames_total, "job submitted");

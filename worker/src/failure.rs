@@ -97,6 +97,8 @@ impl From<&SourceError> for FrameFailure {
             SourceError::Cut(cut) => cut.into(),
             SourceError::Render(render) => render.into(),
             SourceError::Copc(CopcError::Ingest(ingest)) => ingest.into(),
+            // A dataset by URL's server may answer the next attempt.
+            SourceError::Copc(CopcError::Remote(remote)) => remote.into(),
             SourceError::Copc(CopcError::Io { .. })
             | SourceError::Io { .. }
             | SourceError::DamagedAgain { .. } => Self::transient(e.to_string()),

@@ -355,6 +355,10 @@ async fn dataset_access(
     downloads: &Path,
     task: &FrameTask,
 ) -> Result<DatasetAccess, Attempt> {
+    // The worker reads a dataset by URL itself: the daemon has neither its files nor a store.
+    if task.dataset.remote.is_some() {
+        return Ok(DatasetAccess::Url);
+    }
     if state.is_loaded(task) && !state.is_loaded_resident(task) {
         return Ok(DatasetAccess::Files(Vec::new()));
     }
@@ -418,7 +422,9 @@ async fn download_and_render(
     };
     let files = match &access {
         DatasetAccess::Files(files) => files.clone(),
-        DatasetAccess::DaemonStore(_) | DatasetAccess::Preview(_) => Vec::new(),
+        DatasetAccess::DaemonStore(_) | DatasetAccess::Preview(_) | DatasetAccess::Url => {
+            Vec::new()
+        }
     };
     let state = render_state.take().context("the renderer was lost")?;
     // Rendering blocks on the GPU: off the async threads, so heartbeats go on meanwhile.

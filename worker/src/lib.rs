@@ -11,6 +11,7 @@
 //!   of one leased frame into a PNG with its stage timings.
 //! - `daemon_store`: the daemon's level-of-detail store, COPC hierarchy and preview sample as
 //!   the worker reads them over gRPC.
+//! - `url_dataset`: a dataset by URL, whose COPC object the worker reads itself by range.
 //! - `failure`: why a frame failed, and whether another attempt may succeed.
 //! - `memory_limit`: the worker process's limit on its own memory.
 //! - `supervised`: exiting when the supervising daemon is gone.
@@ -23,3 +24,4 @@ pub mod lease_loop;
 pub mod memory_limit;
 pub mod render_state;
 pub mod supervised;
+pub mod url_dataset;

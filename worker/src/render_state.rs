@@ -27,6 +27,7 @@ use pointfarm_render::source::{
 
 use crate::daemon_store::{PreviewSample, RemoteStore};
 use crate::failure::FrameFailure;
+use crate::url_dataset::UrlReader;
 
 /// Where a frame's points come from.
 pub enum DatasetAccess {
@@ -38,6 +39,8 @@ pub enum DatasetAccess {
     /// The daemon's preview sample of the dataset, whose store it is building; none when the
     /// worker has it loaded (see [`WorkerRenderState::has_preview`]).
     Preview(Option<Box<PreviewSample>>),
+    /// The COPC object of a dataset by URL, which the worker reads itself.
+    Url,
 }
 
 /// A finished frame: the PNG and what to report with it.
@@ -80,6 +83,8 @@ enum Opened {
     DaemonStore { copc: bool },
     /// The daemon's preview sample, of this version.
     Preview { version: u32 },
+    /// The COPC object of a dataset by URL, read node by node by this worker.
+    Url,
 }
 
 /// One worker's renderer, dataset cache and open dataset, which render its leased frames.
@@ -90,6 +95,7 @@ pub struct WorkerRenderState {
     cache: Option<Arc<DatasetCache>>,
     lod: Option<LodConfig>,
     loaded: Option<Loaded>,
+    urls: UrlReader,
 }
 
 impl WorkerRenderState {
@@ -106,6 +112,7 @@ impl WorkerRenderState {
             cache,
             lod,
             loaded: None,
+            urls: UrlReader::default(),
         }
     }
 
@@ -162,7 +169,9 @@ impl WorkerRenderState {
             }
             // A cut at another pixel error opens the store again, with empty node caches.
             Opened::OwnStore => self.lod_error(task, None) == loaded.source.lod_error(),
-            Opened::DaemonStore { .. } => self.daemon_lod_error(task) == loaded.source.lod_error(),
+            Opened::DaemonStore { .. } | Opened::Url => {
+                self.daemon_lod_error(task) == loaded.source.lod_error()
+            }
             // A preview is asked for again: the store may be ready by now.
             Opened::Preview { .. } => false,
         }
@@ -259,6 +268,8 @@ impl WorkerRenderState {
                 self.open_files(task, &files)?
             }
             DatasetAccess::Files(_) => {}
+            DatasetAccess::Url if !self.is_loaded(task) => self.open_url(task)?,
+            DatasetAccess::Url => {}
         }
         let wanted_lod_error = self.daemon_lod_error(task);
         let Some(loaded) = self.loaded.as_mut() else {
@@ -389,6 +400,34 @@ impl WorkerRenderState {
         let render = &task.request.render;
         self.open(task, Opened::DaemonStore { copc }, |renderer| {
             FrameSource::levels(renderer, levels, options, render, &log_event)
+        })
+    }
+
+    /// Opens the COPC object of `task`'s dataset by URL, cut by cut as the daemon's COPC
+    /// hierarchy is, with this worker's node caches.
+    fn open_url(&mut self, task: &FrameTask) -> Result<(), FrameFailure> {
+        let Some(remote) = &task.dataset.remote else {
+            return Err(FrameFailure::permanent("the dataset has no URL"));
+        };
+        let (Some(lod), Some(lod_error)) = (self.lod.clone(), self.daemon_lod_error(task)) else {
+            return Err(FrameFailure::transient(
+                "this worker renders no levels of detail",
+            ));
+        };
+        let options = cut_options(&lod, lod_error)?;
+        let copc = self
+            .urls
+            .open(remote)
+            .map_err(|e| e.context(&format!("dataset {}", task.dataset.id)))?;
+        let render = &task.request.render;
+        self.open(task, Opened::Url, |renderer| {
+            FrameSource::levels(
+                renderer,
+                Levels::Copc(Box::new(copc)),
+                options,
+                render,
+                &log_event,
+            )
         })
     }
 

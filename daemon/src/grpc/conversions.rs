@@ -12,10 +12,9 @@ use pointfarm_proto::v1 as pb;
 
 use super::request::{camera_path_message, known_enum, render_options_message, render_request};
 use crate::capabilities::{checked_tags, AdapterKind, WorkerCapabilities, WorkerRequirements};
-use crate::datasets::MAX_DATASET_FILES;
 use crate::describe::FileReport;
 use crate::error::DaemonError;
-use crate::lease::{FailureKind, FrameTask, HeartbeatAnswer, TaskDataset, TaskFile};
+use crate::lease::{FailureKind, FrameTask, HeartbeatAnswer};
 use crate::lease_record::Lease;
 use crate::limits::{truncated, MAX_WORKER_NAME_BYTES};
 use crate::model::{FrameCut, FrameReport, Job, JobSpec, JobState, StageTiming};
@@ -353,20 +352,7 @@ pub fn frame_task_message(task: &FrameTask) -> pb::FrameTask {
         lease_timeout_ms: task.lease_timeout.as_millis().min(u32::MAX as u128) as u32,
         job_id: task.lease.job_id.clone(),
         frame_index: task.lease.index,
-        dataset: Some(pb::TaskDataset {
-            id: task.dataset.id.clone(),
-            sha256: task.dataset.sha256.clone(),
-            size_bytes: task.dataset.size_bytes,
-            files: task
-                .dataset
-                .files
-                .iter()
-                .map(|f| pb::TaskFile {
-                    sha256: f.sha256.clone(),
-                    size_bytes: f.size_bytes,
-                })
-                .collect(),
-        }),
+        dataset: Some(datasets::task_dataset_message(&task.dataset)),
         camera_path: Some(camera_path_message(
             &task.request.camera_path,
             &task.request.lens,
@@ -389,28 +375,6 @@ pub fn frame_task(message: &pb::FrameTask, worker: &str) -> Result<FrameTask, Da
     if message.lease_timeout_ms == 0 {
         return Err(invalid("lease_timeout_ms", "must be positive"));
     }
-    if dataset.files.len() > MAX_DATASET_FILES {
-        return Err(invalid(
-            "dataset.files",
-            format!("at most {MAX_DATASET_FILES} files"),
-        ));
-    }
-    // A daemon that knew only datasets of one file sent none.
-    let files = if dataset.files.is_empty() {
-        vec![TaskFile {
-            sha256: dataset.sha256.clone(),
-            size_bytes: dataset.size_bytes,
-        }]
-    } else {
-        dataset
-            .files
-            .iter()
-            .map(|f| TaskFile {
-                sha256: f.sha256.clone(),
-                size_bytes: f.size_bytes,
-            })
-            .collect()
-    };
     Ok(FrameTask {
         lease: Lease {
             id: message.lease_id.clone(),
@@ -422,12 +386,7 @@ pub fn frame_task(message: &pb::FrameTask, worker: &str) -> Result<FrameTask, Da
             preview_version: message.preview.then_some(message.preview_version),
         },
         lease_timeout: std::time::Duration::from_millis(message.lease_timeout_ms as u64),
-        dataset: TaskDataset {
-            id: dataset.id.clone(),
-            sha256: dataset.sha256.clone(),
-            size_bytes: dataset.size_bytes,
-            files,
-        },
+        dataset: datasets::task_dataset(dataset)?,
         request: render_request(
             message.width,
             message.height,

@@ -6,7 +6,7 @@ use std::time::Duration;
 use pointfarm_render::request::RenderRequest;
 
 use crate::lease_record::Lease;
-use crate::model::{FrameCut, StageTiming};
+use crate::model::{FrameCut, RemoteSource, StageTiming};
 
 /// The dataset of a task, as a worker's cache knows it.
 #[derive(Debug, Clone, PartialEq)]
@@ -15,8 +15,10 @@ pub struct TaskDataset {
     /// The content's hash: the key of the worker's cache.
     pub sha256: String,
     pub size_bytes: u64,
-    /// Its files in order, fetched one by one.
+    /// Its files in order, fetched one by one; none for a dataset by URL.
     pub files: Vec<TaskFile>,
+    /// The object of a dataset by URL, which the worker reads itself.
+    pub remote: Option<RemoteSource>,
 }
 
 /// One file of a task's dataset.

@@ -1,9 +1,14 @@
-//! A dataset as clients are shown it: its files on the server, or the object it is read
-//! from by URL.
+//! A dataset as clients are shown it (its files on the server, or the object it is read
+//! from by URL), and as a frame task hands it to a worker.
 
 use pointfarm_proto::v1 as pb;
+use pointfarm_render::remote::ObjectUrl;
 
-use crate::model::{Dataset, DatasetFile};
+use super::invalid;
+use crate::datasets::MAX_DATASET_FILES;
+use crate::error::DaemonError;
+use crate::lease::{TaskDataset, TaskFile};
+use crate::model::{Dataset, DatasetFile, RemoteSource};
 
 impl From<&Dataset> for pb::Dataset {
     fn from(d: &Dataset) -> Self {
@@ -50,4 +55,74 @@ fn remote_fields(dataset: &Dataset) -> (String, String) {
         .as_ref()
         .map(|remote| (remote.url.clone(), remote.version.clone()))
         .unwrap_or_default()
+}
+
+pub(super) fn task_dataset_message(dataset: &TaskDataset) -> pb::TaskDataset {
+    let (url, version) = dataset
+        .remote
+        .as_ref()
+        .map(|remote| (remote.url.clone(), remote.version.clone()))
+        .unwrap_or_default();
+    pb::TaskDataset {
+        id: dataset.id.clone(),
+        sha256: dataset.sha256.clone(),
+        size_bytes: dataset.size_bytes,
+        files: dataset
+            .files
+            .iter()
+            .map(|f| pb::TaskFile {
+                sha256: f.sha256.clone(),
+                size_bytes: f.size_bytes,
+            })
+            .collect(),
+        url,
+        version,
+    }
+}
+
+/// A task's dataset as the worker receives it; a URL is checked as the daemon checked it
+/// when the dataset was registered.
+pub(super) fn task_dataset(message: &pb::TaskDataset) -> Result<TaskDataset, DaemonError> {
+    if message.files.len() > MAX_DATASET_FILES {
+        return Err(invalid(
+            "dataset.files",
+            format!("at most {MAX_DATASET_FILES} files"),
+        ));
+    }
+    if !message.url.is_empty() {
+        let url = ObjectUrl::parse(&message.url)?;
+        return Ok(TaskDataset {
+            id: message.id.clone(),
+            sha256: message.sha256.clone(),
+            size_bytes: message.size_bytes,
+            files: Vec::new(),
+            remote: Some(RemoteSource {
+                url: url.to_string(),
+                version: message.version.clone(),
+            }),
+        });
+    }
+    // A daemon that knew only datasets of one file sent none.
+    let files = if message.files.is_empty() {
+        vec![TaskFile {
+            sha256: message.sha256.clone(),
+            size_bytes: message.size_bytes,
+        }]
+    } else {
+        message
+            .files
+            .iter()
+            .map(|f| TaskFile {
+                sha256: f.sha256.clone(),
+                size_bytes: f.size_bytes,
+            })
+            .collect()
+    };
+    Ok(TaskDataset {
+        id: message.id.clone(),
+        sha256: message.sha256.clone(),
+        size_bytes: message.size_bytes,
+        files,
+        remote: None,
+    })
 }

@@ -4,6 +4,7 @@ use pointfarm_render::raster::{FillSettings, Shading};
 use pointfarm_render::request::{PointSize, RenderOptions};
 
 use super::*;
+use crate::lease::{TaskDataset, TaskFile};
 
 fn valid() -> pb::SubmitJobRequest {
     pb::SubmitJobRequest {
@@ -406,12 +407,36 @@ fn tasks_carry_the_job_spec_unchanged_across_the_wire() {
                         size_bytes: 59,
                     },
                 ],
+                remote: None,
             },
             request: spec.request.clone(),
             failed_attempts: 2,
         };
         let received = frame_task(&frame_task_message(&task), "w").expect("valid task");
         assert_eq!(received, task);
+        // A dataset by URL reaches the worker as its URL and version, with no file to fetch.
+        let by_url = FrameTask {
+            dataset: TaskDataset {
+                files: Vec::new(),
+                remote: Some(crate::model::RemoteSource {
+                    url: "s3://campaigns/team/site.copc.laz".into(),
+                    version: "\"e1\"".into(),
+                }),
+                ..task.dataset.clone()
+            },
+            ..task.clone()
+        };
+        let received = frame_task(&frame_task_message(&by_url), "w").expect("valid task");
+        assert_eq!(received, by_url);
+        let mut message = frame_task_message(&by_url);
+        message.dataset.as_mut().expect("dataset").url = "s3://user:pw@b/k".into();
+        let refused = frame_task(&message, "w")
+            .expect_err("credentials")
+            .to_string();
+        assert!(
+            refused.contains("credentials") && !refused.contains("pw@"),
+            "{refused}"
+        );
         // And the submission a client builds from the spec is the same spec.
         let resubmitted = pb::SubmitJobRequest::from(&spec);
         assert_eq!(JobSpec::try_from(&resubmitted).expect("valid"), spec);

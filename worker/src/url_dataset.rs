@@ -1,0 +1,94 @@
+//! A dataset by URL as the worker reads it: the COPC object itself, by range, with S3
+//! credentials from the worker's own environment; the daemon hands the URL and the version it
+//! registered, never the bytes. A worker that finds the object replaced since then fails the
+//! frame saying so, rather than render another version than the dataset's.
+
+use pointfarm_daemon::model::RemoteSource;
+use pointfarm_render::copc::{open_copc_url, CopcDataset, CopcError};
+use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteError, RemoteSettings};
+
+use crate::failure::FrameFailure;
+
+/// The worker's client for datasets by URL, made on the first one, so that a worker that
+/// never renders one starts no runtime for it.
+#[derive(Default)]
+pub struct UrlReader {
+    client: Option<RemoteClient>,
+}
+
+impl UrlReader {
+    /// Opens the object of `remote` for rendering, once its version is still the one
+    /// registered.
+    pub fn open(&mut self, remote: &RemoteSource) -> Result<CopcDataset, FrameFailure> {
+        let url = ObjectUrl::parse(&remote.url).map_err(|e| FrameFailure::from(&e))?;
+        let client = match &self.client {
+            Some(client) => client.clone(),
+            None => {
+                let client = RemoteClient::new(RemoteSettings::default())
+                    .map_err(|e| FrameFailure::from(&e))?;
+                self.client.insert(client).clone()
+            }
+        };
+        let object = client.open(&url).map_err(|e| FrameFailure::from(&e))?;
+        let now = object.version().unwrap_or_default();
+        if now != remote.version {
+            return Err(FrameFailure::permanent(format!(
+                "{url}: the object changed since it was registered (version {}, now {now}); \
+                 register it again",
+                remote.version
+            )));
+        }
+        open_copc_url(&client, &url).map_err(|e| match &e {
+            CopcError::Remote(remote) => FrameFailure::from(remote),
+            CopcError::Io { .. } => FrameFailure::transient(e.to_string()),
+            _ => FrameFailure::permanent(e.to_string()),
+        })
+    }
+}
+
+/// A server that is down, slow or answered short may do better next time; a missing or
+/// refused object, a bad URL or a replaced object will not.
+impl From<&RemoteError> for FrameFailure {
+    fn from(e: &RemoteError) -> Self {
+        match e {
+            RemoteError::TimedOut { .. }
+            | RemoteError::Transport { .. }
+            | RemoteError::ShortRead { .. }
+            | RemoteError::Runtime { .. } => Self::transient(e.to_string()),
+            _ => Self::permanent(e.to_string()),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use pointfarm_daemon::lease::FailureKind;
+
+    #[test]
+    fn stalls_are_transient_and_missing_objects_permanent() {
+        let url = || "https://data.example/a.copc.laz".to_owned();
+        let cases = [
+            (
+                RemoteError::Transport {
+                    url: url(),
+                    message: "connection refused".into(),
+                },
+                FailureKind::Transient,
+            ),
+            (RemoteError::NotFound { url: url() }, FailureKind::Permanent),
+            (
+                RemoteError::ObjectChanged {
+                    url: url(),
+                    version: "\"e1\"".into(),
+                },
+                FailureKind::Permanent,
+            ),
+        ];
+        for (error, kind) in cases {
+            let failure = FrameFailure::from(&error);
+            assert_eq!(failure.kind, kind, "{}", failure.reason);
+            assert!(failure.reason.contains(&url()), "{}", failure.reason);
+        }
+    }
+}
