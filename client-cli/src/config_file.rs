@@ -5,13 +5,17 @@
 //! defaults, so they pass through the flags' own parsers: each setting's range is checked in
 //! one place whichever layer gave it, and an error names the file and the key.
 //! `--print-config` shows the result, with the layer each value came from.
+//!
+//! A setting that takes a table of its own (`[[serve.webhook]]`) reaches its flag as the table
+//! in TOML's inline form, which the flag's reader parses again ([`webhook_endpoints`]).
 
 use std::ffi::OsString;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use clap::parser::ValueSource;
 use clap::{Arg, ArgAction, ArgMatches, Args, Command, Parser};
+use pointfarm_daemon::webhooks::{WebhookEndpoint, WebhookSpec};
 
 /// The commands whose settings a file holds, each in the table of its name.
 const LAYERED_COMMANDS: [&str; 2] = ["serve", "worker"];
@@ -187,8 +191,59 @@ fn scalar(value: &toml::Value) -> Result<String> {
         toml::Value::Integer(i) => i.to_string(),
         toml::Value::Float(f) => f.to_string(),
         toml::Value::Boolean(b) => b.to_string(),
+        toml::Value::Table(table) => inline_table(table),
         other => bail!("a {} is not a setting's value", other.type_str()),
     })
+}
+
+/// `table` in TOML's inline form: `{ url = "https://ci.example/hook", events = ["failed"] }`.
+fn inline_table(table: &toml::Table) -> String {
+    let entries: Vec<String> = table
+        .iter()
+        .map(|(key, value)| {
+            let bare = !key.is_empty()
+                && key
+                    .bytes()
+                    .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
+            if bare {
+                format!("{key} = {value}")
+            } else {
+                format!("{} = {value}", toml::Value::String(key.clone()))
+            }
+        })
+        .collect();
+    format!("{{ {} }}", entries.join(", "))
+}
+
+/// The webhook endpoints of `serve --webhook` values, checked and with their secrets read:
+/// each a URL, signed with the secret in `secret_file`, or a `[[serve.webhook]]` table in its
+/// inline form, which may name a secret of its own. The errors name the endpoint without
+/// repeating the table's text, and never hold a secret.
+pub fn webhook_endpoints(
+    values: &[String],
+    secret_file: Option<&Path>,
+) -> Result<Vec<WebhookEndpoint>> {
+    #[derive(serde::Deserialize)]
+    struct Entry {
+        webhook: WebhookSpec,
+    }
+    let mut endpoints = Vec::new();
+    for (n, value) in values.iter().enumerate() {
+        let mut spec = if value.trim_start().starts_with('{') {
+            toml::from_str::<Entry>(&format!("webhook = {value}"))
+                .map_err(|e| {
+                    anyhow::anyhow!("webhook table {} of the settings: {}", n + 1, e.message())
+                })?
+                .webhook
+        } else {
+            WebhookSpec::new(value, None)
+        };
+        if spec.secret_file.is_none() && spec.secret_env.is_none() {
+            spec.secret_file = secret_file.map(Path::to_path_buf);
+        }
+        endpoints.push(WebhookEndpoint::load(&spec)?);
+    }
+    Ok(endpoints)
 }
 
 /// clap's message for a value, without its `error: ` prefix and usage lines.
@@ -337,6 +392,48 @@ mod tests {
         assert!(syntax.contains("not a TOML file"), "{syntax}");
         let hidden = message("[worker]\nsupervised = true\n");
         assert!(hidden.contains("no setting `supervised`"), "{hidden}");
+    }
+
+    /// `[[serve.webhook]]` tables reach `--webhook` in their inline form and are read back
+    /// whole; a bare URL is signed with `--webhook-secret-file`; a bad table is refused
+    /// naming its key.
+    #[test]
+    fn webhook_tables_become_endpoints() {
+        use pointfarm_daemon::webhooks::JobEnd;
+        let dir = tempfile::tempdir().expect("tempdir");
+        let secret = dir.path().join("secret");
+        std::fs::write(&secret, "s3cret\n").expect("secret");
+        let file = format!(
+            "[[serve.webhook]]\nurl = \"https://ci.example/hook\"\nsecret_file = {}\n\
+             events = [\"failed\"]\n\n[[serve.webhook]]\nurl = \"http://127.0.0.1:8080/\"\n",
+            toml::Value::String(secret.display().to_string())
+        );
+        let (_, matches, _) = matches_with_file(&["serve"], &file).expect("layered");
+        let values: Vec<String> = sub(&matches)
+            .get_many::<String>("webhooks")
+            .expect("webhooks")
+            .cloned()
+            .collect();
+        assert_eq!(values.len(), 2, "{values:?}");
+        let unsigned = format!(
+            "{:#}",
+            webhook_endpoints(&values, None).expect_err("refused")
+        );
+        assert!(
+            unsigned.contains("webhook http://127.0.0.1:8080/: no secret"),
+            "{unsigned}"
+        );
+        let endpoints = webhook_endpoints(&values, Some(&secret)).expect("accepted");
+        assert_eq!(endpoints[0].shown_url(), "https://ci.example/hook");
+        assert!(endpoints[0].wants(JobEnd::Failed) && !endpoints[0].wants(JobEnd::Cancelled));
+        assert!(JobEnd::ALL.iter().all(|end| endpoints[1].wants(*end)));
+
+        let misspelt = ["{ url = \"https://ci.example/hook\", secrt_file = \"x\" }".to_owned()];
+        let refused = format!(
+            "{:#}",
+            webhook_endpoints(&misspelt, None).expect_err("refused")
+        );
+        assert!(refused.contains("unknown field `secrt_file`"), "{refused}");
     }
 
     /// Every setting can come from each layer: a flag, a `POINTFARM_*` variable, a file key.

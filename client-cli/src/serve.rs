@@ -24,7 +24,7 @@ use pointfarm_proto::endpoint::connections::ConnectionLimits;
 use pointfarm_proto::endpoint::{self, certificate};
 use pointfarm_render::gpu::AdapterChoice;
 
-use crate::config_file::ConfigArgs;
+use crate::config_file::{webhook_endpoints, ConfigArgs};
 use crate::credentials::secret;
 use crate::{parse, paths};
 
@@ -151,6 +151,15 @@ pub struct ServeArgs {
     /// only, but listen where only the scrapers reach.
     #[arg(long, value_name = "ADDR", env = "POINTFARM_METRICS_LISTEN")]
     metrics_listen: Option<String>,
+    /// POST a signed JSON event to this http(s) URL whenever a job succeeds, fails or is
+    /// cancelled (repeatable). In the configuration file, a `[[serve.webhook]]` table gives one
+    /// with its own `url`, `secret_file` or `secret_env`, and `events`.
+    #[arg(long = "webhook", value_name = "URL", env = "POINTFARM_WEBHOOK")]
+    webhooks: Vec<String>,
+    /// The file holding the secret that signs the deliveries of each webhook without one of
+    /// its own (`X-Pointfarm-Signature`); its final newline is not part of it.
+    #[arg(long, value_name = "FILE", env = "POINTFARM_WEBHOOK_SECRET_FILE")]
+    webhook_secret_file: Option<PathBuf>,
     /// Most connections open at once on each listener (default: half the open-file limit,
     /// which the daemon raises to its hard limit at start). Connections that make no
     /// authenticated call within 10 s, or sit idle for 5 minutes, are closed.
@@ -255,6 +264,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
         if let Some(bytes) = args.store_memory_budget {
             config.store_build_memory_bytes = bytes;
         }
+        config.webhooks = webhook_endpoints(&args.webhooks, args.webhook_secret_file.as_deref())?;
         // Checked before the state is opened, so that a bad tag stops the daemon rather
         // than its worker's restarts.
         let embedded_worker = if args.no_embedded_worker {

@@ -18,8 +18,8 @@
 //! embedded worker as a child process, a `pointfarm worker` whose code is the `pointfarm-worker`
 //! crate's, never linked here), `access` (the client and worker roles and their tokens),
 //! `server` (sockets, TLS, health, reflection, the lease sweep, shutdown), `metrics` (Prometheus
-//! metrics of the daemon and the worker, and their HTTP endpoint); `testing` (a small real disk
-//! to fill, for tests).
+//! metrics of the daemon and the worker, and their HTTP endpoint), `webhooks` (job ends posted,
+//! signed, to the operator's endpoints); `testing` (a small real disk to fill, for tests).
 //! Only `grpc` and `server` (which mounts the services) know protobuf here; the worker crate's
 //! lease loop is the other side of the wire.
 
@@ -50,4 +50,5 @@ pub mod supervisor;
 mod test_daemon;
 #[cfg(any(test, feature = "testing"))]
 pub mod testing;
+pub mod webhooks;
 pub mod worker_presence;

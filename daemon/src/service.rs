@@ -16,6 +16,7 @@ use crate::metrics::DaemonMetrics;
 use crate::model::{now_unix_ms, FrameReport, Job, JobEvent, JobSpec, JobState};
 use crate::state::{Page, StateDb};
 use crate::stores::{DatasetStores, StoreBuildGate};
+use crate::webhooks::{WebhookEndpoint, Webhooks};
 use crate::worker_presence::WorkerPresence;
 
 /// The default bound of one upload.
@@ -82,6 +83,8 @@ pub struct DaemonConfig {
     /// Held closed, a finished build waits until it opens before its store is ready, its
     /// nodes all stored (tests look at previews redrawn while a build is under way).
     pub store_ready_gate: Option<StoreBuildGate>,
+    /// The endpoints told of every job's end, checked and with their secrets read.
+    pub webhooks: Vec<WebhookEndpoint>,
 }
 
 impl DaemonConfig {
@@ -106,6 +109,7 @@ impl DaemonConfig {
             recover_state: false,
             store_build_gate: None,
             store_ready_gate: None,
+            webhooks: Vec::new(),
             data_dir,
         }
     }
@@ -192,6 +196,8 @@ pub struct Daemon {
     pub metrics: DaemonMetrics,
     /// Reads datasets by URL; none while no URL prefix is allowed.
     pub(crate) remote: Option<RemoteClient>,
+    /// Tells the configured endpoints that a job ended.
+    webhooks: Webhooks,
 }
 
 impl Daemon {
@@ -235,6 +241,8 @@ impl Daemon {
                 // Frames that wait for the store are leased again: previews for a redraw when
                 // the build's version moves, every frame for its final render when it ends.
                 .notifying(Arc::new(move || built.notify()));
+        let metrics = DaemonMetrics::new();
+        let webhooks = Webhooks::start(&config.webhooks, metrics.webhook_counters())?;
         let daemon = Arc::new(Self {
             config,
             stores,
@@ -244,8 +252,9 @@ impl Daemon {
             scheduling: Mutex::new(()),
             stopping: std::sync::atomic::AtomicBool::new(false),
             workers: WorkerPresence::default(),
-            metrics: DaemonMetrics::new(),
+            metrics,
             remote,
+            webhooks,
         });
         daemon.count_leases_of_previous_run()?;
         Ok(daemon)
@@ -353,11 +362,17 @@ impl Daemon {
         Ok(job)
     }
 
-    /// Logs that `job` ended, once, with its counts; `unstored_attempts` failed attempts
-    /// ended it before they were stored at its frame.
+    /// Logs that `job` ended, once, with its counts, and queues the event for the webhooks;
+    /// `unstored_attempts` failed attempts ended it before they were stored at its frame.
     pub(crate) fn log_job_end(&self, job: &Job, unstored_attempts: u32) {
-        let failed_attempts = match self.state.failed_attempts(&job.id) {
-            Ok(stored) => (stored + u64::from(unstored_attempts)).to_string(),
+        let failed_attempts = self
+            .state
+            .failed_attempts(&job.id)
+            .map(|stored| stored + u64::from(unstored_attempts));
+        self.webhooks
+            .job_ended(job, failed_attempts.as_ref().ok().copied());
+        let failed_attempts = match failed_attempts {
+            Ok(n) => n.to_string(),
             Err(e) => format!("unknown ({e})"),
         };
         let elapsed_s = job.updated_unix_ms.saturating_sub(job.created_unix_ms) as f64 / 1000.0;

@@ -175,6 +175,55 @@ pub struct FarmState {
     pub store_rebuilds: u64,
 }
 
+/// The outcome of a webhook event for one endpoint, the label of
+/// `pointfarm_webhook_deliveries_total`.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct WebhookLabels {
+    outcome: &'static str,
+}
+
+/// Webhook deliveries by outcome, shared with the delivery thread: delivered (a 2xx answer),
+/// failed (refused, or out of tries), dropped (the endpoint's queue was full).
+#[derive(Clone, Debug, Default)]
+pub struct WebhookCounters {
+    deliveries: Family<WebhookLabels, Counter>,
+}
+
+impl WebhookCounters {
+    const DELIVERED: &'static str = "delivered";
+    const FAILED: &'static str = "failed";
+    const DROPPED: &'static str = "dropped";
+
+    fn count(&self, outcome: &'static str) {
+        self.deliveries
+            .get_or_create(&WebhookLabels { outcome })
+            .inc();
+    }
+
+    fn value(&self, outcome: &'static str) -> u64 {
+        self.deliveries
+            .get_or_create(&WebhookLabels { outcome })
+            .get()
+    }
+
+    pub fn delivered(&self) {
+        self.count(Self::DELIVERED);
+    }
+
+    pub fn failed(&self) {
+        self.count(Self::FAILED);
+    }
+
+    pub fn dropped(&self) {
+        self.count(Self::DROPPED);
+    }
+
+    /// Delivered, failed and dropped so far.
+    pub fn counts(&self) -> [u64; 3] {
+        [Self::DELIVERED, Self::FAILED, Self::DROPPED].map(|outcome| self.value(outcome))
+    }
+}
+
 /// The daemon's metrics (`pointfarm_*`).
 #[derive(Debug)]
 pub struct DaemonMetrics {
@@ -186,6 +235,7 @@ pub struct DaemonMetrics {
     dataset_cache: CacheCounters,
     upload_bytes: Counter,
     store_rebuilds: Counter,
+    webhooks: WebhookCounters,
     queue_frames: Family<QueueLabels, Gauge>,
     leases_held: Gauge,
     workers_connected: Gauge,
@@ -211,6 +261,7 @@ impl DaemonMetrics {
             dataset_cache: CacheCounters::default(),
             upload_bytes: Counter::default(),
             store_rebuilds: Counter::default(),
+            webhooks: WebhookCounters::default(),
             queue_frames: Family::default(),
             leases_held: Gauge::default(),
             workers_connected: Gauge::default(),
@@ -274,7 +325,21 @@ impl DaemonMetrics {
              short); each store at most once a run",
             metrics.store_rebuilds.clone(),
         );
+        // Every outcome's series from the start, so that a rate over them reads 0, not nothing.
+        metrics.webhooks.counts();
+        registry.register(
+            "webhook_deliveries",
+            "Job-end events for webhook endpoints, by outcome: delivered (a 2xx answer), \
+             failed (refused with a 4xx or a redirect, or out of tries) or dropped (the \
+             endpoint's queue was full)",
+            metrics.webhooks.deliveries.clone(),
+        );
         metrics
+    }
+
+    /// The webhook counters, for the delivery thread to count on.
+    pub fn webhook_counters(&self) -> WebhookCounters {
+        self.webhooks.clone()
     }
 
     /// A frame was rendered and stored, with its worker's report.
