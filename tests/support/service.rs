@@ -14,7 +14,7 @@ use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_render::extent::Extent;
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
-use pointfarm_render::raster::Renderer;
+use pointfarm_render::raster::{Exposure, FrameSettings, Renderer};
 use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
 use sha2::{Digest, Sha256};
 use tonic::transport::Channel;
@@ -331,7 +331,8 @@ pub async fn fetch_images(
 }
 
 /// Asserts that each fetched frame equals the renderer's direct rendering of that frame of a
-/// default turntable of `frames` frames around `file`.
+/// default turntable of `frames` frames around `file`, exposed with the gain its frame 0
+/// measures as every frame of a job is.
 pub fn assert_equal_to_direct_renders(
     file: &Path,
     frames: u32,
@@ -352,8 +353,14 @@ pub fn assert_equal_to_direct_renders(
     let sample = pointfarm_render::spacing::sample_of(&cloud.positions);
     let extent = Extent::of_points(cloud.bounds, cloud.origin, &sample, &cloud.positions);
     let spacing = pointfarm_render::spacing::of_sample(&sample, cloud.len() as u64);
+    let first = renderer
+        .render(&resident, &request.frame_settings(0, &extent, spacing))
+        .expect("render frame 0");
     for (index, image) in fetched {
-        let settings = request.frame_settings(*index, &extent, spacing);
+        let settings = FrameSettings {
+            exposure: first.gain.map_or(Exposure::Measured, Exposure::Held),
+            ..request.frame_settings(*index, &extent, spacing)
+        };
         let direct = renderer.render(&resident, &settings).expect("render");
         assert!(
             direct.image == *image,

@@ -5,8 +5,11 @@
 //! store of the worker's own, from the daemon's store or COPC file read node by node, or from
 //! the daemon's preview sample while it builds the store; kept across the frames of the
 //! dataset, and each frame encoded with its stage timings. This module decides only what to
-//! open from what the daemon answered, maps failures to attempts, and encodes.
+//! open from what the daemon answered, keeps each job's exposure (the gain the frame source
+//! measures on the job's frame 0, so that every worker exposes a job's frames alike), maps
+//! failures to attempts, and encodes.
 
+use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::sync::Arc;
 
@@ -20,9 +23,10 @@ use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::dataset_point_count;
 use pointfarm_render::raster::{Clock, Renderer};
+use pointfarm_render::request::RenderRequest;
 use pointfarm_render::source::{
-    frame_points, FrameSource, Levels, PointSourceFacts, PreviewPoints, SourceError, SourceEvent,
-    SourceFrame, StoreCache,
+    frame_points, FramePoints, FrameSource, Levels, PointSourceFacts, PreviewPoints, SourceError,
+    SourceEvent, SourceFrame, StoreCache,
 };
 
 use crate::daemon_store::{PreviewSample, RemoteStore};
@@ -95,7 +99,42 @@ pub struct WorkerRenderState {
     cache: Option<Arc<DatasetCache>>,
     lod: Option<LodConfig>,
     loaded: Option<Loaded>,
+    gains: JobGains,
     urls: UrlReader,
+}
+
+/// The jobs a gain after Eye-Dome Lighting is kept for: enough for the jobs a worker's leases
+/// interleave, each a few hundred bytes.
+const KEPT_JOB_GAINS: usize = 64;
+
+/// What a job's gain was measured for: the job, its dataset and request, and how the points
+/// were drawn. A gain is reused only for frames rendered from the same.
+#[derive(Debug, Clone, PartialEq)]
+struct JobExposureKey {
+    job_id: String,
+    sha256: String,
+    request: RenderRequest,
+    points: FramePoints,
+    lod_error: Option<f64>,
+}
+
+/// The gains of the jobs this worker rendered final frames of, newest last: each job's is
+/// measured once, on its frame 0, however its leases come.
+#[derive(Debug, Default)]
+struct JobGains(VecDeque<(JobExposureKey, f32)>);
+
+impl JobGains {
+    fn get(&self, key: &JobExposureKey) -> Option<f32> {
+        self.0.iter().find(|(k, _)| k == key).map(|&(_, gain)| gain)
+    }
+
+    fn keep(&mut self, key: JobExposureKey, gain: f32) {
+        self.0.retain(|(k, _)| *k != key);
+        if self.0.len() == KEPT_JOB_GAINS {
+            self.0.pop_front();
+        }
+        self.0.push_back((key, gain));
+    }
 }
 
 impl WorkerRenderState {
@@ -112,6 +151,7 @@ impl WorkerRenderState {
             cache,
             lod,
             loaded: None,
+            gains: JobGains::default(),
             urls: UrlReader::default(),
         }
     }
@@ -288,10 +328,19 @@ impl WorkerRenderState {
             .source
             .preview_cuts(copc_preview)
             .map_err(|e| FrameFailure::from(&e))?;
-        let settings = loaded
-            .source
-            .frame_settings(&task.request, task.lease.index);
-        let rendered = match loaded.source.render(&settings, &log_event) {
+        let exposure_key = JobExposureKey {
+            job_id: task.lease.job_id.clone(),
+            sha256: task.dataset.sha256.clone(),
+            request: task.request.clone(),
+            points: loaded.source.frame_points(),
+            lod_error: loaded.source.lod_error(),
+        };
+        let rendered = match loaded.source.render_job_frame(
+            &task.request,
+            task.lease.index,
+            self.gains.get(&exposure_key),
+            &log_event,
+        ) {
             Ok(rendered) => rendered,
             Err(error) => {
                 if matches!(
@@ -305,6 +354,9 @@ impl WorkerRenderState {
                 return Err(FrameFailure::from(&error));
             }
         };
+        if let (Some(gain), None) = (rendered.frame.gain, rendered.preview) {
+            self.gains.keep(exposure_key, gain);
+        }
         // The next frame of the job is likely this worker's next lease.
         if task.lease.index + 1 < task.request.frames() {
             let next = loaded

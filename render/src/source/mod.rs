@@ -12,12 +12,14 @@
 //!
 //! - `choice`: the rule, resident or a cut.
 //! - `events`: what a source tells as it opens and renders.
+//! - `exposure`: one gain after Eye-Dome Lighting for all of a job's frames.
 //! - `extent`: where the points lie, and the robust box the automatic camera frames.
 //! - `local_store`: stores in folders of this machine, built again once when damaged.
 //! - `preview`: what a preview draws while a store builds.
 
 mod choice;
 mod events;
+mod exposure;
 mod local_store;
 mod preview;
 
@@ -157,6 +159,8 @@ pub struct FrameSource {
     points: Points,
     /// How the source was opened, until the first frame reports it.
     unreported: Option<Opened>,
+    /// The gain after Eye-Dome Lighting held for the frames of the view it renders.
+    exposure: exposure::HeldExposure,
 }
 
 impl FrameSource {
@@ -271,6 +275,7 @@ impl FrameSource {
                 preview_of: None,
             },
             unreported: None,
+            exposure: Default::default(),
         })
     }
 
@@ -375,6 +380,7 @@ impl FrameSource {
                 build_ms: Some(ms),
                 ..Opened::default()
             }),
+            exposure: Default::default(),
         })
     }
 
@@ -510,9 +516,22 @@ impl FrameSource {
         request.frame_settings(index, &self.extent, self.spacing())
     }
 
-    /// Renders the frame of `settings`. A store of this machine whose bytes fail their checks
-    /// is built again (once) and the frame rendered from the new one.
+    /// Renders the frame of `settings`; a final frame shaded with Eye-Dome Lighting is
+    /// exposed with the gain of the first this source rendered of its view (`exposure`).
     pub fn render(
+        &mut self,
+        settings: &FrameSettings,
+        events: &dyn Fn(SourceEvent<'_>),
+    ) -> Result<SourceFrame, SourceError> {
+        let settings = self.with_held_exposure(settings);
+        let rendered = self.draw(&settings, events)?;
+        self.hold_exposure(&settings, &rendered);
+        Ok(rendered)
+    }
+
+    /// Renders the frame of `settings` as they are. A store of this machine whose bytes fail
+    /// their checks is built again (once) and the frame rendered from the new one.
+    fn draw(
         &mut self,
         settings: &FrameSettings,
         events: &dyn Fn(SourceEvent<'_>),
