@@ -153,6 +153,18 @@ async fn an_allowed_url_registers_by_its_version_without_being_downloaded() {
         .expect_err("not described");
     assert_eq!(described.code(), Code::FailedPrecondition, "{described:?}");
     assert!(described.message().contains(&url), "{described:?}");
+    let composed = daemon
+        .datasets()
+        .await
+        .compose_dataset(pb::ComposeDatasetRequest {
+            dataset_ids: vec![dataset.id.clone(), replaced.id.clone()],
+            ..Default::default()
+        })
+        .await
+        .expect_err("not composed");
+    assert_eq!(composed.code(), Code::FailedPrecondition, "{composed:?}");
+    assert!(composed.message().contains("composing"), "{composed:?}");
+    still_serving(&daemon, 2).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -206,6 +206,7 @@ impl Daemon {
         let mut seen = HashSet::new();
         for id in ids {
             let dataset = lookup("dataset_ids", "dataset", id, |id| self.state.dataset(id))?;
+            dataset.check_local("composing")?;
             files.extend(
                 dataset
                     .files()
