@@ -10,6 +10,7 @@ use pointfarm_render::remote::{
     AllowedPrefixes, ObjectUrl, RemoteClient, RemoteError, RemoteSettings,
 };
 use pointfarm_tests::nginx::NginxServer;
+use pointfarm_tests::s3s::{self, S3sServer};
 
 /// The LAS header of a COPC file (LAS 1.4).
 const LAS_HEADER_LEN: u64 = 375;
@@ -300,59 +301,20 @@ fn urls_outside_the_allowed_prefixes_are_refused_naming_the_rule() {
     );
 }
 
-/// Where an S3-compatible server for the S3 test is: the path of an `s3s-fs` binary
-/// (crates.io's `s3s-fs` with its `binary` feature, which serves a folder as buckets of
-/// files), which deploy/test.sh does not install yet.
-const S3_SERVER_VARIABLE: &str = "POINTFARM_TEST_S3S_FS";
-
 /// The URL the S3 test's child process reads, and the file behind it that it replaces.
 const S3_URL_VARIABLE: &str = "POINTFARM_TEST_S3_URL";
 const S3_FILE_VARIABLE: &str = "POINTFARM_TEST_S3_FILE";
 
-/// A server process that ends with the test, whether it passes or not.
-struct KillOnDrop(std::process::Child);
-
-impl Drop for KillOnDrop {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
 #[test]
 fn reads_from_an_s3_compatible_server() {
-    let Some(server) =
-        std::env::var_os(S3_SERVER_VARIABLE).filter(|path| Path::new(path).is_file())
-    else {
-        eprintln!("skipped: {S3_SERVER_VARIABLE} names no s3s-fs binary");
-        return;
-    };
     let root = tempfile::tempdir().expect("root");
     let scans = root.path().join("pointfarm-test/scans");
     std::fs::create_dir_all(&scans).expect("bucket folder");
     let file = scans.join("simple.copc.laz");
     std::fs::copy(copc_file(), &file).expect("copy");
-    let address = pointfarm_tests::free_address();
-    let (host, port) = address.split_once(':').expect("host:port");
-    let _server = KillOnDrop(
-        std::process::Command::new(server)
-            .args(["--host", host, "--port", port])
-            .args(["--access-key", "pointfarm-test-key"])
-            .args(["--secret-key", "pointfarm-test-secret"])
-            .arg(root.path())
-            .stdout(std::process::Stdio::null())
-            .stderr(std::process::Stdio::null())
-            .spawn()
-            .expect("start the S3 server"),
-    );
-    let started = Instant::now();
-    while std::net::TcpStream::connect(&address).is_err() {
-        assert!(
-            started.elapsed() < Duration::from_secs(20),
-            "the S3 server did not listen"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    let Some(server) = S3sServer::start_or_skip(root.path()) else {
+        return;
+    };
     // Credentials reach object_store only through the environment, so the reads run in a
     // child process of this test binary with the server's.
     let output = std::process::Command::new(std::env::current_exe().expect("test binary"))
@@ -362,11 +324,7 @@ fn reads_from_an_s3_compatible_server() {
             "--ignored",
             "--nocapture",
         ])
-        .env("AWS_ENDPOINT", format!("http://{address}"))
-        .env("AWS_ALLOW_HTTP", "true")
-        .env("AWS_ACCESS_KEY_ID", "pointfarm-test-key")
-        .env("AWS_SECRET_ACCESS_KEY", "pointfarm-test-secret")
-        .env("AWS_REGION", "us-east-1")
+        .envs(server.environment())
         .env(S3_URL_VARIABLE, "s3://pointfarm-test/scans/simple.copc.laz")
         .env(S3_FILE_VARIABLE, &file)
         .output()
@@ -378,7 +336,7 @@ fn reads_from_an_s3_compatible_server() {
     );
     assert!(output.status.success(), "{text}");
     assert!(text.contains("1 passed"), "{text}");
-    assert!(!text.contains("pointfarm-test-secret"), "{text}");
+    assert!(!text.contains(s3s::SECRET_KEY), "{text}");
 }
 
 #[test]
@@ -420,5 +378,5 @@ fn s3_reads_in_a_child_process() {
         matches!(error, RemoteError::ObjectChanged { .. }),
         "{error}"
     );
-    assert!(!format!("{client:?} {object:?}").contains("pointfarm-test-secret"));
+    assert!(!format!("{client:?} {object:?}").contains(s3s::SECRET_KEY));
 }

@@ -6,13 +6,16 @@
 //! `s3://` too. Each test skips, saying so, where nginx is not installed.
 
 use std::path::{Path, PathBuf};
-use std::process::Output;
+use std::process::{Command, Output};
 
 use pointfarm_render::copc::{open_copc_url, CopcError};
 use pointfarm_render::lod::{LodError, NodeInfo};
 use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteError, RemoteSettings};
 use pointfarm_tests::nginx::NginxServer;
-use pointfarm_tests::{assert_fails_saying, json_lines, output_text, pointfarm, pointfarm_ok};
+use pointfarm_tests::s3s::{self, S3sServer};
+use pointfarm_tests::{
+    assert_fails_saying, json_lines, output_text, pointfarm, pointfarm_bin, pointfarm_ok, stdout,
+};
 
 fn arg(path: &Path) -> &str {
     path.to_str().expect("test paths are UTF-8")
@@ -227,4 +230,97 @@ fn a_plain_laz_file_or_a_prefix_by_url_is_refused_saying_only_copc_renders_by_ur
     let prefix = server.url("scans/");
     let output = pointfarm(&["render", &prefix, "--out", arg(&out)]);
     assert_fails_saying(&output, "only COPC files");
+}
+
+#[test]
+fn info_by_url_says_what_info_of_the_file_here_says_of_its_header_and_octree() {
+    let local = copc_file("simple_with_page.copc.laz");
+    let bytes = std::fs::read(&local).expect("COPC file");
+    let Some((_root, server)) = serve(&[("scan.copc.laz", bytes)]) else {
+        return;
+    };
+    let url = server.url("scans/scan.copc.laz");
+    let describe = |input: &str| {
+        let output = pointfarm_ok(&["info", input, "--json", "--no-points"]);
+        let document: serde_json::Value =
+            serde_json::from_str(&String::from_utf8_lossy(&output.stdout)).expect("JSON");
+        document["files"][0].clone()
+    };
+    let (here, by_url) = (describe(arg(&local)), describe(&url));
+    assert_eq!(by_url["path"], url.as_str());
+    // 64-bit counts are strings in the proto3 JSON mapping.
+    let nodes = by_url["copc"]["nodes"]
+        .as_str()
+        .and_then(|n| n.parse::<u64>().ok());
+    assert!(nodes > Some(1), "{by_url}");
+    for key in [
+        "copc",
+        "points",
+        "pointFormat",
+        "recordBytes",
+        "fileBytes",
+        "bounds",
+        "scale",
+        "offset",
+        "vlrs",
+        "evlrs",
+        "attributes",
+    ] {
+        assert_eq!(by_url[key], here[key], "{key}: {by_url} against {here}");
+    }
+    let text = stdout(&pointfarm_ok(&["info", &url]));
+    let copc_line = |text: &str| {
+        let line = text
+            .lines()
+            .find(|line| line.trim_start().starts_with("copc"));
+        line.expect("a copc line").to_owned()
+    };
+    let text_here = stdout(&pointfarm_ok(&["info", arg(&local), "--no-points"]));
+    assert_eq!(copc_line(&text), copc_line(&text_here));
+}
+
+#[test]
+fn a_copc_file_from_an_s3_compatible_server_renders_as_the_file_here() {
+    let local = copc_file("simple_with_page.copc.laz");
+    let root = tempfile::tempdir().expect("root");
+    let scans = root.path().join("pointfarm-test/scans");
+    std::fs::create_dir_all(&scans).expect("bucket folder");
+    std::fs::copy(&local, scans.join("scan.copc.laz")).expect("copy");
+    let Some(server) = S3sServer::start_or_skip(root.path()) else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let args = [
+        "--size=200x150",
+        "--point-size=3",
+        "--lod-error",
+        "0",
+        "--json",
+    ];
+    let here = dir.path().join("here.png");
+    let cache = ["--cache-dir", arg(dir.path())];
+    render_json(arg(&local), &here, &[&args[..4], &cache[..]].concat());
+    let url = "s3://pointfarm-test/scans/scan.copc.laz";
+    let by_url = dir.path().join("s3.png");
+    // Credentials reach the client only through the environment.
+    let output = Command::new(pointfarm_bin())
+        .args(["render", url, "--out", arg(&by_url)])
+        .args(args)
+        .envs(server.environment())
+        .output()
+        .expect("run pointfarm");
+    let text = output_text(&output);
+    assert!(output.status.success(), "{text}");
+    assert!(!text.contains(s3s::SECRET_KEY), "{text}");
+    let report = json_lines(&output).remove(0);
+    assert!(same_pixels(&here, &by_url), "{report}");
+    let (requests, bytes) = fetched(&report);
+    assert!(requests > 1 && bytes > 0, "{report}");
+    let missing = Command::new(pointfarm_bin())
+        .args(["render", "s3://pointfarm-test/scans/absent.copc.laz"])
+        .args(["--out", arg(&dir.path().join("absent.png"))])
+        .envs(server.environment())
+        .output()
+        .expect("run pointfarm");
+    assert_one_line_error_naming(&missing, "s3://pointfarm-test/scans/absent.copc.laz");
 }

@@ -14,17 +14,20 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 use clap::Args;
 use pointfarm_daemon::describe::FileReport;
-use pointfarm_daemon::grpc::{dataset_description, file_description};
+use pointfarm_daemon::grpc::{copc_description, dataset_description, file_description};
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::ingest::{dataset_files, GEOTIFF_USER_DEFINED};
+use pointfarm_render::remote::{ObjectUrl, RemoteClient};
 
 use crate::credentials::ClientCredentials;
 use crate::remote::{answer, Client};
+use crate::url_input::{self, Inputs};
 
 #[derive(Args)]
 pub struct InfoArgs {
     /// LAS/LAZ files, or folders whose .las and .laz files (in subfolders too) are each
-    /// reported; with --server, also dataset ids (an input that is no path here).
+    /// reported; COPC files by URL (s3://, http(s)://: header and octree, read by range);
+    /// with --server, also dataset ids (an input that is no path here).
     #[arg(required = true, value_name = "INPUT")]
     inputs: Vec<PathBuf>,
     /// Print one JSON document, the API's `DatasetDescription` in the proto3 JSON mapping
@@ -50,6 +53,8 @@ pub struct InfoArgs {
 enum Input {
     /// Files here: a file, or a folder's files.
     Local(Vec<PathBuf>),
+    /// A COPC file by URL, whose header and hierarchy are read by range.
+    Url(ObjectUrl),
     /// A dataset on the server.
     Dataset(String),
     /// Nothing that can be read, and why.
@@ -62,6 +67,7 @@ pub fn run(args: InfoArgs) -> Result<()> {
     let mut seen = HashSet::new();
     let mut datasets = Vec::new();
     let mut client = None;
+    let mut remote = None;
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     for input in &args.inputs {
         match classify(input, server) {
@@ -84,6 +90,14 @@ pub fn run(args: InfoArgs) -> Result<()> {
                     tell(&file, args.json);
                     files.push(file);
                 }
+            }
+            Input::Url(url) => {
+                if remote.is_none() {
+                    remote = Some(url_input::client()?);
+                }
+                let file = describe_url(remote.as_ref().expect("made above"), &url);
+                tell(&file, args.json);
+                files.push(file);
             }
             Input::Dataset(id) => {
                 let server = server.unwrap_or_default();
@@ -127,8 +141,19 @@ pub fn run(args: InfoArgs) -> Result<()> {
     }
 }
 
-/// A file or folder here is read here; anything else is a dataset id when there is a server.
+/// A file or folder here is read here, a URL by range; anything else is a dataset id when
+/// there is a server.
 fn classify(input: &Path, server: Option<&str>) -> Input {
+    if url_input::looks_like_url(input) {
+        return match url_input::parse(input) {
+            Ok(Inputs::Url(url)) => Input::Url(url),
+            Ok(Inputs::Paths(paths)) => match dataset_files(&paths) {
+                Ok(files) => Input::Local(files),
+                Err(error) => Input::Unreadable(error.to_string()),
+            },
+            Err(error) => Input::Unreadable(format!("{error:#}")),
+        };
+    }
     if input.exists() {
         return match dataset_files(&[input.to_path_buf()]) {
             Ok(files) => Input::Local(files),
@@ -145,6 +170,62 @@ fn classify(input: &Path, server: Option<&str>) -> Input {
             "{}: no such file or folder (a dataset id needs --server or POINTFARM_SERVER)",
             input.display()
         )),
+    }
+}
+
+/// What the COPC file at `url` holds, as its header and hierarchy say, read by range: neither
+/// its points nor its CRS are read by URL yet.
+fn describe_url(client: &RemoteClient, url: &ObjectUrl) -> pb::FileDescription {
+    let path = url.to_string();
+    let summary = match url_input::describe(client, url) {
+        Ok(summary) => summary,
+        Err(error) => {
+            return pb::FileDescription {
+                path,
+                error: format!("{error:#}"),
+                ..pb::FileDescription::default()
+            }
+        }
+    };
+    let header = &summary.header;
+    let vec3 = |v: glam::DVec3| pb::Vec3 {
+        x: v.x,
+        y: v.y,
+        z: v.z,
+    };
+    let attributes = &header.attributes;
+    pb::FileDescription {
+        path,
+        file_bytes: header.file_bytes,
+        version_major: 1,
+        version_minor: 4,
+        point_format: header.point_format.into(),
+        compressed: true,
+        record_bytes: header.record_len.into(),
+        points: header.points,
+        vlrs: header.vlrs,
+        evlrs: header.evlrs,
+        bounds: Some(pb::Bounds {
+            min: Some(vec3(header.bounds.min)),
+            max: Some(vec3(header.bounds.max)),
+        }),
+        scale: Some(vec3(header.scale)),
+        offset: Some(vec3(header.offset)),
+        crs: Some(pb::Crs {
+            source: Some(pb::crs::Source::Unreadable(
+                "not read by URL yet".to_owned(),
+            )),
+        }),
+        attributes: Some(pb::PointAttributes {
+            gps_time: attributes.gps_time,
+            rgb: attributes.rgb,
+            nir: attributes.nir,
+            waveform: attributes.waveform,
+            extra_bytes: attributes.extra_bytes.into(),
+            extra_names: attributes.extra_names.clone(),
+        }),
+        copc: Some(copc_description(&Ok(summary))),
+        ..pb::FileDescription::default()
     }
 }
 

@@ -27,7 +27,8 @@ use crate::video::{VideoCodec, VideoRequest, DEFAULT_VIDEO_QUALITY};
 #[derive(Args)]
 pub struct RenderArgs {
     /// LAS/LAZ files or folders of them, rendered as one dataset (tiles or scan positions of
-    /// one campaign: one origin, bounds and colour decision).
+    /// one campaign: one origin, bounds and colour decision); or one COPC file's URL
+    /// (https://, s3://), read by range.
     #[arg(required_unless_present = "dataset", value_name = "INPUT")]
     pub(crate) inputs: Vec<PathBuf>,
     /// Render on this pointfarm server instead of here (uploading the files it lacks).
@@ -80,7 +81,8 @@ pub struct RenderArgs {
     /// rasterizer.
     #[arg(long)]
     pub(crate) require_gpu: bool,
-    /// Output image, in the format its extension names: .png, .jpg, .webp or .tif (16-bit).
+    /// Output image, in the format its extension names: .png, .jpg, .webp or .tif, 8 bits a
+    /// channel (--depth writes each frame's depth as a 16-bit PNG beside it).
     /// With --turntable: a folder for frame_00000.png, frame_00001.png, ..., or a pattern
     /// such as frames/orbit_{:04}.jpg ({} for unpadded numbers).
     #[arg(short, long, value_name = "FILE|FOLDER|PATTERN")]

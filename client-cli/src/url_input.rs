@@ -6,7 +6,7 @@
 use std::path::PathBuf;
 
 use anyhow::Result;
-use pointfarm_render::copc::{self, CopcDataset, CopcError};
+use pointfarm_render::copc::{self, CopcDataset, CopcError, CopcSummary};
 use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteSettings};
 
 /// What only COPC files being read by URL means for an input that is not one.
@@ -64,6 +64,11 @@ pub fn client() -> Result<RemoteClient> {
 /// The COPC file at `url`, opened for rendering.
 pub fn open(client: &RemoteClient, url: &ObjectUrl) -> Result<CopcDataset> {
     copc::open_copc_url(client, url).map_err(refused)
+}
+
+/// The octree and header facts of the COPC file at `url`.
+pub fn describe(client: &RemoteClient, url: &ObjectUrl) -> Result<CopcSummary> {
+    copc::describe_url(client, url).map_err(refused)
 }
 
 /// An error opening a URL, saying what is read by URL where the object is no COPC file.

@@ -407,6 +407,7 @@ pub mod datasets;
 pub mod nginx;
 pub mod pki;
 pub mod prometheus;
+pub mod s3s;
 pub mod service;
 
 /// Sends SIGTERM to `child` and waits up to `timeout` for its exit.

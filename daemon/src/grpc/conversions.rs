@@ -561,7 +561,7 @@ fn bounds_message(bounds: &WorldBounds) -> pb::Bounds {
 
 /// A file's report as the API describes it; the one conversion of what `pointfarm info`
 /// reports, here and through a server.
-fn copc_description(copc: &Result<CopcSummary, CopcError>) -> pb::CopcDescription {
+pub fn copc_description(copc: &Result<CopcSummary, CopcError>) -> pb::CopcDescription {
     match copc {
         Ok(summary) => pb::CopcDescription {
             error: String::new(),

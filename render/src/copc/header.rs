@@ -75,6 +75,11 @@ pub(crate) struct CopcHeader {
     pub info: CopcInfo,
     /// Inner nodes' sampling grids, where a pointfarm export records them.
     pub node_grids: Arc<NodeGrids>,
+    /// VLRs and EVLRs it holds.
+    pub vlrs: u32,
+    pub evlrs: u32,
+    /// The names the extra bytes VLR gives the records' extra bytes, in order.
+    pub extra_names: Vec<String>,
 }
 
 /// Whether `path` is a COPC file: LAS 1.4 whose first VLR is COPC's info VLR (where the
@@ -213,6 +218,15 @@ fn read_header_from(reader: &mut RangeReader<'_>) -> Result<CopcHeader, CopcErro
         ));
     }
 
+    let extra_names = extra_bytes_vlr
+        .as_deref()
+        .map(|data| {
+            extra_bytes::parse(data)
+                .into_iter()
+                .map(|d| d.name)
+                .collect()
+        })
+        .unwrap_or_default();
     let weight_at = extra_bytes_vlr.and_then(|data| weight_offset(&format, &data));
     let node_grids = Arc::new(read_node_grids(reader, facts.evlrs)?);
     let header = CopcHeader {
@@ -227,6 +241,9 @@ fn read_header_from(reader: &mut RangeReader<'_>) -> Result<CopcHeader, CopcErro
         weight_at,
         info,
         node_grids,
+        vlrs: facts.vlr_count,
+        evlrs: facts.evlrs.map_or(0, |(_, count)| count),
+        extra_names,
     };
     check_info(path, &header)?;
     Ok(header)

@@ -5,6 +5,9 @@
 //! LAZ chunks the node records ([`CopcNodes`]), which
 //! a [`LodDataset`] renders cut by cut through the same caches as a built store.
 //!
+//! - `bytes.rs`: where the bytes come from, a file here or an object by URL
+//!   ([`crate::remote`]), read by range through one face, so both are read and checked by the
+//!   same code;
 //! - `header.rs`: detection (the info VLR first, where the specification puts it) and the
 //!   header, LASzip and info VLRs, after the checks every LAS/LAZ file passes;
 //! - `hierarchy.rs`: the hierarchy pages walked into nodes, every entry checked against the
@@ -14,6 +17,10 @@
 //! - `node_grids.rs`: the inner nodes' sampling grids a pointfarm export records, which a cut
 //!   refines by where the file has them;
 //! - `error.rs`: [`CopcError`].
+//!
+//! A file opened by URL ([`open_copc_url`], [`describe_url`]) is read as a file here is, every
+//! read a range of the version its HEAD saw: a wave's chunks, and the child pages a cut reaches,
+//! as one read of many ranges, near ones fetched as one request; errors name the URL.
 //!
 //! For rendering ([`open_copc`]) only the root hierarchy page is read when the file is opened
 //! (and the child pages the colour sample reaches); a frame's cut reads the pages it reaches,
@@ -49,10 +56,14 @@ mod weights_tests;
 use std::path::Path;
 use std::sync::Arc;
 
+use glam::DVec3;
+
 pub use error::CopcError;
 pub use header::{is_copc, CopcInfo};
 pub use nodes::{CopcDecoder, CopcNodes};
 
+use crate::cloud::WorldBounds;
+use crate::ingest::Attributes;
 use crate::lod::{
     for_each_coarse_node_up_to, node_heights, DatasetStats, LodDataset, LodError, LodHierarchy,
     ELEVATION_SAMPLE_POINTS,
@@ -217,12 +228,34 @@ fn measured_root_spacing(hierarchy: &LodHierarchy, point_spacing: Option<f64>) -
 #[derive(Debug, Clone, PartialEq)]
 pub struct CopcSummary {
     pub info: CopcInfo,
+    /// The header's facts, for a file described without the LAS reader (by URL).
+    pub header: CopcHeaderFacts,
     /// Hierarchy pages, and their bytes.
     pub pages: usize,
     pub page_bytes: u64,
     /// Nodes with points, and the levels below the root they reach (0: the root alone).
     pub nodes: usize,
     pub depth: u8,
+}
+
+/// What a COPC file's header says of its points, its records and where they lie.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CopcHeaderFacts {
+    /// Bytes of the file or object.
+    pub file_bytes: u64,
+    /// The points the header declares.
+    pub points: u64,
+    pub point_format: u8,
+    /// Bytes of a point record, extra bytes included.
+    pub record_len: u16,
+    pub vlrs: u32,
+    pub evlrs: u32,
+    /// The header's bounds.
+    pub bounds: WorldBounds,
+    pub scale: DVec3,
+    pub offset: DVec3,
+    /// The attributes its point format and extra bytes carry.
+    pub attributes: Attributes,
 }
 
 /// Reads `path`'s header and every hierarchy page, checked as rendering checks them.
@@ -240,8 +273,29 @@ fn summarize(bytes: &CopcBytes) -> Result<CopcSummary, CopcError> {
     let header = header::read_header(bytes)?;
     let pages = hierarchy::read_all_pages(bytes, &header)?;
     let with_points = || pages.nodes_with_points();
+    let (format, t) = (&header.format, &header.transforms);
+    let facts = CopcHeaderFacts {
+        file_bytes: header.file_len,
+        points: header.point_count,
+        point_format: format.to_u8().unwrap_or(0),
+        record_len: format.len(),
+        vlrs: header.vlrs,
+        evlrs: header.evlrs,
+        bounds: header.bounds,
+        scale: DVec3::new(t.x.scale, t.y.scale, t.z.scale),
+        offset: DVec3::new(t.x.offset, t.y.offset, t.z.offset),
+        attributes: Attributes {
+            gps_time: format.has_gps_time,
+            rgb: format.has_color,
+            nir: format.has_nir,
+            waveform: format.has_waveform,
+            extra_bytes: format.extra_bytes,
+            extra_names: header.extra_names.clone(),
+        },
+    };
     Ok(CopcSummary {
         info: header.info,
+        header: facts,
         pages: pages.pages,
         page_bytes: pages.page_bytes,
         nodes: with_points().count(),

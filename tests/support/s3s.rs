@@ -1,0 +1,83 @@
+//! A real S3-compatible server for the tests that read datasets from `s3://`: crates.io's
+//! `s3s-fs`, which serves a folder's subfolders as buckets, where `POINTFARM_TEST_S3S_FS`
+//! names its binary (deploy/test.sh installs it).
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use crate::free_address;
+
+/// The variable that names the `s3s-fs` binary.
+pub const S3S_FS_VARIABLE: &str = "POINTFARM_TEST_S3S_FS";
+
+/// The credentials the server accepts; a test checks they never appear in an output.
+pub const ACCESS_KEY: &str = "pointfarm-test-key";
+pub const SECRET_KEY: &str = "pointfarm-test-secret";
+
+/// How long the server may take to listen.
+const START_TIMEOUT: Duration = Duration::from_secs(20);
+
+/// An `s3s-fs` child process serving `root`'s folders as buckets on a loopback port; killed
+/// when dropped, whether the test passes or not.
+pub struct S3sServer {
+    pub address: String,
+    child: Child,
+}
+
+impl S3sServer {
+    /// The binary `POINTFARM_TEST_S3S_FS` names, or None, having said so.
+    pub fn binary_or_skip() -> Option<PathBuf> {
+        let binary = std::env::var_os(S3S_FS_VARIABLE)
+            .map(PathBuf::from)
+            .filter(|path| path.is_file());
+        if binary.is_none() {
+            eprintln!("skipped: {S3S_FS_VARIABLE} names no s3s-fs binary");
+        }
+        binary
+    }
+
+    /// Starts the server over `root`, or None, having said why, without a binary.
+    pub fn start_or_skip(root: &Path) -> Option<Self> {
+        let binary = Self::binary_or_skip()?;
+        let address = free_address();
+        let (host, port) = address.split_once(':').expect("host:port");
+        let child = Command::new(binary)
+            .args(["--host", host, "--port", port])
+            .args(["--access-key", ACCESS_KEY, "--secret-key", SECRET_KEY])
+            .arg(root)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("start the S3 server");
+        let server = Self { address, child };
+        let started = Instant::now();
+        while std::net::TcpStream::connect(&server.address).is_err() {
+            assert!(
+                started.elapsed() < START_TIMEOUT,
+                "the S3 server did not listen"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        Some(server)
+    }
+
+    /// The environment a client of this server reads its endpoint and credentials from, as
+    /// object_store reads them.
+    pub fn environment(&self) -> Vec<(&'static str, String)> {
+        vec![
+            ("AWS_ENDPOINT", format!("http://{}", self.address)),
+            ("AWS_ALLOW_HTTP", "true".to_owned()),
+            ("AWS_ACCESS_KEY_ID", ACCESS_KEY.to_owned()),
+            ("AWS_SECRET_ACCESS_KEY", SECRET_KEY.to_owned()),
+            ("AWS_REGION", "us-east-1".to_owned()),
+        ]
+    }
+}
+
+impl Drop for S3sServer {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
