@@ -95,11 +95,23 @@ impl fmt::Debug for WebhookSecret {
 }
 
 /// A checked endpoint: an http(s) URL, its secret, the job ends it wants.
-#[derive(Clone, Debug)]
+#[derive(Clone)]
 pub struct WebhookEndpoint {
     url: Url,
     secret: WebhookSecret,
     events: Vec<JobEnd>,
+}
+
+/// Shows the URL as logs do ([`shown_url`]) and nothing of the secret: the daemon's
+/// configuration, which holds the endpoints, may be printed whole.
+impl fmt::Debug for WebhookEndpoint {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("WebhookEndpoint")
+            .field("url", &self.shown_url())
+            .field("secret", &self.secret)
+            .field("events", &self.events)
+            .finish()
+    }
 }
 
 /// Why an endpoint was refused; each names the endpoint by [`shown_url`] and never holds the
@@ -347,7 +359,10 @@ mod tests {
         .expect("accepted");
         assert_eq!(endpoint.shown_url(), "https://ci.example/hook");
         let debug = format!("{endpoint:?}");
-        assert!(!debug.contains("s3cret"), "{debug}");
+        assert!(debug.contains("https://ci.example/hook"), "{debug}");
+        for hidden in ["s3cret", "pass", "abc"] {
+            assert!(!debug.contains(hidden), "{debug}");
+        }
         for url in [
             "ftp://user:pass@ci.example/x?token=abc",
             "https://user:pass@[ci.example/x?token=abc",

@@ -1,14 +1,14 @@
 //! Delivering events: a thread of its own runs a small tokio runtime with one task per
 //! endpoint, fed by a bounded queue, so that the scheduler only ever hands an event over and a
 //! slow or dead endpoint holds up nothing but its own deliveries. Each delivery is a signed
-//! POST, tried again with exponential backoff and jitter on connection errors, timeouts, 5xx
-//! and 429, and given up after [`ATTEMPTS`].
+//! POST, tried again with exponential backoff and jitter (or the endpoint's `Retry-After`) on
+//! connection errors, timeouts, 5xx and 429, and given up after [`ATTEMPTS`].
 
 use std::sync::{Arc, Once};
 use std::time::Duration;
 
 use hmac::{Hmac, Mac};
-use reqwest::header::{HeaderValue, CONTENT_TYPE};
+use reqwest::header::{HeaderMap, HeaderValue, CONTENT_TYPE, RETRY_AFTER};
 use reqwest::StatusCode;
 use sha2::Sha256;
 use tokio::sync::{mpsc, Semaphore};
@@ -135,8 +135,12 @@ async fn serve_endpoint(
 /// What one try came to.
 enum Try {
     Delivered,
-    /// Worth trying again: no connection, no answer in time, 5xx or 429.
-    Retry(String),
+    /// Worth trying again: no connection, no answer in time, 5xx or 429; not before `after`
+    /// when the answer's `Retry-After` asks for it.
+    Retry {
+        reason: String,
+        after: Option<Duration>,
+    },
     /// The endpoint refused the delivery itself (another 4xx, a redirect).
     Refused(String),
 }
@@ -154,20 +158,28 @@ async fn deliver(
     let webhook = endpoint.shown_url();
     let name = event.end.event();
     for attempt in 1..=ATTEMPTS {
-        let reason = match try_once(client, endpoint, event, &delivery, &signature).await {
+        let (reason, after) = match try_once(client, endpoint, event, &delivery, &signature).await {
             Try::Delivered => {
-                tracing::debug!(%webhook, event = name, job = %event.job_id, %delivery, attempt, "webhook delivered");
+                tracing::debug!(
+                    %webhook, event = name, job = %event.job_id, %delivery, attempt,
+                    "webhook delivered"
+                );
                 counters.delivered();
                 return;
             }
-            Try::Retry(reason) if attempt < ATTEMPTS => reason,
-            Try::Retry(reason) | Try::Refused(reason) => {
-                tracing::warn!(%webhook, event = name, job = %event.job_id, %delivery, attempt, %reason, "webhook delivery failed; giving up");
+            Try::Retry { reason, after } if attempt < ATTEMPTS => (reason, after),
+            Try::Retry { reason, .. } | Try::Refused(reason) => {
+                tracing::warn!(
+                    %webhook, event = name, job = %event.job_id, %delivery, attempt, %reason,
+                    "webhook delivery failed; giving up"
+                );
                 counters.failed();
                 return;
             }
         };
-        let wait = backoff(attempt, rand::random());
+        // An endpoint's own Retry-After is heeded, within the longest wait.
+        let wait =
+            backoff(attempt, rand::random()).max(after.unwrap_or_default().min(LONGEST_WAIT));
         tracing::warn!(
             %webhook, event = name, job = %event.job_id, %delivery, attempt, %reason,
             retry_in_s = wait.as_secs_f64(), "webhook delivery failed; trying again"
@@ -193,21 +205,40 @@ async fn try_once(
         .send()
         .await;
     match sent {
-        Ok(response) => judge(response.status()),
+        Ok(response) => judge(response.status(), retry_after(response.headers())),
         Err(error) if error.is_builder() => Try::Refused(describe(&error)),
-        Err(error) => Try::Retry(describe(&error)),
+        Err(error) => Try::Retry {
+            reason: describe(&error),
+            after: None,
+        },
     }
 }
 
-/// Whether an answer delivered the event, is worth another try, or refused it.
-fn judge(status: StatusCode) -> Try {
+/// Whether an answer delivered the event, is worth another try (not before `after`), or
+/// refused it.
+fn judge(status: StatusCode, after: Option<Duration>) -> Try {
     if status.is_success() {
         Try::Delivered
     } else if status.is_server_error() || status == StatusCode::TOO_MANY_REQUESTS {
-        Try::Retry(format!("answered {status}"))
+        Try::Retry {
+            reason: format!("answered {status}"),
+            after,
+        }
     } else {
         Try::Refused(format!("answered {status}"))
     }
+}
+
+/// The seconds a `Retry-After` header asks to wait (its HTTP-date form is not read).
+fn retry_after(headers: &HeaderMap) -> Option<Duration> {
+    let seconds = headers
+        .get(RETRY_AFTER)?
+        .to_str()
+        .ok()?
+        .trim()
+        .parse()
+        .ok()?;
+    Some(Duration::from_secs(seconds))
 }
 
 /// The wait after failed try `attempt` (1 for the first): [`FIRST_WAIT`] doubled at each
@@ -295,23 +326,37 @@ mod tests {
 
     #[test]
     fn only_server_errors_and_too_many_requests_are_tried_again() {
-        let retried = |code: u16| {
-            matches!(
-                judge(StatusCode::from_u16(code).expect("a status")),
-                Try::Retry(_)
-            )
-        };
+        let status = |code: u16| StatusCode::from_u16(code).expect("a status");
+        let retried = |code: u16| matches!(judge(status(code), None), Try::Retry { .. });
         for code in [500, 502, 503, 504, 429] {
             assert!(retried(code), "{code}");
         }
         for code in [400, 401, 403, 404, 410, 301, 302] {
             assert!(!retried(code), "{code}");
-            assert!(matches!(
-                judge(StatusCode::from_u16(code).expect("a status")),
-                Try::Refused(_)
-            ));
+            assert!(matches!(judge(status(code), None), Try::Refused(_)));
         }
-        assert!(matches!(judge(StatusCode::NO_CONTENT), Try::Delivered));
+        assert!(matches!(
+            judge(StatusCode::NO_CONTENT, None),
+            Try::Delivered
+        ));
+        let later = Some(Duration::from_secs(7));
+        assert!(matches!(
+            judge(StatusCode::TOO_MANY_REQUESTS, later),
+            Try::Retry { after, .. } if after == later
+        ));
+    }
+
+    #[test]
+    fn retry_after_is_read_in_seconds() {
+        let mut headers = HeaderMap::new();
+        assert_eq!(retry_after(&headers), None);
+        headers.insert(RETRY_AFTER, HeaderValue::from_static("120"));
+        assert_eq!(retry_after(&headers), Some(Duration::from_secs(120)));
+        headers.insert(
+            RETRY_AFTER,
+            HeaderValue::from_static("Wed, 21 Oct 2026 07:28:00 GMT"),
+        );
+        assert_eq!(retry_after(&headers), None);
     }
 
     #[test]
