@@ -402,6 +402,21 @@ fn the_cli_registers_a_url_the_operator_allows() {
         said.contains("credentials") && !said.contains("hunter2"),
         "{said}"
     );
+    // The same check holds for the configuration file's key.
+    let config = tempfile::tempdir().expect("config folder");
+    let file = config.path().join("pointfarm.toml");
+    std::fs::write(
+        &file,
+        "[serve]\nallow_url_prefix = [\"ftp://data.example/scans/\"]\n",
+    )
+    .expect("config file");
+    let refused = pointfarm(&["serve", "--config", &file.display().to_string()]);
+    assert!(!refused.status.success());
+    let said = String::from_utf8_lossy(&refused.stderr).into_owned();
+    assert!(
+        said.contains("--allow-url-prefix") && said.contains("ftp://"),
+        "{said}"
+    );
 
     let data = tempfile::tempdir().expect("data");
     let serve = ServeProcess::start_with(
