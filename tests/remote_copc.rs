@@ -230,6 +230,18 @@ fn a_plain_laz_file_or_a_prefix_by_url_is_refused_saying_only_copc_renders_by_ur
     let prefix = server.url("scans/");
     let output = pointfarm(&["render", &prefix, "--out", arg(&out)]);
     assert_fails_saying(&output, "only COPC files");
+    // A server renders a URL once it is registered there, not as files it is sent.
+    let on_server = [
+        "render",
+        &url,
+        "--out",
+        arg(&out),
+        "--server",
+        "http://127.0.0.1:9",
+    ];
+    let output = pointfarm(&on_server);
+    assert_one_line_error_naming(&output, &url);
+    assert_fails_saying(&output, "dataset register");
 }
 
 #[test]

@@ -37,6 +37,17 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let request = args.request()?;
     let outputs = Outputs::check(&args, &request)?;
     if let Some(server) = args.server.clone().filter(|_| !args.local) {
+        if let Some(url) = args
+            .inputs
+            .iter()
+            .find(|input| url_input::looks_like_url(input))
+        {
+            anyhow::bail!(
+                "{}: a URL renders here (--local), or on the server once registered there \
+                 (pointfarm dataset register URL, then render --dataset ID)",
+                url.display()
+            );
+        }
         return crate::remote_render::run(&server, &args, &request, &outputs);
     }
     if let Some(id) = &args.dataset {

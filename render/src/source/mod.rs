@@ -105,7 +105,7 @@ pub struct Opened {
 pub enum Levels {
     /// A store of this machine.
     Store(Box<LocalStore>),
-    /// A COPC file of this machine, its nodes read from it.
+    /// A COPC file, here or by URL (`copc::open_copc_url`), its nodes read from it by range.
     Copc(Box<CopcDataset>),
     /// Node records another machine serves (a daemon's store, or its COPC file's chunks).
     Served {
