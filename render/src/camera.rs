@@ -163,7 +163,7 @@ impl Camera {
     /// with +Y, or the azimuth's far side, up the image), framed tightly: the camera looks
     /// past the box's centre so that the box's projection is centred in the image, and comes
     /// as close as the 5% margin lets every corner stay in view. [`Camera::framing`] looks
-    /// at the centre instead, which an orbit needs.
+    /// at the centre instead; a turntable's views are centred the same way (`fitted_orbit`).
     pub fn fitted(
         bounds: &WorldBounds,
         aspect: f64,
@@ -193,44 +193,16 @@ impl Camera {
         projection: Projection,
     ) -> Camera {
         let view = BoxView::new(bounds, outline, azimuth_deg, elevation_deg);
-        let (center, radius, corners) = (view.center, view.radius, view.corners);
+        let (center, radius) = (view.center, view.radius);
         let (forward, right, up) = (view.forward, view.right, view.up);
-        let max_of =
-            |f: &dyn Fn(DVec3) -> f64| corners.iter().map(|&c| f(c)).fold(f64::MIN, f64::max);
+        let max_of = |f: &dyn Fn(DVec3) -> f64| view.max_of(f);
         // The camera's offsets from the centre along right, up and forward.
         let (sideways, upwards, along, projection) = match projection {
             Projection::Perspective { fov_y_deg } => {
                 let tan_y = (fov_y_deg.to_radians() * 0.5).tan() / FRAMING_MARGIN;
-                let tan_x = tan_y * aspect;
-                // A corner c is in view when |(c - e)·axis| <= tan (c - e)·forward. With e's
-                // offsets a (along the axis) and b (along forward) that is two half-planes
-                // per axis, which meet at the b that just fits that axis; the camera goes
-                // back to the tighter axis's.
-                let fit = |axis: DVec3, tan: f64| {
-                    let high = max_of(&|c| c.dot(axis) - tan * c.dot(forward));
-                    let low = max_of(&|c| -c.dot(axis) - tan * c.dot(forward));
-                    -(high + low) / (2.0 * tan)
-                };
-                let b = fit(right, tan_x).min(fit(up, tan_y)).min(-radius * 0.01);
-                // From there, the offset along each axis that puts the box's projection in the
-                // middle: the widest tangent on one side falls as the offset grows and on the
-                // other rises, so halving the interval finds where they are equal.
-                let centred = |axis: DVec3| {
-                    let widest = |a: f64, side: f64| {
-                        max_of(&|c| side * (c.dot(axis) - a) / (c.dot(forward) - b))
-                    };
-                    let (mut lo, mut hi) = (-radius, radius);
-                    for _ in 0..64 {
-                        let mid = 0.5 * (lo + hi);
-                        if widest(mid, 1.0) > widest(mid, -1.0) {
-                            lo = mid;
-                        } else {
-                            hi = mid;
-                        }
-                    }
-                    0.5 * (lo + hi)
-                };
-                (centred(right), centred(up), b, projection)
+                let along = view.fitted_depth(tan_y * aspect, tan_y);
+                let (sideways, upwards) = view.centring(along);
+                (sideways, upwards, along, projection)
             }
             Projection::Orthographic { .. } => {
                 let span = |axis: DVec3| {
@@ -392,102 +364,6 @@ impl Camera {
     }
 }
 
-/// Where a turntable's camera circles: the point on the vertical axis it looks at, and its
-/// distance from there.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Orbit {
-    pub target: DVec3,
-    pub distance: f64,
-}
-
-/// The orbit around the vertical axis through `center` (the centre of `bounds` when absent)
-/// that sees all of `outline` (points of a cloud in `bounds`, world coordinates: its box's
-/// corners, or its outermost points) from each of `azimuths` (degrees counter-clockwise from
-/// +X) at `elevation_deg`, as close as the widest of those views lets every point stay in the
-/// image with the 5% margin. Without a given centre, the camera looks at the height on the
-/// axis that centres the outline vertically in the tallest view, as [`Camera::fitted`] centres
-/// a still, rather than at the box's centre, which perspective puts low in the image.
-pub fn fitted_orbit(
-    bounds: &WorldBounds,
-    outline: &[DVec3],
-    center: Option<DVec3>,
-    aspect: f64,
-    azimuths: &[f64],
-    elevation_deg: f64,
-    projection: Projection,
-) -> Orbit {
-    let axis = center.unwrap_or(bounds.center());
-    let radius = bounds.radius().max(1e-3);
-    let Projection::Perspective { fov_y_deg } = projection else {
-        // An orthographic image's scale does not depend on the distance: only the clip planes
-        // need the camera outside the box.
-        return Orbit {
-            target: axis,
-            distance: radius * 2.0,
-        };
-    };
-    let tan_y = (fov_y_deg.to_radians() * 0.5).tan() / FRAMING_MARGIN;
-    let tan_x = tan_y * aspect;
-    let views: Vec<BoxView> = azimuths
-        .iter()
-        .map(|&azimuth| BoxView::new(bounds, outline, azimuth, elevation_deg))
-        .collect();
-    let views = views.as_slice();
-    let offset = bounds.center() - axis;
-    // Each point relative to a target `height` above the axis point, in each view.
-    let relative = move |height: f64| {
-        let lift = DVec3::Z * height;
-        views.iter().flat_map(move |view| {
-            view.corners
-                .iter()
-                .map(move |&c| (view.forward, view.right, view.up, c + offset - lift))
-        })
-    };
-    // The distance from the target at which every point fits every view: its lateral offsets
-    // within the field of view at its depth, c·forward plus the distance.
-    let needed = |height: f64| {
-        relative(height)
-            .map(|(forward, right, up, c)| {
-                let fit = (c.dot(up).abs() / tan_y).max(c.dot(right).abs() / tan_x);
-                fit - c.dot(forward)
-            })
-            .fold(radius * 0.01, f64::max)
-    };
-    // How tall the tallest view is from `distance`, as the tangent of its farthest point
-    // above or below the image's centre: quasi-convex in the height, so a ternary search finds
-    // the height that balances it.
-    let tallest = |height: f64, distance: f64| {
-        relative(height)
-            .map(|(forward, _, up, c)| c.dot(up).abs() / (c.dot(forward) + distance).max(1e-9))
-            .fold(0.0, f64::max)
-    };
-    let balanced = |distance: f64| {
-        let (mut lo, mut hi) = (-radius, radius);
-        for _ in 0..60 {
-            let (a, b) = (lo + (hi - lo) / 3.0, hi - (hi - lo) / 3.0);
-            if tallest(a, distance) <= tallest(b, distance) {
-                hi = b;
-            } else {
-                lo = a;
-            }
-        }
-        0.5 * (lo + hi)
-    };
-    let mut height = 0.0;
-    let mut distance = needed(height);
-    if center.is_none() {
-        // The balance depends on the distance, and the distance a little on the height.
-        for _ in 0..3 {
-            height = balanced(distance);
-            distance = needed(height);
-        }
-    }
-    Orbit {
-        target: axis + DVec3::Z * height,
-        distance,
-    }
-}
-
 /// A rectangle of an image's pixels: columns `x0..x0 + width`, rows `y0..y0 + height`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ImageWindow {
@@ -509,8 +385,6 @@ impl ImageWindow {
     }
 }
 
-/// The unit vector from a target towards a camera at `azimuth_deg` (counter-clockwise from
-/// +X) and `elevation_deg` (above the horizon).
 /// A box seen from an azimuth and elevation (degrees, as [`Camera::fitted`] takes them): its
 /// centre, its radius, the points framed (its corners, or a cloud's outermost points) around
 /// the centre, and the camera's axes.
@@ -545,8 +419,56 @@ impl BoxView {
             },
         }
     }
+
+    /// The largest value of `f` over the points framed.
+    fn max_of(&self, f: &dyn Fn(DVec3) -> f64) -> f64 {
+        self.corners.iter().map(|&c| f(c)).fold(f64::MIN, f64::max)
+    }
+
+    /// The camera's offset along `forward` from the centre (negative: behind it) at which
+    /// every point fits a field of view of half-angle tangents `tan_x` by `tan_y`, the camera
+    /// panned to centre them: as close as the tighter image axis lets it come.
+    fn fitted_depth(&self, tan_x: f64, tan_y: f64) -> f64 {
+        let forward = self.forward;
+        // A point c is in view when |(c - e)·axis| <= tan (c - e)·forward. With e's offsets a
+        // (along the axis) and b (along forward) that is two half-planes per axis, which meet
+        // at the b that just fits that axis; the camera goes back to the tighter axis's.
+        let fit = |axis: DVec3, tan: f64| {
+            let high = self.max_of(&|c| c.dot(axis) - tan * c.dot(forward));
+            let low = self.max_of(&|c| -c.dot(axis) - tan * c.dot(forward));
+            -(high + low) / (2.0 * tan)
+        };
+        fit(self.right, tan_x)
+            .min(fit(self.up, tan_y))
+            .min(-self.radius * 0.01)
+    }
+
+    /// The camera's offsets from the centre along `right` and `up` that centre the points'
+    /// projection in the image of a perspective camera `along` the forward axis from the
+    /// centre: the widest tangent on one side falls as the offset grows and on the other
+    /// rises, so halving the interval finds where they are equal.
+    fn centring(&self, along: f64) -> (f64, f64) {
+        let centred = |axis: DVec3| {
+            let widest = |a: f64, side: f64| {
+                self.max_of(&|c| side * (c.dot(axis) - a) / (c.dot(self.forward) - along))
+            };
+            let (mut lo, mut hi) = (-self.radius, self.radius);
+            for _ in 0..64 {
+                let mid = 0.5 * (lo + hi);
+                if widest(mid, 1.0) > widest(mid, -1.0) {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            0.5 * (lo + hi)
+        };
+        (centred(self.right), centred(self.up))
+    }
 }
 
+/// The unit vector from a target towards a camera at `azimuth_deg` (counter-clockwise from
+/// +X) and `elevation_deg` (above the horizon).
 fn view_direction(azimuth_deg: f64, elevation_deg: f64) -> DVec3 {
     let (az, el) = (azimuth_deg.to_radians(), elevation_deg.to_radians());
     DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin())
@@ -591,6 +513,10 @@ impl CameraTransform {
         Some((px, py, depth))
     }
 }
+
+mod orbit;
+
+pub use orbit::{fitted_orbit, Orbit};
 
 #[cfg(test)]
 mod tests;

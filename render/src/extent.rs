@@ -80,11 +80,20 @@ impl Extent {
         let min = (origin + lo.as_dvec3()).clamp(all.min, all.max);
         let max = (origin + hi.as_dvec3()).clamp(all.min, all.max);
         let robust = WorldBounds { min, max };
+        // Positions are f32 offsets from the origin: the points that decide the box round to
+        // either side of the header's box, which the robust box is clamped to, and the outline
+        // must not lose them for it.
+        let rounding = f64::from(lo.abs().max(hi.abs()).max_element() * f32::EPSILON) * 2.0;
+        let slack = DVec3::splat(rounding + (max - min).max_element() * 1e-6);
+        let kept = WorldBounds {
+            min: min - slack,
+            max: max + slack,
+        };
         let inside = sample.iter().map(|p| origin + p.as_dvec3());
         Self {
             all,
             robust,
-            outline: outline(&robust, inside),
+            outline: outline(&robust, &kept, inside),
         }
     }
 
@@ -103,7 +112,7 @@ impl Extent {
         Ok(Self {
             all,
             robust,
-            outline: outline(&robust, self.outline.iter().copied()),
+            outline: outline(&robust, &robust, self.outline.iter().copied()),
         })
     }
 }
@@ -135,13 +144,17 @@ impl Framed for WorldBounds {
     }
 }
 
-/// The outermost of `points` inside `robust` in each of [`OUTLINE_DIRECTIONS`] directions (a
-/// Fibonacci sphere's), at most [`OUTLINE_SAMPLE`] of them taken evenly; the box's corners
-/// when none lies inside.
-fn outline(robust: &WorldBounds, points: impl Iterator<Item = DVec3>) -> Vec<DVec3> {
+/// The outermost of `points` inside `kept` (the robust box, or a hair wider) in each of
+/// [`OUTLINE_DIRECTIONS`] directions (a Fibonacci sphere's), at most [`OUTLINE_SAMPLE`] of
+/// them taken evenly; the robust box's corners when none lies inside.
+fn outline(
+    robust: &WorldBounds,
+    kept: &WorldBounds,
+    points: impl Iterator<Item = DVec3>,
+) -> Vec<DVec3> {
     let center = robust.center();
     let inside: Vec<DVec3> = points
-        .filter(|p| p.cmpge(robust.min).all() && p.cmple(robust.max).all())
+        .filter(|p| p.cmpge(kept.min).all() && p.cmple(kept.max).all())
         .map(|p| p - center)
         .collect();
     if inside.is_empty() {
@@ -250,6 +263,30 @@ mod tests {
         let extent = Extent::of_points(everything(), origin, &sample, &points);
         assert_near(extent.robust.min, origin);
         assert_near(extent.robust.max, origin + DVec3::new(99.0, 49.0, 9.9));
+    }
+
+    #[test]
+    fn the_outline_keeps_the_points_that_rounded_past_the_header_box() {
+        // The header's box a rounding error inside the points that decide it, as f32 offsets
+        // from a far origin leave them.
+        let origin = DVec3::new(500_000.0, 4_000_000.0, 100.0);
+        let points = terrain();
+        let hair = DVec3::splat(1e-5);
+        let all = WorldBounds {
+            min: origin + hair,
+            max: origin + DVec3::new(99.0, 49.0, 9.9) - hair,
+        };
+        let extent = Extent::of_points(all, origin, &points, &points);
+        let lo = extent.outline.iter().fold(DVec3::MAX, |lo, p| lo.min(*p));
+        let hi = extent.outline.iter().fold(DVec3::MIN, |hi, p| hi.max(*p));
+        // The grid's corners are its outermost points in every direction off the axes.
+        assert_near(lo.truncate().extend(0.0), origin.truncate().extend(0.0));
+        assert_near(
+            hi.truncate().extend(0.0),
+            (origin + DVec3::new(99.0, 49.0, 0.0))
+                .truncate()
+                .extend(0.0),
+        );
     }
 
     #[test]

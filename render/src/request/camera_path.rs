@@ -105,7 +105,8 @@ pub struct Turntable {
     pub frames: u32,
     /// The cloud's centre when absent.
     pub center: Option<Point3>,
-    /// Fitted so the whole cloud is in view of the first frame when absent.
+    /// The camera's distance from the centre; fitted so the whole cloud is in view of every
+    /// frame when absent.
     pub radius: Option<f64>,
     /// Degrees above the horizon.
     pub elevation_deg: f64,
@@ -323,28 +324,29 @@ fn turntable_camera(
 ) -> Camera {
     let bounds = &extent.robust;
     let projection = lens.projection(t.fov_y_deg, bounds, aspect);
-    // A start placed by hand orbits the centre of every point, as it always has.
-    let default_center = match t.start {
-        Some(_) => extent.all.center(),
-        None => bounds.center(),
-    };
-    let mut center = t.center.map_or(default_center, DVec3::from);
-    let (radius, elevation_deg, azimuth_deg) = match t.start {
+    let turned = |first: f64| first + t.degrees * index as f64 / t.frames.max(1) as f64;
+    let (position, target, enclosed) = match t.start {
         Some(start) => {
+            // A start placed by hand orbits the centre of every point, as it always has.
+            let center = t.center.map_or(extent.all.center(), DVec3::from);
             let offset = DVec3::from(start) - center;
             let radius = offset.length();
-            let elevation = (offset.z / radius.max(f64::MIN_POSITIVE))
-                .asin()
-                .to_degrees();
-            (radius, elevation, offset.y.atan2(offset.x).to_degrees())
+            let elevation = (offset.z / radius.max(f64::MIN_POSITIVE)).asin();
+            let azimuth = turned(offset.y.atan2(offset.x).to_degrees()).to_radians();
+            let direction = DVec3::new(
+                elevation.cos() * azimuth.cos(),
+                elevation.cos() * azimuth.sin(),
+                elevation.sin(),
+            );
+            (center + direction * radius, center, &extent.all)
         }
         None => {
-            // One orbit for all its views, as close as the widest of them lets the cloud's box
-            // stay in view, so the cloud neither zooms in and out nor leaves the frame.
+            // One orbit for all its views, as close as the widest of them lets the cloud stay
+            // in view, so the cloud neither zooms in and out nor leaves the frame.
             let azimuths: Vec<f64> = (0..=ORBIT_FIT_VIEWS)
                 .map(|k| t.azimuth_deg + t.degrees * f64::from(k) / f64::from(ORBIT_FIT_VIEWS))
                 .collect();
-            let orbit = fitted_orbit(
+            let mut orbit = fitted_orbit(
                 bounds,
                 &extent.outline,
                 t.center.map(DVec3::from),
@@ -353,23 +355,17 @@ fn turntable_camera(
                 t.elevation_deg,
                 projection,
             );
-            center = orbit.target;
-            (
-                t.radius.unwrap_or(orbit.distance),
+            orbit.distance = t.radius.unwrap_or(orbit.distance);
+            let (position, target) = orbit.view(
+                bounds,
+                &extent.outline,
+                turned(t.azimuth_deg),
                 t.elevation_deg,
-                t.azimuth_deg,
-            )
+            );
+            (position, target, bounds)
         }
     };
-    let azimuth = azimuth_deg + t.degrees * index as f64 / t.frames.max(1) as f64;
-    let (az, el) = (azimuth.to_radians(), elevation_deg.to_radians());
-    let direction = DVec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
-    let enclosed = if t.start.is_some() {
-        &extent.all
-    } else {
-        bounds
-    };
-    let mut camera = Camera::looking_at(center + direction * radius, center, enclosed, projection);
+    let mut camera = Camera::looking_at(position, target, enclosed, projection);
     camera.up = t.up.into();
     camera
 }
