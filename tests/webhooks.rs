@@ -238,6 +238,48 @@ async fn a_job_that_succeeds_posts_one_signed_event() {
         .expect("endedUnixMs");
     assert!(created > 0 && ended >= created, "{body}");
     assert!(!server.log().contains(SECRET));
+    assert_the_guides_python_verifies(request, SECRET);
+}
+
+/// The Python function of the service guide's "Webhooks" section, run on a delivery as
+/// received: it accepts the daemon's signature and refuses another.
+fn assert_the_guides_python_verifies(request: &Received, secret: &str) {
+    let guide = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/guide/service.md"),
+    )
+    .expect("the service guide");
+    let section = guide
+        .split("\n## Webhooks\n")
+        .nth(1)
+        .expect("a Webhooks section");
+    let function = section
+        .split("```python\n")
+        .nth(1)
+        .and_then(|rest| rest.split("```").next())
+        .expect("a Python block in the Webhooks section");
+    let script = format!(
+        "{function}\nimport sys\n\
+         print(is_from_the_farm(sys.argv[1].encode(), sys.stdin.buffer.read(), sys.argv[2]))\n"
+    );
+    let verdict = |signature: &str| {
+        let mut python = std::process::Command::new("python3")
+            .args(["-c", &script, secret, signature])
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .expect("python3 runs");
+        python
+            .stdin
+            .take()
+            .expect("its stdin")
+            .write_all(&request.body)
+            .expect("the body written");
+        let output = python.wait_with_output().expect("python3 ends");
+        assert!(output.status.success(), "{output:?}");
+        String::from_utf8_lossy(&output.stdout).trim().to_owned()
+    };
+    assert_eq!(verdict(request.header("x-pointfarm-signature")), "True");
+    assert_eq!(verdict(&format!("sha256={}", "0".repeat(64))), "False");
 }
 
 /// A cancelled job is posted as `job.cancelled`; an endpoint that answers 503 twice gets it
