@@ -1,7 +1,8 @@
 //! Webhooks end to end: `pointfarm serve` posts job ends to real HTTP servers on loopback
 //! sockets, which record what they are sent and answer as each test scripts them: signed
-//! events whose signature a receiver's own HMAC checks, retries after 503s, an endpoint that
-//! never answers holding up nobody else, and a bad configuration refusing the start.
+//! events whose signature a receiver's own HMAC checks, each end for the endpoints that want
+//! it, retries after 503s, an endpoint that never answers holding up nobody else, and a bad
+//! configuration refusing the start.
 
 use std::collections::{BTreeMap, VecDeque};
 use std::io::{BufRead, BufReader, Read, Write};
@@ -12,9 +13,11 @@ use std::time::Duration;
 
 use hmac::{Hmac, Mac};
 use pointfarm_proto::v1 as pb;
+use pointfarm_render::filter::{ClipBox, PointFilter};
+use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, StillCamera};
 use pointfarm_tests::prometheus::scrape;
 use pointfarm_tests::service::{
-    clients, scratch_sample, submit, turntable_job, upload_file, watch_to_success,
+    clients, run_job, scratch_sample, submit, turntable_job, upload_file, watch_to_success,
 };
 use pointfarm_tests::{free_address, own_stderr_lines, pointfarm, wait_for, ServeProcess};
 use sha2::Sha256;
@@ -342,6 +345,82 @@ async fn a_cancelled_job_is_posted_again_after_503s() {
         "{log}"
     );
     assert!(log.contains(&hook.url), "{log}");
+}
+
+/// A job that fails is posted as `job.failed` with its error and failed attempts, to the
+/// endpoint that wants every end and to the one that wants failures only; a cancellation goes
+/// to the first alone.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_failed_job_reaches_the_endpoints_that_want_failures() {
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let every_end = HookServer::start(Answers::Scripted, &[]);
+    let failures_only = HookServer::start(Answers::Scripted, &[]);
+    let secret = secret_file(scratch.path());
+    let config = scratch.path().join("pointfarm.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[serve]\nwebhook_secret_file = {}\n\n[[serve.webhook]]\nurl = \"{}\"\n\n\
+             [[serve.webhook]]\nurl = \"{}\"\nevents = [\"failed\"]\n",
+            toml_string(&secret),
+            every_end.url,
+            failures_only.url,
+        ),
+    )
+    .expect("write the configuration");
+    let server = ServeProcess::start_with(
+        &scratch.path().join("data"),
+        &["--config", config.to_str().expect("a UTF-8 path")],
+    );
+    let (_sample, file) = scratch_sample("s.las", 5_000, 4);
+    let (mut datasets, mut jobs) = clients(&server.address).await;
+    let dataset = upload_file(&mut datasets, "s.las", &file).await;
+    // Far more frames than render before the cancel arrives.
+    let cancelled = submit(&mut jobs, turntable_job("long", &dataset.id, 500, 64, 48)).await;
+    jobs.cancel_job(pb::CancelJobRequest {
+        id: cancelled.id.clone(),
+    })
+    .await
+    .expect("cancel");
+    let mut request = RenderRequest {
+        width: 64,
+        height: 48,
+        camera_path: CameraPath::Still(StillCamera::default()),
+        lens: Lens::default(),
+        render: RenderOptions::default(),
+    };
+    request.render.filter = PointFilter {
+        clip: Some(ClipBox {
+            min: [0.0, 0.0, 0.0],
+            max: [1.0, 1.0, 1.0],
+        }),
+        ..Default::default()
+    };
+    let failed = run_job(&mut jobs, &dataset.id, "outside", request).await;
+    assert_eq!(failed.state, pb::JobState::Failed as i32, "{failed:?}");
+
+    let failure = &failures_only.wait_for_requests(1)[0];
+    let every = every_end.wait_for_requests(2);
+    assert_eq!(failures_only.requests().len(), 1);
+    let events: Vec<&str> = every
+        .iter()
+        .map(|request| request.header("x-pointfarm-event"))
+        .collect();
+    assert!(
+        events.contains(&"job.cancelled") && events.contains(&"job.failed"),
+        "{events:?}"
+    );
+    assert_eq!(failure.header("x-pointfarm-event"), "job.failed");
+    assert_signed(failure, SECRET);
+    let body = failure.json();
+    assert_eq!(body["job"]["id"], failed.id.as_str());
+    assert_eq!(body["job"]["state"], "JOB_STATE_FAILED");
+    assert_eq!(body["job"]["error"], failed.error.as_str());
+    let attempts: u64 = body["job"]["failedAttempts"]
+        .as_str()
+        .and_then(|n| n.parse().ok())
+        .expect("failedAttempts");
+    assert!(attempts >= 1, "{body}");
 }
 
 /// An endpoint that accepts connections and never answers holds up neither the jobs' ends
