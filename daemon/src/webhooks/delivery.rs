@@ -17,18 +17,18 @@ use super::config::{JobEnd, WebhookEndpoint, WebhookSecret};
 use crate::metrics::WebhookCounters;
 
 /// Tries of one delivery, the first included: about a minute of backoff with the waits below.
-pub(crate) const ATTEMPTS: u32 = 6;
+const ATTEMPTS: u32 = 6;
 /// The wait before the first retry; each later one doubles it, up to [`LONGEST_WAIT`].
 const FIRST_WAIT: Duration = Duration::from_secs(1);
 const LONGEST_WAIT: Duration = Duration::from_secs(30);
 /// The longest one try may take, connecting and the answer's head included: an endpoint that
 /// accepts and never answers costs a delivery this much per try, and nobody else anything.
-pub(crate) const REQUEST_TIMEOUT: Duration = Duration::from_secs(10);
+const REQUEST_TIMEOUT: Duration = Duration::from_secs(10);
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
 /// Deliveries to one endpoint under way at once; more wait in its queue.
 const IN_FLIGHT_PER_ENDPOINT: usize = 4;
 /// Events waiting for one endpoint; past it, new ones are dropped (and counted).
-pub(crate) const QUEUE_PER_ENDPOINT: usize = 256;
+const QUEUE_PER_ENDPOINT: usize = 256;
 
 /// A job's end as sent: the same body to every endpoint, signed with each one's secret.
 #[derive(Debug)]
