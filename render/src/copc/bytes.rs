@@ -87,7 +87,9 @@ impl CopcBytes {
     /// near ones fetched as one request and the requests in parallel.
     pub fn read_many(&self, ranges: &[Range<u64>]) -> Result<Vec<Vec<u8>>, CopcError> {
         for range in ranges {
-            self.checked(range.start, range.end.saturating_sub(range.start))?;
+            // A reversed range is no range inside: its length would wrap.
+            let len = range.end.checked_sub(range.start).unwrap_or(u64::MAX);
+            self.checked(range.start, len)?;
         }
         match &self.origin {
             Origin::File(_) => read_concurrently(ranges, |range| {
@@ -247,5 +249,65 @@ impl Seek for RangeReader<'_> {
             io::Error::new(io::ErrorKind::InvalidInput, "a seek before the start")
         })?;
         Ok(self.position)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::io::{Read, Seek, SeekFrom};
+
+    use super::super::tests::copc_file;
+    use super::*;
+
+    #[test]
+    fn ranges_read_as_the_file_holds_them_and_none_past_its_end() {
+        let path = copc_file("simple_with_page.copc.laz");
+        let whole = std::fs::read(&path).expect("file");
+        let bytes = CopcBytes::file(&path).expect("opens");
+        assert_eq!(bytes.size(), whole.len() as u64);
+        assert_eq!(bytes.read_at(100, 50).expect("inside"), whole[100..150]);
+        let many = bytes
+            .read_many(&[2000..2100, 0..4, 30_000..30_001])
+            .expect("inside");
+        assert_eq!(
+            many,
+            [&whole[2000..2100], &whole[..4], &whole[30_000..30_001]]
+        );
+        let size = bytes.size();
+        for refused in [
+            bytes.read_at(size - 1, 2),
+            bytes.read_at(u64::MAX, 2),
+            bytes.read_many(&[0..4, size..size + 1]).map(|_| Vec::new()),
+            // A reversed range, as a forged entry could give.
+            bytes
+                .read_many(&[0..4, Range { start: 10, end: 4 }])
+                .map(|_| Vec::new()),
+        ] {
+            let error = refused.expect_err("outside");
+            assert!(error.to_string().contains("past the end"), "{error}");
+        }
+    }
+
+    #[test]
+    fn the_reader_seeks_and_reads_as_the_file_does() {
+        let path = copc_file("simple.copc.laz");
+        let whole = std::fs::read(&path).expect("file");
+        let bytes = CopcBytes::file(&path).expect("opens");
+        let mut reader = bytes.reader();
+        let mut head = [0u8; 10];
+        reader.read_exact(&mut head).expect("head");
+        assert_eq!(head, whole[..10]);
+        let end = reader.seek(SeekFrom::End(-5)).expect("seek");
+        assert_eq!(end, whole.len() as u64 - 5);
+        let mut tail = Vec::new();
+        reader.read_to_end(&mut tail).expect("tail");
+        assert_eq!(tail, whole[whole.len() - 5..]);
+        assert!(reader
+            .seek(SeekFrom::Current(-(whole.len() as i64) - 1))
+            .is_err());
+        assert_eq!(
+            reader.read_at(375, 54).expect("a VLR header"),
+            whole[375..429]
+        );
     }
 }
