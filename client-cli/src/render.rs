@@ -178,10 +178,13 @@ fn render_url(
         (true, true) => copc_preview_then_final(&target, source, options)?,
         (preview, _) => {
             if preview {
-                words.say(&format!(
-                    "--preview: the pixel error ({}) is a preview's already; {FINAL_AT_ONCE}",
-                    options.lod_error
-                ));
+                crate::output::say(
+                    args.json,
+                    format!(
+                        "--preview: the pixel error ({}) is a preview's already; {FINAL_AT_ONCE}",
+                        options.lod_error
+                    ),
+                );
             }
             target.render(&mut source, &|| true)?;
         }
