@@ -8,13 +8,11 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
-use pointfarm_tests::prometheus::{
-    free_address, http_get, prometheus_installed, scrape, Prometheus,
-};
+use pointfarm_tests::prometheus::{http_get, prometheus_installed, scrape, Prometheus};
 use pointfarm_tests::service::{
     clients, scratch_sample, submit, turntable_job, upload_file, watch_to_success,
 };
-use pointfarm_tests::{pointfarm_bin, wait_for, ServeProcess, WorkerProcess};
+use pointfarm_tests::{free_address, pointfarm_bin, wait_for, ServeProcess, WorkerProcess};
 
 fn value(metrics: &BTreeMap<String, f64>, series: &str) -> f64 {
     *metrics

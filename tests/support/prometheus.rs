@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
-use crate::wait_for;
+use crate::{free_address, wait_for};
 
 /// Where Debian's `prometheus` package puts the server (`deploy/test.sh` installs it).
 pub const PROMETHEUS: &str = "/usr/bin/prometheus";
@@ -23,15 +23,6 @@ pub fn prometheus_installed() -> bool {
         );
     }
     installed
-}
-
-/// A free loopback address.
-pub fn free_address() -> String {
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|probe| probe.local_addr())
-        .expect("a free loopback port")
-        .port();
-    format!("127.0.0.1:{port}")
 }
 
 /// `GET http://{address}{path}`: the status code and the body. HTTP/1.0, so that the answer
