@@ -4,7 +4,7 @@
 //! frame saying so, rather than render another version than the dataset's.
 
 use pointfarm_daemon::model::RemoteSource;
-use pointfarm_render::copc::{open_copc_url, CopcDataset, CopcError};
+use pointfarm_render::copc::{open_copc_object, CopcDataset, CopcError};
 use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteError, RemoteSettings};
 
 use crate::failure::FrameFailure;
@@ -18,7 +18,7 @@ pub struct UrlReader {
 
 impl UrlReader {
     /// Opens the object of `remote` for rendering, once its version is still the one
-    /// registered.
+    /// registered; every read of it is then pinned to that version.
     pub fn open(&mut self, remote: &RemoteSource) -> Result<CopcDataset, FrameFailure> {
         let url = ObjectUrl::parse(&remote.url).map_err(|e| FrameFailure::from(&e))?;
         let client = match &self.client {
@@ -38,7 +38,8 @@ impl UrlReader {
                 remote.version
             )));
         }
-        open_copc_url(&client, &url).map_err(|e| match &e {
+        // The object checked is the one read: its reads are pinned to the version compared.
+        open_copc_object(object).map_err(|e| match &e {
             CopcError::Remote(remote) => FrameFailure::from(remote),
             CopcError::Io { .. } => FrameFailure::transient(e.to_string()),
             _ => FrameFailure::permanent(e.to_string()),

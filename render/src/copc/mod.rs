@@ -68,7 +68,7 @@ use crate::lod::{
     for_each_coarse_node_up_to, node_heights, DatasetStats, LodDataset, LodError, LodHierarchy,
     ELEVATION_SAMPLE_POINTS,
 };
-use crate::remote::{ObjectUrl, RemoteClient};
+use crate::remote::{ObjectUrl, RemoteClient, RemoteObject};
 use bytes::CopcBytes;
 use lazy::CopcPageReader;
 
@@ -110,8 +110,16 @@ pub fn open_copc(path: &Path) -> Result<CopcDataset, CopcError> {
 /// coarsest nodes by range. Frames read the other pages and the nodes they need through
 /// `client`, whose counters tell what was fetched.
 pub fn open_copc_url(client: &RemoteClient, url: &ObjectUrl) -> Result<CopcDataset, CopcError> {
+    open_copc_object(client.open(url)?)
+}
+
+/// Opens an object already opened (its version read and perhaps checked by the caller, as a
+/// worker checks it against the version its dataset was registered at) for rendering as
+/// [`open_copc_url`] does: every read is pinned to that version, so the check and the reads
+/// see one object.
+pub fn open_copc_object(object: RemoteObject) -> Result<CopcDataset, CopcError> {
     open(
-        open_object(client, url)?,
+        CopcBytes::remote(object),
         PageReads::AsNeeded,
         ELEVATION_SAMPLE_POINTS,
     )
