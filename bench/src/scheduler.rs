@@ -43,6 +43,7 @@ fn job(request_id: String, frames: u32) -> JobSpec {
         priority: 0,
         requirements: Default::default(),
         preview: false,
+        after: Vec::new(),
     }
 }
 

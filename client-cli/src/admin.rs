@@ -94,7 +94,7 @@ pub enum DatasetCommand {
 
 #[derive(Subcommand)]
 pub enum JobsCommand {
-    /// The server's jobs, with their state and progress.
+    /// The server's jobs, with their state and progress, and the jobs each runs after.
     List {
         /// Only jobs in this state: queued, running, succeeded, failed, cancelled.
         #[arg(long)]
@@ -371,8 +371,12 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                     );
                     for j in &all {
                         let frames = format!("{}/{}", j.frames_done, j.frames_total);
+                        let after = match j.after_job_ids.as_slice() {
+                            [] => String::new(),
+                            ids => format!("  after {}", ids.join(", ")),
+                        };
                         outln!(
-                            "{:<18} {:<10} {:>9} {:>8}  {}",
+                            "{:<18} {:<10} {:>9} {:>8}  {}{after}",
                             j.id,
                             state_name(j.state),
                             frames,
@@ -567,7 +571,8 @@ fn worker_label(name: &str, embedded: bool) -> String {
 }
 
 /// What `jobs show` says of a job's workers: what it requires of them, who rendered its
-/// frames, who is blocklisted, and why it waits when no connected worker can render it.
+/// frames, who is blocklisted, the jobs it runs after, and why it waits (for one of those, or
+/// for a connected worker that can render it).
 fn scheduling_lines(job: &pb::Job) -> Vec<String> {
     let mut lines = Vec::new();
     if let Some(required) = job.requirements.as_ref() {
@@ -602,6 +607,9 @@ fn scheduling_lines(job: &pb::Job) -> Vec<String> {
             .map(|w| format!("{} ({} failed frames)", w.worker_name, w.failed_frames))
             .collect();
         lines.push(format!("blocklisted workers: {}", listed.join(", ")));
+    }
+    if !job.after_job_ids.is_empty() {
+        lines.push(format!("runs after: {}", job.after_job_ids.join(", ")));
     }
     if !job.waiting_reason.is_empty() {
         lines.push(format!("waiting: {}", job.waiting_reason));

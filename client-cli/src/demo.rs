@@ -100,6 +100,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
                 priority: 0,
                 requirements: Default::default(),
                 preview: false,
+                after: Vec::new(),
             };
             let request = pb::SubmitJobRequest::from(&spec);
             let job = answer(client.jobs.submit_job(request).await)?;

@@ -1,7 +1,7 @@
 //! `pointfarm render --server URL`: the request of the local render, carried out by a daemon
 //! (or refused, naming the option the service does not have).
 //! Uploads the file if the server lacks it, submits, follows with a progress bar and
-//! downloads the frames. A job with previews has each preview downloaded as it comes, where
+//! downloads the frames; with `--detach`, returns once the job is submitted, its id printed. A job with previews has each preview downloaded as it comes, where
 //! its final frame will be written over it. With `--json`, one object per frame on stdout:
 //! its file and the frame as the API reports it.
 
@@ -67,6 +67,7 @@ fn submission(
         priority: args.priority,
         requirements: requirements(args)?,
         preview: args.preview,
+        after: args.after.clone(),
     };
     Ok(pb::SubmitJobRequest::from(&spec))
 }
@@ -102,7 +103,8 @@ pub fn run(
         );
     }
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
-    let say = |line: String| crate::output::say(args.json, line);
+    // Detached, stdout carries the job's id alone, for scripts to read.
+    let say = |line: String| crate::output::say(args.json || args.detach, line);
     runtime.block_on(async {
         let mut client = Client::connect(server, &args.credentials).await?;
         let dataset = match &args.dataset {
@@ -134,6 +136,14 @@ pub fn run(
             "job {} submitted: {} frames",
             job.id, job.frames_total
         ));
+        if args.detach {
+            if args.json {
+                outln!("{}", crate::admin_json::json_line(&job)?);
+            } else {
+                outln!("{}", job.id);
+            }
+            return Ok(());
+        }
         // A job that the connected workers all refuse waits for another: say why, once.
         if let Ok(shown) = client
             .jobs

@@ -59,6 +59,12 @@ pub fn run(args: RenderArgs) -> Result<()> {
              --server (this render runs here)"
         );
     }
+    if !args.after.is_empty() || args.detach {
+        anyhow::bail!(
+            "--after and --detach are for a server's jobs; they need --server (this render \
+             runs here)"
+        );
+    }
 
     let files = match url_input::classify(&args.inputs)? {
         Inputs::Url(url) => return render_url(&args, &request, &outputs, &url),

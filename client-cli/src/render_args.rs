@@ -81,6 +81,15 @@ pub struct RenderArgs {
     /// rasterizer.
     #[arg(long)]
     pub(crate) require_gpu: bool,
+    /// Server jobs: lease no frame of this job until the job JOB has succeeded (repeatable,
+    /// each must); if one fails or is cancelled, this job fails, naming it.
+    #[arg(long = "after", value_name = "JOB")]
+    pub(crate) after: Vec<String>,
+    /// Server jobs: submit, print the job's id on standard output (with --json, the job as a
+    /// JSON line) and return at once, without following the job or fetching its frames
+    /// (`pointfarm jobs watch ID` follows it, `pointfarm frames fetch ID` fetches them).
+    #[arg(long, conflicts_with = "video")]
+    pub(crate) detach: bool,
     /// Output image, in the format its extension names: .png, .jpg, .webp or .tif, 8 bits a
     /// channel (--depth writes each frame's depth as a 16-bit PNG beside it).
     /// With --turntable: a folder for frame_00000.png, frame_00001.png, ..., or a pattern

@@ -1,6 +1,6 @@
-//! Why a job waits: whether a worker connected now can be leased its frames, and why each
-//! that cannot cannot (requirements, frame size, blocklist), for `jobs show` and the
-//! submission's answer. More `Daemon` methods; the test is the one `lease_frame` makes.
+//! Why a job waits: for a job it runs after to succeed, or for a worker connected now that can
+//! be leased its frames, with why each that cannot cannot (requirements, frame size,
+//! blocklist), for `jobs show` and the submission's answer. More `Daemon` methods; the test is the one `lease_frame` makes.
 
 use crate::capabilities::{drawn_side, AdapterKind};
 use crate::model::Job;
@@ -23,6 +23,12 @@ impl Daemon {
     pub fn job_availability(&self, job: &Job) -> JobAvailability {
         if job.state.is_terminal() {
             return JobAvailability::default();
+        }
+        if let Some(prerequisite) = self.unmet_prerequisite(job) {
+            return JobAvailability {
+                waiting: Some(format!("waiting for job {prerequisite} to succeed")),
+                refusals: Vec::new(),
+            };
         }
         let connected = self.workers.connected(self.config.lease_timeout);
         let refusal = |worker: &ConnectedWorker| {

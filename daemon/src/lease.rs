@@ -12,8 +12,9 @@
 //! previous daemon) count one too. A failure the worker reports as permanent (the dataset
 //! cannot be read, the request cannot render) fails the job at once.
 //!
-//! A worker is leased only frames it can render: of jobs whose requirements (tags, a GPU) it
-//! meets, whose images are no larger than it draws (`capabilities`), and that have not
+//! A worker is leased only frames it can render: of jobs whose chains let them run (each job
+//! they run after has succeeded, `chains`), whose requirements (tags, a GPU) it meets, whose
+//! images are no larger than it draws (`capabilities`), and that have not
 //! blocklisted it. A worker that fails `worker_failures_before_blocklist` frames of a job
 //! (reported failures and leases that ran out; not leases lost because the daemon stopped)
 //! gets no more of that job's frames, as Flamenco and Deadline do: the count is stored with
@@ -62,6 +63,7 @@ impl Daemon {
             .collect();
         let usable = |job: &Job| {
             !job.blocklist.contains(worker)
+                && self.unmet_prerequisite(job).is_none()
                 && capabilities
                     .refusal(&job.spec.requirements, &job.spec.request)
                     .is_none()

@@ -12,6 +12,8 @@
 //! `remote_datasets` (datasets by URL: one COPC object under the operator's allowed prefixes;
 //! more `Daemon` methods),
 //! `describe` (what a dataset's files hold, read with the render crate; more `Daemon` methods),
+//! `chains` (jobs that run after others succeed, failed along the chain when one does not;
+//! more `Daemon` methods),
 //! `lease` (frame leases: the one scheduling path, more `Daemon` methods), `grpc` (validates,
 //! converts and delegates: one file per service, the conversions, the streaming of bytes; the
 //! frame-task conversions are public for the worker's side of the wire), `supervisor` (runs the
@@ -26,6 +28,7 @@
 pub mod access;
 pub mod availability;
 pub mod capabilities;
+pub mod chains;
 pub mod dataset_files;
 pub mod datasets;
 pub mod describe;

@@ -144,6 +144,10 @@ pub struct JobSpec {
     /// tenth of the points, then as a final frame once it is ready.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub preview: bool,
+    /// Jobs that must each succeed before a frame of this one is leased, once each in the
+    /// order given; empty in jobs stored before chains, which wait for nothing.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub after: Vec<JobId>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

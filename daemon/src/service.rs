@@ -257,6 +257,7 @@ impl Daemon {
             webhooks,
         });
         daemon.count_leases_of_previous_run()?;
+        daemon.fail_broken_chains()?;
         Ok(daemon)
     }
 
@@ -292,8 +293,10 @@ impl Daemon {
 
     // ------------------------------------------------------------------ jobs
 
-    /// Validates limits that depend on this server, stores the job and wakes a worker.
-    pub fn submit_job(&self, spec: JobSpec) -> Result<Job, DaemonError> {
+    /// Validates limits that depend on this server and the jobs it runs after, stores the job
+    /// and wakes a worker; a job after one that has already failed or been cancelled is
+    /// stored failed, as it would have been had it been waiting then.
+    pub fn submit_job(&self, mut spec: JobSpec) -> Result<Job, DaemonError> {
         check_length("request_id", &spec.request_id, MAX_REQUEST_ID_BYTES)?;
         let side = self.config.max_image_side;
         let (width, height) = (spec.request.width, spec.request.height);
@@ -310,13 +313,21 @@ impl Daemon {
             ));
         }
         self.dataset(&spec.dataset_id)?;
+        spec.after = self.checked_after(&spec.after)?;
+        // A chained job is stored under the scheduling lock, which every job's end holds, so a
+        // job it runs after cannot end unseen between the check of its chain and its storing.
+        let _scheduling = (!spec.after.is_empty())
+            .then(|| self.scheduling())
+            .transpose()?;
         let (job, created) = self.state.submit_job(spec)?;
         if created {
             tracing::info!(job = %job.id, frames = job.frames_total, "job submitted");
             self.publish(&job, None);
+            self.fail_if_chain_broken_locked(&job)?;
             self.work.notify();
         }
-        Ok(job)
+        // What a job after one that already failed became: failed.
+        self.job(&job.id)
     }
 
     pub fn job(&self, id: &str) -> Result<Job, DaemonError> {
@@ -362,7 +373,8 @@ impl Daemon {
         Ok(job)
     }
 
-    /// Logs that `job` ended, once, with its counts, and queues the event for the webhooks;
+    /// Logs that `job` ended, once, with its counts, queues the event for the webhooks and
+    /// settles the jobs that run after it (`chains`); called under the scheduling lock.
     /// `unstored_attempts` failed attempts ended it before they were stored at its frame.
     pub(crate) fn log_job_end(&self, job: &Job, unstored_attempts: u32) {
         let failed_attempts = self
@@ -392,6 +404,10 @@ impl Daemon {
                 "job cancelled"
             ),
             JobState::Queued | JobState::Running => {}
+        }
+        if let Err(e) = self.end_chain_locked(job) {
+            // The next start fails what is left of the chain (`fail_broken_chains`).
+            tracing::warn!(job = %job.id, error = %e, "could not settle the jobs after it");
         }
     }
 }

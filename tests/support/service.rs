@@ -204,6 +204,7 @@ pub fn turntable_job(
         priority: 0,
         requirements: None,
         preview: false,
+        after_job_ids: Vec::new(),
     }
 }
 
@@ -256,6 +257,7 @@ pub async fn run_job(
         priority: 0,
         requirements: Default::default(),
         preview: false,
+        after: Vec::new(),
     };
     let job = jobs
         .submit_job(pb::SubmitJobRequest::from(&spec))

@@ -24,6 +24,7 @@ fn job_request(
         priority: 0,
         requirements: Default::default(),
         preview: false,
+        after: Vec::new(),
     };
     pb::SubmitJobRequest::from(&spec)
 }

@@ -17,7 +17,7 @@ use crate::error::DaemonError;
 use crate::lease::{FailureKind, FrameTask, HeartbeatAnswer};
 use crate::lease_record::Lease;
 use crate::limits::{truncated, MAX_WORKER_NAME_BYTES};
-use crate::model::{FrameCut, FrameReport, Job, JobSpec, JobState, StageTiming};
+use crate::model::{FrameCut, FrameReport, Job, JobState, StageTiming};
 use crate::state::Page;
 use crate::stores::{CopcServed, PreviewBytes, StoreAnswer};
 use pointfarm_render::classification;
@@ -34,30 +34,6 @@ pub(super) fn invalid(field: &str, message: impl Into<String>) -> DaemonError {
 /// A page of a listing as its items' messages and the token of the page after it.
 pub(super) fn page_messages<T, M: for<'a> From<&'a T>>(page: Page<T>) -> (Vec<M>, String) {
     (page.items.iter().map(M::from).collect(), page.next_token)
-}
-
-/// Validates a submission; limits that depend on the server are checked by the daemon.
-impl TryFrom<&pb::SubmitJobRequest> for JobSpec {
-    type Error = DaemonError;
-
-    fn try_from(r: &pb::SubmitJobRequest) -> Result<Self, DaemonError> {
-        if r.dataset_id.is_empty() {
-            return Err(invalid("dataset_id", "is required"));
-        }
-        Ok(JobSpec {
-            request_id: r.request_id.clone(),
-            dataset_id: r.dataset_id.clone(),
-            request: render_request(r.width, r.height, r.camera_path.as_ref(), r.render.as_ref())?,
-            priority: r.priority,
-            requirements: r
-                .requirements
-                .as_ref()
-                .map(WorkerRequirements::try_from)
-                .transpose()?
-                .unwrap_or_default(),
-            preview: r.preview,
-        })
-    }
 }
 
 /// Required tags are checked, sorted and kept once.
@@ -181,6 +157,7 @@ impl From<&Job> for pb::Job {
                 .collect(),
             waiting_reason: String::new(),
             refusals: Vec::new(),
+            after_job_ids: job.spec.after.clone(),
         }
     }
 }
@@ -725,5 +702,6 @@ pub fn dataset_description(
 }
 
 mod datasets;
+mod submission;
 #[cfg(test)]
 mod tests;

@@ -465,6 +465,7 @@ impl From<&JobSpec> for pb::SubmitJobRequest {
             requirements: (!spec.requirements.is_empty())
                 .then(|| pb::WorkerRequirements::from(&spec.requirements)),
             preview: spec.preview,
+            after_job_ids: spec.after.clone(),
         }
     }
 }

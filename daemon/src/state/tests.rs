@@ -21,6 +21,7 @@ fn spec(request_id: &str, frames: u32, priority: i32) -> JobSpec {
         priority,
         requirements: Default::default(),
         preview: false,
+        after: Vec::new(),
     }
 }
 

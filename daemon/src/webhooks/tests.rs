@@ -26,6 +26,7 @@ fn job(state: JobState, error: Option<&str>) -> Job {
             priority: 0,
             requirements: Default::default(),
             preview: false,
+            after: Vec::new(),
         },
         state,
         frames_total: 4,

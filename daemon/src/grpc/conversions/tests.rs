@@ -5,6 +5,7 @@ use pointfarm_render::request::{PointSize, RenderOptions};
 
 use super::*;
 use crate::lease::{TaskDataset, TaskFile};
+use crate::model::JobSpec;
 
 fn valid() -> pb::SubmitJobRequest {
     pb::SubmitJobRequest {
@@ -17,6 +18,7 @@ fn valid() -> pb::SubmitJobRequest {
         priority: 0,
         requirements: None,
         preview: false,
+        after_job_ids: Vec::new(),
     }
 }
 
