@@ -1,0 +1,209 @@
+//! Job chains through real daemons: a job submitted after others renders only once they have
+//! succeeded, fails along the chain when one is cancelled, keeps its chain across a restart,
+//! and `pointfarm render --server --detach --after` builds such chains from a script.
+
+use pointfarm_daemon::access::Access;
+use pointfarm_proto::v1 as pb;
+use pointfarm_proto::v1::job_service_client::JobServiceClient;
+use pointfarm_tests::service::{
+    clients, get_job, scratch_sample, submit, turntable_job, upload_file, watch_to_end,
+    watch_to_success, TestDaemon,
+};
+use pointfarm_tests::{pointfarm, stdout, ServeProcess};
+use tonic::transport::Channel;
+
+/// A turntable of `frames` frames that runs after `after`.
+fn job_after(
+    name: &str,
+    dataset_id: &str,
+    frames: u32,
+    after: &[&pb::Job],
+) -> pb::SubmitJobRequest {
+    pb::SubmitJobRequest {
+        after_job_ids: after.iter().map(|job| job.id.clone()).collect(),
+        ..turntable_job(name, dataset_id, frames, 32, 24)
+    }
+}
+
+/// When the first change of job `id` after it was queued happened (leased, or ended): the
+/// update time of the first event of its watch that is not queued.
+async fn left_the_queue_at(jobs: &mut JobServiceClient<Channel>, id: &str) -> i64 {
+    let mut stream = jobs
+        .watch_job(pb::WatchJobRequest { id: id.into() })
+        .await
+        .expect("watch")
+        .into_inner();
+    while let Some(event) = stream.message().await.expect("event") {
+        if let Some(job) = event
+            .job
+            .filter(|job| job.state != pb::JobState::Queued as i32)
+        {
+            return job.updated_unix_ms;
+        }
+    }
+    panic!("job {id} never left the queue");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_after_another_renders_only_once_it_has_succeeded() {
+    let daemon = TestDaemon::start(|_| {}, Access::default()).await;
+    let (_scratch, file) = scratch_sample("s.las", 20_000, 3);
+    let dataset = upload_file(&mut daemon.datasets().await, "s.las", &file).await;
+    let mut jobs = daemon.jobs().await;
+    let first = submit(&mut jobs, turntable_job("first", &dataset.id, 3, 32, 24)).await;
+    // Of a higher priority: without its chain it would be leased first.
+    let second_request = pb::SubmitJobRequest {
+        priority: 10,
+        ..job_after("second", &dataset.id, 2, &[&first])
+    };
+    let second = submit(&mut jobs, second_request).await;
+    assert_eq!(second.after_job_ids, vec![first.id.clone()]);
+
+    let (mut watcher, id) = (jobs.clone(), second.id.clone());
+    let started = tokio::spawn(async move { left_the_queue_at(&mut watcher, &id).await });
+    let (first_done, _) = watch_to_success(&mut jobs, &first.id, String::new).await;
+    let started = started.await.expect("the watch of the second job");
+    assert!(
+        started >= first_done.updated_unix_ms,
+        "the second job left the queue at {started}, before the first succeeded at {}",
+        first_done.updated_unix_ms
+    );
+    let (second_done, frames) = watch_to_success(&mut jobs, &second.id, String::new).await;
+    assert_eq!((second_done.frames_done, frames.len()), (2, 2));
+    assert_eq!(second_done.after_job_ids, vec![first.id.clone()]);
+    daemon.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_cancelled_job_fails_the_chain_after_it_and_unknown_jobs_are_refused() {
+    // No worker: the jobs stay queued until the cancel.
+    let daemon = TestDaemon::start_without_worker(|_| {}, Access::default()).await;
+    let (_scratch, file) = scratch_sample("s.las", 5_000, 4);
+    let dataset = upload_file(&mut daemon.datasets().await, "s.las", &file).await;
+    let mut jobs = daemon.jobs().await;
+    let first = submit(&mut jobs, turntable_job("first", &dataset.id, 2, 32, 24)).await;
+    let second = submit(&mut jobs, job_after("second", &dataset.id, 2, &[&first])).await;
+    let third = submit(&mut jobs, job_after("third", &dataset.id, 2, &[&second])).await;
+    let waiting = get_job(&mut jobs, &second.id).await;
+    assert_eq!(
+        waiting.waiting_reason,
+        format!("waiting for job {} to succeed", first.id)
+    );
+
+    let unknown = pb::SubmitJobRequest {
+        after_job_ids: vec![first.id.clone(), "job-000000009999".into()],
+        ..turntable_job("unknown", &dataset.id, 2, 32, 24)
+    };
+    let refused = jobs.submit_job(unknown).await.expect_err("refused");
+    assert_eq!(refused.code(), tonic::Code::NotFound);
+    assert!(
+        refused.message().contains("job job-000000009999"),
+        "{}",
+        refused.message()
+    );
+
+    jobs.cancel_job(pb::CancelJobRequest {
+        id: first.id.clone(),
+    })
+    .await
+    .expect("cancel");
+    let (second_end, _) = watch_to_end(&mut jobs, &second.id).await;
+    assert_eq!(second_end.state, pb::JobState::Failed as i32);
+    assert_eq!(second_end.error, format!("job {} was cancelled", first.id));
+    let (third_end, _) = watch_to_end(&mut jobs, &third.id).await;
+    assert_eq!(third_end.state, pb::JobState::Failed as i32);
+    assert_eq!(third_end.error, format!("job {} failed", second.id));
+    daemon.stop().await;
+}
+
+/// `pointfarm render --server ADDR --detach [--after JOB]`, which must succeed; its stdout.
+fn render_detached(address: &str, file: &str, out: &str, after: &[&str]) -> String {
+    let mut args = vec![
+        "render",
+        file,
+        "--server",
+        address,
+        "--turntable",
+        "2",
+        "--size",
+        "32x24",
+        "--out",
+        out,
+        "--detach",
+    ];
+    for id in after {
+        args.extend(["--after", id]);
+    }
+    let output = pointfarm(&args);
+    assert!(output.status.success(), "{output:?}");
+    stdout(&output)
+}
+
+#[test]
+fn detached_renders_chain_jobs_that_a_restart_keeps() {
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let (_samples, file) = scratch_sample("s.las", 5_000, 5);
+    let file = file.to_str().expect("utf-8");
+    let out = scratch.path().join("frames");
+    let out = out.to_str().expect("utf-8");
+    let data = scratch.path().join("data");
+    // No worker: a detached render must return while its job is still queued.
+    let server = ServeProcess::start_with(&data, &["--no-embedded-worker"]);
+    let address = server.address.clone();
+
+    let first = render_detached(&address, file, out, &[]).trim().to_owned();
+    assert!(first.starts_with("job-"), "only the job's id: {first:?}");
+    let second = render_detached(&address, file, out, &[&first])
+        .trim()
+        .to_owned();
+    assert!(second.starts_with("job-"), "only the job's id: {second:?}");
+    let with_json = pointfarm(&[
+        "render",
+        file,
+        "--server",
+        &address,
+        "--turntable",
+        "2",
+        "--size",
+        "32x24",
+        "--out",
+        out,
+        "--detach",
+        "--json",
+        "--after",
+        &second,
+    ]);
+    assert!(with_json.status.success(), "{with_json:?}");
+    let third: serde_json::Value =
+        serde_json::from_str(stdout(&with_json).trim()).expect("one JSON line");
+    assert_eq!(third["afterJobIds"], serde_json::json!([second]));
+    let third = third["id"].as_str().expect("the job's id").to_owned();
+    let fetched = std::fs::read_dir(out).map_or(0, |frames| frames.count());
+    assert_eq!(fetched, 0, "a detached render fetches no frame");
+    let shown = pointfarm(&["jobs", "show", &second, "--server", &address]);
+    let shown = stdout(&shown);
+    assert!(shown.contains(&format!("runs after: {first}")), "{shown}");
+    assert!(
+        shown.contains(&format!("waiting: waiting for job {first} to succeed")),
+        "{shown}"
+    );
+
+    // Killed and started again, now with a worker: the chain holds and runs in order.
+    drop(server);
+    let server = ServeProcess::start_at(&address, &data);
+    let runtime = tokio::runtime::Runtime::new().expect("runtime");
+    runtime.block_on(async {
+        let (_, mut jobs) = clients(&address).await;
+        let kept = get_job(&mut jobs, &third).await;
+        assert_eq!(kept.after_job_ids, vec![second.clone()]);
+        let mut ends = Vec::new();
+        for id in [&first, &second, &third] {
+            let (done, _) = watch_to_success(&mut jobs, id, || server.log()).await;
+            ends.push(done.updated_unix_ms);
+        }
+        assert!(
+            ends.is_sorted(),
+            "each job ends after the one before: {ends:?}"
+        );
+    });
+}
