@@ -97,17 +97,22 @@ fn a_copc_file_by_url_renders_pixel_for_pixel_as_the_file_here() {
     assert!(local_report.get("fetched").is_none(), "{local_report}");
 }
 
+/// A COPC file of 2.5M generated points in `dir`: more than the colour ranges' sample (1M)
+/// reads at open, so that a coarse cut leaves most of the file unread.
+fn exported_scene(dir: &Path) -> PathBuf {
+    let scene = dir.join("scene.laz");
+    pointfarm_ok(&["sample", arg(&scene), "--points", "2500000"]);
+    let local = dir.join("scene.copc.laz");
+    let cache = dir.join("cache");
+    let export = ["export", arg(&scene), "--copc", arg(&local)];
+    pointfarm_ok(&[&export[..], &["--cache-dir", arg(&cache)]].concat());
+    local
+}
+
 #[test]
 fn a_coarse_cut_by_url_fetches_less_than_the_file() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let scene = dir.path().join("scene.laz");
-    // More points than the colour ranges' sample (1M) reads at open, so that a coarse cut
-    // leaves most of the file unread.
-    pointfarm_ok(&["sample", arg(&scene), "--points", "2500000"]);
-    let local = dir.path().join("scene.copc.laz");
-    let cache = dir.path().join("cache");
-    let export = ["export", arg(&scene), "--copc", arg(&local)];
-    pointfarm_ok(&[&export[..], &["--cache-dir", arg(&cache)]].concat());
+    let local = exported_scene(dir.path());
     let bytes = std::fs::read(&local).expect("COPC file");
     let size = bytes.len() as u64;
     let Some((_root, server)) = serve(&[("scene.copc.laz", bytes)]) else {
@@ -132,11 +137,22 @@ fn a_coarse_cut_by_url_fetches_less_than_the_file() {
         report["pointsRendered"].as_u64() < Some(100_000),
         "a coarse cut: {report}"
     );
+
+    // Every node drawn: the chunks the colour sample read at open are not fetched again, so
+    // beyond the nodes' bytes only the header and hierarchy are.
+    let all = render_json(&url, &by_url, &["--size=160x120", "--lod-error", "0"]);
+    let (_, fetched_bytes) = fetched(&all);
+    let node_bytes = all["cut"]["bytesRead"].as_u64().expect("the cut's bytes");
+    assert!(
+        fetched_bytes <= node_bytes + node_bytes / 100 + 256 * 1024,
+        "fetched {fetched_bytes} for {node_bytes} bytes of nodes: {all}"
+    );
 }
 
 #[test]
 fn an_object_replaced_after_open_is_object_changed_naming_the_url() {
-    let first = std::fs::read(copc_file("simple_with_page.copc.laz")).expect("COPC file");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let first = std::fs::read(exported_scene(dir.path())).expect("COPC file");
     let Some((root, server)) = serve(&[("scan.copc.laz", first)]) else {
         return;
     };
@@ -155,6 +171,15 @@ fn an_object_replaced_after_open_is_object_changed_naming_the_url() {
         .filter(|node| node.point_count > 0)
         .copied()
         .collect();
+    // The root's chunk, read at open for the colour ranges, is still the opened version's.
+    let root_node = nodes
+        .iter()
+        .find(|node| node.key.level == 0)
+        .expect("a root");
+    let records = copc.dataset.records();
+    records
+        .read_records(std::slice::from_ref(root_node))
+        .expect("a chunk read at open");
     let error = copc
         .dataset
         .records()

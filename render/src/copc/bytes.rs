@@ -5,13 +5,18 @@
 //! A file is read with positioned reads, many at once; an object with ranged requests, near
 //! ranges coalesced into one and the requests in parallel, every one pinned to the version
 //! opened. The small reads of the header and its records go through a [`RangeReader`], which
-//! fetches an object in blocks so that they cost a few requests, not one each.
+//! fetches an object in blocks so that they cost a few requests, not one each. An object's
+//! chunks read while it is opened (the colour sample's coarsest nodes) are kept, because the
+//! framing sample and the first frames draw the same nodes (docs/perf/remote-copc-reads.md).
 
+use std::collections::HashMap;
 use std::fs::File;
 use std::io::{self, Read, Seek, SeekFrom};
 use std::ops::Range;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Mutex;
 
 use super::error::CopcError;
 use crate::ingest::{open_dataset_file, Symlinks};
@@ -31,6 +36,11 @@ pub(crate) struct CopcBytes {
     name: PathBuf,
     size: u64,
     origin: Origin,
+    /// Whether an object's ranges read now are kept ([`CopcBytes::keep_reads`]).
+    keeping: AtomicBool,
+    /// An object's ranges read while `keeping`, served again without a request: at most the
+    /// bytes of the chunks read while opening it.
+    kept: Mutex<HashMap<Range<u64>, Vec<u8>>>,
 }
 
 enum Origin {
@@ -47,6 +57,8 @@ impl CopcBytes {
             name: path.to_owned(),
             size,
             origin: Origin::File(file),
+            keeping: AtomicBool::new(false),
+            kept: Mutex::default(),
         })
     }
 
@@ -56,6 +68,18 @@ impl CopcBytes {
             name: PathBuf::from(object.url().to_string()),
             size: object.size(),
             origin: Origin::Remote(Box::new(object)),
+            keeping: AtomicBool::new(false),
+            kept: Mutex::default(),
+        }
+    }
+
+    /// From now on (`true`) or no longer, an object's ranges that [`CopcBytes::read_many`]
+    /// fetches are kept and served again without a request; a file's page cache does that for
+    /// it already. Opening keeps the colour sample's chunks, which the framing sample and the
+    /// first frames read again.
+    pub fn keep_reads(&self, keep: bool) {
+        if matches!(self.origin, Origin::Remote(_)) {
+            self.keeping.store(keep, Ordering::Relaxed);
         }
     }
 
@@ -96,20 +120,35 @@ impl CopcBytes {
                 self.read_at(range.start, range.end - range.start)
             }),
             Origin::Remote(object) => {
-                // Within the client's bound on one read, batch by batch.
-                let limit = object.settings().max_read_bytes.max(1);
+                let kept = || self.kept.lock().unwrap_or_else(|e| e.into_inner());
+                // Kept ranges are never dropped, so one found now is still there below.
+                let was_kept: Vec<bool> = {
+                    let kept = kept();
+                    ranges
+                        .iter()
+                        .map(|range| kept.contains_key(range))
+                        .collect()
+                };
+                let missing: Vec<Range<u64>> = (ranges.iter().zip(&was_kept))
+                    .filter(|(_, &was_kept)| !was_kept)
+                    .map(|(range, _)| range.clone())
+                    .collect();
+                let mut fetched = fetch_in_batches(object, &missing)?.into_iter();
+                let keeping = self.keeping.load(Ordering::Relaxed);
+                let mut kept = kept();
                 let mut read = Vec::with_capacity(ranges.len());
-                let mut batch_start = 0;
-                let mut batch_bytes = 0u64;
-                for (i, range) in ranges.iter().enumerate() {
-                    let len = range.end - range.start;
-                    if i > batch_start && batch_bytes + len > limit {
-                        read.extend(object.read_ranges(&ranges[batch_start..i])?);
-                        (batch_start, batch_bytes) = (i, 0);
+                for (range, was_kept) in ranges.iter().zip(was_kept) {
+                    let bytes = match (was_kept, kept.get(range)) {
+                        (true, Some(bytes)) => bytes.clone(),
+                        _ => fetched.next().ok_or_else(|| {
+                            CopcError::io(&self.name, io::Error::other("a range went unanswered"))
+                        })?,
+                    };
+                    if keeping && !was_kept {
+                        kept.insert(range.clone(), bytes.clone());
                     }
-                    batch_bytes += len;
+                    read.push(bytes);
                 }
-                read.extend(object.read_ranges(&ranges[batch_start..])?);
                 Ok(read)
             }
         }
@@ -141,6 +180,29 @@ impl CopcBytes {
             )),
         }
     }
+}
+
+/// The bytes of `ranges` of `object`, within the client's bound on one read, batch by batch.
+fn fetch_in_batches(
+    object: &RemoteObject,
+    ranges: &[Range<u64>],
+) -> Result<Vec<Vec<u8>>, CopcError> {
+    let limit = object.settings().max_read_bytes.max(1);
+    let mut read = Vec::with_capacity(ranges.len());
+    let mut batch_start = 0;
+    let mut batch_bytes = 0u64;
+    for (i, range) in ranges.iter().enumerate() {
+        let len = range.end - range.start;
+        if i > batch_start && batch_bytes + len > limit {
+            read.extend(object.read_ranges(&ranges[batch_start..i])?);
+            (batch_start, batch_bytes) = (i, 0);
+        }
+        batch_bytes += len;
+    }
+    if batch_start < ranges.len() {
+        read.extend(object.read_ranges(&ranges[batch_start..])?);
+    }
+    Ok(read)
 }
 
 /// [`CopcBytes`] read as a stream with a position, for the checks every LAS/LAZ file passes

@@ -179,14 +179,16 @@ fn open(bytes: CopcBytes, reads: PageReads, sample_points: u64) -> Result<CopcDa
     let mut heights = Vec::new();
     let mut positions = Vec::new();
     let mut sample_nodes = 0;
+    bytes.keep_reads(true);
     let sample_bytes =
         for_each_coarse_node_up_to(nodes.as_ref(), &hierarchy, sample_points, |points| {
             stats.add_node(points);
             heights.extend(node_heights(points, origin));
             positions.extend(points.positions_relative_to(origin));
             sample_nodes += 1;
-        })
-        .map_err(|error| copc_error(path, error))?;
+        });
+    bytes.keep_reads(false);
+    let sample_bytes = sample_bytes.map_err(|error| copc_error(path, error))?;
     let point_spacing = crate::spacing::of_sample(&positions, hierarchy.point_count);
     drop(positions);
     let root_spacing =
