@@ -14,7 +14,9 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 use clap::Args;
 use pointfarm_daemon::describe::FileReport;
-use pointfarm_daemon::grpc::{copc_description, dataset_description, file_description};
+use pointfarm_daemon::grpc::{
+    copc_description, dataset_description, file_description, point_attributes_message,
+};
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::ingest::{dataset_files, GEOTIFF_USER_DEFINED};
 use pointfarm_render::remote::{ObjectUrl, RemoteClient};
@@ -216,14 +218,7 @@ fn describe_url(client: &RemoteClient, url: &ObjectUrl) -> pb::FileDescription {
                 "not read by URL yet".to_owned(),
             )),
         }),
-        attributes: Some(pb::PointAttributes {
-            gps_time: attributes.gps_time,
-            rgb: attributes.rgb,
-            nir: attributes.nir,
-            waveform: attributes.waveform,
-            extra_bytes: attributes.extra_bytes.into(),
-            extra_names: attributes.extra_names.clone(),
-        }),
+        attributes: Some(point_attributes_message(attributes)),
         copc: Some(copc_description(&Ok(summary))),
         ..pb::FileDescription::default()
     }

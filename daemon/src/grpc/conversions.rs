@@ -24,7 +24,7 @@ use pointfarm_render::classification;
 use pointfarm_render::cloud::{ColorSource, WorldBounds};
 use pointfarm_render::color::Stretch;
 use pointfarm_render::copc::{CopcDecoder, CopcError, CopcSummary};
-use pointfarm_render::ingest::{Crs, PointSummary};
+use pointfarm_render::ingest::{Attributes, Crs, PointSummary};
 use pointfarm_render::lod::{NodeKey, MAX_LEVEL};
 
 pub(super) fn invalid(field: &str, message: impl Into<String>) -> DaemonError {
@@ -557,6 +557,18 @@ pub fn copc_description(copc: &Result<CopcSummary, CopcError>) -> pb::CopcDescri
     }
 }
 
+/// The attributes a file's points carry besides the ones every point has.
+pub fn point_attributes_message(attributes: &Attributes) -> pb::PointAttributes {
+    pb::PointAttributes {
+        gps_time: attributes.gps_time,
+        rgb: attributes.rgb,
+        nir: attributes.nir,
+        waveform: attributes.waveform,
+        extra_bytes: attributes.extra_bytes.into(),
+        extra_names: attributes.extra_names.clone(),
+    }
+}
+
 pub fn file_description(report: &FileReport) -> pb::FileDescription {
     let path = report.path.display().to_string();
     let (info, points) = match &report.outcome {
@@ -588,14 +600,7 @@ pub fn file_description(report: &FileReport) -> pb::FileDescription {
         scale: Some(vec3_message(info.scale)),
         offset: Some(vec3_message(info.offset)),
         crs: crs_message(&info.crs),
-        attributes: Some(pb::PointAttributes {
-            gps_time: attributes.gps_time,
-            rgb: attributes.rgb,
-            nir: attributes.nir,
-            waveform: attributes.waveform,
-            extra_bytes: attributes.extra_bytes.into(),
-            extra_names: attributes.extra_names.clone(),
-        }),
+        attributes: Some(point_attributes_message(attributes)),
         points_read: points.map(point_statistics_message),
         copc: report.copc.as_ref().map(copc_description),
     }

@@ -294,14 +294,7 @@ fn summarize(bytes: &CopcBytes) -> Result<CopcSummary, CopcError> {
         bounds: header.bounds,
         scale: DVec3::new(t.x.scale, t.y.scale, t.z.scale),
         offset: DVec3::new(t.x.offset, t.y.offset, t.z.offset),
-        attributes: Attributes {
-            gps_time: format.has_gps_time,
-            rgb: format.has_color,
-            nir: format.has_nir,
-            waveform: format.has_waveform,
-            extra_bytes: format.extra_bytes,
-            extra_names: header.extra_names.clone(),
-        },
+        attributes: Attributes::of_format(format, header.extra_names.clone()),
     };
     Ok(CopcSummary {
         info: header.info,

@@ -54,6 +54,20 @@ pub struct Attributes {
     pub extra_names: Vec<String>,
 }
 
+impl Attributes {
+    /// The attributes of point format `format`, its extra bytes named `extra_names`.
+    pub fn of_format(format: &las::point::Format, extra_names: Vec<String>) -> Self {
+        Self {
+            gps_time: format.has_gps_time,
+            rgb: format.has_color,
+            nir: format.has_nir,
+            waveform: format.has_waveform,
+            extra_bytes: format.extra_bytes,
+            extra_names,
+        }
+    }
+}
+
 impl FileInfo {
     /// Reads the header and records of `path` (checked as a load checks them).
     pub fn read(path: &Path) -> Result<Self, IngestError> {
@@ -86,14 +100,7 @@ impl FileInfo {
                 transforms.z.offset,
             ),
             crs: crs_of(&header),
-            attributes: Attributes {
-                gps_time: format.has_gps_time,
-                rgb: format.has_color,
-                nir: format.has_nir,
-                waveform: format.has_waveform,
-                extra_bytes: format.extra_bytes,
-                extra_names: extra_byte_names(&header),
-            },
+            attributes: Attributes::of_format(format, extra_byte_names(&header)),
             file,
         })
     }
