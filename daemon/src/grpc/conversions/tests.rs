@@ -4,6 +4,7 @@ use pointfarm_render::raster::{FillSettings, Shading};
 use pointfarm_render::request::{PointSize, RenderOptions};
 
 use super::*;
+use crate::describe::FileReport;
 use crate::lease::{TaskDataset, TaskFile};
 use crate::model::JobSpec;
 
