@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use pointfarm_daemon::model::{FrameReport, FrameState, JobSpec, JobState};
 use pointfarm_daemon::service::{Daemon, DaemonConfig};
-use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
+use pointfarm_render::request::RenderRequest;
 use serde::Serialize;
 
 use crate::error::BenchError;
@@ -30,21 +30,11 @@ pub struct SchedulerResult {
 }
 
 fn job(request_id: String, frames: u32) -> JobSpec {
-    JobSpec {
+    JobSpec::new(
         request_id,
-        dataset_id: String::new(),
-        request: RenderRequest {
-            width: 64,
-            height: 48,
-            camera_path: CameraPath::Turntable(Turntable::around_the_cloud(frames)),
-            lens: Lens::default(),
-            render: RenderOptions::default(),
-        },
-        priority: 0,
-        requirements: Default::default(),
-        preview: false,
-        after: Vec::new(),
-    }
+        String::new(),
+        RenderRequest::turntable(64, 48, frames),
+    )
 }
 
 /// Measures leasing at each length of `histories` (ascending, starting from 0), `samples`

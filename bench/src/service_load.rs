@@ -32,7 +32,7 @@ use pointfarm_daemon::model::JobSpec;
 use pointfarm_proto::endpoint::ServerEndpoint;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
-use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
+use pointfarm_render::request::RenderRequest;
 use serde::Serialize;
 use tonic::transport::Channel;
 

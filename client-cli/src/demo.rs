@@ -13,7 +13,7 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_render::gpu::AdapterChoice;
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::raster::Quality;
-use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
+use pointfarm_render::request::{RenderOptions, RenderRequest};
 use pointfarm_render::sample::{sample_scene, DEFAULT_SAMPLE_POINTS};
 
 use crate::credentials::ClientCredentials;
@@ -81,27 +81,20 @@ pub fn run(args: DemoArgs) -> Result<()> {
             let mut client =
                 Client::connect(&address.to_string(), &ClientCredentials::default()).await?;
             let dataset = client.ensure_dataset(std::slice::from_ref(&input)).await?;
-            let spec = JobSpec {
-                request_id: format!(
+            let spec = JobSpec::new(
+                format!(
                     "demo-{}-{}-{}x{}",
                     dataset.id, args.frames, args.size.0, args.size.1
                 ),
-                dataset_id: dataset.id.clone(),
-                request: RenderRequest {
-                    width: args.size.0,
-                    height: args.size.1,
-                    camera_path: CameraPath::Turntable(Turntable::around_the_cloud(args.frames)),
-                    lens: Lens::default(),
+                dataset.id.clone(),
+                RenderRequest {
                     render: RenderOptions {
                         quality: Quality::HIGH,
                         ..RenderOptions::default()
                     },
+                    ..RenderRequest::turntable(args.size.0, args.size.1, args.frames)
                 },
-                priority: 0,
-                requirements: Default::default(),
-                preview: false,
-                after: Vec::new(),
-            };
+            );
             let request = pb::SubmitJobRequest::from(&spec);
             let job = answer(client.jobs.submit_job(request).await)?;
             outln!(

@@ -150,6 +150,22 @@ pub struct JobSpec {
     pub after: Vec<JobId>,
 }
 
+impl JobSpec {
+    /// A job of `request` on `dataset_id` as scheduled by default: priority 0, no worker
+    /// requirements, no preview, and no job to wait for.
+    pub fn new(request_id: String, dataset_id: DatasetId, request: RenderRequest) -> Self {
+        Self {
+            request_id,
+            dataset_id,
+            request,
+            priority: 0,
+            requirements: WorkerRequirements::default(),
+            preview: false,
+            after: Vec::new(),
+        }
+    }
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum JobState {
     Queued,

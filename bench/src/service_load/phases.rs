@@ -9,23 +9,12 @@ fn job_request(
     dataset_id: &str,
     options: &ServiceLoadOptions,
 ) -> pb::SubmitJobRequest {
-    let spec = JobSpec {
+    let load = &options.load;
+    let spec = JobSpec::new(
         request_id,
-        dataset_id: dataset_id.into(),
-        request: RenderRequest {
-            width: options.load.width,
-            height: options.load.height,
-            camera_path: CameraPath::Turntable(Turntable::around_the_cloud(
-                options.load.frames_per_job,
-            )),
-            lens: Lens::default(),
-            render: RenderOptions::default(),
-        },
-        priority: 0,
-        requirements: Default::default(),
-        preview: false,
-        after: Vec::new(),
-    };
+        dataset_id.into(),
+        RenderRequest::turntable(load.width, load.height, load.frames_per_job),
+    );
     pb::SubmitJobRequest::from(&spec)
 }
 

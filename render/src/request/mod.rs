@@ -35,6 +35,18 @@ pub struct RenderRequest {
 }
 
 impl RenderRequest {
+    /// `frames` frames of a turntable around the cloud, `width` by `height` pixels, through
+    /// the default lens with the default render options.
+    pub fn turntable(width: u32, height: u32, frames: u32) -> Self {
+        Self {
+            width,
+            height,
+            camera_path: CameraPath::Turntable(Turntable::around_the_cloud(frames)),
+            lens: Lens::default(),
+            render: RenderOptions::default(),
+        }
+    }
+
     pub fn frames(&self) -> u32 {
         self.camera_path.frames()
     }

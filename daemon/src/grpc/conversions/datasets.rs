@@ -12,17 +12,12 @@ use crate::model::{Dataset, DatasetFile, RemoteSource};
 
 impl From<&Dataset> for pb::Dataset {
     fn from(d: &Dataset) -> Self {
-        let (url, version) = remote_fields(d);
+        let (url, version) = remote_fields(d.remote.as_ref());
         pb::Dataset {
             id: d.id.clone(),
             name: d.name.clone(),
             size_bytes: d.size_bytes,
-            // A dataset by URL's key is no hash of its content: it is not shown as one.
-            sha256: if d.remote.is_some() {
-                String::new()
-            } else {
-                d.sha256.clone()
-            },
+            sha256: shown_sha256(d, &d.sha256),
             path: d.path.display().to_string(),
             created_unix_ms: d.created_unix_ms,
             files: d.files().iter().map(|f| file_message(d, f)).collect(),
@@ -34,35 +29,35 @@ impl From<&Dataset> for pb::Dataset {
 
 /// One file of `dataset`; the one object of a dataset by URL carries its URL and version.
 fn file_message(dataset: &Dataset, file: &DatasetFile) -> pb::DatasetFile {
-    let (url, version) = remote_fields(dataset);
+    let (url, version) = remote_fields(dataset.remote.as_ref());
     pb::DatasetFile {
         name: file.name.clone(),
         size_bytes: file.size_bytes,
-        sha256: if dataset.remote.is_some() {
-            String::new()
-        } else {
-            file.sha256.clone()
-        },
+        sha256: shown_sha256(dataset, &file.sha256),
         path: file.path.display().to_string(),
         url,
         version,
     }
 }
 
-fn remote_fields(dataset: &Dataset) -> (String, String) {
-    dataset
-        .remote
-        .as_ref()
+/// A hash of `dataset`'s as clients are shown it: a dataset by URL's key is no hash of its
+/// content, so it is not shown as one.
+fn shown_sha256(dataset: &Dataset, sha256: &str) -> String {
+    match dataset.remote {
+        Some(_) => String::new(),
+        None => sha256.to_owned(),
+    }
+}
+
+/// The URL and version of the object a dataset by URL is read from; empty for any other.
+fn remote_fields(remote: Option<&RemoteSource>) -> (String, String) {
+    remote
         .map(|remote| (remote.url.clone(), remote.version.clone()))
         .unwrap_or_default()
 }
 
 pub(super) fn task_dataset_message(dataset: &TaskDataset) -> pb::TaskDataset {
-    let (url, version) = dataset
-        .remote
-        .as_ref()
-        .map(|remote| (remote.url.clone(), remote.version.clone()))
-        .unwrap_or_default();
+    let (url, version) = remote_fields(dataset.remote.as_ref());
     pb::TaskDataset {
         id: dataset.id.clone(),
         sha256: dataset.sha256.clone(),
