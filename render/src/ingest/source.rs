@@ -291,6 +291,11 @@ impl PointSource for DatasetSource {
         Some(self.attributes.clone())
     }
 
+    /// The files' paths, lengths and modification times.
+    fn fingerprint(&self) -> Option<String> {
+        crate::lod::source::files_fingerprint(self.files.iter().map(|file| file.path.as_path()))
+    }
+
     /// The files are decoded on a thread of their own, a batch ahead of `visit`: what the
     /// visitor does on one core (a build's spill copy, its statistics) overlaps the decoding
     /// of the next batch instead of leaving the other cores idle (docs/perf/lod-build.md). At

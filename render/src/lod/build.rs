@@ -21,24 +21,25 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
+use super::checksum::checksum64;
 use super::context::BuildContext;
 use super::counting::{
     count_points, counting_blocks_bytes, CountGrid, BUCKET_SEGMENT_POINTS, MAX_COUNT_LEVEL,
 };
 use super::error::LodError;
 use super::hierarchy::LodHierarchy;
+use super::journal::{sync_dir, BuildJournal, Counted, Replay};
 use super::key::RootCube;
 use super::memory::MemoryMeter;
 use super::options::LodBuildOptions;
-use super::partitions::{
-    build_bytes_per_point, build_partitions, partition_bytes, partition_files,
-};
-use super::plan::plan_partitions;
+use super::partitions::{build_bytes_per_point, build_partitions, partition_bytes};
+use super::pause;
 use super::point::RecordLayout;
 use super::progress::BuildProgress;
+use super::resume::{Expected, Resumed};
 use super::sink::NodeSink;
 use super::source::PointSource;
-use super::spill::SpillDir;
+use super::spill::{sync_files, SpillDir};
 use super::stats::DatasetStats;
 use super::store::LodStore;
 use super::upper::build_upper_levels;
@@ -79,6 +80,10 @@ pub struct LodBuildReport {
     /// The build's spill folder (removed when the build returned).
     pub spill_path: PathBuf,
     pub timings: BuildTimings,
+    /// Whether the counting pass was taken from an earlier run of this build that stopped.
+    pub counting_resumed: bool,
+    /// Units (partitions built or split, nodes above them) taken from that run.
+    pub resumed_units: usize,
 }
 
 impl LodBuildReport {
@@ -163,29 +168,75 @@ fn build_on_pool(
         .min(budget.saturating_sub(partition_bytes(0, layout)) / point_bytes)
         .max(1);
     let level = count_level(source.point_count(), max_partition, budget);
-    store.clear()?;
-    let spill = SpillDir::create(&options.spill_dir, layout)?;
-
-    let grid_bytes = CountGrid::planning_bytes(level);
-    let grid_reservation = meter.try_reserve(grid_bytes, "the counting grid")?;
-    let blocks_bytes = counting_blocks_bytes(layout.record_bytes());
-    let buffer_bytes =
-        (budget.saturating_sub(grid_bytes + blocks_bytes) / 4).clamp(1 << 16, BUCKET_BUFFER_BYTES);
-    let (grid, stats) = count_points(
-        source,
-        &cube,
+    let expected = Expected {
         level,
-        &meter,
-        &spill,
-        buffer_bytes,
-        BUCKET_SEGMENT_POINTS,
-    )?;
-    let plan = plan_partitions(&grid, max_partition);
-    let partitions = partition_files(&plan, &grid, &spill);
+        segment_points: BUCKET_SEGMENT_POINTS,
+        point_count: source.point_count(),
+        max_partition_points: max_partition,
+    };
+    let inputs = build_inputs(source, options, layout, &expected, threads);
+    let (journal, spill, replay) = open_build_folder(store, options, layout, inputs.as_deref())?;
+    let mut rejected = false;
+    let resumed = replay.and_then(|replay| {
+        match Resumed::from_replay(replay, &expected, store, &spill) {
+            Ok(resumed) => Some(resumed),
+            Err(reason) => {
+                tracing::warn!(%reason, folder = %spill.path().display(), "starting the build over");
+                rejected = true;
+                None
+            }
+        }
+    });
+    let counting_resumed = resumed.is_some();
+    let resumed = match resumed {
+        Some(resumed) => {
+            store.cut_payload(resumed.payload_end)?;
+            tracing::info!(
+                units = resumed.units,
+                nodes = resumed.nodes.len(),
+                partitions_left = resumed.partitions.len(),
+                waiting = resumed.waiting.len(),
+                "resuming a build"
+            );
+            resumed
+        }
+        None => {
+            if let Some(inputs) = inputs.as_deref().filter(|_| rejected) {
+                journal.start_over(inputs)?;
+            }
+            store.clear()?;
+            let grid_bytes = CountGrid::planning_bytes(level);
+            let _grid = meter.try_reserve(grid_bytes, "the counting grid")?;
+            let blocks_bytes = counting_blocks_bytes(layout.record_bytes());
+            let buffer_bytes = (budget.saturating_sub(grid_bytes + blocks_bytes) / 4)
+                .clamp(1 << 16, BUCKET_BUFFER_BYTES);
+            let (grid, stats) = count_points(
+                source,
+                &cube,
+                level,
+                &meter,
+                &spill,
+                buffer_bytes,
+                BUCKET_SEGMENT_POINTS,
+            )?;
+            if journal.is_enabled() {
+                let files: Vec<PathBuf> = (0..grid.counts.len())
+                    .flat_map(|bucket| grid.bucket_files(&spill, bucket))
+                    .collect();
+                sync_files(&files)?;
+                sync_dir(spill.path())?;
+                journal.record_counted(&Counted {
+                    level,
+                    segment_points: grid.segment_points,
+                    counts: grid.counts.clone(),
+                    stats: stats.clone(),
+                })?;
+            }
+            Resumed::counted(&grid, stats, &expected, &spill)
+        }
+    };
+    let partitions = resumed.partitions;
     let partition_count = partitions.len();
-    drop(plan);
-    drop(grid);
-    drop(grid_reservation);
     timings.counting = start.elapsed();
     tracing::info!(
         points = source.point_count(),
@@ -195,15 +246,18 @@ fn build_on_pool(
     );
 
     progress.begin(store, cube, source.point_count());
-    let sink = NodeSink::new(store, cube, stats.has_rgb, progress);
+    let stats = resumed.stats;
+    let sink = NodeSink::new(store, &journal, cube, stats.has_rgb, progress);
+    sink.list(resumed.nodes);
     let ctx = BuildContext {
         cube,
         options,
         meter: &meter,
         spill: &spill,
         sink: &sink,
+        journal: &journal,
         max_partition_points: max_partition,
-        pending: Mutex::new(Default::default()),
+        pending: Mutex::new(resumed.waiting),
         partitions_split: AtomicUsize::new(0),
     };
     let building = Instant::now();
@@ -231,10 +285,13 @@ fn build_on_pool(
         sink.into_nodes(),
     )
     .with_attributes(attributes);
+    pause::at("hierarchy", 0);
     let hierarchy_bytes = store.write_hierarchy(&hierarchy)?;
     timings.total = start.elapsed();
     let spilled_bytes = spill.written_bytes();
     let spill_path = spill.path().to_path_buf();
+    // Finished: the folder and its journal go.
+    spill.release();
     drop(spill);
     Ok(LodBuildReport {
         hierarchy,
@@ -249,5 +306,61 @@ fn build_on_pool(
         memory_budget_bytes: meter.budget(),
         spill_path,
         timings,
+        counting_resumed,
+        resumed_units: resumed.units,
     })
+}
+
+/// What the build reads and how, as the journal records it: the source's fingerprint, the
+/// options and what the build derived from them. `None` where the source has no fingerprint:
+/// such a build does not resume.
+fn build_inputs(
+    source: &dyn PointSource,
+    options: &LodBuildOptions,
+    layout: RecordLayout,
+    expected: &Expected,
+    threads: u64,
+) -> Option<String> {
+    let fingerprint = source.fingerprint()?;
+    let bounds = source.bounds();
+    Some(format!(
+        "pointfarm level-of-detail build 1\nsource: {fingerprint}\npoints: {}\n\
+         bounds: {:?} {:?}\nrecords: {layout:?}\nattributes: {:?}\nleaf points: {}\n\
+         sample grid: {}\nmemory budget: {}\nthreads: {threads}\npartition points: {}\n\
+         count level: {}\nsegment points: {}\n",
+        expected.point_count,
+        bounds.min.to_array(),
+        bounds.max.to_array(),
+        source.attributes(),
+        options.max_leaf_points,
+        options.sample_grid,
+        options.memory_budget_bytes,
+        expected.max_partition_points,
+        expected.level,
+        expected.segment_points,
+    ))
+}
+
+/// The build's spill folder and journal, with what an earlier run of the same build
+/// recorded. A build of `inputs` uses a folder named after its store's payload file inside
+/// the options' spill folder, kept until the build finishes; one without uses a fresh folder
+/// it removes, and does not resume.
+fn open_build_folder(
+    store: &LodStore,
+    options: &LodBuildOptions,
+    layout: RecordLayout,
+    inputs: Option<&str>,
+) -> Result<(BuildJournal, SpillDir, Option<Replay>), LodError> {
+    let Some(inputs) = inputs else {
+        let spill = SpillDir::create(&options.spill_dir, layout)?;
+        return Ok((BuildJournal::disabled(spill.path()), spill, None));
+    };
+    let payload = store.payload_path();
+    let payload = std::fs::canonicalize(payload).unwrap_or_else(|_| payload.to_path_buf());
+    let name = checksum64(b"store", payload.as_os_str().as_encoded_bytes());
+    let dir = options
+        .spill_dir
+        .join(format!("pointfarm-lod-build-{name:016x}"));
+    let (journal, replay) = BuildJournal::open(&dir, inputs)?;
+    Ok((journal, SpillDir::at(dir, layout, true), replay))
 }

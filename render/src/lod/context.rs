@@ -1,5 +1,5 @@
-//! `BuildContext`: what every stage of one build shares, and the unfinished subtree roots
-//! waiting in spill files for the levels above them.
+//! `BuildContext`: what every stage of one build shares, the unfinished subtree roots
+//! waiting in spill files for the levels above them, and how a unit of the build finishes.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -8,19 +8,18 @@ use std::sync::Mutex;
 
 use super::attributes::AttributeRows;
 use super::error::LodError;
+use super::journal::{sync_dir, BuildJournal, UnitKind, WaitingRoot};
 use super::key::{NodeKey, RootCube};
-use super::local::LocalBuilder;
+use super::local::{LocalBuilder, SubtreeRoot};
 use super::memory::MemoryMeter;
 use super::options::LodBuildOptions;
-use super::point::RawPoint;
-use super::sink::NodeSink;
+use super::sink::{EncodedNode, NodeSink, UnitDone};
 use super::spill::SpillDir;
 
 /// A subtree root whose own points wait in a spill file until its parent samples from them.
 #[derive(Debug)]
 pub struct Pending {
-    pub count: u64,
-    pub sample_grid: u32,
+    pub root: WaitingRoot,
     pub path: PathBuf,
 }
 
@@ -30,6 +29,7 @@ pub struct BuildContext<'a> {
     pub meter: &'a MemoryMeter,
     pub spill: &'a SpillDir,
     pub sink: &'a NodeSink<'a>,
+    pub journal: &'a BuildJournal,
     /// The plan's partition size: a partition far above it is split before it is built.
     pub max_partition_points: u64,
     pub pending: Mutex<BTreeMap<NodeKey, Pending>>,
@@ -49,29 +49,59 @@ impl BuildContext<'_> {
         }
     }
 
-    /// Finishes the root, or parks a subtree root for the level above; `rows` are the
+    /// The spill file where the subtree root `key` waits for the level above.
+    pub fn root_path(&self, key: NodeKey) -> PathBuf {
+        self.spill.file(&format!("root-{key}.bin"))
+    }
+
+    /// Finishes a unit of `kind`: its `region` stored and recorded with its subtree root
+    /// (`key`, `root`), which is stored too where it is the octree's root, else parked in a
+    /// spill file (synced before the unit is recorded) for the level above; `rows` are the
     /// points' attribute rows.
-    pub fn finish_subtree(
+    pub fn finish_unit(
         &self,
+        kind: UnitKind,
+        mut region: Vec<EncodedNode>,
         key: NodeKey,
-        points: &[RawPoint],
-        sample_grid: u32,
+        root: SubtreeRoot,
         rows: &AttributeRows,
     ) -> Result<(), LodError> {
+        let mut parked = None;
         if key.level == 0 {
-            return self.sink.emit(key, points, sample_grid, rows);
+            region.push(
+                self.sink
+                    .encode(key, &root.points, root.sample_grid, rows)?,
+            );
+        } else {
+            let path = self.root_path(key);
+            let synced = self.journal.is_enabled();
+            let (bytes, checksum) = self.spill.write_file(&path, &root.points, rows, synced)?;
+            if synced {
+                sync_dir(self.spill.path())?;
+            }
+            let waiting = WaitingRoot {
+                count: root.points.len() as u64,
+                sample_grid: root.sample_grid,
+                bytes,
+                checksum,
+            };
+            parked = Some(Pending {
+                root: waiting,
+                path,
+            });
         }
-        let path = self.spill.file(&format!("root-{key}.bin"));
-        self.spill.write_file(&path, points, rows)?;
-        let pending = Pending {
-            count: points.len() as u64,
-            sample_grid,
-            path,
+        let done = UnitDone {
+            kind,
+            key,
+            waiting: parked.as_ref().map(|p| p.root),
         };
-        self.pending
-            .lock()
-            .unwrap_or_else(|poisoned| poisoned.into_inner())
-            .insert(key, pending);
+        self.sink.store(region, done)?;
+        if let Some(pending) = parked {
+            self.pending
+                .lock()
+                .unwrap_or_else(|poisoned| poisoned.into_inner())
+                .insert(key, pending);
+        }
         Ok(())
     }
 }

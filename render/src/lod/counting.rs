@@ -18,6 +18,7 @@ use rayon::prelude::*;
 use super::error::LodError;
 use super::key::RootCube;
 use super::memory::MemoryMeter;
+use super::pause;
 use super::point::{RecordLayout, MAX_RECORD_BYTES};
 use super::source::{PointBatch, PointSource};
 use super::spill::{SpillDir, SpillWriter};
@@ -188,6 +189,7 @@ pub fn count_points(
     let layout = spill.layout();
     let mut stats: Option<DatasetStats> = None;
     let mut read = 0u64;
+    let mut batches = 0u64;
     let (walked, scattered) = std::thread::scope(|scope| {
         let (blocks, received) = mpsc::sync_channel::<RecordBlock>(1);
         let (spare_sender, spare) = mpsc::channel::<RecordBlock>();
@@ -203,6 +205,8 @@ pub fn count_points(
             )
         });
         let walked = source.for_each_batch(&mut |batch| {
+            pause::at("counting", batches);
+            batches += 1;
             check_batch(&batch, &bounds, cube, read, layout.row_bytes)?;
             let stats = stats.get_or_insert_with(|| DatasetStats::new(batch.rgb.is_some()));
             if stats.has_rgb != batch.rgb.is_some() {

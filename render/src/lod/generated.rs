@@ -79,6 +79,14 @@ impl PushPoint for BatchColumns {
 }
 
 impl PointSource for GeneratedSource {
+    /// Its points are its parameters' alone.
+    fn fingerprint(&self) -> Option<String> {
+        Some(format!(
+            "generated {:?}, {} points, seed {}",
+            self.shape, self.points, self.seed
+        ))
+    }
+
     fn bounds(&self) -> WorldBounds {
         let size = match self.shape {
             GeneratedShape::Terrain => {

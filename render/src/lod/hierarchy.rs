@@ -512,6 +512,22 @@ impl LodHierarchy {
     }
 }
 
+/// Statistics and a list of nodes as bytes with a checksum (a hierarchy's record of them),
+/// for a build's journal: the nodes are kept as listed, empty ones too.
+pub(super) fn encode_listing(stats: &DatasetStats, nodes: Vec<NodeInfo>) -> Vec<u8> {
+    let cube = RootCube {
+        min: DVec3::ZERO,
+        side: 1.0,
+    };
+    LodHierarchy::from_nodes(cube, 0, 0, stats.clone(), nodes).encode()
+}
+
+/// What [`encode_listing`] wrote, its checksum checked.
+pub(super) fn decode_listing(bytes: &[u8]) -> Result<(DatasetStats, Vec<NodeInfo>), LodError> {
+    let listing = LodHierarchy::decode(bytes)?;
+    Ok((listing.stats, listing.nodes))
+}
+
 fn nonzero(counts: &[u64]) -> Vec<(usize, u64)> {
     counts
         .iter()

@@ -15,6 +15,22 @@
 //! after the payload file is synced ([`hierarchy`], [`store`]). Payloads are not sled values:
 //! sled holds memory in proportion to what it stores.
 //!
+//! A build resumes where it stopped (killed, power lost) when it runs again on the same inputs
+//! and options (`journal.rs`, `resume.rs`). Its units: the counting pass (one unit: a build
+//! stopped in it counts again), each partition's octree, each split of a partition on disk,
+//! and each node above the partitions with its children. A unit's output (its nodes in the
+//! payload file, its subtree root in a spill file, a split's child files) is synced, then the
+//! unit is recorded in the journal, then its inputs are removed; units are recorded one at a
+//! time, so the payload file holds the recorded units in order and at most one unit more,
+//! cut off on resume. What the journal lists is checked (checksums, lengths) before it is
+//! used, and a journal of other inputs (the source's [`PointSource::fingerprint`]: its
+//! files' paths, lengths and modification times) or options starts the build over. A source
+//! without a fingerprint builds in a fresh folder and does not resume. The resumed store is
+//! the uninterrupted build's node for node: the same nodes of the same points; where their
+//! records lie follows the order units finished, which parallel builds do not fix. The test
+//! hook `POINTFARM_TEST_PAUSE_AT` (`pause.rs`) stops a build at a chosen point of each stage,
+//! for tests/build_resume.rs to kill it there.
+//!
 //! Opened for rendering, a store or a COPC file is a [`LodDataset`] (`dataset.rs`: its
 //! hierarchy, with pages read as frames reach them, `pages.rs`, and its colour ranges,
 //! `colors.rs`), what both the COPC reader and the cut renderer build on.
@@ -33,16 +49,19 @@ pub mod error;
 pub mod generated;
 mod grid;
 pub mod hierarchy;
+mod journal;
 pub mod key;
 mod local;
 pub mod memory;
 pub mod options;
 mod pages;
 mod partitions;
+mod pause;
 mod plan;
 mod point;
 pub mod progress;
 pub mod records;
+mod resume;
 pub mod sampling;
 mod sink;
 pub mod source;

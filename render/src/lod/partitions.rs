@@ -1,7 +1,8 @@
 //! The partitions' local octrees, each built in memory from its buckets' files, in parallel with
 //! only as many partitions in memory as the budget allows; a partition too large for the budget, or
 //! much larger than the plan's partitions (a dense bucket), is split into its eight children on
-//! disk first.
+//! disk first. A partition's files are removed once its build or split is recorded in the
+//! journal, so a build stopped before then has them to do it again.
 
 use std::path::PathBuf;
 
@@ -11,8 +12,10 @@ use super::attributes::AttributeRows;
 use super::context::BuildContext;
 use super::counting::CountGrid;
 use super::error::LodError;
-use super::key::MAX_LEVEL;
+use super::journal::{sync_dir, UnitKind, UnitRecord};
+use super::key::{NodeKey, MAX_LEVEL};
 use super::options::BUILD_BYTES_PER_POINT;
+use super::pause;
 use super::plan::{Partition, PartitionPlan};
 use super::point::RecordLayout;
 use super::spill::{self, read_block_bytes, SpillDir, SpillWriter};
@@ -35,8 +38,9 @@ pub fn partition_bytes(count: u64, layout: RecordLayout) -> u64 {
     count * build_bytes_per_point(layout) + read_block_bytes(layout)
 }
 
-fn partition_path(ctx: &BuildContext<'_>, partition: &Partition) -> PathBuf {
-    ctx.spill.file(&format!("partition-{}.bin", partition.key))
+/// The spill file of a partition a split made.
+pub fn partition_path(spill: &SpillDir, key: NodeKey) -> PathBuf {
+    spill.file(&format!("partition-{key}.bin"))
 }
 
 /// Each partition of `plan` with the files of its buckets, in bucket order: the counting pass
@@ -94,15 +98,17 @@ fn build_partition(
     let layout = ctx.spill.layout();
     let mut rows = AttributeRows::new(layout.row_bytes);
     let points = spill::read_all(&files, layout, partition.count, &mut rows)?;
-    for path in &files {
-        spill::remove(path)?;
-    }
     let mut region = Vec::new();
     let root = ctx
         .local_builder(&rows)
         .build(partition.key, points, &mut region)?;
-    ctx.sink.store(region)?;
-    ctx.finish_subtree(partition.key, &root.points, root.sample_grid, &rows)
+    ctx.finish_unit(UnitKind::Partition, region, partition.key, root, &rows)?;
+    // Removed once the partition is recorded: a build stopped before then builds it again.
+    remove_all(&files)
+}
+
+fn remove_all(files: &[PathBuf]) -> Result<(), LodError> {
+    files.iter().try_for_each(|path| spill::remove(path))
 }
 
 /// Streams a partition's files into eight files, one per child, each removed once read.
@@ -111,13 +117,18 @@ fn split_partition(
     partition: Partition,
     files: &[PathBuf],
 ) -> Result<Vec<(Partition, Vec<PathBuf>)>, LodError> {
-    let children: Vec<Partition> = (0..8)
-        .map(|i| Partition {
-            key: partition.key.child(i),
-            count: 0,
-        })
+    let paths: Vec<PathBuf> = (0..8)
+        .map(|i| partition_path(ctx.spill, partition.key.child(i)))
         .collect();
-    let paths: Vec<PathBuf> = children.iter().map(|c| partition_path(ctx, c)).collect();
+    // The writer appends: files a stopped split left are started again.
+    for path in &paths {
+        match std::fs::remove_file(path) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                return Err(LodError::spill(path, e))
+            }
+            _ => {}
+        }
+    }
     let buffer = SPLIT_BUFFER_BYTES.min(ctx.meter.largest_possible() / 8);
     let reservation = ctx.meter.reserve(
         2 * buffer + read_block_bytes(ctx.spill.layout()),
@@ -138,7 +149,6 @@ fn split_partition(
             }
             Ok(())
         })?;
-        spill::remove(path)?;
     }
     writer.finish()?;
     if counts.iter().sum::<u64>() != partition.count {
@@ -149,11 +159,43 @@ fn split_partition(
             partition.count
         )));
     }
-    Ok(children
-        .into_iter()
-        .zip(paths)
-        .zip(counts)
-        .filter(|(_, count)| *count > 0)
-        .map(|((child, path), count)| (Partition { count, ..child }, vec![path]))
-        .collect())
+    let mut commit = ctx.journal.commit();
+    if commit.is_enabled() {
+        let written: Vec<PathBuf> = paths.iter().filter(|p| p.exists()).cloned().collect();
+        spill::sync_files(&written)?;
+        sync_dir(ctx.spill.path())?;
+    }
+    pause::at("split", ctx.journal.committed(UnitKind::Split));
+    commit.record(&UnitRecord {
+        kind: UnitKind::Split,
+        key: partition.key,
+        payload_end: 0,
+        waiting: None,
+        children: counts,
+        nodes: Vec::new(),
+    })?;
+    drop(commit);
+    // Removed once the split is recorded: a build stopped before then splits it again.
+    remove_all(files)?;
+    Ok(split_children(partition.key, counts, |key| {
+        partition_path(ctx.spill, key)
+    }))
+}
+
+/// The children a split of `key` left with points, each with its file at `path`.
+pub fn split_children(
+    key: NodeKey,
+    counts: [u64; 8],
+    path: impl Fn(NodeKey) -> PathBuf,
+) -> Vec<(Partition, Vec<PathBuf>)> {
+    (0..8)
+        .filter(|&i| counts[i] > 0)
+        .map(|i| {
+            let child = Partition {
+                key: key.child(i),
+                count: counts[i],
+            };
+            (child, vec![path(child.key)])
+        })
+        .collect()
 }

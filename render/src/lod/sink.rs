@@ -16,19 +16,29 @@ use super::attributes::{encode_section, AttributeRows};
 use super::codec::{coarse_len, encode_node};
 use super::error::LodError;
 use super::hierarchy::NodeInfo;
+use super::journal::{BuildJournal, UnitKind, UnitRecord, WaitingRoot};
 use super::key::{NodeKey, RootCube};
+use super::pause;
 use super::point::RawPoint;
 use super::progress::BuildProgress;
 use super::store::LodStore;
 
 pub struct NodeSink<'a> {
     store: &'a LodStore,
+    journal: &'a BuildJournal,
     cube: RootCube,
     has_rgb: bool,
     progress: &'a BuildProgress,
     nodes: Mutex<Vec<NodeInfo>>,
     points: AtomicU64,
     bytes: AtomicU64,
+}
+
+/// A unit whose nodes are stored: what the journal records of it beside them.
+pub struct UnitDone {
+    pub kind: UnitKind,
+    pub key: NodeKey,
+    pub waiting: Option<WaitingRoot>,
 }
 
 /// A finished node, encoded, waiting to be stored with the rest of its region.
@@ -41,12 +51,14 @@ pub struct EncodedNode {
 impl<'a> NodeSink<'a> {
     pub fn new(
         store: &'a LodStore,
+        journal: &'a BuildJournal,
         cube: RootCube,
         has_rgb: bool,
         progress: &'a BuildProgress,
     ) -> Self {
         Self {
             store,
+            journal,
             cube,
             has_rgb,
             progress,
@@ -102,20 +114,11 @@ impl<'a> NodeSink<'a> {
         })
     }
 
-    /// Stores one finished node.
-    pub fn emit(
-        &self,
-        key: NodeKey,
-        points: &[RawPoint],
-        sample_grid: u32,
-        rows: &AttributeRows,
-    ) -> Result<(), LodError> {
-        self.store(vec![self.encode(key, points, sample_grid, rows)?])
-    }
-
-    /// Stores `region` as one contiguous range of the payload file (the module's layout) and lists
-    /// its nodes.
-    pub fn store(&self, mut region: Vec<EncodedNode>) -> Result<(), LodError> {
+    /// Stores `region`, the nodes of the unit `done`, as one contiguous range of the payload
+    /// file (the module's layout), records the unit in the journal and lists its nodes. Units
+    /// are stored one at a time, so the payload file holds the units in the journal's order
+    /// and nothing else but the unit being stored; a resumed build cuts that off.
+    pub fn store(&self, mut region: Vec<EncodedNode>, done: UnitDone) -> Result<(), LodError> {
         region.sort_unstable_by_key(|n| (n.info.key.level, n.info.key.morton()));
         let (heads, rests): (Vec<&[u8]>, Vec<&[u8]>) = region
             .iter()
@@ -123,6 +126,7 @@ impl<'a> NodeSink<'a> {
             .unzip();
         let attributes = region.iter().map(|n| n.attributes.as_slice());
         let pieces: Vec<&[u8]> = heads.into_iter().chain(rests).chain(attributes).collect();
+        let mut commit = self.journal.commit();
         let mut at = self.store.write_region(&pieces)?;
         let mut infos: Vec<NodeInfo> = region.iter().map(|n| n.info).collect();
         for info in infos.iter_mut().filter(|n| n.byte_len > 0) {
@@ -137,6 +141,26 @@ impl<'a> NodeSink<'a> {
             info.attributes_offset = at;
             at += u64::from(info.attributes_len);
         }
+        pause::at(done.kind.stage(), self.journal.committed(done.kind));
+        if commit.is_enabled() {
+            self.store.sync_payload()?;
+        }
+        commit.record(&UnitRecord {
+            kind: done.kind,
+            key: done.key,
+            payload_end: at,
+            waiting: done.waiting,
+            children: [0; 8],
+            nodes: infos.clone(),
+        })?;
+        drop(commit);
+        self.list(infos);
+        Ok(())
+    }
+
+    /// Lists nodes whose records are in the payload file: stored now, or by the run of the
+    /// build that this one resumes.
+    pub fn list(&self, infos: Vec<NodeInfo>) {
         for info in &infos {
             self.bytes.fetch_add(info.stored_bytes(), Ordering::Relaxed);
             self.points
@@ -147,7 +171,6 @@ impl<'a> NodeSink<'a> {
             .lock()
             .unwrap_or_else(|poisoned| poisoned.into_inner())
             .extend(infos);
-        Ok(())
     }
 
     /// Points stored so far.

@@ -1,6 +1,8 @@
 //! What the builder reads: `PointSource`, points in batches that can be read again in the same
 //! order, and its implementation for an in-memory [`PointCloud`].
 
+use std::path::Path;
+
 use glam::DVec3;
 
 use super::attributes::AttributeSchema;
@@ -129,11 +131,42 @@ pub trait PointSource: Sync {
         None
     }
 
+    /// A text that changes whenever the points this source reads may have (its files' paths,
+    /// lengths and modification times; a generator's parameters), so that a build stopped
+    /// part way resumes only over the same points. `None` where the source cannot say: its
+    /// builds start over.
+    fn fingerprint(&self) -> Option<String> {
+        None
+    }
+
     /// What each point's attribute row holds, where the source has every attribute of its
     /// points to keep (its files'): the builder then stores the rows for an export.
     fn attributes(&self) -> Option<AttributeSchema> {
         None
     }
+}
+
+/// A [`PointSource::fingerprint`] of points read from `paths`: each file's absolute path,
+/// length and modification time (to the nanosecond); `None` when a file cannot be looked up.
+pub fn files_fingerprint<'p>(paths: impl IntoIterator<Item = &'p Path>) -> Option<String> {
+    let mut text = String::new();
+    for path in paths {
+        let absolute = std::fs::canonicalize(path).ok()?;
+        let metadata = std::fs::metadata(&absolute).ok()?;
+        let modified = metadata
+            .modified()
+            .ok()?
+            .duration_since(std::time::UNIX_EPOCH)
+            .ok()?;
+        text.push_str(&format!(
+            "{} {} bytes modified {}.{:09}; ",
+            absolute.display(),
+            metadata.len(),
+            modified.as_secs(),
+            modified.subsec_nanos()
+        ));
+    }
+    Some(text)
 }
 
 /// Points per batch of the in-memory and generated sources.

@@ -4,11 +4,12 @@
 use std::fs::{File, OpenOptions};
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::thread::JoinHandle;
 
 use super::attributes::AttributeRows;
+use super::checksum::checksum64;
 use super::error::LodError;
 use super::memory::Reservation;
 use super::point::{RawPoint, RecordLayout, MAX_RECORD_BYTES};
@@ -24,12 +25,13 @@ pub fn read_block_bytes(layout: RecordLayout) -> u64 {
 }
 
 /// The build's spill folder inside the caller's one, and the layout of every record in it;
-/// removed with everything in it on drop.
+/// removed with everything in it on drop, unless it is kept for a build to resume.
 #[derive(Debug)]
 pub struct SpillDir {
     path: PathBuf,
     layout: RecordLayout,
     written: AtomicU64,
+    kept: AtomicBool,
 }
 
 impl SpillDir {
@@ -40,18 +42,28 @@ impl SpillDir {
             let n = NEXT.fetch_add(1, Ordering::Relaxed);
             let path = parent.join(format!("pointfarm-lod-{}-{n}", std::process::id()));
             match std::fs::create_dir(&path) {
-                Ok(()) => {
-                    return Ok(Self {
-                        path,
-                        layout,
-                        written: AtomicU64::new(0),
-                    })
-                }
+                Ok(()) => return Ok(Self::at(path, layout, false)),
                 // Left by an earlier process with the same id: take the next name.
                 Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
                 Err(e) => return Err(LodError::spill(path, e)),
             }
         }
+    }
+
+    /// The folder `path`, made by the caller, kept on drop while `kept` (a build that can
+    /// resume keeps it until it has finished).
+    pub fn at(path: PathBuf, layout: RecordLayout, kept: bool) -> Self {
+        Self {
+            path,
+            layout,
+            written: AtomicU64::new(0),
+            kept: AtomicBool::new(kept),
+        }
+    }
+
+    /// Removes the folder on drop after all: the build is finished.
+    pub fn release(&self) {
+        self.kept.store(false, Ordering::Relaxed);
     }
 
     pub fn path(&self) -> &Path {
@@ -75,25 +87,51 @@ impl SpillDir {
         self.written.fetch_add(bytes as u64, Ordering::Relaxed);
     }
 
-    /// Writes `points`, with their attribute `rows`, as one new file.
+    /// Writes `points`, with their attribute `rows`, as one new file, synced first when
+    /// `synced`; returns its length and checksum ([`file_checksum`]).
     pub fn write_file(
         &self,
         path: &Path,
         points: &[RawPoint],
         rows: &AttributeRows,
-    ) -> Result<(), LodError> {
+        synced: bool,
+    ) -> Result<(u64, u64), LodError> {
         let mut bytes = Vec::with_capacity(points.len() * self.layout.record_bytes());
         for p in points {
             self.layout.append(p, rows.of(p), &mut bytes)?;
         }
-        std::fs::write(path, &bytes).map_err(|e| LodError::spill(path, e))?;
+        let mut file = File::create(path).map_err(|e| LodError::spill(path, e))?;
+        file.write_all(&bytes)
+            .and_then(|()| if synced { file.sync_data() } else { Ok(()) })
+            .map_err(|e| LodError::spill(path, e))?;
         self.count_written(bytes.len());
-        Ok(())
+        Ok((bytes.len() as u64, checksum64(FILE_SEED, &bytes)))
     }
+}
+
+const FILE_SEED: &[u8] = b"spill file";
+
+/// The length and checksum of a spill file's bytes, as [`SpillDir::write_file`] returned them.
+pub fn file_checksum(path: &Path) -> Result<(u64, u64), LodError> {
+    let bytes = std::fs::read(path).map_err(|e| LodError::spill(path, e))?;
+    Ok((bytes.len() as u64, checksum64(FILE_SEED, &bytes)))
+}
+
+/// Syncs the files `paths` (those a writer appended to), for a journal to list them.
+pub fn sync_files(paths: &[PathBuf]) -> Result<(), LodError> {
+    for path in paths {
+        File::open(path)
+            .and_then(|file| file.sync_data())
+            .map_err(|e| LodError::spill(path, e))?;
+    }
+    Ok(())
 }
 
 impl Drop for SpillDir {
     fn drop(&mut self) {
+        if self.kept.load(Ordering::Relaxed) {
+            return;
+        }
         if let Err(error) = std::fs::remove_dir_all(&self.path) {
             tracing::warn!(path = %self.path.display(), %error, "could not remove the spill folder");
         }

@@ -127,6 +127,35 @@ impl LodStore {
         Ok(start)
     }
 
+    /// Syncs the payload file's bytes, so that a journal may list the nodes written so far.
+    pub(crate) fn sync_payload(&self) -> Result<(), LodError> {
+        self.payload
+            .file
+            .sync_data()
+            .map_err(|e| self.payload.error(e))
+    }
+
+    /// Cuts the payload file to its first `len` bytes, what a resumed build's journal lists:
+    /// the rest is a unit that was being written when the build stopped. Fails when the file
+    /// is shorter.
+    pub(crate) fn cut_payload(&self, len: u64) -> Result<(), LodError> {
+        let now = self.payload.len()?;
+        if now < len {
+            let error = io::Error::new(
+                io::ErrorKind::UnexpectedEof,
+                format!("{now} bytes, the build's journal lists {len}"),
+            );
+            return Err(self.payload.error(error));
+        }
+        self.payload
+            .file
+            .set_len(len)
+            .and_then(|()| self.payload.file.sync_all())
+            .map_err(|e| self.payload.error(e))?;
+        self.payload.end.store(len, Ordering::SeqCst);
+        Ok(())
+    }
+
     /// Syncs the payload file, then writes the hierarchy and flushes sled: a hierarchy on disk
     /// always describes payloads on disk. Returns the record's length.
     pub(crate) fn write_hierarchy(&self, hierarchy: &LodHierarchy) -> Result<u64, LodError> {
@@ -225,7 +254,7 @@ impl LodStore {
 
     /// The checked rows of `nodes`' attributes sections, `row_bytes` a row; each section is
     /// checked to lie within the payload file before it is read.
-    fn read_attribute_sections(
+    pub(super) fn read_attribute_sections(
         &self,
         row_bytes: usize,
         nodes: &[NodeInfo],

@@ -10,7 +10,9 @@ use rayon::prelude::*;
 use super::attributes::AttributeRows;
 use super::context::{BuildContext, Pending};
 use super::error::LodError;
+use super::journal::UnitKind;
 use super::key::NodeKey;
+use super::local::SubtreeRoot;
 use super::partitions::build_bytes_per_point;
 use super::point::RawPoint;
 use super::sampling::sample;
@@ -56,7 +58,7 @@ fn build_parent(
     parent: NodeKey,
     children: Vec<(NodeKey, Pending)>,
 ) -> Result<(), LodError> {
-    let total: u64 = children.iter().map(|(_, c)| c.count).sum();
+    let total: u64 = children.iter().map(|(_, c)| c.root.count).sum();
     let layout = ctx.spill.layout();
     let _reservation = ctx.meter.reserve(
         total * build_bytes_per_point(layout) + read_block_bytes(layout),
@@ -71,11 +73,10 @@ fn build_parent(
         own[i] = spill::read_all(
             std::slice::from_ref(&child.path),
             layout,
-            child.count,
+            child.root.count,
             &mut rows,
         )?;
-        spill::remove(&child.path)?;
-        grids[i] = child.sample_grid;
+        grids[i] = child.root.sample_grid;
         present[i] = true;
     }
     let sampled = sample(
@@ -91,6 +92,14 @@ fn build_parent(
             region.push(ctx.sink.encode(parent.child(i), kept, grids[i], &rows)?);
         }
     }
-    ctx.sink.store(region)?;
-    ctx.finish_subtree(parent, &sampled.parent, sampled.grid, &rows)
+    let root = SubtreeRoot {
+        points: sampled.parent,
+        sample_grid: sampled.grid,
+    };
+    ctx.finish_unit(UnitKind::Parent, region, parent, root, &rows)?;
+    // Removed once the parent is recorded: a build stopped before then builds it again.
+    for (_, child) in &children {
+        spill::remove(&child.path)?;
+    }
+    Ok(())
 }
