@@ -58,6 +58,13 @@ pub fn top_down_camera(target: DVec3, altitude: f64, height: f64, clip: (f64, f6
     }
 }
 
+/// A COPC file of the repository's test data (`tests/data/copc`).
+pub fn copc_file(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../tests/data/copc")
+        .join(name)
+}
+
 /// `../shared/data` next to the repository, or None (with a message) when it is absent.
 pub fn shared_data(file: &str) -> Option<PathBuf> {
     let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))

@@ -1,7 +1,7 @@
 //! COPC files read node by node against the same files read whole, drawn on the GPU against
 //! the resident cloud, and damaged hierarchies refused naming the file.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use super::*;
 use crate::camera::Camera;
@@ -12,6 +12,7 @@ use crate::ingest::load_point_cloud;
 use crate::lod::{read_nodes, NodeKey};
 use crate::raster::{Frame, FrameSettings, Renderer, Shading};
 use crate::request::PointSize;
+pub(super) use crate::testing::copc_file;
 use crate::testing::{compare_images_within, gpu};
 
 const FILES: [&str; 3] = [
@@ -19,13 +20,6 @@ const FILES: [&str; 3] = [
     "simple.copc.laz",
     "simple_with_page.copc.laz",
 ];
-
-/// A COPC file of the repository's test data (`tests/data/copc`).
-pub(super) fn copc_file(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../tests/data/copc")
-        .join(name)
-}
 
 /// Every point of a file as integers on its scale grid, with its attributes, sorted.
 type PointRow = ([i64; 3], u16, u8, u8, Option<[u16; 3]>);

@@ -47,19 +47,47 @@ fn in_order(source: &mut FrameSource, request: &RenderRequest) -> Vec<SourceFram
         .collect()
 }
 
+/// The real scan's turntable rendered in order from a resident source, with frame 0's gain.
+struct ScanTurntable {
+    file: PathBuf,
+    request: RenderRequest,
+    source: FrameSource,
+    frames: Vec<SourceFrame>,
+    gain: f32,
+}
+
+/// The scan's turntable in order, or None (having said so) where the real scans are absent.
+fn scan_turntable() -> Option<ScanTurntable> {
+    let file = shared_data("autzen_trim.laz")?;
+    let request = turntable();
+    let mut source = open(Renderer::new(gpu()), &file, &request);
+    let frames = in_order(&mut source, &request);
+    let gain = frames[0].frame.gain.expect("frame 0 measured its gain");
+    Some(ScanTurntable {
+        file,
+        request,
+        source,
+        frames,
+        gain,
+    })
+}
+
 fn image(frame: &SourceFrame) -> &RgbaImage {
     &frame.frame.image
 }
 
 #[test]
 fn a_turntable_rendered_in_order_holds_the_gain_of_its_frame_0() {
-    let Some(file) = shared_data("autzen_trim.laz") else {
+    let Some(ScanTurntable {
+        file,
+        request,
+        source,
+        frames,
+        gain,
+    }) = scan_turntable()
+    else {
         return;
     };
-    let request = turntable();
-    let mut source = open(Renderer::new(gpu()), &file, &request);
-    let frames = in_order(&mut source, &request);
-    let gain = frames[0].frame.gain.expect("frame 0 measured its gain");
     for (index, frame) in frames.iter().enumerate() {
         assert_eq!(frame.frame.gain, Some(gain), "frame {index}");
     }
@@ -121,13 +149,16 @@ fn a_turntable_rendered_in_order_holds_the_gain_of_its_frame_0() {
 
 #[test]
 fn a_job_frame_rendered_first_is_exposed_with_the_gain_of_frame_0() {
-    let Some(file) = shared_data("autzen_trim.laz") else {
+    let Some(ScanTurntable {
+        file,
+        request,
+        source: local,
+        frames,
+        gain,
+    }) = scan_turntable()
+    else {
         return;
     };
-    let request = turntable();
-    let mut local = open(Renderer::new(gpu()), &file, &request);
-    let frames = in_order(&mut local, &request);
-    let gain = frames[0].frame.gain.expect("frame 0's gain");
 
     // A worker whose first lease of the job is frame 3, then frame 1 with the gain it kept.
     let mut worker = open(local.into_renderer(), &file, &request);

@@ -170,28 +170,19 @@ fn columns_are_the_crates_in_every_point_format() {
     }
 }
 
-/// The same points with no grid declared: the builder spills world records.
-struct WithoutGrid<'a>(&'a DatasetSource);
-
-impl PointSource for WithoutGrid<'_> {
-    fn bounds(&self) -> WorldBounds {
-        self.0.bounds()
-    }
-    fn point_count(&self) -> u64 {
-        self.0.point_count()
-    }
-    fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
-        self.0.for_each_batch(visit)
-    }
-    fn attributes(&self) -> Option<AttributeSchema> {
-        self.0.attributes()
-    }
+/// What [`Without`] holds back of a source.
+#[derive(Clone, Copy, PartialEq)]
+enum Withheld {
+    /// No grid declared: the builder spills world records.
+    Grid,
+    /// Batches without their attribute rows and no schema, as a source that keeps none.
+    Attributes,
 }
 
-/// A source's batches without their attribute rows, as a source that keeps none.
-struct WithoutAttributes<'a>(&'a DatasetSource);
+/// A source's points with one part of what it offers held back.
+struct Without<'a>(&'a DatasetSource, Withheld);
 
-impl PointSource for WithoutAttributes<'_> {
+impl PointSource for Without<'_> {
     fn bounds(&self) -> WorldBounds {
         self.0.bounds()
     }
@@ -199,11 +190,22 @@ impl PointSource for WithoutAttributes<'_> {
         self.0.point_count()
     }
     fn position_grid(&self) -> Option<PositionGrid> {
-        self.0.position_grid()
+        (self.1 != Withheld::Grid)
+            .then(|| self.0.position_grid())
+            .flatten()
     }
     fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
-        self.0
-            .for_each_batch(&mut |batch| visit(crate::lod::PointBatch { rows: &[], ..batch }))
+        match self.1 {
+            Withheld::Grid => self.0.for_each_batch(visit),
+            Withheld::Attributes => self
+                .0
+                .for_each_batch(&mut |batch| visit(crate::lod::PointBatch { rows: &[], ..batch })),
+        }
+    }
+    fn attributes(&self) -> Option<AttributeSchema> {
+        (self.1 != Withheld::Attributes)
+            .then(|| self.0.attributes())
+            .flatten()
     }
 }
 
@@ -218,7 +220,12 @@ fn attributes_sections_leave_what_frames_read_unchanged() {
     let source = DatasetSource::open(&[path]).expect("open");
     let db = sled::Config::new().temporary(true).open().expect("sled");
     let (_, with) = built_store(&source, &db, dir.path(), "with");
-    let (_, without) = built_store(&WithoutAttributes(&source), &db, dir.path(), "without");
+    let (_, without) = built_store(
+        &Without(&source, Withheld::Attributes),
+        &db,
+        dir.path(),
+        "without",
+    );
     let records = |stored: &Stored| -> Vec<crate::lod::NodeInfo> {
         let no_attributes = |n: &crate::lod::NodeInfo| crate::lod::NodeInfo {
             attributes_len: 0,
@@ -282,7 +289,7 @@ fn tiles_on_one_grid_spill_grid_records_and_build_the_same_store() {
     let db = sled::Config::new().temporary(true).open().expect("sled");
     let mut built = Vec::new();
     let grid_source: &dyn PointSource = &source;
-    let world_source: &dyn PointSource = &WithoutGrid(&source);
+    let world_source: &dyn PointSource = &Without(&source, Withheld::Grid);
     for (name, source) in [("grid", grid_source), ("world", world_source)] {
         built.push(built_store(source, &db, dir.path(), name));
     }
