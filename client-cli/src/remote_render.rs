@@ -7,6 +7,7 @@
 
 use anyhow::{bail, Context, Result};
 use pointfarm_daemon::capabilities::{checked_tags, WorkerRequirements};
+use pointfarm_daemon::job_control::{check_labels, check_name};
 use pointfarm_daemon::model::JobSpec;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::ingest::dataset_files;
@@ -68,7 +69,11 @@ fn submission(
         requirements: requirements(args)?,
         preview: args.preview,
         after: args.after.clone(),
+        name: args.name.clone().unwrap_or_default(),
+        labels: args.labels.iter().cloned().collect(),
     };
+    check_name("--name", &spec.name)?;
+    check_labels("--label", &spec.labels)?;
     Ok(pb::SubmitJobRequest::from(&spec))
 }
 

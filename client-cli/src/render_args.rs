@@ -70,9 +70,16 @@ pub struct RenderArgs {
     /// through a server, its file and the frame as the API reports it.
     #[arg(long)]
     pub(crate) json: bool,
-    /// Server jobs: higher runs first.
-    #[arg(long, default_value_t = 0)]
+    /// Server jobs: -100 to 100, higher runs first (`pointfarm jobs priority` changes it).
+    #[arg(long, default_value_t = 0, allow_negative_numbers = true, value_parser = crate::admin::parse_priority)]
     pub(crate) priority: i32,
+    /// Server jobs: what the job is called in listings (at most 128 characters).
+    #[arg(long, value_name = "NAME")]
+    pub(crate) name: Option<String>,
+    /// Server jobs: a label to find the job by (`jobs ls --label`): KEY=VALUE, keys of
+    /// a-z0-9_.- (repeatable, at most 32).
+    #[arg(long = "label", value_name = "KEY=VALUE", value_parser = crate::admin::parse_label)]
+    pub(crate) labels: Vec<(String, String)>,
     /// Server jobs: lease the frames only to workers with this tag (`worker --tag`;
     /// repeatable, all required).
     #[arg(long = "require-tag", value_name = "TAG")]

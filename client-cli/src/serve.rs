@@ -96,6 +96,15 @@ pub struct ServeArgs {
     /// before its data is sent (default: no quota, only the disk bounds them).
     #[arg(long, env = "POINTFARM_UPLOAD_QUOTA_BYTES")]
     upload_quota_bytes: Option<u64>,
+    /// Remove jobs that ended (succeeded, failed or were cancelled) more than N days ago,
+    /// with their frames, on a sweep every minute (default: keep them).
+    #[arg(long, value_name = "N", env = "POINTFARM_JOB_RETENTION_DAYS", value_parser = clap::value_parser!(u32).range(1..))]
+    job_retention_days: Option<u32>,
+    /// While the stored frames take more than SIZE (e.g. 200G), remove the jobs that ended
+    /// first, with their frames, until they fit; unfinished jobs are never removed (default:
+    /// no quota).
+    #[arg(long, value_name = "SIZE", env = "POINTFARM_FRAME_QUOTA", value_parser = parse::bytes)]
+    frame_quota: Option<u64>,
     /// Start even when the state database is damaged (truncated, bit-flipped, records
     /// missing): go on with what it still holds and log exactly what was lost. Without it
     /// the daemon refuses to start on such a state and says why.
@@ -257,6 +266,10 @@ pub fn run(args: ServeArgs) -> Result<()> {
         config.worker_cache_bytes = args.worker_cache_size;
         config.max_upload_bytes = args.max_upload_bytes;
         config.upload_quota_bytes = args.upload_quota_bytes;
+        config.job_retention = args
+            .job_retention_days
+            .map(|days| std::time::Duration::from_secs(u64::from(days) * 86_400));
+        config.frame_quota_bytes = args.frame_quota;
         config.recover_state = args.recover_state;
         config.lease_timeout = std::time::Duration::from_secs_f64(args.lease_timeout);
         config.max_frame_attempts = args.max_frame_attempts;

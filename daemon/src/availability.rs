@@ -3,7 +3,7 @@
 //! blocklist), for `jobs show` and the submission's answer. More `Daemon` methods; the test is the one `lease_frame` makes.
 
 use crate::capabilities::{drawn_side, AdapterKind};
-use crate::model::Job;
+use crate::model::{Job, JobState};
 use crate::service::Daemon;
 use crate::worker_presence::ConnectedWorker;
 
@@ -23,6 +23,12 @@ impl Daemon {
     pub fn job_availability(&self, job: &Job) -> JobAvailability {
         if job.state.is_terminal() {
             return JobAvailability::default();
+        }
+        if job.state == JobState::Paused {
+            return JobAvailability {
+                waiting: Some("paused: no frame of it is leased until it is resumed".into()),
+                refusals: Vec::new(),
+            };
         }
         if let Some(prerequisite) = self.unmet_prerequisite(job) {
             return JobAvailability {

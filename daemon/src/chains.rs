@@ -52,10 +52,10 @@ impl Daemon {
     }
 
     /// Why `job` can never run: a job it runs after has ended without succeeding, or is gone.
-    fn broken_chain(&self, job: &Job) -> Result<Option<String>, DaemonError> {
+    pub(crate) fn broken_chain(&self, job: &Job) -> Result<Option<String>, DaemonError> {
         for id in &job.spec.after {
             let reason = match self.state.job(id)? {
-                None => format!("job {id} it runs after no longer exists"),
+                None => deleted_prerequisite(id),
                 Some(found) => match prerequisite_failure(&found) {
                     Some(reason) => reason,
                     None => continue,
@@ -97,6 +97,18 @@ impl Daemon {
         };
         for job in waiting {
             self.fail_waiting_job_locked(&job.id, reason.clone())?;
+        }
+        Ok(())
+    }
+
+    /// Fails the unfinished jobs that run after `deleted`, under the scheduling lock where
+    /// it was deleted, and those after them.
+    pub(crate) fn end_chain_of_deleted_locked(&self, deleted: &str) -> Result<(), DaemonError> {
+        let reason = deleted_prerequisite(deleted);
+        for job in self.state.unfinished_jobs()? {
+            if job.spec.after.iter().any(|id| id == deleted) {
+                self.fail_waiting_job_locked(&job.id, reason.clone())?;
+            }
         }
         Ok(())
     }
@@ -143,8 +155,13 @@ fn prerequisite_failure(ended: &Job) -> Option<String> {
     match ended.state {
         JobState::Failed => Some(format!("job {} failed", ended.id)),
         JobState::Cancelled => Some(format!("job {} was cancelled", ended.id)),
-        JobState::Queued | JobState::Running | JobState::Succeeded => None,
+        JobState::Queued | JobState::Running | JobState::Paused | JobState::Succeeded => None,
     }
+}
+
+/// Why the jobs after job `id`, which is gone, fail.
+fn deleted_prerequisite(id: &str) -> String {
+    format!("job {id} it runs after was deleted")
 }
 
 #[cfg(test)]

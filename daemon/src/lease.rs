@@ -62,7 +62,8 @@ impl Daemon {
             .map(|l| (l.job_id, l.index))
             .collect();
         let usable = |job: &Job| {
-            !job.blocklist.contains(worker)
+            job.state != JobState::Paused
+                && !job.blocklist.contains(worker)
                 && self.unmet_prerequisite(job).is_none()
                 && capabilities
                     .refusal(&job.spec.requirements, &job.spec.request)
@@ -256,8 +257,14 @@ impl Daemon {
             .and_then(|()| std::fs::write(&partial, png));
         if let Err(e) = written {
             let _ = std::fs::remove_file(&partial);
-            let refused = self.state.frame_write_refused(&e);
             let _scheduling = self.scheduling()?;
+            // A job deleted meanwhile took its folder: not the disk's fault.
+            if self.remove_folder_of_deleted_job_locked(&lease.job_id)? {
+                return Err(self.held_lease_locked(lease_id).err().unwrap_or_else(|| {
+                    DaemonError::FailedPrecondition(format!("job {} was deleted", lease.job_id))
+                }));
+            }
+            let refused = self.state.frame_write_refused(&e);
             return Err(self.give_back_refused_locked(&lease, refused));
         }
 
@@ -277,6 +284,7 @@ impl Daemon {
             Ok(attempts) => attempts,
             Err(e) => {
                 let _ = std::fs::remove_file(&partial);
+                self.remove_folder_of_deleted_job_locked(&lease.job_id)?;
                 return self.unless_disk_refused(&lease, Err(e));
             }
         };
@@ -327,6 +335,17 @@ impl Daemon {
         }
         self.publish(&job, Some(report));
         Ok(job)
+    }
+
+    /// When job `job_id` was deleted, removes the (empty) folder that a frame handed in
+    /// under its lease made again, so that no folder of frames outlives its job; returns
+    /// whether the job was deleted.
+    fn remove_folder_of_deleted_job_locked(&self, job_id: &str) -> Result<bool, DaemonError> {
+        if self.state.job(job_id)?.is_some() {
+            return Ok(false);
+        }
+        let _ = std::fs::remove_dir(self.config.frames_dir(job_id));
+        Ok(true)
     }
 
     fn job_asks_previews(&self, job_id: &str) -> Result<bool, DaemonError> {

@@ -13,7 +13,9 @@
 //! more `Daemon` methods),
 //! `describe` (what a dataset's files hold, read with the render crate; more `Daemon` methods),
 //! `chains` (jobs that run after others succeed, failed along the chain when one does not;
-//! more `Daemon` methods),
+//! more `Daemon` methods), `job_control` (cancel, retry, pause, resume, priority, delete;
+//! job names and labels; more `Daemon` methods), `retention` (ended jobs removed by age or
+//! a quota of frames, on a sweep),
 //! `lease` (frame leases: the one scheduling path, more `Daemon` methods), `grpc` (validates,
 //! converts and delegates: one file per service, the conversions, the streaming of bytes; the
 //! frame-task conversions are public for the worker's side of the wire), `supervisor` (runs the
@@ -36,6 +38,7 @@ pub mod error;
 pub mod export;
 pub mod farm_state;
 pub mod grpc;
+pub mod job_control;
 pub mod lease;
 pub mod lease_record;
 pub mod limits;
@@ -44,6 +47,7 @@ pub mod metrics;
 pub mod model;
 pub mod open_files;
 pub mod remote_datasets;
+pub mod retention;
 pub mod server;
 pub mod service;
 pub mod state;

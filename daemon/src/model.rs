@@ -148,6 +148,12 @@ pub struct JobSpec {
     /// order given; empty in jobs stored before chains, which wait for nothing.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub after: Vec<JobId>,
+    /// What users call the job (`job_control::check_name`); empty when unnamed.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub name: String,
+    /// Labels to find the job by, by key (`job_control::check_labels`).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub labels: BTreeMap<String, String>,
 }
 
 impl JobSpec {
@@ -162,6 +168,8 @@ impl JobSpec {
             requirements: WorkerRequirements::default(),
             preview: false,
             after: Vec::new(),
+            name: String::new(),
+            labels: BTreeMap::new(),
         }
     }
 }
@@ -173,10 +181,13 @@ pub enum JobState {
     Succeeded,
     Failed,
     Cancelled,
+    /// Leased no frames until resumed; frames being rendered when it was paused finish.
+    Paused,
 }
 
 impl JobState {
-    /// The state as users read it: `queued`, `running`, `succeeded`, `failed`, `cancelled`.
+    /// The state as users read it: `queued`, `running`, `succeeded`, `failed`, `cancelled`,
+    /// `paused`.
     pub fn name(self) -> &'static str {
         match self {
             JobState::Queued => "queued",
@@ -184,6 +195,7 @@ impl JobState {
             JobState::Succeeded => "succeeded",
             JobState::Failed => "failed",
             JobState::Cancelled => "cancelled",
+            JobState::Paused => "paused",
         }
     }
 

@@ -197,6 +197,8 @@ pub async fn serve(
         })
     };
 
+    let retention = crate::retention::spawn_sweep(daemon.clone());
+
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<DatasetServiceServer<Api>>().await;
     health.set_serving::<WorkerServiceServer<Api>>().await;
@@ -296,6 +298,7 @@ pub async fn serve(
         ),
     }
     sweeper.abort();
+    retention.abort();
     health_watch.abort();
     if let Some(health_only) = health_only {
         health_only.abort();

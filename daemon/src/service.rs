@@ -31,6 +31,8 @@ pub const DEFAULT_MAX_IMAGE_SIDE: u32 = 8192;
 pub const DEFAULT_MAX_FRAME_ATTEMPTS: u32 = 3;
 /// How long a lease lasts without a heartbeat, unless configured otherwise.
 pub const DEFAULT_LEASE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
+/// How often the retention rules are applied, unless configured otherwise.
+pub const DEFAULT_RETENTION_SWEEP_PERIOD: std::time::Duration = std::time::Duration::from_secs(60);
 
 /// The longest a read of a dataset by URL may take (a registration's HEAD and header), well
 /// within the bound of a blocking call, so that a stalled server is told as such.
@@ -85,6 +87,14 @@ pub struct DaemonConfig {
     pub store_ready_gate: Option<StoreBuildGate>,
     /// The endpoints told of every job's end, checked and with their secrets read.
     pub webhooks: Vec<WebhookEndpoint>,
+    /// Jobs that ended longer ago than this are removed with their frames (`retention`);
+    /// none are when None.
+    pub job_retention: Option<std::time::Duration>,
+    /// While the stored frames take more bytes than this, the jobs that ended first are
+    /// removed with theirs (`retention`); no bound when None.
+    pub frame_quota_bytes: Option<u64>,
+    /// How often the retention rules are applied.
+    pub retention_sweep_period: std::time::Duration,
 }
 
 impl DaemonConfig {
@@ -110,6 +120,9 @@ impl DaemonConfig {
             store_build_gate: None,
             store_ready_gate: None,
             webhooks: Vec::new(),
+            job_retention: None,
+            frame_quota_bytes: None,
+            retention_sweep_period: DEFAULT_RETENTION_SWEEP_PERIOD,
             data_dir,
         }
     }
@@ -353,26 +366,6 @@ impl Daemon {
         Ok(self.state.list_jobs(state, page_size as usize, token)?)
     }
 
-    pub fn cancel_job(&self, id: &str) -> Result<Job, DaemonError> {
-        // Under the scheduling lock, so no frame completes after the cancel.
-        let _scheduling = self.scheduling()?;
-        let job = self.job(id)?;
-        if job.state.is_terminal() {
-            return Err(DaemonError::FailedPrecondition(format!(
-                "job {id} already {}; nothing to cancel",
-                job.state.name()
-            )));
-        }
-        let job = self
-            .state
-            .update_job(id, |j| j.state = JobState::Cancelled)?
-            .ok_or_else(|| DaemonError::NotFound(format!("job {id}")))?;
-        self.state.flush()?;
-        self.log_job_end(&job, 0);
-        self.publish(&job, None);
-        Ok(job)
-    }
-
     /// Logs that `job` ended, once, with its counts, queues the event for the webhooks and
     /// settles the jobs that run after it (`chains`); called under the scheduling lock.
     /// `unstored_attempts` failed attempts ended it before they were stored at its frame.
@@ -403,7 +396,7 @@ impl Daemon {
                 job = %id, frames_done, frames_total, %failed_attempts, elapsed_s,
                 "job cancelled"
             ),
-            JobState::Queued | JobState::Running => {}
+            JobState::Queued | JobState::Running | JobState::Paused => {}
         }
         if let Err(e) = self.end_chain_locked(job) {
             // The next start fails what is left of the chain (`fail_broken_chains`).

@@ -29,9 +29,12 @@ use crate::lease_record::Lease;
 use crate::manifest::{Counts, Manifest};
 use crate::model::{Dataset, FrameReport, FrameState, Job, JobSpec, JobState};
 
+mod control;
 mod health;
 mod records;
 mod trees;
+
+pub use control::JobFilter;
 
 use health::DiskHealth;
 use records::Records;
@@ -346,7 +349,55 @@ impl StateDb {
         page_size: usize,
         token: &str,
     ) -> Result<Page<Job>, StateError> {
-        self.with(|records| records.list_jobs(state, page_size, token))
+        let filter = JobFilter {
+            state,
+            ..JobFilter::default()
+        };
+        self.list_matching_jobs(&filter, page_size, token)
+    }
+
+    /// A page of the jobs `filter` accepts, in id order (the order of submission).
+    pub fn list_matching_jobs(
+        &self,
+        filter: &JobFilter,
+        page_size: usize,
+        token: &str,
+    ) -> Result<Page<Job>, StateError> {
+        self.with(|records| records.list_matching_jobs(filter, page_size, token))
+    }
+
+    /// Puts every unfinished frame of job `id` back in the queue with no attempt counted and
+    /// applies `change` to the job, which must leave it unfinished; one flushed transaction.
+    /// None if there is no such job.
+    pub fn requeue_unfinished_frames(
+        &self,
+        id: &str,
+        change: impl FnOnce(&mut Job),
+    ) -> Result<Option<Job>, StateError> {
+        self.with(|records| records.requeue_unfinished_frames(id, change))
+    }
+
+    /// Gives job `id` a new priority, and an unfinished job its new place in the scheduling
+    /// index; one flushed transaction. None if there is no such job.
+    pub fn set_priority(&self, id: &str, priority: i32) -> Result<Option<Job>, StateError> {
+        self.with(|records| records.set_priority(id, priority))
+    }
+
+    /// Removes job `id` with every record of it and returns it; None if there is no such
+    /// job. Its leases stay until next used or run out, so that their holders learn why to
+    /// stop.
+    pub fn delete_job(&self, id: &str) -> Result<Option<Job>, StateError> {
+        if self.job(id)?.is_none() {
+            return Ok(None);
+        }
+        // Counted out first: a crash in between leaves the manifest short, never over.
+        self.count(|counts| counts.jobs = counts.jobs.saturating_sub(1))?;
+        self.with(|records| records.delete_job(id))
+    }
+
+    /// Every job that has ended: every job is read.
+    pub fn ended_jobs(&self) -> Result<Vec<Job>, StateError> {
+        self.with(Records::ended_jobs)
     }
 
     /// The unfinished jobs, highest priority first, then oldest: read from the scheduling

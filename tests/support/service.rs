@@ -200,11 +200,7 @@ pub fn turntable_job(
         camera_path: Some(pb::CameraPath::turntable(pb::Turntable::of_frames(frames))),
         width,
         height,
-        render: None,
-        priority: 0,
-        requirements: None,
-        preview: false,
-        after_job_ids: Vec::new(),
+        ..Default::default()
     }
 }
 
@@ -250,15 +246,7 @@ pub async fn run_job(
     name: &str,
     request: RenderRequest,
 ) -> pb::Job {
-    let spec = JobSpec {
-        request_id: name.into(),
-        dataset_id: dataset_id.into(),
-        request,
-        priority: 0,
-        requirements: Default::default(),
-        preview: false,
-        after: Vec::new(),
-    };
+    let spec = JobSpec::new(name.into(), dataset_id.into(), request);
     let job = jobs
         .submit_job(pb::SubmitJobRequest::from(&spec))
         .await

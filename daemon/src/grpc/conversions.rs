@@ -17,7 +17,7 @@ use crate::lease::{FailureKind, FrameTask, HeartbeatAnswer};
 use crate::lease_record::Lease;
 use crate::limits::{truncated, MAX_WORKER_NAME_BYTES};
 use crate::model::{FrameCut, FrameReport, Job, JobState, StageTiming};
-use crate::state::Page;
+use crate::state::{JobFilter, Page};
 use crate::stores::{CopcServed, PreviewBytes, StoreAnswer};
 pub use descriptions::{
     copc_description, dataset_description, file_description, point_attributes_message,
@@ -112,12 +112,21 @@ impl From<JobState> for pb::JobState {
             JobState::Succeeded => pb::JobState::Succeeded,
             JobState::Failed => pb::JobState::Failed,
             JobState::Cancelled => pb::JobState::Cancelled,
+            JobState::Paused => pb::JobState::Paused,
         }
     }
 }
 
+/// What a listing of jobs asks for: a state (unspecified: every state) and labels.
+pub(super) fn job_filter(r: &pb::ListJobsRequest) -> Result<JobFilter, DaemonError> {
+    Ok(JobFilter {
+        state: state_filter(r.state)?,
+        labels: r.labels.clone().into_iter().collect(),
+    })
+}
+
 /// The state a listing is filtered by; unspecified lists every state.
-pub(super) fn state_filter(state: i32) -> Result<Option<JobState>, DaemonError> {
+fn state_filter(state: i32) -> Result<Option<JobState>, DaemonError> {
     Ok(match known_enum("state", state)? {
         pb::JobState::Unspecified => None,
         pb::JobState::Queued => Some(JobState::Queued),
@@ -125,6 +134,7 @@ pub(super) fn state_filter(state: i32) -> Result<Option<JobState>, DaemonError> 
         pb::JobState::Succeeded => Some(JobState::Succeeded),
         pb::JobState::Failed => Some(JobState::Failed),
         pb::JobState::Cancelled => Some(JobState::Cancelled),
+        pb::JobState::Paused => Some(JobState::Paused),
     })
 }
 
@@ -158,6 +168,8 @@ impl From<&Job> for pb::Job {
             waiting_reason: String::new(),
             refusals: Vec::new(),
             after_job_ids: job.spec.after.clone(),
+            name: job.spec.name.clone(),
+            labels: job.spec.labels.clone().into_iter().collect(),
         }
     }
 }

@@ -1,5 +1,6 @@
-//! `JobService`: submitting, reading, listing, cancelling and watching jobs, and streaming
-//! their finished frames.
+//! `JobService`: submitting, reading, listing and watching jobs, controlling them (cancel,
+//! retry, pause, resume, priority, delete: `job_control`), and streaming their finished
+//! frames.
 
 use std::collections::HashSet;
 use std::sync::Arc;
@@ -9,7 +10,7 @@ use pointfarm_proto::v1::job_service_server::JobService;
 use tokio::sync::broadcast::error::RecvError;
 use tonic::{Request, Response, Status};
 
-use super::conversions::{invalid, page_messages, state_filter};
+use super::conversions::{invalid, job_filter, page_messages};
 use super::streaming::{chunks, send_each, spawn_stream, ResponseStream};
 use super::Api;
 use crate::model::{FrameReport, FrameState, JobSpec};
@@ -55,9 +56,10 @@ impl JobService for Api {
         request: Request<pb::ListJobsRequest>,
     ) -> Result<Response<pb::ListJobsResponse>, Status> {
         let r = request.into_inner();
+        let filter = job_filter(&r)?;
         let page = self
-            .daemon
-            .list_jobs(state_filter(r.state)?, r.page_size, &r.page_token)?;
+            .run(move |daemon| daemon.find_jobs(&filter, r.page_size, &r.page_token))
+            .await?;
         let (jobs, next_page_token) = page_messages(page);
         Ok(Response::new(pb::ListJobsResponse {
             jobs,
@@ -71,6 +73,55 @@ impl JobService for Api {
     ) -> Result<Response<pb::Job>, Status> {
         let id = request.into_inner().id;
         let job = self.run(move |daemon| daemon.cancel_job(&id)).await?;
+        Ok(Response::new(pb::Job::from(&job)))
+    }
+
+    async fn retry_job(
+        &self,
+        request: Request<pb::RetryJobRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
+        let id = request.into_inner().id;
+        let job = self.run(move |daemon| daemon.retry_job(&id)).await?;
+        Ok(Response::new(pb::Job::from(&job)))
+    }
+
+    async fn pause_job(
+        &self,
+        request: Request<pb::PauseJobRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
+        let id = request.into_inner().id;
+        let job = self.run(move |daemon| daemon.pause_job(&id)).await?;
+        Ok(Response::new(pb::Job::from(&job)))
+    }
+
+    async fn resume_job(
+        &self,
+        request: Request<pb::ResumeJobRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
+        let id = request.into_inner().id;
+        let job = self.run(move |daemon| daemon.resume_job(&id)).await?;
+        Ok(Response::new(pb::Job::from(&job)))
+    }
+
+    async fn set_job_priority(
+        &self,
+        request: Request<pb::SetJobPriorityRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
+        let r = request.into_inner();
+        let job = self
+            .run(move |daemon| daemon.set_job_priority(&r.id, r.priority))
+            .await?;
+        Ok(Response::new(pb::Job::from(&job)))
+    }
+
+    async fn delete_job(
+        &self,
+        request: Request<pb::DeleteJobRequest>,
+    ) -> Result<Response<pb::Job>, Status> {
+        let r = request.into_inner();
+        let job = self
+            .run(move |daemon| daemon.delete_job(&r.id, r.force))
+            .await?;
         Ok(Response::new(pb::Job::from(&job)))
     }
 

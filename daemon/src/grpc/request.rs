@@ -466,6 +466,8 @@ impl From<&JobSpec> for pb::SubmitJobRequest {
                 .then(|| pb::WorkerRequirements::from(&spec.requirements)),
             preview: spec.preview,
             after_job_ids: spec.after.clone(),
+            name: spec.name.clone(),
+            labels: spec.labels.clone().into_iter().collect(),
         }
     }
 }

@@ -51,6 +51,13 @@ struct StageLabels {
     stage: String,
 }
 
+/// Why jobs were removed: `deleted` by a user, or by the retention rules (`retention`: they
+/// ended too long ago; `frame_quota`: their frames passed the quota).
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct RemovalLabels {
+    reason: &'static str,
+}
+
 /// The queue's labels.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct QueueLabels {
@@ -236,6 +243,7 @@ pub struct DaemonMetrics {
     upload_bytes: Counter,
     store_rebuilds: Counter,
     webhooks: WebhookCounters,
+    jobs_removed: Family<RemovalLabels, Counter>,
     queue_frames: Family<QueueLabels, Gauge>,
     leases_held: Gauge,
     workers_connected: Gauge,
@@ -262,6 +270,7 @@ impl DaemonMetrics {
             upload_bytes: Counter::default(),
             store_rebuilds: Counter::default(),
             webhooks: WebhookCounters::default(),
+            jobs_removed: Family::default(),
             queue_frames: Family::default(),
             leases_held: Gauge::default(),
             workers_connected: Gauge::default(),
@@ -325,6 +334,19 @@ impl DaemonMetrics {
              short); each store at most once a run",
             metrics.store_rebuilds.clone(),
         );
+        for reason in ["deleted", "retention", "frame_quota"] {
+            metrics
+                .jobs_removed
+                .get_or_create(&RemovalLabels { reason })
+                .inc_by(0);
+        }
+        registry.register(
+            "jobs_removed",
+            "Jobs removed with their frames and records, by reason: deleted by a user, or by \
+             the retention rules (retention: they ended longer ago than the retention; \
+             frame_quota: the stored frames passed the quota)",
+            metrics.jobs_removed.clone(),
+        );
         // Every outcome's series from the start, so that a rate over them reads 0, not nothing.
         metrics.webhooks.counts();
         registry.register(
@@ -358,6 +380,13 @@ impl DaemonMetrics {
     /// [`DaemonMetrics::frame_failed`]).
     pub fn lease_expired(&self) {
         self.leases_expired.inc();
+    }
+
+    /// `count` jobs were removed for `reason` (`deleted`, `retention` or `frame_quota`).
+    pub fn jobs_removed(&self, reason: &'static str, count: u64) {
+        self.jobs_removed
+            .get_or_create(&RemovalLabels { reason })
+            .inc_by(count);
     }
 
     /// An upload of `bytes` was received whole.

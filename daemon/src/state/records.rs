@@ -189,7 +189,7 @@ impl Records {
     }
 
     /// The stored job `id` with `change` applied and its update time bumped, not yet written.
-    fn changed_job(
+    pub(super) fn changed_job(
         &self,
         id: &str,
         change: impl FnOnce(&mut Job),
@@ -199,21 +199,6 @@ impl Records {
             job.updated_unix_ms = now_unix_ms();
             job
         }))
-    }
-
-    pub(super) fn list_jobs(
-        &self,
-        state: Option<JobState>,
-        page_size: usize,
-        token: &str,
-    ) -> Result<Page<Job>, StateError> {
-        page(
-            &self.trees.jobs,
-            page_size,
-            token,
-            |j: &Job| state.is_none_or(|s| j.state == s),
-            |j| j.id.clone(),
-        )
     }
 
     /// Whether an unfinished job renders the dataset `dataset_id`: every job is looked at.

@@ -22,6 +22,8 @@ fn spec(request_id: &str, frames: u32, priority: i32) -> JobSpec {
         requirements: Default::default(),
         preview: false,
         after: Vec::new(),
+        name: String::new(),
+        labels: Default::default(),
     }
 }
 

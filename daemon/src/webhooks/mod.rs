@@ -111,7 +111,7 @@ fn job_end(state: JobState) -> Option<JobEnd> {
         JobState::Succeeded => Some(JobEnd::Succeeded),
         JobState::Failed => Some(JobEnd::Failed),
         JobState::Cancelled => Some(JobEnd::Cancelled),
-        JobState::Queued | JobState::Running => None,
+        JobState::Queued | JobState::Running | JobState::Paused => None,
     }
 }
 

@@ -27,6 +27,8 @@ fn job(state: JobState, error: Option<&str>) -> Job {
             requirements: Default::default(),
             preview: false,
             after: Vec::new(),
+            name: String::new(),
+            labels: Default::default(),
         },
         state,
         frames_total: 4,

@@ -7,6 +7,7 @@ use super::super::request::render_request;
 use super::invalid;
 use crate::capabilities::WorkerRequirements;
 use crate::error::DaemonError;
+use crate::job_control::{check_labels, check_name, check_priority};
 use crate::model::JobSpec;
 
 /// Validates a submission; limits that depend on the server are checked by the daemon.
@@ -17,6 +18,10 @@ impl TryFrom<&pb::SubmitJobRequest> for JobSpec {
         if r.dataset_id.is_empty() {
             return Err(invalid("dataset_id", "is required"));
         }
+        check_priority("priority", r.priority)?;
+        check_name("name", &r.name)?;
+        let labels = r.labels.clone().into_iter().collect();
+        check_labels("labels", &labels)?;
         Ok(JobSpec {
             request_id: r.request_id.clone(),
             dataset_id: r.dataset_id.clone(),
@@ -31,6 +36,8 @@ impl TryFrom<&pb::SubmitJobRequest> for JobSpec {
             preview: r.preview,
             // Checked by the daemon, which knows the jobs.
             after: r.after_job_ids.clone(),
+            name: r.name.clone(),
+            labels,
         })
     }
 }

@@ -20,6 +20,8 @@ fn valid() -> pb::SubmitJobRequest {
         requirements: None,
         preview: false,
         after_job_ids: Vec::new(),
+        name: "turntable of the hall".into(),
+        labels: [("shot".to_string(), "010".to_string())].into(),
     }
 }
 

@@ -1,0 +1,183 @@
+//! What the `jobs` commands print of a job beyond its table row: its previews, its cuts,
+//! its stage timings, its workers and why it waits.
+
+use pointfarm_proto::v1 as pb;
+
+use crate::admin_json::StageStatistics;
+
+/// One line on a job's preview frames (drawn from the dataset's chunk starts while the
+/// server builds its store), which final frames replace: how many, and how complete.
+pub(super) fn preview_summary(job: &pb::Job) -> Option<String> {
+    let previews: Vec<&pb::FrameFinished> = job.frames.iter().filter(|f| f.preview).collect();
+    let first = previews.first()?;
+    let (low, high) = previews
+        .iter()
+        .fold((first.completeness, first.completeness), |(l, h), f| {
+            (l.min(f.completeness), h.max(f.completeness))
+        });
+    Some(format!(
+        "previews: {} of {} frames, {:.3}% to {:.3}% of the points; final: {}/{}",
+        previews.len(),
+        job.frames_total,
+        low * 100.0,
+        high * 100.0,
+        job.frames_done,
+        job.frames_total
+    ))
+}
+
+/// One line on the frames rendered from levels of detail: the median cut and what was read.
+pub(super) fn cut_summary(frames: &[pb::FrameFinished]) -> Option<String> {
+    let cuts: Vec<&pb::FrameCut> = frames.iter().filter_map(|f| f.cut.as_ref()).collect();
+    let first = cuts.first()?;
+    let median = |value: fn(&pb::FrameCut) -> u64| {
+        let mut values: Vec<u64> = cuts.iter().map(|c| value(c)).collect();
+        values.sort_unstable();
+        values[values.len() / 2]
+    };
+    let sum = |value: fn(&pb::FrameCut) -> u64| cuts.iter().map(|c| value(c)).sum::<u64>();
+    Some(format!(
+        "levels of detail, {} frames: median cut {} nodes, {} of {} points; {} nodes read ({:.1} MiB, {:.1} MiB ahead), {} host and {} GPU cache hits{}",
+        cuts.len(), median(|c| c.nodes), median(|c| c.points_rendered), first.points_total,
+        sum(|c| c.nodes_read), sum(|c| c.bytes_read) as f64 / f64::from(1 << 20),
+        sum(|c| c.read_ahead_bytes) as f64 / f64::from(1 << 20), sum(|c| c.host_hits), sum(|c| c.gpu_hits),
+        if cuts.iter().any(|c| c.limited_by_budget) { "; some cuts bounded by the GPU budget" } else { "" },
+    ))
+}
+
+/// Median and 95th percentile of each stage over a job's frames, in stage order.
+pub(super) fn stage_statistics(frames: &[pb::FrameFinished]) -> Vec<StageStatistics> {
+    let mut stages: Vec<(String, Vec<f64>)> = Vec::new();
+    for timing in frames.iter().flat_map(|f| &f.timings) {
+        match stages.iter_mut().find(|(name, _)| *name == timing.stage) {
+            Some((_, values)) => values.push(timing.ms),
+            None => stages.push((timing.stage.clone(), vec![timing.ms])),
+        }
+    }
+    stages
+        .into_iter()
+        .map(|(name, mut values)| {
+            values.sort_by(f64::total_cmp);
+            let at = |q: f64| values[((values.len() - 1) as f64 * q).round() as usize];
+            StageStatistics {
+                stage: name,
+                median_ms: at(0.5),
+                p95_ms: at(0.95),
+            }
+        })
+        .collect()
+}
+
+/// A worker's name as the tables show it, marked when it is the daemon's embedded worker.
+pub(super) fn worker_label(name: &str, embedded: bool) -> String {
+    if embedded {
+        format!("{name} (embedded)")
+    } else {
+        name.to_string()
+    }
+}
+
+/// What `jobs show` says of a job's workers: what it requires of them, who rendered its
+/// frames, who is blocklisted, the jobs it runs after, and why it waits (for one of those, or
+/// for a connected worker that can render it).
+pub(super) fn scheduling_lines(job: &pb::Job) -> Vec<String> {
+    let mut lines = Vec::new();
+    if let Some(required) = job.requirements.as_ref() {
+        let mut parts = Vec::new();
+        if required.gpu {
+            parts.push("a GPU".to_string());
+        }
+        if !required.tags.is_empty() {
+            parts.push(format!("tags {}", required.tags.join(", ")));
+        }
+        if !parts.is_empty() {
+            lines.push(format!("requires: {}", parts.join(" and ")));
+        }
+    }
+    let mut rendered: std::collections::BTreeMap<&str, u32> = Default::default();
+    for frame in &job.frames {
+        if !frame.worker_name.is_empty() {
+            *rendered.entry(frame.worker_name.as_str()).or_default() += 1;
+        }
+    }
+    if !rendered.is_empty() {
+        let by: Vec<String> = rendered
+            .iter()
+            .map(|(worker, frames)| format!("{worker} {frames}"))
+            .collect();
+        lines.push(format!("frames by worker: {}", by.join(", ")));
+    }
+    if !job.blocklisted_workers.is_empty() {
+        let listed: Vec<String> = job
+            .blocklisted_workers
+            .iter()
+            .map(|w| format!("{} ({} failed frames)", w.worker_name, w.failed_frames))
+            .collect();
+        lines.push(format!("blocklisted workers: {}", listed.join(", ")));
+    }
+    if !job.after_job_ids.is_empty() {
+        lines.push(format!("runs after: {}", job.after_job_ids.join(", ")));
+    }
+    if !job.waiting_reason.is_empty() {
+        lines.push(format!("waiting: {}", job.waiting_reason));
+    }
+    for refusal in &job.refusals {
+        lines.push(format!(
+            "  worker {} cannot render it: {}",
+            refusal.worker_name, refusal.reason
+        ));
+    }
+    lines
+}
+
+/// Whether a job in `state` has ended (succeeded, failed or cancelled).
+pub(super) fn has_ended(state: i32) -> bool {
+    matches!(
+        pb::JobState::try_from(state),
+        Ok(pb::JobState::Succeeded | pb::JobState::Failed | pb::JobState::Cancelled)
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stage_statistics_give_median_and_p95_per_stage() {
+        let frames: Vec<pb::FrameFinished> = (0..20)
+            .map(|i| pb::FrameFinished {
+                index: i,
+                dataset_cache_hit: None,
+                failed_attempts: 0,
+                cut: None,
+                worker_name: String::new(),
+                preview: false,
+                completeness: 0.0,
+                timings: vec![
+                    pb::StageTiming {
+                        stage: "rasterize".into(),
+                        ms: i as f64,
+                        gpu_clock: true,
+                    },
+                    pb::StageTiming {
+                        stage: "encode".into(),
+                        ms: 1.0,
+                        gpu_clock: false,
+                    },
+                ],
+            })
+            .collect();
+        let stats = stage_statistics(&frames);
+        assert_eq!(stats[0].stage, "rasterize");
+        assert_eq!(stats[0].median_ms, 10.0);
+        assert_eq!(stats[0].p95_ms, 18.0);
+        assert_eq!(
+            stats[1],
+            StageStatistics {
+                stage: "encode".to_string(),
+                median_ms: 1.0,
+                p95_ms: 1.0
+            }
+        );
+    }
+}
