@@ -21,6 +21,13 @@ fn submit_after(daemon: &Daemon, frames: u32, after: &[&Job]) -> Job {
     })
 }
 
+/// A job of one frame and another of one frame that runs after it.
+fn one_after_another(daemon: &Daemon) -> (Job, Job) {
+    let first = test_daemon::submit(daemon, 1, |_| {});
+    let second = submit_after(daemon, 1, &[&first]);
+    (first, second)
+}
+
 fn next_lease(daemon: &Daemon) -> Option<FrameTask> {
     daemon
         .lease_frame("w", false, &WorkerCapabilities::default())
@@ -47,8 +54,7 @@ fn stored(daemon: &Daemon, job: &Job) -> Job {
 fn a_job_after_another_gets_no_frame_leased_until_it_has_succeeded() {
     let dir = tempfile::tempdir().expect("tempdir");
     let daemon = open(dir.path());
-    let first = test_daemon::submit(&daemon, 1, |_| {});
-    let second = submit_after(&daemon, 1, &[&first]);
+    let (first, second) = one_after_another(&daemon);
     assert_eq!(second.spec.after, vec![first.id.clone()]);
 
     let task = next_lease(&daemon).expect("the first job's frame");
@@ -72,10 +78,8 @@ fn a_job_after_another_gets_no_frame_leased_until_it_has_succeeded() {
 fn a_failure_or_a_cancel_fails_every_job_along_the_chain() {
     let dir = tempfile::tempdir().expect("tempdir");
     let daemon = open(dir.path());
-    let failing = test_daemon::submit(&daemon, 1, |_| {});
-    let after_failing = submit_after(&daemon, 1, &[&failing]);
-    let cancelled = test_daemon::submit(&daemon, 1, |_| {});
-    let after_cancelled = submit_after(&daemon, 1, &[&cancelled]);
+    let (failing, after_failing) = one_after_another(&daemon);
+    let (cancelled, after_cancelled) = one_after_another(&daemon);
     let further = submit_after(&daemon, 1, &[&after_cancelled, &failing]);
 
     daemon.cancel_job(&cancelled.id).expect("cancel");
@@ -141,10 +145,8 @@ fn a_submission_names_existing_jobs_each_once_and_not_too_many() {
 fn a_restart_keeps_the_chain_and_fails_one_left_broken() {
     let dir = tempfile::tempdir().expect("tempdir");
     let daemon = open(dir.path());
-    let first = test_daemon::submit(&daemon, 1, |_| {});
-    let waiting = submit_after(&daemon, 1, &[&first]);
-    let broken_first = test_daemon::submit(&daemon, 1, |_| {});
-    let broken = submit_after(&daemon, 1, &[&broken_first]);
+    let (first, waiting) = one_after_another(&daemon);
+    let (broken_first, broken) = one_after_another(&daemon);
     // A crash between a job's end and the failure of the jobs after it: the end is stored,
     // nothing else.
     daemon

@@ -8,6 +8,7 @@ use pointfarm_render::lod::codec::Detail;
 use pointfarm_render::lod::records::read_nodes_at;
 use pointfarm_render::lod::{read_nodes, LodError, NodeInfo, NodeKey, NodeRecords};
 use pointfarm_render::sample::sample_scene;
+use pointfarm_render::testing::copc_file;
 
 use super::*;
 use crate::model::DatasetFile;
@@ -191,12 +192,6 @@ fn copc_dataset(path: &Path, sha256: &str) -> Dataset {
     let name = path.file_name().expect("a name").to_string_lossy();
     dataset.files[0].name = name.into_owned();
     dataset
-}
-
-fn copc_file(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../tests/data/copc")
-        .join(name)
 }
 
 /// A COPC file pointfarm exported records its inner nodes' grids: the hierarchy record a

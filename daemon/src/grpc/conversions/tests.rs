@@ -22,6 +22,7 @@ fn valid() -> pb::SubmitJobRequest {
         after_job_ids: Vec::new(),
         name: "turntable of the hall".into(),
         labels: [("shot".to_string(), "010".to_string())].into(),
+        video: None,
     }
 }
 
@@ -42,8 +43,7 @@ fn kernel(kernel: u32) -> pb::FillOptions {
 
 #[test]
 fn copc_chunks_convert_both_ways_and_bad_fields_are_named() {
-    let path = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../tests/data/copc/simple.copc.laz");
+    let path = pointfarm_render::testing::copc_file("simple.copc.laz");
     let opened = pointfarm_render::copc::open_copc(&path).expect("opens");
     let served = CopcServed {
         file_name: "simple.copc.laz".into(),
