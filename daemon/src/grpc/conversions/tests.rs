@@ -22,7 +22,6 @@ fn valid() -> pb::SubmitJobRequest {
         after_job_ids: Vec::new(),
         name: "turntable of the hall".into(),
         labels: [("shot".to_string(), "010".to_string())].into(),
-        video: None,
     }
 }
 
