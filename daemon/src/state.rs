@@ -131,10 +131,16 @@ fn decode_stored<T: DeserializeOwned>(value: Option<sled::IVec>) -> Result<Optio
     value.map(|v| decode(&v)).transpose()
 }
 
+/// The prefix of the keys of job `job_id`'s frames (and pending frames, and previews).
+fn frames_prefix(job_id: &str) -> Vec<u8> {
+    let mut prefix = job_id.as_bytes().to_vec();
+    prefix.push(b'/');
+    prefix
+}
+
 /// Frame keys sort by job, then by index.
 fn frame_key(job_id: &str, index: u32) -> Vec<u8> {
-    let mut key = job_id.as_bytes().to_vec();
-    key.push(b'/');
+    let mut key = frames_prefix(job_id);
     key.extend_from_slice(&index.to_be_bytes());
     key
 }

@@ -7,6 +7,8 @@ use std::time::Duration;
 
 use pointfarm_proto::v1 as pb;
 
+use crate::capabilities::WorkerCapabilities;
+use crate::lease::{FrameOutcome, FrameTask};
 use crate::model::{Job, JobSpec};
 use crate::service::{Daemon, DaemonConfig};
 
@@ -62,4 +64,25 @@ pub fn png(width: u32, height: u32) -> Vec<u8> {
         )
         .expect("encode");
     bytes
+}
+
+/// The next frame a worker named `w`, of no particular capabilities, is leased.
+pub fn lease(daemon: &Daemon) -> Option<FrameTask> {
+    daemon
+        .lease_frame("w", false, &WorkerCapabilities::default())
+        .expect("lease")
+}
+
+/// Hands in a blank final frame of 8 x 6 pixels (the size of [`submit`]'s jobs) for `task`;
+/// its job as it is then.
+pub fn render(daemon: &Daemon, task: &FrameTask) -> Job {
+    let outcome = FrameOutcome {
+        timings: Vec::new(),
+        dataset_cache_hit: None,
+        cut: None,
+        preview: None,
+    };
+    daemon
+        .complete_frame(&task.lease.id, &png(8, 6), outcome)
+        .expect("complete")
 }

@@ -7,31 +7,12 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use super::*;
-use crate::capabilities::WorkerCapabilities;
-use crate::lease::{FailureKind, FrameOutcome, FrameTask};
+use crate::lease::FailureKind;
 use crate::model::FrameState;
-use crate::test_daemon::{self, png};
+use crate::test_daemon::{self, lease as next_lease, render};
 
 fn open(dir: &Path) -> Arc<Daemon> {
     test_daemon::open(dir, Duration::from_secs(60))
-}
-
-fn next_lease(daemon: &Daemon) -> Option<FrameTask> {
-    daemon
-        .lease_frame("w", false, &WorkerCapabilities::default())
-        .expect("lease")
-}
-
-fn render(daemon: &Daemon, task: &FrameTask) -> Job {
-    let outcome = FrameOutcome {
-        timings: Vec::new(),
-        dataset_cache_hit: None,
-        cut: None,
-        preview: None,
-    };
-    daemon
-        .complete_frame(&task.lease.id, &png(8, 6), outcome)
-        .expect("complete")
 }
 
 /// The message of a FailedPrecondition error.

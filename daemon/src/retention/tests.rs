@@ -4,26 +4,13 @@
 use std::time::Duration;
 
 use super::*;
-use crate::capabilities::WorkerCapabilities;
-use crate::lease::FrameOutcome;
 use crate::model::JobState;
 use crate::test_daemon::{self, png};
 
 /// Renders every frame that can be leased now.
 fn render_all(daemon: &Daemon) {
-    while let Some(task) = daemon
-        .lease_frame("w", false, &WorkerCapabilities::default())
-        .expect("lease")
-    {
-        let outcome = FrameOutcome {
-            timings: Vec::new(),
-            dataset_cache_hit: None,
-            cut: None,
-            preview: None,
-        };
-        daemon
-            .complete_frame(&task.lease.id, &png(8, 6), outcome)
-            .expect("complete");
+    while let Some(task) = test_daemon::lease(daemon) {
+        test_daemon::render(daemon, &task);
     }
 }
 

@@ -7,7 +7,7 @@ use std::collections::BTreeMap;
 use sled::Transactional;
 
 use super::records::Records;
-use super::{decode, encode, page, queue_key, transaction_error, Page};
+use super::{decode, encode, frames_prefix, page, queue_key, transaction_error, Page};
 use crate::error::StateError;
 use crate::model::{now_unix_ms, FrameState, Job, JobState};
 
@@ -28,13 +28,6 @@ impl JobFilter {
                 .iter()
                 .all(|(key, value)| job.spec.labels.get(key) == Some(value))
     }
-}
-
-/// The key prefix of the frames (and pending frames, and previews) of job `id`.
-fn frames_prefix(id: &str) -> Vec<u8> {
-    let mut prefix = id.as_bytes().to_vec();
-    prefix.push(b'/');
-    prefix
 }
 
 impl Records {

@@ -5,8 +5,8 @@ use sled::Transactional;
 
 use super::trees::Trees;
 use super::{
-    decode, decode_stored, encode, frame_key, page, queue_key, transaction_error, Page,
-    INDEX_VERSION, INDEX_VERSION_KEY,
+    decode, decode_stored, encode, frame_key, frames_prefix, page, queue_key, transaction_error,
+    Page, INDEX_VERSION, INDEX_VERSION_KEY,
 };
 use crate::error::StateError;
 use crate::lease_record::Lease;
@@ -158,8 +158,7 @@ impl Records {
             self.trees.jobs.insert(job.id.as_bytes(), encoded)?;
             return Ok(());
         }
-        let mut prefix = job.id.as_bytes().to_vec();
-        prefix.push(b'/');
+        let prefix = frames_prefix(&job.id);
         let mut unlisted = sled::Batch::default();
         for key in self.trees.pending.scan_prefix(&prefix).keys() {
             unlisted.remove(key?);
@@ -260,8 +259,7 @@ impl Records {
         let ended = job.state.is_terminal();
         let mut unlisted = sled::Batch::default();
         if ended {
-            let mut prefix = job.id.as_bytes().to_vec();
-            prefix.push(b'/');
+            let prefix = frames_prefix(&job.id);
             for key in self.trees.pending.scan_prefix(&prefix).keys() {
                 unlisted.remove(key?);
             }
@@ -369,9 +367,8 @@ impl Records {
     ) -> Result<Option<(Job, u32)>, StateError> {
         for entry in self.trees.queue.iter() {
             let (_, job_id) = entry?;
-            let mut prefix = job_id.to_vec();
-            prefix.push(b'/');
             let job_id = String::from_utf8_lossy(&job_id).into_owned();
+            let prefix = frames_prefix(&job_id);
             let mut job: Option<Job> = None;
             // The preview job's frame of the lowest turn so far, and that turn.
             let mut later: Option<(u32, u32)> = None;
@@ -502,10 +499,8 @@ impl Records {
 
     /// The failed attempts recorded at a job's frames, finished or pending.
     pub(super) fn failed_attempts(&self, job_id: &str) -> Result<u64, StateError> {
-        let mut prefix = job_id.as_bytes().to_vec();
-        prefix.push(b'/');
         let mut failed = 0u64;
-        for entry in self.trees.frames.scan_prefix(&prefix) {
+        for entry in self.trees.frames.scan_prefix(frames_prefix(job_id)) {
             let (_, value) = entry?;
             failed += u64::from(match decode::<FrameState>(&value)? {
                 FrameState::Pending { attempts } => attempts,
@@ -518,8 +513,7 @@ impl Records {
     /// The reports of the finished frames of a job and the previews of its pending ones, by
     /// frame index.
     pub(super) fn frame_reports(&self, job_id: &str) -> Result<Vec<FrameReport>, StateError> {
-        let mut prefix = job_id.as_bytes().to_vec();
-        prefix.push(b'/');
+        let prefix = frames_prefix(job_id);
         let mut out = Vec::new();
         for entry in self.trees.frames.scan_prefix(&prefix) {
             let (_, value) = entry?;
