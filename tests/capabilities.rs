@@ -12,7 +12,7 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_tests::datasets::register_path;
 use pointfarm_tests::service::{
-    get_job, scratch_sample, submit, turntable_job, upload_file, watch_to_success, write_sample,
+    cancel, get_job, submit, turntable_job, upload_sample, watch_to_success, write_sample,
     TestDaemon,
 };
 use pointfarm_tests::{assert_fails_saying, pointfarm, stdout, wait_for, WorkerProcess};
@@ -82,8 +82,8 @@ fn workers_of(frames: &[pb::FrameFinished]) -> Vec<String> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn frames_go_only_to_workers_that_can_render_them() {
     let daemon = TestDaemon::start_without_worker(|_| {}, Access::default()).await;
-    let (scratch, file) = scratch_sample("s.las", 20_000, 11);
-    let dataset = upload_file(&mut daemon.datasets().await, "s.las", &file).await;
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let dataset = upload_sample(&mut daemon.datasets().await, 20_000, 11).await;
     let mut jobs = daemon.jobs().await;
     // The same adapter (lavapipe here), two operator settings: a small frame limit and one
     // tag, or the adapter's own limit and another tag.
@@ -170,11 +170,7 @@ async fn frames_go_only_to_workers_that_can_render_them() {
             .any(|l| l.starts_with("small") && l.contains(" 100 ") && l.ends_with("site-x")),
         "{table}"
     );
-    jobs.cancel_job(pb::CancelJobRequest {
-        id: gpu_only.id.clone(),
-    })
-    .await
-    .expect("cancel");
+    cancel(&mut jobs, &gpu_only.id).await;
 
     // Tagged frames go to the tagged worker; frames larger than the small one draws go to the
     // other, also at the head of the queue.

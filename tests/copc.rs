@@ -10,8 +10,8 @@ use std::process::Output;
 
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_tests::{
-    assert_fails_saying, assert_ok, assert_pngs_alike, assert_same_frames, json_lines, output_text,
-    pointfarm, pointfarm_ok,
+    assert_fails_saying, assert_ok, assert_pngs_alike, assert_same_frames, copc_file, json_lines,
+    output_text, pointfarm, pointfarm_ok,
 };
 
 fn arg(path: &Path) -> &str {
@@ -23,12 +23,6 @@ fn render_ok(input: &Path, out: &Path, args: &[&str]) -> Output {
     let mut all = vec!["render", arg(input), "--out", arg(out)];
     all.extend_from_slice(args);
     pointfarm_ok(&all)
-}
-
-fn copc_file(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("data/copc")
-        .join(name)
 }
 
 /// The one frame's report of `render --json`.
@@ -186,17 +180,24 @@ fn a_copc_file_is_previewed_from_coarse_cuts_then_rendered_final() {
     );
 }
 
+/// `simple.copc.laz` as `damage` leaves it, written into `dir` as `name`.
+fn damaged_simple_copc(dir: &Path, name: &str, damage: impl FnOnce(&mut [u8])) -> PathBuf {
+    let mut bytes = std::fs::read(copc_file("simple.copc.laz")).expect("read");
+    damage(&mut bytes);
+    let damaged = dir.join(name);
+    std::fs::write(&damaged, &bytes).expect("write");
+    damaged
+}
+
 /// `simple.copc.laz` written into `dir` with the chunk of its root page's second entry moved
 /// past the end of the file.
 fn damaged_copc(dir: &Path) -> PathBuf {
-    let mut bytes = std::fs::read(copc_file("simple.copc.laz")).expect("read");
-    let info = 375 + 54;
-    let page = u64::from_le_bytes(bytes[info + 40..info + 48].try_into().expect("8")) as usize;
-    let beyond = bytes.len() as u64 + 1_000;
-    bytes[page + 32 + 16..page + 32 + 24].copy_from_slice(&beyond.to_le_bytes());
-    let damaged = dir.join("damaged.copc.laz");
-    std::fs::write(&damaged, &bytes).expect("write");
-    damaged
+    damaged_simple_copc(dir, "damaged.copc.laz", |bytes| {
+        let info = 375 + 54;
+        let page = u64::from_le_bytes(bytes[info + 40..info + 48].try_into().expect("8")) as usize;
+        let beyond = bytes.len() as u64 + 1_000;
+        bytes[page + 32 + 16..page + 32 + 24].copy_from_slice(&beyond.to_le_bytes());
+    })
 }
 
 #[test]
@@ -221,14 +222,12 @@ fn a_damaged_copc_hierarchy_is_refused_naming_the_file() {
 /// `simple.copc.laz` written into `dir` with every byte of its LAZ chunk table's entries set to
 /// 0xFF, which the laz crate's table decoder indexes out of bounds with.
 fn copc_with_a_chunk_table_of_ones(dir: &Path) -> PathBuf {
-    let mut bytes = std::fs::read(copc_file("simple.copc.laz")).expect("read");
-    let data_start = u32::from_le_bytes(bytes[96..100].try_into().expect("4")) as usize;
-    let table = u64::from_le_bytes(bytes[data_start..data_start + 8].try_into().expect("8"));
-    let first_evlr = u64::from_le_bytes(bytes[235..243].try_into().expect("8"));
-    bytes[table as usize + 8..first_evlr as usize].fill(0xFF);
-    let damaged = dir.join("ones.copc.laz");
-    std::fs::write(&damaged, &bytes).expect("write");
-    damaged
+    damaged_simple_copc(dir, "ones.copc.laz", |bytes| {
+        let data_start = u32::from_le_bytes(bytes[96..100].try_into().expect("4")) as usize;
+        let table = u64::from_le_bytes(bytes[data_start..data_start + 8].try_into().expect("8"));
+        let first_evlr = u64::from_le_bytes(bytes[235..243].try_into().expect("8"));
+        bytes[table as usize + 8..first_evlr as usize].fill(0xFF);
+    })
 }
 
 #[test]

@@ -3,8 +3,6 @@
 //! range. Refusals carry the status a client can act on, and the daemon keeps serving after
 //! each. Each test skips, saying so, where nginx is not installed.
 
-use std::path::{Path, PathBuf};
-
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::service::DaemonConfig;
 use pointfarm_proto::v1 as pb;
@@ -12,24 +10,15 @@ use pointfarm_tests::nginx::NginxServer;
 use pointfarm_tests::service::{
     fetch_images, submit, turntable_job, watch_to_end, watch_to_success, write_sample, TestDaemon,
 };
-use pointfarm_tests::{free_address, pointfarm, pointfarm_ok, stdout, ServeProcess};
+use pointfarm_tests::{copc_file, free_address, pointfarm, pointfarm_ok, stdout, ServeProcess};
 use tonic::Code;
 
 const OBJECT: &str = "scans/simple.copc.laz";
 
-fn copc_data(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("data/copc")
-        .join(name)
-}
-
 /// nginx serving a folder with `scans/simple.copc.laz`; none, having said why, without nginx.
 fn served_scans() -> Option<(tempfile::TempDir, NginxServer)> {
-    let root = tempfile::tempdir().expect("root");
-    std::fs::create_dir(root.path().join("scans")).expect("scans folder");
-    std::fs::copy(copc_data("simple.copc.laz"), root.path().join(OBJECT)).expect("copy");
-    let server = NginxServer::start_or_skip(root.path())?;
-    Some((root, server))
+    let bytes = std::fs::read(copc_file("simple.copc.laz")).expect("COPC file");
+    NginxServer::serve_scans(&[("simple.copc.laz", bytes)])
 }
 
 /// A daemon without a worker that allows datasets by URL under `prefixes`.
@@ -132,7 +121,7 @@ async fn an_allowed_url_registers_by_its_version_without_being_downloaded() {
 
     // Another object at the same URL is another dataset.
     std::fs::copy(
-        copc_data("simple_with_page.copc.laz"),
+        copc_file("simple_with_page.copc.laz"),
         root.path().join(OBJECT),
     )
     .expect("replace");
@@ -174,7 +163,7 @@ async fn a_url_outside_the_allowed_prefixes_is_refused_naming_the_rule() {
     };
     std::fs::create_dir(root.path().join("scans-other")).expect("folder");
     std::fs::copy(
-        copc_data("simple.copc.laz"),
+        copc_file("simple.copc.laz"),
         root.path().join("scans-other/simple.copc.laz"),
     )
     .expect("copy");
@@ -218,25 +207,26 @@ async fn missing_unreachable_and_malformed_urls_have_their_status() {
     let daemon = daemon_allowing(&[server.url("scans/"), unreachable.clone()]).await;
 
     let missing = server.url("scans/missing.copc.laz");
-    refused(&daemon, &missing, Code::NotFound, &[&missing]).await;
     let away = format!("{unreachable}simple.copc.laz");
-    refused(&daemon, &away, Code::Unavailable, &[&away]).await;
     let with_credentials = format!("http://reader:hunter2@{}/{OBJECT}", server.address);
-    let status = refused(
-        &daemon,
-        &with_credentials,
-        Code::InvalidArgument,
-        &["credentials"],
-    )
-    .await;
-    assert!(!status.message().contains("hunter2"), "{status:?}");
-    refused(
-        &daemon,
-        "gs://bucket/simple.copc.laz",
-        Code::InvalidArgument,
-        &["gs://"],
-    )
-    .await;
+    let cases = [
+        (missing.as_str(), Code::NotFound, missing.as_str()),
+        (away.as_str(), Code::Unavailable, away.as_str()),
+        (
+            with_credentials.as_str(),
+            Code::InvalidArgument,
+            "credentials",
+        ),
+        (
+            "gs://bucket/simple.copc.laz",
+            Code::InvalidArgument,
+            "gs://",
+        ),
+    ];
+    for (url, code, says) in cases {
+        let status = refused(&daemon, url, code, &[says]).await;
+        assert!(!status.message().contains("hunter2"), "{status:?}");
+    }
     still_serving(&daemon, 0).await;
 }
 
@@ -249,24 +239,20 @@ async fn only_a_single_copc_object_registers_by_url() {
     std::fs::write(root.path().join("scans/notes.laz"), "not a point cloud").expect("notes");
     let daemon = daemon_allowing(&[server.url("scans/")]).await;
     let only_copc = "only a single COPC object (.copc.laz) registers by URL yet";
-    let plain = server.url("scans/plain.las");
-    refused(
-        &daemon,
-        &plain,
-        Code::InvalidArgument,
-        &[&plain, "not COPC", only_copc],
-    )
-    .await;
-    let notes = server.url("scans/notes.laz");
-    refused(&daemon, &notes, Code::InvalidArgument, &[&notes, only_copc]).await;
-    let prefix = server.url("scans/");
-    refused(
-        &daemon,
-        &prefix,
-        Code::InvalidArgument,
-        &[&prefix, "a prefix", only_copc],
-    )
-    .await;
+    for (path, why) in [
+        ("scans/plain.las", "not COPC"),
+        ("scans/notes.laz", only_copc),
+        ("scans/", "a prefix"),
+    ] {
+        let url = server.url(path);
+        refused(
+            &daemon,
+            &url,
+            Code::InvalidArgument,
+            &[&url, why, only_copc],
+        )
+        .await;
+    }
     let mixed = daemon
         .datasets()
         .await
@@ -338,7 +324,7 @@ async fn a_job_on_a_url_dataset_renders_as_the_same_file_by_path() {
         .expect("by URL");
     assert_ne!(by_path.id, by_url.id);
     std::fs::copy(
-        copc_data("simple.copc.laz"),
+        copc_file("simple.copc.laz"),
         root.path().join("scans/second.copc.laz"),
     )
     .expect("copy");
@@ -369,7 +355,7 @@ async fn a_job_on_a_url_dataset_renders_as_the_same_file_by_path() {
 
     // Another object, registered but not yet rendered, is replaced meanwhile.
     std::fs::copy(
-        copc_data("simple_with_page.copc.laz"),
+        copc_file("simple_with_page.copc.laz"),
         root.path().join("scans/second.copc.laz"),
     )
     .expect("replace");

@@ -5,10 +5,11 @@
 use std::path::Path;
 
 use pointfarm_proto::v1 as pb;
-use pointfarm_render::filter::{ClipBox, PointFilter};
+use pointfarm_render::filter::PointFilter;
 use pointfarm_render::ingest::load_point_cloud;
-use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, StillCamera};
-use pointfarm_tests::service::{daemon_with_sample, run_job, scan};
+use pointfarm_tests::service::{
+    daemon_with_sample, run_job, scan, still_clipped_outside_the_sample,
+};
 use pointfarm_tests::{assert_fails_saying, assert_ok, pointfarm, stdout};
 
 fn arg(path: &Path) -> String {
@@ -152,20 +153,7 @@ fn filters_that_cannot_apply_are_refused_with_the_reason() {
 async fn a_job_whose_clip_box_misses_the_dataset_fails_saying_so_and_the_next_one_renders() {
     let (daemon, dataset) = daemon_with_sample(5_000, 4).await;
     let mut jobs = daemon.jobs().await;
-    let mut request = RenderRequest {
-        width: 64,
-        height: 48,
-        camera_path: CameraPath::Still(StillCamera::default()),
-        lens: Lens::default(),
-        render: RenderOptions::default(),
-    };
-    request.render.filter = PointFilter {
-        clip: Some(ClipBox {
-            min: [0.0, 0.0, 0.0],
-            max: [1.0, 1.0, 1.0],
-        }),
-        ..Default::default()
-    };
+    let mut request = still_clipped_outside_the_sample();
     let outcomes = [
         ("outside", request.clone()),
         ("unfiltered", {

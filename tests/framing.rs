@@ -17,7 +17,7 @@ use pointfarm_render::request::{
 };
 use pointfarm_render::source::{quiet, FrameSource};
 use pointfarm_tests::service::gpu;
-use pointfarm_tests::shared_data;
+use pointfarm_tests::{copc_file, shared_data};
 
 const WIDTH: u32 = 320;
 const HEIGHT: u32 = 180;
@@ -233,12 +233,6 @@ fn check(renderer: Renderer, file: &Path, min_lit: f64, failures: &mut Vec<Strin
         );
     }
     renderer
-}
-
-fn copc_file(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("data/copc")
-        .join(name)
 }
 
 #[test]

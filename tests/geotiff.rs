@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use pointfarm_tests::{assert_ok, pointfarm, shared_data, stdout};
+use pointfarm_tests::{assert_ok, installed_or_skip, pointfarm, shared_data, stdout};
 use serde_json::Value;
 
 fn arg(path: &Path) -> &str {
@@ -14,11 +14,17 @@ fn arg(path: &Path) -> &str {
 }
 
 fn gdal_installed() -> bool {
-    let found = Command::new("gdalinfo").arg("--version").output().is_ok();
-    if !found {
-        eprintln!("skipped: gdalinfo is not installed (deploy/test.sh installs gdal-bin)");
-    }
-    found
+    installed_or_skip("gdalinfo", "--version", "deploy/test.sh installs gdal-bin")
+}
+
+/// The six numbers of the geotransform `gdalinfo -json` reports in `info`.
+fn geotransform_of(info: &Value) -> Vec<f64> {
+    info["geoTransform"]
+        .as_array()
+        .unwrap_or_else(|| panic!("no geotransform: {info}"))
+        .iter()
+        .map(|v| v.as_f64().expect("number"))
+        .collect()
 }
 
 /// `gdalinfo -json` of `path`.
@@ -90,12 +96,7 @@ fn assert_placed_rgba(info: &Value, (width, height): (u64, u64), geotransform: [
         info["metadata"]["IMAGE_STRUCTURE"]["COMPRESSION"], "DEFLATE",
         "{info}"
     );
-    let read: Vec<f64> = info["geoTransform"]
-        .as_array()
-        .unwrap_or_else(|| panic!("no geotransform: {info}"))
-        .iter()
-        .map(|v| v.as_f64().expect("number"))
-        .collect();
+    let read = geotransform_of(info);
     for (read, expected) in read.iter().zip(geotransform) {
         // Survey coordinates of six figures, placed to a millionth of a unit.
         assert!(
@@ -253,12 +254,7 @@ fn a_top_view_whose_up_is_not_north_is_placed_with_its_rotation() {
     };
     let center = LONE_STAR_CENTER;
     let info = gdalinfo(&out);
-    let read: Vec<f64> = info["geoTransform"]
-        .as_array()
-        .unwrap_or_else(|| panic!("no geotransform: {info}"))
-        .iter()
-        .map(|v| v.as_f64().expect("number"))
-        .collect();
+    let read = geotransform_of(&info);
     let [x0, col_x, row_x, y0, col_y, row_y] = read[..] else {
         panic!("{read:?}");
     };

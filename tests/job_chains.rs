@@ -6,7 +6,7 @@ use pointfarm_daemon::access::Access;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_tests::service::{
-    clients, get_job, scratch_sample, submit, turntable_job, upload_file, watch_to_end,
+    cancel, clients, get_job, scratch_sample, submit, turntable_job, upload_sample, watch_to_end,
     watch_to_success, TestDaemon,
 };
 use pointfarm_tests::{pointfarm, stdout, ServeProcess};
@@ -47,8 +47,7 @@ async fn left_the_queue_at(jobs: &mut JobServiceClient<Channel>, id: &str) -> i6
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_job_after_another_renders_only_once_it_has_succeeded() {
     let daemon = TestDaemon::start(|_| {}, Access::default()).await;
-    let (_scratch, file) = scratch_sample("s.las", 20_000, 3);
-    let dataset = upload_file(&mut daemon.datasets().await, "s.las", &file).await;
+    let dataset = upload_sample(&mut daemon.datasets().await, 20_000, 3).await;
     let mut jobs = daemon.jobs().await;
     let first = submit(&mut jobs, turntable_job("first", &dataset.id, 3, 32, 24)).await;
     // Of a higher priority: without its chain it would be leased first.
@@ -78,8 +77,7 @@ async fn a_job_after_another_renders_only_once_it_has_succeeded() {
 async fn a_cancelled_job_fails_the_chain_after_it_and_unknown_jobs_are_refused() {
     // No worker: the jobs stay queued until the cancel.
     let daemon = TestDaemon::start_without_worker(|_| {}, Access::default()).await;
-    let (_scratch, file) = scratch_sample("s.las", 5_000, 4);
-    let dataset = upload_file(&mut daemon.datasets().await, "s.las", &file).await;
+    let dataset = upload_sample(&mut daemon.datasets().await, 5_000, 4).await;
     let mut jobs = daemon.jobs().await;
     let first = submit(&mut jobs, turntable_job("first", &dataset.id, 2, 32, 24)).await;
     let second = submit(&mut jobs, job_after("second", &dataset.id, 2, &[&first])).await;
@@ -102,11 +100,7 @@ async fn a_cancelled_job_fails_the_chain_after_it_and_unknown_jobs_are_refused()
         refused.message()
     );
 
-    jobs.cancel_job(pb::CancelJobRequest {
-        id: first.id.clone(),
-    })
-    .await
-    .expect("cancel");
+    cancel(&mut jobs, &first.id).await;
     let (second_end, _) = watch_to_end(&mut jobs, &second.id).await;
     assert_eq!(second_end.state, pb::JobState::Failed as i32);
     assert_eq!(second_end.error, format!("job {} was cancelled", first.id));
@@ -116,8 +110,8 @@ async fn a_cancelled_job_fails_the_chain_after_it_and_unknown_jobs_are_refused()
     daemon.stop().await;
 }
 
-/// `pointfarm render --server ADDR --detach [--after JOB]`, which must succeed; its stdout.
-fn render_detached(address: &str, file: &str, out: &str, after: &[&str]) -> String {
+/// `pointfarm render --server ADDR --detach MORE...`, which must succeed; its stdout.
+fn render_detached(address: &str, file: &str, out: &str, more: &[&str]) -> String {
     let mut args = vec![
         "render",
         file,
@@ -131,9 +125,7 @@ fn render_detached(address: &str, file: &str, out: &str, after: &[&str]) -> Stri
         out,
         "--detach",
     ];
-    for id in after {
-        args.extend(["--after", id]);
-    }
+    args.extend_from_slice(more);
     let output = pointfarm(&args);
     assert!(output.status.success(), "{output:?}");
     stdout(&output)
@@ -153,29 +145,12 @@ fn detached_renders_chain_jobs_that_a_restart_keeps() {
 
     let first = render_detached(&address, file, out, &[]).trim().to_owned();
     assert!(first.starts_with("job-"), "only the job's id: {first:?}");
-    let second = render_detached(&address, file, out, &[&first])
+    let second = render_detached(&address, file, out, &["--after", &first])
         .trim()
         .to_owned();
     assert!(second.starts_with("job-"), "only the job's id: {second:?}");
-    let with_json = pointfarm(&[
-        "render",
-        file,
-        "--server",
-        &address,
-        "--turntable",
-        "2",
-        "--size",
-        "32x24",
-        "--out",
-        out,
-        "--detach",
-        "--json",
-        "--after",
-        &second,
-    ]);
-    assert!(with_json.status.success(), "{with_json:?}");
-    let third: serde_json::Value =
-        serde_json::from_str(stdout(&with_json).trim()).expect("one JSON line");
+    let with_json = render_detached(&address, file, out, &["--json", "--after", &second]);
+    let third: serde_json::Value = serde_json::from_str(with_json.trim()).expect("one JSON line");
     assert_eq!(third["afterJobIds"], serde_json::json!([second]));
     let third = third["id"].as_str().expect("the job's id").to_owned();
     let fetched = std::fs::read_dir(out).map_or(0, |frames| frames.count());

@@ -11,7 +11,8 @@ use pointfarm_render::raster::Renderer;
 use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
 use pointfarm_render::source::{quiet, FrameSource};
 use pointfarm_tests::service::{
-    fetch_images, get_job, gpu, submit, turntable_job, upload_file, watch_to_success, TestDaemon,
+    fetch_images, get_job, gpu, lease_at_once, submit, turntable_job, upload_file,
+    watch_to_success, TestDaemon,
 };
 use pointfarm_tests::{shared_data, WorkerProcess};
 
@@ -77,11 +78,7 @@ async fn a_worker_starting_a_job_past_frame_0_exposes_it_as_a_local_turntable() 
     // Frame 0 is held here, so the worker's first lease of the job is frame 1.
     let mut workers = daemon.workers().await;
     let held = workers
-        .lease_frame(pb::LeaseFrameRequest {
-            worker_name: "holder".into(),
-            wait_ms: 0,
-            capabilities: None,
-        })
+        .lease_frame(lease_at_once("holder"))
         .await
         .expect("lease")
         .into_inner()

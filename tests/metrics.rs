@@ -10,7 +10,7 @@ use std::time::Duration;
 
 use pointfarm_tests::prometheus::{http_get, prometheus_installed, scrape, Prometheus};
 use pointfarm_tests::service::{
-    clients, scratch_sample, submit, turntable_job, upload_file, watch_to_success,
+    clients, jobs_on_a_sample, scratch_sample, submit, turntable_job, upload_file, watch_to_success,
 };
 use pointfarm_tests::{free_address, pointfarm_bin, wait_for, ServeProcess, WorkerProcess};
 
@@ -64,9 +64,7 @@ async fn prometheus_scrapes_the_frames_a_job_completed() {
     let (_server, address, log) = serve_with_metrics_from_env(scratch.path(), &metrics);
     let prometheus = Prometheus::start(scratch.path(), &[&metrics]);
 
-    let (_sample_dir, file) = scratch_sample("s.las", 20_000, 4);
-    let (mut datasets, mut jobs) = clients(&address).await;
-    let dataset = upload_file(&mut datasets, "s.las", &file).await;
+    let (mut jobs, dataset) = jobs_on_a_sample(&address, 20_000, 4).await;
     let frames = 3;
     let job = submit(
         &mut jobs,
@@ -266,9 +264,7 @@ async fn every_grafana_panel_shows_a_farm_that_rendered_a_job() {
         &["--metrics-listen", &worker_metrics],
     );
     let prometheus = Prometheus::start(scratch.path(), &[&daemon_metrics, &worker_metrics]);
-    let (_sample_dir, file) = scratch_sample("s.las", 20_000, 6);
-    let (mut datasets, mut jobs) = clients(&server.address).await;
-    let dataset = upload_file(&mut datasets, "s.las", &file).await;
+    let (mut jobs, dataset) = jobs_on_a_sample(&server.address, 20_000, 6).await;
     let job = submit(&mut jobs, turntable_job("charted", &dataset.id, 2, 64, 48)).await;
     watch_to_success(&mut jobs, &job.id, || worker.log()).await;
 

@@ -5,7 +5,9 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use pointfarm_tests::{assert_fails_saying, assert_ok, pointfarm, pointfarm_bin};
+use pointfarm_tests::{
+    assert_fails_saying, assert_ok, installed_or_skip, pointfarm, pointfarm_bin,
+};
 
 /// A temporary folder holding one small generated cloud.
 struct Scene {
@@ -47,11 +49,7 @@ fn format_of(path: &Path) -> image::ImageFormat {
 }
 
 fn ffmpeg_installed() -> bool {
-    let found = Command::new("ffmpeg").arg("-version").output().is_ok();
-    if !found {
-        eprintln!("skipped: ffmpeg is not installed (deploy/test.sh installs it)");
-    }
-    found
+    installed_or_skip("ffmpeg", "-version", "deploy/test.sh installs it")
 }
 
 /// The frames of a video, counted by ffprobe.

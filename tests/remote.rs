@@ -3,54 +3,57 @@
 //! saying so, where nginx is not installed.
 
 use std::net::TcpListener;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::{Duration, Instant, SystemTime};
 
 use pointfarm_render::remote::{
-    AllowedPrefixes, ObjectUrl, RemoteClient, RemoteError, RemoteSettings,
+    AllowedPrefixes, ObjectUrl, RemoteClient, RemoteError, RemoteObject, RemoteSettings,
 };
+use pointfarm_tests::copc_file;
 use pointfarm_tests::nginx::NginxServer;
 use pointfarm_tests::s3s::{self, S3sServer};
 
 /// The LAS header of a COPC file (LAS 1.4).
 const LAS_HEADER_LEN: u64 = 375;
 
-fn copc_file() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("data/copc/simple.copc.laz")
+/// The COPC file every test serves.
+fn simple_copc() -> PathBuf {
+    copc_file("simple.copc.laz")
 }
 
-/// A folder holding a copy of the COPC file, served by nginx.
+/// nginx serving a folder whose `scans/` holds a copy of the COPC file; None, having said why,
+/// where nginx is not installed.
 fn served_copc() -> Option<(tempfile::TempDir, NginxServer)> {
-    NginxServer::binary()?;
-    let root = tempfile::tempdir().expect("root");
-    std::fs::create_dir(root.path().join("scans")).expect("scans folder");
-    std::fs::copy(copc_file(), root.path().join("scans/simple.copc.laz")).expect("copy");
-    let server = NginxServer::start_or_skip(root.path())?;
-    Some((root, server))
-}
-
-fn skip_without_nginx() -> bool {
-    if NginxServer::binary().is_none() {
-        eprintln!("skipped: nginx is not installed (deploy/test.sh installs nginx-light)");
-        return true;
-    }
-    false
+    let bytes = std::fs::read(simple_copc()).expect("COPC file");
+    NginxServer::serve_scans(&[("simple.copc.laz", bytes)])
 }
 
 fn client() -> RemoteClient {
     RemoteClient::new(RemoteSettings::default()).expect("client")
 }
 
+/// `url` opened by `client`, which must succeed.
+fn open(client: &RemoteClient, url: &str) -> RemoteObject {
+    client
+        .open(&ObjectUrl::parse(url).expect("url"))
+        .expect("open")
+}
+
+/// The error of opening `url` with `client`, which must fail.
+fn open_error(client: &RemoteClient, url: &str) -> RemoteError {
+    client
+        .open(&ObjectUrl::parse(url).expect("url"))
+        .expect_err("the open fails")
+}
+
 #[test]
 fn reads_the_las_header_by_range() {
-    if skip_without_nginx() {
+    let Some((_root, server)) = served_copc() else {
         return;
-    }
-    let (_root, server) = served_copc().expect("nginx");
-    let local = std::fs::read(copc_file()).expect("local file");
+    };
+    let local = std::fs::read(simple_copc()).expect("local file");
     let client = client();
-    let url = ObjectUrl::parse(&server.url("scans/simple.copc.laz")).expect("url");
-    let object = client.open(&url).expect("open");
+    let object = open(&client, &server.url("scans/simple.copc.laz"));
     assert_eq!(object.size(), local.len() as u64);
     assert!(object.version().is_some(), "nginx sends an ETag");
     let header = object.read_range(0..LAS_HEADER_LEN).expect("header");
@@ -69,20 +72,17 @@ fn reads_the_las_header_by_range() {
 
 #[test]
 fn coalesces_near_ranges_into_parallel_requests() {
-    if skip_without_nginx() {
+    let Some((_root, server)) = served_copc() else {
         return;
-    }
-    let (_root, server) = served_copc().expect("nginx");
-    let local = std::fs::read(copc_file()).expect("local file");
+    };
+    let local = std::fs::read(simple_copc()).expect("local file");
     let size = local.len() as u64;
     let client = RemoteClient::new(RemoteSettings {
         coalesce_gap: 1000,
         ..RemoteSettings::default()
     })
     .expect("client");
-    let object = client
-        .open(&ObjectUrl::parse(&server.url("scans/simple.copc.laz")).expect("url"))
-        .expect("open");
+    let object = open(&client, &server.url("scans/simple.copc.laz"));
     // Two groups of near ranges, far apart, asked out of order, one of them empty.
     let ranges = [
         size - 200..size - 100,
@@ -114,14 +114,11 @@ fn coalesces_near_ranges_into_parallel_requests() {
 
 #[test]
 fn a_read_past_the_end_is_refused_before_any_request() {
-    if skip_without_nginx() {
+    let Some((_root, server)) = served_copc() else {
         return;
-    }
-    let (_root, server) = served_copc().expect("nginx");
+    };
     let client = client();
-    let object = client
-        .open(&ObjectUrl::parse(&server.url("scans/simple.copc.laz")).expect("url"))
-        .expect("open");
+    let object = open(&client, &server.url("scans/simple.copc.laz"));
     let size = object.size();
     let error = object
         .read_range(size - 10..size + 1)
@@ -134,46 +131,41 @@ fn a_read_past_the_end_is_refused_before_any_request() {
     assert_eq!(client.counts().requests, 1, "only the HEAD");
 }
 
+/// The error of opening `path` of the served folder, which must fail naming its URL; None
+/// where nginx is not installed.
+fn served_open_error(path: &str) -> Option<RemoteError> {
+    let (_root, server) = served_copc()?;
+    let url = server.url(path);
+    let error = open_error(&client(), &url);
+    assert!(error.to_string().contains(&url), "{error}");
+    Some(error)
+}
+
 #[test]
 fn a_missing_object_is_named() {
-    if skip_without_nginx() {
+    let Some(error) = served_open_error("scans/absent.copc.laz") else {
         return;
-    }
-    let (_root, server) = served_copc().expect("nginx");
-    let url = server.url("scans/absent.copc.laz");
-    let error = client()
-        .open(&ObjectUrl::parse(&url).expect("url"))
-        .expect_err("missing");
+    };
     assert!(matches!(error, RemoteError::NotFound { .. }), "{error}");
-    assert!(error.to_string().contains(&url), "{error}");
 }
 
 #[test]
 fn a_refused_object_is_denied_and_named() {
-    if skip_without_nginx() {
+    let Some(error) = served_open_error("denied/simple.copc.laz") else {
         return;
-    }
-    let (_root, server) = served_copc().expect("nginx");
-    let url = server.url("denied/simple.copc.laz");
-    let error = client()
-        .open(&ObjectUrl::parse(&url).expect("url"))
-        .expect_err("denied");
+    };
     assert!(matches!(error, RemoteError::Denied { .. }), "{error}");
-    assert!(error.to_string().contains(&url), "{error}");
     assert!(error.to_string().contains("403"), "{error}");
 }
 
 #[test]
 fn an_object_replaced_after_open_is_object_changed() {
-    if skip_without_nginx() {
+    let Some((root, server)) = served_copc() else {
         return;
-    }
-    let (root, server) = served_copc().expect("nginx");
+    };
     let url = server.url("scans/simple.copc.laz");
     let client = client();
-    let object = client
-        .open(&ObjectUrl::parse(&url).expect("url"))
-        .expect("open");
+    let object = open(&client, &url);
     object
         .read_range(0..LAS_HEADER_LEN)
         .expect("before the change");
@@ -200,9 +192,7 @@ fn an_object_replaced_after_open_is_object_changed() {
     );
     assert!(error.to_string().contains(&url), "{error}");
     // Opened again, the new version reads.
-    let reopened = client
-        .open(&ObjectUrl::parse(&url).expect("url"))
-        .expect("reopen");
+    let reopened = open(&client, &url);
     assert_ne!(reopened.version(), object.version());
     let after = reopened
         .read_range(LAS_HEADER_LEN..LAS_HEADER_LEN + 1)
@@ -212,10 +202,9 @@ fn an_object_replaced_after_open_is_object_changed() {
 
 #[test]
 fn a_plain_http_server_cannot_be_listed_and_says_why() {
-    if skip_without_nginx() {
+    let Some((_root, server)) = served_copc() else {
         return;
-    }
-    let (_root, server) = served_copc().expect("nginx");
+    };
     let prefix = ObjectUrl::parse(&server.url("scans/")).expect("url");
     let error = client().list_point_files(&prefix).expect_err("no WebDAV");
     assert!(matches!(error, RemoteError::Listing { .. }), "{error}");
@@ -240,10 +229,22 @@ fn stalled_server() -> (TcpListener, std::thread::JoinHandle<()>, String) {
     (listener, handle, address)
 }
 
+/// The error of opening an object on a server that never answers, with `settings`, which must
+/// name its URL; and how long the open took.
+fn open_stalled(settings: RemoteSettings) -> (RemoteError, Duration) {
+    let (_listener, _handle, address) = stalled_server();
+    let client = RemoteClient::new(settings).expect("client");
+    let url = format!("http://{address}/stalled.copc.laz");
+    let started = Instant::now();
+    let error = open_error(&client, &url);
+    let took = started.elapsed();
+    assert!(error.to_string().contains(&url), "{error}");
+    (error, took)
+}
+
 #[test]
 fn a_stalled_server_times_out_after_the_retries() {
-    let (_listener, _handle, address) = stalled_server();
-    let settings = RemoteSettings {
+    let (error, took) = open_stalled(RemoteSettings {
         connect_timeout: Duration::from_millis(300),
         request_timeout: Duration::from_millis(300),
         max_retries: 2,
@@ -252,16 +253,8 @@ fn a_stalled_server_times_out_after_the_retries() {
         max_backoff: Duration::from_millis(100),
         operation_deadline: Duration::from_secs(20),
         ..RemoteSettings::default()
-    };
-    let client = RemoteClient::new(settings).expect("client");
-    let url = format!("http://{address}/stalled.copc.laz");
-    let started = Instant::now();
-    let error = client
-        .open(&ObjectUrl::parse(&url).expect("url"))
-        .expect_err("stalled");
-    let took = started.elapsed();
+    });
     assert!(error.is_timeout(), "{error}");
-    assert!(error.to_string().contains(&url), "{error}");
     // Three attempts of 300 ms and two short backoffs, well inside the deadline.
     assert!(took >= Duration::from_millis(600), "{took:?}");
     assert!(took < Duration::from_secs(5), "{took:?}");
@@ -269,20 +262,11 @@ fn a_stalled_server_times_out_after_the_retries() {
 
 #[test]
 fn the_operation_deadline_bounds_a_stall_whatever_the_retries() {
-    let (_listener, _handle, address) = stalled_server();
-    let settings = RemoteSettings {
+    let (error, took) = open_stalled(RemoteSettings {
         operation_deadline: Duration::from_secs(1),
         ..RemoteSettings::default()
-    };
-    let client = RemoteClient::new(settings).expect("client");
-    let url = format!("http://{address}/stalled.copc.laz");
-    let started = Instant::now();
-    let error = client
-        .open(&ObjectUrl::parse(&url).expect("url"))
-        .expect_err("stalled");
-    let took = started.elapsed();
+    });
     assert!(matches!(error, RemoteError::TimedOut { .. }), "{error}");
-    assert!(error.to_string().contains(&url), "{error}");
     assert!(took < Duration::from_secs(3), "{took:?}");
 }
 
@@ -311,7 +295,7 @@ fn reads_from_an_s3_compatible_server() {
     let scans = root.path().join("pointfarm-test/scans");
     std::fs::create_dir_all(&scans).expect("bucket folder");
     let file = scans.join("simple.copc.laz");
-    std::fs::copy(copc_file(), &file).expect("copy");
+    std::fs::copy(simple_copc(), &file).expect("copy");
     let Some(server) = S3sServer::start_or_skip(root.path()) else {
         return;
     };
@@ -344,11 +328,9 @@ fn reads_from_an_s3_compatible_server() {
 fn s3_reads_in_a_child_process() {
     let url = std::env::var(S3_URL_VARIABLE).expect("the URL");
     let file = std::env::var(S3_FILE_VARIABLE).expect("the file");
-    let local = std::fs::read(copc_file()).expect("local file");
+    let local = std::fs::read(simple_copc()).expect("local file");
     let client = client();
-    let object = client
-        .open(&ObjectUrl::parse(&url).expect("url"))
-        .expect("open");
+    let object = open(&client, &url);
     assert_eq!(object.size(), local.len() as u64);
     let parts = object
         .read_ranges(&[0..LAS_HEADER_LEN, 1000..1100])
@@ -361,9 +343,7 @@ fn s3_reads_in_a_child_process() {
     assert_eq!(listed.len(), 1, "{listed:?}");
     assert_eq!(listed[0].url.as_str(), url);
     assert_eq!(listed[0].size, local.len() as u64);
-    let missing = client
-        .open(&ObjectUrl::parse("s3://pointfarm-test/scans/absent.laz").expect("url"))
-        .expect_err("missing");
+    let missing = open_error(&client, "s3://pointfarm-test/scans/absent.laz");
     assert!(matches!(missing, RemoteError::NotFound { .. }), "{missing}");
     // Another version of the same size, written where the server keeps the object.
     let mut replaced = local.clone();

@@ -14,33 +14,19 @@ use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteError, RemoteSetti
 use pointfarm_tests::nginx::NginxServer;
 use pointfarm_tests::s3s::{self, S3sServer};
 use pointfarm_tests::{
-    assert_fails_saying, json_lines, output_text, pointfarm, pointfarm_bin, pointfarm_ok, stdout,
+    assert_fails_saying, copc_file, json_lines, output_text, pointfarm, pointfarm_bin,
+    pointfarm_ok, stdout,
 };
 
 fn arg(path: &Path) -> &str {
     path.to_str().expect("test paths are UTF-8")
 }
 
-fn copc_file(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("data/copc")
-        .join(name)
-}
-
-/// A folder whose `scans/` holds `files` (name, bytes), served by nginx; None, having said
-/// so, where nginx is not installed.
-fn serve(files: &[(&str, Vec<u8>)]) -> Option<(tempfile::TempDir, NginxServer)> {
-    NginxServer::binary().or_else(|| {
-        eprintln!("skipped: nginx is not installed (deploy/test.sh installs nginx-light)");
-        None
-    })?;
-    let root = tempfile::tempdir().expect("root");
-    std::fs::create_dir(root.path().join("scans")).expect("scans folder");
-    for (name, bytes) in files {
-        std::fs::write(root.path().join("scans").join(name), bytes).expect("served file");
-    }
-    let server = NginxServer::start_or_skip(root.path())?;
-    Some((root, server))
+/// nginx serving a copy of the file at `path` as `scans/SERVED_AS`; None, having said so,
+/// where nginx is not installed.
+fn serve_file(path: &Path, served_as: &str) -> Option<(tempfile::TempDir, NginxServer)> {
+    let bytes = std::fs::read(path).expect("served file");
+    NginxServer::serve_scans(&[(served_as, bytes)])
 }
 
 /// `pointfarm render INPUT --out OUT --json ARGS...`, which must succeed, and its one frame's
@@ -76,8 +62,7 @@ fn assert_one_line_error_naming(output: &Output, url: &str) {
 #[test]
 fn a_copc_file_by_url_renders_pixel_for_pixel_as_the_file_here() {
     let local = copc_file("simple_with_page.copc.laz");
-    let bytes = std::fs::read(&local).expect("COPC file");
-    let Some((_root, server)) = serve(&[("scan.copc.laz", bytes)]) else {
+    let Some((_root, server)) = serve_file(&local, "scan.copc.laz") else {
         return;
     };
     let dir = tempfile::tempdir().expect("tempdir");
@@ -115,7 +100,7 @@ fn a_coarse_cut_by_url_fetches_less_than_the_file() {
     let local = exported_scene(dir.path());
     let bytes = std::fs::read(&local).expect("COPC file");
     let size = bytes.len() as u64;
-    let Some((_root, server)) = serve(&[("scene.copc.laz", bytes)]) else {
+    let Some((_root, server)) = NginxServer::serve_scans(&[("scene.copc.laz", bytes)]) else {
         return;
     };
     let url = server.url("scans/scene.copc.laz");
@@ -152,8 +137,7 @@ fn a_coarse_cut_by_url_fetches_less_than_the_file() {
 #[test]
 fn an_object_replaced_after_open_is_object_changed_naming_the_url() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let first = std::fs::read(exported_scene(dir.path())).expect("COPC file");
-    let Some((root, server)) = serve(&[("scan.copc.laz", first)]) else {
+    let Some((root, server)) = serve_file(&exported_scene(dir.path()), "scan.copc.laz") else {
         return;
     };
     let client = RemoteClient::new(RemoteSettings::default()).expect("client");
@@ -201,7 +185,7 @@ fn an_object_replaced_after_open_is_object_changed_naming_the_url() {
 
 #[test]
 fn a_missing_object_is_one_line_naming_its_url() {
-    let Some((_root, server)) = serve(&[]) else {
+    let Some((_root, server)) = NginxServer::serve_scans(&[]) else {
         return;
     };
     let dir = tempfile::tempdir().expect("tempdir");
@@ -225,7 +209,7 @@ fn a_truncated_copc_object_is_a_clear_error_never_a_panic() {
         .iter()
         .map(|(name, bytes)| (name.as_str(), bytes.clone()))
         .collect();
-    let Some((_root, server)) = serve(&served) else {
+    let Some((_root, server)) = NginxServer::serve_scans(&served) else {
         return;
     };
     let dir = tempfile::tempdir().expect("tempdir");
@@ -243,8 +227,7 @@ fn a_plain_laz_file_or_a_prefix_by_url_is_refused_saying_only_copc_renders_by_ur
     let dir = tempfile::tempdir().expect("tempdir");
     let scene = dir.path().join("scene.laz");
     pointfarm_ok(&["sample", arg(&scene), "--points", "2000"]);
-    let bytes = std::fs::read(&scene).expect("LAZ file");
-    let Some((_root, server)) = serve(&[("scene.laz", bytes)]) else {
+    let Some((_root, server)) = serve_file(&scene, "scene.laz") else {
         return;
     };
     let out = dir.path().join("a.png");
@@ -272,8 +255,7 @@ fn a_plain_laz_file_or_a_prefix_by_url_is_refused_saying_only_copc_renders_by_ur
 #[test]
 fn info_by_url_says_what_info_of_the_file_here_says_of_its_header_and_octree() {
     let local = copc_file("simple_with_page.copc.laz");
-    let bytes = std::fs::read(&local).expect("COPC file");
-    let Some((_root, server)) = serve(&[("scan.copc.laz", bytes)]) else {
+    let Some((_root, server)) = serve_file(&local, "scan.copc.laz") else {
         return;
     };
     let url = server.url("scans/scan.copc.laz");

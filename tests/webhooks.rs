@@ -13,11 +13,10 @@ use std::time::Duration;
 
 use hmac::{Hmac, Mac};
 use pointfarm_proto::v1 as pb;
-use pointfarm_render::filter::{ClipBox, PointFilter};
-use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, StillCamera};
 use pointfarm_tests::prometheus::scrape;
 use pointfarm_tests::service::{
-    clients, run_job, scratch_sample, submit, turntable_job, upload_file, watch_to_success,
+    cancel, jobs_on_a_sample, run_job, still_clipped_outside_the_sample, submit, turntable_job,
+    watch_to_success,
 };
 use pointfarm_tests::{free_address, own_stderr_lines, pointfarm, wait_for, ServeProcess};
 use sha2::Sha256;
@@ -192,25 +191,38 @@ fn secret_file(dir: &Path) -> PathBuf {
     path
 }
 
+/// `serve` with `more` arguments and data in `scratch`, posting its jobs' ends to `hook` signed
+/// with the secret it reads from a file there.
+fn serve_posting_to(scratch: &Path, hook: &HookServer, more: &[&str]) -> ServeProcess {
+    let secret = secret_file(scratch);
+    let mut args = more.to_vec();
+    args.extend([
+        "--webhook",
+        &hook.url,
+        "--webhook-secret-file",
+        secret.to_str().expect("a UTF-8 path"),
+    ]);
+    ServeProcess::start_with(&scratch.join("data"), &args)
+}
+
+/// `serve` with `more` arguments and data in `scratch`, reading `config` from a configuration
+/// file it writes there.
+fn serve_configured(scratch: &Path, config: &str, more: &[&str]) -> ServeProcess {
+    let path = scratch.join("pointfarm.toml");
+    std::fs::write(&path, config).expect("write the configuration");
+    let mut args = more.to_vec();
+    args.extend(["--config", path.to_str().expect("a UTF-8 path")]);
+    ServeProcess::start_with(&scratch.join("data"), &args)
+}
+
 /// A job that succeeds is posted once to the webhook as `job.succeeded`, signed, with its
 /// counts; the secret never reaches the daemon's log.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_job_that_succeeds_posts_one_signed_event() {
     let scratch = tempfile::tempdir().expect("tempdir");
     let hook = HookServer::start(Answers::Scripted, &[]);
-    let secret = secret_file(scratch.path());
-    let server = ServeProcess::start_with(
-        &scratch.path().join("data"),
-        &[
-            "--webhook",
-            &hook.url,
-            "--webhook-secret-file",
-            secret.to_str().expect("a UTF-8 path"),
-        ],
-    );
-    let (_sample, file) = scratch_sample("s.las", 5_000, 7);
-    let (mut datasets, mut jobs) = clients(&server.address).await;
-    let dataset = upload_file(&mut datasets, "s.las", &file).await;
+    let server = serve_posting_to(scratch.path(), &hook, &[]);
+    let (mut jobs, dataset) = jobs_on_a_sample(&server.address, 5_000, 7).await;
     let job = submit(&mut jobs, turntable_job("hooked", &dataset.id, 2, 32, 24)).await;
     watch_to_success(&mut jobs, &job.id, || server.log()).await;
 
@@ -292,27 +304,15 @@ fn assert_the_guides_python_verifies(request: &Received, secret: &str) {
 async fn a_cancelled_job_is_posted_again_after_503s() {
     let scratch = tempfile::tempdir().expect("tempdir");
     let hook = HookServer::start(Answers::Scripted, &[503, 503]);
-    let secret = secret_file(scratch.path());
     let metrics = free_address();
-    let server = ServeProcess::start_with(
-        &scratch.path().join("data"),
-        &[
-            "--no-embedded-worker",
-            "--metrics-listen",
-            &metrics,
-            "--webhook",
-            &hook.url,
-            "--webhook-secret-file",
-            secret.to_str().expect("a UTF-8 path"),
-        ],
+    let server = serve_posting_to(
+        scratch.path(),
+        &hook,
+        &["--no-embedded-worker", "--metrics-listen", &metrics],
     );
-    let (_sample, file) = scratch_sample("s.las", 2_000, 8);
-    let (mut datasets, mut jobs) = clients(&server.address).await;
-    let dataset = upload_file(&mut datasets, "s.las", &file).await;
+    let (mut jobs, dataset) = jobs_on_a_sample(&server.address, 2_000, 8).await;
     let job = submit(&mut jobs, turntable_job("unwanted", &dataset.id, 4, 32, 24)).await;
-    jobs.cancel_job(pb::CancelJobRequest { id: job.id.clone() })
-        .await
-        .expect("cancel");
+    cancel(&mut jobs, &job.id).await;
 
     let requests = hook.wait_for_requests(3);
     assert_eq!(requests.len(), 3, "{requests:?}");
@@ -356,47 +356,25 @@ async fn a_failed_job_reaches_the_endpoints_that_want_failures() {
     let every_end = HookServer::start(Answers::Scripted, &[]);
     let failures_only = HookServer::start(Answers::Scripted, &[]);
     let secret = secret_file(scratch.path());
-    let config = scratch.path().join("pointfarm.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[serve]\nwebhook_secret_file = {}\n\n[[serve.webhook]]\nurl = \"{}\"\n\n\
-             [[serve.webhook]]\nurl = \"{}\"\nevents = [\"failed\"]\n",
-            toml_string(&secret),
-            every_end.url,
-            failures_only.url,
-        ),
-    )
-    .expect("write the configuration");
-    let server = ServeProcess::start_with(
-        &scratch.path().join("data"),
-        &["--config", config.to_str().expect("a UTF-8 path")],
+    let config = format!(
+        "[serve]\nwebhook_secret_file = {}\n\n[[serve.webhook]]\nurl = \"{}\"\n\n\
+         [[serve.webhook]]\nurl = \"{}\"\nevents = [\"failed\"]\n",
+        toml_string(&secret),
+        every_end.url,
+        failures_only.url,
     );
-    let (_sample, file) = scratch_sample("s.las", 5_000, 4);
-    let (mut datasets, mut jobs) = clients(&server.address).await;
-    let dataset = upload_file(&mut datasets, "s.las", &file).await;
+    let server = serve_configured(scratch.path(), &config, &[]);
+    let (mut jobs, dataset) = jobs_on_a_sample(&server.address, 5_000, 4).await;
     // Far more frames than render before the cancel arrives.
     let cancelled = submit(&mut jobs, turntable_job("long", &dataset.id, 500, 64, 48)).await;
-    jobs.cancel_job(pb::CancelJobRequest {
-        id: cancelled.id.clone(),
-    })
-    .await
-    .expect("cancel");
-    let mut request = RenderRequest {
-        width: 64,
-        height: 48,
-        camera_path: CameraPath::Still(StillCamera::default()),
-        lens: Lens::default(),
-        render: RenderOptions::default(),
-    };
-    request.render.filter = PointFilter {
-        clip: Some(ClipBox {
-            min: [0.0, 0.0, 0.0],
-            max: [1.0, 1.0, 1.0],
-        }),
-        ..Default::default()
-    };
-    let failed = run_job(&mut jobs, &dataset.id, "outside", request).await;
+    cancel(&mut jobs, &cancelled.id).await;
+    let failed = run_job(
+        &mut jobs,
+        &dataset.id,
+        "outside",
+        still_clipped_outside_the_sample(),
+    )
+    .await;
     assert_eq!(failed.state, pb::JobState::Failed as i32, "{failed:?}");
 
     let failure = &failures_only.wait_for_requests(1)[0];
@@ -435,30 +413,16 @@ async fn an_endpoint_that_never_answers_delays_nothing_else() {
     let secret = secret_file(scratch.path());
     let other_secret = scratch.path().join("other-secret");
     std::fs::write(&other_secret, "another-secret").expect("write the secret");
-    let config = scratch.path().join("pointfarm.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[serve]\n\n[[serve.webhook]]\nurl = \"{}\"\nsecret_file = {}\n\n\
-             [[serve.webhook]]\nurl = \"{}\"\nsecret_file = {}\nevents = [\"cancelled\"]\n",
-            stalled.url,
-            toml_string(&other_secret),
-            answering.url,
-            toml_string(&secret)
-        ),
-    )
-    .expect("write the configuration");
-    let server = ServeProcess::start_with(
-        &scratch.path().join("data"),
-        &[
-            "--no-embedded-worker",
-            "--config",
-            config.to_str().expect("a UTF-8 path"),
-        ],
+    let config = format!(
+        "[serve]\n\n[[serve.webhook]]\nurl = \"{}\"\nsecret_file = {}\n\n\
+         [[serve.webhook]]\nurl = \"{}\"\nsecret_file = {}\nevents = [\"cancelled\"]\n",
+        stalled.url,
+        toml_string(&other_secret),
+        answering.url,
+        toml_string(&secret)
     );
-    let (_sample, file) = scratch_sample("s.las", 2_000, 9);
-    let (mut datasets, mut jobs) = clients(&server.address).await;
-    let dataset = upload_file(&mut datasets, "s.las", &file).await;
+    let server = serve_configured(scratch.path(), &config, &["--no-embedded-worker"]);
+    let (mut jobs, dataset) = jobs_on_a_sample(&server.address, 2_000, 9).await;
     let mut ids = Vec::new();
     for n in 0..3 {
         let job = submit(
@@ -466,9 +430,7 @@ async fn an_endpoint_that_never_answers_delays_nothing_else() {
             turntable_job(&format!("job-{n}"), &dataset.id, 4, 32, 24),
         )
         .await;
-        jobs.cancel_job(pb::CancelJobRequest { id: job.id.clone() })
-            .await
-            .expect("cancel");
+        cancel(&mut jobs, &job.id).await;
         ids.push(job.id);
     }
 

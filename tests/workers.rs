@@ -11,8 +11,8 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_tests::service::{
-    assert_equal_to_direct_renders, clients, fetch_images, get_job, scan, scratch_sample, submit,
-    turntable_job, upload, watch_to_success, TestDaemon,
+    assert_equal_to_direct_renders, clients, fetch_images, get_job, lease_at_once, scan,
+    scratch_sample, submit, turntable_job, upload, watch_to_success, TestDaemon,
 };
 use pointfarm_tests::WorkerProcess;
 use tonic::metadata::{Ascii, MetadataValue};
@@ -45,6 +45,7 @@ impl Token {
 }
 
 type Workers = WorkerServiceClient<InterceptedService<Channel, Token>>;
+type Jobs = JobServiceClient<InterceptedService<Channel, Token>>;
 
 /// A daemon without an embedded worker, with `scan` uploaded to it.
 struct DaemonWithScan {
@@ -192,15 +193,19 @@ async fn list_leases(jobs: &mut JobServiceClient<Channel>) -> Vec<pb::Lease> {
 
 async fn lease(workers: &mut Workers) -> Option<pb::FrameTask> {
     workers
-        .lease_frame(pb::LeaseFrameRequest {
-            worker_name: "test".into(),
-            wait_ms: 0,
-            capabilities: None,
-        })
+        .lease_frame(lease_at_once("test"))
         .await
         .expect("lease")
         .into_inner()
         .task
+}
+
+/// The job `id` as GetJob shows it to a client with a token.
+async fn shown_job(jobs: &mut Jobs, id: &str) -> pb::Job {
+    jobs.get_job(pb::GetJobRequest { id: id.into() })
+        .await
+        .expect("get")
+        .into_inner()
 }
 
 async fn heartbeat(workers: &mut Workers, task: &pb::FrameTask) -> pb::HeartbeatResponse {
@@ -379,11 +384,7 @@ async fn stale_and_cancelled_leases_are_refused() {
         heartbeat(&mut workers, &first).await.action,
         pb::LeaseAction::Stop as i32
     );
-    let shown = jobs
-        .get_job(pb::GetJobRequest { id: job.id.clone() })
-        .await
-        .expect("get")
-        .into_inner();
+    let shown = shown_job(&mut jobs, &job.id).await;
     assert_eq!(shown.frames_done, 0, "the late frame was not stored");
 
     let again = lease(&mut workers).await.expect("frame 0 again");
@@ -413,11 +414,7 @@ async fn stale_and_cancelled_leases_are_refused() {
         .await
         .expect_err("a frame of a cancelled job");
     assert_eq!(cancelled.code(), Code::FailedPrecondition);
-    let shown = jobs
-        .get_job(pb::GetJobRequest { id: job.id.clone() })
-        .await
-        .expect("get")
-        .into_inner();
+    let shown = shown_job(&mut jobs, &job.id).await;
     assert_eq!(shown.frames_done, 1);
     assert_eq!(shown.frames.len(), 1);
     assert_eq!(shown.frames[0].failed_attempts, 1);
@@ -436,13 +433,7 @@ async fn stale_and_cancelled_leases_are_refused() {
         );
         tokio::time::sleep(lease_timeout * 5 / 2).await;
     }
-    let failed = jobs
-        .get_job(pb::GetJobRequest {
-            id: poison.id.clone(),
-        })
-        .await
-        .expect("get")
-        .into_inner();
+    let failed = shown_job(&mut jobs, &poison.id).await;
     assert_eq!(failed.state, pb::JobState::Failed as i32);
     assert!(failed.error.contains("failed 2 times"), "{}", failed.error);
     assert!(

@@ -69,21 +69,16 @@ fn remote_render_uploads_submits_follows_and_downloads() {
     assert_says(&listed, "\"JOB_STATE_SUCCEEDED\"");
     let unknown = pointfarm(&["jobs", "show", "job-missing", "--server", &address]);
     assert_fails_saying(&unknown, "not found");
-    let job = json_lines(&listed)[0]["jobs"][0]["id"]
-        .as_str()
-        .expect("the job's id")
-        .to_owned();
+    let job = first_listed_job(&listed);
 
     // The daemon logs the job's end once, with its counts.
-    let line = logged_once(&server, "job succeeded", &job);
-    for count in [
+    let counts = [
         "frames_done=2",
         "frames_total=2",
         "failed_attempts=0",
         "elapsed_s=",
-    ] {
-        assert!(line.contains(count), "{line}");
-    }
+    ];
+    let line = logged_once(&server, "job succeeded", &job, &counts);
     assert!(line.contains(" INFO "), "{line}");
 
     // Cancelling a job that has ended leaves it as it is, says so and succeeds.
@@ -143,8 +138,17 @@ fn remote_render_uploads_submits_follows_and_downloads() {
     );
 }
 
-/// The one line of `server`'s log that says `what` of `job`, once it is there.
-fn logged_once(server: &ServeProcess, what: &str, job: &str) -> String {
+/// The id of the first job `jobs list --json` listed.
+fn first_listed_job(listed: &Output) -> String {
+    json_lines(listed)[0]["jobs"][0]["id"]
+        .as_str()
+        .expect("the job's id")
+        .to_owned()
+}
+
+/// The one line of `server`'s log that says `what` of `job`, once it is there; it must hold each
+/// of `holding`.
+fn logged_once(server: &ServeProcess, what: &str, job: &str, holding: &[&str]) -> String {
     let lines = wait_for(Duration::from_secs(10), what, || {
         let lines: Vec<String> = server
             .log()
@@ -162,7 +166,11 @@ fn logged_once(server: &ServeProcess, what: &str, job: &str) -> String {
         .filter(|l| l.contains(what) && l.contains(job))
         .count();
     assert_eq!(count, 1, "{what} logged {count} times:\n{again}");
-    lines[0].clone()
+    let line = lines[0].clone();
+    for text in holding {
+        assert!(line.contains(text), "{line}");
+    }
+    line
 }
 
 /// A file the server cannot read fails its job at once; the daemon logs the job's end once,
@@ -188,19 +196,14 @@ fn a_failed_job_s_end_is_logged_once_with_its_attempts() {
     let message = String::from_utf8_lossy(&rendered.stderr);
     assert!(!message.contains("error: error:"), "{message}");
     let listed = pointfarm(&["jobs", "list", "--server", &server.address, "--json"]);
-    let job = json_lines(&listed)[0]["jobs"][0]["id"]
-        .as_str()
-        .expect("the job's id")
-        .to_owned();
-    let line = logged_once(&server, "job failed", &job);
-    for count in [
+    let job = first_listed_job(&listed);
+    let counts = [
         "frames_done=0",
         "frames_total=1",
         "failed_attempts=1",
         "truncated",
-    ] {
-        assert!(line.contains(count), "{line}");
-    }
+    ];
+    logged_once(&server, "job failed", &job, &counts);
 }
 
 #[test]

@@ -176,7 +176,7 @@ pub fn run_into_a_closed_pipe(args: &[&str]) -> Output {
     output
 }
 
-pub use pointfarm_render::testing::shared_data;
+pub use pointfarm_render::testing::{copc_file, shared_data};
 
 /// The `key` of each object in the JSON array `array` (e.g. each stage's name), in order.
 pub fn json_names<'a>(array: &'a serde_json::Value, key: &str) -> Vec<&'a str> {
@@ -192,6 +192,16 @@ pub fn own_stderr_lines(output: &Output) -> Vec<String> {
         .filter(|l| !l.contains("XDG_RUNTIME_DIR"))
         .map(str::to_owned)
         .collect()
+}
+
+/// Whether `program` runs (asked its version with `version_flag`); where it does not, says
+/// that the test is skipped and `what_installs_it`.
+pub fn installed_or_skip(program: &str, version_flag: &str, what_installs_it: &str) -> bool {
+    let found = Command::new(program).arg(version_flag).output().is_ok();
+    if !found {
+        eprintln!("skipped: {program} is not installed ({what_installs_it})");
+    }
+    found
 }
 
 /// `127.0.0.1:PORT` with a port that was free a moment ago.

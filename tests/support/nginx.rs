@@ -32,11 +32,29 @@ impl NginxServer {
 
     /// Starts nginx serving `root`, or None, having said why, where nginx is not installed.
     pub fn start_or_skip(root: &Path) -> Option<Self> {
-        let Some(binary) = Self::binary() else {
-            eprintln!("skipped: nginx is not installed (deploy/test.sh installs nginx-light)");
-            return None;
-        };
+        let binary = Self::binary_or_skip()?;
         Some(Self::start(&binary, root))
+    }
+
+    /// Starts nginx serving a new folder whose `scans/` holds `files` (name, bytes), or None,
+    /// having said why, where nginx is not installed. The folder lasts as long as the TempDir.
+    pub fn serve_scans(files: &[(&str, Vec<u8>)]) -> Option<(tempfile::TempDir, Self)> {
+        let binary = Self::binary_or_skip()?;
+        let root = tempfile::tempdir().expect("root");
+        std::fs::create_dir(root.path().join("scans")).expect("scans folder");
+        for (name, bytes) in files {
+            std::fs::write(root.path().join("scans").join(name), bytes).expect("served file");
+        }
+        let server = Self::start(&binary, root.path());
+        Some((root, server))
+    }
+
+    fn binary_or_skip() -> Option<PathBuf> {
+        let binary = Self::binary();
+        if binary.is_none() {
+            eprintln!("skipped: nginx is not installed (deploy/test.sh installs nginx-light)");
+        }
+        binary
     }
 
     fn start(binary: &Path, root: &Path) -> Self {

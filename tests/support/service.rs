@@ -13,9 +13,12 @@ use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_render::extent::Extent;
+use pointfarm_render::filter::{ClipBox, PointFilter};
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::raster::{Exposure, FrameSettings, Renderer};
-use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
+use pointfarm_render::request::{
+    CameraPath, Lens, RenderOptions, RenderRequest, StillCamera, Turntable,
+};
 use sha2::{Digest, Sha256};
 use tonic::transport::Channel;
 
@@ -204,12 +207,29 @@ pub fn turntable_job(
     }
 }
 
+/// A lease for the worker `worker_name` that answers at once, with a frame or with none.
+pub fn lease_at_once(worker_name: &str) -> pb::LeaseFrameRequest {
+    pb::LeaseFrameRequest {
+        worker_name: worker_name.into(),
+        wait_ms: 0,
+        capabilities: None,
+    }
+}
+
 /// Submits `request`; the job as the daemon answers.
 pub async fn submit(
     jobs: &mut JobServiceClient<Channel>,
     request: pb::SubmitJobRequest,
 ) -> pb::Job {
     jobs.submit_job(request).await.expect("submit").into_inner()
+}
+
+/// Cancels the job `id`; the job as the daemon answers.
+pub async fn cancel(jobs: &mut JobServiceClient<Channel>, id: &str) -> pb::Job {
+    jobs.cancel_job(pb::CancelJobRequest { id: id.into() })
+        .await
+        .expect("cancel")
+        .into_inner()
 }
 
 /// The job `id` as GetJob shows it, with its finished frames.
@@ -236,6 +256,26 @@ pub async fn watch_to_success(
         context()
     );
     (finished, frames)
+}
+
+/// A 64x48 still whose clip box, a unit cube at the origin, lies outside the generated sample
+/// scene: a job of it fails saying so.
+pub fn still_clipped_outside_the_sample() -> RenderRequest {
+    let mut request = RenderRequest {
+        width: 64,
+        height: 48,
+        camera_path: CameraPath::Still(StillCamera::default()),
+        lens: Lens::default(),
+        render: RenderOptions::default(),
+    };
+    request.render.filter = PointFilter {
+        clip: Some(ClipBox {
+            min: [0.0, 0.0, 0.0],
+            max: [1.0, 1.0, 1.0],
+        }),
+        ..Default::default()
+    };
+    request
 }
 
 /// Submits `request` on `dataset_id` as the job `name` (its request id) and watches it to its
@@ -372,6 +412,25 @@ pub fn scratch_sample(name: &str, points: usize, seed: u64) -> (tempfile::TempDi
     let file = scratch.path().join(name);
     write_sample(&file, points, seed);
     (scratch, file)
+}
+
+/// The generated sample scene (`points` of them, from `seed`) uploaded through `datasets` as
+/// `s.las`.
+pub async fn upload_sample(datasets: &mut Datasets, points: usize, seed: u64) -> pb::Dataset {
+    let (_scratch, file) = scratch_sample("s.las", points, seed);
+    upload_file(datasets, "s.las", &file).await
+}
+
+/// A jobs client of the daemon at `address`, and the sample scene uploaded to it (as
+/// [`upload_sample`] does).
+pub async fn jobs_on_a_sample(
+    address: &str,
+    points: usize,
+    seed: u64,
+) -> (JobServiceClient<Channel>, pb::Dataset) {
+    let (mut datasets, jobs) = clients(address).await;
+    let dataset = upload_sample(&mut datasets, points, seed).await;
+    (jobs, dataset)
 }
 
 /// A daemon with an embedded worker, and the generated sample scene (`points` of them, from
