@@ -18,8 +18,10 @@ use pointfarm_daemon::grpc::{
     copc_description, dataset_description, file_description, point_attributes_message,
 };
 use pointfarm_proto::v1 as pb;
+use pointfarm_render::copc::CopcSummary;
 use pointfarm_render::ingest::{dataset_files, GEOTIFF_USER_DEFINED};
 use pointfarm_render::remote::{ObjectUrl, RemoteClient};
+use pointfarm_render::source::describe_tile_url;
 
 use crate::credentials::ClientCredentials;
 use crate::remote::{answer, Client};
@@ -28,8 +30,9 @@ use crate::url_input::{self, Inputs};
 #[derive(Args)]
 pub struct InfoArgs {
     /// LAS/LAZ files, or folders whose .las and .laz files (in subfolders too) are each
-    /// reported; COPC files by URL (s3://, http(s)://: header and octree, read by range);
-    /// with --server, also dataset ids (an input that is no path here).
+    /// reported; files by URL (s3://, http(s)://), or the .las and .laz objects under an
+    /// s3:// prefix: header and records (and a COPC file's octree), read by range; with
+    /// --server, also dataset ids (an input that is no path here).
     #[arg(required = true, value_name = "INPUT")]
     inputs: Vec<PathBuf>,
     /// Print one JSON document, the API's `DatasetDescription` in the proto3 JSON mapping
@@ -55,7 +58,8 @@ pub struct InfoArgs {
 enum Input {
     /// Files here: a file, or a folder's files.
     Local(Vec<PathBuf>),
-    /// A COPC file by URL, whose header and hierarchy are read by range.
+    /// A file by URL, or a prefix of them, whose headers (and a COPC file's hierarchy) are
+    /// read by range.
     Url(ObjectUrl),
     /// A dataset on the server.
     Dataset(String),
@@ -97,9 +101,10 @@ pub fn run(args: InfoArgs) -> Result<()> {
                 if remote.is_none() {
                     remote = Some(url_input::client()?);
                 }
-                let file = describe_url(remote.as_ref().expect("made above"), &url);
-                tell(&file, args.json);
-                files.push(file);
+                for file in describe_url(remote.as_ref().expect("made above"), &url) {
+                    tell(&file, args.json);
+                    files.push(file);
+                }
             }
             Input::Dataset(id) => {
                 let server = server.unwrap_or_default();
@@ -175,20 +180,55 @@ fn classify(input: &Path, server: Option<&str>) -> Input {
     }
 }
 
-/// What the COPC file at `url` holds, as its header and hierarchy say, read by range: neither
-/// its points nor its CRS are read by URL yet.
-fn describe_url(client: &RemoteClient, url: &ObjectUrl) -> pb::FileDescription {
+/// What the files at `url` hold, read by range: one object, or each `.las`/`.laz` object
+/// under a prefix. Their points are not read by URL, nor a COPC file's CRS.
+fn describe_url(client: &RemoteClient, url: &ObjectUrl) -> Vec<pb::FileDescription> {
+    if !url.is_prefix() {
+        return vec![describe_object(client, url)];
+    }
+    match url_input::tiles_under(client, url) {
+        Ok(tiles) => (tiles.iter())
+            .map(|tile| describe_object(client, tile))
+            .collect(),
+        Err(error) => vec![unreadable(url, error)],
+    }
+}
+
+/// The report of a URL that could not be read.
+fn unreadable(url: &ObjectUrl, error: anyhow::Error) -> pb::FileDescription {
+    pb::FileDescription {
+        path: url.to_string(),
+        error: format!("{error:#}"),
+        ..pb::FileDescription::default()
+    }
+}
+
+/// What the object at `url` holds: a COPC file's header and hierarchy, else a plain LAS/LAZ
+/// file's header and records.
+fn describe_object(client: &RemoteClient, url: &ObjectUrl) -> pb::FileDescription {
+    match url_input::describe_copc(client, url) {
+        Ok(Some(summary)) => copc_file_description(url, summary),
+        Ok(None) => describe_tile(client, url),
+        Err(error) => unreadable(url, error),
+    }
+}
+
+/// What the plain LAS/LAZ file at `url` holds, as `info` says of a file here without its
+/// points.
+fn describe_tile(client: &RemoteClient, url: &ObjectUrl) -> pb::FileDescription {
+    match describe_tile_url(client, url) {
+        Ok(info) => file_description(&FileReport {
+            path: url.to_string().into(),
+            outcome: Ok((info, None)),
+            copc: None,
+        }),
+        Err(error) => unreadable(url, error.into()),
+    }
+}
+
+/// What a COPC file by URL holds, as its header and hierarchy say.
+fn copc_file_description(url: &ObjectUrl, summary: CopcSummary) -> pb::FileDescription {
     let path = url.to_string();
-    let summary = match url_input::describe(client, url) {
-        Ok(summary) => summary,
-        Err(error) => {
-            return pb::FileDescription {
-                path,
-                error: format!("{error:#}"),
-                ..pb::FileDescription::default()
-            }
-        }
-    };
     let header = &summary.header;
     let vec3 = |v: glam::DVec3| pb::Vec3 {
         x: v.x,

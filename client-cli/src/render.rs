@@ -27,7 +27,7 @@ use crate::paths::store_cache;
 use crate::render_json::FrameJson;
 use crate::render_outputs::{write_legend, Outputs};
 use crate::source_words::SourceWords;
-use crate::url_input::{self, Inputs};
+use crate::url_input::{self, Inputs, UrlDataset};
 
 pub use crate::render_args::RenderArgs;
 
@@ -156,7 +156,8 @@ const BUILT_ALREADY: &str = "the levels of detail are built already";
 const FINAL_AT_ONCE: &str = "rendering the final frames";
 
 /// Renders the COPC file at `url` as a file here is rendered, cut by cut, its header,
-/// hierarchy pages and nodes read by range as the frames reach them; says what was fetched.
+/// hierarchy pages and nodes read by range as the frames reach them; or, with `--preview`,
+/// LAS/LAZ tiles by URL from their chunk starts read by range. Says what was fetched.
 fn render_url(
     args: &RenderArgs,
     request: &RenderRequest,
@@ -166,7 +167,11 @@ fn render_url(
     let client = url_input::client()?;
     let words = SourceWords::new(args.json, args.inputs_label());
     let events = |event: SourceEvent<'_>| words.tell(event);
-    let copc = url_input::open(&client, url)?;
+    let say = |line: String| crate::output::say(args.json, line);
+    let dataset = url_input::open(&client, url)?;
+    if matches!(dataset, UrlDataset::Tiles(_)) && !args.preview {
+        anyhow::bail!("{url}: {}", url_input::TILES_FINAL);
+    }
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
     let renderer = Renderer::new(Arc::clone(&gpu));
     let target = FrameTarget {
@@ -178,31 +183,38 @@ fn render_url(
         fetched: Some(&client),
     };
     let options = args.lod_options()?;
-    let levels = Levels::Copc(Box::new(copc));
-    let mut source = FrameSource::levels(renderer, levels, options, &request.render, &events)?;
-    match (args.preview, options.lod_error < PREVIEW_LOD_ERROR_PX) {
-        (true, true) => copc_preview_then_final(&target, source, options)?,
-        (preview, _) => {
-            if preview {
-                crate::output::say(
-                    args.json,
-                    format!(
-                        "--preview: the pixel error ({}) is a preview's already; {FINAL_AT_ONCE}",
-                        options.lod_error
-                    ),
-                );
+    match dataset {
+        UrlDataset::Tiles(tiles) => {
+            let chunk_starts = ChunkStarts::read_urls(&client, &tiles)?;
+            let points = chunk_starts.with_nodes(&[]);
+            let mut preview = FrameSource::preview(renderer, points, &request.render, &events)?;
+            target.render(&mut preview, &|| true)?;
+            say(format!("final frames: {}", url_input::TILES_FINAL));
+        }
+        UrlDataset::Copc(copc) => {
+            let levels = Levels::Copc(copc);
+            let mut source =
+                FrameSource::levels(renderer, levels, options, &request.render, &events)?;
+            match (args.preview, options.lod_error < PREVIEW_LOD_ERROR_PX) {
+                (true, true) => copc_preview_then_final(&target, source, options)?,
+                (preview, _) => {
+                    if preview {
+                        say(format!(
+                            "--preview: the pixel error ({}) is a preview's already; \
+                             {FINAL_AT_ONCE}",
+                            options.lod_error
+                        ));
+                    }
+                    target.render(&mut source, &|| true)?;
+                }
             }
-            target.render(&mut source, &|| true)?;
         }
     }
     let counts = client.counts();
-    crate::output::say(
-        args.json,
-        format!(
-            "fetched {} bytes in {} requests from {url}",
-            counts.bytes, counts.requests
-        ),
-    );
+    say(format!(
+        "fetched {} bytes in {} requests from {url}",
+        counts.bytes, counts.requests
+    ));
     Ok(())
 }
 

@@ -1,7 +1,8 @@
-//! Inputs given as URLs (`s3://bucket/scan.copc.laz`, `https://host/scan.copc.laz`), which
-//! `render` and `info` read by range instead of as files here. Only a COPC file is read by
-//! URL yet: a plain LAS/LAZ object or a prefix is refused, saying so. A `file://` URL is its
-//! local path.
+//! Inputs given as URLs (`s3://bucket/scan.copc.laz`, `https://host/tiles/a.laz`,
+//! `s3://bucket/campaign/`), which `render` and `info` read by range instead of as files here.
+//! A COPC file renders node by node from its own hierarchy; plain LAS/LAZ tiles (one object,
+//! or the `.las`/`.laz` objects under a prefix) are described, and previewed from their chunk
+//! starts, without being copied. A `file://` URL is its local path.
 
 use std::path::PathBuf;
 
@@ -9,14 +10,24 @@ use anyhow::Result;
 use pointfarm_render::copc::{self, CopcDataset, CopcError, CopcSummary};
 use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteSettings};
 
-/// What only COPC files being read by URL means for an input that is not one.
-const COPC_ONLY: &str = "only COPC files (.copc.laz) render by URL yet; a plain LAS/LAZ file \
-                         or a prefix of them has to be copied here first";
+/// Why a full render of tiles by URL is refused, and what to do instead: their stores are
+/// built from files here, and copying a campaign is the user's decision, never a side effect.
+pub const TILES_FINAL: &str = "LAS/LAZ tiles by URL render as a preview only (--preview, from \
+                               their chunk starts read by range); for the final frames copy them \
+                               here (aws s3 sync URL DIR, or any downloader) and render the folder";
 
-/// The inputs of a command: files and folders here, or one object by URL.
+/// The inputs of a command: files and folders here, or one URL (an object or a prefix).
 pub enum Inputs {
     Paths(Vec<PathBuf>),
     Url(ObjectUrl),
+}
+
+/// What a URL holds, once opened.
+pub enum UrlDataset {
+    /// A COPC file, rendered from its own hierarchy.
+    Copc(Box<CopcDataset>),
+    /// Plain LAS/LAZ tiles: the object, or those under the prefix, sorted.
+    Tiles(Vec<ObjectUrl>),
 }
 
 /// Whether an input is written as a URL (`scheme://...`) rather than as a path.
@@ -33,9 +44,6 @@ pub fn parse(input: &std::path::Path) -> Result<Inputs> {
     let url = ObjectUrl::parse(&input.to_string_lossy())?;
     if let Some(path) = url.local_path() {
         return Ok(Inputs::Paths(vec![path.to_owned()]));
-    }
-    if url.is_prefix() {
-        anyhow::bail!("{url}: names a prefix, not one file; {COPC_ONLY}");
     }
     Ok(Inputs::Url(url))
 }
@@ -61,21 +69,35 @@ pub fn client() -> Result<RemoteClient> {
     Ok(RemoteClient::new(RemoteSettings::default())?)
 }
 
-/// The COPC file at `url`, opened for rendering.
-pub fn open(client: &RemoteClient, url: &ObjectUrl) -> Result<CopcDataset> {
-    copc::open_copc_url(client, url).map_err(refused)
+/// What `url` holds: the tiles under a prefix (listed, within the client's bound on a
+/// listing), or one object opened as a COPC file, else as one tile.
+pub fn open(client: &RemoteClient, url: &ObjectUrl) -> Result<UrlDataset> {
+    if url.is_prefix() {
+        return Ok(UrlDataset::Tiles(tiles_under(client, url)?));
+    }
+    match copc::open_copc_url(client, url) {
+        Ok(copc) => Ok(UrlDataset::Copc(Box::new(copc))),
+        Err(CopcError::NotCopc { .. }) => Ok(UrlDataset::Tiles(vec![url.clone()])),
+        Err(other) => Err(other.into()),
+    }
 }
 
-/// The octree and header facts of the COPC file at `url`.
-pub fn describe(client: &RemoteClient, url: &ObjectUrl) -> Result<CopcSummary> {
-    copc::describe_url(client, url).map_err(refused)
+/// The `.las` and `.laz` objects under `prefix` (in any case), sorted as a folder's files are.
+pub fn tiles_under(client: &RemoteClient, prefix: &ObjectUrl) -> Result<Vec<ObjectUrl>> {
+    let listed = client.list_point_files(prefix)?;
+    if listed.is_empty() {
+        anyhow::bail!("{prefix}: no .las or .laz object under this prefix");
+    }
+    Ok(listed.into_iter().map(|object| object.url).collect())
 }
 
-/// An error opening a URL, saying what is read by URL where the object is no COPC file.
-fn refused(error: CopcError) -> anyhow::Error {
-    match error {
-        CopcError::NotCopc { .. } => anyhow::anyhow!("{error}; {COPC_ONLY}"),
-        other => other.into(),
+/// The octree and header facts of the object at `url`, when it is a COPC file; `None` for a
+/// plain LAS/LAZ file.
+pub fn describe_copc(client: &RemoteClient, url: &ObjectUrl) -> Result<Option<CopcSummary>> {
+    match copc::describe_url(client, url) {
+        Ok(summary) => Ok(Some(summary)),
+        Err(CopcError::NotCopc { .. }) => Ok(None),
+        Err(other) => Err(other.into()),
     }
 }
 
@@ -95,11 +117,11 @@ mod tests {
     }
 
     #[test]
-    fn a_prefix_or_a_url_among_paths_is_refused_and_a_file_url_is_its_path() {
-        let prefix = classify(&["s3://bucket/scans/".into()])
-            .err()
-            .expect("refused");
-        assert!(prefix.to_string().contains("only COPC files"), "{prefix}");
+    fn a_url_among_paths_is_refused_and_a_file_url_is_its_path() {
+        match classify(&["s3://bucket/scans/".into()]).expect("a prefix") {
+            Inputs::Url(url) => assert!(url.is_prefix(), "{url}"),
+            Inputs::Paths(paths) => panic!("{paths:?} read as paths"),
+        }
         let mixed = classify(&["a.laz".into(), "https://host/b.copc.laz".into()]);
         assert!(mixed.is_err());
         match classify(&["file:///data/a.copc.laz".into()]).expect("a path") {

@@ -221,3 +221,69 @@ pub fn write_scene_tiles(dir: &Path, points: usize, count: u64) -> Vec<PathBuf> 
         })
         .collect()
 }
+
+/// How [`laz_of_las`] cuts a file's points into LAZ chunks.
+pub enum LazChunks<'a> {
+    /// Chunks of this many points (the `las` writer's are always 50,000).
+    Fixed(u32),
+    /// Chunks of these many points each, recorded in the chunk table (as COPC's are).
+    Variable(&'a [usize]),
+}
+
+/// `las`, an uncompressed LAS file without VLRs, compressed as point-wise LAZ in `chunks`.
+pub fn laz_of_las(las: &[u8], chunks: LazChunks<'_>) -> Vec<u8> {
+    use std::io::{Cursor, Seek, SeekFrom};
+    let u32_at = |at: usize| u32::from_le_bytes(las[at..at + 4].try_into().expect("4 bytes"));
+    let data_start = u32_at(96) as usize;
+    assert_eq!(u32_at(100), 0, "a file without VLRs");
+    let format = las[104];
+    let record_len = u16::from_le_bytes([las[105], las[106]]);
+    let format_len = las::point::Format::new(format).expect("point format").len();
+    let builder = laz::LazVlrBuilder::default()
+        .with_point_format(format, record_len - format_len)
+        .expect("items");
+    let vlr = match chunks {
+        LazChunks::Fixed(points) => builder.with_fixed_chunk_size(points),
+        LazChunks::Variable(_) => builder.with_variable_chunk_size(),
+    }
+    .build();
+    let mut vlr_data = Vec::new();
+    vlr.write_to(&mut vlr_data).expect("VLR");
+    let mut prefix = las[..data_start].to_vec();
+    prefix.extend(0u16.to_le_bytes());
+    let mut user_id = [0u8; 16];
+    user_id[..14].copy_from_slice(b"laszip encoded");
+    prefix.extend(user_id);
+    prefix.extend(22204u16.to_le_bytes());
+    prefix.extend(
+        u16::try_from(vlr_data.len())
+            .expect("VLR size")
+            .to_le_bytes(),
+    );
+    prefix.extend([0u8; 32]);
+    prefix.extend(&vlr_data);
+    let new_start = u32::try_from(prefix.len()).expect("offset");
+    prefix[96..100].copy_from_slice(&new_start.to_le_bytes());
+    prefix[100..104].copy_from_slice(&1u32.to_le_bytes());
+    prefix[104] = format | 0x80;
+    // The compressor writes the chunk table's absolute offset: it starts after the prefix.
+    let mut out = Cursor::new(prefix);
+    out.seek(SeekFrom::End(0)).expect("seek");
+    let mut compressor = laz::LasZipCompressor::new(&mut out, vlr).expect("compressor");
+    let records = &las[data_start..];
+    match chunks {
+        LazChunks::Fixed(_) => compressor.compress_many(records).expect("compress"),
+        LazChunks::Variable(counts) => {
+            let mut points = records.chunks_exact(usize::from(record_len));
+            for &count in counts {
+                for point in points.by_ref().take(count) {
+                    compressor.compress_one(point).expect("compress");
+                }
+                compressor.finish_current_chunk().expect("chunk");
+            }
+        }
+    }
+    compressor.done().expect("done");
+    drop(compressor);
+    out.into_inner()
+}

@@ -75,6 +75,14 @@ impl S3sServer {
     }
 }
 
+impl S3sServer {
+    /// Stops the server, as one that goes away while its clients read.
+    pub fn stop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
 impl Drop for S3sServer {
     fn drop(&mut self) {
         let _ = self.child.kill();

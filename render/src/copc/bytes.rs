@@ -8,6 +8,9 @@
 //! fetches an object in blocks so that they cost a few requests, not one each. An object's
 //! chunks read while it is opened (the colour sample's coarsest nodes) are kept, because the
 //! framing sample and the first frames draw the same nodes (docs/perf/remote-copc-reads.md).
+//!
+//! It is also the ranged face of plain LAS/LAZ files by URL ([`RangedBytes`]): the pre-parse,
+//! the header and a preview's sampled records of a tile read through it as a file's are.
 
 use std::collections::HashMap;
 use std::fs::File;
@@ -19,7 +22,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 use super::error::CopcError;
-use crate::ingest::{open_dataset_file, Symlinks};
+use crate::ingest::{open_dataset_file, IngestError, RangedBytes, ReadSeek, Symlinks};
 use crate::lod::read_concurrently;
 use crate::remote::{RemoteError, RemoteObject};
 
@@ -178,6 +181,35 @@ impl CopcBytes {
                     ),
                 ),
             )),
+        }
+    }
+}
+
+impl RangedBytes for CopcBytes {
+    type Error = CopcError;
+
+    fn name(&self) -> &Path {
+        &self.name
+    }
+
+    fn read_stream<T>(
+        &self,
+        read: impl FnOnce(&mut dyn ReadSeek, u64) -> Result<T, IngestError>,
+    ) -> Result<T, CopcError> {
+        let mut reader = self.reader();
+        read(&mut reader, self.size).map_err(|error| reader.error(error.into()))
+    }
+
+    fn read_sparse(&self, ranges: &[Range<u64>]) -> Result<Vec<Vec<u8>>, CopcError> {
+        match &self.origin {
+            Origin::File(_) => self.read_many(ranges),
+            Origin::Remote(object) => {
+                for range in ranges {
+                    let len = range.end.checked_sub(range.start).unwrap_or(u64::MAX);
+                    self.checked(range.start, len)?;
+                }
+                Ok(object.read_sparse(ranges)?)
+            }
         }
     }
 }

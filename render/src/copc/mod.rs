@@ -69,7 +69,7 @@ use crate::lod::{
     ELEVATION_SAMPLE_POINTS,
 };
 use crate::remote::{ObjectUrl, RemoteClient, RemoteObject};
-use bytes::CopcBytes;
+pub(crate) use bytes::CopcBytes;
 use lazy::CopcPageReader;
 
 /// A COPC file opened for rendering, and what opening it read.

@@ -9,6 +9,7 @@
 //! The sample becomes a cloud as a dataset's load makes one: the same origin (the first
 //! sampled point is the file's first point) and the same colour rule, decided on the sample.
 
+use std::ops::Range;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -18,12 +19,12 @@ use rayon::prelude::*;
 
 use super::columns::{choose_origin, DecodedPoints};
 use super::contain::contain_panics;
-use super::files::{open_dataset_file, Symlinks};
 use super::laz_layout::LazLayout;
-use super::raw_file::RawFile;
-use super::read::{checked_dataset, DatasetFile};
+use super::preparse::ChunkChecks;
+use super::ranged::{check_ranged, LocalFile, RangedBytes};
+use super::read::{dataset_bounds, dataset_header_bounds, DatasetFile};
 use super::IngestError;
-use crate::cloud::PointCloud;
+use crate::cloud::{PointCloud, WorldBounds};
 use crate::lod::NodePoints;
 
 /// Records between two sampled records of a LAS file: LASzip's default chunk size, so LAS and
@@ -34,6 +35,8 @@ pub const LAS_PREVIEW_STRIDE: u64 = 50_000;
 pub struct PreviewSample {
     pub cloud: PointCloud,
     pub points_in_files: u64,
+    /// What the frames of the dataset's store frame: its files' header bounds.
+    pub files_bounds: WorldBounds,
     /// The sampled records before their colours were decided, for [`Self::cloud_with_nodes`].
     decoded: DecodedPoints,
 }
@@ -59,13 +62,35 @@ pub fn sample_chunk_starts(paths: &[PathBuf]) -> Result<PreviewSample, IngestErr
 }
 
 fn sample_dataset(paths: &[PathBuf], las_stride: u64) -> Result<PreviewSample, IngestError> {
+    let files: Vec<LocalFile> = paths.iter().map(|path| LocalFile::new(path)).collect();
+    sample_ranged(&files, ChunkChecks::Layers, las_stride)
+}
+
+/// [`sample_chunk_starts`] of files read by range, each checked as far into its LAZ chunks
+/// as `chunks` says: a file here is checked as a load checks it, an object by URL up to its
+/// chunk table, since its layer tables guard a decoder this sample never runs and would cost
+/// a request per chunk.
+pub(crate) fn sample_ranged<B: RangedBytes>(
+    sources: &[B],
+    chunks: ChunkChecks,
+    las_stride: u64,
+) -> Result<PreviewSample, B::Error> {
     let started = Instant::now();
-    let (files, header_bounds, has_color) = checked_dataset(paths)?;
-    // The reads are small and scattered (one a chunk): files in parallel keep the disk's
-    // queue full where the campaign is not in the page cache.
-    let samples = files
+    if sources.is_empty() {
+        return Err(IngestError::NoFiles.into());
+    }
+    // The reads are small and scattered (one a chunk), an object's each a round trip: files
+    // in parallel keep the disk's queue, or the connections, full.
+    let checked = sources
         .par_iter()
-        .map(|file| contain_panics(&file.path, || sample_file(file, las_stride)))
+        .map(|source| check_ranged(source, chunks))
+        .collect::<Result<Vec<_>, _>>()?;
+    let (files, headers): (Vec<DatasetFile>, Vec<las::Header>) = checked.into_iter().unzip();
+    let files_bounds = dataset_bounds(&files)?;
+    let header_bounds = dataset_header_bounds(&files);
+    let has_color = files.iter().all(|file| file.has_color);
+    let samples = (sources.par_iter().zip(&files).zip(&headers))
+        .map(|((source, file), header)| sample_file(source, file, header, las_stride))
         .collect::<Result<Vec<_>, _>>()?;
     let sampled = samples.iter().map(las::PointData::len).sum();
     let mut decoded = DecodedPoints::with_capacity(sampled, has_color);
@@ -81,7 +106,8 @@ fn sample_dataset(paths: &[PathBuf], las_stride: u64) -> Result<PreviewSample, I
             return Err(IngestError::ImplausibleCoordinates {
                 path: file.path.clone(),
                 extreme,
-            });
+            }
+            .into());
         }
     }
     let cloud = decoded.clone().into_cloud(origin.unwrap_or(DVec3::ZERO));
@@ -96,35 +122,36 @@ fn sample_dataset(paths: &[PathBuf], las_stride: u64) -> Result<PreviewSample, I
     Ok(PreviewSample {
         cloud,
         points_in_files,
+        files_bounds,
         decoded,
     })
 }
 
-/// Reads `file`'s sampled records by offset, each span checked against the file's size.
-fn sample_file(file: &DatasetFile, las_stride: u64) -> Result<las::PointData, IngestError> {
+/// Reads `file`'s sampled records by range, each span checked against the file's size.
+fn sample_file<B: RangedBytes>(
+    source: &B,
+    file: &DatasetFile,
+    header: &las::Header,
+    las_stride: u64,
+) -> Result<las::PointData, B::Error> {
+    let record_len = u64::from(file.facts.record_len);
+    let ranges: Vec<Range<u64>> = record_starts(file, las_stride)?
+        .iter()
+        .map(|start| start.offset..start.offset + record_len)
+        .collect();
+    // Each range was checked to lie in the file, so the records are at most its size.
+    let bytes = source.read_sparse(&ranges)?.concat();
     let path = file.path.as_path();
-    let io_error = |error| IngestError::Io {
-        path: path.to_owned(),
-        error,
-    };
-    let mut handle = open_dataset_file(path, Symlinks::Follow).map_err(io_error)?;
-    let mut raw = RawFile::new(path, &mut handle, file.file_len());
-    let starts = record_starts(&raw, file, las_stride)?;
-    let record_len = usize::from(file.facts.record_len);
-    // Each start was checked to lie in the file with a record after it, so this is at most
-    // the file's size.
-    let mut bytes = vec![0u8; starts.len() * record_len];
-    for (start, record) in starts.iter().zip(bytes.chunks_exact_mut(record_len)) {
-        raw.read_into(start.offset, record, "a sampled point record")?;
-    }
-    let header = file.header()?;
-    PointDataBuilder::new()
-        .for_header(&header)
-        .build_from_bytes(bytes)
-        .map_err(|error| IngestError::Malformed {
-            path: path.to_owned(),
-            error,
-        })
+    let points = contain_panics(path, || {
+        PointDataBuilder::new()
+            .for_header(header)
+            .build_from_bytes(bytes)
+            .map_err(|error| IngestError::Malformed {
+                path: path.to_owned(),
+                error,
+            })
+    })?;
+    Ok(points)
 }
 
 /// A sampled record: its index in the file's point order and its byte offset.
@@ -136,11 +163,11 @@ struct RecordStart {
 
 /// Where the sampled records of `file` lie: LAZ chunk starts after the chunk table's offset
 /// field (or the first point of an unchunked file), or every `las_stride`-th LAS record.
-fn record_starts(
-    raw: &RawFile<'_>,
-    file: &DatasetFile,
-    las_stride: u64,
-) -> Result<Vec<RecordStart>, IngestError> {
+fn record_starts(file: &DatasetFile, las_stride: u64) -> Result<Vec<RecordStart>, IngestError> {
+    let corrupt = |what: String| IngestError::Corrupt {
+        path: file.path.clone(),
+        what,
+    };
     let facts = &file.facts;
     let record_len = u64::from(facts.record_len);
     let declared = facts.declared_points;
@@ -173,7 +200,7 @@ fn record_starts(
                 }
                 if chunk.point_count > 0 {
                     if chunk.byte_count < record_len {
-                        return Err(raw.corrupt(format!(
+                        return Err(corrupt(format!(
                             "LAZ chunk {chunk_index} of {} bytes cannot hold its first point ({record_len}-byte records)",
                             chunk.byte_count
                         )));
@@ -185,8 +212,19 @@ fn record_starts(
             }
         }
     }
+    let file_len = file.file_len();
     for start in &starts {
-        raw.check_span(start.offset, record_len, "a sampled point record")?;
+        if start
+            .offset
+            .checked_add(record_len)
+            .is_none_or(|end| end > file_len)
+        {
+            return Err(corrupt(format!(
+                "a sampled point record ({record_len} bytes at offset {}) runs past the end of \
+                 the file ({file_len} bytes)",
+                start.offset
+            )));
+        }
     }
     Ok(starts)
 }
@@ -198,14 +236,13 @@ fn sample_one(
     path: &std::path::Path,
     las_stride: u64,
 ) -> Result<(Vec<u64>, las::PointData), IngestError> {
-    let file = DatasetFile::check(path)?;
-    let mut handle = std::fs::File::open(path).expect("open");
-    let raw = RawFile::new(path, &mut handle, file.file_len());
-    let indices = record_starts(&raw, &file, las_stride)?
+    let source = LocalFile::new(path);
+    let (file, header) = check_ranged(&source, ChunkChecks::Layers)?;
+    let indices = record_starts(&file, las_stride)?
         .iter()
         .map(|start| start.index)
         .collect();
-    let points = contain_panics(path, || sample_file(&file, las_stride))?;
+    let points = sample_file(&source, &file, &header, las_stride)?;
     Ok((indices, points))
 }
 

@@ -6,6 +6,7 @@ use las::{PointDataBuilder, Reader};
 use super::*;
 use crate::ingest::test_files::*;
 use crate::ingest::{load_dataset, LasWriteOptions};
+use crate::testing::{laz_of_las, LazChunks};
 
 /// Every record of `path`, decoded by the `las` crate (the `laz` decompressor for LAZ).
 fn all_records(path: &Path) -> las::PointData {
@@ -137,53 +138,9 @@ fn the_sample_cloud_has_the_loaded_datasets_origin_and_points() {
 /// `las` (an uncompressed LAS 1.2 file without VLRs) compressed as point-wise LAZ in chunks
 /// of `chunks` points each (variable-size chunks, which the crate's writer does not make).
 fn variable_chunk_laz(las: &Path, chunks: &[usize]) -> PathBuf {
-    use std::io::{Cursor, Seek, SeekFrom};
     let bytes = fs::read(las).expect("read LAS");
-    let u32_at = |at: usize| u32::from_le_bytes(bytes[at..at + 4].try_into().expect("4 bytes"));
-    let data_start = u32_at(96) as usize;
-    assert_eq!(u32_at(100), 0, "a file without VLRs");
-    let format = bytes[104];
-    let record_len = usize::from(u16::from_le_bytes([bytes[105], bytes[106]]));
-    let extra = u16::try_from(record_len - 34).expect("extra bytes");
-    let vlr = laz::LazVlrBuilder::default()
-        .with_point_format(format, extra)
-        .expect("items")
-        .with_variable_chunk_size()
-        .build();
-    let mut vlr_data = Vec::new();
-    vlr.write_to(&mut vlr_data).expect("VLR");
-    let mut prefix = bytes[..data_start].to_vec();
-    prefix.extend(0u16.to_le_bytes());
-    let mut user_id = [0u8; 16];
-    user_id[..14].copy_from_slice(b"laszip encoded");
-    prefix.extend(user_id);
-    prefix.extend(22204u16.to_le_bytes());
-    prefix.extend(
-        u16::try_from(vlr_data.len())
-            .expect("VLR size")
-            .to_le_bytes(),
-    );
-    prefix.extend([0u8; 32]);
-    prefix.extend(&vlr_data);
-    let new_start = u32::try_from(prefix.len()).expect("offset");
-    prefix[96..100].copy_from_slice(&new_start.to_le_bytes());
-    prefix[100..104].copy_from_slice(&1u32.to_le_bytes());
-    prefix[104] = format | 0x80;
-    // The compressor writes the chunk table's absolute offset: it starts after the prefix.
-    let mut out = Cursor::new(prefix);
-    out.seek(SeekFrom::End(0)).expect("seek");
-    let mut compressor = laz::LasZipCompressor::new(&mut out, vlr).expect("compressor");
-    let mut points = bytes[data_start..].chunks_exact(record_len);
-    for &count in chunks {
-        for point in points.by_ref().take(count) {
-            compressor.compress_one(point).expect("compress");
-        }
-        compressor.finish_current_chunk().expect("chunk");
-    }
-    compressor.done().expect("done");
-    drop(compressor);
     let path = las.with_extension("laz");
-    fs::write(&path, out.into_inner()).expect("write LAZ");
+    fs::write(&path, laz_of_las(&bytes, LazChunks::Variable(chunks))).expect("write LAZ");
     path
 }
 

@@ -10,6 +10,8 @@ use glam::DVec3;
 use super::columns::world_bounds;
 use super::contain::contain_panics;
 use super::crs::{crs_of, Crs};
+use super::preparse::ChunkChecks;
+use super::ranged::{check_ranged, RangedBytes};
 use super::read::DatasetFile;
 use super::IngestError;
 use crate::cloud::{ColorSource, WorldBounds};
@@ -73,6 +75,18 @@ impl FileInfo {
     pub fn read(path: &Path) -> Result<Self, IngestError> {
         let file = DatasetFile::check(path)?;
         let header = file.header()?;
+        Ok(Self::of_header(file, &header))
+    }
+
+    /// Reads the header and records of a file read by range, an object by URL (checked up to
+    /// its chunk table, as a preview of it is): what [`Self::read`] says of a file here. Its
+    /// points are not read through it: [`Self::read_points`] reads files here.
+    pub(crate) fn read_ranged<B: RangedBytes>(bytes: &B) -> Result<Self, B::Error> {
+        let (file, header) = check_ranged(bytes, ChunkChecks::Table)?;
+        Ok(Self::of_header(file, &header))
+    }
+
+    fn of_header(file: DatasetFile, header: &las::Header) -> Self {
         let format = header.point_format();
         let transforms = header.transforms();
         let mut points_by_return: Vec<u64> = (1..=15)
@@ -81,8 +95,8 @@ impl FileInfo {
         while points_by_return.last() == Some(&0) {
             points_by_return.pop();
         }
-        Ok(Self {
-            path: path.to_owned(),
+        Self {
+            path: file.path.clone(),
             file_bytes: file.file_len(),
             version: file.facts.version,
             point_format: file.facts.point_format,
@@ -99,10 +113,10 @@ impl FileInfo {
                 transforms.y.offset,
                 transforms.z.offset,
             ),
-            crs: crs_of(&header),
-            attributes: Attributes::of_format(format, extra_byte_names(&header)),
+            crs: crs_of(header),
+            attributes: Attributes::of_format(format, extra_byte_names(header)),
             file,
-        })
+        }
     }
 
     /// Reads every point once, batch by batch, telling `progress` the points read so far.

@@ -18,7 +18,9 @@
 //! - `read.rs`: reading checked files batch by batch (LAZ on all cores), a dataset's files
 //!   into one cloud;
 //! - `chunk_starts.rs`: a preview sample without decompressing: the raw first point of
-//!   every LAZ chunk, every k-th LAS record;
+//!   every LAZ chunk, every k-th LAS record, of files here or objects by URL alike;
+//! - `ranged.rs`: the one face a file's bytes are read through by range, a file here or an
+//!   object by URL (`copc::bytes`), for the pre-parse, the header and the sample;
 //! - `columns.rs`: the decoded points and the cloud made of them (origin, colours);
 //! - `files.rs`: the files of a dataset, from files and folders (anywhere, or only inside a
 //!   server's data roots), and `open_dataset_file`, the one open of a dataset's file;
@@ -40,6 +42,7 @@ mod header;
 mod info;
 mod laz_layout;
 mod preparse;
+mod ranged;
 mod raw_file;
 mod read;
 mod records;
@@ -50,6 +53,7 @@ mod transforms;
 mod write;
 
 pub use crate::cloud::MAX_COORDINATE;
+pub(crate) use chunk_starts::sample_ranged;
 pub use chunk_starts::{sample_chunk_starts, PreviewSample, LAS_PREVIEW_STRIDE};
 pub(crate) use contain::contain_panics;
 pub use crs::{Crs, GeoKeys, USER_DEFINED as GEOTIFF_USER_DEFINED};
@@ -58,6 +62,8 @@ pub use files::{dataset_files, dataset_files_in, open_dataset_file, FileScope, S
 pub use info::{Attributes, FileInfo, PointSummary, RgbRange};
 pub(crate) use laz_layout::layer_count;
 pub(crate) use preparse::{check_file_with, ChunkChecks};
+pub(crate) use ranged::RangedBytes;
+pub(crate) use raw_file::ReadSeek;
 pub use source::DatasetSource;
 
 /// The first four bytes of every LAS and LAZ file.

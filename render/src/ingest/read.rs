@@ -101,6 +101,25 @@ pub(super) fn dataset_header_bounds(files: &[DatasetFile]) -> WorldBounds {
         .unwrap_or(files[0].header_bounds)
 }
 
+/// What a store of a dataset's files frames: the union of their header bounds, widened by
+/// what rounding them to the files' scales may hide; a file whose header bounds are not
+/// finite or inverted cannot be framed.
+pub(super) fn dataset_bounds(files: &[DatasetFile]) -> Result<WorldBounds, IngestError> {
+    if let Some(file) = files.iter().find(|file| !usable(&file.header_bounds)) {
+        return Err(IngestError::Corrupt {
+            path: file.path.clone(),
+            what: "its header bounds are not finite or inverted".into(),
+        });
+    }
+    let union = dataset_header_bounds(files);
+    // Header bounds are rounded to the files' scales; allow for that and a little more.
+    let slack = DVec3::splat(1e-3) + union.size().abs() * 1e-9;
+    Ok(WorldBounds {
+        min: union.min - slack,
+        max: union.max + slack,
+    })
+}
+
 /// Header bounds worth taking into the union: finite and not inverted.
 pub(super) fn usable(bounds: &WorldBounds) -> bool {
     bounds.min.is_finite() && bounds.max.is_finite() && bounds.min.cmple(bounds.max).all()
@@ -150,43 +169,44 @@ impl DatasetFile {
         };
         let mut file = open_dataset_file(path, Symlinks::Follow).map_err(io_error)?;
         let file_len = file.metadata().map_err(io_error)?.len();
-        let CheckedFile { facts, laz, chunks } = check_file(path, &mut file, file_len)?;
+        let checked = check_file(path, &mut file, file_len)?;
         file.seek(SeekFrom::Start(0)).map_err(io_error)?;
-        let (header_bounds, has_color, scale, offset, format_len, extra_bytes_vlr) =
-            contain_panics(path, || {
-                let reader = open_reader(path, file, laz)?;
-                let header = reader.header();
-                let t = header.transforms();
-                let format = header.point_format();
-                let extra_bytes_vlr = header
-                    .all_vlrs()
-                    .find(|vlr| {
-                        vlr.user_id == crate::extra_bytes::USER_ID
-                            && vlr.record_id == crate::extra_bytes::RECORD_ID
-                    })
-                    .map(|vlr| vlr.data.clone());
-                Ok((
-                    world_bounds(header.bounds()),
-                    format.has_color,
-                    DVec3::new(t.x.scale, t.y.scale, t.z.scale),
-                    DVec3::new(t.x.offset, t.y.offset, t.z.offset),
-                    usize::from(format.len() - format.extra_bytes),
-                    extra_bytes_vlr,
-                ))
-            })?;
-        Ok(Self {
+        let laz = checked.laz;
+        let header = contain_panics(path, || Ok(open_reader(path, file, laz)?.header().clone()))?;
+        Ok(Self::of_header(path, file_len, checked, &header))
+    }
+
+    /// A file that passed the pre-parse, with what its header (read by the `las` crate after
+    /// the pre-parse) says.
+    pub(super) fn of_header(
+        path: &Path,
+        file_len: u64,
+        checked: CheckedFile,
+        header: &las::Header,
+    ) -> Self {
+        let CheckedFile { facts, laz, chunks } = checked;
+        let t = header.transforms();
+        let format = header.point_format();
+        let extra_bytes_vlr = header
+            .all_vlrs()
+            .find(|vlr| {
+                vlr.user_id == crate::extra_bytes::USER_ID
+                    && vlr.record_id == crate::extra_bytes::RECORD_ID
+            })
+            .map(|vlr| vlr.data.clone());
+        Self {
             path: path.to_owned(),
             file_len,
             facts,
             laz,
             chunks,
-            header_bounds,
-            has_color,
-            scale,
-            offset,
-            format_len,
+            header_bounds: world_bounds(header.bounds()),
+            has_color: format.has_color,
+            scale: DVec3::new(t.x.scale, t.y.scale, t.z.scale),
+            offset: DVec3::new(t.x.offset, t.y.offset, t.z.offset),
+            format_len: usize::from(format.len() - format.extra_bytes),
             extra_bytes_vlr,
-        })
+        }
     }
 
     /// The file's header as the `las` crate reads it, with every VLR and EVLR (each one's

@@ -8,7 +8,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::contain::contain_panics;
-use super::read::{usable, DatasetFile};
+use super::read::{dataset_bounds, DatasetFile};
 use super::IngestError;
 use crate::cloud::WorldBounds;
 use crate::lod::attributes::{extra_descriptors, RowFiller};
@@ -35,26 +35,7 @@ impl DatasetSource {
     /// error naming it: the builder needs bounds before it reads a point.
     pub fn open(paths: &[PathBuf]) -> Result<Self, IngestError> {
         let files = DatasetFile::check_all(paths)?;
-        if let Some(file) = files.iter().find(|file| !usable(&file.header_bounds)) {
-            return Err(IngestError::Corrupt {
-                path: file.path.clone(),
-                what: "its header bounds are not finite or inverted".into(),
-            });
-        }
-        let union = files
-            .iter()
-            .map(|file| file.header_bounds)
-            .reduce(|a, b| WorldBounds {
-                min: a.min.min(b.min),
-                max: a.max.max(b.max),
-            })
-            .unwrap_or(files[0].header_bounds);
-        // Header bounds are rounded to the files' scales; allow for that and a little more.
-        let slack = DVec3::splat(1e-3) + union.size().abs() * 1e-9;
-        let bounds = WorldBounds {
-            min: union.min - slack,
-            max: union.max + slack,
-        };
+        let bounds = dataset_bounds(&files)?;
         let attributes = attribute_schema(&files);
         let fillers = files
             .iter()

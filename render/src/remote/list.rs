@@ -29,6 +29,11 @@ pub(crate) async fn list_point_files(
     let path = prefix.object_path();
     let listing_error = |error: object_store::Error| {
         let reason = match prefix.kind() {
+            // S3 answers a listing of a missing bucket with a 404 that object_store passes on
+            // as a generic error, the code in its body.
+            _ if error.to_string().contains("<Code>NoSuchBucket</Code>") => {
+                "no such bucket".to_owned()
+            }
             // object_store lists an HTTP server through WebDAV, which a plain server lacks.
             UrlKind::Http => format!(
                 "{error} (an HTTP server is listed only through WebDAV; name the files instead)"
@@ -71,4 +76,62 @@ pub(crate) async fn list_point_files(
             })
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use object_store::memory::InMemory;
+    use object_store::path::Path as ObjectPath;
+    use object_store::{ObjectStoreExt, PutPayload};
+
+    use super::*;
+
+    /// Lists `prefix` of an in-memory store holding `names`, within `limit` objects.
+    fn listed(names: &[&str], prefix: &str, limit: usize) -> Result<Vec<String>, RemoteError> {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .expect("runtime");
+        runtime.block_on(async {
+            let store = Arc::new(InMemory::new());
+            for name in names {
+                let payload = PutPayload::from_static(b"LASF");
+                store
+                    .put(&ObjectPath::from(*name), payload)
+                    .await
+                    .expect("put");
+            }
+            let prefix = ObjectUrl::parse(prefix).expect("prefix");
+            let found = list_point_files(store, &prefix, limit).await?;
+            Ok(found.iter().map(|object| object.url.to_string()).collect())
+        })
+    }
+
+    #[test]
+    fn a_prefix_lists_its_point_files_in_any_case_sorted_and_bounded() {
+        let names = [
+            "tiles/b.LAZ",
+            "tiles/sub/c.laz",
+            "tiles/a.las",
+            "tiles/readme.txt",
+            "other/d.laz",
+        ];
+        let found = listed(&names, "s3://bucket/tiles/", 10).expect("listed");
+        assert_eq!(
+            found,
+            [
+                "s3://bucket/tiles/a.las",
+                "s3://bucket/tiles/b.LAZ",
+                "s3://bucket/tiles/sub/c.laz"
+            ]
+        );
+        let error = listed(&names, "s3://bucket/tiles/", 2).expect_err("too many");
+        assert!(
+            matches!(error, RemoteError::TooManyObjects { limit: 2, .. }),
+            "{error}"
+        );
+        assert_eq!(
+            error.to_string(),
+            "s3://bucket/tiles/: more than 2 objects under this prefix"
+        );
+    }
 }

@@ -98,9 +98,24 @@ impl RemoteObject {
         Ok(parts.pop().unwrap_or_default())
     }
 
-    /// Several byte ranges, in the order asked; ranges closer than the settings' gap are
-    /// fetched as one request, and the requests run in parallel.
+    /// Several byte ranges, in the order asked; ranges closer than the settings'
+    /// `coalesce_gap` are fetched as one request, and the requests run in parallel.
     pub fn read_ranges(&self, ranges: &[Range<u64>]) -> Result<Vec<Vec<u8>>, RemoteError> {
+        self.read_ranges_within(ranges, self.client.settings().coalesce_gap)
+    }
+
+    /// Small ranges scattered over the object, as [`Self::read_ranges`] reads them but merged
+    /// only when closer than the settings' `sparse_gap`, so that what is fetched stays near
+    /// what was asked.
+    pub fn read_sparse(&self, ranges: &[Range<u64>]) -> Result<Vec<Vec<u8>>, RemoteError> {
+        self.read_ranges_within(ranges, self.client.settings().sparse_gap)
+    }
+
+    fn read_ranges_within(
+        &self,
+        ranges: &[Range<u64>],
+        gap: u64,
+    ) -> Result<Vec<Vec<u8>>, RemoteError> {
         let settings = self.client.settings();
         let mut total: u64 = 0;
         for range in ranges {
@@ -120,7 +135,7 @@ impl RemoteObject {
                 limit: settings.max_read_bytes,
             });
         }
-        let merged = coalesce(ranges, settings.coalesce_gap, settings.max_coalesced_bytes);
+        let merged = coalesce(ranges, gap, settings.max_coalesced_bytes);
         let store = Arc::clone(&self.store);
         let pin = self.pin.clone();
         let counters = self.client.counters();

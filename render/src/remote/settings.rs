@@ -23,6 +23,11 @@ pub struct RemoteSettings {
     pub operation_deadline: Duration,
     /// Ranges closer than this are fetched as one request.
     pub coalesce_gap: u64,
+    /// Ranges of a sparse read (a preview's sampled records, tens of bytes each) closer than
+    /// this are fetched as one request. Far below `coalesce_gap`, which would fetch a whole
+    /// tile between its chunk starts: about what one request costs on priced object storage
+    /// in bytes sent out, so a merge never costs more than the request it saves.
+    pub sparse_gap: u64,
     /// A coalesced request grows no larger than this.
     pub max_coalesced_bytes: u64,
     /// Requests of one `read_ranges` in flight at once.
@@ -44,6 +49,7 @@ impl Default for RemoteSettings {
             max_backoff: Duration::from_secs(5),
             operation_deadline: Duration::from_secs(180),
             coalesce_gap: 1024 * 1024,
+            sparse_gap: 4 * 1024,
             max_coalesced_bytes: 64 * 1024 * 1024,
             parallel_requests: 8,
             max_read_bytes: 1024 * 1024 * 1024,

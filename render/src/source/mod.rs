@@ -16,12 +16,14 @@
 //! - `extent`: where the points lie, and the robust box the automatic camera frames.
 //! - `local_store`: stores in folders of this machine, built again once when damaged.
 //! - `preview`: what a preview draws while a store builds.
+//! - `url_tiles`: LAS/LAZ tiles by URL, described and sampled for a preview by range.
 
 mod choice;
 mod events;
 mod exposure;
 mod local_store;
 mod preview;
+mod url_tiles;
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -46,6 +48,7 @@ pub use choice::{frame_points, FramePoints, PointSourceFacts};
 pub use events::{quiet, LevelsFrom, SourceEvent};
 pub use local_store::{LocalStore, StoreCache};
 pub use preview::{ChunkStarts, PreviewPoints};
+pub use url_tiles::describe_tile_url;
 
 /// Why a frame source could not open or render.
 #[derive(Debug, Error)]

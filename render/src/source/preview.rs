@@ -7,8 +7,8 @@ use std::time::Instant;
 
 use super::SourceError;
 use crate::cloud::{PointCloud, WorldBounds};
-use crate::ingest::{sample_chunk_starts, DatasetSource, PreviewSample};
-use crate::lod::{NodePoints, PointSource};
+use crate::ingest::{sample_chunk_starts, PreviewSample};
+use crate::lod::NodePoints;
 
 /// A preview's points, of a dataset of `points_in_files` points.
 pub struct PreviewPoints {
@@ -35,13 +35,17 @@ impl ChunkStarts {
     pub fn read(files: &[PathBuf]) -> Result<Self, SourceError> {
         let started = Instant::now();
         let sample = sample_chunk_starts(files)?;
-        let files_bounds = DatasetSource::open(files)?.bounds();
-        Ok(Self {
+        Ok(Self::of_sample(sample, files.len(), started))
+    }
+
+    /// The sample of `files` files, read since `started`.
+    pub(super) fn of_sample(sample: PreviewSample, files: usize, started: Instant) -> Self {
+        Self {
+            files_bounds: sample.files_bounds,
             sample,
-            files_bounds,
-            files: files.len(),
+            files,
             read_ms: started.elapsed().as_secs_f64() * 1e3,
-        })
+        }
     }
 
     /// The chunk starts and `stored`, the nodes a build has stored so far, as a preview's

@@ -1,0 +1,56 @@
+//! LAS/LAZ tiles by URL: each object's header, records and chunk table read by range and
+//! checked as a file's are, for `info` and for a preview from the tiles' chunk starts; no
+//! tile is copied whole.
+//!
+//! A tile's bytes are read through `copc::CopcBytes`, the crate's one ranged face over a file
+//! or an object, by the same pre-parse and sampling code as files here
+//! (`ingest::RangedBytes`). Tiles are opened, checked and sampled many at once: each of their
+//! reads waits a round trip, which the connections overlap.
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use super::preview::ChunkStarts;
+use super::SourceError;
+use crate::copc::CopcBytes;
+use crate::ingest::{sample_ranged, ChunkChecks, FileInfo, LAS_PREVIEW_STRIDE};
+use crate::remote::{ObjectUrl, RemoteClient};
+
+/// What the LAS/LAZ file at `url` holds, as [`FileInfo::read`] says of a file here: its header
+/// and records read by range (up to the chunk table), never its points.
+pub fn describe_tile_url(client: &RemoteClient, url: &ObjectUrl) -> Result<FileInfo, SourceError> {
+    let bytes = CopcBytes::remote(client.open(url).map_err(crate::copc::CopcError::from)?);
+    Ok(FileInfo::read_ranged(&bytes)?)
+}
+
+impl ChunkStarts {
+    /// The chunk starts of the LAS/LAZ tiles at `urls`, read as [`ChunkStarts::read`] reads
+    /// files here: the same sample, origin and bounds, the tiles' sampled records fetched by
+    /// sparse range reads, many tiles at once.
+    pub fn read_urls(client: &RemoteClient, urls: &[ObjectUrl]) -> Result<Self, SourceError> {
+        let started = Instant::now();
+        let threads = client.settings().parallel_requests.max(1);
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .thread_name(|i| format!("pointfarm-tiles-{i}"))
+            .build()
+            .map_err(|error| SourceError::Io {
+                path: urls
+                    .first()
+                    .map(|url| url.to_string())
+                    .unwrap_or_default()
+                    .into(),
+                error: std::io::Error::other(error),
+            })?;
+        let sample = pool.install(|| {
+            let tiles = urls
+                .par_iter()
+                .map(|url| client.open(url).map(CopcBytes::remote))
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(crate::copc::CopcError::from)?;
+            sample_ranged(&tiles, ChunkChecks::Table, LAS_PREVIEW_STRIDE)
+        })?;
+        Ok(Self::of_sample(sample, urls.len(), started))
+    }
+}
