@@ -19,6 +19,7 @@ mod filter_args;
 mod frame_files;
 mod generate;
 mod info;
+mod jobs_video;
 mod logging;
 mod output;
 mod parse;

@@ -71,6 +71,10 @@ fn submission(
         after: args.after.clone(),
         name: args.name.clone().unwrap_or_default(),
         labels: args.labels.iter().cloned().collect(),
+        video: args
+            .video_request()
+            .map(|video| video.settings())
+            .transpose()?,
     };
     check_name("--name", &spec.name)?;
     check_labels("--label", &spec.labels)?;
@@ -216,8 +220,11 @@ pub fn run(
             )),
         }
         if let Some(video) = &outputs.video {
-            video.assemble(&written)?;
-            say(format!("video: {}", video.path().display()));
+            let bytes = crate::jobs_video::download(&mut client, &job.id, video.path()).await?;
+            say(format!(
+                "video: {} ({bytes} bytes, made on the server)",
+                video.path().display()
+            ));
         }
         if let Some(first) = details.frames.first() {
             say(format!(

@@ -10,6 +10,7 @@ use glam::DVec3;
 use pointfarm_render::camera::{AUTO_AZIMUTH_DEG, AUTO_ELEVATION_DEG, DEFAULT_FOV_Y_DEG};
 use pointfarm_render::color::{ColorMode, ColorRamp, ColorRange};
 use pointfarm_render::cut::CutOptions;
+use pointfarm_render::encode::video::{VideoCodec, DEFAULT_VIDEO_FPS, DEFAULT_VIDEO_QUALITY};
 use pointfarm_render::gpu::AdapterChoice;
 use pointfarm_render::raster::{
     AtomicsMode, FillSettings, Quality, Shading, DEFAULT_BACKGROUND, DEFAULT_DEPTH_BAND,
@@ -22,7 +23,7 @@ use pointfarm_render::request::{
 use crate::credentials::ClientCredentials;
 use crate::filter_args::FilterArgs;
 use crate::parse::{self, Rgba};
-use crate::video::{VideoCodec, VideoRequest, DEFAULT_VIDEO_QUALITY};
+use crate::video::{codec_parser, VideoRequest};
 
 #[derive(Args)]
 pub struct RenderArgs {
@@ -57,10 +58,10 @@ pub struct RenderArgs {
     #[arg(long, value_name = "FILE")]
     video: Option<PathBuf>,
     /// Frames per second of --video, and of a Potree camera animation's frames.
-    #[arg(long, default_value_t = 30)]
+    #[arg(long, default_value_t = DEFAULT_VIDEO_FPS)]
     fps: u32,
     /// Codec of --video [default: h264, vp9 for .webm].
-    #[arg(long, value_enum, requires = "video")]
+    #[arg(long, value_parser = codec_parser(), requires = "video")]
     video_codec: Option<VideoCodec>,
     /// Constant quality of --video, 0 (best, largest) to 51; about 18 looks lossless.
     #[arg(long, default_value_t = DEFAULT_VIDEO_QUALITY, value_name = "CRF", requires = "video")]

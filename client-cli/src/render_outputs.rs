@@ -17,7 +17,7 @@ use pointfarm_render::request::RenderRequest;
 
 use crate::frame_files::{save_depth, FrameFiles};
 use crate::render_args::RenderArgs;
-use crate::video::{VideoPlan, VideoRequest};
+use crate::video::VideoPlan;
 
 /// Where a render's frames and video go, checked before anything is rendered.
 pub(crate) struct Outputs {
@@ -50,7 +50,15 @@ impl Outputs {
             // ffmpeg reads piped frames in order and cannot seek back in a TIFF.
             bail!("--video is made from PNG, JPEG or WebP frames; TIFF frames cannot be piped to ffmpeg");
         }
-        let video = args.video_request().map(VideoRequest::check).transpose()?;
+        // Through a server the video is made there, so this machine needs no ffmpeg.
+        let through_server = args.server.is_some() && !args.local;
+        let video = args
+            .video_request()
+            .map(|video| match through_server {
+                true => video.check_output(),
+                false => video.check(),
+            })
+            .transpose()?;
         let legend = args.legend.clone();
         if let Some(path) = &legend {
             let mode = request.render.color_mode;

@@ -105,6 +105,10 @@ pub struct WorkerArgs {
     /// scrapers reach.
     #[arg(long, value_name = "ADDR", env = "POINTFARM_METRICS_LISTEN")]
     metrics_listen: Option<String>,
+    /// Make no videos of jobs, even where ffmpeg is installed (by default a worker whose
+    /// ffmpeg has a job's encoder may be leased its video).
+    #[arg(long, env = "POINTFARM_NO_VIDEOS")]
+    no_videos: bool,
     /// Run as a daemon's embedded worker: exit as soon as standard input (a pipe from the
     /// daemon) closes.
     #[arg(long, hide = true)]
@@ -167,6 +171,7 @@ pub fn run(args: WorkerArgs) -> Result<()> {
         cut,
         metrics: Arc::new(WorkerMetrics::new()),
         capabilities,
+        videos: !args.no_videos,
     };
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async move {

@@ -322,7 +322,7 @@ impl Daemon {
         // disk, and a frame marked done must have its image; rendered again, it is replaced.
         let finished = self.state.finish_frame(&lease, &report, |j| {
             j.frames_done += 1;
-            if j.frames_done >= j.frames_total {
+            if j.frames_done >= j.frames_total && j.ends_with_last_frame() {
                 j.state = JobState::Succeeded;
             }
         });

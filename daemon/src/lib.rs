@@ -34,6 +34,8 @@ pub mod chains;
 pub mod dataset_files;
 pub mod datasets;
 pub mod describe;
+pub mod encode_record;
+pub mod encodes;
 pub mod error;
 pub mod export;
 pub mod farm_state;

@@ -4,6 +4,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
+use pointfarm_render::encode::video::VideoSettings;
 use pointfarm_render::request::RenderRequest;
 use serde::{Deserialize, Serialize};
 
@@ -154,6 +155,9 @@ pub struct JobSpec {
     /// Labels to find the job by, by key (`job_control::check_labels`).
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub labels: BTreeMap<String, String>,
+    /// A video of the frames, made by a worker once every frame is final (`encodes`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub video: Option<VideoSettings>,
 }
 
 impl JobSpec {
@@ -170,6 +174,7 @@ impl JobSpec {
             after: Vec::new(),
             name: String::new(),
             labels: BTreeMap::new(),
+            video: None,
         }
     }
 }
@@ -225,6 +230,9 @@ pub struct Job {
     /// `worker_failures_before_blocklist` of them.
     #[serde(default, skip_serializing_if = "BTreeSet::is_empty")]
     pub blocklist: BTreeSet<String>,
+    /// Of a job with a video: its encode lease, attempts and the stored video (`encodes`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub encode: Option<crate::encode_record::EncodeState>,
 }
 
 impl Job {

@@ -188,7 +188,8 @@ pub async fn serve(
             loop {
                 tick.tick().await;
                 let daemon = daemon.clone();
-                match tokio::task::spawn_blocking(move || daemon.expire_leases()).await {
+                let sweep = move || daemon.expire_leases().and_then(|_| daemon.expire_encodes());
+                match tokio::task::spawn_blocking(sweep).await {
                     Ok(Ok(_)) => {}
                     Ok(Err(e)) => tracing::error!(error = %e, "expiring leases"),
                     Err(e) => tracing::error!(error = %e, "the lease sweep panicked"),

@@ -168,6 +168,8 @@ async fn supervise(daemon: Arc<Daemon>, launch: Launch, mut stop: watch::Receive
 async fn count_lost_frames(daemon: &Arc<Daemon>, how: String) {
     let daemon = daemon.clone();
     let counted = tokio::task::spawn_blocking(move || {
+        // The video it was making is leased again, as its frames are.
+        daemon.embedded_encoder_exited(EMBEDDED_WORKER_NAME, &how)?;
         daemon.embedded_worker_exited(EMBEDDED_WORKER_NAME, &how)
     })
     .await

@@ -6,6 +6,7 @@
 //! frame's "encode" stage so that it still shows in the frame's timings.
 
 pub mod geotiff;
+pub mod video;
 
 use std::fs::File;
 use std::io::{BufWriter, Cursor, Seek, Write};

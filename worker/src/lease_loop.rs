@@ -77,6 +77,8 @@ pub struct RemoteWorkerConfig {
     /// What the worker says it can render, with every lease request: the daemon leases it
     /// only frames of jobs it meets the requirements of, no larger than it draws.
     pub capabilities: WorkerCapabilities,
+    /// Make jobs' videos too, when this machine's ffmpeg can (`encode`).
+    pub videos: bool,
 }
 
 /// How long a worker waits to lease again after handing back a frame whose store the daemon
@@ -174,6 +176,17 @@ pub async fn run(
         gpu,
         Some(Arc::new(cache)),
         Some(lod),
+    ));
+    let encoders = match config.videos {
+        true => tokio::task::spawn_blocking(crate::encode::probe_encoders).await?,
+        false => Vec::new(),
+    };
+    let videos = tokio::spawn(crate::encode::run(
+        client.clone(),
+        config.name.clone(),
+        encoders,
+        config.cache_dir.join("videos"),
+        stop.clone(),
     ));
     let capabilities = pb::WorkerCapabilities::from(&config.capabilities);
     let mut backoff = Backoff::new();
@@ -283,6 +296,8 @@ pub async fn run(
             }
         }
     }
+    // The video being made is handed in before the worker exits.
+    let _ = videos.await;
     tracing::info!("worker stopped");
     Ok(())
 }

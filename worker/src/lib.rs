@@ -12,6 +12,7 @@
 //! - `daemon_store`: the daemon's level-of-detail store, COPC hierarchy and preview sample as
 //!   the worker reads them over gRPC.
 //! - `url_dataset`: a dataset by URL, whose COPC object the worker reads itself by range.
+//! - `encode`: jobs' videos, made with ffmpeg under encode leases beside the frames.
 //! - `failure`: why a frame failed, and whether another attempt may succeed.
 //! - `memory_limit`: the worker process's limit on its own memory.
 //! - `supervised`: exiting when the supervising daemon is gone.
@@ -19,6 +20,7 @@
 
 mod client;
 pub mod daemon_store;
+pub mod encode;
 pub mod failure;
 pub mod lease_loop;
 pub mod memory_limit;

@@ -78,6 +78,15 @@ pub enum JobsCommand {
         /// The job's id.
         id: String,
     },
+    /// Download the video the server made of a job's frames (a job submitted with a video,
+    /// e.g. `render --server URL --video spin.mp4`), once it has succeeded.
+    Video {
+        /// The job's id.
+        id: String,
+        /// The file to write, ending as the job's container does (.mp4, .webm, ...).
+        #[arg(long, value_name = "FILE")]
+        out: std::path::PathBuf,
+    },
     /// Frames being rendered now: which worker holds each, and until when.
     Leases,
     /// Workers connected now: their adapters, the largest image side each draws, their tags.
@@ -315,6 +324,9 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                         }
                     );
                 }
+            }
+            JobsCommand::Video { id, out } => {
+                crate::jobs_video::run(&mut client, &id, &out).await?;
             }
             JobsCommand::Workers => {
                 let workers =

@@ -170,6 +170,8 @@ impl From<&Job> for pb::Job {
             after_job_ids: job.spec.after.clone(),
             name: job.spec.name.clone(),
             labels: job.spec.labels.clone().into_iter().collect(),
+            stage: job.stage().to_owned(),
+            video_size_bytes: job.video_size_bytes().unwrap_or(0),
         }
     }
 }

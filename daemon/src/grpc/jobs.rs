@@ -183,6 +183,15 @@ impl JobService for Api {
         Ok(Response::new(stream))
     }
 
+    type FetchVideoStream = ResponseStream<pb::VideoChunk>;
+
+    async fn fetch_video(
+        &self,
+        request: Request<pb::FetchVideoRequest>,
+    ) -> Result<Response<Self::FetchVideoStream>, Status> {
+        self.fetch_video_call(request).await
+    }
+
     type FetchFramesStream = ResponseStream<pb::FrameChunk>;
 
     async fn fetch_frames(

@@ -20,11 +20,13 @@ use crate::service::Daemon;
 
 mod conversions;
 mod datasets;
+mod encodes;
 mod jobs;
 mod lease_guard;
 mod request;
 mod status;
 pub mod streaming;
+mod video;
 mod workers;
 
 pub use conversions::{
@@ -33,6 +35,7 @@ pub use conversions::{
     point_attributes_message, preview_sample_bounds, stage_timings, timings_message,
 };
 pub use request::{camera_path_message, render_options_message, render_request};
+pub use video::{video_settings, video_spec_message};
 pub use workers::EmbeddedWorkerCall;
 
 /// The three services over one daemon.

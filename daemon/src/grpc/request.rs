@@ -468,6 +468,7 @@ impl From<&JobSpec> for pb::SubmitJobRequest {
             after_job_ids: spec.after.clone(),
             name: spec.name.clone(),
             labels: spec.labels.clone().into_iter().collect(),
+            video: spec.video.as_ref().map(super::video::video_spec_message),
         }
     }
 }

@@ -359,4 +359,47 @@ impl WorkerService for Api {
         let records = records.into_iter().map(|data| pb::NodeRecord { data });
         Ok(Response::new(stream_each(records.collect())))
     }
+
+    async fn lease_encode(
+        &self,
+        request: Request<pb::LeaseEncodeRequest>,
+    ) -> Result<Response<pb::LeaseEncodeResponse>, Status> {
+        let peer = request.remote_addr();
+        let (r, embedded) = self.heard(request);
+        self.lease_encode_call(r, embedded, peer).await
+    }
+
+    async fn renew_encode(
+        &self,
+        request: Request<pb::RenewEncodeRequest>,
+    ) -> Result<Response<pb::HeartbeatResponse>, Status> {
+        let (r, embedded) = self.heard(request);
+        self.renew_encode_call(r, embedded).await
+    }
+
+    type FetchEncodeFramesStream = ResponseStream<pb::FrameChunk>;
+
+    async fn fetch_encode_frames(
+        &self,
+        request: Request<pb::FetchEncodeFramesRequest>,
+    ) -> Result<Response<Self::FetchEncodeFramesStream>, Status> {
+        let (r, embedded) = self.heard(request);
+        self.fetch_encode_frames_call(r, embedded).await
+    }
+
+    async fn complete_encode(
+        &self,
+        request: Request<Streaming<pb::CompleteEncodeRequest>>,
+    ) -> Result<Response<pb::CompleteEncodeResponse>, Status> {
+        let (stream, embedded) = self.heard(request);
+        self.complete_encode_call(stream, embedded).await
+    }
+
+    async fn fail_encode(
+        &self,
+        request: Request<pb::FailEncodeRequest>,
+    ) -> Result<Response<pb::FailEncodeResponse>, Status> {
+        let (r, embedded) = self.heard(request);
+        self.fail_encode_call(r, embedded).await
+    }
 }

@@ -116,6 +116,7 @@ impl Records {
             spec,
             worker_failures: Default::default(),
             blocklist: Default::default(),
+            encode: None,
         };
         let pending = encode(&FrameState::Pending { attempts: 0 })?;
         let (mut frame_batch, mut pending_batch) = (sled::Batch::default(), sled::Batch::default());

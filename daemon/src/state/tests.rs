@@ -24,6 +24,7 @@ fn spec(request_id: &str, frames: u32, priority: i32) -> JobSpec {
         after: Vec::new(),
         name: String::new(),
         labels: Default::default(),
+        video: None,
     }
 }
 

@@ -29,6 +29,7 @@ fn job(state: JobState, error: Option<&str>) -> Job {
             after: Vec::new(),
             name: String::new(),
             labels: Default::default(),
+            video: None,
         },
         state,
         frames_total: 4,
@@ -38,6 +39,7 @@ fn job(state: JobState, error: Option<&str>) -> Job {
         updated_unix_ms: 1_764_950_042_000,
         worker_failures: Default::default(),
         blocklist: Default::default(),
+        encode: None,
     }
 }
 

@@ -38,6 +38,7 @@ impl TryFrom<&pb::SubmitJobRequest> for JobSpec {
             after: r.after_job_ids.clone(),
             name: r.name.clone(),
             labels,
+            video: super::super::video::video_settings(r.video.as_ref())?,
         })
     }
 }

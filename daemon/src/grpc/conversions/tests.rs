@@ -22,6 +22,7 @@ fn valid() -> pb::SubmitJobRequest {
         after_job_ids: Vec::new(),
         name: "turntable of the hall".into(),
         labels: [("shot".to_string(), "010".to_string())].into(),
+        video: None,
     }
 }
 

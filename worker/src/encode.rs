@@ -1,0 +1,356 @@
+//! A worker making jobs' videos, beside its frames: at start it looks for ffmpeg and the
+//! encoders it has (`ffmpeg -version`, `ffmpeg -encoders`), and while it has some it asks the
+//! daemon for encode leases (`LeaseEncode`, saying which encoders), a lease kind of its own
+//! that never holds a frame. For each it fetches the job's frames in order from the daemon,
+//! pipes them through ffmpeg into a file of its cache folder while renewals keep the lease,
+//! and hands the video in; a failed encode is reported with ffmpeg's own error line. A
+//! worker without ffmpeg asks for none. Stopping lets the current video finish first.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use pointfarm_daemon::encodes::EncodeTask;
+use pointfarm_proto::v1 as pb;
+use pointfarm_render::encode::video::{ffmpeg_encoders, VideoEncoder};
+use tokio::io::AsyncReadExt;
+use tokio::sync::{mpsc, watch};
+use tonic::Code;
+
+use crate::client::Client;
+
+/// How long one encode lease request waits for work on the daemon.
+const LEASE_WAIT_MS: u32 = 10_000;
+/// Wait after a failed call before asking again.
+const RETRY_WAIT: Duration = Duration::from_secs(2);
+/// Bytes per message of a handed-in video.
+const CHUNK_BYTES: usize = 1 << 20;
+
+/// The encoders of this machine's ffmpeg that the farm's videos use; none (said in the log)
+/// when ffmpeg is missing.
+pub fn probe_encoders() -> Vec<String> {
+    match ffmpeg_encoders() {
+        Ok(encoders) if encoders.is_empty() => {
+            tracing::info!("ffmpeg has none of the video encoders: this worker makes no videos");
+            encoders
+        }
+        Ok(encoders) => {
+            tracing::info!(encoders = %encoders.join(","), "ffmpeg found: this worker makes videos");
+            encoders
+        }
+        Err(reason) => {
+            tracing::info!(%reason, "this worker makes no videos");
+            Vec::new()
+        }
+    }
+}
+
+/// Leases and makes videos until `stop` turns true; returns at once when `encoders` is empty.
+pub async fn run(
+    client: Client,
+    name: String,
+    encoders: Vec<String>,
+    dir: PathBuf,
+    mut stop: watch::Receiver<bool>,
+) {
+    if encoders.is_empty() {
+        return;
+    }
+    if let Err(e) = std::fs::create_dir_all(&dir) {
+        tracing::error!(error = %e, dir = %dir.display(), "no folder for videos: this worker makes none");
+        return;
+    }
+    while !*stop.borrow() {
+        let request = pb::LeaseEncodeRequest {
+            worker_name: name.clone(),
+            wait_ms: LEASE_WAIT_MS,
+            encoders: encoders.clone(),
+        };
+        let mut lease_client = client.clone();
+        let leased = tokio::select! {
+            leased = lease_client.lease_encode(request) => leased,
+            _ = stop.changed() => break,
+        };
+        let message = match leased {
+            Ok(response) => match response.into_inner().task {
+                Some(task) => task,
+                None => continue,
+            },
+            Err(status) if status.code() == Code::Unimplemented => {
+                tracing::info!("the daemon makes no videos: this worker makes none");
+                return;
+            }
+            Err(status) => {
+                tracing::warn!(code = ?status.code(), message = status.message(), "leasing a video failed; retrying");
+                tokio::select! {
+                    _ = stop.changed() => break,
+                    _ = tokio::time::sleep(RETRY_WAIT) => continue,
+                }
+            }
+        };
+        let task = match EncodeTask::try_from(&message) {
+            Ok(task) => task,
+            Err(e) => {
+                let reason = format!("the encode task is invalid: {e}");
+                fail(&client, &message.lease_id, &reason).await;
+                continue;
+            }
+        };
+        let span = tracing::info_span!("video", job = %task.job_id, lease = %task.lease_id);
+        tracing::Instrument::instrument(make_video(&client, &task, &dir), span).await;
+    }
+}
+
+/// Makes one leased video and hands it in, or reports why it could not be made.
+async fn make_video(client: &Client, task: &EncodeTask, dir: &Path) {
+    tracing::info!(
+        frames = task.frames,
+        encoder = task.video.encoder(),
+        failed_attempts = task.failed_attempts,
+        "video leased"
+    );
+    let started = Instant::now();
+    let output = dir.join(format!(
+        "{}.{}",
+        task.job_id,
+        task.video.container.extension()
+    ));
+    let abandoned = Arc::new(AtomicBool::new(false));
+    let renewals = tokio::spawn(keep_lease(
+        client.clone(),
+        task.lease_id.clone(),
+        (task.lease_timeout / 3).clamp(Duration::from_millis(50), Duration::from_secs(5)),
+        abandoned.clone(),
+    ));
+    let made = encode(client, task, &output).await;
+    let handed = match made {
+        _ if abandoned.load(Ordering::SeqCst) => {
+            tracing::info!("video dropped on the daemon's word");
+            Ok(())
+        }
+        Ok(()) => hand_in(client, task, &output, started.elapsed()).await,
+        Err(reason) => {
+            tracing::warn!(%reason, "video failed");
+            fail(client, &task.lease_id, &reason).await;
+            Ok(())
+        }
+    };
+    renewals.abort();
+    if let Err(reason) = handed {
+        tracing::warn!(%reason, "the video could not be handed in");
+        fail(client, &task.lease_id, &reason).await;
+    }
+    let _ = tokio::fs::remove_file(&output).await;
+}
+
+/// Fetches the job's frames and pipes them, in order, through ffmpeg into `output`; the
+/// error is what stopped it, ffmpeg's last line when ffmpeg did.
+async fn encode(client: &Client, task: &EncodeTask, output: &Path) -> Result<(), String> {
+    let mut encoder = VideoEncoder::start(&task.video, "png", output)
+        .map_err(|e| format!("starting ffmpeg: {e}"))?;
+    // ffmpeg is fed from a thread of its own, so a slow encoder never blocks the runtime;
+    // a few frames wait in the channel while the next are fetched.
+    let (frames, mut incoming) = mpsc::channel::<Vec<u8>>(4);
+    let feeder = tokio::task::spawn_blocking(move || {
+        while let Some(frame) = incoming.blocking_recv() {
+            if !encoder.write_frame(&frame) {
+                break;
+            }
+        }
+        encoder.finish()
+    });
+    let fetched = fetch_frames(client.clone(), task, frames).await;
+    let finished = feeder
+        .await
+        .map_err(|e| format!("feeding ffmpeg panicked: {e}"))?;
+    // ffmpeg's words explain a fetch it cut short, so they come first.
+    finished.map_err(|said| last_line(&said))?;
+    fetched
+}
+
+/// Streams frames 0.. of the job into `frames`, whole and in order.
+async fn fetch_frames(
+    mut client: Client,
+    task: &EncodeTask,
+    frames: mpsc::Sender<Vec<u8>>,
+) -> Result<(), String> {
+    let request = pb::FetchEncodeFramesRequest {
+        lease_id: task.lease_id.clone(),
+        from_index: 0,
+    };
+    let mut stream = client
+        .fetch_encode_frames(request)
+        .await
+        .map_err(|s| format!("fetching the frames: {}", s.message()))?
+        .into_inner();
+    let (mut next, mut frame) = (0u32, Vec::new());
+    while let Some(chunk) = stream
+        .message()
+        .await
+        .map_err(|s| format!("fetching frame {next}: {}", s.message()))?
+    {
+        if chunk.index != next {
+            return Err(format!(
+                "the daemon sent frame {} where frame {next} was due",
+                chunk.index
+            ));
+        }
+        frame.extend_from_slice(&chunk.png);
+        if chunk.last {
+            if frames.send(std::mem::take(&mut frame)).await.is_err() {
+                // ffmpeg stopped reading; its error says why.
+                return Ok(());
+            }
+            next += 1;
+        }
+    }
+    if next != task.frames {
+        return Err(format!(
+            "the daemon sent {next} of the job's {} frames",
+            task.frames
+        ));
+    }
+    Ok(())
+}
+
+/// Hands the video in: its size first, then its bytes.
+async fn hand_in(
+    client: &Client,
+    task: &EncodeTask,
+    output: &Path,
+    took: Duration,
+) -> Result<(), String> {
+    let mut file = tokio::fs::File::open(output)
+        .await
+        .map_err(|e| format!("opening the video: {e}"))?;
+    let size = file
+        .metadata()
+        .await
+        .map_err(|e| format!("reading the video's size: {e}"))?
+        .len();
+    if size > task.max_video_bytes {
+        return Err(format!(
+            "the video has {size} bytes; the daemon takes at most {}",
+            task.max_video_bytes
+        ));
+    }
+    let header = pb::CompleteEncodeRequest {
+        part: Some(pb::complete_encode_request::Part::Result(
+            pb::EncodeResult {
+                lease_id: task.lease_id.clone(),
+                size_bytes: size,
+                encode_ms: took.as_secs_f64() * 1e3,
+            },
+        )),
+    };
+    // Read as it is sent, so a large video is never held in memory whole.
+    let (sender, receiver) = mpsc::channel(4);
+    let reader = tokio::spawn(async move {
+        if sender.send(header).await.is_err() {
+            return Ok(());
+        }
+        loop {
+            let mut data = vec![0u8; CHUNK_BYTES];
+            let n = file.read(&mut data).await?;
+            if n == 0 {
+                return Ok(());
+            }
+            data.truncate(n);
+            let part = pb::complete_encode_request::Part::Data(data);
+            let message = pb::CompleteEncodeRequest { part: Some(part) };
+            if sender.send(message).await.is_err() {
+                return Ok(());
+            }
+        }
+    });
+    let mut client = client.clone();
+    let sent = client
+        .complete_encode(tokio_stream::wrappers::ReceiverStream::new(receiver))
+        .await;
+    let read: std::io::Result<()> = reader
+        .await
+        .unwrap_or_else(|e| Err(std::io::Error::other(e.to_string())));
+    read.map_err(|e| format!("reading the video: {e}"))?;
+    match sent {
+        Ok(_) => {
+            tracing::info!(
+                bytes = size,
+                ms = took.as_millis() as u64,
+                "video handed in"
+            );
+            Ok(())
+        }
+        Err(status) if status.code() == Code::FailedPrecondition => {
+            tracing::info!(
+                reason = status.message(),
+                "the daemon no longer wants the video"
+            );
+            Ok(())
+        }
+        Err(status) => Err(format!("handing the video in: {}", status.message())),
+    }
+}
+
+/// Reports a failed encode; a daemon that no longer holds the lease has nothing to count.
+async fn fail(client: &Client, lease_id: &str, reason: &str) {
+    let request = pb::FailEncodeRequest {
+        lease_id: lease_id.to_owned(),
+        reason: reason.to_owned(),
+    };
+    if let Err(status) = client.clone().fail_encode(request).await {
+        tracing::warn!(code = ?status.code(), message = status.message(), "reporting the failed video");
+    }
+}
+
+/// Renews the encode lease until aborted; sets `abandoned` when the daemon says stop.
+async fn keep_lease(
+    mut client: Client,
+    lease_id: String,
+    interval: Duration,
+    abandoned: Arc<AtomicBool>,
+) {
+    loop {
+        tokio::time::sleep(interval).await;
+        let request = pb::RenewEncodeRequest {
+            lease_id: lease_id.clone(),
+        };
+        match client.renew_encode(request).await {
+            Ok(response) => {
+                let answer = response.into_inner();
+                if answer.action == pb::LeaseAction::Stop as i32 {
+                    tracing::info!(reason = %answer.reason, "the daemon says to drop the video");
+                    abandoned.store(true, Ordering::SeqCst);
+                    return;
+                }
+            }
+            Err(status) => tracing::warn!(
+                code = ?status.code(),
+                message = status.message(),
+                "renewing the encode lease failed; it runs out unless the next renewal succeeds"
+            ),
+        }
+    }
+}
+
+/// The last line ffmpeg wrote: the one that says why it stopped.
+fn last_line(said: &str) -> String {
+    said.lines()
+        .rev()
+        .map(str::trim)
+        .find(|line| !line.is_empty())
+        .unwrap_or("ffmpeg failed")
+        .to_owned()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_error_reported_is_ffmpegs_last_line() {
+        let said = "[libx264 @ 0x1] width not divisible by 2\nError initializing output stream\n\n";
+        assert_eq!(last_line(said), "Error initializing output stream");
+        assert_eq!(last_line("  \n"), "ffmpeg failed");
+    }
+}
