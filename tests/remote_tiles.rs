@@ -34,9 +34,14 @@ fn arg(path: &Path) -> &str {
 }
 
 /// lone-star.laz cut along x into [`TILES`] tiles of equal points: LAZ in chunks of
-/// [`CHUNK_POINTS`] points (the `las` writer's are 50,000), tile 5 uncompressed and tile 19 named in capitals, as campaigns
-/// come. None, having said so, without the scan.
+/// [`CHUNK_POINTS`] points (the `las` writer's are 50,000), tile 5 uncompressed and tile 19
+/// named in capitals, as campaigns come. None, having said so, without the scan.
 fn lone_star_tiles() -> Option<Vec<(String, Vec<u8>)>> {
+    lone_star_cut(Some(5))
+}
+
+/// lone-star.laz cut into [`TILES`] tiles, each LAZ but the one at `las_tile`.
+fn lone_star_cut(las_tile: Option<usize>) -> Option<Vec<(String, Vec<u8>)>> {
     let scan = shared_data("lone-star.laz")?;
     let mut reader = las::Reader::from_path(&scan).expect("las reader");
     let header = reader.header().clone();
@@ -52,7 +57,7 @@ fn lone_star_tiles() -> Option<Vec<(String, Vec<u8>)>> {
         .map(|(index, tile)| {
             let las = las_bytes(&header, tile);
             match index {
-                5 => (format!("tile-{index:02}.las"), las),
+                _ if Some(index) == las_tile => (format!("tile-{index:02}.las"), las),
                 19 => (
                     format!("tile-{index:02}.LAZ"),
                     laz_of_las(&las, LazChunks::Fixed(CHUNK_POINTS)),
@@ -326,4 +331,39 @@ fn faults_by_url_are_one_line_errors_and_a_tile_fails_its_checks_as_a_file() {
     let stopped = pointfarm_s3_with(environment, &preview_args);
     eprintln!("a stopped server failed in {:.1?}", started.elapsed());
     assert_one_line_error(&stopped, &tile, &tile);
+}
+
+/// The figures of docs/perf/remote-tile-previews.md: `render --preview` of 20 LAZ tiles under an
+/// `s3://` prefix, the whole command timed three times, and the chunk starts of the same
+/// files read here. Run with `--ignored --nocapture`.
+#[test]
+#[ignore = "a measurement, not a check"]
+fn first_preview_frame_of_twenty_laz_tiles_in_s3() {
+    let Some(tiles) = lone_star_cut(None) else {
+        return;
+    };
+    let root = tempfile::tempdir().expect("root");
+    let paths = write_tiles(&root.path().join(BUCKET).join("lone-star"), &tiles);
+    let Some(server) = S3sServer::start_or_skip(root.path()) else {
+        return;
+    };
+    let prefix = format!("s3://{BUCKET}/lone-star/");
+    let total: u64 = tiles.iter().map(|(_, bytes)| bytes.len() as u64).sum();
+    let out = root.path().join("preview.png");
+    for run in 1..=3 {
+        let started = Instant::now();
+        let render = ["render", &prefix, "--preview", "--json", "--size=1280x720"];
+        let output = pointfarm_s3(&server, &[&render[..], &["--out", arg(&out)]].concat());
+        let took = started.elapsed();
+        assert!(output.status.success(), "{}", output_text(&output));
+        let frame = json_lines(&output).remove(0);
+        eprintln!(
+            "run {run}: render --preview {took:.2?} (process start to PNG); {} points; fetched {} of \
+             {total} bytes in {} requests",
+            frame["pointsRendered"], frame["fetched"]["bytes"], frame["fetched"]["requests"]
+        );
+    }
+    let started = Instant::now();
+    ChunkStarts::read(&paths).expect("chunk starts here");
+    eprintln!("chunk starts of the files here: {:.1?}", started.elapsed());
 }
