@@ -6,9 +6,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use super::*;
-use crate::capabilities::WorkerCapabilities;
-use crate::lease::{FailureKind, FrameOutcome, FrameTask};
-use crate::test_daemon::{self, png};
+use crate::lease::FailureKind;
+use crate::test_daemon::{self, lease, render};
 
 fn open(dir: &Path) -> Arc<Daemon> {
     test_daemon::open(dir, Duration::from_secs(60))
@@ -28,24 +27,6 @@ fn one_after_another(daemon: &Daemon) -> (Job, Job) {
     (first, second)
 }
 
-fn next_lease(daemon: &Daemon) -> Option<FrameTask> {
-    daemon
-        .lease_frame("w", false, &WorkerCapabilities::default())
-        .expect("lease")
-}
-
-fn render(daemon: &Daemon, task: &FrameTask) -> Job {
-    let outcome = FrameOutcome {
-        timings: Vec::new(),
-        dataset_cache_hit: None,
-        cut: None,
-        preview: None,
-    };
-    daemon
-        .complete_frame(&task.lease.id, &png(8, 6), outcome)
-        .expect("complete")
-}
-
 fn stored(daemon: &Daemon, job: &Job) -> Job {
     daemon.job(&job.id).expect("job")
 }
@@ -57,10 +38,10 @@ fn a_job_after_another_gets_no_frame_leased_until_it_has_succeeded() {
     let (first, second) = one_after_another(&daemon);
     assert_eq!(second.spec.after, vec![first.id.clone()]);
 
-    let task = next_lease(&daemon).expect("the first job's frame");
+    let task = lease(&daemon).expect("the first job's frame");
     assert_eq!(task.lease.job_id, first.id);
     assert!(
-        next_lease(&daemon).is_none(),
+        lease(&daemon).is_none(),
         "the second job waits while the first renders"
     );
     assert_eq!(
@@ -69,7 +50,7 @@ fn a_job_after_another_gets_no_frame_leased_until_it_has_succeeded() {
     );
 
     assert_eq!(render(&daemon, &task).state, JobState::Succeeded);
-    let task = next_lease(&daemon).expect("the second job's frame, now");
+    let task = lease(&daemon).expect("the second job's frame, now");
     assert_eq!(task.lease.job_id, second.id);
     assert_eq!(render(&daemon, &task).state, JobState::Succeeded);
 }
@@ -99,7 +80,7 @@ fn a_failure_or_a_cancel_fails_every_job_along_the_chain() {
         "the failure goes on along the chain"
     );
 
-    let task = next_lease(&daemon).expect("the failing job's frame");
+    let task = lease(&daemon).expect("the failing job's frame");
     assert_eq!(task.lease.job_id, failing.id);
     daemon
         .fail_frame(&task.lease.id, "not a LAS file", FailureKind::Permanent)
@@ -109,7 +90,7 @@ fn a_failure_or_a_cancel_fails_every_job_along_the_chain() {
         (failed.state, failed.error),
         (JobState::Failed, Some(format!("job {} failed", failing.id)))
     );
-    assert!(next_lease(&daemon).is_none(), "nothing is left to render");
+    assert!(lease(&daemon).is_none(), "nothing is left to render");
 
     let late = submit_after(&daemon, 1, &[&failing]);
     assert_eq!(
@@ -166,12 +147,12 @@ fn a_restart_keeps_the_chain_and_fails_one_left_broken() {
             Some(format!("job {} failed", broken_first.id))
         )
     );
-    let task = next_lease(&daemon).expect("the first job's frame");
+    let task = lease(&daemon).expect("the first job's frame");
     assert_eq!(task.lease.job_id, first.id);
-    assert!(next_lease(&daemon).is_none(), "the chain still holds");
+    assert!(lease(&daemon).is_none(), "the chain still holds");
     render(&daemon, &task);
     assert_eq!(
-        next_lease(&daemon)
+        lease(&daemon)
             .expect("the waiting job's frame")
             .lease
             .job_id,
