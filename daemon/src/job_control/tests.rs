@@ -314,3 +314,81 @@ fn names_labels_and_priorities_are_checked() {
     assert!(check_priority("priority", -100).is_ok());
     assert!(check_priority("priority", -101).is_err());
 }
+
+/// An HTTP endpoint on loopback that answers every POST with 200 and keeps the `event` of
+/// each body, in the order they came.
+fn webhook_receiver() -> (String, Arc<std::sync::Mutex<Vec<String>>>) {
+    use std::io::{BufRead, BufReader, Read, Write};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+    let url = format!("http://{}/hook", listener.local_addr().expect("address"));
+    let events = Arc::new(std::sync::Mutex::new(Vec::new()));
+    let received = Arc::clone(&events);
+    std::thread::spawn(move || {
+        for stream in listener.incoming().flatten() {
+            let mut reader = BufReader::new(stream);
+            let mut length = 0;
+            loop {
+                let mut line = String::new();
+                if reader.read_line(&mut line).unwrap_or(0) == 0 || line == "\r\n" {
+                    break;
+                }
+                if let Some((name, value)) = line.split_once(':') {
+                    if name.eq_ignore_ascii_case("content-length") {
+                        length = value.trim().parse().unwrap_or(0);
+                    }
+                }
+            }
+            let mut body = vec![0; length];
+            if reader.read_exact(&mut body).is_err() {
+                continue;
+            }
+            let body: serde_json::Value = serde_json::from_slice(&body).unwrap_or_default();
+            let event = body["event"].as_str().unwrap_or_default().to_owned();
+            received.lock().expect("events").push(event);
+            let _ = reader
+                .get_mut()
+                .write_all(b"HTTP/1.1 200 OK\r\ncontent-length: 0\r\nconnection: close\r\n\r\n");
+        }
+    });
+    (url, events)
+}
+
+#[test]
+fn only_ends_reach_the_webhooks_and_a_forced_delete_is_a_cancellation() {
+    use crate::webhooks::{SecretSource, WebhookEndpoint, WebhookSpec};
+    let (url, events) = webhook_receiver();
+    let spec = WebhookSpec::new(&url, Some(SecretSource::Env("HOOK_SECRET".into())));
+    let endpoint =
+        WebhookEndpoint::load_with_env(&spec, |_| Some("s3cret".into())).expect("endpoint");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let daemon = test_daemon::open_with(dir.path(), |config| config.webhooks = vec![endpoint]);
+
+    let retried = test_daemon::submit(&daemon, 1, |_| {});
+    daemon.pause_job(&retried.id).expect("pause");
+    daemon.resume_job(&retried.id).expect("resume");
+    daemon.set_job_priority(&retried.id, 9).expect("priority");
+    let task = next_lease(&daemon).expect("frame");
+    daemon
+        .fail_frame(&task.lease.id, "unreadable", FailureKind::Permanent)
+        .expect("fail");
+    daemon.retry_job(&retried.id).expect("retry");
+    let task = next_lease(&daemon).expect("frame again");
+    render(&daemon, &task);
+    let deleted = test_daemon::submit(&daemon, 1, |_| {});
+    daemon.pause_job(&deleted.id).expect("pause");
+    daemon.delete_job(&deleted.id, true).expect("delete");
+    daemon
+        .delete_job(&retried.id, false)
+        .expect("delete an ended job");
+
+    let expected = ["job.failed", "job.succeeded", "job.cancelled"];
+    let waited = std::time::Instant::now();
+    while events.lock().expect("events").len() < expected.len()
+        && waited.elapsed() < Duration::from_secs(20)
+    {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    // Anything spurious would have come by now, after the ends it followed.
+    std::thread::sleep(Duration::from_millis(300));
+    assert_eq!(*events.lock().expect("events"), expected);
+}
