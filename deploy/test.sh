@@ -29,6 +29,9 @@ install_for_tests gdal-bin /usr/bin/gdalinfo "the GeoTIFF tests" "the GeoTIFF te
 # nginx, the real HTTP server (ranges, ETags, If-Match) the remote-storage tests read from, on
 # a port and in a folder of each test's own.
 install_for_tests nginx-light /usr/sbin/nginx "the remote-storage tests" "the remote-storage tests will skip"
+# Chromium and its WebDriver (chromium-driver brings chromium), the real headless browser the
+# dashboard tests log in with, watch thumbnails appear in and click through.
+install_for_tests chromium-driver /usr/bin/chromedriver "the dashboard's browser tests" "the dashboard's browser tests will skip"
 
 # A virtualenv with the Python client example's packages, for tests/python_client.rs, and
 # laspy with lazrs, the independent COPC reader of tests/export.rs (both skip, saying so,

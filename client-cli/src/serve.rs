@@ -10,6 +10,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::capabilities::checked_tags;
+use pointfarm_daemon::dashboard::{self, DashboardOptions};
 use pointfarm_daemon::metrics;
 use pointfarm_daemon::open_files;
 use pointfarm_daemon::remote_datasets::url_prefixes;
@@ -160,6 +161,11 @@ pub struct ServeArgs {
     /// only, but listen where only the scrapers reach.
     #[arg(long, value_name = "ADDR", env = "POINTFARM_METRICS_LISTEN")]
     metrics_listen: Option<String>,
+    /// Serve the dashboard (jobs, frames, workers and datasets in a browser, with a JSON API
+    /// and live events) at ADDR (e.g. 127.0.0.1:8080): it asks for the client token
+    /// (--token) and serves HTTPS with the API's certificate when --tls-cert is given.
+    #[arg(long, value_name = "ADDR", env = "POINTFARM_DASHBOARD_LISTEN")]
+    dashboard_listen: Option<String>,
     /// POST a signed JSON event to this http(s) URL whenever a job succeeds, fails or is
     /// cancelled (repeatable). In the configuration file, a `[[serve.webhook]]` table gives one
     /// with its own `url`, `secret_file` or `secret_env`, and `events`.
@@ -301,6 +307,17 @@ pub fn run(args: ServeArgs) -> Result<()> {
             )
             .await?;
             outln!("metrics on http://{bound}/metrics");
+        }
+        if let Some(address) = &args.dashboard_listen {
+            let dashboard_options = DashboardOptions {
+                access: options.access.clone(),
+                tls: options.tls.clone(),
+                insecure: options.insecure,
+                connection_limits: options.connection_limits,
+            };
+            let (bound, scheme) =
+                dashboard::listen(address, daemon.clone(), dashboard_options).await?;
+            outln!("dashboard on {scheme}://{bound}/");
         }
         match &embedded_worker {
             Some(command) => outln!("embedded worker: {}", command.program.display()),

@@ -21,7 +21,9 @@
 //! frame-task conversions are public for the worker's side of the wire), `supervisor` (runs the
 //! embedded worker as a child process, a `pointfarm worker` whose code is the `pointfarm-worker`
 //! crate's, never linked here), `access` (the client and worker roles and their tokens),
-//! `server` (sockets, TLS, health, reflection, the lease sweep, shutdown), `metrics` (Prometheus
+//! `server` (sockets, TLS, health, reflection, the lease sweep, shutdown), `dashboard` (the
+//! farm in a browser: pages, a JSON API and live events over the same `Daemon` methods),
+//! `metrics` (Prometheus
 //! metrics of the daemon and the worker, and their HTTP endpoint), `webhooks` (job ends posted,
 //! signed, to the operator's endpoints); `testing` (a small real disk to fill, for tests).
 //! Only `grpc` and `server` (which mounts the services) know protobuf here; the worker crate's
@@ -31,6 +33,7 @@ pub mod access;
 pub mod availability;
 pub mod capabilities;
 pub mod chains;
+pub mod dashboard;
 pub mod dataset_files;
 pub mod datasets;
 pub mod describe;

@@ -1,0 +1,266 @@
+//! The JSON API beside the pages, for scripts (`curl -H "Authorization: Bearer T"`): each
+//! body is the proto3 JSON mapping of the gRPC API's message for the same question
+//! (lowerCamelCase names, 64-bit integers as strings, enums by name), so that one client
+//! model reads both.
+//!
+//! - `GET /api/jobs?state=running&pageSize=50&pageToken=...`: `ListJobsResponse`
+//! - `GET /api/jobs/{id}`: `Job` with its finished frames, as `GetJob` answers
+//! - `POST /api/jobs/{id}/cancel`: the cancelled `Job`
+//! - `GET /api/workers`: `ListWorkersResponse`
+//! - `GET /api/datasets?pageSize=...&pageToken=...`: `ListDatasetsResponse`
+
+use std::sync::Arc;
+
+use axum::extract::{Path, RawQuery, State};
+use axum::http::{header, StatusCode};
+use axum::response::{IntoResponse, Response};
+use pointfarm_proto::v1 as pb;
+use serde::Serialize;
+use tonic::{Code, Status};
+
+use super::auth::field;
+use super::Dashboard;
+use crate::error::DaemonError;
+use crate::grpc::{blocking_within, BLOCKING_CALL_BOUND};
+use crate::model::{FrameReport, Job, JobState};
+use crate::service::Daemon;
+
+/// An error of the dashboard: the gRPC status the API would answer, as HTTP.
+pub struct Failure(pub Status);
+
+impl From<Status> for Failure {
+    fn from(status: Status) -> Self {
+        Self(status)
+    }
+}
+
+impl From<DaemonError> for Failure {
+    fn from(error: DaemonError) -> Self {
+        Self(Status::from(error))
+    }
+}
+
+impl Failure {
+    pub fn http_status(&self) -> StatusCode {
+        match self.0.code() {
+            Code::InvalidArgument | Code::OutOfRange => StatusCode::BAD_REQUEST,
+            Code::NotFound => StatusCode::NOT_FOUND,
+            Code::FailedPrecondition | Code::AlreadyExists | Code::Aborted => StatusCode::CONFLICT,
+            Code::PermissionDenied => StatusCode::FORBIDDEN,
+            Code::Unauthenticated => StatusCode::UNAUTHORIZED,
+            Code::ResourceExhausted => StatusCode::INSUFFICIENT_STORAGE,
+            Code::Unavailable => StatusCode::SERVICE_UNAVAILABLE,
+            Code::DeadlineExceeded => StatusCode::GATEWAY_TIMEOUT,
+            _ => StatusCode::INTERNAL_SERVER_ERROR,
+        }
+    }
+
+    pub fn message(&self) -> &str {
+        self.0.message()
+    }
+}
+
+/// The API's errors: `{"code": "NOT_FOUND", "message": "..."}`, as gRPC's JSON transcoding
+/// writes a status.
+impl IntoResponse for Failure {
+    fn into_response(self) -> Response {
+        let body = serde_json::json!({
+            "code": code_name(self.0.code()),
+            "message": self.0.message(),
+        });
+        (
+            self.http_status(),
+            [(header::CONTENT_TYPE, "application/json")],
+            body.to_string(),
+        )
+            .into_response()
+    }
+}
+
+/// A status code as the `google.rpc.Code` enum names it: `NOT_FOUND`.
+fn code_name(code: Code) -> String {
+    let mut name = String::new();
+    for (i, c) in format!("{code:?}").chars().enumerate() {
+        if c.is_ascii_uppercase() && i > 0 {
+            name.push('_');
+        }
+        name.push(c.to_ascii_uppercase());
+    }
+    name
+}
+
+/// A message as its proto3 JSON.
+pub fn json(message: &impl Serialize) -> Response {
+    match serde_json::to_string(message) {
+        Ok(body) => ([(header::CONTENT_TYPE, "application/json")], body).into_response(),
+        Err(e) => Failure(Status::internal(e.to_string())).into_response(),
+    }
+}
+
+/// Runs `work` on the daemon off the async threads (the state database blocks), within the
+/// bound the gRPC handlers use; errors without the server's folders in their messages.
+pub async fn run<T: Send + 'static>(
+    daemon: &Arc<Daemon>,
+    work: impl FnOnce(&Daemon) -> Result<T, DaemonError> + Send + 'static,
+) -> Result<T, Failure> {
+    let daemon = daemon.clone();
+    let done = blocking_within(BLOCKING_CALL_BOUND, {
+        let daemon = daemon.clone();
+        move || work(&daemon)
+    })
+    .await?;
+    done.map_err(|error| {
+        let status = Status::from(error);
+        let message = daemon.without_server_folders(status.message());
+        Failure(Status::new(status.code(), message))
+    })
+}
+
+/// A job state by its name in either spelling: `running` or `JOB_STATE_RUNNING`.
+pub fn parse_state(name: &str) -> Result<Option<JobState>, Failure> {
+    let lower = name.trim().to_ascii_lowercase();
+    let short = lower.strip_prefix("job_state_").unwrap_or(&lower);
+    Ok(Some(match short {
+        "" | "all" | "unspecified" => return Ok(None),
+        "queued" => JobState::Queued,
+        "running" => JobState::Running,
+        "succeeded" => JobState::Succeeded,
+        "failed" => JobState::Failed,
+        "cancelled" => JobState::Cancelled,
+        "paused" => JobState::Paused,
+        _ => {
+            return Err(Failure(Status::invalid_argument(format!(
+                "state: '{name}' is none of queued, running, paused, succeeded, failed, \
+                 cancelled"
+            ))))
+        }
+    }))
+}
+
+/// `pageSize` of a query: absent is the API's default (0).
+fn page_size(query: &[u8]) -> Result<u32, Failure> {
+    match field(query, "pageSize") {
+        None => Ok(0),
+        Some(size) => size.parse().map_err(|_| {
+            Failure(Status::invalid_argument(format!(
+                "pageSize: '{size}' is not a count"
+            )))
+        }),
+    }
+}
+
+pub async fn jobs(
+    State(dashboard): State<Dashboard>,
+    RawQuery(query): RawQuery,
+) -> Result<Response, Failure> {
+    let query = query.unwrap_or_default().into_bytes();
+    let state = parse_state(&field(&query, "state").unwrap_or_default())?;
+    let size = page_size(&query)?;
+    let token = field(&query, "pageToken").unwrap_or_default();
+    let page = run(&dashboard.daemon, move |daemon| {
+        daemon.list_jobs(state, size, &token)
+    })
+    .await?;
+    Ok(json(&pb::ListJobsResponse {
+        jobs: page.items.iter().map(pb::Job::from).collect(),
+        next_page_token: page.next_token,
+    }))
+}
+
+/// Job `id` with its finished frames and why it waits, as `GetJob` answers.
+pub async fn job_message(
+    daemon: &Arc<Daemon>,
+    id: String,
+) -> Result<(pb::Job, Job, Vec<FrameReport>), Failure> {
+    let (job, frames) = run(daemon, move |daemon| daemon.job_with_frames(&id)).await?;
+    let availability = daemon.job_availability(&job);
+    let mut message = pb::Job::from(&job);
+    message.frames = frames.iter().map(pb::FrameFinished::from).collect();
+    message.waiting_reason = availability.waiting.unwrap_or_default();
+    message.refusals = availability
+        .refusals
+        .into_iter()
+        .map(|(worker_name, reason)| pb::WorkerRefusal {
+            worker_name,
+            reason,
+        })
+        .collect();
+    Ok((message, job, frames))
+}
+
+pub async fn job(
+    State(dashboard): State<Dashboard>,
+    Path(id): Path<String>,
+) -> Result<Response, Failure> {
+    let (message, _, _) = job_message(&dashboard.daemon, id).await?;
+    Ok(json(&message))
+}
+
+pub async fn cancel(
+    State(dashboard): State<Dashboard>,
+    Path(id): Path<String>,
+) -> Result<Response, Failure> {
+    let job = run(&dashboard.daemon, move |daemon| daemon.cancel_job(&id)).await?;
+    Ok(json(&pb::Job::from(&job)))
+}
+
+/// The workers heard from within the lease timeout, as `ListWorkers` answers.
+pub fn workers_message(daemon: &Daemon) -> pb::ListWorkersResponse {
+    let connected = daemon.workers.connected(daemon.config.lease_timeout);
+    pb::ListWorkersResponse {
+        workers: connected
+            .iter()
+            .map(|worker| pb::ConnectedWorker {
+                worker_name: worker.name.clone(),
+                embedded: worker.embedded,
+                capabilities: Some(pb::WorkerCapabilities::from(&worker.capabilities)),
+            })
+            .collect(),
+    }
+}
+
+pub async fn workers(State(dashboard): State<Dashboard>) -> Response {
+    json(&workers_message(&dashboard.daemon))
+}
+
+pub async fn datasets(
+    State(dashboard): State<Dashboard>,
+    RawQuery(query): RawQuery,
+) -> Result<Response, Failure> {
+    let query = query.unwrap_or_default().into_bytes();
+    let size = page_size(&query)?;
+    let token = field(&query, "pageToken").unwrap_or_default();
+    let page = run(&dashboard.daemon, move |daemon| {
+        daemon.list_datasets(size, &token)
+    })
+    .await?;
+    Ok(json(&pb::ListDatasetsResponse {
+        datasets: page.items.iter().map(pb::Dataset::from).collect(),
+        next_page_token: page.next_token,
+    }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn states_are_read_in_either_spelling() {
+        assert_eq!(parse_state("running").ok(), Some(Some(JobState::Running)));
+        assert_eq!(
+            parse_state("JOB_STATE_CANCELLED").ok(),
+            Some(Some(JobState::Cancelled))
+        );
+        assert_eq!(parse_state("").ok(), Some(None));
+        assert_eq!(parse_state("paused").ok(), Some(Some(JobState::Paused)));
+        let refused = parse_state("stalled").expect_err("refused");
+        assert_eq!(refused.http_status(), StatusCode::BAD_REQUEST);
+        assert!(
+            refused.message().contains("'stalled'"),
+            "{}",
+            refused.message()
+        );
+        assert_eq!(code_name(Code::FailedPrecondition), "FAILED_PRECONDITION");
+        assert_eq!(code_name(Code::Ok), "OK");
+    }
+}

@@ -1,0 +1,166 @@
+// The dashboard's pages kept current from the daemon's job events (server-sent events of
+// proto3 JSON `JobEvent`s, whose fields at their default values are left out).
+"use strict";
+
+(function () {
+  const body = document.body;
+
+  function stateName(state) {
+    return String(state || "").replace(/^JOB_STATE_/, "").toLowerCase();
+  }
+
+  function isTerminal(state) {
+    return state === "succeeded" || state === "failed" || state === "cancelled";
+  }
+
+  function duration(seconds) {
+    const s = Math.max(0, Math.round(seconds));
+    if (s < 60) return s + " s";
+    if (s < 3600) return Math.floor(s / 60) + " min " + (s % 60) + " s";
+    return Math.floor(s / 3600) + " h " + Math.floor((s % 3600) / 60) + " min";
+  }
+
+  // The time a running job has left at the pace of its frames so far, as the server
+  // computes it.
+  function eta(job, state) {
+    const done = job.framesDone || 0;
+    if (state !== "running" || done === 0) return "";
+    const elapsed = (Date.now() - Number(job.createdUnixMs || 0)) / 1000;
+    return duration((elapsed / done) * ((job.framesTotal || 0) - done));
+  }
+
+  // Updates what `root` (a row, or the job page) shows of `job`.
+  function showJob(root, job) {
+    const state = stateName(job.state);
+    const cell = root.querySelector(".job-state");
+    if (cell) {
+      const badge = document.createElement("span");
+      badge.className = "state state-" + state;
+      badge.textContent = state;
+      cell.replaceChildren(badge);
+    }
+    const progress = root.querySelector("progress");
+    if (progress) {
+      progress.max = job.framesTotal || 0;
+      progress.value = job.framesDone || 0;
+    }
+    const frames = root.querySelector(".frames");
+    if (frames) frames.textContent = (job.framesDone || 0) + "/" + (job.framesTotal || 0);
+    const left = root.querySelector(".eta");
+    if (left) left.textContent = eta(job, state);
+  }
+
+  // Says in the header whether the page is following the farm; `data-live` is `open` once
+  // the stream is.
+  function showLive(state, text) {
+    body.dataset.live = state;
+    const live = document.querySelector(".live");
+    if (live) live.textContent = text;
+  }
+
+  function listen(url, onEvent) {
+    const source = new EventSource(url);
+    source.addEventListener("open", () => showLive("open", "● live"));
+    // EventSource reconnects by itself.
+    source.addEventListener("error", () => showLive("reconnecting", "reconnecting…"));
+    source.addEventListener("job", (message) => onEvent(JSON.parse(message.data)));
+    // Events were missed: read everything again.
+    source.addEventListener("resync", () => location.reload());
+    return source;
+  }
+
+  function cell(row, content) {
+    const td = document.createElement("td");
+    if (content instanceof Node) td.appendChild(content);
+    else td.textContent = content;
+    row.appendChild(td);
+    return td;
+  }
+
+  function jobRow(job) {
+    const row = document.createElement("tr");
+    row.dataset.job = job.id;
+    const link = document.createElement("a");
+    link.href = "/jobs/" + encodeURIComponent(job.id);
+    link.textContent = job.id;
+    cell(row, link);
+    cell(row, job.name || job.requestId || "");
+    cell(row, job.datasetId || "");
+    cell(row, "").className = "job-state";
+    cell(row, document.createElement("progress"));
+    cell(row, "").className = "frames";
+    cell(row, "").className = "eta";
+    return row;
+  }
+
+  function jobsPage() {
+    const rows = document.querySelector("#jobs tbody");
+    const filter = body.dataset.filter;
+    listen("/api/events", (event) => {
+      const job = event.job;
+      if (!job) return;
+      let row = rows.querySelector('tr[data-job="' + CSS.escape(job.id) + '"]');
+      if (!row) {
+        if (filter && stateName(job.state) !== filter) return;
+        row = jobRow(job);
+        rows.prepend(row);
+      }
+      showJob(row, job);
+    });
+  }
+
+  function jobPage() {
+    const id = body.dataset.job;
+    const grid = document.getElementById("frames");
+    const showFrame = (frame) => {
+      const index = frame.index || 0;
+      const link = grid.querySelector('a[data-index="' + index + '"]');
+      if (!link) return;
+      const preview = Boolean(frame.preview);
+      // A preview that arrives late never hides the final image.
+      if (preview && link.dataset.state === "final") return;
+      const version = preview ? "p" + (frame.completeness || 0).toFixed(3) : "final";
+      const src = "/jobs/" + encodeURIComponent(id) + "/frames/" + index + "/thumbnail?v=" + version;
+      let image = link.querySelector("img");
+      if (!image) {
+        image = document.createElement("img");
+        image.alt = "frame " + index;
+        link.querySelector(".placeholder").replaceWith(image);
+      }
+      if (image.getAttribute("src") !== src) image.setAttribute("src", src);
+      link.dataset.state = preview ? "preview" : "final";
+      link.querySelector(".caption").textContent = preview
+        ? "#" + index + " · preview " + Math.round((frame.completeness || 0) * 100) + "%"
+        : "#" + index;
+    };
+    listen("/api/events?job=" + encodeURIComponent(id), (event) => {
+      if (event.job) {
+        showJob(body, event.job);
+        if (isTerminal(stateName(event.job.state))) {
+          const actions = document.querySelector("form.actions");
+          if (actions) actions.remove();
+        }
+        (event.job.frames || []).forEach(showFrame);
+      }
+      if (event.frame) showFrame(event.frame);
+    });
+  }
+
+  function framePage() {
+    const index = Number(body.dataset.frame);
+    listen("/api/events?job=" + encodeURIComponent(body.dataset.job), (event) => {
+      const frames = ((event.job && event.job.frames) || []).concat(event.frame ? [event.frame] : []);
+      const news = frames.some((frame) => {
+        if ((frame.index || 0) !== index) return false;
+        const state = frame.preview ? "preview" : "final";
+        return state !== body.dataset.state && body.dataset.state !== "final";
+      });
+      if (news) location.reload();
+    });
+  }
+
+  const pages = { jobs: jobsPage, job: jobPage, frame: framePage };
+  if (pages[body.dataset.page]) pages[body.dataset.page]();
+  const refresh = Number(body.dataset.refresh);
+  if (refresh > 0) setTimeout(() => location.reload(), refresh * 1000);
+})();
