@@ -3,28 +3,15 @@
 
 use std::collections::HashSet;
 
-use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
+use pointfarm_render::request::RenderRequest;
 
 use super::*;
 
 fn spec(request_id: &str, frames: u32, priority: i32) -> JobSpec {
+    let request = RenderRequest::turntable(8, 8, frames);
     JobSpec {
-        request_id: request_id.into(),
-        dataset_id: "ds-1".into(),
-        request: RenderRequest {
-            width: 8,
-            height: 8,
-            camera_path: CameraPath::Turntable(Turntable::around_the_cloud(frames)),
-            lens: Lens::default(),
-            render: RenderOptions::default(),
-        },
         priority,
-        requirements: Default::default(),
-        preview: false,
-        after: Vec::new(),
-        name: String::new(),
-        labels: Default::default(),
-        video: None,
+        ..JobSpec::new(request_id.into(), "ds-1".into(), request)
     }
 }
 
