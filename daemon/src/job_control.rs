@@ -329,6 +329,20 @@ impl Daemon {
         Ok(moved)
     }
 
+    /// When job `job_id` was deleted, removes the (empty) folder that a frame handed in
+    /// under its lease made again, so that no folder of frames outlives its job; returns
+    /// whether the job was deleted.
+    pub(crate) fn remove_folder_of_deleted_job_locked(
+        &self,
+        job_id: &str,
+    ) -> Result<bool, DaemonError> {
+        if self.state.job(job_id)?.is_some() {
+            return Ok(false);
+        }
+        let _ = std::fs::remove_dir(self.config.frames_dir(job_id));
+        Ok(true)
+    }
+
     /// Removes the frames of deleted jobs that a stop left behind (moved aside, not yet
     /// removed).
     pub(crate) fn remove_deleted_frames_left(&self) {

@@ -337,17 +337,6 @@ impl Daemon {
         Ok(job)
     }
 
-    /// When job `job_id` was deleted, removes the (empty) folder that a frame handed in
-    /// under its lease made again, so that no folder of frames outlives its job; returns
-    /// whether the job was deleted.
-    fn remove_folder_of_deleted_job_locked(&self, job_id: &str) -> Result<bool, DaemonError> {
-        if self.state.job(job_id)?.is_some() {
-            return Ok(false);
-        }
-        let _ = std::fs::remove_dir(self.config.frames_dir(job_id));
-        Ok(true)
-    }
-
     fn job_asks_previews(&self, job_id: &str) -> Result<bool, DaemonError> {
         Ok(self.state.job(job_id)?.is_some_and(|job| job.spec.preview))
     }
