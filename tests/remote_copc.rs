@@ -1,12 +1,12 @@
 //! COPC files rendered and described straight from a URL, as a user runs `pointfarm render URL`
 //! and `pointfarm info URL`, against a real nginx on loopback: the same image as the same file
 //! here, a coarse cut fetching less than the file, an object replaced after open refused as
-//! changed, a missing or truncated object and a plain LAZ file refused in one line naming the
-//! URL. Where `POINTFARM_TEST_S3S_FS` names an `s3s-fs` binary, the same file renders from
+//! changed, a missing or truncated object refused in one line naming the URL, and a plain LAZ
+//! file rendered only as a preview (tests/remote_tiles.rs). Where `POINTFARM_TEST_S3S_FS` names an `s3s-fs` binary, the same file renders from
 //! `s3://` too. Each test skips, saying so, where nginx is not installed.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 
 use pointfarm_render::copc::{open_copc_url, CopcError};
 use pointfarm_render::lod::{LodError, NodeInfo};
@@ -14,8 +14,8 @@ use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteError, RemoteSetti
 use pointfarm_tests::nginx::NginxServer;
 use pointfarm_tests::s3s::{self, S3sServer};
 use pointfarm_tests::{
-    assert_fails_saying, copc_file, json_lines, output_text, pointfarm, pointfarm_bin,
-    pointfarm_ok, stdout,
+    assert_fails_saying, assert_one_error_line, copc_file, json_lines, output_text, pointfarm,
+    pointfarm_bin, pointfarm_ok, stdout,
 };
 
 fn arg(path: &Path) -> &str {
@@ -49,14 +49,6 @@ fn same_pixels(a: &Path, b: &Path) -> bool {
 fn fetched(report: &serde_json::Value) -> (u64, u64) {
     let count = |key: &str| report["fetched"][key].as_u64().expect("fetched counts");
     (count("requests"), count("bytes"))
-}
-
-/// A one-line failure: an error line on stderr, no panic, naming `url`.
-fn assert_one_line_error_naming(output: &Output, url: &str) {
-    assert_fails_saying(output, url);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    let errors: Vec<&str> = stderr.lines().filter(|l| l.starts_with("error:")).collect();
-    assert_eq!(errors.len(), 1, "{stderr}");
 }
 
 #[test]
@@ -191,8 +183,7 @@ fn a_missing_object_is_one_line_naming_its_url() {
     let dir = tempfile::tempdir().expect("tempdir");
     let url = server.url("scans/absent.copc.laz");
     let output = pointfarm(&["render", &url, "--out", arg(&dir.path().join("a.png"))]);
-    assert_one_line_error_naming(&output, &url);
-    assert_fails_saying(&output, "no such object");
+    assert_one_error_line(&output, &[&url, "no such object"]);
     let output = pointfarm(&["info", &url]);
     assert_fails_saying(&output, &url);
 }
@@ -217,13 +208,13 @@ fn a_truncated_copc_object_is_a_clear_error_never_a_panic() {
         let url = server.url(&format!("scans/{name}"));
         let out = dir.path().join(format!("{name}.png"));
         let output = pointfarm(&["render", &url, "--out", arg(&out), "--lod-error", "0"]);
-        assert_one_line_error_naming(&output, &url);
+        assert_one_error_line(&output, &[&url]);
         assert!(!out.exists(), "{name}: no frame from a truncated file");
     }
 }
 
 #[test]
-fn a_plain_laz_file_or_a_prefix_by_url_is_refused_saying_only_copc_renders_by_url() {
+fn a_plain_laz_file_by_url_renders_only_as_a_preview_and_an_http_prefix_is_not_listed() {
     let dir = tempfile::tempdir().expect("tempdir");
     let scene = dir.path().join("scene.laz");
     pointfarm_ok(&["sample", arg(&scene), "--points", "2000"]);
@@ -233,11 +224,10 @@ fn a_plain_laz_file_or_a_prefix_by_url_is_refused_saying_only_copc_renders_by_ur
     let out = dir.path().join("a.png");
     let url = server.url("scans/scene.laz");
     let output = pointfarm(&["render", &url, "--out", arg(&out)]);
-    assert_one_line_error_naming(&output, &url);
-    assert_fails_saying(&output, "only COPC files");
+    assert_one_error_line(&output, &[&url, "render as a preview only"]);
     let prefix = server.url("scans/");
-    let output = pointfarm(&["render", &prefix, "--out", arg(&out)]);
-    assert_fails_saying(&output, "only COPC files");
+    let output = pointfarm(&["render", &prefix, "--preview", "--out", arg(&out)]);
+    assert_one_error_line(&output, &[&prefix, "name the files instead"]);
     // A server renders a URL once it is registered there, not as files it is sent.
     let on_server = [
         "render",
@@ -248,8 +238,7 @@ fn a_plain_laz_file_or_a_prefix_by_url_is_refused_saying_only_copc_renders_by_ur
         "http://127.0.0.1:9",
     ];
     let output = pointfarm(&on_server);
-    assert_one_line_error_naming(&output, &url);
-    assert_fails_saying(&output, "dataset register");
+    assert_one_error_line(&output, &[&url, "dataset register"]);
 }
 
 #[test]
@@ -341,5 +330,5 @@ fn a_copc_file_from_an_s3_compatible_server_renders_as_the_file_here() {
         .envs(server.environment())
         .output()
         .expect("run pointfarm");
-    assert_one_line_error_naming(&missing, "s3://pointfarm-test/scans/absent.copc.laz");
+    assert_one_error_line(&missing, &["s3://pointfarm-test/scans/absent.copc.laz"]);
 }

@@ -21,7 +21,7 @@ use pointfarm_tests::nginx::NginxServer;
 use pointfarm_tests::s3s::{self, S3sServer};
 use pointfarm_tests::service::gpu;
 use pointfarm_tests::{
-    assert_fails_saying, json_lines, output_text, pointfarm, pointfarm_bin, shared_data,
+    assert_one_error_line, json_lines, output_text, pointfarm, pointfarm_bin, shared_data,
 };
 
 const TILES: usize = 20;
@@ -206,15 +206,6 @@ fn described(output: &Output) -> (Vec<serde_json::Value>, Vec<String>) {
     (files, paths)
 }
 
-/// A one-line failure: one error line on stderr naming `url`, no panic.
-fn assert_one_line_error(output: &Output, url: &str, saying: &str) {
-    assert_fails_saying(output, url);
-    assert_fails_saying(output, saying);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    let errors: Vec<&str> = stderr.lines().filter(|l| l.starts_with("error:")).collect();
-    assert_eq!(errors.len(), 1, "{stderr}");
-}
-
 #[test]
 fn a_prefix_in_s3_is_described_and_previewed_as_the_folder_here() {
     let Some(tiles) = lone_star_tiles() else {
@@ -260,10 +251,10 @@ fn a_prefix_in_s3_is_described_and_previewed_as_the_folder_here() {
 
     // The final frames would need every point: refused, naming what to do instead.
     let full = pointfarm_s3(&server, &["render", &prefix, "--out", arg(&out)]);
-    assert_one_line_error(&full, &prefix, "copy them here");
+    assert_one_error_line(&full, &[&prefix, "copy them here"]);
     let tile = format!("{prefix}tile-03.laz");
     let one = pointfarm_s3(&server, &["render", &tile, "--out", arg(&out)]);
-    assert_one_line_error(&one, &tile, "--preview");
+    assert_one_error_line(&one, &[&tile, "--preview"]);
 }
 
 #[test]
@@ -310,11 +301,11 @@ fn faults_by_url_are_one_line_errors_and_a_tile_fails_its_checks_as_a_file() {
     let preview =
         |url: &str| pointfarm_s3(&server, &["render", url, "--preview", "--out", arg(&out)]);
     let missing = format!("s3://{BUCKET}/faulty/absent.laz");
-    assert_one_line_error(&preview(&missing), &missing, "no such object");
+    assert_one_error_line(&preview(&missing), &[&missing, "no such object"]);
     let no_bucket = "s3://no-such-bucket/tiles/";
-    assert_one_line_error(&preview(no_bucket), no_bucket, "no such bucket");
+    assert_one_error_line(&preview(no_bucket), &[no_bucket, "no such bucket"]);
     let empty = format!("s3://{BUCKET}/empty/");
-    assert_one_line_error(&preview(&empty), &empty, "no .las or .laz object");
+    assert_one_error_line(&preview(&empty), &[&empty, "no .las or .laz object"]);
 
     let mut refused = server.environment();
     refused.retain(|(key, _)| *key != "AWS_SECRET_ACCESS_KEY");
@@ -322,7 +313,7 @@ fn faults_by_url_are_one_line_errors_and_a_tile_fails_its_checks_as_a_file() {
     let tile = format!("s3://{BUCKET}/faulty/hostile.laz");
     let preview_args = ["render", &tile, "--preview", "--out", arg(&out)];
     let denied = pointfarm_s3_with(refused, &preview_args);
-    assert_one_line_error(&denied, &tile, "access denied");
+    assert_one_error_line(&denied, &[&tile, "access denied"]);
 
     // A server that stops answering: the error names the URL, after the client's retries.
     let environment = server.environment();
@@ -330,7 +321,7 @@ fn faults_by_url_are_one_line_errors_and_a_tile_fails_its_checks_as_a_file() {
     let started = Instant::now();
     let stopped = pointfarm_s3_with(environment, &preview_args);
     eprintln!("a stopped server failed in {:.1?}", started.elapsed());
-    assert_one_line_error(&stopped, &tile, &tile);
+    assert_one_error_line(&stopped, &[&tile]);
 }
 
 /// The figures of docs/perf/remote-tile-previews.md: `render --preview` of 20 LAZ tiles under an

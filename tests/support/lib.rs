@@ -136,6 +136,17 @@ pub fn assert_fails_saying(output: &Output, needle: &str) {
     assert!(!stderr.contains("panicked"), "{stderr}");
 }
 
+/// Asserts a failure told in one line: exactly one `error:` line on stderr, saying each of
+/// `needles` (the URL or path it concerns, what went wrong), and no panic.
+pub fn assert_one_error_line(output: &Output, needles: &[&str]) {
+    for needle in needles {
+        assert_fails_saying(output, needle);
+    }
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    let errors = stderr.lines().filter(|l| l.starts_with("error:")).count();
+    assert_eq!(errors, 1, "{stderr}");
+}
+
 /// Asserts that the folders `expected` and `actual` hold the same `frames` frame files
 /// (`frame_00000.png` on), pixel for pixel; `what` says what `actual` is.
 pub fn assert_same_frames(expected: &Path, actual: &Path, frames: u32, what: &str) {
