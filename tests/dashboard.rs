@@ -345,9 +345,9 @@ fn wait_live(browser: &Browser) {
 /// Where a screenshot goes: `docs/images/` when asked for, else the test's scratch folder.
 fn screenshot_path(scratch: &Path, name: &str) -> PathBuf {
     if std::env::var_os("POINTFARM_DASHBOARD_SCREENSHOTS").is_some() {
-        Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../docs/images")
-            .join(name)
+        let images = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/images");
+        std::fs::create_dir_all(&images).expect("docs/images");
+        images.join(name)
     } else {
         scratch.join(name)
     }
@@ -572,13 +572,16 @@ async fn the_jobs_page_paints_with_a_thousand_jobs() {
         );
         assert_eq!(timing[3], json!(200), "{timing}");
         assert_eq!(timing[4], json!("200 of 1000 jobs"), "{timing}");
-        tries.push(timing);
+        tries.push(Value::Array(
+            timing.as_array().expect("an array")[..3].to_vec(),
+        ));
     }
     let parsed: Vec<f64> = tries.iter().filter_map(|t| t[1].as_f64()).collect();
     let paint = parsed.iter().copied().fold(f64::INFINITY, f64::min);
     println!(
         "jobs page with 1000 jobs: parsed (DOMContentLoaded) in {paint:.0} ms at best of 3 \
-         (target 1000 ms); [first contentful paint, DOMContentLoaded, load] per try: {tries:?}"
+         (target 1000 ms); [first contentful paint, DOMContentLoaded, load] per try: {}",
+        Value::Array(tries)
     );
-    assert!(paint < 5_000.0, "the jobs page paints: {tries:?}");
+    assert!(paint < 5_000.0, "the jobs page paints: {paint} ms");
 }
