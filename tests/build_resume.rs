@@ -154,6 +154,8 @@ fn resumed_units(stderr: &str) -> Option<u64> {
 struct Reference {
     input: PathBuf,
     partitions: u64,
+    /// The uninterrupted export's wall time.
+    seconds: f64,
     nodes: Vec<String>,
     copc: Vec<u8>,
     _dir: tempfile::TempDir,
@@ -164,9 +166,12 @@ fn reference() -> Reference {
     let input = write_dataset(dir.path());
     let cache = dir.path().join("uninterrupted");
     let copc = dir.path().join("uninterrupted.copc.laz");
+    let started = Instant::now();
     let log = run(&mut export(&input, &cache, &copc));
+    let seconds = started.elapsed().as_secs_f64();
     assert!(resumed_units(&log).is_none(), "nothing to resume:\n{log}");
     Reference {
+        seconds,
         partitions: logged(&log, "counted", "partitions").expect("the partitions counted"),
         nodes: store_nodes(&cache),
         copc: std::fs::read(&copc).expect("the COPC file"),
@@ -244,10 +249,13 @@ fn a_build_killed_at_random_moments_resumes_to_the_same_store() {
         .expect("clock")
         .subsec_nanos();
     for i in 0..2u32 {
-        // 0.2 to 6 s: from the counting pass to the levels above the partitions.
-        let millis =
-            200 + u64::from(seed.wrapping_mul(2_654_435_761).wrapping_add(i * 977) % 5_800);
-        eprintln!("killing after {millis} ms");
+        // From the start to the end of an uninterrupted export.
+        let share = f64::from(seed.wrapping_mul(2_654_435_761).wrapping_add(i * 977) % 1000);
+        let millis = (reference.seconds * share) as u64;
+        eprintln!(
+            "killing after {millis} ms of {:.0}",
+            1000.0 * reference.seconds
+        );
         kill_and_resume(&reference, None, Duration::from_millis(millis));
     }
 }

@@ -282,10 +282,37 @@ impl PointSource for DatasetSource {
     /// of the next batch instead of leaving the other cores idle (docs/perf/lod-build.md). At
     /// most two batches of columns exist at once: one visited, one handed over.
     fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
+        self.for_each_batch_from(0, visit)
+    }
+
+    /// Each file's first point.
+    fn part_starts(&self) -> Vec<u64> {
+        let mut start = 0;
+        self.files
+            .iter()
+            .map(|file| {
+                let first = start;
+                start += file.facts.declared_points;
+                first
+            })
+            .collect()
+    }
+
+    /// The files from the one whose first point is `first` on.
+    fn for_each_batch_from(
+        &self,
+        first: u64,
+        visit: &mut BatchVisitor<'_>,
+    ) -> Result<(), LodError> {
+        let skipped = self
+            .part_starts()
+            .iter()
+            .position(|&start| start == first)
+            .ok_or_else(|| LodError::Source(format!("no file starts at point {first}")))?;
         let (filled, batches) = mpsc::sync_channel::<BatchColumns>(0);
         let (spare, spares) = mpsc::channel::<BatchColumns>();
         std::thread::scope(|scope| {
-            let reader = scope.spawn(move || self.decode_into(&filled, &spares));
+            let reader = scope.spawn(move || self.decode_into(skipped, &filled, &spares));
             let mut visited = Ok(());
             for columns in &batches {
                 visited = visit(columns.batch(self.has_rgb));
@@ -308,14 +335,16 @@ impl PointSource for DatasetSource {
 }
 
 impl DatasetSource {
-    /// Decodes every file into columns (taken from `spares` where one is back), handing each
-    /// batch to `filled`; stops without an error when no one takes it.
+    /// Decodes every file after the first `skipped` into columns (taken from `spares` where
+    /// one is back), handing each batch to `filled`; stops without an error when no one takes
+    /// it.
     fn decode_into(
         &self,
+        skipped: usize,
         filled: &mpsc::SyncSender<BatchColumns>,
         spares: &mpsc::Receiver<BatchColumns>,
     ) -> Result<(), LodError> {
-        for (k, file) in self.files.iter().enumerate() {
+        for (k, file) in self.files.iter().enumerate().skip(skipped) {
             let grid = self
                 .grid
                 .as_ref()

@@ -24,7 +24,8 @@ use std::time::{Duration, Instant};
 use super::checksum::checksum64;
 use super::context::BuildContext;
 use super::counting::{
-    count_points, counting_blocks_bytes, CountGrid, BUCKET_SEGMENT_POINTS, MAX_COUNT_LEVEL,
+    count_points, counting_blocks_bytes, Checkpoint, CountGrid, CountingStart,
+    BUCKET_SEGMENT_POINTS, MAX_COUNT_LEVEL,
 };
 use super::error::LodError;
 use super::hierarchy::LodHierarchy;
@@ -36,7 +37,7 @@ use super::partitions::{build_bytes_per_point, build_partitions, partition_bytes
 use super::pause;
 use super::point::RecordLayout;
 use super::progress::BuildProgress;
-use super::resume::{Expected, Resumed};
+use super::resume::{counting_start, Expected, Resumed};
 use super::sink::NodeSink;
 use super::source::PointSource;
 use super::spill::{sync_files, SpillDir};
@@ -80,7 +81,8 @@ pub struct LodBuildReport {
     /// The build's spill folder (removed when the build returned).
     pub spill_path: PathBuf,
     pub timings: BuildTimings,
-    /// Whether the counting pass was taken from an earlier run of this build that stopped.
+    /// Whether the counting pass was taken up, whole or from a checkpoint, from an earlier
+    /// run of this build that stopped.
     pub counting_resumed: bool,
     /// Units (partitions built or split, nodes above them) taken from that run.
     pub resumed_units: usize,
@@ -177,17 +179,22 @@ fn build_on_pool(
     let inputs = build_inputs(source, options, layout, &expected, threads);
     let (journal, spill, replay) = open_build_folder(store, options, layout, inputs.as_deref())?;
     let mut rejected = false;
+    let mut counting_from = None;
     let resumed = replay.and_then(|replay| {
-        match Resumed::from_replay(replay, &expected, store, &spill) {
-            Ok(resumed) => Some(resumed),
-            Err(reason) => {
-                tracing::warn!(%reason, folder = %spill.path().display(), "starting the build over");
-                rejected = true;
+        let resumed = match replay.counted.points_read < expected.point_count {
+            true => counting_start(replay.counted, &expected, &spill).map(|start| {
+                counting_from = Some(start);
                 None
-            }
-        }
+            }),
+            false => Resumed::from_replay(replay, &expected, store, &spill).map(Some),
+        };
+        resumed.unwrap_or_else(|reason| {
+            tracing::warn!(%reason, folder = %spill.path().display(), "starting the build over");
+            rejected = true;
+            None
+        })
     });
-    let counting_resumed = resumed.is_some();
+    let counting_resumed = resumed.is_some() || counting_from.is_some();
     let resumed = match resumed {
         Some(resumed) => {
             store.cut_payload(resumed.payload_end)?;
@@ -204,12 +211,37 @@ fn build_on_pool(
             if let Some(inputs) = inputs.as_deref().filter(|_| rejected) {
                 journal.start_over(inputs)?;
             }
-            store.clear()?;
+            if let Some(start) = &counting_from {
+                tracing::info!(points = start.read, "resuming a build's counting pass");
+            } else {
+                store.clear()?;
+            }
             let grid_bytes = CountGrid::planning_bytes(level);
             let _grid = meter.try_reserve(grid_bytes, "the counting grid")?;
             let blocks_bytes = counting_blocks_bytes(layout.record_bytes());
             let buffer_bytes = (budget.saturating_sub(grid_bytes + blocks_bytes) / 4)
                 .clamp(1 << 16, BUCKET_BUFFER_BYTES);
+            // The pass's progress, recorded at each part of the source and at its end.
+            let record = |points_read: u64, counts: &[u64], stats: &DatasetStats| {
+                let grid = CountGrid {
+                    level,
+                    counts: counts.to_vec(),
+                    segment_points: BUCKET_SEGMENT_POINTS,
+                };
+                let files: Vec<PathBuf> = (0..grid.counts.len())
+                    .flat_map(|bucket| grid.bucket_files(&spill, bucket))
+                    .collect();
+                sync_files(&files)?;
+                sync_dir(spill.path())?;
+                journal.record_counted(&Counted {
+                    points_read,
+                    level,
+                    segment_points: grid.segment_points,
+                    counts: grid.counts,
+                    stats: stats.clone(),
+                })
+            };
+            let checkpoint: Option<&Checkpoint<'_>> = journal.is_enabled().then_some(&record);
             let (grid, stats) = count_points(
                 source,
                 &cube,
@@ -218,19 +250,11 @@ fn build_on_pool(
                 &spill,
                 buffer_bytes,
                 BUCKET_SEGMENT_POINTS,
+                counting_from.unwrap_or_else(|| CountingStart::fresh(level)),
+                checkpoint,
             )?;
-            if journal.is_enabled() {
-                let files: Vec<PathBuf> = (0..grid.counts.len())
-                    .flat_map(|bucket| grid.bucket_files(&spill, bucket))
-                    .collect();
-                sync_files(&files)?;
-                sync_dir(spill.path())?;
-                journal.record_counted(&Counted {
-                    level,
-                    segment_points: grid.segment_points,
-                    counts: grid.counts.clone(),
-                    stats: stats.clone(),
-                })?;
+            if let Some(record) = checkpoint {
+                record(source.point_count(), &grid.counts, &stats)?;
             }
             Resumed::counted(&grid, stats, &expected, &spill)
         }

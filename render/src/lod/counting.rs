@@ -66,7 +66,7 @@ impl CountGrid {
     }
 }
 
-fn bucket_path(spill: &SpillDir, bucket: usize, segment: u64) -> PathBuf {
+pub(super) fn bucket_path(spill: &SpillDir, bucket: usize, segment: u64) -> PathBuf {
     spill.file(&bucket_name(bucket, segment))
 }
 
@@ -117,12 +117,37 @@ pub fn check_batch(
     })
 }
 
-/// Points of a batch with their buckets and their spill records, made on all cores.
+/// Points of a batch with their buckets and their spill records, made on all cores; or,
+/// with `checkpoint`, the points read so far and their statistics, at the start of a part of
+/// the source.
 #[derive(Default)]
 struct RecordBlock {
     buckets: Vec<u32>,
     records: Vec<u8>,
+    checkpoint: Option<(u64, DatasetStats)>,
 }
+
+/// Where a counting pass starts: at the first point, or where an earlier run of the build
+/// recorded a checkpoint, with the counts and statistics of the points before it.
+pub struct CountingStart {
+    pub read: u64,
+    pub counts: Vec<u64>,
+    pub stats: Option<DatasetStats>,
+}
+
+impl CountingStart {
+    pub fn fresh(level: u32) -> Self {
+        Self {
+            read: 0,
+            counts: vec![0; 1 << (3 * level)],
+            stats: None,
+        }
+    }
+}
+
+/// Told at the start of each part of the source after the first, once every record before it
+/// is in its bucket's files: the points read, the counts per bucket and the statistics.
+pub type Checkpoint<'c> = dyn Fn(u64, &[u64], &DatasetStats) -> Result<(), LodError> + Sync + 'c;
 
 impl RecordBlock {
     fn fill(
@@ -155,9 +180,11 @@ impl RecordBlock {
     }
 }
 
-/// Reads `source` once: checks every point, counts it into the bucket grid of `level`, writes
-/// its record to its bucket's files (of at most `segment_points` each) through buffers of at
-/// most `buffer_bytes`, and gathers the statistics.
+/// Reads `source` once from `start`: checks every point, counts it into the bucket grid of
+/// `level`, writes its record to its bucket's files (of at most `segment_points` each)
+/// through buffers of at most `buffer_bytes`, and gathers the statistics; `checkpoint` is told
+/// at each part of the source.
+#[allow(clippy::too_many_arguments)]
 pub fn count_points(
     source: &dyn PointSource,
     cube: &RootCube,
@@ -166,6 +193,8 @@ pub fn count_points(
     spill: &SpillDir,
     buffer_bytes: u64,
     segment_points: u64,
+    start: CountingStart,
+    checkpoint: Option<&Checkpoint<'_>>,
 ) -> Result<(CountGrid, DatasetStats), LodError> {
     let reservation = meter.try_reserve(2 * buffer_bytes, "the buckets' write buffers")?;
     let blocks_bytes = counting_blocks_bytes(spill.layout().record_bytes());
@@ -187,26 +216,34 @@ pub fn count_points(
     );
     let bounds = source.bounds();
     let layout = spill.layout();
-    let mut stats: Option<DatasetStats> = None;
-    let mut read = 0u64;
+    let mut stats = start.stats;
+    let mut read = start.read;
     let mut batches = 0u64;
+    let parts = source.part_starts();
+    let first = start.read;
+    let counts = start.counts;
     let (walked, scattered) = std::thread::scope(|scope| {
         let (blocks, received) = mpsc::sync_channel::<RecordBlock>(1);
         let (spare_sender, spare) = mpsc::channel::<RecordBlock>();
         let record_bytes = layout.record_bytes();
         let scattering = scope.spawn(move || {
-            scatter(
-                writer,
-                buckets,
-                targets,
-                record_bytes,
-                received,
-                spare_sender,
-            )
+            let channels = (received, spare_sender);
+            scatter(writer, counts, targets, record_bytes, channels, checkpoint)
         });
-        let walked = source.for_each_batch(&mut |batch| {
+        let walked = source.for_each_batch_from(first, &mut |batch| {
             pause::at("counting", batches);
             batches += 1;
+            if read > first && parts.binary_search(&read).is_ok() {
+                if let Some(stats) = stats.as_ref().filter(|_| checkpoint.is_some()) {
+                    let marker = RecordBlock {
+                        checkpoint: Some((read, stats.clone())),
+                        ..RecordBlock::default()
+                    };
+                    if blocks.send(marker).is_err() {
+                        return Err(LodError::Source("the spill writing stopped".into()));
+                    }
+                }
+            }
             check_batch(&batch, &bounds, cube, read, layout.row_bytes)?;
             let stats = stats.get_or_insert_with(|| DatasetStats::new(batch.rgb.is_some()));
             if stats.has_rgb != batch.rgb.is_some() {
@@ -265,18 +302,22 @@ struct Targets {
 }
 
 /// Appends every block's records to their buckets' files (a bucket's next segment once one
-/// is full) and counts them per bucket; each block goes back through `spare` to be filled
-/// again.
+/// is full) and adds them to `counts`; each block goes back through `spare` to be filled
+/// again. At a checkpoint's marker, every record so far is written first.
 fn scatter(
     mut writer: SpillWriter<'_>,
-    buckets: usize,
+    mut counts: Vec<u64>,
     targets: Targets,
     record_bytes: usize,
-    blocks: mpsc::Receiver<RecordBlock>,
-    spare: mpsc::Sender<RecordBlock>,
+    (blocks, spare): (mpsc::Receiver<RecordBlock>, mpsc::Sender<RecordBlock>),
+    checkpoint: Option<&Checkpoint<'_>>,
 ) -> Result<Vec<u64>, LodError> {
-    let mut counts = vec![0u64; buckets];
-    for block in blocks {
+    for mut block in blocks {
+        if let (Some((read, stats)), Some(checkpoint)) = (block.checkpoint.take(), checkpoint) {
+            writer.settle()?;
+            checkpoint(read, &counts, &stats)?;
+            continue;
+        }
         let records = block.records.chunks_exact(record_bytes);
         for (&bucket, record) in block.buckets.iter().zip(records) {
             let count = &mut counts[bucket as usize];
@@ -306,8 +347,18 @@ mod tests {
         let cube = RootCube::around(&source.bounds()).expect("cube");
         let meter = MemoryMeter::new(64 << 20);
         let spill = SpillDir::create(dir.path(), RecordLayout::for_grid(None, 0)).expect("spill");
-        let (grid, stats) =
-            count_points(&source, &cube, 1, &meter, &spill, 1 << 16, 1_000).expect("counted");
+        let (grid, stats) = count_points(
+            &source,
+            &cube,
+            1,
+            &meter,
+            &spill,
+            1 << 16,
+            1_000,
+            CountingStart::fresh(1),
+            None,
+        )
+        .expect("counted");
         assert_eq!(grid.counts.len(), 8);
         assert_eq!(grid.counts.iter().sum::<u64>(), 10_000);
         assert_eq!(

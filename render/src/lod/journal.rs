@@ -3,7 +3,8 @@
 //!
 //! Three files. `inputs` names what the build reads and how (the source's fingerprint, the
 //! options and what the build derived from them); a journal of other inputs is wiped, never
-//! read. `counted` holds the counting pass's grid and statistics. Both are written whole:
+//! read. `counted` holds the counting pass's grid and statistics, rewritten as the pass reaches
+//! each part of the source (a file) and once it ends. Both are written whole:
 //! to a temporary file, synced, renamed, the folder synced. `units.log` lists every finished
 //! unit in the order it finished, appended and synced one frame at a time, each frame its
 //! length and checksum first; a torn or damaged frame ends the log, is cut off and its unit
@@ -77,9 +78,10 @@ pub struct UnitRecord {
     pub nodes: Vec<NodeInfo>,
 }
 
-/// The counting pass's result.
+/// The counting pass's result, or where it got to: its first `points_read` points counted.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Counted {
+    pub points_read: u64,
     pub level: u32,
     pub segment_points: u64,
     pub counts: Vec<u64>,
@@ -163,12 +165,14 @@ impl BuildJournal {
         self.enabled.load(Ordering::Relaxed)
     }
 
-    /// Records the counting pass's result; its bucket files must be synced first.
+    /// Records the counting pass's result, or where it got to; its bucket files must be
+    /// synced first.
     pub fn record_counted(&self, counted: &Counted) -> Result<(), LodError> {
         if !self.is_enabled() {
             return Ok(());
         }
         let mut bytes = Vec::with_capacity(16 + counted.counts.len() * 8);
+        bytes.extend_from_slice(&counted.points_read.to_le_bytes());
         bytes.extend_from_slice(&counted.level.to_le_bytes());
         bytes.extend_from_slice(&counted.segment_points.to_le_bytes());
         bytes.extend_from_slice(&(counted.counts.len() as u64).to_le_bytes());
@@ -324,6 +328,7 @@ fn decode_frames(bytes: &[u8]) -> (Vec<UnitRecord>, usize) {
 
 fn decode_counted(bytes: &[u8]) -> Option<Counted> {
     let mut r = Fields { bytes, at: 0 };
+    let points_read = r.u64()?;
     let level = r.u32()?;
     let segment_points = r.u64()?;
     let cells = usize::try_from(r.u64()?).ok()?;
@@ -333,6 +338,7 @@ fn decode_counted(bytes: &[u8]) -> Option<Counted> {
     let counts = (0..cells).map(|_| r.u64()).collect::<Option<Vec<u64>>>()?;
     let (stats, _) = decode_listing(r.rest()).ok()?;
     Some(Counted {
+        points_read,
         level,
         segment_points,
         counts,

@@ -6,6 +6,7 @@ fn counted() -> Counted {
     stats.intensity_histogram[300] = 7;
     stats.z_range = [1.5, 9.0];
     Counted {
+        points_read: 7,
         level: 1,
         segment_points: 1_000,
         counts: vec![0, 3, 0, 0, 4, 0, 0, 0],
@@ -151,7 +152,7 @@ fn a_damaged_counting_record_starts_over() {
     recorded(&dir, "inputs", 1);
     let path = dir.join(COUNTED_FILE);
     let mut bytes = fs::read(&path).expect("counted");
-    bytes[9] ^= 1;
+    bytes[17] ^= 1;
     fs::write(&path, &bytes).expect("damage");
     let (_, replay) = BuildJournal::open(&dir, "inputs").expect("reopen");
     assert!(replay.is_none());

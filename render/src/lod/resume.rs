@@ -1,4 +1,5 @@
-//! Where a build resumes: the journal's units replayed and checked against what is on disk
+//! Where a build resumes: in its counting pass, at the last part of the source (a file) it
+//! checkpointed, its bucket files cut back to the checkpoint; after it, the journal's units replayed and checked against what is on disk
 //! before anything of theirs is trusted. Each stored node's record and attributes section is
 //! read back and its checksums checked, each subtree root waiting in a spill file is checked
 //! against the length and checksum its unit recorded, and each partition still to build has
@@ -6,13 +7,14 @@
 //! inputs are removed once it is recorded, so it cannot be redone alone.
 
 use std::collections::{BTreeMap, HashMap, HashSet};
+use std::fs::OpenOptions;
 use std::path::{Path, PathBuf};
 
 use super::codec::check_node;
 use super::context::Pending;
-use super::counting::CountGrid;
+use super::counting::{bucket_path, CountGrid, CountingStart};
 use super::hierarchy::NodeInfo;
-use super::journal::{Replay, UnitKind, WaitingRoot};
+use super::journal::{Counted, Replay, UnitKind, WaitingRoot};
 use super::key::NodeKey;
 use super::partitions::{partition_files, partition_path, split_children};
 use super::plan::{plan_partitions, Partition};
@@ -77,6 +79,7 @@ impl Resumed {
         let counted = replay.counted;
         if counted.level != expected.level
             || counted.segment_points != expected.segment_points
+            || counted.points_read != expected.point_count
             || counted.counts.iter().sum::<u64>() != expected.point_count
         {
             return Err("its counting record is of another plan".into());
@@ -126,6 +129,54 @@ impl Resumed {
         remove_if_present(consumed)?;
         Ok(resumed)
     }
+}
+
+/// Where the counting pass takes up from `counted`, a checkpoint of an earlier run: each
+/// bucket's files cut to the records the checkpoint counted (a stopped run wrote past it), a
+/// file shorter than that refusing the checkpoint.
+pub fn counting_start(
+    counted: Counted,
+    expected: &Expected,
+    spill: &SpillDir,
+) -> Result<CountingStart, String> {
+    let cells = 1usize << (3 * expected.level);
+    if counted.level != expected.level
+        || counted.segment_points != expected.segment_points
+        || counted.counts.len() != cells
+        || counted.counts.iter().sum::<u64>() != counted.points_read
+        || counted.points_read >= expected.point_count
+    {
+        return Err("its counting checkpoint is of another plan".into());
+    }
+    let record_bytes = spill.layout().record_bytes() as u64;
+    let per_file = counted.segment_points;
+    let segments = expected.point_count.div_ceil(per_file).max(1);
+    for (bucket, &count) in counted.counts.iter().enumerate() {
+        for segment in 0..segments {
+            let path = bucket_path(spill, bucket, segment);
+            let held = count.saturating_sub(segment * per_file).min(per_file) * record_bytes;
+            if held == 0 {
+                remove_if_present(vec![path])?;
+                continue;
+            }
+            let cut = OpenOptions::new().write(true).open(&path).and_then(|file| {
+                let len = file.metadata()?.len();
+                if len < held {
+                    return Err(std::io::Error::other(format!(
+                        "{len} bytes, {held} checkpointed"
+                    )));
+                }
+                file.set_len(held)?;
+                file.sync_all()
+            });
+            cut.map_err(|e| format!("{}: {e}", path.display()))?;
+        }
+    }
+    Ok(CountingStart {
+        read: counted.points_read,
+        counts: counted.counts,
+        stats: Some(counted.stats),
+    })
 }
 
 /// The partitions of `planned` still to build: those recorded as built left out, those

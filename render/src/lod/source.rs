@@ -139,6 +139,27 @@ pub trait PointSource: Sync {
         None
     }
 
+    /// The points where a read can start without reading those before them (each file's
+    /// first), ascending from 0: a build stopped in its counting pass resumes at one.
+    fn part_starts(&self) -> Vec<u64> {
+        vec![0]
+    }
+
+    /// [`PointSource::for_each_batch`] from the point `first`, one of
+    /// [`PointSource::part_starts`], on.
+    fn for_each_batch_from(
+        &self,
+        first: u64,
+        visit: &mut BatchVisitor<'_>,
+    ) -> Result<(), LodError> {
+        if first != 0 {
+            return Err(LodError::Source(format!(
+                "the source cannot start reading at point {first}"
+            )));
+        }
+        self.for_each_batch(visit)
+    }
+
     /// What each point's attribute row holds, where the source has every attribute of its
     /// points to keep (its files'): the builder then stores the rows for an export.
     fn attributes(&self) -> Option<AttributeSchema> {

@@ -255,6 +255,12 @@ impl<'a> SpillWriter<'a> {
         }
     }
 
+    /// Writes every record pushed so far to its file and waits until it is written.
+    pub fn settle(&mut self) -> Result<(), LodError> {
+        self.flush()?;
+        self.wait()
+    }
+
     /// Writes what is left; every file now holds all its points.
     pub fn finish(mut self) -> Result<(), LodError> {
         self.flush()?;
