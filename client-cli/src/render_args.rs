@@ -28,8 +28,9 @@ use crate::video::{codec_parser, VideoRequest};
 #[derive(Args)]
 pub struct RenderArgs {
     /// LAS/LAZ files or folders of them, rendered as one dataset (tiles or scan positions of
-    /// one campaign: one origin, bounds and colour decision); or one COPC file's URL
-    /// (https://, s3://), read by range.
+    /// one campaign: one origin, bounds and colour decision); or one URL (https://, s3://),
+    /// read by range: a COPC file, or LAS/LAZ tiles (a file, or an s3:// prefix of them),
+    /// which render with --preview only.
     #[arg(required_unless_present = "dataset", value_name = "INPUT")]
     pub(crate) inputs: Vec<PathBuf>,
     /// Render on this pointfarm server instead of here (uploading the files it lacks).
