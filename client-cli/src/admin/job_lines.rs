@@ -121,6 +121,16 @@ pub(super) fn scheduling_lines(job: &pb::Job) -> Vec<String> {
     if !job.waiting_reason.is_empty() {
         lines.push(format!("waiting: {}", job.waiting_reason));
     }
+    match (job.stage.as_str(), job.video_size_bytes) {
+        ("video", _) => {
+            lines.push("stage: video (every frame is final; its video is being made)".into())
+        }
+        (_, 0) => {}
+        (_, bytes) => lines.push(format!(
+            "video: {bytes} bytes (jobs video {} --out FILE)",
+            job.id
+        )),
+    }
     for refusal in &job.refusals {
         lines.push(format!(
             "  worker {} cannot render it: {}",
