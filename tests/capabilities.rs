@@ -12,7 +12,7 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_tests::datasets::register_path;
 use pointfarm_tests::service::{
-    cancel, get_job, submit, turntable_job, upload_sample, watch_to_success, write_sample,
+    cancel, get_job, scratch_sample, submit, turntable_job, upload_sample, watch_to_success,
     TestDaemon,
 };
 use pointfarm_tests::{assert_fails_saying, pointfarm, stdout, wait_for, WorkerProcess};
@@ -217,9 +217,7 @@ fn change_in_place(path: &Path) -> Vec<u8> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_worker_that_fails_three_frames_of_a_job_is_blocklisted_for_it() {
-    let roots = tempfile::tempdir().expect("tempdir");
-    let file = roots.path().join("scan.las");
-    write_sample(&file, 20_000, 12);
+    let (roots, file) = scratch_sample("scan.las", 20_000, 12);
     let root = roots.path().to_path_buf();
     let daemon = TestDaemon::start_without_worker(
         move |config| {

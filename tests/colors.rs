@@ -11,7 +11,7 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_render::cloud::PointCloud;
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::legend::RAMP_LEGEND_SIZE;
-use pointfarm_tests::service::{daemon_with_sample, scan, turntable_job, write_sample};
+use pointfarm_tests::service::{daemon_with_sample, scan, scratch_sample, turntable_job};
 use pointfarm_tests::{assert_fails_saying, assert_ok, pointfarm, stdout};
 
 fn arg(path: &Path) -> &str {
@@ -193,9 +193,7 @@ fn two_crops_with_one_range_colour_the_same_height_alike_from_levels_of_detail()
 
 #[test]
 fn ranges_and_ramps_are_checked_on_the_command_line() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let input = dir.path().join("sample.las");
-    write_sample(&input, 2_000, 4);
+    let (dir, input) = scratch_sample("sample.las", 2_000, 4);
     let out = dir.path().join("out.png");
     let run = |more: &[&str]| {
         let mut args = vec!["render", arg(&input), "--out", arg(&out), "--size", "32x24"];

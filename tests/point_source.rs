@@ -5,7 +5,7 @@
 
 use std::path::Path;
 
-use pointfarm_tests::service::write_sample;
+use pointfarm_tests::service::scratch_sample;
 use pointfarm_tests::{json_lines, output_text, pointfarm_ok, ServeProcess};
 
 fn arg(path: &Path) -> &str {
@@ -60,9 +60,7 @@ fn server_cuts(frames: &[serde_json::Value], server: &ServeProcess) -> Vec<bool>
 
 #[test]
 fn a_small_dataset_whose_store_is_built_renders_from_its_cut_here_and_through_a_server() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let file = dir.path().join("sample.las");
-    write_sample(&file, 60_000, 11);
+    let (dir, file) = scratch_sample("sample.las", 60_000, 11);
     let cache = dir.path().join("cache");
     let here = |out: &str, extra: &[&str]| {
         let mut args = vec!["--cache-dir", arg(&cache)];
