@@ -273,6 +273,43 @@ async fn the_dashboard_refuses_all_but_the_client_token() {
         "",
     );
     assert_eq!(worker_cancel.status, 403);
+
+    // The other actions, as a script takes them, each as the API's rules say.
+    let held = submit(&mut jobs, "held", &dataset, 2).await;
+    let act = |action: &str| {
+        let path = format!("/api/jobs/{}/{action}", held.id);
+        let answer = request(&dashboard, "POST", &path, &[("Authorization", &bearer)], "");
+        let body = serde_json::from_str::<Value>(&answer.body).unwrap_or(Value::Null);
+        (answer.status, body)
+    };
+    let (status, paused) = act("pause");
+    assert_eq!(
+        (status, &paused["state"]),
+        (200, &json!("JOB_STATE_PAUSED"))
+    );
+    let (status, resumed) = act("resume");
+    assert_eq!(
+        (status, &resumed["state"]),
+        (200, &json!("JOB_STATE_QUEUED"))
+    );
+    let (status, raised) = act("priority?priority=7");
+    assert_eq!((status, &raised["priority"]), (200, &json!(7)));
+    assert_eq!(act("priority?priority=1000").0, 400, "out of range");
+    assert_eq!(act("priority?priority=high").0, 400);
+    assert_eq!(act("retry").0, 409, "a queued job is no failed one");
+    assert_eq!(
+        act("delete").0,
+        409,
+        "a queued job is not deleted without force"
+    );
+    assert_eq!(act("explode").0, 404);
+    let (status, deleted) = act("delete?force=true");
+    assert_eq!((status, &deleted["id"]), (200, &json!(held.id)));
+    let gone = get(
+        &format!("/api/jobs/{}", held.id),
+        &[("Authorization", &bearer)],
+    );
+    assert_eq!(gone.status, 404, "{}", gone.body);
 }
 
 /// A daemon without a client token (loopback development) opens its dashboard as it opens
@@ -443,7 +480,8 @@ async fn a_browser_watches_thumbnails_appear_and_cancels_a_job() {
         "the job shown succeeded",
         Duration::from_secs(30),
         "return document.querySelector('.job-state .state-succeeded') !== null \
-         && document.querySelector('#cancel') === null",
+         && document.querySelector('#cancel').closest('form').hidden \
+         && !document.querySelector('#delete').closest('form').hidden",
         json!([]),
     );
     let completed = completions.await.expect("the watch");

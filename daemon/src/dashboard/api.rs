@@ -5,7 +5,7 @@
 //!
 //! - `GET /api/jobs?state=running&pageSize=50&pageToken=...`: `ListJobsResponse`
 //! - `GET /api/jobs/{id}`: `Job` with its finished frames, as `GetJob` answers
-//! - `POST /api/jobs/{id}/cancel`: the cancelled `Job`
+//! - `POST /api/jobs/{id}/{action}`: the `Job` after it (`actions`)
 //! - `GET /api/workers`: `ListWorkersResponse`
 //! - `GET /api/datasets?pageSize=...&pageToken=...`: `ListDatasetsResponse`
 
@@ -194,14 +194,6 @@ pub async fn job(
 ) -> Result<Response, Failure> {
     let (message, _, _) = job_message(&dashboard.daemon, id).await?;
     Ok(json(&message))
-}
-
-pub async fn cancel(
-    State(dashboard): State<Dashboard>,
-    Path(id): Path<String>,
-) -> Result<Response, Failure> {
-    let job = run(&dashboard.daemon, move |daemon| daemon.cancel_job(&id)).await?;
-    Ok(json(&pb::Job::from(&job)))
 }
 
 /// The workers heard from within the lease timeout, as `ListWorkers` answers.

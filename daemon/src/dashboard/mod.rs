@@ -11,9 +11,9 @@
 //!   change made with a cookie must come from the dashboard's own origin.
 //! - `listener`: the bounded connections of `pointfarm_proto::endpoint::connections`, with
 //!   TLS when the API has it.
-//! - `api` (JSON and the cancel action), `events` (server-sent events), `pages` and `html`
-//!   (the pages), `frames` (frame images and thumbnails), `assets/` (CSS and JavaScript,
-//!   built into the binary).
+//! - `api` (JSON), `actions` (cancel, pause, resume, retry, priority, delete), `events`
+//!   (server-sent events), `pages` and `html` (the pages), `frames` (frame images and
+//!   thumbnails), `assets/` (CSS and JavaScript, built into the binary).
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -33,6 +33,7 @@ use crate::access::{Access, Exposure};
 use crate::server::TlsIdentity;
 use crate::service::Daemon;
 
+mod actions;
 mod api;
 mod auth;
 mod events;
@@ -110,7 +111,7 @@ fn router(dashboard: Dashboard) -> Router {
     let guarded = Router::new()
         .route("/", get(pages::jobs))
         .route("/jobs/{id}", get(pages::job))
-        .route("/jobs/{id}/cancel", post(pages::cancel))
+        .route("/jobs/{id}/{action}", post(actions::page_action))
         .route("/jobs/{id}/frames/{index}", get(pages::frame))
         .route("/jobs/{id}/frames/{index}/image", get(frames::image))
         .route(
@@ -121,7 +122,7 @@ fn router(dashboard: Dashboard) -> Router {
         .route("/datasets", get(pages::datasets))
         .route("/api/jobs", get(api::jobs))
         .route("/api/jobs/{id}", get(api::job))
-        .route("/api/jobs/{id}/cancel", post(api::cancel))
+        .route("/api/jobs/{id}/{action}", post(actions::api_action))
         .route("/api/workers", get(api::workers))
         .route("/api/datasets", get(api::datasets))
         .route("/api/events", get(events::events))

@@ -1,20 +1,21 @@
 //! The pages, rendered on the server from the daemon's own records: jobs (newest first,
 //! filtered by state), a job with its frames as thumbnails, a frame large with its stage
-//! timings, the workers, the datasets; and the cancel action's form. The script
+//! timings, the workers, the datasets; and a job's buttons (`actions`). The script
 //! (`assets/dashboard.js`) keeps them current from the event stream.
 
 use std::collections::HashMap;
 use std::fmt::Write;
 
 use axum::extract::{Path, RawQuery, State};
-use axum::http::{header, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
 
+use super::actions::JobAction;
 use super::api::{parse_state, run, workers_message, Failure};
 use super::auth::field;
 use super::html::{self, escape, segment};
 use super::Dashboard;
 use crate::error::DaemonError;
+use crate::job_control::PRIORITY_RANGE;
 use crate::model::{now_unix_ms, Dataset, FrameReport, Job, JobState};
 use crate::service::Daemon;
 
@@ -23,7 +24,7 @@ use crate::service::Daemon;
 const JOBS_SHOWN: usize = 200;
 
 /// A failure as a page of its section.
-fn failure_page(section: &str, failure: Failure) -> Response {
+pub(super) fn failure_page(section: &str, failure: Failure) -> Response {
     (
         failure.http_status(),
         Html(html::error_page(section, failure.message())),
@@ -167,6 +168,65 @@ pub async fn jobs(State(dashboard): State<Dashboard>, RawQuery(query): RawQuery)
     Html(html::layout("Jobs", "Jobs", "jobs", &data, &body)).into_response()
 }
 
+/// The states a job's page offers `action` in, for the script to show it in.
+fn offered_in(action: JobAction) -> String {
+    use JobState::*;
+    [Queued, Running, Paused, Succeeded, Failed, Cancelled]
+        .into_iter()
+        .filter(|state| action.offered(*state))
+        .map(JobState::name)
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+/// The job's buttons: each a form of its own, shown in the states it applies to.
+fn actions(job: &Job) -> String {
+    let link = segment(&job.id);
+    let form = |action: JobAction, name: &str, extra: &str| {
+        let hidden = if action.offered(job.state) {
+            ""
+        } else {
+            " hidden"
+        };
+        format!(
+            "<form method=\"post\" action=\"/jobs/{link}/{name}\" data-when=\"{}\"{hidden}{extra}>",
+            offered_in(action)
+        )
+    };
+    let mut out = String::from("<div class=\"actions\">");
+    let buttons = [
+        (JobAction::Pause, "pause", "Pause", "", ""),
+        (JobAction::Resume, "resume", "Resume", "", ""),
+        (JobAction::Retry, "retry", "Retry failed frames", "", ""),
+        (JobAction::Cancel, "cancel", "Cancel job", "danger", ""),
+        (
+            JobAction::Delete { force: false },
+            "delete",
+            "Delete job",
+            "danger",
+            " data-confirm=\"Delete this job and its frames?\"",
+        ),
+    ];
+    for (action, name, label, class, extra) in buttons {
+        let _ = write!(
+            out,
+            "{}<button type=\"submit\" id=\"{name}\" class=\"{class}\">{label}</button></form>",
+            form(action, name, extra)
+        );
+    }
+    let _ = write!(
+        out,
+        "{}<input type=\"number\" name=\"priority\" min=\"{min}\" max=\"{max}\" \
+         value=\"{priority}\" aria-label=\"Priority\"><button type=\"submit\" id=\"priority\">\
+         Set priority</button></form></div>",
+        form(JobAction::Priority(0), "priority", ""),
+        min = PRIORITY_RANGE.start(),
+        max = PRIORITY_RANGE.end(),
+        priority = job.spec.priority,
+    );
+    out
+}
+
 /// The query that tells a frame's image apart from its earlier ones: a new preview or the
 /// final image is a new URL, so the browser asks again.
 fn image_version(frame: &FrameReport) -> String {
@@ -208,7 +268,8 @@ pub async fn job(State(dashboard): State<Dashboard>, Path(id): Path<String>) -> 
          <dt>Frames</dt><dd><progress max=\"{total}\" value=\"{done}\"></progress> \
          <span class=\"frames\">{done}/{total}</span></dd>\
          <dt>ETA</dt><dd class=\"eta\">{eta}</dd>\
-         <dt>Size</dt><dd>{width}×{height}</dd><dt>Priority</dt><dd>{priority}</dd>\
+         <dt>Size</dt><dd>{width}×{height}</dd>\
+         <dt>Priority</dt><dd class=\"priority\">{priority}</dd>\
          <dt>Submitted</dt><dd>{created} UTC</dd>",
         name = escape(job_name(&job)),
         dataset = escape(&dataset),
@@ -230,18 +291,12 @@ pub async fn job(State(dashboard): State<Dashboard>, Path(id): Path<String>) -> 
     if !message.waiting_reason.is_empty() {
         let _ = write!(
             body,
-            "<dt>Waiting</dt><dd>{}</dd>",
+            "<dt class=\"waiting\">Waiting</dt><dd class=\"waiting\">{}</dd>",
             escape(&message.waiting_reason)
         );
     }
     body.push_str("</dl>");
-    if !job.state.is_terminal() {
-        let _ = write!(
-            body,
-            "<form method=\"post\" action=\"/jobs/{link}/cancel\" class=\"actions\">\
-             <button type=\"submit\" class=\"danger\" id=\"cancel\">Cancel job</button></form>"
-        );
-    }
+    body.push_str(&actions(&job));
     let by_index: HashMap<u32, &FrameReport> = frames.iter().map(|f| (f.index, f)).collect();
     body.push_str("<section class=\"thumbnails\" id=\"frames\">");
     for index in 0..job.frames_total {
@@ -279,15 +334,6 @@ pub async fn job(State(dashboard): State<Dashboard>, Path(id): Path<String>) -> 
         &body,
     ))
     .into_response()
-}
-
-/// The cancel button's form: cancels and goes back to the job.
-pub async fn cancel(State(dashboard): State<Dashboard>, Path(id): Path<String>) -> Response {
-    let location = format!("/jobs/{}", segment(&id));
-    match run(&dashboard.daemon, move |daemon| daemon.cancel_job(&id)).await {
-        Ok(_) => (StatusCode::SEE_OTHER, [(header::LOCATION, location)]).into_response(),
-        Err(failure) => failure_page("Jobs", failure),
-    }
 }
 
 pub async fn frame(

@@ -9,10 +9,6 @@
     return String(state || "").replace(/^JOB_STATE_/, "").toLowerCase();
   }
 
-  function isTerminal(state) {
-    return state === "succeeded" || state === "failed" || state === "cancelled";
-  }
-
   function duration(seconds) {
     const s = Math.max(0, Math.round(seconds));
     if (s < 60) return s + " s";
@@ -48,6 +44,16 @@
     if (frames) frames.textContent = (job.framesDone || 0) + "/" + (job.framesTotal || 0);
     const left = root.querySelector(".eta");
     if (left) left.textContent = eta(job, state);
+    const priority = root.querySelector(".priority");
+    if (priority) priority.textContent = job.priority || 0;
+    // A job's page: the reason it waits holds only while it is queued, and each button
+    // shows in the states it applies to.
+    if (root === body) {
+      if (state !== "queued") root.querySelectorAll(".waiting").forEach((e) => e.remove());
+      root.querySelectorAll(".actions form").forEach((form) => {
+        form.hidden = !form.dataset.when.split(" ").includes(state);
+      });
+    }
   }
 
   // Says in the header whether the page is following the farm; `data-live` is `open` once
@@ -136,10 +142,6 @@
     listen("/api/events?job=" + encodeURIComponent(id), (event) => {
       if (event.job) {
         showJob(body, event.job);
-        if (isTerminal(stateName(event.job.state))) {
-          const actions = document.querySelector("form.actions");
-          if (actions) actions.remove();
-        }
         (event.job.frames || []).forEach(showFrame);
       }
       if (event.frame) showFrame(event.frame);
@@ -158,6 +160,13 @@
       if (news) location.reload();
     });
   }
+
+  // Buttons that cannot be undone ask first.
+  document.querySelectorAll("form[data-confirm]").forEach((form) => {
+    form.addEventListener("submit", (submit) => {
+      if (!confirm(form.dataset.confirm)) submit.preventDefault();
+    });
+  });
 
   const pages = { jobs: jobsPage, job: jobPage, frame: framePage };
   if (pages[body.dataset.page]) pages[body.dataset.page]();
