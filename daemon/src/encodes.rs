@@ -400,6 +400,26 @@ impl Daemon {
         Ok(())
     }
 
+    /// Runs again a failed job whose frames are all final but whose video failed: its video
+    /// is leased again with its attempts counted from zero.
+    pub(crate) fn retry_video_locked(&self, job: &Job) -> Result<Job, DaemonError> {
+        // Through the requeue, which puts the job back in the index of unfinished jobs; it has
+        // no pending frame to queue.
+        let retried = self
+            .state
+            .requeue_unfinished_frames(&job.id, |j| {
+                j.state = JobState::Running;
+                j.error = None;
+                j.encode = Some(EncodeState::default());
+            })?
+            .ok_or_else(|| DaemonError::NotFound(format!("job {}", job.id)))?;
+        self.state.flush()?;
+        tracing::info!(job = %job.id, "the failed job's video is leased again");
+        self.publish(&retried, None);
+        self.work.notify();
+        Ok(retried)
+    }
+
     /// Takes back the encode leases whose workers stopped renewing them, each counting a
     /// failed attempt. Returns how many expired.
     pub fn expire_encodes(&self) -> Result<usize, DaemonError> {

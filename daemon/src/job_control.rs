@@ -180,6 +180,9 @@ impl Daemon {
                 )))
             }
         }
+        if job.awaits_video() {
+            return self.retry_video_locked(&job);
+        }
         if job.frames_done >= job.frames_total {
             return Err(DaemonError::FailedPrecondition(format!(
                 "job {id} has no failed frames to retry"

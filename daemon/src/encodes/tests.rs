@@ -108,7 +108,7 @@ fn the_video_is_leased_after_the_last_frame_to_a_worker_with_its_encoder() {
 }
 
 #[test]
-fn a_lapsed_encode_is_leased_again_and_the_last_failure_fails_the_job() {
+fn a_lapsed_encode_is_leased_again_the_last_failure_fails_the_job_and_a_retry_makes_it() {
     let dir = tempfile::tempdir().expect("tempdir");
     let daemon = open(dir.path(), Duration::from_millis(50));
     let job = submit_with_video(&daemon, 1);
@@ -141,14 +141,28 @@ fn a_lapsed_encode_is_leased_again_and_the_last_failure_fails_the_job() {
     daemon
         .fail_encode(&third.lease_id, false, "Conversion failed!")
         .expect("fail");
-    let job = daemon.job(&job.id).expect("job");
-    assert_eq!(job.state, JobState::Failed);
-    let error = job.error.expect("error");
+    let failed = daemon.job(&job.id).expect("job");
+    assert_eq!(failed.state, JobState::Failed);
+    let error = failed.error.expect("error");
     assert!(
         error.contains("Conversion failed!") && error.contains("3 times"),
         "{error}"
     );
     assert!(daemon.video(&job.id).is_err());
+
+    // A retry makes the video again, its attempts from zero; the frames stay done.
+    let retried = daemon.retry_job(&job.id).expect("retry");
+    assert_eq!(
+        (retried.state, retried.stage()),
+        (JobState::Running, "video")
+    );
+    let again = daemon
+        .lease_encode("f", false, &x264())
+        .expect("lease")
+        .expect("leased after the retry");
+    assert_eq!(again.failed_attempts, 0);
+    let stored = hand_in(&daemon, &again.lease_id, b"video").expect("stored");
+    assert_eq!(stored.state, JobState::Succeeded);
 }
 
 #[test]
