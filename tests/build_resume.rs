@@ -1,9 +1,10 @@
 //! A level-of-detail store build killed with SIGKILL resumes: `pointfarm export` builds a
 //! dataset's store, is stopped for good at a point of each stage by the build's test hook
 //! (`POINTFARM_TEST_PAUSE_AT`, render/src/lod/pause.rs) or at a random moment, killed there,
-//! and run again. The resumed run takes up what the killed one recorded (its log says how
-//! many units), and its store is the uninterrupted build's node for node, point for point,
-//! attribute row for attribute row; the COPC files exported from both are the same bytes.
+//! and run again. The resumed run takes up what the killed one recorded (its log says from
+//! which point its counting pass went on, or how many units it took over), and its store is
+//! the uninterrupted build's node for node, point for point, attribute row for attribute row;
+//! the COPC files exported from both are the same bytes.
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -151,6 +152,11 @@ fn resumed_units(stderr: &str) -> Option<u64> {
     logged(stderr, "resuming a build", "units")
 }
 
+/// The point the resumed run's counting pass took up from; `None` when it did not.
+fn counting_resumed_at(stderr: &str) -> Option<u64> {
+    logged(stderr, "resuming a build's counting pass", "points")
+}
+
 struct Reference {
     input: PathBuf,
     partitions: u64,
@@ -166,8 +172,10 @@ fn reference() -> Reference {
     let input = write_dataset(dir.path());
     let cache = dir.path().join("uninterrupted");
     let copc = dir.path().join("uninterrupted.copc.laz");
+    // Built (when out of date) before the clock starts.
+    let mut command = export(&input, &cache, &copc);
     let started = Instant::now();
-    let log = run(&mut export(&input, &cache, &copc));
+    let log = run(&mut command);
     let seconds = started.elapsed().as_secs_f64();
     assert!(resumed_units(&log).is_none(), "nothing to resume:\n{log}");
     Reference {
@@ -181,8 +189,8 @@ fn reference() -> Reference {
 }
 
 /// Kills a build at `stage` (or after `after`), resumes it and checks the resumed store
-/// against the uninterrupted one; returns the units the resumed run took over.
-fn kill_and_resume(reference: &Reference, stage: Option<&str>, after: Duration) -> Option<u64> {
+/// against the uninterrupted one; returns the resumed run's log.
+fn kill_and_resume(reference: &Reference, stage: Option<&str>, after: Duration) -> String {
     let dir = tempfile::tempdir().expect("tempdir");
     let cache = dir.path().join("cache");
     let copc = dir.path().join("resumed.copc.laz");
@@ -207,16 +215,24 @@ fn kill_and_resume(reference: &Reference, stage: Option<&str>, after: Duration) 
         left.is_empty(),
         "{stage:?}: the finished build left {left:?}"
     );
-    resumed_units(&log)
+    log
 }
 
 #[test]
 fn a_build_killed_in_any_stage_resumes_to_the_same_store() {
     let reference = reference();
-    // The counting pass is one unit: killed during it, the build starts over.
-    for stage in ["counting:0", "counting:1"] {
-        let units = kill_and_resume(&reference, Some(stage), Duration::ZERO);
-        assert_eq!(units, None, "{stage}: counted again");
+    // Killed in the first file of the counting pass, the build starts over.
+    let log = kill_and_resume(&reference, Some("counting:0"), Duration::ZERO);
+    assert_eq!(resumed_units(&log), None, "counted again");
+    assert_eq!(counting_resumed_at(&log), None, "counted again");
+    // Killed in the second file once the first is checkpointed, it counts from the second;
+    // killed as the second file starts, before its checkpoint, it starts over.
+    for stage in ["checkpoint:0", "counting:1"] {
+        let log = kill_and_resume(&reference, Some(stage), Duration::ZERO);
+        let from = counting_resumed_at(&log);
+        eprintln!("{stage}: counting resumed at point {from:?}");
+        let expected = (stage == "checkpoint:0").then_some(POINTS as u64 / 2);
+        assert_eq!(from, expected, "{stage}");
     }
     // Killed with a unit's nodes written but not recorded (the other threads wait to record
     // theirs): exactly the units recorded before it are taken over, the rest done again.
@@ -228,12 +244,13 @@ fn a_build_killed_in_any_stage_resumes_to_the_same_store() {
         ("parent:0", partitions),
         ("parent:1", partitions + 1),
     ] {
-        let units = kill_and_resume(&reference, Some(stage), Duration::ZERO);
+        let units = resumed_units(&kill_and_resume(&reference, Some(stage), Duration::ZERO));
         eprintln!("{stage}: {units:?} units taken over");
         assert_eq!(units, Some(recorded), "{stage}");
     }
     // Killed with every unit recorded: only the hierarchy is left to write.
-    let units = kill_and_resume(&reference, Some("hierarchy:0"), Duration::ZERO);
+    let log = kill_and_resume(&reference, Some("hierarchy:0"), Duration::ZERO);
+    let units = resumed_units(&log);
     eprintln!("hierarchy:0: {units:?} units taken over");
     assert!(
         units.is_some_and(|units| units > partitions + 1),

@@ -312,10 +312,13 @@ fn scatter(
     (blocks, spare): (mpsc::Receiver<RecordBlock>, mpsc::Sender<RecordBlock>),
     checkpoint: Option<&Checkpoint<'_>>,
 ) -> Result<Vec<u64>, LodError> {
+    let mut checkpoints = 0;
     for mut block in blocks {
         if let (Some((read, stats)), Some(checkpoint)) = (block.checkpoint.take(), checkpoint) {
             writer.settle()?;
             checkpoint(read, &counts, &stats)?;
+            pause::at("checkpoint", checkpoints);
+            checkpoints += 1;
             continue;
         }
         let records = block.records.chunks_exact(record_bytes);

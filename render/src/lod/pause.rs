@@ -1,7 +1,8 @@
 //! The build's test hook: with `POINTFARM_TEST_PAUSE_AT=STAGE:N` in its environment, a build
 //! stops for good at that point, after saying so on stderr (`build paused at STAGE:N`), so
 //! that a test can kill the process there (tests/build_resume.rs). Stages: `counting:N` as
-//! the counting pass takes the source's batch N; `partition:N`, `split:N` and `parent:N` as
+//! the counting pass takes the source's batch N; `checkpoint:N` once it has recorded its
+//! checkpoint N (at the start of a file after the first); `partition:N`, `split:N` and `parent:N` as
 //! the unit after the N this run finished of that kind has written its output but is not yet
 //! recorded; `hierarchy:0` once every unit is recorded, before the hierarchy is written. Read
 //! once, by the build alone; a build without the variable never stops.
