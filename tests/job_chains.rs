@@ -6,8 +6,8 @@ use pointfarm_daemon::access::Access;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_tests::service::{
-    cancel, clients, get_job, scratch_sample, submit, turntable_job, upload_sample, watch_to_end,
-    watch_to_success, TestDaemon,
+    self, cancel, clients, get_job, scratch_sample, submit, turntable_job, upload_sample,
+    watch_to_end, watch_to_success, TestDaemon,
 };
 use pointfarm_tests::{pointfarm, stdout, ServeProcess};
 use tonic::transport::Channel;
@@ -112,21 +112,7 @@ async fn a_cancelled_job_fails_the_chain_after_it_and_unknown_jobs_are_refused()
 
 /// `pointfarm render --server ADDR --detach MORE...`, which must succeed; its stdout.
 fn render_detached(address: &str, file: &str, out: &str, more: &[&str]) -> String {
-    let mut args = vec![
-        "render",
-        file,
-        "--server",
-        address,
-        "--turntable",
-        "2",
-        "--size",
-        "32x24",
-        "--out",
-        out,
-        "--detach",
-    ];
-    args.extend_from_slice(more);
-    let output = pointfarm(&args);
+    let output = service::render_detached(address, file, out, more);
     assert!(output.status.success(), "{output:?}");
     stdout(&output)
 }

@@ -12,8 +12,8 @@ use pointfarm_daemon::access::Access;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_tests::service::{
-    clients, get_job, scratch_sample, submit, turntable_job, upload_file, watch_to_end,
-    watch_to_success, TestDaemon,
+    clients, get_job, render_detached, scratch_sample, submit, turntable_job, upload_file,
+    watch_to_end, watch_to_success, TestDaemon,
 };
 use pointfarm_tests::{assert_fails_saying, pointfarm, stdout, ServeProcess, WorkerProcess};
 use tonic::transport::Channel;
@@ -71,23 +71,7 @@ fn names_labels_priorities_and_pauses_are_found_checked_and_kept_across_a_restar
     // No worker: the jobs stay queued.
     let server = ServeProcess::start_with(&data, &["--no-embedded-worker"]);
     let address = server.address.clone();
-    let submit_detached = |extra: &[&str]| {
-        let mut args = vec![
-            "render",
-            file,
-            "--server",
-            &address,
-            "--turntable",
-            "2",
-            "--size",
-            "32x24",
-            "--out",
-            out,
-            "--detach",
-        ];
-        args.extend_from_slice(extra);
-        pointfarm(&args)
-    };
+    let submit_detached = |extra: &[&str]| render_detached(&address, file, out, extra);
     let hall = submit_detached(&[
         "--name",
         "hall, east wing",

@@ -414,6 +414,31 @@ pub fn scratch_sample(name: &str, points: usize, seed: u64) -> (tempfile::TempDi
     (scratch, file)
 }
 
+/// `pointfarm render FILE --server ADDRESS --turntable 2 --size 32x24 --out OUT --detach`,
+/// with `more` arguments after: a small job submitted as a script submits it.
+pub fn render_detached(
+    address: &str,
+    file: &str,
+    out: &str,
+    more: &[&str],
+) -> std::process::Output {
+    let mut args = vec![
+        "render",
+        file,
+        "--server",
+        address,
+        "--turntable",
+        "2",
+        "--size",
+        "32x24",
+        "--out",
+        out,
+        "--detach",
+    ];
+    args.extend_from_slice(more);
+    crate::pointfarm(&args)
+}
+
 /// The generated sample scene (`points` of them, from `seed`) uploaded through `datasets` as
 /// `s.las`.
 pub async fn upload_sample(datasets: &mut Datasets, points: usize, seed: u64) -> pb::Dataset {

@@ -19,6 +19,7 @@ use tokio::sync::{mpsc, watch};
 use tonic::Code;
 
 use crate::client::Client;
+use crate::lease_renewal::{keep_lease, renewal_interval};
 
 /// How long one encode lease request waits for work on the daemon.
 const LEASE_WAIT_MS: u32 = 10_000;
@@ -118,10 +119,19 @@ async fn make_video(client: &Client, task: &EncodeTask, dir: &Path) {
     ));
     let abandoned = Arc::new(AtomicBool::new(false));
     let renewals = tokio::spawn(keep_lease(
-        client.clone(),
-        task.lease_id.clone(),
-        (task.lease_timeout / 3).clamp(Duration::from_millis(50), Duration::from_secs(5)),
+        "video",
+        renewal_interval(task.lease_timeout),
         abandoned.clone(),
+        {
+            let (client, lease_id) = (client.clone(), task.lease_id.clone());
+            move || {
+                let mut client = client.clone();
+                let request = pb::RenewEncodeRequest {
+                    lease_id: lease_id.clone(),
+                };
+                async move { client.renew_encode(request).await }
+            }
+        },
     ));
     let made = encode(client, task, &output).await;
     let handed = match made {
@@ -300,36 +310,6 @@ async fn fail(client: &Client, lease_id: &str, reason: &str) {
     };
     if let Err(status) = client.clone().fail_encode(request).await {
         tracing::warn!(code = ?status.code(), message = status.message(), "reporting the failed video");
-    }
-}
-
-/// Renews the encode lease until aborted; sets `abandoned` when the daemon says stop.
-async fn keep_lease(
-    mut client: Client,
-    lease_id: String,
-    interval: Duration,
-    abandoned: Arc<AtomicBool>,
-) {
-    loop {
-        tokio::time::sleep(interval).await;
-        let request = pb::RenewEncodeRequest {
-            lease_id: lease_id.clone(),
-        };
-        match client.renew_encode(request).await {
-            Ok(response) => {
-                let answer = response.into_inner();
-                if answer.action == pb::LeaseAction::Stop as i32 {
-                    tracing::info!(reason = %answer.reason, "the daemon says to drop the video");
-                    abandoned.store(true, Ordering::SeqCst);
-                    return;
-                }
-            }
-            Err(status) => tracing::warn!(
-                code = ?status.code(),
-                message = status.message(),
-                "renewing the encode lease failed; it runs out unless the next renewal succeeds"
-            ),
-        }
     }
 }
 

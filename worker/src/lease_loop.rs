@@ -53,6 +53,7 @@ use tracing::Instrument;
 use crate::client::Client;
 use crate::daemon_store::{self, DaemonStore};
 use crate::failure::FrameFailure;
+use crate::lease_renewal::{keep_lease, renewal_interval};
 use crate::render_state::{DatasetAccess, LodConfig, RenderedFrame, WorkerRenderState};
 
 /// How long one lease request waits for work on the daemon.
@@ -319,10 +320,19 @@ async fn run_task(
     );
     let abandoned = Arc::new(AtomicBool::new(false));
     let heartbeats = tokio::spawn(keep_lease(
-        client.clone(),
-        task.lease.id.clone(),
-        heartbeat_interval(task.lease_timeout),
+        "frame",
+        renewal_interval(task.lease_timeout),
         abandoned.clone(),
+        {
+            let (client, lease_id) = (client.clone(), task.lease.id.clone());
+            move || {
+                let mut client = client.clone();
+                let request = pb::HeartbeatRequest {
+                    lease_id: lease_id.clone(),
+                };
+                async move { client.heartbeat(request).await }
+            }
+        },
     ));
     let result = download_and_render(client, render_state, downloads, &task).await;
     heartbeats.abort();
@@ -462,42 +472,6 @@ async fn download_and_render(
         Ok(frame) => Attempt::Rendered(frame),
         Err(failure) => Attempt::Failed(failure),
     })
-}
-
-/// A third of the lease timeout keeps the lease through a lost heartbeat; at most 5 s apart,
-/// so that a cancel reaches the worker soon.
-fn heartbeat_interval(lease_timeout: Duration) -> Duration {
-    (lease_timeout / 3).clamp(Duration::from_millis(50), Duration::from_secs(5))
-}
-
-/// Renews the lease until aborted; sets `abandoned` and returns when the daemon says stop.
-async fn keep_lease(
-    mut client: Client,
-    lease_id: String,
-    interval: Duration,
-    abandoned: Arc<AtomicBool>,
-) {
-    loop {
-        tokio::time::sleep(interval).await;
-        let request = pb::HeartbeatRequest {
-            lease_id: lease_id.clone(),
-        };
-        match client.heartbeat(request).await {
-            Ok(response) => {
-                let answer = response.into_inner();
-                if answer.action == pb::LeaseAction::Stop as i32 {
-                    tracing::info!(reason = %answer.reason, "the daemon says to drop the frame");
-                    abandoned.store(true, Ordering::SeqCst);
-                    return;
-                }
-            }
-            Err(status) => tracing::warn!(
-                code = ?status.code(),
-                message = status.message(),
-                "heartbeat failed; the lease runs out unless the next one succeeds"
-            ),
-        }
-    }
 }
 
 /// Downloads the dataset's files into `dir`, checking each one's SHA-256; on an error none is

@@ -13,6 +13,7 @@
 //!   the worker reads them over gRPC.
 //! - `url_dataset`: a dataset by URL, whose COPC object the worker reads itself by range.
 //! - `encode`: jobs' videos, made with ffmpeg under encode leases beside the frames.
+//! - `lease_renewal`: keeping a frame's or a video's lease while its work runs.
 //! - `failure`: why a frame failed, and whether another attempt may succeed.
 //! - `memory_limit`: the worker process's limit on its own memory.
 //! - `supervised`: exiting when the supervising daemon is gone.
@@ -23,6 +24,7 @@ pub mod daemon_store;
 pub mod encode;
 pub mod failure;
 pub mod lease_loop;
+mod lease_renewal;
 pub mod memory_limit;
 pub mod render_state;
 pub mod supervised;

@@ -21,7 +21,7 @@ use tonic::{Code, Status};
 use super::auth::field;
 use super::Dashboard;
 use crate::error::DaemonError;
-use crate::grpc::{blocking_within, BLOCKING_CALL_BOUND};
+use crate::grpc::{blocking_within, job_with_frames_message, BLOCKING_CALL_BOUND};
 use crate::model::{FrameReport, Job, JobState};
 use crate::service::Daemon;
 
@@ -174,17 +174,7 @@ pub async fn job_message(
 ) -> Result<(pb::Job, Job, Vec<FrameReport>), Failure> {
     let (job, frames) = run(daemon, move |daemon| daemon.job_with_frames(&id)).await?;
     let availability = daemon.job_availability(&job);
-    let mut message = pb::Job::from(&job);
-    message.frames = frames.iter().map(pb::FrameFinished::from).collect();
-    message.waiting_reason = availability.waiting.unwrap_or_default();
-    message.refusals = availability
-        .refusals
-        .into_iter()
-        .map(|(worker_name, reason)| pb::WorkerRefusal {
-            worker_name,
-            reason,
-        })
-        .collect();
+    let message = job_with_frames_message(&job, &frames, availability);
     Ok((message, job, frames))
 }
 

@@ -11,6 +11,7 @@
 use pointfarm_proto::v1 as pb;
 
 use super::request::{camera_path_message, known_enum, render_options_message, render_request};
+use crate::availability::JobAvailability;
 use crate::capabilities::{checked_tags, AdapterKind, WorkerCapabilities, WorkerRequirements};
 use crate::error::DaemonError;
 use crate::lease::{FailureKind, FrameTask, HeartbeatAnswer};
@@ -136,6 +137,26 @@ fn state_filter(state: i32) -> Result<Option<JobState>, DaemonError> {
         pb::JobState::Cancelled => Some(JobState::Cancelled),
         pb::JobState::Paused => Some(JobState::Paused),
     })
+}
+
+/// A job as `GetJob` answers it: with its finished frames and why it waits.
+pub fn job_with_frames_message(
+    job: &Job,
+    frames: &[FrameReport],
+    availability: JobAvailability,
+) -> pb::Job {
+    let mut message = pb::Job::from(job);
+    message.frames = frames.iter().map(pb::FrameFinished::from).collect();
+    message.waiting_reason = availability.waiting.unwrap_or_default();
+    message.refusals = availability
+        .refusals
+        .into_iter()
+        .map(|(worker_name, reason)| pb::WorkerRefusal {
+            worker_name,
+            reason,
+        })
+        .collect();
+    message
 }
 
 /// A job without its original request and frames; the services add those where they answer

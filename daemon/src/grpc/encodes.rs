@@ -8,7 +8,7 @@ use tokio::sync::broadcast::error::RecvError;
 use tonic::{Request, Response, Status, Streaming};
 
 use super::conversions::invalid;
-use super::streaming::{chunks, first_part, read_chunk, send_each, spawn_stream, ResponseStream};
+use super::streaming::{first_part, read_chunk, spawn_stream, ResponseStream};
 use super::Api;
 use crate::limits::{check_id, check_length, truncated, MAX_REASON_BYTES, MAX_WORKER_NAME_BYTES};
 
@@ -97,37 +97,8 @@ impl Api {
         let job = self
             .run(move |daemon| daemon.encode_job(&lease_id, embedded))
             .await?;
-        if r.from_index > job.frames_total {
-            return Err(invalid(
-                "from_index",
-                format!("job {} has {} frames", job.id, job.frames_total),
-            )
-            .into());
-        }
-        let daemon = self.daemon.clone();
-        let stream = spawn_stream(4, move |sender| async move {
-            for index in r.from_index..job.frames_total {
-                let read = tokio::fs::read(daemon.config.frame_path(&job.id, index));
-                let bytes = match super::io_within(read).await {
-                    Ok(bytes) => bytes,
-                    Err(e) => {
-                        let status = Status::internal(format!("frame {index}: {e}"));
-                        let _ = sender.send(Err(status)).await;
-                        return;
-                    }
-                };
-                let messages: Vec<_> = chunks(&bytes)
-                    .map(|(chunk, last)| pb::FrameChunk {
-                        index,
-                        png: chunk.to_vec(),
-                        last,
-                    })
-                    .collect();
-                if !send_each(&sender, messages).await {
-                    return;
-                }
-            }
-        });
+        // Every frame of a job whose video is leased is done.
+        let stream = super::jobs::frames_from(&self.daemon, job, r.from_index, |_, _, _| true)?;
         Ok(Response::new(stream))
     }
 

@@ -10,10 +10,10 @@ use pointfarm_proto::v1::job_service_server::JobService;
 use tokio::sync::broadcast::error::RecvError;
 use tonic::{Request, Response, Status};
 
-use super::conversions::{invalid, job_filter, page_messages};
+use super::conversions::{invalid, job_filter, job_with_frames_message, page_messages};
 use super::streaming::{chunks, send_each, spawn_stream, ResponseStream};
 use super::Api;
-use crate::model::{FrameReport, FrameState, JobSpec};
+use crate::model::{FrameReport, FrameState, Job, JobSpec};
 use crate::service::Daemon;
 
 #[tonic::async_trait]
@@ -37,18 +37,11 @@ impl JobService for Api {
         let id = request.into_inner().id;
         let (job, frames) = self.run(move |daemon| daemon.job_with_frames(&id)).await?;
         let availability = self.daemon.job_availability(&job);
-        let mut message = pb::Job::from(&job);
-        message.frames = frames.iter().map(pb::FrameFinished::from).collect();
-        message.waiting_reason = availability.waiting.unwrap_or_default();
-        message.refusals = availability
-            .refusals
-            .into_iter()
-            .map(|(worker_name, reason)| pb::WorkerRefusal {
-                worker_name,
-                reason,
-            })
-            .collect();
-        Ok(Response::new(message))
+        Ok(Response::new(job_with_frames_message(
+            &job,
+            &frames,
+            availability,
+        )))
     }
 
     async fn list_jobs(
@@ -200,46 +193,13 @@ impl JobService for Api {
     ) -> Result<Response<Self::FetchFramesStream>, Status> {
         let r = request.into_inner();
         let job = self.daemon.job(&r.job_id)?;
-        if r.from_index > job.frames_total {
-            return Err(invalid(
-                "from_index",
-                format!("job {} has {} frames", job.id, job.frames_total),
-            )
-            .into());
-        }
-        let daemon = self.daemon.clone();
-        let stream = spawn_stream(4, move |sender| async move {
-            for index in r.from_index..job.frames_total {
-                let done = matches!(
-                    daemon.state.frame(&job.id, index),
-                    Ok(Some(FrameState::Done { .. }))
-                );
-                // A pending frame's preview is its latest image until the final one.
-                if !done && !daemon.state.has_preview(&job.id, index).unwrap_or(false) {
-                    continue;
-                }
-                let read = tokio::fs::read(daemon.config.frame_path(&job.id, index));
-                let bytes = match super::io_within(read).await {
-                    Ok(bytes) => bytes,
-                    Err(e) => {
-                        let _ = sender
-                            .send(Err(Status::internal(format!("frame {index}: {e}"))))
-                            .await;
-                        return;
-                    }
-                };
-                let messages: Vec<_> = chunks(&bytes)
-                    .map(|(chunk, last)| pb::FrameChunk {
-                        index,
-                        png: chunk.to_vec(),
-                        last,
-                    })
-                    .collect();
-                if !send_each(&sender, messages).await {
-                    return;
-                }
-            }
-        });
+        // A pending frame's preview is its latest image until the final one.
+        let stream = frames_from(&self.daemon, job, r.from_index, |daemon, job, index| {
+            matches!(
+                daemon.state.frame(&job.id, index),
+                Ok(Some(FrameState::Done { .. }))
+            ) || daemon.state.has_preview(&job.id, index).unwrap_or(false)
+        })?;
         Ok(Response::new(stream))
     }
 
@@ -313,4 +273,49 @@ async fn catch_up(
         reported,
         ended: job.state.is_terminal(),
     })
+}
+
+/// Job `job`'s frames from `from` on, each PNG read from the daemon's disk and sent in chunks,
+/// those `has_image` refuses skipped; a frame that cannot be read ends the stream with
+/// INTERNAL. `from` past the job's frames is refused.
+pub(super) fn frames_from(
+    daemon: &Arc<Daemon>,
+    job: Job,
+    from: u32,
+    has_image: impl Fn(&Daemon, &Job, u32) -> bool + Send + 'static,
+) -> Result<ResponseStream<pb::FrameChunk>, Status> {
+    if from > job.frames_total {
+        return Err(invalid(
+            "from_index",
+            format!("job {} has {} frames", job.id, job.frames_total),
+        )
+        .into());
+    }
+    let daemon = daemon.clone();
+    Ok(spawn_stream(4, move |sender| async move {
+        for index in from..job.frames_total {
+            if !has_image(&daemon, &job, index) {
+                continue;
+            }
+            let read = tokio::fs::read(daemon.config.frame_path(&job.id, index));
+            let bytes = match super::io_within(read).await {
+                Ok(bytes) => bytes,
+                Err(e) => {
+                    let status = Status::internal(format!("frame {index}: {e}"));
+                    let _ = sender.send(Err(status)).await;
+                    return;
+                }
+            };
+            let messages: Vec<_> = chunks(&bytes)
+                .map(|(chunk, last)| pb::FrameChunk {
+                    index,
+                    png: chunk.to_vec(),
+                    last,
+                })
+                .collect();
+            if !send_each(&sender, messages).await {
+                return;
+            }
+        }
+    }))
 }

@@ -4,7 +4,7 @@
 //! - `conversions`: messages to domain types and back (`From`/`TryFrom`); the frame-task
 //!   conversions are public, for the worker's side of the wire (the `pointfarm-worker`
 //!   crate), and so are those of dataset descriptions, which `pointfarm info` builds from
-//!   local files too.
+//!   local files too, and a job's, which the dashboard answers with.
 //! - `status`: the one map from [`crate::error::DaemonError`] to status codes.
 //! - `datasets`, `jobs`, `workers`: one file per service.
 //! - `lease_guard`: gives back the frame of an abandoned long-polling lease request.
@@ -31,8 +31,9 @@ mod workers;
 
 pub use conversions::{
     copc_chunks, copc_description, dataset_description, file_description, frame_cut_message,
-    frame_cut_of_message, frame_task, frame_task_message, node_key_message,
-    point_attributes_message, preview_sample_bounds, stage_timings, timings_message,
+    frame_cut_of_message, frame_task, frame_task_message, job_with_frames_message,
+    node_key_message, point_attributes_message, preview_sample_bounds, stage_timings,
+    timings_message,
 };
 pub use request::{camera_path_message, render_options_message, render_request};
 pub use video::{video_settings, video_spec_message};
