@@ -21,7 +21,7 @@ use tonic::{Code, Status};
 use super::auth::field;
 use super::Dashboard;
 use crate::error::DaemonError;
-use crate::grpc::{blocking_within, job_with_frames_message, BLOCKING_CALL_BOUND};
+use crate::grpc::{self, blocking_within, job_with_frames_message, BLOCKING_CALL_BOUND};
 use crate::model::{FrameReport, Job, JobState};
 use crate::service::Daemon;
 
@@ -189,16 +189,7 @@ pub async fn job(
 /// The workers heard from within the lease timeout, as `ListWorkers` answers.
 pub fn workers_message(daemon: &Daemon) -> pb::ListWorkersResponse {
     let connected = daemon.workers.connected(daemon.config.lease_timeout);
-    pb::ListWorkersResponse {
-        workers: connected
-            .iter()
-            .map(|worker| pb::ConnectedWorker {
-                worker_name: worker.name.clone(),
-                embedded: worker.embedded,
-                capabilities: Some(pb::WorkerCapabilities::from(&worker.capabilities)),
-            })
-            .collect(),
-    }
+    grpc::workers_message(&connected)
 }
 
 pub async fn workers(State(dashboard): State<Dashboard>) -> Response {

@@ -8,9 +8,7 @@ use std::time::Duration;
 use pointfarm_proto::v1 as pb;
 
 use super::*;
-use crate::capabilities::WorkerCapabilities;
-use crate::lease::FrameOutcome;
-use crate::test_daemon::{self, png};
+use crate::test_daemon;
 
 fn open(dir: &Path, lease_timeout: Duration) -> Arc<Daemon> {
     test_daemon::open(dir, lease_timeout)
@@ -27,19 +25,8 @@ fn submit_with_video(daemon: &Daemon, frames: u32) -> Job {
 
 /// Renders every frame there is to lease.
 fn render_all(daemon: &Daemon) {
-    while let Some(task) = daemon
-        .lease_frame("w", false, &WorkerCapabilities::default())
-        .expect("lease")
-    {
-        let outcome = FrameOutcome {
-            timings: Vec::new(),
-            dataset_cache_hit: None,
-            cut: None,
-            preview: None,
-        };
-        daemon
-            .complete_frame(&task.lease.id, &png(8, 6), outcome)
-            .expect("complete");
+    while let Some(task) = test_daemon::lease(daemon) {
+        test_daemon::render(daemon, &task);
     }
 }
 

@@ -20,6 +20,7 @@ use crate::limits::{truncated, MAX_WORKER_NAME_BYTES};
 use crate::model::{FrameCut, FrameReport, Job, JobState, StageTiming};
 use crate::state::{JobFilter, Page};
 use crate::stores::{CopcServed, PreviewBytes, StoreAnswer};
+use crate::worker_presence::ConnectedWorker;
 pub use descriptions::{
     copc_description, dataset_description, file_description, point_attributes_message,
 };
@@ -137,6 +138,20 @@ fn state_filter(state: i32) -> Result<Option<JobState>, DaemonError> {
         pb::JobState::Cancelled => Some(JobState::Cancelled),
         pb::JobState::Paused => Some(JobState::Paused),
     })
+}
+
+/// The workers heard from, as `ListWorkers` answers.
+pub fn workers_message(connected: &[ConnectedWorker]) -> pb::ListWorkersResponse {
+    pb::ListWorkersResponse {
+        workers: connected
+            .iter()
+            .map(|worker| pb::ConnectedWorker {
+                worker_name: worker.name.clone(),
+                embedded: worker.embedded,
+                capabilities: Some(pb::WorkerCapabilities::from(&worker.capabilities)),
+            })
+            .collect(),
+    }
 }
 
 /// A job as `GetJob` answers it: with its finished frames and why it waits.

@@ -10,7 +10,9 @@ use pointfarm_proto::v1::job_service_server::JobService;
 use tokio::sync::broadcast::error::RecvError;
 use tonic::{Request, Response, Status};
 
-use super::conversions::{invalid, job_filter, job_with_frames_message, page_messages};
+use super::conversions::{
+    invalid, job_filter, job_with_frames_message, page_messages, workers_message,
+};
 use super::streaming::{chunks, send_each, spawn_stream, ResponseStream};
 use super::Api;
 use crate::model::{FrameReport, FrameState, Job, JobSpec};
@@ -211,16 +213,7 @@ impl JobService for Api {
             .daemon
             .workers
             .connected(self.daemon.config.lease_timeout);
-        Ok(Response::new(pb::ListWorkersResponse {
-            workers: connected
-                .iter()
-                .map(|worker| pb::ConnectedWorker {
-                    worker_name: worker.name.clone(),
-                    embedded: worker.embedded,
-                    capabilities: Some(pb::WorkerCapabilities::from(&worker.capabilities)),
-                })
-                .collect(),
-        }))
+        Ok(Response::new(workers_message(&connected)))
     }
 
     async fn list_leases(
