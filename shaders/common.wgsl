@@ -80,8 +80,8 @@ fn listed_batch(entry: u32, batch: Batch) -> Batch {
 // Points are stored quantised (Kanzok et al.), 11 bytes each, in two arrays per segment:
 // - positions: array<vec2<u32>>, `POSITION_BITS` of x/y/z as a fraction of the batch's box
 //   (bit layout in `quantised_coordinates`);
-// - colours: array<u32> holding 3 RGB bytes per point back to back, plus one spare word.
-// The colour lives apart so that a pass reads it only for points that pass the depth test.
+// - colors: array<u32> holding 3 RGB bytes per point back to back, plus one spare word.
+// The color lives apart so that a pass reads it only for points that pass the depth test.
 
 // One quantisation step per axis: extent / (2^bits - 1), with the host's reciprocals
 // (`INV_QUANT_MAX` in the layout prelude, also used by `points::quantisation_step`).
@@ -113,12 +113,12 @@ fn dequantise(word: vec2<u32>, origin: vec3<f32>, step: vec3<f32>) -> vec3<f32> 
     return origin + quantised_coordinates(word) * step;
 }
 
-// Index of the first of the two colour words that hold point `i`'s RGB bytes.
+// Index of the first of the two color words that hold point `i`'s RGB bytes.
 fn color_word_index(i: u32) -> u32 {
     return (3u * i) >> 2u;
 }
 
-// The RGBA8 colour of point `i` from the two words at `color_word_index(i)`: alpha is 255,
+// The RGBA8 color of point `i` from the two words at `color_word_index(i)`: alpha is 255,
 // points are opaque.
 fn unpack_color(first: u32, second: u32, i: u32) -> u32 {
     let shift = ((3u * i) & 3u) * 8u;

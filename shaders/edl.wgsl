@@ -1,6 +1,6 @@
 // Eye-Dome Lighting after Boucheny (2009) and Potree: shading from depth alone, so clouds
-// without colour or normals read as surfaces. Runs on the resolved images and changes the
-// colour in place (each pixel reads only its own colour, and its neighbours' depths).
+// without color or normals read as surfaces. Runs on the resolved images and changes the
+// color in place (each pixel reads only its own color, and its neighbours' depths).
 //
 // For a pixel with linear depth d, over 4 pairs of opposite neighbours on a circle of
 // `edl_radius` pixels: a pair on the surface adds 2 max(0, log2(d (1/d_a + 1/d_b) / 2)), how far
@@ -8,7 +8,7 @@
 // screen space, so a slanted plane adds nothing, unlike Potree's sum over single neighbours);
 // a lone surface neighbour adds max(0, log2 d - log2 d_neighbour); a background pixel next to
 // geometry gets 100 per surface neighbour, which draws the silhouette outline.
-// shade = exp(-300 * edl_strength * response / 8); colour *= shade.
+// shade = exp(-300 * edl_strength * response / 8); color *= shade.
 //
 // Every surface pixel's luma is counted before and after shading, for the exposure the host
 // applies afterwards (`raster/exposure.rs`).
@@ -46,7 +46,7 @@ const DIRECTIONS = array<vec2<f32>, 4>(
     vec2<f32>(-DIAGONAL, DIAGONAL),
 );
 
-// The luma bin of a packed RGBA8 colour (`luma_bin` in `raster/exposure.rs`).
+// The luma bin of a packed RGBA8 color (`luma_bin` in `raster/exposure.rs`).
 fn luma_bin(rgba: u32) -> u32 {
     let r = f32(rgba & 0xffu);
     let g = f32((rgba >> 8u) & 0xffu);

@@ -1,6 +1,6 @@
 // Pintus et al. 2011, section 5: anisotropic filling of the pixels the visibility pass left
 // mutable, one 3x3 step per dispatch (ping-pong buffers). A mutable pixel without a depth
-// takes the median depth of its valid neighbours, and that neighbour's colour; one with a
+// takes the median depth of its valid neighbours, and that neighbour's color; one with a
 // depth becomes the weighted mean of its valid 3x3 neighbourhood (itself included), with the
 // paper's equation 1: w = (1 - r / 2) (1 - min(1, |z - z0| / delta)), r the distance in
 // pixels, delta = depth_tolerance * z0. Fixed pixels never change.
@@ -55,7 +55,7 @@ fn fill_step(invocation: GridInvocation) {
     let z0 = depth_in[pixel];
 
     // The 3x3 neighbourhood in fixed slots (`neighbour`, no compaction), each valid when it
-    // holds a point. Colours are read only where used: one for the median, the valid ones for the mean.
+    // holds a point. Colors are read only where used: one for the median, the valid ones for the mean.
     var depths: array<f32, 9>;
     var neighbours: array<u32, 9>;
     var valid: array<bool, 9>;

@@ -1,6 +1,6 @@
 // High-quality mode, second pass (Schütz & Wimmer, after Botsch et al.): after the depth pass
 // (`rasterize_depth` of raster_atomic32.wgsl) has stored the nearest depth per pixel, every
-// point within the depth band behind it adds its colour and a count. The resolve pass divides,
+// point within the depth band behind it adds its color and a count. The resolve pass divides,
 // so a pixel shows the average of all points near the front surface instead of one arbitrary
 // point: less aliasing and flicker under motion.
 //
@@ -10,7 +10,7 @@
 // u32 only beyond 16 million points in one pixel. The framebuffer, the entry point and the
 // depth band's test come before this file too (hq_band.wgsl).
 
-// Adds point `i`'s colour to every pixel of its splat where it lies within `band` times the
+// Adds point `i`'s color to every pixel of its splat where it lies within `band` times the
 // nearest depth.
 fn draw_splat(i: u32, splat: Splat, band: f32, pass_kind: u32) {
     for (var k = 0u; k < SPLAT_PIXELS; k++) {

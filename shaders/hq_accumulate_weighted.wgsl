@@ -1,5 +1,5 @@
 // High-quality accumulation for the pages of a level-of-detail cut (`cut/gpu_cache.rs`): as
-// hq_accumulate.wgsl, but each point adds its colour and count as many times as the original
+// hq_accumulate.wgsl, but each point adds its color and count as many times as the original
 // points it stands for. Where its node is drawn without the child below it, that is its
 // weight (`lod/weights.rs`); where that child is drawn too, the child's points stand for the
 // region and the point counts once (docs/perf/hq-band-on-cuts.md). The 32-bit sums of 8-bit

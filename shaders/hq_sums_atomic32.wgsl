@@ -12,7 +12,7 @@ fn add_to_sums(pixel: i32, color: u32) {
 }
 
 // The same for a point that stands for `weight` points (a level-of-detail cut's,
-// hq_accumulate_weighted.wgsl): its colour and count `weight` times.
+// hq_accumulate_weighted.wgsl): its color and count `weight` times.
 fn add_weighted_to_sums(pixel: i32, color: u32, weight: u32) {
     let base = 4 * pixel;
     atomicAdd(&accumulator[base], (color & 0xffu) * weight);

@@ -44,7 +44,7 @@ fn add_to_sums(pixel: i32, color: u32) {
 const PACKED_MAX_WEIGHT: u32 = 16u;
 
 // The same for a point that stands for `weight` points (a level-of-detail cut's,
-// hq_accumulate_weighted.wgsl): its colour and count `weight` times. The packed word keeps
+// hq_accumulate_weighted.wgsl): its color and count `weight` times. The packed word keeps
 // an add only while its count stays within PACKED_POINTS, so no channel's sum can overflow
 // its 16 bits; a heavier point goes to the wide sums at once.
 fn add_weighted_to_sums(pixel: i32, color: u32, weight: u32) {

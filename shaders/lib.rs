@@ -17,7 +17,7 @@ pub enum Shader {
     RasterAtomic64,
     /// Basic mode with 32-bit atomics: entry points `rasterize_depth`, `rasterize_color`.
     RasterAtomic32,
-    /// High-quality mode's colour accumulation with 32-bit atomics: entry point `accumulate`.
+    /// High-quality mode's color accumulation with 32-bit atomics: entry point `accumulate`.
     HqAccumulate,
     /// The same with 64-bit atomicAdd (`SHADER_INT64_ATOMIC_ALL_OPS`), two atomics a point.
     HqAccumulate64,

@@ -16,7 +16,7 @@ const MAX_TESTED_TILES: u32 = 256u;
 @group(0) @binding(6) var<storage, read> occlusion_tiles: array<u32>;
 
 // Batches skipped whole this frame, for tests and the benchmark: [0] by the pass that writes
-// depths, [1] by the passes that read them (32-bit colour, high-quality accumulation).
+// depths, [1] by the passes that read them (32-bit color, high-quality accumulation).
 @group(0) @binding(7) var<storage, read_write> occlusion_skipped: array<atomic<u32>>;
 
 fn count_skipped(pass_kind: u32, lane: u32) {

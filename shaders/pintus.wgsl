@@ -4,7 +4,7 @@
 //     w^k = clamp(1 - |d - d_min| / (d_max - d_min + eps), 0, 1);
 // the next level's depth is (mu + d_min) / 2. The levels are summed with weights
 // 1 / (k + 1)^xi (equation 3) and normalised by the sum of the weights, so a flat surface
-// facing the camera keeps its colour; the colour is multiplied by the result.
+// facing the camera keeps its color; the color is multiplied by the result.
 //
 // eps is one pixel's footprint at the pixel's depth: the paper's "very small" epsilon makes
 // every non-flat pixel exactly 1/2, while a footprint-sized one turns the term into the
@@ -66,7 +66,7 @@ fn level(@builtin(global_invocation_id) id: vec3<u32>) {
 
 @group(0) @binding(4) var<storage, read_write> color: array<u32>;
 
-// Multiplies the colour of every surface pixel by its normalised shading term.
+// Multiplies the color of every surface pixel by its normalised shading term.
 @compute @workgroup_size(SCREEN_TILE, SCREEN_TILE)
 fn apply(@builtin(global_invocation_id) id: vec3<u32>) {
     if id.x >= params.width || id.y >= params.height {

@@ -20,7 +20,7 @@ fn color_of(i: u32) -> u32 {
 }
 
 // Which kind of pass draws, as `occlusion_skipped` counts them (occlusion.wgsl): the one that
-// writes depths, or one that reads them (32-bit colour, high-quality accumulation).
+// writes depths, or one that reads them (32-bit color, high-quality accumulation).
 const WRITES_DEPTHS: u32 = 0u;
 const READS_DEPTHS: u32 = 1u;
 

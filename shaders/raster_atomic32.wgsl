@@ -2,9 +2,9 @@
 // raster_atomic64.wgsl in two passes over the points.
 //
 // The framebuffer has the same memory layout as the 64-bit one, as pairs of u32 words:
-// [2i] = colour, [2i + 1] = depth bits. `rasterize_depth` keeps the nearest depth per pixel;
+// [2i] = color, [2i + 1] = depth bits. `rasterize_depth` keeps the nearest depth per pixel;
 // `rasterize_color` then lets every point whose depth equals the stored one atomicMin its
-// colour, which picks the same winner as the 64-bit (depth << 32 | colour) minimum. Both
+// color, which picks the same winner as the 64-bit (depth << 32 | color) minimum. Both
 // passes compute depths with the same code from the same inputs, so equality is exact.
 
 @group(0) @binding(3) var<storage, read_write> framebuffer: array<atomic<u32>>;

@@ -2,7 +2,7 @@
 //
 // Each framebuffer word holds (depth bits << 32 | RGBA8). Depths are positive f32, whose bit
 // patterns order like the values, so one atomicMin keeps the nearest point, and among points
-// at exactly the same depth the smallest colour word: the image does not depend on the order
+// at exactly the same depth the smallest color word: the image does not depend on the order
 // in which points arrive.
 //
 // One workgroup per batch. Needs SHADER_INT64 and SHADER_INT64_ATOMIC_MIN_MAX.

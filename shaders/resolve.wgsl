@@ -1,7 +1,7 @@
 // Resolves the point framebuffer into an RGBA8 image and a linear depth image, and clears each
 // entry as it reads it, so the next frame starts from an empty framebuffer without a pass of
 // its own (`clear` is only needed for a framebuffer that was never resolved). Works on both
-// rasterizer variants: each framebuffer entry is a pair of u32 words, x = colour, y = depth
+// rasterizer variants: each framebuffer entry is a pair of u32 words, x = color, y = depth
 // bits (the little-endian halves of the 64-bit word), and 0xffffffff in both means "no point".
 //
 // The resolves visit the frame's run of pixels only: `frame.resolve_pixels` of them, from the
@@ -94,7 +94,7 @@ fn quotient(a: vec3<u32>, b: u32) -> vec3<u32> {
     return q;
 }
 
-// High-quality mode: writes pixel `pixel`'s rounded average of the colours accumulated in
+// High-quality mode: writes pixel `pixel`'s rounded average of the colors accumulated in
 // `sums` (red, green, blue, count), or the background where none was; and its depth.
 fn write_average(pixel: u32, sums: vec4<u32>, depth_bits: u32) {
     // Round half up: (sum + count / 2) / count. Selects, not branches (see `resolve`).
@@ -108,7 +108,7 @@ fn write_average(pixel: u32, sums: vec4<u32>, depth_bits: u32) {
     }
 }
 
-// High-quality mode: the rounded average of the colours accumulated per pixel. The sums come
+// High-quality mode: the rounded average of the colors accumulated per pixel. The sums come
 // from `read_sums` and are emptied by `empty_sums`, which the file composed after this one
 // defines: resolve_sums.wgsl for the 32-bit accumulation's, resolve_sums_packed.wgsl for the
 // 64-bit one's (hq_sums_atomic32.wgsl, hq_sums_atomic64.wgsl).

@@ -24,7 +24,7 @@ struct ScreenParams {
     first_level: u32,
     // Pintus shading: this level's weight 1 / (k + 1)^xi ...
     level_weight: f32,
-    // ... and one over the sum of all levels' weights (a flat, facing surface keeps its colour).
+    // ... and one over the sum of all levels' weights (a flat, facing surface keeps its color).
     inverse_total_weight: f32,
     // Visibility: the pixels it classifies, x0, y0, x1, y1 (the footprint grown by the
     // kernel's radius and a pixel); all others are fixed background.

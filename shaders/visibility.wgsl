@@ -11,7 +11,7 @@
 // points becomes fillable, and one beside a silhouette stays background.
 //
 // Output: the visible pixels unchanged and fixed; the others emptied (+infinity, background
-// colour) and listed as mutable for the filling, which then visits only those (fill.wgsl).
+// color) and listed as mutable for the filling, which then visits only those (fill.wgsl).
 
 @group(0) @binding(2) var<storage, read> color_in: array<u32>;
 @group(0) @binding(3) var<storage, read_write> depth_out: array<f32>;

@@ -1,6 +1,6 @@
-//! Colour that holds across tiles and frames: two crops of a real scan rendered apart with
-//! one `--range` give the same colour to the same height (here and from levels of detail),
-//! and different colours without it; the range and ramp refused where they do not apply, on
+//! Color that holds across tiles and frames: two crops of a real scan rendered apart with
+//! one `--range` give the same color to the same height (here and from levels of detail),
+//! and different colors without it; the range and ramp refused where they do not apply, on
 //! the command line and through a daemon; the legend written as a PNG.
 
 use std::path::{Path, PathBuf};
@@ -132,7 +132,7 @@ fn crops_agree_with_a_range_only(lod: bool) {
     let dir = tempfile::tempdir().expect("tempdir");
     let crops = crops(dir.path());
     let mut common = camera(&crops.cloud);
-    // Unshaded: EDL's exposure takes each frame's own gain, and the colours are compared here.
+    // Unshaded: EDL's exposure takes each frame's own gain, and the colors are compared here.
     common.extend([
         "--color=elevation".into(),
         "--background=#000000".into(),
@@ -176,18 +176,18 @@ fn crops_agree_with_a_range_only(lod: bool) {
     assert!(both > 500);
     assert!(
         close < 0.8,
-        "without --range, each crop's own range should colour the band differently: {:.2}% agree",
+        "without --range, each crop's own range should color the band differently: {:.2}% agree",
         close * 100.0
     );
 }
 
 #[test]
-fn two_crops_with_one_range_colour_the_same_height_alike() {
+fn two_crops_with_one_range_color_the_same_height_alike() {
     crops_agree_with_a_range_only(false);
 }
 
 #[test]
-fn two_crops_with_one_range_colour_the_same_height_alike_from_levels_of_detail() {
+fn two_crops_with_one_range_color_the_same_height_alike_from_levels_of_detail() {
     crops_agree_with_a_range_only(true);
 }
 

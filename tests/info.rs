@@ -81,7 +81,7 @@ fn corners(bounds: Option<&pb::Bounds>) -> ([f64; 3], [f64; 3]) {
 }
 
 #[test]
-fn the_real_scans_report_their_header_points_and_colours() {
+fn the_real_scans_report_their_header_points_and_colors() {
     let (Some(las), Some(laz), Some(lone_star)) = (
         shared_data("autzen_trim.las"),
         shared_data("autzen_trim.laz"),

@@ -148,11 +148,11 @@ fn a_depth_image_comes_with_its_near_far_and_camera() {
     }
     assert!(sidecar["camera"]["projection"]["perspective"]["fovYDeg"].is_number());
 
-    // Where the colour image shows a point the depth decodes to a distance, nearer at the
+    // Where the color image shows a point the depth decodes to a distance, nearer at the
     // bottom of this view from above than at the top.
     let depth = image::open(&depth_path).expect("depth PNG");
     let depth = depth.as_luma16().expect("16-bit grey");
-    let color = image::open(&out).expect("colour").to_rgba8();
+    let color = image::open(&out).expect("color").to_rgba8();
     let background = *color.get_pixel(0, 0);
     let mut halves = [(0.0, 0u32); 2];
     for (x, y, c) in color.enumerate_pixels() {

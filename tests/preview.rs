@@ -45,7 +45,7 @@ fn job(name: &str, dataset_id: &str, preview: bool) -> pb::SubmitJobRequest {
 }
 
 /// What `render --preview` draws of `files`, through the frame source it draws with: their
-/// chunk starts coloured, resident, framed by the files' header bounds.
+/// chunk starts colored, resident, framed by the files' header bounds.
 fn local_previews(files: &[PathBuf]) -> Vec<image::RgbaImage> {
     let chunk_starts = ChunkStarts::read(files).expect("chunk starts");
     let request = RenderRequest {

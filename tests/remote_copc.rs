@@ -74,7 +74,7 @@ fn a_copc_file_by_url_renders_pixel_for_pixel_as_the_file_here() {
     assert!(local_report.get("fetched").is_none(), "{local_report}");
 }
 
-/// A COPC file of 2.5M generated points in `dir`: more than the colour ranges' sample (1M)
+/// A COPC file of 2.5M generated points in `dir`: more than the color ranges' sample (1M)
 /// reads at open, so that a coarse cut leaves most of the file unread.
 fn exported_scene(dir: &Path) -> PathBuf {
     let scene = dir.join("scene.laz");
@@ -115,7 +115,7 @@ fn a_coarse_cut_by_url_fetches_less_than_the_file() {
         "a coarse cut: {report}"
     );
 
-    // Every node drawn: the chunks the colour sample read at open are not fetched again, so
+    // Every node drawn: the chunks the color sample read at open are not fetched again, so
     // beyond the nodes' bytes only the header and hierarchy are.
     let all = render_json(&url, &by_url, &["--size=160x120", "--lod-error", "0"]);
     let (_, fetched_bytes) = fetched(&all);
@@ -147,7 +147,7 @@ fn an_object_replaced_after_open_is_object_changed_naming_the_url() {
         .filter(|node| node.point_count > 0)
         .copied()
         .collect();
-    // The root's chunk, read at open for the colour ranges, is still the opened version's.
+    // The root's chunk, read at open for the color ranges, is still the opened version's.
     let root_node = nodes
         .iter()
         .find(|node| node.key.level == 0)

@@ -78,7 +78,7 @@ async fn a_turntable_job_renders_the_same_frames_as_the_renderer() {
     );
 
     // The first job decoded the file; a second job that needs the points again (another
-    // colour mode) gets them from the worker's cache, without decoding.
+    // color mode) gets them from the worker's cache, without decoding.
     let load_ms = |frame: &pb::FrameFinished| {
         frame
             .timings

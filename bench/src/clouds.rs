@@ -21,7 +21,7 @@ pub(crate) fn cube_bounds() -> (DVec3, WorldBounds) {
     (bounds.center(), bounds)
 }
 
-/// The colour of a point at `unit` (0..1 per axis) in the cube.
+/// The color of a point at `unit` (0..1 per axis) in the cube.
 fn cube_color(unit: Vec3) -> u32 {
     let [r, g, b] = (unit * 255.0).as_uvec3().to_array().map(|c| c as u8);
     pack_rgba8(r, g, b)
@@ -120,7 +120,7 @@ fn demorton3(code: u64) -> [u32; 3] {
     xyz
 }
 
-/// The cuboid's points: plane `k` at height `k`, each plane one colour.
+/// The cuboid's points: plane `k` at height `k`, each plane one color.
 pub fn shuffled_cuboid(planes: usize, side: usize, seed: u64) -> PointCloud {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let origin = DVec3::new(515_000.0, 4_918_000.0, 2_000.0);

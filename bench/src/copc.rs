@@ -5,7 +5,7 @@
 //! 2. **decoding**: every point of the file read as plain LAZ through [`DatasetSource`] on all
 //!    cores, what a reader without the hierarchy pays before its first picture;
 //! 3. **first frame**: the file opened ([`open_copc`]: header, hierarchy, the coarsest nodes
-//!    for the colour ranges) and one full view rendered at the default pixel error from empty
+//!    for the color ranges) and one full view rendered at the default pixel error from empty
 //!    node caches;
 //! 4. **fidelity** ([`measure_fidelity`]): that pixel error against 0 in every mode.
 //!
@@ -85,8 +85,8 @@ pub struct CopcResult {
     /// Every point decoded as plain LAZ, on all cores.
     pub decode_s: f64,
     pub decode_mpoints_per_s: f64,
-    /// Opening the file (header, hierarchy, the coarsest nodes for the colour ranges), and
-    /// the chunks that read for the colour ranges.
+    /// Opening the file (header, hierarchy, the coarsest nodes for the color ranges), and
+    /// the chunks that read for the color ranges.
     pub open_ms: f64,
     pub sample_bytes: u64,
     pub first_frames: Vec<FirstFrame>,
@@ -101,7 +101,7 @@ pub struct FirstFrame {
     pub ms: f64,
     pub nodes: u64,
     pub points: u64,
-    /// Bytes of chunks the frame read (the colour ranges' besides).
+    /// Bytes of chunks the frame read (the color ranges' besides).
     pub bytes_read: u64,
     /// Decoding the whole file over this first frame.
     pub speedup: f64,
@@ -246,7 +246,7 @@ pub fn markdown(r: &CopcResult) -> String {
     let mut md = format!(
         "{} points of terrain, one COPC file of {:.1} MiB and {} nodes ({} hierarchy pages); \
          decoded whole as LAZ in {:.2} s ({:.2} M points/s); opened in {:.0} ms, reading \
-         {:.1} MiB of coarse nodes for the colour ranges.\n\n\
+         {:.1} MiB of coarse nodes for the color ranges.\n\n\
          | pixel error | first frame ({}x{}, cold) | decoding whole / first frame | nodes | points drawn | chunks read |\n\
          |---:|---:|---:|---:|---:|---:|\n",
         r.points,

@@ -1,7 +1,7 @@
 //! How well a rendered frame shows its subject, from the image alone: how much of the frame the
 //! subject spans and where, and how much of its silhouette is actually lit by points.
 //!
-//! A pixel is *drawn* when its RGBA differs from the background colour; the renderer writes the
+//! A pixel is *drawn* when its RGBA differs from the background color; the renderer writes the
 //! background exactly wherever no point landed, so equality is the test. The *subject's box* is
 //! the bounding box of the drawn pixels. The *silhouette* is the drawn mask closed
 //! morphologically with a disc of radius [`closing_radius`] (1% of the image height), then with

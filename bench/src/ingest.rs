@@ -82,7 +82,7 @@ pub fn generated_workload(points: usize) -> String {
 }
 
 /// Writes the uniform cube of `points` points as LAZ into a scratch directory (millimetre
-/// coordinates, 16-bit colour), measures it with the real `files`, and removes it.
+/// coordinates, 16-bit color), measures it with the real `files`, and removes it.
 pub fn measure_files(
     files: &[PathBuf],
     generated_points: Option<usize>,

@@ -64,7 +64,7 @@ fn render_tables(md: &mut String, report: &BenchReport) {
     }
     let _ = writeln!(
         md,
-        " wall ms PointList / compute | same colour | GPU B/point |\n\
+        " wall ms PointList / compute | same color | GPU B/point |\n\
          |---|---:|---:|---:|---:|---:|---:|---:|{}---:|---:|---:|",
         "---:|---:|".repeat(modes.len())
     );

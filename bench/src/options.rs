@@ -51,7 +51,7 @@ pub struct BenchOptions {
 pub enum ComputeMode {
     /// Schütz & Wimmer's high-quality mode with its default 1% depth band.
     HighQuality,
-    /// The basic mode on the 32-bit atomics path (depth pass, then colour pass), the fallback
+    /// The basic mode on the 32-bit atomics path (depth pass, then color pass), the fallback
     /// for adapters without 64-bit atomics: the same image by another route.
     BasicAtomic32,
     /// The basic mode, then Eye-Dome Lighting (default strength and radius): what the

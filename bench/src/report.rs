@@ -84,7 +84,7 @@ pub struct WorkloadResult {
     /// The huge workload: the host's memory peak while the cloud was generated and uploaded.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub ingest_memory: Option<IngestMemory>,
-    /// Of the pixels covered by either method, the fraction with the same colour in both:
+    /// Of the pixels covered by either method, the fraction with the same color in both:
     /// a check that both drew the same thing.
     pub image_agreement: f64,
     /// How the basic mode's last frame culled the cloud's batches.

@@ -368,7 +368,7 @@ mod tests {
         assert_eq!(result.modes[1].result.variant, "Atomic32");
         assert!(hq.stages.iter().any(|s| s.stage == "accumulate"), "{hq:?}");
         assert!(result.gpu_bytes_per_point <= 12.0);
-        // The front plane covers the same pixels with one colour in both methods.
+        // The front plane covers the same pixels with one color in both methods.
         assert!(result.image_agreement > 0.99, "{}", result.image_agreement);
     }
 }

@@ -100,7 +100,7 @@ pub(crate) fn points_in_view(cloud: &PointCloud, settings: &FrameSettings) -> us
         .count()
 }
 
-/// `points` uniform random points in a cube, coloured by position; viewed whole by the
+/// `points` uniform random points in a cube, colored by position; viewed whole by the
 /// automatic camera of the cube's box (the same for every cloud of the series), and, for the
 /// headline cloud, from above with ~10% of the points in view.
 fn uniform_scene(points: usize, aspect: f64, seed: u64) -> Scene {

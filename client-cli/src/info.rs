@@ -1,6 +1,6 @@
 //! `pointfarm info`: what LAS/LAZ files hold, before rendering them, as `lasinfo` would say
 //! it: header facts, CRS, attributes, a COPC file's octree, and (unless `--no-points`) the points read once in a
-//! stream for their classes, returns, intensity and colour. Every file is reported; one that
+//! stream for their classes, returns, intensity and color. Every file is reported; one that
 //! cannot be read is an error naming it, and the command then fails after the others.
 //! Files here are read here; with `--server`, an input that is no path here is a dataset id
 //! whose files the server reads (`DescribeDataset`). Either way a file's report is the API's
@@ -40,7 +40,7 @@ pub struct InfoArgs {
     #[arg(long)]
     json: bool,
     /// Only what the header and records say: do not read the points (fast on huge files;
-    /// no classes, returns, intensity or colour).
+    /// no classes, returns, intensity or color).
     #[arg(long)]
     no_points: bool,
     /// Describe datasets on this pointfarm server: an input that is no file or folder here is
@@ -409,7 +409,7 @@ fn print_points(points: &pb::PointStatistics, decimals: usize) {
     if let Some(intensity) = &points.intensity {
         outln!("  intensity   {} .. {}", intensity.min, intensity.max);
     }
-    outln!("  colour      {}", color_words(points));
+    outln!("  color      {}", color_words(points));
 }
 
 fn print_summary(summary: &pb::DescriptionSummary) {
@@ -514,7 +514,7 @@ fn attribute_words(a: &pb::PointAttributes) -> String {
     }
 }
 
-/// What the colour fields hold, in words.
+/// What the color fields hold, in words.
 fn color_words(points: &pb::PointStatistics) -> String {
     let Some(range) = &points.rgb else {
         return "no RGB (rendered from intensity)".to_owned();
@@ -525,15 +525,15 @@ fn color_words(points: &pb::PointStatistics) -> String {
     if !range.varies {
         let [r, g, b] = rgb(&range.min);
         return if [r, g, b] == [0; 3] {
-            "RGB fields, all zero: no colour information (rendered from intensity)".to_owned()
+            "RGB fields, all zero: no color information (rendered from intensity)".to_owned()
         } else {
             let shown = if points.intensity.as_ref().is_some_and(|i| i.max > 0) {
                 "rendered from intensity"
             } else {
-                "rendered in that colour"
+                "rendered in that color"
             };
             format!(
-                "RGB fields, one colour ({r}, {g}, {b}) for every point: no colour information ({shown})"
+                "RGB fields, one color ({r}, {g}, {b}) for every point: no color information ({shown})"
             )
         };
     }

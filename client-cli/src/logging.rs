@@ -1,4 +1,4 @@
-//! The commands' logs, on stderr: plain text (coloured only for a person at a terminal) or one
+//! The commands' logs, on stderr: plain text (colored only for a person at a terminal) or one
 //! JSON object a line for a log collector, at the level `-v` asks for unless `RUST_LOG` says
 //! otherwise.
 
@@ -31,7 +31,7 @@ pub fn init(verbose: u8, format: LogFormat) {
         .with_env_filter(filter)
         .with_writer(std::io::stderr);
     match format {
-        // Colours only at a terminal: logs written to files stay plain text.
+        // Colors only at a terminal: logs written to files stay plain text.
         LogFormat::Text => builder
             .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
             .init(),

@@ -75,7 +75,7 @@ enum Command {
     Render(Box<render::RenderArgs>),
     /// What LAS/LAZ files hold, before rendering them: version, point format, counts, bounds,
     /// scale and offset, CRS, attributes, and (reading the points once, in a stream)
-    /// classes, returns, intensity and whether the colours carry information.
+    /// classes, returns, intensity and whether the colors carry information.
     Info(info::InfoArgs),
     /// Write a dataset as a COPC 1.0 file (Cloud Optimized Point Cloud, a LAZ 1.4 file that
     /// PDAL, QGIS and Potree open) from its levels of detail, built once and kept like

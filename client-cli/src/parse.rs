@@ -42,7 +42,7 @@ pub fn color(s: &str) -> Result<[u8; 4], String> {
         return Ok([0, 0, 0, 0]);
     }
     let hex = s.trim_start_matches('#');
-    let bad = || format!("'{s}' is not a colour like #1e1e24, #1e1e2480 or transparent");
+    let bad = || format!("'{s}' is not a color like #1e1e24, #1e1e2480 or transparent");
     if !(hex.len() == 6 || hex.len() == 8) || !hex.is_ascii() {
         return Err(bad());
     }
@@ -51,7 +51,7 @@ pub fn color(s: &str) -> Result<[u8; 4], String> {
     Ok([byte(0)?, byte(2)?, byte(4)?, alpha])
 }
 
-/// An RGBA colour that prints as `#rrggbbaa` (for defaults shown in the help).
+/// An RGBA color that prints as `#rrggbbaa` (for defaults shown in the help).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Rgba(pub [u8; 4]);
 
@@ -67,7 +67,7 @@ pub fn rgba(s: &str) -> Result<Rgba, String> {
     color(s).map(Rgba)
 }
 
-/// `rgb`, `intensity`, `elevation`, `classification`, `return`, or a colour like `#ff8000`.
+/// `rgb`, `intensity`, `elevation`, `classification`, `return`, or a color like `#ff8000`.
 pub fn color_mode(s: &str) -> Result<ColorMode, String> {
     match s.to_ascii_lowercase().as_str() {
         "rgb" => Ok(ColorMode::Rgb),
@@ -78,8 +78,8 @@ pub fn color_mode(s: &str) -> Result<ColorMode, String> {
         _ => match color(s) {
             Ok([r, g, b, _]) => Ok(ColorMode::Fixed([r, g, b])),
             Err(_) => Err(format!(
-                "'{s}' is not a colour mode (rgb, intensity, elevation, classification, return, \
-                 or a colour like #ff8000)"
+                "'{s}' is not a color mode (rgb, intensity, elevation, classification, return, \
+                 or a color like #ff8000)"
             )),
         },
     }

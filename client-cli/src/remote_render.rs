@@ -24,7 +24,7 @@ use crate::render_outputs::{write_legend, Outputs};
 fn refuse_local_only_options(args: &RenderArgs, request: &RenderRequest) -> Result<()> {
     if request.render.depth {
         bail!(
-            "--depth is not available through a server: the service returns colour frames \
+            "--depth is not available through a server: the service returns color frames \
              only; render locally for depth images"
         );
     }

@@ -28,7 +28,7 @@ use crate::video::{codec_parser, VideoRequest};
 #[derive(Args)]
 pub struct RenderArgs {
     /// LAS/LAZ files or folders of them, rendered as one dataset (tiles or scan positions of
-    /// one campaign: one origin, bounds and colour decision); or one URL (https://, s3://),
+    /// one campaign: one origin, bounds and color decision); or one URL (https://, s3://),
     /// read by range: a COPC file, or LAS/LAZ tiles (a file, or an s3:// prefix of them),
     /// which render with --preview only.
     #[arg(required_unless_present = "dataset", value_name = "INPUT")]
@@ -155,27 +155,27 @@ pub struct RenderArgs {
     /// Draw each point as the disc its square bounds (from 4 pixels on).
     #[arg(long)]
     round_points: bool,
-    /// Background colour: #rrggbb, #rrggbbaa or transparent.
+    /// Background color: #rrggbb, #rrggbbaa or transparent.
     #[arg(long, default_value_t = Rgba(DEFAULT_BACKGROUND), value_parser = parse::rgba)]
     background: Rgba,
-    /// Colour points by: rgb (the file's colours, or intensity without them), intensity,
-    /// elevation, classification, return, or one colour like #ff8000.
+    /// Color points by: rgb (the file's colors, or intensity without them), intensity,
+    /// elevation, classification, return, or one color like #ff8000.
     #[arg(long = "color", visible_alias = "colour", default_value = "rgb", value_parser = parse::color_mode)]
     color: ColorMode,
-    /// Elevation and intensity: colour over this fixed range instead of the robust one of the
+    /// Elevation and intensity: color over this fixed range instead of the robust one of the
     /// data drawn, so tiles and frames rendered apart match: world Z in the file's units, or
     /// raw intensity, e.g. --range -12.5..340.
     #[arg(long, value_name = "MIN..MAX", value_parser = parse::color_range, allow_hyphen_values = true)]
     range: Option<ColorRange>,
-    /// Elevation and intensity: the colour ramp, viridis, inferno, turbo or grey [default:
+    /// Elevation and intensity: the color ramp, viridis, inferno, turbo or grey [default:
     /// viridis for elevation, grey for intensity].
     #[arg(long, value_name = "RAMP", value_parser = parse::color_ramp)]
     ramp: Option<ColorRamp>,
-    /// Also write the legend of the colours as a PNG: the ramp with its range's numbers
+    /// Also write the legend of the colors as a PNG: the ramp with its range's numbers
     /// (elevation, intensity), or the swatches and names of the classes or returns.
     #[arg(long, value_name = "FILE.png")]
     pub(crate) legend: Option<PathBuf>,
-    /// basic: the nearest point's colour; high: the average colour of the points near the
+    /// basic: the nearest point's color; high: the average color of the points near the
     /// front surface (less aliasing, smoother turntables; about two passes more).
     #[arg(long, value_enum, default_value = "basic")]
     quality: QualityArg,
@@ -183,7 +183,7 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = DEFAULT_DEPTH_BAND)]
     depth_band: f32,
     /// Close the holes between points (Pintus et al.): points seen through gaps of a nearer
-    /// surface are removed, then holes take the depth and colour of the surface around them.
+    /// surface are removed, then holes take the depth and color of the surface around them.
     /// Silhouettes stay sharp.
     #[arg(long)]
     fill: bool,
@@ -191,7 +191,7 @@ pub struct RenderArgs {
     /// about a third of it close; raise it for sparse scans.
     #[arg(long, value_name = "N")]
     fill_kernel: Option<u32>,
-    /// Screen-space shading: edl (Eye-Dome Lighting, shapes read without colour or normals),
+    /// Screen-space shading: edl (Eye-Dome Lighting, shapes read without color or normals),
     /// pintus (Pintus et al.'s shape depiction: directional light, ambient occlusion and
     /// lines from depth alone; best with --fill) or none.
     #[arg(long, value_enum, default_value_t = ShadingArg::of(RenderOptions::default().shading))]

@@ -66,7 +66,7 @@ impl Outputs {
                 || matches!(mode, ColorMode::Classification | ColorMode::ReturnNumber))
             {
                 bail!(
-                    "--legend shows the colours of elevation, intensity, classification and \
+                    "--legend shows the colors of elevation, intensity, classification and \
                      return; --color {} has none to show",
                     mode.name()
                 );
@@ -150,7 +150,7 @@ impl Outputs {
 
 /// Writes `legend` to `path`; the line that says so.
 pub(crate) fn write_legend(path: &Path, legend: Option<Legend>) -> Result<String> {
-    let legend = legend.context("--legend: the dataset has nothing to colour by in this mode")?;
+    let legend = legend.context("--legend: the dataset has nothing to color by in this mode")?;
     legend.write(path)?;
     let (width, height) = legend.size();
     Ok(format!("legend: {} ({width}x{height})", path.display()))

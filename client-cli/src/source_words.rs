@@ -115,7 +115,7 @@ impl SourceWords {
                         format!(
                             "{points} points, COPC: reading its hierarchy node by node ({nodes} \
                              nodes in the {pages} page{} read{unread}; {sample_nodes} nodes read \
-                             for the colour ranges)",
+                             for the color ranges)",
                             plural(pages)
                         )
                     }

@@ -1,5 +1,5 @@
 //! The worker's cache of processed datasets, in sled: a cloud that was decoded once (LAS/LAZ
-//! parsing, recentring, colour detection) loads again as plain columns, without decoding.
+//! parsing, recentring, color detection) loads again as plain columns, without decoding.
 //!
 //! Entries are keyed by the file's content hash and [`FORMAT_VERSION`], so a changed file or a
 //! changed layout never returns stale points. Columns are stored in chunks of
@@ -24,7 +24,7 @@ const CHUNK_POINTS: usize = 1 << 12;
 const FIRST_CHUNK_POINTS: usize = 1 << 20;
 /// How long [`DatasetCache::open`] waits for sled's lock on the directory.
 const LOCK_WAIT: std::time::Duration = std::time::Duration::from_secs(2);
-/// Bytes per point in the cache: position, colour, intensity, classification, return.
+/// Bytes per point in the cache: position, color, intensity, classification, return.
 const BYTES_PER_POINT: u64 = 12 + 4 + 2 + 1 + 1;
 
 #[derive(Debug, Error)]
@@ -285,7 +285,7 @@ impl DatasetCache {
 
 /// Leads [`encode_cloud`]'s bytes; a change of their layout changes it.
 const CLOUD_MAGIC: &[u8; 8] = b"PFCLOUD1";
-/// The magic, the point count, the origin and the bounds (seven f64), the colour source.
+/// The magic, the point count, the origin and the bounds (seven f64), the color source.
 const CLOUD_HEADER_BYTES: usize = 8 + 8 + 9 * 8 + 1;
 
 /// The length of [`encode_cloud`]'s bytes for a cloud of `points` points.
@@ -294,7 +294,7 @@ pub const fn encoded_cloud_bytes(points: u64) -> u64 {
 }
 
 /// A whole cloud as bytes in the cache's column layout, after a header of its count, origin,
-/// bounds and colour decision: what a daemon sends a worker of a preview sample, decoded to
+/// bounds and color decision: what a daemon sends a worker of a preview sample, decoded to
 /// the bit by [`decode_cloud`].
 pub fn encode_cloud(cloud: &PointCloud) -> Vec<u8> {
     let mut bytes = Vec::with_capacity(CLOUD_HEADER_BYTES + cloud.len() * BYTES_PER_POINT as usize);
@@ -342,7 +342,7 @@ pub fn decode_cloud(bytes: &[u8]) -> Result<PointCloud, CacheError> {
         1 => ColorSource::Rgb8In16Bit,
         2 => ColorSource::IntensityGrey,
         3 => ColorSource::Constant,
-        other => return Err(corrupt(&format!("colour source {other}"))),
+        other => return Err(corrupt(&format!("color source {other}"))),
     };
     let n = count as usize;
     let bounds = WorldBounds {

@@ -35,7 +35,7 @@ impl WorldBounds {
     }
 }
 
-/// Where the display colour of the points came from.
+/// Where the display color of the points came from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ColorSource {
     /// 16-bit RGB fields holding 16-bit values (scaled down by 256).
@@ -49,19 +49,19 @@ pub enum ColorSource {
 }
 
 impl ColorSource {
-    /// What the RGB colour mode shows, in words for people.
+    /// What the RGB color mode shows, in words for people.
     pub fn describe(self) -> &'static str {
         match self {
-            Self::Rgb16 => "colour from 16-bit RGB",
-            Self::Rgb8In16Bit => "colour from RGB (8-bit values in 16-bit fields)",
+            Self::Rgb16 => "color from 16-bit RGB",
+            Self::Rgb8In16Bit => "color from RGB (8-bit values in 16-bit fields)",
             Self::IntensityGrey => "grey from intensity",
-            Self::Constant => "one grey (no colour or intensity)",
+            Self::Constant => "one grey (no color or intensity)",
         }
     }
 
     /// The one RGB decision, from the largest channel of any point of the whole dataset
     /// (`max_channel`). `None` when every channel is 0: the fields exist but were never filled
-    /// (some writers do this), and the points are coloured from intensity instead of black.
+    /// (some writers do this), and the points are colored from intensity instead of black.
     /// The spec says 16-bit, but some writers store 8-bit values as they are; if no channel
     /// exceeds 255 that is what the fields hold.
     pub fn of_rgb(max_channel: u16) -> Option<Self> {
@@ -73,9 +73,9 @@ impl ColorSource {
     }
 
     /// The RGB decision from the lowest and highest value of each channel over the whole
-    /// dataset: as [`of_rgb`](Self::of_rgb), and also `None` when every point has one colour
+    /// dataset: as [`of_rgb`](Self::of_rgb), and also `None` when every point has one color
     /// while the points carry intensity, which then says more than the RGB does (a writer's
-    /// placeholder colour).
+    /// placeholder color).
     pub fn of_rgb_range(min: [u16; 3], max: [u16; 3], has_intensity: bool) -> Option<Self> {
         if min == max && has_intensity {
             return None;
@@ -84,7 +84,7 @@ impl ColorSource {
     }
 }
 
-/// Packs an opaque RGB colour into the renderer's RGBA8 word (red in the low byte, alpha 255).
+/// Packs an opaque RGB color into the renderer's RGBA8 word (red in the low byte, alpha 255).
 pub fn pack_rgba8(r: u8, g: u8, b: u8) -> u32 {
     u32::from_le_bytes([r, g, b, 255])
 }
@@ -96,13 +96,13 @@ pub struct PointCloud {
     pub origin: DVec3,
     /// Position of each point minus `origin`, computed in f64 and then stored as f32.
     pub positions: Vec<Vec3>,
-    /// Display colour of each point, packed with [`pack_rgba8`].
+    /// Display color of each point, packed with [`pack_rgba8`].
     pub colors: Vec<u32>,
-    /// Raw LAS intensity (0 where the file has none), kept for intensity colour modes.
+    /// Raw LAS intensity (0 where the file has none), kept for intensity color modes.
     pub intensity: Vec<u16>,
-    /// ASPRS classification code, kept for classification colour modes.
+    /// ASPRS classification code, kept for classification color modes.
     pub classification: Vec<u8>,
-    /// Return number (1-based in LAS; 0 where unknown), kept for return colour modes.
+    /// Return number (1-based in LAS; 0 where unknown), kept for return color modes.
     pub return_number: Vec<u8>,
     /// Bounds of the points in world coordinates, computed from the data (not the header).
     pub bounds: WorldBounds,
@@ -142,10 +142,10 @@ impl PointCloud {
         crate::spacing::of_points(&self.positions)
     }
 
-    /// Builds a cloud from world positions and colours (for generated and test clouds):
+    /// Builds a cloud from world positions and colors (for generated and test clouds):
     /// recentres on the bounds' centre in f64. Intensity, classification and returns are zero.
     pub fn from_world_points(points: &[DVec3], colors: Vec<u32>) -> Self {
-        assert_eq!(points.len(), colors.len(), "one colour per point");
+        assert_eq!(points.len(), colors.len(), "one color per point");
         let bounds = bounds_of(points.iter().copied());
         let origin = bounds.center();
         Self {

@@ -1,8 +1,8 @@
-//! Colour modes: what colour each point is drawn in.
+//! Color modes: what color each point is drawn in.
 //!
-//! The renderer draws `PointCloud::colors`; a colour mode fills that vector from the cloud's
+//! The renderer draws `PointCloud::colors`; a color mode fills that vector from the cloud's
 //! attributes before upload. Elevation and intensity go through a [`ColorRamp`] over a range:
-//! a fixed [`ColorRange`] when the request gives one (the same colour for the same value in
+//! a fixed [`ColorRange`] when the request gives one (the same color for the same value in
 //! every tile and frame), otherwise a robust range (2nd to 98th percentile) of the data drawn,
 //! so a few outliers (birds, multipath returns, saturated intensities) do not flatten the
 //! scale.
@@ -11,10 +11,10 @@ use serde::{Deserialize, Serialize};
 
 use crate::cloud::{pack_rgba8, PointCloud};
 
-/// What the points are coloured by.
+/// What the points are colored by.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub enum ColorMode {
-    /// The file's RGB (or, without RGB, intensity grey: the colour chosen at ingest).
+    /// The file's RGB (or, without RGB, intensity grey: the color chosen at ingest).
     #[default]
     Rgb,
     /// Intensity through a ramp (grey by default), over a fixed or a robust range.
@@ -25,7 +25,7 @@ pub enum ColorMode {
     Classification,
     /// Return number: first, second, third, fourth and later.
     ReturnNumber,
-    /// One colour for every point.
+    /// One color for every point.
     Fixed([u8; 3]),
 }
 
@@ -42,7 +42,7 @@ impl ColorMode {
         }
     }
 
-    /// Whether the mode colours a value through a ramp over a range (elevation, intensity).
+    /// Whether the mode colors a value through a ramp over a range (elevation, intensity).
     pub fn is_ramped(self) -> bool {
         matches!(self, ColorMode::Elevation | ColorMode::Intensity)
     }
@@ -57,14 +57,14 @@ impl ColorMode {
 }
 
 /// The values a ramp spans, in the mode's units: world Z in the file's units for elevation,
-/// raw values for intensity. Values outside take the ramp's end colours.
+/// raw values for intensity. Values outside take the ramp's end colors.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct ColorRange {
     pub min: f64,
     pub max: f64,
 }
 
-/// How points are coloured: the mode and, for elevation and intensity, the range and ramp
+/// How points are colored: the mode and, for elevation and intensity, the range and ramp
 /// the request chose (`None`: the robust range of the data, the mode's default ramp).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Coloring {
@@ -74,7 +74,7 @@ pub struct Coloring {
 }
 
 impl Coloring {
-    /// Colouring by `mode` with the robust range and the mode's default ramp.
+    /// Coloring by `mode` with the robust range and the mode's default ramp.
     pub fn of_mode(mode: ColorMode) -> Self {
         Self {
             mode,
@@ -103,7 +103,7 @@ impl Coloring {
     }
 
     /// The stretch of intensity when the data has any (`robust` is `None` when every
-    /// intensity is zero: then there is nothing to colour by, whatever the range).
+    /// intensity is zero: then there is nothing to color by, whatever the range).
     pub fn intensity_stretch(&self, robust: Option<Stretch>) -> Option<Stretch> {
         let robust = robust?;
         Some(
@@ -128,10 +128,10 @@ const HIGH_PERCENTILE: f64 = 0.98;
 /// Darkest grey of the grey ramp (intensity's default): weak returns stay visible against a
 /// dark background.
 pub const INTENSITY_GREY_MIN: u8 = 40;
-/// Colour of every point when there is nothing to colour it by.
+/// Color of every point when there is nothing to color it by.
 pub const CONSTANT_GREY_RGBA: u32 = u32::from_le_bytes([200, 200, 200, 255]);
 
-/// The colour of every point of `cloud` as `coloring` says.
+/// The color of every point of `cloud` as `coloring` says.
 pub fn point_colors(cloud: &PointCloud, coloring: Coloring) -> Vec<u32> {
     let points = PaletteAttributes {
         classification: &cloud.classification,
@@ -155,7 +155,7 @@ pub fn point_colors(cloud: &PointCloud, coloring: Coloring) -> Vec<u32> {
 }
 
 /// The range elevation or intensity of `cloud` is drawn over, in the mode's units (world Z,
-/// raw intensity); `None` for the other modes or with nothing to colour by.
+/// raw intensity); `None` for the other modes or with nothing to color by.
 pub fn ramp_range(cloud: &PointCloud, coloring: Coloring) -> Option<ColorRange> {
     let stretch = resident_stretch(cloud, coloring)?;
     let origin_z = match coloring.mode {
@@ -191,14 +191,14 @@ fn intensity_histogram_stretch(intensity: &[u16]) -> Option<Stretch> {
     Stretch::intensity_percentiles(&histogram)
 }
 
-/// The attributes the palette modes colour by, one per point.
+/// The attributes the palette modes color by, one per point.
 #[derive(Debug, Clone, Copy)]
 pub struct PaletteAttributes<'a> {
     pub classification: &'a [u8],
     pub return_number: &'a [u8],
 }
 
-/// The modes that colour a point by its own attributes through a fixed table, needing no
+/// The modes that color a point by its own attributes through a fixed table, needing no
 /// range of the dataset.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Palette {
@@ -237,7 +237,7 @@ pub fn intensity_grey(intensity: &[u16]) -> Option<Vec<u32>> {
     )
 }
 
-/// The values mapped onto a ramp: `low` to its first colour, `high` to its last (heights
+/// The values mapped onto a ramp: `low` to its first color, `high` to its last (heights
 /// relative to the rendering origin, raw intensities).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Stretch {
@@ -297,10 +297,10 @@ impl Stretch {
     }
 }
 
-/// A colour map of elevation or intensity.
+/// A color map of elevation or intensity.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum ColorRamp {
-    /// Perceptually uniform, readable by colour-blind viewers, prints well in grey.
+    /// Perceptually uniform, readable by color-blind viewers, prints well in grey.
     Viridis,
     /// Perceptually uniform, black through red to pale yellow.
     Inferno,
@@ -330,7 +330,7 @@ impl ColorRamp {
         }
     }
 
-    /// The colour at `t` in [0, 1] (clamped).
+    /// The color at `t` in [0, 1] (clamped).
     pub fn color(self, t: f32) -> [u8; 3] {
         let t = t.clamp(0.0, 1.0);
         match self {
@@ -350,7 +350,7 @@ impl ColorRamp {
         pack_rgba8(r, g, b)
     }
 
-    /// The packed colour of each of `values` (heights, intensities) placed by `stretch`.
+    /// The packed color of each of `values` (heights, intensities) placed by `stretch`.
     pub fn packed_all(self, stretch: Stretch, values: impl Iterator<Item = f32>) -> Vec<u32> {
         values.map(|v| self.packed(stretch.t(v))).collect()
     }
@@ -385,7 +385,7 @@ const INFERNO: [[u8; 3]; 10] = [
     [252, 255, 164],
 ];
 
-/// The colour at `t` in [0, 1] of evenly spaced `stops`, interpolated linearly.
+/// The color at `t` in [0, 1] of evenly spaced `stops`, interpolated linearly.
 fn table(stops: &[[u8; 3]], t: f32) -> [u8; 3] {
     let x = t * (stops.len() - 1) as f32;
     let i = (x.floor() as usize).min(stops.len() - 2);
@@ -428,7 +428,7 @@ fn turbo(t: f32) -> [u8; 3] {
     [channel(&RED), channel(&GREEN), channel(&BLUE)]
 }
 
-/// The ASPRS standard classes (LAS 1.4 R15, table 17) in the colours viewers commonly use.
+/// The ASPRS standard classes (LAS 1.4 R15, table 17) in the colors viewers commonly use.
 pub fn classification_color(class: u8) -> u32 {
     let [r, g, b] = match class {
         0 | 1 => [170, 170, 170], // never classified, unclassified
@@ -447,7 +447,7 @@ pub fn classification_color(class: u8) -> u32 {
         15 => [200, 140, 255],    // transmission tower
         16 => [230, 230, 60],     // wire-structure connector
         17 => [180, 180, 220],    // bridge deck
-        // User-defined and reserved classes: distinct, stable colours.
+        // User-defined and reserved classes: distinct, stable colors.
         other => {
             let h = (other as u32).wrapping_mul(2_654_435_761);
             [
@@ -554,7 +554,7 @@ mod tests {
         // Heights 100 to 199.9: from the bottom of the ramp to just below its middle.
         assert_eq!(colors[0], ColorRamp::Turbo.packed(0.0));
         assert_eq!(colors[500], ColorRamp::Turbo.packed(0.5));
-        // The same heights in a cloud with another origin get the same colours.
+        // The same heights in a cloud with another origin get the same colors.
         let mut shifted = ramp_cloud();
         shifted.origin.z -= 1000.0;
         for p in &mut shifted.positions {

@@ -400,7 +400,7 @@ mod tests {
                 let rgba = read.as_rgba8().expect("8-bit RGBA");
                 assert_eq!(rgba, &gradient_frame().image, "{name}");
             } else if format == FrameFormat::Jpeg {
-                // Lossy and opaque: close in colour, alpha dropped.
+                // Lossy and opaque: close in color, alpha dropped.
                 let rgb = read.to_rgb8();
                 let worst = rgb
                     .pixels()

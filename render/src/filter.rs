@@ -2,9 +2,9 @@
 //! box in world coordinates.
 //!
 //! A filter is applied to the points before they reach the GPU (the resident cloud once, each
-//! node of a cut as it is prepared), so the point passes never see what it drops. Colours are
+//! node of a cut as it is prepared), so the point passes never see what it drops. Colors are
 //! chosen before filtering, with the ranges of the whole dataset, so a filtered view keeps the
-//! colours of the unfiltered one. The attribute filters keep the camera the whole dataset
+//! colors of the unfiltered one. The attribute filters keep the camera the whole dataset
 //! would get, so layers rendered apart (ground, buildings, vegetation) line up; a clip box
 //! frames what lies inside it.
 

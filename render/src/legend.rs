@@ -1,4 +1,4 @@
-//! The legend of a render's colours: a small image of the ramp with its range's numbers
+//! The legend of a render's colors: a small image of the ramp with its range's numbers
 //! (elevation, intensity), or the swatches of a palette with their names (classification,
 //! return number). Drawn with plotters' bitmap backend and a TrueType font from the system
 //! (pure Rust; no system libraries), the font the benchmark's plot uses.
@@ -46,7 +46,7 @@ pub enum Legend {
         ramp: ColorRamp,
         range: ColorRange,
     },
-    /// Colours and their names.
+    /// Colors and their names.
     Swatches {
         title: String,
         entries: Vec<([u8; 3], String)>,
@@ -56,7 +56,7 @@ pub enum Legend {
 impl Legend {
     /// The legend of `coloring`, `range` being the range its ramp spans (elevation and
     /// intensity; the request's or the dataset's robust one). `None` where a legend names
-    /// nothing: the file's RGB, one fixed colour, or a ramp with no range (nothing to colour
+    /// nothing: the file's RGB, one fixed color, or a ramp with no range (nothing to color
     /// by).
     pub fn of(coloring: Coloring, range: Option<ColorRange>) -> Option<Self> {
         let swatches = |title: &str, entries: &[(u8, &str)], color: fn(u8) -> u32| {
@@ -320,7 +320,7 @@ mod tests {
     #[test]
     fn legends_of_each_mode() {
         let elevation = Coloring::of_mode(ColorMode::Elevation);
-        assert_eq!(Legend::of(elevation, None), None, "nothing to colour by");
+        assert_eq!(Legend::of(elevation, None), None, "nothing to color by");
         let ramp = Legend::of(elevation, Some(range(10.0, 20.0))).expect("a ramp");
         assert_eq!(ramp.size(), RAMP_LEGEND_SIZE);
         let Some(Legend::Swatches { entries, .. }) =

@@ -5,10 +5,10 @@
 //! covers a square of `FrameSettings::point_side_at` its depth (the pixels in its disc with
 //! round points). Depths are compared as the f32 the GPU stores.
 //!
-//! - Basic mode: per pixel, the point with the smallest (depth, colour) pair wins. That is the
+//! - Basic mode: per pixel, the point with the smallest (depth, color) pair wins. That is the
 //!   documented contract of the GPU's basic mode, so where depths are distinct the images
 //!   must agree exactly.
-//! - High-quality mode: per pixel, the rounded average colour of every point whose depth is
+//! - High-quality mode: per pixel, the rounded average color of every point whose depth is
 //!   at most `(1 + depth_band)` times the nearest depth.
 //! - Visibility, filling and Pintus shading (Pintus et al. 2011): written from the paper in
 //!   f64, reconstructing points through the inverse view-projection matrix.
@@ -109,7 +109,7 @@ impl Unprojector {
 /// whose direction from the pixel's point is closest to the direction to the camera, and the
 /// open cone sector spans (2 pi / 8)(1 - cos(angle to the horizon)) steradians, or
 /// (2 pi / 8) 2 with no neighbour. Pixels with less than [`VISIBILITY_MIN_SOLID_ANGLE`] in
-/// all are emptied (depth +infinity, background colour) and returned as mutable. A background
+/// all are emptied (depth +infinity, background color) and returned as mutable. A background
 /// pixel is infinitely far: any neighbour closes its sector.
 pub fn remove_hidden(
     frame: &mut ReferenceFrame,
@@ -164,7 +164,7 @@ pub fn remove_hidden(
 
 /// Pintus et al.'s anisotropic filling: `iterations` synchronous 3x3 steps over the mutable
 /// pixels. An empty one takes the median depth of its valid neighbours (the lower middle one
-/// when even; equal depths in row-major order) with that neighbour's colour; a filled one
+/// when even; equal depths in row-major order) with that neighbour's color; a filled one
 /// becomes the average of its valid neighbours and itself weighted by equation 1,
 /// (1 - r/2)(1 - min(1, |z - z0| / delta)), delta = [`FILL_DEPTH_TOLERANCE`] z0.
 pub fn fill_holes(frame: &mut ReferenceFrame, mutable: &[bool], iterations: u32) {
@@ -220,7 +220,7 @@ pub fn fill_holes(frame: &mut ReferenceFrame, mutable: &[bool], iterations: u32)
     }
 }
 
-/// A colour channel from 0..1 to 0..255 as WGSL's `pack4x8unorm` does it.
+/// A color channel from 0..1 to 0..255 as WGSL's `pack4x8unorm` does it.
 fn unorm8(value: f64) -> u8 {
     (value.clamp(0.0, 1.0) * 255.0 + 0.5).floor() as u8
 }
@@ -228,7 +228,7 @@ fn unorm8(value: f64) -> u8 {
 /// Pintus et al.'s shape-depicting shading, equations 2 and 3: on each level k, over the
 /// valid 3x3 neighbourhood of the depth D^k, mean mu and standard deviation sigma;
 /// w^k = clamp(1 - |d - (mu - sigma)| / (2 sigma + eps)); D^(k+1) = mu - sigma / 2. eps is the
-/// pixel's footprint at its depth (see shaders/pintus.wgsl for why). Colour times
+/// pixel's footprint at its depth (see shaders/pintus.wgsl for why). Color times
 /// sum_k w^k / (k+1)^exponent over the sum of the weights. Background pixels are unchanged.
 pub fn shade_pintus(
     frame: &mut ReferenceFrame,
@@ -290,7 +290,7 @@ pub fn shade_pintus(
 /// Eye-Dome Lighting as `shaders/edl.wgsl` describes it: over 4 pairs of opposite neighbours
 /// on a circle of `radius` pixels, how far the pixel lies behind the plane through a pair (in
 /// inverse depth), or behind a lone neighbour; 100 per surface neighbour for a background
-/// pixel (the outline); colour *= exp(-300 strength response / 8). Then the exposure that
+/// pixel (the outline); color *= exp(-300 strength response / 8). Then the exposure that
 /// brings the surface's median luma back (`raster::exposure`), or the gain `setting` holds;
 /// returns the gain. Computed in f32 like the GPU.
 pub fn shade_edl(frame: &mut ReferenceFrame, strength: f32, radius: f32, setting: Exposure) -> f32 {
@@ -353,7 +353,7 @@ pub fn shade_edl(frame: &mut ReferenceFrame, strength: f32, radius: f32, setting
     gain
 }
 
-/// Calls `visit(pixel index, depth, colour)` for every pixel that every visible point covers.
+/// Calls `visit(pixel index, depth, color)` for every pixel that every visible point covers.
 fn for_each_covered_pixel(
     cloud: &PointCloud,
     settings: &FrameSettings,
@@ -409,7 +409,7 @@ fn frame_from(
     }
 }
 
-/// Basic mode: the nearest point's colour; at equal depths the smallest colour word.
+/// Basic mode: the nearest point's color; at equal depths the smallest color word.
 pub fn render_basic(cloud: &PointCloud, settings: &FrameSettings) -> ReferenceFrame {
     let winner = basic_winners(cloud, settings);
     let depth = winner
@@ -423,7 +423,7 @@ pub fn render_basic(cloud: &PointCloud, settings: &FrameSettings) -> ReferenceFr
     )
 }
 
-/// Pixels whose nearest point has a rival of another colour at the same depth or behind it
+/// Pixels whose nearest point has a rival of another color at the same depth or behind it
 /// by at most `relative` of the depth.
 ///
 /// There the winner hangs on rounding. This reference projects the exact positions in f64;
@@ -443,7 +443,7 @@ pub fn depth_ties(cloud: &PointCloud, settings: &FrameSettings, relative: f32) -
     tied
 }
 
-/// The nearest point of each pixel, as (depth, colour); equal depths go to the smaller colour.
+/// The nearest point of each pixel, as (depth, color); equal depths go to the smaller color.
 fn basic_winners(cloud: &PointCloud, settings: &FrameSettings) -> Vec<Option<(f32, u32)>> {
     let mut winner: Vec<Option<(f32, u32)>> =
         vec![None; (settings.width * settings.height) as usize];
@@ -459,7 +459,7 @@ fn basic_winners(cloud: &PointCloud, settings: &FrameSettings) -> Vec<Option<(f3
     winner
 }
 
-/// High-quality mode: the average colour of the points within the depth band.
+/// High-quality mode: the average color of the points within the depth band.
 pub fn render_high_quality(
     cloud: &PointCloud,
     settings: &FrameSettings,
@@ -469,7 +469,7 @@ pub fn render_high_quality(
 }
 
 /// High quality where point `i` stands for `weights[i]` points (a level-of-detail cut's,
-/// `shaders/hq_accumulate_weighted.wgsl`): its colour and count added that many times.
+/// `shaders/hq_accumulate_weighted.wgsl`): its color and count added that many times.
 pub fn render_high_quality_weighted(
     cloud: &PointCloud,
     settings: &FrameSettings,

@@ -1,5 +1,5 @@
 //! A generated demo scene: rolling terrain with a road, a gabled house and a few trees, sampled
-//! as a coloured point cloud in survey-like world coordinates.
+//! as a colored point cloud in survey-like world coordinates.
 //!
 //! The scene sits at UTM-like coordinates (x ≈ 500,000 m, y ≈ 4,500,000 m) on purpose, so that
 //! rendering it exercises the same recentring path as a real scan. The layout is fixed; the seed
@@ -431,7 +431,7 @@ fn pick_by_area<'a>(facets: &'a [Facet], total_area: f64, rng: &mut impl Rng) ->
     &facets[facets.len() - 1]
 }
 
-/// Adds a little per-point colour noise, as real scans have.
+/// Adds a little per-point color noise, as real scans have.
 fn jitter(rng: &mut impl Rng, rgb: [u8; 3], amount: i16) -> [u8; 3] {
     let offset = rng.random_range(-amount..=amount);
     rgb.map(|channel| (i16::from(channel) + offset).clamp(0, 255) as u8)

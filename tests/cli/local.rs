@@ -283,7 +283,7 @@ fn color_modes_and_high_quality_are_options_of_render() {
         ("classes", vec!["--color", "classification"]),
         (
             "fixed",
-            vec!["--colour", "#ff8000", "--background", "transparent"],
+            vec!["--color", "#ff8000", "--background", "transparent"],
         ),
     ] {
         let png = scene.path(&format!("{name}.png"));
@@ -309,7 +309,7 @@ fn color_modes_and_high_quality_are_options_of_render() {
         "transparent background"
     );
     let bad = pointfarm(&["render", laz, "--out", "x.png", "--color", "rainbow"]);
-    assert_fails_saying(&bad, "not a colour mode");
+    assert_fails_saying(&bad, "not a color mode");
 }
 
 /// `render DIR` renders the files of a folder as one dataset: tiles cut from a file give the

@@ -68,7 +68,7 @@ pub struct LodConfig {
 struct Loaded {
     sha256: String,
     source: FrameSource,
-    /// What the points were coloured and filtered for (a resident cloud keeps them).
+    /// What the points were colored and filtered for (a resident cloud keeps them).
     coloring: Coloring,
     filter: PointFilter,
     /// Where a cut's nodes are read from: the daemon (its store or COPC file), or a store of
@@ -483,7 +483,7 @@ impl WorkerRenderState {
         })
     }
 
-    /// Opens the daemon's preview sample of `task`'s dataset: coloured, filtered and framed
+    /// Opens the daemon's preview sample of `task`'s dataset: colored, filtered and framed
     /// as `render --preview` draws it here. A sample just fetched is the daemon's latest,
     /// drawn whatever its version (a restarted daemon's build counts again from 0).
     fn open_preview(

@@ -211,7 +211,7 @@ pub fn build_and_open(
 }
 
 /// The full view of `bounds` in the basic mode at `width` x `height`.
-/// `cut`'s full-colour frame of `settings`, every point kept: the frame every cut
+/// `cut`'s full-color frame of `settings`, every point kept: the frame every cut
 /// measurement draws.
 pub(crate) fn draw(
     cut: &mut CutRenderer,
@@ -279,7 +279,7 @@ fn resident_frame_ms(
 }
 
 /// A generated source read whole into a cloud relative to its bounds' centre (the origin its
-/// store renders at), coloured from its 16-bit RGB as the cut colours it.
+/// store renders at), colored from its 16-bit RGB as the cut colors it.
 pub fn resident_cloud(source: &GeneratedSource) -> Result<PointCloud, BenchError> {
     let bounds = source.bounds();
     let origin = bounds.center();

@@ -6,7 +6,7 @@
 //! ranges coalesced into one and the requests in parallel, every one pinned to the version
 //! opened. The small reads of the header and its records go through a [`RangeReader`], which
 //! fetches an object in blocks so that they cost a few requests, not one each. An object's
-//! chunks read while it is opened (the colour sample's coarsest nodes) are kept, because the
+//! chunks read while it is opened (the color sample's coarsest nodes) are kept, because the
 //! framing sample and the first frames draw the same nodes (docs/perf/remote-copc-reads.md).
 //!
 //! It is also the ranged face of plain LAS/LAZ files by URL ([`RangedBytes`]): the pre-parse,
@@ -78,7 +78,7 @@ impl CopcBytes {
 
     /// From now on (`true`) or no longer, an object's ranges that [`CopcBytes::read_many`]
     /// fetches are kept and served again without a request; a file's page cache does that for
-    /// it already. Opening keeps the colour sample's chunks, which the framing sample and the
+    /// it already. Opening keeps the color sample's chunks, which the framing sample and the
     /// first frames read again.
     pub fn keep_reads(&self, keep: bool) {
         if matches!(self.origin, Origin::Remote(_)) {

@@ -1,5 +1,5 @@
 //! A COPC file's child hierarchy pages read as they are needed: by a frame's cut
-//! ([`CopcPageReader`], the dataset's [`HierarchyPages`]), and at open by the colour ranges'
+//! ([`CopcPageReader`], the dataset's [`HierarchyPages`]), and at open by the color ranges'
 //! sample of the coarsest nodes ([`coarse_pages`]).
 
 use std::sync::{Arc, Mutex};
@@ -53,7 +53,7 @@ impl HierarchyPages for CopcPageReader {
 }
 
 /// The unread pages of `hierarchy` whose nodes could be among the coarsest `sample_points`
-/// points that the colour ranges are sampled from (`lod::for_each_coarse_node`): those whose
+/// points that the color ranges are sampled from (`lod::for_each_coarse_node`): those whose
 /// key comes before the sample is full, in key order, since a page's nodes all sort after its
 /// own key. Once none is left, the sample is the one the whole hierarchy gives.
 pub(crate) fn coarse_pages(hierarchy: &LodHierarchy, sample_points: u64) -> Vec<NodeKey> {

@@ -14,13 +14,13 @@ use crate::cut::{select_cut, CutRenderer, CutView};
 use crate::raster::Renderer;
 use crate::testing::{compare_images_within, gpu};
 
-/// The file `path` opened reading the pages `reads` says, its colour ranges from its coarsest
+/// The file `path` opened reading the pages `reads` says, its color ranges from its coarsest
 /// `sample_points` points.
 fn open_at(path: &Path, reads: PageReads, sample_points: u64) -> Result<CopcDataset, CopcError> {
     open(CopcBytes::file(path)?, reads, sample_points)
 }
 
-/// A file opened for frames with only its root page read (its colour ranges from the root
+/// A file opened for frames with only its root page read (its color ranges from the root
 /// alone, so no child page is read for them), and the same file with every page read.
 fn lazy_and_whole(path: &Path) -> (CopcDataset, CopcDataset) {
     let lazy = open_at(path, PageReads::AsNeeded, 1).expect("opens lazily");

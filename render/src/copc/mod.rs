@@ -12,7 +12,7 @@
 //!   header, LASzip and info VLRs, after the checks every LAS/LAZ file passes;
 //! - `hierarchy.rs`: the hierarchy pages walked into nodes, every entry checked against the
 //!   file and the header;
-//! - `lazy.rs`: child pages read as they are needed, by a frame's cut or the colour ranges;
+//! - `lazy.rs`: child pages read as they are needed, by a frame's cut or the color ranges;
 //! - `nodes.rs`: a node's chunk read by byte range and decoded into `NodePoints`;
 //! - `node_grids.rs`: the inner nodes' sampling grids a pointfarm export records, which a cut
 //!   refines by where the file has them;
@@ -23,7 +23,7 @@
 //! as one read of many ranges, near ones fetched as one request; errors name the URL.
 //!
 //! For rendering ([`open_copc`]) only the root hierarchy page is read when the file is opened
-//! (and the child pages the colour sample reaches); a frame's cut reads the pages it reaches,
+//! (and the child pages the color sample reaches); a frame's cut reads the pages it reaches,
 //! so a large file's first frame reads a few pages, not the whole hierarchy. A daemon, which
 //! sends its workers the whole hierarchy, opens the file with every page read
 //! ([`open_copc_whole`]); so does [`describe`].
@@ -34,7 +34,7 @@
 //! a declared spacing smaller than the points' own leave a cut's surfaces open where the same
 //! points read whole are closed.
 //!
-//! Colour ranges come from the coarsest nodes, the same even sample the elevation range of a
+//! Color ranges come from the coarsest nodes, the same even sample the elevation range of a
 //! store comes from: the RGB decision, the intensity percentiles and the class counts of up
 //! to [`crate::lod::ELEVATION_SAMPLE_POINTS`] points (1M), not of every point.
 
@@ -89,13 +89,13 @@ pub struct CopcDataset {
     pub unread_pages: usize,
     /// Nodes of the hierarchy read at open (with points or children).
     pub nodes: usize,
-    /// Nodes and bytes of chunks read for the colour ranges.
+    /// Nodes and bytes of chunks read for the color ranges.
     pub sample_nodes: usize,
     pub sample_bytes: u64,
 }
 
 /// Opens the COPC file `path` for rendering: its header and root hierarchy page, checked, the
-/// coarsest nodes for the colour ranges (and the child pages they lie in); the other pages
+/// coarsest nodes for the color ranges (and the child pages they lie in); the other pages
 /// are read as frames reach them.
 pub fn open_copc(path: &Path) -> Result<CopcDataset, CopcError> {
     open(
@@ -144,12 +144,12 @@ fn open_object(client: &RemoteClient, url: &ObjectUrl) -> Result<CopcBytes, Copc
 /// Which hierarchy pages opening a file reads.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum PageReads {
-    /// The root page and those the colour sample needs.
+    /// The root page and those the color sample needs.
     AsNeeded,
     All,
 }
 
-/// Opens `bytes` reading the pages `reads` says, its colour ranges from its coarsest
+/// Opens `bytes` reading the pages `reads` says, its color ranges from its coarsest
 /// `sample_points` points.
 fn open(bytes: CopcBytes, reads: PageReads, sample_points: u64) -> Result<CopcDataset, CopcError> {
     let bytes = Arc::new(bytes);
@@ -171,7 +171,7 @@ fn open(bytes: CopcBytes, reads: PageReads, sample_points: u64) -> Result<CopcDa
         hierarchy = pages.hierarchy(cube, DatasetStats::new(has_rgb), spacing);
     }
     let nodes = Arc::new(CopcNodes::new(Arc::clone(&bytes), &header));
-    // The colour ranges from the coarsest nodes, their heights for the elevation range, and
+    // The color ranges from the coarsest nodes, their heights for the elevation range, and
     // their positions for the points' spacing: the leaves that would give it may lie in pages
     // not read yet, and the sample is the same whichever pages are read.
     let origin = header.bounds.center();

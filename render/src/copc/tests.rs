@@ -421,7 +421,7 @@ pub(super) fn cut_at(renderer: &Renderer, dataset: &LodDataset, lod_error: f64) 
     CutRenderer::new(renderer, dataset, options).expect("cut renderer")
 }
 
-/// A frame of `dataset` in its own colours with every point passing, as these tests draw.
+/// A frame of `dataset` in its own colors with every point passing, as these tests draw.
 pub(super) fn rgb_frame(
     cut: &mut CutRenderer,
     renderer: &mut Renderer,

@@ -1,7 +1,7 @@
 //! `GpuNodeCache`: nodes resident on the GPU, in pages of batch slots, least recently used
 //! first out, within a byte bound.
 //!
-//! A page is one segment of the renderer's cloud (`raster/points.rs`): a positions, a colours
+//! A page is one segment of the renderer's cloud (`raster/points.rs`): a positions, a colors
 //! and a batch buffer of a fixed number of batch slots. A node takes one slot per batch of its
 //! points (a node is at most tens of thousands of points, a batch 4096), anywhere in any page,
 //! so the cache never fragments. Each frame every page's batch table is set to the batches of
@@ -9,7 +9,7 @@
 //! cloud: the batch culling, the draw order, the phases and the occlusion tiles work inside
 //! the nodes unchanged.
 //!
-//! Colours are written with the points, so the cache holds one colour mode: a frame in another
+//! Colors are written with the points, so the cache holds one color mode: a frame in another
 //! mode empties it. Each point also has 16 bits of weight for the high-quality mode (its
 //! code and child octant), and each slot the children of its node that the frame draws.
 //! The resident cloud's segments carry neither.
@@ -30,14 +30,14 @@ use crate::raster::BATCH_POINTS;
 /// Sub-batches per batch slot: a batch's runs are found at `slot * SUBS_PER_SLOT`.
 const SUBS_PER_SLOT: usize = BATCH_POINTS / SUB_BATCH_POINTS;
 
-/// Bytes one batch slot takes on the GPU: its points' positions, colours and weights, its
+/// Bytes one batch slot takes on the GPU: its points' positions, colors and weights, its
 /// entry and its node's drawn children.
 pub const SLOT_BYTES: u64 = BATCH_POINTS as u64
     * (std::mem::size_of::<QuantisedPosition>() as u64 + COLOR_BYTES + WEIGHT_BYTES)
     + std::mem::size_of::<GpuBatch>() as u64
     + 4;
 
-/// Bytes a page has beyond its slots: its colours' spare words (`PointSegment::page`).
+/// Bytes a page has beyond its slots: its colors' spare words (`PointSegment::page`).
 const PAGE_SPARE_BYTES: u64 = 8;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -80,7 +80,7 @@ pub struct GpuNodeCache {
     resident: HashMap<NodeKey, ResidentNode>,
     by_use: BTreeMap<u64, NodeKey>,
     tick: u64,
-    /// How the resident nodes were prepared: their colours and the points they kept.
+    /// How the resident nodes were prepared: their colors and the points they kept.
     prepared_for: Option<(Coloring, PointFilter)>,
     /// Bytes written since the uploads were last submitted.
     unsubmitted_bytes: u64,
@@ -102,7 +102,7 @@ impl GpuNodeCache {
         let total_slots = (budget_bytes / SLOT_BYTES).max(1) as usize;
         let mut slots_per_page = (max_page_points / BATCH_POINTS).clamp(1, total_slots);
         let mut max_pages = (total_slots / slots_per_page).max(1);
-        // Every page's colour buffer has a spare word or two beyond its slots.
+        // Every page's color buffer has a spare word or two beyond its slots.
         while slots_per_page > 1
             && max_pages as u64 * (slots_per_page as u64 * SLOT_BYTES + PAGE_SPARE_BYTES)
                 > budget_bytes
@@ -139,7 +139,7 @@ impl GpuNodeCache {
         self.resident.get(&key).is_some_and(|n| n.detail == detail)
     }
 
-    /// Empties the cache when its nodes were not prepared with these colours and this filter.
+    /// Empties the cache when its nodes were not prepared with these colors and this filter.
     pub fn prepare_for(&mut self, coloring: Coloring, filter: PointFilter) {
         let wanted = Some((coloring, filter));
         if self.prepared_for != wanted {
@@ -222,7 +222,7 @@ impl GpuNodeCache {
                 (base * position_bytes) as u64,
                 bytemuck::cast_slice(&data.positions[first..first + count]),
             );
-            // Colours are written in 4-byte words: the slot's bytes are a multiple of 4 from
+            // Colors are written in 4-byte words: the slot's bytes are a multiple of 4 from
             // its start, and the last slot of a node has room for the padding.
             let color_start = first * COLOR_BYTES as usize;
             let color_end = ((first + count) * COLOR_BYTES as usize).next_multiple_of(4);

@@ -18,7 +18,7 @@ use crate::lod::{
 
 /// Which detail a frame reads each node of its cut at (`lod::codec::Detail`): coarse where
 /// the node spans at most [`COARSE_MAX_PIXELS`] and the frame draws nothing the coarse section
-/// lacks (colours from RGB or heights, no attribute filter, a pixel error above 0), so a cold
+/// lacks (colors from RGB or heights, no attribute filter, a pixel error above 0), so a cold
 /// frame reads about half the bytes (docs/perf/coarse-reads.md).
 #[derive(Debug, Clone, Copy)]
 pub(super) struct FrameDetails {

@@ -10,7 +10,7 @@
 //!    priority) a window at a time and by where they lie within it (`read_order.rs`), a wave
 //!    at a time so the transient memory stays small (`load.rs`): the next wave's records
 //!    read while this one's are decoded, and the one before prepared and uploaded;
-//! 3. **upload**: each is coloured for the frame's colour mode with the dataset's ranges
+//! 3. **upload**: each is colored for the frame's color mode with the dataset's ranges
 //!    (`lod/colors.rs`), put in Morton order, batched and quantised as any cloud, and written into
 //!    free batch slots of the GPU cache's pages (`gpu_cache.rs`), the least recently used nodes
 //!    outside the cut evicted;
@@ -127,7 +127,7 @@ pub struct CutRenderer {
     read_ahead: Option<ReadAhead>,
     /// Bytes read by a read-ahead, reported by the next frame.
     read_ahead_bytes: u64,
-    /// How the last frame was coloured: a read-ahead reads the next frame's nodes at the
+    /// How the last frame was colored: a read-ahead reads the next frame's nodes at the
     /// detail it will draw them at.
     last_coloring: Option<Coloring>,
 }
@@ -267,7 +267,7 @@ impl CutRenderer {
         ))
     }
 
-    /// Renders one frame: its cut made resident, its points coloured in `color_mode` and
+    /// Renders one frame: its cut made resident, its points colored in `color_mode` and
     /// passed through `filter`, then drawn.
     pub fn render(
         &mut self,
@@ -456,7 +456,7 @@ impl CutRenderer {
         // frame being finished keeps the other half.
         let mut room = host.capacity_bytes() / 2;
         let mut wanted = Vec::new();
-        // The next frame of a job colours as this one did.
+        // The next frame of a job colors as this one did.
         let details = match self.last_coloring {
             Some(coloring) => FrameDetails::new(&self.options, dataset, coloring, filter),
             None => FrameDetails::FULL,
@@ -504,7 +504,7 @@ impl CutRenderer {
     }
 }
 
-/// A node's points as the renderer takes them: relative to the origin, coloured, those that
+/// A node's points as the renderer takes them: relative to the origin, colored, those that
 /// pass `filter` in Morton order over the node's own grid, batched and quantised, with their
 /// weight bits. Each attribute is computed once, straight into that order.
 fn prepare(
@@ -531,7 +531,7 @@ fn prepare(
         kept.as_deref(),
     );
     let positions = node.positions_at(dataset.origin, order.iter().copied());
-    // Only elevation colours by height: the other modes skip the pass.
+    // Only elevation colors by height: the other modes skip the pass.
     let heights: Vec<f32> = match coloring.mode {
         ColorMode::Elevation => node
             .positions_relative_to(dataset.origin)

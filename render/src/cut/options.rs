@@ -5,8 +5,8 @@ use thiserror::Error;
 
 /// The default pixel error: a node is refined while its point spacing covers more than this
 /// on screen. A quarter of a pixel keeps about 97% of the covered pixels of a basic-mode frame
-/// within 8/255 of full detail on a scene with noisy colours, more in high quality and on
-/// smooth colours (docs/perf/lod-fidelity.md).
+/// within 8/255 of full detail on a scene with noisy colors, more in high quality and on
+/// smooth colors (docs/perf/lod-fidelity.md).
 pub const DEFAULT_LOD_ERROR_PX: f64 = 0.25;
 /// The largest pixel error accepted.
 pub const MAX_LOD_ERROR_PX: f64 = 256.0;

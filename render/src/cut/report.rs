@@ -54,7 +54,7 @@ pub struct CutReport {
     /// The load stages: selecting the cut, waiting for the read-ahead, waiting for waves of
     /// nodes to be read, decoded and prepared (the part that uploading the wave before did not
     /// hide; the frame's "load" stage is the two waits), and the time spent preparing them
-    /// (colours, order, quantisation), on a thread of its own while waves are read and
+    /// (colors, order, quantisation), on a thread of its own while waves are read and
     /// uploaded; their transfer to the GPU is the frame's "upload" stage.
     pub select_ms: f64,
     pub wait_ms: f64,

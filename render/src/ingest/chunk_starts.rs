@@ -7,7 +7,7 @@
 //! checked chunk table gives an evenly spread subsample of a file of any size in one small
 //! read per chunk (as LidarScout does). An old unchunked LAZ file gives its first point only.
 //! The sample becomes a cloud as a dataset's load makes one: the same origin (the first
-//! sampled point is the file's first point) and the same colour rule, decided on the sample.
+//! sampled point is the file's first point) and the same color rule, decided on the sample.
 
 use std::ops::Range;
 use std::path::PathBuf;
@@ -37,13 +37,13 @@ pub struct PreviewSample {
     pub points_in_files: u64,
     /// What the frames of the dataset's store frame: its files' header bounds.
     pub files_bounds: WorldBounds,
-    /// The sampled records before their colours were decided, for [`Self::cloud_with_nodes`].
+    /// The sampled records before their colors were decided, for [`Self::cloud_with_nodes`].
     decoded: DecodedPoints,
 }
 
 impl PreviewSample {
     /// The sample and `nodes` of the dataset's store (those a build has stored so far) as one
-    /// cloud: the sample's origin, bounds over both and one colour decision over both.
+    /// cloud: the sample's origin, bounds over both and one color decision over both.
     pub fn cloud_with_nodes(&self, nodes: &[NodePoints]) -> PointCloud {
         let mut decoded = self.decoded.clone();
         for node in nodes {
@@ -54,7 +54,7 @@ impl PreviewSample {
 }
 
 /// The chunk starts of a dataset's LAZ files and every [`LAS_PREVIEW_STRIDE`]-th record of
-/// its LAS files, as one cloud (one origin, bounds and colour decision, as
+/// its LAS files, as one cloud (one origin, bounds and color decision, as
 /// [`load_dataset`](super::load_dataset) decides them). Every file is pre-parsed as a load
 /// pre-parses it; every offset read lies inside the checked chunk table's extent.
 pub fn sample_chunk_starts(paths: &[PathBuf]) -> Result<PreviewSample, IngestError> {

@@ -1,5 +1,5 @@
 //! The decoded points, batch by batch, and the cloud made of them: the recentring origin,
-//! the positions in f32 relative to it, and display colours (16-bit RGB, 8-bit values in
+//! the positions in f32 relative to it, and display colors (16-bit RGB, 8-bit values in
 //! 16-bit fields, intensity grey, or one grey).
 
 use glam::{DVec3, Vec3};
@@ -43,7 +43,7 @@ pub(super) fn choose_origin(header_bounds: &WorldBounds, first_batch: &PointData
     }
 }
 
-/// Per-point columns accumulated batch by batch, before colours can be decided (that needs
+/// Per-point columns accumulated batch by batch, before colors can be decided (that needs
 /// the whole file: 8-bit detection and intensity percentiles are global).
 #[derive(Clone)]
 pub(super) struct DecodedPoints {
@@ -162,7 +162,7 @@ impl DecodedPoints {
     }
 }
 
-/// Display colours from the RGB fields, as [`ColorSource::of_rgb`] decided to read them.
+/// Display colors from the RGB fields, as [`ColorSource::of_rgb`] decided to read them.
 fn colors_from_rgb(rgb: &[[u16; 3]], source: ColorSource) -> Vec<u32> {
     let shift = if source == ColorSource::Rgb16 { 8 } else { 0 };
     rgb.iter()
@@ -185,7 +185,7 @@ mod tests {
     use crate::ingest::test_files::*;
     use crate::ingest::{load_point_cloud, LasWriteOptions};
 
-    /// Writes points with the given raw 16-bit colours (write_las always widens 8-bit colours)
+    /// Writes points with the given raw 16-bit colors (write_las always widens 8-bit colors)
     /// and intensities 100, 200, ...
     fn write_raw_rgb(path: &Path, rgb: &[[u16; 3]]) {
         let mut builder = las::Builder::from((1, 2));
@@ -214,7 +214,7 @@ mod tests {
         load_point_cloud(&path).expect("load")
     }
 
-    /// The greys of the points of [`write_raw_rgb`] loaded back, whose colours must have
+    /// The greys of the points of [`write_raw_rgb`] loaded back, whose colors must have
     /// given way to their intensity.
     fn greys_instead_of_rgb(name: &str, rgb: &[[u16; 3]]) -> Vec<u8> {
         let cloud = load_raw_rgb(name, rgb);
@@ -224,7 +224,7 @@ mod tests {
         greys
     }
 
-    /// `cloud` written as `name` in a point format without colour fields (0 or 1), loaded back.
+    /// `cloud` written as `name` in a point format without color fields (0 or 1), loaded back.
     fn written_without_color(cloud: &PointCloud, point_format: u8, name: &str) -> PointCloud {
         let dir = tempfile::tempdir().expect("temp dir");
         let options = LasWriteOptions {
@@ -256,9 +256,9 @@ mod tests {
     }
 
     #[test]
-    fn one_colour_for_every_point_gives_way_to_intensity() {
+    fn one_color_for_every_point_gives_way_to_intensity() {
         greys_instead_of_rgb("placeholder.las", &[[65_535, 65_535, 65_535]; 50]);
-        // Without intensity the one colour is all there is, and it is drawn.
+        // Without intensity the one color is all there is, and it is drawn.
         assert_eq!(
             ColorSource::of_rgb_range([200; 3], [200; 3], false),
             Some(ColorSource::Rgb8In16Bit)

@@ -1,5 +1,5 @@
 //! A dataset of many files loads as the one file they were cut from: the same origin, bounds,
-//! colours and points, so it renders the same image.
+//! colors and points, so it renders the same image.
 
 use std::path::{Path, PathBuf};
 
@@ -10,7 +10,7 @@ use crate::raster::{FrameSettings, Renderer};
 use crate::sample::sample_scene;
 use crate::testing::{gpu, shared_data};
 
-/// The points of `cloud` as sortable records: world position bits, colour and attributes.
+/// The points of `cloud` as sortable records: world position bits, color and attributes.
 fn records(cloud: &PointCloud) -> Vec<([u64; 3], u32, u16, u8, u8)> {
     let mut records: Vec<_> = (0..cloud.len())
         .map(|i| {
@@ -130,7 +130,7 @@ fn tiles_of_a_real_scan_render_as_the_scan() {
 }
 
 #[test]
-fn files_of_other_scales_formats_and_colours_mix() {
+fn files_of_other_scales_formats_and_colors_mix() {
     let dir = tempfile::tempdir().expect("tempdir");
     let scene = sample_scene(20_000, 5);
     let half = scene.len() / 2;

@@ -172,7 +172,7 @@ pub struct RgbRange {
 }
 
 impl RgbRange {
-    /// Whether the colours say anything: some channel varies (not all zero, not one colour).
+    /// Whether the colors say anything: some channel varies (not all zero, not one color).
     pub fn varies(&self) -> bool {
         self.min != self.max
     }

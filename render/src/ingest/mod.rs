@@ -21,7 +21,7 @@
 //!   every LAZ chunk, every k-th LAS record, of files here or objects by URL alike;
 //! - `ranged.rs`: the one face a file's bytes are read through by range, a file here or an
 //!   object by URL (`copc::bytes`), for the pre-parse, the header and the sample;
-//! - `columns.rs`: the decoded points and the cloud made of them (origin, colours);
+//! - `columns.rs`: the decoded points and the cloud made of them (origin, colors);
 //! - `files.rs`: the files of a dataset, from files and folders (anywhere, or only inside a
 //!   server's data roots), and `open_dataset_file`, the one open of a dataset's file;
 //! - `info.rs`: what a file is, for `pointfarm info`: header facts, attributes, and a

@@ -30,7 +30,7 @@ const BYTES_PER_BATCH: u64 = 64 << 20;
 ///
 /// Coordinates are decoded in f64 and recentred on an origin fixed before the points are read
 /// (the centre of the header bounds, or the first point if those are unusable), so the f32
-/// positions keep the file's precision. See [`ColorSource`] for how display colours are chosen.
+/// positions keep the file's precision. See [`ColorSource`] for how display colors are chosen.
 ///
 /// [`ColorSource`]: crate::cloud::ColorSource
 pub fn load_point_cloud(path: &Path) -> Result<PointCloud, IngestError> {
@@ -39,7 +39,7 @@ pub fn load_point_cloud(path: &Path) -> Result<PointCloud, IngestError> {
 
 /// Loads the files of one dataset (tiles or scan positions of a campaign) into one cloud, as
 /// if they were one file: one origin (the centre of the union of their header bounds, or the
-/// first point), one set of bounds and one colour decision over every point. Files may differ
+/// first point), one set of bounds and one color decision over every point. Files may differ
 /// in version, point format, scale and offset. RGB is used only when every file has it. A
 /// file that cannot be read fails the whole load with that file named.
 pub fn load_dataset(paths: &[PathBuf]) -> Result<PointCloud, IngestError> {

@@ -11,7 +11,7 @@ use crate::cloud::PointCloud;
 pub struct LasWriteOptions {
     /// LAS version (major, minor).
     pub version: (u8, u8),
-    /// Point format 0–10; colour is written only by formats that have RGB.
+    /// Point format 0–10; color is written only by formats that have RGB.
     pub point_format: u8,
     /// Coordinate scale in file units (the precision of the written coordinates).
     pub scale: f64,
@@ -41,7 +41,7 @@ pub struct WriteLasError {
 const WRITE_BLOCK_POINTS: usize = 1 << 16;
 
 /// Writes `cloud` in world coordinates (`origin + position`) as LAS, or LAZ when the path ends
-/// in `.laz`. Colours become 16-bit by `v * 257` (so 255 maps to 65535); formats with GPS time,
+/// in `.laz`. Colors become 16-bit by `v * 257` (so 255 maps to 65535); formats with GPS time,
 /// waveforms or NIR get zeros there.
 pub fn write_las(
     path: &Path,

@@ -2,7 +2,7 @@
 //!
 //! Positions are 30 bits per axis relative to the node's cube, stored as three streams of one
 //! 4-byte word per point (after Schütz et al. 2022): the first holds the top 10 bits of x, y
-//! and z, the second the next 10, the third the last 10. The first two streams, the colours and
+//! and z, the second the next 10, the third the last 10. The first two streams, the colors and
 //! the weights come first, with a checksum of their own: what a frame draws of a node that
 //! spans at most [`COARSE_MAX_PIXELS`], read alone ([`Detail::Coarse`], 16 of the 24 bytes a
 //! point with RGB). Layout, little-endian:
@@ -38,8 +38,8 @@ const STREAM_BYTES: usize = 4;
 /// How much of a node a read takes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum Detail {
-    /// Positions to 20 bits a side of the node's cube, colours and weights: a node a frame
-    /// draws at most [`COARSE_MAX_PIXELS`] wide, in RGB or elevation colours.
+    /// Positions to 20 bits a side of the node's cube, colors and weights: a node a frame
+    /// draws at most [`COARSE_MAX_PIXELS`] wide, in RGB or elevation colors.
     Coarse,
     /// Everything.
     Full,
@@ -408,7 +408,7 @@ mod tests {
         );
         assert_eq!(node.detail, Detail::Full);
 
-        // The coarse section alone: the same colours and weights, positions to 20 bits at the
+        // The coarse section alone: the same colors and weights, positions to 20 bits at the
         // centre of their step, no other attributes.
         let coarse_bytes = &bytes[..coarse_len(points.len(), true)];
         let coarse = decode_node(&cube, key, 500, coarse_bytes).expect("decodes coarse");

@@ -1,6 +1,6 @@
-//! `NodeColoring`: the colour of each point of a node, decided once for the whole dataset.
+//! `NodeColoring`: the color of each point of a node, decided once for the whole dataset.
 //!
-//! A colour mode's ranges are the dataset's, never a node's, or neighbouring nodes would not
+//! A color mode's ranges are the dataset's, never a node's, or neighbouring nodes would not
 //! match: the RGB decision (8-bit values in 16-bit fields, or 16-bit) and the intensity
 //! percentiles come from the statistics of every point gathered while the store was built;
 //! the elevation percentiles from the coarsest nodes, a spatially even sample of the dataset.
@@ -12,7 +12,7 @@ use crate::color::{
     ColorMode, ColorRange, Coloring, Palette, PaletteAttributes, Stretch, CONSTANT_GREY_RGBA,
 };
 
-/// What colouring needs of a dataset.
+/// What coloring needs of a dataset.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DatasetColoring {
     /// Whether the RGB fields hold 8-bit values (no channel above 255); `None` without RGB,
@@ -57,8 +57,8 @@ impl DatasetColoring {
         self.elevation
     }
 
-    /// The colours of `node`'s points (RGBA8), their heights relative to the origin given.
-    /// Whether `mode` colours a node from its RGB or its heights alone: what a node read
+    /// The colors of `node`'s points (RGBA8), their heights relative to the origin given.
+    /// Whether `mode` colors a node from its RGB or its heights alone: what a node read
     /// coarse keeps (`codec::Detail`).
     pub fn needs_only_coarse(&self, mode: ColorMode) -> bool {
         match mode {
@@ -100,7 +100,7 @@ impl DatasetColoring {
     }
 
     /// The range elevation or intensity is drawn over, in the mode's units (world Z, raw
-    /// intensity); `None` for the other modes or with nothing to colour by.
+    /// intensity); `None` for the other modes or with nothing to color by.
     pub fn ramp_range(&self, coloring: Coloring) -> Option<ColorRange> {
         let drawn = match coloring.mode {
             ColorMode::Elevation => self.elevation_stretch(coloring)?.in_units(self.origin_z),

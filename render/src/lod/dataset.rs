@@ -1,5 +1,5 @@
 //! `LodDataset`: a store opened for rendering (its hierarchy, where its node records are read
-//! from, origin, bounds and colour ranges), and the coarse sample its colour ranges come from.
+//! from, origin, bounds and color ranges), and the coarse sample its color ranges come from.
 
 use std::sync::Arc;
 
@@ -20,7 +20,7 @@ pub const ELEVATION_SAMPLE_POINTS: u64 = 1 << 20;
 
 /// A built store opened for rendering: its hierarchy (always resident), where its node
 /// records are read from (the store's payload file, or a daemon that keeps it), rendering
-/// origin, bounds and colour ranges.
+/// origin, bounds and color ranges.
 pub struct LodDataset {
     pub(crate) records: Arc<dyn NodeRecords>,
     /// The hierarchy as opened.
@@ -60,7 +60,7 @@ impl LodDataset {
     }
 
     /// A store whose elevation range comes from `heights` (of its coarsest nodes, relative to
-    /// the centre of `bounds`, [`for_each_coarse_node`]) and whose other colour ranges come
+    /// the centre of `bounds`, [`for_each_coarse_node`]) and whose other color ranges come
     /// from its hierarchy's statistics.
     pub fn with_heights(
         records: Arc<dyn NodeRecords>,
@@ -166,7 +166,7 @@ impl LodDataset {
 }
 
 /// Reads the coarsest nodes of `hierarchy`, level by level, up to
-/// [`ELEVATION_SAMPLE_POINTS`] (an even sample of the whole dataset, which colour ranges are
+/// [`ELEVATION_SAMPLE_POINTS`] (an even sample of the whole dataset, which color ranges are
 /// taken from), a wave at a time, handing each to `visit`; returns their record bytes.
 pub fn for_each_coarse_node(
     records: &dyn NodeRecords,

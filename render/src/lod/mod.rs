@@ -32,7 +32,7 @@
 //! for tests/build_resume.rs to kill it there.
 //!
 //! Opened for rendering, a store or a COPC file is a [`LodDataset`] (`dataset.rs`: its
-//! hierarchy, with pages read as frames reach them, `pages.rs`, and its colour ranges,
+//! hierarchy, with pages read as frames reach them, `pages.rs`, and its color ranges,
 //! `colors.rs`), what both the COPC reader and the cut renderer build on.
 
 pub mod attributes;

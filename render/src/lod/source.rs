@@ -193,7 +193,7 @@ pub fn files_fingerprint<'p>(paths: impl IntoIterator<Item = &'p Path>) -> Optio
 /// Points per batch of the in-memory and generated sources.
 pub const SOURCE_BATCH_POINTS: usize = 1 << 16;
 
-/// A [`PointCloud`] as a source: world = origin + offset, in f64. Its colours are already
+/// A [`PointCloud`] as a source: world = origin + offset, in f64. Its colors are already
 /// packed for display, so its batches carry no raw RGB.
 pub struct CloudSource<'a> {
     cloud: &'a PointCloud,

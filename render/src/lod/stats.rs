@@ -1,5 +1,5 @@
-//! `DatasetStats`: what colour decisions need about the whole dataset, gathered in the
-//! counting pass so colours can be decided once, not per node.
+//! `DatasetStats`: what color decisions need about the whole dataset, gathered in the
+//! counting pass so colors can be decided once, not per node.
 
 /// Bins of the intensity histogram: one per 16-bit value, so percentiles are exact.
 pub const INTENSITY_BINS: usize = 1 << 16;
@@ -12,7 +12,7 @@ pub struct DatasetStats {
     /// fields).
     pub max_rgb: [u16; 3],
     /// The smallest raw value of each RGB channel: equal to `max_rgb` when every point has one
-    /// colour.
+    /// color.
     pub min_rgb: [u16; 3],
     /// Points per intensity value.
     pub intensity_histogram: Vec<u64>,

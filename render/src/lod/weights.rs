@@ -5,7 +5,7 @@
 //! to 1023 and within 1/1024 of the weight above (up to about 16.7 million), so that with the
 //! point's octant (3 bits) it fits the 16 bits a node-cache page holds per point
 //! (`shaders/hq_accumulate_weighted.wgsl` decodes it the same way). An 8-bit log code would
-//! err by percents on every coarse point; 1/1024 moves an average of 8-bit colours by far less
+//! err by percents on every coarse point; 1/1024 moves an average of 8-bit colors by far less
 //! than one level.
 
 /// The extra bytes attribute (an unsigned 32-bit integer) in which a COPC export keeps each

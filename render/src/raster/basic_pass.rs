@@ -1,8 +1,8 @@
 //! The basic-mode point pass: every point is projected, culled and written to the point
-//! framebuffer with an atomic minimum of (depth, colour).
+//! framebuffer with an atomic minimum of (depth, color).
 //!
 //! Two variants render the same image: one 64-bit `atomicMin` per pixel where the adapter has
-//! 64-bit atomics (`shaders/raster_atomic64.wgsl`), and a depth pass followed by a colour pass
+//! 64-bit atomics (`shaders/raster_atomic64.wgsl`), and a depth pass followed by a color pass
 //! with 32-bit atomics where it has not (`shaders/raster_atomic32.wgsl`).
 //!
 //! The pass that writes depths runs in phases over the near-to-far batch table, with the
@@ -21,9 +21,9 @@ use super::targets::FrameTargets;
 /// Which atomics the point pass uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum AtomicsPath {
-    /// One pass, one 64-bit atomicMin of (depth << 32 | colour).
+    /// One pass, one 64-bit atomicMin of (depth << 32 | color).
     Atomic64,
-    /// Two passes with 32-bit atomics: depth, then colour of the points at that depth.
+    /// Two passes with 32-bit atomics: depth, then color of the points at that depth.
     Atomic32,
 }
 
@@ -72,7 +72,7 @@ impl BasicPass {
                 self.record_phased(device, pass, pipelines, AtomicsPath::Atomic64, frame);
             }
             _ => {
-                // The colour pass needs every segment's final depths: it runs after the depth
+                // The color pass needs every segment's final depths: it runs after the depth
                 // pass over all of them, against the final tiles.
                 self.record_depth(device, pass, frame);
                 let pipeline = self.atomic32_color.get(device, frame.shape);

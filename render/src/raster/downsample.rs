@@ -4,7 +4,7 @@ use image::RgbaImage;
 
 use super::Frame;
 
-/// Averages `k` x `k` blocks of the colour image (and keeps the nearest depth of each block).
+/// Averages `k` x `k` blocks of the color image (and keeps the nearest depth of each block).
 pub fn downsample(frame: Frame, k: u32) -> Frame {
     let (width, height) = (frame.image.width() / k, frame.image.height() / k);
     let big_width = frame.image.width() as usize;

@@ -1,7 +1,7 @@
 //! The order in which a frame's listed batches are drawn: near to far, and still along a
 //! Z-order curve.
 //!
-//! The point passes' early depth test skips the atomic and the colour fetch of a point
+//! The point passes' early depth test skips the atomic and the color fetch of a point
 //! behind one already drawn, so drawing near batches first saves work. Sorting the batches by
 //! depth loses what the cloud's Morton order gives: consecutive workgroups write nearby pixels
 //! (on lavapipe that sort made frames slower: docs/perf/draw-order.md). Instead, the

@@ -53,7 +53,7 @@ impl LumaHistograms {
         })
     }
 
-    /// Counts one surface pixel's colour before and after shading.
+    /// Counts one surface pixel's color before and after shading.
     pub fn count(&mut self, before: [u8; 3], after: [u8; 3]) {
         self.before[luma_bin(before[0], before[1], before[2])] += 1;
         self.after[luma_bin(after[0], after[1], after[2])] += 1;
@@ -87,7 +87,7 @@ fn median_bin(histogram: &[u32; LUMA_BINS]) -> Option<usize> {
     })
 }
 
-/// Multiplies the colour of every surface pixel (finite `depth`) by `gain`, saturating.
+/// Multiplies the color of every surface pixel (finite `depth`) by `gain`, saturating.
 pub fn expose(image: &mut RgbaImage, depth: &[f32], gain: f32) {
     if gain == 1.0 {
         return;

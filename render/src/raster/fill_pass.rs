@@ -1,6 +1,6 @@
 //! Anisotropic filling (Pintus et al., section 5; `shaders/fill.wgsl`): `iterations` 3x3
 //! steps over the mutable pixels, ping-ponging between the fill buffers and the frame's own
-//! colour and depth buffers, then the result copied back into the frame's buffers. Each
+//! color and depth buffers, then the result copied back into the frame's buffers. Each
 //! dispatch visits only the pixels the visibility pass listed as mutable (an indirect
 //! dispatch it prepared): a fixed pixel holds the same value in both pairs from the
 //! visibility pass on.
@@ -23,7 +23,7 @@ impl FillPass {
     }
 
     /// Expects the visibility pass's output in the fill buffers; leaves the filled images in
-    /// the frame's colour and depth buffers.
+    /// the frame's color and depth buffers.
     pub fn record(&self, pass: &mut ComputePass<'_>, frame: ScreenFrame<'_>, iterations: u32) {
         let targets = frame.targets;
         let Some(fill) = targets.fill.as_ref() else {

@@ -37,7 +37,7 @@ pub struct FrameUniforms {
 /// `extent / (2^bits - 1)` (see `points::quantise`).
 pub type QuantisedPosition = [u32; 2];
 
-/// Bytes of one point's colour on the GPU: RGB, 8 bits each, packed back to back (points are
+/// Bytes of one point's color on the GPU: RGB, 8 bits each, packed back to back (points are
 /// opaque; the shaders put alpha 255 back).
 pub const COLOR_BYTES: u64 = 3;
 

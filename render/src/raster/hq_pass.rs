@@ -1,5 +1,5 @@
 //! The high-quality mode's accumulation pass (`shaders/hq_accumulate.wgsl`): after the depth
-//! pass, every point within the depth band behind its pixel's nearest depth adds its colour and
+//! pass, every point within the depth band behind its pixel's nearest depth adds its color and
 //! a count; the resolve pass (`resolve_average`) divides. A level-of-detail cut's pages add
 //! each point as many times as the points it stands for (`hq_accumulate_weighted.wgsl`); a
 //! resident cloud's segments keep the unweighted shader.
@@ -70,7 +70,7 @@ impl HqAccumulatePass {
             .any(|c| c.weights.is_some())
             .then(|| weighted_pipelines.get(device, frame.shape));
         // One dispatch per phase of the depth pass (`phases.rs`): over the whole table, the
-        // near phases' batches, where most points add colours, came first and the hidden far
+        // near phases' batches, where most points add colors, came first and the hidden far
         // ones last, and lavapipe's threads shared that work unevenly
         // (docs/perf/depth-phases.md).
         let parts =

@@ -2,7 +2,7 @@
 //!
 //! A frame is: write the frame uniforms; run the point pass over every segment of the resident
 //! cloud (batch frustum culling, dequantisation, per-point projection, early depth test,
-//! atomic minimum of depth and colour); resolve the framebuffer into an RGBA8 image and a
+//! atomic minimum of depth and color); resolve the framebuffer into an RGBA8 image and a
 //! depth image, emptying it for the next frame (only a new framebuffer is cleared first), over
 //! the rows this frame's and the last frame's points can touch;
 //! optionally remove the points seen through holes and fill the holes (visibility and
@@ -216,7 +216,7 @@ impl Renderer {
     /// Uploads a cloud that arrives segment by segment, already in a spatially coherent order (a
     /// generator or a streaming reader), holding at most one segment on the host at a time.
     /// `next_segment(n)` returns up to `n` points (positions relative to `origin`, RGBA8
-    /// colours) or `None` at the end.
+    /// colors) or `None` at the end.
     pub fn upload_segments(
         &self,
         origin: glam::DVec3,
@@ -429,7 +429,7 @@ impl Renderer {
             None
         };
         let image = RgbaImage::from_raw(settings.width, settings.height, color)
-            .ok_or_else(|| RenderError::Gpu("colour readback has the wrong size".into()))?;
+            .ok_or_else(|| RenderError::Gpu("color readback has the wrong size".into()))?;
         timings.push(
             Stage::Readback,
             started.elapsed().as_secs_f64() * 1e3,

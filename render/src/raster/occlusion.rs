@@ -4,7 +4,7 @@
 //! Where points lie deep enough for it to pay (see the constants below), a depth-writing point
 //! pass runs in phases by depth (`phases.rs`): the nearest batches, then the tiles are built
 //! from the framebuffer, then the next, and so on. A workgroup skips its batch when the box
-//! lies behind the tiles it can reach. The high-quality accumulation and the 32-bit colour
+//! lies behind the tiles it can reach. The high-quality accumulation and the 32-bit color
 //! pass test against tiles built after the depth pass, which are final. Elsewhere the tiles stay "unknown" and nothing is skipped.
 //!
 //! On lavapipe every memory access of a shader costs a loop over the SIMD lanes whether or not
@@ -61,7 +61,7 @@ pub struct OcclusionSkipped {
     /// By the pass that writes depths (the basic mode's, or the depth pass of the 32-bit path
     /// and of the high-quality mode).
     pub depth_pass: u32,
-    /// By the passes that read the final depths: the 32-bit path's colour pass and the
+    /// By the passes that read the final depths: the 32-bit path's color pass and the
     /// high-quality accumulation.
     pub later_passes: u32,
 }

@@ -1,5 +1,5 @@
 //! Shape-depicting shading (Pintus et al., section 6; `shaders/pintus.wgsl`): one dispatch
-//! per smoothing level, each adding its weighted term to a per-pixel sum, then the colour
+//! per smoothing level, each adding its weighted term to a per-pixel sum, then the color
 //! multiplied by the normalised sum. The frame's depth image is only read.
 
 use pointfarm_shaders::Shader;

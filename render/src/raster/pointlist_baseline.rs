@@ -38,7 +38,7 @@ pub struct PointListBaseline {
     targets: Option<RenderTargets>,
 }
 
-/// Colour and depth attachments of one image size, and the buffer the colour is copied to.
+/// Color and depth attachments of one image size, and the buffer the color is copied to.
 struct RenderTargets {
     width: u32,
     height: u32,
@@ -74,7 +74,7 @@ impl RenderTargets {
             width,
             height,
             color: texture(
-                "pointlist colour",
+                "pointlist color",
                 COLOR_FORMAT,
                 wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
             ),
@@ -84,14 +84,14 @@ impl RenderTargets {
                 wgpu::TextureUsages::RENDER_ATTACHMENT,
             ),
             readback: device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("pointlist colour rows"),
+                label: Some("pointlist color rows"),
                 size: padded_row_bytes as u64 * height as u64,
                 usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::COPY_SRC,
                 mapped_at_creation: false,
             }),
             readback_staging: crate::gpu::staging_buffer(
                 device,
-                "pointlist colour readback",
+                "pointlist color readback",
                 padded_row_bytes as u64 * height as u64,
             ),
             padded_row_bytes,
@@ -320,7 +320,7 @@ impl PointListBaseline {
             })
     }
 
-    /// Copies the colour attachment to the host, dropping the row padding.
+    /// Copies the color attachment to the host, dropping the row padding.
     fn read_color(&self, targets: &RenderTargets) -> Result<RgbaImage, RenderError> {
         let mut encoder = self.gpu.device.create_command_encoder(&Default::default());
         encoder.copy_texture_to_buffer(
@@ -349,7 +349,7 @@ impl PointListBaseline {
             .copied()
             .collect();
         RgbaImage::from_raw(targets.width, targets.height, pixels)
-            .ok_or_else(|| RenderError::Gpu("colour readback has the wrong size".into()))
+            .ok_or_else(|| RenderError::Gpu("color readback has the wrong size".into()))
     }
 }
 
@@ -384,7 +384,7 @@ mod tests {
     }
 
     /// Fractions of the pixels covered by either method that are covered by both, and of
-    /// those that have the same colour.
+    /// those that have the same color.
     fn agreement(baseline: &RgbaImage, compute: &RgbaImage, background: [u8; 4]) -> (f64, f64) {
         let (mut either, mut both, mut equal) = (0usize, 0usize, 0usize);
         for (b, c) in baseline.pixels().zip(compute.pixels()) {
@@ -424,7 +424,7 @@ mod tests {
             covered_by_both >= 0.95,
             "coverage agreement {covered_by_both}"
         );
-        assert!(equal >= 0.95, "colour agreement {equal}");
+        assert!(equal >= 0.95, "color agreement {equal}");
     }
 
     #[test]

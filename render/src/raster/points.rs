@@ -6,8 +6,8 @@
 //! and nearby threads write nearby pixels. Upload happens once; every frame reuses the buffers.
 //!
 //! 11 bytes per point (Kanzok et al.'s batch-relative quantisation): the position as 64 bits
-//! of fixed point within its batch's box (21, 21 and 22 bits for x, y, z) and the RGB colour
-//! in a separate buffer, so that a pass reads the colour only for points that pass the early
+//! of fixed point within its batch's box (21, 21 and 22 bits for x, y, z) and the RGB color
+//! in a separate buffer, so that a pass reads the color only for points that pass the early
 //! depth test. The batch table adds 32 bytes per 4096 points. The quantisation error of an
 //! axis is at most half a step, `extent / (2 (2^bits - 1))` of the batch's box on that axis
 //! (about 1/4,000,000 of it for x and y, 1/8,000,000 for z), plus f32 rounding of a few ulp of
@@ -36,7 +36,7 @@ pub const BATCH_POINTS: usize = layout::BATCH_POINTS as usize;
 /// the view (`culling/listing.rs`; [`layout::SUB_BATCH_POINTS`]).
 pub const SUB_BATCH_POINTS: usize = layout::SUB_BATCH_POINTS as usize;
 
-/// Bytes one point adds to a segment's point buffers (position and colour).
+/// Bytes one point adds to a segment's point buffers (position and color).
 pub const POINT_BYTES: u64 = std::mem::size_of::<QuantisedPosition>() as u64 + COLOR_BYTES;
 
 /// Points per segment when a cloud is streamed in. A segment's host copy takes about 27 bytes a
@@ -50,7 +50,7 @@ pub(crate) struct PointSegment {
     /// `QuantisedPosition` per point.
     pub positions: wgpu::Buffer,
     /// RGB bytes per point, back to back, padded with one spare word so that a shader can
-    /// always read the two words that hold a point's colour.
+    /// always read the two words that hold a point's color.
     pub colors: wgpu::Buffer,
     pub batches: wgpu::Buffer,
     /// The same batch table on the host, from which each frame's table is built
@@ -222,7 +222,7 @@ impl GpuPointCloud {
         self.origin
     }
 
-    /// Bytes of every GPU buffer that holds this cloud: positions, colours and batch tables.
+    /// Bytes of every GPU buffer that holds this cloud: positions, colors and batch tables.
     pub fn gpu_bytes(&self) -> u64 {
         self.segments
             .iter()
@@ -293,7 +293,7 @@ impl GpuPointCloud {
 
     /// Uploads points that are already in their final order, one segment at a time, so that a
     /// caller generating or streaming a huge cloud never holds more than one segment on the host.
-    /// `next_segment` returns the positions (relative to `origin`) and RGBA8 colours of up to
+    /// `next_segment` returns the positions (relative to `origin`) and RGBA8 colors of up to
     /// `segment_points` points, or `None` when done; `segment_points` is a multiple of
     /// [`BATCH_POINTS`].
     pub(crate) fn upload_segments(

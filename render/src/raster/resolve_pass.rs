@@ -121,7 +121,7 @@ impl ResolvePass {
         self.dispatch(pass, &self.clear, &bind_group, targets.pixels());
     }
 
-    /// The nearest point's colour per pixel of the frame's run, and its depth where needed.
+    /// The nearest point's color per pixel of the frame's run, and its depth where needed.
     pub fn record_resolve(
         &self,
         device: &wgpu::Device,
@@ -132,7 +132,7 @@ impl ResolvePass {
         self.record(device, pass, (pipeline, RESOLVE_RUN), frame, None);
     }
 
-    /// High-quality mode: the average of the accumulated colours per pixel of the frame's run,
+    /// High-quality mode: the average of the accumulated colors per pixel of the frame's run,
     /// and the nearest depth where needed; from the packed sums too where `packed_sums` (the
     /// accumulation added to them, `HqAccumulatePass::packs_sums`).
     pub fn record_resolve_average(
@@ -306,7 +306,7 @@ mod tests {
             x1: 40,
             y1: 5,
         };
-        // 100 pixels a row; 256-byte offsets are 64 pixels of colour.
+        // 100 pixels a row; 256-byte offsets are 64 pixels of color.
         let run = PixelRun::covering(rect, 100, 256);
         assert_eq!(
             run,

@@ -59,12 +59,12 @@ pub enum AtomicsMode {
     Force32,
 }
 
-/// How the colour of a pixel is chosen.
+/// How the color of a pixel is chosen.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub enum Quality {
-    /// The nearest point's colour (one atomic minimum per pixel).
+    /// The nearest point's color (one atomic minimum per pixel).
     Basic,
-    /// The average colour of all points whose depth is at most `(1 + depth_band)` times the
+    /// The average color of all points whose depth is at most `(1 + depth_band)` times the
     /// nearest depth of the pixel (Schütz & Wimmer's high-quality mode).
     High { depth_band: f32 },
 }
@@ -130,7 +130,7 @@ pub enum Exposure {
 
 /// Pintus et al.'s visibility and anisotropic filling, run after the resolve: points seen
 /// through holes of a nearer surface are removed, then the holes (and background pixels
-/// enclosed by points) get the depth and colour of the surface around them. Pixels outside
+/// enclosed by points) get the depth and color of the surface around them. Pixels outside
 /// silhouettes stay background.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct FillSettings {

@@ -13,7 +13,7 @@ use crate::gpu::staging_buffer;
 pub(crate) struct FrameTargets {
     pub width: u32,
     pub height: u32,
-    /// One (colour, depth-bits) pair of u32 words per pixel; a u64 to the 64-bit pass. The
+    /// One (color, depth-bits) pair of u32 words per pixel; a u64 to the 64-bit pass. The
     /// resolve pass empties it as it reads it.
     pub framebuffer: wgpu::Buffer,
     /// True until the framebuffer was first cleared (a new buffer holds zeros, not "empty").
@@ -43,7 +43,7 @@ pub(crate) struct FrameTargets {
     clean_outside: Option<CleanOutside>,
 }
 
-/// Outside `footprint` the colour image holds `background`, the depth image (where `depth`)
+/// Outside `footprint` the color image holds `background`, the depth image (where `depth`)
 /// "no surface", and the framebuffer and accumulator are empty: no point landed there since
 /// a resolve that covered those pixels.
 #[derive(Debug, Clone, Copy)]
@@ -88,9 +88,9 @@ impl FrameTargets {
             framebuffer: storage("point framebuffer", pixels * 8),
             needs_clear: true,
             occlusion: OcclusionTiles::new(device, width, height),
-            color: storage("colour image", pixels * 4),
+            color: storage("color image", pixels * 4),
             depth: storage("depth image", pixels * 4),
-            color_staging: staging_buffer(device, "colour image readback", pixels * 4),
+            color_staging: staging_buffer(device, "color image readback", pixels * 4),
             depth_staging: staging_buffer(device, "depth image readback", pixels * 4),
             accumulator: None,
             packed_sums: None,
@@ -136,7 +136,7 @@ impl FrameTargets {
         let bytes = self.pixels() * 4;
         self.fill.get_or_insert_with(|| FillTargets {
             depth: scratch(device, "fill depth", bytes),
-            color: scratch(device, "fill colour", bytes),
+            color: scratch(device, "fill color", bytes),
             mutable: scratch(device, "fill mutable pixels", bytes),
             list_args: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("fill dispatch arguments"),
@@ -170,10 +170,10 @@ impl FrameTargets {
             })
         };
         self.accumulator
-            .get_or_insert_with(|| zeroed("colour accumulator", 16));
+            .get_or_insert_with(|| zeroed("color accumulator", 16));
         if packed_sums {
             self.packed_sums
-                .get_or_insert_with(|| zeroed("packed colour sums", 8));
+                .get_or_insert_with(|| zeroed("packed color sums", 8));
         }
     }
 
@@ -239,7 +239,7 @@ mod tests {
         assert_eq!(frame(a, &grey), full);
         assert_eq!(frame(a, &basic), full);
 
-        // The depth image was not written outside the footprints of colour-only frames.
+        // The depth image was not written outside the footprints of color-only frames.
         let depth = FrameSettings {
             read_depth: true,
             ..basic

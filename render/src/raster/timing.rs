@@ -9,7 +9,7 @@ pub enum Stage {
     /// Levels of detail: the frame's cut chosen from the hierarchy (`cut/select.rs`).
     Select,
     /// Levels of detail: the cut's missing nodes read from the store or the host cache,
-    /// decoded, coloured and quantised for the GPU (their transfer is "upload").
+    /// decoded, colored and quantised for the GPU (their transfer is "upload").
     Load,
     /// Host-to-GPU transfers: per-frame uniforms, and the points on the first frame of a cloud.
     Upload,
@@ -20,13 +20,13 @@ pub enum Stage {
     /// The point pass(es), in high-quality mode the depth pass (and the clear of a new
     /// framebuffer).
     Rasterize,
-    /// High-quality mode: colours of the points near the front surface summed per pixel.
+    /// High-quality mode: colors of the points near the front surface summed per pixel.
     Accumulate,
     /// Framebuffer to RGBA8 and depth images (emptying the framebuffer for the next frame).
     Resolve,
     /// Screen-space visibility: points seen through holes of nearer surfaces removed.
     Visibility,
-    /// Anisotropic filling of the holes' depth and colour.
+    /// Anisotropic filling of the holes' depth and color.
     Fill,
     /// Screen-space shading of the resolved image (Eye-Dome Lighting, Pintus).
     Shade,

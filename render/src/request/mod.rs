@@ -78,7 +78,7 @@ impl RenderRequest {
             round_points,
             quality,
             shading,
-            color_mode: _, // applied to the cloud's colours before upload
+            color_mode: _, // applied to the cloud's colors before upload
             color_range: _,
             color_ramp: _,
             background,

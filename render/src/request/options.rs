@@ -1,4 +1,4 @@
-//! How a request's points become pixels: size, colours, quality, filling, shading,
+//! How a request's points become pixels: size, colors, quality, filling, shading,
 //! supersampling and the depth output, with their defaults (the ranges are in
 //! [`crate::raster`]'s settings, shared with the renderer's own checks).
 
@@ -97,7 +97,7 @@ impl Default for RenderOptions {
             round_points: false,
             quality: Quality::Basic,
             // Eye-Dome Lighting, as Potree: raw scans read as surfaces, and scans without
-            // colour show their shape, for about the cost of encoding the frame
+            // color show their shape, for about the cost of encoding the frame
             // (docs/gallery.md, docs/perf/edl-constants.md).
             shading: Shading::EDL,
             color_mode: ColorMode::Rgb,
@@ -114,7 +114,7 @@ impl Default for RenderOptions {
 }
 
 impl RenderOptions {
-    /// How the points are coloured.
+    /// How the points are colored.
     pub fn coloring(&self) -> Coloring {
         Coloring {
             mode: self.color_mode,

@@ -478,7 +478,7 @@ fn options_stored_before_supersampling_and_lenses_read_with_the_defaults() {
 }
 
 #[test]
-fn a_colour_range_is_finite_ordered_and_only_for_ramped_modes() {
+fn a_color_range_is_finite_ordered_and_only_for_ramped_modes() {
     use crate::color::{ColorMode, ColorRamp, ColorRange};
     let mut valid = request(CameraPath::Still(StillCamera::default()));
     valid.render.color_mode = ColorMode::Elevation;

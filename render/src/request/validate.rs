@@ -312,7 +312,7 @@ impl Lens {
 }
 
 impl RenderOptions {
-    /// A colour range (finite, min below max) and ramp only with a mode drawn through them.
+    /// A color range (finite, min below max) and ramp only with a mode drawn through them.
     fn validate_color_ramp(&self) -> Checked {
         let mode = self.color_mode;
         let applies = |field: &str| {
@@ -322,7 +322,7 @@ impl RenderOptions {
                 Err(invalid(
                     field,
                     format!(
-                        "applies only to the elevation and intensity colour modes, not {}",
+                        "applies only to the elevation and intensity color modes, not {}",
                         mode.name()
                     ),
                 ))
@@ -333,13 +333,13 @@ impl RenderOptions {
             if !(min.is_finite() && max.is_finite()) {
                 return Err(invalid(
                     "render.color_range",
-                    format!("colour range {min}..{max} is invalid: both ends must be finite"),
+                    format!("color range {min}..{max} is invalid: both ends must be finite"),
                 ));
             }
             if min >= max {
                 return Err(invalid(
                     "render.color_range",
-                    format!("colour range {min}..{max} is invalid: min must be below max"),
+                    format!("color range {min}..{max} is invalid: min must be below max"),
                 ));
             }
         }

@@ -15,7 +15,7 @@ pub enum SourceEvent<'a> {
     Read {
         points: usize,
         files: usize,
-        /// Where the points' colours come from, in words.
+        /// Where the points' colors come from, in words.
         colors: &'static str,
         ms: f64,
         /// Whether a dataset cache held them; `None` without a cache.
@@ -62,7 +62,7 @@ pub enum LevelsFrom<'a> {
     /// A store in a folder of this machine, of a dataset of `files` files.
     Store { folder: &'a Path, files: usize },
     /// A COPC file's own hierarchy: the nodes of the pages read so far, the pages not read
-    /// yet, and the nodes read for the colour ranges.
+    /// yet, and the nodes read for the color ranges.
     Copc {
         nodes: usize,
         pages: usize,

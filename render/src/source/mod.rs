@@ -168,7 +168,7 @@ pub struct FrameSource {
 
 impl FrameSource {
     /// The dataset of `files` read whole (from `cache`, under its content hash, when there is
-    /// one), coloured, filtered and uploaded.
+    /// one), colored, filtered and uploaded.
     pub fn resident(
         renderer: Renderer,
         files: &[PathBuf],
@@ -231,7 +231,7 @@ impl FrameSource {
         Ok(source)
     }
 
-    /// `cloud` coloured, filtered and uploaded; framed by the robust box of its points unless
+    /// `cloud` colored, filtered and uploaded; framed by the robust box of its points unless
     /// `framed` gives the box to frame.
     fn of_cloud(
         renderer: Renderer,
@@ -328,7 +328,7 @@ impl FrameSource {
         )
     }
 
-    /// `levels` rendered cut by cut with `cut_options`, coloured and filtered as `options`
+    /// `levels` rendered cut by cut with `cut_options`, colored and filtered as `options`
     /// ask.
     pub fn levels(
         renderer: Renderer,
@@ -414,10 +414,10 @@ impl FrameSource {
         }
     }
 
-    /// Takes `options`' colours, filter and pixel error for the frames that follow, when this
+    /// Takes `options`' colors, filter and pixel error for the frames that follow, when this
     /// source can draw them as a source opened anew would; otherwise `false`, and the caller
-    /// opens one anew. A resident cloud was coloured and filtered as it was uploaded; a cut
-    /// colours and filters each node as it loads, and changes its pixel error in place.
+    /// opens one anew. A resident cloud was colored and filtered as it was uploaded; a cut
+    /// colors and filters each node as it loads, and changes its pixel error in place.
     pub fn reuse_for(&mut self, options: &RenderOptions, lod_error: Option<f64>) -> bool {
         match &mut self.points {
             Points::Resident { .. } => {

@@ -49,7 +49,7 @@ impl ChunkStarts {
     }
 
     /// The chunk starts and `stored`, the nodes a build has stored so far, as a preview's
-    /// points (one colour decision over both).
+    /// points (one color decision over both).
     pub fn with_nodes(&self, stored: &[NodePoints]) -> PreviewPoints {
         PreviewPoints {
             cloud: self.sample.cloud_with_nodes(stored),

@@ -224,7 +224,7 @@ fn a_preview_frames_the_files_and_counts_the_dataset() {
 }
 
 #[test]
-fn a_resident_source_is_reused_only_for_its_own_colours_and_filter() {
+fn a_resident_source_is_reused_only_for_its_own_colors_and_filter() {
     let dir = tempfile::tempdir().expect("tempdir");
     let files = dataset(dir.path(), 5_000);
     let options = RenderOptions::default();

@@ -449,7 +449,7 @@ fn tasks_carry_the_job_spec_unchanged_across_the_wire() {
 }
 
 #[test]
-fn colour_ranges_and_ramps_convert_both_ways() {
+fn color_ranges_and_ramps_convert_both_ways() {
     use pointfarm_render::color::{ColorMode, ColorRamp, ColorRange};
     let mut r = valid();
     r.render = Some(pb::RenderOptions {

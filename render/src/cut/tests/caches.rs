@@ -70,7 +70,7 @@ fn a_read_ahead_fills_the_host_cache_and_changes_no_pixel() {
         &PointFilter::default(),
     )
     .expect("first");
-    // Another colour mode empties the GPU cache, so the next frame needs every node.
+    // Another color mode empties the GPU cache, so the next frame needs every node.
     cut.read_ahead(&fixture.dataset, &next, &PointFilter::default());
     let (frame, report) = rgb_frame(&mut cut, &mut renderer, &fixture, &next).expect("next");
     assert_eq!(report.counts.gpu_hits, 0);

@@ -1,5 +1,5 @@
 //! Nodes a frame draws at most 1,024 pixels wide are read coarse (positions to 20 bits a side,
-//! colours, weights): two thirds of their bytes, and the same image whether the caches held
+//! colors, weights): two thirds of their bytes, and the same image whether the caches held
 //! them whole.
 
 use super::*;

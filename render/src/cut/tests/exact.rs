@@ -60,7 +60,7 @@ fn every_mode_at_lod_error_zero_renders_as_the_resident_cloud() {
         let expected = resident_image(&fixture, &settings, color_mode);
         let share = close_share(&format!("cut-{name}"), &frame.image, &expected);
         // Elevation takes its range from a sample of the store, the resident cloud from every
-        // point: a few colours shift by a level or two.
+        // point: a few colors shift by a level or two.
         assert!(
             share >= 0.99,
             "{name}: only {share:.4} of pixels within 8/255"

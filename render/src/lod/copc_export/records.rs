@@ -35,7 +35,7 @@ use crate::lod::NodePoints;
 
 /// Bytes of a PDRF 6 record.
 pub const PDRF6_BYTES: usize = 30;
-/// Bytes of a PDRF 7 record (PDRF 6 and three 16-bit colour channels).
+/// Bytes of a PDRF 7 record (PDRF 6 and three 16-bit color channels).
 pub const PDRF7_BYTES: usize = 36;
 /// Bytes of a PDRF 8 record (PDRF 7 and near-infrared).
 pub const PDRF8_BYTES: usize = 38;
@@ -44,7 +44,7 @@ pub const WEIGHT_BYTES: usize = 4;
 /// What the extra bytes VLR says of the weight.
 pub const WEIGHT_DESCRIPTION: &str = "original points it stands for";
 
-/// The point data record format of an export with or without colour, without
+/// The point data record format of an export with or without color, without
 /// near-infrared.
 pub fn point_format(has_rgb: bool) -> u8 {
     if has_rgb {
@@ -189,7 +189,7 @@ pub struct NodeRecordBytes {
 }
 
 /// The records of `node`'s points under `transform`, in `format` (a node without stored
-/// colour is written black); `rows` are the node's attribute rows where the store keeps them.
+/// color is written black); `rows` are the node's attribute rows where the store keeps them.
 pub fn node_records(
     node: &NodePoints,
     rows: Option<&[u8]>,

@@ -12,7 +12,7 @@ fn fallback_32_bit_path_renders_the_same_image_as_the_64_bit_path() {
     );
     let mut settings = perspective_settings(160, 120);
     settings.read_depth = true;
-    // Many points per pixel, including exact depth ties broken by colour.
+    // Many points per pixel, including exact depth ties broken by color.
     let mut cloud = pixel_centre_scene(&settings, 4, 4);
     let duplicates: Vec<usize> = (0..cloud.len())
         .chain((0..cloud.len()).step_by(3))

@@ -138,7 +138,7 @@ pub(super) fn holey_sphere(settings: &FrameSettings) -> PointCloud {
         let s = (1.0 - z * z).sqrt();
         let unit = DVec3::new(s * phi.cos(), s * phi.sin(), z);
         points.push(ORIGIN + unit * SPHERE_RADIUS);
-        // Smooth bands with some noise, like a scanned surface's colour.
+        // Smooth bands with some noise, like a scanned surface's color.
         let mut band = |v: f64| (150.0 + 60.0 * v + rng.random_range(-12.0..12.0)) as u8;
         colors.push(pack_rgba8(band(unit.z), band(unit.x), band(-unit.z)));
     }
@@ -315,7 +315,7 @@ fn assert_close_to_reference(name: &str, cloud: &PointCloud, settings: &FrameSet
     );
     assert!(
         far_colors * 1000 <= pixels,
-        "{name}: {far_colors} colours differ"
+        "{name}: {far_colors} colors differ"
     );
     assert!(
         far_depths * 1000 <= pixels,
@@ -371,7 +371,7 @@ fn filling_a_small_cloud_after_one_that_filled_the_image_matches_the_reference()
     compare_images("fill-after-wide", &frame.image, &expected.image);
     assert!(
         far_colors * 1000 <= (WIDTH * HEIGHT) as usize,
-        "{far_colors} colours differ"
+        "{far_colors} colors differ"
     );
 }
 
@@ -414,7 +414,7 @@ fn pintus_shading_darkens_slopes_and_keeps_flat_facing_surfaces() {
         |x, y| brightness(&frame.image, x, y) as f64 / brightness(&unshaded.image, x, y) as f64;
     // The centre of the sphere faces the camera; its rim is seen at a grazing angle.
     let (centre, rim) = (ratio(78, 58), ratio(78, 58 - 33));
-    eprintln!("Pintus shading: centre keeps {centre:.2} of its colour, the rim {rim:.2}");
+    eprintln!("Pintus shading: centre keeps {centre:.2} of its color, the rim {rim:.2}");
     assert!(centre > 0.85, "{centre}");
     assert!(rim < centre - 0.1, "{rim} {centre}");
 }

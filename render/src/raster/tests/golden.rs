@@ -5,7 +5,7 @@
 //!
 //! Tolerance: a pixel matches when no channel differs by more than 2 levels, and at most 1%
 //! of the pixels may fail that. On one adapter the frames are deterministic (order-independent
-//! point pass, integer colour sums, per-pixel screen-space passes), so the goldens match
+//! point pass, integer color sums, per-pixel screen-space passes), so the goldens match
 //! exactly there. Across adapters f32 projection may round an occasional point into the next
 //! pixel (the real-scan reference test tolerates 0.5% such pixels), which the 3x3 filling
 //! can spread to a few neighbours, and fused multiply-adds may move a shaded channel by a

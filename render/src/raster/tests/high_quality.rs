@@ -20,7 +20,7 @@ fn high_quality_averages_pixels_deeper_than_the_packed_sums() {
             .map(|_| front * rng.random_range(1.0..1.005))
             .collect()
     });
-    // Bright colours, so that a channel's sum over more than 257 points overflows 16 bits.
+    // Bright colors, so that a channel's sum over more than 257 points overflows 16 bits.
     let mut rng = ChaCha8Rng::seed_from_u64(13);
     let mut cloud = cloud;
     for color in &mut cloud.colors {
@@ -73,7 +73,7 @@ fn high_quality_mode_averages_the_front_surface_like_the_reference() {
         frame.timings
     );
 
-    // The average really is not the nearest point's colour.
+    // The average really is not the nearest point's color.
     let basic = renderer
         .render(
             &resident,
@@ -123,7 +123,7 @@ fn high_quality_band_is_configurable() {
     }
 }
 
-/// Many thousands of points in one pixel's band, with the colours of vegetation, drawn from
+/// Many thousands of points in one pixel's band, with the colors of vegetation, drawn from
 /// many segments: the packed sums hold the first 256, the wide sums the rest, and the average is
 /// the reference's whichever path adds them, frame after frame.
 #[test]

@@ -1,4 +1,4 @@
-//! What a frame returns besides its colour image: the depth image (and its 16-bit PNG),
+//! What a frame returns besides its color image: the depth image (and its 16-bit PNG),
 //! supersampled images, and the stage timings on both clocks.
 
 use super::*;
@@ -83,7 +83,7 @@ fn supersampling_renders_larger_and_averages_blocks() {
         compare_images("ssaa", &frame.image, &expected.image).differing,
         0
     );
-    // Edges are blended: some pixels hold colours no single point has.
+    // Edges are blended: some pixels hold colors no single point has.
     let blended = frame
         .image
         .pixels()

@@ -105,7 +105,7 @@ fn real_scans_agree_with_the_reference() {
 
 /// lone-star is in UTM at 0.25 mm resolution: in f32 world coordinates a position would be
 /// off by up to 3 cm, several pixels in a close-up. Points are rendered one per 8x8-pixel
-/// cell with unique colours; each one's pixel must contain its f64 projection computed from the
+/// cell with unique colors; each one's pixel must contain its f64 projection computed from the
 /// file's own coordinates (the las crate, not our ingest), i.e. an error of at most 0.5 px.
 #[test]
 fn survey_coordinates_render_with_sub_pixel_accuracy_in_a_close_up() {
@@ -267,7 +267,7 @@ fn surface_median_luma(frame: &Frame) -> usize {
 }
 
 /// Eye-Dome Lighting darkens edges, not the picture: after the exposure the surface's median
-/// luma stays within 15% of the unshaded render's, the colourless terrestrial scan included;
+/// luma stays within 15% of the unshaded render's, the colorless terrestrial scan included;
 /// and the GPU's shaded frame is the reference's.
 #[test]
 fn eye_dome_lighting_keeps_the_median_brightness_of_real_scans() {

@@ -4,7 +4,7 @@
 use super::*;
 
 /// Bytes per point on the GPU, from the sizes of the buffers that hold the cloud: quantised
-/// positions, packed colours and the batch tables.
+/// positions, packed colors and the batch tables.
 #[test]
 fn points_take_at_most_12_bytes_each_on_the_gpu() {
     let mut renderer = Renderer::new(gpu());
