@@ -12,7 +12,7 @@ use axum::response::{IntoResponse, Response};
 use pointfarm_proto::v1 as pb;
 use tonic::Status;
 
-use super::api::{json, run, Failure};
+use super::api::{failure_page, json, run, Failure};
 use super::auth::field;
 use super::html::segment;
 use super::Dashboard;
@@ -98,7 +98,7 @@ pub async fn page_action(
     let query = query.unwrap_or_default().into_bytes();
     let action = match JobAction::parse(&name, &query, &form) {
         Ok(action) => action,
-        Err(failure) => return super::pages::failure_page("Jobs", failure),
+        Err(failure) => return failure_page("Jobs", failure),
     };
     let location = match action {
         JobAction::Delete { .. } => "/".to_string(),
@@ -106,7 +106,7 @@ pub async fn page_action(
     };
     match act(&dashboard, id, action).await {
         Ok(_) => (StatusCode::SEE_OTHER, [(header::LOCATION, location)]).into_response(),
-        Err(failure) => super::pages::failure_page("Jobs", failure),
+        Err(failure) => failure_page("Jobs", failure),
     }
 }
 

@@ -13,7 +13,7 @@ use std::sync::Arc;
 
 use axum::extract::{Path, RawQuery, State};
 use axum::http::{header, StatusCode};
-use axum::response::{IntoResponse, Response};
+use axum::response::{Html, IntoResponse, Response};
 use pointfarm_proto::v1 as pb;
 use serde::Serialize;
 use tonic::{Code, Status};
@@ -211,6 +211,15 @@ pub async fn datasets(
         datasets: page.items.iter().map(pb::Dataset::from).collect(),
         next_page_token: page.next_token,
     }))
+}
+
+/// A failure as a page of its section.
+pub(super) fn failure_page(section: &str, failure: Failure) -> Response {
+    (
+        failure.http_status(),
+        Html(super::html::error_page(section, failure.message())),
+    )
+        .into_response()
 }
 
 #[cfg(test)]

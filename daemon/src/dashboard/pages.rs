@@ -10,7 +10,7 @@ use axum::extract::{Path, RawQuery, State};
 use axum::response::{Html, IntoResponse, Response};
 
 use super::actions::JobAction;
-use super::api::{parse_state, run, workers_message, Failure};
+use super::api::{failure_page, parse_state, run, workers_message, Failure};
 use super::auth::field;
 use super::html::{self, escape, segment};
 use super::Dashboard;
@@ -22,15 +22,6 @@ use crate::service::Daemon;
 /// How many jobs the jobs page lists unless asked for more (`?limit=N`): enough for a day's
 /// work, few enough to paint at once.
 const JOBS_SHOWN: usize = 200;
-
-/// A failure as a page of its section.
-pub(super) fn failure_page(section: &str, failure: Failure) -> Response {
-    (
-        failure.http_status(),
-        Html(html::error_page(section, failure.message())),
-    )
-        .into_response()
-}
 
 /// The jobs matching `state`, newest first, the first `limit` of them, and how many match.
 fn newest_jobs(
