@@ -623,3 +623,69 @@ async fn the_jobs_page_paints_with_a_thousand_jobs() {
     );
     assert!(paint < 5_000.0, "the jobs page paints: {paint} ms");
 }
+
+/// A video the farm made of a job plays in the job's page: served with its media type and
+/// size, to the client token only.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_jobs_video_plays_in_its_page() {
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let (server, dashboard) = serve(&scratch.path().join("data"), &[]);
+    let (mut jobs, dataset, _sample) = clients_with_sample(&server.address).await;
+    let mut submission = turntable_job("with-video", &dataset.id, 3, 64, 48);
+    submission.video = Some(pb::VideoSpec {
+        container: "webm".into(),
+        ..Default::default()
+    });
+    let id = jobs
+        .submit_job(submission)
+        .await
+        .expect("submit")
+        .into_inner()
+        .id;
+    let started = Instant::now();
+    let job = loop {
+        let job = jobs
+            .get_job(pb::GetJobRequest { id: id.clone() })
+            .await
+            .expect("get")
+            .into_inner();
+        match job.state() {
+            pb::JobState::Succeeded => break job,
+            pb::JobState::Failed | pb::JobState::Cancelled => panic!("{job:?}"),
+            _ => {}
+        }
+        assert!(started.elapsed() < Duration::from_secs(180), "{job:?}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert!(job.video_size_bytes > 0, "{job:?}");
+
+    let bearer = format!("Bearer {TOKEN}");
+    let page = request(
+        &dashboard,
+        "GET",
+        &format!("/jobs/{id}"),
+        &[("Authorization", &bearer)],
+        "",
+    );
+    assert_eq!(page.status, 200, "{}", page.body);
+    let source = format!("<source src=\"/jobs/{id}/video\" type=\"video/webm\">");
+    assert!(page.body.contains(&source), "{}", page.body);
+    let video = request(
+        &dashboard,
+        "GET",
+        &format!("/jobs/{id}/video"),
+        &[("Authorization", &bearer)],
+        "",
+    );
+    assert_eq!(video.status, 200);
+    assert_eq!(video.header("content-type"), "video/webm");
+    assert_eq!(
+        video.header("content-length"),
+        job.video_size_bytes.to_string()
+    );
+    let anonymous = request(&dashboard, "GET", &format!("/jobs/{id}/video"), &[], "");
+    assert_ne!(
+        anonymous.status, 200,
+        "the video is the client token's only"
+    );
+}

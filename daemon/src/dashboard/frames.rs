@@ -1,17 +1,21 @@
 //! A job's frame images from the daemon's frame storage: the final PNG once the frame is
 //! done, else its latest preview; `thumbnail` scales it down for the job's page (frames at
-//! most [`THUMBNAIL_SIDE`] pixels on each side are sent as they are).
+//! most [`THUMBNAIL_SIDE`] pixels on each side are sent as they are); and the video the farm
+//! made of a job.
 
 use std::io::Cursor;
 
+use axum::body::{Body, Bytes};
 use axum::extract::{Path, State};
 use axum::http::header;
 use axum::response::{IntoResponse, Response};
+use tokio_stream::wrappers::ReceiverStream;
 use tonic::Status;
 
 use super::api::{run, Failure};
 use super::Dashboard;
 use crate::error::DaemonError;
+use crate::grpc::streaming::read_chunk;
 use crate::grpc::{blocking_within, BLOCKING_CALL_BOUND};
 use crate::model::FrameState;
 
@@ -70,6 +74,41 @@ pub async fn thumbnail(
     Ok(png(small.map_err(|e| {
         Failure(Status::internal(format!("frame {index}: {e}")))
     })?))
+}
+
+/// The video the farm made of job `id`, streamed from disk chunk by chunk so that a large one
+/// never sits in memory; NOT_FOUND or FAILED_PRECONDITION while there is none.
+pub async fn video(
+    State(dashboard): State<Dashboard>,
+    Path(id): Path<String>,
+) -> Result<Response, Failure> {
+    let (path, size, container) = run(&dashboard.daemon, move |daemon| daemon.video(&id)).await?;
+    let mut file = crate::grpc::io_within(tokio::fs::File::open(path))
+        .await
+        .map_err(|e| Failure(Status::internal(format!("opening the video: {e}"))))?;
+    let (sender, receiver) = tokio::sync::mpsc::channel(4);
+    tokio::spawn(async move {
+        loop {
+            let chunk = match read_chunk(&mut file).await {
+                Ok(Some(data)) => Ok(Bytes::from(data)),
+                Ok(None) => return,
+                Err(e) => Err(e),
+            };
+            let failed = chunk.is_err();
+            if sender.send(chunk).await.is_err() || failed {
+                return;
+            }
+        }
+    });
+    Ok((
+        [
+            (header::CONTENT_TYPE, container.media_type().to_owned()),
+            (header::CONTENT_LENGTH, size.to_string()),
+            (header::CACHE_CONTROL, "private, no-cache".to_owned()),
+        ],
+        Body::from_stream(ReceiverStream::new(receiver)),
+    )
+        .into_response())
 }
 
 /// `png` scaled to fit [`THUMBNAIL_SIDE`], or as it is when it already does.

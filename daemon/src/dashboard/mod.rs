@@ -112,6 +112,7 @@ fn router(dashboard: Dashboard) -> Router {
         .route("/", get(pages::jobs))
         .route("/jobs/{id}", get(pages::job))
         .route("/jobs/{id}/{action}", post(actions::page_action))
+        .route("/jobs/{id}/video", get(frames::video))
         .route("/jobs/{id}/frames/{index}", get(pages::frame))
         .route("/jobs/{id}/frames/{index}/image", get(frames::image))
         .route(

@@ -8,6 +8,7 @@ use std::fmt::Write;
 
 use axum::extract::{Path, RawQuery, State};
 use axum::response::{Html, IntoResponse, Response};
+use pointfarm_render::encode::video::VideoContainer;
 
 use super::actions::JobAction;
 use super::api::{failure_page, parse_state, run, workers_message, Failure};
@@ -287,6 +288,22 @@ pub async fn job(State(dashboard): State<Dashboard>, Path(id): Path<String>) -> 
         );
     }
     body.push_str("</dl>");
+    if let (Some(video), Some(_)) = (&job.spec.video, job.video_size_bytes()) {
+        let source = format!("/jobs/{link}/video");
+        let _ = match video.container {
+            VideoContainer::Gif => write!(
+                body,
+                "<section class=\"video\"><img src=\"{source}\" alt=\"the job's video\"></section>"
+            ),
+            container => write!(
+                body,
+                "<section class=\"video\"><video controls preload=\"metadata\">\
+                 <source src=\"{source}\" type=\"{media}\"></video> \
+                 <a href=\"{source}\" download>download</a></section>",
+                media = container.media_type()
+            ),
+        };
+    }
     body.push_str(&actions(&job));
     let by_index: HashMap<u32, &FrameReport> = frames.iter().map(|f| (f.index, f)).collect();
     body.push_str("<section class=\"thumbnails\" id=\"frames\">");

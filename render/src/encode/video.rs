@@ -87,6 +87,17 @@ pub enum VideoContainer {
 impl VideoContainer {
     pub const ALL: [VideoContainer; 5] = [Self::Mp4, Self::Mov, Self::Mkv, Self::Webm, Self::Gif];
 
+    /// The media type a browser plays it by.
+    pub fn media_type(self) -> &'static str {
+        match self {
+            Self::Mp4 => "video/mp4",
+            Self::Mov => "video/quicktime",
+            Self::Mkv => "video/x-matroska",
+            Self::Webm => "video/webm",
+            Self::Gif => "image/gif",
+        }
+    }
+
     /// Its name, which is also its file's extension.
     pub fn extension(self) -> &'static str {
         match self {
