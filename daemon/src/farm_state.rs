@@ -1,5 +1,6 @@
 //! What the metrics' gauges show, read from the daemon's state at each scrape so that they
-//! cannot drift from it: the frames of unfinished jobs by priority, the leases, the workers;
+//! cannot drift from it: the frames of unfinished jobs by priority (queued, leased, or held by
+//! a paused job), the leases, the workers;
 //! and the stores rebuilt after damage, which the stores count.
 //! More `Daemon` methods.
 
@@ -7,6 +8,7 @@ use std::collections::{BTreeMap, HashSet};
 
 use crate::error::DaemonError;
 use crate::metrics::{FarmState, QueueDepth};
+use crate::model::JobState;
 use crate::service::Daemon;
 
 impl Daemon {
@@ -30,7 +32,11 @@ impl Daemon {
                 .unwrap_or(0)
                 .min(pending);
             let depth = queue.entry(job.spec.priority).or_default();
-            depth.queued += pending - leased;
+            if job.state == JobState::Paused {
+                depth.paused += pending - leased;
+            } else {
+                depth.queued += pending - leased;
+            }
             depth.leased += leased;
         }
         let remote_holders: HashSet<&str> = leases

@@ -35,9 +35,11 @@ pub use worker::WorkerMetrics;
 /// [`WorkerMetrics::text`] write.
 pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
 
-/// The state of a frame in `pointfarm_queue_frames`: waiting for a worker, or leased to one.
+/// The state of a frame in `pointfarm_queue_frames`: waiting for a worker, leased to one, or
+/// held by a paused job.
 pub const QUEUED: &str = "queued";
 pub const LEASED: &str = "leased";
+pub const PAUSED: &str = "paused";
 
 /// Most distinct stage names a stage histogram keeps; the names come from workers, so a
 /// worker that sent new ones at every frame must not grow the scrape without bound. Later
@@ -168,6 +170,8 @@ pub struct QueueDepth {
     pub queued: u64,
     /// Leased to a worker.
     pub leased: u64,
+    /// Of a paused job, not leased: waiting for the job to be resumed, not for a worker.
+    pub paused: u64,
 }
 
 /// The daemon's state as the gauges show it, read at a scrape.
@@ -403,7 +407,11 @@ impl DaemonMetrics {
         let mut queue = state.queue.clone();
         queue.entry(0).or_default();
         for (priority, depth) in &queue {
-            for (label, frames) in [(QUEUED, depth.queued), (LEASED, depth.leased)] {
+            for (label, frames) in [
+                (QUEUED, depth.queued),
+                (LEASED, depth.leased),
+                (PAUSED, depth.paused),
+            ] {
                 self.queue_frames
                     .get_or_create(&QueueLabels {
                         state: label,

@@ -111,14 +111,14 @@ fn after_a_job_every_family_is_there_with_what_happened() {
                 0,
                 QueueDepth {
                     queued: 3,
-                    leased: 0
+                    ..QueueDepth::default()
                 }
             ),
             (
                 5,
                 QueueDepth {
-                    queued: 0,
-                    leased: 2
+                    leased: 2,
+                    ..QueueDepth::default()
                 }
             ),
         ])
@@ -296,6 +296,42 @@ fn a_worker_counts_its_frames_and_caches() {
         (
             r#"pointfarm_worker_frame_stage_seconds_sum{stage="build"}"#,
             1.5,
+        ),
+    ]);
+}
+
+#[test]
+fn a_paused_jobs_frames_are_paused_not_queued() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let daemon = test_daemon::open(dir.path(), Duration::from_secs(30));
+    let held = submit(&daemon, 3, 0);
+    submit(&daemon, 2, 0);
+    daemon.pause_job(&held.id).expect("pause");
+    let scrape = parse(&daemon.metrics_text().expect("text"));
+    scrape.assert_values(&[
+        (
+            r#"pointfarm_queue_frames{state="paused",priority="0"}"#,
+            3.0,
+        ),
+        (
+            r#"pointfarm_queue_frames{state="queued",priority="0"}"#,
+            2.0,
+        ),
+        (
+            r#"pointfarm_queue_frames{state="leased",priority="0"}"#,
+            0.0,
+        ),
+    ]);
+    daemon.resume_job(&held.id).expect("resume");
+    let scrape = parse(&daemon.metrics_text().expect("text"));
+    scrape.assert_values(&[
+        (
+            r#"pointfarm_queue_frames{state="paused",priority="0"}"#,
+            0.0,
+        ),
+        (
+            r#"pointfarm_queue_frames{state="queued",priority="0"}"#,
+            5.0,
         ),
     ]);
 }
