@@ -4,6 +4,18 @@ use glam::DVec3;
 use pointfarm_render::color::{ColorMode, ColorRamp, ColorRange};
 use pointfarm_render::request::PointSize;
 
+/// A number of seconds within `range`, for flags that take a duration.
+pub fn seconds_within(value: &str, range: std::ops::RangeInclusive<f64>) -> Result<f64, String> {
+    match value.parse::<f64>() {
+        Ok(seconds) if seconds.is_finite() && range.contains(&seconds) => Ok(seconds),
+        _ => Err(format!(
+            "'{value}' is not a number of seconds from {} to {}",
+            range.start(),
+            range.end()
+        )),
+    }
+}
+
 /// `1280x720`.
 pub fn size(s: &str) -> Result<(u32, u32), String> {
     let (w, h) = s
@@ -160,6 +172,20 @@ pub fn non_negative(s: &str) -> Result<f64, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn seconds_are_taken_within_their_range_and_said_otherwise() {
+        assert_eq!(seconds_within("0.5", 0.1..=3600.0), Ok(0.5));
+        assert_eq!(seconds_within("0", 0.0..=3600.0), Ok(0.0));
+        for bad in ["0.05", "3601", "NaN", "inf", "soon"] {
+            assert_eq!(
+                seconds_within(bad, 0.1..=3600.0),
+                Err(format!(
+                    "'{bad}' is not a number of seconds from 0.1 to 3600"
+                ))
+            );
+        }
+    }
 
     #[test]
     fn parses_sizes_points_and_colors() {

@@ -386,21 +386,11 @@ pub(crate) fn embedded_worker(
 }
 
 fn parse_shutdown_grace(value: &str) -> Result<f64, String> {
-    match value.parse::<f64>() {
-        Ok(seconds) if seconds.is_finite() && (0.0..=3600.0).contains(&seconds) => Ok(seconds),
-        _ => Err(format!(
-            "'{value}' is not a number of seconds from 0 to 3600"
-        )),
-    }
+    parse::seconds_within(value, 0.0..=3600.0)
 }
 
 fn parse_lease_timeout(value: &str) -> Result<f64, String> {
-    match value.parse::<f64>() {
-        Ok(seconds) if seconds.is_finite() && (0.1..=3600.0).contains(&seconds) => Ok(seconds),
-        _ => Err(format!(
-            "'{value}' is not a number of seconds from 0.1 to 3600"
-        )),
-    }
+    parse::seconds_within(value, 0.1..=3600.0)
 }
 
 #[cfg(test)]
