@@ -250,20 +250,35 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                 }
             }
             JobsCommand::Cancel { id } => {
+                // A job that has ended has nothing left to cancel: it is shown as it is, as a
+                // cancel answers (without its frames). The server's cancel of a cancelled job
+                // answers it unchanged, so the state is asked first to say which it was.
+                let ended = |mut job: pb::Job| {
+                    job.frames.clear();
+                    (job, false)
+                };
+                let shown = answer(
+                    client
+                        .jobs
+                        .get_job(pb::GetJobRequest { id: id.clone() })
+                        .await,
+                )?;
                 let request = pb::CancelJobRequest { id: id.clone() };
-                let (job, cancelled) = match client.jobs.cancel_job(request).await {
-                    Ok(reply) => (reply.into_inner(), true),
-                    // A job that has ended has nothing left to cancel: it is shown as it is.
-                    Err(status) if status.code() == tonic::Code::FailedPrecondition => {
-                        let mut job = answer(client.jobs.get_job(pb::GetJobRequest { id }).await)?;
-                        if !has_ended(job.state) {
-                            return Err(status_error(status));
+                let (job, cancelled) = if has_ended(shown.state) {
+                    ended(shown)
+                } else {
+                    match client.jobs.cancel_job(request).await {
+                        Ok(reply) => (reply.into_inner(), true),
+                        // It ended between the two calls.
+                        Err(status) if status.code() == tonic::Code::FailedPrecondition => {
+                            let job = answer(client.jobs.get_job(pb::GetJobRequest { id }).await)?;
+                            if !has_ended(job.state) {
+                                return Err(status_error(status));
+                            }
+                            ended(job)
                         }
-                        // Shown as a cancel answers: the job, without its frames.
-                        job.frames.clear();
-                        (job, false)
+                        Err(status) => return Err(status_error(status)),
                     }
-                    Err(status) => return Err(status_error(status)),
                 };
                 if server.json {
                     outln!("{}", json_line(&job)?);
