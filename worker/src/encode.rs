@@ -82,6 +82,18 @@ pub async fn run(
                 tracing::info!("the daemon makes no videos: this worker makes none");
                 return;
             }
+            // An unreachable daemon is the frame loop's to tell, in words (a certificate the
+            // client refuses among them); this loop only waits for it.
+            Err(status) if status.code() == Code::Unavailable => {
+                tracing::debug!(
+                    message = status.message(),
+                    "the daemon cannot be reached for videos; retrying"
+                );
+                tokio::select! {
+                    _ = stop.changed() => break,
+                    _ = tokio::time::sleep(RETRY_WAIT) => continue,
+                }
+            }
             Err(status) => {
                 tracing::warn!(code = ?status.code(), message = status.message(), "leasing a video failed; retrying");
                 tokio::select! {
