@@ -64,6 +64,7 @@ fn with_video(request: pb::SubmitJobRequest, container: &str, codec: &str) -> pb
             codec: codec.into(),
             fps: 12,
             quality: Some(30),
+            ..Default::default()
         }),
         ..request
     }
@@ -171,6 +172,13 @@ async fn a_jobs_video_is_made_by_a_worker_with_ffmpeg_and_never_by_one_without()
     tokio::time::sleep(Duration::from_secs(2)).await;
     let still = get_job(&mut jobs, &job.id).await;
     assert_eq!((still.stage.as_str(), still.video_size_bytes), ("video", 0));
+    // It says so in its capabilities, and the job says what it waits for.
+    assert_eq!(
+        still.waiting_reason,
+        "waiting for a worker whose ffmpeg has libx264 to make the video"
+    );
+    assert_eq!(still.refusals.len(), 1, "{:?}", still.refusals);
+    assert_eq!(still.refusals[0].worker_name, "blind");
     assert!(blind.log().contains("makes no videos"), "{}", blind.log());
     let refused = jobs
         .fetch_video(pb::FetchVideoRequest {
@@ -224,7 +232,16 @@ async fn a_bad_video_spec_is_refused_naming_its_field() {
         }),
         ..base()
     };
+    let preset = pb::SubmitJobRequest {
+        video: Some(pb::VideoSpec {
+            container: "mp4".into(),
+            preset: "placebo".into(),
+            ..Default::default()
+        }),
+        ..base()
+    };
     let cases = [
+        (preset, "video.preset"),
         (with_video(base(), "avi", ""), "video.container"),
         (with_video(base(), "webm", "h264"), "video.codec"),
         (with_video(base(), "gif", "vp9"), "video.codec"),

@@ -36,6 +36,9 @@ impl Daemon {
                 refusals: Vec::new(),
             };
         }
+        if job.awaits_video() {
+            return self.video_availability(job);
+        }
         let connected = self.workers.connected(self.config.lease_timeout);
         let refusal = |worker: &ConnectedWorker| {
             if job.blocklist.contains(&worker.name) {

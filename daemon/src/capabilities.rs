@@ -49,6 +49,8 @@ pub struct WorkerCapabilities {
     /// limit stated.
     pub max_frame_side: Option<u32>,
     pub tags: BTreeSet<String>,
+    /// The video encoders its ffmpeg has; none when it makes no videos (`encodes`).
+    pub video_encoders: Vec<String>,
 }
 
 impl WorkerCapabilities {
@@ -70,6 +72,7 @@ impl WorkerCapabilities {
             max_buffer_bytes: capabilities.max_buffer_bytes,
             max_frame_side: Some(max_frame_side.map_or(drawn, |side| side.min(drawn))),
             tags,
+            video_encoders: Vec::new(),
         }
     }
 

@@ -25,4 +25,7 @@ pub struct EncodeLease {
     pub worker: String,
     pub embedded: bool,
     pub expires_unix_ms: i64,
+    /// When it was leased, for the time a video takes; 0 in records stored without it.
+    #[serde(default)]
+    pub leased_unix_ms: i64,
 }

@@ -20,10 +20,11 @@ use crate::lease::HeartbeatAnswer;
 use crate::lease_record::Lease;
 use crate::model::{now_unix_ms, Job, JobState};
 use crate::service::{Daemon, DaemonConfig};
-use pointfarm_render::encode::video::{VideoContainer, VideoSettings};
+use pointfarm_render::encode::video::{VideoCodec, VideoContainer, VideoSettings};
 
 #[cfg(test)]
 mod tests;
+mod waiting;
 
 /// Attempts at a job's video before the job fails.
 pub const MAX_ENCODE_ATTEMPTS: u32 = 3;
@@ -84,11 +85,25 @@ impl DaemonConfig {
     }
 }
 
+/// The encoders among `listed` that the farm's videos use (each codec's, and `gif`), once
+/// each: what a worker's capabilities keep of its ffmpeg's list, so its size stays bounded.
+pub fn known_encoders(listed: &[String]) -> Vec<String> {
+    let known = VideoCodec::ALL.map(VideoCodec::encoder);
+    let mut kept: Vec<String> = Vec::new();
+    for name in listed {
+        let is_known = known.contains(&name.as_str()) || name == "gif";
+        if is_known && !kept.contains(name) {
+            kept.push(name.clone());
+        }
+    }
+    kept
+}
+
 /// Why a worker with `encoders` cannot make the video of a job asking for `video`.
 pub fn encode_refusal(encoders: &[String], video: &VideoSettings) -> Option<String> {
     let needed = video.encoder();
     if encoders.is_empty() {
-        Some("the worker has no ffmpeg".into())
+        Some("the worker makes no videos (no ffmpeg, or `worker --no-videos`)".into())
     } else if !encoders.iter().any(|e| e == needed) {
         Some(format!("the worker's ffmpeg has no {needed} encoder"))
     } else {
@@ -161,11 +176,13 @@ impl Daemon {
             if encode_refusal(encoders, &video).is_some() {
                 continue;
             }
+            let now = now_unix_ms();
             let lease = EncodeLease {
                 id: Lease::new_id(),
                 worker: worker.to_owned(),
                 embedded,
-                expires_unix_ms: now_unix_ms() + timeout.as_millis() as i64,
+                expires_unix_ms: now + timeout.as_millis() as i64,
+                leased_unix_ms: now,
             };
             let leased = lease.clone();
             let Some(job) = self.state.update_job(&job.id, |j| {
@@ -176,6 +193,7 @@ impl Daemon {
                 continue;
             };
             self.state.flush()?;
+            self.metrics.encodes.leased();
             tracing::info!(job = %job.id, worker, "video leased");
             self.publish(&job, None);
             return Ok(Some(EncodeTask {
@@ -328,7 +346,7 @@ impl Daemon {
             .map_err(|e| DaemonError::ResourceExhausted(format!("storing the video: {e}")))?;
         let _scheduling = self.scheduling()?;
         self.expire_encodes_locked()?;
-        let (job, _) = self.encode_job_locked(&upload.lease_id, upload.embedded)?;
+        let (job, lease) = self.encode_job_locked(&upload.lease_id, upload.embedded)?;
         let video = job.spec.video.ok_or_else(|| {
             DaemonError::Internal(format!("job {} asks for no video", upload.job_id))
         })?;
@@ -346,6 +364,10 @@ impl Daemon {
             })?
             .ok_or_else(|| DaemonError::NotFound(format!("job {}", upload.job_id)))?;
         self.state.flush()?;
+        // A lease stored without its start has no time to tell.
+        let took = (lease.leased_unix_ms > 0)
+            .then(|| (now_unix_ms() - lease.leased_unix_ms).max(0) as f64 / 1e3);
+        self.metrics.encodes.succeeded(took);
         tracing::info!(job = %job.id, bytes = size, "video stored");
         self.log_job_end(&job, 0);
         self.publish(&job, None);
@@ -377,6 +399,7 @@ impl Daemon {
         let failed = job.encode.as_ref().map_or(0, |e| e.failed_attempts) + 1;
         tracing::warn!(job = %job.id, worker = %lease.worker, attempt = failed, reason, "video failed");
         let last = failed >= MAX_ENCODE_ATTEMPTS;
+        self.metrics.encodes.failed();
         let updated = self.state.update_job(&job.id, |j| {
             let encode = j.encode.get_or_insert_with(Default::default);
             encode.lease = None;

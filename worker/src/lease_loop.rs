@@ -182,6 +182,11 @@ pub async fn run(
         true => tokio::task::spawn_blocking(crate::encode::probe_encoders).await?,
         false => Vec::new(),
     };
+    // Said with every lease request, so a job whose video no worker can make says why.
+    let capabilities = pb::WorkerCapabilities {
+        video_encoders: encoders.clone(),
+        ..pb::WorkerCapabilities::from(&config.capabilities)
+    };
     let videos = tokio::spawn(crate::encode::run(
         client.clone(),
         config.name.clone(),
@@ -189,7 +194,6 @@ pub async fn run(
         config.cache_dir.join("videos"),
         stop.clone(),
     ));
-    let capabilities = pb::WorkerCapabilities::from(&config.capabilities);
     let mut backoff = Backoff::new();
     // Said once when the daemon cannot store frames, once when it can again.
     let mut daemon_full = false;

@@ -83,6 +83,7 @@ impl TryFrom<Option<&pb::WorkerCapabilities>> for WorkerCapabilities {
             max_buffer_bytes: c.max_buffer_size,
             max_frame_side: (c.max_frame_side > 0).then_some(c.max_frame_side),
             tags: checked_tags("capabilities.tags", c.tags.iter().map(String::as_str))?,
+            video_encoders: crate::encodes::known_encoders(&c.video_encoders),
         })
     }
 }
@@ -102,6 +103,7 @@ impl From<&WorkerCapabilities> for pb::WorkerCapabilities {
             max_buffer_size: c.max_buffer_bytes,
             max_frame_side: c.max_frame_side.unwrap_or(0),
             tags: c.tags.iter().cloned().collect(),
+            video_encoders: c.video_encoders.clone(),
         }
     }
 }

@@ -3,7 +3,8 @@
 
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::encode::video::{
-    VideoCodec, VideoContainer, VideoSettings, DEFAULT_VIDEO_FPS, DEFAULT_VIDEO_QUALITY,
+    VideoCodec, VideoContainer, VideoPreset, VideoSettings, DEFAULT_VIDEO_FPS,
+    DEFAULT_VIDEO_PRESET, DEFAULT_VIDEO_QUALITY,
 };
 
 use crate::encodes::EncodeTask;
@@ -14,7 +15,8 @@ fn invalid(field: &str, message: impl Into<String>) -> DaemonError {
 }
 
 /// The video a submission asks for, checked; None when it asks for none. Each refusal names
-/// its field (`video.container`, `video.codec`, `video.fps`, `video.quality`).
+/// its field (`video.container`, `video.codec`, `video.fps`, `video.quality`,
+/// `video.preset`).
 pub fn video_settings(spec: Option<&pb::VideoSpec>) -> Result<Option<VideoSettings>, DaemonError> {
     let Some(spec) = spec else {
         return Ok(None);
@@ -38,8 +40,14 @@ pub fn video_settings(spec: Option<&pb::VideoSpec>) -> Result<Option<VideoSettin
         fps => fps,
     };
     let quality = spec.quality.unwrap_or(DEFAULT_VIDEO_QUALITY);
+    let preset = match spec.preset.as_str() {
+        "" => DEFAULT_VIDEO_PRESET,
+        name => name
+            .parse::<VideoPreset>()
+            .map_err(|e| invalid("video.preset", e.to_string()))?,
+    };
     VideoSettings::new(container, codec, fps, quality)
-        .map(Some)
+        .map(|settings| Some(settings.with_preset(preset)))
         .map_err(refused)
 }
 
@@ -50,6 +58,7 @@ pub fn video_spec_message(video: &VideoSettings) -> pb::VideoSpec {
         codec: video.codec.map(|c| c.name().to_owned()).unwrap_or_default(),
         fps: video.fps,
         quality: Some(video.quality),
+        preset: video.preset.name().to_owned(),
     }
 }
 
@@ -105,6 +114,7 @@ mod tests {
             codec: codec.into(),
             fps,
             quality,
+            preset: String::new(),
         }
     }
 
@@ -116,8 +126,22 @@ mod tests {
         assert_eq!(video.container, VideoContainer::Mp4);
         assert_eq!(video.codec, Some(VideoCodec::H264));
         assert_eq!(
-            (video.fps, video.quality),
-            (DEFAULT_VIDEO_FPS, DEFAULT_VIDEO_QUALITY)
+            (video.fps, video.quality, video.preset),
+            (
+                DEFAULT_VIDEO_FPS,
+                DEFAULT_VIDEO_QUALITY,
+                DEFAULT_VIDEO_PRESET
+            )
+        );
+        let slow = pb::VideoSpec {
+            preset: "Slow".into(),
+            ..spec("mp4", "h265", 24, Some(28))
+        };
+        let slow = video_settings(Some(&slow)).expect("valid").expect("asked");
+        assert_eq!(slow.preset, VideoPreset::Slow);
+        assert_eq!(
+            video_settings(Some(&video_spec_message(&slow))).expect("again"),
+            Some(slow)
         );
         assert_eq!(video_settings(None).expect("none"), None);
         let back = video_spec_message(&video);
@@ -138,6 +162,14 @@ mod tests {
             (spec("gif", "vp9", 30, None), "video.codec", "GIF"),
             (spec("mp4", "", 241, None), "video.fps", "1..=240"),
             (spec("mp4", "", 30, Some(52)), "video.quality", "0..=51"),
+            (
+                pb::VideoSpec {
+                    preset: "placebo".into(),
+                    ..spec("mp4", "", 30, None)
+                },
+                "video.preset",
+                "veryfast",
+            ),
         ];
         for (spec, field, says) in cases {
             let error = video_settings(Some(&spec)).expect_err(field).to_string();

@@ -26,6 +26,7 @@ use prometheus_client::registry::Registry;
 
 use crate::model::{FrameReport, StageTiming};
 
+pub mod encodes;
 pub mod http;
 mod worker;
 
@@ -251,6 +252,7 @@ pub struct DaemonMetrics {
     queue_frames: Family<QueueLabels, Gauge>,
     leases_held: Gauge,
     workers_connected: Gauge,
+    pub encodes: encodes::EncodeMetrics,
     /// Held while the gauges are set from a state and encoded, so that two scrapes at once
     /// each show the state they read.
     scrape: Mutex<()>,
@@ -278,9 +280,11 @@ impl DaemonMetrics {
             queue_frames: Family::default(),
             leases_held: Gauge::default(),
             workers_connected: Gauge::default(),
+            encodes: Default::default(),
             scrape: Mutex::new(()),
         };
         let registry = &mut metrics.registry;
+        metrics.encodes.register(registry);
         registry.register(
             "queue_frames",
             "Frames of unfinished jobs, by state (queued: waiting for a worker; leased: \

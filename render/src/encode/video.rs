@@ -18,6 +18,80 @@ pub const MAX_VIDEO_QUALITY: u32 = 51;
 pub const DEFAULT_VIDEO_FPS: u32 = 30;
 /// The frame rates a video may have.
 pub const VIDEO_FPS_RANGE: std::ops::RangeInclusive<u32> = 1..=240;
+/// The encoder speed when none is asked for: the fastest of the x264 presets whose video at
+/// the same quality is no larger than `medium`'s, measured in docs/perf/farm-videos.md.
+pub const DEFAULT_VIDEO_PRESET: VideoPreset = VideoPreset::Veryfast;
+
+/// How much time libx264 and libx265 spend finding a smaller video at the same quality
+/// (their `-preset`): each step slower takes more CPU time for a somewhat smaller file.
+/// VP9, AV1 and GIF have no presets and take none.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum VideoPreset {
+    Ultrafast,
+    Superfast,
+    Veryfast,
+    Faster,
+    Fast,
+    Medium,
+    Slow,
+    Slower,
+    Veryslow,
+}
+
+impl VideoPreset {
+    /// Fastest first.
+    pub const ALL: [VideoPreset; 9] = [
+        Self::Ultrafast,
+        Self::Superfast,
+        Self::Veryfast,
+        Self::Faster,
+        Self::Fast,
+        Self::Medium,
+        Self::Slow,
+        Self::Slower,
+        Self::Veryslow,
+    ];
+
+    /// The name users give, which is also x264's and x265's.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Ultrafast => "ultrafast",
+            Self::Superfast => "superfast",
+            Self::Veryfast => "veryfast",
+            Self::Faster => "faster",
+            Self::Fast => "fast",
+            Self::Medium => "medium",
+            Self::Slow => "slow",
+            Self::Slower => "slower",
+            Self::Veryslow => "veryslow",
+        }
+    }
+}
+
+impl Default for VideoPreset {
+    fn default() -> Self {
+        DEFAULT_VIDEO_PRESET
+    }
+}
+
+/// A preset name that is none of [`VideoPreset::ALL`].
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "unknown preset {0:?}: give ultrafast, superfast, veryfast, faster, fast, medium, slow, \
+     slower or veryslow (faster makes larger videos)"
+)]
+pub struct UnknownPreset(pub String);
+
+impl std::str::FromStr for VideoPreset {
+    type Err = UnknownPreset;
+
+    fn from_str(name: &str) -> Result<Self, UnknownPreset> {
+        Self::ALL
+            .into_iter()
+            .find(|preset| preset.name().eq_ignore_ascii_case(name))
+            .ok_or_else(|| UnknownPreset(name.to_owned()))
+    }
+}
 
 /// Video codecs, by the ffmpeg encoder each uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -173,10 +247,15 @@ pub struct VideoSettings {
     pub codec: Option<VideoCodec>,
     pub fps: u32,
     pub quality: u32,
+    /// The x264/x265 preset; unused by the other codecs. Records stored without one read as
+    /// the default.
+    #[serde(default)]
+    pub preset: VideoPreset,
 }
 
 impl VideoSettings {
-    /// Checks a video's options: `codec` None takes the container's usual one.
+    /// Checks a video's options: `codec` None takes the container's usual one, and the preset
+    /// is [`DEFAULT_VIDEO_PRESET`] until [`Self::with_preset`].
     pub fn new(
         container: VideoContainer,
         codec: Option<VideoCodec>,
@@ -201,7 +280,18 @@ impl VideoSettings {
             codec,
             fps,
             quality,
+            preset: DEFAULT_VIDEO_PRESET,
         })
+    }
+
+    /// These settings with the x264/x265 `preset`.
+    pub fn with_preset(self, preset: VideoPreset) -> Self {
+        Self { preset, ..self }
+    }
+
+    /// Whether the codec takes a preset (H.264 and H.265).
+    pub fn takes_preset(&self) -> bool {
+        matches!(self.codec, Some(VideoCodec::H264 | VideoCodec::H265))
     }
 
     /// The ffmpeg encoder this video needs (`gif` for a GIF).
@@ -237,6 +327,9 @@ impl VideoSettings {
                 args.extend(["-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2"].map(String::from));
                 args.extend(["-c:v", codec.encoder(), "-pix_fmt", "yuv420p"].map(String::from));
                 args.extend(["-crf", &crf].map(String::from));
+                if self.takes_preset() {
+                    args.extend(["-preset", self.preset.name()].map(String::from));
+                }
                 if matches!(codec, VideoCodec::Vp9 | VideoCodec::Av1) {
                     // Constant quality for these needs the bitrate unbounded.
                     args.extend(["-b:v", "0"].map(String::from));
@@ -414,5 +507,42 @@ mod tests {
         assert_eq!("AV1".parse::<VideoCodec>(), Ok(VideoCodec::Av1));
         let unknown = "mpeg2".parse::<VideoCodec>().expect_err("unknown");
         assert!(unknown.to_string().contains("h264, h265, vp9 or av1"));
+        assert_eq!("VeryFast".parse::<VideoPreset>(), Ok(VideoPreset::Veryfast));
+        let unknown = "placebo".parse::<VideoPreset>().expect_err("unknown");
+        assert!(
+            unknown.to_string().contains("ultrafast, superfast"),
+            "{unknown}"
+        );
+    }
+
+    #[test]
+    fn the_preset_reaches_x264_and_x265_only() {
+        let preset_of = |settings: &VideoSettings| {
+            let args = settings.ffmpeg_args("png");
+            args.iter()
+                .position(|a| a == "-preset")
+                .map(|at| args[at + 1].clone())
+        };
+        let mp4 = VideoSettings::new(VideoContainer::Mp4, None, 30, 20).expect("mp4");
+        assert_eq!(
+            preset_of(&mp4).as_deref(),
+            Some(DEFAULT_VIDEO_PRESET.name())
+        );
+        let slow = VideoSettings::new(VideoContainer::Mkv, Some(VideoCodec::H265), 30, 20)
+            .expect("mkv")
+            .with_preset(VideoPreset::Slow);
+        assert_eq!(preset_of(&slow).as_deref(), Some("slow"));
+        for container in [VideoContainer::Webm, VideoContainer::Gif] {
+            let settings = VideoSettings::new(container, None, 30, 20).expect("no preset");
+            assert!(!settings.takes_preset());
+            assert_eq!(preset_of(&settings.with_preset(VideoPreset::Slow)), None);
+        }
+    }
+
+    #[test]
+    fn settings_stored_without_a_preset_read_with_the_default() {
+        let stored = r#"{"container":"Mp4","codec":"H264","fps":30,"quality":20}"#;
+        let settings: VideoSettings = serde_json::from_str(stored).expect("reads");
+        assert_eq!(settings.preset, DEFAULT_VIDEO_PRESET);
     }
 }

@@ -153,6 +153,7 @@ fn capabilities_convert_both_ways_and_bad_tags_are_refused() {
         max_buffer_bytes: 1 << 32,
         max_frame_side: Some(4096),
         tags: ["site-x".to_string()].into(),
+        video_encoders: vec!["libx264".into(), "gif".into()],
     };
     let message = pb::WorkerCapabilities::from(&capabilities);
     assert_eq!(
