@@ -37,6 +37,7 @@ use super::partitions::{build_bytes_per_point, build_partitions, partition_bytes
 use super::pause;
 use super::point::RecordLayout;
 use super::progress::BuildProgress;
+use super::regions::StoreRegions;
 use super::resume::{counting_start, Expected, Resumed};
 use super::sink::NodeSink;
 use super::source::PointSource;
@@ -283,6 +284,7 @@ fn build_on_pool(
         max_partition_points: max_partition,
         pending: Mutex::new(resumed.waiting),
         partitions_split: AtomicUsize::new(0),
+        regions: Mutex::new(Vec::new()),
     };
     let building = Instant::now();
     build_partitions(&ctx, partitions)?;
@@ -291,7 +293,10 @@ fn build_on_pool(
     build_upper_levels(&ctx)?;
     timings.upper_levels = upper.elapsed();
     let partitions_split = ctx.partitions_split.load(Ordering::Relaxed);
-    drop(ctx);
+    let regions = ctx
+        .regions
+        .into_inner()
+        .unwrap_or_else(|poisoned| poisoned.into_inner());
 
     let stored_points = sink.points();
     let stored_bytes = sink.bytes();
@@ -309,8 +314,15 @@ fn build_on_pool(
         sink.into_nodes(),
     )
     .with_attributes(attributes);
+    // A resumed build lists only the partitions this run built: its store is built again,
+    // not updated, when its files change.
+    let regions = (!counting_resumed).then(|| StoreRegions {
+        grid: source.position_grid(),
+        regions,
+        files: Vec::new(),
+    });
     pause::at("hierarchy", 0);
-    let hierarchy_bytes = store.write_hierarchy(&hierarchy)?;
+    let hierarchy_bytes = store.write_hierarchy_with(&hierarchy, regions.as_ref())?;
     timings.total = start.elapsed();
     let spilled_bytes = spill.written_bytes();
     let spill_path = spill.path().to_path_buf();

@@ -13,6 +13,7 @@ use super::key::{NodeKey, RootCube};
 use super::local::{LocalBuilder, SubtreeRoot};
 use super::memory::MemoryMeter;
 use super::options::LodBuildOptions;
+use super::regions::Region;
 use super::sink::{EncodedNode, NodeSink, UnitDone};
 use super::spill::SpillDir;
 
@@ -35,6 +36,9 @@ pub struct BuildContext<'a> {
     pub pending: Mutex<BTreeMap<NodeKey, Pending>>,
     /// Partitions that were too large for the budget and split on disk.
     pub partitions_split: AtomicUsize,
+    /// The partitions built so far, each with its subtree root as stored for a store update
+    /// (`regions.rs`).
+    pub regions: Mutex<Vec<Region>>,
 }
 
 impl BuildContext<'_> {
@@ -67,6 +71,20 @@ impl BuildContext<'_> {
         rows: &AttributeRows,
     ) -> Result<(), LodError> {
         let mut parked = None;
+        // A partition's subtree root is kept as it is now, before the levels above sample
+        // from it, so that an update samples them again without the partition's points.
+        let kept_root = match kind == UnitKind::Partition && key.level > 0 {
+            true => Some(
+                self.sink
+                    .encode(key, &root.points, root.sample_grid, rows)?,
+            ),
+            false => None,
+        };
+        let points = region
+            .iter()
+            .map(|n| u64::from(n.point_count()))
+            .sum::<u64>()
+            + root.points.len() as u64;
         if key.level == 0 {
             region.push(
                 self.sink
@@ -95,7 +113,17 @@ impl BuildContext<'_> {
             key,
             waiting: parked.as_ref().map(|p| p.root),
         };
-        self.sink.store(region, done)?;
+        let kept_root = self.sink.store(region, done, kept_root)?;
+        if kind == UnitKind::Partition {
+            self.regions
+                .lock()
+                .unwrap_or_else(|poisoned| poisoned.into_inner())
+                .push(Region {
+                    key,
+                    points,
+                    root: kept_root,
+                });
+        }
         if let Some(pending) = parked {
             self.pending
                 .lock()

@@ -67,6 +67,9 @@ pub enum LodError {
     UnknownNode { key: NodeKey },
     #[error("level-of-detail node {key} is damaged: {reason}")]
     CorruptNode { key: NodeKey, reason: String },
+    /// A store that cannot take this change in place (`update.rs`): it is built again.
+    #[error("level-of-detail store cannot be updated: {0}")]
+    CannotUpdate(String),
     /// The node records could not be had from where they are kept (a daemon that did not
     /// answer); worth another attempt, unlike a damaged node.
     #[error("level-of-detail nodes: {0}")]

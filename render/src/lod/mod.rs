@@ -31,6 +31,17 @@
 //! hook `POINTFARM_TEST_PAUSE_AT` (`pause.rs`) stops a build at a chosen point of each stage,
 //! for tests/build_resume.rs to kill it there.
 //!
+//! A built store is updated in place when files are added to its dataset (`update.rs`): it
+//! keeps the regions it was built in, each partition's subtree with the subtree root's points
+//! as they were before the levels above sampled from them (`regions.rs`, written with the
+//! hierarchy in one sled batch). Each added point goes to the region whose cube holds it (or
+//! starts one where no region is); only the regions that received points are built again,
+//! from their points decoded from the store and the added ones, then every level above the
+//! regions is sampled again from the regions' roots. New nodes are appended and the new
+//! hierarchy and regions switch in one batch, so an update killed part way leaves the old
+//! store whole. Added points outside the store's cube, or files of other attributes, are
+//! refused, and the store is built again.
+//!
 //! Opened for rendering, a store or a COPC file is a [`LodDataset`] (`dataset.rs`: its
 //! hierarchy, with pages read as frames reach them, `pages.rs`, and its color ranges,
 //! `colors.rs`), what both the COPC reader and the cut renderer build on.
@@ -61,6 +72,7 @@ mod plan;
 mod point;
 pub mod progress;
 pub mod records;
+mod regions;
 mod resume;
 pub mod sampling;
 mod sink;
@@ -68,6 +80,7 @@ pub mod source;
 mod spill;
 pub mod stats;
 pub mod store;
+pub mod update;
 mod upper;
 pub mod weights;
 
@@ -94,3 +107,4 @@ pub use records::{
 pub use source::{BatchColumns, BatchVisitor, CloudSource, PointBatch, PointSource};
 pub use stats::DatasetStats;
 pub use store::LodStore;
+pub use update::{update_lod, LodUpdateReport};

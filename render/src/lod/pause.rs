@@ -4,7 +4,8 @@
 //! the counting pass takes the source's batch N; `checkpoint:N` once it has recorded its
 //! checkpoint N (at the start of a file after the first); `partition:N`, `split:N` and `parent:N` as
 //! the unit after the N this run finished of that kind has written its output but is not yet
-//! recorded; `hierarchy:0` once every unit is recorded, before the hierarchy is written. Read
+//! recorded; `hierarchy:0` once every unit is recorded, before the hierarchy is written;
+//! `update:0` once a store update has stored its nodes, before it switches to them. Read
 //! once, by the build alone; a build without the variable never stops.
 
 use std::io::Write;

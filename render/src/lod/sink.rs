@@ -48,6 +48,13 @@ pub struct EncodedNode {
     attributes: Vec<u8>,
 }
 
+impl EncodedNode {
+    /// The node's points.
+    pub fn point_count(&self) -> u32 {
+        self.info.point_count
+    }
+}
+
 impl<'a> NodeSink<'a> {
     pub fn new(
         store: &'a LodStore,
@@ -118,14 +125,31 @@ impl<'a> NodeSink<'a> {
     /// file (the module's layout), records the unit in the journal and lists its nodes. Units
     /// are stored one at a time, so the payload file holds the units in the journal's order
     /// and nothing else but the unit being stored; a resumed build cuts that off.
-    pub fn store(&self, mut region: Vec<EncodedNode>, done: UnitDone) -> Result<(), LodError> {
+    ///
+    /// `kept_root`, a partition's subtree root as it was before the levels above sampled from
+    /// it, is stored after the region in one piece and not listed: a store update samples the
+    /// levels above again from it (`update.rs`). Returns where it lies.
+    pub fn store(
+        &self,
+        mut region: Vec<EncodedNode>,
+        done: UnitDone,
+        kept_root: Option<EncodedNode>,
+    ) -> Result<Option<NodeInfo>, LodError> {
         region.sort_unstable_by_key(|n| (n.info.key.level, n.info.key.morton()));
         let (heads, rests): (Vec<&[u8]>, Vec<&[u8]>) = region
             .iter()
             .map(|n| n.record.split_at(n.info.head_len as usize))
             .unzip();
         let attributes = region.iter().map(|n| n.attributes.as_slice());
-        let pieces: Vec<&[u8]> = heads.into_iter().chain(rests).chain(attributes).collect();
+        let root_pieces = kept_root
+            .iter()
+            .flat_map(|n| [n.record.as_slice(), n.attributes.as_slice()]);
+        let pieces: Vec<&[u8]> = heads
+            .into_iter()
+            .chain(rests)
+            .chain(attributes)
+            .chain(root_pieces)
+            .collect();
         let mut commit = self.journal.commit();
         let mut at = self.store.write_region(&pieces)?;
         let mut infos: Vec<NodeInfo> = region.iter().map(|n| n.info).collect();
@@ -141,6 +165,15 @@ impl<'a> NodeSink<'a> {
             info.attributes_offset = at;
             at += u64::from(info.attributes_len);
         }
+        let kept_root = kept_root.map(|n| {
+            let mut info = n.info.in_one_piece(at, n.info.byte_len);
+            at += u64::from(info.byte_len);
+            if info.attributes_len > 0 {
+                info.attributes_offset = at;
+                at += u64::from(info.attributes_len);
+            }
+            info
+        });
         pause::at(done.kind.stage(), self.journal.committed(done.kind));
         if commit.is_enabled() {
             self.store.sync_payload()?;
@@ -155,7 +188,10 @@ impl<'a> NodeSink<'a> {
         })?;
         drop(commit);
         self.list(infos);
-        Ok(())
+        if let Some(root) = &kept_root {
+            self.bytes.fetch_add(root.stored_bytes(), Ordering::Relaxed);
+        }
+        Ok(kept_root)
     }
 
     /// Lists nodes whose records are in the payload file: stored now, or by the run of the
@@ -178,7 +214,7 @@ impl<'a> NodeSink<'a> {
         self.points.load(Ordering::Relaxed)
     }
 
-    /// Bytes of node records stored so far.
+    /// Bytes of node records stored so far, and of the partitions' kept subtree roots.
     pub fn bytes(&self) -> u64 {
         self.bytes.load(Ordering::Relaxed)
     }

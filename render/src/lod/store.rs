@@ -23,8 +23,11 @@ use super::error::LodError;
 use super::hierarchy::{LodHierarchy, NodeInfo};
 use super::key::NodeKey;
 use super::records::{read_concurrently, read_nodes, NodeRecords};
+use super::regions::StoreRegions;
 
 const HIERARCHY_KEY: &[u8] = b"hierarchy";
+/// The store's regions (`regions.rs`), written with the hierarchy in one batch.
+const REGIONS_KEY: &[u8] = b"regions";
 
 #[derive(Debug, Clone)]
 pub struct LodStore {
@@ -158,16 +161,54 @@ impl LodStore {
 
     /// Syncs the payload file, then writes the hierarchy and flushes sled: a hierarchy on disk
     /// always describes payloads on disk. Returns the record's length.
+    #[cfg(test)]
     pub(crate) fn write_hierarchy(&self, hierarchy: &LodHierarchy) -> Result<u64, LodError> {
+        self.write_hierarchy_with(hierarchy, None)
+    }
+
+    /// [`LodStore::write_hierarchy`] with the store's `regions` in the same sled batch, so
+    /// that both switch to a new generation at once (a store update's last step); without
+    /// them, the regions of an earlier generation are removed in that batch.
+    pub(crate) fn write_hierarchy_with(
+        &self,
+        hierarchy: &LodHierarchy,
+        regions: Option<&StoreRegions>,
+    ) -> Result<u64, LodError> {
         self.payload
             .file
             .sync_data()
             .map_err(|e| self.payload.error(e))?;
         let record = hierarchy.encode();
         let len = record.len() as u64;
-        self.tree.insert(HIERARCHY_KEY, record)?;
+        let mut batch = sled::Batch::default();
+        batch.insert(HIERARCHY_KEY, record);
+        match regions {
+            Some(regions) => batch.insert(REGIONS_KEY, regions.encode()),
+            None => batch.remove(REGIONS_KEY),
+        }
+        self.tree.apply_batch(batch)?;
         self.tree.flush()?;
         Ok(len)
+    }
+
+    /// The store's regions, written with its hierarchy; `None` for a store built without
+    /// them (a resumed build), which is built again rather than updated.
+    pub fn read_regions(&self) -> Result<Option<StoreRegions>, LodError> {
+        match self.tree.get(REGIONS_KEY)? {
+            Some(bytes) => StoreRegions::decode(&bytes).map(Some),
+            None => Ok(None),
+        }
+    }
+
+    /// Replaces the files the store's regions list (in one insert), where it has regions.
+    pub fn set_region_files(&self, files: Vec<String>) -> Result<bool, LodError> {
+        let Some(mut regions) = self.read_regions()? else {
+            return Ok(false);
+        };
+        regions.files = files;
+        self.tree.insert(REGIONS_KEY, regions.encode())?;
+        self.tree.flush()?;
+        Ok(true)
     }
 
     pub fn read_hierarchy(&self) -> Result<LodHierarchy, LodError> {

@@ -90,6 +90,7 @@ impl LocalStore {
         disk_budget: Option<u64>,
         events: &dyn Fn(SourceEvent<'_>),
     ) -> Result<Self, SourceError> {
+        update_earlier_store(files, folder, memory_budget);
         let opened =
             StoredLod::open_or_build(files, folder, memory_budget, disk_budget, &mut |points| {
                 events(SourceEvent::Building { points, folder })
@@ -103,6 +104,7 @@ impl LocalStore {
             Err(error) => return Err(error.into()),
         };
         say_built(&stored, events);
+        list_files(files, folder);
         Ok(Self {
             stored,
             files: files.to_vec(),
@@ -188,7 +190,8 @@ impl LocalStore {
             .spawn(move || {
                 // Sent or dropped: either way the build goes on.
                 let _ = start.recv();
-                StoredLod::open_or_build_watched(
+                update_earlier_store(&files, &folder, memory_budget);
+                let opened = StoredLod::open_or_build_watched(
                     &files,
                     &folder,
                     memory_budget,
@@ -201,12 +204,48 @@ impl LocalStore {
                         );
                     },
                     &progress,
-                )
+                );
+                if opened.is_ok() {
+                    list_files(&files, &folder);
+                }
+                opened
             })
             .map_err(|error| SourceError::Io {
                 path: PathBuf::from("lod-build thread"),
                 error,
             })
+    }
+}
+
+/// Updates the store of an earlier set of `files` into `folder` where there is one
+/// (`earlier.rs`); a store that cannot be updated is left for the opening to build.
+fn update_earlier_store(files: &[PathBuf], folder: &Path, memory_budget: u64) {
+    if files.is_empty() {
+        return;
+    }
+    match earlier::update_earlier(files, folder, memory_budget) {
+        Ok(Some(updated)) => tracing::info!(
+            folder = %folder.display(),
+            points_added = updated.report.points_added,
+            seconds = format!("{:.1}", updated.report.seconds),
+            "updated store: {} files added, {} partitions rebuilt",
+            updated.files_added,
+            updated.report.regions_rebuilt + updated.report.regions_added,
+        ),
+        Ok(None) => {}
+        Err(reason) => {
+            tracing::info!(folder = %folder.display(), %reason, "building the store in full")
+        }
+    }
+}
+
+/// Keeps the list of the store's `files` in `folder`, for a later set of them to update it.
+fn list_files(files: &[PathBuf], folder: &Path) {
+    if files.is_empty() || earlier::lists(folder, files) {
+        return;
+    }
+    if let Err(reason) = earlier::write_file_list(folder, files) {
+        tracing::warn!(folder = %folder.display(), %reason, "the store's file list");
     }
 }
 
@@ -238,5 +277,6 @@ fn say_built(stored: &StoredLod, events: &dyn Fn(SourceEvent<'_>)) {
     }
 }
 
+mod earlier;
 #[cfg(test)]
 mod tests;

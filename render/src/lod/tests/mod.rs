@@ -3,6 +3,7 @@
 mod refusals;
 mod store;
 mod throughput;
+mod update;
 mod weights;
 
 use std::collections::HashMap;
