@@ -31,10 +31,9 @@ impl DatasetService for Api {
         // An object by URL is registered from a HEAD and its header, within the remote
         // reads' own deadline.
         if let Some(url) = requested_url(&paths)? {
-            let dataset = self
-                .run(move |daemon| daemon.register_url(&url, &r.name))
-                .await?;
-            return Ok(Response::new(pb::Dataset::from(&dataset)));
+            return self
+                .answer(move |daemon| daemon.register_url(&url, &r.name))
+                .await;
         }
         // The walk is quick and bounded in time; the hashing takes as long as the files are
         // large, and reads regular files only.
@@ -54,10 +53,8 @@ impl DatasetService for Api {
         request: Request<pb::ComposeDatasetRequest>,
     ) -> Result<Response<pb::Dataset>, Status> {
         let r = request.into_inner();
-        let dataset = self
-            .run(move |daemon| daemon.compose_dataset(&r.dataset_ids, &r.name))
-            .await?;
-        Ok(Response::new(pb::Dataset::from(&dataset)))
+        self.answer(move |daemon| daemon.compose_dataset(&r.dataset_ids, &r.name))
+            .await
     }
 
     async fn upload_dataset(
@@ -101,8 +98,7 @@ impl DatasetService for Api {
             }
             added
         };
-        let dataset = self.run(finish).await?;
-        Ok(Response::new(pb::Dataset::from(&dataset)))
+        self.answer(finish).await
     }
 
     async fn get_dataset(

@@ -67,8 +67,7 @@ impl JobService for Api {
         request: Request<pb::CancelJobRequest>,
     ) -> Result<Response<pb::Job>, Status> {
         let id = request.into_inner().id;
-        let job = self.run(move |daemon| daemon.cancel_job(&id)).await?;
-        Ok(Response::new(pb::Job::from(&job)))
+        self.answer(move |daemon| daemon.cancel_job(&id)).await
     }
 
     async fn retry_job(
@@ -76,8 +75,7 @@ impl JobService for Api {
         request: Request<pb::RetryJobRequest>,
     ) -> Result<Response<pb::Job>, Status> {
         let id = request.into_inner().id;
-        let job = self.run(move |daemon| daemon.retry_job(&id)).await?;
-        Ok(Response::new(pb::Job::from(&job)))
+        self.answer(move |daemon| daemon.retry_job(&id)).await
     }
 
     async fn pause_job(
@@ -85,8 +83,7 @@ impl JobService for Api {
         request: Request<pb::PauseJobRequest>,
     ) -> Result<Response<pb::Job>, Status> {
         let id = request.into_inner().id;
-        let job = self.run(move |daemon| daemon.pause_job(&id)).await?;
-        Ok(Response::new(pb::Job::from(&job)))
+        self.answer(move |daemon| daemon.pause_job(&id)).await
     }
 
     async fn resume_job(
@@ -94,8 +91,7 @@ impl JobService for Api {
         request: Request<pb::ResumeJobRequest>,
     ) -> Result<Response<pb::Job>, Status> {
         let id = request.into_inner().id;
-        let job = self.run(move |daemon| daemon.resume_job(&id)).await?;
-        Ok(Response::new(pb::Job::from(&job)))
+        self.answer(move |daemon| daemon.resume_job(&id)).await
     }
 
     async fn set_job_priority(
@@ -103,10 +99,8 @@ impl JobService for Api {
         request: Request<pb::SetJobPriorityRequest>,
     ) -> Result<Response<pb::Job>, Status> {
         let r = request.into_inner();
-        let job = self
-            .run(move |daemon| daemon.set_job_priority(&r.id, r.priority))
-            .await?;
-        Ok(Response::new(pb::Job::from(&job)))
+        self.answer(move |daemon| daemon.set_job_priority(&r.id, r.priority))
+            .await
     }
 
     async fn delete_job(
@@ -114,10 +108,8 @@ impl JobService for Api {
         request: Request<pb::DeleteJobRequest>,
     ) -> Result<Response<pb::Job>, Status> {
         let r = request.into_inner();
-        let job = self
-            .run(move |daemon| daemon.delete_job(&r.id, r.force))
-            .await?;
-        Ok(Response::new(pb::Job::from(&job)))
+        self.answer(move |daemon| daemon.delete_job(&r.id, r.force))
+            .await
     }
 
     type WatchJobStream = ResponseStream<pb::JobEvent>;

@@ -59,6 +59,15 @@ impl Api {
         Ok(tonic::Response::new(R::default()))
     }
 
+    /// Runs `work` as [`Api::run`] does, and answers with its result as the message `M`.
+    async fn answer<T: Send + 'static, M: for<'a> From<&'a T>>(
+        &self,
+        work: impl FnOnce(&Arc<Daemon>) -> Result<T, DaemonError> + Send + 'static,
+    ) -> Result<tonic::Response<M>, Status> {
+        let value = self.run(work).await?;
+        Ok(tonic::Response::new(M::from(&value)))
+    }
+
     /// Runs `work` on the daemon off the async executor (state database work and
     /// filesystem calls block), within [`BLOCKING_CALL_BOUND`].
     async fn run<T: Send + 'static>(
