@@ -18,6 +18,16 @@ fn submit(daemon: &Daemon, frames: u32, priority: i32) -> Job {
     })
 }
 
+/// The `pointfarm_queue_frames` series of the frames in `state` of jobs of `priority`.
+fn queue_frames(state: &str, priority: i32) -> String {
+    format!(r#"pointfarm_queue_frames{{state="{state}",priority="{priority}"}}"#)
+}
+
+/// What `daemon` serves as its metrics now, as Prometheus reads it.
+fn scrape(daemon: &Daemon) -> Scrape {
+    parse(&daemon.metrics_text().expect("text"))
+}
+
 fn timing(stage: &str, ms: f64) -> StageTiming {
     StageTiming {
         stage: stage.into(),
@@ -123,15 +133,9 @@ fn after_a_job_every_family_is_there_with_what_happened() {
             ),
         ])
     );
-    let during = parse(&daemon.metrics_text().expect("text"));
-    assert_eq!(
-        during.value(r#"pointfarm_queue_frames{state="leased",priority="5"}"#),
-        2.0
-    );
-    assert_eq!(
-        during.value(r#"pointfarm_queue_frames{state="queued",priority="0"}"#),
-        3.0
-    );
+    let during = scrape(&daemon);
+    assert_eq!(during.value(&queue_frames("leased", 5)), 2.0);
+    assert_eq!(during.value(&queue_frames("queued", 0)), 3.0);
 
     let outcome = |hit| FrameOutcome {
         timings: vec![timing("load", 250.0), timing("rasterize", 2.0)],
@@ -204,10 +208,7 @@ fn after_a_job_every_family_is_there_with_what_happened() {
             0.0,
         ),
         // Nothing left: the default priority's series read 0, the finished job's are gone.
-        (
-            r#"pointfarm_queue_frames{state="queued",priority="0"}"#,
-            0.0,
-        ),
+        (&queue_frames("queued", 0), 0.0),
     ]);
     assert!(!text.contains(r#"priority="5""#), "{text}");
 }
@@ -223,14 +224,10 @@ fn an_expired_lease_counts_an_expiry_and_a_failed_attempt() {
         .expect("task");
     std::thread::sleep(Duration::from_millis(150));
     assert_eq!(daemon.expire_leases().expect("expire"), 1);
-    let scrape = parse(&daemon.metrics_text().expect("text"));
-    scrape.assert_values(&[
+    scrape(&daemon).assert_values(&[
         ("pointfarm_leases_expired_total", 1.0),
         ("pointfarm_frames_failed_total", 1.0),
-        (
-            r#"pointfarm_queue_frames{state="queued",priority="0"}"#,
-            1.0,
-        ),
+        (&queue_frames("queued", 0), 1.0),
         ("pointfarm_workers_connected", 0.0),
     ]);
 }
@@ -307,31 +304,14 @@ fn a_paused_jobs_frames_are_paused_not_queued() {
     let held = submit(&daemon, 3, 0);
     submit(&daemon, 2, 0);
     daemon.pause_job(&held.id).expect("pause");
-    let scrape = parse(&daemon.metrics_text().expect("text"));
-    scrape.assert_values(&[
-        (
-            r#"pointfarm_queue_frames{state="paused",priority="0"}"#,
-            3.0,
-        ),
-        (
-            r#"pointfarm_queue_frames{state="queued",priority="0"}"#,
-            2.0,
-        ),
-        (
-            r#"pointfarm_queue_frames{state="leased",priority="0"}"#,
-            0.0,
-        ),
+    scrape(&daemon).assert_values(&[
+        (&queue_frames("paused", 0), 3.0),
+        (&queue_frames("queued", 0), 2.0),
+        (&queue_frames("leased", 0), 0.0),
     ]);
     daemon.resume_job(&held.id).expect("resume");
-    let scrape = parse(&daemon.metrics_text().expect("text"));
-    scrape.assert_values(&[
-        (
-            r#"pointfarm_queue_frames{state="paused",priority="0"}"#,
-            0.0,
-        ),
-        (
-            r#"pointfarm_queue_frames{state="queued",priority="0"}"#,
-            5.0,
-        ),
+    scrape(&daemon).assert_values(&[
+        (&queue_frames("paused", 0), 0.0),
+        (&queue_frames("queued", 0), 5.0),
     ]);
 }

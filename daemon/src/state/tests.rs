@@ -15,8 +15,20 @@ fn spec(request_id: &str, frames: u32, priority: i32) -> JobSpec {
     }
 }
 
-fn open(path: &std::path::Path) -> StateDb {
-    StateDb::open(path, false).expect("open").0
+/// Submits a job of `frames` frames that renders previews to `state`.
+fn submit_preview_job(state: &StateDb, frames: u32) -> Job {
+    let spec = JobSpec {
+        preview: true,
+        ..spec("a", frames, 0)
+    };
+    state.submit_job(spec).expect("submit").0
+}
+
+/// The state database `state.sled` in `dir`.
+fn open(dir: &std::path::Path) -> StateDb {
+    StateDb::open(&dir.join("state.sled"), false)
+        .expect("open")
+        .0
 }
 
 /// The order in which frames are handed out while none is given back.
@@ -35,7 +47,7 @@ fn schedule(state: &StateDb) -> Vec<(String, u32)> {
 #[test]
 fn frames_are_scheduled_by_priority_then_age_then_index() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let state = open(&dir.path().join("state.sled"));
+    let state = open(dir.path());
     let (low, _) = state.submit_job(spec("low", 2, -5)).expect("submit");
     let (old, _) = state.submit_job(spec("old", 2, 0)).expect("submit");
     let (high, _) = state.submit_job(spec("high", 1, 7)).expect("submit");
@@ -56,7 +68,7 @@ fn frames_are_scheduled_by_priority_then_age_then_index() {
 #[test]
 fn done_frames_and_ended_jobs_leave_the_schedule() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let state = open(&dir.path().join("state.sled"));
+    let state = open(dir.path());
     let (first, _) = state.submit_job(spec("a", 3, 0)).expect("submit");
     let (second, _) = state.submit_job(spec("b", 2, 0)).expect("submit");
     let report = FrameReport::default();
@@ -80,9 +92,8 @@ fn done_frames_and_ended_jobs_leave_the_schedule() {
 #[test]
 fn a_database_without_the_index_gets_it_when_opened() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let path = dir.path().join("state.sled");
     let scheduled = {
-        let state = open(&path);
+        let state = open(dir.path());
         state.submit_job(spec("a", 2, 0)).expect("submit");
         state.submit_job(spec("b", 1, 3)).expect("submit");
         let scheduled = schedule(&state);
@@ -100,7 +111,7 @@ fn a_database_without_the_index_gets_it_when_opened() {
         assert!(schedule(&state).is_empty());
         scheduled
     };
-    assert_eq!(schedule(&open(&path)), scheduled);
+    assert_eq!(schedule(&open(dir.path())), scheduled);
 }
 
 /// A state database on a small tmpfs that holds one job, the disk then filled: where the
@@ -118,7 +129,7 @@ impl FullDisk {
     /// The job has `frames` frames; None where no tmpfs can be mounted.
     fn after_a_job_of(frames: u32) -> Option<Self> {
         let disk = crate::testing::SmallDisk::mount(16)?;
-        let state = open(&disk.path().join("state.sled"));
+        let state = open(disk.path());
         let (before, _) = state.submit_job(spec("before", frames, 0)).expect("submit");
         let filler = disk.fill("filler");
         Some(Self {
@@ -174,7 +185,7 @@ fn a_database_the_full_disk_failed_is_opened_again_with_all_it_had_flushed() {
     assert!(created);
     assert!(after.id > before.id, "ids still sort by creation");
     drop(state);
-    let reopened = open(&disk.path().join("state.sled"));
+    let reopened = open(disk.path());
     assert!(reopened.job(&after.id).expect("read").is_some());
 }
 
@@ -228,13 +239,8 @@ fn a_preview_record_without_a_version_opens_as_version_0() {
     let dir = tempfile::tempdir().expect("tempdir");
     let path = dir.path().join("state.sled");
     let job_id = {
-        let state = open(&path);
-        let (job, _) = state
-            .submit_job(JobSpec {
-                preview: true,
-                ..spec("a", 2, 0)
-            })
-            .expect("submit");
+        let state = open(dir.path());
+        let job = submit_preview_job(&state, 2);
         // The record as an older daemon wrote it.
         let old = br#"{"index":0,"timings":[],"dataset_cache_hit":null,"failed_attempts":0,"cut":null,"worker":"w","preview":0.25}"#;
         state
@@ -292,13 +298,8 @@ fn a_preview_record_without_a_version_opens_as_version_0() {
 #[test]
 fn a_preview_jobs_frames_are_taken_by_turn() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let state = open(&dir.path().join("state.sled"));
-    let (job, _) = state
-        .submit_job(JobSpec {
-            preview: true,
-            ..spec("a", 4, 0)
-        })
-        .expect("submit");
+    let state = open(dir.path());
+    let job = submit_preview_job(&state, 4);
     for (index, version) in [(0, 2), (1, 0), (2, 1), (3, 0)] {
         let lease = Lease {
             id: format!("lease-{index}"),

@@ -272,14 +272,15 @@ mod tests {
         .map_err(|e| e.to_string())
     }
 
+    /// The endpoint at `url` whose secret file holds `secret`, which must be accepted.
+    fn accepted_with_secret_file(url: &str, secret: &[u8]) -> WebhookEndpoint {
+        let (_dir, path) = secret_file(secret);
+        load(&WebhookSpec::new(url, Some(SecretSource::File(path)))).expect("accepted")
+    }
+
     #[test]
     fn a_good_endpoint_reads_its_secret_without_the_final_newline() {
-        let (_dir, path) = secret_file(b"s3cret\n");
-        let endpoint = load(&WebhookSpec::new(
-            "https://ci.example/hook",
-            Some(SecretSource::File(path)),
-        ))
-        .expect("accepted");
+        let endpoint = accepted_with_secret_file("https://ci.example/hook", b"s3cret\n");
         assert_eq!(endpoint.secret().bytes(), b"s3cret");
         assert!(JobEnd::ALL.iter().all(|end| endpoint.wants(*end)));
         let from_env = load(&WebhookSpec::new(
@@ -351,12 +352,8 @@ mod tests {
     /// Credentials in a URL stay out of what logs and errors show, and so does the secret.
     #[test]
     fn neither_the_secret_nor_the_urls_credentials_are_shown() {
-        let (_dir, path) = secret_file(b"s3cret");
-        let endpoint = load(&WebhookSpec::new(
-            "https://user:pass@ci.example/hook?token=abc#x",
-            Some(SecretSource::File(path)),
-        ))
-        .expect("accepted");
+        let endpoint =
+            accepted_with_secret_file("https://user:pass@ci.example/hook?token=abc#x", b"s3cret");
         assert_eq!(endpoint.shown_url(), "https://ci.example/hook");
         let debug = format!("{endpoint:?}");
         assert!(debug.contains("https://ci.example/hook"), "{debug}");
