@@ -6,11 +6,13 @@
 //! drawn from the whole dataset resident on the GPU, from cuts through its level-of-detail
 //! store, or from cuts through a COPC file's own hierarchy. A [`FrameSource`] is opened from
 //! local files (through a dataset cache or not), a store of this machine, a COPC file, node
-//! records a daemon serves, or a preview's points; it renders each frame and reports what it
-//! drew. What happens on the way (files read, a store built or built again, a filter's share)
-//! goes out as [`SourceEvent`]s: the command line says them, a worker logs them.
+//! records a daemon serves, or a preview's points, each an [`Opening`] that
+//! [`FrameSource::open`] takes; it renders each frame and reports what it drew. What happens
+//! on the way (files read, a store built or built again, a filter's share) goes out as
+//! [`SourceEvent`]s: the command line says them, a worker logs them.
 //!
 //! - `choice`: the rule, resident or a cut.
+//! - `error`: why a source could not open or render.
 //! - `events`: what a source tells as it opens and renders.
 //! - `exposure`: one gain after Eye-Dome Lighting for all of a job's frames.
 //! - `extent`: where the points lie, and the robust box the automatic camera frames.
@@ -19,6 +21,7 @@
 //! - `url_tiles`: LAS/LAZ tiles by URL, described and sampled for a preview by range.
 
 mod choice;
+mod error;
 mod events;
 mod exposure;
 mod local_store;
@@ -28,56 +31,26 @@ mod url_tiles;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use thiserror::Error;
-
-use crate::cache::{CacheError, CacheOutcome, DatasetCache};
+use crate::cache::{CacheOutcome, DatasetCache};
 use crate::cloud::{PointCloud, WorldBounds};
 use crate::color::{point_colors, ramp_range, ColorRange, Coloring};
-use crate::copc::{open_copc, CopcDataset, CopcError};
+use crate::copc::{open_copc, CopcDataset};
 use crate::cut::{
     completeness, CutError, CutOptions, CutRenderer, CutReport, LodDataset, PREVIEW_LOD_ERROR_PX,
 };
-use crate::filter::{FilterError, PointFilter};
-use crate::ingest::{load_dataset, IngestError};
+use crate::filter::PointFilter;
+use crate::ingest::load_dataset;
 use crate::lod::for_each_coarse_node_up_to;
-use crate::raster::{Frame, FrameSettings, GpuPointCloud, RenderError, Renderer};
+use crate::raster::{Frame, FrameSettings, GpuPointCloud, Renderer};
 use crate::request::{RenderOptions, RenderRequest};
 
 pub use crate::extent::{Extent, Framed};
 pub use choice::{frame_points, FramePoints, PointSourceFacts};
+pub use error::SourceError;
 pub use events::{quiet, LevelsFrom, SourceEvent};
 pub use local_store::{LocalStore, StoreCache};
 pub use preview::{ChunkStarts, PreviewPoints};
 pub use url_tiles::describe_tile_url;
-
-/// Why a frame source could not open or render.
-#[derive(Debug, Error)]
-pub enum SourceError {
-    #[error(transparent)]
-    Ingest(#[from] IngestError),
-    #[error(transparent)]
-    Cache(#[from] CacheError),
-    #[error(transparent)]
-    Copc(#[from] CopcError),
-    #[error(transparent)]
-    Cut(#[from] CutError),
-    #[error(transparent)]
-    Render(#[from] RenderError),
-    #[error(transparent)]
-    Filter(#[from] FilterError),
-    #[error("{}: {error}", path.display())]
-    Io {
-        path: PathBuf,
-        #[source]
-        error: std::io::Error,
-    },
-    /// A store failed its checks again after this opening had built it again.
-    #[error(
-        "the levels of detail in {} failed their checks again after they were rebuilt: {damage}",
-        folder.display()
-    )]
-    DamagedAgain { folder: PathBuf, damage: CutError },
-}
 
 /// A frame and what it drew.
 pub struct SourceFrame {
@@ -151,6 +124,35 @@ enum Points {
     },
 }
 
+/// What a [`FrameSource`] is opened from, with what each kind needs.
+pub enum Opening<'a> {
+    /// The dataset of `files` read whole (from `cache`, under its content hash, when there is
+    /// one).
+    Resident {
+        files: &'a [PathBuf],
+        cache: Option<(&'a DatasetCache, &'a str)>,
+    },
+    /// The store of `files` in `folder`, built first when there is none.
+    Store {
+        files: &'a [PathBuf],
+        folder: &'a Path,
+        disk_budget: Option<u64>,
+        cut_options: CutOptions,
+    },
+    /// A COPC file here, read node by node from its own hierarchy.
+    Copc {
+        file: &'a Path,
+        cut_options: CutOptions,
+    },
+    /// Levels of detail opened already: a store built, a COPC file by URL, served records.
+    Levels {
+        levels: Levels,
+        cut_options: CutOptions,
+    },
+    /// A preview's points, drawn resident.
+    Preview(Box<PreviewPoints>),
+}
+
 /// A dataset's points ready to render, and the renderer that draws them.
 pub struct FrameSource {
     renderer: Renderer,
@@ -167,6 +169,41 @@ pub struct FrameSource {
 }
 
 impl FrameSource {
+    /// The source `opening` names, colored and filtered as `options` ask; what happens on the
+    /// way goes to `events`.
+    pub fn open(
+        renderer: Renderer,
+        opening: Opening<'_>,
+        options: &RenderOptions,
+        events: &dyn Fn(SourceEvent<'_>),
+    ) -> Result<Self, SourceError> {
+        let (levels, cut_options) = match opening {
+            Opening::Resident { files, cache } => {
+                return Self::resident(renderer, files, cache, options, events);
+            }
+            Opening::Preview(points) => return Self::preview(renderer, *points, options, events),
+            Opening::Store {
+                files,
+                folder,
+                disk_budget,
+                cut_options,
+            } => {
+                let memory_budget = cut_options.memory_budget_bytes;
+                let store =
+                    LocalStore::open_or_build(files, folder, memory_budget, disk_budget, events)?;
+                (Levels::Store(Box::new(store)), cut_options)
+            }
+            Opening::Copc { file, cut_options } => {
+                (Levels::Copc(Box::new(open_copc(file)?)), cut_options)
+            }
+            Opening::Levels {
+                levels,
+                cut_options,
+            } => (levels, cut_options),
+        };
+        Self::levels(renderer, levels, cut_options, options, events)
+    }
+
     /// The dataset of `files` read whole (from `cache`, under its content hash, when there is
     /// one), colored, filtered and uploaded.
     pub fn resident(
@@ -293,20 +330,13 @@ impl FrameSource {
         options: &RenderOptions,
         events: &dyn Fn(SourceEvent<'_>),
     ) -> Result<Self, SourceError> {
-        let store = LocalStore::open_or_build(
+        let opening = Opening::Store {
             files,
             folder,
-            cut_options.memory_budget_bytes,
             disk_budget,
-            events,
-        )?;
-        Self::levels(
-            renderer,
-            Levels::Store(Box::new(store)),
             cut_options,
-            options,
-            events,
-        )
+        };
+        Self::open(renderer, opening, options, events)
     }
 
     /// A COPC file rendered cut by cut from its own hierarchy: no store is built, only the
@@ -318,14 +348,8 @@ impl FrameSource {
         options: &RenderOptions,
         events: &dyn Fn(SourceEvent<'_>),
     ) -> Result<Self, SourceError> {
-        let copc = open_copc(file)?;
-        Self::levels(
-            renderer,
-            Levels::Copc(Box::new(copc)),
-            cut_options,
-            options,
-            events,
-        )
+        let opening = Opening::Copc { file, cut_options };
+        Self::open(renderer, opening, options, events)
     }
 
     /// `levels` rendered cut by cut with `cut_options`, colored and filtered as `options`
