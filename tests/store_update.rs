@@ -1,0 +1,207 @@
+//! A folder of tiles that gains a tile: `pointfarm render` through levels of detail updates the
+//! store of the earlier tiles instead of building it anew, and the frames equal a fresh
+//! build's within the fidelity rule. An update killed with SIGKILL where it is about to switch
+//! to the new store (the build's test hook, `POINTFARM_TEST_PAUSE_AT=update:0`) leaves the
+//! old store whole: the next render updates it again.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use pointfarm_render::ingest::{write_las, LasWriteOptions};
+use pointfarm_render::sample::sample_scene;
+use pointfarm_tests::{assert_pngs_alike, output_text, pointfarm_bin};
+
+/// Tiles per axis: the middle one is the new day's.
+const SIDE: usize = 3;
+const POINTS: usize = 90_000;
+const SIZE: &str = "--size=200x150";
+
+fn arg(path: &Path) -> &str {
+    path.to_str().expect("temporary paths are UTF-8")
+}
+
+/// The scene cut into `SIDE` x `SIDE` tiles: all but the middle one in `dir/tiles`, the
+/// middle one in `dir/later`. Returns both folders.
+fn write_tiles(dir: &Path) -> (PathBuf, PathBuf) {
+    let cloud = sample_scene(POINTS, 5);
+    let (min, size) = (cloud.bounds.min, cloud.bounds.size());
+    let mut tiles: Vec<Vec<usize>> = vec![Vec::new(); SIDE * SIDE];
+    for (i, p) in cloud.positions.iter().enumerate() {
+        let world = cloud.origin + p.as_dvec3();
+        let cell = |v: f64, lo: f64, extent: f64| {
+            (((v - lo) / extent * SIDE as f64) as usize).min(SIDE - 1)
+        };
+        let (x, y) = (cell(world.x, min.x, size.x), cell(world.y, min.y, size.y));
+        tiles[y * SIDE + x].push(i);
+    }
+    let (now, later) = (dir.join("tiles"), dir.join("later"));
+    for folder in [&now, &later] {
+        std::fs::create_dir_all(folder).expect("folder");
+    }
+    let middle = SIDE * SIDE / 2;
+    for (index, points) in tiles.iter().enumerate() {
+        let folder = if index == middle { &later } else { &now };
+        let path = folder.join(format!("tile-{index}.las"));
+        write_las(&path, &cloud.select(points), &LasWriteOptions::default()).expect("tile");
+    }
+    (now, later)
+}
+
+/// `pointfarm render` of `tiles` into `out` through the store cache `cache`, at `camera`.
+fn render(tiles: &Path, out: &Path, cache: &Path, camera: &[String]) -> Command {
+    let mut command = Command::new(pointfarm_bin());
+    command
+        .args([
+            "render",
+            arg(tiles),
+            "--out",
+            arg(out),
+            SIZE,
+            "--lod-error",
+            "0",
+        ])
+        .args(["--cache-dir", arg(cache), "--json"])
+        .args(camera)
+        .env("RUST_LOG", "pointfarm_render=info")
+        .env_remove("POINTFARM_TEST_PAUSE_AT");
+    command
+}
+
+fn run(command: &mut Command) -> Output {
+    let output = command.output().expect("run pointfarm");
+    assert!(output.status.success(), "{}", output_text(&output));
+    output
+}
+
+/// The points the frame's report says the dataset holds.
+fn points_total(output: &Output) -> u64 {
+    let text = String::from_utf8_lossy(&output.stdout);
+    let line = text.lines().next().expect("a frame report");
+    let report: serde_json::Value = serde_json::from_str(line).expect("JSON");
+    report["pointsTotal"].as_u64().expect("pointsTotal")
+}
+
+/// The camera the first render chose, as flags, so every render shares it.
+fn camera_of(output: &Output) -> Vec<String> {
+    let text = output_text(output);
+    let line = text
+        .lines()
+        .find_map(|line| line.strip_prefix("camera: "))
+        .unwrap_or_else(|| panic!("no camera line in:\n{text}"));
+    let mut flags: Vec<String> = line.split_whitespace().map(str::to_owned).collect();
+    flags.push("--point-size=2".to_owned());
+    flags
+}
+
+/// Moves the new day's tile into the tiles' folder.
+fn add_the_new_tile(tiles: &Path, later: &Path) {
+    let name = format!("tile-{}.las", SIDE * SIDE / 2);
+    std::fs::rename(later.join(&name), tiles.join(&name)).expect("move the new tile");
+}
+
+/// Starts `command` and kills it with SIGKILL once it says it paused at `stage`.
+fn kill_at(mut command: Command, stage: &str) {
+    command.env("POINTFARM_TEST_PAUSE_AT", stage);
+    let mut child = command
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start pointfarm");
+    let stderr = child.stderr.take().expect("stderr");
+    let (lines, said) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            let _ = lines.send(line);
+        }
+    });
+    let deadline = Instant::now() + Duration::from_secs(300);
+    let wanted = format!("build paused at {stage}");
+    let mut heard = Vec::new();
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match said.recv_timeout(left) {
+            Ok(line) if line.contains(&wanted) => break,
+            Ok(line) => heard.push(line),
+            Err(_) => panic!("never paused at {stage}:\n{}", heard.join("\n")),
+        }
+    }
+    child.kill().expect("SIGKILL");
+    child.wait().expect("reap");
+}
+
+#[test]
+fn a_folder_that_gains_a_tile_updates_its_store_and_draws_as_a_fresh_build() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (tiles, later) = write_tiles(dir.path());
+    let cache = dir.path().join("cache");
+    let first = dir.path().join("first.png");
+    let auto = run(&mut render(&tiles, &first, &cache, &[]));
+    let camera = camera_of(&auto);
+    let day_one = points_total(&auto);
+    assert!(day_one < POINTS as u64);
+
+    add_the_new_tile(&tiles, &later);
+    let updated = dir.path().join("updated.png");
+    let output = run(&mut render(&tiles, &updated, &cache, &camera));
+    let log = output_text(&output);
+    assert!(log.contains("updated store: 1 files added"), "{log}");
+    assert!(!log.contains("levels of detail:"), "built anew:\n{log}");
+    assert_eq!(points_total(&output), POINTS as u64);
+    // The earlier files' store was taken over, not copied.
+    let stores = std::fs::read_dir(cache.join("lod")).expect("the store cache");
+    assert_eq!(
+        stores
+            .filter(|e| e.as_ref().is_ok_and(|e| e.path().is_dir()))
+            .count(),
+        1
+    );
+
+    let fresh = dir.path().join("fresh.png");
+    let fresh_cache = dir.path().join("fresh-cache");
+    let output = run(&mut render(&tiles, &fresh, &fresh_cache, &camera));
+    assert!(output_text(&output).contains("levels of detail:"));
+    assert_pngs_alike(
+        "store-update",
+        &updated,
+        &fresh,
+        "the updated store's frame differs from a fresh build's",
+    );
+}
+
+#[test]
+fn an_update_killed_before_it_switches_leaves_the_old_store_to_update_again() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (tiles, later) = write_tiles(dir.path());
+    let cache = dir.path().join("cache");
+    let first = dir.path().join("first.png");
+    let auto = run(&mut render(&tiles, &first, &cache, &[]));
+    let camera = camera_of(&auto);
+
+    add_the_new_tile(&tiles, &later);
+    let updated = dir.path().join("updated.png");
+    kill_at(render(&tiles, &updated, &cache, &camera), "update:0");
+    // The old store, taken over and unfinished, still holds the earlier points whole: the
+    // next render updates it rather than building anew.
+    let output = run(&mut render(&tiles, &updated, &cache, &camera));
+    let log = output_text(&output);
+    assert!(log.contains("updated store: 1 files added"), "{log}");
+    assert!(!log.contains("levels of detail:"), "built anew:\n{log}");
+    assert_eq!(points_total(&output), POINTS as u64);
+
+    let fresh = dir.path().join("fresh.png");
+    run(&mut render(
+        &tiles,
+        &fresh,
+        &dir.path().join("fresh-cache"),
+        &camera,
+    ));
+    assert_pngs_alike(
+        "store-update-killed",
+        &updated,
+        &fresh,
+        "the store updated after a kill draws unlike a fresh build",
+    );
+}
