@@ -2,13 +2,14 @@
 //! has succeeded, and by `jobs video JOB --out FILE`. Written beside its place and renamed
 //! into it once whole, so a cut download never leaves a partial video under its name.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::encode::video::VideoContainer;
 use tokio::io::AsyncWriteExt;
 
+use crate::download::PartialFile;
 use crate::remote::Client;
 
 /// Downloads job `job_id`'s video to `out`; returns its size in bytes.
@@ -22,10 +23,10 @@ pub async fn download(client: &mut Client, job_id: &str, out: &Path) -> Result<u
         .await
         .map_err(crate::remote::status_error)?
         .into_inner();
-    let partial = partial_path(out);
-    let mut file = tokio::fs::File::create(&partial)
+    let partial = PartialFile::of(out);
+    let mut file = tokio::fs::File::create(partial.path())
         .await
-        .with_context(|| format!("creating {}", partial.display()))?;
+        .with_context(|| format!("creating {}", partial.path().display()))?;
     let written = async {
         let (mut declared, mut received) = (None, 0u64);
         while let Some(chunk) = stream
@@ -40,7 +41,7 @@ pub async fn download(client: &mut Client, job_id: &str, out: &Path) -> Result<u
             received += chunk.data.len() as u64;
             file.write_all(&chunk.data)
                 .await
-                .with_context(|| format!("writing {}", partial.display()))?;
+                .with_context(|| format!("writing {}", partial.path().display()))?;
         }
         file.flush().await?;
         match declared {
@@ -50,22 +51,7 @@ pub async fn download(client: &mut Client, job_id: &str, out: &Path) -> Result<u
         }
     }
     .await;
-    let placed = written.and_then(|size| {
-        std::fs::rename(&partial, out)
-            .with_context(|| format!("writing {}", out.display()))
-            .map(|()| size)
-    });
-    if placed.is_err() {
-        let _ = std::fs::remove_file(&partial);
-    }
-    placed
-}
-
-/// Where a download goes until it is whole.
-fn partial_path(out: &Path) -> PathBuf {
-    let mut name = out.file_name().unwrap_or_default().to_os_string();
-    name.push(".part");
-    out.with_file_name(name)
+    partial.finish(written)
 }
 
 /// Refuses to write a video under a name that says another container.
@@ -99,9 +85,5 @@ mod tests {
         assert!(check_container("mp4", Path::new("spin")).is_ok());
         let error = check_container("webm", Path::new("spin.mp4")).expect_err("another");
         assert!(error.to_string().contains("name the file .webm"), "{error}");
-        assert_eq!(
-            partial_path(Path::new("out/spin.mp4")),
-            Path::new("out/spin.mp4.part")
-        );
     }
 }

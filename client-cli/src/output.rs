@@ -26,12 +26,29 @@ pub fn line(args: std::fmt::Arguments<'_>) {
     }
 }
 
-/// A progress line of a command: on stdout, or with `--json` on stderr, so that stdout
-/// carries only the JSON objects.
-pub fn say(json: bool, line: String) {
-    if json {
-        eprintln!("{line}");
-    } else {
-        self::line(format_args!("{line}"));
+/// Says a command's progress lines: on stdout, or with `--json` on stderr, so that stdout
+/// carries only the JSON objects. Made once from the command's flags and handed to each step.
+#[derive(Debug, Clone, Copy)]
+pub struct Reporter {
+    json: bool,
+}
+
+impl Reporter {
+    pub fn new(json: bool) -> Self {
+        Self { json }
+    }
+
+    /// Whether stdout carries the command's JSON objects alone.
+    pub fn is_json(self) -> bool {
+        self.json
+    }
+
+    /// Says one progress line.
+    pub fn say(self, line: impl std::fmt::Display) {
+        if self.json {
+            eprintln!("{line}");
+        } else {
+            self::line(format_args!("{line}"));
+        }
     }
 }

@@ -1,7 +1,9 @@
 //! Parsers for command-line values.
 
+use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser};
 use glam::DVec3;
 use pointfarm_render::color::{ColorMode, ColorRamp, ColorRange};
+use pointfarm_render::encode::video::VideoCodec;
 use pointfarm_render::request::PointSize;
 
 /// A number of seconds within `range`, for flags that take a duration.
@@ -167,6 +169,14 @@ pub fn non_negative(s: &str) -> Result<f64, String> {
         Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
         _ => Err(format!("'{s}' is not a number from 0")),
     }
+}
+
+/// `--video-codec`'s parser: the render crate's codecs, by name, each with its description.
+pub fn codec_parser() -> impl TypedValueParser<Value = VideoCodec> {
+    PossibleValuesParser::new(
+        VideoCodec::ALL.map(|codec| PossibleValue::new(codec.name()).help(codec.description())),
+    )
+    .try_map(|name| name.parse::<VideoCodec>())
 }
 
 #[cfg(test)]

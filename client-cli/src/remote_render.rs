@@ -11,14 +11,14 @@ use pointfarm_daemon::job_control::{check_labels, check_name};
 use pointfarm_daemon::model::JobSpec;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::ingest::dataset_files;
-use pointfarm_render::legend::Legend;
 use pointfarm_render::raster::AtomicsMode;
 use pointfarm_render::request::RenderRequest;
 
+use crate::output::Reporter;
 use crate::remote::{answer, require_success, timings_line, Client};
 use crate::render_args::RenderArgs;
 use crate::render_json::ServerFrameJson;
-use crate::render_outputs::{write_legend, Outputs};
+use crate::render_outputs::{Outputs, VideoPlan};
 
 /// Refuses what the service cannot do, so that no option is dropped on the way.
 fn refuse_local_only_options(args: &RenderArgs, request: &RenderRequest) -> Result<()> {
@@ -51,10 +51,11 @@ fn refuse_local_only_options(args: &RenderArgs, request: &RenderRequest) -> Resu
     Ok(())
 }
 
-/// The job `request` describes.
+/// The job `request` describes, its frames going to `outputs`.
 fn submission(
     args: &RenderArgs,
     request: &RenderRequest,
+    outputs: &Outputs,
     dataset_id: String,
 ) -> Result<pb::SubmitJobRequest> {
     let nonce = std::time::SystemTime::now()
@@ -71,10 +72,7 @@ fn submission(
         after: args.after.clone(),
         name: args.name.clone().unwrap_or_default(),
         labels: args.labels.iter().cloned().collect(),
-        video: args
-            .video_request()
-            .map(|video| video.settings())
-            .transpose()?,
+        video: outputs.video.as_ref().map(VideoPlan::settings),
     };
     check_name("--name", &spec.name)?;
     check_labels("--label", &spec.labels)?;
@@ -101,19 +99,16 @@ pub fn run(
     outputs: &Outputs,
 ) -> Result<()> {
     refuse_local_only_options(args, request)?;
-    let submitted = |dataset_id| submission(args, request, dataset_id);
+    let submitted = |dataset_id| submission(args, request, outputs, dataset_id);
     // Bad tags are refused before anything is uploaded.
     submitted(String::new())?;
-    if let Some(path) = &outputs.legend {
-        let coloring = request.render.coloring();
-        outln!(
-            "{}",
-            write_legend(path, Legend::of(coloring, coloring.range))?
-        );
+    let coloring = request.render.coloring();
+    if let Some(line) = outputs.write_legend(coloring, || coloring.range)? {
+        outln!("{line}");
     }
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     // Detached, stdout carries the job's id alone, for scripts to read.
-    let say = |line: String| crate::output::say(args.json || args.detach, line);
+    let reporter = Reporter::new(args.json || args.detach);
     runtime.block_on(async {
         let mut client = Client::connect(server, &args.credentials).await?;
         let dataset = match &args.dataset {
@@ -132,8 +127,8 @@ pub fn run(
             if file_count == 1 { "" } else { "s" }
         );
         match args.dataset {
-            Some(_) => say(found),
-            None => say(format!("{}: {found}", args.inputs_label())),
+            Some(_) => reporter.say(found),
+            None => reporter.say(format_args!("{}: {found}", args.inputs_label())),
         }
         let job = client
             .jobs
@@ -141,7 +136,7 @@ pub fn run(
             .await
             .map_err(crate::remote::status_error)?
             .into_inner();
-        say(format!(
+        reporter.say(format_args!(
             "job {} submitted: {} frames",
             job.id, job.frames_total
         ));
@@ -161,12 +156,12 @@ pub fn run(
         {
             let shown = shown.into_inner();
             if !shown.waiting_reason.is_empty() && !shown.refusals.is_empty() {
-                say(format!("waiting: {}", shown.waiting_reason));
+                reporter.say(format_args!("waiting: {}", shown.waiting_reason));
             }
         }
         let previews = args
             .preview
-            .then(|| PreviewFetcher::start(&client, &job, args.json, outputs));
+            .then(|| PreviewFetcher::start(&client, &job, reporter, outputs));
         let finished = client
             .follow(&job.id, args.json, |frame| {
                 if let Some(previews) = &previews {
@@ -211,9 +206,9 @@ pub fn run(
         let what = if previewed { "final frames" } else { "frames" };
         match written.as_slice() {
             [] => bail!("the server returned no frame"),
-            [one] if previewed => say(format!("final frame: {}", one.display())),
-            [one] => say(one.display().to_string()),
-            many => say(format!(
+            [one] if previewed => reporter.say(format_args!("final frame: {}", one.display())),
+            [one] => reporter.say(one.display()),
+            many => reporter.say(format_args!(
                 "{} {what} in {}",
                 many.len(),
                 files.dir().display()
@@ -221,13 +216,13 @@ pub fn run(
         }
         if let Some(video) = &outputs.video {
             let bytes = crate::jobs_video::download(&mut client, &job.id, video.path()).await?;
-            say(format!(
+            reporter.say(format_args!(
                 "video: {} ({bytes} bytes, made on the server)",
                 video.path().display()
             ));
         }
         if let Some(first) = details.frames.first() {
-            say(format!(
+            reporter.say(format_args!(
                 "frame {} on the server: {}",
                 first.index,
                 timings_line(&first.timings)
@@ -253,7 +248,7 @@ struct PreviewFetcher {
 }
 
 impl PreviewFetcher {
-    fn start(client: &Client, job: &pb::Job, json: bool, outputs: &Outputs) -> Self {
+    fn start(client: &Client, job: &pb::Job, reporter: Reporter, outputs: &Outputs) -> Self {
         let frames_total = job.frames_total;
         let (frames, mut reported) = tokio::sync::mpsc::unbounded_channel::<pb::FrameFinished>();
         let mut jobs = client.jobs.clone();
@@ -282,7 +277,7 @@ impl PreviewFetcher {
                         break;
                     }
                 };
-                if json {
+                if reporter.is_json() {
                     let line = ServerFrameJson::of_frame(&path, &job_id, &frame);
                     match crate::admin_json::json_line(&line) {
                         Ok(line) => outln!("{line}"),
@@ -293,15 +288,12 @@ impl PreviewFetcher {
                     }
                 }
                 if placed.insert(frame.index) && placed.len() == frames_total as usize {
-                    crate::output::say(
-                        json,
-                        format!(
-                            "previews: {frames_total} frame{} in {}; the final frames replace \
-                             them as the server renders them",
-                            if frames_total == 1 { "" } else { "s" },
-                            files.dir().display()
-                        ),
-                    );
+                    reporter.say(format_args!(
+                        "previews: {frames_total} frame{} in {}; the final frames replace them \
+                         as the server renders them",
+                        if frames_total == 1 { "" } else { "s" },
+                        files.dir().display()
+                    ));
                 }
             }
             let _ = std::fs::remove_dir_all(&temp);

@@ -22,8 +22,7 @@ use pointfarm_render::request::{
 
 use crate::credentials::ClientCredentials;
 use crate::filter_args::FilterArgs;
-use crate::parse::{self, Rgba};
-use crate::video::{codec_parser, VideoRequest};
+use crate::parse::{self, codec_parser, Rgba};
 
 #[derive(Args)]
 pub struct RenderArgs {
@@ -57,16 +56,16 @@ pub struct RenderArgs {
     /// (.mp4, .mov, .mkv, .webm, or .gif for quick looks). Needs ffmpeg, which is checked
     /// before rendering.
     #[arg(long, value_name = "FILE")]
-    video: Option<PathBuf>,
+    pub(crate) video: Option<PathBuf>,
     /// Frames per second of --video, and of a Potree camera animation's frames.
     #[arg(long, default_value_t = DEFAULT_VIDEO_FPS)]
-    fps: u32,
+    pub(crate) fps: u32,
     /// Codec of --video [default: h264, vp9 for .webm].
     #[arg(long, value_parser = codec_parser(), requires = "video")]
-    video_codec: Option<VideoCodec>,
+    pub(crate) video_codec: Option<VideoCodec>,
     /// Constant quality of --video, 0 (best, largest) to 51; about 18 looks lossless.
     #[arg(long, default_value_t = DEFAULT_VIDEO_QUALITY, value_name = "CRF", requires = "video")]
-    video_quality: u32,
+    pub(crate) video_quality: u32,
     /// Print one JSON object per frame on standard output, and nothing else there: its file,
     /// size, the points of the dataset and those the point passes read, its stage timings;
     /// through a server, its file and the frame as the API reports it.
@@ -334,7 +333,7 @@ impl RenderArgs {
         let up = self.camera_up.map_or(DEFAULT_UP, Point3::from);
         let (azimuth_deg, elevation_deg) = self.view.direction();
         let camera_path = match (&self.camera_path, self.turntable) {
-            (Some(file), _) => crate::camera_file::read(file, self.fps)?,
+            (Some(file), _) => crate::camera_path::read(file, self.fps)?,
             (None, None) => CameraPath::Still(StillCamera {
                 position: point(self.camera_pos),
                 target: point(self.camera_target),
@@ -407,16 +406,6 @@ impl RenderArgs {
     /// Whether the render writes a sequence of frames (a turntable or a camera path), not one.
     pub(crate) fn is_sequence(&self) -> bool {
         self.turntable.is_some() || self.camera_path.is_some()
-    }
-
-    /// The video --video asks for, unchecked.
-    pub(crate) fn video_request(&self) -> Option<VideoRequest> {
-        self.video.clone().map(|path| VideoRequest {
-            path,
-            fps: self.fps,
-            codec: self.video_codec,
-            quality: self.video_quality,
-        })
     }
 
     /// The first option of this machine's node caches given, to name it where it does not

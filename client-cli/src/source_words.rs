@@ -6,9 +6,11 @@ use std::cell::RefCell;
 use indicatif::ProgressBar;
 use pointfarm_render::source::{LevelsFrom, SourceEvent};
 
+use crate::output::Reporter;
+
 /// Says a frame source's events about one input (its label before every line).
 pub struct SourceWords {
-    json: bool,
+    reporter: Reporter,
     label: String,
     /// The spinner of the step under way, cleared by the next event.
     spinner: RefCell<Option<ProgressBar>>,
@@ -18,7 +20,7 @@ impl SourceWords {
     /// Lines about `label` (the inputs), on stderr with `--json`.
     pub fn new(json: bool, label: String) -> Self {
         Self {
-            json,
+            reporter: Reporter::new(json),
             label,
             spinner: RefCell::new(None),
         }
@@ -27,7 +29,7 @@ impl SourceWords {
     /// Says `line` about the input.
     pub fn say(&self, line: &str) {
         self.clear();
-        crate::output::say(self.json, format!("{}: {line}", self.label));
+        self.reporter.say(format_args!("{}: {line}", self.label));
     }
 
     /// Tells `event`.

@@ -69,7 +69,54 @@ pub(super) fn stage_statistics(frames: &[pb::FrameFinished]) -> Vec<StageStatist
 }
 
 /// A worker's name as the tables show it, marked when it is the daemon's embedded worker.
-pub(super) fn worker_label(name: &str, embedded: bool) -> String {
+/// `jobs workers`' table: a header, then each worker's name, adapter kind, largest frame
+/// side, adapter name and tags.
+pub(super) fn worker_table(workers: &[pb::ConnectedWorker]) -> Vec<String> {
+    let header = format!(
+        "{:<24} {:<9} {:>10}  {:<32} tags",
+        "worker", "adapter", "max side", "name"
+    );
+    let rows = workers.iter().map(|w| {
+        let caps = w.capabilities.clone().unwrap_or_default();
+        let kind = match pb::AdapterKind::try_from(caps.adapter_kind) {
+            Ok(pb::AdapterKind::Hardware) => "GPU",
+            Ok(pb::AdapterKind::Software) => "software",
+            _ => "unknown",
+        };
+        let side = if caps.max_frame_side == 0 {
+            "any".to_string()
+        } else {
+            caps.max_frame_side.to_string()
+        };
+        let name = worker_label(&w.worker_name, w.embedded);
+        format!(
+            "{name:<24} {kind:<9} {side:>10}  {:<32} {}",
+            caps.adapter_name,
+            caps.tags.join(", ")
+        )
+    });
+    std::iter::once(header).chain(rows).collect()
+}
+
+/// `jobs leases`' table: a header, then each lease's id, job, frame, worker and the seconds
+/// until it expires from `now_ms`.
+pub(super) fn lease_table(leases: &[pb::Lease], now_ms: i64) -> Vec<String> {
+    let header = format!(
+        "{:<38} {:<18} {:>6}  {:<24} expires",
+        "lease", "job", "frame", "worker"
+    );
+    let rows = leases.iter().map(|l| {
+        let expires = (l.expires_unix_ms - now_ms) as f64 / 1e3;
+        let worker = worker_label(&l.worker_name, l.embedded);
+        format!(
+            "{:<38} {:<18} {:>6}  {:<24} in {expires:.1} s",
+            l.lease_id, l.job_id, l.frame_index, worker
+        )
+    });
+    std::iter::once(header).chain(rows).collect()
+}
+
+fn worker_label(name: &str, embedded: bool) -> String {
     if embedded {
         format!("{name} (embedded)")
     } else {

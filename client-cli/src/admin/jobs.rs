@@ -9,7 +9,8 @@ use pointfarm_daemon::job_control::{check_labels, check_priority};
 use pointfarm_proto::v1 as pb;
 
 use super::job_lines::{
-    cut_summary, has_ended, preview_summary, scheduling_lines, stage_statistics, worker_label,
+    cut_summary, has_ended, lease_table, preview_summary, scheduling_lines, stage_statistics,
+    worker_table,
 };
 use super::{every_page, runtime, ServerArgs, PAGE_SIZE};
 use crate::admin_json::{json_line, JobDetails};
@@ -346,36 +347,8 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
             JobsCommand::Workers => {
                 let workers =
                     answer(client.jobs.list_workers(pb::ListWorkersRequest {}).await)?.workers;
-                if server.json {
-                    outln!("{}", json_line(&pb::ListWorkersResponse { workers })?);
-                } else {
-                    outln!(
-                        "{:<24} {:<9} {:>10}  {:<32} tags",
-                        "worker",
-                        "adapter",
-                        "max side",
-                        "name"
-                    );
-                    for w in &workers {
-                        let caps = w.capabilities.clone().unwrap_or_default();
-                        let kind = match pb::AdapterKind::try_from(caps.adapter_kind) {
-                            Ok(pb::AdapterKind::Hardware) => "GPU",
-                            Ok(pb::AdapterKind::Software) => "software",
-                            _ => "unknown",
-                        };
-                        let side = if caps.max_frame_side == 0 {
-                            "any".to_string()
-                        } else {
-                            caps.max_frame_side.to_string()
-                        };
-                        let name = worker_label(&w.worker_name, w.embedded);
-                        outln!(
-                            "{name:<24} {kind:<9} {side:>10}  {:<32} {}",
-                            caps.adapter_name,
-                            caps.tags.join(", ")
-                        );
-                    }
-                }
+                let listed = pb::ListWorkersResponse { workers };
+                print_listing(server, &listed, || worker_table(&listed.workers))?;
             }
             JobsCommand::Leases => {
                 let leases =
@@ -384,32 +357,29 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                     .duration_since(std::time::UNIX_EPOCH)
                     .map(|d| d.as_millis() as i64)
                     .unwrap_or(0);
-                if server.json {
-                    outln!("{}", json_line(&pb::ListLeasesResponse { leases })?);
-                } else {
-                    outln!(
-                        "{:<38} {:<18} {:>6}  {:<24} expires",
-                        "lease",
-                        "job",
-                        "frame",
-                        "worker"
-                    );
-                    for l in &leases {
-                        let expires = (l.expires_unix_ms - now) as f64 / 1e3;
-                        let worker = worker_label(&l.worker_name, l.embedded);
-                        outln!(
-                            "{:<38} {:<18} {:>6}  {:<24} in {expires:.1} s",
-                            l.lease_id,
-                            l.job_id,
-                            l.frame_index,
-                            worker
-                        );
-                    }
-                }
+                let listed = pb::ListLeasesResponse { leases };
+                print_listing(server, &listed, || lease_table(&listed.leases, now))?;
             }
         }
         Ok(())
     })
+}
+
+/// What a listing prints: the server's answer as one JSON object (with --json), or the lines
+/// of its table.
+fn print_listing<T: serde::Serialize>(
+    server: &ServerArgs,
+    listed: &T,
+    table: impl FnOnce() -> Vec<String>,
+) -> Result<()> {
+    if server.json {
+        outln!("{}", json_line(listed)?);
+    } else {
+        for line in table() {
+            outln!("{line}");
+        }
+    }
+    Ok(())
 }
 
 /// What a command that changed `job` prints: the job as the server answered (with --json),
