@@ -1,8 +1,9 @@
 //! Videos made by the farm, through a real daemon and real worker processes: a job's video is
 //! made once its last frame is final, by a worker whose ffmpeg has the encoder, never by one
 //! without ffmpeg; `ffprobe` checks what is stored and fetched. A bad video spec is refused,
-//! a worker killed while its ffmpeg runs has the video leased again, and `pointfarm render
-//! --server --video` and `jobs video` download it.
+//! a worker killed while its ffmpeg runs has the video leased again, one stopped hands it
+//! back for another at once, and `pointfarm render --server --video` and `jobs video`
+//! download it.
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -48,6 +49,18 @@ impl PathWorker {
     fn kill(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+    }
+
+    /// Stops the worker as an operator does (SIGTERM) and waits for it to exit.
+    fn terminate(&mut self) -> std::process::ExitStatus {
+        let sent = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status()
+            .expect("kill -TERM");
+        assert!(sent.success());
+        wait_for(Duration::from_secs(30), "the worker to exit", || {
+            self.child.try_wait().expect("try_wait")
+        })
     }
 }
 
@@ -331,6 +344,58 @@ async fn a_worker_killed_while_making_the_video_has_it_leased_again() {
     let fetched = scratch.path().join("again.mp4");
     fetch_video(&mut jobs, &job.id, &fetched).await;
     assert_eq!(probe(&fetched), ("h264".to_owned(), 32, 24, 4));
+    daemon.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_worker_stopped_while_making_the_video_hands_it_back_for_another_at_once() {
+    // A lease timeout far longer than the test: only the hand-back lets another worker in.
+    let daemon = TestDaemon::start_without_worker(
+        |config| config.lease_timeout = Duration::from_secs(600),
+        Access::default(),
+    )
+    .await;
+    let dataset = upload_sample(&mut daemon.datasets().await, 5_000, 5).await;
+    let mut jobs = daemon.jobs().await;
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let bin = scratch.path().join("bin");
+    std::fs::create_dir_all(&bin).expect("bin");
+    stalling_ffmpeg(&bin);
+    let mut stalling =
+        PathWorker::start(&daemon.url(), &scratch.path().join("stall"), "stall", &bin);
+    let job = submit(
+        &mut jobs,
+        with_video(turntable_job("back", &dataset.id, 4, 32, 24), "mp4", ""),
+    )
+    .await;
+    let log = stalling.log.clone();
+    tokio::task::spawn_blocking(move || {
+        wait_for(Duration::from_secs(120), "the video leased", || {
+            let said = std::fs::read_to_string(&log).unwrap_or_default();
+            said.contains("video leased").then_some(())
+        })
+    })
+    .await
+    .expect("wait");
+    let exited = tokio::task::spawn_blocking(move || {
+        let status = stalling.terminate();
+        (status, stalling.log())
+    })
+    .await
+    .expect("stopped");
+    let (status, log) = exited;
+    assert!(status.success(), "{status:?}:\n{log}");
+    assert!(log.contains("the video is handed back unmade"), "{log}");
+    assert_eq!(get_job(&mut jobs, &job.id).await.stage, "video");
+
+    let encoder = WorkerProcess::start(&daemon.url(), &scratch.path().join("encoder"), "encoder");
+    let (done, _) = watch_to_success(&mut jobs, &job.id, || encoder.log()).await;
+    assert!(done.video_size_bytes > 0);
+    let log = encoder.log();
+    assert!(
+        log.contains("video leased") && log.contains("failed_attempts=0"),
+        "handing back counted no attempt:\n{log}"
+    );
     daemon.stop().await;
 }
 

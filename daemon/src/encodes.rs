@@ -4,7 +4,7 @@
 //! of its own, never a frame's, leased only to a worker whose ffmpeg has the job's encoder,
 //! renewed within the daemon's lease timeout, and leased again when its worker fails it or
 //! stops renewing it, each counting one of [`MAX_ENCODE_ATTEMPTS`]; the last failure fails
-//! the job with ffmpeg's words. The lease and its attempts are stored with the job in sled,
+//! the job with ffmpeg's words. A worker stopping gives its lease back, counting nothing. The lease and its attempts are stored with the job in sled,
 //! so they outlive a restart; the video is stored beside the job's frames, in the job's
 //! folder, and goes with it.
 //!
@@ -369,6 +369,7 @@ impl Daemon {
             .then(|| (now_unix_ms() - lease.leased_unix_ms).max(0) as f64 / 1e3);
         self.metrics.encodes.succeeded(took);
         tracing::info!(job = %job.id, bytes = size, "video stored");
+        self.enqueue_video_output(&job, &path);
         self.log_job_end(&job, 0);
         self.publish(&job, None);
         Ok(job)
@@ -386,6 +387,31 @@ impl Daemon {
         self.expire_encodes_locked()?;
         let (job, lease) = self.encode_job_locked(lease_id, embedded)?;
         self.count_failed_encode_locked(&job, &lease, reason)
+    }
+
+    /// Its worker is stopping: the encode lease is given back without a video and without
+    /// counting an attempt, for another worker to lease at once. A lease no longer held (it
+    /// expired, or the job no longer wants its video) has nothing to give back.
+    pub fn release_encode(&self, lease_id: &str, embedded: bool) -> Result<(), DaemonError> {
+        let _scheduling = self.scheduling()?;
+        self.expire_encodes_locked()?;
+        let (job, lease) = match self.encode_job_locked(lease_id, embedded) {
+            Ok(held) => held,
+            Err(DaemonError::FailedPrecondition(_)) => return Ok(()),
+            Err(e) => return Err(e),
+        };
+        let updated = self.state.update_job(&job.id, |j| {
+            if let Some(encode) = j.encode.as_mut() {
+                encode.lease = None;
+            }
+        })?;
+        self.state.flush()?;
+        tracing::info!(job = %job.id, worker = %lease.worker, "video handed back");
+        if let Some(job) = updated {
+            self.publish(&job, None);
+        }
+        self.work.notify();
+        Ok(())
     }
 
     /// Takes the encode lease of `job` back, counting a failed attempt, and fails the job

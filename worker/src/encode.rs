@@ -4,7 +4,9 @@
 //! that never holds a frame. For each it fetches the job's frames in order from the daemon,
 //! pipes them through ffmpeg into a file of its cache folder while renewals keep the lease,
 //! and hands the video in; a failed encode is reported with ffmpeg's own error line. A
-//! worker without ffmpeg asks for none. Stopping lets the current video finish first.
+//! worker without ffmpeg asks for none. Stopping (SIGTERM) ends ffmpeg and gives the lease
+//! back (`ReleaseEncode`), so another worker makes the video at once; a video already made
+//! is handed in first.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -111,12 +113,21 @@ pub async fn run(
             }
         };
         let span = tracing::info_span!("video", job = %task.job_id, lease = %task.lease_id);
-        tracing::Instrument::instrument(make_video(&client, &task, &dir), span).await;
+        let made = make_video(&client, &task, &dir, stop.clone());
+        tracing::Instrument::instrument(made, span).await;
     }
 }
 
-/// Makes one leased video and hands it in, or reports why it could not be made.
-async fn make_video(client: &Client, task: &EncodeTask, dir: &Path) {
+/// Resolves once `stop` turns true; never when its sender is gone.
+async fn stopping(mut stop: watch::Receiver<bool>) {
+    if stop.wait_for(|stopped| *stopped).await.is_err() {
+        std::future::pending::<()>().await;
+    }
+}
+
+/// Makes one leased video and hands it in, or reports why it could not be made; gives the
+/// lease back when `stop` turns true before the video is made.
+async fn make_video(client: &Client, task: &EncodeTask, dir: &Path, stop: watch::Receiver<bool>) {
     tracing::info!(
         frames = task.frames,
         encoder = task.video.encoder(),
@@ -145,10 +156,15 @@ async fn make_video(client: &Client, task: &EncodeTask, dir: &Path) {
             }
         },
     ));
-    let made = encode(client, task, &output).await;
+    let stopped = Arc::new(AtomicBool::new(false));
+    let made = encode(client, task, &output, stop, stopped.clone()).await;
     let handed = match made {
         _ if abandoned.load(Ordering::SeqCst) => {
             tracing::info!("video dropped on the daemon's word");
+            Ok(())
+        }
+        _ if stopped.load(Ordering::SeqCst) => {
+            release(client, &task.lease_id).await;
             Ok(())
         }
         Ok(()) => hand_in(client, task, &output, started.elapsed()).await,
@@ -167,28 +183,55 @@ async fn make_video(client: &Client, task: &EncodeTask, dir: &Path) {
 }
 
 /// Fetches the job's frames and pipes them, in order, through ffmpeg into `output`; the
-/// error is what stopped it, ffmpeg's last line when ffmpeg did.
-async fn encode(client: &Client, task: &EncodeTask, output: &Path) -> Result<(), String> {
+/// error is what stopped it, ffmpeg's last line when ffmpeg did. When `stop` turns true
+/// first, ffmpeg is ended, `stopped` is set, and the video is not made.
+async fn encode(
+    client: &Client,
+    task: &EncodeTask,
+    output: &Path,
+    stop: watch::Receiver<bool>,
+    stopped: Arc<AtomicBool>,
+) -> Result<(), String> {
     let mut encoder = VideoEncoder::start(&task.video, "png", output)
         .map_err(|e| format!("starting ffmpeg: {e}"))?;
+    let ffmpeg = encoder.stopper();
     // ffmpeg is fed from a thread of its own, so a slow encoder never blocks the runtime;
     // a few frames wait in the channel while the next are fetched.
     let (frames, mut incoming) = mpsc::channel::<Vec<u8>>(4);
-    let feeder = tokio::task::spawn_blocking(move || {
-        while let Some(frame) = incoming.blocking_recv() {
-            if !encoder.write_frame(&frame) {
-                break;
+    let feeder = tokio::task::spawn_blocking({
+        let stopped = stopped.clone();
+        move || {
+            while let Some(frame) = incoming.blocking_recv() {
+                if stopped.load(Ordering::SeqCst) || !encoder.write_frame(&frame) {
+                    break;
+                }
             }
+            if stopped.load(Ordering::SeqCst) {
+                // Dropped unfinished, the encoder ends ffmpeg rather than wait for it.
+                drop(encoder);
+                return Err("the worker is stopping".to_owned());
+            }
+            encoder.finish()
         }
-        encoder.finish()
     });
-    let fetched = fetch_frames(client.clone(), task, frames).await;
-    let finished = feeder
-        .await
-        .map_err(|e| format!("feeding ffmpeg panicked: {e}"))?;
-    // ffmpeg's words explain a fetch it cut short, so they come first.
-    finished.map_err(|said| last_line(&said))?;
-    fetched
+    let made = async {
+        let fetched = fetch_frames(client.clone(), task, frames).await;
+        let finished = feeder
+            .await
+            .map_err(|e| format!("feeding ffmpeg panicked: {e}"))?;
+        // ffmpeg's words explain a fetch it cut short, so they come first.
+        finished.map_err(|said| last_line(&said))?;
+        fetched
+    };
+    // The flag is set before ffmpeg is ended, so its failure reads as the stop it is.
+    tokio::select! {
+        made = made => made,
+        () = stopping(stop) => {
+            stopped.store(true, Ordering::SeqCst);
+            ffmpeg.stop();
+            Err("the worker is stopping".to_owned())
+        }
+    }
 }
 
 /// Streams frames 0.. of the job into `frames`, whole and in order.
@@ -311,6 +354,22 @@ async fn hand_in(
             Ok(())
         }
         Err(status) => Err(format!("handing the video in: {}", status.message())),
+    }
+}
+
+/// Gives the lease back unmade, counting no attempt; a lease that cannot be given back runs
+/// out instead.
+async fn release(client: &Client, lease_id: &str) {
+    let request = pb::ReleaseEncodeRequest {
+        lease_id: lease_id.to_owned(),
+    };
+    match client.clone().release_encode(request).await {
+        Ok(_) => tracing::info!("stopping: the video is handed back unmade"),
+        Err(status) => tracing::warn!(
+            code = ?status.code(),
+            message = status.message(),
+            "handing the video back failed; its lease will run out"
+        ),
     }
 }
 

@@ -173,3 +173,35 @@ fn a_video_larger_than_the_limit_or_than_declared_is_refused() {
     let overflow = upload.write(b"12345").expect_err("more than declared");
     assert!(overflow.to_string().contains("declared"), "{overflow}");
 }
+
+#[test]
+fn a_video_handed_back_is_leased_again_at_once_counting_no_attempt() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let daemon = open(dir.path(), Duration::from_secs(600));
+    let job = submit_with_video(&daemon, 1);
+    render_all(&daemon);
+    let first = daemon
+        .lease_encode("stopping", false, &x264())
+        .expect("lease")
+        .expect("the video");
+    daemon
+        .release_encode(&first.lease_id, false)
+        .expect("handed back");
+    // Given back twice, or once it is not held, there is nothing to give.
+    daemon
+        .release_encode(&first.lease_id, false)
+        .expect("nothing to give back");
+    let again = daemon
+        .lease_encode("other", false, &x264())
+        .expect("lease")
+        .expect("leased again at once");
+    assert_eq!(
+        (again.job_id.as_str(), again.failed_attempts),
+        (job.id.as_str(), 0)
+    );
+    assert!(daemon
+        .renew_encode(&first.lease_id, false)
+        .is_ok_and(|answer| matches!(answer, HeartbeatAnswer::Stop(_))));
+    let job = daemon.job(&job.id).expect("job");
+    assert_eq!((job.state, job.stage()), (JobState::Running, "video"));
+}

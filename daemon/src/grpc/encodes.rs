@@ -1,6 +1,6 @@
 //! The calls of a job's video: a worker's encode lease (leased by long poll, renewed, the
-//! frames fetched under it, the video handed in as a size-bounded stream or the failure
-//! reported) and a client's download of the stored video. The scheduling and the storing are
+//! frames fetched under it, the video handed in as a size-bounded stream, the failure
+//! reported, or the lease given back by a worker stopping) and a client's download of the stored video. The scheduling and the storing are
 //! the daemon's (`encodes`); these only check and convert.
 
 use pointfarm_proto::v1 as pb;
@@ -143,6 +143,16 @@ impl Api {
             truncated(&r.reason, MAX_REASON_BYTES)
         };
         self.done(move |daemon| daemon.fail_encode(&r.lease_id, embedded, &reason))
+            .await
+    }
+
+    pub(super) async fn release_encode_call(
+        &self,
+        r: pb::ReleaseEncodeRequest,
+        embedded: bool,
+    ) -> Result<Response<pb::ReleaseEncodeResponse>, Status> {
+        check_id("lease_id", &r.lease_id)?;
+        self.done(move |daemon| daemon.release_encode(&r.lease_id, embedded))
             .await
     }
 

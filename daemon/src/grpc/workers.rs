@@ -402,4 +402,12 @@ impl WorkerService for Api {
         let (r, embedded) = self.heard(request);
         self.fail_encode_call(r, embedded).await
     }
+
+    async fn release_encode(
+        &self,
+        request: Request<pb::ReleaseEncodeRequest>,
+    ) -> Result<Response<pb::ReleaseEncodeResponse>, Status> {
+        let (r, embedded) = self.heard(request);
+        self.release_encode_call(r, embedded).await
+    }
 }

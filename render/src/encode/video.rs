@@ -6,7 +6,9 @@
 use std::io::{Read, Write};
 use std::path::Path;
 use std::process::{Child, ChildStdin, Command, Stdio};
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
+use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
@@ -390,9 +392,14 @@ pub fn frame_decoder(extension: &str) -> Option<&'static str> {
     }
 }
 
+/// How often [`VideoEncoder::finish`] looks whether ffmpeg has exited, so that an
+/// [`EncoderStop`] can end it meanwhile.
+const FINISH_POLL: Duration = Duration::from_millis(20);
+
 /// A running ffmpeg that frames are written into, in order, and that writes the video.
 pub struct VideoEncoder {
-    child: Child,
+    /// Shared with its [`EncoderStop`]s.
+    child: Arc<Mutex<Child>>,
     stdin: Option<ChildStdin>,
     /// ffmpeg's errors, read while it runs so that the pipe never fills.
     stderr: Option<JoinHandle<String>>,
@@ -417,10 +424,16 @@ impl VideoEncoder {
             })
         });
         Ok(Self {
-            child,
+            child: Arc::new(Mutex::new(child)),
             stdin,
             stderr,
         })
+    }
+
+    /// A handle that ends this encoder's ffmpeg from elsewhere, even while
+    /// [`Self::finish`] waits for it.
+    pub fn stopper(&self) -> EncoderStop {
+        EncoderStop(self.child.clone())
     }
 
     /// Writes one frame's bytes. False when ffmpeg stopped reading: [`Self::finish`] says why.
@@ -433,10 +446,15 @@ impl VideoEncoder {
     /// Ends the input and waits for ffmpeg; the error is ffmpeg's own words.
     pub fn finish(mut self) -> Result<(), String> {
         drop(self.stdin.take());
-        let status = self
-            .child
-            .wait()
-            .map_err(|e| format!("waiting for ffmpeg: {e}"))?;
+        let status = loop {
+            let exited = lock(&self.child)
+                .try_wait()
+                .map_err(|e| format!("waiting for ffmpeg: {e}"))?;
+            match exited {
+                Some(status) => break status,
+                None => std::thread::sleep(FINISH_POLL),
+            }
+        };
         let stderr = self
             .stderr
             .take()
@@ -459,10 +477,27 @@ impl Drop for VideoEncoder {
     fn drop(&mut self) {
         // An encoder dropped before it finished leaves no ffmpeg behind.
         if self.stdin.is_some() {
-            let _ = self.child.kill();
-            let _ = self.child.wait();
+            let mut child = lock(&self.child);
+            let _ = child.kill();
+            let _ = child.wait();
         }
     }
+}
+
+/// Ends a [`VideoEncoder`]'s ffmpeg: its video is not made, and `finish` says ffmpeg failed.
+#[derive(Clone)]
+pub struct EncoderStop(Arc<Mutex<Child>>);
+
+impl EncoderStop {
+    pub fn stop(&self) {
+        // An ffmpeg that has exited already is left as it is.
+        let _ = lock(&self.0).kill();
+    }
+}
+
+/// The child, whether or not a thread panicked holding it: it is only killed and waited on.
+fn lock(child: &Mutex<Child>) -> MutexGuard<'_, Child> {
+    child.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 #[cfg(test)]
