@@ -10,7 +10,8 @@ use pointfarm_daemon::testing::SmallDisk;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_tests::service::{
-    clients, connect, get_job, scratch_sample, submit, turntable_job, upload_file, watch_to_success,
+    clients, connect, get_job, list_leases, scratch_sample, submit, turntable_job, upload_file,
+    watch_to_success,
 };
 use pointfarm_tests::{free_address, wait_for, ServeProcess, WorkerProcess};
 use tonic::transport::Channel;
@@ -129,12 +130,7 @@ async fn a_full_disk_holds_frames_back_and_the_daemon_resumes_when_space_returns
     tokio::time::sleep(Duration::from_secs(4)).await;
     let held_back = get_job(&mut jobs, &job.id).await;
     assert_eq!(held_back.frames_done, 0, "{}", farm.server.log());
-    let leases = JobServiceClient::new(connect(&farm.address).await)
-        .list_leases(pb::ListLeasesRequest {})
-        .await
-        .expect("leases")
-        .into_inner()
-        .leases;
+    let leases = list_leases(&mut JobServiceClient::new(connect(&farm.address).await)).await;
     assert!(
         leases.is_empty(),
         "refused frames are given back: {leases:?}"

@@ -10,8 +10,8 @@ use pointfarm_daemon::access::Access;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_tests::service::{
-    clients, connect, scratch_sample, submit, turntable_job, upload_file, watch_to_end,
-    watch_to_success, TestDaemon,
+    clients, connect, list_leases, scratch_sample, submit, turntable_job, upload_file,
+    watch_to_end, watch_to_success, TestDaemon,
 };
 use pointfarm_tests::WorkerProcess;
 use pointfarm_tests::{process_is_gone, signal, wait_for, write_dense_laz, ServeProcess};
@@ -21,12 +21,7 @@ use tonic_health::pb::HealthCheckRequest;
 
 /// The leases the daemon at `address` holds now.
 async fn leases(address: &str) -> Vec<pb::Lease> {
-    JobServiceClient::new(connect(address).await)
-        .list_leases(pb::ListLeasesRequest {})
-        .await
-        .expect("list leases")
-        .into_inner()
-        .leases
+    list_leases(&mut JobServiceClient::new(connect(address).await)).await
 }
 
 /// Waits until the embedded worker holds a frame of `job_id`; returns its index.

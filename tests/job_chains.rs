@@ -4,13 +4,11 @@
 
 use pointfarm_daemon::access::Access;
 use pointfarm_proto::v1 as pb;
-use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_tests::service::{
-    self, cancel, clients, get_job, scratch_sample, submit, turntable_job, upload_sample,
-    watch_to_end, watch_to_success, TestDaemon,
+    cancel, clients, get_job, left_the_queue_at, queued_farm, submit, turntable_job, watch_to_end,
+    watch_to_success, DetachedFarm, TestDaemon,
 };
-use pointfarm_tests::{pointfarm, stdout, ServeProcess};
-use tonic::transport::Channel;
+use pointfarm_tests::{pointfarm, stdout};
 
 /// A turntable of `frames` frames that runs after `after`.
 fn job_after(
@@ -25,30 +23,10 @@ fn job_after(
     }
 }
 
-/// When the first change of job `id` after it was queued happened (leased, or ended): the
-/// update time of the first event of its watch that is not queued.
-async fn left_the_queue_at(jobs: &mut JobServiceClient<Channel>, id: &str) -> i64 {
-    let mut stream = jobs
-        .watch_job(pb::WatchJobRequest { id: id.into() })
-        .await
-        .expect("watch")
-        .into_inner();
-    while let Some(event) = stream.message().await.expect("event") {
-        if let Some(job) = event
-            .job
-            .filter(|job| job.state != pb::JobState::Queued as i32)
-        {
-            return job.updated_unix_ms;
-        }
-    }
-    panic!("job {id} never left the queue");
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_job_after_another_renders_only_once_it_has_succeeded() {
     let daemon = TestDaemon::start(|_| {}, Access::default()).await;
-    let dataset = upload_sample(&mut daemon.datasets().await, 20_000, 3).await;
-    let mut jobs = daemon.jobs().await;
+    let (daemon, dataset, mut jobs) = daemon.with_sample(20_000, 3).await;
     let first = submit(&mut jobs, turntable_job("first", &dataset.id, 3, 32, 24)).await;
     // Of a higher priority: without its chain it would be leased first.
     let second_request = pb::SubmitJobRequest {
@@ -76,9 +54,7 @@ async fn a_job_after_another_renders_only_once_it_has_succeeded() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_cancelled_job_fails_the_chain_after_it_and_unknown_jobs_are_refused() {
     // No worker: the jobs stay queued until the cancel.
-    let daemon = TestDaemon::start_without_worker(|_| {}, Access::default()).await;
-    let dataset = upload_sample(&mut daemon.datasets().await, 5_000, 4).await;
-    let mut jobs = daemon.jobs().await;
+    let (daemon, dataset, mut jobs) = queued_farm(|_| {}, 5_000, 4).await;
     let first = submit(&mut jobs, turntable_job("first", &dataset.id, 2, 32, 24)).await;
     let second = submit(&mut jobs, job_after("second", &dataset.id, 2, &[&first])).await;
     let third = submit(&mut jobs, job_after("third", &dataset.id, 2, &[&second])).await;
@@ -110,36 +86,30 @@ async fn a_cancelled_job_fails_the_chain_after_it_and_unknown_jobs_are_refused()
     daemon.stop().await;
 }
 
-/// `pointfarm render --server ADDR --detach MORE...`, which must succeed; its stdout.
-fn render_detached(address: &str, file: &str, out: &str, more: &[&str]) -> String {
-    let output = service::render_detached(address, file, out, more);
+/// A detached render to `farm` with `more` arguments, which must succeed; its stdout.
+fn render_detached(farm: &DetachedFarm, more: &[&str]) -> String {
+    let output = farm.render(more);
     assert!(output.status.success(), "{output:?}");
     stdout(&output)
 }
 
 #[test]
 fn detached_renders_chain_jobs_that_a_restart_keeps() {
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let (_samples, file) = scratch_sample("s.las", 5_000, 5);
-    let file = file.to_str().expect("utf-8");
-    let out = scratch.path().join("frames");
-    let out = out.to_str().expect("utf-8");
-    let data = scratch.path().join("data");
     // No worker: a detached render must return while its job is still queued.
-    let server = ServeProcess::start_with(&data, &["--no-embedded-worker"]);
-    let address = server.address.clone();
+    let mut farm = DetachedFarm::start(5_000, 5);
+    let address = farm.address.clone();
 
-    let first = render_detached(&address, file, out, &[]).trim().to_owned();
+    let first = render_detached(&farm, &[]).trim().to_owned();
     assert!(first.starts_with("job-"), "only the job's id: {first:?}");
-    let second = render_detached(&address, file, out, &["--after", &first])
+    let second = render_detached(&farm, &["--after", &first])
         .trim()
         .to_owned();
     assert!(second.starts_with("job-"), "only the job's id: {second:?}");
-    let with_json = render_detached(&address, file, out, &["--json", "--after", &second]);
+    let with_json = render_detached(&farm, &["--json", "--after", &second]);
     let third: serde_json::Value = serde_json::from_str(with_json.trim()).expect("one JSON line");
     assert_eq!(third["afterJobIds"], serde_json::json!([second]));
     let third = third["id"].as_str().expect("the job's id").to_owned();
-    let fetched = std::fs::read_dir(out).map_or(0, |frames| frames.count());
+    let fetched = std::fs::read_dir(&farm.out).map_or(0, |frames| frames.count());
     assert_eq!(fetched, 0, "a detached render fetches no frame");
     let shown = pointfarm(&["jobs", "show", &second, "--server", &address]);
     let shown = stdout(&shown);
@@ -150,8 +120,7 @@ fn detached_renders_chain_jobs_that_a_restart_keeps() {
     );
 
     // Killed and started again, now with a worker: the chain holds and runs in order.
-    drop(server);
-    let server = ServeProcess::start_at(&address, &data);
+    farm.restart(&[]);
     let runtime = tokio::runtime::Runtime::new().expect("runtime");
     runtime.block_on(async {
         let (_, mut jobs) = clients(&address).await;
@@ -159,7 +128,7 @@ fn detached_renders_chain_jobs_that_a_restart_keeps() {
         assert_eq!(kept.after_job_ids, vec![second.clone()]);
         let mut ends = Vec::new();
         for id in [&first, &second, &third] {
-            let (done, _) = watch_to_success(&mut jobs, id, || server.log()).await;
+            let (done, _) = watch_to_success(&mut jobs, id, || farm.server.log()).await;
             ends.push(done.updated_unix_ms);
         }
         assert!(

@@ -9,14 +9,13 @@ use std::process::Output;
 use std::time::{Duration, Instant};
 
 use pointfarm_daemon::access::Access;
+use pointfarm_daemon::service::DaemonConfig;
 use pointfarm_proto::v1 as pb;
-use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_tests::service::{
-    clients, get_job, render_detached, scratch_sample, submit, turntable_job, upload_file,
-    watch_to_end, watch_to_success, TestDaemon,
+    clients, get_job, left_the_queue_at, list_leases, queued_farm, submit, turntable_job,
+    watch_to_end, watch_to_success, DetachedFarm, TestDaemon,
 };
-use pointfarm_tests::{assert_fails_saying, pointfarm, stdout, ServeProcess, WorkerProcess};
-use tonic::transport::Channel;
+use pointfarm_tests::{assert_fails_saying, pointfarm, stdout, WorkerProcess};
 
 /// `pointfarm jobs ARGS --server SERVER`.
 fn jobs_command(server: &str, args: &[&str]) -> Output {
@@ -33,26 +32,14 @@ fn jobs_ok(server: &str, args: &[&str]) -> String {
     stdout(&output)
 }
 
+/// [`jobs_command`], which must fail saying `needle`.
+fn jobs_refused(server: &str, args: &[&str], needle: &str) {
+    assert_fails_saying(&jobs_command(server, args), needle);
+}
+
 /// A real worker process for `daemon`, its cache in `scratch`.
 fn start_worker(daemon: &TestDaemon, scratch: &Path, name: &str) -> WorkerProcess {
     WorkerProcess::start(&daemon.url(), &scratch.join(name), name)
-}
-
-/// When job `id` first left the queue (was leased, or ended): the update time of the first
-/// event of its watch in another state than queued or paused.
-async fn left_the_queue_at(jobs: &mut JobServiceClient<Channel>, id: &str) -> i64 {
-    let mut stream = jobs
-        .watch_job(pb::WatchJobRequest { id: id.into() })
-        .await
-        .expect("watch")
-        .into_inner();
-    while let Some(event) = stream.message().await.expect("event") {
-        let waiting = [pb::JobState::Queued as i32, pb::JobState::Paused as i32];
-        if let Some(job) = event.job.filter(|job| !waiting.contains(&job.state)) {
-            return job.updated_unix_ms;
-        }
-    }
-    panic!("job {id} never left the queue");
 }
 
 fn code_of<T: std::fmt::Debug>(result: Result<T, tonic::Status>) -> (tonic::Code, String) {
@@ -62,17 +49,10 @@ fn code_of<T: std::fmt::Debug>(result: Result<T, tonic::Status>) -> (tonic::Code
 
 #[test]
 fn names_labels_priorities_and_pauses_are_found_checked_and_kept_across_a_restart() {
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let (_samples, file) = scratch_sample("s.las", 5_000, 11);
-    let file = file.to_str().expect("utf-8");
-    let data = scratch.path().join("data");
-    let out = scratch.path().join("frames");
-    let out = out.to_str().expect("utf-8");
     // No worker: the jobs stay queued.
-    let server = ServeProcess::start_with(&data, &["--no-embedded-worker"]);
-    let address = server.address.clone();
-    let submit_detached = |extra: &[&str]| render_detached(&address, file, out, extra);
-    let hall = submit_detached(&[
+    let mut farm = DetachedFarm::start(5_000, 11);
+    let address = farm.address.clone();
+    let hall = farm.render(&[
         "--name",
         "hall, east wing",
         "--label",
@@ -84,17 +64,14 @@ fn names_labels_priorities_and_pauses_are_found_checked_and_kept_across_a_restar
     ]);
     assert!(hall.status.success(), "{hall:?}");
     let hall = stdout(&hall).trim().to_owned();
-    let other = submit_detached(&["--label", "shot=020"]);
+    let other = farm.render(&["--label", "shot=020"]);
     assert!(other.status.success(), "{other:?}");
     let other = stdout(&other).trim().to_owned();
     assert_fails_saying(
-        &submit_detached(&["--label", "Shot=1"]),
+        &farm.render(&["--label", "Shot=1"]),
         "is not 1 to 63 characters of a-z",
     );
-    assert_fails_saying(
-        &submit_detached(&["--priority", "101"]),
-        "outside -100..=100",
-    );
+    assert_fails_saying(&farm.render(&["--priority", "101"]), "outside -100..=100");
 
     let listed = jobs_ok(&address, &["ls", "--label", "shot=010"]);
     assert!(
@@ -143,8 +120,7 @@ fn names_labels_priorities_and_pauses_are_found_checked_and_kept_across_a_restar
     });
 
     // Killed and started again: the name, labels, priority and pause are all kept.
-    drop(server);
-    let server = ServeProcess::start_with_args(&address, &data, &["--no-embedded-worker"]);
+    farm.restart(&["--no-embedded-worker"]);
     runtime.block_on(async {
         let (_, mut jobs) = clients(&address).await;
         let kept = get_job(&mut jobs, &hall).await;
@@ -152,7 +128,12 @@ fn names_labels_priorities_and_pauses_are_found_checked_and_kept_across_a_restar
         assert_eq!(kept.labels.get("shot").map(String::as_str), Some("010"));
         assert_eq!(kept.labels.get("team").map(String::as_str), Some("lidar"));
         assert_eq!(kept.priority, -5);
-        assert_eq!(kept.state, pb::JobState::Paused as i32, "{}", server.log());
+        assert_eq!(
+            kept.state,
+            pb::JobState::Paused as i32,
+            "{}",
+            farm.server.log()
+        );
         assert!(
             kept.waiting_reason.starts_with("paused"),
             "{}",
@@ -166,13 +147,9 @@ fn names_labels_priorities_and_pauses_are_found_checked_and_kept_across_a_restar
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_failed_job_is_retried_with_fresh_attempts_and_renders() {
-    let daemon =
-        TestDaemon::start_without_worker(|config| config.max_frame_attempts = 1, Access::default())
-            .await;
+    let (daemon, dataset, mut jobs) =
+        queued_farm(|config| config.max_frame_attempts = 1, 5_000, 12).await;
     let scratch = tempfile::tempdir().expect("tempdir");
-    let (_samples, file) = scratch_sample("s.las", 5_000, 12);
-    let dataset = upload_file(&mut daemon.datasets().await, "s.las", &file).await;
-    let mut jobs = daemon.jobs().await;
     let job = submit(&mut jobs, turntable_job("retried", &dataset.id, 2, 32, 24)).await;
     let url = daemon.url();
     let (code, message) = code_of(
@@ -223,8 +200,9 @@ async fn a_failed_job_is_retried_with_fresh_attempts_and_renders() {
     let worker = start_worker(&daemon, scratch.path(), "steady");
     let (done, frames) = watch_to_success(&mut jobs, &job.id, || worker.log()).await;
     assert_eq!((done.frames_done, frames.len()), (2, 2));
-    assert_fails_saying(
-        &jobs_command(&url, &["retry", &job.id]),
+    jobs_refused(
+        &url,
+        &["retry", &job.id],
         "is succeeded; only a failed job can be retried",
     );
 
@@ -250,8 +228,9 @@ async fn a_failed_job_is_retried_with_fresh_attempts_and_renders() {
         .expect("cancel again")
         .into_inner();
     assert_eq!(again, cancelled);
-    assert_fails_saying(
-        &jobs_command(&url, &["retry", &idle.id]),
+    jobs_refused(
+        &url,
+        &["retry", &idle.id],
         "was cancelled; only a failed job can be retried",
     );
     daemon.stop().await;
@@ -259,11 +238,8 @@ async fn a_failed_job_is_retried_with_fresh_attempts_and_renders() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_paused_job_leases_nothing_until_it_is_resumed() {
-    let daemon = TestDaemon::start_without_worker(|_| {}, Access::default()).await;
+    let (daemon, dataset, mut jobs) = queued_farm(|_| {}, 5_000, 13).await;
     let scratch = tempfile::tempdir().expect("tempdir");
-    let (_samples, file) = scratch_sample("s.las", 5_000, 13);
-    let dataset = upload_file(&mut daemon.datasets().await, "s.las", &file).await;
-    let mut jobs = daemon.jobs().await;
     let job = submit(&mut jobs, turntable_job("paused", &dataset.id, 3, 32, 24)).await;
     let url = daemon.url();
     assert_eq!(
@@ -302,19 +278,15 @@ async fn a_paused_job_leases_nothing_until_it_is_resumed() {
         paused.waiting_reason,
         "paused: no frame of it is leased until it is resumed"
     );
-    let leases = jobs
-        .list_leases(pb::ListLeasesRequest {})
-        .await
-        .expect("leases")
-        .into_inner()
-        .leases;
+    let leases = list_leases(&mut jobs).await;
     assert!(leases.is_empty(), "{leases:?}");
 
     assert!(jobs_ok(&url, &["resume", &job.id]).contains("resumed"));
     let (done, frames) = watch_to_success(&mut jobs, &job.id, || worker.log()).await;
     assert_eq!((done.frames_done, frames.len()), (3, 3));
-    assert_fails_saying(
-        &jobs_command(&url, &["pause", &job.id]),
+    jobs_refused(
+        &url,
+        &["pause", &job.id],
         "already succeeded; only a queued or running job can be paused",
     );
     daemon.stop().await;
@@ -322,19 +294,13 @@ async fn a_paused_job_leases_nothing_until_it_is_resumed() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_frames_of_the_higher_priority_are_leased_first() {
-    let daemon = TestDaemon::start_without_worker(|_| {}, Access::default()).await;
+    let (daemon, dataset, mut jobs) = queued_farm(|_| {}, 5_000, 14).await;
     let scratch = tempfile::tempdir().expect("tempdir");
-    let (_samples, file) = scratch_sample("s.las", 5_000, 14);
-    let dataset = upload_file(&mut daemon.datasets().await, "s.las", &file).await;
-    let mut jobs = daemon.jobs().await;
     let older = submit(&mut jobs, turntable_job("older", &dataset.id, 2, 32, 24)).await;
     let younger = submit(&mut jobs, turntable_job("younger", &dataset.id, 2, 32, 24)).await;
     let url = daemon.url();
     assert!(jobs_ok(&url, &["priority", &younger.id, "50"]).contains("priority 50"));
-    assert_fails_saying(
-        &jobs_command(&url, &["priority", &older.id, "-101"]),
-        "outside -100..=100",
-    );
+    jobs_refused(&url, &["priority", &older.id, "-101"], "outside -100..=100");
 
     let (mut watcher, id) = (jobs.clone(), older.id.clone());
     let older_started = tokio::spawn(async move { left_the_queue_at(&mut watcher, &id).await });
@@ -349,8 +315,9 @@ async fn the_frames_of_the_higher_priority_are_leased_first() {
         younger_done.updated_unix_ms
     );
     watch_to_success(&mut jobs, &older.id, || worker.log()).await;
-    assert_fails_saying(
-        &jobs_command(&url, &["priority", &older.id, "3"]),
+    jobs_refused(
+        &url,
+        &["priority", &older.id, "3"],
         "already succeeded; its priority no longer matters",
     );
     daemon.stop().await;
@@ -359,9 +326,7 @@ async fn the_frames_of_the_higher_priority_are_leased_first() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn deleted_jobs_go_with_their_frames_and_fail_the_jobs_after_them() {
     let daemon = TestDaemon::start(|_| {}, Access::default()).await;
-    let (_samples, file) = scratch_sample("s.las", 5_000, 15);
-    let dataset = upload_file(&mut daemon.datasets().await, "s.las", &file).await;
-    let mut jobs = daemon.jobs().await;
+    let (daemon, dataset, mut jobs) = daemon.with_sample(5_000, 15).await;
     let done = submit(&mut jobs, turntable_job("done", &dataset.id, 2, 32, 24)).await;
     watch_to_success(&mut jobs, &done.id, String::new).await;
     let frames = daemon.data_dir.path().join("jobs").join(&done.id);
@@ -395,8 +360,9 @@ async fn deleted_jobs_go_with_their_frames_and_fail_the_jobs_after_them() {
         format!("job {} it runs after was deleted", done.id)
     );
 
-    assert_fails_saying(
-        &jobs_command(&url, &["rm", &held.id]),
+    jobs_refused(
+        &url,
+        &["rm", &held.id],
         "is paused; cancel it first, or delete it with force",
     );
     assert!(jobs_ok(&url, &["rm", &held.id, "--force"]).contains("deleted (cancelled)"));
@@ -418,17 +384,12 @@ async fn deleted_jobs_go_with_their_frames_and_fail_the_jobs_after_them() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_retention_sweep_removes_jobs_that_ended_long_enough_ago() {
-    let daemon = TestDaemon::start(
-        |config| {
-            config.job_retention = Some(Duration::from_secs(1));
-            config.retention_sweep_period = Duration::from_millis(100);
-        },
-        Access::default(),
-    )
-    .await;
-    let (_samples, file) = scratch_sample("s.las", 5_000, 16);
-    let dataset = upload_file(&mut daemon.datasets().await, "s.las", &file).await;
-    let mut jobs = daemon.jobs().await;
+    let retention = |config: &mut DaemonConfig| {
+        config.job_retention = Some(Duration::from_secs(1));
+        config.retention_sweep_period = Duration::from_millis(100);
+    };
+    let daemon = TestDaemon::start(retention, Access::default()).await;
+    let (daemon, dataset, mut jobs) = daemon.with_sample(5_000, 16).await;
     let job = submit(
         &mut jobs,
         turntable_job("kept-a-second", &dataset.id, 2, 32, 24),

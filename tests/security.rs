@@ -14,7 +14,9 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_tests::pki::TestPki;
-use pointfarm_tests::service::{scratch_sample, submit, turntable_job, upload_file, TestDaemon};
+use pointfarm_tests::service::{
+    list_leases, scratch_sample, submit, turntable_job, upload_file, TestDaemon,
+};
 use pointfarm_tests::{
     own_stderr_lines, pointfarm, pointfarm_bin, wait_for, ServeProcess, WorkerProcess,
 };
@@ -470,12 +472,7 @@ async fn a_lease_is_usable_only_by_its_holder() {
             Instant::now() < deadline,
             "no embedded lease could be tried"
         );
-        let leases = lister
-            .list_leases(pb::ListLeasesRequest {})
-            .await
-            .expect("list leases")
-            .into_inner()
-            .leases;
+        let leases = list_leases(&mut lister).await;
         let Some(lease) = leases.into_iter().find(|l| l.embedded) else {
             tokio::time::sleep(Duration::from_millis(5)).await;
             continue;

@@ -11,8 +11,8 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_tests::service::{
-    assert_equal_to_direct_renders, clients, fetch_images, get_job, lease_at_once, scan,
-    scratch_sample, submit, turntable_job, upload, watch_to_success, TestDaemon,
+    assert_equal_to_direct_renders, clients, fetch_images, get_job, lease_at_once, list_leases,
+    scan, scratch_sample, submit, turntable_job, upload, watch_to_success, TestDaemon,
 };
 use pointfarm_tests::WorkerProcess;
 use tonic::metadata::{Ascii, MetadataValue};
@@ -180,15 +180,6 @@ async fn a_worker_killed_mid_frame_loses_nothing() {
     assert_equal_to_direct_renders(&file, 4, (160, 120), &fetched);
     assert!(list_leases(&mut lister).await.is_empty());
     daemon.stop().await;
-}
-
-/// The leases held now, as clients see them.
-async fn list_leases(jobs: &mut JobServiceClient<Channel>) -> Vec<pb::Lease> {
-    jobs.list_leases(pb::ListLeasesRequest {})
-        .await
-        .expect("list leases")
-        .into_inner()
-        .leases
 }
 
 async fn lease(workers: &mut Workers) -> Option<pb::FrameTask> {

@@ -22,6 +22,8 @@ use pointfarm_render::request::{
 use sha2::{Digest, Sha256};
 use tonic::transport::Channel;
 
+use crate::ServeProcess;
+
 pub use pointfarm_render::testing::gpu;
 
 /// A running daemon; shut down and its data deleted on drop.
@@ -101,6 +103,18 @@ impl TestDaemon {
 
     pub async fn datasets(&self) -> DatasetServiceClient<Channel> {
         DatasetServiceClient::new(self.channel().await)
+    }
+
+    /// This daemon, the generated sample scene (`points` of them, from `seed`) uploaded to it
+    /// (as [`upload_sample`] does), and a client of its jobs.
+    pub async fn with_sample(
+        self,
+        points: usize,
+        seed: u64,
+    ) -> (Self, pb::Dataset, JobServiceClient<Channel>) {
+        let dataset = upload_sample(&mut self.datasets().await, points, seed).await;
+        let jobs = self.jobs().await;
+        (self, dataset, jobs)
     }
 
     /// Stops the server and waits until the worker has finished its frame.
@@ -238,6 +252,32 @@ pub async fn get_job(jobs: &mut JobServiceClient<Channel>, id: &str) -> pb::Job 
         .await
         .expect("get")
         .into_inner()
+}
+
+/// The leases the daemon of `jobs` holds now.
+pub async fn list_leases(jobs: &mut JobServiceClient<Channel>) -> Vec<pb::Lease> {
+    jobs.list_leases(pb::ListLeasesRequest {})
+        .await
+        .expect("list leases")
+        .into_inner()
+        .leases
+}
+
+/// When job `id` first left the queue (was leased, or ended): the update time of the first
+/// event of its watch in another state than queued or paused.
+pub async fn left_the_queue_at(jobs: &mut JobServiceClient<Channel>, id: &str) -> i64 {
+    let mut stream = jobs
+        .watch_job(pb::WatchJobRequest { id: id.into() })
+        .await
+        .expect("watch")
+        .into_inner();
+    while let Some(event) = stream.message().await.expect("event") {
+        let waiting = [pb::JobState::Queued as i32, pb::JobState::Paused as i32];
+        if let Some(job) = event.job.filter(|job| !waiting.contains(&job.state)) {
+            return job.updated_unix_ms;
+        }
+    }
+    panic!("job {id} never left the queue");
 }
 
 /// Watches a job to its end, asserting that it succeeded; a failure shows the job's error and
@@ -465,6 +505,69 @@ pub async fn daemon_with_sample(points: usize, seed: u64) -> (TestDaemon, pb::Da
     let daemon = TestDaemon::start(|_| {}, Access::default()).await;
     let dataset = upload_file(&mut daemon.datasets().await, "sample.las", &file).await;
     (daemon, dataset)
+}
+
+/// A daemon started with `configure` and without a worker, so that its jobs stay queued until
+/// a test starts one, with the generated sample scene uploaded ([`TestDaemon::with_sample`]).
+pub async fn queued_farm(
+    configure: impl FnOnce(&mut DaemonConfig),
+    points: usize,
+    seed: u64,
+) -> (TestDaemon, pb::Dataset, JobServiceClient<Channel>) {
+    let daemon = TestDaemon::start_without_worker(configure, Access::default()).await;
+    daemon.with_sample(points, seed).await
+}
+
+/// What detached renders (`pointfarm render --server --detach`) are submitted to: a
+/// `pointfarm serve` process without a worker, so that their jobs stay queued, and the
+/// generated sample scene to render, in one scratch folder with the daemon's data and the
+/// frames folder the renders name.
+pub struct DetachedFarm {
+    pub server: ServeProcess,
+    pub address: String,
+    /// The sample scene's LAS file.
+    pub file: String,
+    /// The frames folder each render names.
+    pub out: String,
+    /// The daemon's data folder.
+    pub data: PathBuf,
+    // Declared last: dropped once the daemon is killed.
+    _scratch: tempfile::TempDir,
+}
+
+impl DetachedFarm {
+    /// The farm, its sample scene `points` points generated from `seed`.
+    pub fn start(points: usize, seed: u64) -> Self {
+        let scratch = tempfile::tempdir().expect("tempdir");
+        let file = scratch.path().join("s.las");
+        write_sample(&file, points, seed);
+        let data = scratch.path().join("data");
+        let server = ServeProcess::start_with(&data, &["--no-embedded-worker"]);
+        Self {
+            address: server.address.clone(),
+            server,
+            file: file.to_str().expect("utf-8").to_owned(),
+            out: scratch
+                .path()
+                .join("frames")
+                .to_str()
+                .expect("utf-8")
+                .to_owned(),
+            data,
+            _scratch: scratch,
+        }
+    }
+
+    /// [`render_detached`] of the sample scene to this farm, with `more` arguments.
+    pub fn render(&self, more: &[&str]) -> std::process::Output {
+        render_detached(&self.address, &self.file, &self.out, more)
+    }
+
+    /// Kills the daemon and starts it again on the same address and data, with `args`.
+    pub fn restart(&mut self, args: &[&str]) {
+        self.server.kill();
+        self.server = ServeProcess::start_with_args(&self.address, &self.data, args);
+    }
 }
 
 /// autzen_trim.laz when the real scans are present, else a generated sample in `dir`.
