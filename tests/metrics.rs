@@ -52,6 +52,30 @@ fn serve_with_metrics_from_env(dir: &Path, metrics: &str) -> (Killed, String, st
     (server, address, log)
 }
 
+/// `pointfarm serve` without a worker, its data in `scratch`, serving its metrics; once it
+/// listens: the process and its metrics address.
+fn serve_metered(scratch: &Path) -> (ServeProcess, String) {
+    let metrics = free_address();
+    let server = ServeProcess::start_with(
+        &scratch.join("data"),
+        &["--no-embedded-worker", "--metrics-listen", &metrics],
+    );
+    (server, metrics)
+}
+
+/// A `pointfarm worker` process named `name` for `server`, its cache in `scratch`, serving its
+/// metrics: the process and its metrics address.
+fn worker_metered(server: &ServeProcess, scratch: &Path, name: &str) -> (WorkerProcess, String) {
+    let metrics = free_address();
+    let worker = WorkerProcess::start_with(
+        &format!("http://{}", server.address),
+        &scratch.join("cache"),
+        name,
+        &["--metrics-listen", &metrics],
+    );
+    (worker, metrics)
+}
+
 /// Prometheus scrapes a daemon through a job rendered by its embedded worker; its API then
 /// counts the job's frames.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -97,22 +121,12 @@ async fn prometheus_scrapes_the_frames_a_job_completed() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_daemon_and_a_worker_serve_what_they_counted() {
     let scratch = tempfile::tempdir().expect("tempdir");
-    let daemon_metrics = free_address();
-    let server = ServeProcess::start_with(
-        &scratch.path().join("data"),
-        &["--no-embedded-worker", "--metrics-listen", &daemon_metrics],
-    );
+    let (server, daemon_metrics) = serve_metered(scratch.path());
     let before = scrape(&daemon_metrics);
     assert_eq!(value(&before, "pointfarm_frames_completed_total"), 0.0);
     assert_eq!(value(&before, "pointfarm_workers_connected"), 0.0);
 
-    let worker_metrics = free_address();
-    let worker = WorkerProcess::start_with(
-        &format!("http://{}", server.address),
-        &scratch.path().join("cache"),
-        "scraped",
-        &["--metrics-listen", &worker_metrics],
-    );
+    let (worker, worker_metrics) = worker_metered(&server, scratch.path(), "scraped");
     let (_sample_dir, file) = scratch_sample("s.las", 20_000, 5);
     let (mut datasets, mut jobs) = clients(&server.address).await;
     let dataset = upload_file(&mut datasets, "s.las", &file).await;
@@ -251,18 +265,8 @@ async fn every_grafana_panel_shows_a_farm_that_rendered_a_job() {
         return;
     }
     let scratch = tempfile::tempdir().expect("tempdir");
-    let daemon_metrics = free_address();
-    let server = ServeProcess::start_with(
-        &scratch.path().join("data"),
-        &["--no-embedded-worker", "--metrics-listen", &daemon_metrics],
-    );
-    let worker_metrics = free_address();
-    let worker = WorkerProcess::start_with(
-        &format!("http://{}", server.address),
-        &scratch.path().join("cache"),
-        "charted",
-        &["--metrics-listen", &worker_metrics],
-    );
+    let (server, daemon_metrics) = serve_metered(scratch.path());
+    let (worker, worker_metrics) = worker_metered(&server, scratch.path(), "charted");
     let prometheus = Prometheus::start(scratch.path(), &[&daemon_metrics, &worker_metrics]);
     let (mut jobs, dataset) = jobs_on_a_sample(&server.address, 20_000, 6).await;
     let job = submit(&mut jobs, turntable_job("charted", &dataset.id, 2, 64, 48)).await;
