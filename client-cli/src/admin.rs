@@ -165,15 +165,14 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
                 }
             }
             DatasetCommand::Export { id, output } => {
-                output.check()?;
-                let summary = client.export_dataset(&id, &output.copc).await?;
+                let target = output.target()?;
+                let summary = client.export_dataset(&id, &target).await?;
+                let file = target.name();
                 if server.json {
-                    let file = output.copc.display().to_string();
                     outln!("{}", json_line(&ExportedDataset { file, summary: &summary })?);
                 } else {
                     outln!(
-                        "{}: {} points in {} nodes, {:.1} MB, COPC 1.0 (point format {}, scale {}), in {:.1} s on the server",
-                        output.copc.display(),
+                        "{file}: {} points in {} nodes, {:.1} MB, COPC 1.0 (point format {}, scale {}), in {:.1} s on the server",
                         summary.points,
                         summary.nodes,
                         summary.size_bytes as f64 / 1e6,

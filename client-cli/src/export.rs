@@ -1,9 +1,10 @@
 //! `pointfarm export FILES... --copc OUT`: a dataset written as one COPC 1.0 file, from its
 //! level-of-detail store (built once and kept in `--cache-dir`, as `render` keeps it), so
 //! PDAL, QGIS, Potree and laspy open what pointfarm built. `pointfarm dataset export` asks a
-//! server for the same file made from the store it keeps.
+//! server for the same file made from the store it keeps. Either writes to a file here or
+//! uploads to an `s3://` URL.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
@@ -11,12 +12,14 @@ use clap::Args;
 use pointfarm_render::cut::CutOptions;
 use pointfarm_render::ingest::dataset_files;
 use pointfarm_render::lod::copc_export::{export_copc, CopcExportReport, ExportSettings};
+use pointfarm_render::remote::{ObjectUrl, RemoteClient, UrlKind};
 use serde::Serialize;
 
 use pointfarm_render::source::{LocalStore, SourceEvent};
 
 use crate::paths::store_cache;
 use crate::source_words::SourceWords;
+use crate::url_input::{self, Inputs};
 
 #[derive(Args)]
 pub struct ExportArgs {
@@ -43,19 +46,49 @@ pub struct ExportArgs {
 /// Where an export goes; shared by the local and the server command.
 #[derive(Args, Clone)]
 pub struct OutputArgs {
-    /// The COPC file to write (by convention NAME.copc.laz); its folder must exist.
-    #[arg(long, value_name = "FILE", required = true)]
+    /// The COPC file to write (by convention NAME.copc.laz); its folder must exist. An
+    /// `s3://bucket/key` URL is written there by a multipart upload (credentials from the
+    /// environment, as for reads); the object appears only once the whole file is sent.
+    #[arg(long, value_name = "FILE|URL", required = true)]
     pub copc: PathBuf,
-    /// Replace the file if it exists.
+    /// Replace the file or object if it exists.
     #[arg(long)]
     pub force: bool,
 }
 
+/// Where an export is written: a file here, or an object uploaded by URL.
+pub enum ExportTarget {
+    File(PathBuf),
+    Url {
+        client: RemoteClient,
+        url: ObjectUrl,
+    },
+}
+
+impl ExportTarget {
+    /// How reports name it.
+    pub fn name(&self) -> String {
+        match self {
+            ExportTarget::File(path) => path.display().to_string(),
+            ExportTarget::Url { url, .. } => url.to_string(),
+        }
+    }
+}
+
 impl OutputArgs {
-    /// Refuses an existing file without --force and a folder that does not exist, before any
-    /// work starts.
-    pub fn check(&self) -> Result<()> {
-        let out = &self.copc;
+    /// Where to write, checked before any work starts: an existing file or object is refused
+    /// without --force (an object is looked for once, here; one written by someone else
+    /// meanwhile is replaced), and so is a folder that does not exist.
+    pub fn target(&self) -> Result<ExportTarget> {
+        // A file:// URL is its path.
+        let out = if url_input::looks_like_url(&self.copc) {
+            match url_input::parse(&self.copc)? {
+                Inputs::Url(url) => return self.url_target(url),
+                Inputs::Paths(mut paths) => paths.remove(0),
+            }
+        } else {
+            self.copc.clone()
+        };
         if out.is_dir() {
             bail!("{} is a folder: name the COPC file to write", out.display());
         }
@@ -70,7 +103,22 @@ impl OutputArgs {
                 parent.display()
             );
         }
-        Ok(())
+        Ok(ExportTarget::File(out))
+    }
+
+    fn url_target(&self, url: ObjectUrl) -> Result<ExportTarget> {
+        if !matches!(url.kind(), UrlKind::S3 { .. }) {
+            bail!("{url}: exports are uploaded to object storage (s3://); a web server's URL is read-only here");
+        }
+        if url.is_prefix() {
+            bail!("{url} names a prefix: name the COPC object to write");
+        }
+        let client = url_input::client()?;
+        client.check_bucket(&url)?;
+        if !self.force && client.exists(&url)? {
+            bail!("{url} exists: pass --force to replace it");
+        }
+        Ok(ExportTarget::Url { client, url })
     }
 }
 
@@ -91,9 +139,9 @@ pub struct ExportJson {
 }
 
 impl ExportJson {
-    fn new(file: &Path, report: &CopcExportReport, seconds: f64) -> Self {
+    fn new(file: String, report: &CopcExportReport, seconds: f64) -> Self {
         Self {
-            file: file.display().to_string(),
+            file,
             points: report.points,
             nodes: report.nodes,
             bytes: report.bytes,
@@ -108,7 +156,7 @@ impl ExportJson {
 }
 
 pub fn run(args: ExportArgs) -> Result<()> {
-    args.output.check()?;
+    let target = args.output.target()?;
     let files = dataset_files(&args.inputs)?;
     let stores = store_cache(args.cache_dir.as_ref(), args.cache_size);
     let budget = args
@@ -121,34 +169,52 @@ pub fn run(args: ExportArgs) -> Result<()> {
         LocalStore::open_or_build(&files, &folder, budget, stores.disk_budget, &events)?.stored;
     let hierarchy = stored.dataset.hierarchy();
     let settings = ExportSettings::of_files(&files, &hierarchy.cube)?;
-    let out = &args.output.copc;
+    // COPC is written with seeks (its header and hierarchy last), so an upload is made from a
+    // file written here first, then sent a part at a time.
+    let out = match &target {
+        ExportTarget::File(path) => path.clone(),
+        ExportTarget::Url { .. } => std::env::temp_dir().join(format!(
+            "pointfarm-export-{}-{}.copc.laz",
+            std::process::id(),
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .unwrap_or_default()
+                .as_nanos()
+        )),
+    };
     let bar = crate::progress::counter(hierarchy.point_count, "points", "exporting".into());
     let started = Instant::now();
     let report = export_copc(
         hierarchy,
         &**stored.dataset.records(),
         &settings,
-        out,
+        &out,
         &mut |points| bar.set_position(points),
     )
     .with_context(|| format!("exporting to {}", out.display()));
     bar.finish_and_clear();
     let report = report?;
+    if let ExportTarget::Url { client, url } = &target {
+        let spinner = crate::progress::spinner(format!("uploading to {url}"));
+        let uploaded = client.upload_file(&out, url);
+        spinner.finish_and_clear();
+        let _ = std::fs::remove_file(&out);
+        uploaded?;
+    }
     let seconds = started.elapsed().as_secs_f64();
-    print_report(out, &report, seconds, args.json)
+    print_report(&target.name(), &report, seconds, args.json)
 }
 
 /// The line, or the JSON object, that says what an export wrote.
-pub fn print_report(out: &Path, report: &CopcExportReport, seconds: f64, json: bool) -> Result<()> {
+pub fn print_report(out: &str, report: &CopcExportReport, seconds: f64, json: bool) -> Result<()> {
     if json {
         outln!(
             "{}",
-            serde_json::to_string(&ExportJson::new(out, report, seconds))?
+            serde_json::to_string(&ExportJson::new(out.to_owned(), report, seconds))?
         );
     } else {
         outln!(
-            "{}: {} points in {} nodes, {:.1} MB, COPC 1.0 (point format {}, scale {}), in {seconds:.1} s",
-            out.display(),
+            "{out}: {} points in {} nodes, {:.1} MB, COPC 1.0 (point format {}, scale {}), in {seconds:.1} s",
             report.points,
             report.nodes,
             report.bytes as f64 / 1e6,

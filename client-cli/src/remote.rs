@@ -19,6 +19,7 @@ use tonic::transport::Channel;
 use tonic::{Code, Status};
 
 use crate::credentials::ClientCredentials;
+use crate::export::ExportTarget;
 
 type Authed = InterceptedService<Channel, BearerToken>;
 
@@ -225,12 +226,16 @@ impl Client {
         Ok(written)
     }
 
-    /// Dataset `id` exported by the server as a COPC file, written to `out` through a
+    /// Dataset `id` exported by the server as a COPC file, written to a file through a
     /// temporary file beside it, renamed into place once every byte the summary announced
-    /// has arrived; the summary.
-    pub async fn export_dataset(&mut self, id: &str, out: &Path) -> Result<pb::ExportSummary> {
+    /// has arrived, or streamed into a multipart upload that completes only then (and is
+    /// aborted otherwise); the summary.
+    pub async fn export_dataset(
+        &mut self,
+        id: &str,
+        target: &ExportTarget,
+    ) -> Result<pb::ExportSummary> {
         use pb::export_chunk::Part;
-        use tokio::io::AsyncWriteExt;
         let spinner = crate::progress::spinner(format!("exporting {id} on the server"));
         let stream = self
             .datasets
@@ -248,45 +253,84 @@ impl Client {
         else {
             bail!("the server's export did not start with its summary");
         };
-        let mut name = out.file_name().unwrap_or_default().to_os_string();
-        name.push(".part");
-        let partial = out.with_file_name(name);
-        let received = async {
-            let mut file = tokio::fs::File::create(&partial)
-                .await
-                .with_context(|| format!("writing {}", partial.display()))?;
-            let bar = crate::progress::counter(summary.size_bytes, "bytes", "downloading".into());
-            let mut bytes = 0u64;
-            while let Some(message) = stream.message().await.map_err(status_error)? {
-                let Some(Part::Data(data)) = message.part else {
-                    bail!("the server sent a second summary");
-                };
-                file.write_all(&data)
-                    .await
-                    .with_context(|| format!("writing {}", partial.display()))?;
-                bytes += data.len() as u64;
-                bar.set_position(bytes);
+        match target {
+            ExportTarget::File(out) => receive_file(&mut stream, &summary, out).await?,
+            ExportTarget::Url { client, url } => {
+                // Each part is sent as it fills; the wait blocks this thread, not the runtime.
+                let mut upload = tokio::task::block_in_place(|| client.start_upload(url))
+                    .map_err(anyhow::Error::from)?;
+                receive(&mut stream, &summary, |data| {
+                    tokio::task::block_in_place(|| upload.write(data)).map_err(anyhow::Error::from)
+                })
+                .await?;
+                // An upload dropped on an error above is aborted: no object appears.
+                tokio::task::block_in_place(|| upload.finish())?;
             }
-            bar.finish_and_clear();
-            if bytes != summary.size_bytes {
-                bail!(
-                    "the server sent {bytes} bytes of a {}-byte file",
-                    summary.size_bytes
-                );
-            }
-            file.sync_all()
-                .await
-                .with_context(|| format!("writing {}", partial.display()))?;
-            tokio::fs::rename(&partial, out)
-                .await
-                .with_context(|| format!("writing {}", out.display()))
         }
-        .await;
-        if received.is_err() {
-            let _ = tokio::fs::remove_file(&partial).await;
-        }
-        received.map(|()| summary)
+        Ok(summary)
     }
+}
+
+/// The export's data after its summary, each chunk given to `sink`; refused unless the bytes
+/// are as many as the summary announced.
+async fn receive(
+    stream: &mut tonic::Streaming<pb::ExportChunk>,
+    summary: &pb::ExportSummary,
+    mut sink: impl FnMut(&[u8]) -> Result<()>,
+) -> Result<()> {
+    use pb::export_chunk::Part;
+    let bar = crate::progress::counter(summary.size_bytes, "bytes", "downloading".into());
+    let mut bytes = 0u64;
+    while let Some(message) = stream.message().await.map_err(status_error)? {
+        let Some(Part::Data(data)) = message.part else {
+            bail!("the server sent a second summary");
+        };
+        sink(&data)?;
+        bytes += data.len() as u64;
+        bar.set_position(bytes);
+    }
+    bar.finish_and_clear();
+    if bytes != summary.size_bytes {
+        bail!(
+            "the server sent {bytes} bytes of a {}-byte file",
+            summary.size_bytes
+        );
+    }
+    Ok(())
+}
+
+/// The export written to `out` through `out.part`, removed when anything fails.
+async fn receive_file(
+    stream: &mut tonic::Streaming<pb::ExportChunk>,
+    summary: &pb::ExportSummary,
+    out: &Path,
+) -> Result<()> {
+    use std::io::Write;
+    let mut name = out.file_name().unwrap_or_default().to_os_string();
+    name.push(".part");
+    let partial = out.with_file_name(name);
+    let received = async {
+        let file = std::fs::File::create(&partial)
+            .with_context(|| format!("writing {}", partial.display()))?;
+        let mut file = std::io::BufWriter::new(file);
+        receive(stream, summary, |data| {
+            file.write_all(data)
+                .with_context(|| format!("writing {}", partial.display()))
+        })
+        .await?;
+        let file = file
+            .into_inner()
+            .map_err(|e| e.into_error())
+            .with_context(|| format!("writing {}", partial.display()))?;
+        file.sync_all()
+            .with_context(|| format!("writing {}", partial.display()))?;
+        std::fs::rename(&partial, out).with_context(|| format!("writing {}", out.display()))
+    }
+    .await;
+    if received.is_err() {
+        let _ = std::fs::remove_file(&partial);
+    }
+    received
 }
 
 /// Writes the latest image of frame `index` of job `job_id` (its preview while the

@@ -87,6 +87,34 @@ impl RemoteError {
         }
     }
 
+    /// Sorts an error of a write: a missing bucket and a refusal by name, anything else on one
+    /// line, since stores answer a failed write with the XML of their error.
+    pub(crate) fn from_upload(url: &str, error: object_store::Error) -> Self {
+        let text = one_line(&error);
+        if text.contains("NoSuchBucket") {
+            return RemoteError::Transport {
+                url: url.to_owned(),
+                message: "no such bucket".to_owned(),
+            };
+        }
+        if text.contains("AccessDenied") || text.contains("403 Forbidden") {
+            return Self::from_store(
+                url,
+                object_store::Error::PermissionDenied {
+                    path: url.to_owned(),
+                    source: text.into(),
+                },
+            );
+        }
+        match error {
+            object_store::Error::Generic { .. } => RemoteError::Transport {
+                url: url.to_owned(),
+                message: format!("the write failed: {text}"),
+            },
+            other => Self::from_store(url, other),
+        }
+    }
+
     /// Whether this error is a stall, so callers can retry later rather than give up on the dataset.
     pub fn is_timeout(&self) -> bool {
         match self {
@@ -95,6 +123,40 @@ impl RemoteError {
             _ => false,
         }
     }
+}
+
+/// An error and its causes on one line, the store's answer summarised by its `<Code>` and
+/// `<Message>` where it sent XML.
+fn one_line(error: &object_store::Error) -> String {
+    let mut text = String::new();
+    let mut source: Option<&(dyn std::error::Error + 'static)> = Some(error);
+    while let Some(cause) = source {
+        let shown = cause.to_string();
+        if !text.contains(&shown) {
+            if !text.is_empty() {
+                text.push_str(": ");
+            }
+            text.push_str(&shown);
+        }
+        source = cause.source();
+    }
+    let tag = |name: &str| -> Option<String> {
+        let open = format!("<{name}>");
+        let start = text.find(&open)? + open.len();
+        let end = text[start..].find("</")? + start;
+        Some(text[start..end].to_owned())
+    };
+    let summary = match (tag("Code"), tag("Message")) {
+        (Some(code), Some(message)) => Some(format!("{code}: {message}")),
+        (Some(code), None) => Some(code),
+        _ => None,
+    };
+    let head = text.split('<').next().unwrap_or_default().trim_end();
+    let joined = match summary {
+        Some(summary) => format!("{head} {summary}"),
+        None => text.clone(),
+    };
+    joined.split_whitespace().collect::<Vec<_>>().join(" ")
 }
 
 /// Whether a timeout is somewhere in the error's chain of causes.

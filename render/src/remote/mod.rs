@@ -5,8 +5,9 @@
 //! or fragment, so URLs can always be logged); `AllowedPrefixes` is the operator's allow-list;
 //! `RemoteClient` opens a `RemoteObject` (a HEAD for its size and version) and lists a
 //! prefix's point files; a `RemoteObject` reads ranges, coalescing near ones and fetching them
-//! in parallel, every request pinned to the version seen at open. `RemoteSettings` states
-//! every timeout, retry and size bound with its default.
+//! in parallel, every request pinned to the version seen at open. `RemoteUpload` writes an
+//! object by a multipart upload, a few parts in memory at a time, visible only once complete.
+//! `RemoteSettings` states every timeout, retry and size bound with its default.
 //!
 //! The transport is the `object_store` crate, which is async. The render crate is not: its
 //! readers are called from rayon threads, plain threads and, in the worker and the daemon,
@@ -32,6 +33,7 @@ mod object;
 mod runtime;
 mod settings;
 mod store;
+mod upload;
 mod url;
 
 pub use allow::AllowedPrefixes;
@@ -41,4 +43,5 @@ pub use error::RemoteError;
 pub use list::{is_point_file, ListedObject};
 pub use object::RemoteObject;
 pub use settings::RemoteSettings;
+pub use upload::RemoteUpload;
 pub use url::{ObjectUrl, UrlKind, MAX_URL_LEN};

@@ -36,6 +36,12 @@ pub struct RemoteSettings {
     pub max_read_bytes: u64,
     /// The most objects a listing returns before it is refused as too large.
     pub max_listed_objects: usize,
+    /// The size of each part of a multipart upload (S3 takes 5 MiB to 5 GiB but for the
+    /// last part).
+    pub upload_part_bytes: usize,
+    /// Parts of one upload sent at once; an upload holds at most this many parts in memory
+    /// and one more being filled.
+    pub upload_parts_in_flight: usize,
 }
 
 impl Default for RemoteSettings {
@@ -54,6 +60,8 @@ impl Default for RemoteSettings {
             parallel_requests: 8,
             max_read_bytes: 1024 * 1024 * 1024,
             max_listed_objects: 100_000,
+            upload_part_bytes: 8 * 1024 * 1024,
+            upload_parts_in_flight: 4,
         }
     }
 }

@@ -132,6 +132,16 @@ impl ObjectUrl {
         self.url.path().ends_with('/') || self.object_path().as_ref().is_empty()
     }
 
+    /// The URL of the object `name` under this prefix, with a `/` between them.
+    pub fn join(&self, name: &str) -> Result<Self, RemoteError> {
+        let mut text = self.url.as_str().to_owned();
+        if !text.ends_with('/') {
+            text.push('/');
+        }
+        text.push_str(name);
+        Self::parse(&text)
+    }
+
     /// The key of the store this URL is read through: one per bucket or per origin, so that
     /// connections are shared.
     pub(crate) fn store_key(&self) -> String {

@@ -1,0 +1,233 @@
+//! Exports written to object storage, as a user runs `pointfarm export FILES --copc s3://...`
+//! and `pointfarm dataset export ID --copc s3://...`, against a real S3-compatible server
+//! (`s3s-fs`, serving a folder's subfolders as buckets): the object equals the file exported
+//! here byte for byte, an existing object is refused without `--force`, a missing bucket and
+//! refused credentials are one line each, and a multipart upload of several parts arrives
+//! whole while one given up leaves no object. Each test skips, saying so, where
+//! `POINTFARM_TEST_S3S_FS` names no `s3s-fs` binary.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use pointfarm_proto::v1 as pb;
+use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteSettings};
+use pointfarm_tests::s3s::{self, S3sServer};
+use pointfarm_tests::{
+    assert_fails_saying, assert_ok, assert_one_error_line, json_lines, output_text, pointfarm_bin,
+    pointfarm_ok, shared_data, stdout, ServeProcess,
+};
+
+/// The bucket every test writes to: a folder of the server's root.
+const BUCKET: &str = "pointfarm-exports";
+
+fn arg(path: &Path) -> &str {
+    path.to_str().expect("temporary paths are UTF-8")
+}
+
+/// A server over a fresh root holding one empty bucket; None, having said so, without the
+/// binary.
+fn start_server() -> Option<(tempfile::TempDir, S3sServer)> {
+    let root = tempfile::tempdir().expect("root");
+    std::fs::create_dir_all(root.path().join(BUCKET)).expect("bucket folder");
+    let server = S3sServer::start_or_skip(root.path())?;
+    Some((root, server))
+}
+
+/// `pointfarm ARGS` with the server's endpoint and credentials in its environment.
+fn pointfarm_with(server: &S3sServer, args: &[&str]) -> Output {
+    Command::new(pointfarm_bin())
+        .args(args)
+        .envs(server.environment())
+        .output()
+        .expect("run pointfarm")
+}
+
+/// Where the server keeps the object `key` of the bucket.
+fn stored(root: &Path, key: &str) -> PathBuf {
+    root.join(BUCKET).join(key)
+}
+
+/// Keys of the bucket's objects, sorted; the server's own bookkeeping left out.
+fn objects(root: &Path) -> Vec<String> {
+    let mut found = Vec::new();
+    let mut folders = vec![root.join(BUCKET)];
+    while let Some(folder) = folders.pop() {
+        for entry in std::fs::read_dir(&folder).expect("bucket folder") {
+            let path = entry.expect("entry").path();
+            if path.is_dir() {
+                folders.push(path);
+            } else {
+                let key = path
+                    .strip_prefix(root.join(BUCKET))
+                    .expect("under the bucket");
+                found.push(key.to_string_lossy().into_owned());
+            }
+        }
+    }
+    found.retain(|key| !key.starts_with('.') && !key.contains("/."));
+    found.sort();
+    found
+}
+
+#[test]
+fn an_export_to_s3_is_the_file_exported_here_byte_for_byte() {
+    let Some(scan) = shared_data("autzen_trim.laz") else {
+        return;
+    };
+    let Some((root, server)) = start_server() else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cache = dir.path().join("cache");
+    let here = dir.path().join("here.copc.laz");
+    pointfarm_ok(&[
+        "export",
+        arg(&scan),
+        "--copc",
+        arg(&here),
+        "--cache-dir",
+        arg(&cache),
+    ]);
+    let url = format!("s3://{BUCKET}/campaign/autzen.copc.laz");
+    let export = |more: &[&str]| {
+        let mut args = vec!["export", arg(&scan), "--copc", &url];
+        args.extend(["--cache-dir", arg(&cache)]);
+        args.extend_from_slice(more);
+        pointfarm_with(&server, &args)
+    };
+    let output = export(&["--json"]);
+    assert_ok(&output);
+    let report = json_lines(&output).remove(0);
+    assert_eq!(report["file"], url.as_str(), "{report}");
+    let uploaded = std::fs::read(stored(root.path(), "campaign/autzen.copc.laz")).expect("object");
+    assert_eq!(uploaded, std::fs::read(&here).expect("file here"));
+    assert_eq!(report["bytes"], uploaded.len(), "{report}");
+    assert!(!output_text(&output).contains(s3s::SECRET_KEY));
+
+    // The object exists now: refused without --force, before any work, and left as it was.
+    assert_one_error_line(&export(&[]), &[&url, "exists: pass --force"]);
+    assert_ok(&export(&["--force"]));
+    assert_eq!(objects(root.path()), ["campaign/autzen.copc.laz"]);
+
+    // A prefix is not an object to write.
+    let prefix = format!("s3://{BUCKET}/campaign/");
+    let output = pointfarm_with(&server, &["export", arg(&scan), "--copc", &prefix]);
+    assert_fails_saying(&output, "names a prefix");
+}
+
+#[test]
+fn a_missing_bucket_and_refused_credentials_are_one_line_each() {
+    let Some(scan) = shared_data("lone-star.laz") else {
+        return;
+    };
+    let Some((root, server)) = start_server() else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cache = dir.path().join("cache");
+    let missing = "s3://no-such-bucket/scan.copc.laz";
+    let output = pointfarm_with(
+        &server,
+        &[
+            "export",
+            arg(&scan),
+            "--copc",
+            missing,
+            "--cache-dir",
+            arg(&cache),
+        ],
+    );
+    assert_one_error_line(&output, &[missing, "no such bucket"]);
+
+    let url = format!("s3://{BUCKET}/scan.copc.laz");
+    let output = Command::new(pointfarm_bin())
+        .args(["export", arg(&scan), "--copc", &url, "--cache-dir"])
+        .arg(&cache)
+        .envs(server.environment())
+        .env("AWS_SECRET_ACCESS_KEY", "not-the-secret")
+        .output()
+        .expect("run pointfarm");
+    assert_one_error_line(&output, &[&url, "access denied"]);
+    assert!(!output_text(&output).contains("not-the-secret"));
+    assert!(objects(root.path()).is_empty());
+}
+
+/// A client of the server with parts of 5 MiB (S3's smallest), two in flight.
+fn small_part_client(server: &S3sServer) -> RemoteClient {
+    // object_store reads its endpoint and credentials from the environment only; std's own
+    // readers (the other tests' child processes) take the same lock as this write.
+    for (key, value) in server.environment() {
+        std::env::set_var(key, value);
+    }
+    RemoteClient::new(RemoteSettings {
+        upload_part_bytes: 5 * 1024 * 1024,
+        upload_parts_in_flight: 2,
+        ..RemoteSettings::default()
+    })
+    .expect("client")
+}
+
+#[test]
+fn a_multipart_upload_arrives_whole_and_one_given_up_leaves_no_object() {
+    let Some((root, server)) = start_server() else {
+        return;
+    };
+    let client = small_part_client(&server);
+    let dir = tempfile::tempdir().expect("tempdir");
+    // Over four parts, the last one short, of bytes that differ from part to part.
+    let bytes: Vec<u8> = (0..(21 * 1024 * 1024 + 123) as u64)
+        .map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8)
+        .collect();
+    let file = dir.path().join("big.bin");
+    std::fs::write(&file, &bytes).expect("file");
+    let url = ObjectUrl::parse(&format!("s3://{BUCKET}/big.bin")).expect("url");
+    assert!(!client.exists(&url).expect("head"));
+    let sent = client.upload_file(&file, &url).expect("upload");
+    assert_eq!(sent, bytes.len() as u64);
+    assert!(client.exists(&url).expect("head"));
+    assert!(std::fs::read(stored(root.path(), "big.bin")).expect("object") == bytes);
+
+    // Parts sent, then given up (as an export that fails midway drops its upload).
+    let given_up = ObjectUrl::parse(&format!("s3://{BUCKET}/given-up.bin")).expect("url");
+    let mut upload = client.start_upload(&given_up).expect("start");
+    upload.write(&bytes[..12 * 1024 * 1024]).expect("parts");
+    drop(upload);
+    assert!(!client.exists(&given_up).expect("head"));
+    assert_eq!(objects(root.path()), ["big.bin"]);
+}
+
+#[test]
+fn a_dataset_exported_by_the_server_to_s3_is_the_file_it_exports_here() {
+    let Some(scan) = shared_data("lone-star.laz") else {
+        return;
+    };
+    let Some((root, s3)) = start_server() else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let server = ServeProcess::start(&dir.path().join("data"));
+    let address = server.address.clone();
+    let added = pointfarm_ok(&["dataset", "add", arg(&scan), "--server", &address, "--json"]);
+    let dataset: pb::Dataset = serde_json::from_str(stdout(&added).trim()).expect("a Dataset");
+    let here = dir.path().join("here.copc.laz");
+    let export = |out: &str, more: &[&str]| {
+        let mut args = vec!["dataset", "export", &dataset.id, "--copc", out];
+        args.extend(["--server", &address]);
+        args.extend_from_slice(more);
+        pointfarm_with(&s3, &args)
+    };
+    assert_ok(&export(arg(&here), &[]));
+    let url = format!("s3://{BUCKET}/server/lone-star.copc.laz");
+    let output = export(&url, &["--json"]);
+    assert_ok(&output);
+    let report = json_lines(&output).remove(0);
+    assert_eq!(report["file"], url.as_str(), "{report}");
+    let uploaded = std::fs::read(stored(root.path(), "server/lone-star.copc.laz")).expect("object");
+    assert_eq!(uploaded, std::fs::read(&here).expect("file here"));
+    assert_one_error_line(&export(&url, &[]), &[&url, "exists: pass --force"]);
+    assert_one_error_line(
+        &export("s3://no-such-bucket/x.copc.laz", &[]),
+        &["s3://no-such-bucket/x.copc.laz", "no such bucket"],
+    );
+    assert_eq!(objects(root.path()), ["server/lone-star.copc.laz"]);
+}
