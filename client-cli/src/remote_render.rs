@@ -73,6 +73,7 @@ fn submission(
         name: args.name.clone().unwrap_or_default(),
         labels: args.labels.iter().cloned().collect(),
         video: outputs.video.as_ref().map(VideoPlan::settings),
+        output_url: args.output_url.clone(),
     };
     check_name("--name", &spec.name)?;
     check_labels("--label", &spec.labels)?;

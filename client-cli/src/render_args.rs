@@ -93,6 +93,11 @@ pub struct RenderArgs {
     /// each must); if one fails or is cancelled, this job fails, naming it.
     #[arg(long = "after", value_name = "JOB")]
     pub(crate) after: Vec<String>,
+    /// Server jobs: also write each final frame (and the video) under this object-storage
+    /// prefix, as PREFIX/frame_NNNNN.png, by the server, which must allow it
+    /// (`serve --allow-output-prefix`).
+    #[arg(long, value_name = "s3://BUCKET/PREFIX", requires = "server")]
+    pub(crate) output_url: Option<String>,
     /// Server jobs: submit, print the job's id on standard output (with --json, the job as a
     /// JSON line) and return at once, without following the job or fetching its frames
     /// (`pointfarm jobs watch ID` follows it, `pointfarm frames fetch ID` fetches them).

@@ -13,6 +13,7 @@ use pointfarm_daemon::capabilities::checked_tags;
 use pointfarm_daemon::dashboard::{self, DashboardOptions};
 use pointfarm_daemon::metrics;
 use pointfarm_daemon::open_files;
+use pointfarm_daemon::outputs::output_prefixes;
 use pointfarm_daemon::remote_datasets::url_prefixes;
 use pointfarm_daemon::server::{serve, ServeOptions, TlsIdentity, DEFAULT_SHUTDOWN_GRACE};
 use pointfarm_daemon::service::{
@@ -54,6 +55,16 @@ pub struct ServeArgs {
         value_delimiter = ','
     )]
     allowed_url_prefixes: Vec<String>,
+    /// An s3:// prefix jobs may write their outputs under (`render --output-url`), compared
+    /// by whole path segments (repeatable; in the environment, separated by commas).
+    /// Without one, no job may name an output URL.
+    #[arg(
+        long = "allow-output-prefix",
+        value_name = "URL",
+        env = "POINTFARM_ALLOW_OUTPUT_PREFIX",
+        value_delimiter = ','
+    )]
+    allowed_output_prefixes: Vec<String>,
     /// Require this bearer token of clients (datasets and jobs). Without it those services
     /// are open, which is refused beyond loopback unless --insecure.
     #[arg(long, env = "POINTFARM_TOKEN", hide_env_values = true)]
@@ -267,6 +278,8 @@ pub fn run(args: ServeArgs) -> Result<()> {
         // Checked here rather than by clap, whose error would repeat a prefix's credentials.
         config.allowed_url_prefixes =
             url_prefixes(&args.allowed_url_prefixes).context("--allow-url-prefix")?;
+        config.allowed_output_prefixes =
+            output_prefixes(&args.allowed_output_prefixes).context("--allow-output-prefix")?;
         config.max_image_side = args.max_image_side;
         config.max_frames = args.max_frames;
         config.worker_cache_bytes = args.worker_cache_size;

@@ -330,6 +330,7 @@ impl Daemon {
             .unless_disk_refused(&lease, finished.map_err(DaemonError::from))?
             .ok_or_else(|| DaemonError::NotFound(format!("job {}", lease.job_id)))?;
         self.metrics.frame_completed(&report);
+        self.enqueue_frame_output(&job, lease.index);
         if job.state == JobState::Succeeded {
             self.log_job_end(&job, 0);
         }

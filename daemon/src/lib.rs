@@ -51,6 +51,7 @@ pub mod manifest;
 pub mod metrics;
 pub mod model;
 pub mod open_files;
+pub mod outputs;
 pub mod remote_datasets;
 pub mod retention;
 pub mod server;

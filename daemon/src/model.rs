@@ -158,6 +158,9 @@ pub struct JobSpec {
     /// A video of the frames, made by a worker once every frame is final (`encodes`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub video: Option<VideoSettings>,
+    /// The object-storage prefix the job's outputs are also written under (`outputs`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub output_url: Option<String>,
 }
 
 impl JobSpec {
@@ -175,6 +178,7 @@ impl JobSpec {
             name: String::new(),
             labels: BTreeMap::new(),
             video: None,
+            output_url: None,
         }
     }
 }
@@ -233,6 +237,9 @@ pub struct Job {
     /// Of a job with a video: its encode lease, attempts and the stored video (`encodes`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub encode: Option<crate::encode_record::EncodeState>,
+    /// What was written to `spec.output_url` (`outputs`).
+    #[serde(default, skip_serializing_if = "crate::outputs::JobOutputs::is_empty")]
+    pub outputs: crate::outputs::JobOutputs,
 }
 
 impl Job {

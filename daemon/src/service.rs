@@ -52,6 +52,9 @@ pub struct DaemonConfig {
     /// The URL prefixes datasets may be registered from (`s3://`, `http(s)://`); empty, no
     /// dataset by URL is accepted.
     pub allowed_url_prefixes: AllowedPrefixes,
+    /// The object-storage prefixes jobs may write their outputs under (`outputs`); empty,
+    /// no job may name an output URL.
+    pub allowed_output_prefixes: AllowedPrefixes,
     /// Timeouts and retries of the reads of datasets by URL.
     pub remote_settings: RemoteSettings,
     /// Largest image side accepted, in pixels.
@@ -102,6 +105,7 @@ impl DaemonConfig {
         Self {
             data_roots: Vec::new(),
             allowed_url_prefixes: AllowedPrefixes::default(),
+            allowed_output_prefixes: AllowedPrefixes::default(),
             remote_settings: RemoteSettings {
                 operation_deadline: REMOTE_OPERATION_DEADLINE,
                 ..RemoteSettings::default()
@@ -211,6 +215,8 @@ pub struct Daemon {
     pub(crate) remote: Option<RemoteClient>,
     /// Tells the configured endpoints that a job ended.
     webhooks: Webhooks,
+    /// Writes jobs' outputs to their output URLs.
+    pub(crate) outputs: crate::outputs::OutputUploads,
 }
 
 impl Daemon {
@@ -268,7 +274,9 @@ impl Daemon {
             metrics,
             remote,
             webhooks,
+            outputs: Default::default(),
         });
+        crate::outputs::OutputUploads::start(&daemon)?;
         daemon.count_leases_of_previous_run()?;
         daemon.fail_broken_chains()?;
         Ok(daemon)
@@ -326,6 +334,7 @@ impl Daemon {
             ));
         }
         self.dataset(&spec.dataset_id)?;
+        self.check_job_output(&spec)?;
         spec.after = self.checked_after(&spec.after)?;
         // A chained job is stored under the scheduling lock, which every job's end holds, so a
         // job it runs after cannot end unseen between the check of its chain and its storing.

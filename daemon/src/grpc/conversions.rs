@@ -210,6 +210,8 @@ impl From<&Job> for pb::Job {
             labels: job.spec.labels.clone().into_iter().collect(),
             stage: job.stage().to_owned(),
             video_size_bytes: job.video_size_bytes().unwrap_or(0),
+            outputs_uploaded: job.outputs.uploaded,
+            output_errors: job.outputs.errors.clone(),
         }
     }
 }

@@ -469,6 +469,7 @@ impl From<&JobSpec> for pb::SubmitJobRequest {
             name: spec.name.clone(),
             labels: spec.labels.clone().into_iter().collect(),
             video: spec.video.as_ref().map(super::video::video_spec_message),
+            output_url: spec.output_url.clone().unwrap_or_default(),
         }
     }
 }

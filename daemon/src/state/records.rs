@@ -117,6 +117,7 @@ impl Records {
             worker_failures: Default::default(),
             blocklist: Default::default(),
             encode: None,
+            outputs: Default::default(),
         };
         let pending = encode(&FrameState::Pending { attempts: 0 })?;
         let (mut frame_batch, mut pending_batch) = (sled::Batch::default(), sled::Batch::default());

@@ -30,6 +30,7 @@ fn job(state: JobState, error: Option<&str>) -> Job {
             name: String::new(),
             labels: Default::default(),
             video: None,
+            output_url: None,
         },
         state,
         frames_total: 4,
@@ -40,6 +41,7 @@ fn job(state: JobState, error: Option<&str>) -> Job {
         worker_failures: Default::default(),
         blocklist: Default::default(),
         encode: None,
+        outputs: Default::default(),
     }
 }
 

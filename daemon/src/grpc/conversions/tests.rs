@@ -23,6 +23,7 @@ fn valid() -> pb::SubmitJobRequest {
         name: "turntable of the hall".into(),
         labels: [("shot".to_string(), "010".to_string())].into(),
         video: None,
+        output_url: String::new(),
     }
 }
 

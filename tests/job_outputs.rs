@@ -1,0 +1,221 @@
+//! A job's frames written to object storage by the server, as a user asks with
+//! `pointfarm render --server ADDR --output-url s3://bucket/prefix`, against a real daemon
+//! (`pointfarm serve`, its embedded worker rendering on lavapipe) and a real S3-compatible
+//! server (`s3s-fs`): each final frame appears as PREFIX/frame_NNNNN.png equal to the frame
+//! fetched from the daemon, a prefix outside the operator's `--allow-output-prefix` is
+//! PERMISSION_DENIED naming the rule, and uploads that fail are recorded in the job while
+//! its frames stay fetchable. Each test skips, saying so, where `POINTFARM_TEST_S3S_FS`
+//! names no `s3s-fs` binary.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Duration;
+
+use pointfarm_tests::s3s::{self, S3sServer};
+use pointfarm_tests::service::scan;
+use pointfarm_tests::{
+    assert_fails_saying, assert_ok, output_text, pointfarm, pointfarm_bin, pointfarm_ok, stdout,
+    wait_for, ServeProcess,
+};
+
+/// The bucket the farm writes to: a folder of the S3 server's root.
+const BUCKET: &str = "pointfarm-renders";
+/// The prefix the operator allows.
+const ALLOWED: &str = "s3://pointfarm-renders/farm";
+
+fn arg(path: &Path) -> &str {
+    path.to_str().expect("temporary paths are UTF-8")
+}
+
+/// An S3 server over a fresh root holding the bucket, and a daemon allowed to write under
+/// `ALLOWED`, the server's endpoint and credentials in its environment (`secret` replacing
+/// the right one when given); None, having said so, without the S3 binary.
+fn start(dir: &Path, secret: Option<&str>) -> Option<(tempfile::TempDir, S3sServer, ServeProcess)> {
+    let root = tempfile::tempdir().expect("root");
+    std::fs::create_dir_all(root.path().join(BUCKET)).expect("bucket folder");
+    let s3 = S3sServer::start_or_skip(root.path())?;
+    let mut command = Command::new(pointfarm_bin());
+    command.envs(s3.environment());
+    if let Some(secret) = secret {
+        command.env("AWS_SECRET_ACCESS_KEY", secret);
+    }
+    let data = dir.join("data");
+    let log = dir.join("serve.log");
+    std::fs::create_dir_all(&data).expect("data folder");
+    let server = ServeProcess::start_command(
+        command,
+        &pointfarm_tests::free_address(),
+        &data,
+        &log,
+        &["--allow-output-prefix", ALLOWED],
+    );
+    Some((root, s3, server))
+}
+
+/// `render SCAN --server ... --turntable FRAMES --detach --output-url URL`: the job's id.
+fn submit(server: &ServeProcess, scan: &Path, out: &Path, frames: u32, url: &str) -> String {
+    let frames = frames.to_string();
+    let output = pointfarm_ok(&[
+        "render",
+        arg(scan),
+        "--server",
+        &server.address,
+        "--turntable",
+        &frames,
+        "--size",
+        "64x48",
+        "--out",
+        arg(out),
+        "--detach",
+        "--output-url",
+        url,
+    ]);
+    stdout(&output).trim().to_owned()
+}
+
+/// The job as `jobs show --json` prints it.
+fn job(server: &ServeProcess, id: &str) -> serde_json::Value {
+    let shown = pointfarm_ok(&["jobs", "show", id, "--server", &server.address, "--json"]);
+    let mut shown: serde_json::Value = serde_json::from_str(stdout(&shown).trim()).expect("a job");
+    shown["job"].take()
+}
+
+/// The files under `folder`, sorted by name.
+fn files_in(folder: &Path) -> Vec<PathBuf> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(folder)
+        .map(|entries| entries.map(|e| e.expect("entry").path()).collect())
+        .unwrap_or_default();
+    files.sort();
+    files
+}
+
+#[test]
+fn each_final_frame_appears_under_the_output_url_as_the_daemon_stores_it() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let Some((root, _s3, server)) = start(dir.path(), None) else {
+        return;
+    };
+    let scan = scan(dir.path());
+    let url = format!("{ALLOWED}/turntable");
+    let id = submit(&server, &scan, &dir.path().join("out"), 3, &url);
+    let uploaded = wait_for(Duration::from_secs(120), "three outputs uploaded", || {
+        let job = job(&server, &id);
+        (job["outputsUploaded"] == 3).then_some(job)
+    });
+    assert_eq!(uploaded["state"], "JOB_STATE_SUCCEEDED", "{uploaded}");
+    let errors = uploaded["outputErrors"].as_array().map_or(0, Vec::len);
+    assert_eq!(errors, 0, "{uploaded}");
+
+    let fetched = dir.path().join("fetched");
+    assert_ok(&pointfarm(&[
+        "frames",
+        "fetch",
+        &id,
+        "--out",
+        arg(&fetched),
+        "--server",
+        &server.address,
+    ]));
+    let objects = files_in(&root.path().join(BUCKET).join("farm/turntable"));
+    let names: Vec<String> = objects
+        .iter()
+        .map(|path| {
+            path.file_name()
+                .expect("name")
+                .to_string_lossy()
+                .into_owned()
+        })
+        .collect();
+    assert_eq!(
+        names,
+        ["frame_00000.png", "frame_00001.png", "frame_00002.png"]
+    );
+    for (object, name) in objects.iter().zip(&names) {
+        let frame = std::fs::read(fetched.join(name)).expect("fetched frame");
+        assert!(std::fs::read(object).expect("object") == frame, "{name}");
+    }
+    assert!(!server.log().contains(s3s::SECRET_KEY));
+}
+
+#[test]
+fn an_output_url_outside_the_operators_prefixes_is_refused_naming_the_rule() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let Some((root, _s3, server)) = start(dir.path(), None) else {
+        return;
+    };
+    let scan = scan(dir.path());
+    let refused = pointfarm(&[
+        "render",
+        arg(&scan),
+        "--server",
+        &server.address,
+        "--size",
+        "32x24",
+        "--out",
+        arg(&dir.path().join("out.png")),
+        "--output-url",
+        "s3://pointfarm-renders/farm-other/x",
+    ]);
+    assert_fails_saying(&refused, "--allow-output-prefix");
+    assert_fails_saying(&refused, "allows only s3://pointfarm-renders/farm");
+    let not_s3 = pointfarm(&[
+        "render",
+        arg(&scan),
+        "--server",
+        &server.address,
+        "--out",
+        arg(&dir.path().join("out.png")),
+        "--output-url",
+        "https://example.com/renders/",
+    ]);
+    assert_fails_saying(&not_s3, "s3://");
+    assert!(files_in(&root.path().join(BUCKET)).is_empty());
+
+    // A daemon that allows none says so.
+    let bare = ServeProcess::start(&dir.path().join("bare"));
+    let refused = pointfarm(&[
+        "render",
+        arg(&scan),
+        "--server",
+        &bare.address,
+        "--out",
+        arg(&dir.path().join("out.png")),
+        "--output-url",
+        "s3://pointfarm-renders/farm/x",
+    ]);
+    assert_fails_saying(&refused, "allow-list is empty");
+}
+
+#[test]
+fn uploads_refused_by_the_store_are_recorded_and_the_frames_stay_fetchable() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let Some((root, _s3, server)) = start(dir.path(), Some("not-the-secret")) else {
+        return;
+    };
+    let scan = scan(dir.path());
+    let url = format!("{ALLOWED}/refused");
+    let id = submit(&server, &scan, &dir.path().join("out"), 2, &url);
+    let recorded = wait_for(Duration::from_secs(120), "two failures recorded", || {
+        let job = job(&server, &id);
+        let errors = job["outputErrors"].as_array().map_or(0, Vec::len);
+        (errors == 2).then_some(job)
+    });
+    let text = recorded.to_string();
+    assert_eq!(recorded["state"], "JOB_STATE_SUCCEEDED", "{text}");
+    assert!(text.contains(&format!("{url}/frame_00000.png")), "{text}");
+    assert!(text.contains("access denied"), "{text}");
+    assert!(!text.contains("not-the-secret"), "{text}");
+    assert!(files_in(&root.path().join(BUCKET)).is_empty());
+    let fetched = dir.path().join("fetched");
+    let output = pointfarm(&[
+        "frames",
+        "fetch",
+        &id,
+        "--out",
+        arg(&fetched),
+        "--server",
+        &server.address,
+    ]);
+    assert_ok(&output);
+    assert_eq!(files_in(&fetched).len(), 2, "{}", output_text(&output));
+}
