@@ -13,6 +13,13 @@ fn open(dir: &Path) -> Arc<Daemon> {
     test_daemon::open(dir, Duration::from_secs(60))
 }
 
+/// A daemon on a new temporary folder, deleted when the folder is dropped.
+fn open_scratch() -> (tempfile::TempDir, Arc<Daemon>) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let daemon = open(dir.path());
+    (dir, daemon)
+}
+
 /// A job of `frames` frames that runs after `after`.
 fn submit_after(daemon: &Daemon, frames: u32, after: &[&Job]) -> Job {
     test_daemon::submit(daemon, frames, |request| {
@@ -33,8 +40,7 @@ fn stored(daemon: &Daemon, job: &Job) -> Job {
 
 #[test]
 fn a_job_after_another_gets_no_frame_leased_until_it_has_succeeded() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = open(dir.path());
+    let (_dir, daemon) = open_scratch();
     let (first, second) = one_after_another(&daemon);
     assert_eq!(second.spec.after, vec![first.id.clone()]);
 
@@ -57,8 +63,7 @@ fn a_job_after_another_gets_no_frame_leased_until_it_has_succeeded() {
 
 #[test]
 fn a_failure_or_a_cancel_fails_every_job_along_the_chain() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = open(dir.path());
+    let (_dir, daemon) = open_scratch();
     let (failing, after_failing) = one_after_another(&daemon);
     let (cancelled, after_cancelled) = one_after_another(&daemon);
     let further = submit_after(&daemon, 1, &[&after_cancelled, &failing]);
@@ -102,8 +107,7 @@ fn a_failure_or_a_cancel_fails_every_job_along_the_chain() {
 
 #[test]
 fn a_submission_names_existing_jobs_each_once_and_not_too_many() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = open(dir.path());
+    let (_dir, daemon) = open_scratch();
     let first = test_daemon::submit(&daemon, 1, |_| {});
     let twice = submit_after(&daemon, 1, &[&first, &first]);
     assert_eq!(twice.spec.after, vec![first.id.clone()]);
@@ -124,8 +128,7 @@ fn a_submission_names_existing_jobs_each_once_and_not_too_many() {
 
 #[test]
 fn a_restart_keeps_the_chain_and_fails_one_left_broken() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = open(dir.path());
+    let (dir, daemon) = open_scratch();
     let (first, waiting) = one_after_another(&daemon);
     let (broken_first, broken) = one_after_another(&daemon);
     // A crash between a job's end and the failure of the jobs after it: the end is stored,
