@@ -279,10 +279,8 @@ impl WorkerService for Api {
         request: Request<pb::OpenDatasetStoreRequest>,
     ) -> Result<Response<pb::OpenDatasetStoreResponse>, Status> {
         let (r, _) = self.heard(request);
-        let answer = self
-            .run(move |daemon| daemon.open_dataset_store(&r.dataset_id, r.levels_of_detail))
-            .await?;
-        Ok(Response::new(pb::OpenDatasetStoreResponse::from(&answer)))
+        self.answer(move |daemon| daemon.open_dataset_store(&r.dataset_id, r.levels_of_detail))
+            .await
     }
 
     type FetchStoreHierarchyStream = ResponseStream<pb::StoreHierarchyChunk>;
