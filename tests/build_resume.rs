@@ -12,14 +12,15 @@ use std::process::{Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
-use pointfarm_render::cut::StoredLod;
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
-use pointfarm_render::lod::{read_nodes, NodeKey};
+use pointfarm_tests::stores::{assert_same_nodes, logged, store_folder, store_nodes};
 use pointfarm_tests::{output_text, pointfarm_bin};
 
 /// Points of the dataset: enough for several partitions and nodes above them on two cores.
 const POINTS: usize = 1_000_000;
 const MEMORY_BUDGET: &str = "64MiB";
+/// Points of the dense dataset: several times the plan's partition size.
+const DENSE_POINTS: usize = 1_000_000;
 
 fn arg(path: &Path) -> &str {
     path.to_str().expect("temporary paths are UTF-8")
@@ -37,14 +38,62 @@ fn write_dataset(dir: &Path) -> PathBuf {
     folder
 }
 
-/// `pointfarm export` of `input` into `cache`, writing `copc`.
-fn export(input: &Path, cache: &Path, copc: &Path) -> Command {
+/// A scan of `DENSE_POINTS` points within a metre, and two points 10 km away on either side:
+/// the counting grid cannot tell the dense points apart, so their partition, far above the
+/// plan's size, is split on disk, level after level.
+fn write_dense_dataset(dir: &Path) -> PathBuf {
+    let path = dir.join("dense.las");
+    let mut builder = las::Builder::from((1, 2));
+    let transform = |offset| las::Transform {
+        scale: 0.001,
+        offset,
+    };
+    builder.transforms = las::Vector {
+        x: transform(600_000.0),
+        y: transform(5_000_000.0),
+        z: transform(0.0),
+    };
+    let header = builder.into_header().expect("a header");
+    let mut writer = las::Writer::from_path(&path, header).expect("a writer");
+    let spread = |i: u32, k: u32| f64::from((i.wrapping_mul(k) >> 7) % 1000) / 1000.0;
+    let dense = (0..DENSE_POINTS as u32).map(|i| {
+        (
+            600_300.0 + spread(i, 2_654_435_761),
+            5_000_300.0 + spread(i, 40_503),
+            10.0 + spread(i, 1_103_515_245),
+        )
+    });
+    // The dense metre lies within one cell of every grid down to the finest split level.
+    let outliers = [
+        (610_000.0, 5_010_000.0, 0.0),
+        (590_000.0, 4_990_000.0, 1_000.0),
+    ];
+    for (x, y, z) in dense.chain(outliers) {
+        let point = las::Point {
+            x,
+            y,
+            z,
+            ..Default::default()
+        };
+        writer.write_point(point).expect("a point");
+    }
+    writer.close().expect("close the dataset");
+    path
+}
+
+/// `pointfarm export` of `input` into `cache`, writing `copc`, on `threads` threads when
+/// given (the build's own choice otherwise).
+fn export(input: &Path, cache: &Path, copc: &Path, threads: Option<&str>) -> Command {
     let mut command = Command::new(pointfarm_bin());
     command
         .args(["export", arg(input), "--copc", arg(copc), "--force"])
         .args(["--cache-dir", arg(cache), "--memory-budget", MEMORY_BUDGET])
         .env("RUST_LOG", "pointfarm_render=info")
         .env_remove("POINTFARM_TEST_PAUSE_AT");
+    match threads {
+        Some(threads) => command.env("RAYON_NUM_THREADS", threads),
+        None => command.env_remove("RAYON_NUM_THREADS"),
+    };
     command
 }
 
@@ -94,58 +143,6 @@ fn kill_at(mut command: Command, stage: Option<&str>, after: Duration) -> bool {
     running
 }
 
-/// The one store folder under `cache`.
-fn store_folder(cache: &Path) -> PathBuf {
-    let lod = cache.join("lod");
-    let mut folders: Vec<PathBuf> = std::fs::read_dir(&lod)
-        .expect("the store cache")
-        .map(|entry| entry.expect("entry").path())
-        .filter(|path| path.is_dir())
-        .collect();
-    assert_eq!(folders.len(), 1, "{folders:?}");
-    folders.pop().expect("one store")
-}
-
-/// The store's nodes as the cut reads them: each node's hierarchy entry (without where its
-/// bytes lie), decoded points and attribute rows.
-fn store_nodes(cache: &Path) -> Vec<String> {
-    let folder = store_folder(cache);
-    let stored = StoredLod::open_or_build(&[], &folder, 64 << 20, None, &mut |_| {})
-        .expect("a finished store");
-    let dataset = &stored.dataset;
-    let hierarchy = dataset.hierarchy();
-    let keys: Vec<NodeKey> = hierarchy.nodes().iter().map(|n| n.key).collect();
-    let records = dataset.records().as_ref();
-    let points = read_nodes(records, hierarchy, &keys).expect("every node reads back");
-    let rows = records
-        .read_attribute_rows(hierarchy, hierarchy.nodes())
-        .expect("the store keeps attributes")
-        .expect("every attributes section reads back");
-    hierarchy
-        .nodes()
-        .iter()
-        .zip(points)
-        .zip(rows)
-        .map(|((info, points), rows)| {
-            format!(
-                "{} points {} grid {} children {:08b}: {points:?} rows {rows:?}",
-                info.key, info.point_count, info.sample_grid, info.child_mask
-            )
-        })
-        .collect()
-}
-
-/// The number after `name=` on the first line of `stderr` that says `message`.
-fn logged(stderr: &str, message: &str, name: &str) -> Option<u64> {
-    let line = stderr.lines().find(|l| l.contains(message))?;
-    let at = line.find(&format!(" {name}="))? + name.len() + 2;
-    let digits: String = line[at..]
-        .chars()
-        .take_while(char::is_ascii_digit)
-        .collect();
-    digits.parse().ok()
-}
-
 /// How many units the resumed run took from the killed one, from its log; `None` when it
 /// started over.
 fn resumed_units(stderr: &str) -> Option<u64> {
@@ -159,6 +156,7 @@ fn counting_resumed_at(stderr: &str) -> Option<u64> {
 
 struct Reference {
     input: PathBuf,
+    threads: Option<&'static str>,
     partitions: u64,
     /// The uninterrupted export's wall time.
     seconds: f64,
@@ -167,13 +165,14 @@ struct Reference {
     _dir: tempfile::TempDir,
 }
 
-fn reference() -> Reference {
+/// The uninterrupted export of the dataset `write` writes, on `threads` threads when given.
+fn reference(write: fn(&Path) -> PathBuf, threads: Option<&'static str>) -> Reference {
     let dir = tempfile::tempdir().expect("tempdir");
-    let input = write_dataset(dir.path());
+    let input = write(dir.path());
     let cache = dir.path().join("uninterrupted");
     let copc = dir.path().join("uninterrupted.copc.laz");
     // Built (when out of date) before the clock starts.
-    let mut command = export(&input, &cache, &copc);
+    let mut command = export(&input, &cache, &copc, threads);
     let started = Instant::now();
     let log = run(&mut command);
     let seconds = started.elapsed().as_secs_f64();
@@ -184,6 +183,7 @@ fn reference() -> Reference {
         nodes: store_nodes(&cache),
         copc: std::fs::read(&copc).expect("the COPC file"),
         input,
+        threads,
         _dir: dir,
     }
 }
@@ -194,14 +194,15 @@ fn kill_and_resume(reference: &Reference, stage: Option<&str>, after: Duration) 
     let dir = tempfile::tempdir().expect("tempdir");
     let cache = dir.path().join("cache");
     let copc = dir.path().join("resumed.copc.laz");
-    let killed = kill_at(export(&reference.input, &cache, &copc), stage, after);
+    let export = || export(&reference.input, &cache, &copc, reference.threads);
+    let killed = kill_at(export(), stage, after);
     assert!(killed || stage.is_none(), "the paused build was running");
-    let log = run(&mut export(&reference.input, &cache, &copc));
-    let nodes = store_nodes(&cache);
-    assert_eq!(nodes.len(), reference.nodes.len(), "{stage:?}: nodes");
-    for (resumed, uninterrupted) in nodes.iter().zip(&reference.nodes) {
-        assert!(resumed == uninterrupted, "{stage:?}: a node differs");
-    }
+    let log = run(&mut export());
+    assert_same_nodes(
+        &store_nodes(&cache),
+        &reference.nodes,
+        &format!("{stage:?}"),
+    );
     let exported = std::fs::read(&copc).expect("the COPC file");
     assert!(
         exported == reference.copc,
@@ -220,7 +221,7 @@ fn kill_and_resume(reference: &Reference, stage: Option<&str>, after: Duration) 
 
 #[test]
 fn a_build_killed_in_any_stage_resumes_to_the_same_store() {
-    let reference = reference();
+    let reference = reference(write_dataset, None);
     // Killed in the first file of the counting pass, the build starts over.
     let log = kill_and_resume(&reference, Some("counting:0"), Duration::ZERO);
     assert_eq!(resumed_units(&log), None, "counted again");
@@ -260,7 +261,7 @@ fn a_build_killed_in_any_stage_resumes_to_the_same_store() {
 
 #[test]
 fn a_build_killed_at_random_moments_resumes_to_the_same_store() {
-    let reference = reference();
+    let reference = reference(write_dataset, None);
     let seed = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .expect("clock")
@@ -275,4 +276,19 @@ fn a_build_killed_at_random_moments_resumes_to_the_same_store() {
         );
         kill_and_resume(&reference, None, Duration::from_millis(millis));
     }
+}
+
+/// A partition split on disk, killed in its second split with the children's files written
+/// but the split not yet recorded: the first split is taken over, the second done again. On
+/// one thread, so that no partition is recorded beside the splits.
+#[test]
+fn a_build_killed_in_a_split_resumes_to_the_same_store() {
+    let reference = reference(write_dense_dataset, Some("1"));
+    let units = resumed_units(&kill_and_resume(
+        &reference,
+        Some("split:1"),
+        Duration::ZERO,
+    ));
+    eprintln!("split:1: {units:?} units taken over");
+    assert_eq!(units, Some(1), "the first split taken over");
 }

@@ -271,7 +271,10 @@ impl ServeProcess {
         Self::start_command(shell, &free_address(), data_dir, &log, args)
     }
 
-    fn start_command(
+    /// Starts `command` (the `pointfarm` binary, e.g. with more environment) as
+    /// `pointfarm serve` on `address` with its data in `data_dir`, its log in `log`, with more
+    /// `serve` arguments, and waits until it listens.
+    pub fn start_command(
         mut command: Command,
         address: &str,
         data_dir: &Path,
@@ -430,6 +433,7 @@ pub mod pki;
 pub mod prometheus;
 pub mod s3s;
 pub mod service;
+pub mod stores;
 
 /// Sends SIGTERM to `child` and waits up to `timeout` for its exit.
 fn terminate(

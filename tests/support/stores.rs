@@ -1,0 +1,69 @@
+//! A level-of-detail store's content, compared between builds: a store built by a run that
+//! was killed and resumed must equal an uninterrupted build's node for node.
+
+use std::path::{Path, PathBuf};
+
+use pointfarm_render::cut::StoredLod;
+use pointfarm_render::lod::{read_nodes, NodeKey};
+
+/// The one store folder under `cache`'s `lod` folder (a CLI cache, or a daemon's data).
+pub fn store_folder(cache: &Path) -> PathBuf {
+    let lod = cache.join("lod");
+    let mut folders: Vec<PathBuf> = std::fs::read_dir(&lod)
+        .expect("the store cache")
+        .map(|entry| entry.expect("entry").path())
+        .filter(|path| path.is_dir())
+        .collect();
+    assert_eq!(folders.len(), 1, "{folders:?}");
+    folders.pop().expect("one store")
+}
+
+/// The nodes of the finished store under `cache` as the cut reads them: each node's
+/// hierarchy entry (without where its bytes lie), decoded points and attribute rows. The
+/// store must not be open elsewhere (its index is locked while it is).
+pub fn store_nodes(cache: &Path) -> Vec<String> {
+    let folder = store_folder(cache);
+    let stored = StoredLod::open_or_build(&[], &folder, 64 << 20, None, &mut |_| {})
+        .expect("a finished store");
+    let dataset = &stored.dataset;
+    let hierarchy = dataset.hierarchy();
+    let keys: Vec<NodeKey> = hierarchy.nodes().iter().map(|n| n.key).collect();
+    let records = dataset.records().as_ref();
+    let points = read_nodes(records, hierarchy, &keys).expect("every node reads back");
+    let rows = records
+        .read_attribute_rows(hierarchy, hierarchy.nodes())
+        .expect("the store keeps attributes")
+        .expect("every attributes section reads back");
+    hierarchy
+        .nodes()
+        .iter()
+        .zip(points)
+        .zip(rows)
+        .map(|((info, points), rows)| {
+            format!(
+                "{} points {} grid {} children {:08b}: {points:?} rows {rows:?}",
+                info.key, info.point_count, info.sample_grid, info.child_mask
+            )
+        })
+        .collect()
+}
+
+/// Asserts that `resumed` holds the nodes of `uninterrupted`, in order, naming `what`.
+pub fn assert_same_nodes(resumed: &[String], uninterrupted: &[String], what: &str) {
+    assert_eq!(resumed.len(), uninterrupted.len(), "{what}: nodes");
+    for (resumed, uninterrupted) in resumed.iter().zip(uninterrupted) {
+        // Not assert_eq: a node's points would fill the screen.
+        assert!(resumed == uninterrupted, "{what}: a node differs");
+    }
+}
+
+/// The number after `name=` on the first line of `log` that says `message`.
+pub fn logged(log: &str, message: &str, name: &str) -> Option<u64> {
+    let line = log.lines().find(|l| l.contains(message))?;
+    let at = line.find(&format!(" {name}="))? + name.len() + 2;
+    let digits: String = line[at..]
+        .chars()
+        .take_while(char::is_ascii_digit)
+        .collect();
+    digits.parse().ok()
+}
