@@ -279,6 +279,13 @@ impl Daemon {
         crate::outputs::OutputUploads::start(&daemon)?;
         daemon.count_leases_of_previous_run()?;
         daemon.fail_broken_chains()?;
+        // Store builds a stopped daemon left go on now for the jobs that wait for them.
+        let waiting = daemon
+            .state
+            .datasets()?
+            .into_iter()
+            .filter(|dataset| matches!(daemon.state.dataset_in_use(&dataset.id), Ok(true)));
+        daemon.stores.resume_builds(waiting);
         Ok(daemon)
     }
 

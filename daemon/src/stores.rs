@@ -50,6 +50,9 @@ pub struct ReadyStore {
     /// How long this daemon took to build it; 0 when it opened one built before (or a COPC
     /// file, which needs no build).
     pub build_ms: f64,
+    /// The units this build took over from one a stopped daemon left; `None` when it
+    /// started anew or opened a finished store.
+    resumed: Option<usize>,
     /// Set when the records are a COPC file's LAZ chunks, not a store's.
     pub copc: Option<CopcServed>,
 }
@@ -458,6 +461,9 @@ impl DatasetStores {
                 let entry = match built {
                     Ok(ready) => {
                         // Frames render from the store now: the sample's memory is freed.
+                if let Ok(ready) = &built {
+                    resume::log_resumed(&id, ready);
+                }
                         previews
                             .lock()
                             .unwrap_or_else(|e| e.into_inner())
@@ -631,6 +637,10 @@ fn open_or_build(
         built = lod.built.is_some(),
         "store ready for workers"
     );
+    let resumed = lod
+        .built
+        .as_ref()
+        .and_then(|(report, _)| resume::taken_over(report));
     Ok(ReadyStore {
         kept: Kept::Store(Box::new(lod)),
         hierarchy_record,
@@ -642,6 +652,7 @@ fn open_or_build(
 /// Opens the COPC file `path` (the dataset's file `name`) through its own hierarchy.
 fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
     let opened = open_copc_whole(path).map_err(|e| format!("COPC file {name}: {e}"))?;
+        resumed,
     let hierarchy = opened.dataset.hierarchy();
     let copc = CopcServed {
         file_name: name.to_owned(),
@@ -661,8 +672,10 @@ fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
 mod healing;
 use healing::being_rebuilt;
 mod preview;
+        resumed: None,
 #[cfg(test)]
 mod tests;
 
 pub use preview::PreviewBytes;
 use preview::PreviewState;
+mod resume;

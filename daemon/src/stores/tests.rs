@@ -554,3 +554,38 @@ fn a_finished_store_damaged_before_it_opens_is_built_again() {
     let (_, keys) = stored_nodes(&store);
     assert!(restarted.node_records(&dataset, &keys, false).is_ok());
 }
+
+#[test]
+fn only_the_unfinished_stores_of_waiting_datasets_are_built_again_at_startup() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    for scans in ["unfinished", "never"] {
+        std::fs::create_dir_all(dir.path().join(scans)).expect("folder");
+    }
+    let unfinished = scene_dataset(&dir.path().join("unfinished"), 20_000, "unfinished");
+    let never_built = scene_dataset(&dir.path().join("never"), 20_000, "never");
+    // A folder without a finished store: a build a stopped daemon left.
+    std::fs::create_dir_all(dir.path().join("lod").join("unfinished")).expect("folder");
+    let gate = StoreBuildGate::closed();
+    let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20).gated(Some(gate.clone()));
+
+    let started = stores.resume_builds([unfinished.clone(), never_built.clone()]);
+    assert_eq!(started, 1);
+    assert!(stores.building_version("unfinished").is_some());
+    assert!(
+        stores.entries_now().get("never").is_none(),
+        "never asked for"
+    );
+    assert!(!dir.path().join("lod").join("never").exists());
+    // Started again, a build under way is not started twice.
+    assert_eq!(stores.resume_builds([unfinished.clone()]), 0);
+
+    gate.open();
+    let ready = wait_ready(&stores, &unfinished);
+    assert_eq!(ready.point_count(), 20_000);
+    assert!(StoredLod::is_built(
+        &dir.path().join("lod").join("unfinished")
+    ));
+    // A finished store is opened when asked, not built at startup.
+    let again = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+    assert_eq!(again.resume_builds([unfinished]), 0);
+}
