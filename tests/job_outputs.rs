@@ -2,10 +2,10 @@
 //! `pointfarm render --server ADDR --output-url s3://bucket/prefix`, against a real daemon
 //! (`pointfarm serve`, its embedded worker rendering on lavapipe) and a real S3-compatible
 //! server (`s3s-fs`): each final frame appears as PREFIX/frame_NNNNN.png equal to the frame
-//! fetched from the daemon, a prefix outside the operator's `--allow-output-prefix` is
-//! PERMISSION_DENIED naming the rule, and uploads that fail are recorded in the job while
-//! its frames stay fetchable. Each test skips, saying so, where `POINTFARM_TEST_S3S_FS`
-//! names no `s3s-fs` binary.
+//! fetched from the daemon, and the video beside them equals the video fetched; a prefix
+//! outside the operator's `--allow-output-prefix` is PERMISSION_DENIED naming the rule, and
+//! uploads that fail are recorded in the job while its frames stay fetchable. Each test
+//! skips, saying so, where `POINTFARM_TEST_S3S_FS` names no `s3s-fs` binary.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -218,4 +218,48 @@ fn uploads_refused_by_the_store_are_recorded_and_the_frames_stay_fetchable() {
     ]);
     assert_ok(&output);
     assert_eq!(files_in(&fetched).len(), 2, "{}", output_text(&output));
+}
+
+#[test]
+fn a_jobs_video_appears_beside_its_frames_under_the_output_url() {
+    if !pointfarm_tests::installed_or_skip("ffmpeg", "-version", "deploy/test.sh") {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let Some((root, _s3, server)) = start(dir.path(), None) else {
+        return;
+    };
+    let scan = scan(dir.path());
+    let video = dir.path().join("spin.webm");
+    assert_ok(&pointfarm(&[
+        "render",
+        arg(&scan),
+        "--server",
+        &server.address,
+        "--turntable",
+        "3",
+        "--size",
+        "48x32",
+        "--out",
+        arg(&dir.path().join("frames")),
+        "--video",
+        arg(&video),
+        "--output-url",
+        &format!("{ALLOWED}/with-video"),
+    ]));
+    let listed = pointfarm_ok(&["jobs", "list", "--server", &server.address, "--json"]);
+    let listed: serde_json::Value = serde_json::from_str(stdout(&listed).trim()).expect("jobs");
+    let id = listed["jobs"][0]["id"]
+        .as_str()
+        .expect("the render's job")
+        .to_owned();
+    wait_for(
+        Duration::from_secs(120),
+        "frames and video uploaded",
+        || (job(&server, &id)["outputsUploaded"] == 4).then_some(()),
+    );
+    let folder = root.path().join(BUCKET).join("farm/with-video");
+    let object = std::fs::read(folder.join("video.webm")).expect("the video's object");
+    assert!(object == std::fs::read(&video).expect("the video fetched"));
+    assert_eq!(files_in(&folder).len(), 4);
 }
