@@ -454,6 +454,9 @@ impl DatasetStores {
                 let _one_at_a_time = building.lock().unwrap_or_else(|e| e.into_inner());
                 tracing::info!(dataset = %id, points, "building the dataset's levels of detail");
                 let built = open_or_build(&files, &folder, budget, &progress);
+                if let Ok(ready) = &built {
+                    resume::log_resumed(&id, ready);
+                }
                 let built = built.map_err(|e| e.to_string());
                 if let Some(gate) = ready_gate {
                     gate.wait();
@@ -461,9 +464,6 @@ impl DatasetStores {
                 let entry = match built {
                     Ok(ready) => {
                         // Frames render from the store now: the sample's memory is freed.
-                if let Ok(ready) = &built {
-                    resume::log_resumed(&id, ready);
-                }
                         previews
                             .lock()
                             .unwrap_or_else(|e| e.into_inner())
@@ -630,6 +630,10 @@ fn open_or_build(
 ) -> Result<ReadyStore, CutError> {
     let lod = StoredLod::open_or_build_watched(files, folder, budget, None, &mut |_| {}, progress)?;
     let build_ms = lod.built.as_ref().map_or(0.0, |(_, seconds)| seconds * 1e3);
+    let resumed = lod
+        .built
+        .as_ref()
+        .and_then(|(report, _)| resume::taken_over(report));
     let hierarchy_record = lod.dataset.hierarchy().encode();
     tracing::info!(
         folder = %folder.display(),
@@ -637,14 +641,11 @@ fn open_or_build(
         built = lod.built.is_some(),
         "store ready for workers"
     );
-    let resumed = lod
-        .built
-        .as_ref()
-        .and_then(|(report, _)| resume::taken_over(report));
     Ok(ReadyStore {
         kept: Kept::Store(Box::new(lod)),
         hierarchy_record,
         build_ms,
+        resumed,
         copc: None,
     })
 }
@@ -652,7 +653,6 @@ fn open_or_build(
 /// Opens the COPC file `path` (the dataset's file `name`) through its own hierarchy.
 fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
     let opened = open_copc_whole(path).map_err(|e| format!("COPC file {name}: {e}"))?;
-        resumed,
     let hierarchy = opened.dataset.hierarchy();
     let copc = CopcServed {
         file_name: name.to_owned(),
@@ -665,6 +665,7 @@ fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
         hierarchy_record: hierarchy.encode(),
         kept: Kept::Copc(opened.dataset),
         build_ms: 0.0,
+        resumed: None,
         copc: Some(copc),
     })
 }
@@ -672,10 +673,9 @@ fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
 mod healing;
 use healing::being_rebuilt;
 mod preview;
-        resumed: None,
+mod resume;
 #[cfg(test)]
 mod tests;
 
 pub use preview::PreviewBytes;
 use preview::PreviewState;
-mod resume;
