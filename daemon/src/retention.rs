@@ -122,7 +122,7 @@ pub fn spawn_sweep(daemon: Arc<Daemon>) -> tokio::task::JoinHandle<()> {
 }
 
 /// Bytes of the files below `dir` (none when it does not exist).
-fn folder_bytes(dir: &Path) -> u64 {
+pub(crate) fn folder_bytes(dir: &Path) -> u64 {
     let Ok(entries) = std::fs::read_dir(dir) else {
         return 0;
     };

@@ -274,6 +274,13 @@ impl DatasetStores {
             .map(|progress| progress.preview_version())
     }
 
+    /// The points the build of content `sha256` has stored so far, and its points in all
+    /// (0 of 0 while it still counts them); `None` when it is not being built.
+    pub fn building_points(&self, sha256: &str) -> Option<(u64, u64)> {
+        self.building_progress(sha256)
+            .map(|progress| progress.points())
+    }
+
     /// What the build of content `sha256` has stored so far, while it builds.
     fn building_progress(&self, sha256: &str) -> Option<Arc<BuildProgress>> {
         match self.entries_now().get(sha256) {

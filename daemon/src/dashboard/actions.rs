@@ -9,6 +9,8 @@ use axum::body::Bytes;
 use axum::extract::{Path, RawQuery, State};
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
+use axum::routing::post;
+use axum::Router;
 use pointfarm_proto::v1 as pb;
 use tonic::Status;
 
@@ -82,6 +84,13 @@ impl JobAction {
             JobAction::Delete { .. } => state.is_terminal(),
         }
     }
+}
+
+/// A job's buttons (`/jobs/{id}/{action}`) and the API's actions (`/api/jobs/{id}/{action}`).
+pub(super) fn routes() -> Router<Dashboard> {
+    Router::new()
+        .route("/jobs/{id}/{action}", post(page_action))
+        .route("/api/jobs/{id}/{action}", post(api_action))
 }
 
 async fn act(dashboard: &Dashboard, id: String, action: JobAction) -> Result<Job, Failure> {

@@ -6,7 +6,8 @@
 //! - `GET /api/jobs?state=running&pageSize=50&pageToken=...`: `ListJobsResponse`
 //! - `GET /api/jobs/{id}`: `Job` with its finished frames, as `GetJob` answers
 //! - `POST /api/jobs/{id}/{action}`: the `Job` after it (`actions`)
-//! - `GET /api/workers`: `ListWorkersResponse`
+//! - `GET /api/workers`: `ListWorkersResponse`, each worker that jobs have blocklisted with
+//!   `blocklistedBy` added: those jobs (`workers`)
 //! - `GET /api/datasets?pageSize=...&pageToken=...`: `ListDatasetsResponse`
 
 use std::sync::Arc;
@@ -14,6 +15,8 @@ use std::sync::Arc;
 use axum::extract::{Path, RawQuery, State};
 use axum::http::{header, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
+use axum::routing::get;
+use axum::Router;
 use pointfarm_proto::v1 as pb;
 use serde::Serialize;
 use tonic::{Code, Status};
@@ -21,7 +24,7 @@ use tonic::{Code, Status};
 use super::auth::field;
 use super::Dashboard;
 use crate::error::DaemonError;
-use crate::grpc::{self, blocking_within, job_with_frames_message, BLOCKING_CALL_BOUND};
+use crate::grpc::{blocking_within, job_with_frames_message, BLOCKING_CALL_BOUND};
 use crate::model::{FrameReport, Job, JobState};
 use crate::service::Daemon;
 
@@ -116,6 +119,14 @@ pub async fn run<T: Send + 'static>(
     })
 }
 
+/// The jobs, a job and the datasets (the workers are `workers`', the actions `actions`').
+pub(super) fn routes() -> Router<Dashboard> {
+    Router::new()
+        .route("/api/jobs", get(jobs))
+        .route("/api/jobs/{id}", get(job))
+        .route("/api/datasets", get(datasets))
+}
+
 /// A job state by its name in either spelling: `running` or `JOB_STATE_RUNNING`.
 pub fn parse_state(name: &str) -> Result<Option<JobState>, Failure> {
     let lower = name.trim().to_ascii_lowercase();
@@ -184,16 +195,6 @@ pub async fn job(
 ) -> Result<Response, Failure> {
     let (message, _, _) = job_message(&dashboard.daemon, id).await?;
     Ok(json(&message))
-}
-
-/// The workers heard from within the lease timeout, as `ListWorkers` answers.
-pub fn workers_message(daemon: &Daemon) -> pb::ListWorkersResponse {
-    let connected = daemon.workers.connected(daemon.config.lease_timeout);
-    grpc::workers_message(&connected)
-}
-
-pub async fn workers(State(dashboard): State<Dashboard>) -> Response {
-    json(&workers_message(&dashboard.daemon))
 }
 
 pub async fn datasets(

@@ -12,12 +12,19 @@
 //!   any credential on an open daemon, must carry an `Origin` equal to the dashboard's own:
 //!   with the `SameSite=Strict` cookie this refuses cross-site forms and scripts. A bearer
 //!   token is never sent by a browser on its own, so scripts that send one need no `Origin`.
+//! - Wrong tokens, to the form or as a bearer, are slowed then refused per client address
+//!   (`login_limit`).
+
+use std::net::IpAddr;
+use std::time::Instant;
 
 use axum::body::Bytes;
-use axum::extract::{Request, State};
+use axum::extract::{ConnectInfo, Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, Method, StatusCode};
 use axum::middleware::Next;
 use axum::response::{Html, IntoResponse, Response};
+use axum::routing::post;
+use axum::Router;
 use hmac::{Hmac, Mac};
 use pointfarm_proto::endpoint::connections::ConnectionInfo;
 use rand::Rng;
@@ -25,6 +32,8 @@ use sha2::Sha256;
 use tonic::metadata::MetadataValue;
 use tonic::service::Interceptor;
 
+use super::listener::DashboardConnection;
+use super::login_limit::{LoginAttempts, LoginLimit, Refused};
 use super::{html, Dashboard};
 use crate::access::{Access, Role};
 use crate::model::{hex, now_unix_ms};
@@ -35,10 +44,11 @@ pub const COOKIE: &str = "pointfarm_session";
 /// How long a session lasts: a working day.
 pub const SESSION_SECONDS: i64 = 12 * 3600;
 
-/// The tokens, and the key that signs sessions.
+/// The tokens, the key that signs sessions, and the wrong tokens given by each address.
 pub struct Sessions {
     access: Access,
     key: [u8; 32],
+    attempts: LoginAttempts,
 }
 
 /// How a request was let in.
@@ -62,10 +72,43 @@ enum Refusal {
 }
 
 impl Sessions {
-    pub fn new(access: Access) -> Self {
+    pub fn new(access: Access, login_limit: LoginLimit) -> Self {
         Self {
             access,
             key: rand::rng().random(),
+            attempts: LoginAttempts::new(login_limit),
+        }
+    }
+
+    /// Checks `token`, given by `address`, counting it against the address when it is wrong:
+    /// `Err(Err(refused))` when the address may give no token now, `Err(Ok(refusal))` (after
+    /// the address's delay) for a wrong one.
+    async fn check_token_from(
+        &self,
+        address: Option<IpAddr>,
+        token: Option<&str>,
+    ) -> Result<(), Result<Refusal, Refused>> {
+        let Some(address) = address else {
+            return self.check_token(token).map_err(Ok);
+        };
+        self.attempts
+            .check(address, Instant::now())
+            .map_err(|refused| {
+                tracing::debug!(%address, "a token refused: too many wrong ones from the address");
+                Err(refused)
+            })?;
+        match self.check_token(token) {
+            Ok(()) => {
+                self.attempts.succeeded(address);
+                Ok(())
+            }
+            Err(Refusal::InvalidToken) => {
+                let (failures, delay) = self.attempts.failed(address, Instant::now());
+                tracing::warn!(%address, failures, "a wrong dashboard token");
+                tokio::time::sleep(delay).await;
+                Err(Ok(Refusal::InvalidToken))
+            }
+            Err(refusal) => Err(Ok(refusal)),
         }
     }
 
@@ -92,13 +135,25 @@ impl Sessions {
         self.check_token(None).is_ok()
     }
 
+    /// Lets in a request by its bearer token (counted against `address` when wrong), its
+    /// session, or an open daemon.
+    async fn admit_from(
+        &self,
+        address: Option<IpAddr>,
+        headers: &HeaderMap,
+    ) -> Result<Admission, Result<Refusal, Refused>> {
+        match bearer_token(headers) {
+            Some(token) => self
+                .check_token_from(address, token)
+                .await
+                .map(|()| Admission::Bearer),
+            None => self.admit(headers).map_err(Ok),
+        }
+    }
+
     fn admit(&self, headers: &HeaderMap) -> Result<Admission, Refusal> {
-        if let Some(value) = headers.get(header::AUTHORIZATION) {
-            let token = value
-                .to_str()
-                .ok()
-                .and_then(|value| value.strip_prefix("Bearer "))
-                .ok_or(Refusal::InvalidToken)?;
+        if let Some(token) = bearer_token(headers) {
+            let token = token.ok_or(Refusal::InvalidToken)?;
             return self.check_token(Some(token)).map(|()| Admission::Bearer);
         }
         if self.is_open() {
@@ -154,6 +209,44 @@ impl Sessions {
     }
 }
 
+/// The token of an `Authorization` header: `None` without one, `Some(None)` when it is no
+/// bearer token.
+fn bearer_token(headers: &HeaderMap) -> Option<Option<&str>> {
+    let value = headers.get(header::AUTHORIZATION)?;
+    Some(
+        value
+            .to_str()
+            .ok()
+            .and_then(|value| value.strip_prefix("Bearer ")),
+    )
+}
+
+/// The client address of a request, as its connection was accepted.
+fn client_address(request: &Request) -> Option<IpAddr> {
+    let connection = request.extensions().get::<ConnectionInfo>()?;
+    connection.remote_addr().map(|address| address.ip())
+}
+
+/// An address refused for its wrong tokens: 429 with `Retry-After`, as a page of the login
+/// form for a browser.
+fn too_many(refused: Refused, page: Option<&str>) -> Response {
+    let seconds = refused.retry_after_seconds();
+    let message = format!(
+        "Too many wrong tokens from this address: try again in {}.",
+        html::duration(seconds as f64)
+    );
+    let retry_after = [(header::RETRY_AFTER, seconds.to_string())];
+    match page {
+        Some(next) => (
+            StatusCode::TOO_MANY_REQUESTS,
+            retry_after,
+            Html(html::login_page(Some(&message), next)),
+        )
+            .into_response(),
+        None => (StatusCode::TOO_MANY_REQUESTS, retry_after, message).into_response(),
+    }
+}
+
 fn unhex(text: &str) -> Option<Vec<u8>> {
     if !text.len().is_multiple_of(2) {
         return None;
@@ -198,9 +291,15 @@ pub async fn require_client(
     request: Request,
     next: Next,
 ) -> Response {
-    let admission = match dashboard.sessions.admit(request.headers()) {
+    let address = client_address(&request);
+    let admitted = dashboard
+        .sessions
+        .admit_from(address, request.headers())
+        .await;
+    let admission = match admitted {
         Ok(admission) => admission,
-        Err(refusal) => return refused(&request, refusal),
+        Err(Ok(refusal)) => return refused(&request, refusal),
+        Err(Err(limited)) => return too_many(limited, None),
     };
     if let Some(connection) = request.extensions().get::<ConnectionInfo>() {
         connection.admit();
@@ -287,6 +386,7 @@ pub async fn login_form(
 /// Takes the token from the login form; sets the session cookie when it is the client token.
 pub async fn login(
     State(dashboard): State<Dashboard>,
+    ConnectInfo(connection): ConnectInfo<DashboardConnection>,
     headers: HeaderMap,
     body: Bytes,
 ) -> Response {
@@ -303,7 +403,9 @@ pub async fn login(
         return redirect(&next);
     }
     let token = field(&body, "token").unwrap_or_default();
-    let (status, message) = match sessions.check_token(Some(token.trim())) {
+    let address = connection.0.remote_addr().map(|address| address.ip());
+    let checked = sessions.check_token_from(address, Some(token.trim())).await;
+    let (status, message) = match checked {
         Ok(()) => {
             let cookie = sessions.session_header(dashboard.tls);
             return (
@@ -312,13 +414,19 @@ pub async fn login(
             )
                 .into_response();
         }
-        Err(Refusal::WorkerToken) => (
+        Err(Err(limited)) => return too_many(limited, Some(&next)),
+        Err(Ok(Refusal::WorkerToken)) => (
             StatusCode::FORBIDDEN,
             "That is the worker token, which opens nothing here: give the client token.",
         ),
-        Err(_) => (StatusCode::UNAUTHORIZED, "That is not this farm's token."),
+        Err(Ok(_)) => (StatusCode::UNAUTHORIZED, "That is not this farm's token."),
     };
     (status, Html(html::login_page(Some(message), &next))).into_response()
+}
+
+/// Logging out; the login form is open, so `mod.rs` routes it beside the assets.
+pub(super) fn routes() -> Router<Dashboard> {
+    Router::new().route("/logout", post(logout))
 }
 
 /// Ends the browser's session.
@@ -350,13 +458,19 @@ mod tests {
 
     #[test]
     fn a_session_verifies_until_it_expires_and_not_when_altered() {
-        let sessions = Sessions::new(Access::new(Some("client"), Some("worker")));
+        let sessions = Sessions::new(
+            Access::new(Some("client"), Some("worker")),
+            LoginLimit::DEFAULT,
+        );
         let value = sessions.new_session(1_000);
         assert!(sessions.verify(&value, 1_000));
         assert!(!sessions.verify(&value, 1_000 + SESSION_SECONDS));
         let later = value.replacen("1", "9", 1);
         assert!(!sessions.verify(&later, 1_000), "{later}");
-        let other = Sessions::new(Access::new(Some("client"), Some("worker")));
+        let other = Sessions::new(
+            Access::new(Some("client"), Some("worker")),
+            LoginLimit::DEFAULT,
+        );
         assert!(!other.verify(&value, 1_000), "another start's key");
         assert!(!sessions.verify("", 1_000));
         assert!(!sessions.verify("1.2.zz", 1_000));
@@ -364,7 +478,10 @@ mod tests {
 
     #[test]
     fn tokens_are_checked_by_role() {
-        let sessions = Sessions::new(Access::new(Some("client"), Some("worker")));
+        let sessions = Sessions::new(
+            Access::new(Some("client"), Some("worker")),
+            LoginLimit::DEFAULT,
+        );
         assert_eq!(sessions.check_token(Some("client")), Ok(()));
         assert_eq!(
             sessions.check_token(Some("worker")),
@@ -376,7 +493,7 @@ mod tests {
         );
         assert_eq!(sessions.check_token(None), Err(Refusal::NoSession));
         assert!(!sessions.is_open());
-        assert!(Sessions::new(Access::default()).is_open());
+        assert!(Sessions::new(Access::default(), LoginLimit::DEFAULT).is_open());
     }
 
     #[test]

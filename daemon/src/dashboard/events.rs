@@ -13,6 +13,8 @@ use std::time::Duration;
 use axum::extract::{RawQuery, State};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use axum::Router;
 use pointfarm_proto::v1 as pb;
 use tokio_stream::wrappers::errors::BroadcastStreamRecvError;
 use tokio_stream::wrappers::BroadcastStream;
@@ -25,6 +27,10 @@ use super::Dashboard;
 /// How often an idle stream sends a comment, so proxies and the connection's idle bound
 /// keep it open.
 const KEEP_ALIVE: Duration = Duration::from_secs(15);
+
+pub(super) fn routes() -> Router<Dashboard> {
+    Router::new().route("/api/events", get(events))
+}
 
 pub async fn events(
     State(dashboard): State<Dashboard>,

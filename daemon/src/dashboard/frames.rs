@@ -9,6 +9,8 @@ use axum::body::{Body, Bytes};
 use axum::extract::{Path, State};
 use axum::http::header;
 use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use axum::Router;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Status;
 
@@ -23,6 +25,14 @@ use crate::model::FrameState;
 pub const THUMBNAIL_SIDE: u32 = 240;
 
 /// The PNG of frame `index` of job `id`: final or preview; NOT_FOUND while it has neither.
+/// A frame's image and thumbnail, and a job's video.
+pub(super) fn routes() -> Router<Dashboard> {
+    Router::new()
+        .route("/jobs/{id}/frames/{index}/image", get(image))
+        .route("/jobs/{id}/frames/{index}/thumbnail", get(thumbnail))
+        .route("/jobs/{id}/video", get(video))
+}
+
 async fn frame_png(dashboard: &Dashboard, id: String, index: u32) -> Result<Vec<u8>, Failure> {
     let path = run(&dashboard.daemon, move |daemon| {
         let job = daemon.job(&id)?;

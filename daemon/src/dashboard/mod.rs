@@ -8,12 +8,14 @@
 //!
 //! - `auth`: the client token, given once to a login form (a signed session cookie follows)
 //!   or as `Authorization: Bearer` by scripts; the worker token opens nothing here; a state
-//!   change made with a cookie must come from the dashboard's own origin.
+//!   change made with a cookie must come from the dashboard's own origin; `login_limit`
+//!   slows then refuses an address that gives wrong tokens.
 //! - `listener`: the bounded connections of `pointfarm_proto::endpoint::connections`, with
 //!   TLS when the API has it.
 //! - `api` (JSON), `actions` (cancel, pause, resume, retry, priority, delete), `events`
-//!   (server-sent events), `pages` and `html` (the pages), `frames` (frame images and
-//!   thumbnails), `assets/` (CSS and JavaScript, built into the binary).
+//!   (server-sent events), `pages` (the jobs), `workers` and `datasets` (their page, and the
+//!   workers' JSON), `html` (what the pages share), `frames` (frame images and thumbnails),
+//!   `assets/` (CSS and JavaScript, built into the binary).
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -24,7 +26,7 @@ use axum::extract::Request;
 use axum::http::header;
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
-use axum::routing::{get, post};
+use axum::routing::get;
 use axum::Router;
 use pointfarm_proto::endpoint::connections::{ConnectionLayer, ConnectionLimits};
 use tokio::net::TcpListener;
@@ -36,14 +38,18 @@ use crate::service::Daemon;
 mod actions;
 mod api;
 mod auth;
+mod datasets;
 mod events;
 mod frames;
 mod html;
 mod listener;
+mod login_limit;
 mod pages;
+mod workers;
 
 use auth::Sessions;
 use listener::{DashboardConnection, DashboardListener};
+pub use login_limit::LoginLimit;
 
 /// Who may open the dashboard and how it is reached.
 #[derive(Clone)]
@@ -73,6 +79,16 @@ pub async fn listen(
     daemon: Arc<Daemon>,
     options: DashboardOptions,
 ) -> anyhow::Result<(SocketAddr, &'static str)> {
+    listen_limiting_logins(address, daemon, options, LoginLimit::DEFAULT).await
+}
+
+/// [`listen`] with wrong tokens slowed and refused as `login_limit` says.
+pub async fn listen_limiting_logins(
+    address: &str,
+    daemon: Arc<Daemon>,
+    options: DashboardOptions,
+    login_limit: LoginLimit,
+) -> anyhow::Result<(SocketAddr, &'static str)> {
     let tls = match &options.tls {
         Some(identity) => Some(listener::tls_acceptor(identity)?),
         None => None,
@@ -92,7 +108,7 @@ pub async fn listen(
         .map_err(|refusal| anyhow::anyhow!("the dashboard (--dashboard-listen): {refusal}"))?;
     let dashboard = Dashboard {
         daemon,
-        sessions: Arc::new(Sessions::new(options.access)),
+        sessions: Arc::new(Sessions::new(options.access, login_limit)),
         tls: tls.is_some(),
     };
     let listener = DashboardListener::start(socket, options.connection_limits, tls);
@@ -106,32 +122,24 @@ pub async fn listen(
 }
 
 /// Every route: the login form and the assets are open, everything else needs the client
-/// token.
+/// token. Each module routes the paths its handlers answer.
 fn router(dashboard: Dashboard) -> Router {
-    let guarded = Router::new()
-        .route("/", get(pages::jobs))
-        .route("/jobs/{id}", get(pages::job))
-        .route("/jobs/{id}/{action}", post(actions::page_action))
-        .route("/jobs/{id}/video", get(frames::video))
-        .route("/jobs/{id}/frames/{index}", get(pages::frame))
-        .route("/jobs/{id}/frames/{index}/image", get(frames::image))
-        .route(
-            "/jobs/{id}/frames/{index}/thumbnail",
-            get(frames::thumbnail),
-        )
-        .route("/workers", get(pages::workers))
-        .route("/datasets", get(pages::datasets))
-        .route("/api/jobs", get(api::jobs))
-        .route("/api/jobs/{id}", get(api::job))
-        .route("/api/jobs/{id}/{action}", post(actions::api_action))
-        .route("/api/workers", get(api::workers))
-        .route("/api/datasets", get(api::datasets))
-        .route("/api/events", get(events::events))
-        .route("/logout", post(auth::logout))
-        .route_layer(middleware::from_fn_with_state(
-            dashboard.clone(),
-            auth::require_client,
-        ));
+    let guarded = [
+        pages::routes(),
+        frames::routes(),
+        actions::routes(),
+        api::routes(),
+        events::routes(),
+        workers::routes(),
+        datasets::routes(),
+        auth::routes(),
+    ]
+    .into_iter()
+    .fold(Router::new(), Router::merge)
+    .route_layer(middleware::from_fn_with_state(
+        dashboard.clone(),
+        auth::require_client,
+    ));
     Router::new()
         .route("/login", get(auth::login_form).post(auth::login))
         .route("/assets/dashboard.css", get(stylesheet))

@@ -1,6 +1,6 @@
-//! The pages, rendered on the server from the daemon's own records: jobs (newest first,
-//! filtered by state), a job with its frames as thumbnails, a frame large with its stage
-//! timings, the workers, the datasets; and a job's buttons (`actions`). The script
+//! The job pages, rendered on the server from the daemon's own records: jobs (newest first,
+//! filtered by state, each with its stage), a job with its frames as thumbnails, a frame
+//! large with its stage timings; and a job's buttons (`actions`). The script
 //! (`assets/dashboard.js`) keeps them current from the event stream.
 
 use std::collections::HashMap;
@@ -8,16 +8,18 @@ use std::fmt::Write;
 
 use axum::extract::{Path, RawQuery, State};
 use axum::response::{Html, IntoResponse, Response};
+use axum::routing::get;
+use axum::Router;
 use pointfarm_render::encode::video::VideoContainer;
 
 use super::actions::JobAction;
-use super::api::{failure_page, parse_state, run, workers_message, Failure};
+use super::api::{failure_page, parse_state, run, Failure};
 use super::auth::field;
 use super::html::{self, escape, segment};
 use super::Dashboard;
 use crate::error::DaemonError;
 use crate::job_control::PRIORITY_RANGE;
-use crate::model::{now_unix_ms, Dataset, FrameReport, Job, JobState};
+use crate::model::{now_unix_ms, FrameReport, Job, JobState};
 use crate::service::Daemon;
 
 /// How many jobs the jobs page lists unless asked for more (`?limit=N`): enough for a day's
@@ -46,18 +48,42 @@ fn newest_jobs(
     Ok((jobs, matching))
 }
 
-/// The names of the datasets, by id.
-fn dataset_names(daemon: &Daemon) -> Result<HashMap<String, String>, DaemonError> {
+/// `/` (the jobs), `/jobs/{id}` (a job) and `/jobs/{id}/frames/{index}` (a frame).
+pub(super) fn routes() -> Router<Dashboard> {
+    Router::new()
+        .route("/", get(jobs))
+        .route("/jobs/{id}", get(job))
+        .route("/jobs/{id}/frames/{index}", get(frame))
+}
+
+/// What the jobs page says of each dataset, by id: its name and whether its store builds.
+fn dataset_names(daemon: &Daemon) -> Result<HashMap<String, (String, bool)>, DaemonError> {
     Ok(daemon
         .state
         .datasets()?
         .into_iter()
-        .map(|dataset| (dataset.id, dataset.name))
+        .map(|dataset| {
+            let building = daemon.stores.building_version(&dataset.sha256).is_some();
+            (dataset.id, (dataset.name, building))
+        })
         .collect())
 }
 
+/// What a job is doing, for users: waiting for its dataset's store to be built ("store
+/// build"), drawing previews while it builds ("previews"), rendering its final frames
+/// ("final frames"), making its video ("video"); empty once it has ended. The script
+/// follows the same rule from the job's `stage` and the frames it is told of.
+pub(super) fn job_stage(job: &Job, store_building: bool) -> &'static str {
+    match job.stage() {
+        "frames" if store_building && job.spec.preview => "previews",
+        "frames" if store_building => "store build",
+        "frames" => "final frames",
+        other => other,
+    }
+}
+
 /// What users call a job: its name, else the request id its client chose.
-fn job_name(job: &Job) -> &str {
+pub(super) fn job_name(job: &Job) -> &str {
     if job.spec.name.is_empty() {
         &job.spec.request_id
     } else {
@@ -66,7 +92,7 @@ fn job_name(job: &Job) -> &str {
 }
 
 /// One row of the jobs table; the script builds the same from a job event.
-fn job_row(job: &Job, dataset: &str, now_ms: i64) -> String {
+fn job_row(job: &Job, dataset: &str, stage: &str, now_ms: i64) -> String {
     let id = escape(&job.id);
     let eta = html::eta_seconds(job, now_ms)
         .map(html::duration)
@@ -74,7 +100,7 @@ fn job_row(job: &Job, dataset: &str, now_ms: i64) -> String {
     format!(
         "<tr data-job=\"{id}\" data-created=\"{created}\">\
          <td><a href=\"/jobs/{link}\">{id}</a></td><td>{name}</td><td>{dataset}</td>\
-         <td class=\"job-state\">{state}</td>\
+         <td class=\"job-state\">{state}</td><td class=\"stage\">{stage}</td>\
          <td><progress max=\"{total}\" value=\"{done}\"></progress></td>\
          <td class=\"frames\">{done}/{total}</td><td class=\"eta\">{eta}</td></tr>",
         created = job.created_unix_ms,
@@ -133,15 +159,18 @@ pub async fn jobs(State(dashboard): State<Dashboard>, RawQuery(query): RawQuery)
         body,
         "</nav><p class=\"count\">{shown} of {matching} jobs</p>\
          <div class=\"table\"><table id=\"jobs\"><thead><tr><th>Job</th><th>Name</th>\
-         <th>Dataset</th><th>State</th><th>Progress</th><th>Frames</th><th>ETA</th></tr>\
+         <th>Dataset</th><th>State</th><th>Stage</th><th>Progress</th><th>Frames</th>\
+         <th>ETA</th></tr>\
          </thead><tbody>",
         shown = jobs.len()
     );
     for job in &jobs {
-        let dataset = names
-            .get(&job.spec.dataset_id)
-            .unwrap_or(&job.spec.dataset_id);
-        body.push_str(&job_row(job, dataset, now_ms));
+        let (dataset, building) = match names.get(&job.spec.dataset_id) {
+            Some((name, building)) => (name.as_str(), *building),
+            None => (job.spec.dataset_id.as_str(), false),
+        };
+        let stage = job_stage(job, building);
+        body.push_str(&job_row(job, dataset, stage, now_ms));
     }
     body.push_str("</tbody></table></div>");
     if matching > jobs.len() {
@@ -244,10 +273,13 @@ pub async fn job(State(dashboard): State<Dashboard>, Path(id): Path<String>) -> 
         Err(failure) => return failure_page("Jobs", failure),
     };
     let dataset_id = job.spec.dataset_id.clone();
-    let dataset = run(&dashboard.daemon, move |daemon| daemon.dataset(&dataset_id))
-        .await
-        .map(|dataset| dataset.name)
-        .unwrap_or_else(|_| job.spec.dataset_id.clone());
+    let (dataset, building) = run(&dashboard.daemon, move |daemon| {
+        let dataset = daemon.dataset(&dataset_id)?;
+        let building = daemon.stores.building_version(&dataset.sha256).is_some();
+        Ok((dataset.name, building))
+    })
+    .await
+    .unwrap_or_else(|_| (job.spec.dataset_id.clone(), false));
     let id = escape(&job.id);
     let link = segment(&job.id);
     let eta = html::eta_seconds(&job, now_unix_ms())
@@ -257,6 +289,7 @@ pub async fn job(State(dashboard): State<Dashboard>, Path(id): Path<String>) -> 
         "<h1>Job <code>{id}</code></h1><dl class=\"facts\">\
          <dt>Name</dt><dd>{name}</dd><dt>Dataset</dt><dd>{dataset}</dd>\
          <dt>State</dt><dd class=\"job-state\">{state}</dd>\
+         <dt>Stage</dt><dd class=\"stage\">{stage}</dd>\
          <dt>Frames</dt><dd><progress max=\"{total}\" value=\"{done}\"></progress> \
          <span class=\"frames\">{done}/{total}</span></dd>\
          <dt>ETA</dt><dd class=\"eta\">{eta}</dd>\
@@ -266,6 +299,7 @@ pub async fn job(State(dashboard): State<Dashboard>, Path(id): Path<String>) -> 
         name = escape(job_name(&job)),
         dataset = escape(&dataset),
         state = html::state_badge(job.state),
+        stage = job_stage(&job, building),
         total = job.frames_total,
         done = job.frames_done,
         width = job.spec.request.width,
@@ -421,165 +455,57 @@ pub async fn frame(
     Html(html::layout(&title, "Jobs", "frame", &data, &body)).into_response()
 }
 
-pub async fn workers(State(dashboard): State<Dashboard>) -> Response {
-    let daemon = dashboard.daemon.clone();
-    let leases = match run(&dashboard.daemon, |daemon| daemon.leases()).await {
-        Ok(leases) => leases,
-        Err(failure) => return failure_page("Workers", failure),
-    };
-    let timeout = daemon.config.lease_timeout;
-    let can_render = daemon.workers.can_render(timeout);
-    let disk = daemon.state.outage();
-    let mut body = String::from("<h1>Workers</h1>");
-    let health = match (&disk, can_render) {
-        (Some(outage), _) => format!(
-            "<p class=\"health bad\">The disk refuses writes: no frame is stored ({}).</p>",
-            escape(&outage.to_string())
-        ),
-        (None, true) => "<p class=\"health good\">A worker can render.</p>".to_string(),
-        (None, false) => "<p class=\"health bad\">No worker can render: jobs wait.</p>".to_string(),
-    };
-    body.push_str(&health);
-    body.push_str(
-        "<div class=\"table\"><table id=\"workers\"><thead><tr><th>Worker</th><th>Kind</th>\
-         <th>Adapter</th><th>Capabilities</th><th>Current frame</th><th>Health</th></tr>\
-         </thead><tbody>",
-    );
-    let listed = workers_message(&daemon);
-    for worker in &listed.workers {
-        let name = &worker.worker_name;
-        let current: Vec<String> = leases
-            .iter()
-            .filter(|lease| lease.worker == *name)
-            .map(|lease| {
-                format!(
-                    "<a href=\"/jobs/{link}/frames/{index}\">{id} #{index}</a>",
-                    link = segment(&lease.job_id),
-                    id = escape(&lease.job_id),
-                    index = lease.index
-                )
-            })
-            .collect();
-        let caps = worker.capabilities.clone().unwrap_or_default();
-        let adapter = match caps.adapter_kind() {
-            pointfarm_proto::v1::AdapterKind::Hardware => "GPU",
-            pointfarm_proto::v1::AdapterKind::Software => "software (CPU)",
-            pointfarm_proto::v1::AdapterKind::Unspecified => "unknown",
+#[cfg(test)]
+mod tests {
+    use pointfarm_render::encode::video::{VideoContainer, VideoSettings};
+    use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
+
+    use super::*;
+    use crate::model::JobSpec;
+
+    fn job(state: JobState, frames_done: u32, preview: bool, video: bool) -> Job {
+        let request = RenderRequest {
+            width: 8,
+            height: 8,
+            camera_path: CameraPath::Turntable(Turntable::around_the_cloud(4)),
+            lens: Lens::default(),
+            render: RenderOptions::default(),
         };
-        let mut capabilities = Vec::new();
-        if caps.device_memory_bytes > 0 {
-            capabilities.push(format!("{} memory", html::bytes(caps.device_memory_bytes)));
+        let mut spec = JobSpec::new("nightly".into(), "ds-1".into(), request);
+        spec.preview = preview;
+        spec.video =
+            video.then(|| VideoSettings::new(VideoContainer::Webm, None, 24, 30).expect("a video"));
+        Job {
+            id: "job-1".into(),
+            spec,
+            state,
+            frames_total: 4,
+            frames_done,
+            error: None,
+            created_unix_ms: 0,
+            updated_unix_ms: 0,
+            worker_failures: Default::default(),
+            blocklist: Default::default(),
+            encode: None,
+            outputs: Default::default(),
         }
-        if caps.shader_int64_atomics {
-            capabilities.push("64-bit atomics".to_string());
-        }
-        if caps.max_frame_side > 0 {
-            capabilities.push(format!("frames up to {} px", caps.max_frame_side));
-        }
-        for tag in &caps.tags {
-            capabilities.push(format!("tag {}", escape(tag)));
-        }
-        let _ = write!(
-            body,
-            "<tr data-worker=\"{name}\"><td>{name}</td><td>{kind}</td><td>{adapter}: {adapter_name}</td>\
-             <td>{capabilities}</td><td>{current}</td><td>{health}</td></tr>",
-            name = escape(name),
-            kind = if worker.embedded { "embedded" } else { "remote" },
-            adapter_name = escape(&caps.adapter_name),
-            capabilities = capabilities.join(", "),
-            health = if current.is_empty() { "idle" } else { "rendering" },
-            current = if current.is_empty() {
-                "—".to_string()
-            } else {
-                current.join(", ")
-            },
-        );
     }
-    body.push_str("</tbody></table></div>");
-    if listed.workers.is_empty() {
-        body.push_str("<p>No worker has asked for frames lately.</p>");
-    }
-    Html(html::layout(
-        "Workers",
-        "Workers",
-        "workers",
-        " data-refresh=\"5\"",
-        &body,
-    ))
-    .into_response()
-}
 
-/// A dataset's points from its files' headers; `None` for an object by URL or a file that
-/// cannot be read now.
-fn dataset_points(daemon: &Daemon, dataset: &Dataset) -> Option<u64> {
-    if dataset.remote.is_some() {
-        return None;
-    }
-    let reports = daemon.describe_dataset(&dataset.id, false).ok()?;
-    reports
-        .iter()
-        .map(|report| report.outcome.as_ref().ok().map(|(info, _)| info.points))
-        .sum()
-}
-
-/// Where a dataset's level-of-detail store stands.
-fn store_state(daemon: &Daemon, dataset: &Dataset) -> String {
-    if let Some(version) = daemon.stores.building_version(&dataset.sha256) {
-        return format!("building ({}%)", version * 10);
-    }
-    let folder = daemon.config.data_dir.join("lod").join(&dataset.sha256);
-    if pointfarm_render::cut::StoredLod::is_built(&folder) {
-        "built".to_string()
-    } else {
-        "none (built when a frame needs it)".to_string()
-    }
-}
-
-pub async fn datasets(State(dashboard): State<Dashboard>) -> Response {
-    let read = run(&dashboard.daemon, |daemon| {
-        let mut datasets = daemon.state.datasets()?;
-        datasets.sort_by(|a, b| (b.created_unix_ms, &b.id).cmp(&(a.created_unix_ms, &a.id)));
-        Ok(datasets
-            .into_iter()
-            .map(|dataset| {
-                let points = dataset_points(daemon, &dataset);
-                let store = store_state(daemon, &dataset);
-                (dataset, points, store)
-            })
-            .collect::<Vec<_>>())
-    });
-    let datasets = match read.await {
-        Ok(datasets) => datasets,
-        Err(failure) => return failure_page("Datasets", failure),
-    };
-    let mut body = String::from(
-        "<h1>Datasets</h1><div class=\"table\"><table id=\"datasets\"><thead><tr>\
-         <th>Dataset</th><th>Name</th><th>Files</th><th>Points</th><th>Size</th>\
-         <th>Store</th></tr></thead><tbody>",
-    );
-    for (dataset, points, store) in &datasets {
-        let files = dataset.files();
-        let file_names: Vec<String> = files.iter().map(|file| escape(&file.name)).collect();
-        let _ = write!(
-            body,
-            "<tr><td><code>{id}</code></td><td>{name}</td>\
-             <td><details><summary>{count}</summary>{names}</details></td>\
-             <td class=\"number\">{points}</td><td class=\"number\">{size}</td>\
-             <td>{store}</td></tr>",
-            id = escape(&dataset.id),
-            name = escape(&dataset.name),
-            count = files.len(),
-            names = file_names.join("<br>"),
-            points = points.map_or("—".to_string(), |p| p.to_string()),
-            size = html::bytes(dataset.size_bytes),
-            store = escape(store),
+    #[test]
+    fn a_jobs_stage_follows_its_store_its_frames_and_its_video() {
+        use JobState::*;
+        assert_eq!(
+            job_stage(&job(Queued, 0, false, false), true),
+            "store build"
         );
-    }
-    body.push_str("</tbody></table></div>");
-    if datasets.is_empty() {
-        body.push_str(
-            "<p>No datasets yet: <code>pointfarm render --server</code> uploads one.</p>",
+        assert_eq!(job_stage(&job(Running, 0, true, false), true), "previews");
+        assert_eq!(
+            job_stage(&job(Running, 2, true, false), false),
+            "final frames"
         );
+        assert_eq!(job_stage(&job(Running, 4, false, true), false), "video");
+        assert_eq!(job_stage(&job(Running, 4, false, true), true), "video");
+        assert_eq!(job_stage(&job(Succeeded, 4, false, true), false), "");
+        assert_eq!(job_stage(&job(Cancelled, 1, true, false), true), "");
     }
-    Html(html::layout("Datasets", "Datasets", "datasets", "", &body)).into_response()
 }

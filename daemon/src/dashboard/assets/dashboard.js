@@ -56,6 +56,18 @@
     }
   }
 
+  // The stage `root` shows of `job`, as the server words it (`pages::job_stage`): the
+  // job's own stage when it makes its video or has ended; while frames render, whether the
+  // frame just finished is a preview or final, else what the page was rendered with.
+  function showStage(root, job, frame) {
+    const cell = root.querySelector(".stage");
+    if (!cell) return;
+    const stage = job.stage || "";
+    if (stage !== "frames") cell.textContent = stage;
+    else if (frame) cell.textContent = frame.preview ? "previews" : "final frames";
+    else if (cell.textContent === "" || cell.textContent === "video") cell.textContent = "frames";
+  }
+
   // Says in the header whether the page is following the farm; `data-live` is `open` once
   // the stream is.
   function showLive(state, text) {
@@ -93,6 +105,7 @@
     cell(row, job.name || job.requestId || "");
     cell(row, job.datasetId || "");
     cell(row, "").className = "job-state";
+    cell(row, "").className = "stage";
     cell(row, document.createElement("progress"));
     cell(row, "").className = "frames";
     cell(row, "").className = "eta";
@@ -112,6 +125,7 @@
         rows.prepend(row);
       }
       showJob(row, job);
+      showStage(row, job, event.frame);
     });
   }
 
@@ -142,6 +156,7 @@
     listen("/api/events?job=" + encodeURIComponent(id), (event) => {
       if (event.job) {
         showJob(body, event.job);
+        showStage(body, event.job, event.frame);
         (event.job.frames || []).forEach(showFrame);
       }
       if (event.frame) showFrame(event.frame);
