@@ -101,11 +101,24 @@ fn build(files: &[PathBuf], folder: &Path, budget_mib: u64) -> Result<(f64, LodS
     let report =
         build_lod(&source, &store, &options(folder, budget_mib)).map_err(|e| e.to_string())?;
     let seconds = started.elapsed().as_secs_f64();
+    let regions = store
+        .read_regions()
+        .map_err(|e| e.to_string())?
+        .ok_or("the build kept no regions")?;
+    let kept: u64 = regions
+        .regions
+        .iter()
+        .filter_map(|r| r.root.map(|n| n.stored_bytes()))
+        .sum();
     println!(
-        "    built {} points of {} files in {seconds:.2} s: {} partitions",
+        "    built {} points of {} files in {seconds:.2} s: {} partitions, {} regions; \
+         {:.1} MB stored, {:.1} MB of it the regions' kept roots",
         report.hierarchy.point_count,
         files.len(),
-        report.partitions
+        report.partitions,
+        regions.regions.len(),
+        report.stored_bytes as f64 / 1e6,
+        kept as f64 / 1e6
     );
     drop(db);
     Ok((seconds, store))

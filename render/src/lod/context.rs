@@ -10,7 +10,7 @@ use super::attributes::AttributeRows;
 use super::error::LodError;
 use super::journal::{sync_dir, BuildJournal, UnitKind, WaitingRoot};
 use super::key::{NodeKey, RootCube};
-use super::local::{LocalBuilder, SubtreeRoot};
+use super::local::{KeptRoot, LocalBuilder, SubtreeRoot};
 use super::memory::MemoryMeter;
 use super::options::LodBuildOptions;
 use super::regions::Region;
@@ -61,7 +61,9 @@ impl BuildContext<'_> {
     /// Finishes a unit of `kind`: its `region` stored and recorded with its subtree root
     /// (`key`, `root`), which is stored too where it is the octree's root, else parked in a
     /// spill file (synced before the unit is recorded) for the level above; `rows` are the
-    /// points' attribute rows.
+    /// points' attribute rows. A partition's `kept` roots (its children's) are stored with it
+    /// and listed as the store's regions; a partition without them (a leaf) is a region
+    /// itself, its root kept.
     pub fn finish_unit(
         &self,
         kind: UnitKind,
@@ -69,22 +71,22 @@ impl BuildContext<'_> {
         key: NodeKey,
         root: SubtreeRoot,
         rows: &AttributeRows,
+        mut kept: Vec<KeptRoot>,
     ) -> Result<(), LodError> {
         let mut parked = None;
-        // A partition's subtree root is kept as it is now, before the levels above sample
-        // from it, so that an update samples them again without the partition's points.
-        let kept_root = match kind == UnitKind::Partition && key.level > 0 {
-            true => Some(
-                self.sink
+        // A region's subtree root is kept as it is now, before the levels above sample from
+        // it, so that an update samples them again without the region's points.
+        if kind == UnitKind::Partition && kept.is_empty() && key.level > 0 {
+            kept.push(KeptRoot {
+                key,
+                points: root.points.len() as u64,
+                root: self
+                    .sink
                     .encode(key, &root.points, root.sample_grid, rows)?,
-            ),
-            false => None,
-        };
-        let points = region
-            .iter()
-            .map(|n| u64::from(n.point_count()))
-            .sum::<u64>()
-            + root.points.len() as u64;
+            });
+        }
+        let whole_octree = kind == UnitKind::Partition && kept.is_empty();
+        let root_points = root.points.len() as u64;
         if key.level == 0 {
             region.push(
                 self.sink
@@ -113,16 +115,33 @@ impl BuildContext<'_> {
             key,
             waiting: parked.as_ref().map(|p| p.root),
         };
-        let kept_root = self.sink.store(region, done, kept_root)?;
+        let counts: Vec<(NodeKey, u64)> = kept.iter().map(|k| (k.key, k.points)).collect();
+        let kept_roots =
+            self.sink
+                .store(region, done, kept.into_iter().map(|k| k.root).collect())?;
         if kind == UnitKind::Partition {
-            self.regions
+            let mut regions = self
+                .regions
                 .lock()
-                .unwrap_or_else(|poisoned| poisoned.into_inner())
-                .push(Region {
+                .unwrap_or_else(|poisoned| poisoned.into_inner());
+            regions.extend(
+                counts
+                    .iter()
+                    .zip(kept_roots)
+                    .map(|(&(key, points), root)| Region {
+                        key,
+                        points,
+                        root: Some(root),
+                    }),
+            );
+            if whole_octree {
+                // The octree's root as a leaf: nothing above samples from it.
+                regions.push(Region {
                     key,
-                    points,
-                    root: kept_root,
+                    points: root_points,
+                    root: None,
                 });
+            }
         }
         if let Some(pending) = parked {
             self.pending

@@ -26,12 +26,25 @@ pub struct LocalBuilder<'a> {
     pub rows: &'a AttributeRows,
 }
 
+/// A subtree whose root's points are kept as they were before its parent sampled from them,
+/// so that a store update builds it again alone (`update.rs`): a region of the store.
+pub struct KeptRoot {
+    pub key: NodeKey,
+    /// Points in the subtree, its root's included.
+    pub points: u64,
+    pub root: EncodedNode,
+}
+
 impl LocalBuilder<'_> {
+    /// Builds `key`'s subtree of `points`; with `kept`, each child subtree's root is kept
+    /// there as it was before `key` sampled from it (a partition's children are the store's
+    /// regions: a quarter of a partition on a surface is what an update builds again).
     pub fn build(
         &self,
         key: NodeKey,
         points: Vec<RawPoint>,
         region: &mut Vec<EncodedNode>,
+        mut kept: Option<&mut Vec<KeptRoot>>,
     ) -> Result<SubtreeRoot, LodError> {
         if points.len() <= self.max_leaf_points || key.level >= MAX_LEVEL {
             return Ok(SubtreeRoot {
@@ -47,7 +60,20 @@ impl LocalBuilder<'_> {
             if child_points.is_empty() {
                 continue;
             }
-            let child = self.build(key.child(i), child_points, region)?;
+            let count = child_points.len() as u64;
+            let child = self.build(key.child(i), child_points, region, None)?;
+            if let Some(kept) = kept.as_deref_mut() {
+                kept.push(KeptRoot {
+                    key: key.child(i),
+                    points: count,
+                    root: self.sink.encode(
+                        key.child(i),
+                        &child.points,
+                        child.sample_grid,
+                        self.rows,
+                    )?,
+                });
+            }
             own[i] = child.points;
             grids[i] = child.sample_grid;
             present[i] = true;

@@ -32,7 +32,7 @@
 //! for tests/build_resume.rs to kill it there.
 //!
 //! A built store is updated in place when files are added to its dataset (`update.rs`): it
-//! keeps the regions it was built in, each partition's subtree with the subtree root's points
+//! keeps its regions, the subtrees of each partition's children, with each subtree root's points
 //! as they were before the levels above sampled from them (`regions.rs`, written with the
 //! hierarchy in one sled batch). Each added point goes to the region whose cube holds it (or
 //! starts one where no region is); only the regions that received points are built again,
@@ -72,7 +72,7 @@ mod plan;
 mod point;
 pub mod progress;
 pub mod records;
-mod regions;
+pub mod regions;
 mod resume;
 pub mod sampling;
 mod sink;

@@ -99,10 +99,18 @@ fn build_partition(
     let mut rows = AttributeRows::new(layout.row_bytes);
     let points = spill::read_all(&files, layout, partition.count, &mut rows)?;
     let mut region = Vec::new();
-    let root = ctx
-        .local_builder(&rows)
-        .build(partition.key, points, &mut region)?;
-    ctx.finish_unit(UnitKind::Partition, region, partition.key, root, &rows)?;
+    let mut kept = Vec::new();
+    let root =
+        ctx.local_builder(&rows)
+            .build(partition.key, points, &mut region, Some(&mut kept))?;
+    ctx.finish_unit(
+        UnitKind::Partition,
+        region,
+        partition.key,
+        root,
+        &rows,
+        kept,
+    )?;
     // Removed once the partition is recorded: a build stopped before then builds it again.
     remove_all(&files)
 }

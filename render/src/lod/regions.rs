@@ -1,9 +1,9 @@
 //! `StoreRegions`: what a store keeps beside its hierarchy so that it can be updated instead of
-//! built again (`update.rs`): the regions its points were built in (a partition's subtree each,
-//! every point in exactly one region), each with its point count and, for a region below the
-//! root, its subtree root as it was before the levels above sampled from it (a record in the
-//! payload file, not listed in the hierarchy); the LAS grid every point lies on, if one; and
-//! the files the points came from, one entry each.
+//! built again (`update.rs`): its regions (the subtrees of each partition's children, or the
+//! partition itself where it is a leaf; every point in exactly one region), each with its point
+//! count and, for a region below the root, its subtree root as it was before the levels above
+//! sampled from it (a record in the payload file, not listed in the hierarchy); the LAS grid
+//! every point lies on, if one; and the files the points came from, one entry each.
 //!
 //! Written in the same sled batch as the hierarchy, so the two always describe the same
 //! points. Layout, little-endian: "PFR1" | grid present u8, then scale 3 x f64, offset

@@ -48,13 +48,6 @@ pub struct EncodedNode {
     attributes: Vec<u8>,
 }
 
-impl EncodedNode {
-    /// The node's points.
-    pub fn point_count(&self) -> u32 {
-        self.info.point_count
-    }
-}
-
 impl<'a> NodeSink<'a> {
     pub fn new(
         store: &'a LodStore,
@@ -126,22 +119,23 @@ impl<'a> NodeSink<'a> {
     /// are stored one at a time, so the payload file holds the units in the journal's order
     /// and nothing else but the unit being stored; a resumed build cuts that off.
     ///
-    /// `kept_root`, a partition's subtree root as it was before the levels above sampled from
-    /// it, is stored after the region in one piece and not listed: a store update samples the
-    /// levels above again from it (`update.rs`). Returns where it lies.
+    /// `kept_roots`, the store's regions' subtree roots as they were before the levels above
+    /// sampled from them, are stored after the region, each in one piece, and not listed: a
+    /// store update samples the levels above again from them (`update.rs`). Returns where
+    /// they lie.
     pub fn store(
         &self,
         mut region: Vec<EncodedNode>,
         done: UnitDone,
-        kept_root: Option<EncodedNode>,
-    ) -> Result<Option<NodeInfo>, LodError> {
+        kept_roots: Vec<EncodedNode>,
+    ) -> Result<Vec<NodeInfo>, LodError> {
         region.sort_unstable_by_key(|n| (n.info.key.level, n.info.key.morton()));
         let (heads, rests): (Vec<&[u8]>, Vec<&[u8]>) = region
             .iter()
             .map(|n| n.record.split_at(n.info.head_len as usize))
             .unzip();
         let attributes = region.iter().map(|n| n.attributes.as_slice());
-        let root_pieces = kept_root
+        let root_pieces = kept_roots
             .iter()
             .flat_map(|n| [n.record.as_slice(), n.attributes.as_slice()]);
         let pieces: Vec<&[u8]> = heads
@@ -165,15 +159,18 @@ impl<'a> NodeSink<'a> {
             info.attributes_offset = at;
             at += u64::from(info.attributes_len);
         }
-        let kept_root = kept_root.map(|n| {
-            let mut info = n.info.in_one_piece(at, n.info.byte_len);
-            at += u64::from(info.byte_len);
-            if info.attributes_len > 0 {
-                info.attributes_offset = at;
-                at += u64::from(info.attributes_len);
-            }
-            info
-        });
+        let kept_roots: Vec<NodeInfo> = kept_roots
+            .iter()
+            .map(|n| {
+                let mut info = n.info.in_one_piece(at, n.info.byte_len);
+                at += u64::from(info.byte_len);
+                if info.attributes_len > 0 {
+                    info.attributes_offset = at;
+                    at += u64::from(info.attributes_len);
+                }
+                info
+            })
+            .collect();
         pause::at(done.kind.stage(), self.journal.committed(done.kind));
         if commit.is_enabled() {
             self.store.sync_payload()?;
@@ -188,10 +185,10 @@ impl<'a> NodeSink<'a> {
         })?;
         drop(commit);
         self.list(infos);
-        if let Some(root) = &kept_root {
+        for root in &kept_roots {
             self.bytes.fetch_add(root.stored_bytes(), Ordering::Relaxed);
         }
-        Ok(kept_root)
+        Ok(kept_roots)
     }
 
     /// Lists nodes whose records are in the payload file: stored now, or by the run of the

@@ -1,7 +1,8 @@
 //! `update_lod`: a built store updated with the points of added files instead of built again.
 //!
-//! A store keeps the regions it was built in (`regions.rs`): each partition's subtree, and the
-//! subtree root's points as they were before the levels above sampled from them. An update
+//! A store keeps its regions (`regions.rs`): the subtrees of each partition's children (a
+//! quarter of a partition on a surface), each with its root's points as they were before the
+//! levels above sampled from them. An update
 //!
 //! 1. routes each added point to the region whose cube holds it, walking down from the root;
 //!    a point below no region (an empty part of the cube) starts a new region at the first
@@ -12,7 +13,7 @@
 //!    built as a build's partitions are (split on disk when too large for the budget);
 //! 3. samples every level above the regions again from the regions' subtree roots, kept ones
 //!    read from their records (what sampling takes depends on every child, so the levels above
-//!    are few nodes but all of them are rebuilt);
+//!    are few nodes but all of them are rebuilt; a rebuilt region's children become regions);
 //! 4. writes the new hierarchy with the new regions in one sled batch.
 //!
 //! Nodes are appended to the payload file, never written over, so until the last step the old

@@ -96,7 +96,7 @@ fn build_parent(
         points: sampled.parent,
         sample_grid: sampled.grid,
     };
-    ctx.finish_unit(UnitKind::Parent, region, parent, root, &rows)?;
+    ctx.finish_unit(UnitKind::Parent, region, parent, root, &rows, Vec::new())?;
     // Removed once the parent is recorded: a build stopped before then builds it again.
     for (_, child) in &children {
         spill::remove(&child.path)?;
