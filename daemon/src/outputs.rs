@@ -268,3 +268,42 @@ fn send(client: &RemoteClient, upload: &OutputUpload) -> Result<(), String> {
             .map_err(|e| e.to_string())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_output_url_is_an_s3_prefix_or_nothing() {
+        assert_eq!(check_output_url("output_url", "").expect("none"), None);
+        assert_eq!(
+            check_output_url("output_url", "s3://renders/farm/job-a")
+                .expect("s3")
+                .as_deref(),
+            Some("s3://renders/farm/job-a")
+        );
+        for refused in [
+            "https://example.com/renders/",
+            "file:///tmp/renders",
+            "s3://renders/x?X-Amz-Signature=1",
+            "ftp://renders/x",
+        ] {
+            let error = check_output_url("output_url", refused).expect_err(refused);
+            assert!(
+                matches!(error, DaemonError::InvalidArgument { ref field, .. } if field == "output_url"),
+                "{refused}: {error:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn the_operators_output_prefixes_are_s3_urls() {
+        let allowed = output_prefixes(&["s3://renders/farm"]).expect("allowed");
+        let url = ObjectUrl::parse("s3://renders/farm/job-a/frame_00000.png").expect("url");
+        assert!(allowed.check(&url).is_ok());
+        let error = output_prefixes(&["s3://renders/farm", "https://example.com/out/"])
+            .expect_err("not s3")
+            .to_string();
+        assert!(error.contains("https://example.com/out/"), "{error}");
+    }
+}
