@@ -113,6 +113,10 @@ fn an_export_to_s3_is_the_file_exported_here_byte_for_byte() {
     let prefix = format!("s3://{BUCKET}/campaign/");
     let output = pointfarm_with(&server, &["export", arg(&scan), "--copc", &prefix]);
     assert_fails_saying(&output, "names a prefix");
+    // A web server's URL is read from, never written to.
+    let web = "https://127.0.0.1:9/scans/autzen.copc.laz";
+    let output = pointfarm_with(&server, &["export", arg(&scan), "--copc", web]);
+    assert_one_error_line(&output, &[web, "read-only"]);
 }
 
 #[test]
