@@ -10,7 +10,9 @@ use glam::DVec3;
 use pointfarm_render::camera::{AUTO_AZIMUTH_DEG, AUTO_ELEVATION_DEG, DEFAULT_FOV_Y_DEG};
 use pointfarm_render::color::{ColorMode, ColorRamp, ColorRange};
 use pointfarm_render::cut::CutOptions;
-use pointfarm_render::encode::video::{VideoCodec, DEFAULT_VIDEO_FPS, DEFAULT_VIDEO_QUALITY};
+use pointfarm_render::encode::video::{
+    VideoCodec, VideoPreset, DEFAULT_VIDEO_FPS, DEFAULT_VIDEO_PRESET, DEFAULT_VIDEO_QUALITY,
+};
 use pointfarm_render::gpu::AdapterChoice;
 use pointfarm_render::raster::{
     AtomicsMode, FillSettings, Quality, Shading, DEFAULT_BACKGROUND, DEFAULT_DEPTH_BAND,
@@ -66,6 +68,10 @@ pub struct RenderArgs {
     /// Constant quality of --video, 0 (best, largest) to 51; about 18 looks lossless.
     #[arg(long, default_value_t = DEFAULT_VIDEO_QUALITY, value_name = "CRF", requires = "video")]
     pub(crate) video_quality: u32,
+    /// x264/x265 preset of --video: a faster one makes a larger video sooner (ignored by VP9,
+    /// AV1 and GIF).
+    #[arg(long, default_value_t = DEFAULT_VIDEO_PRESET, value_name = "PRESET", requires = "video")]
+    pub(crate) video_preset: VideoPreset,
     /// Print one JSON object per frame on standard output, and nothing else there: its file,
     /// size, the points of the dataset and those the point passes read, its stage timings;
     /// through a server, its file and the frame as the API reports it.

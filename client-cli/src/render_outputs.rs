@@ -19,7 +19,7 @@ use pointfarm_render::color::{ColorMode, ColorRange, Coloring};
 use pointfarm_render::encode::geotiff::{GeoCrs, GeoTransform, Georeference};
 use pointfarm_render::encode::video::{
     ffmpeg_encoders, frame_decoder, VideoCodec, VideoContainer, VideoEncoder, VideoError,
-    VideoSettings,
+    VideoPreset, VideoSettings,
 };
 use pointfarm_render::encode::{self, FrameFormat};
 use pointfarm_render::ingest::dataset_files;
@@ -393,6 +393,7 @@ pub struct VideoRequest {
     /// `None`: the container's usual codec (H.264, VP9 for .webm); ignored for .gif.
     pub codec: Option<VideoCodec>,
     pub quality: u32,
+    pub preset: VideoPreset,
 }
 
 /// A video request checked against this machine's ffmpeg: ready to assemble.
@@ -426,6 +427,7 @@ impl VideoRequest {
             fps: args.fps,
             codec: args.video_codec,
             quality: args.video_quality,
+            preset: args.video_preset,
         })
     }
 
@@ -469,6 +471,7 @@ impl VideoRequest {
         let container = VideoContainer::of_path(&self.path)
             .map_err(|e| anyhow::anyhow!(flag_words(&e, &self.path)))?;
         VideoSettings::new(container, self.codec, self.fps, self.quality)
+            .map(|settings| settings.with_preset(self.preset))
             .map_err(|e| anyhow::anyhow!(flag_words(&e, &self.path)))
     }
 }

@@ -49,6 +49,7 @@ fn request(path: &Path) -> VideoRequest {
         fps: 30,
         codec: None,
         quality: DEFAULT_VIDEO_QUALITY,
+        preset: VideoPreset::default(),
     }
 }
 
@@ -96,4 +97,19 @@ fn a_video_that_cannot_be_made_is_refused_before_anything_renders() {
         let error = request.check().expect_err(&shown);
         assert!(error.to_string().contains(says), "{shown}: {error}");
     }
+}
+
+#[test]
+fn the_video_preset_given_reaches_the_videos_settings() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("turn.mp4");
+    let plan = VideoRequest {
+        preset: VideoPreset::Slow,
+        ..request(&path)
+    }
+    .check_output()
+    .expect("checked");
+    assert_eq!(plan.settings.preset, VideoPreset::Slow);
+    let default = request(&path).check_output().expect("checked");
+    assert_eq!(default.settings.preset, VideoPreset::default());
 }

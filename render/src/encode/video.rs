@@ -70,6 +70,12 @@ impl VideoPreset {
     }
 }
 
+impl std::fmt::Display for VideoPreset {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 impl Default for VideoPreset {
     fn default() -> Self {
         DEFAULT_VIDEO_PRESET
