@@ -78,7 +78,7 @@ pub struct LodUpdateReport {
     pub regions_kept: usize,
     /// Points decoded from the store: the rebuilt regions' and every kept region's root.
     pub points_decoded: u64,
-    /// Bytes appended to the payload file.
+    /// Bytes appended to the payload file: the nodes stored and the regions' kept roots.
     pub stored_bytes: u64,
     /// Bytes of the payload file no node or region of the new store lists.
     pub dead_bytes: u64,
@@ -215,7 +215,6 @@ fn update_on_pool(
     let row_bytes = old.attributes().map_or(0, |a| a.row_bytes());
     let layout = RecordLayout::for_grid(None, row_bytes);
     let spill = SpillDir::create(&options.spill_dir, layout)?;
-    let payload_before = store.payload_bytes()?;
 
     // 1. Route the added points.
     let mut map = RegionMap::new(&kept.regions);
@@ -423,9 +422,7 @@ fn update_on_pool(
         regions_added,
         regions_kept: kept_regions.len(),
         points_decoded,
-        stored_bytes: payload_after
-            .saturating_sub(payload_before)
-            .max(stored_bytes),
+        stored_bytes,
         dead_bytes: payload_after.saturating_sub(live),
         seconds: start.elapsed().as_secs_f64(),
     })
