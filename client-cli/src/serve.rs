@@ -13,7 +13,7 @@ use pointfarm_daemon::capabilities::checked_tags;
 use pointfarm_daemon::dashboard::{self, DashboardOptions};
 use pointfarm_daemon::metrics;
 use pointfarm_daemon::open_files;
-use pointfarm_daemon::outputs::output_prefixes;
+use pointfarm_daemon::output_queue::output_prefixes;
 use pointfarm_daemon::remote_datasets::url_prefixes;
 use pointfarm_daemon::server::{serve, ServeOptions, TlsIdentity, DEFAULT_SHUTDOWN_GRACE};
 use pointfarm_daemon::service::{

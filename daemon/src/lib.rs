@@ -51,6 +51,7 @@ pub mod manifest;
 pub mod metrics;
 pub mod model;
 pub mod open_files;
+pub mod output_queue;
 pub mod outputs;
 pub mod remote_datasets;
 pub mod retention;

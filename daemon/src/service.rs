@@ -216,7 +216,7 @@ pub struct Daemon {
     /// Tells the configured endpoints that a job ended.
     webhooks: Webhooks,
     /// Writes jobs' outputs to their output URLs.
-    pub(crate) outputs: crate::outputs::OutputUploads,
+    pub(crate) outputs: crate::output_queue::OutputUploads,
 }
 
 impl Daemon {
@@ -276,7 +276,7 @@ impl Daemon {
             webhooks,
             outputs: Default::default(),
         });
-        crate::outputs::OutputUploads::start(&daemon)?;
+        daemon.start_output_uploads()?;
         daemon.count_leases_of_previous_run()?;
         daemon.fail_broken_chains()?;
         // Store builds a stopped daemon left go on now for the jobs that wait for them.

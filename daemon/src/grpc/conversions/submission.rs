@@ -39,7 +39,7 @@ impl TryFrom<&pb::SubmitJobRequest> for JobSpec {
             name: r.name.clone(),
             labels,
             video: super::super::video::video_settings(r.video.as_ref())?,
-            output_url: crate::outputs::check_output_url("output_url", &r.output_url)?,
+            output_url: crate::output_queue::check_output_url("output_url", &r.output_url)?,
         })
     }
 }
