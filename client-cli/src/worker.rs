@@ -17,6 +17,7 @@ use pointfarm_proto::endpoint::ServerEndpoint;
 use pointfarm_render::gpu::{AdapterChoice, GpuContext};
 use pointfarm_worker::lease_loop::{run as run_worker, RemoteWorkerConfig};
 use pointfarm_worker::memory_limit;
+use pointfarm_worker::range_cache::DEFAULT_URL_CACHE_BYTES;
 use pointfarm_worker::supervised::exit_when_supervisor_exits;
 
 use crate::config_file::ConfigArgs;
@@ -52,6 +53,9 @@ pub struct WorkerArgs {
     /// Size bound of the dataset cache, in GiB, and of the levels-of-detail stores together.
     #[arg(long, env = "POINTFARM_CACHE_GIB", default_value_t = DEFAULT_WORKER_CACHE_BYTES >> 30)]
     cache_gib: u64,
+    /// Size bound of the cache of byte ranges of datasets by URL, e.g. 2GiB (0: none).
+    #[arg(long, value_name = "SIZE", env = "POINTFARM_URL_CACHE", value_parser = parse::bytes, default_value_t = DEFAULT_URL_CACHE_BYTES)]
+    url_cache: u64,
     /// Name shown in the daemon's leases and logs (default: host name and process id).
     #[arg(long, env = "POINTFARM_WORKER_NAME")]
     name: Option<String>,
@@ -168,6 +172,7 @@ pub fn run(args: WorkerArgs) -> Result<()> {
         name,
         cache_dir: args.cache_dir,
         cache_bytes: args.cache_gib << 30,
+        url_cache_bytes: args.url_cache,
         cut,
         metrics: Arc::new(WorkerMetrics::new()),
         capabilities,

@@ -54,7 +54,9 @@ use crate::client::Client;
 use crate::daemon_store::{self, DaemonStore};
 use crate::failure::FrameFailure;
 use crate::lease_renewal::{keep_lease, renewal_interval};
+use crate::range_cache::DiskRangeCache;
 use crate::render_state::{DatasetAccess, LodConfig, RenderedFrame, WorkerRenderState};
+use crate::url_dataset::UrlReader;
 
 /// How long one lease request waits for work on the daemon.
 const LEASE_WAIT_MS: u32 = 10_000;
@@ -70,6 +72,8 @@ pub struct RemoteWorkerConfig {
     /// The worker's dataset cache and downloads live here.
     pub cache_dir: PathBuf,
     pub cache_bytes: u64,
+    /// The bound of the cache of ranges of datasets by URL, in `cache_dir/ranges` (0: none).
+    pub url_cache_bytes: u64,
     /// The pixel error of datasets rendered from levels of detail without one of their own,
     /// and the node caches' budgets.
     pub cut: CutOptions,
@@ -173,11 +177,17 @@ pub async fn run(
         },
         options: config.cut,
     };
-    let mut render_state = Some(WorkerRenderState::new(
-        gpu,
-        Some(Arc::new(cache)),
-        Some(lod),
-    ));
+    let urls = match config.url_cache_bytes {
+        0 => UrlReader::default(),
+        budget => {
+            let dir = config.cache_dir.join("ranges");
+            let ranges = DiskRangeCache::open(&dir, budget)
+                .with_context(|| format!("opening the range cache {}", dir.display()))?;
+            UrlReader::with_cache(Arc::new(ranges))
+        }
+    };
+    let mut render_state =
+        Some(WorkerRenderState::new(gpu, Some(Arc::new(cache)), Some(lod)).with_url_reader(urls));
     let encoders = match config.videos {
         true => tokio::task::spawn_blocking(crate::encode::probe_encoders).await?,
         false => Vec::new(),

@@ -156,6 +156,12 @@ impl WorkerRenderState {
         }
     }
 
+    /// Datasets by URL read through `urls` (with its range cache).
+    pub fn with_url_reader(mut self, urls: UrlReader) -> Self {
+        self.urls = urls;
+        self
+    }
+
     fn store_folder(&self, task: &FrameTask) -> Option<PathBuf> {
         let lod = self.lod.as_ref()?;
         Some(lod.stores.folder_of_dataset(&task.dataset.sha256))

@@ -9,6 +9,10 @@
 //! chunks read while it is opened (the color sample's coarsest nodes) are kept, because the
 //! framing sample and the first frames draw the same nodes (docs/perf/remote-copc-reads.md).
 //!
+//! A [`RangeCache`] given with an object (a worker's disk cache) serves the ranges it holds
+//! of the object's version and keeps those fetched, so that the same ranges read by a later
+//! opening of the same version cost no request; an object without a version is not cached.
+//!
 //! It is also the ranged face of plain LAS/LAZ files by URL ([`RangedBytes`]): the pre-parse,
 //! the header and a preview's sampled records of a tile read through it as a file's are.
 
@@ -19,7 +23,7 @@ use std::ops::Range;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
 use super::error::CopcError;
 use crate::ingest::{open_dataset_file, IngestError, RangedBytes, ReadSeek, Symlinks};
@@ -31,6 +35,15 @@ use crate::remote::{RemoteError, RemoteObject};
 const BLOCK_BYTES: u64 = 16 * 1024;
 /// Blocks a [`RangeReader`] keeps.
 const BLOCKS_KEPT: usize = 8;
+
+/// Ranges of objects kept across openings, by their caller: keyed by the object's URL, its
+/// version and the range, so that a replaced object never reads another version's bytes.
+pub trait RangeCache: Send + Sync {
+    /// The bytes of `range`, when they are kept and intact.
+    fn get(&self, url: &str, version: &str, range: &Range<u64>) -> Option<Vec<u8>>;
+    /// Keeps the bytes just fetched for `range`.
+    fn put(&self, url: &str, version: &str, range: &Range<u64>, bytes: &[u8]);
+}
 
 /// A COPC file's bytes, read by range.
 pub(crate) struct CopcBytes {
@@ -44,6 +57,8 @@ pub(crate) struct CopcBytes {
     /// An object's ranges read while `keeping`, served again without a request: at most the
     /// bytes of the chunks read while opening it.
     kept: Mutex<HashMap<Range<u64>, Vec<u8>>>,
+    /// Where an object's ranges are looked up before they are fetched, and kept after.
+    cache: Option<Arc<dyn RangeCache>>,
 }
 
 enum Origin {
@@ -62,6 +77,7 @@ impl CopcBytes {
             origin: Origin::File(file),
             keeping: AtomicBool::new(false),
             kept: Mutex::default(),
+            cache: None,
         })
     }
 
@@ -73,7 +89,14 @@ impl CopcBytes {
             origin: Origin::Remote(Box::new(object)),
             keeping: AtomicBool::new(false),
             kept: Mutex::default(),
+            cache: None,
         }
+    }
+
+    /// The object's ranges looked up in `cache` before they are fetched, and kept there after.
+    pub fn with_cache(mut self, cache: Arc<dyn RangeCache>) -> Self {
+        self.cache = Some(cache);
+        self
     }
 
     /// From now on (`true`) or no longer, an object's ranges that [`CopcBytes::read_many`]
@@ -106,7 +129,27 @@ impl CopcBytes {
                     .map_err(|e| CopcError::io(&self.name, e))?;
                 Ok(bytes)
             }
-            Origin::Remote(object) => Ok(object.read_range(range)?),
+            Origin::Remote(object) => {
+                if let Some(bytes) = self.cached(object, &range) {
+                    return Ok(bytes);
+                }
+                let bytes = object.read_range(range.clone())?;
+                self.keep_cached(object, &range, &bytes);
+                Ok(bytes)
+            }
+        }
+    }
+
+    /// The bytes of `range` from the cache given, when it holds them for the object's version.
+    fn cached(&self, object: &RemoteObject, range: &Range<u64>) -> Option<Vec<u8>> {
+        let (cache, version) = (self.cache.as_ref()?, object.version()?);
+        let bytes = cache.get(&object.url().to_string(), version, range)?;
+        (bytes.len() as u64 == range.end - range.start).then_some(bytes)
+    }
+
+    fn keep_cached(&self, object: &RemoteObject, range: &Range<u64>, bytes: &[u8]) {
+        if let (Some(cache), Some(version)) = (&self.cache, object.version()) {
+            cache.put(&object.url().to_string(), version, range, bytes);
         }
     }
 
@@ -124,30 +167,38 @@ impl CopcBytes {
             }),
             Origin::Remote(object) => {
                 let kept = || self.kept.lock().unwrap_or_else(|e| e.into_inner());
-                // Kept ranges are never dropped, so one found now is still there below.
-                let was_kept: Vec<bool> = {
+                let mut found: Vec<Option<Vec<u8>>> = {
                     let kept = kept();
                     ranges
                         .iter()
-                        .map(|range| kept.contains_key(range))
+                        .map(|range| kept.get(range).cloned())
                         .collect()
                 };
-                let missing: Vec<Range<u64>> = (ranges.iter().zip(&was_kept))
-                    .filter(|(_, &was_kept)| !was_kept)
+                for (range, found) in ranges.iter().zip(&mut found) {
+                    if found.is_none() {
+                        *found = self.cached(object, range);
+                    }
+                }
+                let missing: Vec<Range<u64>> = (ranges.iter().zip(&found))
+                    .filter(|(_, found)| found.is_none())
                     .map(|(range, _)| range.clone())
                     .collect();
-                let mut fetched = fetch_in_batches(object, &missing)?.into_iter();
+                let fetched = fetch_in_batches(object, &missing)?;
+                for (range, bytes) in missing.iter().zip(&fetched) {
+                    self.keep_cached(object, range, bytes);
+                }
+                let mut fetched = fetched.into_iter();
                 let keeping = self.keeping.load(Ordering::Relaxed);
                 let mut kept = kept();
                 let mut read = Vec::with_capacity(ranges.len());
-                for (range, was_kept) in ranges.iter().zip(was_kept) {
-                    let bytes = match (was_kept, kept.get(range)) {
-                        (true, Some(bytes)) => bytes.clone(),
-                        _ => fetched.next().ok_or_else(|| {
+                for (range, found) in ranges.iter().zip(found) {
+                    let bytes = match found {
+                        Some(bytes) => bytes,
+                        None => fetched.next().ok_or_else(|| {
                             CopcError::io(&self.name, io::Error::other("a range went unanswered"))
                         })?,
                     };
-                    if keeping && !was_kept {
+                    if keeping && !kept.contains_key(range) {
                         kept.insert(range.clone(), bytes.clone());
                     }
                     read.push(bytes);

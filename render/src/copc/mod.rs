@@ -70,6 +70,7 @@ use crate::lod::{
 };
 use crate::remote::{ObjectUrl, RemoteClient, RemoteObject};
 pub(crate) use bytes::CopcBytes;
+pub use bytes::RangeCache;
 use lazy::CopcPageReader;
 
 /// A COPC file opened for rendering, and what opening it read.
@@ -120,6 +121,19 @@ pub fn open_copc_url(client: &RemoteClient, url: &ObjectUrl) -> Result<CopcDatas
 pub fn open_copc_object(object: RemoteObject) -> Result<CopcDataset, CopcError> {
     open(
         CopcBytes::remote(object),
+        PageReads::AsNeeded,
+        ELEVATION_SAMPLE_POINTS,
+    )
+}
+
+/// Opens an object as [`open_copc_object`] does, its ranges read from `cache` where it holds
+/// them for the object's version, and kept there once fetched.
+pub fn open_copc_object_cached(
+    object: RemoteObject,
+    cache: Arc<dyn RangeCache>,
+) -> Result<CopcDataset, CopcError> {
+    open(
+        CopcBytes::remote(object).with_cache(cache),
         PageReads::AsNeeded,
         ELEVATION_SAMPLE_POINTS,
     )
