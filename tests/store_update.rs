@@ -148,6 +148,7 @@ fn a_folder_that_gains_a_tile_updates_its_store_and_draws_as_a_fresh_build() {
     let output = run(&mut render(&tiles, &updated, &cache, &camera));
     let log = output_text(&output);
     assert!(log.contains("updated store: 1 files added"), "{log}");
+    assert!(log.contains("store updated with 1 added file(s)"), "{log}");
     assert!(!log.contains("levels of detail:"), "built anew:\n{log}");
     assert_eq!(points_total(&output), POINTS as u64);
     // The earlier files' store was taken over, not copied.
@@ -188,6 +189,7 @@ fn an_update_killed_before_it_switches_leaves_the_old_store_to_update_again() {
     let output = run(&mut render(&tiles, &updated, &cache, &camera));
     let log = output_text(&output);
     assert!(log.contains("updated store: 1 files added"), "{log}");
+    assert!(log.contains("store updated with 1 added file(s)"), "{log}");
     assert!(!log.contains("levels of detail:"), "built anew:\n{log}");
     assert_eq!(points_total(&output), POINTS as u64);
 

@@ -87,6 +87,15 @@ impl SourceWords {
                 "levels of detail: {nodes} nodes built in {seconds:.1} s, {:.2} M points/s",
                 points as f64 / seconds / 1e6
             )),
+            SourceEvent::Updated {
+                files_added,
+                regions_rebuilt,
+                points_added,
+                seconds,
+            } => self.say(&format!(
+                "store updated with {files_added} added file(s): {points_added} points, \
+                 {regions_rebuilt} regions built again in {seconds:.1} s"
+            )),
             SourceEvent::Rebuilding { folder, damage } => self.say(&format!(
                 "levels of detail: the store in {} failed its checks ({damage}); rebuilding it",
                 folder.display()

@@ -41,6 +41,14 @@ pub enum SourceEvent<'a> {
         points: u64,
         seconds: f64,
     },
+    /// The store of an earlier set of the dataset's files took the added ones in: only the
+    /// regions they reach were built again.
+    Updated {
+        files_added: usize,
+        regions_rebuilt: usize,
+        points_added: u64,
+        seconds: f64,
+    },
     /// A store's bytes failed their checks: it is removed and built again.
     Rebuilding {
         folder: &'a Path,

@@ -90,7 +90,7 @@ impl LocalStore {
         disk_budget: Option<u64>,
         events: &dyn Fn(SourceEvent<'_>),
     ) -> Result<Self, SourceError> {
-        update_earlier_store(files, folder, memory_budget);
+        update_earlier_store(files, folder, memory_budget, events);
         let opened =
             StoredLod::open_or_build(files, folder, memory_budget, disk_budget, &mut |points| {
                 events(SourceEvent::Building { points, folder })
@@ -190,7 +190,7 @@ impl LocalStore {
             .spawn(move || {
                 // Sent or dropped: either way the build goes on.
                 let _ = start.recv();
-                update_earlier_store(&files, &folder, memory_budget);
+                update_earlier_store(&files, &folder, memory_budget, &|_| {});
                 let opened = StoredLod::open_or_build_watched(
                     &files,
                     &folder,
@@ -219,19 +219,32 @@ impl LocalStore {
 
 /// Updates the store of an earlier set of `files` into `folder` where there is one
 /// (`earlier.rs`); a store that cannot be updated is left for the opening to build.
-fn update_earlier_store(files: &[PathBuf], folder: &Path, memory_budget: u64) {
+fn update_earlier_store(
+    files: &[PathBuf],
+    folder: &Path,
+    memory_budget: u64,
+    events: &dyn Fn(SourceEvent<'_>),
+) {
     if files.is_empty() {
         return;
     }
     match earlier::update_earlier(files, folder, memory_budget) {
-        Ok(Some(updated)) => tracing::info!(
-            folder = %folder.display(),
-            points_added = updated.report.points_added,
-            seconds = format!("{:.1}", updated.report.seconds),
-            "updated store: {} files added, {} partitions rebuilt",
-            updated.files_added,
-            updated.report.regions_rebuilt + updated.report.regions_added,
-        ),
+        Ok(Some(updated)) => {
+            let regions_rebuilt = updated.report.regions_rebuilt + updated.report.regions_added;
+            tracing::info!(
+                folder = %folder.display(),
+                points_added = updated.report.points_added,
+                seconds = format!("{:.1}", updated.report.seconds),
+                "updated store: {} files added, {regions_rebuilt} regions rebuilt",
+                updated.files_added,
+            );
+            events(SourceEvent::Updated {
+                files_added: updated.files_added,
+                regions_rebuilt,
+                points_added: updated.report.points_added,
+                seconds: updated.report.seconds,
+            });
+        }
         Ok(None) => {}
         Err(reason) => {
             tracing::info!(folder = %folder.display(), %reason, "building the store in full")
