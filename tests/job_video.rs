@@ -3,15 +3,18 @@
 //! without ffmpeg; `ffprobe` checks what is stored and fetched. A bad video spec is refused,
 //! a worker killed while its ffmpeg runs has the video leased again, one stopped hands it
 //! back for another at once, and `pointfarm render --server --video` and `jobs video`
-//! download it.
+//! download it. A preview job's previews make a preview video before its final video.
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use pointfarm_daemon::access::Access;
+use pointfarm_daemon::stores::StoreBuildGate;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
+use pointfarm_render::testing::write_scene_tiles;
+use pointfarm_tests::datasets::register_path;
 use pointfarm_tests::service::{
     get_job, scratch_sample, submit, turntable_job, upload_sample, watch, watch_to_success,
     TestDaemon,
@@ -123,7 +126,10 @@ async fn fetch_video(
     path: &Path,
 ) -> pb::VideoChunk {
     let mut stream = jobs
-        .fetch_video(pb::FetchVideoRequest { job_id: id.into() })
+        .fetch_video(pb::FetchVideoRequest {
+            job_id: id.into(),
+            preview: false,
+        })
         .await
         .expect("fetch video")
         .into_inner();
@@ -196,6 +202,7 @@ async fn a_jobs_video_is_made_by_a_worker_with_ffmpeg_and_never_by_one_without()
     let refused = jobs
         .fetch_video(pb::FetchVideoRequest {
             job_id: job.id.clone(),
+            preview: false,
         })
         .await
         .expect_err("no video yet");
@@ -449,6 +456,129 @@ async fn render_server_video_downloads_the_farms_video_and_jobs_video_fetches_it
     assert_eq!(
         std::fs::read(&again).expect("again"),
         std::fs::read(&video).expect("video")
+    );
+    daemon.stop().await;
+}
+
+/// Downloads job `id`'s preview video through FetchVideo once it is stored, into `path`.
+async fn fetch_preview_video_when_stored(
+    jobs: &mut JobServiceClient<Channel>,
+    id: &str,
+    path: &Path,
+) {
+    let deadline = Instant::now() + Duration::from_secs(240);
+    loop {
+        let request = pb::FetchVideoRequest {
+            job_id: id.into(),
+            preview: true,
+        };
+        let status = match jobs.fetch_video(request).await {
+            Ok(response) => {
+                let mut stream = response.into_inner();
+                let mut bytes = Vec::new();
+                while let Some(chunk) = stream.message().await.expect("chunk") {
+                    bytes.extend_from_slice(&chunk.data);
+                }
+                std::fs::write(path, &bytes).expect("write preview video");
+                return;
+            }
+            Err(status) => status,
+        };
+        assert_eq!(status.code(), tonic::Code::FailedPrecondition, "{status:?}");
+        assert!(
+            Instant::now() < deadline,
+            "job {id} never had its preview video: {status:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_preview_jobs_previews_make_a_preview_video_and_its_final_video_still_comes() {
+    let scratch = tempfile::tempdir().expect("tempdir");
+    write_scene_tiles(scratch.path(), 120_000, 3);
+    // The store's build is held before it is ready: the frames are previews only meanwhile.
+    let ready = StoreBuildGate::closed();
+    let (roots, held_ready) = (scratch.path().to_path_buf(), ready.clone());
+    let daemon = TestDaemon::start(
+        move |config| {
+            config.data_roots = vec![roots];
+            config.store_ready_gate = Some(held_ready);
+        },
+        Access::default(),
+    )
+    .await;
+    let root = scratch.path().display().to_string();
+    let dataset = register_path(&mut daemon.datasets().await, &root).await;
+    let mut jobs = daemon.jobs().await;
+    let previewed_job = |name: &str, preview: bool| {
+        let request = pb::SubmitJobRequest {
+            render: Some(pb::RenderOptions {
+                lod_error: Some(0.5),
+                ..Default::default()
+            }),
+            preview,
+            ..turntable_job(name, &dataset.id, 4, 160, 120)
+        };
+        with_video(request, "mp4", "")
+    };
+    let job = submit(&mut jobs, previewed_job("previewed", true)).await;
+
+    let preview_video = scratch.path().join("preview.mp4");
+    fetch_preview_video_when_stored(&mut jobs, &job.id, &preview_video).await;
+    assert_eq!(probe(&preview_video), ("h264".to_owned(), 160, 120, 4));
+    let shown = get_job(&mut jobs, &job.id).await;
+    assert_eq!(shown.state, pb::JobState::Running as i32, "{shown:?}");
+    assert_eq!(shown.frames_done, 0, "made of previews alone: {shown:?}");
+    assert_eq!(shown.video_size_bytes, 0, "no final video yet: {shown:?}");
+    // `jobs video --preview` fetches the same file.
+    let again = scratch.path().join("again.mp4");
+    let fetched = pointfarm_off_runtime(vec![
+        "jobs".into(),
+        "video".into(),
+        job.id.clone(),
+        "--preview".into(),
+        "--out".into(),
+        again.display().to_string(),
+        "--server".into(),
+        daemon.url(),
+    ])
+    .await;
+    assert!(fetched.status.success(), "{fetched:?}");
+    assert!(
+        stdout(&fetched).contains("preview video of job"),
+        "{fetched:?}"
+    );
+    let preview_bytes = std::fs::read(&preview_video).expect("preview video");
+    assert_eq!(std::fs::read(&again).expect("again"), preview_bytes);
+
+    // The store is ready: the final frames, then the final video, apart from the preview's.
+    ready.open();
+    let (finished, _) = watch_to_success(&mut jobs, &job.id, String::new).await;
+    assert_eq!(finished.frames_done, 4);
+    let final_video = scratch.path().join("final.mp4");
+    fetch_video(&mut jobs, &job.id, &final_video).await;
+    assert_eq!(probe(&final_video), ("h264".to_owned(), 160, 120, 4));
+    assert_ne!(std::fs::read(&final_video).expect("final"), preview_bytes);
+    let kept = scratch.path().join("kept.mp4");
+    fetch_preview_video_when_stored(&mut jobs, &job.id, &kept).await;
+    assert_eq!(std::fs::read(&kept).expect("kept"), preview_bytes);
+
+    // A job without previews makes none; its final video comes.
+    let plain = submit(&mut jobs, previewed_job("plain", false)).await;
+    watch_to_success(&mut jobs, &plain.id, String::new).await;
+    fetch_video(&mut jobs, &plain.id, &scratch.path().join("plain.mp4")).await;
+    let refused = jobs
+        .fetch_video(pb::FetchVideoRequest {
+            job_id: plain.id.clone(),
+            preview: true,
+        })
+        .await
+        .expect_err("no preview video");
+    assert_eq!(refused.code(), tonic::Code::FailedPrecondition);
+    assert!(
+        refused.message().contains("asked for no previews"),
+        "{refused:?}"
     );
     daemon.stop().await;
 }

@@ -1,5 +1,5 @@
 //! A job's video, made on the server, downloaded: by `render --server --video` once the job
-//! has succeeded, and by `jobs video JOB --out FILE`. Written beside its place and renamed
+//! has succeeded, and by `jobs video JOB [--preview] --out FILE`. Written beside its place and renamed
 //! into it once whole, so a cut download never leaves a partial video under its name.
 
 use std::path::Path;
@@ -14,8 +14,14 @@ use crate::remote::Client;
 
 /// Downloads job `job_id`'s video to `out`; returns its size in bytes.
 pub async fn download(client: &mut Client, job_id: &str, out: &Path) -> Result<u64> {
+    download_of(client, job_id, false, out).await
+}
+
+/// Downloads job `job_id`'s video, or its preview video, to `out`; returns its size in bytes.
+async fn download_of(client: &mut Client, job_id: &str, preview: bool, out: &Path) -> Result<u64> {
     let request = pb::FetchVideoRequest {
         job_id: job_id.to_owned(),
+        preview,
     };
     let mut stream = client
         .jobs
@@ -68,10 +74,11 @@ fn check_container(container: &str, out: &Path) -> Result<()> {
     Ok(())
 }
 
-/// `jobs video JOB --out FILE`.
-pub async fn run(client: &mut Client, job_id: &str, out: &Path) -> Result<()> {
-    let bytes = download(client, job_id, out).await?;
-    outln!("video of job {job_id}: {} ({bytes} bytes)", out.display());
+/// `jobs video JOB [--preview] --out FILE`.
+pub async fn run(client: &mut Client, job_id: &str, preview: bool, out: &Path) -> Result<()> {
+    let bytes = download_of(client, job_id, preview, out).await?;
+    let which = if preview { "preview video" } else { "video" };
+    outln!("{which} of job {job_id}: {} ({bytes} bytes)", out.display());
     Ok(())
 }
 

@@ -8,13 +8,19 @@
 //! so they outlive a restart; the video is stored beside the job's frames, in the job's
 //! folder, and goes with it.
 //!
+//! A job that asks for a video and for previews also has a preview video: once every frame
+//! has a preview (or is final) while its final frames are still rendering, one encode of
+//! those images is leased the same way under a lease of its own ([`preview`]), stored as
+//! `preview_video.*` beside the final video. Its failures never fail the job, and it is not
+//! leased once the final frames are all done: the final video supersedes it.
+//!
 //! Every change happens under the scheduling lock that frame leases take, so a cancel never
 //! races a handed-in video.
 
 use std::io::Write;
 use std::path::PathBuf;
 
-pub use crate::encode_record::{EncodeLease, EncodeState};
+pub use crate::encode_record::{EncodeLease, EncodeState, PreviewVideoState, VideoKind};
 use crate::error::DaemonError;
 use crate::lease::HeartbeatAnswer;
 use crate::lease_record::Lease;
@@ -22,6 +28,7 @@ use crate::model::{now_unix_ms, Job, JobState};
 use crate::service::{Daemon, DaemonConfig};
 use pointfarm_render::encode::video::{VideoCodec, VideoContainer, VideoSettings};
 
+pub mod preview;
 #[cfg(test)]
 mod tests;
 mod waiting;
@@ -69,6 +76,11 @@ impl Job {
     /// The stored video's size.
     pub fn video_size_bytes(&self) -> Option<u64> {
         self.encode.as_ref().and_then(|e| e.video_size_bytes)
+    }
+
+    /// Whether its final video is due and not leased.
+    pub fn wants_final_encode(&self) -> bool {
+        self.awaits_video() && self.encode.as_ref().is_none_or(|e| e.lease.is_none())
     }
 
     /// Whether the job is done when its last frame is: it asks for no video.
@@ -164,8 +176,7 @@ impl Daemon {
             .unfinished_jobs()?
             .into_iter()
             .filter(|job| matches!(job.state, JobState::Queued | JobState::Running))
-            .filter(|job| job.awaits_video())
-            .filter(|job| job.encode.as_ref().is_none_or(|e| e.lease.is_none()))
+            .filter(|job| job.wants_final_encode() || job.may_make_preview_video())
             .collect();
         waiting.sort_by_key(|job| (std::cmp::Reverse(job.spec.priority), job.created_unix_ms));
         let timeout = self.config.lease_timeout;
@@ -176,6 +187,13 @@ impl Daemon {
             if encode_refusal(encoders, &video).is_some() {
                 continue;
             }
+            let kind = if job.wants_final_encode() {
+                VideoKind::Final
+            } else if self.preview_video_due(&job)? {
+                VideoKind::Preview
+            } else {
+                continue;
+            };
             let now = now_unix_ms();
             let lease = EncodeLease {
                 id: Lease::new_id(),
@@ -187,14 +205,16 @@ impl Daemon {
             let leased = lease.clone();
             let Some(job) = self.state.update_job(&job.id, |j| {
                 j.state = JobState::Running;
-                j.encode.get_or_insert_with(Default::default).lease = Some(leased);
+                *j.encode
+                    .get_or_insert_with(Default::default)
+                    .lease_of_mut(kind) = Some(leased);
             })?
             else {
                 continue;
             };
             self.state.flush()?;
             self.metrics.encodes.leased();
-            tracing::info!(job = %job.id, worker, "video leased");
+            tracing::info!(job = %job.id, worker, "{} leased", kind.name());
             self.publish(&job, None);
             return Ok(Some(EncodeTask {
                 lease_id: lease.id,
@@ -205,56 +225,60 @@ impl Daemon {
                 width: job.spec.request.width,
                 height: job.spec.request.height,
                 video,
-                failed_attempts: job.encode.map_or(0, |e| e.failed_attempts),
+                failed_attempts: job.encode.map_or(0, |e| e.failed_attempts_of(kind)),
                 max_video_bytes: MAX_VIDEO_BYTES,
             }));
         }
         Ok(None)
     }
 
-    /// The job whose encode lease is `lease_id`, while the lease is held and the job wants
-    /// its video; FailedPrecondition saying why not otherwise.
+    /// The job whose encode lease is `lease_id` and the video it makes, while the lease is
+    /// held and the job wants that video; FailedPrecondition saying why not otherwise.
     fn encode_job_locked(
         &self,
         lease_id: &str,
         embedded: bool,
-    ) -> Result<(Job, EncodeLease), DaemonError> {
+    ) -> Result<(Job, EncodeLease, VideoKind), DaemonError> {
         let not_held = || {
             DaemonError::FailedPrecondition(format!(
                 "encode lease {lease_id} is not held (it expired, or the video was leased again)"
             ))
         };
-        // The lease names no job, and a job holds one encode lease at most: the unfinished
+        // The lease names no job, and a job holds two encode leases at most: the unfinished
         // jobs are looked through, never every job.
-        let job = self
+        let (job, kind, lease) = self
             .state
             .unfinished_jobs()?
             .into_iter()
-            .find(|job| {
-                job.encode
-                    .as_ref()
-                    .and_then(|e| e.lease.as_ref())
-                    .is_some_and(|lease| lease.id == lease_id)
+            .find_map(|job| {
+                let (kind, lease) = job
+                    .encode
+                    .as_ref()?
+                    .leases()
+                    .find(|(_, lease)| lease.id == lease_id)
+                    .map(|(kind, lease)| (kind, lease.clone()))?;
+                Some((job, kind, lease))
             })
-            .ok_or_else(not_held)?;
-        let lease = job
-            .encode
-            .as_ref()
-            .and_then(|e| e.lease.clone())
             .ok_or_else(not_held)?;
         if lease.embedded != embedded {
             return Err(DaemonError::PermissionDenied(format!(
                 "encode lease {lease_id} is held by another kind of worker"
             )));
         }
-        if !job.awaits_video() || job.state == JobState::Paused {
+        // A preview video once leased is made even if the final frames end meanwhile.
+        let wanted = match kind {
+            VideoKind::Final => job.awaits_video(),
+            VideoKind::Preview => job.spec.video.is_some(),
+        };
+        if !wanted || job.state == JobState::Paused {
             return Err(DaemonError::FailedPrecondition(format!(
-                "job {} no longer wants its video ({})",
+                "job {} no longer wants its {} ({})",
                 job.id,
+                kind.name(),
                 job.state.name()
             )));
         }
-        Ok((job, lease))
+        Ok((job, lease, kind))
     }
 
     /// The job of a held encode lease: what the holder may fetch the frames of.
@@ -272,7 +296,7 @@ impl Daemon {
     ) -> Result<HeartbeatAnswer, DaemonError> {
         let _scheduling = self.scheduling()?;
         self.expire_encodes_locked()?;
-        let (job, lease) = match self.encode_job_locked(lease_id, embedded) {
+        let (job, lease, kind) = match self.encode_job_locked(lease_id, embedded) {
             Ok(held) => held,
             Err(DaemonError::FailedPrecondition(reason)) => {
                 return Ok(HeartbeatAnswer::Stop(reason))
@@ -283,7 +307,11 @@ impl Daemon {
         let expires_unix_ms = now_unix_ms() + self.config.lease_timeout.as_millis() as i64;
         if self.state.outage().is_none() {
             self.state.update_job(&job.id, |j| {
-                if let Some(lease) = j.encode.as_mut().and_then(|e| e.lease.as_mut()) {
+                if let Some(lease) = j
+                    .encode
+                    .as_mut()
+                    .and_then(|e| e.lease_of_mut(kind).as_mut())
+                {
                     lease.expires_unix_ms = expires_unix_ms;
                 }
             })?;
@@ -346,10 +374,13 @@ impl Daemon {
             .map_err(|e| DaemonError::ResourceExhausted(format!("storing the video: {e}")))?;
         let _scheduling = self.scheduling()?;
         self.expire_encodes_locked()?;
-        let (job, lease) = self.encode_job_locked(&upload.lease_id, upload.embedded)?;
+        let (job, lease, kind) = self.encode_job_locked(&upload.lease_id, upload.embedded)?;
         let video = job.spec.video.ok_or_else(|| {
             DaemonError::Internal(format!("job {} asks for no video", upload.job_id))
         })?;
+        if kind == VideoKind::Preview {
+            return self.store_preview_video_locked(upload, &job, &lease, video.container);
+        }
         let path = self.config.video_path(&job.id, video.container);
         std::fs::rename(&upload.partial, &path)
             .map_err(|e| DaemonError::ResourceExhausted(format!("storing the video: {e}")))?;
@@ -385,8 +416,8 @@ impl Daemon {
     ) -> Result<(), DaemonError> {
         let _scheduling = self.scheduling()?;
         self.expire_encodes_locked()?;
-        let (job, lease) = self.encode_job_locked(lease_id, embedded)?;
-        self.count_failed_encode_locked(&job, &lease, reason)
+        let (job, lease, kind) = self.encode_job_locked(lease_id, embedded)?;
+        self.count_failed_encode_locked(&job, &lease, kind, reason)
     }
 
     /// Its worker is stopping: the encode lease is given back without a video and without
@@ -395,18 +426,18 @@ impl Daemon {
     pub fn release_encode(&self, lease_id: &str, embedded: bool) -> Result<(), DaemonError> {
         let _scheduling = self.scheduling()?;
         self.expire_encodes_locked()?;
-        let (job, lease) = match self.encode_job_locked(lease_id, embedded) {
+        let (job, lease, kind) = match self.encode_job_locked(lease_id, embedded) {
             Ok(held) => held,
             Err(DaemonError::FailedPrecondition(_)) => return Ok(()),
             Err(e) => return Err(e),
         };
         let updated = self.state.update_job(&job.id, |j| {
             if let Some(encode) = j.encode.as_mut() {
-                encode.lease = None;
+                *encode.lease_of_mut(kind) = None;
             }
         })?;
         self.state.flush()?;
-        tracing::info!(job = %job.id, worker = %lease.worker, "video handed back");
+        tracing::info!(job = %job.id, worker = %lease.worker, "{} handed back", kind.name());
         if let Some(job) = updated {
             self.publish(&job, None);
         }
@@ -414,14 +445,18 @@ impl Daemon {
         Ok(())
     }
 
-    /// Takes the encode lease of `job` back, counting a failed attempt, and fails the job
-    /// when that was its last.
+    /// Takes the `kind` encode lease of `job` back, counting a failed attempt, and fails the
+    /// job when that was its final video's last; a preview video's last only ends it.
     fn count_failed_encode_locked(
         &self,
         job: &Job,
         lease: &EncodeLease,
+        kind: VideoKind,
         reason: &str,
     ) -> Result<(), DaemonError> {
+        if kind == VideoKind::Preview {
+            return self.count_failed_preview_encode_locked(job, lease, reason);
+        }
         let failed = job.encode.as_ref().map_or(0, |e| e.failed_attempts) + 1;
         tracing::warn!(job = %job.id, worker = %lease.worker, attempt = failed, reason, "video failed");
         let last = failed >= MAX_ENCODE_ATTEMPTS;
@@ -459,7 +494,15 @@ impl Daemon {
             .requeue_unfinished_frames(&job.id, |j| {
                 j.state = JobState::Running;
                 j.error = None;
-                j.encode = Some(EncodeState::default());
+                // The preview video stored stays; one being made was lost with the failure.
+                let preview = j.encode.take().map(|e| e.preview).unwrap_or_default();
+                j.encode = Some(EncodeState {
+                    preview: PreviewVideoState {
+                        lease: None,
+                        ..preview
+                    },
+                    ..EncodeState::default()
+                });
             })?
             .ok_or_else(|| DaemonError::NotFound(format!("job {}", job.id)))?;
         self.state.flush()?;
@@ -484,18 +527,21 @@ impl Daemon {
         let now = now_unix_ms();
         let mut expired = 0;
         for job in self.state.unfinished_jobs()? {
-            let Some(lease) = job.encode.as_ref().and_then(|e| e.lease.clone()) else {
-                continue;
-            };
-            if lease.expires_unix_ms >= now {
-                continue;
+            for (kind, lease) in held_leases(&job) {
+                if lease.expires_unix_ms >= now {
+                    continue;
+                }
+                let reason = format!(
+                    "worker {} stopped renewing its encode lease (no renewal for {:?})",
+                    lease.worker, self.config.lease_timeout
+                );
+                // Read again: taking back one of its leases changed the job.
+                let Some(job) = self.state.job(&job.id)? else {
+                    break;
+                };
+                self.count_failed_encode_locked(&job, &lease, kind, &reason)?;
+                expired += 1;
             }
-            let reason = format!(
-                "worker {} stopped renewing its encode lease (no renewal for {:?})",
-                lease.worker, self.config.lease_timeout
-            );
-            self.count_failed_encode_locked(&job, &lease, &reason)?;
-            expired += 1;
         }
         Ok(expired)
     }
@@ -506,13 +552,18 @@ impl Daemon {
         let _scheduling = self.scheduling()?;
         let mut lost = 0;
         for job in self.state.unfinished_jobs()? {
-            let Some(lease) = job.encode.as_ref().and_then(|e| e.lease.clone()) else {
-                continue;
-            };
-            if lease.embedded && lease.worker == worker {
-                let reason = format!("worker {worker} died while making the video ({how})");
-                self.count_failed_encode_locked(&job, &lease, &reason)?;
-                lost += 1;
+            for (kind, lease) in held_leases(&job) {
+                if lease.embedded && lease.worker == worker {
+                    let reason = format!(
+                        "worker {worker} died while making the {} ({how})",
+                        kind.name()
+                    );
+                    let Some(job) = self.state.job(&job.id)? else {
+                        break;
+                    };
+                    self.count_failed_encode_locked(&job, &lease, kind, &reason)?;
+                    lost += 1;
+                }
             }
         }
         Ok(lost)
@@ -543,4 +594,13 @@ impl Daemon {
             ))),
         }
     }
+}
+
+/// The encode leases `job` holds and the video each makes, copied out of it.
+fn held_leases(job: &Job) -> Vec<(VideoKind, EncodeLease)> {
+    job.encode.as_ref().map_or_else(Vec::new, |e| {
+        e.leases()
+            .map(|(kind, lease)| (kind, lease.clone()))
+            .collect()
+    })
 }

@@ -87,6 +87,9 @@ pub enum JobsCommand {
         /// The file to write, ending as the job's container does (.mp4, .webm, ...).
         #[arg(long, value_name = "FILE")]
         out: std::path::PathBuf,
+        /// The preview video instead, made of a preview job's previews.
+        #[arg(long)]
+        preview: bool,
     },
     /// Frames being rendered now: which worker holds each, and until when.
     Leases,
@@ -341,8 +344,8 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                     );
                 }
             }
-            JobsCommand::Video { id, out } => {
-                crate::jobs_video::run(&mut client, &id, &out).await?;
+            JobsCommand::Video { id, out, preview } => {
+                crate::jobs_video::run(&mut client, &id, preview, &out).await?;
             }
             JobsCommand::Workers => {
                 let workers =

@@ -1,6 +1,7 @@
 //! The calls of a job's video: a worker's encode lease (leased by long poll, renewed, the
 //! frames fetched under it, the video handed in as a size-bounded stream, the failure
-//! reported, or the lease given back by a worker stopping) and a client's download of the stored video. The scheduling and the storing are
+//! reported, or the lease given back by a worker stopping) and a client's download of the stored video
+//! or preview video. The scheduling and the storing are
 //! the daemon's (`encodes`); these only check and convert.
 
 use pointfarm_proto::v1 as pb;
@@ -60,7 +61,12 @@ impl Api {
                 tokio::select! {
                     changed = work.changed() => break changed.is_ok(),
                     event = events.recv() => match event {
-                        Ok(event) if !event.job.awaits_video() => continue,
+                        Ok(event)
+                            if !event.job.awaits_video()
+                                && !event.job.may_make_preview_video() =>
+                        {
+                            continue
+                        }
                         Err(RecvError::Closed) => break false,
                         // A lagged receiver may have missed the event that matters.
                         Ok(_) | Err(RecvError::Lagged(_)) => break true,
@@ -97,7 +103,8 @@ impl Api {
         let job = self
             .run(move |daemon| daemon.encode_job(&lease_id, embedded))
             .await?;
-        // Every frame of a job whose video is leased is done.
+        // Every frame of a job whose video is leased has its image: a final one, or for a
+        // preview video, a preview or a final one.
         let stream = super::jobs::frames_from(&self.daemon, job, r.from_index, |_, _, _| true)?;
         Ok(Response::new(stream))
     }
@@ -160,9 +167,14 @@ impl Api {
         &self,
         request: Request<pb::FetchVideoRequest>,
     ) -> Result<Response<ResponseStream<pb::VideoChunk>>, Status> {
-        let job_id = request.into_inner().job_id;
+        let pb::FetchVideoRequest { job_id, preview } = request.into_inner();
         check_id("job_id", &job_id)?;
-        let (path, size, container) = self.run(move |daemon| daemon.video(&job_id)).await?;
+        let (path, size, container) = self
+            .run(move |daemon| match preview {
+                true => daemon.preview_video(&job_id),
+                false => daemon.video(&job_id),
+            })
+            .await?;
         let mut file = super::io_within(tokio::fs::File::open(path))
             .await
             .map_err(|e| Status::internal(format!("opening the video: {e}")))?;
