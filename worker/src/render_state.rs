@@ -303,6 +303,7 @@ impl WorkerRenderState {
         task: &FrameTask,
         access: DatasetAccess,
     ) -> Result<RenderedFrame, FrameFailure> {
+        let url_reads = self.urls.counts();
         match access {
             DatasetAccess::Preview(Some(sample)) => self.open_preview(task, *sample)?,
             DatasetAccess::Preview(None) if self.has_preview(task) => {}
@@ -370,7 +371,14 @@ impl WorkerRenderState {
                 .frame_settings(&task.request, task.lease.index + 1);
             loaded.source.read_ahead(&next);
         }
-        finished(rendered)
+        let mut finished = finished(rendered)?;
+        if let Some(cut) = &mut finished.outcome.cut {
+            let now = self.urls.counts();
+            cut.object_requests = now.requests - url_reads.requests;
+            cut.object_bytes = now.fetched_bytes - url_reads.fetched_bytes;
+            cut.range_cache_bytes = now.cached_bytes - url_reads.cached_bytes;
+        }
+        Ok(finished)
     }
 
     /// Closes the open dataset, keeping the renderer for the next.

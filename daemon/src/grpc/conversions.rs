@@ -286,6 +286,9 @@ same_fields!(frame_cut_message, frame_cut_of_message: FrameCut => pb::FrameCut {
     nodes_read,
     bytes_read,
     read_ahead_bytes,
+    object_requests,
+    object_bytes,
+    range_cache_bytes,
 });
 
 impl From<&Lease> for pb::Lease {

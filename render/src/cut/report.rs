@@ -38,6 +38,15 @@ pub struct CutCounts {
     /// Bytes read from the store by this frame, and by the read-ahead before it.
     pub bytes_read: u64,
     pub read_ahead_bytes: u64,
+    /// Of a dataset by URL, since the frame before (its opening and read-ahead included):
+    /// requests to the object store, the payload bytes they fetched, and the bytes the
+    /// worker's range cache served instead.
+    #[serde(default)]
+    pub object_requests: u64,
+    #[serde(default)]
+    pub object_bytes: u64,
+    #[serde(default)]
+    pub range_cache_bytes: u64,
 }
 
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
