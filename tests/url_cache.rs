@@ -1,8 +1,8 @@
 //! The worker's cache of ranges of datasets by URL, with a real nginx on loopback, a real
 //! daemon and its embedded worker process: a dataset leased again reads its ranges from the
 //! cache, not from the server; an object replaced and registered again never reads the old
-//! version's ranges; a damaged entry is fetched again and the frames stay right. Skips, saying
-//! so, where nginx is not installed.
+//! version's ranges; a damaged entry is fetched again and the frames stay right; a worker's
+//! `--url-cache` bounds the folder. Skips, saying so, where nginx is not installed.
 
 use std::path::Path;
 use std::time::Duration;
@@ -11,9 +11,9 @@ use pointfarm_daemon::access::Access;
 use pointfarm_daemon::service::DaemonConfig;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
-use pointfarm_tests::copc_file;
 use pointfarm_tests::nginx::NginxServer;
 use pointfarm_tests::service::{fetch_images, submit, turntable_job, watch_to_success, TestDaemon};
+use pointfarm_tests::{copc_file, WorkerProcess};
 use tonic::transport::Channel;
 
 async fn register(daemon: &TestDaemon, path: &str) -> pb::Dataset {
@@ -160,5 +160,65 @@ async fn a_dataset_by_url_is_read_once_by_its_version_and_damaged_entries_fetche
     assert!(
         gets_of(&server, "scans/a.copc.laz") > fetched,
         "damaged entries are fetched again"
+    );
+}
+
+/// The bytes of the files in `dir` together.
+fn folder_bytes(dir: &Path) -> u64 {
+    (entries(dir).iter())
+        .map(|path| std::fs::metadata(path).expect("entry").len())
+        .sum()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_workers_url_cache_budget_bounds_its_folder() {
+    let simple = std::fs::read(copc_file("simple.copc.laz")).expect("COPC file");
+    let Some((root, server)) = NginxServer::serve_scans(&[("a.copc.laz", simple)]) else {
+        return;
+    };
+    let allowed = pointfarm_daemon::remote_datasets::url_prefixes(&[server.url("scans/")])
+        .expect("valid prefix");
+    let data_root = root.path().to_path_buf();
+    let daemon = TestDaemon::start_without_worker(
+        move |config: &mut DaemonConfig| {
+            config.allowed_url_prefixes = allowed;
+            config.data_roots = vec![data_root];
+        },
+        Access::default(),
+    )
+    .await;
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let cache_dir = scratch.path().join("worker");
+    // Less than the ranges one job reads of the 33 KB object.
+    const BUDGET: u64 = 16 << 10;
+    let worker = WorkerProcess::start_with(
+        &daemon.url(),
+        &cache_dir,
+        "small-cache",
+        &["--url-cache", "16KiB"],
+    );
+    let by_url = register(&daemon, &server.url("scans/a.copc.laz")).await;
+    let by_path = register(&daemon, "scans/a.copc.laz").await;
+    let mut jobs = daemon.jobs().await;
+    let (frames, reads) = render(&mut jobs, "by-url", &by_url).await;
+    assert!(reads.bytes > BUDGET, "{reads:?}\n{}", worker.log());
+    let ranges = cache_dir.join("ranges");
+    let cached = folder_bytes(&ranges);
+    assert!(cached > 0, "some ranges are cached");
+    assert!(
+        cached <= BUDGET,
+        "{cached} bytes cached over a {BUDGET}-byte budget"
+    );
+    let (expected, _) = render(&mut jobs, "by-path", &by_path).await;
+    assert!(
+        frames == expected,
+        "the frames by URL differ from those by path"
+    );
+    // Opened again, within the budget still, and rendering the same.
+    let (again, _) = render(&mut jobs, "by-url-again", &by_url).await;
+    assert!(folder_bytes(&ranges) <= BUDGET);
+    assert!(
+        again == expected,
+        "the frames read partly from the cache differ"
     );
 }
