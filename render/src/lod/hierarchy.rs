@@ -20,6 +20,7 @@ use glam::DVec3;
 use super::attributes::AttributeSchema;
 use super::checksum::checksum64;
 use super::error::LodError;
+use super::fields::FieldReader;
 use super::key::{NodeKey, RootCube};
 use super::stats::{DatasetStats, INTENSITY_BINS};
 
@@ -436,7 +437,7 @@ impl LodHierarchy {
         if checksum64(CHECKSUM_SEED, body) != u64::from_le_bytes(stored) {
             return Err(corrupt("checksum mismatch"));
         }
-        let mut r = Reader { bytes: body, at: 0 };
+        let mut r = FieldReader::new(body, "truncated");
         let magic = r.take(4)?;
         if let Some((_, missing)) = EARLIER_VERSIONS
             .iter()
@@ -498,10 +499,13 @@ impl LodHierarchy {
         }
         let attributes = match r.u8()? {
             0 => None,
-            1 => Some(AttributeSchema::decode(body, &mut r.at).map_err(|e| corrupt(&e))?),
+            1 => Some(
+                r.decode_with(AttributeSchema::decode)
+                    .map_err(|e| corrupt(&e))?,
+            ),
             other => return Err(corrupt(&format!("attribute schema marker {other}"))),
         };
-        if r.at != body.len() {
+        if !r.at_end() {
             return Err(corrupt("trailing bytes"));
         }
         debug_assert_eq!(stats.intensity_histogram.len(), INTENSITY_BINS);
@@ -535,46 +539,4 @@ fn nonzero(counts: &[u64]) -> Vec<(usize, u64)> {
         .filter(|(_, &c)| c > 0)
         .map(|(i, &c)| (i, c))
         .collect()
-}
-
-/// Reads little-endian fields, failing on a short record instead of panicking.
-struct Reader<'a> {
-    bytes: &'a [u8],
-    at: usize,
-}
-
-impl<'a> Reader<'a> {
-    fn take(&mut self, n: usize) -> Result<&'a [u8], LodError> {
-        let end = self.at.checked_add(n).filter(|&e| e <= self.bytes.len());
-        let end = end.ok_or_else(|| LodError::CorruptHierarchy("truncated".into()))?;
-        let slice = &self.bytes[self.at..end];
-        self.at = end;
-        Ok(slice)
-    }
-
-    fn array<const N: usize>(&mut self) -> Result<[u8; N], LodError> {
-        let mut out = [0; N];
-        out.copy_from_slice(self.take(N)?);
-        Ok(out)
-    }
-
-    fn u8(&mut self) -> Result<u8, LodError> {
-        Ok(self.array::<1>()?[0])
-    }
-
-    fn u16(&mut self) -> Result<u16, LodError> {
-        self.array().map(u16::from_le_bytes)
-    }
-
-    fn u32(&mut self) -> Result<u32, LodError> {
-        self.array().map(u32::from_le_bytes)
-    }
-
-    fn u64(&mut self) -> Result<u64, LodError> {
-        self.array().map(u64::from_le_bytes)
-    }
-
-    fn f64(&mut self) -> Result<f64, LodError> {
-        self.array().map(f64::from_le_bytes)
-    }
 }

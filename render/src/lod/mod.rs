@@ -57,6 +57,7 @@ mod counting;
 mod dataset;
 pub mod disk;
 pub mod error;
+mod fields;
 pub mod generated;
 mod grid;
 pub mod hierarchy;

@@ -15,6 +15,7 @@ use glam::DVec3;
 
 use super::checksum::checksum64;
 use super::error::LodError;
+use super::fields::FieldReader;
 use super::grid::PositionGrid;
 use super::hierarchy::NodeInfo;
 use super::key::NodeKey;
@@ -99,7 +100,7 @@ impl StoreRegions {
         if checksum64(CHECKSUM_SEED, body).to_le_bytes() != sum {
             return Err(corrupt("checksum mismatch"));
         }
-        let mut r = Reader { bytes: body, at: 0 };
+        let mut r = FieldReader::new(body, "store regions: truncated");
         if r.take(4)? != MAGIC {
             return Err(corrupt("not a regions record"));
         }
@@ -156,7 +157,7 @@ impl StoreRegions {
                 std::str::from_utf8(r.take(len)?).map_err(|_| corrupt("a file not UTF-8"))?;
             names.push(text.to_string());
         }
-        if r.at != body.len() {
+        if !r.at_end() {
             return Err(corrupt("trailing bytes"));
         }
         Ok(Self {
@@ -164,49 +165,6 @@ impl StoreRegions {
             regions,
             files: names,
         })
-    }
-}
-
-/// Reads little-endian fields, failing on a short record instead of panicking.
-struct Reader<'a> {
-    bytes: &'a [u8],
-    at: usize,
-}
-
-impl<'a> Reader<'a> {
-    fn take(&mut self, n: usize) -> Result<&'a [u8], LodError> {
-        let end = self.at.checked_add(n).filter(|&e| e <= self.bytes.len());
-        let end =
-            end.ok_or_else(|| LodError::CorruptHierarchy("store regions: truncated".into()))?;
-        let slice = &self.bytes[self.at..end];
-        self.at = end;
-        Ok(slice)
-    }
-
-    fn array<const N: usize>(&mut self) -> Result<[u8; N], LodError> {
-        let mut out = [0; N];
-        out.copy_from_slice(self.take(N)?);
-        Ok(out)
-    }
-
-    fn u8(&mut self) -> Result<u8, LodError> {
-        Ok(self.array::<1>()?[0])
-    }
-
-    fn u16(&mut self) -> Result<u16, LodError> {
-        self.array().map(u16::from_le_bytes)
-    }
-
-    fn u32(&mut self) -> Result<u32, LodError> {
-        self.array().map(u32::from_le_bytes)
-    }
-
-    fn u64(&mut self) -> Result<u64, LodError> {
-        self.array().map(u64::from_le_bytes)
-    }
-
-    fn f64(&mut self) -> Result<f64, LodError> {
-        self.array().map(f64::from_le_bytes)
     }
 }
 
