@@ -186,6 +186,10 @@ impl DiskRangeCache {
             return None;
         }
         let file = fs::read(&path).ok()?;
+        if file.len() as u64 != HEADER_BYTES + len {
+            self.drop_damaged(name, "it changed while it was read");
+            return None;
+        }
         let (header, payload) = file.split_at(HEADER_BYTES as usize);
         let recorded_len = u64::from_le_bytes(header[8..16].try_into().ok()?);
         if &header[..8] != MAGIC || recorded_len != len || payload.len() as u64 != len {

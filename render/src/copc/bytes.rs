@@ -11,7 +11,8 @@
 //!
 //! A [`RangeCache`] given with an object (a worker's disk cache) serves the ranges it holds
 //! of the object's version and keeps those fetched, so that the same ranges read by a later
-//! opening of the same version cost no request; an object without a version is not cached.
+//! opening of the same version cost no request; an object without a version, or with only a
+//! weak ETag, is not cached.
 //!
 //! It is also the ranged face of plain LAS/LAZ files by URL ([`RangedBytes`]): the pre-parse,
 //! the header and a preview's sampled records of a tile read through it as a file's are.
@@ -142,13 +143,13 @@ impl CopcBytes {
 
     /// The bytes of `range` from the cache given, when it holds them for the object's version.
     fn cached(&self, object: &RemoteObject, range: &Range<u64>) -> Option<Vec<u8>> {
-        let (cache, version) = (self.cache.as_ref()?, object.version()?);
+        let (cache, version) = (self.cache.as_ref()?, cache_version(object)?);
         let bytes = cache.get(&object.url().to_string(), version, range)?;
         (bytes.len() as u64 == range.end - range.start).then_some(bytes)
     }
 
     fn keep_cached(&self, object: &RemoteObject, range: &Range<u64>, bytes: &[u8]) {
-        if let (Some(cache), Some(version)) = (&self.cache, object.version()) {
+        if let (Some(cache), Some(version)) = (&self.cache, cache_version(object)) {
             cache.put(&object.url().to_string(), version, range, bytes);
         }
     }
@@ -263,6 +264,14 @@ impl RangedBytes for CopcBytes {
             }
         }
     }
+}
+
+/// The version an object's ranges are cached by: none for a weak ETag, which a server may keep
+/// for other bytes it deems equivalent.
+fn cache_version(object: &RemoteObject) -> Option<&str> {
+    object
+        .version()
+        .filter(|version| !version.starts_with("W/"))
 }
 
 /// The bytes of `ranges` of `object`, within the client's bound on one read, batch by batch.
