@@ -37,6 +37,7 @@
 //! render crate's `pointlist-baseline` feature.
 
 pub mod campaign;
+pub mod cli;
 pub mod clouds;
 pub mod copc;
 pub mod cuts;

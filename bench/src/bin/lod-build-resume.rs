@@ -14,6 +14,7 @@ use std::process::{Command, ExitCode, Stdio};
 use std::time::{Duration, Instant};
 
 use pointfarm_bench::campaign::write_campaign;
+use pointfarm_bench::cli::{exit_code, parse_flags};
 use pointfarm_render::cut::StoredLod;
 use pointfarm_render::lod::read_nodes;
 use rand::{Rng, SeedableRng};
@@ -36,13 +37,7 @@ fn main() -> ExitCode {
         Some("--build") => build(&args[1..]),
         _ => parse(&args).and_then(|args| measure(&args)),
     };
-    match outcome {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(error) => {
-            eprintln!("lod-build-resume: {error}");
-            ExitCode::FAILURE
-        }
-    }
+    exit_code("lod-build-resume", outcome)
 }
 
 fn parse(args: &[String]) -> Result<Args, String> {
@@ -54,26 +49,18 @@ fn parse(args: &[String]) -> Result<Args, String> {
         budget_mib: 1024,
         dir: None,
     };
-    let mut it = args.iter();
-    while let Some(flag) = it.next() {
-        let value = it
-            .next()
-            .ok_or_else(|| format!("{flag} needs a value\n{USAGE}"))?;
-        let number = || {
-            value
-                .parse::<u64>()
-                .map_err(|e| format!("{flag} {value}: {e}"))
-        };
-        match flag.as_str() {
-            "--points" => parsed.points = number()?,
-            "--files" => parsed.files = number()? as usize,
-            "--kills" => parsed.kills = number()? as usize,
-            "--seed" => parsed.seed = number()?,
-            "--budget-mib" => parsed.budget_mib = number()?,
-            "--dir" => parsed.dir = Some(PathBuf::from(value)),
-            _ => return Err(format!("unknown flag {flag}\n{USAGE}")),
+    parse_flags(args, USAGE, |flag, value| {
+        match flag {
+            "--points" => parsed.points = value.number()?,
+            "--files" => parsed.files = value.number()? as usize,
+            "--kills" => parsed.kills = value.number()? as usize,
+            "--seed" => parsed.seed = value.number()?,
+            "--budget-mib" => parsed.budget_mib = value.number()?,
+            "--dir" => parsed.dir = Some(value.path()),
+            _ => return Ok(false),
         }
-    }
+        Ok(true)
+    })?;
     Ok(parsed)
 }
 

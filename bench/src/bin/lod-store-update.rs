@@ -14,6 +14,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use pointfarm_bench::campaign::{grid, write_campaign};
+use pointfarm_bench::cli::{exit_code, parse_flags};
 use pointfarm_render::ingest::DatasetSource;
 use pointfarm_render::lod::{
     build_lod, read_nodes, update_lod, LodBuildOptions, LodStore, NodeKey,
@@ -32,13 +33,10 @@ struct Args {
 
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    match parse(&args).and_then(|args| measure(&args)) {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(error) => {
-            eprintln!("lod-store-update: {error}");
-            ExitCode::FAILURE
-        }
-    }
+    exit_code(
+        "lod-store-update",
+        parse(&args).and_then(|args| measure(&args)),
+    )
 }
 
 fn parse(args: &[String]) -> Result<Args, String> {
@@ -49,25 +47,17 @@ fn parse(args: &[String]) -> Result<Args, String> {
         budget_mib: 1024,
         dir: None,
     };
-    let mut it = args.iter();
-    while let Some(flag) = it.next() {
-        let value = it
-            .next()
-            .ok_or_else(|| format!("{flag} needs a value\n{USAGE}"))?;
-        let number = || {
-            value
-                .parse::<u64>()
-                .map_err(|e| format!("{flag} {value}: {e}"))
-        };
-        match flag.as_str() {
-            "--points" => parsed.points = number()?,
-            "--files" => parsed.files = number()? as usize,
-            "--rounds" => parsed.rounds = number()?.max(1) as usize,
-            "--budget-mib" => parsed.budget_mib = number()?,
-            "--dir" => parsed.dir = Some(PathBuf::from(value)),
-            _ => return Err(format!("unknown flag {flag}\n{USAGE}")),
+    parse_flags(args, USAGE, |flag, value| {
+        match flag {
+            "--points" => parsed.points = value.number()?,
+            "--files" => parsed.files = value.number()? as usize,
+            "--rounds" => parsed.rounds = value.number()?.max(1) as usize,
+            "--budget-mib" => parsed.budget_mib = value.number()?,
+            "--dir" => parsed.dir = Some(value.path()),
+            _ => return Ok(false),
         }
-    }
+        Ok(true)
+    })?;
     if grid(parsed.files).0 < 3 {
         return Err(format!(
             "{} files make no inner tile: give a count of at least three rows",
