@@ -42,7 +42,21 @@ pub(super) fn cut_summary(frames: &[pb::FrameFinished]) -> Option<String> {
         sum(|c| c.nodes_read), sum(|c| c.bytes_read) as f64 / f64::from(1 << 20),
         sum(|c| c.read_ahead_bytes) as f64 / f64::from(1 << 20), sum(|c| c.host_hits), sum(|c| c.gpu_hits),
         if cuts.iter().any(|c| c.limited_by_budget) { "; some cuts bounded by the GPU budget" } else { "" },
-    ))
+    ) + &object_reads(&cuts))
+}
+
+/// What frames of a dataset by URL read of its object: fetched, and from the workers' caches.
+fn object_reads(cuts: &[&pb::FrameCut]) -> String {
+    let sum = |value: fn(&pb::FrameCut) -> u64| cuts.iter().map(|c| value(c)).sum::<u64>();
+    let (requests, cached) = (sum(|c| c.object_requests), sum(|c| c.range_cache_bytes));
+    if requests == 0 && cached == 0 {
+        return String::new();
+    }
+    format!(
+        "; by URL {requests} requests ({:.1} MiB), {:.1} MiB from the workers' range caches",
+        sum(|c| c.object_bytes) as f64 / f64::from(1 << 20),
+        cached as f64 / f64::from(1 << 20),
+    )
 }
 
 /// Median and 95th percentile of each stage over a job's frames, in stage order.
@@ -235,6 +249,34 @@ mod tests {
                 median_ms: 1.0,
                 p95_ms: 1.0
             }
+        );
+    }
+
+    #[test]
+    fn a_cut_summary_says_what_frames_by_url_read_only_where_they_did() {
+        let frame = |cut: pb::FrameCut| pb::FrameFinished {
+            cut: Some(cut),
+            ..Default::default()
+        };
+        let local = [frame(pb::FrameCut::default())];
+        let line = cut_summary(&local).expect("a cut");
+        assert!(!line.contains("by URL"), "{line}");
+        let by_url = [
+            frame(pb::FrameCut {
+                object_requests: 5,
+                object_bytes: 3 << 20,
+                ..Default::default()
+            }),
+            frame(pb::FrameCut {
+                object_requests: 1,
+                range_cache_bytes: 2 << 20,
+                ..Default::default()
+            }),
+        ];
+        let line = cut_summary(&by_url).expect("cuts");
+        assert!(
+            line.ends_with("; by URL 6 requests (3.0 MiB), 2.0 MiB from the workers' range caches"),
+            "{line}"
         );
     }
 }
