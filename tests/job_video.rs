@@ -309,10 +309,19 @@ fn stalling_ffmpeg(dir: &Path) {
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_worker_killed_while_making_the_video_has_it_leased_again() {
+/// A daemon leasing for `lease_timeout`, and a four-frame job `request_id` with a video that
+/// a worker whose ffmpeg stalls has leased (its log says so).
+struct StalledVideo {
+    daemon: TestDaemon,
+    jobs: JobServiceClient<Channel>,
+    scratch: tempfile::TempDir,
+    stalling: PathWorker,
+    job: pb::Job,
+}
+
+async fn video_stalled_in_a_worker(lease_timeout: Duration, request_id: &str) -> StalledVideo {
     let daemon = TestDaemon::start_without_worker(
-        |config| config.lease_timeout = Duration::from_secs(1),
+        |config| config.lease_timeout = lease_timeout,
         Access::default(),
     )
     .await;
@@ -322,11 +331,10 @@ async fn a_worker_killed_while_making_the_video_has_it_leased_again() {
     let bin = scratch.path().join("bin");
     std::fs::create_dir_all(&bin).expect("bin");
     stalling_ffmpeg(&bin);
-    let mut stalling =
-        PathWorker::start(&daemon.url(), &scratch.path().join("stall"), "stall", &bin);
+    let stalling = PathWorker::start(&daemon.url(), &scratch.path().join("stall"), "stall", &bin);
     let job = submit(
         &mut jobs,
-        with_video(turntable_job("again", &dataset.id, 4, 32, 24), "mp4", ""),
+        with_video(turntable_job(request_id, &dataset.id, 4, 32, 24), "mp4", ""),
     )
     .await;
     let log = stalling.log.clone();
@@ -338,6 +346,24 @@ async fn a_worker_killed_while_making_the_video_has_it_leased_again() {
     })
     .await
     .expect("wait");
+    StalledVideo {
+        daemon,
+        jobs,
+        scratch,
+        stalling,
+        job,
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_worker_killed_while_making_the_video_has_it_leased_again() {
+    let StalledVideo {
+        daemon,
+        mut jobs,
+        scratch,
+        mut stalling,
+        job,
+    } = video_stalled_in_a_worker(Duration::from_secs(1), "again").await;
     stalling.kill();
 
     let encoder = WorkerProcess::start(&daemon.url(), &scratch.path().join("encoder"), "encoder");
@@ -357,33 +383,13 @@ async fn a_worker_killed_while_making_the_video_has_it_leased_again() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_worker_stopped_while_making_the_video_hands_it_back_for_another_at_once() {
     // A lease timeout far longer than the test: only the hand-back lets another worker in.
-    let daemon = TestDaemon::start_without_worker(
-        |config| config.lease_timeout = Duration::from_secs(600),
-        Access::default(),
-    )
-    .await;
-    let dataset = upload_sample(&mut daemon.datasets().await, 5_000, 5).await;
-    let mut jobs = daemon.jobs().await;
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let bin = scratch.path().join("bin");
-    std::fs::create_dir_all(&bin).expect("bin");
-    stalling_ffmpeg(&bin);
-    let mut stalling =
-        PathWorker::start(&daemon.url(), &scratch.path().join("stall"), "stall", &bin);
-    let job = submit(
-        &mut jobs,
-        with_video(turntable_job("back", &dataset.id, 4, 32, 24), "mp4", ""),
-    )
-    .await;
-    let log = stalling.log.clone();
-    tokio::task::spawn_blocking(move || {
-        wait_for(Duration::from_secs(120), "the video leased", || {
-            let said = std::fs::read_to_string(&log).unwrap_or_default();
-            said.contains("video leased").then_some(())
-        })
-    })
-    .await
-    .expect("wait");
+    let StalledVideo {
+        daemon,
+        mut jobs,
+        scratch,
+        mut stalling,
+        job,
+    } = video_stalled_in_a_worker(Duration::from_secs(600), "back").await;
     let exited = tokio::task::spawn_blocking(move || {
         let status = stalling.terminate();
         (status, stalling.log())
