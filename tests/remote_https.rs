@@ -4,89 +4,14 @@
 //! is refused in one line naming the URL. Skips, saying so, where nginx is not installed.
 
 use std::path::Path;
-use std::process::{Child, Command, Output, Stdio};
-use std::time::{Duration, Instant};
+use std::process::{Command, Output};
 
 use pointfarm_tests::nginx::NginxServer;
 use pointfarm_tests::pki::TestPki;
-use pointfarm_tests::{
-    assert_one_error_line, copc_file, free_address, output_text, pointfarm_bin, pointfarm_ok,
-};
+use pointfarm_tests::{assert_one_error_line, copc_file, output_text, pointfarm_bin, pointfarm_ok};
 
 fn arg(path: &Path) -> &str {
     path.to_str().expect("temporary paths are UTF-8")
-}
-
-/// nginx serving `root` over TLS with `pki`'s certificate on a loopback port; killed when
-/// dropped.
-struct TlsNginx {
-    address: String,
-    child: Child,
-}
-
-impl TlsNginx {
-    fn start(binary: &Path, dir: &Path, root: &Path, pki: &TestPki) -> Self {
-        let address = free_address();
-        let config = format!(
-            "daemon off;
-master_process off;
-worker_processes 1;
-pid {dir}/nginx.pid;
-error_log {dir}/error.log info;
-events {{ worker_connections 64; }}
-http {{
-    access_log {dir}/access.log;
-    client_body_temp_path {dir}/client_body;
-    proxy_temp_path {dir}/proxy;
-    fastcgi_temp_path {dir}/fastcgi;
-    uwsgi_temp_path {dir}/uwsgi;
-    scgi_temp_path {dir}/scgi;
-    default_type application/octet-stream;
-    server {{
-        listen {address} ssl;
-        ssl_certificate {cert};
-        ssl_certificate_key {key};
-        root {root};
-    }}
-}}
-",
-            dir = dir.display(),
-            cert = pki.cert.display(),
-            key = pki.key.display(),
-            root = root.display(),
-        );
-        let config_path = dir.join("nginx.conf");
-        std::fs::write(&config_path, config).expect("nginx.conf");
-        let child = Command::new(binary)
-            .arg("-p")
-            .arg(dir)
-            .arg("-c")
-            .arg(&config_path)
-            .arg("-e")
-            .arg(dir.join("error.log"))
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("start nginx");
-        let started = Instant::now();
-        while std::net::TcpStream::connect(&address).is_err() {
-            assert!(
-                started.elapsed() < Duration::from_secs(10),
-                "nginx did not listen: {}",
-                std::fs::read_to_string(dir.join("error.log")).unwrap_or_default()
-            );
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        Self { address, child }
-    }
-}
-
-impl Drop for TlsNginx {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 /// `pointfarm render URL --out OUT ARGS` trusting the roots in `ca` alone.
@@ -102,20 +27,16 @@ fn render_trusting(ca: &Path, url: &str, out: &Path, args: &[&str]) -> Output {
 
 #[test]
 fn a_copc_file_over_https_from_a_private_ca_renders_as_the_file_here() {
-    let Some(binary) = NginxServer::binary() else {
-        eprintln!("skipped: nginx is not installed (deploy/test.sh installs nginx-light)");
-        return;
-    };
     let dir = tempfile::tempdir().expect("tempdir");
     let pki = TestPki::create(dir.path());
     let root = dir.path().join("root");
     std::fs::create_dir_all(root.join("scans")).expect("scans folder");
     let local = copc_file("simple_with_page.copc.laz");
     std::fs::copy(&local, root.join("scans/scan.copc.laz")).expect("served file");
-    let nginx_dir = dir.path().join("nginx");
-    std::fs::create_dir_all(&nginx_dir).expect("nginx folder");
-    let server = TlsNginx::start(&binary, &nginx_dir, &root, &pki);
-    let url = format!("https://{}/scans/scan.copc.laz", server.address);
+    let Some(server) = NginxServer::start_tls_or_skip(&root, &pki) else {
+        return;
+    };
+    let url = server.https_url("scans/scan.copc.laz");
 
     let args = ["--size=200x150", "--point-size=3", "--lod-error", "0"];
     let here = dir.path().join("here.png");

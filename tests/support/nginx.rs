@@ -1,5 +1,5 @@
 //! A real nginx serving a folder on a loopback port, for the tests that read datasets over
-//! HTTP: ranges, ETags and `If-Match` as a production server answers them.
+//! HTTP or HTTPS: ranges, ETags and `If-Match` as a production server answers them.
 
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
@@ -7,6 +7,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use crate::free_address;
+use crate::pki::TestPki;
 
 /// Where Debian's nginx packages put the binary.
 const NGINX: &str = "/usr/sbin/nginx";
@@ -33,7 +34,14 @@ impl NginxServer {
     /// Starts nginx serving `root`, or None, having said why, where nginx is not installed.
     pub fn start_or_skip(root: &Path) -> Option<Self> {
         let binary = Self::binary_or_skip()?;
-        Some(Self::start(&binary, root))
+        Some(Self::start(&binary, root, None))
+    }
+
+    /// Starts nginx serving `root` over TLS with `pki`'s certificate (see [`Self::https_url`]),
+    /// or None, having said why, where nginx is not installed.
+    pub fn start_tls_or_skip(root: &Path, pki: &TestPki) -> Option<Self> {
+        let binary = Self::binary_or_skip()?;
+        Some(Self::start(&binary, root, Some(pki)))
     }
 
     /// Starts nginx serving a new folder whose `scans/` holds `files` (name, bytes), or None,
@@ -45,7 +53,7 @@ impl NginxServer {
         for (name, bytes) in files {
             std::fs::write(root.path().join("scans").join(name), bytes).expect("served file");
         }
-        let server = Self::start(&binary, root.path());
+        let server = Self::start(&binary, root.path(), None);
         Some((root, server))
     }
 
@@ -57,10 +65,10 @@ impl NginxServer {
         binary
     }
 
-    fn start(binary: &Path, root: &Path) -> Self {
+    fn start(binary: &Path, root: &Path, tls: Option<&TestPki>) -> Self {
         let dir = tempfile::tempdir().expect("nginx folder");
         let address = free_address();
-        let config = config(dir.path(), &address, root);
+        let config = config(dir.path(), &address, root, tls);
         let config_path = dir.path().join("nginx.conf");
         std::fs::write(&config_path, config).expect("nginx.conf");
         let error_log = dir.path().join("error.log");
@@ -89,6 +97,11 @@ impl NginxServer {
     /// `http://ADDRESS/` followed by `path`.
     pub fn url(&self, path: &str) -> String {
         format!("http://{}/{}", self.address, path.trim_start_matches('/'))
+    }
+
+    /// `https://ADDRESS/` followed by `path`, for a server started with TLS.
+    pub fn https_url(&self, path: &str) -> String {
+        format!("https://{}/{}", self.address, path.trim_start_matches('/'))
     }
 
     /// The requests nginx answered, one access-log line each, once there are at least
@@ -142,10 +155,18 @@ impl Drop for NginxServer {
 }
 
 /// One process (no master, so a kill ends it), in the foreground, every path in `dir`;
-/// everything under `/denied/` is refused with 403.
-fn config(dir: &Path, address: &str, root: &Path) -> String {
+/// everything under `/denied/` is refused with 403. With `tls`, it answers HTTPS alone.
+fn config(dir: &Path, address: &str, root: &Path, tls: Option<&TestPki>) -> String {
     let dir = dir.display();
     let root = root.display();
+    let listen = match tls {
+        None => format!("listen {address};"),
+        Some(pki) => format!(
+            "listen {address} ssl;\n        ssl_certificate {};\n        ssl_certificate_key {};",
+            pki.cert.display(),
+            pki.key.display()
+        ),
+    };
     format!(
         "daemon off;
 master_process off;
@@ -162,7 +183,7 @@ http {{
     scgi_temp_path {dir}/scgi;
     default_type application/octet-stream;
     server {{
-        listen {address};
+        {listen}
         root {root};
         # What a server answers a request it refuses.
         location /denied/ {{ return 403; }}
