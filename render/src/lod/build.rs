@@ -114,14 +114,23 @@ pub fn build_lod_watched(
     options: &LodBuildOptions,
     progress: &BuildProgress,
 ) -> Result<LodBuildReport, LodError> {
+    on_threads(options, || build_on_pool(source, store, options, progress))
+}
+
+/// Runs `work` once `options` are valid, on a pool of `options.threads` threads when set,
+/// else on the global pool.
+pub(super) fn on_threads<T: Send>(
+    options: &LodBuildOptions,
+    work: impl FnOnce() -> Result<T, LodError> + Send,
+) -> Result<T, LodError> {
     options.validate()?;
     match options.threads {
         Some(threads) => rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .build()
             .map_err(|e| LodError::InvalidOptions(format!("threads: {e}")))?
-            .install(|| build_on_pool(source, store, options, progress)),
-        None => build_on_pool(source, store, options, progress),
+            .install(work),
+        None => work(),
     }
 }
 

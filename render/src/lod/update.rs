@@ -34,6 +34,7 @@ use std::sync::Mutex;
 use std::time::Instant;
 
 use super::attributes::AttributeRows;
+use super::build::on_threads;
 use super::codec::decode_node;
 use super::context::{BuildContext, Pending};
 use super::error::LodError;
@@ -95,15 +96,7 @@ pub fn update_lod(
     files: Vec<String>,
     options: &LodBuildOptions,
 ) -> Result<LodUpdateReport, LodError> {
-    options.validate()?;
-    match options.threads {
-        Some(threads) => rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .map_err(|e| LodError::InvalidOptions(format!("threads: {e}")))?
-            .install(|| update_on_pool(store, added, files, options)),
-        None => update_on_pool(store, added, files, options),
-    }
+    on_threads(options, || update_on_pool(store, added, files, options))
 }
 
 fn cannot(reason: impl Into<String>) -> LodError {
