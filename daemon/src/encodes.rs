@@ -18,7 +18,7 @@
 //! races a handed-in video.
 
 use std::io::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 pub use crate::encode_record::{EncodeLease, EncodeState, PreviewVideoState, VideoKind};
 use crate::error::DaemonError;
@@ -135,6 +135,13 @@ pub struct VideoUpload {
 }
 
 impl VideoUpload {
+    /// Moves the whole video into its place at `path`; returns its size.
+    fn store_at(&self, path: &Path) -> Result<u64, DaemonError> {
+        std::fs::rename(&self.partial, path)
+            .map_err(|e| DaemonError::ResourceExhausted(format!("storing the video: {e}")))?;
+        Ok(self.written)
+    }
+
     /// Appends a part of the video; refused past the declared size.
     pub fn write(&mut self, bytes: &[u8]) -> Result<(), DaemonError> {
         if self.written + bytes.len() as u64 > self.declared {
@@ -382,9 +389,7 @@ impl Daemon {
             return self.store_preview_video_locked(upload, &job, &lease, video.container);
         }
         let path = self.config.video_path(&job.id, video.container);
-        std::fs::rename(&upload.partial, &path)
-            .map_err(|e| DaemonError::ResourceExhausted(format!("storing the video: {e}")))?;
-        let size = upload.written;
+        let size = upload.store_at(&path)?;
         let job = self
             .state
             .update_job(&job.id, |j| {
@@ -395,15 +400,20 @@ impl Daemon {
             })?
             .ok_or_else(|| DaemonError::NotFound(format!("job {}", upload.job_id)))?;
         self.state.flush()?;
-        // A lease stored without its start has no time to tell.
-        let took = (lease.leased_unix_ms > 0)
-            .then(|| (now_unix_ms() - lease.leased_unix_ms).max(0) as f64 / 1e3);
-        self.metrics.encodes.succeeded(took);
+        self.count_stored_video(&lease);
         tracing::info!(job = %job.id, bytes = size, "video stored");
         self.enqueue_video_output(&job, &path);
         self.log_job_end(&job, 0);
         self.publish(&job, None);
         Ok(job)
+    }
+
+    /// Counts a stored video in the metrics, with how long its lease was held.
+    fn count_stored_video(&self, lease: &EncodeLease) {
+        // A lease stored without its start has no time to tell.
+        let took = (lease.leased_unix_ms > 0)
+            .then(|| (now_unix_ms() - lease.leased_unix_ms).max(0) as f64 / 1e3);
+        self.metrics.encodes.succeeded(took);
     }
 
     /// The video could not be made: counts a failed attempt; the job fails with `reason`

@@ -9,7 +9,7 @@ use pointfarm_render::encode::video::VideoContainer;
 
 use super::{EncodeLease, VideoUpload, MAX_ENCODE_ATTEMPTS};
 use crate::error::DaemonError;
-use crate::model::{now_unix_ms, Job};
+use crate::model::Job;
 use crate::service::{Daemon, DaemonConfig};
 
 impl Job {
@@ -67,9 +67,7 @@ impl Daemon {
         container: VideoContainer,
     ) -> Result<Job, DaemonError> {
         let path = self.config.preview_video_path(&job.id, container);
-        std::fs::rename(&upload.partial, &path)
-            .map_err(|e| DaemonError::ResourceExhausted(format!("storing the video: {e}")))?;
-        let size = upload.written;
+        let size = upload.store_at(&path)?;
         let job = self
             .state
             .update_job(&job.id, |j| {
@@ -79,9 +77,7 @@ impl Daemon {
             })?
             .ok_or_else(|| DaemonError::NotFound(format!("job {}", upload.job_id)))?;
         self.state.flush()?;
-        let took = (lease.leased_unix_ms > 0)
-            .then(|| (now_unix_ms() - lease.leased_unix_ms).max(0) as f64 / 1e3);
-        self.metrics.encodes.succeeded(took);
+        self.count_stored_video(lease);
         tracing::info!(job = %job.id, bytes = size, "preview video stored");
         self.publish(&job, None);
         Ok(job)
