@@ -6,14 +6,14 @@
 //! the uninterrupted build's node for node, point for point, attribute row for attribute row;
 //! the COPC files exported from both are the same bytes.
 
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
-use std::sync::mpsc;
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
-use pointfarm_tests::stores::{assert_same_nodes, logged, store_folder, store_nodes};
+use pointfarm_tests::stores::{
+    assert_same_nodes, kill_build_at, logged, store_folder, store_nodes,
+};
 use pointfarm_tests::{output_text, pointfarm_bin};
 
 /// Points of the dataset: enough for several partitions and nodes above them on two cores.
@@ -104,45 +104,6 @@ fn run(command: &mut Command) -> String {
     String::from_utf8_lossy(&output.stderr).into_owned()
 }
 
-/// Starts `command` and kills it with SIGKILL once it says the build paused at `stage`, or,
-/// with no stage, after `after`. Returns whether the build was still under way when killed.
-fn kill_at(mut command: Command, stage: Option<&str>, after: Duration) -> bool {
-    if let Some(stage) = stage {
-        command.env("POINTFARM_TEST_PAUSE_AT", stage);
-    }
-    let mut child = command
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("start pointfarm");
-    let stderr = child.stderr.take().expect("stderr");
-    let (lines, said) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            let _ = lines.send(line);
-        }
-    });
-    let deadline = Instant::now() + Duration::from_secs(300);
-    let mut heard = Vec::new();
-    if let Some(stage) = stage {
-        let wanted = format!("build paused at {stage}");
-        loop {
-            let left = deadline.saturating_duration_since(Instant::now());
-            match said.recv_timeout(left) {
-                Ok(line) if line.contains(&wanted) => break,
-                Ok(line) => heard.push(line),
-                Err(_) => panic!("never paused at {stage}:\n{}", heard.join("\n")),
-            }
-        }
-    } else {
-        std::thread::sleep(after);
-    }
-    let running = child.try_wait().expect("poll").is_none();
-    child.kill().expect("SIGKILL");
-    child.wait().expect("reap");
-    running
-}
-
 /// How many units the resumed run took from the killed one, from its log; `None` when it
 /// started over.
 fn resumed_units(stderr: &str) -> Option<u64> {
@@ -195,7 +156,7 @@ fn kill_and_resume(reference: &Reference, stage: Option<&str>, after: Duration) 
     let cache = dir.path().join("cache");
     let copc = dir.path().join("resumed.copc.laz");
     let export = || export(&reference.input, &cache, &copc, reference.threads);
-    let killed = kill_at(export(), stage, after);
+    let killed = kill_build_at(export(), stage, after);
     assert!(killed || stage.is_none(), "the paused build was running");
     let log = run(&mut export());
     assert_same_nodes(

@@ -4,14 +4,13 @@
 //! to the new store (the build's test hook, `POINTFARM_TEST_PAUSE_AT=update:0`) leaves the
 //! old store whole: the next render updates it again.
 
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
-use std::sync::mpsc;
-use std::time::{Duration, Instant};
+use std::process::{Command, Output};
+use std::time::Duration;
 
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::sample::sample_scene;
+use pointfarm_tests::stores::kill_build_at;
 use pointfarm_tests::{assert_pngs_alike, output_text, pointfarm_bin};
 
 /// Tiles per axis: the middle one is the new day's.
@@ -102,34 +101,29 @@ fn add_the_new_tile(tiles: &Path, later: &Path) {
     std::fs::rename(later.join(&name), tiles.join(&name)).expect("move the new tile");
 }
 
-/// Starts `command` and kills it with SIGKILL once it says it paused at `stage`.
-fn kill_at(mut command: Command, stage: &str) {
-    command.env("POINTFARM_TEST_PAUSE_AT", stage);
-    let mut child = command
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("start pointfarm");
-    let stderr = child.stderr.take().expect("stderr");
-    let (lines, said) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            let _ = lines.send(line);
-        }
-    });
-    let deadline = Instant::now() + Duration::from_secs(300);
-    let wanted = format!("build paused at {stage}");
-    let mut heard = Vec::new();
-    loop {
-        let left = deadline.saturating_duration_since(Instant::now());
-        match said.recv_timeout(left) {
-            Ok(line) if line.contains(&wanted) => break,
-            Ok(line) => heard.push(line),
-            Err(_) => panic!("never paused at {stage}:\n{}", heard.join("\n")),
-        }
-    }
-    child.kill().expect("SIGKILL");
-    child.wait().expect("reap");
+/// The render's log says it updated the store with the new tile rather than building anew,
+/// and it drew every point.
+fn assert_updated_with_the_new_tile(output: &Output) {
+    let log = output_text(output);
+    assert!(log.contains("updated store: 1 files added"), "{log}");
+    assert!(log.contains("store updated with 1 added file(s)"), "{log}");
+    assert!(!log.contains("levels of detail:"), "built anew:\n{log}");
+    assert_eq!(points_total(output), POINTS as u64);
+}
+
+/// `updated` looks like the frame of a store built anew in `dir` from every tile.
+fn assert_draws_as_a_fresh_build(
+    dir: &Path,
+    tiles: &Path,
+    camera: &[String],
+    updated: &Path,
+    name: &str,
+    message: &str,
+) {
+    let fresh = dir.join("fresh.png");
+    let output = run(&mut render(tiles, &fresh, &dir.join("fresh-cache"), camera));
+    assert!(output_text(&output).contains("levels of detail:"));
+    assert_pngs_alike(name, updated, &fresh, message);
 }
 
 #[test]
@@ -146,11 +140,7 @@ fn a_folder_that_gains_a_tile_updates_its_store_and_draws_as_a_fresh_build() {
     add_the_new_tile(&tiles, &later);
     let updated = dir.path().join("updated.png");
     let output = run(&mut render(&tiles, &updated, &cache, &camera));
-    let log = output_text(&output);
-    assert!(log.contains("updated store: 1 files added"), "{log}");
-    assert!(log.contains("store updated with 1 added file(s)"), "{log}");
-    assert!(!log.contains("levels of detail:"), "built anew:\n{log}");
-    assert_eq!(points_total(&output), POINTS as u64);
+    assert_updated_with_the_new_tile(&output);
     // The earlier files' store was taken over, not copied.
     let stores = std::fs::read_dir(cache.join("lod")).expect("the store cache");
     assert_eq!(
@@ -160,14 +150,12 @@ fn a_folder_that_gains_a_tile_updates_its_store_and_draws_as_a_fresh_build() {
         1
     );
 
-    let fresh = dir.path().join("fresh.png");
-    let fresh_cache = dir.path().join("fresh-cache");
-    let output = run(&mut render(&tiles, &fresh, &fresh_cache, &camera));
-    assert!(output_text(&output).contains("levels of detail:"));
-    assert_pngs_alike(
-        "store-update",
+    assert_draws_as_a_fresh_build(
+        dir.path(),
+        &tiles,
+        &camera,
         &updated,
-        &fresh,
+        "store-update",
         "the updated store's frame differs from a fresh build's",
     );
 }
@@ -183,27 +171,22 @@ fn an_update_killed_before_it_switches_leaves_the_old_store_to_update_again() {
 
     add_the_new_tile(&tiles, &later);
     let updated = dir.path().join("updated.png");
-    kill_at(render(&tiles, &updated, &cache, &camera), "update:0");
+    kill_build_at(
+        render(&tiles, &updated, &cache, &camera),
+        Some("update:0"),
+        Duration::ZERO,
+    );
     // The old store, taken over and unfinished, still holds the earlier points whole: the
     // next render updates it rather than building anew.
     let output = run(&mut render(&tiles, &updated, &cache, &camera));
-    let log = output_text(&output);
-    assert!(log.contains("updated store: 1 files added"), "{log}");
-    assert!(log.contains("store updated with 1 added file(s)"), "{log}");
-    assert!(!log.contains("levels of detail:"), "built anew:\n{log}");
-    assert_eq!(points_total(&output), POINTS as u64);
+    assert_updated_with_the_new_tile(&output);
 
-    let fresh = dir.path().join("fresh.png");
-    run(&mut render(
+    assert_draws_as_a_fresh_build(
+        dir.path(),
         &tiles,
-        &fresh,
-        &dir.path().join("fresh-cache"),
         &camera,
-    ));
-    assert_pngs_alike(
-        "store-update-killed",
         &updated,
-        &fresh,
+        "store-update-killed",
         "the store updated after a kill draws unlike a fresh build",
     );
 }

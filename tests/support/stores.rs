@@ -1,7 +1,11 @@
 //! A level-of-detail store's content, compared between builds: a store built by a run that
 //! was killed and resumed must equal an uninterrupted build's node for node.
 
+use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
 
 use pointfarm_render::cut::StoredLod;
 use pointfarm_render::lod::{read_nodes, NodeKey};
@@ -66,4 +70,43 @@ pub fn logged(log: &str, message: &str, name: &str) -> Option<u64> {
         .take_while(char::is_ascii_digit)
         .collect();
     digits.parse().ok()
+}
+
+/// Starts `command` (a `pointfarm` build) and kills it with SIGKILL once it says the build
+/// paused at `stage` (`POINTFARM_TEST_PAUSE_AT`), or, with no stage, after `after`. Returns whether the build was still under way when killed.
+pub fn kill_build_at(mut command: Command, stage: Option<&str>, after: Duration) -> bool {
+    if let Some(stage) = stage {
+        command.env("POINTFARM_TEST_PAUSE_AT", stage);
+    }
+    let mut child = command
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start pointfarm");
+    let stderr = child.stderr.take().expect("stderr");
+    let (lines, said) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            let _ = lines.send(line);
+        }
+    });
+    let deadline = Instant::now() + Duration::from_secs(300);
+    let mut heard = Vec::new();
+    if let Some(stage) = stage {
+        let wanted = format!("build paused at {stage}");
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match said.recv_timeout(left) {
+                Ok(line) if line.contains(&wanted) => break,
+                Ok(line) => heard.push(line),
+                Err(_) => panic!("never paused at {stage}:\n{}", heard.join("\n")),
+            }
+        }
+    } else {
+        std::thread::sleep(after);
+    }
+    let running = child.try_wait().expect("poll").is_none();
+    child.kill().expect("SIGKILL");
+    child.wait().expect("reap");
+    running
 }
