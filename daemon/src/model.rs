@@ -238,7 +238,10 @@ pub struct Job {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub encode: Option<crate::encode_record::EncodeState>,
     /// What was written to `spec.output_url` (`outputs`).
-    #[serde(default, skip_serializing_if = "crate::output_queue::JobOutputs::is_empty")]
+    #[serde(
+        default,
+        skip_serializing_if = "crate::output_queue::JobOutputs::is_empty"
+    )]
     pub outputs: crate::output_queue::JobOutputs,
 }
 
