@@ -23,6 +23,15 @@ pub(crate) fn peak_resident_bytes() -> u64 {
     status_kib("VmHWM:") * 1024
 }
 
+/// Held across a measurement from its size before to its peak: a reset of the process's one
+/// peak by another measurement running meanwhile (tests run on threads) would cut it short.
+pub(crate) fn measuring() -> std::sync::MutexGuard<'static, ()> {
+    static MEASURING: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    MEASURING
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
 /// Resets the peak to the current size (Linux 4.0 and later); false where that was refused,
 /// when the next peak is the process's since its start.
 pub(crate) fn reset_peak() -> bool {

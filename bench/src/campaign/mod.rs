@@ -434,6 +434,7 @@ fn build(
     let store_dir = dir.join("store");
     let bench_store = create_store(&store_dir)?;
     let options = LodBuildOptions::new(dir.join("spill"));
+    let _measuring = memory::measuring();
     let before_rss_bytes = memory::resident_bytes();
     let reset = memory::reset_peak();
     let started = Instant::now();

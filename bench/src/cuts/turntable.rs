@@ -140,6 +140,7 @@ pub fn render_turntable(
     let budgets = cut.budgets();
     let settings =
         |i: usize| turntable_settings(dataset, options.width, options.height, options.frames, i);
+    let _measuring = memory::measuring();
     let before_rss_bytes = memory::resident_bytes();
     let peak_reset = memory::reset_peak();
     let started = Instant::now();
