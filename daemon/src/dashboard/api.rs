@@ -3,7 +3,9 @@
 //! (lowerCamelCase names, 64-bit integers as strings, enums by name), so that one client
 //! model reads both.
 //!
-//! - `GET /api/jobs?state=running&pageSize=50&pageToken=...`: `ListJobsResponse`
+//! - `GET /api/jobs?state=running&label=shot=010&name=night&pageSize=50&pageToken=...`:
+//!   `ListJobsResponse` of the jobs the filter takes (`filter`); a page filtered by name may
+//!   hold fewer than `pageSize` jobs and still be followed by more
 //! - `GET /api/jobs/{id}`: `Job` with its finished frames, as `GetJob` answers
 //! - `POST /api/jobs/{id}/{action}`: the `Job` after it (`actions`)
 //! - `GET /api/workers`: `ListWorkersResponse`, each worker that jobs have blocklisted with
@@ -22,6 +24,7 @@ use serde::Serialize;
 use tonic::{Code, Status};
 
 use super::auth::field;
+use super::filter::{jobs_message, JobQuery};
 use super::Dashboard;
 use crate::error::DaemonError;
 use crate::grpc::{blocking_within, job_with_frames_message, BLOCKING_CALL_BOUND};
@@ -29,6 +32,7 @@ use crate::model::{FrameReport, Job, JobState};
 use crate::service::Daemon;
 
 /// An error of the dashboard: the gRPC status the API would answer, as HTTP.
+#[derive(Debug)]
 pub struct Failure(pub Status);
 
 impl From<Status> for Failure {
@@ -164,18 +168,16 @@ pub async fn jobs(
     State(dashboard): State<Dashboard>,
     RawQuery(query): RawQuery,
 ) -> Result<Response, Failure> {
-    let query = query.unwrap_or_default().into_bytes();
-    let state = parse_state(&field(&query, "state").unwrap_or_default())?;
-    let size = page_size(&query)?;
-    let token = field(&query, "pageToken").unwrap_or_default();
+    let raw = query.unwrap_or_default().into_bytes();
+    let query = JobQuery::parse(&raw)?;
+    let size = page_size(&raw)?;
+    let token = field(&raw, "pageToken").unwrap_or_default();
+    let stored = query.stored.clone();
     let page = run(&dashboard.daemon, move |daemon| {
-        daemon.list_jobs(state, size, &token)
+        daemon.find_jobs(&stored, size, &token)
     })
     .await?;
-    Ok(json(&pb::ListJobsResponse {
-        jobs: page.items.iter().map(pb::Job::from).collect(),
-        next_page_token: page.next_token,
-    }))
+    Ok(json(&jobs_message(&query, &page.items, page.next_token)))
 }
 
 /// Job `id` with its finished frames and why it waits, as `GetJob` answers.

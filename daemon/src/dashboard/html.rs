@@ -2,6 +2,7 @@
 //! login form, and the small formatting every page shares. Everything a user or worker
 //! named (job, dataset, worker and file names, errors) is escaped.
 
+use std::collections::BTreeMap;
 use std::fmt::Write;
 
 use crate::model::{Job, JobState};
@@ -98,6 +99,26 @@ pub fn error_page(section: &str, message: &str) -> String {
 pub fn state_badge(state: JobState) -> String {
     let name = state.name();
     format!("<span class=\"state state-{name}\">{name}</span>")
+}
+
+/// A job's labels as chips (`key=value`), each a link to `link(key, value)`: the jobs list
+/// filtered by it.
+pub fn label_chips(
+    labels: &BTreeMap<String, String>,
+    link: impl Fn(&str, &str) -> String,
+) -> String {
+    let mut out = String::from("<span class=\"labels\">");
+    for (key, value) in labels {
+        let _ = write!(
+            out,
+            "<a class=\"chip\" href=\"{href}\">{key}={value}</a>",
+            href = escape(&link(key, value)),
+            key = escape(key),
+            value = escape(value),
+        );
+    }
+    out.push_str("</span>");
+    out
 }
 
 /// Bytes in binary units, as the CLI prints them: `1.5 GiB`.

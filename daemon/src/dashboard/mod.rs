@@ -12,6 +12,7 @@
 //!   slows then refuses an address that gives wrong tokens.
 //! - `listener`: the bounded connections of `pointfarm_proto::endpoint::connections`, with
 //!   TLS when the API has it.
+//! - `filter`: which jobs a list shows (state, labels, a part of the name), from the URL.
 //! - `api` (JSON), `actions` (cancel, pause, resume, retry, priority, delete), `events`
 //!   (server-sent events), `pages` (the jobs), `workers` and `datasets` (their page, and the
 //!   workers' JSON), `html` (what the pages share), `frames` (frame images and thumbnails),
@@ -40,6 +41,7 @@ mod api;
 mod auth;
 mod datasets;
 mod events;
+mod filter;
 mod frames;
 mod html;
 mod listener;

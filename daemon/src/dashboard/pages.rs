@@ -13,8 +13,9 @@ use axum::Router;
 use pointfarm_render::encode::video::VideoContainer;
 
 use super::actions::JobAction;
-use super::api::{failure_page, parse_state, run, Failure};
+use super::api::{failure_page, run, Failure};
 use super::auth::field;
+use super::filter::JobQuery;
 use super::html::{self, escape, segment};
 use super::Dashboard;
 use crate::error::DaemonError;
@@ -26,24 +27,36 @@ use crate::service::Daemon;
 /// work, few enough to paint at once.
 const JOBS_SHOWN: usize = 200;
 
-/// The jobs matching `state`, newest first, the first `limit` of them, and how many match.
+/// How many jobs the state database is asked for at once while the jobs page is read.
+const JOBS_READ_AT_ONCE: u32 = 1000;
+
+/// The jobs `query` takes, newest first, the first `limit` of them, and how many it takes.
+/// Every job is read, a page at a time, and only the newest `limit` are kept between pages.
 fn newest_jobs(
     daemon: &Daemon,
-    state: Option<JobState>,
+    query: &JobQuery,
     limit: usize,
 ) -> Result<(Vec<Job>, usize), DaemonError> {
+    let newest_first =
+        |a: &Job, b: &Job| (b.created_unix_ms, &b.id).cmp(&(a.created_unix_ms, &a.id));
     let mut jobs = Vec::new();
+    let mut matching = 0;
     let mut token = String::new();
     loop {
-        let page = daemon.list_jobs(state, 1000, &token)?;
-        jobs.extend(page.items);
+        let page = daemon.find_jobs(&query.stored, JOBS_READ_AT_ONCE, &token)?;
+        let before = jobs.len();
+        jobs.extend(page.items.into_iter().filter(|job| query.matches_name(job)));
+        matching += jobs.len() - before;
+        if jobs.len() > limit.saturating_mul(2) {
+            jobs.sort_by(newest_first);
+            jobs.truncate(limit);
+        }
         if page.next_token.is_empty() {
             break;
         }
         token = page.next_token;
     }
-    let matching = jobs.len();
-    jobs.sort_by(|a, b| (b.created_unix_ms, &b.id).cmp(&(a.created_unix_ms, &a.id)));
+    jobs.sort_by(newest_first);
     jobs.truncate(limit);
     Ok((jobs, matching))
 }
@@ -91,77 +104,132 @@ pub(super) fn job_name(job: &Job) -> &str {
     }
 }
 
-/// One row of the jobs table; the script builds the same from a job event.
-fn job_row(job: &Job, dataset: &str, stage: &str, now_ms: i64) -> String {
+/// One row of the jobs table, its label chips linking to `query` narrowed by each; the
+/// script builds the same from a job event.
+fn job_row(job: &Job, dataset: &str, stage: &str, query: &JobQuery, now_ms: i64) -> String {
     let id = escape(&job.id);
     let eta = html::eta_seconds(job, now_ms)
         .map(html::duration)
         .unwrap_or_default();
+    let chips = html::label_chips(&job.spec.labels, |key, value| {
+        list_link(&query.query_with(query.state(), Some((key, value))))
+    });
     format!(
         "<tr data-job=\"{id}\" data-created=\"{created}\">\
-         <td><a href=\"/jobs/{link}\">{id}</a></td><td>{name}</td><td>{dataset}</td>\
-         <td class=\"job-state\">{state}</td><td class=\"stage\">{stage}</td>\
+         <td><a href=\"/jobs/{link}\">{id}</a></td><td>{name}</td><td>{chips}</td>\
+         <td data-dataset=\"{dataset_id}\">{dataset}</td><td class=\"job-state\">{state}</td><td class=\"stage\">{stage}</td>\
          <td><progress max=\"{total}\" value=\"{done}\"></progress></td>\
          <td class=\"frames\">{done}/{total}</td><td class=\"eta\">{eta}</td></tr>",
         created = job.created_unix_ms,
         link = segment(&job.id),
         name = escape(job_name(job)),
         dataset = escape(dataset),
+        dataset_id = escape(&job.spec.dataset_id),
         state = html::state_badge(job.state),
         total = job.frames_total,
         done = job.frames_done,
     )
 }
 
+/// The jobs list with the filter `query` (a URL's query, without `?`).
+fn list_link(query: &str) -> String {
+    if query.is_empty() {
+        "/".to_string()
+    } else {
+        format!("/?{query}")
+    }
+}
+
+/// The list's filters: a link per state, the filter box (name and one label more, the
+/// current ones kept) and the labels filtered by, each a chip that drops it.
+fn filters(query: &JobQuery) -> String {
+    use JobState::*;
+    let mut out = String::from("<nav class=\"filters\" aria-label=\"State\">");
+    let current = query.state();
+    let states = [Queued, Running, Paused, Succeeded, Failed, Cancelled].map(Some);
+    for state in [None].into_iter().chain(states) {
+        let mark = if state == current {
+            " aria-current=\"true\""
+        } else {
+            ""
+        };
+        let _ = write!(
+            out,
+            "<a href=\"{href}\"{mark}>{label}</a>",
+            href = escape(&list_link(&query.query_with(state, None))),
+            label = state.map_or("all", JobState::name),
+        );
+    }
+    out.push_str("</nav><form class=\"filter\" method=\"get\" action=\"/\" role=\"search\">");
+    if let Some(state) = current {
+        let _ = write!(
+            out,
+            "<input type=\"hidden\" name=\"state\" value=\"{}\">",
+            state.name()
+        );
+    }
+    for (key, value) in query.labels() {
+        let _ = write!(
+            out,
+            "<input type=\"hidden\" name=\"label\" value=\"{}\">",
+            escape(&format!("{key}={value}"))
+        );
+    }
+    let _ = write!(
+        out,
+        "<input type=\"search\" id=\"filter-name\" name=\"name\" value=\"{name}\" \
+         placeholder=\"name contains\" aria-label=\"Name contains\">\
+         <input type=\"text\" id=\"filter-label\" name=\"label\" placeholder=\"label key=value\" \
+         aria-label=\"Label (key=value)\"><button type=\"submit\" id=\"filter-apply\">Filter</button>",
+        name = escape(&query.name),
+    );
+    if !query.is_empty() {
+        out.push_str("<a href=\"/\" class=\"clear\">clear</a>");
+    }
+    out.push_str("</form>");
+    if !query.labels().is_empty() {
+        out.push_str("<p class=\"filtered\">Labels: ");
+        for (key, value) in query.labels() {
+            let _ = write!(
+                out,
+                "<a class=\"chip remove\" href=\"{href}\" title=\"Show jobs without this \
+                 filter\">{key}={value} ×</a>",
+                href = escape(&list_link(&query.without_label(key).query())),
+                key = escape(key),
+                value = escape(value),
+            );
+        }
+        out.push_str("</p>");
+    }
+    out
+}
+
 pub async fn jobs(State(dashboard): State<Dashboard>, RawQuery(query): RawQuery) -> Response {
-    let query = query.unwrap_or_default().into_bytes();
-    let filter = field(&query, "state").unwrap_or_default();
-    let state = match parse_state(&filter) {
-        Ok(state) => state,
+    let raw = query.unwrap_or_default().into_bytes();
+    let query = match JobQuery::parse(&raw) {
+        Ok(query) => query,
         Err(failure) => return failure_page("Jobs", failure),
     };
-    let limit = field(&query, "limit")
+    let limit = field(&raw, "limit")
         .and_then(|limit| limit.parse::<usize>().ok())
         .unwrap_or(JOBS_SHOWN)
         .max(1);
-    let read = run(&dashboard.daemon, move |daemon| {
-        Ok((newest_jobs(daemon, state, limit)?, dataset_names(daemon)?))
+    let read = run(&dashboard.daemon, {
+        let query = query.clone();
+        move |daemon| Ok((newest_jobs(daemon, &query, limit)?, dataset_names(daemon)?))
     });
     let ((jobs, matching), names) = match read.await {
         Ok(read) => read,
         Err(failure) => return failure_page("Jobs", failure),
     };
     let now_ms = now_unix_ms();
-    let mut body = String::from("<h1>Jobs</h1><nav class=\"filters\" aria-label=\"State\">");
-    let current = state.map_or("", JobState::name);
-    for name in [
-        "",
-        "queued",
-        "running",
-        "paused",
-        "succeeded",
-        "failed",
-        "cancelled",
-    ] {
-        let (href, label) = if name.is_empty() {
-            ("/".to_string(), "all")
-        } else {
-            (format!("/?state={name}"), name)
-        };
-        let mark = if name == current {
-            " aria-current=\"true\""
-        } else {
-            ""
-        };
-        let _ = write!(body, "<a href=\"{href}\"{mark}>{label}</a>");
-    }
+    let mut body = format!("<h1>Jobs</h1>{}", filters(&query));
     let _ = write!(
         body,
-        "</nav><p class=\"count\">{shown} of {matching} jobs</p>\
+        "<p class=\"count\">{shown} of {matching} jobs</p>\
          <div class=\"table\"><table id=\"jobs\"><thead><tr><th>Job</th><th>Name</th>\
-         <th>Dataset</th><th>State</th><th>Stage</th><th>Progress</th><th>Frames</th>\
-         <th>ETA</th></tr>\
-         </thead><tbody>",
+         <th>Labels</th><th>Dataset</th><th>State</th><th>Stage</th><th>Progress</th>\
+         <th>Frames</th><th>ETA</th></tr></thead><tbody>",
         shown = jobs.len()
     );
     for job in &jobs {
@@ -170,22 +238,28 @@ pub async fn jobs(State(dashboard): State<Dashboard>, RawQuery(query): RawQuery)
             None => (job.spec.dataset_id.as_str(), false),
         };
         let stage = job_stage(job, building);
-        body.push_str(&job_row(job, dataset, stage, now_ms));
+        body.push_str(&job_row(job, dataset, stage, &query, now_ms));
     }
     body.push_str("</tbody></table></div>");
     if matching > jobs.len() {
         let more = jobs.len().saturating_mul(5);
-        let state_query = if current.is_empty() {
-            String::new()
-        } else {
-            format!("state={current}&")
-        };
+        let filter = query.query();
+        let and = if filter.is_empty() { "" } else { "&" };
         let _ = write!(
             body,
-            "<p><a href=\"/?{state_query}limit={more}\">Show more</a></p>"
+            "<p><a href=\"/?{filter}{and}limit={more}\">Show more</a></p>",
+            filter = escape(&filter),
         );
     }
-    let data = format!(" data-filter=\"{current}\"");
+    let labels = serde_json::to_string(query.labels()).unwrap_or_default();
+    let data = format!(
+        " data-filter=\"{state}\" data-labels=\"{labels}\" data-name=\"{name}\" \
+         data-shown=\"{shown}\" data-matching=\"{matching}\"",
+        state = query.state().map_or("", JobState::name),
+        labels = escape(&labels),
+        name = escape(&query.name),
+        shown = jobs.len(),
+    );
     Html(html::layout("Jobs", "Jobs", "jobs", &data, &body)).into_response()
 }
 
@@ -287,7 +361,8 @@ pub async fn job(State(dashboard): State<Dashboard>, Path(id): Path<String>) -> 
         .unwrap_or_default();
     let mut body = format!(
         "<h1>Job <code>{id}</code></h1><dl class=\"facts\">\
-         <dt>Name</dt><dd>{name}</dd><dt>Dataset</dt><dd>{dataset}</dd>\
+         <dt>Name</dt><dd>{name}</dd><dt>Labels</dt><dd>{labels}</dd>\
+         <dt>Dataset</dt><dd>{dataset}</dd>\
          <dt>State</dt><dd class=\"job-state\">{state}</dd>\
          <dt>Stage</dt><dd class=\"stage\">{stage}</dd>\
          <dt>Frames</dt><dd><progress max=\"{total}\" value=\"{done}\"></progress> \
@@ -297,6 +372,9 @@ pub async fn job(State(dashboard): State<Dashboard>, Path(id): Path<String>) -> 
          <dt>Priority</dt><dd class=\"priority\">{priority}</dd>\
          <dt>Submitted</dt><dd>{created} UTC</dd>",
         name = escape(job_name(&job)),
+        labels = html::label_chips(&job.spec.labels, |key, value| {
+            list_link(&JobQuery::default().query_with(None, Some((key, value))))
+        }),
         dataset = escape(&dataset),
         state = html::state_badge(job.state),
         stage = job_stage(&job, building),
@@ -458,19 +536,13 @@ pub async fn frame(
 #[cfg(test)]
 mod tests {
     use pointfarm_render::encode::video::{VideoContainer, VideoSettings};
-    use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, Turntable};
+    use pointfarm_render::request::RenderRequest;
 
     use super::*;
     use crate::model::JobSpec;
 
     fn job(state: JobState, frames_done: u32, preview: bool, video: bool) -> Job {
-        let request = RenderRequest {
-            width: 8,
-            height: 8,
-            camera_path: CameraPath::Turntable(Turntable::around_the_cloud(4)),
-            lens: Lens::default(),
-            render: RenderOptions::default(),
-        };
+        let request = RenderRequest::turntable(8, 8, 4);
         let mut spec = JobSpec::new("nightly".into(), "ds-1".into(), request);
         spec.preview = preview;
         spec.video =

@@ -95,15 +95,67 @@
     return td;
   }
 
-  function jobRow(job) {
+  // The jobs list's filter as the server read it (`filter::JobQuery`): a state, labels that
+  // a job must each have, a part of its name (lowercased).
+  function listFilter() {
+    return {
+      state: body.dataset.filter || "",
+      labels: JSON.parse(body.dataset.labels || "{}"),
+      name: body.dataset.name || "",
+    };
+  }
+
+  // Whether the list filtered by `filter` shows `job`, as the server decides.
+  function takes(filter, job) {
+    if (filter.state && stateName(job.state) !== filter.state) return false;
+    const labels = job.labels || {};
+    for (const key of Object.keys(filter.labels)) {
+      if (labels[key] !== filter.labels[key]) return false;
+    }
+    const name = (job.name || job.requestId || "").toLowerCase();
+    return !filter.name || name.includes(filter.name);
+  }
+
+  // The list filtered by `filter` and label `key`=`value` too (`JobQuery::query_with`).
+  function narrowed(filter, key, value) {
+    const query = new URLSearchParams();
+    if (filter.state) query.append("state", filter.state);
+    const labels = Object.entries(filter.labels);
+    if (!(key in filter.labels)) labels.push([key, value]);
+    labels.forEach(([k, v]) => query.append("label", k + "=" + v));
+    if (filter.name) query.append("name", filter.name);
+    return "/?" + query.toString();
+  }
+
+  // A job's labels as chips linking to the list narrowed by each (`html::label_chips`).
+  function labelChips(filter, labels) {
+    const span = document.createElement("span");
+    span.className = "labels";
+    Object.keys(labels || {}).sort().forEach((key) => {
+      const chip = document.createElement("a");
+      chip.className = "chip";
+      chip.href = narrowed(filter, key, labels[key]);
+      chip.textContent = key + "=" + labels[key];
+      span.appendChild(chip);
+    });
+    return span;
+  }
+
+  // The row the server writes (`pages::job_row`); the dataset's name where another row
+  // shows it.
+  function jobRow(filter, job) {
     const row = document.createElement("tr");
     row.dataset.job = job.id;
+    row.dataset.created = job.createdUnixMs || "0";
     const link = document.createElement("a");
     link.href = "/jobs/" + encodeURIComponent(job.id);
     link.textContent = job.id;
     cell(row, link);
     cell(row, job.name || job.requestId || "");
-    cell(row, job.datasetId || "");
+    cell(row, labelChips(filter, job.labels));
+    const dataset = job.datasetId || "";
+    const known = document.querySelector('td[data-dataset="' + CSS.escape(dataset) + '"]');
+    cell(row, known ? known.textContent : dataset).dataset.dataset = dataset;
     cell(row, "").className = "job-state";
     cell(row, "").className = "stage";
     cell(row, document.createElement("progress"));
@@ -114,15 +166,19 @@
 
   function jobsPage() {
     const rows = document.querySelector("#jobs tbody");
-    const filter = body.dataset.filter;
+    const count = document.querySelector(".count");
+    const filter = listFilter();
     listen("/api/events", (event) => {
       const job = event.job;
       if (!job) return;
       let row = rows.querySelector('tr[data-job="' + CSS.escape(job.id) + '"]');
       if (!row) {
-        if (filter && stateName(job.state) !== filter) return;
-        row = jobRow(job);
+        if (!takes(filter, job)) return;
+        row = jobRow(filter, job);
         rows.prepend(row);
+        body.dataset.shown = Number(body.dataset.shown || 0) + 1;
+        body.dataset.matching = Number(body.dataset.matching || 0) + 1;
+        if (count) count.textContent = body.dataset.shown + " of " + body.dataset.matching + " jobs";
       }
       showJob(row, job);
       showStage(row, job, event.frame);
