@@ -20,7 +20,7 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-pub use crate::encode_record::{EncodeLease, EncodeState, PreviewVideoState, VideoKind};
+pub use crate::encode_record::{EncodeLease, EncodeState, VideoKind, VideoProgress};
 use crate::error::DaemonError;
 use crate::lease::HeartbeatAnswer;
 use crate::lease_record::Lease;
@@ -75,12 +75,19 @@ impl Job {
 
     /// The stored video's size.
     pub fn video_size_bytes(&self) -> Option<u64> {
-        self.encode.as_ref().and_then(|e| e.video_size_bytes)
+        self.encode.as_ref().and_then(|e| e.video.video_size_bytes)
     }
 
     /// Whether its final video is due and not leased.
     pub fn wants_final_encode(&self) -> bool {
-        self.awaits_video() && self.encode.as_ref().is_none_or(|e| e.lease.is_none())
+        self.awaits_video() && self.encode.as_ref().is_none_or(|e| e.video.lease.is_none())
+    }
+
+    /// Its `kind` video, to change; a record without one starts it.
+    pub fn video_mut(&mut self, kind: VideoKind) -> &mut VideoProgress {
+        self.encode
+            .get_or_insert_with(Default::default)
+            .of_mut(kind)
     }
 
     /// Whether the job is done when its last frame is: it asks for no video.
@@ -212,9 +219,7 @@ impl Daemon {
             let leased = lease.clone();
             let Some(job) = self.state.update_job(&job.id, |j| {
                 j.state = JobState::Running;
-                *j.encode
-                    .get_or_insert_with(Default::default)
-                    .lease_of_mut(kind) = Some(leased);
+                j.video_mut(kind).lease = Some(leased);
             })?
             else {
                 continue;
@@ -232,7 +237,7 @@ impl Daemon {
                 width: job.spec.request.width,
                 height: job.spec.request.height,
                 video,
-                failed_attempts: job.encode.map_or(0, |e| e.failed_attempts_of(kind)),
+                failed_attempts: job.encode.map_or(0, |e| e.of(kind).failed_attempts),
                 max_video_bytes: MAX_VIDEO_BYTES,
             }));
         }
@@ -317,7 +322,7 @@ impl Daemon {
                 if let Some(lease) = j
                     .encode
                     .as_mut()
-                    .and_then(|e| e.lease_of_mut(kind).as_mut())
+                    .and_then(|e| e.of_mut(kind).lease.as_mut())
                 {
                     lease.expires_unix_ms = expires_unix_ms;
                 }
@@ -393,9 +398,7 @@ impl Daemon {
         let job = self
             .state
             .update_job(&job.id, |j| {
-                let encode = j.encode.get_or_insert_with(Default::default);
-                encode.lease = None;
-                encode.video_size_bytes = Some(size);
+                j.video_mut(VideoKind::Final).stored(size);
                 j.state = JobState::Succeeded;
             })?
             .ok_or_else(|| DaemonError::NotFound(format!("job {}", upload.job_id)))?;
@@ -443,7 +446,7 @@ impl Daemon {
         };
         let updated = self.state.update_job(&job.id, |j| {
             if let Some(encode) = j.encode.as_mut() {
-                *encode.lease_of_mut(kind) = None;
+                encode.of_mut(kind).lease = None;
             }
         })?;
         self.state.flush()?;
@@ -467,14 +470,12 @@ impl Daemon {
         if kind == VideoKind::Preview {
             return self.count_failed_preview_encode_locked(job, lease, reason);
         }
-        let failed = job.encode.as_ref().map_or(0, |e| e.failed_attempts) + 1;
+        let failed = job.encode.as_ref().map_or(0, |e| e.video.failed_attempts) + 1;
         tracing::warn!(job = %job.id, worker = %lease.worker, attempt = failed, reason, "video failed");
         let last = failed >= MAX_ENCODE_ATTEMPTS;
         self.metrics.encodes.failed();
         let updated = self.state.update_job(&job.id, |j| {
-            let encode = j.encode.get_or_insert_with(Default::default);
-            encode.lease = None;
-            encode.failed_attempts = failed;
+            j.video_mut(VideoKind::Final).failed(failed);
             if last {
                 j.state = JobState::Failed;
                 j.error = Some(format!(
@@ -507,7 +508,7 @@ impl Daemon {
                 // The preview video stored stays; one being made was lost with the failure.
                 let preview = j.encode.take().map(|e| e.preview).unwrap_or_default();
                 j.encode = Some(EncodeState {
-                    preview: PreviewVideoState {
+                    preview: VideoProgress {
                         lease: None,
                         ..preview
                     },

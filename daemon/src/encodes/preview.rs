@@ -7,7 +7,7 @@ use std::path::PathBuf;
 
 use pointfarm_render::encode::video::VideoContainer;
 
-use super::{EncodeLease, VideoUpload, MAX_ENCODE_ATTEMPTS};
+use super::{EncodeLease, VideoKind, VideoUpload, MAX_ENCODE_ATTEMPTS};
 use crate::error::DaemonError;
 use crate::model::Job;
 use crate::service::{Daemon, DaemonConfig};
@@ -71,9 +71,7 @@ impl Daemon {
         let job = self
             .state
             .update_job(&job.id, |j| {
-                let preview = &mut j.encode.get_or_insert_with(Default::default).preview;
-                preview.lease = None;
-                preview.video_size_bytes = Some(size);
+                j.video_mut(VideoKind::Preview).stored(size);
             })?
             .ok_or_else(|| DaemonError::NotFound(format!("job {}", upload.job_id)))?;
         self.state.flush()?;
@@ -95,9 +93,7 @@ impl Daemon {
         tracing::warn!(job = %job.id, worker = %lease.worker, attempt = failed, reason, "preview video failed");
         self.metrics.encodes.failed();
         let updated = self.state.update_job(&job.id, |j| {
-            let preview = &mut j.encode.get_or_insert_with(Default::default).preview;
-            preview.lease = None;
-            preview.failed_attempts = failed;
+            j.video_mut(VideoKind::Preview).failed(failed);
         })?;
         self.state.flush()?;
         if let Some(job) = updated {

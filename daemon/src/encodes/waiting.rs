@@ -14,7 +14,7 @@ impl Daemon {
         let Some(video) = job.spec.video else {
             return JobAvailability::default();
         };
-        if job.encode.as_ref().is_some_and(|e| e.lease.is_some()) {
+        if job.encode.as_ref().is_some_and(|e| e.video.lease.is_some()) {
             return JobAvailability::default();
         }
         let connected = self.workers.connected(self.config.lease_timeout);

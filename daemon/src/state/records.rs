@@ -182,11 +182,11 @@ impl Records {
         id: &str,
         change: impl FnOnce(&mut Job),
     ) -> Result<Option<Job>, StateError> {
-        let Some(job) = self.changed_job(id, change)? else {
-            return Ok(None);
-        };
-        self.put_job(&job)?;
-        Ok(Some(job))
+        let changed = self.changed_job(id, change)?;
+        if let Some(job) = &changed {
+            self.put_job(job)?;
+        }
+        Ok(changed)
     }
 
     /// The stored job `id` with `change` applied and its update time bumped, not yet written.
