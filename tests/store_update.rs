@@ -106,7 +106,10 @@ fn add_the_new_tile(tiles: &Path, later: &Path) {
 fn assert_updated_with_the_new_tile(output: &Output) {
     let log = output_text(output);
     assert!(log.contains("updated store: 1 files added"), "{log}");
-    assert!(log.contains("store updated with 1 added file(s)"), "{log}");
+    assert!(
+        log.contains("store updated: 1 added, 0 removed, 0 changed file(s)"),
+        "{log}"
+    );
     assert!(!log.contains("levels of detail:"), "built anew:\n{log}");
     assert_eq!(points_total(output), POINTS as u64);
 }

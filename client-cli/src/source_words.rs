@@ -89,11 +89,15 @@ impl SourceWords {
             )),
             SourceEvent::Updated {
                 files_added,
+                files_removed,
+                files_changed,
                 regions_rebuilt,
                 points_added,
+                points_removed,
                 seconds,
             } => self.say(&format!(
-                "store updated with {files_added} added file(s): {points_added} points, \
+                "store updated: {files_added} added, {files_removed} removed, {files_changed} \
+                 changed file(s): {points_added} points in, {points_removed} out, \
                  {regions_rebuilt} regions built again in {seconds:.1} s"
             )),
             SourceEvent::Rebuilding { folder, damage } => self.say(&format!(

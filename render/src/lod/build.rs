@@ -28,6 +28,7 @@ use super::counting::{
     BUCKET_SEGMENT_POINTS, MAX_COUNT_LEVEL,
 };
 use super::error::LodError;
+use super::file_facts::FactsGathering;
 use super::hierarchy::LodHierarchy;
 use super::journal::{sync_dir, BuildJournal, Counted, Replay};
 use super::key::RootCube;
@@ -95,6 +96,31 @@ impl LodBuildReport {
     pub fn disk_bytes_per_point(&self) -> f64 {
         let points = self.hierarchy.point_count.max(1);
         (self.stored_bytes + self.hierarchy_bytes) as f64 / points as f64
+    }
+}
+
+/// The context of a build or update of `cube` whose partitions hold about
+/// `max_partition_points`, no subtree root waiting yet.
+pub(super) fn build_context<'a>(
+    cube: RootCube,
+    options: &'a LodBuildOptions,
+    meter: &'a MemoryMeter,
+    spill: &'a SpillDir,
+    sink: &'a NodeSink<'a>,
+    journal: &'a BuildJournal,
+    max_partition_points: u64,
+) -> BuildContext<'a> {
+    BuildContext {
+        cube,
+        options,
+        meter,
+        spill,
+        sink,
+        journal,
+        max_partition_points,
+        pending: Mutex::new(Default::default()),
+        partitions_split: AtomicUsize::new(0),
+        regions: Mutex::new(Vec::new()),
     }
 }
 
@@ -187,6 +213,8 @@ fn build_on_pool(
         max_partition_points: max_partition,
     };
     let inputs = build_inputs(source, options, layout, &expected, threads);
+    // Each file's facts, for a store update to take a removed file out (`file_facts.rs`).
+    let gathering = FactsGathering::new(source);
     let (journal, spill, replay) = open_build_folder(store, options, layout, inputs.as_deref())?;
     let mut rejected = false;
     let mut counting_from = None;
@@ -253,7 +281,7 @@ fn build_on_pool(
             };
             let checkpoint: Option<&Checkpoint<'_>> = journal.is_enabled().then_some(&record);
             let (grid, stats) = count_points(
-                source,
+                &gathering,
                 &cube,
                 level,
                 &meter,
@@ -284,16 +312,16 @@ fn build_on_pool(
     let sink = NodeSink::new(store, &journal, cube, stats.has_rgb, progress);
     sink.list(resumed.nodes);
     let ctx = BuildContext {
-        cube,
-        options,
-        meter: &meter,
-        spill: &spill,
-        sink: &sink,
-        journal: &journal,
-        max_partition_points: max_partition,
         pending: Mutex::new(resumed.waiting),
-        partitions_split: AtomicUsize::new(0),
-        regions: Mutex::new(Vec::new()),
+        ..build_context(
+            cube,
+            options,
+            &meter,
+            &spill,
+            &sink,
+            &journal,
+            max_partition,
+        )
     };
     let building = Instant::now();
     build_partitions(&ctx, partitions)?;
@@ -329,6 +357,7 @@ fn build_on_pool(
         grid: source.position_grid(),
         regions,
         files: Vec::new(),
+        file_facts: Some(gathering.into_facts()),
     });
     pause::at("hierarchy", 0);
     let hierarchy_bytes = store.write_hierarchy_with(&hierarchy, regions.as_ref())?;

@@ -9,18 +9,23 @@
 //! points. Layout, little-endian: "PFR1" | grid present u8, then scale 3 x f64, offset
 //! 3 x f64 | regions u32, then per region: level u8, x, y, z u32, points u64, root present u8,
 //! then its record's points u32, sampling grid u16, offset u64, bytes u32, attributes offset
-//! u64, attributes bytes u32 | files u32, then per file: bytes u32, UTF-8 | checksum u64.
+//! u64, attributes bytes u32 | files u32, then per file: bytes u32, UTF-8 | facts present u8,
+//! then facts u32 and per file: points u64, min 3 x f64, max 3 x f64, RGB min and max 6 x u16 |
+//! checksum u64. A record of an earlier layout ("PFR1", without the facts part) is read as
+//! one without facts: its store takes added files but is built again when one is removed.
 
 use glam::DVec3;
 
 use super::checksum::checksum64;
 use super::error::LodError;
 use super::fields::FieldReader;
+use super::file_facts::{self, FileFacts};
 use super::grid::PositionGrid;
 use super::hierarchy::NodeInfo;
 use super::key::NodeKey;
 
-const MAGIC: &[u8; 4] = b"PFR1";
+const MAGIC: &[u8; 4] = b"PFR2";
+const MAGIC_WITHOUT_FACTS: &[u8; 4] = b"PFR1";
 const CHECKSUM_SEED: &[u8] = b"store regions";
 
 /// One region: the subtree of `key`, built from `points` original points.
@@ -40,6 +45,9 @@ pub struct StoreRegions {
     /// One entry per file the points came from (the store's owner says what an entry holds:
     /// a local store, each file's path, length and modification time).
     pub files: Vec<String>,
+    /// Each file's facts, in the order of the source's parts the store was built from, then
+    /// of the files each update added; `None` where the store does not know them.
+    pub file_facts: Option<Vec<FileFacts>>,
 }
 
 impl StoreRegions {
@@ -86,6 +94,16 @@ impl StoreRegions {
             out.extend_from_slice(&(file.len() as u32).to_le_bytes());
             out.extend_from_slice(file.as_bytes());
         }
+        match &self.file_facts {
+            Some(facts) => {
+                out.push(1);
+                out.extend_from_slice(&(facts.len() as u32).to_le_bytes());
+                for f in facts {
+                    f.encode(&mut out);
+                }
+            }
+            None => out.push(0),
+        }
         let sum = checksum64(CHECKSUM_SEED, &out);
         out.extend_from_slice(&sum.to_le_bytes());
         out
@@ -101,9 +119,11 @@ impl StoreRegions {
             return Err(corrupt("checksum mismatch"));
         }
         let mut r = FieldReader::new(body, "store regions: truncated");
-        if r.take(4)? != MAGIC {
-            return Err(corrupt("not a regions record"));
-        }
+        let with_facts = match r.take(4)? {
+            m if m == MAGIC => true,
+            m if m == MAGIC_WITHOUT_FACTS => false,
+            _ => return Err(corrupt("not a regions record")),
+        };
         let grid = match r.u8()? {
             0 => None,
             1 => {
@@ -157,6 +177,19 @@ impl StoreRegions {
                 std::str::from_utf8(r.take(len)?).map_err(|_| corrupt("a file not UTF-8"))?;
             names.push(text.to_string());
         }
+        let file_facts = match with_facts.then(|| r.u8()).transpose()? {
+            None | Some(0) => None,
+            Some(1) => {
+                let count = r.u32()? as usize;
+                if count > body.len() / file_facts::ENCODED_BYTES {
+                    return Err(corrupt("more file facts than bytes"));
+                }
+                let facts: Result<Vec<FileFacts>, LodError> =
+                    (0..count).map(|_| FileFacts::decode(&mut r)).collect();
+                Some(facts?)
+            }
+            Some(_) => return Err(corrupt("a facts marker other than 0 or 1")),
+        };
         if !r.at_end() {
             return Err(corrupt("trailing bytes"));
         }
@@ -164,6 +197,7 @@ impl StoreRegions {
             grid,
             regions,
             files: names,
+            file_facts,
         })
     }
 }
@@ -199,6 +233,16 @@ mod tests {
                 },
             ],
             files: vec!["a.las 10 bytes".into(), "b.laz".into()],
+            file_facts: Some(vec![
+                FileFacts {
+                    points: 9,
+                    min: DVec3::new(1.0, 2.0, 3.0),
+                    max: DVec3::new(4.0, 5.0, 6.0),
+                    min_rgb: [1, 2, 3],
+                    max_rgb: [200, 210, 220],
+                },
+                FileFacts::default(),
+            ]),
         };
         let bytes = regions.encode();
         assert_eq!(StoreRegions::decode(&bytes).expect("decoded"), regions);

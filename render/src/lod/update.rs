@@ -1,4 +1,5 @@
-//! `update_lod`: a built store updated with the points of added files instead of built again.
+//! `update_store`: a built store updated with the points of added files, and without those of
+//! removed ones, instead of built again (`update_lod`: files added only).
 //!
 //! A store keeps its regions (`regions.rs`): the subtrees of each partition's children (a
 //! quarter of a partition on a surface), each with its root's points as they were before the
@@ -7,14 +8,20 @@
 //! 1. routes each added point to the region whose cube holds it, walking down from the root;
 //!    a point below no region (an empty part of the cube) starts a new region at the first
 //!    node on its way that is neither a region nor above one;
-//! 2. rebuilds each region that received points from all its points: its nodes below its
+//! 2. takes the points of removed files out of the regions their boxes meet (`removal.rs`),
+//!    reading again only the remaining files whose boxes hold a point it drops;
+//! 3. rebuilds each region that received or lost points from all its points: its nodes below its
 //!    subtree root and that root's kept points, decoded from the store (every original point
 //!    is there exactly once, so no file is read again), and the added ones; the regions are
 //!    built as a build's partitions are (split on disk when too large for the budget);
-//! 3. samples every level above the regions again from the regions' subtree roots, kept ones
+//! 4. samples every level above the regions again from the regions' subtree roots, kept ones
 //!    read from their records (what sampling takes depends on every child, so the levels above
 //!    are few nodes but all of them are rebuilt; a rebuilt region's children become regions);
-//! 4. writes the new hierarchy with the new regions in one sled batch.
+//! 5. writes the new hierarchy with the new regions in one sled batch.
+//!
+//! A changed file is a removal of it as it was and an addition of it as it is. The dataset's
+//! statistics lose the dropped points' histogram counts and take their ranges from the
+//! remaining files' facts, so they are a fresh build's of the files after the update.
 //!
 //! Nodes are appended to the payload file, never written over, so until the last step the old
 //! hierarchy still describes records that are all there: an update that is killed leaves the
@@ -29,15 +36,14 @@
 
 use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
-use std::sync::atomic::AtomicUsize;
-use std::sync::Mutex;
 use std::time::Instant;
 
 use super::attributes::AttributeRows;
-use super::build::on_threads;
+use super::build::{build_context, on_threads};
 use super::codec::decode_node;
-use super::context::{BuildContext, Pending};
+use super::context::Pending;
 use super::error::LodError;
+use super::file_facts::{FactsGathering, FileFacts};
 use super::grid::PositionGrid;
 use super::hierarchy::{LodHierarchy, NodeInfo};
 use super::journal::{BuildJournal, WaitingRoot};
@@ -51,6 +57,7 @@ use super::point::{RawPoint, RecordLayout};
 use super::progress::BuildProgress;
 use super::records::read_nodes;
 use super::regions::{Region, StoreRegions};
+use super::removal::{count_point, ranges_of, Removal};
 use super::sink::NodeSink;
 use super::source::PointSource;
 use super::spill::{SpillDir, SpillWriter};
@@ -71,6 +78,10 @@ const DECODE_NODES: usize = 256;
 pub struct LodUpdateReport {
     pub hierarchy: LodHierarchy,
     pub points_added: u64,
+    /// Points taken out with the removed files.
+    pub points_removed: u64,
+    /// Remaining files read again for their points inside a removed file's box.
+    pub files_reread: usize,
     /// Regions that received points and were built again.
     pub regions_rebuilt: usize,
     /// Regions started in parts of the cube that held no points.
@@ -86,6 +97,25 @@ pub struct LodUpdateReport {
     pub seconds: f64,
 }
 
+/// What changed in a store's files since it was built or last updated.
+pub struct StoreChange<'a> {
+    /// The points of the files added (a changed file as it is now), one part a file.
+    pub added: Option<&'a dyn PointSource>,
+    /// The store's files that are gone (a changed file as it was), by their place in the
+    /// order the store took them in: its build source's parts, then each update's added files.
+    pub removed: Vec<usize>,
+    /// Opens the store's remaining files at these places as one source: those whose boxes
+    /// hold a dropped point are read again.
+    pub reopen: &'a ReopenFiles<'a>,
+    /// One entry per file after the update: the remaining ones in the store's order, then the
+    /// added ones.
+    pub files: Vec<String>,
+}
+
+/// How an update opens the store's remaining files at some places, to read them again.
+pub type ReopenFiles<'a> =
+    dyn Fn(&[usize]) -> Result<Box<dyn PointSource + 'a>, LodError> + Sync + 'a;
+
 /// Adds the points of `added` to the store, which keeps its cube, leaf size and sampling;
 /// `files` is the new list of the store's files. Refused, leaving the store as it was, when
 /// the store keeps no regions, or the added points lie outside its cube or carry other
@@ -96,7 +126,28 @@ pub fn update_lod(
     files: Vec<String>,
     options: &LodBuildOptions,
 ) -> Result<LodUpdateReport, LodError> {
-    on_threads(options, || update_on_pool(store, added, files, options))
+    let no_files = |_: &[usize]| -> Result<Box<dyn PointSource>, LodError> {
+        Err(cannot("no file is removed, so none is read again"))
+    };
+    let change = StoreChange {
+        added: Some(added),
+        removed: Vec::new(),
+        reopen: &no_files,
+        files,
+    };
+    update_store(store, &change, options)
+}
+
+/// Applies `change` to the store, which keeps its cube, leaf size and sampling. Refused,
+/// leaving the store as it was, when the store keeps no regions, the added points lie outside
+/// its cube or carry other attributes, a file is removed from a store that does not record
+/// its files' boxes or its LAS grid, or no point would remain: such a store is built again.
+pub fn update_store(
+    store: &LodStore,
+    change: &StoreChange<'_>,
+    options: &LodBuildOptions,
+) -> Result<LodUpdateReport, LodError> {
+    on_threads(options, || update_on_pool(store, change, options))
 }
 
 fn cannot(reason: impl Into<String>) -> LodError {
@@ -153,6 +204,20 @@ impl RegionMap {
         Place::Above
     }
 
+    /// The region holding `p`, if one does.
+    fn locate(&self, cube: &RootCube, p: glam::DVec3) -> Option<usize> {
+        for level in 0..=MAX_LEVEL {
+            let key = NodeKey::new(level, cube.cell_at(p, u32::from(level)));
+            if let Some(&i) = self.index.get(&key) {
+                return Some(i);
+            }
+            if !self.above.contains(&key) {
+                return None;
+            }
+        }
+        None
+    }
+
     /// The region holding `p`, made when `p` lies below none: the first node on its way
     /// down that is neither a region nor above one.
     fn route(&mut self, cube: &RootCube, p: glam::DVec3, regions: &mut Vec<NodeKey>) -> usize {
@@ -174,8 +239,7 @@ impl RegionMap {
 
 fn update_on_pool(
     store: &LodStore,
-    added: &dyn PointSource,
-    files: Vec<String>,
+    change: &StoreChange<'_>,
     options: &LodBuildOptions,
 ) -> Result<LodUpdateReport, LodError> {
     let start = Instant::now();
@@ -184,22 +248,10 @@ fn update_on_pool(
         .read_regions()?
         .ok_or_else(|| cannot("the store keeps no regions (built by a resumed build)"))?;
     let cube = old.cube;
-    let bounds = added.bounds();
-    let top = cube.min + glam::DVec3::splat(cube.side);
-    if bounds.min.cmplt(cube.min).any() || bounds.max.cmpgt(top).any() {
-        return Err(cannot(format!(
-            "the added points reach {:?}..{:?}, outside the store's cube {:?}..{:?}",
-            bounds.min.to_array(),
-            bounds.max.to_array(),
-            cube.min.to_array(),
-            top.to_array()
-        )));
+    if let Some(added) = change.added {
+        check_added(added, &old)?;
     }
-    if added.attributes() != old.attributes().cloned() {
-        return Err(cannot(
-            "the added files carry other attributes than the store's",
-        ));
-    }
+    let mut removal = Removal::plan(&kept, &change.removed)?;
     let mut options = options.clone();
     options.max_leaf_points = old.max_leaf_points as usize;
     let options = &options;
@@ -230,104 +282,179 @@ fn update_on_pool(
     );
     let mut record = vec![0u8; layout.record_bytes()];
     let mut points_added = 0u64;
-    added.for_each_batch(&mut |batch| {
-        batch.check_lengths(row_bytes)?;
-        if batch.rgb.is_some() != stats.has_rgb && !batch.is_empty() {
-            return Err(cannot(
-                "the added files differ from the store in having RGB",
-            ));
-        }
-        stats.add(&batch);
-        for i in 0..batch.len() {
-            let p = batch.raw_point(i);
-            if !p.position.is_finite() {
-                return Err(LodError::NonFinitePoint {
-                    index: points_added,
-                    position: p.position.to_array(),
-                });
+    let mut added_facts = Vec::new();
+    if let Some(added) = change.added {
+        let gathering = FactsGathering::new(added);
+        gathering.for_each_batch(&mut |batch| {
+            batch.check_lengths(row_bytes)?;
+            if batch.rgb.is_some() != stats.has_rgb && !batch.is_empty() {
+                return Err(cannot(
+                    "the added files differ from the store in having RGB",
+                ));
             }
-            let region = map.route(&cube, p.position, &mut keys);
-            if region >= counts.len() {
-                return Err(cannot("the added points start too many regions"));
+            stats.add(&batch);
+            for i in 0..batch.len() {
+                let p = batch.raw_point(i);
+                if !p.position.is_finite() {
+                    return Err(LodError::NonFinitePoint {
+                        index: points_added,
+                        position: p.position.to_array(),
+                    });
+                }
+                let region = map.route(&cube, p.position, &mut keys);
+                if region >= counts.len() {
+                    return Err(cannot("the added points start too many regions"));
+                }
+                layout.write(&p, batch.row(i, row_bytes), &mut record)?;
+                writer.push_record(region, &record)?;
+                counts[region] += 1;
+                points_added += 1;
             }
-            layout.write(&p, batch.row(i, row_bytes), &mut record)?;
-            writer.push_record(region, &record)?;
-            counts[region] += 1;
-            points_added += 1;
+            Ok(())
+        })?;
+        if points_added != added.point_count() {
+            return Err(LodError::SourceChanged(format!(
+                "{points_added} points were read of {}",
+                added.point_count()
+            )));
         }
-        Ok(())
-    })?;
-    if points_added != added.point_count() {
-        return Err(LodError::SourceChanged(format!(
-            "{points_added} points were read of {}",
-            added.point_count()
-        )));
+        added_facts = gathering.into_facts();
     }
 
-    // 2. Read back the points of the old regions that received some.
-    let touched: HashSet<usize> = (0..old_regions).filter(|&i| counts[i] > 0).collect();
+    // 2. Read back the points of the old regions that received some or may lose some,
+    // without those of removed files.
+    let candidates: HashSet<usize> = (0..old_regions)
+        .filter(|&i| {
+            counts[i] > 0
+                || removal
+                    .as_ref()
+                    .is_some_and(|r| r.meets(&cube, kept.regions[i].key))
+        })
+        .collect();
+    let mut touched: HashSet<usize> = (0..old_regions).filter(|&i| counts[i] > 0).collect();
+    // Each stored node below a region (the octree's root as a region has no kept record: its
+    // node holds its root's points, and nothing above samples it again) with its region.
+    let owned: Vec<(usize, NodeInfo)> = old
+        .nodes()
+        .iter()
+        .filter_map(|node| match map.place(node.key) {
+            Place::Below(i) => Some((i, *node)),
+            Place::RegionRoot(i) if kept.regions[i].root.is_none() => Some((i, *node)),
+            Place::RegionRoot(_) | Place::Above => None,
+        })
+        .collect();
     let mut below: Vec<Vec<NodeKey>> = vec![Vec::new(); old_regions];
-    let mut kept_nodes = Vec::new();
-    for node in old.nodes() {
-        match map.place(node.key) {
-            Place::Below(i) if touched.contains(&i) => below[i].push(node.key),
-            // The octree's root as a region has no kept record: its node holds its root's
-            // points, and nothing above samples it again.
-            Place::RegionRoot(i) if kept.regions[i].root.is_none() => match touched.contains(&i) {
-                true => below[i].push(node.key),
-                false => kept_nodes.push(*node),
-            },
-            Place::Below(_) => kept_nodes.push(*node),
-            Place::RegionRoot(_) | Place::Above => {}
+    for (i, node) in &owned {
+        if candidates.contains(i) {
+            below[*i].push(node.key);
         }
     }
     let mut points_decoded = 0u64;
     let mut rows = AttributeRows::new(row_bytes);
-    for &i in &touched {
+    for &i in &candidates {
         let region = &kept.regions[i];
+        let dropped_before = removal.as_ref().map_or(0, |r| r.dropped);
+        let mut take = |points: &[RawPoint], rows: &AttributeRows| -> Result<(), LodError> {
+            points_decoded += points.len() as u64;
+            for p in points {
+                if removal.as_mut().is_some_and(|r| r.drops(p, &mut stats)) {
+                    continue;
+                }
+                layout.write(p, rows.of(p), &mut record)?;
+                writer.push_record(i, &record)?;
+                counts[i] += 1;
+            }
+            Ok(())
+        };
         for keys in below[i].chunks(DECODE_NODES) {
             let infos: Vec<NodeInfo> = keys.iter().filter_map(|k| old.node(*k).copied()).collect();
             let nodes = read_nodes(store, &old, keys)?;
             let sections = store.read_attribute_sections(row_bytes, &infos)?;
             for (node, section) in nodes.iter().zip(&sections) {
                 let points = node_points(node, section, row_bytes, kept.grid, &mut rows, true);
-                spill_points(&mut writer, layout, &points, &rows, i, &mut record)?;
-                counts[i] += points.len() as u64;
-                points_decoded += points.len() as u64;
+                take(&points, &rows)?;
             }
             rows = AttributeRows::new(row_bytes);
         }
         if let Some(root) = &region.root {
             let points = read_root(store, &old, root, row_bytes, kept.grid, &mut rows, true)?;
-            spill_points(&mut writer, layout, &points, &rows, i, &mut record)?;
-            counts[i] += points.len() as u64;
-            points_decoded += points.len() as u64;
+            take(&points, &rows)?;
             rows = AttributeRows::new(row_bytes);
         }
+        if removal.as_ref().map_or(0, |r| r.dropped) > dropped_before {
+            touched.insert(i);
+        }
+    }
+    // The remaining files whose boxes hold a dropped point give back their points there.
+    let mut points_reread = 0u64;
+    let mut files_reread = 0;
+    if let Some(removal) = removal.as_ref().filter(|r| !r.reread.is_empty()) {
+        let places: Vec<usize> = removal.reread.iter().copied().collect();
+        files_reread = places.len();
+        let source = (change.reopen)(&places)?;
+        source.for_each_batch(&mut |batch| {
+            batch.check_lengths(row_bytes)?;
+            for i in 0..batch.len() {
+                let p = batch.raw_point(i);
+                if !removal.inside(p.position) {
+                    continue;
+                }
+                let region = map
+                    .locate(&cube, p.position)
+                    .filter(|r| touched.contains(r))
+                    .ok_or_else(|| {
+                        LodError::SourceChanged(format!(
+                            "a file read again holds a point at {:?} that the store did not",
+                            p.position.to_array()
+                        ))
+                    })?;
+                count_point(&mut stats, &p, true);
+                layout.write(&p, batch.row(i, row_bytes), &mut record)?;
+                writer.push_record(region, &record)?;
+                counts[region] += 1;
+                points_reread += 1;
+            }
+            Ok(())
+        })?;
     }
     writer.finish()?;
+    let points_dropped = removal.as_ref().map_or(0, |r| r.dropped);
+    let point_count = (old.point_count + points_added + points_reread)
+        .checked_sub(points_dropped)
+        .filter(|&n| n > 0)
+        .ok_or_else(|| cannot("no point would remain"))?;
+    let file_facts = kept.file_facts.as_ref().map(|facts| {
+        let gone: HashSet<usize> = change.removed.iter().copied().collect();
+        let mut after: Vec<FileFacts> = (0..facts.len())
+            .filter(|i| !gone.contains(i))
+            .map(|i| facts[i])
+            .collect();
+        after.extend(added_facts);
+        after
+    });
+    if let (Some(_), Some(facts)) = (&removal, &file_facts) {
+        ranges_of(&mut stats, facts);
+    }
 
-    // 3. Build the regions that received points, then every level above the regions.
+    // 3. Build the regions that received or lost points, then every level above the regions.
     let journal = BuildJournal::disabled(spill.path());
     let progress = BuildProgress::new();
     let sink = NodeSink::new(store, &journal, cube, stats.has_rgb, &progress);
     let threads = rayon::current_num_threads() as u64;
     let budget = meter.largest_possible();
     let leaf = options.max_leaf_points as u64;
-    let ctx = BuildContext {
+    let max_partition_points = (budget / (build_bytes_per_point(layout) * threads))
+        .min(options.max_partition_points)
+        .max(4 * leaf);
+    let ctx = build_context(
         cube,
         options,
-        meter: &meter,
-        spill: &spill,
-        sink: &sink,
-        journal: &journal,
-        max_partition_points: (budget / (build_bytes_per_point(layout) * threads))
-            .min(options.max_partition_points)
-            .max(4 * leaf),
-        pending: Mutex::new(Default::default()),
-        partitions_split: AtomicUsize::new(0),
-        regions: Mutex::new(Vec::new()),
-    };
+        &meter,
+        &spill,
+        &sink,
+        &journal,
+        max_partition_points,
+    );
     let mut kept_regions = Vec::new();
     for (i, region) in kept.regions.iter().enumerate() {
         if touched.contains(&i) {
@@ -358,8 +485,14 @@ fn update_on_pool(
                 );
         }
     }
+    let kept_nodes: Vec<NodeInfo> = owned
+        .into_iter()
+        .filter(|(i, _)| !touched.contains(i))
+        .map(|(_, node)| node)
+        .collect();
+    // A region that lost every point is gone.
     let rebuilt: Vec<(Partition, Vec<PathBuf>)> = (0..keys.len())
-        .filter(|&i| counts[i] > 0)
+        .filter(|&i| counts[i] > 0 && (i >= old_regions || touched.contains(&i)))
         .map(|i| {
             let partition = Partition {
                 key: keys[i],
@@ -380,7 +513,6 @@ fn update_on_pool(
     );
 
     // 4. Switch to the new hierarchy and regions at once.
-    let point_count = old.point_count + points_added;
     let stored_bytes = sink.bytes();
     let kept_points: u64 = kept_nodes.iter().map(|n| u64::from(n.point_count)).sum();
     if sink.points() + kept_points != point_count {
@@ -393,11 +525,15 @@ fn update_on_pool(
     nodes.extend(sink.into_nodes());
     let hierarchy = LodHierarchy::assemble(cube, point_count, old.max_leaf_points, stats, nodes)
         .with_attributes(old.attributes().cloned());
-    let grid = kept.grid.filter(|g| added.position_grid() == Some(*g));
+    let grid = match change.added {
+        Some(added) => kept.grid.filter(|g| added.position_grid() == Some(*g)),
+        None => kept.grid,
+    };
     let new_regions = StoreRegions {
         grid,
         regions,
-        files,
+        files: change.files.clone(),
+        file_facts,
     };
     pause::at("update", 0);
     store.write_hierarchy_with(&hierarchy, Some(&new_regions))?;
@@ -411,6 +547,8 @@ fn update_on_pool(
     Ok(LodUpdateReport {
         hierarchy,
         points_added,
+        points_removed: points_dropped - points_reread,
+        files_reread,
         regions_rebuilt,
         regions_added,
         regions_kept: kept_regions.len(),
@@ -421,18 +559,24 @@ fn update_on_pool(
     })
 }
 
-/// Appends `points` to region `region`'s spill file.
-fn spill_points(
-    writer: &mut SpillWriter<'_>,
-    layout: RecordLayout,
-    points: &[RawPoint],
-    rows: &AttributeRows,
-    region: usize,
-    record: &mut [u8],
-) -> Result<(), LodError> {
-    for p in points {
-        layout.write(p, rows.of(p), record)?;
-        writer.push_record(region, record)?;
+/// Refuses added points outside the store's cube, or of other attributes.
+fn check_added(added: &dyn PointSource, old: &LodHierarchy) -> Result<(), LodError> {
+    let cube = old.cube;
+    let bounds = added.bounds();
+    let top = cube.min + glam::DVec3::splat(cube.side);
+    if bounds.min.cmplt(cube.min).any() || bounds.max.cmpgt(top).any() {
+        return Err(cannot(format!(
+            "the added points reach {:?}..{:?}, outside the store's cube {:?}..{:?}",
+            bounds.min.to_array(),
+            bounds.max.to_array(),
+            cube.min.to_array(),
+            top.to_array()
+        )));
+    }
+    if added.attributes() != old.attributes().cloned() {
+        return Err(cannot(
+            "the added files carry other attributes than the store's",
+        ));
     }
     Ok(())
 }

@@ -41,12 +41,16 @@ pub enum SourceEvent<'a> {
         points: u64,
         seconds: f64,
     },
-    /// The store of an earlier set of the dataset's files took the added ones in: only the
-    /// regions they reach were built again.
+    /// The store of an earlier set of the dataset's files took the added ones in and the
+    /// removed ones out (a changed file counts once, as changed): only the regions they reach
+    /// were built again.
     Updated {
         files_added: usize,
+        files_removed: usize,
+        files_changed: usize,
         regions_rebuilt: usize,
         points_added: u64,
+        points_removed: u64,
         seconds: f64,
     },
     /// A store's bytes failed their checks: it is removed and built again.

@@ -234,14 +234,21 @@ fn update_earlier_store(
             tracing::info!(
                 folder = %folder.display(),
                 points_added = updated.report.points_added,
+                points_removed = updated.report.points_removed,
+                files_reread = updated.report.files_reread,
                 seconds = format!("{:.1}", updated.report.seconds),
-                "updated store: {} files added, {regions_rebuilt} regions rebuilt",
+                "updated store: {} files added, {} removed, {} changed, {regions_rebuilt} regions rebuilt",
                 updated.files_added,
+                updated.files_removed,
+                updated.files_changed,
             );
             events(SourceEvent::Updated {
                 files_added: updated.files_added,
+                files_removed: updated.files_removed,
+                files_changed: updated.files_changed,
                 regions_rebuilt,
                 points_added: updated.report.points_added,
+                points_removed: updated.report.points_removed,
                 seconds: updated.report.seconds,
             });
         }

@@ -1,6 +1,7 @@
 //! The builder end to end: real sources, real spill files, real sled trees.
 
 mod refusals;
+mod removal;
 mod store;
 mod throughput;
 mod update;

@@ -15,7 +15,13 @@ const TILES: usize = 4;
 
 /// The tiles of one scene, `TILES` x `TILES` squares of its ground plan, as LAS files in
 /// `dir` sharing one grid (the scene's origin and millimetres); file `ty * TILES + tx`.
-fn write_tiles(dir: &Path, points: usize) -> Vec<PathBuf> {
+pub(super) fn write_tiles(dir: &Path, points: usize) -> Vec<PathBuf> {
+    write_tile_parts(dir, points, 1)
+}
+
+/// [`write_tiles`], each tile as `parts` files of every `parts`-th of its points, which fill
+/// the same box; file `(ty * TILES + tx) * parts + part`.
+pub(super) fn write_tile_parts(dir: &Path, points: usize, parts: usize) -> Vec<PathBuf> {
     let scene = crate::sample::sample_scene(points, 7);
     let (min, max) = (scene.bounds.min, scene.bounds.max);
     let size = (max - min) / TILES as f64;
@@ -25,9 +31,13 @@ fn write_tiles(dir: &Path, points: usize) -> Vec<PathBuf> {
         clamp(t.y) * TILES + clamp(t.x)
     };
     let mut files = Vec::new();
-    for tile in 0..TILES * TILES {
+    for file in 0..TILES * TILES * parts {
+        let (tile, part) = (file / parts, file % parts);
         let keep: Vec<usize> = (0..scene.len())
             .filter(|&i| tile_of(scene.origin + scene.positions[i].as_dvec3()) == tile)
+            .enumerate()
+            .filter(|(n, _)| n % parts == part)
+            .map(|(_, i)| i)
             .collect();
         let mut cloud = PointCloud::with_capacity(
             scene.origin,
@@ -45,7 +55,10 @@ fn write_tiles(dir: &Path, points: usize) -> Vec<PathBuf> {
             cloud.classification.push(scene.classification[i]);
             cloud.return_number.push(scene.return_number[i]);
         }
-        let path = dir.join(format!("tile-{tile:02}.las"));
+        let path = match parts {
+            1 => dir.join(format!("tile-{tile:02}.las")),
+            _ => dir.join(format!("tile-{tile:02}-{part}.las")),
+        };
         write_las(&path, &cloud, &LasWriteOptions::default()).expect("write tile");
         files.push(path);
     }
@@ -68,7 +81,7 @@ fn entry(p: DVec3, rgb: [u16; 3], intensity: u16, class: u8, ret: u8, row: &[u8]
 }
 
 /// Every point of `files`, sorted.
-fn file_points(files: &[PathBuf]) -> Vec<Entry> {
+pub(super) fn file_points(files: &[PathBuf]) -> Vec<Entry> {
     let source = DatasetSource::open(files).expect("open");
     let row_bytes = source.attributes().map_or(0, |a| a.row_bytes());
     let mut out = Vec::new();
@@ -94,7 +107,7 @@ fn file_points(files: &[PathBuf]) -> Vec<Entry> {
 }
 
 /// Every point the store's nodes hold, sorted; checks each node's bound on the way.
-fn store_points(store: &LodStore) -> Vec<Entry> {
+pub(super) fn store_points(store: &LodStore) -> Vec<Entry> {
     let hierarchy = store.read_hierarchy().expect("hierarchy");
     let row_bytes = hierarchy.attributes().map_or(0, |a| a.row_bytes());
     let mut out = Vec::new();
@@ -117,7 +130,7 @@ fn store_points(store: &LodStore) -> Vec<Entry> {
     out
 }
 
-fn options(dir: &Path) -> LodBuildOptions {
+pub(super) fn options(dir: &Path) -> LodBuildOptions {
     let mut options = LodBuildOptions::new(dir.join("spill"));
     options.max_leaf_points = 400;
     options.max_partition_points = 3_000;
@@ -125,7 +138,11 @@ fn options(dir: &Path) -> LodBuildOptions {
     options
 }
 
-fn build(files: &[PathBuf], store: &LodStore, options: &LodBuildOptions) -> LodBuildReport {
+pub(super) fn build(
+    files: &[PathBuf],
+    store: &LodStore,
+    options: &LodBuildOptions,
+) -> LodBuildReport {
     let source = DatasetSource::open(files).expect("open");
     build_lod(&source, store, options).expect("build")
 }

@@ -1,14 +1,17 @@
-//! A local store updated instead of built anew when its files grew: a store folder is named by
-//! its files, so the files of a dataset that gained a tile name a folder without a store; the
-//! store of the earlier files (a folder beside it whose file list holds only files still
-//! listed, at least half of them) is taken over and updated with the added files
-//! ([`crate::lod::update_lod`]).
+//! A local store updated instead of built anew when its files changed: a store folder is named
+//! by its files, so the files of a dataset that gained, lost or changed a tile name a folder
+//! without a store; the store of the earlier files (a folder beside it whose file list shares
+//! at least half of its files and of the dataset's) is taken over and updated with the added
+//! files, without the removed ones; a changed file (the same path, another length or
+//! modification time) is both ([`crate::lod::update_store`]).
 //!
 //! Each local store keeps its file list, one line a file (its points, and its path, length and
-//! modification time), in `files.txt`, written after a build or update finishes. The list is
-//! trusted only where its points add up to the store's: an update that stopped after its
-//! store switched, before the list was written, leaves a store of other points, which is then
-//! used as it is or built again, never updated twice.
+//! modification time: one file's [`files_fingerprint`], which also names a build's inputs), in
+//! `files.txt`, written after a build or update finishes, in the order the store took its files
+//! in, which is how an update names the removed ones. The list is trusted only where its
+//! points add up to the store's: an update that stopped after its store switched, before the
+//! list was written, leaves a store of other points, which is then used as it is or built
+//! again, never updated twice.
 //!
 //! Taking a store over: its folder is locked against other users (the lock every opening of a
 //! store takes, `cut/store_space.rs`, exclusively and without waiting: a store in use is not
@@ -20,7 +23,9 @@ use std::path::{Path, PathBuf};
 
 use crate::ingest::DatasetSource;
 use crate::lod::source::files_fingerprint;
-use crate::lod::{update_lod, LodBuildOptions, LodError, LodStore, LodUpdateReport, PointSource};
+use crate::lod::{
+    update_store, LodBuildOptions, LodError, LodStore, LodUpdateReport, PointSource, StoreChange,
+};
 
 const FILE_LIST: &str = "files.txt";
 /// What `cut/stored.rs` names the parts of a store's folder.
@@ -40,6 +45,25 @@ struct ListedFile {
 pub struct Updated {
     pub report: LodUpdateReport,
     pub files_added: usize,
+    pub files_removed: usize,
+    /// Files of the same path with other contents: each removed as it was, added as it is.
+    pub files_changed: usize,
+}
+
+impl ListedFile {
+    /// Whether the file is no longer there as it was listed: deleted, or changed.
+    fn is_gone(&self) -> bool {
+        files_fingerprint([Path::new(self.path())]).is_none_or(|now| now != self.identity)
+    }
+
+    /// The file's path, as its identity spells it.
+    fn path(&self) -> &str {
+        let identity = self.identity.trim_end_matches("; ");
+        identity
+            .rsplit_once(" bytes modified ")
+            .and_then(|(path_len, _)| path_len.rsplit_once(' '))
+            .map_or(identity, |(path, _)| path)
+    }
 }
 
 /// Each of `files` as listed, its points read from its header.
@@ -72,7 +96,8 @@ fn read_list(folder: &Path) -> Option<Vec<ListedFile>> {
         .collect()
 }
 
-/// Writes the list of `files` into the store's `folder`, replacing the one there at once.
+/// Writes the list of `files`, in the order the store took them in, into the store's
+/// `folder`, replacing the one there at once.
 pub fn write_file_list(folder: &Path, files: &[PathBuf]) -> Result<(), String> {
     write_list(folder, &list_of(files)?)
 }
@@ -88,21 +113,24 @@ fn write_list(folder: &Path, list: &[ListedFile]) -> Result<(), String> {
         .map_err(|e| format!("writing the file list in {}: {e}", folder.display()))
 }
 
-/// Whether `folder` lists exactly `files`.
+/// Whether `folder` lists exactly `files`, in any order.
 pub fn lists(folder: &Path, files: &[PathBuf]) -> bool {
-    let now: Option<Vec<String>> = files
+    let now: Option<HashSet<String>> = files
         .iter()
         .map(|f| files_fingerprint([f.as_path()]))
         .collect();
     match (read_list(folder), now) {
-        (Some(list), Some(now)) => list.into_iter().map(|f| f.identity).eq(now),
+        (Some(list), Some(now)) => {
+            list.len() == now.len() && list.iter().all(|f| now.contains(&f.identity))
+        }
         _ => false,
     }
 }
 
 /// Updates the store of an earlier set of `files` into `folder` (its own, left by an update
-/// that stopped, or one beside it, taken over) with the files added since, when there is
-/// one; `None` when there is none to update. An error leaves `folder` to be built.
+/// that stopped, or one beside it, taken over) with the files added since and without those
+/// removed, when there is one; `None` when there is none to update. An error leaves `folder`
+/// to be built.
 pub fn update_earlier(
     files: &[PathBuf],
     folder: &Path,
@@ -113,11 +141,19 @@ pub fn update_earlier(
     }
     let now = list_of(files)?;
     let now_set: HashSet<&ListedFile> = now.iter().collect();
+    // Most of the dataset's files are the store's, most of the store's are still there, and
+    // those it lost are deleted or changed: a store of files still there as they were is
+    // another dataset's (a render of fewer of them leaves the whole one's store alone).
     let earlier = |list: &[ListedFile]| {
-        !list.is_empty()
-            && list.len() < now.len()
-            && 2 * list.len() >= now.len()
-            && list.iter().all(|f| now_set.contains(f))
+        let common = list.iter().filter(|f| now_set.contains(f)).count();
+        common > 0
+            && !(common == list.len() && common == now.len())
+            && 2 * common >= now.len()
+            && 2 * common >= list.len()
+            && list
+                .iter()
+                .filter(|f| !now_set.contains(f))
+                .all(ListedFile::is_gone)
     };
     let own = read_list(folder).filter(|list| earlier(list));
     let list = match own {
@@ -128,12 +164,20 @@ pub fn update_earlier(
         },
     };
     let listed: HashSet<&ListedFile> = list.iter().collect();
-    let added: Vec<PathBuf> = files
+    let added: Vec<(PathBuf, &ListedFile)> = files
         .iter()
         .zip(&now)
         .filter(|(_, f)| !listed.contains(f))
-        .map(|(path, _)| path.clone())
+        .map(|(path, f)| (path.clone(), f))
         .collect();
+    let removed: Vec<usize> = (0..list.len())
+        .filter(|&i| !now_set.contains(&list[i]))
+        .collect();
+    let added_paths: HashSet<&str> = added.iter().map(|(_, f)| f.path()).collect();
+    let files_changed = removed
+        .iter()
+        .filter(|&&i| added_paths.contains(list[i].path()))
+        .count();
     let db = sled::Config::new()
         .path(folder.join(INDEX_FOLDER))
         .open()
@@ -148,20 +192,49 @@ pub fn update_earlier(
             hierarchy.point_count
         ));
     }
-    let source = DatasetSource::open(&added).map_err(|e| e.to_string())?;
+    let added_paths: Vec<PathBuf> = added.iter().map(|(path, _)| path.clone()).collect();
+    let source = match added_paths.is_empty() {
+        true => None,
+        false => Some(DatasetSource::open(&added_paths).map_err(|e| e.to_string())?),
+    };
+    // The store's files that stay, by their place in its list, are among `files`.
+    let path_of: std::collections::HashMap<&ListedFile, &PathBuf> = now.iter().zip(files).collect();
+    let reopen = |places: &[usize]| -> Result<Box<dyn PointSource>, LodError> {
+        let paths: Vec<PathBuf> = places
+            .iter()
+            .filter_map(|&i| list.get(i).and_then(|f| path_of.get(f)))
+            .map(|p| (*p).clone())
+            .collect();
+        let source = DatasetSource::open(&paths).map_err(|e| LodError::Source(e.to_string()))?;
+        Ok(Box::new(source))
+    };
+    // The store's order after the update: its remaining files, then the added ones.
+    let after: Vec<ListedFile> = list
+        .iter()
+        .filter(|f| now_set.contains(f))
+        .chain(added.iter().map(|(_, f)| *f))
+        .cloned()
+        .collect();
     let mut options = LodBuildOptions::new(folder.join("spill"));
     options.memory_budget_bytes = memory_budget.max(options.min_memory_budget_bytes());
-    let identities = now.iter().map(|f| f.identity.clone()).collect();
-    let report = update_lod(&store, &source, identities, &options).map_err(|e| match e {
+    let change = StoreChange {
+        added: source.as_ref().map(|s| s as &dyn PointSource),
+        removed: removed.clone(),
+        reopen: &reopen,
+        files: after.iter().map(|f| f.identity.clone()).collect(),
+    };
+    let report = update_store(&store, &change, &options).map_err(|e| match e {
         LodError::CannotUpdate(reason) => reason,
         other => other.to_string(),
     })?;
     drop(store);
     drop(db);
-    write_list(folder, &now)?;
+    write_list(folder, &after)?;
     Ok(Some(Updated {
         report,
-        files_added: added.len(),
+        files_added: added.len() - files_changed,
+        files_removed: removed.len() - files_changed,
+        files_changed,
     }))
 }
 
