@@ -214,7 +214,7 @@ fn a_truncated_copc_object_is_a_clear_error_never_a_panic() {
 }
 
 #[test]
-fn a_plain_laz_file_by_url_renders_only_as_a_preview_and_an_http_prefix_is_not_listed() {
+fn a_plain_laz_file_by_url_renders_from_a_store_built_here_and_an_http_prefix_is_not_listed() {
     let dir = tempfile::tempdir().expect("tempdir");
     let scene = dir.path().join("scene.laz");
     pointfarm_ok(&["sample", arg(&scene), "--points", "2000"]);
@@ -223,8 +223,16 @@ fn a_plain_laz_file_by_url_renders_only_as_a_preview_and_an_http_prefix_is_not_l
     };
     let out = dir.path().join("a.png");
     let url = server.url("scans/scene.laz");
-    let output = pointfarm(&["render", &url, "--out", arg(&out)]);
-    assert_one_error_line(&output, &[&url, "render as a preview only"]);
+    let cache = dir.path().join("cache");
+    pointfarm_ok(&[
+        "render",
+        &url,
+        "--out",
+        arg(&out),
+        "--cache-dir",
+        arg(&cache),
+    ]);
+    assert!(image::open(&out).is_ok());
     let prefix = server.url("scans/");
     let output = pointfarm(&["render", &prefix, "--preview", "--out", arg(&out)]);
     assert_one_error_line(&output, &[&prefix, "name the files instead"]);

@@ -188,7 +188,7 @@ fn describe_url(client: &RemoteClient, url: &ObjectUrl) -> Vec<pb::FileDescripti
     }
     match url_input::tiles_under(client, url) {
         Ok(tiles) => (tiles.iter())
-            .map(|tile| describe_object(client, tile))
+            .map(|tile| describe_object(client, &tile.url))
             .collect(),
         Err(error) => vec![unreadable(url, error)],
     }

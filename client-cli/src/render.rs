@@ -12,7 +12,7 @@ use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::{dataset_files, dataset_point_count};
 use pointfarm_render::lod::{BuildProgress, PREVIEW_REDRAW_SHARE, PREVIEW_STORED_POINTS};
 use pointfarm_render::raster::{FrameSettings, Renderer};
-use pointfarm_render::remote::{ObjectUrl, RemoteClient};
+use pointfarm_render::remote::{ListedObject, ObjectUrl, RemoteClient};
 use pointfarm_render::request::RenderRequest;
 use pointfarm_render::source::{
     frame_points, ChunkStarts, FramePoints, FrameSource, Levels, LocalStore, Opening,
@@ -133,11 +133,10 @@ fn render_files(asked: Asked<'_>, paths: &[PathBuf]) -> Result<()> {
             })
         }
         _ if args.preview && !store_built => Plan::WhileBuilding(Build {
-            files: &files,
+            input: BuildInput::Files(&files, points),
             folder: folder.clone(),
             stores: &stores,
             options: args.lod_options()?,
-            points,
         }),
         _ => {
             if args.preview {
@@ -157,26 +156,17 @@ fn render_files(asked: Asked<'_>, paths: &[PathBuf]) -> Result<()> {
 }
 
 /// Renders the COPC file at `url` as a file here is rendered, cut by cut, its header,
-/// hierarchy pages and nodes read by range as the frames reach them; or, with `--preview`,
-/// LAS/LAZ tiles by URL from their chunk starts read by range. Says what was fetched.
+/// hierarchy pages and nodes read by range as the frames reach them; or LAS/LAZ tiles by URL
+/// from the store built here by streaming them (with `--preview`, previewed from their chunk
+/// starts read by range while it builds). Says what was fetched.
 fn render_url(asked: Asked<'_>, url: &ObjectUrl) -> Result<()> {
     let args = asked.args;
     let client = url_input::client()?;
     let dataset = url_input::open(&client, url)?;
-    if matches!(dataset, UrlDataset::Tiles(_)) && !args.preview {
-        anyhow::bail!("{url}: {}", url_input::TILES_FINAL);
-    }
     let target = FrameTarget::new(asked, Some(&client))?;
     let cut_options = args.lod_options()?;
     match dataset {
-        UrlDataset::Tiles(tiles) => {
-            let chunk_starts = ChunkStarts::read_urls(&client, &tiles)?;
-            let points = Box::new(chunk_starts.with_nodes(&[]));
-            target.render_plan(Plan::Frames(Opening::Preview(points)))?;
-            asked
-                .reporter
-                .say(format_args!("final frames: {}", url_input::TILES_FINAL));
-        }
+        UrlDataset::Tiles(tiles) => render_tiles(&target, &client, &tiles)?,
         UrlDataset::Copc(copc) => {
             let opening = Opening::Levels {
                 levels: Levels::Copc(copc),
@@ -191,6 +181,46 @@ fn render_url(asked: Asked<'_>, url: &ObjectUrl) -> Result<()> {
         counts.bytes, counts.requests
     ));
     Ok(())
+}
+
+/// Renders LAS/LAZ tiles by URL cut by cut from their store here, kept under their URLs and
+/// versions: built first by streaming them, or, with `--preview`, previewed from their chunk
+/// starts while it builds.
+fn render_tiles(
+    target: &FrameTarget<'_>,
+    client: &RemoteClient,
+    tiles: &[ListedObject],
+) -> Result<()> {
+    let args = target.asked.args;
+    let stores = store_cache(args.cache_dir.as_ref(), args.cache_size);
+    let folder = stores.folder_of_objects(tiles);
+    let options = args.lod_options()?;
+    if args.preview && !StoredLod::is_built(&folder) {
+        return target.render_plan(Plan::WhileBuilding(Build {
+            input: BuildInput::Tiles(client, tiles),
+            folder,
+            stores: &stores,
+            options,
+        }));
+    }
+    if args.preview {
+        target
+            .asked
+            .reporter
+            .say(format_args!("--preview: {BUILT_ALREADY}; {FINAL_AT_ONCE}"));
+    }
+    let store = LocalStore::open_or_build_tiles(
+        client,
+        tiles,
+        &folder,
+        options.memory_budget_bytes,
+        stores.disk_budget,
+        &target.events(),
+    )?;
+    target.render_plan(Plan::Frames(Opening::Levels {
+        levels: Levels::Store(Box::new(store)),
+        cut_options: options,
+    }))
 }
 
 /// How a render's frames are drawn.
@@ -285,13 +315,18 @@ impl<'a> FrameTarget<'a> {
     }
 }
 
-/// The store a preview is drawn in front of: of `files`, built in `folder`.
+/// The store a preview is drawn in front of: of `input`, built in `folder`.
 struct Build<'a> {
-    files: &'a [PathBuf],
+    input: BuildInput<'a>,
     folder: PathBuf,
     stores: &'a StoreCache,
     options: CutOptions,
-    points: u64,
+}
+
+/// What a store is built from: files here (of so many points), or tiles by URL, streamed.
+enum BuildInput<'a> {
+    Files(&'a [PathBuf], u64),
+    Tiles(&'a RemoteClient, &'a [ListedObject]),
 }
 
 /// Renders the frames from the files' chunk starts while their store builds on another
@@ -303,29 +338,52 @@ fn preview_then_final(
     build: Build<'_>,
 ) -> Result<()> {
     let Build {
-        files,
+        input,
         folder,
         stores,
         options,
-        points,
     } = build;
+    let what = match input {
+        BuildInput::Files(_, points) => format!("{points} points"),
+        BuildInput::Tiles(_, tiles) => format!("{} tiles by URL", tiles.len()),
+    };
     target.asked.words.say(&format!(
-        "building levels of detail of {points} points in the background (once; kept in {})",
+        "building levels of detail of {what} in the background (once; kept in {})",
         folder.display()
     ));
     // The build waits for the first preview frame, whose time to screen it would otherwise
     // share the cores with (docs/perf/preview-first-frame.md).
     let (start_build, build_gate) = mpsc::channel();
     let progress = Arc::new(BuildProgress::new());
-    let build = LocalStore::build_in_background(
-        files.to_vec(),
-        folder,
-        options.memory_budget_bytes,
-        stores.disk_budget,
-        build_gate,
-        Arc::clone(&progress),
-    )?;
-    let chunk_starts = ChunkStarts::read(files)?;
+    let (memory_budget, disk_budget) = (options.memory_budget_bytes, stores.disk_budget);
+    let (build, chunk_starts, files) = match input {
+        BuildInput::Files(files, _) => {
+            let build = LocalStore::build_in_background(
+                files.to_vec(),
+                folder,
+                memory_budget,
+                disk_budget,
+                build_gate,
+                Arc::clone(&progress),
+            )?;
+            (build, ChunkStarts::read(files)?, files)
+        }
+        BuildInput::Tiles(client, tiles) => {
+            let build = LocalStore::build_tiles_in_background(
+                client.clone(),
+                tiles.to_vec(),
+                folder,
+                memory_budget,
+                disk_budget,
+                build_gate,
+                Arc::clone(&progress),
+            )?;
+            let urls: Vec<ObjectUrl> = tiles.iter().map(|tile| tile.url.clone()).collect();
+            // A store of tiles is opened without them: damaged, it is removed, for the next
+            // render to build.
+            (build, ChunkStarts::read_urls(client, &urls)?, &[][..])
+        }
+    };
     let first = Box::new(chunk_starts.with_nodes(&[]));
     let mut preview = target.open(renderer, Opening::Preview(first))?;
     let building = || !build.is_finished();
@@ -339,13 +397,7 @@ fn preview_then_final(
     let built = build.join();
     let stored = built.map_err(|_| anyhow::anyhow!("the levels of detail's build panicked"))??;
     let events = target.events();
-    let store = LocalStore::of_built(
-        stored,
-        files,
-        options.memory_budget_bytes,
-        stores.disk_budget,
-        &events,
-    );
+    let store = LocalStore::of_built(stored, files, memory_budget, disk_budget, &events);
     let levels = Levels::Store(Box::new(store));
     let opening = Opening::Levels {
         levels,

@@ -1,20 +1,16 @@
 //! Inputs given as URLs (`s3://bucket/scan.copc.laz`, `https://host/tiles/a.laz`,
 //! `s3://bucket/campaign/`), which `render` and `info` read by range instead of as files here.
 //! A COPC file renders node by node from its own hierarchy; plain LAS/LAZ tiles (one object,
-//! or the `.las`/`.laz` objects under a prefix) are described, and previewed from their chunk
-//! starts, without being copied. A `file://` URL is its local path.
+//! or the `.las`/`.laz` objects under a prefix) are described, previewed from their chunk
+//! starts, and built into a store here by streaming them, without being copied. A `file://`
+//! URL is its local path.
 
 use std::path::PathBuf;
 
 use anyhow::Result;
 use pointfarm_render::copc::{self, CopcDataset, CopcError, CopcSummary};
-use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteSettings};
-
-/// Why a full render of tiles by URL is refused, and what to do instead: their stores are
-/// built from files here, and copying a campaign is the user's decision, never a side effect.
-pub const TILES_FINAL: &str = "LAS/LAZ tiles by URL render as a preview only (--preview, from \
-                               their chunk starts read by range); for the final frames copy them \
-                               here (aws s3 sync URL DIR, or any downloader) and render the folder";
+use pointfarm_render::remote::{ListedObject, ObjectUrl, RemoteClient, RemoteSettings};
+use pointfarm_render::source::listed_tiles;
 
 /// The inputs of a command: files and folders here, or one URL (an object or a prefix).
 pub enum Inputs {
@@ -26,8 +22,9 @@ pub enum Inputs {
 pub enum UrlDataset {
     /// A COPC file, rendered from its own hierarchy.
     Copc(Box<CopcDataset>),
-    /// Plain LAS/LAZ tiles: the object, or those under the prefix, sorted.
-    Tiles(Vec<ObjectUrl>),
+    /// Plain LAS/LAZ tiles: the object, or those under the prefix, sorted, each with the
+    /// version a store build holds it to.
+    Tiles(Vec<ListedObject>),
 }
 
 /// Whether an input is written as a URL (`scheme://...`) rather than as a path.
@@ -77,18 +74,18 @@ pub fn open(client: &RemoteClient, url: &ObjectUrl) -> Result<UrlDataset> {
     }
     match copc::open_copc_url(client, url) {
         Ok(copc) => Ok(UrlDataset::Copc(Box::new(copc))),
-        Err(CopcError::NotCopc { .. }) => Ok(UrlDataset::Tiles(vec![url.clone()])),
+        Err(CopcError::NotCopc { .. }) => Ok(UrlDataset::Tiles(listed_tiles(client, url)?)),
         Err(other) => Err(other.into()),
     }
 }
 
 /// The `.las` and `.laz` objects under `prefix` (in any case), sorted as a folder's files are.
-pub fn tiles_under(client: &RemoteClient, prefix: &ObjectUrl) -> Result<Vec<ObjectUrl>> {
-    let listed = client.list_point_files(prefix)?;
+pub fn tiles_under(client: &RemoteClient, prefix: &ObjectUrl) -> Result<Vec<ListedObject>> {
+    let listed = listed_tiles(client, prefix)?;
     if listed.is_empty() {
         anyhow::bail!("{prefix}: no .las or .laz object under this prefix");
     }
-    Ok(listed.into_iter().map(|object| object.url).collect())
+    Ok(listed)
 }
 
 /// The octree and header facts of the object at `url`, when it is a COPC file; `None` for a

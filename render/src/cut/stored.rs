@@ -76,6 +76,25 @@ impl StoredLod {
             return Self::open_finished(folder);
         }
         let source = DatasetSource::open(files)?;
+        Self::open_or_build_source(
+            &source,
+            folder,
+            memory_budget,
+            disk_budget,
+            on_build,
+            progress,
+        )
+    }
+
+    /// [`StoredLod::open_or_build_watched`] of a source opened already (tiles by URL).
+    pub fn open_or_build_source(
+        source: &DatasetSource,
+        folder: &Path,
+        memory_budget: u64,
+        disk_budget: Option<u64>,
+        on_build: &mut dyn FnMut(u64),
+        progress: &BuildProgress,
+    ) -> Result<Self, CutError> {
         let in_use = InUse::take(folder)?;
         let (db, store) = open_index(folder)?;
         let current = match store.read_hierarchy() {
@@ -90,13 +109,13 @@ impl StoredLod {
         let mut built = None;
         if !current {
             let _ = std::fs::remove_file(folder.join(FINISHED_FILE));
-            let needed = build_disk_bytes(source.point_count(), true, spill_record_bytes(&source));
+            let needed = build_disk_bytes(source.point_count(), true, spill_record_bytes(source));
             check_disk(folder, source.point_count(), needed, disk_budget)?;
             on_build(source.point_count());
             let started = Instant::now();
             let mut options = LodBuildOptions::new(folder.join("spill"));
             options.memory_budget_bytes = memory_budget.max(options.min_memory_budget_bytes());
-            let report = build_lod_watched(&source, &store, &options, progress)?;
+            let report = build_lod_watched(source, &store, &options, progress)?;
             let seconds = started.elapsed().as_secs_f64();
             tracing::info!(
                 folder = %folder.display(),
@@ -306,7 +325,7 @@ mod tests {
     fn small_need(file: &Path) -> u64 {
         let source = DatasetSource::open(&[file.to_owned()]).expect("open");
         assert!(source.position_grid().is_some(), "one file, one grid");
-        build_disk_bytes(SMALL_POINTS, true, spill_record_bytes(&source))
+        build_disk_bytes(SMALL_POINTS, true, spill_record_bytes(source))
     }
 
     fn build(file: &Path, folder: &Path, budget: Option<u64>) -> Result<StoredLod, CutError> {

@@ -83,6 +83,10 @@ pub enum IngestError {
     #[error("{}: corrupt file: {what}", path.display())]
     Corrupt { path: PathBuf, what: String },
 
+    /// An object by URL could not be opened or read; the error names its URL.
+    #[error(transparent)]
+    Remote(#[from] crate::remote::RemoteError),
+
     /// A scale factor that is not a finite, normal, non-zero number, or an offset that is not
     /// finite: points cannot be placed (`x scale factor is NaN`).
     #[error("{}: corrupt header: {field} is {problem}", path.display())]

@@ -27,6 +27,7 @@
 //! - `info.rs`: what a file is, for `pointfarm info`: header facts, attributes, and a
 //!   summary of its points streamed; `crs.rs`: the CRS its records declare;
 //! - `source.rs`: a dataset's files as the level-of-detail builder's source, streamed;
+//!   `objects.rs`: its files as objects by URL, checked by range and streamed in blocks;
 //! - `write.rs`: writing clouds as LAS or LAZ;
 //! - `error.rs`: [`IngestError`].
 
@@ -41,6 +42,7 @@ mod files;
 mod header;
 mod info;
 mod laz_layout;
+mod objects;
 mod preparse;
 mod ranged;
 mod raw_file;

@@ -2,9 +2,9 @@
 //! sequentially) filled batch by batch into the point columns (`columns.rs`), inside the
 //! panic containment of `contain.rs`; the files of a dataset into one cloud.
 
-use std::fs::File;
-use std::io::{BufReader, Seek, SeekFrom};
+use std::io::{BufReader, Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Instant;
 
 use glam::DVec3;
@@ -19,6 +19,7 @@ use super::laz_layout::LazLayout;
 use super::preparse::{check_file, CheckedFile};
 use super::IngestError;
 use crate::cloud::{PointCloud, WorldBounds};
+use crate::remote::RemoteObject;
 
 /// Points decoded per batch at most. Bounds the scratch buffer, and for LAZ spans ~20 chunks
 /// of the usual 50,000 points, enough for the parallel decompressor to keep every core busy.
@@ -151,6 +152,8 @@ pub(super) struct DatasetFile {
     pub format_len: usize,
     /// The data of the file's extra bytes VLR (or EVLR), when it has one.
     pub extra_bytes_vlr: Option<Vec<u8>>,
+    /// The object the file is read from by URL (`objects.rs`); `None` for a file here.
+    pub object: Option<Arc<RemoteObject>>,
 }
 
 impl DatasetFile {
@@ -172,6 +175,7 @@ impl DatasetFile {
         let checked = check_file(path, &mut file, file_len)?;
         file.seek(SeekFrom::Start(0)).map_err(io_error)?;
         let laz = checked.laz;
+        let file = BufReader::new(file);
         let header = contain_panics(path, || Ok(open_reader(path, file, laz)?.header().clone()))?;
         Ok(Self::of_header(path, file_len, checked, &header))
     }
@@ -206,6 +210,7 @@ impl DatasetFile {
             offset: DVec3::new(t.x.offset, t.y.offset, t.z.offset),
             format_len: usize::from(format.len() - format.extra_bytes),
             extra_bytes_vlr,
+            object: None,
         }
     }
 
@@ -213,10 +218,7 @@ impl DatasetFile {
     /// extent checked by the pre-parse before it is allocated).
     pub(super) fn header(&self) -> Result<las::Header, IngestError> {
         let path = self.path.as_path();
-        let file = open_dataset_file(path, Symlinks::Follow).map_err(|error| IngestError::Io {
-            path: path.to_owned(),
-            error,
-        })?;
+        let file = self.open_bytes()?;
         contain_panics(path, || {
             Ok(open_reader(path, file, self.laz)?.header().clone())
         })
@@ -258,10 +260,7 @@ impl DatasetFile {
     ) -> Result<(), IngestError> {
         let path = self.path.as_path();
         let facts = &self.facts;
-        let file = open_dataset_file(path, Symlinks::Follow).map_err(|error| IngestError::Io {
-            path: path.to_owned(),
-            error,
-        })?;
+        let file = self.open_bytes()?;
         let mut reader = open_reader(path, file, self.laz)?;
         let malformed = |error| IngestError::Malformed {
             path: path.to_owned(),
@@ -294,13 +293,17 @@ impl DatasetFile {
 
 /// Opens the `las` reader: chunked LAZ with the parallel decompressor (the crate's default
 /// with `laz-parallel`), old non-chunked LAZ with the sequential one.
-fn open_reader(path: &Path, file: File, laz: Option<LazLayout>) -> Result<Reader, IngestError> {
+pub(super) fn open_reader(
+    path: &Path,
+    bytes: impl Read + Seek + Send + Sync + 'static,
+    laz: Option<LazLayout>,
+) -> Result<Reader, IngestError> {
     let parallelism = match laz {
         Some(LazLayout::Unchunked) => las::LazParallelism::No,
         Some(LazLayout::Chunked) | None => las::LazParallelism::Yes,
     };
     let options = las::ReaderOptions::default().with_laz_parallelism(parallelism);
-    Reader::with_options(BufReader::new(file), options).map_err(|error| IngestError::Malformed {
+    Reader::with_options(bytes, options).map_err(|error| IngestError::Malformed {
         path: path.to_owned(),
         error,
     })

@@ -34,7 +34,11 @@ impl DatasetSource {
     /// headers', widened by their rounding. A file whose header bounds are unusable is an
     /// error naming it: the builder needs bounds before it reads a point.
     pub fn open(paths: &[PathBuf]) -> Result<Self, IngestError> {
-        let files = DatasetFile::check_all(paths)?;
+        Self::of_files(DatasetFile::check_all(paths)?)
+    }
+
+    /// The source of files checked already, here or by URL (`objects.rs`).
+    pub(super) fn of_files(files: Vec<DatasetFile>) -> Result<Self, IngestError> {
         let bounds = dataset_bounds(&files)?;
         let attributes = attribute_schema(&files);
         let fillers = files
@@ -272,8 +276,11 @@ impl PointSource for DatasetSource {
         Some(self.attributes.clone())
     }
 
-    /// The files' paths, lengths and modification times.
+    /// The files' paths, lengths and modification times; objects' URLs, sizes and versions.
     fn fingerprint(&self) -> Option<String> {
+        if self.files.iter().any(|file| file.object.is_some()) {
+            return super::objects::objects_fingerprint(&self.files);
+        }
         crate::lod::source::files_fingerprint(self.files.iter().map(|file| file.path.as_path()))
     }
 

@@ -13,6 +13,9 @@ use super::url::{ObjectUrl, UrlKind};
 pub struct ListedObject {
     pub url: ObjectUrl,
     pub size: u64,
+    /// The version listed (the store's version id, else the ETag), which a read of the object
+    /// is held to.
+    pub version: Option<String>,
 }
 
 /// Whether an object's name says it holds points (`.las`, `.laz`, `.copc.laz`), in any case.
@@ -73,6 +76,7 @@ pub(crate) async fn list_point_files(
             Ok(ListedObject {
                 url: prefix.with_object_path(&meta.location)?,
                 size: meta.size,
+                version: meta.version.or(meta.e_tag),
             })
         })
         .collect()

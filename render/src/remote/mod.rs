@@ -5,7 +5,8 @@
 //! or fragment, so URLs can always be logged); `AllowedPrefixes` is the operator's allow-list;
 //! `RemoteClient` opens a `RemoteObject` (a HEAD for its size and version) and lists a
 //! prefix's point files; a `RemoteObject` reads ranges, coalescing near ones and fetching them
-//! in parallel, every request pinned to the version seen at open. `RemoteUpload` writes an
+//! in parallel, every request pinned to the version seen at open; an `ObjectReader` streams
+//! one from start to end in large blocks, for the LAS/LAZ readers. `RemoteUpload` writes an
 //! object by a multipart upload, a few parts in memory at a time, visible only once complete.
 //! `RemoteSettings` states every timeout, retry and size bound with its default.
 //!
@@ -33,6 +34,7 @@ mod object;
 mod runtime;
 mod settings;
 mod store;
+mod stream;
 mod upload;
 mod url;
 
@@ -43,5 +45,6 @@ pub use error::RemoteError;
 pub use list::{is_point_file, ListedObject};
 pub use object::RemoteObject;
 pub use settings::RemoteSettings;
+pub use stream::{BlockSource, ObjectReader, STREAM_BLOCK_BYTES};
 pub use upload::RemoteUpload;
 pub use url::{ObjectUrl, UrlKind, MAX_URL_LEN};

@@ -18,6 +18,7 @@ use super::url::ObjectUrl;
 /// An object whose size and version were read by a HEAD request; every range read of it asks
 /// the server for that version (`If-Match` on its ETag, or its version id), so an object
 /// replaced meanwhile is `ObjectChanged`, never bytes of two versions.
+#[derive(Clone)]
 pub struct RemoteObject {
     client: RemoteClient,
     store: Arc<dyn ObjectStore>,

@@ -19,6 +19,7 @@
 //! - `local_store`: stores in folders of this machine, built again once when damaged.
 //! - `preview`: what a preview draws while a store builds.
 //! - `url_tiles`: LAS/LAZ tiles by URL, described and sampled for a preview by range.
+//! - `tile_store`: stores of LAS/LAZ tiles by URL, built by streaming the tiles.
 
 mod choice;
 mod error;
@@ -26,6 +27,7 @@ mod events;
 mod exposure;
 mod local_store;
 mod preview;
+mod tile_store;
 mod url_tiles;
 
 use std::path::{Path, PathBuf};
@@ -50,6 +52,7 @@ pub use error::SourceError;
 pub use events::{quiet, LevelsFrom, SourceEvent};
 pub use local_store::{LocalStore, StoreCache};
 pub use preview::{ChunkStarts, PreviewPoints};
+pub use tile_store::{listed_tiles, open_tile_source};
 pub use url_tiles::describe_tile_url;
 
 /// A frame and what it drew.

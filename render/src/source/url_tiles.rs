@@ -14,7 +14,7 @@ use rayon::prelude::*;
 use super::preview::ChunkStarts;
 use super::SourceError;
 use crate::copc::CopcBytes;
-use crate::ingest::{sample_ranged, ChunkChecks, FileInfo, LAS_PREVIEW_STRIDE};
+use crate::ingest::{sample_ranged, ChunkChecks, FileInfo, IngestError, LAS_PREVIEW_STRIDE};
 use crate::remote::{ObjectUrl, RemoteClient};
 
 /// What the LAS/LAZ file at `url` holds, as [`FileInfo::read`] says of a file here: its header
@@ -30,19 +30,7 @@ impl ChunkStarts {
     /// sparse range reads, many tiles at once.
     pub fn read_urls(client: &RemoteClient, urls: &[ObjectUrl]) -> Result<Self, SourceError> {
         let started = Instant::now();
-        let threads = client.settings().parallel_requests.max(1);
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .thread_name(|i| format!("pointfarm-tiles-{i}"))
-            .build()
-            .map_err(|error| SourceError::Io {
-                path: urls
-                    .first()
-                    .map(|url| url.to_string())
-                    .unwrap_or_default()
-                    .into(),
-                error: std::io::Error::other(error),
-            })?;
+        let pool = tiles_pool(client, urls.first())?;
         let sample = pool.install(|| {
             let tiles = urls
                 .par_iter()
@@ -53,4 +41,20 @@ impl ChunkStarts {
         })?;
         Ok(Self::of_sample(sample, urls.len(), started))
     }
+}
+
+/// The threads tiles are opened and checked on, as many as the client's parallel requests:
+/// each of their reads waits a round trip, which the connections overlap.
+pub(super) fn tiles_pool(
+    client: &RemoteClient,
+    first: Option<&ObjectUrl>,
+) -> Result<rayon::ThreadPool, IngestError> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(client.settings().parallel_requests.max(1))
+        .thread_name(|i| format!("pointfarm-tiles-{i}"))
+        .build()
+        .map_err(|error| IngestError::Io {
+            path: first.map(|url| url.to_string()).unwrap_or_default().into(),
+            error: std::io::Error::other(error),
+        })
 }

@@ -1,0 +1,167 @@
+//! Stores of LAS/LAZ tiles by URL, built here by streaming the tiles: each object opened
+//! with a HEAD and held to the version its listing saw, checked by range as a file is, then
+//! read from start to end in large blocks by the build (`ingest::DatasetSource::
+//! open_objects`), never copied whole. A store is kept in the folder local datasets' stores
+//! are kept in, named by the tiles' URLs, sizes and versions, so a second render opens it
+//! after a listing (or a HEAD) and a replaced object gets a new one.
+
+use std::path::{Path, PathBuf};
+use std::sync::mpsc::Receiver;
+use std::sync::Arc;
+use std::thread::JoinHandle;
+
+use rayon::prelude::*;
+use sha2::{Digest, Sha256};
+
+use super::events::SourceEvent;
+use super::local_store::{LocalStore, StoreCache};
+use super::url_tiles::tiles_pool;
+use super::SourceError;
+use crate::cut::{CutError, StoredLod};
+use crate::ingest::{DatasetSource, IngestError};
+use crate::lod::BuildProgress;
+use crate::remote::{ListedObject, ObjectUrl, RemoteClient, RemoteError};
+
+impl StoreCache {
+    /// The folder of the store of `tiles` by URL: named by a digest of each one's URL, size
+    /// and version, so a replaced object gets a new store.
+    pub fn folder_of_objects(&self, tiles: &[ListedObject]) -> PathBuf {
+        let mut digest = Sha256::new();
+        digest.update(b"objects\0");
+        for tile in tiles {
+            digest.update(tile.url.as_str().as_bytes());
+            digest.update([0]);
+            digest.update(tile.size.to_le_bytes());
+            digest.update(tile.version.as_deref().unwrap_or("").as_bytes());
+            digest.update([0]);
+        }
+        let name: String = (digest.finalize().iter().take(12))
+            .map(|b| format!("{b:02x}"))
+            .collect();
+        self.dir.join(name)
+    }
+}
+
+/// The tiles `url` names, with the versions a build holds them to: the `.las`/`.laz` objects
+/// under a prefix (one listing), or the one object (one HEAD).
+pub fn listed_tiles(
+    client: &RemoteClient,
+    url: &ObjectUrl,
+) -> Result<Vec<ListedObject>, RemoteError> {
+    if url.is_prefix() {
+        return client.list_point_files(url);
+    }
+    let object = client.open(url)?;
+    Ok(vec![ListedObject {
+        url: url.clone(),
+        size: object.size(),
+        version: object.version().map(str::to_owned),
+    }])
+}
+
+/// The tiles opened, each held to its listed version, and checked as files are, many at once:
+/// the source a build streams.
+pub fn open_tile_source(
+    client: &RemoteClient,
+    tiles: &[ListedObject],
+) -> Result<DatasetSource, IngestError> {
+    tiles_pool(client, tiles.first().map(|tile| &tile.url))?.install(|| {
+        let objects = (tiles.par_iter())
+            .map(|tile| client.open_listed(&tile.url, tile.version.as_deref()))
+            .collect::<Result<Vec<_>, _>>()?;
+        DatasetSource::open_objects(objects)
+    })
+}
+
+/// Opens the store of `tiles` in `folder`, or builds it first from the tiles streamed by URL,
+/// telling `on_build` the points before a build starts and listing in `progress` the nodes
+/// it stores.
+fn open_or_build_tiles(
+    client: &RemoteClient,
+    tiles: &[ListedObject],
+    folder: &Path,
+    memory_budget: u64,
+    disk_budget: Option<u64>,
+    on_build: &mut dyn FnMut(u64),
+    progress: &BuildProgress,
+) -> Result<StoredLod, CutError> {
+    if StoredLod::is_built(folder) {
+        return StoredLod::open_or_build(&[], folder, memory_budget, disk_budget, on_build);
+    }
+    let source = open_tile_source(client, tiles)?;
+    StoredLod::open_or_build_source(
+        &source,
+        folder,
+        memory_budget,
+        disk_budget,
+        on_build,
+        progress,
+    )
+}
+
+impl LocalStore {
+    /// The store of `tiles` by URL in `folder`, opened, or built first by streaming them. A
+    /// store that fails its checks later is removed, for the next render to build.
+    pub fn open_or_build_tiles(
+        client: &RemoteClient,
+        tiles: &[ListedObject],
+        folder: &Path,
+        memory_budget: u64,
+        disk_budget: Option<u64>,
+        events: &dyn Fn(SourceEvent<'_>),
+    ) -> Result<Self, SourceError> {
+        let stored = open_or_build_tiles(
+            client,
+            tiles,
+            folder,
+            memory_budget,
+            disk_budget,
+            &mut |points| events(SourceEvent::Building { points, folder }),
+            &BuildProgress::new(),
+        )?;
+        Ok(Self::of_built(
+            stored,
+            &[],
+            memory_budget,
+            disk_budget,
+            events,
+        ))
+    }
+
+    /// [`LocalStore::build_in_background`] of tiles by URL, streamed.
+    pub fn build_tiles_in_background(
+        client: RemoteClient,
+        tiles: Vec<ListedObject>,
+        folder: PathBuf,
+        memory_budget: u64,
+        disk_budget: Option<u64>,
+        start: Receiver<()>,
+        progress: Arc<BuildProgress>,
+    ) -> Result<JoinHandle<Result<StoredLod, CutError>>, SourceError> {
+        std::thread::Builder::new()
+            .name("lod-build".into())
+            .spawn(move || {
+                // Sent or dropped: either way the build goes on.
+                let _ = start.recv();
+                open_or_build_tiles(
+                    &client,
+                    &tiles,
+                    &folder,
+                    memory_budget,
+                    disk_budget,
+                    &mut |points| {
+                        tracing::info!(
+                            points,
+                            folder = %folder.display(),
+                            "building levels of detail of tiles by URL behind a preview"
+                        );
+                    },
+                    &progress,
+                )
+            })
+            .map_err(|error| SourceError::Io {
+                path: PathBuf::from("lod-build thread"),
+                error,
+            })
+    }
+}
