@@ -325,7 +325,7 @@ mod tests {
     fn small_need(file: &Path) -> u64 {
         let source = DatasetSource::open(&[file.to_owned()]).expect("open");
         assert!(source.position_grid().is_some(), "one file, one grid");
-        build_disk_bytes(SMALL_POINTS, true, spill_record_bytes(source))
+        build_disk_bytes(SMALL_POINTS, true, spill_record_bytes(&source))
     }
 
     fn build(file: &Path, folder: &Path, budget: Option<u64>) -> Result<StoredLod, CutError> {
