@@ -34,7 +34,9 @@ use crate::service::Daemon;
 
 mod task;
 
-pub use task::{FailureKind, FrameOutcome, FrameTask, HeartbeatAnswer, TaskDataset, TaskFile};
+pub use task::{
+    FailureKind, FrameOutcome, FrameTask, HeartbeatAnswer, PublishedStore, TaskDataset, TaskFile,
+};
 
 impl Daemon {
     fn lease_timeout_ms(&self) -> i64 {
@@ -166,6 +168,7 @@ impl Daemon {
                             })
                             .collect(),
                     },
+                    published: self.stores.published(&dataset.sha256),
                     remote: dataset.remote,
                     id: dataset.id,
                     sha256: dataset.sha256,

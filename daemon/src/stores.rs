@@ -207,6 +207,8 @@ pub struct DatasetStores {
     /// Where the datasets' files may be read from, checked before a build, a count or a
     /// preview sample reads them; `None` reads them where they are (tests).
     folders: Option<DatasetFolders>,
+    /// Publishes ready stores for workers to read from object storage (`serve --store-url`).
+    publisher: Option<Arc<StorePublisher>>,
 }
 
 impl DatasetStores {
@@ -225,6 +227,7 @@ impl DatasetStores {
             rebuilds: AtomicU64::new(0),
             on_change: None,
             folders: None,
+            publisher: None,
         }
     }
 
@@ -452,6 +455,7 @@ impl DatasetStores {
         let id = dataset.id.clone();
         let (gate, ready_gate) = (self.gate.clone(), self.ready_gate.clone());
         let previews = Arc::clone(&self.previews);
+        let publisher = self.publisher.clone();
         let spawned = std::thread::Builder::new()
             .name("pointfarm-store-build".into())
             .spawn(move || {
@@ -475,7 +479,9 @@ impl DatasetStores {
                             .lock()
                             .unwrap_or_else(|e| e.into_inner())
                             .remove(&sha);
-                        Entry::Ready(Arc::new(ready))
+                        let ready = Arc::new(ready);
+                        publish::offer(publisher.as_deref(), &sha, &ready);
+                        Entry::Ready(ready)
                     }
                     Err(reason) => {
                         tracing::warn!(dataset = %id, %reason, "the dataset's store was not built");
@@ -619,6 +625,7 @@ impl DatasetStores {
         match opened {
             Ok(ready) => {
                 let ready = Arc::new(ready);
+                publish::offer(self.publisher.as_deref(), sha256, &ready);
                 self.set(sha256, Entry::Ready(Arc::clone(&ready)));
                 Ok(ready)
             }
@@ -680,9 +687,11 @@ fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
 mod healing;
 use healing::being_rebuilt;
 mod preview;
+mod publish;
 mod resume;
 #[cfg(test)]
 mod tests;
 
 pub use preview::PreviewBytes;
 use preview::PreviewState;
+pub use publish::StorePublisher;

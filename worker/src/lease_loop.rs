@@ -398,6 +398,10 @@ async fn dataset_access(
     if task.dataset.remote.is_some() {
         return Ok(DatasetAccess::Url);
     }
+    // A published store is read from object storage: the daemon is out of its data path.
+    if state.published_store(task).is_some() {
+        return Ok(DatasetAccess::Published);
+    }
     if state.is_loaded(task) && !state.is_loaded_resident(task) {
         return Ok(DatasetAccess::Files(Vec::new()));
     }
@@ -461,9 +465,10 @@ async fn download_and_render(
     };
     let files = match &access {
         DatasetAccess::Files(files) => files.clone(),
-        DatasetAccess::DaemonStore(_) | DatasetAccess::Preview(_) | DatasetAccess::Url => {
-            Vec::new()
-        }
+        DatasetAccess::DaemonStore(_)
+        | DatasetAccess::Preview(_)
+        | DatasetAccess::Url
+        | DatasetAccess::Published => Vec::new(),
     };
     let state = render_state.take().context("the renderer was lost")?;
     // Rendering blocks on the GPU: off the async threads, so heartbeats go on meanwhile.

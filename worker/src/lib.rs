@@ -12,6 +12,7 @@
 //! - `daemon_store`: the daemon's level-of-detail store, COPC hierarchy and preview sample as
 //!   the worker reads them over gRPC.
 //! - `url_dataset`: a dataset by URL, whose COPC object the worker reads itself by range.
+//! - `published_store`: a store the daemon published to object storage, read from there.
 //! - `range_cache`: the on-disk cache of ranges of objects by URL, by their version.
 //! - `encode`: jobs' videos, made with ffmpeg under encode leases beside the frames.
 //! - `lease_renewal`: keeping a frame's or a video's lease while its work runs.
@@ -27,6 +28,7 @@ pub mod failure;
 pub mod lease_loop;
 mod lease_renewal;
 pub mod memory_limit;
+pub mod published_store;
 pub mod range_cache;
 pub mod render_state;
 pub mod supervised;

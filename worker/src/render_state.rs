@@ -13,7 +13,7 @@ use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::sync::Arc;
 
-use pointfarm_daemon::lease::{FrameOutcome, FrameTask};
+use pointfarm_daemon::lease::{FrameOutcome, FrameTask, PublishedStore};
 use pointfarm_daemon::model::StageTiming;
 use pointfarm_render::cache::{CacheOutcome, DatasetCache};
 use pointfarm_render::color::Coloring;
@@ -31,6 +31,7 @@ use pointfarm_render::source::{
 
 use crate::daemon_store::{PreviewSample, RemoteStore};
 use crate::failure::FrameFailure;
+use crate::published_store::{self, PublishedFailures};
 use crate::url_dataset::UrlReader;
 
 /// Where a frame's points come from.
@@ -45,6 +46,9 @@ pub enum DatasetAccess {
     Preview(Option<Box<PreviewSample>>),
     /// The COPC object of a dataset by URL, which the worker reads itself.
     Url,
+    /// The daemon's store of the dataset as published to object storage, which the worker
+    /// reads itself.
+    Published,
 }
 
 /// A finished frame: the PNG and what to report with it.
@@ -89,6 +93,8 @@ enum Opened {
     Preview { version: u32 },
     /// The COPC object of a dataset by URL, read node by node by this worker.
     Url,
+    /// The daemon's store as published to object storage, read node by node by this worker.
+    Published,
 }
 
 /// One worker's renderer, dataset cache and open dataset, which render its leased frames.
@@ -101,6 +107,7 @@ pub struct WorkerRenderState {
     loaded: Option<Loaded>,
     gains: JobGains,
     urls: UrlReader,
+    published_failures: PublishedFailures,
 }
 
 /// The jobs a gain after Eye-Dome Lighting is kept for: enough for the jobs a worker's leases
@@ -153,6 +160,7 @@ impl WorkerRenderState {
             loaded: None,
             gains: JobGains::default(),
             urls: UrlReader::default(),
+            published_failures: PublishedFailures::default(),
         }
     }
 
@@ -215,7 +223,7 @@ impl WorkerRenderState {
             }
             // A cut at another pixel error opens the store again, with empty node caches.
             Opened::OwnStore => self.lod_error(task, None) == loaded.source.lod_error(),
-            Opened::DaemonStore { .. } | Opened::Url => {
+            Opened::DaemonStore { .. } | Opened::Url | Opened::Published => {
                 self.daemon_lod_error(task) == loaded.source.lod_error()
             }
             // A preview is asked for again: the store may be ready by now.
@@ -317,6 +325,8 @@ impl WorkerRenderState {
             DatasetAccess::Files(_) => {}
             DatasetAccess::Url if !self.is_loaded(task) => self.open_url(task)?,
             DatasetAccess::Url => {}
+            DatasetAccess::Published if !self.is_loaded(task) => self.open_published(task)?,
+            DatasetAccess::Published => {}
         }
         let wanted_lod_error = self.daemon_lod_error(task);
         let Some(loaded) = self.loaded.as_mut() else {
@@ -335,6 +345,7 @@ impl WorkerRenderState {
             .source
             .preview_cuts(copc_preview)
             .map_err(|e| FrameFailure::from(&e))?;
+        let from = loaded.from;
         let exposure_key = JobExposureKey {
             job_id: task.lease.job_id.clone(),
             sha256: task.dataset.sha256.clone(),
@@ -358,7 +369,13 @@ impl WorkerRenderState {
                     // worker's that could not be built again was removed, and is built anew.
                     self.close_to_idle();
                 }
-                return Err(FrameFailure::from(&error));
+                let failure = FrameFailure::from(&error);
+                if from == Opened::Published
+                    && matches!(error, SourceError::Cut(CutError::Store(_)))
+                {
+                    return Err(self.published_failures.failed(task, failure));
+                }
+                return Err(failure);
             }
         };
         if let (Some(gain), None) = (rendered.frame.gain, rendered.preview) {
@@ -494,6 +511,40 @@ impl WorkerRenderState {
                 render,
                 &log_event,
             )
+        })
+    }
+
+    /// The published store `task` names, unless it failed on this worker before: the
+    /// dataset is then read through the daemon.
+    pub fn published_store<'a>(&self, task: &'a FrameTask) -> Option<&'a PublishedStore> {
+        self.published_failures.store_of(task)
+    }
+
+    /// Opens the daemon's store of `task`'s dataset as published to object storage, cut by
+    /// cut as the daemon's own is.
+    fn open_published(&mut self, task: &FrameTask) -> Result<(), FrameFailure> {
+        let Some(published) = self.published_store(task).cloned() else {
+            return Err(FrameFailure::transient(
+                "the dataset's store is not published",
+            ));
+        };
+        let (Some(lod), Some(lod_error)) = (self.lod.clone(), self.daemon_lod_error(task)) else {
+            return Err(FrameFailure::transient(
+                "this worker renders no levels of detail",
+            ));
+        };
+        let options = cut_options(&lod, lod_error)?;
+        let dataset = match published_store::open(&mut self.urls, &published) {
+            Ok(dataset) => dataset,
+            Err(failure) => return Err(self.published_failures.failed(task, failure)),
+        };
+        let levels = Levels::Served {
+            dataset: Box::new(dataset),
+            build_ms: None,
+        };
+        let render = &task.request.render;
+        self.open(task, Opened::Published, |renderer| {
+            FrameSource::levels(renderer, levels, options, render, &log_event)
         })
     }
 

@@ -8,7 +8,9 @@
 use std::sync::Arc;
 
 use pointfarm_daemon::model::RemoteSource;
-use pointfarm_render::copc::{open_copc_object, open_copc_object_cached, CopcDataset, CopcError};
+use pointfarm_render::copc::{
+    open_copc_object, open_copc_object_cached, CopcDataset, CopcError, RangeCache,
+};
 use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteError, RemoteSettings};
 
 use crate::failure::FrameFailure;
@@ -46,14 +48,7 @@ impl UrlReader {
     /// registered; every read of it is then pinned to that version.
     pub fn open(&mut self, remote: &RemoteSource) -> Result<CopcDataset, FrameFailure> {
         let url = ObjectUrl::parse(&remote.url).map_err(|e| FrameFailure::from(&e))?;
-        let client = match &self.client {
-            Some(client) => client.clone(),
-            None => {
-                let client = RemoteClient::new(RemoteSettings::default())
-                    .map_err(|e| FrameFailure::from(&e))?;
-                self.client.insert(client).clone()
-            }
-        };
+        let client = self.client()?;
         let object = client.open(&url).map_err(|e| FrameFailure::from(&e))?;
         let now = object.version().unwrap_or_default();
         if now != remote.version {
@@ -73,6 +68,24 @@ impl UrlReader {
             CopcError::Io { .. } => FrameFailure::transient(e.to_string()),
             _ => FrameFailure::permanent(e.to_string()),
         })
+    }
+}
+
+impl UrlReader {
+    /// The client every object is read through, made on first use, so that one count covers
+    /// every object a frame reads.
+    pub(crate) fn client(&mut self) -> Result<RemoteClient, FrameFailure> {
+        if let Some(client) = &self.client {
+            return Ok(client.clone());
+        }
+        let client =
+            RemoteClient::new(RemoteSettings::default()).map_err(|e| FrameFailure::from(&e))?;
+        Ok(self.client.insert(client).clone())
+    }
+
+    /// The range cache objects' ranges are kept in, when the worker keeps one.
+    pub(crate) fn range_cache(&self) -> Option<Arc<dyn RangeCache>> {
+        self.cache.clone().map(|cache| cache as Arc<dyn RangeCache>)
     }
 }
 

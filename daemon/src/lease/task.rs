@@ -19,6 +19,19 @@ pub struct TaskDataset {
     pub files: Vec<TaskFile>,
     /// The object of a dataset by URL, which the worker reads itself.
     pub remote: Option<RemoteSource>,
+    /// Its level-of-detail store where the daemon published it, which the worker reads
+    /// itself; `None` keeps the daemon-served path.
+    pub published: Option<PublishedStore>,
+}
+
+/// A dataset's level-of-detail store published to object storage (`stores/publish.rs`):
+/// where it lies and the versions of its objects, never credentials.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct PublishedStore {
+    /// The store's prefix, `STORE_URL/SHA256/`.
+    pub url: String,
+    pub hierarchy_version: String,
+    pub payload_version: String,
 }
 
 /// One file of a task's dataset.

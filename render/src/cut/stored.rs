@@ -17,6 +17,9 @@ use crate::lod::{
     PointSource,
 };
 
+/// The store's payload file in its folder, which `serve --store-url` publishes as it is.
+pub const PAYLOAD_FILE: &str = "nodes.bin";
+
 /// sled's page cache for the index: it holds one small hierarchy record.
 const INDEX_CACHE_BYTES: u64 = 16 << 20;
 
@@ -230,7 +233,7 @@ fn open_index(folder: &Path) -> Result<(sled::Db, LodStore), CutError> {
         .open()
         .map_err(|e| CutError::Cache(format!("opening the store in {}: {e}", folder.display())))?;
     let tree = db.open_tree("lod").map_err(LodError::from)?;
-    let store = LodStore::open(tree, folder.join("nodes.bin"))?;
+    let store = LodStore::open(tree, folder.join(PAYLOAD_FILE))?;
     Ok((db, store))
 }
 

@@ -73,6 +73,7 @@ mod pause;
 mod plan;
 mod point;
 pub mod progress;
+pub mod published;
 pub mod records;
 pub mod regions;
 mod removal;

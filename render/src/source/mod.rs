@@ -18,6 +18,7 @@
 //! - `extent`: where the points lie, and the robust box the automatic camera frames.
 //! - `local_store`: stores in folders of this machine, built again once when damaged.
 //! - `preview`: what a preview draws while a store builds.
+//! - `published_store`: a store published to object storage, read by range.
 //! - `url_tiles`: LAS/LAZ tiles by URL, described and sampled for a preview by range.
 //! - `tile_store`: stores of LAS/LAZ tiles by URL, built by streaming the tiles.
 
@@ -27,6 +28,7 @@ mod events;
 mod exposure;
 mod local_store;
 mod preview;
+mod published_store;
 mod tile_store;
 mod url_tiles;
 
@@ -53,6 +55,7 @@ pub use events::{quiet, LevelsFrom, SourceEvent};
 pub use local_store::{LocalStore, StoreCache};
 pub use preview::{ChunkStarts, PreviewPoints};
 pub use tile_store::{listed_tiles, open_tile_source};
+pub use published_store::{open_published_store, PublishedObjects, PublishedStoreError};
 pub use url_tiles::describe_tile_url;
 
 /// A frame and what it drew.

@@ -7,7 +7,7 @@ use pointfarm_render::remote::ObjectUrl;
 use super::invalid;
 use crate::datasets::MAX_DATASET_FILES;
 use crate::error::DaemonError;
-use crate::lease::{TaskDataset, TaskFile};
+use crate::lease::{PublishedStore, TaskDataset, TaskFile};
 use crate::model::{Dataset, DatasetFile, RemoteSource};
 
 impl From<&Dataset> for pb::Dataset {
@@ -72,7 +72,47 @@ pub(super) fn task_dataset_message(dataset: &TaskDataset) -> pb::TaskDataset {
             .collect(),
         url,
         version,
+        published_store: dataset
+            .published
+            .as_ref()
+            .map(|published| pb::PublishedStore {
+                url: published.url.clone(),
+                hierarchy_version: published.hierarchy_version.clone(),
+                payload_version: published.payload_version.clone(),
+            }),
     }
+}
+
+/// Longest object version a published store may name: an ETag or a version id is far
+/// shorter.
+const MAX_OBJECT_VERSION_BYTES: usize = 1024;
+
+/// A published store as a task names it: a prefix URL checked as every URL is, and
+/// versions of a bounded length.
+fn published_store(message: &pb::PublishedStore) -> Result<PublishedStore, DaemonError> {
+    let url = ObjectUrl::parse(&message.url)?;
+    if !url.is_prefix() {
+        return Err(invalid(
+            "dataset.published_store.url",
+            "names an object, not a store's prefix",
+        ));
+    }
+    for (field, version) in [
+        ("hierarchy_version", &message.hierarchy_version),
+        ("payload_version", &message.payload_version),
+    ] {
+        if version.is_empty() || version.len() > MAX_OBJECT_VERSION_BYTES {
+            return Err(invalid(
+                &format!("dataset.published_store.{field}"),
+                format!("1 to {MAX_OBJECT_VERSION_BYTES} bytes"),
+            ));
+        }
+    }
+    Ok(PublishedStore {
+        url: url.to_string(),
+        hierarchy_version: message.hierarchy_version.clone(),
+        payload_version: message.payload_version.clone(),
+    })
 }
 
 /// A task's dataset as the worker receives it; a URL is checked as the daemon checked it
@@ -95,6 +135,7 @@ pub(super) fn task_dataset(message: &pb::TaskDataset) -> Result<TaskDataset, Dae
                 url: url.to_string(),
                 version: message.version.clone(),
             }),
+            published: None,
         });
     }
     // A daemon that knew only datasets of one file sent none.
@@ -119,5 +160,10 @@ pub(super) fn task_dataset(message: &pb::TaskDataset) -> Result<TaskDataset, Dae
         size_bytes: message.size_bytes,
         files,
         remote: None,
+        published: message
+            .published_store
+            .as_ref()
+            .map(published_store)
+            .transpose()?,
     })
 }

@@ -415,6 +415,7 @@ fn tasks_carry_the_job_spec_unchanged_across_the_wire() {
                     },
                 ],
                 remote: None,
+                published: None,
             },
             request: spec.request.clone(),
             failed_attempts: 2,
@@ -444,6 +445,28 @@ fn tasks_carry_the_job_spec_unchanged_across_the_wire() {
             refused.contains("credentials") && !refused.contains("pw@"),
             "{refused}"
         );
+        // A published store reaches the worker as its prefix and versions; an object URL
+        // or a URL with credentials in it is refused.
+        let published = FrameTask {
+            dataset: TaskDataset {
+                published: Some(crate::lease::PublishedStore {
+                    url: format!("s3://stores/farm/{}/", "ab".repeat(32)),
+                    hierarchy_version: "\"h1\"".into(),
+                    payload_version: "\"p1\"".into(),
+                }),
+                ..task.dataset.clone()
+            },
+            ..task.clone()
+        };
+        let received = frame_task(&frame_task_message(&published), "w").expect("valid task");
+        assert_eq!(received, published);
+        for url in ["s3://stores/farm/nodes.bin", "s3://user:pw@stores/farm/"] {
+            let mut message = frame_task_message(&published);
+            let dataset = message.dataset.as_mut().expect("dataset");
+            dataset.published_store.as_mut().expect("published").url = url.into();
+            let refused = frame_task(&message, "w").expect_err(url).to_string();
+            assert!(!refused.contains("pw@"), "{refused}");
+        }
         // And the submission a client builds from the spec is the same spec.
         let resubmitted = pb::SubmitJobRequest::from(&spec);
         assert_eq!(JobSpec::try_from(&resubmitted).expect("valid"), spec);

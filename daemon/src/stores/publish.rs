@@ -1,0 +1,296 @@
+//! Publishing the daemon's level-of-detail stores to object storage (`serve --store-url`), so
+//! that workers read their nodes from there rather than through the daemon, whose disk and
+//! network would otherwise bound the farm.
+//!
+//! A store is published once it is ready here, off the scheduler's path on a thread of its
+//! own, one store at a time: its payload file by multipart upload, then its hierarchy object
+//! (`lod::published`), last, so a store whose upload stopped part way is never read. The
+//! objects' versions (ETags) are then recorded in a sled database of their own
+//! (`DATA/published-stores`), which leases read to name the store to workers; a restarted
+//! daemon finds the record and publishes nothing again. A failed upload is logged (the error
+//! names the URL, never a credential) and tried again with backoff; meanwhile, and after the
+//! last try, workers read the store through the daemon, and the store is offered again the
+//! next time it opens.
+
+use std::collections::{HashSet, VecDeque};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::Duration;
+
+use pointfarm_render::lod::published::{PublishedHierarchy, HIERARCHY_OBJECT, PAYLOAD_OBJECT};
+use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteError, RemoteSettings};
+
+use super::{DatasetStores, ReadyStore};
+use crate::error::DaemonError;
+use crate::lease::PublishedStore;
+
+/// Tries at publishing a store before it waits for its next opening.
+const ATTEMPTS: u32 = 8;
+/// The wait after the first failed try, doubled after each, up to [`MAX_BACKOFF`].
+const FIRST_BACKOFF: Duration = Duration::from_secs(1);
+const MAX_BACKOFF: Duration = Duration::from_secs(60);
+/// sled's page cache for the records: one small record per store.
+const RECORDS_CACHE_BYTES: u64 = 4 << 20;
+
+/// Publishes ready stores under one store URL and remembers which are published.
+pub struct StorePublisher {
+    shared: Arc<Shared>,
+}
+
+struct Shared {
+    store_url: ObjectUrl,
+    client: RemoteClient,
+    /// Published stores by content: their [`PublishedStore`] as JSON.
+    records: sled::Db,
+    queue: Mutex<Queue>,
+    wake: Condvar,
+}
+
+#[derive(Default)]
+struct Queue {
+    waiting: VecDeque<(String, Arc<ReadyStore>)>,
+    /// Contents waiting or being published now, offered once.
+    offered: HashSet<String>,
+    closed: bool,
+}
+
+impl StorePublisher {
+    /// Publishes under `store_url` (an `s3://` prefix), with `settings`' timeouts and part
+    /// sizes, recording what it published in the database at `records`.
+    pub fn start(
+        store_url: ObjectUrl,
+        settings: RemoteSettings,
+        records: &Path,
+    ) -> Result<Self, DaemonError> {
+        let records = sled::Config::new()
+            .path(records)
+            .cache_capacity(RECORDS_CACHE_BYTES)
+            .open()
+            .map_err(|e| DaemonError::Internal(format!("opening {}: {e}", records.display())))?;
+        let shared = Arc::new(Shared {
+            client: RemoteClient::new(settings)?,
+            store_url,
+            records,
+            queue: Mutex::default(),
+            wake: Condvar::new(),
+        });
+        let publishing = Arc::clone(&shared);
+        std::thread::Builder::new()
+            .name("pointfarm-store-publish".into())
+            .spawn(move || publishing.run())
+            .map_err(|e| DaemonError::Internal(format!("starting the store publisher: {e}")))?;
+        tracing::info!(store_url = %shared.store_url, "stores are published for workers to read");
+        Ok(Self { shared })
+    }
+
+    /// Where the store of content `sha256` lies and its objects' versions, once published
+    /// under this daemon's store URL.
+    pub fn published(&self, sha256: &str) -> Option<PublishedStore> {
+        self.shared.published(sha256)
+    }
+
+    /// Publishes `store`, of content `sha256`, unless it is published or on its way.
+    pub fn offer(&self, sha256: &str, store: &Arc<ReadyStore>) {
+        if store.payload_path().is_none() || self.published(sha256).is_some() {
+            return;
+        }
+        let mut queue = self.shared.lock();
+        if queue.closed || !queue.offered.insert(sha256.to_owned()) {
+            return;
+        }
+        queue
+            .waiting
+            .push_back((sha256.to_owned(), Arc::clone(store)));
+        self.shared.wake.notify_all();
+    }
+}
+
+impl Drop for StorePublisher {
+    /// The publishing thread ends after the store it is publishing, if any.
+    fn drop(&mut self) {
+        self.shared.lock().closed = true;
+        self.shared.wake.notify_all();
+    }
+}
+
+impl Shared {
+    fn lock(&self) -> std::sync::MutexGuard<'_, Queue> {
+        self.queue.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The store's prefix under the store URL.
+    fn prefix(&self, sha256: &str) -> Result<ObjectUrl, RemoteError> {
+        self.store_url.join(&format!("{sha256}/"))
+    }
+
+    fn published(&self, sha256: &str) -> Option<PublishedStore> {
+        let record = match self.records.get(sha256.as_bytes()) {
+            Ok(record) => record?,
+            Err(error) => {
+                tracing::warn!(%error, "reading the published stores' records");
+                return None;
+            }
+        };
+        let published: PublishedStore = match serde_json::from_slice(&record) {
+            Ok(published) => published,
+            Err(error) => {
+                tracing::warn!(%error, sha256, "an unreadable published store's record");
+                return None;
+            }
+        };
+        // A store published under another store URL is published again under this one.
+        let here = self.prefix(sha256).ok()?;
+        (published.url == here.as_str()).then_some(published)
+    }
+
+    /// Publishes the stores offered, one at a time, until the publisher is dropped.
+    fn run(&self) {
+        loop {
+            let (sha256, store) = {
+                let mut queue = self.lock();
+                loop {
+                    if queue.closed {
+                        return;
+                    }
+                    if let Some(next) = queue.waiting.pop_front() {
+                        break next;
+                    }
+                    queue = self.wake.wait(queue).unwrap_or_else(|e| e.into_inner());
+                }
+            };
+            self.publish_with_retries(&sha256, &store);
+            self.lock().offered.remove(&sha256);
+        }
+    }
+
+    fn publish_with_retries(&self, sha256: &str, store: &ReadyStore) {
+        let mut backoff = FIRST_BACKOFF;
+        for attempt in 1..=ATTEMPTS {
+            match self.publish(sha256, store) {
+                Ok(published) => {
+                    tracing::info!(url = %published.url, points = store.point_count(),
+                        "store published: workers read its nodes from object storage");
+                    return;
+                }
+                Err(error) if attempt < ATTEMPTS => {
+                    tracing::warn!(%error, attempt, retry_in_s = backoff.as_secs(),
+                        "publishing a store failed; workers read it through the daemon meanwhile");
+                }
+                Err(error) => {
+                    tracing::warn!(%error, attempt,
+                        "publishing a store failed; tried again when it next opens");
+                    return;
+                }
+            }
+            if self.wait_unless_closed(backoff) {
+                return;
+            }
+            backoff = (backoff * 2).min(MAX_BACKOFF);
+        }
+    }
+
+    /// Waits `pause`; true when the publisher was dropped meanwhile.
+    fn wait_unless_closed(&self, pause: Duration) -> bool {
+        let queue = self.lock();
+        let (queue, _) = self
+            .wake
+            .wait_timeout_while(queue, pause, |queue| !queue.closed)
+            .unwrap_or_else(|e| e.into_inner());
+        queue.closed
+    }
+
+    /// Uploads the payload, then the hierarchy object, then records both versions.
+    fn publish(&self, sha256: &str, store: &ReadyStore) -> Result<PublishedStore, PublishError> {
+        let prefix = self.prefix(sha256)?;
+        let payload_path = store.payload_path().ok_or(PublishError::NotAStore)?;
+        let payload_url = prefix.join(PAYLOAD_OBJECT)?;
+        let payload_bytes = self.client.upload_file(&payload_path, &payload_url)?;
+        let payload_version = self.version_of(&payload_url, payload_bytes)?;
+        let hierarchy = PublishedHierarchy {
+            bounds: store.bounds(),
+            payload_bytes,
+            payload_version: payload_version.clone(),
+            hierarchy_record: store.hierarchy_record.clone(),
+        }
+        .encode();
+        let hierarchy_url = prefix.join(HIERARCHY_OBJECT)?;
+        let hierarchy_bytes = hierarchy.len() as u64;
+        let mut upload = self.client.start_upload(&hierarchy_url)?;
+        upload.write(&hierarchy)?;
+        upload.finish()?;
+        let published = PublishedStore {
+            url: prefix.to_string(),
+            hierarchy_version: self.version_of(&hierarchy_url, hierarchy_bytes)?,
+            payload_version,
+        };
+        let record =
+            serde_json::to_vec(&published).map_err(|e| PublishError::Record(e.to_string()))?;
+        self.records
+            .insert(sha256.as_bytes(), record)
+            .and_then(|_| self.records.flush().map(drop))
+            .map_err(|e| PublishError::Record(e.to_string()))?;
+        Ok(published)
+    }
+
+    /// The version of the object just written at `url`, checked to hold `bytes`.
+    fn version_of(&self, url: &ObjectUrl, bytes: u64) -> Result<String, PublishError> {
+        let object = self.client.open(url)?;
+        if object.size() != bytes {
+            return Err(PublishError::Changed {
+                url: url.to_string(),
+                reason: format!("{} bytes where {bytes} were written", object.size()),
+            });
+        }
+        match object.version() {
+            Some(version) if !version.is_empty() => Ok(version.to_owned()),
+            _ => Err(PublishError::Changed {
+                url: url.to_string(),
+                reason: "the object store gives the object no version (ETag)".into(),
+            }),
+        }
+    }
+}
+
+/// Why a store was not published; no variant holds a credential.
+#[derive(Debug, thiserror::Error)]
+enum PublishError {
+    #[error(transparent)]
+    Remote(#[from] RemoteError),
+    #[error("{url}: {reason}")]
+    Changed { url: String, reason: String },
+    #[error("recording the published store: {0}")]
+    Record(String),
+    #[error("a COPC file's hierarchy is not a store to publish")]
+    NotAStore,
+}
+
+impl DatasetStores {
+    /// Ready stores are published through `publisher`, and leases name them once published.
+    pub fn publishing(mut self, publisher: Option<StorePublisher>) -> Self {
+        self.publisher = publisher.map(Arc::new);
+        self
+    }
+
+    /// The published store of content `sha256`, which workers read themselves; `None` while
+    /// it is not published, or where the daemon publishes none.
+    pub fn published(&self, sha256: &str) -> Option<PublishedStore> {
+        self.publisher.as_ref()?.published(sha256)
+    }
+}
+
+/// Offers `store`, of content `sha256`, to `publisher` where the daemon publishes stores.
+pub(super) fn offer(publisher: Option<&StorePublisher>, sha256: &str, store: &Arc<ReadyStore>) {
+    if let Some(publisher) = publisher {
+        publisher.offer(sha256, store);
+    }
+}
+
+impl ReadyStore {
+    /// The store's payload file; `None` for a COPC file's hierarchy.
+    pub(crate) fn payload_path(&self) -> Option<PathBuf> {
+        match &self.kept {
+            super::Kept::Store(lod) => Some(lod.folder.join(pointfarm_render::cut::PAYLOAD_FILE)),
+            super::Kept::Copc(_) => None,
+        }
+    }
+}
