@@ -368,8 +368,9 @@ impl Daemon {
         })
     }
 
-    /// Stores a whole handed-in video beside the job's frames, and the job succeeds; refused
-    /// when the lease was lost meanwhile, and then nothing is stored.
+    /// Stores a whole handed-in video beside the job's frames, and with its final video the
+    /// job succeeds (a preview video leaves it as it was); refused when the lease was lost
+    /// meanwhile, and then nothing is stored.
     pub fn finish_video_upload(&self, upload: VideoUpload) -> Result<Job, DaemonError> {
         if upload.written != upload.declared {
             return Err(DaemonError::invalid(
@@ -390,23 +391,28 @@ impl Daemon {
         let video = job.spec.video.ok_or_else(|| {
             DaemonError::Internal(format!("job {} asks for no video", upload.job_id))
         })?;
-        if kind == VideoKind::Preview {
-            return self.store_preview_video_locked(upload, &job, &lease, video.container);
-        }
-        let path = self.config.video_path(&job.id, video.container);
+        let path = match kind {
+            VideoKind::Final => self.config.video_path(&job.id, video.container),
+            VideoKind::Preview => self.config.preview_video_path(&job.id, video.container),
+        };
         let size = upload.store_at(&path)?;
         let job = self
             .state
             .update_job(&job.id, |j| {
-                j.video_mut(VideoKind::Final).stored(size);
-                j.state = JobState::Succeeded;
+                j.video_mut(kind).stored(size);
+                // A preview video leaves the job as it was.
+                if kind == VideoKind::Final {
+                    j.state = JobState::Succeeded;
+                }
             })?
             .ok_or_else(|| DaemonError::NotFound(format!("job {}", upload.job_id)))?;
         self.state.flush()?;
         self.count_stored_video(&lease);
-        tracing::info!(job = %job.id, bytes = size, "video stored");
-        self.enqueue_video_output(&job, &path);
-        self.log_job_end(&job, 0);
+        tracing::info!(job = %job.id, bytes = size, "{} stored", kind.name());
+        if kind == VideoKind::Final {
+            self.enqueue_video_output(&job, &path);
+            self.log_job_end(&job, 0);
+        }
         self.publish(&job, None);
         Ok(job)
     }
@@ -459,7 +465,8 @@ impl Daemon {
     }
 
     /// Takes the `kind` encode lease of `job` back, counting a failed attempt, and fails the
-    /// job when that was its final video's last; a preview video's last only ends it.
+    /// job when that was its final video's last; after a preview video's last, the job has no
+    /// preview video and goes on.
     fn count_failed_encode_locked(
         &self,
         job: &Job,
@@ -467,16 +474,17 @@ impl Daemon {
         kind: VideoKind,
         reason: &str,
     ) -> Result<(), DaemonError> {
-        if kind == VideoKind::Preview {
-            return self.count_failed_preview_encode_locked(job, lease, reason);
-        }
-        let failed = job.encode.as_ref().map_or(0, |e| e.video.failed_attempts) + 1;
-        tracing::warn!(job = %job.id, worker = %lease.worker, attempt = failed, reason, "video failed");
-        let last = failed >= MAX_ENCODE_ATTEMPTS;
+        let failed = job
+            .encode
+            .as_ref()
+            .map_or(0, |e| e.of(kind).failed_attempts)
+            + 1;
+        tracing::warn!(job = %job.id, worker = %lease.worker, attempt = failed, reason, "{} failed", kind.name());
+        let fails_job = kind == VideoKind::Final && failed >= MAX_ENCODE_ATTEMPTS;
         self.metrics.encodes.failed();
         let updated = self.state.update_job(&job.id, |j| {
-            j.video_mut(VideoKind::Final).failed(failed);
-            if last {
+            j.video_mut(kind).failed(failed);
+            if fails_job {
                 j.state = JobState::Failed;
                 j.error = Some(format!(
                     "the video failed {failed} times; last, on worker {}: {reason}",
@@ -486,7 +494,7 @@ impl Daemon {
         })?;
         self.state.flush()?;
         if let Some(job) = updated {
-            if last {
+            if fails_job {
                 self.log_job_end(&job, 0);
             }
             self.publish(&job, None);

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 
 use pointfarm_render::encode::video::VideoContainer;
 
-use super::{EncodeLease, VideoKind, VideoUpload, MAX_ENCODE_ATTEMPTS};
+use super::MAX_ENCODE_ATTEMPTS;
 use crate::error::DaemonError;
 use crate::model::Job;
 use crate::service::{Daemon, DaemonConfig};
@@ -55,52 +55,6 @@ impl Daemon {
         let mut reports = self.state.frame_reports(&job.id)?;
         reports.dedup_by_key(|report| report.index);
         Ok(reports.len() >= job.frames_total as usize)
-    }
-
-    /// Stores a whole handed-in preview video beside the final video's place; the job goes
-    /// on as it was.
-    pub(super) fn store_preview_video_locked(
-        &self,
-        upload: VideoUpload,
-        job: &Job,
-        lease: &EncodeLease,
-        container: VideoContainer,
-    ) -> Result<Job, DaemonError> {
-        let path = self.config.preview_video_path(&job.id, container);
-        let size = upload.store_at(&path)?;
-        let job = self
-            .state
-            .update_job(&job.id, |j| {
-                j.video_mut(VideoKind::Preview).stored(size);
-            })?
-            .ok_or_else(|| DaemonError::NotFound(format!("job {}", upload.job_id)))?;
-        self.state.flush()?;
-        self.count_stored_video(lease);
-        tracing::info!(job = %job.id, bytes = size, "preview video stored");
-        self.publish(&job, None);
-        Ok(job)
-    }
-
-    /// Takes the preview video's lease of `job` back, counting a failed attempt; after the
-    /// last, the job has no preview video and goes on.
-    pub(super) fn count_failed_preview_encode_locked(
-        &self,
-        job: &Job,
-        lease: &EncodeLease,
-        reason: &str,
-    ) -> Result<(), DaemonError> {
-        let failed = job.encode.as_ref().map_or(0, |e| e.preview.failed_attempts) + 1;
-        tracing::warn!(job = %job.id, worker = %lease.worker, attempt = failed, reason, "preview video failed");
-        self.metrics.encodes.failed();
-        let updated = self.state.update_job(&job.id, |j| {
-            j.video_mut(VideoKind::Preview).failed(failed);
-        })?;
-        self.state.flush()?;
-        if let Some(job) = updated {
-            self.publish(&job, None);
-        }
-        self.work.notify();
-        Ok(())
     }
 
     /// Job `job_id`'s stored preview video: its file, size and container. FailedPrecondition
