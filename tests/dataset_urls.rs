@@ -6,6 +6,7 @@
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::service::DaemonConfig;
 use pointfarm_proto::v1 as pb;
+use pointfarm_tests::datasets::daemon_on_served_scans;
 use pointfarm_tests::nginx::NginxServer;
 use pointfarm_tests::service::{
     fetch_images, submit, turntable_job, watch_to_end, watch_to_success, write_sample, TestDaemon,
@@ -307,17 +308,7 @@ async fn a_job_on_a_url_dataset_renders_as_the_same_file_by_path() {
     let Some((root, server)) = served_scans() else {
         return;
     };
-    let allowed = pointfarm_daemon::remote_datasets::url_prefixes(&[server.url("scans/")])
-        .expect("valid prefix");
-    let data_root = root.path().to_path_buf();
-    let daemon = TestDaemon::start(
-        move |config: &mut DaemonConfig| {
-            config.allowed_url_prefixes = allowed;
-            config.data_roots = vec![data_root];
-        },
-        Access::default(),
-    )
-    .await;
+    let daemon = daemon_on_served_scans(&server, true).await;
     let by_path = register(&daemon, OBJECT).await.expect("by path");
     let by_url = register(&daemon, &server.url(OBJECT))
         .await

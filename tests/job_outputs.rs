@@ -27,45 +27,88 @@ fn arg(path: &Path) -> &str {
     path.to_str().expect("temporary paths are UTF-8")
 }
 
-/// An S3 server over a fresh root holding the bucket, and a daemon allowed to write under
-/// `ALLOWED`, the server's endpoint and credentials in its environment (`secret` replacing
-/// the right one when given); None, having said so, without the S3 binary.
-fn start(dir: &Path, secret: Option<&str>) -> Option<(tempfile::TempDir, S3sServer, ServeProcess)> {
-    let root = tempfile::tempdir().expect("root");
-    std::fs::create_dir_all(root.path().join(BUCKET)).expect("bucket folder");
-    let s3 = S3sServer::start_or_skip(root.path())?;
-    let mut command = Command::new(pointfarm_bin());
-    command.envs(s3.environment());
-    if let Some(secret) = secret {
-        command.env("AWS_SECRET_ACCESS_KEY", secret);
-    }
-    let data = dir.join("data");
-    let log = dir.join("serve.log");
-    std::fs::create_dir_all(&data).expect("data folder");
-    let server = ServeProcess::start_command(
-        command,
-        &pointfarm_tests::free_address(),
-        &data,
-        &log,
-        &["--allow-output-prefix", ALLOWED],
-    );
-    Some((root, s3, server))
+/// A farm writing outputs to object storage: an S3 server over a fresh root holding the
+/// bucket, a daemon allowed to write under `ALLOWED` with the server's endpoint and
+/// credentials in its environment, and a scan to render, all in a scratch folder. The
+/// fields drop in order: the servers stop before their folders go.
+struct OutputFarm {
+    server: ServeProcess,
+    _s3: S3sServer,
+    root: tempfile::TempDir,
+    dir: tempfile::TempDir,
+    scan: PathBuf,
 }
 
-/// `render SCAN --server ... --turntable FRAMES --detach --output-url URL`: the job's id.
-fn submit(server: &ServeProcess, scan: &Path, out: &Path, frames: u32, url: &str) -> String {
+impl OutputFarm {
+    /// Starts the farm (`secret` replacing the right secret key when given); None, having
+    /// said so, without the S3 binary.
+    fn start(secret: Option<&str>) -> Option<Self> {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let root = tempfile::tempdir().expect("root");
+        std::fs::create_dir_all(root.path().join(BUCKET)).expect("bucket folder");
+        let s3 = S3sServer::start_or_skip(root.path())?;
+        let mut command = Command::new(pointfarm_bin());
+        command.envs(s3.environment());
+        if let Some(secret) = secret {
+            command.env("AWS_SECRET_ACCESS_KEY", secret);
+        }
+        let data = dir.path().join("data");
+        let log = dir.path().join("serve.log");
+        std::fs::create_dir_all(&data).expect("data folder");
+        let server = ServeProcess::start_command(
+            command,
+            &pointfarm_tests::free_address(),
+            &data,
+            &log,
+            &["--allow-output-prefix", ALLOWED],
+        );
+        let scan = scan(dir.path());
+        Some(Self {
+            dir,
+            root,
+            _s3: s3,
+            server,
+            scan,
+        })
+    }
+
+    /// The bucket's folder on the S3 server.
+    fn bucket(&self) -> PathBuf {
+        self.root.path().join(BUCKET)
+    }
+
+    /// `frames fetch ID --out DIR/fetched`: the command's output, and the folder.
+    fn fetch_frames(&self, id: &str) -> (std::process::Output, PathBuf) {
+        let fetched = self.dir.path().join("fetched");
+        let output = pointfarm(&[
+            "frames",
+            "fetch",
+            id,
+            "--out",
+            arg(&fetched),
+            "--server",
+            &self.server.address,
+        ]);
+        (output, fetched)
+    }
+}
+
+/// `render SCAN --server ... --turntable FRAMES --detach --output-url URL` on `farm`'s scan:
+/// the job's id.
+fn submit(farm: &OutputFarm, frames: u32, url: &str) -> String {
     let frames = frames.to_string();
+    let out = farm.dir.path().join("out");
     let output = pointfarm_ok(&[
         "render",
-        arg(scan),
+        arg(&farm.scan),
         "--server",
-        &server.address,
+        &farm.server.address,
         "--turntable",
         &frames,
         "--size",
         "64x48",
         "--out",
-        arg(out),
+        arg(&out),
         "--detach",
         "--output-url",
         url,
@@ -91,32 +134,22 @@ fn files_in(folder: &Path) -> Vec<PathBuf> {
 
 #[test]
 fn each_final_frame_appears_under_the_output_url_as_the_daemon_stores_it() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let Some((root, _s3, server)) = start(dir.path(), None) else {
+    let Some(farm) = OutputFarm::start(None) else {
         return;
     };
-    let scan = scan(dir.path());
     let url = format!("{ALLOWED}/turntable");
-    let id = submit(&server, &scan, &dir.path().join("out"), 3, &url);
+    let id = submit(&farm, 3, &url);
     let uploaded = wait_for(Duration::from_secs(120), "three outputs uploaded", || {
-        let job = job(&server, &id);
+        let job = job(&farm.server, &id);
         (job["outputsUploaded"] == 3).then_some(job)
     });
     assert_eq!(uploaded["state"], "JOB_STATE_SUCCEEDED", "{uploaded}");
     let errors = uploaded["outputErrors"].as_array().map_or(0, Vec::len);
     assert_eq!(errors, 0, "{uploaded}");
 
-    let fetched = dir.path().join("fetched");
-    assert_ok(&pointfarm(&[
-        "frames",
-        "fetch",
-        &id,
-        "--out",
-        arg(&fetched),
-        "--server",
-        &server.address,
-    ]));
-    let objects = files_in(&root.path().join(BUCKET).join("farm/turntable"));
+    let (output, fetched) = farm.fetch_frames(&id);
+    assert_ok(&output);
+    let objects = files_in(&farm.bucket().join("farm/turntable"));
     let names: Vec<String> = objects
         .iter()
         .map(|path| {
@@ -134,21 +167,20 @@ fn each_final_frame_appears_under_the_output_url_as_the_daemon_stores_it() {
         let frame = std::fs::read(fetched.join(name)).expect("fetched frame");
         assert!(std::fs::read(object).expect("object") == frame, "{name}");
     }
-    assert!(!server.log().contains(s3s::SECRET_KEY));
+    assert!(!farm.server.log().contains(s3s::SECRET_KEY));
 }
 
 #[test]
 fn an_output_url_outside_the_operators_prefixes_is_refused_naming_the_rule() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let Some((root, _s3, server)) = start(dir.path(), None) else {
+    let Some(farm) = OutputFarm::start(None) else {
         return;
     };
-    let scan = scan(dir.path());
+    let (dir, scan) = (&farm.dir, &farm.scan);
     let refused = pointfarm(&[
         "render",
-        arg(&scan),
+        arg(scan),
         "--server",
-        &server.address,
+        &farm.server.address,
         "--size",
         "32x24",
         "--out",
@@ -160,22 +192,22 @@ fn an_output_url_outside_the_operators_prefixes_is_refused_naming_the_rule() {
     assert_fails_saying(&refused, "allows only s3://pointfarm-renders/farm");
     let not_s3 = pointfarm(&[
         "render",
-        arg(&scan),
+        arg(scan),
         "--server",
-        &server.address,
+        &farm.server.address,
         "--out",
         arg(&dir.path().join("out.png")),
         "--output-url",
         "https://example.com/renders/",
     ]);
     assert_fails_saying(&not_s3, "s3://");
-    assert!(files_in(&root.path().join(BUCKET)).is_empty());
+    assert!(files_in(&farm.bucket()).is_empty());
 
     // A daemon that allows none says so.
     let bare = ServeProcess::start(&dir.path().join("bare"));
     let refused = pointfarm(&[
         "render",
-        arg(&scan),
+        arg(scan),
         "--server",
         &bare.address,
         "--out",
@@ -188,15 +220,13 @@ fn an_output_url_outside_the_operators_prefixes_is_refused_naming_the_rule() {
 
 #[test]
 fn uploads_refused_by_the_store_are_recorded_and_the_frames_stay_fetchable() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let Some((root, _s3, server)) = start(dir.path(), Some("not-the-secret")) else {
+    let Some(farm) = OutputFarm::start(Some("not-the-secret")) else {
         return;
     };
-    let scan = scan(dir.path());
     let url = format!("{ALLOWED}/refused");
-    let id = submit(&server, &scan, &dir.path().join("out"), 2, &url);
+    let id = submit(&farm, 2, &url);
     let recorded = wait_for(Duration::from_secs(120), "two failures recorded", || {
-        let job = job(&server, &id);
+        let job = job(&farm.server, &id);
         let errors = job["outputErrors"].as_array().map_or(0, Vec::len);
         (errors == 2).then_some(job)
     });
@@ -205,17 +235,8 @@ fn uploads_refused_by_the_store_are_recorded_and_the_frames_stay_fetchable() {
     assert!(text.contains(&format!("{url}/frame_00000.png")), "{text}");
     assert!(text.contains("access denied"), "{text}");
     assert!(!text.contains("not-the-secret"), "{text}");
-    assert!(files_in(&root.path().join(BUCKET)).is_empty());
-    let fetched = dir.path().join("fetched");
-    let output = pointfarm(&[
-        "frames",
-        "fetch",
-        &id,
-        "--out",
-        arg(&fetched),
-        "--server",
-        &server.address,
-    ]);
+    assert!(files_in(&farm.bucket()).is_empty());
+    let (output, fetched) = farm.fetch_frames(&id);
     assert_ok(&output);
     assert_eq!(files_in(&fetched).len(), 2, "{}", output_text(&output));
 }
@@ -225,15 +246,14 @@ fn a_jobs_video_appears_beside_its_frames_under_the_output_url() {
     if !pointfarm_tests::installed_or_skip("ffmpeg", "-version", "deploy/test.sh") {
         return;
     }
-    let dir = tempfile::tempdir().expect("tempdir");
-    let Some((root, _s3, server)) = start(dir.path(), None) else {
+    let Some(farm) = OutputFarm::start(None) else {
         return;
     };
-    let scan = scan(dir.path());
+    let (dir, server) = (&farm.dir, &farm.server);
     let video = dir.path().join("spin.webm");
     assert_ok(&pointfarm(&[
         "render",
-        arg(&scan),
+        arg(&farm.scan),
         "--server",
         &server.address,
         "--turntable",
@@ -256,9 +276,9 @@ fn a_jobs_video_appears_beside_its_frames_under_the_output_url() {
     wait_for(
         Duration::from_secs(120),
         "frames and video uploaded",
-        || (job(&server, &id)["outputsUploaded"] == 4).then_some(()),
+        || (job(server, &id)["outputsUploaded"] == 4).then_some(()),
     );
-    let folder = root.path().join(BUCKET).join("farm/with-video");
+    let folder = farm.bucket().join("farm/with-video");
     let object = std::fs::read(folder.join("video.webm")).expect("the video's object");
     assert!(object == std::fs::read(&video).expect("the video fetched"));
     assert_eq!(files_in(&folder).len(), 4);

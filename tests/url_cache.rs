@@ -7,28 +7,13 @@
 use std::path::Path;
 use std::time::Duration;
 
-use pointfarm_daemon::access::Access;
-use pointfarm_daemon::service::DaemonConfig;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
+use pointfarm_tests::datasets::{daemon_on_served_scans, register_path};
 use pointfarm_tests::nginx::NginxServer;
-use pointfarm_tests::service::{fetch_images, submit, turntable_job, watch_to_success, TestDaemon};
+use pointfarm_tests::service::{fetch_images, submit, turntable_job, watch_to_success};
 use pointfarm_tests::{copc_file, WorkerProcess};
 use tonic::transport::Channel;
-
-async fn register(daemon: &TestDaemon, path: &str) -> pb::Dataset {
-    let request = pb::RegisterDatasetRequest {
-        path: path.to_owned(),
-        ..Default::default()
-    };
-    daemon
-        .datasets()
-        .await
-        .register_dataset(request)
-        .await
-        .unwrap_or_else(|status| panic!("registering {path}: {status:?}"))
-        .into_inner()
-}
 
 /// What a job's frames report they read of a dataset by URL, together.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
@@ -85,20 +70,11 @@ async fn a_dataset_by_url_is_read_once_by_its_version_and_damaged_entries_fetche
     else {
         return;
     };
-    let allowed = pointfarm_daemon::remote_datasets::url_prefixes(&[server.url("scans/")])
-        .expect("valid prefix");
-    let data_root = root.path().to_path_buf();
-    let daemon = TestDaemon::start(
-        move |config: &mut DaemonConfig| {
-            config.allowed_url_prefixes = allowed;
-            config.data_roots = vec![data_root];
-        },
-        Access::default(),
-    )
-    .await;
+    let daemon = daemon_on_served_scans(&server, true).await;
+    let mut datasets = daemon.datasets().await;
     let ranges = daemon.data_dir.path().join("embedded-worker/ranges");
-    let a = register(&daemon, &server.url("scans/a.copc.laz")).await;
-    let b = register(&daemon, &server.url("scans/b.copc.laz")).await;
+    let a = register_path(&mut datasets, &server.url("scans/a.copc.laz")).await;
+    let b = register_path(&mut datasets, &server.url("scans/b.copc.laz")).await;
     let mut jobs = daemon.jobs().await;
 
     // Registering read the header: what the worker reads comes after.
@@ -135,9 +111,9 @@ async fn a_dataset_by_url_is_read_once_by_its_version_and_damaged_entries_fetche
         root.path().join("scans/a.copc.laz"),
     )
     .expect("replace");
-    let replaced = register(&daemon, &server.url("scans/a.copc.laz")).await;
+    let replaced = register_path(&mut datasets, &server.url("scans/a.copc.laz")).await;
     assert_ne!(replaced.version, a.version, "nginx's ETag changed");
-    let by_path = register(&daemon, "scans/a.copc.laz").await;
+    let by_path = register_path(&mut datasets, "scans/a.copc.laz").await;
     let (expected, _) = render(&mut jobs, "by-path", &by_path).await;
     let (replaced_frames, _) = render(&mut jobs, "replaced", &replaced).await;
     assert!(
@@ -173,20 +149,11 @@ fn folder_bytes(dir: &Path) -> u64 {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_workers_url_cache_budget_bounds_its_folder() {
     let simple = std::fs::read(copc_file("simple.copc.laz")).expect("COPC file");
-    let Some((root, server)) = NginxServer::serve_scans(&[("a.copc.laz", simple)]) else {
+    let Some((_root, server)) = NginxServer::serve_scans(&[("a.copc.laz", simple)]) else {
         return;
     };
-    let allowed = pointfarm_daemon::remote_datasets::url_prefixes(&[server.url("scans/")])
-        .expect("valid prefix");
-    let data_root = root.path().to_path_buf();
-    let daemon = TestDaemon::start_without_worker(
-        move |config: &mut DaemonConfig| {
-            config.allowed_url_prefixes = allowed;
-            config.data_roots = vec![data_root];
-        },
-        Access::default(),
-    )
-    .await;
+    let daemon = daemon_on_served_scans(&server, false).await;
+    let mut datasets = daemon.datasets().await;
     let scratch = tempfile::tempdir().expect("tempdir");
     let cache_dir = scratch.path().join("worker");
     // Less than the ranges one job reads of the 33 KB object.
@@ -197,8 +164,8 @@ async fn a_workers_url_cache_budget_bounds_its_folder() {
         "small-cache",
         &["--url-cache", "16KiB"],
     );
-    let by_url = register(&daemon, &server.url("scans/a.copc.laz")).await;
-    let by_path = register(&daemon, "scans/a.copc.laz").await;
+    let by_url = register_path(&mut datasets, &server.url("scans/a.copc.laz")).await;
+    let by_path = register_path(&mut datasets, "scans/a.copc.laz").await;
     let mut jobs = daemon.jobs().await;
     let (frames, reads) = render(&mut jobs, "by-url", &by_url).await;
     assert!(reads.bytes > BUDGET, "{reads:?}\n{}", worker.log());
