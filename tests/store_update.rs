@@ -1,6 +1,6 @@
-//! A folder of tiles that gains a tile: `pointfarm render` through levels of detail updates the
-//! store of the earlier tiles instead of building it anew, and the frames equal a fresh
-//! build's within the fidelity rule. An update killed with SIGKILL where it is about to switch
+//! A folder of tiles that gains, loses or replaces a tile: `pointfarm render` through levels of
+//! detail updates the store of the earlier tiles instead of building it anew, and the frames
+//! equal a fresh build's within the fidelity rule. An update killed with SIGKILL where it is about to switch
 //! to the new store (the build's test hook, `POINTFARM_TEST_PAUSE_AT=update:0`) leaves the
 //! old store whole: the next render updates it again.
 
@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::time::Duration;
 
+use pointfarm_render::cloud::PointCloud;
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::sample::sample_scene;
 use pointfarm_tests::stores::kill_build_at;
@@ -22,10 +23,8 @@ fn arg(path: &Path) -> &str {
     path.to_str().expect("temporary paths are UTF-8")
 }
 
-/// The scene cut into `SIDE` x `SIDE` tiles: all but the middle one in `dir/tiles`, the
-/// middle one in `dir/later`. Returns both folders.
-fn write_tiles(dir: &Path) -> (PathBuf, PathBuf) {
-    let cloud = sample_scene(POINTS, 5);
+/// The scene's points in each of `SIDE` x `SIDE` tiles of its ground plan.
+fn tile_points(cloud: &PointCloud) -> Vec<Vec<usize>> {
     let (min, size) = (cloud.bounds.min, cloud.bounds.size());
     let mut tiles: Vec<Vec<usize>> = vec![Vec::new(); SIDE * SIDE];
     for (i, p) in cloud.positions.iter().enumerate() {
@@ -36,6 +35,14 @@ fn write_tiles(dir: &Path) -> (PathBuf, PathBuf) {
         let (x, y) = (cell(world.x, min.x, size.x), cell(world.y, min.y, size.y));
         tiles[y * SIDE + x].push(i);
     }
+    tiles
+}
+
+/// The scene cut into `SIDE` x `SIDE` tiles: all but the middle one in `dir/tiles`, the
+/// middle one in `dir/later`. Returns both folders.
+fn write_tiles(dir: &Path) -> (PathBuf, PathBuf) {
+    let cloud = sample_scene(POINTS, 5);
+    let tiles = tile_points(&cloud);
     let (now, later) = (dir.join("tiles"), dir.join("later"));
     for folder in [&now, &later] {
         std::fs::create_dir_all(folder).expect("folder");
@@ -191,5 +198,76 @@ fn an_update_killed_before_it_switches_leaves_the_old_store_to_update_again() {
         &updated,
         "store-update-killed",
         "the store updated after a kill draws unlike a fresh build",
+    );
+}
+
+/// A store of the folder's tiles, then a render after `change` to the folder: the log says the
+/// store was updated as `said` rather than built anew, the frame holds `points` points and
+/// looks like a fresh build's.
+fn assert_change_updates_the_store(
+    change: impl FnOnce(&Path, &Path),
+    said: &str,
+    points: impl FnOnce(u64) -> u64,
+    name: &str,
+) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (tiles, later) = write_tiles(dir.path());
+    add_the_new_tile(&tiles, &later);
+    let cache = dir.path().join("cache");
+    let first = dir.path().join("first.png");
+    let auto = run(&mut render(&tiles, &first, &cache, &[]));
+    let camera = camera_of(&auto);
+    assert_eq!(points_total(&auto), POINTS as u64);
+
+    change(&tiles, &later);
+    let updated = dir.path().join("updated.png");
+    let output = run(&mut render(&tiles, &updated, &cache, &camera));
+    let log = output_text(&output);
+    assert!(log.contains(said), "{log}");
+    assert!(!log.contains("levels of detail:"), "built anew:\n{log}");
+    assert_eq!(points_total(&output), points(POINTS as u64));
+    assert_draws_as_a_fresh_build(
+        dir.path(),
+        &tiles,
+        &camera,
+        &updated,
+        name,
+        "the updated store's frame differs from a fresh build's",
+    );
+}
+
+#[test]
+fn a_folder_that_loses_a_tile_updates_its_store_and_draws_as_a_fresh_build() {
+    let removed = std::cell::Cell::new(0);
+    assert_change_updates_the_store(
+        |tiles, later| {
+            let name = "tile-1.las";
+            let tile = pointfarm_render::ingest::DatasetSource::open(&[tiles.join(name)])
+                .expect("open the tile");
+            removed.set(pointfarm_render::lod::PointSource::point_count(&tile));
+            std::fs::rename(tiles.join(name), later.join(name)).expect("move the tile out");
+        },
+        "store updated: 0 added, 1 removed, 0 changed file(s)",
+        |all| all - removed.get(),
+        "store-update-removed",
+    );
+}
+
+#[test]
+fn a_folder_with_a_replaced_tile_updates_its_store_and_draws_as_a_fresh_build() {
+    let cloud = sample_scene(POINTS, 5);
+    let tile = 3;
+    let points = &tile_points(&cloud)[tile];
+    // The tile processed again: every other point of it.
+    let thinned: Vec<usize> = points.iter().step_by(2).copied().collect();
+    let dropped = (points.len() - thinned.len()) as u64;
+    assert_change_updates_the_store(
+        |tiles, _| {
+            let path = tiles.join(format!("tile-{tile}.las"));
+            write_las(&path, &cloud.select(&thinned), &LasWriteOptions::default()).expect("tile");
+        },
+        "store updated: 0 added, 0 removed, 1 changed file(s)",
+        |all| all - dropped,
+        "store-update-replaced",
     );
 }
