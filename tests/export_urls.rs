@@ -24,49 +24,75 @@ fn arg(path: &Path) -> &str {
     path.to_str().expect("temporary paths are UTF-8")
 }
 
-/// A server over a fresh root holding one empty bucket; None, having said so, without the
-/// binary.
-fn start_server() -> Option<(tempfile::TempDir, S3sServer)> {
-    let root = tempfile::tempdir().expect("root");
-    std::fs::create_dir_all(root.path().join(BUCKET)).expect("bucket folder");
-    let server = S3sServer::start_or_skip(root.path())?;
-    Some((root, server))
+/// An S3 server over a fresh root holding one empty bucket, and a scratch folder for what
+/// is exported here and its cache. The fields drop in order: the server stops first.
+struct ExportBucket {
+    server: S3sServer,
+    root: tempfile::TempDir,
+    dir: tempfile::TempDir,
 }
 
-/// `pointfarm ARGS` with the server's endpoint and credentials in its environment.
-fn pointfarm_with(server: &S3sServer, args: &[&str]) -> Output {
-    Command::new(pointfarm_bin())
-        .args(args)
-        .envs(server.environment())
-        .output()
-        .expect("run pointfarm")
-}
+impl ExportBucket {
+    /// Starts the server; None, having said so, without the binary.
+    fn start() -> Option<Self> {
+        let root = tempfile::tempdir().expect("root");
+        std::fs::create_dir_all(root.path().join(BUCKET)).expect("bucket folder");
+        let server = S3sServer::start_or_skip(root.path())?;
+        let dir = tempfile::tempdir().expect("tempdir");
+        Some(Self { server, root, dir })
+    }
 
-/// Where the server keeps the object `key` of the bucket.
-fn stored(root: &Path, key: &str) -> PathBuf {
-    root.join(BUCKET).join(key)
-}
+    /// A `pointfarm` command with the server's endpoint and credentials in its environment.
+    fn pointfarm(&self) -> Command {
+        let mut command = Command::new(pointfarm_bin());
+        command.envs(self.server.environment());
+        command
+    }
 
-/// Keys of the bucket's objects, sorted; the server's own bookkeeping left out.
-fn objects(root: &Path) -> Vec<String> {
-    let mut found = Vec::new();
-    let mut folders = vec![root.join(BUCKET)];
-    while let Some(folder) = folders.pop() {
-        for entry in std::fs::read_dir(&folder).expect("bucket folder") {
-            let path = entry.expect("entry").path();
-            if path.is_dir() {
-                folders.push(path);
-            } else {
-                let key = path
-                    .strip_prefix(root.join(BUCKET))
-                    .expect("under the bucket");
-                found.push(key.to_string_lossy().into_owned());
+    /// `pointfarm ARGS` with the server's endpoint and credentials in its environment.
+    fn run(&self, args: &[&str]) -> Output {
+        self.pointfarm().args(args).output().expect("run pointfarm")
+    }
+
+    /// `pointfarm export SCAN --copc OUT`, its cache in the scratch folder, to run.
+    fn export_command(&self, scan: &Path, out: &str) -> Command {
+        let mut command = self.pointfarm();
+        command.args(["export", arg(scan), "--copc", out, "--cache-dir"]);
+        command.arg(self.dir.path().join("cache"));
+        command
+    }
+
+    /// Runs `pointfarm export SCAN --copc OUT MORE`, its cache in the scratch folder.
+    fn export(&self, scan: &Path, out: &str, more: &[&str]) -> Output {
+        let mut command = self.export_command(scan, out);
+        command.args(more).output().expect("run pointfarm")
+    }
+
+    /// Where the server keeps the object `key` of the bucket.
+    fn stored(&self, key: &str) -> PathBuf {
+        self.root.path().join(BUCKET).join(key)
+    }
+
+    /// Keys of the bucket's objects, sorted; the server's own bookkeeping left out.
+    fn objects(&self) -> Vec<String> {
+        let bucket = self.root.path().join(BUCKET);
+        let mut found = Vec::new();
+        let mut folders = vec![bucket.clone()];
+        while let Some(folder) = folders.pop() {
+            for entry in std::fs::read_dir(&folder).expect("bucket folder") {
+                let path = entry.expect("entry").path();
+                if path.is_dir() {
+                    folders.push(path);
+                } else {
+                    let key = path.strip_prefix(&bucket).expect("under the bucket");
+                    found.push(key.to_string_lossy().into_owned());
+                }
             }
         }
+        found.retain(|key| !key.starts_with('.') && !key.contains("/."));
+        found.sort();
+        found
     }
-    found.retain(|key| !key.starts_with('.') && !key.contains("/."));
-    found.sort();
-    found
 }
 
 #[test]
@@ -74,32 +100,18 @@ fn an_export_to_s3_is_the_file_exported_here_byte_for_byte() {
     let Some(scan) = shared_data("autzen_trim.laz") else {
         return;
     };
-    let Some((root, server)) = start_server() else {
+    let Some(bucket) = ExportBucket::start() else {
         return;
     };
-    let dir = tempfile::tempdir().expect("tempdir");
-    let cache = dir.path().join("cache");
-    let here = dir.path().join("here.copc.laz");
-    pointfarm_ok(&[
-        "export",
-        arg(&scan),
-        "--copc",
-        arg(&here),
-        "--cache-dir",
-        arg(&cache),
-    ]);
+    let here = bucket.dir.path().join("here.copc.laz");
+    assert_ok(&bucket.export(&scan, arg(&here), &[]));
     let url = format!("s3://{BUCKET}/campaign/autzen.copc.laz");
-    let export = |more: &[&str]| {
-        let mut args = vec!["export", arg(&scan), "--copc", &url];
-        args.extend(["--cache-dir", arg(&cache)]);
-        args.extend_from_slice(more);
-        pointfarm_with(&server, &args)
-    };
+    let export = |more: &[&str]| bucket.export(&scan, &url, more);
     let output = export(&["--json"]);
     assert_ok(&output);
     let report = json_lines(&output).remove(0);
     assert_eq!(report["file"], url.as_str(), "{report}");
-    let uploaded = std::fs::read(stored(root.path(), "campaign/autzen.copc.laz")).expect("object");
+    let uploaded = std::fs::read(bucket.stored("campaign/autzen.copc.laz")).expect("object");
     assert_eq!(uploaded, std::fs::read(&here).expect("file here"));
     assert_eq!(report["bytes"], uploaded.len(), "{report}");
     assert!(!output_text(&output).contains(s3s::SECRET_KEY));
@@ -107,15 +119,15 @@ fn an_export_to_s3_is_the_file_exported_here_byte_for_byte() {
     // The object exists now: refused without --force, before any work, and left as it was.
     assert_one_error_line(&export(&[]), &[&url, "exists: pass --force"]);
     assert_ok(&export(&["--force"]));
-    assert_eq!(objects(root.path()), ["campaign/autzen.copc.laz"]);
+    assert_eq!(bucket.objects(), ["campaign/autzen.copc.laz"]);
 
     // A prefix is not an object to write.
     let prefix = format!("s3://{BUCKET}/campaign/");
-    let output = pointfarm_with(&server, &["export", arg(&scan), "--copc", &prefix]);
+    let output = bucket.run(&["export", arg(&scan), "--copc", &prefix]);
     assert_fails_saying(&output, "names a prefix");
     // A web server's URL is read from, never written to.
     let web = "https://127.0.0.1:9/scans/autzen.copc.laz";
-    let output = pointfarm_with(&server, &["export", arg(&scan), "--copc", web]);
+    let output = bucket.run(&["export", arg(&scan), "--copc", web]);
     assert_one_error_line(&output, &[web, "read-only"]);
 }
 
@@ -124,36 +136,22 @@ fn a_missing_bucket_and_refused_credentials_are_one_line_each() {
     let Some(scan) = shared_data("lone-star.laz") else {
         return;
     };
-    let Some((root, server)) = start_server() else {
+    let Some(bucket) = ExportBucket::start() else {
         return;
     };
-    let dir = tempfile::tempdir().expect("tempdir");
-    let cache = dir.path().join("cache");
     let missing = "s3://no-such-bucket/scan.copc.laz";
-    let output = pointfarm_with(
-        &server,
-        &[
-            "export",
-            arg(&scan),
-            "--copc",
-            missing,
-            "--cache-dir",
-            arg(&cache),
-        ],
-    );
+    let output = bucket.export(&scan, missing, &[]);
     assert_one_error_line(&output, &[missing, "no such bucket"]);
 
     let url = format!("s3://{BUCKET}/scan.copc.laz");
-    let output = Command::new(pointfarm_bin())
-        .args(["export", arg(&scan), "--copc", &url, "--cache-dir"])
-        .arg(&cache)
-        .envs(server.environment())
+    let output = bucket
+        .export_command(&scan, &url)
         .env("AWS_SECRET_ACCESS_KEY", "not-the-secret")
         .output()
         .expect("run pointfarm");
     assert_one_error_line(&output, &[&url, "access denied"]);
     assert!(!output_text(&output).contains("not-the-secret"));
-    assert!(objects(root.path()).is_empty());
+    assert!(bucket.objects().is_empty());
 }
 
 /// A client of the server with parts of 5 MiB (S3's smallest), two in flight.
@@ -173,23 +171,22 @@ fn small_part_client(server: &S3sServer) -> RemoteClient {
 
 #[test]
 fn a_multipart_upload_arrives_whole_and_one_given_up_leaves_no_object() {
-    let Some((root, server)) = start_server() else {
+    let Some(bucket) = ExportBucket::start() else {
         return;
     };
-    let client = small_part_client(&server);
-    let dir = tempfile::tempdir().expect("tempdir");
+    let client = small_part_client(&bucket.server);
     // Over four parts, the last one short, of bytes that differ from part to part.
     let bytes: Vec<u8> = (0..(21 * 1024 * 1024 + 123) as u64)
         .map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8)
         .collect();
-    let file = dir.path().join("big.bin");
+    let file = bucket.dir.path().join("big.bin");
     std::fs::write(&file, &bytes).expect("file");
     let url = ObjectUrl::parse(&format!("s3://{BUCKET}/big.bin")).expect("url");
     assert!(!client.exists(&url).expect("head"));
     let sent = client.upload_file(&file, &url).expect("upload");
     assert_eq!(sent, bytes.len() as u64);
     assert!(client.exists(&url).expect("head"));
-    assert!(std::fs::read(stored(root.path(), "big.bin")).expect("object") == bytes);
+    assert!(std::fs::read(bucket.stored("big.bin")).expect("object") == bytes);
 
     // Parts sent, then given up (as an export that fails midway drops its upload).
     let given_up = ObjectUrl::parse(&format!("s3://{BUCKET}/given-up.bin")).expect("url");
@@ -197,7 +194,7 @@ fn a_multipart_upload_arrives_whole_and_one_given_up_leaves_no_object() {
     upload.write(&bytes[..12 * 1024 * 1024]).expect("parts");
     drop(upload);
     assert!(!client.exists(&given_up).expect("head"));
-    assert_eq!(objects(root.path()), ["big.bin"]);
+    assert_eq!(bucket.objects(), ["big.bin"]);
 }
 
 #[test]
@@ -205,10 +202,10 @@ fn a_dataset_exported_by_the_server_to_s3_is_the_file_it_exports_here() {
     let Some(scan) = shared_data("lone-star.laz") else {
         return;
     };
-    let Some((root, s3)) = start_server() else {
+    let Some(bucket) = ExportBucket::start() else {
         return;
     };
-    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = &bucket.dir;
     let server = ServeProcess::start(&dir.path().join("data"));
     let address = server.address.clone();
     let added = pointfarm_ok(&["dataset", "add", arg(&scan), "--server", &address, "--json"]);
@@ -218,7 +215,7 @@ fn a_dataset_exported_by_the_server_to_s3_is_the_file_it_exports_here() {
         let mut args = vec!["dataset", "export", &dataset.id, "--copc", out];
         args.extend(["--server", &address]);
         args.extend_from_slice(more);
-        pointfarm_with(&s3, &args)
+        bucket.run(&args)
     };
     assert_ok(&export(arg(&here), &[]));
     let url = format!("s3://{BUCKET}/server/lone-star.copc.laz");
@@ -226,12 +223,12 @@ fn a_dataset_exported_by_the_server_to_s3_is_the_file_it_exports_here() {
     assert_ok(&output);
     let report = json_lines(&output).remove(0);
     assert_eq!(report["file"], url.as_str(), "{report}");
-    let uploaded = std::fs::read(stored(root.path(), "server/lone-star.copc.laz")).expect("object");
+    let uploaded = std::fs::read(bucket.stored("server/lone-star.copc.laz")).expect("object");
     assert_eq!(uploaded, std::fs::read(&here).expect("file here"));
     assert_one_error_line(&export(&url, &[]), &[&url, "exists: pass --force"]);
     assert_one_error_line(
         &export("s3://no-such-bucket/x.copc.laz", &[]),
         &["s3://no-such-bucket/x.copc.laz", "no such bucket"],
     );
-    assert_eq!(objects(root.path()), ["server/lone-star.copc.laz"]);
+    assert_eq!(bucket.objects(), ["server/lone-star.copc.laz"]);
 }
