@@ -22,6 +22,7 @@ use tonic::Code;
 
 use crate::client::Client;
 use crate::lease_renewal::{keep_lease, renewal_interval};
+use crate::stopping::stopped_during;
 
 /// How long one encode lease request waits for work on the daemon.
 const LEASE_WAIT_MS: u32 = 10_000;
@@ -84,24 +85,21 @@ pub async fn run(
                 tracing::info!("the daemon makes no videos: this worker makes none");
                 return;
             }
-            // An unreachable daemon is the frame loop's to tell, in words (a certificate the
-            // client refuses among them); this loop only waits for it.
-            Err(status) if status.code() == Code::Unavailable => {
-                tracing::debug!(
-                    message = status.message(),
-                    "the daemon cannot be reached for videos; retrying"
-                );
-                tokio::select! {
-                    _ = stop.changed() => break,
-                    _ = tokio::time::sleep(RETRY_WAIT) => continue,
-                }
-            }
             Err(status) => {
-                tracing::warn!(code = ?status.code(), message = status.message(), "leasing a video failed; retrying");
-                tokio::select! {
-                    _ = stop.changed() => break,
-                    _ = tokio::time::sleep(RETRY_WAIT) => continue,
+                // An unreachable daemon is the frame loop's to tell, in words (a certificate
+                // the client refuses among them); this loop only waits for it.
+                if status.code() == Code::Unavailable {
+                    tracing::debug!(
+                        message = status.message(),
+                        "the daemon cannot be reached for videos; retrying"
+                    );
+                } else {
+                    tracing::warn!(code = ?status.code(), message = status.message(), "leasing a video failed; retrying");
                 }
+                if stopped_during(&mut stop, RETRY_WAIT).await {
+                    break;
+                }
+                continue;
             }
         };
         let task = match EncodeTask::try_from(&message) {

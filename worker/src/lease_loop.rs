@@ -56,6 +56,7 @@ use crate::failure::FrameFailure;
 use crate::lease_renewal::{keep_lease, renewal_interval};
 use crate::range_cache::DiskRangeCache;
 use crate::render_state::{DatasetAccess, LodConfig, RenderedFrame, WorkerRenderState};
+use crate::stopping::stopped_during;
 use crate::url_dataset::UrlReader;
 
 /// How long one lease request waits for work on the daemon.
@@ -249,10 +250,10 @@ pub async fn run(
                         "the daemon cannot store frames now; waiting until it can"
                     );
                 }
-                tokio::select! {
-                    _ = stop.changed() => break,
-                    _ = tokio::time::sleep(wait) => continue,
+                if stopped_during(&mut stop, wait).await {
+                    break;
                 }
+                continue;
             }
             // Retrying cannot help: the daemon's certificate has to be replaced.
             Err(status) if certificate::is_ca_used_as_server_certificate(&status) => {
@@ -261,10 +262,10 @@ pub async fn run(
             Err(status) if is_transient(&status) => {
                 let wait = backoff.next();
                 tracing::warn!(code = ?status.code(), message = status.message(), ?wait, "the daemon is unreachable; retrying");
-                tokio::select! {
-                    _ = stop.changed() => break,
-                    _ = tokio::time::sleep(wait) => continue,
+                if stopped_during(&mut stop, wait).await {
+                    break;
                 }
+                continue;
             }
             Err(status) => bail!(
                 "the daemon refused to lease frames: {}: {}",
@@ -305,9 +306,8 @@ pub async fn run(
             TaskEnd::StoreBuilding => Some(STORE_BUILDING_WAIT),
         };
         if let Some(wait) = wait {
-            tokio::select! {
-                _ = stop.changed() => break,
-                _ = tokio::time::sleep(wait) => {}
+            if stopped_during(&mut stop, wait).await {
+                break;
             }
         }
     }

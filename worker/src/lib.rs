@@ -16,6 +16,7 @@
 //! - `range_cache`: the on-disk cache of ranges of objects by URL, by their version.
 //! - `encode`: jobs' videos, made with ffmpeg under encode leases beside the frames.
 //! - `lease_renewal`: keeping a frame's or a video's lease while its work runs.
+//! - `stopping`: the waits between tries, which a stop cuts short.
 //! - `failure`: why a frame failed, and whether another attempt may succeed.
 //! - `memory_limit`: the worker process's limit on its own memory.
 //! - `supervised`: exiting when the supervising daemon is gone.
@@ -31,5 +32,6 @@ pub mod memory_limit;
 pub mod published_store;
 pub mod range_cache;
 pub mod render_state;
+mod stopping;
 pub mod supervised;
 pub mod url_dataset;
