@@ -13,6 +13,7 @@ use pointfarm_render::ingest::dataset_files;
 
 use crate::admin_json::{json_line, Deleted, ExportedDataset, FetchedFrames};
 use crate::credentials::ClientCredentials;
+use crate::export::exported_line;
 use crate::remote::{answer, status_error, Client};
 
 mod job_lines;
@@ -169,17 +170,15 @@ pub fn dataset(server: &ServerArgs, command: DatasetCommand) -> Result<()> {
                 let summary = client.export_dataset(&id, &target).await?;
                 let file = target.name();
                 if server.json {
-                    outln!("{}", json_line(&ExportedDataset { file, summary: &summary })?);
-                } else {
                     outln!(
-                        "{file}: {} points in {} nodes, {:.1} MB, COPC 1.0 (point format {}, scale {}), in {:.1} s on the server",
-                        summary.points,
-                        summary.nodes,
-                        summary.size_bytes as f64 / 1e6,
-                        summary.point_format,
-                        summary.scale.first().copied().unwrap_or_default(),
-                        summary.seconds,
+                        "{}",
+                        json_line(&ExportedDataset {
+                            file,
+                            summary: &summary
+                        })?
                     );
+                } else {
+                    outln!("{}", exported_line(&file, &summary, " on the server"));
                 }
             }
             DatasetCommand::Rm { id } => {

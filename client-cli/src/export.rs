@@ -9,6 +9,8 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use pointfarm_daemon::grpc::export_summary;
+use pointfarm_proto::v1 as pb;
 use pointfarm_render::cut::CutOptions;
 use pointfarm_render::ingest::dataset_files;
 use pointfarm_render::lod::copc_export::{export_copc, CopcExportReport, ExportSettings};
@@ -214,13 +216,23 @@ pub fn print_report(out: &str, report: &CopcExportReport, seconds: f64, json: bo
         );
     } else {
         outln!(
-            "{out}: {} points in {} nodes, {:.1} MB, COPC 1.0 (point format {}, scale {}), in {seconds:.1} s",
-            report.points,
-            report.nodes,
-            report.bytes as f64 / 1e6,
-            report.point_format,
-            report.transform.scale.x,
+            "{}",
+            exported_line(out, &export_summary(report, seconds), "")
         );
     }
     Ok(())
+}
+
+/// The line that says what an export wrote to `file`; `made` says where it took its time
+/// ("" here, " on the server").
+pub fn exported_line(file: &str, summary: &pb::ExportSummary, made: &str) -> String {
+    format!(
+        "{file}: {} points in {} nodes, {:.1} MB, COPC 1.0 (point format {}, scale {}), in {:.1} s{made}",
+        summary.points,
+        summary.nodes,
+        summary.size_bytes as f64 / 1e6,
+        summary.point_format,
+        summary.scale.first().copied().unwrap_or_default(),
+        summary.seconds,
+    )
 }

@@ -27,10 +27,27 @@ pub use descriptions::{
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::color::Stretch;
 use pointfarm_render::copc::CopcDecoder;
+use pointfarm_render::lod::copc_export::CopcExportReport;
 use pointfarm_render::lod::{NodeKey, MAX_LEVEL};
 
 pub(super) fn invalid(field: &str, message: impl Into<String>) -> DaemonError {
     DaemonError::invalid(field, message)
+}
+
+/// What an export of a dataset as COPC wrote, in `seconds`: the summary `ExportDataset`
+/// sends first, and what `pointfarm export` reports of a file written here.
+pub fn export_summary(report: &CopcExportReport, seconds: f64) -> pb::ExportSummary {
+    pb::ExportSummary {
+        points: report.points,
+        nodes: report.nodes as u32,
+        size_bytes: report.bytes,
+        point_format: u32::from(report.point_format),
+        scale: report.transform.scale.to_array().to_vec(),
+        offset: report.transform.offset.to_array().to_vec(),
+        min: report.min.to_array().to_vec(),
+        max: report.max.to_array().to_vec(),
+        seconds,
+    }
 }
 
 /// A page of a listing as its items' messages and the token of the page after it.

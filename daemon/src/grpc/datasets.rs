@@ -10,7 +10,9 @@ use pointfarm_proto::v1::dataset_service_server::DatasetService;
 use pointfarm_render::ingest::LAS_SIGNATURE;
 use tonic::{Request, Response, Status, Streaming};
 
-use super::conversions::{dataset_description, file_description, invalid, page_messages};
+use super::conversions::{
+    dataset_description, export_summary, file_description, invalid, page_messages,
+};
 use super::streaming::{first_part, spawn_stream, HashingWriter, ResponseStream, CHUNK_BYTES};
 use super::{io_within, Api};
 use crate::error::DaemonError;
@@ -166,17 +168,7 @@ impl DatasetService for Api {
         let exported = self
             .run_scaled(bytes, move |daemon| daemon.export_dataset(&id))
             .await?;
-        let summary = pb::ExportSummary {
-            points: exported.report.points,
-            nodes: exported.report.nodes as u32,
-            size_bytes: exported.report.bytes,
-            point_format: u32::from(exported.report.point_format),
-            scale: exported.report.transform.scale.to_array().to_vec(),
-            offset: exported.report.transform.offset.to_array().to_vec(),
-            min: exported.report.min.to_array().to_vec(),
-            max: exported.report.max.to_array().to_vec(),
-            seconds: exported.seconds,
-        };
+        let summary = export_summary(&exported.report, exported.seconds);
         let path = exported.path;
         Ok(Response::new(spawn_stream(4, move |sender| async move {
             send_file(&sender, summary, &path).await;
