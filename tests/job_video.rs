@@ -119,20 +119,27 @@ fn probe(video: &Path) -> (String, u32, u32, u32) {
     (fields[0].to_owned(), number(1), number(2), number(3))
 }
 
-/// Downloads job `id`'s video through FetchVideo into `path`.
-async fn fetch_video(
+/// FetchVideo of job `id`'s video, or of its preview video with `preview`: the stream of its
+/// chunks, or the refusal.
+async fn ask_for_video(
     jobs: &mut JobServiceClient<Channel>,
     id: &str,
-    path: &Path,
-) -> pb::VideoChunk {
-    let mut stream = jobs
-        .fetch_video(pb::FetchVideoRequest {
-            job_id: id.into(),
-            preview: false,
-        })
+    preview: bool,
+) -> Result<tonic::Streaming<pb::VideoChunk>, tonic::Status> {
+    let request = pb::FetchVideoRequest {
+        job_id: id.into(),
+        preview,
+    };
+    jobs.fetch_video(request)
         .await
-        .expect("fetch video")
-        .into_inner();
+        .map(tonic::Response::into_inner)
+}
+
+/// Reads a FetchVideo stream to its end into `path`: the first chunk, without its data.
+async fn save_video(
+    mut stream: tonic::Streaming<pb::VideoChunk>,
+    path: &Path,
+) -> Option<pb::VideoChunk> {
     let mut bytes = Vec::new();
     let mut first = None;
     while let Some(chunk) = stream.message().await.expect("chunk") {
@@ -143,9 +150,39 @@ async fn fetch_video(
         });
     }
     std::fs::write(path, &bytes).expect("write video");
-    let first = first.expect("a chunk");
-    assert_eq!(first.size_bytes, bytes.len() as u64);
+    if let Some(first) = &first {
+        assert_eq!(first.size_bytes, bytes.len() as u64);
+    }
     first
+}
+
+/// Downloads job `id`'s video through FetchVideo into `path`.
+async fn fetch_video(
+    jobs: &mut JobServiceClient<Channel>,
+    id: &str,
+    path: &Path,
+) -> pb::VideoChunk {
+    let stream = ask_for_video(jobs, id, false).await.expect("fetch video");
+    save_video(stream, path).await.expect("a chunk")
+}
+
+/// `pointfarm jobs video ID --out PATH --server URL`, with `--preview` where `preview`,
+/// expected to succeed: its output.
+async fn fetch_video_with_cli(
+    daemon: &TestDaemon,
+    id: &str,
+    path: &Path,
+    preview: bool,
+) -> std::process::Output {
+    let mut args = vec!["jobs".into(), "video".into(), id.to_owned()];
+    if preview {
+        args.push("--preview".into());
+    }
+    args.extend(["--out".into(), path.display().to_string()]);
+    args.extend(["--server".into(), daemon.url()]);
+    let fetched = pointfarm_off_runtime(args).await;
+    assert!(fetched.status.success(), "{fetched:?}");
+    fetched
 }
 
 /// Waits until job `id` has every frame final and is making its video.
@@ -199,11 +236,7 @@ async fn a_jobs_video_is_made_by_a_worker_with_ffmpeg_and_never_by_one_without()
     assert_eq!(still.refusals.len(), 1, "{:?}", still.refusals);
     assert_eq!(still.refusals[0].worker_name, "blind");
     assert!(blind.log().contains("makes no videos"), "{}", blind.log());
-    let refused = jobs
-        .fetch_video(pb::FetchVideoRequest {
-            job_id: job.id.clone(),
-            preview: false,
-        })
+    let refused = ask_for_video(&mut jobs, &job.id, false)
         .await
         .expect_err("no video yet");
     assert_eq!(refused.code(), tonic::Code::FailedPrecondition);
@@ -355,6 +388,28 @@ async fn video_stalled_in_a_worker(lease_timeout: Duration, request_id: &str) ->
     }
 }
 
+/// Starts a worker whose ffmpeg works and waits for it to finish job `id`, checking that
+/// the job stored a video and that the worker leased it after `failed_attempts` failed
+/// attempts, as `why` explains.
+async fn video_made_by_another_worker(
+    daemon: &TestDaemon,
+    jobs: &mut JobServiceClient<Channel>,
+    scratch: &Path,
+    id: &str,
+    failed_attempts: u32,
+    why: &str,
+) {
+    let encoder = WorkerProcess::start(&daemon.url(), &scratch.join("encoder"), "encoder");
+    let (done, _) = watch_to_success(jobs, id, || encoder.log()).await;
+    assert!(done.video_size_bytes > 0);
+    let log = encoder.log();
+    let attempts = format!("failed_attempts={failed_attempts}");
+    assert!(
+        log.contains("video leased") && log.contains(&attempts),
+        "{why}:\n{log}"
+    );
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_worker_killed_while_making_the_video_has_it_leased_again() {
     let StalledVideo {
@@ -366,14 +421,8 @@ async fn a_worker_killed_while_making_the_video_has_it_leased_again() {
     } = video_stalled_in_a_worker(Duration::from_secs(1), "again").await;
     stalling.kill();
 
-    let encoder = WorkerProcess::start(&daemon.url(), &scratch.path().join("encoder"), "encoder");
-    let (done, _) = watch_to_success(&mut jobs, &job.id, || encoder.log()).await;
-    assert!(done.video_size_bytes > 0);
-    let log = encoder.log();
-    assert!(
-        log.contains("video leased") && log.contains("failed_attempts=1"),
-        "the second worker made the video at its second attempt:\n{log}"
-    );
+    let why = "the second worker made the video at its second attempt";
+    video_made_by_another_worker(&daemon, &mut jobs, scratch.path(), &job.id, 1, why).await;
     let fetched = scratch.path().join("again.mp4");
     fetch_video(&mut jobs, &job.id, &fetched).await;
     assert_eq!(probe(&fetched), ("h264".to_owned(), 32, 24, 4));
@@ -401,14 +450,8 @@ async fn a_worker_stopped_while_making_the_video_hands_it_back_for_another_at_on
     assert!(log.contains("the video is handed back unmade"), "{log}");
     assert_eq!(get_job(&mut jobs, &job.id).await.stage, "video");
 
-    let encoder = WorkerProcess::start(&daemon.url(), &scratch.path().join("encoder"), "encoder");
-    let (done, _) = watch_to_success(&mut jobs, &job.id, || encoder.log()).await;
-    assert!(done.video_size_bytes > 0);
-    let log = encoder.log();
-    assert!(
-        log.contains("video leased") && log.contains("failed_attempts=0"),
-        "handing back counted no attempt:\n{log}"
-    );
+    let why = "handing back counted no attempt";
+    video_made_by_another_worker(&daemon, &mut jobs, scratch.path(), &job.id, 0, why).await;
     daemon.stop().await;
 }
 
@@ -448,17 +491,7 @@ async fn render_server_video_downloads_the_farms_video_and_jobs_video_fetches_it
         .into_inner();
     let job = listed.jobs.first().expect("the render's job");
     let again = scan_dir.path().join("again.webm");
-    let fetched = pointfarm_off_runtime(vec![
-        "jobs".into(),
-        "video".into(),
-        job.id.clone(),
-        "--out".into(),
-        again.display().to_string(),
-        "--server".into(),
-        daemon.url(),
-    ])
-    .await;
-    assert!(fetched.status.success(), "{fetched:?}");
+    fetch_video_with_cli(&daemon, &job.id, &again, false).await;
     assert_eq!(
         std::fs::read(&again).expect("again"),
         std::fs::read(&video).expect("video")
@@ -474,18 +507,9 @@ async fn fetch_preview_video_when_stored(
 ) {
     let deadline = Instant::now() + Duration::from_secs(240);
     loop {
-        let request = pb::FetchVideoRequest {
-            job_id: id.into(),
-            preview: true,
-        };
-        let status = match jobs.fetch_video(request).await {
-            Ok(response) => {
-                let mut stream = response.into_inner();
-                let mut bytes = Vec::new();
-                while let Some(chunk) = stream.message().await.expect("chunk") {
-                    bytes.extend_from_slice(&chunk.data);
-                }
-                std::fs::write(path, &bytes).expect("write preview video");
+        let status = match ask_for_video(jobs, id, true).await {
+            Ok(stream) => {
+                save_video(stream, path).await;
                 return;
             }
             Err(status) => status,
@@ -539,18 +563,7 @@ async fn a_preview_jobs_previews_make_a_preview_video_and_its_final_video_still_
     assert_eq!(shown.video_size_bytes, 0, "no final video yet: {shown:?}");
     // `jobs video --preview` fetches the same file.
     let again = scratch.path().join("again.mp4");
-    let fetched = pointfarm_off_runtime(vec![
-        "jobs".into(),
-        "video".into(),
-        job.id.clone(),
-        "--preview".into(),
-        "--out".into(),
-        again.display().to_string(),
-        "--server".into(),
-        daemon.url(),
-    ])
-    .await;
-    assert!(fetched.status.success(), "{fetched:?}");
+    let fetched = fetch_video_with_cli(&daemon, &job.id, &again, true).await;
     assert!(
         stdout(&fetched).contains("preview video of job"),
         "{fetched:?}"
@@ -574,11 +587,7 @@ async fn a_preview_jobs_previews_make_a_preview_video_and_its_final_video_still_
     let plain = submit(&mut jobs, previewed_job("plain", false)).await;
     watch_to_success(&mut jobs, &plain.id, String::new).await;
     fetch_video(&mut jobs, &plain.id, &scratch.path().join("plain.mp4")).await;
-    let refused = jobs
-        .fetch_video(pb::FetchVideoRequest {
-            job_id: plain.id.clone(),
-            preview: true,
-        })
+    let refused = ask_for_video(&mut jobs, &plain.id, true)
         .await
         .expect_err("no preview video");
     assert_eq!(refused.code(), tonic::Code::FailedPrecondition);

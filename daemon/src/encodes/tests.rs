@@ -34,6 +34,19 @@ fn x264() -> Vec<String> {
     vec!["libx264".to_owned()]
 }
 
+/// A daemon whose one-frame job has every frame rendered and waits for its video.
+fn waiting_for_its_video(dir: &Path, lease_timeout: Duration) -> (Arc<Daemon>, Job) {
+    let daemon = open(dir, lease_timeout);
+    let job = submit_with_video(&daemon, 1);
+    render_all(&daemon);
+    (daemon, job)
+}
+
+/// The encode `worker`, whose ffmpeg has libx264, is handed, if any.
+fn lease_x264(daemon: &Daemon, worker: &str) -> Option<EncodeTask> {
+    daemon.lease_encode(worker, false, &x264()).expect("lease")
+}
+
 fn hand_in(daemon: &Daemon, lease_id: &str, bytes: &[u8]) -> Result<Job, DaemonError> {
     let mut upload = daemon.start_video_upload(lease_id, false, bytes.len() as u64)?;
     upload.write(bytes)?;
@@ -46,10 +59,7 @@ fn the_video_is_leased_after_the_last_frame_to_a_worker_with_its_encoder() {
     let daemon = open(dir.path(), Duration::from_secs(60));
     let job = submit_with_video(&daemon, 2);
     assert_eq!(job.stage(), "frames");
-    assert!(daemon
-        .lease_encode("e", false, &x264())
-        .expect("lease")
-        .is_none());
+    assert!(lease_x264(&daemon, "e").is_none());
 
     render_all(&daemon);
     let job = daemon.job(&job.id).expect("job");
@@ -65,18 +75,9 @@ fn the_video_is_leased_after_the_last_frame_to_a_worker_with_its_encoder() {
         .expect("lease")
         .is_none());
 
-    let task = daemon
-        .lease_encode("e", false, &x264())
-        .expect("lease")
-        .expect("the video");
+    let task = lease_x264(&daemon, "e").expect("the video");
     assert_eq!((task.job_id.as_str(), task.frames), (job.id.as_str(), 2));
-    assert!(
-        daemon
-            .lease_encode("f", false, &x264())
-            .expect("lease")
-            .is_none(),
-        "one encode lease a job"
-    );
+    assert!(lease_x264(&daemon, "f").is_none(), "one encode lease a job");
     assert!(matches!(
         daemon.renew_encode(&task.lease_id, true),
         Err(DaemonError::PermissionDenied(_))
@@ -97,34 +98,23 @@ fn the_video_is_leased_after_the_last_frame_to_a_worker_with_its_encoder() {
 #[test]
 fn a_lapsed_encode_is_leased_again_the_last_failure_fails_the_job_and_a_retry_makes_it() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = open(dir.path(), Duration::from_millis(50));
-    let job = submit_with_video(&daemon, 1);
-    render_all(&daemon);
+    let (daemon, job) = waiting_for_its_video(dir.path(), Duration::from_millis(50));
 
-    let first = daemon
-        .lease_encode("e", false, &x264())
-        .expect("lease")
-        .expect("the video");
+    let first = lease_x264(&daemon, "e").expect("the video");
     std::thread::sleep(Duration::from_millis(120));
     assert_eq!(daemon.expire_encodes().expect("expire"), 1);
     assert!(matches!(
         daemon.renew_encode(&first.lease_id, false),
         Ok(HeartbeatAnswer::Stop(_))
     ));
-    let second = daemon
-        .lease_encode("f", false, &x264())
-        .expect("lease")
-        .expect("leased again");
+    let second = lease_x264(&daemon, "f").expect("leased again");
     assert_ne!(second.lease_id, first.lease_id);
     assert_eq!(second.failed_attempts, 1);
 
     daemon
         .fail_encode(&second.lease_id, false, "Unknown encoder 'libx264'")
         .expect("fail");
-    let third = daemon
-        .lease_encode("f", false, &x264())
-        .expect("lease")
-        .expect("leased a third time");
+    let third = lease_x264(&daemon, "f").expect("leased a third time");
     daemon
         .fail_encode(&third.lease_id, false, "Conversion failed!")
         .expect("fail");
@@ -143,10 +133,7 @@ fn a_lapsed_encode_is_leased_again_the_last_failure_fails_the_job_and_a_retry_ma
         (retried.state, retried.stage()),
         (JobState::Running, "video")
     );
-    let again = daemon
-        .lease_encode("f", false, &x264())
-        .expect("lease")
-        .expect("leased after the retry");
+    let again = lease_x264(&daemon, "f").expect("leased after the retry");
     assert_eq!(again.failed_attempts, 0);
     let stored = hand_in(&daemon, &again.lease_id, b"video").expect("stored");
     assert_eq!(stored.state, JobState::Succeeded);
@@ -155,13 +142,8 @@ fn a_lapsed_encode_is_leased_again_the_last_failure_fails_the_job_and_a_retry_ma
 #[test]
 fn a_video_larger_than_the_limit_or_than_declared_is_refused() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = open(dir.path(), Duration::from_secs(60));
-    submit_with_video(&daemon, 1);
-    render_all(&daemon);
-    let task = daemon
-        .lease_encode("e", false, &x264())
-        .expect("lease")
-        .expect("the video");
+    let (daemon, _) = waiting_for_its_video(dir.path(), Duration::from_secs(60));
+    let task = lease_x264(&daemon, "e").expect("the video");
     let too_large = daemon
         .start_video_upload(&task.lease_id, false, MAX_VIDEO_BYTES + 1)
         .err()
@@ -177,13 +159,8 @@ fn a_video_larger_than_the_limit_or_than_declared_is_refused() {
 #[test]
 fn a_video_handed_back_is_leased_again_at_once_counting_no_attempt() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = open(dir.path(), Duration::from_secs(600));
-    let job = submit_with_video(&daemon, 1);
-    render_all(&daemon);
-    let first = daemon
-        .lease_encode("stopping", false, &x264())
-        .expect("lease")
-        .expect("the video");
+    let (daemon, job) = waiting_for_its_video(dir.path(), Duration::from_secs(600));
+    let first = lease_x264(&daemon, "stopping").expect("the video");
     daemon
         .release_encode(&first.lease_id, false)
         .expect("handed back");
@@ -191,10 +168,7 @@ fn a_video_handed_back_is_leased_again_at_once_counting_no_attempt() {
     daemon
         .release_encode(&first.lease_id, false)
         .expect("nothing to give back");
-    let again = daemon
-        .lease_encode("other", false, &x264())
-        .expect("lease")
-        .expect("leased again at once");
+    let again = lease_x264(&daemon, "other").expect("leased again at once");
     assert_eq!(
         (again.job_id.as_str(), again.failed_attempts),
         (job.id.as_str(), 0)
