@@ -201,6 +201,8 @@ pub struct DatasetStores {
     rebuilt: Mutex<HashSet<String>>,
     /// Stores this run built again after they failed their checks.
     rebuilds: AtomicU64,
+    /// Node records served to workers, which a published store's workers read elsewhere.
+    records_served: AtomicU64,
     /// Called when a build's preview version moves and when it ends, so that frames waiting
     /// for the store are leased again (for a redraw, or for their final render).
     on_change: Option<Arc<dyn Fn() + Send + Sync>>,
@@ -225,6 +227,7 @@ impl DatasetStores {
             ready_gate: None,
             rebuilt: Mutex::default(),
             rebuilds: AtomicU64::new(0),
+            records_served: AtomicU64::new(0),
             on_change: None,
             folders: None,
             publisher: None,
@@ -694,4 +697,4 @@ mod tests;
 
 pub use preview::PreviewBytes;
 use preview::PreviewState;
-pub use publish::StorePublisher;
+pub use publish::{store_url, StorePublisher};

@@ -384,9 +384,21 @@ impl WorkerProcess {
 
     /// Starts a worker with more `worker` arguments (e.g. `--token`).
     pub fn start_with(server: &str, cache_dir: &Path, name: &str, args: &[&str]) -> Self {
+        Self::start_in(Command::new(pointfarm_bin()), server, cache_dir, name, args)
+    }
+
+    /// Starts `command` (the `pointfarm` binary, e.g. with object storage's credentials in
+    /// its environment) as [`WorkerProcess::start_with`] starts a worker.
+    pub fn start_in(
+        mut command: Command,
+        server: &str,
+        cache_dir: &Path,
+        name: &str,
+        args: &[&str],
+    ) -> Self {
         let log = cache_dir.with_extension("log");
         let log_file = std::fs::File::create(&log).expect("worker log file");
-        let child = Command::new(pointfarm_bin())
+        let child = command
             .args([
                 "-v",
                 "worker",

@@ -185,6 +185,8 @@ pub struct FarmState {
     /// Level-of-detail stores built again since the start because their bytes failed their
     /// checks (`DatasetStores::rebuilds`).
     pub store_rebuilds: u64,
+    /// Node records the daemon served to workers (`DatasetStores::records_served`).
+    pub store_records_served: u64,
 }
 
 /// The outcome of a webhook event for one endpoint, the label of
@@ -247,6 +249,7 @@ pub struct DaemonMetrics {
     dataset_cache: CacheCounters,
     upload_bytes: Counter,
     store_rebuilds: Counter,
+    store_records_served: Counter,
     webhooks: WebhookCounters,
     jobs_removed: Family<RemovalLabels, Counter>,
     queue_frames: Family<QueueLabels, Gauge>,
@@ -275,6 +278,7 @@ impl DaemonMetrics {
             dataset_cache: CacheCounters::default(),
             upload_bytes: Counter::default(),
             store_rebuilds: Counter::default(),
+            store_records_served: Counter::default(),
             webhooks: WebhookCounters::default(),
             jobs_removed: Family::default(),
             queue_frames: Family::default(),
@@ -341,6 +345,12 @@ impl DaemonMetrics {
              failed their checks (a node record's checksum or layout, a payload file cut \
              short); each store at most once a run",
             metrics.store_rebuilds.clone(),
+        );
+        registry.register(
+            "store_records_served",
+            "Node records of level-of-detail stores served to workers; workers read a published \
+             store's records from object storage instead (serve --store-url)",
+            metrics.store_records_served.clone(),
         );
         for reason in ["deleted", "retention", "frame_quota"] {
             metrics
@@ -425,9 +435,14 @@ impl DaemonMetrics {
             }
         }
         // Counted by the stores; a scrape catches up with them, never goes back.
-        let shown = self.store_rebuilds.get();
-        if state.store_rebuilds > shown {
-            self.store_rebuilds.inc_by(state.store_rebuilds - shown);
+        for (counter, counted) in [
+            (&self.store_rebuilds, state.store_rebuilds),
+            (&self.store_records_served, state.store_records_served),
+        ] {
+            let shown = counter.get();
+            if counted > shown {
+                counter.inc_by(counted - shown);
+            }
         }
         self.leases_held.set(gauge_value(state.leases_held));
         self.workers_connected

@@ -82,6 +82,11 @@ enum RecordsFailure {
 }
 
 impl DatasetStores {
+    /// How many node records this run served to workers.
+    pub fn records_served(&self) -> u64 {
+        self.records_served.load(Ordering::Relaxed)
+    }
+
     /// The records of `keys` of `dataset`'s ready store ([`ReadyStore::records`]), each
     /// checked as a worker checks it. A store whose bytes fail their checks is built again,
     /// once in this run: the request is refused meanwhile (its frame is tried again, and
@@ -95,7 +100,11 @@ impl DatasetStores {
     ) -> Result<Vec<Vec<u8>>, DaemonError> {
         let store = self.ready(dataset)?;
         match store.checked_records(keys, coarse) {
-            Ok(records) => Ok(records),
+            Ok(records) => {
+                let served = records.len() as u64;
+                self.records_served.fetch_add(served, Ordering::Relaxed);
+                Ok(records)
+            }
             Err(RecordsFailure::Refused(error)) => Err(error),
             Err(RecordsFailure::Damaged(damage)) => {
                 let _one_decision = self.opening.lock().unwrap_or_else(|e| e.into_inner());

@@ -18,7 +18,7 @@ use std::sync::{Arc, Condvar, Mutex};
 use std::time::Duration;
 
 use pointfarm_render::lod::published::{PublishedHierarchy, HIERARCHY_OBJECT, PAYLOAD_OBJECT};
-use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteError, RemoteSettings};
+use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteError, RemoteSettings, UrlKind};
 
 use super::{DatasetStores, ReadyStore};
 use crate::error::DaemonError;
@@ -31,6 +31,24 @@ const FIRST_BACKOFF: Duration = Duration::from_secs(1);
 const MAX_BACKOFF: Duration = Duration::from_secs(60);
 /// sled's page cache for the records: one small record per store.
 const RECORDS_CACHE_BYTES: u64 = 4 << 20;
+
+/// `serve --store-url`: an `s3://` prefix (a `/` is added where it has none), checked before
+/// the daemon starts.
+pub fn store_url(text: &str) -> Result<ObjectUrl, DaemonError> {
+    let prefix = match text.ends_with('/') {
+        true => text.to_owned(),
+        false => format!("{text}/"),
+    };
+    let url =
+        ObjectUrl::parse(&prefix).map_err(|e| DaemonError::invalid("store URL", e.to_string()))?;
+    match url.kind() {
+        UrlKind::S3 { .. } => Ok(url),
+        _ => Err(DaemonError::invalid(
+            "store URL",
+            format!("{url}: stores are published to object storage (s3://bucket/prefix) only"),
+        )),
+    }
+}
 
 /// Publishes ready stores under one store URL and remembers which are published.
 pub struct StorePublisher {
@@ -291,6 +309,32 @@ impl ReadyStore {
         match &self.kept {
             super::Kept::Store(lod) => Some(lod.folder.join(pointfarm_render::cut::PAYLOAD_FILE)),
             super::Kept::Copc(_) => None,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::store_url;
+
+    #[test]
+    fn a_store_url_is_an_s3_prefix() {
+        let url = store_url("s3://stores/farm").expect("an s3 prefix");
+        assert_eq!(url.as_str(), "s3://stores/farm/");
+        assert_eq!(
+            url.join("ab/").expect("join").as_str(),
+            "s3://stores/farm/ab/"
+        );
+        for refused in [
+            "https://data.example/stores/",
+            "s3://user:pw@stores/farm",
+            "farm/",
+        ] {
+            let error = store_url(refused).expect_err(refused).to_string();
+            assert!(
+                error.contains("store URL") && !error.contains("pw@"),
+                "{error}"
+            );
         }
     }
 }
