@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode, Stdio};
 use std::time::{Duration, Instant};
 
-use pointfarm_bench::campaign::write_campaign;
+use pointfarm_bench::campaign::{CampaignFlags, ScratchCampaign};
 use pointfarm_bench::cli::{exit_code, parse_flags};
 use pointfarm_render::cut::StoredLod;
 use pointfarm_render::lod::read_nodes;
@@ -23,12 +23,9 @@ const USAGE: &str = "usage: lod-build-resume [--points N] [--files N] [--kills N
                      [--budget-mib N] [--dir DIR]";
 
 struct Args {
-    points: u64,
-    files: usize,
+    campaign: CampaignFlags,
     kills: usize,
     seed: u64,
-    budget_mib: u64,
-    dir: Option<PathBuf>,
 }
 
 fn main() -> ExitCode {
@@ -42,22 +39,15 @@ fn main() -> ExitCode {
 
 fn parse(args: &[String]) -> Result<Args, String> {
     let mut parsed = Args {
-        points: 20_000_000,
-        files: 20,
+        campaign: CampaignFlags::new(20_000_000, 20),
         kills: 5,
         seed: 1,
-        budget_mib: 1024,
-        dir: None,
     };
     parse_flags(args, USAGE, |flag, value| {
         match flag {
-            "--points" => parsed.points = value.number()?,
-            "--files" => parsed.files = value.number()? as usize,
             "--kills" => parsed.kills = value.number()? as usize,
             "--seed" => parsed.seed = value.number()?,
-            "--budget-mib" => parsed.budget_mib = value.number()?,
-            "--dir" => parsed.dir = Some(value.path()),
-            _ => return Ok(false),
+            _ => return parsed.campaign.apply(flag, &value),
         }
         Ok(true)
     })?;
@@ -108,7 +98,7 @@ fn run_build(
             &tiles.to_string_lossy(),
             &folder.to_string_lossy(),
         ])
-        .arg(args.budget_mib.to_string())
+        .arg(args.campaign.budget_mib.to_string())
         .stdout(Stdio::piped())
         .spawn()
         .expect("start a build");
@@ -133,14 +123,11 @@ fn run_build(
 }
 
 fn measure(args: &Args) -> Result<(), String> {
-    let scratch = tempfile::Builder::new()
-        .prefix("lod-build-resume-")
-        .tempdir_in(args.dir.clone().unwrap_or_else(std::env::temp_dir))
-        .map_err(|e| e.to_string())?;
-    let tiles = scratch.path().join("tiles");
-    std::fs::create_dir_all(&tiles).map_err(|e| e.to_string())?;
-    let written =
-        write_campaign(&tiles, args.points, args.files, 11, false).map_err(|e| e.to_string())?;
+    let ScratchCampaign {
+        scratch,
+        tiles,
+        written,
+    } = args.campaign.write("lod-build-resume")?;
     println!(
         "{} points in {} LAZ files",
         written.points,

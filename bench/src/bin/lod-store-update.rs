@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
-use pointfarm_bench::campaign::{grid, write_campaign};
+use pointfarm_bench::campaign::{grid, CampaignFlags, ScratchCampaign};
 use pointfarm_bench::cli::{exit_code, parse_flags};
 use pointfarm_render::ingest::DatasetSource;
 use pointfarm_render::lod::{
@@ -24,11 +24,8 @@ const USAGE: &str =
     "usage: lod-store-update [--points N] [--files N] [--rounds N] [--budget-mib N] [--dir DIR]";
 
 struct Args {
-    points: u64,
-    files: usize,
+    campaign: CampaignFlags,
     rounds: usize,
-    budget_mib: u64,
-    dir: Option<PathBuf>,
 }
 
 fn main() -> ExitCode {
@@ -41,27 +38,20 @@ fn main() -> ExitCode {
 
 fn parse(args: &[String]) -> Result<Args, String> {
     let mut parsed = Args {
-        points: 21_000_000,
-        files: 21,
+        campaign: CampaignFlags::new(21_000_000, 21),
         rounds: 2,
-        budget_mib: 1024,
-        dir: None,
     };
     parse_flags(args, USAGE, |flag, value| {
         match flag {
-            "--points" => parsed.points = value.number()?,
-            "--files" => parsed.files = value.number()? as usize,
             "--rounds" => parsed.rounds = value.number()?.max(1) as usize,
-            "--budget-mib" => parsed.budget_mib = value.number()?,
-            "--dir" => parsed.dir = Some(value.path()),
-            _ => return Ok(false),
+            _ => return parsed.campaign.apply(flag, &value),
         }
         Ok(true)
     })?;
-    if grid(parsed.files).0 < 3 {
+    if grid(parsed.campaign.files).0 < 3 {
         return Err(format!(
             "{} files make no inner tile: give a count of at least three rows",
-            parsed.files
+            parsed.campaign.files
         ));
     }
     Ok(parsed)
@@ -149,15 +139,10 @@ fn fnv(bytes: &[u8]) -> u64 {
 }
 
 fn measure(args: &Args) -> Result<(), String> {
-    let scratch = tempfile::Builder::new()
-        .prefix("lod-store-update-")
-        .tempdir_in(args.dir.clone().unwrap_or_else(std::env::temp_dir))
-        .map_err(|e| e.to_string())?;
-    let tiles = scratch.path().join("tiles");
-    std::fs::create_dir_all(&tiles).map_err(|e| e.to_string())?;
-    let written =
-        write_campaign(&tiles, args.points, args.files, 11, false).map_err(|e| e.to_string())?;
-    let (rows, cols) = grid(args.files);
+    let ScratchCampaign {
+        scratch, written, ..
+    } = args.campaign.write("lod-store-update")?;
+    let (rows, cols) = grid(args.campaign.files);
     // A tile of the middle row, away from the edges: within the other tiles' cube.
     let inner = (rows / 2) * cols + cols / 2;
     let before: Vec<PathBuf> = (0..written.laz.len())
@@ -176,13 +161,13 @@ fn measure(args: &Args) -> Result<(), String> {
     for round in 0..args.rounds {
         println!("round {}:", round + 1);
         let folder = scratch.path().join("full");
-        let (seconds, store) = build(&written.laz, &folder, args.budget_mib)?;
+        let (seconds, store) = build(&written.laz, &folder, args.campaign.budget_mib)?;
         full = full.min(seconds);
         let fresh = points_of(&store)?;
         drop(store);
 
         let folder = scratch.path().join("updated");
-        build(&before, &folder, args.budget_mib)?;
+        build(&before, &folder, args.campaign.budget_mib)?;
         let (db, store) = open_store(&folder)?;
         let source = DatasetSource::open(&added).map_err(|e| e.to_string())?;
         let started = Instant::now();
@@ -190,7 +175,7 @@ fn measure(args: &Args) -> Result<(), String> {
             &store,
             &source,
             Vec::new(),
-            &options(&folder, args.budget_mib),
+            &options(&folder, args.campaign.budget_mib),
         )
         .map_err(|e| e.to_string())?;
         let seconds = started.elapsed().as_secs_f64();

@@ -15,6 +15,7 @@
 //! campaign outgrows the memory): the figures are the decoder's and the builder's, not the
 //! disk's.
 
+mod flags;
 mod tiles;
 
 use std::path::{Path, PathBuf};
@@ -34,7 +35,8 @@ use crate::cuts::{render_turntable, TurntableOptions, TurntableResult};
 use crate::scratch::{load_average, progress_log, scratch_dir};
 use crate::store::create_store;
 use crate::{memory, BenchError};
-pub use tiles::{grid, write_campaign, LAS_RECORD_BYTES, MIN_POINTS_PER_FILE};
+pub use flags::{CampaignFlags, ScratchCampaign};
+pub use tiles::{grid, write_campaign, CampaignFiles, LAS_RECORD_BYTES, MIN_POINTS_PER_FILE};
 
 /// Points of `--campaign` given bare.
 pub const CAMPAIGN_POINTS: u64 = 20_000_000;
