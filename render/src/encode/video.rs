@@ -82,6 +82,16 @@ impl Default for VideoPreset {
     }
 }
 
+/// The one of `all` that `name_of` calls `given`, in any case.
+fn named<T: Copy, const N: usize>(
+    all: [T; N],
+    name_of: fn(T) -> &'static str,
+    given: &str,
+) -> Option<T> {
+    all.into_iter()
+        .find(|&item| name_of(item).eq_ignore_ascii_case(given))
+}
+
 /// A preset name that is none of [`VideoPreset::ALL`].
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error(
@@ -94,10 +104,7 @@ impl std::str::FromStr for VideoPreset {
     type Err = UnknownPreset;
 
     fn from_str(name: &str) -> Result<Self, UnknownPreset> {
-        Self::ALL
-            .into_iter()
-            .find(|preset| preset.name().eq_ignore_ascii_case(name))
-            .ok_or_else(|| UnknownPreset(name.to_owned()))
+        named(Self::ALL, Self::name, name).ok_or_else(|| UnknownPreset(name.to_owned()))
     }
 }
 
@@ -148,10 +155,7 @@ impl std::str::FromStr for VideoCodec {
     type Err = VideoError;
 
     fn from_str(name: &str) -> Result<Self, VideoError> {
-        Self::ALL
-            .into_iter()
-            .find(|codec| codec.name().eq_ignore_ascii_case(name))
-            .ok_or_else(|| VideoError::UnknownCodec(name.to_owned()))
+        named(Self::ALL, Self::name, name).ok_or_else(|| VideoError::UnknownCodec(name.to_owned()))
     }
 }
 
@@ -194,9 +198,7 @@ impl VideoContainer {
     /// The container named `name` (`mp4`, `.mp4`, any case).
     pub fn from_name(name: &str) -> Result<Self, VideoError> {
         let bare = name.strip_prefix('.').unwrap_or(name);
-        Self::ALL
-            .into_iter()
-            .find(|c| c.extension().eq_ignore_ascii_case(bare))
+        named(Self::ALL, Self::extension, bare)
             .ok_or_else(|| VideoError::UnknownContainer(name.to_owned()))
     }
 

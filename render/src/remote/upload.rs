@@ -3,6 +3,7 @@
 //! A multipart object appears only when its upload completes; one that fails or is dropped
 //! unfinished is aborted, so no half object is ever visible.
 
+use std::future::Future;
 use std::io::Read;
 use std::path::Path;
 
@@ -55,13 +56,8 @@ impl RemoteClient {
     pub fn put(&self, url: &ObjectUrl, bytes: Vec<u8>) -> Result<(), RemoteError> {
         let store = self.store(url)?;
         let path = writable_path(url)?;
-        let shown = url.to_string();
-        self.run(url, async move {
-            store
-                .put(&path, PutPayload::from(bytes))
-                .await
-                .map(drop)
-                .map_err(|error| RemoteError::from_upload(&shown, error))
+        self.run_write(url, async move {
+            store.put(&path, PutPayload::from(bytes)).await.map(drop)
         })
     }
 
@@ -70,19 +66,12 @@ impl RemoteClient {
     pub fn start_upload(&self, url: &ObjectUrl) -> Result<RemoteUpload, RemoteError> {
         let store = self.store(url)?;
         let path = writable_path(url)?;
-        let shown = url.to_string();
+        let upload = self.run_write(url, async move { store.put_multipart(&path).await })?;
         let part_bytes = self.settings().upload_part_bytes;
-        let writer = self.run(url, async move {
-            store
-                .put_multipart(&path)
-                .await
-                .map(|upload| WriteMultipart::new_with_chunk_size(upload, part_bytes))
-                .map_err(|error| RemoteError::from_upload(&shown, error))
-        })?;
         Ok(RemoteUpload {
             client: self.clone(),
             url: url.clone(),
-            writer: Some(writer),
+            writer: Some(WriteMultipart::new_with_chunk_size(upload, part_bytes)),
             bytes: 0,
         })
     }
@@ -107,6 +96,20 @@ impl RemoteClient {
             upload.write(&buffer[..read])?;
         }
         upload.finish()
+    }
+
+    /// Runs one write request for the object at `url`, its failure sorted as a write's.
+    fn run_write<T: Send + 'static>(
+        &self,
+        url: &ObjectUrl,
+        request: impl Future<Output = object_store::Result<T>> + Send + 'static,
+    ) -> Result<T, RemoteError> {
+        let shown = url.to_string();
+        self.run(url, async move {
+            request
+                .await
+                .map_err(|error| RemoteError::from_upload(&shown, error))
+        })
     }
 }
 
@@ -163,13 +166,7 @@ impl RemoteUpload {
     /// written.
     pub fn finish(mut self) -> Result<u64, RemoteError> {
         let writer = self.take_writer()?;
-        let shown = self.url.to_string();
-        self.client.run(&self.url, async move {
-            writer
-                .finish()
-                .await
-                .map_err(|error| RemoteError::from_upload(&shown, error))
-        })?;
+        self.client.run_write(&self.url, writer.finish())?;
         Ok(self.bytes)
     }
 
@@ -182,13 +179,7 @@ impl RemoteUpload {
         let Some(writer) = self.writer.take() else {
             return Ok(());
         };
-        let shown = self.url.to_string();
-        self.client.run(&self.url, async move {
-            writer
-                .abort()
-                .await
-                .map_err(|error| RemoteError::from_upload(&shown, error))
-        })
+        self.client.run_write(&self.url, writer.abort())
     }
 
     fn take_writer(&mut self) -> Result<WriteMultipart, RemoteError> {
