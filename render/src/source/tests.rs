@@ -88,36 +88,49 @@ pub(in crate::source) fn damage_payload(folder: &Path) {
     std::fs::write(&payload, bytes).expect("damage");
 }
 
-/// The store of `files` in `folder`, built when missing, cut at `lod_error` for `request`.
-fn open_store(
-    renderer: Renderer,
-    files: &[PathBuf],
-    folder: &Path,
-    lod_error: f64,
-    request: &RenderRequest,
-) -> FrameSource {
-    let options = cut_options(lod_error);
-    FrameSource::local_store(
-        renderer,
-        files,
-        folder,
-        None,
-        options,
-        &request.render,
-        &quiet,
-    )
-    .expect("the store")
+/// A scratch folder holding a dataset of a generated scene, the turntable that renders it
+/// with the default options, and the folder of its store.
+struct Scene {
+    files: Vec<PathBuf>,
+    request: RenderRequest,
+    store: PathBuf,
+    _dir: tempfile::TempDir,
+}
+
+impl Scene {
+    /// A scene of `points` in one LAS file.
+    fn new(points: usize) -> Self {
+        let dir = tempfile::tempdir().expect("tempdir");
+        Self {
+            files: dataset(dir.path(), points),
+            request: request(RenderOptions::default()),
+            store: dir.path().join("store"),
+            _dir: dir,
+        }
+    }
+
+    /// The scene's store, built when missing, cut at `lod_error` for its turntable.
+    fn open_store(&self, renderer: Renderer, lod_error: f64) -> FrameSource {
+        FrameSource::local_store(
+            renderer,
+            &self.files,
+            &self.store,
+            None,
+            cut_options(lod_error),
+            &self.request.render,
+            &quiet,
+        )
+        .expect("the store")
+    }
 }
 
 #[test]
 fn a_store_and_its_records_served_from_elsewhere_give_the_same_frames() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let files = dataset(dir.path(), 40_000);
-    let request = request(RenderOptions::default());
-    let folder = dir.path().join("store");
-    let mut local = open_store(Renderer::new(gpu()), &files, &folder, 1.0, &request);
+    let scene = Scene::new(40_000);
+    let request = &scene.request;
+    let mut local = scene.open_store(Renderer::new(gpu()), 1.0);
     assert_eq!(local.frame_points(), FramePoints::StoreCut);
-    let here = frames(&mut local, &request);
+    let here = frames(&mut local, request);
     assert!(here[0].opened.and_then(|o| o.build_ms).is_some(), "built");
     assert!(here[1].opened.is_none(), "told once");
 
@@ -144,7 +157,7 @@ fn a_store_and_its_records_served_from_elsewhere_give_the_same_frames() {
         &quiet,
     )
     .expect("served");
-    let there = frames(&mut served, &request);
+    let there = frames(&mut served, request);
     assert_eq!(there[0].opened.and_then(|o| o.build_ms), Some(12.0));
     assert_eq!(images(&here), images(&there), "pixel for pixel");
     for (a, b) in here.iter().zip(&there) {
@@ -156,45 +169,31 @@ fn a_store_and_its_records_served_from_elsewhere_give_the_same_frames() {
 
 #[test]
 fn coarse_cuts_are_previews_that_say_how_complete_they_are() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let files = dataset(dir.path(), 400_000);
-    let request = request(RenderOptions::default());
-    let mut source = open_store(
-        Renderer::new(gpu()),
-        &files,
-        &dir.path().join("store"),
-        0.5,
-        &request,
-    );
-    let finals = images(&frames(&mut source, &request));
+    let scene = Scene::new(400_000);
+    let request = &scene.request;
+    let mut source = scene.open_store(Renderer::new(gpu()), 0.5);
+    let finals = images(&frames(&mut source, request));
     assert!(source.preview_cuts(true).expect("coarse"));
     assert!(source.is_preview());
-    let previews = frames(&mut source, &request);
+    let previews = frames(&mut source, request);
     for frame in &previews {
         let completeness = frame.preview.expect("a preview");
         assert!(completeness > 0.0 && completeness < 1.0, "{completeness}");
         assert!(frame.points_rendered < frame.points_total);
     }
     assert!(!source.preview_cuts(false).expect("final"));
-    assert_eq!(images(&frames(&mut source, &request)), finals);
+    assert_eq!(images(&frames(&mut source, request)), finals);
 
     // A final error coarser than a preview's leaves nothing to preview.
-    let mut coarse = open_store(
-        source.into_renderer(),
-        &files,
-        &dir.path().join("store"),
-        PREVIEW_LOD_ERROR_PX * 2.0,
-        &request,
-    );
+    let mut coarse = scene.open_store(source.into_renderer(), PREVIEW_LOD_ERROR_PX * 2.0);
     assert!(!coarse.preview_cuts(true).expect("no coarser cut"));
 }
 
 #[test]
 fn a_preview_frames_the_files_and_counts_the_dataset() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let files = dataset(dir.path(), 120_000);
-    let request = request(RenderOptions::default());
-    let chunk_starts = ChunkStarts::read(&files).expect("chunk starts");
+    let scene = Scene::new(120_000);
+    let request = &scene.request;
+    let chunk_starts = ChunkStarts::read(&scene.files).expect("chunk starts");
     let told = Told::default();
     let events = |event: SourceEvent<'_>| told.tell(event);
     let mut preview = FrameSource::preview(
@@ -207,15 +206,9 @@ fn a_preview_frames_the_files_and_counts_the_dataset() {
     assert!(preview.is_preview());
     // Framed as the frames of the files' store are, though only a few of their points are
     // drawn.
-    let store = open_store(
-        Renderer::new(gpu()),
-        &files,
-        &dir.path().join("store"),
-        1.0,
-        &request,
-    );
+    let store = scene.open_store(Renderer::new(gpu()), 1.0);
     assert_eq!(preview.bounds().all, store.bounds().all);
-    for frame in frames(&mut preview, &request) {
+    for frame in frames(&mut preview, request) {
         assert_eq!(frame.points_total, 120_000);
         let completeness = frame.preview.expect("a preview");
         assert!(completeness > 0.0 && completeness < 0.1, "{completeness}");
@@ -249,18 +242,15 @@ fn a_resident_source_is_reused_only_for_its_own_colors_and_filter() {
 
 #[test]
 fn a_store_damaged_between_frames_is_built_again_and_the_frame_drawn() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let files = dataset(dir.path(), 40_000);
-    let request = request(RenderOptions::default());
-    let folder = dir.path().join("store");
-    let open = |renderer| open_store(renderer, &files, &folder, 1.0, &request);
-    let mut source = open(Renderer::new(gpu()));
-    let before = images(&frames(&mut source, &request));
-    let mut source = open(source.into_renderer());
-    damage_payload(&folder);
+    let scene = Scene::new(40_000);
+    let request = &scene.request;
+    let mut source = scene.open_store(Renderer::new(gpu()), 1.0);
+    let before = images(&frames(&mut source, request));
+    let mut source = scene.open_store(source.into_renderer(), 1.0);
+    damage_payload(&scene.store);
     let told = Told::default();
     let events = |event: SourceEvent<'_>| told.tell(event);
-    let settings = source.frame_settings(&request, 0);
+    let settings = source.frame_settings(request, 0);
     let frame = source.render(&settings, &events).expect("built again");
     assert_eq!(frame.frame.image, before[0]);
     assert_eq!(told.count("Rebuilding"), 1, "{}", told.lines());
