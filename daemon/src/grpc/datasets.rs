@@ -10,11 +10,9 @@ use pointfarm_proto::v1::dataset_service_server::DatasetService;
 use pointfarm_render::ingest::LAS_SIGNATURE;
 use tonic::{Request, Response, Status, Streaming};
 
-use super::conversions::{
-    dataset_description, export_summary, file_description, invalid, page_messages,
-};
+use super::conversions::{dataset_description, file_description, invalid, page_messages};
 use super::streaming::{first_part, spawn_stream, HashingWriter, ResponseStream, CHUNK_BYTES};
-use super::{io_within, Api};
+use super::{export_summary, io_within, Api};
 use crate::error::DaemonError;
 use crate::remote_datasets::requested_url;
 use crate::service::{dataset_id, Daemon};
