@@ -1,18 +1,17 @@
 //! The dashboard (`serve --dashboard-listen`) end to end: its refusals over plain HTTP (no
-//! token, the worker token, a wrong token, a change from another origin, wrong tokens
-//! slowed then refused: `logins`) and over TLS (a `Secure` cookie); and in a real headless
-//! Chromium (Debian's `chromium` and `chromium-driver`, driven over WebDriver): logging in,
-//! a job's thumbnails appearing as a worker renders its frames, the worker listed, a job
-//! cancelled from its page, the jobs page following new jobs, the first paint of the jobs
-//! page with 1,000 jobs, and a blocklisted worker, a store build and the jobs' stages
-//! (`progress`). The browser tests skip, saying so, where Chromium is not installed;
-//! `deploy/test.sh` installs it.
+//! token, the worker token, a wrong token, a change from another origin; wrong tokens
+//! slowed then refused, an open daemon, a `Secure` cookie over TLS: `logins`); and in a real
+//! headless Chromium (Debian's `chromium` and `chromium-driver`, driven over WebDriver):
+//! logging in, a job's thumbnails appearing as a worker renders its frames, the worker
+//! listed, a job cancelled from its page, the jobs page following new jobs, jobs by label,
+//! state and name and the first paint of the jobs page with 1,000 jobs (`filters`), and a
+//! blocklisted worker, a store build and the jobs' stages (`progress`). The browser tests
+//! skip, saying so, where Chromium is not installed; `deploy/test.sh` installs it.
 //!
 //! Set `POINTFARM_DASHBOARD_SCREENSHOTS=1` to write the screenshots of the jobs page and a
 //! job's page to `docs/images/`.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use pointfarm_proto::v1 as pb;
@@ -28,6 +27,8 @@ use tonic::{Request, Status};
 
 #[path = "dashboard/farm.rs"]
 mod farm;
+#[path = "dashboard/filters.rs"]
+mod filters;
 #[path = "dashboard/logins.rs"]
 mod logins;
 #[path = "dashboard/progress.rs"]
@@ -92,7 +93,26 @@ async fn submit(
     dataset: &pb::Dataset,
     frames: u32,
 ) -> pb::Job {
-    jobs.submit_job(turntable_job(request_id, &dataset.id, frames, 160, 120))
+    submit_labelled(jobs, request_id, dataset, frames, &[]).await
+}
+
+/// A job of `frames` frames named `request_id`, with `labels`.
+async fn submit_labelled(
+    jobs: &mut JobServiceClient<Authorized>,
+    request_id: &str,
+    dataset: &pb::Dataset,
+    frames: u32,
+    labels: &[(&str, &str)],
+) -> pb::Job {
+    let submission = pb::SubmitJobRequest {
+        name: request_id.to_string(),
+        labels: labels
+            .iter()
+            .map(|(key, value)| (key.to_string(), value.to_string()))
+            .collect(),
+        ..turntable_job(request_id, &dataset.id, frames, 160, 120)
+    };
+    jobs.submit_job(submission)
         .await
         .expect("submit")
         .into_inner()
@@ -313,63 +333,6 @@ async fn the_dashboard_refuses_all_but_the_client_token() {
     assert_eq!(gone.status, 404, "{}", gone.body);
 }
 
-/// A daemon without a client token (loopback development) opens its dashboard as it opens
-/// its API, but still takes changes only from the dashboard's own origin.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn an_open_daemon_opens_its_dashboard_but_not_to_other_sites() {
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let dashboard = free_address();
-    let _server = ServeProcess::start_with(
-        &scratch.path().join("data"),
-        &["--no-embedded-worker", "--dashboard-listen", &dashboard],
-    );
-    wait_for(Duration::from_secs(30), "the dashboard listening", || {
-        std::net::TcpStream::connect(&dashboard).ok()
-    });
-    let page = request(&dashboard, "GET", "/", &[], "");
-    assert_eq!(page.status, 200, "{}", page.body);
-    let foreign = request(
-        &dashboard,
-        "POST",
-        "/api/jobs/job-000000000001/cancel",
-        &[("Origin", "http://evil.example")],
-        "",
-    );
-    assert_eq!(foreign.status, 403, "{}", foreign.body);
-}
-
-/// Over TLS (the API's certificate) the session cookie is `Secure`.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn over_tls_the_session_cookie_is_secure() {
-    if Command::new("curl").arg("--version").output().is_err() {
-        eprintln!("skipped: no curl to speak HTTPS with");
-        return;
-    }
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let pki = pointfarm_tests::pki::TestPki::create(scratch.path());
-    let cert = pki.cert.to_str().expect("a UTF-8 path");
-    let key = pki.key.to_str().expect("a UTF-8 path");
-    let args = ["--no-embedded-worker", "--tls-cert", cert, "--tls-key", key];
-    let (_server, dashboard) = serve(&scratch.path().join("data"), &args);
-    let origin = format!("Origin: https://{dashboard}");
-    let output = Command::new("curl")
-        .args(["-s", "-i", "--cacert"])
-        .arg(&pki.ca)
-        .args(["-H", &origin, "--data", &format!("token={TOKEN}")])
-        .arg(format!("https://{dashboard}/login"))
-        .output()
-        .expect("curl");
-    let answer = String::from_utf8_lossy(&output.stdout);
-    assert!(answer.starts_with("HTTP/1.1 303"), "{answer}");
-    let cookie = answer
-        .lines()
-        .find(|line| line.to_ascii_lowercase().starts_with("set-cookie:"))
-        .unwrap_or_else(|| panic!("no cookie: {answer}"));
-    for attribute in ["Secure", "HttpOnly", "SameSite=Strict"] {
-        assert!(cookie.contains(attribute), "{cookie}");
-    }
-}
-
 /// Waits until the page follows the daemon's events.
 fn wait_live(browser: &Browser) {
     browser.wait_for(
@@ -417,24 +380,59 @@ fn browser_log_in(browser: &Browser, base: &str) {
     );
 }
 
+/// A daemon with a dashboard and no worker, the sample scene uploaded, and a headless
+/// Chromium logged in to it (as `browser_log_in` does): what the browser tests open with.
+struct BrowserFarm {
+    browser: Browser,
+    server: ServeProcess,
+    dashboard: String,
+    base: String,
+    jobs: JobServiceClient<Authorized>,
+    dataset: pb::Dataset,
+    _sample: tempfile::TempDir,
+    scratch: tempfile::TempDir,
+}
+
+impl BrowserFarm {
+    /// None, the test skipping and saying so, where Chromium is not installed.
+    async fn open() -> Option<Self> {
+        if !chromium_installed() {
+            return None;
+        }
+        let scratch = tempfile::tempdir().expect("tempdir");
+        let (server, dashboard) = serve(&scratch.path().join("data"), &["--no-embedded-worker"]);
+        let base = format!("http://{dashboard}");
+        let (jobs, dataset, sample) = clients_with_sample(&server.address).await;
+        let browser = Browser::start(900, 640);
+        browser_log_in(&browser, &base);
+        Some(Self {
+            browser,
+            server,
+            dashboard,
+            base,
+            jobs,
+            dataset,
+            _sample: sample,
+            scratch,
+        })
+    }
+}
+
 /// In a browser: log in, watch a job's thumbnails appear as a remote worker renders its
 /// frames (measuring each frame's delay from its completion to its thumbnail), see the
 /// worker listed, follow a new job on the jobs page and cancel it from its page.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_browser_watches_thumbnails_appear_and_cancels_a_job() {
-    if !chromium_installed() {
+    let Some(farm) = BrowserFarm::open().await else {
         return;
-    }
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let (server, dashboard) = serve(&scratch.path().join("data"), &["--no-embedded-worker"]);
-    let base = format!("http://{dashboard}");
-    let (mut jobs, dataset, _sample) = clients_with_sample(&server.address).await;
-    let browser = Browser::start(900, 640);
-    browser_log_in(&browser, &base);
+    };
+    let (server, base, browser) = (&farm.server, &farm.base, &farm.browser);
+    let (dataset, scratch, mut jobs) = (&farm.dataset, &farm.scratch, farm.jobs.clone());
 
     // No worker yet: the job waits while its page opens and subscribes.
     let frames = 6;
-    let job = submit(&mut jobs, "watched", &dataset, frames).await;
+    let labels = [("pass", "beauty"), ("shot", "010")];
+    let job = submit_labelled(&mut jobs, "watched", dataset, frames, &labels).await;
     let mut watch = jobs
         .watch_job(pb::WatchJobRequest { id: job.id.clone() })
         .await
@@ -462,7 +460,7 @@ async fn a_browser_watches_thumbnails_appear_and_cancels_a_job() {
         json!([]),
     );
     assert_eq!(pending, json!(frames), "every frame pending");
-    wait_live(&browser);
+    wait_live(browser);
     let worker_name = "dashboard-worker";
     let _worker = WorkerProcess::start_with(
         &server.address,
@@ -541,8 +539,8 @@ async fn a_browser_watches_thumbnails_appear_and_cancels_a_job() {
 
     // The jobs page follows a new job; its page cancels it.
     browser.goto(&format!("{base}/"));
-    wait_live(&browser);
-    let doomed = submit(&mut jobs, "doomed", &dataset, 40).await;
+    wait_live(browser);
+    let doomed = submit_labelled(&mut jobs, "doomed", dataset, 40, &[("shot", "020")]).await;
     browser.wait_for(
         "the new job's row",
         Duration::from_secs(10),
@@ -573,56 +571,6 @@ async fn a_browser_watches_thumbnails_appear_and_cancels_a_job() {
         json!([]),
     );
     browser.screenshot(&screenshot_path(scratch.path(), "dashboard-jobs.png"));
-}
-
-/// The jobs page paints at once with 1,000 jobs in the history.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_jobs_page_paints_with_a_thousand_jobs() {
-    if !chromium_installed() {
-        return;
-    }
-    let scratch = tempfile::tempdir().expect("tempdir");
-    let (server, dashboard) = serve(&scratch.path().join("data"), &["--no-embedded-worker"]);
-    let base = format!("http://{dashboard}");
-    let (mut jobs, dataset, _sample) = clients_with_sample(&server.address).await;
-    let started = Instant::now();
-    for n in 0..1000 {
-        submit(&mut jobs, &format!("history-{n}"), &dataset, 1).await;
-    }
-    println!(
-        "1000 jobs submitted in {:.1} s",
-        started.elapsed().as_secs_f64()
-    );
-    let browser = Browser::start(900, 640);
-    browser_log_in(&browser, &base);
-    // Per try: first contentful paint where the browser reports one (headless Chromium may
-    // not), the whole page parsed (DOMContentLoaded) and loaded, from the navigation's start.
-    let mut tries = Vec::new();
-    for _ in 0..3 {
-        browser.goto(&format!("{base}/"));
-        let timing = browser.run(
-            "const paint = performance.getEntriesByName('first-contentful-paint')[0];\
-             const navigation = performance.getEntriesByType('navigation')[0];\
-             return [paint ? paint.startTime : null, navigation.domContentLoadedEventEnd, \
-                     navigation.loadEventEnd, \
-                     document.querySelectorAll('#jobs tbody tr').length, \
-                     document.querySelector('.count').textContent]",
-            json!([]),
-        );
-        assert_eq!(timing[3], json!(200), "{timing}");
-        assert_eq!(timing[4], json!("200 of 1000 jobs"), "{timing}");
-        tries.push(Value::Array(
-            timing.as_array().expect("an array")[..3].to_vec(),
-        ));
-    }
-    let parsed: Vec<f64> = tries.iter().filter_map(|t| t[1].as_f64()).collect();
-    let paint = parsed.iter().copied().fold(f64::INFINITY, f64::min);
-    println!(
-        "jobs page with 1000 jobs: parsed (DOMContentLoaded) in {paint:.0} ms at best of 3 \
-         (target 1000 ms); [first contentful paint, DOMContentLoaded, load] per try: {}",
-        Value::Array(tries)
-    );
-    assert!(paint < 5_000.0, "the jobs page paints: {paint} ms");
 }
 
 /// A video the farm made of a job plays in the job's page: served with its media type and

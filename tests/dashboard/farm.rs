@@ -7,9 +7,9 @@ use std::sync::Arc;
 
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::dashboard::{self, DashboardOptions, LoginLimit};
-use pointfarm_daemon::server::ServeOptions;
 use pointfarm_daemon::service::{Daemon, DaemonConfig};
 use pointfarm_proto::endpoint::connections::ConnectionLimits;
+use pointfarm_tests::service::serve_on_loopback;
 
 /// The daemon's API and dashboard addresses (`127.0.0.1:PORT`); served until dropped.
 pub struct Farm {
@@ -40,25 +40,9 @@ impl Farm {
             dashboard::listen_limiting_logins("127.0.0.1:0", daemon.clone(), options, login_limit)
                 .await
                 .expect("the dashboard listening");
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
-            .await
-            .expect("bind loopback");
-        let address = listener.local_addr().expect("address").to_string();
-        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-        let options = ServeOptions {
-            access,
-            ..ServeOptions::default()
-        };
-        tokio::spawn(async move {
-            let stop = async {
-                let _ = stopped.await;
-            };
-            pointfarm_daemon::server::serve(daemon, None, listener, options, stop)
-                .await
-                .expect("serve");
-        });
+        let (address, stop, _) = serve_on_loopback(daemon, None, access).await;
         Self {
-            address,
+            address: address.to_string(),
             dashboard: bound.to_string(),
             stop: Some(stop),
         }

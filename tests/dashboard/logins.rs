@@ -1,11 +1,15 @@
 //! Wrong tokens from one address, over real HTTP: slowed, then refused with 429 and
 //! `Retry-After`, the right token too, until the window has passed; the daemon's log names
-//! the address, never the token.
+//! the address, never the token. A daemon without a client token opens its dashboard, but
+//! not to other sites; over TLS the session cookie is `Secure`.
 
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::dashboard::LoginLimit;
+
+use pointfarm_tests::{free_address, wait_for, ServeProcess};
 
 use super::farm::Farm;
 use super::webdriver::{request, Answer};
@@ -142,4 +146,61 @@ async fn serve_refuses_an_address_after_its_wrong_tokens_and_logs_no_token() {
         "{logged:?}"
     );
     assert!(!log.contains("guessed-token-4f1d"), "{log}");
+}
+
+/// A daemon without a client token (loopback development) opens its dashboard as it opens
+/// its API, but still takes changes only from the dashboard's own origin.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_open_daemon_opens_its_dashboard_but_not_to_other_sites() {
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let dashboard = free_address();
+    let _server = ServeProcess::start_with(
+        &scratch.path().join("data"),
+        &["--no-embedded-worker", "--dashboard-listen", &dashboard],
+    );
+    wait_for(Duration::from_secs(30), "the dashboard listening", || {
+        std::net::TcpStream::connect(&dashboard).ok()
+    });
+    let page = request(&dashboard, "GET", "/", &[], "");
+    assert_eq!(page.status, 200, "{}", page.body);
+    let foreign = request(
+        &dashboard,
+        "POST",
+        "/api/jobs/job-000000000001/cancel",
+        &[("Origin", "http://evil.example")],
+        "",
+    );
+    assert_eq!(foreign.status, 403, "{}", foreign.body);
+}
+
+/// Over TLS (the API's certificate) the session cookie is `Secure`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn over_tls_the_session_cookie_is_secure() {
+    if Command::new("curl").arg("--version").output().is_err() {
+        eprintln!("skipped: no curl to speak HTTPS with");
+        return;
+    }
+    let scratch = tempfile::tempdir().expect("tempdir");
+    let pki = pointfarm_tests::pki::TestPki::create(scratch.path());
+    let cert = pki.cert.to_str().expect("a UTF-8 path");
+    let key = pki.key.to_str().expect("a UTF-8 path");
+    let args = ["--no-embedded-worker", "--tls-cert", cert, "--tls-key", key];
+    let (_server, dashboard) = serve(&scratch.path().join("data"), &args);
+    let origin = format!("Origin: https://{dashboard}");
+    let output = Command::new("curl")
+        .args(["-s", "-i", "--cacert"])
+        .arg(&pki.ca)
+        .args(["-H", &origin, "--data", &format!("token={TOKEN}")])
+        .arg(format!("https://{dashboard}/login"))
+        .output()
+        .expect("curl");
+    let answer = String::from_utf8_lossy(&output.stdout);
+    assert!(answer.starts_with("HTTP/1.1 303"), "{answer}");
+    let cookie = answer
+        .lines()
+        .find(|line| line.to_ascii_lowercase().starts_with("set-cookie:"))
+        .unwrap_or_else(|| panic!("no cookie: {answer}"));
+    for attribute in ["Secure", "HttpOnly", "SameSite=Strict"] {
+        assert!(cookie.contains(attribute), "{cookie}");
+    }
 }

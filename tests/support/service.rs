@@ -2,6 +2,7 @@
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::model::JobSpec;
@@ -59,23 +60,7 @@ impl TestDaemon {
         configure(&mut config);
         let worker = embedded_worker.then(|| embedded_worker_command(&config));
         let daemon = Daemon::open(config).expect("open daemon");
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
-            .await
-            .expect("bind loopback");
-        let address = listener.local_addr().expect("address");
-        let (shutdown, signal) = tokio::sync::oneshot::channel::<()>();
-        let options = ServeOptions {
-            access,
-            ..ServeOptions::default()
-        };
-        let task = tokio::spawn(async move {
-            let stop = async {
-                let _ = signal.await;
-            };
-            pointfarm_daemon::server::serve(daemon, worker, listener, options, stop)
-                .await
-                .expect("serve");
-        });
+        let (address, shutdown, task) = serve_on_loopback(daemon, worker, access).await;
         Self {
             address,
             data_dir,
@@ -134,6 +119,38 @@ impl Drop for TestDaemon {
             let _ = shutdown.send(());
         }
     }
+}
+
+/// Serves `daemon`'s API with the tokens of `access` (and `worker` as its embedded worker)
+/// on a loopback port, in a task of this runtime: the address, the sender that stops it and
+/// the task.
+pub async fn serve_on_loopback(
+    daemon: Arc<Daemon>,
+    worker: Option<WorkerCommand>,
+    access: Access,
+) -> (
+    SocketAddr,
+    tokio::sync::oneshot::Sender<()>,
+    tokio::task::JoinHandle<()>,
+) {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+        .await
+        .expect("bind loopback");
+    let address = listener.local_addr().expect("address");
+    let (shutdown, signal) = tokio::sync::oneshot::channel::<()>();
+    let options = ServeOptions {
+        access,
+        ..ServeOptions::default()
+    };
+    let task = tokio::spawn(async move {
+        let stop = async {
+            let _ = signal.await;
+        };
+        pointfarm_daemon::server::serve(daemon, worker, listener, options, stop)
+            .await
+            .expect("serve");
+    });
+    (address, shutdown, task)
 }
 
 /// The embedded worker of a daemon with `config`: this workspace's `pointfarm worker`.
