@@ -1,31 +1,44 @@
 //! What updating a level-of-detail store costs against building it: a campaign of `--files`
-//! LAZ tiles, a store built from all but an inner tile, then updated with that tile
-//! (`update_lod`), against a full build of every tile; each step timed `--rounds` times, the
-//! fastest kept. Both stores are checked to hold every point once (their point counts, and a
-//! checksum of every point's position on the millimetre grid and attributes).
-//! docs/perf/lod-store-update.md has its figures.
+//! LAZ tiles whose inner tile changes (`--change`): `add`, a store built from all but that
+//! tile, then updated with it; `remove`, a store of every tile updated without it; `replace`,
+//! a store of every tile updated with the tile processed again (the same tile of a campaign of
+//! another seed) in its place ([`update_store`]). Each against a full build of the tiles after
+//! the change; each step timed `--rounds` times, the fastest kept. Both stores are checked to
+//! hold every point once (their point counts, and a checksum of every point's position on the
+//! millimetre grid and attributes). docs/perf/lod-store-update.md has its figures.
 //!
 //! ```text
-//! lod-store-update [--points N] [--files N] [--rounds N] [--budget-mib N] [--dir DIR]
+//! lod-store-update [--change add|remove|replace] [--points N] [--files N] [--rounds N]
+//!                  [--budget-mib N] [--dir DIR]
 //! ```
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
-use pointfarm_bench::campaign::{grid, CampaignFlags, ScratchCampaign};
+use pointfarm_bench::campaign::{grid, write_campaign, CampaignFlags, ScratchCampaign};
 use pointfarm_bench::cli::{exit_code, parse_flags};
 use pointfarm_render::ingest::DatasetSource;
 use pointfarm_render::lod::{
-    build_lod, read_nodes, update_lod, LodBuildOptions, LodStore, NodeKey,
+    build_lod, read_nodes, update_store, LodBuildOptions, LodError, LodStore, NodeKey, PointSource,
+    StoreChange,
 };
 
-const USAGE: &str =
-    "usage: lod-store-update [--points N] [--files N] [--rounds N] [--budget-mib N] [--dir DIR]";
+const USAGE: &str = "usage: lod-store-update [--change add|remove|replace] [--points N] \
+                     [--files N] [--rounds N] [--budget-mib N] [--dir DIR]";
+
+/// What happens to the inner tile.
+#[derive(Clone, Copy, PartialEq)]
+enum Change {
+    Add,
+    Remove,
+    Replace,
+}
 
 struct Args {
     campaign: CampaignFlags,
     rounds: usize,
+    change: Change,
 }
 
 fn main() -> ExitCode {
@@ -40,10 +53,19 @@ fn parse(args: &[String]) -> Result<Args, String> {
     let mut parsed = Args {
         campaign: CampaignFlags::new(21_000_000, 21),
         rounds: 2,
+        change: Change::Add,
     };
     parse_flags(args, USAGE, |flag, value| {
         match flag {
             "--rounds" => parsed.rounds = value.number()?.max(1) as usize,
+            "--change" => {
+                parsed.change = match value.path().to_str() {
+                    Some("add") => Change::Add,
+                    Some("remove") => Change::Remove,
+                    Some("replace") => Change::Replace,
+                    _ => return Err(format!("--change is add, remove or replace\n{USAGE}")),
+                }
+            }
             _ => return parsed.campaign.apply(flag, &value),
         }
         Ok(true)
@@ -145,13 +167,38 @@ fn measure(args: &Args) -> Result<(), String> {
     let (rows, cols) = grid(args.campaign.files);
     // A tile of the middle row, away from the edges: within the other tiles' cube.
     let inner = (rows / 2) * cols + cols / 2;
-    let before: Vec<PathBuf> = (0..written.laz.len())
+    let others: Vec<PathBuf> = (0..written.laz.len())
         .filter(|&i| i != inner)
         .map(|i| written.laz[i].clone())
         .collect();
-    let added = [written.laz[inner].clone()];
+    // The files before and after the change, and the change as places in the store's order.
+    let (before, after, removed, added) = match args.change {
+        Change::Add => {
+            let mut after = others.clone();
+            after.push(written.laz[inner].clone());
+            (others, after, vec![], vec![written.laz[inner].clone()])
+        }
+        Change::Remove => (written.laz.clone(), others, vec![inner], vec![]),
+        Change::Replace => {
+            let again = scratch.path().join("again");
+            std::fs::create_dir_all(&again).map_err(|e| e.to_string())?;
+            let other =
+                write_campaign(&again, args.campaign.points, args.campaign.files, 12, false)
+                    .map_err(|e| e.to_string())?;
+            let processed = scratch.path().join("processed.laz");
+            std::fs::copy(&other.laz[inner], &processed).map_err(|e| e.to_string())?;
+            let mut after = others.clone();
+            after.push(processed.clone());
+            (written.laz.clone(), after, vec![inner], vec![processed])
+        }
+    };
+    let what = match args.change {
+        Change::Add => "added to",
+        Change::Remove => "removed from",
+        Change::Replace => "replaced in",
+    };
     println!(
-        "{} points in {} LAZ tiles ({rows} x {cols}); tile {inner} added to the others",
+        "{} points in {} LAZ tiles ({rows} x {cols}); tile {inner} {what} the others",
         written.points,
         written.laz.len()
     );
@@ -161,7 +208,7 @@ fn measure(args: &Args) -> Result<(), String> {
     for round in 0..args.rounds {
         println!("round {}:", round + 1);
         let folder = scratch.path().join("full");
-        let (seconds, store) = build(&written.laz, &folder, args.campaign.budget_mib)?;
+        let (seconds, store) = build(&after, &folder, args.campaign.budget_mib)?;
         full = full.min(seconds);
         let fresh = points_of(&store)?;
         drop(store);
@@ -169,21 +216,34 @@ fn measure(args: &Args) -> Result<(), String> {
         let folder = scratch.path().join("updated");
         build(&before, &folder, args.campaign.budget_mib)?;
         let (db, store) = open_store(&folder)?;
-        let source = DatasetSource::open(&added).map_err(|e| e.to_string())?;
+        let source = match added.is_empty() {
+            true => None,
+            false => Some(DatasetSource::open(&added).map_err(|e| e.to_string())?),
+        };
+        let reopen = |places: &[usize]| -> Result<Box<dyn PointSource>, LodError> {
+            let paths: Vec<PathBuf> = places.iter().map(|&i| before[i].clone()).collect();
+            let source =
+                DatasetSource::open(&paths).map_err(|e| LodError::Source(e.to_string()))?;
+            Ok(Box::new(source))
+        };
+        let change = StoreChange {
+            added: source.as_ref().map(|s| s as &dyn PointSource),
+            removed: removed.clone(),
+            reopen: &reopen,
+            files: Vec::new(),
+        };
         let started = Instant::now();
-        let report = update_lod(
-            &store,
-            &source,
-            Vec::new(),
-            &options(&folder, args.campaign.budget_mib),
-        )
-        .map_err(|e| e.to_string())?;
+        let report = update_store(&store, &change, &options(&folder, args.campaign.budget_mib))
+            .map_err(|e| e.to_string())?;
         let seconds = started.elapsed().as_secs_f64();
         update = update.min(seconds);
         println!(
-            "    updated with {} points in {seconds:.2} s: {} regions rebuilt, {} added, {} kept; \
-             {} points decoded; {:.1} MB appended, {:.1} MB dead",
+            "    updated in {seconds:.2} s: {} points added, {} removed, {} files read again; \
+             {} regions rebuilt, {} added, {} kept; {} points decoded; {:.1} MB appended, \
+             {:.1} MB dead",
             report.points_added,
+            report.points_removed,
+            report.files_reread,
             report.regions_rebuilt,
             report.regions_added,
             report.regions_kept,
@@ -192,7 +252,7 @@ fn measure(args: &Args) -> Result<(), String> {
             report.dead_bytes as f64 / 1e6
         );
         let updated = points_of(&store)?;
-        if updated != fresh || updated.0 != written.points {
+        if updated != fresh {
             return Err(format!(
                 "the updated store holds {updated:?} (count, checksum), a fresh build {fresh:?}"
             ));
@@ -202,9 +262,9 @@ fn measure(args: &Args) -> Result<(), String> {
     }
     let report = last.expect("one round");
     println!(
-        "full build of {} tiles {full:.2} s; one tile added {update:.2} s: {:.1}% of the full \
-         build ({} regions rebuilt of {}); every point once in both",
-        written.laz.len(),
+        "full build of {} tiles {full:.2} s; one tile {what} the store {update:.2} s: {:.1}% of \
+         the full build ({} regions rebuilt of {}); every point once in both",
+        after.len(),
         100.0 * update / full,
         report.regions_rebuilt + report.regions_added,
         report.regions_rebuilt + report.regions_added + report.regions_kept

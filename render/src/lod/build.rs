@@ -99,24 +99,22 @@ impl LodBuildReport {
     }
 }
 
-/// The context of a build or update of `cube` whose partitions hold about
-/// `max_partition_points`, no subtree root waiting yet.
+/// The context of a build or update storing through `sink` (of its cube and journal) whose
+/// partitions hold about `max_partition_points`, no subtree root waiting yet.
 pub(super) fn build_context<'a>(
-    cube: RootCube,
     options: &'a LodBuildOptions,
     meter: &'a MemoryMeter,
     spill: &'a SpillDir,
     sink: &'a NodeSink<'a>,
-    journal: &'a BuildJournal,
     max_partition_points: u64,
 ) -> BuildContext<'a> {
     BuildContext {
-        cube,
+        cube: sink.cube(),
         options,
         meter,
         spill,
         sink,
-        journal,
+        journal: sink.journal(),
         max_partition_points,
         pending: Mutex::new(Default::default()),
         partitions_split: AtomicUsize::new(0),
@@ -313,15 +311,7 @@ fn build_on_pool(
     sink.list(resumed.nodes);
     let ctx = BuildContext {
         pending: Mutex::new(resumed.waiting),
-        ..build_context(
-            cube,
-            options,
-            &meter,
-            &spill,
-            &sink,
-            &journal,
-            max_partition,
-        )
+        ..build_context(options, &meter, &spill, &sink, max_partition)
     };
     let building = Instant::now();
     build_partitions(&ctx, partitions)?;

@@ -68,6 +68,16 @@ impl<'a> NodeSink<'a> {
         }
     }
 
+    /// The cube the nodes are cells of.
+    pub fn cube(&self) -> RootCube {
+        self.cube
+    }
+
+    /// The journal each stored unit is recorded in.
+    pub fn journal(&self) -> &'a BuildJournal {
+        self.journal
+    }
+
     /// Encodes a finished node, with its points' attribute `rows` where the build keeps
     /// them; `sample_grid` is 0 for a leaf. An empty node is only listed: the hierarchy keeps
     /// it if it has children.

@@ -446,15 +446,7 @@ fn update_on_pool(
     let max_partition_points = (budget / (build_bytes_per_point(layout) * threads))
         .min(options.max_partition_points)
         .max(4 * leaf);
-    let ctx = build_context(
-        cube,
-        options,
-        &meter,
-        &spill,
-        &sink,
-        &journal,
-        max_partition_points,
-    );
+    let ctx = build_context(options, &meter, &spill, &sink, max_partition_points);
     let mut kept_regions = Vec::new();
     for (i, region) in kept.regions.iter().enumerate() {
         if touched.contains(&i) {

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 
 use super::super::*;
 use super::temp_store;
-use super::update::{build, file_points, options, store_points, write_tile_parts, write_tiles};
+use super::update::{build, file_points, store_points, tile_scene, write_tiles};
 use crate::ingest::DatasetSource;
 
 /// The store of `order` (its files, in the order it took them) updated without the files at
@@ -57,10 +57,7 @@ fn assert_like_a_fresh_build(store: &LodStore, files: &[PathBuf], options: &LodB
 
 #[test]
 fn a_removed_tile_rebuilds_only_the_regions_it_reaches() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let files = write_tiles(dir.path(), 60_000);
-    let (_db, store) = temp_store(dir.path());
-    let options = options(dir.path());
+    let (_dir, _db, files, store, options) = tile_scene(60_000, 1);
     build(&files, &store, &options);
     let regions = store.read_regions().expect("read").expect("regions");
     let facts = regions.file_facts.as_ref().expect("file facts");
@@ -83,10 +80,7 @@ fn a_removed_tile_rebuilds_only_the_regions_it_reaches() {
 
 #[test]
 fn removing_every_file_of_a_region_removes_the_region() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let files = write_tiles(dir.path(), 40_000);
-    let (_db, store) = temp_store(dir.path());
-    let options = options(dir.path());
+    let (_dir, _db, files, store, options) = tile_scene(40_000, 1);
     let built = build(&files, &store, &options);
     let regions = store.read_regions().expect("read").expect("regions");
     let facts = regions.file_facts.clone().expect("facts");
@@ -118,10 +112,7 @@ fn removing_every_file_of_a_region_removes_the_region() {
 
 #[test]
 fn a_changed_tile_is_taken_out_as_it_was_and_in_as_it_is() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let files = write_tiles(dir.path(), 60_000);
-    let (_db, store) = temp_store(dir.path());
-    let options = options(dir.path());
+    let (_dir, _db, files, store, options) = tile_scene(60_000, 1);
     build(&files, &store, &options);
     // The same tile of a denser survey of the scene, written over the file.
     let other = tempfile::tempdir().expect("tempdir");
@@ -142,11 +133,8 @@ fn a_changed_tile_is_taken_out_as_it_was_and_in_as_it_is() {
 
 #[test]
 fn a_removed_file_overlapping_others_reads_only_those_again() {
-    let dir = tempfile::tempdir().expect("tempdir");
     // Each tile in two files of every other point: they share their box.
-    let files = write_tile_parts(dir.path(), 40_000, 2);
-    let (_db, store) = temp_store(dir.path());
-    let options = options(dir.path());
+    let (_dir, _db, files, store, options) = tile_scene(40_000, 2);
     build(&files, &store, &options);
     let gone = 2 * 5 + 1;
     let report = change(&store, &files, &[gone], &[], &options).expect("update");
@@ -156,10 +144,7 @@ fn a_removed_file_overlapping_others_reads_only_those_again() {
 
 #[test]
 fn a_store_without_file_facts_is_refused_a_removal() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let files = write_tiles(dir.path(), 8_000);
-    let (_db, store) = temp_store(dir.path());
-    let options = options(dir.path());
+    let (_dir, _db, files, store, options) = tile_scene(8_000, 1);
     let built = build(&files, &store, &options);
     // What a store of an earlier version keeps: regions without the files' facts.
     let mut regions = store.read_regions().expect("read").expect("regions");

@@ -130,6 +130,25 @@ pub(super) fn store_points(store: &LodStore) -> Vec<Entry> {
     out
 }
 
+/// A scene's tiles written into a folder of their own, with an empty store (and its
+/// database, kept open) and the build's options there.
+pub(super) type TileScene = (
+    tempfile::TempDir,
+    sled::Db,
+    Vec<PathBuf>,
+    LodStore,
+    LodBuildOptions,
+);
+
+/// The [`TileScene`] of `points` points, each tile in `parts` files ([`write_tile_parts`]).
+pub(super) fn tile_scene(points: usize, parts: usize) -> TileScene {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let files = write_tile_parts(dir.path(), points, parts);
+    let (db, store) = temp_store(dir.path());
+    let options = options(dir.path());
+    (dir, db, files, store, options)
+}
+
 pub(super) fn options(dir: &Path) -> LodBuildOptions {
     let mut options = LodBuildOptions::new(dir.join("spill"));
     options.max_leaf_points = 400;
@@ -154,10 +173,7 @@ fn update(added: &[PathBuf], store: &LodStore, options: &LodBuildOptions) -> Lod
 
 #[test]
 fn an_added_tile_rebuilds_only_the_regions_it_reaches_and_keeps_every_point_once() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let files = write_tiles(dir.path(), 60_000);
-    let (_db, store) = temp_store(dir.path());
-    let options = options(dir.path());
+    let (_dir, _db, files, store, options) = tile_scene(60_000, 1);
     // An inner tile is the new day's: the others span the cube.
     let new_tile = TILES + 1;
     let before: Vec<PathBuf> = (0..files.len())
@@ -199,10 +215,7 @@ fn an_added_tile_rebuilds_only_the_regions_it_reaches_and_keeps_every_point_once
 
 #[test]
 fn updates_follow_one_another_and_fill_empty_parts_of_the_cube() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let files = write_tiles(dir.path(), 40_000);
-    let (_db, store) = temp_store(dir.path());
-    let options = options(dir.path());
+    let (_dir, _db, files, store, options) = tile_scene(40_000, 1);
     // The corner tile lies within the others' cube (their bounds reach its x and y), in a
     // part of it no region holds; the inner one is added after it.
     let (corner, inner) = (0, 2 * TILES + 2);
@@ -220,10 +233,7 @@ fn updates_follow_one_another_and_fill_empty_parts_of_the_cube() {
 
 #[test]
 fn points_outside_the_cube_are_refused_and_the_store_is_left_as_it_was() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let files = write_tiles(dir.path(), 20_000);
-    let (_db, store) = temp_store(dir.path());
-    let options = options(dir.path());
+    let (dir, _db, files, store, options) = tile_scene(20_000, 1);
     build(&files, &store, &options);
     let before = store.read_hierarchy().expect("hierarchy");
     // The scene again, 10 km east: beyond the cube's side.
@@ -246,10 +256,7 @@ fn points_outside_the_cube_are_refused_and_the_store_is_left_as_it_was() {
 
 #[test]
 fn a_store_without_regions_is_refused() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let files = write_tiles(dir.path(), 8_000);
-    let (_db, store) = temp_store(dir.path());
-    let options = options(dir.path());
+    let (_dir, _db, files, store, options) = tile_scene(8_000, 1);
     let built = build(&files[1..], &store, &options);
     // What a resumed build leaves: the hierarchy alone.
     store.write_hierarchy(&built.hierarchy).expect("write");
