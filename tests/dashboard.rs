@@ -118,6 +118,12 @@ async fn submit_labelled(
         .into_inner()
 }
 
+/// Job `id` as the daemon has it.
+async fn stored_job(jobs: &mut JobServiceClient<Authorized>, id: &str) -> pb::Job {
+    let request = pb::GetJobRequest { id: id.to_string() };
+    jobs.get_job(request).await.expect("get").into_inner()
+}
+
 fn epoch_ms() -> f64 {
     SystemTime::now()
         .duration_since(UNIX_EPOCH)
@@ -268,13 +274,7 @@ async fn the_dashboard_refuses_all_but_the_client_token() {
         let refused = request(&dashboard, "POST", &cancel, &headers, "");
         assert_eq!(refused.status, 403, "{headers:?}: {}", refused.body);
     }
-    let job = jobs
-        .get_job(pb::GetJobRequest {
-            id: queued.id.clone(),
-        })
-        .await
-        .expect("get")
-        .into_inner();
+    let job = stored_job(&mut jobs, &queued.id).await;
     assert_eq!(job.state(), pb::JobState::Queued, "nothing was cancelled");
     // Done with the session from its own origin; a script's bearer token needs no Origin
     // (cancelling a cancelled job changes nothing).
@@ -555,13 +555,7 @@ async fn a_browser_watches_thumbnails_appear_and_cancels_a_job() {
         "return document.querySelector('.job-state .state-cancelled') !== null",
         json!([]),
     );
-    let stored = jobs
-        .get_job(pb::GetJobRequest {
-            id: doomed.id.clone(),
-        })
-        .await
-        .expect("get")
-        .into_inner();
+    let stored = stored_job(&mut jobs, &doomed.id).await;
     assert_eq!(stored.state(), pb::JobState::Cancelled);
     browser.goto(&format!("{base}/"));
     browser.wait_for(
@@ -593,11 +587,7 @@ async fn a_jobs_video_plays_in_its_page() {
         .id;
     let started = Instant::now();
     let job = loop {
-        let job = jobs
-            .get_job(pb::GetJobRequest { id: id.clone() })
-            .await
-            .expect("get")
-            .into_inner();
+        let job = stored_job(&mut jobs, &id).await;
         match job.state() {
             pb::JobState::Succeeded => break job,
             pb::JobState::Failed | pb::JobState::Cancelled => panic!("{job:?}"),
