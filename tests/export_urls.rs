@@ -75,23 +75,7 @@ impl ExportBucket {
 
     /// Keys of the bucket's objects, sorted; the server's own bookkeeping left out.
     fn objects(&self) -> Vec<String> {
-        let bucket = self.root.path().join(BUCKET);
-        let mut found = Vec::new();
-        let mut folders = vec![bucket.clone()];
-        while let Some(folder) = folders.pop() {
-            for entry in std::fs::read_dir(&folder).expect("bucket folder") {
-                let path = entry.expect("entry").path();
-                if path.is_dir() {
-                    folders.push(path);
-                } else {
-                    let key = path.strip_prefix(&bucket).expect("under the bucket");
-                    found.push(key.to_string_lossy().into_owned());
-                }
-            }
-        }
-        found.retain(|key| !key.starts_with('.') && !key.contains("/."));
-        found.sort();
-        found
+        s3s::bucket_objects(self.root.path(), BUCKET)
     }
 }
 

@@ -388,71 +388,52 @@ async fn video_stalled_in_a_worker(lease_timeout: Duration, request_id: &str) ->
     }
 }
 
-/// Starts a worker whose ffmpeg works and waits for it to finish job `id`, checking that
-/// the job stored a video and that the worker leased it after `failed_attempts` failed
-/// attempts, as `why` explains.
-async fn video_made_by_another_worker(
-    daemon: &TestDaemon,
-    jobs: &mut JobServiceClient<Channel>,
-    scratch: &Path,
-    id: &str,
-    failed_attempts: u32,
-    why: &str,
-) {
-    let encoder = WorkerProcess::start(&daemon.url(), &scratch.join("encoder"), "encoder");
-    let (done, _) = watch_to_success(jobs, id, || encoder.log()).await;
-    assert!(done.video_size_bytes > 0);
-    let log = encoder.log();
-    let attempts = format!("failed_attempts={failed_attempts}");
-    assert!(
-        log.contains("video leased") && log.contains(&attempts),
-        "{why}:\n{log}"
-    );
+impl StalledVideo {
+    /// Starts a worker whose ffmpeg works and waits for it to finish the job, checking that
+    /// the job stored a video and that the worker leased it after `failed_attempts` failed
+    /// attempts, as `why` explains.
+    async fn made_by_another_worker(&mut self, failed_attempts: u32, why: &str) {
+        let cache = self.scratch.path().join("encoder");
+        let encoder = WorkerProcess::start(&self.daemon.url(), &cache, "encoder");
+        let (done, _) = watch_to_success(&mut self.jobs, &self.job.id, || encoder.log()).await;
+        assert!(done.video_size_bytes > 0);
+        let log = encoder.log();
+        let attempts = format!("failed_attempts={failed_attempts}");
+        assert!(
+            log.contains("video leased") && log.contains(&attempts),
+            "{why}:\n{log}"
+        );
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_worker_killed_while_making_the_video_has_it_leased_again() {
-    let StalledVideo {
-        daemon,
-        mut jobs,
-        scratch,
-        mut stalling,
-        job,
-    } = video_stalled_in_a_worker(Duration::from_secs(1), "again").await;
-    stalling.kill();
+    let mut stalled = video_stalled_in_a_worker(Duration::from_secs(1), "again").await;
+    stalled.stalling.kill();
 
     let why = "the second worker made the video at its second attempt";
-    video_made_by_another_worker(&daemon, &mut jobs, scratch.path(), &job.id, 1, why).await;
-    let fetched = scratch.path().join("again.mp4");
-    fetch_video(&mut jobs, &job.id, &fetched).await;
+    stalled.made_by_another_worker(1, why).await;
+    let fetched = stalled.scratch.path().join("again.mp4");
+    fetch_video(&mut stalled.jobs, &stalled.job.id, &fetched).await;
     assert_eq!(probe(&fetched), ("h264".to_owned(), 32, 24, 4));
-    daemon.stop().await;
+    stalled.daemon.stop().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_worker_stopped_while_making_the_video_hands_it_back_for_another_at_once() {
     // A lease timeout far longer than the test: only the hand-back lets another worker in.
-    let StalledVideo {
-        daemon,
-        mut jobs,
-        scratch,
-        mut stalling,
-        job,
-    } = video_stalled_in_a_worker(Duration::from_secs(600), "back").await;
-    let exited = tokio::task::spawn_blocking(move || {
-        let status = stalling.terminate();
-        (status, stalling.log())
-    })
-    .await
-    .expect("stopped");
-    let (status, log) = exited;
+    let mut stalled = video_stalled_in_a_worker(Duration::from_secs(600), "back").await;
+    // Waiting for the exit blocks this thread alone: the daemon serves on the others.
+    let status = tokio::task::block_in_place(|| stalled.stalling.terminate());
+    let log = stalled.stalling.log();
     assert!(status.success(), "{status:?}:\n{log}");
     assert!(log.contains("the video is handed back unmade"), "{log}");
-    assert_eq!(get_job(&mut jobs, &job.id).await.stage, "video");
+    let job = get_job(&mut stalled.jobs, &stalled.job.id).await;
+    assert_eq!(job.stage, "video");
 
     let why = "handing back counted no attempt";
-    video_made_by_another_worker(&daemon, &mut jobs, scratch.path(), &job.id, 0, why).await;
-    daemon.stop().await;
+    stalled.made_by_another_worker(0, why).await;
+    stalled.daemon.stop().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -83,6 +83,28 @@ impl S3sServer {
     }
 }
 
+/// Keys of the objects of `bucket`, a folder of the server's `root`, sorted; the server's own
+/// bookkeeping (its dot files and folders) left out.
+pub fn bucket_objects(root: &Path, bucket: &str) -> Vec<String> {
+    let bucket = root.join(bucket);
+    let mut found = Vec::new();
+    let mut folders = vec![bucket.clone()];
+    while let Some(folder) = folders.pop() {
+        for entry in std::fs::read_dir(&folder).expect("bucket folder") {
+            let path = entry.expect("entry").path();
+            if path.is_dir() {
+                folders.push(path);
+            } else {
+                let key = path.strip_prefix(&bucket).expect("under the bucket");
+                found.push(key.to_string_lossy().into_owned());
+            }
+        }
+    }
+    found.retain(|key| !key.starts_with('.') && !key.contains("/."));
+    found.sort();
+    found
+}
+
 impl Drop for S3sServer {
     fn drop(&mut self) {
         let _ = self.child.kill();
