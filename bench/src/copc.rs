@@ -29,7 +29,7 @@ use serde::Serialize;
 
 use crate::campaign::points_read;
 use crate::cuts::fidelity::measure_fidelity;
-use crate::cuts::{build_and_open, draw, full_view, FidelityResult};
+use crate::cuts::{build_and_open, full_view, FidelityResult};
 use crate::scratch::{progress_log, scratch_dir};
 use crate::BenchError;
 
@@ -147,7 +147,7 @@ pub fn measure(
             gpu_budget_bytes: None,
         };
         let mut cut = CutRenderer::new(&renderer, dataset, cut_options)?;
-        let (_, report) = draw(&mut cut, &mut renderer, dataset, &settings)?;
+        let (_, report) = cut.render_rgb(&mut renderer, dataset, &settings)?;
         let ms = started.elapsed().as_secs_f64() * 1e3;
         log(format!(
             "copc: first frame at {lod_error} px in {ms:.0} ms (open {open_ms:.0} ms), {} of {} points",

@@ -9,7 +9,6 @@ use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::raster::{Frame, FrameSettings, Renderer};
 use serde::Serialize;
 
-use super::draw;
 use crate::{BenchError, ComputeMode};
 
 /// Per channel, out of 255.
@@ -109,7 +108,7 @@ pub fn measure_fidelity(
     let mut high_quality = None;
     for mode in FIDELITY_MODES {
         let settings = mode.map_or(*basic, |m| m.settings(basic));
-        let (expected, full_report) = draw(&mut full, &mut renderer, dataset, &settings)?;
+        let (expected, full_report) = full.render_rgb(&mut renderer, dataset, &settings)?;
         let (actual, cut_report, cut_warm_ms) =
             draw_then_warm(&mut cut, &mut renderer, dataset, &settings)?;
         if mode.is_none() {
@@ -152,9 +151,9 @@ fn draw_then_warm(
     dataset: &LodDataset,
     settings: &FrameSettings,
 ) -> Result<(Frame, CutReport, f64), BenchError> {
-    let (frame, report) = draw(cut, renderer, dataset, settings)?;
+    let (frame, report) = cut.render_rgb(renderer, dataset, settings)?;
     let started = std::time::Instant::now();
-    draw(cut, renderer, dataset, settings)?;
+    cut.render_rgb(renderer, dataset, settings)?;
     Ok((frame, report, started.elapsed().as_secs_f64() * 1e3))
 }
 

@@ -25,13 +25,11 @@ use std::time::Instant;
 
 use pointfarm_render::camera::Camera;
 use pointfarm_render::cloud::{pack_rgba8, ColorSource, PointCloud, WorldBounds};
-use pointfarm_render::color::ColorMode;
-use pointfarm_render::cut::{CutOptions, CutRenderer, CutReport, LodDataset, DEFAULT_LOD_ERROR_PX};
-use pointfarm_render::filter::PointFilter;
+use pointfarm_render::cut::{CutOptions, CutRenderer, LodDataset, DEFAULT_LOD_ERROR_PX};
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::DatasetSource;
 use pointfarm_render::lod::{build_lod, GeneratedSource, LodBuildOptions, PointSource};
-use pointfarm_render::raster::{Frame, FrameSettings, Renderer};
+use pointfarm_render::raster::{FrameSettings, Renderer};
 use serde::Serialize;
 
 use crate::scratch::{progress_log, scratch_dir};
@@ -211,18 +209,6 @@ pub fn build_and_open(
 }
 
 /// The full view of `bounds` in the basic mode at `width` x `height`.
-/// `cut`'s full-color frame of `settings`, every point kept: the frame every cut
-/// measurement draws.
-pub(crate) fn draw(
-    cut: &mut CutRenderer,
-    renderer: &mut Renderer,
-    dataset: &LodDataset,
-    settings: &FrameSettings,
-) -> Result<(Frame, CutReport), BenchError> {
-    let filter = PointFilter::default();
-    Ok(cut.render(renderer, dataset, settings, ColorMode::Rgb, &filter)?)
-}
-
 pub fn full_view(bounds: &WorldBounds, width: u32, height: u32) -> FrameSettings {
     let camera = Camera::auto(bounds, f64::from(width) / f64::from(height.max(1)));
     FrameSettings::new(width, height, camera)
@@ -240,7 +226,7 @@ pub fn warm_view(
     let mut cut = CutRenderer::new(&renderer, dataset, options)?;
     let mut frame = || -> Result<_, BenchError> {
         let started = Instant::now();
-        let (_, report) = draw(&mut cut, &mut renderer, dataset, settings)?;
+        let (_, report) = cut.render_rgb(&mut renderer, dataset, settings)?;
         Ok((started.elapsed().as_secs_f64() * 1e3, report))
     };
     let (cold_ms, report) = frame()?;

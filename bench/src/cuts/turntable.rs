@@ -14,7 +14,6 @@ use pointfarm_render::request::{
 };
 use serde::Serialize;
 
-use super::draw;
 use crate::stats::median;
 use crate::{memory, BenchError};
 
@@ -148,7 +147,7 @@ pub fn render_turntable(
     for i in 0..options.frames {
         let frame_settings = settings(i);
         let begun = Instant::now();
-        let (frame, report) = draw(&mut cut, &mut renderer, dataset, &frame_settings)?;
+        let (frame, report) = cut.render_rgb(&mut renderer, dataset, &frame_settings)?;
         let wall_ms = begun.elapsed().as_secs_f64() * 1e3;
         if i + 1 < options.frames {
             cut.read_ahead(dataset, &settings(i + 1), &PointFilter::default());

@@ -5,8 +5,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use super::tests::{
-    copc_file, count_of, cut_at, entries, frame_settings, rgb_frame, root_page, small_view, u64_at,
-    INFO_AT,
+    copc_file, count_of, cut_at, entries, frame_settings, root_page, small_view, u64_at, INFO_AT,
 };
 use super::*;
 use crate::camera::{Camera, Projection};
@@ -229,7 +228,8 @@ fn frames_read_the_pages_they_reach_once_and_draw_what_the_whole_file_draws() {
     let mut frame = |opened: &CopcDataset| {
         let mut cut = cut_at(&renderer, &opened.dataset, 0.0);
         let render = |cut: &mut CutRenderer, renderer: &mut Renderer| {
-            rgb_frame(cut, renderer, &opened.dataset, &settings).expect("frame")
+            cut.render_rgb(renderer, &opened.dataset, &settings)
+                .expect("frame")
         };
         let first = render(&mut cut, &mut renderer);
         let again = render(&mut cut, &mut renderer);
@@ -346,7 +346,8 @@ fn a_damaged_child_page_read_lazily_fails_the_frame_naming_the_file() {
         let mut renderer = Renderer::new(gpu());
         let mut cut = cut_at(&renderer, &lazy.dataset, 0.0);
         for attempt in 0..2 {
-            let error = rgb_frame(&mut cut, &mut renderer, &lazy.dataset, &settings)
+            let error = cut
+                .render_rgb(&mut renderer, &lazy.dataset, &settings)
                 .err()
                 .unwrap_or_else(|| panic!("{case}: the damaged page went unnoticed"))
                 .to_string();

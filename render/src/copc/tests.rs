@@ -6,11 +6,11 @@ use std::path::Path;
 use super::*;
 use crate::camera::Camera;
 use crate::color::ColorMode;
-use crate::cut::{CutError, CutOptions, CutRenderer, CutReport, CutView};
+use crate::cut::{CutOptions, CutRenderer, CutView};
 use crate::filter::PointFilter;
 use crate::ingest::load_point_cloud;
 use crate::lod::{read_nodes, NodeKey};
-use crate::raster::{Frame, FrameSettings, Renderer, Shading};
+use crate::raster::{FrameSettings, Renderer, Shading};
 use crate::request::PointSize;
 pub(super) use crate::testing::copc_file;
 use crate::testing::{compare_images_within, gpu};
@@ -421,17 +421,6 @@ pub(super) fn cut_at(renderer: &Renderer, dataset: &LodDataset, lod_error: f64) 
     CutRenderer::new(renderer, dataset, options).expect("cut renderer")
 }
 
-/// A frame of `dataset` in its own colors with every point passing, as these tests draw.
-pub(super) fn rgb_frame(
-    cut: &mut CutRenderer,
-    renderer: &mut Renderer,
-    dataset: &LodDataset,
-    settings: &FrameSettings,
-) -> Result<(Frame, CutReport), CutError> {
-    let filter = PointFilter::default();
-    cut.render(renderer, dataset, settings, ColorMode::Rgb, &filter)
-}
-
 #[test]
 fn every_node_drawn_is_the_file_read_whole() {
     let path = copc_file("simple.copc.laz");
@@ -485,8 +474,9 @@ fn a_coarse_cut_reads_only_the_nodes_it_draws() {
     let mut renderer = Renderer::new(gpu());
     let mut read = |lod_error: f64| {
         let mut cut = cut_at(&renderer, &opened.dataset, lod_error);
-        let (_, report) =
-            rgb_frame(&mut cut, &mut renderer, &opened.dataset, &settings).expect("frame");
+        let (_, report) = cut
+            .render_rgb(&mut renderer, &opened.dataset, &settings)
+            .expect("frame");
         report.counts
     };
     let every = read(0.0);

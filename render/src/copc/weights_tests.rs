@@ -5,7 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
-use super::tests::{copc_file, cut_at, rgb_frame, small_view};
+use super::tests::{copc_file, cut_at, small_view};
 use super::*;
 use crate::camera::Camera;
 use crate::cut::{select_cut, Cut};
@@ -83,8 +83,9 @@ fn high_quality_on_a_cut_of_an_exported_file_keeps_the_fidelity_rule() {
     let mut frame = |lod_error: f64, weighted: bool| {
         let mut cut = cut_at(&renderer, &opened.dataset, lod_error);
         cut.set_weighted_high_quality(weighted);
-        let (frame, report) =
-            rgb_frame(&mut cut, &mut renderer, &opened.dataset, &settings).expect("frame");
+        let (frame, report) = cut
+            .render_rgb(&mut renderer, &opened.dataset, &settings)
+            .expect("frame");
         (frame.image, report.counts.points_rendered)
     };
     let (full, all) = frame(0.0, true);
@@ -158,7 +159,8 @@ fn an_export_declares_a_spacing_no_node_is_sparser_than() {
     let mut renderer = Renderer::new(gpu());
     let mut frame = |lod_error: f64| {
         let mut cut = cut_at(&renderer, &opened.dataset, lod_error);
-        rgb_frame(&mut cut, &mut renderer, &opened.dataset, &settings).expect("frame")
+        cut.render_rgb(&mut renderer, &opened.dataset, &settings)
+            .expect("frame")
     };
     let (full, _) = frame(0.0);
     let (cut, report) = frame(0.5);

@@ -267,6 +267,18 @@ impl CutRenderer {
         ))
     }
 
+    /// A frame in the points' own colors, every point kept: the frame cuts are measured and
+    /// compared by.
+    pub fn render_rgb(
+        &mut self,
+        renderer: &mut Renderer,
+        dataset: &LodDataset,
+        settings: &FrameSettings,
+    ) -> Result<(Frame, CutReport), CutError> {
+        let every_point = PointFilter::default();
+        self.render(renderer, dataset, settings, ColorMode::Rgb, &every_point)
+    }
+
     /// Renders one frame: its cut made resident, its points colored in `color_mode` and
     /// passed through `filter`, then drawn.
     pub fn render(

@@ -23,8 +23,9 @@ fn the_caches_stay_within_their_budgets_and_evict() {
             Projection::Perspective { fov_y_deg: 30.0 },
         );
         let again = settings;
-        let (frame, report) =
-            rgb_frame(&mut cut, &mut renderer, &fixture, &settings).expect("frame");
+        let (frame, report) = cut
+            .render_rgb(&mut renderer, &fixture.dataset, &settings)
+            .expect("frame");
         assert!(report.gpu_cache_bytes <= budgets.gpu_bytes, "{report:?}");
         assert!(report.host_cache_bytes <= budgets.host_bytes, "{report:?}");
         assert!(
@@ -33,7 +34,9 @@ fn the_caches_stay_within_their_budgets_and_evict() {
         );
         evicted += report.counts.gpu_evicted;
         // The same view again, after whatever the budget evicted: the same image.
-        let (repeat, _) = rgb_frame(&mut cut, &mut renderer, &fixture, &again).expect("repeat");
+        let (repeat, _) = cut
+            .render_rgb(&mut renderer, &fixture.dataset, &again)
+            .expect("repeat");
         assert!(
             repeat.image == frame.image,
             "step {step}: a repeated frame differs"
@@ -72,7 +75,9 @@ fn a_read_ahead_fills_the_host_cache_and_changes_no_pixel() {
     .expect("first");
     // Another color mode empties the GPU cache, so the next frame needs every node.
     cut.read_ahead(&fixture.dataset, &next, &PointFilter::default());
-    let (frame, report) = rgb_frame(&mut cut, &mut renderer, &fixture, &next).expect("next");
+    let (frame, report) = cut
+        .render_rgb(&mut renderer, &fixture.dataset, &next)
+        .expect("next");
     assert_eq!(report.counts.gpu_hits, 0);
     assert_eq!(
         report.counts.nodes_read, 0,
@@ -106,7 +111,7 @@ fn a_damaged_node_is_reported_not_drawn() {
     let mut renderer = Renderer::new(gpu());
     let mut cut = cut_renderer(&renderer, &fixture, 0.0);
     let settings = settings(&fixture, &basic());
-    let Err(error) = rgb_frame(&mut cut, &mut renderer, &fixture, &settings) else {
+    let Err(error) = cut.render_rgb(&mut renderer, &fixture.dataset, &settings) else {
         panic!("a damaged node fails the frame");
     };
     assert!(

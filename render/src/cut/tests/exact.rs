@@ -184,11 +184,16 @@ fn a_frame_is_the_same_from_a_cold_and_a_warm_cache() {
         Projection::Perspective { fov_y_deg: 40.0 },
     );
     let mut cut = cut_renderer(&renderer, &fixture, DEFAULT_LOD_ERROR_PX);
-    let (cold, cold_report) = rgb_frame(&mut cut, &mut renderer, &fixture, &first).expect("cold");
+    let (cold, cold_report) = cut
+        .render_rgb(&mut renderer, &fixture.dataset, &first)
+        .expect("cold");
     assert_eq!(cold_report.counts.gpu_hits, 0);
     assert!(cold_report.counts.nodes_read > 0 && cold_report.counts.bytes_read > 0);
-    rgb_frame(&mut cut, &mut renderer, &fixture, &other).expect("other");
-    let (warm, warm_report) = rgb_frame(&mut cut, &mut renderer, &fixture, &first).expect("warm");
+    cut.render_rgb(&mut renderer, &fixture.dataset, &other)
+        .expect("other");
+    let (warm, warm_report) = cut
+        .render_rgb(&mut renderer, &fixture.dataset, &first)
+        .expect("warm");
     assert_eq!(warm_report.counts.nodes_read, 0, "{warm_report:?}");
     assert_eq!(warm_report.counts.gpu_hits, warm_report.counts.nodes);
     assert!(

@@ -92,23 +92,8 @@ fn fresh_cut(
     settings: &FrameSettings,
 ) -> (Frame, CutReport) {
     let mut cut = cut_renderer(renderer, fixture, lod_error);
-    rgb_frame(&mut cut, renderer, fixture, settings).expect("cut frame")
-}
-
-/// A frame of `fixture` in RGB, every point kept, from `cut`.
-fn rgb_frame(
-    cut: &mut CutRenderer,
-    renderer: &mut Renderer,
-    fixture: &Fixture,
-    settings: &FrameSettings,
-) -> Result<(Frame, CutReport), CutError> {
-    cut.render(
-        renderer,
-        &fixture.dataset,
-        settings,
-        ColorMode::Rgb,
-        &PointFilter::default(),
-    )
+    cut.render_rgb(renderer, &fixture.dataset, settings)
+        .expect("cut frame")
 }
 
 fn resident_image(
