@@ -21,6 +21,7 @@ use pointfarm_daemon::service::{
     DEFAULT_MAX_IMAGE_SIDE, DEFAULT_MAX_UPLOAD_BYTES, DEFAULT_WORKER_CACHE_BYTES,
     DEFAULT_WORKER_FAILURES_BEFORE_BLOCKLIST,
 };
+use pointfarm_daemon::stores::store_url;
 use pointfarm_daemon::supervisor::WorkerCommand;
 use pointfarm_proto::endpoint::connections::ConnectionLimits;
 use pointfarm_proto::endpoint::{self, certificate};
@@ -65,6 +66,12 @@ pub struct ServeArgs {
         value_delimiter = ','
     )]
     allowed_output_prefixes: Vec<String>,
+    /// An s3:// prefix (s3://bucket/prefix) the daemon publishes each dataset's level-of-detail
+    /// store under once built, STORE_URL/SHA256/, for workers to read its nodes from there with
+    /// credentials of their own instead of through the daemon. Without it, workers read every
+    /// store through the daemon.
+    #[arg(long, value_name = "URL", env = "POINTFARM_STORE_URL")]
+    store_url: Option<String>,
     /// Require this bearer token of clients (datasets and jobs). Without it those services
     /// are open, which is refused beyond loopback unless --insecure.
     #[arg(long, env = "POINTFARM_TOKEN", hide_env_values = true)]
@@ -280,6 +287,12 @@ pub fn run(args: ServeArgs) -> Result<()> {
             url_prefixes(&args.allowed_url_prefixes).context("--allow-url-prefix")?;
         config.allowed_output_prefixes =
             output_prefixes(&args.allowed_output_prefixes).context("--allow-output-prefix")?;
+        config.store_url = args
+            .store_url
+            .as_deref()
+            .map(store_url)
+            .transpose()
+            .context("--store-url")?;
         config.max_image_side = args.max_image_side;
         config.max_frames = args.max_frames;
         config.worker_cache_bytes = args.worker_cache_size;

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 
 use pointfarm_render::ingest::{open_dataset_file, Symlinks};
-use pointfarm_render::remote::{AllowedPrefixes, RemoteClient, RemoteSettings};
+use pointfarm_render::remote::{AllowedPrefixes, ObjectUrl, RemoteClient, RemoteSettings};
 use sha2::{Digest, Sha256};
 use tokio::sync::broadcast;
 
@@ -15,7 +15,7 @@ use crate::limits::{check_id, check_length, MAX_REQUEST_ID_BYTES};
 use crate::metrics::DaemonMetrics;
 use crate::model::{now_unix_ms, FrameReport, Job, JobEvent, JobSpec, JobState};
 use crate::state::{Page, StateDb};
-use crate::stores::{DatasetStores, StoreBuildGate};
+use crate::stores::{DatasetStores, StoreBuildGate, StorePublisher};
 use crate::webhooks::{WebhookEndpoint, Webhooks};
 use crate::worker_presence::WorkerPresence;
 
@@ -98,6 +98,9 @@ pub struct DaemonConfig {
     pub frame_quota_bytes: Option<u64>,
     /// How often the retention rules are applied.
     pub retention_sweep_period: std::time::Duration,
+    /// Where ready level-of-detail stores are published for workers to read (`--store-url`,
+    /// checked by `stores::store_url`); none keeps every store's nodes served by the daemon.
+    pub store_url: Option<ObjectUrl>,
 }
 
 impl DaemonConfig {
@@ -127,6 +130,7 @@ impl DaemonConfig {
             job_retention: None,
             frame_quota_bytes: None,
             retention_sweep_period: DEFAULT_RETENTION_SWEEP_PERIOD,
+            store_url: None,
             data_dir,
         }
     }
@@ -249,6 +253,14 @@ impl Daemon {
         let (events, _) = broadcast::channel(config.event_buffer.max(1));
         let work = Arc::new(WorkSignal::default());
         let built = Arc::clone(&work);
+        let publisher = config
+            .store_url
+            .clone()
+            .map(|url| {
+                let records = config.data_dir.join("published-stores");
+                StorePublisher::start(url, config.remote_settings.clone(), &records)
+            })
+            .transpose()?;
         let stores =
             DatasetStores::new(config.data_dir.join("lod"), config.store_build_memory_bytes)
                 .gated(config.store_build_gate.clone())
@@ -259,7 +271,8 @@ impl Daemon {
                 ))
                 // Frames that wait for the store are leased again: previews for a redraw when
                 // the build's version moves, every frame for its final render when it ends.
-                .notifying(Arc::new(move || built.notify()));
+                .notifying(Arc::new(move || built.notify()))
+                .publishing(publisher);
         let metrics = DaemonMetrics::new();
         let webhooks = Webhooks::start(&config.webhooks, metrics.webhook_counters())?;
         let daemon = Arc::new(Self {

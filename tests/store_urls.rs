@@ -1,0 +1,328 @@
+//! Stores every worker reads directly (`serve --store-url s3://...`), against a real
+//! S3-compatible server (`s3s-fs`) and a separate `pointfarm worker` process with the
+//! server's credentials in its own environment: the daemon publishes the store it built, the
+//! worker reads its nodes from the bucket and none through the daemon, the frames are those
+//! of a daemon without `--store-url`, a restart publishes nothing again, no credential reaches
+//! a job, a lease or a log, and a damaged published object fails the frame clearly while the
+//! job still ends, through the daemon. Each test skips, saying so, where
+//! `POINTFARM_TEST_S3S_FS` names no `s3s-fs` binary.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use pointfarm_proto::v1 as pb;
+use pointfarm_render::ingest::{write_las, LasWriteOptions};
+use pointfarm_render::sample::sample_scene;
+use pointfarm_tests::prometheus::scrape;
+use pointfarm_tests::s3s::{self, S3sServer};
+use pointfarm_tests::service::{connect, lease_at_once};
+use pointfarm_tests::{free_address, pointfarm_bin, pointfarm_ok, ServeProcess, WorkerProcess};
+
+/// The bucket stores are published to: a folder of the server's root.
+const BUCKET: &str = "pointfarm-stores";
+/// Where the daemon publishes them.
+const STORE_URL: &str = "s3://pointfarm-stores/farm";
+/// Points of the scene: several leaves of the store's octree.
+const SCENE_POINTS: usize = 300_000;
+/// A job drawn from levels of detail: two frames of a cut.
+const OPTIONS: [&str; 5] = ["--size=120x90", "--turntable", "2", "--lod-error", "0.25"];
+const FRAMES: [&str; 2] = ["frame_00000.png", "frame_00001.png"];
+/// The daemon's count of node records it served to workers.
+const RECORDS_SERVED: &str = "pointfarm_store_records_served_total";
+
+fn arg(path: &Path) -> &str {
+    path.to_str().expect("temporary paths are UTF-8")
+}
+
+/// An S3 server over a fresh root holding the bucket, a scene to render and a scratch
+/// folder. The fields drop in order: the server stops first.
+struct Farm {
+    server: S3sServer,
+    root: tempfile::TempDir,
+    dir: tempfile::TempDir,
+    scene: PathBuf,
+}
+
+impl Farm {
+    /// Starts the server; None, having said so, without the binary.
+    fn start() -> Option<Self> {
+        let root = tempfile::tempdir().expect("root");
+        std::fs::create_dir_all(root.path().join(BUCKET)).expect("bucket folder");
+        let server = S3sServer::start_or_skip(root.path())?;
+        let dir = tempfile::tempdir().expect("tempdir");
+        let scene = dir.path().join("scene.laz");
+        write_las(
+            &scene,
+            &sample_scene(SCENE_POINTS, 9),
+            &LasWriteOptions::default(),
+        )
+        .expect("scene");
+        Some(Self {
+            server,
+            root,
+            dir,
+            scene,
+        })
+    }
+
+    /// The `pointfarm` binary with the server's endpoint and credentials in its environment.
+    fn pointfarm(&self) -> Command {
+        let mut command = Command::new(pointfarm_bin());
+        command.envs(self.server.environment());
+        command
+    }
+
+    /// A daemon publishing its stores under [`STORE_URL`], with no embedded worker, its
+    /// metrics at `metrics`.
+    fn publishing_daemon(&self, address: &str, metrics: &str) -> ServeProcess {
+        let data = self.dir.path().join("data");
+        let args = ["--no-embedded-worker", "--store-url", STORE_URL];
+        let args = [&args[..], &["--metrics-listen", metrics]].concat();
+        ServeProcess::start_command(
+            self.pointfarm(),
+            address,
+            &data,
+            &data.join("serve.log"),
+            &args,
+        )
+    }
+
+    /// A `pointfarm worker` with the server's credentials, its cache in a folder of `name`.
+    fn worker(&self, daemon: &ServeProcess, name: &str) -> WorkerProcess {
+        let cache = self.dir.path().join(name);
+        WorkerProcess::start_in(self.pointfarm(), &daemon.address, &cache, name, &[])
+    }
+
+    /// Renders the scene through `daemon` into the folder `out`.
+    fn render(&self, daemon: &ServeProcess, out: &str) -> PathBuf {
+        let out = self.dir.path().join(out);
+        let mut args = vec!["render", arg(&self.scene), "--out", arg(&out)];
+        args.extend(["--server", &daemon.address]);
+        args.extend(OPTIONS);
+        pointfarm_ok(&args);
+        out
+    }
+
+    /// Keys of the bucket's objects, sorted; the server's own bookkeeping left out.
+    fn objects(&self) -> Vec<String> {
+        let bucket = self.root.path().join(BUCKET);
+        let mut found = Vec::new();
+        let mut folders = vec![bucket.clone()];
+        while let Some(folder) = folders.pop() {
+            for entry in std::fs::read_dir(&folder).expect("bucket folder") {
+                let path = entry.expect("entry").path();
+                if path.is_dir() {
+                    folders.push(path);
+                } else {
+                    let key = path.strip_prefix(&bucket).expect("under the bucket");
+                    found.push(key.to_string_lossy().into_owned());
+                }
+            }
+        }
+        found.retain(|key| !key.starts_with('.') && !key.contains("/."));
+        found.sort();
+        found
+    }
+}
+
+/// Waits until `daemon` has said `times` times that it published a store.
+fn wait_for_published(daemon: &ServeProcess, times: usize) {
+    let started = Instant::now();
+    while daemon.log().matches("store published").count() < times {
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "the store was not published:\n{}",
+            daemon.log()
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+fn assert_same_frames(expected: &Path, actual: &Path, what: &str) {
+    for frame in FRAMES {
+        let image = |dir: &Path| image::open(dir.join(frame)).expect("png").to_rgba8();
+        assert!(image(expected) == image(actual), "{frame} differs {what}");
+    }
+}
+
+/// The ids of the jobs `daemon` knows.
+fn job_ids(daemon: &ServeProcess) -> BTreeSet<String> {
+    let listed = pointfarm_ok(&["jobs", "list", "--server", &daemon.address, "--json"]);
+    let jobs: serde_json::Value = serde_json::from_slice(&listed.stdout).expect("json");
+    jobs["jobs"]
+        .as_array()
+        .expect("jobs")
+        .iter()
+        .map(|job| job["id"].as_str().expect("an id").to_owned())
+        .collect()
+}
+
+/// `jobs show ID --json` of `daemon`, as printed, and as a Job.
+fn shown_job(daemon: &ServeProcess, id: &str) -> (String, pb::Job) {
+    let shown = pointfarm_ok(&["jobs", "show", id, "--server", &daemon.address, "--json"]);
+    let text = String::from_utf8_lossy(&shown.stdout).into_owned();
+    let value: serde_json::Value = serde_json::from_str(&text).expect("json");
+    let job = serde_json::from_value(value["job"].clone()).expect("a Job");
+    (text, job)
+}
+
+/// The job `daemon` ran since it knew `before`.
+fn new_job(daemon: &ServeProcess, before: &BTreeSet<String>) -> (String, pb::Job) {
+    let after = job_ids(daemon);
+    let mut new = after.difference(before);
+    let id = new.next().expect("a new job").clone();
+    assert!(new.next().is_none(), "one new job");
+    shown_job(daemon, &id)
+}
+
+fn assert_no_credential(text: &str, what: &str) {
+    for secret in [s3s::SECRET_KEY, s3s::ACCESS_KEY] {
+        assert!(!text.contains(secret), "{what} holds a credential:\n{text}");
+    }
+}
+
+#[test]
+fn workers_read_a_published_store_from_object_storage_and_none_of_it_through_the_daemon() {
+    let Some(farm) = Farm::start() else {
+        return;
+    };
+    // The same job through a daemon without --store-url: its worker reads the daemon's store.
+    let plain_daemon = ServeProcess::start(&farm.dir.path().join("plain"));
+    let plain = farm.render(&plain_daemon, "plain");
+    drop(plain_daemon);
+
+    let (address, metrics) = (free_address(), free_address());
+    let daemon = farm.publishing_daemon(&address, &metrics);
+    let worker = farm.worker(&daemon, "far");
+    // The first job builds the store; once ready, the daemon publishes it.
+    let first = farm.render(&daemon, "first");
+    assert_same_frames(&plain, &first, "while the store is published");
+    wait_for_published(&daemon, 1);
+    let objects = farm.objects();
+    let [hierarchy, payload] = objects.as_slice() else {
+        panic!("the store's two objects: {objects:?}");
+    };
+    let sha256 = payload
+        .strip_prefix("farm/")
+        .and_then(|rest| rest.strip_suffix("/nodes.bin"))
+        .expect("farm/SHA256/nodes.bin");
+    assert_eq!(hierarchy, &format!("farm/{sha256}/hierarchy.pfps"));
+
+    // Published: a worker new to the dataset reads every node from the bucket, none from the
+    // daemon.
+    drop(worker);
+    let worker = farm.worker(&daemon, "reader");
+    let served_before = scrape(&metrics)[RECORDS_SERVED];
+    let jobs_before = job_ids(&daemon);
+    let published = farm.render(&daemon, "published");
+    assert_same_frames(&plain, &published, "from the published store");
+    assert_eq!(
+        scrape(&metrics)[RECORDS_SERVED],
+        served_before,
+        "the daemon served node records:\n{}",
+        worker.log()
+    );
+    let log = worker.log();
+    assert!(log.contains("from=Published"), "{log}");
+    let (shown, job) = new_job(&daemon, &jobs_before);
+    assert_eq!(job.state, pb::JobState::Succeeded as i32, "{shown}");
+    let cuts: Vec<pb::FrameCut> = job.frames.iter().filter_map(|f| f.cut).collect();
+    assert_eq!(cuts.len(), 2, "{shown}");
+    assert!(cuts[0].nodes_read > 1, "{shown}");
+    assert!(
+        cuts.iter().map(|c| c.object_requests).sum::<u64>() > 0
+            && cuts.iter().map(|c| c.object_bytes).sum::<u64>() > 0,
+        "no object reads reported: {shown}"
+    );
+    assert_no_credential(&shown, "the job");
+
+    // A lease names the published store by its prefix and versions, and nothing more.
+    let mut daemon = daemon;
+    drop(worker);
+    let before = job_ids(&daemon);
+    let detached = farm.dir.path().join("detached");
+    let mut args = vec!["render", arg(&farm.scene), "--out", arg(&detached)];
+    args.extend(["--server", &address, "--detach"]);
+    args.extend(OPTIONS);
+    pointfarm_ok(&args);
+    assert_eq!(job_ids(&daemon).len(), before.len() + 1);
+    let runtime = tokio::runtime::Runtime::new().expect("runtime");
+    let task = runtime.block_on(async {
+        let mut workers =
+            pb::worker_service_client::WorkerServiceClient::new(connect(&address).await);
+        let leased = workers
+            .lease_frame(lease_at_once("probe"))
+            .await
+            .expect("lease");
+        leased.into_inner().task.expect("a task")
+    });
+    let dataset = task.dataset.expect("a dataset");
+    let store = dataset
+        .published_store
+        .clone()
+        .expect("the published store");
+    assert_eq!(store.url, format!("{STORE_URL}/{sha256}/"));
+    assert!(!store.hierarchy_version.is_empty() && !store.payload_version.is_empty());
+    assert_no_credential(&format!("{dataset:?}"), "the lease");
+
+    // Restarted, the daemon finds the store published and publishes nothing again.
+    assert!(daemon
+        .terminate(Duration::from_secs(60))
+        .is_some_and(|status| status.success()));
+    let daemon = farm.publishing_daemon(&address, &metrics);
+    let worker = farm.worker(&daemon, "again");
+    let again = farm.render(&daemon, "again");
+    assert_same_frames(&plain, &again, "after a restart");
+    assert_eq!(scrape(&metrics)[RECORDS_SERVED], 0.0, "{}", worker.log());
+    let served = daemon.log();
+    assert_eq!(served.matches("store published").count(), 1, "{served}");
+    assert_no_credential(&served, "the daemon's log");
+    assert_no_credential(&worker.log(), "the worker's log");
+    assert_no_credential(&log, "the worker's log");
+}
+
+#[test]
+fn a_damaged_published_store_fails_the_frame_and_the_job_ends_through_the_daemon() {
+    let Some(farm) = Farm::start() else {
+        return;
+    };
+    let (address, metrics) = (free_address(), free_address());
+    let daemon = farm.publishing_daemon(&address, &metrics);
+    let mut first_worker = farm.worker(&daemon, "first");
+    let first = farm.render(&daemon, "first");
+    wait_for_published(&daemon, 1);
+    first_worker.kill();
+
+    // Every byte of the published payload damaged, its size kept.
+    let payload = farm
+        .objects()
+        .into_iter()
+        .find(|key| key.ends_with("/nodes.bin"))
+        .expect("the payload object");
+    let path = farm.root.path().join(BUCKET).join(payload);
+    let damaged: Vec<u8> = std::fs::read(&path)
+        .expect("payload")
+        .iter()
+        .map(|b| b ^ 0x5a)
+        .collect();
+    std::fs::write(&path, damaged).expect("damage");
+
+    // A worker new to the dataset fails its first frame saying which store failed, reads
+    // the dataset through the daemon from then on, and the job ends as the first did.
+    let worker = farm.worker(&daemon, "second");
+    let jobs_before = job_ids(&daemon);
+    let second = farm.render(&daemon, "second");
+    assert_same_frames(&first, &second, "through the daemon after the damage");
+    let log = worker.log();
+    assert!(
+        log.contains("the published store failed") && log.contains(&format!("{STORE_URL}/")),
+        "{log}"
+    );
+    let (shown, job) = new_job(&daemon, &jobs_before);
+    assert_eq!(job.state, pb::JobState::Succeeded as i32, "{shown}");
+    assert!(scrape(&metrics)[RECORDS_SERVED] > 0.0);
+    assert_no_credential(&log, "the worker's log");
+    assert_no_credential(&daemon.log(), "the daemon's log");
+}
