@@ -115,6 +115,7 @@ fn final_frames_of_a_prefix_in_s3_are_the_frames_of_the_files_here() {
     // Each tile read once, and its header, records and chunk table once more by range.
     let total = total_bytes(&paths);
     let (requests, bytes) = fetched(&output);
+    eprintln!("built from S3: fetched {bytes} bytes of {total} in {requests} requests");
     assert!(
         bytes >= total && bytes <= total + 4 * 64 * 1024,
         "{bytes} bytes of {total}: {text}"

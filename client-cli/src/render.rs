@@ -16,7 +16,7 @@ use pointfarm_render::remote::{ListedObject, ObjectUrl, RemoteClient};
 use pointfarm_render::request::RenderRequest;
 use pointfarm_render::source::{
     frame_points, ChunkStarts, FramePoints, FrameSource, Levels, LocalStore, Opening,
-    PointSourceFacts, SourceEvent, StoreCache,
+    PointSourceFacts, SourceEvent, StoreCache, StoreInput,
 };
 
 use crate::frame_lines;
@@ -355,35 +355,23 @@ fn preview_then_final(
     // share the cores with (docs/perf/preview-first-frame.md).
     let (start_build, build_gate) = mpsc::channel();
     let progress = Arc::new(BuildProgress::new());
-    let (memory_budget, disk_budget) = (options.memory_budget_bytes, stores.disk_budget);
-    let (build, chunk_starts, files) = match input {
+    let (memory, disk) = (options.memory_budget_bytes, stores.disk_budget);
+    let (gate, watch) = (build_gate, Arc::clone(&progress));
+    let (store_input, chunk_starts, files) = match input {
         BuildInput::Files(files, _) => {
-            let build = LocalStore::build_in_background(
-                files.to_vec(),
-                folder,
-                memory_budget,
-                disk_budget,
-                build_gate,
-                Arc::clone(&progress),
-            )?;
-            (build, ChunkStarts::read(files)?, files)
+            let chunk_starts = ChunkStarts::read(files)?;
+            (StoreInput::Files(files.to_vec()), chunk_starts, files)
         }
         BuildInput::Tiles(client, tiles) => {
-            let build = LocalStore::build_tiles_in_background(
-                client.clone(),
-                tiles.to_vec(),
-                folder,
-                memory_budget,
-                disk_budget,
-                build_gate,
-                Arc::clone(&progress),
-            )?;
             let urls: Vec<ObjectUrl> = tiles.iter().map(|tile| tile.url.clone()).collect();
+            let chunk_starts = ChunkStarts::read_urls(client, &urls)?;
             // A store of tiles is opened without them: damaged, it is removed, for the next
             // render to build.
-            (build, ChunkStarts::read_urls(client, &urls)?, &[][..])
+            let input = StoreInput::Tiles(client.clone(), tiles.to_vec());
+            (input, chunk_starts, &[][..])
         }
     };
+    let build = LocalStore::build_in_background(store_input, folder, memory, disk, gate, watch)?;
     let first = Box::new(chunk_starts.with_nodes(&[]));
     let mut preview = target.open(renderer, Opening::Preview(first))?;
     let building = || !build.is_finished();
@@ -397,7 +385,7 @@ fn preview_then_final(
     let built = build.join();
     let stored = built.map_err(|_| anyhow::anyhow!("the levels of detail's build panicked"))??;
     let events = target.events();
-    let store = LocalStore::of_built(stored, files, memory_budget, disk_budget, &events);
+    let store = LocalStore::of_built(stored, files, memory, disk, &events);
     let levels = Levels::Store(Box::new(store));
     let opening = Opening::Levels {
         levels,

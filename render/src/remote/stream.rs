@@ -241,7 +241,7 @@ mod tests {
         }
 
         fn fetches(&self) -> Vec<Range<u64>> {
-            self.fetches.lock().unwrap().clone()
+            self.fetches.lock().expect("the fetches").clone()
         }
     }
 
@@ -261,7 +261,10 @@ mod tests {
                     version: "\"abc\"".into(),
                 });
             }
-            self.fetches.lock().unwrap().push(range.clone());
+            self.fetches
+                .lock()
+                .expect("the fetches")
+                .push(range.clone());
             self.fetched_bytes
                 .fetch_add(range.end - range.start, Ordering::SeqCst);
             Ok(self.bytes[range.start as usize..range.end as usize].to_vec())

@@ -12,6 +12,7 @@ use std::time::UNIX_EPOCH;
 use sha2::{Digest, Sha256};
 
 use super::events::SourceEvent;
+use super::tile_store::{open_or_build_tiles, StoreInput};
 use super::SourceError;
 use crate::cut::{CutError, StoredLod};
 use crate::lod::BuildProgress;
@@ -174,47 +175,68 @@ impl LocalStore {
         Ok(())
     }
 
-    /// Builds the store of `files` in `folder` on a thread of its own once `start` is sent to
-    /// or dropped, listing in `progress` the nodes it stores as it stores them: a preview
-    /// draws them meanwhile.
+    /// Builds the store of `input` (files here, or tiles by URL streamed) in `folder` on a
+    /// thread of its own once `start` is sent to or dropped, listing in `progress` the nodes it
+    /// stores as it stores them: a preview draws them meanwhile.
     pub fn build_in_background(
-        files: Vec<PathBuf>,
+        input: StoreInput,
         folder: PathBuf,
         memory_budget: u64,
         disk_budget: Option<u64>,
         start: Receiver<()>,
         progress: Arc<BuildProgress>,
     ) -> Result<JoinHandle<Result<StoredLod, CutError>>, SourceError> {
-        std::thread::Builder::new()
-            .name("lod-build".into())
-            .spawn(move || {
-                // Sent or dropped: either way the build goes on.
-                let _ = start.recv();
-                update_earlier_store(&files, &folder, memory_budget, &|_| {});
-                let opened = StoredLod::open_or_build_watched(
-                    &files,
-                    &folder,
-                    memory_budget,
-                    disk_budget,
-                    &mut |points| {
-                        tracing::info!(
-                            points,
-                            folder = %folder.display(),
-                            "building levels of detail behind a preview"
-                        );
-                    },
-                    &progress,
+        build_on_thread(start, move || {
+            let on_build = &mut |points| {
+                tracing::info!(
+                    points,
+                    folder = %folder.display(),
+                    "building levels of detail behind a preview"
                 );
-                if opened.is_ok() {
-                    list_files(&files, &folder);
+            };
+            let files = match input {
+                StoreInput::Files(files) => files,
+                StoreInput::Tiles(client, tiles) => {
+                    let (memory, disk) = (memory_budget, disk_budget);
+                    return open_or_build_tiles(
+                        &client, &tiles, &folder, memory, disk, on_build, &progress,
+                    );
                 }
-                opened
-            })
-            .map_err(|error| SourceError::Io {
-                path: PathBuf::from("lod-build thread"),
-                error,
-            })
+            };
+            update_earlier_store(&files, &folder, memory_budget, &|_| {});
+            let opened = StoredLod::open_or_build_watched(
+                &files,
+                &folder,
+                memory_budget,
+                disk_budget,
+                on_build,
+                &progress,
+            );
+            if opened.is_ok() {
+                list_files(&files, &folder);
+            }
+            opened
+        })
     }
+}
+
+/// Runs `build` on a thread of its own once `start` is sent to or dropped: a preview's first
+/// frame goes first.
+fn build_on_thread(
+    start: Receiver<()>,
+    build: impl FnOnce() -> Result<StoredLod, CutError> + Send + 'static,
+) -> Result<JoinHandle<Result<StoredLod, CutError>>, SourceError> {
+    std::thread::Builder::new()
+        .name("lod-build".into())
+        .spawn(move || {
+            // Sent or dropped: either way the build goes on.
+            let _ = start.recv();
+            build()
+        })
+        .map_err(|error| SourceError::Io {
+            path: PathBuf::from("lod-build thread"),
+            error,
+        })
 }
 
 /// Updates the store of an earlier set of `files` into `folder` where there is one

@@ -6,9 +6,6 @@
 //! after a listing (or a HEAD) and a replaced object gets a new one.
 
 use std::path::{Path, PathBuf};
-use std::sync::mpsc::Receiver;
-use std::sync::Arc;
-use std::thread::JoinHandle;
 
 use rayon::prelude::*;
 use sha2::{Digest, Sha256};
@@ -73,10 +70,17 @@ pub fn open_tile_source(
     })
 }
 
+/// What a store is built from: files here, or tiles by URL streamed (each held to the
+/// version listed).
+pub enum StoreInput {
+    Files(Vec<PathBuf>),
+    Tiles(RemoteClient, Vec<ListedObject>),
+}
+
 /// Opens the store of `tiles` in `folder`, or builds it first from the tiles streamed by URL,
 /// telling `on_build` the points before a build starts and listing in `progress` the nodes
 /// it stores.
-fn open_or_build_tiles(
+pub(super) fn open_or_build_tiles(
     client: &RemoteClient,
     tiles: &[ListedObject],
     folder: &Path,
@@ -126,42 +130,5 @@ impl LocalStore {
             disk_budget,
             events,
         ))
-    }
-
-    /// [`LocalStore::build_in_background`] of tiles by URL, streamed.
-    pub fn build_tiles_in_background(
-        client: RemoteClient,
-        tiles: Vec<ListedObject>,
-        folder: PathBuf,
-        memory_budget: u64,
-        disk_budget: Option<u64>,
-        start: Receiver<()>,
-        progress: Arc<BuildProgress>,
-    ) -> Result<JoinHandle<Result<StoredLod, CutError>>, SourceError> {
-        std::thread::Builder::new()
-            .name("lod-build".into())
-            .spawn(move || {
-                // Sent or dropped: either way the build goes on.
-                let _ = start.recv();
-                open_or_build_tiles(
-                    &client,
-                    &tiles,
-                    &folder,
-                    memory_budget,
-                    disk_budget,
-                    &mut |points| {
-                        tracing::info!(
-                            points,
-                            folder = %folder.display(),
-                            "building levels of detail of tiles by URL behind a preview"
-                        );
-                    },
-                    &progress,
-                )
-            })
-            .map_err(|error| SourceError::Io {
-                path: PathBuf::from("lod-build thread"),
-                error,
-            })
     }
 }
