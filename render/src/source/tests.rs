@@ -53,20 +53,6 @@ fn dataset(dir: &Path, points: usize) -> Vec<PathBuf> {
     vec![file]
 }
 
-/// Every frame of `request` from `source`.
-fn frames(source: &mut FrameSource, request: &RenderRequest) -> Vec<SourceFrame> {
-    (0..request.frames())
-        .map(|index| {
-            let settings = source.frame_settings(request, index);
-            let frame = source.render(&settings, &quiet).expect("a frame");
-            if index + 1 < request.frames() {
-                source.read_ahead(&source.frame_settings(request, index + 1));
-            }
-            frame
-        })
-        .collect()
-}
-
 fn images(frames: &[SourceFrame]) -> Vec<image::RgbaImage> {
     frames.iter().map(|f| f.frame.image.clone()).collect()
 }
@@ -122,15 +108,29 @@ impl Scene {
         )
         .expect("the store")
     }
+
+    /// Every frame of the scene's turntable from `source`.
+    fn frames(&self, source: &mut FrameSource) -> Vec<SourceFrame> {
+        let request = &self.request;
+        (0..request.frames())
+            .map(|index| {
+                let settings = source.frame_settings(request, index);
+                let frame = source.render(&settings, &quiet).expect("a frame");
+                if index + 1 < request.frames() {
+                    source.read_ahead(&source.frame_settings(request, index + 1));
+                }
+                frame
+            })
+            .collect()
+    }
 }
 
 #[test]
 fn a_store_and_its_records_served_from_elsewhere_give_the_same_frames() {
     let scene = Scene::new(40_000);
-    let request = &scene.request;
     let mut local = scene.open_store(Renderer::new(gpu()), 1.0);
     assert_eq!(local.frame_points(), FramePoints::StoreCut);
-    let here = frames(&mut local, request);
+    let here = scene.frames(&mut local);
     assert!(here[0].opened.and_then(|o| o.build_ms).is_some(), "built");
     assert!(here[1].opened.is_none(), "told once");
 
@@ -153,11 +153,11 @@ fn a_store_and_its_records_served_from_elsewhere_give_the_same_frames() {
         Renderer::new(gpu()),
         served,
         cut_options(1.0),
-        &request.render,
+        &scene.request.render,
         &quiet,
     )
     .expect("served");
-    let there = frames(&mut served, request);
+    let there = scene.frames(&mut served);
     assert_eq!(there[0].opened.and_then(|o| o.build_ms), Some(12.0));
     assert_eq!(images(&here), images(&there), "pixel for pixel");
     for (a, b) in here.iter().zip(&there) {
@@ -170,19 +170,18 @@ fn a_store_and_its_records_served_from_elsewhere_give_the_same_frames() {
 #[test]
 fn coarse_cuts_are_previews_that_say_how_complete_they_are() {
     let scene = Scene::new(400_000);
-    let request = &scene.request;
     let mut source = scene.open_store(Renderer::new(gpu()), 0.5);
-    let finals = images(&frames(&mut source, request));
+    let finals = images(&scene.frames(&mut source));
     assert!(source.preview_cuts(true).expect("coarse"));
     assert!(source.is_preview());
-    let previews = frames(&mut source, request);
+    let previews = scene.frames(&mut source);
     for frame in &previews {
         let completeness = frame.preview.expect("a preview");
         assert!(completeness > 0.0 && completeness < 1.0, "{completeness}");
         assert!(frame.points_rendered < frame.points_total);
     }
     assert!(!source.preview_cuts(false).expect("final"));
-    assert_eq!(images(&frames(&mut source, request)), finals);
+    assert_eq!(images(&scene.frames(&mut source)), finals);
 
     // A final error coarser than a preview's leaves nothing to preview.
     let mut coarse = scene.open_store(source.into_renderer(), PREVIEW_LOD_ERROR_PX * 2.0);
@@ -192,14 +191,13 @@ fn coarse_cuts_are_previews_that_say_how_complete_they_are() {
 #[test]
 fn a_preview_frames_the_files_and_counts_the_dataset() {
     let scene = Scene::new(120_000);
-    let request = &scene.request;
     let chunk_starts = ChunkStarts::read(&scene.files).expect("chunk starts");
     let told = Told::default();
     let events = |event: SourceEvent<'_>| told.tell(event);
     let mut preview = FrameSource::preview(
         Renderer::new(gpu()),
         chunk_starts.with_nodes(&[]),
-        &request.render,
+        &scene.request.render,
         &events,
     )
     .expect("a preview");
@@ -208,7 +206,7 @@ fn a_preview_frames_the_files_and_counts_the_dataset() {
     // drawn.
     let store = scene.open_store(Renderer::new(gpu()), 1.0);
     assert_eq!(preview.bounds().all, store.bounds().all);
-    for frame in frames(&mut preview, request) {
+    for frame in scene.frames(&mut preview) {
         assert_eq!(frame.points_total, 120_000);
         let completeness = frame.preview.expect("a preview");
         assert!(completeness > 0.0 && completeness < 0.1, "{completeness}");
@@ -243,14 +241,13 @@ fn a_resident_source_is_reused_only_for_its_own_colors_and_filter() {
 #[test]
 fn a_store_damaged_between_frames_is_built_again_and_the_frame_drawn() {
     let scene = Scene::new(40_000);
-    let request = &scene.request;
     let mut source = scene.open_store(Renderer::new(gpu()), 1.0);
-    let before = images(&frames(&mut source, request));
+    let before = images(&scene.frames(&mut source));
     let mut source = scene.open_store(source.into_renderer(), 1.0);
     damage_payload(&scene.store);
     let told = Told::default();
     let events = |event: SourceEvent<'_>| told.tell(event);
-    let settings = source.frame_settings(request, 0);
+    let settings = source.frame_settings(&scene.request, 0);
     let frame = source.render(&settings, &events).expect("built again");
     assert_eq!(frame.frame.image, before[0]);
     assert_eq!(told.count("Rebuilding"), 1, "{}", told.lines());
