@@ -6,12 +6,12 @@
 //! whole while one given up leaves no object. Each test skips, saying so, where
 //! `POINTFARM_TEST_S3S_FS` names no `s3s-fs` binary.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Output};
 
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteSettings};
-use pointfarm_tests::s3s::{self, S3sServer};
+use pointfarm_tests::s3s::{self, S3Bucket, S3sServer};
 use pointfarm_tests::{
     assert_fails_saying, assert_ok, assert_one_error_line, json_lines, output_text, pointfarm_bin,
     pointfarm_ok, shared_data, stdout, ServeProcess,
@@ -24,28 +24,25 @@ fn arg(path: &Path) -> &str {
     path.to_str().expect("temporary paths are UTF-8")
 }
 
-/// An S3 server over a fresh root holding one empty bucket, and a scratch folder for what
-/// is exported here and its cache. The fields drop in order: the server stops first.
-struct ExportBucket {
-    server: S3sServer,
-    root: tempfile::TempDir,
+/// An S3 server holding one empty bucket, and a scratch folder for what is exported here and
+/// its cache.
+struct S3Exports {
+    bucket: S3Bucket,
     dir: tempfile::TempDir,
 }
 
-impl ExportBucket {
+impl S3Exports {
     /// Starts the server; None, having said so, without the binary.
     fn start() -> Option<Self> {
-        let root = tempfile::tempdir().expect("root");
-        std::fs::create_dir_all(root.path().join(BUCKET)).expect("bucket folder");
-        let server = S3sServer::start_or_skip(root.path())?;
+        let bucket = S3Bucket::start_or_skip(BUCKET)?;
         let dir = tempfile::tempdir().expect("tempdir");
-        Some(Self { server, root, dir })
+        Some(Self { bucket, dir })
     }
 
     /// A `pointfarm` command with the server's endpoint and credentials in its environment.
     fn pointfarm(&self) -> Command {
         let mut command = Command::new(pointfarm_bin());
-        command.envs(self.server.environment());
+        command.envs(self.bucket.server.environment());
         command
     }
 
@@ -67,16 +64,6 @@ impl ExportBucket {
         let mut command = self.export_command(scan, out);
         command.args(more).output().expect("run pointfarm")
     }
-
-    /// Where the server keeps the object `key` of the bucket.
-    fn stored(&self, key: &str) -> PathBuf {
-        self.root.path().join(BUCKET).join(key)
-    }
-
-    /// Keys of the bucket's objects, sorted; the server's own bookkeeping left out.
-    fn objects(&self) -> Vec<String> {
-        s3s::bucket_objects(self.root.path(), BUCKET)
-    }
 }
 
 #[test]
@@ -84,18 +71,19 @@ fn an_export_to_s3_is_the_file_exported_here_byte_for_byte() {
     let Some(scan) = shared_data("autzen_trim.laz") else {
         return;
     };
-    let Some(bucket) = ExportBucket::start() else {
+    let Some(exports) = S3Exports::start() else {
         return;
     };
-    let here = bucket.dir.path().join("here.copc.laz");
-    assert_ok(&bucket.export(&scan, arg(&here), &[]));
+    let here = exports.dir.path().join("here.copc.laz");
+    assert_ok(&exports.export(&scan, arg(&here), &[]));
     let url = format!("s3://{BUCKET}/campaign/autzen.copc.laz");
-    let export = |more: &[&str]| bucket.export(&scan, &url, more);
+    let export = |more: &[&str]| exports.export(&scan, &url, more);
     let output = export(&["--json"]);
     assert_ok(&output);
     let report = json_lines(&output).remove(0);
     assert_eq!(report["file"], url.as_str(), "{report}");
-    let uploaded = std::fs::read(bucket.stored("campaign/autzen.copc.laz")).expect("object");
+    let uploaded =
+        std::fs::read(exports.bucket.stored("campaign/autzen.copc.laz")).expect("object");
     assert_eq!(uploaded, std::fs::read(&here).expect("file here"));
     assert_eq!(report["bytes"], uploaded.len(), "{report}");
     assert!(!output_text(&output).contains(s3s::SECRET_KEY));
@@ -103,15 +91,15 @@ fn an_export_to_s3_is_the_file_exported_here_byte_for_byte() {
     // The object exists now: refused without --force, before any work, and left as it was.
     assert_one_error_line(&export(&[]), &[&url, "exists: pass --force"]);
     assert_ok(&export(&["--force"]));
-    assert_eq!(bucket.objects(), ["campaign/autzen.copc.laz"]);
+    assert_eq!(exports.bucket.objects(), ["campaign/autzen.copc.laz"]);
 
     // A prefix is not an object to write.
     let prefix = format!("s3://{BUCKET}/campaign/");
-    let output = bucket.run(&["export", arg(&scan), "--copc", &prefix]);
+    let output = exports.run(&["export", arg(&scan), "--copc", &prefix]);
     assert_fails_saying(&output, "names a prefix");
     // A web server's URL is read from, never written to.
     let web = "https://127.0.0.1:9/scans/autzen.copc.laz";
-    let output = bucket.run(&["export", arg(&scan), "--copc", web]);
+    let output = exports.run(&["export", arg(&scan), "--copc", web]);
     assert_one_error_line(&output, &[web, "read-only"]);
 }
 
@@ -120,22 +108,22 @@ fn a_missing_bucket_and_refused_credentials_are_one_line_each() {
     let Some(scan) = shared_data("lone-star.laz") else {
         return;
     };
-    let Some(bucket) = ExportBucket::start() else {
+    let Some(exports) = S3Exports::start() else {
         return;
     };
     let missing = "s3://no-such-bucket/scan.copc.laz";
-    let output = bucket.export(&scan, missing, &[]);
+    let output = exports.export(&scan, missing, &[]);
     assert_one_error_line(&output, &[missing, "no such bucket"]);
 
     let url = format!("s3://{BUCKET}/scan.copc.laz");
-    let output = bucket
+    let output = exports
         .export_command(&scan, &url)
         .env("AWS_SECRET_ACCESS_KEY", "not-the-secret")
         .output()
         .expect("run pointfarm");
     assert_one_error_line(&output, &[&url, "access denied"]);
     assert!(!output_text(&output).contains("not-the-secret"));
-    assert!(bucket.objects().is_empty());
+    assert!(exports.bucket.objects().is_empty());
 }
 
 /// A client of the server with parts of 5 MiB (S3's smallest), two in flight.
@@ -155,22 +143,22 @@ fn small_part_client(server: &S3sServer) -> RemoteClient {
 
 #[test]
 fn a_multipart_upload_arrives_whole_and_one_given_up_leaves_no_object() {
-    let Some(bucket) = ExportBucket::start() else {
+    let Some(exports) = S3Exports::start() else {
         return;
     };
-    let client = small_part_client(&bucket.server);
+    let client = small_part_client(&exports.bucket.server);
     // Over four parts, the last one short, of bytes that differ from part to part.
     let bytes: Vec<u8> = (0..(21 * 1024 * 1024 + 123) as u64)
         .map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8)
         .collect();
-    let file = bucket.dir.path().join("big.bin");
+    let file = exports.dir.path().join("big.bin");
     std::fs::write(&file, &bytes).expect("file");
     let url = ObjectUrl::parse(&format!("s3://{BUCKET}/big.bin")).expect("url");
     assert!(!client.exists(&url).expect("head"));
     let sent = client.upload_file(&file, &url).expect("upload");
     assert_eq!(sent, bytes.len() as u64);
     assert!(client.exists(&url).expect("head"));
-    assert!(std::fs::read(bucket.stored("big.bin")).expect("object") == bytes);
+    assert!(std::fs::read(exports.bucket.stored("big.bin")).expect("object") == bytes);
 
     // Parts sent, then given up (as an export that fails midway drops its upload).
     let given_up = ObjectUrl::parse(&format!("s3://{BUCKET}/given-up.bin")).expect("url");
@@ -178,7 +166,7 @@ fn a_multipart_upload_arrives_whole_and_one_given_up_leaves_no_object() {
     upload.write(&bytes[..12 * 1024 * 1024]).expect("parts");
     drop(upload);
     assert!(!client.exists(&given_up).expect("head"));
-    assert_eq!(bucket.objects(), ["big.bin"]);
+    assert_eq!(exports.bucket.objects(), ["big.bin"]);
 }
 
 #[test]
@@ -186,10 +174,10 @@ fn a_dataset_exported_by_the_server_to_s3_is_the_file_it_exports_here() {
     let Some(scan) = shared_data("lone-star.laz") else {
         return;
     };
-    let Some(bucket) = ExportBucket::start() else {
+    let Some(exports) = S3Exports::start() else {
         return;
     };
-    let dir = &bucket.dir;
+    let dir = &exports.dir;
     let server = ServeProcess::start(&dir.path().join("data"));
     let address = server.address.clone();
     let added = pointfarm_ok(&["dataset", "add", arg(&scan), "--server", &address, "--json"]);
@@ -199,7 +187,7 @@ fn a_dataset_exported_by_the_server_to_s3_is_the_file_it_exports_here() {
         let mut args = vec!["dataset", "export", &dataset.id, "--copc", out];
         args.extend(["--server", &address]);
         args.extend_from_slice(more);
-        bucket.run(&args)
+        exports.run(&args)
     };
     assert_ok(&export(arg(&here), &[]));
     let url = format!("s3://{BUCKET}/server/lone-star.copc.laz");
@@ -207,12 +195,13 @@ fn a_dataset_exported_by_the_server_to_s3_is_the_file_it_exports_here() {
     assert_ok(&output);
     let report = json_lines(&output).remove(0);
     assert_eq!(report["file"], url.as_str(), "{report}");
-    let uploaded = std::fs::read(bucket.stored("server/lone-star.copc.laz")).expect("object");
+    let uploaded =
+        std::fs::read(exports.bucket.stored("server/lone-star.copc.laz")).expect("object");
     assert_eq!(uploaded, std::fs::read(&here).expect("file here"));
     assert_one_error_line(&export(&url, &[]), &[&url, "exists: pass --force"]);
     assert_one_error_line(
         &export("s3://no-such-bucket/x.copc.laz", &[]),
         &["s3://no-such-bucket/x.copc.laz", "no such bucket"],
     );
-    assert_eq!(bucket.objects(), ["server/lone-star.copc.laz"]);
+    assert_eq!(exports.bucket.objects(), ["server/lone-star.copc.laz"]);
 }

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
-use pointfarm_tests::s3s::{self, S3sServer};
+use pointfarm_tests::s3s::{self, S3Bucket};
 use pointfarm_tests::service::scan;
 use pointfarm_tests::{
     assert_fails_saying, assert_ok, output_text, pointfarm, pointfarm_bin, pointfarm_ok, stdout,
@@ -33,8 +33,7 @@ fn arg(path: &Path) -> &str {
 /// fields drop in order: the servers stop before their folders go.
 struct OutputFarm {
     server: ServeProcess,
-    _s3: S3sServer,
-    root: tempfile::TempDir,
+    bucket: S3Bucket,
     dir: tempfile::TempDir,
     scan: PathBuf,
 }
@@ -44,11 +43,9 @@ impl OutputFarm {
     /// said so, without the S3 binary.
     fn start(secret: Option<&str>) -> Option<Self> {
         let dir = tempfile::tempdir().expect("tempdir");
-        let root = tempfile::tempdir().expect("root");
-        std::fs::create_dir_all(root.path().join(BUCKET)).expect("bucket folder");
-        let s3 = S3sServer::start_or_skip(root.path())?;
+        let bucket = S3Bucket::start_or_skip(BUCKET)?;
         let mut command = Command::new(pointfarm_bin());
-        command.envs(s3.environment());
+        command.envs(bucket.server.environment());
         if let Some(secret) = secret {
             command.env("AWS_SECRET_ACCESS_KEY", secret);
         }
@@ -64,17 +61,11 @@ impl OutputFarm {
         );
         let scan = scan(dir.path());
         Some(Self {
-            dir,
-            root,
-            _s3: s3,
             server,
+            bucket,
+            dir,
             scan,
         })
-    }
-
-    /// The bucket's folder on the S3 server.
-    fn bucket(&self) -> PathBuf {
-        self.root.path().join(BUCKET)
     }
 
     /// `frames fetch ID --out DIR/fetched`: the command's output, and the folder.
@@ -149,7 +140,7 @@ fn each_final_frame_appears_under_the_output_url_as_the_daemon_stores_it() {
 
     let (output, fetched) = farm.fetch_frames(&id);
     assert_ok(&output);
-    let objects = files_in(&farm.bucket().join("farm/turntable"));
+    let objects = files_in(&farm.bucket.folder().join("farm/turntable"));
     let names: Vec<String> = objects
         .iter()
         .map(|path| {
@@ -201,7 +192,7 @@ fn an_output_url_outside_the_operators_prefixes_is_refused_naming_the_rule() {
         "https://example.com/renders/",
     ]);
     assert_fails_saying(&not_s3, "s3://");
-    assert!(files_in(&farm.bucket()).is_empty());
+    assert!(files_in(&farm.bucket.folder()).is_empty());
 
     // A daemon that allows none says so.
     let bare = ServeProcess::start(&dir.path().join("bare"));
@@ -235,7 +226,7 @@ fn uploads_refused_by_the_store_are_recorded_and_the_frames_stay_fetchable() {
     assert!(text.contains(&format!("{url}/frame_00000.png")), "{text}");
     assert!(text.contains("access denied"), "{text}");
     assert!(!text.contains("not-the-secret"), "{text}");
-    assert!(files_in(&farm.bucket()).is_empty());
+    assert!(files_in(&farm.bucket.folder()).is_empty());
     let (output, fetched) = farm.fetch_frames(&id);
     assert_ok(&output);
     assert_eq!(files_in(&fetched).len(), 2, "{}", output_text(&output));
@@ -278,7 +269,7 @@ fn a_jobs_video_appears_beside_its_frames_under_the_output_url() {
         "frames and video uploaded",
         || (job(server, &id)["outputsUploaded"] == 4).then_some(()),
     );
-    let folder = farm.bucket().join("farm/with-video");
+    let folder = farm.bucket.folder().join("farm/with-video");
     let object = std::fs::read(folder.join("video.webm")).expect("the video's object");
     assert!(object == std::fs::read(&video).expect("the video fetched"));
     assert_eq!(files_in(&folder).len(), 4);

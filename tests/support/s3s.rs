@@ -83,26 +83,55 @@ impl S3sServer {
     }
 }
 
-/// Keys of the objects of `bucket`, a folder of the server's `root`, sorted; the server's own
-/// bookkeeping (its dot files and folders) left out.
-pub fn bucket_objects(root: &Path, bucket: &str) -> Vec<String> {
-    let bucket = root.join(bucket);
-    let mut found = Vec::new();
-    let mut folders = vec![bucket.clone()];
-    while let Some(folder) = folders.pop() {
-        for entry in std::fs::read_dir(&folder).expect("bucket folder") {
-            let path = entry.expect("entry").path();
-            if path.is_dir() {
-                folders.push(path);
-            } else {
-                let key = path.strip_prefix(&bucket).expect("under the bucket");
-                found.push(key.to_string_lossy().into_owned());
+/// An S3 server over a fresh root holding one empty bucket. The fields drop in order: the
+/// server stops before its root goes.
+pub struct S3Bucket {
+    pub server: S3sServer,
+    root: tempfile::TempDir,
+    name: &'static str,
+}
+
+impl S3Bucket {
+    /// Starts a server holding the empty bucket `name`; None, having said so, without the
+    /// binary.
+    pub fn start_or_skip(name: &'static str) -> Option<Self> {
+        let root = tempfile::tempdir().expect("root");
+        std::fs::create_dir_all(root.path().join(name)).expect("bucket folder");
+        let server = S3sServer::start_or_skip(root.path())?;
+        Some(Self { server, root, name })
+    }
+
+    /// The folder the server keeps the bucket in.
+    pub fn folder(&self) -> PathBuf {
+        self.root.path().join(self.name)
+    }
+
+    /// Where the server keeps the object `key` of the bucket.
+    pub fn stored(&self, key: &str) -> PathBuf {
+        self.folder().join(key)
+    }
+
+    /// Keys of the bucket's objects, sorted; the server's own bookkeeping (its dot files and
+    /// folders) left out.
+    pub fn objects(&self) -> Vec<String> {
+        let bucket = self.folder();
+        let mut found = Vec::new();
+        let mut folders = vec![bucket.clone()];
+        while let Some(folder) = folders.pop() {
+            for entry in std::fs::read_dir(&folder).expect("bucket folder") {
+                let path = entry.expect("entry").path();
+                if path.is_dir() {
+                    folders.push(path);
+                } else {
+                    let key = path.strip_prefix(&bucket).expect("under the bucket");
+                    found.push(key.to_string_lossy().into_owned());
+                }
             }
         }
+        found.retain(|key| !key.starts_with('.') && !key.contains("/."));
+        found.sort();
+        found
     }
-    found.retain(|key| !key.starts_with('.') && !key.contains("/."));
-    found.sort();
-    found
 }
 
 impl Drop for S3sServer {
