@@ -265,7 +265,7 @@ fn update_on_pool(
     let mut map = RegionMap::new(&kept.regions);
     let mut keys: Vec<NodeKey> = kept.regions.iter().map(|r| r.key).collect();
     let old_regions = keys.len();
-    let mut counts = vec![0u64; old_regions + MAX_NEW_REGIONS];
+    let regions_at_most = old_regions + MAX_NEW_REGIONS;
     let mut stats = old.stats.clone();
     let region_path = {
         let spill_path = spill.path().to_path_buf();
@@ -273,14 +273,18 @@ fn update_on_pool(
     };
     let buffer = ROUTE_BUFFER_BYTES.min(meter.largest_possible() / 8);
     let reservation = meter.reserve(2 * buffer, "routing added points")?;
-    let mut writer = SpillWriter::named(
-        &spill,
-        counts.len(),
-        region_path.clone(),
-        buffer as usize,
-        reservation,
-    );
-    let mut record = vec![0u8; layout.record_bytes()];
+    let mut spill_to = RegionSpill {
+        writer: SpillWriter::named(
+            &spill,
+            regions_at_most,
+            region_path.clone(),
+            buffer as usize,
+            reservation,
+        ),
+        layout,
+        record: vec![0u8; layout.record_bytes()],
+        counts: vec![0u64; regions_at_most],
+    };
     let mut points_added = 0u64;
     let mut added_facts = Vec::new();
     if let Some(added) = change.added {
@@ -302,12 +306,11 @@ fn update_on_pool(
                     });
                 }
                 let region = map.route(&cube, p.position, &mut keys);
-                if region >= counts.len() {
+                if region >= regions_at_most {
                     return Err(cannot("the added points start too many regions"));
                 }
-                layout.write(&p, batch.row(i, row_bytes), &mut record)?;
-                writer.push_record(region, &record)?;
-                counts[region] += 1;
+                let row = batch.row(i, row_bytes);
+                spill_to.push(region, &p, row)?;
                 points_added += 1;
             }
             Ok(())
@@ -325,13 +328,15 @@ fn update_on_pool(
     // without those of removed files.
     let candidates: HashSet<usize> = (0..old_regions)
         .filter(|&i| {
-            counts[i] > 0
+            spill_to.counts[i] > 0
                 || removal
                     .as_ref()
                     .is_some_and(|r| r.meets(&cube, kept.regions[i].key))
         })
         .collect();
-    let mut touched: HashSet<usize> = (0..old_regions).filter(|&i| counts[i] > 0).collect();
+    let mut touched: HashSet<usize> = (0..old_regions)
+        .filter(|&i| spill_to.counts[i] > 0)
+        .collect();
     // Each stored node below a region (the octree's root as a region has no kept record: its
     // node holds its root's points, and nothing above samples it again) with its region.
     let owned: Vec<(usize, NodeInfo)> = old
@@ -360,9 +365,7 @@ fn update_on_pool(
                 if removal.as_mut().is_some_and(|r| r.drops(p, &mut stats)) {
                     continue;
                 }
-                layout.write(p, rows.of(p), &mut record)?;
-                writer.push_record(i, &record)?;
-                counts[i] += 1;
+                spill_to.push(i, p, rows.of(p))?;
             }
             Ok(())
         };
@@ -409,15 +412,15 @@ fn update_on_pool(
                         ))
                     })?;
                 count_point(&mut stats, &p, true);
-                layout.write(&p, batch.row(i, row_bytes), &mut record)?;
-                writer.push_record(region, &record)?;
-                counts[region] += 1;
+                let row = batch.row(i, row_bytes);
+                spill_to.push(region, &p, row)?;
                 points_reread += 1;
             }
             Ok(())
         })?;
     }
-    writer.finish()?;
+    spill_to.writer.finish()?;
+    let counts = spill_to.counts;
     let points_dropped = removal.as_ref().map_or(0, |r| r.dropped);
     let point_count = (old.point_count + points_added + points_reread)
         .checked_sub(points_dropped)
@@ -571,6 +574,24 @@ fn check_added(added: &dyn PointSource, old: &LodHierarchy) -> Result<(), LodErr
         ));
     }
     Ok(())
+}
+
+/// The spill files of the regions being rebuilt, and the points each holds.
+struct RegionSpill<'s> {
+    writer: SpillWriter<'s>,
+    layout: RecordLayout,
+    record: Vec<u8>,
+    counts: Vec<u64>,
+}
+
+impl RegionSpill<'_> {
+    /// Writes `p` with its attribute `row` to the spill file of `region`, and counts it there.
+    fn push(&mut self, region: usize, p: &RawPoint, row: &[u8]) -> Result<(), LodError> {
+        self.layout.write(p, row, &mut self.record)?;
+        self.writer.push_record(region, &self.record)?;
+        self.counts[region] += 1;
+        Ok(())
+    }
 }
 
 /// A region's kept subtree root, decoded.
