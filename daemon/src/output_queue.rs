@@ -1,11 +1,15 @@
-//! The queue of a job's outputs on their way to object storage, below the daemon: the
-//! operator's output prefixes and a submission's output URL checked, and the thread that
-//! sends each stored file with retries and reports how it went (`outputs.rs` ties it to the
-//! daemon's jobs). A stored frame is only offered to the bounded queue, so the scheduler never
-//! waits for object storage.
+//! The outputs of jobs on their way to object storage, below the daemon: the operator's
+//! output prefixes and a submission's output URL checked, the record of an output waiting to
+//! be sent, and the thread that sends each with retries and reports how it went
+//! (`outputs.rs` ties it to the daemon's jobs and its state database).
+//!
+//! Waiting outputs live in the state database, not in memory: the thread takes them one at
+//! a time in the order they were queued and is woken when one is added, so the scheduler never
+//! waits for object storage, memory stays bounded however many wait, and none is refused for
+//! want of room.
 
 use std::path::PathBuf;
-use std::sync::mpsc::{self, Receiver, SyncSender, TrySendError};
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError, SyncSender};
 use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
 
@@ -14,9 +18,6 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::DaemonError;
 
-/// Uploads waiting for the upload thread; past this, a stored frame's upload is recorded as
-/// refused rather than wait.
-pub const OUTPUT_QUEUE_CAPACITY: usize = 1024;
 /// Tries of one output before its failure is recorded; each request is retried by the
 /// storage client too.
 pub const OUTPUT_ATTEMPTS: u32 = 4;
@@ -24,21 +25,70 @@ pub const OUTPUT_ATTEMPTS: u32 = 4;
 pub const OUTPUT_FIRST_BACKOFF: Duration = Duration::from_millis(500);
 /// Failures kept per job, so that a job record stays small whatever its frame count.
 pub const MAX_OUTPUT_ERRORS: usize = 16;
+/// How long the idle upload thread waits for a wake-up before looking at the records again
+/// (after a state database that could not be read).
+const IDLE_RECHECK: Duration = Duration::from_secs(30);
 
 /// What was written to a job's output URL.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct JobOutputs {
     /// Outputs uploaded (frames and the video).
     pub uploaded: u32,
+    /// Outputs queued and not yet uploaded or failed.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub pending: u32,
     /// The first `MAX_OUTPUT_ERRORS` outputs that could not be, each naming its URL and why.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub errors: Vec<String>,
 }
 
+fn is_zero(count: &u32) -> bool {
+    *count == 0
+}
+
 impl JobOutputs {
     pub fn is_empty(&self) -> bool {
-        self.uploaded == 0 && self.errors.is_empty()
+        self.uploaded == 0 && self.pending == 0 && self.errors.is_empty()
     }
+
+    /// Counts a pending output as uploaded, or keeps why it was not.
+    pub fn record(&mut self, outcome: Result<(), String>) {
+        self.pending = self.pending.saturating_sub(1);
+        match outcome {
+            Ok(()) => self.uploaded += 1,
+            Err(reason) => self.record_failure(reason),
+        }
+    }
+
+    /// Keeps why an output was not uploaded, up to `MAX_OUTPUT_ERRORS`.
+    pub fn record_failure(&mut self, reason: String) {
+        if self.errors.len() < MAX_OUTPUT_ERRORS {
+            self.errors.push(reason);
+        }
+    }
+}
+
+/// One output waiting to be written, as the state database keeps it: a stored file of a job
+/// and the URL it goes to (an output URL holds no credentials).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PendingOutput {
+    pub job_id: String,
+    /// The output's name under the job's output URL: a frame's or the video's file name.
+    pub name: String,
+    /// The file the daemon stored.
+    pub file: PathBuf,
+    /// Where it goes.
+    pub url: String,
+}
+
+/// What the upload thread does next.
+pub(crate) enum NextOutput {
+    /// Send this output, the record `key`.
+    Send(u64, PendingOutput),
+    /// Nothing waits: sleep until woken.
+    Idle,
+    /// The daemon is gone.
+    Stop,
 }
 
 /// Checks the operator's output prefixes (`serve --allow-output-prefix`): `s3://` URLs, each
@@ -73,79 +123,93 @@ pub fn check_output_url(field: &str, text: &str) -> Result<Option<String>, Daemo
     Ok(Some(url.to_string()))
 }
 
-/// One output to write: a stored file of a job and the URL it goes to.
-pub(crate) struct OutputUpload {
-    pub job_id: String,
-    pub file: PathBuf,
-    pub url: ObjectUrl,
-}
-
-/// The queue of uploads and the thread that sends them; idle on a daemon with no output
-/// prefix allowed.
+/// The thread that sends the waiting outputs; idle on a daemon with no output prefix allowed.
 #[derive(Default)]
 pub struct OutputUploads {
-    queue: Mutex<Option<SyncSender<OutputUpload>>>,
+    wake: Mutex<Option<SyncSender<()>>>,
 }
 
 impl OutputUploads {
-    /// Starts the upload thread, which calls `done` with each upload's job and outcome.
+    /// Starts the upload thread: `next` gives it the output after the record it names, and
+    /// `done` takes each output's record key, job and outcome and says whether to go on.
     pub(crate) fn start(
         &self,
         settings: RemoteSettings,
-        done: impl Fn(&str, Result<(), String>) -> bool + Send + 'static,
+        next: impl Fn(Option<u64>) -> NextOutput + Send + 'static,
+        done: impl Fn(u64, &PendingOutput, Result<(), String>) -> bool + Send + 'static,
     ) -> Result<(), DaemonError> {
         let client = RemoteClient::new(settings)?;
-        let (sender, receiver) = mpsc::sync_channel(OUTPUT_QUEUE_CAPACITY);
+        // One wake-up waiting is enough: the thread reads every record after it.
+        let (sender, receiver) = mpsc::sync_channel(1);
         std::thread::Builder::new()
             .name("pointfarm-outputs".into())
-            .spawn(move || send_outputs(&client, &receiver, done))
+            .spawn(move || send_outputs(&client, &receiver, next, done))
             .map_err(|e| DaemonError::Internal(format!("starting the output uploads: {e}")))?;
-        *self.queue.lock().unwrap_or_else(PoisonError::into_inner) = Some(sender);
+        *self.wake.lock().unwrap_or_else(PoisonError::into_inner) = Some(sender);
         Ok(())
     }
 
-    /// Offers `upload` to the queue without waiting; the error says why it will not be sent.
-    pub(crate) fn offer(&self, upload: OutputUpload) -> Result<(), String> {
-        let queue = self.queue.lock().unwrap_or_else(PoisonError::into_inner);
-        let shown = upload.url.to_string();
-        let no_uploads = || format!("{shown}: not uploaded: this server writes no outputs by URL");
-        match queue.as_ref() {
-            None => Err(no_uploads()),
-            Some(queue) => match queue.try_send(upload) {
-                Ok(()) => Ok(()),
-                Err(TrySendError::Full(_)) => Err(format!(
-                    "{shown}: not uploaded: {OUTPUT_QUEUE_CAPACITY} uploads were already waiting"
-                )),
-                Err(TrySendError::Disconnected(_)) => Err(no_uploads()),
-            },
+    /// Whether the thread runs (this server writes outputs by URL).
+    pub(crate) fn started(&self) -> bool {
+        self.wake
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .is_some()
+    }
+
+    /// Tells the thread an output was recorded; never waits.
+    pub(crate) fn wake(&self) {
+        if let Some(wake) = self
+            .wake
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .as_ref()
+        {
+            // A wake-up already waiting will do as well.
+            let _ = wake.try_send(());
         }
     }
 }
 
-/// The upload thread: sends each output, with retries, until `done` says to stop.
+/// The upload thread: sends each recorded output in order, with retries, until the daemon
+/// is gone.
 fn send_outputs(
     client: &RemoteClient,
-    queue: &Receiver<OutputUpload>,
-    done: impl Fn(&str, Result<(), String>) -> bool,
+    wake: &Receiver<()>,
+    next: impl Fn(Option<u64>) -> NextOutput,
+    done: impl Fn(u64, &PendingOutput, Result<(), String>) -> bool,
 ) {
-    while let Ok(upload) = queue.recv() {
-        let outcome = send_with_retries(client, &upload);
-        if !done(&upload.job_id, outcome) {
-            return;
+    let mut after = None;
+    loop {
+        match next(after) {
+            NextOutput::Send(key, output) => {
+                after = Some(key);
+                let outcome = send_with_retries(client, &output);
+                if !done(key, &output, outcome) {
+                    return;
+                }
+            }
+            NextOutput::Idle => match wake.recv_timeout(IDLE_RECHECK) {
+                Ok(()) | Err(RecvTimeoutError::Timeout) => {}
+                Err(RecvTimeoutError::Disconnected) => return,
+            },
+            NextOutput::Stop => return,
         }
     }
 }
-fn send_with_retries(client: &RemoteClient, upload: &OutputUpload) -> Result<(), String> {
+
+fn send_with_retries(client: &RemoteClient, output: &PendingOutput) -> Result<(), String> {
+    let url = ObjectUrl::parse(&output.url).map_err(|e| format!("{}: {e}", output.url))?;
     let mut backoff = OUTPUT_FIRST_BACKOFF;
     let mut attempt = 1;
     loop {
-        match send(client, upload) {
+        match send(client, &output.file, &url) {
             Ok(()) => return Ok(()),
             Err(error) if attempt >= OUTPUT_ATTEMPTS => {
                 return Err(format!("{error} (after {attempt} tries)"))
             }
             Err(error) => {
-                tracing::debug!(url = %upload.url, %error, attempt, "an output upload failed; trying again");
+                tracing::debug!(%url, %error, attempt, "an output upload failed; trying again");
                 std::thread::sleep(backoff);
                 backoff *= 2;
                 attempt += 1;
@@ -155,17 +219,15 @@ fn send_with_retries(client: &RemoteClient, upload: &OutputUpload) -> Result<(),
 }
 
 /// One try: a frame (small) in one request, a larger file by a multipart upload.
-fn send(client: &RemoteClient, upload: &OutputUpload) -> Result<(), String> {
-    let size = std::fs::metadata(&upload.file)
-        .map_err(|e| format!("{}: reading {}: {e}", upload.url, upload.file.display()))?
-        .len();
+fn send(client: &RemoteClient, file: &std::path::Path, url: &ObjectUrl) -> Result<(), String> {
+    let reading = |e: std::io::Error| format!("{url}: reading {}: {e}", file.display());
+    let size = std::fs::metadata(file).map_err(reading)?.len();
     if size <= client.settings().upload_part_bytes as u64 {
-        let bytes = std::fs::read(&upload.file)
-            .map_err(|e| format!("{}: reading {}: {e}", upload.url, upload.file.display()))?;
-        client.put(&upload.url, bytes).map_err(|e| e.to_string())
+        let bytes = std::fs::read(file).map_err(reading)?;
+        client.put(url, bytes).map_err(|e| e.to_string())
     } else {
         client
-            .upload_file(&upload.file, &upload.url)
+            .upload_file(file, url)
             .map(drop)
             .map_err(|e| e.to_string())
     }

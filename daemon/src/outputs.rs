@@ -3,11 +3,12 @@
 //! which must lie under one of the operator's output prefixes. More `Daemon` methods;
 //! the queue and its thread are `output_queue.rs`.
 //!
-//! Uploads run on a thread of their own from a bounded queue: storing a frame only offers it
-//! to the queue, so the scheduler never waits for object storage. An upload is tried again
-//! with a growing backoff; one that still fails, or that finds the queue full, is recorded
-//! in the job (`JobOutputs::errors`). The frame is stored by the daemon first either way, so
-//! it stays fetchable from it.
+//! Storing a frame records its output as pending in the state database and wakes the upload
+//! thread, so the scheduler never waits for object storage, and a daemon stopped (even by
+//! `kill -9`) resumes every pending output when it starts again. An upload is tried again
+//! with a growing backoff; one that still fails is recorded in the job
+//! (`JobOutputs::errors`), as is one whose stored file is gone by then. The frame is stored
+//! by the daemon first either way, so it stays fetchable from it.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -16,34 +17,95 @@ use pointfarm_render::remote::{ObjectUrl, RemoteError};
 
 use crate::error::DaemonError;
 use crate::model::{Job, JobSpec};
-use crate::output_queue::{OutputUpload, MAX_OUTPUT_ERRORS};
+use crate::output_queue::{NextOutput, PendingOutput};
 use crate::service::Daemon;
 
 impl Daemon {
-    /// Starts the upload thread, when its operator allows output prefixes.
+    /// Starts the upload thread, when its operator allows output prefixes, after going over
+    /// the outputs a previous run left pending: one whose stored file is gone, or whose URL
+    /// is no longer allowed, is recorded as failed; the thread sends the rest.
     pub(crate) fn start_output_uploads(self: &Arc<Self>) -> Result<(), DaemonError> {
         let daemon = self;
         let config = &daemon.config;
-        if config.allowed_output_prefixes.prefixes().is_empty() {
+        let allowed = !config.allowed_output_prefixes.prefixes().is_empty();
+        if allowed {
+            let shown: Vec<&str> = config
+                .allowed_output_prefixes
+                .prefixes()
+                .iter()
+                .map(ObjectUrl::as_str)
+                .collect();
+            tracing::info!(prefixes = %shown.join(", "), "job outputs may be written by URL");
+        }
+        let resumed = daemon.check_pending_outputs(allowed)?;
+        if resumed > 0 {
+            tracing::info!("resumed {resumed} pending output upload(s)");
+        }
+        if !allowed {
             return Ok(());
         }
-        let shown: Vec<&str> = config
-            .allowed_output_prefixes
-            .prefixes()
-            .iter()
-            .map(ObjectUrl::as_str)
-            .collect();
-        tracing::info!(prefixes = %shown.join(", "), "job outputs may be written by URL");
-        let owner = Arc::downgrade(daemon);
-        daemon
-            .outputs
-            .start(config.remote_settings.clone(), move |job_id, outcome| {
+        let (reader, owner) = (Arc::downgrade(daemon), Arc::downgrade(daemon));
+        daemon.outputs.start(
+            config.remote_settings.clone(),
+            move |after| {
+                let Some(daemon) = reader.upgrade() else {
+                    return NextOutput::Stop;
+                };
+                match daemon.state.pending_output_after(after) {
+                    Ok(Some((key, output))) => NextOutput::Send(key, output),
+                    Ok(None) => NextOutput::Idle,
+                    Err(error) => {
+                        tracing::warn!(%error, "reading the pending outputs");
+                        NextOutput::Idle
+                    }
+                }
+            },
+            move |key, output, outcome| {
                 let Some(daemon) = owner.upgrade() else {
                     return false;
                 };
-                daemon.record_output(job_id, outcome);
+                daemon.finish_output(key, output, outcome);
                 true
-            })
+            },
+        )
+    }
+
+    /// Records as failed each pending output that cannot be sent (its stored file gone, its
+    /// URL not allowed, or no uploads on this server) and returns how many remain to send.
+    fn check_pending_outputs(&self, allowed: bool) -> Result<usize, DaemonError> {
+        let mut remaining = 0;
+        let mut after = None;
+        while let Some((key, output)) = self.state.pending_output_after(after)? {
+            after = Some(key);
+            let refused = if !allowed {
+                Some(format!(
+                    "{}: not uploaded: this server writes no outputs by URL",
+                    output.url
+                ))
+            } else if !output.file.is_file() {
+                Some(format!(
+                    "{}: not uploaded: its stored file {} no longer exists",
+                    output.url,
+                    output.file.display()
+                ))
+            } else {
+                ObjectUrl::parse(&output.url)
+                    .map_err(|e| e.to_string())
+                    .and_then(|url| {
+                        self.config
+                            .allowed_output_prefixes
+                            .check(&url)
+                            .map_err(|e| e.to_string())
+                    })
+                    .err()
+                    .map(|reason| format!("{}: not uploaded: {reason}", output.url))
+            };
+            match refused {
+                Some(reason) => self.finish_output(key, &output, Err(reason)),
+                None => remaining += 1,
+            }
+        }
+        Ok(remaining)
     }
 
     /// Refuses a job whose output URL is not under the operator's output prefixes, naming
@@ -85,45 +147,98 @@ impl Daemon {
         };
         let url = match ObjectUrl::parse(prefix).and_then(|prefix| prefix.join(name)) {
             Ok(url) => url,
-            Err(error) => return self.record_output_locked(&job.id, Err(error.to_string())),
+            Err(error) => return self.record_output_refused(&job.id, error.to_string()),
         };
-        let upload = OutputUpload {
+        if !self.outputs.started() {
+            let refused = format!("{url}: not uploaded: this server writes no outputs by URL");
+            return self.record_output_refused(&job.id, refused);
+        }
+        let output = PendingOutput {
             job_id: job.id.clone(),
+            name: name.to_owned(),
             file: file.to_owned(),
-            url,
+            url: url.to_string(),
         };
-        if let Err(refused) = self.outputs.offer(upload) {
-            self.record_output_locked(&job.id, Err(refused));
-        }
-    }
-
-    /// Counts an output uploaded, or keeps why it was not, in its job, under the scheduling
-    /// lock as every other change of a job is, so that none is lost.
-    fn record_output(&self, job_id: &str, outcome: Result<(), String>) {
-        match self.scheduling() {
-            Ok(_scheduling) => self.record_output_locked(job_id, outcome),
-            Err(error) => tracing::warn!(job = %job_id, %error, "recording a job output"),
-        }
-    }
-
-    /// `record_output` for a caller that holds the scheduling lock; a job gone meanwhile is
-    /// passed over, and watchers are told.
-    fn record_output_locked(&self, job_id: &str, outcome: Result<(), String>) {
-        if let Err(reason) = &outcome {
-            tracing::warn!(job = %job_id, %reason, "a job output was not uploaded");
-        }
-        let recorded = self.state.update_job(job_id, |job| match outcome {
-            Ok(()) => job.outputs.uploaded += 1,
-            Err(reason) => {
-                if job.outputs.errors.len() < MAX_OUTPUT_ERRORS {
-                    job.outputs.errors.push(reason);
-                }
+        match self.state.queue_output(&output) {
+            Ok(Some(job)) => self.publish(&job, None),
+            Ok(None) => {}
+            Err(error) => {
+                let refused = format!("{url}: not uploaded: recording it: {error}");
+                return self.record_output_refused(&job.id, refused);
             }
-        });
+        }
+        self.outputs.wake();
+    }
+
+    /// Removes the pending output `key` and counts it uploaded, or keeps why it was not, in
+    /// its job, under the scheduling lock as every other change of a job is, so that none is
+    /// lost; watchers are told.
+    fn finish_output(&self, key: u64, output: &PendingOutput, outcome: Result<(), String>) {
+        let _scheduling = match self.scheduling() {
+            Ok(scheduling) => scheduling,
+            Err(error) => {
+                return tracing::warn!(job = %output.job_id, %error, "recording a job output")
+            }
+        };
+        if let Err(reason) = &outcome {
+            tracing::warn!(job = %output.job_id, %reason, "a job output was not uploaded");
+        }
+        match self.state.finish_output(key, &output.job_id, outcome) {
+            Ok(Some(job)) => self.publish(&job, None),
+            Ok(None) => {}
+            Err(error) => tracing::warn!(job = %output.job_id, %error, "recording a job output"),
+        }
+    }
+
+    /// Keeps why an output was not queued in its job, for a caller that holds the scheduling
+    /// lock; a job gone meanwhile is passed over, and watchers are told.
+    fn record_output_refused(&self, job_id: &str, reason: String) {
+        tracing::warn!(job = %job_id, %reason, "a job output was not uploaded");
+        let recorded = self
+            .state
+            .update_job(job_id, |job| job.outputs.record_failure(reason));
         match recorded {
             Ok(Some(job)) => self.publish(&job, None),
             Ok(None) => {}
             Err(error) => tracing::warn!(job = %job_id, %error, "recording a job output"),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::output_queue::{output_prefixes, PendingOutput};
+    use crate::test_daemon;
+
+    #[test]
+    fn a_pending_output_whose_stored_file_is_gone_is_recorded_as_failed_at_startup() {
+        let dir = tempfile::tempdir().expect("dir");
+        let configure = |config: &mut crate::service::DaemonConfig| {
+            config.allowed_output_prefixes = output_prefixes(&["s3://renders/farm"]).expect("ok");
+        };
+        let daemon = test_daemon::open_with(dir.path(), configure);
+        let job = test_daemon::submit(&daemon, 2, |request| {
+            request.output_url = "s3://renders/farm/job".into();
+        });
+        let output = PendingOutput {
+            job_id: job.id.clone(),
+            name: "frame_00000.png".into(),
+            file: dir.path().join("gone.png"),
+            url: "s3://renders/farm/job/frame_00000.png".into(),
+        };
+        daemon.state.queue_output(&output).expect("queue");
+        drop(daemon);
+
+        let daemon = test_daemon::open_with(dir.path(), configure);
+        let job = daemon.state.job(&job.id).expect("read").expect("job");
+        assert_eq!(job.outputs.pending, 0);
+        let [error] = job.outputs.errors.as_slice() else {
+            panic!("one error: {:?}", job.outputs.errors);
+        };
+        assert!(
+            error.contains("frame_00000.png") && error.contains("no longer exists"),
+            "{error}"
+        );
+        assert_eq!(daemon.state.pending_output_after(None).expect("read"), None);
     }
 }

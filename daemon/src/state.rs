@@ -31,6 +31,7 @@ use crate::model::{Dataset, FrameReport, FrameState, Job, JobSpec, JobState};
 
 mod control;
 mod health;
+mod outputs;
 mod records;
 mod trees;
 

@@ -5,6 +5,7 @@ use crate::error::StateError;
 use crate::lease_record::Lease;
 use crate::manifest::Counts;
 use crate::model::{Dataset, FrameReport, FrameState, Job};
+use crate::output_queue::PendingOutput;
 
 /// A tree of records by name, with the test that a record decodes.
 type RecordTree<'a> = (&'static str, &'a sled::Tree, fn(&[u8]) -> bool);
@@ -26,6 +27,8 @@ pub(super) struct Trees {
     pub(super) previews: sled::Tree,
     /// The database's own facts (the version of the scheduling index).
     pub(super) meta: sled::Tree,
+    /// The outputs waiting to be uploaded to object storage, in the order they were queued.
+    pub(super) outputs: sled::Tree,
 }
 
 impl Trees {
@@ -40,11 +43,12 @@ impl Trees {
             pending: db.open_tree("pending")?,
             previews: db.open_tree("previews")?,
             meta: db.open_tree("meta")?,
+            outputs: db.open_tree("outputs")?,
         })
     }
 
     /// The trees whose records must decode, by name.
-    fn records(&self) -> [RecordTree<'_>; 5] {
+    fn records(&self) -> [RecordTree<'_>; 6] {
         [
             ("datasets", &self.datasets, |v| decode::<Dataset>(v).is_ok()),
             ("jobs", &self.jobs, |v| decode::<Job>(v).is_ok()),
@@ -52,6 +56,9 @@ impl Trees {
             ("leases", &self.leases, |v| decode::<Lease>(v).is_ok()),
             ("previews", &self.previews, |v| {
                 decode::<FrameReport>(v).is_ok()
+            }),
+            ("outputs", &self.outputs, |v| {
+                decode::<PendingOutput>(v).is_ok()
             }),
         ]
     }
