@@ -1,7 +1,7 @@
 //! What the farm is doing, as a browser sees it: the worker that a job has blocklisted (and
 //! `/api/workers` saying so), a dataset's store build by stage and share stored, held at
 //! the daemon's gates, with its bytes on disk, and each job's stage, from the store build
-//! and previews to done.
+//! and previews to done, on a row the jobs page adds live too.
 
 use std::time::{Duration, Instant};
 
@@ -200,6 +200,22 @@ async fn a_browser_follows_blocklists_store_builds_and_job_stages() {
         let shown = (stage, STAGE, json!([job.id, stage]));
         wait_for_page(&browser, &base, shown, |found| *found == json!(true));
     }
+    // A job submitted while the jobs page is open is added to it live, with the stage the
+    // server knows (no frame of it comes while the store builds).
+    browser.goto(&base);
+    super::wait_live(&browser);
+    let live = lod_job("live", &dataset.id, 3, false);
+    let live = jobs.submit_job(live).await.expect("submit").into_inner();
+    let row = format!("the live row of {} in its stage", live.id);
+    browser.wait_for(
+        &row,
+        Duration::from_secs(10),
+        STAGE,
+        json!([live.id, "store build"]),
+    );
+    jobs.cancel_job(pb::CancelJobRequest { id: live.id })
+        .await
+        .expect("cancel");
 
     // Past it, the build stores every node and waits at the second gate.
     build.open();

@@ -139,8 +139,8 @@ fn worker_label(name: &str, embedded: bool) -> String {
 }
 
 /// What `jobs show` says of a job's workers: what it requires of them, who rendered its
-/// frames, who is blocklisted, the jobs it runs after, and why it waits (for one of those, or
-/// for a connected worker that can render it).
+/// frames, who is blocklisted, the jobs it runs after, why it waits (for one of those, or for
+/// a connected worker that can render it), and where its videos stand.
 pub(super) fn scheduling_lines(job: &pb::Job) -> Vec<String> {
     let mut lines = Vec::new();
     if let Some(required) = job.requirements.as_ref() {
@@ -192,6 +192,23 @@ pub(super) fn scheduling_lines(job: &pb::Job) -> Vec<String> {
             job.id
         )),
     }
+    match job.preview_video.as_str() {
+        "" => {}
+        "ready" => lines.push(format!(
+            "preview video: ready (jobs video {} --preview --out FILE)",
+            job.id
+        )),
+        state => lines.push(format!("preview video: {state}")),
+    }
+    if job.outputs_uploaded > 0 || job.outputs_pending > 0 || !job.output_errors.is_empty() {
+        lines.push(format!(
+            "outputs: {} uploaded, {} pending",
+            job.outputs_uploaded, job.outputs_pending
+        ));
+    }
+    for error in &job.output_errors {
+        lines.push(format!("  output not written: {error}"));
+    }
     for refusal in &job.refusals {
         lines.push(format!(
             "  worker {} cannot render it: {}",
@@ -212,6 +229,23 @@ pub(super) fn has_ended(state: i32) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn scheduling_lines_follow_the_preview_video() {
+        let mut job = pb::Job {
+            id: "job-1".into(),
+            preview_video: "encoding".into(),
+            ..Default::default()
+        };
+        assert!(scheduling_lines(&job).contains(&"preview video: encoding".to_owned()));
+        job.preview_video = "ready".into();
+        assert!(scheduling_lines(&job)
+            .contains(&"preview video: ready (jobs video job-1 --preview --out FILE)".to_owned()));
+        job.preview_video.clear();
+        assert!(!scheduling_lines(&job)
+            .iter()
+            .any(|l| l.contains("preview video")));
+    }
 
     #[test]
     fn stage_statistics_give_median_and_p95_per_stage() {

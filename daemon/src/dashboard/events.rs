@@ -1,8 +1,8 @@
 //! Live updates: the daemon's job events (the broadcast `WatchJob` follows) as server-sent
 //! events, `GET /api/events` for every job or `GET /api/events?job=ID` for one.
 //!
-//! Each `job` event's data is a `JobEvent` in the proto3 JSON mapping (the job, and the frame
-//! that finished, a preview or its final image). A stream for one job opens with a `job`
+//! Each `job` event's data is a `JobEvent` in the proto3 JSON mapping (the job, the frame
+//! that finished, a preview or its final image, and the job's stage as the pages word it). A stream for one job opens with a `job`
 //! event holding the job and every frame finished so far, so a page rendered a moment before
 //! misses nothing. A reader too slow for the broadcast is sent `resync`: what it skipped is
 //! no longer known, so the page reads the state again.
@@ -22,6 +22,7 @@ use tokio_stream::{Stream, StreamExt};
 
 use super::api::{job_message, Failure};
 use super::auth::field;
+use super::pages::shown_stage;
 use super::Dashboard;
 
 /// How often an idle stream sends a comment, so proxies and the connection's idle bound
@@ -41,27 +42,39 @@ pub async fn events(
     let subscription = BroadcastStream::new(dashboard.daemon.subscribe());
     let first = match &job {
         Some(id) => {
-            let (message, _, _) = job_message(&dashboard.daemon, id.clone()).await?;
+            let (message, job, _) = job_message(&dashboard.daemon, id.clone()).await?;
+            let stage = shown_stage(&dashboard.daemon, &job).await.to_owned();
             Some(job_event(&pb::JobEvent {
                 job: Some(message),
                 frame: None,
+                stage,
             }))
         }
         None => None,
     };
-    let updates = subscription.filter_map(move |received| match received {
-        Ok(event) if job.as_ref().is_none_or(|id| *id == event.job.id) => {
-            Some(job_event(&pb::JobEvent {
-                job: Some(pb::Job::from(&event.job)),
-                frame: event.frame.as_ref().map(pb::FrameFinished::from),
-            }))
-        }
-        Ok(_) => None,
-        Err(BroadcastStreamRecvError::Lagged(missed)) => {
-            tracing::debug!(missed, "a dashboard's event stream fell behind");
-            Some(Event::default().event("resync").data(missed.to_string()))
-        }
-    });
+    let daemon = dashboard.daemon.clone();
+    let updates = subscription
+        .filter_map(move |received| match received {
+            Ok(event) if job.as_ref().is_none_or(|id| *id == event.job.id) => Some(Ok(event)),
+            Ok(_) => None,
+            Err(BroadcastStreamRecvError::Lagged(missed)) => Some(Err(missed)),
+        })
+        .then(move |received| {
+            let daemon = daemon.clone();
+            async move {
+                match received {
+                    Ok(event) => job_event(&pb::JobEvent {
+                        job: Some(pb::Job::from(&event.job)),
+                        frame: event.frame.as_ref().map(pb::FrameFinished::from),
+                        stage: shown_stage(&daemon, &event.job).await.to_owned(),
+                    }),
+                    Err(missed) => {
+                        tracing::debug!(missed, "a dashboard's event stream fell behind");
+                        Event::default().event("resync").data(missed.to_string())
+                    }
+                }
+            }
+        });
     let stream = tokio_stream::iter(first).chain(updates).map(Ok);
     Ok(sse(stream))
 }

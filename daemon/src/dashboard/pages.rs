@@ -5,6 +5,7 @@
 
 use std::collections::HashMap;
 use std::fmt::Write;
+use std::sync::Arc;
 
 use axum::extract::{Path, RawQuery, State};
 use axum::response::{Html, IntoResponse, Response};
@@ -84,8 +85,8 @@ fn dataset_names(daemon: &Daemon) -> Result<HashMap<String, (String, bool)>, Dae
 
 /// What a job is doing, for users: waiting for its dataset's store to be built ("store
 /// build"), drawing previews while it builds ("previews"), rendering its final frames
-/// ("final frames"), making its video ("video"); empty once it has ended. The script
-/// follows the same rule from the job's `stage` and the frames it is told of.
+/// ("final frames"), making its video ("video"); empty once it has ended. Each live event
+/// carries it (`events`), so a row the script adds shows it at once.
 pub(super) fn job_stage(job: &Job, store_building: bool) -> &'static str {
     match job.stage() {
         "frames" if store_building && job.spec.preview => "previews",
@@ -93,6 +94,28 @@ pub(super) fn job_stage(job: &Job, store_building: bool) -> &'static str {
         "frames" => "final frames",
         other => other,
     }
+}
+
+/// Dataset `dataset_id`'s name, and whether its store is being built now.
+pub(super) fn dataset_building(
+    daemon: &Daemon,
+    dataset_id: &str,
+) -> Result<(String, bool), DaemonError> {
+    let dataset = daemon.dataset(dataset_id)?;
+    let building = daemon.stores.building_version(&dataset.sha256).is_some();
+    Ok((dataset.name, building))
+}
+
+/// The stage `job` shows now ([`job_stage`]), its dataset's store read if it renders frames.
+pub(super) async fn shown_stage(daemon: &Arc<Daemon>, job: &Job) -> &'static str {
+    if job.stage() != "frames" {
+        return job_stage(job, false);
+    }
+    let dataset_id = job.spec.dataset_id.clone();
+    let building = run(daemon, move |daemon| dataset_building(daemon, &dataset_id))
+        .await
+        .is_ok_and(|(_, building)| building);
+    job_stage(job, building)
 }
 
 /// What users call a job: its name, else the request id its client chose.
@@ -348,9 +371,7 @@ pub async fn job(State(dashboard): State<Dashboard>, Path(id): Path<String>) -> 
     };
     let dataset_id = job.spec.dataset_id.clone();
     let (dataset, building) = run(&dashboard.daemon, move |daemon| {
-        let dataset = daemon.dataset(&dataset_id)?;
-        let building = daemon.stores.building_version(&dataset.sha256).is_some();
-        Ok((dataset.name, building))
+        dataset_building(daemon, &dataset_id)
     })
     .await
     .unwrap_or_else(|_| (job.spec.dataset_id.clone(), false));
@@ -390,6 +411,13 @@ pub async fn job(State(dashboard): State<Dashboard>, Path(id): Path<String>) -> 
             body,
             "<dt>Error</dt><dd class=\"error\">{}</dd>",
             escape(error)
+        );
+    }
+    if !message.preview_video.is_empty() {
+        let _ = write!(
+            body,
+            "<dt>Preview video</dt><dd class=\"preview-video\">{}</dd>",
+            message.preview_video
         );
     }
     if !message.waiting_reason.is_empty() {

@@ -12,6 +12,36 @@ use crate::error::DaemonError;
 use crate::model::Job;
 use crate::service::{Daemon, DaemonConfig};
 
+/// Where a job's preview video stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PreviewVideoState {
+    /// The job asked for no previews or no video.
+    NotAsked,
+    /// Not every frame has an image yet.
+    Waiting,
+    /// A worker holds its encode lease.
+    Encoding,
+    /// Stored, this many bytes long.
+    Ready(u64),
+    /// Out of attempts; the job goes on without it.
+    Failed,
+    /// The final frames were all done before it was made: the final video stands for it.
+    Superseded,
+}
+
+impl PreviewVideoState {
+    /// How `pb::Job.preview_video` says it: empty where there is none to follow.
+    pub fn name(self) -> &'static str {
+        match self {
+            PreviewVideoState::NotAsked | PreviewVideoState::Superseded => "",
+            PreviewVideoState::Waiting => "waiting",
+            PreviewVideoState::Encoding => "encoding",
+            PreviewVideoState::Ready(_) => "ready",
+            PreviewVideoState::Failed => "failed",
+        }
+    }
+}
+
 impl Job {
     /// Whether the job may yet have its preview video leased: it asks for a video and for
     /// previews, its final frames are not all done, and its preview video is neither stored,
@@ -27,6 +57,24 @@ impl Job {
                     && p.video_size_bytes.is_none()
                     && p.failed_attempts < MAX_ENCODE_ATTEMPTS
             })
+    }
+
+    /// Where its preview video stands.
+    pub fn preview_video_state(&self) -> PreviewVideoState {
+        let preview = self.encode.as_ref().map(|e| &e.preview);
+        if !(self.spec.preview && self.spec.video.is_some()) {
+            PreviewVideoState::NotAsked
+        } else if let Some(size) = self.preview_video_size_bytes() {
+            PreviewVideoState::Ready(size)
+        } else if preview.is_some_and(|p| p.lease.is_some()) {
+            PreviewVideoState::Encoding
+        } else if preview.is_some_and(|p| p.failed_attempts >= MAX_ENCODE_ATTEMPTS) {
+            PreviewVideoState::Failed
+        } else if self.frames_done >= self.frames_total {
+            PreviewVideoState::Superseded
+        } else {
+            PreviewVideoState::Waiting
+        }
     }
 
     /// The stored preview video's size.
@@ -72,28 +120,22 @@ impl Daemon {
         let Some(video) = job.spec.video else {
             return refused("it asked for no video".into());
         };
-        if !job.spec.preview {
-            return refused("it asked for no previews".into());
-        }
-        if let Some(size) = job.preview_video_size_bytes() {
-            return Ok((
+        match job.preview_video_state() {
+            PreviewVideoState::Ready(size) => Ok((
                 self.config.preview_video_path(job_id, video.container),
                 size,
                 video.container,
-            ));
-        }
-        let preview = job.encode.as_ref().map(|e| &e.preview);
-        if preview.is_some_and(|p| p.lease.is_some()) {
-            refused("it is being made".into())
-        } else if preview.is_some_and(|p| p.failed_attempts >= MAX_ENCODE_ATTEMPTS) {
-            refused(format!("it failed {MAX_ENCODE_ATTEMPTS} times"))
-        } else if job.frames_done >= job.frames_total {
-            refused("its final frames were all done first; its final video supersedes it".into())
-        } else {
-            refused(format!(
+            )),
+            PreviewVideoState::NotAsked => refused("it asked for no previews".into()),
+            PreviewVideoState::Encoding => refused("it is being made".into()),
+            PreviewVideoState::Failed => refused(format!("it failed {MAX_ENCODE_ATTEMPTS} times")),
+            PreviewVideoState::Superseded => refused(
+                "its final frames were all done first; its final video supersedes it".into(),
+            ),
+            PreviewVideoState::Waiting => refused(format!(
                 "it is {}, waiting for every frame to have a preview",
                 job.state.name()
-            ))
+            )),
         }
     }
 }
@@ -157,6 +199,9 @@ mod tests {
             .sha256;
         let progress = Arc::new(pointfarm_render::lod::BuildProgress::new());
         daemon.stores.hold_building(&sha256, 20_000, progress);
+        let shown =
+            |daemon: &Daemon| pb::Job::from(&daemon.job(&job.id).expect("job")).preview_video;
+        assert_eq!(shown(&daemon), "waiting");
 
         assert!(hand_in_preview(&daemon));
         assert!(lease_encode(&daemon).is_none(), "a frame has no preview");
@@ -166,6 +211,7 @@ mod tests {
         let task = lease_encode(&daemon).expect("the preview video");
         assert_eq!((task.job_id.as_str(), task.frames), (job.id.as_str(), 2));
         assert!(lease_encode(&daemon).is_none(), "one at a time");
+        assert_eq!(shown(&daemon), "encoding");
         daemon
             .fail_encode(&task.lease_id, false, "ffmpeg said no")
             .expect("fail");
@@ -181,6 +227,7 @@ mod tests {
         upload.write(bytes).expect("write");
         let stored = daemon.finish_video_upload(upload).expect("stored");
         assert_eq!((stored.state, stored.frames_done), (JobState::Running, 0));
+        assert_eq!(shown(&daemon), "ready");
         let (path, size, _) = daemon.preview_video(&job.id).expect("preview video");
         assert_eq!(std::fs::read(path).expect("read"), bytes);
         assert_eq!(size, bytes.len() as u64);
@@ -204,6 +251,8 @@ mod tests {
         assert!(lease_encode(&daemon).is_none(), "no preview video");
         let refused = daemon.preview_video(&job.id).expect_err("none");
         assert!(refused.to_string().contains("supersedes"), "{refused}");
+        let shown = pb::Job::from(&daemon.job(&job.id).expect("job")).preview_video;
+        assert_eq!(shown, "", "none to follow");
 
         let plain = test_daemon::submit(&daemon, 1, |_| {});
         let refused = daemon.preview_video(&plain.id).expect_err("none");

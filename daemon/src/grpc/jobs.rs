@@ -142,6 +142,7 @@ impl JobService for Api {
                         Ok(pb::JobEvent {
                             job: Some(pb::Job::from(&event.job)),
                             frame,
+                            stage: String::new(),
                         })
                     }
                     Ok(_) => continue,
@@ -254,6 +255,7 @@ async fn catch_up(
         event: pb::JobEvent {
             job: Some(snapshot),
             frame: None,
+            stage: String::new(),
         },
         reported,
         ended: job.state.is_terminal(),

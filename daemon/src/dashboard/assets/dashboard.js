@@ -56,16 +56,13 @@
     }
   }
 
-  // The stage `root` shows of `job`, as the server words it (`pages::job_stage`): the
-  // job's own stage when it makes its video or has ended; while frames render, whether the
-  // frame just finished is a preview or final, else what the page was rendered with.
-  function showStage(root, job, frame) {
+  // The stage `root` shows, as the server words it with each event (`pages::job_stage`);
+  // a job's page also follows its preview video ("waiting", "encoding", "ready", "failed").
+  function showStage(root, event) {
     const cell = root.querySelector(".stage");
-    if (!cell) return;
-    const stage = job.stage || "";
-    if (stage !== "frames") cell.textContent = stage;
-    else if (frame) cell.textContent = frame.preview ? "previews" : "final frames";
-    else if (cell.textContent === "" || cell.textContent === "video") cell.textContent = "frames";
+    if (cell) cell.textContent = event.stage || "";
+    const preview = root.querySelector(".preview-video");
+    if (preview && event.job.previewVideo) preview.textContent = event.job.previewVideo;
   }
 
   // Says in the header whether the page is following the farm; `data-live` is `open` once
@@ -181,7 +178,7 @@
         if (count) count.textContent = body.dataset.shown + " of " + body.dataset.matching + " jobs";
       }
       showJob(row, job);
-      showStage(row, job, event.frame);
+      showStage(row, event);
     });
   }
 
@@ -212,7 +209,7 @@
     listen("/api/events?job=" + encodeURIComponent(id), (event) => {
       if (event.job) {
         showJob(body, event.job);
-        showStage(body, event.job, event.frame);
+        showStage(body, event);
         (event.job.frames || []).forEach(showFrame);
       }
       if (event.frame) showFrame(event.frame);
