@@ -16,7 +16,7 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::sample::sample_scene;
 use pointfarm_tests::prometheus::scrape;
-use pointfarm_tests::s3s::{self, S3sServer};
+use pointfarm_tests::s3s::{self, S3Bucket};
 use pointfarm_tests::service::{connect, lease_at_once};
 use pointfarm_tests::{free_address, pointfarm_bin, pointfarm_ok, ServeProcess, WorkerProcess};
 
@@ -36,11 +36,9 @@ fn arg(path: &Path) -> &str {
     path.to_str().expect("temporary paths are UTF-8")
 }
 
-/// An S3 server over a fresh root holding the bucket, a scene to render and a scratch
-/// folder. The fields drop in order: the server stops first.
+/// An S3 server holding the bucket, a scene to render and a scratch folder.
 struct Farm {
-    server: S3sServer,
-    root: tempfile::TempDir,
+    bucket: S3Bucket,
     dir: tempfile::TempDir,
     scene: PathBuf,
 }
@@ -48,9 +46,7 @@ struct Farm {
 impl Farm {
     /// Starts the server; None, having said so, without the binary.
     fn start() -> Option<Self> {
-        let root = tempfile::tempdir().expect("root");
-        std::fs::create_dir_all(root.path().join(BUCKET)).expect("bucket folder");
-        let server = S3sServer::start_or_skip(root.path())?;
+        let bucket = S3Bucket::start_or_skip(BUCKET)?;
         let dir = tempfile::tempdir().expect("tempdir");
         let scene = dir.path().join("scene.laz");
         write_las(
@@ -59,18 +55,13 @@ impl Farm {
             &LasWriteOptions::default(),
         )
         .expect("scene");
-        Some(Self {
-            server,
-            root,
-            dir,
-            scene,
-        })
+        Some(Self { bucket, dir, scene })
     }
 
     /// The `pointfarm` binary with the server's endpoint and credentials in its environment.
     fn pointfarm(&self) -> Command {
         let mut command = Command::new(pointfarm_bin());
-        command.envs(self.server.environment());
+        command.envs(self.bucket.server.environment());
         command
     }
 
@@ -103,27 +94,6 @@ impl Farm {
         args.extend(OPTIONS);
         pointfarm_ok(&args);
         out
-    }
-
-    /// Keys of the bucket's objects, sorted; the server's own bookkeeping left out.
-    fn objects(&self) -> Vec<String> {
-        let bucket = self.root.path().join(BUCKET);
-        let mut found = Vec::new();
-        let mut folders = vec![bucket.clone()];
-        while let Some(folder) = folders.pop() {
-            for entry in std::fs::read_dir(&folder).expect("bucket folder") {
-                let path = entry.expect("entry").path();
-                if path.is_dir() {
-                    folders.push(path);
-                } else {
-                    let key = path.strip_prefix(&bucket).expect("under the bucket");
-                    found.push(key.to_string_lossy().into_owned());
-                }
-            }
-        }
-        found.retain(|key| !key.starts_with('.') && !key.contains("/."));
-        found.sort();
-        found
     }
 }
 
@@ -200,7 +170,7 @@ fn workers_read_a_published_store_from_object_storage_and_none_of_it_through_the
     let first = farm.render(&daemon, "first");
     assert_same_frames(&plain, &first, "while the store is published");
     wait_for_published(&daemon, 1);
-    let objects = farm.objects();
+    let objects = farm.bucket.objects();
     let [hierarchy, payload] = objects.as_slice() else {
         panic!("the store's two objects: {objects:?}");
     };
@@ -297,11 +267,12 @@ fn a_damaged_published_store_fails_the_frame_and_the_job_ends_through_the_daemon
 
     // Every byte of the published payload damaged, its size kept.
     let payload = farm
+        .bucket
         .objects()
         .into_iter()
         .find(|key| key.ends_with("/nodes.bin"))
         .expect("the payload object");
-    let path = farm.root.path().join(BUCKET).join(payload);
+    let path = farm.bucket.stored(&payload);
     let damaged: Vec<u8> = std::fs::read(&path)
         .expect("payload")
         .iter()
