@@ -229,6 +229,7 @@ impl From<&Job> for pb::Job {
             video_size_bytes: job.video_size_bytes().unwrap_or(0),
             outputs_uploaded: job.outputs.uploaded,
             output_errors: job.outputs.errors.clone(),
+            outputs_pending: job.outputs.pending,
             preview_video: job.preview_video_state().name().to_owned(),
         }
     }
