@@ -305,6 +305,7 @@ impl Daemon {
             files: if files.len() > 1 { files } else { Vec::new() },
             created_unix_ms: now_unix_ms(),
             remote: None,
+            tiles: Vec::new(),
         };
         self.state.put_dataset(&dataset)?;
         tracing::info!(

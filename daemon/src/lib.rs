@@ -9,8 +9,8 @@
 //! database, `StateDb`), `stores` (the datasets' level-of-detail stores), `worker_presence` (which
 //! workers can render, for health), `service` (the `Daemon` and its job operations), `datasets`
 //! (datasets of one or more files: registered, uploaded, composed; more `Daemon` methods),
-//! `remote_datasets` (datasets by URL: one COPC object under the operator's allowed prefixes;
-//! more `Daemon` methods),
+//! `remote_datasets` (datasets by URL: a COPC object, or LAS/LAZ tiles and s3:// prefixes of them,
+//! under the operator's allowed prefixes; more `Daemon` methods),
 //! `describe` (what a dataset's files hold, read with the render crate; more `Daemon` methods),
 //! `chains` (jobs that run after others succeed, failed along the chain when one does not;
 //! more `Daemon` methods), `job_control` (cancel, retry, pause, resume, priority, delete;

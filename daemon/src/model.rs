@@ -36,6 +36,35 @@ pub struct Dataset {
     /// The object a dataset by URL is read from; none for files on the server.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub remote: Option<RemoteSource>,
+    /// The LAS/LAZ objects of a dataset of tiles by URL, in order; empty otherwise.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub tiles: Vec<RemoteTile>,
+}
+
+/// One LAS/LAZ object of a dataset of tiles by URL, as its registration found it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RemoteTile {
+    /// A checked `s3://` or `http(s)://` URL, which never holds credentials.
+    pub url: String,
+    pub size_bytes: u64,
+    /// The ETag or version id its reads are pinned to.
+    pub version: String,
+}
+
+/// What identifies these versions of `tiles`, in place of a content hash: the SHA-256 (hex)
+/// of each one's URL, version and size, length-prefixed, in order.
+pub fn tiles_key(tiles: &[RemoteTile]) -> String {
+    use sha2::{Digest, Sha256};
+    let mut hasher = Sha256::new();
+    hasher.update(b"tiles\0");
+    for tile in tiles {
+        for part in [tile.url.as_bytes(), tile.version.as_bytes()] {
+            hasher.update((part.len() as u64).to_le_bytes());
+            hasher.update(part);
+        }
+        hasher.update(tile.size_bytes.to_le_bytes());
+    }
+    hex(&hasher.finalize())
 }
 
 /// The object of a dataset by URL, as its registration found it.
@@ -75,13 +104,15 @@ impl Dataset {
     /// Refuses `work` that reads a dataset's files on the server (a store build, a
     /// description, an export, a job) for a dataset by URL, which has none, saying why.
     pub fn check_local(&self, work: &str) -> Result<(), DaemonError> {
-        match &self.remote {
-            Some(remote) => Err(DaemonError::FailedPrecondition(format!(
-                "dataset {} is read by URL ({}): {work} a dataset by URL is not supported yet",
-                self.id, remote.url
-            ))),
-            None => Ok(()),
-        }
+        let url = match (&self.remote, self.tiles.first()) {
+            (Some(remote), _) => &remote.url,
+            (None, Some(tile)) => &tile.url,
+            (None, None) => return Ok(()),
+        };
+        Err(DaemonError::FailedPrecondition(format!(
+            "dataset {} is read by URL ({url}): {work} a dataset by URL is not supported yet",
+            self.id
+        )))
     }
 
     /// Every file of the dataset, in order.

@@ -1,17 +1,22 @@
-//! Datasets by URL: one COPC object in object storage or on an HTTP server, registered under
-//! the operator's allow-list from a HEAD request and its header read by range, never read
-//! whole. More `Daemon` methods.
+//! Datasets by URL, registered under the operator's allow-list and never read whole: one COPC
+//! object (a HEAD and its header read by range), or LAS/LAZ tiles, named one by one or as an
+//! `s3://` prefix whose `.las`/`.laz` objects are listed as a folder's files are, each checked
+//! by range as `ingest` checks a file and recorded with its size and version. More `Daemon`
+//! methods.
 //!
 //! A `file://` URL is not one of them: it is a path on the server, resolved under the data
 //! roots like any other ([`local_path`]), so that a URL never reads around them.
 
 use std::path::PathBuf;
 
-use pointfarm_render::remote::{AllowedPrefixes, ObjectUrl, RemoteClient, RemoteObject, UrlKind};
+use pointfarm_render::remote::{
+    AllowedPrefixes, ListedObject, ObjectUrl, RemoteClient, RemoteObject, UrlKind,
+};
+use pointfarm_render::source::{listed_tiles, open_tile_source};
 
 use crate::error::DaemonError;
 use crate::limits::{check_length, MAX_NAME_BYTES};
-use crate::model::{now_unix_ms, Dataset, RemoteSource};
+use crate::model::{now_unix_ms, tiles_key, Dataset, RemoteSource, RemoteTile};
 use crate::service::{dataset_id, Daemon};
 
 /// The bytes of a COPC file's head that tell it is one: the LAS 1.4 header (375 bytes) and the
@@ -19,9 +24,9 @@ use crate::service::{dataset_id, Daemon};
 const COPC_HEAD_BYTES: u64 = COPC_INFO_OFFSET + 54;
 const COPC_INFO_OFFSET: u64 = 375;
 
-/// How a registration says that only COPC objects register by URL, and what to do instead.
-const ONLY_COPC: &str = "only a single COPC object (.copc.laz) registers by URL yet; register \
-                         other files by path under a data root, or upload them";
+/// What registers by URL, said where a registration names something else.
+const BY_URL: &str = "one COPC object, or LAS/LAZ objects and s3:// prefixes of them, register \
+                      by URL";
 
 /// Checks one prefix of the operator's allow-list (`serve --allow-url-prefix`), with a
 /// message that names it: an `s3://` or `http(s)://` URL without credentials or a query.
@@ -70,80 +75,146 @@ pub fn local_path(path: &str) -> Result<String, DaemonError> {
     }
 }
 
-/// The URL a registration's paths name, when they name an object by URL rather than files
-/// on the server: one URL, alone, since a dataset by URL is one object.
-pub fn requested_url(paths: &[String]) -> Result<Option<String>, DaemonError> {
+/// The URLs a registration's paths name, when they name objects by URL rather than files on
+/// the server: every path a URL, none mixed with files.
+pub fn requested_urls(paths: &[String]) -> Result<Option<Vec<String>>, DaemonError> {
     let is_remote = |path: &String| url_scheme(path).is_some_and(|scheme| scheme != "file");
-    match paths {
-        [one] if is_remote(one) => Ok(Some(one.trim().to_owned())),
-        many if many.iter().any(is_remote) => Err(DaemonError::invalid(
-            "paths",
-            format!("a dataset by URL is one object: give its URL alone ({ONLY_COPC})"),
-        )),
-        _ => Ok(None),
+    if paths.is_empty() || !paths.iter().any(is_remote) {
+        return Ok(None);
     }
+    if !paths.iter().all(is_remote) {
+        return Err(DaemonError::invalid(
+            "paths",
+            "a dataset by URL is read by URL alone: give URLs or files on the server, not both",
+        ));
+    }
+    Ok(Some(
+        paths.iter().map(|path| path.trim().to_owned()).collect(),
+    ))
 }
 
 impl Daemon {
-    /// Registers the COPC object at `url` as a dataset: refused unless the URL lies under the
-    /// operator's allowed prefixes, before any request; then a HEAD gives its size and
-    /// version, and its first bytes, read by range, must be a COPC header. Its id comes from
-    /// the URL, the version and the size ([`RemoteSource::key`]), so registering the same
-    /// version again answers the same dataset and a replaced object is another one.
-    pub fn register_url(&self, url: &str, name: &str) -> Result<Dataset, DaemonError> {
+    /// Registers the objects at `urls` as a dataset: refused unless each URL lies under the
+    /// operator's allowed prefixes, before any request. One object whose head is COPC's is a
+    /// COPC dataset ([`Self::register_copc`]); anything else is LAS/LAZ tiles
+    /// ([`Self::register_tiles`]).
+    pub fn register_urls(&self, urls: &[String], name: &str) -> Result<Dataset, DaemonError> {
         check_length("name", name, MAX_NAME_BYTES)?;
-        let url = ObjectUrl::parse(url)?;
-        if matches!(url.kind(), UrlKind::File { .. }) {
-            return Err(DaemonError::invalid(
-                "path",
-                format!("{url}: a file:// URL is a path on the server"),
-            ));
-        }
-        self.config.allowed_url_prefixes.check(&url).inspect_err(
-            |error| tracing::warn!(%error, "a registration by URL is refused by the allow-list"),
-        )?;
-        if url.is_prefix() {
-            return Err(DaemonError::invalid(
-                "path",
-                format!("{url}: names a prefix, not an object; {ONLY_COPC}"),
-            ));
+        let mut parsed = Vec::with_capacity(urls.len());
+        for url in urls {
+            let url = ObjectUrl::parse(url)?;
+            if matches!(url.kind(), UrlKind::File { .. }) {
+                return Err(DaemonError::invalid(
+                    "path",
+                    format!("{url}: a file:// URL is a path on the server"),
+                ));
+            }
+            self.check_allowed(&url)?;
+            parsed.push(url);
         }
         let client = self.remote_client()?;
-        let object = client.open(&url)?;
-        let version = object.version().map(str::to_owned).ok_or_else(|| {
-            DaemonError::FailedPrecondition(format!(
-                "{url}: the server gives no ETag or version id, so a changed object could not \
-                 be told from the one registered"
-            ))
-        })?;
-        check_copc_head(&object)?;
+        if let [url] = parsed.as_slice() {
+            if !url.is_prefix() {
+                let object = client.open(url)?;
+                if is_copc_head(&object)? {
+                    return self.register_copc(object, name);
+                }
+            }
+        }
+        self.register_tiles(client, &parsed, name)
+    }
+
+    /// Refuses `url` unless it lies under the operator's allowed prefixes, naming the rule.
+    fn check_allowed(&self, url: &ObjectUrl) -> Result<(), DaemonError> {
+        Ok(self.config.allowed_url_prefixes.check(url).inspect_err(
+            |error| tracing::warn!(%error, "a registration by URL is refused by the allow-list"),
+        )?)
+    }
+
+    /// Registers a COPC object: its id comes from the URL, the version and the size
+    /// ([`RemoteSource::key`]), so registering the same version again answers the same
+    /// dataset and a replaced object is another one.
+    fn register_copc(&self, object: RemoteObject, name: &str) -> Result<Dataset, DaemonError> {
+        let url = object.url();
         let source = RemoteSource {
             url: url.to_string(),
-            version,
+            version: required_version(url, object.version())?,
         };
         let sha256 = source.key(object.size());
-        let id = dataset_id(&sha256);
-        if let Some(existing) = self.state.dataset(&id)? {
-            return Ok(existing);
-        }
-        let name = match name {
-            "" => object_name(&url),
-            name => name.to_owned(),
-        };
-        let dataset = Dataset {
-            id,
-            name,
+        self.put_url_dataset(Dataset {
+            id: dataset_id(&sha256),
+            name: default_name(name, url),
             size_bytes: object.size(),
             sha256,
             path: PathBuf::new(),
             files: Vec::new(),
             created_unix_ms: now_unix_ms(),
             remote: Some(source),
-        };
+            tiles: Vec::new(),
+        })
+    }
+
+    /// Registers the LAS/LAZ tiles `urls` name (objects, or prefixes listed), each opened at
+    /// the version listed and checked by range as a file is, its URL, size and version
+    /// recorded. Its id comes from those ([`tiles_key`]), so a replaced tile is another
+    /// dataset.
+    fn register_tiles(
+        &self,
+        client: &RemoteClient,
+        urls: &[ObjectUrl],
+        name: &str,
+    ) -> Result<Dataset, DaemonError> {
+        let mut listed: Vec<ListedObject> = Vec::new();
+        for url in urls {
+            let found = listed_tiles(client, url)?;
+            if found.is_empty() {
+                return Err(DaemonError::invalid(
+                    "path",
+                    format!("{url}: no .las or .laz objects under this prefix"),
+                ));
+            }
+            listed.extend(found);
+        }
+        let mut tiles = Vec::with_capacity(listed.len());
+        for tile in &mut listed {
+            // A listing stays under its prefix; checked again so no object escapes the rule.
+            self.check_allowed(&tile.url)?;
+            // Some servers list no versions: a HEAD gives the one the reads are held to.
+            if tile.version.is_none() {
+                tile.version = client.open(&tile.url)?.version().map(str::to_owned);
+            }
+            tiles.push(RemoteTile {
+                url: tile.url.to_string(),
+                size_bytes: tile.size,
+                version: required_version(&tile.url, tile.version.as_deref())?,
+            });
+        }
+        open_tile_source(client, &listed)
+            .map_err(|error| DaemonError::invalid("path", format!("{error}; {BY_URL}")))?;
+        let sha256 = tiles_key(&tiles);
+        self.put_url_dataset(Dataset {
+            id: dataset_id(&sha256),
+            name: default_name(name, &urls[0]),
+            size_bytes: tiles.iter().map(|tile| tile.size_bytes).sum(),
+            sha256,
+            path: PathBuf::new(),
+            files: Vec::new(),
+            created_unix_ms: now_unix_ms(),
+            remote: None,
+            tiles,
+        })
+    }
+
+    /// Stores a dataset by URL, or answers the one registered before with the same key.
+    fn put_url_dataset(&self, dataset: Dataset) -> Result<Dataset, DaemonError> {
+        if let Some(existing) = self.state.dataset(&dataset.id)? {
+            return Ok(existing);
+        }
         self.state.put_dataset(&dataset)?;
         tracing::info!(
             dataset = %dataset.id,
-            url = %url,
+            name = %dataset.name,
+            tiles = dataset.tiles.len(),
             size_bytes = dataset.size_bytes,
             "dataset added by URL"
         );
@@ -159,35 +230,44 @@ impl Daemon {
     }
 }
 
-/// The object's first bytes, read by range, are a COPC file's: LAS 1.4 whose first VLR is
-/// the `copc` info record.
-fn check_copc_head(object: &RemoteObject) -> Result<(), DaemonError> {
+/// The version an object's reads are pinned to; refused without one, since a replaced
+/// object could not then be told from the one registered.
+fn required_version(url: &ObjectUrl, version: Option<&str>) -> Result<String, DaemonError> {
+    version.map(str::to_owned).ok_or_else(|| {
+        DaemonError::FailedPrecondition(format!(
+            "{url}: the server gives no ETag or version id, so a changed object could not be \
+             told from the one registered"
+        ))
+    })
+}
+
+/// Whether the object's first bytes, read by range, are a COPC file's: LAS 1.4 whose first
+/// VLR is the `copc` info record. An object that is not LAS/LAZ at all is refused here.
+fn is_copc_head(object: &RemoteObject) -> Result<bool, DaemonError> {
     let url = object.url();
-    let not_copc =
-        |reason: &str| DaemonError::invalid("path", format!("{url}: {reason}; {ONLY_COPC}"));
     if object.size() < COPC_HEAD_BYTES {
-        return Err(not_copc(&format!(
-            "{} bytes, too small for a COPC file",
-            object.size()
-        )));
+        return Ok(false);
     }
     let head = object.read_range(0..COPC_HEAD_BYTES)?;
     if !head.starts_with(pointfarm_render::ingest::LAS_SIGNATURE) {
-        return Err(not_copc(
-            "not a LAS/LAZ file (it does not start with \"LASF\")",
+        return Err(DaemonError::invalid(
+            "path",
+            format!("{url}: not a LAS/LAZ file (it does not start with \"LASF\"); {BY_URL}"),
         ));
     }
     let info = COPC_INFO_OFFSET as usize;
-    let is_copc = head[24..26] == [1, 4]
+    Ok(head[24..26] == [1, 4]
         && u64::from(u16::from_le_bytes([head[94], head[95]])) == COPC_INFO_OFFSET
         && head[info + 2..info + 18] == *b"copc\0\0\0\0\0\0\0\0\0\0\0\0"
-        && u16::from_le_bytes([head[info + 18], head[info + 19]]) == 1;
-    if !is_copc {
-        return Err(not_copc(
-            "a LAS/LAZ file, but not COPC (its first record is not the COPC info)",
-        ));
+        && u16::from_le_bytes([head[info + 18], head[info + 19]]) == 1)
+}
+
+/// The name given, or the URL's last segment, as a file is named by its name.
+fn default_name(name: &str, url: &ObjectUrl) -> String {
+    match name {
+        "" => object_name(url),
+        name => name.to_owned(),
     }
-    Ok(())
 }
 
 /// A dataset by URL is named by its object's last segment, as a file by its name.
@@ -243,18 +323,18 @@ mod tests {
     }
 
     #[test]
-    fn a_request_names_a_url_alone_or_files() {
+    fn a_request_names_urls_or_files() {
         let paths = |items: &[&str]| items.iter().map(|s| s.to_string()).collect::<Vec<_>>();
         assert_eq!(
-            requested_url(&paths(&["s3://b/a.copc.laz"])).expect("one URL"),
-            Some("s3://b/a.copc.laz".to_owned())
+            requested_urls(&paths(&["s3://b/a.copc.laz"])).expect("one URL"),
+            Some(paths(&["s3://b/a.copc.laz"]))
         );
         assert_eq!(
-            requested_url(&paths(&["HTTPS://h/a.copc.laz"])).expect("one URL"),
-            Some("HTTPS://h/a.copc.laz".to_owned())
+            requested_urls(&paths(&["HTTPS://h/a.laz", " s3://b/tiles/"])).expect("URLs"),
+            Some(paths(&["HTTPS://h/a.laz", "s3://b/tiles/"]))
         );
         // Another scheme is still a URL, refused as one rather than looked for on disk.
-        assert!(requested_url(&paths(&["gs://b/a.laz"]))
+        assert!(requested_urls(&paths(&["gs://b/a.laz"]))
             .expect("a URL")
             .is_some());
         for local in [
@@ -263,12 +343,12 @@ mod tests {
             &["file:///srv/a.laz"],
             &["a:b.laz"],
         ] {
-            assert_eq!(requested_url(&paths(local)).expect("files"), None);
+            assert_eq!(requested_urls(&paths(local)).expect("files"), None);
         }
-        let mixed = requested_url(&paths(&["s3://b/a.copc.laz", "scans/b.laz"]))
+        let mixed = requested_urls(&paths(&["s3://b/a.copc.laz", "scans/b.laz"]))
             .expect_err("mixed")
             .to_string();
-        assert!(mixed.contains("URL alone"), "{mixed}");
+        assert!(mixed.contains("not both"), "{mixed}");
     }
 
     #[test]
@@ -295,5 +375,31 @@ mod tests {
         assert_ne!(key, source("s3://b/b.copc.laz", "\"e1\"").key(10));
         // The parts are length-prefixed: moving a byte from one to the other is another key.
         assert_ne!(source("ab", "c").key(1), source("a", "bc").key(1));
+    }
+
+    #[test]
+    fn the_tiles_key_tells_every_tile_apart() {
+        let tile = |url: &str, size_bytes: u64, version: &str| RemoteTile {
+            url: url.to_owned(),
+            size_bytes,
+            version: version.to_owned(),
+        };
+        let tiles = [
+            tile("s3://b/t/a.laz", 10, "e1"),
+            tile("s3://b/t/b.laz", 20, "e2"),
+        ];
+        let key = tiles_key(&tiles);
+        assert_eq!(key, tiles_key(&tiles.clone()));
+        let replaced = [tiles[0].clone(), tile("s3://b/t/b.laz", 20, "e3")];
+        assert_ne!(key, tiles_key(&replaced));
+        let resized = [tiles[0].clone(), tile("s3://b/t/b.laz", 21, "e2")];
+        assert_ne!(key, tiles_key(&resized));
+        assert_ne!(key, tiles_key(&tiles[..1]));
+        // One tile's key is never the key of the same object registered as COPC.
+        let copc = RemoteSource {
+            url: "s3://b/t/a.laz".to_owned(),
+            version: "e1".to_owned(),
+        };
+        assert_ne!(tiles_key(&tiles[..1]), copc.key(10));
     }
 }

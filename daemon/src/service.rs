@@ -272,7 +272,8 @@ impl Daemon {
                 // Frames that wait for the store are leased again: previews for a redraw when
                 // the build's version moves, every frame for its final render when it ends.
                 .notifying(Arc::new(move || built.notify()))
-                .publishing(publisher);
+                .publishing(publisher)
+                .reading_urls(remote.clone());
         let metrics = DaemonMetrics::new();
         let webhooks = Webhooks::start(&config.webhooks, metrics.webhook_counters())?;
         let daemon = Arc::new(Self {

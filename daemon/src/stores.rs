@@ -31,9 +31,8 @@ use std::sync::{Arc, Mutex};
 use pointfarm_render::color::Stretch;
 use pointfarm_render::copc::{is_copc, open_copc_whole, CopcDecoder};
 use pointfarm_render::cut::{CutError, LodDataset, StoredLod};
-use pointfarm_render::ingest::dataset_point_count;
 use pointfarm_render::lod::{BuildProgress, LodHierarchy};
-use pointfarm_render::source::{frame_points, FramePoints, PointSourceFacts};
+use pointfarm_render::source::{frame_points, FramePoints, PointSourceFacts, StoreInput};
 
 use crate::dataset_files::DatasetFolders;
 use crate::error::DaemonError;
@@ -211,6 +210,8 @@ pub struct DatasetStores {
     folders: Option<DatasetFolders>,
     /// Publishes ready stores for workers to read from object storage (`serve --store-url`).
     publisher: Option<Arc<StorePublisher>>,
+    /// Reads datasets of tiles by URL (`input`).
+    urls: Option<pointfarm_render::remote::RemoteClient>,
 }
 
 impl DatasetStores {
@@ -231,6 +232,7 @@ impl DatasetStores {
             on_change: None,
             folders: None,
             publisher: None,
+            urls: None,
         }
     }
 
@@ -258,11 +260,11 @@ impl DatasetStores {
         self
     }
 
-    /// Refuses `dataset` when a file of it no longer lies where it may be read.
+    /// Refuses `dataset` when a file of it here no longer lies where it may be read.
     fn check_files(&self, dataset: &Dataset) -> Result<(), DaemonError> {
         match &self.folders {
-            Some(folders) => folders.check(dataset),
-            None => Ok(()),
+            Some(folders) if dataset.tiles.is_empty() => folders.check(dataset),
+            _ => Ok(()),
         }
     }
 
@@ -337,7 +339,7 @@ impl DatasetStores {
         self.check_files(dataset)?;
         let files = dataset.files();
         // A file that cannot be read as COPC is reported by the store's build.
-        let [file] = files.as_slice() else {
+        let ([file], true) = (files.as_slice(), dataset.tiles.is_empty()) else {
             lock().insert(dataset.sha256.clone(), CopcEntry::Plain);
             return Ok(None);
         };
@@ -392,10 +394,7 @@ impl DatasetStores {
             Ok(Some(points)) => points,
             Ok(None) => {
                 self.check_files(dataset)?;
-                let paths: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
-                let points = dataset_point_count(&paths).map_err(|e| {
-                    DaemonError::FailedPrecondition(format!("dataset {}: {e}", dataset.id))
-                })?;
+                let points = self.point_count(dataset)?;
                 self.set(&sha, Entry::Counted(points));
                 points
             }
@@ -408,16 +407,16 @@ impl DatasetStores {
             points: Some(points),
             one_copc_file: false,
             store_built: built,
-            levels_of_detail_asked: levels_of_detail,
+            levels_of_detail_asked: levels_of_detail || !dataset.tiles.is_empty(),
         };
         if frame_points(&facts) == FramePoints::Resident {
             return Ok(StoreAnswer::NotNeeded { points });
         }
         if built {
-            let files: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
+            let input = self.input_of(dataset)?;
             // Opening a finished store reads its hierarchy and a sample of its coarsest nodes.
             let opened = open_or_build(
-                &files,
+                &input,
                 &folder,
                 self.build_memory_bytes,
                 &BuildProgress::new(),
@@ -440,7 +439,7 @@ impl DatasetStores {
         self.check_files(dataset)?;
         let sha = dataset.sha256.clone();
         let folder = self.folder(&sha);
-        let files: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
+        let input = self.input_of(dataset)?;
         let on_change = self.on_change.clone();
         let progress = Arc::new(match on_change.clone() {
             Some(on_change) => BuildProgress::notifying(move |_| on_change()),
@@ -467,7 +466,7 @@ impl DatasetStores {
                 }
                 let _one_at_a_time = building.lock().unwrap_or_else(|e| e.into_inner());
                 tracing::info!(dataset = %id, points, "building the dataset's levels of detail");
-                let built = open_or_build(&files, &folder, budget, &progress);
+                let built = open_or_build(&input, &folder, budget, &progress);
                 if let Ok(ready) = &built {
                     resume::log_resumed(&id, ready);
                 }
@@ -546,8 +545,8 @@ impl DatasetStores {
                 if !StoredLod::is_built(&folder) {
                     return Err(not_open());
                 }
-                let progress = BuildProgress::new();
-                match open_or_build(&[], &folder, self.build_memory_bytes, &progress) {
+                let (progress, input) = (BuildProgress::new(), StoreInput::Files(Vec::new()));
+                match open_or_build(&input, &folder, self.build_memory_bytes, &progress) {
                     Err(damage) if damage.is_store_damage() => {
                         let rebuilding = self.rebuild_damaged(dataset, None, &damage.to_string());
                         Err(rebuilding.map_or_else(|e| e, |_| being_rebuilt(dataset)))
@@ -637,15 +636,15 @@ impl DatasetStores {
     }
 }
 
-/// Opens the store in `folder`, building it from `files` first when it has none, listing in
+/// Opens the store in `folder`, building it from `input` first when it has none, listing in
 /// `progress` the nodes the build stores.
 fn open_or_build(
-    files: &[PathBuf],
+    input: &StoreInput,
     folder: &Path,
     budget: u64,
     progress: &BuildProgress,
 ) -> Result<ReadyStore, CutError> {
-    let lod = StoredLod::open_or_build_watched(files, folder, budget, None, &mut |_| {}, progress)?;
+    let lod = input::open_or_build_input(input, folder, budget, progress)?;
     let build_ms = lod.built.as_ref().map_or(0.0, |(_, seconds)| seconds * 1e3);
     let resumed = lod
         .built
@@ -689,6 +688,7 @@ fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
 
 mod healing;
 use healing::being_rebuilt;
+mod input;
 mod preview;
 mod publish;
 mod resume;

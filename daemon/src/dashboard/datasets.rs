@@ -226,6 +226,7 @@ mod tests {
             files: Vec::new(),
             created_unix_ms: 0,
             remote: None,
+            tiles: Vec::new(),
         };
         let disk = DiskBytes::of(&dataset, &store);
         assert_eq!(

@@ -14,7 +14,7 @@ use super::conversions::{dataset_description, file_description, invalid, page_me
 use super::streaming::{first_part, spawn_stream, HashingWriter, ResponseStream, CHUNK_BYTES};
 use super::{export_summary, io_within, Api};
 use crate::error::DaemonError;
-use crate::remote_datasets::requested_url;
+use crate::remote_datasets::requested_urls;
 use crate::service::{dataset_id, Daemon};
 
 #[tonic::async_trait]
@@ -28,11 +28,11 @@ impl DatasetService for Api {
             .filter(|path| !path.is_empty())
             .chain(r.paths)
             .collect();
-        // An object by URL is registered from a HEAD and its header, within the remote
+        // Objects by URL are registered from HEADs and their headers, within the remote
         // reads' own deadline.
-        if let Some(url) = requested_url(&paths)? {
+        if let Some(urls) = requested_urls(&paths)? {
             return self
-                .answer(move |daemon| daemon.register_url(&url, &r.name))
+                .answer(move |daemon| daemon.register_urls(&urls, &r.name))
                 .await;
         }
         // The walk is quick and bounded in time; the hashing takes as long as the files are

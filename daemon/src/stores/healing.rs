@@ -2,12 +2,10 @@
 //! are checked as a worker checks them, and a damaged store is removed and built again the
 //! first time in a run; a second failure is reported to this and every later request.
 
-use std::path::PathBuf;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
 use pointfarm_render::cut::StoredLod;
-use pointfarm_render::ingest::dataset_point_count;
 use pointfarm_render::lod::codec::check_node;
 use pointfarm_render::lod::{LodError, NodeInfo, NodeKey};
 
@@ -169,12 +167,7 @@ impl DatasetStores {
         self.rebuilds.fetch_add(1, Ordering::Relaxed);
         let points = match points {
             Some(points) => points,
-            None => {
-                let paths: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
-                dataset_point_count(&paths).map_err(|e| {
-                    DaemonError::FailedPrecondition(format!("dataset {}: {e}", dataset.id))
-                })?
-            }
+            None => self.point_count(dataset)?,
         };
         self.start_build(dataset, points).map(|_| points)
     }

@@ -36,6 +36,7 @@ fn dataset_of(path: &Path, sha256: &str) -> Dataset {
         }],
         created_unix_ms: 0,
         remote: None,
+        tiles: Vec::new(),
     }
 }
 

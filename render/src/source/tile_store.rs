@@ -80,7 +80,7 @@ pub enum StoreInput {
 /// Opens the store of `tiles` in `folder`, or builds it first from the tiles streamed by URL,
 /// telling `on_build` the points before a build starts and listing in `progress` the nodes
 /// it stores.
-pub(super) fn open_or_build_tiles(
+pub fn open_or_build_tiles(
     client: &RemoteClient,
     tiles: &[ListedObject],
     folder: &Path,
