@@ -60,6 +60,14 @@ fn count(job: &serde_json::Value, field: &str) -> u64 {
     job[field].as_u64().unwrap_or(0)
 }
 
+/// Asserts that `job` counts `uploaded` outputs written and `pending` waiting, and none failed.
+fn assert_outputs(job: &serde_json::Value, uploaded: u64, pending: u64) {
+    let counted = (count(job, "outputsUploaded"), count(job, "outputsPending"));
+    assert_eq!(counted, (uploaded, pending), "{job}");
+    let errors = job["outputErrors"].as_array().map_or(0, Vec::len);
+    assert_eq!(errors, 0, "{job}");
+}
+
 #[test]
 fn outputs_waiting_when_the_daemon_is_killed_reach_the_bucket_after_it_starts_again() {
     let Some(bucket) = S3Bucket::start_or_skip(BUCKET) else {
@@ -100,13 +108,7 @@ fn outputs_waiting_when_the_daemon_is_killed_reach_the_bucket_after_it_starts_ag
                 .then_some(job)
         },
     );
-    assert_eq!(count(&finished, "outputsUploaded"), 0, "{finished}");
-    assert!(
-        finished["outputErrors"]
-            .as_array()
-            .is_none_or(Vec::is_empty),
-        "{finished}"
-    );
+    assert_outputs(&finished, 0, 3);
     server.kill();
     drop(silent);
     assert!(bucket.objects().is_empty(), "{:?}", bucket.objects());
@@ -117,13 +119,7 @@ fn outputs_waiting_when_the_daemon_is_killed_reach_the_bucket_after_it_starts_ag
         let job = job(&server, &id);
         (count(&job, "outputsUploaded") == 3).then_some(job)
     });
-    assert_eq!(count(&uploaded, "outputsPending"), 0, "{uploaded}");
-    assert!(
-        uploaded["outputErrors"]
-            .as_array()
-            .is_none_or(Vec::is_empty),
-        "{uploaded}"
-    );
+    assert_outputs(&uploaded, 3, 0);
     assert!(
         server.log().contains("resumed 3 pending output upload(s)"),
         "{}",
