@@ -9,10 +9,9 @@ use pointfarm_daemon::access::Access;
 use pointfarm_daemon::service::DaemonConfig;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::testing::write_scene_tiles;
+use pointfarm_tests::datasets::assert_jobs_render_alike;
 use pointfarm_tests::s3s::S3sServer;
-use pointfarm_tests::service::{
-    fetch_images, submit, turntable_job, watch_to_end, watch_to_success, TestDaemon,
-};
+use pointfarm_tests::service::{submit, turntable_job, watch_to_end, TestDaemon};
 use tonic::Code;
 
 const BUCKET: &str = "campaigns";
@@ -75,14 +74,7 @@ async fn tiles_by_url_render_as_the_same_files_by_path() {
     let by_url = register(&daemon, vec![format!("s3://{BUCKET}/tiles/")])
         .await
         .expect("a prefix of tiles");
-    let names: Vec<String> = (paths.iter())
-        .map(|path| {
-            path.file_name()
-                .expect("name")
-                .to_string_lossy()
-                .into_owned()
-        })
-        .collect();
+    let names: Vec<String> = (1..=paths.len()).map(|k| format!("t{k}.laz")).collect();
     let by_path = register(&daemon, names)
         .await
         .expect("the same files by path");
@@ -93,22 +85,13 @@ async fn tiles_by_url_render_as_the_same_files_by_path() {
     assert_eq!(again.id, by_url.id);
 
     let mut jobs = daemon.jobs().await;
-    let mut frames = Vec::new();
-    for (name, dataset) in [("by-path", &by_path), ("by-url", &by_url)] {
-        let job = submit(&mut jobs, job(name, &dataset.id)).await;
-        watch_to_success(&mut jobs, &job.id, || format!("the {name} job")).await;
-        frames.push(fetch_images(&mut jobs, &job.id, 0).await);
-    }
-    assert_eq!(frames[0].len(), 2);
-    let (_, first) = &frames[0][0];
-    assert!(
-        first.pixels().any(|pixel| pixel != first.get_pixel(0, 0)),
-        "frame 0 shows the points"
-    );
-    assert!(
-        frames[0] == frames[1],
-        "the frames of the tiles by URL differ from those by path"
-    );
+    assert_jobs_render_alike(
+        &mut jobs,
+        [job("by-path", &by_path.id), job("by-url", &by_url.id)],
+        2,
+        "the frames of the tiles by URL and by path",
+    )
+    .await;
 
     // Two tiles registered, then one of them replaced before its store is built.
     let two = [1, 2].map(|k| format!("s3://{BUCKET}/tiles/t{k}.laz"));

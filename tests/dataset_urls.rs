@@ -6,11 +6,9 @@
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::service::DaemonConfig;
 use pointfarm_proto::v1 as pb;
-use pointfarm_tests::datasets::daemon_on_served_scans;
+use pointfarm_tests::datasets::{assert_jobs_render_alike, daemon_on_served_scans};
 use pointfarm_tests::nginx::NginxServer;
-use pointfarm_tests::service::{
-    fetch_images, submit, turntable_job, watch_to_end, watch_to_success, write_sample, TestDaemon,
-};
+use pointfarm_tests::service::{submit, turntable_job, watch_to_end, write_sample, TestDaemon};
 use pointfarm_tests::{copc_file, free_address, pointfarm, pointfarm_ok, stdout, ServeProcess};
 use tonic::Code;
 
@@ -320,22 +318,16 @@ async fn a_job_on_a_url_dataset_renders_as_the_same_file_by_path() {
         .await
         .expect("a second object");
     let mut jobs = daemon.jobs().await;
-    let mut frames = Vec::new();
-    for (name, dataset) in [("by-path", &by_path), ("by-url", &by_url)] {
-        let job = submit(&mut jobs, turntable_job(name, &dataset.id, 3, 160, 120)).await;
-        watch_to_success(&mut jobs, &job.id, || format!("the {name} job")).await;
-        frames.push(fetch_images(&mut jobs, &job.id, 0).await);
-    }
-    assert_eq!(frames[0].len(), 3);
-    let (_, first) = &frames[0][0];
-    assert!(
-        first.pixels().any(|pixel| pixel != first.get_pixel(0, 0)),
-        "frame 0 shows the points"
-    );
-    assert!(
-        frames[0] == frames[1],
-        "the frames by URL differ from those by path"
-    );
+    assert_jobs_render_alike(
+        &mut jobs,
+        [
+            turntable_job("by-path", &by_path.id, 3, 160, 120),
+            turntable_job("by-url", &by_url.id, 3, 160, 120),
+        ],
+        3,
+        "the frames by URL and by path",
+    )
+    .await;
     let log = server.access_log(3);
     let gets: Vec<&String> = log.iter().filter(|line| line.contains("\"GET ")).collect();
     assert!(gets.len() > 1, "{log:?}");

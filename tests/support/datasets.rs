@@ -42,3 +42,27 @@ pub async fn daemon_on_served_scans(server: &NginxServer, embedded_worker: bool)
         TestDaemon::start_without_worker(configure, Access::default()).await
     }
 }
+
+/// Runs the jobs `requests` (the same frames of two datasets registered two ways) to success
+/// and asserts that each has `frames` frames showing points, equal pixel for pixel, as `what`.
+pub async fn assert_jobs_render_alike(
+    jobs: &mut pointfarm_proto::v1::job_service_client::JobServiceClient<Channel>,
+    requests: [pb::SubmitJobRequest; 2],
+    frames: usize,
+    what: &str,
+) {
+    let mut images = Vec::new();
+    for request in requests {
+        let name = request.request_id.clone();
+        let job = crate::service::submit(jobs, request).await;
+        crate::service::watch_to_success(jobs, &job.id, || format!("the {name} job")).await;
+        images.push(crate::service::fetch_images(jobs, &job.id, 0).await);
+    }
+    assert_eq!(images[0].len(), frames);
+    let (_, first) = &images[0][0];
+    assert!(
+        first.pixels().any(|pixel| pixel != first.get_pixel(0, 0)),
+        "frame 0 shows the points"
+    );
+    assert!(images[0] == images[1], "{what} differ");
+}
