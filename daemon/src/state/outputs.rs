@@ -4,6 +4,8 @@
 //! are resumed in the order they were queued; the job's pending count changes in the same
 //! transaction as its record.
 
+use std::ops::Bound;
+
 use sled::transaction::{TransactionalTree, UnabortableTransactionError};
 use sled::Transactional;
 
@@ -88,28 +90,46 @@ impl StateDb {
     }
 
     /// The first pending output queued after `after` (from the first when None), with its key.
+    /// A record that cannot be read is removed and logged, so that it cannot hold up the
+    /// outputs queued after it.
     pub fn pending_output_after(
         &self,
         after: Option<u64>,
     ) -> Result<Option<(u64, PendingOutput)>, StateError> {
         self.with(|records| {
-            let found = match after {
-                None => records.trees.outputs.first()?,
-                Some(after) => records.trees.outputs.get_gt(output_key(after))?,
+            let outputs = &records.trees.outputs;
+            let start = match after {
+                None => Bound::Unbounded,
+                Some(after) => Bound::Excluded(output_key(after)),
             };
-            found
-                .map(|(key, value)| {
-                    let key: [u8; 8] = key.as_ref().try_into().map_err(|_| {
-                        StateError::Damaged(format!(
-                            "an output record's key is {} bytes, not 8",
-                            key.len()
-                        ))
-                    })?;
-                    Ok((u64::from_be_bytes(key), decode(&value)?))
-                })
-                .transpose()
+            let entries = outputs.range::<[u8; 8], _>((start, Bound::Unbounded));
+            for entry in entries {
+                let (key, value) = entry?;
+                match read_output(&key, &value) {
+                    Ok(found) => return Ok(Some(found)),
+                    Err(error) => {
+                        tracing::warn!(
+                            %error,
+                            "removed a pending output record that cannot be read; its upload is lost"
+                        );
+                        outputs.remove(&key)?;
+                    }
+                }
+            }
+            Ok(None)
         })
     }
+}
+
+/// A pending output record's key and value, read.
+fn read_output(key: &[u8], value: &[u8]) -> Result<(u64, PendingOutput), StateError> {
+    let key: [u8; 8] = key.try_into().map_err(|_| {
+        StateError::Damaged(format!(
+            "an output record's key is {} bytes, not 8",
+            key.len()
+        ))
+    })?;
+    Ok((u64::from_be_bytes(key), decode(value)?))
 }
 
 #[cfg(test)]
@@ -196,6 +216,33 @@ mod tests {
         // Taken after the reopening, a record still comes after every earlier one.
         state.queue_output(&output(&job.id, 7)).expect("queue");
         assert_eq!(pending(&state).last().expect("last").1, output(&job.id, 7));
+    }
+
+    #[test]
+    fn a_pending_output_record_that_cannot_be_read_is_removed_and_the_next_one_comes() {
+        let dir = tempfile::tempdir().expect("dir");
+        let state = open(dir.path());
+        let job = submit(&state);
+        state.queue_output(&output(&job.id, 0)).expect("queue");
+        state.queue_output(&output(&job.id, 1)).expect("queue");
+        let [(first, _), _] = pending(&state).try_into().expect("two");
+        state
+            .with(|records| {
+                records
+                    .trees
+                    .outputs
+                    .insert(output_key(first), &b"not a record"[..])?;
+                Ok(())
+            })
+            .expect("damage");
+
+        let found = pending(&state);
+        assert_eq!(found.len(), 1, "the damaged record is passed over");
+        assert_eq!(found[0].1, output(&job.id, 1));
+        let left = state
+            .with(|records| Ok(records.trees.outputs.len()))
+            .expect("count");
+        assert_eq!(left, 1, "the damaged record is removed");
     }
 
     #[test]
