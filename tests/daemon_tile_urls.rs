@@ -1,17 +1,21 @@
 //! Datasets of LAS/LAZ tiles registered by URL with a daemon, against a real `s3s-fs` on
 //! loopback: a prefix of LAZ tiles registers under the operator's allow-list, its store is
-//! built by streaming the tiles, and its frames are those of the same files registered by path,
+//! built by streaming the tiles, its previews (from the tiles' chunk starts, read by range while
+//! the store waits to be built) and its frames are those of the same files registered by path,
 //! pixel for pixel; a URL outside the allow-list is refused naming the rule; a tile replaced
 //! after registration fails the job naming it, and the daemon keeps serving. Skips, saying so,
 //! without `s3s-fs`.
 
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::service::DaemonConfig;
+use pointfarm_daemon::stores::StoreBuildGate;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::datasets::assert_jobs_render_alike;
 use pointfarm_tests::s3s::S3sServer;
-use pointfarm_tests::service::{submit, turntable_job, watch_to_end, TestDaemon};
+use pointfarm_tests::service::{
+    fetch_images, get_job, submit, turntable_job, watch_to_end, TestDaemon,
+};
 use tonic::Code;
 
 const BUCKET: &str = "campaigns";
@@ -52,10 +56,13 @@ async fn tiles_by_url_render_as_the_same_files_by_path() {
         pointfarm_daemon::remote_datasets::url_prefixes(&[format!("s3://{BUCKET}/tiles/")])
             .expect("valid prefix");
     let data_root = folder.clone();
+    let gate = StoreBuildGate::closed();
+    let held = gate.clone();
     let daemon = TestDaemon::start(
         move |config: &mut DaemonConfig| {
             config.allowed_url_prefixes = allowed;
             config.data_roots = vec![data_root];
+            config.store_build_gate = Some(held);
         },
         Access::default(),
     )
@@ -84,7 +91,34 @@ async fn tiles_by_url_render_as_the_same_files_by_path() {
         .expect("the same tiles again");
     assert_eq!(again.id, by_url.id);
 
+    // While the stores wait to be built, previews from the tiles' chunk starts read by range
+    // are those of the files by path.
     let mut jobs = daemon.jobs().await;
+    let mut previews = Vec::new();
+    for dataset in [&by_path, &by_url] {
+        let request = pb::SubmitJobRequest {
+            preview: true,
+            ..job(&format!("preview-{}", dataset.id), &dataset.id)
+        };
+        let previewed = submit(&mut jobs, request).await;
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+        loop {
+            let shown = get_job(&mut jobs, &previewed.id).await;
+            if shown.frames.len() == 2 && shown.frames.iter().all(|frame| frame.preview) {
+                break;
+            }
+            assert!(
+                std::time::Instant::now() < deadline,
+                "no previews: {shown:?}"
+            );
+            tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+        }
+        previews.push(fetch_images(&mut jobs, &previewed.id, 0).await);
+    }
+    assert_eq!(previews[0].len(), 2);
+    assert!(previews[0] == previews[1], "the previews differ");
+    gate.open();
+
     assert_jobs_render_alike(
         &mut jobs,
         [job("by-path", &by_path.id), job("by-url", &by_url.id)],

@@ -1,15 +1,14 @@
 //! The preview sample the daemon serves while a dataset's store builds: the chunk starts of
-//! its files, read once, joined with the nodes the build has stored so far each time its
+//! its files (or of its tiles by URL, read by range), read once, joined with the nodes the build has stored so far each time its
 //! version moves (read on the request's thread, under a lock of that content's preview
 //! alone), the latest kept until the store is ready.
 
-use std::path::PathBuf;
 use std::sync::Arc;
 
 use pointfarm_render::cache::encode_cloud;
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::lod::PREVIEW_STORED_POINTS;
-use pointfarm_render::source::ChunkStarts;
+use pointfarm_render::source::{ChunkStarts, StoreInput};
 
 use super::DatasetStores;
 use crate::error::DaemonError;
@@ -55,7 +54,7 @@ impl DatasetStores {
             Some(known) => known.clone(),
             None => {
                 self.check_files(dataset)?;
-                let read = read_chunk_starts(dataset);
+                let read = read_chunk_starts(dataset, self.input_of(dataset)?);
                 state.chunk_starts = Some(read.clone());
                 read
             }
@@ -96,10 +95,17 @@ impl DatasetStores {
     }
 }
 
-/// The chunk starts of `dataset`'s files and the files' header bounds, or why there are none.
-fn read_chunk_starts(dataset: &Dataset) -> Result<Arc<ChunkStarts>, String> {
-    let paths: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
-    let read = ChunkStarts::read(&paths)
+/// The chunk starts of `dataset`'s files (`input`) and the files' header bounds, or why there
+/// are none.
+fn read_chunk_starts(dataset: &Dataset, input: StoreInput) -> Result<Arc<ChunkStarts>, String> {
+    let read = match input {
+        StoreInput::Files(paths) => ChunkStarts::read(&paths),
+        StoreInput::Tiles(client, tiles) => {
+            let urls: Vec<_> = tiles.into_iter().map(|tile| tile.url).collect();
+            ChunkStarts::read_urls(&client, &urls)
+        }
+    };
+    let read = read
         .map(Arc::new)
         .map_err(|e| format!("dataset {}: no preview: {e}", dataset.id));
     match &read {
