@@ -67,6 +67,16 @@ pub fn tiles_key(tiles: &[RemoteTile]) -> String {
     hex(&hasher.finalize())
 }
 
+/// A dataset's level-of-detail store published to object storage (`stores/publish.rs`):
+/// where it lies and the versions of its objects, never credentials.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct PublishedStore {
+    /// The store's prefix, `STORE_URL/SHA256/`.
+    pub url: String,
+    pub hierarchy_version: String,
+    pub payload_version: String,
+}
+
 /// The object of a dataset by URL, as its registration found it.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct RemoteSource {

@@ -14,8 +14,9 @@ use axum::Router;
 use pointfarm_proto::v1 as pb;
 use tonic::Status;
 
-use super::api::{failure_page, json, run, Failure};
+use super::api::{failure_page, json, run};
 use super::auth::field;
+use super::failure::Failure;
 use super::html::segment;
 use super::Dashboard;
 use crate::error::DaemonError;

@@ -15,86 +15,22 @@
 use std::sync::Arc;
 
 use axum::extract::{Path, RawQuery, State};
-use axum::http::{header, StatusCode};
+use axum::http::header;
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
 use pointfarm_proto::v1 as pb;
 use serde::Serialize;
-use tonic::{Code, Status};
+use tonic::Status;
 
 use super::auth::field;
+use super::failure::Failure;
 use super::filter::{jobs_message, JobQuery};
 use super::Dashboard;
 use crate::error::DaemonError;
 use crate::grpc::{blocking_within, job_with_frames_message, BLOCKING_CALL_BOUND};
-use crate::model::{FrameReport, Job, JobState};
+use crate::model::{FrameReport, Job};
 use crate::service::Daemon;
-
-/// An error of the dashboard: the gRPC status the API would answer, as HTTP.
-#[derive(Debug)]
-pub struct Failure(pub Status);
-
-impl From<Status> for Failure {
-    fn from(status: Status) -> Self {
-        Self(status)
-    }
-}
-
-impl From<DaemonError> for Failure {
-    fn from(error: DaemonError) -> Self {
-        Self(Status::from(error))
-    }
-}
-
-impl Failure {
-    pub fn http_status(&self) -> StatusCode {
-        match self.0.code() {
-            Code::InvalidArgument | Code::OutOfRange => StatusCode::BAD_REQUEST,
-            Code::NotFound => StatusCode::NOT_FOUND,
-            Code::FailedPrecondition | Code::AlreadyExists | Code::Aborted => StatusCode::CONFLICT,
-            Code::PermissionDenied => StatusCode::FORBIDDEN,
-            Code::Unauthenticated => StatusCode::UNAUTHORIZED,
-            Code::ResourceExhausted => StatusCode::INSUFFICIENT_STORAGE,
-            Code::Unavailable => StatusCode::SERVICE_UNAVAILABLE,
-            Code::DeadlineExceeded => StatusCode::GATEWAY_TIMEOUT,
-            _ => StatusCode::INTERNAL_SERVER_ERROR,
-        }
-    }
-
-    pub fn message(&self) -> &str {
-        self.0.message()
-    }
-}
-
-/// The API's errors: `{"code": "NOT_FOUND", "message": "..."}`, as gRPC's JSON transcoding
-/// writes a status.
-impl IntoResponse for Failure {
-    fn into_response(self) -> Response {
-        let body = serde_json::json!({
-            "code": code_name(self.0.code()),
-            "message": self.0.message(),
-        });
-        (
-            self.http_status(),
-            [(header::CONTENT_TYPE, "application/json")],
-            body.to_string(),
-        )
-            .into_response()
-    }
-}
-
-/// A status code as the `google.rpc.Code` enum names it: `NOT_FOUND`.
-fn code_name(code: Code) -> String {
-    let mut name = String::new();
-    for (i, c) in format!("{code:?}").chars().enumerate() {
-        if c.is_ascii_uppercase() && i > 0 {
-            name.push('_');
-        }
-        name.push(c.to_ascii_uppercase());
-    }
-    name
-}
 
 /// A message as its proto3 JSON.
 pub fn json(message: &impl Serialize) -> Response {
@@ -129,27 +65,6 @@ pub(super) fn routes() -> Router<Dashboard> {
         .route("/api/jobs", get(jobs))
         .route("/api/jobs/{id}", get(job))
         .route("/api/datasets", get(datasets))
-}
-
-/// A job state by its name in either spelling: `running` or `JOB_STATE_RUNNING`.
-pub fn parse_state(name: &str) -> Result<Option<JobState>, Failure> {
-    let lower = name.trim().to_ascii_lowercase();
-    let short = lower.strip_prefix("job_state_").unwrap_or(&lower);
-    Ok(Some(match short {
-        "" | "all" | "unspecified" => return Ok(None),
-        "queued" => JobState::Queued,
-        "running" => JobState::Running,
-        "succeeded" => JobState::Succeeded,
-        "failed" => JobState::Failed,
-        "cancelled" => JobState::Cancelled,
-        "paused" => JobState::Paused,
-        _ => {
-            return Err(Failure(Status::invalid_argument(format!(
-                "state: '{name}' is none of queued, running, paused, succeeded, failed, \
-                 cancelled"
-            ))))
-        }
-    }))
 }
 
 /// `pageSize` of a query: absent is the API's default (0).
@@ -223,29 +138,4 @@ pub(super) fn failure_page(section: &str, failure: Failure) -> Response {
         Html(super::html::error_page(section, failure.message())),
     )
         .into_response()
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn states_are_read_in_either_spelling() {
-        assert_eq!(parse_state("running").ok(), Some(Some(JobState::Running)));
-        assert_eq!(
-            parse_state("JOB_STATE_CANCELLED").ok(),
-            Some(Some(JobState::Cancelled))
-        );
-        assert_eq!(parse_state("").ok(), Some(None));
-        assert_eq!(parse_state("paused").ok(), Some(Some(JobState::Paused)));
-        let refused = parse_state("stalled").expect_err("refused");
-        assert_eq!(refused.http_status(), StatusCode::BAD_REQUEST);
-        assert!(
-            refused.message().contains("'stalled'"),
-            "{}",
-            refused.message()
-        );
-        assert_eq!(code_name(Code::FailedPrecondition), "FAILED_PRECONDITION");
-        assert_eq!(code_name(Code::Ok), "OK");
-    }
 }

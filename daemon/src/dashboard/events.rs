@@ -20,8 +20,9 @@ use tokio_stream::wrappers::errors::BroadcastStreamRecvError;
 use tokio_stream::wrappers::BroadcastStream;
 use tokio_stream::{Stream, StreamExt};
 
-use super::api::{job_message, Failure};
+use super::api::job_message;
 use super::auth::field;
+use super::failure::Failure;
 use super::pages::shown_stage;
 use super::Dashboard;
 

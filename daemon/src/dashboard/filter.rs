@@ -10,8 +10,7 @@ use std::collections::BTreeMap;
 use pointfarm_proto::v1 as pb;
 use tonic::Status;
 
-use super::api::{parse_state, Failure};
-use super::pages::job_name;
+use super::failure::Failure;
 use crate::job_control::{check_labels, check_name};
 use crate::model::{Job, JobState};
 use crate::state::JobFilter;
@@ -145,6 +144,36 @@ pub fn jobs_message(
     }
 }
 
+/// A job state by its name in either spelling: `running` or `JOB_STATE_RUNNING`.
+pub fn parse_state(name: &str) -> Result<Option<JobState>, Failure> {
+    let lower = name.trim().to_ascii_lowercase();
+    let short = lower.strip_prefix("job_state_").unwrap_or(&lower);
+    Ok(Some(match short {
+        "" | "all" | "unspecified" => return Ok(None),
+        "queued" => JobState::Queued,
+        "running" => JobState::Running,
+        "succeeded" => JobState::Succeeded,
+        "failed" => JobState::Failed,
+        "cancelled" => JobState::Cancelled,
+        "paused" => JobState::Paused,
+        _ => {
+            return Err(Failure(Status::invalid_argument(format!(
+                "state: '{name}' is none of queued, running, paused, succeeded, failed, \
+                 cancelled"
+            ))))
+        }
+    }))
+}
+
+/// What users call a job: its name, else the request id its client chose.
+pub(super) fn job_name(job: &Job) -> &str {
+    if job.spec.name.is_empty() {
+        &job.spec.request_id
+    } else {
+        &job.spec.name
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use axum::http::StatusCode;
@@ -153,6 +182,24 @@ mod tests {
 
     fn parse(query: &str) -> Result<JobQuery, Failure> {
         JobQuery::parse(query.as_bytes())
+    }
+
+    #[test]
+    fn states_are_read_in_either_spelling() {
+        assert_eq!(parse_state("running").ok(), Some(Some(JobState::Running)));
+        assert_eq!(
+            parse_state("JOB_STATE_CANCELLED").ok(),
+            Some(Some(JobState::Cancelled))
+        );
+        assert_eq!(parse_state("").ok(), Some(None));
+        assert_eq!(parse_state("paused").ok(), Some(Some(JobState::Paused)));
+        let refused = parse_state("stalled").expect_err("refused");
+        assert_eq!(refused.http_status(), StatusCode::BAD_REQUEST);
+        assert!(
+            refused.message().contains("'stalled'"),
+            "{}",
+            refused.message()
+        );
     }
 
     #[test]

@@ -14,7 +14,8 @@ use axum::Router;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Status;
 
-use super::api::{run, Failure};
+use super::api::run;
+use super::failure::Failure;
 use super::Dashboard;
 use crate::error::DaemonError;
 use crate::grpc::streaming::read_chunk;

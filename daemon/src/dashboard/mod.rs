@@ -41,6 +41,7 @@ mod api;
 mod auth;
 mod datasets;
 mod events;
+mod failure;
 mod filter;
 mod frames;
 mod html;

@@ -14,9 +14,10 @@ use axum::Router;
 use pointfarm_render::encode::video::VideoContainer;
 
 use super::actions::JobAction;
-use super::api::{failure_page, run, Failure};
+use super::api::{failure_page, run};
 use super::auth::field;
-use super::filter::JobQuery;
+use super::failure::Failure;
+use super::filter::{job_name, JobQuery};
 use super::html::{self, escape, segment};
 use super::Dashboard;
 use crate::error::DaemonError;
@@ -116,15 +117,6 @@ pub(super) async fn shown_stage(daemon: &Arc<Daemon>, job: &Job) -> &'static str
         .await
         .is_ok_and(|(_, building)| building);
     job_stage(job, building)
-}
-
-/// What users call a job: its name, else the request id its client chose.
-pub(super) fn job_name(job: &Job) -> &str {
-    if job.spec.name.is_empty() {
-        &job.spec.request_id
-    } else {
-        &job.spec.name
-    }
 }
 
 /// One row of the jobs table, its label chips linking to `query` narrowed by each; the

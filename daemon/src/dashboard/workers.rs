@@ -14,7 +14,8 @@ use pointfarm_proto::v1 as pb;
 use serde::Serialize;
 use serde_json::Value;
 
-use super::api::{failure_page, json, run, Failure};
+use super::api::{failure_page, json, run};
+use super::failure::Failure;
 use super::html::{self, escape, segment};
 use super::Dashboard;
 use crate::error::DaemonError;
@@ -54,7 +55,7 @@ fn blocklists(daemon: &Daemon) -> Result<BTreeMap<String, Vec<Blocklisting>>, Da
                 .or_default()
                 .push(Blocklisting {
                     job_id: job.id.clone(),
-                    job_name: super::pages::job_name(job).to_owned(),
+                    job_name: super::filter::job_name(job).to_owned(),
                     failed_frames: failed_frames(job, worker),
                 });
         }

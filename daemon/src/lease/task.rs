@@ -6,6 +6,7 @@ use std::time::Duration;
 use pointfarm_render::request::RenderRequest;
 
 use crate::lease_record::Lease;
+pub use crate::model::PublishedStore;
 use crate::model::{FrameCut, RemoteSource, StageTiming};
 
 /// The dataset of a task, as a worker's cache knows it.
@@ -22,16 +23,6 @@ pub struct TaskDataset {
     /// Its level-of-detail store where the daemon published it, which the worker reads
     /// itself; `None` keeps the daemon-served path.
     pub published: Option<PublishedStore>,
-}
-
-/// A dataset's level-of-detail store published to object storage (`stores/publish.rs`):
-/// where it lies and the versions of its objects, never credentials.
-#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-pub struct PublishedStore {
-    /// The store's prefix, `STORE_URL/SHA256/`.
-    pub url: String,
-    pub hierarchy_version: String,
-    pub payload_version: String,
 }
 
 /// One file of a task's dataset.

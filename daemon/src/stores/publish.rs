@@ -22,7 +22,7 @@ use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteError, RemoteSetti
 
 use super::{DatasetStores, ReadyStore};
 use crate::error::DaemonError;
-use crate::lease::PublishedStore;
+use crate::model::PublishedStore;
 
 /// Tries at publishing a store before it waits for its next opening.
 const ATTEMPTS: u32 = 8;

@@ -8,36 +8,12 @@
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
-use sha2::{Digest, Sha256};
 
-use super::events::SourceEvent;
-use super::local_store::{LocalStore, StoreCache};
 use super::url_tiles::tiles_pool;
-use super::SourceError;
 use crate::cut::{CutError, StoredLod};
 use crate::ingest::{DatasetSource, IngestError};
 use crate::lod::BuildProgress;
 use crate::remote::{ListedObject, ObjectUrl, RemoteClient, RemoteError};
-
-impl StoreCache {
-    /// The folder of the store of `tiles` by URL: named by a digest of each one's URL, size
-    /// and version, so a replaced object gets a new store.
-    pub fn folder_of_objects(&self, tiles: &[ListedObject]) -> PathBuf {
-        let mut digest = Sha256::new();
-        digest.update(b"objects\0");
-        for tile in tiles {
-            digest.update(tile.url.as_str().as_bytes());
-            digest.update([0]);
-            digest.update(tile.size.to_le_bytes());
-            digest.update(tile.version.as_deref().unwrap_or("").as_bytes());
-            digest.update([0]);
-        }
-        let name: String = (digest.finalize().iter().take(12))
-            .map(|b| format!("{b:02x}"))
-            .collect();
-        self.dir.join(name)
-    }
-}
 
 /// The tiles `url` names, with the versions a build holds them to: the `.las`/`.laz` objects
 /// under a prefix (one listing), or the one object (one HEAD).
@@ -101,34 +77,4 @@ pub fn open_or_build_tiles(
         on_build,
         progress,
     )
-}
-
-impl LocalStore {
-    /// The store of `tiles` by URL in `folder`, opened, or built first by streaming them. A
-    /// store that fails its checks later is removed, for the next render to build.
-    pub fn open_or_build_tiles(
-        client: &RemoteClient,
-        tiles: &[ListedObject],
-        folder: &Path,
-        memory_budget: u64,
-        disk_budget: Option<u64>,
-        events: &dyn Fn(SourceEvent<'_>),
-    ) -> Result<Self, SourceError> {
-        let stored = open_or_build_tiles(
-            client,
-            tiles,
-            folder,
-            memory_budget,
-            disk_budget,
-            &mut |points| events(SourceEvent::Building { points, folder }),
-            &BuildProgress::new(),
-        )?;
-        Ok(Self::of_built(
-            stored,
-            &[],
-            memory_budget,
-            disk_budget,
-            events,
-        ))
-    }
 }
