@@ -109,13 +109,25 @@ fn tiles_render_from_levels_of_detail_as_the_file_they_were_cut_from() {
         reports[2]
     );
 
-    // A changed file is a new dataset: its store is built anew.
+    // A changed file updates the store, not builds it anew: its points are taken out and
+    // read again, and the cut still draws the whole file.
     let tile = tiles.join("sw.las");
     let bytes = std::fs::read(&tile).expect("read tile");
     std::thread::sleep(std::time::Duration::from_millis(20));
     std::fs::write(&tile, bytes).expect("rewrite tile");
-    let (rebuilt, built) = render_tiles(&cut, "1", &[]);
-    assert!(built, "{}", output_text(&rebuilt));
+    let (updated, built) = render_tiles(&cut, "0", &camera);
+    let text = output_text(&updated);
+    assert!(!built, "built anew:\n{text}");
+    assert!(
+        text.contains("store updated: 0 added, 0 removed, 1 changed file(s)"),
+        "{text}"
+    );
+    assert_pngs_alike(
+        "lod-tiles-updated",
+        &cut,
+        &resident,
+        "the updated store's cut at --lod-error 0 differs from the whole file",
+    );
 }
 
 #[test]
