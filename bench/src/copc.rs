@@ -196,7 +196,7 @@ pub fn measure(
 
 /// Builds the terrain's store in `dir` and exports it to `path`, then removes the store;
 /// returns the build's and the export's seconds.
-fn write_copc(
+pub(crate) fn write_copc(
     options: &CopcOptions,
     dir: &Path,
     path: &Path,
@@ -228,13 +228,13 @@ fn write_copc(
 }
 
 /// Drops `path`'s pages from the OS's page cache, so that the next read comes from the disk.
-fn drop_page_cache(path: &Path) -> Result<(), BenchError> {
+pub(crate) fn drop_page_cache(path: &Path) -> Result<(), BenchError> {
     let file = File::open(path).map_err(|e| write_error(path, e))?;
     rustix::fs::fadvise(&file, 0, None, rustix::fs::Advice::DontNeed)
         .map_err(|e| write_error(path, e.into()))
 }
 
-fn write_error(path: &Path, source: std::io::Error) -> BenchError {
+pub(crate) fn write_error(path: &Path, source: std::io::Error) -> BenchError {
     BenchError::Write {
         path: path.to_path_buf(),
         source,
@@ -286,7 +286,7 @@ pub fn markdown(r: &CopcResult) -> String {
     md
 }
 
-fn mib(bytes: u64) -> f64 {
+pub(crate) fn mib(bytes: u64) -> f64 {
     bytes as f64 / (1u64 << 20) as f64
 }
 

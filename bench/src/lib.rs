@@ -27,7 +27,9 @@
 //! frame against the daemon's job history, no GPU); [`service_load`] (real daemon processes
 //! under many clients' submissions, and leasing as a worker, through gRPC); [`cuts`] (rendering level-of-detail stores
 //! cut by cut: a cold turntable, frame time against points, fidelity, resident against cut);
-//! [`copc`] (a COPC file's first frame node by node against decoding it whole); `memory` (the
+//! [`copc`] (a COPC file's first frame node by node against decoding it whole);
+//! [`object_storage`] (a COPC file from an S3 server against the local disk, and workers
+//! reading a published store with the daemon out of the data path); `memory` (the
 //! process's resident memory);
 //! [`report`] (what was measured), written as [`markdown`], [`json`] and a [`plot`];
 //! [`frame_figures`] (how much of a rendered frame its subject fills and lights, for the
@@ -48,6 +50,7 @@ pub mod ingest;
 pub mod json;
 pub mod markdown;
 mod memory;
+pub mod object_storage;
 mod options;
 pub mod plot;
 pub mod report;

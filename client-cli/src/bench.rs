@@ -78,7 +78,7 @@ pub struct BenchArgs {
         conflicts_with_all = ["only", "huge", "modes", "basic_only", "plot", "scheduler"]
     )]
     campaign: Option<Option<usize>>,
-    /// Files (tiles) of the --campaign.
+    /// Files (tiles) of the --campaign and of --published-store.
     #[arg(long, value_name = "N", default_value_t = bench::campaign::CAMPAIGN_FILES)]
     campaign_files: usize,
     /// With --campaign: after the LAZ build, render a --size turntable of N frames (12 when
@@ -119,6 +119,45 @@ pub struct BenchArgs {
     /// when not given.
     #[arg(long, value_name = "PX,…", value_delimiter = ',', value_parser = parse::non_negative, requires = "copc")]
     copc_lod_errors: Vec<f64>,
+    /// With --copc: the file read from an S3 server on loopback (--s3s-fs) against the same
+    /// file on the local disk instead: one --size full view at the first of --copc-lod-errors,
+    /// each side in turn for --object-storage-rounds rounds, every frame from cold caches (the
+    /// file and the server's copy dropped from the OS's cache, a fresh opening and client);
+    /// times, bytes fetched against the nodes drawn, and the images compared.
+    #[arg(long, requires = "copc")]
+    copc_s3: bool,
+    /// With --copc-s3: rounds of one local and one S3 first frame.
+    #[arg(long, value_name = "N", default_value_t = bench::object_storage::copc_s3::COPC_S3_ROUNDS, requires = "copc_s3")]
+    object_storage_rounds: usize,
+    /// Measure the daemon out of the data path: POINTS points of generated terrain (1 billion
+    /// when no count is given) in --campaign-files LAZ tiles registered with a `pointfarm serve
+    /// --store-url` that publishes the store it builds to an S3 server on loopback (--s3s-fs);
+    /// two `pointfarm worker` processes new to the dataset then render a cold --size turntable
+    /// of --published-frames frames from the bucket. The daemon's and the workers' CPU time
+    /// over the job, the node records the daemon served, and the frames against a local render.
+    #[arg(
+        long,
+        value_name = "POINTS",
+        value_parser = parse_point_count,
+        conflicts_with_all = ["only", "huge", "modes", "basic_only", "plot", "scheduler", "campaign", "cuts", "copc"]
+    )]
+    published_store: Option<Option<usize>>,
+    /// With --published-store: frames of the measured turntable.
+    #[arg(long, value_name = "N", default_value_t = bench::object_storage::published::PUBLISHED_FRAMES, requires = "published_store")]
+    published_frames: usize,
+    /// The `s3s-fs` binary of --copc-s3 and --published-store.
+    #[arg(
+        long,
+        value_name = "PATH",
+        env = "POINTFARM_TEST_S3S_FS",
+        default_value = "target/tools/bin/s3s-fs"
+    )]
+    s3s_fs: PathBuf,
+    /// With --copc-s3 or --published-store: a folder the generated inputs (the COPC file and
+    /// its bucket, the campaign's tiles) are written into once and reused from by later runs;
+    /// they are written into the scratch folder and removed when not given.
+    #[arg(long, value_name = "DIR")]
+    inputs_dir: Option<PathBuf>,
     /// Measure the service instead of the renderer: a real `pointfarm serve` on loopback with
     /// its embedded worker, a generated dataset registered, --service-jobs jobs of
     /// --service-frames-per-job frames (at --size, 64x48 by default) submitted from
@@ -126,7 +165,7 @@ pub struct BenchArgs {
     /// until done: frames a second, SubmitJob and GetJob latency. Then a daemon without a
     /// worker, and this command leasing frames from it as a worker and handing them back:
     /// LeaseFrame latency. The daemons are stopped (SIGTERM) and their folders removed.
-    #[arg(long, conflicts_with_all = ["only", "huge", "modes", "basic_only", "plot", "scheduler", "campaign", "cuts", "copc"])]
+    #[arg(long, conflicts_with_all = ["only", "huge", "modes", "basic_only", "plot", "scheduler", "campaign", "cuts", "copc", "published_store"])]
     service_load: bool,
     /// With --service-load: jobs submitted.
     #[arg(long, value_name = "N", default_value_t = bench::service_load::DEFAULT_JOBS, requires = "service_load")]
@@ -224,7 +263,13 @@ pub fn run(args: BenchArgs) -> Result<()> {
         return run_cuts(&args, started);
     }
     if let Some(points) = args.copc {
+        if args.copc_s3 {
+            return run_copc_s3(&args, points, started);
+        }
         return run_copc(&args, points, started);
+    }
+    if let Some(points) = args.published_store {
+        return run_published_store(&args, points, started);
     }
     if args.service_load {
         return run_service_load(&args, started);
@@ -386,6 +431,18 @@ fn run_cuts(args: &BenchArgs, started: Instant) -> Result<()> {
 
 /// `--copc`: a COPC file's first frame against decoding it whole.
 fn run_copc(args: &BenchArgs, points: Option<usize>, started: Instant) -> Result<()> {
+    use bench::copc;
+    let options = copc_options(args, points);
+    let gpu = Arc::new(GpuContext::new(args.adapter)?);
+    outln!("adapter: {}", gpu.describe());
+    let result = copc::measure(&gpu, &options, &mut |line| eprintln!("  {line}"))?;
+    finish(args, started, &copc::markdown(&result), |path, context| {
+        Ok(bench::json::write_copc(path, &result, context)?)
+    })
+}
+
+/// The terrain, image and pixel errors of `--copc`, with or without `--copc-s3`.
+fn copc_options(args: &BenchArgs, points: Option<usize>) -> bench::copc::CopcOptions {
     use bench::copc::{self, CopcOptions};
     let default_points = if args.quick {
         copc::COPC_QUICK_POINTS
@@ -394,7 +451,7 @@ fn run_copc(args: &BenchArgs, points: Option<usize>, started: Instant) -> Result
     };
     let (width, height) = args.size.unwrap_or(DEFAULT_SIZE);
     let defaults = CopcOptions::new(points.map_or(default_points, |n| n as u64), width, height);
-    let options = CopcOptions {
+    CopcOptions {
         memory_budget_bytes: args.cut_memory_budget,
         lod_errors: if args.copc_lod_errors.is_empty() {
             defaults.lod_errors.clone()
@@ -402,13 +459,61 @@ fn run_copc(args: &BenchArgs, points: Option<usize>, started: Instant) -> Result
             args.copc_lod_errors.clone()
         },
         ..defaults
+    }
+}
+
+/// `--copc --copc-s3`: a COPC file's first frame from an S3 server against the local disk.
+fn run_copc_s3(args: &BenchArgs, points: Option<usize>, started: Instant) -> Result<()> {
+    use bench::object_storage::copc_s3::{self, CopcS3Options};
+    let copc = copc_options(args, points);
+    let options = CopcS3Options {
+        copc,
+        rounds: args.object_storage_rounds,
+        s3s_fs: args.s3s_fs.clone(),
+        adapter: args.adapter,
+        inputs: args.inputs_dir.clone(),
     };
-    let gpu = Arc::new(GpuContext::new(args.adapter)?);
-    outln!("adapter: {}", gpu.describe());
-    let result = copc::measure(&gpu, &options, &mut |line| eprintln!("  {line}"))?;
-    finish(args, started, &copc::markdown(&result), |path, context| {
-        Ok(bench::json::write_copc(path, &result, context)?)
-    })
+    let result = copc_s3::measure(&options, &mut |line| eprintln!("  {line}"))?;
+    finish(
+        args,
+        started,
+        &copc_s3::markdown(&result),
+        |path, context| {
+            let json = serde_json::json!({ "command": context.command, "copcS3": result });
+            std::fs::write(path, serde_json::to_vec_pretty(&json)?)
+                .with_context(|| format!("writing {}", path.display()))
+        },
+    )
+}
+
+/// `--published-store`: workers reading a store published to object storage, and the daemon's
+/// CPU time against theirs.
+fn run_published_store(args: &BenchArgs, points: Option<usize>, started: Instant) -> Result<()> {
+    use bench::object_storage::published::{self, PublishedOptions, PUBLISHED_POINTS};
+    let (width, height) = args.size.unwrap_or(DEFAULT_SIZE);
+    let options = PublishedOptions {
+        points: points.map_or(PUBLISHED_POINTS, |n| n as u64),
+        files: args.campaign_files,
+        frames: args.published_frames,
+        width,
+        height,
+        seed: 11,
+        pointfarm: std::env::current_exe().context("finding the pointfarm binary")?,
+        s3s_fs: args.s3s_fs.clone(),
+        inputs: args.inputs_dir.clone(),
+        scratch_parent: None,
+    };
+    let result = published::measure(&options, &mut |line| eprintln!("  {line}"))?;
+    finish(
+        args,
+        started,
+        &published::markdown(&result),
+        |path, context| {
+            let json = serde_json::json!({ "command": context.command, "publishedStore": result });
+            std::fs::write(path, serde_json::to_vec_pretty(&json)?)
+                .with_context(|| format!("writing {}", path.display()))
+        },
+    )
 }
 
 /// `--service-load`: real daemon processes under many clients, and leasing as a worker.
