@@ -3,15 +3,15 @@
 //! end through an [`ObjectReader`] (large blocks, one read ahead), never copied whole to disk
 //! or memory. Every read of a tile is pinned to the version it was opened at.
 
-use std::io::{BufReader, Seek, SeekFrom};
+use std::io::BufReader;
 use std::path::PathBuf;
 use std::sync::Arc;
 
 use rayon::prelude::*;
 
-use super::contain::contain_panics;
 use super::files::{open_dataset_file, Symlinks};
-use super::preparse::check_file;
+use super::preparse::ChunkChecks;
+use super::ranged::check_stream;
 use super::raw_file::ReadSeek;
 use super::read::DatasetFile;
 use super::{DatasetSource, IngestError};
@@ -46,20 +46,7 @@ impl DatasetFile {
         let size = object.size();
         let object = Arc::new(object);
         let mut stream = ObjectReader::with_blocks(Arc::clone(&object), CHECK_BLOCK_BYTES, false);
-        let checked = check_file(&name, &mut stream, size)?;
-        stream
-            .seek(SeekFrom::Start(0))
-            .map_err(|error| IngestError::Io {
-                path: name.clone(),
-                error,
-            })?;
-        let header = contain_panics(&name, || {
-            las::Header::new(&mut stream).map_err(|error| IngestError::Malformed {
-                path: name.clone(),
-                error,
-            })
-        })?;
-        let mut file = Self::of_header(&name, size, checked, &header);
+        let (mut file, _) = check_stream(&name, &mut stream, size, ChunkChecks::Layers)?;
         file.object = Some(object);
         Ok(file)
     }

@@ -95,20 +95,30 @@ pub(crate) fn check_ranged<B: RangedBytes>(
     chunks: ChunkChecks,
 ) -> Result<(DatasetFile, las::Header), B::Error> {
     let name = bytes.name();
-    bytes.read_stream(|stream, size| {
-        let checked = check_file_with(name, stream, size, chunks)?;
-        stream
-            .seek(SeekFrom::Start(0))
-            .map_err(|error| IngestError::Io {
-                path: name.to_owned(),
-                error,
-            })?;
-        let header = contain_panics(name, || {
-            las::Header::new(&mut *stream).map_err(|error| IngestError::Malformed {
-                path: name.to_owned(),
-                error,
-            })
+    bytes.read_stream(|stream, size| check_stream(name, stream, size, chunks))
+}
+
+/// Checks the `size` bytes of `stream`, named `name`, as a load checks a file, looking as far
+/// into its LAZ chunks as `chunks` says, then reads its header from the start: the `las`
+/// crate sees only bytes the pre-parse passed.
+pub(super) fn check_stream(
+    name: &Path,
+    stream: &mut dyn ReadSeek,
+    size: u64,
+    chunks: ChunkChecks,
+) -> Result<(DatasetFile, las::Header), IngestError> {
+    let checked = check_file_with(name, stream, size, chunks)?;
+    stream
+        .seek(SeekFrom::Start(0))
+        .map_err(|error| IngestError::Io {
+            path: name.to_owned(),
+            error,
         })?;
-        Ok((DatasetFile::of_header(name, size, checked, &header), header))
-    })
+    let header = contain_panics(name, || {
+        las::Header::new(&mut *stream).map_err(|error| IngestError::Malformed {
+            path: name.to_owned(),
+            error,
+        })
+    })?;
+    Ok((DatasetFile::of_header(name, size, checked, &header), header))
 }
