@@ -1,7 +1,8 @@
 //! The preview sample the daemon serves while a dataset's store builds: the chunk starts of
-//! its files (or of its tiles by URL, read by range), read once, joined with the nodes the build has stored so far each time its
-//! version moves (read on the request's thread, under a lock of that content's preview
-//! alone), the latest kept until the store is ready.
+//! its files (or of its tiles by URL, read by range at their registered versions), read once,
+//! joined with the nodes the build has stored so far each time its version moves (read on the
+//! request's thread, under a lock of that content's preview alone), the latest kept until the
+//! store is ready.
 
 use std::sync::Arc;
 
@@ -100,10 +101,9 @@ impl DatasetStores {
 fn read_chunk_starts(dataset: &Dataset, input: StoreInput) -> Result<Arc<ChunkStarts>, String> {
     let read = match input {
         StoreInput::Files(paths) => ChunkStarts::read(&paths),
-        StoreInput::Tiles(client, tiles) => {
-            let urls: Vec<_> = tiles.into_iter().map(|tile| tile.url).collect();
-            ChunkStarts::read_urls(&client, &urls)
-        }
+        // Each tile held to the version registered, as the store's build holds it: a tile
+        // replaced since fails the preview naming it rather than show another version.
+        StoreInput::Tiles(client, tiles) => ChunkStarts::read_tiles(&client, &tiles),
     };
     let read = read
         .map(Arc::new)

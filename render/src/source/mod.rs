@@ -56,7 +56,7 @@ pub use local_store::{LocalStore, StoreCache};
 pub use preview::{ChunkStarts, PreviewPoints};
 pub use published_store::{open_published_store, PublishedObjects, PublishedStoreError};
 pub use tile_store::{listed_tiles, open_or_build_tiles, open_tile_source, StoreInput};
-pub use url_tiles::describe_tile_url;
+pub use url_tiles::{describe_tile, describe_tile_url};
 
 /// A frame and what it drew.
 pub struct SourceFrame {

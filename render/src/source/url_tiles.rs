@@ -15,13 +15,19 @@ use super::preview::ChunkStarts;
 use super::SourceError;
 use crate::copc::CopcBytes;
 use crate::ingest::{sample_ranged, ChunkChecks, FileInfo, IngestError, LAS_PREVIEW_STRIDE};
-use crate::remote::{ObjectUrl, RemoteClient};
+use crate::remote::{ListedObject, ObjectUrl, RemoteClient, RemoteError, RemoteObject};
 
 /// What the LAS/LAZ file at `url` holds, as [`FileInfo::read`] says of a file here: its header
 /// and records read by range (up to the chunk table), never its points.
 pub fn describe_tile_url(client: &RemoteClient, url: &ObjectUrl) -> Result<FileInfo, SourceError> {
-    let bytes = CopcBytes::remote(client.open(url).map_err(crate::copc::CopcError::from)?);
-    Ok(FileInfo::read_ranged(&bytes)?)
+    describe_tile(client.open(url).map_err(crate::copc::CopcError::from)?)
+}
+
+/// What the LAS/LAZ object opened as `object` holds, as [`describe_tile_url`] says: read at
+/// the version it was opened at (a tile held to the version its listing recorded, through
+/// `RemoteClient::open_listed`).
+pub fn describe_tile(object: RemoteObject) -> Result<FileInfo, SourceError> {
+    Ok(FileInfo::read_ranged(&CopcBytes::remote(object))?)
 }
 
 impl ChunkStarts {
@@ -29,17 +35,37 @@ impl ChunkStarts {
     /// files here: the same sample, origin and bounds, the tiles' sampled records fetched by
     /// sparse range reads, many tiles at once.
     pub fn read_urls(client: &RemoteClient, urls: &[ObjectUrl]) -> Result<Self, SourceError> {
+        Self::read_opened(client, urls, urls.first(), |url| client.open(url))
+    }
+
+    /// The chunk starts of `tiles`, as [`Self::read_urls`] reads them, each tile held to the
+    /// version listed: one replaced since is `ObjectChanged`, naming it, and nothing of it is
+    /// sampled.
+    pub fn read_tiles(client: &RemoteClient, tiles: &[ListedObject]) -> Result<Self, SourceError> {
+        let first = tiles.first().map(|tile| &tile.url);
+        Self::read_opened(client, tiles, first, |tile| {
+            client.open_listed(&tile.url, tile.version.as_deref())
+        })
+    }
+
+    /// The chunk starts of the objects `open` opens from `items`, many at once.
+    fn read_opened<T: Sync>(
+        client: &RemoteClient,
+        items: &[T],
+        first: Option<&ObjectUrl>,
+        open: impl Fn(&T) -> Result<RemoteObject, RemoteError> + Sync,
+    ) -> Result<Self, SourceError> {
         let started = Instant::now();
-        let pool = tiles_pool(client, urls.first())?;
+        let pool = tiles_pool(client, first)?;
         let sample = pool.install(|| {
-            let tiles = urls
+            let tiles = items
                 .par_iter()
-                .map(|url| client.open(url).map(CopcBytes::remote))
+                .map(|item| open(item).map(CopcBytes::remote))
                 .collect::<Result<Vec<_>, _>>()
                 .map_err(crate::copc::CopcError::from)?;
             sample_ranged(&tiles, ChunkChecks::Table, LAS_PREVIEW_STRIDE)
         })?;
-        Ok(Self::of_sample(sample, urls.len(), started))
+        Ok(Self::of_sample(sample, items.len(), started))
     }
 }
 
