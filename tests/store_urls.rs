@@ -3,8 +3,9 @@
 //! server's credentials in its own environment: the daemon publishes the store it built, the
 //! worker reads its nodes from the bucket and none through the daemon, the frames are those
 //! of a daemon without `--store-url`, a restart publishes nothing again, no credential reaches
-//! a job, a lease or a log, and a damaged published object fails the frame clearly while the
-//! job still ends, through the daemon. Each test skips, saying so, where
+//! a job, a lease or a log, a damaged published object fails the frame clearly while the
+//! job still ends, through the daemon, and a deleted dataset's published store is deleted,
+//! even while it is being published. Each test skips, saying so, where
 //! `POINTFARM_TEST_S3S_FS` names no `s3s-fs` binary.
 
 use std::collections::BTreeSet;
@@ -99,11 +100,30 @@ impl Farm {
 
 /// Waits until `daemon` has said `times` times that it published a store.
 fn wait_for_published(daemon: &ServeProcess, times: usize) {
+    wait_for_log(daemon, "store published", times);
+}
+
+/// Waits until `daemon` has logged `words` `times` times.
+fn wait_for_log(daemon: &ServeProcess, words: &str, times: usize) {
     let started = Instant::now();
-    while daemon.log().matches("store published").count() < times {
+    while daemon.log().matches(words).count() < times {
         assert!(
             started.elapsed() < Duration::from_secs(60),
-            "the store was not published:\n{}",
+            "the daemon did not log {words:?} {times} times:\n{}",
+            daemon.log()
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+/// Waits until `bucket` holds `count` objects that `daemon` publishes.
+fn wait_for_objects(bucket: &S3Bucket, daemon: &ServeProcess, count: usize) {
+    let started = Instant::now();
+    while bucket.objects().len() != count {
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "the bucket holds {:?}, not {count} objects:\n{}",
+            bucket.objects(),
             daemon.log()
         );
         std::thread::sleep(Duration::from_millis(100));
@@ -121,10 +141,11 @@ fn assert_same_frames(expected: &Path, actual: &Path, what: &str) {
 fn job_ids(daemon: &ServeProcess) -> BTreeSet<String> {
     let listed = pointfarm_ok(&["jobs", "list", "--server", &daemon.address, "--json"]);
     let jobs: serde_json::Value = serde_json::from_slice(&listed.stdout).expect("json");
+    // An empty list is left out of the JSON.
     jobs["jobs"]
         .as_array()
-        .expect("jobs")
-        .iter()
+        .into_iter()
+        .flatten()
         .map(|job| job["id"].as_str().expect("an id").to_owned())
         .collect()
 }
@@ -296,4 +317,43 @@ fn a_damaged_published_store_fails_the_frame_and_the_job_ends_through_the_daemon
     assert!(scrape(&metrics)[RECORDS_SERVED] > 0.0);
     assert_no_credential(&log, "the worker's log");
     assert_no_credential(&daemon.log(), "the daemon's log");
+}
+
+#[test]
+fn deleting_a_dataset_deletes_its_published_store_even_while_it_is_being_published() {
+    let Some(farm) = Farm::start() else {
+        return;
+    };
+    let (address, metrics) = (free_address(), free_address());
+    let daemon = farm.publishing_daemon(&address, &metrics);
+    let worker = farm.worker(&daemon, "first");
+    let delete_dataset_of = |job: &pb::Job| {
+        pointfarm_ok(&["dataset", "rm", &job.dataset_id, "--server", &address]);
+    };
+
+    // Deleted as soon as its job ends, as its store is being published or just after.
+    let before = job_ids(&daemon);
+    farm.render(&daemon, "first");
+    let (_, job) = new_job(&daemon, &before);
+    delete_dataset_of(&job);
+    wait_for_log(&daemon, "published store deleted", 1);
+    assert_eq!(farm.bucket.objects(), Vec::<String>::new());
+
+    // Registered again, it is published again (its record went with its objects), then
+    // deleted once published. A worker new to it asks for the store again.
+    drop(worker);
+    let _worker = farm.worker(&daemon, "second");
+    let before = job_ids(&daemon);
+    farm.render(&daemon, "again");
+    wait_for_objects(&farm.bucket, &daemon, 2);
+    let (_, job) = new_job(&daemon, &before);
+    delete_dataset_of(&job);
+    wait_for_log(&daemon, "published store deleted", 2);
+    assert_eq!(farm.bucket.objects(), Vec::<String>::new());
+    // Nothing is published or deleted after that.
+    std::thread::sleep(Duration::from_secs(2));
+    assert_eq!(farm.bucket.objects(), Vec::<String>::new());
+    let log = daemon.log();
+    assert!(!log.contains("deleting a published store failed"), "{log}");
+    assert_no_credential(&log, "the daemon's log");
 }

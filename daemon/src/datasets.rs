@@ -325,8 +325,8 @@ impl Daemon {
         Ok(self.state.list_datasets(page_size as usize, token)?)
     }
 
-    /// Deletes a dataset, and those of its uploaded files that no other dataset has. Refused
-    /// while unfinished jobs use it.
+    /// Deletes a dataset, and those of its uploaded files, store and published store that no
+    /// other dataset has. Refused while unfinished jobs use it.
     pub fn delete_dataset(&self, id: &str) -> Result<(), DaemonError> {
         check_id("dataset_id", id)?;
         let dataset = self.dataset(id)?;
@@ -343,6 +343,7 @@ impl Daemon {
             .map(|file| file.path)
             .collect();
         if !remaining.iter().any(|d| d.sha256 == dataset.sha256) {
+            self.stores.unpublish(&dataset.sha256);
             self.stores.remove(&dataset.sha256);
         }
         let uploads = self.config.uploads_dir();

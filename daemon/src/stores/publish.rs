@@ -10,7 +10,8 @@
 //! daemon finds the record and publishes nothing again. A failed upload is logged (the error
 //! names the URL, never a credential) and tried again with backoff; meanwhile, and after the
 //! last try, workers read the store through the daemon, and the store is offered again the
-//! next time it opens.
+//! next time it opens. A store whose last dataset is deleted is taken down again on the
+//! same thread (`unpublish`).
 
 use std::collections::{HashSet, VecDeque};
 use std::path::{Path, PathBuf};
@@ -69,7 +70,19 @@ struct Queue {
     waiting: VecDeque<(String, Arc<ReadyStore>)>,
     /// Contents waiting or being published now, offered once.
     offered: HashSet<String>,
+    /// Contents no dataset has any more: their objects are deleted before any store is
+    /// published, and a publish of one under way stops at its next try.
+    unpublishing: VecDeque<String>,
+    /// Contents deleted while their store was building: the offer that build ends with is
+    /// dropped, once.
+    unwanted: HashSet<String>,
     closed: bool,
+}
+
+/// What the publishing thread does next.
+enum Work {
+    Publish(String, Arc<ReadyStore>),
+    Unpublish(String),
 }
 
 impl StorePublisher {
@@ -113,7 +126,8 @@ impl StorePublisher {
             return;
         }
         let mut queue = self.shared.lock();
-        if queue.closed || !queue.offered.insert(sha256.to_owned()) {
+        if queue.closed || queue.unwanted.remove(sha256) || !queue.offered.insert(sha256.to_owned())
+        {
             return;
         }
         queue
@@ -142,6 +156,14 @@ impl Shared {
     }
 
     fn published(&self, sha256: &str) -> Option<PublishedStore> {
+        let published = self.record(sha256)?;
+        // A store published under another store URL is published again under this one.
+        let here = self.prefix(sha256).ok()?;
+        (published.url == here.as_str()).then_some(published)
+    }
+
+    /// The record of the store of content `sha256`, under whichever store URL it names.
+    fn record(&self, sha256: &str) -> Option<PublishedStore> {
         let record = match self.records.get(sha256.as_bytes()) {
             Ok(record) => record?,
             Err(error) => {
@@ -156,65 +178,92 @@ impl Shared {
                 return None;
             }
         };
-        // A store published under another store URL is published again under this one.
-        let here = self.prefix(sha256).ok()?;
-        (published.url == here.as_str()).then_some(published)
+        Some(published)
     }
 
-    /// Publishes the stores offered, one at a time, until the publisher is dropped.
+    /// Publishes the stores offered and takes down those unpublished, one at a time, until
+    /// the publisher is dropped.
     fn run(&self) {
         loop {
-            let (sha256, store) = {
+            let work = {
                 let mut queue = self.lock();
                 loop {
                     if queue.closed {
                         return;
                     }
-                    if let Some(next) = queue.waiting.pop_front() {
-                        break next;
+                    if let Some(sha256) = queue.unpublishing.front() {
+                        break Work::Unpublish(sha256.clone());
+                    }
+                    if let Some((sha256, store)) = queue.waiting.pop_front() {
+                        break Work::Publish(sha256, store);
                     }
                     queue = self.wake.wait(queue).unwrap_or_else(|e| e.into_inner());
                 }
             };
-            self.publish_with_retries(&sha256, &store);
-            self.lock().offered.remove(&sha256);
+            match work {
+                Work::Publish(sha256, store) => {
+                    self.publish_with_retries(&sha256, &store);
+                    self.lock().offered.remove(&sha256);
+                }
+                Work::Unpublish(sha256) => {
+                    self.unpublish_with_retries(&sha256);
+                    let mut queue = self.lock();
+                    queue.unpublishing.retain(|waiting| *waiting != sha256);
+                }
+            }
         }
     }
 
+    /// Publishes `store`; workers read it through the daemon until it is published.
     fn publish_with_retries(&self, sha256: &str, store: &ReadyStore) {
+        let published = self.retried("publishing a store", sha256, true, || {
+            self.publish(sha256, store)
+        });
+        match published {
+            Tried::Done(published) => {
+                tracing::info!(url = %published.url, points = store.point_count(),
+                    "store published: workers read its nodes from object storage");
+            }
+            Tried::Failed(error) => tracing::warn!(%error, attempts = ATTEMPTS,
+                "publishing a store failed; tried again when it next opens"),
+            Tried::Stopped => {}
+        }
+    }
+
+    /// Runs `step` until it succeeds, [`ATTEMPTS`] times at most with backoff between tries,
+    /// logging each failure as `what`'s. It stops early when the publisher is dropped and,
+    /// where `stops_when_unpublished`, when content `sha256` is being unpublished.
+    pub(super) fn retried<T>(
+        &self,
+        what: &str,
+        sha256: &str,
+        stops_when_unpublished: bool,
+        mut step: impl FnMut() -> Result<T, PublishError>,
+    ) -> Tried<T> {
+        let stopped = |queue: &Queue| {
+            queue.closed
+                || (stops_when_unpublished && queue.unpublishing.iter().any(|s| s == sha256))
+        };
         let mut backoff = FIRST_BACKOFF;
         for attempt in 1..=ATTEMPTS {
-            match self.publish(sha256, store) {
-                Ok(published) => {
-                    tracing::info!(url = %published.url, points = store.point_count(),
-                        "store published: workers read its nodes from object storage");
-                    return;
-                }
-                Err(error) if attempt < ATTEMPTS => {
-                    tracing::warn!(%error, attempt, retry_in_s = backoff.as_secs(),
-                        "publishing a store failed; workers read it through the daemon meanwhile");
-                }
-                Err(error) => {
-                    tracing::warn!(%error, attempt,
-                        "publishing a store failed; tried again when it next opens");
-                    return;
-                }
+            if stopped(&self.lock()) {
+                return Tried::Stopped;
             }
-            if self.wait_unless_closed(backoff) {
-                return;
+            match step() {
+                Ok(done) => return Tried::Done(done),
+                Err(error) if attempt == ATTEMPTS => return Tried::Failed(error),
+                Err(error) => tracing::warn!(%error, attempt, retry_in_s = backoff.as_secs(),
+                    "{what} failed; trying again"),
             }
+            let queue = self.lock();
+            let (queue, _) = self
+                .wake
+                .wait_timeout_while(queue, backoff, |queue| !stopped(queue))
+                .unwrap_or_else(|e| e.into_inner());
+            drop(queue);
             backoff = (backoff * 2).min(MAX_BACKOFF);
         }
-    }
-
-    /// Waits `pause`; true when the publisher was dropped meanwhile.
-    fn wait_unless_closed(&self, pause: Duration) -> bool {
-        let queue = self.lock();
-        let (queue, _) = self
-            .wake
-            .wait_timeout_while(queue, pause, |queue| !queue.closed)
-            .unwrap_or_else(|e| e.into_inner());
-        queue.closed
+        Tried::Stopped
     }
 
     /// Uploads the payload, then the hierarchy object, then records both versions.
@@ -269,9 +318,18 @@ impl Shared {
     }
 }
 
-/// Why a store was not published; no variant holds a credential.
+/// How a step tried again and again ended.
+pub(super) enum Tried<T> {
+    Done(T),
+    /// Its last try's error.
+    Failed(PublishError),
+    /// The publisher was dropped, or the content unpublished, first.
+    Stopped,
+}
+
+/// Why a store was not published or taken down; no variant holds a credential.
 #[derive(Debug, thiserror::Error)]
-enum PublishError {
+pub(super) enum PublishError {
     #[error(transparent)]
     Remote(#[from] RemoteError),
     #[error("{url}: {reason}")]
@@ -312,6 +370,8 @@ impl ReadyStore {
         }
     }
 }
+
+mod unpublish;
 
 #[cfg(test)]
 mod tests {

@@ -1,7 +1,7 @@
 //! Writing objects by URL: a `RemoteUpload` streams an object of any size as a multipart
-//! upload, holding at most a few parts in memory, and `put` stores a small object whole.
-//! A multipart object appears only when its upload completes; one that fails or is dropped
-//! unfinished is aborted, so no half object is ever visible.
+//! upload, holding at most a few parts in memory, `put` stores a small object whole and
+//! `delete` removes one. A multipart object appears only when its upload completes; one that
+//! fails or is dropped unfinished is aborted, so no half object is ever visible.
 
 use std::future::Future;
 use std::io::Read;
@@ -58,6 +58,19 @@ impl RemoteClient {
         let path = writable_path(url)?;
         self.run_write(url, async move {
             store.put(&path, PutPayload::from(bytes)).await.map(drop)
+        })
+    }
+
+    /// Deletes the object at `url`; one already gone is no error, so a deletion can be
+    /// tried again.
+    pub fn delete(&self, url: &ObjectUrl) -> Result<(), RemoteError> {
+        let store = self.store(url)?;
+        let path = writable_path(url)?;
+        self.run_write(url, async move {
+            match store.delete(&path).await {
+                Err(object_store::Error::NotFound { .. }) => Ok(()),
+                done => done,
+            }
         })
     }
 
