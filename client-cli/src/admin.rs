@@ -77,7 +77,8 @@ pub enum DatasetCommand {
     },
     /// The server's datasets.
     List,
-    /// One dataset: its size, files, and URL where it is read by one.
+    /// One dataset: its size, files, and URL where it is read by one; for tiles by URL, each
+    /// tile's URL, size and version (the first ten, and a count; `--json` lists every one).
     Get {
         /// The dataset's id.
         id: String,
@@ -202,9 +203,11 @@ fn print_dataset(server: &ServerArgs, d: &pb::Dataset) -> Result<()> {
     if server.json {
         outln!("{}", json_line(d)?);
     } else {
-        let files = match d.files.len() {
-            0 | 1 => String::new(),
-            n => format!(", {n} files"),
+        let tiles = tile_lines(d);
+        let files = match (d.files.len(), tiles.is_empty()) {
+            (n, false) => format!(", {n} tiles"),
+            (0 | 1, true) => String::new(),
+            (n, true) => format!(", {n} files"),
         };
         outln!(
             "{}  {} ({} bytes{files}){}",
@@ -213,8 +216,39 @@ fn print_dataset(server: &ServerArgs, d: &pb::Dataset) -> Result<()> {
             d.size_bytes,
             source(d)
         );
+        for line in tiles {
+            outln!("{line}");
+        }
     }
     Ok(())
+}
+
+/// Tiles a dataset's human form lists one a line; the others are counted (`--json` lists every
+/// one), so a campaign of thousands stays readable.
+const LISTED_TILES: usize = 10;
+
+/// The lines that list a dataset of tiles by URL: each tile's URL, size and version, the first
+/// [`LISTED_TILES`] of them, then how many more there are; none for any other dataset.
+fn tile_lines(d: &pb::Dataset) -> Vec<String> {
+    if !d.url.is_empty() {
+        return Vec::new();
+    }
+    let tiles: Vec<&pb::DatasetFile> = d.files.iter().filter(|f| !f.url.is_empty()).collect();
+    let mut lines: Vec<String> = (tiles.iter().take(LISTED_TILES))
+        .map(|tile| {
+            format!(
+                "  {}  {} bytes  version {}",
+                tile.url, tile.size_bytes, tile.version
+            )
+        })
+        .collect();
+    if tiles.len() > LISTED_TILES {
+        lines.push(format!(
+            "  ... and {} more tiles (--json lists every one)",
+            tiles.len() - LISTED_TILES
+        ));
+    }
+    lines
 }
 
 /// Where a dataset by URL is read from, after its name; nothing for files on the server.
@@ -241,4 +275,50 @@ pub fn frames(server: &ServerArgs, command: FramesCommand) -> Result<()> {
         }
         Ok(())
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tiles(count: usize) -> pb::Dataset {
+        pb::Dataset {
+            id: "d".into(),
+            files: (1..=count)
+                .map(|k| pb::DatasetFile {
+                    name: format!("t{k}.laz"),
+                    size_bytes: 100 + k as u64,
+                    url: format!("s3://b/tiles/t{k}.laz"),
+                    version: format!("\"e{k}\""),
+                    ..Default::default()
+                })
+                .collect(),
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn a_long_list_of_tiles_is_cut_and_counted() {
+        let few = tile_lines(&tiles(3));
+        assert_eq!(few.len(), 3);
+        assert_eq!(few[1], "  s3://b/tiles/t2.laz  102 bytes  version \"e2\"");
+        let many = tile_lines(&tiles(LISTED_TILES + 7));
+        assert_eq!(many.len(), LISTED_TILES + 1);
+        assert!(many[LISTED_TILES - 1].contains(&format!("t{LISTED_TILES}.laz")));
+        assert_eq!(
+            many[LISTED_TILES],
+            "  ... and 7 more tiles (--json lists every one)"
+        );
+        // Files on the server and one COPC object list no tiles.
+        let copc = pb::Dataset {
+            url: "s3://b/a.copc.laz".into(),
+            ..tiles(1)
+        };
+        assert!(tile_lines(&copc).is_empty());
+        let files = pb::Dataset {
+            files: vec![pb::DatasetFile::default(); 2],
+            ..Default::default()
+        };
+        assert!(tile_lines(&files).is_empty());
+    }
 }

@@ -265,17 +265,16 @@ fn is_copc_head(object: &RemoteObject) -> Result<bool, DaemonError> {
 /// The name given, or the URL's last segment, as a file is named by its name.
 fn default_name(name: &str, url: &ObjectUrl) -> String {
     match name {
-        "" => object_name(url),
+        "" => object_name(url.as_str()),
         name => name.to_owned(),
     }
 }
 
-/// A dataset by URL is named by its object's last segment, as a file by its name.
-fn object_name(url: &ObjectUrl) -> String {
-    url.as_str()
-        .rsplit('/')
+/// An object by URL is named by its last segment, as a file by its name.
+pub(crate) fn object_name(url: &str) -> String {
+    url.rsplit('/')
         .find(|segment| !segment.is_empty())
-        .unwrap_or(url.as_str())
+        .unwrap_or(url)
         .to_owned()
 }
 

@@ -1,5 +1,6 @@
-//! A dataset as clients are shown it (its files on the server, or the object it is read
-//! from by URL), and as a frame task hands it to a worker.
+//! A dataset as clients are shown it (its files on the server, the object it is read from by
+//! URL, or its tiles by URL, each with its size and version), and as a frame task hands it to
+//! a worker.
 
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::remote::ObjectUrl;
@@ -8,7 +9,8 @@ use super::invalid;
 use crate::datasets::MAX_DATASET_FILES;
 use crate::error::DaemonError;
 use crate::lease::{PublishedStore, TaskDataset, TaskFile};
-use crate::model::{Dataset, DatasetFile, RemoteSource};
+use crate::model::{Dataset, DatasetFile, RemoteSource, RemoteTile};
+use crate::remote_datasets::object_name;
 
 impl From<&Dataset> for pb::Dataset {
     fn from(d: &Dataset) -> Self {
@@ -20,7 +22,10 @@ impl From<&Dataset> for pb::Dataset {
             sha256: shown_sha256(d, &d.sha256),
             path: d.path.display().to_string(),
             created_unix_ms: d.created_unix_ms,
-            files: d.files().iter().map(|f| file_message(d, f)).collect(),
+            files: match d.tiles.as_slice() {
+                [] => d.files().iter().map(|f| file_message(d, f)).collect(),
+                tiles => tiles.iter().map(tile_message).collect(),
+            },
             url,
             version,
         }
@@ -40,12 +45,25 @@ fn file_message(dataset: &Dataset, file: &DatasetFile) -> pb::DatasetFile {
     }
 }
 
+/// One tile of a dataset of tiles by URL: its URL (which never holds credentials), size and
+/// the version its reads are pinned to; named by its last segment, as a file by its name.
+fn tile_message(tile: &RemoteTile) -> pb::DatasetFile {
+    pb::DatasetFile {
+        name: object_name(&tile.url),
+        size_bytes: tile.size_bytes,
+        sha256: String::new(),
+        path: String::new(),
+        url: tile.url.clone(),
+        version: tile.version.clone(),
+    }
+}
+
 /// A hash of `dataset`'s as clients are shown it: a dataset by URL's key is no hash of its
 /// content, so it is not shown as one.
 fn shown_sha256(dataset: &Dataset, sha256: &str) -> String {
-    match dataset.remote {
-        Some(_) => String::new(),
-        None => sha256.to_owned(),
+    match (&dataset.remote, dataset.tiles.is_empty()) {
+        (None, true) => sha256.to_owned(),
+        _ => String::new(),
     }
 }
 
