@@ -2,9 +2,12 @@
 //! loopback: a prefix of LAZ tiles registers under the operator's allow-list, its store is
 //! built by streaming the tiles, its previews (from the tiles' chunk starts, read by range while
 //! the store waits to be built) and its frames are those of the same files registered by path,
-//! pixel for pixel; a URL outside the allow-list is refused naming the rule; a tile replaced
-//! after registration fails the job naming it, and the daemon keeps serving. Skips, saying so,
-//! without `s3s-fs`.
+//! pixel for pixel; a URL outside the allow-list is refused naming the rule; `dataset get`
+//! lists each tile's URL, size and version, never a credential; a description from the tiles'
+//! headers read by range, and a COPC export, are those of the same files by path, byte for
+//! byte; a tile replaced after registration fails the description, the preview and the job
+//! naming it, no preview shows it, and the daemon keeps serving. Skips, saying so, without
+//! `s3s-fs`.
 
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::service::DaemonConfig;
@@ -12,10 +15,11 @@ use pointfarm_daemon::stores::StoreBuildGate;
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::datasets::assert_jobs_render_alike;
-use pointfarm_tests::s3s::S3sServer;
+use pointfarm_tests::s3s::{S3sServer, SECRET_KEY};
 use pointfarm_tests::service::{
     fetch_images, get_job, submit, turntable_job, watch_to_end, TestDaemon,
 };
+use pointfarm_tests::{output_text, pointfarm_ok, stdout};
 use tonic::Code;
 
 const BUCKET: &str = "campaigns";
@@ -52,9 +56,17 @@ async fn tiles_by_url_render_as_the_same_files_by_path() {
     for (key, value) in server.environment() {
         std::env::set_var(key, value);
     }
-    let allowed =
-        pointfarm_daemon::remote_datasets::url_prefixes(&[format!("s3://{BUCKET}/tiles/")])
-            .expect("valid prefix");
+    // Two tiles of their own, one of which is replaced while its store waits to be built.
+    let swap = root.path().join(BUCKET).join("swap");
+    std::fs::create_dir_all(&swap).expect("swap folder");
+    for (from, to) in [(&paths[0], "a.laz"), (&paths[1], "b.laz")] {
+        std::fs::copy(from, swap.join(to)).expect("a swap tile");
+    }
+    let allowed = pointfarm_daemon::remote_datasets::url_prefixes(&[
+        format!("s3://{BUCKET}/tiles/"),
+        format!("s3://{BUCKET}/swap/"),
+    ])
+    .expect("valid prefixes");
     let data_root = folder.clone();
     let gate = StoreBuildGate::closed();
     let held = gate.clone();
@@ -90,6 +102,8 @@ async fn tiles_by_url_render_as_the_same_files_by_path() {
         .await
         .expect("the same tiles again");
     assert_eq!(again.id, by_url.id);
+    assert_tiles_listed(&daemon, &by_url, &paths).await;
+    assert_described_alike(&daemon, &by_url, &by_path).await;
 
     // While the stores wait to be built, previews from the tiles' chunk starts read by range
     // are those of the files by path.
@@ -117,6 +131,7 @@ async fn tiles_by_url_render_as_the_same_files_by_path() {
     }
     assert_eq!(previews[0].len(), 2);
     assert!(previews[0] == previews[1], "the previews differ");
+    assert_replaced_tile_not_previewed(&daemon, &swap.join("b.laz"), &paths[2]).await;
     gate.open();
 
     assert_jobs_render_alike(
@@ -126,6 +141,21 @@ async fn tiles_by_url_render_as_the_same_files_by_path() {
         "the frames of the tiles by URL and by path",
     )
     .await;
+
+    // Exported from the stores built for the jobs, and from one the export builds.
+    assert_exported_alike(&daemon, &by_url, &by_path).await;
+    let some = register(
+        &daemon,
+        [1, 3]
+            .map(|k| format!("s3://{BUCKET}/tiles/t{k}.laz"))
+            .to_vec(),
+    )
+    .await
+    .expect("two of the tiles");
+    let some_by_path = register(&daemon, vec!["t1.laz".into(), "t3.laz".into()])
+        .await
+        .expect("the same two by path");
+    assert_exported_alike(&daemon, &some, &some_by_path).await;
 
     // Two tiles registered, then one of them replaced before its store is built.
     let two = [1, 2].map(|k| format!("s3://{BUCKET}/tiles/t{k}.laz"));
@@ -144,4 +174,148 @@ async fn tiles_by_url_render_as_the_same_files_by_path() {
     register(&daemon, vec![format!("s3://{BUCKET}/tiles/t1.laz")])
         .await
         .expect("still serving");
+}
+
+/// `pointfarm ARGS --server DAEMON`, off the runtime that serves the daemon; its output, which
+/// never holds the object store's secret.
+async fn cli(daemon: &TestDaemon, args: &[&str]) -> std::process::Output {
+    let mut args: Vec<String> = args.iter().map(|arg| arg.to_string()).collect();
+    args.extend(["--server".to_owned(), daemon.url()]);
+    let output = tokio::task::spawn_blocking(move || {
+        pointfarm_ok(&args.iter().map(String::as_str).collect::<Vec<_>>())
+    })
+    .await
+    .expect("the CLI ran");
+    let text = output_text(&output);
+    assert!(!text.contains(SECRET_KEY), "{text}");
+    output
+}
+
+/// `dataset get` lists every tile of a dataset by URL with its size and version: in JSON as
+/// the API's files, in text one a line.
+async fn assert_tiles_listed(
+    daemon: &TestDaemon,
+    by_url: &pb::Dataset,
+    paths: &[std::path::PathBuf],
+) {
+    assert_eq!(by_url.files.len(), paths.len(), "{by_url:?}");
+    assert!(by_url.sha256.is_empty(), "{by_url:?}");
+    let json = cli(daemon, &["dataset", "get", &by_url.id, "--json"]).await;
+    let got: serde_json::Value =
+        serde_json::from_str(stdout(&json).trim()).expect("one JSON value");
+    let files = got["files"].as_array().expect("files");
+    assert_eq!(files.len(), paths.len(), "{got}");
+    let text = stdout(&cli(daemon, &["dataset", "get", &by_url.id]).await);
+    for ((file, path), message) in files.iter().zip(paths).zip(&by_url.files) {
+        let name = path.file_name().and_then(|n| n.to_str()).expect("a name");
+        let url = format!("s3://{BUCKET}/tiles/{name}");
+        let size = std::fs::metadata(path).expect("tile").len();
+        assert_eq!(file["url"], url.as_str(), "{got}");
+        assert_eq!(file["sizeBytes"], size.to_string().as_str(), "{got}");
+        assert!(!message.version.is_empty(), "{message:?}");
+        assert_eq!(file["version"], message.version.as_str(), "{got}");
+        let line = format!("  {url}  {size} bytes  version {}", message.version);
+        assert!(text.lines().any(|l| l == line), "{line:?} not in:\n{text}");
+    }
+}
+
+/// The daemon's description of dataset `id`.
+async fn describe(daemon: &TestDaemon, id: &str, read_points: bool) -> pb::DatasetDescription {
+    let request = pb::DescribeDatasetRequest {
+        dataset_id: id.to_owned(),
+        read_points,
+    };
+    (daemon.datasets().await.describe_dataset(request).await)
+        .expect("described")
+        .into_inner()
+}
+
+/// The description of the tiles by URL, from their headers read by range, is that of the
+/// same files by path, each tile named by its URL.
+async fn assert_described_alike(daemon: &TestDaemon, by_url: &pb::Dataset, by_path: &pb::Dataset) {
+    let urls = describe(daemon, &by_url.id, false).await;
+    let files = describe(daemon, &by_path.id, false).await;
+    assert_eq!(urls.summary, files.summary);
+    assert_eq!(urls.files.len(), files.files.len());
+    for ((url, file), tile) in urls.files.iter().zip(&files.files).zip(&by_url.files) {
+        assert!(url.error.is_empty(), "{url:?}");
+        assert_eq!(url.path, tile.url);
+        let unnamed = |d: &pb::FileDescription| pb::FileDescription {
+            path: String::new(),
+            ..d.clone()
+        };
+        assert_eq!(unnamed(url), unnamed(file));
+    }
+    assert!(
+        urls.summary.as_ref().is_some_and(|s| s.points > 0),
+        "{urls:?}"
+    );
+    // Never the points of a tile by URL: that would download it whole.
+    let asked = describe(daemon, &by_url.id, true).await;
+    assert!(
+        asked.files.iter().all(|f| f.points_read.is_none()),
+        "{asked:?}"
+    );
+    assert_eq!(asked.summary, urls.summary);
+}
+
+/// A tile replaced after its dataset's store was counted is not previewed: its description
+/// and its preview job fail naming it, and no preview frame is kept.
+async fn assert_replaced_tile_not_previewed(
+    daemon: &TestDaemon,
+    replaced: &std::path::Path,
+    new_content: &std::path::Path,
+) {
+    let urls = ["a", "b"].map(|name| format!("s3://{BUCKET}/swap/{name}.laz"));
+    let registered = register(daemon, urls.to_vec()).await.expect("two tiles");
+    // The store is counted at the registered versions and its build waits at the gate.
+    let opened = (daemon.workers().await)
+        .open_dataset_store(pb::OpenDatasetStoreRequest {
+            dataset_id: registered.id.clone(),
+            levels_of_detail: true,
+        })
+        .await
+        .expect("the store opens")
+        .into_inner();
+    assert_eq!(
+        opened.state,
+        pb::open_dataset_store_response::State::Building as i32,
+        "{opened:?}"
+    );
+    std::fs::copy(new_content, replaced).expect("replace a tile");
+
+    let description = describe(daemon, &registered.id, false).await;
+    assert!(description.files[0].error.is_empty(), "{description:?}");
+    let changed = &description.files[1].error;
+    assert!(
+        changed.contains(&urls[1]) && changed.contains("changed"),
+        "{changed}"
+    );
+
+    let mut jobs = daemon.jobs().await;
+    let request = pb::SubmitJobRequest {
+        preview: true,
+        ..job("preview-replaced", &registered.id)
+    };
+    let previewed = submit(&mut jobs, request).await;
+    let (ended, _) = watch_to_end(&mut jobs, &previewed.id).await;
+    assert_eq!(ended.state, pb::JobState::Failed as i32, "{ended:?}");
+    assert!(ended.error.contains(&urls[1]), "{}", ended.error);
+    assert!(!ended.error.contains(SECRET_KEY), "{}", ended.error);
+    assert!(fetch_images(&mut jobs, &previewed.id, 0).await.is_empty());
+}
+
+/// `dataset export` of the tiles by URL writes the COPC file of the same files by path.
+async fn assert_exported_alike(daemon: &TestDaemon, by_url: &pb::Dataset, by_path: &pb::Dataset) {
+    let out = tempfile::tempdir().expect("out");
+    let mut written = Vec::new();
+    for dataset in [by_url, by_path] {
+        let file = out.path().join(format!("{}.copc.laz", dataset.id));
+        let path = file.to_str().expect("a UTF-8 path");
+        let said = cli(daemon, &["dataset", "export", &dataset.id, "--copc", path]).await;
+        assert!(stdout(&said).contains("COPC 1.0"), "{}", output_text(&said));
+        written.push(std::fs::read(&file).expect("the export"));
+    }
+    assert!(written[0].len() > 1000);
+    assert!(written[0] == written[1], "the exports differ");
 }

@@ -1,16 +1,21 @@
 //! A dataset exported as one COPC 1.0 file from the level-of-detail store the daemon keeps of
-//! it (built first when there is none, on the stores' own thread), into a temporary file that
-//! the service streams to the client and then removes. Its name ends in `.part`, as an
-//! unfinished upload's does, so a daemon stopped mid-export removes it at its next start.
+//! it (built first when there is none, on the stores' own thread; for tiles by URL, by
+//! streaming them), into a temporary file that the service streams to the client and then
+//! removes. Its name ends in `.part`, as an unfinished upload's does, so a daemon stopped
+//! mid-export removes it at its next start.
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
+use pointfarm_render::ingest::{Crs, FileInfo};
 use pointfarm_render::lod::copc_export::{
-    export_copc, CopcExportError, CopcExportReport, ExportSettings,
+    export_copc, CopcExportError, CopcExportReport, ExportSettings, ExportTransform,
 };
+use pointfarm_render::lod::RootCube;
 
+use crate::describe::FileReport;
 use crate::error::DaemonError;
+use crate::model::Dataset;
 use crate::service::{unique_suffix, Daemon};
 use crate::stores::StoreAnswer;
 
@@ -30,7 +35,10 @@ impl Daemon {
     /// dataset's store is built.
     pub fn export_dataset(&self, id: &str) -> Result<ExportedFile, DaemonError> {
         let dataset = self.dataset(id)?;
-        self.check_dataset_files(&dataset)?;
+        // Tiles by URL are held to their recorded versions by the build and the reads below.
+        if dataset.tiles.is_empty() {
+            self.check_dataset_files(&dataset)?;
+        }
         let started = Instant::now();
         let store = loop {
             match self.stores.open_store(&dataset, true)? {
@@ -43,9 +51,8 @@ impl Daemon {
                 }
             }
         };
-        let files: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
         let hierarchy = store.hierarchy();
-        let settings = ExportSettings::of_files(&files, &hierarchy.cube).map_err(export_error)?;
+        let settings = self.export_settings(&dataset, &hierarchy.cube)?;
         let path = self
             .config
             .uploads_dir()
@@ -66,6 +73,57 @@ impl Daemon {
             report,
             seconds,
         })
+    }
+}
+
+impl Daemon {
+    /// The settings `dataset`'s store is exported with: from its files' headers, or its
+    /// tiles' read by range at their recorded versions.
+    fn export_settings(
+        &self,
+        dataset: &Dataset,
+        cube: &RootCube,
+    ) -> Result<ExportSettings, DaemonError> {
+        if dataset.tiles.is_empty() {
+            let files: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
+            return ExportSettings::of_files(&files, cube).map_err(export_error);
+        }
+        let (client, tiles) = self.stores.tiles_of(dataset)?;
+        let headers = (tiles.iter())
+            .map(|tile| match FileReport::read_tile(&client, tile).outcome {
+                Ok((info, _)) => Ok(info),
+                Err(error) => Err(DaemonError::FailedPrecondition(format!(
+                    "dataset {}: {error}",
+                    dataset.id
+                ))),
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(tiles_export_settings(&headers, cube))
+    }
+}
+
+/// What `ExportSettings::of_files` takes from files, taken from tiles' headers read by range:
+/// the finest scale per axis and the first tile's offset, and the WKT record when every tile
+/// declares the same one (as its text, NUL-terminated, as LAS writes it).
+fn tiles_export_settings(headers: &[FileInfo], cube: &RootCube) -> ExportSettings {
+    let Some(first) = headers.first() else {
+        return ExportSettings::fixed(cube);
+    };
+    let scale = (headers.iter()).fold(first.scale, |scale, info| scale.min(info.scale));
+    let wkt_of = |info: &FileInfo| match &info.crs {
+        Crs::Wkt { wkt, .. } => Some(wkt.clone()),
+        _ => None,
+    };
+    let common =
+        wkt_of(first).filter(|wkt| headers.iter().all(|h| wkt_of(h).as_ref() == Some(wkt)));
+    ExportSettings {
+        transform: ExportTransform {
+            scale,
+            offset: first.offset,
+        },
+        wkt: common
+            .map(|wkt| [wkt.as_bytes(), b"\0"].concat())
+            .filter(|record| record.len() <= usize::from(u16::MAX)),
     }
 }
 

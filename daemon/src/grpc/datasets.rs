@@ -131,15 +131,20 @@ impl DatasetService for Api {
         let id = r.dataset_id.clone();
         let bytes = self.dataset_bytes(&id).await?;
         // Reading the files blocks (every point of them when asked): off the executor.
-        let reports = self
+        let (reports, by_url) = self
             .run_scaled(bytes, move |daemon| {
-                daemon.describe_dataset(&id, r.read_points)
+                let reports = daemon.describe_dataset(&id, r.read_points)?;
+                Ok((reports, !daemon.dataset(&id)?.tiles.is_empty()))
             })
             .await?;
         let files = reports
             .iter()
             .map(|report| {
                 let mut description = file_description(report);
+                // A tile by URL is shown by its URL, which the client registered.
+                if by_url {
+                    return description;
+                }
                 // The client is shown where the file lies under its data root, not the
                 // server's full path, in the errors too.
                 let full = report.path.display().to_string();
