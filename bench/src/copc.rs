@@ -19,12 +19,12 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use pointfarm_render::copc::open_copc;
-use pointfarm_render::cut::{CutOptions, CutRenderer, DEFAULT_LOD_ERROR_PX};
+use pointfarm_render::cut::{CutOptions, CutRenderer, CutReport, DEFAULT_LOD_ERROR_PX};
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::DatasetSource;
 use pointfarm_render::lod::copc_export::{export_copc, ExportSettings};
-use pointfarm_render::lod::GeneratedSource;
-use pointfarm_render::raster::Renderer;
+use pointfarm_render::lod::{GeneratedSource, LodDataset};
+use pointfarm_render::raster::{Frame, FrameSettings, Renderer};
 use serde::Serialize;
 
 use crate::campaign::points_read;
@@ -139,15 +139,7 @@ pub fn measure(
         let copc = open_copc(&path).map_err(|e| BenchError::Copc(e.to_string()))?;
         let open_ms = started.elapsed().as_secs_f64() * 1e3;
         let dataset = &copc.dataset;
-        let settings = full_view(&dataset.bounds(), options.width, options.height);
-        let mut renderer = Renderer::new(Arc::clone(gpu));
-        let cut_options = CutOptions {
-            lod_error,
-            memory_budget_bytes: options.memory_budget_bytes,
-            gpu_budget_bytes: None,
-        };
-        let mut cut = CutRenderer::new(&renderer, dataset, cut_options)?;
-        let (_, report) = cut.render_rgb(&mut renderer, dataset, &settings)?;
+        let (_, report, settings) = render_full_view(gpu, dataset, options, lod_error)?;
         let ms = started.elapsed().as_secs_f64() * 1e3;
         log(format!(
             "copc: first frame at {lod_error} px in {ms:.0} ms (open {open_ms:.0} ms), {} of {} points",
@@ -192,6 +184,26 @@ pub fn measure(
         first_frames,
         fidelity,
     })
+}
+
+/// Renders `dataset`'s full view at `lod_error` from empty node caches, within the options'
+/// memory budget: the frame, what its cut drew, and the view.
+pub(crate) fn render_full_view(
+    gpu: &Arc<GpuContext>,
+    dataset: &LodDataset,
+    options: &CopcOptions,
+    lod_error: f64,
+) -> Result<(Frame, CutReport, FrameSettings), BenchError> {
+    let settings = full_view(&dataset.bounds(), options.width, options.height);
+    let mut renderer = Renderer::new(Arc::clone(gpu));
+    let cut_options = CutOptions {
+        lod_error,
+        memory_budget_bytes: options.memory_budget_bytes,
+        gpu_budget_bytes: None,
+    };
+    let mut cut = CutRenderer::new(&renderer, dataset, cut_options)?;
+    let (frame, report) = cut.render_rgb(&mut renderer, dataset, &settings)?;
+    Ok((frame, report, settings))
 }
 
 /// Builds the terrain's store in `dir` and exports it to `path`, then removes the store;

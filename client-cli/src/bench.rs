@@ -119,6 +119,42 @@ pub struct BenchArgs {
     /// when not given.
     #[arg(long, value_name = "PX,…", value_delimiter = ',', value_parser = parse::non_negative, requires = "copc")]
     copc_lod_errors: Vec<f64>,
+    #[command(flatten)]
+    object_storage: Box<ObjectStorageArgs>,
+    /// Measure the service instead of the renderer: a real `pointfarm serve` on loopback with
+    /// its embedded worker, a generated dataset registered, --service-jobs jobs of
+    /// --service-frames-per-job frames (at --size, 64x48 by default) submitted from
+    /// --service-clients clients, each with a connection of its own, and polled with GetJob
+    /// until done: frames a second, SubmitJob and GetJob latency. Then a daemon without a
+    /// worker, and this command leasing frames from it as a worker and handing them back:
+    /// LeaseFrame latency. The daemons are stopped (SIGTERM) and their folders removed.
+    #[arg(long, conflicts_with_all = ["only", "huge", "modes", "basic_only", "plot", "scheduler", "campaign", "cuts", "copc", "published_store"])]
+    service_load: bool,
+    /// With --service-load: jobs submitted.
+    #[arg(long, value_name = "N", default_value_t = bench::service_load::DEFAULT_JOBS, requires = "service_load")]
+    service_jobs: u32,
+    /// With --service-load: frames of each job (a turntable).
+    #[arg(long, value_name = "N", default_value_t = bench::service_load::DEFAULT_FRAMES_PER_JOB, requires = "service_load")]
+    service_frames_per_job: u32,
+    /// With --service-load: clients submitting and polling at once.
+    #[arg(long, value_name = "N", default_value_t = bench::service_load::DEFAULT_CLIENTS, requires = "service_load")]
+    service_clients: u32,
+    /// With --service-load: measured leases.
+    #[arg(long, value_name = "N", default_value_t = bench::service_load::DEFAULT_LEASES, requires = "service_load")]
+    service_leases: u32,
+    /// With --service-load: runs of each daemon binary, the binaries in turn.
+    #[arg(long, value_name = "N", default_value_t = 1, requires = "service_load")]
+    service_runs: u32,
+    /// With --service-load: the `pointfarm` binary whose `serve` is measured (repeatable: the
+    /// binaries are run alternately, each against the same load generator, and compared with
+    /// the first); this binary when not given.
+    #[arg(long, value_name = "PATH", requires = "service_load")]
+    daemon_binary: Vec<PathBuf>,
+}
+
+/// The object-storage benchmarks' flags (boxed: a command's arguments stay small).
+#[derive(Args)]
+struct ObjectStorageArgs {
     /// With --copc: the file read from an S3 server on loopback (--s3s-fs) against the same
     /// file on the local disk instead: one --size full view at the first of --copc-lod-errors,
     /// each side in turn for --object-storage-rounds rounds, every frame from cold caches (the
@@ -158,35 +194,6 @@ pub struct BenchArgs {
     /// they are written into the scratch folder and removed when not given.
     #[arg(long, value_name = "DIR")]
     inputs_dir: Option<PathBuf>,
-    /// Measure the service instead of the renderer: a real `pointfarm serve` on loopback with
-    /// its embedded worker, a generated dataset registered, --service-jobs jobs of
-    /// --service-frames-per-job frames (at --size, 64x48 by default) submitted from
-    /// --service-clients clients, each with a connection of its own, and polled with GetJob
-    /// until done: frames a second, SubmitJob and GetJob latency. Then a daemon without a
-    /// worker, and this command leasing frames from it as a worker and handing them back:
-    /// LeaseFrame latency. The daemons are stopped (SIGTERM) and their folders removed.
-    #[arg(long, conflicts_with_all = ["only", "huge", "modes", "basic_only", "plot", "scheduler", "campaign", "cuts", "copc", "published_store"])]
-    service_load: bool,
-    /// With --service-load: jobs submitted.
-    #[arg(long, value_name = "N", default_value_t = bench::service_load::DEFAULT_JOBS, requires = "service_load")]
-    service_jobs: u32,
-    /// With --service-load: frames of each job (a turntable).
-    #[arg(long, value_name = "N", default_value_t = bench::service_load::DEFAULT_FRAMES_PER_JOB, requires = "service_load")]
-    service_frames_per_job: u32,
-    /// With --service-load: clients submitting and polling at once.
-    #[arg(long, value_name = "N", default_value_t = bench::service_load::DEFAULT_CLIENTS, requires = "service_load")]
-    service_clients: u32,
-    /// With --service-load: measured leases.
-    #[arg(long, value_name = "N", default_value_t = bench::service_load::DEFAULT_LEASES, requires = "service_load")]
-    service_leases: u32,
-    /// With --service-load: runs of each daemon binary, the binaries in turn.
-    #[arg(long, value_name = "N", default_value_t = 1, requires = "service_load")]
-    service_runs: u32,
-    /// With --service-load: the `pointfarm` binary whose `serve` is measured (repeatable: the
-    /// binaries are run alternately, each against the same load generator, and compared with
-    /// the first); this binary when not given.
-    #[arg(long, value_name = "PATH", requires = "service_load")]
-    daemon_binary: Vec<PathBuf>,
 }
 
 /// The image size of the renderer's benchmarks when --size is not given.
@@ -263,12 +270,12 @@ pub fn run(args: BenchArgs) -> Result<()> {
         return run_cuts(&args, started);
     }
     if let Some(points) = args.copc {
-        if args.copc_s3 {
+        if args.object_storage.copc_s3 {
             return run_copc_s3(&args, points, started);
         }
         return run_copc(&args, points, started);
     }
-    if let Some(points) = args.published_store {
+    if let Some(points) = args.object_storage.published_store {
         return run_published_store(&args, points, started);
     }
     if args.service_load {
@@ -356,9 +363,7 @@ fn run_scheduler(args: &BenchArgs, started: Instant) -> Result<()> {
     let results = scheduler::measure(&histories, samples, &mut |line| eprintln!("  {line}"))?;
     let markdown = scheduler::markdown(&results);
     finish(args, started, &markdown, |path, context| {
-        let json = serde_json::json!({ "command": context.command, "scheduler": results });
-        std::fs::write(path, serde_json::to_vec_pretty(&json)?)
-            .with_context(|| format!("writing {}", path.display()))
+        write_json_as(path, context, "scheduler", &results)
     })
 }
 
@@ -468,21 +473,17 @@ fn run_copc_s3(args: &BenchArgs, points: Option<usize>, started: Instant) -> Res
     let copc = copc_options(args, points);
     let options = CopcS3Options {
         copc,
-        rounds: args.object_storage_rounds,
-        s3s_fs: args.s3s_fs.clone(),
+        rounds: args.object_storage.object_storage_rounds,
+        s3s_fs: args.object_storage.s3s_fs.clone(),
         adapter: args.adapter,
-        inputs: args.inputs_dir.clone(),
+        inputs: args.object_storage.inputs_dir.clone(),
     };
     let result = copc_s3::measure(&options, &mut |line| eprintln!("  {line}"))?;
     finish(
         args,
         started,
         &copc_s3::markdown(&result),
-        |path, context| {
-            let json = serde_json::json!({ "command": context.command, "copcS3": result });
-            std::fs::write(path, serde_json::to_vec_pretty(&json)?)
-                .with_context(|| format!("writing {}", path.display()))
-        },
+        |path, context| write_json_as(path, context, "copcS3", &result),
     )
 }
 
@@ -491,28 +492,27 @@ fn run_copc_s3(args: &BenchArgs, points: Option<usize>, started: Instant) -> Res
 fn run_published_store(args: &BenchArgs, points: Option<usize>, started: Instant) -> Result<()> {
     use bench::object_storage::published::{self, PublishedOptions, PUBLISHED_POINTS};
     let (width, height) = args.size.unwrap_or(DEFAULT_SIZE);
+    let points = points.map_or(PUBLISHED_POINTS, |n| n as u64);
+    let this = std::env::current_exe().context("finding the pointfarm binary")?;
+    let defaults = PublishedOptions::new(
+        points,
+        args.campaign_files,
+        this,
+        args.object_storage.s3s_fs.clone(),
+    );
     let options = PublishedOptions {
-        points: points.map_or(PUBLISHED_POINTS, |n| n as u64),
-        files: args.campaign_files,
-        frames: args.published_frames,
+        frames: args.object_storage.published_frames,
         width,
         height,
-        seed: 11,
-        pointfarm: std::env::current_exe().context("finding the pointfarm binary")?,
-        s3s_fs: args.s3s_fs.clone(),
-        inputs: args.inputs_dir.clone(),
-        scratch_parent: None,
+        inputs: args.object_storage.inputs_dir.clone(),
+        ..defaults
     };
     let result = published::measure(&options, &mut |line| eprintln!("  {line}"))?;
     finish(
         args,
         started,
         &published::markdown(&result),
-        |path, context| {
-            let json = serde_json::json!({ "command": context.command, "publishedStore": result });
-            std::fs::write(path, serde_json::to_vec_pretty(&json)?)
-                .with_context(|| format!("writing {}", path.display()))
-        },
+        |path, context| write_json_as(path, context, "publishedStore", &result),
     )
 }
 
@@ -545,6 +545,18 @@ fn run_service_load(args: &BenchArgs, started: Instant) -> Result<()> {
         &service_load::markdown(&result),
         |path, context| Ok(service_load::write_json(path, &result, context)?),
     )
+}
+
+/// Writes `value` to `path` as the JSON object `{"command": ..., key: value}`.
+fn write_json_as(
+    path: &Path,
+    context: &RunContext,
+    key: &str,
+    value: &impl serde::Serialize,
+) -> Result<()> {
+    let json = serde_json::json!({ "command": context.command, key: value });
+    std::fs::write(path, serde_json::to_vec_pretty(&json)?)
+        .with_context(|| format!("writing {}", path.display()))
 }
 
 /// Prints a benchmark's tables, writes them to `--markdown` and its results to `--json` (with

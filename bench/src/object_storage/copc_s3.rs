@@ -16,16 +16,13 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use pointfarm_render::copc::{open_copc, open_copc_url, CopcDataset};
-use pointfarm_render::cut::{CutOptions, CutRenderer};
 use pointfarm_render::gpu::{AdapterChoice, GpuContext};
-use pointfarm_render::raster::Renderer;
 use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteSettings};
 use serde::Serialize;
 
 use super::s3_server::S3Server;
 use super::ObjectStorageError;
-use crate::copc::{drop_page_cache, mib, write_copc, CopcOptions};
-use crate::cuts::full_view;
+use crate::copc::{drop_page_cache, mib, render_full_view, write_copc, CopcOptions};
 use crate::scratch::{load_average, progress_log, scratch_dir};
 use crate::stats::median;
 
@@ -233,19 +230,7 @@ fn cold_frame(
         }
     };
     let open_ms = started.elapsed().as_secs_f64() * 1e3;
-    let dataset = &copc.dataset;
-    let settings = full_view(&dataset.bounds(), options.width, options.height);
-    let mut renderer = Renderer::new(Arc::clone(gpu));
-    let cut_options = CutOptions {
-        lod_error,
-        memory_budget_bytes: options.memory_budget_bytes,
-        gpu_budget_bytes: None,
-    };
-    let mut cut =
-        CutRenderer::new(&renderer, dataset, cut_options).map_err(crate::BenchError::from)?;
-    let (frame, report) = cut
-        .render_rgb(&mut renderer, dataset, &settings)
-        .map_err(crate::BenchError::from)?;
+    let (frame, report, _) = render_full_view(gpu, &copc.dataset, options, lod_error)?;
     let ms = started.elapsed().as_secs_f64() * 1e3;
     let fetched = client.map(|client| client.counts()).unwrap_or_default();
     let cold = ColdFrame {

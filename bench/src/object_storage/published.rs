@@ -63,6 +63,25 @@ pub struct PublishedOptions {
     pub scratch_parent: Option<PathBuf>,
 }
 
+impl PublishedOptions {
+    /// The campaign's terrain (its seed) in `files` tiles, the default frames at 1920x1080,
+    /// in the scratch folder.
+    pub fn new(points: u64, files: usize, pointfarm: PathBuf, s3s_fs: PathBuf) -> Self {
+        Self {
+            points,
+            files,
+            frames: PUBLISHED_FRAMES,
+            width: 1920,
+            height: 1080,
+            seed: crate::campaign::CampaignOptions::new(points, files).seed,
+            pointfarm,
+            s3s_fs,
+            inputs: None,
+            scratch_parent: None,
+        }
+    }
+}
+
 /// CPU seconds (user and system) of one process over the measured job.
 #[derive(Debug, Clone, Serialize)]
 #[serde(rename_all = "camelCase")]
