@@ -180,14 +180,14 @@ fn an_object_replaced_after_its_listing_or_during_the_build_fails_it_naming_the_
     replace(&paths[3], 310_000);
     let store = root.path().join("cache").join("store");
     std::fs::create_dir_all(&store).expect("store folder");
-    let built = StoredLod::open_or_build_source(
-        &source,
-        &store,
-        256 << 20,
-        None,
-        &mut |_| {},
-        &BuildProgress::new(),
-    );
+    let build = pointfarm_render::cut::StoreBuild {
+        folder: &store,
+        memory_budget: 256 << 20,
+        disk_budget: None,
+        on_build: &mut |_| {},
+        progress: &BuildProgress::new(),
+    };
+    let built = StoredLod::open_or_build_source(&source, build);
     let text = built
         .err()
         .expect("a tile replaced while streamed")

@@ -15,8 +15,9 @@ use pointfarm_render::raster::{FrameSettings, Renderer};
 use pointfarm_render::remote::{ListedObject, ObjectUrl, RemoteClient};
 use pointfarm_render::request::RenderRequest;
 use pointfarm_render::source::{
-    frame_points, ChunkStarts, FramePoints, FrameSource, Levels, LocalStore, Opening,
-    PointSourceFacts, SourceEvent, StoreCache, StoreInput,
+    file_boxes, frame_points, BuildStage, ChunkStarts, FileOrder, FramePoints, FrameSource,
+    HeldExposure, Levels, LocalStore, Opening, PointSourceFacts, SourceEvent, StagedStore,
+    StoreCache, StoreInput,
 };
 
 use crate::frame_lines;
@@ -144,15 +145,62 @@ fn render_files(asked: Asked<'_>, paths: &[PathBuf]) -> Result<()> {
                     .reporter
                     .say(format_args!("--preview: {BUILT_ALREADY}; {FINAL_AT_ONCE}"));
             }
+            let cut_options = args.lod_options()?;
+            if !store_built {
+                let boxes = file_boxes(&files)?;
+                if let Some(order) = FileOrder::of(asked.request, &boxes) {
+                    let memory = cut_options.memory_budget_bytes;
+                    let staged = StagedStore::new(&files, &folder, memory, stores.disk_budget)?;
+                    return camera_first(&target, &staged, &order, cut_options);
+                }
+            }
             Plan::Frames(Opening::Store {
                 files: &files,
                 folder: folder.as_path(),
                 disk_budget: stores.disk_budget,
-                cut_options: args.lod_options()?,
+                cut_options,
             })
         }
     };
     target.render_plan(plan)
+}
+
+/// Renders the frames cut by cut from a store built camera first (`source::camera_first`):
+/// the first frame once the files it sees are in, the others once the path's are, then adds
+/// the files no frame sees (unless `--build-unseen never`).
+fn camera_first(
+    target: &FrameTarget<'_>,
+    staged: &StagedStore<'_>,
+    order: &FileOrder,
+    options: CutOptions,
+) -> Result<()> {
+    let frames = target.asked.request.frames();
+    let events = target.events();
+    let mut renderer = Some(Renderer::new(Arc::clone(&target.gpu)));
+    let (mut drawn, mut held, mut built) = (Drawn::default(), HeldExposure::default(), 0);
+    for (stage, places) in order.stages(target.asked.args.build_unseen) {
+        let store = staged.open_stage(stage, &places, &places[built..], &events)?;
+        built = places.len();
+        let range = match stage {
+            BuildStage::FirstFrame if !order.path.is_empty() => 0..1,
+            BuildStage::FirstFrame => 0..frames,
+            BuildStage::Path => 1..frames,
+            BuildStage::Unseen => continue,
+        };
+        let Some(drawing) = renderer.take() else {
+            anyhow::bail!("the renderer was not given back");
+        };
+        let opening = Opening::Levels {
+            levels: Levels::Store(Box::new(store)),
+            cut_options: options,
+        };
+        let mut source = target.open(drawing, opening)?;
+        source.hold_exposure_of(held);
+        render_range(target, &mut source, range, &|| true, &mut drawn)?;
+        held = source.held_exposure();
+        renderer = Some(source.into_renderer());
+    }
+    finish_frames(target, false, drawn)
 }
 
 /// Renders the COPC file at `url` as a file here is rendered, cut by cut, its header,
@@ -464,6 +512,28 @@ fn render_frames(
     source: &mut FrameSource,
     keep_going: &dyn Fn() -> bool,
 ) -> Result<()> {
+    let frames = target.asked.request.frames();
+    let mut drawn = Drawn::default();
+    render_range(target, source, 0..frames, keep_going, &mut drawn)?;
+    finish_frames(target, source.is_preview(), drawn)
+}
+
+/// The frames written so far, and their timings.
+#[derive(Default)]
+struct Drawn {
+    written: Vec<PathBuf>,
+    timings: Vec<pointfarm_render::raster::StageTimings>,
+}
+
+/// Renders the frames of `range` from `source` into the outputs, while `keep_going` says so
+/// after the first; the first of the request (frame 0) says the legend and framing first.
+fn render_range(
+    target: &FrameTarget<'_>,
+    source: &mut FrameSource,
+    range: std::ops::Range<u32>,
+    keep_going: &dyn Fn() -> bool,
+    drawn: &mut Drawn,
+) -> Result<()> {
     let Asked {
         args,
         request,
@@ -473,24 +543,26 @@ fn render_frames(
     } = target.asked;
     let events = target.events();
     let is_preview = source.is_preview();
-    if !is_preview {
-        let coloring = request.render.coloring();
-        if let Some(line) = outputs.write_legend(coloring, || source.ramp_range())? {
-            reporter.say(line);
-        }
-    }
-    reporter.say(format_args!("adapter: {}", target.gpu.describe()));
     let bounds = source.bounds();
     let spacing = source.spacing();
     let settings = |index: u32| FrameSettings {
         atomics: args.atomics(),
         ..request.frame_settings(index, &bounds, spacing)
     };
-    // Refuse sizes this adapter cannot hold, or cameras the cloud makes invalid, before the
-    // first frame.
-    source.renderer().validate(&settings(0))?;
-    for line in frame_lines::framing_lines(&bounds, &settings(0), spacing) {
-        reporter.say(line);
+    if range.start == 0 {
+        if !is_preview {
+            let coloring = request.render.coloring();
+            if let Some(line) = outputs.write_legend(coloring, || source.ramp_range())? {
+                reporter.say(line);
+            }
+        }
+        reporter.say(format_args!("adapter: {}", target.gpu.describe()));
+        // Refuse sizes this adapter cannot hold, or cameras the cloud makes invalid, before
+        // the first frame.
+        source.renderer().validate(&settings(0))?;
+        for line in frame_lines::framing_lines(&bounds, &settings(0), spacing) {
+            reporter.say(line);
+        }
     }
 
     let files = &outputs.files;
@@ -511,16 +583,16 @@ fn render_frames(
     } else {
         ProgressBar::hidden()
     };
-    let mut written = Vec::with_capacity(frames as usize);
-    let mut all = Vec::with_capacity(frames as usize);
-    for i in 0..frames {
-        if i > 0 && !keep_going() {
+    progress.set_position(u64::from(range.start));
+    let first = range.start;
+    for i in range.clone() {
+        if i > first && !keep_going() {
             break;
         }
         let frame_settings = settings(i);
         let mut rendered = source.render(&frame_settings, &events)?;
         // The next frame's nodes load while this one is encoded and written.
-        if i + 1 < frames {
+        if i + 1 < range.end {
             source.read_ahead(&settings(i + 1));
         }
         let path = outputs.save(i, &mut rendered.frame, &frame_settings)?;
@@ -533,25 +605,40 @@ fn render_frames(
             fetched,
         };
         frame_lines::report_frame(reporter, &frame, &bounds, &progress);
-        all.push(rendered.frame.timings);
-        written.push(path);
+        drawn.timings.push(rendered.frame.timings);
+        drawn.written.push(path);
         progress.inc(1);
     }
     progress.finish_and_clear();
+    Ok(())
+}
+
+/// Says what the frames drawn came to: a preview's count, or the final frames' summary and
+/// video.
+fn finish_frames(target: &FrameTarget<'_>, is_preview: bool, drawn: Drawn) -> Result<()> {
+    let Asked {
+        args,
+        request,
+        outputs,
+        reporter,
+        ..
+    } = target.asked;
+    let files = &outputs.files;
+    let frames = request.frames();
     if is_preview {
         reporter.say(format_args!(
             "preview: {} of {frames} frame{} in {}",
-            written.len(),
+            drawn.written.len(),
             if frames == 1 { "" } else { "s" },
             files.dir().display()
         ));
         return Ok(());
     }
     if args.is_sequence() && !reporter.is_json() {
-        frame_lines::print_summary(files.dir(), &all);
+        frame_lines::print_summary(files.dir(), &drawn.timings);
     }
     if let Some(video) = &outputs.video {
-        video.assemble(&written)?;
+        video.assemble(&drawn.written)?;
         reporter.say(format_args!("video: {}", video.path().display()));
     }
     Ok(())

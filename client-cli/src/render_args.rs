@@ -21,6 +21,7 @@ use pointfarm_render::request::{
     CameraPath, Lens, Point3, PointSize, RenderOptions, RenderRequest, StillCamera, Turntable,
     DEFAULT_SUPERSAMPLE, DEFAULT_UP, TURNTABLE_ELEVATION_RANGE,
 };
+use pointfarm_render::source::BuildUnseen;
 
 use crate::credentials::ClientCredentials;
 use crate::filter_args::FilterArgs;
@@ -249,6 +250,15 @@ pub struct RenderArgs {
     /// are the frames downloaded.
     #[arg(long)]
     pub(crate) preview: bool,
+    /// When a keyframed camera path sees part of a dataset of many files whose store must be
+    /// built first, the store is built camera first: from the files the first frame sees, then
+    /// the rest of the path's, each frame drawn as soon as its files are in (from their header
+    /// boxes, the frames' view frusta and point sizes). The files no frame sees are added to
+    /// the store after the frames (after), or never (never: the store holds the path's files
+    /// alone until a later render adds the rest). Local only.
+    #[arg(long, value_name = "after|never", default_value = BuildUnseen::default().name(),
+          value_parser = BuildUnseen::parse)]
+    pub(crate) build_unseen: BuildUnseen,
     /// Levels of detail: host memory for the node cache and the store's build, e.g. 512MiB
     /// or 4GiB; on a software adapter (lavapipe) the GPU node cache's share too. Local only.
     #[arg(long, value_name = "SIZE", value_parser = parse::bytes)]

@@ -75,6 +75,13 @@ impl SourceWords {
                 "the filter keeps {kept} of {points} points ({:.1}%)",
                 kept as f64 * 100.0 / points.max(1) as f64
             )),
+            SourceEvent::BuildingFirst { stage, files } => self.say(&format!(
+                "camera first: building {} ({} file{}: {})",
+                stage.describe(),
+                files.len(),
+                if files.len() == 1 { "" } else { "s" },
+                names(files)
+            )),
             SourceEvent::Building { points, folder } => self.spin(format!(
                 "building levels of detail of {points} points (once; kept in {})",
                 folder.display()
@@ -169,4 +176,19 @@ fn plural(count: usize) -> &'static str {
     } else {
         "s"
     }
+}
+
+/// The file names of `files`, the first few of them.
+pub(crate) fn names(files: &[std::path::PathBuf]) -> String {
+    const SHOWN: usize = 8;
+    let mut names: Vec<String> = (files.iter().take(SHOWN))
+        .map(|f| {
+            f.file_name()
+                .map_or(f.display().to_string(), |n| n.to_string_lossy().into())
+        })
+        .collect();
+    if files.len() > SHOWN {
+        names.push(format!("and {} more", files.len() - SHOWN));
+    }
+    names.join(", ")
 }

@@ -517,15 +517,14 @@ fn whole_build_progress(dir: &Path) -> Arc<pointfarm_render::lod::BuildProgress>
     let scene = pointfarm_render::sample::sample_scene(20_000, 3);
     write_las(&path, &scene, &LasWriteOptions::default()).expect("write");
     let progress = Arc::new(pointfarm_render::lod::BuildProgress::new());
-    StoredLod::open_or_build_watched(
-        &[path],
-        &dir.join("lod"),
-        64 << 20,
-        None,
-        &mut |_| {},
-        &progress,
-    )
-    .expect("build");
+    let build = pointfarm_render::cut::StoreBuild {
+        folder: &dir.join("lod"),
+        memory_budget: 64 << 20,
+        disk_budget: None,
+        on_build: &mut |_| {},
+        progress: &progress,
+    };
+    StoredLod::open_or_build_watched(&[path], build).expect("build");
     progress
 }
 

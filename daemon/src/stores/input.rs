@@ -5,7 +5,7 @@
 
 use std::path::Path;
 
-use pointfarm_render::cut::{CutError, StoredLod};
+use pointfarm_render::cut::{CutError, StoreBuild, StoredLod};
 use pointfarm_render::ingest::dataset_point_count;
 use pointfarm_render::lod::{BuildProgress, PointSource};
 use pointfarm_render::remote::{ListedObject, ObjectUrl, RemoteClient};
@@ -29,16 +29,6 @@ impl DatasetStores {
                 dataset.files().into_iter().map(|file| file.path).collect(),
             ));
         }
-        let (client, tiles) = self.tiles_of(dataset)?;
-        Ok(StoreInput::Tiles(client, tiles))
-    }
-
-    /// The client and the tiles of a dataset of tiles by URL, each with the version its
-    /// registration recorded, which every read of it is held to.
-    pub(crate) fn tiles_of(
-        &self,
-        dataset: &Dataset,
-    ) -> Result<(RemoteClient, Vec<ListedObject>), DaemonError> {
         let client = self.urls.clone().ok_or_else(|| {
             DaemonError::FailedPrecondition(format!(
                 "dataset {} is read by URL, which this daemon reads no more (no \
@@ -55,7 +45,7 @@ impl DatasetStores {
                 })
             })
             .collect::<Result<Vec<_>, DaemonError>>()?;
-        Ok((client, tiles))
+        Ok(StoreInput::Tiles(client, tiles))
     }
 
     /// The points of `dataset`, from its files' headers, or its tiles' read by range (each
@@ -78,12 +68,15 @@ pub(super) fn open_or_build_input(
     budget: u64,
     progress: &BuildProgress,
 ) -> Result<StoredLod, CutError> {
+    let build = StoreBuild {
+        folder,
+        memory_budget: budget,
+        disk_budget: None,
+        on_build: &mut |_| {},
+        progress,
+    };
     match input {
-        StoreInput::Files(files) => {
-            StoredLod::open_or_build_watched(files, folder, budget, None, &mut |_| {}, progress)
-        }
-        StoreInput::Tiles(client, tiles) => {
-            open_or_build_tiles(client, tiles, folder, budget, None, &mut |_| {}, progress)
-        }
+        StoreInput::Files(files) => StoredLod::open_or_build_watched(files, build),
+        StoreInput::Tiles(client, tiles) => open_or_build_tiles(client, tiles, build),
     }
 }

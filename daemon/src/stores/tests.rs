@@ -432,15 +432,14 @@ fn the_preview_sample_carries_the_nodes_stored_so_far_and_their_version() {
 
     // A build of the same files run to its end beside it: every tenth stored.
     let progress = Arc::new(BuildProgress::new());
-    StoredLod::open_or_build_watched(
-        std::slice::from_ref(&laz),
-        &dir.path().join("beside"),
-        64 << 20,
-        None,
-        &mut |_| {},
-        &progress,
-    )
-    .expect("build");
+    let build = pointfarm_render::cut::StoreBuild {
+        folder: &dir.path().join("beside"),
+        memory_budget: 64 << 20,
+        disk_budget: None,
+        on_build: &mut |_| {},
+        progress: &progress,
+    };
+    StoredLod::open_or_build_watched(std::slice::from_ref(&laz), build).expect("build");
     stores.hold_building("cc33", 120_000, Arc::clone(&progress));
     assert_eq!(stores.building_version("cc33"), Some(10));
     let redrawn = stores.preview_sample(&dataset).expect("a sample");

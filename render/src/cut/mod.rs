@@ -66,7 +66,7 @@ pub use options::{
 };
 pub use report::{completeness, CutCounts, CutReport};
 pub use select::{select_cut, Cut, CutNode, CutView};
-pub use stored::{StoredLod, PAYLOAD_FILE};
+pub use stored::{StoreBuild, StoredLod, PAYLOAD_FILE};
 
 use dataset::Selected;
 use gpu_cache::{GpuNodeCache, SizeFactors};

@@ -23,6 +23,17 @@ pub const PAYLOAD_FILE: &str = "nodes.bin";
 /// sled's page cache for the index: it holds one small hierarchy record.
 const INDEX_CACHE_BYTES: u64 = 16 << 20;
 
+/// Where a store is kept and what its build may take: `memory_budget` bytes of build
+/// buffers, `disk_budget` for the stores beside it in its folder's parent; `on_build` is told
+/// the points before a build starts, and `progress` lists the nodes it stores.
+pub struct StoreBuild<'a> {
+    pub folder: &'a Path,
+    pub memory_budget: u64,
+    pub disk_budget: Option<u64>,
+    pub on_build: &'a mut dyn FnMut(u64),
+    pub progress: &'a BuildProgress,
+}
+
 /// An opened store; its database stays open as long as this does.
 pub struct StoredLod {
     pub dataset: LodDataset,
@@ -55,49 +66,42 @@ impl StoredLod {
         on_build: &mut dyn FnMut(u64),
     ) -> Result<Self, CutError> {
         let progress = BuildProgress::new();
-        Self::open_or_build_watched(
-            files,
+        let build = StoreBuild {
             folder,
             memory_budget,
             disk_budget,
             on_build,
-            &progress,
-        )
+            progress: &progress,
+        };
+        Self::open_or_build_watched(files, build)
     }
 
-    /// [`StoredLod::open_or_build`], listing in `progress` the nodes a build stores as it
-    /// stores them (a preview draws them meanwhile).
+    /// [`StoredLod::open_or_build`] in `build`'s folder, listing in its `progress` the nodes
+    /// a build stores as it stores them (a preview draws them meanwhile).
     pub fn open_or_build_watched(
         files: &[PathBuf],
-        folder: &Path,
-        memory_budget: u64,
-        disk_budget: Option<u64>,
-        on_build: &mut dyn FnMut(u64),
-        progress: &BuildProgress,
+        build: StoreBuild<'_>,
     ) -> Result<Self, CutError> {
         if files.is_empty() {
-            return Self::open_finished(folder);
+            return Self::open_finished(build.folder);
         }
         let source = DatasetSource::open(files)?;
-        Self::open_or_build_source(
-            &source,
+        Self::open_or_build_source(&source, build)
+    }
+
+    /// [`StoredLod::open_or_build_watched`] of a source opened already (tiles by URL, or some
+    /// of a dataset's files within the box of all of them).
+    pub fn open_or_build_source(
+        source: &dyn PointSource,
+        build: StoreBuild<'_>,
+    ) -> Result<Self, CutError> {
+        let StoreBuild {
             folder,
             memory_budget,
             disk_budget,
             on_build,
             progress,
-        )
-    }
-
-    /// [`StoredLod::open_or_build_watched`] of a source opened already (tiles by URL).
-    pub fn open_or_build_source(
-        source: &DatasetSource,
-        folder: &Path,
-        memory_budget: u64,
-        disk_budget: Option<u64>,
-        on_build: &mut dyn FnMut(u64),
-        progress: &BuildProgress,
-    ) -> Result<Self, CutError> {
+        } = build;
         let in_use = InUse::take(folder)?;
         let (db, store) = open_index(folder)?;
         let current = match store.read_hierarchy() {

@@ -33,6 +33,11 @@ pub enum SourceEvent<'a> {
     /// The request's filter kept `kept` of `points` points (none: the frames show only the
     /// background).
     Filtered { kept: usize, points: usize },
+    /// A store is built camera first: this stage adds `files` (`camera_first.rs`).
+    BuildingFirst {
+        stage: BuildStage,
+        files: &'a [PathBuf],
+    },
     /// A store's build starts; [`SourceEvent::Built`] ends it.
     Building { points: u64, folder: &'a Path },
     /// A store is built.
@@ -66,6 +71,28 @@ pub enum SourceEvent<'a> {
         gpu_cache_bytes: u64,
         lod_error: f64,
     },
+}
+
+/// The stage of a store built camera first, by the files it adds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BuildStage {
+    /// The files the first frame sees.
+    FirstFrame,
+    /// The files the rest of the camera path sees.
+    Path,
+    /// The files no frame sees.
+    Unseen,
+}
+
+impl BuildStage {
+    /// Which files the stage adds, in words.
+    pub fn describe(self) -> &'static str {
+        match self {
+            BuildStage::FirstFrame => "the files the first frame sees",
+            BuildStage::Path => "the files the rest of the camera path sees",
+            BuildStage::Unseen => "the files no frame sees",
+        }
+    }
 }
 
 /// Where a cut's levels of detail come from, as a [`SourceEvent::Levels`] tells it.

@@ -53,8 +53,23 @@ impl View {
 }
 
 /// The gain a frame source holds for the view it renders.
-#[derive(Debug, Default)]
-pub(super) struct HeldExposure(Option<(View, f32)>);
+#[derive(Debug, Default, Clone)]
+pub struct HeldExposure(Option<(View, f32)>);
+
+impl FrameSource {
+    /// The gain this source holds, for another source of the same frames (the next stage of
+    /// a store built camera first) to expose its frames with.
+    pub fn held_exposure(&self) -> HeldExposure {
+        self.exposure.clone()
+    }
+
+    /// Holds `held`, another source's gain of the same frames, unless this one holds its own.
+    pub fn hold_exposure_of(&mut self, held: HeldExposure) {
+        if self.exposure.0.is_none() {
+            self.exposure = held;
+        }
+    }
+}
 
 impl FrameSource {
     /// The view of a frame of `settings` from this source; `None` when the frame measures its

@@ -14,7 +14,7 @@ use sha2::{Digest, Sha256};
 use super::events::SourceEvent;
 use super::tile_store::{open_or_build_tiles, StoreInput};
 use super::SourceError;
-use crate::cut::{CutError, StoredLod};
+use crate::cut::{CutError, StoreBuild, StoredLod};
 use crate::lod::BuildProgress;
 use crate::remote::{ListedObject, RemoteClient};
 
@@ -195,24 +195,21 @@ impl LocalStore {
                     "building levels of detail behind a preview"
                 );
             };
-            let files = match input {
-                StoreInput::Files(files) => files,
-                StoreInput::Tiles(client, tiles) => {
-                    let (memory, disk) = (memory_budget, disk_budget);
-                    return open_or_build_tiles(
-                        &client, &tiles, &folder, memory, disk, on_build, &progress,
-                    );
-                }
-            };
-            update_earlier_store(&files, &folder, memory_budget, &|_| {});
-            let opened = StoredLod::open_or_build_watched(
-                &files,
-                &folder,
+            let build = StoreBuild {
+                folder: &folder,
                 memory_budget,
                 disk_budget,
                 on_build,
-                &progress,
-            );
+                progress: &progress,
+            };
+            let files = match input {
+                StoreInput::Files(files) => files,
+                StoreInput::Tiles(client, tiles) => {
+                    return open_or_build_tiles(&client, &tiles, build);
+                }
+            };
+            update_earlier_store(&files, &folder, memory_budget, &|_| {});
+            let opened = StoredLod::open_or_build_watched(&files, build);
             if opened.is_ok() {
                 list_files(&files, &folder);
             }
@@ -242,7 +239,7 @@ fn build_on_thread(
 
 /// Updates the store of an earlier set of `files` into `folder` where there is one
 /// (`earlier.rs`); a store that cannot be updated is left for the opening to build.
-fn update_earlier_store(
+pub(super) fn update_earlier_store(
     files: &[PathBuf],
     folder: &Path,
     memory_budget: u64,
@@ -283,7 +280,7 @@ fn update_earlier_store(
 }
 
 /// Keeps the list of the store's `files` in `folder`, for a later set of them to update it.
-fn list_files(files: &[PathBuf], folder: &Path) {
+pub(super) fn list_files(files: &[PathBuf], folder: &Path) {
     if files.is_empty() || earlier::lists(folder, files) {
         return;
     }
@@ -352,15 +349,14 @@ impl LocalStore {
         disk_budget: Option<u64>,
         events: &dyn Fn(SourceEvent<'_>),
     ) -> Result<Self, SourceError> {
-        let stored = open_or_build_tiles(
-            client,
-            tiles,
+        let build = StoreBuild {
             folder,
             memory_budget,
             disk_budget,
-            &mut |points| events(SourceEvent::Building { points, folder }),
-            &BuildProgress::new(),
-        )?;
+            on_build: &mut |points| events(SourceEvent::Building { points, folder }),
+            progress: &BuildProgress::new(),
+        };
+        let stored = open_or_build_tiles(client, tiles, build)?;
         Ok(Self::of_built(
             stored,
             &[],

@@ -11,6 +11,7 @@
 //! on the way (files read, a store built or built again, a filter's share) goes out as
 //! [`SourceEvent`]s: the command line says them, a worker logs them.
 //!
+//! - `camera_first`: a store built first from the files a camera path sees.
 //! - `choice`: the rule, resident or a cut.
 //! - `error`: why a source could not open or render.
 //! - `events`: what a source tells as it opens and renders.
@@ -22,6 +23,7 @@
 //! - `url_tiles`: LAS/LAZ tiles by URL, described and sampled for a preview by range.
 //! - `tile_store`: stores of LAS/LAZ tiles by URL, built by streaming the tiles.
 
+mod camera_first;
 mod choice;
 mod error;
 mod events;
@@ -49,9 +51,11 @@ use crate::raster::{Frame, FrameSettings, GpuPointCloud, Renderer};
 use crate::request::{RenderOptions, RenderRequest};
 
 pub use crate::extent::{Extent, Framed};
+pub use camera_first::{file_boxes, frame_sees, BuildUnseen, FileOrder, StagedStore};
 pub use choice::{frame_points, FramePoints, PointSourceFacts};
 pub use error::SourceError;
-pub use events::{quiet, LevelsFrom, SourceEvent};
+pub use events::{quiet, BuildStage, LevelsFrom, SourceEvent};
+pub use exposure::HeldExposure;
 pub use local_store::{LocalStore, StoreCache};
 pub use preview::{ChunkStarts, PreviewPoints};
 pub use published_store::{open_published_store, PublishedObjects, PublishedStoreError};

@@ -5,14 +5,13 @@
 //! are kept in, named by the tiles' URLs, sizes and versions, so a second render opens it
 //! after a listing (or a HEAD) and a replaced object gets a new one.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use rayon::prelude::*;
 
 use super::url_tiles::tiles_pool;
-use crate::cut::{CutError, StoredLod};
+use crate::cut::{CutError, StoreBuild, StoredLod};
 use crate::ingest::{DatasetSource, IngestError};
-use crate::lod::BuildProgress;
 use crate::remote::{ListedObject, ObjectUrl, RemoteClient, RemoteError};
 
 /// The tiles `url` names, with the versions a build holds them to: the `.las`/`.laz` objects
@@ -53,28 +52,17 @@ pub enum StoreInput {
     Tiles(RemoteClient, Vec<ListedObject>),
 }
 
-/// Opens the store of `tiles` in `folder`, or builds it first from the tiles streamed by URL,
-/// telling `on_build` the points before a build starts and listing in `progress` the nodes
-/// it stores.
+/// Opens the store of `tiles` in `build`'s folder, or builds it first from the tiles streamed
+/// by URL, telling its `on_build` the points before a build starts and listing in its
+/// `progress` the nodes it stores.
 pub fn open_or_build_tiles(
     client: &RemoteClient,
     tiles: &[ListedObject],
-    folder: &Path,
-    memory_budget: u64,
-    disk_budget: Option<u64>,
-    on_build: &mut dyn FnMut(u64),
-    progress: &BuildProgress,
+    build: StoreBuild<'_>,
 ) -> Result<StoredLod, CutError> {
-    if StoredLod::is_built(folder) {
-        return StoredLod::open_or_build(&[], folder, memory_budget, disk_budget, on_build);
+    if StoredLod::is_built(build.folder) {
+        return StoredLod::open_or_build_watched(&[], build);
     }
     let source = open_tile_source(client, tiles)?;
-    StoredLod::open_or_build_source(
-        &source,
-        folder,
-        memory_budget,
-        disk_budget,
-        on_build,
-        progress,
-    )
+    StoredLod::open_or_build_source(&source, build)
 }

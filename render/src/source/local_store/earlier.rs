@@ -3,7 +3,9 @@
 //! without a store; the store of the earlier files (a folder beside it whose file list shares
 //! at least half of its files and of the dataset's) is taken over and updated with the added
 //! files, without the removed ones; a changed file (the same path, another length or
-//! modification time) is both ([`crate::lod::update_store`]).
+//! modification time) is both ([`crate::lod::update_store`]). A store in the folder itself is
+//! updated whatever share of the files it holds: the folder is named by them, so it was
+//! built for them (camera first, from the files a camera path sees: `camera_first.rs`).
 //!
 //! Each local store keeps its file list, one line a file (its points, and its path, length and
 //! modification time: one file's [`files_fingerprint`], which also names a build's inputs), in
@@ -155,7 +157,18 @@ pub fn update_earlier(
                 .filter(|f| !now_set.contains(f))
                 .all(ListedFile::is_gone)
     };
-    let own = read_list(folder).filter(|list| earlier(list));
+    // The folder's own store was meant for these files whatever share of them it holds (a
+    // store built camera first from those a path sees, or one an update left unfinished).
+    let own_earlier = |list: &[ListedFile]| {
+        let common = list.iter().filter(|f| now_set.contains(f)).count();
+        common > 0
+            && common < now.len().max(list.len())
+            && list
+                .iter()
+                .filter(|f| !now_set.contains(f))
+                .all(ListedFile::is_gone)
+    };
+    let own = read_list(folder).filter(|list| own_earlier(list));
     let list = match own {
         Some(list) => list,
         None => match take_over(folder, &earlier)? {
