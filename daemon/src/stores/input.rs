@@ -29,6 +29,16 @@ impl DatasetStores {
                 dataset.files().into_iter().map(|file| file.path).collect(),
             ));
         }
+        let (client, tiles) = self.tiles_of(dataset)?;
+        Ok(StoreInput::Tiles(client, tiles))
+    }
+
+    /// The client and the tiles of a dataset of tiles by URL, each with the version its
+    /// registration recorded, which every read of it is held to.
+    pub(crate) fn tiles_of(
+        &self,
+        dataset: &Dataset,
+    ) -> Result<(RemoteClient, Vec<ListedObject>), DaemonError> {
         let client = self.urls.clone().ok_or_else(|| {
             DaemonError::FailedPrecondition(format!(
                 "dataset {} is read by URL, which this daemon reads no more (no \
@@ -45,7 +55,7 @@ impl DatasetStores {
                 })
             })
             .collect::<Result<Vec<_>, DaemonError>>()?;
-        Ok(StoreInput::Tiles(client, tiles))
+        Ok((client, tiles))
     }
 
     /// The points of `dataset`, from its files' headers, or its tiles' read by range (each
