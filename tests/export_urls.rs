@@ -13,16 +13,12 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteSettings};
 use pointfarm_tests::s3s::{self, S3Bucket, S3sServer};
 use pointfarm_tests::{
-    assert_fails_saying, assert_ok, assert_one_error_line, json_lines, output_text, pointfarm_bin,
-    pointfarm_ok, shared_data, stdout, ServeProcess,
+    assert_fails_saying, assert_ok, assert_one_error_line, json_lines, output_text, path_arg,
+    pointfarm_bin, pointfarm_ok, shared_data, stdout, ServeProcess,
 };
 
 /// The bucket every test writes to: a folder of the server's root.
 const BUCKET: &str = "pointfarm-exports";
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
 
 /// An S3 server holding one empty bucket, and a scratch folder for what is exported here and
 /// its cache.
@@ -54,7 +50,7 @@ impl S3Exports {
     /// `pointfarm export SCAN --copc OUT`, its cache in the scratch folder, to run.
     fn export_command(&self, scan: &Path, out: &str) -> Command {
         let mut command = self.pointfarm();
-        command.args(["export", arg(scan), "--copc", out, "--cache-dir"]);
+        command.args(["export", path_arg(scan), "--copc", out, "--cache-dir"]);
         command.arg(self.dir.path().join("cache"));
         command
     }
@@ -63,6 +59,23 @@ impl S3Exports {
     fn export(&self, scan: &Path, out: &str, more: &[&str]) -> Output {
         let mut command = self.export_command(scan, out);
         command.args(more).output().expect("run pointfarm")
+    }
+
+    /// Checks an export to the object `key` of the bucket that succeeded: its JSON report
+    /// names the object's URL, and the object holds the bytes of `here`, the same export
+    /// written to a file. Returns the report and the object's size.
+    fn assert_exported_as(
+        &self,
+        output: &Output,
+        key: &str,
+        here: &Path,
+    ) -> (serde_json::Value, usize) {
+        assert_ok(output);
+        let report = json_lines(output).remove(0);
+        assert_eq!(report["file"], format!("s3://{BUCKET}/{key}"), "{report}");
+        let uploaded = std::fs::read(self.bucket.stored(key)).expect("object");
+        assert_eq!(uploaded, std::fs::read(here).expect("file here"));
+        (report, uploaded.len())
     }
 }
 
@@ -75,17 +88,12 @@ fn an_export_to_s3_is_the_file_exported_here_byte_for_byte() {
         return;
     };
     let here = exports.dir.path().join("here.copc.laz");
-    assert_ok(&exports.export(&scan, arg(&here), &[]));
+    assert_ok(&exports.export(&scan, path_arg(&here), &[]));
     let url = format!("s3://{BUCKET}/campaign/autzen.copc.laz");
     let export = |more: &[&str]| exports.export(&scan, &url, more);
     let output = export(&["--json"]);
-    assert_ok(&output);
-    let report = json_lines(&output).remove(0);
-    assert_eq!(report["file"], url.as_str(), "{report}");
-    let uploaded =
-        std::fs::read(exports.bucket.stored("campaign/autzen.copc.laz")).expect("object");
-    assert_eq!(uploaded, std::fs::read(&here).expect("file here"));
-    assert_eq!(report["bytes"], uploaded.len(), "{report}");
+    let (report, size) = exports.assert_exported_as(&output, "campaign/autzen.copc.laz", &here);
+    assert_eq!(report["bytes"], size, "{report}");
     assert!(!output_text(&output).contains(s3s::SECRET_KEY));
 
     // The object exists now: refused without --force, before any work, and left as it was.
@@ -95,11 +103,11 @@ fn an_export_to_s3_is_the_file_exported_here_byte_for_byte() {
 
     // A prefix is not an object to write.
     let prefix = format!("s3://{BUCKET}/campaign/");
-    let output = exports.run(&["export", arg(&scan), "--copc", &prefix]);
+    let output = exports.run(&["export", path_arg(&scan), "--copc", &prefix]);
     assert_fails_saying(&output, "names a prefix");
     // A web server's URL is read from, never written to.
     let web = "https://127.0.0.1:9/scans/autzen.copc.laz";
-    let output = exports.run(&["export", arg(&scan), "--copc", web]);
+    let output = exports.run(&["export", path_arg(&scan), "--copc", web]);
     assert_one_error_line(&output, &[web, "read-only"]);
 }
 
@@ -180,7 +188,14 @@ fn a_dataset_exported_by_the_server_to_s3_is_the_file_it_exports_here() {
     let dir = &exports.dir;
     let server = ServeProcess::start(&dir.path().join("data"));
     let address = server.address.clone();
-    let added = pointfarm_ok(&["dataset", "add", arg(&scan), "--server", &address, "--json"]);
+    let added = pointfarm_ok(&[
+        "dataset",
+        "add",
+        path_arg(&scan),
+        "--server",
+        &address,
+        "--json",
+    ]);
     let dataset: pb::Dataset = serde_json::from_str(stdout(&added).trim()).expect("a Dataset");
     let here = dir.path().join("here.copc.laz");
     let export = |out: &str, more: &[&str]| {
@@ -189,15 +204,11 @@ fn a_dataset_exported_by_the_server_to_s3_is_the_file_it_exports_here() {
         args.extend_from_slice(more);
         exports.run(&args)
     };
-    assert_ok(&export(arg(&here), &[]));
+    assert_ok(&export(path_arg(&here), &[]));
     let url = format!("s3://{BUCKET}/server/lone-star.copc.laz");
     let output = export(&url, &["--json"]);
-    assert_ok(&output);
-    let report = json_lines(&output).remove(0);
-    assert_eq!(report["file"], url.as_str(), "{report}");
-    let uploaded =
-        std::fs::read(exports.bucket.stored("server/lone-star.copc.laz")).expect("object");
-    assert_eq!(uploaded, std::fs::read(&here).expect("file here"));
+    let (report, size) = exports.assert_exported_as(&output, "server/lone-star.copc.laz", &here);
+    assert_eq!(report["summary"]["sizeBytes"], size.to_string(), "{report}");
     assert_one_error_line(&export(&url, &[]), &[&url, "exists: pass --force"]);
     assert_one_error_line(
         &export("s3://no-such-bucket/x.copc.laz", &[]),

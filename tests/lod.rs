@@ -9,13 +9,9 @@ use pointfarm_render::sample::sample_scene;
 use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::service::{scratch_sample, write_sample};
 use pointfarm_tests::{
-    assert_pngs_alike, assert_same_frames, json_lines, json_names, output_text, pointfarm,
-    pointfarm_ok,
+    assert_pngs_alike, assert_same_frames, json_lines, json_names, output_text, path_arg,
+    pointfarm, pointfarm_ok,
 };
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
 
 /// A scene written whole and as four tiles (LAS and LAZ, one in a subfolder).
 fn scene_and_tiles(dir: &Path, points: usize) -> (std::path::PathBuf, std::path::PathBuf) {
@@ -58,16 +54,28 @@ fn tiles_render_from_levels_of_detail_as_the_file_they_were_cut_from() {
     // The automatic camera frames each source's own sample of the points, the resident
     // cloud's and the store's coarsest nodes, and adaptive points take each one's measured
     // spacing: the two are compared through one camera with points of one size.
-    let auto = pointfarm_ok(&["render", arg(&whole), "--out", arg(&resident), size]);
+    let auto = pointfarm_ok(&[
+        "render",
+        path_arg(&whole),
+        "--out",
+        path_arg(&resident),
+        size,
+    ]);
     let mut camera = camera_flags_of(&auto);
     camera.push("--point-size=2".to_owned());
-    let mut args = vec!["render", arg(&whole), "--out", arg(&resident), size];
+    let mut args = vec![
+        "render",
+        path_arg(&whole),
+        "--out",
+        path_arg(&resident),
+        size,
+    ];
     args.extend(camera.iter().map(String::as_str));
     pointfarm_ok(&args);
     // Renders the tiles through their store; says whether the store was built first.
     let render_tiles = |out: &Path, lod_error: &str, more: &[&str]| {
-        let mut args = vec!["render", arg(&tiles), "--out", arg(out), size];
-        args.extend(["--lod-error", lod_error, "--cache-dir", arg(&cache)]);
+        let mut args = vec!["render", path_arg(&tiles), "--out", path_arg(out), size];
+        args.extend(["--lod-error", lod_error, "--cache-dir", path_arg(&cache)]);
         args.extend_from_slice(more);
         let output = pointfarm_ok(&args);
         let built = output_text(&output).contains("levels of detail:");
@@ -138,11 +146,11 @@ fn level_of_detail_options_are_checked_and_refused_through_a_server() {
     let refused = |args: &[&str], expected: &str| {
         let mut all = vec![
             "render",
-            arg(&cloud),
+            path_arg(&cloud),
             "--out",
-            arg(&out),
+            path_arg(&out),
             "--cache-dir",
-            arg(&cache),
+            path_arg(&cache),
         ];
         all.extend(args);
         let output = pointfarm(&all);
@@ -180,11 +188,11 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
     let options = ["--size=160x120", "--turntable", "2", "--lod-error", "0.5"];
     let mut args = vec![
         "render",
-        arg(&whole),
+        path_arg(&whole),
         "--out",
-        arg(&local),
+        path_arg(&local),
         "--cache-dir",
-        arg(&cache),
+        path_arg(&cache),
         "--json",
     ];
     args.extend(options);
@@ -196,9 +204,9 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
     let server = pointfarm_tests::ServeProcess::start(&dir.path().join("data"));
     let mut args = vec![
         "render",
-        arg(&whole),
+        path_arg(&whole),
         "--out",
-        arg(&remote),
+        path_arg(&remote),
         "--server",
         &server.address,
     ];
@@ -274,9 +282,9 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
     let again = dir.path().join("again");
     let mut args = vec![
         "render",
-        arg(&whole),
+        path_arg(&whole),
         "--out",
-        arg(&again),
+        path_arg(&again),
         "--server",
         &server.address,
         // A job that asks for previews; with its store built there is nothing to preview.
@@ -309,8 +317,8 @@ fn a_worker_process_reads_the_daemons_store_node_by_node() {
     let (whole, _) = scene_and_tiles(dir.path(), 20_000);
     let options = ["--size=120x90", "--turntable", "2", "--lod-error", "0.25"];
     let (local, cache) = (dir.path().join("local"), dir.path().join("cache"));
-    let mut args = vec!["render", arg(&whole), "--out", arg(&local)];
-    args.extend(["--cache-dir", arg(&cache)]);
+    let mut args = vec!["render", path_arg(&whole), "--out", path_arg(&local)];
+    args.extend(["--cache-dir", path_arg(&cache)]);
     args.extend(options);
     pointfarm_ok(&args);
 
@@ -319,7 +327,7 @@ fn a_worker_process_reads_the_daemons_store_node_by_node() {
     let worker_cache = dir.path().join("worker-cache");
     let worker = pointfarm_tests::WorkerProcess::start(&server.address, &worker_cache, "far");
     let remote = dir.path().join("remote");
-    let mut args = vec!["render", arg(&whole), "--out", arg(&remote)];
+    let mut args = vec!["render", path_arg(&whole), "--out", path_arg(&remote)];
     args.extend(["--server", &server.address]);
     args.extend(options);
     pointfarm_ok(&args);
@@ -355,8 +363,14 @@ fn local_stores_are_kept_within_the_cache_size() {
     write_sample(&first, 20_000, 1);
     write_sample(&second, 20_000, 2);
     let render = |file: &Path, size: Option<&str>| {
-        let mut args = vec!["render", arg(file), "--out", arg(&out), "--size=64x48"];
-        args.extend(["--lod-error", "0", "--cache-dir", arg(&cache)]);
+        let mut args = vec![
+            "render",
+            path_arg(file),
+            "--out",
+            path_arg(&out),
+            "--size=64x48",
+        ];
+        args.extend(["--lod-error", "0", "--cache-dir", path_arg(&cache)]);
         args.extend(size.map(|s| ["--cache-size", s]).into_iter().flatten());
         pointfarm(&args)
     };
@@ -424,9 +438,9 @@ fn a_preview_renders_from_chunk_starts_while_the_store_builds_then_the_final_fra
     write_scene_tiles(&tiles, 120_000, 3);
     let size = "--size=160x120";
     let render = |out: &Path, cache: &Path, more: &[&str]| {
-        let mut args = vec!["render", arg(&tiles), "--out", arg(out), size];
+        let mut args = vec!["render", path_arg(&tiles), "--out", path_arg(out), size];
         args.extend(["--turntable", "3", "--lod-error", "0.5", "--json"]);
-        args.extend(["--cache-dir", arg(cache)]);
+        args.extend(["--cache-dir", path_arg(cache)]);
         args.extend_from_slice(more);
         pointfarm_ok(&args)
     };
@@ -508,7 +522,13 @@ fn a_preview_renders_from_chunk_starts_while_the_store_builds_then_the_final_fra
     // A dataset rendered resident has no store to wait for either.
     let still = dir.path().join("still.png");
     let tile = tiles.join("t1.laz");
-    let resident = pointfarm_ok(&["render", arg(&tile), "--out", arg(&still), "--preview"]);
+    let resident = pointfarm_ok(&[
+        "render",
+        path_arg(&tile),
+        "--out",
+        path_arg(&still),
+        "--preview",
+    ]);
     assert!(
         output_text(&resident).contains("render resident, nothing to build"),
         "{}",

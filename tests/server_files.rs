@@ -5,13 +5,9 @@
 use std::path::Path;
 
 use pointfarm_render::testing::write_scene_tiles;
-use pointfarm_tests::{assert_ok, json_lines, pointfarm, stdout, ServeProcess};
+use pointfarm_tests::{assert_ok, json_lines, path_arg, pointfarm, stdout, ServeProcess};
 
 const FRAMES: usize = 3;
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
 
 /// `render` through `server` with previews, as JSON lines, into `out`; `source` names the
 /// dataset (files or `--dataset ID`).
@@ -27,7 +23,7 @@ fn render_previewed(server: &ServeProcess, source: &[&str], out: &Path) -> Vec<s
         "--size=160x120",
         "--json",
         "--out",
-        arg(out),
+        path_arg(out),
     ]);
     let output = pointfarm(&args);
     assert_ok(&output);
@@ -48,12 +44,12 @@ fn a_registered_campaign_renders_with_its_previews_and_is_never_uploaded() {
     write_scene_tiles(&campaign, 1_000_000, 4);
     let server = ServeProcess::start_with(
         &scratch.path().join("data"),
-        &["--data-root", arg(&campaign)],
+        &["--data-root", path_arg(&campaign)],
     );
     let registered = pointfarm(&[
         "dataset",
         "register",
-        arg(&campaign),
+        path_arg(&campaign),
         "--server",
         &server.address,
         "--json",
@@ -65,7 +61,7 @@ fn a_registered_campaign_renders_with_its_previews_and_is_never_uploaded() {
 
     // The folder's files are the registered dataset: found by their content, not uploaded.
     let previewed = scratch.path().join("previewed");
-    let reports = render_previewed(&server, &[arg(&campaign)], &previewed);
+    let reports = render_previewed(&server, &[path_arg(&campaign)], &previewed);
     let job_ids: Vec<_> = reports.iter().map(|r| r["jobId"].clone()).collect();
     assert!(job_ids.windows(2).all(|w| w[0] == w[1]), "{reports:?}");
     let listed = pointfarm(&["dataset", "list", "--server", &server.address, "--json"]);
@@ -123,6 +119,6 @@ fn a_registered_campaign_renders_with_its_previews_and_is_never_uploaded() {
     // An id needs a server, and files and an id do not go together.
     let alone = pointfarm(&["render", "--dataset", &id, "--local"]);
     assert!(!alone.status.success());
-    let both = pointfarm(&["render", arg(&campaign), "--dataset", &id]);
+    let both = pointfarm(&["render", path_arg(&campaign), "--dataset", &id]);
     assert!(!both.status.success());
 }

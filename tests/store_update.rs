@@ -12,16 +12,12 @@ use pointfarm_render::cloud::PointCloud;
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::sample::sample_scene;
 use pointfarm_tests::stores::kill_build_at;
-use pointfarm_tests::{assert_pngs_alike, output_text, pointfarm_bin};
+use pointfarm_tests::{assert_pngs_alike, output_text, path_arg, pointfarm_bin};
 
 /// Tiles per axis: the middle one is the new day's.
 const SIDE: usize = 3;
 const POINTS: usize = 90_000;
 const SIZE: &str = "--size=200x150";
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
 
 /// The scene's points in each of `SIDE` x `SIDE` tiles of its ground plan.
 fn tile_points(cloud: &PointCloud) -> Vec<Vec<usize>> {
@@ -62,14 +58,14 @@ fn render(tiles: &Path, out: &Path, cache: &Path, camera: &[String]) -> Command 
     command
         .args([
             "render",
-            arg(tiles),
+            path_arg(tiles),
             "--out",
-            arg(out),
+            path_arg(out),
             SIZE,
             "--lod-error",
             "0",
         ])
-        .args(["--cache-dir", arg(cache), "--json"])
+        .args(["--cache-dir", path_arg(cache), "--json"])
         .args(camera)
         .env("RUST_LOG", "pointfarm_render=info")
         .env_remove("POINTFARM_TEST_PAUSE_AT");
@@ -100,6 +96,15 @@ fn camera_of(output: &Output) -> Vec<String> {
     let mut flags: Vec<String> = line.split_whitespace().map(str::to_owned).collect();
     flags.push("--point-size=2".to_owned());
     flags
+}
+
+/// The first render of `tiles`, which builds the store in `dir/cache` and chooses the camera
+/// every later render shares. Returns the cache, the render's output and the camera.
+fn first_render(dir: &Path, tiles: &Path) -> (PathBuf, Output, Vec<String>) {
+    let cache = dir.join("cache");
+    let auto = run(&mut render(tiles, &dir.join("first.png"), &cache, &[]));
+    let camera = camera_of(&auto);
+    (cache, auto, camera)
 }
 
 /// Moves the new day's tile into the tiles' folder.
@@ -140,10 +145,7 @@ fn assert_draws_as_a_fresh_build(
 fn a_folder_that_gains_a_tile_updates_its_store_and_draws_as_a_fresh_build() {
     let dir = tempfile::tempdir().expect("tempdir");
     let (tiles, later) = write_tiles(dir.path());
-    let cache = dir.path().join("cache");
-    let first = dir.path().join("first.png");
-    let auto = run(&mut render(&tiles, &first, &cache, &[]));
-    let camera = camera_of(&auto);
+    let (cache, auto, camera) = first_render(dir.path(), &tiles);
     let day_one = points_total(&auto);
     assert!(day_one < POINTS as u64);
 
@@ -174,10 +176,7 @@ fn a_folder_that_gains_a_tile_updates_its_store_and_draws_as_a_fresh_build() {
 fn an_update_killed_before_it_switches_leaves_the_old_store_to_update_again() {
     let dir = tempfile::tempdir().expect("tempdir");
     let (tiles, later) = write_tiles(dir.path());
-    let cache = dir.path().join("cache");
-    let first = dir.path().join("first.png");
-    let auto = run(&mut render(&tiles, &first, &cache, &[]));
-    let camera = camera_of(&auto);
+    let (cache, _, camera) = first_render(dir.path(), &tiles);
 
     add_the_new_tile(&tiles, &later);
     let updated = dir.path().join("updated.png");
@@ -213,10 +212,7 @@ fn assert_change_updates_the_store(
     let dir = tempfile::tempdir().expect("tempdir");
     let (tiles, later) = write_tiles(dir.path());
     add_the_new_tile(&tiles, &later);
-    let cache = dir.path().join("cache");
-    let first = dir.path().join("first.png");
-    let auto = run(&mut render(&tiles, &first, &cache, &[]));
-    let camera = camera_of(&auto);
+    let (cache, auto, camera) = first_render(dir.path(), &tiles);
     assert_eq!(points_total(&auto), POINTS as u64);
 
     change(&tiles, &later);

@@ -60,6 +60,11 @@ pub fn pointfarm_bin() -> &'static Path {
     })
 }
 
+/// A path of a test's scratch folder as one argument of a command line.
+pub fn path_arg(path: &Path) -> &str {
+    path.to_str().expect("temporary paths are UTF-8")
+}
+
 /// Runs `pointfarm` with `args`.
 pub fn pointfarm(args: &[&str]) -> Output {
     Command::new(pointfarm_bin())
