@@ -420,22 +420,25 @@ fn tasks_carry_the_job_spec_unchanged_across_the_wire() {
             request: spec.request.clone(),
             failed_attempts: 2,
         };
-        let received = frame_task(&frame_task_message(&task), "w").expect("valid task");
-        assert_eq!(received, task);
-        // A dataset by URL reaches the worker as its URL and version, with no file to fetch.
-        let by_url = FrameTask {
-            dataset: TaskDataset {
-                files: Vec::new(),
-                remote: Some(crate::model::RemoteSource {
-                    url: "s3://campaigns/team/site.copc.laz".into(),
-                    version: "\"e1\"".into(),
-                }),
-                ..task.dataset.clone()
-            },
+        let crosses_unchanged = |task: &FrameTask| {
+            let received = frame_task(&frame_task_message(task), "w").expect("valid task");
+            assert_eq!(&received, task);
+        };
+        let with_dataset = |dataset: TaskDataset| FrameTask {
+            dataset,
             ..task.clone()
         };
-        let received = frame_task(&frame_task_message(&by_url), "w").expect("valid task");
-        assert_eq!(received, by_url);
+        crosses_unchanged(&task);
+        // A dataset by URL reaches the worker as its URL and version, with no file to fetch.
+        let by_url = with_dataset(TaskDataset {
+            files: Vec::new(),
+            remote: Some(crate::model::RemoteSource {
+                url: "s3://campaigns/team/site.copc.laz".into(),
+                version: "\"e1\"".into(),
+            }),
+            ..task.dataset.clone()
+        });
+        crosses_unchanged(&by_url);
         let mut message = frame_task_message(&by_url);
         message.dataset.as_mut().expect("dataset").url = "s3://user:pw@b/k".into();
         let refused = frame_task(&message, "w")
@@ -447,19 +450,15 @@ fn tasks_carry_the_job_spec_unchanged_across_the_wire() {
         );
         // A published store reaches the worker as its prefix and versions; an object URL
         // or a URL with credentials in it is refused.
-        let published = FrameTask {
-            dataset: TaskDataset {
-                published: Some(crate::lease::PublishedStore {
-                    url: format!("s3://stores/farm/{}/", "ab".repeat(32)),
-                    hierarchy_version: "\"h1\"".into(),
-                    payload_version: "\"p1\"".into(),
-                }),
-                ..task.dataset.clone()
-            },
-            ..task.clone()
-        };
-        let received = frame_task(&frame_task_message(&published), "w").expect("valid task");
-        assert_eq!(received, published);
+        let published = with_dataset(TaskDataset {
+            published: Some(crate::lease::PublishedStore {
+                url: format!("s3://stores/farm/{}/", "ab".repeat(32)),
+                hierarchy_version: "\"h1\"".into(),
+                payload_version: "\"p1\"".into(),
+            }),
+            ..task.dataset.clone()
+        });
+        crosses_unchanged(&published);
         for url in ["s3://stores/farm/nodes.bin", "s3://user:pw@stores/farm/"] {
             let mut message = frame_task_message(&published);
             let dataset = message.dataset.as_mut().expect("dataset");
