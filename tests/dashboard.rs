@@ -599,23 +599,12 @@ async fn a_jobs_video_plays_in_its_page() {
     assert!(job.video_size_bytes > 0, "{job:?}");
 
     let bearer = format!("Bearer {TOKEN}");
-    let page = request(
-        &dashboard,
-        "GET",
-        &format!("/jobs/{id}"),
-        &[("Authorization", &bearer)],
-        "",
-    );
+    let get = |path: &str| request(&dashboard, "GET", path, &[("Authorization", &bearer)], "");
+    let page = get(&format!("/jobs/{id}"));
     assert_eq!(page.status, 200, "{}", page.body);
     let source = format!("<source src=\"/jobs/{id}/video\" type=\"video/webm\">");
     assert!(page.body.contains(&source), "{}", page.body);
-    let video = request(
-        &dashboard,
-        "GET",
-        &format!("/jobs/{id}/video"),
-        &[("Authorization", &bearer)],
-        "",
-    );
+    let video = get(&format!("/jobs/{id}/video"));
     assert_eq!(video.status, 200);
     assert_eq!(video.header("content-type"), "video/webm");
     assert_eq!(
