@@ -15,7 +15,9 @@
 //! campaign outgrows the memory): the figures are the decoder's and the builder's, not the
 //! disk's.
 
+mod cpu;
 mod flags;
+pub mod store_points;
 mod tiles;
 
 use std::path::{Path, PathBuf};
@@ -88,6 +90,8 @@ pub struct DecodeResult {
     pub file_bytes_per_point: f64,
     pub read_s: f64,
     pub mpoints_per_s: f64,
+    /// CPU seconds of the process while it read, all threads.
+    pub cpu_s: f64,
 }
 
 /// The builder's stages, in seconds ([`BuildTimings`]).
@@ -130,6 +134,11 @@ pub struct BuildResult {
     /// The read time over the build time: the share of the build that its one reading of the
     /// source takes at the decode-only rate.
     pub reads_share: f64,
+    /// CPU seconds of the process during the build, all threads.
+    pub cpu_s: f64,
+    /// The read's CPU seconds over the build's: on a busy host, where wall times stretch
+    /// with the other work, what the build adds to decoding.
+    pub cpu_over_decode: f64,
     /// The process's resident memory just before the build.
     pub before_rss_bytes: u64,
     /// The process's peak resident memory during the build (`VmHWM`, reset before it unless
@@ -334,8 +343,8 @@ pub fn measure_with_frames(
         let source = DatasetSource::open(paths)?;
         let read = read_all(input, &source, paths)?;
         log(format!(
-            "campaign: {input}: read {} points in {:.2} s, {:.2} M points/s",
-            read.points, read.read_s, read.mpoints_per_s
+            "campaign: {input}: read {} points in {:.2} s, {:.2} M points/s, CPU {:.2} s",
+            read.points, read.read_s, read.mpoints_per_s, read.cpu_s
         ));
         let build_dir = dir.join(format!("build-{input}"));
         let (build, reset) = build(input, &source, &build_dir, &read)?;
@@ -343,7 +352,7 @@ pub fn measure_with_frames(
         log(format!(
             "campaign: {input}: built in {:.1} s, {:.2} M points/s ({:.0}% of reading's rate; \
              counting {:.1} s, partitions {:.1} s, upper levels {:.1} s), peak \
-             RSS {:.0} MiB, store {:.1} B/point",
+             RSS {:.0} MiB, store {:.1} B/point; CPU {:.2} s, reading's {:.0}% of it",
             build.build_s,
             build.mpoints_per_s,
             build.over_decode * 100.0,
@@ -351,7 +360,9 @@ pub fn measure_with_frames(
             build.stages.partitions_s,
             build.stages.upper_levels_s,
             build.peak_rss_bytes as f64 / (1u64 << 20) as f64,
-            build.store_disk_bytes_per_point
+            build.store_disk_bytes_per_point,
+            build.cpu_s,
+            build.cpu_over_decode * 100.0
         ));
         if let (Some(frames), Some(gpu), "laz") = (&options.turntable, gpu, input) {
             let store = create_store(&build_dir.join("store"))?;
@@ -411,9 +422,11 @@ fn read_all(
     source: &DatasetSource,
     paths: &[PathBuf],
 ) -> Result<DecodeResult, BenchError> {
+    let cpu_before = cpu::process_cpu_s();
     let started = Instant::now();
     let points = points_read(source)?;
     let read_s = started.elapsed().as_secs_f64();
+    let cpu_s = cpu::process_cpu_s() - cpu_before;
     let bytes = file_bytes(paths);
     Ok(DecodeResult {
         input,
@@ -422,6 +435,7 @@ fn read_all(
         file_bytes_per_point: bytes as f64 / points.max(1) as f64,
         read_s,
         mpoints_per_s: points as f64 / read_s / 1e6,
+        cpu_s,
     })
 }
 
@@ -439,9 +453,11 @@ fn build(
     let _measuring = memory::measuring();
     let before_rss_bytes = memory::resident_bytes();
     let reset = memory::reset_peak();
+    let cpu_before = cpu::process_cpu_s();
     let started = Instant::now();
     let report = build_lod(source, &bench_store.store, &options)?;
     let build_s = started.elapsed().as_secs_f64();
+    let cpu_s = cpu::process_cpu_s() - cpu_before;
     let peak_rss_bytes = memory::peak_resident_bytes();
     let stored_points = bench_store.store.read_hierarchy()?.point_count;
     drop(bench_store);
@@ -459,6 +475,8 @@ fn build(
             stages: report.timings.into(),
             over_decode: mpoints_per_s / read.mpoints_per_s,
             reads_share: read.read_s / build_s,
+            cpu_s,
+            cpu_over_decode: read.cpu_s / cpu_s.max(0.01),
             before_rss_bytes,
             peak_rss_bytes,
             builder_peak_bytes: report.peak_memory_bytes,

@@ -158,6 +158,25 @@ pub(super) fn on_threads<T: Send>(
     }
 }
 
+/// Runs the partitions stage's `work` on one thread more than a pool of several threads when
+/// units are journaled: each unit waits for its outputs to reach the disk before it is
+/// recorded, and meanwhile the extra thread keeps that core busy. The memory budget still
+/// bounds the partitions held at once; a pool of one thread stays one, as asked.
+fn on_partition_threads<T: Send>(
+    ctx: &BuildContext<'_>,
+    work: impl FnOnce() -> Result<T, LodError> + Send,
+) -> Result<T, LodError> {
+    let threads = rayon::current_num_threads();
+    if !ctx.journal.is_enabled() || threads < 2 {
+        return work();
+    }
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads + 1)
+        .build()
+        .map_err(|e| LodError::InvalidOptions(format!("threads: {e}")))?
+        .install(work)
+}
+
 /// The bucket grid's level: fine enough that merged buckets make partitions well below the
 /// partition size on surfaces (which fill about 4^level cells), at most [`MAX_COUNT_LEVEL`], within
 /// a quarter of the budget.
@@ -314,7 +333,7 @@ fn build_on_pool(
         ..build_context(options, &meter, &spill, &sink, max_partition)
     };
     let building = Instant::now();
-    build_partitions(&ctx, partitions)?;
+    on_partition_threads(&ctx, || build_partitions(&ctx, partitions))?;
     timings.partitions = building.elapsed();
     let upper = Instant::now();
     build_upper_levels(&ctx)?;

@@ -158,22 +158,23 @@ impl RecordBlock {
         cube: &RootCube,
         layout: RecordLayout,
     ) -> Result<(), LodError> {
-        batch.positions[range.clone()]
-            .par_iter()
-            .map(|p| CountGrid::index(level, cube.cell_at(*p, level)) as u32)
-            .collect_into_vec(&mut self.buckets);
-        const PER_TASK: usize = 1 << 10;
+        // One task makes a run of points' buckets and records together: one pass over them.
+        const PER_TASK: usize = 1 << 11;
         let record_bytes = layout.record_bytes();
+        self.buckets.resize(range.len(), 0);
         self.records.resize(range.len() * record_bytes, 0);
         self.records
             .par_chunks_mut(PER_TASK * record_bytes)
+            .zip(self.buckets.par_chunks_mut(PER_TASK))
             .enumerate()
-            .try_for_each(|(task, out)| {
+            .try_for_each(|(task, (out, buckets))| {
                 let first = range.start + task * PER_TASK;
-                for (j, record) in out.chunks_exact_mut(record_bytes).enumerate() {
+                let records = out.chunks_exact_mut(record_bytes);
+                for (j, (record, bucket)) in records.zip(buckets).enumerate() {
                     let i = first + j;
-                    let row = batch.row(i, layout.row_bytes);
-                    layout.write(&batch.raw_point(i), row, record)?;
+                    let p = batch.raw_point(i);
+                    *bucket = CountGrid::index(level, cube.cell_at(p.position, level)) as u32;
+                    layout.write(&p, batch.row(i, layout.row_bytes), record)?;
                 }
                 Ok(())
             })
@@ -303,7 +304,9 @@ struct Targets {
 
 /// Appends every block's records to their buckets' files (a bucket's next segment once one
 /// is full) and adds them to `counts`; each block goes back through `spare` to be filled
-/// again. At a checkpoint's marker, every record so far is written first.
+/// again. At a checkpoint's marker, every record so far is handed to the files, and the
+/// checkpoint (syncing them, then recording it) runs on a thread of its own while the next
+/// records are scattered: a sync waits on the disk, which would stall the decoding.
 fn scatter(
     mut writer: SpillWriter<'_>,
     mut counts: Vec<u64>,
@@ -312,28 +315,69 @@ fn scatter(
     (blocks, spare): (mpsc::Receiver<RecordBlock>, mpsc::Sender<RecordBlock>),
     checkpoint: Option<&Checkpoint<'_>>,
 ) -> Result<Vec<u64>, LodError> {
-    let mut checkpoints = 0;
-    for mut block in blocks {
-        if let (Some((read, stats)), Some(checkpoint)) = (block.checkpoint.take(), checkpoint) {
-            writer.settle()?;
-            checkpoint(read, &counts, &stats)?;
-            pause::at("checkpoint", checkpoints);
-            checkpoints += 1;
-            continue;
-        }
-        let records = block.records.chunks_exact(record_bytes);
-        for (&bucket, record) in block.buckets.iter().zip(records) {
-            let count = &mut counts[bucket as usize];
-            // Points beyond the declared count stay in the last segment; the pass refuses the
-            // source once it has read them.
-            let segment = ((*count / targets.segment_points) as usize).min(targets.segments - 1);
-            *count += 1;
-            writer.push_record(bucket as usize * targets.segments + segment, record)?;
-        }
-        let _ = spare.send(block);
-    }
-    writer.finish()?;
+    std::thread::scope(|scope| {
+        let (marks, marked) = mpsc::channel::<CountedSoFar>();
+        let recording =
+            checkpoint.map(|checkpoint| scope.spawn(move || record(marked, checkpoint)));
+        let scattered = (|| {
+            for mut block in blocks {
+                let marker = block.checkpoint.take().filter(|_| recording.is_some());
+                if let Some((read, stats)) = marker {
+                    writer.settle()?;
+                    if marks.send((read, counts.clone(), stats)).is_err() {
+                        // The recording stopped on an error, which is returned below.
+                        break;
+                    }
+                    continue;
+                }
+                let records = block.records.chunks_exact(record_bytes);
+                for (&bucket, record) in block.buckets.iter().zip(records) {
+                    let count = &mut counts[bucket as usize];
+                    // Points beyond the declared count stay in the last segment; the pass
+                    // refuses the source once it has read them.
+                    let segment =
+                        ((*count / targets.segment_points) as usize).min(targets.segments - 1);
+                    *count += 1;
+                    writer.push_record(bucket as usize * targets.segments + segment, record)?;
+                }
+                let _ = spare.send(block);
+            }
+            writer.finish()
+        })();
+        drop(marks);
+        let recorded = recording.map_or(Ok(()), |thread| {
+            thread.join().unwrap_or_else(|_| {
+                Err(LodError::Source(
+                    "the thread recording the counting checkpoints panicked".into(),
+                ))
+            })
+        });
+        // A checkpoint's error is the cause of a scattering stopped after it.
+        recorded.and(scattered)
+    })?;
     Ok(counts)
+}
+
+/// A checkpoint's points read, counts per bucket and statistics, its records in their files.
+type CountedSoFar = (u64, Vec<u64>, DatasetStats);
+
+/// Records each checkpoint `marked` hands over; where several wait, only the latest, which
+/// covers the points of those before it.
+fn record(
+    marked: mpsc::Receiver<CountedSoFar>,
+    checkpoint: &Checkpoint<'_>,
+) -> Result<(), LodError> {
+    let mut checkpoints = 0;
+    while let Ok(mut counted) = marked.recv() {
+        while let Ok(later) = marked.try_recv() {
+            counted = later;
+        }
+        let (read, counts, stats) = counted;
+        checkpoint(read, &counts, &stats)?;
+        pause::at("checkpoint", checkpoints);
+        checkpoints += 1;
+    }
+    Ok(())
 }
 
 #[cfg(test)]
