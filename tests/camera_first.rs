@@ -14,7 +14,7 @@ use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::lod::{read_nodes, NodeKey};
 use pointfarm_render::sample::sample_scene;
 use pointfarm_tests::stores::store_folder;
-use pointfarm_tests::{assert_pngs_alike, output_text, pointfarm_bin};
+use pointfarm_tests::{assert_pngs_alike, output_text, pointfarm_bin, run_ok};
 
 const COLUMNS: usize = 5;
 const ROWS: usize = 4;
@@ -86,9 +86,7 @@ fn render(tiles: &Path, out: &Path, cache: &Path, camera: &[&str]) -> Command {
 }
 
 fn run(command: &mut Command) -> Output {
-    let output = command.output().expect("run pointfarm");
-    assert!(output.status.success(), "{}", output_text(&output));
-    output
+    run_ok(command, "pointfarm render")
 }
 
 /// The place of the first line of `lines` holding `text`.

@@ -616,15 +616,9 @@ fn render_range(
 /// Says what the frames drawn came to: a preview's count, or the final frames' summary and
 /// video.
 fn finish_frames(target: &FrameTarget<'_>, is_preview: bool, drawn: Drawn) -> Result<()> {
-    let Asked {
-        args,
-        request,
-        outputs,
-        reporter,
-        ..
-    } = target.asked;
+    let (outputs, reporter) = (target.asked.outputs, target.asked.reporter);
     let files = &outputs.files;
-    let frames = request.frames();
+    let frames = target.asked.request.frames();
     if is_preview {
         reporter.say(format_args!(
             "preview: {} of {frames} frame{} in {}",
@@ -634,7 +628,7 @@ fn finish_frames(target: &FrameTarget<'_>, is_preview: bool, drawn: Drawn) -> Re
         ));
         return Ok(());
     }
-    if args.is_sequence() && !reporter.is_json() {
+    if target.asked.args.is_sequence() && !reporter.is_json() {
         frame_lines::print_summary(files.dir(), &drawn.timings);
     }
     if let Some(video) = &outputs.video {

@@ -4,7 +4,7 @@
 //! for the files the first frame sees. Each timed from the files to frame 0 drawn, then the
 //! camera-first store is finished (the path's files, then the unseen ones, by updates) and
 //! checked to hold every point once, as the whole build does (point counts, and a checksum of
-//! every position on the millimetre grid). docs/perf/lod-camera-first.md has its figures.
+//! every point's position on the millimetre grid and attributes). docs/perf/lod-camera-first.md has its figures.
 //!
 //! ```text
 //! lod-camera-first [--points N] [--files N] [--frames N] [--size WxH] [--budget-mib N]
@@ -16,13 +16,14 @@ use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::Instant;
 
+use pointfarm_bench::campaign::store_points::points_checksum;
 use pointfarm_bench::campaign::{grid, CampaignFlags, ScratchCampaign};
 use pointfarm_bench::cli::{exit_code, parse_flags};
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::cut::{CutOptions, StoredLod};
 use pointfarm_render::gpu::{AdapterChoice, GpuContext};
 use pointfarm_render::ingest::DatasetSource;
-use pointfarm_render::lod::{read_nodes, NodeKey, PointSource};
+use pointfarm_render::lod::PointSource;
 use pointfarm_render::raster::Renderer;
 use pointfarm_render::request::{
     CameraPath, Interpolation, Keyframe, Lens, Point3, PointSize, RenderOptions, RenderRequest,
@@ -149,27 +150,10 @@ fn first_frame(
 fn points_of(folder: &Path) -> Result<(u64, u64), String> {
     let stored = StoredLod::open_or_build(&[], folder, 64 << 20, None, &mut |_| {})
         .map_err(|e| e.to_string())?;
-    let hierarchy = stored.dataset.hierarchy();
-    let keys: Vec<NodeKey> = hierarchy.nodes().iter().map(|n| n.key).collect();
-    let (mut count, mut sum) = (0u64, 0u64);
-    for chunk in keys.chunks(512) {
-        let records = stored.dataset.records().as_ref();
-        for node in read_nodes(records, hierarchy, chunk).map_err(|e| e.to_string())? {
-            for p in node.world_positions() {
-                let mm = (p * 1000.0).round();
-                let text = format!("{} {} {}", mm.x, mm.y, mm.z);
-                sum = sum.wrapping_add(fnv(text.as_bytes()));
-                count += 1;
-            }
-        }
-    }
-    Ok((count, sum))
-}
-
-fn fnv(bytes: &[u8]) -> u64 {
-    bytes.iter().fold(0xcbf2_9ce4_8422_2325, |h, &b| {
-        (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
-    })
+    points_checksum(
+        stored.dataset.records().as_ref(),
+        stored.dataset.hierarchy(),
+    )
 }
 
 fn measure(args: &Args) -> Result<(), String> {

@@ -16,12 +16,12 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
+use pointfarm_bench::campaign::store_points::points_checksum;
 use pointfarm_bench::campaign::{grid, write_campaign, CampaignFlags, ScratchCampaign};
 use pointfarm_bench::cli::{exit_code, parse_flags};
 use pointfarm_render::ingest::DatasetSource;
 use pointfarm_render::lod::{
-    build_lod, read_nodes, update_store, LodBuildOptions, LodError, LodStore, NodeKey, PointSource,
-    StoreChange,
+    build_lod, update_store, LodBuildOptions, LodError, LodStore, PointSource, StoreChange,
 };
 
 const USAGE: &str = "usage: lod-store-update [--change add|remove|replace] [--points N] \
@@ -129,35 +129,7 @@ fn build(files: &[PathBuf], folder: &Path, budget_mib: u64) -> Result<(f64, LodS
 /// The count and an order-free checksum of every point the store holds.
 fn points_of(store: &LodStore) -> Result<(u64, u64), String> {
     let hierarchy = store.read_hierarchy().map_err(|e| e.to_string())?;
-    let keys: Vec<NodeKey> = hierarchy.stored_nodes().map(|n| n.key).collect();
-    let (mut count, mut sum) = (0u64, 0u64);
-    for chunk in keys.chunks(512) {
-        for node in read_nodes(store, &hierarchy, chunk).map_err(|e| e.to_string())? {
-            let rgb = node.rgb.clone().unwrap_or_else(|| vec![[0; 3]; node.len()]);
-            for (i, p) in node.world_positions().into_iter().enumerate() {
-                let mm = (p * 1000.0).round();
-                let text = format!(
-                    "{} {} {} {:?} {} {} {}",
-                    mm.x,
-                    mm.y,
-                    mm.z,
-                    rgb[i],
-                    node.intensity[i],
-                    node.classification[i],
-                    node.return_number[i]
-                );
-                sum = sum.wrapping_add(fnv(text.as_bytes()));
-                count += 1;
-            }
-        }
-    }
-    Ok((count, sum))
-}
-
-fn fnv(bytes: &[u8]) -> u64 {
-    bytes.iter().fold(0xcbf2_9ce4_8422_2325, |h, &b| {
-        (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
-    })
+    points_checksum(store, &hierarchy)
 }
 
 fn measure(args: &Args) -> Result<(), String> {
