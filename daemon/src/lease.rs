@@ -321,6 +321,10 @@ impl Daemon {
             self.publish(&job, Some(report));
             return Ok(job);
         }
+        // The output's record goes first, so that the frame's flush makes it durable too.
+        if let Some(job) = self.state.job(&lease.job_id)? {
+            self.enqueue_frame_output(&job, lease.index);
+        }
         // A refused state write leaves the PNG in place: the write may yet have reached the
         // disk, and a frame marked done must have its image; rendered again, it is replaced.
         let finished = self.state.finish_frame(&lease, &report, |j| {
@@ -333,7 +337,6 @@ impl Daemon {
             .unless_disk_refused(&lease, finished.map_err(DaemonError::from))?
             .ok_or_else(|| DaemonError::NotFound(format!("job {}", lease.job_id)))?;
         self.metrics.frame_completed(&report);
-        self.enqueue_frame_output(&job, lease.index);
         if job.state == JobState::Succeeded {
             self.log_job_end(&job, 0);
         }

@@ -6,12 +6,13 @@
 //! Waiting outputs live in the state database, not in memory: the thread takes them one at
 //! a time in the order they were queued and is woken when one is added, so the scheduler never
 //! waits for object storage, memory stays bounded however many wait, and none is refused for
-//! want of room.
+//! want of room. The outputs it finished are flushed to disk together, once per batch
+//! (`state/outputs.rs` says why that loses none).
 
 use std::path::PathBuf;
 use std::sync::mpsc::{self, Receiver, RecvTimeoutError, SyncSender};
 use std::sync::{Mutex, PoisonError};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use pointfarm_render::remote::{AllowedPrefixes, ObjectUrl, RemoteClient, RemoteSettings, UrlKind};
 use serde::{Deserialize, Serialize};
@@ -28,6 +29,10 @@ pub const MAX_OUTPUT_ERRORS: usize = 16;
 /// How long the idle upload thread waits for a wake-up before looking at the records again
 /// (after a state database that could not be read).
 const IDLE_RECHECK: Duration = Duration::from_secs(30);
+/// The most finished outputs, and the longest time since the first of them, before the
+/// upload thread flushes them; it flushes sooner whenever no output waits.
+const FLUSH_EVERY_OUTPUTS: u32 = 64;
+const FLUSH_EVERY: Duration = Duration::from_secs(1);
 
 /// What was written to a job's output URL.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -130,20 +135,22 @@ pub struct OutputUploads {
 }
 
 impl OutputUploads {
-    /// Starts the upload thread: `next` gives it the output after the record it names, and
-    /// `done` takes each output's record key, job and outcome and says whether to go on.
+    /// Starts the upload thread: `next` gives it the output after the record it names,
+    /// `done` takes each output's record key, job and outcome and says whether to go on, and
+    /// `flush` makes the outputs done so far durable, once per batch of them.
     pub(crate) fn start(
         &self,
         settings: RemoteSettings,
         next: impl Fn(Option<u64>) -> NextOutput + Send + 'static,
         done: impl Fn(u64, &PendingOutput, Result<(), String>) -> bool + Send + 'static,
+        flush: impl Fn() + Send + 'static,
     ) -> Result<(), DaemonError> {
         let client = RemoteClient::new(settings)?;
         // One wake-up waiting is enough: the thread reads every record after it.
         let (sender, receiver) = mpsc::sync_channel(1);
         std::thread::Builder::new()
             .name("pointfarm-outputs".into())
-            .spawn(move || send_outputs(&client, &receiver, next, done))
+            .spawn(move || send_outputs(&client, &receiver, next, done, flush))
             .map_err(|e| DaemonError::Internal(format!("starting the output uploads: {e}")))?;
         *self.wake.lock().unwrap_or_else(PoisonError::into_inner) = Some(sender);
         Ok(())
@@ -172,22 +179,35 @@ impl OutputUploads {
 }
 
 /// The upload thread: sends each recorded output in order, with retries, until the daemon
-/// is gone.
+/// is gone, flushing those done when [`FLUSH_EVERY_OUTPUTS`] are, when the first of them
+/// was done [`FLUSH_EVERY`] ago, and whenever none waits.
 fn send_outputs(
     client: &RemoteClient,
     wake: &Receiver<()>,
     next: impl Fn(Option<u64>) -> NextOutput,
     done: impl Fn(u64, &PendingOutput, Result<(), String>) -> bool,
+    flush: impl Fn(),
 ) {
     let mut after = None;
+    // Outputs done and not flushed yet, and when the first of them was.
+    let mut unflushed: Option<(u32, Instant)> = None;
     loop {
-        match next(after) {
+        let next = next(after);
+        if let Some((count, since)) = unflushed {
+            let idle = !matches!(next, NextOutput::Send(..));
+            if idle || count >= FLUSH_EVERY_OUTPUTS || since.elapsed() >= FLUSH_EVERY {
+                flush();
+                unflushed = None;
+            }
+        }
+        match next {
             NextOutput::Send(key, output) => {
                 after = Some(key);
                 let outcome = send_with_retries(client, &output);
                 if !done(key, &output, outcome) {
                     return;
                 }
+                unflushed.get_or_insert((0, Instant::now())).0 += 1;
             }
             NextOutput::Idle => match wake.recv_timeout(IDLE_RECHECK) {
                 Ok(()) | Err(RecvTimeoutError::Timeout) => {}
@@ -258,6 +278,44 @@ mod tests {
                 "{refused}: {error:?}"
             );
         }
+    }
+
+    #[test]
+    fn the_outputs_done_are_flushed_once_per_batch_not_once_each() {
+        use std::cell::{Cell, RefCell};
+        // Outputs whose URL is refused before any request, so that each is done at once.
+        const OUTPUTS: u64 = 100;
+        let client = RemoteClient::new(RemoteSettings::default()).expect("client");
+        let (sender, receiver) = mpsc::sync_channel::<()>(1);
+        let sender = RefCell::new(Some(sender));
+        let (done, flushes) = (Cell::new(0u64), RefCell::new(Vec::new()));
+        let next = |after: Option<u64>| {
+            let key = after.map_or(0, |key| key + 1);
+            if key == OUTPUTS {
+                // Nothing waits, and the waker goes: the thread ends.
+                sender.borrow_mut().take();
+                return NextOutput::Idle;
+            }
+            NextOutput::Send(
+                key,
+                PendingOutput {
+                    job_id: "job".into(),
+                    name: format!("frame_{key:05}.png"),
+                    file: "/nowhere.png".into(),
+                    url: "not a URL".into(),
+                },
+            )
+        };
+        let record = |_: u64, _: &PendingOutput, outcome: Result<(), String>| {
+            assert!(outcome.is_err());
+            done.set(done.get() + 1);
+            true
+        };
+        let flush = || flushes.borrow_mut().push(done.get());
+        send_outputs(&client, &receiver, next, record, flush);
+        assert_eq!(done.get(), OUTPUTS);
+        // A full batch, then the rest as the queue ran dry.
+        assert_eq!(*flushes.borrow(), [u64::from(FLUSH_EVERY_OUTPUTS), OUTPUTS]);
     }
 
     #[test]

@@ -45,6 +45,7 @@ impl Daemon {
             return Ok(());
         }
         let (reader, owner) = (Arc::downgrade(daemon), Arc::downgrade(daemon));
+        let flusher = Arc::downgrade(daemon);
         daemon.outputs.start(
             config.remote_settings.clone(),
             move |after| {
@@ -66,6 +67,13 @@ impl Daemon {
                 };
                 daemon.finish_output(key, output, outcome);
                 true
+            },
+            move || {
+                if let Some(daemon) = flusher.upgrade() {
+                    if let Err(error) = daemon.state.flush() {
+                        tracing::warn!(%error, "flushing the finished job outputs");
+                    }
+                }
             },
         )
     }
@@ -129,29 +137,40 @@ impl Daemon {
     }
 
     /// Offers the stored final frame `index` of `job` to the upload queue when the job names
-    /// an output URL; never waits. Called under the scheduling lock, as a frame is stored.
+    /// an output URL; never waits. Called under the scheduling lock, as a frame is stored,
+    /// before the frame is marked done: that flush makes the output's record durable too.
     pub fn enqueue_frame_output(&self, job: &Job, index: u32) {
         let file = self.config.frame_path(&job.id, index);
         self.enqueue_output(job, &file, &format!("frame_{index:05}.png"));
     }
 
-    /// Offers the stored video of `job` to the upload queue, as `enqueue_frame_output` does.
+    /// Offers the stored video of `job` to the upload queue, as `enqueue_frame_output` does,
+    /// and flushes its record, which no other flush follows.
     pub fn enqueue_video_output(&self, job: &Job, file: &Path) {
         let name = file.file_name().unwrap_or_default().to_string_lossy();
-        self.enqueue_output(job, file, &name);
+        if self.enqueue_output(job, file, &name) {
+            if let Err(error) = self.state.flush() {
+                tracing::warn!(job = %job.id, %error, "flushing a job's video output");
+            }
+        }
     }
 
-    fn enqueue_output(&self, job: &Job, file: &Path, name: &str) {
+    /// Queues the output `name` of `job`; whether a record was written.
+    fn enqueue_output(&self, job: &Job, file: &Path, name: &str) -> bool {
         let Some(prefix) = &job.spec.output_url else {
-            return;
+            return false;
         };
         let url = match ObjectUrl::parse(prefix).and_then(|prefix| prefix.join(name)) {
             Ok(url) => url,
-            Err(error) => return self.record_output_refused(&job.id, error.to_string()),
+            Err(error) => {
+                self.record_output_refused(&job.id, error.to_string());
+                return false;
+            }
         };
         if !self.outputs.started() {
             let refused = format!("{url}: not uploaded: this server writes no outputs by URL");
-            return self.record_output_refused(&job.id, refused);
+            self.record_output_refused(&job.id, refused);
+            return false;
         }
         let output = PendingOutput {
             job_id: job.id.clone(),
@@ -161,13 +180,15 @@ impl Daemon {
         };
         match self.state.queue_output(&output) {
             Ok(Some(job)) => self.publish(&job, None),
-            Ok(None) => {}
+            Ok(None) => return false,
             Err(error) => {
                 let refused = format!("{url}: not uploaded: recording it: {error}");
-                return self.record_output_refused(&job.id, refused);
+                self.record_output_refused(&job.id, refused);
+                return false;
             }
         }
         self.outputs.wake();
+        true
     }
 
     /// Removes the pending output `key` and counts it uploaded, or keeps why it was not, in

@@ -3,6 +3,12 @@
 //! `kill -9`) resumes them. A record's key is taken from sled's increasing id, so records
 //! are resumed in the order they were queued; the job's pending count changes in the same
 //! transaction as its record.
+//!
+//! Neither queuing nor finishing an output flushes the database itself: a frame's output is
+//! queued before the frame is marked done, whose flush makes both durable before the frame's
+//! completion is answered, and the upload thread flushes the outputs it finished once per
+//! batch. A finished output whose removal a crash lost is sent again, to the same URL with
+//! the same bytes, and counted once, as its job's count was lost with it.
 
 use std::ops::Bound;
 
@@ -46,7 +52,7 @@ fn output_key(key: u64) -> [u8; 8] {
 
 impl StateDb {
     /// Records `output` as pending and counts it in its job; None, and nothing recorded,
-    /// if the job is gone. Returns the job as changed.
+    /// if the job is gone. Returns the job as changed; durable with the next flush.
     pub fn queue_output(&self, output: &PendingOutput) -> Result<Option<Job>, StateError> {
         self.with(|records| {
             if records.job(&output.job_id)?.is_none() {
@@ -54,21 +60,19 @@ impl StateDb {
             }
             let key = output_key(records.db.generate_id()?);
             let encoded = encode(output)?;
-            let job = records.change_job_with_output(
+            records.change_job_with_output(
                 &output.job_id,
                 |job| job.outputs.pending += 1,
                 |outputs| {
                     outputs.insert(&key, encoded.as_slice())?;
                     Ok(())
                 },
-            )?;
-            records.flush()?;
-            Ok(job)
+            )
         })
     }
 
     /// Removes the pending output `key` of job `job_id` and records how it went in the job
-    /// (uploaded, or why not); the job is None if it is gone.
+    /// (uploaded, or why not); the job is None if it is gone. Durable with the next flush.
     pub fn finish_output(
         &self,
         key: u64,
@@ -76,16 +80,14 @@ impl StateDb {
         outcome: Result<(), String>,
     ) -> Result<Option<Job>, StateError> {
         self.with(|records| {
-            let job = records.change_job_with_output(
+            records.change_job_with_output(
                 job_id,
                 |job| job.outputs.record(outcome),
                 |outputs| {
                     outputs.remove(&output_key(key))?;
                     Ok(())
                 },
-            )?;
-            records.flush()?;
-            Ok(job)
+            )
         })
     }
 
@@ -203,6 +205,7 @@ mod tests {
         for index in [2, 0, 1] {
             state.queue_output(&output(&job.id, index)).expect("queue");
         }
+        state.flush().expect("flush");
         drop(state);
 
         let state = open(dir.path());
