@@ -298,8 +298,23 @@ async fn assert_replaced_tile_not_previewed(
         ..job("preview-replaced", &registered.id)
     };
     let previewed = submit(&mut jobs, request).await;
-    let (ended, _) = watch_to_end(&mut jobs, &previewed.id).await;
-    assert_eq!(ended.state, pb::JobState::Failed as i32, "{ended:?}");
+    // Its store waits at the gate: the job ends only by failing, and draws no preview first.
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    let ended = loop {
+        let shown = get_job(&mut jobs, &previewed.id).await;
+        assert!(
+            shown.frames.iter().all(|frame| !frame.preview),
+            "a preview of the replaced tile was drawn: {shown:?}"
+        );
+        if shown.state == pb::JobState::Failed as i32 {
+            break shown;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "not failed: {shown:?}"
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+    };
     assert!(ended.error.contains(&urls[1]), "{}", ended.error);
     assert!(!ended.error.contains(SECRET_KEY), "{}", ended.error);
     assert!(fetch_images(&mut jobs, &previewed.id, 0).await.is_empty());
