@@ -357,3 +357,32 @@ fn deleting_a_dataset_deletes_its_published_store_even_while_it_is_being_publish
     assert!(!log.contains("deleting a published store failed"), "{log}");
     assert_no_credential(&log, "the daemon's log");
 }
+
+#[test]
+fn a_store_published_while_object_storage_is_down_is_published_once_it_is_back() {
+    let Some(mut farm) = Farm::start() else {
+        return;
+    };
+    let (address, metrics) = (free_address(), free_address());
+    farm.bucket.server.stop();
+    let daemon = farm.publishing_daemon(&address, &metrics);
+    let worker = farm.worker(&daemon, "first");
+    // Built while the object store is down: the frames render through the daemon.
+    let first = farm.render(&daemon, "first");
+    std::thread::sleep(Duration::from_secs(2));
+    assert!(farm.bucket.objects().is_empty());
+    assert!(scrape(&metrics)[RECORDS_SERVED] > 0.0);
+
+    // Back, the publish goes through on a later try, and a worker new to the dataset reads
+    // the published store, none of it through the daemon.
+    farm.bucket.restart();
+    wait_for_log(&daemon, "store published", 1);
+    assert_eq!(farm.bucket.objects().len(), 2, "{}", daemon.log());
+    drop(worker);
+    let _worker = farm.worker(&daemon, "second");
+    let served_before = scrape(&metrics)[RECORDS_SERVED];
+    let second = farm.render(&daemon, "second");
+    assert_same_frames(&first, &second, "from the store published late");
+    assert_eq!(scrape(&metrics)[RECORDS_SERVED], served_before);
+    assert_no_credential(&daemon.log(), "the daemon's log");
+}

@@ -101,6 +101,28 @@ impl S3Bucket {
         Some(Self { server, root, name })
     }
 
+    /// Starts the server again over the same root on the same address, once stopped.
+    pub fn restart(&mut self) {
+        let binary = S3sServer::binary_or_skip().expect("the s3s-fs binary");
+        let (host, port) = self.server.address.split_once(':').expect("host:port");
+        self.server.child = Command::new(binary)
+            .args(["--host", host, "--port", port])
+            .args(["--access-key", ACCESS_KEY, "--secret-key", SECRET_KEY])
+            .arg(self.root.path())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("start the S3 server again");
+        let started = Instant::now();
+        while std::net::TcpStream::connect(&self.server.address).is_err() {
+            assert!(
+                started.elapsed() < START_TIMEOUT,
+                "the S3 server did not listen"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
     /// The folder the server keeps the bucket in.
     pub fn folder(&self) -> PathBuf {
         self.root.path().join(self.name)
