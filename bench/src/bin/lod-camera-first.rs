@@ -1,10 +1,11 @@
 //! How soon a flythrough's first final frame comes when its store is built camera first: a
 //! campaign of `--files` LAZ tiles and a low keyframed flight over one inner tile. Built whole
-//! first, the first frame waits for the whole build; built camera first (`source::camera_first`),
-//! for the files the first frame sees. Each timed from the files to frame 0 drawn, then the
-//! camera-first store is finished (the path's files, then the unseen ones, by updates) and
-//! checked to hold every point once, as the whole build does (point counts, and a checksum of
-//! every point's position on the millimetre grid and attributes). docs/perf/lod-camera-first.md has its figures.
+//! first, the first frame waits for the whole build; built camera first
+//! (`source::camera_first`), for the files the first frame sees. Each is timed from the files
+//! to frame 0 drawn; then the camera-first store is finished (the path's files, then the
+//! unseen ones, by updates) and checked to hold every point once, as the whole build does
+//! (point counts, and a checksum of every point's position on the millimetre grid and
+//! attributes). docs/perf/lod-camera-first.md has its figures.
 //!
 //! ```text
 //! lod-camera-first [--points N] [--files N] [--frames N] [--size WxH] [--budget-mib N]
@@ -42,11 +43,12 @@ struct Args {
 }
 
 fn main() -> ExitCode {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    exit_code(
-        "lod-camera-first",
-        parse(&args).and_then(|args| measure(&args)),
-    )
+    exit_code("lod-camera-first", run())
+}
+
+fn run() -> Result<(), String> {
+    let args = parse(&std::env::args().skip(1).collect::<Vec<_>>())?;
+    measure(&args)
 }
 
 fn parse(args: &[String]) -> Result<Args, String> {
@@ -71,17 +73,12 @@ fn parse(args: &[String]) -> Result<Args, String> {
         }
         Ok(true)
     })?;
-    if grid(parsed.campaign.files).0 < 3 {
-        return Err(format!(
-            "{} files make no inner tile: give a count of at least three rows",
-            parsed.campaign.files
-        ));
-    }
+    parsed.campaign.check_inner_tile()?;
     Ok(parsed)
 }
 
-/// A low flight looking down over the middle of the inner tile at `row`, `column` of a grid
-/// of `rows` x `columns` tiles over `bounds`.
+/// A low flight looking down over the middle of the inner tile of a grid of `rows` x
+/// `columns` tiles over `bounds`.
 fn flight(args: &Args, bounds: &WorldBounds, (rows, columns): (usize, usize)) -> RenderRequest {
     let size = bounds.size();
     let (tile_x, tile_y) = (size.x / columns as f64, size.y / rows as f64);

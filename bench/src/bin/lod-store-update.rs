@@ -70,12 +70,7 @@ fn parse(args: &[String]) -> Result<Args, String> {
         }
         Ok(true)
     })?;
-    if grid(parsed.campaign.files).0 < 3 {
-        return Err(format!(
-            "{} files make no inner tile: give a count of at least three rows",
-            parsed.campaign.files
-        ));
-    }
+    parsed.campaign.check_inner_tile()?;
     Ok(parsed)
 }
 

@@ -53,6 +53,18 @@ impl CampaignFlags {
         Ok(true)
     }
 
+    /// Refuses a campaign of too few rows of tiles to have an inner tile, one of the middle
+    /// row away from the edges.
+    pub fn check_inner_tile(&self) -> Result<(), String> {
+        if super::grid(self.files).0 < 3 {
+            return Err(format!(
+                "{} files make no inner tile: give a count of at least three rows",
+                self.files
+            ));
+        }
+        Ok(())
+    }
+
     /// The campaign written as LAZ tiles into a fresh scratch folder named after `program`.
     pub fn write(&self, program: &str) -> Result<ScratchCampaign, String> {
         let scratch = tempfile::Builder::new()
