@@ -146,7 +146,7 @@ fn render_files(asked: Asked<'_>, paths: &[PathBuf]) -> Result<()> {
                     .say(format_args!("--preview: {BUILT_ALREADY}; {FINAL_AT_ONCE}"));
             }
             let cut_options = args.lod_options()?;
-            if !store_built {
+            if !store_built && FileOrder::applies(asked.request) {
                 let boxes = file_boxes(&files)?;
                 if let Some(order) = FileOrder::of(asked.request, &boxes) {
                     let memory = cut_options.memory_budget_bytes;

@@ -91,7 +91,7 @@ impl FileOrder {
     /// the frames' cameras or colors depend on points no header tells (module doc), or
     /// every file is seen: the whole store is then built first.
     pub fn of(request: &RenderRequest, boxes: &[WorldBounds]) -> Option<Self> {
-        if !follows_from_headers(request) {
+        if !Self::applies(request) {
             return None;
         }
         let all = union(boxes)?;
@@ -139,16 +139,18 @@ impl FileOrder {
     }
 }
 
-/// Whether the frames of `request` are fixed by the files' headers: keyframes, colored
-/// without a stretch over the points' percentiles.
-fn follows_from_headers(request: &RenderRequest) -> bool {
-    let keyframes = matches!(request.camera_path, CameraPath::Keyframes { .. });
-    let options = &request.render;
-    let stretched = matches!(
-        options.color_mode,
-        ColorMode::Intensity | ColorMode::Elevation
-    ) && options.color_range.is_none();
-    keyframes && !stretched
+impl FileOrder {
+    /// Whether the frames of `request` are fixed by the files' headers: keyframes, colored
+    /// without a stretch over the points' percentiles. Only then are the headers read for it.
+    pub fn applies(request: &RenderRequest) -> bool {
+        let keyframes = matches!(request.camera_path, CameraPath::Keyframes { .. });
+        let options = &request.render;
+        let stretched = matches!(
+            options.color_mode,
+            ColorMode::Intensity | ColorMode::Elevation
+        ) && options.color_range.is_none();
+        keyframes && !stretched
+    }
 }
 
 fn union(boxes: &[WorldBounds]) -> Option<WorldBounds> {
