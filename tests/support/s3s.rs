@@ -41,6 +41,12 @@ impl S3sServer {
     pub fn start_or_skip(root: &Path) -> Option<Self> {
         let binary = Self::binary_or_skip()?;
         let address = free_address();
+        let child = Self::spawn(&binary, &address, root);
+        Some(Self { address, child })
+    }
+
+    /// Starts `binary` over `root` on `address` and waits until it listens.
+    fn spawn(binary: &Path, address: &str, root: &Path) -> Child {
         let (host, port) = address.split_once(':').expect("host:port");
         let child = Command::new(binary)
             .args(["--host", host, "--port", port])
@@ -50,16 +56,15 @@ impl S3sServer {
             .stderr(Stdio::null())
             .spawn()
             .expect("start the S3 server");
-        let server = Self { address, child };
         let started = Instant::now();
-        while std::net::TcpStream::connect(&server.address).is_err() {
+        while std::net::TcpStream::connect(address).is_err() {
             assert!(
                 started.elapsed() < START_TIMEOUT,
                 "the S3 server did not listen"
             );
             std::thread::sleep(Duration::from_millis(50));
         }
-        Some(server)
+        child
     }
 
     /// The environment a client of this server reads its endpoint and credentials from, as
@@ -104,23 +109,7 @@ impl S3Bucket {
     /// Starts the server again over the same root on the same address, once stopped.
     pub fn restart(&mut self) {
         let binary = S3sServer::binary_or_skip().expect("the s3s-fs binary");
-        let (host, port) = self.server.address.split_once(':').expect("host:port");
-        self.server.child = Command::new(binary)
-            .args(["--host", host, "--port", port])
-            .args(["--access-key", ACCESS_KEY, "--secret-key", SECRET_KEY])
-            .arg(self.root.path())
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("start the S3 server again");
-        let started = Instant::now();
-        while std::net::TcpStream::connect(&self.server.address).is_err() {
-            assert!(
-                started.elapsed() < START_TIMEOUT,
-                "the S3 server did not listen"
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        }
+        self.server.child = S3sServer::spawn(&binary, &self.server.address, self.root.path());
     }
 
     /// The folder the server keeps the bucket in.
