@@ -168,6 +168,19 @@ fn new_job(daemon: &ServeProcess, before: &BTreeSet<String>) -> (String, pb::Job
     shown_job(daemon, &id)
 }
 
+/// `dataset get ID --json` of the dataset registered from `file`, as printed, and its
+/// store's publication.
+fn store_publication(daemon: &ServeProcess, file: &Path) -> (String, serde_json::Value) {
+    let server = ["--server", daemon.address.as_str(), "--json"];
+    let registered = pointfarm_ok(&[&["dataset", "add", arg(file)], &server[..]].concat());
+    let dataset: serde_json::Value = serde_json::from_slice(&registered.stdout).expect("json");
+    let id = dataset["id"].as_str().expect("an id");
+    let shown = pointfarm_ok(&[&["dataset", "get", id], &server[..]].concat());
+    let text = String::from_utf8_lossy(&shown.stdout).into_owned();
+    let dataset: serde_json::Value = serde_json::from_str(&text).expect("json");
+    (text, dataset["storePublication"].clone())
+}
+
 fn assert_no_credential(text: &str, what: &str) {
     for secret in [s3s::SECRET_KEY, s3s::ACCESS_KEY] {
         assert!(!text.contains(secret), "{what} holds a credential:\n{text}");
@@ -182,6 +195,9 @@ fn workers_read_a_published_store_from_object_storage_and_none_of_it_through_the
     // The same job through a daemon without --store-url: its worker reads the daemon's store.
     let plain_daemon = ServeProcess::start(&farm.dir.path().join("plain"));
     let plain = farm.render(&plain_daemon, "plain");
+    let (text, publication) = store_publication(&plain_daemon, &farm.scene);
+    assert_eq!(publication["state"], "NOT_PUBLISHED", "{text}");
+    assert!(text.contains("--store-url"), "{text}");
     drop(plain_daemon);
 
     let (address, metrics) = (free_address(), free_address());
@@ -200,6 +216,20 @@ fn workers_read_a_published_store_from_object_storage_and_none_of_it_through_the
         .and_then(|rest| rest.strip_suffix("/nodes.bin"))
         .expect("farm/SHA256/nodes.bin");
     assert_eq!(hierarchy, &format!("farm/{sha256}/hierarchy.pfps"));
+    // The dataset says where its store is published, and nothing of the credentials.
+    let (text, publication) = store_publication(&daemon, &farm.scene);
+    assert_eq!(
+        publication["state"],
+        "PUBLISHED",
+        "{text}\n{}",
+        daemon.log()
+    );
+    assert_eq!(
+        publication["url"],
+        format!("{STORE_URL}/{sha256}/"),
+        "{text}"
+    );
+    assert_no_credential(&text, "the dataset");
 
     // Published: a worker new to the dataset reads every node from the bucket, none from the
     // daemon.
@@ -372,6 +402,8 @@ fn a_store_published_while_object_storage_is_down_is_published_once_it_is_back()
     std::thread::sleep(Duration::from_secs(2));
     assert!(farm.bucket.objects().is_empty());
     assert!(scrape(&metrics)[RECORDS_SERVED] > 0.0);
+    let (text, publication) = store_publication(&daemon, &farm.scene);
+    assert_eq!(publication["state"], "PUBLISHING", "{text}");
 
     // Back, the publish goes through on a later try, and a worker new to the dataset reads
     // the published store, none of it through the daemon.

@@ -78,7 +78,8 @@ pub enum DatasetCommand {
     /// The server's datasets.
     List,
     /// One dataset: its size, files, and URL where it is read by one; for tiles by URL, each
-    /// tile's URL, size and version (the first ten, and a count; `--json` lists every one).
+    /// tile's URL, size and version (the first ten, and a count; `--json` lists every one);
+    /// and whether its store is published to object storage, or why not.
     Get {
         /// The dataset's id.
         id: String,
@@ -219,8 +220,26 @@ fn print_dataset(server: &ServerArgs, d: &pb::Dataset) -> Result<()> {
         for line in tiles {
             outln!("{line}");
         }
+        if let Some(line) = d.store_publication.as_ref().map(publication_line) {
+            outln!("{line}");
+        }
     }
     Ok(())
+}
+
+/// How a dataset's store stands with object storage, in one line.
+fn publication_line(p: &pb::StorePublication) -> String {
+    use pb::store_publication::State;
+    match State::try_from(p.state) {
+        Ok(State::Published) => format!("  store: published under {}", p.url),
+        Ok(State::Publishing) => "  store: publishing".to_owned(),
+        Ok(State::Failed) => format!(
+            "  store: publishing under {} failed (unix ms {}): {}",
+            p.url, p.failed_unix_ms, p.reason
+        ),
+        Ok(State::NotPublished) => format!("  store: not published: {}", p.reason),
+        _ => format!("  store: state {} unknown to this client", p.state),
+    }
 }
 
 /// Tiles a dataset's human form lists one a line; the others are counted (`--json` lists every
@@ -295,6 +314,31 @@ mod tests {
                 .collect(),
             ..Default::default()
         }
+    }
+
+    #[test]
+    fn a_store_publication_is_one_line() {
+        use pb::store_publication::State;
+        let failed = pb::StorePublication {
+            state: State::Failed as i32,
+            url: "s3://b/farm/ab/".into(),
+            reason: "s3://b/farm/ab/nodes.bin: connection refused".into(),
+            failed_unix_ms: 7,
+        };
+        assert_eq!(
+            publication_line(&failed),
+            "  store: publishing under s3://b/farm/ab/ failed (unix ms 7): \
+             s3://b/farm/ab/nodes.bin: connection refused"
+        );
+        let published = pb::StorePublication {
+            state: State::Published as i32,
+            url: "s3://b/farm/ab/".into(),
+            ..Default::default()
+        };
+        assert_eq!(
+            publication_line(&published),
+            "  store: published under s3://b/farm/ab/"
+        );
     }
 
     #[test]

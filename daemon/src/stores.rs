@@ -697,4 +697,4 @@ mod tests;
 
 pub use preview::PreviewBytes;
 use preview::PreviewState;
-pub use publish::{store_url, StorePublisher};
+pub use publish::{store_url, StorePublication, StorePublisher};

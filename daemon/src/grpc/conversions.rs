@@ -613,6 +613,7 @@ fn bounds_message(bounds: &WorldBounds) -> pb::Bounds {
 }
 
 mod datasets;
+pub(super) use datasets::dataset_with_publication;
 mod descriptions;
 mod submission;
 #[cfg(test)]

@@ -10,7 +10,9 @@ use pointfarm_proto::v1::dataset_service_server::DatasetService;
 use pointfarm_render::ingest::LAS_SIGNATURE;
 use tonic::{Request, Response, Status, Streaming};
 
-use super::conversions::{dataset_description, file_description, invalid, page_messages};
+use super::conversions::{
+    dataset_description, dataset_with_publication, file_description, invalid, page_messages,
+};
 use super::streaming::{first_part, spawn_stream, HashingWriter, ResponseStream, CHUNK_BYTES};
 use super::{export_summary, io_within, Api};
 use crate::error::DaemonError;
@@ -105,8 +107,11 @@ impl DatasetService for Api {
         &self,
         request: Request<pb::GetDatasetRequest>,
     ) -> Result<Response<pb::Dataset>, Status> {
-        Ok(Response::new(pb::Dataset::from(
-            &self.daemon.dataset(&request.into_inner().id)?,
+        let dataset = self.daemon.dataset(&request.into_inner().id)?;
+        let publication = self.daemon.stores.publication(&dataset.sha256);
+        Ok(Response::new(dataset_with_publication(
+            &dataset,
+            &publication,
         )))
     }
 

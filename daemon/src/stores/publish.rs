@@ -11,7 +11,8 @@
 //! names the URL, never a credential) and tried again with backoff; meanwhile, and after the
 //! last try, workers read the store through the daemon, and the store is offered again the
 //! next time it opens. A store whose last dataset is deleted is taken down again on the
-//! same thread (`unpublish`).
+//! same thread (`unpublish`). Where each store stands, the last failure's error included, is
+//! read from these records (`state`).
 
 use std::collections::{HashSet, VecDeque};
 use std::path::{Path, PathBuf};
@@ -223,9 +224,15 @@ impl Shared {
             Tried::Done(published) => {
                 tracing::info!(url = %published.url, points = store.point_count(),
                     "store published: workers read its nodes from object storage");
+                if let Err(error) = self.forget_failure(sha256) {
+                    tracing::warn!(%error, "forgetting a failed publish");
+                }
             }
-            Tried::Failed(error) => tracing::warn!(%error, attempts = ATTEMPTS,
-                "publishing a store failed; tried again when it next opens"),
+            Tried::Failed(error) => {
+                tracing::warn!(%error, attempts = ATTEMPTS,
+                    "publishing a store failed; tried again when it next opens");
+                self.record_failure(sha256, &error);
+            }
             Tried::Stopped => {}
         }
     }
@@ -371,7 +378,10 @@ impl ReadyStore {
     }
 }
 
+mod state;
 mod unpublish;
+
+pub use state::StorePublication;
 
 #[cfg(test)]
 mod tests {

@@ -11,6 +11,7 @@ use crate::error::DaemonError;
 use crate::lease::{PublishedStore, TaskDataset, TaskFile};
 use crate::model::{Dataset, DatasetFile, RemoteSource, RemoteTile};
 use crate::remote_datasets::object_name;
+use crate::stores::StorePublication;
 
 impl From<&Dataset> for pb::Dataset {
     fn from(d: &Dataset) -> Self {
@@ -28,7 +29,51 @@ impl From<&Dataset> for pb::Dataset {
             },
             url,
             version,
+            store_publication: None,
         }
+    }
+}
+
+/// A dataset as `GetDataset` shows it, with how its store stands with object storage.
+pub(in crate::grpc) fn dataset_with_publication(
+    dataset: &Dataset,
+    publication: &StorePublication,
+) -> pb::Dataset {
+    pb::Dataset {
+        store_publication: Some(publication_message(publication)),
+        ..pb::Dataset::from(dataset)
+    }
+}
+
+fn publication_message(publication: &StorePublication) -> pb::StorePublication {
+    use pb::store_publication::State;
+    let not_published = |reason: &str| pb::StorePublication {
+        state: State::NotPublished as i32,
+        reason: reason.to_owned(),
+        ..Default::default()
+    };
+    match publication {
+        StorePublication::NoStoreUrl => {
+            not_published("the server publishes no stores (serve --store-url)")
+        }
+        StorePublication::NotPublished => {
+            not_published("no store is built to publish, or it is a COPC file's own hierarchy")
+        }
+        StorePublication::Publishing => pb::StorePublication {
+            state: State::Publishing as i32,
+            ..Default::default()
+        },
+        StorePublication::Published { url } => pb::StorePublication {
+            state: State::Published as i32,
+            url: url.clone(),
+            ..Default::default()
+        },
+        StorePublication::Failed { failure } => pb::StorePublication {
+            state: State::Failed as i32,
+            url: failure.url.clone(),
+            reason: failure.reason.clone(),
+            failed_unix_ms: failure.failed_unix_ms,
+        },
     }
 }
 

@@ -75,12 +75,14 @@ impl Shared {
         }
     }
 
-    /// Forgets the record, then deletes each prefix's hierarchy object and payload.
+    /// Forgets the record and any failed publish, then deletes each prefix's hierarchy
+    /// object and payload.
     fn unpublish(&self, sha256: &str, prefixes: &[ObjectUrl]) -> Result<(), PublishError> {
         self.records
             .remove(sha256.as_bytes())
             .and_then(|_| self.records.flush().map(drop))
             .map_err(|e| PublishError::Record(e.to_string()))?;
+        self.forget_failure(sha256)?;
         for prefix in prefixes {
             for object in [HIERARCHY_OBJECT, PAYLOAD_OBJECT] {
                 self.client.delete(&prefix.join(object)?)?;
