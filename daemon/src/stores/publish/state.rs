@@ -22,11 +22,12 @@ pub enum StorePublication {
     Publishing,
     /// Published under the store's prefix `url`.
     Published { url: String },
-    /// Every try failed; `reason` is the last one's error, which never holds a credential.
+    /// Every try failed, as `failure` records.
     Failed { failure: PublishFailure },
 }
 
-/// A publish whose every try failed, as recorded.
+/// A publish whose every try failed, as recorded: the last try's error (which never holds a
+/// credential) and when.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct PublishFailure {
     /// The store's prefix it was published to.
