@@ -16,14 +16,13 @@ use thiserror::Error;
 
 use crate::cloud::{ColorSource, PointCloud, WorldBounds};
 use crate::ingest::{load_dataset, IngestError};
+use crate::sled_open::{is_lock_held, open_waiting};
 
 /// Bump when the stored layout or the meaning of ingest's output changes.
 pub const FORMAT_VERSION: u32 = 3;
 const CHUNK_POINTS: usize = 1 << 12;
 /// The chunk size of entries written before it was recorded in them.
 const FIRST_CHUNK_POINTS: usize = 1 << 20;
-/// How long [`DatasetCache::open`] waits for sled's lock on the directory.
-const LOCK_WAIT: std::time::Duration = std::time::Duration::from_secs(2);
 /// Bytes per point in the cache: position, color, intensity, classification, return.
 const BYTES_PER_POINT: u64 = 12 + 4 + 2 + 1 + 1;
 
@@ -104,28 +103,17 @@ fn source_from(name: &str) -> Option<ColorSource> {
 }
 
 impl DatasetCache {
-    /// Opens (or creates) the cache at `path`. sled locks its files; a handle of the same
-    /// process that was just dropped may hold the lock a little longer (its flusher thread
-    /// ends on its own), so a held lock is waited for up to [`LOCK_WAIT`] before the open
-    /// fails: then another process most likely uses the directory.
+    /// Opens (or creates) the cache at `path`, waiting a while for a handle of this process
+    /// that was just dropped to let go of it ([`crate::sled_open`]).
     pub fn open(path: &Path, max_bytes: u64) -> Result<Self, CacheError> {
-        let started = Instant::now();
-        let db = loop {
-            match sled::open(path) {
-                Err(sled::Error::Io(error))
-                    if error.to_string().contains("could not acquire lock") =>
-                {
-                    if started.elapsed() >= LOCK_WAIT {
-                        return Err(CacheError::Locked(
-                            path.display().to_string(),
-                            error.to_string(),
-                        ));
-                    }
-                    std::thread::sleep(std::time::Duration::from_millis(10));
-                }
-                Err(error) => return Err(CacheError::Db(error)),
-                Ok(db) => break db,
+        let db = match open_waiting(&sled::Config::new().path(path)) {
+            Err(error) if is_lock_held(&error) => {
+                return Err(CacheError::Locked(
+                    path.display().to_string(),
+                    error.to_string(),
+                ))
             }
+            result => result?,
         };
         Ok(Self {
             entries: db.open_tree("entries")?,
@@ -458,7 +446,11 @@ mod tests {
         let first = DatasetCache::open(&path, u64::MAX).expect("open");
         let started = Instant::now();
         let error = DatasetCache::open(&path, u64::MAX).err().expect("locked");
-        assert!(started.elapsed() >= LOCK_WAIT, "{:?}", started.elapsed());
+        assert!(
+            started.elapsed() >= crate::sled_open::LOCK_WAIT,
+            "{:?}",
+            started.elapsed()
+        );
         assert!(matches!(error, CacheError::Locked(..)), "{error}");
         assert!(error.to_string().contains("another worker"), "{error}");
         drop(first);

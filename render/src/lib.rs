@@ -24,6 +24,7 @@ pub mod reference;
 pub mod remote;
 pub mod request;
 pub mod sample;
+pub mod sled_open;
 pub mod source;
 pub mod spacing;
 

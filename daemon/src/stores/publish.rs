@@ -94,10 +94,11 @@ impl StorePublisher {
         settings: RemoteSettings,
         records: &Path,
     ) -> Result<Self, DaemonError> {
-        let records = sled::Config::new()
+        let config = sled::Config::new()
             .path(records)
-            .cache_capacity(RECORDS_CACHE_BYTES)
-            .open()
+            .cache_capacity(RECORDS_CACHE_BYTES);
+        // A publisher restarted in this process may find the last one's lock not yet let go.
+        let records = pointfarm_render::sled_open::open_waiting(&config)
             .map_err(|e| DaemonError::Internal(format!("opening {}: {e}", records.display())))?;
         let shared = Arc::new(Shared {
             client: RemoteClient::new(settings)?,

@@ -231,10 +231,10 @@ fn read_finished(folder: &Path) -> Option<(u64, WorldBounds)> {
 
 /// The store's sled index (holding its hierarchy) and payload file in `folder`.
 fn open_index(folder: &Path) -> Result<(sled::Db, LodStore), CutError> {
-    let db = sled::Config::new()
+    let config = sled::Config::new()
         .path(folder.join("index"))
-        .cache_capacity(INDEX_CACHE_BYTES)
-        .open()
+        .cache_capacity(INDEX_CACHE_BYTES);
+    let db = crate::sled_open::open_waiting(&config)
         .map_err(|e| CutError::Cache(format!("opening the store in {}: {e}", folder.display())))?;
     let tree = db.open_tree("lod").map_err(LodError::from)?;
     let store = LodStore::open(tree, folder.join(PAYLOAD_FILE))?;

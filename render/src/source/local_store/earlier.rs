@@ -191,9 +191,7 @@ pub fn update_earlier(
         .iter()
         .filter(|&&i| added_paths.contains(list[i].path()))
         .count();
-    let db = sled::Config::new()
-        .path(folder.join(INDEX_FOLDER))
-        .open()
+    let db = crate::sled_open::open_waiting(&sled::Config::new().path(folder.join(INDEX_FOLDER)))
         .map_err(|e| format!("opening the store in {}: {e}", folder.display()))?;
     let tree = db.open_tree("lod").map_err(|e| e.to_string())?;
     let store = LodStore::open(tree, folder.join(PAYLOAD_FILE)).map_err(|e| e.to_string())?;
