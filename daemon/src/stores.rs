@@ -54,6 +54,8 @@ pub struct ReadyStore {
     resumed: Option<usize>,
     /// Set when the records are a COPC file's LAZ chunks, not a store's.
     pub copc: Option<CopcServed>,
+    /// Set when the store was made from another content's store (`growth`).
+    pub grown: Option<Grown>,
 }
 
 /// What nodes are read from.
@@ -102,43 +104,6 @@ impl ReadyStore {
     /// Where the store's node records are read from (an export reads them all).
     pub fn node_records(&self) -> &std::sync::Arc<dyn pointfarm_render::lod::NodeRecords> {
         self.dataset().records()
-    }
-}
-
-/// Holds every store build until opened, at its start or at its end before its store is
-/// ready: what tests use to look at a daemon while a build is under way, without a build
-/// slow enough to race.
-#[derive(Clone, Default)]
-pub struct StoreBuildGate(Arc<(Mutex<bool>, std::sync::Condvar)>);
-
-impl std::fmt::Debug for StoreBuildGate {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let open = *self.0 .0.lock().unwrap_or_else(|e| e.into_inner());
-        f.debug_struct("StoreBuildGate")
-            .field("open", &open)
-            .finish()
-    }
-}
-
-impl StoreBuildGate {
-    /// A closed gate: builds wait at it.
-    pub fn closed() -> Self {
-        Self::default()
-    }
-
-    /// Lets every build waiting, and every later one, go on.
-    pub fn open(&self) {
-        let (open, opened) = &*self.0;
-        *open.lock().unwrap_or_else(|e| e.into_inner()) = true;
-        opened.notify_all();
-    }
-
-    fn wait(&self) {
-        let (open, opened) = &*self.0;
-        let mut is_open = open.lock().unwrap_or_else(|e| e.into_inner());
-        while !*is_open {
-            is_open = opened.wait(is_open).unwrap_or_else(|e| e.into_inner());
-        }
     }
 }
 
@@ -458,6 +423,7 @@ impl DatasetStores {
         let (gate, ready_gate) = (self.gate.clone(), self.ready_gate.clone());
         let previews = Arc::clone(&self.previews);
         let publisher = self.publisher.clone();
+        let files = dataset.files();
         let spawned = std::thread::Builder::new()
             .name("pointfarm-store-build".into())
             .spawn(move || {
@@ -466,7 +432,7 @@ impl DatasetStores {
                 }
                 let _one_at_a_time = building.lock().unwrap_or_else(|e| e.into_inner());
                 tracing::info!(dataset = %id, points, "building the dataset's levels of detail");
-                let built = open_or_build(&input, &folder, budget, &progress);
+                let built = grow_or_build(&input, &folder, budget, &progress, &files, points, &id);
                 if let Ok(ready) = &built {
                     resume::log_resumed(&id, ready);
                 }
@@ -580,6 +546,7 @@ impl DatasetStores {
             .unwrap_or_else(|e| e.into_inner())
             .remove(sha256);
         let folder = self.folder(sha256);
+        let _ = std::fs::remove_dir_all(growth::growing_folder(&folder));
         if folder.exists() {
             match std::fs::remove_dir_all(&folder) {
                 Ok(()) => tracing::info!(folder = %folder.display(), "store removed"),
@@ -663,6 +630,7 @@ fn open_or_build(
         build_ms,
         resumed,
         copc: None,
+        grown: None,
     })
 }
 
@@ -683,9 +651,15 @@ fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
         build_ms: 0.0,
         resumed: None,
         copc: Some(copc),
+        grown: None,
     })
 }
 
+mod gate;
+pub use gate::StoreBuildGate;
+mod growth;
+use growth::grow_or_build;
+pub use growth::Grown;
 mod healing;
 use healing::being_rebuilt;
 mod input;

@@ -3,10 +3,12 @@
 //! startup every dataset that unfinished jobs still use and whose store folder holds no
 //! finished store has its build started again at once, not when a worker first asks, and the
 //! build takes over what the journal lists, redoing at most the units that were in flight.
+//! An update of a copied store left part way (`growth.rs`) is started again at once too.
 
 use pointfarm_render::cut::StoredLod;
 use pointfarm_render::lod::LodBuildReport;
 
+use super::growth::growing_folder;
 use super::{DatasetStores, ReadyStore};
 use crate::model::Dataset;
 
@@ -35,7 +37,8 @@ impl DatasetStores {
         let mut started = 0;
         for dataset in waiting {
             let folder = self.folder(&dataset.sha256);
-            if !folder.is_dir() || StoredLod::is_built(&folder) {
+            let under_way = folder.is_dir() || growing_folder(&folder).is_dir();
+            if !under_way || StoredLod::is_built(&folder) {
                 continue;
             }
             if self.building_version(&dataset.sha256).is_some() {

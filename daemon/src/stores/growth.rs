@@ -1,0 +1,445 @@
+//! A campaign that grows through the server gets its store updated, not built again. Each
+//! dataset content has a store of its own (`DATA/lod/SHA256`), so a dataset composed of the
+//! files of an earlier one plus a new day's tiles (or less a dropped tile) is a content
+//! without a store. When its store is first needed and another content's finished store
+//! shares most of its files (by their content hashes: at least half of each one's files),
+//! the one needing the fewest files added and removed is copied and the copy updated
+//! (`lod::update_store`): the regions the changed files touch are built again, then the
+//! levels above.
+//!
+//! The earlier store is only read: its payload file is cloned (a reflink where the file
+//! system has them, a copy otherwise: an update appends to it) and its sled index copied, so
+//! jobs rendering it go on, and workers, which key their node caches by the content hash,
+//! never mix the two. The copy is made and updated in a folder of its own
+//! (`SHA256.growing`), checked (the copied hierarchy holds the earlier files' points, the
+//! updated one the dataset's), and only then renamed to the store's folder, where the
+//! opening marks it finished: a half-updated store is never served. An update that stops
+//! part way (the daemon killed) leaves its `.growing` folder, which the next attempt removes
+//! before starting again. An update that is refused (a store without regions, a removed
+//! file whose points cannot be told apart) leaves the store to be built whole.
+//!
+//! Each store built or grown here lists its files, by content hash and points, in the store's
+//! order (`contents.txt`), which is how a later update names the files it removes.
+
+use std::collections::{HashMap, HashSet};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use pointfarm_render::cut::PAYLOAD_FILE;
+use pointfarm_render::ingest::DatasetSource;
+use pointfarm_render::lod::{
+    update_store, LodBuildOptions, LodError, LodStore, PointSource, StoreChange,
+};
+
+use pointfarm_render::cut::CutError;
+use pointfarm_render::lod::BuildProgress;
+use pointfarm_render::source::StoreInput;
+
+use super::{open_or_build, ReadyStore};
+use crate::model::DatasetFile;
+
+/// The list of a store's files in its folder: a line per file, `SHA256<TAB>points`.
+const CONTENTS_FILE: &str = "contents.txt";
+/// What `render/src/cut/stored.rs` names a store's sled index in its folder.
+const INDEX_FOLDER: &str = "index";
+/// What a store being grown is kept in until it is checked, beside the store's folder.
+const GROWING_SUFFIX: &str = ".growing";
+
+/// How a store was made from another content's store.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Grown {
+    /// The content hash of the store it was copied from.
+    pub from_sha256: String,
+    pub files_added: usize,
+    pub files_removed: usize,
+    /// Regions built again, those started in empty parts of the cube among them.
+    pub regions_rebuilt: usize,
+    pub regions_kept: usize,
+    pub points_added: u64,
+    pub points_removed: u64,
+    /// The copy and the update together.
+    pub seconds: f64,
+}
+
+/// Opens the store of `input` (the dataset `dataset_id`'s `files`, `points` in all) in
+/// `folder`: grown from the nearest store of another content where there is one ([`grow`]),
+/// else built whole, listing in `progress` the nodes it stores; the store's files are listed
+/// after.
+pub(super) fn grow_or_build(
+    input: &StoreInput,
+    folder: &Path,
+    budget: u64,
+    progress: &BuildProgress,
+    files: &[DatasetFile],
+    points: u64,
+    dataset_id: &str,
+) -> Result<ReadyStore, CutError> {
+    let grown = match input {
+        StoreInput::Files(_) => grow(folder, files, points, budget, dataset_id),
+        StoreInput::Tiles(..) => None,
+    };
+    let mut ready = open_or_build(input, folder, budget, progress)?;
+    if let StoreInput::Files(_) = input {
+        list_contents(folder, files);
+    }
+    if let Some(grown) = grown {
+        ready.build_ms = grown.seconds * 1e3;
+        ready.grown = Some(grown);
+    }
+    Ok(ready)
+}
+
+/// One file of a store: its content hash and points.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct Listed {
+    sha256: String,
+    points: u64,
+}
+
+/// The folder a store of `folder` is grown in.
+pub(super) fn growing_folder(folder: &Path) -> PathBuf {
+    let mut name = folder.file_name().unwrap_or_default().to_os_string();
+    name.push(GROWING_SUFFIX);
+    folder.with_file_name(name)
+}
+
+fn read_contents(folder: &Path) -> Option<Vec<Listed>> {
+    let text = std::fs::read_to_string(folder.join(CONTENTS_FILE)).ok()?;
+    text.lines()
+        .map(|line| {
+            let (sha256, points) = line.split_once('\t')?;
+            Some(Listed {
+                sha256: sha256.to_owned(),
+                points: points.parse().ok()?,
+            })
+        })
+        .collect()
+}
+
+fn write_contents(folder: &Path, list: &[Listed]) -> Result<(), String> {
+    let text: String = list
+        .iter()
+        .map(|f| format!("{}\t{}\n", f.sha256, f.points))
+        .collect();
+    let partial = folder.join(format!("{CONTENTS_FILE}.partial"));
+    std::fs::write(&partial, text)
+        .and_then(|()| std::fs::rename(&partial, folder.join(CONTENTS_FILE)))
+        .map_err(|e| format!("writing the store's file list: {e}"))
+}
+
+/// The points of each of `files`, from its header.
+fn listed(files: &[&DatasetFile]) -> Result<Vec<Listed>, String> {
+    files
+        .iter()
+        .map(|file| {
+            let source =
+                DatasetSource::open(std::slice::from_ref(&file.path)).map_err(|e| e.to_string())?;
+            Ok(Listed {
+                sha256: file.sha256.clone(),
+                points: source.point_count(),
+            })
+        })
+        .collect()
+}
+
+/// Lists `files` (the dataset's, in the order its store took them) in the store's `folder`
+/// where no list is there yet, so a later content can grow from it.
+pub(super) fn list_contents(folder: &Path, files: &[DatasetFile]) {
+    if folder.join(CONTENTS_FILE).exists() || !unique(files.iter().map(|f| &f.sha256)) {
+        return;
+    }
+    let list = listed(&files.iter().collect::<Vec<_>>()).and_then(|l| write_contents(folder, &l));
+    if let Err(reason) = list {
+        tracing::warn!(folder = %folder.display(), %reason, "the store's file list");
+    }
+}
+
+fn unique<'a>(hashes: impl Iterator<Item = &'a String>) -> bool {
+    let mut seen = HashSet::new();
+    hashes.into_iter().all(|h| seen.insert(h))
+}
+
+/// A finished store beside `folder` to grow `files` from: one sharing at least half of its
+/// files and of `files`, the fewest files added and removed, the most shared on a tie.
+fn nearest(folder: &Path, files: &[DatasetFile]) -> Option<(PathBuf, Vec<Listed>)> {
+    let wanted: HashSet<&str> = files.iter().map(|f| f.sha256.as_str()).collect();
+    let parent = folder.parent()?;
+    let entries = std::fs::read_dir(parent).ok()?;
+    let mut best: Option<(usize, usize, PathBuf, Vec<Listed>)> = None;
+    for path in entries.filter_map(Result::ok).map(|e| e.path()) {
+        let is_growing = path.to_string_lossy().ends_with(GROWING_SUFFIX);
+        if path == folder || is_growing || !pointfarm_render::cut::StoredLod::is_built(&path) {
+            continue;
+        }
+        let Some(list) = read_contents(&path) else {
+            continue;
+        };
+        if !unique(list.iter().map(|f| &f.sha256)) {
+            continue;
+        }
+        let common = list
+            .iter()
+            .filter(|f| wanted.contains(f.sha256.as_str()))
+            .count();
+        if common == 0 || 2 * common < wanted.len() || 2 * common < list.len() {
+            continue;
+        }
+        let change = (wanted.len() - common) + (list.len() - common);
+        let better = best
+            .as_ref()
+            .is_none_or(|(c, shared, ..)| change < *c || (change == *c && common > *shared));
+        if better {
+            best = Some((change, common, path, list));
+        }
+    }
+    best.map(|(_, _, path, list)| (path, list))
+}
+
+/// Makes the store of `files` (`points` in all) in `folder`, which holds none, from the
+/// nearest finished store of another content: copied and updated beside it, checked, then
+/// renamed into place. `None` when there is no such store, or the update was refused or
+/// failed (said in the log): the store is then built whole.
+pub(super) fn grow(
+    folder: &Path,
+    files: &[DatasetFile],
+    points: u64,
+    memory_budget: u64,
+    dataset_id: &str,
+) -> Option<Grown> {
+    let growing = growing_folder(folder);
+    if growing.exists() {
+        // Left by an update that stopped part way: started again from a fresh copy.
+        tracing::info!(dataset = %dataset_id, "removing the store update a stopped daemon left");
+        if let Err(error) = std::fs::remove_dir_all(&growing) {
+            tracing::warn!(%error, folder = %growing.display(), "removing an unfinished update");
+            return None;
+        }
+    }
+    if folder.exists() || !unique(files.iter().map(|f| &f.sha256)) {
+        return None;
+    }
+    let (from, earlier) = nearest(folder, files)?;
+    let from_sha256 = from.file_name()?.to_string_lossy().into_owned();
+    tracing::info!(dataset = %dataset_id, from = %from_sha256,
+        "updating a copy of the store of {from_sha256} instead of building the store whole");
+    let started = Instant::now();
+    let grown = copy_and_update(&from, &growing, &earlier, files, points, memory_budget).and_then(
+        |mut grown| {
+            let _ = std::fs::remove_dir_all(growing.join("spill"));
+            std::fs::rename(&growing, folder)
+                .map_err(|e| format!("moving the updated store into place: {e}"))?;
+            grown.from_sha256 = from_sha256.clone();
+            grown.seconds = started.elapsed().as_secs_f64();
+            Ok(grown)
+        },
+    );
+    match grown {
+        Ok(grown) => {
+            tracing::info!(dataset = %dataset_id, from = %from_sha256,
+                files_added = grown.files_added, files_removed = grown.files_removed,
+                regions_rebuilt = grown.regions_rebuilt, regions_kept = grown.regions_kept,
+                points_added = grown.points_added, points_removed = grown.points_removed,
+                seconds = format!("{:.2}", grown.seconds),
+                "updated the store of {dataset_id} from the store of {from_sha256}: {} files \
+                 added, {} removed, {} regions rebuilt",
+                grown.files_added, grown.files_removed, grown.regions_rebuilt);
+            Some(grown)
+        }
+        Err(reason) => {
+            tracing::info!(dataset = %dataset_id, from = %from_sha256, %reason,
+                "the store is built whole: the earlier store could not be updated");
+            let _ = std::fs::remove_dir_all(&growing);
+            None
+        }
+    }
+}
+
+/// Copies the store in `from`, of the files `earlier`, into `into` and applies the change to
+/// `files`; the copy is checked against `earlier`'s points before, and the update against
+/// `points` after.
+fn copy_and_update(
+    from: &Path,
+    into: &Path,
+    earlier: &[Listed],
+    files: &[DatasetFile],
+    points: u64,
+    memory_budget: u64,
+) -> Result<Grown, String> {
+    std::fs::create_dir_all(into).map_err(|e| format!("making {}: {e}", into.display()))?;
+    copy_folder(&from.join(INDEX_FOLDER), &into.join(INDEX_FOLDER))?;
+    clone_file(&from.join(PAYLOAD_FILE), &into.join(PAYLOAD_FILE))?;
+    let db = sled::Config::new()
+        .path(into.join(INDEX_FOLDER))
+        .open()
+        .map_err(|e| format!("opening the copied store: {e}"))?;
+    let tree = db.open_tree("lod").map_err(|e| e.to_string())?;
+    let store = LodStore::open(tree, into.join(PAYLOAD_FILE)).map_err(|e| e.to_string())?;
+    let copied = store.read_hierarchy().map_err(|e| e.to_string())?;
+    let listed_points: u64 = earlier.iter().map(|f| f.points).sum();
+    if copied.point_count != listed_points {
+        return Err(format!(
+            "the earlier store holds {} points, its file list {listed_points}",
+            copied.point_count
+        ));
+    }
+    let now: HashMap<&str, &DatasetFile> = files.iter().map(|f| (f.sha256.as_str(), f)).collect();
+    let had: HashSet<&str> = earlier.iter().map(|f| f.sha256.as_str()).collect();
+    let removed: Vec<usize> = (0..earlier.len())
+        .filter(|&i| !now.contains_key(earlier[i].sha256.as_str()))
+        .collect();
+    let added: Vec<&DatasetFile> = files
+        .iter()
+        .filter(|f| !had.contains(f.sha256.as_str()))
+        .collect();
+    let added_paths: Vec<PathBuf> = added.iter().map(|f| f.path.clone()).collect();
+    let source = match added_paths.is_empty() {
+        true => None,
+        false => Some(DatasetSource::open(&added_paths).map_err(|e| e.to_string())?),
+    };
+    // The store's files that stay, by their place in its list, are the dataset's.
+    let reopen = |places: &[usize]| -> Result<Box<dyn PointSource>, LodError> {
+        let paths: Vec<PathBuf> = places
+            .iter()
+            .filter_map(|&i| earlier.get(i).and_then(|f| now.get(f.sha256.as_str())))
+            .map(|f| f.path.clone())
+            .collect();
+        let source = DatasetSource::open(&paths).map_err(|e| LodError::Source(e.to_string()))?;
+        Ok(Box::new(source))
+    };
+    // The store's order after the update: its remaining files, then the added ones.
+    let mut after: Vec<Listed> = earlier
+        .iter()
+        .filter(|f| now.contains_key(f.sha256.as_str()))
+        .cloned()
+        .collect();
+    after.extend(listed(&added)?);
+    let mut options = LodBuildOptions::new(into.join("spill"));
+    options.memory_budget_bytes = memory_budget.max(options.min_memory_budget_bytes());
+    let change = StoreChange {
+        added: source.as_ref().map(|s| s as &dyn PointSource),
+        removed: removed.clone(),
+        reopen: &reopen,
+        files: after.iter().map(|f| f.sha256.clone()).collect(),
+    };
+    let report = update_store(&store, &change, &options).map_err(|e| match e {
+        LodError::CannotUpdate(reason) => reason,
+        other => other.to_string(),
+    })?;
+    let stored = store.read_hierarchy().map_err(|e| e.to_string())?;
+    if stored.point_count != points || report.hierarchy.point_count != points {
+        return Err(format!(
+            "the updated store holds {} points, the dataset's files {points}",
+            stored.point_count
+        ));
+    }
+    drop(store);
+    db.flush().map_err(|e| e.to_string())?;
+    drop(db);
+    write_contents(into, &after)?;
+    Ok(Grown {
+        from_sha256: String::new(),
+        files_added: added.len(),
+        files_removed: removed.len(),
+        regions_rebuilt: report.regions_rebuilt + report.regions_added,
+        regions_kept: report.regions_kept,
+        points_added: report.points_added,
+        points_removed: report.points_removed,
+        seconds: report.seconds,
+    })
+}
+
+/// Copies the files of folder `from` (a sled index: small, written in place) into `into`.
+fn copy_folder(from: &Path, into: &Path) -> Result<(), String> {
+    std::fs::create_dir_all(into).map_err(|e| format!("making {}: {e}", into.display()))?;
+    let entries =
+        std::fs::read_dir(from).map_err(|e| format!("reading {}: {e}", from.display()))?;
+    for entry in entries {
+        let entry = entry.map_err(|e| format!("reading {}: {e}", from.display()))?;
+        let kind = entry.file_type().map_err(|e| e.to_string())?;
+        let target = into.join(entry.file_name());
+        if kind.is_dir() {
+            copy_folder(&entry.path(), &target)?;
+        } else if kind.is_file() {
+            std::fs::copy(entry.path(), &target)
+                .map_err(|e| format!("copying {}: {e}", entry.path().display()))?;
+        }
+    }
+    Ok(())
+}
+
+/// Makes `into` a copy of `from` sharing its blocks where the file system can (a reflink),
+/// else a copy of its bytes.
+fn clone_file(from: &Path, into: &Path) -> Result<(), String> {
+    let failed = |e: std::io::Error| format!("copying {}: {e}", from.display());
+    let source = std::fs::File::open(from).map_err(failed)?;
+    let target = std::fs::File::create(into).map_err(failed)?;
+    if rustix::fs::ioctl_ficlone(&target, &source).is_ok() {
+        return Ok(());
+    }
+    drop(target);
+    std::fs::copy(from, into).map_err(failed)?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn file(sha256: &str) -> DatasetFile {
+        DatasetFile {
+            name: format!("{sha256}.las"),
+            path: PathBuf::from(format!("/nowhere/{sha256}.las")),
+            size_bytes: 1,
+            sha256: sha256.to_owned(),
+        }
+    }
+
+    /// A finished-looking store folder listing `hashes`.
+    fn store(dir: &Path, name: &str, hashes: &[&str]) {
+        let folder = dir.join(name);
+        std::fs::create_dir_all(&folder).expect("folder");
+        let list: Vec<Listed> = hashes
+            .iter()
+            .map(|h| Listed {
+                sha256: (*h).to_owned(),
+                points: 1,
+            })
+            .collect();
+        write_contents(&folder, &list).expect("list");
+        let finished = r#"{"points":1,"min":[0,0,0],"max":[1,1,1]}"#;
+        std::fs::write(folder.join("finished.json"), finished).expect("marker");
+    }
+
+    #[test]
+    fn the_nearest_store_needs_the_fewest_files_added_and_removed() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        store(dir.path(), "four", &["a", "b", "c", "d"]);
+        store(dir.path(), "three", &["a", "b", "c"]);
+        store(dir.path(), "other", &["x", "y", "z"]);
+        store(dir.path(), "one", &["a"]);
+        let wanted: Vec<DatasetFile> = ["a", "b", "c", "e"].iter().map(|h| file(h)).collect();
+        let (path, list) = nearest(&dir.path().join("new"), &wanted).expect("a store");
+        // three: one added; four: one added and one removed.
+        assert_eq!(path.file_name().unwrap(), "three");
+        assert_eq!(list.len(), 3);
+        let wanted: Vec<DatasetFile> = ["x", "q", "r", "s", "t"].iter().map(|h| file(h)).collect();
+        assert!(
+            nearest(&dir.path().join("new"), &wanted).is_none(),
+            "too few shared"
+        );
+    }
+
+    #[test]
+    fn a_store_being_grown_or_unfinished_is_no_candidate() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        store(dir.path(), "half", &["a", "b"]);
+        std::fs::remove_file(dir.path().join("half/finished.json")).expect("unmark");
+        store(dir.path(), "x.growing", &["a", "b"]);
+        let wanted: Vec<DatasetFile> = ["a", "b", "c"].iter().map(|h| file(h)).collect();
+        assert!(nearest(&dir.path().join("new"), &wanted).is_none());
+        assert_eq!(
+            growing_folder(&dir.path().join("abc")),
+            dir.path().join("abc.growing")
+        );
+    }
+}

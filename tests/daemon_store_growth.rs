@@ -1,0 +1,395 @@
+//! A campaign that grows through the server: `pointfarm render --server` of a folder of tiles
+//! that gained a tile uploads the new tile, composes the dataset of all of them, and the daemon
+//! makes its store by updating a copy of the earlier dataset's store, not by building it whole.
+//! Its frames equal a fresh daemon's within the fidelity rule, its store holds the same points
+//! (each in one node), and the earlier dataset still renders from its own store, untouched. A
+//! dataset composed without a tile is made the same way. An update killed part way (the build's
+//! test hook, `POINTFARM_TEST_PAUSE_AT=update:0`) never leaves a store to serve: the daemon
+//! started again makes it anew, and a preview job meanwhile draws the new content's sample.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::time::Duration;
+
+use pointfarm_render::cloud::PointCloud;
+use pointfarm_render::cut::StoredLod;
+use pointfarm_render::ingest::{write_las, LasWriteOptions};
+use pointfarm_render::lod::{read_nodes, NodeKey};
+use pointfarm_render::sample::sample_scene;
+use pointfarm_tests::{
+    assert_pngs_alike, free_address, output_text, path_arg, pointfarm_bin, wait_for, ServeProcess,
+};
+
+/// Tiles across and along: 21, the middle one the new day's.
+const ACROSS: usize = 3;
+const ALONG: usize = 7;
+const POINTS: usize = 210_000;
+const SIZE: &str = "200x150";
+/// The tile a crew drops from the first day's.
+const DROPPED: usize = 1;
+
+/// The scene's tiles, every one in `dir/all`, and the folders of the campaign's days as links
+/// to them: `day1` without the middle tile, `day2` with every tile, `less` as `day1` without
+/// tile [`DROPPED`].
+struct Campaign {
+    day1: PathBuf,
+    day2: PathBuf,
+    less: PathBuf,
+    /// Flags of the camera every render shares.
+    camera: Vec<String>,
+}
+
+fn tile_name(index: usize) -> String {
+    format!("tile-{index:02}.las")
+}
+
+fn write_campaign(dir: &Path) -> Campaign {
+    let cloud = sample_scene(POINTS, 11);
+    let tiles = tile_points(&cloud);
+    let all = dir.join("all");
+    std::fs::create_dir_all(&all).expect("folder");
+    for (index, points) in tiles.iter().enumerate() {
+        let path = all.join(tile_name(index));
+        write_las(&path, &cloud.select(points), &LasWriteOptions::default()).expect("tile");
+    }
+    let middle = ACROSS * ALONG / 2;
+    let day = |name: &str, leave_out: &[usize]| {
+        let folder = dir.join(name);
+        std::fs::create_dir_all(&folder).expect("folder");
+        for index in (0..tiles.len()).filter(|i| !leave_out.contains(i)) {
+            let name = tile_name(index);
+            std::fs::hard_link(all.join(&name), folder.join(&name)).expect("link a tile");
+        }
+        folder
+    };
+    let (min, size) = (cloud.bounds.min, cloud.bounds.size());
+    let center = min + size * 0.5;
+    let reach = size.x.max(size.y);
+    let xyz = |[x, y, z]: [f64; 3]| format!("{x},{y},{z}");
+    let position = [
+        center.x + 0.2 * reach,
+        center.y - 0.9 * reach,
+        center.z + 0.8 * reach,
+    ];
+    Campaign {
+        day1: day("day1", &[middle]),
+        day2: day("day2", &[]),
+        less: day("less", &[middle, DROPPED]),
+        camera: vec![
+            format!("--camera-pos={}", xyz(position)),
+            format!("--camera-target={}", xyz(center.to_array())),
+            "--camera-up=0,0,1".to_owned(),
+            "--point-size=2".to_owned(),
+        ],
+    }
+}
+
+/// The scene's points in each of `ACROSS` x `ALONG` tiles of its ground plan.
+fn tile_points(cloud: &PointCloud) -> Vec<Vec<usize>> {
+    let (min, size) = (cloud.bounds.min, cloud.bounds.size());
+    let mut tiles: Vec<Vec<usize>> = vec![Vec::new(); ACROSS * ALONG];
+    for (i, p) in cloud.positions.iter().enumerate() {
+        let world = cloud.origin + p.as_dvec3();
+        let cell = |v: f64, lo: f64, extent: f64, n: usize| {
+            (((v - lo) / extent * n as f64) as usize).min(n - 1)
+        };
+        let x = cell(world.x, min.x, size.x, ACROSS);
+        let y = cell(world.y, min.y, size.y, ALONG);
+        tiles[y * ACROSS + x].push(i);
+    }
+    tiles
+}
+
+/// `pointfarm serve` with its data in `data`, its builds stopped for good at `pause_at`; each
+/// start logs to a file of its own beside `data`.
+fn serve(address: &str, data: &Path, pause_at: Option<&str>) -> ServeProcess {
+    static STARTS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let start = STARTS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let mut command = Command::new(pointfarm_bin());
+    match pause_at {
+        Some(stage) => command.env("POINTFARM_TEST_PAUSE_AT", stage),
+        None => command.env_remove("POINTFARM_TEST_PAUSE_AT"),
+    };
+    let log = data.with_file_name(format!("serve-{start}.log"));
+    ServeProcess::start_command(
+        command,
+        address,
+        data,
+        &log,
+        &["--store-memory-budget", "96MiB"],
+    )
+}
+
+/// `pointfarm render --server` of `tiles` into `out` through levels of detail.
+fn render(server: &ServeProcess, tiles: &Path, out: &Path, camera: &[String]) -> Command {
+    let mut command = Command::new(pointfarm_bin());
+    command
+        .args([
+            "render",
+            path_arg(tiles),
+            "--out",
+            path_arg(out),
+            "--size",
+            SIZE,
+        ])
+        .args([
+            "--lod-error",
+            "0",
+            "--server",
+            &format!("http://{}", server.address),
+        ])
+        .args(camera)
+        .env_remove("POINTFARM_TEST_PAUSE_AT");
+    command
+}
+
+fn run(command: &mut Command, server: &ServeProcess) -> Output {
+    let output = command.output().expect("run pointfarm");
+    assert!(
+        output.status.success(),
+        "{}\n--- daemon:\n{}",
+        output_text(&output),
+        server.log()
+    );
+    output
+}
+
+/// The seconds a daemon's log gives on its first line saying `message`.
+fn seconds_said(log: &str, message: &str) -> Option<f64> {
+    let line = log.lines().find(|l| l.contains(message))?;
+    let at = line.find(" seconds=")? + " seconds=".len();
+    let number: String = line[at..]
+        .trim_start_matches('"')
+        .chars()
+        .take_while(|c| c.is_ascii_digit() || *c == '.')
+        .collect();
+    number.parse().ok()
+}
+
+/// The finished store under `data` that lists `files` files.
+fn store_of(data: &Path, files: usize) -> PathBuf {
+    let lod = data.join("lod");
+    std::fs::read_dir(&lod)
+        .expect("the daemon's stores")
+        .map(|entry| entry.expect("entry").path())
+        .find(|path| {
+            StoredLod::is_built(path)
+                && std::fs::read_to_string(path.join("contents.txt"))
+                    .is_ok_and(|list| list.lines().count() == files)
+        })
+        .unwrap_or_else(|| panic!("no store of {files} files in {}", lod.display()))
+}
+
+/// Every point of the store in `folder`, from every node, as millimetres and attributes,
+/// sorted: two stores of the same points, each in one node, give the same list.
+fn store_points(folder: &Path) -> Vec<[i64; 6]> {
+    let stored = StoredLod::open_or_build(&[], folder, 64 << 20, None, &mut |_| {})
+        .expect("a finished store");
+    let hierarchy = stored.dataset.hierarchy();
+    let keys: Vec<NodeKey> = hierarchy.nodes().iter().map(|n| n.key).collect();
+    let nodes = read_nodes(stored.dataset.records().as_ref(), hierarchy, &keys).expect("nodes");
+    let mut points: Vec<[i64; 6]> = nodes
+        .iter()
+        .flat_map(|node| {
+            let positions = node.world_positions();
+            (0..node.len())
+                .map(|i| {
+                    let mm = |v: f64| (v * 1000.0).round() as i64;
+                    let p = positions[i];
+                    [
+                        mm(p.x),
+                        mm(p.y),
+                        mm(p.z),
+                        i64::from(node.intensity[i]),
+                        i64::from(node.classification[i]),
+                        i64::from(node.return_number[i]),
+                    ]
+                })
+                .collect::<Vec<_>>()
+        })
+        .collect();
+    points.sort_unstable();
+    points
+}
+
+/// Renders `tiles` on a fresh daemon in `dir/name` and returns its frame and store's points.
+fn fresh_build(dir: &Path, name: &str, tiles: &Path, files: usize, camera: &[String]) -> PathBuf {
+    let data = dir.join(name);
+    let mut server = serve(&free_address(), &data, None);
+    let out = dir.join(format!("{name}.png"));
+    run(&mut render(&server, tiles, &out, camera), &server);
+    assert!(
+        !server.log().contains("updated the store of"),
+        "{}",
+        server.log()
+    );
+    server
+        .terminate(Duration::from_secs(30))
+        .expect("the daemon stops");
+    let _ = store_of(&data, files);
+    out
+}
+
+#[test]
+fn a_campaign_that_grows_or_drops_a_tile_through_the_server_updates_its_store() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let campaign = write_campaign(dir.path());
+    let camera = &campaign.camera;
+    let data = dir.path().join("daemon");
+    let address = free_address();
+    let mut server = serve(&address, &data, None);
+
+    // Day one: its store is built whole.
+    let day1 = dir.path().join("day1.png");
+    run(&mut render(&server, &campaign.day1, &day1, camera), &server);
+    let whole = seconds_said(&server.log(), "levels of detail built").expect("a whole build");
+
+    // Day two: the new tile is uploaded, the dataset composed, and its store updated.
+    let day2 = dir.path().join("day2.png");
+    run(&mut render(&server, &campaign.day2, &day2, camera), &server);
+    let log = server.log();
+    assert!(
+        log.contains("from the store of") && log.contains(": 1 files added, 0 removed"),
+        "{log}"
+    );
+    let updated = seconds_said(&log, "updated the store of").expect("an update");
+    assert_eq!(
+        log.matches("levels of detail built").count(),
+        1,
+        "built whole again:\n{log}"
+    );
+    println!(
+        "whole build of 20 tiles: {whole:.2} s; store of 21 tiles updated from it: \
+         {updated:.2} s ({:.0}%)",
+        100.0 * updated / whole
+    );
+
+    // A tile dropped from day one's: updated from day one's store, the nearest.
+    let less = dir.path().join("less.png");
+    run(&mut render(&server, &campaign.less, &less, camera), &server);
+    let log = server.log();
+    assert!(log.contains(": 0 files added, 1 removed"), "{log}");
+    assert_eq!(log.matches("levels of detail built").count(), 1, "{log}");
+
+    // Day one's dataset renders as before from its own store, opened again from disk.
+    server
+        .terminate(Duration::from_secs(30))
+        .expect("the daemon stops");
+    let mut server = serve(&address, &data, None);
+    let again = dir.path().join("day1-again.png");
+    run(
+        &mut render(&server, &campaign.day1, &again, camera),
+        &server,
+    );
+    assert_pngs_alike(
+        "growth-day1",
+        &again,
+        &day1,
+        "day one's dataset draws otherwise after its store was grown from",
+    );
+    server
+        .terminate(Duration::from_secs(30))
+        .expect("the daemon stops");
+
+    // Each updated store draws and holds what a fresh daemon's build does.
+    let fresh = fresh_build(dir.path(), "fresh-day2", &campaign.day2, 21, camera);
+    assert_pngs_alike(
+        "growth-day2",
+        &day2,
+        &fresh,
+        "the grown store's frame differs from a fresh build's",
+    );
+    let grown = store_points(&store_of(&data, 21));
+    assert_eq!(grown.len(), POINTS, "every point once");
+    assert!(
+        grown == store_points(&store_of(&dir.path().join("fresh-day2"), 21)),
+        "the grown store holds other points than a fresh build's"
+    );
+    let fresh = fresh_build(dir.path(), "fresh-less", &campaign.less, 19, camera);
+    assert_pngs_alike(
+        "growth-less",
+        &less,
+        &fresh,
+        "the store less a tile differs from a fresh build's",
+    );
+    assert!(
+        store_points(&store_of(&data, 19))
+            == store_points(&store_of(&dir.path().join("fresh-less"), 19)),
+        "the store less a tile holds other points than a fresh build's"
+    );
+}
+
+#[test]
+fn an_update_killed_part_way_is_made_again_and_a_preview_meanwhile_shows_the_new_tile() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let campaign = write_campaign(dir.path());
+    let camera = &campaign.camera;
+    let data = dir.path().join("daemon");
+    let address = free_address();
+    let mut server = serve(&address, &data, Some("update:0"));
+    let day1 = dir.path().join("day1.png");
+    run(&mut render(&server, &campaign.day1, &day1, camera), &server);
+
+    // Day two's render asks for previews; its store's update stops for good before it switches.
+    let preview = dir.path().join("day2-preview.png");
+    let mut previewing = render(&server, &campaign.day2, &preview, camera)
+        .arg("--preview")
+        .spawn()
+        .expect("start pointfarm");
+    wait_for(
+        Duration::from_secs(300),
+        "the paused update and a preview",
+        || (server.log().contains("build paused at update:0") && preview.exists()).then_some(()),
+    );
+    let _ = previewing.kill();
+    let _ = previewing.wait();
+    let log = server.log();
+    // The preview is of day two's files, the new tile's among them.
+    let sampled = log
+        .lines()
+        .find(|l| l.contains("preview sample read") && l.contains("files=21"));
+    assert!(sampled.is_some(), "{log}");
+    server.kill();
+
+    // Nothing half-updated is left where a store is served from.
+    let folders: Vec<PathBuf> = std::fs::read_dir(data.join("lod"))
+        .expect("stores")
+        .map(|e| e.expect("entry").path())
+        .collect();
+    assert_eq!(
+        folders
+            .iter()
+            .filter(|f| f.to_string_lossy().ends_with(".growing"))
+            .count(),
+        1,
+        "{folders:?}"
+    );
+    assert_eq!(
+        folders.iter().filter(|f| StoredLod::is_built(f)).count(),
+        1,
+        "{folders:?}"
+    );
+
+    // Started again: the update is made anew from a fresh copy, and draws as a fresh build.
+    let server = serve(&address, &data, None);
+    let day2 = dir.path().join("day2.png");
+    run(&mut render(&server, &campaign.day2, &day2, camera), &server);
+    let log = server.log();
+    assert!(
+        log.contains("removing the store update a stopped daemon left"),
+        "{log}"
+    );
+    assert!(log.contains(": 1 files added, 0 removed"), "{log}");
+    assert!(
+        !log.contains("levels of detail built"),
+        "built whole:\n{log}"
+    );
+    drop(server);
+    let fresh = fresh_build(dir.path(), "fresh-day2", &campaign.day2, 21, camera);
+    assert_pngs_alike(
+        "growth-killed",
+        &day2,
+        &fresh,
+        "the store updated after a kill draws unlike a fresh build",
+    );
+}
