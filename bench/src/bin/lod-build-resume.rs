@@ -1,9 +1,11 @@
 //! What resuming a level-of-detail store build costs: a campaign's store built once without a
 //! stop, then built again killed (SIGKILL) at `--kills` random moments and resumed each time,
-//! the total wall time of all the runs against the uninterrupted one's. Each build is a
-//! process of its own (this program with `--build`) opening the store as the CLI and the
-//! daemon do (`StoredLod::open_or_build`); the two stores are compared node for node, point
-//! for point. docs/perf/lod-build-resume.md has its figures.
+//! the total wall and CPU time of all the runs against the uninterrupted one's (the CPU time,
+//! user and system of the build processes, is the figure that holds on a shared host; the load
+//! averages are printed beside). Each build is a process of its own (this program with
+//! `--build`) opening the store as the CLI and the daemon do (`StoredLod::open_or_build`); the
+//! two stores are compared node for node, point for point. docs/perf/lod-build-resume.md has
+//! its figures.
 //!
 //! ```text
 //! lod-build-resume [--points N] [--files N] [--kills N] [--seed N] [--budget-mib N] [--dir DIR]
@@ -13,6 +15,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode, Stdio};
 use std::time::{Duration, Instant};
 
+use pointfarm_bench::campaign::cpu::{children_cpu_s, pid_cpu_s};
 use pointfarm_bench::campaign::{CampaignFlags, ScratchCampaign};
 use pointfarm_bench::cli::{exit_code, parse_flags};
 use pointfarm_render::cut::StoredLod;
@@ -64,9 +67,16 @@ fn build(args: &[String]) -> Result<(), String> {
     let stored = StoredLod::open_or_build(&files, Path::new(folder), budget, None, &mut |_| {})
         .map_err(|e| e.to_string())?;
     if let Some((report, seconds)) = &stored.built {
+        let t = &report.timings;
         println!(
-            "built in {seconds:.2} s: counting resumed {}, {} units resumed, {} partitions",
-            report.counting_resumed, report.resumed_units, report.partitions
+            "  built in {seconds:.2} s (counting {:.2} s, partitions {:.2} s, upper levels \
+             {:.2} s): counting resumed {}, {} units resumed, {} partitions",
+            t.counting.as_secs_f64(),
+            t.partitions.as_secs_f64(),
+            t.upper_levels.as_secs_f64(),
+            report.counting_resumed,
+            report.resumed_units,
+            report.partitions
         );
     }
     Ok(())
@@ -82,15 +92,21 @@ fn tile_files(dir: &Path) -> Result<Vec<PathBuf>, String> {
     Ok(files)
 }
 
-/// One build process, killed after `kill_after` if it runs that long; its wall time and
-/// whether it finished.
-fn run_build(
-    args: &Args,
-    tiles: &Path,
-    folder: &Path,
-    kill_after: Option<Duration>,
-) -> (f64, bool) {
+/// What one build process took.
+struct Run {
+    wall_s: f64,
+    /// User and system CPU of the process, counted once it was reaped (killed or not).
+    cpu_s: f64,
+    /// Its CPU read from `/proc/PID/stat` just before the kill: the check that a killed
+    /// process's time is counted in `cpu_s`.
+    cpu_before_kill_s: Option<f64>,
+    finished: bool,
+}
+
+/// One build process, killed after `kill_after` if it runs that long.
+fn run_build(args: &Args, tiles: &Path, folder: &Path, kill_after: Option<Duration>) -> Run {
     let exe = std::env::current_exe().expect("this program's path");
+    let children_before = children_cpu_s();
     let started = Instant::now();
     let mut child = Command::new(exe)
         .args([
@@ -102,41 +118,69 @@ fn run_build(
         .stdout(Stdio::piped())
         .spawn()
         .expect("start a build");
+    let mut cpu_before_kill_s = None;
     let finished = loop {
         if let Some(status) = child.try_wait().expect("poll the build") {
             assert!(status.success(), "a build failed: {status}");
             break true;
         }
         if kill_after.is_some_and(|limit| started.elapsed() >= limit) {
+            cpu_before_kill_s = pid_cpu_s(child.id());
             child.kill().expect("SIGKILL");
             child.wait().expect("reap");
             break false;
         }
         std::thread::sleep(Duration::from_millis(10));
     };
-    let seconds = started.elapsed().as_secs_f64();
+    let wall_s = started.elapsed().as_secs_f64();
+    let cpu_s = children_cpu_s() - children_before;
     if finished {
         let output = child.wait_with_output().expect("output");
-        print!("    {}", String::from_utf8_lossy(&output.stdout));
+        print!("{}", String::from_utf8_lossy(&output.stdout));
     }
-    (seconds, finished)
+    Run {
+        wall_s,
+        cpu_s,
+        cpu_before_kill_s,
+        finished,
+    }
+}
+
+/// The 1-, 5- and 15-minute load averages (Linux), for reading the wall times of a shared host.
+fn load_averages() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|line| {
+            line.split_whitespace()
+                .take(3)
+                .collect::<Vec<_>>()
+                .join(" ")
+        })
+        .unwrap_or_else(|_| "unknown".into())
 }
 
 fn measure(args: &Args) -> Result<(), String> {
+    println!("load average at the start: {}", load_averages());
     let ScratchCampaign {
         scratch,
         tiles,
         written,
     } = args.campaign.write("lod-build-resume")?;
     println!(
-        "{} points in {} LAZ files",
+        "{} points in {} LAZ files; load average {}",
         written.points,
-        written.laz.len()
+        written.laz.len(),
+        load_averages()
     );
 
     let uninterrupted = scratch.path().join("uninterrupted");
     println!("uninterrupted build:");
-    let (whole, _) = run_build(args, &tiles, &uninterrupted, None);
+    let whole = run_build(args, &tiles, &uninterrupted, None);
+    println!(
+        "  ran {:.2} s, CPU {:.2} s; load average {}",
+        whole.wall_s,
+        whole.cpu_s,
+        load_averages()
+    );
 
     // The kill moments: `kills` random points of the uninterrupted build's time, in order;
     // each run is killed once it has run from the previous moment to its own.
@@ -146,33 +190,48 @@ fn measure(args: &Args) -> Result<(), String> {
         .collect();
     moments.sort_by(f64::total_cmp);
     let resumed = scratch.path().join("resumed");
-    let mut total = 0.0;
+    let (mut wall_s, mut cpu_s) = (0.0, 0.0);
     let mut previous = 0.0;
     let mut finished = false;
     for moment in &moments {
-        let after = Duration::from_secs_f64((moment - previous) * whole);
-        let (seconds, done) = run_build(args, &tiles, &resumed, Some(after));
+        let after = Duration::from_secs_f64((moment - previous) * whole.wall_s);
+        let run = run_build(args, &tiles, &resumed, Some(after));
+        let before_kill = run
+            .cpu_before_kill_s
+            .map_or_else(|| "-".into(), |s| format!("{s:.2} s"));
         println!(
-            "killed at {:.0}% of the build: ran {seconds:.2} s",
-            100.0 * moment
+            "killed at {:.0}% of the build: ran {:.2} s, CPU {:.2} s ({before_kill} read \
+             before the kill)",
+            100.0 * moment,
+            run.wall_s,
+            run.cpu_s
         );
-        total += seconds;
+        wall_s += run.wall_s;
+        cpu_s += run.cpu_s;
         previous = *moment;
-        if done {
+        if run.finished {
             finished = true;
             break;
         }
     }
     if !finished {
         println!("resumed to the end:");
-        total += run_build(args, &tiles, &resumed, None).0;
+        let run = run_build(args, &tiles, &resumed, None);
+        println!("  ran {:.2} s, CPU {:.2} s", run.wall_s, run.cpu_s);
+        wall_s += run.wall_s;
+        cpu_s += run.cpu_s;
     }
+    println!("load average at the end: {}", load_averages());
     let same = same_store(&uninterrupted, &resumed)?;
     println!(
-        "uninterrupted {whole:.2} s; killed {} times and resumed: {total:.2} s in all, {:.3}x; \
-         the same store node for node: {same}",
+        "uninterrupted {:.2} s wall, {:.2} s CPU; killed {} times and resumed: {wall_s:.2} s \
+         wall in all ({:.3}x), {cpu_s:.2} s CPU in all ({:.3}x); the same store node for node: \
+         {same}",
+        whole.wall_s,
+        whole.cpu_s,
         moments.len(),
-        total / whole
+        wall_s / whole.wall_s,
+        cpu_s / whole.cpu_s
     );
     if !same {
         return Err("the resumed store differs from the uninterrupted one".into());

@@ -1,26 +1,39 @@
-//! The process's CPU time, all threads together, from `/proc/self/stat` (Linux; 0 elsewhere):
-//! on a host shared with other work a build's CPU time against the decoding's says what its
-//! wall time cannot, how much work it adds to the decoding.
+//! CPU time, all threads together, from `/proc/*/stat` (Linux; 0 or None elsewhere): on a host
+//! shared with other work a build's CPU time against the decoding's says what its wall time
+//! cannot, how much work it adds to the decoding.
 
 /// Clock ticks a second of `/proc`'s times (`USER_HZ`, 100 on every Linux architecture).
 const TICKS_PER_S: f64 = 100.0;
 
+/// Index of `utime` (then `stime`) among the fields after the command's name.
+const OWN_TIMES: usize = 11;
+/// Index of `cutime` (then `cstime`): the children that ended and were waited for.
+const CHILDREN_TIMES: usize = 13;
+
 /// Seconds of CPU (user and system) the process has used so far.
 pub(crate) fn process_cpu_s() -> f64 {
-    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
-        return 0.0;
-    };
+    stat_cpu_s("/proc/self/stat", OWN_TIMES).unwrap_or(0.0)
+}
+
+/// Seconds of CPU (user and system) of this process's children that ended and were waited
+/// for, as `getrusage(RUSAGE_CHILDREN)` counts them: a child killed by a signal included, once
+/// reaped.
+pub fn children_cpu_s() -> f64 {
+    stat_cpu_s("/proc/self/stat", CHILDREN_TIMES).unwrap_or(0.0)
+}
+
+/// Seconds of CPU (user and system) process `pid` has used so far, while it runs.
+pub fn pid_cpu_s(pid: u32) -> Option<f64> {
+    stat_cpu_s(&format!("/proc/{pid}/stat"), OWN_TIMES)
+}
+
+/// The sum of the two tick counts at `first` and after it among the fields of the stat file
+/// `path`, in seconds.
+fn stat_cpu_s(path: &str, first: usize) -> Option<f64> {
+    let stat = std::fs::read_to_string(path).ok()?;
     // The command name, in parentheses, may hold spaces: fields are counted after it.
-    let Some((_, after)) = stat.rsplit_once(')') else {
-        return 0.0;
-    };
+    let (_, after) = stat.rsplit_once(')')?;
     let fields: Vec<&str> = after.split_whitespace().collect();
-    // utime and stime are the 14th and 15th fields; the state, after the name, the 3rd.
-    let ticks = |i: usize| {
-        fields
-            .get(i)
-            .and_then(|v| v.parse::<u64>().ok())
-            .unwrap_or(0)
-    };
-    (ticks(11) + ticks(12)) as f64 / TICKS_PER_S
+    let ticks = |i: usize| fields.get(i)?.parse::<u64>().ok();
+    Some((ticks(first)? + ticks(first + 1)?) as f64 / TICKS_PER_S)
 }

@@ -15,7 +15,7 @@
 //! campaign outgrows the memory): the figures are the decoder's and the builder's, not the
 //! disk's.
 
-mod cpu;
+pub mod cpu;
 mod flags;
 pub mod store_points;
 mod tiles;
