@@ -23,7 +23,10 @@ use pointfarm_tests::{
 /// Tiles across and along: 21, the middle one the new day's.
 const ACROSS: usize = 3;
 const ALONG: usize = 7;
-const POINTS: usize = 210_000;
+/// Points of the campaign whose update is timed against its whole build.
+const POINTS: usize = 1_050_000;
+/// Points of the campaign whose update is killed.
+const KILLED_POINTS: usize = 210_000;
 const SIZE: &str = "200x150";
 /// The tile a crew drops from the first day's.
 const DROPPED: usize = 1;
@@ -43,8 +46,8 @@ fn tile_name(index: usize) -> String {
     format!("tile-{index:02}.las")
 }
 
-fn write_campaign(dir: &Path) -> Campaign {
-    let cloud = sample_scene(POINTS, 11);
+fn write_campaign(dir: &Path, points: usize) -> Campaign {
+    let cloud = sample_scene(points, 11);
     let tiles = tile_points(&cloud);
     let all = dir.join("all");
     std::fs::create_dir_all(&all).expect("folder");
@@ -233,7 +236,7 @@ fn fresh_build(dir: &Path, name: &str, tiles: &Path, files: usize, camera: &[Str
 #[test]
 fn a_campaign_that_grows_or_drops_a_tile_through_the_server_updates_its_store() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let campaign = write_campaign(dir.path());
+    let campaign = write_campaign(dir.path(), POINTS);
     let camera = &campaign.camera;
     let data = dir.path().join("daemon");
     let address = free_address();
@@ -322,7 +325,7 @@ fn a_campaign_that_grows_or_drops_a_tile_through_the_server_updates_its_store() 
 #[test]
 fn an_update_killed_part_way_is_made_again_and_a_preview_meanwhile_shows_the_new_tile() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let campaign = write_campaign(dir.path());
+    let campaign = write_campaign(dir.path(), KILLED_POINTS);
     let camera = &campaign.camera;
     let data = dir.path().join("daemon");
     let address = free_address();

@@ -52,6 +52,7 @@ impl Daemon {
             leases_held: leases.len() as u64,
             workers_connected: workers_connected as u64,
             store_rebuilds: self.stores.rebuilds(),
+            store_updates: self.stores.updates(),
             store_records_served: self.stores.records_served(),
         })
     }

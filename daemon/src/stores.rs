@@ -165,6 +165,8 @@ pub struct DatasetStores {
     rebuilt: Mutex<HashSet<String>>,
     /// Stores this run built again after they failed their checks.
     rebuilds: AtomicU64,
+    /// Stores this run made by updating a copy of another content's store.
+    updates: Arc<AtomicU64>,
     /// Node records served to workers, which a published store's workers read elsewhere.
     records_served: AtomicU64,
     /// Called when a build's preview version moves and when it ends, so that frames waiting
@@ -193,6 +195,7 @@ impl DatasetStores {
             ready_gate: None,
             rebuilt: Mutex::default(),
             rebuilds: AtomicU64::new(0),
+            updates: Arc::default(),
             records_served: AtomicU64::new(0),
             on_change: None,
             folders: None,
@@ -204,6 +207,11 @@ impl DatasetStores {
     /// How many stores this run built again after they failed their checks.
     pub fn rebuilds(&self) -> u64 {
         self.rebuilds.load(Ordering::Relaxed)
+    }
+
+    /// How many stores this run made by updating a copy of another content's store.
+    pub fn updates(&self) -> u64 {
+        self.updates.load(Ordering::Relaxed)
     }
 
     /// Builds wait at `gate` until it is opened.
@@ -423,7 +431,7 @@ impl DatasetStores {
         let (gate, ready_gate) = (self.gate.clone(), self.ready_gate.clone());
         let previews = Arc::clone(&self.previews);
         let publisher = self.publisher.clone();
-        let files = dataset.files();
+        let (files, updates) = (dataset.files(), Arc::clone(&self.updates));
         let spawned = std::thread::Builder::new()
             .name("pointfarm-store-build".into())
             .spawn(move || {
@@ -435,6 +443,9 @@ impl DatasetStores {
                 let built = grow_or_build(&input, &folder, budget, &progress, &files, points, &id);
                 if let Ok(ready) = &built {
                     resume::log_resumed(&id, ready);
+                    if ready.grown.is_some() {
+                        updates.fetch_add(1, Ordering::Relaxed);
+                    }
                 }
                 let built = built.map_err(|e| e.to_string());
                 if let Some(gate) = ready_gate {

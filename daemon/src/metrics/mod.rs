@@ -185,6 +185,9 @@ pub struct FarmState {
     /// Level-of-detail stores built again since the start because their bytes failed their
     /// checks (`DatasetStores::rebuilds`).
     pub store_rebuilds: u64,
+    /// Level-of-detail stores made by updating a copy of another dataset's store
+    /// (`DatasetStores::updates`).
+    pub store_updates: u64,
     /// Node records the daemon served to workers (`DatasetStores::records_served`).
     pub store_records_served: u64,
 }
@@ -249,6 +252,7 @@ pub struct DaemonMetrics {
     dataset_cache: CacheCounters,
     upload_bytes: Counter,
     store_rebuilds: Counter,
+    store_updates: Counter,
     store_records_served: Counter,
     webhooks: WebhookCounters,
     jobs_removed: Family<RemovalLabels, Counter>,
@@ -278,6 +282,7 @@ impl DaemonMetrics {
             dataset_cache: CacheCounters::default(),
             upload_bytes: Counter::default(),
             store_rebuilds: Counter::default(),
+            store_updates: Counter::default(),
             store_records_served: Counter::default(),
             webhooks: WebhookCounters::default(),
             jobs_removed: Family::default(),
@@ -345,6 +350,12 @@ impl DaemonMetrics {
              failed their checks (a node record's checksum or layout, a payload file cut \
              short); each store at most once a run",
             metrics.store_rebuilds.clone(),
+        );
+        registry.register(
+            "store_updates",
+            "Level-of-detail stores made by updating a copy of the store of a dataset sharing most \
+             of their files, instead of building them whole",
+            metrics.store_updates.clone(),
         );
         registry.register(
             "store_records_served",
@@ -437,6 +448,7 @@ impl DaemonMetrics {
         // Counted by the stores; a scrape catches up with them, never goes back.
         for (counter, counted) in [
             (&self.store_rebuilds, state.store_rebuilds),
+            (&self.store_updates, state.store_updates),
             (&self.store_records_served, state.store_records_served),
         ] {
             let shown = counter.get();

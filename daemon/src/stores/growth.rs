@@ -420,7 +420,7 @@ mod tests {
         let wanted: Vec<DatasetFile> = ["a", "b", "c", "e"].iter().map(|h| file(h)).collect();
         let (path, list) = nearest(&dir.path().join("new"), &wanted).expect("a store");
         // three: one added; four: one added and one removed.
-        assert_eq!(path.file_name().unwrap(), "three");
+        assert_eq!(path.file_name().expect("a name"), "three");
         assert_eq!(list.len(), 3);
         let wanted: Vec<DatasetFile> = ["x", "q", "r", "s", "t"].iter().map(|h| file(h)).collect();
         assert!(
