@@ -4,9 +4,11 @@
 //! worker reads its nodes from the bucket and none through the daemon, the frames are those
 //! of a daemon without `--store-url`, a restart publishes nothing again, no credential reaches
 //! a job, a lease or a log, a damaged published object fails the frame clearly while the
-//! job still ends, through the daemon, and a deleted dataset's published store is deleted,
-//! even while it is being published. Each test skips, saying so, where
-//! `POINTFARM_TEST_S3S_FS` names no `s3s-fs` binary.
+//! job still ends, through the daemon, a deleted dataset's published store is deleted,
+//! even while it is being published, and a publish that gives up after the operator's tries
+//! (`--store-publish-attempts`) says so with its last error and when, while frames render
+//! through the daemon, until a later job publishes it once object storage is back. Each test
+//! skips, saying so, where `POINTFARM_TEST_S3S_FS` names no `s3s-fs` binary.
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
@@ -69,9 +71,14 @@ impl Farm {
     /// A daemon publishing its stores under [`STORE_URL`], with no embedded worker, its
     /// metrics at `metrics`.
     fn publishing_daemon(&self, address: &str, metrics: &str) -> ServeProcess {
+        self.publishing_daemon_with(address, metrics, &[])
+    }
+
+    /// [`Self::publishing_daemon`] with more `serve` arguments.
+    fn publishing_daemon_with(&self, address: &str, metrics: &str, more: &[&str]) -> ServeProcess {
         let data = self.dir.path().join("data");
         let args = ["--no-embedded-worker", "--store-url", STORE_URL];
-        let args = [&args[..], &["--metrics-listen", metrics]].concat();
+        let args = [&args[..], &["--metrics-listen", metrics], more].concat();
         ServeProcess::start_command(
             self.pointfarm(),
             address,
@@ -172,10 +179,8 @@ fn new_job(daemon: &ServeProcess, before: &BTreeSet<String>) -> (String, pb::Job
 /// store's publication.
 fn store_publication(daemon: &ServeProcess, file: &Path) -> (String, serde_json::Value) {
     let server = ["--server", daemon.address.as_str(), "--json"];
-    let registered = pointfarm_ok(&[&["dataset", "add", arg(file)], &server[..]].concat());
-    let dataset: serde_json::Value = serde_json::from_slice(&registered.stdout).expect("json");
-    let id = dataset["id"].as_str().expect("an id");
-    let shown = pointfarm_ok(&[&["dataset", "get", id], &server[..]].concat());
+    let id = dataset_id(daemon, file);
+    let shown = pointfarm_ok(&[&["dataset", "get", &id], &server[..]].concat());
     let text = String::from_utf8_lossy(&shown.stdout).into_owned();
     let dataset: serde_json::Value = serde_json::from_str(&text).expect("json");
     (text, dataset["storePublication"].clone())
@@ -417,4 +422,102 @@ fn a_store_published_while_object_storage_is_down_is_published_once_it_is_back()
     assert_same_frames(&first, &second, "from the store published late");
     assert_eq!(scrape(&metrics)[RECORDS_SERVED], served_before);
     assert_no_credential(&daemon.log(), "the daemon's log");
+}
+
+#[test]
+fn a_publish_that_gives_up_says_why_and_when_and_a_later_job_publishes_it() {
+    let Some(mut farm) = Farm::start() else {
+        return;
+    };
+    let (address, metrics) = (free_address(), free_address());
+    farm.bucket.server.stop();
+    let tries = ["--store-publish-attempts", "2"];
+    let daemon = farm.publishing_daemon_with(&address, &metrics, &tries);
+    let worker = farm.worker(&daemon, "first");
+    let started_ms = now_unix_ms();
+    // Object storage is down for good: the two tries fail, and the frames render through the
+    // daemon all the same.
+    let first = farm.render(&daemon, "first");
+    assert!(scrape(&metrics)[RECORDS_SERVED] > 0.0);
+    wait_for_log(&daemon, GAVE_UP, 1);
+    let (text, publication) = wait_for_publication(&daemon, &farm.scene, "FAILED");
+    // Two tries each time it is offered: one retry logged per giving up.
+    let log = daemon.log();
+    assert_eq!(
+        log.matches("failed; trying again").count(),
+        log.matches(GAVE_UP).count(),
+        "{log}"
+    );
+    let reason = publication["reason"].as_str().expect("the last error");
+    assert!(reason.contains(STORE_URL), "{text}");
+    let failed_ms: i64 = match &publication["failedUnixMs"] {
+        serde_json::Value::String(ms) => ms.parse().expect("milliseconds"),
+        other => panic!("no time of failure: {other} in {text}"),
+    };
+    assert!(
+        (started_ms..=now_unix_ms()).contains(&failed_ms),
+        "{failed_ms} {text}"
+    );
+    let id = dataset_id(&daemon, &farm.scene);
+    let shown = pointfarm_ok(&["dataset", "get", &id, "--server", &address]);
+    let shown = String::from_utf8_lossy(&shown.stdout).into_owned();
+    assert!(
+        shown.contains(&format!("store: publishing under {STORE_URL}/"))
+            && shown.contains(&format!("failed (unix ms {failed_ms}): ")),
+        "{shown}"
+    );
+    assert_no_credential(&shown, "the dataset");
+    // Given up, nothing is tried while no frame of the store is leased.
+    let gave_up = daemon.log().matches(GAVE_UP).count();
+    std::thread::sleep(Duration::from_secs(3));
+    assert_eq!(daemon.log().matches(GAVE_UP).count(), gave_up);
+    assert_eq!(store_publication(&daemon, &farm.scene).1["state"], "FAILED");
+
+    // Back, the next job's leases offer the store again and it is published; its frames are
+    // the same.
+    farm.bucket.restart();
+    let second = farm.render(&daemon, "second");
+    assert_same_frames(&first, &second, "while the store is published again");
+    let (text, _) = wait_for_publication(&daemon, &farm.scene, "PUBLISHED");
+    assert_eq!(farm.bucket.objects().len(), 2, "{text}\n{}", daemon.log());
+    drop(worker);
+    assert_no_credential(&daemon.log(), "the daemon's log");
+}
+
+/// What the daemon logs when every try at a publish failed.
+const GAVE_UP: &str = "publishing a store failed; tried again when a frame of it is next leased";
+
+/// Waits until the store of the dataset registered from `file` is in `state`; as
+/// [`store_publication`] says it.
+fn wait_for_publication(
+    daemon: &ServeProcess,
+    file: &Path,
+    state: &str,
+) -> (String, serde_json::Value) {
+    let started = Instant::now();
+    loop {
+        let (text, publication) = store_publication(daemon, file);
+        if publication["state"] == state {
+            return (text, publication);
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(120),
+            "not {state}: {text}\n{}",
+            daemon.log()
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}
+
+fn now_unix_ms() -> i64 {
+    let since = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH);
+    since.expect("after 1970").as_millis() as i64
+}
+
+/// The id of the dataset registered from `file`.
+fn dataset_id(daemon: &ServeProcess, file: &Path) -> String {
+    let server = ["--server", daemon.address.as_str(), "--json"];
+    let registered = pointfarm_ok(&[&["dataset", "add", arg(file)], &server[..]].concat());
+    let dataset: serde_json::Value = serde_json::from_slice(&registered.stdout).expect("json");
+    dataset["id"].as_str().expect("an id").to_owned()
 }

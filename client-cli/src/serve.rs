@@ -21,7 +21,7 @@ use pointfarm_daemon::service::{
     DEFAULT_MAX_IMAGE_SIDE, DEFAULT_MAX_UPLOAD_BYTES, DEFAULT_WORKER_CACHE_BYTES,
     DEFAULT_WORKER_FAILURES_BEFORE_BLOCKLIST,
 };
-use pointfarm_daemon::stores::store_url;
+use pointfarm_daemon::stores::{store_url, DEFAULT_PUBLISH_ATTEMPTS, MAX_PUBLISH_ATTEMPTS};
 use pointfarm_daemon::supervisor::WorkerCommand;
 use pointfarm_proto::endpoint::connections::ConnectionLimits;
 use pointfarm_proto::endpoint::{self, certificate};
@@ -72,6 +72,12 @@ pub struct ServeArgs {
     /// store through the daemon.
     #[arg(long, value_name = "URL", env = "POINTFARM_STORE_URL")]
     store_url: Option<String>,
+    /// Tries at publishing a store to --store-url, waiting 1 s after the first failure and
+    /// twice as long after each (up to a minute): 8 wait about two minutes in all. After the
+    /// last, `dataset get` says the publish failed, with the last error and when, workers read
+    /// the store through the daemon, and it is tried again when a frame of it is next leased.
+    #[arg(long, value_name = "N", env = "POINTFARM_STORE_PUBLISH_ATTEMPTS", default_value_t = DEFAULT_PUBLISH_ATTEMPTS, value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_PUBLISH_ATTEMPTS)))]
+    store_publish_attempts: u32,
     /// Require this bearer token of clients (datasets and jobs). Without it those services
     /// are open, which is refused beyond loopback unless --insecure.
     #[arg(long, env = "POINTFARM_TOKEN", hide_env_values = true)]
@@ -293,6 +299,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
             .map(store_url)
             .transpose()
             .context("--store-url")?;
+        config.store_publish_attempts = args.store_publish_attempts;
         config.max_image_side = args.max_image_side;
         config.max_frames = args.max_frames;
         config.worker_cache_bytes = args.worker_cache_size;

@@ -2,14 +2,19 @@
 //! facts and, when asked, a summary of its points, read with the render crate's
 //! [`FileInfo`], and a COPC file's octree. A dataset of tiles by URL is described tile by tile
 //! from each one's header and records, read by range at the version its registration recorded
-//! (never its points, which would download it whole). A file that cannot be read is reported
-//! with its error and the others still are. More `Daemon` methods.
+//! (never its points, which would download it whole), as many tiles at once as the remote
+//! client sends requests, in the dataset's order. A COPC object by URL is described from its
+//! header, records and hierarchy read by range at its recorded version, and its points, when
+//! asked, streamed by range in bounded blocks. A file that cannot be read is reported with its
+//! error and the others still are. More `Daemon` methods.
 
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Mutex;
 
 use pointfarm_render::copc::{self, CopcError, CopcSummary};
 use pointfarm_render::ingest::{FileInfo, IngestError, PointSummary};
-use pointfarm_render::remote::{ListedObject, RemoteClient};
+use pointfarm_render::remote::{ListedObject, RemoteClient, RemoteObject};
 use pointfarm_render::source::{describe_tile, SourceError};
 
 use crate::error::DaemonError;
@@ -53,30 +58,80 @@ impl FileReport {
     /// Reads the header and records of `tile` by range, held to its listed version: a tile
     /// replaced since is reported changed, naming it.
     pub fn read_tile(client: &RemoteClient, tile: &ListedObject) -> Self {
+        let path: PathBuf = tile.url.to_string().into();
         let outcome = client
             .open_listed(&tile.url, tile.version.as_deref())
             .map_err(IngestError::Remote)
-            .and_then(|object| describe_tile(object).map_err(|e| ingest_error(tile, e)))
+            .and_then(|object| describe_tile(object).map_err(|e| ingest_error(&path, e)))
             .map(|info| (info, None));
         Self {
-            path: tile.url.to_string().into(),
+            path,
             outcome,
             copc: None,
         }
     }
+
+    /// Reads a COPC object, opened at the version its dataset was registered at, as
+    /// [`Self::read`] reads a file: its header, records and hierarchy by range and, with
+    /// `read_points`, every point streamed in bounded blocks, each read pinned to that version.
+    pub fn read_copc_object(object: RemoteObject, read_points: bool) -> Self {
+        let path: PathBuf = object.url().to_string().into();
+        let outcome = describe_tile(object.clone())
+            .map_err(|e| ingest_error(&path, e))
+            .and_then(|info| {
+                if !read_points {
+                    return Ok((info, None));
+                }
+                let summary = info.read_points(|_| {})?;
+                Ok((info, Some(summary)))
+            });
+        let copc = outcome.is_ok().then(|| copc::describe_object(object));
+        Self {
+            path,
+            outcome,
+            copc,
+        }
+    }
 }
 
-/// A tile's error as a file's: each names the tile already.
-fn ingest_error(tile: &ListedObject, error: SourceError) -> IngestError {
+/// An object's error as a file's: each names the object already.
+fn ingest_error(path: &std::path::Path, error: SourceError) -> IngestError {
     match error {
         SourceError::Ingest(error) | SourceError::Copc(CopcError::Ingest(error)) => error,
         SourceError::Copc(CopcError::Remote(error)) => IngestError::Remote(error),
         SourceError::Copc(CopcError::Io { path, error }) => IngestError::Io { path, error },
         other => IngestError::Io {
-            path: tile.url.to_string().into(),
+            path: path.to_owned(),
             error: std::io::Error::other(other.to_string()),
         },
     }
+}
+
+/// `read` of each of `items` on up to `threads` threads at once, in `items`' order: reads of
+/// objects each wait on round trips, which the connections overlap.
+pub(crate) fn read_in_parallel<T: Sync, R: Send>(
+    items: &[T],
+    threads: usize,
+    read: impl Fn(&T) -> R + Sync,
+) -> Vec<R> {
+    let next = AtomicUsize::new(0);
+    let slots: Vec<Mutex<Option<R>>> = items.iter().map(|_| Mutex::new(None)).collect();
+    std::thread::scope(|scope| {
+        for _ in 0..threads.clamp(1, items.len().max(1)) {
+            scope.spawn(|| loop {
+                let index = next.fetch_add(1, Ordering::Relaxed);
+                let Some(item) = items.get(index) else {
+                    break;
+                };
+                let read = read(item);
+                *slots[index].lock().unwrap_or_else(|e| e.into_inner()) = Some(read);
+            });
+        }
+    });
+    slots
+        .into_iter()
+        .filter_map(|slot| slot.into_inner().unwrap_or_else(|e| e.into_inner()))
+        .collect()
 }
 
 impl Daemon {
@@ -91,7 +146,10 @@ impl Daemon {
         if !dataset.tiles.is_empty() {
             return self.describe_tiles(&dataset);
         }
-        dataset.check_local("describing")?;
+        if dataset.remote.is_some() {
+            let object = self.open_registered_copc(&dataset)?;
+            return Ok(vec![FileReport::read_copc_object(object, read_points)]);
+        }
         Ok(dataset
             .files()
             .into_iter()
@@ -111,12 +169,41 @@ impl Daemon {
     }
 
     /// The reports of every tile of `dataset`, a dataset of tiles by URL, in its order: each
-    /// one's header and records read by range at its recorded version, never its points.
-    fn describe_tiles(&self, dataset: &Dataset) -> Result<Vec<FileReport>, DaemonError> {
+    /// one's header and records read by range at its recorded version, never its points, as
+    /// many tiles at once as the client sends requests in parallel.
+    pub(crate) fn describe_tiles(&self, dataset: &Dataset) -> Result<Vec<FileReport>, DaemonError> {
         let (client, tiles) = self.stores.tiles_of(dataset)?;
-        Ok(tiles
-            .iter()
-            .map(|tile| FileReport::read_tile(&client, tile))
-            .collect())
+        let threads = client.settings().parallel_requests;
+        Ok(read_in_parallel(&tiles, threads, |tile| {
+            FileReport::read_tile(&client, tile)
+        }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::time::Duration;
+
+    use super::read_in_parallel;
+
+    #[test]
+    fn reads_run_at_most_so_many_at_once_and_answer_in_order() {
+        let (running, most) = (AtomicUsize::new(0), AtomicUsize::new(0));
+        let items: Vec<u32> = (0..40).collect();
+        let read = |item: &u32| {
+            let now = running.fetch_add(1, Ordering::SeqCst) + 1;
+            most.fetch_max(now, Ordering::SeqCst);
+            std::thread::sleep(Duration::from_millis(5));
+            running.fetch_sub(1, Ordering::SeqCst);
+            item * 2
+        };
+        let read = read_in_parallel(&items, 8, read);
+        assert_eq!(read, items.iter().map(|i| i * 2).collect::<Vec<_>>());
+        let most = most.load(Ordering::SeqCst);
+        assert!((2..=8).contains(&most), "{most} at once");
+        // One thread at least, and none for nothing.
+        assert_eq!(read_in_parallel(&items[..3], 0, |i| *i), vec![0, 1, 2]);
+        assert!(read_in_parallel(&[] as &[u32], 8, |i| *i).is_empty());
     }
 }

@@ -3,17 +3,24 @@
 //! streaming them), into a temporary file that the service streams to the client and then
 //! removes. Its name ends in `.part`, as an unfinished upload's does, so a daemon stopped
 //! mid-export removes it at its next start.
+//!
+//! A COPC object by URL already is a COPC file, and the daemon keeps no store of it: its
+//! export is the object itself, its hierarchy checked first, then copied by ranged reads of
+//! bounded blocks, every one pinned to the version its registration recorded, so an object
+//! replaced since fails the export naming it and nothing of it is sent.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use pointfarm_render::copc::{self, CopcSummary};
 use pointfarm_render::ingest::{Crs, FileInfo};
 use pointfarm_render::lod::copc_export::{
     export_copc, CopcExportError, CopcExportReport, ExportSettings, ExportTransform,
 };
 use pointfarm_render::lod::RootCube;
+use pointfarm_render::remote::{ObjectReader, RemoteError, RemoteObject};
 
-use crate::describe::FileReport;
 use crate::error::DaemonError;
 use crate::model::Dataset;
 use crate::service::{unique_suffix, Daemon};
@@ -35,6 +42,9 @@ impl Daemon {
     /// dataset's store is built.
     pub fn export_dataset(&self, id: &str) -> Result<ExportedFile, DaemonError> {
         let dataset = self.dataset(id)?;
+        if dataset.remote.is_some() {
+            return self.export_copc_object(&dataset);
+        }
         // Tiles by URL are held to their recorded versions by the build and the reads below.
         if dataset.tiles.is_empty() {
             self.check_dataset_files(&dataset)?;
@@ -53,10 +63,7 @@ impl Daemon {
         };
         let hierarchy = store.hierarchy();
         let settings = self.export_settings(&dataset, &hierarchy.cube)?;
-        let path = self
-            .config
-            .uploads_dir()
-            .join(format!("export-{}.copc.part", unique_suffix()));
+        let path = self.export_path();
         let report = export_copc(
             hierarchy,
             &**store.node_records(),
@@ -77,6 +84,41 @@ impl Daemon {
 }
 
 impl Daemon {
+    /// A temporary file for an export, in the uploads folder (removed at start-up if left).
+    fn export_path(&self) -> PathBuf {
+        self.config
+            .uploads_dir()
+            .join(format!("export-{}.copc.part", unique_suffix()))
+    }
+
+    /// Exports `dataset`, a COPC object by URL, as the object itself at its recorded version.
+    fn export_copc_object(&self, dataset: &Dataset) -> Result<ExportedFile, DaemonError> {
+        let started = Instant::now();
+        let object = self.open_registered_copc(dataset)?;
+        let failed = |error: String| {
+            DaemonError::FailedPrecondition(format!("dataset {}: {error}", dataset.id))
+        };
+        // Its header and hierarchy are checked as a render of it checks them.
+        let summary = copc::describe_object(object.clone()).map_err(|e| failed(e.to_string()))?;
+        let path = self.export_path();
+        let copied = copy_object(object, &path).inspect_err(|_| {
+            let _ = std::fs::remove_file(&path);
+        });
+        let bytes = copied.map_err(|error| match error {
+            CopyError::Remote(error) => failed(error.to_string()),
+            CopyError::Write(error) => DaemonError::from(error),
+        })?;
+        let report = pass_through_report(&summary, bytes);
+        let seconds = started.elapsed().as_secs_f64();
+        tracing::info!(dataset = %dataset.id, points = report.points, bytes,
+            seconds = format!("{seconds:.1}"), "COPC object exported as it is");
+        Ok(ExportedFile {
+            path,
+            report,
+            seconds,
+        })
+    }
+
     /// The settings `dataset`'s store is exported with: from its files' headers, or its
     /// tiles' read by range at their recorded versions.
     fn export_settings(
@@ -88,9 +130,8 @@ impl Daemon {
             let files: Vec<PathBuf> = dataset.files().into_iter().map(|f| f.path).collect();
             return ExportSettings::of_files(&files, cube).map_err(export_error);
         }
-        let (client, tiles) = self.stores.tiles_of(dataset)?;
-        let headers = (tiles.iter())
-            .map(|tile| match FileReport::read_tile(&client, tile).outcome {
+        let headers = (self.describe_tiles(dataset)?.into_iter())
+            .map(|report| match report.outcome {
                 Ok((info, _)) => Ok(info),
                 Err(error) => Err(DaemonError::FailedPrecondition(format!(
                     "dataset {}: {error}",
@@ -124,6 +165,74 @@ fn tiles_export_settings(headers: &[FileInfo], cube: &RootCube) -> ExportSetting
         wkt: common
             .map(|wkt| [wkt.as_bytes(), b"\0"].concat())
             .filter(|record| record.len() <= usize::from(u16::MAX)),
+    }
+}
+
+/// Why a copy of an object stopped.
+enum CopyError {
+    Remote(RemoteError),
+    Write(std::io::Error),
+}
+
+/// Copies `object` to a new file at `path` in ranged blocks of bounded size, each pinned to
+/// the object's version; the bytes copied, which are the object's size.
+fn copy_object(object: RemoteObject, path: &Path) -> Result<u64, CopyError> {
+    use std::io::{Read, Write};
+    let (size, url) = (object.size(), object.url().to_string());
+    let mut reader = ObjectReader::new(Arc::new(object));
+    let mut file = std::io::BufWriter::new(std::fs::File::create(path).map_err(CopyError::Write)?);
+    let mut block = vec![0u8; 1 << 20];
+    let mut copied = 0u64;
+    loop {
+        let read = reader.read(&mut block).map_err(remote_error)?;
+        if read == 0 {
+            break;
+        }
+        file.write_all(&block[..read]).map_err(CopyError::Write)?;
+        copied += read as u64;
+    }
+    file.flush().map_err(CopyError::Write)?;
+    if copied != size {
+        return Err(CopyError::Remote(RemoteError::ShortRead {
+            url,
+            range: 0..size,
+            got: copied,
+        }));
+    }
+    Ok(copied)
+}
+
+/// The remote layer's error an [`ObjectReader`] carries through `io::Error`.
+fn remote_error(error: std::io::Error) -> CopyError {
+    if !error
+        .get_ref()
+        .is_some_and(|inner| inner.is::<RemoteError>())
+    {
+        return CopyError::Write(error);
+    }
+    match error
+        .into_inner()
+        .map(|inner| inner.downcast::<RemoteError>())
+    {
+        Some(Ok(remote)) => CopyError::Remote(*remote),
+        _ => CopyError::Write(std::io::Error::other("reading the object")),
+    }
+}
+
+/// What an export of a COPC object as it is holds, from its header and hierarchy.
+fn pass_through_report(summary: &CopcSummary, bytes: u64) -> CopcExportReport {
+    let header = &summary.header;
+    CopcExportReport {
+        points: header.points,
+        nodes: summary.nodes,
+        bytes,
+        transform: ExportTransform {
+            scale: header.scale,
+            offset: header.offset,
+        },
+        min: header.bounds.min,
+        max: header.bounds.max,
+        point_format: header.point_format,
     }
 }
 

@@ -111,8 +111,14 @@ pub struct DatasetFile {
 }
 
 impl Dataset {
-    /// Refuses `work` that reads a dataset's files on the server (a store build, a
-    /// description, an export, a job) for a dataset by URL, which has none, saying why.
+    /// Whether the dataset is read by URL (one COPC object, or tiles) rather than from files
+    /// on the server.
+    pub fn is_by_url(&self) -> bool {
+        self.remote.is_some() || !self.tiles.is_empty()
+    }
+
+    /// Refuses `work` that reads a dataset's files on the server (a store build from files, a
+    /// composition) for a dataset by URL, which has none, saying why.
     pub fn check_local(&self, work: &str) -> Result<(), DaemonError> {
         let url = match (&self.remote, self.tiles.first()) {
             (Some(remote), _) => &remote.url,

@@ -1,7 +1,8 @@
 //! Datasets by URL, registered under the operator's allow-list and never read whole: one COPC
 //! object (a HEAD and its header read by range), or LAS/LAZ tiles, named one by one or as an
 //! `s3://` prefix whose `.las`/`.laz` objects are listed as a folder's files are, each checked
-//! by range as `ingest` checks a file and recorded with its size and version. More `Daemon`
+//! by range as `ingest` checks a file and recorded with its size and version. A COPC object is
+//! opened again only at that version ([`Daemon::open_registered_copc`]). More `Daemon`
 //! methods.
 //!
 //! A `file://` URL is not one of them: it is a path on the server, resolved under the data
@@ -203,6 +204,44 @@ impl Daemon {
             remote: None,
             tiles,
         })
+    }
+
+    /// The COPC object of `dataset`, a COPC dataset by URL, opened with a HEAD and held to the
+    /// version and size its registration recorded: every read of it is pinned to that version,
+    /// and an object replaced since is refused, naming it, before anything of it is read.
+    pub(crate) fn open_registered_copc(
+        &self,
+        dataset: &Dataset,
+    ) -> Result<RemoteObject, DaemonError> {
+        let source = dataset.remote.as_ref().ok_or_else(|| {
+            DaemonError::Internal(format!(
+                "dataset {} is not a COPC object by URL",
+                dataset.id
+            ))
+        })?;
+        let client = self.remote.as_ref().ok_or_else(|| {
+            DaemonError::FailedPrecondition(format!(
+                "dataset {} is read by URL ({}), which this daemon reads no more (no \
+                 --allow-url-prefix)",
+                dataset.id, source.url
+            ))
+        })?;
+        let url = ObjectUrl::parse(&source.url)?;
+        self.check_allowed(&url)?;
+        let object = client.open(&url)?;
+        let now = (object.version(), object.size());
+        if now != (Some(source.version.as_str()), dataset.size_bytes) {
+            return Err(DaemonError::FailedPrecondition(format!(
+                "dataset {}: {url} was replaced after it was registered (version {}, {} bytes; \
+                 now version {}, {} bytes): register it again to read it as it is now",
+                dataset.id,
+                source.version,
+                dataset.size_bytes,
+                now.0.unwrap_or("none"),
+                now.1
+            )));
+        }
+        Ok(object)
     }
 
     /// Stores a dataset by URL, or answers the one registered before with the same key.

@@ -101,6 +101,9 @@ pub struct DaemonConfig {
     /// Where ready level-of-detail stores are published for workers to read (`--store-url`,
     /// checked by `stores::store_url`); none keeps every store's nodes served by the daemon.
     pub store_url: Option<ObjectUrl>,
+    /// Tries at publishing one store before it waits for a frame of it to be leased again
+    /// (`--store-publish-attempts`, 1 to `stores::MAX_PUBLISH_ATTEMPTS`).
+    pub store_publish_attempts: u32,
 }
 
 impl DaemonConfig {
@@ -131,6 +134,7 @@ impl DaemonConfig {
             frame_quota_bytes: None,
             retention_sweep_period: DEFAULT_RETENTION_SWEEP_PERIOD,
             store_url: None,
+            store_publish_attempts: crate::stores::DEFAULT_PUBLISH_ATTEMPTS,
             data_dir,
         }
     }
@@ -258,7 +262,12 @@ impl Daemon {
             .clone()
             .map(|url| {
                 let records = config.data_dir.join("published-stores");
-                StorePublisher::start(url, config.remote_settings.clone(), &records)
+                StorePublisher::start(
+                    url,
+                    config.remote_settings.clone(),
+                    config.store_publish_attempts,
+                    &records,
+                )
             })
             .transpose()?;
         let stores =

@@ -682,4 +682,6 @@ mod tests;
 
 pub use preview::PreviewBytes;
 use preview::PreviewState;
-pub use publish::{store_url, StorePublication, StorePublisher};
+pub use publish::{
+    store_url, StorePublication, StorePublisher, DEFAULT_PUBLISH_ATTEMPTS, MAX_PUBLISH_ATTEMPTS,
+};

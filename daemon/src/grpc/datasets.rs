@@ -139,14 +139,14 @@ impl DatasetService for Api {
         let (reports, by_url) = self
             .run_scaled(bytes, move |daemon| {
                 let reports = daemon.describe_dataset(&id, r.read_points)?;
-                Ok((reports, !daemon.dataset(&id)?.tiles.is_empty()))
+                Ok((reports, daemon.dataset(&id)?.is_by_url()))
             })
             .await?;
         let files = reports
             .iter()
             .map(|report| {
                 let mut description = file_description(report);
-                // A tile by URL is shown by its URL, which the client registered.
+                // An object by URL is shown by its URL, which the client registered.
                 if by_url {
                     return description;
                 }

@@ -8,26 +8,32 @@
 //! objects' versions (ETags) are then recorded in a sled database of their own
 //! (`DATA/published-stores`), which leases read to name the store to workers; a restarted
 //! daemon finds the record and publishes nothing again. A failed upload is logged (the error
-//! names the URL, never a credential) and tried again with backoff; meanwhile, and after the
-//! last try, workers read the store through the daemon, and the store is offered again the
-//! next time it opens. A store whose last dataset is deleted is taken down again on the
+//! names the URL, never a credential) and tried again with backoff, as many tries as the
+//! operator allows (`serve --store-publish-attempts`); meanwhile, and after the last try,
+//! workers read the store through the daemon. A store whose tries all failed is kept aside and
+//! offered again when a frame of it is next leased, so a farm whose object storage comes back
+//! publishes it on its next job without a restart. A store whose last dataset is deleted is taken down again on the
 //! same thread (`unpublish`). Where each store stands, the last failure's error included, is
 //! read from these records (`state`).
 
-use std::collections::{HashSet, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::Duration;
 
 use pointfarm_render::lod::published::{PublishedHierarchy, HIERARCHY_OBJECT, PAYLOAD_OBJECT};
-use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteError, RemoteSettings, UrlKind};
+use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteError, RemoteSettings};
 
 use super::{DatasetStores, ReadyStore};
 use crate::error::DaemonError;
 use crate::model::PublishedStore;
 
-/// Tries at publishing a store before it waits for its next opening.
-const ATTEMPTS: u32 = 8;
+/// Tries at publishing a store (or taking one down) before it is given up until a frame of it
+/// is next leased (`serve --store-publish-attempts`): 8 tries wait about two minutes in all.
+pub const DEFAULT_PUBLISH_ATTEMPTS: u32 = 8;
+/// The most tries an operator may set: with the backoff capped at a minute, about an hour and
+/// a half of waiting.
+pub const MAX_PUBLISH_ATTEMPTS: u32 = 100;
 /// The wait after the first failed try, doubled after each, up to [`MAX_BACKOFF`].
 const FIRST_BACKOFF: Duration = Duration::from_secs(1);
 const MAX_BACKOFF: Duration = Duration::from_secs(60);
@@ -43,13 +49,13 @@ pub fn store_url(text: &str) -> Result<ObjectUrl, DaemonError> {
     };
     let url =
         ObjectUrl::parse(&prefix).map_err(|e| DaemonError::invalid("store URL", e.to_string()))?;
-    match url.kind() {
-        UrlKind::S3 { .. } => Ok(url),
-        _ => Err(DaemonError::invalid(
-            "store URL",
-            format!("{url}: stores are published to object storage (s3://bucket/prefix) only"),
-        )),
+    if url.is_object_storage() {
+        return Ok(url);
     }
+    Err(DaemonError::invalid(
+        "store URL",
+        format!("{url}: stores are published to object storage (s3://, gs:// or az://bucket/prefix) only"),
+    ))
 }
 
 /// Publishes ready stores under one store URL and remembers which are published.
@@ -60,6 +66,8 @@ pub struct StorePublisher {
 struct Shared {
     store_url: ObjectUrl,
     client: RemoteClient,
+    /// Tries at one publish or takedown, 1 to [`MAX_PUBLISH_ATTEMPTS`].
+    attempts: u32,
     /// Published stores by content: their [`PublishedStore`] as JSON.
     records: sled::Db,
     queue: Mutex<Queue>,
@@ -77,6 +85,8 @@ struct Queue {
     /// Contents deleted while their store was building: the offer that build ends with is
     /// dropped, once.
     unwanted: HashSet<String>,
+    /// Stores whose every try failed, offered again when a frame of them is next leased.
+    given_up: HashMap<String, Arc<ReadyStore>>,
     closed: bool,
 }
 
@@ -88,10 +98,12 @@ enum Work {
 
 impl StorePublisher {
     /// Publishes under `store_url` (an `s3://` prefix), with `settings`' timeouts and part
-    /// sizes, recording what it published in the database at `records`.
+    /// sizes, `attempts` tries at each store (at least one), recording what it published in
+    /// the database at `records`.
     pub fn start(
         store_url: ObjectUrl,
         settings: RemoteSettings,
+        attempts: u32,
         records: &Path,
     ) -> Result<Self, DaemonError> {
         let config = sled::Config::new()
@@ -102,6 +114,7 @@ impl StorePublisher {
             .map_err(|e| DaemonError::Internal(format!("opening {}: {e}", records.display())))?;
         let shared = Arc::new(Shared {
             client: RemoteClient::new(settings)?,
+            attempts: attempts.clamp(1, MAX_PUBLISH_ATTEMPTS),
             store_url,
             records,
             queue: Mutex::default(),
@@ -117,9 +130,21 @@ impl StorePublisher {
     }
 
     /// Where the store of content `sha256` lies and its objects' versions, once published
-    /// under this daemon's store URL.
+    /// under this daemon's store URL. Asked as a frame of it is leased: a store whose tries
+    /// all failed is then offered again.
     pub fn published(&self, sha256: &str) -> Option<PublishedStore> {
-        self.shared.published(sha256)
+        let published = self.shared.published(sha256);
+        if published.is_none() {
+            let given_up = self.shared.lock().given_up.remove(sha256);
+            if let Some(store) = given_up {
+                tracing::info!(
+                    sha256,
+                    "publishing a store again that every try failed to publish"
+                );
+                self.offer(sha256, &store);
+            }
+        }
+        published
     }
 
     /// Publishes `store`, of content `sha256`, unless it is published or on its way.
@@ -217,7 +242,7 @@ impl Shared {
     }
 
     /// Publishes `store`; workers read it through the daemon until it is published.
-    fn publish_with_retries(&self, sha256: &str, store: &ReadyStore) {
+    fn publish_with_retries(&self, sha256: &str, store: &Arc<ReadyStore>) {
         let published = self.retried("publishing a store", sha256, true, || {
             self.publish(sha256, store)
         });
@@ -230,15 +255,19 @@ impl Shared {
                 }
             }
             Tried::Failed(error) => {
-                tracing::warn!(%error, attempts = ATTEMPTS,
-                    "publishing a store failed; tried again when it next opens");
+                tracing::warn!(%error, attempts = self.attempts,
+                    "publishing a store failed; tried again when a frame of it is next leased");
                 self.record_failure(sha256, &error);
+                let mut queue = self.lock();
+                if !queue.closed && !queue.unpublishing.iter().any(|s| s == sha256) {
+                    queue.given_up.insert(sha256.to_owned(), Arc::clone(store));
+                }
             }
             Tried::Stopped => {}
         }
     }
 
-    /// Runs `step` until it succeeds, [`ATTEMPTS`] times at most with backoff between tries,
+    /// Runs `step` until it succeeds, `attempts` times at most with backoff between tries,
     /// logging each failure as `what`'s. It stops early when the publisher is dropped and,
     /// where `stops_when_unpublished`, when content `sha256` is being unpublished.
     pub(super) fn retried<T>(
@@ -253,13 +282,13 @@ impl Shared {
                 || (stops_when_unpublished && queue.unpublishing.iter().any(|s| s == sha256))
         };
         let mut backoff = FIRST_BACKOFF;
-        for attempt in 1..=ATTEMPTS {
+        for attempt in 1..=self.attempts {
             if stopped(&self.lock()) {
                 return Tried::Stopped;
             }
             match step() {
                 Ok(done) => return Tried::Done(done),
-                Err(error) if attempt == ATTEMPTS => return Tried::Failed(error),
+                Err(error) if attempt == self.attempts => return Tried::Failed(error),
                 Err(error) => tracing::warn!(%error, attempt, retry_in_s = backoff.as_secs(),
                     "{what} failed; trying again"),
             }

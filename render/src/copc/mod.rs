@@ -293,6 +293,13 @@ pub fn describe_url(client: &RemoteClient, url: &ObjectUrl) -> Result<CopcSummar
     summarize(&open_object(client, url)?)
 }
 
+/// Reads the header and every hierarchy page of an object already opened (its version
+/// checked by the caller, as a daemon checks the version its dataset was registered at), as
+/// [`describe_url`] does: every read is pinned to that version.
+pub fn describe_object(object: RemoteObject) -> Result<CopcSummary, CopcError> {
+    summarize(&CopcBytes::remote(object))
+}
+
 fn summarize(bytes: &CopcBytes) -> Result<CopcSummary, CopcError> {
     let header = header::read_header(bytes)?;
     let pages = hierarchy::read_all_pages(bytes, &header)?;

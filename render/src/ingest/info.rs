@@ -80,10 +80,18 @@ impl FileInfo {
 
     /// Reads the header and records of a file read by range, an object by URL (checked up to
     /// its chunk table, as a preview of it is): what [`Self::read`] says of a file here. Its
-    /// points are not read through it: [`Self::read_points`] reads files here.
+    /// points are not read through it: [`Self::read_points`] reads files here, and objects
+    /// given with [`Self::streaming_from`].
     pub(crate) fn read_ranged<B: RangedBytes>(bytes: &B) -> Result<Self, B::Error> {
         let (file, header) = check_ranged(bytes, ChunkChecks::Table)?;
         Ok(Self::of_header(file, &header))
+    }
+
+    /// The same facts, whose [`Self::read_points`] streams `object` (the one they were read
+    /// from, at its version) in large ranged blocks, never whole.
+    pub(crate) fn streaming_from(mut self, object: crate::remote::RemoteObject) -> Self {
+        self.file.object = Some(std::sync::Arc::new(object));
+        self
     }
 
     fn of_header(file: DatasetFile, header: &las::Header) -> Self {

@@ -25,9 +25,10 @@ pub fn describe_tile_url(client: &RemoteClient, url: &ObjectUrl) -> Result<FileI
 
 /// What the LAS/LAZ object opened as `object` holds, as [`describe_tile_url`] says: read at
 /// the version it was opened at (a tile held to the version its listing recorded, through
-/// `RemoteClient::open_listed`).
+/// `RemoteClient::open_listed`). Its `read_points` streams the object at that version.
 pub fn describe_tile(object: RemoteObject) -> Result<FileInfo, SourceError> {
-    Ok(FileInfo::read_ranged(&CopcBytes::remote(object))?)
+    let info = FileInfo::read_ranged(&CopcBytes::remote(object.clone()))?;
+    Ok(info.streaming_from(object))
 }
 
 impl ChunkStarts {

@@ -145,7 +145,7 @@ mod tests {
     fn publisher(records: &std::path::Path) -> StorePublisher {
         // Nothing listens at the store URL's server: nothing is offered, so nothing is sent.
         let url = store_url("s3://stores/farm").expect("an s3 prefix");
-        StorePublisher::start(url, RemoteSettings::default(), records).expect("publisher")
+        StorePublisher::start(url, RemoteSettings::default(), 1, records).expect("publisher")
     }
 
     #[test]

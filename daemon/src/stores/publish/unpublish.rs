@@ -35,6 +35,7 @@ impl StorePublisher {
         if queue.waiting.len() != before {
             queue.offered.remove(sha256);
         }
+        queue.given_up.remove(sha256);
         if building {
             queue.unwanted.insert(sha256.to_owned());
         }
