@@ -1,12 +1,17 @@
-//! A partition's local octree, built in memory: a node above the leaf bound splits its points into
-//! its children, the children are built, then the node samples its own points from theirs
-//! (bottom-up, as PotreeConverter 2 does) and every child is finished, into the nodes of the
-//! partition's region, stored together once the partition is built (`sink.rs`). The partition's
-//! root is returned unfinished: the levels above the partitions still sample from it.
+//! A partition's local octree, built in memory: the partition's points are ordered once along
+//! the Z curve of the finest cells below its key (`morton.rs`), so that every node's points are
+//! one run of that order and a node's children are cut from its run by the code's next three
+//! bits, without moving a point. A node above the leaf bound has its children built, then
+//! samples its own points from theirs (bottom-up, as PotreeConverter 2 does) and every child is
+//! finished, into the nodes of the partition's region, stored together once the partition is
+//! built (`sink.rs`). A leaf copies its run out of the partition's points, in the order they
+//! came, the only copy a point takes before the sampling. The partition's root is returned unfinished: the levels above the
+//! partitions still sample from it.
 
 use super::attributes::AttributeRows;
 use super::error::LodError;
 use super::key::{NodeKey, RootCube, MAX_LEVEL};
+use super::morton::MortonOrder;
 use super::point::RawPoint;
 use super::sampling::sample;
 use super::sink::{EncodedNode, NodeSink};
@@ -35,6 +40,25 @@ pub struct KeptRoot {
     pub root: EncodedNode,
 }
 
+/// The partition being built: its points in the order they came, and that order along the
+/// Z curve of the cells `bits` levels below `origin`.
+struct Ordered<'p> {
+    points: &'p [RawPoint],
+    order: &'p MortonOrder,
+    /// The level the codes start below.
+    origin: u8,
+}
+
+impl Ordered<'_> {
+    /// The points of `run` (entries of the order), copied out in the order they came: a
+    /// node's points lie in it as they came, whether its partition was split on disk or not.
+    fn gather(&self, run: &[(u64, u32)]) -> Vec<RawPoint> {
+        let mut indices: Vec<u32> = run.iter().map(|&(_, i)| i).collect();
+        indices.sort_unstable();
+        indices.iter().map(|&i| self.points[i as usize]).collect()
+    }
+}
+
 impl LocalBuilder<'_> {
     /// Builds `key`'s subtree of `points`; with `kept`, each child subtree's root is kept
     /// there as it was before `key` sampled from it (a partition's children are the store's
@@ -44,28 +68,61 @@ impl LocalBuilder<'_> {
         key: NodeKey,
         points: Vec<RawPoint>,
         region: &mut Vec<EncodedNode>,
-        mut kept: Option<&mut Vec<KeptRoot>>,
+        kept: Option<&mut Vec<KeptRoot>>,
     ) -> Result<SubtreeRoot, LodError> {
-        if points.len() <= self.max_leaf_points || key.level >= MAX_LEVEL {
+        if self.is_leaf(key, points.len()) {
             return Ok(SubtreeRoot {
                 points,
                 sample_grid: 0,
             });
         }
-        let children = split(&self.cube, key, points);
+        let order = MortonOrder::below(&self.cube, key, &points, MAX_LEVEL - key.level);
+        let ordered = Ordered {
+            points: &points,
+            order: &order,
+            origin: key.level,
+        };
+        self.build_run(&ordered, key, order.entries(), region, kept)
+    }
+
+    fn is_leaf(&self, key: NodeKey, points: usize) -> bool {
+        points <= self.max_leaf_points || key.level >= MAX_LEVEL
+    }
+
+    /// Builds `key`'s subtree of the points of `run`, the part of `ordered` in `key`'s cube.
+    fn build_run(
+        &self,
+        ordered: &Ordered<'_>,
+        key: NodeKey,
+        run: &[(u64, u32)],
+        region: &mut Vec<EncodedNode>,
+        mut kept: Option<&mut Vec<KeptRoot>>,
+    ) -> Result<SubtreeRoot, LodError> {
+        if self.is_leaf(key, run.len()) {
+            return Ok(SubtreeRoot {
+                points: ordered.gather(run),
+                sample_grid: 0,
+            });
+        }
+        let depth = u32::from(key.level - ordered.origin);
+        if depth == ordered.order.bits() {
+            // The codes end above this node (a partition near the root holding points closer
+            // together than 2^21 cells an axis): its points are ordered again from its cube.
+            return self.build(key, ordered.gather(run), region, kept);
+        }
+        let children = ordered.order.children(run, depth);
         let mut own: [Vec<RawPoint>; 8] = Default::default();
         let mut grids = [0u32; 8];
         let mut present = [false; 8];
-        for (i, child_points) in children.into_iter().enumerate() {
-            if child_points.is_empty() {
+        for (i, child_run) in children.into_iter().enumerate() {
+            if child_run.is_empty() {
                 continue;
             }
-            let count = child_points.len() as u64;
-            let child = self.build(key.child(i), child_points, region, None)?;
+            let child = self.build_run(ordered, key.child(i), child_run, region, None)?;
             if let Some(kept) = kept.as_deref_mut() {
                 kept.push(KeptRoot {
                     key: key.child(i),
-                    points: count,
+                    points: child_run.len() as u64,
                     root: self.sink.encode(
                         key.child(i),
                         &child.points,
@@ -89,27 +146,4 @@ impl LocalBuilder<'_> {
             sample_grid: sampled.grid,
         })
     }
-}
-
-/// `points` of `key` by child, each child's vector allocated at its exact size; each point's
-/// child is computed once.
-pub(crate) fn split(cube: &RootCube, key: NodeKey, points: Vec<RawPoint>) -> [Vec<RawPoint>; 8] {
-    let child_level = u32::from(key.level) + 1;
-    let base = key.cell() * 2;
-    let which: Vec<u8> = points
-        .iter()
-        .map(|p| {
-            let c = cube.cell_at(p.position, child_level) - base;
-            (c.x | (c.y << 1) | (c.z << 2)) as u8
-        })
-        .collect();
-    let mut counts = [0usize; 8];
-    for &i in &which {
-        counts[usize::from(i)] += 1;
-    }
-    let mut children: [Vec<RawPoint>; 8] = std::array::from_fn(|i| Vec::with_capacity(counts[i]));
-    for (p, &i) in points.into_iter().zip(&which) {
-        children[usize::from(i)].push(p);
-    }
-    children
 }

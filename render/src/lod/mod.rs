@@ -66,6 +66,7 @@ mod journal;
 pub mod key;
 mod local;
 pub mod memory;
+mod morton;
 pub mod options;
 mod pages;
 mod partitions;

@@ -454,6 +454,16 @@ mod tests {
 
     use super::*;
 
+    /// `points` of `key` by child.
+    fn split(cube: &RootCube, key: NodeKey, points: &[RawPoint]) -> [Vec<RawPoint>; 8] {
+        let mut children: [Vec<RawPoint>; 8] = Default::default();
+        for p in points {
+            let c = cube.cell_at(p.position, u32::from(key.level) + 1) - key.cell() * 2;
+            children[(c.x | (c.y << 1) | (c.z << 2)) as usize].push(*p);
+        }
+        children
+    }
+
     /// A repeatable sequence of numbers in [0, 1) (a linear congruential generator).
     fn unit_random(seed: u64) -> impl FnMut() -> f64 {
         let mut state = seed;
@@ -498,7 +508,7 @@ mod tests {
             (128, usize::MAX),
             (128, 400),
         ] {
-            let children = super::super::local::split(&cube, key, points.clone());
+            let children = split(&cube, key, &points);
             let choice = choose(&cube, key, &children, grid, max_points);
             assert!(choice.bits >= 2, "grid {grid}");
             let mut general = children.clone();
@@ -543,7 +553,7 @@ mod tests {
             .collect();
         for grid in [8u32, 128] {
             let bits = grid.trailing_zeros();
-            let children = super::super::local::split(&cube, key, points.clone());
+            let children = split(&cube, key, &points);
             let sampled = sample(&cube, key, children, grid, usize::MAX);
             assert_eq!(sampled.grid, grid);
             let kept: usize = sampled.kept.iter().map(Vec::len).sum();
