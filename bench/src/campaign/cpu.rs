@@ -37,3 +37,35 @@ fn stat_cpu_s(path: &str, first: usize) -> Option<f64> {
     let ticks = |i: usize| fields.get(i)?.parse::<u64>().ok();
     Some((ticks(first)? + ticks(first + 1)?) as f64 / TICKS_PER_S)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::process::Command;
+    use std::time::{Duration, Instant};
+
+    /// A child killed by SIGKILL while it spins counts in the children's time once reaped, as
+    /// much as `/proc/PID/stat` showed just before the kill.
+    #[test]
+    fn a_killed_childs_time_counts_once_reaped() {
+        let before = children_cpu_s();
+        let mut child = Command::new("sh")
+            .args(["-c", "while :; do :; done"])
+            .spawn()
+            .expect("start sh");
+        let started = Instant::now();
+        let mut seen = 0.0;
+        while seen < 0.3 && started.elapsed() < Duration::from_secs(30) {
+            std::thread::sleep(Duration::from_millis(50));
+            seen = pid_cpu_s(child.id()).expect("the child's stat");
+        }
+        child.kill().expect("SIGKILL");
+        child.wait().expect("reap");
+        let counted = children_cpu_s() - before;
+        assert!(seen >= 0.3, "the child spun {seen} s");
+        assert!(
+            counted >= seen,
+            "{counted} s counted, {seen} s seen before the kill"
+        );
+    }
+}
