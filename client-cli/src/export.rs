@@ -14,7 +14,7 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_render::cut::CutOptions;
 use pointfarm_render::ingest::dataset_files;
 use pointfarm_render::lod::copc_export::{export_copc, CopcExportReport, ExportSettings};
-use pointfarm_render::remote::{ObjectUrl, RemoteClient, UrlKind};
+use pointfarm_render::remote::{ObjectUrl, RemoteClient};
 use serde::Serialize;
 
 use pointfarm_render::source::{LocalStore, SourceEvent};
@@ -109,8 +109,8 @@ impl OutputArgs {
     }
 
     fn url_target(&self, url: ObjectUrl) -> Result<ExportTarget> {
-        if !matches!(url.kind(), UrlKind::S3 { .. }) {
-            bail!("{url}: exports are uploaded to object storage (s3://); a web server's URL is read-only here");
+        if !url.is_object_storage() {
+            bail!("{url}: exports are uploaded to object storage (s3://, gs:// or az://); a web server's URL is read-only here");
         }
         if url.is_prefix() {
             bail!("{url} names a prefix: name the COPC object to write");

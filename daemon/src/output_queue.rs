@@ -14,7 +14,7 @@ use std::sync::mpsc::{self, Receiver, RecvTimeoutError, SyncSender};
 use std::sync::{Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
-use pointfarm_render::remote::{AllowedPrefixes, ObjectUrl, RemoteClient, RemoteSettings, UrlKind};
+use pointfarm_render::remote::{AllowedPrefixes, ObjectUrl, RemoteClient, RemoteSettings};
 use serde::{Deserialize, Serialize};
 
 use crate::error::DaemonError;
@@ -102,10 +102,12 @@ pub fn output_prefixes<S: AsRef<str>>(prefixes: &[S]) -> Result<AllowedPrefixes,
     for prefix in prefixes {
         let url = ObjectUrl::parse(prefix.as_ref())
             .map_err(|e| DaemonError::invalid("allowed output prefix", e.to_string()))?;
-        if !matches!(url.kind(), UrlKind::S3 { .. }) {
+        if !url.is_object_storage() {
             return Err(DaemonError::invalid(
                 "allowed output prefix",
-                format!("{url}: outputs are written to object storage (s3://) only"),
+                format!(
+                    "{url}: outputs are written to object storage (s3://, gs:// or az://) only"
+                ),
             ));
         }
     }
@@ -119,10 +121,10 @@ pub fn check_output_url(field: &str, text: &str) -> Result<Option<String>, Daemo
         return Ok(None);
     }
     let url = ObjectUrl::parse(text).map_err(|e| DaemonError::invalid(field, e.to_string()))?;
-    if !matches!(url.kind(), UrlKind::S3 { .. }) {
+    if !url.is_object_storage() {
         return Err(DaemonError::invalid(
             field,
-            format!("{url}: outputs are written to object storage (s3://bucket/prefix) only"),
+            format!("{url}: outputs are written to object storage (s3://, gs:// or az://bucket/prefix) only"),
         ));
     }
     Ok(Some(url.to_string()))

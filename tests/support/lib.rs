@@ -444,13 +444,17 @@ impl Drop for WorkerProcess {
     }
 }
 
+pub mod azurite;
 pub mod datasets;
+pub mod fake_gcs;
 pub mod nginx;
 pub mod pki;
 pub mod prometheus;
+pub mod rest;
 pub mod s3s;
 pub mod service;
 pub mod stores;
+pub mod tools;
 
 /// Sends SIGTERM to `child` and waits up to `timeout` for its exit.
 fn terminate(

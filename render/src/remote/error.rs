@@ -9,9 +9,7 @@ use std::time::Duration;
 pub enum RemoteError {
     #[error("{url}: not a dataset URL: {reason}")]
     InvalidUrl { url: String, reason: String },
-    #[error(
-        "{url}: the scheme {scheme}:// is not supported (use s3://, http://, https:// or file://)"
-    )]
+    #[error("{url}: the scheme {scheme}:// is not supported (use {schemes})", schemes = super::url::SCHEMES)]
     UnsupportedScheme { url: String, scheme: String },
     #[error("{url}: not under an allowed prefix: {rule}")]
     NotAllowed { url: String, rule: String },
@@ -61,16 +59,17 @@ impl RemoteError {
         let url = url.to_owned();
         match error {
             object_store::Error::NotFound { .. } => RemoteError::NotFound { url },
-            object_store::Error::PermissionDenied { .. } => RemoteError::Denied {
-                url,
-                reason: "the server refused these credentials (403)".to_owned(),
-            },
-            object_store::Error::Unauthenticated { .. } => RemoteError::Denied {
-                url,
-                reason: "no valid credentials (401); object storage reads them from the \
-                         environment (AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, ...)"
-                    .to_owned(),
-            },
+            object_store::Error::PermissionDenied { .. } => {
+                let reason = format!(
+                    "the server refused these credentials (403); {}",
+                    credential_sources(&url)
+                );
+                RemoteError::Denied { url, reason }
+            }
+            object_store::Error::Unauthenticated { .. } => {
+                let reason = format!("no valid credentials (401); {}", credential_sources(&url));
+                RemoteError::Denied { url, reason }
+            }
             other => {
                 if is_timeout(&other) {
                     RemoteError::Transport {
@@ -91,13 +90,17 @@ impl RemoteError {
     /// line, since stores answer a failed write with the XML of their error.
     pub(crate) fn from_upload(url: &str, error: object_store::Error) -> Self {
         let text = one_line(&error);
-        if text.contains("NoSuchBucket") {
+        if names_missing_bucket(&text) {
             return RemoteError::Transport {
                 url: url.to_owned(),
-                message: "no such bucket".to_owned(),
+                message: missing_bucket(url).to_owned(),
             };
         }
-        if text.contains("AccessDenied") || text.contains("403 Forbidden") {
+        if text.contains("AccessDenied")
+            || text.contains("403 Forbidden")
+            || text.contains("AuthenticationFailed")
+            || text.contains("AuthorizationFailure")
+        {
             return Self::from_store(
                 url,
                 object_store::Error::PermissionDenied {
@@ -122,6 +125,44 @@ impl RemoteError {
             RemoteError::Transport { message, .. } => message.starts_with("timed out"),
             _ => false,
         }
+    }
+}
+
+/// Where the credentials of a URL's store come from, as object_store's builders read them,
+/// naming the variables and never their values.
+pub(crate) fn credential_sources(url: &str) -> &'static str {
+    let scheme = url.split("://").next().unwrap_or_default();
+    match scheme {
+        "gs" => {
+            "GCS reads them from the environment (GOOGLE_SERVICE_ACCOUNT, \
+             GOOGLE_APPLICATION_CREDENTIALS, or the instance's metadata service)"
+        }
+        "az" | "azure" | "abfs" | "abfss" => {
+            "Azure reads them from the environment (AZURE_STORAGE_ACCOUNT_NAME with \
+             AZURE_STORAGE_ACCOUNT_KEY, AZURE_STORAGE_SAS_KEY or a managed identity)"
+        }
+        _ => {
+            "object storage reads them from the environment (AWS_ACCESS_KEY_ID, \
+             AWS_SECRET_ACCESS_KEY, ...)"
+        }
+    }
+}
+
+/// Whether a store's answer says the bucket or container does not exist: S3's and GCS's
+/// `NoSuchBucket`, Azure's `ContainerNotFound`.
+pub(crate) fn names_missing_bucket(text: &str) -> bool {
+    text.contains("NoSuchBucket") || text.contains("ContainerNotFound")
+}
+
+/// How a missing bucket or container is said for a URL's store.
+pub(crate) fn missing_bucket(url: &str) -> &'static str {
+    if matches!(
+        url.split("://").next(),
+        Some("az" | "azure" | "abfs" | "abfss")
+    ) {
+        "no such container"
+    } else {
+        "no such bucket"
     }
 }
 

@@ -5,7 +5,7 @@ use std::sync::Arc;
 use futures_util::TryStreamExt;
 use object_store::{ObjectMeta, ObjectStore};
 
-use super::error::RemoteError;
+use super::error::{missing_bucket, names_missing_bucket, RemoteError};
 use super::url::{ObjectUrl, UrlKind};
 
 /// An object found under a prefix.
@@ -32,10 +32,10 @@ pub(crate) async fn list_point_files(
     let path = prefix.object_path();
     let listing_error = |error: object_store::Error| {
         let reason = match prefix.kind() {
-            // S3 answers a listing of a missing bucket with a 404 that object_store passes on
-            // as a generic error, the code in its body.
-            _ if error.to_string().contains("<Code>NoSuchBucket</Code>") => {
-                "no such bucket".to_owned()
+            // S3 and Azure answer a listing of a missing bucket with a 404 that object_store
+            // passes on as a generic error, the code in its body.
+            _ if names_missing_bucket(&error.to_string()) => {
+                missing_bucket(prefix.as_str()).to_owned()
             }
             // object_store lists an HTTP server through WebDAV, which a plain server lacks.
             UrlKind::Http => format!(

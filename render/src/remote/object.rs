@@ -207,6 +207,9 @@ async fn fetch(
         .await
         .map_err(|error| match error {
             object_store::Error::Precondition { .. } => changed(),
+            // A GET of the version seen at open finds none where that version was replaced
+            // or deleted since (GCS's generations, S3's version ids).
+            object_store::Error::NotFound { .. } if pin.meta.version.is_some() => changed(),
             other => RemoteError::from_store(url, other),
         })?;
     // A server that ignores the conditions still tells what it sent.

@@ -4,8 +4,10 @@
 use std::sync::{Arc, Once};
 
 use object_store::aws::{AmazonS3Builder, AmazonS3ConfigKey};
+use object_store::azure::{AzureConfigKey, MicrosoftAzureBuilder};
+use object_store::gcp::{GoogleCloudStorageBuilder, GoogleConfigKey};
 use object_store::http::HttpBuilder;
-use object_store::ObjectStore;
+use object_store::{ClientConfigKey, ObjectStore};
 
 use super::error::RemoteError;
 use super::settings::RemoteSettings;
@@ -31,37 +33,77 @@ pub(crate) fn build_store(
         url: url.to_string(),
         message: error.to_string(),
     };
-    match url.kind() {
-        UrlKind::S3 { bucket } => {
-            // `from_env` reads AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, AWS_ENDPOINT,
-            // AWS_ALLOW_HTTP and the rest; the builder never shows them.
-            let mut builder = AmazonS3Builder::from_env()
-                .with_bucket_name(bucket)
-                .with_retry(settings.retry_config());
-            for (key, value) in settings.client_config() {
-                builder = builder.with_config(AmazonS3ConfigKey::Client(key), value);
-            }
-            Ok(Arc::new(builder.build().map_err(client_error)?))
-        }
+    let client = settings.client_config();
+    let store: Arc<dyn ObjectStore> = match url.kind() {
+        // Each builder's `from_env` reads its credentials and endpoint from the environment
+        // and never shows them: AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, AWS_ENDPOINT, ...;
+        // GOOGLE_SERVICE_ACCOUNT (a file whose `gcs_base_url` and `disable_oauth` point it at
+        // an emulator), GOOGLE_APPLICATION_CREDENTIALS, ..., else the metadata server;
+        // AZURE_STORAGE_ACCOUNT_NAME, AZURE_STORAGE_ACCOUNT_KEY, AZURE_STORAGE_SAS_KEY, ...,
+        // else a managed identity, and AZURE_STORAGE_USE_EMULATOR for Azurite.
+        UrlKind::S3 { bucket } => Arc::new(
+            with_client(
+                AmazonS3Builder::from_env().with_bucket_name(bucket),
+                client,
+                |builder, key, value| builder.with_config(AmazonS3ConfigKey::Client(key), value),
+            )
+            .with_retry(settings.retry_config())
+            .build()
+            .map_err(client_error)?,
+        ),
+        UrlKind::Gcs { bucket } => Arc::new(
+            with_client(
+                GoogleCloudStorageBuilder::from_env().with_bucket_name(bucket),
+                client,
+                |builder, key, value| builder.with_config(GoogleConfigKey::Client(key), value),
+            )
+            .with_retry(settings.retry_config())
+            .build()
+            .map_err(client_error)?,
+        ),
+        UrlKind::Azure { container } => Arc::new(
+            with_client(
+                MicrosoftAzureBuilder::from_env().with_container_name(container),
+                client,
+                |builder, key, value| builder.with_config(AzureConfigKey::Client(key), value),
+            )
+            .with_retry(settings.retry_config())
+            .build()
+            .map_err(client_error)?,
+        ),
         UrlKind::Http => {
-            let mut builder = HttpBuilder::new()
+            let allow_http = if url.as_str().starts_with("http://") {
+                "true"
+            } else {
+                "false"
+            };
+            let builder = HttpBuilder::new()
                 .with_url(url.store_key())
-                .with_retry(settings.retry_config())
-                .with_config(
-                    object_store::ClientConfigKey::AllowHttp,
-                    if url.as_str().starts_with("http://") {
-                        "true"
-                    } else {
-                        "false"
-                    },
-                );
-            for (key, value) in settings.client_config() {
-                builder = builder.with_config(key, value);
-            }
-            Ok(Arc::new(builder.build().map_err(client_error)?))
+                .with_config(object_store::ClientConfigKey::AllowHttp, allow_http);
+            Arc::new(
+                with_client(builder, client, HttpBuilder::with_config)
+                    .with_retry(settings.retry_config())
+                    .build()
+                    .map_err(client_error)?,
+            )
         }
-        UrlKind::File { .. } => Err(RemoteError::LocalUrl {
-            url: url.to_string(),
-        }),
-    }
+        UrlKind::File { .. } => {
+            return Err(RemoteError::LocalUrl {
+                url: url.to_string(),
+            })
+        }
+    };
+    Ok(store)
+}
+
+/// A builder given the HTTP client's settings through its own configuration keys, so that
+/// they add to what it read from the environment instead of replacing it.
+fn with_client<B>(
+    builder: B,
+    client: Vec<(ClientConfigKey, String)>,
+    set: impl Fn(B, ClientConfigKey, String) -> B,
+) -> B {
+    client
+        .into_iter()
+        .fold(builder, |builder, (key, value)| set(builder, key, value))
 }

@@ -16,13 +16,19 @@ pub const MAX_URL_LEN: usize = 2048;
 pub enum UrlKind {
     /// An S3 or S3-compatible bucket; the endpoint and credentials come from the environment.
     S3 { bucket: String },
+    /// A Google Cloud Storage bucket (`gs://`); credentials come from the environment.
+    Gcs { bucket: String },
+    /// An Azure Blob Storage container (`az://`, `azure://`, `abfs://`, `abfss://`); the
+    /// account and credentials come from the environment.
+    Azure { container: String },
     /// A plain HTTP(S) server that answers range requests.
     Http,
     /// A local file or folder, read by the local path rather than through object storage.
     File { path: PathBuf },
 }
 
-/// A validated `s3://bucket/key`, `http(s)://host/path` or `file:///path`. It never holds
+/// A validated `s3://bucket/key`, `gs://bucket/key`, `az://container/key`,
+/// `http(s)://host/path` or `file:///path`. It never holds
 /// credentials, a query or a fragment, so it can be shown and logged as it is.
 #[derive(Clone, PartialEq, Eq)]
 pub struct ObjectUrl {
@@ -43,10 +49,17 @@ impl ObjectUrl {
         }
         let url = Url::parse(text).map_err(|error| match error {
             url::ParseError::RelativeUrlWithoutBase => {
-                invalid("no scheme (use s3://, http://, https:// or file://)")
+                invalid(&format!("no scheme (use {SCHEMES})"))
             }
             other => invalid(&other.to_string()),
         })?;
+        let azure_scheme = matches!(url.scheme(), "az" | "azure" | "abfs" | "abfss");
+        if azure_scheme && !url.username().is_empty() && url.password().is_none() {
+            return Err(invalid(
+                "write the container as the host (az://container/path); the account comes \
+                 from AZURE_STORAGE_ACCOUNT_NAME",
+            ));
+        }
         if !url.username().is_empty() || url.password().is_some() {
             return Err(invalid(
                 "credentials in a URL are refused; give them through the environment",
@@ -81,6 +94,21 @@ impl ObjectUrl {
                 check_bucket(bucket).map_err(|reason| invalid(&reason))?;
                 UrlKind::S3 {
                     bucket: bucket.to_owned(),
+                }
+            }
+            "gs" => {
+                let bucket = bucket_of(&url, "gs://bucket/prefix").map_err(|r| invalid(&r))?;
+                check_gcs_bucket(bucket).map_err(|reason| invalid(&reason))?;
+                UrlKind::Gcs {
+                    bucket: bucket.to_owned(),
+                }
+            }
+            "az" | "azure" | "abfs" | "abfss" => {
+                let container =
+                    bucket_of(&url, "az://container/prefix").map_err(|r| invalid(&r))?;
+                check_azure_container(container).map_err(|reason| invalid(&reason))?;
+                UrlKind::Azure {
+                    container: container.to_owned(),
                 }
             }
             "http" | "https" => {
@@ -127,6 +155,15 @@ impl ObjectUrl {
         }
     }
 
+    /// Whether the URL is in object storage (S3, GCS or Azure): a bucket or container that
+    /// can be listed and written, as an HTTP server or a local path cannot through it.
+    pub fn is_object_storage(&self) -> bool {
+        matches!(
+            self.kind,
+            UrlKind::S3 { .. } | UrlKind::Gcs { .. } | UrlKind::Azure { .. }
+        )
+    }
+
     /// Whether the URL names a prefix (a folder of objects) rather than one object.
     pub fn is_prefix(&self) -> bool {
         self.url.path().ends_with('/') || self.object_path().as_ref().is_empty()
@@ -146,8 +183,8 @@ impl ObjectUrl {
     /// connections are shared.
     pub(crate) fn store_key(&self) -> String {
         match &self.kind {
-            UrlKind::S3 { bucket } => format!("s3://{bucket}"),
             UrlKind::Http | UrlKind::File { .. } => self.url.origin().ascii_serialization(),
+            _ => self.bucket_origin().unwrap_or_default(),
         }
     }
 
@@ -160,11 +197,23 @@ impl ObjectUrl {
     /// The scheme, host and port, and the path: what allow-list rules compare.
     pub(crate) fn origin_and_path(&self) -> (String, &str) {
         let origin = match &self.kind {
-            UrlKind::S3 { bucket } => format!("s3://{bucket}"),
             UrlKind::Http => self.url.origin().ascii_serialization(),
             UrlKind::File { .. } => "file://".to_owned(),
+            _ => self.bucket_origin().unwrap_or_default(),
         };
         (origin, self.url.path())
+    }
+
+    /// A bucket's or container's one spelling, `s3://b`, `gs://b` or `az://c`, whichever
+    /// alias the URL was written with, so that `azure://c` and `az://c` share a store and
+    /// an allow-list rule.
+    fn bucket_origin(&self) -> Option<String> {
+        match &self.kind {
+            UrlKind::S3 { bucket } => Some(format!("s3://{bucket}")),
+            UrlKind::Gcs { bucket } => Some(format!("gs://{bucket}")),
+            UrlKind::Azure { container } => Some(format!("az://{container}")),
+            UrlKind::Http | UrlKind::File { .. } => None,
+        }
     }
 
     /// The URL of an object found by listing this URL's store.
@@ -195,28 +244,94 @@ impl std::str::FromStr for ObjectUrl {
     }
 }
 
-/// S3's bucket naming rules, checked here so that a typo is named before any request.
-fn check_bucket(bucket: &str) -> Result<(), String> {
-    if bucket.is_empty() {
-        return Err("no bucket (s3://bucket/prefix)".to_owned());
-    }
-    if !(3..=63).contains(&bucket.len()) {
+/// The schemes a URL may have, as errors list them.
+pub(crate) const SCHEMES: &str = "s3://, gs://, az://, http://, https:// or file://";
+
+/// The host of a bucket URL, which names the bucket or container, refusing a port.
+fn bucket_of<'a>(url: &'a Url, form: &str) -> Result<&'a str, String> {
+    if url.port().is_some() {
         return Err(format!(
-            "the bucket name {bucket:?} is not 3 to 63 characters"
+            "a {}:// URL names a bucket or container ({form}), not a port; \
+             the endpoint comes from the environment",
+            url.scheme()
         ));
     }
-    let valid = bucket.bytes().all(|byte| {
-        byte.is_ascii_lowercase() || byte.is_ascii_digit() || byte == b'.' || byte == b'-'
+    Ok(url.host_str().unwrap_or_default())
+}
+
+/// Google Cloud Storage's bucket naming rules, bounded at 63 characters (longer names, with
+/// dots, need a verified domain and are rare).
+fn check_gcs_bucket(bucket: &str) -> Result<(), String> {
+    check_name(bucket, "bucket", "gs://bucket/prefix", Punctuation::GCS)
+}
+
+/// Azure's container naming rules, whose names also have no two hyphens in a row.
+fn check_azure_container(container: &str) -> Result<(), String> {
+    check_name(
+        container,
+        "container",
+        "az://container/prefix",
+        Punctuation::AZURE,
+    )?;
+    if container.contains("--") {
+        return Err(format!(
+            "the container name {container:?} may not hold two hyphens in a row"
+        ));
+    }
+    Ok(())
+}
+
+/// S3's bucket naming rules, checked here so that a typo is named before any request.
+fn check_bucket(bucket: &str) -> Result<(), String> {
+    check_name(bucket, "bucket", "s3://bucket/prefix", Punctuation::S3)
+}
+
+/// The characters besides lowercase letters and digits a provider allows in a bucket's name,
+/// and how an error names them.
+struct Punctuation {
+    bytes: &'static [u8],
+    named: &'static str,
+}
+
+impl Punctuation {
+    const S3: Self = Self {
+        bytes: b".-",
+        named: "dots and hyphens",
+    };
+    const GCS: Self = Self {
+        bytes: b".-_",
+        named: "dots, hyphens and underscores",
+    };
+    const AZURE: Self = Self {
+        bytes: b"-",
+        named: "hyphens",
+    };
+}
+
+/// A bucket or container name: 3 to 63 lowercase letters, digits and the provider's
+/// punctuation, starting and ending with a letter or digit.
+fn check_name(name: &str, what: &str, form: &str, punctuation: Punctuation) -> Result<(), String> {
+    if name.is_empty() {
+        return Err(format!("no {what} ({form})"));
+    }
+    if !(3..=63).contains(&name.len()) {
+        return Err(format!(
+            "the {what} name {name:?} is not 3 to 63 characters"
+        ));
+    }
+    let valid = name.bytes().all(|byte| {
+        byte.is_ascii_lowercase() || byte.is_ascii_digit() || punctuation.bytes.contains(&byte)
     });
-    let ends_valid = bucket
+    let ends_valid = name
         .bytes()
         .next()
-        .zip(bucket.bytes().last())
+        .zip(name.bytes().last())
         .is_some_and(|(first, last)| first.is_ascii_alphanumeric() && last.is_ascii_alphanumeric());
     if !valid || !ends_valid {
         return Err(format!(
-            "the bucket name {bucket:?} may hold only lowercase letters, digits, dots and hyphens, \
-             starting and ending with a letter or digit"
+            "the {what} name {name:?} may hold only lowercase letters, digits, {}, \
+             starting and ending with a letter or digit",
+            punctuation.named
         ));
     }
     Ok(())
@@ -275,6 +390,29 @@ mod tests {
         assert!(!http.is_prefix());
         assert_eq!(http.object_path().as_ref(), "scans/a b.copc.laz");
         assert_eq!(http.store_key(), "https://host.example:8443");
+        let gcs = ObjectUrl::parse("gs://scans_2024/site/a.copc.laz").expect("gs");
+        assert_eq!(
+            gcs.kind(),
+            &UrlKind::Gcs {
+                bucket: "scans_2024".to_owned()
+            }
+        );
+        assert_eq!(gcs.store_key(), "gs://scans_2024");
+        assert_eq!(gcs.object_path().as_ref(), "site/a.copc.laz");
+        assert!(gcs.is_object_storage());
+        for alias in ["az", "azure", "abfs", "abfss"] {
+            let azure = ObjectUrl::parse(&format!("{alias}://scans/site/")).expect(alias);
+            assert_eq!(
+                azure.kind(),
+                &UrlKind::Azure {
+                    container: "scans".to_owned()
+                }
+            );
+            assert_eq!(azure.store_key(), "az://scans", "{alias}");
+            assert_eq!(azure.origin_and_path(), ("az://scans".to_owned(), "/site/"));
+            assert!(azure.is_prefix());
+        }
+        assert!(!http.is_object_storage());
         let file = ObjectUrl::parse("file:///data/scan.laz").expect("file");
         assert_eq!(
             file.local_path(),
@@ -296,6 +434,16 @@ mod tests {
             ("s3://bucket/a/../b", ".."),
             ("s3://bucket/a/%2E%2E/b", ".."),
             ("file://otherhost/data", "local path"),
+            ("gs:///key", "no bucket"),
+            ("gs://Scans/key", "lowercase"),
+            ("gs://bucket:4443/key", "port"),
+            ("az://under_score/key", "hyphens"),
+            ("az://two--hyphens/key", "two hyphens"),
+            ("azure://ab/key", "3 to 63"),
+            (
+                "abfs://data@account.dfs.core.windows.net/key",
+                "AZURE_STORAGE_ACCOUNT_NAME",
+            ),
         ];
         for (text, expected) in cases {
             let error = ObjectUrl::parse(text).expect_err(text).to_string();
