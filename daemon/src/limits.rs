@@ -47,6 +47,16 @@ pub fn truncated(text: &str, max: usize) -> String {
     format!("{}…", &text[..end])
 }
 
+/// A worker's reason for failing a frame or a video, as the job keeps it: cut to
+/// [`MAX_REASON_BYTES`], and said to be missing when the worker sent none.
+pub fn failure_reason(reason: &str) -> String {
+    if reason.is_empty() {
+        "the worker gave no reason".to_string()
+    } else {
+        truncated(reason, MAX_REASON_BYTES)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -68,5 +78,16 @@ mod tests {
         assert!(cut.len() <= 11, "{cut}");
         assert!(cut.ends_with('…'));
         assert!(cut.starts_with("ééé"));
+    }
+
+    #[test]
+    fn a_failure_reason_is_cut_and_never_empty() {
+        assert_eq!(failure_reason(""), "the worker gave no reason");
+        assert_eq!(failure_reason("disk full"), "disk full");
+        let kept = failure_reason(&"x".repeat(MAX_REASON_BYTES * 2));
+        assert!(
+            kept.len() <= MAX_REASON_BYTES && kept.ends_with('…'),
+            "{kept}"
+        );
     }
 }

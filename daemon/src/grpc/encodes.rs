@@ -11,10 +11,8 @@ use tonic::{Request, Response, Status, Streaming};
 use super::conversions::invalid;
 use super::streaming::{first_part, read_chunk, spawn_stream, ResponseStream};
 use super::Api;
-use crate::limits::{check_id, check_length, truncated, MAX_REASON_BYTES, MAX_WORKER_NAME_BYTES};
+use crate::limits::{check_id, check_length, failure_reason, MAX_WORKER_NAME_BYTES};
 
-/// Longest wait of a `LeaseEncode` long poll.
-const MAX_LEASE_WAIT_MS: u32 = 30_000;
 /// Most encoders a worker lists.
 const MAX_ENCODERS: usize = 32;
 
@@ -25,19 +23,14 @@ impl Api {
         embedded: bool,
         peer: Option<std::net::SocketAddr>,
     ) -> Result<Response<pb::LeaseEncodeResponse>, Status> {
-        check_length("worker_name", &r.worker_name, MAX_WORKER_NAME_BYTES)?;
+        let name = super::workers::worker_name(r.worker_name, peer)?;
         if r.encoders.len() > MAX_ENCODERS {
             return Err(invalid("encoders", format!("at most {MAX_ENCODERS}")).into());
         }
         for encoder in &r.encoders {
             check_length("encoders", encoder, MAX_WORKER_NAME_BYTES)?;
         }
-        let mut name = r.worker_name;
-        if name.is_empty() {
-            name = peer.map_or_else(|| "unnamed".into(), |a| a.to_string());
-        }
-        let wait = std::time::Duration::from_millis(r.wait_ms.min(MAX_LEASE_WAIT_MS) as u64);
-        let deadline = tokio::time::Instant::now() + wait;
+        let deadline = super::workers::long_poll_deadline(r.wait_ms);
         let encoders = std::sync::Arc::new(r.encoders);
         // Subscribed before looking, so work that arrives in between is not missed: a job's
         // last frame is an event of the job, a lease given back a change of work.
@@ -144,11 +137,7 @@ impl Api {
         embedded: bool,
     ) -> Result<Response<pb::FailEncodeResponse>, Status> {
         check_id("lease_id", &r.lease_id)?;
-        let reason = if r.reason.is_empty() {
-            "the worker gave no reason".to_string()
-        } else {
-            truncated(&r.reason, MAX_REASON_BYTES)
-        };
+        let reason = failure_reason(&r.reason);
         self.done(move |daemon| daemon.fail_encode(&r.lease_id, embedded, &reason))
             .await
     }

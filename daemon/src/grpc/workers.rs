@@ -3,6 +3,8 @@
 //! a task's dataset. Every call tells the daemon's `WorkerPresence` that a worker is there;
 //! calls of the daemon's own embedded worker process carry [`EmbeddedWorkerCall`].
 
+use std::net::SocketAddr;
+
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::worker_service_server::WorkerService;
 use tonic::{Request, Response, Status, Streaming};
@@ -17,12 +19,29 @@ use super::Api;
 use crate::capabilities::WorkerCapabilities;
 use crate::error::DaemonError;
 use crate::lease::FrameOutcome;
-use crate::limits::{check_id, check_length, truncated, MAX_REASON_BYTES, MAX_WORKER_NAME_BYTES};
+use crate::limits::{check_id, check_length, failure_reason, MAX_WORKER_NAME_BYTES};
 use crate::stores::MAX_NODES_PER_REQUEST;
 use pointfarm_render::lod::NodeKey;
 
-/// Longest wait of a `LeaseFrame` long poll.
+/// Longest wait of a worker's long poll for a lease (`LeaseFrame`, `LeaseEncode`).
 const MAX_LEASE_WAIT_MS: u32 = 30_000;
+
+/// When a worker's long poll for a lease gives up: after the wait it asks for, at most
+/// [`MAX_LEASE_WAIT_MS`].
+pub(super) fn long_poll_deadline(wait_ms: u32) -> tokio::time::Instant {
+    let wait = std::time::Duration::from_millis(u64::from(wait_ms.min(MAX_LEASE_WAIT_MS)));
+    tokio::time::Instant::now() + wait
+}
+
+/// The name a worker leases under, shown in leases and logs: the one it gives, checked, or
+/// its address when it gives none.
+pub(super) fn worker_name(given: String, peer: Option<SocketAddr>) -> Result<String, Status> {
+    check_length("worker_name", &given, MAX_WORKER_NAME_BYTES)?;
+    if !given.is_empty() {
+        return Ok(given);
+    }
+    Ok(peer.map_or_else(|| "unnamed".into(), |address| address.to_string()))
+}
 
 /// Marks a call of the daemon's embedded worker process (the authentication layer knows it by
 /// its token): its leases are the embedded worker's.
@@ -85,12 +104,8 @@ impl WorkerService for Api {
         let peer = request.remote_addr();
         let embedded = is_embedded(&request);
         let r = request.into_inner();
-        check_length("worker_name", &r.worker_name, MAX_WORKER_NAME_BYTES)?;
+        let name = worker_name(r.worker_name, peer)?;
         let capabilities = WorkerCapabilities::try_from(r.capabilities.as_ref())?;
-        let mut name = r.worker_name;
-        if name.is_empty() {
-            name = peer.map_or_else(|| "unnamed".into(), |a| a.to_string());
-        }
         let _present = self.daemon.workers.poll_named(
             embedded,
             &name,
@@ -98,8 +113,7 @@ impl WorkerService for Api {
             self.daemon.config.lease_timeout,
         );
         let capabilities = std::sync::Arc::new(capabilities);
-        let wait = std::time::Duration::from_millis(r.wait_ms.min(MAX_LEASE_WAIT_MS) as u64);
-        let deadline = tokio::time::Instant::now() + wait;
+        let deadline = long_poll_deadline(r.wait_ms);
         // Subscribed before looking, so work that arrives in between is not missed.
         let mut work = self.daemon.work.subscribe();
         loop {
@@ -205,11 +219,7 @@ impl WorkerService for Api {
         request: Request<pb::FailFrameRequest>,
     ) -> Result<Response<pb::FailFrameResponse>, Status> {
         let (r, lease_id) = self.about_own_lease(request, |r| &r.lease_id).await?;
-        let reason = if r.reason.is_empty() {
-            "the worker gave no reason".to_string()
-        } else {
-            truncated(&r.reason, MAX_REASON_BYTES)
-        };
+        let reason = failure_reason(&r.reason);
         let kind = failure_kind(r.kind);
         self.done(move |daemon| daemon.fail_frame(&lease_id, &reason, kind))
             .await
