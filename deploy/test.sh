@@ -92,7 +92,7 @@ azurite="$tools/azurite/node_modules/.bin/azurite-blob"
 if [ ! -x "$azurite" ] && command -v npm >/dev/null; then
     echo "pointfarm tests: installing Azurite for the Azure tests" >&2
     npm install --prefix "$tools/azurite" --no-audit --no-fund --loglevel=error azurite@3.37.0 \
-        >/dev/null || echo "pointfarm tests: Azurite could not be installed" >&2
+        >/dev/null || echo "pointfarm tests: Azurite could not be installed; the Azure tests will skip (and fail in CI)" >&2
 fi
 if [ -x "$azurite" ]; then
     POINTFARM_TEST_AZURITE="$(cd "$(dirname "$azurite")" && pwd)/azurite-blob"
@@ -113,7 +113,7 @@ if [ ! -x "$tools/bin/fake-gcs-server" ]; then
         mkdir -p "$tools/bin"
         ln -sf "$gcs_binary" "$tools/bin/fake-gcs-server"
     else
-        echo "pointfarm tests: fake-gcs-server could not be installed" >&2
+        echo "pointfarm tests: fake-gcs-server could not be installed; the GCS tests will skip (and fail in CI)" >&2
     fi
 fi
 if [ -x "$tools/bin/fake-gcs-server" ]; then
