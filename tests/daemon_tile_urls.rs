@@ -6,8 +6,9 @@
 //! lists each tile's URL, size and version, never a credential; a description from the tiles'
 //! headers read by range, and a COPC export, are those of the same files by path, byte for
 //! byte; a tile replaced after registration fails the description, the preview and the job
-//! naming it, no preview shows it, and the daemon keeps serving. Skips, saying so, without
-//! `s3s-fs`.
+//! naming it, no preview shows it, and the daemon keeps serving. A description of 24 tiles,
+//! read as many at once as the client's parallel requests, is the one read one at a time, in
+//! the dataset's order (both timings printed). Skips, saying so, without `s3s-fs`.
 
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::service::DaemonConfig;
@@ -79,6 +80,8 @@ async fn tiles_by_url_render_as_the_same_files_by_path() {
         Access::default(),
     )
     .await;
+
+    assert_described_in_parallel(root.path()).await;
 
     let outside = format!("s3://{BUCKET}/other/");
     let denied = register(&daemon, vec![outside.clone()])
@@ -257,6 +260,47 @@ async fn assert_described_alike(daemon: &TestDaemon, by_url: &pb::Dataset, by_pa
         "{asked:?}"
     );
     assert_eq!(asked.summary, urls.summary);
+}
+
+/// Describing 24 tiles reads their headers as many at once as the remote client sends
+/// requests in parallel: the same description, in the dataset's order, as a daemon reading
+/// them one at a time; how long each took is printed, not asserted.
+async fn assert_described_in_parallel(root: &std::path::Path) {
+    let many = root.join(BUCKET).join("many");
+    write_scene_tiles(&many, 2_000, 24);
+    let prefix = format!("s3://{BUCKET}/many/");
+    let mut descriptions = Vec::new();
+    for parallel in [1, 8, 1, 8] {
+        let allowed =
+            pointfarm_daemon::remote_datasets::url_prefixes(std::slice::from_ref(&prefix))
+                .expect("a valid prefix");
+        let daemon = TestDaemon::start_without_worker(
+            move |config: &mut DaemonConfig| {
+                config.allowed_url_prefixes = allowed;
+                config.remote_settings.parallel_requests = parallel;
+            },
+            Access::default(),
+        )
+        .await;
+        let dataset = register(&daemon, vec![prefix.clone()])
+            .await
+            .expect("24 tiles");
+        let started = std::time::Instant::now();
+        let description = describe(&daemon, &dataset.id, false).await;
+        println!(
+            "describing 24 tiles by URL on s3s-fs, {parallel} at a time: {:.1} ms",
+            started.elapsed().as_secs_f64() * 1000.0
+        );
+        let paths: Vec<&str> = description.files.iter().map(|f| f.path.as_str()).collect();
+        let urls: Vec<&str> = dataset.files.iter().map(|f| f.url.as_str()).collect();
+        assert_eq!(paths, urls, "not in the dataset's order");
+        assert!(
+            description.files.iter().all(|f| f.error.is_empty()),
+            "{description:?}"
+        );
+        descriptions.push(description);
+    }
+    assert!(descriptions.iter().all(|d| *d == descriptions[0]));
 }
 
 /// A tile replaced after its dataset's store was counted is not previewed: its description
