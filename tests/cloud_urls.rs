@@ -7,6 +7,9 @@
 //! credentials are one line naming the URL, no secret in it. Each test skips, saying so,
 //! where its server's variable names no binary, and fails so in CI.
 //!
+//! A COPC object registered by `gs://` URL under the operator's allow-list renders through the
+//! farm as the file renders here.
+//!
 //! fake-gcs-server answers object_store's reads (HEAD, ranged GETs pinned to a generation,
 //! listing) but not its XML API writes, so the `gs://` tests seed objects through its JSON
 //! API and check reads and refusals.
@@ -276,4 +279,46 @@ fn a_missing_gcs_bucket_and_a_bad_service_account_are_one_line_naming_the_url() 
     );
     assert_one_error_line(&output, &[&url, "could not be set up"]);
     assert!(!output_text(&output).contains(fake_gcs::BAD_KEY_MARKER));
+}
+
+#[test]
+fn a_gcs_object_registered_under_the_allow_list_renders_through_the_farm() {
+    let Some(gcs) = FakeGcs::start_or_skip() else {
+        return;
+    };
+    gcs.create_bucket(CONTAINER);
+    let local = copc_file("simple_with_page.copc.laz");
+    gcs.upload(CONTAINER, "campaign/scan.copc.laz", &local);
+    gcs.upload(CONTAINER, "other/scan.copc.laz", &local);
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("data");
+    std::fs::create_dir_all(&data).expect("data folder");
+    let mut command = Command::new(pointfarm_bin());
+    command.envs(gcs.environment());
+    let server = ServeProcess::start_command(
+        command,
+        &pointfarm_tests::free_address(),
+        &data,
+        &dir.path().join("serve.log"),
+        &["--allow-url-prefix", &format!("gs://{CONTAINER}/campaign")],
+    );
+    let address = server.address.as_str();
+    let url = format!("gs://{CONTAINER}/campaign/scan.copc.laz");
+    let registered = pointfarm_ok(&["dataset", "register", &url, "--server", address, "--json"]);
+    let dataset: serde_json::Value =
+        serde_json::from_str(stdout(&registered).trim()).expect("one JSON line");
+    assert_eq!(dataset["url"], url.as_str());
+    let outside = format!("gs://{CONTAINER}/other/scan.copc.laz");
+    let refused = pointfarm(&["dataset", "register", &outside, "--server", address]);
+    assert_one_error_line(&refused, &["allows only", "gs://pointfarm-scans/campaign"]);
+
+    let id = dataset["id"].as_str().expect("an id");
+    let by_url = dir.path().join("farm.png");
+    let size = "--size=160x120";
+    let out = ["--out", path_arg(&by_url)];
+    let args = ["render", "--dataset", id, "--server", address, size];
+    assert_ok(&pointfarm(&[&args[..], &out[..]].concat()));
+    let here = dir.path().join("here.png");
+    pointfarm_ok(&["render", path_arg(&local), size, "--out", path_arg(&here)]);
+    pointfarm_tests::assert_pngs_alike("gcs-farm", &by_url, &here, "the farm's frame by gs://");
 }
