@@ -17,7 +17,7 @@ use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::lod::{read_nodes, NodeKey};
 use pointfarm_render::sample::sample_scene;
 use pointfarm_tests::{
-    assert_pngs_alike, free_address, output_text, path_arg, pointfarm_bin, wait_for, ServeProcess,
+    assert_pngs_alike, free_address, output_text, pointfarm_bin, wait_for, ServeProcess,
 };
 
 /// Tiles across and along: 21, the middle one the new day's.
@@ -126,23 +126,10 @@ fn serve(address: &str, data: &Path, pause_at: Option<&str>) -> ServeProcess {
 /// `pointfarm render --server` of `tiles` into `out` through levels of detail.
 fn render(server: &ServeProcess, tiles: &Path, out: &Path, camera: &[String]) -> Command {
     let mut command = Command::new(pointfarm_bin());
-    command
-        .args([
-            "render",
-            path_arg(tiles),
-            "--out",
-            path_arg(out),
-            "--size",
-            SIZE,
-        ])
-        .args([
-            "--lod-error",
-            "0",
-            "--server",
-            &format!("http://{}", server.address),
-        ])
-        .args(camera)
-        .env_remove("POINTFARM_TEST_PAUSE_AT");
+    command.arg("render").arg(tiles).arg("--out").arg(out);
+    command.arg(format!("--size={SIZE}")).arg("--lod-error=0");
+    command.arg(format!("--server=http://{}", server.address));
+    command.args(camera).env_remove("POINTFARM_TEST_PAUSE_AT");
     command
 }
 
@@ -215,22 +202,29 @@ fn store_points(folder: &Path) -> Vec<[i64; 6]> {
     points
 }
 
-/// Renders `tiles` on a fresh daemon in `dir/name` and returns its frame and store's points.
-fn fresh_build(dir: &Path, name: &str, tiles: &Path, files: usize, camera: &[String]) -> PathBuf {
+/// Renders `tiles` (`files` files) on a fresh daemon in `dir/name`, which builds their store
+/// whole, and asserts that `frame` looks like its frame (`what` says of which store); returns
+/// the fresh store's folder.
+fn assert_draws_as_a_fresh_build(
+    dir: &Path,
+    name: &str,
+    (tiles, files): (&Path, usize),
+    camera: &[String],
+    frame: &Path,
+    what: &str,
+) -> PathBuf {
     let data = dir.join(name);
     let mut server = serve(&free_address(), &data, None);
-    let out = dir.join(format!("{name}.png"));
-    run(&mut render(&server, tiles, &out, camera), &server);
-    assert!(
-        !server.log().contains("updated the store of"),
-        "{}",
-        server.log()
-    );
+    let fresh = dir.join(format!("{name}.png"));
+    run(&mut render(&server, tiles, &fresh, camera), &server);
+    let log = server.log();
+    assert!(!log.contains("updated the store of"), "{log}");
     server
         .terminate(Duration::from_secs(30))
         .expect("the daemon stops");
-    let _ = store_of(&data, files);
-    out
+    let message = format!("{what}'s frame differs from a fresh build's");
+    assert_pngs_alike(name, frame, &fresh, &message);
+    store_of(&data, files)
 }
 
 #[test]
@@ -295,29 +289,32 @@ fn a_campaign_that_grows_or_drops_a_tile_through_the_server_updates_its_store() 
         .expect("the daemon stops");
 
     // Each updated store draws and holds what a fresh daemon's build does.
-    let fresh = fresh_build(dir.path(), "fresh-day2", &campaign.day2, 21, camera);
-    assert_pngs_alike(
-        "growth-day2",
+    let day2_fresh = (campaign.day2.as_path(), 21);
+    let fresh = assert_draws_as_a_fresh_build(
+        dir.path(),
+        "fresh-day2",
+        day2_fresh,
+        camera,
         &day2,
-        &fresh,
-        "the grown store's frame differs from a fresh build's",
+        "the grown store",
     );
     let grown = store_points(&store_of(&data, 21));
     assert_eq!(grown.len(), POINTS, "every point once");
     assert!(
-        grown == store_points(&store_of(&dir.path().join("fresh-day2"), 21)),
+        grown == store_points(&fresh),
         "the grown store holds other points than a fresh build's"
     );
-    let fresh = fresh_build(dir.path(), "fresh-less", &campaign.less, 19, camera);
-    assert_pngs_alike(
-        "growth-less",
+    let less_fresh = (campaign.less.as_path(), 19);
+    let fresh = assert_draws_as_a_fresh_build(
+        dir.path(),
+        "fresh-less",
+        less_fresh,
+        camera,
         &less,
-        &fresh,
-        "the store less a tile differs from a fresh build's",
+        "the store less a tile",
     );
     assert!(
-        store_points(&store_of(&data, 19))
-            == store_points(&store_of(&dir.path().join("fresh-less"), 19)),
+        store_points(&store_of(&data, 19)) == store_points(&fresh),
         "the store less a tile holds other points than a fresh build's"
     );
 }
@@ -388,11 +385,12 @@ fn an_update_killed_part_way_is_made_again_and_a_preview_meanwhile_shows_the_new
         "built whole:\n{log}"
     );
     drop(server);
-    let fresh = fresh_build(dir.path(), "fresh-day2", &campaign.day2, 21, camera);
-    assert_pngs_alike(
-        "growth-killed",
-        &day2,
-        &fresh,
-        "the store updated after a kill draws unlike a fresh build",
+    let day2_fresh = (campaign.day2.as_path(), 21);
+    let what = "the store updated after a kill";
+    let fresh =
+        assert_draws_as_a_fresh_build(dir.path(), "fresh-day2", day2_fresh, camera, &day2, what);
+    assert!(
+        store_points(&store_of(&data, 21)) == store_points(&fresh),
+        "the store updated after a kill holds other points than a fresh build's"
     );
 }

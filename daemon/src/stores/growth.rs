@@ -25,14 +25,10 @@ use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use pointfarm_render::cut::PAYLOAD_FILE;
+use pointfarm_render::cut::{CutError, PAYLOAD_FILE};
 use pointfarm_render::ingest::DatasetSource;
-use pointfarm_render::lod::{
-    update_store, LodBuildOptions, LodError, LodStore, PointSource, StoreChange,
-};
-
-use pointfarm_render::cut::CutError;
-use pointfarm_render::lod::BuildProgress;
+use pointfarm_render::lod::update::update_within;
+use pointfarm_render::lod::{BuildProgress, LodError, LodStore, PointSource, StoreChange};
 use pointfarm_render::source::StoreInput;
 
 use super::{open_or_build, ReadyStore};
@@ -313,18 +309,13 @@ fn copy_and_update(
         .cloned()
         .collect();
     after.extend(listed(&added)?);
-    let mut options = LodBuildOptions::new(into.join("spill"));
-    options.memory_budget_bytes = memory_budget.max(options.min_memory_budget_bytes());
     let change = StoreChange {
         added: source.as_ref().map(|s| s as &dyn PointSource),
         removed: removed.clone(),
         reopen: &reopen,
         files: after.iter().map(|f| f.sha256.clone()).collect(),
     };
-    let report = update_store(&store, &change, &options).map_err(|e| match e {
-        LodError::CannotUpdate(reason) => reason,
-        other => other.to_string(),
-    })?;
+    let report = update_within(&store, &change, into.join("spill"), memory_budget)?;
     let stored = store.read_hierarchy().map_err(|e| e.to_string())?;
     if stored.point_count != points || report.hierarchy.point_count != points {
         return Err(format!(

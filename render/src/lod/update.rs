@@ -150,6 +150,22 @@ pub fn update_store(
     on_threads(options, || update_on_pool(store, change, options))
 }
 
+/// [`update_store`] within `memory_budget` bytes of build buffers (at least what a build
+/// needs), spilling under `spill_dir`; the error says why, a refusal by its reason alone.
+pub fn update_within(
+    store: &LodStore,
+    change: &StoreChange<'_>,
+    spill_dir: PathBuf,
+    memory_budget: u64,
+) -> Result<LodUpdateReport, String> {
+    let mut options = LodBuildOptions::new(spill_dir);
+    options.memory_budget_bytes = memory_budget.max(options.min_memory_budget_bytes());
+    update_store(store, change, &options).map_err(|e| match e {
+        LodError::CannotUpdate(reason) => reason,
+        other => other.to_string(),
+    })
+}
+
 fn cannot(reason: impl Into<String>) -> LodError {
     LodError::CannotUpdate(reason.into())
 }

@@ -25,9 +25,8 @@ use std::path::{Path, PathBuf};
 
 use crate::ingest::DatasetSource;
 use crate::lod::source::files_fingerprint;
-use crate::lod::{
-    update_store, LodBuildOptions, LodError, LodStore, LodUpdateReport, PointSource, StoreChange,
-};
+use crate::lod::update::update_within;
+use crate::lod::{LodError, LodStore, LodUpdateReport, PointSource, StoreChange};
 
 const FILE_LIST: &str = "files.txt";
 /// What `cut/stored.rs` names the parts of a store's folder.
@@ -226,18 +225,13 @@ pub fn update_earlier(
         .chain(added.iter().map(|(_, f)| *f))
         .cloned()
         .collect();
-    let mut options = LodBuildOptions::new(folder.join("spill"));
-    options.memory_budget_bytes = memory_budget.max(options.min_memory_budget_bytes());
     let change = StoreChange {
         added: source.as_ref().map(|s| s as &dyn PointSource),
         removed: removed.clone(),
         reopen: &reopen,
         files: after.iter().map(|f| f.identity.clone()).collect(),
     };
-    let report = update_store(&store, &change, &options).map_err(|e| match e {
-        LodError::CannotUpdate(reason) => reason,
-        other => other.to_string(),
-    })?;
+    let report = update_within(&store, &change, folder.join("spill"), memory_budget)?;
     drop(store);
     drop(db);
     write_list(folder, &after)?;
