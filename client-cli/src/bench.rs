@@ -321,7 +321,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         bench::WARM_IN_A_ROW.as_millis(),
         bench::MAX_WARM_FRAMES,
     );
-    let report = bench::run(gpu, &options, &mut |line| eprintln!("  {line}"))?;
+    let report = bench::run(gpu, &options, &mut progress)?;
 
     let markdown = bench::markdown::tables(&report);
     outln!("\n{markdown}");
@@ -360,11 +360,9 @@ fn run_scheduler(args: &BenchArgs, started: Instant) -> Result<()> {
     };
     let samples = if args.quick { 50 } else { 500 };
     let histories = [0, longest / 10, longest];
-    let results = scheduler::measure(&histories, samples, &mut |line| eprintln!("  {line}"))?;
+    let results = scheduler::measure(&histories, samples, &mut progress)?;
     let markdown = scheduler::markdown(&results);
-    finish(args, started, &markdown, |path, context| {
-        write_json_as(path, context, "scheduler", &results)
-    })
+    finish_as(args, started, &markdown, "scheduler", &results)
 }
 
 /// `--campaign`: building the level-of-detail store of a campaign of many files.
@@ -394,8 +392,7 @@ fn run_campaign(args: &BenchArgs, points: Option<usize>, started: Instant) -> Re
         }
         None => None,
     };
-    let result =
-        campaign::measure_with_frames(&options, gpu.as_ref(), &mut |line| eprintln!("  {line}"))?;
+    let result = campaign::measure_with_frames(&options, gpu.as_ref(), &mut progress)?;
     let markdown = bench::markdown::campaign_tables(&result);
     finish(args, started, &markdown, |path, context| {
         Ok(bench::json::write_campaign(path, &result, context)?)
@@ -427,7 +424,7 @@ fn run_cuts(args: &BenchArgs, started: Instant) -> Result<()> {
     };
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
     outln!("adapter: {}", gpu.describe());
-    let result = cuts::measure(&gpu, &options, &mut |line| eprintln!("  {line}"))?;
+    let result = cuts::measure(&gpu, &options, &mut progress)?;
     let markdown = cuts::markdown::cuts_tables(&result);
     finish(args, started, &markdown, |path, context| {
         Ok(bench::json::write_cuts(path, &result, context)?)
@@ -440,7 +437,7 @@ fn run_copc(args: &BenchArgs, points: Option<usize>, started: Instant) -> Result
     let options = copc_options(args, points);
     let gpu = Arc::new(GpuContext::new(args.adapter)?);
     outln!("adapter: {}", gpu.describe());
-    let result = copc::measure(&gpu, &options, &mut |line| eprintln!("  {line}"))?;
+    let result = copc::measure(&gpu, &options, &mut progress)?;
     finish(args, started, &copc::markdown(&result), |path, context| {
         Ok(bench::json::write_copc(path, &result, context)?)
     })
@@ -478,12 +475,13 @@ fn run_copc_s3(args: &BenchArgs, points: Option<usize>, started: Instant) -> Res
         adapter: args.adapter,
         inputs: args.object_storage.inputs_dir.clone(),
     };
-    let result = copc_s3::measure(&options, &mut |line| eprintln!("  {line}"))?;
-    finish(
+    let result = copc_s3::measure(&options, &mut progress)?;
+    finish_as(
         args,
         started,
         &copc_s3::markdown(&result),
-        |path, context| write_json_as(path, context, "copcS3", &result),
+        "copcS3",
+        &result,
     )
 }
 
@@ -507,12 +505,13 @@ fn run_published_store(args: &BenchArgs, points: Option<usize>, started: Instant
         inputs: args.object_storage.inputs_dir.clone(),
         ..defaults
     };
-    let result = published::measure(&options, &mut |line| eprintln!("  {line}"))?;
-    finish(
+    let result = published::measure(&options, &mut progress)?;
+    finish_as(
         args,
         started,
         &published::markdown(&result),
-        |path, context| write_json_as(path, context, "publishedStore", &result),
+        "publishedStore",
+        &result,
     )
 }
 
@@ -538,13 +537,31 @@ fn run_service_load(args: &BenchArgs, started: Instant) -> Result<()> {
         },
         adapter: args.adapter.to_string(),
     };
-    let result = service_load::measure(&options, &mut |line| eprintln!("  {line}"))?;
+    let result = service_load::measure(&options, &mut progress)?;
     finish(
         args,
         started,
         &service_load::markdown(&result),
         |path, context| Ok(service_load::write_json(path, &result, context)?),
     )
+}
+
+/// Shows a benchmark's progress lines on stderr, indented, beside its tables on stdout.
+fn progress(line: &str) {
+    eprintln!("  {line}");
+}
+
+/// [`finish`] with the results written to `--json` as `key` ([`write_json_as`]).
+fn finish_as(
+    args: &BenchArgs,
+    started: Instant,
+    markdown: &str,
+    key: &str,
+    value: &impl serde::Serialize,
+) -> Result<()> {
+    finish(args, started, markdown, |path, context| {
+        write_json_as(path, context, key, value)
+    })
 }
 
 /// Writes `value` to `path` as the JSON object `{"command": ..., key: value}`.
