@@ -8,7 +8,8 @@
 //! where its server's variable names no binary, and fails so in CI.
 //!
 //! A COPC object registered by `gs://` URL under the operator's allow-list renders through the
-//! farm as the file renders here.
+//! farm as the file renders here, and a store published under an `az://` `--store-url` is read
+//! from the container by a worker.
 //!
 //! fake-gcs-server answers object_store's reads (HEAD, ranged GETs pinned to a generation,
 //! listing) but not its XML API writes, so the `gs://` tests seed objects through its JSON
@@ -22,8 +23,9 @@ use pointfarm_tests::azurite::{self, Azurite};
 use pointfarm_tests::fake_gcs::{self, FakeGcs};
 use pointfarm_tests::service::{self, render_detached};
 use pointfarm_tests::{
-    assert_ok, assert_one_error_line, copc_file, json_lines, output_text, path_arg, pointfarm,
-    pointfarm_bin, pointfarm_ok, stdout, wait_for, ServeProcess,
+    assert_ok, assert_one_error_line, assert_same_frames, copc_file, free_address, json_lines,
+    output_text, path_arg, pointfarm, pointfarm_bin, pointfarm_ok, stdout, wait_for, ServeProcess,
+    WorkerProcess,
 };
 
 /// The container and bucket the tests write to and read from.
@@ -38,13 +40,32 @@ const RENDER: [&str; 5] = [
     "--json",
 ];
 
+/// The `pointfarm` binary with `environment`.
+fn pointfarm_with(environment: &[(&'static str, String)]) -> Command {
+    let mut command = Command::new(pointfarm_bin());
+    command.envs(environment.iter().map(|(name, value)| (*name, value)));
+    command
+}
+
 /// `pointfarm ARGS` with `environment`, run to its end.
 fn run_with(environment: &[(&'static str, String)], args: &[&str]) -> Output {
-    Command::new(pointfarm_bin())
-        .args(args)
-        .envs(environment.iter().map(|(name, value)| (*name, value)))
-        .output()
-        .expect("run pointfarm")
+    let mut command = pointfarm_with(environment);
+    command.args(args).output().expect("run pointfarm")
+}
+
+/// `pointfarm serve ARGS` with `environment` (and so its embedded worker, where it runs one),
+/// its data and log in `dir`.
+fn serve(environment: &[(&'static str, String)], dir: &Path, args: &[&str]) -> ServeProcess {
+    let data = dir.join("data");
+    std::fs::create_dir_all(&data).expect("data folder");
+    let command = pointfarm_with(environment);
+    ServeProcess::start_command(
+        command,
+        &free_address(),
+        &data,
+        &data.join("serve.log"),
+        args,
+    )
 }
 
 /// A COPC file of generated points exported here, in `dir`, and the scene it came from.
@@ -187,17 +208,8 @@ fn a_jobs_frames_are_written_under_an_azure_output_prefix() {
     };
     azurite.create_container("pointfarm-renders");
     let dir = tempfile::tempdir().expect("tempdir");
-    let data = dir.path().join("data");
-    std::fs::create_dir_all(&data).expect("data folder");
-    let mut command = Command::new(pointfarm_bin());
-    command.envs(azurite.environment());
-    let server = ServeProcess::start_command(
-        command,
-        &pointfarm_tests::free_address(),
-        &data,
-        &dir.path().join("serve.log"),
-        &["--allow-output-prefix", "az://pointfarm-renders/farm"],
-    );
+    let prefix = ["--allow-output-prefix", "az://pointfarm-renders/farm"];
+    let server = serve(&azurite.environment(), dir.path(), &prefix);
     let scan = service::scan(dir.path());
     let out = dir.path().join("out");
     let submitted = render_detached(
@@ -291,16 +303,11 @@ fn a_gcs_object_registered_under_the_allow_list_renders_through_the_farm() {
     gcs.upload(CONTAINER, "campaign/scan.copc.laz", &local);
     gcs.upload(CONTAINER, "other/scan.copc.laz", &local);
     let dir = tempfile::tempdir().expect("tempdir");
-    let data = dir.path().join("data");
-    std::fs::create_dir_all(&data).expect("data folder");
-    let mut command = Command::new(pointfarm_bin());
-    command.envs(gcs.environment());
-    let server = ServeProcess::start_command(
-        command,
-        &pointfarm_tests::free_address(),
-        &data,
-        &dir.path().join("serve.log"),
-        &["--allow-url-prefix", &format!("gs://{CONTAINER}/campaign")],
+    let prefix = format!("gs://{CONTAINER}/campaign");
+    let server = serve(
+        &gcs.environment(),
+        dir.path(),
+        &["--allow-url-prefix", &prefix],
     );
     let address = server.address.as_str();
     let url = format!("gs://{CONTAINER}/campaign/scan.copc.laz");
@@ -321,4 +328,55 @@ fn a_gcs_object_registered_under_the_allow_list_renders_through_the_farm() {
     let here = dir.path().join("here.png");
     pointfarm_ok(&["render", path_arg(&local), size, "--out", path_arg(&here)]);
     pointfarm_tests::assert_pngs_alike("gcs-farm", &by_url, &here, "the farm's frame by gs://");
+}
+
+#[test]
+fn a_store_published_to_an_azure_container_is_read_from_it_by_a_worker() {
+    let Some(azurite) = Azurite::start_or_skip() else {
+        return;
+    };
+    azurite.create_container("pointfarm-stores");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let scene = dir.path().join("scene.laz");
+    pointfarm_ok(&["sample", path_arg(&scene), "--points", "300000"]);
+    let args = [
+        "--no-embedded-worker",
+        "--store-url",
+        "az://pointfarm-stores/farm",
+    ];
+    let daemon = serve(&azurite.environment(), dir.path(), &args);
+    let worker = |name: &str| {
+        let cache = dir.path().join(name);
+        let command = pointfarm_with(&azurite.environment());
+        WorkerProcess::start_in(command, &daemon.address, &cache, name, &[])
+    };
+    let render = |out: &str| {
+        let out = dir.path().join(out);
+        let job = ["render", path_arg(&scene), "--out", path_arg(&out)];
+        let options = ["--size=120x90", "--turntable", "2", "--lod-error", "0.25"];
+        pointfarm_ok(&[&job[..], &["--server", &daemon.address], &options[..]].concat());
+        out
+    };
+
+    // The first job builds the store; once ready, the daemon publishes it to the container.
+    let builder = worker("builder");
+    let first = render("first");
+    wait_for(Duration::from_secs(60), "the store published", || {
+        daemon.log().contains("store published").then_some(())
+    });
+    let names = azurite.blob_names("pointfarm-stores");
+    let digest = names
+        .iter()
+        .find_map(|name| name.strip_prefix("farm/")?.strip_suffix("/nodes.bin"))
+        .unwrap_or_else(|| panic!("the store's payload: {names:?}"));
+    let hierarchy = format!("farm/{digest}/hierarchy.pfps");
+    assert_eq!(names, [hierarchy, format!("farm/{digest}/nodes.bin")]);
+
+    // A worker new to the dataset reads its nodes from the container, frames unchanged.
+    drop(builder);
+    let reader = worker("reader");
+    let published = render("published");
+    assert_same_frames(&first, &published, 2, "the frames from the store in Azure");
+    let said = reader.log();
+    assert!(said.contains("from=Published"), "{said}");
 }
