@@ -12,11 +12,7 @@ use pointfarm_render::cloud::PointCloud;
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::legend::RAMP_LEGEND_SIZE;
 use pointfarm_tests::service::{daemon_with_sample, scan, scratch_sample, turntable_job};
-use pointfarm_tests::{assert_fails_saying, assert_ok, pointfarm, stdout};
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
+use pointfarm_tests::{assert_fails_saying, assert_ok, path_arg, pointfarm, stdout};
 
 /// A scan cut into a west and an east crop that share a band in the middle.
 struct Crops {
@@ -72,9 +68,9 @@ fn camera(cloud: &PointCloud) -> Vec<String> {
 fn render(input: &Path, out: &Path, more: &[String]) -> RgbaImage {
     let mut args = vec![
         "render".to_string(),
-        arg(input).into(),
+        path_arg(input).into(),
         "--out".into(),
-        arg(out).into(),
+        path_arg(out).into(),
     ];
     args.extend(more.iter().cloned());
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
@@ -142,7 +138,7 @@ fn crops_agree_with_a_range_only(lod: bool) {
         let cache = dir.path().join("cache");
         common.extend([
             "--lod-error=0".into(),
-            format!("--cache-dir={}", arg(&cache)),
+            format!("--cache-dir={}", path_arg(&cache)),
         ]);
     }
     let frames = |name: &str, more: &[String]| {
@@ -196,7 +192,14 @@ fn ranges_and_ramps_are_checked_on_the_command_line() {
     let (dir, input) = scratch_sample("sample.las", 2_000, 4);
     let out = dir.path().join("out.png");
     let run = |more: &[&str]| {
-        let mut args = vec!["render", arg(&input), "--out", arg(&out), "--size", "32x24"];
+        let mut args = vec![
+            "render",
+            path_arg(&input),
+            "--out",
+            path_arg(&out),
+            "--size",
+            "32x24",
+        ];
         args.extend_from_slice(more);
         pointfarm(&args)
     };
@@ -235,7 +238,7 @@ fn ranges_and_ramps_are_checked_on_the_command_line() {
     let server = ["--server", "http://127.0.0.1:9", "--color", "elevation"];
     let legend = dir.path().join("legend.png");
     assert_fails_saying(
-        &run(&[&server[..], &["--legend", arg(&legend)]].concat()),
+        &run(&[&server[..], &["--legend", path_arg(&legend)]].concat()),
         "needs --range",
     );
     assert!(!out.exists() && !legend.exists(), "nothing written");
@@ -297,11 +300,18 @@ fn the_legend_is_a_png_of_the_ramp_or_the_swatches() {
     let input = scan(dir.path());
     let out = dir.path().join("frame.png");
     let ramp = dir.path().join("ramp.png");
-    let common = ["render", arg(&input), "--out", arg(&out), "--size", "64x48"];
+    let common = [
+        "render",
+        path_arg(&input),
+        "--out",
+        path_arg(&out),
+        "--size",
+        "64x48",
+    ];
     let (image, size) = legend(
         &[
             &common[..],
-            &["--color", "elevation", "--legend", arg(&ramp)],
+            &["--color", "elevation", "--legend", path_arg(&ramp)],
         ]
         .concat(),
     );
@@ -315,7 +325,7 @@ fn the_legend_is_a_png_of_the_ramp_or_the_swatches() {
     let (image, size) = legend(
         &[
             &common[..],
-            &["--color", "classification", "--legend", arg(&classes)],
+            &["--color", "classification", "--legend", path_arg(&classes)],
         ]
         .concat(),
     );

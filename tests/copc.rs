@@ -11,16 +11,12 @@ use std::process::Output;
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_tests::{
     assert_fails_saying, assert_ok, assert_pngs_alike, assert_same_frames, copc_file, json_lines,
-    output_text, pointfarm, pointfarm_ok,
+    output_text, path_arg, pointfarm, pointfarm_ok,
 };
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("test paths are UTF-8")
-}
 
 /// `pointfarm render INPUT --out OUT ARGS...`, which must succeed.
 fn render_ok(input: &Path, out: &Path, args: &[&str]) -> Output {
-    let mut all = vec!["render", arg(input), "--out", arg(out)];
+    let mut all = vec!["render", path_arg(input), "--out", path_arg(out)];
     all.extend_from_slice(args);
     pointfarm_ok(&all)
 }
@@ -51,7 +47,7 @@ fn a_copc_file_renders_node_by_node_as_its_points_read_whole() {
             "--lod-error",
             "0",
             "--cache-dir",
-            arg(&cache),
+            path_arg(&cache),
             "--json",
         ],
     );
@@ -113,19 +109,25 @@ fn a_coarse_pixel_error_reads_less_than_the_file() {
 fn a_copc_file_is_previewed_from_coarse_cuts_then_rendered_final() {
     let dir = tempfile::tempdir().expect("tempdir");
     let scene = dir.path().join("scene.laz");
-    pointfarm_ok(&["sample", arg(&scene), "--points", "300000"]);
+    pointfarm_ok(&["sample", path_arg(&scene), "--points", "300000"]);
     let copc = dir.path().join("scene.copc.laz");
     let cache = dir.path().join("cache");
     pointfarm_ok(&[
         "export",
-        arg(&scene),
+        path_arg(&scene),
         "--copc",
-        arg(&copc),
+        path_arg(&copc),
         "--cache-dir",
-        arg(&cache),
+        path_arg(&cache),
     ]);
     let render = |out: &Path, more: &[&str]| {
-        let mut args = vec!["render", arg(&copc), "--out", arg(out), "--size=160x120"];
+        let mut args = vec![
+            "render",
+            path_arg(&copc),
+            "--out",
+            path_arg(out),
+            "--size=160x120",
+        ];
         args.extend(["--turntable", "3", "--lod-error", "0.5", "--json"]);
         args.extend_from_slice(more);
         pointfarm_ok(&args)
@@ -206,9 +208,9 @@ fn a_damaged_copc_hierarchy_is_refused_naming_the_file() {
     let damaged = damaged_copc(dir.path());
     let output = pointfarm(&[
         "render",
-        arg(&damaged),
+        path_arg(&damaged),
         "--out",
-        arg(&dir.path().join("x.png")),
+        path_arg(&dir.path().join("x.png")),
     ]);
     assert_fails_saying(&output, "damaged.copc.laz: COPC hierarchy is inconsistent");
 
@@ -236,9 +238,15 @@ fn a_chunk_table_of_ones_is_an_error_naming_the_file_on_every_path() {
     let damaged = copc_with_a_chunk_table_of_ones(dir.path());
     let out = dir.path().join("x.png");
     for args in [
-        vec!["info", arg(&damaged)],
-        vec!["render", arg(&damaged), "--out", arg(&out)],
-        vec!["render", arg(&damaged), "--out", arg(&out), "--preview"],
+        vec!["info", path_arg(&damaged)],
+        vec!["render", path_arg(&damaged), "--out", path_arg(&out)],
+        vec![
+            "render",
+            path_arg(&damaged),
+            "--out",
+            path_arg(&out),
+            "--preview",
+        ],
     ] {
         let output = pointfarm(&args);
         assert_fails_saying(&output, "ones.copc.laz");
@@ -268,7 +276,7 @@ fn a_copc_dataset_renders_through_the_service_from_its_own_hierarchy() {
     let worker = pointfarm_tests::WorkerProcess::start(&server.address, &worker_cache, "far");
     let remote_render = |file: &Path, out: &str, more: &[&str]| {
         let out = dir.path().join(out);
-        let mut args = vec!["render", arg(file), "--out", arg(&out), "--json"];
+        let mut args = vec!["render", path_arg(file), "--out", path_arg(&out), "--json"];
         args.extend(["--server", &server.address]);
         if !more.iter().any(|arg| arg.starts_with("--size")) {
             args.push("--size=200x150");
@@ -359,7 +367,7 @@ fn a_copc_dataset_renders_through_the_service_from_its_own_hierarchy() {
 
 /// The one file's `FileDescription` of `info --no-points --json`.
 fn info_json(file: &Path) -> serde_json::Value {
-    let output = pointfarm_ok(&["info", arg(file), "--no-points", "--json"]);
+    let output = pointfarm_ok(&["info", path_arg(file), "--no-points", "--json"]);
     let description: serde_json::Value =
         serde_json::from_slice(&output.stdout).expect("one JSON document");
     description["files"][0].clone()
@@ -381,7 +389,7 @@ fn info_describes_a_copc_files_octree() {
     assert_eq!(one_page["copc"]["hierarchyPages"], 1);
     let text = output_text(&pointfarm_ok(&[
         "info",
-        arg(&copc_file("simple.copc.laz")),
+        path_arg(&copc_file("simple.copc.laz")),
         "--no-points",
     ]));
     assert!(text.contains("copc        65 nodes in 4 levels"), "{text}");

@@ -2,7 +2,7 @@
 //! client the server's paths: a real `pointfarm serve` with a `--data-root`, real symbolic
 //! links, a real FIFO, and its gRPC API called as a client and as a worker would.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use pointfarm_proto::v1 as pb;
@@ -10,6 +10,7 @@ use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::sample::sample_scene;
+use pointfarm_tests::path_arg;
 use pointfarm_tests::service::{clients, connect};
 use pointfarm_tests::ServeProcess;
 use tonic::transport::Channel;
@@ -17,10 +18,6 @@ use tonic::{Code, Status};
 
 /// Longer than any of these calls takes; a call that blocks is stopped here.
 const CALL_TIMEOUT: Duration = Duration::from_secs(20);
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
 
 /// A scratch folder (canonical) with a data root `root` holding `tiles/a.las`, a folder
 /// `outside` beside it holding `secret.las`, and a daemon without a worker serving `root`.
@@ -49,7 +46,7 @@ impl Farm {
         .expect("outside file");
         let server = ServeProcess::start_with(
             &base.join("data"),
-            &["--no-embedded-worker", "--data-root", arg(&root)],
+            &["--no-embedded-worker", "--data-root", path_arg(&root)],
         );
         Self {
             _scratch: scratch,
@@ -146,7 +143,7 @@ impl Farm {
 
     fn assert_no_server_path(&self, message: &str) {
         assert!(
-            !message.contains(arg(&self.base)),
+            !message.contains(path_arg(&self.base)),
             "a client is shown a server path: {message}"
         );
     }
@@ -247,7 +244,7 @@ async fn links_out_of_the_data_roots_are_never_registered_and_never_served() {
     let log = farm.server.log();
     assert!(
         log.contains("refused: a symbolic link leads outside the data roots")
-            && log.contains(arg(&farm.outside)),
+            && log.contains(path_arg(&farm.outside)),
         "the operator's log names the link's target:\n{log}"
     );
 }
@@ -320,7 +317,7 @@ async fn a_link_loop_inside_the_roots_is_walked_once() {
     assert_eq!(names, ["a.las", "b.las"]);
     assert_eq!(
         dataset.files[1].path,
-        arg(&farm.root.join("other/b.las")),
+        path_arg(&farm.root.join("other/b.las")),
         "kept as the file it resolves to"
     );
 }
@@ -339,7 +336,7 @@ async fn errors_about_a_registered_files_name_it_by_dataset_and_name() {
     assert!(error.starts_with("tiles/a.las: "), "{error}");
     farm.assert_no_server_path(error);
     assert!(
-        farm.server.log().contains(arg(&farm.root)),
+        farm.server.log().contains(path_arg(&farm.root)),
         "the operator's log has the full path:\n{}",
         farm.server.log()
     );

@@ -13,14 +13,11 @@ use std::process::Command;
 use las::copc::{BoundsSelection, CopcReader, LodSelection};
 use pointfarm_proto::v1 as pb;
 
+use pointfarm_tests::datasets::add_with_cli;
 use pointfarm_tests::{
-    assert_fails_saying, assert_ok, json_lines, pointfarm, run_ok, shared_data, stdout,
+    assert_fails_saying, assert_ok, json_lines, path_arg, pointfarm, run_ok, shared_data, stdout,
     test_python, ServeProcess,
 };
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
 
 /// What the export tests compare of a COPC file, read with the `las` crate's COPC reader.
 #[derive(Debug, PartialEq)]
@@ -157,8 +154,8 @@ fn export_writes_a_copc_file_that_laspy_and_the_las_crate_read_as_the_scan() {
     let out = dir.path().join("autzen.copc.laz");
     let cache = dir.path().join("cache");
     let export = |extra: &[&str]| {
-        let mut args = vec!["export", arg(&scan), "--copc", arg(&out)];
-        args.extend(["--cache-dir", arg(&cache)]);
+        let mut args = vec!["export", path_arg(&scan), "--copc", path_arg(&out)];
+        args.extend(["--cache-dir", path_arg(&cache)]);
         args.extend(extra);
         pointfarm(&args)
     };
@@ -168,7 +165,7 @@ fn export_writes_a_copc_file_that_laspy_and_the_las_crate_read_as_the_scan() {
     let [report] = lines.as_slice() else {
         panic!("one object:\n{}", stdout(&output));
     };
-    assert_eq!(report["file"], arg(&out), "{report}");
+    assert_eq!(report["file"], path_arg(&out), "{report}");
     assert_eq!(report["points"], 110_000, "{report}");
     assert_eq!(report["pointFormat"], 7, "{report}");
     assert_eq!(report["scale"][0], 0.01, "the scan's own scale: {report}");
@@ -203,11 +200,11 @@ fn export_writes_a_copc_file_that_laspy_and_the_las_crate_read_as_the_scan() {
     let nowhere = dir.path().join("missing").join("out.copc.laz");
     let output = pointfarm(&[
         "export",
-        arg(&scan),
+        path_arg(&scan),
         "--copc",
-        arg(&nowhere),
+        path_arg(&nowhere),
         "--cache-dir",
-        arg(&cache),
+        path_arg(&cache),
     ]);
     assert_fails_saying(&output, "does not exist");
     assert!(!nowhere.parent().expect("folder").exists());
@@ -221,13 +218,11 @@ fn dataset_export_streams_the_servers_copc_file() {
     let dir = tempfile::tempdir().expect("tempdir");
     let server = ServeProcess::start(&dir.path().join("data"));
     let address = server.address.clone();
-    let added = pointfarm(&["dataset", "add", arg(&scan), "--server", &address, "--json"]);
-    assert_ok(&added);
-    let dataset: pb::Dataset = serde_json::from_str(stdout(&added).trim()).expect("a Dataset");
+    let dataset = add_with_cli(&address, &scan);
 
     // `pointfarm dataset export ID --copc OUT` through the server, and `more` flags.
     let export = |id: &str, out: &Path, more: &[&str]| {
-        let mut args = vec!["dataset", "export", id, "--copc", arg(out), "--server"];
+        let mut args = vec!["dataset", "export", id, "--copc", path_arg(out), "--server"];
         args.push(&address);
         args.extend_from_slice(more);
         pointfarm(&args)
@@ -239,7 +234,7 @@ fn dataset_export_streams_the_servers_copc_file() {
     let [report] = lines.as_slice() else {
         panic!("one object:\n{}", stdout(&output));
     };
-    assert_eq!(report["file"], arg(&out), "{report}");
+    assert_eq!(report["file"], path_arg(&out), "{report}");
     let summary: pb::ExportSummary =
         serde_json::from_value(report["summary"].clone()).expect("an ExportSummary");
     let facts = read_facts(&out);
@@ -433,11 +428,11 @@ fn assert_round_trip(python: &Path, source: &Path, dir: &Path, expected_format: 
     let cache = dir.join("cache");
     let output = pointfarm(&[
         "export",
-        arg(source),
+        path_arg(source),
         "--copc",
-        arg(&out),
+        path_arg(&out),
         "--cache-dir",
-        arg(&cache),
+        path_arg(&cache),
         "--json",
     ]);
     assert_ok(&output);

@@ -9,12 +9,12 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
-use pointfarm_proto::v1 as pb;
 use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteSettings};
+use pointfarm_tests::datasets::add_with_cli;
 use pointfarm_tests::s3s::{self, S3Bucket, S3sServer};
 use pointfarm_tests::{
     assert_fails_saying, assert_ok, assert_one_error_line, json_lines, output_text, path_arg,
-    pointfarm_bin, pointfarm_ok, shared_data, stdout, ServeProcess,
+    pointfarm_bin, shared_data, ServeProcess,
 };
 
 /// The bucket every test writes to: a folder of the server's root.
@@ -188,15 +188,7 @@ fn a_dataset_exported_by_the_server_to_s3_is_the_file_it_exports_here() {
     let dir = &exports.dir;
     let server = ServeProcess::start(&dir.path().join("data"));
     let address = server.address.clone();
-    let added = pointfarm_ok(&[
-        "dataset",
-        "add",
-        path_arg(&scan),
-        "--server",
-        &address,
-        "--json",
-    ]);
-    let dataset: pb::Dataset = serde_json::from_str(stdout(&added).trim()).expect("a Dataset");
+    let dataset = add_with_cli(&address, &scan);
     let here = dir.path().join("here.copc.laz");
     let export = |out: &str, more: &[&str]| {
         let mut args = vec!["dataset", "export", &dataset.id, "--copc", out];

@@ -10,18 +10,19 @@ use pointfarm_render::ingest::load_point_cloud;
 use pointfarm_tests::service::{
     daemon_with_sample, run_job, scan, still_clipped_outside_the_sample,
 };
-use pointfarm_tests::{assert_fails_saying, assert_ok, pointfarm, stdout};
-
-fn arg(path: &Path) -> String {
-    path.to_str().expect("a UTF-8 path").to_string()
-}
+use pointfarm_tests::{assert_fails_saying, assert_ok, path_arg, pointfarm, stdout};
 
 /// `render FILE --local` at a small size into `dir`/`name`, with `options`.
 fn render(file: &Path, dir: &Path, name: &str, options: &[&str]) -> std::process::Output {
-    let file = arg(file);
-    let out = arg(&dir.join(name));
+    let out = dir.join(name);
     let mut args = vec![
-        "render", &file, "--local", "--size", "160x120", "--out", &out,
+        "render",
+        path_arg(file),
+        "--local",
+        "--size",
+        "160x120",
+        "--out",
+        path_arg(&out),
     ];
     args.extend_from_slice(options);
     pointfarm(&args)
@@ -102,12 +103,18 @@ fn a_clip_box_frames_its_part_in_both_paths_alike() {
     assert_ok(&resident);
     assert_eq!(line_after(&stdout(&resident), "bounds:"), expected);
 
-    let cache = arg(&dir.path().join("stores"));
+    let cache = dir.path().join("stores");
     let cut = render(
         &file,
         dir.path(),
         "cut.png",
-        &[&clip_flag, "--lod-error", "0", "--cache-dir", &cache],
+        &[
+            &clip_flag,
+            "--lod-error",
+            "0",
+            "--cache-dir",
+            path_arg(&cache),
+        ],
     );
     assert_ok(&cut);
     // The store's bounds are the files' header bounds, rounded to their scale: the framing

@@ -6,12 +6,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use pointfarm_tests::{assert_ok, installed_or_skip, pointfarm, shared_data, stdout};
+use pointfarm_tests::{assert_ok, installed_or_skip, path_arg, pointfarm, shared_data, stdout};
 use serde_json::Value;
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
 
 fn gdal_installed() -> bool {
     installed_or_skip("gdalinfo", "--version", "deploy/test.sh installs gdal-bin")
@@ -57,7 +53,7 @@ fn render_top(
     let height = height.to_string();
     let mut args = vec![
         "render",
-        arg(scan),
+        path_arg(scan),
         "--local",
         "--size",
         size,
@@ -69,7 +65,7 @@ fn render_top(
         "--camera-pos",
         &position,
         "--out",
-        arg(out),
+        path_arg(out),
     ];
     // North up the image unless `extra` says otherwise.
     if !extra.contains(&"--camera-up") {
@@ -215,17 +211,22 @@ fn only_a_top_view_is_placed_and_a_cloud_without_a_crs_says_so() {
     }
     let dir = tempfile::tempdir().expect("tempdir");
     let cloud = dir.path().join("sample.laz");
-    assert_ok(&pointfarm(&["sample", arg(&cloud), "--points", "20000"]));
+    assert_ok(&pointfarm(&[
+        "sample",
+        path_arg(&cloud),
+        "--points",
+        "20000",
+    ]));
 
     let oblique = dir.path().join("oblique.tif");
     let output = pointfarm(&[
         "render",
-        arg(&cloud),
+        path_arg(&cloud),
         "--local",
         "--size",
         "96x64",
         "--out",
-        arg(&oblique),
+        path_arg(&oblique),
     ]);
     assert_ok(&output);
     assert!(stdout(&output).contains("TIFF frames are not georeferenced"));

@@ -14,18 +14,14 @@ use std::time::Duration;
 use pointfarm_tests::s3s::{self, S3Bucket};
 use pointfarm_tests::service::scan;
 use pointfarm_tests::{
-    assert_fails_saying, assert_ok, output_text, pointfarm, pointfarm_bin, pointfarm_ok, stdout,
-    wait_for, ServeProcess,
+    assert_fails_saying, assert_ok, output_text, path_arg, pointfarm, pointfarm_bin, pointfarm_ok,
+    stdout, wait_for, ServeProcess,
 };
 
 /// The bucket the farm writes to: a folder of the S3 server's root.
 const BUCKET: &str = "pointfarm-renders";
 /// The prefix the operator allows.
 const ALLOWED: &str = "s3://pointfarm-renders/farm";
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
 
 /// A farm writing outputs to object storage: an S3 server over a fresh root holding the
 /// bucket, a daemon allowed to write under `ALLOWED` with the server's endpoint and
@@ -76,7 +72,7 @@ impl OutputFarm {
             "fetch",
             id,
             "--out",
-            arg(&fetched),
+            path_arg(&fetched),
             "--server",
             &self.server.address,
         ]);
@@ -91,7 +87,7 @@ fn submit(farm: &OutputFarm, frames: u32, url: &str) -> String {
     let out = farm.dir.path().join("out");
     let output = pointfarm_ok(&[
         "render",
-        arg(&farm.scan),
+        path_arg(&farm.scan),
         "--server",
         &farm.server.address,
         "--turntable",
@@ -99,7 +95,7 @@ fn submit(farm: &OutputFarm, frames: u32, url: &str) -> String {
         "--size",
         "64x48",
         "--out",
-        arg(&out),
+        path_arg(&out),
         "--detach",
         "--output-url",
         url,
@@ -169,13 +165,13 @@ fn an_output_url_outside_the_operators_prefixes_is_refused_naming_the_rule() {
     let (dir, scan) = (&farm.dir, &farm.scan);
     let refused = pointfarm(&[
         "render",
-        arg(scan),
+        path_arg(scan),
         "--server",
         &farm.server.address,
         "--size",
         "32x24",
         "--out",
-        arg(&dir.path().join("out.png")),
+        path_arg(&dir.path().join("out.png")),
         "--output-url",
         "s3://pointfarm-renders/farm-other/x",
     ]);
@@ -183,11 +179,11 @@ fn an_output_url_outside_the_operators_prefixes_is_refused_naming_the_rule() {
     assert_fails_saying(&refused, "allows only s3://pointfarm-renders/farm");
     let not_s3 = pointfarm(&[
         "render",
-        arg(scan),
+        path_arg(scan),
         "--server",
         &farm.server.address,
         "--out",
-        arg(&dir.path().join("out.png")),
+        path_arg(&dir.path().join("out.png")),
         "--output-url",
         "https://example.com/renders/",
     ]);
@@ -198,11 +194,11 @@ fn an_output_url_outside_the_operators_prefixes_is_refused_naming_the_rule() {
     let bare = ServeProcess::start(&dir.path().join("bare"));
     let refused = pointfarm(&[
         "render",
-        arg(scan),
+        path_arg(scan),
         "--server",
         &bare.address,
         "--out",
-        arg(&dir.path().join("out.png")),
+        path_arg(&dir.path().join("out.png")),
         "--output-url",
         "s3://pointfarm-renders/farm/x",
     ]);
@@ -244,7 +240,7 @@ fn a_jobs_video_appears_beside_its_frames_under_the_output_url() {
     let video = dir.path().join("spin.webm");
     assert_ok(&pointfarm(&[
         "render",
-        arg(&farm.scan),
+        path_arg(&farm.scan),
         "--server",
         &server.address,
         "--turntable",
@@ -252,9 +248,9 @@ fn a_jobs_video_appears_beside_its_frames_under_the_output_url() {
         "--size",
         "48x32",
         "--out",
-        arg(&dir.path().join("frames")),
+        path_arg(&dir.path().join("frames")),
         "--video",
-        arg(&video),
+        path_arg(&video),
         "--output-url",
         &format!("{ALLOWED}/with-video"),
     ]));

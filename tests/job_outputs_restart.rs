@@ -13,7 +13,9 @@ use std::time::Duration;
 
 use pointfarm_tests::s3s::S3Bucket;
 use pointfarm_tests::service::scan;
-use pointfarm_tests::{free_address, pointfarm_bin, pointfarm_ok, stdout, wait_for, ServeProcess};
+use pointfarm_tests::{
+    free_address, path_arg, pointfarm_bin, pointfarm_ok, stdout, wait_for, ServeProcess,
+};
 
 /// The bucket the farm writes to: a folder of the S3 server's root.
 const BUCKET: &str = "pointfarm-renders";
@@ -21,10 +23,6 @@ const BUCKET: &str = "pointfarm-renders";
 const ALLOWED: &str = "s3://pointfarm-renders/farm";
 const OUTPUT_URL: &str = "s3://pointfarm-renders/farm/resumed";
 const FRAMES: u32 = 3;
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
 
 /// `pointfarm serve` on `data`, logging to `log`, with `bucket`'s credentials and its
 /// endpoint replaced by `endpoint` when given.
@@ -85,7 +83,7 @@ fn outputs_waiting_when_the_daemon_is_killed_reach_the_bucket_after_it_starts_ag
     let frames = FRAMES.to_string();
     let submitted = pointfarm_ok(&[
         "render",
-        arg(&scan),
+        path_arg(&scan),
         "--server",
         &address,
         "--turntable",
@@ -93,7 +91,7 @@ fn outputs_waiting_when_the_daemon_is_killed_reach_the_bucket_after_it_starts_ag
         "--size",
         "64x48",
         "--out",
-        arg(&dir.path().join("out")),
+        path_arg(&dir.path().join("out")),
         "--detach",
         "--output-url",
         OUTPUT_URL,
@@ -138,7 +136,7 @@ fn outputs_waiting_when_the_daemon_is_killed_reach_the_bucket_after_it_starts_ag
         "fetch",
         &id,
         "--out",
-        arg(&fetched),
+        path_arg(&fetched),
         "--server",
         &address,
     ]);

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use pointfarm_tests::{
-    assert_fails_saying, assert_ok, installed_or_skip, pointfarm, pointfarm_bin,
+    assert_fails_saying, assert_ok, installed_or_skip, path_arg, pointfarm, pointfarm_bin,
 };
 
 /// A temporary folder holding one small generated cloud.
@@ -18,7 +18,7 @@ struct Scene {
 impl Scene {
     fn new() -> Self {
         let dir = tempfile::tempdir().expect("tempdir");
-        let cloud = arg(&dir.path().join("sample.laz"));
+        let cloud = path_arg(&dir.path().join("sample.laz")).to_owned();
         assert_ok(&pointfarm(&["sample", &cloud, "--points", "20000"]));
         Self { dir, cloud }
     }
@@ -33,10 +33,6 @@ impl Scene {
         args.extend(options);
         pointfarm(&args)
     }
-}
-
-fn arg(path: &Path) -> String {
-    path.to_str().expect("UTF-8 temporary paths").to_owned()
 }
 
 /// The image format the file's bytes are in, whatever its name says.
@@ -76,7 +72,7 @@ fn a_still_is_written_in_the_format_its_extension_names() {
         ("still.tiff", image::ImageFormat::Tiff),
     ] {
         let path = scene.path(name);
-        assert_ok(&scene.render(&["--out", &arg(&path)]));
+        assert_ok(&scene.render(&["--out", path_arg(&path)]));
         assert_eq!(format_of(&path), format, "{name}");
         let image = image::open(&path).expect("readable");
         assert_eq!((image.width(), image.height()), (96, 64), "{name}");
@@ -86,11 +82,11 @@ fn a_still_is_written_in_the_format_its_extension_names() {
         }
     }
     let bmp = scene.path("still.bmp");
-    assert_fails_saying(&scene.render(&["--out", &arg(&bmp)]), ".jpg/.jpeg");
+    assert_fails_saying(&scene.render(&["--out", path_arg(&bmp)]), ".jpg/.jpeg");
     assert_fails_saying(
         &scene.render(&[
             "--out",
-            &arg(&scene.path("t.jpg")),
+            path_arg(&scene.path("t.jpg")),
             "--background",
             "transparent",
         ]),
@@ -102,14 +98,14 @@ fn a_still_is_written_in_the_format_its_extension_names() {
 fn a_turntable_goes_to_a_folder_or_a_pattern_never_over_one_file() {
     let scene = Scene::new();
     let pattern = scene.path("shots/orbit_{:03}.jpg");
-    assert_ok(&scene.render(&["--turntable", "2", "--out", &arg(&pattern)]));
+    assert_ok(&scene.render(&["--turntable", "2", "--out", path_arg(&pattern)]));
     for i in 0..2 {
         let frame = scene.path(&format!("shots/orbit_{i:03}.jpg"));
         assert_eq!(format_of(&frame), image::ImageFormat::Jpeg);
     }
     let file = scene.path("foo.png");
     assert_fails_saying(
-        &scene.render(&["--turntable", "2", "--out", &arg(&file)]),
+        &scene.render(&["--turntable", "2", "--out", path_arg(&file)]),
         "writes many frames",
     );
     assert!(!file.exists(), "nothing is made of a refused --out");
@@ -122,7 +118,7 @@ fn a_depth_image_comes_with_its_near_far_and_camera() {
     // Unshaded: EDL darkens background pixels beside the points, which have no depth.
     assert_ok(&scene.render(&[
         "--out",
-        &arg(&out),
+        path_arg(&out),
         "--depth",
         "--shading",
         "none",
@@ -183,15 +179,15 @@ fn a_video_holds_exactly_the_frames_of_its_render() {
     let scene = Scene::new();
     let frames = scene.path("frames");
     // Frames of an earlier, longer render in the same folder.
-    assert_ok(&scene.render(&["--turntable", "6", "--out", &arg(&frames)]));
+    assert_ok(&scene.render(&["--turntable", "6", "--out", path_arg(&frames)]));
     let video = scene.path("turn.mp4");
     assert_ok(&scene.render(&[
         "--turntable",
         "3",
         "--out",
-        &arg(&frames),
+        path_arg(&frames),
         "--video",
-        &arg(&video),
+        path_arg(&video),
         "--fps",
         "10",
         "--video-quality",
@@ -203,9 +199,9 @@ fn a_video_holds_exactly_the_frames_of_its_render() {
         "--turntable",
         "4",
         "--out",
-        &arg(&scene.path("jpegs/f_{}.jpg")),
+        path_arg(&scene.path("jpegs/f_{}.jpg")),
         "--video",
-        &arg(&gif),
+        path_arg(&gif),
     ]));
     assert_eq!(format_of(&gif), image::ImageFormat::Gif);
     assert_eq!(video_frames(&gif), 4);
@@ -215,7 +211,7 @@ fn a_video_holds_exactly_the_frames_of_its_render() {
 fn a_video_that_cannot_be_made_is_refused_before_any_frame_is_rendered() {
     let scene = Scene::new();
     let frames = scene.path("frames");
-    let video = arg(&scene.path("turn.mp4"));
+    let video = scene.path("turn.mp4");
     // No ffmpeg on the PATH.
     let output = Command::new(pointfarm_bin())
         .args(["render", &scene.cloud, "--local", "--size", "96x64"])
@@ -223,28 +219,29 @@ fn a_video_that_cannot_be_made_is_refused_before_any_frame_is_rendered() {
             "--turntable",
             "2",
             "--out",
-            &arg(&frames),
+            path_arg(&frames),
             "--video",
-            &video,
+            path_arg(&video),
         ])
         .env("PATH", scene.path("empty"))
         .output()
         .expect("run pointfarm");
     assert_fails_saying(&output, "ffmpeg is not installed");
     assert!(!frames.exists(), "no frame rendered");
-    let elsewhere = arg(&scene.path("absent/turn.mp4"));
-    let output = scene.render(&[
-        "--turntable",
-        "2",
-        "--out",
-        &arg(&frames),
-        "--video",
-        &elsewhere,
-    ]);
+    let turntable_to = |out: &Path, video: &Path| {
+        scene.render(&[
+            "--turntable",
+            "2",
+            "--out",
+            path_arg(out),
+            "--video",
+            path_arg(video),
+        ])
+    };
+    let output = turntable_to(&frames, &scene.path("absent/turn.mp4"));
     assert_fails_saying(&output, "does not exist");
     assert!(!frames.exists(), "no frame rendered");
-    let tiff = scene.path("tiffs/f_{}.tif");
-    let output = scene.render(&["--turntable", "2", "--out", &arg(&tiff), "--video", &video]);
+    let output = turntable_to(&scene.path("tiffs/f_{}.tif"), &video);
     assert_fails_saying(&output, "TIFF frames cannot be piped");
     assert!(!scene.path("tiffs").exists(), "no frame rendered");
 }
@@ -253,7 +250,7 @@ fn a_video_that_cannot_be_made_is_refused_before_any_frame_is_rendered() {
 fn the_camera_a_render_prints_gives_the_same_picture_again() {
     let scene = Scene::new();
     let (first, again) = (scene.path("top.png"), scene.path("again.png"));
-    let output = scene.render(&["--out", &arg(&first), "--view", "top", "--ortho"]);
+    let output = scene.render(&["--out", path_arg(&first), "--view", "top", "--ortho"]);
     assert_ok(&output);
     let text = String::from_utf8_lossy(&output.stdout);
     assert!(text.contains("bounds: x "), "{text}");
@@ -279,7 +276,7 @@ fn a_camera_path_file_renders_its_frames() {
     let scene = Scene::new();
     // The cloud's bounds, as a render reports them.
     let still = scene.path("still.png");
-    let output = scene.render(&["--out", &arg(&still), "--json"]);
+    let output = scene.render(&["--out", path_arg(&still), "--json"]);
     assert_ok(&output);
     let frame: serde_json::Value = serde_json::from_slice(&output.stdout).expect("one JSON object");
     let corner = |key: &str| -> Vec<f64> {
@@ -306,7 +303,7 @@ fn a_camera_path_file_renders_its_frames() {
     );
     std::fs::write(&path, text).expect("path file");
     let frames = scene.path("path-frames");
-    assert_ok(&scene.render(&["--camera-path", &arg(&path), "--out", &arg(&frames)]));
+    assert_ok(&scene.render(&["--camera-path", path_arg(&path), "--out", path_arg(&frames)]));
     let images: Vec<image::RgbaImage> = (0..3)
         .map(|i| {
             image::open(frames.join(format!("frame_{i:05}.png")))
@@ -336,11 +333,11 @@ fn a_camera_path_file_renders_its_frames() {
     let potree_frames = scene.path("potree-frames");
     let output = scene.render(&[
         "--camera-path",
-        &arg(&project),
+        path_arg(&project),
         "--fps",
         "6",
         "--out",
-        &arg(&potree_frames),
+        path_arg(&potree_frames),
     ]);
     assert_ok(&output);
     let said = String::from_utf8_lossy(&output.stderr);
@@ -359,11 +356,21 @@ fn a_camera_path_file_renders_its_frames() {
     let broken = scene.path("broken.json");
     std::fs::write(&broken, "{\"frames\": 3, \"keyframes\": [], \"speed\": 1}").expect("file");
     assert_fails_saying(
-        &scene.render(&["--camera-path", &arg(&broken), "--out", &arg(&frames)]),
+        &scene.render(&[
+            "--camera-path",
+            path_arg(&broken),
+            "--out",
+            path_arg(&frames),
+        ]),
         "broken.json is not a camera path",
     );
     assert_fails_saying(
-        &scene.render(&["--out", &arg(&still), "--video", &arg(&scene.path("v.mp4"))]),
+        &scene.render(&[
+            "--out",
+            path_arg(&still),
+            "--video",
+            path_arg(&scene.path("v.mp4")),
+        ]),
         "--video needs frames",
     );
 }
@@ -385,7 +392,7 @@ fn adaptive_points_close_a_sparse_cloud_and_say_their_size() {
         image.pixels().filter(|p| **p != background).count()
     };
     let (auto, one) = (scene.path("auto.png"), scene.path("one.png"));
-    let output = render(&["--out", &arg(&auto)]);
+    let output = render(&["--out", path_arg(&auto)]);
     assert_ok(&output);
     let text = String::from_utf8_lossy(&output.stdout);
     let line = text
@@ -393,14 +400,14 @@ fn adaptive_points_close_a_sparse_cloud_and_say_their_size() {
         .find_map(|line| line.strip_prefix("point size: 1 to "))
         .unwrap_or_else(|| panic!("no adaptive point size line in {text}"));
     assert!(line.contains("pixels by depth (points about "), "{line}");
-    assert_ok(&render(&["--out", &arg(&one), "--point-size", "1"]));
+    assert_ok(&render(&["--out", path_arg(&one), "--point-size", "1"]));
     let (auto_px, one_px) = (covered(&auto), covered(&one));
     assert!(
         auto_px > one_px * 3 / 2,
         "adaptive points cover {auto_px} pixels, one-pixel points {one_px}"
     );
 
-    let output = render(&["--out", &arg(&auto), "--json"]);
+    let output = render(&["--out", path_arg(&auto), "--json"]);
     assert_ok(&output);
     let frame: serde_json::Value = serde_json::from_slice(&output.stdout).expect("one JSON object");
     assert_eq!(frame["adaptivePointSize"], true, "{frame}");
@@ -410,7 +417,13 @@ fn adaptive_points_close_a_sparse_cloud_and_say_their_size() {
     );
 
     let round = scene.path("round.png");
-    let options = ["--out", &arg(&round), "--point-size", "6", "--round-points"];
+    let options = [
+        "--out",
+        path_arg(&round),
+        "--point-size",
+        "6",
+        "--round-points",
+    ];
     let output = render(&options);
     assert_ok(&output);
     let text = String::from_utf8_lossy(&output.stdout);
@@ -430,7 +443,7 @@ fn an_image_wider_than_one_pass_allows_is_drawn_in_tiles() {
         "--size",
         "16384x1100",
         "--out",
-        &arg(&path),
+        path_arg(&path),
     ]));
     let image = image::open(&path).expect("read").into_rgba8();
     assert_eq!(image.dimensions(), (16384, 1100));

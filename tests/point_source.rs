@@ -6,11 +6,7 @@
 use std::path::Path;
 
 use pointfarm_tests::service::scratch_sample;
-use pointfarm_tests::{json_lines, output_text, pointfarm_ok, ServeProcess};
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
+use pointfarm_tests::{json_lines, output_text, path_arg, pointfarm_ok, ServeProcess};
 
 const FRAMES: [&str; 2] = ["frame_00000.png", "frame_00001.png"];
 
@@ -18,9 +14,9 @@ const FRAMES: [&str; 2] = ["frame_00000.png", "frame_00001.png"];
 fn render(file: &Path, out: &Path, extra: &[&str]) -> Vec<serde_json::Value> {
     let mut args = vec![
         "render",
-        arg(file),
+        path_arg(file),
         "--out",
-        arg(out),
+        path_arg(out),
         "--size=160x120",
         "--turntable",
         "2",
@@ -63,7 +59,7 @@ fn a_small_dataset_whose_store_is_built_renders_from_its_cut_here_and_through_a_
     let (dir, file) = scratch_sample("sample.las", 60_000, 11);
     let cache = dir.path().join("cache");
     let here = |out: &str, extra: &[&str]| {
-        let mut args = vec!["--cache-dir", arg(&cache)];
+        let mut args = vec!["--cache-dir", path_arg(&cache)];
         args.extend(extra);
         render(&file, &dir.path().join(out), &args)
     };
@@ -88,7 +84,7 @@ fn a_small_dataset_whose_store_is_built_renders_from_its_cut_here_and_through_a_
         "export",
         &dataset,
         "--copc",
-        arg(&exported),
+        path_arg(&exported),
         "--server",
         &server.address,
     ]);
@@ -107,14 +103,14 @@ fn a_small_dataset_whose_store_is_built_renders_from_its_cut_here_and_through_a_
     let local_out = dir.path().join("local_stored");
     let said = output_text(&pointfarm_ok(&[
         "render",
-        arg(&file),
+        path_arg(&file),
         "--out",
-        arg(&local_out),
+        path_arg(&local_out),
         "--size=160x120",
         "--turntable",
         "2",
         "--cache-dir",
-        arg(&cache),
+        path_arg(&cache),
     ]));
     assert!(said.contains("levels of detail from"), "{said}");
     let local = here("local_stored_json", &[]);

@@ -14,7 +14,7 @@ use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::BearerToken;
 use pointfarm_tests::pki::TestPki;
 use pointfarm_tests::service::scratch_sample;
-use pointfarm_tests::{test_python, ServeProcess};
+use pointfarm_tests::{path_arg, test_python, ServeProcess};
 
 const TOKEN: &str = "surveyor-s3cret";
 
@@ -34,10 +34,6 @@ fn run_example(python: &Path, cache: &Path, args: &[&str]) -> Output {
         .env_remove("POINTFARM_TLS_CA")
         .output()
         .expect("run the Python example")
-}
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
 }
 
 fn show(output: &Output) -> String {
@@ -128,9 +124,9 @@ async fn the_python_example_uploads_renders_a_camera_path_and_downloads_its_fram
             "--token",
             TOKEN,
             "--tls-cert",
-            arg(&pki.cert),
+            path_arg(&pki.cert),
             "--tls-key",
-            arg(&pki.key),
+            path_arg(&pki.key),
         ],
     );
     // Through TLS, trusting the test's CA; the certificate names localhost.
@@ -168,9 +164,15 @@ async fn the_python_example_uploads_renders_a_camera_path_and_downloads_its_fram
     // The example on the scan through `address`, trusting the test's CA, with `options`,
     // writing into `out`; it must succeed.
     let run_trusting_the_ca = |address: &str, options: &[&str], out: &Path| {
-        let mut args = vec![arg(&scan), "--server", address, "--tls-ca", arg(&pki.ca)];
+        let mut args = vec![
+            path_arg(&scan),
+            "--server",
+            address,
+            "--tls-ca",
+            path_arg(&pki.ca),
+        ];
         args.extend(options);
-        args.extend(["--out", arg(out)]);
+        args.extend(["--out", path_arg(out)]);
         let output = run_example(&python, dir, &args);
         assert_succeeded(&output, &server);
         output
@@ -181,9 +183,9 @@ async fn the_python_example_uploads_renders_a_camera_path_and_downloads_its_fram
         &https,
         &[
             "--token-file",
-            arg(&token_file),
+            path_arg(&token_file),
             "--camera-path",
-            arg(&camera_path),
+            path_arg(&camera_path),
             "--size",
             "64x48",
         ],
@@ -240,7 +242,13 @@ fn a_refused_call_ends_the_python_example_with_one_line_and_a_non_zero_exit() {
             "invalid argument: camera_path.keyframes.frames",
         ),
     ] {
-        let mut args = vec![arg(&scan), "--server", &server.address, "--out", arg(&out)];
+        let mut args = vec![
+            path_arg(&scan),
+            "--server",
+            &server.address,
+            "--out",
+            path_arg(&out),
+        ];
         args.extend(["--token", token]);
         args.extend(more);
         let output = run_example(&python, dir, &args);

@@ -14,13 +14,9 @@ use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteError, RemoteSetti
 use pointfarm_tests::nginx::NginxServer;
 use pointfarm_tests::s3s::{self, S3sServer};
 use pointfarm_tests::{
-    assert_fails_saying, assert_one_error_line, copc_file, json_lines, output_text, pointfarm,
-    pointfarm_bin, pointfarm_ok, stdout,
+    assert_fails_saying, assert_one_error_line, copc_file, json_lines, output_text, path_arg,
+    pointfarm, pointfarm_bin, pointfarm_ok, stdout,
 };
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("test paths are UTF-8")
-}
 
 /// nginx serving a copy of the file at `path` as `scans/SERVED_AS`; None, having said so,
 /// where nginx is not installed.
@@ -32,7 +28,7 @@ fn serve_file(path: &Path, served_as: &str) -> Option<(tempfile::TempDir, NginxS
 /// `pointfarm render INPUT --out OUT --json ARGS...`, which must succeed, and its one frame's
 /// report.
 fn render_json(input: &str, out: &Path, args: &[&str]) -> serde_json::Value {
-    let mut all = vec!["render", input, "--out", arg(out), "--json"];
+    let mut all = vec!["render", input, "--out", path_arg(out), "--json"];
     all.extend_from_slice(args);
     let output = pointfarm_ok(&all);
     let mut frames = json_lines(&output);
@@ -63,8 +59,8 @@ fn a_copc_file_by_url_renders_pixel_for_pixel_as_the_file_here() {
     let args = ["--size=200x150", "--point-size=3", "--lod-error", "0"];
     let here = dir.path().join("here.png");
     let by_url = dir.path().join("url.png");
-    let cache = ["--cache-dir", arg(dir.path())];
-    let local_report = render_json(arg(&local), &here, &[&args[..], &cache[..]].concat());
+    let cache = ["--cache-dir", path_arg(dir.path())];
+    let local_report = render_json(path_arg(&local), &here, &[&args[..], &cache[..]].concat());
     let report = render_json(&url, &by_url, &args);
     assert!(same_pixels(&here, &by_url), "{report}");
     assert_eq!(report["pointsRendered"], local_report["pointsRendered"]);
@@ -78,11 +74,11 @@ fn a_copc_file_by_url_renders_pixel_for_pixel_as_the_file_here() {
 /// reads at open, so that a coarse cut leaves most of the file unread.
 fn exported_scene(dir: &Path) -> PathBuf {
     let scene = dir.join("scene.laz");
-    pointfarm_ok(&["sample", arg(&scene), "--points", "2500000"]);
+    pointfarm_ok(&["sample", path_arg(&scene), "--points", "2500000"]);
     let local = dir.join("scene.copc.laz");
     let cache = dir.join("cache");
-    let export = ["export", arg(&scene), "--copc", arg(&local)];
-    pointfarm_ok(&[&export[..], &["--cache-dir", arg(&cache)]].concat());
+    let export = ["export", path_arg(&scene), "--copc", path_arg(&local)];
+    pointfarm_ok(&[&export[..], &["--cache-dir", path_arg(&cache)]].concat());
     local
 }
 
@@ -99,7 +95,7 @@ fn a_coarse_cut_by_url_fetches_less_than_the_file() {
     let args = ["--size=160x120", "--lod-error", "8"];
     let here = dir.path().join("here.png");
     let by_url = dir.path().join("url.png");
-    let local_report = render_json(arg(&local), &here, &args);
+    let local_report = render_json(path_arg(&local), &here, &args);
     let report = render_json(&url, &by_url, &args);
     assert!(same_pixels(&here, &by_url), "{report}");
     let (requests, fetched_bytes) = fetched(&report);
@@ -182,7 +178,7 @@ fn a_missing_object_is_one_line_naming_its_url() {
     };
     let dir = tempfile::tempdir().expect("tempdir");
     let url = server.url("scans/absent.copc.laz");
-    let output = pointfarm(&["render", &url, "--out", arg(&dir.path().join("a.png"))]);
+    let output = pointfarm(&["render", &url, "--out", path_arg(&dir.path().join("a.png"))]);
     assert_one_error_line(&output, &[&url, "no such object"]);
     let output = pointfarm(&["info", &url]);
     assert_fails_saying(&output, &url);
@@ -207,7 +203,7 @@ fn a_truncated_copc_object_is_a_clear_error_never_a_panic() {
     for (name, _) in &files {
         let url = server.url(&format!("scans/{name}"));
         let out = dir.path().join(format!("{name}.png"));
-        let output = pointfarm(&["render", &url, "--out", arg(&out), "--lod-error", "0"]);
+        let output = pointfarm(&["render", &url, "--out", path_arg(&out), "--lod-error", "0"]);
         assert_one_error_line(&output, &[&url]);
         assert!(!out.exists(), "{name}: no frame from a truncated file");
     }
@@ -217,7 +213,7 @@ fn a_truncated_copc_object_is_a_clear_error_never_a_panic() {
 fn a_plain_laz_file_by_url_renders_from_a_store_built_here_and_an_http_prefix_is_not_listed() {
     let dir = tempfile::tempdir().expect("tempdir");
     let scene = dir.path().join("scene.laz");
-    pointfarm_ok(&["sample", arg(&scene), "--points", "2000"]);
+    pointfarm_ok(&["sample", path_arg(&scene), "--points", "2000"]);
     let Some((_root, server)) = serve_file(&scene, "scene.laz") else {
         return;
     };
@@ -228,20 +224,20 @@ fn a_plain_laz_file_by_url_renders_from_a_store_built_here_and_an_http_prefix_is
         "render",
         &url,
         "--out",
-        arg(&out),
+        path_arg(&out),
         "--cache-dir",
-        arg(&cache),
+        path_arg(&cache),
     ]);
     assert!(image::open(&out).is_ok());
     let prefix = server.url("scans/");
-    let output = pointfarm(&["render", &prefix, "--preview", "--out", arg(&out)]);
+    let output = pointfarm(&["render", &prefix, "--preview", "--out", path_arg(&out)]);
     assert_one_error_line(&output, &[&prefix, "name the files instead"]);
     // A server renders a URL once it is registered there, not as files it is sent.
     let on_server = [
         "render",
         &url,
         "--out",
-        arg(&out),
+        path_arg(&out),
         "--server",
         "http://127.0.0.1:9",
     ];
@@ -262,7 +258,7 @@ fn info_by_url_says_what_info_of_the_file_here_says_of_its_header_and_octree() {
             serde_json::from_str(&String::from_utf8_lossy(&output.stdout)).expect("JSON");
         document["files"][0].clone()
     };
-    let (here, by_url) = (describe(arg(&local)), describe(&url));
+    let (here, by_url) = (describe(path_arg(&local)), describe(&url));
     assert_eq!(by_url["path"], url.as_str());
     // 64-bit counts are strings in the proto3 JSON mapping.
     let nodes = by_url["copc"]["nodes"]
@@ -291,7 +287,7 @@ fn info_by_url_says_what_info_of_the_file_here_says_of_its_header_and_octree() {
             .find(|line| line.trim_start().starts_with("copc"));
         line.expect("a copc line").to_owned()
     };
-    let text_here = stdout(&pointfarm_ok(&["info", arg(&local), "--no-points"]));
+    let text_here = stdout(&pointfarm_ok(&["info", path_arg(&local), "--no-points"]));
     assert_eq!(copc_line(&text), copc_line(&text_here));
 }
 
@@ -314,13 +310,13 @@ fn a_copc_file_from_an_s3_compatible_server_renders_as_the_file_here() {
         "--json",
     ];
     let here = dir.path().join("here.png");
-    let cache = ["--cache-dir", arg(dir.path())];
-    render_json(arg(&local), &here, &[&args[..4], &cache[..]].concat());
+    let cache = ["--cache-dir", path_arg(dir.path())];
+    render_json(path_arg(&local), &here, &[&args[..4], &cache[..]].concat());
     let url = "s3://pointfarm-test/scans/scan.copc.laz";
     let by_url = dir.path().join("s3.png");
     // Credentials reach the client only through the environment.
     let output = Command::new(pointfarm_bin())
-        .args(["render", url, "--out", arg(&by_url)])
+        .args(["render", url, "--out", path_arg(&by_url)])
         .args(args)
         .envs(server.environment())
         .output()
@@ -334,7 +330,7 @@ fn a_copc_file_from_an_s3_compatible_server_renders_as_the_file_here() {
     assert!(requests > 1 && bytes > 0, "{report}");
     let missing = Command::new(pointfarm_bin())
         .args(["render", "s3://pointfarm-test/scans/absent.copc.laz"])
-        .args(["--out", arg(&dir.path().join("absent.png"))])
+        .args(["--out", path_arg(&dir.path().join("absent.png"))])
         .envs(server.environment())
         .output()
         .expect("run pointfarm");

@@ -8,16 +8,14 @@ use std::process::{Command, Output};
 
 use pointfarm_tests::nginx::NginxServer;
 use pointfarm_tests::pki::TestPki;
-use pointfarm_tests::{assert_one_error_line, copc_file, output_text, pointfarm_bin, pointfarm_ok};
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
+use pointfarm_tests::{
+    assert_one_error_line, copc_file, output_text, path_arg, pointfarm_bin, pointfarm_ok,
+};
 
 /// `pointfarm render URL --out OUT ARGS` trusting the roots in `ca` alone.
 fn render_trusting(ca: &Path, url: &str, out: &Path, args: &[&str]) -> Output {
     Command::new(pointfarm_bin())
-        .args(["render", url, "--out", arg(out)])
+        .args(["render", url, "--out", path_arg(out)])
         .args(args)
         .env("SSL_CERT_FILE", ca)
         .env_remove("SSL_CERT_DIR")
@@ -41,9 +39,9 @@ fn a_copc_file_over_https_from_a_private_ca_renders_as_the_file_here() {
     let args = ["--size=200x150", "--point-size=3", "--lod-error", "0"];
     let here = dir.path().join("here.png");
     let cache = dir.path().join("cache");
-    let mut local_args = vec!["render", arg(&local), "--out", arg(&here)];
+    let mut local_args = vec!["render", path_arg(&local), "--out", path_arg(&here)];
     local_args.extend(args);
-    local_args.extend(["--cache-dir", arg(&cache)]);
+    local_args.extend(["--cache-dir", path_arg(&cache)]);
     pointfarm_ok(&local_args);
 
     let by_url = dir.path().join("https.png");

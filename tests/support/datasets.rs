@@ -1,5 +1,7 @@
 //! Datasets registered by path or by URL, as a client of the daemon registers them.
 
+use std::path::Path;
+
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::service::DaemonConfig;
 use pointfarm_proto::v1 as pb;
@@ -8,6 +10,7 @@ use tonic::transport::Channel;
 
 use crate::nginx::NginxServer;
 use crate::service::TestDaemon;
+use crate::{path_arg, pointfarm_ok, stdout};
 
 /// Registers `path`, a file or folder under the daemon's data roots or a URL it allows, as a
 /// dataset, expecting it taken: the set-up of every test that renders a registered dataset.
@@ -23,6 +26,20 @@ pub async fn register_path(
         .await
         .unwrap_or_else(|status| panic!("registering {path}: {status}"))
         .into_inner()
+}
+
+/// Registers the file `path` on the daemon at `address` as a user does, with `pointfarm
+/// dataset add --json`, expecting it taken.
+pub fn add_with_cli(address: &str, path: &Path) -> pb::Dataset {
+    let added = pointfarm_ok(&[
+        "dataset",
+        "add",
+        path_arg(path),
+        "--server",
+        address,
+        "--json",
+    ]);
+    serde_json::from_str(stdout(&added).trim()).expect("a Dataset")
 }
 
 /// A daemon that registers what `server` serves both ways: by URL under its `scans/`, and by
