@@ -144,6 +144,17 @@ fn run(command: &mut Command, server: &ServeProcess) -> Output {
     output
 }
 
+/// The id of the dataset a `render --server` says it rendered.
+fn dataset_of(output: &Output) -> String {
+    let text = output_text(output);
+    let at = text.find(": dataset ds-").expect("the dataset's id") + ": dataset ".len();
+    text[at..]
+        .split_whitespace()
+        .next()
+        .expect("an id")
+        .to_owned()
+}
+
 /// The seconds a daemon's log gives on its first line saying `message`.
 fn seconds_said(log: &str, message: &str) -> Option<f64> {
     let line = log.lines().find(|l| l.contains(message))?;
@@ -238,15 +249,17 @@ fn a_campaign_that_grows_or_drops_a_tile_through_the_server_updates_its_store() 
 
     // Day one: its store is built whole.
     let day1 = dir.path().join("day1.png");
-    run(&mut render(&server, &campaign.day1, &day1, camera), &server);
+    let said = run(&mut render(&server, &campaign.day1, &day1, camera), &server);
+    let day1_id = dataset_of(&said);
     let whole = seconds_said(&server.log(), "levels of detail built").expect("a whole build");
 
     // Day two: the new tile is uploaded, the dataset composed, and its store updated.
     let day2 = dir.path().join("day2.png");
     run(&mut render(&server, &campaign.day2, &day2, camera), &server);
     let log = server.log();
+    let from_day1 = format!("from the store of dataset {day1_id}");
     assert!(
-        log.contains("from the store of") && log.contains(": 1 files added, 0 removed"),
+        log.contains(&format!("{from_day1}: 1 files added, 0 removed")),
         "{log}"
     );
     let updated = seconds_said(&log, "updated the store of").expect("an update");
@@ -261,11 +274,15 @@ fn a_campaign_that_grows_or_drops_a_tile_through_the_server_updates_its_store() 
         100.0 * updated / whole
     );
 
-    // A tile dropped from day one's: updated from day one's store, the nearest.
+    // A tile dropped from day one's: updated from day one's store, the nearest (one tile
+    // removed, where day two's needs two).
     let less = dir.path().join("less.png");
     run(&mut render(&server, &campaign.less, &less, camera), &server);
     let log = server.log();
-    assert!(log.contains(": 0 files added, 1 removed"), "{log}");
+    assert!(
+        log.contains(&format!("{from_day1}: 0 files added, 1 removed")),
+        "{log}"
+    );
     assert_eq!(log.matches("levels of detail built").count(), 1, "{log}");
 
     // Day one's dataset renders as before from its own store, opened again from disk.
