@@ -16,6 +16,10 @@ use super::point::RawPoint;
 use super::sampling::sample;
 use super::sink::{EncodedNode, NodeSink};
 
+/// Levels below a partition its order spans: three digits of the radix sort, deeper than a
+/// partition's octree goes but on a dense spot, whose node is then ordered again from its cube.
+const ORDER_LEVELS: u8 = 8;
+
 /// A built subtree's root: its own points and its sampling grid (0 for a leaf).
 pub struct SubtreeRoot {
     pub points: Vec<RawPoint>,
@@ -76,7 +80,8 @@ impl LocalBuilder<'_> {
                 sample_grid: 0,
             });
         }
-        let order = MortonOrder::below(&self.cube, key, &points, MAX_LEVEL - key.level);
+        let levels = ORDER_LEVELS.min(MAX_LEVEL - key.level);
+        let order = MortonOrder::below(&self.cube, key, &points, levels);
         let ordered = Ordered {
             points: &points,
             order: &order,
@@ -106,8 +111,8 @@ impl LocalBuilder<'_> {
         }
         let depth = u32::from(key.level - ordered.origin);
         if depth == ordered.order.bits() {
-            // The codes end above this node (a partition near the root holding points closer
-            // together than 2^21 cells an axis): its points are ordered again from its cube.
+            // The codes end above this node (a dense spot): its points are ordered again from
+            // its cube.
             return self.build(key, ordered.gather(run), region, kept);
         }
         let children = ordered.order.children(run, depth);

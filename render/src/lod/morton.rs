@@ -9,8 +9,9 @@ use super::point::RawPoint;
 /// The most levels a code spans: three bits a level in a `u64`.
 pub const MAX_CODE_LEVELS: u32 = 21;
 
-/// Bits of one digit of the radix sort: a table of counts a digit fits the first-level cache.
-const DIGIT_BITS: u32 = 11;
+/// Bits of one digit of the radix sort: few enough buckets that each pass writes to a few
+/// hundred places, which the caches hold.
+const DIGIT_BITS: u32 = 8;
 
 /// Below this many entries a comparison sort is quicker than the radix sort's passes.
 const RADIX_MIN_ENTRIES: usize = 1024;
