@@ -128,6 +128,7 @@ mod tests {
     use glam::{DVec3, UVec3};
 
     use super::*;
+    use crate::lod::sampling::tests::unit_random;
 
     fn naive_code(c: UVec3, bits: u32) -> u64 {
         (0..bits).fold(0, |code, bit| {
@@ -170,13 +171,7 @@ mod tests {
         };
         let key = NodeKey::new(2, UVec3::new(1, 3, 0));
         let (min, side) = (cube.node_min(key), cube.side_at(2));
-        let mut state = 99u64;
-        let mut next = move || {
-            state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut next = unit_random(99);
         // Some points on the same spot, so that ties occur.
         let points: Vec<RawPoint> = (0..20_000)
             .map(|i| {

@@ -449,7 +449,7 @@ fn morton(cell: UVec3) -> u32 {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use std::collections::HashMap;
 
     use super::*;
@@ -465,7 +465,7 @@ mod tests {
     }
 
     /// A repeatable sequence of numbers in [0, 1) (a linear congruential generator).
-    fn unit_random(seed: u64) -> impl FnMut() -> f64 {
+    pub(crate) fn unit_random(seed: u64) -> impl FnMut() -> f64 {
         let mut state = seed;
         move || {
             state = state
