@@ -2,10 +2,10 @@
 //! dataset content has a store of its own (`DATA/lod/SHA256`), so a dataset composed of the
 //! files of an earlier one plus a new day's tiles (or less a dropped tile) is a content
 //! without a store. When its store is first needed and another content's finished store
-//! shares most of its files (by their content hashes: at least half of each one's files),
-//! the one needing the fewest files added and removed is copied and the copy updated
-//! (`lod::update_store`): the regions the changed files touch are built again, then the
-//! levels above.
+//! differs from it by a few files (by their content hashes: at most a quarter of its files
+//! added and removed), the one needing the fewest files added and removed is copied and the
+//! copy updated (`lod::update_store`): the regions the changed files touch are built again,
+//! then the levels above.
 //!
 //! The earlier store is only read: its payload file is cloned (a reflink where the file
 //! system has them, a copy otherwise: an update appends to it) and its sled index copied, so
@@ -39,6 +39,10 @@ const CONTENTS_FILE: &str = "contents.txt";
 /// What `render/src/cut/stored.rs` names a store's sled index in its folder.
 const INDEX_FOLDER: &str = "index";
 /// What a store being grown is kept in until it is checked, beside the store's folder.
+/// The files added and removed may be at most this share of a dataset's files for its store
+/// to be grown: past it an update rebuilds most regions and costs about a whole build
+/// (`docs/perf/lod-store-update.md`), and a whole build's store is the one exports match.
+const MAX_CHANGE_SHARE: usize = 4;
 const GROWING_SUFFIX: &str = ".growing";
 
 /// How a store was made from another content's store.
@@ -157,8 +161,9 @@ fn unique<'a>(hashes: impl Iterator<Item = &'a String>) -> bool {
     hashes.into_iter().all(|h| seen.insert(h))
 }
 
-/// A finished store beside `folder` to grow `files` from: one sharing at least half of its
-/// files and of `files`, the fewest files added and removed, the most shared on a tie.
+/// A finished store beside `folder` to grow `files` from: one from which `files` differ by
+/// at most a quarter of their count added and removed (and not none: a store of the same
+/// files is built whole), the fewest, the most shared on a tie.
 fn nearest(folder: &Path, files: &[DatasetFile]) -> Option<(PathBuf, Vec<Listed>)> {
     let wanted: HashSet<&str> = files.iter().map(|f| f.sha256.as_str()).collect();
     let parent = folder.parent()?;
@@ -179,10 +184,11 @@ fn nearest(folder: &Path, files: &[DatasetFile]) -> Option<(PathBuf, Vec<Listed>
             .iter()
             .filter(|f| wanted.contains(f.sha256.as_str()))
             .count();
-        if common == 0 || 2 * common < wanted.len() || 2 * common < list.len() {
+        let change = (wanted.len() - common) + (list.len() - common);
+        let few = change > 0 && change * MAX_CHANGE_SHARE <= wanted.len();
+        if common == 0 || !few {
             continue;
         }
-        let change = (wanted.len() - common) + (list.len() - common);
         let better = best
             .as_ref()
             .is_none_or(|(c, shared, ..)| change < *c || (change == *c && common > *shared));
@@ -423,6 +429,28 @@ mod tests {
             nearest(&dir.path().join("new"), &wanted).is_none(),
             "too few shared"
         );
+    }
+
+    #[test]
+    fn a_store_of_the_same_files_or_too_far_is_no_candidate() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        store(dir.path(), "same", &["a", "b", "c", "d"]);
+        store(dir.path(), "twice", &["a", "b"]);
+        let wanted =
+            |hashes: &[&str]| -> Vec<DatasetFile> { hashes.iter().map(|h| file(h)).collect() };
+        let new = dir.path().join("new");
+        assert!(
+            nearest(&new, &wanted(&["a", "b", "c", "d"])).is_none(),
+            "nothing to change"
+        );
+        let (path, _) = nearest(&new, &wanted(&["a", "b", "c", "d", "e"])).expect("one added");
+        assert_eq!(path.file_name().expect("a name"), "same");
+        assert!(
+            nearest(&new, &wanted(&["a", "b", "c"])).is_none(),
+            "one of three is more than a quarter"
+        );
+        // Two of four removed is more than a quarter.
+        assert!(nearest(&new, &wanted(&["c", "d"])).is_none());
     }
 
     #[test]
