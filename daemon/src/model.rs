@@ -110,6 +110,11 @@ pub struct DatasetFile {
     pub sha256: String,
 }
 
+/// Dataset ids are derived from the content, so the same file always has the same id.
+pub fn dataset_id(sha256: &str) -> String {
+    format!("ds-{}", &sha256[..sha256.len().min(16)])
+}
+
 impl Dataset {
     /// Whether the dataset is read by URL (one COPC object, or tiles) rather than from files
     /// on the server.

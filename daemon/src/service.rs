@@ -538,10 +538,7 @@ pub(crate) fn unique_suffix() -> String {
     format!("{}-{}-{n}", now_unix_ms(), std::process::id())
 }
 
-/// Dataset ids are derived from the content, so the same file always has the same id.
-pub fn dataset_id(sha256: &str) -> String {
-    format!("ds-{}", &sha256[..sha256.len().min(16)])
-}
+pub use crate::model::dataset_id;
 
 /// [`hash_file`] of each of `paths`, in order, several files at once (a campaign's files
 /// hash in parallel; each is read once, sequentially). `done` is told each file's size as

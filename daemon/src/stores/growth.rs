@@ -224,7 +224,7 @@ pub(super) fn grow(
     }
     let (from, earlier) = nearest(folder, files)?;
     let from_sha256 = from.file_name()?.to_string_lossy().into_owned();
-    let from_id = crate::service::dataset_id(&from_sha256);
+    let from_id = crate::model::dataset_id(&from_sha256);
     tracing::info!(dataset = %dataset_id, from = %from_id,
         "updating a copy of the store of dataset {from_id} instead of building the store whole");
     let started = Instant::now();

@@ -3,13 +3,16 @@
 use std::ops::Range;
 use std::time::Duration;
 
+/// The schemes a URL may have, as errors list them.
+pub(crate) const SCHEMES: &str = "s3://, gs://, az://, http://, https:// or file://";
+
 /// A failure of the remote storage layer; URLs never carry credentials (they are refused at
 /// parse time), so every message can be logged as it is.
 #[derive(Debug, thiserror::Error)]
 pub enum RemoteError {
     #[error("{url}: not a dataset URL: {reason}")]
     InvalidUrl { url: String, reason: String },
-    #[error("{url}: the scheme {scheme}:// is not supported (use {schemes})", schemes = super::url::SCHEMES)]
+    #[error("{url}: the scheme {scheme}:// is not supported (use {schemes})", schemes = SCHEMES)]
     UnsupportedScheme { url: String, scheme: String },
     #[error("{url}: not under an allowed prefix: {rule}")]
     NotAllowed { url: String, rule: String },

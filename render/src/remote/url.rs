@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use object_store::path::Path as ObjectPath;
 use url::Url;
 
-use super::error::RemoteError;
+use super::error::{RemoteError, SCHEMES};
 
 /// Longest URL accepted, so that a client cannot make the daemon store or log arbitrary text.
 pub const MAX_URL_LEN: usize = 2048;
@@ -243,9 +243,6 @@ impl std::str::FromStr for ObjectUrl {
         Self::parse(text)
     }
 }
-
-/// The schemes a URL may have, as errors list them.
-pub(crate) const SCHEMES: &str = "s3://, gs://, az://, http://, https:// or file://";
 
 /// The host of a bucket URL, which names the bucket or container, refusing a port.
 fn bucket_of<'a>(url: &'a Url, form: &str) -> Result<&'a str, String> {
