@@ -205,6 +205,8 @@ async fn a_failed_job_is_retried_with_fresh_attempts_and_renders() {
         &["retry", &job.id],
         "is succeeded; only a failed job can be retried",
     );
+    // No worker from here on, so the job below stays queued until it is paused.
+    drop(worker);
 
     // Cancel twice: the second returns the cancelled job as it is.
     let idle = submit(&mut jobs, turntable_job("idle", &dataset.id, 1, 32, 24)).await;
