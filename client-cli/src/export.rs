@@ -49,7 +49,7 @@ pub struct ExportArgs {
 #[derive(Args, Clone)]
 pub struct OutputArgs {
     /// The COPC file to write (by convention NAME.copc.laz); its folder must exist. An
-    /// `s3://bucket/key` URL is written there by a multipart upload (credentials from the
+    /// `s3://bucket/key` (or gs://, az://) URL is written there by a multipart upload (credentials from the
     /// environment, as for reads); the object appears only once the whole file is sent.
     #[arg(long, value_name = "FILE|URL", required = true)]
     pub copc: PathBuf,

@@ -30,8 +30,8 @@ use crate::url_input::{self, Inputs};
 #[derive(Args)]
 pub struct InfoArgs {
     /// LAS/LAZ files, or folders whose .las and .laz files (in subfolders too) are each
-    /// reported; files by URL (s3://, http(s)://), or the .las and .laz objects under an
-    /// s3:// prefix: header and records (and a COPC file's octree), read by range; with
+    /// reported; files by URL (s3://, gs://, az://, http(s)://), or the .las and .laz objects
+    /// under a prefix: header and records (and a COPC file's octree), read by range; with
     /// --server, also dataset ids (an input that is no path here).
     #[arg(required = true, value_name = "INPUT")]
     inputs: Vec<PathBuf>,

@@ -30,8 +30,8 @@ use crate::parse::{self, codec_parser, Rgba};
 #[derive(Args)]
 pub struct RenderArgs {
     /// LAS/LAZ files or folders of them, rendered as one dataset (tiles or scan positions of
-    /// one campaign: one origin, bounds and color decision); or one URL (https://, s3://),
-    /// read by range: a COPC file, or LAS/LAZ tiles (a file, or an s3:// prefix of them),
+    /// one campaign: one origin, bounds and color decision); or one URL (https://, s3://, gs://,
+    /// az://), read by range: a COPC file, or LAS/LAZ tiles (a file, or a prefix of them),
     /// which render with --preview only.
     #[arg(required_unless_present = "dataset", value_name = "INPUT")]
     pub(crate) inputs: Vec<PathBuf>,

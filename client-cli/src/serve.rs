@@ -46,8 +46,8 @@ pub struct ServeArgs {
     /// separated by commas).
     #[arg(long = "data-root", env = "POINTFARM_DATA_ROOT", value_delimiter = ',')]
     data_roots: Vec<PathBuf>,
-    /// A URL prefix (s3://bucket/prefix, https://host/path) clients may register COPC
-    /// objects from by URL, compared by whole path segments (repeatable; in the environment,
+    /// A URL prefix (s3://bucket/prefix, gs://, az://, https://host/path) clients may register
+    /// COPC objects from by URL, compared by whole path segments (repeatable; in the environment,
     /// separated by commas). Without one, no dataset by URL is accepted.
     #[arg(
         long = "allow-url-prefix",
@@ -56,7 +56,7 @@ pub struct ServeArgs {
         value_delimiter = ','
     )]
     allowed_url_prefixes: Vec<String>,
-    /// An s3:// prefix jobs may write their outputs under (`render --output-url`), compared
+    /// An s3://, gs:// or az:// prefix jobs may write their outputs under (`render --output-url`), compared
     /// by whole path segments (repeatable; in the environment, separated by commas).
     /// Without one, no job may name an output URL.
     #[arg(
@@ -66,7 +66,7 @@ pub struct ServeArgs {
         value_delimiter = ','
     )]
     allowed_output_prefixes: Vec<String>,
-    /// An s3:// prefix (s3://bucket/prefix) the daemon publishes each dataset's level-of-detail
+    /// An s3://, gs:// or az:// prefix (s3://bucket/prefix) the daemon publishes each dataset's level-of-detail
     /// store under once built, STORE_URL/SHA256/, for workers to read its nodes from there with
     /// credentials of their own instead of through the daemon. Without it, workers read every
     /// store through the daemon.
