@@ -129,7 +129,7 @@ async fn an_allowed_url_registers_by_its_version_without_being_downloaded() {
     assert_ne!(replaced.version, dataset.version);
     still_serving(&daemon, 2).await;
 
-    // Its files are not on the server: work that reads them says so.
+    // Described from the object by range, at the version registered: the object as it is now.
     let described = daemon
         .datasets()
         .await
@@ -138,9 +138,23 @@ async fn an_allowed_url_registers_by_its_version_without_being_downloaded() {
             ..Default::default()
         })
         .await
-        .expect_err("not described");
-    assert_eq!(described.code(), Code::FailedPrecondition, "{described:?}");
-    assert!(described.message().contains(&url), "{described:?}");
+        .expect("described by range")
+        .into_inner();
+    assert_eq!(described.files.len(), 1, "{described:?}");
+    let file = &described.files[0];
+    assert_eq!(
+        (file.path.as_str(), file.error.as_str()),
+        (url.as_str(), "")
+    );
+    assert!(
+        file.points > 0 && file.file_bytes == replaced.size_bytes,
+        "{file:?}"
+    );
+    assert!(file
+        .copc
+        .as_ref()
+        .is_some_and(|copc| copc.error.is_empty() && copc.nodes > 0));
+    // Its files are not on the server: work that needs them says so.
     let composed = daemon
         .datasets()
         .await
