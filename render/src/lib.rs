@@ -27,6 +27,7 @@ pub mod sample;
 pub mod sled_open;
 pub mod source;
 pub mod spacing;
+pub mod write_whole;
 
 #[cfg(any(test, feature = "testing"))]
 pub mod testing;

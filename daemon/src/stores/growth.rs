@@ -30,6 +30,7 @@ use pointfarm_render::ingest::DatasetSource;
 use pointfarm_render::lod::update::update_within;
 use pointfarm_render::lod::{BuildProgress, LodError, LodStore, PointSource, StoreChange};
 use pointfarm_render::source::StoreInput;
+use pointfarm_render::write_whole::write_whole;
 
 use super::{open_or_build, ReadyStore};
 use crate::model::DatasetFile;
@@ -123,9 +124,7 @@ fn write_contents(folder: &Path, list: &[Listed]) -> Result<(), String> {
         .iter()
         .map(|f| format!("{}\t{}\n", f.sha256, f.points))
         .collect();
-    let partial = folder.join(format!("{CONTENTS_FILE}.partial"));
-    std::fs::write(&partial, text)
-        .and_then(|()| std::fs::rename(&partial, folder.join(CONTENTS_FILE)))
+    write_whole(&folder.join(CONTENTS_FILE), text.as_bytes())
         .map_err(|e| format!("writing the store's file list: {e}"))
 }
 

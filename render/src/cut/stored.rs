@@ -202,10 +202,7 @@ fn write_finished(folder: &Path, points: u64, bounds: &WorldBounds) -> Result<()
         "max": bounds.max.to_array(),
     })
     .to_string();
-    let partial = folder.join(format!("{FINISHED_FILE}.partial"));
-    let write = std::fs::write(&partial, text)
-        .and_then(|()| std::fs::rename(&partial, folder.join(FINISHED_FILE)));
-    write.map_err(|e| {
+    crate::write_whole::write_whole(&folder.join(FINISHED_FILE), text.as_bytes()).map_err(|e| {
         CutError::Cache(format!(
             "marking the store in {} finished: {e}",
             folder.display()

@@ -108,9 +108,7 @@ fn write_list(folder: &Path, list: &[ListedFile]) -> Result<(), String> {
         .iter()
         .map(|f| format!("{}\t{}\n", f.points, f.identity))
         .collect();
-    let partial = folder.join(format!("{FILE_LIST}.partial"));
-    std::fs::write(&partial, text)
-        .and_then(|()| std::fs::rename(&partial, folder.join(FILE_LIST)))
+    crate::write_whole::write_whole(&folder.join(FILE_LIST), text.as_bytes())
         .map_err(|e| format!("writing the file list in {}: {e}", folder.display()))
 }
 

@@ -1,0 +1,27 @@
+//! Small files beside a store (its file lists, its finished marker) replaced whole or not at
+//! all, so a reader never sees half a list after a crash.
+
+use std::path::Path;
+
+/// Writes `bytes` to `path` through `PATH.partial`, renamed over it once written.
+pub fn write_whole(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let mut partial = path.as_os_str().to_owned();
+    partial.push(".partial");
+    std::fs::write(&partial, bytes)?;
+    std::fs::rename(&partial, path)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_file_is_replaced_whole_and_no_partial_is_left() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("list.txt");
+        write_whole(&path, b"one\n").expect("first");
+        write_whole(&path, b"two\n").expect("second");
+        assert_eq!(std::fs::read(&path).expect("read"), b"two\n");
+        assert!(!dir.path().join("list.txt.partial").exists());
+    }
+}
