@@ -6,11 +6,11 @@
 //! - [`published`] (`--published-store POINTS`): two worker processes rendering a cold
 //!   turntable of a store the daemon published with `serve --store-url`, and the daemon's CPU
 //!   time against theirs;
-//! - `s3_server`: the server, started over a folder whose files are the bucket's objects.
+//! - [`s3_server`]: the server, started over a folder whose files are the bucket's objects.
 
 pub mod copc_s3;
 pub mod published;
-mod s3_server;
+pub mod s3_server;
 
 use pointfarm_render::copc::CopcError;
 use pointfarm_render::gpu::GpuError;

@@ -1,6 +1,7 @@
-//! A real S3-compatible server on loopback for the object-storage benchmarks: `s3s-fs`, which
-//! serves a folder's subfolders as buckets and keeps each object as a plain file there, so a
-//! benchmark can drop an object's pages from the OS's cache as it drops a local file's.
+//! A real S3-compatible server on loopback for the object-storage benchmarks and the tests
+//! that read and write `s3://`: `s3s-fs`, which serves a folder's subfolders as buckets and
+//! keeps each object as a plain file there, so a benchmark can drop an object's pages from the
+//! OS's cache as it drops a local file's.
 
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
@@ -9,9 +10,10 @@ use std::time::{Duration, Instant};
 
 use crate::BenchError;
 
-/// The credentials the server is started with; they stay on loopback.
-const ACCESS_KEY: &str = "pointfarm-bench-key";
-const SECRET_KEY: &str = "pointfarm-bench-secret";
+/// The credentials the server accepts; they stay on loopback, and a test checks they never
+/// appear in an output.
+pub const ACCESS_KEY: &str = "pointfarm-loopback-key";
+pub const SECRET_KEY: &str = "pointfarm-loopback-secret";
 /// How long the server may take to listen.
 const START_TIMEOUT: Duration = Duration::from_secs(20);
 
@@ -19,6 +21,7 @@ const START_TIMEOUT: Duration = Duration::from_secs(20);
 pub struct S3Server {
     address: SocketAddr,
     root: PathBuf,
+    binary: PathBuf,
     child: Child,
 }
 
@@ -26,36 +29,40 @@ impl S3Server {
     /// Starts `binary` over `root` (created with the folder of `bucket`) on a free loopback
     /// port, and waits until it listens.
     pub fn start(binary: &Path, root: &Path, bucket: &str) -> Result<Self, BenchError> {
-        let setup = |what: &str, e: std::io::Error| BenchError::Scratch(format!("{what}: {e}"));
-        std::fs::create_dir_all(root.join(bucket)).map_err(|e| setup("the bucket folder", e))?;
+        std::fs::create_dir_all(root.join(bucket)).map_err(|e| scratch("the bucket folder", e))?;
+        Self::serve(binary, root)
+    }
+
+    /// Starts `binary` over the folders `root` holds on a free loopback port, and waits until
+    /// it listens.
+    pub fn serve(binary: &Path, root: &Path) -> Result<Self, BenchError> {
         let address = TcpListener::bind("127.0.0.1:0")
             .and_then(|listener| listener.local_addr())
-            .map_err(|e| setup("a free loopback port", e))?;
-        let child = Command::new(binary)
-            .args(["--host", &address.ip().to_string()])
-            .args(["--port", &address.port().to_string()])
-            .args(["--access-key", ACCESS_KEY, "--secret-key", SECRET_KEY])
-            .arg(root)
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .map_err(|e| setup(&format!("starting {}", binary.display()), e))?;
-        let server = Self {
+            .map_err(|e| scratch("a free loopback port", e))?;
+        let child = listening(binary, address, root)?;
+        Ok(Self {
             address,
             root: root.to_path_buf(),
+            binary: binary.to_path_buf(),
             child,
-        };
-        let started = Instant::now();
-        while TcpStream::connect(address).is_err() {
-            if started.elapsed() > START_TIMEOUT {
-                return Err(BenchError::Scratch(format!(
-                    "{} did not listen on {address} within {START_TIMEOUT:?}",
-                    binary.display()
-                )));
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        Ok(server)
+        })
+    }
+
+    /// The loopback address the server listens on.
+    pub fn address(&self) -> SocketAddr {
+        self.address
+    }
+
+    /// Stops the server, as one that goes away while its clients read.
+    pub fn stop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
+    /// Starts the server again over the same root on the same address, once stopped.
+    pub fn restart(&mut self) -> Result<(), BenchError> {
+        self.child = listening(&self.binary, self.address, &self.root)?;
+        Ok(())
     }
 
     /// The variables a client of this server reads its endpoint and credentials from, as
@@ -84,7 +91,8 @@ impl S3Server {
         self.root.join(bucket).join(key)
     }
 
-    /// Every object file of `bucket` (the server's own bookkeeping, dot files, left out).
+    /// Every object file of `bucket`, sorted (the server's own bookkeeping, dot files, left
+    /// out).
     pub fn stored_files(&self, bucket: &str) -> Vec<PathBuf> {
         let mut found = Vec::new();
         let mut folders = vec![self.root.join(bucket)];
@@ -113,7 +121,37 @@ impl S3Server {
 
 impl Drop for S3Server {
     fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+        self.stop();
     }
+}
+
+/// `binary` serving `root` on `address`, once it listens there; killed if it does not in time.
+fn listening(binary: &Path, address: SocketAddr, root: &Path) -> Result<Child, BenchError> {
+    let mut child = Command::new(binary)
+        .args(["--host", &address.ip().to_string()])
+        .args(["--port", &address.port().to_string()])
+        .args(["--access-key", ACCESS_KEY, "--secret-key", SECRET_KEY])
+        .arg(root)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .map_err(|e| scratch(&format!("starting {}", binary.display()), e))?;
+    let started = Instant::now();
+    while TcpStream::connect(address).is_err() {
+        if started.elapsed() > START_TIMEOUT {
+            let _ = child.kill();
+            let _ = child.wait();
+            return Err(BenchError::Scratch(format!(
+                "{} did not listen on {address} within {START_TIMEOUT:?}",
+                binary.display()
+            )));
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    Ok(child)
+}
+
+/// A setup step that failed, as the benchmark's scratch error.
+fn scratch(what: &str, error: std::io::Error) -> BenchError {
+    BenchError::Scratch(format!("{what}: {error}"))
 }
