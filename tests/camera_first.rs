@@ -5,73 +5,21 @@
 //! the finished store holds the same points in the same cube as a fresh build of every tile,
 //! each point in one node. With `--build-unseen never` the unseen tiles are never built.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Output};
 
-use pointfarm_render::cloud::{PointCloud, WorldBounds};
 use pointfarm_render::cut::StoredLod;
-use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::lod::{read_nodes, NodeKey};
-use pointfarm_render::sample::sample_scene;
+use pointfarm_tests::flights::{write_flight, write_tiles, COLUMNS, ROWS};
 use pointfarm_tests::stores::store_folder;
 use pointfarm_tests::{assert_pngs_alike, output_text, pointfarm_bin, run_ok};
 
-const COLUMNS: usize = 5;
-const ROWS: usize = 4;
 const POINTS: usize = 200_000;
 const FRAMES: usize = 3;
 const SIZE: &str = "--size=160x120";
 
 fn arg(path: &Path) -> &str {
     path.to_str().expect("temporary paths are UTF-8")
-}
-
-/// The scene cut into `COLUMNS` x `ROWS` tiles of its ground plan, written to `dir/tiles`;
-/// returns the folder and the scene's bounds.
-fn write_tiles(dir: &Path) -> (PathBuf, WorldBounds) {
-    let cloud: PointCloud = sample_scene(POINTS, 11);
-    let (min, size) = (cloud.bounds.min, cloud.bounds.size());
-    let mut tiles: Vec<Vec<usize>> = vec![Vec::new(); COLUMNS * ROWS];
-    for (i, p) in cloud.positions.iter().enumerate() {
-        let world = cloud.origin + p.as_dvec3();
-        let x = (((world.x - min.x) / size.x * COLUMNS as f64) as usize).min(COLUMNS - 1);
-        let y = (((world.y - min.y) / size.y * ROWS as f64) as usize).min(ROWS - 1);
-        tiles[y * COLUMNS + x].push(i);
-    }
-    let folder = dir.join("tiles");
-    std::fs::create_dir_all(&folder).expect("folder");
-    for (index, points) in tiles.iter().enumerate() {
-        let path = folder.join(format!("tile-{index:02}.las"));
-        write_las(&path, &cloud.select(points), &LasWriteOptions::default()).expect("tile");
-    }
-    (folder, cloud.bounds)
-}
-
-/// A low flight looking down over the first tile, then the second: the rest are out of view.
-fn write_flight(dir: &Path, bounds: &WorldBounds) -> PathBuf {
-    let size = bounds.size();
-    let (tile_x, tile_y) = (size.x / COLUMNS as f64, size.y / ROWS as f64);
-    let height = 0.2 * tile_x.min(tile_y);
-    let over = |column: f64| {
-        let (x, y) = (
-            bounds.min.x + (column + 0.5) * tile_x,
-            bounds.min.y + 0.5 * tile_y,
-        );
-        format!(
-            "[[keyframes]]\nposition = [{x}, {}, {}]\ntarget = [{x}, {y}, {}]\nfov_y_deg = 40\n",
-            y - 0.05 * height,
-            bounds.max.z + height,
-            bounds.min.z
-        )
-    };
-    let text = format!(
-        "frames = {FRAMES}\ninterpolation = \"linear\"\n{}{}",
-        over(0.0),
-        over(1.0)
-    );
-    let path = dir.join("flight.toml");
-    std::fs::write(&path, text).expect("path");
-    path
 }
 
 fn render(tiles: &Path, out: &Path, cache: &Path, camera: &[&str]) -> Command {
@@ -125,8 +73,8 @@ fn store_content(cache: &Path) -> (Vec<[i64; 3]>, String) {
 #[test]
 fn a_flythrough_draws_its_first_frame_from_the_tiles_it_sees_and_the_store_ends_whole() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let (tiles, bounds) = write_tiles(dir.path());
-    let flight = write_flight(dir.path(), &bounds);
+    let (tiles, bounds) = write_tiles(dir.path(), POINTS);
+    let flight = write_flight(dir.path(), &bounds, FRAMES);
     let path = ["--camera-path", arg(&flight)];
 
     let first = dir.path().join("first");
@@ -205,8 +153,8 @@ fn a_flythrough_draws_its_first_frame_from_the_tiles_it_sees_and_the_store_ends_
 #[test]
 fn never_building_the_unseen_tiles_keeps_the_store_to_the_flights() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let (tiles, bounds) = write_tiles(dir.path());
-    let flight = write_flight(dir.path(), &bounds);
+    let (tiles, bounds) = write_tiles(dir.path(), POINTS);
+    let flight = write_flight(dir.path(), &bounds, FRAMES);
     let cache = dir.path().join("cache");
     let out = dir.path().join("frames");
     let path = ["--camera-path", arg(&flight), "--build-unseen", "never"];

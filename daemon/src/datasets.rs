@@ -365,22 +365,31 @@ impl Daemon {
         levels_of_detail: bool,
     ) -> Result<StoreAnswer, DaemonError> {
         check_id("dataset_id", id)?;
-        let dataset = self.dataset(id)?;
+        let dataset = self.store_dataset(id)?;
         self.stores.open(&dataset, levels_of_detail)
     }
 
     /// The preview sample of dataset `id`, which workers render while its store builds.
     pub fn preview_sample(&self, id: &str) -> Result<Arc<PreviewBytes>, DaemonError> {
         check_id("dataset_id", id)?;
-        let dataset = self.dataset(id)?;
+        let dataset = self.store_dataset(id)?;
         self.stores.preview_sample(&dataset)
     }
 
     /// The opened store of dataset `id`, whose hierarchy and nodes workers fetch.
     pub fn ready_dataset_store(&self, id: &str) -> Result<Arc<ReadyStore>, DaemonError> {
         check_id("dataset_id", id)?;
-        let dataset = self.dataset(id)?;
+        let dataset = self.store_dataset(id)?;
         self.stores.ready(&dataset)
+    }
+
+    /// Dataset `id`, or the part of one whose store a job reads first (`stores::camera_first`),
+    /// for what workers ask of a store.
+    pub fn store_dataset(&self, id: &str) -> Result<Dataset, DaemonError> {
+        match self.stores.part_dataset(id) {
+            Some(part) => Ok(part),
+            None => self.dataset(id),
+        }
     }
 }
 

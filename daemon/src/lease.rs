@@ -83,6 +83,7 @@ impl Daemon {
                         .dataset(&job.spec.dataset_id)
                         .ok()
                         .flatten()
+                        .map(|dataset| self.stores.leased(job, &dataset))
                         .and_then(|dataset| self.stores.building_version(&dataset.sha256))
                 })
         };
@@ -113,6 +114,8 @@ impl Daemon {
                 )?;
                 continue;
             };
+            // The part of the dataset its frames see while the whole store is not ready.
+            let dataset = self.stores.leased(&job, &dataset);
             let failed_attempts = match self.state.frame(&job.id, index)? {
                 Some(FrameState::Pending { attempts }) => attempts,
                 _ => 0,

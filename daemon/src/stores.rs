@@ -30,7 +30,7 @@ use std::sync::{Arc, Mutex};
 
 use pointfarm_render::color::Stretch;
 use pointfarm_render::copc::{is_copc, open_copc_whole, CopcDecoder};
-use pointfarm_render::cut::{CutError, LodDataset, StoredLod};
+use pointfarm_render::cut::{LodDataset, StoredLod};
 use pointfarm_render::lod::{BuildProgress, LodHierarchy};
 use pointfarm_render::source::{frame_points, FramePoints, PointSourceFacts, StoreInput};
 
@@ -179,6 +179,8 @@ pub struct DatasetStores {
     publisher: Option<Arc<StorePublisher>>,
     /// Reads datasets of tiles by URL (`input`).
     urls: Option<pointfarm_render::remote::RemoteClient>,
+    /// The parts of datasets built first for the jobs that see them (`camera_first`).
+    camera_first: camera_first::CameraFirstParts,
 }
 
 impl DatasetStores {
@@ -201,6 +203,7 @@ impl DatasetStores {
             folders: None,
             publisher: None,
             urls: None,
+            camera_first: Default::default(),
         }
     }
 
@@ -375,12 +378,13 @@ impl DatasetStores {
         };
         let folder = self.folder(&sha);
         let built = StoredLod::is_built(&folder);
+        let cut_asked = levels_of_detail || self.is_part(&sha);
         // One COPC file never comes here: `open` answers it with its own hierarchy first.
         let facts = PointSourceFacts {
             points: Some(points),
             one_copc_file: false,
             store_built: built,
-            levels_of_detail_asked: levels_of_detail || !dataset.tiles.is_empty(),
+            levels_of_detail_asked: cut_asked || !dataset.tiles.is_empty(),
         };
         if frame_points(&facts) == FramePoints::Resident {
             return Ok(StoreAnswer::NotNeeded { points });
@@ -432,6 +436,7 @@ impl DatasetStores {
         let previews = Arc::clone(&self.previews);
         let publisher = self.publisher.clone();
         let (files, updates) = (dataset.files(), Arc::clone(&self.updates));
+        let making = self.making(&sha);
         let spawned = std::thread::Builder::new()
             .name("pointfarm-store-build".into())
             .spawn(move || {
@@ -440,7 +445,15 @@ impl DatasetStores {
                 }
                 let _one_at_a_time = building.lock().unwrap_or_else(|e| e.into_inner());
                 tracing::info!(dataset = %id, points, "building the dataset's levels of detail");
-                let built = grow_or_build(&input, &folder, budget, &progress, &files, points, &id);
+                let built =
+                    camera_first::make(&making, &folder, budget, &progress, &files, points, &id)
+                        .and_then(|made| {
+                            made.or_open(|| {
+                                grow_or_build(
+                                    &input, &folder, budget, &progress, &files, points, &id,
+                                )
+                            })
+                        });
                 if let Ok(ready) = &built {
                     resume::log_resumed(&id, ready);
                     if ready.grown.is_some() {
@@ -614,37 +627,6 @@ impl DatasetStores {
     }
 }
 
-/// Opens the store in `folder`, building it from `input` first when it has none, listing in
-/// `progress` the nodes the build stores.
-fn open_or_build(
-    input: &StoreInput,
-    folder: &Path,
-    budget: u64,
-    progress: &BuildProgress,
-) -> Result<ReadyStore, CutError> {
-    let lod = input::open_or_build_input(input, folder, budget, progress)?;
-    let build_ms = lod.built.as_ref().map_or(0.0, |(_, seconds)| seconds * 1e3);
-    let resumed = lod
-        .built
-        .as_ref()
-        .and_then(|(report, _)| resume::taken_over(report));
-    let hierarchy_record = lod.dataset.hierarchy().encode();
-    tracing::info!(
-        folder = %folder.display(),
-        points = lod.dataset.point_count(),
-        built = lod.built.is_some(),
-        "store ready for workers"
-    );
-    Ok(ReadyStore {
-        kept: Kept::Store(Box::new(lod)),
-        hierarchy_record,
-        build_ms,
-        resumed,
-        copc: None,
-        grown: None,
-    })
-}
-
 /// Opens the COPC file `path` (the dataset's file `name`) through its own hierarchy.
 fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
     let opened = open_copc_whole(path).map_err(|e| format!("COPC file {name}: {e}"))?;
@@ -666,6 +648,7 @@ fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
     })
 }
 
+mod camera_first;
 mod gate;
 pub use gate::StoreBuildGate;
 mod growth;
@@ -674,6 +657,7 @@ pub use growth::Grown;
 mod healing;
 use healing::being_rebuilt;
 mod input;
+use input::open_or_build;
 mod preview;
 mod publish;
 mod resume;

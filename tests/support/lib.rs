@@ -447,6 +447,7 @@ impl Drop for WorkerProcess {
 pub mod azurite;
 pub mod datasets;
 pub mod fake_gcs;
+pub mod flights;
 pub mod nginx;
 pub mod pki;
 pub mod prometheus;

@@ -360,7 +360,7 @@ impl WorkerService for Api {
         let records = self
             .run(move |daemon| {
                 check_id("dataset_id", &r.dataset_id)?;
-                let dataset = daemon.dataset(&r.dataset_id)?;
+                let dataset = daemon.store_dataset(&r.dataset_id)?;
                 daemon.stores.node_records(&dataset, &keys, r.coarse)
             })
             .await?;

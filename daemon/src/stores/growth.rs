@@ -222,12 +222,61 @@ pub(super) fn grow(
         return None;
     }
     let (from, earlier) = nearest(folder, files)?;
+    grow_copy(
+        folder,
+        &from,
+        &earlier,
+        files,
+        points,
+        memory_budget,
+        dataset_id,
+    )
+}
+
+/// [`grow`] from the finished store in `from` whatever share of files it lacks: a camera
+/// first store of some of the dataset's files, built within the cube of all of them.
+pub(super) fn grow_from(
+    from: &Path,
+    folder: &Path,
+    files: &[DatasetFile],
+    points: u64,
+    memory_budget: u64,
+    dataset_id: &str,
+) -> Option<Grown> {
+    let _ = std::fs::remove_dir_all(growing_folder(folder));
+    let earlier = read_contents(from)?;
+    if folder.exists() || !unique(files.iter().map(|f| &f.sha256)) {
+        return None;
+    }
+    grow_copy(
+        folder,
+        from,
+        &earlier,
+        files,
+        points,
+        memory_budget,
+        dataset_id,
+    )
+}
+
+/// Copies the store in `from` (of the files `earlier`) beside `folder`, updates the copy to
+/// `files` and renames it into place.
+fn grow_copy(
+    folder: &Path,
+    from: &Path,
+    earlier: &[Listed],
+    files: &[DatasetFile],
+    points: u64,
+    memory_budget: u64,
+    dataset_id: &str,
+) -> Option<Grown> {
+    let growing = growing_folder(folder);
     let from_sha256 = from.file_name()?.to_string_lossy().into_owned();
     let from_id = crate::model::dataset_id(&from_sha256);
     tracing::info!(dataset = %dataset_id, from = %from_id,
         "updating a copy of the store of dataset {from_id} instead of building the store whole");
     let started = Instant::now();
-    let grown = copy_and_update(&from, &growing, &earlier, files, points, memory_budget).and_then(
+    let grown = copy_and_update(from, &growing, earlier, files, points, memory_budget).and_then(
         |mut grown| {
             let _ = std::fs::remove_dir_all(growing.join("spill"));
             std::fs::rename(&growing, folder)

@@ -11,7 +11,7 @@ use pointfarm_render::lod::{BuildProgress, PointSource};
 use pointfarm_render::remote::{ListedObject, ObjectUrl, RemoteClient};
 use pointfarm_render::source::{open_or_build_tiles, open_tile_source, StoreInput};
 
-use super::DatasetStores;
+use super::{DatasetStores, Kept, ReadyStore};
 use crate::error::DaemonError;
 use crate::model::Dataset;
 
@@ -88,5 +88,41 @@ pub(super) fn open_or_build_input(
     match input {
         StoreInput::Files(files) => StoredLod::open_or_build_watched(files, build),
         StoreInput::Tiles(client, tiles) => open_or_build_tiles(client, tiles, build),
+    }
+}
+
+/// Opens the store in `folder`, building it from `input` first when it has none, listing in
+/// `progress` the nodes the build stores.
+pub(super) fn open_or_build(
+    input: &StoreInput,
+    folder: &Path,
+    budget: u64,
+    progress: &BuildProgress,
+) -> Result<ReadyStore, CutError> {
+    let lod = open_or_build_input(input, folder, budget, progress)?;
+    Ok(ready_of(lod, folder))
+}
+
+/// The opened store `lod` in `folder`, as workers are sent it.
+pub(super) fn ready_of(lod: StoredLod, folder: &Path) -> ReadyStore {
+    let build_ms = lod.built.as_ref().map_or(0.0, |(_, seconds)| seconds * 1e3);
+    let resumed = lod
+        .built
+        .as_ref()
+        .and_then(|(report, _)| super::resume::taken_over(report));
+    let hierarchy_record = lod.dataset.hierarchy().encode();
+    tracing::info!(
+        folder = %folder.display(),
+        points = lod.dataset.point_count(),
+        built = lod.built.is_some(),
+        "store ready for workers"
+    );
+    ReadyStore {
+        kept: Kept::Store(Box::new(lod)),
+        hierarchy_record,
+        build_ms,
+        resumed,
+        copc: None,
+        grown: None,
     }
 }

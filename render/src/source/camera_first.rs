@@ -283,9 +283,9 @@ impl<'a> StagedStore<'a> {
 
 /// A source whose points are read as they are, in a larger box: a store of some of a
 /// dataset's files built within the cube of all of them.
-struct WithinBounds<'a> {
-    source: &'a DatasetSource,
-    bounds: WorldBounds,
+pub struct WithinBounds<'a> {
+    pub source: &'a DatasetSource,
+    pub bounds: WorldBounds,
 }
 
 impl PointSource for WithinBounds<'_> {

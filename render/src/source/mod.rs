@@ -51,7 +51,7 @@ use crate::raster::{Frame, FrameSettings, GpuPointCloud, Renderer};
 use crate::request::{RenderOptions, RenderRequest};
 
 pub use crate::extent::{Extent, Framed};
-pub use camera_first::{file_boxes, frame_sees, BuildUnseen, FileOrder, StagedStore};
+pub use camera_first::{file_boxes, frame_sees, BuildUnseen, FileOrder, StagedStore, WithinBounds};
 pub use choice::{frame_points, FramePoints, PointSourceFacts};
 pub use error::SourceError;
 pub use events::{quiet, BuildStage, LevelsFrom, SourceEvent};

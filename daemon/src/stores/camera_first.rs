@@ -1,0 +1,321 @@
+//! Camera first through the daemon: a job whose keyframed path sees part of a dataset without
+//! a store gets the store of the files its frames see built first, so its first final frame
+//! does not wait for the rest; the dataset's whole store is grown from it after.
+//!
+//! Which files the frames see is the render crate's decision (`source::FileOrder`, from the
+//! files' header boxes and the keyframes' clip planes), and so is which jobs qualify: a path
+//! whose cameras or colors depend on the points themselves (an automatic camera, a stretch
+//! over percentiles) waits for the whole store, as does a dataset of tiles or an object by
+//! URL, one with a COPC file, one rendered resident, and a job that finds the whole store
+//! already building.
+//!
+//! The design is two stores, each a content of its own in `DATA/lod/`:
+//! - the **part**: the files any frame of the path sees, built within the box of all the
+//!   dataset's files (`source::WithinBounds`), so its cube, and the camera fitted to its
+//!   bounds, are the whole store's. Its content hash is that of its files and that box, never
+//!   a dataset's, and it is known to workers as a dataset of its own (id and hash), so their
+//!   caches never mix its nodes with the whole store's. Every frame of the job is leased
+//!   against it: the frames of files that are all in it are the frames of every file
+//!   (`camera_first.rs` of the render crate), up to the cut's node choice, which
+//!   `tests/daemon_camera_first.rs` holds to the local fidelity rule.
+//! - the **whole** store of the dataset, grown from a copy of the part once the part is ready
+//!   and a frame is leased against it, whatever share of files it lacks (`growth::grow_from`),
+//!   unless the part is all that is asked for (`BuildUnseen::Never`). Once the whole store is
+//!   ready, frames are leased against it.
+//!
+//! Both are built through the daemon's one build path (`DatasetStores::start_build`): one at
+//! a time, finished before they are served, the part resumed by its journal after a restart
+//! (its fingerprint holds the box) and the whole one's copy made again from its start. The
+//! decision per job is kept in memory and made again after a restart from the same headers,
+//! giving the same part.
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+
+use pointfarm_render::cloud::WorldBounds;
+use pointfarm_render::copc::is_copc;
+use pointfarm_render::cut::{CutError, StoreBuild, StoredLod};
+use pointfarm_render::ingest::{dataset_point_count, DatasetSource};
+use pointfarm_render::lod::{BuildProgress, PointSource};
+use pointfarm_render::request::RenderRequest;
+use pointfarm_render::source::{
+    file_boxes, frame_points, BuildUnseen, FileOrder, FramePoints, PointSourceFacts, WithinBounds,
+};
+
+use super::growth::{grow_from, list_contents, Grown};
+use super::input::ready_of;
+use super::{DatasetStores, Entry, ReadyStore};
+use crate::model::{content_sha256_of, dataset_id, Dataset, DatasetFile, Job};
+
+/// The part of a dataset a job's frames see, and what becomes of the rest.
+pub(super) struct Part {
+    /// The files the frames see, as a dataset of its own content.
+    dataset: Dataset,
+    /// The content of the whole dataset.
+    whole_sha256: String,
+    /// The box of all the dataset's files, which the part's store is built within.
+    bounds: WorldBounds,
+    unseen: BuildUnseen,
+}
+
+/// The parts the daemon built or builds first, by the jobs that asked for them.
+#[derive(Default)]
+pub(super) struct CameraFirstParts {
+    /// Each job's decision once made: `None` reads the whole store.
+    jobs: Mutex<HashMap<String, Option<Arc<Part>>>>,
+    /// The parts by their dataset ids and by their contents.
+    parts: Mutex<HashMap<String, Arc<Part>>>,
+}
+
+/// How a store is made beyond the plain build of its files.
+pub(super) enum Making {
+    /// Built (or grown by `growth::grow`) from its files.
+    Plain,
+    /// A part: built within the box of all the dataset's files.
+    Within(WorldBounds),
+    /// A whole store grown from the finished part in this folder.
+    GrownFrom(PathBuf),
+}
+
+impl DatasetStores {
+    /// The dataset whose store a frame of `job` (on `dataset`) reads: the part its frames
+    /// see while the whole store is not ready (module doc), else `dataset`. Starts growing
+    /// the whole store once the part is ready.
+    pub fn leased(&self, job: &Job, dataset: &Dataset) -> Dataset {
+        let (job_id, request) = (job.id.as_str(), &job.spec.request);
+        if dataset.is_by_url() || self.whole_ready(dataset) {
+            return dataset.clone();
+        }
+        let decided = self.lock_jobs().get(job_id).cloned();
+        let part = match decided {
+            Some(part) => part,
+            None => {
+                let building = self
+                    .entry(&dataset.sha256, |e| {
+                        Ok::<_, ()>(matches!(e, Entry::Building { .. }))
+                    })
+                    .ok()
+                    .flatten()
+                    .unwrap_or(false);
+                let part = match building {
+                    true => None,
+                    false => self.part_of(request, dataset),
+                };
+                self.lock_jobs().insert(job_id.to_owned(), part.clone());
+                part
+            }
+        };
+        let Some(part) = part else {
+            return dataset.clone();
+        };
+        let part_ready = StoredLod::is_built(&self.folder(&part.dataset.sha256));
+        if part_ready && part.unseen == BuildUnseen::After {
+            // Started once: later calls find it building or ready.
+            if let Err(error) = self.open_store(dataset, true) {
+                tracing::warn!(dataset = %dataset.id, %error, "growing the whole store");
+            }
+        }
+        part.dataset.clone()
+    }
+
+    /// The part of a dataset a job reads first, by its dataset id (for workers' requests).
+    pub fn part_dataset(&self, id: &str) -> Option<Dataset> {
+        let parts = self
+            .camera_first
+            .parts
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        parts.get(id).map(|part| part.dataset.clone())
+    }
+
+    /// Whether content `sha256` is a part, which is always cut, never rendered resident.
+    pub(super) fn is_part(&self, sha256: &str) -> bool {
+        let parts = self
+            .camera_first
+            .parts
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        parts.values().any(|part| part.dataset.sha256 == sha256)
+    }
+
+    /// How the store of content `sha256` is made.
+    pub(super) fn making(&self, sha256: &str) -> Making {
+        let parts = self
+            .camera_first
+            .parts
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        for part in parts.values() {
+            if part.dataset.sha256 == sha256 {
+                return Making::Within(part.bounds);
+            }
+            let from = self.folder(&part.dataset.sha256);
+            if part.whole_sha256 == sha256 && StoredLod::is_built(&from) {
+                return Making::GrownFrom(from);
+            }
+        }
+        Making::Plain
+    }
+
+    fn lock_jobs(&self) -> std::sync::MutexGuard<'_, HashMap<String, Option<Arc<Part>>>> {
+        self.camera_first
+            .jobs
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Whether the whole store of `dataset` is ready or built; the jobs' decisions about it
+    /// are forgotten then.
+    fn whole_ready(&self, dataset: &Dataset) -> bool {
+        let ready = matches!(
+            self.entries_now().get(&dataset.sha256),
+            Some(Entry::Ready(_))
+        ) || StoredLod::is_built(&self.folder(&dataset.sha256));
+        if ready {
+            self.lock_jobs().retain(|_, part| {
+                part.as_ref()
+                    .is_none_or(|part| part.whole_sha256 != dataset.sha256)
+            });
+        }
+        ready
+    }
+
+    /// The part of `dataset` the frames of `request` see, when they qualify (module doc).
+    fn part_of(&self, request: &RenderRequest, dataset: &Dataset) -> Option<Arc<Part>> {
+        if !FileOrder::applies(request) || self.check_files(dataset).is_err() {
+            return None;
+        }
+        let files = dataset.files();
+        let paths: Vec<PathBuf> = files.iter().map(|f| f.path.clone()).collect();
+        if paths.len() < 2 || paths.iter().any(|p| is_copc(p).unwrap_or(true)) {
+            return None;
+        }
+        let facts = PointSourceFacts {
+            points: Some(dataset_point_count(&paths).ok()?),
+            one_copc_file: false,
+            store_built: false,
+            levels_of_detail_asked: request.render.lod_error.is_some(),
+        };
+        if frame_points(&facts) == FramePoints::Resident {
+            return None;
+        }
+        let order = FileOrder::of(request, &file_boxes(&paths).ok()?)?;
+        let mut places: Vec<usize> = order.first.iter().chain(&order.path).copied().collect();
+        places.sort_unstable();
+        let bounds = DatasetSource::open(&paths).ok()?.bounds();
+        let seen: Vec<DatasetFile> = places.iter().map(|&i| files[i].clone()).collect();
+        let part = Arc::new(Part {
+            dataset: part_dataset(dataset, seen, &bounds),
+            whole_sha256: dataset.sha256.clone(),
+            bounds,
+            unseen: BuildUnseen::default(),
+        });
+        tracing::info!(dataset = %dataset.id, part = %part.dataset.id,
+            files_seen = places.len(), files = files.len(),
+            "camera first: the store of the {} of {} files the job's frames see is built first",
+            places.len(), files.len());
+        let mut parts = self
+            .camera_first
+            .parts
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        let known = parts
+            .entry(part.dataset.id.clone())
+            .or_insert_with(|| Arc::clone(&part));
+        Some(Arc::clone(known))
+    }
+}
+
+/// The part of `whole` holding the files `seen`, within `bounds`: its content hash is its
+/// files' and the box's, so no dataset of the same files shares its store.
+fn part_dataset(whole: &Dataset, seen: Vec<DatasetFile>, bounds: &WorldBounds) -> Dataset {
+    let within = format!(
+        "camera first within {:?} {:?}",
+        bounds.min.to_array(),
+        bounds.max.to_array()
+    );
+    let mut hashes: Vec<&str> = seen.iter().map(|f| f.sha256.as_str()).collect();
+    hashes.push(&within);
+    let sha256 = content_sha256_of(&hashes);
+    Dataset {
+        id: dataset_id(&sha256),
+        name: format!("{} (camera first)", whole.name),
+        size_bytes: seen.iter().map(|f| f.size_bytes).sum(),
+        sha256,
+        path: seen[0].path.clone(),
+        files: seen,
+        created_unix_ms: whole.created_unix_ms,
+        remote: None,
+        tiles: Vec::new(),
+    }
+}
+
+/// What [`make`] made before the plain opening.
+pub(super) enum Made {
+    /// Nothing: the store is opened (built or grown) from its files.
+    Nothing,
+    /// The store was grown from a part, and is opened from its folder.
+    Grown(Grown),
+    /// A part, built and opened.
+    Ready(ReadyStore),
+}
+
+impl Made {
+    /// The store made, opened by `open` unless it is open already.
+    pub(super) fn or_open(
+        self,
+        open: impl FnOnce() -> Result<ReadyStore, CutError>,
+    ) -> Result<ReadyStore, CutError> {
+        match self {
+            Made::Nothing => open(),
+            Made::Grown(grown) => open().map(|ready| ready.grown_by(grown)),
+            Made::Ready(ready) => Ok(ready),
+        }
+    }
+}
+
+/// Makes the store of `files` in `folder` as `making` says: a part within its box, or a
+/// whole store grown from its part (when growing fails, it is built whole by the opening).
+pub(super) fn make(
+    making: &Making,
+    folder: &std::path::Path,
+    budget: u64,
+    progress: &BuildProgress,
+    files: &[DatasetFile],
+    points: u64,
+    dataset_id: &str,
+) -> Result<Made, CutError> {
+    match making {
+        Making::Plain => Ok(Made::Nothing),
+        Making::GrownFrom(from) => Ok(grow_from(from, folder, files, points, budget, dataset_id)
+            .map_or(Made::Nothing, Made::Grown)),
+        Making::Within(bounds) => {
+            let paths: Vec<PathBuf> = files.iter().map(|f| f.path.clone()).collect();
+            let source = DatasetSource::open(&paths)?;
+            let within = WithinBounds {
+                source: &source,
+                bounds: *bounds,
+            };
+            let build = StoreBuild {
+                folder,
+                memory_budget: budget,
+                disk_budget: None,
+                on_build: &mut |_| {},
+                progress,
+            };
+            let lod = StoredLod::open_or_build_source(&within, build)?;
+            list_contents(folder, files);
+            Ok(Made::Ready(ready_of(lod, folder)))
+        }
+    }
+}
+
+impl super::ReadyStore {
+    /// The store, made by growing another content's store as `grown` says.
+    fn grown_by(mut self, grown: Grown) -> Self {
+        self.build_ms = grown.seconds * 1e3;
+        self.grown = Some(grown);
+        self
+    }
+}

@@ -1,0 +1,157 @@
+//! A flythrough through the daemon over a campaign of 20 tiles that sees a few of them: the
+//! daemon builds the store of the tiles its frames see first and leases every frame against
+//! it, then grows the dataset's whole store from it. With the whole store's growth stopped for
+//! good (`POINTFARM_TEST_PAUSE_AT=update:0`) the job still finishes, so its frames were drawn
+//! before the whole store existed; the daemon killed there and started again grows it anew,
+//! never serving a half-made store; the frames equal a flight drawn from a store built whole
+//! first, within the fidelity rule.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::time::{Duration, Instant};
+
+use pointfarm_render::cut::StoredLod;
+use pointfarm_tests::flights::{write_flight, write_tiles, COLUMNS, ROWS};
+use pointfarm_tests::{
+    assert_pngs_alike, free_address, output_text, pointfarm_bin, wait_for, ServeProcess,
+};
+
+const POINTS: usize = 400_000;
+const FRAMES: usize = 3;
+
+/// `pointfarm serve` with its data in `data`, logging to `log`, its builds stopped for good at
+/// `pause_at`.
+fn serve(address: &str, data: &Path, log: &str, pause_at: Option<&str>) -> ServeProcess {
+    let mut command = Command::new(pointfarm_bin());
+    match pause_at {
+        Some(stage) => command.env("POINTFARM_TEST_PAUSE_AT", stage),
+        None => command.env_remove("POINTFARM_TEST_PAUSE_AT"),
+    };
+    let log = data.with_file_name(log);
+    let budget = ["--store-memory-budget", "96MiB"];
+    ServeProcess::start_command(command, address, data, &log, &budget)
+}
+
+/// `pointfarm render --server` of `tiles` into `out` through levels of detail, to its end.
+fn render(server: &ServeProcess, tiles: &Path, out: &Path, camera: &[&str]) -> Output {
+    let mut command = Command::new(pointfarm_bin());
+    command.arg("render").arg(tiles).arg("--out").arg(out);
+    command.args(["--size=160x120", "--lod-error=0", "--point-size=2"]);
+    command.arg(format!("--server=http://{}", server.address));
+    command.args(camera).env_remove("POINTFARM_TEST_PAUSE_AT");
+    let output = command.output().expect("run pointfarm");
+    let log = server.log();
+    assert!(
+        output.status.success(),
+        "{}\n--- daemon:\n{log}",
+        output_text(&output)
+    );
+    output
+}
+
+/// The finished stores under `data`, each with how many files it lists.
+fn finished_stores(data: &Path) -> Vec<(PathBuf, usize)> {
+    let Ok(entries) = std::fs::read_dir(data.join("lod")) else {
+        return Vec::new();
+    };
+    entries
+        .map(|entry| entry.expect("entry").path())
+        .filter(|path| StoredLod::is_built(path))
+        .map(|path| {
+            let list = std::fs::read_to_string(path.join("contents.txt")).unwrap_or_default();
+            let files = list.lines().count();
+            (path, files)
+        })
+        .collect()
+}
+
+fn frame(out: &Path, index: usize) -> PathBuf {
+    out.join(format!("frame_{index:05}.png"))
+}
+
+#[test]
+fn a_flight_through_the_daemon_is_drawn_from_the_tiles_it_sees_before_the_whole_store() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (tiles, bounds) = write_tiles(dir.path(), POINTS);
+    let flight = write_flight(dir.path(), &bounds, FRAMES);
+    let camera = ["--camera-path", flight.to_str().expect("a UTF-8 path")];
+    let all = COLUMNS * ROWS;
+
+    // The whole store's growth stops for good: every frame comes from the part.
+    let (address, data) = (free_address(), dir.path().join("daemon"));
+    let mut server = serve(&address, &data, "first.log", Some("update:0"));
+    let first = dir.path().join("first");
+    let started = Instant::now();
+    render(&server, &tiles, &first, &camera);
+    let first_seconds = started.elapsed().as_secs_f64();
+    wait_for(Duration::from_secs(300), "the paused growth", || {
+        server
+            .log()
+            .contains("build paused at update:0")
+            .then_some(())
+    });
+    let log = server.log();
+    assert!(log.contains("camera first: the store of the"), "{log}");
+    assert!(!log.contains("updated the store of"), "{log}");
+    let stores = finished_stores(&data);
+    assert_eq!(stores.len(), 1, "{stores:?}\n{log}");
+    let seen = stores[0].1;
+    assert!(seen > 0 && seen <= 4, "the part holds {seen} tiles");
+
+    // Killed while it grows the whole store, and started again: a second flight finds the
+    // part built, and the whole store is grown anew from it.
+    server.kill();
+    let server = serve(&address, &data, "again.log", None);
+    let again = dir.path().join("again");
+    render(&server, &tiles, &again, &camera);
+    wait_for(Duration::from_secs(300), "the whole store", || {
+        server.log().contains("updated the store of").then_some(())
+    });
+    let stores = finished_stores(&data);
+    assert!(stores.iter().any(|(_, files)| *files == all), "{stores:?}");
+    let growing = std::fs::read_dir(data.join("lod"))
+        .expect("stores")
+        .filter(|e| {
+            let name = e.as_ref().expect("entry").file_name();
+            name.to_string_lossy().ends_with(".growing")
+        })
+        .count();
+    assert_eq!(growing, 0, "a half-made store is left");
+    let log = server.log();
+    assert!(
+        log.contains(&format!("{} files added, 0 removed", all - seen)),
+        "{log}"
+    );
+
+    // A fresh daemon builds the whole store first (a still view does), then the flight.
+    let whole_data = dir.path().join("whole-daemon");
+    let whole_server = serve(&free_address(), &whole_data, "whole.log", None);
+    let started = Instant::now();
+    render(&whole_server, &tiles, &dir.path().join("still.png"), &[]);
+    let whole_seconds = started.elapsed().as_secs_f64();
+    let whole = dir.path().join("whole");
+    render(&whole_server, &tiles, &whole, &camera);
+    assert!(!whole_server.log().contains("camera first"));
+    for i in 0..FRAMES {
+        let message =
+            "a frame drawn camera first through the daemon differs from the whole store's";
+        assert_pngs_alike(
+            "daemon-camera-first",
+            &frame(&first, i),
+            &frame(&whole, i),
+            message,
+        );
+        assert_pngs_alike(
+            "daemon-camera-first-again",
+            &frame(&again, i),
+            &frame(&whole, i),
+            message,
+        );
+    }
+    println!(
+        "{POINTS} points in {all} tiles, a flight seeing {seen}: all {FRAMES} frames camera \
+         first through the daemon after {first_seconds:.2} s; the whole store and a still frame \
+         after {whole_seconds:.2} s ({:.0}%)",
+        100.0 * first_seconds / whole_seconds
+    );
+}

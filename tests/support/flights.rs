@@ -1,0 +1,61 @@
+//! A campaign of tiles and a low keyframed flight over two of them, which sees a few tiles
+//! only: what camera-first builds are tested with, locally and through the daemon.
+
+use std::path::{Path, PathBuf};
+
+use pointfarm_render::cloud::{PointCloud, WorldBounds};
+use pointfarm_render::ingest::{write_las, LasWriteOptions};
+use pointfarm_render::sample::sample_scene;
+
+/// The tiles across and along the scene's ground plan.
+pub const COLUMNS: usize = 5;
+pub const ROWS: usize = 4;
+
+/// The scene of `points` points cut into `COLUMNS` x `ROWS` tiles of its ground plan, written
+/// to `dir/tiles`; returns the folder and the scene's bounds.
+pub fn write_tiles(dir: &Path, points: usize) -> (PathBuf, WorldBounds) {
+    let cloud: PointCloud = sample_scene(points, 11);
+    let (min, size) = (cloud.bounds.min, cloud.bounds.size());
+    let mut tiles: Vec<Vec<usize>> = vec![Vec::new(); COLUMNS * ROWS];
+    for (i, p) in cloud.positions.iter().enumerate() {
+        let world = cloud.origin + p.as_dvec3();
+        let x = (((world.x - min.x) / size.x * COLUMNS as f64) as usize).min(COLUMNS - 1);
+        let y = (((world.y - min.y) / size.y * ROWS as f64) as usize).min(ROWS - 1);
+        tiles[y * COLUMNS + x].push(i);
+    }
+    let folder = dir.join("tiles");
+    std::fs::create_dir_all(&folder).expect("folder");
+    for (index, points) in tiles.iter().enumerate() {
+        let path = folder.join(format!("tile-{index:02}.las"));
+        write_las(&path, &cloud.select(points), &LasWriteOptions::default()).expect("tile");
+    }
+    (folder, cloud.bounds)
+}
+
+/// A low flight of `frames` frames looking down over the first tile, then the second: the
+/// rest are out of view. Written to `dir/flight.toml`.
+pub fn write_flight(dir: &Path, bounds: &WorldBounds, frames: usize) -> PathBuf {
+    let size = bounds.size();
+    let (tile_x, tile_y) = (size.x / COLUMNS as f64, size.y / ROWS as f64);
+    let height = 0.2 * tile_x.min(tile_y);
+    let over = |column: f64| {
+        let (x, y) = (
+            bounds.min.x + (column + 0.5) * tile_x,
+            bounds.min.y + 0.5 * tile_y,
+        );
+        format!(
+            "[[keyframes]]\nposition = [{x}, {}, {}]\ntarget = [{x}, {y}, {}]\nfov_y_deg = 40\n",
+            y - 0.05 * height,
+            bounds.max.z + height,
+            bounds.min.z
+        )
+    };
+    let text = format!(
+        "frames = {frames}\ninterpolation = \"linear\"\n{}{}",
+        over(0.0),
+        over(1.0)
+    );
+    let path = dir.join("flight.toml");
+    std::fs::write(&path, text).expect("path");
+    path
+}
