@@ -6,7 +6,7 @@
 //! whole while one given up leaves no object. Each test skips, saying so, where
 //! `POINTFARM_TEST_S3S_FS` names no `s3s-fs` binary.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteSettings};
@@ -33,6 +33,12 @@ impl S3Exports {
         let bucket = S3Bucket::start_or_skip(BUCKET)?;
         let dir = tempfile::tempdir().expect("tempdir");
         Some(Self { bucket, dir })
+    }
+
+    /// The shared scan `name` and a started server; None, having said which is missing.
+    fn with_scan(name: &str) -> Option<(PathBuf, Self)> {
+        let scan = shared_data(name)?;
+        Some((scan, Self::start()?))
     }
 
     /// A `pointfarm` command with the server's endpoint and credentials in its environment.
@@ -81,10 +87,7 @@ impl S3Exports {
 
 #[test]
 fn an_export_to_s3_is_the_file_exported_here_byte_for_byte() {
-    let Some(scan) = shared_data("autzen_trim.laz") else {
-        return;
-    };
-    let Some(exports) = S3Exports::start() else {
+    let Some((scan, exports)) = S3Exports::with_scan("autzen_trim.laz") else {
         return;
     };
     let here = exports.dir.path().join("here.copc.laz");
@@ -113,10 +116,7 @@ fn an_export_to_s3_is_the_file_exported_here_byte_for_byte() {
 
 #[test]
 fn a_missing_bucket_and_refused_credentials_are_one_line_each() {
-    let Some(scan) = shared_data("lone-star.laz") else {
-        return;
-    };
-    let Some(exports) = S3Exports::start() else {
+    let Some((scan, exports)) = S3Exports::with_scan("lone-star.laz") else {
         return;
     };
     let missing = "s3://no-such-bucket/scan.copc.laz";
@@ -179,10 +179,7 @@ fn a_multipart_upload_arrives_whole_and_one_given_up_leaves_no_object() {
 
 #[test]
 fn a_dataset_exported_by_the_server_to_s3_is_the_file_it_exports_here() {
-    let Some(scan) = shared_data("lone-star.laz") else {
-        return;
-    };
-    let Some(exports) = S3Exports::start() else {
+    let Some((scan, exports)) = S3Exports::with_scan("lone-star.laz") else {
         return;
     };
     let dir = &exports.dir;
