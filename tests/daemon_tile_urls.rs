@@ -4,8 +4,9 @@
 //! the store waits to be built) and its frames are those of the same files registered by path,
 //! pixel for pixel; a URL outside the allow-list is refused naming the rule; `dataset get`
 //! lists each tile's URL, size and version, never a credential; a description from the tiles'
-//! headers read by range, and a COPC export, are those of the same files by path, byte for
-//! byte; a tile replaced after registration fails the description, the preview and the job
+//! headers read by range (their points streamed by range when asked, through the API and
+//! `pointfarm info ID --server`), and a COPC export, are those of the same files by path, byte
+//! for byte; a tile replaced after registration fails the description, the preview and the job
 //! naming it, no preview shows it, and the daemon keeps serving. A description of 24 tiles,
 //! read as many at once as the client's parallel requests, is the one read one at a time, in
 //! the dataset's order (both timings printed). Skips, saying so, without `s3s-fs`.
@@ -253,13 +254,36 @@ async fn assert_described_alike(daemon: &TestDaemon, by_url: &pb::Dataset, by_pa
         urls.summary.as_ref().is_some_and(|s| s.points > 0),
         "{urls:?}"
     );
-    // Never the points of a tile by URL: that would download it whole.
+    // Asked for, each tile's points are streamed by range at its version: what the files say.
     let asked = describe(daemon, &by_url.id, true).await;
+    let read = describe(daemon, &by_path.id, true).await;
     assert!(
-        asked.files.iter().all(|f| f.points_read.is_none()),
+        asked.files.iter().all(|f| f.points_read.is_some()),
         "{asked:?}"
     );
-    assert_eq!(asked.summary, urls.summary);
+    assert_eq!(asked.summary, read.summary);
+    for (url, file) in asked.files.iter().zip(&read.files) {
+        assert_eq!(url.points_read, file.points_read, "{}", url.path);
+    }
+    // The CLI's `info ID --server` says so too: every file's points, but for its name.
+    let points = |id: String| async move {
+        let said = cli(daemon, &["info", &id, "--json"]).await;
+        let mut said: serde_json::Value =
+            serde_json::from_str(stdout(&said).trim()).expect("one JSON value");
+        for file in said["files"].as_array_mut().expect("files") {
+            file["path"].take();
+        }
+        (said["files"].take(), said["summary"].take())
+    };
+    let (by_url_points, by_path_points) = (
+        points(by_url.id.clone()).await,
+        points(by_path.id.clone()).await,
+    );
+    assert!(
+        by_url_points.0[0]["pointsRead"].is_object(),
+        "{by_url_points:?}"
+    );
+    assert_eq!(by_url_points, by_path_points);
 }
 
 /// Describing 24 tiles reads their headers as many at once as the remote client sends
@@ -328,13 +352,16 @@ async fn assert_replaced_tile_not_previewed(
     );
     std::fs::copy(new_content, replaced).expect("replace a tile");
 
-    let description = describe(daemon, &registered.id, false).await;
-    assert!(description.files[0].error.is_empty(), "{description:?}");
-    let changed = &description.files[1].error;
-    assert!(
-        changed.contains(&urls[1]) && changed.contains("changed"),
-        "{changed}"
-    );
+    // Described with its points or without, the replaced tile is refused naming it.
+    for read_points in [false, true] {
+        let description = describe(daemon, &registered.id, read_points).await;
+        assert!(description.files[0].error.is_empty(), "{description:?}");
+        let changed = &description.files[1].error;
+        assert!(
+            changed.contains(&urls[1]) && changed.contains("changed"),
+            "{changed}"
+        );
+    }
 
     let mut jobs = daemon.jobs().await;
     let request = pb::SubmitJobRequest {

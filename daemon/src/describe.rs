@@ -1,12 +1,17 @@
 //! What a dataset's files hold (`DescribeDataset`, `pointfarm info`): each file's header
 //! facts and, when asked, a summary of its points, read with the render crate's
 //! [`FileInfo`], and a COPC file's octree. A dataset of tiles by URL is described tile by tile
-//! from each one's header and records, read by range at the version its registration recorded
-//! (never its points, which would download it whole), as many tiles at once as the remote
-//! client sends requests, in the dataset's order. A COPC object by URL is described from its
-//! header, records and hierarchy read by range at its recorded version, and its points, when
-//! asked, streamed by range in bounded blocks. A file that cannot be read is reported with its
-//! error and the others still are. More `Daemon` methods.
+//! from each one's header and records, read by range at the version its registration recorded,
+//! and, when asked, its points streamed by range in bounded blocks at that version, as many
+//! tiles at once as the remote client sends requests, in the dataset's order. A COPC object by
+//! URL is described from its header, records and hierarchy read by range at its recorded
+//! version, and its points, when asked, streamed the same way. A file that cannot be read is
+//! reported with its error and the others still are. More `Daemon` methods.
+//!
+//! Memory while points stream: each tile's reader holds at most four blocks of
+//! `remote::STREAM_BLOCK_BYTES` (8 MiB; three kept and one read ahead) and one decoded batch,
+//! and at most the client's `parallel_requests` tiles (8 by default) are read at once: 256 MiB
+//! of blocks at the defaults, whatever the tiles' sizes.
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -55,15 +60,16 @@ impl FileReport {
         }
     }
 
-    /// Reads the header and records of `tile` by range, held to its listed version: a tile
-    /// replaced since is reported changed, naming it.
-    pub fn read_tile(client: &RemoteClient, tile: &ListedObject) -> Self {
+    /// Reads the header and records of `tile` by range, held to its listed version, and with
+    /// `read_points` every point streamed in bounded blocks at that version: a tile replaced
+    /// since, or while it is read, is reported changed, naming it.
+    pub fn read_tile(client: &RemoteClient, tile: &ListedObject, read_points: bool) -> Self {
         let path: PathBuf = tile.url.to_string().into();
         let outcome = client
             .open_listed(&tile.url, tile.version.as_deref())
             .map_err(IngestError::Remote)
             .and_then(|object| describe_tile(object).map_err(|e| ingest_error(&path, e)))
-            .map(|info| (info, None));
+            .and_then(|info| points_of(info, read_points));
         Self {
             path,
             outcome,
@@ -78,13 +84,7 @@ impl FileReport {
         let path: PathBuf = object.url().to_string().into();
         let outcome = describe_tile(object.clone())
             .map_err(|e| ingest_error(&path, e))
-            .and_then(|info| {
-                if !read_points {
-                    return Ok((info, None));
-                }
-                let summary = info.read_points(|_| {})?;
-                Ok((info, Some(summary)))
-            });
+            .and_then(|info| points_of(info, read_points));
         let copc = outcome.is_ok().then(|| copc::describe_object(object));
         Self {
             path,
@@ -92,6 +92,18 @@ impl FileReport {
             copc,
         }
     }
+}
+
+/// `info` with, when `read_points`, the summary of its points, streamed from its object.
+fn points_of(
+    info: FileInfo,
+    read_points: bool,
+) -> Result<(FileInfo, Option<PointSummary>), IngestError> {
+    if !read_points {
+        return Ok((info, None));
+    }
+    let summary = info.read_points(|_| {})?;
+    Ok((info, Some(summary)))
 }
 
 /// An object's error as a file's: each names the object already.
@@ -144,7 +156,7 @@ impl Daemon {
     ) -> Result<Vec<FileReport>, DaemonError> {
         let dataset = self.dataset(id)?;
         if !dataset.tiles.is_empty() {
-            return self.describe_tiles(&dataset);
+            return self.describe_tiles_reading(&dataset, read_points);
         }
         if dataset.remote.is_some() {
             let object = self.open_registered_copc(&dataset)?;
@@ -169,13 +181,22 @@ impl Daemon {
     }
 
     /// The reports of every tile of `dataset`, a dataset of tiles by URL, in its order: each
-    /// one's header and records read by range at its recorded version, never its points, as
-    /// many tiles at once as the client sends requests in parallel.
+    /// one's header and records read by range at its recorded version, never its points.
     pub(crate) fn describe_tiles(&self, dataset: &Dataset) -> Result<Vec<FileReport>, DaemonError> {
+        self.describe_tiles_reading(dataset, false)
+    }
+
+    /// [`Self::describe_tiles`] and, with `read_points`, each tile's points streamed at its
+    /// recorded version, as many tiles at once as the client sends requests in parallel.
+    fn describe_tiles_reading(
+        &self,
+        dataset: &Dataset,
+        read_points: bool,
+    ) -> Result<Vec<FileReport>, DaemonError> {
         let (client, tiles) = self.stores.tiles_of(dataset)?;
         let threads = client.settings().parallel_requests;
         Ok(read_in_parallel(&tiles, threads, |tile| {
-            FileReport::read_tile(&client, tile)
+            FileReport::read_tile(&client, tile, read_points)
         }))
     }
 }
