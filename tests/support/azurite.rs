@@ -115,18 +115,48 @@ impl Azurite {
             .collect()
     }
 
+    /// Stores `bytes` as the block blob `key` of `container`, replacing any blob there.
+    pub fn put_blob(&self, container: &str, key: &str, bytes: &[u8]) {
+        let blob_type = [("x-ms-blob-type", "BlockBlob")];
+        let path = format!("/{container}/{key}");
+        let answer = self.signed_with("PUT", &path, &[], &blob_type, bytes);
+        assert_eq!(answer.status, 201, "put {key}: {}", answer.text());
+    }
+
     /// A body-less request to `/{ACCOUNT}{path}` with `query` (sorted by name), signed with
     /// the account's key as Azure's Shared Key scheme asks.
     fn signed(&self, method: &str, path: &str, query: &[(&str, &str)]) -> Answer {
+        self.signed_with(method, path, query, &[], &[])
+    }
+
+    /// [`Self::signed`] with `x-ms-` headers (sorted by name, before `x-ms-date`) and `body`.
+    fn signed_with(
+        &self,
+        method: &str,
+        path: &str,
+        query: &[(&str, &str)],
+        ms_headers: &[(&str, &str)],
+        body: &[u8],
+    ) -> Answer {
         let date = httpdate::fmt_http_date(SystemTime::now());
         let resource_path = format!("/{ACCOUNT}{path}");
         let mut canonical_resource = format!("/{ACCOUNT}{resource_path}");
         for (name, value) in query {
             canonical_resource.push_str(&format!("\n{name}:{value}"));
         }
+        // An empty body's length is signed as nothing, as the scheme asks since 2015.
+        let length = if body.is_empty() {
+            String::new()
+        } else {
+            body.len().to_string()
+        };
+        let canonical_headers: String = ms_headers
+            .iter()
+            .map(|(name, value)| format!("{name}:{value}\n"))
+            .collect();
         let string_to_sign = format!(
-            "{method}\n\n\n\n\n\n\n\n\n\n\n\nx-ms-date:{date}\nx-ms-version:{API_VERSION}\n\
-             {canonical_resource}"
+            "{method}\n\n\n{length}\n\n\n\n\n\n\n\n\n{canonical_headers}x-ms-date:{date}\n\
+             x-ms-version:{API_VERSION}\n{canonical_resource}"
         );
         let engine = base64::engine::general_purpose::STANDARD;
         let key = engine.decode(ACCOUNT_KEY).expect("the account key");
@@ -142,12 +172,16 @@ impl Azurite {
             target.push('?');
             target.push_str(&joined.join("&"));
         }
-        let headers = [
+        let mut headers: Vec<(&str, String)> = ms_headers
+            .iter()
+            .map(|(name, value)| (*name, (*value).to_owned()))
+            .collect();
+        headers.extend([
             ("x-ms-date", date),
             ("x-ms-version", API_VERSION.to_owned()),
             ("Authorization", format!("SharedKey {ACCOUNT}:{signature}")),
-        ];
-        request(&self.address, method, &target, &headers, &[])
+        ]);
+        request(&self.address, method, &target, &headers, body)
     }
 }
 
