@@ -11,6 +11,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::time::Duration;
 
+use pointfarm_bench::daemon_log::number_after;
 use pointfarm_render::cloud::PointCloud;
 use pointfarm_render::cut::StoredLod;
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
@@ -158,13 +159,7 @@ fn dataset_of(output: &Output) -> String {
 /// The seconds a daemon's log gives on its first line saying `message`.
 fn seconds_said(log: &str, message: &str) -> Option<f64> {
     let line = log.lines().find(|l| l.contains(message))?;
-    let at = line.find(" seconds=")? + " seconds=".len();
-    let number: String = line[at..]
-        .trim_start_matches('"')
-        .chars()
-        .take_while(|c| c.is_ascii_digit() || *c == '.')
-        .collect();
-    number.parse().ok()
+    number_after(line, " seconds=")
 }
 
 /// The finished store under `data` that lists `files` files.
@@ -409,5 +404,69 @@ fn an_update_killed_part_way_is_made_again_and_a_preview_meanwhile_shows_the_new
     assert!(
         store_points(&store_of(&data, 21)) == store_points(&fresh),
         "the store updated after a kill holds other points than a fresh build's"
+    );
+}
+
+#[test]
+fn a_store_built_before_stores_listed_their_files_is_listed_at_start_and_grows_a_chain() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let campaign = write_campaign(dir.path(), KILLED_POINTS);
+    let camera = &campaign.camera;
+    let data = dir.path().join("daemon");
+    let address = free_address();
+    let mut server = serve(&address, &data, None);
+    let first = dir.path().join("less.png");
+    let said = run(
+        &mut render(&server, &campaign.less, &first, camera),
+        &server,
+    );
+    let first_id = dataset_of(&said);
+    server
+        .terminate(Duration::from_secs(30))
+        .expect("the daemon stops");
+
+    // The first day's store as one built before stores listed their files: without its list.
+    let store = store_of(&data, 19);
+    let listed = std::fs::read_to_string(store.join("contents.txt")).expect("a file list");
+    std::fs::remove_file(store.join("contents.txt")).expect("unlist the store");
+
+    // Started again, the daemon lists it from the dataset's record, proven by the store's facts.
+    let server = serve(&address, &data, None);
+    let log = server.log();
+    assert!(
+        log.contains("listed the files of a store built before stores listed them"),
+        "{log}"
+    );
+    let derived = std::fs::read_to_string(store.join("contents.txt")).expect("listed again");
+    assert_eq!(
+        derived, listed,
+        "the derived list differs from the one the build wrote"
+    );
+
+    // Day two's store grows from it, and day three's from day two's grown store.
+    let day2 = dir.path().join("day1.png");
+    let said = run(&mut render(&server, &campaign.day1, &day2, camera), &server);
+    let day2_id = dataset_of(&said);
+    let day3 = dir.path().join("day2.png");
+    run(&mut render(&server, &campaign.day2, &day3, camera), &server);
+    let log = server.log();
+    for from in [first_id, day2_id] {
+        let grown = format!("from the store of dataset {from}: 1 files added, 0 removed");
+        assert!(log.contains(&grown), "{log}");
+    }
+    assert!(
+        !log.contains("levels of detail built"),
+        "built whole:\n{log}"
+    );
+    drop(server);
+
+    // The end of the chain holds and draws what a fresh daemon's build does.
+    let day3_fresh = (campaign.day2.as_path(), 21);
+    let what = "the store grown twice";
+    let fresh =
+        assert_draws_as_a_fresh_build(dir.path(), "fresh-day3", day3_fresh, camera, &day3, what);
+    assert!(
+        store_points(&store_of(&data, 21)) == store_points(&fresh),
+        "the store grown twice holds other points than a fresh build's"
     );
 }

@@ -43,6 +43,7 @@ pub mod cli;
 pub mod clouds;
 pub mod copc;
 pub mod cuts;
+pub mod daemon_log;
 mod error;
 pub mod frame_figures;
 mod huge;

@@ -246,6 +246,15 @@ impl Daemon {
             tracing::info!(requeued, "resuming jobs that were running");
         }
         remove_partial_frames(&config.data_dir.join("jobs"));
+        // Stores built before stores listed their files are listed, so datasets near them grow.
+        match state.datasets() {
+            Ok(datasets) => {
+                crate::stores::list_unlisted_stores(&config.data_dir.join("lod"), &datasets)
+            }
+            Err(error) => {
+                tracing::warn!(%error, "reading the datasets to list their stores' files")
+            }
+        }
         let remote = match config.allowed_url_prefixes.prefixes() {
             [] => None,
             prefixes => {

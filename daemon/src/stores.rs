@@ -653,7 +653,7 @@ mod gate;
 pub use gate::StoreBuildGate;
 mod growth;
 use growth::grow_or_build;
-pub use growth::Grown;
+pub use growth::{list_unlisted_stores, Grown};
 mod healing;
 use healing::being_rebuilt;
 mod input;

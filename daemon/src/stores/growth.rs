@@ -19,7 +19,13 @@
 //! file whose points cannot be told apart) leaves the store to be built whole.
 //!
 //! Each store built or grown here lists its files, by content hash and points, in the store's
-//! order (`contents.txt`), which is how a later update names the files it removes.
+//! order (`contents.txt`), which is how a later update names the files it removes. A store
+//! built before stores listed their files is listed when the daemon starts
+//! ([`list_unlisted_stores`]) from the record of a dataset of its content, only where that is
+//! proven: the files' hashes in order hash to the store's name, and the store's own facts give
+//! as many files, each with the points its header says where the file is still at hand, and
+//! their points add up to the store's. Otherwise it stays unlisted, said in the log, and a
+//! content near it has its store built whole.
 
 use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
@@ -33,7 +39,7 @@ use pointfarm_render::source::StoreInput;
 use pointfarm_render::write_whole::write_whole;
 
 use super::{open_or_build, ReadyStore};
-use crate::model::DatasetFile;
+use crate::model::{content_sha256, Dataset, DatasetFile};
 
 /// The list of a store's files in its folder: a line per file, `SHA256<TAB>points`.
 const CONTENTS_FILE: &str = "contents.txt";
@@ -153,6 +159,85 @@ pub(super) fn list_contents(folder: &Path, files: &[DatasetFile]) {
     if let Err(reason) = list {
         tracing::warn!(folder = %folder.display(), %reason, "the store's file list");
     }
+}
+
+/// Lists each finished store under `dir` that has no file list yet from the record of a
+/// dataset of its content (`datasets`, files on the server), where the list is proven right.
+pub fn list_unlisted_stores(dir: &Path, datasets: &[Dataset]) {
+    for dataset in datasets.iter().filter(|d| !d.is_by_url()) {
+        let folder = dir.join(&dataset.sha256);
+        if folder.join(CONTENTS_FILE).exists()
+            || !pointfarm_render::cut::StoredLod::is_built(&folder)
+        {
+            continue;
+        }
+        let listed = derived_contents(&folder, &dataset.files())
+            .and_then(|list| write_contents(&folder, &list).map(|()| list.len()));
+        match listed {
+            Ok(files) => tracing::info!(dataset = %dataset.id, files,
+                "listed the files of a store built before stores listed them, so it can be grown from"),
+            Err(reason) => tracing::info!(dataset = %dataset.id, %reason,
+                "a store built before stores listed their files stays unlisted: datasets near it \
+                 have their stores built whole"),
+        }
+    }
+}
+
+/// What `contents.txt` of the store in `folder` holds, derived from `files` (a dataset of the
+/// store's content) and the store's own facts; an error says what disproves it.
+fn derived_contents(folder: &Path, files: &[DatasetFile]) -> Result<Vec<Listed>, String> {
+    let name = folder.file_name().unwrap_or_default().to_string_lossy();
+    if files.is_empty() || content_sha256(files) != name {
+        return Err("the dataset's files are not the store's content".to_owned());
+    }
+    if !unique(files.iter().map(|f| &f.sha256)) {
+        return Err("the dataset holds a file twice".to_owned());
+    }
+    let (_db, store) = open_store(folder)?;
+    let regions = store
+        .read_regions()
+        .map_err(|e| e.to_string())?
+        .ok_or("the store keeps no regions, so it cannot be updated")?;
+    let facts = regions
+        .file_facts
+        .ok_or("the store keeps no facts of its files")?;
+    let hashes: Vec<&str> = files.iter().map(|f| f.sha256.as_str()).collect();
+    if facts.len() != files.len() || !(regions.files.is_empty() || regions.files == hashes) {
+        return Err(format!(
+            "the store holds {} files, the dataset {}",
+            facts.len(),
+            files.len()
+        ));
+    }
+    let stored = store
+        .read_hierarchy()
+        .map_err(|e| e.to_string())?
+        .point_count;
+    let facts_points: u64 = facts.iter().map(|f| f.points).sum();
+    if facts_points != stored {
+        return Err(format!(
+            "the store holds {stored} points, its files' facts {facts_points}"
+        ));
+    }
+    let mut list = Vec::with_capacity(files.len());
+    for (file, facts) in files.iter().zip(&facts) {
+        // A file still at hand as recorded has its points checked against the store's facts.
+        let at_hand = std::fs::metadata(&file.path).is_ok_and(|m| m.len() == file.size_bytes);
+        if at_hand {
+            let header = listed(&[file])?;
+            if header[0].points != facts.points {
+                return Err(format!(
+                    "{} holds {} points, the store's facts of it {}",
+                    file.name, header[0].points, facts.points
+                ));
+            }
+        }
+        list.push(Listed {
+            sha256: file.sha256.clone(),
+            points: facts.points,
+        });
+    }
+    Ok(list)
 }
 
 fn unique<'a>(hashes: impl Iterator<Item = &'a String>) -> bool {
@@ -320,14 +405,15 @@ fn copy_and_update(
     memory_budget: u64,
 ) -> Result<Grown, String> {
     std::fs::create_dir_all(into).map_err(|e| format!("making {}: {e}", into.display()))?;
+    let copying = Instant::now();
     copy_folder(&from.join(INDEX_FOLDER), &into.join(INDEX_FOLDER))?;
     clone_file(&from.join(PAYLOAD_FILE), &into.join(PAYLOAD_FILE))?;
-    let db = sled::Config::new()
-        .path(into.join(INDEX_FOLDER))
-        .open()
-        .map_err(|e| format!("opening the copied store: {e}"))?;
-    let tree = db.open_tree("lod").map_err(|e| e.to_string())?;
-    let store = LodStore::open(tree, into.join(PAYLOAD_FILE)).map_err(|e| e.to_string())?;
+    tracing::info!(
+        seconds = format!("{:.2}", copying.elapsed().as_secs_f64()),
+        payload_bytes = std::fs::metadata(into.join(PAYLOAD_FILE)).map_or(0, |m| m.len()),
+        "copied the earlier store to update"
+    );
+    let (db, store) = open_store(into)?;
     let copied = store.read_hierarchy().map_err(|e| e.to_string())?;
     let listed_points: u64 = earlier.iter().map(|f| f.points).sum();
     if copied.point_count != listed_points {
@@ -396,6 +482,17 @@ fn copy_and_update(
         seconds: 0.0,
         update_seconds: report.seconds,
     })
+}
+
+/// The store in `folder`: its sled index (kept open while the store is) and payload file.
+fn open_store(folder: &Path) -> Result<(sled::Db, LodStore), String> {
+    let db = sled::Config::new()
+        .path(folder.join(INDEX_FOLDER))
+        .open()
+        .map_err(|e| format!("opening the store in {}: {e}", folder.display()))?;
+    let tree = db.open_tree("lod").map_err(|e| e.to_string())?;
+    let store = LodStore::open(tree, folder.join(PAYLOAD_FILE)).map_err(|e| e.to_string())?;
+    Ok((db, store))
 }
 
 /// Copies the files of folder `from` (a sled index: small, written in place) into `into`.
@@ -499,6 +596,76 @@ mod tests {
         );
         // Two of four removed is more than a quarter.
         assert!(nearest(&new, &wanted(&["c", "d"])).is_none());
+    }
+
+    /// A LAS file of `points` of the sample scene at `path`, recorded as `sha256`.
+    fn las(path: &Path, points: usize, seed: u64, sha256: &str) -> DatasetFile {
+        let cloud = pointfarm_render::sample::sample_scene(points, seed);
+        let options = pointfarm_render::ingest::LasWriteOptions::default();
+        pointfarm_render::ingest::write_las(path, &cloud, &options).expect("a tile");
+        DatasetFile {
+            name: "tile.las".to_owned(),
+            path: path.to_owned(),
+            size_bytes: std::fs::metadata(path).expect("written").len(),
+            sha256: sha256.to_owned(),
+        }
+    }
+
+    #[test]
+    fn a_store_without_a_file_list_is_listed_only_where_its_files_prove_it() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let files = vec![
+            las(&dir.path().join("a.las"), 3_000, 1, "a"),
+            las(&dir.path().join("b.las"), 2_000, 2, "b"),
+        ];
+        let folder = dir.path().join("lod").join(content_sha256(&files));
+        let paths: Vec<PathBuf> = files.iter().map(|f| f.path.clone()).collect();
+        let built = pointfarm_render::cut::StoredLod::open_or_build(
+            &paths,
+            &folder,
+            64 << 20,
+            None,
+            &mut |_| {},
+        )
+        .expect("a store");
+        drop(built);
+
+        // In another order the files are another content.
+        let swapped = vec![files[1].clone(), files[0].clone()];
+        let error = derived_contents(&folder, &swapped).expect_err("another content");
+        assert!(error.contains("not the store's content"), "{error}");
+        // A file at hand whose header gives other points than the store's facts disproves it.
+        let mut changed = files.clone();
+        changed[1] = las(&dir.path().join("b2.las"), 2_500, 2, "b");
+        let error = derived_contents(&folder, &changed).expect_err("other points");
+        assert!(error.contains("the store's facts of it 2000"), "{error}");
+
+        let mut dataset = crate::model::Dataset {
+            id: "ds-ab".to_owned(),
+            name: "tiles".to_owned(),
+            size_bytes: 0,
+            sha256: content_sha256(&files),
+            path: files[0].path.clone(),
+            files: files.clone(),
+            created_unix_ms: 0,
+            remote: None,
+            tiles: Vec::new(),
+        };
+        list_unlisted_stores(&dir.path().join("lod"), std::slice::from_ref(&dataset));
+        let listed = read_contents(&folder).expect("listed");
+        let expected = [("a", 3_000), ("b", 2_000)].map(|(sha256, points)| Listed {
+            sha256: sha256.to_owned(),
+            points,
+        });
+        assert_eq!(listed, expected);
+        // A file gone from its path is taken at the store's word, the content being proven.
+        std::fs::remove_file(folder.join(CONTENTS_FILE)).expect("unlist");
+        std::fs::remove_file(&files[0].path).expect("remove a file");
+        dataset.files[0].size_bytes += 1;
+        assert_eq!(
+            derived_contents(&folder, &dataset.files).expect("listed"),
+            expected
+        );
     }
 
     #[test]
