@@ -24,12 +24,19 @@ use pointfarm_tests::{output_text, path_arg, pointfarm_bin};
 const CONTAINER: &str = "pointfarm-scans";
 
 /// Three LAZ tiles written in `dir`'s `campaign` folder, and a file beside them that holds no
-/// points: the folder and the tiles' paths.
-fn campaign(dir: &Path) -> (PathBuf, Vec<PathBuf>) {
+/// points, each stored by `put(key, path)` under `campaign/`, and a tile stored outside it:
+/// the folder.
+fn campaign(dir: &Path, put: impl Fn(&str, &Path)) -> PathBuf {
     let folder = dir.join("campaign");
     let tiles = write_scene_tiles(&folder, 4_000, 3);
-    std::fs::write(folder.join("notes.txt"), "not a point file").expect("a note");
-    (folder, tiles)
+    let note = folder.join("notes.txt");
+    std::fs::write(&note, "not a point file").expect("a note");
+    for file in tiles.iter().chain([&note]) {
+        let name = file.file_name().and_then(|n| n.to_str()).expect("a name");
+        put(&format!("campaign/{name}"), file);
+    }
+    put("other/t9.laz", &tiles[0]);
+    folder
 }
 
 /// `pointfarm info INPUT --no-points --json` with `environment`: each file's description
@@ -83,12 +90,7 @@ fn a_gcs_prefix_lists_its_tiles_as_a_folder_does() {
     };
     gcs.create_bucket(CONTAINER);
     let dir = tempfile::tempdir().expect("tempdir");
-    let (folder, tiles) = campaign(dir.path());
-    for tile in tiles.iter().chain([&folder.join("notes.txt")]) {
-        let name = tile.file_name().and_then(|n| n.to_str()).expect("a name");
-        gcs.upload(CONTAINER, &format!("campaign/{name}"), tile);
-    }
-    gcs.upload(CONTAINER, "other/t9.laz", &tiles[0]);
+    let folder = campaign(dir.path(), |key, path| gcs.upload(CONTAINER, key, path));
     let prefix = format!("gs://{CONTAINER}/campaign/");
     assert_listed_as_the_folder(&gcs.environment(), &prefix, &folder);
 }
@@ -100,14 +102,9 @@ fn an_azure_prefix_lists_its_tiles_as_a_folder_does() {
     };
     azurite.create_container(CONTAINER);
     let dir = tempfile::tempdir().expect("tempdir");
-    let (folder, tiles) = campaign(dir.path());
-    for tile in tiles.iter().chain([&folder.join("notes.txt")]) {
-        let name = tile.file_name().and_then(|n| n.to_str()).expect("a name");
-        let bytes = std::fs::read(tile).expect("a tile");
-        azurite.put_blob(CONTAINER, &format!("campaign/{name}"), &bytes);
-    }
-    let bytes = std::fs::read(&tiles[0]).expect("a tile");
-    azurite.put_blob(CONTAINER, "other/t9.laz", &bytes);
+    let folder = campaign(dir.path(), |key, path| {
+        azurite.put_blob(CONTAINER, key, &std::fs::read(path).expect("a file"));
+    });
     let prefix = format!("az://{CONTAINER}/campaign/");
     assert_listed_as_the_folder(&azurite.environment(), &prefix, &folder);
     // An empty prefix is one line naming it, as in S3.
