@@ -6,6 +6,8 @@
 use std::path::{Path, PathBuf};
 
 use pointfarm_bench::object_storage::s3_server::S3Server;
+
+use crate::tools::tool_or_skip;
 pub use pointfarm_bench::object_storage::s3_server::{ACCESS_KEY, SECRET_KEY};
 
 /// The variable that names the `s3s-fs` binary.
@@ -19,20 +21,10 @@ pub struct S3sServer {
 }
 
 impl S3sServer {
-    /// The binary `POINTFARM_TEST_S3S_FS` names, or None, having said so.
-    pub fn binary_or_skip() -> Option<PathBuf> {
-        let binary = std::env::var_os(S3S_FS_VARIABLE)
-            .map(PathBuf::from)
-            .filter(|path| path.is_file());
-        if binary.is_none() {
-            eprintln!("skipped: {S3S_FS_VARIABLE} names no s3s-fs binary");
-        }
-        binary
-    }
-
-    /// Starts the server over `root`, or None, having said why, without a binary.
+    /// Starts the server over `root`, or None, having said why, without a binary (a failure
+    /// where `CI` is set).
     pub fn start_or_skip(root: &Path) -> Option<Self> {
-        let binary = Self::binary_or_skip()?;
+        let binary = tool_or_skip(S3S_FS_VARIABLE, "s3s-fs")?;
         let server = S3Server::serve(&binary, root).expect("start the S3 server");
         Some(Self {
             address: server.address().to_string(),
@@ -62,7 +54,7 @@ pub struct S3Bucket {
 
 impl S3Bucket {
     /// Starts a server holding the empty bucket `name`; None, having said so, without the
-    /// binary.
+    /// binary (a failure where `CI` is set).
     pub fn start_or_skip(name: &'static str) -> Option<Self> {
         let root = tempfile::tempdir().expect("root");
         std::fs::create_dir_all(root.path().join(name)).expect("bucket folder");
