@@ -2,10 +2,11 @@
 //! (`gs://`) and Azure Blob Storage (`az://`), against real servers: fake-gcs-server and
 //! Azurite, each on a loopback port of its own (`tests/support/fake_gcs.rs`, `azurite.rs`).
 //! `info` of a prefix lists its `.las`/`.laz` objects, in order, and says of each what it says
-//! of the same files in a folder here, objects of other kinds left out; a COPC object replaced
-//! after it was opened fails the read that meets the new version, naming its URL, and is read
-//! whole at its new version once opened again, never a mix of the two. Each test skips, saying
-//! so, where its server's variable names no binary, and fails so in CI.
+//! of the same files in a folder here, objects of other kinds and outside the prefix left out;
+//! an object replaced after it was opened fails the ranged read, and the stream (a tile's points
+//! are read through one), that meet the new version, naming its URL, and is read whole at its
+//! new version once opened again, never a mix of the two. Each test skips, saying so, where its
+//! server's variable names no binary, and fails so in CI.
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
