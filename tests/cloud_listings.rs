@@ -5,7 +5,8 @@
 //! of the same files in a folder here, objects of other kinds and outside the prefix left out;
 //! an object replaced after it was opened fails the ranged read, and the stream (a tile's points
 //! are read through one), that meet the new version, naming its URL, and is read whole at its
-//! new version once opened again, never a mix of the two. Each test skips, saying so, where its
+//! new version once opened again, never a mix of the two; a COPC object in Azure replaced after
+//! it was opened refuses its nodes the same way. Each test skips, saying so, where its
 //! server's variable names no binary, and fails so in CI.
 
 use std::io::Read;
@@ -13,13 +14,15 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::Arc;
 
+use pointfarm_render::copc::{open_copc_url, CopcError};
+use pointfarm_render::lod::{LodError, NodeInfo};
 use pointfarm_render::remote::{
     ObjectReader, ObjectUrl, RemoteClient, RemoteError, RemoteSettings,
 };
 use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::azurite::Azurite;
 use pointfarm_tests::fake_gcs::FakeGcs;
-use pointfarm_tests::{output_text, path_arg, pointfarm_bin};
+use pointfarm_tests::{output_text, path_arg, pointfarm_bin, pointfarm_ok};
 
 /// The container and bucket the tests read from.
 const CONTAINER: &str = "pointfarm-scans";
@@ -191,6 +194,45 @@ fn assert_replaced_mid_read_is_refused(url: &str, replace: impl FnOnce()) {
     assert!(whole.iter().all(|&byte| byte == 2));
 }
 
+/// A COPC file of 1.5M generated points exported in `dir`: more than the coarse nodes opening
+/// reads for its color ranges (1M points), so its finer nodes are read only when asked.
+fn exported_copc(dir: &Path) -> PathBuf {
+    let scene = dir.join("scene.laz");
+    pointfarm_ok(&["sample", path_arg(&scene), "--points", "1500000"]);
+    let copc = dir.join("scene.copc.laz");
+    let export = ["export", path_arg(&scene), "--copc", path_arg(&copc)];
+    let cache = dir.join("cache");
+    pointfarm_ok(&[&export[..], &["--cache-dir", path_arg(&cache)]].concat());
+    copc
+}
+
+/// Opens the COPC object at `url`, lets `replace` put another object in its place, and checks
+/// that reading every node, as a frame of every node does, is refused as changed, naming the
+/// URL: never nodes of two versions.
+fn assert_copc_replaced_mid_read_is_refused(url: &str, replace: impl FnOnce()) {
+    let client = RemoteClient::new(RemoteSettings::default()).expect("a client");
+    let copc = open_copc_url(&client, &ObjectUrl::parse(url).expect("a URL")).expect("opens");
+    let nodes: Vec<NodeInfo> = (copc.dataset.hierarchy().nodes().iter())
+        .filter(|node| node.point_count > 0)
+        .copied()
+        .collect();
+    replace();
+    let error = (copc.dataset.records().read_records(&nodes))
+        .expect_err("the object changed since it was opened");
+    assert!(error.to_string().contains(url), "{error}");
+    let LodError::RecordSource(source) = error else {
+        panic!("not the reader's error: {error}");
+    };
+    let copc_error = source.downcast::<CopcError>().expect("a COPC error");
+    assert!(
+        matches!(
+            *copc_error,
+            CopcError::Remote(RemoteError::ObjectChanged { .. })
+        ),
+        "{copc_error}"
+    );
+}
+
 /// Both stores in one test: the client reads its endpoints and credentials from this
 /// process's environment, which each store's own variables set once.
 #[test]
@@ -209,6 +251,16 @@ fn an_object_replaced_mid_read_in_azure_or_gcs_is_refused_naming_it() {
         azurite.create_container(CONTAINER);
         azurite.put_blob(CONTAINER, key, &std::fs::read(&first).expect("ones"));
         assert_replaced_mid_read_is_refused(&format!("az://{CONTAINER}/{key}"), || {
+            azurite.put_blob(CONTAINER, key, &std::fs::read(&second).expect("twos"));
+        });
+        let copc = exported_copc(dir.path());
+        let key = "campaign/large.copc.laz";
+        azurite.put_blob(
+            CONTAINER,
+            key,
+            &std::fs::read(&copc).expect("the COPC file"),
+        );
+        assert_copc_replaced_mid_read_is_refused(&format!("az://{CONTAINER}/{key}"), || {
             azurite.put_blob(CONTAINER, key, &std::fs::read(&second).expect("twos"));
         });
     }
