@@ -35,7 +35,7 @@ use std::sync::{Arc, Mutex};
 
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::copc::is_copc;
-use pointfarm_render::cut::{CutError, StoreBuild, StoredLod};
+use pointfarm_render::cut::{CutError, StoredLod};
 use pointfarm_render::ingest::{dataset_point_count, DatasetSource};
 use pointfarm_render::lod::{BuildProgress, PointSource};
 use pointfarm_render::request::RenderRequest;
@@ -44,7 +44,7 @@ use pointfarm_render::source::{
 };
 
 use super::growth::{grow_from, list_contents, Grown};
-use super::input::ready_of;
+use super::input::{ready_of, with_build};
 use super::{DatasetStores, Entry, ReadyStore};
 use crate::model::{content_sha256_of, dataset_id, Dataset, DatasetFile, Job};
 
@@ -121,31 +121,19 @@ impl DatasetStores {
 
     /// The part of a dataset a job reads first, by its dataset id (for workers' requests).
     pub fn part_dataset(&self, id: &str) -> Option<Dataset> {
-        let parts = self
-            .camera_first
-            .parts
-            .lock()
-            .unwrap_or_else(|e| e.into_inner());
+        let parts = self.lock_parts();
         parts.get(id).map(|part| part.dataset.clone())
     }
 
     /// Whether content `sha256` is a part, which is always cut, never rendered resident.
     pub(super) fn is_part(&self, sha256: &str) -> bool {
-        let parts = self
-            .camera_first
-            .parts
-            .lock()
-            .unwrap_or_else(|e| e.into_inner());
+        let parts = self.lock_parts();
         parts.values().any(|part| part.dataset.sha256 == sha256)
     }
 
     /// How the store of content `sha256` is made.
     pub(super) fn making(&self, sha256: &str) -> Making {
-        let parts = self
-            .camera_first
-            .parts
-            .lock()
-            .unwrap_or_else(|e| e.into_inner());
+        let parts = self.lock_parts();
         for part in parts.values() {
             if part.dataset.sha256 == sha256 {
                 return Making::Within(part.bounds);
@@ -156,6 +144,13 @@ impl DatasetStores {
             }
         }
         Making::Plain
+    }
+
+    fn lock_parts(&self) -> std::sync::MutexGuard<'_, HashMap<String, Arc<Part>>> {
+        self.camera_first
+            .parts
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
     }
 
     fn lock_jobs(&self) -> std::sync::MutexGuard<'_, HashMap<String, Option<Arc<Part>>>> {
@@ -215,11 +210,7 @@ impl DatasetStores {
             files_seen = places.len(), files = files.len(),
             "camera first: the store of the {} of {} files the job's frames see is built first",
             places.len(), files.len());
-        let mut parts = self
-            .camera_first
-            .parts
-            .lock()
-            .unwrap_or_else(|e| e.into_inner());
+        let mut parts = self.lock_parts();
         let known = parts
             .entry(part.dataset.id.clone())
             .or_insert_with(|| Arc::clone(&part));
@@ -258,7 +249,7 @@ pub(super) enum Made {
     /// The store was grown from a part, and is opened from its folder.
     Grown(Grown),
     /// A part, built and opened.
-    Ready(ReadyStore),
+    Ready(Box<ReadyStore>),
 }
 
 impl Made {
@@ -270,7 +261,7 @@ impl Made {
         match self {
             Made::Nothing => open(),
             Made::Grown(grown) => open().map(|ready| ready.grown_by(grown)),
-            Made::Ready(ready) => Ok(ready),
+            Made::Ready(ready) => Ok(*ready),
         }
     }
 }
@@ -297,16 +288,11 @@ pub(super) fn make(
                 source: &source,
                 bounds: *bounds,
             };
-            let build = StoreBuild {
-                folder,
-                memory_budget: budget,
-                disk_budget: None,
-                on_build: &mut |_| {},
-                progress,
-            };
-            let lod = StoredLod::open_or_build_source(&within, build)?;
+            let lod = with_build(folder, budget, progress, |build| {
+                StoredLod::open_or_build_source(&within, build)
+            })?;
             list_contents(folder, files);
-            Ok(Made::Ready(ready_of(lod, folder)))
+            Ok(Made::Ready(Box::new(ready_of(lod, folder))))
         }
     }
 }

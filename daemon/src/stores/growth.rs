@@ -294,28 +294,8 @@ pub(super) fn grow(
     memory_budget: u64,
     dataset_id: &str,
 ) -> Option<Grown> {
-    let growing = growing_folder(folder);
-    if growing.exists() {
-        // Left by an update that stopped part way: started again from a fresh copy.
-        tracing::info!(dataset = %dataset_id, "removing the store update a stopped daemon left");
-        if let Err(error) = std::fs::remove_dir_all(&growing) {
-            tracing::warn!(%error, folder = %growing.display(), "removing an unfinished update");
-            return None;
-        }
-    }
-    if folder.exists() || !unique(files.iter().map(|f| &f.sha256)) {
-        return None;
-    }
-    let (from, earlier) = nearest(folder, files)?;
-    grow_copy(
-        folder,
-        &from,
-        &earlier,
-        files,
-        points,
-        memory_budget,
-        dataset_id,
-    )
+    let nearest = || nearest(folder, files);
+    grow_with(folder, files, points, memory_budget, dataset_id, nearest)
 }
 
 /// [`grow`] from the finished store in `from` whatever share of files it lacks: a camera
@@ -328,40 +308,38 @@ pub(super) fn grow_from(
     memory_budget: u64,
     dataset_id: &str,
 ) -> Option<Grown> {
-    let _ = std::fs::remove_dir_all(growing_folder(folder));
-    let earlier = read_contents(from)?;
-    if folder.exists() || !unique(files.iter().map(|f| &f.sha256)) {
-        return None;
-    }
-    grow_copy(
-        folder,
-        from,
-        &earlier,
-        files,
-        points,
-        memory_budget,
-        dataset_id,
-    )
+    let listed = || Some((from.to_path_buf(), read_contents(from)?));
+    grow_with(folder, files, points, memory_budget, dataset_id, listed)
 }
 
-/// Copies the store in `from` (of the files `earlier`) beside `folder`, updates the copy to
-/// `files` and renames it into place.
-fn grow_copy(
+/// [`grow`] from the store `source` gives, with the files it lists.
+fn grow_with(
     folder: &Path,
-    from: &Path,
-    earlier: &[Listed],
     files: &[DatasetFile],
     points: u64,
     memory_budget: u64,
     dataset_id: &str,
+    source: impl FnOnce() -> Option<(PathBuf, Vec<Listed>)>,
 ) -> Option<Grown> {
     let growing = growing_folder(folder);
+    if growing.exists() {
+        // Left by an update that stopped part way: started again from a fresh copy.
+        tracing::info!(dataset = %dataset_id, "removing the store update a stopped daemon left");
+        if let Err(error) = std::fs::remove_dir_all(&growing) {
+            tracing::warn!(%error, folder = %growing.display(), "removing an unfinished update");
+            return None;
+        }
+    }
+    if folder.exists() || !unique(files.iter().map(|f| &f.sha256)) {
+        return None;
+    }
+    let (from, earlier) = source()?;
     let from_sha256 = from.file_name()?.to_string_lossy().into_owned();
     let from_id = crate::model::dataset_id(&from_sha256);
     tracing::info!(dataset = %dataset_id, from = %from_id,
         "updating a copy of the store of dataset {from_id} instead of building the store whole");
     let started = Instant::now();
-    let grown = copy_and_update(from, &growing, earlier, files, points, memory_budget).and_then(
+    let grown = copy_and_update(&from, &growing, &earlier, files, points, memory_budget).and_then(
         |mut grown| {
             let _ = std::fs::remove_dir_all(growing.join("spill"));
             std::fs::rename(&growing, folder)

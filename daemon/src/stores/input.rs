@@ -78,17 +78,27 @@ pub(super) fn open_or_build_input(
     budget: u64,
     progress: &BuildProgress,
 ) -> Result<StoredLod, CutError> {
-    let build = StoreBuild {
+    with_build(folder, budget, progress, |build| match input {
+        StoreInput::Files(files) => StoredLod::open_or_build_watched(files, build),
+        StoreInput::Tiles(client, tiles) => open_or_build_tiles(client, tiles, build),
+    })
+}
+
+/// `open` given the build of a store in `folder` within `budget` bytes, which lists the nodes
+/// it stores in `progress`.
+pub(super) fn with_build<T>(
+    folder: &Path,
+    budget: u64,
+    progress: &BuildProgress,
+    open: impl FnOnce(StoreBuild<'_>) -> T,
+) -> T {
+    open(StoreBuild {
         folder,
         memory_budget: budget,
         disk_budget: None,
         on_build: &mut |_| {},
         progress,
-    };
-    match input {
-        StoreInput::Files(files) => StoredLod::open_or_build_watched(files, build),
-        StoreInput::Tiles(client, tiles) => open_or_build_tiles(client, tiles, build),
-    }
+    })
 }
 
 /// Opens the store in `folder`, building it from `input` first when it has none, listing in
