@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 use serde::Serialize;
 
 use super::s3_server::S3Server;
-use super::ObjectStorageError;
+use super::{listens_within, ObjectStorageError};
 use crate::campaign::write_campaign;
 use crate::copc::drop_page_cache;
 use crate::scratch::{load_average, progress_log, scratch_dir};
@@ -298,15 +298,11 @@ impl Farm<'_> {
             .spawn()
             .map_err(|e| ObjectStorageError::Setup(format!("starting the daemon: {e}")))?;
         let daemon = Killed(child);
-        let started = Instant::now();
-        while TcpStream::connect(address).is_err() {
-            if started.elapsed() > START_TIMEOUT {
-                return Err(ObjectStorageError::Setup(format!(
-                    "the daemon did not listen on {address}: {}",
-                    log_tail(log)
-                )));
-            }
-            std::thread::sleep(Duration::from_millis(100));
+        if !listens_within(address, START_TIMEOUT) {
+            return Err(ObjectStorageError::Setup(format!(
+                "the daemon did not listen on {address}: {}",
+                log_tail(log)
+            )));
         }
         Ok(daemon)
     }

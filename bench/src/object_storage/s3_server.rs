@@ -3,11 +3,12 @@
 //! keeps each object as a plain file there, so a benchmark can drop an object's pages from the
 //! OS's cache as it drops a local file's.
 
-use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::net::{SocketAddr, TcpListener};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
+use super::listens_within;
 use crate::BenchError;
 
 /// The credentials the server accepts; they stay on loopback, and a test checks they never
@@ -136,17 +137,13 @@ fn listening(binary: &Path, address: SocketAddr, root: &Path) -> Result<Child, B
         .stderr(Stdio::null())
         .spawn()
         .map_err(|e| scratch(&format!("starting {}", binary.display()), e))?;
-    let started = Instant::now();
-    while TcpStream::connect(address).is_err() {
-        if started.elapsed() > START_TIMEOUT {
-            let _ = child.kill();
-            let _ = child.wait();
-            return Err(BenchError::Scratch(format!(
-                "{} did not listen on {address} within {START_TIMEOUT:?}",
-                binary.display()
-            )));
-        }
-        std::thread::sleep(Duration::from_millis(50));
+    if !listens_within(address, START_TIMEOUT) {
+        let _ = child.kill();
+        let _ = child.wait();
+        return Err(BenchError::Scratch(format!(
+            "{} did not listen on {address} within {START_TIMEOUT:?}",
+            binary.display()
+        )));
     }
     Ok(child)
 }
