@@ -130,18 +130,17 @@ impl Serve {
     }
 
     /// The numbers `fields` of the daemon's first line saying `message`, waited for.
-    fn said(&self, message: &str, fields: &[&str]) -> Result<Vec<f64>, String> {
+    fn said<const N: usize>(&self, message: &str, fields: [&str; N]) -> Result<[f64; N], String> {
         let started = Instant::now();
         loop {
             let log = self.log_text();
             if let Some(line) = log.lines().find(|l| l.contains(message)) {
-                return fields
-                    .iter()
-                    .map(|field| {
-                        number_after(line, &format!(" {field}="))
-                            .ok_or_else(|| format!("no {field} in: {line}"))
-                    })
-                    .collect();
+                let mut numbers = [0.0; N];
+                for (number, field) in numbers.iter_mut().zip(fields) {
+                    *number = number_after(line, &format!(" {field}="))
+                        .ok_or_else(|| format!("no {field} in: {line}"))?;
+                }
+                return Ok(numbers);
             }
             if started.elapsed() > RENDER_TIMEOUT {
                 return Err(format!("the daemon never said {message:?}:\n{log}"));
@@ -202,9 +201,7 @@ fn measure(args: &Args) -> Result<(), String> {
         let data = dir.join(format!("grown-{round}"));
         let serve = Serve::start(pointfarm, &data, budget)?;
         serve.render(pointfarm, &day1, &dir.join("day1.png"))?;
-        let [before_whole] = serve.said("levels of detail built", &["seconds"])?[..] else {
-            unreachable!("one field asked")
-        };
+        let [before_whole] = serve.said("levels of detail built", ["seconds"])?;
         let load_before = load();
         serve.render(pointfarm, &day2, &dir.join("day2.png"))?;
         let fields = [
@@ -213,10 +210,8 @@ fn measure(args: &Args) -> Result<(), String> {
             "regions_rebuilt",
             "regions_kept",
         ];
-        let [grown, update, rebuilt, kept] = serve.said("updated the store of", &fields)?[..]
-        else {
-            unreachable!("four fields asked")
-        };
+        let [grown, update, rebuilt, kept] = serve.said("updated the store of", fields)?;
+        let [copy] = serve.said("copied the earlier store to update", ["seconds"])?;
         let load_grown = load();
         drop(serve);
         let _ = std::fs::remove_dir_all(&data);
@@ -224,16 +219,14 @@ fn measure(args: &Args) -> Result<(), String> {
         let data = dir.join(format!("whole-{round}"));
         let serve = Serve::start(pointfarm, &data, budget)?;
         serve.render(pointfarm, &day2, &dir.join("whole.png"))?;
-        let [whole] = serve.said("levels of detail built", &["seconds"])?[..] else {
-            unreachable!("one field asked")
-        };
+        let [whole] = serve.said("levels of detail built", ["seconds"])?;
         let load_whole = load();
         drop(serve);
         let _ = std::fs::remove_dir_all(&data);
         println!(
             "round {round}: whole build of {} tiles {before_whole:.2} s; of {} tiles \
-             {whole:.2} s (load {load_whole}); store of {} tiles grown {grown:.2} s (update \
-             alone {update:.2} s, {rebuilt} regions rebuilt, {kept} kept; load {load_before} \
+             {whole:.2} s (load {load_whole}); store of {} tiles grown {grown:.2} s (copy \
+             {copy:.2} s, update alone {update:.2} s, {rebuilt} regions rebuilt, {kept} kept; load {load_before} \
              before, {load_grown} after): {:.1}% of the whole build",
             before.len(),
             all.len(),
