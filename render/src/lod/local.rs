@@ -4,9 +4,11 @@
 //! bits, without moving a point. A node above the leaf bound has its children built, then
 //! samples its own points from theirs (bottom-up, as PotreeConverter 2 does) and every child is
 //! finished, into the nodes of the partition's region, stored together once the partition is
-//! built (`sink.rs`). A leaf copies its run out of the partition's points, in the order they
-//! came, the only copy a point takes before the sampling. The partition's root is returned unfinished: the levels above the
-//! partitions still sample from it.
+//! built (`sink.rs`). The leaves' runs are found first, and one pass over the partition's
+//! points in the order they came appends each to its leaf: the only copy a point takes before
+//! the sampling, with sequential reads, and each leaf's points in the order they came. The
+//! partition's root is returned unfinished: the levels above the partitions still sample from
+//! it.
 
 use super::attributes::AttributeRows;
 use super::error::LodError;
@@ -44,22 +46,24 @@ pub struct KeptRoot {
     pub root: EncodedNode,
 }
 
-/// The partition being built: its points in the order they came, and that order along the
-/// Z curve of the cells `bits` levels below `origin`.
+/// The partition being built: its points' Z-curve order of the cells `bits` levels below
+/// `origin`, and the points of each run the recursion does not split (a leaf, or a node the
+/// codes end above), in the order the recursion meets them, each run's points in the order
+/// they came.
 struct Ordered<'p> {
-    points: &'p [RawPoint],
     order: &'p MortonOrder,
     /// The level the codes start below.
     origin: u8,
+    runs: std::vec::IntoIter<Vec<RawPoint>>,
 }
 
 impl Ordered<'_> {
-    /// The points of `run` (entries of the order), copied out in the order they came: a
-    /// node's points lie in it as they came, whether its partition was split on disk or not.
-    fn gather(&self, run: &[(u64, u32)]) -> Vec<RawPoint> {
-        let mut indices: Vec<u32> = run.iter().map(|&(_, i)| i).collect();
-        indices.sort_unstable();
-        indices.iter().map(|&i| self.points[i as usize]).collect()
+    /// The points of the next run the recursion does not split.
+    fn next_run(&mut self, key: NodeKey) -> Result<Vec<RawPoint>, LodError> {
+        self.runs.next().ok_or_else(|| LodError::CorruptNode {
+            key,
+            reason: "the partition's order has fewer runs than its octree".into(),
+        })
     }
 }
 
@@ -82,38 +86,92 @@ impl LocalBuilder<'_> {
         }
         let levels = ORDER_LEVELS.min(MAX_LEVEL - key.level);
         let order = MortonOrder::below(&self.cube, key, &points, levels);
-        let ordered = Ordered {
-            points: &points,
+        let runs = self.unsplit_runs(&order, key, points);
+        let mut ordered = Ordered {
             order: &order,
             origin: key.level,
+            runs: runs.into_iter(),
         };
-        self.build_run(&ordered, key, order.entries(), region, kept)
+        self.build_run(&mut ordered, key, order.entries(), region, kept)
     }
 
     fn is_leaf(&self, key: NodeKey, points: usize) -> bool {
         points <= self.max_leaf_points || key.level >= MAX_LEVEL
     }
 
+    /// Whether the recursion stops at `key`'s run of `points` at `depth` below the order's
+    /// node: a leaf, or a node the codes end above (a dense spot, ordered again from its cube).
+    fn is_unsplit(&self, order: &MortonOrder, key: NodeKey, points: usize, depth: u32) -> bool {
+        self.is_leaf(key, points) || depth == order.bits()
+    }
+
+    /// The points of every run of `order` (below `key`) that the recursion does not split, in
+    /// the order it meets them, each with its points in the order they came: one pass over
+    /// `points` in that order appending each to its run, instead of a sort of each run's
+    /// indices and a copy in scattered order.
+    fn unsplit_runs(
+        &self,
+        order: &MortonOrder,
+        key: NodeKey,
+        points: Vec<RawPoint>,
+    ) -> Vec<Vec<RawPoint>> {
+        let mut runs: Vec<&[(u64, u32)]> = Vec::new();
+        self.find_unsplit(order, key, order.entries(), 0, &mut runs);
+        let mut run_of = vec![0u32; points.len()];
+        for (r, run) in runs.iter().enumerate() {
+            for &(_, i) in *run {
+                run_of[i as usize] = r as u32;
+            }
+        }
+        let mut out: Vec<Vec<RawPoint>> =
+            runs.iter().map(|r| Vec::with_capacity(r.len())).collect();
+        for (p, &r) in points.iter().zip(&run_of) {
+            out[r as usize].push(*p);
+        }
+        out
+    }
+
+    /// Walks `key`'s `run` as [`Self::build_run`] does, noting each run it does not split.
+    fn find_unsplit<'r>(
+        &self,
+        order: &MortonOrder,
+        key: NodeKey,
+        run: &'r [(u64, u32)],
+        depth: u32,
+        runs: &mut Vec<&'r [(u64, u32)]>,
+    ) {
+        if self.is_unsplit(order, key, run.len(), depth) {
+            runs.push(run);
+            return;
+        }
+        for (i, child_run) in order.children(run, depth).into_iter().enumerate() {
+            if !child_run.is_empty() {
+                self.find_unsplit(order, key.child(i), child_run, depth + 1, runs);
+            }
+        }
+    }
+
     /// Builds `key`'s subtree of the points of `run`, the part of `ordered` in `key`'s cube.
     fn build_run(
         &self,
-        ordered: &Ordered<'_>,
+        ordered: &mut Ordered<'_>,
         key: NodeKey,
         run: &[(u64, u32)],
         region: &mut Vec<EncodedNode>,
         mut kept: Option<&mut Vec<KeptRoot>>,
     ) -> Result<SubtreeRoot, LodError> {
+        let depth = u32::from(key.level - ordered.origin);
         if self.is_leaf(key, run.len()) {
             return Ok(SubtreeRoot {
-                points: ordered.gather(run),
+                points: ordered.next_run(key)?,
                 sample_grid: 0,
             });
         }
-        let depth = u32::from(key.level - ordered.origin);
-        if depth == ordered.order.bits() {
+        if self.is_unsplit(ordered.order, key, run.len(), depth) {
             // The codes end above this node (a dense spot): its points are ordered again from
             // its cube.
-            return self.build(key, ordered.gather(run), region, kept);
+            let points = ordered.next_run(key)?;
+            return self.build(key, points, region, kept);
         }
         let children = ordered.order.children(run, depth);
         let mut own: [Vec<RawPoint>; 8] = Default::default();

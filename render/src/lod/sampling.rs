@@ -53,21 +53,23 @@ pub fn sample(
         weigh(cube, key, bits, &mut children, &chosen);
     }
     drop((cells, owner));
-    let mut parent = Vec::new();
-    let kept = std::array::from_fn(|c| {
-        let mut kept = Vec::with_capacity(children[c].len());
-        for (p, &take) in children[c].iter().zip(&chosen[c]) {
+    // Each child keeps its points where they are, the taken ones moved out to the parent:
+    // no second vector a child, and the kept points in the order they came.
+    let taken: usize = chosen.iter().flatten().filter(|&&take| take).count();
+    let mut parent = Vec::with_capacity(taken);
+    for (points, chosen) in children.iter_mut().zip(&chosen) {
+        let mut chosen = chosen.iter();
+        points.retain(|p| {
+            let take = chosen.next().is_some_and(|&take| take);
             if take {
                 parent.push(*p);
-            } else {
-                kept.push(*p);
             }
-        }
-        kept
-    });
+            !take
+        });
+    }
     Sampled {
         parent,
-        kept,
+        kept: children,
         grid: 1 << bits,
     }
 }
@@ -103,6 +105,7 @@ fn choose(
     });
     let mut bits = finest;
     let mut keyed: Vec<u64> = Vec::new();
+    let mut scratch: Vec<u64> = Vec::new();
     let mut dense: Vec<u32> = Vec::new();
     let mut chosen: [Vec<bool>; 8] = std::array::from_fn(|c| vec![false; children[c].len()]);
     let mut owner: [Vec<u32>; 8] = std::array::from_fn(|c| vec![0; children[c].len()]);
@@ -175,10 +178,11 @@ fn choose(
                     }
                 } else {
                     // Few points for many cells: sorted by cell (cache-friendly, unlike a map),
-                    // then the best of each run of one cell.
+                    // points of a cell in the order they are, then the best of each run of one
+                    // cell.
                     keyed.clear();
                     keyed.extend((0..points.len()).map(|i| ((local(i).1 as u64) << 32) | i as u64));
-                    keyed.sort_unstable();
+                    sort_by_cell(&mut keyed, &mut scratch, 3 * local_bits);
                     for run in keyed.chunk_by(|a, b| a >> 32 == b >> 32) {
                         let first = run[0] as u32 as usize;
                         let (cell, _) = local(first);
@@ -219,6 +223,42 @@ fn choose(
         chosen,
         cells,
         owner,
+    }
+}
+
+/// Sorts `keyed` (a cell of `cell_bits` bits above a point's index, indices ascending) by
+/// cell, the points of a cell in the order they are: the comparison sort's order, by a radix
+/// sort of two passes over the cell's bits, `scratch` reused from child to child.
+fn sort_by_cell(keyed: &mut Vec<u64>, scratch: &mut Vec<u64>, cell_bits: u32) {
+    const SMALL: usize = 256;
+    if keyed.len() < SMALL || cell_bits == 0 {
+        keyed.sort_unstable();
+        return;
+    }
+    let digit_bits = cell_bits.div_ceil(2);
+    let mask = (1u64 << digit_bits) - 1;
+    let mut counts = vec![0usize; 2 << digit_bits];
+    let (low, high) = counts.split_at_mut(1 << digit_bits);
+    let digit = |k: u64, pass: u32| ((k >> (32 + pass * digit_bits)) & mask) as usize;
+    for &k in keyed.iter() {
+        low[digit(k, 0)] += 1;
+        high[digit(k, 1)] += 1;
+    }
+    scratch.clear();
+    scratch.resize(keyed.len(), 0);
+    for (pass, table) in [low, high].into_iter().enumerate() {
+        let mut start = 0;
+        for count in table.iter_mut() {
+            let c = *count;
+            *count = start;
+            start += c;
+        }
+        for &k in keyed.iter() {
+            let at = &mut table[digit(k, pass as u32)];
+            scratch[*at] = k;
+            *at += 1;
+        }
+        std::mem::swap(keyed, scratch);
     }
 }
 
@@ -526,6 +566,23 @@ pub(crate) mod tests {
             }
             assert_ne!(general, children, "grid {grid}: no weight moved");
             assert_eq!(per_child, general, "grid {grid}");
+        }
+    }
+
+    /// The radix sort by cell gives the comparison sort's order, cells of 3 to 18 bits.
+    #[test]
+    fn the_sort_by_cell_is_the_comparison_sort() {
+        let mut next = unit_random(4242);
+        let mut scratch = Vec::new();
+        for (cell_bits, n) in [(3, 300), (9, 5_000), (18, 20_000), (18, 100)] {
+            let keyed: Vec<u64> = (0..n)
+                .map(|i| ((next() * f64::from(1u32 << cell_bits)) as u64) << 32 | i as u64)
+                .collect();
+            let mut radix = keyed.clone();
+            sort_by_cell(&mut radix, &mut scratch, cell_bits);
+            let mut expected = keyed;
+            expected.sort_unstable();
+            assert_eq!(radix, expected, "{cell_bits} bits");
         }
     }
 
