@@ -19,7 +19,7 @@
 //!   (`camera_first.rs` of the render crate), up to the cut's node choice, which
 //!   `tests/daemon_camera_first.rs` holds to the local fidelity rule.
 //! - the **whole** store of the dataset, grown from a copy of the part once the part is ready
-//!   and a frame is leased against it, whatever share of files it lacks (`growth::grow_from`),
+//!   and a frame is leased against it, whatever share of files it lacks (`growth::grow`),
 //!   unless the part is all that is asked for (`BuildUnseen::Never`). Once the whole store is
 //!   ready, frames are leased against it.
 //!
@@ -43,7 +43,7 @@ use pointfarm_render::source::{
     file_boxes, frame_points, BuildUnseen, FileOrder, FramePoints, PointSourceFacts, WithinBounds,
 };
 
-use super::growth::{grow_from, list_contents, Grown};
+use super::growth::{grow, list_contents, Grown};
 use super::input::{ready_of, with_build};
 use super::{DatasetStores, Entry, ReadyStore};
 use crate::model::{content_sha256_of, dataset_id, Dataset, DatasetFile, Job};
@@ -279,7 +279,7 @@ pub(super) fn make(
 ) -> Result<Made, CutError> {
     match making {
         Making::Plain => Ok(Made::Nothing),
-        Making::GrownFrom(from) => Ok(grow_from(from, folder, files, points, budget, dataset_id)
+        Making::GrownFrom(from) => Ok(grow(folder, files, points, budget, dataset_id, Some(from))
             .map_or(Made::Nothing, Made::Grown)),
         Making::Within(bounds) => {
             let paths: Vec<PathBuf> = files.iter().map(|f| f.path.clone()).collect();

@@ -84,7 +84,7 @@ pub(super) fn grow_or_build(
     dataset_id: &str,
 ) -> Result<ReadyStore, CutError> {
     let grown = match input {
-        StoreInput::Files(_) => grow(folder, files, points, budget, dataset_id),
+        StoreInput::Files(_) => grow(folder, files, points, budget, dataset_id, None),
         StoreInput::Tiles(..) => None,
     };
     let mut ready = open_or_build(input, folder, budget, progress)?;
@@ -284,42 +284,18 @@ fn nearest(folder: &Path, files: &[DatasetFile]) -> Option<(PathBuf, Vec<Listed>
 }
 
 /// Makes the store of `files` (`points` in all) in `folder`, which holds none, from the
-/// nearest finished store of another content: copied and updated beside it, checked, then
-/// renamed into place. `None` when there is no such store, or the update was refused or
-/// failed (said in the log): the store is then built whole.
+/// nearest finished store of another content, or from the finished store in `from` whatever
+/// share of files it lacks (a camera first store of some of the dataset's files, built within
+/// the cube of all of them): copied and updated beside it, checked, then renamed into place.
+/// `None` when there is no such store, or the update was refused or failed (said in the log):
+/// the store is then built whole.
 pub(super) fn grow(
     folder: &Path,
     files: &[DatasetFile],
     points: u64,
     memory_budget: u64,
     dataset_id: &str,
-) -> Option<Grown> {
-    let nearest = || nearest(folder, files);
-    grow_with(folder, files, points, memory_budget, dataset_id, nearest)
-}
-
-/// [`grow`] from the finished store in `from` whatever share of files it lacks: a camera
-/// first store of some of the dataset's files, built within the cube of all of them.
-pub(super) fn grow_from(
-    from: &Path,
-    folder: &Path,
-    files: &[DatasetFile],
-    points: u64,
-    memory_budget: u64,
-    dataset_id: &str,
-) -> Option<Grown> {
-    let listed = || Some((from.to_path_buf(), read_contents(from)?));
-    grow_with(folder, files, points, memory_budget, dataset_id, listed)
-}
-
-/// [`grow`] from the store `source` gives, with the files it lists.
-fn grow_with(
-    folder: &Path,
-    files: &[DatasetFile],
-    points: u64,
-    memory_budget: u64,
-    dataset_id: &str,
-    source: impl FnOnce() -> Option<(PathBuf, Vec<Listed>)>,
+    from: Option<&Path>,
 ) -> Option<Grown> {
     let growing = growing_folder(folder);
     if growing.exists() {
@@ -333,7 +309,10 @@ fn grow_with(
     if folder.exists() || !unique(files.iter().map(|f| &f.sha256)) {
         return None;
     }
-    let (from, earlier) = source()?;
+    let (from, earlier) = match from {
+        Some(from) => (from.to_path_buf(), read_contents(from)?),
+        None => nearest(folder, files)?,
+    };
     let from_sha256 = from.file_name()?.to_string_lossy().into_owned();
     let from_id = crate::model::dataset_id(&from_sha256);
     tracing::info!(dataset = %dataset_id, from = %from_id,
