@@ -19,9 +19,10 @@
 //!   (`camera_first.rs` of the render crate), up to the cut's node choice, which
 //!   `tests/daemon_camera_first.rs` holds to the local fidelity rule.
 //! - the **whole** store of the dataset, grown from a copy of the part once the part is ready
-//!   and a frame is leased against it, whatever share of files it lacks (`growth::grow`),
-//!   unless the part is all that is asked for (`BuildUnseen::Never`). Once the whole store is
-//!   ready, frames are leased against it.
+//!   and a frame is leased against it, whatever share of files it lacks (`growth::grow`):
+//!   a server always adds the unseen files after (`BuildUnseen::default()`; the local
+//!   `--build-unseen` is no job option). Once the whole store is ready, frames are leased
+//!   against it. A part's folder is not removed with its dataset's store.
 //!
 //! Both are built through the daemon's one build path (`DatasetStores::start_build`): one at
 //! a time, finished before they are served, the part resumed by its journal after a restart
@@ -56,6 +57,7 @@ pub(super) struct Part {
     whole_sha256: String,
     /// The box of all the dataset's files, which the part's store is built within.
     bounds: WorldBounds,
+    /// Whether the whole store is grown after the part.
     unseen: BuildUnseen,
 }
 
