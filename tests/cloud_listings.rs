@@ -14,14 +14,15 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::Arc;
 
-use pointfarm_render::copc::{open_copc_url, CopcError};
-use pointfarm_render::lod::{LodError, NodeInfo};
+use pointfarm_render::copc::open_copc_url;
+use pointfarm_render::lod::NodeInfo;
 use pointfarm_render::remote::{
     ObjectReader, ObjectUrl, RemoteClient, RemoteError, RemoteSettings,
 };
 use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::azurite::Azurite;
 use pointfarm_tests::fake_gcs::FakeGcs;
+use pointfarm_tests::object_faults::assert_copc_object_changed;
 use pointfarm_tests::{output_text, path_arg, pointfarm_bin, pointfarm_ok};
 
 /// The container and bucket the tests read from.
@@ -219,18 +220,7 @@ fn assert_copc_replaced_mid_read_is_refused(url: &str, replace: impl FnOnce()) {
     replace();
     let error = (copc.dataset.records().read_records(&nodes))
         .expect_err("the object changed since it was opened");
-    assert!(error.to_string().contains(url), "{error}");
-    let LodError::RecordSource(source) = error else {
-        panic!("not the reader's error: {error}");
-    };
-    let copc_error = source.downcast::<CopcError>().expect("a COPC error");
-    assert!(
-        matches!(
-            *copc_error,
-            CopcError::Remote(RemoteError::ObjectChanged { .. })
-        ),
-        "{copc_error}"
-    );
+    assert_copc_object_changed(error, url);
 }
 
 /// Both stores in one test: the client reads its endpoints and credentials from this

@@ -8,10 +8,11 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use pointfarm_render::copc::{open_copc_url, CopcError};
-use pointfarm_render::lod::{LodError, NodeInfo};
-use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteError, RemoteSettings};
+use pointfarm_render::copc::open_copc_url;
+use pointfarm_render::lod::NodeInfo;
+use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteSettings};
 use pointfarm_tests::nginx::NginxServer;
+use pointfarm_tests::object_faults::assert_copc_object_changed;
 use pointfarm_tests::s3s::{self, S3sServer};
 use pointfarm_tests::{
     assert_fails_saying, assert_one_error_line, copc_file, json_lines, output_text, path_arg,
@@ -157,18 +158,7 @@ fn an_object_replaced_after_open_is_object_changed_naming_the_url() {
         .records()
         .read_records(&nodes)
         .expect_err("the object changed since it was opened");
-    assert!(error.to_string().contains(&text), "{error}");
-    let LodError::RecordSource(source) = error else {
-        panic!("not the reader's error: {error}");
-    };
-    let copc_error = source.downcast::<CopcError>().expect("a COPC error");
-    assert!(
-        matches!(
-            *copc_error,
-            CopcError::Remote(RemoteError::ObjectChanged { .. })
-        ),
-        "{copc_error}"
-    );
+    assert_copc_object_changed(error, &text);
 }
 
 #[test]

@@ -449,6 +449,7 @@ pub mod datasets;
 pub mod fake_gcs;
 pub mod flights;
 pub mod nginx;
+pub mod object_faults;
 pub mod pki;
 pub mod prometheus;
 pub mod rest;
