@@ -50,6 +50,7 @@ use tokio::sync::watch;
 use tonic::{Code, Status};
 use tracing::Instrument;
 
+use crate::backoff::Backoff;
 use crate::client::Client;
 use crate::daemon_store::{self, DaemonStore};
 use crate::failure::FrameFailure;
@@ -85,32 +86,6 @@ pub struct RemoteWorkerConfig {
     pub capabilities: WorkerCapabilities,
     /// Make jobs' videos too, when this machine's ffmpeg can (`encode`).
     pub videos: bool,
-}
-
-/// How long a worker waits to lease again after handing back a frame whose store the daemon
-/// is building.
-const STORE_BUILDING_WAIT: Duration = Duration::from_secs(1);
-
-/// Exponential backoff between failed calls: 250 ms doubling to 5 s.
-struct Backoff(Duration);
-
-impl Backoff {
-    const FIRST: Duration = Duration::from_millis(250);
-    const MAX: Duration = Duration::from_secs(5);
-
-    fn new() -> Self {
-        Self(Self::FIRST)
-    }
-
-    fn next(&mut self) -> Duration {
-        let wait = self.0;
-        self.0 = (self.0 * 2).min(Self::MAX);
-        wait
-    }
-
-    fn reset(&mut self) {
-        self.0 = Self::FIRST;
-    }
 }
 
 /// Whether a failed call may succeed when tried again (the daemon restarting, a network cut).
@@ -205,7 +180,9 @@ pub async fn run(
         config.cache_dir.join("videos"),
         stop.clone(),
     ));
-    let mut backoff = Backoff::new();
+    let mut backoff = Backoff::calls();
+    // Frames handed back while their store builds wait less the sooner it is ready.
+    let mut store_building = Backoff::store_building();
     // Said once when the daemon cannot store frames, once when it can again.
     let mut daemon_full = false;
     tracing::info!(server = %url, worker = %config.name, "worker started");
@@ -298,12 +275,15 @@ pub async fn run(
         .instrument(span)
         .await?;
         let wait = match end {
-            TaskEnd::Finished => None,
+            TaskEnd::Finished => {
+                store_building.reset();
+                None
+            }
             TaskEnd::DaemonCannotStore => {
                 daemon_full = true;
                 Some(backoff.next())
             }
-            TaskEnd::StoreBuilding => Some(STORE_BUILDING_WAIT),
+            TaskEnd::StoreBuilding => Some(store_building.next()),
         };
         if let Some(wait) = wait {
             if stopped_during(&mut stop, wait).await {
@@ -573,7 +553,7 @@ async fn download_file(
 /// Hands the frame in, retrying through connection losses until its lease would have expired.
 async fn complete_frame(client: &mut Client, task: &FrameTask, frame: RenderedFrame) -> TaskEnd {
     let give_up = tokio::time::Instant::now() + task.lease_timeout;
-    let mut backoff = Backoff::new();
+    let mut backoff = Backoff::calls();
     loop {
         let result = pb::CompleteFrameRequest {
             part: Some(pb::complete_frame_request::Part::Result(pb::FrameResult {

@@ -17,11 +17,13 @@
 //! - `encode`: jobs' videos, made with ffmpeg under encode leases beside the frames.
 //! - `lease_renewal`: keeping a frame's or a video's lease while its work runs.
 //! - `stopping`: the waits between tries, which a stop cuts short.
+//! - `backoff`: how long those waits are.
 //! - `failure`: why a frame failed, and whether another attempt may succeed.
 //! - `memory_limit`: the worker process's limit on its own memory.
 //! - `supervised`: exiting when the supervising daemon is gone.
 //! - `client`: the worker service's client with the worker's token.
 
+mod backoff;
 mod client;
 pub mod daemon_store;
 pub mod encode;
