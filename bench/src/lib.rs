@@ -59,6 +59,7 @@ mod rounds;
 mod run;
 pub mod scheduler;
 mod scratch;
+pub mod serve;
 pub mod service_load;
 mod stats;
 mod store;

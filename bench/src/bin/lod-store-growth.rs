@@ -13,19 +13,18 @@
 //!                  [--dir DIR]
 //! ```
 
-use std::net::TcpListener;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitCode, Stdio};
-use std::time::{Duration, Instant};
+use std::process::ExitCode;
 
 use pointfarm_bench::campaign::{grid, CampaignFlags, ScratchCampaign};
 use pointfarm_bench::cli::{exit_code, parse_flags};
-use pointfarm_bench::daemon_log::number_after;
+use pointfarm_bench::serve::{load, Serve};
 
 const USAGE: &str = "usage: lod-store-growth --pointfarm PATH [--points N] [--files N] \
                      [--rounds N] [--budget-mib N] [--dir DIR]";
-/// The longest a render (its store built or grown) may take.
-const RENDER_TIMEOUT: Duration = Duration::from_secs(3600);
+
+/// How each render is drawn: from levels of detail.
+const LEVELS: &[&str] = &["--size=200x150", "--lod-error=0"];
 
 struct Args {
     campaign: CampaignFlags,
@@ -62,101 +61,6 @@ fn parse(args: &[String]) -> Result<Args, String> {
     Ok(parsed)
 }
 
-/// A `pointfarm serve` on loopback, its log in a file, stopped when dropped.
-struct Serve {
-    child: Child,
-    address: String,
-    log: PathBuf,
-}
-
-impl Serve {
-    fn start(pointfarm: &Path, data: &Path, budget_mib: u64) -> Result<Self, String> {
-        std::fs::create_dir_all(data).map_err(|e| e.to_string())?;
-        let address = TcpListener::bind("127.0.0.1:0")
-            .and_then(|listener| listener.local_addr())
-            .map_err(|e| format!("a free loopback port: {e}"))?
-            .to_string();
-        let log = data.with_extension("log");
-        let log_file = std::fs::File::create(&log).map_err(|e| e.to_string())?;
-        let child = Command::new(pointfarm)
-            .args(["serve", "--listen", &address, "--data-dir"])
-            .arg(data)
-            .arg(format!("--store-memory-budget={budget_mib}MiB"))
-            .env("RUST_LOG", "warn,pointfarm=info")
-            .env("NO_COLOR", "1")
-            .stdout(Stdio::null())
-            .stderr(log_file)
-            .spawn()
-            .map_err(|e| format!("starting {}: {e}", pointfarm.display()))?;
-        let serve = Self {
-            child,
-            address,
-            log,
-        };
-        let started = Instant::now();
-        while std::net::TcpStream::connect(&serve.address).is_err() {
-            if started.elapsed() > Duration::from_secs(60) {
-                return Err(format!("the daemon did not listen:\n{}", serve.log_text()));
-            }
-            std::thread::sleep(Duration::from_millis(100));
-        }
-        Ok(serve)
-    }
-
-    fn log_text(&self) -> String {
-        std::fs::read_to_string(&self.log).unwrap_or_default()
-    }
-
-    /// Renders `tiles` through this daemon, from levels of detail, into `out`.
-    fn render(&self, pointfarm: &Path, tiles: &Path, out: &Path) -> Result<(), String> {
-        let output = Command::new(pointfarm)
-            .arg("render")
-            .arg(tiles)
-            .arg("--out")
-            .arg(out)
-            .args(["--size=200x150", "--lod-error=0"])
-            .arg(format!("--server=http://{}", self.address))
-            .output()
-            .map_err(|e| e.to_string())?;
-        if !output.status.success() {
-            return Err(format!(
-                "render of {} failed: {}\n--- daemon:\n{}",
-                tiles.display(),
-                String::from_utf8_lossy(&output.stderr),
-                self.log_text()
-            ));
-        }
-        Ok(())
-    }
-
-    /// The numbers `fields` of the daemon's first line saying `message`, waited for.
-    fn said<const N: usize>(&self, message: &str, fields: [&str; N]) -> Result<[f64; N], String> {
-        let started = Instant::now();
-        loop {
-            let log = self.log_text();
-            if let Some(line) = log.lines().find(|l| l.contains(message)) {
-                let mut numbers = [0.0; N];
-                for (number, field) in numbers.iter_mut().zip(fields) {
-                    *number = number_after(line, &format!(" {field}="))
-                        .ok_or_else(|| format!("no {field} in: {line}"))?;
-                }
-                return Ok(numbers);
-            }
-            if started.elapsed() > RENDER_TIMEOUT {
-                return Err(format!("the daemon never said {message:?}:\n{log}"));
-            }
-            std::thread::sleep(Duration::from_millis(200));
-        }
-    }
-}
-
-impl Drop for Serve {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
 /// A folder of hard links to `tiles`.
 fn day(folder: &Path, tiles: &[&PathBuf]) -> Result<PathBuf, String> {
     std::fs::create_dir_all(folder).map_err(|e| e.to_string())?;
@@ -165,12 +69,6 @@ fn day(folder: &Path, tiles: &[&PathBuf]) -> Result<PathBuf, String> {
         std::fs::hard_link(tile, folder.join(name)).map_err(|e| e.to_string())?;
     }
     Ok(folder.to_owned())
-}
-
-fn load() -> String {
-    std::fs::read_to_string("/proc/loadavg")
-        .map(|l| l.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
-        .unwrap_or_default()
 }
 
 fn measure(args: &Args) -> Result<(), String> {
@@ -200,10 +98,10 @@ fn measure(args: &Args) -> Result<(), String> {
     for round in 1..=args.rounds {
         let data = dir.join(format!("grown-{round}"));
         let serve = Serve::start(pointfarm, &data, budget)?;
-        serve.render(pointfarm, &day1, &dir.join("day1.png"))?;
+        serve.render(pointfarm, &day1, &dir.join("day1.png"), LEVELS)?;
         let [before_whole] = serve.said("levels of detail built", ["seconds"])?;
         let load_before = load();
-        serve.render(pointfarm, &day2, &dir.join("day2.png"))?;
+        serve.render(pointfarm, &day2, &dir.join("day2.png"), LEVELS)?;
         let fields = [
             "seconds",
             "update_seconds",
@@ -218,7 +116,7 @@ fn measure(args: &Args) -> Result<(), String> {
 
         let data = dir.join(format!("whole-{round}"));
         let serve = Serve::start(pointfarm, &data, budget)?;
-        serve.render(pointfarm, &day2, &dir.join("whole.png"))?;
+        serve.render(pointfarm, &day2, &dir.join("whole.png"), LEVELS)?;
         let [whole] = serve.said("levels of detail built", ["seconds"])?;
         let load_whole = load();
         drop(serve);

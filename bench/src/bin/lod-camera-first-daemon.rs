@@ -1,0 +1,164 @@
+//! How soon a flythrough's first final frame comes through a real `pointfarm serve` when the
+//! daemon builds the store of the tiles its frames see first (`daemon/src/stores/camera_first.rs`),
+//! against the daemon building the whole store first. A campaign of `--files` LAZ tiles and a
+//! low keyframed flight over the middle of one inner tile: a fresh daemon renders the flight
+//! (the part's store built, every frame leased against it, the whole store grown after); a
+//! second fresh daemon renders a still view of the same tiles (the whole store built first).
+//! The times are the daemons' own log lines: from `job submitted` to the first `frame handed
+//! in`, and the whole build's `levels of detail built`, so the upload is left out.
+//! docs/perf/lod-camera-first.md has its figures.
+//!
+//! ```text
+//! lod-camera-first-daemon --pointfarm PATH [--points N] [--files N] [--frames N]
+//!                         [--size WxH] [--rounds N] [--budget-mib N] [--dir DIR]
+//! ```
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use pointfarm_bench::campaign::{grid, CampaignFlags, ScratchCampaign};
+use pointfarm_bench::cli::{exit_code, parse_flags};
+use pointfarm_bench::serve::{load, Serve};
+use pointfarm_render::cloud::WorldBounds;
+use pointfarm_render::ingest::DatasetSource;
+use pointfarm_render::lod::PointSource;
+
+const USAGE: &str = "usage: lod-camera-first-daemon --pointfarm PATH [--points N] [--files N] \
+                     [--frames N] [--size WxH] [--rounds N] [--budget-mib N] [--dir DIR]";
+
+struct Args {
+    campaign: CampaignFlags,
+    frames: u64,
+    size: String,
+    rounds: usize,
+    pointfarm: Option<PathBuf>,
+}
+
+fn main() -> ExitCode {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    exit_code(
+        "lod-camera-first-daemon",
+        parse(&args).and_then(|args| measure(&args)),
+    )
+}
+
+fn parse(args: &[String]) -> Result<Args, String> {
+    let mut parsed = Args {
+        campaign: CampaignFlags::new(10_000_000, 20),
+        frames: 10,
+        size: "1280x720".to_owned(),
+        rounds: 1,
+        pointfarm: None,
+    };
+    parse_flags(args, USAGE, |flag, value| {
+        match flag {
+            "--frames" => parsed.frames = value.number()?.clamp(1, 10_000),
+            "--size" => parsed.size = value.path().to_string_lossy().into_owned(),
+            "--rounds" => parsed.rounds = value.number()?.max(1) as usize,
+            "--pointfarm" => parsed.pointfarm = Some(value.path()),
+            _ => return parsed.campaign.apply(flag, &value),
+        }
+        Ok(true)
+    })?;
+    parsed.campaign.check_inner_tile()?;
+    if parsed.pointfarm.is_none() {
+        return Err(format!("--pointfarm is needed\n{USAGE}"));
+    }
+    Ok(parsed)
+}
+
+/// A low flight looking down over the middle of the inner tile of a grid of `rows` x
+/// `columns` tiles over `bounds`, as `lod-camera-first` flies it; written to `path` as a
+/// camera path file.
+fn write_flight(
+    path: &Path,
+    frames: u64,
+    bounds: &WorldBounds,
+    (rows, columns): (usize, usize),
+) -> Result<(), String> {
+    let size = bounds.size();
+    let (tile_x, tile_y) = (size.x / columns as f64, size.y / rows as f64);
+    let (row, column) = ((rows / 2) as f64, (columns / 2) as f64);
+    let height = 0.1 * tile_x.min(tile_y);
+    let key = |share: f64| {
+        let x = bounds.min.x + (column + share) * tile_x;
+        let y = bounds.min.y + (row + 0.5) * tile_y;
+        format!(
+            "[[keyframes]]\nposition = [{x}, {}, {}]\ntarget = [{x}, {y}, {}]\nfov_y_deg = 30\n",
+            y - 0.3 * height,
+            bounds.max.z + height,
+            bounds.min.z
+        )
+    };
+    let text = format!(
+        "frames = {frames}\ninterpolation = \"linear\"\n{}{}",
+        key(0.4),
+        key(0.6)
+    );
+    std::fs::write(path, text).map_err(|e| e.to_string())
+}
+
+fn measure(args: &Args) -> Result<(), String> {
+    let pointfarm = args.pointfarm.as_deref().ok_or(USAGE)?;
+    let ScratchCampaign {
+        scratch,
+        tiles,
+        written,
+    } = args.campaign.write("lod-camera-first-daemon")?;
+    let dir = scratch.path();
+    let bounds = DatasetSource::open(&written.laz)
+        .map_err(|e| e.to_string())?
+        .bounds();
+    let (rows, columns) = grid(args.campaign.files);
+    let flight = dir.join("flight.toml");
+    write_flight(&flight, args.frames, &bounds, (rows, columns))?;
+    let flight_arg = format!("--camera-path={}", flight.display());
+    let size = format!("--size={}", args.size);
+    let options = [size.as_str(), "--point-size=2"];
+    let flight_options = [options[0], options[1], flight_arg.as_str()];
+    println!(
+        "{} points in {} LAZ tiles ({rows} x {columns}), a flight of {} frames at {} over \
+         the inner tile; daemon {}",
+        written.points,
+        written.laz.len(),
+        args.frames,
+        args.size,
+        pointfarm.display()
+    );
+    let budget = args.campaign.budget_mib;
+    for round in 1..=args.rounds {
+        let data = dir.join(format!("camera-first-{round}"));
+        let serve = Serve::start(pointfarm, &data, budget)?;
+        serve.render(pointfarm, &tiles, &dir.join("flight"), &flight_options)?;
+        let first = serve.seconds_between("job submitted", "frame handed in")?;
+        let [part] = serve.said("levels of detail built", ["seconds"])?;
+        let load_first = load();
+        let log = serve.log_text();
+        let seen = log
+            .lines()
+            .find(|l| l.contains("camera first: the store of the"))
+            .and_then(|l| l.split_once(" files_seen="))
+            .and_then(|(_, rest)| rest.split_whitespace().next().map(str::to_owned))
+            .ok_or_else(|| format!("the daemon did not build camera first:\n{log}"))?;
+        drop(serve);
+        let _ = std::fs::remove_dir_all(&data);
+
+        let data = dir.join(format!("whole-{round}"));
+        let serve = Serve::start(pointfarm, &data, budget)?;
+        serve.render(pointfarm, &tiles, &dir.join("still.png"), &options)?;
+        let [whole] = serve.said("levels of detail built", ["seconds"])?;
+        let still = serve.seconds_between("job submitted", "frame handed in")?;
+        let load_whole = load();
+        drop(serve);
+        let _ = std::fs::remove_dir_all(&data);
+        println!(
+            "round {round}: camera first, {seen} of {} tiles seen: first final frame {first:.2} s \
+             after submission (the part's store {part:.2} s; load {load_first}); whole build \
+             {whole:.2} s, a still view's first frame {still:.2} s after submission (load \
+             {load_whole}): {:.1}% of the whole build",
+            written.laz.len(),
+            100.0 * first / whole
+        );
+    }
+    Ok(())
+}
