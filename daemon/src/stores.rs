@@ -548,7 +548,8 @@ impl DatasetStores {
     }
 
     /// Forgets the store of content `sha256` and removes its folder (no dataset has that
-    /// content any more). A build under way finishes into a folder removed later.
+    /// content any more), with the parts built first for its jobs (`camera_first`). A build
+    /// under way finishes into a folder removed later.
     pub fn remove(&self, sha256: &str) {
         let mut entries = self.entries.lock().unwrap_or_else(|e| e.into_inner());
         if matches!(entries.get(sha256), Some(Entry::Building { .. })) {
@@ -578,6 +579,9 @@ impl DatasetStores {
                     tracing::warn!(%error, folder = %folder.display(), "removing a store")
                 }
             }
+        }
+        for part in self.forget_parts_of(sha256) {
+            self.remove(&part);
         }
     }
 

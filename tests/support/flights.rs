@@ -1,5 +1,5 @@
-//! A campaign of tiles and a low keyframed flight over two of them, which sees a few tiles
-//! only: what camera-first builds are tested with, locally and through the daemon.
+//! A campaign of tiles and low keyframed flights over one or two of them, which see a few
+//! tiles only: what camera-first builds are tested with, locally and through the daemon.
 
 use std::path::{Path, PathBuf};
 
@@ -35,6 +35,24 @@ pub fn write_tiles(dir: &Path, points: usize) -> (PathBuf, WorldBounds) {
 /// A low flight of `frames` frames looking down over the first tile, then the second: the
 /// rest are out of view. Written to `dir/flight.toml`.
 pub fn write_flight(dir: &Path, bounds: &WorldBounds, frames: usize) -> PathBuf {
+    write_flight_along(dir, bounds, frames, [0.0, 1.0])
+}
+
+/// A low flight of `frames` frames looking down over the middle of the first tile, moving
+/// within it: it sees that tile, a twentieth of the campaign, and little or nothing of its
+/// neighbours. Written to `dir/flight.toml`.
+pub fn write_flight_over_one_tile(dir: &Path, bounds: &WorldBounds, frames: usize) -> PathBuf {
+    write_flight_along(dir, bounds, frames, [-0.1, 0.1])
+}
+
+/// A low flight from above the middle of the first row's tile `columns[0]` (in tiles, from
+/// the first tile's middle) to above `columns[1]`.
+fn write_flight_along(
+    dir: &Path,
+    bounds: &WorldBounds,
+    frames: usize,
+    columns: [f64; 2],
+) -> PathBuf {
     let size = bounds.size();
     let (tile_x, tile_y) = (size.x / COLUMNS as f64, size.y / ROWS as f64);
     let height = 0.2 * tile_x.min(tile_y);
@@ -52,8 +70,8 @@ pub fn write_flight(dir: &Path, bounds: &WorldBounds, frames: usize) -> PathBuf 
     };
     let text = format!(
         "frames = {frames}\ninterpolation = \"linear\"\n{}{}",
-        over(0.0),
-        over(1.0)
+        over(columns[0]),
+        over(columns[1])
     );
     let path = dir.join("flight.toml");
     std::fs::write(&path, text).expect("path");

@@ -22,7 +22,8 @@
 //!   and a frame is leased against it, whatever share of files it lacks (`growth::grow`):
 //!   a server always adds the unseen files after (`BuildUnseen::default()`; the local
 //!   `--build-unseen` is no job option). Once the whole store is ready, frames are leased
-//!   against it. A part's folder is not removed with its dataset's store.
+//!   against it. A part's folder is removed with its dataset's store (`DatasetStores::remove`)
+//!   when the daemon knows the part, that is when a job asked for it since the daemon started.
 //!
 //! Both are built through the daemon's one build path (`DatasetStores::start_build`): one at
 //! a time, finished before they are served, the part resumed by its journal after a restart
@@ -146,6 +147,22 @@ impl DatasetStores {
             }
         }
         Making::Plain
+    }
+
+    /// Forgets the parts of the whole content `sha256` and the jobs' decisions about it; the
+    /// parts' contents, whose stores go with the whole one's.
+    pub(super) fn forget_parts_of(&self, sha256: &str) -> Vec<String> {
+        let mut parts = self.lock_parts();
+        let gone = parts
+            .values()
+            .filter(|part| part.whole_sha256 == sha256)
+            .map(|part| part.dataset.sha256.clone())
+            .collect();
+        parts.retain(|_, part| part.whole_sha256 != sha256);
+        drop(parts);
+        self.lock_jobs()
+            .retain(|_, part| part.as_ref().is_none_or(|part| part.whole_sha256 != sha256));
+        gone
     }
 
     fn lock_parts(&self) -> std::sync::MutexGuard<'_, HashMap<String, Arc<Part>>> {
