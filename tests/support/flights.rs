@@ -39,8 +39,8 @@ pub fn write_flight(dir: &Path, bounds: &WorldBounds, frames: usize) -> PathBuf 
 }
 
 /// A low flight of `frames` frames looking down over the middle of the first tile, moving
-/// within it: it sees that tile, a twentieth of the campaign, and little or nothing of its
-/// neighbours. Written to `dir/flight.toml`.
+/// within it: it sees that tile, a twentieth of the campaign, and at most the edge of a
+/// neighbour. Written to `dir/flight.toml`.
 pub fn write_flight_over_one_tile(dir: &Path, bounds: &WorldBounds, frames: usize) -> PathBuf {
     write_flight_along(dir, bounds, frames, [-0.1, 0.1])
 }

@@ -1,7 +1,8 @@
 //! How soon a flythrough's first final frame comes through a real `pointfarm serve` when the
 //! daemon builds the store of the tiles its frames see first (`daemon/src/stores/camera_first.rs`),
 //! against the daemon building the whole store first. A campaign of `--files` LAZ tiles and a
-//! low keyframed flight over the middle of one inner tile: a fresh daemon renders the flight
+//! low keyframed flight over the middle of one inner tile, drawn from levels of detail at the
+//! default pixel error: a fresh daemon renders the flight
 //! (the part's store built, every frame leased against it, the whole store grown after); a
 //! second fresh daemon renders a still view of the same tiles (the whole store built first).
 //! The times are the daemons' own log lines: from `job submitted` to the first `frame handed
@@ -20,6 +21,7 @@ use pointfarm_bench::campaign::{grid, CampaignFlags, ScratchCampaign};
 use pointfarm_bench::cli::{exit_code, parse_flags};
 use pointfarm_bench::serve::{load, Serve};
 use pointfarm_render::cloud::WorldBounds;
+use pointfarm_render::cut::DEFAULT_LOD_ERROR_PX;
 use pointfarm_render::ingest::DatasetSource;
 use pointfarm_render::lod::PointSource;
 
@@ -114,8 +116,10 @@ fn measure(args: &Args) -> Result<(), String> {
     write_flight(&flight, args.frames, &bounds, (rows, columns))?;
     let flight_arg = format!("--camera-path={}", flight.display());
     let size = format!("--size={}", args.size);
-    let options = [size.as_str(), "--point-size=2"];
-    let flight_options = [options[0], options[1], flight_arg.as_str()];
+    // Levels of detail asked for, at the default pixel error: 10M points would be resident.
+    let levels = format!("--lod-error={DEFAULT_LOD_ERROR_PX}");
+    let options = [size.as_str(), "--point-size=2", levels.as_str()];
+    let flight_options = [options[0], options[1], options[2], flight_arg.as_str()];
     println!(
         "{} points in {} LAZ tiles ({rows} x {columns}), a flight of {} frames at {} over \
          the inner tile; daemon {}",
