@@ -45,6 +45,7 @@ pub mod copc;
 pub mod cuts;
 pub mod daemon_log;
 mod error;
+pub mod flight;
 pub mod frame_figures;
 mod huge;
 pub mod ingest;

@@ -14,13 +14,13 @@
 //!                         [--size WxH] [--rounds N] [--budget-mib N] [--dir DIR]
 //! ```
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::ExitCode;
 
 use pointfarm_bench::campaign::{grid, CampaignFlags, ScratchCampaign};
 use pointfarm_bench::cli::{exit_code, parse_flags};
+use pointfarm_bench::flight::{camera_path_file, inner_tile_keyframes};
 use pointfarm_bench::serve::{load, Serve};
-use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::cut::DEFAULT_LOD_ERROR_PX;
 use pointfarm_render::ingest::DatasetSource;
 use pointfarm_render::lod::PointSource;
@@ -69,37 +69,6 @@ fn parse(args: &[String]) -> Result<Args, String> {
     Ok(parsed)
 }
 
-/// A low flight looking down over the middle of the inner tile of a grid of `rows` x
-/// `columns` tiles over `bounds`, as `lod-camera-first` flies it; written to `path` as a
-/// camera path file.
-fn write_flight(
-    path: &Path,
-    frames: u64,
-    bounds: &WorldBounds,
-    (rows, columns): (usize, usize),
-) -> Result<(), String> {
-    let size = bounds.size();
-    let (tile_x, tile_y) = (size.x / columns as f64, size.y / rows as f64);
-    let (row, column) = ((rows / 2) as f64, (columns / 2) as f64);
-    let height = 0.1 * tile_x.min(tile_y);
-    let key = |share: f64| {
-        let x = bounds.min.x + (column + share) * tile_x;
-        let y = bounds.min.y + (row + 0.5) * tile_y;
-        format!(
-            "[[keyframes]]\nposition = [{x}, {}, {}]\ntarget = [{x}, {y}, {}]\nfov_y_deg = 30\n",
-            y - 0.3 * height,
-            bounds.max.z + height,
-            bounds.min.z
-        )
-    };
-    let text = format!(
-        "frames = {frames}\ninterpolation = \"linear\"\n{}{}",
-        key(0.4),
-        key(0.6)
-    );
-    std::fs::write(path, text).map_err(|e| e.to_string())
-}
-
 fn measure(args: &Args) -> Result<(), String> {
     let pointfarm = args.pointfarm.as_deref().ok_or(USAGE)?;
     let ScratchCampaign {
@@ -113,7 +82,9 @@ fn measure(args: &Args) -> Result<(), String> {
         .bounds();
     let (rows, columns) = grid(args.campaign.files);
     let flight = dir.join("flight.toml");
-    write_flight(&flight, args.frames, &bounds, (rows, columns))?;
+    let keyframes = inner_tile_keyframes(&bounds, (rows, columns));
+    std::fs::write(&flight, camera_path_file(&keyframes, args.frames))
+        .map_err(|e| e.to_string())?;
     let flight_arg = format!("--camera-path={}", flight.display());
     let size = format!("--size={}", args.size);
     // Levels of detail asked for, at the default pixel error: 10M points would be resident.

@@ -20,6 +20,7 @@ use std::time::Instant;
 use pointfarm_bench::campaign::store_points::points_checksum;
 use pointfarm_bench::campaign::{grid, CampaignFlags, ScratchCampaign};
 use pointfarm_bench::cli::{exit_code, parse_flags};
+use pointfarm_bench::flight::inner_tile_keyframes;
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::cut::{CutOptions, StoredLod};
 use pointfarm_render::gpu::{AdapterChoice, GpuContext};
@@ -27,7 +28,7 @@ use pointfarm_render::ingest::DatasetSource;
 use pointfarm_render::lod::PointSource;
 use pointfarm_render::raster::Renderer;
 use pointfarm_render::request::{
-    CameraPath, Interpolation, Keyframe, Lens, Point3, PointSize, RenderOptions, RenderRequest,
+    CameraPath, Interpolation, Lens, PointSize, RenderOptions, RenderRequest,
 };
 use pointfarm_render::source::{
     file_boxes, quiet, FileOrder, FrameSource, Levels, LocalStore, Opening, StagedStore,
@@ -79,38 +80,12 @@ fn parse(args: &[String]) -> Result<Args, String> {
 
 /// A low flight looking down over the middle of the inner tile of a grid of `rows` x
 /// `columns` tiles over `bounds`.
-fn flight(args: &Args, bounds: &WorldBounds, (rows, columns): (usize, usize)) -> RenderRequest {
-    let size = bounds.size();
-    let (tile_x, tile_y) = (size.x / columns as f64, size.y / rows as f64);
-    let (row, column) = ((rows / 2) as f64, (columns / 2) as f64);
-    let height = 0.1 * tile_x.min(tile_y);
-    let key = |share: f64| {
-        let x = bounds.min.x + (column + share) * tile_x;
-        let y = bounds.min.y + (row + 0.5) * tile_y;
-        Keyframe {
-            position: Point3 {
-                x,
-                y: y - 0.3 * height,
-                z: bounds.max.z + height,
-            },
-            target: Point3 {
-                x,
-                y,
-                z: bounds.min.z,
-            },
-            up: Point3 {
-                x: 0.0,
-                y: 0.0,
-                z: 1.0,
-            },
-            fov_y_deg: 30.0,
-        }
-    };
+fn flight(args: &Args, bounds: &WorldBounds, grid: (usize, usize)) -> RenderRequest {
     RenderRequest {
         width: args.size.0,
         height: args.size.1,
         camera_path: CameraPath::Keyframes {
-            keyframes: vec![key(0.4), key(0.6)],
+            keyframes: inner_tile_keyframes(bounds, grid),
             frames: args.frames,
             interpolation: Interpolation::Linear,
         },
