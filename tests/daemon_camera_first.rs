@@ -145,11 +145,14 @@ fn a_flight_through_the_daemon_is_drawn_from_the_tiles_it_sees_before_the_whole_
     let server = serve(&address, &data, "again.log", None);
     let again = dir.path().join("again");
     render(&server, &tiles, &again, &camera);
+    // The grown store is moved into place, then opened and marked finished: both are waited for.
     wait_for(Duration::from_secs(300), "the whole store", || {
-        server.log().contains("updated the store of").then_some(())
+        let grown = server.log().contains("updated the store of");
+        let finished = finished_stores(&data)
+            .iter()
+            .any(|(_, files)| *files == all);
+        (grown && finished).then_some(())
     });
-    let stores = finished_stores(&data);
-    assert!(stores.iter().any(|(_, files)| *files == all), "{stores:?}");
     let growing = std::fs::read_dir(data.join("lod"))
         .expect("stores")
         .filter(|e| {
