@@ -14,11 +14,10 @@
 //!                         [--size WxH] [--rounds N] [--budget-mib N] [--dir DIR]
 //! ```
 
-use std::path::PathBuf;
 use std::process::ExitCode;
 
-use pointfarm_bench::campaign::{grid, CampaignFlags, ScratchCampaign};
-use pointfarm_bench::cli::{exit_code, parse_flags};
+use pointfarm_bench::campaign::{grid, CampaignFlags, ScratchCampaign, ServeCampaignFlags};
+use pointfarm_bench::cli::exit_code;
 use pointfarm_bench::flight::{camera_path_file, inner_tile_keyframes};
 use pointfarm_bench::serve::{load, Serve};
 use pointfarm_render::cut::DEFAULT_LOD_ERROR_PX;
@@ -29,11 +28,9 @@ const USAGE: &str = "usage: lod-camera-first-daemon --pointfarm PATH [--points N
                      [--frames N] [--size WxH] [--rounds N] [--budget-mib N] [--dir DIR]";
 
 struct Args {
-    campaign: CampaignFlags,
+    flags: ServeCampaignFlags,
     frames: u64,
     size: String,
-    rounds: usize,
-    pointfarm: Option<PathBuf>,
 }
 
 fn main() -> ExitCode {
@@ -45,42 +42,39 @@ fn main() -> ExitCode {
 }
 
 fn parse(args: &[String]) -> Result<Args, String> {
-    let mut parsed = Args {
-        campaign: CampaignFlags::new(10_000_000, 20),
-        frames: 10,
-        size: "1280x720".to_owned(),
-        rounds: 1,
-        pointfarm: None,
-    };
-    parse_flags(args, USAGE, |flag, value| {
+    let (mut frames, mut size) = (10, "1280x720".to_owned());
+    let campaign = CampaignFlags::new(10_000_000, 20);
+    let flags = ServeCampaignFlags::parse(args, USAGE, campaign, |flag, value| {
         match flag {
-            "--frames" => parsed.frames = value.number()?.clamp(1, 10_000),
-            "--size" => parsed.size = value.path().to_string_lossy().into_owned(),
-            "--rounds" => parsed.rounds = value.number()?.max(1) as usize,
-            "--pointfarm" => parsed.pointfarm = Some(value.path()),
-            _ => return parsed.campaign.apply(flag, &value),
+            "--frames" => frames = value.number()?.clamp(1, 10_000),
+            "--size" => size = value.path().to_string_lossy().into_owned(),
+            _ => return Ok(false),
         }
         Ok(true)
     })?;
-    parsed.campaign.check_inner_tile()?;
-    if parsed.pointfarm.is_none() {
-        return Err(format!("--pointfarm is needed\n{USAGE}"));
-    }
-    Ok(parsed)
+    Ok(Args {
+        flags,
+        frames,
+        size,
+    })
 }
 
 fn measure(args: &Args) -> Result<(), String> {
-    let pointfarm = args.pointfarm.as_deref().ok_or(USAGE)?;
+    let ServeCampaignFlags {
+        campaign,
+        rounds,
+        pointfarm,
+    } = &args.flags;
     let ScratchCampaign {
         scratch,
         tiles,
         written,
-    } = args.campaign.write("lod-camera-first-daemon")?;
+    } = campaign.write("lod-camera-first-daemon")?;
     let dir = scratch.path();
     let bounds = DatasetSource::open(&written.laz)
         .map_err(|e| e.to_string())?
         .bounds();
-    let (rows, columns) = grid(args.campaign.files);
+    let (rows, columns) = grid(campaign.files);
     let flight = dir.join("flight.toml");
     let keyframes = inner_tile_keyframes(&bounds, (rows, columns));
     std::fs::write(&flight, camera_path_file(&keyframes, args.frames))
@@ -100,8 +94,8 @@ fn measure(args: &Args) -> Result<(), String> {
         args.size,
         pointfarm.display()
     );
-    let budget = args.campaign.budget_mib;
-    for round in 1..=args.rounds {
+    let budget = campaign.budget_mib;
+    for round in 1..=*rounds {
         let data = dir.join(format!("camera-first-{round}"));
         let serve = Serve::start(pointfarm, &data, budget)?;
         serve.render(pointfarm, &tiles, &dir.join("flight"), &flight_options)?;

@@ -16,8 +16,8 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use pointfarm_bench::campaign::{grid, CampaignFlags, ScratchCampaign};
-use pointfarm_bench::cli::{exit_code, parse_flags};
+use pointfarm_bench::campaign::{grid, CampaignFlags, ScratchCampaign, ServeCampaignFlags};
+use pointfarm_bench::cli::exit_code;
 use pointfarm_bench::serve::{load, Serve};
 
 const USAGE: &str = "usage: lod-store-growth --pointfarm PATH [--points N] [--files N] \
@@ -26,39 +26,17 @@ const USAGE: &str = "usage: lod-store-growth --pointfarm PATH [--points N] [--fi
 /// How each render is drawn: from levels of detail.
 const LEVELS: &[&str] = &["--size=200x150", "--lod-error=0"];
 
-struct Args {
-    campaign: CampaignFlags,
-    rounds: usize,
-    pointfarm: Option<PathBuf>,
-}
-
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
     exit_code(
         "lod-store-growth",
-        parse(&args).and_then(|args| measure(&args)),
+        parse(&args).and_then(|flags| measure(&flags)),
     )
 }
 
-fn parse(args: &[String]) -> Result<Args, String> {
-    let mut parsed = Args {
-        campaign: CampaignFlags::new(21_000_000, 21),
-        rounds: 1,
-        pointfarm: None,
-    };
-    parse_flags(args, USAGE, |flag, value| {
-        match flag {
-            "--rounds" => parsed.rounds = value.number()?.max(1) as usize,
-            "--pointfarm" => parsed.pointfarm = Some(value.path()),
-            _ => return parsed.campaign.apply(flag, &value),
-        }
-        Ok(true)
-    })?;
-    parsed.campaign.check_inner_tile()?;
-    if parsed.pointfarm.is_none() {
-        return Err(format!("--pointfarm is needed\n{USAGE}"));
-    }
-    Ok(parsed)
+fn parse(args: &[String]) -> Result<ServeCampaignFlags, String> {
+    let campaign = CampaignFlags::new(21_000_000, 21);
+    ServeCampaignFlags::parse(args, USAGE, campaign, |_, _| Ok(false))
 }
 
 /// A folder of hard links to `tiles`.
@@ -71,12 +49,16 @@ fn day(folder: &Path, tiles: &[&PathBuf]) -> Result<PathBuf, String> {
     Ok(folder.to_owned())
 }
 
-fn measure(args: &Args) -> Result<(), String> {
-    let pointfarm = args.pointfarm.as_deref().ok_or(USAGE)?;
+fn measure(flags: &ServeCampaignFlags) -> Result<(), String> {
+    let ServeCampaignFlags {
+        campaign,
+        rounds,
+        pointfarm,
+    } = flags;
     let ScratchCampaign {
         scratch, written, ..
-    } = args.campaign.write("lod-store-growth")?;
-    let (rows, cols) = grid(args.campaign.files);
+    } = campaign.write("lod-store-growth")?;
+    let (rows, cols) = grid(campaign.files);
     let inner = (rows / 2) * cols + cols / 2;
     let all: Vec<&PathBuf> = written.laz.iter().collect();
     let before: Vec<&PathBuf> = (0..all.len())
@@ -94,8 +76,8 @@ fn measure(args: &Args) -> Result<(), String> {
         all.len(),
         pointfarm.display()
     );
-    let budget = args.campaign.budget_mib;
-    for round in 1..=args.rounds {
+    let budget = campaign.budget_mib;
+    for round in 1..=*rounds {
         let data = dir.join(format!("grown-{round}"));
         let serve = Serve::start(pointfarm, &data, budget)?;
         serve.render(pointfarm, &day1, &dir.join("day1.png"), LEVELS)?;

@@ -17,6 +17,7 @@
 
 pub mod cpu;
 mod flags;
+mod serve_flags;
 pub mod store_points;
 mod tiles;
 
@@ -38,6 +39,7 @@ use crate::scratch::{load_average, progress_log, scratch_dir};
 use crate::store::create_store;
 use crate::{memory, BenchError};
 pub use flags::{CampaignFlags, ScratchCampaign};
+pub use serve_flags::ServeCampaignFlags;
 pub use tiles::{grid, write_campaign, CampaignFiles, LAS_RECORD_BYTES, MIN_POINTS_PER_FILE};
 
 /// Points of `--campaign` given bare.
