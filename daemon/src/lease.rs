@@ -32,7 +32,11 @@ use crate::lease_record::Lease;
 use crate::model::{now_unix_ms, FrameReport, FrameState, Job, JobState};
 use crate::service::Daemon;
 
+mod lost;
+mod store_waits;
 mod task;
+
+use store_waits::StoreWaits;
 
 pub use task::{
     FailureKind, FrameOutcome, FrameTask, HeartbeatAnswer, PublishedStore, TaskDataset, TaskFile,
@@ -45,7 +49,8 @@ impl Daemon {
 
     /// Leases the next frame (highest priority, oldest job, lowest index) that `worker`, with
     /// `capabilities`, can render and has not been blocklisted for, or None when there is
-    /// nothing for it to render.
+    /// nothing for it to render. A frame waiting for its dataset's store is passed over
+    /// (`store_waits`).
     pub fn lease_frame(
         &self,
         worker: &str,
@@ -63,6 +68,7 @@ impl Daemon {
             .into_iter()
             .map(|l| (l.job_id, l.index))
             .collect();
+        let waits = StoreWaits::new(self);
         let usable = |job: &Job| {
             job.state != JobState::Paused
                 && !job.blocklist.contains(worker)
@@ -70,38 +76,9 @@ impl Daemon {
                 && capabilities
                     .refusal(&job.spec.requirements, &job.spec.request)
                     .is_none()
+                && !waits.holds_final_frames(job)
         };
-        // The preview version of the job's dataset's store while it builds, looked up once
-        // per job of this scan (the scan asks for every previewed frame of a job).
-        let versions = std::cell::RefCell::new(std::collections::HashMap::new());
-        let building = |job: &Job| {
-            *versions
-                .borrow_mut()
-                .entry(job.id.clone())
-                .or_insert_with(|| {
-                    self.state
-                        .dataset(&job.spec.dataset_id)
-                        .ok()
-                        .flatten()
-                        .map(|dataset| self.stores.leased(job, &dataset))
-                        .and_then(|dataset| self.stores.building_version(&dataset.sha256))
-                })
-        };
-        // A frame with a preview of the build's version waits while its dataset's store
-        // builds: it is drawn again when the build has stored another tenth of the points,
-        // frames without a preview first, then the oldest previews, and rendered as a final
-        // frame once the store is ready (or, for a COPC file's coarse previews, at once),
-        // after the frames without a preview.
-        let turn = |job: &Job, drawn: Option<u32>| {
-            let Some(drawn) = drawn else {
-                return Some(0);
-            };
-            match building(job) {
-                Some(current) if drawn >= current => None,
-                Some(_) => Some(drawn + 1),
-                None => Some(1),
-            }
-        };
+        let turn = |job: &Job, drawn: Option<u32>| waits.turn(job, drawn);
         loop {
             let Some((job, index)) = self.state.next_task(&leased, &usable, &turn)? else {
                 return Ok(None);
@@ -121,7 +98,10 @@ impl Daemon {
                 _ => 0,
             };
             let preview_version = if job.spec.preview {
-                match (self.state.preview_version(&job.id, index)?, building(&job)) {
+                match (
+                    self.state.preview_version(&job.id, index)?,
+                    waits.building(&job),
+                ) {
                     (None, current) => Some(current.unwrap_or(0)),
                     (Some(drawn), Some(current)) if drawn < current => Some(current),
                     _ => None,
@@ -424,65 +404,6 @@ impl Daemon {
         }
     }
 
-    /// The embedded worker `worker` exited (`how`: its exit status): each frame it held
-    /// counts a failed attempt (and a failed frame of its job for the worker) and goes back
-    /// to the queue. Returns how many it held.
-    pub fn embedded_worker_exited(&self, worker: &str, how: &str) -> Result<usize, DaemonError> {
-        let _scheduling = self.scheduling()?;
-        self.count_embedded_leases_locked(true, |lease| {
-            (lease.worker == worker).then(|| {
-                format!(
-                    "worker {worker} died while rendering frame {} ({how})",
-                    lease.index
-                )
-            })
-        })
-    }
-
-    /// At start-up: the embedded worker died with the previous daemon, so each frame it held
-    /// counts a failed attempt, as if it had exited now; the worker is not to blame for it.
-    /// Returns how many it held.
-    pub fn count_leases_of_previous_run(&self) -> Result<usize, DaemonError> {
-        let _scheduling = self.scheduling()?;
-        let counted = self.count_embedded_leases_locked(false, |lease| {
-            Some(format!(
-                "worker {} died while rendering frame {} (the daemon stopped)",
-                lease.worker, lease.index
-            ))
-        })?;
-        if counted > 0 {
-            tracing::warn!(
-                counted,
-                "the previous run's embedded worker held frames: each counts a failed attempt"
-            );
-        }
-        Ok(counted)
-    }
-
-    /// Removes the embedded leases for which `reason` gives a reason, counting an attempt each
-    /// (and a failed frame for the worker when it is to `blame`).
-    fn count_embedded_leases_locked(
-        &self,
-        blame: bool,
-        reason: impl Fn(&Lease) -> Option<String>,
-    ) -> Result<usize, DaemonError> {
-        let mut counted = 0;
-        for lease in self.state.leases()? {
-            let Some(reason) = lease.embedded.then(|| reason(&lease)).flatten() else {
-                continue;
-            };
-            self.state.remove_lease(&lease.id)?;
-            if self.is_wanted_locked(&lease)? {
-                tracing::warn!(job = %lease.job_id, frame = lease.index, %reason, "frame lost");
-                self.metrics.frame_failed();
-                self.count_failed_attempt_locked(&lease, &reason, blame)?;
-                counted += 1;
-            }
-        }
-        self.state.flush()?;
-        Ok(counted)
-    }
-
     /// Gives a lease back without a result and without counting an attempt. Releasing a lease
     /// that is no longer held does nothing.
     pub fn release_frame(&self, lease_id: &str) -> Result<(), DaemonError> {
@@ -516,77 +437,6 @@ impl Daemon {
             }
             _ => Ok(()),
         }
-    }
-
-    /// Puts the frames of expired leases back in the queue, counting the attempts. Returns how
-    /// many leases expired. The server's sweep calls it on a timer, so it also probes a disk
-    /// that refused writes and ends the outage when it takes them again.
-    pub fn expire_leases(&self) -> Result<usize, DaemonError> {
-        let _scheduling = self.scheduling()?;
-        if self.state.outage().is_some() && !self.end_outage_locked()? {
-            return Ok(0);
-        }
-        self.expire_leases_locked()
-    }
-
-    /// Ends a disk outage if the disk takes writes again (see `StateDb::end_outage`); every
-    /// lease is renewed, since no holder could renew it meanwhile. Returns whether it ended.
-    fn end_outage_locked(&self) -> Result<bool, DaemonError> {
-        match self.state.end_outage() {
-            Ok(true) => {}
-            Ok(false) => return Ok(false),
-            Err(e) => {
-                tracing::debug!(error = %e, "the disk still refuses writes");
-                return Ok(false);
-            }
-        }
-        let renewed = now_unix_ms() + self.lease_timeout_ms();
-        for mut lease in self.state.leases()? {
-            if lease.expires_unix_ms < renewed {
-                lease.expires_unix_ms = renewed;
-                self.state.put_lease(&lease)?;
-            }
-        }
-        self.state.flush()?;
-        self.work.notify();
-        Ok(true)
-    }
-
-    fn expire_leases_locked(&self) -> Result<usize, DaemonError> {
-        // No holder can renew while the disk refuses writes: nothing runs out meanwhile.
-        if self.state.outage().is_some() {
-            return Ok(0);
-        }
-        let now = now_unix_ms();
-        let mut expired = 0;
-        for lease in self.state.leases()? {
-            if lease.expires_unix_ms >= now {
-                continue;
-            }
-            self.state.remove_lease(&lease.id)?;
-            // A lease of an ended job is kept until it runs out, so that its holder's
-            // heartbeat learns why to stop; its expiry counts nothing.
-            if self.is_wanted_locked(&lease)? {
-                tracing::warn!(
-                    job = %lease.job_id,
-                    frame = lease.index,
-                    worker = %lease.worker,
-                    "lease expired: the worker was lost; the frame goes back to the queue"
-                );
-                self.metrics.lease_expired();
-                self.metrics.frame_failed();
-                self.count_failed_attempt_locked(
-                    &lease,
-                    &format!(
-                        "worker {} stopped renewing its lease (no heartbeat for {:?})",
-                        lease.worker, self.config.lease_timeout
-                    ),
-                    true,
-                )?;
-                expired += 1;
-            }
-        }
-        Ok(expired)
     }
 
     /// Whether the job of `lease` still wants its frame.
@@ -694,5 +544,7 @@ fn check_png(png: &[u8], width: u32, height: u32) -> Result<(), DaemonError> {
     Ok(())
 }
 
+#[cfg(test)]
+mod store_wait_tests;
 #[cfg(test)]
 mod tests;

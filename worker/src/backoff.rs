@@ -15,9 +15,10 @@ impl Backoff {
         Self::from_to(Duration::from_millis(250), Duration::from_secs(5))
     }
 
-    /// Between frames handed back because the daemon builds their store: short at first, so a
-    /// store that becomes ready soon (a camera-first part) costs its frames little idle time,
-    /// and longer while a large build goes on.
+    /// Between frames handed back one after another because the daemon builds their store (the
+    /// daemon holds such frames, so this is for a frame leased as its build began): short at
+    /// first, so a store that becomes ready soon (a camera-first part) costs its frames little
+    /// idle time, and longer while a large build goes on.
     pub(crate) fn store_building() -> Self {
         Self::from_to(Duration::from_millis(100), Duration::from_secs(2))
     }

@@ -4,7 +4,8 @@
 //! - The dataset's points come from the worker's own `DatasetCache`; a dataset it has never
 //!   seen is downloaded once (`FetchDataset`, SHA-256 checked) and decoded into the cache.
 //!   A dataset that needs a store is read from the daemon's; while the daemon builds it, a
-//!   frame is handed back, or, of a job that asks for previews, rendered from the daemon's
+//!   frame is handed back (the daemon holds it until the store is ready, and the worker asks
+//!   for work again at once), or, of a job that asks for previews, rendered from the daemon's
 //!   preview sample and handed in as a preview (the daemon leases it again for a redraw when
 //!   its build has stored another tenth of the points, the sample fetched again then, and
 //!   for its final render once the store is ready).
@@ -181,8 +182,11 @@ pub async fn run(
         stop.clone(),
     ));
     let mut backoff = Backoff::calls();
-    // Frames handed back while their store builds wait less the sooner it is ready.
+    // The daemon holds a frame whose store builds and wakes the lease long poll when it is
+    // ready, so a frame handed back is followed by a lease request at once; only a second one
+    // in a row (a frame leased as its store's build began) waits, less the sooner it is ready.
     let mut store_building = Backoff::store_building();
+    let mut handed_back = false;
     // Said once when the daemon cannot store frames, once when it can again.
     let mut daemon_full = false;
     tracing::info!(server = %url, worker = %config.name, "worker started");
@@ -277,13 +281,16 @@ pub async fn run(
         let wait = match end {
             TaskEnd::Finished => {
                 store_building.reset();
+                handed_back = false;
                 None
             }
             TaskEnd::DaemonCannotStore => {
                 daemon_full = true;
                 Some(backoff.next())
             }
-            TaskEnd::StoreBuilding => Some(store_building.next()),
+            TaskEnd::StoreBuilding => {
+                std::mem::replace(&mut handed_back, true).then(|| store_building.next())
+            }
         };
         if let Some(wait) = wait {
             if stopped_during(&mut stop, wait).await {
