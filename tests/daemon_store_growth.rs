@@ -6,6 +6,10 @@
 //! dataset composed without a tile is made the same way. An update killed part way (the build's
 //! test hook, `POINTFARM_TEST_PAUSE_AT=update:0`) never leaves a store to serve: the daemon
 //! started again makes it anew, and a preview job meanwhile draws the new content's sample.
+//! A chain of growths holds the earlier payloads as hard-linked layers, none copied: the last
+//! store renders the same once the earlier stores' folders are gone, and a grown store
+//! published to object storage (`s3s-fs`, skipped without `POINTFARM_TEST_S3S_FS`) is the one
+//! payload object its layers make together.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -17,8 +21,10 @@ use pointfarm_render::cut::StoredLod;
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::lod::{read_nodes, NodeKey};
 use pointfarm_render::sample::sample_scene;
+use pointfarm_tests::s3s::S3Bucket;
 use pointfarm_tests::{
-    assert_pngs_alike, free_address, output_text, pointfarm_bin, wait_for, ServeProcess,
+    assert_pngs_alike, free_address, output_text, pointfarm_bin, pointfarm_with, wait_for,
+    ServeProcess,
 };
 
 /// Tiles across and along: 21, the middle one the new day's.
@@ -34,11 +40,12 @@ const DROPPED: usize = 1;
 
 /// The scene's tiles, every one in `dir/all`, and the folders of the campaign's days as links
 /// to them: `day1` without the middle tile, `day2` with every tile, `less` as `day1` without
-/// tile [`DROPPED`].
+/// tile [`DROPPED`], `least` as `less` without the tile after it.
 struct Campaign {
     day1: PathBuf,
     day2: PathBuf,
     less: PathBuf,
+    least: PathBuf,
     /// Flags of the camera every render shares.
     camera: Vec<String>,
 }
@@ -79,6 +86,7 @@ fn write_campaign(dir: &Path, points: usize) -> Campaign {
         day1: day("day1", &[middle]),
         day2: day("day2", &[]),
         less: day("less", &[middle, DROPPED]),
+        least: day("least", &[middle, DROPPED, DROPPED + 1]),
         camera: vec![
             format!("--camera-pos={}", xyz(position)),
             format!("--camera-target={}", xyz(center.to_array())),
@@ -415,9 +423,9 @@ fn a_store_built_before_stores_listed_their_files_is_listed_at_start_and_grows_a
     let data = dir.path().join("daemon");
     let address = free_address();
     let mut server = serve(&address, &data, None);
-    let first = dir.path().join("less.png");
+    let first = dir.path().join("least.png");
     let said = run(
-        &mut render(&server, &campaign.less, &first, camera),
+        &mut render(&server, &campaign.least, &first, camera),
         &server,
     );
     let first_id = dataset_of(&said);
@@ -426,12 +434,12 @@ fn a_store_built_before_stores_listed_their_files_is_listed_at_start_and_grows_a
         .expect("the daemon stops");
 
     // The first day's store as one built before stores listed their files: without its list.
-    let store = store_of(&data, 19);
+    let store = store_of(&data, 18);
     let listed = std::fs::read_to_string(store.join("contents.txt")).expect("a file list");
     std::fs::remove_file(store.join("contents.txt")).expect("unlist the store");
 
     // Started again, the daemon lists it from the dataset's record, proven by the store's facts.
-    let server = serve(&address, &data, None);
+    let mut server = serve(&address, &data, None);
     let log = server.log();
     assert!(
         log.contains("listed the files of a store built before stores listed them"),
@@ -443,30 +451,167 @@ fn a_store_built_before_stores_listed_their_files_is_listed_at_start_and_grows_a
         "the derived list differs from the one the build wrote"
     );
 
-    // Day two's store grows from it, and day three's from day two's grown store.
-    let day2 = dir.path().join("day1.png");
-    let said = run(&mut render(&server, &campaign.day1, &day2, camera), &server);
-    let day2_id = dataset_of(&said);
-    let day3 = dir.path().join("day2.png");
-    run(&mut render(&server, &campaign.day2, &day3, camera), &server);
-    let log = server.log();
-    for from in [first_id, day2_id] {
+    // Three growths, each from the store before it, each linking the earlier payload.
+    let mut from = first_id;
+    let mut last = PathBuf::new();
+    for (tiles, name) in [
+        (&campaign.less, "less"),
+        (&campaign.day1, "day1"),
+        (&campaign.day2, "day2"),
+    ] {
+        last = dir.path().join(format!("{name}.png"));
+        let said = run(&mut render(&server, tiles, &last, camera), &server);
         let grown = format!("from the store of dataset {from}: 1 files added, 0 removed");
-        assert!(log.contains(&grown), "{log}");
+        assert!(server.log().contains(&grown), "{}", server.log());
+        from = dataset_of(&said);
     }
+    let log = server.log();
     assert!(
         !log.contains("levels of detail built"),
         "built whole:\n{log}"
     );
+    let copies: Vec<&str> = log
+        .lines()
+        .filter(|l| l.contains("copied the earlier store to update"))
+        .collect();
+    assert_eq!(copies.len(), 3, "{log}");
+    for line in &copies {
+        assert_eq!(
+            number_after(line, " payload_bytes_copied="),
+            Some(0.0),
+            "{line}"
+        );
+    }
+    server
+        .terminate(Duration::from_secs(30))
+        .expect("the daemon stops");
+
+    // The earlier stores' folders gone, the last one holds its three layers and draws the same.
+    let grown = store_of(&data, 21);
+    let layers = std::fs::read_to_string(grown.join("nodes.bin.layers")).expect("layers");
+    assert_eq!(layers.lines().count(), 3, "{layers}");
+    for files in [18, 19, 20] {
+        std::fs::remove_dir_all(store_of(&data, files)).expect("an earlier store removed");
+    }
+    let server = serve(&address, &data, None);
+    let again = dir.path().join("day2-again.png");
+    run(
+        &mut render(&server, &campaign.day2, &again, camera),
+        &server,
+    );
+    let log = server.log();
+    assert!(
+        !log.contains("levels of detail built") && !log.contains("updated the store of"),
+        "made again:\n{log}"
+    );
+    assert_pngs_alike(
+        "growth-chain",
+        &again,
+        &last,
+        "the grown store draws otherwise once the earlier stores are gone",
+    );
     drop(server);
 
     // The end of the chain holds and draws what a fresh daemon's build does.
-    let day3_fresh = (campaign.day2.as_path(), 21);
-    let what = "the store grown twice";
+    let day2_fresh = (campaign.day2.as_path(), 21);
+    let what = "the store grown three times";
     let fresh =
-        assert_draws_as_a_fresh_build(dir.path(), "fresh-day3", day3_fresh, camera, &day3, what);
+        assert_draws_as_a_fresh_build(dir.path(), "fresh-day2", day2_fresh, camera, &last, what);
     assert!(
         store_points(&store_of(&data, 21)) == store_points(&fresh),
-        "the store grown twice holds other points than a fresh build's"
+        "the store grown three times holds other points than a fresh build's"
     );
+
+    // A layer changed underneath refuses the store when it opens: it is built again, whole.
+    let layer = store_of(&data, 21).join("nodes.bin.0");
+    let mut bytes = std::fs::read(&layer).expect("the layer");
+    let middle = bytes.len() / 2;
+    bytes[middle] ^= 0x55;
+    std::fs::write(&layer, &bytes).expect("change the layer");
+    let server = serve(&address, &data, None);
+    let rebuilt = dir.path().join("day2-rebuilt.png");
+    run(
+        &mut render(&server, &campaign.day2, &rebuilt, camera),
+        &server,
+    );
+    let log = server.log();
+    assert!(
+        log.contains("rebuilding a damaged store") && log.contains("payload layers are damaged"),
+        "{log}"
+    );
+    assert!(log.contains("levels of detail built"), "{log}");
+    assert_pngs_alike(
+        "growth-refused-layer",
+        &rebuilt,
+        &last,
+        "the store built again after its layer changed draws otherwise",
+    );
+    assert!(!layer.exists(), "the refused layers are gone");
+}
+
+#[test]
+fn a_grown_store_is_published_as_the_one_payload_its_layers_make() {
+    let Some(bucket) = S3Bucket::start_or_skip("pointfarm-grown") else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let campaign = write_campaign(dir.path(), KILLED_POINTS);
+    let camera = &campaign.camera;
+    let data = dir.path().join("daemon");
+    let mut command = pointfarm_with(&bucket.server.environment());
+    command.env_remove("POINTFARM_TEST_PAUSE_AT");
+    let server = ServeProcess::start_command(
+        command,
+        &free_address(),
+        &data,
+        &dir.path().join("serve.log"),
+        &[
+            "--store-memory-budget",
+            "96MiB",
+            "--store-url",
+            "s3://pointfarm-grown/farm",
+        ],
+    );
+    run(
+        &mut render(
+            &server,
+            &campaign.day1,
+            &dir.path().join("day1.png"),
+            camera,
+        ),
+        &server,
+    );
+    run(
+        &mut render(
+            &server,
+            &campaign.day2,
+            &dir.path().join("day2.png"),
+            camera,
+        ),
+        &server,
+    );
+    assert!(
+        server.log().contains("updated the store of"),
+        "{}",
+        server.log()
+    );
+    wait_for(Duration::from_secs(120), "both stores published", || {
+        (server.log().matches("store published").count() == 2).then_some(())
+    });
+
+    // The grown store's payload is its layer, the first day's, then its own file: published,
+    // they are the one object a store built whole would be.
+    let grown = store_of(&data, 21);
+    let layers = std::fs::read_to_string(grown.join("nodes.bin.layers")).expect("layers");
+    assert_eq!(layers.lines().count(), 1, "{layers}");
+    let flattened = [
+        std::fs::read(grown.join("nodes.bin.0")).expect("the layer"),
+        std::fs::read(grown.join("nodes.bin")).expect("its own file"),
+    ]
+    .concat();
+    let sha256 = grown.file_name().expect("a name").to_string_lossy();
+    let key = format!("farm/{sha256}/nodes.bin");
+    let published = std::fs::read(bucket.stored(&key)).expect("the published payload");
+    assert_eq!(published.len(), flattened.len());
+    assert!(published == flattened, "the published payload differs");
 }

@@ -7,10 +7,14 @@
 //! copy updated (`lod::update_store`): the regions the changed files touch are built again,
 //! then the levels above.
 //!
-//! The earlier store is only read: its payload file is cloned (a reflink where the file
-//! system has them, a copy otherwise: an update appends to it) and its sled index copied, so
-//! jobs rendering it go on, and workers, which key their node caches by the content hash,
-//! never mix the two. The copy is made and updated in a folder of its own
+//! The earlier store is only read: its payload (its own file, and the layers below it where it
+//! was grown itself) becomes the layers of the grown store's payload, hard-linked, never copied
+//! nor written again (`lod::layers`); the update appends its nodes to the grown store's own
+//! file, and its small sled index is copied. Jobs rendering the earlier store go on, workers,
+//! which key their node caches by the content hash, never mix the two, and removing the
+//! earlier store leaves the grown one whole. A chain of growths past `lod::layers::MAX_LAYERS`
+//! layers, or one whose payload is mostly dead bytes, is compacted into one file before it is
+//! updated (`lod::compact`). The copy is made and updated in a folder of its own
 //! (`SHA256.growing`), checked (the copied hierarchy holds the earlier files' points, the
 //! updated one the dataset's), and only then renamed to the store's folder, where the
 //! opening marks it finished: a half-updated store is never served. An update that stops
@@ -33,6 +37,8 @@ use std::time::Instant;
 
 use pointfarm_render::cut::{CutError, PAYLOAD_FILE};
 use pointfarm_render::ingest::DatasetSource;
+use pointfarm_render::lod::compact::compact;
+use pointfarm_render::lod::layers::{link_layers, needs_compaction};
 use pointfarm_render::lod::update::update_within;
 use pointfarm_render::lod::{BuildProgress, LodError, LodStore, PointSource, StoreChange};
 use pointfarm_render::source::StoreInput;
@@ -68,6 +74,10 @@ pub struct Grown {
     pub seconds: f64,
     /// The update alone (`lod::update_store`).
     pub update_seconds: f64,
+    /// Bytes of the earlier store's payload the grown one holds as hard-linked layers.
+    pub payload_bytes_linked: u64,
+    /// Bytes of payload written to compact it, 0 where the earlier payload was only linked.
+    pub payload_bytes_copied: u64,
 }
 
 /// Opens the store of `input` (the dataset `dataset_id`'s `files`, `points` in all) in
@@ -336,6 +346,8 @@ pub(super) fn grow(
                 points_added = grown.points_added, points_removed = grown.points_removed,
                 seconds = format!("{:.2}", grown.seconds),
                 update_seconds = format!("{:.2}", grown.update_seconds),
+                payload_bytes_linked = grown.payload_bytes_linked,
+                payload_bytes_copied = grown.payload_bytes_copied,
                 "updated the store of {dataset_id} from the store of dataset {from_id}: {} files \
                  added, {} removed, {} regions rebuilt",
                 grown.files_added, grown.files_removed, grown.regions_rebuilt);
@@ -364,14 +376,31 @@ fn copy_and_update(
     std::fs::create_dir_all(into).map_err(|e| format!("making {}: {e}", into.display()))?;
     let copying = Instant::now();
     copy_folder(&from.join(INDEX_FOLDER), &into.join(INDEX_FOLDER))?;
-    clone_file(&from.join(PAYLOAD_FILE), &into.join(PAYLOAD_FILE))?;
-    tracing::info!(
-        seconds = format!("{:.2}", copying.elapsed().as_secs_f64()),
-        payload_bytes = std::fs::metadata(into.join(PAYLOAD_FILE)).map_or(0, |m| m.len()),
-        "copied the earlier store to update"
-    );
+    let linked = link_layers(&from.join(PAYLOAD_FILE), &into.join(PAYLOAD_FILE))
+        .map_err(|e| format!("linking the earlier store's payload: {e}"))?;
     let (db, store) = open_store(into)?;
     let copied = store.read_hierarchy().map_err(|e| e.to_string())?;
+    let layers = store.payload_files() - 1;
+    let live = copied.payload_bytes() + region_root_bytes(&store)?;
+    let (mut payload_bytes_linked, mut payload_bytes_copied) = (linked, 0);
+    if needs_compaction(layers, linked, live) {
+        let compacted = compact(&store).map_err(|e| format!("compacting the payload: {e}"))?;
+        (payload_bytes_linked, payload_bytes_copied) = (0, compacted.bytes_after);
+        tracing::info!(
+            layers,
+            payload_bytes = linked,
+            live_bytes = live,
+            compacted_bytes = compacted.bytes_after,
+            "compacted the earlier store's payload into one file to update"
+        );
+    }
+    tracing::info!(
+        seconds = format!("{:.2}", copying.elapsed().as_secs_f64()),
+        payload_bytes_linked,
+        payload_bytes_copied,
+        layers = store.payload_files() - 1,
+        "copied the earlier store to update"
+    );
     let listed_points: u64 = earlier.iter().map(|f| f.points).sum();
     if copied.point_count != listed_points {
         return Err(format!(
@@ -438,6 +467,8 @@ fn copy_and_update(
         points_removed: report.points_removed,
         seconds: 0.0,
         update_seconds: report.seconds,
+        payload_bytes_linked,
+        payload_bytes_copied,
     })
 }
 
@@ -471,18 +502,15 @@ fn copy_folder(from: &Path, into: &Path) -> Result<(), String> {
     Ok(())
 }
 
-/// Makes `into` a copy of `from` sharing its blocks where the file system can (a reflink),
-/// else a copy of its bytes.
-fn clone_file(from: &Path, into: &Path) -> Result<(), String> {
-    let failed = |e: std::io::Error| format!("copying {}: {e}", from.display());
-    let source = std::fs::File::open(from).map_err(failed)?;
-    let target = std::fs::File::create(into).map_err(failed)?;
-    if rustix::fs::ioctl_ficlone(&target, &source).is_ok() {
-        return Ok(());
-    }
-    drop(target);
-    std::fs::copy(from, into).map_err(failed)?;
-    Ok(())
+/// Bytes of the regions' kept roots in `store`'s payload: live beside its nodes' records.
+fn region_root_bytes(store: &LodStore) -> Result<u64, String> {
+    let regions = store.read_regions().map_err(|e| e.to_string())?;
+    Ok(regions.map_or(0, |r| {
+        r.regions
+            .iter()
+            .filter_map(|region| region.root.map(|n| n.stored_bytes()))
+            .sum()
+    }))
 }
 
 #[cfg(test)]

@@ -3,7 +3,9 @@
 //! network would otherwise bound the farm.
 //!
 //! A store is published once it is ready here, off the scheduler's path on a thread of its
-//! own, one store at a time: its payload file by multipart upload, then its hierarchy object
+//! own, one store at a time: its payload by multipart upload (a grown store's layers and its
+//! own file streamed as the one object they make together, so the published format is one),
+//! then its hierarchy object
 //! (`lod::published`), last, so a store whose upload stopped part way is never read. The
 //! objects' versions (ETags) are then recorded in a sled database of their own
 //! (`DATA/published-stores`), which leases read to name the store to workers; a restarted
@@ -21,6 +23,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::Duration;
 
+use pointfarm_render::lod::layers::PayloadReader;
 use pointfarm_render::lod::published::{PublishedHierarchy, HIERARCHY_OBJECT, PAYLOAD_OBJECT};
 use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteError, RemoteSettings};
 
@@ -308,7 +311,7 @@ impl Shared {
         let prefix = self.prefix(sha256)?;
         let payload_path = store.payload_path().ok_or(PublishError::NotAStore)?;
         let payload_url = prefix.join(PAYLOAD_OBJECT)?;
-        let payload_bytes = self.client.upload_file(&payload_path, &payload_url)?;
+        let payload_bytes = upload_payload(&self.client, &payload_path, &payload_url)?;
         let payload_version = self.version_of(&payload_url, payload_bytes)?;
         let hierarchy = PublishedHierarchy {
             bounds: store.bounds(),
@@ -353,6 +356,32 @@ impl Shared {
             }),
         }
     }
+}
+
+/// Uploads the payload at `path` (its layers and its own file, as one) to `url` a part at a
+/// time; the bytes written. Dropping the upload on a failed read aborts it.
+fn upload_payload(
+    client: &RemoteClient,
+    path: &Path,
+    url: &ObjectUrl,
+) -> Result<u64, PublishError> {
+    let unreadable = |error: pointfarm_render::lod::LodError| RemoteError::Transport {
+        url: url.to_string(),
+        message: format!("reading the store's payload: {error}"),
+    };
+    let payload = PayloadReader::open(path).map_err(unreadable)?;
+    let mut upload = client.start_upload(url)?;
+    let mut buffer = vec![0u8; client.settings().upload_part_bytes.max(1)];
+    let mut at = 0u64;
+    while at < payload.len() {
+        let n = (payload.len() - at).min(buffer.len() as u64) as usize;
+        payload
+            .read_exact_at(&mut buffer[..n], at)
+            .map_err(unreadable)?;
+        upload.write(&buffer[..n])?;
+        at += n as u64;
+    }
+    Ok(upload.finish()?)
 }
 
 /// How a step tried again and again ended.

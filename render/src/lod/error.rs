@@ -67,6 +67,10 @@ pub enum LodError {
     UnknownNode { key: NodeKey },
     #[error("level-of-detail node {key} is damaged: {reason}")]
     CorruptNode { key: NodeKey, reason: String },
+    /// The layers below a store's payload file (`layers.rs`) are not those its list records:
+    /// the store is built again.
+    #[error("level-of-detail payload layers are damaged: {0}")]
+    CorruptLayers(String),
     /// A store that cannot take this change in place (`update.rs`): it is built again.
     #[error("level-of-detail store cannot be updated: {0}")]
     CannotUpdate(String),
@@ -87,7 +91,10 @@ impl LodError {
     pub fn is_damage(&self) -> bool {
         matches!(
             self,
-            Self::CorruptNode { .. } | Self::CorruptHierarchy(_) | Self::MissingHierarchy
+            Self::CorruptNode { .. }
+                | Self::CorruptHierarchy(_)
+                | Self::CorruptLayers(_)
+                | Self::MissingHierarchy
         )
     }
 

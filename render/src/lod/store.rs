@@ -4,6 +4,10 @@
 //! live in the dataset cache). Payloads are kept out of sled because sled holds process memory
 //! in proportion to the bytes it stores (docs/perf/lod-build.md).
 //!
+//! A grown store's payload is a chain of layers (`layers.rs`): the earlier stores' payload
+//! files, read only, then its own file, to which it appends; offsets address their
+//! concatenation, so everything that reads records reads layers alike.
+//!
 //! The hierarchy is written last, after the payload file is synced, so a build that did not
 //! finish leaves no hierarchy and is never read as complete. Regions are appended from many
 //! threads at offsets reserved from an atomic counter. Reads join nearby pieces into runs,
@@ -15,13 +19,14 @@ use std::ops::Range;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, RwLock};
 
 use super::attributes::decode_section;
 use super::codec::NodePoints;
 use super::error::LodError;
 use super::hierarchy::{LodHierarchy, NodeInfo};
 use super::key::NodeKey;
+use super::layers::{read_across, remove_layers, Layers};
 use super::records::{read_concurrently, read_nodes, NodeRecords};
 use super::regions::StoreRegions;
 
@@ -35,13 +40,23 @@ pub struct LodStore {
     payload: Arc<Payload>,
 }
 
-/// The payload file: one handle for positioned reads and writes, and the offset of the next
-/// append.
+/// The payload: its layers and its own file, one handle each for positioned reads (and writes
+/// to its own file), and the offset of the next append.
 #[derive(Debug)]
 struct Payload {
     path: PathBuf,
-    file: File,
+    parts: RwLock<Parts>,
     end: AtomicU64,
+}
+
+/// What the payload reads from, replaced whole when the store is cleared.
+#[derive(Debug)]
+struct Parts {
+    layers: Layers,
+    /// The payload's own file, at [`Layers::base`] in the concatenation.
+    file: File,
+    /// Why the layers were refused, for every read to say: the store is built again.
+    refused: Option<String>,
 }
 
 impl Payload {
@@ -49,36 +64,124 @@ impl Payload {
         LodError::payload(&self.path, error)
     }
 
-    fn len(&self) -> Result<u64, LodError> {
-        Ok(self.file.metadata().map_err(|e| self.error(e))?.len())
+    fn parts(&self) -> std::sync::RwLockReadGuard<'_, Parts> {
+        self.parts
+            .read()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
     }
+
+    /// The parts, failing where the layers were refused.
+    fn checked(&self) -> Result<std::sync::RwLockReadGuard<'_, Parts>, LodError> {
+        let parts = self.parts();
+        match &parts.refused {
+            Some(reason) => Err(LodError::CorruptLayers(reason.clone())),
+            None => Ok(parts),
+        }
+    }
+
+    /// Bytes of the concatenation.
+    fn len(&self) -> Result<u64, LodError> {
+        let parts = self.checked()?;
+        let own = parts.file.metadata().map_err(|e| self.error(e))?.len();
+        Ok(parts.layers.base() + own)
+    }
+
+    /// Reads `buf.len()` bytes at `offset` of the concatenation.
+    fn read_exact_at(&self, buf: &mut [u8], offset: u64) -> Result<(), (PathBuf, io::Error)> {
+        let parts = self.checked().map_err(|e| {
+            (
+                self.path.clone(),
+                io::Error::new(io::ErrorKind::InvalidData, e.to_string()),
+            )
+        })?;
+        read_across(&parts.layers, &parts.file, &self.path, buf, offset)
+    }
+
+    /// Writes `bytes` at `offset` of the concatenation, which lies in the payload's own file:
+    /// a layer is never written.
+    fn write_all_at(&self, bytes: &[u8], offset: u64) -> Result<(), LodError> {
+        let parts = self.checked()?;
+        let at = offset.checked_sub(parts.layers.base()).ok_or_else(|| {
+            self.error(io::Error::new(
+                io::ErrorKind::InvalidInput,
+                format!("a write at {offset} falls in a read-only layer"),
+            ))
+        })?;
+        parts
+            .file
+            .write_all_at(bytes, at)
+            .map_err(|e| self.error(e))
+    }
+
+    fn sync_data(&self) -> Result<(), LodError> {
+        self.checked()?.file.sync_data().map_err(|e| self.error(e))
+    }
+}
+
+/// Opens the payload's own file at `path`, created if missing.
+fn open_own(path: &Path) -> Result<File, LodError> {
+    let file = OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(path)
+        .map_err(|e| LodError::payload(path, e))?;
+    // Reads are whole runs of pieces, planned here; the kernel's read-ahead would take
+    // what follows a run as well, mostly rests a coarse cut leaves out
+    // (docs/perf/payload-layout.md). Advice only: a file system without it reads as asked.
+    if let Err(error) = rustix::fs::fadvise(&file, 0, None, rustix::fs::Advice::Random) {
+        tracing::debug!(path = %path.display(), %error, "no read-ahead advice");
+    }
+    Ok(file)
+}
+
+/// Turns a positioned read's failure into the store's error: an end reached early is a
+/// damaged node, `key`'s.
+fn read_failure(key: NodeKey, range: Range<u64>, (path, error): (PathBuf, io::Error)) -> LodError {
+    if error.kind() == io::ErrorKind::UnexpectedEof {
+        return LodError::CorruptNode {
+            key,
+            reason: format!(
+                "the payload file ended within bytes {}..{}",
+                range.start, range.end
+            ),
+        };
+    }
+    LodError::payload(path, error)
 }
 
 impl LodStore {
     /// A store whose hierarchy lives in `tree` and whose node payloads live in the file at
-    /// `payload_path` (created if missing; its folder must exist). Both hold this dataset only.
+    /// `payload_path` (created if missing; its folder must exist) and the layers listed beside
+    /// it. Both hold this dataset only. Layers that fail their checks leave the store opened
+    /// but unreadable ([`LodError::CorruptLayers`]), so it is built again.
     pub fn open(tree: sled::Tree, payload_path: impl Into<PathBuf>) -> Result<Self, LodError> {
         let path = payload_path.into();
-        let file = OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create(true)
-            .truncate(false)
-            .open(&path)
-            .map_err(|e| LodError::payload(&path, e))?;
-        let end = file
+        let file = open_own(&path)?;
+        let (layers, refused) = match Layers::open(&path) {
+            Ok(layers) => (layers, None),
+            Err(error) => {
+                tracing::warn!(%error, "a store's payload layers are refused");
+                let reason = match error {
+                    LodError::CorruptLayers(reason) => reason,
+                    other => other.to_string(),
+                };
+                (Layers::default(), Some(reason))
+            }
+        };
+        let own = file
             .metadata()
             .map_err(|e| LodError::payload(&path, e))?
             .len();
-        // Reads are whole runs of pieces, planned here; the kernel's read-ahead would take
-        // what follows a run as well, mostly rests a coarse cut leaves out
-        // (docs/perf/payload-layout.md). Advice only: a file system without it reads as asked.
-        if let Err(error) = rustix::fs::fadvise(&file, 0, None, rustix::fs::Advice::Random) {
-            tracing::debug!(path = %path.display(), %error, "no read-ahead advice");
-        }
+        let end = layers.base() + own;
         let payload = Payload {
             path,
-            file,
+            parts: RwLock::new(Parts {
+                layers,
+                file,
+                refused,
+            }),
             end: AtomicU64::new(end),
         };
         Ok(Self {
@@ -95,22 +198,69 @@ impl LodStore {
         &self.payload.path
     }
 
-    /// Bytes in the payload file now.
+    /// Bytes in the payload now: its layers' and its own file's.
     pub fn payload_bytes(&self) -> Result<u64, LodError> {
         self.payload.len()
     }
 
+    /// Files the payload is kept in: its layers and its own.
+    pub fn payload_files(&self) -> usize {
+        self.payload.parts().layers.count() + 1
+    }
+
+    /// Reads `buf.len()` bytes of the payload at `offset` (of its layers' concatenation), as
+    /// a published store's one payload object holds them.
+    pub fn read_payload(&self, buf: &mut [u8], offset: u64) -> Result<(), LodError> {
+        self.payload
+            .read_exact_at(buf, offset)
+            .map_err(|(path, error)| LodError::payload(path, error))
+    }
+
     /// Removes everything, hierarchy first (and synced), so a half-cleared store is never read
-    /// as built; then empties the payload file.
+    /// as built; then drops the payload's layers and replaces its own file with an empty one
+    /// (a new file, not the old one cut: another store may hold the old one as a layer).
     pub(crate) fn clear(&self) -> Result<(), LodError> {
         self.tree.remove(HIERARCHY_KEY)?;
         self.tree.flush()?;
-        self.payload
-            .file
-            .set_len(0)
-            .map_err(|e| self.payload.error(e))?;
+        let mut parts = self
+            .payload
+            .parts
+            .write()
+            .unwrap_or_else(|poisoned| poisoned.into_inner());
+        remove_layers(&self.payload.path)?;
+        match std::fs::remove_file(&self.payload.path) {
+            Err(e) if e.kind() != io::ErrorKind::NotFound => return Err(self.payload.error(e)),
+            _ => {}
+        }
+        *parts = Parts {
+            layers: Layers::default(),
+            file: open_own(&self.payload.path)?,
+            refused: None,
+        };
         self.payload.end.store(0, Ordering::SeqCst);
+        drop(parts);
         self.tree.clear()?;
+        Ok(())
+    }
+
+    /// Makes the file at `path` the payload's one file, its layers dropped (a compaction's
+    /// last step before the hierarchy that addresses it is written).
+    pub(crate) fn replace_payload(&self, path: &Path) -> Result<(), LodError> {
+        let mut parts = self
+            .payload
+            .parts
+            .write()
+            .unwrap_or_else(|p| p.into_inner());
+        remove_layers(&self.payload.path)?;
+        std::fs::rename(path, &self.payload.path).map_err(|e| self.payload.error(e))?;
+        let file = open_own(&self.payload.path)?;
+        let len = file.metadata().map_err(|e| self.payload.error(e))?.len();
+        *parts = Parts {
+            layers: Layers::default(),
+            file,
+            refused: None,
+        };
+        self.payload.end.store(len, Ordering::SeqCst);
         Ok(())
     }
 
@@ -121,10 +271,7 @@ impl LodStore {
         let start = self.payload.end.fetch_add(len, Ordering::Relaxed);
         let mut at = start;
         for piece in pieces {
-            self.payload
-                .file
-                .write_all_at(piece, at)
-                .map_err(|e| self.payload.error(e))?;
+            self.payload.write_all_at(piece, at)?;
             at += piece.len() as u64;
         }
         Ok(start)
@@ -132,10 +279,7 @@ impl LodStore {
 
     /// Syncs the payload file's bytes, so that a journal may list the nodes written so far.
     pub(crate) fn sync_payload(&self) -> Result<(), LodError> {
-        self.payload
-            .file
-            .sync_data()
-            .map_err(|e| self.payload.error(e))
+        self.payload.sync_data()
     }
 
     /// Cuts the payload file to its first `len` bytes, what a resumed build's journal lists:
@@ -150,10 +294,18 @@ impl LodStore {
             );
             return Err(self.payload.error(error));
         }
-        self.payload
+        let parts = self.payload.checked()?;
+        let own = len.checked_sub(parts.layers.base()).ok_or_else(|| {
+            let error = io::Error::new(
+                io::ErrorKind::InvalidInput,
+                format!("the build's journal lists {len} bytes, within a read-only layer"),
+            );
+            self.payload.error(error)
+        })?;
+        parts
             .file
-            .set_len(len)
-            .and_then(|()| self.payload.file.sync_all())
+            .set_len(own)
+            .and_then(|()| parts.file.sync_all())
             .map_err(|e| self.payload.error(e))?;
         self.payload.end.store(len, Ordering::SeqCst);
         Ok(())
@@ -174,10 +326,7 @@ impl LodStore {
         hierarchy: &LodHierarchy,
         regions: Option<&StoreRegions>,
     ) -> Result<u64, LodError> {
-        self.payload
-            .file
-            .sync_data()
-            .map_err(|e| self.payload.error(e))?;
+        self.payload.sync_data()?;
         let record = hierarchy.encode();
         let len = record.len() as u64;
         let mut batch = sled::Batch::default();
@@ -212,6 +361,7 @@ impl LodStore {
     }
 
     pub fn read_hierarchy(&self) -> Result<LodHierarchy, LodError> {
+        drop(self.payload.checked()?);
         let bytes = self
             .tree
             .get(HIERARCHY_KEY)?
@@ -268,19 +418,9 @@ impl LodStore {
         let first = &pieces[run.pieces.start];
         let key = nodes[first.node].key;
         let mut bytes = vec![0; (run.range.end - run.range.start) as usize];
-        match self.payload.file.read_exact_at(&mut bytes, run.range.start) {
-            Ok(()) => {}
-            Err(e) if e.kind() == io::ErrorKind::UnexpectedEof => {
-                return Err(LodError::CorruptNode {
-                    key,
-                    reason: format!(
-                        "the payload file ended within bytes {}..{}",
-                        run.range.start, run.range.end
-                    ),
-                })
-            }
-            Err(e) => return Err(self.payload.error(e)),
-        }
+        self.payload
+            .read_exact_at(&mut bytes, run.range.start)
+            .map_err(|failure| read_failure(key, run.range.clone(), failure))?;
         if run.pieces.len() == 1 && first.range == run.range {
             return Ok(vec![bytes]);
         }
@@ -322,9 +462,8 @@ impl LodStore {
             }
             let mut bytes = vec![0; info.attributes_len as usize];
             self.payload
-                .file
                 .read_exact_at(&mut bytes, info.attributes_offset)
-                .map_err(|e| self.payload.error(e))?;
+                .map_err(|failure| read_failure(info.key, info.attributes_range(), failure))?;
             let rows = decode_section(info.key, info.point_count, row_bytes, &bytes, path)?;
             Ok(rows.to_vec())
         };
@@ -368,10 +507,7 @@ impl LodStore {
         if bytes.len() == info.byte_len as usize {
             let (head, rest) = bytes.split_at(info.head_len as usize);
             for (piece, at) in [(head, info.offset), (rest, info.rest_offset)] {
-                self.payload
-                    .file
-                    .write_all_at(piece, at)
-                    .map_err(|e| self.payload.error(e))?;
+                self.payload.write_all_at(piece, at)?;
             }
             return Ok(());
         }
