@@ -2,22 +2,28 @@
 //! daemon builds the store of the tiles its frames see first and leases every frame against
 //! it, then grows the dataset's whole store from it. With the whole store's growth stopped for
 //! good (`POINTFARM_TEST_PAUSE_AT=update:0`) the job still finishes, so its frames were drawn
-//! before the whole store existed; the daemon killed there and started again grows it anew,
-//! never serving a half-made store, and deleting the dataset takes both stores down; the
-//! frames equal a flight drawn from a store built whole first, within the fidelity rule.
+//! before the whole store existed; the daemon killed there and started again, with no job
+//! asking, grows the whole store from the part its record names, never serving a half-made
+//! store, and removes the part; deleting the dataset takes every store down; the frames equal
+//! a flight drawn from a store built whole first, within the fidelity rule. A flight that asks
+//! never to build the unseen tiles (`--build-unseen never`) finishes from its part with no
+//! whole store built, across a restart too, until a job that needs the whole store has it
+//! grown.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::time::Duration;
 
 use pointfarm_render::cut::StoredLod;
-use pointfarm_tests::flights::{write_flight_over_one_tile, write_tiles, COLUMNS, ROWS};
+use pointfarm_tests::flights::{write_tiles_and_flight_over_one_tile, COLUMNS, ROWS};
 use pointfarm_tests::{
     assert_pngs_alike, free_address, output_text, pointfarm_bin, pointfarm_ok, wait_for,
     ServeProcess,
 };
 
 const POINTS: usize = 1_000_000;
+/// Enough for a store cut at pixel error 0, fewer for a flight whose whole store waits.
+const NEVER_POINTS: usize = 300_000;
 const FRAMES: usize = 3;
 
 /// `pointfarm serve` with its data in `data`, logging to `log`, its builds stopped for good at
@@ -107,6 +113,29 @@ fn delete_datasets(server: &ServeProcess) {
     }
 }
 
+/// What the daemon logs when it removes a part.
+const PART_REMOVED: &str = "camera first: the part's store is removed";
+
+/// Every store folder under `data`, finished or not.
+fn store_folders(data: &Path) -> Vec<PathBuf> {
+    let Ok(entries) = std::fs::read_dir(data.join("lod")) else {
+        return Vec::new();
+    };
+    entries
+        .map(|entry| entry.expect("entry").path())
+        .filter(|path| path.is_dir())
+        .collect()
+}
+
+/// The id of the one job of `server`.
+fn only_job(server: &ServeProcess) -> String {
+    let listed = pointfarm_ok(&["jobs", "list", "--server", &server.address, "--json"]);
+    let jobs: serde_json::Value = serde_json::from_slice(&listed.stdout).expect("json");
+    let jobs = jobs["jobs"].as_array().expect("jobs");
+    assert_eq!(jobs.len(), 1, "{jobs:?}");
+    jobs[0]["id"].as_str().expect("an id").to_owned()
+}
+
 fn frame(out: &Path, index: usize) -> PathBuf {
     out.join(format!("frame_{index:05}.png"))
 }
@@ -114,8 +143,7 @@ fn frame(out: &Path, index: usize) -> PathBuf {
 #[test]
 fn a_flight_through_the_daemon_is_drawn_from_the_tiles_it_sees_before_the_whole_store() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let (tiles, bounds) = write_tiles(dir.path(), POINTS);
-    let flight = write_flight_over_one_tile(dir.path(), &bounds, FRAMES);
+    let (tiles, flight, _) = write_tiles_and_flight_over_one_tile(dir.path(), POINTS, FRAMES);
     let camera = ["--camera-path", flight.to_str().expect("a UTF-8 path")];
     let all = COLUMNS * ROWS;
 
@@ -139,20 +167,24 @@ fn a_flight_through_the_daemon_is_drawn_from_the_tiles_it_sees_before_the_whole_
     let seen = stores[0].1;
     assert!(seen > 0 && seen <= 2, "the part holds {seen} tiles");
 
-    // Killed while it grows the whole store, and started again: a second flight finds the
-    // part built, and the whole store is grown anew from it.
+    // Killed while it grows the whole store, and started again with no job asking: the
+    // whole store is grown anew from the part, which is removed then.
     server.kill();
     let server = serve(&address, &data, "again.log", None);
-    let again = dir.path().join("again");
-    render(&server, &tiles, &again, &camera);
     // The grown store is moved into place, then opened and marked finished: both are waited for.
     wait_for(Duration::from_secs(300), "the whole store", || {
-        let grown = server.log().contains("updated the store of");
+        let log = server.log();
+        let grown = log.contains("updated the store of") && log.contains(PART_REMOVED);
         let finished = finished_stores(&data)
             .iter()
             .any(|(_, files)| *files == all);
         (grown && finished).then_some(())
     });
+    let log = server.log();
+    assert!(
+        log.contains("growing the whole store a stopped daemon left"),
+        "{log}"
+    );
     let growing = std::fs::read_dir(data.join("lod"))
         .expect("stores")
         .filter(|e| {
@@ -161,11 +193,17 @@ fn a_flight_through_the_daemon_is_drawn_from_the_tiles_it_sees_before_the_whole_
         })
         .count();
     assert_eq!(growing, 0, "a half-made store is left");
-    let log = server.log();
     assert!(
         log.contains(&format!("{} files added, 0 removed", all - seen)),
         "{log}"
     );
+    let stores = store_folders(&data);
+    assert_eq!(stores.len(), 1, "the part is left: {stores:?}\n{log}");
+
+    // A second flight reads the whole store.
+    let again = dir.path().join("again");
+    render(&server, &tiles, &again, &camera);
+    assert!(!server.log().contains("camera first: the store of"));
 
     // A still view waits for the whole store, ready now; the datasets deleted, no store is
     // left, the part's with the whole one's.
@@ -207,4 +245,58 @@ fn a_flight_through_the_daemon_is_drawn_from_the_tiles_it_sees_before_the_whole_
          after its job's submission; {:.1}% of the whole build",
         100.0 * first_seconds / build_seconds
     );
+}
+
+#[test]
+fn a_flight_that_never_builds_the_unseen_tiles_leaves_the_whole_store_to_jobs_that_need_it() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (tiles, flight, _) = write_tiles_and_flight_over_one_tile(dir.path(), NEVER_POINTS, FRAMES);
+    let flight = flight.to_str().expect("a UTF-8 path");
+    let camera = ["--camera-path", flight, "--build-unseen", "never"];
+
+    // The job finishes from its part, and no whole store is grown for it.
+    let (address, data) = (free_address(), dir.path().join("daemon"));
+    let mut server = serve(&address, &data, "never.log", None);
+    render(&server, &tiles, &dir.path().join("never"), &camera);
+    let log = server.log();
+    assert!(log.contains("camera first: the store of"), "{log}");
+    assert!(!log.contains("updated the store of"), "{log}");
+    let stores = finished_stores(&data);
+    assert_eq!(stores.len(), 1, "{stores:?}\n{log}");
+    assert!(stores[0].1 <= 2, "the part holds {} tiles", stores[0].1);
+    assert_eq!(
+        store_folders(&data).len(),
+        1,
+        "a whole store was started\n{log}"
+    );
+
+    // The job's record shows its choice.
+    let id = only_job(&server);
+    assert_eq!(server.job_json(&id)["buildUnseen"], "BUILD_UNSEEN_NEVER");
+    let shown = pointfarm_ok(&["jobs", "show", &id, "--server", &address]);
+    assert!(
+        output_text(&shown).contains("build unseen: never"),
+        "{}",
+        output_text(&shown)
+    );
+
+    // Killed and started again, the daemon keeps the part and grows nothing.
+    server.kill();
+    let server = serve(&address, &data, "never-again.log", None);
+    let log = server.log();
+    assert!(!log.contains("growing the whole store"), "{log}");
+    assert!(!log.contains(PART_REMOVED), "{log}");
+    assert_eq!(store_folders(&data), vec![stores[0].0.clone()]);
+
+    // A still view needs the whole store: it is grown from the part, as for any job.
+    render(&server, &tiles, &dir.path().join("still.png"), &[]);
+    let log = server.log();
+    let all = COLUMNS * ROWS;
+    assert!(
+        log.contains(&format!("{} files added, 0 removed", all - stores[0].1)),
+        "{log}"
+    );
+    delete_datasets(&server);
+    let left = store_folders(&data);
+    assert!(left.is_empty(), "stores left: {left:?}\n{}", server.log());
 }

@@ -74,6 +74,7 @@ fn submission(
         labels: args.labels.iter().cloned().collect(),
         video: outputs.video.as_ref().map(VideoPlan::settings),
         output_url: args.output_url.clone(),
+        build_unseen: args.build_unseen,
     };
     check_name("--name", &spec.name)?;
     check_labels("--label", &spec.labels)?;

@@ -255,7 +255,10 @@ pub struct RenderArgs {
     /// the rest of the path's, each frame drawn as soon as its files are in (from their header
     /// boxes, the frames' view frusta and point sizes). The files no frame sees are added to
     /// the store after the frames (after), or never (never: the store holds the path's files
-    /// alone until a later render adds the rest). Local only.
+    /// alone until a later render adds the rest). Through --server the job asks the same of
+    /// the server: after, it grows the dataset's whole store from the store of the files the
+    /// frames see; never, it builds that store alone for this job (a job that needs the
+    /// whole store still gets it built), and `jobs show` says so.
     #[arg(long, value_name = "after|never", default_value = BuildUnseen::default().name(),
           value_parser = BuildUnseen::parse)]
     pub(crate) build_unseen: BuildUnseen,

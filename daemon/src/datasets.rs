@@ -393,5 +393,6 @@ impl Daemon {
     }
 }
 
+mod store_parts;
 #[cfg(test)]
 mod tests;

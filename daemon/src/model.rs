@@ -6,6 +6,7 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use pointfarm_render::encode::video::VideoSettings;
 use pointfarm_render::request::RenderRequest;
+use pointfarm_render::source::BuildUnseen;
 use serde::{Deserialize, Serialize};
 
 use crate::capabilities::WorkerRequirements;
@@ -179,6 +180,22 @@ pub fn content_sha256_of(file_sha256s: &[&str]) -> String {
     }
 }
 
+/// The part of a dataset a job's frames see, whose store the daemon builds first
+/// (`stores::camera_first`), as the state records it so that a restart knows it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CameraFirstPart {
+    /// The files the frames see, as a dataset of its own content (never a stored dataset).
+    pub part: Dataset,
+    /// The content of the whole dataset.
+    pub whole_sha256: String,
+    /// The box of all the dataset's files, its least then its greatest corner, which the
+    /// part's store is built within.
+    pub bounds: [[f64; 3]; 2],
+    /// Whether the whole store is grown from the part: a job that read the part left the
+    /// unseen files to after ([`JobSpec::build_unseen`]).
+    pub whole_wanted: bool,
+}
+
 /// What a client asked for, validated.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct JobSpec {
@@ -213,6 +230,31 @@ pub struct JobSpec {
     /// The object-storage prefix the job's outputs are also written under (`outputs`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub output_url: Option<String>,
+    /// When the job's frames see part of a dataset whose store is built for them first
+    /// (`stores::camera_first`), whether the files they do not see are built after that part
+    /// (the dataset's whole store grown from it) or never for this job. The render crate's
+    /// option, which a local render takes too.
+    #[serde(default, skip_serializing_if = "is_after", with = "build_unseen_name")]
+    pub build_unseen: BuildUnseen,
+}
+
+fn is_after(unseen: &BuildUnseen) -> bool {
+    *unseen == BuildUnseen::After
+}
+
+/// [`BuildUnseen`] stored by its name (`after`, `never`).
+mod build_unseen_name {
+    use pointfarm_render::source::BuildUnseen;
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(unseen: &BuildUnseen, to: S) -> Result<S::Ok, S::Error> {
+        to.serialize_str(unseen.name())
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(from: D) -> Result<BuildUnseen, D::Error> {
+        let name = String::deserialize(from)?;
+        BuildUnseen::parse(&name).map_err(serde::de::Error::custom)
+    }
 }
 
 impl JobSpec {
@@ -231,6 +273,7 @@ impl JobSpec {
             labels: BTreeMap::new(),
             video: None,
             output_url: None,
+            build_unseen: BuildUnseen::default(),
         }
     }
 }
@@ -439,5 +482,17 @@ mod tests {
         // And what is written now reads back the same.
         let written = serde_json::to_string(&job).expect("encodes");
         assert_eq!(serde_json::from_str::<Job>(&written).expect("decodes"), job);
+    }
+
+    #[test]
+    fn a_job_keeps_whether_it_builds_the_files_its_frames_do_not_see() {
+        let mut job: Job = serde_json::from_str(STORED_JOB).expect("the stored shape reads");
+        assert_eq!(job.spec.build_unseen, BuildUnseen::After);
+        job.spec.build_unseen = BuildUnseen::Never;
+        let written = serde_json::to_string(&job).expect("encodes");
+        assert!(written.contains(r#""build_unseen":"never""#), "{written}");
+        assert_eq!(serde_json::from_str::<Job>(&written).expect("decodes"), job);
+        let later = written.replace(r#""build_unseen":"never""#, r#""build_unseen":"later""#);
+        assert!(serde_json::from_str::<Job>(&later).is_err());
     }
 }

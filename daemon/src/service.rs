@@ -311,6 +311,8 @@ impl Daemon {
         daemon.start_output_uploads()?;
         daemon.count_leases_of_previous_run()?;
         daemon.fail_broken_chains()?;
+        // Before the builds resume: a whole store grows from its recorded part.
+        daemon.keep_store_parts();
         // Store builds a stopped daemon left go on now for the jobs that wait for them.
         let waiting = daemon
             .state

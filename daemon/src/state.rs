@@ -32,6 +32,7 @@ use crate::model::{Dataset, FrameReport, FrameState, Job, JobSpec, JobState};
 mod control;
 mod health;
 mod outputs;
+mod parts;
 mod records;
 mod trees;
 

@@ -653,6 +653,7 @@ fn open_copc_file(path: &Path, name: &str) -> Result<ReadyStore, String> {
 }
 
 mod camera_first;
+pub use camera_first::PartLedger;
 mod gate;
 pub use gate::StoreBuildGate;
 mod growth;

@@ -32,6 +32,19 @@ pub fn write_tiles(dir: &Path, points: usize) -> (PathBuf, WorldBounds) {
     (folder, cloud.bounds)
 }
 
+/// The tiles of `points` points (`write_tiles`) and a flight of `frames` frames over the
+/// first of them (`write_flight_over_one_tile`), written in `dir`: the tiles' folder, the
+/// flight's file and the scene's bounds.
+pub fn write_tiles_and_flight_over_one_tile(
+    dir: &Path,
+    points: usize,
+    frames: usize,
+) -> (PathBuf, PathBuf, WorldBounds) {
+    let (tiles, bounds) = write_tiles(dir, points);
+    let flight = write_flight_over_one_tile(dir, &bounds, frames);
+    (tiles, flight, bounds)
+}
+
 /// A low flight of `frames` frames looking down over the first tile, then the second: the
 /// rest are out of view. Written to `dir/flight.toml`.
 pub fn write_flight(dir: &Path, bounds: &WorldBounds, frames: usize) -> PathBuf {

@@ -139,7 +139,8 @@ fn worker_label(name: &str, embedded: bool) -> String {
 }
 
 /// What `jobs show` says of a job's workers: what it requires of them, who rendered its
-/// frames, who is blocklisted, the jobs it runs after, why it waits (for one of those, or for
+/// frames, who is blocklisted, the jobs it runs after, whether it leaves the files its frames
+/// do not see unbuilt, why it waits (for one of those, or for
 /// a connected worker that can render it), and where its videos stand.
 pub(super) fn scheduling_lines(job: &pb::Job) -> Vec<String> {
     let mut lines = Vec::new();
@@ -178,6 +179,11 @@ pub(super) fn scheduling_lines(job: &pb::Job) -> Vec<String> {
     }
     if !job.after_job_ids.is_empty() {
         lines.push(format!("runs after: {}", job.after_job_ids.join(", ")));
+    }
+    if job.build_unseen == pb::BuildUnseen::Never as i32 {
+        lines.push(
+            "build unseen: never (the files its frames do not see are not built for it)".into(),
+        );
     }
     if !job.waiting_reason.is_empty() {
         lines.push(format!("waiting: {}", job.waiting_reason));
@@ -229,6 +235,18 @@ pub(super) fn has_ended(state: i32) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn scheduling_lines_say_a_job_never_builds_the_files_its_frames_do_not_see() {
+        let never = "build unseen: never (the files its frames do not see are not built for it)";
+        let mut job = pb::Job {
+            build_unseen: pb::BuildUnseen::Never as i32,
+            ..Default::default()
+        };
+        assert!(scheduling_lines(&job).contains(&never.to_owned()));
+        job.build_unseen = pb::BuildUnseen::After as i32;
+        assert!(!scheduling_lines(&job).iter().any(|l| l.contains("unseen")));
+    }
 
     #[test]
     fn scheduling_lines_follow_the_preview_video() {

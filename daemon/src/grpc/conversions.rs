@@ -231,6 +231,7 @@ impl From<&Job> for pb::Job {
             output_errors: job.outputs.errors.clone(),
             outputs_pending: job.outputs.pending,
             preview_video: job.preview_video_state().name().to_owned(),
+            build_unseen: build_unseen_message(job.spec.build_unseen) as i32,
         }
     }
 }
@@ -616,5 +617,6 @@ mod datasets;
 pub(super) use datasets::dataset_with_publication;
 mod descriptions;
 mod submission;
+pub(super) use submission::build_unseen_message;
 #[cfg(test)]
 mod tests;

@@ -470,6 +470,7 @@ impl From<&JobSpec> for pb::SubmitJobRequest {
             labels: spec.labels.clone().into_iter().collect(),
             video: spec.video.as_ref().map(super::video::video_spec_message),
             output_url: spec.output_url.clone().unwrap_or_default(),
+            build_unseen: super::conversions::build_unseen_message(spec.build_unseen) as i32,
         }
     }
 }

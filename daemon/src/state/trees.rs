@@ -4,7 +4,7 @@ use super::{decode, INDEX_VERSION_KEY};
 use crate::error::StateError;
 use crate::lease_record::Lease;
 use crate::manifest::Counts;
-use crate::model::{Dataset, FrameReport, FrameState, Job};
+use crate::model::{CameraFirstPart, Dataset, FrameReport, FrameState, Job};
 use crate::output_queue::PendingOutput;
 
 /// A tree of records by name, with the test that a record decodes.
@@ -29,6 +29,8 @@ pub(super) struct Trees {
     pub(super) meta: sled::Tree,
     /// The outputs waiting to be uploaded to object storage, in the order they were queued.
     pub(super) outputs: sled::Tree,
+    /// The parts of datasets whose stores are built first for jobs, by their dataset ids.
+    pub(super) parts: sled::Tree,
 }
 
 impl Trees {
@@ -44,11 +46,12 @@ impl Trees {
             previews: db.open_tree("previews")?,
             meta: db.open_tree("meta")?,
             outputs: db.open_tree("outputs")?,
+            parts: db.open_tree("camera-first-parts")?,
         })
     }
 
     /// The trees whose records must decode, by name.
-    fn records(&self) -> [RecordTree<'_>; 6] {
+    fn records(&self) -> [RecordTree<'_>; 7] {
         [
             ("datasets", &self.datasets, |v| decode::<Dataset>(v).is_ok()),
             ("jobs", &self.jobs, |v| decode::<Job>(v).is_ok()),
@@ -59,6 +62,9 @@ impl Trees {
             }),
             ("outputs", &self.outputs, |v| {
                 decode::<PendingOutput>(v).is_ok()
+            }),
+            ("camera-first-parts", &self.parts, |v| {
+                decode::<CameraFirstPart>(v).is_ok()
             }),
         ]
     }

@@ -1,6 +1,7 @@
 //! Camera first through the daemon: a job whose keyframed path sees part of a dataset without
 //! a store gets the store of the files its frames see built first, so its first final frame
-//! does not wait for the rest; the dataset's whole store is grown from it after.
+//! does not wait for the rest; the dataset's whole store is grown from it after (or, when the
+//! job asks, never).
 //!
 //! Which files the frames see is the render crate's decision (`source::FileOrder`, from the
 //! files' header boxes and the keyframes' clip planes), and so is which jobs qualify: a path
@@ -19,21 +20,29 @@
 //!   (`camera_first.rs` of the render crate), up to the cut's node choice, which
 //!   `tests/daemon_camera_first.rs` holds to the local fidelity rule.
 //! - the **whole** store of the dataset, grown from a copy of the part once the part is ready
-//!   and a frame is leased against it, whatever share of files it lacks (`growth::grow`):
-//!   a server always adds the unseen files after (`BuildUnseen::default()`; the local
-//!   `--build-unseen` is no job option). Once the whole store is ready, frames are leased
-//!   against it. A part's folder is removed with its dataset's store (`DatasetStores::remove`)
-//!   when the daemon knows the part, that is when a job asked for it since the daemon started.
+//!   and a frame of a job that leaves the unseen files to after (its `build_unseen`, the
+//!   default) is leased against it, whatever share of files it lacks (`growth::grow`); a job
+//!   asking never to build them leaves it unbuilt, though a job that needs the whole store
+//!   still gets it grown. Once the whole store is ready, frames are leased against it.
 //!
 //! Both are built through the daemon's one build path (`DatasetStores::start_build`): one at
 //! a time, finished before they are served, the part resumed by its journal after a restart
 //! (its fingerprint holds the box) and the whole one's copy made again from its start. The
 //! decision per job is kept in memory and made again after a restart from the same headers,
 //! giving the same part.
+//!
+//! Each part is recorded in the state database when it is made, with whether its whole store
+//! is wanted (`PartLedger`, `model::CameraFirstPart`), so a restart knows the parts without a
+//! job asking (`restart`): it grows a wanted whole store from its finished part, and removes
+//! the parts nobody needs any more. A part's folder is removed with its dataset's store
+//! (`DatasetStores::remove`).
 
 use std::collections::HashMap;
-use std::path::PathBuf;
-use std::sync::{Arc, Mutex};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, OnceLock};
+
+use glam::DVec3;
 
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::copc::is_copc;
@@ -48,7 +57,9 @@ use pointfarm_render::source::{
 use super::growth::{grow, list_contents, Grown};
 use super::input::{ready_of, with_build};
 use super::{DatasetStores, Entry, ReadyStore};
-use crate::model::{content_sha256_of, dataset_id, Dataset, DatasetFile, Job};
+use crate::model::{content_sha256_of, dataset_id, CameraFirstPart, Dataset, DatasetFile, Job};
+
+mod restart;
 
 /// The part of a dataset a job's frames see, and what becomes of the rest.
 pub(super) struct Part {
@@ -58,8 +69,46 @@ pub(super) struct Part {
     whole_sha256: String,
     /// The box of all the dataset's files, which the part's store is built within.
     bounds: WorldBounds,
-    /// Whether the whole store is grown after the part.
-    unseen: BuildUnseen,
+    /// Whether the whole store is grown from it: a job that read it left the unseen files to
+    /// after. Recorded, for a restart.
+    whole_wanted: AtomicBool,
+    /// Removed once the whole store is grown from it: no job reads it any more (`restart`).
+    retired: AtomicBool,
+}
+
+impl Part {
+    /// The part as the state records it.
+    fn record(&self) -> CameraFirstPart {
+        CameraFirstPart {
+            part: self.dataset.clone(),
+            whole_sha256: self.whole_sha256.clone(),
+            bounds: [self.bounds.min.to_array(), self.bounds.max.to_array()],
+            whole_wanted: self.whole_wanted.load(Ordering::SeqCst),
+        }
+    }
+
+    /// The part a record tells.
+    fn recorded(record: CameraFirstPart) -> Self {
+        let [min, max] = record.bounds;
+        Self {
+            dataset: record.part,
+            whole_sha256: record.whole_sha256,
+            bounds: WorldBounds {
+                min: DVec3::from_array(min),
+                max: DVec3::from_array(max),
+            },
+            whole_wanted: AtomicBool::new(record.whole_wanted),
+            retired: AtomicBool::new(false),
+        }
+    }
+}
+
+/// Where the parts are recorded so that a restart knows them: the state database.
+pub trait PartLedger: Send + Sync {
+    /// Records `part`, anew or as it changed.
+    fn keep(&self, part: &CameraFirstPart);
+    /// Forgets the part whose dataset id is `id`.
+    fn forget(&self, id: &str);
 }
 
 /// The parts the daemon built or builds first, by the jobs that asked for them.
@@ -67,8 +116,10 @@ pub(super) struct Part {
 pub(super) struct CameraFirstParts {
     /// Each job's decision once made: `None` reads the whole store.
     jobs: Mutex<HashMap<String, Option<Arc<Part>>>>,
-    /// The parts by their dataset ids and by their contents.
-    parts: Mutex<HashMap<String, Arc<Part>>>,
+    /// The parts by their dataset ids; shared with the builds that retire them.
+    parts: Arc<Mutex<HashMap<String, Arc<Part>>>>,
+    /// Where they are recorded; unset in tests of the stores alone.
+    ledger: OnceLock<Arc<dyn PartLedger>>,
 }
 
 /// How a store is made beyond the plain build of its files.
@@ -77,8 +128,48 @@ pub(super) enum Making {
     Plain,
     /// A part: built within the box of all the dataset's files.
     Within(WorldBounds),
-    /// A whole store grown from the finished part in this folder.
-    GrownFrom(PathBuf),
+    /// A whole store grown from the finished part in folder `from`, which is then removed
+    /// when `retire` says so.
+    GrownFrom {
+        from: PathBuf,
+        retire: Option<Retirement>,
+    },
+}
+
+/// A part no job reads any more, removed once the whole store is grown from it.
+pub(super) struct Retirement {
+    id: String,
+    parts: Arc<Mutex<HashMap<String, Arc<Part>>>>,
+    ledger: Option<Arc<dyn PartLedger>>,
+}
+
+impl Retirement {
+    /// Removes the part's folder `from`, its record, and forgets it.
+    fn run(&self, from: &Path) {
+        self.parts
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(&self.id);
+        if let Some(ledger) = &self.ledger {
+            ledger.forget(&self.id);
+        }
+        remove_part_folder(
+            from,
+            &self.id,
+            "the whole store is grown from it and no job reads it",
+        );
+    }
+}
+
+/// Removes the folder of part `id`, saying `why`.
+fn remove_part_folder(folder: &Path, id: &str, why: &str) {
+    match std::fs::remove_dir_all(folder) {
+        Ok(()) => tracing::info!(part = %id, folder = %folder.display(),
+            "camera first: the part's store is removed: {why}"),
+        Err(error) if error.kind() == std::io::ErrorKind::NotFound => {}
+        Err(error) => tracing::warn!(part = %id, folder = %folder.display(), %error,
+            "camera first: removing the part's store"),
+    }
 }
 
 impl DatasetStores {
@@ -103,7 +194,7 @@ impl DatasetStores {
                     .unwrap_or(false);
                 let part = match building {
                     true => None,
-                    false => self.part_of(request, dataset),
+                    false => self.part_of(request, dataset, wants_whole(job)),
                 };
                 self.lock_jobs().insert(job_id.to_owned(), part.clone());
                 part
@@ -113,7 +204,7 @@ impl DatasetStores {
             return dataset.clone();
         };
         let part_ready = StoredLod::is_built(&self.folder(&part.dataset.sha256));
-        if part_ready && part.unseen == BuildUnseen::After {
+        if part_ready && wants_whole(job) {
             // Started once: later calls find it building or ready.
             if let Err(error) = self.open_store(dataset, true) {
                 tracing::warn!(dataset = %dataset.id, %error, "growing the whole store");
@@ -143,7 +234,12 @@ impl DatasetStores {
             }
             let from = self.folder(&part.dataset.sha256);
             if part.whole_sha256 == sha256 && StoredLod::is_built(&from) {
-                return Making::GrownFrom(from);
+                let retire = part.retired.load(Ordering::SeqCst).then(|| Retirement {
+                    id: part.dataset.id.clone(),
+                    parts: Arc::clone(&self.camera_first.parts),
+                    ledger: self.camera_first.ledger.get().cloned(),
+                });
+                return Making::GrownFrom { from, retire };
             }
         }
         Making::Plain
@@ -153,16 +249,37 @@ impl DatasetStores {
     /// parts' contents, whose stores go with the whole one's.
     pub(super) fn forget_parts_of(&self, sha256: &str) -> Vec<String> {
         let mut parts = self.lock_parts();
-        let gone = parts
+        let gone: Vec<Arc<Part>> = parts
             .values()
             .filter(|part| part.whole_sha256 == sha256)
-            .map(|part| part.dataset.sha256.clone())
+            .cloned()
             .collect();
         parts.retain(|_, part| part.whole_sha256 != sha256);
         drop(parts);
         self.lock_jobs()
             .retain(|_, part| part.as_ref().is_none_or(|part| part.whole_sha256 != sha256));
-        gone
+        if let Some(ledger) = self.camera_first.ledger.get() {
+            for part in &gone {
+                ledger.forget(&part.dataset.id);
+            }
+        }
+        gone.iter()
+            .map(|part| part.dataset.sha256.clone())
+            .collect()
+    }
+
+    /// Parts are recorded in `ledger` from now on.
+    pub fn record_parts_in(&self, ledger: Arc<dyn PartLedger>) {
+        if self.camera_first.ledger.set(ledger).is_err() {
+            tracing::warn!("the parts built first are recorded in one place already");
+        }
+    }
+
+    /// Records `part` as it is now.
+    fn record(&self, part: &Part) {
+        if let Some(ledger) = self.camera_first.ledger.get() {
+            ledger.keep(&part.record());
+        }
     }
 
     fn lock_parts(&self) -> std::sync::MutexGuard<'_, HashMap<String, Arc<Part>>> {
@@ -195,8 +312,15 @@ impl DatasetStores {
         ready
     }
 
-    /// The part of `dataset` the frames of `request` see, when they qualify (module doc).
-    fn part_of(&self, request: &RenderRequest, dataset: &Dataset) -> Option<Arc<Part>> {
+    /// The part of `dataset` the frames of `request` see, when they qualify (module doc), for
+    /// a job that wants the whole store grown from it or not (`wants_whole`); recorded when it
+    /// is new or first wanted whole.
+    fn part_of(
+        &self,
+        request: &RenderRequest,
+        dataset: &Dataset,
+        wants_whole: bool,
+    ) -> Option<Arc<Part>> {
         if !FileOrder::applies(request) || self.check_files(dataset).is_err() {
             return None;
         }
@@ -223,18 +347,30 @@ impl DatasetStores {
             dataset: part_dataset(dataset, seen, &bounds),
             whole_sha256: dataset.sha256.clone(),
             bounds,
-            unseen: BuildUnseen::default(),
+            whole_wanted: AtomicBool::new(false),
+            retired: AtomicBool::new(false),
         });
         tracing::info!(dataset = %dataset.id, part = %part.dataset.id,
             files_seen = places.len(), files = files.len(),
             "camera first: the store of the {} of {} files the job's frames see is built first",
             places.len(), files.len());
-        let mut parts = self.lock_parts();
-        let known = parts
-            .entry(part.dataset.id.clone())
-            .or_insert_with(|| Arc::clone(&part));
-        Some(Arc::clone(known))
+        let known = Arc::clone(
+            self.lock_parts()
+                .entry(part.dataset.id.clone())
+                .or_insert_with(|| Arc::clone(&part)),
+        );
+        let newly_wanted = wants_whole && !known.whole_wanted.swap(true, Ordering::SeqCst);
+        if Arc::ptr_eq(&known, &part) || newly_wanted {
+            self.record(&known);
+        }
+        Some(known)
     }
+}
+
+/// Whether `job` wants the whole store grown from its part: it leaves the unseen files to
+/// after.
+fn wants_whole(job: &Job) -> bool {
+    job.spec.build_unseen == BuildUnseen::After
 }
 
 /// The part of `whole` holding the files `seen`, within `bounds`: its content hash is its
@@ -298,8 +434,13 @@ pub(super) fn make(
 ) -> Result<Made, CutError> {
     match making {
         Making::Plain => Ok(Made::Nothing),
-        Making::GrownFrom(from) => Ok(grow(folder, files, points, budget, dataset_id, Some(from))
-            .map_or(Made::Nothing, Made::Grown)),
+        Making::GrownFrom { from, retire } => {
+            let grown = grow(folder, files, points, budget, dataset_id, Some(from));
+            if let (Some(_), Some(retire)) = (&grown, retire) {
+                retire.run(from);
+            }
+            Ok(grown.map_or(Made::Nothing, Made::Grown))
+        }
         Making::Within(bounds) => {
             let paths: Vec<PathBuf> = files.iter().map(|f| f.path.clone()).collect();
             let source = DatasetSource::open(&paths)?;

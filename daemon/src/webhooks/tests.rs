@@ -31,6 +31,7 @@ fn job(state: JobState, error: Option<&str>) -> Job {
             labels: Default::default(),
             video: None,
             output_url: None,
+            build_unseen: Default::default(),
         },
         state,
         frames_total: 4,

@@ -24,6 +24,37 @@ fn valid() -> pb::SubmitJobRequest {
         labels: [("shot".to_string(), "010".to_string())].into(),
         video: None,
         output_url: String::new(),
+        build_unseen: 0,
+    }
+}
+
+#[test]
+fn a_job_says_whether_the_files_its_frames_do_not_see_are_built() {
+    use pointfarm_render::source::BuildUnseen;
+    let asked = |value: pb::BuildUnseen| {
+        let r = pb::SubmitJobRequest {
+            build_unseen: value as i32,
+            ..valid()
+        };
+        JobSpec::try_from(&r).expect("valid").build_unseen
+    };
+    assert_eq!(asked(pb::BuildUnseen::Unspecified), BuildUnseen::default());
+    assert_eq!(asked(pb::BuildUnseen::After), BuildUnseen::After);
+    assert_eq!(asked(pb::BuildUnseen::Never), BuildUnseen::Never);
+    let unknown = pb::SubmitJobRequest {
+        build_unseen: 7,
+        ..valid()
+    };
+    assert_eq!(field_of(&unknown), "build_unseen");
+    // A job's spec shows the choice, default or not, and submits it again as it was.
+    for unseen in [BuildUnseen::After, BuildUnseen::Never] {
+        let spec = JobSpec {
+            build_unseen: unseen,
+            ..JobSpec::try_from(&valid()).expect("valid")
+        };
+        let shown = pb::SubmitJobRequest::from(&spec);
+        assert_ne!(shown.build_unseen, pb::BuildUnseen::Unspecified as i32);
+        assert_eq!(JobSpec::try_from(&shown).expect("valid"), spec);
     }
 }
 
