@@ -272,7 +272,9 @@ fn a_flight_that_never_builds_the_unseen_tiles_leaves_the_whole_store_to_jobs_th
 
     // The job's record shows its choice.
     let id = only_job(&server);
-    assert_eq!(server.job_json(&id)["buildUnseen"], "BUILD_UNSEEN_NEVER");
+    let shown = pointfarm_ok(&["jobs", "show", &id, "--server", &address, "--json"]);
+    let shown: serde_json::Value = serde_json::from_slice(&shown.stdout).expect("a job as JSON");
+    assert_eq!(shown["job"]["buildUnseen"], "BUILD_UNSEEN_NEVER");
     let shown = pointfarm_ok(&["jobs", "show", &id, "--server", &address]);
     assert!(
         output_text(&shown).contains("build unseen: never"),
