@@ -11,6 +11,8 @@
 //!   of one leased frame into a PNG with its stage timings.
 //! - `daemon_store`: the daemon's level-of-detail store, COPC hierarchy and preview sample as
 //!   the worker reads them over gRPC.
+//! - `opening_reads`: the node records a daemon's store's opening fetched, kept for its first
+//!   frame.
 //! - `url_dataset`: a dataset by URL, whose COPC object the worker reads itself by range.
 //! - `published_store`: a store the daemon published to object storage, read from there.
 //! - `range_cache`: the on-disk cache of ranges of objects by URL, by their version.
@@ -31,6 +33,7 @@ pub mod failure;
 pub mod lease_loop;
 mod lease_renewal;
 pub mod memory_limit;
+mod opening_reads;
 pub mod published_store;
 pub mod range_cache;
 pub mod render_state;

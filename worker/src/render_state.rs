@@ -22,6 +22,7 @@ use pointfarm_render::encode;
 use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::dataset_point_count;
+use pointfarm_render::lod::NodeRecords;
 use pointfarm_render::raster::{Clock, Renderer};
 use pointfarm_render::request::RenderRequest;
 use pointfarm_render::source::{
@@ -31,6 +32,7 @@ use pointfarm_render::source::{
 
 use crate::daemon_store::{PreviewSample, RemoteStore};
 use crate::failure::FrameFailure;
+use crate::opening_reads::OpeningReads;
 use crate::published_store::{self, PublishedFailures};
 use crate::url_dataset::UrlReader;
 
@@ -108,6 +110,8 @@ pub struct WorkerRenderState {
     gains: JobGains,
     urls: UrlReader,
     published_failures: PublishedFailures,
+    /// What the open daemon's store read as it opened, until its first frame is drawn.
+    opening_reads: Option<Arc<OpeningReads>>,
 }
 
 /// The jobs a gain after Eye-Dome Lighting is kept for: enough for the jobs a worker's leases
@@ -161,6 +165,7 @@ impl WorkerRenderState {
             gains: JobGains::default(),
             urls: UrlReader::default(),
             published_failures: PublishedFailures::default(),
+            opening_reads: None,
         }
     }
 
@@ -270,6 +275,7 @@ impl WorkerRenderState {
     /// Closes the open dataset (its memory is freed before the next one opens) and gives
     /// back the renderer.
     fn close(&mut self) -> Renderer {
+        self.opening_reads = None;
         let from_source = self.loaded.take().map(|l| l.source.into_renderer());
         from_source
             .or_else(|| self.idle_renderer.take())
@@ -353,12 +359,16 @@ impl WorkerRenderState {
             points: loaded.source.frame_points(),
             lod_error: loaded.source.lod_error(),
         };
-        let rendered = match loaded.source.render_job_frame(
+        let result = loaded.source.render_job_frame(
             &task.request,
             task.lease.index,
             self.gains.get(&exposure_key),
             &log_event,
-        ) {
+        );
+        if let Some(opening) = self.opening_reads.take() {
+            opening.forget();
+        }
+        let rendered = match result {
             Ok(rendered) => rendered,
             Err(error) => {
                 if matches!(
@@ -461,20 +471,21 @@ impl WorkerRenderState {
         };
         let options = cut_options(&lod, lod_error)?;
         let copc = store.copc.is_some();
+        // The opening's reads are kept for the first frame, which reads the same nodes.
+        let opening = Arc::new(OpeningReads::new(store.records));
+        let records: Arc<dyn NodeRecords> = opening.clone();
         let dataset = match &store.copc {
             // The daemon read the coarsest nodes when it opened the file.
-            Some(copc) => LodDataset::with_elevation(
-                store.records,
-                store.hierarchy,
-                store.bounds,
-                copc.elevation,
-            )
-            .with_point_spacing(copc.point_spacing),
-            None => LodDataset::with_records(store.records, store.hierarchy, store.bounds)
-                .map_err(|e| {
+            Some(copc) => {
+                LodDataset::with_elevation(records, store.hierarchy, store.bounds, copc.elevation)
+                    .with_point_spacing(copc.point_spacing)
+            }
+            None => {
+                LodDataset::with_records(records, store.hierarchy, store.bounds).map_err(|e| {
                     FrameFailure::from(&CutError::Store(e))
                         .context(&format!("dataset {}", task.dataset.id))
-                })?,
+                })?
+            }
         };
         let levels = Levels::Served {
             dataset: Box::new(dataset),
@@ -483,7 +494,10 @@ impl WorkerRenderState {
         let render = &task.request.render;
         self.open(task, Opened::DaemonStore { copc }, |renderer| {
             FrameSource::levels(renderer, levels, options, render, &log_event)
-        })
+        })?;
+        opening.opened();
+        self.opening_reads = Some(opening);
+        Ok(())
     }
 
     /// Opens the COPC object of `task`'s dataset by URL, cut by cut as the daemon's COPC
