@@ -110,7 +110,77 @@ impl DatasetStores {
 
 #[cfg(test)]
 mod tests {
+    use std::sync::Mutex;
+
     use super::*;
+    use crate::stores::PartLedger;
+
+    /// The ids of the parts forgotten.
+    #[derive(Default)]
+    struct Forgotten(Mutex<Vec<String>>);
+
+    impl PartLedger for Forgotten {
+        fn keep(&self, _: &CameraFirstPart) {}
+
+        fn forget(&self, id: &str) {
+            self.0.lock().expect("ids").push(id.to_owned());
+        }
+    }
+
+    fn dataset(sha256: &str) -> Dataset {
+        Dataset {
+            id: crate::model::dataset_id(sha256),
+            name: sha256.to_owned(),
+            size_bytes: 1,
+            sha256: sha256.to_owned(),
+            path: sha256.into(),
+            files: Vec::new(),
+            created_unix_ms: 0,
+            remote: None,
+            tiles: Vec::new(),
+        }
+    }
+
+    fn record(part: &str, whole: &str, whole_wanted: bool) -> CameraFirstPart {
+        CameraFirstPart {
+            part: dataset(part),
+            whole_sha256: whole.to_owned(),
+            bounds: [[0.0; 3], [1.0; 3]],
+            whole_wanted,
+        }
+    }
+
+    #[test]
+    fn settling_removes_the_parts_of_datasets_gone_and_knows_the_others_again() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+        let ledger = Arc::new(Forgotten::default());
+        stores.record_parts_in(Arc::clone(&ledger) as Arc<dyn PartLedger>);
+        for part in ["part-a", "part-b"] {
+            std::fs::create_dir_all(stores.folder(part)).expect("folder");
+        }
+        let recorded = vec![
+            record("part-a", "whole-gone", true),
+            record("part-b", "whole-kept", false),
+        ];
+        stores.settle_parts(recorded, &[dataset("whole-kept")], &HashSet::new());
+        assert!(!stores.folder("part-a").exists());
+        assert!(stores.folder("part-b").is_dir());
+        let forgotten = ledger.0.lock().expect("ids").clone();
+        assert_eq!(forgotten, vec![crate::model::dataset_id("part-a")]);
+        let b = crate::model::dataset_id("part-b");
+        assert_eq!(
+            stores.part_dataset(&b).map(|d| d.sha256),
+            Some("part-b".into())
+        );
+        assert!(stores
+            .part_dataset(&crate::model::dataset_id("part-a"))
+            .is_none());
+        // Known again, it goes with its dataset's store.
+        stores.remove("whole-kept");
+        assert!(!stores.folder("part-b").exists());
+        assert_eq!(ledger.0.lock().expect("ids").len(), 2);
+    }
 
     const NOTHING: PartFacts = PartFacts {
         whole_registered: true,
