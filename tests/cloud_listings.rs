@@ -11,7 +11,6 @@
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 use std::sync::Arc;
 
 use pointfarm_render::copc::open_copc_url;
@@ -23,7 +22,7 @@ use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::azurite::Azurite;
 use pointfarm_tests::fake_gcs::FakeGcs;
 use pointfarm_tests::object_faults::assert_copc_object_changed;
-use pointfarm_tests::{output_text, path_arg, pointfarm_bin, pointfarm_ok};
+use pointfarm_tests::{info_files, output_text, path_arg, pointfarm_ok, run_with};
 
 /// The container and bucket the tests read from.
 const CONTAINER: &str = "pointfarm-scans";
@@ -50,24 +49,10 @@ fn described(
     environment: &[(&'static str, String)],
     input: &str,
 ) -> (Vec<serde_json::Value>, Vec<String>) {
-    let output: Output = Command::new(pointfarm_bin())
-        .args(["info", input, "--no-points", "--json"])
-        .envs(environment.iter().map(|(name, value)| (*name, value)))
-        .output()
-        .expect("run pointfarm");
-    let text = output_text(&output);
-    assert!(output.status.success(), "{text}");
-    let document: serde_json::Value =
-        serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("{e}: {text}"));
-    let mut files = document["files"].as_array().expect("files").clone();
-    let paths = (files.iter_mut())
-        .map(|file| {
-            let path = file["path"].as_str().expect("a path").to_owned();
-            file.as_object_mut().expect("a file").remove("path");
-            path
-        })
-        .collect();
-    (files, paths)
+    info_files(&run_with(
+        environment,
+        &["info", input, "--no-points", "--json"],
+    ))
 }
 
 /// `info` of `prefix` lists the tiles of `folder` under it, in their names' order, and says of
@@ -114,21 +99,13 @@ fn an_azure_prefix_lists_its_tiles_as_a_folder_does() {
     assert_listed_as_the_folder(&azurite.environment(), &prefix, &folder);
     // An empty prefix is one line naming it, as in S3.
     let empty = format!("az://{CONTAINER}/nothing/");
-    let output = pointfarm_with(&azurite.environment(), &["info", &empty, "--no-points"]);
+    let output = run_with(&azurite.environment(), &["info", &empty, "--no-points"]);
     assert!(!output.status.success(), "{}", output_text(&output));
     assert!(
         output_text(&output).contains(&empty),
         "{}",
         output_text(&output)
     );
-}
-
-/// `pointfarm ARGS` with `environment`, run to its end.
-fn pointfarm_with(environment: &[(&'static str, String)], args: &[&str]) -> Output {
-    let mut command = Command::new(pointfarm_bin());
-    command.args(args);
-    command.envs(environment.iter().map(|(name, value)| (*name, value)));
-    command.output().expect("run pointfarm")
 }
 
 /// Bytes of an object the tests replace: many stream blocks long.

@@ -16,15 +16,14 @@
 //! API and check reads and refusals.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 use std::time::Duration;
 
 use pointfarm_tests::azurite::{self, Azurite};
 use pointfarm_tests::fake_gcs::{self, FakeGcs};
 use pointfarm_tests::service::{self, render_detached};
 use pointfarm_tests::{
-    assert_ok, assert_one_error_line, assert_same_frames, copc_file, free_address, json_lines,
-    output_text, path_arg, pointfarm, pointfarm_bin, pointfarm_ok, stdout, wait_for, ServeProcess,
+    assert_ok, assert_one_error_line, assert_same_frames, copc_file, json_lines, output_text,
+    path_arg, pointfarm, pointfarm_ok, pointfarm_with, run_with, stdout, wait_for, ServeProcess,
     WorkerProcess,
 };
 
@@ -40,32 +39,10 @@ const RENDER: [&str; 5] = [
     "--json",
 ];
 
-/// The `pointfarm` binary with `environment`.
-fn pointfarm_with(environment: &[(&'static str, String)]) -> Command {
-    let mut command = Command::new(pointfarm_bin());
-    command.envs(environment.iter().map(|(name, value)| (*name, value)));
-    command
-}
-
-/// `pointfarm ARGS` with `environment`, run to its end.
-fn run_with(environment: &[(&'static str, String)], args: &[&str]) -> Output {
-    let mut command = pointfarm_with(environment);
-    command.args(args).output().expect("run pointfarm")
-}
-
 /// `pointfarm serve ARGS` with `environment` (and so its embedded worker, where it runs one),
 /// its data and log in `dir`.
 fn serve(environment: &[(&'static str, String)], dir: &Path, args: &[&str]) -> ServeProcess {
-    let data = dir.join("data");
-    std::fs::create_dir_all(&data).expect("data folder");
-    let command = pointfarm_with(environment);
-    ServeProcess::start_command(
-        command,
-        &free_address(),
-        &data,
-        &data.join("serve.log"),
-        args,
-    )
+    ServeProcess::start_in_environment(environment, &dir.join("data"), args)
 }
 
 /// A COPC file of generated points exported here, in `dir`, and the scene it came from.
@@ -221,10 +198,7 @@ fn a_jobs_frames_are_written_under_an_azure_output_prefix() {
     assert_ok(&submitted);
     let id = stdout(&submitted).trim().to_owned();
     let job = wait_for(Duration::from_secs(120), "two outputs uploaded", || {
-        let shown = pointfarm_ok(&["jobs", "show", &id, "--server", &server.address, "--json"]);
-        let mut shown: serde_json::Value =
-            serde_json::from_str(stdout(&shown).trim()).expect("a job");
-        let job = shown["job"].take();
+        let job = server.job_json(&id);
         (job["outputsUploaded"] == 2).then_some(job)
     });
     assert_eq!(job["state"], "JOB_STATE_SUCCEEDED", "{job}");

@@ -6,13 +6,9 @@
 //! the daemon keeps serving. Skips, saying so, without `s3s-fs`.
 
 use std::path::Path;
-use std::process::Command;
 
 use pointfarm_tests::s3s::{S3sServer, SECRET_KEY};
-use pointfarm_tests::{
-    copc_file, free_address, output_text, path_arg, pointfarm, pointfarm_bin, pointfarm_ok,
-    ServeProcess,
-};
+use pointfarm_tests::{copc_file, output_text, path_arg, pointfarm, pointfarm_ok, ServeProcess};
 
 const BUCKET: &str = "scans";
 
@@ -64,9 +60,6 @@ fn a_copc_object_by_url_is_described_and_exported_as_the_same_file_by_path() {
     let Some(server) = S3sServer::start_or_skip(root.path()) else {
         return;
     };
-    let mut command = Command::new(pointfarm_bin());
-    command.envs(server.environment());
-    let data = root.path().join("data");
     let args = [
         "--no-embedded-worker",
         "--allow-url-prefix",
@@ -74,13 +67,8 @@ fn a_copc_object_by_url_is_described_and_exported_as_the_same_file_by_path() {
         "--data-root",
         path_arg(&files),
     ];
-    let daemon = ServeProcess::start_command(
-        command,
-        &free_address(),
-        &data,
-        &data.join("serve.log"),
-        &args,
-    );
+    let data = root.path().join("data");
+    let daemon = ServeProcess::start_in_environment(&server.environment(), &data, &args);
 
     let url = format!("s3://{BUCKET}/scan.copc.laz");
     let by_url = register(&daemon, &url);

@@ -14,7 +14,7 @@ use pointfarm_tests::datasets::add_with_cli;
 use pointfarm_tests::s3s::{self, S3Bucket, S3sServer};
 use pointfarm_tests::{
     assert_fails_saying, assert_ok, assert_one_error_line, json_lines, output_text, path_arg,
-    pointfarm_bin, shared_data, ServeProcess,
+    pointfarm_with, shared_data, ServeProcess,
 };
 
 /// The bucket every test writes to: a folder of the server's root.
@@ -43,9 +43,7 @@ impl S3Exports {
 
     /// A `pointfarm` command with the server's endpoint and credentials in its environment.
     fn pointfarm(&self) -> Command {
-        let mut command = Command::new(pointfarm_bin());
-        command.envs(self.bucket.server.environment());
-        command
+        pointfarm_with(&self.bucket.server.environment())
     }
 
     /// `pointfarm ARGS` with the server's endpoint and credentials in its environment.

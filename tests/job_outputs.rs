@@ -8,14 +8,13 @@
 //! skips, saying so, where `POINTFARM_TEST_S3S_FS` names no `s3s-fs` binary.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::Duration;
 
 use pointfarm_tests::s3s::{self, S3Bucket};
 use pointfarm_tests::service::scan;
 use pointfarm_tests::{
-    assert_fails_saying, assert_ok, output_text, path_arg, pointfarm, pointfarm_bin, pointfarm_ok,
-    stdout, wait_for, ServeProcess,
+    assert_fails_saying, assert_ok, output_text, path_arg, pointfarm, pointfarm_ok, stdout,
+    wait_for, ServeProcess,
 };
 
 /// The bucket the farm writes to: a folder of the S3 server's root.
@@ -40,19 +39,14 @@ impl OutputFarm {
     fn start(secret: Option<&str>) -> Option<Self> {
         let dir = tempfile::tempdir().expect("tempdir");
         let bucket = S3Bucket::start_or_skip(BUCKET)?;
-        let mut command = Command::new(pointfarm_bin());
-        command.envs(bucket.server.environment());
+        let mut environment = bucket.server.environment();
         if let Some(secret) = secret {
-            command.env("AWS_SECRET_ACCESS_KEY", secret);
+            // Set after the right one, so it is the one the daemon reads.
+            environment.push(("AWS_SECRET_ACCESS_KEY", secret.to_owned()));
         }
-        let data = dir.path().join("data");
-        let log = dir.path().join("serve.log");
-        std::fs::create_dir_all(&data).expect("data folder");
-        let server = ServeProcess::start_command(
-            command,
-            &pointfarm_tests::free_address(),
-            &data,
-            &log,
+        let server = ServeProcess::start_in_environment(
+            &environment,
+            &dir.path().join("data"),
             &["--allow-output-prefix", ALLOWED],
         );
         let scan = scan(dir.path());
@@ -103,13 +97,6 @@ fn submit(farm: &OutputFarm, frames: u32, url: &str) -> String {
     stdout(&output).trim().to_owned()
 }
 
-/// The job as `jobs show --json` prints it.
-fn job(server: &ServeProcess, id: &str) -> serde_json::Value {
-    let shown = pointfarm_ok(&["jobs", "show", id, "--server", &server.address, "--json"]);
-    let mut shown: serde_json::Value = serde_json::from_str(stdout(&shown).trim()).expect("a job");
-    shown["job"].take()
-}
-
 /// The files under `folder`, sorted by name.
 fn files_in(folder: &Path) -> Vec<PathBuf> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(folder)
@@ -127,7 +114,7 @@ fn each_final_frame_appears_under_the_output_url_as_the_daemon_stores_it() {
     let url = format!("{ALLOWED}/turntable");
     let id = submit(&farm, 3, &url);
     let uploaded = wait_for(Duration::from_secs(120), "three outputs uploaded", || {
-        let job = job(&farm.server, &id);
+        let job = farm.server.job_json(&id);
         (job["outputsUploaded"] == 3).then_some(job)
     });
     assert_eq!(uploaded["state"], "JOB_STATE_SUCCEEDED", "{uploaded}");
@@ -213,7 +200,7 @@ fn uploads_refused_by_the_store_are_recorded_and_the_frames_stay_fetchable() {
     let url = format!("{ALLOWED}/refused");
     let id = submit(&farm, 2, &url);
     let recorded = wait_for(Duration::from_secs(120), "two failures recorded", || {
-        let job = job(&farm.server, &id);
+        let job = farm.server.job_json(&id);
         let errors = job["outputErrors"].as_array().map_or(0, Vec::len);
         (errors == 2).then_some(job)
     });
@@ -263,7 +250,7 @@ fn a_jobs_video_appears_beside_its_frames_under_the_output_url() {
     wait_for(
         Duration::from_secs(120),
         "frames and video uploaded",
-        || (job(server, &id)["outputsUploaded"] == 4).then_some(()),
+        || (server.job_json(&id)["outputsUploaded"] == 4).then_some(()),
     );
     let folder = farm.bucket.folder().join("farm/with-video");
     let object = std::fs::read(folder.join("video.webm")).expect("the video's object");

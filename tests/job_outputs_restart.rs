@@ -8,13 +8,12 @@
 
 use std::net::TcpListener;
 use std::path::Path;
-use std::process::Command;
 use std::time::Duration;
 
 use pointfarm_tests::s3s::S3Bucket;
 use pointfarm_tests::service::scan;
 use pointfarm_tests::{
-    free_address, path_arg, pointfarm_bin, pointfarm_ok, stdout, wait_for, ServeProcess,
+    free_address, path_arg, pointfarm_ok, pointfarm_with, stdout, wait_for, ServeProcess,
 };
 
 /// The bucket the farm writes to: a folder of the S3 server's root.
@@ -33,8 +32,7 @@ fn serve(
     bucket: &S3Bucket,
     endpoint: Option<&str>,
 ) -> ServeProcess {
-    let mut command = Command::new(pointfarm_bin());
-    command.envs(bucket.server.environment());
+    let mut command = pointfarm_with(&bucket.server.environment());
     if let Some(endpoint) = endpoint {
         command.env("AWS_ENDPOINT", endpoint);
     }
@@ -45,13 +43,6 @@ fn serve(
         log,
         &["--allow-output-prefix", ALLOWED],
     )
-}
-
-/// The job as `jobs show --json` prints it.
-fn job(server: &ServeProcess, id: &str) -> serde_json::Value {
-    let shown = pointfarm_ok(&["jobs", "show", id, "--server", &server.address, "--json"]);
-    let mut shown: serde_json::Value = serde_json::from_str(stdout(&shown).trim()).expect("a job");
-    shown["job"].take()
 }
 
 fn count(job: &serde_json::Value, field: &str) -> u64 {
@@ -101,7 +92,7 @@ fn outputs_waiting_when_the_daemon_is_killed_reach_the_bucket_after_it_starts_ag
         Duration::from_secs(120),
         "the job done, its outputs waiting",
         || {
-            let job = job(&server, &id);
+            let job = server.job_json(&id);
             (job["state"] == "JOB_STATE_SUCCEEDED" && count(&job, "outputsPending") == 3)
                 .then_some(job)
         },
@@ -114,7 +105,7 @@ fn outputs_waiting_when_the_daemon_is_killed_reach_the_bucket_after_it_starts_ag
     // Started again with the store reachable: every waiting output is sent.
     let server = serve(&address, &data, &log, &bucket, None);
     let uploaded = wait_for(Duration::from_secs(120), "three outputs uploaded", || {
-        let job = job(&server, &id);
+        let job = server.job_json(&id);
         (count(&job, "outputsUploaded") == 3).then_some(job)
     });
     assert_outputs(&uploaded, 3, 0);

@@ -36,9 +36,7 @@ fn local_cuts(frames: &[serde_json::Value]) -> Vec<bool> {
 /// The job of the frames a server reports, as `jobs show` lists it.
 fn job_of(frames: &[serde_json::Value], server: &ServeProcess) -> pointfarm_proto::v1::Job {
     let id = frames[0]["jobId"].as_str().expect("a job id");
-    let shown = pointfarm_ok(&["jobs", "show", id, "--server", &server.address, "--json"]);
-    let shown: serde_json::Value = serde_json::from_slice(&shown.stdout).expect("json");
-    serde_json::from_value(shown["job"].clone()).expect("a Job")
+    serde_json::from_value(server.job_json(id)).expect("a Job")
 }
 
 /// Whether each frame a server reports was drawn from a cut, as `jobs show` lists the job.

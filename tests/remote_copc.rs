@@ -6,17 +6,16 @@
 //! `s3://` too. Each test skips, saying so, where nginx is not installed.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use pointfarm_render::copc::open_copc_url;
 use pointfarm_render::lod::NodeInfo;
 use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteSettings};
 use pointfarm_tests::nginx::NginxServer;
 use pointfarm_tests::object_faults::assert_copc_object_changed;
-use pointfarm_tests::s3s::{self, S3sServer};
+use pointfarm_tests::s3s::{run_s3, S3sServer};
 use pointfarm_tests::{
     assert_fails_saying, assert_one_error_line, copc_file, json_lines, output_text, path_arg,
-    pointfarm, pointfarm_bin, pointfarm_ok, stdout,
+    pointfarm, pointfarm_ok, stdout,
 };
 
 /// nginx serving a copy of the file at `path` as `scans/SERVED_AS`; None, having said so,
@@ -305,24 +304,22 @@ fn a_copc_file_from_an_s3_compatible_server_renders_as_the_file_here() {
     let url = "s3://pointfarm-test/scans/scan.copc.laz";
     let by_url = dir.path().join("s3.png");
     // Credentials reach the client only through the environment.
-    let output = Command::new(pointfarm_bin())
-        .args(["render", url, "--out", path_arg(&by_url)])
-        .args(args)
-        .envs(server.environment())
-        .output()
-        .expect("run pointfarm");
-    let text = output_text(&output);
-    assert!(output.status.success(), "{text}");
-    assert!(!text.contains(s3s::SECRET_KEY), "{text}");
+    let render = ["render", url, "--out", path_arg(&by_url)];
+    let output = run_s3(&server.environment(), &[&render[..], &args[..]].concat());
+    assert!(output.status.success(), "{}", output_text(&output));
     let report = json_lines(&output).remove(0);
     assert!(same_pixels(&here, &by_url), "{report}");
     let (requests, bytes) = fetched(&report);
     assert!(requests > 1 && bytes > 0, "{report}");
-    let missing = Command::new(pointfarm_bin())
-        .args(["render", "s3://pointfarm-test/scans/absent.copc.laz"])
-        .args(["--out", path_arg(&dir.path().join("absent.png"))])
-        .envs(server.environment())
-        .output()
-        .expect("run pointfarm");
+    let absent = dir.path().join("absent.png");
+    let missing = run_s3(
+        &server.environment(),
+        &[
+            "render",
+            "s3://pointfarm-test/scans/absent.copc.laz",
+            "--out",
+            path_arg(&absent),
+        ],
+    );
     assert_one_error_line(&missing, &["s3://pointfarm-test/scans/absent.copc.laz"]);
 }

@@ -9,7 +9,7 @@
 
 use std::io::Cursor;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 use std::time::Instant;
 
 use pointfarm_render::raster::Renderer;
@@ -18,10 +18,10 @@ use pointfarm_render::request::{CameraPath, Lens, RenderOptions, RenderRequest, 
 use pointfarm_render::source::{quiet, ChunkStarts, FrameSource, PreviewPoints};
 use pointfarm_render::testing::{laz_of_las, LazChunks};
 use pointfarm_tests::nginx::NginxServer;
-use pointfarm_tests::s3s::{self, S3sServer};
+use pointfarm_tests::s3s::{run_s3, S3sServer};
 use pointfarm_tests::service::gpu;
 use pointfarm_tests::{
-    assert_one_error_line, json_lines, output_text, pointfarm, pointfarm_bin, shared_data,
+    assert_one_error_line, info_files, json_lines, output_text, pointfarm, shared_data,
 };
 
 const TILES: usize = 20;
@@ -173,37 +173,7 @@ fn a_preview_of_tiles_by_url_is_the_preview_of_the_same_files_here() {
 
 /// `pointfarm ARGS` with the S3 server's endpoint and credentials in its environment.
 fn pointfarm_s3(server: &S3sServer, args: &[&str]) -> Output {
-    pointfarm_s3_with(server.environment(), args)
-}
-
-fn pointfarm_s3_with(environment: Vec<(&'static str, String)>, args: &[&str]) -> Output {
-    let output = Command::new(pointfarm_bin())
-        .args(args)
-        .envs(environment)
-        .output()
-        .expect("run pointfarm");
-    let text = output_text(&output);
-    assert!(!text.contains(s3s::SECRET_KEY), "{text}");
-    assert!(!text.contains("panicked"), "{text}");
-    output
-}
-
-/// The files of an `info --json` document without their paths, and the paths.
-fn described(output: &Output) -> (Vec<serde_json::Value>, Vec<String>) {
-    let text = output_text(output);
-    assert!(output.status.success(), "{text}");
-    let document: serde_json::Value =
-        serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("{e}: {text}"));
-    let mut files = document["files"].as_array().expect("files").clone();
-    let paths = files
-        .iter_mut()
-        .map(|file| {
-            let path = file["path"].as_str().expect("path").to_owned();
-            file.as_object_mut().expect("a file").remove("path");
-            path
-        })
-        .collect();
-    (files, paths)
+    run_s3(&server.environment(), args)
 }
 
 #[test]
@@ -221,7 +191,7 @@ fn a_prefix_in_s3_is_described_and_previewed_as_the_folder_here() {
 
     let here = pointfarm(&["info", arg(&folder), "--no-points", "--json"]);
     let by_url = pointfarm_s3(&server, &["info", &prefix, "--no-points", "--json"]);
-    let ((files_here, paths_here), (files, paths)) = (described(&here), described(&by_url));
+    let ((files_here, paths_here), (files, paths)) = (info_files(&here), info_files(&by_url));
     assert_eq!(files, files_here, "what info says of the tiles");
     let names = |paths: &[String]| -> Vec<String> {
         (paths.iter())
@@ -308,14 +278,14 @@ fn faults_by_url_are_one_line_errors_and_a_tile_fails_its_checks_as_a_file() {
     refused.push(("AWS_SECRET_ACCESS_KEY", "not-the-secret".to_owned()));
     let tile = format!("s3://{BUCKET}/faulty/hostile.laz");
     let preview_args = ["render", &tile, "--preview", "--out", arg(&out)];
-    let denied = pointfarm_s3_with(refused, &preview_args);
+    let denied = run_s3(&refused, &preview_args);
     assert_one_error_line(&denied, &[&tile, "access denied"]);
 
     // A server that stops answering: the error names the URL, after the client's retries.
     let environment = server.environment();
     server.stop();
     let started = Instant::now();
-    let stopped = pointfarm_s3_with(environment, &preview_args);
+    let stopped = run_s3(&environment, &preview_args);
     eprintln!("a stopped server failed in {:.1?}", started.elapsed());
     assert_one_error_line(&stopped, &[&tile]);
 }

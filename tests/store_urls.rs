@@ -21,7 +21,7 @@ use pointfarm_render::sample::sample_scene;
 use pointfarm_tests::prometheus::scrape;
 use pointfarm_tests::s3s::{self, S3Bucket};
 use pointfarm_tests::service::{connect, lease_at_once};
-use pointfarm_tests::{free_address, pointfarm_bin, pointfarm_ok, ServeProcess, WorkerProcess};
+use pointfarm_tests::{free_address, pointfarm_ok, pointfarm_with, ServeProcess, WorkerProcess};
 
 /// The bucket stores are published to: a folder of the server's root.
 const BUCKET: &str = "pointfarm-stores";
@@ -63,9 +63,7 @@ impl Farm {
 
     /// The `pointfarm` binary with the server's endpoint and credentials in its environment.
     fn pointfarm(&self) -> Command {
-        let mut command = Command::new(pointfarm_bin());
-        command.envs(self.bucket.server.environment());
-        command
+        pointfarm_with(&self.bucket.server.environment())
     }
 
     /// A daemon publishing its stores under [`STORE_URL`], with no embedded worker, its

@@ -7,7 +7,7 @@
 //! `s3s-fs`.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 use pointfarm_render::cut::StoredLod;
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
@@ -17,8 +17,8 @@ use pointfarm_render::sample::sample_scene;
 use pointfarm_render::source::{listed_tiles, open_tile_source};
 use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::nginx::NginxServer;
-use pointfarm_tests::s3s::{self, S3sServer};
-use pointfarm_tests::{assert_same_frames, json_lines, output_text, pointfarm_bin, pointfarm_ok};
+use pointfarm_tests::s3s::{run_s3, S3sServer};
+use pointfarm_tests::{assert_same_frames, json_lines, output_text, pointfarm_ok};
 
 const BUCKET: &str = "campaigns";
 /// The options of every render: frames from levels of detail, so both sides cut a store.
@@ -52,17 +52,11 @@ fn total_bytes(paths: &[PathBuf]) -> u64 {
         .sum()
 }
 
-/// `pointfarm ARGS` with the S3 server's endpoint and credentials in its environment.
+/// `pointfarm ARGS` with the S3 server's endpoint and credentials in its environment, which
+/// must succeed.
 fn pointfarm_s3(server: &S3sServer, args: &[&str]) -> Output {
-    let output = Command::new(pointfarm_bin())
-        .args(args)
-        .envs(server.environment())
-        .output()
-        .expect("run pointfarm");
-    let text = output_text(&output);
-    assert!(!text.contains(s3s::SECRET_KEY), "{text}");
-    assert!(!text.contains("panicked"), "{text}");
-    assert!(output.status.success(), "{text}");
+    let output = run_s3(&server.environment(), args);
+    assert!(output.status.success(), "{}", output_text(&output));
     output
 }
 

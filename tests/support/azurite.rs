@@ -3,16 +3,14 @@
 //! installs it). It runs on a free loopback port over a folder of its own, with the
 //! emulator's well-known account, and is killed when dropped.
 
-use std::process::{Child, Command, Stdio};
 use std::time::{Duration, SystemTime};
 
 use base64::Engine as _;
 use hmac::{Hmac, Mac};
 use sha2::Sha256;
 
-use crate::free_address;
 use crate::rest::{request, Answer};
-use crate::tools::{tool_or_skip, wait_until_listening};
+use crate::tools::ToolServer;
 
 /// The variable that names the `azurite-blob` script.
 pub const AZURITE_VARIABLE: &str = "POINTFARM_TEST_AZURITE";
@@ -32,37 +30,28 @@ const API_VERSION: &str = "2021-08-06";
 /// How long the server may take to listen.
 const START_TIMEOUT: Duration = Duration::from_secs(60);
 
-/// An `azurite-blob` child process on a loopback port; killed when dropped, before its folder
-/// goes.
+/// An `azurite-blob` child process on a loopback port over a folder of its own; killed when
+/// dropped, before its folder goes.
 pub struct Azurite {
-    pub address: String,
-    child: Child,
-    _location: tempfile::TempDir,
+    server: ToolServer,
 }
 
 impl Azurite {
     /// Starts the server, or None, having said why, without the script (a failure in CI).
     pub fn start_or_skip() -> Option<Self> {
-        let script = tool_or_skip(AZURITE_VARIABLE, "azurite-blob")?;
-        let location = tempfile::tempdir().expect("Azurite's folder");
-        let address = free_address();
-        let (host, port) = address.split_once(':').expect("host:port");
-        let child = Command::new(&script)
-            .args(["--blobHost", host, "--blobPort", port])
-            .arg("--location")
-            .arg(location.path())
-            .args(["--skipApiVersionCheck", "--loose", "--silent"])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("start Azurite");
-        let server = Self {
-            address,
-            child,
-            _location: location,
-        };
-        wait_until_listening(&server.address, START_TIMEOUT, "Azurite");
-        Some(server)
+        let server = ToolServer::start_or_skip(
+            AZURITE_VARIABLE,
+            "azurite-blob",
+            START_TIMEOUT,
+            |command, host, port, folder| {
+                command
+                    .args(["--blobHost", host, "--blobPort", port])
+                    .arg("--location")
+                    .arg(folder)
+                    .args(["--skipApiVersionCheck", "--loose", "--silent"]);
+            },
+        )?;
+        Some(Self { server })
     }
 
     /// The environment a client of this server reads its endpoint and account from, as
@@ -72,7 +61,7 @@ impl Azurite {
             ("AZURE_STORAGE_USE_EMULATOR", "true".to_owned()),
             (
                 "AZURITE_BLOB_STORAGE_URL",
-                format!("http://{}", self.address),
+                format!("http://{}", self.server.address),
             ),
         ]
     }
@@ -181,13 +170,6 @@ impl Azurite {
             ("x-ms-version", API_VERSION.to_owned()),
             ("Authorization", format!("SharedKey {ACCOUNT}:{signature}")),
         ]);
-        request(&self.address, method, &target, &headers, body)
-    }
-}
-
-impl Drop for Azurite {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+        request(&self.server.address, method, &target, &headers, body)
     }
 }

@@ -8,12 +8,10 @@
 //! multipart upload), so the tests seed objects through its JSON API.
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
-use crate::free_address;
 use crate::rest::request;
-use crate::tools::{tool_or_skip, wait_until_listening};
+use crate::tools::ToolServer;
 
 /// The variable that names the `fake-gcs-server` binary.
 pub const FAKE_GCS_VARIABLE: &str = "POINTFARM_TEST_FAKE_GCS";
@@ -26,35 +24,26 @@ pub const BAD_KEY_MARKER: &str = "pointfarm-not-a-private-key";
 const START_TIMEOUT: Duration = Duration::from_secs(20);
 
 /// A `fake-gcs-server` child process on a loopback port, with the service account files that
-/// point a client at it; killed when dropped.
+/// point a client at it in a folder of its own; killed when dropped.
 pub struct FakeGcs {
-    pub address: String,
-    child: Child,
-    folder: tempfile::TempDir,
+    server: ToolServer,
 }
 
 impl FakeGcs {
     /// Starts the server, or None, having said why, without the binary (a failure in CI).
     pub fn start_or_skip() -> Option<Self> {
-        let binary = tool_or_skip(FAKE_GCS_VARIABLE, "fake-gcs-server")?;
-        let folder = tempfile::tempdir().expect("the server's folder");
-        let address = free_address();
-        let (host, port) = address.split_once(':').expect("host:port");
-        let child = Command::new(&binary)
-            .args(["-scheme", "http", "-host", host, "-port", port])
-            .args(["-backend", "memory", "-public-host", host])
-            .args(["-log-level", "error"])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("start fake-gcs-server");
-        let server = Self {
-            address,
-            child,
-            folder,
-        };
-        wait_until_listening(&server.address, START_TIMEOUT, "fake-gcs-server");
-        Some(server)
+        let server = ToolServer::start_or_skip(
+            FAKE_GCS_VARIABLE,
+            "fake-gcs-server",
+            START_TIMEOUT,
+            |command, host, port, _| {
+                command
+                    .args(["-scheme", "http", "-host", host, "-port", port])
+                    .args(["-backend", "memory", "-public-host", host])
+                    .args(["-log-level", "error"]);
+            },
+        )?;
+        Some(Self { server })
     }
 
     /// The environment a client of this server reads its credentials from: a service account
@@ -65,7 +54,7 @@ impl FakeGcs {
             "private_key_id": "",
             "private_key": "",
             "disable_oauth": true,
-            "gcs_base_url": format!("http://{}", self.address),
+            "gcs_base_url": format!("http://{}", self.server.address),
         });
         let path = self.write_account("emulator.json", &account);
         vec![("GOOGLE_SERVICE_ACCOUNT", path.display().to_string())]
@@ -77,14 +66,14 @@ impl FakeGcs {
             "client_email": "pointfarm-tests@example.iam.gserviceaccount.com",
             "private_key_id": "1",
             "private_key": format!("-----BEGIN PRIVATE KEY-----\n{BAD_KEY_MARKER}\n-----END PRIVATE KEY-----\n"),
-            "gcs_base_url": format!("http://{}", self.address),
+            "gcs_base_url": format!("http://{}", self.server.address),
         });
         let path = self.write_account("bad-key.json", &account);
         vec![("GOOGLE_SERVICE_ACCOUNT", path.display().to_string())]
     }
 
     fn write_account(&self, name: &str, account: &serde_json::Value) -> PathBuf {
-        let path = self.folder.path().join(name);
+        let path = self.server.folder.path().join(name);
         std::fs::write(&path, account.to_string()).expect("write the service account");
         path
     }
@@ -94,7 +83,7 @@ impl FakeGcs {
         let body = serde_json::json!({ "name": name }).to_string();
         let headers = [("Content-Type", "application/json".to_owned())];
         let answer = request(
-            &self.address,
+            &self.server.address,
             "POST",
             "/storage/v1/b",
             &headers,
@@ -108,24 +97,23 @@ impl FakeGcs {
         let bytes = std::fs::read(path).expect("read the file to upload");
         let target = format!("/upload/storage/v1/b/{bucket}/o?uploadType=media&name={key}");
         let headers = [("Content-Type", "application/octet-stream".to_owned())];
-        let answer = request(&self.address, "POST", &target, &headers, &bytes);
+        let answer = request(&self.server.address, "POST", &target, &headers, &bytes);
         assert_eq!(answer.status, 200, "upload {key}: {}", answer.text());
     }
 
     /// The bytes of the object `key` of `bucket`, or None where there is none.
     pub fn object(&self, bucket: &str, key: &str) -> Option<Vec<u8>> {
-        let answer = request(&self.address, "GET", &format!("/{bucket}/{key}"), &[], &[]);
+        let answer = request(
+            &self.server.address,
+            "GET",
+            &format!("/{bucket}/{key}"),
+            &[],
+            &[],
+        );
         match answer.status {
             200 => Some(answer.body),
             404 => None,
             status => panic!("GET {bucket}/{key}: {status} {}", answer.text()),
         }
-    }
-}
-
-impl Drop for FakeGcs {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
     }
 }

@@ -73,6 +73,41 @@ pub fn pointfarm(args: &[&str]) -> Output {
         .expect("run pointfarm")
 }
 
+/// The `pointfarm` binary with `environment` (a server's endpoint and credentials, as its
+/// `environment()` gives them), to be given its arguments.
+pub fn pointfarm_with(environment: &[(&'static str, String)]) -> Command {
+    let mut command = Command::new(pointfarm_bin());
+    command.envs(environment.iter().map(|(name, value)| (*name, value)));
+    command
+}
+
+/// Runs `pointfarm` with `args` and `environment`.
+pub fn run_with(environment: &[(&'static str, String)], args: &[&str]) -> Output {
+    pointfarm_with(environment)
+        .args(args)
+        .output()
+        .expect("run pointfarm")
+}
+
+/// The files an `info --json` run that must have succeeded describes, each without its path,
+/// and the paths, in the order told: what a folder and an object prefix of the same files
+/// must say alike.
+pub fn info_files(output: &Output) -> (Vec<serde_json::Value>, Vec<String>) {
+    let text = output_text(output);
+    assert!(output.status.success(), "{text}");
+    let document: serde_json::Value =
+        serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("{e}: {text}"));
+    let mut files = document["files"].as_array().expect("files").clone();
+    let paths = (files.iter_mut())
+        .map(|file| {
+            let path = file["path"].as_str().expect("a path").to_owned();
+            file.as_object_mut().expect("a file").remove("path");
+            path
+        })
+        .collect();
+    (files, paths)
+}
+
 /// What a command printed on standard output.
 pub fn stdout(output: &Output) -> String {
     String::from_utf8_lossy(&output.stdout).into_owned()
@@ -264,6 +299,18 @@ impl ServeProcess {
         Self::start_command(Command::new(pointfarm_bin()), address, data_dir, log, args)
     }
 
+    /// Starts a daemon on a free port with `environment` (a server's endpoint and credentials,
+    /// which its embedded worker inherits) and more `serve` arguments.
+    pub fn start_in_environment(
+        environment: &[(&'static str, String)],
+        data_dir: &Path,
+        args: &[&str],
+    ) -> Self {
+        let log = data_dir.join("serve.log");
+        let command = pointfarm_with(environment);
+        Self::start_command(command, &free_address(), data_dir, &log, args)
+    }
+
     /// Starts a daemon on a free port whose open-file limit, soft and hard, is `open_files`
     /// (so that it cannot raise it), with more `serve` arguments.
     pub fn start_with_open_file_limit(data_dir: &Path, open_files: u32, args: &[&str]) -> Self {
@@ -319,6 +366,14 @@ impl ServeProcess {
 
     pub fn pid(&self) -> u32 {
         self.child.id()
+    }
+
+    /// The job `id` as `jobs show --json` prints it (the API's JSON mapping).
+    pub fn job_json(&self, id: &str) -> serde_json::Value {
+        let shown = pointfarm_ok(&["jobs", "show", id, "--server", &self.address, "--json"]);
+        let mut shown: serde_json::Value =
+            serde_json::from_slice(&shown.stdout).expect("a job as JSON");
+        shown["job"].take()
     }
 
     /// What the daemon and its embedded worker have logged, across restarts on this folder.

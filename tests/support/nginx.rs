@@ -3,11 +3,12 @@
 
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use crate::free_address;
 use crate::pki::TestPki;
+use crate::tools::ServerChild;
 
 /// Where Debian's nginx packages put the binary.
 const NGINX: &str = "/usr/sbin/nginx";
@@ -20,8 +21,8 @@ const START_TIMEOUT: Duration = Duration::from_secs(10);
 pub struct NginxServer {
     pub address: String,
     pub root: PathBuf,
+    child: ServerChild,
     dir: tempfile::TempDir,
-    child: Child,
 }
 
 impl NginxServer {
@@ -72,23 +73,25 @@ impl NginxServer {
         let config_path = dir.path().join("nginx.conf");
         std::fs::write(&config_path, config).expect("nginx.conf");
         let error_log = dir.path().join("error.log");
-        let child = Command::new(binary)
-            .arg("-p")
-            .arg(dir.path())
-            .arg("-c")
-            .arg(&config_path)
-            .arg("-e")
-            .arg(&error_log)
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(dir.path().join("stderr.log")).expect("nginx stderr"))
-            .spawn()
-            .expect("start nginx");
+        let child = ServerChild::spawn(
+            Command::new(binary)
+                .arg("-p")
+                .arg(dir.path())
+                .arg("-c")
+                .arg(&config_path)
+                .arg("-e")
+                .arg(&error_log)
+                .stdin(Stdio::null())
+                .stderr(
+                    std::fs::File::create(dir.path().join("stderr.log")).expect("nginx stderr"),
+                ),
+            "nginx",
+        );
         let mut server = Self {
             address,
             root: root.to_owned(),
-            dir,
             child,
+            dir,
         };
         server.wait_until_listening();
         server
@@ -125,7 +128,7 @@ impl NginxServer {
     fn wait_until_listening(&mut self) {
         let started = Instant::now();
         while TcpStream::connect(&self.address).is_err() {
-            if let Ok(Some(status)) = self.child.try_wait() {
+            if let Some(status) = self.child.exited() {
                 panic!("nginx exited with {status}: {}", self.logs());
             }
             assert!(
@@ -144,13 +147,6 @@ impl NginxServer {
             .map(|name| std::fs::read_to_string(self.dir.path().join(name)).unwrap_or_default())
             .collect::<Vec<_>>()
             .join("\n")
-    }
-}
-
-impl Drop for NginxServer {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
     }
 }
 

@@ -5,9 +5,10 @@ use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::Duration;
 
+use crate::tools::ServerChild;
 use crate::{free_address, wait_for};
 
 /// Where Debian's `prometheus` package puts the server (`deploy/test.sh` installs it).
@@ -60,7 +61,7 @@ pub fn scrape(address: &str) -> BTreeMap<String, f64> {
 /// dropped.
 pub struct Prometheus {
     address: String,
-    child: Child,
+    _child: ServerChild,
     log: PathBuf,
 }
 
@@ -81,20 +82,20 @@ impl Prometheus {
         .expect("prometheus.yml");
         let address = free_address();
         let log = dir.join("prometheus.log");
-        let child = Command::new(PROMETHEUS)
-            .arg(format!("--config.file={}", config.display()))
-            .arg(format!(
-                "--storage.tsdb.path={}",
-                dir.join("tsdb").display()
-            ))
-            .arg(format!("--web.listen-address={address}"))
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(&log).expect("prometheus log"))
-            .spawn()
-            .expect("start prometheus");
+        let child = ServerChild::spawn(
+            Command::new(PROMETHEUS)
+                .arg(format!("--config.file={}", config.display()))
+                .arg(format!(
+                    "--storage.tsdb.path={}",
+                    dir.join("tsdb").display()
+                ))
+                .arg(format!("--web.listen-address={address}"))
+                .stderr(std::fs::File::create(&log).expect("prometheus log")),
+            "prometheus",
+        );
         let prometheus = Self {
             address,
-            child,
+            _child: child,
             log,
         };
         wait_for(Duration::from_secs(60), "a ready Prometheus", || {
@@ -132,13 +133,6 @@ impl Prometheus {
 
     pub fn log(&self) -> String {
         std::fs::read_to_string(&self.log).unwrap_or_default()
-    }
-}
-
-impl Drop for Prometheus {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
     }
 }
 

@@ -4,10 +4,12 @@
 //! benchmarks' own.
 
 use std::path::{Path, PathBuf};
+use std::process::Output;
 
 use pointfarm_bench::object_storage::s3_server::S3Server;
 
 use crate::tools::tool_or_skip;
+use crate::{output_text, run_with};
 pub use pointfarm_bench::object_storage::s3_server::{ACCESS_KEY, SECRET_KEY};
 
 /// The variable that names the `s3s-fs` binary.
@@ -42,6 +44,16 @@ impl S3sServer {
     pub fn stop(&mut self) {
         self.server.stop();
     }
+}
+
+/// `pointfarm ARGS` with `environment` (an S3 server's endpoint and credentials, or those
+/// altered), checked to show neither the secret key nor a panic, whatever its status.
+pub fn run_s3(environment: &[(&'static str, String)], args: &[&str]) -> Output {
+    let output = run_with(environment, args);
+    let text = output_text(&output);
+    assert!(!text.contains(SECRET_KEY), "{text}");
+    assert!(!text.contains("panicked"), "{text}");
+    output
 }
 
 /// An S3 server over a fresh root holding one empty bucket. The fields drop in order: the
