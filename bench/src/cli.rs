@@ -53,6 +53,17 @@ pub fn exit_code(program: &str, outcome: Result<(), String>) -> ExitCode {
     }
 }
 
+/// Runs the bench program `program` on this process's arguments: read by `parse`, measured
+/// by `measure`; its exit status, printing its error if it failed.
+pub fn run_program<A>(
+    program: &str,
+    parse: impl FnOnce(&[String]) -> Result<A, String>,
+    measure: impl FnOnce(&A) -> Result<(), String>,
+) -> ExitCode {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    exit_code(program, parse(&args).and_then(|parsed| measure(&parsed)))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

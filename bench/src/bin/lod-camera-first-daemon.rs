@@ -17,7 +17,7 @@
 use std::process::ExitCode;
 
 use pointfarm_bench::campaign::{grid, CampaignFlags, ScratchCampaign, ServeCampaignFlags};
-use pointfarm_bench::cli::exit_code;
+use pointfarm_bench::cli::run_program;
 use pointfarm_bench::flight::{camera_path_file, inner_tile_keyframes};
 use pointfarm_bench::serve::{load, Serve};
 use pointfarm_render::cut::DEFAULT_LOD_ERROR_PX;
@@ -34,11 +34,7 @@ struct Args {
 }
 
 fn main() -> ExitCode {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    exit_code(
-        "lod-camera-first-daemon",
-        parse(&args).and_then(|args| measure(&args)),
-    )
+    run_program("lod-camera-first-daemon", parse, measure)
 }
 
 fn parse(args: &[String]) -> Result<Args, String> {

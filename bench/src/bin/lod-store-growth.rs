@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use pointfarm_bench::campaign::{grid, CampaignFlags, ScratchCampaign, ServeCampaignFlags};
-use pointfarm_bench::cli::exit_code;
+use pointfarm_bench::cli::run_program;
 use pointfarm_bench::serve::{load, Serve};
 
 const USAGE: &str = "usage: lod-store-growth --pointfarm PATH [--points N] [--files N] \
@@ -27,11 +27,7 @@ const USAGE: &str = "usage: lod-store-growth --pointfarm PATH [--points N] [--fi
 const LEVELS: &[&str] = &["--size=200x150", "--lod-error=0"];
 
 fn main() -> ExitCode {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    exit_code(
-        "lod-store-growth",
-        parse(&args).and_then(|flags| measure(&flags)),
-    )
+    run_program("lod-store-growth", parse, measure)
 }
 
 fn parse(args: &[String]) -> Result<ServeCampaignFlags, String> {
