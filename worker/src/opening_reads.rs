@@ -5,13 +5,12 @@
 //! bytes are the daemon's either way, each checked as it is decoded, so the images do not
 //! change. Records are kept only while the store opens, so what is kept is bounded by the
 //! opening's sample; the first frame takes them, and what it did not take is dropped after it.
+//! They are a store's records, decoded as a store's (a COPC file's chunks are not kept).
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
-use pointfarm_render::lod::{
-    LodError, LodHierarchy, NodeInfo, NodeKey, NodePoints, NodeRecords, RootCube,
-};
+use pointfarm_render::lod::{LodError, NodeInfo, NodeKey, NodeRecords};
 
 /// Node records read through `inner`, those fetched while the store opens kept for the
 /// first frame.
@@ -135,23 +134,6 @@ impl NodeRecords for OpeningReads {
                 .read_coarse_records(missing)
                 .unwrap_or_else(|| Err(LodError::Records("no coarse sections".into())))
         }))
-    }
-
-    fn read_attribute_rows(
-        &self,
-        hierarchy: &LodHierarchy,
-        nodes: &[NodeInfo],
-    ) -> Option<Result<Vec<Vec<u8>>, LodError>> {
-        self.inner.read_attribute_rows(hierarchy, nodes)
-    }
-
-    fn decode(
-        &self,
-        cube: &RootCube,
-        info: &NodeInfo,
-        bytes: &[u8],
-    ) -> Result<NodePoints, LodError> {
-        self.inner.decode(cube, info, bytes)
     }
 }
 

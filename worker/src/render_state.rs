@@ -22,7 +22,6 @@ use pointfarm_render::encode;
 use pointfarm_render::filter::PointFilter;
 use pointfarm_render::gpu::GpuContext;
 use pointfarm_render::ingest::dataset_point_count;
-use pointfarm_render::lod::NodeRecords;
 use pointfarm_render::raster::{Clock, Renderer};
 use pointfarm_render::request::RenderRequest;
 use pointfarm_render::source::{
@@ -471,17 +470,21 @@ impl WorkerRenderState {
         };
         let options = cut_options(&lod, lod_error)?;
         let copc = store.copc.is_some();
-        // The opening's reads are kept for the first frame, which reads the same nodes.
-        let opening = Arc::new(OpeningReads::new(store.records));
-        let records: Arc<dyn NodeRecords> = opening.clone();
+        let mut opening = None;
         let dataset = match &store.copc {
             // The daemon read the coarsest nodes when it opened the file.
-            Some(copc) => {
-                LodDataset::with_elevation(records, store.hierarchy, store.bounds, copc.elevation)
-                    .with_point_spacing(copc.point_spacing)
-            }
+            Some(copc) => LodDataset::with_elevation(
+                store.records,
+                store.hierarchy,
+                store.bounds,
+                copc.elevation,
+            )
+            .with_point_spacing(copc.point_spacing),
             None => {
-                LodDataset::with_records(records, store.hierarchy, store.bounds).map_err(|e| {
+                // The opening's reads are kept for the first frame, which reads the same nodes.
+                let kept = Arc::new(OpeningReads::new(store.records));
+                opening = Some(Arc::clone(&kept));
+                LodDataset::with_records(kept, store.hierarchy, store.bounds).map_err(|e| {
                     FrameFailure::from(&CutError::Store(e))
                         .context(&format!("dataset {}", task.dataset.id))
                 })?
@@ -495,8 +498,10 @@ impl WorkerRenderState {
         self.open(task, Opened::DaemonStore { copc }, |renderer| {
             FrameSource::levels(renderer, levels, options, render, &log_event)
         })?;
-        opening.opened();
-        self.opening_reads = Some(opening);
+        if let Some(opening) = &opening {
+            opening.opened();
+        }
+        self.opening_reads = opening;
         Ok(())
     }
 
