@@ -37,10 +37,12 @@ const KILLED_POINTS: usize = 210_000;
 const SIZE: &str = "200x150";
 /// The tile a crew drops from the first day's.
 const DROPPED: usize = 1;
+/// A tile inside the others' cube, which the earliest day of a chain of growths lacks.
+const INNER: usize = ACROSS + 1;
 
 /// The scene's tiles, every one in `dir/all`, and the folders of the campaign's days as links
 /// to them: `day1` without the middle tile, `day2` with every tile, `less` as `day1` without
-/// tile [`DROPPED`], `least` as `less` without the tile after it.
+/// tile [`DROPPED`], `least` as `less` without tile [`INNER`].
 struct Campaign {
     day1: PathBuf,
     day2: PathBuf,
@@ -86,7 +88,7 @@ fn write_campaign(dir: &Path, points: usize) -> Campaign {
         day1: day("day1", &[middle]),
         day2: day("day2", &[]),
         less: day("less", &[middle, DROPPED]),
-        least: day("least", &[middle, DROPPED, DROPPED + 1]),
+        least: day("least", &[middle, DROPPED, INNER]),
         camera: vec![
             format!("--camera-pos={}", xyz(position)),
             format!("--camera-target={}", xyz(center.to_array())),
@@ -418,7 +420,7 @@ fn an_update_killed_part_way_is_made_again_and_a_preview_meanwhile_shows_the_new
 #[test]
 fn a_store_built_before_stores_listed_their_files_is_listed_at_start_and_grows_a_chain() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let campaign = write_campaign(dir.path(), KILLED_POINTS);
+    let campaign = write_campaign(dir.path(), POINTS);
     let camera = &campaign.camera;
     let data = dir.path().join("daemon");
     let address = free_address();
@@ -479,7 +481,7 @@ fn a_store_built_before_stores_listed_their_files_is_listed_at_start_and_grows_a
         assert_eq!(
             number_after(line, " payload_bytes_copied="),
             Some(0.0),
-            "{line}"
+            "{log}"
         );
     }
     server
@@ -493,24 +495,14 @@ fn a_store_built_before_stores_listed_their_files_is_listed_at_start_and_grows_a
     for files in [18, 19, 20] {
         std::fs::remove_dir_all(store_of(&data, files)).expect("an earlier store removed");
     }
-    let server = serve(&address, &data, None);
-    let again = dir.path().join("day2-again.png");
-    run(
-        &mut render(&server, &campaign.day2, &again, camera),
-        &server,
-    );
-    let log = server.log();
+    let restarted = (address.as_str(), data.as_path());
+    let again = (dir.path().join("growth-chain.png"), last.as_path());
+    let what = "the grown store once the earlier stores are gone";
+    let log = render_restarted(restarted, &campaign.day2, camera, again, what);
     assert!(
         !log.contains("levels of detail built") && !log.contains("updated the store of"),
         "made again:\n{log}"
     );
-    assert_pngs_alike(
-        "growth-chain",
-        &again,
-        &last,
-        "the grown store draws otherwise once the earlier stores are gone",
-    );
-    drop(server);
 
     // The end of the chain holds and draws what a fresh daemon's build does.
     let day2_fresh = (campaign.day2.as_path(), 21);
@@ -528,25 +520,35 @@ fn a_store_built_before_stores_listed_their_files_is_listed_at_start_and_grows_a
     let middle = bytes.len() / 2;
     bytes[middle] ^= 0x55;
     std::fs::write(&layer, &bytes).expect("change the layer");
-    let server = serve(&address, &data, None);
-    let rebuilt = dir.path().join("day2-rebuilt.png");
-    run(
-        &mut render(&server, &campaign.day2, &rebuilt, camera),
-        &server,
-    );
-    let log = server.log();
+    let rebuilt = (dir.path().join("growth-refused-layer.png"), last.as_path());
+    let what = "the store built again after its layer changed";
+    let log = render_restarted(restarted, &campaign.day2, camera, rebuilt, what);
     assert!(
         log.contains("rebuilding a damaged store") && log.contains("payload layers are damaged"),
         "{log}"
     );
     assert!(log.contains("levels of detail built"), "{log}");
-    assert_pngs_alike(
-        "growth-refused-layer",
-        &rebuilt,
-        &last,
-        "the store built again after its layer changed draws otherwise",
-    );
     assert!(!layer.exists(), "the refused layers are gone");
+}
+
+/// Renders `tiles` into `out` through a daemon started again at `address` over `data`,
+/// asserts that the frame looks like `expected` (`what`'s frame), and returns the daemon's log.
+fn render_restarted(
+    (address, data): (&str, &Path),
+    tiles: &Path,
+    camera: &[String],
+    (out, expected): (PathBuf, &Path),
+    what: &str,
+) -> String {
+    let server = serve(address, data, None);
+    run(&mut render(&server, tiles, &out, camera), &server);
+    let name = out
+        .file_stem()
+        .expect("a name")
+        .to_string_lossy()
+        .into_owned();
+    assert_pngs_alike(&name, &out, expected, &format!("{what} draws otherwise"));
+    server.log()
 }
 
 #[test]

@@ -11,7 +11,7 @@ use std::path::PathBuf;
 
 use super::error::LodError;
 use super::hierarchy::{LodHierarchy, NodeInfo};
-use super::store::LodStore;
+use super::store::{check_within, LodStore};
 
 /// Bytes copied at once.
 const COPY_BYTES: u64 = 1 << 20;
@@ -94,26 +94,17 @@ struct Span {
 }
 
 /// The live bytes of `nodes` (records and attributes sections) within a payload of
-/// `payload_bytes`, joined where they touch or overlap, in file order.
+/// `payload_bytes` (an attributes section past it fails its read), joined where they touch
+/// or overlap, in file order.
 fn live_spans<'a>(
     nodes: impl Iterator<Item = &'a NodeInfo>,
     payload_bytes: u64,
 ) -> Result<Vec<Span>, LodError> {
     let mut ranges: Vec<Range<u64>> = Vec::new();
     for info in nodes.filter(|n| n.point_count > 0) {
+        check_within(info, payload_bytes)?;
         let attributes = (info.attributes_len > 0).then(|| info.attributes_range());
-        for range in info.pieces(info.byte_len).chain(attributes) {
-            if range.end > payload_bytes {
-                return Err(LodError::CorruptNode {
-                    key: info.key,
-                    reason: format!(
-                        "its bytes {}..{} run past the end of the payload ({payload_bytes} bytes)",
-                        range.start, range.end
-                    ),
-                });
-            }
-            ranges.push(range);
-        }
+        ranges.extend(info.pieces(info.byte_len).chain(attributes));
     }
     ranges.sort_unstable_by_key(|r| r.start);
     let mut spans: Vec<Span> = Vec::new();

@@ -105,6 +105,7 @@ impl Layers {
             let path = layer_path(payload, index);
             let file =
                 File::open(&path).map_err(|e| corrupt(payload, format!("layer {index}: {e}")))?;
+            advise_random(&file, &path);
             let found =
                 facts_of(&file).map_err(|e| corrupt(payload, format!("layer {index}: {e}")))?;
             if found != wanted {
@@ -241,6 +242,16 @@ impl PayloadReader {
     pub fn read_exact_at(&self, buf: &mut [u8], offset: u64) -> Result<(), LodError> {
         read_across(&self.layers, &self.file, &self.path, buf, offset)
             .map_err(|(path, error)| LodError::payload(path, error))
+    }
+}
+
+/// Advises the kernel that `file` (a payload file or layer at `path`) is read at random.
+/// Reads are whole runs of pieces, planned here; the kernel's read-ahead would take what
+/// follows a run as well, mostly rests a coarse cut leaves out (docs/perf/payload-layout.md).
+/// Advice only: a file system without it reads as asked.
+pub(crate) fn advise_random(file: &File, path: &Path) {
+    if let Err(error) = rustix::fs::fadvise(file, 0, None, rustix::fs::Advice::Random) {
+        tracing::debug!(path = %path.display(), %error, "no read-ahead advice");
     }
 }
 

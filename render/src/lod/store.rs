@@ -26,7 +26,7 @@ use super::codec::NodePoints;
 use super::error::LodError;
 use super::hierarchy::{LodHierarchy, NodeInfo};
 use super::key::NodeKey;
-use super::layers::{read_across, remove_layers, Layers};
+use super::layers::{advise_random, read_across, remove_layers, Layers};
 use super::records::{read_concurrently, read_nodes, NodeRecords};
 use super::regions::StoreRegions;
 
@@ -127,12 +127,7 @@ fn open_own(path: &Path) -> Result<File, LodError> {
         .truncate(false)
         .open(path)
         .map_err(|e| LodError::payload(path, e))?;
-    // Reads are whole runs of pieces, planned here; the kernel's read-ahead would take
-    // what follows a run as well, mostly rests a coarse cut leaves out
-    // (docs/perf/payload-layout.md). Advice only: a file system without it reads as asked.
-    if let Err(error) = rustix::fs::fadvise(&file, 0, None, rustix::fs::Advice::Random) {
-        tracing::debug!(path = %path.display(), %error, "no read-ahead advice");
-    }
+    advise_random(&file, path);
     Ok(file)
 }
 
@@ -222,23 +217,7 @@ impl LodStore {
     pub(crate) fn clear(&self) -> Result<(), LodError> {
         self.tree.remove(HIERARCHY_KEY)?;
         self.tree.flush()?;
-        let mut parts = self
-            .payload
-            .parts
-            .write()
-            .unwrap_or_else(|poisoned| poisoned.into_inner());
-        remove_layers(&self.payload.path)?;
-        match std::fs::remove_file(&self.payload.path) {
-            Err(e) if e.kind() != io::ErrorKind::NotFound => return Err(self.payload.error(e)),
-            _ => {}
-        }
-        *parts = Parts {
-            layers: Layers::default(),
-            file: open_own(&self.payload.path)?,
-            refused: None,
-        };
-        self.payload.end.store(0, Ordering::SeqCst);
-        drop(parts);
+        self.reset_payload(None)?;
         self.tree.clear()?;
         Ok(())
     }
@@ -246,21 +225,30 @@ impl LodStore {
     /// Makes the file at `path` the payload's one file, its layers dropped (a compaction's
     /// last step before the hierarchy that addresses it is written).
     pub(crate) fn replace_payload(&self, path: &Path) -> Result<(), LodError> {
-        let mut parts = self
-            .payload
-            .parts
-            .write()
-            .unwrap_or_else(|p| p.into_inner());
-        remove_layers(&self.payload.path)?;
-        std::fs::rename(path, &self.payload.path).map_err(|e| self.payload.error(e))?;
-        let file = open_own(&self.payload.path)?;
-        let len = file.metadata().map_err(|e| self.payload.error(e))?.len();
+        self.reset_payload(Some(path))
+    }
+
+    /// Drops the payload's layers and makes `replacement` its own file, or a new empty one.
+    fn reset_payload(&self, replacement: Option<&Path>) -> Result<(), LodError> {
+        let payload = &self.payload;
+        let mut parts = payload.parts.write().unwrap_or_else(|p| p.into_inner());
+        remove_layers(&payload.path)?;
+        let replaced = match replacement {
+            Some(path) => std::fs::rename(path, &payload.path),
+            None => std::fs::remove_file(&payload.path).or_else(|e| match e.kind() {
+                io::ErrorKind::NotFound => Ok(()),
+                _ => Err(e),
+            }),
+        };
+        replaced.map_err(|e| payload.error(e))?;
+        let file = open_own(&payload.path)?;
+        let len = file.metadata().map_err(|e| payload.error(e))?.len();
         *parts = Parts {
             layers: Layers::default(),
             file,
             refused: None,
         };
-        self.payload.end.store(len, Ordering::SeqCst);
+        payload.end.store(len, Ordering::SeqCst);
         Ok(())
     }
 
@@ -599,7 +587,7 @@ fn read_runs(pieces: &mut [Piece]) -> Vec<Run> {
 }
 
 /// Fails unless both pieces of `info`'s record lie within a payload file of `file_len` bytes.
-fn check_within(info: &NodeInfo, file_len: u64) -> Result<(), LodError> {
+pub(super) fn check_within(info: &NodeInfo, file_len: u64) -> Result<(), LodError> {
     for range in info.pieces(info.byte_len) {
         if range.end > file_len {
             return Err(LodError::CorruptNode {

@@ -55,24 +55,25 @@ fn grow(from: Folder, into: &Path, added: &[PathBuf], options: &LodBuildOptions)
     (grown, linked)
 }
 
-/// The tiles of a scene, and those of its store before three growths, one tile each.
-fn chain_scene(dir: &Path) -> (Vec<PathBuf>, Vec<PathBuf>, [usize; 3]) {
+/// A scene's tiles in `dir`, its three tiles added one growth each, the options, and the
+/// store of the tiles before them, built in `dir/s0`.
+fn chain_scene(dir: &Path) -> (Vec<PathBuf>, [usize; 3], LodBuildOptions, Folder) {
     let files = write_tiles(dir, 40_000);
     let added = [5, 6, 10];
-    let first = (0..files.len())
+    let first: Vec<PathBuf> = (0..files.len())
         .filter(|t| !added.contains(t))
         .map(|t| files[t].clone())
         .collect();
-    (files, first, added)
+    let options = options(dir);
+    let folder = open(&dir.join("s0"));
+    build(&first, &folder.store, &options);
+    (files, added, options, folder)
 }
 
 #[test]
 fn a_chain_of_three_growths_reads_the_same_after_the_earlier_stores_are_removed() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let (files, first, added) = chain_scene(dir.path());
-    let options = options(dir.path());
-    let mut folder = open(&dir.path().join("s0"));
-    build(&first, &folder.store, &options);
+    let (files, added, options, mut folder) = chain_scene(dir.path());
     assert!(!list_path(folder.store.payload_path()).exists(), "one file");
     let mut folders = vec![folder.path.clone()];
     for (i, &tile) in added.iter().enumerate() {
@@ -131,10 +132,7 @@ fn a_chain_of_three_growths_reads_the_same_after_the_earlier_stores_are_removed(
 #[test]
 fn a_changed_layer_refuses_the_store_until_it_is_built_again() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let (files, first, added) = chain_scene(dir.path());
-    let options = options(dir.path());
-    let earlier = open(&dir.path().join("s0"));
-    build(&first, &earlier.store, &options);
+    let (files, added, options, earlier) = chain_scene(dir.path());
     let (grown, _) = grow(
         earlier,
         &dir.path().join("s1"),
@@ -161,8 +159,10 @@ fn a_changed_layer_refuses_the_store_until_it_is_built_again() {
     let earlier_len = std::fs::metadata(dir.path().join("s0/nodes.bin"))
         .expect("s0")
         .len();
-    let mut all = first.clone();
-    all.push(files[added[0]].clone());
+    let all: Vec<PathBuf> = (0..files.len())
+        .filter(|t| !added[1..].contains(t))
+        .map(|t| files[t].clone())
+        .collect();
     build(&all, &refused.store, &options);
     assert_eq!(refused.store.payload_files(), 1);
     assert!(!layer.exists());
@@ -176,10 +176,7 @@ fn a_changed_layer_refuses_the_store_until_it_is_built_again() {
 #[test]
 fn a_one_file_store_opens_as_one_layer_and_a_layered_payload_reads_as_its_concatenation() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let (files, first, added) = chain_scene(dir.path());
-    let options = options(dir.path());
-    let earlier = open(&dir.path().join("s0"));
-    build(&first, &earlier.store, &options);
+    let (files, added, options, earlier) = chain_scene(dir.path());
     let points = store_points(&earlier.store);
     let path = earlier.path.clone();
     drop(earlier);
