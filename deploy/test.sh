@@ -121,6 +121,27 @@ if [ -x "$tools/bin/fake-gcs-server" ]; then
     export POINTFARM_TEST_FAKE_GCS
 fi
 
+# gcp-storage-emulator, a Google Cloud Storage server that takes object_store's single-request
+# PUT (fake-gcs-server does not), for the test of a job's outputs sent to gs:// URLs
+# (tests/gcs_outputs.rs): PyPI's package, installed into a virtualenv of its own and its script
+# linked into the tools' bin.
+if [ ! -x "$tools/bin/gcp-storage-emulator" ]; then
+    echo "pointfarm tests: installing gcp-storage-emulator for the GCS output tests" >&2
+    emulator_venv="$tools/gcs-emulator-venv"
+    if { [ -x "$emulator_venv/bin/python" ] || python3 -m venv "$emulator_venv"; } &&
+        "$emulator_venv/bin/python" -m pip install --quiet --disable-pip-version-check \
+            gcp-storage-emulator==2026.7.19; then
+        mkdir -p "$tools/bin"
+        ln -sf "$(cd "$emulator_venv/bin" && pwd)/gcp-storage-emulator" "$tools/bin/gcp-storage-emulator"
+    else
+        echo "pointfarm tests: gcp-storage-emulator could not be installed; the GCS output tests will skip (and fail in CI)" >&2
+    fi
+fi
+if [ -x "$tools/bin/gcp-storage-emulator" ]; then
+    POINTFARM_TEST_GCS_EMULATOR="$(cd "$tools/bin" && pwd)/gcp-storage-emulator"
+    export POINTFARM_TEST_GCS_EMULATOR
+fi
+
 # A font for the legends' and the benchmark plots' labels.
 install_for_tests fonts-dejavu-core /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf \
     "the legends' and plots' labels" "the legend tests will fail"

@@ -10,6 +10,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use crate::gcs_emulator::emulator_environment;
 use crate::rest::request;
 use crate::tools::ToolServer;
 
@@ -49,15 +50,7 @@ impl FakeGcs {
     /// The environment a client of this server reads its credentials from: a service account
     /// file that points it here without OAuth, as object_store documents for emulators.
     pub fn environment(&self) -> Vec<(&'static str, String)> {
-        let account = serde_json::json!({
-            "client_email": "pointfarm-tests@example.iam.gserviceaccount.com",
-            "private_key_id": "",
-            "private_key": "",
-            "disable_oauth": true,
-            "gcs_base_url": format!("http://{}", self.server.address),
-        });
-        let path = self.write_account("emulator.json", &account);
-        vec![("GOOGLE_SERVICE_ACCOUNT", path.display().to_string())]
+        emulator_environment(self.server.folder.path(), &self.server.address)
     }
 
     /// The environment with a service account whose key is not a key at all.

@@ -376,6 +376,20 @@ impl ServeProcess {
         shown["job"].take()
     }
 
+    /// `frames fetch ID --out OUT` against this daemon.
+    pub fn fetch_frames(&self, id: &str, out: &Path) -> Output {
+        let args = [
+            "frames",
+            "fetch",
+            id,
+            "--out",
+            path_arg(out),
+            "--server",
+            &self.address,
+        ];
+        pointfarm(&args)
+    }
+
     /// What the daemon and its embedded worker have logged, across restarts on this folder.
     pub fn log(&self) -> String {
         std::fs::read_to_string(&self.log).unwrap_or_default()
@@ -503,6 +517,7 @@ pub mod azurite;
 pub mod datasets;
 pub mod fake_gcs;
 pub mod flights;
+pub mod gcs_emulator;
 pub mod nginx;
 pub mod object_faults;
 pub mod pki;
