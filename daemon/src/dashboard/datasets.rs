@@ -1,6 +1,7 @@
 //! The datasets page: each dataset with its files, points, size, where its level-of-detail
 //! store stands (a build's stage and the share of the points it has stored) and its bytes
-//! on the daemon's disk, its files' and its store's. While a store builds the page reloads
+//! on the daemon's disk, its files' and its store's: the bytes removing the store frees, and
+//! apart from them the payload layers it shares with other stores (`lod::disk_usage`). While a store builds the page reloads
 //! itself, as the workers page does.
 
 use std::fmt::Write;
@@ -15,8 +16,8 @@ use super::api::{failure_page, run};
 use super::html::{self, escape};
 use super::Dashboard;
 use crate::model::Dataset;
-use crate::retention::folder_bytes;
 use crate::service::Daemon;
+use pointfarm_render::lod::disk_usage::DiskUsage;
 
 pub(super) fn routes() -> Router<Dashboard> {
     Router::new().route("/datasets", get(page))
@@ -89,7 +90,10 @@ impl Store {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct DiskBytes {
     files: u64,
+    /// What removing the store frees.
     store: u64,
+    /// The store's files that other stores link too.
+    shared: u64,
 }
 
 impl DiskBytes {
@@ -104,16 +108,27 @@ impl DiskBytes {
                 .map(|meta| meta.len())
                 .sum()
         };
+        let store = DiskUsage::of(store_folder);
+        let freed = store.freed_bytes();
         Self {
             files,
-            store: folder_bytes(store_folder),
+            store: freed,
+            shared: store.bytes().saturating_sub(freed),
         }
     }
 
     fn cell(self) -> String {
+        let shared = match self.shared {
+            0 => String::new(),
+            bytes => format!(
+                ", <span class=\"disk-shared\" data-bytes=\"{bytes}\">{} shared with other \
+                 stores</span>",
+                html::bytes(bytes)
+            ),
+        };
         format!(
             "<span class=\"disk-total\" data-bytes=\"{total}\">{shown}</span> \
-             <span class=\"disk-parts\">(files {files}, store {store})</span>",
+             <span class=\"disk-parts\">(files {files}, store {store}{shared})</span>",
             total = self.files.saturating_add(self.store),
             shown = html::bytes(self.files.saturating_add(self.store)),
             files = html::bytes(self.files),
@@ -233,11 +248,23 @@ mod tests {
             disk,
             DiskBytes {
                 files: 1000,
-                store: 324
+                store: 324,
+                shared: 0
             }
         );
         assert!(
             disk.cell().contains("data-bytes=\"1324\""),
+            "{}",
+            disk.cell()
+        );
+        // A store grown from this one links its payload: removing this one frees its index.
+        let grown = dir.path().join("grown");
+        std::fs::create_dir_all(&grown).expect("a grown store");
+        std::fs::hard_link(store.join("payload"), grown.join("payload.0")).expect("a layer");
+        let disk = DiskBytes::of(&dataset, &store);
+        assert_eq!((disk.store, disk.shared), (24, 300));
+        assert!(
+            disk.cell().contains("data-bytes=\"1024\"") && disk.cell().contains("300 B shared"),
             "{}",
             disk.cell()
         );

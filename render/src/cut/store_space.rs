@@ -2,8 +2,9 @@
 //! `lod` folder, the CLI's): they are kept within a byte budget by removing the least recently
 //! used ones before a build. A store's folder holds a `last_used` file, locked shared while
 //! the store is open (by any process) and touched when it is opened and closed; a store whose
-//! file is locked is in use and never removed. A store's size is the sum of its files'
-//! lengths.
+//! file is locked is in use and never removed. The stores' bytes are counted by
+//! `lod::disk_usage`: a payload layer two stores link is counted once, and removing a store
+//! frees only the files no other store links.
 
 use std::fs::{File, OpenOptions};
 use std::io;
@@ -13,6 +14,9 @@ use std::time::SystemTime;
 use rustix::fs::FlockOperation;
 
 use super::CutError;
+#[cfg(test)]
+pub(crate) use crate::lod::disk_usage::folder_bytes;
+use crate::lod::disk_usage::DiskUsage;
 
 /// The file in a store's folder whose lock marks the store in use and whose modification
 /// time is when it was last used.
@@ -91,29 +95,10 @@ fn same_file(file: &File, path: &Path) -> bool {
     }
 }
 
-/// The bytes of the files under `path` (links not followed); what vanishes meanwhile counts
-/// nothing.
-pub(crate) fn folder_bytes(path: &Path) -> u64 {
-    let Ok(meta) = std::fs::symlink_metadata(path) else {
-        return 0;
-    };
-    if !meta.is_dir() {
-        return meta.len();
-    }
-    let Ok(entries) = std::fs::read_dir(path) else {
-        return 0;
-    };
-    entries
-        .flatten()
-        .map(|entry| folder_bytes(&entry.path()))
-        .sum()
-}
-
 /// A store folder beside the one being built.
 #[derive(Debug)]
 struct Neighbour {
     folder: PathBuf,
-    bytes: u64,
     finished: bool,
     last_used: SystemTime,
 }
@@ -130,7 +115,6 @@ impl Neighbour {
             .or_else(|| modified(&folder))
             .unwrap_or(SystemTime::UNIX_EPOCH);
         Self {
-            bytes: folder_bytes(&folder),
             folder,
             finished,
             last_used,
@@ -152,9 +136,9 @@ impl Neighbour {
 pub(crate) struct SpaceReport {
     /// The folders removed, in order.
     pub removed: Vec<PathBuf>,
-    /// Their bytes.
+    /// The bytes their removal freed.
     pub removed_bytes: u64,
-    /// The bytes of the stores left beside the one to build.
+    /// The bytes of the stores left beside the one to build, each file once.
     pub remaining_bytes: u64,
 }
 
@@ -197,26 +181,32 @@ pub(crate) fn make_space(
     neighbours.sort_by(|a, b| {
         (a.finished, a.last_used, &a.folder).cmp(&(b.finished, b.last_used, &b.folder))
     });
+    let mut all = DiskUsage::default();
+    for neighbour in &neighbours {
+        all.add(&neighbour.folder);
+    }
     let mut report = SpaceReport {
-        remaining_bytes: neighbours.iter().map(|n| n.bytes).sum(),
+        remaining_bytes: all.bytes(),
         ..SpaceReport::default()
     };
     for neighbour in &neighbours {
         if report.remaining_bytes.saturating_add(needed) <= budget {
             break;
         }
+        // Measured just before: a layer it shares with a store removed before is its own now.
+        let freed = DiskUsage::of(&neighbour.folder).freed_bytes();
         match remove_unused(root, &neighbour.folder) {
             Ok(true) => {
                 tracing::info!(
                     folder = %neighbour.folder.display(),
-                    bytes = neighbour.bytes,
+                    bytes = freed,
                     why = neighbour.reason(),
                     needed,
                     budget,
                     "removed a level-of-detail store to keep the stores within their budget"
                 );
-                report.remaining_bytes -= neighbour.bytes;
-                report.removed_bytes += neighbour.bytes;
+                report.remaining_bytes = report.remaining_bytes.saturating_sub(freed);
+                report.removed_bytes += freed;
                 report.removed.push(neighbour.folder.clone());
             }
             Ok(false) => {}
@@ -367,6 +357,25 @@ mod tests {
                 .len(),
             0
         );
+    }
+
+    #[test]
+    fn a_layer_two_stores_share_is_counted_once_and_freed_with_the_last() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let root = dir.path();
+        let first = fake_store(root, "first", 2000, true, 600);
+        let grown = fake_store(root, "grown", 400, true, 10);
+        std::fs::hard_link(first.join("nodes.bin"), grown.join("nodes.bin.0")).expect("a layer");
+        let keep = root.join("new");
+        // 2400 bytes beside `keep`, the shared 1000 once; the first store frees its index alone.
+        let report = make_space(&keep, 1, 1000, 2500).expect("room made");
+        assert_eq!(names(&report), ["first"]);
+        assert_eq!((report.removed_bytes, report.remaining_bytes), (1000, 1400));
+        assert_eq!(folder_bytes(root), 1400);
+        // The layer is the grown store's own now, freed with it.
+        let report = make_space(&keep, 1, 2000, 2500).expect("room made");
+        assert_eq!(names(&report), ["grown"]);
+        assert_eq!((report.removed_bytes, report.remaining_bytes), (1400, 0));
     }
 
     #[test]

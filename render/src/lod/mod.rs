@@ -57,6 +57,7 @@ pub mod copc_export;
 mod counting;
 mod dataset;
 pub mod disk;
+pub mod disk_usage;
 pub mod error;
 mod fields;
 pub mod file_facts;
