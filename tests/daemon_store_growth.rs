@@ -9,7 +9,8 @@
 //! A chain of growths holds the earlier payloads as hard-linked layers, none copied: the last
 //! store renders the same once the earlier stores' folders are gone, and a grown store
 //! published to object storage (`s3s-fs`, skipped without `POINTFARM_TEST_S3S_FS`) is the one
-//! payload object its layers make together.
+//! payload object its layers make together. A growth from a store mostly of dead bytes is
+//! compacted into one file (`store_growth/compaction.rs`).
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -26,6 +27,9 @@ use pointfarm_tests::{
     assert_pngs_alike, free_address, output_text, pointfarm_bin, pointfarm_with, wait_for,
     ServeProcess,
 };
+
+#[path = "store_growth/compaction.rs"]
+mod compaction;
 
 /// Tiles across and along: 21, the middle one the new day's.
 const ACROSS: usize = 3;
@@ -75,6 +79,17 @@ fn write_campaign(dir: &Path, points: usize) -> Campaign {
         }
         folder
     };
+    Campaign {
+        day1: day("day1", &[middle]),
+        day2: day("day2", &[]),
+        less: day("less", &[middle, DROPPED]),
+        least: day("least", &[middle, DROPPED, INNER]),
+        camera: camera_flags(&cloud),
+    }
+}
+
+/// Flags of a camera that looks at the whole of `cloud` from above one side.
+fn camera_flags(cloud: &PointCloud) -> Vec<String> {
     let (min, size) = (cloud.bounds.min, cloud.bounds.size());
     let center = min + size * 0.5;
     let reach = size.x.max(size.y);
@@ -84,18 +99,12 @@ fn write_campaign(dir: &Path, points: usize) -> Campaign {
         center.y - 0.9 * reach,
         center.z + 0.8 * reach,
     ];
-    Campaign {
-        day1: day("day1", &[middle]),
-        day2: day("day2", &[]),
-        less: day("less", &[middle, DROPPED]),
-        least: day("least", &[middle, DROPPED, INNER]),
-        camera: vec![
-            format!("--camera-pos={}", xyz(position)),
-            format!("--camera-target={}", xyz(center.to_array())),
-            "--camera-up=0,0,1".to_owned(),
-            "--point-size=2".to_owned(),
-        ],
-    }
+    vec![
+        format!("--camera-pos={}", xyz(position)),
+        format!("--camera-target={}", xyz(center.to_array())),
+        "--camera-up=0,0,1".to_owned(),
+        "--point-size=2".to_owned(),
+    ]
 }
 
 /// The scene's points in each of `ACROSS` x `ALONG` tiles of its ground plan.

@@ -14,7 +14,7 @@
 //! which key their node caches by the content hash, never mix the two, and removing the
 //! earlier store leaves the grown one whole. A chain of growths past `lod::layers::MAX_LAYERS`
 //! layers, or one whose payload is mostly dead bytes, is compacted into one file before it is
-//! updated (`lod::compact`). The copy is made and updated in a folder of its own
+//! updated (`lod::compact`), the log saying the dead bytes it drops. The copy is made and updated in a folder of its own
 //! (`SHA256.growing`), checked (the copied hierarchy holds the earlier files' points, the
 //! updated one the dataset's), and only then renamed to the store's folder, where the
 //! opening marks it finished: a half-updated store is never served. An update that stops
@@ -386,12 +386,16 @@ fn copy_and_update(
     if needs_compaction(layers, linked, live) {
         let compacted = compact(&store).map_err(|e| format!("compacting the payload: {e}"))?;
         (payload_bytes_linked, payload_bytes_copied) = (0, compacted.bytes_after);
+        // The dead bytes leave the disk with the last store that links the layers.
+        let freed_bytes = compacted.bytes_before.saturating_sub(compacted.bytes_after);
         tracing::info!(
             layers,
             payload_bytes = linked,
             live_bytes = live,
             compacted_bytes = compacted.bytes_after,
-            "compacted the earlier store's payload into one file to update"
+            freed_bytes,
+            "compacted the earlier store's payload into one file to update: {freed_bytes} bytes \
+             no node lists dropped, {layers} layers no longer linked"
         );
     }
     tracing::info!(
