@@ -1,14 +1,14 @@
 //! A flythrough through the daemon over a campaign of 20 tiles that sees one or two of them: the
 //! daemon builds the store of the tiles its frames see first and leases every frame against
-//! it, then grows the dataset's whole store from it. With the whole store's growth stopped for
-//! good (`POINTFARM_TEST_PAUSE_AT=update:0`) the job still finishes, so its frames were drawn
-//! before the whole store existed; the daemon killed there and started again, with no job
-//! asking, grows the whole store from the part its record names, never serving a half-made
-//! store, and removes the part; deleting the dataset takes every store down; the frames equal
-//! a flight drawn from a store built whole first, within the fidelity rule. A flight that asks
-//! never to build the unseen tiles (`--build-unseen never`) finishes from its part with no
-//! whole store built, across a restart too, until a job that needs the whole store has it
-//! grown.
+//! it, then, once the first frame is in, grows the dataset's whole store from it. With the
+//! whole store's growth stopped for good (`POINTFARM_TEST_PAUSE_AT=update:0`) the job still
+//! finishes, so its frames were drawn before the whole store existed; the daemon killed there
+//! and started again, with no job asking, grows the whole store from the part its record
+//! names, never serving a half-made store, and removes the part; deleting the dataset takes
+//! every store down; the frames equal a flight drawn from a store built whole first, within
+//! the fidelity rule. A flight that asks never to build the unseen tiles (`--build-unseen
+//! never`) finishes from its part with no whole store built, across a restart too, until a
+//! job that needs the whole store has it grown.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -162,6 +162,15 @@ fn a_flight_through_the_daemon_is_drawn_from_the_tiles_it_sees_before_the_whole_
     let log = server.log();
     assert!(log.contains("camera first: the store of the"), "{log}");
     assert!(!log.contains("updated the store of"), "{log}");
+    // The whole store starts growing only once the first frame is in, which has the cores.
+    let at = |line: &str| {
+        log.find(line)
+            .unwrap_or_else(|| panic!("no {line:?} in\n{log}"))
+    };
+    assert!(
+        at("frame handed in") < at("build paused at update:0"),
+        "{log}"
+    );
     let stores = finished_stores(&data);
     assert_eq!(stores.len(), 1, "{stores:?}\n{log}");
     let seen = stores[0].1;

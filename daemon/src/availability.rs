@@ -1,11 +1,16 @@
-//! Why a job waits: for a job it runs after to succeed, or for a worker connected now that can
+//! Why a job waits: for a job it runs after to succeed, for a worker connected now that can
 //! be leased its frames, with why each that cannot cannot (requirements, frame size,
-//! blocklist), for `jobs show` and the submission's answer. More `Daemon` methods; the test is the one `lease_frame` makes.
+//! blocklist), or, for a job whose final frames are held, for the store they read to be
+//! built, for `jobs show` and the submission's answer. More `Daemon` methods; the test is the one `lease_frame` makes.
 
 use crate::capabilities::{drawn_side, AdapterKind};
 use crate::model::{Job, JobState};
 use crate::service::Daemon;
 use crate::worker_presence::ConnectedWorker;
+
+/// Why a job whose final frames are held waits.
+pub const STORE_BUILDING: &str =
+    "waiting for the store of its dataset to be built: no final frame is leased before";
 
 /// Whether the frames of an unfinished job can be leased to a worker connected now.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -59,6 +64,8 @@ impl Daemon {
             Some("no worker is connected".to_string())
         } else if refusals.len() == connected.len() {
             Some(why_none_can(job, &connected))
+        } else if self.store_holds_final_frames(job) {
+            Some(STORE_BUILDING.to_string())
         } else {
             None
         };

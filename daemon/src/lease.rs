@@ -320,6 +320,7 @@ impl Daemon {
             .unless_disk_refused(&lease, finished.map_err(DaemonError::from))?
             .ok_or_else(|| DaemonError::NotFound(format!("job {}", lease.job_id)))?;
         self.metrics.frame_completed(&report);
+        self.tell_stores_job_moved(&job);
         if job.state == JobState::Succeeded {
             self.log_job_end(&job, 0);
         }

@@ -420,6 +420,7 @@ impl Daemon {
     /// settles the jobs that run after it (`chains`); called under the scheduling lock.
     /// `unstored_attempts` failed attempts ended it before they were stored at its frame.
     pub(crate) fn log_job_end(&self, job: &Job, unstored_attempts: u32) {
+        self.tell_stores_job_moved(job);
         let failed_attempts = self
             .state
             .failed_attempts(&job.id)

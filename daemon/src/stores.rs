@@ -101,6 +101,12 @@ impl ReadyStore {
         self.dataset().bounds()
     }
 
+    /// The elevation range of its coarsest nodes, relative to the centre of its bounds: read
+    /// once when it was opened, the same a worker reads from the same nodes.
+    pub fn elevation(&self) -> Option<Stretch> {
+        self.dataset().elevation()
+    }
+
     /// Where the store's node records are read from (an export reads them all).
     pub fn node_records(&self) -> &std::sync::Arc<dyn pointfarm_render::lod::NodeRecords> {
         self.dataset().records()

@@ -13,11 +13,14 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use pointfarm_daemon::grpc::{copc_chunks, node_key_message, preview_sample_bounds};
+use pointfarm_daemon::grpc::{
+    copc_chunks, node_key_message, preview_sample_bounds, store_elevation,
+};
 use pointfarm_daemon::lease::FrameTask;
 use pointfarm_daemon::stores::{CopcServed, MAX_NODES_PER_REQUEST};
 use pointfarm_proto::v1 as pb;
 use pointfarm_render::cloud::{PointCloud, WorldBounds};
+use pointfarm_render::color::Stretch;
 use pointfarm_render::copc::CopcDecoder;
 use pointfarm_render::lod::{
     LodError, LodHierarchy, NodeInfo, NodePoints, NodeRecords, RootCube, PREVIEW_STORED_POINTS,
@@ -51,6 +54,9 @@ pub struct RemoteStore {
     pub records: Arc<RemoteNodes>,
     /// Set when the dataset is one COPC file read through its own hierarchy.
     pub copc: Option<CopcServed>,
+    /// The elevation range of the store's coarsest nodes as the daemon read them; absent
+    /// when the daemon did not say, and the worker reads them itself.
+    pub elevation: Option<Stretch>,
 }
 
 /// Asks the daemon for the store of `task`'s dataset, and fetches its hierarchy when it is
@@ -114,6 +120,8 @@ pub async fn open(client: &mut Client, task: &FrameTask) -> Result<DaemonStore, 
         .map(copc_chunks)
         .transpose()
         .map_err(|e| Status::internal(format!("the daemon's COPC answer: {e}")))?;
+    let elevation = store_elevation(&answer)
+        .map_err(|e| Status::internal(format!("the daemon's store answer: {e}")))?;
     let hierarchy = match &copc {
         Some(copc) => hierarchy.with_root_spacing(copc.root_spacing),
         None => hierarchy,
@@ -135,6 +143,7 @@ pub async fn open(client: &mut Client, task: &FrameTask) -> Result<DaemonStore, 
             decoder: copc.as_ref().map(|copc| copc.decoder.clone()),
         }),
         copc,
+        elevation,
     })))
 }
 

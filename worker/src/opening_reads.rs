@@ -1,7 +1,8 @@
 //! The node records a daemon's store's opening fetches, kept for the reads that follow it.
-//! Opening reads the coarsest nodes twice (the elevation range's sample, then the framing
-//! extent's), and the first frame's cut reads them a third time: without this, each is a
-//! fetch from the daemon, while the daemon's cores are busy growing the whole store. The
+//! Opening reads the coarsest nodes for the framing extent (and, from a daemon that does not
+//! send the elevation range, for that range's sample first), and the first frame's cut reads
+//! them again: without this, each is a fetch from the daemon, while its cores may be busy
+//! building or growing a store. The
 //! bytes are the daemon's either way, each checked as it is decoded, so the images do not
 //! change. Records are kept only while the store opens, so what is kept is bounded by the
 //! opening's sample; the first frame takes them, and what it did not take is dropped after it.

@@ -484,10 +484,21 @@ impl WorkerRenderState {
                 // The opening's reads are kept for the first frame, which reads the same nodes.
                 let kept = Arc::new(OpeningReads::new(store.records));
                 opening = Some(Arc::clone(&kept));
-                LodDataset::with_records(kept, store.hierarchy, store.bounds).map_err(|e| {
-                    FrameFailure::from(&CutError::Store(e))
-                        .context(&format!("dataset {}", task.dataset.id))
-                })?
+                match store.elevation {
+                    // The daemon read the coarsest nodes when it opened the store.
+                    Some(elevation) => LodDataset::with_elevation(
+                        kept,
+                        store.hierarchy,
+                        store.bounds,
+                        Some(elevation),
+                    ),
+                    None => LodDataset::with_records(kept, store.hierarchy, store.bounds).map_err(
+                        |e| {
+                            FrameFailure::from(&CutError::Store(e))
+                                .context(&format!("dataset {}", task.dataset.id))
+                        },
+                    )?,
+                }
             }
         };
         let levels = Levels::Served {

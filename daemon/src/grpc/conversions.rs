@@ -507,6 +507,7 @@ impl From<&StoreAnswer> for pb::OpenDatasetStoreResponse {
                 hierarchy_bytes: store.hierarchy_record.len() as u64,
                 build_ms: store.build_ms,
                 copc: store.copc.as_ref().map(copc_chunks_message),
+                elevation: elevation_message(store.elevation()),
             },
         }
     }
@@ -528,13 +529,42 @@ fn copc_chunks_message(copc: &CopcServed) -> pb::CopcChunks {
         }),
         laszip_vlr: decoder.laszip_vlr().to_vec(),
         root_spacing: copc.root_spacing,
-        elevation: copc.elevation.map(|e| pb::ElevationStretch {
-            low: e.low,
-            high: e.high,
-        }),
+        elevation: elevation_message(copc.elevation),
         point_spacing: copc.point_spacing,
         weight_offset: decoder.weight_at().map(u32::from),
     }
+}
+
+/// An elevation range as it is sent.
+fn elevation_message(elevation: Option<Stretch>) -> Option<pb::ElevationStretch> {
+    elevation.map(|e| pb::ElevationStretch {
+        low: e.low,
+        high: e.high,
+    })
+}
+
+/// The elevation range in `message` (its field `field`), checked to be one.
+fn elevation_range(
+    message: Option<&pb::ElevationStretch>,
+    field: &str,
+) -> Result<Option<Stretch>, DaemonError> {
+    match message {
+        Some(e) if e.low.is_finite() && e.high.is_finite() && e.low <= e.high => {
+            Ok(Some(Stretch {
+                low: e.low,
+                high: e.high,
+            }))
+        }
+        Some(_) => Err(invalid(field, "not a range")),
+        None => Ok(None),
+    }
+}
+
+/// The elevation range of a ready store's coarsest nodes as the daemon sends it, checked.
+pub fn store_elevation(
+    answer: &pb::OpenDatasetStoreResponse,
+) -> Result<Option<Stretch>, DaemonError> {
+    elevation_range(answer.elevation.as_ref(), "elevation")
 }
 
 /// What a worker is sent to decode a COPC file's chunks, checked as the file's header is.
@@ -559,14 +589,7 @@ pub fn copc_chunks(message: &pb::CopcChunks) -> Result<CopcServed, DaemonError> 
     if !(message.root_spacing.is_finite() && message.root_spacing > 0.0) {
         return Err(invalid(&field("root_spacing"), "not a positive size"));
     }
-    let elevation = match &message.elevation {
-        Some(e) if e.low.is_finite() && e.high.is_finite() && e.low <= e.high => Some(Stretch {
-            low: e.low,
-            high: e.high,
-        }),
-        Some(_) => return Err(invalid(&field("elevation"), "not a range")),
-        None => None,
-    };
+    let elevation = elevation_range(message.elevation.as_ref(), &field("elevation"))?;
     if message
         .point_spacing
         .is_some_and(|s| !(s.is_finite() && s > 0.0))

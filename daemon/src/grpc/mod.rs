@@ -33,7 +33,7 @@ pub use conversions::{
     copc_chunks, copc_description, dataset_description, export_summary, file_description,
     frame_cut_message, frame_cut_of_message, frame_task, frame_task_message,
     job_with_frames_message, node_key_message, point_attributes_message, preview_sample_bounds,
-    stage_timings, timings_message, workers_message,
+    stage_timings, store_elevation, timings_message, workers_message,
 };
 pub use request::{camera_path_message, render_options_message, render_request};
 pub use video::{video_settings, video_spec_message};

@@ -100,6 +100,18 @@ fn a_final_frame_waits_while_its_store_builds_and_goes_out_when_it_is_ready() {
         try_lease(&daemon).is_none(),
         "a final frame whose store builds is held"
     );
+    // A connected worker could take it: the job says it waits for its store.
+    let _present = daemon.workers.poll_named(
+        false,
+        "w",
+        WorkerCapabilities::default(),
+        Duration::from_secs(60),
+    );
+    let held = daemon.state.job(&job.id).expect("state").expect("the job");
+    assert_eq!(
+        daemon.job_availability(&held).waiting.as_deref(),
+        Some(crate::availability::STORE_BUILDING)
+    );
 
     // Another job's frames still go out (a file rendered resident, no store).
     let other = submit_on(&daemon, "a.las", 1, None);

@@ -86,3 +86,18 @@ impl<'a> StoreWaits<'a> {
         }
     }
 }
+
+impl Daemon {
+    /// Whether the final frames of `job` are not leased while the store they read builds.
+    pub(crate) fn store_holds_final_frames(&self, job: &Job) -> bool {
+        StoreWaits::new(self).holds_final_frames(job)
+    }
+
+    /// A final frame of `job` was handed in, or the job ended: a whole store whose growth
+    /// waits for the job's first frame starts growing (`DatasetStores::job_moved`).
+    pub(crate) fn tell_stores_job_moved(&self, job: &Job) {
+        if let Ok(Some(dataset)) = self.state.dataset(&job.spec.dataset_id) {
+            self.stores.job_moved(job, &dataset);
+        }
+    }
+}

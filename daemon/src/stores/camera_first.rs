@@ -19,11 +19,13 @@
 //!   against it: the frames of files that are all in it are the frames of every file
 //!   (`camera_first.rs` of the render crate), up to the cut's node choice, which
 //!   `tests/daemon_camera_first.rs` holds to the local fidelity rule.
-//! - the **whole** store of the dataset, grown from a copy of the part once the part is ready
-//!   and a frame of a job that leaves the unseen files to after (its `build_unseen`, the
-//!   default) is leased against it, whatever share of files it lacks (`growth::grow`); a job
-//!   asking never to build them leaves it unbuilt, though a job that needs the whole store
-//!   still gets it grown. Once the whole store is ready, frames are leased against it.
+//! - the **whole** store of the dataset, grown from a copy of the part, whatever share of
+//!   files it lacks (`growth::grow`), for a job that leaves the unseen files to after (its
+//!   `build_unseen`, the default), once the part is ready and the job's first frame is in
+//!   (`whole_growth_due`): the first frame, drawn from the part, has the daemon's cores to
+//!   itself. A job asking never to build them leaves it unbuilt, though a job that needs the
+//!   whole store still gets it grown. Once the whole store is ready, frames are leased
+//!   against it.
 //!
 //! Both are built through the daemon's one build path (`DatasetStores::start_build`): one at
 //! a time, finished before they are served, the part resumed by its journal after a restart
@@ -41,6 +43,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
+use std::time::{Duration, Instant};
 
 use glam::DVec3;
 
@@ -59,6 +62,17 @@ use super::input::{ready_of, with_build};
 use super::{DatasetStores, Entry, ReadyStore};
 use crate::model::{content_sha256_of, dataset_id, CameraFirstPart, Dataset, DatasetFile, Job};
 
+/// The longest the whole store's growth waits for the first frame of a job reading a ready
+/// part, so that a stuck worker cannot hold it back.
+const WHOLE_GROWTH_HOLD: Duration = Duration::from_secs(30);
+
+/// Whether the whole store is grown now from the ready part `job` reads, which has waited
+/// `held` since it was first found ready: once the job's first frame is handed in or the job
+/// ends, so that frame has the daemon's cores, or once the hold runs out.
+fn whole_growth_due(job: &Job, held: Duration) -> bool {
+    job.frames_done > 0 || job.state.is_terminal() || held >= WHOLE_GROWTH_HOLD
+}
+
 mod restart;
 
 /// The part of a dataset a job's frames see, and what becomes of the rest.
@@ -74,6 +88,9 @@ pub(super) struct Part {
     whole_wanted: AtomicBool,
     /// Removed once the whole store is grown from it: no job reads it any more (`restart`).
     retired: AtomicBool,
+    /// When a job wanting the whole store first found it ready: the whole store's growth
+    /// waits from then (`whole_growth_due`).
+    ready_since: OnceLock<Instant>,
 }
 
 impl Part {
@@ -99,6 +116,7 @@ impl Part {
             },
             whole_wanted: AtomicBool::new(record.whole_wanted),
             retired: AtomicBool::new(false),
+            ready_since: OnceLock::new(),
         }
     }
 }
@@ -175,7 +193,7 @@ fn remove_part_folder(folder: &Path, id: &str, why: &str) {
 impl DatasetStores {
     /// The dataset whose store a frame of `job` (on `dataset`) reads: the part its frames
     /// see while the whole store is not ready (module doc), else `dataset`. Starts growing
-    /// the whole store once the part is ready.
+    /// the whole store once the part is ready and the growth is due.
     pub fn leased(&self, job: &Job, dataset: &Dataset) -> Dataset {
         let (job_id, request) = (job.id.as_str(), &job.spec.request);
         if dataset.is_by_url() || self.whole_ready(dataset) {
@@ -203,14 +221,36 @@ impl DatasetStores {
         let Some(part) = part else {
             return dataset.clone();
         };
-        let part_ready = StoredLod::is_built(&self.folder(&part.dataset.sha256));
-        if part_ready && wants_whole(job) {
-            // Started once: later calls find it building or ready.
-            if let Err(error) = self.open_store(dataset, true) {
-                tracing::warn!(dataset = %dataset.id, %error, "growing the whole store");
-            }
-        }
+        self.grow_whole_when_due(job, dataset, &part);
         part.dataset.clone()
+    }
+
+    /// A final frame of `job` (on `dataset`) was handed in, or the job ended: the whole store
+    /// is grown from the part it read, when the job wants it.
+    pub fn job_moved(&self, job: &Job, dataset: &Dataset) {
+        if dataset.is_by_url() || self.whole_ready(dataset) {
+            return;
+        }
+        let decided = self.lock_jobs().get(job.id.as_str()).cloned().flatten();
+        if let Some(part) = decided {
+            self.grow_whole_when_due(job, dataset, &part);
+        }
+    }
+
+    /// Starts growing the whole store of `dataset` from `part` when it is ready, `job` wants
+    /// the whole store, and the growth is due (`whole_growth_due`).
+    fn grow_whole_when_due(&self, job: &Job, dataset: &Dataset, part: &Part) {
+        if !wants_whole(job) || !StoredLod::is_built(&self.folder(&part.dataset.sha256)) {
+            return;
+        }
+        let held = part.ready_since.get_or_init(Instant::now).elapsed();
+        if !whole_growth_due(job, held) {
+            return;
+        }
+        // Started once: later calls find it building or ready.
+        if let Err(error) = self.open_store(dataset, true) {
+            tracing::warn!(dataset = %dataset.id, %error, "growing the whole store");
+        }
     }
 
     /// The part of a dataset a job reads first, by its dataset id (for workers' requests).
@@ -349,6 +389,7 @@ impl DatasetStores {
             bounds,
             whole_wanted: AtomicBool::new(false),
             retired: AtomicBool::new(false),
+            ready_since: OnceLock::new(),
         });
         tracing::info!(dataset = %dataset.id, part = %part.dataset.id,
             files_seen = places.len(), files = files.len(),

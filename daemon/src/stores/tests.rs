@@ -160,6 +160,25 @@ fn a_store_is_built_once_served_by_node_and_removed_with_its_dataset() {
     assert!(again.ready(&dataset).is_err());
 }
 
+/// A worker told the store's elevation range colors by the range it would read itself.
+#[test]
+fn a_stores_elevation_range_is_the_one_a_worker_reads_from_its_coarsest_nodes() {
+    use pointfarm_proto::v1 as pb;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let dataset = scene_dataset(dir.path(), 40_000, "e1e7");
+    let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
+    let store = wait_ready(&stores, &dataset);
+    let sent = pb::OpenDatasetStoreResponse::from(&StoreAnswer::Ready(Arc::clone(&store)));
+    let told = crate::grpc::store_elevation(&sent).expect("a range");
+    let hierarchy = LodHierarchy::decode(&store.hierarchy_record).expect("decodes");
+    let read =
+        LodDataset::with_records(Arc::clone(store.node_records()), hierarchy, store.bounds())
+            .expect("reads its coarsest nodes")
+            .elevation();
+    assert!(read.is_some(), "the scene's coarsest nodes hold points");
+    assert_eq!(told, read);
+}
+
 #[test]
 fn workers_asking_at_once_share_one_build_and_one_opening() {
     let dir = tempfile::tempdir().expect("tempdir");
