@@ -9,8 +9,9 @@
 //! counted (`pointfarm_jobs_removed_total`). The rule takes its "now" as an argument, so that
 //! tests move the clock rather than wait for it.
 
-use std::path::Path;
 use std::sync::Arc;
+
+use pointfarm_render::lod::disk_usage::folder_bytes;
 
 use crate::error::DaemonError;
 use crate::job_control::remove_moved_frames;
@@ -119,21 +120,6 @@ pub fn spawn_sweep(daemon: Arc<Daemon>) -> tokio::task::JoinHandle<()> {
             }
         }
     })
-}
-
-/// Bytes of the files below `dir` (none when it does not exist).
-pub(crate) fn folder_bytes(dir: &Path) -> u64 {
-    let Ok(entries) = std::fs::read_dir(dir) else {
-        return 0;
-    };
-    entries
-        .flatten()
-        .map(|entry| match entry.file_type() {
-            Ok(kind) if kind.is_dir() => folder_bytes(&entry.path()),
-            Ok(_) => entry.metadata().map_or(0, |m| m.len()),
-            Err(_) => 0,
-        })
-        .sum()
 }
 
 #[cfg(test)]

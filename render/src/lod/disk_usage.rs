@@ -6,15 +6,16 @@
 //! no other store holds. Where files have no identity to read (not Unix), each name is a file
 //! of its own, freed with its folder.
 //!
-//! A walk keeps a few numbers per file it finds; store folders hold few files.
+//! A walk keeps a few numbers per file with more than one name it finds, and a sum of the
+//! others, so counting a folder of many files takes little memory.
 
 use std::collections::HashMap;
 use std::path::Path;
 
-/// A file's identity: its device and inode, or its place in the walk where there are none.
+/// A file's identity: its device and inode.
 type FileId = (u64, u64);
 
-/// What a walk found of one file.
+/// What a walk found of one file with more than one name.
 #[derive(Debug, Clone, Copy)]
 struct Found {
     bytes: u64,
@@ -27,9 +28,10 @@ struct Found {
 /// The files under one or more folders, each counted once.
 #[derive(Debug, Default)]
 pub struct DiskUsage {
-    files: HashMap<FileId, Found>,
-    /// Files without an identity met so far, which numbers the next.
-    unnamed: u64,
+    /// Files with more than one name, which another name may have counted already.
+    linked: HashMap<FileId, Found>,
+    /// Bytes of the files with one name.
+    single_bytes: u64,
 }
 
 impl DiskUsage {
@@ -55,34 +57,35 @@ impl DiskUsage {
             }
             return;
         }
-        let (id, names) = match identity(&meta) {
-            Some(known) => known,
-            None => {
-                self.unnamed += 1;
-                ((u64::MAX, self.unnamed), 1)
+        match identity(&meta) {
+            Some((id, names)) if names > 1 => {
+                let found = self.linked.entry(id).or_insert(Found {
+                    bytes: meta.len(),
+                    names,
+                    names_seen: 0,
+                });
+                found.names_seen += 1;
             }
-        };
-        let found = self.files.entry(id).or_insert(Found {
-            bytes: meta.len(),
-            names,
-            names_seen: 0,
-        });
-        found.names_seen += 1;
+            _ => self.single_bytes = self.single_bytes.saturating_add(meta.len()),
+        }
     }
 
     /// Bytes of the files found, each once.
     pub fn bytes(&self) -> u64 {
-        self.files.values().map(|f| f.bytes).sum()
+        let linked: u64 = self.linked.values().map(|f| f.bytes).sum();
+        self.single_bytes.saturating_add(linked)
     }
 
     /// Bytes removing the folders added would free: of the files every name of which was
     /// found.
     pub fn freed_bytes(&self) -> u64 {
-        self.files
+        let linked: u64 = self
+            .linked
             .values()
             .filter(|f| f.names_seen >= f.names)
             .map(|f| f.bytes)
-            .sum()
+            .sum();
+        self.single_bytes.saturating_add(linked)
     }
 }
 
