@@ -54,6 +54,18 @@ fn wait_ready(stores: &DatasetStores, dataset: &Dataset) -> Arc<ReadyStore> {
     }
 }
 
+/// The stores in `dir`, with the store of a sample scene dataset (`points` of it) built.
+fn scene_store(
+    dir: &Path,
+    points: usize,
+    sha256: &str,
+) -> (Dataset, DatasetStores, Arc<ReadyStore>) {
+    let dataset = scene_dataset(dir, points, sha256);
+    let stores = DatasetStores::new(dir.join("lod"), 64 << 20);
+    let store = wait_ready(&stores, &dataset);
+    (dataset, stores, store)
+}
+
 /// The nodes of `store`'s hierarchy with points, and their keys.
 fn stored_nodes(store: &ReadyStore) -> (Vec<NodeInfo>, Vec<NodeKey>) {
     let stored: Vec<NodeInfo> = store.hierarchy().stored_nodes().copied().collect();
@@ -165,9 +177,7 @@ fn a_store_is_built_once_served_by_node_and_removed_with_its_dataset() {
 fn a_stores_elevation_range_is_the_one_a_worker_reads_from_its_coarsest_nodes() {
     use pointfarm_proto::v1 as pb;
     let dir = tempfile::tempdir().expect("tempdir");
-    let dataset = scene_dataset(dir.path(), 40_000, "e1e7");
-    let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
-    let store = wait_ready(&stores, &dataset);
+    let (_dataset, _stores, store) = scene_store(dir.path(), 40_000, "e1e7");
     let sent = pb::OpenDatasetStoreResponse::from(&StoreAnswer::Ready(Arc::clone(&store)));
     let told = crate::grpc::store_elevation(&sent).expect("a range");
     let hierarchy = LodHierarchy::decode(&store.hierarchy_record).expect("decodes");
@@ -510,9 +520,7 @@ fn damage_payload(dir: &Path, sha256: &str) {
 #[test]
 fn a_damaged_store_is_built_again_once_then_its_damage_is_reported() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let dataset = scene_dataset(dir.path(), 20_000, "dd44");
-    let stores = DatasetStores::new(dir.path().join("lod"), 64 << 20);
-    let store = wait_ready(&stores, &dataset);
+    let (dataset, stores, store) = scene_store(dir.path(), 20_000, "dd44");
     let (_, keys) = stored_nodes(&store);
     let whole = stores.node_records(&dataset, &keys, false).expect("served");
     drop(store);
