@@ -10,7 +10,9 @@
 
 use pointfarm_proto::v1 as pb;
 
-use super::request::{camera_path_message, known_enum, render_options_message, render_request};
+use super::request::{
+    build_unseen_message, camera_path_message, known_enum, render_options_message, render_request,
+};
 use crate::availability::JobAvailability;
 use crate::capabilities::{checked_tags, AdapterKind, WorkerCapabilities, WorkerRequirements};
 use crate::error::DaemonError;
@@ -640,6 +642,5 @@ mod datasets;
 pub(super) use datasets::dataset_with_publication;
 mod descriptions;
 mod submission;
-pub(super) use submission::build_unseen_message;
 #[cfg(test)]
 mod tests;

@@ -15,6 +15,7 @@ use pointfarm_render::request::{
 
 use crate::error::DaemonError;
 use crate::model::JobSpec;
+use pointfarm_render::source::BuildUnseen;
 
 /// The value of a proto enum field, or an error naming `field` for a number this API does not
 /// define (a newer client's value, or garbage).
@@ -470,7 +471,24 @@ impl From<&JobSpec> for pb::SubmitJobRequest {
             labels: spec.labels.clone().into_iter().collect(),
             video: spec.video.as_ref().map(super::video::video_spec_message),
             output_url: spec.output_url.clone().unwrap_or_default(),
-            build_unseen: super::conversions::build_unseen_message(spec.build_unseen) as i32,
+            build_unseen: build_unseen_message(spec.build_unseen) as i32,
         }
+    }
+}
+
+/// The files no frame of a job sees, as the job asks: unset is the option's default.
+pub(super) fn build_unseen(value: i32) -> Result<BuildUnseen, DaemonError> {
+    Ok(match known_enum("build_unseen", value)? {
+        pb::BuildUnseen::Unspecified => BuildUnseen::default(),
+        pb::BuildUnseen::After => BuildUnseen::After,
+        pb::BuildUnseen::Never => BuildUnseen::Never,
+    })
+}
+
+/// [`build_unseen`] on the wire, always set, so a job's spec shows the choice.
+pub(in crate::grpc) fn build_unseen_message(unseen: BuildUnseen) -> pb::BuildUnseen {
+    match unseen {
+        BuildUnseen::After => pb::BuildUnseen::After,
+        BuildUnseen::Never => pb::BuildUnseen::Never,
     }
 }

@@ -2,9 +2,8 @@
 //! limits of the server and the jobs it runs after are checked by the daemon.
 
 use pointfarm_proto::v1 as pb;
-use pointfarm_render::source::BuildUnseen;
 
-use super::super::request::{known_enum, render_request};
+use super::super::request::{build_unseen, render_request};
 use super::invalid;
 use crate::capabilities::WorkerRequirements;
 use crate::error::DaemonError;
@@ -43,22 +42,5 @@ impl TryFrom<&pb::SubmitJobRequest> for JobSpec {
             output_url: crate::output_queue::check_output_url("output_url", &r.output_url)?,
             build_unseen: build_unseen(r.build_unseen)?,
         })
-    }
-}
-
-/// The files no frame of a job sees, as the job asks: unset is the option's default.
-fn build_unseen(value: i32) -> Result<BuildUnseen, DaemonError> {
-    Ok(match known_enum("build_unseen", value)? {
-        pb::BuildUnseen::Unspecified => BuildUnseen::default(),
-        pb::BuildUnseen::After => BuildUnseen::After,
-        pb::BuildUnseen::Never => BuildUnseen::Never,
-    })
-}
-
-/// [`build_unseen`] on the wire, always set, so a job's spec shows the choice.
-pub(in crate::grpc) fn build_unseen_message(unseen: BuildUnseen) -> pb::BuildUnseen {
-    match unseen {
-        BuildUnseen::After => pb::BuildUnseen::After,
-        BuildUnseen::Never => pb::BuildUnseen::Never,
     }
 }
