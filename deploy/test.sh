@@ -124,11 +124,13 @@ fi
 # gcp-storage-emulator, a Google Cloud Storage server that takes object_store's single-request
 # PUT (fake-gcs-server does not), for the test of a job's outputs sent to gs:// URLs
 # (tests/gcs_outputs.rs): PyPI's package, installed into a virtualenv of its own and its script
-# linked into the tools' bin.
-if [ ! -x "$tools/bin/gcp-storage-emulator" ]; then
+# linked into the tools' bin. Its script names the virtualenv's path, so a checkout moved
+# elsewhere has it installed again.
+if ! "$tools/bin/gcp-storage-emulator" --help >/dev/null 2>&1; then
     echo "pointfarm tests: installing gcp-storage-emulator for the GCS output tests" >&2
     emulator_venv="$tools/gcs-emulator-venv"
-    if { [ -x "$emulator_venv/bin/python" ] || python3 -m venv "$emulator_venv"; } &&
+    rm -rf "$emulator_venv" "$tools/bin/gcp-storage-emulator"
+    if python3 -m venv "$emulator_venv" &&
         "$emulator_venv/bin/python" -m pip install --quiet --disable-pip-version-check \
             gcp-storage-emulator==2026.7.19; then
         mkdir -p "$tools/bin"
