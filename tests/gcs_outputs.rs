@@ -9,7 +9,8 @@
 //!
 //! A frame written whole is not tested against it: the emulator stores the `PUT` but answers
 //! it without the `ETag` header that object_store's GCS client reads the write's result from,
-//! so the client reports every write failed (docs/design/remote.md).
+//! so the client reports every write failed; no GCS server on the package registries answers
+//! those writes as GCS does (docs/design/remote.md names each one tried and its answer).
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
