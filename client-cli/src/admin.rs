@@ -68,8 +68,9 @@ pub enum DatasetCommand {
         inputs: Vec<PathBuf>,
     },
     /// Register files or folders that are already on the server, under its data roots, as
-    /// one dataset; or one COPC object by its URL (s3://, http://, https://) under a prefix
-    /// the server allows (`serve --allow-url-prefix`), which the server never copies.
+    /// one dataset; or, by URL (s3://, gs://, az://, http(s)://) under a prefix the server
+    /// allows (`serve --allow-url-prefix`), one COPC object or LAS/LAZ tiles (objects, or a
+    /// prefix of them), which the server never copies.
     Register {
         /// Files or folders on the server, under one of its `--data-root`s, or one URL.
         #[arg(required = true, value_name = "PATH|URL")]

@@ -139,8 +139,10 @@ pub fn run(
             .map_err(crate::remote::status_error)?
             .into_inner();
         reporter.say(format_args!(
-            "job {} submitted: {} frames",
-            job.id, job.frames_total
+            "job {} submitted: {} frame{}",
+            job.id,
+            job.frames_total,
+            crate::source_words::plural(job.frames_total as usize)
         ));
         if args.detach {
             if args.json {

@@ -32,14 +32,14 @@ pub struct RenderArgs {
     /// LAS/LAZ files or folders of them, rendered as one dataset (tiles or scan positions of
     /// one campaign: one origin, bounds and color decision); or one URL (https://, s3://, gs://,
     /// az://), read by range: a COPC file, or LAS/LAZ tiles (a file, or a prefix of them),
-    /// which render with --preview only.
+    /// streamed once into a store here (previewed by range first with --preview).
     #[arg(required_unless_present = "dataset", value_name = "INPUT")]
     pub(crate) inputs: Vec<PathBuf>,
     /// Render on this pointfarm server instead of here (uploading the files it lacks).
     #[arg(long, env = "POINTFARM_SERVER")]
     pub(crate) server: Option<String>,
     /// Render a dataset the server already has, by its id (`dataset register` or `dataset
-    /// upload` print it), instead of files: nothing is read or sent from here.
+    /// add` print it), instead of files: nothing is read or sent from here.
     #[arg(long, value_name = "ID", conflicts_with_all = ["inputs", "local"])]
     pub(crate) dataset: Option<String>,
     /// Render here, whatever --server or POINTFARM_SERVER say.

@@ -47,8 +47,9 @@ pub struct ServeArgs {
     #[arg(long = "data-root", env = "POINTFARM_DATA_ROOT", value_delimiter = ',')]
     data_roots: Vec<PathBuf>,
     /// A URL prefix (s3://bucket/prefix, gs://, az://, https://host/path) clients may register
-    /// COPC objects from by URL, compared by whole path segments (repeatable; in the environment,
-    /// separated by commas). Without one, no dataset by URL is accepted.
+    /// datasets from by URL (COPC objects, LAS/LAZ tiles), compared by whole path segments
+    /// (repeatable; in the environment, separated by commas). Without one, no dataset by URL is
+    /// accepted.
     #[arg(
         long = "allow-url-prefix",
         value_name = "URL",

@@ -170,7 +170,8 @@ impl Drop for SourceWords {
     }
 }
 
-fn plural(count: usize) -> &'static str {
+/// The plural ending of a count's noun: "" for one, "s" for any other count.
+pub(crate) fn plural(count: usize) -> &'static str {
     if count == 1 {
         ""
     } else {
