@@ -82,6 +82,18 @@ impl FetchedFrames {
     }
 }
 
+/// `jobs video --json`: where the job's video (or its preview video) was written, and its
+/// size, a 64-bit count written as a string as the API writes its own.
+#[derive(Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct FetchedVideo {
+    pub job_id: String,
+    pub out: String,
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub preview: bool,
+    pub size_bytes: String,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -117,6 +129,20 @@ mod tests {
             serde_json::json!({
                 "jobId": "job-1", "out": "out", "frames": [{ "index": 0, "path": "out/f0.png" }],
             })
+        );
+        let video = |preview| FetchedVideo {
+            job_id: "job-1".into(),
+            out: "spin.mp4".into(),
+            preview,
+            size_bytes: 16953.to_string(),
+        };
+        assert_eq!(
+            serde_json::to_value(video(false)).expect("encodes"),
+            serde_json::json!({ "jobId": "job-1", "out": "spin.mp4", "sizeBytes": "16953" })
+        );
+        assert_eq!(
+            serde_json::to_value(video(true)).expect("encodes")["preview"],
+            serde_json::json!(true)
         );
     }
 }

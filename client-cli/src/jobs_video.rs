@@ -9,6 +9,7 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_render::encode::video::VideoContainer;
 use tokio::io::AsyncWriteExt;
 
+use crate::admin_json::{json_line, FetchedVideo};
 use crate::download::PartialFile;
 use crate::remote::Client;
 
@@ -74,11 +75,27 @@ fn check_container(container: &str, out: &Path) -> Result<()> {
     Ok(())
 }
 
-/// `jobs video JOB [--preview] --out FILE`.
-pub async fn run(client: &mut Client, job_id: &str, preview: bool, out: &Path) -> Result<()> {
+/// `jobs video JOB [--preview] --out FILE [--json]`.
+pub async fn run(
+    client: &mut Client,
+    job_id: &str,
+    preview: bool,
+    out: &Path,
+    json: bool,
+) -> Result<()> {
     let bytes = download_of(client, job_id, preview, out).await?;
-    let which = if preview { "preview video" } else { "video" };
-    outln!("{which} of job {job_id}: {} ({bytes} bytes)", out.display());
+    if json {
+        let fetched = FetchedVideo {
+            job_id: job_id.to_owned(),
+            out: out.display().to_string(),
+            preview,
+            size_bytes: bytes.to_string(),
+        };
+        outln!("{}", json_line(&fetched)?);
+    } else {
+        let which = if preview { "preview video" } else { "video" };
+        outln!("{which} of job {job_id}: {} ({bytes} bytes)", out.display());
+    }
     Ok(())
 }
 

@@ -345,7 +345,7 @@ pub fn jobs(server: &ServerArgs, command: JobsCommand) -> Result<()> {
                 }
             }
             JobsCommand::Video { id, out, preview } => {
-                crate::jobs_video::run(&mut client, &id, preview, &out).await?;
+                crate::jobs_video::run(&mut client, &id, preview, &out, server.json).await?;
             }
             JobsCommand::Workers => {
                 let workers =
