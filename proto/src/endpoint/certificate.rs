@@ -48,9 +48,28 @@ pub fn identity_error(error: &(dyn Error + 'static)) -> String {
 /// Whether `error`, or an error it was caused by, is a TLS handshake's refusal of a server
 /// certificate marked as a certificate authority.
 pub fn is_ca_used_as_server_certificate(error: &(dyn Error + 'static)) -> bool {
+    any_cause(error, refuses_ca_certificate)
+}
+
+/// Whether `error`, or an error it was caused by, is a TLS handshake's refusal of a server
+/// certificate that no trusted CA signed: a self-signed or private one without `--tls-ca`,
+/// or one that CA file does not vouch for.
+pub fn is_untrusted_server_certificate(error: &(dyn Error + 'static)) -> bool {
+    any_cause(error, |error| {
+        matches!(
+            error.downcast_ref::<rustls::Error>(),
+            Some(rustls::Error::InvalidCertificate(
+                rustls::CertificateError::UnknownIssuer | rustls::CertificateError::BadSignature
+            ))
+        )
+    })
+}
+
+/// Whether `test` holds for `error` or an error it was caused by.
+fn any_cause(error: &(dyn Error + 'static), test: impl Fn(&(dyn Error + 'static)) -> bool) -> bool {
     let mut next = Some(error);
     while let Some(error) = next {
-        if refuses_ca_certificate(error) {
+        if test(error) {
             return true;
         }
         // An I/O error shows its inner error but gives that error's cause as its source.
@@ -58,7 +77,7 @@ pub fn is_ca_used_as_server_certificate(error: &(dyn Error + 'static)) -> bool {
             .downcast_ref::<std::io::Error>()
             .and_then(|io| io.get_ref())
         {
-            if refuses_ca_certificate(inner) {
+            if test(inner) {
                 return true;
             }
         }
@@ -119,5 +138,8 @@ mod tests {
         let unknown = rustls::Error::InvalidCertificate(rustls::CertificateError::UnknownIssuer);
         let io = std::io::Error::new(std::io::ErrorKind::InvalidData, unknown);
         assert!(!is_ca_used_as_server_certificate(&io));
+        assert!(is_untrusted_server_certificate(&io));
+        let expired = rustls::Error::InvalidCertificate(rustls::CertificateError::Expired);
+        assert!(!is_untrusted_server_certificate(&expired));
     }
 }

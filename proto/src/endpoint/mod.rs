@@ -80,6 +80,12 @@ pub enum EndpointError {
     /// The server presents a certificate marked as a certificate authority, which TLS
     /// refuses as a server's own.
     CaAsServerCertificate { server: String },
+    /// The server's certificate is signed by no CA this client trusts.
+    UntrustedCertificate {
+        server: String,
+        reason: String,
+        ca_given: bool,
+    },
 }
 
 impl fmt::Display for EndpointError {
@@ -105,6 +111,25 @@ impl fmt::Display for EndpointError {
                  server, {}",
                 certificate::SERVER_CERTIFICATE_HOWTO
             ),
+            EndpointError::UntrustedCertificate {
+                server,
+                reason,
+                ca_given,
+            } => {
+                write!(f, "cannot connect to {server}: {reason}: ")?;
+                match ca_given {
+                    true => write!(
+                        f,
+                        "its certificate is not signed by a CA of --tls-ca (nor is it that \
+                         file's own, for a self-signed server)"
+                    ),
+                    false => write!(
+                        f,
+                        "its certificate is signed by no CA this system trusts; give the CA's \
+                         certificate (a self-signed server's own) with --tls-ca FILE"
+                    ),
+                }
+            }
         }
     }
 }
@@ -173,6 +198,13 @@ impl ServerEndpoint {
         let server = self.url.clone();
         if certificate::is_ca_used_as_server_certificate(error) {
             return EndpointError::CaAsServerCertificate { server };
+        }
+        if certificate::is_untrusted_server_certificate(error) {
+            return EndpointError::UntrustedCertificate {
+                server,
+                reason: causes(error),
+                ca_given: self.ca_pem.is_some(),
+            };
         }
         EndpointError::Connect {
             server,
