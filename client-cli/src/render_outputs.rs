@@ -210,7 +210,9 @@ pub struct FrameFiles {
 impl FrameFiles {
     /// The one file of a still: `out` must name a file in a known format.
     pub fn still(out: &Path) -> Result<Self> {
-        if out.is_dir() {
+        let text = out.to_string_lossy();
+        // A name ending in a separator is a folder, made or not.
+        if out.is_dir() || text.ends_with('/') || text.ends_with(std::path::MAIN_SEPARATOR) {
             bail!(
                 "{} is a folder; give an image file such as frame.png (or use --turntable N)",
                 out.display()

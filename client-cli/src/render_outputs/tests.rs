@@ -38,6 +38,13 @@ fn a_still_is_one_file_in_the_format_its_extension_names() {
     assert_eq!(still.format(), FrameFormat::WebP);
     let error = FrameFiles::still(Path::new("f_{:05}.png")).expect_err("pattern");
     assert!(error.to_string().contains("pattern"), "{error}");
+    let error = FrameFiles::still(Path::new("frames/")).expect_err("a folder not made yet");
+    assert!(
+        error
+            .to_string()
+            .contains("is a folder; give an image file"),
+        "{error}"
+    );
     let jpeg = FrameFiles::still(Path::new("a.jpg")).expect("jpeg");
     assert!(jpeg.check_background([0, 0, 0, 0]).is_err());
     assert!(jpeg.check_background([0, 0, 0, 255]).is_ok());
