@@ -1,7 +1,9 @@
-//! README.md and the user guide (docs/guide/*.md) held to the binary: every `pointfarm`
-//! command they show exists and takes each flag shown with it (checked against the
-//! command's `--help`), and every relative link leads to a file, and a heading, that exist.
-//! A user copies these commands; a renamed or removed flag fails here, listed with its page.
+//! The pages a user reads held to the binary (README.md, the user guide docs/guide/*.md, the
+//! operator's deploy/README.md, the gallery and the Python example's README): every
+//! `pointfarm` command they show exists and takes each flag shown with it (checked against
+//! the command's `--help`), and every relative link leads to a file, and a heading, that
+//! exist. A user copies these commands; a renamed or removed flag fails here, listed with its
+//! page.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -17,10 +19,18 @@ fn workspace() -> PathBuf {
         .to_path_buf()
 }
 
-/// README.md and the user guide's pages, each with its text.
+/// The user's pages, each with its text.
 fn documents() -> Vec<(PathBuf, String)> {
     let root = workspace();
-    let mut paths = vec![root.join("README.md")];
+    let mut paths: Vec<PathBuf> = [
+        "README.md",
+        "deploy/README.md",
+        "docs/gallery.md",
+        "examples/python/README.md",
+    ]
+    .iter()
+    .map(|page| root.join(page))
+    .collect();
     let mut guide: Vec<PathBuf> = std::fs::read_dir(root.join("docs/guide"))
         .expect("docs/guide")
         .map(|entry| entry.expect("docs/guide entry").path())
@@ -269,14 +279,24 @@ fn commands_of(helps: &mut Helps, text: &str) -> Vec<Vec<String>> {
     for line in &code.shell_lines {
         for command in commands_of_line(line) {
             let words = words(&command);
-            // Environment assignments and `timeout`-like prefixes come before the binary.
-            if let Some(at) = words.iter().position(|w| w == "pointfarm") {
+            if let Some(at) = binary_at(&words) {
                 commands.push(words[at + 1..].to_vec());
             }
         }
     }
     commands.extend(span_commands(helps, &code.spans));
     commands
+}
+
+/// Where a command's words name the binary: `pointfarm`, or a path to it
+/// (`target/release/pointfarm`), after environment assignments and prefixes such as
+/// `timeout 60`, but not as an option's value (`docker run --name pointfarm`).
+fn binary_at(words: &[String]) -> Option<usize> {
+    (0..words.len()).find(|&at| {
+        let word = &words[at];
+        let names_it = word == "pointfarm" || word.ends_with("/pointfarm");
+        names_it && (at == 0 || !words[at - 1].starts_with('-'))
+    })
 }
 
 /// The commands among inline code spans: those that start with `pointfarm` or with the name
@@ -287,7 +307,7 @@ fn span_commands(helps: &mut Helps, spans: &[String]) -> Vec<Vec<String>> {
     for span in spans {
         for command in commands_of_line(span) {
             let words = words(&command);
-            match words.iter().position(|w| w == "pointfarm") {
+            match binary_at(&words) {
                 Some(at) => commands.push(words[at + 1..].to_vec()),
                 None if words.first().is_some_and(|w| top.contains(w)) => commands.push(words),
                 None => {}
@@ -394,13 +414,16 @@ fn link_problems(documents: &[(PathBuf, String)]) -> Vec<String> {
 }
 
 #[test]
-fn every_command_in_the_readme_and_the_guide_takes_the_flags_shown() {
+fn every_command_the_pages_show_takes_the_flags_shown() {
     let documents = documents();
-    assert!(documents.len() > 5, "the README and the guide's pages");
+    assert!(
+        documents.len() > 8,
+        "the READMEs, the gallery and the guide's pages"
+    );
     let problems = command_problems(&documents);
     assert!(
         problems.is_empty(),
-        "{} command(s) of the documents that the binary refuses:\n{}",
+        "{} command(s) of the pages that the binary refuses:\n{}",
         problems.len(),
         problems.join("\n")
     );
@@ -437,7 +460,7 @@ fn every_command_a_help_text_names_takes_the_flags_named() {
 }
 
 #[test]
-fn every_link_of_the_readme_and_the_guide_leads_somewhere() {
+fn every_link_of_the_pages_leads_somewhere() {
     let problems = link_problems(&documents());
     assert!(
         problems.is_empty(),
@@ -456,6 +479,8 @@ fn an_unknown_flag_command_or_link_is_named() {
         pointfarm render scan.laz --out x.png --no-such-flag \\\n    --supersample 2\n\
         pointfarm -v --no-such-global serve --listen 127.0.0.1:0\n\
         pointfarm jobs frobnicate JOB\n\
+        docker run --name pointfarm -p 8080:8080 image serve --stop-timeout 9\n\
+        timeout 60 target/release/pointfarm demo --no-such-demo-flag\n\
         ```\n\n\
         Set `worker --cache-gib` and `serve --no-such-setting`; see [here](#a-page),\n\
         [there](#no-heading) and [elsewhere](missing.md).\n";
@@ -466,6 +491,7 @@ fn an_unknown_flag_command_or_link_is_named() {
         "`pointfarm render` has no option --no-such-flag",
         "`pointfarm` has no option --no-such-global",
         "`pointfarm jobs` has no command `frobnicate`",
+        "`pointfarm demo` has no option --no-such-demo-flag",
         "`pointfarm serve` has no option --no-such-setting",
     ];
     assert_eq!(commands.len(), expected.len(), "{commands:#?}");
