@@ -299,7 +299,7 @@ fn settings_toml(
             .get_raw(id)
             .into_iter()
             .flatten()
-            .map(|v| toml::Value::String(v.to_string_lossy().into_owned()).to_string())
+            .map(|v| toml_value(&v.to_string_lossy()))
             .collect();
         let value = if matches!(arg.get_action(), ArgAction::Append) {
             format!("[{}]", values.join(", "))
@@ -309,6 +309,25 @@ fn settings_toml(
         out.push_str(&format!("{key} = {value}  # {layer}\n"));
     }
     out
+}
+
+/// A value as TOML of its own type where it reads back to the same text ([`scalar`]): a number or
+/// a boolean bare, anything else a string.
+fn toml_value(raw: &str) -> String {
+    let typed = if let Ok(i) = raw.parse::<i64>() {
+        Some(toml::Value::Integer(i))
+    } else if let Ok(b) = raw.parse::<bool>() {
+        Some(toml::Value::Boolean(b))
+    } else {
+        raw.parse::<f64>()
+            .ok()
+            .filter(|f| f.is_finite())
+            .map(toml::Value::Float)
+    };
+    typed
+        .filter(|value| scalar(value).is_ok_and(|text| text == raw))
+        .unwrap_or_else(|| toml::Value::String(raw.to_owned()))
+        .to_string()
 }
 
 #[cfg(test)]
@@ -352,12 +371,9 @@ mod tests {
         assert!(serve.get_flag("insecure"));
         let serve_command = command.find_subcommand("serve").expect("serve");
         let printed = settings_toml("serve", serve_command, serve, &ids);
+        assert!(printed.contains("lease_timeout = 5  # file"), "{printed}");
         assert!(
-            printed.contains("lease_timeout = \"5\"  # file"),
-            "{printed}"
-        );
-        assert!(
-            printed.contains("max_frame_attempts = \"2\"  # flag"),
+            printed.contains("max_frame_attempts = 2  # flag"),
             "{printed}"
         );
         assert!(
@@ -368,6 +384,35 @@ mod tests {
             printed.contains("listen = \"127.0.0.1:50051\"  # default"),
             "{printed}"
         );
+    }
+
+    #[test]
+    fn the_printed_settings_read_back_as_a_file_to_the_same_settings() {
+        let file =
+            "[serve]\nlease_timeout = 2.5\nmax_frames = 500\ninsecure = true\nworker_tag = \"7\"\n";
+        let printed = |file: &str| {
+            let (command, matches, ids) = matches_with_file(&["serve"], file).expect("layered");
+            let serve_command = command.find_subcommand("serve").expect("serve");
+            settings_toml("serve", serve_command, sub(&matches), &ids)
+        };
+        let first = printed(file);
+        for line in ["lease_timeout = 2.5", "max_frames = 500", "insecure = true"] {
+            assert!(first.contains(&format!("{line}  # file")), "{first}");
+        }
+        // A value of a string setting that looks like a number reads back the same either way.
+        assert!(first.contains("worker_tag = [7]  # file"), "{first}");
+        // The same settings, each from the file (the order of a command's settings follows
+        // where the file's values were set).
+        let settings = |printed: String| {
+            let mut lines: Vec<String> = printed
+                .replace("# default", "# file")
+                .lines()
+                .map(str::to_owned)
+                .collect();
+            lines.sort();
+            lines
+        };
+        assert_eq!(settings(printed(&first)), settings(first));
     }
 
     #[test]
