@@ -115,7 +115,10 @@ impl From<RemoteError> for DaemonError {
             | RemoteError::TimedOut { .. }
             | RemoteError::ShortRead { .. }
             | RemoteError::Transport { .. } => DaemonError::Unavailable(message),
+            // The server's configuration answers the same until its operator changes it.
             RemoteError::RangeOutOfBounds { .. }
+            | RemoteError::Redirected { .. }
+            | RemoteError::RangeIgnored { .. }
             | RemoteError::Listing { .. }
             | RemoteError::Client { .. } => DaemonError::FailedPrecondition(message),
             RemoteError::Runtime { .. } => DaemonError::Internal(message),

@@ -260,7 +260,10 @@ impl Daemon {
             prefixes => {
                 let shown: Vec<&str> = prefixes.iter().map(|prefix| prefix.as_str()).collect();
                 tracing::info!(prefixes = %shown.join(", "), "datasets by URL are allowed");
-                Some(RemoteClient::new(config.remote_settings.clone())?)
+                Some(RemoteClient::within(
+                    config.remote_settings.clone(),
+                    config.allowed_url_prefixes.clone(),
+                )?)
             }
         };
         let (events, _) = broadcast::channel(config.event_buffer.max(1));

@@ -58,6 +58,18 @@ impl NginxServer {
         Some((root, server))
     }
 
+    /// Starts nginx serving `root` with `directives` added to its server block (a location
+    /// that redirects, `max_ranges 0;`), on `address` or a free one, or None, having said why,
+    /// where nginx is not installed.
+    pub fn start_configured_or_skip(
+        root: &Path,
+        address: Option<&str>,
+        directives: &str,
+    ) -> Option<Self> {
+        let binary = Self::binary_or_skip()?;
+        Some(Self::start_at(&binary, root, None, address, directives))
+    }
+
     fn binary_or_skip() -> Option<PathBuf> {
         let binary = Self::binary();
         if binary.is_none() {
@@ -67,9 +79,19 @@ impl NginxServer {
     }
 
     fn start(binary: &Path, root: &Path, tls: Option<&TestPki>) -> Self {
+        Self::start_at(binary, root, tls, None, "")
+    }
+
+    fn start_at(
+        binary: &Path,
+        root: &Path,
+        tls: Option<&TestPki>,
+        address: Option<&str>,
+        directives: &str,
+    ) -> Self {
         let dir = tempfile::tempdir().expect("nginx folder");
-        let address = free_address();
-        let config = config(dir.path(), &address, root, tls);
+        let address = address.map_or_else(free_address, str::to_owned);
+        let config = config(dir.path(), &address, root, tls, directives);
         let config_path = dir.path().join("nginx.conf");
         std::fs::write(&config_path, config).expect("nginx.conf");
         let error_log = dir.path().join("error.log");
@@ -152,7 +174,13 @@ impl NginxServer {
 
 /// One process (no master, so a kill ends it), in the foreground, every path in `dir`;
 /// everything under `/denied/` is refused with 403. With `tls`, it answers HTTPS alone.
-fn config(dir: &Path, address: &str, root: &Path, tls: Option<&TestPki>) -> String {
+fn config(
+    dir: &Path,
+    address: &str,
+    root: &Path,
+    tls: Option<&TestPki>,
+    directives: &str,
+) -> String {
     let dir = dir.display();
     let root = root.display();
     let listen = match tls {
@@ -183,6 +211,7 @@ http {{
         root {root};
         # What a server answers a request it refuses.
         location /denied/ {{ return 403; }}
+        {directives}
     }}
 }}
 "

@@ -26,18 +26,25 @@ impl AllowedPrefixes {
 
     /// Accepts a URL under an allowed prefix; refuses any other with an error naming the rule.
     pub fn check(&self, url: &ObjectUrl) -> Result<(), RemoteError> {
-        if self.prefixes.iter().any(|prefix| is_under(url, prefix)) {
-            return Ok(());
+        match self.refusal(url) {
+            None => Ok(()),
+            Some(rule) => Err(RemoteError::NotAllowed {
+                url: url.to_string(),
+                rule,
+            }),
         }
-        let rule = if self.prefixes.is_empty() {
+    }
+
+    /// The rule that refuses `url`, or None where it lies under an allowed prefix.
+    pub(crate) fn refusal(&self, url: &ObjectUrl) -> Option<String> {
+        if self.prefixes.iter().any(|prefix| is_under(url, prefix)) {
+            return None;
+        }
+        Some(if self.prefixes.is_empty() {
             "no remote prefix is allowed (the operator's allow-list is empty)".to_owned()
         } else {
             let listed: Vec<&str> = self.prefixes.iter().map(ObjectUrl::as_str).collect();
             format!("the operator allows only {}", listed.join(", "))
-        };
-        Err(RemoteError::NotAllowed {
-            url: url.to_string(),
-            rule,
         })
     }
 }

@@ -8,9 +8,11 @@ use std::sync::{Arc, Mutex, PoisonError};
 
 use object_store::ObjectStore;
 
+use super::allow::AllowedPrefixes;
 use super::counters::{FetchCounters, FetchCounts};
 use super::error::RemoteError;
 use super::list::{list_point_files, ListedObject};
+use super::redirect::RedirectRule;
 use super::runtime::RemoteRuntime;
 use super::settings::RemoteSettings;
 use super::store::build_store;
@@ -28,16 +30,30 @@ struct ClientInner {
     settings: RemoteSettings,
     counters: Arc<FetchCounters>,
     stores: Mutex<HashMap<String, Arc<dyn ObjectStore>>>,
+    redirects: Arc<RedirectRule>,
 }
 
 impl RemoteClient {
+    /// A client whose HTTP(S) reads follow a redirect only within the origin asked.
     pub fn new(settings: RemoteSettings) -> Result<Self, RemoteError> {
+        Self::with_redirects(settings, RedirectRule::SameOrigin)
+    }
+
+    /// A client for an operator's allow-list: its HTTP(S) reads follow a redirect only within
+    /// the origin asked and under one of `allowed`'s prefixes, so that a server cannot send
+    /// it around the list.
+    pub fn within(settings: RemoteSettings, allowed: AllowedPrefixes) -> Result<Self, RemoteError> {
+        Self::with_redirects(settings, RedirectRule::WithinPrefixes(allowed))
+    }
+
+    fn with_redirects(settings: RemoteSettings, rule: RedirectRule) -> Result<Self, RemoteError> {
         Ok(Self {
             inner: Arc::new(ClientInner {
                 runtime: RemoteRuntime::new()?,
                 settings,
                 counters: Arc::default(),
                 stores: Mutex::default(),
+                redirects: Arc::new(rule),
             }),
         })
     }
@@ -75,7 +91,7 @@ impl RemoteClient {
         if let Some(store) = stores.get(&key) {
             return Ok(Arc::clone(store));
         }
-        let store = build_store(url, &self.inner.settings)?;
+        let store = build_store(url, &self.inner.settings, &self.inner.redirects)?;
         stores.insert(key, Arc::clone(&store));
         Ok(store)
     }

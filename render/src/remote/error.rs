@@ -3,6 +3,8 @@
 use std::ops::Range;
 use std::time::Duration;
 
+use super::redirect::refused_redirect;
+
 /// The schemes a URL may have, as errors list them.
 pub(crate) const SCHEMES: &str = "s3://, gs://, az://, http://, https:// or file://";
 
@@ -44,6 +46,20 @@ pub enum RemoteError {
         range: Range<u64>,
         got: u64,
     },
+    #[error("{url}: the server redirected to {target}, which is not followed: {reason}")]
+    Redirected {
+        url: String,
+        target: String,
+        reason: String,
+    },
+    #[error(
+        "{url}: the server ignored the range request of bytes {}..{} and answered with the whole \
+         object; pointfarm reads objects by range only, from servers that answer Range \
+         requests with 206 Partial Content",
+        range.start,
+        range.end
+    )]
+    RangeIgnored { url: String, range: Range<u64> },
     #[error("{url}: listing failed: {reason}")]
     Listing { url: String, reason: String },
     #[error("{url}: more than {limit} objects under this prefix")]
@@ -60,6 +76,13 @@ impl RemoteError {
     /// Sorts an object_store error by what the caller can act on.
     pub(crate) fn from_store(url: &str, error: object_store::Error) -> Self {
         let url = url.to_owned();
+        if let Some(refused) = refused_redirect(&error) {
+            return RemoteError::Redirected {
+                url,
+                target: refused.target.clone(),
+                reason: refused.reason.clone(),
+            };
+        }
         match error {
             object_store::Error::NotFound { .. } => RemoteError::NotFound { url },
             object_store::Error::PermissionDenied { .. } => {

@@ -8,7 +8,10 @@
 //! in parallel, every request pinned to the version seen at open; an `ObjectReader` streams
 //! one from start to end in large blocks, for the LAS/LAZ readers. `RemoteUpload` writes an
 //! object by a multipart upload, a few parts in memory at a time, visible only once complete.
-//! `RemoteSettings` states every timeout, retry and size bound with its default.
+//! `RemoteSettings` states every timeout, retry and size bound with its default. An HTTP(S)
+//! server's redirect is followed only within the origin asked (and, for a client made
+//! `within` an allow-list, under its prefixes), and a server that ignores a range request is
+//! refused at its answer's headers, before its body is read.
 //!
 //! The transport is the `object_store` crate, which is async. The render crate is not: its
 //! readers are called from rayon threads, plain threads and, in the worker and the daemon,
@@ -31,6 +34,7 @@ mod counters;
 mod error;
 mod list;
 mod object;
+mod redirect;
 mod runtime;
 mod settings;
 mod store;

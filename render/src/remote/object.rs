@@ -210,6 +210,12 @@ async fn fetch(
             // A GET of the version seen at open finds none where that version was replaced
             // or deleted since (GCS's generations, S3's version ids).
             object_store::Error::NotFound { .. } if pin.meta.version.is_some() => changed(),
+            // object_store refuses a `200` to a ranged GET at its headers and drops the body
+            // unread, so a server ignoring ranges costs one answer's headers, never the object.
+            other if is_range_ignored(&other) => RemoteError::RangeIgnored {
+                url: url.to_owned(),
+                range: range.clone(),
+            },
             other => RemoteError::from_store(url, other),
         })?;
     // A server that ignores the conditions still tells what it sent.
@@ -240,6 +246,23 @@ async fn fetch(
         });
     }
     Ok(bytes.to_vec())
+}
+
+/// Whether object_store refused an answer to a ranged GET for not being partial content: an
+/// HTTP store says the range is not supported, the others that the answer is not partial (its
+/// error types are private; their messages are the one way to tell).
+fn is_range_ignored(error: &object_store::Error) -> bool {
+    let mut source: Option<&(dyn std::error::Error + 'static)> = Some(error);
+    while let Some(cause) = source {
+        let text = cause.to_string();
+        if text.starts_with("Range request not supported by ")
+            || text == "Received non-partial response when range requested"
+        {
+            return true;
+        }
+        source = cause.source();
+    }
+    false
 }
 
 fn pinned_version(meta: &ObjectMeta) -> String {

@@ -18,6 +18,9 @@ pub struct RemoteSettings {
     pub initial_backoff: Duration,
     /// The longest backoff between retries.
     pub max_backoff: Duration,
+    /// Redirects one request follows, each within the rule of [`super::RemoteClient`], before
+    /// it fails.
+    pub max_redirects: usize,
     /// Bound on one whole operation (an open, a set of ranges, a listing), whatever the
     /// retries do, so that a caller always gets an answer.
     pub operation_deadline: Duration,
@@ -53,6 +56,7 @@ impl Default for RemoteSettings {
             retry_timeout: Duration::from_secs(60),
             initial_backoff: Duration::from_millis(100),
             max_backoff: Duration::from_secs(5),
+            max_redirects: 5,
             operation_deadline: Duration::from_secs(180),
             coalesce_gap: 1024 * 1024,
             sparse_gap: 4 * 1024,

@@ -10,6 +10,7 @@ use object_store::http::HttpBuilder;
 use object_store::{ClientConfigKey, ObjectStore};
 
 use super::error::RemoteError;
+use super::redirect::{RedirectRule, RedirectingConnector};
 use super::settings::RemoteSettings;
 use super::url::{ObjectUrl, UrlKind};
 
@@ -23,10 +24,12 @@ fn install_tls_provider() {
     });
 }
 
-/// A client for the bucket or origin of `url`.
+/// A client for the bucket or origin of `url`; an `http(s)://` one follows redirects by
+/// `redirects` alone (object storage endpoints are the operator's, from the environment).
 pub(crate) fn build_store(
     url: &ObjectUrl,
     settings: &RemoteSettings,
+    redirects: &Arc<RedirectRule>,
 ) -> Result<Arc<dyn ObjectStore>, RemoteError> {
     install_tls_provider();
     let client_error = |error: object_store::Error| RemoteError::Client {
@@ -79,7 +82,8 @@ pub(crate) fn build_store(
             };
             let builder = HttpBuilder::new()
                 .with_url(url.store_key())
-                .with_config(object_store::ClientConfigKey::AllowHttp, allow_http);
+                .with_config(object_store::ClientConfigKey::AllowHttp, allow_http)
+                .with_http_connector(RedirectingConnector::new(Arc::clone(redirects), settings));
             Arc::new(
                 with_client(builder, client, HttpBuilder::with_config)
                     .with_retry(settings.retry_config())
