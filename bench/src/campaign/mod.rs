@@ -9,7 +9,8 @@
 //!    figure is decoding on all cores, the bound of a build that reads its source twice;
 //! 3. the store built from each kind with [`build_lod`] into a fresh store, measuring the wall
 //!    time, the builder's stages, the process's peak resident memory (`VmHWM`, reset before
-//!    the build), the builder's own tracked peak and the store's bytes on disk per point.
+//!    the build), the builder's own tracked peak, the store's bytes on disk per point and
+//!    its digest (`lod::digest`), the same for two binaries that stored the same nodes.
 //!
 //! The files are in the OS's page cache when they are read (just written, unless the
 //! campaign outgrows the memory): the figures are the decoder's and the builder's, not the
@@ -29,6 +30,7 @@ use pointfarm_render::cut::LodDataset;
 use pointfarm_render::gpu::GpuContext;
 
 use pointfarm_render::ingest::DatasetSource;
+use pointfarm_render::lod::digest::store_digest;
 use pointfarm_render::lod::disk::{build_disk_bytes, MAX_SPILL_RECORD_BYTES};
 use pointfarm_render::lod::PointSource;
 use pointfarm_render::lod::{build_lod, BuildTimings, LodBuildOptions};
@@ -160,6 +162,9 @@ pub struct BuildResult {
     /// once closed.
     pub store_disk_bytes: u64,
     pub store_disk_bytes_per_point: f64,
+    /// The digest of the stored nodes, in hex (`lod::digest`): the same for two binaries
+    /// exactly when they stored the same bytes.
+    pub store_digest: String,
 }
 
 /// Everything one campaign run measured.
@@ -354,7 +359,7 @@ pub fn measure_with_frames(
         log(format!(
             "campaign: {input}: built in {:.1} s, {:.2} M points/s ({:.0}% of reading's rate; \
              counting {:.1} s, partitions {:.1} s, upper levels {:.1} s), peak \
-             RSS {:.0} MiB, store {:.1} B/point; CPU {:.2} s, reading's {:.0}% of it",
+             RSS {:.0} MiB, store {:.1} B/point, digest {}; CPU {:.2} s, reading's {:.0}% of it",
             build.build_s,
             build.mpoints_per_s,
             build.over_decode * 100.0,
@@ -363,6 +368,7 @@ pub fn measure_with_frames(
             build.stages.upper_levels_s,
             build.peak_rss_bytes as f64 / (1u64 << 20) as f64,
             build.store_disk_bytes_per_point,
+            build.store_digest,
             build.cpu_s,
             build.cpu_over_decode * 100.0
         ));
@@ -462,6 +468,7 @@ fn build(
     let cpu_s = cpu::process_cpu_s() - cpu_before;
     let peak_rss_bytes = memory::peak_resident_bytes();
     let stored_points = bench_store.store.read_hierarchy()?.point_count;
+    let store_digest = format!("{:016x}", store_digest(&bench_store.store)?);
     drop(bench_store);
     let store_disk_bytes = disk_bytes(&store_dir);
     let points = source.point_count();
@@ -490,6 +497,7 @@ fn build(
             stored_bytes: report.stored_bytes,
             store_disk_bytes,
             store_disk_bytes_per_point: store_disk_bytes as f64 / points.max(1) as f64,
+            store_digest,
         },
         reset,
     ))
@@ -543,6 +551,13 @@ mod tests {
             assert!(build.peak_rss_bytes > 0 && build.builder_peak_bytes > 0);
             assert!(build.builder_peak_bytes <= build.memory_budget_bytes);
         }
+        // The same points from either kind of file: the same store.
+        let digests: Vec<&str> = result
+            .builds
+            .iter()
+            .map(|b| b.store_digest.as_str())
+            .collect();
+        assert_eq!((digests[0].len(), digests[0]), (16, digests[1]));
         assert!(lines.iter().any(|l| l.contains("built in")), "{lines:?}");
         let md = crate::markdown::campaign_tables(&result);
         assert!(md.contains("| LAZ |") && md.contains("| LAS |"), "{md}");

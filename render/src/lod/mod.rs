@@ -56,6 +56,7 @@ mod context;
 pub mod copc_export;
 mod counting;
 mod dataset;
+pub mod digest;
 pub mod disk;
 pub mod disk_usage;
 pub mod error;

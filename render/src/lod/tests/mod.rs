@@ -1,5 +1,6 @@
 //! The builder end to end: real sources, real spill files, real sled trees.
 
+mod digest;
 mod layers;
 mod refusals;
 mod removal;
