@@ -504,9 +504,9 @@ fn serve_and_worker_take_settings_from_a_file_the_environment_and_flags() {
         printed.contains(&format!("listen = \"{address}\"  # file")),
         "{printed}"
     );
-    assert!(printed.contains("max_frames = \"7\"  # flag"), "{printed}");
+    assert!(printed.contains("max_frames = 7  # flag"), "{printed}");
     assert!(
-        printed.contains("lease_timeout = \"30\"  # default"),
+        printed.contains("lease_timeout = 30  # default"),
         "{printed}"
     );
     let worker = Command::new(pointfarm_bin())
@@ -516,8 +516,8 @@ fn serve_and_worker_take_settings_from_a_file_the_environment_and_flags() {
         .output()
         .expect("worker --print-config");
     let worker = stdout(&worker);
-    assert!(worker.contains("cache_gib = \"3\"  # file"), "{worker}");
-    assert!(worker.contains("lod_error = \"2.5\"  # env"), "{worker}");
+    assert!(worker.contains("cache_gib = 3  # file"), "{worker}");
+    assert!(worker.contains("lod_error = 2.5  # env"), "{worker}");
 
     std::fs::write(&config, "[worker]\nlod_error = -1\n").expect("write");
     let refused = pointfarm(&["serve", "--config", arg(&config)]);
