@@ -226,21 +226,24 @@ fn one_line(error: &object_store::Error) -> String {
     joined.split_whitespace().collect::<Vec<_>>().join(" ")
 }
 
+/// An error and its chain of causes, the error first.
+pub(crate) fn causes<'a>(
+    error: &'a (dyn std::error::Error + 'static),
+) -> impl Iterator<Item = &'a (dyn std::error::Error + 'static)> {
+    std::iter::successors(Some(error), |cause| cause.source())
+}
+
 /// Whether a timeout is somewhere in the error's chain of causes.
 fn is_timeout(error: &object_store::Error) -> bool {
-    let mut source: Option<&(dyn std::error::Error + 'static)> = Some(error);
-    while let Some(cause) = source {
-        if let Some(http) = cause.downcast_ref::<object_store::client::HttpError>() {
-            if matches!(http.kind(), object_store::client::HttpErrorKind::Timeout) {
-                return true;
-            }
-        }
-        if let Some(io) = cause.downcast_ref::<std::io::Error>() {
-            if io.kind() == std::io::ErrorKind::TimedOut {
-                return true;
-            }
-        }
-        source = cause.source();
-    }
-    false
+    causes(error).any(|cause| {
+        let http = cause
+            .downcast_ref::<object_store::client::HttpError>()
+            .is_some_and(|http| {
+                matches!(http.kind(), object_store::client::HttpErrorKind::Timeout)
+            });
+        let io = cause
+            .downcast_ref::<std::io::Error>()
+            .is_some_and(|io| io.kind() == std::io::ErrorKind::TimedOut);
+        http || io
+    })
 }

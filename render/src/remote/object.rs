@@ -11,7 +11,7 @@ use object_store::{GetOptions, GetRange, ObjectMeta, ObjectStore, ObjectStoreExt
 use super::client::RemoteClient;
 use super::coalesce::{coalesce, locate};
 use super::counters::FetchCounters;
-use super::error::RemoteError;
+use super::error::{causes, RemoteError};
 use super::settings::RemoteSettings;
 use super::url::ObjectUrl;
 
@@ -252,17 +252,11 @@ async fn fetch(
 /// HTTP store says the range is not supported, the others that the answer is not partial (its
 /// error types are private; their messages are the one way to tell).
 fn is_range_ignored(error: &object_store::Error) -> bool {
-    let mut source: Option<&(dyn std::error::Error + 'static)> = Some(error);
-    while let Some(cause) = source {
+    causes(error).any(|cause| {
         let text = cause.to_string();
-        if text.starts_with("Range request not supported by ")
+        text.starts_with("Range request not supported by ")
             || text == "Received non-partial response when range requested"
-        {
-            return true;
-        }
-        source = cause.source();
-    }
-    false
+    })
 }
 
 fn pinned_version(meta: &ObjectMeta) -> String {

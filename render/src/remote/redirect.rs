@@ -17,6 +17,7 @@ use object_store::{ClientConfigKey, ClientOptions};
 use url::Url;
 
 use super::allow::AllowedPrefixes;
+use super::error::causes;
 use super::settings::RemoteSettings;
 use super::url::ObjectUrl;
 
@@ -204,14 +205,7 @@ impl HttpService for UnfollowedRedirects {
 pub(crate) fn refused_redirect<'a>(
     error: &'a (dyn std::error::Error + 'static),
 ) -> Option<&'a RedirectRefused> {
-    let mut source: Option<&(dyn std::error::Error + 'static)> = Some(error);
-    while let Some(cause) = source {
-        if let Some(refused) = cause.downcast_ref::<RedirectRefused>() {
-            return Some(refused);
-        }
-        source = cause.source();
-    }
-    None
+    causes(error).find_map(|cause| cause.downcast_ref::<RedirectRefused>())
 }
 
 #[cfg(test)]
