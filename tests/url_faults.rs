@@ -3,7 +3,8 @@
 //! with its embedded worker. A redirect is followed only within the origin asked (and, by the
 //! daemon, only under its allowed prefixes): a redirect to another origin, out of the allowed
 //! prefixes, into a loop, to `file://` or to a metadata address fails in one line naming it
-//! and the rule, and nginx's log shows no request reached what was refused. A server that
+//! and the rule, and nginx's log shows no request reached what was refused; over HTTPS from a
+//! private CA a redirect to the same host by plain HTTP is refused too. A server that
 //! answers a range request with the whole object (`max_ranges 0;`) is refused at its answer's
 //! headers: of a 512 MiB object the server sends a few buffers at most, the daemon's and the
 //! worker's peak memory stay put, and the frame fails once, without retries. Each test skips,
@@ -187,6 +188,44 @@ fn a_local_render_follows_a_redirect_only_within_the_origin_asked() {
         .filter(|(request, ..)| request.contains("/scans/loop-"))
         .count();
     assert!(loops <= 3, "{loops} requests of the loop");
+}
+
+#[test]
+fn over_https_a_redirect_stays_on_https_and_the_private_ca_is_still_trusted() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let pki = pointfarm_tests::pki::TestPki::create(dir.path());
+    let root = served_root(&["scans"]);
+    let address = free_address();
+    let directives = format!(
+        "location = /scans/moved.copc.laz {{ return 302 https://{address}/{SCAN}; }}\n\
+         location = /scans/plain.copc.laz {{ return 302 http://{address}/{SCAN}; }}\n"
+    );
+    let Some(server) =
+        NginxServer::start_tls_configured_or_skip(root.path(), &pki, &address, &directives)
+    else {
+        return;
+    };
+    let render = |name: &str, out: &Path| {
+        std::process::Command::new(pointfarm_tests::pointfarm_bin())
+            .args(["render", &server.https_url(name), "--out", path_arg(out)])
+            .arg("--size=160x120")
+            .env("SSL_CERT_FILE", &pki.ca)
+            .env_remove("SSL_CERT_DIR")
+            .output()
+            .expect("run pointfarm")
+    };
+    let moved = render("scans/moved.copc.laz", &dir.path().join("moved.png"));
+    assert!(moved.status.success(), "{}", output_text(&moved));
+    let plain = server.https_url("scans/plain.copc.laz");
+    let refused = render("scans/plain.copc.laz", &dir.path().join("plain.png"));
+    let target = format!("http://{address}/{SCAN}");
+    let needles = [
+        &plain,
+        "redirected to",
+        &target,
+        "only within the origin asked",
+    ];
+    assert_one_error_line(&refused, &needles);
 }
 
 /// `pointfarm ARGS --server ADDRESS`.

@@ -70,6 +70,25 @@ impl NginxServer {
         Some(Self::start_at(&binary, root, None, address, directives))
     }
 
+    /// Starts nginx serving `root` over TLS with `pki`'s certificate and `directives` added
+    /// to its server block, on `address`, or None, having said why, where nginx is not
+    /// installed.
+    pub fn start_tls_configured_or_skip(
+        root: &Path,
+        pki: &TestPki,
+        address: &str,
+        directives: &str,
+    ) -> Option<Self> {
+        let binary = Self::binary_or_skip()?;
+        Some(Self::start_at(
+            &binary,
+            root,
+            Some(pki),
+            Some(address),
+            directives,
+        ))
+    }
+
     fn binary_or_skip() -> Option<PathBuf> {
         let binary = Self::binary();
         if binary.is_none() {
