@@ -3,13 +3,18 @@
 //! `pointfarm` command they show exists and takes each flag shown with it (checked against
 //! the command's `--help`), and every relative link leads to a file, and a heading, that
 //! exist. A user copies these commands; a renamed or removed flag fails here, listed with its
-//! page.
+//! page. The source paths the design and reference documents name are held to the tree in
+//! `paths`.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use pointfarm_tests::pointfarm_bin;
+
+// The crate root is this file, so its module lies in a folder of its name only by saying so.
+#[path = "docs_commands/paths.rs"]
+mod paths;
 
 /// The workspace's root, where README.md lies.
 fn workspace() -> PathBuf {
@@ -21,23 +26,30 @@ fn workspace() -> PathBuf {
 
 /// The user's pages, each with its text.
 fn documents() -> Vec<(PathBuf, String)> {
+    pages(
+        &[
+            "README.md",
+            "deploy/README.md",
+            "docs/gallery.md",
+            "examples/python/README.md",
+        ],
+        &["docs/guide"],
+    )
+}
+
+/// The workspace's `files` and the Markdown pages of its `folders`, each with its text.
+fn pages(files: &[&str], folders: &[&str]) -> Vec<(PathBuf, String)> {
     let root = workspace();
-    let mut paths: Vec<PathBuf> = [
-        "README.md",
-        "deploy/README.md",
-        "docs/gallery.md",
-        "examples/python/README.md",
-    ]
-    .iter()
-    .map(|page| root.join(page))
-    .collect();
-    let mut guide: Vec<PathBuf> = std::fs::read_dir(root.join("docs/guide"))
-        .expect("docs/guide")
-        .map(|entry| entry.expect("docs/guide entry").path())
-        .filter(|path| path.extension().is_some_and(|e| e == "md"))
-        .collect();
-    guide.sort();
-    paths.extend(guide);
+    let mut paths: Vec<PathBuf> = files.iter().map(|page| root.join(page)).collect();
+    for folder in folders {
+        let mut found: Vec<PathBuf> = std::fs::read_dir(root.join(folder))
+            .unwrap_or_else(|e| panic!("{folder}: {e}"))
+            .map(|entry| entry.expect("a folder's entry").path())
+            .filter(|path| path.extension().is_some_and(|e| e == "md"))
+            .collect();
+        found.sort();
+        paths.extend(found);
+    }
     paths
         .into_iter()
         .map(|path| {
@@ -49,7 +61,8 @@ fn documents() -> Vec<(PathBuf, String)> {
 }
 
 /// What a page says in code: the lines of its shell blocks (a line ending in `\` joined with
-/// the next) and its inline code spans, and its prose with the blocks left out.
+/// the next) and its inline code spans, and its prose with the blocks' lines left empty (so
+/// that its lines are the page's).
 struct Code {
     shell_lines: Vec<String>,
     spans: Vec<String>,
@@ -68,7 +81,11 @@ fn code_of(text: &str) -> Code {
                 None => Some(matches!(info.trim(), "" | "sh" | "bash" | "console")),
                 Some(_) => None,
             };
+            prose.push('\n');
             continue;
+        }
+        if block.is_some() {
+            prose.push('\n');
         }
         match block {
             Some(true) => match line.strip_suffix('\\') {
