@@ -3,8 +3,8 @@
 //! performance notes' index (`lod/layers.rs`, `render/src/source/camera_first.rs`,
 //! `deploy/test.sh`) is a file of the repository, named from its root or by its tail, and every
 //! folder named from one of the repository's top-level folders (`render/src/lod/`) is one of its
-//! folders. A measured finding in docs/perf names files as they were when measured, so only its
-//! index is held here.
+//! folders; their relative links lead to files and headings that exist. A measured finding in
+//! docs/perf names files as they were when measured, so only its index is held here.
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
@@ -203,4 +203,15 @@ fn a_missing_path_is_named_with_its_line() {
     ];
     assert_eq!(findings.problems, expected);
     assert_eq!(findings.checked, 9, "{:#?}", findings.problems);
+}
+
+#[test]
+fn every_link_of_the_documents_leads_somewhere() {
+    let problems = super::link_problems(&documents());
+    assert!(
+        problems.is_empty(),
+        "{} broken link(s):\n{}",
+        problems.len(),
+        problems.join("\n")
+    );
 }
