@@ -8,10 +8,8 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
-use pointfarm_render::cut::StoredLod;
-use pointfarm_render::lod::{read_nodes, NodeKey};
 use pointfarm_tests::flights::{write_flight, write_tiles, COLUMNS, ROWS};
-use pointfarm_tests::stores::store_folder;
+use pointfarm_tests::stores::{every_node, store_folder};
 use pointfarm_tests::{assert_pngs_alike, output_text, pointfarm_bin, run_ok};
 
 const POINTS: usize = 200_000;
@@ -55,19 +53,14 @@ fn tiles_in(line: &str) -> usize {
 /// Every point of the finished store under `cache` (its positions to the millimetre), sorted,
 /// and the store's cube.
 fn store_content(cache: &Path) -> (Vec<[i64; 3]>, String) {
-    let folder = store_folder(cache);
-    let stored = StoredLod::open_or_build(&[], &folder, 64 << 20, None, &mut |_| {})
-        .expect("a finished store");
-    let hierarchy = stored.dataset.hierarchy();
-    let keys: Vec<NodeKey> = hierarchy.nodes().iter().map(|n| n.key).collect();
-    let nodes = read_nodes(stored.dataset.records().as_ref(), hierarchy, &keys).expect("nodes");
+    let (nodes, cube) = every_node(&store_folder(cache));
     let mut points: Vec<[i64; 3]> = nodes
         .iter()
         .flat_map(|node| node.world_positions())
         .map(|p| (p * 1000.0).round().to_array().map(|v| v as i64))
         .collect();
     points.sort_unstable();
-    (points, format!("{:?}", hierarchy.cube))
+    (points, format!("{cube:?}"))
 }
 
 #[test]

@@ -6,7 +6,6 @@
 //! uninterrupted daemon's node for node, and its job ends with the same frames.
 
 use std::path::Path;
-use std::process::Command;
 use std::time::Duration;
 
 use pointfarm_proto::v1 as pb;
@@ -15,8 +14,8 @@ use pointfarm_tests::datasets::register_path;
 use pointfarm_tests::service::{
     clients, fetch_images, submit, turntable_job, watch_to_success, write_sample,
 };
-use pointfarm_tests::stores::{assert_same_nodes, store_folder, store_nodes};
-use pointfarm_tests::{free_address, pointfarm_bin, wait_for, ServeProcess, WorkerProcess};
+use pointfarm_tests::stores::{assert_same_nodes, serve_pausing_at, store_folder, store_nodes};
+use pointfarm_tests::{free_address, wait_for, ServeProcess, WorkerProcess};
 
 /// Points of the dataset: enough for several partitions on two cores.
 const POINTS: usize = 400_000;
@@ -27,11 +26,6 @@ const PAUSE_AT: &str = "partition:2";
 /// `pointfarm serve` on `address` with its data in `data` and the scans in `root`, without an
 /// embedded worker; its build stops for good at `pause_at` when given.
 fn serve(address: &str, data: &Path, root: &str, pause_at: Option<&str>) -> ServeProcess {
-    let mut command = Command::new(pointfarm_bin());
-    match pause_at {
-        Some(stage) => command.env("POINTFARM_TEST_PAUSE_AT", stage),
-        None => command.env_remove("POINTFARM_TEST_PAUSE_AT"),
-    };
     let args = [
         "--no-embedded-worker",
         "--data-root",
@@ -39,7 +33,7 @@ fn serve(address: &str, data: &Path, root: &str, pause_at: Option<&str>) -> Serv
         "--store-memory-budget",
         MEMORY_BUDGET,
     ];
-    ServeProcess::start_command(command, address, data, &data.join("serve.log"), &args)
+    serve_pausing_at(address, (data, &data.join("serve.log")), &args, pause_at)
 }
 
 /// A turntable from levels of detail: the dataset needs the daemon's store.

@@ -16,6 +16,7 @@ use std::time::Duration;
 
 use pointfarm_render::cut::StoredLod;
 use pointfarm_tests::flights::{write_tiles_and_flight_over_one_tile, COLUMNS, ROWS};
+use pointfarm_tests::stores::serve_pausing_at;
 use pointfarm_tests::{
     assert_pngs_alike, free_address, output_text, pointfarm_bin, pointfarm_ok, wait_for,
     ServeProcess,
@@ -29,14 +30,9 @@ const FRAMES: usize = 3;
 /// `pointfarm serve` with its data in `data`, logging to `log`, its builds stopped for good at
 /// `pause_at`.
 fn serve(address: &str, data: &Path, log: &str, pause_at: Option<&str>) -> ServeProcess {
-    let mut command = Command::new(pointfarm_bin());
-    match pause_at {
-        Some(stage) => command.env("POINTFARM_TEST_PAUSE_AT", stage),
-        None => command.env_remove("POINTFARM_TEST_PAUSE_AT"),
-    };
     let log = data.with_file_name(log);
     let budget = ["--store-memory-budget", "96MiB"];
-    ServeProcess::start_command(command, address, data, &log, &budget)
+    serve_pausing_at(address, (data, &log), &budget, pause_at)
 }
 
 /// `pointfarm render --server` of `tiles` into `out` through levels of detail, to its end.

@@ -20,9 +20,9 @@ use pointfarm_bench::daemon_log::number_after;
 use pointfarm_render::cloud::PointCloud;
 use pointfarm_render::cut::StoredLod;
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
-use pointfarm_render::lod::{read_nodes, NodeKey};
 use pointfarm_render::sample::sample_scene;
 use pointfarm_tests::s3s::S3Bucket;
+use pointfarm_tests::stores::{every_node, serve_pausing_at};
 use pointfarm_tests::{
     assert_pngs_alike, free_address, output_text, pointfarm_bin, pointfarm_with, wait_for,
     ServeProcess,
@@ -128,19 +128,9 @@ fn tile_points(cloud: &PointCloud) -> Vec<Vec<usize>> {
 fn serve(address: &str, data: &Path, pause_at: Option<&str>) -> ServeProcess {
     static STARTS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
     let start = STARTS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let mut command = Command::new(pointfarm_bin());
-    match pause_at {
-        Some(stage) => command.env("POINTFARM_TEST_PAUSE_AT", stage),
-        None => command.env_remove("POINTFARM_TEST_PAUSE_AT"),
-    };
     let log = data.with_file_name(format!("serve-{start}.log"));
-    ServeProcess::start_command(
-        command,
-        address,
-        data,
-        &log,
-        &["--store-memory-budget", "96MiB"],
-    )
+    let budget = ["--store-memory-budget", "96MiB"];
+    serve_pausing_at(address, (data, &log), &budget, pause_at)
 }
 
 /// `pointfarm render --server` of `tiles` into `out` through levels of detail.
@@ -162,6 +152,22 @@ fn run(command: &mut Command, server: &ServeProcess) -> Output {
         server.log()
     );
     output
+}
+
+/// Stops `server` as an operator would, waiting for it to end.
+fn stop(server: &mut ServeProcess) {
+    server
+        .terminate(Duration::from_secs(30))
+        .expect("the daemon stops");
+}
+
+/// A campaign of `points` points written under a temporary folder, with the folder of a
+/// daemon's data beside it and the address every start of that daemon listens on.
+fn site(points: usize) -> (tempfile::TempDir, Campaign, PathBuf, String) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let campaign = write_campaign(dir.path(), points);
+    let data = dir.path().join("daemon");
+    (dir, campaign, data, free_address())
 }
 
 /// The id of the dataset a `render --server` says it rendered.
@@ -198,11 +204,7 @@ fn store_of(data: &Path, files: usize) -> PathBuf {
 /// Every point of the store in `folder`, from every node, as millimetres and attributes,
 /// sorted: two stores of the same points, each in one node, give the same list.
 fn store_points(folder: &Path) -> Vec<[i64; 6]> {
-    let stored = StoredLod::open_or_build(&[], folder, 64 << 20, None, &mut |_| {})
-        .expect("a finished store");
-    let hierarchy = stored.dataset.hierarchy();
-    let keys: Vec<NodeKey> = hierarchy.nodes().iter().map(|n| n.key).collect();
-    let nodes = read_nodes(stored.dataset.records().as_ref(), hierarchy, &keys).expect("nodes");
+    let (nodes, _) = every_node(folder);
     let mut points: Vec<[i64; 6]> = nodes
         .iter()
         .flat_map(|node| {
@@ -228,37 +230,37 @@ fn store_points(folder: &Path) -> Vec<[i64; 6]> {
 }
 
 /// Renders `tiles` (`files` files) on a fresh daemon in `dir/name`, which builds their store
-/// whole, and asserts that `frame` looks like its frame (`what` says of which store); returns
-/// the fresh store's folder.
-fn assert_draws_as_a_fresh_build(
+/// whole, and asserts that `frame` looks like its frame and that the store in `store` holds
+/// the fresh store's points (`what` says of which store); returns them.
+fn assert_as_a_fresh_build(
     dir: &Path,
     name: &str,
     (tiles, files): (&Path, usize),
     camera: &[String],
-    frame: &Path,
+    (store, frame): (PathBuf, &Path),
     what: &str,
-) -> PathBuf {
-    let data = dir.join(name);
-    let mut server = serve(&free_address(), &data, None);
+) -> Vec<[i64; 6]> {
+    let fresh_data = dir.join(name);
+    let mut server = serve(&free_address(), &fresh_data, None);
     let fresh = dir.join(format!("{name}.png"));
     run(&mut render(&server, tiles, &fresh, camera), &server);
     let log = server.log();
     assert!(!log.contains("updated the store of"), "{log}");
-    server
-        .terminate(Duration::from_secs(30))
-        .expect("the daemon stops");
+    stop(&mut server);
     let message = format!("{what}'s frame differs from a fresh build's");
     assert_pngs_alike(name, frame, &fresh, &message);
-    store_of(&data, files)
+    let points = store_points(&store);
+    assert!(
+        points == store_points(&store_of(&fresh_data, files)),
+        "{what} holds other points than a fresh build's"
+    );
+    points
 }
 
 #[test]
 fn a_campaign_that_grows_or_drops_a_tile_through_the_server_updates_its_store() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let campaign = write_campaign(dir.path(), POINTS);
+    let (dir, campaign, data, address) = site(POINTS);
     let camera = &campaign.camera;
-    let data = dir.path().join("daemon");
-    let address = free_address();
     let mut server = serve(&address, &data, None);
 
     // Day one: its store is built whole.
@@ -300,9 +302,7 @@ fn a_campaign_that_grows_or_drops_a_tile_through_the_server_updates_its_store() 
     assert_eq!(log.matches("levels of detail built").count(), 1, "{log}");
 
     // Day one's dataset renders as before from its own store, opened again from disk.
-    server
-        .terminate(Duration::from_secs(30))
-        .expect("the daemon stops");
+    stop(&mut server);
     let mut server = serve(&address, &data, None);
     let again = dir.path().join("day1-again.png");
     run(
@@ -315,48 +315,24 @@ fn a_campaign_that_grows_or_drops_a_tile_through_the_server_updates_its_store() 
         &day1,
         "day one's dataset draws otherwise after its store was grown from",
     );
-    server
-        .terminate(Duration::from_secs(30))
-        .expect("the daemon stops");
+    stop(&mut server);
 
     // Each updated store draws and holds what a fresh daemon's build does.
     let day2_fresh = (campaign.day2.as_path(), 21);
-    let fresh = assert_draws_as_a_fresh_build(
-        dir.path(),
-        "fresh-day2",
-        day2_fresh,
-        camera,
-        &day2,
-        "the grown store",
-    );
-    let grown = store_points(&store_of(&data, 21));
-    assert_eq!(grown.len(), POINTS, "every point once");
-    assert!(
-        grown == store_points(&fresh),
-        "the grown store holds other points than a fresh build's"
-    );
+    let grown = (store_of(&data, 21), day2.as_path());
+    let what = "the grown store";
+    let points = assert_as_a_fresh_build(dir.path(), "fresh-day2", day2_fresh, camera, grown, what);
+    assert_eq!(points.len(), POINTS, "every point once");
     let less_fresh = (campaign.less.as_path(), 19);
-    let fresh = assert_draws_as_a_fresh_build(
-        dir.path(),
-        "fresh-less",
-        less_fresh,
-        camera,
-        &less,
-        "the store less a tile",
-    );
-    assert!(
-        store_points(&store_of(&data, 19)) == store_points(&fresh),
-        "the store less a tile holds other points than a fresh build's"
-    );
+    let less = (store_of(&data, 19), less.as_path());
+    let what = "the store less a tile";
+    assert_as_a_fresh_build(dir.path(), "fresh-less", less_fresh, camera, less, what);
 }
 
 #[test]
 fn an_update_killed_part_way_is_made_again_and_a_preview_meanwhile_shows_the_new_tile() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let campaign = write_campaign(dir.path(), KILLED_POINTS);
+    let (dir, campaign, data, address) = site(KILLED_POINTS);
     let camera = &campaign.camera;
-    let data = dir.path().join("daemon");
-    let address = free_address();
     let mut server = serve(&address, &data, Some("update:0"));
     let day1 = dir.path().join("day1.png");
     run(&mut render(&server, &campaign.day1, &day1, camera), &server);
@@ -417,22 +393,15 @@ fn an_update_killed_part_way_is_made_again_and_a_preview_meanwhile_shows_the_new
     );
     drop(server);
     let day2_fresh = (campaign.day2.as_path(), 21);
+    let updated = (store_of(&data, 21), day2.as_path());
     let what = "the store updated after a kill";
-    let fresh =
-        assert_draws_as_a_fresh_build(dir.path(), "fresh-day2", day2_fresh, camera, &day2, what);
-    assert!(
-        store_points(&store_of(&data, 21)) == store_points(&fresh),
-        "the store updated after a kill holds other points than a fresh build's"
-    );
+    assert_as_a_fresh_build(dir.path(), "fresh-day2", day2_fresh, camera, updated, what);
 }
 
 #[test]
 fn a_store_built_before_stores_listed_their_files_is_listed_at_start_and_grows_a_chain() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let campaign = write_campaign(dir.path(), POINTS);
+    let (dir, campaign, data, address) = site(POINTS);
     let camera = &campaign.camera;
-    let data = dir.path().join("daemon");
-    let address = free_address();
     let mut server = serve(&address, &data, None);
     let first = dir.path().join("least.png");
     let said = run(
@@ -440,9 +409,7 @@ fn a_store_built_before_stores_listed_their_files_is_listed_at_start_and_grows_a
         &server,
     );
     let first_id = dataset_of(&said);
-    server
-        .terminate(Duration::from_secs(30))
-        .expect("the daemon stops");
+    stop(&mut server);
 
     // The first day's store as one built before stores listed their files: without its list.
     let store = store_of(&data, 18);
@@ -493,9 +460,7 @@ fn a_store_built_before_stores_listed_their_files_is_listed_at_start_and_grows_a
             "{log}"
         );
     }
-    server
-        .terminate(Duration::from_secs(30))
-        .expect("the daemon stops");
+    stop(&mut server);
 
     // The earlier stores' folders gone, the last one holds its three layers and draws the same.
     let grown = store_of(&data, 21);
@@ -515,13 +480,9 @@ fn a_store_built_before_stores_listed_their_files_is_listed_at_start_and_grows_a
 
     // The end of the chain holds and draws what a fresh daemon's build does.
     let day2_fresh = (campaign.day2.as_path(), 21);
+    let grown = (store_of(&data, 21), last.as_path());
     let what = "the store grown three times";
-    let fresh =
-        assert_draws_as_a_fresh_build(dir.path(), "fresh-day2", day2_fresh, camera, &last, what);
-    assert!(
-        store_points(&store_of(&data, 21)) == store_points(&fresh),
-        "the store grown three times holds other points than a fresh build's"
-    );
+    assert_as_a_fresh_build(dir.path(), "fresh-day2", day2_fresh, camera, grown, what);
 
     // A layer changed underneath refuses the store when it opens: it is built again, whole.
     let layer = store_of(&data, 21).join("nodes.bin.0");

@@ -62,10 +62,6 @@ async fn a_turntable_job_renders_the_same_frames_as_the_renderer() {
 
     // The frames equal what the renderer draws directly with the same cameras.
     let fetched = fetch_images(&mut jobs, &job.id, 0).await;
-    assert_eq!(
-        fetched.iter().map(|(i, _)| *i).collect::<Vec<_>>(),
-        vec![0, 1, 2]
-    );
     assert_equal_to_direct_renders(&file, 3, (160, 120), &fetched);
     // Resuming a download from a frame index.
     assert_eq!(fetch_images(&mut jobs, &job.id, 2).await.len(), 1);

@@ -109,10 +109,6 @@ async fn a_worker_process_renders_a_turntable_like_the_renderer() {
         assert_eq!(frame.failed_attempts, 0);
     }
     let fetched = fetch_images(&mut jobs, &job.id, 0).await;
-    assert_eq!(
-        fetched.iter().map(|(i, _)| *i).collect::<Vec<_>>(),
-        vec![0, 1, 2, 3]
-    );
     assert_equal_to_direct_renders(&file, 4, (160, 120), &fetched);
 
     // SIGTERM while waiting for work: the worker exits cleanly.
@@ -173,10 +169,6 @@ async fn a_worker_killed_mid_frame_loses_nothing() {
         );
     }
     let fetched = fetch_images(&mut jobs, &job.id, 0).await;
-    assert_eq!(
-        fetched.iter().map(|(i, _)| *i).collect::<Vec<_>>(),
-        vec![0, 1, 2, 3]
-    );
     assert_equal_to_direct_renders(&file, 4, (160, 120), &fetched);
     assert!(list_leases(&mut lister).await.is_empty());
     daemon.stop().await;

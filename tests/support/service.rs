@@ -417,15 +417,21 @@ pub async fn fetch_images(
     images
 }
 
-/// Asserts that each fetched frame equals the renderer's direct rendering of that frame of a
-/// default turntable of `frames` frames around `file`, exposed with the gain its frame 0
-/// measures as every frame of a job is.
+/// Asserts that the fetched frames are every frame of a default turntable of `frames` frames
+/// around `file`, in order, each equal to the renderer's direct rendering of that frame,
+/// exposed with the gain its frame 0 measures as every frame of a job is.
 pub fn assert_equal_to_direct_renders(
     file: &Path,
     frames: u32,
     (width, height): (u32, u32),
     fetched: &[(u32, image::RgbaImage)],
 ) {
+    let indices: Vec<u32> = fetched.iter().map(|(index, _)| *index).collect();
+    assert_eq!(
+        indices,
+        (0..frames).collect::<Vec<_>>(),
+        "the fetched frames"
+    );
     let cloud = load_point_cloud(file).expect("load");
     let mut renderer = Renderer::new(gpu());
     let resident = renderer.upload(&cloud).expect("upload");

@@ -1,5 +1,6 @@
 //! A level-of-detail store's content, compared between builds: a store built by a run that
-//! was killed and resumed must equal an uninterrupted build's node for node.
+//! was killed and resumed must equal an uninterrupted build's node for node. Builds are stopped
+//! where a test wants them by the build's test hook (`POINTFARM_TEST_PAUSE_AT`).
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -8,7 +9,9 @@ use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use pointfarm_render::cut::StoredLod;
-use pointfarm_render::lod::{read_nodes, NodeKey};
+use pointfarm_render::lod::{read_nodes, NodeKey, NodePoints, RootCube};
+
+use crate::{pointfarm_bin, ServeProcess};
 
 /// The one store folder under `cache`'s `lod` folder (a CLI cache, or a daemon's data).
 pub fn store_folder(cache: &Path) -> PathBuf {
@@ -20,6 +23,17 @@ pub fn store_folder(cache: &Path) -> PathBuf {
         .collect();
     assert_eq!(folders.len(), 1, "{folders:?}");
     folders.pop().expect("one store")
+}
+
+/// Every node of the finished store in `folder`, read whole, and the store's cube. The store
+/// must not be open elsewhere (its index is locked while it is).
+pub fn every_node(folder: &Path) -> (Vec<NodePoints>, RootCube) {
+    let stored = StoredLod::open_or_build(&[], folder, 64 << 20, None, &mut |_| {})
+        .expect("a finished store");
+    let hierarchy = stored.dataset.hierarchy();
+    let keys: Vec<NodeKey> = hierarchy.nodes().iter().map(|n| n.key).collect();
+    let nodes = read_nodes(stored.dataset.records().as_ref(), hierarchy, &keys).expect("nodes");
+    (nodes, hierarchy.cube)
 }
 
 /// The nodes of the finished store under `cache` as the cut reads them: each node's
@@ -109,4 +123,21 @@ pub fn kill_build_at(mut command: Command, stage: Option<&str>, after: Duration)
     child.kill().expect("SIGKILL");
     child.wait().expect("reap");
     running
+}
+
+/// `pointfarm serve ARGS` on `address` over `data`, logging to `log`, its store builds stopped
+/// for good at `pause_at` (`POINTFARM_TEST_PAUSE_AT`) where given and run through where not,
+/// whatever the test's own environment says.
+pub fn serve_pausing_at(
+    address: &str,
+    (data, log): (&Path, &Path),
+    args: &[&str],
+    pause_at: Option<&str>,
+) -> ServeProcess {
+    let mut command = Command::new(pointfarm_bin());
+    match pause_at {
+        Some(stage) => command.env("POINTFARM_TEST_PAUSE_AT", stage),
+        None => command.env_remove("POINTFARM_TEST_PAUSE_AT"),
+    };
+    ServeProcess::start_command(command, address, data, log, args)
 }
