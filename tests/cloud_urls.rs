@@ -16,6 +16,7 @@
 //! API and check reads and refusals.
 
 use std::path::{Path, PathBuf};
+use std::process::Output;
 use std::time::Duration;
 
 use pointfarm_tests::azurite::{self, Azurite};
@@ -72,6 +73,12 @@ fn render(environment: &[(&'static str, String)], input: &str, out: &Path) -> se
     let mut frames = json_lines(&output);
     assert_eq!(frames.len(), 1, "{}", output_text(&output));
     frames.remove(0)
+}
+
+/// `pointfarm render URL --out OUT` with `environment`, its output as it came, for a test of
+/// what a failure says.
+fn try_render(environment: &[(&'static str, String)], url: &str, out: &Path) -> Output {
+    run_with(environment, &["render", url, "--out", path_arg(out)])
 }
 
 /// Renders `local` here and `url` by URL, and checks they are the same image, pixel for pixel,
@@ -155,19 +162,13 @@ fn a_missing_container_and_a_wrong_azure_key_are_one_line_naming_the_url() {
     assert_one_error_line(&output, &[missing, "no such container"]);
     let absent = format!("az://{CONTAINER}/absent.copc.laz");
     let out = dir.path().join("absent.png");
-    let output = run_with(
-        &azurite.environment(),
-        &["render", &absent, "--out", path_arg(&out)],
-    );
+    let output = try_render(&azurite.environment(), &absent, &out);
     assert_one_error_line(&output, &[&absent, "no such object"]);
 
     let url = format!("az://{CONTAINER}/scene.copc.laz");
     for output in [
         export(&azurite.wrong_key_environment(), &url),
-        run_with(
-            &azurite.wrong_key_environment(),
-            &["render", &url, "--out", path_arg(&out)],
-        ),
+        try_render(&azurite.wrong_key_environment(), &url, &out),
     ] {
         assert_one_error_line(
             &output,
@@ -252,17 +253,11 @@ fn a_missing_gcs_bucket_and_a_bad_service_account_are_one_line_naming_the_url() 
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("frame.png");
     let missing = "gs://no-such-bucket/scan.copc.laz";
-    let output = run_with(
-        &gcs.environment(),
-        &["render", missing, "--out", path_arg(&out)],
-    );
+    let output = try_render(&gcs.environment(), missing, &out);
     assert_one_error_line(&output, &[missing, "no such object"]);
 
     let url = format!("gs://{CONTAINER}/scan.copc.laz");
-    let output = run_with(
-        &gcs.bad_key_environment(),
-        &["render", &url, "--out", path_arg(&out)],
-    );
+    let output = try_render(&gcs.bad_key_environment(), &url, &out);
     assert_one_error_line(&output, &[&url, "could not be set up"]);
     assert!(!output_text(&output).contains(fake_gcs::BAD_KEY_MARKER));
 }
