@@ -14,17 +14,13 @@ use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_tests::stores::{
     assert_same_nodes, kill_build_at, logged, store_folder, store_nodes,
 };
-use pointfarm_tests::{output_text, pointfarm_bin};
+use pointfarm_tests::{output_text, path_arg, pointfarm_bin};
 
 /// Points of the dataset: enough for several partitions and nodes above them on two cores.
 const POINTS: usize = 1_000_000;
 const MEMORY_BUDGET: &str = "64MiB";
 /// Points of the dense dataset: several times the plan's partition size.
 const DENSE_POINTS: usize = 1_000_000;
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
 
 /// Two overlapping scans in a folder: the counting pass reads a batch of each.
 fn write_dataset(dir: &Path) -> PathBuf {
@@ -86,8 +82,19 @@ fn write_dense_dataset(dir: &Path) -> PathBuf {
 fn export(input: &Path, cache: &Path, copc: &Path, threads: Option<&str>) -> Command {
     let mut command = Command::new(pointfarm_bin());
     command
-        .args(["export", arg(input), "--copc", arg(copc), "--force"])
-        .args(["--cache-dir", arg(cache), "--memory-budget", MEMORY_BUDGET])
+        .args([
+            "export",
+            path_arg(input),
+            "--copc",
+            path_arg(copc),
+            "--force",
+        ])
+        .args([
+            "--cache-dir",
+            path_arg(cache),
+            "--memory-budget",
+            MEMORY_BUDGET,
+        ])
         .env("RUST_LOG", "pointfarm_render=info")
         .env_remove("POINTFARM_TEST_PAUSE_AT");
     match threads {

@@ -10,22 +10,18 @@ use std::process::{Command, Output};
 
 use pointfarm_tests::flights::{write_flight, write_tiles, COLUMNS, ROWS};
 use pointfarm_tests::stores::{every_node, store_folder};
-use pointfarm_tests::{assert_pngs_alike, output_text, pointfarm_bin, run_ok};
+use pointfarm_tests::{assert_pngs_alike, output_text, path_arg, pointfarm_bin, run_ok};
 
 const POINTS: usize = 200_000;
 const FRAMES: usize = 3;
 const SIZE: &str = "--size=160x120";
 
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
-
 fn render(tiles: &Path, out: &Path, cache: &Path, camera: &[&str]) -> Command {
     let mut command = Command::new(pointfarm_bin());
     command
-        .args(["render", arg(tiles), "--out", arg(out), SIZE])
+        .args(["render", path_arg(tiles), "--out", path_arg(out), SIZE])
         .args(["--lod-error", "0", "--point-size", "2"])
-        .args(["--cache-dir", arg(cache)])
+        .args(["--cache-dir", path_arg(cache)])
         .args(camera)
         .env_remove("POINTFARM_TEST_PAUSE_AT");
     command
@@ -68,7 +64,7 @@ fn a_flythrough_draws_its_first_frame_from_the_tiles_it_sees_and_the_store_ends_
     let dir = tempfile::tempdir().expect("tempdir");
     let (tiles, bounds) = write_tiles(dir.path(), POINTS);
     let flight = write_flight(dir.path(), &bounds, FRAMES);
-    let path = ["--camera-path", arg(&flight)];
+    let path = ["--camera-path", path_arg(&flight)];
 
     let first = dir.path().join("first");
     let cache = dir.path().join("cache");
@@ -150,7 +146,12 @@ fn never_building_the_unseen_tiles_keeps_the_store_to_the_flights() {
     let flight = write_flight(dir.path(), &bounds, FRAMES);
     let cache = dir.path().join("cache");
     let out = dir.path().join("frames");
-    let path = ["--camera-path", arg(&flight), "--build-unseen", "never"];
+    let path = [
+        "--camera-path",
+        path_arg(&flight),
+        "--build-unseen",
+        "never",
+    ];
     let output = run(&mut render(&tiles, &out, &cache, &path));
     let text = output_text(&output);
     assert!(!text.contains("the files no frame sees"), "{text}");

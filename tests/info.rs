@@ -6,13 +6,9 @@ use std::path::Path;
 
 use pointfarm_proto::v1 as pb;
 use pointfarm_tests::{
-    assert_fails_saying, assert_ok, pointfarm, run_into_a_closed_pipe, shared_data, stdout,
-    ServeProcess,
+    assert_fails_saying, assert_ok, path_arg, pointfarm, run_into_a_closed_pipe, shared_data,
+    stdout, ServeProcess,
 };
-
-fn path_arg(path: &Path) -> &str {
-    path.to_str().expect("paths are UTF-8")
-}
 
 /// `pointfarm info --json ARGS`, parsed back with the proto3 JSON mapping.
 fn info_json(args: &[&str]) -> pb::DatasetDescription {

@@ -21,17 +21,13 @@ use pointfarm_tests::nginx::NginxServer;
 use pointfarm_tests::s3s::{run_s3, S3sServer};
 use pointfarm_tests::service::gpu;
 use pointfarm_tests::{
-    assert_one_error_line, info_files, json_lines, output_text, pointfarm, shared_data,
+    assert_one_error_line, info_files, json_lines, output_text, path_arg, pointfarm, shared_data,
 };
 
 const TILES: usize = 20;
 /// Points per LAZ chunk of a tile: several chunks, so several chunk starts, in each.
 const CHUNK_POINTS: u32 = 4096;
 const BUCKET: &str = "campaigns";
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("test paths are UTF-8")
-}
 
 /// lone-star.laz cut along x into [`TILES`] tiles of equal points: LAZ in chunks of
 /// [`CHUNK_POINTS`] points (the `las` writer's are 50,000), tile 5 uncompressed and tile 19
@@ -189,7 +185,7 @@ fn a_prefix_in_s3_is_described_and_previewed_as_the_folder_here() {
     };
     let prefix = format!("s3://{BUCKET}/lone-star/");
 
-    let here = pointfarm(&["info", arg(&folder), "--no-points", "--json"]);
+    let here = pointfarm(&["info", path_arg(&folder), "--no-points", "--json"]);
     let by_url = pointfarm_s3(&server, &["info", &prefix, "--no-points", "--json"]);
     let ((files_here, paths_here), (files, paths)) = (info_files(&here), info_files(&by_url));
     assert_eq!(files, files_here, "what info says of the tiles");
@@ -206,7 +202,7 @@ fn a_prefix_in_s3_is_described_and_previewed_as_the_folder_here() {
     let out = dir.path().join("preview.png");
     let cache = dir.path().join("cache");
     let render = ["render", &prefix, "--preview", "--json", "--size=160x120"];
-    let places = ["--out", arg(&out), "--cache-dir", arg(&cache)];
+    let places = ["--out", path_arg(&out), "--cache-dir", path_arg(&cache)];
     let output = pointfarm_s3(&server, &[&render[..], &places].concat());
     let text = output_text(&output);
     assert!(output.status.success(), "{text}");
@@ -249,7 +245,7 @@ fn faults_by_url_are_one_line_errors_and_a_tile_fails_its_checks_as_a_file() {
 
     for (path, (name, _)) in paths.iter().zip(&faulty) {
         let url = format!("s3://{BUCKET}/faulty/{name}");
-        let here = pointfarm(&["info", arg(path), "--no-points"]);
+        let here = pointfarm(&["info", path_arg(path), "--no-points"]);
         let by_url = info(&url);
         let error_line = |output: &Output| -> String {
             let stderr = String::from_utf8_lossy(&output.stderr);
@@ -258,14 +254,18 @@ fn faults_by_url_are_one_line_errors_and_a_tile_fails_its_checks_as_a_file() {
         };
         assert_eq!(
             error_line(&by_url).replace(&url, "TILE"),
-            error_line(&here).replace(arg(path), "TILE"),
+            error_line(&here).replace(path_arg(path), "TILE"),
             "{name}"
         );
         assert!(!by_url.status.success());
     }
     let out = root.path().join("preview.png");
-    let preview =
-        |url: &str| pointfarm_s3(&server, &["render", url, "--preview", "--out", arg(&out)]);
+    let preview = |url: &str| {
+        pointfarm_s3(
+            &server,
+            &["render", url, "--preview", "--out", path_arg(&out)],
+        )
+    };
     let missing = format!("s3://{BUCKET}/faulty/absent.laz");
     assert_one_error_line(&preview(&missing), &[&missing, "no such object"]);
     let no_bucket = "s3://no-such-bucket/tiles/";
@@ -277,7 +277,7 @@ fn faults_by_url_are_one_line_errors_and_a_tile_fails_its_checks_as_a_file() {
     refused.retain(|(key, _)| *key != "AWS_SECRET_ACCESS_KEY");
     refused.push(("AWS_SECRET_ACCESS_KEY", "not-the-secret".to_owned()));
     let tile = format!("s3://{BUCKET}/faulty/hostile.laz");
-    let preview_args = ["render", &tile, "--preview", "--out", arg(&out)];
+    let preview_args = ["render", &tile, "--preview", "--out", path_arg(&out)];
     let denied = run_s3(&refused, &preview_args);
     assert_one_error_line(&denied, &[&tile, "access denied"]);
 
@@ -310,7 +310,7 @@ fn first_preview_frame_of_twenty_laz_tiles_in_s3() {
     for run in 1..=3 {
         let started = Instant::now();
         let render = ["render", &prefix, "--preview", "--json", "--size=1280x720"];
-        let output = pointfarm_s3(&server, &[&render[..], &["--out", arg(&out)]].concat());
+        let output = pointfarm_s3(&server, &[&render[..], &["--out", path_arg(&out)]].concat());
         let took = started.elapsed();
         assert!(output.status.success(), "{}", output_text(&output));
         let frame = json_lines(&output).remove(0);

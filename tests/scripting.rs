@@ -11,13 +11,9 @@ use std::time::Duration;
 use pointfarm_proto::v1 as pb;
 use pointfarm_tests::service::clients;
 use pointfarm_tests::{
-    assert_fails_saying, assert_ok, free_address, pointfarm, pointfarm_bin, stdout, wait_for,
-    ServeProcess, WorkerProcess,
+    assert_fails_saying, assert_ok, free_address, path_arg, pointfarm, pointfarm_bin, stdout,
+    wait_for, ServeProcess, WorkerProcess,
 };
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
 
 /// The one JSON value a command printed on stdout.
 fn json_of(output: &Output) -> serde_json::Value {
@@ -80,7 +76,14 @@ fn parsed<T: serde::de::DeserializeOwned>(value: &serde_json::Value) -> T {
 fn submit(address: &str, cloud: &Path, out: &Path, frames: u32) -> (std::process::Child, String) {
     let known = job_ids(&server_json(address, &["jobs", "list"]));
     let child = Command::new(pointfarm_bin())
-        .args(["render", arg(cloud), "--server", address, "--out", arg(out)])
+        .args([
+            "render",
+            path_arg(cloud),
+            "--server",
+            address,
+            "--out",
+            path_arg(out),
+        ])
         .args([format!("--turntable={frames}").as_str(), "--size=64x48"])
         .stdout(Stdio::null())
         .stderr(Stdio::null())
@@ -100,10 +103,15 @@ fn dataset_jobs_and_frames_print_json_a_script_can_read() {
     let dir = dir.path();
     let cloud = dir.join("cloud.laz");
     let other = dir.join("other.laz");
-    assert_ok(&pointfarm(&["sample", arg(&cloud), "--points", "10000"]));
     assert_ok(&pointfarm(&[
         "sample",
-        arg(&other),
+        path_arg(&cloud),
+        "--points",
+        "10000",
+    ]));
+    assert_ok(&pointfarm(&[
+        "sample",
+        path_arg(&other),
         "--points",
         "10000",
         "--seed",
@@ -123,7 +131,7 @@ fn dataset_jobs_and_frames_print_json_a_script_can_read() {
     );
 
     // dataset add, list, rm: the Dataset, the ListDatasetsResponse as the API returns them.
-    let added = server_json(&address, &["dataset", "add", arg(&other)]);
+    let added = server_json(&address, &["dataset", "add", path_arg(&other)]);
     let id = added["id"].as_str().expect("the dataset's id").to_owned();
     assert!(
         added["sizeBytes"].is_string(),
@@ -249,7 +257,10 @@ fn dataset_jobs_and_frames_print_json_a_script_can_read() {
 
     // frames fetch --json: every file written, with its frame.
     let out = dir.join("fetched");
-    let fetched = server_json(&address, &["frames", "fetch", &job, "--out", arg(&out)]);
+    let fetched = server_json(
+        &address,
+        &["frames", "fetch", &job, "--out", path_arg(&out)],
+    );
     assert_eq!(fetched["jobId"], job.as_str());
     let written = fetched["frames"].as_array().expect("frames");
     assert_eq!(written.len(), frames as usize);
@@ -260,7 +271,15 @@ fn dataset_jobs_and_frames_print_json_a_script_can_read() {
     }
     let from = server_json(
         &address,
-        &["frames", "fetch", &job, "--out", arg(&out), "--from", "2"],
+        &[
+            "frames",
+            "fetch",
+            &job,
+            "--out",
+            path_arg(&out),
+            "--from",
+            "2",
+        ],
     );
     assert_eq!(from["frames"].as_array().map(Vec::len), Some(1));
     assert_eq!(from["frames"][0]["index"], 2);
@@ -291,15 +310,20 @@ fn a_closed_pipe_ends_jobs_watch_quietly() {
     // `jobs watch | head -1` on a finished job: one line of JSON, no complaint about the pipe.
     let dir = tempfile::tempdir().expect("tempdir");
     let cloud = dir.path().join("cloud.laz");
-    assert_ok(&pointfarm(&["sample", arg(&cloud), "--points", "10000"]));
+    assert_ok(&pointfarm(&[
+        "sample",
+        path_arg(&cloud),
+        "--points",
+        "10000",
+    ]));
     let server = ServeProcess::start(&dir.path().join("data"));
     let rendered = pointfarm(&[
         "render",
-        arg(&cloud),
+        path_arg(&cloud),
         "--server",
         &server.address,
         "--out",
-        arg(&dir.path().join("frames")),
+        path_arg(&dir.path().join("frames")),
         "--turntable=2",
         "--size=64x48",
     ]);
@@ -344,7 +368,7 @@ fn completions_and_man_pages_come_from_the_command_line() {
 
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("man");
-    assert_ok(&pointfarm(&["man", "--out", arg(&out)]));
+    assert_ok(&pointfarm(&["man", "--out", path_arg(&out)]));
     for page in [
         "pointfarm.1",
         "pointfarm-render.1",
@@ -456,13 +480,13 @@ fn serve_and_worker_take_settings_from_a_file_the_environment_and_flags() {
         &config,
         format!(
             "[serve]\nlisten = \"{address}\"\ndata_dir = {:?}\nno_embedded_worker = true\nmax_frames = 5\n\n[worker]\ncache_gib = 3\n",
-            arg(&file_data)
+            path_arg(&file_data)
         ),
     )
     .expect("write the configuration");
 
     let mut serve = Command::new(pointfarm_bin())
-        .args(["serve", "--config", arg(&config), "--max-frames", "7"])
+        .args(["serve", "--config", path_arg(&config), "--max-frames", "7"])
         .env("POINTFARM_DATA_DIR", &env_data)
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
@@ -484,7 +508,7 @@ fn serve_and_worker_take_settings_from_a_file_the_environment_and_flags() {
         said.contains(&format!("serving on http://{address}")),
         "{said}"
     );
-    assert!(said.contains(arg(&env_data)), "{said}");
+    assert!(said.contains(path_arg(&env_data)), "{said}");
     assert!(env_data.is_dir());
     assert!(
         !file_data.exists(),
@@ -494,7 +518,7 @@ fn serve_and_worker_take_settings_from_a_file_the_environment_and_flags() {
     let printed = pointfarm(&[
         "serve",
         "--config",
-        arg(&config),
+        path_arg(&config),
         "--max-frames",
         "7",
         "--print-config",
@@ -520,7 +544,7 @@ fn serve_and_worker_take_settings_from_a_file_the_environment_and_flags() {
     assert!(worker.contains("lod_error = 2.5  # env"), "{worker}");
 
     std::fs::write(&config, "[worker]\nlod_error = -1\n").expect("write");
-    let refused = pointfarm(&["serve", "--config", arg(&config)]);
+    let refused = pointfarm(&["serve", "--config", path_arg(&config)]);
     assert_fails_saying(
         &refused,
         "pointfarm.toml: [worker] lod_error: invalid value '-1'",

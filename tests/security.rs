@@ -18,14 +18,10 @@ use pointfarm_tests::service::{
     list_leases, scratch_sample, submit, turntable_job, upload_file, TestDaemon,
 };
 use pointfarm_tests::{
-    own_stderr_lines, pointfarm, pointfarm_bin, wait_for, ServeProcess, WorkerProcess,
+    own_stderr_lines, path_arg, pointfarm, pointfarm_bin, wait_for, ServeProcess, WorkerProcess,
 };
 use tokio_stream::StreamExt;
 use tonic::Code;
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
 
 fn stderr(output: &Output) -> String {
     String::from_utf8_lossy(&output.stderr).into_owned()
@@ -53,11 +49,11 @@ fn tls_daemon(dir: &Path, pki: &TestPki, client_token: &Path, args: &[&str]) -> 
     let mut all = vec![
         "--no-embedded-worker",
         "--tls-cert",
-        arg(&pki.cert),
+        path_arg(&pki.cert),
         "--tls-key",
-        arg(&pki.key),
+        path_arg(&pki.key),
         "--token-file",
-        arg(client_token),
+        path_arg(client_token),
     ];
     all.extend_from_slice(args);
     ServeProcess::start_with(&dir.join("data"), &all)
@@ -75,7 +71,7 @@ fn tls_carries_clients_and_workers_and_plaintext_is_refused() {
         dir,
         &pki,
         &client_token,
-        &["--worker-token-file", arg(&worker_token)],
+        &["--worker-token-file", path_arg(&worker_token)],
     );
     let https = format!("https://localhost:{}", port_of(&server));
     let worker = WorkerProcess::start_with(
@@ -84,9 +80,9 @@ fn tls_carries_clients_and_workers_and_plaintext_is_refused() {
         "tls-worker",
         &[
             "--tls-ca",
-            arg(&pki.ca),
+            path_arg(&pki.ca),
             "--worker-token-file",
-            arg(&worker_token),
+            path_arg(&worker_token),
         ],
     );
     // A bare address with a CA means TLS.
@@ -94,17 +90,17 @@ fn tls_carries_clients_and_workers_and_plaintext_is_refused() {
     let bare = format!("localhost:{}", port_of(&server));
     let rendered = pointfarm(&[
         "render",
-        arg(&scene),
+        path_arg(&scene),
         "--server",
         &bare,
         "--tls-ca",
-        arg(&pki.ca),
+        path_arg(&pki.ca),
         "--token-file",
-        arg(&client_token),
+        path_arg(&client_token),
         "--turntable=2",
         "--size=64x48",
         "--out",
-        arg(&frames),
+        path_arg(&frames),
     ]);
     assert!(
         rendered.status.success(),
@@ -122,9 +118,9 @@ fn tls_carries_clients_and_workers_and_plaintext_is_refused() {
         "--server",
         &https,
         "--tls-ca",
-        arg(&pki.ca),
+        path_arg(&pki.ca),
         "--token-file",
-        arg(&client_token),
+        path_arg(&client_token),
     ]);
     assert!(listed.status.success(), "{}", stderr(&listed));
 
@@ -132,7 +128,7 @@ fn tls_carries_clients_and_workers_and_plaintext_is_refused() {
     // all fail; none falls back.
     let client = |server: &str, extra: &[&str]| {
         let mut args = vec!["dataset", "list", "--server", server, "--token-file"];
-        args.push(arg(&client_token));
+        args.push(path_arg(&client_token));
         args.extend_from_slice(extra);
         pointfarm(&args)
     };
@@ -143,11 +139,11 @@ fn tls_carries_clients_and_workers_and_plaintext_is_refused() {
     let plaintext = format!("http://localhost:{}", port_of(&server));
     assert!(!client(&plaintext, &[]).status.success());
     assert_fails_saying(
-        &client(&plaintext, &["--tls-ca", arg(&pki.ca)]),
+        &client(&plaintext, &["--tls-ca", path_arg(&pki.ca)]),
         "--tls-ca is for https://",
     );
     assert_fails_saying(
-        &client(&https, &["--tls-ca", arg(&pki.ca), "--token", "x"]),
+        &client(&https, &["--tls-ca", path_arg(&pki.ca), "--token", "x"]),
         "give the token once",
     );
     // The client token is no worker token.
@@ -156,11 +152,11 @@ fn tls_carries_clients_and_workers_and_plaintext_is_refused() {
         "--server",
         &https,
         "--tls-ca",
-        arg(&pki.ca),
+        path_arg(&pki.ca),
         "--worker-token-file",
-        arg(&client_token),
+        path_arg(&client_token),
         "--cache-dir",
-        arg(&dir.join("cache-refused")),
+        path_arg(&dir.join("cache-refused")),
     ]);
     assert_fails_saying(&refused, "permission denied");
     // A certificate signed by a CA is a server's own: nothing to warn of.
@@ -197,9 +193,9 @@ fn a_ca_certificate_served_is_named_at_start_and_by_the_client() {
         &[
             "--no-embedded-worker",
             "--tls-cert",
-            arg(&cert),
+            path_arg(&cert),
             "--tls-key",
-            arg(&key),
+            path_arg(&key),
         ],
     );
     let log = wait_for(Duration::from_secs(10), "the certificate warning", || {
@@ -220,7 +216,7 @@ fn a_ca_certificate_served_is_named_at_start_and_by_the_client() {
         "--server",
         &https,
         "--tls-ca",
-        arg(&cert),
+        path_arg(&cert),
     ]);
     assert_fails_saying(&refused, "is a CA certificate (basicConstraints CA:TRUE)");
     let message = stderr(&refused);
@@ -242,8 +238,12 @@ fn a_ca_certificate_served_is_named_at_start_and_by_the_client() {
     assert!(lines[0].starts_with("error: cannot connect to https://localhost:"));
 
     // A worker stops with the same sentence rather than retrying what cannot succeed.
-    let mut worker =
-        WorkerProcess::start_with(&https, &dir.join("worker"), "w", &["--tls-ca", arg(&cert)]);
+    let mut worker = WorkerProcess::start_with(
+        &https,
+        &dir.join("worker"),
+        "w",
+        &["--tls-ca", path_arg(&cert)],
+    );
     let log = wait_for(Duration::from_secs(60), "the worker's refusal", || {
         let log = worker.log();
         log.contains("is a CA certificate").then_some(log)
@@ -259,7 +259,7 @@ fn a_ca_certificate_served_is_named_at_start_and_by_the_client() {
 fn serve_exits(data_dir: &Path, args: &[&str]) -> Output {
     let mut child = Command::new(pointfarm_bin())
         .arg("serve")
-        .args(["--data-dir", arg(data_dir), "--no-embedded-worker"])
+        .args(["--data-dir", path_arg(data_dir), "--no-embedded-worker"])
         .args(args)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -305,9 +305,9 @@ fn a_refused_certificate_stops_serve_before_it_says_it_serves() {
                 "--listen",
                 "127.0.0.1:0",
                 "--tls-cert",
-                arg(cert),
+                path_arg(cert),
                 "--tls-key",
-                arg(key),
+                path_arg(key),
             ],
         );
         assert_fails_saying(&refused, needle);
@@ -353,9 +353,9 @@ fn listening_beyond_loopback_needs_a_token_and_tls_or_insecure() {
         "--token",
         "client-token",
         "--tls-cert",
-        arg(&pki.cert),
+        path_arg(&pki.cert),
         "--tls-key",
-        arg(&pki.key),
+        path_arg(&pki.key),
     ];
     let mut secured =
         ServeProcess::start_with_args(&format!("0.0.0.0:{}", port()), &dir.join("d4"), &tls);

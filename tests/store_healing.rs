@@ -12,11 +12,7 @@ use pointfarm_render::cut::{StoredLod, ELEVATION_SAMPLE_POINTS};
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::lod::NodeInfo;
 use pointfarm_render::sample::sample_scene;
-use pointfarm_tests::{free_address, output_text, pointfarm, pointfarm_ok, ServeProcess};
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
+use pointfarm_tests::{free_address, output_text, path_arg, pointfarm, pointfarm_ok, ServeProcess};
 
 /// A LAZ file of the sample scene, small enough to build in a moment.
 fn scene(dir: &Path) -> PathBuf {
@@ -61,14 +57,14 @@ fn render_from_a_store(
 ) -> std::process::Output {
     pointfarm_ok(&[
         "render",
-        arg(file),
+        path_arg(file),
         "--out",
-        arg(out),
+        path_arg(out),
         "--size=160x120",
         "--lod-error",
         lod_error,
         "--cache-dir",
-        arg(cache),
+        path_arg(cache),
     ])
 }
 
@@ -210,9 +206,9 @@ fn a_daemon_store_that_fails_its_checks_is_built_again_once_then_reported() {
         let out = dir.path().join(name);
         let output = pointfarm(&[
             "render",
-            arg(&file),
+            path_arg(&file),
             "--out",
-            arg(&out),
+            path_arg(&out),
             "--size=160x120",
             "--lod-error",
             lod_error,
@@ -252,14 +248,14 @@ fn a_daemon_store_that_fails_its_checks_is_built_again_once_then_reported() {
     let local = dir.path().join("local.png");
     pointfarm_ok(&[
         "render",
-        arg(&file),
+        path_arg(&file),
         "--out",
-        arg(&local),
+        path_arg(&local),
         "--size=160x120",
         "--lod-error",
         "0.25",
         "--cache-dir",
-        arg(&dir.path().join("cache")),
+        path_arg(&dir.path().join("cache")),
     ]);
     assert!(
         image(&healed) == image(&local),
@@ -278,7 +274,7 @@ fn a_daemon_store_that_fails_its_checks_is_built_again_once_then_reported() {
         text.contains("dataset ") && text.contains("(scene.laz)"),
         "{text}"
     );
-    assert!(!text.contains(arg(&data)), "a server path:\n{text}");
+    assert!(!text.contains(path_arg(&data)), "a server path:\n{text}");
     let log = server.log();
     assert_eq!(
         log.matches("rebuilding a damaged store").count(),

@@ -21,7 +21,9 @@ use pointfarm_render::sample::sample_scene;
 use pointfarm_tests::prometheus::scrape;
 use pointfarm_tests::s3s::{self, S3Bucket};
 use pointfarm_tests::service::{connect, lease_at_once};
-use pointfarm_tests::{free_address, pointfarm_ok, pointfarm_with, ServeProcess, WorkerProcess};
+use pointfarm_tests::{
+    free_address, path_arg, pointfarm_ok, pointfarm_with, ServeProcess, WorkerProcess,
+};
 
 /// The bucket stores are published to: a folder of the server's root.
 const BUCKET: &str = "pointfarm-stores";
@@ -34,10 +36,6 @@ const OPTIONS: [&str; 5] = ["--size=120x90", "--turntable", "2", "--lod-error", 
 const FRAMES: [&str; 2] = ["frame_00000.png", "frame_00001.png"];
 /// The daemon's count of node records it served to workers.
 const RECORDS_SERVED: &str = "pointfarm_store_records_served_total";
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("temporary paths are UTF-8")
-}
 
 /// An S3 server holding the bucket, a scene to render and a scratch folder.
 struct Farm {
@@ -95,7 +93,7 @@ impl Farm {
     /// Renders the scene through `daemon` into the folder `out`.
     fn render(&self, daemon: &ServeProcess, out: &str) -> PathBuf {
         let out = self.dir.path().join(out);
-        let mut args = vec!["render", arg(&self.scene), "--out", arg(&out)];
+        let mut args = vec!["render", path_arg(&self.scene), "--out", path_arg(&out)];
         args.extend(["--server", &daemon.address]);
         args.extend(OPTIONS);
         pointfarm_ok(&args);
@@ -267,7 +265,12 @@ fn workers_read_a_published_store_from_object_storage_and_none_of_it_through_the
     drop(worker);
     let before = job_ids(&daemon);
     let detached = farm.dir.path().join("detached");
-    let mut args = vec!["render", arg(&farm.scene), "--out", arg(&detached)];
+    let mut args = vec![
+        "render",
+        path_arg(&farm.scene),
+        "--out",
+        path_arg(&detached),
+    ];
     args.extend(["--server", &address, "--detach"]);
     args.extend(OPTIONS);
     pointfarm_ok(&args);
@@ -515,7 +518,7 @@ fn now_unix_ms() -> i64 {
 /// The id of the dataset registered from `file`.
 fn dataset_id(daemon: &ServeProcess, file: &Path) -> String {
     let server = ["--server", daemon.address.as_str(), "--json"];
-    let registered = pointfarm_ok(&[&["dataset", "add", arg(file)], &server[..]].concat());
+    let registered = pointfarm_ok(&[&["dataset", "add", path_arg(file)], &server[..]].concat());
     let dataset: serde_json::Value = serde_json::from_slice(&registered.stdout).expect("json");
     dataset["id"].as_str().expect("an id").to_owned()
 }

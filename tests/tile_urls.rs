@@ -18,7 +18,7 @@ use pointfarm_render::source::{listed_tiles, open_tile_source};
 use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::nginx::NginxServer;
 use pointfarm_tests::s3s::{run_s3, S3sServer};
-use pointfarm_tests::{assert_same_frames, json_lines, output_text, pointfarm_ok};
+use pointfarm_tests::{assert_same_frames, json_lines, output_text, path_arg, pointfarm_ok};
 
 const BUCKET: &str = "campaigns";
 /// The options of every render: frames from levels of detail, so both sides cut a store.
@@ -30,10 +30,6 @@ const OPTIONS: [&str; 6] = [
     "1",
     "--json",
 ];
-
-fn arg(path: &Path) -> &str {
-    path.to_str().expect("test paths are UTF-8")
-}
 
 /// Three LAZ tiles of 60,000 points and one LAS tile of 300,000 (over 8 MiB: streamed in
 /// more than one block) in `folder`; their paths.
@@ -66,9 +62,9 @@ fn render_args<'a>(input: &'a str, out: &'a Path, cache: &'a Path) -> Vec<&'a st
         "render",
         input,
         "--out",
-        arg(out),
+        path_arg(out),
         "--cache-dir",
-        arg(cache),
+        path_arg(cache),
     ];
     args.extend(OPTIONS);
     args
@@ -93,7 +89,7 @@ fn final_frames_of_a_prefix_in_s3_are_the_frames_of_the_files_here() {
     let prefix = format!("s3://{BUCKET}/tiles/");
     let here = root.path().join("here");
     pointfarm_ok(&render_args(
-        arg(&folder),
+        path_arg(&folder),
         &here,
         &root.path().join("cache-here"),
     ));
@@ -196,7 +192,7 @@ fn an_object_replaced_after_its_listing_or_during_the_build_fails_it_naming_the_
     let one = url("t1.laz");
     let cache = root.path().join("cache-one");
     let here = root.path().join("here");
-    pointfarm_ok(&render_args(arg(&paths[0]), &here, &cache));
+    pointfarm_ok(&render_args(path_arg(&paths[0]), &here, &cache));
     let by_url = root.path().join("by-url");
     let output = pointfarm_ok(&render_args(one.as_str(), &by_url, &cache));
     assert_same_frames(&here, &by_url, 2, "one tile by URL");
