@@ -11,8 +11,8 @@ use std::time::Duration;
 use pointfarm_proto::v1 as pb;
 use pointfarm_tests::service::clients;
 use pointfarm_tests::{
-    assert_fails_saying, assert_ok, free_address, path_arg, pointfarm, pointfarm_bin, stdout,
-    wait_for, ServeProcess, WorkerProcess,
+    assert_fails_saying, assert_ok, free_address, path_arg, pointfarm, pointfarm_bin, pointfarm_ok,
+    stdout, wait_for, ServeProcess, WorkerProcess,
 };
 
 /// The one JSON value a command printed on stdout.
@@ -103,20 +103,15 @@ fn dataset_jobs_and_frames_print_json_a_script_can_read() {
     let dir = dir.path();
     let cloud = dir.join("cloud.laz");
     let other = dir.join("other.laz");
-    assert_ok(&pointfarm(&[
-        "sample",
-        path_arg(&cloud),
-        "--points",
-        "10000",
-    ]));
-    assert_ok(&pointfarm(&[
+    pointfarm_ok(&["sample", path_arg(&cloud), "--points", "10000"]);
+    pointfarm_ok(&[
         "sample",
         path_arg(&other),
         "--points",
         "10000",
         "--seed",
         "2",
-    ]));
+    ]);
     // No embedded worker: jobs wait until a worker process is started, so a cancel and a
     // watch see them unfinished.
     let server = ServeProcess::start_with(&dir.join("data"), &["--no-embedded-worker"]);
@@ -310,12 +305,7 @@ fn a_closed_pipe_ends_jobs_watch_quietly() {
     // `jobs watch | head -1` on a finished job: one line of JSON, no complaint about the pipe.
     let dir = tempfile::tempdir().expect("tempdir");
     let cloud = dir.path().join("cloud.laz");
-    assert_ok(&pointfarm(&[
-        "sample",
-        path_arg(&cloud),
-        "--points",
-        "10000",
-    ]));
+    pointfarm_ok(&["sample", path_arg(&cloud), "--points", "10000"]);
     let server = ServeProcess::start(&dir.path().join("data"));
     let rendered = pointfarm(&[
         "render",
