@@ -14,7 +14,9 @@ use pointfarm_tests::datasets::register_path;
 use pointfarm_tests::service::{
     clients, fetch_images, submit, turntable_job, watch_to_success, write_sample,
 };
-use pointfarm_tests::stores::{assert_same_nodes, serve_pausing_at, store_folder, store_nodes};
+use pointfarm_tests::stores::{
+    assert_same_nodes, count_after, serve_pausing_at, store_folder, store_nodes,
+};
 use pointfarm_tests::{free_address, wait_for, ServeProcess, WorkerProcess};
 
 /// Points of the dataset: enough for several partitions on two cores.
@@ -51,12 +53,7 @@ fn job(name: &str, dataset_id: &str) -> pb::SubmitJobRequest {
 fn units_taken_over(log: &str, dataset_id: &str) -> Option<u64> {
     let said = format!("resumed the store build of {dataset_id}: ");
     let line = log.lines().find(|line| line.contains(&said))?;
-    let at = line.find(&said)? + said.len();
-    let digits: String = line[at..]
-        .chars()
-        .take_while(char::is_ascii_digit)
-        .collect();
-    digits.parse().ok()
+    count_after(line, &said)
 }
 
 /// A job's frames, rendered and fetched, and the finished store's nodes.

@@ -8,6 +8,7 @@ use std::process::{Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
+use pointfarm_bench::daemon_log::number_after;
 use pointfarm_render::cut::StoredLod;
 use pointfarm_render::lod::{read_nodes, NodeKey, NodePoints, RootCube};
 
@@ -75,15 +76,17 @@ pub fn assert_same_nodes(resumed: &[String], uninterrupted: &[String], what: &st
     }
 }
 
-/// The number after `name=` on the first line of `log` that says `message`.
+/// The count after `name=` on the first line of `log` that says `message`.
 pub fn logged(log: &str, message: &str, name: &str) -> Option<u64> {
     let line = log.lines().find(|l| l.contains(message))?;
-    let at = line.find(&format!(" {name}="))? + name.len() + 2;
-    let digits: String = line[at..]
-        .chars()
-        .take_while(char::is_ascii_digit)
-        .collect();
-    digits.parse().ok()
+    count_after(line, &format!(" {name}="))
+}
+
+/// The whole number following `key` in a log line, read as the benchmarks read a daemon's.
+pub fn count_after(line: &str, key: &str) -> Option<u64> {
+    let number = number_after(line, key)?;
+    // Counts are far below 2^53, where every whole number is exact in an f64.
+    (number.fract() == 0.0).then_some(number as u64)
 }
 
 /// Starts `command` (a `pointfarm` build) and kills it with SIGKILL once it says the build
