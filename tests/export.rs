@@ -8,7 +8,7 @@
 //! skips, saying so, as the Python client test does.
 
 use std::path::Path;
-use std::process::Command;
+use std::process::{Command, Output};
 
 use las::copc::{BoundsSelection, CopcReader, LodSelection};
 use pointfarm_proto::v1 as pb;
@@ -145,6 +145,14 @@ fn scan_facts(file: &Path) -> (u64, [i64; 3]) {
     (data.len() as u64, sum)
 }
 
+/// The one JSON object a successful `export --json` printed.
+fn one_report(output: &Output) -> serde_json::Value {
+    assert_ok(output);
+    let mut lines = json_lines(output);
+    assert_eq!(lines.len(), 1, "one object:\n{}", stdout(output));
+    lines.remove(0)
+}
+
 #[test]
 fn export_writes_a_copc_file_that_laspy_and_the_las_crate_read_as_the_scan() {
     let Some(scan) = shared_data("autzen_trim.laz") else {
@@ -160,11 +168,7 @@ fn export_writes_a_copc_file_that_laspy_and_the_las_crate_read_as_the_scan() {
         pointfarm(&args)
     };
     let output = export(&["--json"]);
-    assert_ok(&output);
-    let lines = json_lines(&output);
-    let [report] = lines.as_slice() else {
-        panic!("one object:\n{}", stdout(&output));
-    };
+    let report = &one_report(&output);
     assert_eq!(report["file"], path_arg(&out), "{report}");
     assert_eq!(report["points"], 110_000, "{report}");
     assert_eq!(report["pointFormat"], 7, "{report}");
@@ -229,11 +233,7 @@ fn dataset_export_streams_the_servers_copc_file() {
     };
     let out = dir.path().join("lone-star.copc.laz");
     let output = export(&dataset.id, &out, &["--json"]);
-    assert_ok(&output);
-    let lines = json_lines(&output);
-    let [report] = lines.as_slice() else {
-        panic!("one object:\n{}", stdout(&output));
-    };
+    let report = &one_report(&output);
     assert_eq!(report["file"], path_arg(&out), "{report}");
     let summary: pb::ExportSummary =
         serde_json::from_value(report["summary"].clone()).expect("an ExportSummary");

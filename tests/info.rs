@@ -5,6 +5,7 @@
 use std::path::Path;
 
 use pointfarm_proto::v1 as pb;
+use pointfarm_tests::datasets::add_files_with_cli;
 use pointfarm_tests::{
     assert_fails_saying, assert_ok, path_arg, pointfarm, run_into_a_closed_pipe, shared_data,
     stdout, ServeProcess,
@@ -259,17 +260,7 @@ fn a_dataset_on_a_server_reports_as_its_files_do_here() {
     let dir = tempfile::tempdir().expect("tempdir");
     let server = ServeProcess::start_with(&dir.path().join("data"), &["--no-embedded-worker"]);
     let address = server.address.as_str();
-    let added = pointfarm(&[
-        "dataset",
-        "add",
-        path_arg(&autzen),
-        path_arg(&lone_star),
-        "--server",
-        address,
-        "--json",
-    ]);
-    assert_ok(&added);
-    let dataset: pb::Dataset = serde_json::from_slice(&added.stdout).expect("a Dataset");
+    let dataset = add_files_with_cli(address, &[&autzen, &lone_star]);
     // The same files here, where the server keeps them: the local report of the same paths.
     let server_paths: Vec<&str> = dataset.files.iter().map(|f| f.path.as_str()).collect();
     assert_eq!(server_paths.len(), 2);
@@ -305,17 +296,7 @@ fn a_dataset_on_a_server_reports_as_its_files_do_here() {
     let bytes = std::fs::read(&autzen).expect("read autzen");
     let cut = dir.path().join("cut_short.laz");
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).expect("write the cut file");
-    let added = pointfarm(&[
-        "dataset",
-        "add",
-        path_arg(&cut),
-        path_arg(&lone_star),
-        "--server",
-        address,
-        "--json",
-    ]);
-    assert_ok(&added);
-    let damaged: pb::Dataset = serde_json::from_slice(&added.stdout).expect("a Dataset");
+    let damaged = add_files_with_cli(address, &[&cut, &lone_star]);
     let output = pointfarm(&["info", &damaged.id, "--server", address]);
     assert_fails_saying(&output, "1 of 2 files could not be read");
     assert_fails_saying(&output, "truncated");

@@ -31,14 +31,15 @@ pub async fn register_path(
 /// Registers the file `path` on the daemon at `address` as a user does, with `pointfarm
 /// dataset add --json`, expecting it taken.
 pub fn add_with_cli(address: &str, path: &Path) -> pb::Dataset {
-    let added = pointfarm_ok(&[
-        "dataset",
-        "add",
-        path_arg(path),
-        "--server",
-        address,
-        "--json",
-    ]);
+    add_files_with_cli(address, &[path])
+}
+
+/// [`add_with_cli`] of the files `paths`, as one dataset.
+pub fn add_files_with_cli(address: &str, paths: &[&Path]) -> pb::Dataset {
+    let mut args = vec!["dataset", "add"];
+    args.extend(paths.iter().map(|path| path_arg(path)));
+    args.extend(["--server", address, "--json"]);
+    let added = pointfarm_ok(&args);
     serde_json::from_str(stdout(&added).trim()).expect("a Dataset")
 }
 
