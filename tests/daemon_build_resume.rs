@@ -12,7 +12,7 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_render::cut::StoredLod;
 use pointfarm_tests::datasets::register_path;
 use pointfarm_tests::service::{
-    clients, fetch_images, submit, turntable_job, watch_to_success, write_sample,
+    clients, fetch_images, lod_turntable_job, submit, watch_to_success, write_sample,
 };
 use pointfarm_tests::stores::{
     assert_same_nodes, count_after, serve_pausing_at, store_folder, store_nodes,
@@ -40,13 +40,7 @@ fn serve(address: &str, data: &Path, root: &str, pause_at: Option<&str>) -> Serv
 
 /// A turntable from levels of detail: the dataset needs the daemon's store.
 fn job(name: &str, dataset_id: &str) -> pb::SubmitJobRequest {
-    pb::SubmitJobRequest {
-        render: Some(pb::RenderOptions {
-            lod_error: Some(0.5),
-            ..Default::default()
-        }),
-        ..turntable_job(name, dataset_id, FRAMES, 160, 120)
-    }
+    lod_turntable_job(name, dataset_id, FRAMES, (160, 120), 0.5)
 }
 
 /// The units the daemon said its build of `dataset_id` took over, once it has said so.

@@ -19,7 +19,7 @@ use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::datasets::assert_jobs_render_alike;
 use pointfarm_tests::s3s::{S3sServer, SECRET_KEY};
 use pointfarm_tests::service::{
-    fetch_images, get_job, submit, turntable_job, watch_to_end, TestDaemon,
+    fetch_images, get_job, lod_turntable_job, submit, watch_to_end, TestDaemon,
 };
 use pointfarm_tests::{output_text, pointfarm_ok, stdout};
 use tonic::Code;
@@ -36,13 +36,7 @@ async fn register(daemon: &TestDaemon, paths: Vec<String>) -> Result<pb::Dataset
 
 /// A turntable from levels of detail, so that both datasets are cut from a store.
 fn job(name: &str, dataset_id: &str) -> pb::SubmitJobRequest {
-    pb::SubmitJobRequest {
-        render: Some(pb::RenderOptions {
-            lod_error: Some(1.0),
-            ..Default::default()
-        }),
-        ..turntable_job(name, dataset_id, 2, 160, 120)
-    }
+    lod_turntable_job(name, dataset_id, 2, (160, 120), 1.0)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -16,8 +16,8 @@ use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::datasets::register_path;
 use pointfarm_tests::service::{
-    get_job, scratch_sample, submit, turntable_job, upload_sample, watch, watch_to_success,
-    TestDaemon,
+    get_job, lod_turntable_job, scratch_sample, submit, turntable_job, upload_sample, watch,
+    watch_to_success, TestDaemon,
 };
 use pointfarm_tests::{pointfarm, pointfarm_bin, stdout, wait_for, WorkerProcess};
 use tonic::transport::Channel;
@@ -524,12 +524,8 @@ async fn a_preview_jobs_previews_make_a_preview_video_and_its_final_video_still_
     let mut jobs = daemon.jobs().await;
     let previewed_job = |name: &str, preview: bool| {
         let request = pb::SubmitJobRequest {
-            render: Some(pb::RenderOptions {
-                lod_error: Some(0.5),
-                ..Default::default()
-            }),
             preview,
-            ..turntable_job(name, &dataset.id, 4, 160, 120)
+            ..lod_turntable_job(name, &dataset.id, 4, (160, 120), 0.5)
         };
         with_video(request, "mp4", "")
     };

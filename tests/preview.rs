@@ -19,7 +19,7 @@ use pointfarm_render::source::{quiet, ChunkStarts, FrameSource};
 use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::datasets::register_path;
 use pointfarm_tests::service::{
-    clients, fetch_images, get_job, gpu, submit, turntable_job, watch, TestDaemon,
+    clients, fetch_images, get_job, gpu, lod_turntable_job, submit, watch, TestDaemon,
 };
 use pointfarm_tests::ServeProcess;
 use tonic::transport::Channel;
@@ -35,12 +35,8 @@ fn tiles(dir: &Path) -> Vec<PathBuf> {
 /// A turntable from levels of detail (the dataset needs a store), with or without previews.
 fn job(name: &str, dataset_id: &str, preview: bool) -> pb::SubmitJobRequest {
     pb::SubmitJobRequest {
-        render: Some(pb::RenderOptions {
-            lod_error: Some(0.5),
-            ..Default::default()
-        }),
         preview,
-        ..turntable_job(name, dataset_id, FRAMES, SIZE.0, SIZE.1)
+        ..lod_turntable_job(name, dataset_id, FRAMES, SIZE, 0.5)
     }
 }
 

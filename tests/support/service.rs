@@ -238,6 +238,24 @@ pub fn turntable_job(
     }
 }
 
+/// [`turntable_job`] drawn from levels of detail at the pixel error `lod_error`: its dataset
+/// needs a store.
+pub fn lod_turntable_job(
+    request_id: &str,
+    dataset_id: &str,
+    frames: u32,
+    (width, height): (u32, u32),
+    lod_error: f64,
+) -> pb::SubmitJobRequest {
+    pb::SubmitJobRequest {
+        render: Some(pb::RenderOptions {
+            lod_error: Some(lod_error),
+            ..Default::default()
+        }),
+        ..turntable_job(request_id, dataset_id, frames, width, height)
+    }
+}
+
 /// A lease for the worker `worker_name` that answers at once, with a frame or with none.
 pub fn lease_at_once(worker_name: &str) -> pb::LeaseFrameRequest {
     pb::LeaseFrameRequest {
