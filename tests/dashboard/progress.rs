@@ -14,7 +14,7 @@ use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_proto::v1::worker_service_client::WorkerServiceClient;
 use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::datasets::register_path;
-use pointfarm_tests::service::{connect, turntable_job};
+use pointfarm_tests::service::{connect, lod_turntable_job, turntable_job};
 use pointfarm_tests::WorkerProcess;
 use serde_json::{json, Value};
 use tonic::transport::Channel;
@@ -26,12 +26,8 @@ use super::webdriver::{chromium_installed, request, Browser};
 /// previews or without.
 fn lod_job(name: &str, dataset_id: &str, frames: u32, preview: bool) -> pb::SubmitJobRequest {
     pb::SubmitJobRequest {
-        render: Some(pb::RenderOptions {
-            lod_error: Some(0.5),
-            ..Default::default()
-        }),
         preview,
-        ..turntable_job(name, dataset_id, frames, 160, 120)
+        ..lod_turntable_job(name, dataset_id, frames, (160, 120), 0.5)
     }
 }
 
