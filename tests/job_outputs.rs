@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use pointfarm_tests::s3s::{self, S3Bucket};
-use pointfarm_tests::service::scan;
+use pointfarm_tests::service::{scan, submit_detached};
 use pointfarm_tests::{
     assert_fails_saying, assert_ok, output_text, path_arg, pointfarm, pointfarm_ok, stdout,
     wait_for, ServeProcess,
@@ -77,24 +77,8 @@ impl OutputFarm {
 /// `render SCAN --server ... --turntable FRAMES --detach --output-url URL` on `farm`'s scan:
 /// the job's id.
 fn submit(farm: &OutputFarm, frames: u32, url: &str) -> String {
-    let frames = frames.to_string();
     let out = farm.dir.path().join("out");
-    let output = pointfarm_ok(&[
-        "render",
-        path_arg(&farm.scan),
-        "--server",
-        &farm.server.address,
-        "--turntable",
-        &frames,
-        "--size",
-        "64x48",
-        "--out",
-        path_arg(&out),
-        "--detach",
-        "--output-url",
-        url,
-    ]);
-    stdout(&output).trim().to_owned()
+    submit_detached(&farm.server.address, &farm.scan, frames, (&out, url))
 }
 
 /// The files under `folder`, sorted by name.

@@ -11,7 +11,7 @@ use std::path::Path;
 use std::time::Duration;
 
 use pointfarm_tests::s3s::S3Bucket;
-use pointfarm_tests::service::scan;
+use pointfarm_tests::service::{scan, submit_detached};
 use pointfarm_tests::{
     free_address, path_arg, pointfarm_ok, pointfarm_with, stdout, wait_for, ServeProcess,
 };
@@ -71,23 +71,8 @@ fn outputs_waiting_when_the_daemon_is_killed_reach_the_bucket_after_it_starts_ag
     let mut server = serve(&address, &data, &log, &bucket, Some(&silent_endpoint));
 
     let scan = scan(dir.path());
-    let frames = FRAMES.to_string();
-    let submitted = pointfarm_ok(&[
-        "render",
-        path_arg(&scan),
-        "--server",
-        &address,
-        "--turntable",
-        &frames,
-        "--size",
-        "64x48",
-        "--out",
-        path_arg(&dir.path().join("out")),
-        "--detach",
-        "--output-url",
-        OUTPUT_URL,
-    ]);
-    let id = stdout(&submitted).trim().to_owned();
+    let out = dir.path().join("out");
+    let id = submit_detached(&address, &scan, FRAMES, (&out, OUTPUT_URL));
     let finished = wait_for(
         Duration::from_secs(120),
         "the job done, its outputs waiting",

@@ -620,3 +620,30 @@ pub fn scan(dir: &Path) -> PathBuf {
     write_sample(&path, 60_000, 3);
     path
 }
+
+/// `pointfarm render SCAN --server ADDRESS --turntable FRAMES --detach --output-url URL`, small
+/// frames into `out`, expecting it taken: the job's id.
+pub fn submit_detached(
+    address: &str,
+    scan: &Path,
+    frames: u32,
+    (out, url): (&Path, &str),
+) -> String {
+    let frames = frames.to_string();
+    let output = crate::pointfarm_ok(&[
+        "render",
+        crate::path_arg(scan),
+        "--server",
+        address,
+        "--turntable",
+        &frames,
+        "--size",
+        "64x48",
+        "--out",
+        crate::path_arg(out),
+        "--detach",
+        "--output-url",
+        url,
+    ]);
+    crate::stdout(&output).trim().to_owned()
+}
