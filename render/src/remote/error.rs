@@ -3,8 +3,6 @@
 use std::ops::Range;
 use std::time::Duration;
 
-use super::redirect::refused_redirect;
-
 /// The schemes a URL may have, as errors list them.
 pub(crate) const SCHEMES: &str = "s3://, gs://, az://, http://, https:// or file://";
 
@@ -246,4 +244,20 @@ fn is_timeout(error: &object_store::Error) -> bool {
             .is_some_and(|io| io.kind() == std::io::ErrorKind::TimedOut);
         http || io
     })
+}
+
+/// A redirect refused, as the request's error carries it to [`RemoteError`].
+#[derive(Debug, thiserror::Error)]
+#[error("the server redirected to {target}, which is not followed: {reason}")]
+pub(crate) struct RedirectRefused {
+    /// The target, without a query, fragment or credentials, so it can be logged.
+    pub(crate) target: String,
+    pub(crate) reason: String,
+}
+
+/// The refused redirect somewhere in an error's chain of causes.
+pub(crate) fn refused_redirect<'a>(
+    error: &'a (dyn std::error::Error + 'static),
+) -> Option<&'a RedirectRefused> {
+    causes(error).find_map(|cause| cause.downcast_ref::<RedirectRefused>())
 }

@@ -17,7 +17,7 @@ use object_store::{ClientConfigKey, ClientOptions};
 use url::Url;
 
 use super::allow::AllowedPrefixes;
-use super::error::causes;
+use super::error::RedirectRefused;
 use super::settings::RemoteSettings;
 use super::url::ObjectUrl;
 
@@ -29,15 +29,6 @@ pub(crate) enum RedirectRule {
     SameOrigin,
     /// To the origin of the URL asked, and under one of these prefixes.
     WithinPrefixes(AllowedPrefixes),
-}
-
-/// A redirect refused, as the request's error carries it to [`super::RemoteError`].
-#[derive(Debug, thiserror::Error)]
-#[error("the server redirected to {target}, which is not followed: {reason}")]
-pub(crate) struct RedirectRefused {
-    /// The target, without a query, fragment or credentials, so it can be logged.
-    pub(crate) target: String,
-    pub(crate) reason: String,
 }
 
 impl RedirectRule {
@@ -199,13 +190,6 @@ impl HttpService for UnfollowedRedirects {
             }
         })
     }
-}
-
-/// The refused redirect somewhere in an error's chain of causes.
-pub(crate) fn refused_redirect<'a>(
-    error: &'a (dyn std::error::Error + 'static),
-) -> Option<&'a RedirectRefused> {
-    causes(error).find_map(|cause| cause.downcast_ref::<RedirectRefused>())
 }
 
 #[cfg(test)]
