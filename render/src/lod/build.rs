@@ -34,7 +34,8 @@ use super::journal::{sync_dir, BuildJournal, Counted, Replay};
 use super::key::RootCube;
 use super::memory::MemoryMeter;
 use super::options::LodBuildOptions;
-use super::partitions::{build_bytes_per_point, build_partitions, partition_bytes};
+use super::partition_figures::PartitionsFigures;
+use super::partitions::{build_bytes_per_point, build_partitions_traced, partition_bytes};
 use super::pause;
 use super::point::RecordLayout;
 use super::progress::BuildProgress;
@@ -67,6 +68,8 @@ pub struct LodBuildReport {
     /// Partitions split on disk before they were built: too large for the budget, or a dense
     /// bucket far above the partition size.
     pub partitions_split: usize,
+    /// The partitions stage unit by unit: its parallelism and CPU time.
+    pub partitions_figures: PartitionsFigures,
     /// The bucket grid's level (cells per axis = 2^level).
     pub count_level: u32,
     /// Bytes written to spill files.
@@ -333,7 +336,8 @@ fn build_on_pool(
         ..build_context(options, &meter, &spill, &sink, max_partition)
     };
     let building = Instant::now();
-    on_partition_threads(&ctx, || build_partitions(&ctx, partitions))?;
+    let partitions_figures =
+        on_partition_threads(&ctx, || build_partitions_traced(&ctx, partitions))?;
     timings.partitions = building.elapsed();
     let upper = Instant::now();
     build_upper_levels(&ctx)?;
@@ -380,6 +384,7 @@ fn build_on_pool(
         hierarchy,
         partitions: partition_count,
         partitions_split,
+        partitions_figures,
         count_level: level,
         spilled_bytes,
         spill_record_bytes: layout.record_bytes(),

@@ -72,6 +72,7 @@ mod local;
 pub mod memory;
 mod morton;
 pub mod options;
+pub mod partition_figures;
 mod pages;
 mod partitions;
 mod pause;
