@@ -46,6 +46,7 @@ use super::source::PointSource;
 use super::spill::{sync_files, SpillDir};
 use super::stats::DatasetStats;
 use super::store::LodStore;
+use super::thread_cpu::CountingThreadsCpu;
 use super::upper::build_upper_levels;
 
 /// The most bytes of records the counting pass buffers before it appends them to files.
@@ -59,6 +60,9 @@ pub struct BuildTimings {
     pub partitions: Duration,
     pub upper_levels: Duration,
     pub total: Duration,
+    /// CPU time of each of the counting pass's own threads (zero where the pass was taken
+    /// whole from an earlier run).
+    pub counting_threads: CountingThreadsCpu,
 }
 
 #[derive(Debug, Clone)]
@@ -300,7 +304,7 @@ fn build_on_pool(
                 })
             };
             let checkpoint: Option<&Checkpoint<'_>> = journal.is_enabled().then_some(&record);
-            let (grid, stats) = count_points(
+            let (grid, stats, threads_cpu) = count_points(
                 &gathering,
                 &cube,
                 level,
@@ -311,6 +315,7 @@ fn build_on_pool(
                 counting_from.unwrap_or_else(|| CountingStart::fresh(level)),
                 checkpoint,
             )?;
+            timings.counting_threads = threads_cpu;
             if let Some(record) = checkpoint {
                 record(source.point_count(), &grid.counts, &stats)?;
             }
