@@ -9,6 +9,7 @@ use std::time::Duration;
 use pointfarm_daemon::testing::SmallDisk;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
+use pointfarm_tests::health::{wait_for_health, JOB_SERVICE};
 use pointfarm_tests::service::{
     clients, connect, get_job, list_leases, scratch_sample, submit, turntable_job, upload_file,
     watch_to_success,
@@ -16,31 +17,10 @@ use pointfarm_tests::service::{
 use pointfarm_tests::{free_address, wait_for, ServeProcess, WorkerProcess};
 use tonic::transport::Channel;
 use tonic_health::pb::health_check_response::ServingStatus;
-use tonic_health::pb::health_client::HealthClient;
-use tonic_health::pb::HealthCheckRequest;
 
-/// The health of `JobService` on the daemon at `address`.
-async fn job_service_health(address: &str) -> i32 {
-    HealthClient::new(connect(address).await)
-        .check(HealthCheckRequest {
-            service: "pointfarm.v1.JobService".into(),
-        })
-        .await
-        .expect("health")
-        .into_inner()
-        .status
-}
-
-/// Waits up to 30 s until `JobService` reports `status`.
-async fn wait_for_health(address: &str, status: ServingStatus) {
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
-    while job_service_health(address).await != status as i32 {
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "JobService is not {status:?} after 30 s"
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
+/// Waits up to 30 s until `JobService` on the daemon at `address` reports `status`.
+async fn job_service_reports(address: &str, status: ServingStatus) {
+    wait_for_health(address, &[JOB_SERVICE], status, Duration::from_secs(30)).await;
 }
 
 /// A daemon without an embedded worker whose data lies on a small tmpfs, which both tests fill.
@@ -125,7 +105,7 @@ async fn a_full_disk_holds_frames_back_and_the_daemon_resumes_when_space_returns
             .contains("the daemon's disk is full")
             .then_some(())
     });
-    wait_for_health(&farm.address, ServingStatus::NotServing).await;
+    job_service_reports(&farm.address, ServingStatus::NotServing).await;
     // A few rounds of the worker's backoff while the disk stays full.
     tokio::time::sleep(Duration::from_secs(4)).await;
     let held_back = get_job(&mut jobs, &job.id).await;
@@ -173,7 +153,7 @@ async fn a_full_disk_holds_frames_back_and_the_daemon_resumes_when_space_returns
         "{}",
         farm.server.log()
     );
-    wait_for_health(&farm.address, ServingStatus::Serving).await;
+    job_service_reports(&farm.address, ServingStatus::Serving).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

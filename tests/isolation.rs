@@ -9,6 +9,7 @@ use std::time::Duration;
 use pointfarm_daemon::access::Access;
 use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
+use pointfarm_tests::health::{health, wait_for_health, JOB_SERVICE};
 use pointfarm_tests::service::{
     clients, connect, list_leases, scratch_sample, submit, turntable_job, upload_file,
     watch_to_end, watch_to_success, TestDaemon,
@@ -16,8 +17,6 @@ use pointfarm_tests::service::{
 use pointfarm_tests::WorkerProcess;
 use pointfarm_tests::{process_is_gone, signal, wait_for, write_dense_laz, ServeProcess};
 use tonic_health::pb::health_check_response::ServingStatus;
-use tonic_health::pb::health_client::HealthClient;
-use tonic_health::pb::HealthCheckRequest;
 
 /// The leases the daemon at `address` holds now.
 async fn leases(address: &str) -> Vec<pb::Lease> {
@@ -176,34 +175,8 @@ async fn a_frame_that_crashes_its_worker_fails_its_job_also_across_daemon_restar
     watch_to_success(&mut jobs, &last.id, || server.log()).await;
 }
 
-/// The health of `service` on the daemon at `address`.
-async fn health(address: &str, service: &str) -> i32 {
-    HealthClient::new(connect(address).await)
-        .check(HealthCheckRequest {
-            service: service.into(),
-        })
-        .await
-        .expect("health")
-        .into_inner()
-        .status
-}
-
-/// Waits up to `timeout` until "" and JobService report `status`.
-async fn wait_for_health(address: &str, status: ServingStatus, timeout: Duration) {
-    let deadline = tokio::time::Instant::now() + timeout;
-    loop {
-        let overall = health(address, "").await;
-        let jobs = health(address, "pointfarm.v1.JobService").await;
-        if overall == status as i32 && jobs == status as i32 {
-            return;
-        }
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "health is {overall}/{jobs}, not {status:?}, after {timeout:?}"
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-}
+/// The daemon as a whole and its `JobService`: what says whether a worker can render.
+const RENDERING: [&str; 2] = ["", JOB_SERVICE];
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn health_says_whether_a_worker_can_render() {
@@ -213,7 +186,10 @@ async fn health_says_whether_a_worker_can_render() {
     )
     .await;
     let address = daemon.address.to_string();
-    wait_for_health(&address, ServingStatus::NotServing, Duration::from_secs(5)).await;
+    let rendering = |status, seconds| {
+        wait_for_health(&address, &RENDERING, status, Duration::from_secs(seconds))
+    };
+    rendering(ServingStatus::NotServing, 5).await;
     // Uploads and workers are served all the same.
     for service in ["pointfarm.v1.DatasetService", "pointfarm.v1.WorkerService"] {
         assert_eq!(
@@ -224,10 +200,10 @@ async fn health_says_whether_a_worker_can_render() {
 
     let cache = tempfile::tempdir().expect("tempdir");
     let mut worker = WorkerProcess::start(&daemon.url(), &cache.path().join("w"), "w");
-    wait_for_health(&address, ServingStatus::Serving, Duration::from_secs(120)).await;
+    rendering(ServingStatus::Serving, 120).await;
     worker.kill();
-    wait_for_health(&address, ServingStatus::NotServing, Duration::from_secs(10)).await;
+    rendering(ServingStatus::NotServing, 10).await;
     let _back = WorkerProcess::start(&daemon.url(), &cache.path().join("w"), "w");
-    wait_for_health(&address, ServingStatus::Serving, Duration::from_secs(120)).await;
+    rendering(ServingStatus::Serving, 120).await;
     daemon.stop().await;
 }

@@ -517,6 +517,7 @@ pub mod azurite;
 pub mod datasets;
 pub mod fake_gcs;
 pub mod flights;
+pub mod health;
 pub mod nginx;
 pub mod object_faults;
 pub mod pki;

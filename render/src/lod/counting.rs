@@ -12,7 +12,6 @@
 use std::ops::Range;
 use std::path::PathBuf;
 use std::sync::mpsc;
-use std::time::Duration;
 
 use rayon::prelude::*;
 
@@ -24,7 +23,6 @@ use super::point::{RecordLayout, MAX_RECORD_BYTES};
 use super::source::{PointBatch, PointSource};
 use super::spill::{SpillDir, SpillWriter};
 use super::stats::DatasetStats;
-use super::thread_cpu::{thread_cpu, thread_cpu_since, with_readers_counted, CountingThreadsCpu};
 use crate::cloud::WorldBounds;
 
 /// The finest bucket grid: 16 cells per axis, at most 4,096 buckets (each a file at least,
@@ -186,7 +184,7 @@ impl RecordBlock {
 /// Reads `source` once from `start`: checks every point, counts it into the bucket grid of
 /// `level`, writes its record to its bucket's files (of at most `segment_points` each)
 /// through buffers of at most `buffer_bytes`, and gathers the statistics; `checkpoint` is told
-/// at each part of the source. Returns the CPU time of each of the pass's own threads beside.
+/// at each part of the source.
 #[allow(clippy::too_many_arguments)]
 pub fn count_points(
     source: &dyn PointSource,
@@ -198,8 +196,7 @@ pub fn count_points(
     segment_points: u64,
     start: CountingStart,
     checkpoint: Option<&Checkpoint<'_>>,
-) -> Result<(CountGrid, DatasetStats, CountingThreadsCpu), LodError> {
-    let walker_start = thread_cpu();
+) -> Result<(CountGrid, DatasetStats), LodError> {
     let reservation = meter.try_reserve(2 * buffer_bytes, "the buckets' write buffers")?;
     let blocks_bytes = counting_blocks_bytes(spill.layout().record_bytes());
     let _blocks = meter.try_reserve(blocks_bytes, "blocks of spill records")?;
@@ -234,42 +231,40 @@ pub fn count_points(
             let channels = (received, spare_sender);
             scatter(writer, counts, targets, record_bytes, channels, checkpoint)
         });
-        let walked = with_readers_counted(|| {
-            source.for_each_batch_from(first, &mut |batch| {
-                pause::at("counting", batches);
-                batches += 1;
-                if read > first && parts.binary_search(&read).is_ok() {
-                    if let Some(stats) = stats.as_ref().filter(|_| checkpoint.is_some()) {
-                        let marker = RecordBlock {
-                            checkpoint: Some((read, stats.clone())),
-                            ..RecordBlock::default()
-                        };
-                        if blocks.send(marker).is_err() {
-                            return Err(LodError::Source("the spill writing stopped".into()));
-                        }
-                    }
-                }
-                check_batch(&batch, &bounds, cube, read, layout.row_bytes)?;
-                let stats = stats.get_or_insert_with(|| DatasetStats::new(batch.rgb.is_some()));
-                if stats.has_rgb != batch.rgb.is_some() {
-                    return Err(LodError::Source(format!(
-                        "batch at point {read} {} RGB unlike the batches before it",
-                        if batch.rgb.is_some() { "has" } else { "lacks" }
-                    )));
-                }
-                for start in (0..batch.len()).step_by(RECORD_BLOCK_POINTS) {
-                    let range = start..(start + RECORD_BLOCK_POINTS).min(batch.len());
-                    let mut block = spare.try_recv().unwrap_or_default();
-                    block.fill(&batch, range, level, cube, layout)?;
-                    if blocks.send(block).is_err() {
-                        // The scattering thread stopped on an error, which is returned below.
+        let walked = source.for_each_batch_from(first, &mut |batch| {
+            pause::at("counting", batches);
+            batches += 1;
+            if read > first && parts.binary_search(&read).is_ok() {
+                if let Some(stats) = stats.as_ref().filter(|_| checkpoint.is_some()) {
+                    let marker = RecordBlock {
+                        checkpoint: Some((read, stats.clone())),
+                        ..RecordBlock::default()
+                    };
+                    if blocks.send(marker).is_err() {
                         return Err(LodError::Source("the spill writing stopped".into()));
                     }
                 }
-                stats.add(&batch);
-                read += batch.len() as u64;
-                Ok(())
-            })
+            }
+            check_batch(&batch, &bounds, cube, read, layout.row_bytes)?;
+            let stats = stats.get_or_insert_with(|| DatasetStats::new(batch.rgb.is_some()));
+            if stats.has_rgb != batch.rgb.is_some() {
+                return Err(LodError::Source(format!(
+                    "batch at point {read} {} RGB unlike the batches before it",
+                    if batch.rgb.is_some() { "has" } else { "lacks" }
+                )));
+            }
+            for start in (0..batch.len()).step_by(RECORD_BLOCK_POINTS) {
+                let range = start..(start + RECORD_BLOCK_POINTS).min(batch.len());
+                let mut block = spare.try_recv().unwrap_or_default();
+                block.fill(&batch, range, level, cube, layout)?;
+                if blocks.send(block).is_err() {
+                    // The scattering thread stopped on an error, which is returned below.
+                    return Err(LodError::Source("the spill writing stopped".into()));
+                }
+            }
+            stats.add(&batch);
+            read += batch.len() as u64;
+            Ok(())
         });
         drop(blocks);
         let scattered = scattering.join().unwrap_or_else(|_| {
@@ -281,16 +276,8 @@ pub fn count_points(
         (walked, scattered)
     });
     // The scattering thread's error is the cause of any the walk returned after it.
-    let scattered = scattered?;
-    let (walked, source_reader) = walked;
+    let counts = scattered?;
     walked?;
-    let cpu = CountingThreadsCpu {
-        walker: thread_cpu_since(walker_start),
-        scatterer: scattered.scatterer,
-        spill_writer: scattered.spill_writer,
-        checkpoint_recorder: scattered.checkpoint_recorder,
-        source_reader,
-    };
     if read != source.point_count() {
         return Err(LodError::CountMismatch {
             declared: source.point_count(),
@@ -301,21 +288,11 @@ pub fn count_points(
     Ok((
         CountGrid {
             level,
-            counts: scattered.counts,
+            counts,
             segment_points,
         },
         stats.unwrap_or_else(|| DatasetStats::new(false)),
-        cpu,
     ))
-}
-
-/// The counts per bucket once every record is in its files, with the CPU time of the threads
-/// that put them there.
-struct Scattered {
-    counts: Vec<u64>,
-    scatterer: Duration,
-    spill_writer: Duration,
-    checkpoint_recorder: Duration,
 }
 
 /// How the writer's files are numbered: `segments` a bucket, bucket by bucket.
@@ -337,8 +314,8 @@ fn scatter(
     record_bytes: usize,
     (blocks, spare): (mpsc::Receiver<RecordBlock>, mpsc::Sender<RecordBlock>),
     checkpoint: Option<&Checkpoint<'_>>,
-) -> Result<Scattered, LodError> {
-    let (spill_writer, checkpoint_recorder) = std::thread::scope(|scope| {
+) -> Result<Vec<u64>, LodError> {
+    std::thread::scope(|scope| {
         let (marks, marked) = mpsc::channel::<CountedSoFar>();
         let recording =
             checkpoint.map(|checkpoint| scope.spawn(move || record(marked, checkpoint)));
@@ -368,7 +345,7 @@ fn scatter(
             writer.finish()
         })();
         drop(marks);
-        let recorded = recording.map_or(Ok(Duration::ZERO), |thread| {
+        let recorded = recording.map_or(Ok(()), |thread| {
             thread.join().unwrap_or_else(|_| {
                 Err(LodError::Source(
                     "the thread recording the counting checkpoints panicked".into(),
@@ -376,15 +353,9 @@ fn scatter(
             })
         });
         // A checkpoint's error is the cause of a scattering stopped after it.
-        let recorder = recorded?;
-        Ok::<_, LodError>((scattered?, recorder))
+        recorded.and(scattered)
     })?;
-    Ok(Scattered {
-        counts,
-        scatterer: thread_cpu().unwrap_or_default(),
-        spill_writer,
-        checkpoint_recorder,
-    })
+    Ok(counts)
 }
 
 /// A checkpoint's points read, counts per bucket and statistics, its records in their files.
@@ -395,7 +366,7 @@ type CountedSoFar = (u64, Vec<u64>, DatasetStats);
 fn record(
     marked: mpsc::Receiver<CountedSoFar>,
     checkpoint: &Checkpoint<'_>,
-) -> Result<Duration, LodError> {
+) -> Result<(), LodError> {
     let mut checkpoints = 0;
     while let Ok(mut counted) = marked.recv() {
         while let Ok(later) = marked.try_recv() {
@@ -406,7 +377,7 @@ fn record(
         pause::at("checkpoint", checkpoints);
         checkpoints += 1;
     }
-    Ok(thread_cpu().unwrap_or_default())
+    Ok(())
 }
 
 #[cfg(test)]
@@ -423,7 +394,7 @@ mod tests {
         let cube = RootCube::around(&source.bounds()).expect("cube");
         let meter = MemoryMeter::new(64 << 20);
         let spill = SpillDir::create(dir.path(), RecordLayout::for_grid(None, 0)).expect("spill");
-        let (grid, stats, cpu) = count_points(
+        let (grid, stats) = count_points(
             &source,
             &cube,
             1,
@@ -435,9 +406,6 @@ mod tests {
             None,
         )
         .expect("counted");
-        assert!(!cpu.walker.is_zero() && !cpu.scatterer.is_zero(), "{cpu:?}");
-        assert!(!cpu.spill_writer.is_zero(), "{cpu:?}");
-        assert!(cpu.ceiling_points_per_s(10_000).is_some_and(|c| c > 0.0));
         assert_eq!(grid.counts.len(), 8);
         assert_eq!(grid.counts.iter().sum::<u64>(), 10_000);
         assert_eq!(
