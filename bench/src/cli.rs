@@ -21,6 +21,17 @@ impl FlagValue<'_> {
     pub fn path(&self) -> PathBuf {
         PathBuf::from(self.value)
     }
+
+    /// The value as counts separated by commas.
+    pub fn numbers(&self) -> Result<Vec<u64>, String> {
+        self.value
+            .split(',')
+            .map(|v| {
+                v.parse::<u64>()
+                    .map_err(|e| format!("{} {}: {e}", self.flag, self.value))
+            })
+            .collect()
+    }
 }
 
 /// Reads `args` as `--flag value` pairs, handing each to `apply`, which says whether it

@@ -18,6 +18,7 @@
 
 pub mod cpu;
 mod flags;
+pub mod serial;
 mod serve_flags;
 pub mod store_points;
 mod tiles;
@@ -41,6 +42,7 @@ use crate::scratch::{load_average, progress_log, scratch_dir};
 use crate::store::create_store;
 use crate::{memory, BenchError};
 pub use flags::{CampaignFlags, ScratchCampaign};
+pub use serial::SerialThreads;
 pub use serve_flags::ServeCampaignFlags;
 pub use tiles::{grid, write_campaign, CampaignFiles, LAS_RECORD_BYTES, MIN_POINTS_PER_FILE};
 
@@ -133,6 +135,8 @@ pub struct BuildResult {
     pub build_s: f64,
     pub mpoints_per_s: f64,
     pub stages: BuildStages,
+    /// The counting pass's own threads' CPU and the ceiling the largest sets.
+    pub counting_threads: SerialThreads,
     /// The build's rate over the rate of reading the same files ([`DecodeResult`]).
     pub over_decode: f64,
     /// The read time over the build time: the share of the build that its one reading of the
@@ -372,6 +376,10 @@ pub fn measure_with_frames(
             build.cpu_s,
             build.cpu_over_decode * 100.0
         ));
+        log(format!(
+            "campaign: {input}: {}",
+            build.counting_threads.line()
+        ));
         if let (Some(frames), Some(gpu), "laz") = (&options.turntable, gpu, input) {
             let store = create_store(&build_dir.join("store"))?;
             let dataset = LodDataset::open(store.store.clone(), source.bounds())?;
@@ -482,6 +490,7 @@ fn build(
             build_s,
             mpoints_per_s,
             stages: report.timings.into(),
+            counting_threads: SerialThreads::of(&report.timings.counting_threads, points),
             over_decode: mpoints_per_s / read.mpoints_per_s,
             reads_share: read.read_s / build_s,
             cpu_s,
@@ -550,6 +559,17 @@ mod tests {
             assert!(build.store_disk_bytes_per_point > 0.0, "{build:?}");
             assert!(build.peak_rss_bytes > 0 && build.builder_peak_bytes > 0);
             assert!(build.builder_peak_bytes <= build.memory_budget_bytes);
+            // Every thread of the counting pass measured, the source's reader included.
+            let t = &build.counting_threads;
+            let each = [
+                t.walker_cpu_s,
+                t.scatterer_cpu_s,
+                t.spill_writer_cpu_s,
+                t.checkpoint_recorder_cpu_s,
+                t.source_reader_cpu_s,
+            ];
+            assert!(each.iter().all(|&s| s > 0.0), "{t:?}");
+            assert!(t.ceiling_mpoints_per_s > 0.0, "{t:?}");
         }
         // The same points from either kind of file: the same store.
         let digests: Vec<&str> = result
@@ -565,6 +585,8 @@ mod tests {
         let json = crate::json::written_in(parent.path(), &result, crate::json::write_campaign);
         assert_eq!(json["campaign"]["points"], 200_000);
         assert_eq!(json["campaign"]["builds"][1]["input"], "las");
+        let ceiling = &json["campaign"]["builds"][0]["countingThreads"]["ceilingMpointsPerS"];
+        assert!(ceiling.as_f64().is_some_and(|c| c > 0.0), "{ceiling}");
         assert!(json["machine"]["cores"].as_u64().is_some_and(|c| c >= 1));
         // The scratch folder is gone.
         let left: Vec<_> = std::fs::read_dir(parent.path()).expect("dir").collect();

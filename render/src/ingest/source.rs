@@ -318,8 +318,13 @@ impl PointSource for DatasetSource {
             .ok_or_else(|| LodError::Source(format!("no file starts at point {first}")))?;
         let (filled, batches) = mpsc::sync_channel::<BatchColumns>(0);
         let (spare, spares) = mpsc::channel::<BatchColumns>();
+        // The reading thread's CPU time counts in a build's account of its threads.
+        let account = crate::lod::thread_cpu::ThreadAccount::reader();
         std::thread::scope(|scope| {
-            let reader = scope.spawn(move || self.decode_into(skipped, &filled, &spares));
+            let reader = scope.spawn(move || {
+                let _account = account;
+                self.decode_into(skipped, &filled, &spares)
+            });
             let mut visited = Ok(());
             for columns in &batches {
                 visited = visit(columns.batch(self.has_rgb));

@@ -34,7 +34,8 @@ use super::journal::{sync_dir, BuildJournal, Counted, Replay};
 use super::key::RootCube;
 use super::memory::MemoryMeter;
 use super::options::LodBuildOptions;
-use super::partitions::{build_bytes_per_point, build_partitions, partition_bytes};
+use super::partition_figures::PartitionsFigures;
+use super::partitions::{build_bytes_per_point, build_partitions_traced, partition_bytes};
 use super::pause;
 use super::point::RecordLayout;
 use super::progress::BuildProgress;
@@ -45,6 +46,7 @@ use super::source::PointSource;
 use super::spill::{sync_files, SpillDir};
 use super::stats::DatasetStats;
 use super::store::LodStore;
+use super::thread_cpu::CountingThreadsCpu;
 use super::upper::build_upper_levels;
 
 /// The most bytes of records the counting pass buffers before it appends them to files.
@@ -58,6 +60,9 @@ pub struct BuildTimings {
     pub partitions: Duration,
     pub upper_levels: Duration,
     pub total: Duration,
+    /// CPU time of each of the counting pass's own threads (zero where the pass was taken
+    /// whole from an earlier run).
+    pub counting_threads: CountingThreadsCpu,
 }
 
 #[derive(Debug, Clone)]
@@ -67,6 +72,8 @@ pub struct LodBuildReport {
     /// Partitions split on disk before they were built: too large for the budget, or a dense
     /// bucket far above the partition size.
     pub partitions_split: usize,
+    /// The partitions stage unit by unit: its parallelism and CPU time.
+    pub partitions_figures: PartitionsFigures,
     /// The bucket grid's level (cells per axis = 2^level).
     pub count_level: u32,
     /// Bytes written to spill files.
@@ -297,7 +304,7 @@ fn build_on_pool(
                 })
             };
             let checkpoint: Option<&Checkpoint<'_>> = journal.is_enabled().then_some(&record);
-            let (grid, stats) = count_points(
+            let (grid, stats, threads_cpu) = count_points(
                 &gathering,
                 &cube,
                 level,
@@ -308,6 +315,7 @@ fn build_on_pool(
                 counting_from.unwrap_or_else(|| CountingStart::fresh(level)),
                 checkpoint,
             )?;
+            timings.counting_threads = threads_cpu;
             if let Some(record) = checkpoint {
                 record(source.point_count(), &grid.counts, &stats)?;
             }
@@ -333,7 +341,8 @@ fn build_on_pool(
         ..build_context(options, &meter, &spill, &sink, max_partition)
     };
     let building = Instant::now();
-    on_partition_threads(&ctx, || build_partitions(&ctx, partitions))?;
+    let partitions_figures =
+        on_partition_threads(&ctx, || build_partitions_traced(&ctx, partitions))?;
     timings.partitions = building.elapsed();
     let upper = Instant::now();
     build_upper_levels(&ctx)?;
@@ -380,6 +389,7 @@ fn build_on_pool(
         hierarchy,
         partitions: partition_count,
         partitions_split,
+        partitions_figures,
         count_level: level,
         spilled_bytes,
         spill_record_bytes: layout.record_bytes(),

@@ -12,6 +12,7 @@
 use std::ops::Range;
 use std::path::PathBuf;
 use std::sync::mpsc;
+use std::time::Duration;
 
 use rayon::prelude::*;
 
@@ -23,6 +24,7 @@ use super::point::{RecordLayout, MAX_RECORD_BYTES};
 use super::source::{PointBatch, PointSource};
 use super::spill::{SpillDir, SpillWriter};
 use super::stats::DatasetStats;
+use super::thread_cpu::{thread_cpu, thread_cpu_since, with_readers_counted, CountingThreadsCpu};
 use crate::cloud::WorldBounds;
 
 /// The finest bucket grid: 16 cells per axis, at most 4,096 buckets (each a file at least,
@@ -184,7 +186,7 @@ impl RecordBlock {
 /// Reads `source` once from `start`: checks every point, counts it into the bucket grid of
 /// `level`, writes its record to its bucket's files (of at most `segment_points` each)
 /// through buffers of at most `buffer_bytes`, and gathers the statistics; `checkpoint` is told
-/// at each part of the source.
+/// at each part of the source. Returns the CPU time of each of the pass's own threads beside.
 #[allow(clippy::too_many_arguments)]
 pub fn count_points(
     source: &dyn PointSource,
@@ -196,7 +198,8 @@ pub fn count_points(
     segment_points: u64,
     start: CountingStart,
     checkpoint: Option<&Checkpoint<'_>>,
-) -> Result<(CountGrid, DatasetStats), LodError> {
+) -> Result<(CountGrid, DatasetStats, CountingThreadsCpu), LodError> {
+    let walker_start = thread_cpu();
     let reservation = meter.try_reserve(2 * buffer_bytes, "the buckets' write buffers")?;
     let blocks_bytes = counting_blocks_bytes(spill.layout().record_bytes());
     let _blocks = meter.try_reserve(blocks_bytes, "blocks of spill records")?;
@@ -231,40 +234,42 @@ pub fn count_points(
             let channels = (received, spare_sender);
             scatter(writer, counts, targets, record_bytes, channels, checkpoint)
         });
-        let walked = source.for_each_batch_from(first, &mut |batch| {
-            pause::at("counting", batches);
-            batches += 1;
-            if read > first && parts.binary_search(&read).is_ok() {
-                if let Some(stats) = stats.as_ref().filter(|_| checkpoint.is_some()) {
-                    let marker = RecordBlock {
-                        checkpoint: Some((read, stats.clone())),
-                        ..RecordBlock::default()
-                    };
-                    if blocks.send(marker).is_err() {
+        let walked = with_readers_counted(|| {
+            source.for_each_batch_from(first, &mut |batch| {
+                pause::at("counting", batches);
+                batches += 1;
+                if read > first && parts.binary_search(&read).is_ok() {
+                    if let Some(stats) = stats.as_ref().filter(|_| checkpoint.is_some()) {
+                        let marker = RecordBlock {
+                            checkpoint: Some((read, stats.clone())),
+                            ..RecordBlock::default()
+                        };
+                        if blocks.send(marker).is_err() {
+                            return Err(LodError::Source("the spill writing stopped".into()));
+                        }
+                    }
+                }
+                check_batch(&batch, &bounds, cube, read, layout.row_bytes)?;
+                let stats = stats.get_or_insert_with(|| DatasetStats::new(batch.rgb.is_some()));
+                if stats.has_rgb != batch.rgb.is_some() {
+                    return Err(LodError::Source(format!(
+                        "batch at point {read} {} RGB unlike the batches before it",
+                        if batch.rgb.is_some() { "has" } else { "lacks" }
+                    )));
+                }
+                for start in (0..batch.len()).step_by(RECORD_BLOCK_POINTS) {
+                    let range = start..(start + RECORD_BLOCK_POINTS).min(batch.len());
+                    let mut block = spare.try_recv().unwrap_or_default();
+                    block.fill(&batch, range, level, cube, layout)?;
+                    if blocks.send(block).is_err() {
+                        // The scattering thread stopped on an error, which is returned below.
                         return Err(LodError::Source("the spill writing stopped".into()));
                     }
                 }
-            }
-            check_batch(&batch, &bounds, cube, read, layout.row_bytes)?;
-            let stats = stats.get_or_insert_with(|| DatasetStats::new(batch.rgb.is_some()));
-            if stats.has_rgb != batch.rgb.is_some() {
-                return Err(LodError::Source(format!(
-                    "batch at point {read} {} RGB unlike the batches before it",
-                    if batch.rgb.is_some() { "has" } else { "lacks" }
-                )));
-            }
-            for start in (0..batch.len()).step_by(RECORD_BLOCK_POINTS) {
-                let range = start..(start + RECORD_BLOCK_POINTS).min(batch.len());
-                let mut block = spare.try_recv().unwrap_or_default();
-                block.fill(&batch, range, level, cube, layout)?;
-                if blocks.send(block).is_err() {
-                    // The scattering thread stopped on an error, which is returned below.
-                    return Err(LodError::Source("the spill writing stopped".into()));
-                }
-            }
-            stats.add(&batch);
-            read += batch.len() as u64;
-            Ok(())
+                stats.add(&batch);
+                read += batch.len() as u64;
+                Ok(())
+            })
         });
         drop(blocks);
         let scattered = scattering.join().unwrap_or_else(|_| {
@@ -276,8 +281,16 @@ pub fn count_points(
         (walked, scattered)
     });
     // The scattering thread's error is the cause of any the walk returned after it.
-    let counts = scattered?;
+    let scattered = scattered?;
+    let (walked, source_reader) = walked;
     walked?;
+    let cpu = CountingThreadsCpu {
+        walker: thread_cpu_since(walker_start),
+        scatterer: scattered.scatterer,
+        spill_writer: scattered.spill_writer,
+        checkpoint_recorder: scattered.checkpoint_recorder,
+        source_reader,
+    };
     if read != source.point_count() {
         return Err(LodError::CountMismatch {
             declared: source.point_count(),
@@ -288,11 +301,21 @@ pub fn count_points(
     Ok((
         CountGrid {
             level,
-            counts,
+            counts: scattered.counts,
             segment_points,
         },
         stats.unwrap_or_else(|| DatasetStats::new(false)),
+        cpu,
     ))
+}
+
+/// The counts per bucket once every record is in its files, with the CPU time of the threads
+/// that put them there.
+struct Scattered {
+    counts: Vec<u64>,
+    scatterer: Duration,
+    spill_writer: Duration,
+    checkpoint_recorder: Duration,
 }
 
 /// How the writer's files are numbered: `segments` a bucket, bucket by bucket.
@@ -314,8 +337,8 @@ fn scatter(
     record_bytes: usize,
     (blocks, spare): (mpsc::Receiver<RecordBlock>, mpsc::Sender<RecordBlock>),
     checkpoint: Option<&Checkpoint<'_>>,
-) -> Result<Vec<u64>, LodError> {
-    std::thread::scope(|scope| {
+) -> Result<Scattered, LodError> {
+    let (spill_writer, checkpoint_recorder) = std::thread::scope(|scope| {
         let (marks, marked) = mpsc::channel::<CountedSoFar>();
         let recording =
             checkpoint.map(|checkpoint| scope.spawn(move || record(marked, checkpoint)));
@@ -345,7 +368,7 @@ fn scatter(
             writer.finish()
         })();
         drop(marks);
-        let recorded = recording.map_or(Ok(()), |thread| {
+        let recorded = recording.map_or(Ok(Duration::ZERO), |thread| {
             thread.join().unwrap_or_else(|_| {
                 Err(LodError::Source(
                     "the thread recording the counting checkpoints panicked".into(),
@@ -353,9 +376,15 @@ fn scatter(
             })
         });
         // A checkpoint's error is the cause of a scattering stopped after it.
-        recorded.and(scattered)
+        let recorder = recorded?;
+        Ok::<_, LodError>((scattered?, recorder))
     })?;
-    Ok(counts)
+    Ok(Scattered {
+        counts,
+        scatterer: thread_cpu().unwrap_or_default(),
+        spill_writer,
+        checkpoint_recorder,
+    })
 }
 
 /// A checkpoint's points read, counts per bucket and statistics, its records in their files.
@@ -366,7 +395,7 @@ type CountedSoFar = (u64, Vec<u64>, DatasetStats);
 fn record(
     marked: mpsc::Receiver<CountedSoFar>,
     checkpoint: &Checkpoint<'_>,
-) -> Result<(), LodError> {
+) -> Result<Duration, LodError> {
     let mut checkpoints = 0;
     while let Ok(mut counted) = marked.recv() {
         while let Ok(later) = marked.try_recv() {
@@ -377,7 +406,7 @@ fn record(
         pause::at("checkpoint", checkpoints);
         checkpoints += 1;
     }
-    Ok(())
+    Ok(thread_cpu().unwrap_or_default())
 }
 
 #[cfg(test)]
@@ -394,7 +423,7 @@ mod tests {
         let cube = RootCube::around(&source.bounds()).expect("cube");
         let meter = MemoryMeter::new(64 << 20);
         let spill = SpillDir::create(dir.path(), RecordLayout::for_grid(None, 0)).expect("spill");
-        let (grid, stats) = count_points(
+        let (grid, stats, cpu) = count_points(
             &source,
             &cube,
             1,
@@ -406,6 +435,9 @@ mod tests {
             None,
         )
         .expect("counted");
+        assert!(!cpu.walker.is_zero() && !cpu.scatterer.is_zero(), "{cpu:?}");
+        assert!(!cpu.spill_writer.is_zero(), "{cpu:?}");
+        assert!(cpu.ceiling_points_per_s(10_000).is_some_and(|c| c > 0.0));
         assert_eq!(grid.counts.len(), 8);
         assert_eq!(grid.counts.iter().sum::<u64>(), 10_000);
         assert_eq!(

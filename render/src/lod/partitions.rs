@@ -15,6 +15,7 @@ use super::error::LodError;
 use super::journal::{sync_dir, UnitKind, UnitRecord};
 use super::key::{NodeKey, MAX_LEVEL};
 use super::options::BUILD_BYTES_PER_POINT;
+use super::partition_figures::{PartitionsFigures, PartitionsTrace};
 use super::pause;
 use super::plan::{Partition, PartitionPlan};
 use super::point::RecordLayout;
@@ -62,17 +63,37 @@ pub fn partition_files(
 /// Builds every partition, largest first, on the current rayon pool.
 pub fn build_partitions(
     ctx: &BuildContext<'_>,
+    partitions: Vec<(Partition, Vec<PathBuf>)>,
+) -> Result<(), LodError> {
+    build_partitions_traced(ctx, partitions).map(|_| ())
+}
+
+/// [`build_partitions`], with what the stage did unit by unit.
+pub fn build_partitions_traced(
+    ctx: &BuildContext<'_>,
+    partitions: Vec<(Partition, Vec<PathBuf>)>,
+) -> Result<PartitionsFigures, LodError> {
+    let trace = PartitionsTrace::new();
+    build_each(ctx, &trace, partitions)?;
+    // A partition is built on one thread.
+    Ok(trace.finish(rayon::current_num_threads(), 1))
+}
+
+fn build_each(
+    ctx: &BuildContext<'_>,
+    trace: &PartitionsTrace,
     mut partitions: Vec<(Partition, Vec<PathBuf>)>,
 ) -> Result<(), LodError> {
     partitions.sort_by(|a, b| b.0.count.cmp(&a.0.count).then(a.0.key.cmp(&b.0.key)));
     partitions
         .into_par_iter()
         .with_max_len(1)
-        .try_for_each(|(partition, files)| build_partition(ctx, partition, files))
+        .try_for_each(|(partition, files)| build_partition(ctx, trace, partition, files))
 }
 
 fn build_partition(
     ctx: &BuildContext<'_>,
+    trace: &PartitionsTrace,
     partition: Partition,
     files: Vec<PathBuf>,
 ) -> Result<(), LodError> {
@@ -88,29 +109,37 @@ fn build_partition(
                 count: partition.count,
             });
         }
+        let unit = trace.unit(partition.key, partition.count, true);
         let parts = split_partition(ctx, partition, &files)?;
+        unit.end();
         ctx.partitions_split
             .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         // No reservation is held here: a task that waits for memory must hold none.
-        return build_partitions(ctx, parts);
+        return build_each(ctx, trace, parts);
     }
     let _reservation = ctx.meter.reserve(needed, "a partition built in memory")?;
+    let mut unit = trace.unit(partition.key, partition.count, false);
     let layout = ctx.spill.layout();
     let mut rows = AttributeRows::new(layout.row_bytes);
-    let points = spill::read_all(&files, layout, partition.count, &mut rows)?;
+    let points = unit.serial(false, || {
+        spill::read_all(&files, layout, partition.count, &mut rows)
+    })?;
     let mut region = Vec::new();
     let mut kept = Vec::new();
     let root =
         ctx.local_builder(&rows)
             .build(partition.key, points, &mut region, Some(&mut kept))?;
-    ctx.finish_unit(
-        UnitKind::Partition,
-        region,
-        partition.key,
-        root,
-        &rows,
-        kept,
-    )?;
+    unit.serial(true, || {
+        ctx.finish_unit(
+            UnitKind::Partition,
+            region,
+            partition.key,
+            root,
+            &rows,
+            kept,
+        )
+    })?;
+    unit.end();
     // Removed once the partition is recorded: a build stopped before then builds it again.
     remove_all(&files)
 }

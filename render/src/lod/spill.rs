@@ -7,12 +7,14 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::thread::JoinHandle;
+use std::time::Duration;
 
 use super::attributes::AttributeRows;
 use super::checksum::checksum64;
 use super::error::LodError;
 use super::memory::Reservation;
 use super::point::{RawPoint, RecordLayout, MAX_RECORD_BYTES};
+use super::thread_cpu::thread_cpu;
 
 /// Records read per block when a spill file is streamed back.
 const READ_BLOCK_POINTS: usize = 1 << 12;
@@ -152,8 +154,10 @@ pub struct SpillWriter<'a> {
     record_bytes: usize,
     /// Bytes of records a set of buffers takes before it is handed to the writing thread.
     set_limit: usize,
-    /// The set being appended to its files.
-    writing: Option<JoinHandle<Result<(), LodError>>>,
+    /// The set being appended to its files; its thread returns the CPU time it took.
+    writing: Option<JoinHandle<Result<Duration, LodError>>>,
+    /// CPU time of the writing threads that ended.
+    writing_cpu: Duration,
     _reservation: Reservation<'a>,
 }
 
@@ -199,6 +203,7 @@ impl<'a> SpillWriter<'a> {
             record_bytes,
             set_limit,
             writing: None,
+            writing_cpu: Duration::ZERO,
             _reservation: reservation,
         }
     }
@@ -237,7 +242,10 @@ impl<'a> SpillWriter<'a> {
         let paths = Arc::clone(&self.paths);
         let thread = std::thread::Builder::new()
             .name("spill-writer".into())
-            .spawn(move || append_each(paths.as_ref(), &buffers))
+            .spawn(move || {
+                append_each(paths.as_ref(), &buffers)?;
+                Ok(thread_cpu().unwrap_or_default())
+            })
             .map_err(|e| LodError::spill(self.dir.path(), e))?;
         self.writing = Some(thread);
         Ok(())
@@ -247,7 +255,10 @@ impl<'a> SpillWriter<'a> {
     fn wait(&mut self) -> Result<(), LodError> {
         match self.writing.take().map(JoinHandle::join) {
             None => Ok(()),
-            Some(Ok(written)) => written,
+            Some(Ok(written)) => {
+                self.writing_cpu += written?;
+                Ok(())
+            }
             Some(Err(_)) => Err(LodError::spill(
                 self.dir.path(),
                 std::io::Error::other("the spill writing thread panicked"),
@@ -261,10 +272,12 @@ impl<'a> SpillWriter<'a> {
         self.wait()
     }
 
-    /// Writes what is left; every file now holds all its points.
-    pub fn finish(mut self) -> Result<(), LodError> {
+    /// Writes what is left; every file now holds all its points. Returns the CPU time the
+    /// writing threads took.
+    pub fn finish(mut self) -> Result<Duration, LodError> {
         self.flush()?;
-        self.wait()
+        self.wait()?;
+        Ok(self.writing_cpu)
     }
 }
 
