@@ -22,7 +22,7 @@ use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::azurite::Azurite;
 use pointfarm_tests::fake_gcs::FakeGcs;
 use pointfarm_tests::object_faults::assert_copc_object_changed;
-use pointfarm_tests::{info_files, output_text, path_arg, pointfarm_ok, run_with};
+use pointfarm_tests::{info_files, output_text, path_arg, run_with, sampled_copc};
 
 /// The container and bucket the tests read from.
 const CONTAINER: &str = "pointfarm-scans";
@@ -172,18 +172,6 @@ fn assert_replaced_mid_read_is_refused(url: &str, replace: impl FnOnce()) {
     assert!(whole.iter().all(|&byte| byte == 2));
 }
 
-/// A COPC file of 1.5M generated points exported in `dir`: more than the coarse nodes opening
-/// reads for its color ranges (1M points), so its finer nodes are read only when asked.
-fn exported_copc(dir: &Path) -> PathBuf {
-    let scene = dir.join("scene.laz");
-    pointfarm_ok(&["sample", path_arg(&scene), "--points", "1500000"]);
-    let copc = dir.join("scene.copc.laz");
-    let export = ["export", path_arg(&scene), "--copc", path_arg(&copc)];
-    let cache = dir.join("cache");
-    pointfarm_ok(&[&export[..], &["--cache-dir", path_arg(&cache)]].concat());
-    copc
-}
-
 /// Opens the COPC object at `url`, lets `replace` put another object in its place, and checks
 /// that reading every node, as a frame of every node does, is refused as changed, naming the
 /// URL: never nodes of two versions.
@@ -220,7 +208,9 @@ fn an_object_replaced_mid_read_in_azure_or_gcs_is_refused_naming_it() {
         assert_replaced_mid_read_is_refused(&format!("az://{CONTAINER}/{key}"), || {
             azurite.put_blob(CONTAINER, key, &std::fs::read(&second).expect("twos"));
         });
-        let copc = exported_copc(dir.path());
+        // More points than opening reads for the color ranges (1M), so the finer nodes are
+        // read only when asked.
+        let (_, copc) = sampled_copc(dir.path(), 1_500_000);
         let key = "campaign/large.copc.laz";
         azurite.put_blob(
             CONTAINER,

@@ -15,7 +15,7 @@
 //! listing) but not its XML API writes, so the `gs://` tests seed objects through its JSON
 //! API and check reads and refusals.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Output;
 use std::time::Duration;
 
@@ -24,8 +24,8 @@ use pointfarm_tests::fake_gcs::{self, FakeGcs};
 use pointfarm_tests::service::{self, render_detached};
 use pointfarm_tests::{
     assert_ok, assert_one_error_line, assert_same_frames, copc_file, json_lines, output_text,
-    path_arg, pointfarm, pointfarm_ok, pointfarm_with, run_with, stdout, wait_for, ServeProcess,
-    WorkerProcess,
+    path_arg, pointfarm, pointfarm_ok, pointfarm_with, run_with, sampled_copc, stdout, wait_for,
+    ServeProcess, WorkerProcess,
 };
 
 /// The container and bucket the tests write to and read from.
@@ -44,23 +44,6 @@ const RENDER: [&str; 5] = [
 /// its data and log in `dir`.
 fn serve(environment: &[(&'static str, String)], dir: &Path, args: &[&str]) -> ServeProcess {
     ServeProcess::start_in_environment(environment, &dir.join("data"), args)
-}
-
-/// A COPC file of generated points exported here, in `dir`, and the scene it came from.
-fn exported_here(dir: &Path) -> (PathBuf, PathBuf) {
-    let scene = dir.join("scene.laz");
-    pointfarm_ok(&["sample", path_arg(&scene), "--points", "60000"]);
-    let here = dir.join("here.copc.laz");
-    let cache = dir.join("cache");
-    pointfarm_ok(&[
-        "export",
-        path_arg(&scene),
-        "--copc",
-        path_arg(&here),
-        "--cache-dir",
-        path_arg(&cache),
-    ]);
-    (scene, here)
 }
 
 /// Renders the COPC file `input` (a path or a URL) with [`RENDER`] to `out`: its one frame's
@@ -115,7 +98,7 @@ fn an_export_to_azure_is_the_file_exported_here_and_renders_as_it() {
     };
     azurite.create_container(CONTAINER);
     let dir = tempfile::tempdir().expect("tempdir");
-    let (scene, here) = exported_here(dir.path());
+    let (scene, here) = sampled_copc(dir.path(), 60_000);
     let url = format!("az://{CONTAINER}/campaign/scene.copc.laz");
     let cache = dir.path().join("cache");
     let export = |more: &[&str]| {

@@ -11,7 +11,7 @@ use std::process::Output;
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_tests::{
     assert_fails_saying, assert_ok, assert_pngs_alike, assert_same_frames, copc_file, json_lines,
-    output_text, path_arg, pointfarm, pointfarm_ok,
+    output_text, path_arg, pointfarm, pointfarm_ok, sampled_copc,
 };
 
 /// `pointfarm render INPUT --out OUT ARGS...`, which must succeed.
@@ -108,18 +108,7 @@ fn a_coarse_pixel_error_reads_less_than_the_file() {
 #[test]
 fn a_copc_file_is_previewed_from_coarse_cuts_then_rendered_final() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let scene = dir.path().join("scene.laz");
-    pointfarm_ok(&["sample", path_arg(&scene), "--points", "300000"]);
-    let copc = dir.path().join("scene.copc.laz");
-    let cache = dir.path().join("cache");
-    pointfarm_ok(&[
-        "export",
-        path_arg(&scene),
-        "--copc",
-        path_arg(&copc),
-        "--cache-dir",
-        path_arg(&cache),
-    ]);
+    let (_, copc) = sampled_copc(dir.path(), 300_000);
     let render = |out: &Path, more: &[&str]| {
         let mut args = vec![
             "render",

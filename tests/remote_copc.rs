@@ -5,7 +5,7 @@
 //! file rendered only as a preview (tests/remote_tiles.rs). Where `POINTFARM_TEST_S3S_FS` names an `s3s-fs` binary, the same file renders from
 //! `s3://` too. Each test skips, saying so, where nginx is not installed.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use pointfarm_render::copc::open_copc_url;
 use pointfarm_render::lod::NodeInfo;
@@ -15,7 +15,7 @@ use pointfarm_tests::object_faults::assert_copc_object_changed;
 use pointfarm_tests::s3s::{run_s3, S3sServer};
 use pointfarm_tests::{
     assert_fails_saying, assert_one_error_line, copc_file, json_lines, output_text, path_arg,
-    pointfarm, pointfarm_ok, stdout,
+    pointfarm, pointfarm_ok, sampled_copc, stdout,
 };
 
 /// nginx serving a copy of the file at `path` as `scans/SERVED_AS`; None, having said so,
@@ -70,22 +70,14 @@ fn a_copc_file_by_url_renders_pixel_for_pixel_as_the_file_here() {
     assert!(local_report.get("fetched").is_none(), "{local_report}");
 }
 
-/// A COPC file of 2.5M generated points in `dir`: more than the color ranges' sample (1M)
-/// reads at open, so that a coarse cut leaves most of the file unread.
-fn exported_scene(dir: &Path) -> PathBuf {
-    let scene = dir.join("scene.laz");
-    pointfarm_ok(&["sample", path_arg(&scene), "--points", "2500000"]);
-    let local = dir.join("scene.copc.laz");
-    let cache = dir.join("cache");
-    let export = ["export", path_arg(&scene), "--copc", path_arg(&local)];
-    pointfarm_ok(&[&export[..], &["--cache-dir", path_arg(&cache)]].concat());
-    local
-}
+/// Points of the scene exported: more than the color ranges' sample (1M) reads at open, so
+/// that a coarse cut leaves most of the file unread.
+const SCENE_POINTS: u64 = 2_500_000;
 
 #[test]
 fn a_coarse_cut_by_url_fetches_less_than_the_file() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let local = exported_scene(dir.path());
+    let local = sampled_copc(dir.path(), SCENE_POINTS).1;
     let bytes = std::fs::read(&local).expect("COPC file");
     let size = bytes.len() as u64;
     let Some((_root, server)) = NginxServer::serve_scans(&[("scene.copc.laz", bytes)]) else {
@@ -125,7 +117,9 @@ fn a_coarse_cut_by_url_fetches_less_than_the_file() {
 #[test]
 fn an_object_replaced_after_open_is_object_changed_naming_the_url() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let Some((root, server)) = serve_file(&exported_scene(dir.path()), "scan.copc.laz") else {
+    let Some((root, server)) =
+        serve_file(&sampled_copc(dir.path(), SCENE_POINTS).1, "scan.copc.laz")
+    else {
         return;
     };
     let client = RemoteClient::new(RemoteSettings::default()).expect("client");

@@ -133,6 +133,19 @@ pub fn pointfarm_ok(args: &[&str]) -> Output {
     output
 }
 
+/// A scene of `points` generated points sampled to `dir/scene.laz` and exported by `pointfarm
+/// export --copc` to `dir/scene.copc.laz`, its cache in `dir/cache`: the scene and the COPC
+/// file.
+pub fn sampled_copc(dir: &Path, points: u64) -> (PathBuf, PathBuf) {
+    let scene = dir.join("scene.laz");
+    pointfarm_ok(&["sample", path_arg(&scene), "--points", &points.to_string()]);
+    let copc = dir.join("scene.copc.laz");
+    let cache = dir.join("cache");
+    let export = ["export", path_arg(&scene), "--copc", path_arg(&copc)];
+    pointfarm_ok(&[&export[..], &["--cache-dir", path_arg(&cache)]].concat());
+    (scene, copc)
+}
+
 /// Standard output as JSON Lines: one object a line.
 pub fn json_lines(output: &Output) -> Vec<serde_json::Value> {
     stdout(output)
