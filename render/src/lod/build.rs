@@ -280,7 +280,7 @@ fn build_on_pool(
             }
             let grid_bytes = CountGrid::planning_bytes(level);
             let _grid = meter.try_reserve(grid_bytes, "the counting grid")?;
-            let blocks_bytes = counting_blocks_bytes(layout.record_bytes());
+            let blocks_bytes = counting_blocks_bytes(layout.record_bytes(), meter.budget());
             let buffer_bytes = (budget.saturating_sub(grid_bytes + blocks_bytes) / 4)
                 .clamp(1 << 16, BUCKET_BUFFER_BYTES);
             // The pass's progress, recorded at each part of the source and at its end.

@@ -32,12 +32,32 @@ use crate::cloud::WorldBounds;
 pub const MAX_COUNT_LEVEL: u32 = 4;
 /// Points a bucket's file holds at most (about 0.9 GB of grid records); more go to another.
 pub const BUCKET_SEGMENT_POINTS: u64 = 1 << 25;
-/// Points whose buckets and records are made at once, on all cores.
+/// Points a thread of the pool makes buckets and records of in a block, and the fewest a
+/// block holds.
 const RECORD_BLOCK_POINTS: usize = 1 << 13;
-/// What the pass's blocks hold, three at most (one made, one queued, one scattered): each
-/// point's bucket and its record of `record_bytes`.
-pub fn counting_blocks_bytes(record_bytes: usize) -> u64 {
-    3 * (RECORD_BLOCK_POINTS * (4 + record_bytes.max(MAX_RECORD_BYTES))) as u64
+/// Points of one task making a block's buckets and records: one pass over them.
+const PER_TASK: usize = 1 << 11;
+
+/// Points of a block, whose buckets and records are made at once on every thread of the pool:
+/// [`RECORD_BLOCK_POINTS`] a thread, so that each block keeps every thread busy several
+/// tasks long, within a sixteenth of `budget` for the three blocks the pass holds.
+fn block_points(record_bytes: usize, budget: u64) -> usize {
+    let allowed = budget / 16 / (3 * block_bytes_per_point(record_bytes) as u64);
+    (rayon::current_num_threads() * RECORD_BLOCK_POINTS)
+        .min(allowed as usize)
+        .max(RECORD_BLOCK_POINTS)
+}
+
+/// Bytes of a block a point: its bucket and its record of `record_bytes`, whose space is
+/// reserved as if it held a world position.
+fn block_bytes_per_point(record_bytes: usize) -> usize {
+    4 + record_bytes.max(MAX_RECORD_BYTES)
+}
+
+/// What the pass's blocks hold within `budget`, three at most (one made, one queued, one
+/// scattered): each point's bucket and its record of `record_bytes`.
+pub fn counting_blocks_bytes(record_bytes: usize, budget: u64) -> u64 {
+    3 * (block_points(record_bytes, budget) * block_bytes_per_point(record_bytes)) as u64
 }
 
 /// Points per cell of the bucket grid at `level`, cells in x-fastest order.
@@ -160,8 +180,6 @@ impl RecordBlock {
         cube: &RootCube,
         layout: RecordLayout,
     ) -> Result<(), LodError> {
-        // One task makes a run of points' buckets and records together: one pass over them.
-        const PER_TASK: usize = 1 << 11;
         let record_bytes = layout.record_bytes();
         self.buckets.resize(range.len(), 0);
         self.records.resize(range.len() * record_bytes, 0);
@@ -201,7 +219,8 @@ pub fn count_points(
 ) -> Result<(CountGrid, DatasetStats, CountingThreadsCpu), LodError> {
     let walker_start = thread_cpu();
     let reservation = meter.try_reserve(2 * buffer_bytes, "the buckets' write buffers")?;
-    let blocks_bytes = counting_blocks_bytes(spill.layout().record_bytes());
+    let block_points = block_points(spill.layout().record_bytes(), meter.budget());
+    let blocks_bytes = counting_blocks_bytes(spill.layout().record_bytes(), meter.budget());
     let _blocks = meter.try_reserve(blocks_bytes, "blocks of spill records")?;
     let buckets = 1usize << (3 * level);
     // Every bucket can take every point: as many segments each as the whole source fills.
@@ -257,16 +276,21 @@ pub fn count_points(
                         if batch.rgb.is_some() { "has" } else { "lacks" }
                     )));
                 }
-                for start in (0..batch.len()).step_by(RECORD_BLOCK_POINTS) {
-                    let range = start..(start + RECORD_BLOCK_POINTS).min(batch.len());
+                for start in (0..batch.len()).step_by(block_points) {
+                    let range = start..(start + block_points).min(batch.len());
                     let mut block = spare.try_recv().unwrap_or_default();
-                    block.fill(&batch, range, level, cube, layout)?;
+                    // The block's statistics are gathered in the pool beside its records, not
+                    // on this thread, whose work a point bounds the pass on any number of cores.
+                    let (filled, ()) = rayon::join(
+                        || block.fill(&batch, range.clone(), level, cube, layout),
+                        || stats.add_range(&batch, range.clone()),
+                    );
+                    filled?;
                     if blocks.send(block).is_err() {
                         // The scattering thread stopped on an error, which is returned below.
                         return Err(LodError::Source("the spill writing stopped".into()));
                     }
                 }
-                stats.add(&batch);
                 read += batch.len() as u64;
                 Ok(())
             })

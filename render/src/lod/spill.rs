@@ -4,7 +4,7 @@
 use std::fs::{File, OpenOptions};
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::Duration;
@@ -15,6 +15,11 @@ use super::error::LodError;
 use super::memory::Reservation;
 use super::point::{RawPoint, RecordLayout, MAX_RECORD_BYTES};
 use super::thread_cpu::thread_cpu;
+
+/// The most threads that append one set of buffers to their files at once: appends to
+/// distinct files run side by side in the kernel, where one thread copying every byte a pass
+/// writes bounds the pass however many cores decode (docs/perf/lod-build-decode-bound.md).
+const MAX_WRITING_THREADS: usize = 8;
 
 /// Records read per block when a spill file is streamed back.
 const READ_BLOCK_POINTS: usize = 1 << 12;
@@ -156,8 +161,11 @@ pub struct SpillWriter<'a> {
     set_limit: usize,
     /// The set being appended to its files; its thread returns the CPU time it took.
     writing: Option<JoinHandle<Result<Duration, LodError>>>,
-    /// CPU time of the writing threads that ended.
+    /// CPU time of each set's busiest writing thread, summed over the sets that ended.
     writing_cpu: Duration,
+    /// Threads that append a set: as many as the pool the writer was made on has, within
+    /// [`MAX_WRITING_THREADS`].
+    writing_threads: usize,
     _reservation: Reservation<'a>,
 }
 
@@ -204,6 +212,7 @@ impl<'a> SpillWriter<'a> {
             set_limit,
             writing: None,
             writing_cpu: Duration::ZERO,
+            writing_threads: rayon::current_num_threads().clamp(1, MAX_WRITING_THREADS),
             _reservation: reservation,
         }
     }
@@ -240,12 +249,10 @@ impl<'a> SpillWriter<'a> {
         self.dir.count_written(self.buffered);
         self.buffered = 0;
         let paths = Arc::clone(&self.paths);
+        let threads = self.writing_threads;
         let thread = std::thread::Builder::new()
             .name("spill-writer".into())
-            .spawn(move || {
-                append_each(paths.as_ref(), &buffers)?;
-                Ok(thread_cpu().unwrap_or_default())
-            })
+            .spawn(move || append_all(paths.as_ref(), buffers, threads))
             .map_err(|e| LodError::spill(self.dir.path(), e))?;
         self.writing = Some(thread);
         Ok(())
@@ -272,8 +279,8 @@ impl<'a> SpillWriter<'a> {
         self.wait()
     }
 
-    /// Writes what is left; every file now holds all its points. Returns the CPU time the
-    /// writing threads took.
+    /// Writes what is left; every file now holds all its points. Returns the CPU time of the
+    /// writing's critical path: each set's busiest thread, summed over the sets.
     pub fn finish(mut self) -> Result<Duration, LodError> {
         self.flush()?;
         self.wait()?;
@@ -289,27 +296,61 @@ impl Drop for SpillWriter<'_> {
     }
 }
 
-/// Appends each non-empty buffer to its file.
-fn append_each(
-    paths: &dyn Fn(usize) -> PathBuf,
-    buffers: &[(usize, Vec<u8>)],
-) -> Result<(), LodError> {
-    for &(target, ref buffer) in buffers {
-        if buffer.is_empty() {
-            continue;
+/// Appends each non-empty buffer of a set (one at most a target) to its file, on up to
+/// `threads` threads taking the largest buffers first; returns the CPU time of the set's
+/// busiest thread, which the next set waits for.
+fn append_all(
+    paths: &(dyn Fn(usize) -> PathBuf + Send + Sync),
+    mut buffers: Vec<(usize, Vec<u8>)>,
+    threads: usize,
+) -> Result<Duration, LodError> {
+    buffers.retain(|(_, buffer)| !buffer.is_empty());
+    buffers.sort_by_key(|(_, buffer)| std::cmp::Reverse(buffer.len()));
+    let next = AtomicUsize::new(0);
+    let failed = AtomicBool::new(false);
+    let work = || -> Result<Duration, LodError> {
+        while !failed.load(Ordering::Relaxed) {
+            let Some((target, buffer)) = buffers.get(next.fetch_add(1, Ordering::Relaxed)) else {
+                break;
+            };
+            append(&paths(*target), buffer)
+                .inspect_err(|_| failed.store(true, Ordering::Relaxed))?;
         }
-        let path = &paths(target);
-        // Opened per set rather than kept open: a build may spill to more files than the
-        // process may hold open.
-        let mut file = OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(path)
-            .map_err(|e| LodError::spill(path, e))?;
-        file.write_all(buffer)
-            .map_err(|e| LodError::spill(path, e))?;
-    }
-    Ok(())
+        Ok(thread_cpu().unwrap_or_default())
+    };
+    std::thread::scope(|scope| {
+        // A helper that cannot be started leaves its share to the others.
+        let helpers: Vec<_> = (1..threads.min(buffers.len()))
+            .filter_map(|_| {
+                std::thread::Builder::new()
+                    .name("spill-writer".into())
+                    .spawn_scoped(scope, work)
+                    .ok()
+            })
+            .collect();
+        let mut busiest = work()?;
+        for helper in helpers {
+            let cpu = helper.join().unwrap_or_else(|_| {
+                Err(LodError::Source(
+                    "a thread appending spill files panicked".into(),
+                ))
+            })?;
+            busiest = busiest.max(cpu);
+        }
+        Ok(busiest)
+    })
+}
+
+/// Appends `buffer` to the file at `path`, made if it is not there.
+fn append(path: &Path, buffer: &[u8]) -> Result<(), LodError> {
+    // Opened per set rather than kept open: a build may spill to more files than the process
+    // may hold open.
+    let mut file = OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .map_err(|e| LodError::spill(path, e))?;
+    file.write_all(buffer).map_err(|e| LodError::spill(path, e))
 }
 
 /// Streams the points of `path`, records in `layout`, in blocks of at most

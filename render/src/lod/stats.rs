@@ -66,21 +66,30 @@ impl DatasetStats {
     }
 
     pub(crate) fn add(&mut self, batch: &super::source::PointBatch<'_>) {
+        self.add_range(batch, 0..batch.len());
+    }
+
+    /// Adds the points `range` of `batch`.
+    pub(crate) fn add_range(
+        &mut self,
+        batch: &super::source::PointBatch<'_>,
+        range: std::ops::Range<usize>,
+    ) {
         if let Some(rgb) = batch.rgb {
-            for c in rgb {
+            for c in &rgb[range.clone()] {
                 for ((max, min), &value) in self.max_rgb.iter_mut().zip(&mut self.min_rgb).zip(c) {
                     *max = (*max).max(value);
                     *min = (*min).min(value);
                 }
             }
         }
-        for &i in batch.intensity {
+        for &i in &batch.intensity[range.clone()] {
             self.intensity_histogram[usize::from(i)] += 1;
         }
-        for &c in batch.classification {
+        for &c in &batch.classification[range.clone()] {
             self.class_counts[usize::from(c)] += 1;
         }
-        for p in batch.positions {
+        for p in &batch.positions[range] {
             self.z_range[0] = self.z_range[0].min(p.z);
             self.z_range[1] = self.z_range[1].max(p.z);
         }
