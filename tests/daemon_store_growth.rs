@@ -23,6 +23,7 @@ use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::sample::sample_scene;
 use pointfarm_tests::s3s::S3Bucket;
 use pointfarm_tests::stores::{every_node, serve_pausing_at};
+use pointfarm_tests::tiles::ground_plan_tiles;
 use pointfarm_tests::{
     assert_pngs_alike, free_address, output_text, pointfarm_bin, pointfarm_with, wait_for,
     ServeProcess,
@@ -62,7 +63,7 @@ fn tile_name(index: usize) -> String {
 
 fn write_campaign(dir: &Path, points: usize) -> Campaign {
     let cloud = sample_scene(points, 11);
-    let tiles = tile_points(&cloud);
+    let tiles = ground_plan_tiles(&cloud, ACROSS, ALONG);
     let all = dir.join("all");
     std::fs::create_dir_all(&all).expect("folder");
     for (index, points) in tiles.iter().enumerate() {
@@ -105,22 +106,6 @@ fn camera_flags(cloud: &PointCloud) -> Vec<String> {
         "--camera-up=0,0,1".to_owned(),
         "--point-size=2".to_owned(),
     ]
-}
-
-/// The scene's points in each of `ACROSS` x `ALONG` tiles of its ground plan.
-fn tile_points(cloud: &PointCloud) -> Vec<Vec<usize>> {
-    let (min, size) = (cloud.bounds.min, cloud.bounds.size());
-    let mut tiles: Vec<Vec<usize>> = vec![Vec::new(); ACROSS * ALONG];
-    for (i, p) in cloud.positions.iter().enumerate() {
-        let world = cloud.origin + p.as_dvec3();
-        let cell = |v: f64, lo: f64, extent: f64, n: usize| {
-            (((v - lo) / extent * n as f64) as usize).min(n - 1)
-        };
-        let x = cell(world.x, min.x, size.x, ACROSS);
-        let y = cell(world.y, min.y, size.y, ALONG);
-        tiles[y * ACROSS + x].push(i);
-    }
-    tiles
 }
 
 /// `pointfarm serve` with its data in `data`, its builds stopped for good at `pause_at`; each

@@ -10,7 +10,7 @@ use pointfarm_render::testing::write_scene_tiles;
 use pointfarm_tests::service::{scratch_sample, write_sample};
 use pointfarm_tests::{
     assert_pngs_alike, assert_same_frames, json_lines, json_names, output_text, path_arg,
-    pointfarm, pointfarm_ok,
+    pointfarm, pointfarm_ok, printed_camera,
 };
 
 /// A scene written whole and as four tiles (LAS and LAZ, one in a subfolder).
@@ -61,7 +61,7 @@ fn tiles_render_from_levels_of_detail_as_the_file_they_were_cut_from() {
         path_arg(&resident),
         size,
     ]);
-    let mut camera = camera_flags_of(&auto);
+    let mut camera = printed_camera(&auto);
     camera.push("--point-size=2".to_owned());
     let mut args = vec![
         "render",
@@ -535,17 +535,6 @@ fn a_preview_renders_from_chunk_starts_while_the_store_builds_then_the_final_fra
         output_text(&resident)
     );
     assert!(!output_text(&resident).contains("preview of"));
-}
-
-/// The camera flags `pointfarm render` printed (`camera: --camera-pos=...`), to render again
-/// through the same camera.
-fn camera_flags_of(output: &std::process::Output) -> Vec<String> {
-    let text = output_text(output);
-    let line = text
-        .lines()
-        .find_map(|line| line.strip_prefix("camera: "))
-        .unwrap_or_else(|| panic!("no camera line in:\n{text}"));
-    line.split_whitespace().map(str::to_owned).collect()
 }
 
 /// The unit vector from a frame report's camera target to its position.

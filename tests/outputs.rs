@@ -7,6 +7,7 @@ use std::process::{Command, Output};
 
 use pointfarm_tests::{
     assert_fails_saying, assert_ok, installed_or_skip, path_arg, pointfarm, pointfarm_bin,
+    printed_camera,
 };
 
 /// A temporary folder holding one small generated cloud.
@@ -254,13 +255,13 @@ fn the_camera_a_render_prints_gives_the_same_picture_again() {
     assert_ok(&output);
     let text = String::from_utf8_lossy(&output.stdout);
     assert!(text.contains("bounds: x "), "{text}");
-    let flags = text
-        .lines()
-        .find_map(|line| line.strip_prefix("camera: "))
-        .unwrap_or_else(|| panic!("no camera line in {text}"));
-    assert!(flags.contains("--ortho --ortho-height="), "{flags}");
+    let flags = printed_camera(&output);
+    assert!(
+        flags.join(" ").contains("--ortho --ortho-height="),
+        "{flags:?}"
+    );
     let mut options = vec!["--out", again.to_str().expect("UTF-8")];
-    options.extend(flags.split_whitespace());
+    options.extend(flags.iter().map(String::as_str));
     assert_ok(&scene.render(&options));
     let (a, b) = (
         image::open(&first).expect("first").to_rgba8(),

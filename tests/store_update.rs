@@ -8,37 +8,22 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::time::Duration;
 
-use pointfarm_render::cloud::PointCloud;
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::sample::sample_scene;
 use pointfarm_tests::stores::kill_build_at;
-use pointfarm_tests::{assert_pngs_alike, output_text, path_arg, pointfarm_bin};
+use pointfarm_tests::tiles::ground_plan_tiles;
+use pointfarm_tests::{assert_pngs_alike, output_text, path_arg, pointfarm_bin, printed_camera};
 
 /// Tiles per axis: the middle one is the new day's.
 const SIDE: usize = 3;
 const POINTS: usize = 90_000;
 const SIZE: &str = "--size=200x150";
 
-/// The scene's points in each of `SIDE` x `SIDE` tiles of its ground plan.
-fn tile_points(cloud: &PointCloud) -> Vec<Vec<usize>> {
-    let (min, size) = (cloud.bounds.min, cloud.bounds.size());
-    let mut tiles: Vec<Vec<usize>> = vec![Vec::new(); SIDE * SIDE];
-    for (i, p) in cloud.positions.iter().enumerate() {
-        let world = cloud.origin + p.as_dvec3();
-        let cell = |v: f64, lo: f64, extent: f64| {
-            (((v - lo) / extent * SIDE as f64) as usize).min(SIDE - 1)
-        };
-        let (x, y) = (cell(world.x, min.x, size.x), cell(world.y, min.y, size.y));
-        tiles[y * SIDE + x].push(i);
-    }
-    tiles
-}
-
 /// The scene cut into `SIDE` x `SIDE` tiles: all but the middle one in `dir/tiles`, the
 /// middle one in `dir/later`. Returns both folders.
 fn write_tiles(dir: &Path) -> (PathBuf, PathBuf) {
     let cloud = sample_scene(POINTS, 5);
-    let tiles = tile_points(&cloud);
+    let tiles = ground_plan_tiles(&cloud, SIDE, SIDE);
     let (now, later) = (dir.join("tiles"), dir.join("later"));
     for folder in [&now, &later] {
         std::fs::create_dir_all(folder).expect("folder");
@@ -88,12 +73,7 @@ fn points_total(output: &Output) -> u64 {
 
 /// The camera the first render chose, as flags, so every render shares it.
 fn camera_of(output: &Output) -> Vec<String> {
-    let text = output_text(output);
-    let line = text
-        .lines()
-        .find_map(|line| line.strip_prefix("camera: "))
-        .unwrap_or_else(|| panic!("no camera line in:\n{text}"));
-    let mut flags: Vec<String> = line.split_whitespace().map(str::to_owned).collect();
+    let mut flags = printed_camera(output);
     flags.push("--point-size=2".to_owned());
     flags
 }
@@ -253,7 +233,7 @@ fn a_folder_that_loses_a_tile_updates_its_store_and_draws_as_a_fresh_build() {
 fn a_folder_with_a_replaced_tile_updates_its_store_and_draws_as_a_fresh_build() {
     let cloud = sample_scene(POINTS, 5);
     let tile = 3;
-    let points = &tile_points(&cloud)[tile];
+    let points = &ground_plan_tiles(&cloud, SIDE, SIDE)[tile];
     // The tile processed again: every other point of it.
     let thinned: Vec<usize> = points.iter().step_by(2).copied().collect();
     let dropped = (points.len() - thinned.len()) as u64;

@@ -63,7 +63,7 @@ fn a_growth_from_a_store_mostly_of_dead_bytes_compacts_it_into_one_file() {
     let options = LasWriteOptions::default();
     let spread: Vec<usize> = (0..cloud.len()).step_by(SPREAD_EVERY).collect();
     write_las(&all.join("spread.las"), &cloud.select(&spread), &options).expect("spread");
-    let tiles = tile_points(&cloud);
+    let tiles = ground_plan_tiles(&cloud, ACROSS, ALONG);
     for (index, points) in tiles.iter().enumerate() {
         let kept: Vec<usize> = points
             .iter()

@@ -7,6 +7,8 @@ use pointfarm_render::cloud::{PointCloud, WorldBounds};
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::sample::sample_scene;
 
+use crate::tiles::ground_plan_tiles;
+
 /// The tiles across and along the scene's ground plan.
 pub const COLUMNS: usize = 5;
 pub const ROWS: usize = 4;
@@ -15,14 +17,7 @@ pub const ROWS: usize = 4;
 /// to `dir/tiles`; returns the folder and the scene's bounds.
 pub fn write_tiles(dir: &Path, points: usize) -> (PathBuf, WorldBounds) {
     let cloud: PointCloud = sample_scene(points, 11);
-    let (min, size) = (cloud.bounds.min, cloud.bounds.size());
-    let mut tiles: Vec<Vec<usize>> = vec![Vec::new(); COLUMNS * ROWS];
-    for (i, p) in cloud.positions.iter().enumerate() {
-        let world = cloud.origin + p.as_dvec3();
-        let x = (((world.x - min.x) / size.x * COLUMNS as f64) as usize).min(COLUMNS - 1);
-        let y = (((world.y - min.y) / size.y * ROWS as f64) as usize).min(ROWS - 1);
-        tiles[y * COLUMNS + x].push(i);
-    }
+    let tiles = ground_plan_tiles(&cloud, COLUMNS, ROWS);
     let folder = dir.join("tiles");
     std::fs::create_dir_all(&folder).expect("folder");
     for (index, points) in tiles.iter().enumerate() {

@@ -146,6 +146,17 @@ pub fn sampled_copc(dir: &Path, points: u64) -> (PathBuf, PathBuf) {
     (scene, copc)
 }
 
+/// The camera flags `pointfarm render` printed (`camera: --camera-pos=...`), to render again
+/// through the same camera.
+pub fn printed_camera(output: &Output) -> Vec<String> {
+    let text = output_text(output);
+    let line = text
+        .lines()
+        .find_map(|line| line.strip_prefix("camera: "))
+        .unwrap_or_else(|| panic!("no camera line in:\n{text}"));
+    line.split_whitespace().map(str::to_owned).collect()
+}
+
 /// Standard output as JSON Lines: one object a line.
 pub fn json_lines(output: &Output) -> Vec<serde_json::Value> {
     stdout(output)
@@ -539,6 +550,7 @@ pub mod rest;
 pub mod s3s;
 pub mod service;
 pub mod stores;
+pub mod tiles;
 pub mod tools;
 
 /// Sends SIGTERM to `child` and waits up to `timeout` for its exit.
