@@ -2,12 +2,11 @@
 //! read `/metrics` and Prometheus's API with.
 
 use std::collections::BTreeMap;
-use std::io::{Read, Write};
-use std::net::TcpStream;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
+use crate::rest::try_request;
 use crate::tools::ServerChild;
 use crate::{free_address, wait_for};
 
@@ -29,18 +28,8 @@ pub fn prometheus_installed() -> bool {
 /// `GET http://{address}{path}`: the status code and the body. HTTP/1.0, so that the answer
 /// is the plain body up to the end of the connection.
 pub fn http_get(address: &str, path: &str) -> std::io::Result<(u16, String)> {
-    let mut stream = TcpStream::connect(address)?;
-    stream.set_read_timeout(Some(Duration::from_secs(10)))?;
-    write!(stream, "GET {path} HTTP/1.0\r\nHost: {address}\r\n\r\n")?;
-    let mut answer = String::new();
-    stream.read_to_string(&mut answer)?;
-    let (head, body) = answer.split_once("\r\n\r\n").unwrap_or((&answer, ""));
-    let status = head
-        .split_whitespace()
-        .nth(1)
-        .and_then(|code| code.parse().ok())
-        .unwrap_or(0);
-    Ok((status, body.to_owned()))
+    let answer = try_request(address, "GET", path, &[], &[])?;
+    Ok((answer.status, answer.text()))
 }
 
 /// The metrics at `http://{address}/metrics`, by series (`name{labels}` as written).

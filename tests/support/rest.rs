@@ -28,21 +28,30 @@ pub fn request(
     headers: &[(&str, String)],
     body: &[u8],
 ) -> Answer {
-    let mut stream = TcpStream::connect(address).expect("connect to the test server");
-    stream
-        .set_read_timeout(Some(Duration::from_secs(30)))
-        .expect("read timeout");
+    try_request(address, method, target, headers, body)
+        .unwrap_or_else(|e| panic!("{method} {target} to the test server at {address}: {e}"))
+}
+
+/// [`request`], an error where the server cannot be reached or stops answering: what a wait
+/// for a server that is still starting polls.
+pub fn try_request(
+    address: &str,
+    method: &str,
+    target: &str,
+    headers: &[(&str, String)],
+    body: &[u8],
+) -> std::io::Result<Answer> {
+    let mut stream = TcpStream::connect(address)?;
+    stream.set_read_timeout(Some(Duration::from_secs(30)))?;
     let mut request = format!("{method} {target} HTTP/1.0\r\nHost: {address}\r\n");
     for (name, value) in headers {
         request.push_str(&format!("{name}: {value}\r\n"));
     }
     request.push_str(&format!("Content-Length: {}\r\n\r\n", body.len()));
-    stream
-        .write_all(request.as_bytes())
-        .expect("send the request");
-    stream.write_all(body).expect("send the body");
+    stream.write_all(request.as_bytes())?;
+    stream.write_all(body)?;
     let mut answer = Vec::new();
-    stream.read_to_end(&mut answer).expect("read the answer");
+    stream.read_to_end(&mut answer)?;
     let split = answer
         .windows(4)
         .position(|window| window == b"\r\n\r\n")
@@ -54,5 +63,5 @@ pub fn request(
         .nth(1)
         .and_then(|code| code.parse().ok())
         .unwrap_or(0);
-    Answer { status, head, body }
+    Ok(Answer { status, head, body })
 }
