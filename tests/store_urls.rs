@@ -22,7 +22,8 @@ use pointfarm_tests::prometheus::scrape;
 use pointfarm_tests::s3s::{self, S3Bucket};
 use pointfarm_tests::service::{connect, lease_at_once};
 use pointfarm_tests::{
-    free_address, path_arg, pointfarm_ok, pointfarm_with, ServeProcess, WorkerProcess,
+    assert_same_frames, free_address, path_arg, pointfarm_ok, pointfarm_with, ServeProcess,
+    WorkerProcess,
 };
 
 /// The bucket stores are published to: a folder of the server's root.
@@ -33,7 +34,8 @@ const STORE_URL: &str = "s3://pointfarm-stores/farm";
 const SCENE_POINTS: usize = 300_000;
 /// A job drawn from levels of detail: two frames of a cut.
 const OPTIONS: [&str; 5] = ["--size=120x90", "--turntable", "2", "--lod-error", "0.25"];
-const FRAMES: [&str; 2] = ["frame_00000.png", "frame_00001.png"];
+/// The frames of a job of [`OPTIONS`].
+const FRAMES: u32 = 2;
 /// The daemon's count of node records it served to workers.
 const RECORDS_SERVED: &str = "pointfarm_store_records_served_total";
 
@@ -133,13 +135,6 @@ fn wait_for_objects(bucket: &S3Bucket, daemon: &ServeProcess, count: usize) {
     }
 }
 
-fn assert_same_frames(expected: &Path, actual: &Path, what: &str) {
-    for frame in FRAMES {
-        let image = |dir: &Path| image::open(dir.join(frame)).expect("png").to_rgba8();
-        assert!(image(expected) == image(actual), "{frame} differs {what}");
-    }
-}
-
 /// The ids of the jobs `daemon` knows.
 fn job_ids(daemon: &ServeProcess) -> BTreeSet<String> {
     let listed = pointfarm_ok(&["jobs", "list", "--server", &daemon.address, "--json"]);
@@ -206,7 +201,7 @@ fn workers_read_a_published_store_from_object_storage_and_none_of_it_through_the
     let worker = farm.worker(&daemon, "far");
     // The first job builds the store; once ready, the daemon publishes it.
     let first = farm.render(&daemon, "first");
-    assert_same_frames(&plain, &first, "while the store is published");
+    assert_same_frames(&plain, &first, FRAMES, "frames during publishing");
     wait_for_published(&daemon, 1);
     let objects = farm.bucket.objects();
     let [hierarchy, payload] = objects.as_slice() else {
@@ -239,7 +234,7 @@ fn workers_read_a_published_store_from_object_storage_and_none_of_it_through_the
     let served_before = scrape(&metrics)[RECORDS_SERVED];
     let jobs_before = job_ids(&daemon);
     let published = farm.render(&daemon, "published");
-    assert_same_frames(&plain, &published, "from the published store");
+    assert_same_frames(&plain, &published, FRAMES, "frames read from the bucket");
     assert_eq!(
         scrape(&metrics)[RECORDS_SERVED],
         served_before,
@@ -301,7 +296,7 @@ fn workers_read_a_published_store_from_object_storage_and_none_of_it_through_the
     let daemon = farm.publishing_daemon(&address, &metrics);
     let worker = farm.worker(&daemon, "again");
     let again = farm.render(&daemon, "again");
-    assert_same_frames(&plain, &again, "after a restart");
+    assert_same_frames(&plain, &again, FRAMES, "frames after a restart");
     assert_eq!(scrape(&metrics)[RECORDS_SERVED], 0.0, "{}", worker.log());
     let served = daemon.log();
     assert_eq!(served.matches("store published").count(), 1, "{served}");
@@ -342,7 +337,7 @@ fn a_damaged_published_store_fails_the_frame_and_the_job_ends_through_the_daemon
     let worker = farm.worker(&daemon, "second");
     let jobs_before = job_ids(&daemon);
     let second = farm.render(&daemon, "second");
-    assert_same_frames(&first, &second, "through the daemon after the damage");
+    assert_same_frames(&first, &second, FRAMES, "frames after the damage");
     let log = worker.log();
     assert!(
         log.contains("the published store failed") && log.contains(&format!("{STORE_URL}/")),
@@ -420,7 +415,7 @@ fn a_store_published_while_object_storage_is_down_is_published_once_it_is_back()
     let _worker = farm.worker(&daemon, "second");
     let served_before = scrape(&metrics)[RECORDS_SERVED];
     let second = farm.render(&daemon, "second");
-    assert_same_frames(&first, &second, "from the store published late");
+    assert_same_frames(&first, &second, FRAMES, "frames of the late store");
     assert_eq!(scrape(&metrics)[RECORDS_SERVED], served_before);
     assert_no_credential(&daemon.log(), "the daemon's log");
 }
@@ -478,7 +473,7 @@ fn a_publish_that_gives_up_says_why_and_when_and_a_later_job_publishes_it() {
     // the same.
     farm.bucket.restart();
     let second = farm.render(&daemon, "second");
-    assert_same_frames(&first, &second, "while the store is published again");
+    assert_same_frames(&first, &second, FRAMES, "frames during publishing again");
     let (text, _) = wait_for_publication(&daemon, &farm.scene, "PUBLISHED");
     assert_eq!(farm.bucket.objects().len(), 2, "{text}\n{}", daemon.log());
     drop(worker);
