@@ -1,7 +1,7 @@
 //! A real `pointfarm serve` on loopback for the figures taken through a daemon: started with
 //! its data in a folder of its own, its log in a file the figures read, stopped when dropped.
 
-use std::net::TcpListener;
+use std::net::{TcpListener, TcpStream, ToSocketAddrs};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -10,6 +10,42 @@ use crate::daemon_log::number_after;
 
 /// The longest a render (its store built or grown) may take.
 const RENDER_TIMEOUT: Duration = Duration::from_secs(3600);
+
+/// How long a daemon may take to listen.
+const START_TIMEOUT: Duration = Duration::from_secs(60);
+
+/// `command`, a `pointfarm` binary, made `pointfarm serve` listening on `address` with its data
+/// in `data`, logging at info level without colors to the file `log` (made here); the
+/// caller adds the options of its own and starts it.
+pub(crate) fn serve_command(
+    mut command: Command,
+    address: &str,
+    data: &Path,
+    log: &Path,
+) -> std::io::Result<Command> {
+    let log_file = std::fs::File::create(log)?;
+    command
+        .args(["serve", "--listen", address, "--data-dir"])
+        .arg(data)
+        .env("RUST_LOG", "warn,pointfarm=info")
+        .env("NO_COLOR", "1")
+        .stdout(Stdio::null())
+        .stderr(log_file);
+    Ok(command)
+}
+
+/// Whether something listens on `address` within `timeout`, tried every 50 ms: the start of
+/// a daemon, or of the S3 server.
+pub(crate) fn listens_within(address: impl ToSocketAddrs + Copy, timeout: Duration) -> bool {
+    let started = Instant::now();
+    while TcpStream::connect(address).is_err() {
+        if started.elapsed() > timeout {
+            return false;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    true
+}
 
 /// A `pointfarm serve` on loopback, its log in a file, stopped when dropped.
 pub struct Serve {
@@ -27,28 +63,19 @@ impl Serve {
             .map_err(|e| format!("a free loopback port: {e}"))?
             .to_string();
         let log = data.with_extension("log");
-        let log_file = std::fs::File::create(&log).map_err(|e| e.to_string())?;
-        let child = Command::new(pointfarm)
-            .args(["serve", "--listen", &address, "--data-dir"])
-            .arg(data)
-            .arg(format!("--store-memory-budget={budget_mib}MiB"))
-            .env("RUST_LOG", "warn,pointfarm=info")
-            .env("NO_COLOR", "1")
-            .stdout(Stdio::null())
-            .stderr(log_file)
-            .spawn()
+        let child = serve_command(Command::new(pointfarm), &address, data, &log)
+            .and_then(|mut command| {
+                let budget = format!("--store-memory-budget={budget_mib}MiB");
+                command.arg(budget).spawn()
+            })
             .map_err(|e| format!("starting {}: {e}", pointfarm.display()))?;
         let serve = Self {
             child,
             address,
             log,
         };
-        let started = Instant::now();
-        while std::net::TcpStream::connect(&serve.address).is_err() {
-            if started.elapsed() > Duration::from_secs(60) {
-                return Err(format!("the daemon did not listen:\n{}", serve.log_text()));
-            }
-            std::thread::sleep(Duration::from_millis(100));
+        if !listens_within(serve.address.as_str(), START_TIMEOUT) {
+            return Err(format!("the daemon did not listen:\n{}", serve.log_text()));
         }
         Ok(serve)
     }

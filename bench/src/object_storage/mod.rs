@@ -12,9 +12,6 @@ pub mod copc_s3;
 pub mod published;
 pub mod s3_server;
 
-use std::net::{TcpStream, ToSocketAddrs};
-use std::time::{Duration, Instant};
-
 use pointfarm_render::copc::CopcError;
 use pointfarm_render::gpu::GpuError;
 use pointfarm_render::remote::RemoteError;
@@ -36,17 +33,4 @@ pub enum ObjectStorageError {
     /// which.
     #[error("{0}")]
     Setup(String),
-}
-
-/// Whether something listens on `address` within `timeout`, tried every 50 ms: the start of
-/// the S3 server and of the daemon.
-fn listens_within(address: impl ToSocketAddrs + Copy, timeout: Duration) -> bool {
-    let started = Instant::now();
-    while TcpStream::connect(address).is_err() {
-        if started.elapsed() > timeout {
-            return false;
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    true
 }

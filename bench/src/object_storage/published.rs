@@ -20,10 +20,11 @@ use std::time::{Duration, Instant};
 use serde::Serialize;
 
 use super::s3_server::S3Server;
-use super::{listens_within, ObjectStorageError};
+use super::ObjectStorageError;
 use crate::campaign::write_campaign;
 use crate::copc::drop_page_cache;
 use crate::scratch::{load_average, progress_log, scratch_dir};
+use crate::serve::{listens_within, serve_command};
 
 /// The bucket stores are published to, and the prefix in it.
 const BUCKET: &str = "pointfarm-stores";
@@ -282,19 +283,13 @@ impl Farm<'_> {
         log: &Path,
     ) -> Result<Killed, ObjectStorageError> {
         let data = self.dir.join("daemon");
-        let log_file = std::fs::File::create(log).map_err(|e| io(log, e))?;
-        let child = self
-            .pointfarm()
-            .args(["serve", "--listen", address, "--data-dir"])
-            .arg(&data)
+        let mut command =
+            serve_command(self.pointfarm(), address, &data, log).map_err(|e| io(log, e))?;
+        let child = command
             .arg("--data-root")
             .arg(tiles)
             .args(["--no-embedded-worker", "--store-url", STORE_URL])
             .args(["--metrics-listen", metrics])
-            .env("RUST_LOG", "warn,pointfarm=info")
-            .env("NO_COLOR", "1")
-            .stdout(Stdio::null())
-            .stderr(log_file)
             .spawn()
             .map_err(|e| ObjectStorageError::Setup(format!("starting the daemon: {e}")))?;
         let daemon = Killed(child);

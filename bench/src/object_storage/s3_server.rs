@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
-use super::listens_within;
+use crate::serve::listens_within;
 use crate::BenchError;
 
 /// The credentials the server accepts; they stay on loopback, and a test checks they never
