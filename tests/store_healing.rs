@@ -3,15 +3,13 @@
 //! builds its store again, counts it, and its job succeeds; damage that comes back after that
 //! rebuild fails the job, naming the dataset, instead of building again and again.
 
-use std::io::{Read, Write};
-use std::net::TcpStream;
 use std::path::{Path, PathBuf};
-use std::time::Duration;
 
 use pointfarm_render::cut::{StoredLod, ELEVATION_SAMPLE_POINTS};
 use pointfarm_render::ingest::{write_las, LasWriteOptions};
 use pointfarm_render::lod::NodeInfo;
 use pointfarm_render::sample::sample_scene;
+use pointfarm_tests::prometheus::scrape;
 use pointfarm_tests::{free_address, output_text, path_arg, pointfarm, pointfarm_ok, ServeProcess};
 
 /// A LAZ file of the sample scene, small enough to build in a moment.
@@ -174,23 +172,6 @@ fn damage_a_frame_reads_builds_the_store_again_and_draws_the_frame_from_it() {
     );
 }
 
-/// `GET http://{address}/metrics`: the value of `series`.
-fn scraped(address: &str, series: &str) -> Option<f64> {
-    let mut stream = TcpStream::connect(address).expect("connect to the metrics");
-    stream
-        .set_read_timeout(Some(Duration::from_secs(10)))
-        .expect("timeout");
-    write!(stream, "GET /metrics HTTP/1.0\r\nHost: {address}\r\n\r\n").expect("ask");
-    let mut answer = String::new();
-    stream.read_to_string(&mut answer).expect("answer");
-    answer
-        .lines()
-        .filter(|line| !line.starts_with('#'))
-        .filter_map(|line| line.rsplit_once(' '))
-        .find(|(name, _)| *name == series)
-        .and_then(|(_, value)| value.parse().ok())
-}
-
 const REBUILDS: &str = "pointfarm_store_rebuilds_total";
 
 #[test]
@@ -219,7 +200,7 @@ fn a_daemon_store_that_fails_its_checks_is_built_again_once_then_reported() {
     };
     let (first, _) = job("first.png", "0.5");
     assert!(first.status.success(), "{}", output_text(&first));
-    assert_eq!(scraped(&metrics, REBUILDS), Some(0.0));
+    assert_eq!(scrape(&metrics).get(REBUILDS).copied(), Some(0.0));
     let payload = payload_of_the_store_in(&data.join("lod"));
 
     // Damaged on disk: the daemon finds it as it serves the next job's nodes, builds the
@@ -243,7 +224,7 @@ fn a_daemon_store_that_fails_its_checks_is_built_again_once_then_reported() {
             .any(|line| line.contains("rebuilding a damaged store") && line.contains("dataset=")),
         "{log}"
     );
-    assert_eq!(scraped(&metrics, REBUILDS), Some(1.0));
+    assert_eq!(scrape(&metrics).get(REBUILDS).copied(), Some(1.0));
     // The frame a local render draws of the same file.
     let local = dir.path().join("local.png");
     pointfarm_ok(&[
@@ -281,5 +262,5 @@ fn a_daemon_store_that_fails_its_checks_is_built_again_once_then_reported() {
         1,
         "{log}"
     );
-    assert_eq!(scraped(&metrics, REBUILDS), Some(1.0));
+    assert_eq!(scrape(&metrics).get(REBUILDS).copied(), Some(1.0));
 }

@@ -9,6 +9,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use pointfarm_tests::free_address;
+use pointfarm_tests::tools::wait_until_listening;
 use serde_json::{json, Value};
 
 /// An HTTP answer: status, headers (names lowercased; repeated ones joined by newlines) and
@@ -156,11 +157,7 @@ impl Browser {
             session: String::new(),
             _profile: profile,
         };
-        let deadline = Instant::now() + Duration::from_secs(30);
-        while TcpStream::connect(&browser.address).is_err() {
-            assert!(Instant::now() < deadline, "chromedriver did not listen");
-            std::thread::sleep(Duration::from_millis(50));
-        }
+        wait_until_listening(&browser.address, Duration::from_secs(30), "chromedriver");
         let capabilities = json!({"capabilities": {"alwaysMatch": {
             "browserName": "chrome",
             "goog:chromeOptions": {

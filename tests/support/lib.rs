@@ -379,13 +379,8 @@ impl ServeProcess {
             child,
             log,
         };
-        for _ in 0..300 {
-            if std::net::TcpStream::connect(address).is_ok() {
-                return server;
-            }
-            std::thread::sleep(std::time::Duration::from_millis(100));
-        }
-        panic!("pointfarm serve did not listen on {address} within 30 s");
+        tools::wait_until_listening(address, Duration::from_secs(30), "pointfarm serve");
+        server
     }
 
     pub fn pid(&self) -> u32 {
