@@ -548,9 +548,8 @@ async fn a_lease_is_usable_only_by_its_holder() {
 /// there.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn health_checks_answer_in_plaintext_on_a_port_of_their_own() {
+    use pointfarm_tests::health::{health, JOB_SERVICE};
     use tonic_health::pb::health_check_response::ServingStatus;
-    use tonic_health::pb::health_client::HealthClient;
-    use tonic_health::pb::HealthCheckRequest;
 
     let scratch = tempfile::tempdir().expect("tempdir");
     let dir = scratch.path();
@@ -560,29 +559,13 @@ async fn health_checks_answer_in_plaintext_on_a_port_of_their_own() {
     let health_address = pointfarm_tests::free_address();
     let _server = tls_daemon(dir, &pki, &token, &["--health-listen", &health_address]);
     let channel = wait_for_channel(&health_address).await;
-    let status = |service: &str| {
-        let mut health = HealthClient::new(channel.clone());
-        let request = HealthCheckRequest {
-            service: service.into(),
-        };
-        async move {
-            health
-                .check(request)
-                .await
-                .expect("a plaintext health check")
-                .into_inner()
-                .status
-        }
-    };
+    let status = |service| health(&health_address, service);
     assert_eq!(
         status("pointfarm.v1.WorkerService").await,
         ServingStatus::Serving as i32
     );
     // No worker can render yet: the jobs' service says so here as on the main port.
-    assert_eq!(
-        status("pointfarm.v1.JobService").await,
-        ServingStatus::NotServing as i32
-    );
+    assert_eq!(status(JOB_SERVICE).await, ServingStatus::NotServing as i32);
     let api = JobServiceClient::new(channel)
         .list_jobs(pb::ListJobsRequest::default())
         .await
