@@ -189,11 +189,8 @@ fn fill(
     let bytes = &batch.raw_bytes()[..n * fields.len];
     let t = batch.transforms();
     let (tx, ty, tz) = (t.x, t.y, t.z);
-    columns.clear();
-    columns.positions.resize(n, DVec3::ZERO);
-    columns.intensity.resize(n, 0);
-    columns.classification.resize(n, 0);
-    columns.return_number.resize(n, 0);
+    let row_bytes = rows.row_bytes();
+    columns.set_len(n, with_rgb && fields.rgb.is_some(), row_bytes);
     let block_bytes = FILL_BLOCK_POINTS * fields.len;
     columns
         .positions
@@ -227,9 +224,7 @@ fn fill(
                 }
             }
         });
-    let row_bytes = rows.row_bytes();
     if row_bytes > 0 {
-        columns.rows.resize(n * row_bytes, 0);
         columns
             .rows
             .par_chunks_mut(FILL_BLOCK_POINTS * row_bytes)
@@ -244,7 +239,6 @@ fn fill(
             });
     }
     if let (true, Some(at)) = (with_rgb, fields.rgb) {
-        columns.rgb.resize(n, [0; 3]);
         columns
             .rgb
             .par_chunks_mut(FILL_BLOCK_POINTS)

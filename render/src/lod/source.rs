@@ -100,6 +100,18 @@ impl BatchColumns {
         self.rows.clear();
     }
 
+    /// Sets every column to `n` points (RGB only `with_rgb`, else none; rows of `row_bytes`),
+    /// writing only the points a column gains: a fill overwrites every value, and zeroing a
+    /// batch's columns first would cost the reading thread, alone, a pass over them.
+    pub fn set_len(&mut self, n: usize, with_rgb: bool, row_bytes: usize) {
+        self.positions.resize(n, DVec3::ZERO);
+        self.rgb.resize(if with_rgb { n } else { 0 }, [0; 3]);
+        self.intensity.resize(n, 0);
+        self.classification.resize(n, 0);
+        self.return_number.resize(n, 0);
+        self.rows.resize(n * row_bytes, 0);
+    }
+
     /// The batch of these columns; its RGB only `with_rgb`.
     pub fn batch(&self, with_rgb: bool) -> PointBatch<'_> {
         PointBatch {

@@ -135,11 +135,17 @@ mod tests {
     /// opened it, not another.
     #[test]
     fn a_readers_time_is_counted_where_its_account_was_taken() {
+        // Spins until the thread has taken 20 ms of CPU (or 20 s have passed on a busy host).
         let spin = || {
             let start = std::time::Instant::now();
+            let cpu = thread_cpu();
             let mut x = 0u64;
-            while start.elapsed() < Duration::from_millis(50) {
-                x = std::hint::black_box(x.wrapping_mul(31).wrapping_add(7));
+            while thread_cpu_since(cpu) < Duration::from_millis(20)
+                && start.elapsed() < Duration::from_secs(20)
+            {
+                for _ in 0..10_000 {
+                    x = std::hint::black_box(x.wrapping_mul(31).wrapping_add(7));
+                }
             }
             x
         };
@@ -155,7 +161,7 @@ mod tests {
                 });
             });
         });
-        assert!(counted >= Duration::from_millis(10), "{counted:?}");
+        assert!(counted >= Duration::from_millis(20), "{counted:?}");
         let stray = ThreadAccount::reader();
         assert!(stray.0.is_none(), "no account open outside a count");
     }
