@@ -18,7 +18,8 @@ use pointfarm_proto::v1 as pb;
 use pointfarm_proto::v1::dataset_service_client::DatasetServiceClient;
 use pointfarm_proto::v1::job_service_client::JobServiceClient;
 use pointfarm_tests::service::{connect, scratch_sample, turntable_job, upload_messages};
-use pointfarm_tests::{free_address, wait_for, ServeProcess, WorkerProcess};
+use pointfarm_tests::tools::wait_until_listening;
+use pointfarm_tests::{free_address, ServeProcess, WorkerProcess};
 use serde_json::{json, Value};
 use tokio_stream::StreamExt;
 use tonic::service::interceptor::InterceptedService;
@@ -63,9 +64,7 @@ fn serve(data: &Path, args: &[&str]) -> (ServeProcess, String) {
     ];
     all.extend_from_slice(args);
     let server = ServeProcess::start_with(data, &all);
-    wait_for(Duration::from_secs(30), "the dashboard listening", || {
-        std::net::TcpStream::connect(&dashboard).ok()
-    });
+    wait_until_listening(&dashboard, Duration::from_secs(30), "the dashboard");
     (server, dashboard)
 }
 

@@ -3,16 +3,14 @@
 //! daemon's and a `pointfarm worker`'s `/metrics`, read directly after a job.
 
 use std::collections::BTreeMap;
-use std::net::TcpStream;
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 use pointfarm_tests::prometheus::{http_get, prometheus_installed, scrape, Prometheus};
 use pointfarm_tests::service::{
     clients, jobs_on_a_sample, scratch_sample, submit, turntable_job, upload_file, watch_to_success,
 };
-use pointfarm_tests::{free_address, pointfarm_bin, wait_for, ServeProcess, WorkerProcess};
+use pointfarm_tests::{free_address, wait_for, ServeProcess, WorkerProcess};
 
 fn value(metrics: &BTreeMap<String, f64>, series: &str) -> f64 {
     *metrics
@@ -20,36 +18,12 @@ fn value(metrics: &BTreeMap<String, f64>, series: &str) -> f64 {
         .unwrap_or_else(|| panic!("no {series} in {metrics:#?}"))
 }
 
-/// A child process, killed when dropped.
-struct Killed(Child);
-
-impl Drop for Killed {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
 /// `pointfarm serve` with its embedded worker, told the metrics address in the environment
 /// (`POINTFARM_METRICS_LISTEN`), which its embedded worker must not take for its own; once it
-/// listens: the process, its gRPC address, and its log file.
-fn serve_with_metrics_from_env(dir: &Path, metrics: &str) -> (Killed, String, std::path::PathBuf) {
-    let address = free_address();
-    let log = dir.join("serve.log");
-    let child = Command::new(pointfarm_bin())
-        .args(["serve", "--listen", &address, "--data-dir"])
-        .arg(dir.join("data"))
-        .env("POINTFARM_METRICS_LISTEN", metrics)
-        .env("RUST_LOG", "warn,pointfarm=info")
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(&log).expect("serve log"))
-        .spawn()
-        .expect("start pointfarm serve");
-    let server = Killed(child);
-    wait_for(Duration::from_secs(30), "the daemon listening", || {
-        TcpStream::connect(&address).ok()
-    });
-    (server, address, log)
+/// listens.
+fn serve_with_metrics_from_env(dir: &Path, metrics: &str) -> ServeProcess {
+    let environment = [("POINTFARM_METRICS_LISTEN", metrics.to_owned())];
+    ServeProcess::start_in_environment(&environment, &dir.join("data"), &[])
 }
 
 /// `pointfarm serve` without a worker, its data in `scratch`, serving its metrics; once it
@@ -85,20 +59,17 @@ async fn prometheus_scrapes_the_frames_a_job_completed() {
     }
     let scratch = tempfile::tempdir().expect("tempdir");
     let metrics = free_address();
-    let (_server, address, log) = serve_with_metrics_from_env(scratch.path(), &metrics);
+    let server = serve_with_metrics_from_env(scratch.path(), &metrics);
     let prometheus = Prometheus::start(scratch.path(), &[&metrics]);
 
-    let (mut jobs, dataset) = jobs_on_a_sample(&address, 20_000, 4).await;
+    let (mut jobs, dataset) = jobs_on_a_sample(&server.address, 20_000, 4).await;
     let frames = 3;
     let job = submit(
         &mut jobs,
         turntable_job("scraped", &dataset.id, frames, 64, 48),
     )
     .await;
-    watch_to_success(&mut jobs, &job.id, || {
-        std::fs::read_to_string(&log).unwrap_or_default()
-    })
-    .await;
+    watch_to_success(&mut jobs, &job.id, || server.log()).await;
 
     let counted = wait_for(
         Duration::from_secs(60),

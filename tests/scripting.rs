@@ -10,6 +10,7 @@ use std::time::Duration;
 
 use pointfarm_proto::v1 as pb;
 use pointfarm_tests::service::clients;
+use pointfarm_tests::tools::wait_until_listening;
 use pointfarm_tests::{
     assert_fails_saying, assert_ok, free_address, path_arg, pointfarm, pointfarm_bin, pointfarm_ok,
     stdout, wait_for, ServeProcess, WorkerProcess,
@@ -487,9 +488,7 @@ fn serve_and_worker_take_settings_from_a_file_the_environment_and_flags() {
         .take(2)
         .map(|line| line.expect("serve's output"))
         .collect();
-    wait_for(Duration::from_secs(30), "the daemon to listen", || {
-        std::net::TcpStream::connect(&address).ok()
-    });
+    wait_until_listening(&address, Duration::from_secs(30), "the daemon");
     let _ = serve.kill();
     let _ = serve.wait();
     let said = lines.join("\n");

@@ -9,7 +9,8 @@ use std::time::{Duration, Instant};
 use pointfarm_daemon::access::Access;
 use pointfarm_daemon::dashboard::LoginLimit;
 
-use pointfarm_tests::{free_address, wait_for, ServeProcess};
+use pointfarm_tests::tools::wait_until_listening;
+use pointfarm_tests::{free_address, ServeProcess};
 
 use super::farm::Farm;
 use super::webdriver::{request, Answer};
@@ -158,9 +159,7 @@ async fn an_open_daemon_opens_its_dashboard_but_not_to_other_sites() {
         &scratch.path().join("data"),
         &["--no-embedded-worker", "--dashboard-listen", &dashboard],
     );
-    wait_for(Duration::from_secs(30), "the dashboard listening", || {
-        std::net::TcpStream::connect(&dashboard).ok()
-    });
+    wait_until_listening(&dashboard, Duration::from_secs(30), "the dashboard");
     let page = request(&dashboard, "GET", "/", &[], "");
     assert_eq!(page.status, 200, "{}", page.body);
     let foreign = request(
