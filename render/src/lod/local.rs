@@ -9,6 +9,13 @@
 //! the sampling, with sequential reads, and each leaf's points in the order they came. The
 //! partition's root is returned unfinished: the levels above the partitions still sample from
 //! it.
+//!
+//! A node's children hold disjoint points, so the subtrees of a node of a few leaves' worth are
+//! built on the pool's threads at once, and its finished children encoded at once: one
+//! partition keeps many cores busy where the budget holds few partitions at a time. Their
+//! nodes come back in child order, so the store is the same whatever the threads.
+
+use rayon::prelude::*;
 
 use super::attributes::AttributeRows;
 use super::error::LodError;
@@ -21,6 +28,9 @@ use super::sink::{EncodedNode, NodeSink};
 /// Levels below a partition its order spans: three digits of the radix sort, deeper than a
 /// partition's octree goes but on a dense spot, whose node is then ordered again from its cube.
 const ORDER_LEVELS: u8 = 8;
+
+/// Leaves' worth of points from which a node's children are built on several threads.
+const PARALLEL_LEAVES: usize = 4;
 
 /// A built subtree's root: its own points and its sampling grid (0 for a leaf).
 pub struct SubtreeRoot {
@@ -46,53 +56,149 @@ pub struct KeptRoot {
     pub root: EncodedNode,
 }
 
+/// A subtree's points made ready to build: a leaf's, or their order and unsplit runs.
+pub enum Prepared {
+    Leaf(Vec<RawPoint>),
+    Ordered {
+        key: NodeKey,
+        order: MortonOrder,
+        runs: Vec<Vec<RawPoint>>,
+        starts: Vec<usize>,
+    },
+}
+
 /// The partition being built: its points' Z-curve order of the cells `bits` levels below
-/// `origin`, and the points of each run the recursion does not split (a leaf, or a node the
-/// codes end above), in the order the recursion meets them, each run's points in the order
-/// they came.
+/// `origin`.
 struct Ordered<'p> {
     order: &'p MortonOrder,
     /// The level the codes start below.
     origin: u8,
-    runs: std::vec::IntoIter<Vec<RawPoint>>,
 }
 
-impl Ordered<'_> {
-    /// The points of the next run the recursion does not split.
-    fn next_run(&mut self, key: NodeKey) -> Result<Vec<RawPoint>, LodError> {
-        self.runs.next().ok_or_else(|| LodError::CorruptNode {
-            key,
-            reason: "the partition's order has fewer runs than its octree".into(),
-        })
+/// The points of the runs the recursion does not split (a leaf, or a node the codes end
+/// above) within one node's run, in the order the recursion meets them, each run's points in
+/// the order they came, with where each run starts among the order's entries: a node's
+/// children each take the runs that start within theirs.
+struct Runs<'r> {
+    points: &'r mut [Vec<RawPoint>],
+    starts: &'r [usize],
+}
+
+impl<'r> Runs<'r> {
+    /// The points of the one run of a node the recursion does not split.
+    fn only(self, key: NodeKey) -> Result<Vec<RawPoint>, LodError> {
+        match self.points {
+            [run] => Ok(std::mem::take(run)),
+            _ => Err(LodError::CorruptNode {
+                key,
+                reason: "the partition's order does not match its octree".into(),
+            }),
+        }
+    }
+
+    /// The runs that start before `end`, and the rest.
+    fn split_before(self, end: usize) -> (Runs<'r>, Runs<'r>) {
+        let n = self.starts.partition_point(|&s| s < end);
+        let (points, rest_points) = self.points.split_at_mut(n);
+        let (starts, rest_starts) = self.starts.split_at(n);
+        (
+            Runs { points, starts },
+            Runs {
+                points: rest_points,
+                starts: rest_starts,
+            },
+        )
     }
 }
 
+/// A built subtree: its root, the nodes finished below it and, where asked, its children's
+/// roots as they were before it sampled from them.
+struct Built {
+    root: SubtreeRoot,
+    region: Vec<EncodedNode>,
+    kept: Vec<KeptRoot>,
+}
+
+/// A child built: its index, its subtree and, where asked, its root as it was.
+type BuiltChild = (usize, Built, Option<KeptRoot>);
+
+/// A child of a node being built: its index, its run of the order and where that starts, and
+/// the points of the runs in it.
+type ChildWork<'e, 'r> = (usize, &'e [(u64, u32)], usize, Runs<'r>);
+
 impl LocalBuilder<'_> {
-    /// Builds `key`'s subtree of `points`; with `kept`, each child subtree's root is kept
-    /// there as it was before `key` sampled from it (a partition's children are the store's
-    /// regions: a quarter of a partition on a surface is what an update builds again).
-    pub fn build(
-        &self,
-        key: NodeKey,
-        points: Vec<RawPoint>,
-        region: &mut Vec<EncodedNode>,
-        kept: Option<&mut Vec<KeptRoot>>,
-    ) -> Result<SubtreeRoot, LodError> {
+    /// The first step of building `key`'s subtree of `points`, on one thread: the points in
+    /// their order below `key`, cut into the runs the recursion does not split.
+    pub fn prepare(&self, key: NodeKey, points: Vec<RawPoint>) -> Prepared {
         if self.is_leaf(key, points.len()) {
-            return Ok(SubtreeRoot {
-                points,
-                sample_grid: 0,
-            });
+            return Prepared::Leaf(points);
         }
         let levels = ORDER_LEVELS.min(MAX_LEVEL - key.level);
         let order = MortonOrder::below(&self.cube, key, &points, levels);
-        let runs = self.unsplit_runs(&order, key, points);
-        let mut ordered = Ordered {
+        let (runs, starts) = self.unsplit_runs(&order, key, points);
+        Prepared::Ordered {
+            key,
+            order,
+            runs,
+            starts,
+        }
+    }
+
+    /// Builds the subtree [`Self::prepare`] made ready; with `kept`, each child subtree's root
+    /// is kept there as it was before the subtree's root sampled from it (a partition's
+    /// children are the store's regions: a quarter of a partition on a surface is what an
+    /// update builds again).
+    pub fn build_prepared(
+        &self,
+        prepared: Prepared,
+        region: &mut Vec<EncodedNode>,
+        kept: Option<&mut Vec<KeptRoot>>,
+    ) -> Result<SubtreeRoot, LodError> {
+        let built = self.build_ordered(prepared, kept.is_some())?;
+        region.extend(built.region);
+        if let Some(kept) = kept {
+            kept.extend(built.kept);
+        }
+        Ok(built.root)
+    }
+
+    fn build_subtree(
+        &self,
+        key: NodeKey,
+        points: Vec<RawPoint>,
+        keep: bool,
+    ) -> Result<Built, LodError> {
+        self.build_ordered(self.prepare(key, points), keep)
+    }
+
+    fn build_ordered(&self, prepared: Prepared, keep: bool) -> Result<Built, LodError> {
+        let (key, order, mut runs, starts) = match prepared {
+            Prepared::Leaf(points) => {
+                return Ok(Built {
+                    root: SubtreeRoot {
+                        points,
+                        sample_grid: 0,
+                    },
+                    region: Vec::new(),
+                    kept: Vec::new(),
+                })
+            }
+            Prepared::Ordered {
+                key,
+                order,
+                runs,
+                starts,
+            } => (key, order, runs, starts),
+        };
+        let ordered = Ordered {
             order: &order,
             origin: key.level,
-            runs: runs.into_iter(),
         };
-        self.build_run(&mut ordered, key, order.entries(), region, kept)
+        let runs = Runs {
+            points: &mut runs,
+            starts: &starts,
+        };
+        self.build_run(&ordered, runs, key, order.entries(), 0, keep)
     }
 
     fn is_leaf(&self, key: NodeKey, points: usize) -> bool {
@@ -105,108 +211,169 @@ impl LocalBuilder<'_> {
         self.is_leaf(key, points) || depth == order.bits()
     }
 
+    /// Whether `points` are enough to build a node's children on several threads: a few
+    /// leaves' worth, so that a task is far more work than its handing over.
+    fn in_parallel(&self, points: usize) -> bool {
+        points >= PARALLEL_LEAVES * self.max_leaf_points
+    }
+
     /// The points of every run of `order` (below `key`) that the recursion does not split, in
-    /// the order it meets them, each with its points in the order they came: one pass over
-    /// `points` in that order appending each to its run, instead of a sort of each run's
-    /// indices and a copy in scattered order.
+    /// the order it meets them, each with its points in the order they came, and where each
+    /// starts among the order's entries: one pass over `points` in that order appending each
+    /// to its run, instead of a sort of each run's indices and a copy in scattered order.
     fn unsplit_runs(
         &self,
         order: &MortonOrder,
         key: NodeKey,
         points: Vec<RawPoint>,
-    ) -> Vec<Vec<RawPoint>> {
-        let mut runs: Vec<&[(u64, u32)]> = Vec::new();
-        self.find_unsplit(order, key, order.entries(), 0, &mut runs);
+    ) -> (Vec<Vec<RawPoint>>, Vec<usize>) {
+        let mut runs: Vec<(usize, &[(u64, u32)])> = Vec::new();
+        self.find_unsplit(order, key, order.entries(), 0, 0, &mut runs);
         let mut run_of = vec![0u32; points.len()];
-        for (r, run) in runs.iter().enumerate() {
+        for (r, (_, run)) in runs.iter().enumerate() {
             for &(_, i) in *run {
                 run_of[i as usize] = r as u32;
             }
         }
-        let mut out: Vec<Vec<RawPoint>> =
-            runs.iter().map(|r| Vec::with_capacity(r.len())).collect();
+        let mut out: Vec<Vec<RawPoint>> = runs
+            .iter()
+            .map(|(_, r)| Vec::with_capacity(r.len()))
+            .collect();
         for (p, &r) in points.iter().zip(&run_of) {
             out[r as usize].push(*p);
         }
-        out
+        (out, runs.iter().map(|&(start, _)| start).collect())
     }
 
-    /// Walks `key`'s `run` as [`Self::build_run`] does, noting each run it does not split.
+    /// Walks `key`'s `run` (starting at `start` among the order's entries) as
+    /// [`Self::build_run`] does, noting each run it does not split.
     fn find_unsplit<'r>(
         &self,
         order: &MortonOrder,
         key: NodeKey,
         run: &'r [(u64, u32)],
+        start: usize,
         depth: u32,
-        runs: &mut Vec<&'r [(u64, u32)]>,
+        runs: &mut Vec<(usize, &'r [(u64, u32)])>,
     ) {
         if self.is_unsplit(order, key, run.len(), depth) {
-            runs.push(run);
+            runs.push((start, run));
             return;
         }
+        let mut child_start = start;
         for (i, child_run) in order.children(run, depth).into_iter().enumerate() {
             if !child_run.is_empty() {
-                self.find_unsplit(order, key.child(i), child_run, depth + 1, runs);
+                self.find_unsplit(order, key.child(i), child_run, child_start, depth + 1, runs);
             }
+            child_start += child_run.len();
         }
     }
 
-    /// Builds `key`'s subtree of the points of `run`, the part of `ordered` in `key`'s cube.
+    /// Builds `key`'s subtree of the points of `run`, the part of the order in `key`'s cube
+    /// starting at `start` among its entries, whose unsplit runs are `runs`; with `keep`, its
+    /// children's roots are kept as they were before it sampled from them.
     fn build_run(
         &self,
-        ordered: &mut Ordered<'_>,
+        ordered: &Ordered<'_>,
+        runs: Runs<'_>,
         key: NodeKey,
         run: &[(u64, u32)],
-        region: &mut Vec<EncodedNode>,
-        mut kept: Option<&mut Vec<KeptRoot>>,
-    ) -> Result<SubtreeRoot, LodError> {
+        start: usize,
+        keep: bool,
+    ) -> Result<Built, LodError> {
         let depth = u32::from(key.level - ordered.origin);
         if self.is_leaf(key, run.len()) {
-            return Ok(SubtreeRoot {
-                points: ordered.next_run(key)?,
-                sample_grid: 0,
+            return Ok(Built {
+                root: SubtreeRoot {
+                    points: runs.only(key)?,
+                    sample_grid: 0,
+                },
+                region: Vec::new(),
+                kept: Vec::new(),
             });
         }
         if self.is_unsplit(ordered.order, key, run.len(), depth) {
             // The codes end above this node (a dense spot): its points are ordered again from
             // its cube.
-            let points = ordered.next_run(key)?;
-            return self.build(key, points, region, kept);
+            return self.build_subtree(key, runs.only(key)?, keep);
         }
-        let children = ordered.order.children(run, depth);
-        let mut own: [Vec<RawPoint>; 8] = Default::default();
-        let mut grids = [0u32; 8];
-        let mut present = [false; 8];
-        for (i, child_run) in children.into_iter().enumerate() {
-            if child_run.is_empty() {
-                continue;
+        let mut work: Vec<ChildWork<'_, '_>> = Vec::with_capacity(8);
+        let mut rest = runs;
+        let mut child_start = start;
+        for (i, child_run) in ordered.order.children(run, depth).into_iter().enumerate() {
+            let end = child_start + child_run.len();
+            let (mine, after) = rest.split_before(end);
+            rest = after;
+            if !child_run.is_empty() {
+                work.push((i, child_run, child_start, mine));
             }
-            let child = self.build_run(ordered, key.child(i), child_run, region, None)?;
-            if let Some(kept) = kept.as_deref_mut() {
-                kept.push(KeptRoot {
+            child_start = end;
+        }
+        // Each child's subtree is its own points: they are built at once where there are
+        // enough, and their nodes come back in child order, as one after another would.
+        let build_child = |(i, child_run, child_start, child_runs): ChildWork<'_, '_>| {
+            let child = self.build_run(
+                ordered,
+                child_runs,
+                key.child(i),
+                child_run,
+                child_start,
+                false,
+            )?;
+            let kept = match keep {
+                true => Some(KeptRoot {
                     key: key.child(i),
                     points: child_run.len() as u64,
                     root: self.sink.encode(
                         key.child(i),
-                        &child.points,
-                        child.sample_grid,
+                        &child.root.points,
+                        child.root.sample_grid,
                         self.rows,
                     )?,
-                });
-            }
-            own[i] = child.points;
-            grids[i] = child.sample_grid;
+                }),
+                false => None,
+            };
+            Ok((i, child, kept))
+        };
+        let parallel = self.in_parallel(run.len());
+        let children: Vec<Result<BuiltChild, LodError>> = match parallel {
+            true => work.into_par_iter().map(build_child).collect(),
+            false => work.into_iter().map(build_child).collect(),
+        };
+        let mut own: [Vec<RawPoint>; 8] = Default::default();
+        let mut grids = [0u32; 8];
+        let mut present = [false; 8];
+        let mut region = Vec::new();
+        let mut kept = Vec::new();
+        for child in children {
+            let (i, child, child_kept) = child?;
+            region.extend(child.region);
+            kept.extend(child_kept);
+            own[i] = child.root.points;
+            grids[i] = child.root.sample_grid;
             present[i] = true;
         }
         let sampled = sample(&self.cube, key, own, self.sample_grid, self.max_leaf_points);
-        for (i, kept) in sampled.kept.iter().enumerate() {
-            if present[i] {
-                region.push(self.sink.encode(key.child(i), kept, grids[i], self.rows)?);
-            }
-        }
-        Ok(SubtreeRoot {
-            points: sampled.parent,
-            sample_grid: sampled.grid,
+        let encode = |(i, kept): (usize, &Vec<RawPoint>)| {
+            self.sink.encode(key.child(i), kept, grids[i], self.rows)
+        };
+        let finished = sampled.kept.iter().enumerate().filter(|&(i, _)| present[i]);
+        let encoded: Result<Vec<EncodedNode>, LodError> = match parallel {
+            true => finished
+                .collect::<Vec<_>>()
+                .into_par_iter()
+                .map(encode)
+                .collect(),
+            false => finished.map(encode).collect(),
+        };
+        region.extend(encoded?);
+        Ok(Built {
+            root: SubtreeRoot {
+                points: sampled.parent,
+                sample_grid: sampled.grid,
+            },
+            region,
+            kept,
         })
     }
 }

@@ -2,6 +2,7 @@
 //! budget holds whatever the input size, and the peak can be reported and tested.
 
 use std::sync::{Condvar, Mutex, MutexGuard};
+use std::time::Duration;
 
 use super::error::LodError;
 
@@ -120,6 +121,40 @@ impl MemoryMeter {
     }
 }
 
+impl MemoryMeter {
+    /// Reserves `bytes` if they fit now or once other work releases enough within `timeout`;
+    /// `None` if they still do not fit then, so that the caller can do other work meanwhile.
+    /// Fails only if they exceed the whole budget.
+    pub fn reserve_within(
+        &self,
+        bytes: u64,
+        what: &'static str,
+        timeout: Duration,
+    ) -> Result<Option<Reservation<'_>>, LodError> {
+        self.check(bytes, what)?;
+        let mut state = self.lock();
+        if state.used + bytes > self.budget {
+            state = self
+                .freed
+                .wait_timeout(state, timeout)
+                .map(|(state, _)| state)
+                .unwrap_or_else(|poisoned| poisoned.into_inner().0);
+        }
+        if state.used + bytes > self.budget {
+            return Ok(None);
+        }
+        state.used += bytes;
+        state.peak = state.peak.max(state.used);
+        Ok(Some(Reservation { meter: self, bytes }))
+    }
+
+    /// Waits until a reservation is released, or `timeout` passes.
+    pub fn wait_for_release(&self, timeout: Duration) {
+        let state = self.lock();
+        drop(self.freed.wait_timeout(state, timeout));
+    }
+}
+
 impl Reservation<'_> {
     pub fn bytes(&self) -> u64 {
         self.bytes
@@ -151,5 +186,29 @@ mod tests {
             meter.reserve(101, "c"),
             Err(LodError::BudgetTooSmall { needed: 101, .. })
         ));
+    }
+
+    /// A reservation that does not fit waits at most its timeout, and gets the bytes once
+    /// another thread releases them meanwhile.
+    #[test]
+    fn reserving_within_a_timeout_waits_for_a_release() {
+        let meter = MemoryMeter::new(100);
+        let held = meter.try_reserve(80, "a").expect("fits");
+        let none = meter.reserve_within(30, "b", Duration::from_millis(20));
+        assert!(matches!(none, Ok(None)));
+        std::thread::scope(|scope| {
+            scope.spawn(|| {
+                std::thread::sleep(Duration::from_millis(20));
+                drop(held);
+            });
+            let mut got = None;
+            while got.is_none() {
+                got = meter
+                    .reserve_within(30, "b", Duration::from_secs(5))
+                    .expect("within the budget");
+            }
+            assert_eq!(got.map(|r| r.bytes()), Some(30));
+        });
+        assert!(meter.reserve_within(101, "c", Duration::ZERO).is_err());
     }
 }

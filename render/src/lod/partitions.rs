@@ -5,8 +5,9 @@
 //! journal, so a build stopped before then has them to do it again.
 
 use std::path::PathBuf;
-
-use rayon::prelude::*;
+use std::sync::atomic::Ordering;
+use std::sync::{Mutex, MutexGuard};
+use std::time::Duration;
 
 use super::attributes::AttributeRows;
 use super::context::BuildContext;
@@ -14,6 +15,7 @@ use super::counting::CountGrid;
 use super::error::LodError;
 use super::journal::{sync_dir, UnitKind, UnitRecord};
 use super::key::{NodeKey, MAX_LEVEL};
+use super::memory::Reservation;
 use super::options::BUILD_BYTES_PER_POINT;
 use super::partition_figures::{PartitionsFigures, PartitionsTrace};
 use super::pause;
@@ -75,60 +77,222 @@ pub fn build_partitions_traced(
 ) -> Result<PartitionsFigures, LodError> {
     let trace = PartitionsTrace::new();
     build_each(ctx, &trace, partitions)?;
-    // A partition is built on one thread.
-    Ok(trace.finish(rayon::current_num_threads(), 1))
+    // A partition's subtrees are built on every thread of the pool.
+    let threads = rayon::current_num_threads();
+    Ok(trace.finish(threads, threads))
 }
 
+/// How long the admitting loop waits for memory before it looks for work of the pool's to do.
+const ADMIT_WAIT: Duration = Duration::from_millis(5);
+
+/// The partitions still to build or split, largest last (taken first), how many splits are
+/// under way, whose children join them, and how many units are (built or split).
+struct Queue {
+    partitions: Vec<(Partition, Vec<PathBuf>)>,
+    splitting: usize,
+    in_flight: usize,
+}
+
+impl Queue {
+    fn add(&mut self, partitions: Vec<(Partition, Vec<PathBuf>)>) {
+        self.partitions.extend(partitions);
+        // Largest first, then by key: the same order on every run.
+        self.partitions
+            .sort_by(|a, b| a.0.count.cmp(&b.0.count).then(b.0.key.cmp(&a.0.key)));
+    }
+}
+
+/// What the units of one partitions stage share.
+struct Stage<'s, 'c> {
+    ctx: &'s BuildContext<'c>,
+    trace: &'s PartitionsTrace,
+    queue: Mutex<Queue>,
+    failed: Mutex<Option<LodError>>,
+    /// Units that may hold memory at once: the pool's threads (more would wait, holding it).
+    threads: usize,
+}
+
+/// A unit admitted: its partition, whether it is split, and its memory.
+type Admitted<'m> = (Partition, Vec<PathBuf>, bool, Reservation<'m>);
+
+/// Builds the partitions, largest first, each admitted once its memory is reserved and handed
+/// to the pool with its reservation: no task of the pool ever waits for memory, so a thread
+/// that waits for a partition's subtrees and meanwhile takes another task of the pool cannot
+/// stop under a reservation of its own. Each unit that ends admits what its memory lets in;
+/// this loop admits the first and, while memory or threads are short, does the pool's work.
 fn build_each(
     ctx: &BuildContext<'_>,
     trace: &PartitionsTrace,
-    mut partitions: Vec<(Partition, Vec<PathBuf>)>,
+    partitions: Vec<(Partition, Vec<PathBuf>)>,
 ) -> Result<(), LodError> {
-    partitions.sort_by(|a, b| b.0.count.cmp(&a.0.count).then(a.0.key.cmp(&b.0.key)));
-    partitions
-        .into_par_iter()
-        .with_max_len(1)
-        .try_for_each(|(partition, files)| build_partition(ctx, trace, partition, files))
+    let stage = Stage {
+        ctx,
+        trace,
+        queue: Mutex::new(Queue {
+            partitions: Vec::new(),
+            splitting: 0,
+            in_flight: 0,
+        }),
+        failed: Mutex::new(None),
+        threads: rayon::current_num_threads(),
+    };
+    lock(&stage.queue).add(partitions);
+    rayon::scope(|scope| loop {
+        admit_all(scope, &stage);
+        let queue = lock(&stage.queue);
+        let done = queue.in_flight == 0 && (queue.partitions.is_empty() || stage.has_failed());
+        drop(queue);
+        if done {
+            break;
+        }
+        if rayon::yield_now() != Some(rayon::Yield::Executed) {
+            ctx.meter.wait_for_release(ADMIT_WAIT);
+        }
+    });
+    let failed = stage
+        .failed
+        .into_inner()
+        .unwrap_or_else(|poisoned| poisoned.into_inner());
+    failed.map_or(Ok(()), Err)
 }
 
+impl Stage<'_, '_> {
+    fn fail(&self, error: LodError) {
+        lock(&self.failed).get_or_insert(error);
+    }
+
+    fn has_failed(&self) -> bool {
+        lock(&self.failed).is_some()
+    }
+
+    /// The largest partition left, with its memory, if a thread is free and its memory is
+    /// free now.
+    fn try_admit(&self) -> Option<Admitted<'_>> {
+        if self.has_failed() {
+            return None;
+        }
+        let mut queue = lock(&self.queue);
+        if queue.in_flight >= self.threads {
+            return None;
+        }
+        let &(partition, _) = queue.partitions.last()?;
+        let admitted = needs_split(self.ctx, partition).and_then(|split| {
+            let (bytes, what) = match split {
+                true => (split_bytes(self.ctx), "splitting a partition"),
+                false => (
+                    partition_bytes(partition.count, self.ctx.spill.layout()),
+                    "a partition built in memory",
+                ),
+            };
+            let reservation = self.ctx.meter.reserve_within(bytes, what, Duration::ZERO)?;
+            Ok(reservation.map(|r| (split, r)))
+        });
+        let (split, reservation) = match admitted {
+            Ok(admitted) => admitted?,
+            Err(e) => {
+                drop(queue);
+                self.fail(e);
+                return None;
+            }
+        };
+        let (partition, files) = queue.partitions.pop()?;
+        queue.in_flight += 1;
+        queue.splitting += usize::from(split);
+        Some((partition, files, split, reservation))
+    }
+}
+
+/// A unit counted in flight (and a split counted under way) until dropped, by a task that
+/// panicked too, so that the stage ends and the panic reaches the caller.
+struct Counted<'s, 'c> {
+    stage: &'s Stage<'s, 'c>,
+    split: bool,
+}
+
+impl Drop for Counted<'_, '_> {
+    fn drop(&mut self) {
+        let mut queue = lock(&self.stage.queue);
+        queue.in_flight -= 1;
+        queue.splitting -= usize::from(self.split);
+    }
+}
+
+/// Spawns every unit that can be admitted now.
+fn admit_all<'s>(scope: &rayon::Scope<'s>, stage: &'s Stage<'s, '_>) {
+    while let Some((partition, files, split, reservation)) = stage.try_admit() {
+        let counted = Counted { stage, split };
+        scope.spawn(move |scope| {
+            let ctx = stage.ctx;
+            let memory = match split {
+                true => {
+                    let unit = stage.trace.unit(partition.key, partition.count, true);
+                    // The split's writer holds its memory and releases it when done.
+                    match split_partition(ctx, partition, &files, reservation) {
+                        Ok(parts) => {
+                            ctx.partitions_split.fetch_add(1, Ordering::Relaxed);
+                            lock(&stage.queue).add(parts);
+                        }
+                        Err(e) => stage.fail(e),
+                    }
+                    unit.end();
+                    None
+                }
+                false => {
+                    if let Err(e) = build_partition(ctx, stage.trace, partition, files) {
+                        stage.fail(e);
+                    }
+                    Some(reservation)
+                }
+            };
+            // Counted out (a split's children queued before), then its memory released, then
+            // what that lets in admitted.
+            drop(counted);
+            drop(memory);
+            admit_all(scope, stage);
+        });
+    }
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    mutex
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+/// Whether `partition` is split on disk before it is built: too large for the budget, or a
+/// dense bucket far above the plan's size (split, it keeps the cores busy).
+fn needs_split(ctx: &BuildContext<'_>, partition: Partition) -> Result<bool, LodError> {
+    let needed = partition_bytes(partition.count, ctx.spill.layout());
+    let fits = needed <= ctx.meter.largest_possible();
+    let oversized =
+        partition.count > 2 * ctx.max_partition_points && partition.key.level < FINEST_SPLIT_LEVEL;
+    if (!fits || oversized) && partition.key.level >= MAX_LEVEL {
+        return Err(LodError::TooDense {
+            key: partition.key,
+            count: partition.count,
+        });
+    }
+    Ok(!fits || oversized)
+}
+
+/// Builds `partition` in the memory reserved for it.
 fn build_partition(
     ctx: &BuildContext<'_>,
     trace: &PartitionsTrace,
     partition: Partition,
     files: Vec<PathBuf>,
 ) -> Result<(), LodError> {
-    let needed = partition_bytes(partition.count, ctx.spill.layout());
-    let fits = needed <= ctx.meter.largest_possible();
-    // A dense bucket is a partition far above the plan's size: split, it keeps the cores busy.
-    let oversized =
-        partition.count > 2 * ctx.max_partition_points && partition.key.level < FINEST_SPLIT_LEVEL;
-    if !fits || oversized {
-        if partition.key.level >= MAX_LEVEL {
-            return Err(LodError::TooDense {
-                key: partition.key,
-                count: partition.count,
-            });
-        }
-        let unit = trace.unit(partition.key, partition.count, true);
-        let parts = split_partition(ctx, partition, &files)?;
-        unit.end();
-        ctx.partitions_split
-            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        // No reservation is held here: a task that waits for memory must hold none.
-        return build_each(ctx, trace, parts);
-    }
-    let _reservation = ctx.meter.reserve(needed, "a partition built in memory")?;
     let mut unit = trace.unit(partition.key, partition.count, false);
     let layout = ctx.spill.layout();
     let mut rows = AttributeRows::new(layout.row_bytes);
     let points = unit.serial(false, || {
         spill::read_all(&files, layout, partition.count, &mut rows)
     })?;
+    let builder = ctx.local_builder(&rows);
+    let prepared = unit.serial(false, || builder.prepare(partition.key, points));
     let mut region = Vec::new();
     let mut kept = Vec::new();
-    let root =
-        ctx.local_builder(&rows)
-            .build(partition.key, points, &mut region, Some(&mut kept))?;
+    let root = builder.build_prepared(prepared, &mut region, Some(&mut kept))?;
     unit.serial(true, || {
         ctx.finish_unit(
             UnitKind::Partition,
@@ -144,15 +308,26 @@ fn build_partition(
     remove_all(&files)
 }
 
+/// The write buffers and read block a split reserves.
+fn split_bytes(ctx: &BuildContext<'_>) -> u64 {
+    2 * split_buffer_bytes(ctx) + read_block_bytes(ctx.spill.layout())
+}
+
+fn split_buffer_bytes(ctx: &BuildContext<'_>) -> u64 {
+    SPLIT_BUFFER_BYTES.min(ctx.meter.largest_possible() / 8)
+}
+
 fn remove_all(files: &[PathBuf]) -> Result<(), LodError> {
     files.iter().try_for_each(|path| spill::remove(path))
 }
 
-/// Streams a partition's files into eight files, one per child, each removed once read.
+/// Streams a partition's files into eight files, one per child, each removed once read, in
+/// the memory of `reservation` ([`split_bytes`]).
 fn split_partition(
     ctx: &BuildContext<'_>,
     partition: Partition,
     files: &[PathBuf],
+    reservation: Reservation<'_>,
 ) -> Result<Vec<(Partition, Vec<PathBuf>)>, LodError> {
     let paths: Vec<PathBuf> = (0..8)
         .map(|i| partition_path(ctx.spill, partition.key.child(i)))
@@ -166,11 +341,7 @@ fn split_partition(
             _ => {}
         }
     }
-    let buffer = SPLIT_BUFFER_BYTES.min(ctx.meter.largest_possible() / 8);
-    let reservation = ctx.meter.reserve(
-        2 * buffer + read_block_bytes(ctx.spill.layout()),
-        "splitting a partition",
-    )?;
+    let buffer = split_buffer_bytes(ctx);
     let mut writer = SpillWriter::new(ctx.spill, paths.clone(), buffer as usize, reservation);
     let mut counts = [0u64; 8];
     let level = u32::from(partition.key.level) + 1;
