@@ -1,7 +1,7 @@
 //! The command line of a bench program: `--flag value` pairs read in order, and the exit
 //! status with the error printed under the program's name.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 /// One flag's value, read as the flag needs it.
@@ -51,6 +51,17 @@ pub fn parse_flags(
         }
     }
     Ok(())
+}
+
+/// The LAZ files in `dir`, sorted by name: a campaign's tiles a program is pointed at.
+pub fn laz_files(dir: &Path) -> Result<Vec<PathBuf>, String> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(|e| format!("{}: {e}", dir.display()))?
+        .filter_map(|entry| entry.ok().map(|e| e.path()))
+        .filter(|path| path.extension().is_some_and(|ext| ext == "laz"))
+        .collect();
+    files.sort();
+    Ok(files)
 }
 
 /// The exit status of `program`'s run, printing its error if it failed.

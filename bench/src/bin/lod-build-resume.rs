@@ -11,13 +11,13 @@
 //! lod-build-resume [--points N] [--files N] [--kills N] [--seed N] [--budget-mib N] [--dir DIR]
 //! ```
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, ExitCode, Stdio};
 use std::time::{Duration, Instant};
 
 use pointfarm_bench::campaign::cpu::{children_cpu_s, pid_cpu_s};
 use pointfarm_bench::campaign::{CampaignFlags, ScratchCampaign};
-use pointfarm_bench::cli::{exit_code, parse_flags};
+use pointfarm_bench::cli::{exit_code, laz_files, parse_flags};
 use pointfarm_render::cut::StoredLod;
 use pointfarm_render::lod::read_nodes;
 use rand::{Rng, SeedableRng};
@@ -62,7 +62,7 @@ fn build(args: &[String]) -> Result<(), String> {
     let [tiles, folder, budget_mib] = args else {
         return Err("--build TILES FOLDER BUDGET_MIB".into());
     };
-    let files = tile_files(Path::new(tiles))?;
+    let files = laz_files(Path::new(tiles))?;
     let budget = budget_mib.parse::<u64>().map_err(|e| e.to_string())? << 20;
     let stored = StoredLod::open_or_build(&files, Path::new(folder), budget, None, &mut |_| {})
         .map_err(|e| e.to_string())?;
@@ -80,16 +80,6 @@ fn build(args: &[String]) -> Result<(), String> {
         );
     }
     Ok(())
-}
-
-fn tile_files(dir: &Path) -> Result<Vec<PathBuf>, String> {
-    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map_err(|e| format!("{}: {e}", dir.display()))?
-        .filter_map(|entry| entry.ok().map(|e| e.path()))
-        .filter(|path| path.extension().is_some_and(|ext| ext == "laz"))
-        .collect();
-    files.sort();
-    Ok(files)
 }
 
 /// What one build process took.

@@ -20,7 +20,8 @@ use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 use pointfarm_bench::campaign::write_campaign;
-use pointfarm_bench::cli::{exit_code, parse_flags};
+use pointfarm_bench::cli::{exit_code, laz_files, parse_flags};
+use pointfarm_bench::serve::load;
 use pointfarm_render::cloud::WorldBounds;
 use pointfarm_render::ingest::DatasetSource;
 use pointfarm_render::lod::digest::store_digest;
@@ -108,10 +109,13 @@ fn measure(args: &Args) -> Result<(), String> {
     println!("|---:|---:|---:|---|---|---|---:|---:|---:|---:|---:|---:|---|");
     for &threads in &args.threads {
         for &budget in &args.budgets_mib {
-            let load = load_average();
+            let load = load();
             let folder = scratch.path().join(format!("t{threads}-b{budget}"));
             let (figures, digest, build_s) = build(&files, &folder, threads, budget, args.journal)?;
-            println!("{}", row(threads, budget, load, &figures, &digest, build_s));
+            println!(
+                "{}",
+                row(threads, budget, &load, &figures, &digest, build_s)
+            );
             std::fs::remove_dir_all(&folder).map_err(|e| e.to_string())?;
         }
     }
@@ -121,16 +125,7 @@ fn measure(args: &Args) -> Result<(), String> {
 /// The LAZ tiles in `dir`, written there first when it holds none.
 fn tile_files(dir: &Path, args: &Args) -> Result<Vec<PathBuf>, String> {
     std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
-    let listed = || -> Result<Vec<PathBuf>, String> {
-        let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
-            .map_err(|e| format!("{}: {e}", dir.display()))?
-            .filter_map(|entry| entry.ok().map(|e| e.path()))
-            .filter(|path| path.extension().is_some_and(|ext| ext == "laz"))
-            .collect();
-        files.sort();
-        Ok(files)
-    };
-    let files = listed()?;
+    let files = laz_files(dir)?;
     if !files.is_empty() {
         return Ok(files);
     }
@@ -142,7 +137,7 @@ fn tile_files(dir: &Path, args: &Args) -> Result<Vec<PathBuf>, String> {
         args.files,
         started.elapsed().as_secs_f64()
     );
-    listed()
+    laz_files(dir)
 }
 
 /// Builds the store of `files` into `folder` on `threads` threads within `budget_mib`: the
@@ -179,7 +174,7 @@ fn build(
 fn row(
     threads: usize,
     budget_mib: u64,
-    load: Option<f64>,
+    load: &str,
     figures: &PartitionsFigures,
     digest: &str,
     build_s: f64,
@@ -194,7 +189,7 @@ fn row(
     format!(
         "| {threads} | {budget_mib} | {} | {} ({splits}) | {} / {} / {} | {most} / {mean:.2} | \
          {:.2} | {:.2} | {:.2} | {} | {:.2} | {:.2} | {digest} |  (build {build_s:.1} s)",
-        load.map_or("?".into(), |l| format!("{l:.1}")),
+        load.split_whitespace().next().unwrap_or("?"),
         sizes.len(),
         size(0),
         size(sizes.len() / 2),
@@ -208,16 +203,6 @@ fn row(
         secs(figures.ceiling(CEILING_THREADS)),
         secs(store),
     )
-}
-
-/// The one-minute load average.
-fn load_average() -> Option<f64> {
-    std::fs::read_to_string("/proc/loadavg")
-        .ok()?
-        .split_whitespace()
-        .next()?
-        .parse()
-        .ok()
 }
 
 /// A source read as another, without its fingerprint: its build keeps no journal.

@@ -7,6 +7,7 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use super::key::NodeKey;
+use super::thread_cpu::{thread_cpu, thread_cpu_since};
 
 /// One unit of the partitions stage.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -167,9 +168,7 @@ impl UnitTimer<'_> {
     pub fn serial<T>(&mut self, store: bool, step: impl FnOnce() -> T) -> T {
         let (cpu, wall) = (thread_cpu(), Instant::now());
         let out = step();
-        if let Some(spent) = cpu.zip(thread_cpu()).map(|(a, b)| b.saturating_sub(a)) {
-            self.serial += spent;
-        }
+        self.serial += thread_cpu_since(cpu);
         if store {
             self.store += wall.elapsed();
         }
@@ -177,10 +176,7 @@ impl UnitTimer<'_> {
     }
 
     pub fn end(self) {
-        let cpu = self
-            .cpu
-            .zip(thread_cpu())
-            .map_or(Duration::ZERO, |(a, b)| b.saturating_sub(a));
+        let cpu = thread_cpu_since(self.cpu);
         let span = PartitionSpan {
             key: self.key,
             points: self.points,
@@ -197,13 +193,6 @@ impl UnitTimer<'_> {
             .unwrap_or_else(|poisoned| poisoned.into_inner())
             .push(span);
     }
-}
-
-/// CPU time of the calling thread (Linux's scheduler statistics, in nanoseconds).
-fn thread_cpu() -> Option<Duration> {
-    let stat = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
-    let ns = stat.split_whitespace().next()?.parse::<u64>().ok()?;
-    Some(Duration::from_nanos(ns))
 }
 
 /// CPU time of the process, every thread, user and system (`/proc/self/stat`, in the
