@@ -36,11 +36,10 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use pointfarm_render::cut::{CutError, PAYLOAD_FILE};
-use pointfarm_render::ingest::DatasetSource;
+use pointfarm_render::ingest::{update_from_files, DatasetSource, FilesChange};
 use pointfarm_render::lod::compact::compact;
 use pointfarm_render::lod::layers::{link_layers, needs_compaction};
-use pointfarm_render::lod::update::update_within;
-use pointfarm_render::lod::{BuildProgress, LodError, LodStore, PointSource, StoreChange};
+use pointfarm_render::lod::{BuildProgress, LodStore, PointSource};
 use pointfarm_render::source::StoreInput;
 use pointfarm_render::write_whole::write_whole;
 
@@ -422,19 +421,12 @@ fn copy_and_update(
         .filter(|f| !had.contains(f.sha256.as_str()))
         .collect();
     let added_paths: Vec<PathBuf> = added.iter().map(|f| f.path.clone()).collect();
-    let source = match added_paths.is_empty() {
-        true => None,
-        false => Some(DatasetSource::open(&added_paths).map_err(|e| e.to_string())?),
-    };
     // The store's files that stay, by their place in its list, are the dataset's.
-    let reopen = |places: &[usize]| -> Result<Box<dyn PointSource>, LodError> {
-        let paths: Vec<PathBuf> = places
-            .iter()
-            .filter_map(|&i| earlier.get(i).and_then(|f| now.get(f.sha256.as_str())))
+    let kept = |i: usize| {
+        earlier
+            .get(i)
+            .and_then(|f| now.get(f.sha256.as_str()))
             .map(|f| f.path.clone())
-            .collect();
-        let source = DatasetSource::open(&paths).map_err(|e| LodError::Source(e.to_string()))?;
-        Ok(Box::new(source))
     };
     // The store's order after the update: its remaining files, then the added ones.
     let mut after: Vec<Listed> = earlier
@@ -443,13 +435,13 @@ fn copy_and_update(
         .cloned()
         .collect();
     after.extend(listed(&added)?);
-    let change = StoreChange {
-        added: source.as_ref().map(|s| s as &dyn PointSource),
+    let change = FilesChange {
+        added: &added_paths,
         removed: removed.clone(),
-        reopen: &reopen,
+        kept: &kept,
         files: after.iter().map(|f| f.sha256.clone()).collect(),
     };
-    let report = update_within(&store, &change, into.join("spill"), memory_budget)?;
+    let report = update_from_files(&store, change, into.join("spill"), memory_budget)?;
     let stored = store.read_hierarchy().map_err(|e| e.to_string())?;
     if stored.point_count != points || report.hierarchy.point_count != points {
         return Err(format!(

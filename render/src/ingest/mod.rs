@@ -28,6 +28,7 @@
 //!   summary of its points streamed; `crs.rs`: the CRS its records declare;
 //! - `source.rs`: a dataset's files as the level-of-detail builder's source, streamed;
 //!   `objects.rs`: its files as objects by URL, checked by range and streamed in blocks;
+//!   `store_update.rs`: a store updated from the files it gains, loses and keeps;
 //! - `write.rs`: writing clouds as LAS or LAZ;
 //! - `error.rs`: [`IngestError`].
 
@@ -49,6 +50,7 @@ mod raw_file;
 mod read;
 mod records;
 mod source;
+mod store_update;
 #[cfg(test)]
 mod test_files;
 mod transforms;
@@ -67,6 +69,7 @@ pub(crate) use preparse::{check_file_with, ChunkChecks};
 pub(crate) use ranged::RangedBytes;
 pub(crate) use raw_file::ReadSeek;
 pub use source::DatasetSource;
+pub use store_update::{update_from_files, FilesChange};
 
 /// The first four bytes of every LAS and LAZ file.
 pub const LAS_SIGNATURE: &[u8; 4] = b"LASF";

@@ -23,10 +23,9 @@
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
-use crate::ingest::DatasetSource;
+use crate::ingest::{update_from_files, DatasetSource, FilesChange};
 use crate::lod::source::files_fingerprint;
-use crate::lod::update::update_within;
-use crate::lod::{LodError, LodStore, LodUpdateReport, PointSource, StoreChange};
+use crate::lod::{LodStore, LodUpdateReport, PointSource};
 
 const FILE_LIST: &str = "files.txt";
 /// What `cut/stored.rs` names the parts of a store's folder.
@@ -201,20 +200,12 @@ pub fn update_earlier(
         ));
     }
     let added_paths: Vec<PathBuf> = added.iter().map(|(path, _)| path.clone()).collect();
-    let source = match added_paths.is_empty() {
-        true => None,
-        false => Some(DatasetSource::open(&added_paths).map_err(|e| e.to_string())?),
-    };
     // The store's files that stay, by their place in its list, are among `files`.
     let path_of: std::collections::HashMap<&ListedFile, &PathBuf> = now.iter().zip(files).collect();
-    let reopen = |places: &[usize]| -> Result<Box<dyn PointSource>, LodError> {
-        let paths: Vec<PathBuf> = places
-            .iter()
-            .filter_map(|&i| list.get(i).and_then(|f| path_of.get(f)))
+    let kept = |i: usize| {
+        list.get(i)
+            .and_then(|f| path_of.get(f))
             .map(|p| (*p).clone())
-            .collect();
-        let source = DatasetSource::open(&paths).map_err(|e| LodError::Source(e.to_string()))?;
-        Ok(Box::new(source))
     };
     // The store's order after the update: its remaining files, then the added ones.
     let after: Vec<ListedFile> = list
@@ -223,13 +214,13 @@ pub fn update_earlier(
         .chain(added.iter().map(|(_, f)| *f))
         .cloned()
         .collect();
-    let change = StoreChange {
-        added: source.as_ref().map(|s| s as &dyn PointSource),
+    let change = FilesChange {
+        added: &added_paths,
         removed: removed.clone(),
-        reopen: &reopen,
+        kept: &kept,
         files: after.iter().map(|f| f.identity.clone()).collect(),
     };
-    let report = update_within(&store, &change, folder.join("spill"), memory_budget)?;
+    let report = update_from_files(&store, change, folder.join("spill"), memory_budget)?;
     drop(store);
     drop(db);
     write_list(folder, &after)?;
