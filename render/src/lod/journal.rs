@@ -6,12 +6,18 @@
 //! read. `counted` holds the counting pass's grid and statistics, rewritten as the pass reaches
 //! each part of the source (a file) and once it ends. Both are written whole:
 //! to a temporary file, synced, renamed, the folder synced. `units.log` lists every finished
-//! unit in the order it finished, appended and synced one frame at a time, each frame its
-//! length and checksum first; a torn or damaged frame ends the log, is cut off and its unit
-//! (and any after it) is redone.
+//! unit in the order its output was written, each frame its length and checksum first; a torn
+//! or damaged frame ends the log, is cut off and its unit (and any after it) is redone.
+//!
+//! Units commit in groups. Under the journal's queue lock a unit only writes its output where
+//! the order matters (its payload region) and queues its frame with a sequence number; then one
+//! unit at a time leads a flush, which takes every queued frame, syncs the units' outputs once,
+//! appends the frames and syncs the log once, so a unit waits for one sync of each file shared
+//! with every unit queued beside it instead of a chain of syncs. A frame is never durable before
+//! the outputs it lists, and the log lists frames in the order of their payload regions.
 
 use std::fs::{self, File, OpenOptions};
-use std::io::{Read, Write};
+use std::io::{self, Read, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Mutex, MutexGuard};
@@ -97,18 +103,47 @@ pub struct Replay {
 
 pub struct BuildJournal {
     dir: PathBuf,
-    /// The open log; `None` for a build that does not resume (its source has no fingerprint).
-    log: Mutex<Option<File>>,
+    /// The frames queued in order; its lock orders the units' outputs.
+    queue: Mutex<Queue>,
+    /// The open log, held by the unit leading a flush; `None` for a build that does not
+    /// resume (its source has no fingerprint).
+    log: Mutex<Flushed>,
     /// Whether `log` is open: read without its lock by units that sync their outputs.
     enabled: AtomicBool,
     committed: [AtomicU64; 3],
 }
 
-/// The journal held while a unit's nodes are written and recorded: units finish one at a
-/// time, so the payload file grows in the order the log lists them.
+/// Frames recorded and not yet in the log.
+#[derive(Default)]
+struct Queue {
+    frames: Vec<u8>,
+    /// The sequence number of the last frame queued.
+    last: u64,
+}
+
+/// The log and how far it is durable.
+#[derive(Default)]
+struct Flushed {
+    file: Option<File>,
+    /// The sequence number of the last frame synced in the log.
+    durable: u64,
+    /// Set once a flush failed: the frames it took are lost, so no later unit is durable.
+    failed: bool,
+}
+
+/// The journal held while a unit's output is written and its frame queued: the payload file
+/// grows in the order the log lists the units.
 pub struct Commit<'j> {
     journal: &'j BuildJournal,
-    log: MutexGuard<'j, Option<File>>,
+    queue: MutexGuard<'j, Queue>,
+}
+
+/// A unit's frame queued in the journal, durable once [`Queued::wait`] returns.
+#[must_use = "a queued unit is durable only once it is waited for"]
+pub struct Queued<'j> {
+    journal: &'j BuildJournal,
+    /// The frame's sequence number; `None` when the journal is off.
+    sequence: Option<u64>,
 }
 
 impl BuildJournal {
@@ -116,7 +151,8 @@ impl BuildJournal {
     pub fn disabled(dir: &Path) -> Self {
         Self {
             dir: dir.to_path_buf(),
-            log: Mutex::new(None),
+            queue: Mutex::default(),
+            log: Mutex::default(),
             enabled: AtomicBool::new(false),
             committed: Default::default(),
         }
@@ -133,7 +169,7 @@ impl BuildJournal {
         let journal = Self::disabled(dir);
         match replay {
             Some(replay) => {
-                *journal.lock_log() = Some(open_log(dir)?);
+                journal.lock_log().file = Some(open_log(dir)?);
                 journal.enabled.store(true, Ordering::Relaxed);
                 Ok((journal, Some(replay)))
             }
@@ -147,7 +183,8 @@ impl BuildJournal {
     /// Empties the folder and records `inputs`: nothing an earlier run wrote is used.
     pub fn start_over(&self, inputs: &str) -> Result<(), LodError> {
         let mut log = self.lock_log();
-        *log = None;
+        *log = Flushed::default();
+        *lock(&self.queue) = Queue::default();
         self.enabled.store(false, Ordering::Relaxed);
         match fs::remove_dir_all(&self.dir) {
             Ok(()) => {}
@@ -156,7 +193,7 @@ impl BuildJournal {
         }
         fs::create_dir_all(&self.dir).map_err(|e| LodError::spill(&self.dir, e))?;
         write_atomically(&self.dir, INPUTS_FILE, inputs.as_bytes())?;
-        *log = Some(open_log(&self.dir)?);
+        log.file = Some(open_log(&self.dir)?);
         self.enabled.store(true, Ordering::Relaxed);
         Ok(())
     }
@@ -183,11 +220,12 @@ impl BuildJournal {
         write_atomically(&self.dir, COUNTED_FILE, &bytes)
     }
 
-    /// Takes the journal for one unit's commit.
+    /// Takes the journal for one unit's commit: the unit's ordered output is written while it
+    /// is held.
     pub fn commit(&self) -> Commit<'_> {
         Commit {
             journal: self,
-            log: self.lock_log(),
+            queue: lock(&self.queue),
         }
     }
 
@@ -196,35 +234,91 @@ impl BuildJournal {
         self.committed[kind as usize - 1].load(Ordering::Relaxed)
     }
 
-    fn lock_log(&self) -> MutexGuard<'_, Option<File>> {
-        self.log
-            .lock()
-            .unwrap_or_else(|poisoned| poisoned.into_inner())
+    fn lock_log(&self) -> MutexGuard<'_, Flushed> {
+        lock(&self.log)
+    }
+
+    /// Returns once the log's synced frames reach `sequence`, leading a flush when they do
+    /// not: every frame queued is taken, `sync_outputs` makes what they list durable, then
+    /// they are appended to the log and synced.
+    fn flush_to(
+        &self,
+        sequence: u64,
+        sync_outputs: impl FnOnce() -> Result<(), LodError>,
+    ) -> Result<(), LodError> {
+        let mut log = self.lock_log();
+        if log.durable >= sequence {
+            return Ok(());
+        }
+        let path = self.dir.join(UNITS_FILE);
+        if log.failed {
+            let error = io::Error::other("an earlier write of the build journal failed");
+            return Err(LodError::spill(path, error));
+        }
+        let (frames, last) = {
+            let mut queue = lock(&self.queue);
+            (std::mem::take(&mut queue.frames), queue.last)
+        };
+        log.failed = true;
+        sync_outputs()?;
+        let Some(file) = log.file.as_mut() else {
+            let error = io::Error::other("the build journal is closed");
+            return Err(LodError::spill(path, error));
+        };
+        file.write_all(&frames)
+            .and_then(|()| file.sync_data())
+            .map_err(|e| LodError::spill(path, e))?;
+        log.failed = false;
+        log.durable = last;
+        Ok(())
     }
 }
 
-impl Commit<'_> {
-    /// Appends `unit` to the log and syncs it; what it lists must already be on disk.
-    pub fn record(&mut self, unit: &UnitRecord) -> Result<(), LodError> {
-        self.journal.committed[unit.kind as usize - 1].fetch_add(1, Ordering::Relaxed);
-        let Some(log) = self.log.as_mut() else {
-            return Ok(());
-        };
-        let body = encode_unit(unit);
-        let mut frame = Vec::with_capacity(FRAME_HEAD + body.len());
-        frame.extend_from_slice(&(body.len() as u32).to_le_bytes());
-        frame.extend_from_slice(&checksum64(FRAME_SEED, &body).to_le_bytes());
-        frame.extend_from_slice(&body);
-        let path = self.journal.dir.join(UNITS_FILE);
-        log.write_all(&frame)
-            .and_then(|()| log.sync_data())
-            .map_err(|e| LodError::spill(path, e))
-    }
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    mutex
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+}
 
-    /// Whether the build resumes: only then is each unit's output synced before it is
-    /// recorded.
-    pub fn is_enabled(&self) -> bool {
-        self.log.is_some()
+impl<'j> Commit<'j> {
+    /// Queues `unit`'s frame after every frame queued before, and lets the next unit commit;
+    /// what the unit lists must already be written, and its own files other than the payload
+    /// synced.
+    pub fn record(mut self, unit: &UnitRecord) -> Result<Queued<'j>, LodError> {
+        let journal = self.journal;
+        journal.committed[unit.kind as usize - 1].fetch_add(1, Ordering::Relaxed);
+        if !journal.is_enabled() {
+            return Ok(Queued {
+                journal,
+                sequence: None,
+            });
+        }
+        let body = encode_unit(unit);
+        let queue = &mut *self.queue;
+        queue
+            .frames
+            .extend_from_slice(&(body.len() as u32).to_le_bytes());
+        queue
+            .frames
+            .extend_from_slice(&checksum64(FRAME_SEED, &body).to_le_bytes());
+        queue.frames.extend_from_slice(&body);
+        queue.last += 1;
+        Ok(Queued {
+            journal,
+            sequence: Some(queue.last),
+        })
+    }
+}
+
+impl Queued<'_> {
+    /// Returns once the unit's frame is synced in the log. `sync_outputs` syncs the payload
+    /// file, and is called only when this unit leads a flush; nothing is synced with the
+    /// journal off.
+    pub fn wait(self, sync_outputs: impl FnOnce() -> Result<(), LodError>) -> Result<(), LodError> {
+        match self.sequence {
+            Some(sequence) => self.journal.flush_to(sequence, sync_outputs),
+            None => Ok(()),
+        }
     }
 }
 

@@ -47,8 +47,14 @@ fn recorded(dir: &Path, inputs: &str, units: u32) {
     assert!(replay.is_none(), "a fresh folder has nothing to resume");
     journal.record_counted(&counted()).expect("counted");
     for n in 0..units {
-        journal.commit().record(&unit(n)).expect("record");
+        commit_unit(&journal, n);
     }
+}
+
+/// Queues unit `n` and waits until it is durable, with nothing else to sync.
+fn commit_unit(journal: &BuildJournal, n: u32) {
+    let queued = journal.commit().record(&unit(n)).expect("record");
+    queued.wait(|| Ok(())).expect("durable");
 }
 
 fn log_len(dir: &Path) -> u64 {
@@ -65,7 +71,7 @@ fn a_journal_of_the_same_inputs_replays_every_unit() {
     assert_eq!(replay.counted, counted());
     assert_eq!(replay.units, (0..3).map(unit).collect::<Vec<_>>());
     // Units recorded after a resume follow the replayed ones.
-    journal.commit().record(&unit(3)).expect("record");
+    commit_unit(&journal, 3);
     drop(journal);
     let (_, replay) = BuildJournal::open(&dir, "inputs a").expect("reopen");
     assert_eq!(replay.expect("resumed").units.len(), 4);
@@ -163,11 +169,100 @@ fn a_damaged_counting_record_starts_over() {
 fn a_disabled_journal_writes_nothing() {
     let dir = tempfile::tempdir().expect("tempdir");
     let journal = BuildJournal::disabled(dir.path());
-    let mut commit = journal.commit();
-    assert!(!commit.is_enabled());
-    commit.record(&unit(0)).expect("record");
-    drop(commit);
+    assert!(!journal.is_enabled());
+    let commit = journal.commit();
+    let queued = commit.record(&unit(0)).expect("record");
+    queued
+        .wait(|| panic!("a disabled journal syncs nothing"))
+        .expect("durable");
     journal.record_counted(&counted()).expect("counted");
     assert_eq!(journal.committed(UnitKind::Partition), 1);
     assert_eq!(fs::read_dir(dir.path()).expect("dir").count(), 0);
+}
+
+#[test]
+fn one_flush_makes_every_queued_unit_durable_in_order() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = dir.path().join("build");
+    let (journal, _) = BuildJournal::open(&dir, "inputs").expect("open");
+    journal.record_counted(&counted()).expect("counted");
+    let queued: Vec<_> = (0..3)
+        .map(|n| journal.commit().record(&unit(n)).expect("record"))
+        .collect();
+    assert_eq!(log_len(&dir), 0, "nothing reaches the log before a flush");
+    let mut syncs = 0;
+    for q in queued.into_iter().rev() {
+        q.wait(|| {
+            syncs += 1;
+            Ok(())
+        })
+        .expect("durable");
+    }
+    assert_eq!(syncs, 1, "the last unit's flush covers the two before it");
+    drop(journal);
+    let (_, replay) = BuildJournal::open(&dir, "inputs").expect("reopen");
+    assert_eq!(
+        replay.expect("resumed").units,
+        (0..3).map(unit).collect::<Vec<_>>()
+    );
+}
+
+#[test]
+fn no_frame_reaches_the_log_when_its_outputs_fail_to_sync() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = dir.path().join("build");
+    let (journal, _) = BuildJournal::open(&dir, "inputs").expect("open");
+    journal.record_counted(&counted()).expect("counted");
+    let first = journal.commit().record(&unit(0)).expect("record");
+    let second = journal.commit().record(&unit(1)).expect("record");
+    let failed = first.wait(|| {
+        Err(LodError::spill(
+            &dir,
+            std::io::Error::other("the disk is gone"),
+        ))
+    });
+    assert!(failed.is_err());
+    assert!(
+        second.wait(|| Ok(())).is_err(),
+        "its frame was taken by the flush that failed"
+    );
+    assert_eq!(log_len(&dir), 0);
+}
+
+#[test]
+fn units_committed_from_many_threads_are_all_replayed() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let dir = dir.path().join("build");
+    let (journal, _) = BuildJournal::open(&dir, "inputs").expect("open");
+    journal.record_counted(&counted()).expect("counted");
+    let syncs = AtomicU64::new(0);
+    std::thread::scope(|scope| {
+        for t in 0..4 {
+            let (journal, syncs) = (&journal, &syncs);
+            scope.spawn(move || {
+                for n in 0..8 {
+                    let queued = journal.commit().record(&unit(t * 8 + n)).expect("record");
+                    queued
+                        .wait(|| {
+                            syncs.fetch_add(1, Ordering::Relaxed);
+                            Ok(())
+                        })
+                        .expect("durable");
+                }
+            });
+        }
+    });
+    assert!(syncs.load(Ordering::Relaxed) <= 32);
+    drop(journal);
+    let (_, replay) = BuildJournal::open(&dir, "inputs").expect("reopen");
+    let mut keys: Vec<_> = replay
+        .expect("resumed")
+        .units
+        .iter()
+        .map(|u| u.key)
+        .collect();
+    keys.sort_unstable_by_key(|k| (k.level, k.morton()));
+    let mut wanted: Vec<_> = (0..32).map(|n| unit(n).key).collect();
+    wanted.sort_unstable_by_key(|k| (k.level, k.morton()));
+    assert_eq!(keys, wanted);
 }

@@ -367,14 +367,14 @@ fn split_partition(
             partition.count
         )));
     }
-    let mut commit = ctx.journal.commit();
-    if commit.is_enabled() {
+    if ctx.journal.is_enabled() {
         let written: Vec<PathBuf> = paths.iter().filter(|p| p.exists()).cloned().collect();
         spill::sync_files(&written)?;
         sync_dir(ctx.spill.path())?;
     }
+    let commit = ctx.journal.commit();
     pause::at("split", ctx.journal.committed(UnitKind::Split));
-    commit.record(&UnitRecord {
+    let queued = commit.record(&UnitRecord {
         kind: UnitKind::Split,
         key: partition.key,
         payload_end: 0,
@@ -382,7 +382,7 @@ fn split_partition(
         children: counts,
         nodes: Vec::new(),
     })?;
-    drop(commit);
+    ctx.sink.durable(queued)?;
     // Removed once the split is recorded: a build stopped before then splits it again.
     remove_all(files)?;
     Ok(split_children(partition.key, counts, |key| {

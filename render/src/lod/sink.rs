@@ -16,7 +16,7 @@ use super::attributes::{encode_section, AttributeRows};
 use super::codec::{coarse_len, encode_node};
 use super::error::LodError;
 use super::hierarchy::NodeInfo;
-use super::journal::{BuildJournal, UnitKind, UnitRecord, WaitingRoot};
+use super::journal::{BuildJournal, Queued, UnitKind, UnitRecord, WaitingRoot};
 use super::key::{NodeKey, RootCube};
 use super::pause;
 use super::point::RawPoint;
@@ -126,8 +126,10 @@ impl<'a> NodeSink<'a> {
 
     /// Stores `region`, the nodes of the unit `done`, as one contiguous range of the payload
     /// file (the module's layout), records the unit in the journal and lists its nodes. Units
-    /// are stored one at a time, so the payload file holds the units in the journal's order
-    /// and nothing else but the unit being stored; a resumed build cuts that off.
+    /// write their regions one at a time and queue their frames in the same order, then wait
+    /// for a flush of the journal shared with the units queued beside them, so the payload
+    /// file holds the units in the journal's order and, past the last one recorded, only
+    /// units still waiting; a resumed build cuts those off.
     ///
     /// `kept_roots`, the store's regions' subtree roots as they were before the levels above
     /// sampled from them, are stored after the region, each in one piece, and not listed: a
@@ -154,7 +156,7 @@ impl<'a> NodeSink<'a> {
             .chain(attributes)
             .chain(root_pieces)
             .collect();
-        let mut commit = self.journal.commit();
+        let commit = self.journal.commit();
         let mut at = self.store.write_region(&pieces)?;
         let mut infos: Vec<NodeInfo> = region.iter().map(|n| n.info).collect();
         for info in infos.iter_mut().filter(|n| n.byte_len > 0) {
@@ -182,10 +184,7 @@ impl<'a> NodeSink<'a> {
             })
             .collect();
         pause::at(done.kind.stage(), self.journal.committed(done.kind));
-        if commit.is_enabled() {
-            self.store.sync_payload()?;
-        }
-        commit.record(&UnitRecord {
+        let queued = commit.record(&UnitRecord {
             kind: done.kind,
             key: done.key,
             payload_end: at,
@@ -193,12 +192,18 @@ impl<'a> NodeSink<'a> {
             children: [0; 8],
             nodes: infos.clone(),
         })?;
-        drop(commit);
+        self.durable(queued)?;
         self.list(infos);
         for root in &kept_roots {
             self.bytes.fetch_add(root.stored_bytes(), Ordering::Relaxed);
         }
         Ok(kept_roots)
+    }
+
+    /// Returns once `queued` is durable in the journal, syncing the payload file first where
+    /// this unit leads the journal's flush.
+    pub fn durable(&self, queued: Queued<'_>) -> Result<(), LodError> {
+        queued.wait(|| self.store.sync_payload())
     }
 
     /// Lists nodes whose records are in the payload file: stored now, or by the run of the
