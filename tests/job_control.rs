@@ -333,12 +333,17 @@ async fn deleted_jobs_go_with_their_frames_and_fail_the_jobs_after_them() {
     watch_to_success(&mut jobs, &done.id, String::new).await;
     let frames = daemon.data_dir.path().join("jobs").join(&done.id);
     assert!(frames.join("frame_00001.png").exists());
-    let held = submit(&mut jobs, turntable_job("held", &dataset.id, 2, 32, 24)).await;
-    jobs.pause_job(pb::PauseJobRequest {
-        id: held.id.clone(),
-    })
-    .await
-    .expect("pause");
+    // Frames leased before the pause still finish, and a job whose last frame does ends: enough
+    // frames that the worker cannot render them all before the pause lands.
+    let held = submit(&mut jobs, turntable_job("held", &dataset.id, 60, 32, 24)).await;
+    let paused = jobs
+        .pause_job(pb::PauseJobRequest {
+            id: held.id.clone(),
+        })
+        .await
+        .expect("pause")
+        .into_inner();
+    assert_eq!(paused.state, pb::JobState::Paused as i32);
     let after = pb::SubmitJobRequest {
         after_job_ids: vec![done.id.clone(), held.id.clone()],
         ..turntable_job("after", &dataset.id, 2, 32, 24)
