@@ -402,7 +402,8 @@ async fn the_retention_sweep_removes_jobs_that_ended_long_enough_ago() {
         turntable_job("kept-a-second", &dataset.id, 2, 32, 24),
     )
     .await;
-    let held = submit(&mut jobs, turntable_job("held", &dataset.id, 1, 32, 24)).await;
+    // Enough frames that those leased before the pause cannot end it.
+    let held = submit(&mut jobs, turntable_job("held", &dataset.id, 60, 32, 24)).await;
     jobs.pause_job(pb::PauseJobRequest {
         id: held.id.clone(),
     })
