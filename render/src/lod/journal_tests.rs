@@ -42,13 +42,14 @@ fn unit(n: u32) -> UnitRecord {
 }
 
 /// A journal with the counting pass and `units` units recorded, as a killed build leaves it.
-fn recorded(dir: &Path, inputs: &str, units: u32) {
+fn recorded(dir: &Path, inputs: &str, units: u32) -> BuildJournal {
     let (journal, replay) = BuildJournal::open(dir, inputs).expect("open");
     assert!(replay.is_none(), "a fresh folder has nothing to resume");
     journal.record_counted(&counted()).expect("counted");
     for n in 0..units {
         commit_unit(&journal, n);
     }
+    journal
 }
 
 /// Queues unit `n` and waits until it is durable, with nothing else to sync.
@@ -184,8 +185,7 @@ fn a_disabled_journal_writes_nothing() {
 fn one_flush_makes_every_queued_unit_durable_in_order() {
     let dir = tempfile::tempdir().expect("tempdir");
     let dir = dir.path().join("build");
-    let (journal, _) = BuildJournal::open(&dir, "inputs").expect("open");
-    journal.record_counted(&counted()).expect("counted");
+    let journal = recorded(&dir, "inputs", 0);
     let queued: Vec<_> = (0..3)
         .map(|n| journal.commit().record(&unit(n)).expect("record"))
         .collect();
@@ -211,8 +211,7 @@ fn one_flush_makes_every_queued_unit_durable_in_order() {
 fn no_frame_reaches_the_log_when_its_outputs_fail_to_sync() {
     let dir = tempfile::tempdir().expect("tempdir");
     let dir = dir.path().join("build");
-    let (journal, _) = BuildJournal::open(&dir, "inputs").expect("open");
-    journal.record_counted(&counted()).expect("counted");
+    let journal = recorded(&dir, "inputs", 0);
     let first = journal.commit().record(&unit(0)).expect("record");
     let second = journal.commit().record(&unit(1)).expect("record");
     let failed = first.wait(|| {
@@ -233,8 +232,7 @@ fn no_frame_reaches_the_log_when_its_outputs_fail_to_sync() {
 fn units_committed_from_many_threads_are_all_replayed() {
     let dir = tempfile::tempdir().expect("tempdir");
     let dir = dir.path().join("build");
-    let (journal, _) = BuildJournal::open(&dir, "inputs").expect("open");
-    journal.record_counted(&counted()).expect("counted");
+    let journal = recorded(&dir, "inputs", 0);
     let syncs = AtomicU64::new(0);
     std::thread::scope(|scope| {
         for t in 0..4 {
