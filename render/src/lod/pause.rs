@@ -1,12 +1,13 @@
-//! The build's test hook: with `POINTFARM_TEST_PAUSE_AT=STAGE:N` in its environment, a build
-//! stops for good at that point, after saying so on stderr (`build paused at STAGE:N`), so
-//! that a test can kill the process there (tests/build_resume.rs). Stages: `counting:N` as
-//! the counting pass takes the source's batch N; `checkpoint:N` once it has recorded its
-//! checkpoint N (at the start of a file after the first); `partition:N`, `split:N` and `parent:N` as
-//! the unit after the N this run finished of that kind has written its output but is not yet
-//! recorded; `hierarchy:0` once every unit is recorded, before the hierarchy is written;
-//! `update:0` once a store update has stored its nodes, before it switches to them. Read
-//! once, by the build alone; a build without the variable never stops.
+//! The build's test hook: with `POINTFARM_TEST_PAUSE_AT=STAGE:N` in its environment, a build stops
+//! for good at that point, after saying so on stderr (`build paused at STAGE:N`), so that a test
+//! can kill the process there (tests/build_resume.rs). Stages: `counting:N` as the counting pass
+//! takes the source's batch N; `checkpoint:N` once it has recorded its checkpoint N (at the start
+//! of a file after the first); `partition:N`, `split:N` and `parent:N` as the unit after the N this
+//! run queued of that kind has written its output but not queued its record (records are synced a
+//! group at a time, so only on a pool of one thread are those N durable); `hierarchy:0` once every
+//! unit is recorded, before the hierarchy is written; `update:0` once a store update has stored its
+//! nodes, before it switches to them. Read once, by the build alone; a build without the variable
+//! never stops.
 
 use std::io::Write;
 use std::sync::OnceLock;
