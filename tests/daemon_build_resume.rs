@@ -6,6 +6,7 @@
 //! uninterrupted daemon's node for node, and its job ends with the same frames.
 
 use std::path::Path;
+use std::process::Command;
 use std::time::Duration;
 
 use pointfarm_proto::v1 as pb;
@@ -15,9 +16,9 @@ use pointfarm_tests::service::{
     clients, fetch_images, lod_turntable_job, submit, watch_to_success, write_sample,
 };
 use pointfarm_tests::stores::{
-    assert_same_nodes, count_after, serve_pausing_at, store_folder, store_nodes,
+    assert_same_nodes, count_after, serve_command_pausing_at, store_folder, store_nodes,
 };
-use pointfarm_tests::{free_address, wait_for, ServeProcess, WorkerProcess};
+use pointfarm_tests::{free_address, pointfarm_bin, wait_for, ServeProcess, WorkerProcess};
 
 /// Points of the dataset: enough for several partitions on two cores.
 const POINTS: usize = 400_000;
@@ -35,7 +36,17 @@ fn serve(address: &str, data: &Path, root: &str, pause_at: Option<&str>) -> Serv
         "--store-memory-budget",
         MEMORY_BUDGET,
     ];
-    serve_pausing_at(address, (data, &data.join("serve.log")), &args, pause_at)
+    // One build thread: each unit is durable before the next starts, so a kill at the pause
+    // leaves exactly the units before it recorded (units queued together are synced together).
+    let mut command = Command::new(pointfarm_bin());
+    command.env("RAYON_NUM_THREADS", "1");
+    serve_command_pausing_at(
+        command,
+        address,
+        (data, &data.join("serve.log")),
+        &args,
+        pause_at,
+    )
 }
 
 /// A turntable from levels of detail: the dataset needs the daemon's store.

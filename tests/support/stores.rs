@@ -137,7 +137,23 @@ pub fn serve_pausing_at(
     args: &[&str],
     pause_at: Option<&str>,
 ) -> ServeProcess {
-    let mut command = Command::new(pointfarm_bin());
+    serve_command_pausing_at(
+        Command::new(pointfarm_bin()),
+        address,
+        (data, log),
+        args,
+        pause_at,
+    )
+}
+
+/// [`serve_pausing_at`] running `command`, a `pointfarm` command with its own environment.
+pub fn serve_command_pausing_at(
+    mut command: Command,
+    address: &str,
+    (data, log): (&Path, &Path),
+    args: &[&str],
+    pause_at: Option<&str>,
+) -> ServeProcess {
     match pause_at {
         Some(stage) => command.env("POINTFARM_TEST_PAUSE_AT", stage),
         None => command.env_remove("POINTFARM_TEST_PAUSE_AT"),
