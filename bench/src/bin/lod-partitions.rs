@@ -1,7 +1,8 @@
 //! The partitions stage's parallelism: a campaign's store built from LAZ at each of several
 //! memory budgets and pool sizes, one row a build: how many partitions and how large, how
 //! many were in memory at once (most and time-weighted mean), the largest one's CPU, the
-//! stage's wall and CPU time and the least wall time its units' CPU allows on 16 threads. A
+//! stage's wall and CPU time (the kernel's part of it, and the pages first touched: minor
+//! faults) and the least wall time its units' CPU allows on 16 threads. A
 //! pool larger than the host's cores shows what the memory meter admits at once for that many
 //! threads, the cores oversubscribed. The tiles are written once into `--tiles` and kept, so
 //! that two binaries can be run alternately on the same files; the store digest compares
@@ -104,9 +105,9 @@ fn measure(args: &Args) -> Result<(), String> {
     println!(
         "| threads | budget MiB | load | partitions (split) | points min / median / max | \
          in flight most / mean | largest CPU s | units CPU s | stage wall s | stage CPU s | \
-         ceiling on {CEILING_THREADS} s | store s | digest |"
+         stage sys s | stage faults | ceiling on {CEILING_THREADS} s | store s | digest |"
     );
-    println!("|---:|---:|---:|---|---|---|---:|---:|---:|---:|---:|---:|---|");
+    println!("|---:|---:|---:|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|");
     for &threads in &args.threads {
         for &budget in &args.budgets_mib {
             let load = load();
@@ -188,7 +189,7 @@ fn row(
     let store: Duration = figures.spans.iter().map(|s| s.store).sum();
     format!(
         "| {threads} | {budget_mib} | {} | {} ({splits}) | {} / {} / {} | {most} / {mean:.2} | \
-         {:.2} | {:.2} | {:.2} | {} | {:.2} | {:.2} | {digest} |  (build {build_s:.1} s)",
+         {:.2} | {:.2} | {:.2} | {} | {} | {} | {:.2} | {:.2} | {digest} |  (build {build_s:.1} s)",
         load.split_whitespace().next().unwrap_or("?"),
         sizes.len(),
         size(0),
@@ -200,6 +201,12 @@ fn row(
         figures
             .process_cpu
             .map_or("?".into(), |c| format!("{:.2}", secs(c))),
+        figures
+            .process_system_cpu
+            .map_or("?".into(), |c| format!("{:.2}", secs(c))),
+        figures
+            .process_minor_faults
+            .map_or("?".into(), |f| f.to_string()),
         secs(figures.ceiling(CEILING_THREADS)),
         secs(store),
     )

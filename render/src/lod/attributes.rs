@@ -279,10 +279,18 @@ pub struct AttributeRows {
 
 impl AttributeRows {
     pub fn new(row_bytes: usize) -> Self {
-        Self {
-            row_bytes,
-            bytes: Vec::new(),
-        }
+        Self::in_buffer(row_bytes, Vec::new())
+    }
+
+    /// No rows, held in `bytes` (emptied), whose room is reused.
+    pub fn in_buffer(row_bytes: usize, mut bytes: Vec<u8>) -> Self {
+        bytes.clear();
+        Self { row_bytes, bytes }
+    }
+
+    /// The buffer the rows were held in, for another set of rows to reuse.
+    pub fn into_buffer(self) -> Vec<u8> {
+        self.bytes
     }
 
     /// Room for `rows` more rows.

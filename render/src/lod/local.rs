@@ -20,7 +20,7 @@ use rayon::prelude::*;
 use super::attributes::AttributeRows;
 use super::error::LodError;
 use super::key::{NodeKey, RootCube, MAX_LEVEL};
-use super::morton::MortonOrder;
+use super::morton::{MortonOrder, OrderBuffers};
 use super::point::RawPoint;
 use super::sampling::sample;
 use super::sink::{EncodedNode, NodeSink};
@@ -129,16 +129,32 @@ type ChildWork<'e, 'r> = (usize, &'e [(u64, u32)], usize, Runs<'r>);
 impl LocalBuilder<'_> {
     /// The first step of building `key`'s subtree of `points`, on one thread: the points in
     /// their order below `key`, cut into the runs the recursion does not split.
-    pub fn prepare(&self, key: NodeKey, points: Vec<RawPoint>) -> Prepared {
+    pub fn prepare(&self, key: NodeKey, mut points: Vec<RawPoint>) -> Prepared {
+        let mut order = OrderBuffers::default();
+        self.prepare_in(key, &mut points, &mut order, &mut Vec::new())
+    }
+
+    /// [`Self::prepare`] of `points` the caller keeps (a buffer it reuses: a leaf's points are
+    /// taken out of it, another's copied to their runs), the order built in `order` and each
+    /// point's run noted in `run_of`, buffers whose room is reused too.
+    pub fn prepare_in(
+        &self,
+        key: NodeKey,
+        points: &mut Vec<RawPoint>,
+        order: &mut OrderBuffers,
+        run_of: &mut Vec<u32>,
+    ) -> Prepared {
         if self.is_leaf(key, points.len()) {
-            return Prepared::Leaf(points);
+            return Prepared::Leaf(std::mem::take(points));
         }
         let levels = ORDER_LEVELS.min(MAX_LEVEL - key.level);
-        let order = MortonOrder::below(&self.cube, key, &points, levels);
-        let (runs, starts) = self.unsplit_runs(&order, key, points);
+        let buffers = std::mem::take(order);
+        let (morton, sorted) = MortonOrder::below_in(&self.cube, key, points, levels, buffers);
+        order.sorted = sorted;
+        let (runs, starts) = self.unsplit_runs(&morton, key, points, run_of);
         Prepared::Ordered {
             key,
-            order,
+            order: morton,
             runs,
             starts,
         }
@@ -148,18 +164,19 @@ impl LocalBuilder<'_> {
     /// is kept there as it was before the subtree's root sampled from it (a partition's
     /// children are the store's regions: a quarter of a partition on a surface is what an
     /// update builds again).
+    /// Also returns the order, where there was one, for its buffer to be reused.
     pub fn build_prepared(
         &self,
         prepared: Prepared,
         region: &mut Vec<EncodedNode>,
         kept: Option<&mut Vec<KeptRoot>>,
-    ) -> Result<SubtreeRoot, LodError> {
-        let built = self.build_ordered(prepared, kept.is_some())?;
+    ) -> Result<(SubtreeRoot, Option<MortonOrder>), LodError> {
+        let (built, order) = self.build_ordered(prepared, kept.is_some())?;
         region.extend(built.region);
         if let Some(kept) = kept {
             kept.extend(built.kept);
         }
-        Ok(built.root)
+        Ok((built.root, order))
     }
 
     fn build_subtree(
@@ -169,19 +186,26 @@ impl LocalBuilder<'_> {
         keep: bool,
     ) -> Result<Built, LodError> {
         self.build_ordered(self.prepare(key, points), keep)
+            .map(|(built, _)| built)
     }
 
-    fn build_ordered(&self, prepared: Prepared, keep: bool) -> Result<Built, LodError> {
+    /// The subtree built, and its order where it had one.
+    fn build_ordered(
+        &self,
+        prepared: Prepared,
+        keep: bool,
+    ) -> Result<(Built, Option<MortonOrder>), LodError> {
         let (key, order, mut runs, starts) = match prepared {
             Prepared::Leaf(points) => {
-                return Ok(Built {
+                let built = Built {
                     root: SubtreeRoot {
                         points,
                         sample_grid: 0,
                     },
                     region: Vec::new(),
                     kept: Vec::new(),
-                })
+                };
+                return Ok((built, None));
             }
             Prepared::Ordered {
                 key,
@@ -198,7 +222,8 @@ impl LocalBuilder<'_> {
             points: &mut runs,
             starts: &starts,
         };
-        self.build_run(&ordered, runs, key, order.entries(), 0, keep)
+        let built = self.build_run(&ordered, runs, key, order.entries(), 0, keep)?;
+        Ok((built, Some(order)))
     }
 
     fn is_leaf(&self, key: NodeKey, points: usize) -> bool {
@@ -221,15 +246,25 @@ impl LocalBuilder<'_> {
     /// the order it meets them, each with its points in the order they came, and where each
     /// starts among the order's entries: one pass over `points` in that order appending each
     /// to its run, instead of a sort of each run's indices and a copy in scattered order.
+    /// `run_of` holds each point's run meanwhile: a buffer reused, every point's entry written
+    /// before it is read, so it is not zeroed first.
     fn unsplit_runs(
         &self,
         order: &MortonOrder,
         key: NodeKey,
-        points: Vec<RawPoint>,
+        points: &[RawPoint],
+        run_of: &mut Vec<u32>,
     ) -> (Vec<Vec<RawPoint>>, Vec<usize>) {
         let mut runs: Vec<(usize, &[(u64, u32)])> = Vec::new();
         self.find_unsplit(order, key, order.entries(), 0, 0, &mut runs);
-        let mut run_of = vec![0u32; points.len()];
+        let n = points.len();
+        if run_of.len() < n {
+            run_of.reserve_exact(n - run_of.len());
+            run_of.resize(n, 0);
+        }
+        let run_of = &mut run_of[..n];
+        // The runs cover the order, whose entries are every point once.
+        debug_assert_eq!(runs.iter().map(|(_, r)| r.len()).sum::<usize>(), n);
         for (r, (_, run)) in runs.iter().enumerate() {
             for &(_, i) in *run {
                 run_of[i as usize] = r as u32;
@@ -239,7 +274,7 @@ impl LocalBuilder<'_> {
             .iter()
             .map(|(_, r)| Vec::with_capacity(r.len()))
             .collect();
-        for (p, &r) in points.iter().zip(&run_of) {
+        for (p, &r) in points.iter().zip(run_of.iter()) {
             out[r as usize].push(*p);
         }
         (out, runs.iter().map(|&(start, _)| start).collect())

@@ -159,6 +159,23 @@ impl Reservation<'_> {
     pub fn bytes(&self) -> u64 {
         self.bytes
     }
+
+    /// Takes `other`'s bytes into this reservation, held until this one is dropped.
+    pub fn absorb(&mut self, mut other: Reservation<'_>) {
+        debug_assert!(std::ptr::eq(self.meter, other.meter));
+        self.bytes += std::mem::take(&mut other.bytes);
+    }
+
+    /// Releases what this reservation holds beyond `bytes`.
+    pub fn shrink_to(&mut self, bytes: u64) {
+        if bytes >= self.bytes {
+            return;
+        }
+        let released = self.bytes - bytes;
+        self.bytes = bytes;
+        self.meter.lock().used -= released;
+        self.meter.freed.notify_all();
+    }
 }
 
 impl Drop for Reservation<'_> {

@@ -85,6 +85,7 @@ pub mod regions;
 mod removal;
 mod resume;
 pub mod sampling;
+mod scratch;
 mod sink;
 pub mod source;
 mod spill;

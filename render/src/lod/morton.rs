@@ -16,6 +16,13 @@ const DIGIT_BITS: u32 = 8;
 /// Below this many entries a comparison sort is quicker than the radix sort's passes.
 const RADIX_MIN_ENTRIES: usize = 1024;
 
+/// The buffers an order is built in, kept between orders so that their room is reused.
+#[derive(Default)]
+pub struct OrderBuffers {
+    pub entries: Vec<(u64, u32)>,
+    pub sorted: Vec<(u64, u32)>,
+}
+
 /// Points in Z-curve order: each entry a point's code and its index among the points.
 pub struct MortonOrder {
     entries: Vec<(u64, u32)>,
@@ -26,23 +33,43 @@ impl MortonOrder {
     /// The order of `points`, all in `key`'s cube of `cube`, by their cells `levels` levels
     /// below `key` (at most [`MAX_CODE_LEVELS`]); points of one cell keep the order they came
     /// in.
+    #[cfg(test)]
     pub fn below(cube: &RootCube, key: NodeKey, points: &[RawPoint], levels: u8) -> Self {
+        Self::below_in(cube, key, points, levels, OrderBuffers::default()).0
+    }
+
+    /// [`Self::below`] in `buffers`, whose room is reused: the entries are written where an
+    /// earlier order's were, and the sort's second buffer is kept in `buffers.sorted`.
+    pub fn below_in(
+        cube: &RootCube,
+        key: NodeKey,
+        points: &[RawPoint],
+        levels: u8,
+        buffers: OrderBuffers,
+    ) -> (Self, Vec<(u64, u32)>) {
+        let OrderBuffers {
+            mut entries,
+            mut sorted,
+        } = buffers;
         let bits = u32::from(levels).min(MAX_CODE_LEVELS);
         let level = u32::from(key.level) + bits;
         let base = key.cell() << bits;
-        let mut entries: Vec<(u64, u32)> = points
-            .iter()
-            .enumerate()
-            .map(|(i, p)| {
-                let c = cube.cell_at(p.position, level) - base;
-                (
-                    spread(c.x) | (spread(c.y) << 1) | (spread(c.z) << 2),
-                    i as u32,
-                )
-            })
-            .collect();
-        sort(&mut entries, 3 * bits);
-        Self { entries, bits }
+        entries.clear();
+        entries.reserve_exact(points.len());
+        entries.extend(points.iter().enumerate().map(|(i, p)| {
+            let c = cube.cell_at(p.position, level) - base;
+            (
+                spread(c.x) | (spread(c.y) << 1) | (spread(c.z) << 2),
+                i as u32,
+            )
+        }));
+        sort(&mut entries, &mut sorted, 3 * bits);
+        (Self { entries, bits }, sorted)
+    }
+
+    /// The entries' buffer, for another order to reuse.
+    pub fn into_entries(self) -> Vec<(u64, u32)> {
+        self.entries
     }
 
     /// Every entry, in order.
@@ -83,8 +110,9 @@ fn spread(v: u32) -> u64 {
 
 /// Sorts `entries` by code, codes of `key_bits` bits, ties in the order they are (a radix
 /// sort, least significant digit first: each pass is stable, and one whose digit is the same
-/// for every entry is skipped).
-fn sort(entries: &mut Vec<(u64, u32)>, key_bits: u32) {
+/// for every entry is skipped), `scratch` the passes' second buffer: its room is reused, and
+/// entries already in it are overwritten rather than zeroed first.
+fn sort(entries: &mut Vec<(u64, u32)>, scratch: &mut Vec<(u64, u32)>, key_bits: u32) {
     let n = entries.len();
     if n < RADIX_MIN_ENTRIES {
         // Entries come in index order, so code then index is the stable order.
@@ -100,7 +128,6 @@ fn sort(entries: &mut Vec<(u64, u32)>, key_bits: u32) {
             table[digit(code, pass)] += 1;
         }
     }
-    let mut scratch: Vec<(u64, u32)> = Vec::new();
     for (pass, table) in counts.iter_mut().enumerate() {
         if table.contains(&n) {
             continue;
@@ -111,15 +138,19 @@ fn sort(entries: &mut Vec<(u64, u32)>, key_bits: u32) {
             *count = start;
             start += c;
         }
-        if scratch.is_empty() {
+        if scratch.len() < n {
+            scratch.reserve_exact(n - scratch.len());
             scratch.resize(n, (0, 0));
         }
+        let out = &mut scratch[..n];
         for &entry in entries.iter() {
             let at = &mut table[digit(entry.0, pass)];
-            scratch[*at] = entry;
+            out[*at] = entry;
             *at += 1;
         }
-        std::mem::swap(entries, &mut scratch);
+        std::mem::swap(entries, scratch);
+        // A reused buffer may be longer than the entries: what lies past them is stale.
+        entries.truncate(n);
     }
 }
 

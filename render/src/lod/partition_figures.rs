@@ -38,6 +38,10 @@ pub struct PartitionsFigures {
     pub wall: Duration,
     /// CPU time of the whole process during the stage, every thread (`None` where unknown).
     pub process_cpu: Option<Duration>,
+    /// Of that, the kernel's: page faults, reads and writes, syncs.
+    pub process_system_cpu: Option<Duration>,
+    /// Minor page faults of the whole process during the stage: pages it touched first.
+    pub process_minor_faults: Option<u64>,
     /// Threads of the pool the stage ran on.
     pub threads: usize,
     /// The most threads one partition's build can keep busy.
@@ -102,7 +106,7 @@ impl PartitionsFigures {
 /// Collects the spans while the stage runs.
 pub(super) struct PartitionsTrace {
     start: Instant,
-    process_cpu: Option<Duration>,
+    process: Option<ProcessUsage>,
     spans: Mutex<Vec<PartitionSpan>>,
 }
 
@@ -110,7 +114,7 @@ impl PartitionsTrace {
     pub fn new() -> Self {
         Self {
             start: Instant::now(),
-            process_cpu: process_cpu(),
+            process: ProcessUsage::now(),
             spans: Mutex::new(Vec::new()),
         }
     }
@@ -133,10 +137,11 @@ impl PartitionsTrace {
     /// on one partition.
     pub fn finish(self, threads: usize, threads_per_partition: usize) -> PartitionsFigures {
         let wall = self.start.elapsed();
-        let process_cpu = self
-            .process_cpu
-            .zip(process_cpu())
-            .map(|(start, end)| end.saturating_sub(start));
+        let used = self.process.zip(ProcessUsage::now());
+        let process_cpu = used.map(|(start, end)| end.cpu.saturating_sub(start.cpu));
+        let process_system_cpu = used.map(|(start, end)| end.system.saturating_sub(start.system));
+        let process_minor_faults =
+            used.map(|(start, end)| end.minor_faults.saturating_sub(start.minor_faults));
         PartitionsFigures {
             spans: self
                 .spans
@@ -144,6 +149,8 @@ impl PartitionsTrace {
                 .unwrap_or_else(|poisoned| poisoned.into_inner()),
             wall,
             process_cpu,
+            process_system_cpu,
+            process_minor_faults,
             threads,
             threads_per_partition,
         }
@@ -195,14 +202,29 @@ impl UnitTimer<'_> {
     }
 }
 
-/// CPU time of the process, every thread, user and system (`/proc/self/stat`, in the
-/// kernel's clock ticks of 1/100 s).
-fn process_cpu() -> Option<Duration> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    let (_, after) = stat.rsplit_once(')')?;
-    let fields: Vec<&str> = after.split_whitespace().collect();
-    let ticks = |i: usize| fields.get(i)?.parse::<u64>().ok();
-    Some(Duration::from_millis(10 * (ticks(11)? + ticks(12)?)))
+/// What the process has used so far, every thread.
+#[derive(Debug, Clone, Copy)]
+struct ProcessUsage {
+    /// User and system CPU time.
+    cpu: Duration,
+    system: Duration,
+    minor_faults: u64,
+}
+
+impl ProcessUsage {
+    /// From `/proc/self/stat` (times in the kernel's clock ticks of 1/100 s).
+    fn now() -> Option<Self> {
+        let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+        let (_, after) = stat.rsplit_once(')')?;
+        let fields: Vec<&str> = after.split_whitespace().collect();
+        let number = |i: usize| fields.get(i)?.parse::<u64>().ok();
+        let (user, system) = (number(11)?, number(12)?);
+        Some(Self {
+            cpu: Duration::from_millis(10 * (user + system)),
+            system: Duration::from_millis(10 * system),
+            minor_faults: number(7)?,
+        })
+    }
 }
 
 #[cfg(test)]
@@ -231,6 +253,8 @@ mod tests {
             spans: vec![span(0, 4, 10, 4), span(2, 4, 5, 2), span(4, 8, 8, 4)],
             wall: Duration::from_secs(10),
             process_cpu: None,
+            process_system_cpu: None,
+            process_minor_faults: None,
             threads: 4,
             threads_per_partition: 1,
         };
@@ -256,11 +280,16 @@ mod tests {
             (0..20_000_000u64).fold(0u64, |a, b| std::hint::black_box(a.wrapping_add(b)))
         });
         assert!(sum > 0);
+        // Fresh pages, each touched once: the kernel counts a fault for each first touch.
+        let touched = std::hint::black_box(vec![1u8; 16 << 20]);
         unit.end();
         let figures = trace.finish(1, 1);
+        drop(touched);
         assert_eq!(figures.spans.len(), 1);
         let s = figures.spans[0];
         assert!(s.cpu > Duration::ZERO && s.serial_cpu <= s.cpu);
         assert!(s.end >= s.start && figures.wall >= s.end);
+        assert!(figures.process_minor_faults.is_some_and(|f| f > 0));
+        assert!(figures.process_system_cpu <= figures.process_cpu);
     }
 }

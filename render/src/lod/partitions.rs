@@ -21,6 +21,7 @@ use super::partition_figures::{PartitionsFigures, PartitionsTrace};
 use super::pause;
 use super::plan::{Partition, PartitionPlan};
 use super::point::RecordLayout;
+use super::scratch::{PartitionScratch, ScratchPool};
 use super::spill::{self, read_block_bytes, SpillDir, SpillWriter};
 
 /// The most bytes of write buffers when a partition is split further.
@@ -110,10 +111,24 @@ struct Stage<'s, 'c> {
     failed: Mutex<Option<LodError>>,
     /// Units that may hold memory at once: the pool's threads (more would wait, holding it).
     threads: usize,
+    /// Buffers kept from one partition's build to the next.
+    scratches: ScratchPool<'c>,
 }
 
-/// A unit admitted: its partition, whether it is split, and its memory.
-type Admitted<'m> = (Partition, Vec<PathBuf>, bool, Reservation<'m>);
+/// What an admitted unit does, with its memory.
+enum Work<'m> {
+    Split(Reservation<'m>),
+    /// A build in `scratch`, kept for the next partition with its memory where `pooled`,
+    /// else freed as the partition's own buffers are.
+    Build {
+        memory: Reservation<'m>,
+        scratch: PartitionScratch,
+        pooled: bool,
+    },
+}
+
+/// A unit admitted: its partition and files, and its work.
+type Admitted<'m> = (Partition, Vec<PathBuf>, Work<'m>);
 
 /// Builds the partitions, largest first, each admitted once its memory is reserved and handed
 /// to the pool with its reservation: no task of the pool ever waits for memory, so a thread
@@ -135,6 +150,7 @@ fn build_each(
         }),
         failed: Mutex::new(None),
         threads: rayon::current_num_threads(),
+        scratches: ScratchPool::new(),
     };
     lock(&stage.queue).add(partitions);
     rayon::scope(|scope| loop {
@@ -156,7 +172,7 @@ fn build_each(
     failed.map_or(Ok(()), Err)
 }
 
-impl Stage<'_, '_> {
+impl<'c> Stage<'_, 'c> {
     fn fail(&self, error: LodError) {
         lock(&self.failed).get_or_insert(error);
     }
@@ -167,7 +183,7 @@ impl Stage<'_, '_> {
 
     /// The largest partition left, with its memory, if a thread is free and its memory is
     /// free now.
-    fn try_admit(&self) -> Option<Admitted<'_>> {
+    fn try_admit(&self) -> Option<Admitted<'c>> {
         if self.has_failed() {
             return None;
         }
@@ -176,19 +192,14 @@ impl Stage<'_, '_> {
             return None;
         }
         let &(partition, _) = queue.partitions.last()?;
-        let admitted = needs_split(self.ctx, partition).and_then(|split| {
-            let (bytes, what) = match split {
-                true => (split_bytes(self.ctx), "splitting a partition"),
-                false => (
-                    partition_bytes(partition.count, self.ctx.spill.layout()),
-                    "a partition built in memory",
-                ),
-            };
-            let reservation = self.ctx.meter.reserve_within(bytes, what, Duration::ZERO)?;
-            Ok(reservation.map(|r| (split, r)))
+        let admitted = needs_split(self.ctx, partition).and_then(|split| match split {
+            true => self
+                .reserve(split_bytes(self.ctx), "splitting a partition")
+                .map(|r| r.map(Work::Split)),
+            false => self.admit_build(partition),
         });
-        let (split, reservation) = match admitted {
-            Ok(admitted) => admitted?,
+        let work = match admitted {
+            Ok(work) => work?,
             Err(e) => {
                 drop(queue);
                 self.fail(e);
@@ -197,8 +208,57 @@ impl Stage<'_, '_> {
         };
         let (partition, files) = queue.partitions.pop()?;
         queue.in_flight += 1;
-        queue.splitting += usize::from(split);
-        Some((partition, files, split, reservation))
+        queue.splitting += usize::from(matches!(work, Work::Split(_)));
+        Some((partition, files, work))
+    }
+
+    /// `bytes` if they fit now, once idle scratches are dropped where they do not.
+    fn reserve(&self, bytes: u64, what: &'static str) -> Result<Option<Reservation<'c>>, LodError> {
+        let meter = self.ctx.meter;
+        match meter.reserve_within(bytes, what, Duration::ZERO)? {
+            None if self.scratches.release_idle() => {
+                meter.reserve_within(bytes, what, Duration::ZERO)
+            }
+            reserved => Ok(reserved),
+        }
+    }
+
+    /// The memory to build `partition`: in a scratch kept from an earlier partition (or a new
+    /// one) where its room fits beside the partition's own bytes, else the partition's bytes
+    /// alone, its buffers freed as it goes.
+    fn admit_build(&self, partition: Partition) -> Result<Option<Work<'c>>, LodError> {
+        let layout = self.ctx.spill.layout();
+        let bytes = partition_bytes(partition.count, layout);
+        let what = "a partition built in memory";
+        let meter = self.ctx.meter;
+        let (scratch, held) = match self.scratches.take() {
+            Some((scratch, held)) => (scratch, Some(held)),
+            None => (PartitionScratch::default(), None),
+        };
+        let extra = scratch.extra_bytes(partition.count, layout.row_bytes);
+        let more = (bytes + extra).saturating_sub(held.as_ref().map_or(0, Reservation::bytes));
+        if bytes + extra <= meter.largest_possible() {
+            if let Some(more) = meter.reserve_within(more, what, Duration::ZERO)? {
+                let memory = match held {
+                    Some(mut held) => {
+                        held.absorb(more);
+                        held
+                    }
+                    None => more,
+                };
+                return Ok(Some(Work::Build {
+                    memory,
+                    scratch,
+                    pooled: true,
+                }));
+            }
+        }
+        drop((scratch, held));
+        Ok(self.reserve(bytes, what)?.map(|memory| Work::Build {
+            memory,
+            scratch: PartitionScratch::default(),
+            pooled: false,
+        }))
     }
 }
 
@@ -219,12 +279,13 @@ impl Drop for Counted<'_, '_> {
 
 /// Spawns every unit that can be admitted now.
 fn admit_all<'s>(scope: &rayon::Scope<'s>, stage: &'s Stage<'s, '_>) {
-    while let Some((partition, files, split, reservation)) = stage.try_admit() {
+    while let Some((partition, files, work)) = stage.try_admit() {
+        let split = matches!(work, Work::Split(_));
         let counted = Counted { stage, split };
         scope.spawn(move |scope| {
             let ctx = stage.ctx;
-            let memory = match split {
-                true => {
+            let memory = match work {
+                Work::Split(reservation) => {
                     let unit = stage.trace.unit(partition.key, partition.count, true);
                     // The split's writer holds its memory and releases it when done.
                     match split_partition(ctx, partition, &files, reservation) {
@@ -237,17 +298,29 @@ fn admit_all<'s>(scope: &rayon::Scope<'s>, stage: &'s Stage<'s, '_>) {
                     unit.end();
                     None
                 }
-                false => {
-                    if let Err(e) = build_partition(ctx, stage.trace, partition, files) {
-                        stage.fail(e);
+                Work::Build {
+                    memory,
+                    mut scratch,
+                    pooled,
+                } => {
+                    let built =
+                        build_partition(ctx, stage.trace, partition, files, &mut scratch, pooled);
+                    match built {
+                        Ok(()) if pooled => Some((scratch, memory)),
+                        Ok(()) => Some((PartitionScratch::default(), memory)),
+                        Err(e) => {
+                            stage.fail(e);
+                            None
+                        }
                     }
-                    Some(reservation)
                 }
             };
-            // Counted out (a split's children queued before), then its memory released, then
-            // what that lets in admitted.
+            // Counted out (a split's children queued before), then its memory released (a
+            // scratch kept with what it holds), then what that lets in admitted.
             drop(counted);
-            drop(memory);
+            if let Some((scratch, memory)) = memory {
+                stage.scratches.put(scratch, memory);
+            }
             admit_all(scope, stage);
         });
     }
@@ -275,24 +348,49 @@ fn needs_split(ctx: &BuildContext<'_>, partition: Partition) -> Result<bool, Lod
     Ok(!fits || oversized)
 }
 
-/// Builds `partition` in the memory reserved for it.
+/// Builds `partition` in the memory reserved for it, its buffers in `scratch`; those it no
+/// longer needs once its points are in their runs are freed unless the scratch is `pooled`.
 fn build_partition(
     ctx: &BuildContext<'_>,
     trace: &PartitionsTrace,
     partition: Partition,
     files: Vec<PathBuf>,
+    scratch: &mut PartitionScratch,
+    pooled: bool,
 ) -> Result<(), LodError> {
     let mut unit = trace.unit(partition.key, partition.count, false);
     let layout = ctx.spill.layout();
-    let mut rows = AttributeRows::new(layout.row_bytes);
-    let points = unit.serial(false, || {
-        spill::read_all(&files, layout, partition.count, &mut rows)
+    let count = partition.count as usize;
+    let mut rows =
+        AttributeRows::in_buffer(layout.row_bytes, scratch.take_rows(count, layout.row_bytes));
+    unit.serial(false, || {
+        spill::read_all_into(
+            &files,
+            layout,
+            partition.count,
+            &mut rows,
+            &mut scratch.points,
+        )
     })?;
     let builder = ctx.local_builder(&rows);
-    let prepared = unit.serial(false, || builder.prepare(partition.key, points));
+    let prepared = unit.serial(false, || {
+        let PartitionScratch {
+            points,
+            order,
+            run_of,
+            ..
+        } = &mut *scratch;
+        builder.prepare_in(partition.key, points, order, run_of)
+    });
+    if !pooled {
+        scratch.release_ordering();
+    }
     let mut region = Vec::new();
     let mut kept = Vec::new();
-    let root = builder.build_prepared(prepared, &mut region, Some(&mut kept))?;
+    let (root, order) = builder.build_prepared(prepared, &mut region, Some(&mut kept))?;
+    if let Some(order) = order.filter(|_| pooled) {
+        scratch.order.entries = order.into_entries();
+    }
     unit.serial(true, || {
         ctx.finish_unit(
             UnitKind::Partition,
@@ -304,6 +402,7 @@ fn build_partition(
         )
     })?;
     unit.end();
+    scratch.rows = rows.into_buffer();
     // Removed once the partition is recorded: a build stopped before then builds it again.
     remove_all(&files)
 }

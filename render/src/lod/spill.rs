@@ -406,7 +406,22 @@ pub fn read_all(
     expected: u64,
     rows: &mut AttributeRows,
 ) -> Result<Vec<RawPoint>, LodError> {
-    let mut points = Vec::with_capacity(expected as usize);
+    let mut points = Vec::new();
+    read_all_into(paths, layout, expected, rows, &mut points)?;
+    Ok(points)
+}
+
+/// [`read_all`] into the caller's `points`, emptied first, so that a buffer is reused from
+/// one partition to the next.
+pub fn read_all_into(
+    paths: &[PathBuf],
+    layout: RecordLayout,
+    expected: u64,
+    rows: &mut AttributeRows,
+    points: &mut Vec<RawPoint>,
+) -> Result<(), LodError> {
+    points.clear();
+    points.reserve_exact(expected as usize);
     rows.reserve(expected as usize);
     let record_bytes = layout.record_bytes();
     for path in paths {
@@ -433,7 +448,7 @@ pub fn read_all(
         let path = paths.last().map_or(Path::new(""), PathBuf::as_path);
         return Err(LodError::spill(path, error));
     }
-    Ok(points)
+    Ok(())
 }
 
 /// Removes a spill file that has been consumed.
