@@ -8,7 +8,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use glam::DVec3;
-use las::{PointDataBuilder, Reader};
+use las::{PointDataBuilder, Reader, Transform, Vector};
 use laz::laszip::ChunkTable;
 
 use super::columns::{choose_origin, world_bounds, DecodedPoints};
@@ -258,6 +258,20 @@ impl DatasetFile {
         &self,
         mut visit: impl FnMut(&las::PointData) -> Result<(), IngestError>,
     ) -> Result<(), IngestError> {
+        self.for_each_batch_into(&mut None, |batch, _| visit(batch))
+    }
+
+    /// Decodes every declared point into `records` (made for this file where it is `None`),
+    /// handing `visit` each batch with this file's transforms: a reader of many files keeps
+    /// one `records` for all of them, since the `las` crate sizes and zeroes a fresh one a
+    /// file, a pass over every record's bytes on the reading thread. The batch's own
+    /// transforms may be those of the file it was made for; its positions are read through
+    /// the transforms given.
+    pub(super) fn for_each_batch_into(
+        &self,
+        records: &mut Option<las::PointData>,
+        mut visit: impl FnMut(&las::PointData, &Vector<Transform>) -> Result<(), IngestError>,
+    ) -> Result<(), IngestError> {
         let path = self.path.as_path();
         let facts = &self.facts;
         let file = self.open_bytes()?;
@@ -266,17 +280,19 @@ impl DatasetFile {
             path: path.to_owned(),
             error,
         };
-        let mut batch = PointDataBuilder::new().for_header(reader.header()).build();
+        let transforms = *reader.header().transforms();
+        let records = records
+            .get_or_insert_with(|| PointDataBuilder::new().for_header(reader.header()).build());
         let batch_points =
             (BYTES_PER_BATCH / u64::from(facts.record_len)).clamp(1, POINTS_PER_BATCH);
         let mut read = 0;
         while read < facts.declared_points {
             let wanted = batch_points.min(facts.declared_points - read);
-            let filled = reader.fill_points(wanted, &mut batch).map_err(malformed)?;
+            let filled = reader.fill_points(wanted, records).map_err(malformed)?;
             if filled == 0 {
                 break;
             }
-            visit(&batch)?;
+            visit(records, &transforms)?;
             read += filled;
         }
         // Unreachable after the checks above unless the file changes while we read it.

@@ -174,12 +174,35 @@ fn i32_at(record: &[u8], at: usize) -> i32 {
     i32::from_le_bytes([record[at], record[at + 1], record[at + 2], record[at + 3]])
 }
 
-/// Fills `columns` with a decoded batch (its RGB only `with_rgb`), blocks of records decoded
-/// in parallel: the same values as the `las` crate's column iterators, positions on `grid`
-/// (with the file's shift) where the dataset has one.
+/// One task's share of a batch: its records and the columns they fill.
+struct FillBlock<'c> {
+    records: &'c [u8],
+    positions: &'c mut [DVec3],
+    intensity: &'c mut [u16],
+    classification: &'c mut [u8],
+    return_number: &'c mut [u8],
+    /// Empty where the batch keeps no RGB, as `rows` where its rows are empty.
+    rgb: &'c mut [[u16; 3]],
+    rows: &'c mut [u8],
+}
+
+/// `column` cut into `blocks` pieces of `per` values, empty pieces where it runs out (a
+/// column the batch does not keep).
+fn pieces<T>(column: &mut [T], per: usize, blocks: usize) -> impl Iterator<Item = &mut [T]> {
+    column
+        .chunks_mut(per.max(1))
+        .chain(std::iter::repeat_with(|| &mut [][..]))
+        .take(blocks)
+}
+
+/// Fills `columns` with a decoded batch of a file of `transforms` (its RGB only `with_rgb`),
+/// each block of records decoded once, by one task, into every column: the same values as
+/// the `las` crate's column iterators, positions on `grid` (with the file's shift) where the
+/// dataset has one.
 fn fill(
     columns: &mut BatchColumns,
     batch: &las::PointData,
+    transforms: &las::Vector<las::Transform>,
     with_rgb: bool,
     grid: Option<(&PositionGrid, [i64; 3])>,
     rows: &RowFiller,
@@ -187,68 +210,65 @@ fn fill(
     let fields = RecordFields::of(batch);
     let n = batch.len();
     let bytes = &batch.raw_bytes()[..n * fields.len];
-    let t = batch.transforms();
-    let (tx, ty, tz) = (t.x, t.y, t.z);
+    let (tx, ty, tz) = (transforms.x, transforms.y, transforms.z);
     let row_bytes = rows.row_bytes();
-    columns.set_len(n, with_rgb && fields.rgb.is_some(), row_bytes);
-    let block_bytes = FILL_BLOCK_POINTS * fields.len;
-    columns
-        .positions
-        .par_chunks_mut(FILL_BLOCK_POINTS)
-        .zip(columns.intensity.par_chunks_mut(FILL_BLOCK_POINTS))
-        .zip(columns.classification.par_chunks_mut(FILL_BLOCK_POINTS))
-        .zip(columns.return_number.par_chunks_mut(FILL_BLOCK_POINTS))
-        .zip(bytes.par_chunks(block_bytes))
-        .for_each(|((((positions, intensity), classes), returns), block)| {
-            let records = block.chunks_exact(fields.len);
-            for (i, r) in records.enumerate() {
-                positions[i] = match grid {
-                    Some((grid, shift)) => grid.position([
-                        i64::from(i32_at(r, 0)) + shift[0],
-                        i64::from(i32_at(r, 4)) + shift[1],
-                        i64::from(i32_at(r, 8)) + shift[2],
-                    ]),
-                    None => DVec3::new(
-                        tx.direct(i32_at(r, 0)),
-                        ty.direct(i32_at(r, 4)),
-                        tz.direct(i32_at(r, 8)),
-                    ),
-                };
-                intensity[i] = u16_at(r, 12);
-                if fields.extended {
-                    returns[i] = r[14] & 15;
-                    classes[i] = r[16];
-                } else {
-                    returns[i] = r[14] & 7;
-                    classes[i] = r[15] & 0b0001_1111;
+    let rgb_at = fields.rgb.filter(|_| with_rgb);
+    columns.set_len(n, rgb_at.is_some(), row_bytes);
+    let blocks = n.div_ceil(FILL_BLOCK_POINTS);
+    let per = FILL_BLOCK_POINTS;
+    let tasks: Vec<FillBlock<'_>> = bytes
+        .chunks(per * fields.len)
+        .zip(pieces(&mut columns.positions, per, blocks))
+        .zip(pieces(&mut columns.intensity, per, blocks))
+        .zip(pieces(&mut columns.classification, per, blocks))
+        .zip(pieces(&mut columns.return_number, per, blocks))
+        .zip(pieces(&mut columns.rgb, per, blocks))
+        .zip(pieces(&mut columns.rows, per * row_bytes, blocks))
+        .map(
+            |((((((records, positions), intensity), classification), return_number), rgb), r)| {
+                FillBlock {
+                    records,
+                    positions,
+                    intensity,
+                    classification,
+                    return_number,
+                    rgb,
+                    rows: r,
                 }
+            },
+        )
+        .collect();
+    tasks.into_par_iter().for_each(|block| {
+        let records = block.records.chunks_exact(fields.len);
+        for (i, r) in records.enumerate() {
+            block.positions[i] = match grid {
+                Some((grid, shift)) => grid.position([
+                    i64::from(i32_at(r, 0)) + shift[0],
+                    i64::from(i32_at(r, 4)) + shift[1],
+                    i64::from(i32_at(r, 8)) + shift[2],
+                ]),
+                None => DVec3::new(
+                    tx.direct(i32_at(r, 0)),
+                    ty.direct(i32_at(r, 4)),
+                    tz.direct(i32_at(r, 8)),
+                ),
+            };
+            block.intensity[i] = u16_at(r, 12);
+            if fields.extended {
+                block.return_number[i] = r[14] & 15;
+                block.classification[i] = r[16];
+            } else {
+                block.return_number[i] = r[14] & 7;
+                block.classification[i] = r[15] & 0b0001_1111;
             }
-        });
-    if row_bytes > 0 {
-        columns
-            .rows
-            .par_chunks_mut(FILL_BLOCK_POINTS * row_bytes)
-            .zip(bytes.par_chunks(block_bytes))
-            .for_each(|(out, block)| {
-                for (row, r) in out
-                    .chunks_exact_mut(row_bytes)
-                    .zip(block.chunks_exact(fields.len))
-                {
-                    rows.fill(r, row);
-                }
-            });
-    }
-    if let (true, Some(at)) = (with_rgb, fields.rgb) {
-        columns
-            .rgb
-            .par_chunks_mut(FILL_BLOCK_POINTS)
-            .zip(bytes.par_chunks(block_bytes))
-            .for_each(|(rgb, block)| {
-                for (c, r) in rgb.iter_mut().zip(block.chunks_exact(fields.len)) {
-                    *c = [u16_at(r, at), u16_at(r, at + 2), u16_at(r, at + 4)];
-                }
-            });
-    }
+            if let Some(at) = rgb_at {
+                block.rgb[i] = [u16_at(r, at), u16_at(r, at + 2), u16_at(r, at + 4)];
+            }
+            if row_bytes > 0 {
+                rows.fill(r, &mut block.rows[i * row_bytes..(i + 1) * row_bytes]);
+            }
+        }
+    });
 }
 
 impl PointSource for DatasetSource {
@@ -350,6 +370,8 @@ impl DatasetSource {
         filled: &mpsc::SyncSender<BatchColumns>,
         spares: &mpsc::Receiver<BatchColumns>,
     ) -> Result<(), LodError> {
+        // One batch of records for every file: the reader's share of each point is its fill.
+        let mut records = None;
         for (k, file) in self.files.iter().enumerate().skip(skipped) {
             let grid = self
                 .grid
@@ -357,9 +379,10 @@ impl DatasetSource {
                 .map(|shared| (&shared.grid, shared.shifts[k]));
             let mut stopped = false;
             let read = contain_panics(&file.path, || {
-                file.for_each_batch(|batch| {
+                file.for_each_batch_into(&mut records, |batch, transforms| {
                     let mut columns = spares.try_recv().unwrap_or_default();
-                    fill(&mut columns, batch, self.has_rgb, grid, &self.fillers[k]);
+                    let filler = &self.fillers[k];
+                    fill(&mut columns, batch, transforms, self.has_rgb, grid, filler);
                     filled.send(columns).map_err(|_| {
                         stopped = true;
                         IngestError::Corrupt {

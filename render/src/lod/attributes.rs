@@ -188,7 +188,15 @@ pub struct RowFiller {
     row_extra: usize,
     extra_bytes: usize,
     row_bytes: usize,
+    /// Whether a row holds a section the record does not fill, zeroed first: a row is
+    /// otherwise written whole, and zeroing it would cost a pass a point.
+    zero_tail: bool,
 }
+
+/// [`legacy_scan_angle`] of every rank, by the rank's byte: a division and a rounding a
+/// point otherwise.
+static LEGACY_SCAN_ANGLES: std::sync::LazyLock<[i16; 256]> =
+    std::sync::LazyLock::new(|| std::array::from_fn(|byte| legacy_scan_angle(byte as u8 as i8)));
 
 impl RowFiller {
     /// The filler of records of `point_format` (0 to 10) whose fields take `format_len` bytes,
@@ -213,17 +221,23 @@ impl RowFiller {
             10 => Some(38),
             _ => None,
         };
+        let extra_at = keep_extra.then_some(format_len);
+        let extra_bytes = usize::from(schema.extra_bytes);
+        let zero_tail = (schema.nir_at().is_some() && nir_at.is_none())
+            || (schema.wave_at().is_some() && wave_at.is_none())
+            || (extra_bytes > 0 && extra_at.is_none());
         Self {
             extended,
             gps_at,
             nir_at,
             wave_at,
-            extra_at: keep_extra.then_some(format_len),
+            extra_at,
             row_nir: schema.nir_at(),
             row_wave: schema.wave_at(),
             row_extra: schema.extra_at(),
-            extra_bytes: usize::from(schema.extra_bytes),
+            extra_bytes,
             row_bytes: schema.row_bytes(),
+            zero_tail,
         }
     }
 
@@ -235,7 +249,9 @@ impl RowFiller {
     /// Writes the row of `record` (one whole record of the file) into `row`, which is
     /// [`Self::row_bytes`] long and zero where the file has nothing to write.
     pub fn fill(&self, record: &[u8], row: &mut [u8]) {
-        row[BASE_BYTES..].fill(0);
+        if self.zero_tail {
+            row[BASE_BYTES..].fill(0);
+        }
         if self.extended {
             row[..BASE_BYTES - 8].copy_from_slice(&record[14..22]);
         } else {
@@ -244,7 +260,7 @@ impl RowFiller {
             row[1] = (class >> 5) | (returns & 0b1100_0000);
             row[2] = class & 0b0001_1111;
             row[3] = record[17];
-            let angle = legacy_scan_angle(record[16] as i8);
+            let angle = LEGACY_SCAN_ANGLES[usize::from(record[16])];
             row[4..6].copy_from_slice(&angle.to_le_bytes());
             row[6..8].copy_from_slice(&record[18..20]);
         }
@@ -467,6 +483,7 @@ mod tests {
         for rank in i8::MIN..=i8::MAX {
             let angle = legacy_scan_angle(rank);
             assert_eq!((f64::from(angle) * 0.006).round() as i8, rank);
+            assert_eq!(LEGACY_SCAN_ANGLES[usize::from(rank as u8)], angle);
         }
         assert_eq!(legacy_scan_angle(-90), -15_000);
     }
@@ -491,6 +508,18 @@ mod tests {
         assert_eq!(i16::from_le_bytes([row[4], row[5]]), -2000);
         assert_eq!(u16::from_le_bytes([row[6], row[7]]), 4321);
         assert_eq!(f64::from_le_bytes(row[8..16].try_into().expect("8")), 123.5);
+
+        // A row reused from another point: the sections this format lacks come back zero.
+        let wider = AttributeSchema {
+            has_nir: true,
+            has_waveform: true,
+            ..AttributeSchema::default()
+        };
+        let filler = RowFiller::new(1, 28, false, &wider);
+        let mut row = vec![0xa5u8; filler.row_bytes()];
+        filler.fill(&record, &mut row);
+        assert_eq!(row[0], 5 | 7 << 4);
+        assert!(row[BASE_BYTES..].iter().all(|&b| b == 0), "{row:?}");
     }
 
     #[test]

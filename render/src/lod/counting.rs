@@ -17,11 +17,12 @@ use std::time::Duration;
 use rayon::prelude::*;
 
 use super::error::LodError;
+use super::file_facts::{FactsGathering, FileFacts};
 use super::key::RootCube;
 use super::memory::MemoryMeter;
 use super::pause;
 use super::point::{RecordLayout, MAX_RECORD_BYTES};
-use super::source::{PointBatch, PointSource};
+use super::source::PointBatch;
 use super::spill::{SpillDir, SpillWriter};
 use super::stats::DatasetStats;
 use super::thread_cpu::{thread_cpu, thread_cpu_since, with_readers_counted, CountingThreadsCpu};
@@ -102,41 +103,62 @@ fn tolerance(cube: &RootCube) -> f64 {
     cube.side * 1e-9
 }
 
-/// Checks a batch's columns and that its points are finite and inside the declared bounds
-/// (the cube holds those); `first` is the index of its first point overall. Whether a point
-/// lies on the grid its records hold it on is the record's write to check.
-pub fn check_batch(
-    batch: &PointBatch<'_>,
-    bounds: &WorldBounds,
-    cube: &RootCube,
-    first: u64,
-    row_bytes: usize,
-) -> Result<(), LodError> {
-    batch.check_lengths(row_bytes)?;
-    let tol = tolerance(cube);
-    let lo = bounds.min - tol;
-    let hi = bounds.max + tol;
-    let bad = batch
-        .positions
-        .par_iter()
-        .position_first(|p| !p.is_finite() || p.cmplt(lo).any() || p.cmpgt(hi).any());
-    let Some(i) = bad else {
-        return Ok(());
-    };
-    let p = batch.positions[i];
-    let index = first + i as u64;
-    if !p.is_finite() {
-        return Err(LodError::NonFinitePoint {
+/// The box a point must lie in: the declared bounds, widened by the tolerance.
+#[derive(Clone, Copy)]
+struct Allowed {
+    lo: glam::DVec3,
+    hi: glam::DVec3,
+}
+
+impl Allowed {
+    fn new(bounds: &WorldBounds, cube: &RootCube) -> Self {
+        let tol = tolerance(cube);
+        Self {
+            lo: bounds.min - tol,
+            hi: bounds.max + tol,
+        }
+    }
+
+    /// The error of the source's point `index` at `p`, if it is not finite or lies outside.
+    #[inline]
+    fn check(&self, p: glam::DVec3, index: u64) -> Result<(), LodError> {
+        if p.is_finite() && !p.cmplt(self.lo).any() && !p.cmpgt(self.hi).any() {
+            return Ok(());
+        }
+        Err(self.refusal(p, index))
+    }
+
+    #[cold]
+    fn refusal(&self, p: glam::DVec3, index: u64) -> LodError {
+        if !p.is_finite() {
+            return LodError::NonFinitePoint {
+                index,
+                position: p.to_array(),
+            };
+        }
+        LodError::PointOutsideBounds {
             index,
             position: p.to_array(),
-        });
+            min: self.lo.to_array(),
+            max: self.hi.to_array(),
+        }
     }
-    Err(LodError::PointOutsideBounds {
-        index,
-        position: p.to_array(),
-        min: lo.to_array(),
-        max: hi.to_array(),
-    })
+}
+
+/// What a task of a block found: the facts of its points, or the first point it refused
+/// (its index in the source) with the error.
+type TaskFacts = Result<FileFacts, (u64, LodError)>;
+
+/// Two tasks' findings as one: both facts, or the refusal of the earlier point.
+fn merge_tasks(a: TaskFacts, b: TaskFacts) -> TaskFacts {
+    match (a, b) {
+        (Ok(mut a), Ok(b)) => {
+            a.merge(&b);
+            Ok(a)
+        }
+        (Err(a), Err(b)) => Err(if b.0 < a.0 { b } else { a }),
+        (Err(e), Ok(_)) | (Ok(_), Err(e)) => Err(e),
+    }
 }
 
 /// Points of a batch with their buckets and their spill records, made on all cores; or,
@@ -171,33 +193,62 @@ impl CountingStart {
 /// is in its bucket's files: the points read, the counts per bucket and the statistics.
 pub type Checkpoint<'c> = dyn Fn(u64, &[u64], &DatasetStats) -> Result<(), LodError> + Sync + 'c;
 
+/// What making a block's records needs beside the block: the bucket grid's level in the cube,
+/// the records' layout, the box every point must lie in, and the index in the source of the
+/// batch's first point.
+#[derive(Clone, Copy)]
+struct Making<'m> {
+    level: u32,
+    cube: &'m RootCube,
+    layout: RecordLayout,
+    allowed: Allowed,
+    first: u64,
+}
+
 impl RecordBlock {
+    /// Checks each point of `range` and makes its bucket and record, in one pass over the
+    /// points, which also gathers their facts: the first point refused (the lowest index)
+    /// is the block's error.
     fn fill(
         &mut self,
         batch: &PointBatch<'_>,
         range: Range<usize>,
-        level: u32,
-        cube: &RootCube,
-        layout: RecordLayout,
-    ) -> Result<(), LodError> {
+        making: Making<'_>,
+    ) -> Result<FileFacts, LodError> {
+        let Making {
+            level,
+            cube,
+            layout,
+            allowed,
+            first,
+        } = making;
         let record_bytes = layout.record_bytes();
+        // Blocks come back to be filled again: the records written over, never zeroed again.
         self.buckets.resize(range.len(), 0);
         self.records.resize(range.len() * record_bytes, 0);
+        let has_rgb = batch.rgb.is_some();
         self.records
             .par_chunks_mut(PER_TASK * record_bytes)
             .zip(self.buckets.par_chunks_mut(PER_TASK))
             .enumerate()
-            .try_for_each(|(task, (out, buckets))| {
-                let first = range.start + task * PER_TASK;
+            .map(|(task, (out, buckets))| {
+                let start = range.start + task * PER_TASK;
+                let mut facts = FileFacts::default();
                 let records = out.chunks_exact_mut(record_bytes);
                 for (j, (record, bucket)) in records.zip(buckets).enumerate() {
-                    let i = first + j;
+                    let i = start + j;
+                    let index = first + i as u64;
                     let p = batch.raw_point(i);
+                    allowed.check(p.position, index).map_err(|e| (index, e))?;
+                    facts.add_point(p.position, has_rgb.then_some(p.rgb));
                     *bucket = CountGrid::index(level, cube.cell_at(p.position, level)) as u32;
-                    layout.write(&p, batch.row(i, layout.row_bytes), record)?;
+                    let row = batch.row(i, layout.row_bytes);
+                    layout.write(&p, row, record).map_err(|e| (index, e))?;
                 }
-                Ok(())
+                Ok(facts)
             })
+            .reduce(|| Ok(FileFacts::default()), merge_tasks)
+            .map_err(|(_, error)| error)
     }
 }
 
@@ -207,7 +258,7 @@ impl RecordBlock {
 /// at each part of the source. Returns the CPU time of each of the pass's own threads beside.
 #[allow(clippy::too_many_arguments)]
 pub fn count_points(
-    source: &dyn PointSource,
+    gathering: &FactsGathering<'_>,
     cube: &RootCube,
     level: u32,
     meter: &MemoryMeter,
@@ -217,8 +268,14 @@ pub fn count_points(
     start: CountingStart,
     checkpoint: Option<&Checkpoint<'_>>,
 ) -> Result<(CountGrid, DatasetStats, CountingThreadsCpu), LodError> {
+    // The parts' facts are gathered by the tasks that make the records, not by the source.
+    let source = gathering.source();
     let walker_start = thread_cpu();
-    let reservation = meter.try_reserve(2 * buffer_bytes, "the buckets' write buffers")?;
+    // A third `buffer_bytes` lets the written buffers be filled again (`SpillWriter`), where
+    // the budget has it.
+    let reservation = meter
+        .try_reserve(3 * buffer_bytes, "the buckets' write buffers")
+        .or_else(|_| meter.try_reserve(2 * buffer_bytes, "the buckets' write buffers"))?;
     let block_points = block_points(spill.layout().record_bytes(), meter.budget());
     let blocks_bytes = counting_blocks_bytes(spill.layout().record_bytes(), meter.budget());
     let _blocks = meter.try_reserve(blocks_bytes, "blocks of spill records")?;
@@ -237,7 +294,7 @@ pub fn count_points(
         buffer_bytes as usize,
         reservation,
     );
-    let bounds = source.bounds();
+    let allowed = Allowed::new(&source.bounds(), cube);
     let layout = spill.layout();
     let mut stats = start.stats;
     let mut read = start.read;
@@ -268,7 +325,7 @@ pub fn count_points(
                         }
                     }
                 }
-                check_batch(&batch, &bounds, cube, read, layout.row_bytes)?;
+                batch.check_lengths(layout.row_bytes)?;
                 let stats = stats.get_or_insert_with(|| DatasetStats::new(batch.rgb.is_some()));
                 if stats.has_rgb != batch.rgb.is_some() {
                     return Err(LodError::Source(format!(
@@ -276,16 +333,33 @@ pub fn count_points(
                         if batch.rgb.is_some() { "has" } else { "lacks" }
                     )));
                 }
-                for start in (0..batch.len()).step_by(block_points) {
-                    let range = start..(start + block_points).min(batch.len());
+                let making = Making {
+                    level,
+                    cube,
+                    layout,
+                    allowed,
+                    first: read,
+                };
+                let mut start = 0;
+                while start < batch.len() {
+                    // A block ends where a part of the source does, so that its facts are
+                    // that part's.
+                    let part_end = gathering
+                        .next_start(read + start as u64)
+                        .map_or(usize::MAX, |next| (next - read) as usize);
+                    let end = (start + block_points).min(batch.len()).min(part_end);
+                    let range = start..end;
+                    start = end;
                     let mut block = spare.try_recv().unwrap_or_default();
-                    // The block's statistics are gathered in the pool beside its records, not
-                    // on this thread, whose work a point bounds the pass on any number of cores.
+                    // The block's counts are gathered in the pool beside its records, not on
+                    // this thread, whose work a point bounds the pass on any number of cores.
                     let (filled, ()) = rayon::join(
-                        || block.fill(&batch, range.clone(), level, cube, layout),
-                        || stats.add_range(&batch, range.clone()),
+                        || block.fill(&batch, range.clone(), making),
+                        || stats.add_counts(&batch, range.clone()),
                     );
-                    filled?;
+                    let facts = filled?;
+                    stats.add_facts(&facts);
+                    gathering.add(read + range.start as u64, &facts);
                     if blocks.send(block).is_err() {
                         // The scattering thread stopped on an error, which is returned below.
                         return Err(LodError::Source("the spill writing stopped".into()));
@@ -436,19 +510,42 @@ fn record(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::lod::GeneratedSource;
+    use crate::lod::source::BatchVisitor;
+    use crate::lod::{GeneratedSource, PointSource};
+
+    /// A generated source in three parts, the later two starting inside its first batch.
+    struct Parted(GeneratedSource);
+
+    impl PointSource for Parted {
+        fn bounds(&self) -> WorldBounds {
+            self.0.bounds()
+        }
+
+        fn point_count(&self) -> u64 {
+            self.0.point_count()
+        }
+
+        fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
+            self.0.for_each_batch(visit)
+        }
+
+        fn part_starts(&self) -> Vec<u64> {
+            vec![0, 3_000, 7_777]
+        }
+    }
 
     /// Every point is written once, to its bucket's files in segments of the size asked,
     /// and the counts are the records the files hold.
     #[test]
     fn every_point_goes_to_its_buckets_segments() {
         let dir = tempfile::tempdir().expect("tempdir");
-        let source = GeneratedSource::terrain(10_000, 1);
+        let source = Parted(GeneratedSource::terrain(10_000, 1));
         let cube = RootCube::around(&source.bounds()).expect("cube");
         let meter = MemoryMeter::new(64 << 20);
         let spill = SpillDir::create(dir.path(), RecordLayout::for_grid(None, 0)).expect("spill");
+        let gathering = FactsGathering::new(&source);
         let (grid, stats, cpu) = count_points(
-            &source,
+            &gathering,
             &cube,
             1,
             &meter,
@@ -469,6 +566,19 @@ mod tests {
             10_000,
             "every point seen"
         );
+        // The facts and statistics the records' tasks gathered are those of a pass of their own.
+        let facts = gathering.into_facts();
+        let alone = FactsGathering::new(&source);
+        let mut all = DatasetStats::new(true);
+        alone
+            .for_each_batch(&mut |batch| {
+                all.add(&batch);
+                Ok(())
+            })
+            .expect("read");
+        assert_eq!(facts.len(), 3);
+        assert_eq!(facts, alone.into_facts());
+        assert_eq!(stats, all);
         let record = spill.layout().record_bytes() as u64;
         let mut segmented = 0;
         for (bucket, &count) in grid.counts.iter().enumerate() {

@@ -42,6 +42,31 @@ impl Default for FileFacts {
 }
 
 impl FileFacts {
+    /// Adds one point at `position`, its raw RGB counted where the source has it.
+    #[inline]
+    pub(super) fn add_point(&mut self, position: DVec3, rgb: Option<[u16; 3]>) {
+        self.points += 1;
+        self.min = self.min.min(position);
+        self.max = self.max.max(position);
+        if let Some(c) = rgb {
+            for ((min, max), v) in self.min_rgb.iter_mut().zip(&mut self.max_rgb).zip(c) {
+                *min = (*min).min(v);
+                *max = (*max).max(v);
+            }
+        }
+    }
+
+    /// Adds the points `other` has facts of.
+    pub(super) fn merge(&mut self, other: &Self) {
+        self.points += other.points;
+        self.min = self.min.min(other.min);
+        self.max = self.max.max(other.max);
+        for c in 0..3 {
+            self.min_rgb[c] = self.min_rgb[c].min(other.min_rgb[c]);
+            self.max_rgb[c] = self.max_rgb[c].max(other.max_rgb[c]);
+        }
+    }
+
     /// Adds the points `range` of `batch`.
     fn add(&mut self, batch: &PointBatch<'_>, range: std::ops::Range<usize>) {
         self.points += range.len() as u64;
@@ -99,7 +124,8 @@ pub(super) fn meets_cube(bounds: &WorldBounds, min: DVec3, side: f64) -> bool {
 }
 
 /// A source read through, the facts of each of its parts (its files, `part_starts`)
-/// gathered from the batches as they pass.
+/// gathered from the batches as they pass; or, read by the counting pass, added by it from
+/// the facts its tasks gather as they make each point's record ([`Self::add`]).
 pub(super) struct FactsGathering<'s> {
     source: &'s dyn PointSource,
     starts: Vec<u64>,
@@ -122,6 +148,32 @@ impl<'s> FactsGathering<'s> {
         self.facts
             .into_inner()
             .unwrap_or_else(|poisoned| poisoned.into_inner())
+    }
+
+    /// The source whose parts' facts this gathers.
+    pub(super) fn source(&self) -> &'s dyn PointSource {
+        self.source
+    }
+
+    /// The first point of the part after the one holding point `index`, if there is one.
+    pub(super) fn next_start(&self, index: u64) -> Option<u64> {
+        let next = self.starts.partition_point(|&s| s <= index);
+        self.starts.get(next).copied()
+    }
+
+    /// Adds `facts` of points of one part from the source's point `first` on.
+    pub(super) fn add(&self, first: u64, facts: &FileFacts) {
+        let part = self
+            .starts
+            .partition_point(|&s| s <= first)
+            .saturating_sub(1);
+        let mut all = self
+            .facts
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner());
+        if let Some(f) = all.get_mut(part) {
+            f.merge(facts);
+        }
     }
 
     /// Adds `batch`, whose first point is the source's point `first`, part by part.

@@ -148,6 +148,10 @@ impl Drop for SpillDir {
 /// Appends points to one of many files, holding at most `limit` bytes of records in memory:
 /// when half of them are buffered, the buffers go to a thread of their own that appends each
 /// to its file while the next half fills, so reading the source and writing spill overlap.
+///
+/// Where the caller reserved more than twice `limit`, the written buffers come back and are
+/// filled again, up to half of that excess in capacity: a buffer grown afresh each set costs
+/// its copies while it doubles and the pages it first touches.
 pub struct SpillWriter<'a> {
     dir: &'a SpillDir,
     paths: Arc<dyn Fn(usize) -> PathBuf + Send + Sync>,
@@ -160,7 +164,14 @@ pub struct SpillWriter<'a> {
     /// Bytes of records a set of buffers takes before it is handed to the writing thread.
     set_limit: usize,
     /// The set being appended to its files; its thread returns the CPU time it took.
-    writing: Option<JoinHandle<Result<Duration, LodError>>>,
+    writing: Option<JoinHandle<Result<Written, LodError>>>,
+    /// Written buffers, emptied, waiting to be filled again.
+    spare: Vec<Vec<u8>>,
+    /// Capacity of the buffers this holds: the spare ones and those being filled.
+    held: usize,
+    /// The most capacity a written buffer may come back into: the spare ones and those being
+    /// filled stay within it, beside what they grow by in a set.
+    reuse_limit: usize,
     /// CPU time of each set's busiest writing thread, summed over the sets that ended.
     writing_cpu: Duration,
     /// Threads that append a set: as many as the pool the writer was made on has, within
@@ -202,6 +213,8 @@ impl<'a> SpillWriter<'a> {
         let limit = limit.max(record_bytes);
         debug_assert!(reservation.bytes() >= 2 * limit as u64);
         let set_limit = (limit / 2).max(record_bytes);
+        // Each of the two sets holds at most what comes back and what a set grows by.
+        let reuse_limit = (reservation.bytes() as usize).saturating_sub(2 * limit) / 2;
         Self {
             dir,
             buffers: vec![Vec::new(); targets],
@@ -211,6 +224,9 @@ impl<'a> SpillWriter<'a> {
             record_bytes,
             set_limit,
             writing: None,
+            spare: Vec::new(),
+            held: 0,
+            reuse_limit,
             writing_cpu: Duration::ZERO,
             writing_threads: rayon::current_num_threads().clamp(1, MAX_WRITING_THREADS),
             _reservation: reservation,
@@ -220,10 +236,17 @@ impl<'a> SpillWriter<'a> {
     /// Appends one record, in the spill folder's layout, to file `target`.
     pub fn push_record(&mut self, target: usize, record: &[u8]) -> Result<(), LodError> {
         debug_assert_eq!(record.len(), self.record_bytes);
-        if self.buffers[target].is_empty() {
+        let buffer = &mut self.buffers[target];
+        if buffer.is_empty() {
             self.filled.push(target);
+            if buffer.capacity() == 0 {
+                // A spare buffer's capacity is counted in `held` already.
+                *buffer = self.spare.pop().unwrap_or_default();
+            }
         }
-        self.buffers[target].extend_from_slice(record);
+        let before = buffer.capacity();
+        buffer.extend_from_slice(record);
+        self.held += buffer.capacity() - before;
         self.pushed()
     }
 
@@ -246,6 +269,7 @@ impl<'a> SpillWriter<'a> {
             .drain(..)
             .map(|target| (target, std::mem::take(&mut self.buffers[target])))
             .collect();
+        self.held -= buffers.iter().map(|(_, b)| b.capacity()).sum::<usize>();
         self.dir.count_written(self.buffered);
         self.buffered = 0;
         let paths = Arc::clone(&self.paths);
@@ -263,7 +287,16 @@ impl<'a> SpillWriter<'a> {
         match self.writing.take().map(JoinHandle::join) {
             None => Ok(()),
             Some(Ok(written)) => {
-                self.writing_cpu += written?;
+                let written = written?;
+                self.writing_cpu += written.cpu;
+                for mut buffer in written.buffers {
+                    if self.held + buffer.capacity() > self.reuse_limit {
+                        continue;
+                    }
+                    buffer.clear();
+                    self.held += buffer.capacity();
+                    self.spare.push(buffer);
+                }
                 Ok(())
             }
             Some(Err(_)) => Err(LodError::spill(
@@ -296,12 +329,32 @@ impl Drop for SpillWriter<'_> {
     }
 }
 
+/// A set appended to its files: the CPU time of its busiest thread, and its buffers, to be
+/// filled again.
+struct Written {
+    cpu: Duration,
+    buffers: Vec<Vec<u8>>,
+}
+
 /// Appends each non-empty buffer of a set (one at most a target) to its file, on up to
 /// `threads` threads taking the largest buffers first; returns the CPU time of the set's
-/// busiest thread, which the next set waits for.
+/// busiest thread, which the next set waits for, and the buffers.
 fn append_all(
     paths: &(dyn Fn(usize) -> PathBuf + Send + Sync),
-    mut buffers: Vec<(usize, Vec<u8>)>,
+    buffers: Vec<(usize, Vec<u8>)>,
+    threads: usize,
+) -> Result<Written, LodError> {
+    let mut buffers = buffers;
+    let cpu = append_each(paths, &mut buffers, threads)?;
+    Ok(Written {
+        cpu,
+        buffers: buffers.into_iter().map(|(_, buffer)| buffer).collect(),
+    })
+}
+
+fn append_each(
+    paths: &(dyn Fn(usize) -> PathBuf + Send + Sync),
+    buffers: &mut Vec<(usize, Vec<u8>)>,
     threads: usize,
 ) -> Result<Duration, LodError> {
     buffers.retain(|(_, buffer)| !buffer.is_empty());

@@ -65,6 +65,34 @@ impl DatasetStats {
         }
     }
 
+    /// Adds the intensities and classes of the points `range` of `batch`; their RGB and z
+    /// come through [`Self::add_facts`].
+    pub(crate) fn add_counts(
+        &mut self,
+        batch: &super::source::PointBatch<'_>,
+        range: std::ops::Range<usize>,
+    ) {
+        for &i in &batch.intensity[range.clone()] {
+            self.intensity_histogram[usize::from(i)] += 1;
+        }
+        for &c in &batch.classification[range] {
+            self.class_counts[usize::from(c)] += 1;
+        }
+    }
+
+    /// Adds the RGB range (where the source has RGB) and z range of points whose facts the
+    /// counting pass gathered as it made their records.
+    pub(crate) fn add_facts(&mut self, facts: &super::file_facts::FileFacts) {
+        if self.has_rgb {
+            for c in 0..3 {
+                self.max_rgb[c] = self.max_rgb[c].max(facts.max_rgb[c]);
+                self.min_rgb[c] = self.min_rgb[c].min(facts.min_rgb[c]);
+            }
+        }
+        self.z_range[0] = self.z_range[0].min(facts.min.z);
+        self.z_range[1] = self.z_range[1].max(facts.max.z);
+    }
+
     pub(crate) fn add(&mut self, batch: &super::source::PointBatch<'_>) {
         self.add_range(batch, 0..batch.len());
     }

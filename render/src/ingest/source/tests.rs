@@ -135,7 +135,14 @@ fn columns_are_the_crates_in_every_point_format() {
         let points = reader.read_all().expect("read");
         let mut columns = BatchColumns::default();
         let rows = no_extra_rows(&points);
-        fill(&mut columns, &points, true, None, &rows);
+        fill(
+            &mut columns,
+            &points,
+            points.transforms(),
+            true,
+            None,
+            &rows,
+        );
         let positions = crate::testing::las_world_positions(&points);
         assert_eq!(columns.positions, positions, "format {format}");
         // On the file's own grid, the same positions bit for bit.
@@ -146,7 +153,7 @@ fn columns_are_the_crates_in_every_point_format() {
         )
         .expect("a grid");
         let mut on_grid = BatchColumns::default();
-        fill(&mut on_grid, &points, true, Some((&grid, [0; 3])), &rows);
+        fill(&mut on_grid, &points, t, true, Some((&grid, [0; 3])), &rows);
         assert_eq!(on_grid.rows, columns.rows, "format {format}");
         let bits = |p: &[DVec3]| -> Vec<[u64; 3]> {
             p.iter().map(|p| p.to_array().map(f64::to_bits)).collect()
@@ -276,6 +283,7 @@ fn tiles_on_one_grid_spill_grid_records_and_build_the_same_store() {
         fill(
             &mut columns,
             &points,
+            points.transforms(),
             true,
             Some((&shared.grid, shared.shifts[k])),
             &no_extra_rows(&points),
@@ -334,8 +342,24 @@ fn files_of_other_scales_or_offsets_off_the_grid_share_none() {
     let cm = write("cm.las", 0.01, 0.0);
     let one = DatasetSource::open(std::slice::from_ref(&mm)).expect("open");
     assert!(one.position_grid().is_some());
-    let mixed = DatasetSource::open(&[mm.clone(), cm]).expect("open");
+    let mixed = DatasetSource::open(&[mm.clone(), cm.clone()]).expect("open");
     assert!(mixed.position_grid().is_none(), "two scales");
+    // The second file is decoded into the records of the first, made for its transforms: its
+    // positions are still its own.
+    let mut read = Vec::new();
+    mixed
+        .for_each_batch(&mut |batch| {
+            read.extend_from_slice(batch.positions);
+            Ok(())
+        })
+        .expect("read");
+    let mut own = Vec::new();
+    for path in [&mm, &cm] {
+        let mut reader = las::Reader::from_path(path).expect("reader");
+        let points = reader.read_all().expect("read");
+        own.extend(crate::testing::las_world_positions(&points));
+    }
+    assert_eq!(read, own);
     // write_las rounds its offset to whole metres: a 0.4 m shift stays on the grid only
     // if the rounding does, so build the off-grid case from the headers directly.
     let mut files = DatasetFile::check_all(&[mm.clone(), mm]).expect("files");
