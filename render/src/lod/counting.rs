@@ -215,13 +215,7 @@ impl RecordBlock {
         range: Range<usize>,
         making: Making<'_>,
     ) -> Result<FileFacts, LodError> {
-        let Making {
-            level,
-            cube,
-            layout,
-            allowed,
-            first,
-        } = making;
+        let (level, cube, layout) = (making.level, making.cube, making.layout);
         let record_bytes = layout.record_bytes();
         // Blocks come back to be filled again: the records written over, never zeroed again.
         self.buckets.resize(range.len(), 0);
@@ -237,9 +231,9 @@ impl RecordBlock {
                 let records = out.chunks_exact_mut(record_bytes);
                 for (j, (record, bucket)) in records.zip(buckets).enumerate() {
                     let i = start + j;
-                    let index = first + i as u64;
+                    let index = making.first + i as u64;
                     let p = batch.raw_point(i);
-                    allowed.check(p.position, index).map_err(|e| (index, e))?;
+                    making.allowed.check(p.position, index).map_err(|e| (index, e))?;
                     facts.add_point(p.position, has_rgb.then_some(p.rgb));
                     *bucket = CountGrid::index(level, cube.cell_at(p.position, level)) as u32;
                     let row = batch.row(i, layout.row_bytes);
@@ -510,40 +504,20 @@ fn record(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::lod::source::BatchVisitor;
     use crate::lod::{GeneratedSource, PointSource};
-
-    /// A generated source in three parts, the later two starting inside its first batch.
-    struct Parted(GeneratedSource);
-
-    impl PointSource for Parted {
-        fn bounds(&self) -> WorldBounds {
-            self.0.bounds()
-        }
-
-        fn point_count(&self) -> u64 {
-            self.0.point_count()
-        }
-
-        fn for_each_batch(&self, visit: &mut BatchVisitor<'_>) -> Result<(), LodError> {
-            self.0.for_each_batch(visit)
-        }
-
-        fn part_starts(&self) -> Vec<u64> {
-            vec![0, 3_000, 7_777]
-        }
-    }
 
     /// Every point is written once, to its bucket's files in segments of the size asked,
     /// and the counts are the records the files hold.
     #[test]
     fn every_point_goes_to_its_buckets_segments() {
         let dir = tempfile::tempdir().expect("tempdir");
-        let source = Parted(GeneratedSource::terrain(10_000, 1));
+        let source = GeneratedSource::terrain(10_000, 1);
+        // Parts that start inside the source's first batch.
+        let parts = vec![0, 3_000, 7_777];
         let cube = RootCube::around(&source.bounds()).expect("cube");
         let meter = MemoryMeter::new(64 << 20);
         let spill = SpillDir::create(dir.path(), RecordLayout::for_grid(None, 0)).expect("spill");
-        let gathering = FactsGathering::new(&source);
+        let gathering = FactsGathering::with_starts(&source, parts.clone());
         let (grid, stats, cpu) = count_points(
             &gathering,
             &cube,
@@ -568,7 +542,7 @@ mod tests {
         );
         // The facts and statistics the records' tasks gathered are those of a pass of their own.
         let facts = gathering.into_facts();
-        let alone = FactsGathering::new(&source);
+        let alone = FactsGathering::with_starts(&source, parts);
         let mut all = DatasetStats::new(true);
         alone
             .for_each_batch(&mut |batch| {

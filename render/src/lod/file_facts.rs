@@ -134,7 +134,11 @@ pub(super) struct FactsGathering<'s> {
 
 impl<'s> FactsGathering<'s> {
     pub(super) fn new(source: &'s dyn PointSource) -> Self {
-        let starts = source.part_starts();
+        Self::with_starts(source, source.part_starts())
+    }
+
+    /// The facts of the parts of `source` starting at `starts` (ascending from 0).
+    pub(super) fn with_starts(source: &'s dyn PointSource, starts: Vec<u64>) -> Self {
         let facts = Mutex::new(vec![FileFacts::default(); starts.len()]);
         Self {
             source,
