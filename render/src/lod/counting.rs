@@ -233,7 +233,10 @@ impl RecordBlock {
                     let i = start + j;
                     let index = making.first + i as u64;
                     let p = batch.raw_point(i);
-                    making.allowed.check(p.position, index).map_err(|e| (index, e))?;
+                    making
+                        .allowed
+                        .check(p.position, index)
+                        .map_err(|e| (index, e))?;
                     facts.add_point(p.position, has_rgb.then_some(p.rgb));
                     *bucket = CountGrid::index(level, cube.cell_at(p.position, level)) as u32;
                     let row = batch.row(i, layout.row_bytes);
