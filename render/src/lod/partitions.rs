@@ -223,14 +223,19 @@ impl<'c> Stage<'_, 'c> {
         }
     }
 
-    /// The memory to build `partition`: in a scratch kept from an earlier partition (or a new
-    /// one) where its room fits beside the partition's own bytes, else the partition's bytes
-    /// alone, its buffers freed as it goes.
+    /// The memory to build `partition`: a large one in a scratch kept from an earlier
+    /// partition (or a new one) where its room fits beside the partition's own bytes, else the
+    /// partition's bytes alone, its buffers freed as it goes.
     fn admit_build(&self, partition: Partition) -> Result<Option<Work<'c>>, LodError> {
         let layout = self.ctx.spill.layout();
         let bytes = partition_bytes(partition.count, layout);
         let what = "a partition built in memory";
         let meter = self.ctx.meter;
+        if !PartitionScratch::worth_keeping(partition.count) {
+            // Partitions come largest first: the ones left are small too.
+            self.scratches.release_idle();
+            return self.admit_unkept(bytes);
+        }
         let (scratch, held) = match self.scratches.take() {
             Some((scratch, held)) => (scratch, Some(held)),
             None => (PartitionScratch::default(), None),
@@ -254,7 +259,13 @@ impl<'c> Stage<'_, 'c> {
             }
         }
         drop((scratch, held));
-        Ok(self.reserve(bytes, what)?.map(|memory| Work::Build {
+        self.admit_unkept(bytes)
+    }
+
+    /// `bytes` to build a partition whose buffers are freed as it goes.
+    fn admit_unkept(&self, bytes: u64) -> Result<Option<Work<'c>>, LodError> {
+        let reserved = self.reserve(bytes, "a partition built in memory")?;
+        Ok(reserved.map(|memory| Work::Build {
             memory,
             scratch: PartitionScratch::default(),
             pooled: false,

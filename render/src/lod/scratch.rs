@@ -34,7 +34,20 @@ fn bytes_of<T>(count: u64) -> u64 {
     count * std::mem::size_of::<T>() as u64
 }
 
+/// The smallest buffer of a partition's points worth keeping: glibc's largest threshold for
+/// mapping a block afresh (`DEFAULT_MMAP_THRESHOLD_MAX` on 64-bit hosts). Smaller blocks come
+/// from its arenas, which keep freed ones for the next partition, so a scratch would only hold
+/// memory the allocator already reuses (on 16 threads, partitions of 80,000 points took more
+/// page faults with scratches than without). The crate's own tests keep every partition's, so
+/// that their checks of the store and the budget cover that path too.
+const KEPT_MIN_POINT_BYTES: u64 = if cfg!(test) { 1 } else { 32 << 20 };
+
 impl PartitionScratch {
+    /// Whether a partition of `count` points is built in a scratch kept for the next one.
+    pub fn worth_keeping(count: u64) -> bool {
+        bytes_of::<RawPoint>(count) >= KEPT_MIN_POINT_BYTES
+    }
+
     /// Bytes its buffers hold room for.
     pub fn held_bytes(&self) -> u64 {
         room(&self.points)
