@@ -129,9 +129,13 @@ type ChildWork<'e, 'r> = (usize, &'e [(u64, u32)], usize, Runs<'r>);
 impl LocalBuilder<'_> {
     /// The first step of building `key`'s subtree of `points`, on one thread: the points in
     /// their order below `key`, cut into the runs the recursion does not split.
-    pub fn prepare(&self, key: NodeKey, mut points: Vec<RawPoint>) -> Prepared {
-        let mut order = OrderBuffers::default();
-        self.prepare_in(key, &mut points, &mut order, &mut Vec::new())
+    pub fn prepare(&self, key: NodeKey, points: Vec<RawPoint>) -> Prepared {
+        if self.is_leaf(key, points.len()) {
+            return Prepared::Leaf(points);
+        }
+        // The sort's second buffer is freed before the runs take their copies.
+        let buffers = OrderBuffers::default();
+        self.ordered_runs(key, &points, buffers, &mut Vec::new(), drop)
     }
 
     /// [`Self::prepare`] of `points` the caller keeps (a buffer it reuses: a leaf's points are
@@ -147,14 +151,27 @@ impl LocalBuilder<'_> {
         if self.is_leaf(key, points.len()) {
             return Prepared::Leaf(std::mem::take(points));
         }
-        let levels = ORDER_LEVELS.min(MAX_LEVEL - key.level);
         let buffers = std::mem::take(order);
-        let (morton, sorted) = MortonOrder::below_in(&self.cube, key, points, levels, buffers);
-        order.sorted = sorted;
-        let (runs, starts) = self.unsplit_runs(&morton, key, points, run_of);
+        self.ordered_runs(key, points, buffers, run_of, |sorted| order.sorted = sorted)
+    }
+
+    /// `points` ordered below `key` in `buffers`, the sort's second buffer handed to `sorted`,
+    /// then cut into their runs.
+    fn ordered_runs(
+        &self,
+        key: NodeKey,
+        points: &[RawPoint],
+        buffers: OrderBuffers,
+        run_of: &mut Vec<u32>,
+        sorted: impl FnOnce(Vec<(u64, u32)>),
+    ) -> Prepared {
+        let levels = ORDER_LEVELS.min(MAX_LEVEL - key.level);
+        let (order, second) = MortonOrder::below_in(&self.cube, key, points, levels, buffers);
+        sorted(second);
+        let (runs, starts) = self.unsplit_runs(&order, key, points, run_of);
         Prepared::Ordered {
             key,
-            order: morton,
+            order,
             runs,
             starts,
         }

@@ -384,18 +384,19 @@ fn build_partition(
         )
     })?;
     let builder = ctx.local_builder(&rows);
-    let prepared = unit.serial(false, || {
-        let PartitionScratch {
-            points,
-            order,
-            run_of,
-            ..
-        } = &mut *scratch;
-        builder.prepare_in(partition.key, points, order, run_of)
+    let prepared = unit.serial(false, || match pooled {
+        true => {
+            let PartitionScratch {
+                points,
+                order,
+                run_of,
+                ..
+            } = &mut *scratch;
+            builder.prepare_in(partition.key, points, order, run_of)
+        }
+        // Its buffers freed as soon as they are done with.
+        false => builder.prepare(partition.key, std::mem::take(&mut scratch.points)),
     });
-    if !pooled {
-        scratch.release_ordering();
-    }
     let mut region = Vec::new();
     let mut kept = Vec::new();
     let (root, order) = builder.build_prepared(prepared, &mut region, Some(&mut kept))?;

@@ -86,14 +86,6 @@ impl PartitionScratch {
         rows.reserve_exact(count * row_bytes);
         rows
     }
-
-    /// Frees the buffers a partition no longer needs once its points are in their runs, as a
-    /// build that keeps no scratch does.
-    pub fn release_ordering(&mut self) {
-        self.points = Vec::new();
-        self.order.sorted = Vec::new();
-        self.run_of = Vec::new();
-    }
 }
 
 /// Scratches idle between partitions, each with a reservation of what it holds.
