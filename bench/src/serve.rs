@@ -57,6 +57,43 @@ pub struct Serve {
 impl Serve {
     /// Starts `pointfarm serve` with its data in `data` and its stores' memory budget.
     pub fn start(pointfarm: &Path, data: &Path, budget_mib: u64) -> Result<Self, String> {
+        Self::start_with(pointfarm, data, budget_mib, &[])
+    }
+
+    /// Starts `pointfarm serve` as [`Serve::start`] with the folder `tiles` as its data root,
+    /// and registers the tiles there: a render of them through it then finds them as its
+    /// dataset and uploads nothing, so a campaign takes its disk once.
+    pub fn start_in_place(
+        pointfarm: &Path,
+        data: &Path,
+        budget_mib: u64,
+        tiles: &Path,
+    ) -> Result<Self, String> {
+        let root = format!("--data-root={}", tiles.display());
+        let serve = Self::start_with(pointfarm, data, budget_mib, &[&root])?;
+        let output = Command::new(pointfarm)
+            .args(["dataset", "register"])
+            .arg(tiles)
+            .arg(format!("--server=http://{}", serve.address))
+            .output()
+            .map_err(|e| e.to_string())?;
+        if !output.status.success() {
+            return Err(format!(
+                "registering {} failed: {}\n--- daemon:\n{}",
+                tiles.display(),
+                String::from_utf8_lossy(&output.stderr),
+                serve.log_text()
+            ));
+        }
+        Ok(serve)
+    }
+
+    fn start_with(
+        pointfarm: &Path,
+        data: &Path,
+        budget_mib: u64,
+        options: &[&str],
+    ) -> Result<Self, String> {
         std::fs::create_dir_all(data).map_err(|e| e.to_string())?;
         let address = TcpListener::bind("127.0.0.1:0")
             .and_then(|listener| listener.local_addr())
@@ -66,7 +103,7 @@ impl Serve {
         let child = serve_command(Command::new(pointfarm), &address, data, &log)
             .and_then(|mut command| {
                 let budget = format!("--store-memory-budget={budget_mib}MiB");
-                command.arg(budget).spawn()
+                command.arg(budget).args(options).spawn()
             })
             .map_err(|e| format!("starting {}: {e}", pointfarm.display()))?;
         let serve = Self {

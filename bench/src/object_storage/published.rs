@@ -197,8 +197,15 @@ pub fn measure(
     ));
     drop(workers);
     drop(daemon);
+    // The published copy and the daemon's own are not read again: removed before the local
+    // render builds its store, a campaign of a billion points needs its store on disk twice at
+    // the most, not three times.
+    drop(server);
+    for folder in [dir.join("s3"), dir.join("daemon")] {
+        std::fs::remove_dir_all(&folder).map_err(|e| io(&folder, e))?;
+    }
 
-    let local = farm.local_render(&tiles, size)?;
+    let local = local_render(options, dir, &tiles, size)?;
     let identical_frames = identical_frames(&out, &local, options.frames)?;
     log(format!(
         "published-store: {identical_frames} of {} frames identical to the local render",
@@ -346,43 +353,46 @@ impl Farm<'_> {
         let mut command = self.pointfarm();
         command
             .args(["render", "--server", address, "--dataset", id])
-            .args(self.turntable(frames, width, height))
+            .args(turntable(frames, width, height))
             .arg("--out")
             .arg(&out);
         run(command, "render --server")?;
         Ok(out)
     }
+}
 
-    /// The same turntable rendered here from the tiles, its store built in a cache of its own.
-    fn local_render(
-        &self,
-        tiles: &Path,
-        (width, height): (u32, u32),
-    ) -> Result<PathBuf, ObjectStorageError> {
-        let out = self.dir.join("local");
-        let mut command = Command::new(&self.options.pointfarm);
-        command
-            .arg("render")
-            .arg(tiles)
-            .args(self.turntable(self.options.frames, width, height))
-            .arg("--cache-dir")
-            .arg(self.dir.join("local-cache"))
-            .arg("--out")
-            .arg(&out);
-        run(command, "render")?;
-        Ok(out)
-    }
+/// The same turntable rendered here from the tiles into `dir/local`, its store built in a cache
+/// of its own.
+fn local_render(
+    options: &PublishedOptions,
+    dir: &Path,
+    tiles: &Path,
+    (width, height): (u32, u32),
+) -> Result<PathBuf, ObjectStorageError> {
+    let out = dir.join("local");
+    let mut command = Command::new(&options.pointfarm);
+    command
+        .arg("render")
+        .arg(tiles)
+        .args(turntable(options.frames, width, height))
+        .arg("--cache-dir")
+        .arg(dir.join("local-cache"))
+        .arg("--out")
+        .arg(&out);
+    run(command, "render")?;
+    Ok(out)
+}
 
-    fn turntable(&self, frames: usize, width: u32, height: u32) -> Vec<String> {
-        vec![
-            "--turntable".into(),
-            frames.to_string(),
-            "--size".into(),
-            format!("{width}x{height}"),
-            "--lod-error".into(),
-            LOD_ERROR.into(),
-        ]
-    }
+/// The turntable options of every job and render of the benchmark.
+fn turntable(frames: usize, width: u32, height: u32) -> Vec<String> {
+    vec![
+        "--turntable".into(),
+        frames.to_string(),
+        "--size".into(),
+        format!("{width}x{height}"),
+        "--lod-error".into(),
+        LOD_ERROR.into(),
+    ]
 }
 
 /// A child process killed and reaped when dropped.
