@@ -71,20 +71,9 @@ impl Serve {
     ) -> Result<Self, String> {
         let root = format!("--data-root={}", tiles.display());
         let serve = Self::start_with(pointfarm, data, budget_mib, &[&root])?;
-        let output = Command::new(pointfarm)
-            .args(["dataset", "register"])
-            .arg(tiles)
-            .arg(format!("--server=http://{}", serve.address))
-            .output()
-            .map_err(|e| e.to_string())?;
-        if !output.status.success() {
-            return Err(format!(
-                "registering {} failed: {}\n--- daemon:\n{}",
-                tiles.display(),
-                String::from_utf8_lossy(&output.stderr),
-                serve.log_text()
-            ));
-        }
+        let mut register = Command::new(pointfarm);
+        register.args(["dataset", "register"]).arg(tiles);
+        serve.run(register, &format!("registering {}", tiles.display()))?;
         Ok(serve)
     }
 
@@ -130,19 +119,26 @@ impl Serve {
         out: &Path,
         args: &[&str],
     ) -> Result<(), String> {
-        let output = Command::new(pointfarm)
+        let mut render = Command::new(pointfarm);
+        render
             .arg("render")
             .arg(tiles)
             .arg("--out")
             .arg(out)
-            .args(args)
+            .args(args);
+        self.run(render, &format!("render of {}", tiles.display()))
+    }
+
+    /// Runs the `pointfarm` `command` against this daemon to its end; an error saying `what`
+    /// failed, with the command's and the daemon's words, otherwise.
+    fn run(&self, mut command: Command, what: &str) -> Result<(), String> {
+        let output = command
             .arg(format!("--server=http://{}", self.address))
             .output()
             .map_err(|e| e.to_string())?;
         if !output.status.success() {
             return Err(format!(
-                "render of {} failed: {}\n--- daemon:\n{}",
-                tiles.display(),
+                "{what} failed: {}\n--- daemon:\n{}",
                 String::from_utf8_lossy(&output.stderr),
                 self.log_text()
             ));
