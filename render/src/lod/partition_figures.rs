@@ -281,7 +281,9 @@ mod tests {
         });
         assert!(sum > 0);
         // Fresh pages, each touched once: the kernel counts a fault for each first touch.
-        let touched = std::hint::black_box(vec![1u8; 16 << 20]);
+        // Above glibc's largest mmap threshold (32 MiB), so the allocation is always a new
+        // mapping, never heap pages an earlier test in the process touched already.
+        let touched = std::hint::black_box(vec![1u8; 64 << 20]);
         unit.end();
         let figures = trace.finish(1, 1);
         drop(touched);
