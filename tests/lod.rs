@@ -182,13 +182,15 @@ fn level_of_detail_options_are_checked_and_refused_through_a_server() {
 #[test]
 fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let (whole, _) = scene_and_tiles(dir.path(), 30_000);
+    // The tiles, one of them empty: uploaded, stored and rendered as here.
+    let (_, tiles) = scene_and_tiles(dir.path(), 30_000);
+    write_empty_tiles(&tiles, &["north/empty.laz"]);
     let cache = dir.path().join("cache");
     let (local, remote) = (dir.path().join("local"), dir.path().join("remote"));
     let options = ["--size=160x120", "--turntable", "2", "--lod-error", "0.5"];
     let mut args = vec![
         "render",
-        path_arg(&whole),
+        path_arg(&tiles),
         "--out",
         path_arg(&local),
         "--cache-dir",
@@ -204,7 +206,7 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
     let server = pointfarm_tests::ServeProcess::start(&dir.path().join("data"));
     let mut args = vec![
         "render",
-        path_arg(&whole),
+        path_arg(&tiles),
         "--out",
         path_arg(&remote),
         "--server",
@@ -282,7 +284,7 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
     let again = dir.path().join("again");
     let mut args = vec![
         "render",
-        path_arg(&whole),
+        path_arg(&tiles),
         "--out",
         path_arg(&again),
         "--server",
@@ -550,4 +552,104 @@ fn view_of(report: &serde_json::Value) -> [f64; 3] {
     let offset: Vec<f64> = (0..3).map(|axis| position[axis] - target[axis]).collect();
     let length = offset.iter().map(|v| v * v).sum::<f64>().sqrt();
     [offset[0] / length, offset[1] / length, offset[2] / length]
+}
+
+/// Files that declare no points (empty tiles) at `names` in `folder`, of other versions,
+/// formats and scales than the tiles: were they to decide, the color, the grid, the framing
+/// and an export's scale and offset would change.
+fn write_empty_tiles(folder: &Path, names: &[&str]) {
+    let empty = sample_scene(100, 1).select(&[]);
+    let options = [
+        LasWriteOptions {
+            version: (1, 4),
+            point_format: 6,
+            scale: 0.01,
+        },
+        LasWriteOptions {
+            point_format: 0,
+            ..LasWriteOptions::default()
+        },
+    ];
+    for (name, options) in names.iter().zip(options.iter().cycle()) {
+        write_las(&folder.join(name), &empty, options).expect("empty tile");
+    }
+}
+
+#[test]
+fn empty_tiles_change_no_frame_and_no_export_and_a_dataset_of_them_is_refused() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (_, tiles) = scene_and_tiles(dir.path(), 20_000);
+    let cache = dir.path().join("cache");
+    let fresh_cache = dir.path().join("fresh-cache");
+    let run = |args: &[&str], out: &Path| -> (Vec<u8>, String) {
+        let output = pointfarm_ok(args);
+        (std::fs::read(out).expect("output"), output_text(&output))
+    };
+    let render = |name: &str, more: &[&str]| {
+        let out = dir.path().join(name);
+        let mut args = vec!["render", path_arg(&tiles), "--out", path_arg(&out)];
+        args.extend_from_slice(&["--size=160x120"]);
+        args.extend_from_slice(more);
+        run(&args, &out)
+    };
+    let export = |name: &str, cache: &Path| {
+        let out = dir.path().join(name);
+        let args = ["export", path_arg(&tiles), "--copc", path_arg(&out)];
+        run(
+            &[&args[..], &["--cache-dir", path_arg(cache)]].concat(),
+            &out,
+        )
+        .0
+    };
+    let lod = |cache: &Path| -> Vec<String> {
+        vec![
+            "--lod-error=0.5".into(),
+            format!("--cache-dir={}", cache.display()),
+        ]
+    };
+    let lod_args = lod(&cache);
+    let lod_args: Vec<&str> = lod_args.iter().map(String::as_str).collect();
+    let (resident, _) = render("resident.png", &[]);
+    let (cut, _) = render("cut.png", &lod_args);
+    let copc = export("tiles.copc.laz", &cache);
+
+    // The first file in the dataset's order is empty now, where the first file decided.
+    write_empty_tiles(&tiles, &["a_empty.laz", "north/empty.las"]);
+    assert!(
+        render("resident-2.png", &[]).0 == resident,
+        "resident frame changed"
+    );
+    let (updated, text) = render("cut-2.png", &lod_args);
+    assert!(
+        text.contains("store updated: 2 added, 0 removed, 0 changed file(s): 0 points in"),
+        "{text}"
+    );
+    assert!(updated == cut, "the updated store's frame changed");
+    let fresh_args = lod(&fresh_cache);
+    let fresh_args: Vec<&str> = fresh_args.iter().map(String::as_str).collect();
+    assert!(
+        render("cut-3.png", &fresh_args).0 == cut,
+        "a fresh store's frame changed"
+    );
+    assert!(
+        export("fresh.copc.laz", &fresh_cache) == copc,
+        "the export changed"
+    );
+    let info = pointfarm_ok(&["info", path_arg(&tiles.join("a_empty.laz"))]);
+    assert!(output_text(&info).contains("points      0"));
+
+    // A dataset of empty files alone has nothing to render, said in one line.
+    let empty_only = dir.path().join("empty-only");
+    std::fs::create_dir_all(&empty_only).expect("folder");
+    write_empty_tiles(&empty_only, &["a.laz", "b.las"]);
+    let out = dir.path().join("nothing.png");
+    for more in [&[][..], &lod_args[..]] {
+        let mut args = vec!["render", path_arg(&empty_only), "--out", path_arg(&out)];
+        args.extend_from_slice(more);
+        pointfarm_tests::assert_one_error_line(
+            &pointfarm(&args),
+            &["none of the dataset's 2 files contains a point"],
+        );
+    }
+    assert!(!out.exists());
 }

@@ -384,6 +384,10 @@ fn copc_words(copc: &pb::CopcDescription, decimals: usize) -> String {
 
 fn print_points(points: &pb::PointStatistics, decimals: usize) {
     outln!("  points read {}", points.points);
+    if points.points == 0 {
+        // An empty file (a tile with nothing in it) has no classes, returns or colors.
+        return;
+    }
     if let Some(bounds) = &points.bounds {
         let (min, max) = (xyz(bounds.min.as_ref()), xyz(bounds.max.as_ref()));
         outln!(

@@ -147,7 +147,13 @@ impl Daemon {
 /// the finest scale per axis and the first tile's offset, and the WKT record when every tile
 /// declares the same one (as its text, NUL-terminated, as LAS writes it).
 fn tiles_export_settings(headers: &[FileInfo], cube: &RootCube) -> ExportSettings {
-    let Some(first) = headers.first() else {
+    // Only tiles with points decide, as in a load: an empty tile changes nothing.
+    let with_points: Vec<&FileInfo> = headers.iter().filter(|h| h.points > 0).collect();
+    let headers: Vec<&FileInfo> = match with_points.is_empty() {
+        true => headers.iter().collect(),
+        false => with_points,
+    };
+    let Some(&first) = headers.first() else {
         return ExportSettings::fixed(cube);
     };
     let scale = (headers.iter()).fold(first.scale, |scale, info| scale.min(info.scale));

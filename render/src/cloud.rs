@@ -21,6 +21,18 @@ pub struct WorldBounds {
 }
 
 impl WorldBounds {
+    /// The box of no points: inverted, so a union takes nothing from it and nothing lies in
+    /// it.
+    pub const NOWHERE: WorldBounds = WorldBounds {
+        min: DVec3::INFINITY,
+        max: DVec3::NEG_INFINITY,
+    };
+
+    /// Whether the box holds any place: not inverted on any axis.
+    pub fn is_somewhere(&self) -> bool {
+        self.min.cmple(self.max).all()
+    }
+
     pub fn center(&self) -> DVec3 {
         (self.min + self.max) * 0.5
     }

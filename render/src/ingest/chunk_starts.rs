@@ -22,7 +22,9 @@ use super::contain::contain_panics;
 use super::laz_layout::LazLayout;
 use super::preparse::ChunkChecks;
 use super::ranged::{check_ranged, LocalFile, RangedBytes};
-use super::read::{dataset_bounds, dataset_header_bounds, DatasetFile};
+use super::read::{
+    dataset_bounds, dataset_header_bounds, deciding_files, require_points, DatasetFile,
+};
 use super::IngestError;
 use crate::cloud::{PointCloud, WorldBounds};
 use crate::lod::NodePoints;
@@ -86,9 +88,10 @@ pub(crate) fn sample_ranged<B: RangedBytes>(
         .map(|source| check_ranged(source, chunks))
         .collect::<Result<Vec<_>, _>>()?;
     let (files, headers): (Vec<DatasetFile>, Vec<las::Header>) = checked.into_iter().unzip();
+    require_points(&files)?;
     let files_bounds = dataset_bounds(&files)?;
     let header_bounds = dataset_header_bounds(&files);
-    let has_color = files.iter().all(|file| file.has_color);
+    let has_color = deciding_files(&files).iter().all(|file| file.has_color);
     let samples = (sources.par_iter().zip(&files).zip(&headers))
         .map(|((source, file), header)| sample_file(source, file, header, las_stride))
         .collect::<Result<Vec<_>, _>>()?;

@@ -177,3 +177,84 @@ fn a_bad_file_fails_the_dataset_naming_it() {
     assert!(error.to_string().contains("bad.laz"), "{error}");
     assert!(matches!(load_dataset(&[]), Err(IngestError::NoFiles)));
 }
+
+/// Files that declare no points (empty tiles of a campaign), of other versions, formats and
+/// scales, LAS and LAZ: an empty cloud written with each of `options`.
+fn write_empty_files(dir: &Path, options: &[LasWriteOptions]) -> Vec<PathBuf> {
+    let empty = sample_scene(1_000, 3).select(&[]);
+    options
+        .iter()
+        .enumerate()
+        .map(|(n, options)| {
+            let extension = if n % 2 == 0 { "laz" } else { "las" };
+            let path = dir.join(format!("empty_{n}.{extension}"));
+            write_las(&path, &empty, options).expect("write empty file");
+            path
+        })
+        .collect()
+}
+
+#[test]
+fn empty_files_in_a_dataset_change_nothing() {
+    use crate::lod::PointSource;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let scene = sample_scene(20_000, 7);
+    let tiles = write_tiles(&scene, dir.path(), (2, 2), &[LasWriteOptions::default()]);
+    // Without RGB, at another scale, in LAS 1.4: were they to decide, the color, the grid
+    // and the attributes would change.
+    let empties = write_empty_files(
+        dir.path(),
+        &[
+            LasWriteOptions {
+                version: (1, 4),
+                point_format: 6,
+                scale: 0.01,
+            },
+            LasWriteOptions {
+                point_format: 0,
+                ..LasWriteOptions::default()
+            },
+        ],
+    );
+    // An empty file first, where the first file used to decide the grid.
+    let mut with_empties = empties.clone();
+    with_empties.insert(1, tiles[0].clone());
+    with_empties.extend(tiles[1..].iter().cloned());
+
+    let alone = load_dataset(&tiles).expect("tiles");
+    let mixed = load_dataset(&with_empties).expect("tiles and empty files");
+    assert_same_cloud(&mixed, &alone);
+
+    let alone = crate::ingest::DatasetSource::open(&tiles).expect("source of tiles");
+    let mixed = crate::ingest::DatasetSource::open(&with_empties).expect("mixed source");
+    assert_eq!(mixed.point_count(), alone.point_count());
+    assert_eq!(mixed.bounds(), alone.bounds());
+    assert_eq!(mixed.attributes(), alone.attributes());
+    assert!(
+        alone.position_grid().is_some(),
+        "tiles of one grid share it"
+    );
+    assert_eq!(mixed.position_grid(), alone.position_grid());
+    // One part a file, the empty ones empty, so a store's parts stay its file list's.
+    assert_eq!(mixed.part_starts().len(), with_empties.len());
+}
+
+#[test]
+fn a_dataset_of_empty_files_is_an_error_naming_them() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let empties = write_empty_files(
+        dir.path(),
+        &[LasWriteOptions::default(), LasWriteOptions::default()],
+    );
+    match load_dataset(&empties[..1]) {
+        Err(IngestError::NoPoints { path }) => assert_eq!(path, empties[0]),
+        other => panic!("expected no points, got {:?}", other.map(|c| c.len())),
+    }
+    let error = load_dataset(&empties).expect_err("no points");
+    assert!(
+        matches!(error, IngestError::NoPointsInFiles { files: 2 }),
+        "{error}"
+    );
+    // A preview sample of them says the same.
+    assert!(crate::ingest::sample_chunk_starts(&empties).is_err());
+}

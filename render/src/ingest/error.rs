@@ -75,8 +75,13 @@ pub enum IngestError {
     #[error("{}: not a regular file ({kind})", path.display())]
     NotRegularFile { path: PathBuf, kind: &'static str },
 
+    /// A dataset of one file, which declares no point.
     #[error("{}: the file contains no points", path.display())]
     NoPoints { path: PathBuf },
+
+    /// A dataset of several files, none of which declares a point.
+    #[error("none of the dataset's {files} files contains a point")]
+    NoPointsInFiles { files: usize },
 
     /// A size, count or offset read from the file points outside it or contradicts another
     /// field; `what` names the field and says why.

@@ -100,11 +100,6 @@ impl HeaderFacts {
             Some(large) if legacy_points == 0 => large.number_of_point_records,
             _ => legacy_points,
         };
-        if declared_points == 0 {
-            return Err(IngestError::NoPoints {
-                path: path.to_owned(),
-            });
-        }
 
         let data_start = u64::from(raw.offset_to_point_data);
         if data_start > file_len {

@@ -83,15 +83,41 @@ pub(super) fn checked_dataset(
     paths: &[PathBuf],
 ) -> Result<(Vec<DatasetFile>, WorldBounds, bool), IngestError> {
     let files = DatasetFile::check_all(paths)?;
+    require_points(&files)?;
     let header_bounds = dataset_header_bounds(&files);
-    let has_color = files.iter().all(|file| file.has_color);
+    let has_color = deciding_files(&files).iter().all(|file| file.has_color);
     Ok((files, header_bounds, has_color))
 }
 
-/// The union of the files' usable header bounds (the first file's when none is), which the
-/// dataset's origin is chosen against.
+/// The files whose headers decide what their dataset is (its bounds, origin, color,
+/// attributes and grid): those that declare points. A file without any (an empty tile of a
+/// campaign) is read like the others and adds nothing; where no file declares a point, all
+/// of them decide.
+pub(super) fn deciding_files(files: &[DatasetFile]) -> Vec<&DatasetFile> {
+    let with_points: Vec<&DatasetFile> = files.iter().filter(|file| file.has_points()).collect();
+    match with_points.is_empty() {
+        true => files.iter().collect(),
+        false => with_points,
+    }
+}
+
+/// An error unless one of the files declares a point: a dataset of empty files has nothing
+/// to frame or render.
+pub(super) fn require_points(files: &[DatasetFile]) -> Result<(), IngestError> {
+    match files {
+        _ if files.iter().any(DatasetFile::has_points) => Ok(()),
+        [only] => Err(IngestError::NoPoints {
+            path: only.path.clone(),
+        }),
+        _ => Err(IngestError::NoPointsInFiles { files: files.len() }),
+    }
+}
+
+/// The union of the deciding files' usable header bounds (the first one's when none is),
+/// which the dataset's origin is chosen against.
 pub(super) fn dataset_header_bounds(files: &[DatasetFile]) -> WorldBounds {
-    files
+    let deciding = deciding_files(files);
+    deciding
         .iter()
         .map(|file| file.header_bounds)
         .filter(usable)
@@ -99,14 +125,22 @@ pub(super) fn dataset_header_bounds(files: &[DatasetFile]) -> WorldBounds {
             min: a.min.min(b.min),
             max: a.max.max(b.max),
         })
-        .unwrap_or(files[0].header_bounds)
+        .unwrap_or(deciding[0].header_bounds)
 }
 
-/// What a store of a dataset's files frames: the union of their header bounds, widened by
-/// what rounding them to the files' scales may hide; a file whose header bounds are not
-/// finite or inverted cannot be framed.
+/// What a store of a dataset's files frames: the union of the deciding files' header bounds,
+/// widened by what rounding them to the files' scales may hide; a deciding file whose header
+/// bounds are not finite or inverted cannot be framed. Files without points lie nowhere.
 pub(super) fn dataset_bounds(files: &[DatasetFile]) -> Result<WorldBounds, IngestError> {
-    if let Some(file) = files.iter().find(|file| !usable(&file.header_bounds)) {
+    let deciding = deciding_files(files);
+    let Some(first) = deciding.first() else {
+        return Err(IngestError::NoFiles);
+    };
+    if !first.has_points() {
+        // An empty source lies nowhere, wherever its headers put it.
+        return Ok(WorldBounds::NOWHERE);
+    }
+    if let Some(file) = deciding.iter().find(|file| !usable(&file.header_bounds)) {
         return Err(IngestError::Corrupt {
             path: file.path.clone(),
             what: "its header bounds are not finite or inverted".into(),
@@ -128,12 +162,12 @@ pub(super) fn usable(bounds: &WorldBounds) -> bool {
 
 /// A file of a dataset that passed the pre-parse, with what its header says.
 /// The points a dataset's files declare, each file checked as a load checks it: what a caller
-/// reads to choose how to render a dataset before it reads a point.
+/// reads to choose how to render a dataset before it reads a point. An error where none of
+/// them declares a point, as a load's.
 pub fn dataset_point_count(paths: &[PathBuf]) -> Result<u64, IngestError> {
-    Ok(DatasetFile::check_all(paths)?
-        .iter()
-        .map(|file| file.facts.declared_points)
-        .sum())
+    let files = DatasetFile::check_all(paths)?;
+    require_points(&files)?;
+    Ok(files.iter().map(|file| file.facts.declared_points).sum())
 }
 
 pub(super) struct DatasetFile {
@@ -157,6 +191,11 @@ pub(super) struct DatasetFile {
 }
 
 impl DatasetFile {
+    /// Whether the file declares any point.
+    pub(super) fn has_points(&self) -> bool {
+        self.facts.declared_points > 0
+    }
+
     /// Every file of a dataset, checked; there must be one at least.
     pub(super) fn check_all(paths: &[PathBuf]) -> Result<Vec<Self>, IngestError> {
         if paths.is_empty() {

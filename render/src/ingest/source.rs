@@ -8,7 +8,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::contain::contain_panics;
-use super::read::{dataset_bounds, DatasetFile};
+use super::read::{dataset_bounds, deciding_files, DatasetFile};
 use super::IngestError;
 use crate::cloud::WorldBounds;
 use crate::lod::attributes::{extra_descriptors, RowFiller};
@@ -58,7 +58,7 @@ impl DatasetSource {
             fillers,
             grid: shared_grid(&files, &bounds),
             points: files.iter().map(|file| file.facts.declared_points).sum(),
-            has_rgb: files.iter().all(|file| file.has_color),
+            has_rgb: deciding_files(&files).iter().all(|file| file.has_color),
             bounds,
             files,
         })
@@ -69,6 +69,7 @@ impl DatasetSource {
 /// packets where one has them, and the extra bytes where every file declares the same ones
 /// (else they are dropped, and the schema says so, for the export to tell).
 fn attribute_schema(files: &[DatasetFile]) -> AttributeSchema {
+    let files = deciding_files(files);
     let descriptors: Vec<Vec<u8>> = files
         .iter()
         .map(|file| {
@@ -103,8 +104,8 @@ fn attribute_schema(files: &[DatasetFile]) -> AttributeSchema {
     }
 }
 
-/// One grid for all of a dataset's files: the first file's, and for each file the integers
-/// that move its coordinates onto it.
+/// One grid for all of a dataset's files: the first deciding file's (`read.rs`), and for each
+/// file the integers that move its coordinates onto it.
 #[derive(Debug, Clone)]
 struct SharedGrid {
     grid: PositionGrid,
@@ -114,9 +115,9 @@ struct SharedGrid {
 /// The shared grid of files with one scale whose offsets lie on each other's grids (tiles of
 /// one survey: one offset, or offsets a whole number of steps apart), and whose bounds fit
 /// i32 integers on it. A file's points then read as `scale * (i + shift) + offset` of the
-/// first file: the same coordinates, at most an f64 step apart, on one grid.
+/// first deciding file: the same coordinates, at most an f64 step apart, on one grid.
 fn shared_grid(files: &[DatasetFile], bounds: &WorldBounds) -> Option<SharedGrid> {
-    let first = files.first()?;
+    let first = *deciding_files(files).first()?;
     let grid = PositionGrid::new(first.scale, first.offset)?;
     let same_scale = |file: &DatasetFile| {
         file.scale.to_array().map(f64::to_bits) == first.scale.to_array().map(f64::to_bits)
@@ -128,7 +129,14 @@ fn shared_grid(files: &[DatasetFile], bounds: &WorldBounds) -> Option<SharedGrid
         (same_scale(file) && on_grid && whole.abs().max_element() < 2f64.powi(40))
             .then(|| whole.to_array().map(|v| v as i64))
     };
-    let shifts = files.iter().map(shift).collect::<Option<Vec<_>>>()?;
+    // A file without points reads nothing onto the grid, whatever its scale and offset.
+    let shifts = files
+        .iter()
+        .map(|file| match file.has_points() || !first.has_points() {
+            true => shift(file),
+            false => Some([0; 3]),
+        })
+        .collect::<Option<Vec<_>>>()?;
     // Every point inside the bounds (the batches' check) must have an i32 on the grid.
     let limit = f64::from(i32::MAX) - 1.0;
     let lo = (bounds.min - first.offset) / first.scale;

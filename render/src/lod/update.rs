@@ -570,8 +570,12 @@ fn update_on_pool(
     })
 }
 
-/// Refuses added points outside the store's cube, or of other attributes.
+/// Refuses added points outside the store's cube, or of other attributes. Files without
+/// points (empty tiles) add nothing to refuse, whatever their headers say.
 fn check_added(added: &dyn PointSource, old: &LodHierarchy) -> Result<(), LodError> {
+    if added.point_count() == 0 {
+        return Ok(());
+    }
     let cube = old.cube;
     let bounds = added.bounds();
     let top = cube.min + glam::DVec3::splat(cube.side);

@@ -78,7 +78,8 @@ impl BuildUnseen {
 }
 
 /// A dataset's files by the order the camera path needs them in, as their places among the
-/// files: those the first frame sees, the rest of the path's, and those no frame sees.
+/// files: those the first frame sees (and those without points), the rest of the path's, and
+/// those no frame sees.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct FileOrder {
     pub first: Vec<usize>,
@@ -111,10 +112,20 @@ impl FileOrder {
                 }
             }
         }
-        let unseen: Vec<usize> = (0..boxes.len()).filter(|&i| !seen[i]).collect();
+        // Files without points lie nowhere: no frame sees them, and the first stage takes
+        // them, for nothing.
+        let nowhere: Vec<usize> = (0..boxes.len())
+            .filter(|&i| !boxes[i].is_somewhere())
+            .collect();
+        let unseen: Vec<usize> = (0..boxes.len())
+            .filter(|&i| !seen[i] && boxes[i].is_somewhere())
+            .collect();
         // A path that sees nothing draws the background from any store; one that sees every
         // file needs the whole store.
-        (!first.is_empty() && !unseen.is_empty()).then_some(Self {
+        let sees_some = !first.is_empty();
+        first.extend(nowhere);
+        first.sort_unstable();
+        (sees_some && !unseen.is_empty()).then_some(Self {
             first,
             path,
             unseen,
@@ -154,8 +165,10 @@ impl FileOrder {
 }
 
 fn union(boxes: &[WorldBounds]) -> Option<WorldBounds> {
-    let (head, rest) = boxes.split_first()?;
-    Some(rest.iter().fold(*head, |all, b| WorldBounds {
+    // An empty file's box lies nowhere and widens nothing.
+    let mut somewhere = boxes.iter().filter(|b| b.is_somewhere());
+    let head = *somewhere.next()?;
+    Some(somewhere.fold(head, |all, b| WorldBounds {
         min: all.min.min(b.min),
         max: all.max.max(b.max),
     }))
@@ -164,6 +177,9 @@ fn union(boxes: &[WorldBounds]) -> Option<WorldBounds> {
 /// Whether a point inside `bounds` may draw a pixel of the frame of `settings` (module doc):
 /// false only when every corner of the box lies beyond one of the frame's six planes.
 pub fn frame_sees(settings: &FrameSettings, bounds: &WorldBounds) -> bool {
+    if !bounds.is_somewhere() {
+        return false;
+    }
     // Room for the f32 rounding of positions relative to the rendering origin.
     let slack = DVec3::splat(bounds.size().max_element() * 1e-6 + 1e-6);
     let grown = WorldBounds {

@@ -162,8 +162,10 @@ pub fn dataset_description(
         };
         (corner(&b.min), corner(&b.max))
     };
+    // A file without points (an empty tile) says nothing of where the dataset lies.
     let bounds = read
         .iter()
+        .filter(|f| f.points > 0)
         .filter_map(|f| f.bounds.as_ref().map(corners))
         .filter(|(min, max)| min.is_finite() && max.is_finite() && min.cmple(*max).all())
         .reduce(|(min_a, max_a), (min_b, max_b)| (min_a.min(min_b), max_a.max(max_b)))

@@ -567,6 +567,8 @@ fn a_description_sums_the_readable_files_and_names_the_others() {
         described([0.0, 0.0, 0.0], [1.0, 2.0, 3.0], 10),
         // Inverted bounds (an empty file's header) do not widen the union.
         described([9.0, 9.0, 9.0], [-9.0, -9.0, -9.0], 0),
+        // Nor do an empty file's plausible ones: a file without points lies nowhere.
+        described([100.0, 100.0, 100.0], [100.0, 100.0, 100.0], 0),
         described([-1.0, 0.5, 0.0], [0.5, 0.5, 4.0], 5),
         unreadable,
     ];
@@ -574,7 +576,7 @@ fn a_description_sums_the_readable_files_and_names_the_others() {
     let summary = description.summary.expect("summary");
     assert_eq!(
         (summary.files, summary.unreadable, summary.points),
-        (4, 1, 15)
+        (5, 1, 15)
     );
     let bounds = summary.bounds.expect("bounds");
     assert_eq!(bounds.min, vec3(-1.0, 0.0, 0.0));

@@ -66,12 +66,14 @@ pub struct ExportSettings {
 impl ExportSettings {
     /// The settings a store of the files `paths` is exported with: their finest scale and
     /// first offset (millimetres from the cube's corner without files) and the WKT record
-    /// they all declare.
+    /// they all declare. Only files that declare points decide, as in a load: an empty tile
+    /// of another scale or without a CRS changes nothing.
     pub fn of_files(paths: &[PathBuf], cube: &RootCube) -> Result<Self, CopcExportError> {
+        let deciding = transform::deciding_paths(paths);
         Ok(Self {
-            transform: ExportTransform::of_files(paths)?
+            transform: ExportTransform::of_files(&deciding)?
                 .unwrap_or_else(|| ExportTransform::fixed(cube)),
-            wkt: crs::common_wkt(paths)?,
+            wkt: crs::common_wkt(&deciding)?,
         })
     }
 

@@ -18,6 +18,30 @@ use glam::DVec3;
 use super::error::CopcExportError;
 use crate::lod::RootCube;
 
+/// The files among `paths` whose headers declare points; all of them where none does, or
+/// where a header cannot be read (the export then says why).
+pub(super) fn deciding_paths(paths: &[PathBuf]) -> Vec<PathBuf> {
+    let declares_points = |path: &PathBuf| {
+        let header = File::open(path)
+            .ok()
+            .and_then(|file| las::raw::Header::read_from(BufReader::new(file)).ok());
+        header.is_none_or(|h| {
+            h.number_of_point_records > 0
+                || h.large_file
+                    .is_some_and(|large| large.number_of_point_records > 0)
+        })
+    };
+    let with_points: Vec<PathBuf> = paths
+        .iter()
+        .filter(|p| declares_points(p))
+        .cloned()
+        .collect();
+    match with_points.is_empty() {
+        true => paths.to_vec(),
+        false => with_points,
+    }
+}
+
 /// The scale when the dataset's files are not at hand: one millimetre.
 pub const DEFAULT_SCALE: f64 = 0.001;
 

@@ -78,6 +78,28 @@ fn a_low_flight_sees_the_tiles_before_it_and_not_those_behind_or_past_the_far_pl
     assert_eq!(order.stages(BuildUnseen::After)[2].1.len(), 100);
 }
 
+#[test]
+fn files_without_points_go_with_the_first_frame_and_frame_nothing() {
+    let boxes = tile_boxes(10);
+    let request = flight(4, PointSize::Fixed(2));
+    let alone = FileOrder::of(&request, &boxes).expect("a part seen");
+    // Two empty files, one first, where they would otherwise widen the extent the
+    // frames are framed in.
+    let mut with_empty = vec![WorldBounds::NOWHERE];
+    with_empty.extend(boxes.iter().copied());
+    with_empty.push(WorldBounds::NOWHERE);
+    let order = FileOrder::of(&request, &with_empty).expect("a part seen");
+    let shifted = |places: &[usize]| places.iter().map(|p| p + 1).collect::<Vec<_>>();
+    let mut first = vec![0];
+    first.extend(shifted(&alone.first));
+    first.push(101);
+    assert_eq!(order.first, first);
+    assert_eq!(order.path, shifted(&alone.path));
+    assert_eq!(order.unseen, shifted(&alone.unseen));
+    // Empty files alone are seen by no frame and give no order: the whole store first.
+    assert_eq!(FileOrder::of(&request, &[WorldBounds::NOWHERE; 3]), None);
+}
+
 /// Points of `bounds`: its corners, centre and a grid through it.
 fn points_of(bounds: &WorldBounds) -> Vec<DVec3> {
     let steps = 6;
