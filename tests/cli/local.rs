@@ -210,8 +210,21 @@ fn bad_input_fails_with_one_line_that_names_the_problem() {
         pointfarm(&args)
     };
 
+    // A header whose largest x (LAS 1.2: byte 179) is a metre past its smallest (byte 187).
+    let understated = super::sample(dir.path(), "understated.las", 1000);
+    let mut bytes = std::fs::read(&understated).expect("read");
+    let min_x = f64::from_le_bytes(bytes[187..195].try_into().expect("8 bytes"));
+    bytes[179..187].copy_from_slice(&(min_x + 1.0).to_le_bytes());
+    std::fs::write(&understated, bytes).expect("patch");
+    let cache = path_arg(&dir.path().join("cache"));
+    let lod = ["--lod-error", "1", "--cache-dir", cache.as_str()];
+
     let cases: Vec<(Output, &str)> = vec![
         (pointfarm(&["render", &not_las, "--out", &out]), "notes.las"),
+        (
+            pointfarm(&[&["render", &understated, "--out", &out][..], &lod].concat()),
+            "understated.las: its point at",
+        ),
         (
             pointfarm(&["render", "/nonexistent/scan.laz", "--out", &out]),
             "scan.laz",

@@ -86,7 +86,13 @@ impl StoredLod {
             return Self::open_finished(build.folder);
         }
         let source = DatasetSource::open(files)?;
-        Self::open_or_build_source(&source, build)
+        Self::open_or_build_source(&source, build).map_err(|error| match error {
+            CutError::Store(error) => match source.naming_the_file(error) {
+                Ok(named) => CutError::Ingest(named),
+                Err(error) => CutError::Store(error),
+            },
+            error => error,
+        })
     }
 
     /// [`StoredLod::open_or_build_watched`] of a source opened already (tiles by URL, or some

@@ -75,6 +75,22 @@ pub enum IngestError {
     #[error("{}: not a regular file ({kind})", path.display())]
     NotRegularFile { path: PathBuf, kind: &'static str },
 
+    /// A point beyond the bounds its file's header declares, found by a level-of-detail
+    /// build, which builds within the headers' bounds.
+    #[error(
+        "{}: its point at {} lies outside the bounds its header declares ({} .. {}): levels \
+         of detail are built within the headers' bounds, so the header must be corrected \
+         (for example with LAStools' `lasinfo -repair_bb`); below 20M points the dataset \
+         also renders without --lod-error",
+        path.display(), xyz(position), xyz(min), xyz(max)
+    )]
+    PointOutsideHeaderBounds {
+        path: PathBuf,
+        position: [f64; 3],
+        min: [f64; 3],
+        max: [f64; 3],
+    },
+
     /// A dataset of one file, which declares no point.
     #[error("{}: the file contains no points", path.display())]
     NoPoints { path: PathBuf },
@@ -117,4 +133,9 @@ pub enum IngestError {
     /// Anything else the `las` crate rejects: malformed VLRs, corrupt LAZ chunks, ...
     #[error("{}: malformed LAS/LAZ data: {error}", path.display())]
     Malformed { path: PathBuf, error: las::Error },
+}
+
+/// A position as a message says it: millimetres, the file's usual precision.
+fn xyz(p: &[f64; 3]) -> String {
+    format!("{:.3}, {:.3}, {:.3}", p[0], p[1], p[2])
 }

@@ -279,6 +279,36 @@ fn fill(
     });
 }
 
+impl DatasetSource {
+    /// A build's refusal of a point outside the bounds said as the file it came from and its
+    /// header's bounds: what a user can correct. Other errors are as they are.
+    pub fn naming_the_file(&self, error: LodError) -> Result<IngestError, LodError> {
+        let LodError::PointOutsideBounds {
+            index, position, ..
+        } = error
+        else {
+            return Err(error);
+        };
+        let starts = self.part_starts();
+        let place = starts.partition_point(|&start| start <= index);
+        // The last file starting at or before the point that holds points: an empty file
+        // shares its start with the next.
+        let file = (0..place)
+            .rev()
+            .map(|i| &self.files[i])
+            .find(|file| file.has_points());
+        match file {
+            Some(file) => Ok(IngestError::PointOutsideHeaderBounds {
+                path: file.path.clone(),
+                position,
+                min: file.header_bounds.min.to_array(),
+                max: file.header_bounds.max.to_array(),
+            }),
+            None => Err(error),
+        }
+    }
+}
+
 impl PointSource for DatasetSource {
     fn bounds(&self) -> WorldBounds {
         self.bounds

@@ -384,6 +384,50 @@ fn a_bad_file_fails_the_source_naming_it() {
     assert!(error.to_string().contains("bad.las"), "{error}");
 }
 
+#[test]
+fn a_point_beyond_its_headers_bounds_is_named_by_its_file() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let scene = sample_scene(8_000, 5);
+    let world = |i: usize| scene.origin.x + f64::from(scene.positions[i].x);
+    let middle = scene.bounds.center().x;
+    let (west, east): (Vec<usize>, Vec<usize>) = (0..scene.len()).partition(|&i| world(i) < middle);
+    let options = LasWriteOptions::default();
+    let paths = ["west.laz", "empty.las", "east.las"].map(|name| dir.path().join(name));
+    write_las(&paths[0], &scene.select(&west), &options).expect("west");
+    write_las(&paths[1], &scene.select(&[]), &options).expect("empty");
+    write_las(&paths[2], &scene.select(&east), &options).expect("east");
+    // The east file's header says its points end a metre past the middle: LAS 1.2 keeps the
+    // largest x at byte 179.
+    let mut bytes = std::fs::read(&paths[2]).expect("read");
+    bytes[179..187].copy_from_slice(&(middle + 1.0).to_le_bytes());
+    std::fs::write(&paths[2], bytes).expect("patch");
+
+    let source = DatasetSource::open(&paths).expect("open");
+    let db = sled::Config::new().temporary(true).open().expect("sled");
+    let tree = db.open_tree("lod").expect("tree");
+    let store = LodStore::open(tree, dir.path().join("lod.bin")).expect("store");
+    let options = LodBuildOptions::new(dir.path().join("spill"));
+    let error = build_lod(&source, &store, &options).expect_err("a refusal");
+    match source.naming_the_file(error) {
+        Ok(IngestError::PointOutsideHeaderBounds {
+            path,
+            position,
+            max,
+            ..
+        }) => {
+            assert_eq!(path, paths[2]);
+            assert!(position[0] > middle + 1.0 && max[0] == middle + 1.0);
+        }
+        other => panic!("expected the east file named, got {other:?}"),
+    }
+    // Another error is left as it is.
+    let other = LodError::MissingHierarchy;
+    assert!(matches!(
+        source.naming_the_file(other),
+        Err(LodError::MissingHierarchy)
+    ));
+}
+
 /// The visitor runs while the next batch decodes: every batch reaches it in order, its
 /// error stops the reading and is what the read returns, and a file that fails while
 /// the visitor works is named.
