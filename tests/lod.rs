@@ -6,7 +6,7 @@ use std::path::Path;
 
 use pointfarm_render::ingest::{load_point_cloud, write_las, LasWriteOptions};
 use pointfarm_render::sample::sample_scene;
-use pointfarm_render::testing::write_scene_tiles;
+use pointfarm_render::testing::{write_empty_files, write_scene_tiles};
 use pointfarm_tests::service::{scratch_sample, write_sample};
 use pointfarm_tests::{
     assert_pngs_alike, assert_same_frames, json_lines, json_names, output_text, path_arg,
@@ -184,7 +184,7 @@ fn a_job_renders_from_levels_of_detail_through_the_service_as_here() {
     let dir = tempfile::tempdir().expect("tempdir");
     // The tiles, one of them empty: uploaded, stored and rendered as here.
     let (_, tiles) = scene_and_tiles(dir.path(), 30_000);
-    write_empty_tiles(&tiles, &["north/empty.laz"]);
+    write_empty_files(&tiles, &["north/empty.laz"]);
     let cache = dir.path().join("cache");
     let (local, remote) = (dir.path().join("local"), dir.path().join("remote"));
     let options = ["--size=160x120", "--turntable", "2", "--lod-error", "0.5"];
@@ -554,27 +554,6 @@ fn view_of(report: &serde_json::Value) -> [f64; 3] {
     [offset[0] / length, offset[1] / length, offset[2] / length]
 }
 
-/// Files that declare no points (empty tiles) at `names` in `folder`, of other versions,
-/// formats and scales than the tiles: were they to decide, the color, the grid, the framing
-/// and an export's scale and offset would change.
-fn write_empty_tiles(folder: &Path, names: &[&str]) {
-    let empty = sample_scene(100, 1).select(&[]);
-    let options = [
-        LasWriteOptions {
-            version: (1, 4),
-            point_format: 6,
-            scale: 0.01,
-        },
-        LasWriteOptions {
-            point_format: 0,
-            ..LasWriteOptions::default()
-        },
-    ];
-    for (name, options) in names.iter().zip(options.iter().cycle()) {
-        write_las(&folder.join(name), &empty, options).expect("empty tile");
-    }
-}
-
 #[test]
 fn empty_tiles_change_no_frame_and_no_export_and_a_dataset_of_them_is_refused() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -614,7 +593,7 @@ fn empty_tiles_change_no_frame_and_no_export_and_a_dataset_of_them_is_refused() 
     let copc = export("tiles.copc.laz", &cache);
 
     // The first file in the dataset's order is empty now, where the first file decided.
-    write_empty_tiles(&tiles, &["a_empty.laz", "north/empty.las"]);
+    write_empty_files(&tiles, &["a_empty.laz", "north/empty.las"]);
     assert!(
         render("resident-2.png", &[]).0 == resident,
         "resident frame changed"
@@ -641,7 +620,7 @@ fn empty_tiles_change_no_frame_and_no_export_and_a_dataset_of_them_is_refused() 
     // A dataset of empty files alone has nothing to render, said in one line.
     let empty_only = dir.path().join("empty-only");
     std::fs::create_dir_all(&empty_only).expect("folder");
-    write_empty_tiles(&empty_only, &["a.laz", "b.las"]);
+    write_empty_files(&empty_only, &["a.laz", "b.las"]);
     let out = dir.path().join("nothing.png");
     for more in [&[][..], &lod_args[..]] {
         let mut args = vec!["render", path_arg(&empty_only), "--out", path_arg(&out)];

@@ -222,6 +222,35 @@ pub fn write_scene_tiles(dir: &Path, points: usize, count: u64) -> Vec<PathBuf> 
         .collect()
 }
 
+/// Files that declare no points (empty tiles) at `names` in `dir`, alternately LAS 1.4
+/// format 6 at centimetres and LAS 1.2 format 0 at millimetres: other versions, formats and
+/// scales than [`write_scene_tiles`]' and most tests' files, without RGB, so that a file
+/// without points that decided anything for its dataset would change it.
+pub fn write_empty_files(dir: &Path, names: &[&str]) -> Vec<PathBuf> {
+    use crate::ingest::{write_las, LasWriteOptions};
+    use crate::sample::sample_scene;
+
+    let empty = sample_scene(100, 1).select(&[]);
+    let options = [
+        LasWriteOptions {
+            version: (1, 4),
+            point_format: 6,
+            scale: 0.01,
+        },
+        LasWriteOptions {
+            point_format: 0,
+            ..LasWriteOptions::default()
+        },
+    ];
+    (names.iter().zip(options.iter().cycle()))
+        .map(|(name, options)| {
+            let path = dir.join(name);
+            write_las(&path, &empty, options).expect("an empty file");
+            path
+        })
+        .collect()
+}
+
 /// How [`laz_of_las`] cuts a file's points into LAZ chunks.
 pub enum LazChunks<'a> {
     /// Chunks of this many points (the `las` writer's are always 50,000).
