@@ -1,5 +1,5 @@
 //! Final frames of LAS/LAZ tiles by URL, against real servers on loopback: a campaign of
-//! generated tiles (three LAZ, one LAS of more than one streamed block) served by `s3s-fs`
+//! generated tiles (three LAZ, one LAS of more than one streamed block, one empty) served by `s3s-fs`
 //! and by nginx. The store built by streaming them renders the frames of the same files here
 //! pixel for pixel, fetching about the tiles' bytes once; a second render opens it after one
 //! listing; an object replaced after it was listed, or while the build streams it, fails the
@@ -15,7 +15,7 @@ use pointfarm_render::lod::BuildProgress;
 use pointfarm_render::remote::{ObjectUrl, RemoteClient, RemoteSettings};
 use pointfarm_render::sample::sample_scene;
 use pointfarm_render::source::{listed_tiles, open_tile_source};
-use pointfarm_render::testing::write_scene_tiles;
+use pointfarm_render::testing::{write_empty_files, write_scene_tiles};
 use pointfarm_tests::nginx::NginxServer;
 use pointfarm_tests::s3s::{run_s3, S3sServer};
 use pointfarm_tests::{assert_same_frames, json_lines, output_text, path_arg, pointfarm_ok};
@@ -39,6 +39,8 @@ fn write_campaign(folder: &Path) -> Vec<PathBuf> {
     write_las(&big, &sample_scene(300_000, 4), &LasWriteOptions::default()).expect("LAS tile");
     assert!(std::fs::metadata(&big).expect("LAS tile").len() > 8 << 20);
     tiles.push(big);
+    // An empty tile, as a tiling leaves where there were no points: it changes nothing.
+    tiles.extend(write_empty_files(folder, &["t5.laz"]));
     tiles
 }
 

@@ -135,6 +135,22 @@ fn the_sample_cloud_has_the_loaded_datasets_origin_and_points() {
     assert_eq!(sample.cloud.color_source, full.color_source);
 }
 
+#[test]
+fn empty_files_leave_the_sample_as_it_is() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let a = write_default(dir.path(), "a.laz", &test_cloud(120_000));
+    let b = write_default(dir.path(), "b.las", &test_cloud(60_000));
+    let empties = crate::testing::write_empty_files(dir.path(), &["0.laz", "1.las"]);
+    let alone = sample_dataset(&[a.clone(), b.clone()], 25_000).expect("sample");
+    let mixed = [empties[0].clone(), a, empties[1].clone(), b];
+    let sample = sample_dataset(&mixed, 25_000).expect("sample with empty files");
+    assert_eq!(sample.points_in_files, alone.points_in_files);
+    assert_eq!(sample.cloud.origin, alone.cloud.origin);
+    assert_eq!(sample.cloud.positions, alone.cloud.positions);
+    assert_eq!(sample.cloud.colors, alone.cloud.colors);
+    assert_eq!(sample.cloud.color_source, alone.cloud.color_source);
+}
+
 /// `las` (an uncompressed LAS 1.2 file without VLRs) compressed as point-wise LAZ in chunks
 /// of `chunks` points each (variable-size chunks, which the crate's writer does not make).
 fn variable_chunk_laz(las: &Path, chunks: &[usize]) -> PathBuf {
