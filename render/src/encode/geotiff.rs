@@ -175,12 +175,18 @@ pub enum GeoCrs {
 }
 
 impl GeoCrs {
-    /// The CRS every one of `paths` declares (headers only); [`GeoCrs::Unknown`] when one has
-    /// none or they differ.
+    /// The CRS every one of `paths` that declares points declares (headers only; an empty
+    /// tile decides nothing, as in a load); [`GeoCrs::Unknown`] when one has none or they
+    /// differ.
     pub fn of_files(paths: &[PathBuf]) -> Result<Self, IngestError> {
+        let infos = (paths.iter())
+            .map(|path| Ok((FileInfo::read(path)?, path.as_path())))
+            .collect::<Result<Vec<_>, IngestError>>()?;
+        let with_points = infos.iter().any(|(info, _)| info.points > 0);
+        let deciding = (infos.into_iter()).filter(|(info, _)| info.points > 0 || !with_points);
         let mut common: Option<(Crs, &Path)> = None;
-        for path in paths {
-            let crs = FileInfo::read(path)?.crs;
+        for (info, path) in deciding {
+            let crs = info.crs;
             match &common {
                 None => common = Some((crs, path)),
                 Some((first, first_path)) if *first != crs => {
@@ -355,6 +361,28 @@ mod tests {
         assert_eq!(lines.len(), 6);
         assert!((lines[4] - (target.x - 47.5)).abs() < 1e-6, "{world}");
         assert!((lines[5] - (target.y + 31.5)).abs() < 1e-6, "{world}");
+    }
+
+    #[test]
+    fn an_empty_file_without_a_crs_leaves_the_scans_crs() {
+        let Some(scan) = crate::testing::shared_data("lone-star.laz") else {
+            eprintln!("skipped: shared/data/lone-star.laz is not in this checkout");
+            return;
+        };
+        let dir = tempfile::tempdir().expect("tempdir");
+        let empty = crate::testing::write_empty_files(dir.path(), &["empty.las"]);
+        let alone = GeoCrs::of_files(std::slice::from_ref(&scan)).expect("the scan's CRS");
+        assert!(matches!(alone, GeoCrs::Epsg { .. }), "{alone:?}");
+        let mixed = [empty[0].clone(), scan];
+        assert_eq!(
+            GeoCrs::of_files(&mixed).expect("with the empty file"),
+            alone
+        );
+        // Empty files alone decide, and declare none.
+        assert!(matches!(
+            GeoCrs::of_files(&empty).expect("the empty file's"),
+            GeoCrs::Unknown(_)
+        ));
     }
 
     #[test]
