@@ -160,7 +160,6 @@ pub(super) fn usable(bounds: &WorldBounds) -> bool {
     bounds.min.is_finite() && bounds.max.is_finite() && bounds.min.cmple(bounds.max).all()
 }
 
-/// A file of a dataset that passed the pre-parse, with what its header says.
 /// The points a dataset's files declare, each file checked as a load checks it: what a caller
 /// reads to choose how to render a dataset before it reads a point. An error where none of
 /// them declares a point, as a load's.
@@ -170,6 +169,7 @@ pub fn dataset_point_count(paths: &[PathBuf]) -> Result<u64, IngestError> {
     Ok(files.iter().map(|file| file.facts.declared_points).sum())
 }
 
+/// A file of a dataset that passed the pre-parse, with what its header says.
 pub(super) struct DatasetFile {
     pub path: PathBuf,
     file_len: u64,

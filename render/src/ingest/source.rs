@@ -30,9 +30,10 @@ pub struct DatasetSource {
 }
 
 impl DatasetSource {
-    /// Checks every file (the same pre-parse as a load); the bounds are the union of their
-    /// headers', widened by their rounding. A file whose header bounds are unusable is an
-    /// error naming it: the builder needs bounds before it reads a point.
+    /// Checks every file (the same pre-parse as a load); the bounds are the union of the
+    /// headers' of the files that declare points (`read.rs`), widened by their rounding. A
+    /// file whose header bounds are unusable is an error naming it: the builder needs bounds
+    /// before it reads a point.
     pub fn open(paths: &[PathBuf]) -> Result<Self, IngestError> {
         Self::of_files(DatasetFile::check_all(paths)?)
     }
@@ -62,6 +63,34 @@ impl DatasetSource {
             bounds,
             files,
         })
+    }
+
+    /// A build's refusal of a point outside the bounds said as the file it came from and its
+    /// header's bounds: what a user can correct. Other errors are as they are.
+    pub fn naming_the_file(&self, error: LodError) -> Result<IngestError, LodError> {
+        let LodError::PointOutsideBounds {
+            index, position, ..
+        } = error
+        else {
+            return Err(error);
+        };
+        let starts = self.part_starts();
+        let place = starts.partition_point(|&start| start <= index);
+        // The last file starting at or before the point that holds points: an empty file
+        // shares its start with the next.
+        let file = (0..place)
+            .rev()
+            .map(|i| &self.files[i])
+            .find(|file| file.has_points());
+        match file {
+            Some(file) => Ok(IngestError::PointOutsideHeaderBounds {
+                path: file.path.clone(),
+                position,
+                min: file.header_bounds.min.to_array(),
+                max: file.header_bounds.max.to_array(),
+            }),
+            None => Err(error),
+        }
     }
 }
 
@@ -277,36 +306,6 @@ fn fill(
             }
         }
     });
-}
-
-impl DatasetSource {
-    /// A build's refusal of a point outside the bounds said as the file it came from and its
-    /// header's bounds: what a user can correct. Other errors are as they are.
-    pub fn naming_the_file(&self, error: LodError) -> Result<IngestError, LodError> {
-        let LodError::PointOutsideBounds {
-            index, position, ..
-        } = error
-        else {
-            return Err(error);
-        };
-        let starts = self.part_starts();
-        let place = starts.partition_point(|&start| start <= index);
-        // The last file starting at or before the point that holds points: an empty file
-        // shares its start with the next.
-        let file = (0..place)
-            .rev()
-            .map(|i| &self.files[i])
-            .find(|file| file.has_points());
-        match file {
-            Some(file) => Ok(IngestError::PointOutsideHeaderBounds {
-                path: file.path.clone(),
-                position,
-                min: file.header_bounds.min.to_array(),
-                max: file.header_bounds.max.to_array(),
-            }),
-            None => Err(error),
-        }
-    }
 }
 
 impl PointSource for DatasetSource {
