@@ -14,7 +14,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use pointfarm_render::copc::{self, CopcSummary};
-use pointfarm_render::ingest::{Crs, FileInfo};
+use pointfarm_render::ingest::{deciding, Crs, FileInfo};
 use pointfarm_render::lod::copc_export::{
     export_copc, CopcExportError, CopcExportReport, ExportSettings, ExportTransform,
 };
@@ -148,11 +148,7 @@ impl Daemon {
 /// declares the same one (as its text, NUL-terminated, as LAS writes it).
 fn tiles_export_settings(headers: &[FileInfo], cube: &RootCube) -> ExportSettings {
     // Only tiles with points decide, as in a load: an empty tile changes nothing.
-    let with_points: Vec<&FileInfo> = headers.iter().filter(|h| h.points > 0).collect();
-    let headers: Vec<&FileInfo> = match with_points.is_empty() {
-        true => headers.iter().collect(),
-        false => with_points,
-    };
+    let headers = deciding(headers, |info| info.points);
     let Some(&first) = headers.first() else {
         return ExportSettings::fixed(cube);
     };

@@ -182,11 +182,9 @@ impl GeoCrs {
         let infos = (paths.iter())
             .map(|path| Ok((FileInfo::read(path)?, path.as_path())))
             .collect::<Result<Vec<_>, IngestError>>()?;
-        let with_points = infos.iter().any(|(info, _)| info.points > 0);
-        let deciding = (infos.into_iter()).filter(|(info, _)| info.points > 0 || !with_points);
         let mut common: Option<(Crs, &Path)> = None;
-        for (info, path) in deciding {
-            let crs = info.crs;
+        for (info, path) in crate::ingest::deciding(&infos, |(info, _)| info.points) {
+            let crs = info.crs.clone();
             match &common {
                 None => common = Some((crs, path)),
                 Some((first, first_path)) if *first != crs => {

@@ -73,5 +73,5 @@ pub use store_update::{update_from_files, FilesChange};
 
 /// The first four bytes of every LAS and LAZ file.
 pub const LAS_SIGNATURE: &[u8; 4] = b"LASF";
-pub use read::{dataset_point_count, load_dataset, load_point_cloud};
+pub use read::{dataset_point_count, deciding, load_dataset, load_point_cloud};
 pub use write::{write_las, LasStreamWriter, LasWriteOptions, WriteLasError};

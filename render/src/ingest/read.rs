@@ -89,16 +89,22 @@ pub(super) fn checked_dataset(
     Ok((files, header_bounds, has_color))
 }
 
-/// The files whose headers decide what their dataset is (its bounds, origin, color,
-/// attributes and grid): those that declare points. A file without any (an empty tile of a
-/// campaign) is read like the others and adds nothing; where no file declares a point, all
+/// What decides for a dataset among `items`, one of each of its files, given the points each
+/// file declares: those of the files that declare points. A file without any (an empty tile
+/// of a campaign) is read like the others and decides nothing (bounds, origin, color,
+/// attributes, grid, an export's scale, offset and CRS); where no file declares a point, all
 /// of them decide.
-pub(super) fn deciding_files(files: &[DatasetFile]) -> Vec<&DatasetFile> {
-    let with_points: Vec<&DatasetFile> = files.iter().filter(|file| file.has_points()).collect();
+pub fn deciding<T>(items: &[T], points: impl Fn(&T) -> u64) -> Vec<&T> {
+    let with_points: Vec<&T> = items.iter().filter(|item| points(item) > 0).collect();
     match with_points.is_empty() {
-        true => files.iter().collect(),
+        true => items.iter().collect(),
         false => with_points,
     }
+}
+
+/// The files whose headers decide what their dataset is ([`deciding`]).
+pub(super) fn deciding_files(files: &[DatasetFile]) -> Vec<&DatasetFile> {
+    deciding(files, |file| file.facts.declared_points)
 }
 
 /// An error unless one of the files declares a point: a dataset of empty files has nothing

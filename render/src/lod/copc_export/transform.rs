@@ -18,28 +18,15 @@ use glam::DVec3;
 use super::error::CopcExportError;
 use crate::lod::RootCube;
 
-/// The files among `paths` whose headers declare points; all of them where none does, or
-/// where a header cannot be read (the export then says why).
+/// The files among `paths` that decide an export ([`crate::ingest::deciding`]); a file whose
+/// header cannot be read stays among them, for the export to say why.
 pub(super) fn deciding_paths(paths: &[PathBuf]) -> Vec<PathBuf> {
-    let declares_points = |path: &PathBuf| {
-        let header = File::open(path)
-            .ok()
-            .and_then(|file| las::raw::Header::read_from(BufReader::new(file)).ok());
-        header.is_none_or(|h| {
-            h.number_of_point_records > 0
-                || h.large_file
-                    .is_some_and(|large| large.number_of_point_records > 0)
-        })
-    };
-    let with_points: Vec<PathBuf> = paths
-        .iter()
-        .filter(|p| declares_points(p))
+    let points =
+        |path: &PathBuf| crate::ingest::FileInfo::read(path).map_or(u64::MAX, |i| i.points);
+    crate::ingest::deciding(paths, points)
+        .into_iter()
         .cloned()
-        .collect();
-    match with_points.is_empty() {
-        true => paths.to_vec(),
-        false => with_points,
-    }
+        .collect()
 }
 
 /// The scale when the dataset's files are not at hand: one millimetre.
